@@ -1,0 +1,169 @@
+"""One validated config per job: defaults, then a TOML file, then command-line overrides.
+
+Configs are frozen dataclasses (nested for sections). `from_dict` builds one from plain data and rejects
+unknown keys, wrong types and non-finite numbers; each dataclass may define `validate()` for its own ranges.
+Every problem raises ConfigError naming the field, the value and what was expected, before any work starts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import tomllib
+import types
+import typing
+from typing import Any
+
+
+class ConfigError(ValueError):
+    """A user error in a config or argument: the CLI prints it without a traceback."""
+
+    def __init__(self, field: str, value: Any, expected: str):
+        self.field, self.value, self.expected = field, value, expected
+        super().__init__(f"{field} = {value!r}: expected {expected}")
+
+
+class InputError(ValueError):
+    """A user error that is not about one config field (a missing or unreadable file, say)."""
+
+
+def load_toml(path: str) -> dict:
+    """Read a TOML file; a missing or malformed file is an InputError naming the file and the problem."""
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise InputError(f"config file {path!r} does not exist") from None
+    except IsADirectoryError:
+        raise InputError(f"config file {path!r} is a directory, expected a TOML file") from None
+    except tomllib.TOMLDecodeError as err:
+        raise InputError(f"config file {path!r} is not valid TOML: {err}") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"config file {path!r} cannot be read: {err}") from None
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _convert(value: Any, hint: Any, field: str) -> Any:
+    """Check and convert one value against its type hint."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(hint)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _convert(value, arg, field)
+            except ConfigError as err:
+                errors.append(err.expected)
+        raise ConfigError(field, value, " or ".join(errors + (["nothing (omit it)"] if type(None) in args else [])))
+    if dataclasses.is_dataclass(hint):
+        if not isinstance(value, dict):
+            raise ConfigError(field, value, f"a table of {', '.join(f.name for f in dataclasses.fields(hint))}")
+        return from_dict(hint, value, prefix=field)
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(field, value, "true or false")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not (isinstance(value, int) or (isinstance(value, float) and value.is_integer())):
+            raise ConfigError(field, value, "an integer")
+        return int(value)
+    if hint is float:
+        if not _is_number(value):
+            raise ConfigError(field, value, "a number")
+        if not math.isfinite(float(value)):
+            raise ConfigError(field, value, "a finite number")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(field, value, "a string")
+        return value
+    if origin is tuple:
+        args = typing.get_args(hint)
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(field, value, f"a list of {len(args) if args[-1] is not Ellipsis else 'some'} numbers")
+        if args and args[-1] is Ellipsis:
+            return tuple(_convert(v, args[0], f"{field}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(field, value, f"a list of {len(args)} values")
+        return tuple(_convert(v, a, f"{field}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    if typing.get_origin(hint) is typing.Literal:
+        allowed = typing.get_args(hint)
+        if value not in allowed:
+            raise ConfigError(field, value, "one of " + ", ".join(repr(a) for a in allowed))
+        return value
+    return value
+
+
+def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
+    """Build the dataclass `cls` from `data` over its defaults; validates types, then `validate()`."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    for key in data:
+        if key not in names:
+            where = f"{prefix}.{key}" if prefix else key
+            raise ConfigError(where, data[key], "a known key: " + ", ".join(sorted(names)))
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        where = f"{prefix}.{f.name}" if prefix else f.name
+        if f.name in data:
+            kwargs[f.name] = _convert(data[f.name], hints[f.name], where)
+    obj = cls(**kwargs)
+    validate = getattr(obj, "validate", None)
+    if validate is not None:
+        validate(prefix)
+    return obj
+
+
+def to_dict(obj: Any) -> dict:
+    """A config as plain JSON-able data."""
+    return json.loads(json.dumps(dataclasses.asdict(obj)))
+
+
+def to_json(obj: Any) -> str:
+    """A config as a JSON string (the `config_json` written next to every output)."""
+    return json.dumps(dataclasses.asdict(obj), sort_keys=True)
+
+
+def deep_update(base: dict, update: dict) -> dict:
+    """Recursive dict merge: values of `update` win; tables merge key by key."""
+    out = dict(base)
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = deep_update(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def set_dotted(data: dict, dotted: str, value: Any) -> dict:
+    """Return a copy of `data` with `a.b.c` set to value (used for command-line overrides)."""
+    parts = dotted.split(".")
+    update: dict = {}
+    node = update
+    for p in parts[:-1]:
+        node = node.setdefault(p, {})
+    node[parts[-1]] = value
+    return deep_update(data, update)
+
+
+def resolve(cls: type, config_path: str | None, overrides: dict[str, Any]) -> Any:
+    """Defaults, then the TOML file (if any), then overrides {'section.key': value} (None values skipped)."""
+    data = load_toml(config_path) if config_path else {}
+    for key, value in overrides.items():
+        if value is not None:
+            data = set_dotted(data, key, value)
+    return from_dict(cls, data)
+
+
+def check(cond: bool, field: str, value: Any, expected: str) -> None:
+    """Raise ConfigError(field, value, expected) unless cond holds."""
+    if not cond:
+        raise ConfigError(field, value, expected)
