@@ -14,7 +14,7 @@ import sys
 from envisat_pose.config import ConfigError, InputError
 
 # Modules that define register(subparsers); a package whose cli module is absent simply adds no verbs.
-_VERB_MODULES = ("datagen.cli", "filtering.cli", "perception.cli", "analysis.cli")
+_VERB_MODULES = ("datagen.cli", "datagen.cli_factory", "filtering.cli", "perception.cli", "analysis.cli")
 
 
 def build_parser() -> argparse.ArgumentParser:

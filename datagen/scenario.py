@@ -1,0 +1,146 @@
+"""The truth scenario: the chaser's orbit, the target's tumble, the initial relative state, the time grid.
+
+Defaults are the reference sheet's (shared/reference.md, sections 2 and 6): a 50 m V-bar hold on a
+7142 km, e = 0.001 orbit, ENVISAT spinning with a 134.74 s period. One frozen config per job, validated at
+the boundary by `envisat_pose.config.from_dict`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from envisat_pose.config import check, from_dict, deep_update
+from envisat_pose.geometry import load_geometry
+
+EARTH_RADIUS_M = 6378137.0  # WGS-84 equatorial radius, used only to reject orbits inside the Earth
+
+
+@dataclass(frozen=True)
+class OrbitConfig:
+    """The chaser's (chief's) Keplerian orbit. Angles in degrees; the true anomaly is at t = 0."""
+
+    mu_m3_s2: float = 3.986004418e14
+    a_m: float = 7142.0e3
+    e: float = 0.001
+    i_deg: float = 98.4
+    raan_deg: float = 0.0
+    argp_deg: float = 90.0
+    nu0_deg: float = 30.0
+
+    def validate(self, prefix: str = "orbit") -> None:
+        check(self.mu_m3_s2 > 0, f"{prefix}.mu_m3_s2", self.mu_m3_s2, "a positive gravitational parameter in m^3/s^2")
+        check(0.0 <= self.e < 1.0, f"{prefix}.e", self.e, "an eccentricity in [0, 1) (closed orbit)")
+        check(self.a_m * (1.0 - self.e) > EARTH_RADIUS_M, f"{prefix}.a_m", self.a_m,
+              f"a semi-major axis whose perigee a(1-e) lies above the Earth's surface ({EARTH_RADIUS_M:.0f} m)")
+        check(0.0 <= self.i_deg <= 180.0, f"{prefix}.i_deg", self.i_deg, "an inclination in [0, 180] deg")
+
+    @property
+    def n_rad_s(self) -> float:
+        """Mean motion, rad/s."""
+        return math.sqrt(self.mu_m3_s2 / self.a_m**3)
+
+    @property
+    def period_s(self) -> float:
+        return 2.0 * math.pi / self.n_rad_s
+
+
+@dataclass(frozen=True)
+class TargetConfig:
+    """The target's tumble: inertial angular velocity w_t0 = (2 pi / spin_period_s) * unit(spin_axis_T), in T.
+
+    p0_mrp: initial MRP of T relative to C; omitted (None) draws a uniformly random attitude from the seed.
+    gravity_gradient: whether the truth applies the gravity-gradient torque (the filter model does not).
+    """
+
+    spin_period_s: float = 134.74
+    spin_axis_T: tuple[float, float, float] = (0.12, -0.20, 1.0)
+    p0_mrp: tuple[float, float, float] | None = None
+    gravity_gradient: bool = False
+
+    def validate(self, prefix: str = "target") -> None:
+        check(self.spin_period_s > 0, f"{prefix}.spin_period_s", self.spin_period_s, "a positive period in seconds")
+        check(np.linalg.norm(self.spin_axis_T) > 0, f"{prefix}.spin_axis_T", list(self.spin_axis_T), "a non-zero vector")
+        if self.p0_mrp is not None:
+            check(np.linalg.norm(self.p0_mrp) <= 1.0 + 1e-12, f"{prefix}.p0_mrp", list(self.p0_mrp),
+                  "an MRP with |p| <= 1 (use the shadow set -p/|p|^2)")
+
+    @property
+    def w0_T_rad_s(self) -> np.ndarray:
+        axis = np.asarray(self.spin_axis_T, dtype=float)
+        return 2.0 * math.pi / self.spin_period_s * axis / np.linalg.norm(axis)
+
+
+@dataclass(frozen=True)
+class RelativeConfig:
+    """Initial relative translation of the target with respect to the chaser, in C (LVLH)."""
+
+    rho0_C_m: tuple[float, float, float] = (0.0, 50.0, 0.0)
+    rhodot0_C_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def validate(self, prefix: str = "relative") -> None:
+        radius = float(np.linalg.norm(load_geometry().half_sizes_m))
+        rng = float(np.linalg.norm(self.rho0_C_m))
+        check(rng > radius, f"{prefix}.rho0_C_m", list(self.rho0_C_m),
+              f"a range above {radius:.2f} m (the main body's circumscribed radius); "
+              f"|rho0| = {rng:.2f} m puts the chaser inside the target")
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    """A truth simulation: physics, initial state and output grid (t = 0, dt_s, ... <= duration_s)."""
+
+    orbit: OrbitConfig = field(default_factory=OrbitConfig)
+    target: TargetConfig = field(default_factory=TargetConfig)
+    relative: RelativeConfig = field(default_factory=RelativeConfig)
+    duration_s: float = 1800.0
+    dt_s: float = 1.0
+    max_physics_dt_s: float = 0.05
+    seed: int = 0
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(self.duration_s > 0, f"{p}duration_s", self.duration_s, "a positive duration in seconds")
+        check(self.dt_s > 0, f"{p}dt_s", self.dt_s, "a positive output step in seconds")
+        check(self.dt_s <= self.duration_s, f"{p}dt_s", self.dt_s, f"an output step no longer than duration_s = {self.duration_s}")
+        check(self.duration_s / self.dt_s <= 10_000_000, f"{p}dt_s", self.dt_s, "at most 1e7 output steps in duration_s")
+        check(0 < self.max_physics_dt_s <= 1.0, f"{p}max_physics_dt_s", self.max_physics_dt_s,
+              "a physics step in (0, 1] s (RK4 accuracy)")
+        check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed")
+
+    @property
+    def n_out(self) -> int:
+        """Number of output samples."""
+        return int(math.floor(self.duration_s / self.dt_s + 1e-9)) + 1
+
+    @property
+    def physics_dt_s(self) -> float:
+        """The RK4 step: the largest step <= max_physics_dt_s that divides dt_s."""
+        return self.dt_s / self.substeps
+
+    @property
+    def substeps(self) -> int:
+        return max(1, math.ceil(self.dt_s / self.max_physics_dt_s - 1e-9))
+
+
+# Named scenarios: overrides of the defaults (shared/reference.md, section 2: slow and stress cases).
+SCENARIOS: dict[str, dict] = {
+    "default": {},
+    "slow_tumble": {"target": {"spin_period_s": 226.0}},
+    "fast_tumble": {"target": {"spin_period_s": 72.0}},  # 5 deg/s, the stress case
+    "close_15m": {"relative": {"rho0_C_m": [0.0, 15.0, 0.0]}},
+    "gravity_gradient": {"target": {"gravity_gradient": True}},
+}
+
+
+def scenario_dict(name: str) -> dict:
+    """The overrides of a named scenario; unknown names raise ConfigError listing the known ones."""
+    check(name in SCENARIOS, "scenario", name, "one of " + ", ".join(sorted(SCENARIOS)))
+    return SCENARIOS[name]
+
+
+def scenario_config(name: str = "default", **overrides) -> ScenarioConfig:
+    """A validated named scenario with optional top-level overrides (duration_s=..., seed=...)."""
+    return from_dict(ScenarioConfig, deep_update(scenario_dict(name), overrides))

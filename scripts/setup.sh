@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# Set-up for envisat-pose on a fresh Debian/Ubuntu machine: the off-screen GL packages MuJoCo renders with,
+# a Python 3.11 virtual environment in .venv, and the package (which compiles the MuJoCo gravity plugin).
+# Safe to run again: it does only what is missing or out of date.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PYTHON=${PYTHON:-python3.11}
+GL_PACKAGES=(libosmesa6 libegl1 libegl-mesa0 libgl1-mesa-dri)
+
+# 1. Debian packages for off-screen rendering (OSMesa on the CPU, EGL where a GPU is).
+if command -v dpkg-query >/dev/null 2>&1; then
+  missing=()
+  for pkg in "${GL_PACKAGES[@]}"; do
+    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+  done
+  if [ ${#missing[@]} -gt 0 ]; then
+    if [ "$(id -u)" = "0" ]; then
+      echo "setup: installing off-screen GL packages: ${missing[*]}"
+      export DEBIAN_FRONTEND=noninteractive
+      apt-get update -qq
+      apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+    else
+      echo "setup: error: missing Debian packages for off-screen rendering: ${missing[*]}" >&2
+      echo "setup: install them as root: sudo apt-get install -y ${missing[*]}" >&2
+      exit 1
+    fi
+  fi
+elif ! ldconfig -p 2>/dev/null | grep -q libOSMesa; then
+  echo "setup: warning: no dpkg here and libOSMesa was not found; install OSMesa (or EGL) for rendering" >&2
+fi
+
+# 2. The virtual environment.
+if ! command -v "$PYTHON" >/dev/null 2>&1; then
+  echo "setup: error: $PYTHON not found; envisat-pose needs Python 3.11 (set PYTHON=/path/to/python3.11)" >&2
+  exit 1
+fi
+if [ ! -x .venv/bin/python ]; then
+  echo "setup: creating .venv with $PYTHON"
+  "$PYTHON" -m venv .venv
+fi
+
+# 3. The package and its pinned dependencies, again only when the build inputs changed.
+stamp=$(cat pyproject.toml setup.py datagen/plugin/relative_gravity.c | sha256sum | cut -c1-16)
+if [ "$(cat .venv/.setup-stamp 2>/dev/null)" != "$stamp" ] || ! ls datagen/plugin/_relative_gravity*.so >/dev/null 2>&1; then
+  echo "setup: installing envisat-pose and its dependencies into .venv (first time: a few minutes)"
+  .venv/bin/python -m pip install -q --upgrade pip
+  # torch first, exactly the pinned CPU build; a range would fetch a multi-GB CUDA build.
+  .venv/bin/python -m pip install -q "torch==2.13.0"
+  .venv/bin/python -m pip install -q -e ".[dev]"
+  echo "$stamp" > .venv/.setup-stamp
+fi
