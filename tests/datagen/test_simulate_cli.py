@@ -1,0 +1,87 @@
+"""`envisat simulate`: the output contract, determinism, and clear errors for bad input."""
+
+import hashlib
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from envisat_pose.cli import main
+
+CONTRACT_KEYS = {"t_s", "x", "chaser_r_m", "chaser_rdot_m_s", "chaser_theta_rad", "chaser_thetadot_rad_s",
+                 "corners_C_m", "visible", "config_json"}
+
+
+def sha256(path):
+    return hashlib.sha256(open(path, "rb").read()).hexdigest()
+
+
+def test_contract_and_plot(tmp_path):
+    out = tmp_path / "run.npz"
+    assert main(["simulate", "--duration-s", "60", "--dt-s", "2", "--seed", "4", "--out", str(out), "--plot", "--quiet"]) == 0
+    with np.load(out, allow_pickle=False) as z:
+        assert set(z.files) == CONTRACT_KEYS
+        assert z["t_s"].shape == (31,) and z["x"].shape == (31, 12)
+        assert z["corners_C_m"].shape == (31, 8, 3) and z["visible"].dtype == bool
+        assert '"seed": 4' in str(z["config_json"])
+        # corners in C are rho + Gamma^T v: their mean is rho (the box is centred on the CoM)
+        np.testing.assert_allclose(z["corners_C_m"].mean(axis=1), z["x"][:, 0:3], atol=1e-12)
+    assert (tmp_path / "run.png").stat().st_size > 10_000
+    assert "seed = 4" in (tmp_path / "run.config.toml").read_text()
+
+
+def test_same_seed_same_bytes_different_seed_different_attitude(tmp_path):
+    paths = []
+    for name, seed in (("a", 11), ("b", 11), ("c", 12)):
+        paths.append(tmp_path / f"{name}.npz")
+        assert main(["simulate", "--duration-s", "30", "--seed", str(seed), "--out", str(paths[-1]), "--quiet"]) == 0
+    assert sha256(paths[0]) == sha256(paths[1])
+    with np.load(paths[0]) as a, np.load(paths[2]) as c:
+        assert np.linalg.norm(a["x"][0, 6:9] - c["x"][0, 6:9]) > 1e-3
+        np.testing.assert_array_equal(a["x"][0, 0:6], c["x"][0, 0:6])
+
+
+BAD_CONFIGS = [
+    ("duration_s = -5.0\n", "duration_s", "positive duration"),
+    ("dt_s = nan\n", "dt_s", "finite"),
+    ("durration_s = 10.0\n", "durration_s", "known key"),
+    ("[relative]\nrho0_C_m = [0.0, 3.0, 0.0]\n", "relative.rho0_C_m", "inside the target"),
+    ("[orbit]\ne = 1.5\n", "orbit.e", "eccentricity"),
+    ("[orbit]\na_m = 6000000.0\n", "orbit.a_m", "Earth"),
+    ("[target]\nspin_axis_T = [0.0, 0.0]\n", "target.spin_axis_T", "3 values"),
+    ("[target]\nspin_period_s = \"fast\"\n", "target.spin_period_s", "a number"),
+    ("seed = -1\n", "seed", "non-negative"),
+    ("duration_s = [1\n", "not valid TOML", ""),
+]
+
+
+@pytest.mark.parametrize("text,field,expected", BAD_CONFIGS)
+def test_bad_config_gets_a_clear_message_and_writes_nothing(tmp_path, text, field, expected):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(text)
+    out = tmp_path / "run.npz"
+    proc = subprocess.run([sys.executable, "-m", "envisat_pose.cli", "simulate", "--config", str(cfg), "--out", str(out)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert field in proc.stderr and expected in proc.stderr
+    assert os.listdir(tmp_path) == ["bad.toml"]
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--duration-s", "-1"], "duration_s = -1.0"),
+    (["--dt-s", "0"], "dt_s = 0.0"),
+    (["--scenario", "nope"], "scenario = 'nope'"),
+    (["--config", "/nonexistent/x.toml"], "does not exist"),
+    (["--out", "/nonexistent/dir/run.npz"], "does not exist"),
+    (["--out", "run.csv"], "ending in .npz"),
+])
+def test_bad_arguments(tmp_path, capsys, args, message):
+    argv = ["simulate", "--quiet"] + args
+    if "--out" not in args:
+        argv += ["--out", str(tmp_path / "run.npz")]
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "run.npz").exists()
