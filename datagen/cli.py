@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import os
-import sys
 
 from datagen.scenario import ScenarioConfig, scenario_dict
-from envisat_pose.config import deep_update, from_dict, load_toml, set_dotted, to_dict
+from envisat_pose.config import InputError, deep_update, from_dict, load_toml, set_dotted, to_dict, to_toml
 from envisat_pose.io import atomic_write_text, check_writable_output
 
 
@@ -46,28 +44,7 @@ def output_paths(out: str) -> tuple[str, str, str]:
     return out, stem + ".config.toml", stem + ".png"
 
 
-def to_toml(data: dict, prefix: str = "") -> str:
-    """A small TOML writer for configs (tables of numbers, strings, booleans and lists)."""
-    import json
-
-    scalars, tables = [], []
-    for key, value in data.items():
-        if isinstance(value, dict):
-            tables.append((key, value))
-        elif value is None:
-            scalars.append(f"# {key} = (unset)")
-        else:
-            scalars.append(f"{key} = {json.dumps(value)}")
-    text = "\n".join(scalars) + ("\n" if scalars else "")
-    for key, value in tables:
-        name = f"{prefix}{key}"
-        text += f"\n[{name}]\n" + to_toml(value, prefix=name + ".")
-    return text
-
-
 def run_simulate(args: argparse.Namespace) -> int:
-    from envisat_pose.config import InputError
-
     if not args.out.endswith(".npz"):
         raise InputError(f"--out {args.out!r}: expected a path ending in .npz")
     cfg = resolve_config(args)
@@ -86,7 +63,3 @@ def run_simulate(args: argparse.Namespace) -> int:
                     visible=traj.visible)
         print(f"wrote {png}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(os.EX_USAGE)

@@ -132,6 +132,23 @@ def to_json(obj: Any) -> str:
     return json.dumps(dataclasses.asdict(obj), sort_keys=True)
 
 
+def to_toml(data: dict, prefix: str = "") -> str:
+    """A small TOML writer for configs (tables of numbers, strings, booleans and lists)."""
+    scalars, tables = [], []
+    for key, value in data.items():
+        if isinstance(value, dict):
+            tables.append((key, value))
+        elif value is None:
+            scalars.append(f"# {key} = (unset)")
+        else:
+            scalars.append(f"{key} = {json.dumps(value)}")
+    text = "\n".join(scalars) + ("\n" if scalars else "")
+    for key, value in tables:
+        name = f"{prefix}{key}"
+        text += f"\n[{name}]\n" + to_toml(value, prefix=name + ".")
+    return text
+
+
 def deep_update(base: dict, update: dict) -> dict:
     """Recursive dict merge: values of `update` win; tables merge key by key."""
     out = dict(base)

@@ -85,3 +85,11 @@ def test_bad_arguments(tmp_path, capsys, args, message):
     assert main(argv) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "run.npz").exists()
+
+
+def test_written_config_reproduces_the_run(tmp_path):
+    first = tmp_path / "first.npz"
+    assert main(["simulate", "--scenario", "fast_tumble", "--duration-s", "20", "--seed", "9", "--out", str(first), "--quiet"]) == 0
+    again = tmp_path / "again.npz"
+    assert main(["simulate", "--config", str(tmp_path / "first.config.toml"), "--out", str(again), "--quiet"]) == 0
+    assert sha256(first) == sha256(again)
