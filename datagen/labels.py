@@ -1,0 +1,98 @@
+"""Labels of a rendered view: projected corners, depth-test visibility, pose, depth encoding.
+
+Camera frame K: x right, y down, z along the boresight (OpenCV). Pixels: OpenCV convention, pixel centres at
+integer coordinates, (u, v) = (column, row). Target frame T as in geometry.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+DEPTH_MAX_CODE = 65535
+
+
+def project_px(points_K_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pinhole projection (u, v) = (f x / z + c_u, f y / z + c_v). (..., 3) m -> (..., 2) px."""
+    p = np.asarray(points_K_m, dtype=float)
+    return p[..., :2] / p[..., 2:3] * np.diag(K)[:2] + K[:2, 2]
+
+
+def in_frame(corners_px: np.ndarray, z_m: np.ndarray, resolution_px: int) -> np.ndarray:
+    """Corners in front of the camera whose projection falls on the image area [-0.5, N - 0.5)^2. (8,) bool."""
+    lo, hi = -0.5, resolution_px - 0.5
+    inside = np.all((corners_px >= lo) & (corners_px < hi), axis=-1)
+    return inside & (z_m > 0)
+
+
+def occlusion_tolerance_m(z_m: np.ndarray, f_px: float) -> np.ndarray:
+    """How much nearer than a corner a surface must be to hide it, m: 0.25 m or three pixel footprints.
+
+    An occluder (the box's own faces, the array 3 m off the body) sits metres in front of a hidden corner;
+    the corner's own faces, seen at the pixel centre next to it, stay within a few footprints of its depth.
+    """
+    return np.maximum(0.25, 3.0 * z_m / f_px)
+
+
+def depth_visibility(corners_px: np.ndarray, z_m: np.ndarray, depth_m: np.ndarray, f_px: float,
+                     frame: np.ndarray) -> np.ndarray:
+    """True occlusion from the rendered depth: a corner is visible when the pixel it projects into shows
+    background or a surface no nearer than the corner (less the tolerance). Sub-pixel ambiguity remains for
+    a corner within half a pixel of an occluder's outline.
+
+    corners_px: (8, 2). z_m: (8,) corner depths along the boresight. depth_m: (H, W), 0 on background.
+    frame: (8,) bool in_frame. Returns (8,) bool.
+    """
+    h, w = depth_m.shape
+    visible = np.zeros(len(z_m), dtype=bool)
+    tol = occlusion_tolerance_m(np.asarray(z_m), f_px)
+    for i in np.flatnonzero(frame):
+        u, v = np.clip(np.rint(corners_px[i]).astype(int), 0, [w - 1, h - 1])
+        d = depth_m[v, u]
+        visible[i] = bool(d == 0 or d >= z_m[i] - tol[i])
+    return visible
+
+
+def encode_depth(depth_m: np.ndarray, depth_scale_m: float) -> np.ndarray:
+    """16-bit depth: round(depth / scale), 0 stays background, clipped to [1, 65535] on the target. (H, W)."""
+    code = np.rint(depth_m / depth_scale_m)
+    code = np.where(depth_m > 0, np.clip(code, 1, DEPTH_MAX_CODE), 0)
+    return code.astype(np.uint16)
+
+
+def decode_depth(depth_u16: np.ndarray, depth_scale_m: float) -> np.ndarray:
+    """Inverse of encode_depth: metres along the boresight, 0 on background. (H, W) float64."""
+    return depth_u16.astype(np.float64) * depth_scale_m
+
+
+def _round_list(a: np.ndarray, ndigits: int) -> list:
+    """A JSON-ready nested list with values rounded (stable text, no float noise in the last digit)."""
+    return np.round(np.asarray(a, dtype=float), ndigits).tolist()
+
+
+def make_label(corners_K_m: np.ndarray, depth_m: np.ndarray, K: np.ndarray, R_K_from_T: np.ndarray,
+               t_K_from_T_m: np.ndarray, x: np.ndarray, depth_scale_m: float, corruption: dict, seed: int,
+               scene: dict) -> dict:
+    """The shard contract's label of one image (design.md) as plain JSON data.
+
+    corners_px (8, 2) OpenCV convention; visible (8,) depth test; in_frame (8,); x (12,) the paper's state;
+    K (3, 3); R_cam_from_target (3, 3), t_cam_from_target_m (3,) in K; depth_scale_m; corruption; seed.
+    `scene` (extra) records the sun, eclipse and Earth backdrop of the view.
+    """
+    n = depth_m.shape[0]
+    corners_px = project_px(corners_K_m, K)
+    z_m = corners_K_m[:, 2]
+    frame = in_frame(corners_px, z_m, n)
+    visible = depth_visibility(corners_px, z_m, depth_m, K[0, 0], frame)
+    return {
+        "corners_px": _round_list(corners_px, 4),
+        "visible": visible.tolist(),
+        "in_frame": frame.tolist(),
+        "x": _round_list(x, 12),
+        "K": _round_list(K, 9),
+        "R_cam_from_target": _round_list(R_K_from_T, 12),
+        "t_cam_from_target_m": _round_list(t_K_from_T_m, 9),
+        "depth_scale_m": float(depth_scale_m),
+        "corruption": corruption,
+        "seed": int(seed),
+        "scene": scene,
+    }

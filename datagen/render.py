@@ -1,0 +1,344 @@
+"""Off-screen MuJoCo rendering of the chaser camera: grayscale image, depth and segmentation of one view.
+
+The render world is the chaser frame C (the camera mount): the chaser mocap body sits at the origin with the
+identity attitude, the target at rho_C with attitude R_C_from_T. Only relative geometry matters to a camera,
+so this is the same picture as the truth simulator's inertial world, and the label's x is used as it is.
+
+Two GL passes per view: a lit pass (sun, shadows) read back as RGB, and a flat segmentation pass whose ids
+and depth buffer are read back over the target's projected bounding box only. One `SceneRenderer` per worker
+process: creating the GL context costs 0.1-0.3 s, so it is made once and reused.
+"""
+
+from __future__ import annotations
+
+import os
+
+# MuJoCo picks its GL platform at import: choose a headless one unless the user did (platform-notes.md).
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+if os.environ["MUJOCO_GL"].lower() == "egl":
+    os.environ.setdefault("EGL_PLATFORM", "surfaceless")
+
+import math  # noqa: E402
+import xml.etree.ElementTree as ET  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+
+import cv2  # noqa: E402
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+from envisat_pose.attitude import rotmat_to_quat  # noqa: E402
+from envisat_pose.geometry import model_path  # noqa: E402
+
+CAMERA_NAME = "chaser_cam"
+# Mask values: 0 background (and the Earth), 1-6 the faces in geometry.FACE_NAMES order, 7 the solar array
+# (its boom included: the contract has one value per face and one for the array).
+MASK_VALUES = {"face_px": 1, "face_mx": 2, "face_py": 3, "face_my": 4, "face_pz": 5, "face_mz": 6, "array": 7, "boom": 7}
+EARTH_RADIUS_M = 6378137.0
+# The Earth is drawn shrunk by this factor about the camera: same angular size, but inside the far plane.
+EARTH_SCALE = 0.01
+EARTH_GEOM_GROUP = 5  # hidden unless a view asks for the backdrop
+# The camera frame K of the labels (x right, y down, z boresight) from MuJoCo's camera frame (x right, y up,
+# looking along -z).
+R_K_FROM_MJCAM = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass(frozen=True)
+class View:
+    """What one image shows, everything in the chaser frame C.
+
+    rho_C_m: (3,) target CoM relative to the chaser, m. R_C_from_T: (3, 3) target attitude (Gamma^T).
+    sun_dir_C: (3,) unit vector toward the sun; None means eclipse (no sunlight).
+    earth_dir_C: (3,) unit vector toward the Earth's centre (nadir); None means no Earth backdrop.
+    earth_distance_m: distance of the Earth's centre from the chaser, m.
+    """
+
+    rho_C_m: np.ndarray
+    R_C_from_T: np.ndarray
+    sun_dir_C: np.ndarray | None
+    earth_dir_C: np.ndarray | None = None
+    earth_distance_m: float = 7142.0e3
+
+
+@dataclass
+class RenderOutput:
+    """One rendered view.
+
+    gray_u8: (H, W) uint8 image. depth_m: (H, W) float32 metres along the boresight, 0 on background.
+    mask_u8: (H, W) uint8, MASK_VALUES. corners_K_m: (8, 3) corners A-H in the camera frame K, m.
+    R_K_from_T: (3, 3), t_K_from_T_m: (3,) the target pose in K. fovy_deg: the camera's vertical field of view.
+    """
+
+    gray_u8: np.ndarray
+    depth_m: np.ndarray
+    mask_u8: np.ndarray
+    corners_K_m: np.ndarray
+    R_K_from_T: np.ndarray
+    t_K_from_T_m: np.ndarray
+    fovy_deg: float
+
+
+def render_model_xml(resolution_px: int, base_xml: str | None = None) -> str:
+    """The project's MJCF prepared for rendering at `resolution_px`: a large enough off-screen buffer, a fixed
+    model extent (the near/far planes and shadow box stay those of models/envisat.xml), and an Earth backdrop
+    body (mocap, geom group 5, hidden by default).
+
+    The XML tree is edited in memory; models/envisat.xml is not changed.
+    """
+    text = base_xml if base_xml is not None else open(model_path(), encoding="utf-8").read()
+    base = mujoco.MjModel.from_xml_string(text)
+    root = ET.fromstring(text)
+    visual = root.find("visual")
+    if visual is None:
+        visual = ET.SubElement(root, "visual")
+    glob = visual.find("global")
+    if glob is None:
+        glob = ET.SubElement(visual, "global")
+    glob.set("offwidth", str(max(resolution_px, int(base.vis.global_.offwidth))))
+    glob.set("offheight", str(max(resolution_px, int(base.vis.global_.offheight))))
+    stat = root.find("statistic")
+    if stat is None:
+        stat = ET.SubElement(root, "statistic")
+    stat.set("extent", repr(float(base.stat.extent)))
+    stat.set("center", " ".join(repr(float(v)) for v in base.stat.center))
+    asset = root.find("asset")
+    if asset is None:
+        asset = ET.SubElement(root, "asset")
+    ET.SubElement(asset, "material", name="earth_backdrop", rgba="0.35 0.42 0.55 1", specular="0.05",
+                  shininess="0.05", reflectance="0")
+    world = root.find("worldbody")
+    earth = ET.SubElement(world, "body", name="earth_backdrop", mocap="true", pos="0 0 -1e5")
+    ET.SubElement(earth, "geom", name="earth_backdrop", type="sphere", size=repr(EARTH_RADIUS_M * EARTH_SCALE),
+                  material="earth_backdrop", group=str(EARTH_GEOM_GROUP), contype="0", conaffinity="0")
+    return ET.tostring(root, encoding="unicode")
+
+
+def _gl_context_class():
+    """The GL context class of the platform named by MUJOCO_GL (osmesa or egl; default osmesa)."""
+    backend = os.environ.get("MUJOCO_GL", "osmesa").lower()
+    if backend == "egl":
+        from mujoco.egl import GLContext
+    elif backend == "osmesa":
+        from mujoco.osmesa import GLContext
+    else:
+        raise RuntimeError(f"MUJOCO_GL={backend!r}: the image factory renders headless with 'osmesa' or 'egl'")
+    return GLContext
+
+
+def depth_from_buffer(raw: np.ndarray, znear_m: float, zfar_m: float) -> np.ndarray:
+    """Metric depth along the boresight from MuJoCo's reversed-Z depth buffer values in [0, 1].
+
+    Same mapping as mujoco.Renderer (float32 frustum coefficients, float64 arithmetic). (H, W) -> (H, W) m.
+    """
+    zfar, znear = np.float32(zfar_m), np.float32(znear_m)
+    c_coef = -(zfar + znear) / (zfar - znear)
+    d_coef = -(np.float32(2) * zfar * znear) / (zfar - znear)
+    c_coef = np.float32(-0.5) * c_coef - np.float32(0.5)
+    d_coef = np.float32(-0.5) * d_coef
+    return d_coef / (raw.astype(np.float64) + c_coef)
+
+
+def projected_bbox_px(points_K_m: np.ndarray, K: np.ndarray, resolution_px: int, znear_m: float,
+                      pad_px: int = 3) -> tuple[int, int, int, int] | None:
+    """Pixel box (u0, v0, u1, v1), inclusive, that holds the projections of points_K_m (N, 3), clipped to the
+    image; the whole image when a point is behind the near plane; None when the box misses the image."""
+    n = resolution_px
+    if np.any(points_K_m[:, 2] <= znear_m):
+        return 0, 0, n - 1, n - 1
+    uv = (points_K_m @ K.T)[:, :2] / points_K_m[:, 2:3]
+    u0, v0 = np.floor(uv.min(axis=0)).astype(int) - pad_px
+    u1, v1 = np.ceil(uv.max(axis=0)).astype(int) + pad_px
+    if u1 < 0 or v1 < 0 or u0 > n - 1 or v0 > n - 1:
+        return None
+    return max(u0, 0), max(v0, 0), min(u1, n - 1), min(v1, n - 1)
+
+
+def intrinsics(resolution_px: int, fovy_deg: float) -> np.ndarray:
+    """Pinhole K (3, 3) of a square image, OpenCV convention (pixel centres at integer coordinates).
+
+    f = (H / 2) / tan(fovy / 2) px; principal point ((W - 1) / 2, (H - 1) / 2), e.g. 511.5 at 1024 px.
+    """
+    f = 0.5 * resolution_px / math.tan(math.radians(fovy_deg) / 2.0)
+    c = 0.5 * (resolution_px - 1)
+    return np.array([[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]])
+
+
+class SceneRenderer:
+    """One GL context and MuJoCo scene rendering the chaser camera at a fixed square resolution."""
+
+    def __init__(self, resolution_px: int, shadows: bool = True, base_xml: str | None = None):
+        self.resolution_px = int(resolution_px)
+        self.shadows = bool(shadows)
+        self.model = mujoco.MjModel.from_xml_string(render_model_xml(self.resolution_px, base_xml))
+        self.data = mujoco.MjData(self.model)
+        m = self.model
+        self.cam_id = m.camera(CAMERA_NAME).id
+        self.fovy_deg = float(m.cam_fovy[self.cam_id])
+        self.K = intrinsics(self.resolution_px, self.fovy_deg)
+        self.qpos_adr = int(m.joint("target_free").qposadr[0])
+        self.chaser_mocap = int(m.body("chaser").mocapid[0])
+        self.earth_mocap = int(m.body("earth_backdrop").mocapid[0])
+        self.target_body = m.body("target").id
+        self.sun_id = m.light("sun").id
+        self.corner_sites = np.array([m.site(f"corner_{c}").id for c in "ABCDEFGH"])
+        self.target_geoms = np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] == self.target_body])
+        self.mask_lut = np.zeros(m.ngeom + 1, dtype=np.uint8)  # index geom id + 1; -1 (none) -> 0
+        for name, value in MASK_VALUES.items():
+            self.mask_lut[m.geom(name).id + 1] = value
+        self.znear_m = float(m.vis.map.znear * m.stat.extent)
+        self.zfar_m = float(m.vis.map.zfar * m.stat.extent)
+        n = self.resolution_px
+        self._gl = _gl_context_class()(n, n)
+        self._gl.make_current()
+        self._con = mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_100.value)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
+        self._con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        self._scene = mujoco.MjvScene(m, maxgeom=100)
+        self._opt = mujoco.MjvOption()
+        self._cam = mujoco.MjvCamera()
+        self._cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self._cam.fixedcamid = self.cam_id
+        self._rect = mujoco.MjrRect(0, 0, n, n)
+        self._rgb = np.empty((n, n, 3), dtype=np.uint8)
+
+    def close(self) -> None:
+        """Free the GL resources (also done at interpreter exit by the owner)."""
+        if self._con is not None:
+            self._gl.make_current()
+            self._con.free()
+            self._con = None
+            self._gl.free()
+
+    def set_view(self, view: View) -> None:
+        """Place the target, the sun and the Earth of `view` in the render world (= chaser frame C)."""
+        m, d = self.model, self.data
+        a = self.qpos_adr
+        d.qpos[a : a + 3] = view.rho_C_m
+        d.qpos[a + 3 : a + 7] = rotmat_to_quat(np.asarray(view.R_C_from_T))
+        d.mocap_pos[self.chaser_mocap] = 0.0
+        d.mocap_quat[self.chaser_mocap] = (1.0, 0.0, 0.0, 0.0)
+        if view.sun_dir_C is None:
+            m.light_active[self.sun_id] = 0
+        else:
+            s = np.asarray(view.sun_dir_C, dtype=float)
+            s = s / np.linalg.norm(s)
+            m.light_active[self.sun_id] = 1
+            m.light_dir[self.sun_id] = -s  # light travels away from the sun
+            # centre the directional light's shadow box on the target
+            m.light_pos[self.sun_id] = np.asarray(view.rho_C_m) + s * m.stat.extent
+        if view.earth_dir_C is None:
+            self._opt.geomgroup[EARTH_GEOM_GROUP] = 0
+            d.mocap_pos[self.earth_mocap] = (0.0, 0.0, -1e5)
+        else:
+            e = np.asarray(view.earth_dir_C, dtype=float)
+            self._opt.geomgroup[EARTH_GEOM_GROUP] = 1
+            d.mocap_pos[self.earth_mocap] = e / np.linalg.norm(e) * view.earth_distance_m * EARTH_SCALE
+        mujoco.mj_forward(m, d)
+
+    def camera_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R_K_from_W (3, 3), camera position in W (3,)) from the MJCF camera of the current state."""
+        R_W_from_mjcam = self.data.cam_xmat[self.cam_id].reshape(3, 3)
+        return R_K_FROM_MJCAM @ R_W_from_mjcam.T, self.data.cam_xpos[self.cam_id].copy()
+
+    def _target_hull_K_m(self, R_K_W: np.ndarray, cam_W: np.ndarray) -> np.ndarray:
+        """Corners of every target geom's bounding box in K, (8 G, 3) m: bounds the target's pixels."""
+        m, d = self.model, self.data
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+        pts = []
+        for g in self.target_geoms:
+            c, h = m.geom_aabb[g, :3], m.geom_aabb[g, 3:]
+            local = c + signs * h
+            pts.append(d.geom_xpos[g] + local @ d.geom_xmat[g].reshape(3, 3).T)
+        return (np.concatenate(pts) - cam_W) @ R_K_W.T
+
+    def _read(self, rgb: np.ndarray | None, depth: np.ndarray | None, box: tuple[int, int, int, int]) -> None:
+        """Read a pixel box (u0, v0, u1, v1 in image rows from the top) of the current frame buffer."""
+        u0, v0, u1, v1 = box
+        n = self.resolution_px
+        rect = mujoco.MjrRect(u0, n - 1 - v1, u1 - u0 + 1, v1 - v0 + 1)
+        mujoco.mjr_readPixels(rgb, depth, rect, self._con)
+
+    def render(self, view: View) -> RenderOutput:
+        """Render `view`: the lit grayscale image, then depth and segmentation over the target's box."""
+        self.set_view(view)
+        self._gl.make_current()
+        n = self.resolution_px
+        scn, flags = self._scene, self._scene.flags
+        mujoco.mjv_updateScene(self.model, self.data, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL.value, scn)
+        flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows
+        R_K_W, cam_W = self.camera_pose()
+        box = projected_bbox_px(self._target_hull_K_m(R_K_W, cam_W), self.K, n, self.znear_m)
+        depth_m = np.zeros((n, n), dtype=np.float32)
+        mask = np.zeros((n, n), dtype=np.uint8)
+        # pass 1: the lit image, full frame
+        mujoco.mjr_render(self._rect, scn, self._con)
+        mujoco.mjr_readPixels(self._rgb, None, self._rect, self._con)
+        gray = cv2.flip(cv2.cvtColor(self._rgb, cv2.COLOR_RGB2GRAY), 0)  # GL rows run bottom-up
+        if box is not None:
+            u0, v0, u1, v1 = box
+            # pass 2: flat segmentation colours (one id per geom) and depth over the target's box; depth and mask
+            # come from one pass so they cover the same pixels
+            flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = True
+            flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = True
+            flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+            mujoco.mjr_render(self._rect, scn, self._con)
+            flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = False
+            flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = False
+            raw = np.empty((v1 - v0 + 1, u1 - u0 + 1), dtype=np.float32)
+            ids_rgb = np.empty(raw.shape + (3,), dtype=np.uint8)
+            self._read(ids_rgb, raw, box)
+            seg = ids_rgb.astype(np.int32)
+            segid = seg[..., 0] + (seg[..., 1] << 8) + (seg[..., 2] << 16)  # 0: background, else geom slot + 1
+            slot_to_geom = np.full(scn.ngeom + 1, -1, dtype=np.int64)
+            for k in range(scn.ngeom):
+                g = scn.geoms[k]
+                if g.objtype == mujoco.mjtObj.mjOBJ_GEOM and g.segid >= 0:
+                    slot_to_geom[g.segid + 1] = g.objid
+            crop_mask = self.mask_lut[slot_to_geom[np.clip(segid, 0, scn.ngeom)] + 1][::-1]
+            crop_depth = depth_from_buffer(raw[::-1], self.znear_m, self.zfar_m).astype(np.float32)
+            mask[v0 : v1 + 1, u0 : u1 + 1] = crop_mask
+            depth_m[v0 : v1 + 1, u0 : u1 + 1] = np.where(crop_mask > 0, crop_depth, 0.0)
+        d = self.data
+        corners_W = d.site_xpos[self.corner_sites]
+        R_W_T = d.xmat[self.target_body].reshape(3, 3)
+        return RenderOutput(
+            gray_u8=gray,
+            depth_m=depth_m,
+            mask_u8=mask,
+            corners_K_m=(corners_W - cam_W) @ R_K_W.T,
+            R_K_from_T=R_K_W @ R_W_T,
+            t_K_from_T_m=R_K_W @ (d.xpos[self.target_body] - cam_W),
+            fovy_deg=self.fovy_deg,
+        )
+
+    def render_rgb_only(self, view: View) -> np.ndarray:
+        """The lit pass alone, read back as RGB (H, W, 3): the raw render the benchmark compares against."""
+        self.set_view(view)
+        self._gl.make_current()
+        mujoco.mjv_updateScene(self.model, self.data, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL.value,
+                               self._scene)
+        self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows
+        mujoco.mjr_render(self._rect, self._scene, self._con)
+        mujoco.mjr_readPixels(self._rgb, None, self._rect, self._con)
+        return self._rgb[::-1]
+
+
+_RENDERERS: dict[tuple, SceneRenderer] = {}
+
+
+def shared_renderer(resolution_px: int, shadows: bool = True) -> SceneRenderer:
+    """This process's renderer for (resolution, shadows), created on first use and reused (one per worker)."""
+    key = (int(resolution_px), bool(shadows))
+    if key not in _RENDERERS:
+        if not _RENDERERS:
+            import atexit
+
+            atexit.register(close_renderers)
+        _RENDERERS[key] = SceneRenderer(resolution_px, shadows)
+    return _RENDERERS[key]
+
+
+def close_renderers() -> None:
+    """Free every cached renderer of this process (before the GL library unloads at exit)."""
+    while _RENDERERS:
+        _, r = _RENDERERS.popitem()
+        r.close()

@@ -1,0 +1,214 @@
+"""Labels match pixels: corners recovered from the rendered mask and depth lie within 1 px of the projected
+labels; rendered depth matches the face planes of the labelled pose; the depth test sees the solar array."""
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+
+def cross2(a, b):
+    """z of the cross product of 2D vectors (..., 2)."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+from datagen.labels import make_label
+from datagen.render import MASK_VALUES, SceneRenderer, View
+from envisat_pose.attitude import quat_to_rotmat
+from envisat_pose.geometry import load_geometry, visible_corners
+
+RES = 256
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    r = SceneRenderer(RES)
+    yield r
+    r.close()
+
+
+def random_views(n, seed):
+    """Views at 24-40 m near the boresight, random attitude and sun (an independent sampler from the factory's)."""
+    rng = np.random.default_rng(seed)
+    views = []
+    for _ in range(n):
+        q = rng.standard_normal(4)
+        rng_m = rng.uniform(24.0, 40.0)
+        off = rng.uniform(-0.1, 0.1, size=2)
+        rho = rng_m * np.array([off[1], 1.0, off[0]]) / np.linalg.norm([off[1], 1.0, off[0]])
+        sun = rng.standard_normal(3)
+        views.append(View(rho, quat_to_rotmat(q / np.linalg.norm(q)), sun))
+    return views
+
+
+def edge_points(region):
+    """Mid-points between each inside pixel and its outside 4-neighbour: within 0.5 px of the true edge. (P, 2)."""
+    r = region.astype(bool)
+    ys, xs = np.nonzero(r[:, 1:] != r[:, :-1])
+    pts = [np.stack([xs + 0.5, ys], 1)]
+    ys, xs = np.nonzero(r[1:, :] != r[:-1, :])
+    pts.append(np.stack([xs, ys + 0.5], 1))
+    return np.concatenate(pts).astype(float)
+
+
+def polygon_vertices(region):
+    """Sub-pixel vertices of a region's outline: a rough polygon, a line fitted to each of its sides, and the
+    intersections of neighbouring sides. (V, 2) px, OpenCV convention, and (V,) bool: refined (both sides
+    fitted) rather than a rough polygon vertex."""
+    contours, _ = cv2.findContours(region.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        return np.zeros((0, 2)), np.zeros(0, bool)
+    contour = max(contours, key=cv2.contourArea)
+    if cv2.contourArea(contour) < 30:
+        return np.zeros((0, 2)), np.zeros(0, bool)
+    rough = cv2.approxPolyDP(contour, 2.5, True)[:, 0, :].astype(float)
+    pts = edge_points(region)
+    lines = []
+    for a, b in zip(rough, np.roll(rough, -1, axis=0)):
+        ab = b - a
+        length = np.linalg.norm(ab)
+        if length < 8:
+            lines.append(None)
+            continue
+        t = (pts - a) @ ab / length**2
+        dist = np.abs(cross2(ab, pts - a)) / length
+        sel = pts[(dist < 3.0) & (t > 3 / length) & (t < 1 - 3 / length)]
+        if len(sel) < 5:
+            lines.append(None)
+            continue
+        for _ in range(3):  # refit on the points near the current line
+            c = sel.mean(0)
+            _, _, vt = np.linalg.svd(sel - c)
+            near = pts[(np.abs(cross2(vt[0], pts - c)) < 0.8) & (np.abs((pts - c) @ vt[0]) < 0.5 * length - 2)]
+            if len(near) < 5:
+                break
+            sel = near
+        lines.append((c, vt[0]))
+    verts, refined = [], []
+    for k in range(len(rough)):
+        l1, l2 = lines[k - 1], lines[k]
+        if l1 is None or l2 is None or abs(cross2(l1[1], l2[1])) < 0.2:
+            verts.append(rough[k])
+            refined.append(False)
+            continue
+        # c1 + s d1 = c2 + r d2
+        A = np.stack([l1[1], -l2[1]], 1)
+        s, _ = np.linalg.solve(A, l2[0] - l1[0])
+        verts.append(l1[0] + s * l1[1])
+        refined.append(True)
+    return np.array(verts), np.array(refined)
+
+
+def clear_corners(out):
+    """Corners none of whose faces is seen at a grazing angle (|cos| < 0.15): a face seen edge-on is a sliver
+    thinner than a pixel, which rasterization drops, so its corners have no pixel evidence. (8,) bool."""
+    g = load_geometry()
+    clear = np.ones(8, dtype=bool)
+    for k in range(6):
+        n_K = out.R_K_from_T @ g.face_normals_T[k]
+        centre_K = out.t_K_from_T_m + out.R_K_from_T @ (g.face_normals_T[k] * g.face_offsets_m[k])
+        cos = -n_K @ centre_K / np.linalg.norm(centre_K)
+        if abs(cos) < 0.15:
+            clear &= ~g.face_corners[k]
+    return clear
+
+
+def test_corners_from_mask_within_one_pixel(renderer):
+    checked, reverse_checked = 0, 0
+    for view in random_views(16, seed=7):
+        out = renderer.render(view)
+        lab = make_label(out.corners_K_m, out.depth_m, renderer.K, out.R_K_from_T, out.t_K_from_T_m,
+                         np.zeros(12), 0.002, {}, 0, {})
+        corners = np.array(lab["corners_px"])
+        body = (out.mask_u8 >= 1) & (out.mask_u8 <= 6)
+        regions = [out.mask_u8 == v for v in range(1, 7)] + [body]
+        verts = np.concatenate([polygon_vertices(r)[0] for r in regions])
+        array_near = cv2.dilate((out.mask_u8 == MASK_VALUES["array"]).astype(np.uint8), np.ones((9, 9), np.uint8))
+        clear = clear_corners(out)
+        for i in range(8):
+            u, v = corners[i]
+            if not (lab["visible"][i] and clear[i] and 4 <= u <= RES - 5 and 4 <= v <= RES - 5):
+                continue
+            if array_near[int(round(v)), int(round(u))]:
+                continue
+            d = np.min(np.linalg.norm(verts - corners[i], axis=1))
+            assert d < 1.0, f"corner {'ABCDEFGH'[i]} at {corners[i]} has no rendered vertex within 1 px ({d:.2f})"
+            # the depth next to the corner is the corner's own depth
+            z = out.corners_K_m[i, 2]
+            win = out.depth_m[int(round(v)) - 1 : int(round(v)) + 2, int(round(u)) - 1 : int(round(u)) + 2]
+            assert np.min(np.abs(win[win > 0] - z)) < 3 * z / renderer.K[0, 0]  # within ~1.5 px footprints
+            checked += 1
+        # reverse: vertices of the body silhouette away from the array and the border are labelled corners
+        boom_near = cv2.dilate(array_near, np.ones((9, 9), np.uint8))  # fitted sides extend past the boom
+        silhouette, refined = polygon_vertices(body)
+        for p in silhouette[refined]:
+            if np.any(p < 4) or np.any(p > RES - 5) or boom_near[int(round(p[1])), int(round(p[0]))]:
+                continue
+            if np.any(np.linalg.norm(corners[~clear] - p, axis=1) < 5):
+                continue
+            assert np.min(np.linalg.norm(corners - p, axis=1)) < 1.0, f"silhouette vertex {p} is no labelled corner"
+            reverse_checked += 1
+    assert checked >= 40 and reverse_checked >= 30, (checked, reverse_checked)
+
+
+def test_depth_matches_face_planes(renderer):
+    """Each face pixel's depth equals the intersection of its pixel ray with the labelled face plane."""
+    g = load_geometry()
+    Kinv = np.linalg.inv(renderer.K)
+    view = random_views(1, seed=3)[0]
+    out = renderer.render(view)
+    n_checked = 0
+    for k in range(6):
+        region = cv2.erode((out.mask_u8 == k + 1).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        vs, us = np.nonzero(region)
+        if len(us) < 20:
+            continue
+        rays = np.stack([us, vs, np.ones_like(us)], 1) @ Kinv.T  # z = 1
+        n_K = out.R_K_from_T @ g.face_normals_T[k]
+        offset = g.face_offsets_m[k] + n_K @ out.t_K_from_T_m  # plane: n_K . p = offset
+        z_plane = offset / (rays @ n_K)
+        err = np.abs(out.depth_m[vs, us] - z_plane)
+        assert err.max() < 0.01, (k, err.max())
+        n_checked += 1
+    assert n_checked >= 2
+
+
+def test_pose_in_camera_frame_matches_state(renderer):
+    """K axes on the chaser: x_K = -z_C, y_K = -x_C (image up is radial out), z_K = +y_C (boresight)."""
+    view = random_views(1, seed=5)[0]
+    out = renderer.render(view)
+    R_K_from_C = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    np.testing.assert_allclose(out.t_K_from_T_m, R_K_from_C @ view.rho_C_m, atol=1e-9)
+    np.testing.assert_allclose(out.R_K_from_T, R_K_from_C @ view.R_C_from_T, atol=1e-9)
+    corners_K = out.t_K_from_T_m + load_geometry().corners_T_m @ out.R_K_from_T.T
+    np.testing.assert_allclose(out.corners_K_m, corners_K, atol=1e-9)
+
+
+def test_depth_visibility_agrees_with_face_test_and_sees_the_array(renderer):
+    agree = total = 0
+    for view in random_views(10, seed=11):
+        out = renderer.render(view)
+        lab = make_label(out.corners_K_m, out.depth_m, renderer.K, out.R_K_from_T, out.t_K_from_T_m,
+                         np.zeros(12), 0.002, {}, 0, {})
+        c_T = -view.R_C_from_T.T @ view.rho_C_m
+        exact = visible_corners(c_T)
+        array_hidden = ~np.array(lab["visible"]) & exact  # only the array may hide a face-visible corner
+        agree += np.sum(np.array(lab["visible"]) == exact) + np.sum(array_hidden)
+        total += 8
+        assert not np.any(np.array(lab["visible"]) & ~exact), "a corner behind the box was labelled visible"
+    assert agree / total > 0.95
+    # seen from the -x end, a little from below (-z): the array (z = 0 plane, x in [-22, -8]) lies between the
+    # camera and corners E, F (z = +1.04), which the face test calls visible; G, H (z = -1.04) stay in view
+    d_T = np.array([-1.0, 0.0, -0.15]) / np.linalg.norm([-1.0, 0.0, -0.15])  # toward the camera, in T
+    R_C_from_T = Rotation.align_vectors([[0.0, -1.0, 0.0]], [d_T])[0].as_matrix()
+    view = View(np.array([0.0, 40.0, 0.0]), R_C_from_T, np.array([0.0, -1.0, 0.2]))
+    np.testing.assert_allclose(-R_C_from_T.T @ view.rho_C_m, 40.0 * d_T, atol=1e-9)
+    out = renderer.render(view)
+    lab = make_label(out.corners_K_m, out.depth_m, renderer.K, out.R_K_from_T, out.t_K_from_T_m,
+                     np.zeros(12), 0.002, {}, 0, {})
+    exact = visible_corners(40.0 * d_T)
+    assert exact[[4, 5, 6, 7]].all(), "the face test sees E-H from this side"
+    assert lab["visible"][4:] == [False, False, True, True], "the array hides E and F, not G and H"
