@@ -1,0 +1,98 @@
+"""Image corruption: exposure, motion blur, Gaussian blur, shot noise and Gaussian noise at named severities.
+
+Each kind has four levels, 0 'none' .. 3 'high' (a config may also say 'mixed': a level drawn per image).
+`draw_corruption` turns levels into concrete parameters with the sample's Generator; `apply_corruption`
+applies them, its noise drawn from the parameters' own `noise_seed`, so the label's `corruption` entry alone
+reproduces the image from the clean render (training can corrupt on the fly the same way). Blur sizes are
+given at 1024 px and scale with the resolution. Level 0 for every kind returns the input unchanged.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+SEVERITIES = ("none", "low", "medium", "high")
+KINDS = ("exposure", "motion_blur", "gaussian_blur", "shot_noise", "gaussian_noise")
+CHOICES = SEVERITIES + ("mixed",)
+
+# Per level 0..3. Gaussian noise: sigma in grey levels. Gaussian blur: sigma in px at 1024 px. Shot noise:
+# electrons at full scale (255), fewer electrons = more noise. Motion blur: streak length in px at 1024 px.
+# Exposure: the largest factor of the log-uniform gain draw (gain in [1/g, g]).
+GAUSSIAN_NOISE_SIGMA = (0.0, 2.0, 5.0, 10.0)
+GAUSSIAN_BLUR_SIGMA_PX_1024 = (0.0, 1.0, 2.0, 4.0)
+SHOT_NOISE_FULL_WELL_E = (np.inf, 20000.0, 4000.0, 800.0)
+MOTION_BLUR_LENGTH_PX_1024 = (0.0, 4.0, 10.0, 24.0)
+EXPOSURE_MAX_GAIN = (1.0, 1.25, 1.6, 2.5)
+
+
+def severity_level(name: str, rng: np.random.Generator) -> int:
+    """A configured severity ('none'..'high' or 'mixed') as a level 0..3; 'mixed' draws one uniformly."""
+    if name == "mixed":
+        return int(rng.integers(0, len(SEVERITIES)))
+    return SEVERITIES.index(name)
+
+
+def draw_corruption(severities: dict[str, str], resolution_px: int, rng: np.random.Generator) -> dict:
+    """Concrete corruption parameters of one image from its Generator. Returns plain JSON data:
+    levels per kind, exposure_gain, motion_blur_length_px, motion_blur_angle_deg, gaussian_blur_sigma_px,
+    shot_noise_full_well_e (None when off), gaussian_noise_sigma, noise_seed."""
+    lv = {k: severity_level(severities[k], rng) for k in KINDS}
+    scale = resolution_px / 1024.0
+    g_max = EXPOSURE_MAX_GAIN[lv["exposure"]]
+    gain = float(np.exp(rng.uniform(-np.log(g_max), np.log(g_max)))) if lv["exposure"] else 1.0
+    angle = float(rng.uniform(0.0, 180.0))
+    full_well = SHOT_NOISE_FULL_WELL_E[lv["shot_noise"]]
+    return {
+        "levels": {k: SEVERITIES[v] for k, v in lv.items()},
+        "exposure_gain": round(gain, 6),
+        "motion_blur_length_px": round(MOTION_BLUR_LENGTH_PX_1024[lv["motion_blur"]] * scale, 6),
+        "motion_blur_angle_deg": round(angle, 6),
+        "gaussian_blur_sigma_px": round(GAUSSIAN_BLUR_SIGMA_PX_1024[lv["gaussian_blur"]] * scale, 6),
+        "shot_noise_full_well_e": None if not np.isfinite(full_well) else float(full_well),
+        "gaussian_noise_sigma": GAUSSIAN_NOISE_SIGMA[lv["gaussian_noise"]],
+        "noise_seed": int(rng.integers(0, 2**63)),
+    }
+
+
+def motion_kernel(length_px: float, angle_deg: float) -> np.ndarray:
+    """Normalised line kernel of a linear streak `length_px` long at `angle_deg` (image x toward y). (k, k)."""
+    half = int(np.ceil(length_px / 2.0))
+    k = 2 * half + 1
+    n = max(2, int(np.ceil(length_px)) * 4)
+    t = np.linspace(-length_px / 2.0, length_px / 2.0, n)
+    a = np.radians(angle_deg)
+    kernel = np.zeros((k, k), dtype=np.float64)
+    # bilinear splat of points along the streak: sub-pixel lengths stay exact
+    xs, ys = half + t * np.cos(a), half + t * np.sin(a)
+    x0, y0 = np.floor(xs).astype(int), np.floor(ys).astype(int)
+    fx, fy = xs - x0, ys - y0
+    for dx, dy, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        np.add.at(kernel, (np.clip(y0 + dy, 0, k - 1), np.clip(x0 + dx, 0, k - 1)), wgt)
+    return (kernel / kernel.sum()).astype(np.float32)
+
+
+def apply_corruption(gray_u8: np.ndarray, params: dict) -> np.ndarray:
+    """Corrupt a clean 8-bit image with `params` (from draw_corruption). (H, W) uint8 -> (H, W) uint8.
+
+    Order, as light meets the sensor: exposure gain, motion blur, optics blur, then shot noise (Poisson,
+    in its Gaussian form with variance = signal / full well) and read noise, then rounding to 8 bits.
+    """
+    lv = params["levels"]
+    if all(v == "none" for v in lv.values()):
+        return gray_u8
+    img = gray_u8.astype(np.float32)
+    if params["exposure_gain"] != 1.0:
+        img *= np.float32(params["exposure_gain"])
+    if params["motion_blur_length_px"] > 0:
+        kern = motion_kernel(params["motion_blur_length_px"], params["motion_blur_angle_deg"])
+        img = cv2.filter2D(img, -1, kern, borderType=cv2.BORDER_REFLECT)
+    if params["gaussian_blur_sigma_px"] > 0:
+        img = cv2.GaussianBlur(img, (0, 0), params["gaussian_blur_sigma_px"], borderType=cv2.BORDER_REFLECT)
+    var = np.float32(params["gaussian_noise_sigma"] ** 2)
+    full_well = params["shot_noise_full_well_e"]
+    if full_well is not None or var > 0:
+        rng = np.random.default_rng(params["noise_seed"])
+        total_var = var + (np.maximum(img, 0.0) * np.float32(255.0 / full_well) if full_well else np.float32(0.0))
+        img += rng.standard_normal(img.shape, dtype=np.float32) * np.sqrt(total_var)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)

@@ -1,0 +1,136 @@
+"""Reading a generated dataset back: verification against the manifest, statistics, a labelled montage."""
+
+from __future__ import annotations
+
+import glob
+import json
+import os
+
+import numpy as np
+
+from datagen.shards import check_shard, decode_png, read_manifest, read_shard, shard_name
+from envisat_pose.config import InputError
+from envisat_pose.geometry import CORNER_NAMES, EDGES
+
+
+def load_manifest(out_dir: str) -> dict:
+    """The manifest of a dataset folder; InputError when the folder or its manifest is missing or malformed."""
+    if not os.path.isdir(out_dir):
+        raise InputError(f"dataset folder {out_dir!r} does not exist")
+    try:
+        manifest = read_manifest(out_dir)
+    except (ValueError, OSError) as err:
+        raise InputError(f"{out_dir!r}: manifest.json is unreadable ({err})") from None
+    if manifest is None:
+        raise InputError(f"{out_dir!r} has no manifest.json: not a generated dataset")
+    return manifest
+
+
+def verify_dataset(out_dir: str) -> list[str]:
+    """Problems of a dataset, one line each (empty: every shard present, complete and matching its sha256)."""
+    manifest = load_manifest(out_dir)
+    problems = []
+    listed = {e["name"]: e for e in manifest["shards"]}
+    n_shards = int(manifest.get("num_shards", len(listed)))
+    for idx in range(n_shards):
+        name = shard_name(idx)
+        entry = listed.get(name)
+        if entry is None:
+            what = "not finished" if os.path.exists(os.path.join(out_dir, name)) else "missing"
+            problems.append(f"{name}: {what} (not in the manifest)")
+            continue
+        issue = check_shard(os.path.join(out_dir, name), entry["sha256"], entry["count"])
+        if issue:
+            problems.append(f"{name}: {issue}")
+    for tmp in sorted(glob.glob(os.path.join(out_dir, ".tmp-*"))):
+        problems.append(f"{os.path.basename(tmp)}: partial file of an interrupted run")
+    total = sum(e["count"] for e in manifest["shards"])
+    if not manifest.get("complete") and not problems:
+        problems.append("manifest marked incomplete")
+    if manifest.get("complete") and total != manifest.get("num_images"):
+        problems.append(f"{total} samples listed, expected {manifest.get('num_images')}")
+    return problems
+
+
+def iter_samples(out_dir: str, limit: int | None = None):
+    """(key, label dict, members) of a dataset's samples in shard order, at most `limit`."""
+    manifest = load_manifest(out_dir)
+    n = 0
+    for entry in manifest["shards"]:
+        for key, members in read_shard(os.path.join(out_dir, entry["name"])):
+            yield key, json.loads(members["json"]), members
+            n += 1
+            if limit is not None and n >= limit:
+                return
+
+
+def dataset_stats(out_dir: str) -> dict:
+    """Statistics over every label: counts, range, visible and in-frame corners, eclipses, corruption levels."""
+    ranges, n_vis, n_frame, eclipse, earth = [], [], [], 0, 0
+    levels: dict[str, dict[str, int]] = {}
+    for _, lab, _ in iter_samples(out_dir):
+        ranges.append(float(np.linalg.norm(lab["t_cam_from_target_m"])))
+        n_vis.append(int(np.sum(lab["visible"])))
+        n_frame.append(int(np.sum(lab["in_frame"])))
+        scene = lab.get("scene", {})
+        eclipse += bool(scene.get("eclipse"))
+        earth += bool(scene.get("earth_backdrop"))
+        for kind, level in lab["corruption"]["levels"].items():
+            levels.setdefault(kind, {}).setdefault(level, 0)
+            levels[kind][level] += 1
+    n = len(ranges)
+    if n == 0:
+        return {"samples": 0}
+    r = np.array(ranges)
+    return {
+        "samples": n,
+        "range_m": {"min": float(r.min()), "mean": float(r.mean()), "max": float(r.max())},
+        "visible_corners_histogram": np.bincount(n_vis, minlength=9).tolist(),
+        "in_frame_corners_mean": float(np.mean(n_frame)),
+        "eclipse_fraction": eclipse / n,
+        "earth_backdrop_fraction": earth / n,
+        "corruption_levels": {k: dict(sorted(v.items())) for k, v in sorted(levels.items())},
+    }
+
+
+def draw_labels(gray_u8: np.ndarray, label: dict) -> np.ndarray:
+    """A BGR copy of an image with the labelled box edges and corners (green visible, red hidden) and letters."""
+    import cv2
+
+    img = cv2.cvtColor(gray_u8, cv2.COLOR_GRAY2BGR)
+    n = gray_u8.shape[0]
+    scale = 16  # cv2 draws with 4 fractional bits: sub-pixel positions
+    pts = [(int(round(u * scale)), int(round(v * scale))) for u, v in label["corners_px"]]
+    thick = max(1, n // 512)
+    for a, b in EDGES:
+        if label["in_frame"][a] or label["in_frame"][b]:
+            cv2.line(img, pts[a], pts[b], (255, 160, 0), thick, cv2.LINE_AA, shift=4)
+    for i, (p, vis, inside) in enumerate(zip(pts, label["visible"], label["in_frame"])):
+        if not inside:
+            continue
+        color = (0, 220, 0) if vis else (0, 0, 255)
+        cv2.circle(img, p, max(3, n // 100) * scale, color, thick, cv2.LINE_AA, shift=4)
+        cv2.putText(img, CORNER_NAMES[i], (p[0] // scale + 4, p[1] // scale - 4), cv2.FONT_HERSHEY_SIMPLEX,
+                    max(0.35, n / 1400), color, thick, cv2.LINE_AA)
+    return img
+
+
+def montage(out_dir: str, path: str, count: int = 16, tile_px: int = 256) -> int:
+    """Write a grid of the first `count` images with their labels drawn; returns how many were drawn."""
+    import cv2
+
+    tiles = []
+    for _, lab, members in iter_samples(out_dir, limit=count):
+        tile = draw_labels(decode_png(members["png"]), lab)
+        tiles.append(cv2.resize(tile, (tile_px, tile_px), interpolation=cv2.INTER_AREA))
+    if not tiles:
+        raise InputError(f"{out_dir!r} holds no samples to draw")
+    cols = int(np.ceil(np.sqrt(len(tiles))))
+    rows = int(np.ceil(len(tiles) / cols))
+    grid = np.zeros((rows * tile_px, cols * tile_px, 3), dtype=np.uint8)
+    for k, tile in enumerate(tiles):
+        r, c = divmod(k, cols)
+        grid[r * tile_px : (r + 1) * tile_px, c * tile_px : (c + 1) * tile_px] = tile
+    if not cv2.imwrite(path, grid):
+        raise InputError(f"cannot write the montage to {path!r}")
+    return len(tiles)

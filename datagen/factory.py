@@ -1,0 +1,431 @@
+"""The image factory: one validated config, one root seed, shards of rendered, labelled, corrupted images.
+
+A shard is the unit of work: `generate_shard(cfg, index, out_dir)` renders samples from the shard's own
+seeds (`SeedSequence(root, spawn_key=(shard,))`, then `(shard, i)` per sample) and publishes one tar
+atomically. Where it runs (this process, a process pool, a Dask cluster) changes nothing in its bytes.
+`run_generate` plans the shards, skips the finished ones (their sha256 verified), runs the rest and keeps
+`manifest.json` current after each shard, so a killed run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import functools
+import glob
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Callable, Literal
+
+import numpy as np
+
+from envisat_pose.attitude import mrp_to_dcm, quat_to_mrp, quat_to_rotmat
+from envisat_pose.config import InputError, check, from_dict, to_dict
+
+Severity = Literal["none", "low", "medium", "high", "mixed"]
+MANIFEST_FORMAT = "envisat-pose shards v1"
+# Camera mount on the chaser (models/envisat.xml, camera chaser_cam): boresight +y_C, image up +x_C.
+# Rows are the K axes (x right, y down, z boresight) in C.
+R_K_FROM_C = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+# Farthest reach of the target from its CoM (solar array tip corner), m: bounds the depth range to encode.
+TARGET_REACH_M = 22.2
+
+
+@dataclass(frozen=True)
+class CorruptionConfig:
+    """Severity per corruption kind: none, low, medium, high, or mixed (a level drawn per image)."""
+
+    exposure: Severity = "mixed"
+    motion_blur: Severity = "mixed"
+    gaussian_blur: Severity = "mixed"
+    shot_noise: Severity = "mixed"
+    gaussian_noise: Severity = "mixed"
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    """What `envisat generate` makes.
+
+    mode: 'random' (domain-randomized views) or 'sequence' (frames of a simulated truth every frame_dt_s).
+    resolution_px: square image side. range_min_m/range_max_m: target range (random mode).
+    max_offset_frac: target centre within this fraction of the half field of view (random mode).
+    sun_dir: unit vector toward the sun, in C (random mode) or N (sequence mode); omitted: drawn from the seed.
+    eclipse_probability: share of random-mode images in eclipse (sequence mode: Earth's cylindrical shadow).
+    earth_probability: share of random-mode images with the Earth backdrop (sequence: > 0 turns it on, at nadir).
+    depth_scale_m: metres per unit of the 16-bit depth PNG.
+    """
+
+    mode: Literal["random", "sequence"] = "random"
+    num_images: int = 1000
+    shard_size: int = 100
+    resolution_px: int = 1024
+    seed: int = 0
+    range_min_m: float = 20.0
+    range_max_m: float = 80.0
+    max_offset_frac: float = 0.6
+    sun_dir: tuple[float, float, float] | None = None
+    eclipse_probability: float = 0.05
+    earth_probability: float = 0.0
+    shadows: bool = True
+    write_mask: bool = True
+    write_depth: bool = True
+    depth_scale_m: float = 0.002
+    scenario: str = "default"
+    frame_dt_s: float = 1.0
+    corruption: CorruptionConfig = field(default_factory=CorruptionConfig)
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(self.num_images >= 1, f"{p}num_images", self.num_images, "at least 1 image")
+        check(self.shard_size >= 1, f"{p}shard_size", self.shard_size, "at least 1 image per shard")
+        check(16 <= self.resolution_px <= 4096, f"{p}resolution_px", self.resolution_px, "a resolution in [16, 4096] px")
+        check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed below 2^63")
+        check(self.range_min_m > TARGET_REACH_M / 2, f"{p}range_min_m", self.range_min_m,
+              f"a range above {TARGET_REACH_M / 2:.1f} m (the camera must stay outside the target)")
+        check(self.range_max_m >= self.range_min_m, f"{p}range_max_m", self.range_max_m,
+              f"a range no shorter than range_min_m = {self.range_min_m}")
+        check(0.0 <= self.max_offset_frac <= 1.0, f"{p}max_offset_frac", self.max_offset_frac, "a fraction in [0, 1]")
+        if self.sun_dir is not None:
+            check(np.linalg.norm(self.sun_dir) > 0, f"{p}sun_dir", list(self.sun_dir), "a non-zero vector")
+        for name in ("eclipse_probability", "earth_probability"):
+            value = getattr(self, name)
+            check(0.0 <= value <= 1.0, f"{p}{name}", value, "a probability in [0, 1]")
+        check(self.depth_scale_m > 0, f"{p}depth_scale_m", self.depth_scale_m, "a positive scale in m")
+        if self.mode == "random":
+            reach = self.range_max_m / math.cos(math.radians(30.0)) + TARGET_REACH_M
+            check(65535 * self.depth_scale_m >= reach, f"{p}depth_scale_m", self.depth_scale_m,
+                  f"a scale whose 16-bit range (65535 x scale) covers {reach:.1f} m, the farthest target point")
+        check(self.frame_dt_s > 0, f"{p}frame_dt_s", self.frame_dt_s, "a positive frame interval in s")
+        if self.mode == "sequence":
+            from datagen.scenario import scenario_dict
+
+            scenario_dict(self.scenario)  # unknown names raise ConfigError
+
+    @property
+    def num_shards(self) -> int:
+        return math.ceil(self.num_images / self.shard_size)
+
+    def shard_count(self, index: int) -> int:
+        """Number of samples in shard `index` (the last one may be short)."""
+        return min(self.shard_size, self.num_images - index * self.shard_size)
+
+
+def config_from_json(text: str) -> GenerateConfig:
+    """A GenerateConfig from its JSON text (how tasks travel to workers: plain data, never pickles)."""
+    return from_dict(GenerateConfig, json.loads(text))
+
+
+def config_json(cfg: GenerateConfig) -> str:
+    return json.dumps(to_dict(cfg), sort_keys=True)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Seeds and views
+
+
+def sample_seed(root_seed: int, shard_index: int, sample_index: int) -> int:
+    """The seed of sample i of a shard: SeedSequence(root).spawn(...)[shard].spawn(...)[i], as one integer.
+
+    The label stores it; `numpy.random.default_rng(seed)` replays every draw of the sample.
+    """
+    ss = np.random.SeedSequence(root_seed, spawn_key=(shard_index, sample_index))
+    return int(ss.generate_state(1, dtype=np.uint64)[0])
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    v = np.asarray(v, dtype=float)
+    return v / np.linalg.norm(v)
+
+
+def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Generator) -> tuple:
+    """A domain-randomized view: uniform attitude, range uniform in [range_min_m, range_max_m], target centre
+    off the boresight within max_offset_frac of the half field of view, random or configured sun, eclipse
+    and Earth backdrop by their probabilities. Velocities are zero (a snapshot).
+
+    Returns (View, x (12,), scene dict). In random mode C is the camera mount's frame; the Earth's direction
+    is drawn independently of it.
+    """
+    from datagen.render import View
+
+    q = unit(rng.standard_normal(4))
+    range_m = rng.uniform(cfg.range_min_m, cfg.range_max_m)
+    tan_half = math.tan(math.radians(fovy_deg) / 2.0)
+    off = rng.uniform(-1.0, 1.0, size=2) * cfg.max_offset_frac * tan_half
+    rho_C = R_K_FROM_C.T @ (range_m * unit([off[0], off[1], 1.0]))
+    sun_C = unit(cfg.sun_dir) if cfg.sun_dir is not None else unit(rng.standard_normal(3))
+    eclipse = bool(rng.random() < cfg.eclipse_probability)
+    earth_draw = rng.random() < cfg.earth_probability
+    earth_C = unit(rng.standard_normal(3))
+    view = View(rho_C, quat_to_rotmat(q), None if eclipse else sun_C, earth_C if earth_draw else None)
+    x = np.concatenate([rho_C, np.zeros(3), quat_to_mrp(q), np.zeros(3)])
+    scene = {"mode": "random", "sun_dir_cam": (R_K_FROM_C @ sun_C).round(9).tolist(), "eclipse": eclipse,
+             "earth_backdrop": bool(earth_draw)}
+    return view, x, scene
+
+
+@functools.lru_cache(maxsize=2)
+def sequence_frames(cfg_json: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The truth of a sequence-mode config at its frame times: (t_s (N,), x (N, 12), sun_dir_C (N, 3),
+    eclipse (N,) bool, nadir_C (N, 3) with chaser_r_m folded in as its norm)."""
+    from datagen.orbit import chaser_orbit
+    from datagen.scenario import EARTH_RADIUS_M, scenario_config
+    from datagen.truth import simulate
+
+    cfg = config_from_json(cfg_json)
+    n = cfg.num_images
+    scen = scenario_config(cfg.scenario, duration_s=max(n - 1, 1) * cfg.frame_dt_s, dt_s=cfg.frame_dt_s, seed=cfg.seed)
+    traj = simulate(scen)
+    t_s, x = traj.t_s[:n], traj.x[:n]
+    orb = chaser_orbit(scen.orbit, t_s)
+    rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(2**32 - 1,)))
+    sun_N = unit(cfg.sun_dir) if cfg.sun_dir is not None else unit(rng.standard_normal(3))
+    sun_C = np.einsum("nji,j->ni", orb.R_N_from_C, sun_N)
+    # cylindrical Earth shadow: behind the Earth (r . s < 0) and within one Earth radius of the sun line
+    along = orb.r_N_m @ sun_N
+    perp = np.linalg.norm(orb.r_N_m - along[:, None] * sun_N, axis=1)
+    eclipse = (along < 0) & (perp < EARTH_RADIUS_M)
+    nadir_C = np.zeros((len(t_s), 3))
+    nadir_C[:, 0] = -orb.r_m  # the Earth's centre is at -r x_C
+    return t_s, x, sun_C, eclipse, nadir_C
+
+
+def sequence_view(cfg: GenerateConfig, k: int) -> tuple:
+    """Frame k of a sequence-mode config: (View, x (12,), scene dict)."""
+    from datagen.render import View
+
+    t_s, x, sun_C, eclipse, nadir_C = sequence_frames(config_json(cfg))
+    xk = x[k]
+    earth = cfg.earth_probability > 0
+    r_m = float(np.linalg.norm(nadir_C[k]))
+    view = View(xk[0:3], mrp_to_dcm(xk[6:9]).T, None if eclipse[k] else sun_C[k],
+                unit(nadir_C[k]) if earth else None, r_m)
+    scene = {"mode": "sequence", "t_s": float(t_s[k]), "sun_dir_cam": (R_K_FROM_C @ sun_C[k]).round(9).tolist(),
+             "eclipse": bool(eclipse[k]), "earth_backdrop": earth}
+    return view, xk, scene
+
+
+# ---------------------------------------------------------------------------------------------------------
+# One sample, one shard
+
+
+def render_sample(renderer, cfg: GenerateConfig, view, x: np.ndarray, scene: dict, rng: np.random.Generator,
+                  seed: int) -> dict[str, bytes]:
+    """Render, label, corrupt and encode one sample: {suffix: bytes} per the shard contract."""
+    from datagen.corrupt import apply_corruption, draw_corruption
+    from datagen.labels import encode_depth, make_label
+    from datagen.shards import encode_png, label_bytes
+
+    out = renderer.render(view)
+    params = draw_corruption(to_dict(cfg.corruption), cfg.resolution_px, rng)
+    image = apply_corruption(out.gray_u8, params)
+    label = make_label(out.corners_K_m, out.depth_m, renderer.K, out.R_K_from_T, out.t_K_from_T_m, x,
+                       cfg.depth_scale_m, params, seed, scene)
+    members = {"png": encode_png(image), "json": label_bytes(label)}
+    if cfg.write_mask:
+        members["mask.png"] = encode_png(out.mask_u8)
+    if cfg.write_depth:
+        members["depth.png"] = encode_png(encode_depth(out.depth_m, cfg.depth_scale_m))
+    return members
+
+
+def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
+    """Write shard `shard_index` of the dataset into out_dir (atomically). Returns its manifest entry:
+    index, name, count, sha256, bytes."""
+    import cv2
+
+    from datagen.render import shared_renderer
+    from datagen.shards import ShardWriter, sample_key, sha256_file, shard_name
+
+    cv2.setNumThreads(1)  # one core per worker; also keeps filters on one code path
+    renderer = shared_renderer(cfg.resolution_px, cfg.shadows)
+    path = os.path.join(out_dir, shard_name(shard_index))
+    count = cfg.shard_count(shard_index)
+    with ShardWriter(path) as writer:
+        for i in range(count):
+            k = shard_index * cfg.shard_size + i
+            seed = sample_seed(cfg.seed, shard_index, i)
+            rng = np.random.default_rng(seed)
+            if cfg.mode == "random":
+                view, x, scene = sample_random_view(cfg, renderer.fovy_deg, rng)
+            else:
+                view, x, scene = sequence_view(cfg, k)
+            writer.write(sample_key(k), render_sample(renderer, cfg, view, x, scene, rng, seed))
+    return {"index": shard_index, "name": shard_name(shard_index), "count": count, "sha256": sha256_file(path),
+            "bytes": os.path.getsize(path)}
+
+
+def shard_task(cfg_json: str, shard_index: int, out_dir: str) -> dict:
+    """generate_shard for workers: the config travels as JSON text."""
+    return generate_shard(config_from_json(cfg_json), shard_index, out_dir)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Planning, resuming, running
+
+
+def llvmpipe_threads(workers: int) -> int:
+    """Rasterizer threads per worker: the machine's cores shared among the workers."""
+    return max(1, (os.cpu_count() or 1) // max(1, workers))
+
+
+def _worker_init(lp_threads: int) -> None:
+    """Process-pool worker start: its rasterizer threads, and die with the parent (no orphan writers)."""
+    os.environ.setdefault("LP_NUM_THREADS", str(lp_threads))
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def prepare_out_dir(out_dir: str) -> None:
+    """Create out_dir (its parent must exist) or check that it is a writable folder; InputError otherwise."""
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise InputError(f"--out {out_dir!r} exists and is not a folder")
+    parent = os.path.dirname(os.path.abspath(out_dir))
+    if not os.path.isdir(out_dir):
+        if not os.path.isdir(parent):
+            raise InputError(f"--out {out_dir!r}: parent folder {parent!r} does not exist")
+        if not os.access(parent, os.W_OK):
+            raise InputError(f"--out {out_dir!r}: parent folder {parent!r} is not writable")
+    elif not os.access(out_dir, os.W_OK):
+        raise InputError(f"--out {out_dir!r} is not writable")
+
+
+def new_manifest(cfg: GenerateConfig) -> dict:
+    """The manifest of a dataset before any shard is written."""
+    from datagen.render import MASK_VALUES
+
+    return {
+        "format": MANIFEST_FORMAT,
+        "root_seed": cfg.seed,
+        "config": to_dict(cfg),
+        "num_images": cfg.num_images,
+        "num_shards": cfg.num_shards,
+        "complete": False,
+        "mask_values": {"background": 0, **MASK_VALUES},
+        "members": ["png", "json"] + (["mask.png"] if cfg.write_mask else []) + (["depth.png"] if cfg.write_depth else []),
+        "shards": [],
+    }
+
+
+def finished_shards(cfg: GenerateConfig, out_dir: str) -> dict[int, dict]:
+    """Shards of an earlier run of the same config in out_dir whose file matches its recorded sha256.
+
+    A manifest of a different config or seed is an InputError: the folder holds another dataset.
+    """
+    from datagen.shards import check_shard, read_manifest
+
+    try:
+        manifest = read_manifest(out_dir)
+    except (ValueError, OSError) as err:
+        raise InputError(f"--out {out_dir!r}: unreadable manifest.json ({err}); use another folder") from None
+    if manifest is None:
+        return {}
+    if manifest.get("config") != to_dict(cfg) or manifest.get("root_seed") != cfg.seed:
+        raise InputError(f"--out {out_dir!r} holds a dataset of another config or seed; use another folder")
+    done = {}
+    for entry in manifest.get("shards", []):
+        path = os.path.join(out_dir, entry["name"])
+        if check_shard(path, entry["sha256"], entry["count"]) is None:
+            done[int(entry["index"])] = entry
+    return done
+
+
+def _record(manifest: dict, done: dict[int, dict], out_dir: str, complete: bool) -> None:
+    from datagen.shards import write_manifest
+
+    manifest["shards"] = [done[i] for i in sorted(done)]
+    manifest["complete"] = complete
+    write_manifest(out_dir, manifest)
+
+
+def _run_local(cfg_json: str, todo: list[int], out_dir: str, workers: int, on_done: Callable[[dict], None]) -> None:
+    """Run shard tasks in this process (1 worker) or a spawned process pool."""
+    if workers == 1 or len(todo) <= 1:
+        os.environ.setdefault("LP_NUM_THREADS", str(llvmpipe_threads(1)))
+        for idx in todo:
+            on_done(shard_task(cfg_json, idx, out_dir))
+        return
+    import concurrent.futures as cf
+    import multiprocessing as mp
+
+    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_worker_init,
+                                initargs=(llvmpipe_threads(workers),)) as pool:
+        futures = [pool.submit(shard_task, cfg_json, idx, out_dir) for idx in todo]
+        for fut in cf.as_completed(futures):
+            on_done(fut.result())
+
+
+def _run_dask(cfg_json: str, todo: list[int], out_dir: str, workers: int, scheduler: str | None,
+              on_done: Callable[[dict], None]) -> None:
+    """Run shard tasks on a Dask cluster: the one at `scheduler`, or a LocalCluster on 127.0.0.1."""
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    cluster = None
+    if scheduler:
+        client = Client(scheduler)
+    else:
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                               dashboard_address=None, env={"LP_NUM_THREADS": str(llvmpipe_threads(workers))})
+        client = Client(cluster)
+    try:
+        futures = [client.submit(shard_task, cfg_json, idx, os.path.abspath(out_dir), pure=False) for idx in todo]
+        for fut in as_completed(futures):
+            on_done(fut.result())
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: str = "local",
+                 scheduler: str | None = None, progress: bool = False) -> dict:
+    """Generate (or finish) the dataset of `cfg` in out_dir; returns the final manifest."""
+    from datagen.shards import shard_name
+
+    check(workers >= 1, "workers", workers, "at least 1 worker")
+    check(backend in ("local", "dask"), "backend", backend, "'local' or 'dask'")
+    check(scheduler is None or backend == "dask", "scheduler", scheduler, "an address only with --backend dask")
+    prepare_out_dir(out_dir)
+    done = finished_shards(cfg, out_dir) if os.path.isdir(out_dir) else {}
+    os.makedirs(out_dir, exist_ok=True)
+    for stale in glob.glob(os.path.join(out_dir, ".tmp-*")):  # partial shards of a killed run
+        os.remove(stale)
+    for idx in range(cfg.num_shards):  # a shard file the manifest does not vouch for is redone
+        if idx not in done and os.path.exists(os.path.join(out_dir, shard_name(idx))):
+            os.remove(os.path.join(out_dir, shard_name(idx)))
+    manifest = new_manifest(cfg)
+    _record(manifest, done, out_dir, complete=False)
+    from envisat_pose.config import to_toml
+    from envisat_pose.io import atomic_write_text
+
+    atomic_write_text(os.path.join(out_dir, "generate.config.toml"),
+                      "# envisat generate: the full validated config of this dataset\n" + to_toml(to_dict(cfg)))
+    todo = [i for i in range(cfg.num_shards) if i not in done]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.num_images, initial=sum(e["count"] for e in done.values()), unit="img",
+                   desc="generate", mininterval=0.5)
+
+    def on_done(entry: dict) -> None:
+        done[entry["index"]] = entry
+        _record(manifest, done, out_dir, complete=False)
+        if bar is not None:
+            bar.update(entry["count"])
+
+    try:
+        cfg_text = config_json(cfg)
+        if backend == "dask":
+            _run_dask(cfg_text, todo, out_dir, workers, scheduler, on_done)
+        else:
+            _run_local(cfg_text, todo, out_dir, workers, on_done)
+    finally:
+        if bar is not None:
+            bar.close()
+    _record(manifest, done, out_dir, complete=len(done) == cfg.num_shards)
+    return manifest

@@ -1,0 +1,157 @@
+"""WebDataset shards: deterministic tar writing, atomic publication, the manifest, reading and verification.
+
+A shard is a plain tar of samples, each sample's members `<key>.depth.png`, `<key>.json`, `<key>.mask.png`,
+`<key>.png` consecutive (design.md, Shard contract). Members carry a fixed mtime, owner and mode, so the same
+samples give the same bytes in any process, on any backend.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tarfile
+
+import cv2
+import numpy as np
+
+from envisat_pose.io import atomic_path, atomic_write_text
+
+MANIFEST = "manifest.json"
+MEMBER_SUFFIXES = ("depth.png", "json", "mask.png", "png")  # sorted: the order inside a sample
+PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+
+
+def shard_name(index: int) -> str:
+    """File name of shard `index`: shard-000000.tar."""
+    return f"shard-{index:06d}.tar"
+
+
+def sample_key(global_index: int) -> str:
+    """WebDataset key of the dataset's sample `global_index` (no dots: the key ends at the first dot)."""
+    return f"{global_index:09d}"
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """PNG bytes of an 8- or 16-bit single-channel image (zlib level 1: fast, deterministic)."""
+    ok, buf = cv2.imencode(".png", image, PNG_PARAMS)
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def decode_png(data: bytes) -> np.ndarray:
+    """An image from PNG bytes, keeping its bit depth. (H, W) uint8 or uint16."""
+    return cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+
+
+def label_bytes(label: dict) -> bytes:
+    """The label as compact, key-sorted JSON (stable bytes)."""
+    return json.dumps(label, sort_keys=True, separators=(",", ":")).encode("utf-8")
+
+
+def _tar_member(name: str, size: int) -> tarfile.TarInfo:
+    info = tarfile.TarInfo(name)
+    info.size = size
+    info.mtime = 0
+    info.mode = 0o644
+    info.uid = info.gid = 0
+    info.uname = info.gname = ""
+    return info
+
+
+def sha256_file(path: str) -> str:
+    """Hex sha256 of a file."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+class ShardWriter:
+    """Writes one shard to a temporary file next to its final path; `close()` renames it into place.
+
+    Use as a context manager: an exception (or a kill) leaves no file under the final name.
+    """
+
+    def __init__(self, path: str):
+        self.path = path
+        self.count = 0
+        self._ctx = atomic_path(path, suffix=".tar")
+        self._tmp = self._ctx.__enter__()
+        self._tar = tarfile.open(self._tmp, "w", format=tarfile.USTAR_FORMAT)
+
+    def write(self, key: str, members: dict[str, bytes]) -> None:
+        """Add one sample: members maps a suffix of MEMBER_SUFFIXES to its bytes (absent ones are skipped)."""
+        for suffix in MEMBER_SUFFIXES:
+            if suffix in members:
+                data = members[suffix]
+                self._tar.addfile(_tar_member(f"{key}.{suffix}", len(data)), io.BytesIO(data))
+        self.count += 1
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        self._tar.close()
+        if exc_type is None:
+            with open(self._tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+            return self._ctx.__exit__(None, None, None)
+        return self._ctx.__exit__(exc_type, exc, tb)
+
+
+def read_shard(path: str):
+    """Iterate the samples of a shard: (key, {suffix: bytes}). Plain tar reading; nothing is unpickled."""
+    with tarfile.open(path, "r") as tar:
+        key, members = None, {}
+        for info in tar:
+            if not info.isfile():
+                continue
+            k, _, suffix = info.name.partition(".")
+            if k != key and key is not None:
+                yield key, members
+                members = {}
+            key = k
+            members[suffix] = tar.extractfile(info).read()
+        if key is not None:
+            yield key, members
+
+
+def write_manifest(out_dir: str, manifest: dict) -> None:
+    """Write manifest.json atomically (key-sorted, indented)."""
+    atomic_write_text(os.path.join(out_dir, MANIFEST), json.dumps(manifest, sort_keys=True, indent=1) + "\n")
+
+
+def read_manifest(out_dir: str) -> dict | None:
+    """The dataset's manifest, or None when there is none. A malformed file raises ValueError."""
+    path = os.path.join(out_dir, MANIFEST)
+    if not os.path.exists(path):
+        return None
+    with open(path, encoding="utf-8") as fh:
+        data = json.load(fh)
+    if not isinstance(data, dict) or "shards" not in data:
+        raise ValueError(f"{path} is not a dataset manifest")
+    return data
+
+
+def check_shard(path: str, expected_sha256: str | None, expected_count: int | None) -> str | None:
+    """What is wrong with one shard file ('missing', 'sha256 mismatch', ...), or None when it is sound."""
+    if not os.path.exists(path):
+        return "missing"
+    if expected_sha256 is not None and sha256_file(path) != expected_sha256:
+        return "sha256 mismatch"
+    try:
+        n = 0
+        for key, members in read_shard(path):
+            need = {"png", "json"}
+            if not need <= set(members):
+                return f"sample {key} lacks {sorted(need - set(members))}"
+            n += 1
+    except (tarfile.TarError, OSError, EOFError) as err:
+        return f"unreadable tar: {err}"
+    if expected_count is not None and n != expected_count:
+        return f"{n} samples, expected {expected_count}"
+    return None

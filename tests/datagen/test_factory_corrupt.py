@@ -1,0 +1,67 @@
+"""Corruption: severity 0 leaves the image unchanged; each kind at a higher level changes it as it should;
+parameters are drawn from the sample's Generator only."""
+
+import numpy as np
+import pytest
+
+from datagen.corrupt import KINDS, apply_corruption, draw_corruption, motion_kernel
+
+
+def make_image():
+    rng = np.random.default_rng(0)
+    img = np.zeros((128, 128), np.uint8)
+    img[40:90, 30:100] = 180
+    img[60:70, 50:60] = 250
+    return img + rng.integers(0, 3, img.shape).astype(np.uint8)
+
+
+def levels(**kw):
+    lv = {k: "none" for k in KINDS}
+    lv.update(kw)
+    return lv
+
+
+def test_severity_zero_is_identity():
+    img = make_image()
+    for seed in range(5):
+        params = draw_corruption(levels(), 128, np.random.default_rng(seed))
+        out = apply_corruption(img, params)
+        assert np.array_equal(out, img)
+        assert params["exposure_gain"] == 1.0 and params["gaussian_noise_sigma"] == 0.0
+        assert params["shot_noise_full_well_e"] is None and params["gaussian_blur_sigma_px"] == 0.0
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_each_kind_changes_the_image(kind):
+    img = make_image()
+    params = draw_corruption(levels(**{kind: "high"}), 128, np.random.default_rng(1))
+    out = apply_corruption(img, params)
+    assert not np.array_equal(out, img)
+    diff = out.astype(float) - img
+    if kind == "gaussian_noise":
+        assert abs(diff[42:58, 32:100].std() - 10.0) < 1.0  # sigma 10 grey levels on a flat grey patch
+    if kind == "shot_noise":
+        # variance = signal x 255 / full well: much noisier on the bright patch than on the dark one
+        assert diff[45:85, 35:95].std() > 3 * diff[5:30, 5:30].std()
+    if kind in ("gaussian_blur", "motion_blur"):
+        assert abs(out.astype(float).mean() - img.mean()) < 1.0  # blur keeps the energy
+        assert out[40:90, 30:100].std() < img[40:90, 30:100].std() or out[39, 60] > img[39, 60]
+
+
+def test_same_seed_same_params_and_pixels():
+    img = make_image()
+    mixed = {k: "mixed" for k in KINDS}
+    a = draw_corruption(mixed, 128, np.random.default_rng(42))
+    b = draw_corruption(mixed, 128, np.random.default_rng(42))
+    assert a == b
+    assert np.array_equal(apply_corruption(img, a), apply_corruption(img, b))
+    c = draw_corruption(mixed, 128, np.random.default_rng(43))
+    assert c != a
+
+
+def test_motion_kernel_is_a_normalised_streak():
+    k = motion_kernel(9.0, 0.0)
+    assert k.shape == (11, 11) and abs(k.sum() - 1) < 1e-6
+    assert np.all(k[np.arange(11) != 5] == 0)  # horizontal streak: one row
+    k = motion_kernel(9.0, 90.0)
+    assert np.allclose(k[:, 5].sum(), 1.0, atol=1e-6)
