@@ -55,6 +55,22 @@ def draw_corruption(severities: dict[str, str], resolution_px: int, rng: np.rand
     }
 
 
+def _normal_table() -> np.ndarray:
+    """Standard-normal quantiles at the 65536 mid-probabilities (i + 0.5) / 65536, float32 (tails to 4.3 sigma)."""
+    from scipy.special import ndtri
+
+    return ndtri((np.arange(65536) + 0.5) / 65536).astype(np.float32)
+
+
+_NORMAL_TABLE = _normal_table()
+
+
+def standard_normal_fast(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """Standard-normal float32 noise by inverse-CDF lookup of uniform 16-bit draws: ~3x faster than
+    Generator.standard_normal, quantised to 65536 levels (ample for 8-bit images). (shape) float32."""
+    return _NORMAL_TABLE[rng.integers(0, 65536, size=shape, dtype=np.uint16)]
+
+
 def motion_kernel(length_px: float, angle_deg: float) -> np.ndarray:
     """Normalised line kernel of a linear streak `length_px` long at `angle_deg` (image x toward y). (k, k)."""
     half = int(np.ceil(length_px / 2.0))
@@ -94,5 +110,5 @@ def apply_corruption(gray_u8: np.ndarray, params: dict) -> np.ndarray:
     if full_well is not None or var > 0:
         rng = np.random.default_rng(params["noise_seed"])
         total_var = var + (np.maximum(img, 0.0) * np.float32(255.0 / full_well) if full_well else np.float32(0.0))
-        img += rng.standard_normal(img.shape, dtype=np.float32) * np.sqrt(total_var)
+        img += standard_normal_fast(rng, img.shape) * np.sqrt(total_var)
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)

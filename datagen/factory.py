@@ -224,7 +224,7 @@ def render_sample(renderer, cfg: GenerateConfig, view, x: np.ndarray, scene: dic
     if cfg.write_mask:
         members["mask.png"] = encode_png(out.mask_u8)
     if cfg.write_depth:
-        members["depth.png"] = encode_png(encode_depth(out.depth_m, cfg.depth_scale_m))
+        members["depth.png"] = encode_png(encode_depth(out.depth_m, cfg.depth_scale_m), "depth")
     return members
 
 

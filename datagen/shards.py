@@ -20,7 +20,13 @@ from envisat_pose.io import atomic_path, atomic_write_text
 
 MANIFEST = "manifest.json"
 MEMBER_SUFFIXES = ("depth.png", "json", "mask.png", "png")  # sorted: the order inside a sample
-PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+# zlib level 1 with the PNG filter and zlib strategy that measured fastest per kind of image (1024 px, one core):
+# noisy images and masks without filtering and with run-length matching, smooth 16-bit depth with the Sub filter.
+PNG_PARAMS = {
+    "image": [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE,
+              cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE],
+    "depth": [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB],
+}
 
 
 def shard_name(index: int) -> str:
@@ -33,9 +39,10 @@ def sample_key(global_index: int) -> str:
     return f"{global_index:09d}"
 
 
-def encode_png(image: np.ndarray) -> bytes:
-    """PNG bytes of an 8- or 16-bit single-channel image (zlib level 1: fast, deterministic)."""
-    ok, buf = cv2.imencode(".png", image, PNG_PARAMS)
+def encode_png(image: np.ndarray, kind: str = "image") -> bytes:
+    """PNG bytes of an 8- or 16-bit single-channel image; kind 'image' (also masks) or 'depth' picks the
+    encoder settings. Deterministic: the same pixels give the same bytes."""
+    ok, buf = cv2.imencode(".png", image, PNG_PARAMS[kind])
     if not ok:
         raise RuntimeError("PNG encoding failed")
     return buf.tobytes()

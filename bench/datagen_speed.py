@@ -1,0 +1,169 @@
+"""Image factory speed: labelled images per second end to end (render, label, corrupt, encode, write shards)
+at 512 and 1024 px with 1 and 2 workers, next to the raw MuJoCo render rate of the same scenes in the same run.
+
+Protocol: one core per worker (LP_NUM_THREADS=1 for every renderer, the raw one included), random mode with
+the default config, the same sample seeds for the raw renders and the dataset. The raw rate is the lit pass
+alone (mjr_render of the sun-lit, shadowed, 4x multisampled scene plus the RGB read-back): what one image costs
+before any label. For context it also times the stock mujoco.Renderer producing RGB, depth and segmentation.
+End-to-end times are wall clock of `run_generate`, worker start-up included.
+
+Floors (issue 3): 1 worker >= 60 % of the raw render rate; 2 workers >= 1.7 x one.
+Run: .venv/bin/python bench/datagen_speed.py  (writes bench/results/datagen_speed.json)
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ["LP_NUM_THREADS"] = "1"  # before any GL context: one rasterizer thread per process
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+import json
+import platform
+import shutil
+import tempfile
+import time
+
+import numpy as np
+
+IMAGES = {512: 160, 1024: 96}
+SHARD_SIZE = 16
+SEED = 2024
+
+
+def bench_config(resolution_px: int, n: int):
+    from datagen.factory import GenerateConfig
+    from envisat_pose.config import from_dict
+
+    return from_dict(GenerateConfig, {"resolution_px": resolution_px, "num_images": n, "shard_size": SHARD_SIZE,
+                                      "seed": SEED})
+
+
+def sample_views(cfg, fovy_deg: float) -> list:
+    """The dataset's own views (same seeds as generate_shard)."""
+    from datagen.factory import sample_random_view, sample_seed
+
+    views = []
+    for k in range(cfg.num_images):
+        s, i = divmod(k, cfg.shard_size)
+        views.append(sample_random_view(cfg, fovy_deg, np.random.default_rng(sample_seed(cfg.seed, s, i))))
+    return views
+
+
+def raw_rates(cfg) -> dict:
+    """Images/s of the lit pass alone, of our two-pass render, and of the stock Renderer's rgb+depth+seg;
+    plus the per-stage milliseconds of one labelled sample."""
+    import mujoco
+
+    from datagen.corrupt import apply_corruption, draw_corruption
+    from datagen.factory import render_sample
+    from datagen.labels import encode_depth
+    from datagen.render import SceneRenderer, render_model_xml
+    from datagen.shards import encode_png
+    from envisat_pose.config import to_dict
+
+    r = SceneRenderer(cfg.resolution_px)
+    views = sample_views(cfg, r.fovy_deg)
+    for v in views[:3]:
+        r.render_rgb_only(v[0])
+    t0 = time.perf_counter()
+    for v in views:
+        r.render_rgb_only(v[0])
+    raw = len(views) / (time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    outs = [r.render(v[0]) for v in views]
+    two_pass = len(views) / (time.perf_counter() - t0)
+    stages = {"render_two_passes_ms": 1e3 / two_pass, "render_lit_pass_ms": 1e3 / raw}
+    rngs = [np.random.default_rng(k) for k in range(len(views))]
+    sev = to_dict(cfg.corruption)
+    t0 = time.perf_counter()
+    imgs = [apply_corruption(o.gray_u8, draw_corruption(sev, cfg.resolution_px, g)) for o, g in zip(outs, rngs)]
+    stages["corrupt_ms"] = (time.perf_counter() - t0) * 1e3 / len(views)
+    t0 = time.perf_counter()
+    for o, im in zip(outs, imgs):
+        encode_png(im), encode_png(o.mask_u8), encode_png(encode_depth(o.depth_m, cfg.depth_scale_m), "depth")
+    stages["png_encode_ms"] = (time.perf_counter() - t0) * 1e3 / len(views)
+    t0 = time.perf_counter()
+    for k, v in enumerate(views):
+        render_sample(r, cfg, v[0], v[1], v[2], np.random.default_rng(k), k)
+    stages["render_sample_in_process_ms"] = (time.perf_counter() - t0) * 1e3 / len(views)
+    r.close()
+
+    # the stock Renderer making the three raw products of a labelled image, same model and views
+    model = mujoco.MjModel.from_xml_string(render_model_xml(cfg.resolution_px))
+    data = mujoco.MjData(model)
+    stock = mujoco.Renderer(model, cfg.resolution_px, cfg.resolution_px)
+    adr = model.joint("target_free").qposadr[0]
+    from envisat_pose.attitude import rotmat_to_quat
+
+    n_stock = min(len(views), 40)
+    t0 = time.perf_counter()
+    for v in views[:n_stock]:
+        data.qpos[adr : adr + 3] = v[0].rho_C_m
+        data.qpos[adr + 3 : adr + 7] = rotmat_to_quat(v[0].R_C_from_T)
+        mujoco.mj_forward(model, data)
+        stock.update_scene(data, camera="chaser_cam")
+        stock.render()
+        stock.enable_depth_rendering()
+        stock.render()
+        stock.disable_depth_rendering()
+        stock.enable_segmentation_rendering()
+        stock.render()
+        stock.disable_segmentation_rendering()
+    stock_rate = n_stock / (time.perf_counter() - t0)
+    stock.close()
+    return {"raw_lit_render_img_s": raw, "two_pass_render_img_s": two_pass,
+            "stock_renderer_rgb_depth_seg_img_s": stock_rate, "stages_ms": stages}
+
+
+def end_to_end(cfg, workers: int) -> float:
+    """Wall-clock labelled images/s of run_generate into a fresh folder."""
+    from datagen.factory import run_generate
+
+    out = tempfile.mkdtemp(prefix="datagen_speed_")
+    try:
+        t0 = time.perf_counter()
+        manifest = run_generate(cfg, os.path.join(out, "ds"), workers=workers)
+        dt = time.perf_counter() - t0
+        assert manifest["complete"]
+        return cfg.num_images / dt
+    finally:
+        shutil.rmtree(out, ignore_errors=True)
+
+
+def main() -> None:
+    results = {
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+                    "load_avg_start": os.getloadavg()},
+        "protocol": "LP_NUM_THREADS=1 per process; random mode, default config; shard size %d" % SHARD_SIZE,
+        "resolutions": {},
+    }
+    rows = []
+    for res, n in IMAGES.items():
+        cfg = bench_config(res, n)
+        raw = raw_rates(cfg)
+        e1 = end_to_end(cfg, 1)
+        e2 = end_to_end(cfg, 2)
+        entry = {**raw, "images": n, "e2e_1_worker_img_s": e1, "e2e_2_workers_img_s": e2,
+                 "ratio_1_worker_to_raw": e1 / raw["raw_lit_render_img_s"], "speedup_2_workers": e2 / e1}
+        entry["floor_60pct_met"] = entry["ratio_1_worker_to_raw"] >= 0.6
+        entry["floor_1_7x_met"] = entry["speedup_2_workers"] >= 1.7
+        results["resolutions"][str(res)] = entry
+        rows.append((res, raw["raw_lit_render_img_s"], raw["stock_renderer_rgb_depth_seg_img_s"], e1, e2,
+                     entry["ratio_1_worker_to_raw"], entry["speedup_2_workers"]))
+    results["machine"]["load_avg_end"] = os.getloadavg()
+    print(f"{'px':>5} {'raw lit':>9} {'stock 3x':>9} {'e2e 1w':>8} {'e2e 2w':>8} {'1w/raw':>7} {'2w/1w':>6}  (images/s)")
+    for res, raw, stock, e1, e2, ratio, speed in rows:
+        print(f"{res:>5} {raw:>9.1f} {stock:>9.1f} {e1:>8.1f} {e2:>8.1f} {ratio:>7.2f} {speed:>6.2f}")
+    for res, entry in results["resolutions"].items():
+        print(f"{res} px stages (ms/image, 1 core): " + ", ".join(f"{k} {v:.1f}" for k, v in entry["stages_ms"].items()))
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "datagen_speed.json")
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "w", encoding="utf-8") as fh:
+        json.dump(results, fh, indent=1, sort_keys=True)
+        fh.write("\n")
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
