@@ -85,6 +85,27 @@ def test_dask_two_workers_same_bytes(reference, tmp_path):
     assert shas(dask) == shas(manifest)
 
 
+def test_existing_dask_scheduler_by_address(reference, tmp_path):
+    """--backend dask --scheduler ADDRESS: the CLI submits to a running cluster (here one on 127.0.0.1)."""
+    from dask.distributed import LocalCluster
+
+    _, manifest = reference
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None) as cluster:
+        assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
+        rc = envisat_main(["generate", "--num-images", "6", "--shard-size", "2", "--resolution", "128", "--seed",
+                           "5", "--out", str(tmp_path / "ds"), "--backend", "dask", "--scheduler",
+                           cluster.scheduler_address, "--quiet", "--config", str(write_earth_config(tmp_path))])
+    assert rc == 0
+    assert shas(read_manifest(str(tmp_path / "ds"))) == shas(manifest)
+
+
+def write_earth_config(tmp_path):
+    path = tmp_path / "gen.toml"
+    path.write_text("earth_probability = 0.3\n")
+    return path
+
+
 def test_process_pool_two_workers_same_bytes(reference, tmp_path):
     _, manifest = reference
     pool = run_generate(small_cfg(), str(tmp_path / "pool"), workers=2)

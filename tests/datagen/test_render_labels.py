@@ -212,3 +212,22 @@ def test_depth_visibility_agrees_with_face_test_and_sees_the_array(renderer):
     exact = visible_corners(40.0 * d_T)
     assert exact[[4, 5, 6, 7]].all(), "the face test sees E-H from this side"
     assert lab["visible"][4:] == [False, False, True, True], "the array hides E and F, not G and H"
+
+
+def test_sun_eclipse_and_earth_backdrop(renderer):
+    """Sunlight from behind the camera lights the faces we see; from behind the target it leaves them dark;
+    eclipse darkens the target; the Earth backdrop fills background pixels without entering mask or depth."""
+    R = quat_to_rotmat(np.array([0.9, 0.3, -0.2, 0.25]) / np.linalg.norm([0.9, 0.3, -0.2, 0.25]))
+    rho = np.array([0.0, 35.0, 0.0])
+    lit = renderer.render(View(rho, R, np.array([0.1, -1.0, 0.05])))  # sun behind the chaser
+    back = renderer.render(View(rho, R, np.array([0.1, 1.0, 0.05])))  # sun behind the target
+    dark = renderer.render(View(rho, R, None))  # eclipse
+    body = (lit.mask_u8 >= 1) & (lit.mask_u8 <= 6)
+    assert body.sum() > 500
+    assert np.array_equal(lit.mask_u8, dark.mask_u8) and np.array_equal(lit.depth_m, dark.depth_m)
+    m_lit, m_back, m_dark = (o.gray_u8[body].mean() for o in (lit, back, dark))
+    assert m_lit > 40 and m_lit > 3 * m_back and m_dark < 8, (m_lit, m_back, m_dark)
+    earth = renderer.render(View(rho, R, np.array([0.1, -1.0, 0.05]), earth_dir_C=np.array([0.0, 1.0, -0.3])))
+    background = lit.mask_u8 == 0
+    assert np.array_equal(earth.mask_u8, lit.mask_u8) and np.array_equal(earth.depth_m, lit.depth_m)
+    assert lit.gray_u8[background].mean() < 1 and earth.gray_u8[background].mean() > 20
