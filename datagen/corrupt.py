@@ -109,6 +109,16 @@ def apply_corruption(gray_u8: np.ndarray, params: dict) -> np.ndarray:
     full_well = params["shot_noise_full_well_e"]
     if full_well is not None or var > 0:
         rng = np.random.default_rng(params["noise_seed"])
-        total_var = var + (np.maximum(img, 0.0) * np.float32(255.0 / full_well) if full_well else np.float32(0.0))
-        img += standard_normal_fast(rng, img.shape) * np.sqrt(total_var)
-    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        noise = standard_normal_fast(rng, img.shape)
+        if full_well:  # per-pixel sigma: sqrt(read variance + signal x 255 / full well), in place
+            std = np.maximum(img, np.float32(0.0))
+            std *= np.float32(255.0 / full_well)
+            std += var
+            np.sqrt(std, out=std)
+            noise *= std
+        else:
+            noise *= np.sqrt(var)
+        img += noise
+    np.rint(img, out=img)
+    np.clip(img, 0, 255, out=img)
+    return img.astype(np.uint8)

@@ -54,9 +54,10 @@ def depth_visibility(corners_px: np.ndarray, z_m: np.ndarray, depth_m: np.ndarra
 
 def encode_depth(depth_m: np.ndarray, depth_scale_m: float) -> np.ndarray:
     """16-bit depth: round(depth / scale), 0 stays background, clipped to [1, 65535] on the target. (H, W)."""
-    code = np.rint(depth_m / depth_scale_m)
-    code = np.where(depth_m > 0, np.clip(code, 1, DEPTH_MAX_CODE), 0)
-    return code.astype(np.uint16)
+    code = np.zeros(depth_m.shape, dtype=np.uint16)
+    fg = depth_m > 0  # only the target's pixels carry depth (a few percent of the image)
+    code[fg] = np.clip(np.rint(depth_m[fg].astype(np.float64) / depth_scale_m), 1, DEPTH_MAX_CODE)
+    return code
 
 
 def decode_depth(depth_u16: np.ndarray, depth_scale_m: float) -> np.ndarray:

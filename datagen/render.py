@@ -152,6 +152,16 @@ def projected_bbox_px(points_K_m: np.ndarray, K: np.ndarray, resolution_px: int,
     return max(u0, 0), max(v0, 0), min(u1, n - 1), min(v1, n - 1)
 
 
+def crop_frustum(box: tuple[int, int, int, int], resolution_px: int, bottom: float, top: float
+                 ) -> tuple[float, float, float, float]:
+    """Near-plane window (center, half-width, bottom, top) of the pixel box (u0, v0, u1, v1) of a square
+    image whose full window spans [bottom, top] vertically and horizontally (MuJoCo's mjvGLCamera frustum)."""
+    u0, v0, u1, v1 = box
+    s = (top - bottom) / resolution_px  # near-plane size of one pixel
+    left, right = bottom + u0 * s, bottom + (u1 + 1) * s
+    return 0.5 * (left + right), 0.5 * (right - left), top - (v1 + 1) * s, top - v0 * s
+
+
 def intrinsics(resolution_px: int, fovy_deg: float) -> np.ndarray:
     """Pinhole K (3, 3) of a square image, OpenCV convention (pixel centres at integer coordinates).
 
@@ -250,13 +260,6 @@ class SceneRenderer:
             pts.append(d.geom_xpos[g] + local @ d.geom_xmat[g].reshape(3, 3).T)
         return (np.concatenate(pts) - cam_W) @ R_K_W.T
 
-    def _read(self, rgb: np.ndarray | None, depth: np.ndarray | None, box: tuple[int, int, int, int]) -> None:
-        """Read a pixel box (u0, v0, u1, v1 in image rows from the top) of the current frame buffer."""
-        u0, v0, u1, v1 = box
-        n = self.resolution_px
-        rect = mujoco.MjrRect(u0, n - 1 - v1, u1 - u0 + 1, v1 - v0 + 1)
-        mujoco.mjr_readPixels(rgb, depth, rect, self._con)
-
     def render(self, view: View) -> RenderOutput:
         """Render `view`: the lit grayscale image, then depth and segmentation over the target's box."""
         self.set_view(view)
@@ -275,17 +278,26 @@ class SceneRenderer:
         gray = cv2.flip(cv2.cvtColor(self._rgb, cv2.COLOR_RGB2GRAY), 0)  # GL rows run bottom-up
         if box is not None:
             u0, v0, u1, v1 = box
-            # pass 2: flat segmentation colours (one id per geom) and depth over the target's box; depth and mask
-            # come from one pass so they cover the same pixels
+            # pass 2: flat segmentation colours (one id per geom) and depth of the target's box only: the
+            # frustum is narrowed to the box's pixels and the viewport shrunk to match, so each pixel keeps its
+            # full-image ray. Depth and mask come from this one pass so they cover the same pixels.
             flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = True
             flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = True
             flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
-            mujoco.mjr_render(self._rect, scn, self._con)
+            w, h = u1 - u0 + 1, v1 - v0 + 1
+            saved = [(c.frustum_center, c.frustum_width, c.frustum_bottom, c.frustum_top) for c in scn.camera]
+            for c in scn.camera:
+                c.frustum_center, c.frustum_width, c.frustum_bottom, c.frustum_top = crop_frustum(
+                    box, n, c.frustum_bottom, c.frustum_top)
+            crop_rect = mujoco.MjrRect(0, 0, w, h)
+            mujoco.mjr_render(crop_rect, scn, self._con)
+            for c, (fc, fw, fb, ft) in zip(scn.camera, saved):
+                c.frustum_center, c.frustum_width, c.frustum_bottom, c.frustum_top = fc, fw, fb, ft
             flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = False
             flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = False
-            raw = np.empty((v1 - v0 + 1, u1 - u0 + 1), dtype=np.float32)
+            raw = np.empty((h, w), dtype=np.float32)
             ids_rgb = np.empty(raw.shape + (3,), dtype=np.uint8)
-            self._read(ids_rgb, raw, box)
+            mujoco.mjr_readPixels(ids_rgb, raw, crop_rect, self._con)
             seg = ids_rgb.astype(np.int32)
             segid = seg[..., 0] + (seg[..., 1] << 8) + (seg[..., 2] << 16)  # 0: background, else geom slot + 1
             slot_to_geom = np.full(scn.ngeom + 1, -1, dtype=np.int64)
