@@ -382,8 +382,12 @@ def _run_dask(cfg_json: str, todo: list[int], out_dir: str, workers: int, schedu
 
 
 def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: str = "local",
-                 scheduler: str | None = None, progress: bool = False) -> dict:
-    """Generate (or finish) the dataset of `cfg` in out_dir; returns the final manifest."""
+                 scheduler: str | None = None, progress: bool = False,
+                 on_shard: Callable[[dict], None] | None = None) -> dict:
+    """Generate (or finish) the dataset of `cfg` in out_dir; returns the final manifest.
+
+    on_shard, if given, is called with each finished shard's manifest entry once it is recorded.
+    """
     from datagen.shards import shard_name
 
     check(workers >= 1, "workers", workers, "at least 1 worker")
@@ -417,6 +421,8 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
         _record(manifest, done, out_dir, complete=False)
         if bar is not None:
             bar.update(entry["count"])
+        if on_shard is not None:
+            on_shard(entry)
 
     try:
         cfg_text = config_json(cfg)

@@ -17,6 +17,7 @@ import pytest
 
 from datagen.factory import GenerateConfig, config_from_json, run_generate, sample_random_view
 from datagen.shards import decode_png, read_manifest, read_shard
+from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.cli import main as envisat_main
 from envisat_pose.config import from_dict
 
@@ -64,6 +65,13 @@ def test_shard_contract(reference):
         assert np.array_equal(depth > 0, mask > 0)  # 0 is background in both
         R = np.array(lab["R_cam_from_target"])
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+        # the pose in the camera frame is the state's: R = R_K_from_C Gamma(p)^T, t = R_K_from_C rho
+        x = np.array(lab["x"])
+        R_K_from_C = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+        np.testing.assert_allclose(R, R_K_from_C @ mrp_to_dcm(x[6:9]).T, atol=1e-9)
+        np.testing.assert_allclose(lab["t_cam_from_target_m"], R_K_from_C @ x[0:3], atol=1e-8)
+        K = np.array(lab["K"])
+        assert K[0, 2] == K[1, 2] == 63.5 and abs(K[0, 0] - 64 / np.tan(np.radians(15))) < 1e-6
         # the range in the depth image agrees with the pose: the CoM lies inside the body, behind its surface
         z_com = lab["t_cam_from_target_m"][2]
         if mask.any():
