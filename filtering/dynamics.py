@@ -1,0 +1,138 @@
+"""The filter's own motion model: chaser orbit, relative translation and relative attitude, RK4.
+
+Independent of the MuJoCo truth (design.md): the reference sheet's corrected equations (shared/reference.md,
+section 4), integrated with RK4 at the filter step and batched over any leading dimensions (runs x sigma points).
+
+State (the paper's order, section 3): x = (rho_C_m, rhodot_C_m_s, p_mrp, w_r_T_rad_s), shape (..., 12).
+Translation (x[..., 0:6]) and rotation (x[..., 6:12]) are two decoupled 6-state blocks: each derivative depends
+only on its own block and on the chaser's orbit.
+
+The chaser's orbit is known to the filter: at the start of every filter step it is taken from the truth's
+`chaser_*` arrays (the chaser knows its own orbit from navigation), then propagated through the RK4 stages with
+the polar two-body equations below, so the stage values of theta' and theta'' are consistent with the step.
+Chaser state: c = (r_m, rdot_m_s, theta_rad, thetadot_rad_s), shape (..., 4).
+"""
+
+from __future__ import annotations
+
+import functools
+import xml.etree.ElementTree as ET
+
+import numpy as np
+
+from envisat_pose.attitude import mrp_rate, mrp_to_dcm
+from envisat_pose.geometry import model_path
+
+MU_EARTH_M3_S2 = 3.986004418e14
+
+
+@functools.lru_cache(maxsize=4)
+def load_inertia_T_kg_m2(path: str | None = None) -> np.ndarray:
+    """Target inertia about its CoM in T, kg m^2, (3, 3), read from `fullinertia` of body `target` in the MJCF.
+
+    MuJoCo's fullinertia order is Ixx Iyy Izz Ixy Ixz Iyz.
+    """
+    path = path or model_path()
+    root = ET.parse(path).getroot()
+    body = next((b for b in root.iter("body") if b.get("name") == "target"), None)
+    if body is None:
+        raise ValueError(f"{path}: no body named 'target'")
+    inertial = body.find("inertial")
+    if inertial is None or inertial.get("fullinertia") is None:
+        raise ValueError(f"{path}: body 'target' has no <inertial fullinertia=...>")
+    ixx, iyy, izz, ixy, ixz, iyz = (float(v) for v in inertial.get("fullinertia").split())
+    J = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
+    J.setflags(write=False)
+    return J
+
+
+def chaser_rate(c: np.ndarray, mu_m3_s2: float = MU_EARTH_M3_S2) -> np.ndarray:
+    """Chaser polar two-body ODE: r'' = r th'^2 - mu/r^2, th'' = -2 r' th'/r. (..., 4) -> (..., 4)."""
+    r, rd, thd = c[..., 0], c[..., 1], c[..., 3]
+    rdd = r * thd**2 - mu_m3_s2 / r**2
+    thdd = -2.0 * rd * thd / r
+    return np.stack([rd, rdd, thd, thdd], axis=-1)
+
+
+def chaser_thetaddot(c: np.ndarray) -> np.ndarray:
+    """theta'' = -2 r' theta' / r, rad/s^2, (...,)."""
+    return -2.0 * c[..., 1] * c[..., 3] / c[..., 0]
+
+
+def translation_rate(x_tr: np.ndarray, c: np.ndarray, mu_m3_s2: float = MU_EARTH_M3_S2) -> np.ndarray:
+    """Nonlinear relative translation in C (sheet, section 4). x_tr = (rho_C_m, rhodot_C_m_s), (..., 6).
+
+    c: chaser state (..., 4), broadcast against x_tr's leading dims. Returns (rho', rho''), (..., 6).
+    """
+    x, y, z = x_tr[..., 0], x_tr[..., 1], x_tr[..., 2]
+    xd, yd = x_tr[..., 3], x_tr[..., 4]
+    r, thd = c[..., 0], c[..., 3]
+    thdd = chaser_thetaddot(c)
+    D = ((r + x) ** 2 + y**2 + z**2) ** 1.5
+    xdd = 2.0 * thd * yd + thdd * y + thd**2 * x - mu_m3_s2 * (r + x) / D + mu_m3_s2 / r**2
+    ydd = -2.0 * thd * xd - thdd * x + thd**2 * y - mu_m3_s2 * y / D
+    zdd = -mu_m3_s2 * z / D
+    return np.concatenate([x_tr[..., 3:6], np.stack([xdd, ydd, zdd], axis=-1)], axis=-1)
+
+
+def rotation_rate(x_rot: np.ndarray, c: np.ndarray, J_T: np.ndarray) -> np.ndarray:
+    """MRP kinematics and torque-free relative attitude dynamics. x_rot = (p_mrp, w_r_T_rad_s), (..., 6).
+
+    w_r' = J^-1 (-w_t x J w_t) + w_r x Gamma w_c - Gamma w_c',  w_t = w_r + Gamma w_c,
+    with w_c = (0, 0, theta') and w_c' = (0, 0, theta'') in C. J_T: (3, 3) kg m^2. Returns (p', w_r'), (..., 6).
+    """
+    p, w_r = x_rot[..., 0:3], x_rot[..., 3:6]
+    G = mrp_to_dcm(p)
+    # Gamma w_c = theta' * third column of Gamma (w_c is along z_C)
+    thd = c[..., 3]
+    Gw_c = G[..., :, 2] * thd[..., None]
+    Gw_cdot = G[..., :, 2] * chaser_thetaddot(c)[..., None]
+    w_t = w_r + Gw_c
+    Jw_t = w_t @ J_T.T
+    w_r_dot = -np.cross(w_t, Jw_t) @ np.linalg.inv(J_T).T  # J^-1 (-w_t x J w_t), torque-free
+    w_r_dot = w_r_dot + np.cross(w_r, Gw_c) - Gw_cdot
+    return np.concatenate([mrp_rate(p, w_r), w_r_dot], axis=-1)
+
+
+def chaser_stages(c0: np.ndarray, dt_s: float, mu_m3_s2: float = MU_EARTH_M3_S2):
+    """The chaser state at the four RK4 stages of one step and at its end: (c1, c2, c3, c4, c_end), each (..., 4)."""
+    k1 = chaser_rate(c0, mu_m3_s2)
+    c2 = c0 + 0.5 * dt_s * k1
+    k2 = chaser_rate(c2, mu_m3_s2)
+    c3 = c0 + 0.5 * dt_s * k2
+    k3 = chaser_rate(c3, mu_m3_s2)
+    c4 = c0 + dt_s * k3
+    k4 = chaser_rate(c4, mu_m3_s2)
+    c_end = c0 + dt_s / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    return c0, c2, c3, c4, c_end
+
+
+def _rk4_block(f, y0: np.ndarray, stages, dt_s: float) -> np.ndarray:
+    """One RK4 step of y' = f(y, c) with the chaser's stage states `stages` (c1, c2, c3, c4)."""
+    c1, c2, c3, c4 = stages
+    k1 = f(y0, c1)
+    k2 = f(y0 + 0.5 * dt_s * k1, c2)
+    k3 = f(y0 + 0.5 * dt_s * k2, c3)
+    k4 = f(y0 + dt_s * k3, c4)
+    return y0 + dt_s / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def propagate(x: np.ndarray, c0: np.ndarray, dt_s: float, J_T: np.ndarray | None = None,
+              mu_m3_s2: float = MU_EARTH_M3_S2, max_step_s: float = 1.0) -> np.ndarray:
+    """Propagate the 12-state over dt_s with RK4 (sub-steps no longer than max_step_s). No shadow switch.
+
+    x: (..., 12). c0: chaser state at the start, (4,) or broadcastable to x[..., :4]. Returns (..., 12).
+    The MRP is left on the set it was propagated in; the caller switches sets (the UKF does it on the mean).
+    """
+    J_T = load_inertia_T_kg_m2() if J_T is None else J_T
+    n_sub = max(1, int(np.ceil(dt_s / max_step_s - 1e-9)))
+    h = dt_s / n_sub
+    x_tr, x_rot = x[..., 0:6], x[..., 6:12]
+    c = np.asarray(c0, dtype=float)
+    for _ in range(n_sub):
+        c1, c2, c3, c4, c_end = chaser_stages(c, h, mu_m3_s2)
+        st = (c1, c2, c3, c4)
+        x_tr = _rk4_block(lambda y, cc: translation_rate(y, cc, mu_m3_s2), x_tr, st, h)
+        x_rot = _rk4_block(lambda y, cc: rotation_rate(y, cc, J_T), x_rot, st, h)
+        c = c_end
+    return np.concatenate([x_tr, x_rot], axis=-1)

@@ -1,0 +1,140 @@
+"""Measurement models of the corners A-H, visibility prediction and the selection of measured corners.
+
+Three kinds (per corner i, v_i its position in T from models/envisat.xml via envisat_pose.geometry):
+- "markers3d": z_i = rho + Gamma^T v_i, the corner relative to the chaser in C, m (3 per corner);
+- "pixels": (u, v) of the corner in the chaser camera, px (2 per corner);
+- "pixels+range": (u, v, range_m), range the distance from the camera to the corner, m (3 per corner).
+
+The camera is fixed on the chaser at its origin: boresight +y_C, image right = -z_C, image down = -x_C, so the
+camera frame K (x right, y down, z boresight) is v_K = R_K_from_C v_C with the rows (-z_C, -x_C, +y_C). Pinhole:
+u = f x_K / z_K + c_u, v = f y_K / z_K + c_v (pixel centres at integer coordinates).
+
+Measurements travel as per-corner arrays: z (..., 8, m), mask (..., 8) bool (which corners were measured), and
+per-corner covariances (..., 8, m, m). A filter flattens them to (..., 8 m).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from envisat_pose.attitude import mrp_to_dcm
+from envisat_pose.geometry import load_geometry, visible_corners
+
+KINDS = ("markers3d", "pixels", "pixels+range")
+R_K_FROM_C = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole intrinsics of the chaser camera: focal length f_px, principal point (cu_px, cv_px), image size."""
+
+    f_px: float = 1910.8
+    cu_px: float = 511.5
+    cv_px: float = 511.5
+    width_px: int = 1024
+    height_px: int = 1024
+
+
+def dim_per_corner(kind: str) -> int:
+    """Number of measured components per corner: 3, 2 or 3."""
+    return {"markers3d": 3, "pixels": 2, "pixels+range": 3}[kind]
+
+
+def corners_C_m(x: np.ndarray, corners_T_m: np.ndarray | None = None) -> np.ndarray:
+    """Corner positions relative to the chaser in C: rho + Gamma^T v_i, m. (..., 12) -> (..., 8, 3)."""
+    v_T = load_geometry().corners_T_m if corners_T_m is None else corners_T_m
+    G = mrp_to_dcm(x[..., 6:9])
+    # (Gamma^T v)_j = sum_i G_ij v_i
+    return x[..., None, 0:3] + v_T @ G
+
+
+def predicted_visible(x: np.ndarray) -> np.ndarray:
+    """Exact face test from the state: c_T = -Gamma rho, the chaser in T. (..., 12) -> (..., 8) bool."""
+    c_T = -np.einsum("...ij,...j->...i", mrp_to_dcm(x[..., 6:9]), x[..., 0:3])
+    return visible_corners(c_T)
+
+
+def project(points_C_m: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection of points in C. (..., 3) -> pixels (..., 2) px and depth z_K (...,) m."""
+    p_K = points_C_m @ R_K_FROM_C.T
+    z_K = p_K[..., 2]
+    uv = np.stack([camera.f_px * p_K[..., 0] / z_K + camera.cu_px, camera.f_px * p_K[..., 1] / z_K + camera.cv_px], -1)
+    return uv, z_K
+
+
+def measure(x: np.ndarray, kind: str, camera: Camera | None = None) -> np.ndarray:
+    """Noise-free measurement of all 8 corners from the state. (..., 12) -> (..., 8, m), m = dim_per_corner(kind)."""
+    pts = corners_C_m(x)
+    if kind == "markers3d":
+        return pts
+    uv, _ = project(pts, camera or Camera())
+    if kind == "pixels":
+        return uv
+    if kind == "pixels+range":
+        return np.concatenate([uv, np.linalg.norm(pts, axis=-1, keepdims=True)], axis=-1)
+    raise ValueError(f"unknown measurement kind {kind!r}; expected one of {KINDS}")
+
+
+def in_frame(x: np.ndarray, camera: Camera) -> np.ndarray:
+    """Which corners project inside the image and in front of the camera. (..., 12) -> (..., 8) bool."""
+    uv, z_K = project(corners_C_m(x), camera)
+    return (z_K > 0) & (uv[..., 0] >= -0.5) & (uv[..., 0] <= camera.width_px - 0.5) \
+        & (uv[..., 1] >= -0.5) & (uv[..., 1] <= camera.height_px - 0.5)
+
+
+def corner_cov(kind: str, sigma_m: float, sigma_px: float, sigma_range_m: float) -> np.ndarray:
+    """Per-corner noise covariance (m, m) of a kind: sigma_m^2 I (m^2), sigma_px^2 I (px^2), range sigma_range_m."""
+    if kind == "markers3d":
+        return sigma_m**2 * np.eye(3)
+    if kind == "pixels":
+        return sigma_px**2 * np.eye(2)
+    return np.diag([sigma_px**2, sigma_px**2, sigma_range_m**2])
+
+
+def limit_markers(mask: np.ndarray, max_markers: int | None) -> np.ndarray:
+    """Keep at most `max_markers` measured corners per step: the first ones in the order A..H.
+
+    The rule is deterministic and label-based, like a tracker that locks on named markers (the paper's
+    3-marker case): any three distinct box corners are never collinear, so the pose stays observable.
+    mask: (..., 8) bool -> (..., 8) bool.
+    """
+    if max_markers is None or max_markers >= mask.shape[-1]:
+        return mask
+    return mask & (np.cumsum(mask, axis=-1) <= max_markers)
+
+
+def random_failures(mask: np.ndarray, failure_prob: float, rng: np.random.Generator) -> np.ndarray:
+    """Drop each measured corner independently with probability failure_prob. (..., 8) bool."""
+    if failure_prob <= 0.0:
+        return mask
+    return mask & (rng.random(mask.shape) >= failure_prob)
+
+
+def outage_mask(t_s: np.ndarray, outages_s: tuple[tuple[float, float], ...]) -> np.ndarray:
+    """True at the times inside any outage window [start, end) (an eclipse: no corner measured). (T,) bool."""
+    out = np.zeros(t_s.shape, dtype=bool)
+    for start, end in outages_s:
+        out |= (t_s >= start) & (t_s < end)
+    return out
+
+
+def add_noise(z: np.ndarray, cov: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """z + e with e ~ N(0, cov) per corner. z (..., 8, m), cov broadcastable to (..., 8, m, m)."""
+    cov = np.broadcast_to(cov, z.shape + (z.shape[-1],))
+    L = np.linalg.cholesky(cov)
+    e = rng.standard_normal(z.shape)
+    return z + np.einsum("...ij,...j->...i", L, e)
+
+
+def swap_corners(z: np.ndarray, steps: np.ndarray, i: int, j: int) -> np.ndarray:
+    """A mis-association fault: corners i and j exchange their measurements at the given steps.
+
+    z: (T, 8, m) or (R, T, 8, m); steps: (T,) bool. Returns a copy.
+    """
+    z = z.copy()
+    zi = z[..., steps, i, :].copy()
+    z[..., steps, i, :] = z[..., steps, j, :]
+    z[..., steps, j, :] = zi
+    return z

@@ -1,0 +1,258 @@
+"""Our UKF as pure functions over a batch of runs: `predict(mean, cov, ...)`, `update(mean, cov, z, mask, ...)`.
+
+Shapes: mean (..., n), cov (..., n, n), with any leading batch dims (runs). Sigma points are the scaled
+symmetric set of van der Merwe (filterpy's MerweScaledSigmaPoints): chi_0 = x, chi_k = x + [L]_k,
+chi_(n+k) = x - [L]_k, with L L^T = (n + lambda) P (the rows of filterpy's upper Cholesky factor).
+
+Attitude (reference sheet, section 4): the MRP mean is kept on |p| <= 1. Sigma points are drawn around the mean
+on its set; after propagation each sigma point's MRP is brought to the set of the central sigma point before
+averaging (`state_mean`), the averaged mean is switched to its shadow if |p| > 1, and every residual brings the
+sigma point's MRP to the set of the point it is compared with (`state_residual`). After an update that carries
+|p| over 1 the mean switches and the covariance maps with S = d(shadow)/dp (`shadow_switch`).
+The same hooks serve filterpy's reference filter (filtering/reference.py), so the two are equal step by step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from envisat_pose.attitude import mrp_shadow, mrp_shadow_jacobian
+
+from filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, propagate
+
+MRP = slice(6, 9)
+
+
+@dataclass(frozen=True)
+class SigmaWeights:
+    """Scaled unscented weights: lam = alpha^2 (n + kappa) - n; Wm, Wc: (2n + 1,)."""
+
+    n: int
+    lam: float
+    Wm: np.ndarray
+    Wc: np.ndarray
+
+
+def merwe_weights(n: int, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0) -> SigmaWeights:
+    """Weights of the scaled symmetric sigma-point set (van der Merwe 2004), as in filterpy."""
+    lam = alpha**2 * (n + kappa) - n
+    Wc = np.full(2 * n + 1, 0.5 / (n + lam))
+    Wm = Wc.copy()
+    Wc[0] = lam / (n + lam) + (1.0 - alpha**2 + beta)
+    Wm[0] = lam / (n + lam)
+    return SigmaWeights(n, lam, Wm, Wc)
+
+
+# ---------------------------------------------------------------- attitude-aware hooks (shared with filterpy)
+
+def align_mrp(p_mrp: np.ndarray, p_ref: np.ndarray) -> np.ndarray:
+    """p or its shadow -p/(p.p), whichever is closer to p_ref (same orientation, comparable set). (..., 3)."""
+    pp = np.einsum("...i,...i->...", p_mrp, p_mrp)[..., None]
+    shadow = -p_mrp / np.where(pp > 0.0, pp, 1.0)
+    closer = np.linalg.norm(shadow - p_ref, axis=-1) < np.linalg.norm(p_mrp - p_ref, axis=-1)
+    return np.where((closer & (pp[..., 0] > 0.0))[..., None], shadow, p_mrp)
+
+
+def state_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a - b for 12-states, with a's MRP first brought to the set of b's. (..., 12)."""
+    d = a - b
+    d[..., MRP] = align_mrp(a[..., MRP], b[..., MRP]) - b[..., MRP]
+    return d
+
+
+def state_mean(sigmas: np.ndarray, Wm: np.ndarray) -> np.ndarray:
+    """Weighted mean of sigma points (..., S, 12): MRPs on the central point's set, then |p| <= 1. (..., 12)."""
+    s = np.array(sigmas, dtype=float, copy=True)
+    s[..., MRP] = align_mrp(s[..., MRP], s[..., :1, MRP])
+    m = Wm @ s
+    m[..., MRP] = mrp_shadow(m[..., MRP])
+    return m
+
+
+def shadow_switch(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Switch runs whose MRP has |p| > 1 to the shadow set; the MRP rows/columns of cov map with S. (..., 12)."""
+    p = mean[..., MRP]
+    switch = np.einsum("...i,...i->...", p, p) > 1.0
+    if not np.any(switch):
+        return mean, cov
+    mean, cov = mean.copy(), cov.copy()
+    S = mrp_shadow_jacobian(np.where(switch[..., None], p, 1.0))
+    S = np.where(switch[..., None, None], S, np.eye(3))
+    mean[..., MRP] = mrp_shadow(p)
+    cov[..., MRP, :] = S @ cov[..., MRP, :]
+    cov[..., :, MRP] = cov[..., :, MRP] @ np.swapaxes(S, -1, -2)
+    return mean, cov
+
+
+# ---------------------------------------------------------------- covariance health
+
+def repair_cov(cov: np.ndarray, rel_floor: float = 1e-12, abs_floor: float = 1e-18) -> tuple[np.ndarray, np.ndarray]:
+    """Symmetrize; where a covariance is not positive definite, clip its eigenvalues to a floor.
+
+    Returns (cov, repaired (...,) bool). Never raises: NaN entries are left for the caller's finite check.
+    """
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    try:
+        np.linalg.cholesky(cov)
+        return cov, np.zeros(cov.shape[:-2], dtype=bool)
+    except np.linalg.LinAlgError:
+        pass
+    finite = np.isfinite(cov).all(axis=(-1, -2))
+    safe = np.where(finite[..., None, None], cov, np.eye(cov.shape[-1]))
+    w, V = np.linalg.eigh(safe)
+    floor = np.maximum(rel_floor * np.abs(w).max(axis=-1, keepdims=True), abs_floor)
+    bad = (w.min(axis=-1) <= floor[..., 0]) & finite
+    fixed = np.einsum("...ij,...j,...kj->...ik", V, np.maximum(w, floor), V)
+    return np.where(bad[..., None, None], fixed, cov), bad
+
+
+def sigma_points(mean: np.ndarray, cov: np.ndarray, w: SigmaWeights) -> np.ndarray:
+    """Scaled symmetric sigma points. mean (..., n), cov (..., n, n) -> (..., 2n + 1, n)."""
+    A = (w.n + w.lam) * cov
+    try:
+        L = np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:
+        L = np.linalg.cholesky(repair_cov(A)[0])
+    D = np.swapaxes(L, -1, -2)  # row k = column k of L = row k of the upper factor U = L^T
+    m = mean[..., None, :]
+    return np.concatenate([m, m + D, m - D], axis=-2)
+
+
+# ---------------------------------------------------------------- the two steps
+
+def _wsum_outer(a: np.ndarray, b: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """sum_s W_s a_s b_s^T. a (..., S, i), b (..., S, j), W (S,) -> (..., i, j)."""
+    return np.swapaxes(a * W[:, None], -1, -2) @ b
+
+
+def _plain_mean(sigmas: np.ndarray, Wm: np.ndarray) -> np.ndarray:
+    return Wm @ sigmas
+
+
+def _plain_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a - b
+
+
+def ut_predict(mean: np.ndarray, cov: np.ndarray, fx: Callable[[np.ndarray], np.ndarray], Q: np.ndarray,
+               w: SigmaWeights, mean_fn=_plain_mean, residual_fn=_plain_residual) -> tuple[np.ndarray, np.ndarray]:
+    """Generic unscented time update. fx maps sigma points (..., S, n) -> (..., S, n). Returns (mean, cov)."""
+    sig_f = fx(sigma_points(mean, cov, w))
+    m = mean_fn(sig_f, w.Wm)                                   # x = sum Wm chi
+    res = residual_fn(sig_f, m[..., None, :])
+    P = _wsum_outer(res, res, w.Wc) + Q                        # P = sum Wc (chi - x)(chi - x)^T + Q
+    return m, repair_cov(P)[0]
+
+
+def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray, Rm: np.ndarray,
+              hx: Callable[[np.ndarray], np.ndarray], w: SigmaWeights, residual_fn=_plain_residual,
+              gate=None):
+    """Generic unscented measurement update with a mask of used components.
+
+    z (..., M), mask (..., M) bool, Rm (..., M, M) noise covariance; hx maps sigma points (..., S, n) ->
+    (..., S, M). Unused components get zero innovation and unit variance, which is exactly the update on the
+    used subset. gate: optional callable (y, S_full, mask) -> mask applied before the update.
+    Returns (mean, cov, nis, mask, y, K, Pzz) with Pzz the state part of the innovation covariance.
+    """
+    M = z.shape[-1]
+    sig = sigma_points(mean, cov, w)
+    zs = hx(sig)
+    zp = w.Wm @ zs                                                 # predicted measurement
+    dz = zs - zp[..., None, :]
+    dx = residual_fn(sig, mean[..., None, :])
+    Pzz = _wsum_outer(dz, dz, w.Wc)
+    Pxz = _wsum_outer(dx, dz, w.Wc)                                # cross covariance
+    y_all = z - zp                                                 # innovation
+    if gate is not None:
+        mask = gate(np.where(mask, y_all, 0.0), Pzz + Rm, mask)
+    m2 = mask[..., :, None] & mask[..., None, :]
+    S = np.where(m2, Pzz + Rm, np.eye(M))                          # innovation covariance
+    SI = np.linalg.inv(S)
+    Pxz = Pxz * mask[..., None, :]
+    y = np.where(mask, y_all, 0.0)
+    K = Pxz @ SI                                                   # Kalman gain
+    mean = mean + (K @ y[..., None])[..., 0]
+    cov = cov - K @ S @ np.swapaxes(K, -1, -2)
+    nis = (y[..., None, :] @ SI @ y[..., :, None])[..., 0, 0]
+    return mean, cov, nis, mask, y, K, np.where(m2, Pzz, 0.0)
+
+
+def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: np.ndarray, w: SigmaWeights,
+            J_T: np.ndarray | None = None, mu_m3_s2: float = MU_EARTH_M3_S2,
+            max_step_s: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """UKF time update of the 12-state over dt_s with the filter's RK4 model and the MRP hooks.
+
+    mean (..., 12), cov (..., 12, 12), c0 chaser state (r_m, rdot_m_s, theta_rad, thetadot_rad_s) at the start,
+    (4,) or (..., 4); Q (12, 12) or (..., 12, 12) process noise of the step. Returns the prior (mean, cov).
+    """
+    J_T = load_inertia_T_kg_m2() if J_T is None else J_T
+    c = np.asarray(c0, dtype=float)
+    c = c[..., None, :] if c.ndim > 1 else c
+    fx = lambda sig: propagate(sig, c, dt_s, J_T, mu_m3_s2, max_step_s)  # noqa: E731
+    return ut_predict(mean, cov, fx, Q, w, state_mean, state_residual)
+
+
+@dataclass
+class UpdateInfo:
+    """What an update saw, per run: nis (...,), dof (...,) measured components used, accepted (..., 8) corners,
+    innovation y (..., M) and gain K (..., n, M) (zero where a component was not used), Pzz_state (..., M, M)."""
+
+    nis: np.ndarray
+    dof: np.ndarray
+    accepted: np.ndarray
+    y: np.ndarray
+    K: np.ndarray
+    Pzz_state: np.ndarray
+
+
+def block_diag_corners(cov_c: np.ndarray) -> np.ndarray:
+    """Per-corner covariances (..., 8, m, m) -> block-diagonal (..., 8m, 8m)."""
+    nc, m = cov_c.shape[-3], cov_c.shape[-1]
+    out = np.zeros(cov_c.shape[:-3] + (nc, m, nc, m))
+    for c in range(nc):
+        out[..., c, :, c, :] = cov_c[..., c, :, :]
+    return out.reshape(cov_c.shape[:-3] + (nc * m, nc * m))
+
+
+def gate_corners(y: np.ndarray, S: np.ndarray, mask: np.ndarray, m: int, threshold: float) -> np.ndarray:
+    """Chi-square gate per corner: keep corner c if y_c^T S_cc^-1 y_c <= threshold (m dof).
+
+    y (..., 8m) innovation, S (..., 8m, 8m) innovation covariance, mask (..., 8m) components (whole corners).
+    Returns the mask (..., 8m) without the rejected corners.
+    """
+    nc = y.shape[-1] // m
+    mask_c = mask.reshape(mask.shape[:-1] + (nc, m))[..., 0]
+    yc = y.reshape(y.shape[:-1] + (nc, m))
+    Sb = S.reshape(S.shape[:-2] + (nc, m, nc, m))
+    Scc = np.einsum("...cicj->...cij", Sb)
+    Scc = np.where(mask_c[..., None, None], Scc, np.eye(m))
+    d2 = (yc[..., None, :] @ np.linalg.solve(Scc, yc[..., :, None]))[..., 0, 0]
+    return np.repeat(mask_c & (d2 <= threshold), m, axis=-1)
+
+
+def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask_c: np.ndarray, R_c: np.ndarray,
+           hx: Callable[[np.ndarray], np.ndarray], w: SigmaWeights,
+           gate_threshold: float | None = None) -> tuple[np.ndarray, np.ndarray, UpdateInfo]:
+    """UKF measurement update of the 12-state with a varying set of measured corners.
+
+    mean (..., 12), cov (..., 12, 12); z (..., 8, m) measurements; mask_c (..., 8) bool measured corners;
+    R_c (..., 8, m, m) per-corner noise covariances; hx: (..., 12) -> (..., 8, m) the measurement model of all
+    corners. gate_threshold: chi-square bound per corner (None: no gating). After the update the MRP switches
+    to its shadow where |p| > 1 (mean and covariance together). Returns (mean, cov, info).
+    """
+    nc, m = z.shape[-2], z.shape[-1]
+    M = nc * m
+    Rm = block_diag_corners(np.broadcast_to(R_c, z.shape + (m,)))
+    hx_flat = lambda sig: hx(sig).reshape(sig.shape[:-1] + (M,))  # noqa: E731
+    gate = None
+    if gate_threshold is not None:
+        gate = lambda y, S, mask: gate_corners(y, S, mask, m, gate_threshold)  # noqa: E731
+    mask = np.repeat(np.asarray(mask_c, dtype=bool), m, axis=-1)
+    mean, cov, nis, mask, y, K, Pzz = ut_update(mean, cov, z.reshape(z.shape[:-2] + (M,)), mask, Rm, hx_flat, w,
+                                               state_residual, gate)
+    mean, cov = shadow_switch(mean, cov)
+    cov = repair_cov(cov)[0]
+    accepted = mask.reshape(mask.shape[:-1] + (nc, m))[..., 0]
+    return mean, cov, UpdateInfo(nis=nis, dof=mask.sum(axis=-1), accepted=accepted, y=y, K=K, Pzz_state=Pzz)

@@ -1,0 +1,124 @@
+"""Measurement models against MuJoCo (the corner sites and the chaser camera of models/envisat.xml)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from filtering.measurements import (R_K_FROM_C, Camera, corners_C_m, in_frame, limit_markers, measure,
+                                    outage_mask, predicted_visible, random_failures, swap_corners)
+
+
+@pytest.fixture(scope="module")
+def mujoco_state():
+    """A MuJoCo truth state after 137 RK4 steps: the 12-state and the corner sites in C."""
+    from datagen.orbit import chaser_orbit
+    from datagen.scenario import scenario_config
+    from datagen.sim import TruthSim
+    from datagen.truth import initial_state
+
+    cfg = scenario_config("close_15m")
+    sim = TruthSim(cfg)
+    sim.set_state(initial_state(cfg, np.random.default_rng(3)), 0.0)
+    sim.step(137)
+    sim.sync_chaser()
+    R_N_C = chaser_orbit(cfg.orbit, np.array([sim.data.time])).R_N_from_C[0]
+    sites_C = (sim.data.site_xpos[sim.corner_site_ids] - sim.data.mocap_pos[0]) @ R_N_C
+    return sim, sim.relative_state(), sites_C
+
+
+def test_3d_corners_equal_mujoco_sites(mujoco_state):
+    _, x, sites_C = mujoco_state
+    np.testing.assert_allclose(measure(x, "markers3d"), sites_C, atol=1e-9)
+    # Gamma (not its transpose) would put the corners meters away
+    from envisat_pose.attitude import mrp_to_dcm
+    from envisat_pose.geometry import load_geometry
+    wrong = x[:3] + load_geometry().corners_T_m @ mrp_to_dcm(x[6:9]).T
+    assert np.abs(wrong - sites_C).max() > 0.5
+
+
+def test_camera_frame_and_focal_length_match_the_mjcf_camera():
+    import mujoco
+
+    from datagen.scenario import scenario_config
+    from datagen.sim import build_model
+
+    model = build_model(scenario_config("default"))
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)  # chaser mocap at identity: world axes = C
+    cam = model.camera("chaser_cam").id
+    xmat = data.cam_xmat[cam].reshape(3, 3)  # columns: camera x (right), y (up), z (backwards) in C
+    R_K_from_C_mj = np.stack([xmat[:, 0], -xmat[:, 1], -xmat[:, 2]])  # K: x right, y down, z boresight
+    np.testing.assert_allclose(R_K_FROM_C, R_K_from_C_mj, atol=1e-12)
+    f = 0.5 * 1024 / math.tan(math.radians(model.cam_fovy[cam]) / 2)
+    assert abs(f - Camera().f_px) < 0.1
+
+
+def test_pixels_and_range(mujoco_state):
+    _, x, sites_C = mujoco_state
+    cam = Camera()
+    uv = measure(x, "pixels", cam)
+    for i in range(8):
+        v_K = R_K_FROM_C @ sites_C[i]
+        np.testing.assert_allclose(uv[i], [cam.f_px * v_K[0] / v_K[2] + 511.5, cam.f_px * v_K[1] / v_K[2] + 511.5],
+                                   atol=1e-6)
+    uvr = measure(x, "pixels+range", cam)
+    np.testing.assert_allclose(uvr[:, :2], uv)
+    np.testing.assert_allclose(uvr[:, 2], np.linalg.norm(sites_C, axis=1), atol=1e-9)
+    # the target ahead (+y_C) is in the middle of the image; something radially above (+x_C) is up (small v)
+    up = np.array([0.0, 0.0, 0.0] + [0.0] * 9)
+    up[:3] = [5.0, 50.0, 0.0]
+    assert measure(up, "pixels", cam)[:, 1].mean() < 511.5
+    # at 15 m the 10 m body overflows the 30 deg field of view; at 50 m every corner is in the image
+    assert not in_frame(x, cam).all()
+    x50 = x.copy()
+    x50[:3] = [0.0, 50.0, 0.0]
+    assert in_frame(x50, cam).all()
+
+
+def test_predicted_visibility_is_the_exact_face_test(mujoco_state):
+    _, x, sites_C = mujoco_state
+    vis = predicted_visible(x)
+    assert vis.sum() in (4, 6, 7)
+    # independent check: a box corner is visible iff the segment from the camera to it does not cross the box
+    from envisat_pose.attitude import mrp_to_dcm
+    from envisat_pose.geometry import load_geometry
+
+    g = load_geometry()
+    G = mrp_to_dcm(x[6:9])
+    c_T = -G @ x[:3]
+    half = g.half_sizes_m
+    for i, v in enumerate(g.corners_T_m):
+        s = np.linspace(0.0, 0.999, 4000)[:, None]
+        pts = c_T + s * (v - c_T)
+        inside = (np.abs(pts) < half - 1e-6).all(axis=1)
+        assert vis[i] == (not inside.any())
+
+
+def test_selection_rules():
+    rng = np.random.default_rng(0)
+    mask = rng.random((1000, 8)) < 0.8
+    lim = limit_markers(mask, 3)
+    assert (lim.sum(-1) == np.minimum(mask.sum(-1), 3)).all()
+    assert not (lim & ~mask).any()
+    first = np.argmax(mask, axis=-1)
+    assert lim[np.arange(1000), first].all()  # the first visible corner (A..H order) is always kept
+    fail = random_failures(np.ones((20000, 8), bool), 0.2, np.random.default_rng(1))
+    assert abs(1 - fail.mean() - 0.2) < 0.01
+    t = np.arange(100.0)
+    out = outage_mask(t, ((10.0, 20.0), (50.0, 51.0)))
+    assert out.sum() == 11 and out[10] and not out[20] and out[50]
+    z = np.arange(3 * 8 * 3, dtype=float).reshape(3, 8, 3)
+    sw = swap_corners(z, np.array([False, True, False]), 0, 2)
+    np.testing.assert_array_equal(sw[1, 0], z[1, 2])
+    np.testing.assert_array_equal(sw[1, 2], z[1, 0])
+    np.testing.assert_array_equal(sw[0], z[0])
+
+
+def test_batched_shapes():
+    x = np.zeros((4, 25, 12))
+    x[..., 1] = 50.0
+    assert corners_C_m(x).shape == (4, 25, 8, 3)
+    assert measure(x, "pixels").shape == (4, 25, 8, 2)
+    assert measure(x, "pixels+range").shape == (4, 25, 8, 3)
+    assert predicted_visible(x).shape == (4, 25, 8)
