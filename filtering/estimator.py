@@ -31,6 +31,8 @@ class FilterConfig:
     p0_sigma: initial uncertainty of (rho m, rho' m/s, p MRP, w_r rad/s), the reference sheet's P0.
     q_sigma: process noise std per sqrt(s) of the same four groups.
     gate_prob: chi-square gate probability per corner (0 switches gating off).
+    gate_lockout_steps: after this many consecutive steps in which the gate rejected every measured corner of
+    a run, its next update is not gated (a filter must not lock itself out when it is wrong or R too small).
     adaptive_r / adaptive_q: innovation-based R scale, residual-based Q (see the module docstring).
     outage_q_scale: Q multiplier while a run gets no measurement.
     divergence_window: steps in the NIS window; divergence_prob: false-alarm probability of one window;
@@ -46,6 +48,7 @@ class FilterConfig:
     p0_sigma: tuple[float, float, float, float] = (1.0, 0.01, 0.044, 1.7e-3)
     q_sigma: tuple[float, float, float, float] = (1e-7, 1e-7, 1e-8, 1e-9)
     gate_prob: float = 0.99999
+    gate_lockout_steps: int = 5
     adaptive_r: bool = False
     adaptive_r_rate: float = 0.05
     adaptive_r_bounds: tuple[float, float] = (0.2, 100.0)
@@ -67,6 +70,7 @@ class FilterConfig:
         check(all(s > 0 for s in self.p0_sigma), f"{p}p0_sigma", list(self.p0_sigma), "four positive sigmas")
         check(all(s >= 0 for s in self.q_sigma), f"{p}q_sigma", list(self.q_sigma), "four non-negative sigmas")
         check(0.0 <= self.gate_prob < 1.0, f"{p}gate_prob", self.gate_prob, "a probability in [0, 1) (0: no gate)")
+        check(self.gate_lockout_steps >= 1, f"{p}gate_lockout_steps", self.gate_lockout_steps, "at least 1 step")
         check(0.0 < self.adaptive_r_rate <= 1.0, f"{p}adaptive_r_rate", self.adaptive_r_rate, "a rate in (0, 1]")
         lo, hi = self.adaptive_r_bounds
         check(0.0 < lo <= 1.0 <= hi, f"{p}adaptive_r_bounds", list(self.adaptive_r_bounds), "[lo, hi] with 0 < lo <= 1 <= hi")
@@ -146,6 +150,8 @@ def run_filter(x0_hat: np.ndarray, P0: np.ndarray, t_s: np.ndarray, chaser: np.n
     r_scale = np.ones(R)
     Q_adapt = np.zeros((R, 12, 12))
     starved = np.zeros(R, dtype=bool)  # no measurement at the previous step
+    locked = np.zeros(R, dtype=np.int64)  # consecutive steps with every measured corner gated out
+    mask = np.asarray(mask, dtype=bool) & np.isfinite(z).all(-1)  # a non-finite detection is a missing one
     win_nis = np.zeros((cfg.divergence_window, R))
     win_dof = np.zeros((cfg.divergence_window, R))
 
@@ -164,7 +170,8 @@ def run_filter(x0_hat: np.ndarray, P0: np.ndarray, t_s: np.ndarray, chaser: np.n
             mean, cov = predict(mean, cov, chaser[k - 1], dt, Q, w, J_T, mu_m3_s2, cfg.max_rk4_step_s)
         mean_pred, cov_pred = mean, cov
         Rk = R_c[:, k] * r_scale[:, None, None, None]
-        mean, cov, info = update(mean, cov, z[:, k], mask[:, k], Rk, hx, w, gate)
+        thr = None if gate is None else np.where(locked >= cfg.gate_lockout_steps, np.inf, gate)
+        mean, cov, info = update(mean, cov, z[:, k], mask[:, k], Rk, hx, w, thr)
         # never NaN: roll a run back to its prediction (or its previous posterior) and flag it
         bad = ~(np.isfinite(mean).all(-1) & np.isfinite(cov).all((-1, -2)))
         if bad.any():
@@ -189,6 +196,7 @@ def run_filter(x0_hat: np.ndarray, P0: np.ndarray, t_s: np.ndarray, chaser: np.n
             a = cfg.adaptive_q_memory
             Q_adapt = np.where(used[:, None, None], a * Q_adapt + (1 - a) * Ky[:, :, None] * Ky[:, None, :], Q_adapt)
         starved = ~used
+        locked = np.where(mask[:, k].any(-1) & ~info.accepted.any(-1), locked + 1, 0)
         x_hat[:, k], P[:, k] = mean, cov
         n_meas[:, k] = info.accepted.sum(-1)
         nis[:, k], dof[:, k] = info.nis, info.dof

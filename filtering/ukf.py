@@ -90,7 +90,7 @@ def shadow_switch(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.nda
 # ---------------------------------------------------------------- covariance health
 
 def repair_cov(cov: np.ndarray, rel_floor: float = 1e-12, abs_floor: float = 1e-18) -> tuple[np.ndarray, np.ndarray]:
-    """Symmetrize; where a covariance is not positive definite, clip its eigenvalues to a floor.
+    """Symmetrize; where a covariance is not positive definite, take |eigenvalues|, at least a floor.
 
     Returns (cov, repaired (...,) bool). Never raises: NaN entries are left for the caller's finite check.
     """
@@ -105,7 +105,9 @@ def repair_cov(cov: np.ndarray, rel_floor: float = 1e-12, abs_floor: float = 1e-
     w, V = np.linalg.eigh(safe)
     floor = np.maximum(rel_floor * np.abs(w).max(axis=-1, keepdims=True), abs_floor)
     bad = (w.min(axis=-1) <= floor[..., 0]) & finite
-    fixed = np.einsum("...ij,...j,...kj->...ik", V, np.maximum(w, floor), V)
+    # a negative eigenvalue is round-off or a broken input: its magnitude is a better guess than ~0, which
+    # would make the filter certain along that direction forever
+    fixed = np.einsum("...ij,...j,...kj->...ik", V, np.maximum(np.abs(w), floor), V)
     return np.where(bad[..., None, None], fixed, cov), bad
 
 
@@ -146,6 +148,17 @@ def ut_predict(mean: np.ndarray, cov: np.ndarray, fx: Callable[[np.ndarray], np.
     return m, repair_cov(P)[0]
 
 
+def _safe_inv(S: np.ndarray) -> np.ndarray:
+    """Batched inverse that never raises: a non-finite or singular S gives NaN for its run (rolled back later)."""
+    finite = np.isfinite(S).all(axis=(-1, -2))
+    S_ok = np.where(finite[..., None, None], S, np.eye(S.shape[-1]))
+    try:
+        SI = np.linalg.inv(S_ok)
+    except np.linalg.LinAlgError:
+        SI = np.linalg.pinv(S_ok, hermitian=True)
+    return np.where(finite[..., None, None], SI, np.nan)
+
+
 def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray, Rm: np.ndarray,
               hx: Callable[[np.ndarray], np.ndarray], w: SigmaWeights, residual_fn=_plain_residual,
               gate=None):
@@ -169,7 +182,7 @@ def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray
         mask = gate(np.where(mask, y_all, 0.0), Pzz + Rm, mask)
     m2 = mask[..., :, None] & mask[..., None, :]
     S = np.where(m2, Pzz + Rm, np.eye(M))                          # innovation covariance
-    SI = np.linalg.inv(S)
+    SI = _safe_inv(S)
     Pxz = Pxz * mask[..., None, :]
     y = np.where(mask, y_all, 0.0)
     K = Pxz @ SI                                                   # Kalman gain
@@ -220,7 +233,7 @@ def gate_corners(y: np.ndarray, S: np.ndarray, mask: np.ndarray, m: int, thresho
     """Chi-square gate per corner: keep corner c if y_c^T S_cc^-1 y_c <= threshold (m dof).
 
     y (..., 8m) innovation, S (..., 8m, 8m) innovation covariance, mask (..., 8m) components (whole corners).
-    Returns the mask (..., 8m) without the rejected corners.
+    threshold: a number or one per run (...,). Returns the mask (..., 8m) without the rejected corners.
     """
     nc = y.shape[-1] // m
     mask_c = mask.reshape(mask.shape[:-1] + (nc, m))[..., 0]
@@ -229,7 +242,9 @@ def gate_corners(y: np.ndarray, S: np.ndarray, mask: np.ndarray, m: int, thresho
     Scc = np.einsum("...cicj->...cij", Sb)
     Scc = np.where(mask_c[..., None, None], Scc, np.eye(m))
     d2 = (yc[..., None, :] @ np.linalg.solve(Scc, yc[..., :, None]))[..., 0, 0]
-    return np.repeat(mask_c & (d2 <= threshold), m, axis=-1)
+    thr = np.asarray(threshold, dtype=float)
+    thr = thr[..., None] if thr.ndim else thr
+    return np.repeat(mask_c & (d2 <= thr), m, axis=-1)  # NaN distances fail the test too
 
 
 def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask_c: np.ndarray, R_c: np.ndarray,
@@ -239,7 +254,7 @@ def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask_c: np.ndarray,
 
     mean (..., 12), cov (..., 12, 12); z (..., 8, m) measurements; mask_c (..., 8) bool measured corners;
     R_c (..., 8, m, m) per-corner noise covariances; hx: (..., 12) -> (..., 8, m) the measurement model of all
-    corners. gate_threshold: chi-square bound per corner (None: no gating). After the update the MRP switches
+    corners. gate_threshold: chi-square bound per corner, a number or (...,) per run (None: no gating). After the update the MRP switches
     to its shadow where |p| > 1 (mean and covariance together). Returns (mean, cov, info).
     """
     nc, m = z.shape[-2], z.shape[-1]

@@ -1,0 +1,163 @@
+"""Shadow sets through many switches, faults (failures, a 20-minute outage, a swapped corner), adaptive noise,
+and the never-NaN guarantees, on the MuJoCo truth of the default scenario over 1800 s (20 runs)."""
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from envisat_pose.attitude import mrp_error_angle_rad
+from filtering.estimator import FilterConfig, nees, run_filter
+from filtering.measurements import swap_corners
+from filtering.montecarlo import MeasurementConfig, make_run_inputs
+
+R_RUNS = 20
+OUTAGE = (300.0, 1500.0)  # 20 minutes without any corner (eclipse)
+
+
+def _errors(tr, res, sel):
+    pos = np.linalg.norm(res.x_hat[:, sel, :3] - tr.x[None, sel, :3], axis=-1)
+    ang = np.degrees(mrp_error_angle_rad(res.x_hat[:, sel, 6:9], tr.x[None, sel, 6:9]))
+    return pos, ang
+
+
+def test_many_shadow_switches(truth_1800, chaser_of):
+    tr = truth_1800
+    cfg = FilterConfig()
+    inp = make_run_inputs(tr.x, tr.t_s, tr.visible, MeasurementConfig(), cfg.P0, seed=3, n_runs=R_RUNS)
+    res = run_filter(inp.x0_hat, cfg.P0, tr.t_s, chaser_of(tr), inp.z, inp.mask, inp.R_c, "markers3d", cfg)
+    p = res.x_hat[..., 6:9]
+    assert (np.linalg.norm(p, axis=-1) <= 1.0 + 1e-12).all()
+    jumps = np.abs(np.diff(p, axis=1)).max(-1) > 0.5  # (R, T-1) a switch between steps
+    assert jumps.sum(1).min() >= 10, jumps.sum(1)
+    late = tr.t_s >= 300.0
+    pos, ang = _errors(tr, res, late)
+    assert ang.max() < 0.5 and pos.max() < 0.03
+    # consistency right after the switches is no worse than elsewhere
+    e = nees(tr.x[None], res.x_hat, res.P)
+    at_switch = e[:, 1:][jumps]
+    assert at_switch.mean() < chi2.ppf(0.999, 12 * at_switch.size) / at_switch.size
+    assert not res.diverged.any()
+
+
+@pytest.fixture(scope="module")
+def faulty(truth_1800):
+    """20 % failures, the 20-minute outage, and two visible corners swapped for 10 steps at t = 200..209 s."""
+    tr = truth_1800
+    cfg = FilterConfig()
+    mcfg = MeasurementConfig(failure_prob=0.2, outages_s=(OUTAGE,))
+    inp = make_run_inputs(tr.x, tr.t_s, tr.visible, mcfg, cfg.P0, seed=9, n_runs=R_RUNS)
+    steps = (tr.t_s >= 200.0) & (tr.t_s < 210.0)
+    both = tr.visible[steps].all(axis=0)
+    i, j = np.flatnonzero(both)[:2]
+    inp.z = swap_corners(inp.z, steps, i, j)
+    return tr, cfg, inp, steps, (i, j)
+
+
+def test_faults_gate_rejects_the_swap_and_the_filter_reconverges(faulty, chaser_of):
+    tr, cfg, inp, steps, (i, j) = faulty
+    res = run_filter(inp.x0_hat, cfg.P0, tr.t_s, chaser_of(tr), inp.z, inp.mask, inp.R_c, "markers3d", cfg)
+    assert np.isfinite(res.x_hat).all() and np.isfinite(res.P).all() and np.isfinite(res.nis).all()
+    swapped_measured = inp.mask[:, steps][..., [i, j]].sum(-1)  # (R, 10)
+    assert swapped_measured.sum() > 0
+    assert (res.rejected[:, steps] >= swapped_measured).all()
+    assert res.rejected[:, ~steps].sum() < 1e-3 * inp.mask[:, ~steps].sum() + 5  # hardly any false rejection
+    pos, ang = _errors(tr, res, steps)
+    assert pos.max() < 0.03 and ang.max() < 0.5  # the swap did not get in
+    # no measurement in the outage, and the covariance grew across it
+    out = (tr.t_s >= OUTAGE[0]) & (tr.t_s < OUTAGE[1])
+    assert res.n_meas[:, out].sum() == 0
+    k0, k1 = np.flatnonzero(out)[[0, -1]]
+    assert (np.trace(res.P[:, k1, :3, :3], axis1=-2, axis2=-1) > 10 * np.trace(res.P[:, k0, :3, :3], axis1=-2, axis2=-1)).all()
+    # reconverged within 2 minutes of the end of the outage
+    after = tr.t_s >= OUTAGE[1] + 120.0
+    pos, ang = _errors(tr, res, after)
+    print(f"after the outage: RMS {100 * np.sqrt(np.mean(pos**2)):.3f} cm, {np.sqrt(np.mean(ang**2)):.4f} deg")
+    assert np.sqrt(np.mean(pos**2)) < 0.03 and np.sqrt(np.mean(ang**2)) < 0.5
+    assert not res.diverged.any()
+
+
+def test_without_the_gate_the_swap_corrupts_the_estimate(faulty, chaser_of):
+    tr, cfg, inp, steps, _ = faulty
+    sl = slice(0, 260)
+    ang = {}
+    for gate_prob in (0.0, cfg.gate_prob):
+        res = run_filter(inp.x0_hat[:4], cfg.P0, tr.t_s[sl], chaser_of(tr)[sl], inp.z[:4, sl], inp.mask[:4, sl],
+                         inp.R_c, "markers3d", FilterConfig(gate_prob=gate_prob))
+        ang[gate_prob] = np.degrees(mrp_error_angle_rad(res.x_hat[:, steps[sl], 6:9],
+                                                        tr.x[sl][None, steps[sl], 6:9])).max()
+        if gate_prob == 0.0:
+            assert res.diverged.all()  # the NIS monitor sees the swap
+    print(f"swap: max attitude error without / with the gate {ang[0.0]:.3f} / {ang[cfg.gate_prob]:.3f} deg")
+    assert ang[0.0] > 0.2 and ang[0.0] > 3 * ang[cfg.gate_prob]
+
+
+def test_adaptive_r_learns_a_wrong_noise_level(truth_600, chaser_of):
+    """The corners are 3x noisier than the filter is told: innovation-based R finds the factor 9."""
+    tr = truth_600
+    cfg = FilterConfig(adaptive_r=True)
+    inp = make_run_inputs(tr.x, tr.t_s, tr.visible, MeasurementConfig(sigma_m=0.06), cfg.P0, seed=4, n_runs=10)
+    R_told = inp.R_c / 9.0
+    res = run_filter(inp.x0_hat, cfg.P0, tr.t_s, chaser_of(tr), inp.z, inp.mask, R_told, "markers3d", cfg)
+    assert np.all(np.abs(res.r_scale - 9.0) < 2.5), res.r_scale
+    late = tr.t_s >= 300.0
+    assert abs(res.nis[:, late].sum() / res.dof[:, late].sum() - 1.0) < 0.15
+    fixed = run_filter(inp.x0_hat, cfg.P0, tr.t_s, chaser_of(tr), inp.z, inp.mask, R_told, "markers3d",
+                       FilterConfig(gate_prob=0.0))
+    assert fixed.nis[:, late].sum() / fixed.dof[:, late].sum() > 5.0  # without it the filter is overconfident
+
+
+def test_adaptive_q_absorbs_an_unmodelled_torque(chaser_of):
+    """Truth with the gravity-gradient torque, filter torque-free with a tiny Q: adaptive Q keeps it consistent."""
+    from datagen.scenario import scenario_config
+    from datagen.truth import simulate
+
+    tr = simulate(scenario_config("gravity_gradient", duration_s=900.0, seed=2))
+    inp = make_run_inputs(tr.x, tr.t_s, tr.visible, MeasurementConfig(), FilterConfig().P0, seed=8, n_runs=10)
+    late = tr.t_s >= 300.0
+    out = {}
+    for adaptive in (False, True):
+        cfg = FilterConfig(adaptive_q=adaptive)
+        res = run_filter(inp.x0_hat, cfg.P0, tr.t_s, chaser_of(tr), inp.z, inp.mask, inp.R_c, "markers3d", cfg)
+        out[adaptive] = nees(tr.x[None, late], res.x_hat[:, late], res.P[:, late]).mean()
+        assert np.isfinite(res.x_hat).all()
+    print("late ANEES without / with adaptive Q:", out)
+    assert out[True] < out[False]
+
+
+def test_never_nan_on_bad_input(truth_600, chaser_of):
+    tr = truth_600
+    T = 80
+    cfg = FilterConfig()
+    inp = make_run_inputs(tr.x[:T], tr.t_s[:T], tr.visible[:T], MeasurementConfig(), cfg.P0, seed=1, n_runs=3)
+    inp.z[1, 30:33] = np.nan           # a broken detector output in run 1: treated as missing
+    R_c = np.broadcast_to(inp.R_c, inp.z.shape + (3,)).copy()
+    R_c[0, 40:42] = np.nan             # a broken noise covariance in run 0: gated out, or rolled back and flagged
+    P0 = np.broadcast_to(cfg.P0, (3, 12, 12)).copy()
+    P0[2, 0, 0] = -1.0                 # a non-positive-definite initial covariance in run 2: repaired
+    res = run_filter(inp.x0_hat, P0, tr.t_s[:T], chaser_of(tr)[:T], inp.z, inp.mask, R_c, "markers3d", cfg)
+    assert np.isfinite(res.x_hat).all() and np.isfinite(res.P).all() and np.isfinite(res.nis).all()
+    assert res.n_meas[1, 30:33].sum() == 0 and res.repaired[1] == 0
+    assert res.n_meas[0, 40:42].sum() == 0 and res.repaired[0] == 0
+    ungated = run_filter(inp.x0_hat, P0, tr.t_s[:T], chaser_of(tr)[:T], inp.z, inp.mask, R_c, "markers3d",
+                         FilterConfig(gate_prob=0.0))
+    assert np.isfinite(ungated.x_hat).all() and np.isfinite(ungated.P).all()
+    assert ungated.repaired.tolist() == [2, 0, 0] and ungated.diverged[0] and not ungated.diverged[1]
+    assert res.repaired[2] == 0 and not res.diverged[1]
+    assert (np.linalg.eigvalsh(res.P[2]) > 0).all()
+    pos = np.linalg.norm(res.x_hat[:, -1, :3] - tr.x[T - 1, :3], axis=-1)
+    assert (pos < 0.05).all()  # every run, the broken ones included, still tracks
+
+
+def test_gate_does_not_lock_the_filter_out(truth_600, chaser_of):
+    """R told 10x too small and a bad start: the gate would reject everything forever without the lockout rule."""
+    tr = truth_600
+    cfg = FilterConfig()
+    inp = make_run_inputs(tr.x, tr.t_s, tr.visible, MeasurementConfig(sigma_m=0.2), cfg.P0, seed=6, n_runs=10)
+    res = run_filter(inp.x0_hat, cfg.P0, tr.t_s, chaser_of(tr), inp.z, inp.mask, inp.R_c / 100.0, "markers3d", cfg)
+    assert (res.n_meas[:, 300:].sum(1) > 0.05 * inp.mask[:, 300:].sum((1, 2))).all()
+    pos = np.linalg.norm(res.x_hat[:, 300:, :3] - tr.x[None, 300:, :3], axis=-1)
+    print(f"R 100x too small: max position error after 300 s {pos.max():.3f} m")
+    assert pos.max() < 0.5
+    gate_only = run_filter(inp.x0_hat, cfg.P0, tr.t_s, chaser_of(tr), inp.z, inp.mask, inp.R_c / 100.0,
+                           "markers3d", FilterConfig(gate_lockout_steps=10**6))
+    assert gate_only.n_meas[:, 300:].sum() < res.n_meas[:, 300:].sum()
