@@ -199,9 +199,17 @@ class SceneRenderer:
         n = self.resolution_px
         self._gl = _gl_context_class()(n, n)
         self._gl.make_current()
+        # Two render contexts in one GL context: the lit pass keeps the model's multisampling; the segmentation
+        # and depth pass gets a single-sample buffer, so ids and depth are those of the pixel centre (from a
+        # multisampled buffer a GPU may return the depth of a sub-sample position: cm off on slanted faces).
+        samples = m.vis.quality.offsamples
+        m.vis.quality.offsamples = 0
+        self._con_seg = mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_100.value)
+        self._con_seg.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        m.vis.quality.offsamples = samples
         self._con = mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_100.value)
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
         self._con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
         self._scene = mujoco.MjvScene(m, maxgeom=100)
         self._opt = mujoco.MjvOption()
         self._cam = mujoco.MjvCamera()
@@ -215,7 +223,8 @@ class SceneRenderer:
         if self._con is not None:
             self._gl.make_current()
             self._con.free()
-            self._con = None
+            self._con_seg.free()
+            self._con = self._con_seg = None
             self._gl.free()
 
     def set_view(self, view: View) -> None:
@@ -290,14 +299,16 @@ class SceneRenderer:
                 c.frustum_center, c.frustum_width, c.frustum_bottom, c.frustum_top = crop_frustum(
                     box, n, c.frustum_bottom, c.frustum_top)
             crop_rect = mujoco.MjrRect(0, 0, w, h)
-            mujoco.mjr_render(crop_rect, scn, self._con)
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con_seg)
+            mujoco.mjr_render(crop_rect, scn, self._con_seg)
             for c, (fc, fw, fb, ft) in zip(scn.camera, saved):
                 c.frustum_center, c.frustum_width, c.frustum_bottom, c.frustum_top = fc, fw, fb, ft
             flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = False
             flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = False
             raw = np.empty((h, w), dtype=np.float32)
             ids_rgb = np.empty(raw.shape + (3,), dtype=np.uint8)
-            mujoco.mjr_readPixels(ids_rgb, raw, crop_rect, self._con)
+            mujoco.mjr_readPixels(ids_rgb, raw, crop_rect, self._con_seg)
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
             seg = ids_rgb.astype(np.int32)
             segid = seg[..., 0] + (seg[..., 1] << 8) + (seg[..., 2] << 16)  # 0: background, else geom slot + 1
             slot_to_geom = np.full(scn.ngeom + 1, -1, dtype=np.int64)
@@ -341,11 +352,14 @@ def shared_renderer(resolution_px: int, shadows: bool = True) -> SceneRenderer:
     """This process's renderer for (resolution, shadows), created on first use and reused (one per worker)."""
     key = (int(resolution_px), bool(shadows))
     if key not in _RENDERERS:
-        if not _RENDERERS:
+        first = not _RENDERERS
+        _RENDERERS[key] = SceneRenderer(resolution_px, shadows)
+        if first:
             import atexit
 
+            # registered after the GL platform module's own exit hook (EGL terminates its display there):
+            # exit hooks run last-in first-out, so the renderers are freed while the display still exists
             atexit.register(close_renderers)
-        _RENDERERS[key] = SceneRenderer(resolution_px, shadows)
     return _RENDERERS[key]
 
 
