@@ -36,7 +36,8 @@ class FilterConfig:
     adaptive_r / adaptive_q: innovation-based R scale, residual-based Q (see the module docstring).
     outage_q_scale: Q multiplier while a run gets no measurement.
     divergence_window: steps in the NIS window; divergence_prob: false-alarm probability of one window;
-    divergence_settle_steps: the monitor is armed after this many steps (the initial transient, where P0's
+    nees_divergence_factor: with a known truth, a window mean NEES above this x 12 also flags divergence.
+    divergence_settle_steps: the monitors are armed after this many steps (the initial transient, where P0's
     10 deg attitude uncertainty makes the unscented transform optimistic, is not a divergence).
     The default q_sigma suits a torque-free truth; with the gravity-gradient torque raise the w_r term
     (~1e-5 rad/s^2 at most) or switch on adaptive_q.
@@ -57,6 +58,7 @@ class FilterConfig:
     outage_q_scale: float = 10.0
     divergence_window: int = 30
     divergence_settle_steps: int = 60
+    nees_divergence_factor: float = 10.0
     divergence_prob: float = 1e-6
     max_rk4_step_s: float = 1.0
 
@@ -79,6 +81,7 @@ class FilterConfig:
         check(self.divergence_settle_steps >= 0, f"{p}divergence_settle_steps", self.divergence_settle_steps, "a non-negative number of steps")
         check(self.divergence_window >= 1, f"{p}divergence_window", self.divergence_window, "at least 1 step")
         check(0.0 < self.divergence_prob < 1.0, f"{p}divergence_prob", self.divergence_prob, "a probability in (0, 1)")
+        check(self.nees_divergence_factor > 1.0, f"{p}nees_divergence_factor", self.nees_divergence_factor, "a factor > 1")
         check(self.max_rk4_step_s > 0.0, f"{p}max_rk4_step_s", self.max_rk4_step_s, "a positive step in seconds")
 
     @property
@@ -224,3 +227,23 @@ def nees(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray) -> np.ndarray:
 
     e = state_residual(np.broadcast_to(x_true, x_hat.shape).copy(), x_hat)
     return np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
+
+
+def nees_divergence(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, cfg: FilterConfig) -> np.ndarray:
+    """Divergence monitor against a known truth: the NEES averaged over a sliding window of
+    cfg.divergence_window steps above cfg.nees_divergence_factor x 12, after the settle steps.
+
+    Estimation errors are strongly correlated in time, so a chi-square bound on a window of NEES values (which
+    assumes independent steps) would raise false alarms; the NIS monitor (white innovations) uses one.
+
+    x_true broadcastable to x_hat (R, T, 12); P (R, T, 12, 12). Returns (R,) bool.
+    """
+    e = nees(x_true, x_hat, P)  # (R, T)
+    W = cfg.divergence_window
+    start = max(cfg.divergence_settle_steps - W + 1, 0)
+    e = e[:, start:]
+    if e.shape[1] < W:
+        return np.zeros(e.shape[0], dtype=bool)
+    c = np.cumsum(np.concatenate([np.zeros((e.shape[0], 1)), e], axis=1), axis=1)
+    window_sums = c[:, W:] - c[:, :-W]
+    return (window_sums > cfg.nees_divergence_factor * 12 * W).any(axis=1) | ~np.isfinite(e).all(axis=1)

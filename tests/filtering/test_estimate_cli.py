@@ -1,0 +1,76 @@
+"""`envisat estimate`: the est.npz contract, determinism, --truth and --scenario, and one-line user errors."""
+
+import json
+
+import numpy as np
+import pytest
+
+from envisat_pose.cli import main
+
+KEYS = {"t_s", "x_true", "x_hat", "P", "n_meas", "nis", "diverged", "config_json"}
+
+
+def _load(path):
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def test_scenario_run_writes_the_contract_and_is_deterministic(tmp_path, capsys):
+    args = ["estimate", "--scenario", "default", "--duration-s", "120", "--runs", "3", "--seed", "4", "--quiet"]
+    assert main(args + ["--out", str(tmp_path / "a.npz")]) == 0
+    assert main(args + ["--out", str(tmp_path / "b.npz")]) == 0
+    assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()
+    assert (tmp_path / "a.config.toml").exists()
+    est = _load(tmp_path / "a.npz")
+    assert set(est) == KEYS
+    R, T = 3, 121
+    assert est["t_s"].shape == (T,)
+    assert est["x_true"].shape == est["x_hat"].shape == (R, T, 12)
+    assert est["P"].shape == (R, T, 12, 12)
+    assert est["n_meas"].shape == est["nis"].shape == (R, T)
+    assert est["diverged"].shape == (R,) and est["diverged"].dtype == bool and not est["diverged"].any()
+    cfg = json.loads(str(est["config_json"]))
+    assert cfg["estimate"]["runs"] == 3 and cfg["truth_source"] == {"scenario": "default"}
+    assert cfg["truth_config"]["duration_s"] == 120.0
+    # runs differ (their own initial errors and noise), and converge on the truth
+    assert np.abs(est["x_hat"][0, 0] - est["x_hat"][1, 0]).max() > 1e-3
+    assert np.abs(est["x_hat"][:, -1, :3] - est["x_true"][:, -1, :3]).max() < 0.05
+    out = capsys.readouterr().out
+    assert "RMS attitude error" in out and "deg" in out
+    assert main(args[:-3] + ["--seed", "5", "--quiet", "--out", str(tmp_path / "c.npz")]) == 0
+    assert (tmp_path / "c.npz").read_bytes() != (tmp_path / "a.npz").read_bytes()
+
+
+def test_truth_file_and_rate(tmp_path):
+    from datagen.scenario import scenario_config
+    from datagen.truth import simulate
+
+    tr = simulate(scenario_config("default", duration_s=200.0, seed=3))
+    tr.save(str(tmp_path / "run.npz"))
+    out = tmp_path / "est.npz"
+    assert main(["estimate", "--truth", str(tmp_path / "run.npz"), "--rate-hz", "0.5", "--runs", "2",
+                 "--measurements", "pixels", "--sigma-px", "0.5", "--max-markers", "4", "--quiet",
+                 "--out", str(out)]) == 0
+    est = _load(out)
+    np.testing.assert_array_equal(est["t_s"], tr.t_s[::2])
+    np.testing.assert_array_equal(est["x_true"][1], tr.x[::2])
+    assert est["n_meas"].max() == 4 and est["n_meas"].min() >= 1
+    assert json.loads(str(est["config_json"]))["estimate"]["measurement"]["kind"] == "pixels"
+
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--scenario", "default", "--sigma-m", "-1"], "measurement.sigma_m"),
+    (["--scenario", "default", "--rate-hz", "0.3", "--duration-s", "10"], "rate_hz"),
+    (["--scenario", "no_such"], "scenario"),
+    (["--truth", "/nonexistent/run.npz"], "does not exist"),
+    (["--scenario", "default", "--runs", "0"], "runs"),
+    (["--scenario", "default", "--out", "est.txt"], ".npz"),
+])
+def test_user_errors_are_one_line(tmp_path, capsys, extra, needle):
+    args = ["estimate", "--quiet"] + extra
+    if "--out" not in extra:
+        args += ["--out", str(tmp_path / "e.npz")]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and needle in err and "Traceback" not in err
+    assert not (tmp_path / "e.npz").exists()
