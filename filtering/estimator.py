@@ -20,7 +20,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
-from filtering.measurements import Camera, measure
+from filtering.measurements import Camera, measure, predicted_visible
 from filtering.ukf import merwe_weights, predict, shadow_switch, update
 
 
@@ -31,6 +31,8 @@ class FilterConfig:
     p0_sigma: initial uncertainty of (rho m, rho' m/s, p MRP, w_r rad/s), the reference sheet's P0.
     q_sigma: process noise std per sqrt(s) of the same four groups.
     gate_prob: chi-square gate probability per corner (0 switches gating off).
+    visibility_check: drop a measured corner that the predicted state says is hidden (exact face test from
+    the prior mean): a detection of a hidden corner is a mislabel.
     gate_lockout_steps: after this many consecutive steps in which the gate rejected every measured corner of
     a run, its next update is not gated (a filter must not lock itself out when it is wrong or R too small).
     adaptive_r / adaptive_q: innovation-based R scale, residual-based Q (see the module docstring).
@@ -50,6 +52,7 @@ class FilterConfig:
     q_sigma: tuple[float, float, float, float] = (1e-7, 1e-7, 1e-8, 1e-9)
     gate_prob: float = 0.99999
     gate_lockout_steps: int = 5
+    visibility_check: bool = True
     adaptive_r: bool = False
     adaptive_r_rate: float = 0.05
     adaptive_r_bounds: tuple[float, float] = (0.2, 100.0)
@@ -173,8 +176,11 @@ def run_filter(x0_hat: np.ndarray, P0: np.ndarray, t_s: np.ndarray, chaser: np.n
             mean, cov = predict(mean, cov, chaser[k - 1], dt, Q, w, J_T, mu_m3_s2, cfg.max_rk4_step_s)
         mean_pred, cov_pred = mean, cov
         Rk = R_c[:, k] * r_scale[:, None, None, None]
+        mask_k = mask[:, k]
+        if cfg.visibility_check:
+            mask_k = mask_k & predicted_visible(mean)
         thr = None if gate is None else np.where(locked >= cfg.gate_lockout_steps, np.inf, gate)
-        mean, cov, info = update(mean, cov, z[:, k], mask[:, k], Rk, hx, w, thr)
+        mean, cov, info = update(mean, cov, z[:, k], mask_k, Rk, hx, w, thr)
         # never NaN: roll a run back to its prediction (or its previous posterior) and flag it
         bad = ~(np.isfinite(mean).all(-1) & np.isfinite(cov).all((-1, -2)))
         if bad.any():

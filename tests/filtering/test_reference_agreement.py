@@ -14,7 +14,7 @@ from filtering.reference import make_reference_ukf, reference_predict, reference
 def test_filterpy_and_batched_agree_over_100_steps(truth_600, chaser_of, kind):
     tr = truth_600
     T, R = 100, 2
-    cfg = FilterConfig(gate_prob=0.0, outage_q_scale=1.0)  # the reference has no gate, no inflation
+    cfg = FilterConfig(gate_prob=0.0, outage_q_scale=1.0, visibility_check=False)  # as the reference
     mcfg = MeasurementConfig(kind=kind, failure_prob=0.3, outages_s=((40.0, 44.0),))
     inp = make_run_inputs(tr.x[:T], tr.t_s[:T], tr.visible[:T], mcfg, cfg.P0, seed=11, n_runs=R)
     n_meas = inp.mask.sum(-1)
