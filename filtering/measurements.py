@@ -138,3 +138,20 @@ def swap_corners(z: np.ndarray, steps: np.ndarray, i: int, j: int) -> np.ndarray
     z[..., steps, i, :] = z[..., steps, j, :]
     z[..., steps, j, :] = zi
     return z
+
+
+def from_detections(corners_px: np.ndarray, cov_px: np.ndarray, visible: np.ndarray,
+                    confidence: np.ndarray | None = None, min_confidence: float = 0.0):
+    """The detector's output (design.md, Detections) as filter input for the "pixels" kind.
+
+    corners_px (..., 8, 2) px, cov_px (..., 8, 2, 2) px^2, visible (..., 8) bool, confidence (..., 8) in [0, 1].
+    Returns z (..., 8, 2), mask (..., 8) bool (visible, confident enough, finite, with a finite covariance),
+    R_c (..., 8, 2, 2) with unit covariance where a corner is not used (never read).
+    """
+    z = np.asarray(corners_px, dtype=float)
+    cov = np.asarray(cov_px, dtype=float)
+    mask = np.asarray(visible, dtype=bool) & np.isfinite(z).all(-1) & np.isfinite(cov).all((-1, -2))
+    if confidence is not None:
+        mask &= np.asarray(confidence) >= min_confidence
+    R_c = np.where(mask[..., None, None], cov, np.eye(2))
+    return np.where(mask[..., None], z, 0.0), mask, R_c

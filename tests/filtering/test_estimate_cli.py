@@ -74,3 +74,31 @@ def test_user_errors_are_one_line(tmp_path, capsys, extra, needle):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and needle in err and "Traceback" not in err
     assert not (tmp_path / "e.npz").exists()
+
+
+def test_config_file_then_flags(tmp_path):
+    cfg = tmp_path / "est.toml"
+    cfg.write_text('runs = 2\n[measurement]\nsigma_m = 0.05\nfailure_prob = 0.2\noutages_s = [[20.0, 40.0]]\n'
+                   '[filter]\nadaptive_q = true\n')
+    out = tmp_path / "est.npz"
+    assert main(["estimate", "--scenario", "default", "--duration-s", "60", "--config", str(cfg), "--sigma-m", "0.03",
+                 "--quiet", "--out", str(out)]) == 0
+    est = _load(out)
+    c = json.loads(str(est["config_json"]))["estimate"]
+    assert c["runs"] == 2 and c["measurement"]["sigma_m"] == 0.03 and c["filter"]["adaptive_q"] is True
+    assert c["measurement"]["failure_prob"] == 0.2
+    assert (est["n_meas"][:, 20:40] == 0).all() and (est["n_meas"][:, :20] > 0).any()
+    assert np.isfinite(est["x_hat"]).all()
+    # the written config reproduces the job
+    out2 = tmp_path / "again.npz"
+    assert main(["estimate", "--scenario", "default", "--duration-s", "60", "--config",
+                 str(tmp_path / "est.config.toml"), "--quiet", "--out", str(out2)]) == 0
+    assert out2.read_bytes() == out.read_bytes()
+
+
+def test_config_file_unknown_key_is_a_one_line_error(tmp_path, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[filter]\nalpha_typo = 1.0\n")
+    assert main(["estimate", "--scenario", "default", "--config", str(cfg), "--out", str(tmp_path / "e.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "filter.alpha_typo" in err and len(err.strip().splitlines()) == 1

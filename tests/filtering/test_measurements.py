@@ -122,3 +122,22 @@ def test_batched_shapes():
     assert measure(x, "pixels").shape == (4, 25, 8, 2)
     assert measure(x, "pixels+range").shape == (4, 25, 8, 3)
     assert predicted_visible(x).shape == (4, 25, 8)
+
+
+def test_detections_become_filter_input():
+    from filtering.measurements import from_detections
+
+    rng = np.random.default_rng(2)
+    corners = rng.uniform(0, 1023, (5, 8, 2))
+    corners[1, 3] = np.nan
+    cov = np.broadcast_to(np.diag([2.0, 0.5]), (5, 8, 2, 2)).copy()
+    cov[2, 4, 0, 0] = np.inf
+    visible = np.ones((5, 8), bool)
+    visible[0, 0] = False
+    conf = np.full((5, 8), 0.9)
+    conf[3, 7] = 0.1
+    z, mask, R_c = from_detections(corners, cov, visible, conf, min_confidence=0.5)
+    assert mask.sum() == 40 - 4
+    assert not mask[0, 0] and not mask[1, 3] and not mask[2, 4] and not mask[3, 7]
+    assert np.isfinite(z).all() and np.isfinite(R_c).all()
+    np.testing.assert_array_equal(R_c[4], cov[4])
