@@ -7,7 +7,8 @@ alone (mjr_render of the sun-lit, shadowed, 4x multisampled scene plus the RGB r
 before any label. For context it also times the stock mujoco.Renderer producing RGB, depth and segmentation.
 End-to-end times are wall clock of `run_generate`, worker start-up included.
 
-Floors (issue 3): 1 worker >= 60 % of the raw render rate; 2 workers >= 1.7 x one.
+Floors (issue 3): 1 worker >= 60 % of the raw render rate; 2 workers >= 1.7 x one. A CPU scaling probe
+(zlib in 2 processes vs 1) tells what speedup the machine itself allows two processes.
 Run: .venv/bin/python bench/datagen_speed.py  (writes bench/results/datagen_speed.json)
 """
 
@@ -145,6 +146,31 @@ def end_to_end(cfg, workers: int) -> tuple[float, float]:
         shutil.rmtree(out, ignore_errors=True)
 
 
+def _zlib_work(_: int = 0) -> float:
+    """A fixed CPU load (zlib level 1 on 40 MB of noise), seconds."""
+    import zlib
+
+    data = np.random.default_rng(0).integers(0, 255, 1 << 20, dtype=np.uint8).tobytes()
+    t0 = time.perf_counter()
+    for _ in range(40):
+        zlib.compress(data, 1)
+    return time.perf_counter() - t0
+
+
+def cpu_scaling_probe() -> float:
+    """How much two processes gain over one on this machine for a plain CPU load (ideal 2.0): the ceiling
+    for the 2-worker speedup, independent of the factory."""
+    import multiprocessing as mp
+
+    one = _zlib_work()
+    with mp.get_context("spawn").Pool(2) as pool:
+        pool.map(_zlib_work, [0, 0])  # warm the workers
+        t0 = time.perf_counter()
+        pool.map(_zlib_work, [0, 1])
+        two = time.perf_counter() - t0
+    return 2.0 * one / two
+
+
 def main() -> None:
     results = {
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
@@ -152,6 +178,8 @@ def main() -> None:
         "protocol": "LP_NUM_THREADS=1 per process; random mode, default config; shard size %d" % SHARD_SIZE,
         "resolutions": {},
     }
+    results["machine"]["cpu_scaling_probe_2_processes"] = probe = cpu_scaling_probe()
+    print(f"CPU scaling probe (zlib, 2 processes vs 1): {probe:.2f}x")
     rows = []
     for res, n in IMAGES.items():
         cfg = bench_config(res, n)
@@ -178,12 +206,21 @@ def main() -> None:
         print(f"{res} px stages (ms/image, 1 core): " + ", ".join(f"{k} {v:.1f}" for k, v in entry["stages_ms"].items()))
         print(f"{res} px interleaved in-process ratio (sample rate / raw rate): "
               f"{entry['interleaved_ratio_sample_to_raw']:.2f}")
+    # one entry per platform (GL backend and core count), so runs on different machines sit side by side
+    tag = os.environ.get("BENCH_TAG") or f"{os.environ['MUJOCO_GL']}_{os.cpu_count()}cpu"
     path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "datagen_speed.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
+    everything = {}
+    if os.path.exists(path):
+        with open(path, encoding="utf-8") as fh:
+            everything = json.load(fh)
+        if "resolutions" in everything:  # an older single-platform file
+            everything = {}
+    everything[tag] = results
     with open(path, "w", encoding="utf-8") as fh:
-        json.dump(results, fh, indent=1, sort_keys=True)
+        json.dump(everything, fh, indent=1, sort_keys=True)
         fh.write("\n")
-    print(f"wrote {path}")
+    print(f"wrote {path} [{tag}]")
 
 
 if __name__ == "__main__":
