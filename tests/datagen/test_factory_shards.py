@@ -243,3 +243,19 @@ def test_sequence_mode_follows_the_truth(tmp_path):
     # the default V-bar hold: target 50 m down the boresight, all corners in frame
     for lab in labels:
         assert abs(lab["t_cam_from_target_m"][2] - 50.0) < 0.5 and all(lab["in_frame"])
+
+
+def test_inspect_prints_stats_and_writes_a_montage(reference, tmp_path, capsys):
+    import cv2
+
+    out, manifest = reference
+    montage = tmp_path / "m.png"
+    assert envisat_main(["dataset", "inspect", out, "--montage", str(montage), "--count", "4"]) == 0
+    text = capsys.readouterr().out
+    stats = json.loads(text[: text.rindex("}") + 1])
+    assert stats["samples"] == 6 and sum(stats["visible_corners_histogram"]) == 6
+    assert 20.0 <= stats["range_m"]["min"] <= stats["range_m"]["max"] <= 80.0  # range_min_m, range_max_m
+    img = cv2.imread(str(montage))
+    assert img.shape == (512, 512, 3)
+    # labelled corners are drawn in colour on the grey renders
+    assert np.any((img[..., 1] > 150) & (img[..., 0] < 80) & (img[..., 2] < 80))
