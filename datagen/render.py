@@ -309,17 +309,23 @@ class SceneRenderer:
             ids_rgb = np.empty(raw.shape + (3,), dtype=np.uint8)
             mujoco.mjr_readPixels(ids_rgb, raw, crop_rect, self._con_seg)
             mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
-            seg = ids_rgb.astype(np.int32)
-            segid = seg[..., 0] + (seg[..., 1] << 8) + (seg[..., 2] << 16)  # 0: background, else geom slot + 1
-            slot_to_geom = np.full(scn.ngeom + 1, -1, dtype=np.int64)
+            # segmentation colour -> scene slot + 1 (0: background) -> geom -> mask value, as one lookup table
+            slot_value = np.zeros(max(scn.ngeom + 1, 256), dtype=np.uint8)
             for k in range(scn.ngeom):
                 g = scn.geoms[k]
                 if g.objtype == mujoco.mjtObj.mjOBJ_GEOM and g.segid >= 0:
-                    slot_to_geom[g.segid + 1] = g.objid
-            crop_mask = self.mask_lut[slot_to_geom[np.clip(segid, 0, scn.ngeom)] + 1][::-1]
-            crop_depth = depth_from_buffer(raw[::-1], self.znear_m, self.zfar_m).astype(np.float32)
+                    slot_value[g.segid + 1] = self.mask_lut[g.objid + 1]
+            if scn.ngeom < 255:  # ids fit the red channel
+                crop_mask = slot_value[ids_rgb[..., 0]]
+            else:
+                seg = ids_rgb.astype(np.int32)
+                crop_mask = slot_value[np.clip(seg[..., 0] + (seg[..., 1] << 8) + (seg[..., 2] << 16), 0, scn.ngeom)]
+            crop_mask = crop_mask[::-1]  # GL rows run bottom-up
+            fg = crop_mask > 0
+            crop_depth = np.zeros(raw.shape, dtype=np.float32)
+            crop_depth[fg] = depth_from_buffer(raw[::-1][fg], self.znear_m, self.zfar_m)
             mask[v0 : v1 + 1, u0 : u1 + 1] = crop_mask
-            depth_m[v0 : v1 + 1, u0 : u1 + 1] = np.where(crop_mask > 0, crop_depth, 0.0)
+            depth_m[v0 : v1 + 1, u0 : u1 + 1] = crop_depth
         d = self.data
         corners_W = d.site_xpos[self.corner_sites]
         R_W_T = d.xmat[self.target_body].reshape(3, 3)
