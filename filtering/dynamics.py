@@ -20,7 +20,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from envisat_pose.attitude import mrp_rate, mrp_to_dcm
+from envisat_pose.attitude import mrp_rate, mrp_shadow, mrp_to_dcm
 from envisat_pose.geometry import model_path
 
 MU_EARTH_M3_S2 = 3.986004418e14
@@ -122,17 +122,20 @@ def propagate(x: np.ndarray, c0: np.ndarray, dt_s: float, J_T: np.ndarray | None
     """Propagate the 12-state over dt_s with RK4 (sub-steps no longer than max_step_s). No shadow switch.
 
     x: (..., 12). c0: chaser state at the start, (4,) or broadcastable to x[..., :4]. Returns (..., 12).
-    The MRP is left on the set it was propagated in; the caller switches sets (the UKF does it on the mean).
+    The MRP switches to |p| <= 1 between sub-steps only; at the end it is left on the set it was propagated in
+    and the caller switches (the UKF does it on the mean, after aligning the sigma points).
     """
     J_T = load_inertia_T_kg_m2() if J_T is None else J_T
     n_sub = max(1, int(np.ceil(dt_s / max_step_s - 1e-9)))
     h = dt_s / n_sub
     x_tr, x_rot = x[..., 0:6], x[..., 6:12]
     c = np.asarray(c0, dtype=float)
-    for _ in range(n_sub):
+    for i in range(n_sub):
         c1, c2, c3, c4, c_end = chaser_stages(c, h, mu_m3_s2)
         st = (c1, c2, c3, c4)
         x_tr = _rk4_block(lambda y, cc: translation_rate(y, cc, mu_m3_s2), x_tr, st, h)
         x_rot = _rk4_block(lambda y, cc: rotation_rate(y, cc, J_T), x_rot, st, h)
+        if i < n_sub - 1:  # a long step may turn through 360 deg, where p -> infinity: switch between sub-steps
+            x_rot = np.concatenate([mrp_shadow(x_rot[..., 0:3]), x_rot[..., 3:6]], axis=-1)
         c = c_end
     return np.concatenate([x_tr, x_rot], axis=-1)

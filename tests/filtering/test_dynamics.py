@@ -124,3 +124,19 @@ def test_blocks_are_decoupled_and_batched():
     x3 = x.copy()
     x3[:6] += 5.0
     np.testing.assert_array_equal(rotation_rate(x[6:], c, SHEET_J), rotation_rate(x3[6:], c, SHEET_J))
+
+
+def test_long_steps_use_substeps_and_pass_through_a_full_turn(truth_600, chaser_of):
+    """A 100 s step (0.01 Hz) turns the target by ~270 deg: sub-steps of 1 s and set switches in between keep
+    it equal to 100 steps of 1 s."""
+    tr = truth_600
+    c = chaser_of(tr)
+    x_long = propagate(tr.x[0], c[0], 100.0, max_step_s=1.0)
+    x = tr.x[0].copy()
+    for k in range(100):
+        x = propagate(x, c[k], 1.0)
+        x[6:9] = mrp_shadow(x[6:9])
+    assert np.isfinite(x_long).all()
+    assert np.abs(x_long[:6] - x[:6]).max() < 1e-5  # the chaser is re-read every 1 s in the loop, not in x_long
+    assert np.degrees(mrp_error_angle_rad(x_long[6:9], x[6:9])) < 1e-6
+    assert np.degrees(mrp_error_angle_rad(x_long[6:9], tr.x[100, 6:9])) < 1e-4
