@@ -21,7 +21,7 @@ from scipy.stats import chi2
 
 from filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
 from filtering.measurements import Camera, measure, predicted_visible
-from filtering.ukf import merwe_weights, predict, shadow_switch, update
+from filtering.ukf import merwe_weights, predict, shadow_switch, state_residual, update
 
 
 @dataclass(frozen=True)
@@ -229,8 +229,6 @@ def nees(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray) -> np.ndarray:
 
     x_true broadcastable to x_hat (..., 12); P (..., 12, 12). Returns (...,).
     """
-    from filtering.ukf import state_residual
-
     e = state_residual(np.broadcast_to(x_true, x_hat.shape).copy(), x_hat)
     return np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
 
