@@ -80,7 +80,7 @@ def corners_in_chaser_frame(x: np.ndarray) -> np.ndarray:
     """Corner positions relative to the chaser in C: rho + Gamma^T v_i. (..., 12) -> (..., 8, 3) m."""
     v_T = load_geometry().corners_T_m
     G = mrp_to_dcm(x[..., 6:9])
-    return x[..., None, 0:3] + np.einsum("...ji,ki->...kj", G, v_T)
+    return x[..., None, 0:3] + np.einsum("...ij,ki->...kj", G, v_T)  # (Gamma^T v_k)_j = G_ij v_ki
 
 
 def corner_visibility(x: np.ndarray) -> np.ndarray:

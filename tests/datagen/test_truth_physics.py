@@ -200,3 +200,21 @@ def test_gravity_gradient_torque_vs_independent_integration():
     err_free = np.degrees(angle_between(mrp_to_passive(free.x[:, 6:9]), gamma_ref)).max()
     assert err_gg < 1e-5  # measured 2.4e-6 deg; without the torque the truth is off by 1.4 deg
     assert err_free > 100 * err_gg  # the torque matters, so the comparison can tell it apart
+
+
+def test_corners_in_C_equal_mujoco_sites():
+    """corners_C_m (rho + Gamma^T v_i) against MuJoCo's own site positions, rotated into C."""
+    from datagen.orbit import chaser_orbit
+    from datagen.sim import CORNER_SITES, TruthSim
+    from datagen.truth import corner_visibility, corners_in_chaser_frame
+
+    cfg = scenario_config(duration_s=40.0, dt_s=4.0, seed=8)
+    traj = simulate(cfg)
+    sim = TruthSim(cfg)
+    for k in (0, 5, 10):
+        sim.set_state(traj.x[k], traj.t_s[k])
+        R_N_C = chaser_orbit(cfg.orbit, traj.t_s[k:k + 1]).R_N_from_C[0]
+        sites_C = np.stack([R_N_C.T @ sim.data.site(name).xpos for name in CORNER_SITES])
+        np.testing.assert_allclose(traj.corners_C_m[k], sites_C, atol=1e-9)
+        np.testing.assert_allclose(corners_in_chaser_frame(traj.x[k]), sites_C, atol=1e-9)
+        np.testing.assert_array_equal(traj.visible[k], corner_visibility(traj.x[k]))
