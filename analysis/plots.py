@@ -49,3 +49,66 @@ def plot_states(t_s: np.ndarray, x: np.ndarray, path: str, title: str = "", visi
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
+
+
+def estimate_errors(x_true: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
+    """Errors x_hat - x_true (R, T, 12); the MRP error compares both on the truth's set (|p| <= 1 near it)."""
+    from envisat_pose.attitude import mrp_shadow
+
+    err = x_hat - x_true
+    p_hat, p_true = x_hat[..., 6:9], x_true[..., 6:9]
+    shadow = -p_hat / np.maximum(np.sum(p_hat**2, axis=-1, keepdims=True), 1e-300)
+    use_shadow = np.linalg.norm(shadow - p_true, axis=-1) < np.linalg.norm(p_hat - p_true, axis=-1)
+    err[..., 6:9] = np.where(use_shadow[..., None], shadow, p_hat) - mrp_shadow(p_true)
+    return err
+
+
+def plot_estimate(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, path: str,
+                  title: str = "") -> None:
+    """The seed paper's figures: per-state error of run 0, the filter's +-3 sigma (from P, mean over runs)
+    and the +-3 sigma of the Monte Carlo sample errors, plus the attitude error angle of every run.
+
+    t_s (T,), x_true / x_hat (R, T, 12), P (R, T, 12, 12). Velocities in mm/s, angular rates in deg/s.
+    """
+    from envisat_pose.attitude import mrp_error_angle_rad
+
+    err = estimate_errors(x_true, x_hat)
+    sig_filter = np.sqrt(np.mean(np.diagonal(P, axis1=-2, axis2=-1), axis=0))  # (T, 12)
+    sig_mc = err.std(axis=0) if err.shape[0] > 1 else None
+    scale = np.array([100.0] * 3 + [1000.0] * 3 + [1.0] * 3 + [180.0 / np.pi] * 3)
+    units = ["cm"] * 3 + ["mm/s"] * 3 + [""] * 3 + ["deg/s"] * 3
+    names = ["rho_x", "rho_y", "rho_z", "rho'_x", "rho'_y", "rho'_z", "p_1", "p_2", "p_3", "w_r1", "w_r2", "w_r3"]
+    fig, axes = plt.subplots(5, 3, figsize=(13, 13), sharex=True)
+    t_min = t_s / 60.0
+    for i in range(12):
+        ax = axes[i // 3, i % 3]
+        ax.plot(t_min, err[0, :, i] * scale[i], lw=0.8, color="C0", label="error, run 0")
+        ax.plot(t_min, 3 * sig_filter[:, i] * scale[i], lw=0.9, color="C3", label="filter 3 sigma (P)")
+        ax.plot(t_min, -3 * sig_filter[:, i] * scale[i], lw=0.9, color="C3")
+        if sig_mc is not None:
+            ax.plot(t_min, 3 * sig_mc[:, i] * scale[i], lw=0.9, ls="--", color="k", label="Monte Carlo 3 sigma")
+            ax.plot(t_min, -3 * sig_mc[:, i] * scale[i], lw=0.9, ls="--", color="k")
+        lim = 3 * np.percentile(sig_filter[len(t_s) // 10:, i], 95) * scale[i] * 2.0
+        if np.isfinite(lim) and lim > 0:
+            ax.set_ylim(-lim, lim)
+        ax.set_ylabel(f"{names[i]} {units[i]}".strip())
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7, loc="upper right")
+    ang_deg = np.degrees(mrp_error_angle_rad(x_hat[..., 6:9], x_true[..., 6:9]))  # (R, T)
+    ax = axes[4, 0]
+    ax.semilogy(t_min, np.maximum(ang_deg.T, 1e-6), lw=0.5, alpha=0.5)
+    ax.set_ylabel("attitude error [deg]")
+    ax.grid(alpha=0.3, which="both")
+    ax = axes[4, 1]
+    pos_cm = 100 * np.linalg.norm(err[..., 0:3], axis=-1)
+    ax.semilogy(t_min, np.maximum(pos_cm.T, 1e-6), lw=0.5, alpha=0.5)
+    ax.set_ylabel("position error [cm]")
+    ax.grid(alpha=0.3, which="both")
+    axes[4, 2].axis("off")
+    for ax in axes[-1]:
+        ax.set_xlabel("t [min]")
+    fig.suptitle(title or f"UKF estimation errors, {x_hat.shape[0]} runs")
+    fig.tight_layout()
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)

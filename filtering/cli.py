@@ -66,6 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--runs", type=int, help="number of Monte Carlo runs, filtered as one batch (default 1)")
     p.add_argument("--seed", type=int, help="root seed (default 0)")
     p.add_argument("--out", default="est.npz", help="output .npz (default est.npz); its config goes next to it")
+    p.add_argument("--plot", action="store_true", help="also write a PNG of the errors with 3-sigma bounds next to --out")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run_estimate)
 
@@ -194,4 +195,11 @@ def run_estimate(args: argparse.Namespace) -> int:
     atomic_write_text(cfg_path, "# envisat estimate: the full validated config of this job\n" + to_toml(to_dict(cfg)))
     print(f"wrote {out} ({cfg.runs} runs x {len(arrays['t_s'])} steps), config {cfg_path}")
     print(summary(arrays))
+    if args.plot:
+        from analysis.plots import plot_estimate
+
+        png = out[:-4] + ".png"
+        plot_estimate(arrays["t_s"], arrays["x_true"], arrays["x_hat"], arrays["P"], png,
+                      title=f"UKF errors, {cfg.measurement.kind}, {cfg.runs} runs, seed {cfg.seed}")
+        print(f"wrote {png}")
     return 0
