@@ -3,6 +3,7 @@
 
 demo: setup
 	.venv/bin/envisat simulate --out out/run.npz --plot
+	.venv/bin/envisat estimate --truth out/run.npz --runs 30 --out out/est.npz --plot
 
 test: setup
 	.venv/bin/python -m pytest -q
