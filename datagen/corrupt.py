@@ -88,6 +88,19 @@ def motion_kernel(length_px: float, angle_deg: float) -> np.ndarray:
     return (kernel / kernel.sum()).astype(np.float32)
 
 
+def _content_box(gray_u8: np.ndarray, reach_px: int) -> tuple[int, int, int, int] | None:
+    """(y0, y1, x0, x1) of the non-zero pixels grown by 2 x reach_px (clipped to the image), None if all black.
+
+    Twice the reach: within the grown box, a filter that reflects at the box's edge reflects only zeros there.
+    """
+    x, y, w, h = cv2.boundingRect(gray_u8)
+    if w == 0 or h == 0:
+        return None
+    g = 2 * reach_px
+    H, W = gray_u8.shape
+    return max(0, y - g), min(H, y + h + g), max(0, x - g), min(W, x + w + g)
+
+
 def apply_corruption(gray_u8: np.ndarray, params: dict) -> np.ndarray:
     """Corrupt a clean 8-bit image with `params` (from draw_corruption). (H, W) uint8 -> (H, W) uint8.
 
@@ -100,11 +113,23 @@ def apply_corruption(gray_u8: np.ndarray, params: dict) -> np.ndarray:
     img = gray_u8.astype(np.float32)
     if params["exposure_gain"] != 1.0:
         img *= np.float32(params["exposure_gain"])
+    kern = None
     if params["motion_blur_length_px"] > 0:
         kern = motion_kernel(params["motion_blur_length_px"], params["motion_blur_angle_deg"])
-        img = cv2.filter2D(img, -1, kern, borderType=cv2.BORDER_REFLECT)
-    if params["gaussian_blur_sigma_px"] > 0:
-        img = cv2.GaussianBlur(img, (0, 0), params["gaussian_blur_sigma_px"], borderType=cv2.BORDER_REFLECT)
+    sigma = params["gaussian_blur_sigma_px"]
+    if kern is not None or sigma > 0:
+        # Blur only where the image is not black: the box of its non-zero pixels grown by the kernels' reach.
+        # Outside it the blurred image is 0 as well, so the result equals blurring the whole frame.
+        reach = (kern.shape[0] // 2 if kern is not None else 0) + (int(np.ceil(4.0 * sigma)) + 1 if sigma > 0 else 0)
+        box = _content_box(gray_u8, reach)
+        if box is not None:
+            y0, y1, x0, x1 = box
+            crop = img[y0:y1, x0:x1]
+            if kern is not None:
+                crop = cv2.filter2D(crop, -1, kern, borderType=cv2.BORDER_REFLECT)
+            if sigma > 0:
+                crop = cv2.GaussianBlur(crop, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+            img[y0:y1, x0:x1] = crop
     var = np.float32(params["gaussian_noise_sigma"] ** 2)
     full_well = params["shot_noise_full_well_e"]
     if full_well is not None or var > 0:

@@ -65,3 +65,31 @@ def test_motion_kernel_is_a_normalised_streak():
     assert np.all(k[np.arange(11) != 5] == 0)  # horizontal streak: one row
     k = motion_kernel(9.0, 90.0)
     assert np.allclose(k[:, 5].sum(), 1.0, atol=1e-6)
+
+
+def test_blurring_only_the_content_box_equals_blurring_the_whole_frame():
+    """apply_corruption blurs the box around the non-black pixels; the whole frame gives the same image."""
+    import cv2
+
+    img = np.zeros((256, 256), np.uint8)
+    img[100:140, 60:200] = 170
+    img[110:118, 90:96] = 250
+    for seed in range(6):
+        params = draw_corruption(levels(motion_blur="high", gaussian_blur="high", exposure="medium"), 1024,
+                                 np.random.default_rng(seed))
+        out = apply_corruption(img, params)
+        full = img.astype(np.float32) * np.float32(params["exposure_gain"])
+        full = cv2.filter2D(full, -1, motion_kernel(params["motion_blur_length_px"], params["motion_blur_angle_deg"]),
+                            borderType=cv2.BORDER_REFLECT)
+        full = cv2.GaussianBlur(full, (0, 0), params["gaussian_blur_sigma_px"], borderType=cv2.BORDER_REFLECT)
+        ref = np.clip(np.rint(full), 0, 255).astype(np.uint8)
+        assert np.abs(out.astype(int) - ref).max() <= 1  # float round-off may flip a x.5 pixel
+        assert np.mean(out != ref) < 1e-3
+        assert (out > 0).sum() > (img > 0).sum()  # the blur really spread the content
+    # content touching the image border: the border reflection is the same either way
+    edge = np.zeros((128, 128), np.uint8)
+    edge[0:20, 0:30] = 200
+    params = draw_corruption(levels(gaussian_blur="high"), 1024, np.random.default_rng(0))
+    ref = np.clip(np.rint(cv2.GaussianBlur(edge.astype(np.float32), (0, 0), params["gaussian_blur_sigma_px"],
+                                           borderType=cv2.BORDER_REFLECT)), 0, 255).astype(np.uint8)
+    assert np.abs(apply_corruption(edge, params).astype(int) - ref).max() <= 1
