@@ -2,6 +2,7 @@
 .PHONY: demo test setup
 
 demo: setup
+	mkdir -p out
 	.venv/bin/envisat simulate --out out/run.npz --plot
 	.venv/bin/envisat estimate --truth out/run.npz --runs 30 --out out/est.npz --plot
 
