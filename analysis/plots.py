@@ -53,13 +53,11 @@ def plot_states(t_s: np.ndarray, x: np.ndarray, path: str, title: str = "", visi
 
 def estimate_errors(x_true: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
     """Errors x_hat - x_true (R, T, 12); the MRP error compares both on the truth's set (|p| <= 1 near it)."""
-    from envisat_pose.attitude import mrp_shadow
+    from envisat_pose.attitude import align_mrp, mrp_shadow
 
     err = x_hat - x_true
-    p_hat, p_true = x_hat[..., 6:9], x_true[..., 6:9]
-    shadow = -p_hat / np.maximum(np.sum(p_hat**2, axis=-1, keepdims=True), 1e-300)
-    use_shadow = np.linalg.norm(shadow - p_true, axis=-1) < np.linalg.norm(p_hat - p_true, axis=-1)
-    err[..., 6:9] = np.where(use_shadow[..., None], shadow, p_hat) - mrp_shadow(p_true)
+    p_true = mrp_shadow(x_true[..., 6:9])
+    err[..., 6:9] = align_mrp(x_hat[..., 6:9], p_true) - p_true
     return err
 
 

@@ -64,6 +64,14 @@ def mrp_shadow(p_mrp: np.ndarray) -> np.ndarray:
     return np.where(pp > 1.0, -p / np.where(pp > 1.0, pp, 1.0), p)
 
 
+def align_mrp(p_mrp: np.ndarray, p_ref: np.ndarray) -> np.ndarray:
+    """p or its shadow -p/(p.p), whichever is closer to p_ref (same orientation, comparable set). (..., 3)."""
+    pp = np.einsum("...i,...i->...", p_mrp, p_mrp)[..., None]
+    shadow = -p_mrp / np.where(pp > 0.0, pp, 1.0)
+    closer = np.linalg.norm(shadow - p_ref, axis=-1) < np.linalg.norm(p_mrp - p_ref, axis=-1)
+    return np.where((closer & (pp[..., 0] > 0.0))[..., None], shadow, p_mrp)
+
+
 def mrp_shadow_jacobian(p_mrp: np.ndarray) -> np.ndarray:
     """Jacobian of p -> -p / (p.p): S = (2 p p^T - (p.p) I) / (p.p)^2. Covariance maps as S P S^T."""
     p = np.asarray(p_mrp, dtype=float)

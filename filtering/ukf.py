@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-from envisat_pose.attitude import mrp_shadow, mrp_shadow_jacobian
+from envisat_pose.attitude import align_mrp, mrp_shadow, mrp_shadow_jacobian
 
 from filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, propagate
 
@@ -47,14 +47,6 @@ def merwe_weights(n: int, alpha: float = 1.0, beta: float = 2.0, kappa: float = 
 
 
 # ---------------------------------------------------------------- attitude-aware hooks (shared with filterpy)
-
-def align_mrp(p_mrp: np.ndarray, p_ref: np.ndarray) -> np.ndarray:
-    """p or its shadow -p/(p.p), whichever is closer to p_ref (same orientation, comparable set). (..., 3)."""
-    pp = np.einsum("...i,...i->...", p_mrp, p_mrp)[..., None]
-    shadow = -p_mrp / np.where(pp > 0.0, pp, 1.0)
-    closer = np.linalg.norm(shadow - p_ref, axis=-1) < np.linalg.norm(p_mrp - p_ref, axis=-1)
-    return np.where((closer & (pp[..., 0] > 0.0))[..., None], shadow, p_mrp)
-
 
 def state_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a - b for 12-states, with a's MRP first brought to the set of b's. (..., 12)."""
