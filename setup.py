@@ -14,7 +14,7 @@ _MUJOCO_DIR = os.path.dirname(mujoco.__file__)
 _LIBMUJOCO = f"libmujoco.so.{mujoco.__version__}"
 
 gravity_plugin = Extension(
-    "datagen.plugin._relative_gravity",
+    "envisat_pose.datagen.plugin._relative_gravity",
     sources=["datagen/plugin/relative_gravity.c"],
     include_dirs=[os.path.dirname(mujoco.HEADERS_DIR)],
     extra_compile_args=["-O2", "-std=c11", "-D_GNU_SOURCE", "-Wall"],

@@ -33,7 +33,7 @@ SEED = 2024
 
 
 def bench_config(resolution_px: int, n: int):
-    from datagen.factory import GenerateConfig
+    from envisat_pose.datagen.factory import GenerateConfig
     from envisat_pose.config import from_dict
 
     return from_dict(GenerateConfig, {"resolution_px": resolution_px, "num_images": n, "shard_size": SHARD_SIZE,
@@ -42,7 +42,7 @@ def bench_config(resolution_px: int, n: int):
 
 def sample_views(cfg, fovy_deg: float) -> list:
     """The dataset's own views (same seeds as generate_shard)."""
-    from datagen.factory import sample_random_view, sample_seed
+    from envisat_pose.datagen.factory import sample_random_view, sample_seed
 
     views = []
     for k in range(cfg.num_images):
@@ -56,11 +56,11 @@ def raw_rates(cfg) -> dict:
     plus the per-stage milliseconds of one labelled sample."""
     import mujoco
 
-    from datagen.corrupt import apply_corruption, draw_corruption
-    from datagen.factory import render_sample
-    from datagen.labels import encode_depth
-    from datagen.render import SceneRenderer, render_model_xml
-    from datagen.shards import encode_png
+    from envisat_pose.datagen.corrupt import apply_corruption, draw_corruption
+    from envisat_pose.datagen.factory import render_sample
+    from envisat_pose.datagen.labels import encode_depth
+    from envisat_pose.datagen.render import SceneRenderer, render_model_xml
+    from envisat_pose.datagen.shards import encode_png
     from envisat_pose.config import to_dict
 
     r = SceneRenderer(cfg.resolution_px)
@@ -128,7 +128,7 @@ def end_to_end(cfg, workers: int) -> tuple[float, float]:
 
     Steady state: the images finished after each worker's first shard, over the time since then.
     """
-    from datagen.factory import run_generate
+    from envisat_pose.datagen.factory import run_generate
 
     out = tempfile.mkdtemp(prefix="datagen_speed_")
     stamps = []

@@ -18,10 +18,10 @@ import numpy as np
 
 
 def _setup(n_steps: int, n_runs: int):
-    from datagen.scenario import scenario_config
-    from datagen.truth import simulate
-    from filtering.estimator import FilterConfig, chaser_states
-    from filtering.montecarlo import MeasurementConfig, make_run_inputs
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.filtering.estimator import FilterConfig, chaser_states
+    from envisat_pose.filtering.montecarlo import MeasurementConfig, make_run_inputs
 
     tr = simulate(scenario_config("default", duration_s=float(n_steps), seed=0))
     cfg = FilterConfig(gate_prob=0.0)
@@ -32,7 +32,7 @@ def _setup(n_steps: int, n_runs: int):
 
 def time_filterpy(cfg, inp, chaser, steps: int) -> float:
     """us per run-step of filterpy (one run)."""
-    from filtering.reference import make_reference_ukf, reference_predict, reference_update
+    from envisat_pose.filtering.reference import make_reference_ukf, reference_predict, reference_update
 
     ukf = make_reference_ukf(inp.x0_hat[0], cfg.P0, cfg.Q(1.0))
     reference_update(ukf, inp.z[0, 0], inp.mask[0, 0], inp.R_c, "markers3d")
@@ -45,8 +45,8 @@ def time_filterpy(cfg, inp, chaser, steps: int) -> float:
 
 def time_batched(cfg, inp, chaser, steps: int, runs: int) -> float:
     """us per run-step of our pure predict/update over `runs` runs at once."""
-    from filtering.measurements import measure
-    from filtering.ukf import merwe_weights, predict, update
+    from envisat_pose.filtering.measurements import measure
+    from envisat_pose.filtering.ukf import merwe_weights, predict, update
 
     w = merwe_weights(12, cfg.alpha, cfg.beta, cfg.kappa)
     Q = cfg.Q(1.0)
@@ -63,7 +63,7 @@ def time_batched(cfg, inp, chaser, steps: int, runs: int) -> float:
 
 def time_run_filter(cfg, inp, chaser, tr, steps: int, runs: int) -> float:
     """us per run-step of the full estimator loop (gate, monitors, storage) over `runs` runs."""
-    from filtering.estimator import FilterConfig, run_filter
+    from envisat_pose.filtering.estimator import FilterConfig, run_filter
 
     full = FilterConfig()
     sl = slice(0, steps + 1)

@@ -8,7 +8,7 @@ import os
 
 import numpy as np
 
-from datagen.shards import check_shard, decode_png, read_manifest, read_shard, shard_name
+from envisat_pose.datagen.shards import check_shard, decode_png, read_manifest, read_shard, shard_name
 from envisat_pose.config import InputError
 from envisat_pose.geometry import CORNER_NAMES, EDGES
 

@@ -97,7 +97,7 @@ class GenerateConfig:
                   f"a scale whose 16-bit range (65535 x scale) covers {reach:.1f} m, the farthest target point")
         check(self.frame_dt_s > 0, f"{p}frame_dt_s", self.frame_dt_s, "a positive frame interval in s")
         if self.mode == "sequence":
-            from datagen.scenario import scenario_dict
+            from envisat_pose.datagen.scenario import scenario_dict
 
             scenario_dict(self.scenario)  # unknown names raise ConfigError
 
@@ -145,7 +145,7 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
     Returns (View, x (12,), scene dict). In random mode C is the camera mount's frame; the Earth's direction
     is drawn independently of it.
     """
-    from datagen.render import View
+    from envisat_pose.datagen.render import View
 
     q = unit(rng.standard_normal(4))
     range_m = rng.uniform(cfg.range_min_m, cfg.range_max_m)
@@ -167,9 +167,9 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
 def sequence_frames(cfg_json: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The truth of a sequence-mode config at its frame times: (t_s (N,), x (N, 12), sun_dir_C (N, 3),
     eclipse (N,) bool, nadir_C (N, 3) with chaser_r_m folded in as its norm)."""
-    from datagen.orbit import chaser_orbit
-    from datagen.scenario import EARTH_RADIUS_M, scenario_config
-    from datagen.truth import simulate
+    from envisat_pose.datagen.orbit import chaser_orbit
+    from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_config
+    from envisat_pose.datagen.truth import simulate
 
     cfg = config_from_json(cfg_json)
     n = cfg.num_images
@@ -191,7 +191,7 @@ def sequence_frames(cfg_json: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
 
 def sequence_view(cfg: GenerateConfig, k: int) -> tuple:
     """Frame k of a sequence-mode config: (View, x (12,), scene dict)."""
-    from datagen.render import View
+    from envisat_pose.datagen.render import View
 
     t_s, x, sun_C, eclipse, nadir_C = sequence_frames(config_json(cfg))
     xk = x[k]
@@ -211,9 +211,9 @@ def sequence_view(cfg: GenerateConfig, k: int) -> tuple:
 def render_sample(renderer, cfg: GenerateConfig, view, x: np.ndarray, scene: dict, rng: np.random.Generator,
                   seed: int) -> dict[str, bytes]:
     """Render, label, corrupt and encode one sample: {suffix: bytes} per the shard contract."""
-    from datagen.corrupt import apply_corruption, draw_corruption
-    from datagen.labels import encode_depth, make_label
-    from datagen.shards import encode_png, label_bytes
+    from envisat_pose.datagen.corrupt import apply_corruption, draw_corruption
+    from envisat_pose.datagen.labels import encode_depth, make_label
+    from envisat_pose.datagen.shards import encode_png, label_bytes
 
     out = renderer.render(view)
     params = draw_corruption(to_dict(cfg.corruption), cfg.resolution_px, rng)
@@ -233,8 +233,8 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
     index, name, count, sha256, bytes."""
     import cv2
 
-    from datagen.render import shared_renderer
-    from datagen.shards import ShardWriter, sample_key, sha256_file, shard_name
+    from envisat_pose.datagen.render import shared_renderer
+    from envisat_pose.datagen.shards import ShardWriter, sample_key, sha256_file, shard_name
 
     cv2.setNumThreads(1)  # one core per worker; also keeps filters on one code path
     renderer = shared_renderer(cfg.resolution_px, cfg.shadows)
@@ -296,7 +296,7 @@ def prepare_out_dir(out_dir: str) -> None:
 
 def new_manifest(cfg: GenerateConfig) -> dict:
     """The manifest of a dataset before any shard is written."""
-    from datagen.render import MASK_VALUES
+    from envisat_pose.datagen.render import MASK_VALUES
 
     return {
         "format": MANIFEST_FORMAT,
@@ -316,7 +316,7 @@ def finished_shards(cfg: GenerateConfig, out_dir: str) -> dict[int, dict]:
 
     A manifest of a different config or seed is an InputError: the folder holds another dataset.
     """
-    from datagen.shards import check_shard, read_manifest
+    from envisat_pose.datagen.shards import check_shard, read_manifest
 
     try:
         manifest = read_manifest(out_dir)
@@ -335,7 +335,7 @@ def finished_shards(cfg: GenerateConfig, out_dir: str) -> dict[int, dict]:
 
 
 def _record(manifest: dict, done: dict[int, dict], out_dir: str, complete: bool) -> None:
-    from datagen.shards import write_manifest
+    from envisat_pose.datagen.shards import write_manifest
 
     manifest["shards"] = [done[i] for i in sorted(done)]
     manifest["complete"] = complete
@@ -388,7 +388,7 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
 
     on_shard, if given, is called with each finished shard's manifest entry once it is recorded.
     """
-    from datagen.shards import shard_name
+    from envisat_pose.datagen.shards import shard_name
 
     check(workers >= 1, "workers", workers, "at least 1 worker")
     check(backend in ("local", "dask"), "backend", backend, "'local' or 'dask'")

@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datagen.orbit import chaser_orbit
-from datagen.scenario import ScenarioConfig
-from datagen.sim import TruthSim
+from envisat_pose.datagen.orbit import chaser_orbit
+from envisat_pose.datagen.scenario import ScenarioConfig
+from envisat_pose.datagen.sim import TruthSim
 from envisat_pose.attitude import mrp_to_dcm, quat_to_mrp
 from envisat_pose.config import InputError, to_json
 from envisat_pose.geometry import load_geometry, visible_corners

@@ -7,6 +7,7 @@ Reads the MJCF with the standard library only, so packages that do not use MuJoC
 from __future__ import annotations
 
 import functools
+import importlib.resources
 import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -20,9 +21,11 @@ FACE_NAMES = ("px", "mx", "py", "my", "pz", "mz")
 
 
 def model_path() -> str:
-    """Absolute path of models/envisat.xml (ENVISAT_MODEL overrides it)."""
-    default = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "models", "envisat.xml")
-    return os.environ.get("ENVISAT_MODEL", default)
+    """Path of models/envisat.xml, shipped as package data of envisat_pose.models (ENVISAT_MODEL overrides it)."""
+    override = os.environ.get("ENVISAT_MODEL")
+    if override:
+        return override
+    return str(importlib.resources.files("envisat_pose.models").joinpath("envisat.xml"))
 
 
 @dataclass(frozen=True)
@@ -93,3 +96,89 @@ def visible_corners(c_T_m: np.ndarray, geometry: TargetGeometry | None = None) -
     g = geometry or load_geometry()
     faces = visible_faces(c_T_m, g)
     return np.einsum("...k,kc->...c", faces.astype(np.int64), g.face_corners.astype(np.int64)) > 0
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """The chaser camera of models/envisat.xml (camera `chaser_cam`), the one camera of the project.
+
+    Camera frame K: x right, y down, z along the boresight (OpenCV); pixels in the OpenCV convention (pixel
+    centres at integer coordinates). f_px: focal length, px; (cu_px, cv_px): principal point, px;
+    width_px, height_px: image size. R_K_from_C: (3, 3) rotation from the chaser frame C (the mount) to K;
+    pos_C_m: (3,) camera centre in C, m.
+    """
+
+    f_px: float
+    cu_px: float
+    cv_px: float
+    width_px: int
+    height_px: int
+    R_K_from_C: np.ndarray
+    pos_C_m: np.ndarray
+
+    @property
+    def K(self) -> np.ndarray:
+        """Intrinsic matrix (3, 3)."""
+        return np.array([[self.f_px, 0.0, self.cu_px], [0.0, self.f_px, self.cv_px], [0.0, 0.0, 1.0]])
+
+    def scaled(self, width_px: int, height_px: int) -> "PinholeCamera":
+        """The same camera (field of view, mount) read out at another image size."""
+        f = self.f_px * height_px / self.height_px
+        return PinholeCamera(f, 0.5 * (width_px - 1), 0.5 * (height_px - 1), int(width_px), int(height_px),
+                             self.R_K_from_C, self.pos_C_m)
+
+
+def _camera_axes_rows(cam: ET.Element, path: str) -> np.ndarray:
+    """Rows x_cam, y_cam, z_cam of a MuJoCo camera in its body's frame, from `xyaxes` (as MuJoCo: y is
+    orthogonalized against x) or `quat` (w x y z). MuJoCo cameras look along -z_cam with y_cam up."""
+    if cam.get("xyaxes"):
+        v = _parse_vec(cam.get("xyaxes"))
+        x = v[:3] / np.linalg.norm(v[:3])
+        y = v[3:] - (v[3:] @ x) * x
+        y = y / np.linalg.norm(y)
+        return np.array([x, y, np.cross(x, y)])
+    if cam.get("quat"):
+        w, a, b, c = _parse_vec(cam.get("quat")) / np.linalg.norm(_parse_vec(cam.get("quat")))
+        R = np.array([[1 - 2 * (b * b + c * c), 2 * (a * b - c * w), 2 * (a * c + b * w)],
+                      [2 * (a * b + c * w), 1 - 2 * (a * a + c * c), 2 * (b * c - a * w)],
+                      [2 * (a * c - b * w), 2 * (b * c + a * w), 1 - 2 * (a * a + b * b)]])
+        return R.T
+    if any(cam.get(k) for k in ("axisangle", "euler", "zaxis")):
+        raise ValueError(f"{path}: camera 'chaser_cam': give its orientation as xyaxes or quat")
+    return np.eye(3)
+
+
+@functools.lru_cache(maxsize=4)
+def load_camera(path: str | None = None, name: str = "chaser_cam") -> PinholeCamera:
+    """The pinhole of camera `name` in the MJCF: f = (H / 2) / tan(fovy / 2) px from `fovy` (deg) and
+    `resolution`, the principal point at the image centre, and the mount from the camera's pose in its body
+    (the chaser, whose frame is C). A test checks it against MuJoCo's compiled camera."""
+    path = path or model_path()
+    root = ET.parse(path).getroot()
+    cam = next((c for c in root.iter("camera") if c.get("name") == name), None)
+    if cam is None:
+        raise ValueError(f"{path}: no camera named {name!r}")
+    if cam.get("fovy") is None or cam.get("resolution") is None:
+        raise ValueError(f"{path}: camera {name!r} needs fovy and resolution attributes")
+    fovy_deg = float(cam.get("fovy"))
+    width, height = (int(v) for v in _parse_vec(cam.get("resolution")))
+    f = 0.5 * height / np.tan(np.radians(fovy_deg) / 2.0)
+    axes = _camera_axes_rows(cam, path)
+    # K = (x_cam, -y_cam, -z_cam): x right, y down, z along the boresight
+    R_K_from_C = np.array([axes[0], -axes[1], -axes[2]])
+    R_K_from_C.setflags(write=False)
+    pos = _parse_vec(cam.get("pos", "0 0 0"))
+    pos.setflags(write=False)
+    return PinholeCamera(float(f), 0.5 * (width - 1), 0.5 * (height - 1), width, height, R_K_from_C, pos)
+
+
+def project_K(points_K_m: np.ndarray, camera: PinholeCamera, min_depth_m: float = 1e-3) -> np.ndarray:
+    """Pinhole projection of points in K, (..., 3) m -> (..., 2) px.
+
+    A point at or behind the camera (z_K < min_depth_m) is projected with z_K = min_depth_m: it lands far
+    outside the image on its own side of the principal point, never mirrored through it (a UKF sigma point
+    with a corner behind the camera must not look like a corner in front of it).
+    """
+    z = np.maximum(points_K_m[..., 2], min_depth_m)
+    return np.stack([camera.f_px * points_K_m[..., 0] / z + camera.cu_px,
+                     camera.f_px * points_K_m[..., 1] / z + camera.cv_px], axis=-1)

@@ -19,9 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
-from filtering.measurements import Camera, measure, predicted_visible
-from filtering.ukf import merwe_weights, predict, shadow_switch, state_residual, update
+from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
+from envisat_pose.filtering.measurements import Camera, measure, predicted_visible
+from envisat_pose.filtering.ukf import merwe_weights, predict, shadow_switch, state_residual, update
 
 
 @dataclass(frozen=True)

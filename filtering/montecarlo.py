@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 
 from envisat_pose.config import check
-from filtering.measurements import (Camera, add_noise, corner_cov, in_frame, limit_markers, measure, outage_mask,
+from envisat_pose.filtering.measurements import (Camera, add_noise, corner_cov, in_frame, limit_markers, measure, outage_mask,
                                     random_failures)
 
 

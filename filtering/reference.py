@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
-from filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, propagate
-from filtering.measurements import Camera, measure
-from filtering.ukf import shadow_switch, state_mean, state_residual
+from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, propagate
+from envisat_pose.filtering.measurements import Camera, measure
+from envisat_pose.filtering.ukf import shadow_switch, state_mean, state_residual
 
 
 def _fx(x: np.ndarray, dt: float, c0: np.ndarray, J_T: np.ndarray, mu_m3_s2: float, max_step_s: float) -> np.ndarray:

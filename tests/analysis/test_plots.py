@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from analysis.plots import estimate_errors, plot_estimate, plot_states
+from envisat_pose.analysis.plots import estimate_errors, plot_estimate, plot_states
 from envisat_pose.attitude import mrp_error_angle_rad
 
 

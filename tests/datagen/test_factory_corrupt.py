@@ -4,7 +4,7 @@ parameters are drawn from the sample's Generator only."""
 import numpy as np
 import pytest
 
-from datagen.corrupt import KINDS, apply_corruption, draw_corruption, motion_kernel
+from envisat_pose.datagen.corrupt import KINDS, apply_corruption, draw_corruption, motion_kernel
 
 
 def make_image():

@@ -15,13 +15,13 @@ import time
 import numpy as np
 import pytest
 
-from datagen.factory import GenerateConfig, config_from_json, run_generate, sample_random_view
-from datagen.shards import decode_png, read_manifest, read_shard
+from envisat_pose.datagen.factory import GenerateConfig, config_from_json, run_generate, sample_random_view
+from envisat_pose.datagen.shards import decode_png, read_manifest, read_shard
 from envisat_pose.attitude import mrp_to_dcm
-from envisat_pose.cli import main as envisat_main
+from envisat_pose.app.cli import main as envisat_main
 from envisat_pose.config import from_dict
 
-ENVISAT = [sys.executable, "-m", "envisat_pose.cli"]
+ENVISAT = [sys.executable, "-m", "envisat_pose.app.cli"]
 
 
 def small_cfg(**kw):
@@ -207,8 +207,8 @@ def test_other_config_in_out_dir_is_refused(reference, tmp_path, capsys):
 
 def test_label_replays_the_sample(reference):
     """A label's seed and corruption parameters reproduce its image from a fresh render."""
-    from datagen.corrupt import apply_corruption
-    from datagen.render import SceneRenderer
+    from envisat_pose.datagen.corrupt import apply_corruption
+    from envisat_pose.datagen.render import SceneRenderer
 
     out, manifest = reference
     cfg = config_from_json(json.dumps(manifest["config"]))
@@ -229,8 +229,8 @@ def test_label_replays_the_sample(reference):
 
 
 def test_sequence_mode_follows_the_truth(tmp_path):
-    from datagen.scenario import scenario_config
-    from datagen.truth import simulate
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.datagen.truth import simulate
 
     cfg = from_dict(GenerateConfig, {"mode": "sequence", "num_images": 4, "shard_size": 3, "resolution_px": 128,
                                      "seed": 2, "frame_dt_s": 5.0})

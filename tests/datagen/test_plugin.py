@@ -7,8 +7,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from datagen.scenario import scenario_config
-from datagen.sim import model_xml
+from envisat_pose.datagen.scenario import scenario_config
+from envisat_pose.datagen.sim import model_xml
 from envisat_pose.geometry import model_path
 
 
@@ -17,7 +17,7 @@ def test_plain_import_mujoco_finds_the_plugin(tmp_path):
         "import mujoco, sys\n"
         f"m = mujoco.MjModel.from_xml_path({model_path()!r})\n"
         "assert m.nplugin == 1 and m.body_plugin[m.body('target').id] == 0\n"
-        "assert 'datagen.sim' not in sys.modules  # only the entry point ran\n"
+        "assert 'envisat_pose.datagen.sim' not in sys.modules  # only the entry point ran\n"
         "print('ok')\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True)

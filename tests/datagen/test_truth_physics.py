@@ -12,8 +12,8 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
-from datagen.scenario import scenario_config
-from datagen.truth import simulate
+from envisat_pose.datagen.scenario import scenario_config
+from envisat_pose.datagen.truth import simulate
 
 MU = 3.986004418e14
 J_T = np.array([[17023.3, 397.1, -2171.4], [397.1, 124825.7, 344.2], [-2171.4, 344.2, 129112.2]])
@@ -204,9 +204,9 @@ def test_gravity_gradient_torque_vs_independent_integration():
 
 def test_corners_in_C_equal_mujoco_sites():
     """corners_C_m (rho + Gamma^T v_i) against MuJoCo's own site positions, rotated into C."""
-    from datagen.orbit import chaser_orbit
-    from datagen.sim import CORNER_SITES, TruthSim
-    from datagen.truth import corner_visibility, corners_in_chaser_frame
+    from envisat_pose.datagen.orbit import chaser_orbit
+    from envisat_pose.datagen.sim import CORNER_SITES, TruthSim
+    from envisat_pose.datagen.truth import corner_visibility, corners_in_chaser_frame
 
     cfg = scenario_config(duration_s=40.0, dt_s=4.0, seed=8)
     traj = simulate(cfg)

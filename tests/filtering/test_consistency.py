@@ -6,8 +6,8 @@ import pytest
 from scipy.stats import chi2
 
 from envisat_pose.attitude import mrp_error_angle_rad
-from filtering.estimator import FilterConfig, nees, run_filter
-from filtering.montecarlo import MeasurementConfig, make_run_inputs
+from envisat_pose.filtering.estimator import FilterConfig, nees, run_filter
+from envisat_pose.filtering.montecarlo import MeasurementConfig, make_run_inputs
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +64,7 @@ def test_three_markers_case(truth_600, chaser_of):
 def test_camera_measurements_with_per_corner_detector_covariance(truth_600, chaser_of, kind):
     """Pixels with a different 2x2 covariance per corner and step (as a detector reports): consistent NIS and
     converged errors; told an isotropic covariance of the same size instead, the attitude is worse."""
-    from filtering.measurements import add_noise, measure
+    from envisat_pose.filtering.measurements import add_noise, measure
 
     tr = truth_600
     cfg = FilterConfig()

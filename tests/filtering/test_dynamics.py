@@ -8,7 +8,7 @@ from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
 from envisat_pose.attitude import dcm_to_mrp, mrp_error_angle_rad, mrp_shadow
-from filtering.dynamics import load_inertia_T_kg_m2, propagate, rotation_rate, translation_rate
+from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2, propagate, rotation_rate, translation_rate
 
 MU = 3.986004418e14
 SHEET_J = np.array([[17023.3, 397.1, -2171.4], [397.1, 124825.7, 344.2], [-2171.4, 344.2, 129112.2]])

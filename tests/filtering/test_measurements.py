@@ -5,17 +5,17 @@ import math
 import numpy as np
 import pytest
 
-from filtering.measurements import (R_K_FROM_C, Camera, corners_C_m, in_frame, limit_markers, measure,
+from envisat_pose.filtering.measurements import (R_K_FROM_C, Camera, corners_C_m, in_frame, limit_markers, measure,
                                     outage_mask, predicted_visible, random_failures, swap_corners)
 
 
 @pytest.fixture(scope="module")
 def mujoco_state():
     """A MuJoCo truth state after 137 RK4 steps: the 12-state and the corner sites in C."""
-    from datagen.orbit import chaser_orbit
-    from datagen.scenario import scenario_config
-    from datagen.sim import TruthSim
-    from datagen.truth import initial_state
+    from envisat_pose.datagen.orbit import chaser_orbit
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.datagen.sim import TruthSim
+    from envisat_pose.datagen.truth import initial_state
 
     cfg = scenario_config("close_15m")
     sim = TruthSim(cfg)
@@ -40,8 +40,8 @@ def test_3d_corners_equal_mujoco_sites(mujoco_state):
 def test_camera_frame_and_focal_length_match_the_mjcf_camera():
     import mujoco
 
-    from datagen.scenario import scenario_config
-    from datagen.sim import build_model
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.datagen.sim import build_model
 
     model = build_model(scenario_config("default"))
     data = mujoco.MjData(model)
@@ -125,7 +125,7 @@ def test_batched_shapes():
 
 
 def test_detections_become_filter_input():
-    from filtering.measurements import from_detections
+    from envisat_pose.filtering.measurements import from_detections
 
     rng = np.random.default_rng(2)
     corners = rng.uniform(0, 1023, (5, 8, 2))

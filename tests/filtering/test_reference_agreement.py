@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from filtering.estimator import FilterConfig, run_filter
-from filtering.measurements import measure
-from filtering.montecarlo import MeasurementConfig, make_run_inputs
-from filtering.reference import make_reference_ukf, reference_predict, reference_update
+from envisat_pose.filtering.estimator import FilterConfig, run_filter
+from envisat_pose.filtering.measurements import measure
+from envisat_pose.filtering.montecarlo import MeasurementConfig, make_run_inputs
+from envisat_pose.filtering.reference import make_reference_ukf, reference_predict, reference_update
 
 
 @pytest.mark.parametrize("kind", ["markers3d", "pixels"])

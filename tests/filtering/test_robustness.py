@@ -6,9 +6,9 @@ import pytest
 from scipy.stats import chi2
 
 from envisat_pose.attitude import mrp_error_angle_rad
-from filtering.estimator import FilterConfig, nees, run_filter
-from filtering.measurements import swap_corners
-from filtering.montecarlo import MeasurementConfig, make_run_inputs
+from envisat_pose.filtering.estimator import FilterConfig, nees, run_filter
+from envisat_pose.filtering.measurements import swap_corners
+from envisat_pose.filtering.montecarlo import MeasurementConfig, make_run_inputs
 
 R_RUNS = 20
 OUTAGE = (300.0, 1500.0)  # 20 minutes without any corner (eclipse)
@@ -108,8 +108,8 @@ def test_adaptive_r_learns_a_wrong_noise_level(truth_600, chaser_of):
 
 def test_adaptive_q_absorbs_an_unmodelled_torque(chaser_of):
     """Truth with the gravity-gradient torque, filter torque-free with a tiny Q: adaptive Q keeps it consistent."""
-    from datagen.scenario import scenario_config
-    from datagen.truth import simulate
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.datagen.truth import simulate
 
     tr = simulate(scenario_config("gravity_gradient", duration_s=900.0, seed=2))
     inp = make_run_inputs(tr.x, tr.t_s, tr.visible, MeasurementConfig(), FilterConfig().P0, seed=8, n_runs=10)

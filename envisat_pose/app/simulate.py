@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from datagen.scenario import ScenarioConfig, scenario_dict
+from envisat_pose.datagen.scenario import ScenarioConfig, scenario_dict
 from envisat_pose.config import InputError, deep_update, from_dict, load_toml, set_dotted, to_dict, to_toml
 from envisat_pose.io import atomic_write_text, check_writable_output
 
@@ -50,14 +50,14 @@ def run_simulate(args: argparse.Namespace) -> int:
     cfg = resolve_config(args)
     out, cfg_path, png = output_paths(args.out)
     check_writable_output(out)
-    from datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate
 
     traj = simulate(cfg, progress=not args.quiet)
     traj.save(out)
     atomic_write_text(cfg_path, "# envisat simulate: the full validated config of this run\n" + to_toml(to_dict(cfg)))
     print(f"wrote {out} ({len(traj.t_s)} samples over {traj.t_s[-1]:.0f} s), config {cfg_path}")
     if args.plot:
-        from analysis.plots import plot_states
+        from envisat_pose.analysis.plots import plot_states
 
         plot_states(traj.t_s, traj.x, png, title=f"ENVISAT truth, scenario {args.scenario!r}, seed {cfg.seed}",
                     visible=traj.visible)

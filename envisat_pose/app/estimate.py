@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envisat_pose.config import ConfigError, InputError, check, from_dict, load_toml, set_dotted, to_dict, to_toml
-from filtering.estimator import FilterConfig
-from filtering.montecarlo import MeasurementConfig
+from envisat_pose.filtering.estimator import FilterConfig
+from envisat_pose.filtering.montecarlo import MeasurementConfig
 
 MAX_OUTPUT_BYTES = 8 * 2**30  # P alone is R * T * 144 * 8 bytes
 
@@ -97,14 +97,14 @@ def resolve_config(args: argparse.Namespace) -> EstimateConfig:
 
 def load_truth(args: argparse.Namespace, cfg: EstimateConfig):
     """The truth trajectory: read from --truth, or simulated by MuJoCo for --scenario. Returns (truth, source)."""
-    from datagen.truth import TruthTrajectory
+    from envisat_pose.datagen.truth import TruthTrajectory
 
     if args.truth:
         if args.duration_s is not None:
             raise InputError("--duration-s applies to --scenario only; the truth file fixes the duration")
         return TruthTrajectory.load(args.truth), {"truth_file": args.truth}
-    from datagen.scenario import scenario_config, scenario_dict
-    from datagen.truth import simulate
+    from envisat_pose.datagen.scenario import scenario_config, scenario_dict
+    from envisat_pose.datagen.truth import simulate
 
     overrides: dict = {"seed": cfg.seed}
     if args.duration_s is not None:
@@ -128,8 +128,8 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     Arrays: t_s (T,), x_true (R, T, 12), x_hat (R, T, 12), P (R, T, 12, 12), n_meas (R, T), nis (R, T),
     diverged (R,) (NIS window or NEES window against the truth).
     """
-    from filtering.estimator import chaser_states, nees_divergence, run_filter
-    from filtering.montecarlo import filter_stride, make_run_inputs
+    from envisat_pose.filtering.estimator import chaser_states, nees_divergence, run_filter
+    from envisat_pose.filtering.montecarlo import filter_stride, make_run_inputs
 
     try:
         stride = filter_stride(truth.t_s, cfg.measurement.rate_hz)
@@ -163,7 +163,7 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
 def summary(arrays: dict) -> str:
     """Errors over the second half of the run: RMS position (cm) and attitude angle (deg), ANEES."""
     from envisat_pose.attitude import mrp_error_angle_rad
-    from filtering.estimator import nees
+    from envisat_pose.filtering.estimator import nees
 
     T = arrays["t_s"].shape[0]
     late = slice(T // 2, None)
@@ -196,7 +196,7 @@ def run_estimate(args: argparse.Namespace) -> int:
     print(f"wrote {out} ({cfg.runs} runs x {len(arrays['t_s'])} steps), config {cfg_path}")
     print(summary(arrays))
     if args.plot:
-        from analysis.plots import plot_estimate
+        from envisat_pose.analysis.plots import plot_estimate
 
         png = out[:-4] + ".png"
         plot_estimate(arrays["t_s"], arrays["x_true"], arrays["x_hat"], arrays["P"], png,

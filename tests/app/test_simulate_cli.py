@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from envisat_pose.cli import main
+from envisat_pose.app.cli import main
 
 CONTRACT_KEYS = {"t_s", "x", "chaser_r_m", "chaser_rdot_m_s", "chaser_theta_rad", "chaser_thetadot_rad_s",
                  "corners_C_m", "visible", "config_json"}
@@ -62,7 +62,7 @@ def test_bad_config_gets_a_clear_message_and_writes_nothing(tmp_path, text, fiel
     cfg = tmp_path / "bad.toml"
     cfg.write_text(text)
     out = tmp_path / "run.npz"
-    proc = subprocess.run([sys.executable, "-m", "envisat_pose.cli", "simulate", "--config", str(cfg), "--out", str(out)],
+    proc = subprocess.run([sys.executable, "-m", "envisat_pose.app.cli", "simulate", "--config", str(cfg), "--out", str(out)],
                           capture_output=True, text=True)
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr

@@ -14,7 +14,7 @@ import sys
 from envisat_pose.config import ConfigError, InputError
 
 # Modules that define register(subparsers); a package whose cli module is absent simply adds no verbs.
-_VERB_MODULES = ("datagen.cli", "datagen.cli_factory", "filtering.cli", "perception.cli", "analysis.cli")
+_VERB_MODULES = ("envisat_pose.app.simulate", "envisat_pose.app.generate", "envisat_pose.app.estimate")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from envisat_pose.cli import main
+from envisat_pose.app.cli import main
 
 KEYS = {"t_s", "x_true", "x_hat", "P", "n_meas", "nis", "diverged", "config_json"}
 
@@ -42,8 +42,8 @@ def test_scenario_run_writes_the_contract_and_is_deterministic(tmp_path, capsys)
 
 
 def test_truth_file_and_rate(tmp_path):
-    from datagen.scenario import scenario_config
-    from datagen.truth import simulate
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.datagen.truth import simulate
 
     tr = simulate(scenario_config("default", duration_s=200.0, seed=3))
     tr.save(str(tmp_path / "run.npz"))

@@ -46,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def resolve_config(args: argparse.Namespace):
     """Defaults, then the TOML file, then the flags; validated before any work."""
-    from datagen.factory import GenerateConfig
+    from envisat_pose.datagen.factory import GenerateConfig
 
     data = load_toml(args.config) if args.config else {}
     flags = {"mode": args.mode, "num_images": args.num_images, "shard_size": args.shard_size,
@@ -58,7 +58,7 @@ def resolve_config(args: argparse.Namespace):
 
 
 def run_generate_cli(args: argparse.Namespace) -> int:
-    from datagen.factory import run_generate
+    from envisat_pose.datagen.factory import run_generate
 
     if args.workers < 1:
         raise InputError(f"--workers {args.workers}: expected at least 1")
@@ -73,7 +73,7 @@ def run_generate_cli(args: argparse.Namespace) -> int:
 
 
 def run_verify_cli(args: argparse.Namespace) -> int:
-    from datagen.dataset import verify_dataset
+    from envisat_pose.datagen.dataset import verify_dataset
 
     problems = verify_dataset(args.dir)
     for line in problems:
@@ -86,7 +86,7 @@ def run_verify_cli(args: argparse.Namespace) -> int:
 
 
 def run_inspect_cli(args: argparse.Namespace) -> int:
-    from datagen.dataset import dataset_stats, montage
+    from envisat_pose.datagen.dataset import dataset_stats, montage
 
     stats = dataset_stats(args.dir)
     print(json.dumps(stats, indent=1))

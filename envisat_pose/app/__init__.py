@@ -1,0 +1,1 @@
+"""The app layer: the `envisat` verbs and every pipeline that combines stages (design.md, Layers)."""

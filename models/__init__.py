@@ -1,0 +1,1 @@
+"""The ENVISAT MJCF model, shipped as package data (read it with envisat_pose.geometry.model_path)."""
