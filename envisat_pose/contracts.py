@@ -1,0 +1,235 @@
+"""The contracts between stages (design.md, Contracts): dataclasses of numpy arrays, saved as .npz.
+
+Stages exchange only these. `save` writes atomically and byte-reproducibly (envisat_pose.io.save_npz) after
+checking the arrays; `load` checks keys, shapes, dtypes and finiteness, so a truncated, foreign or malformed
+file is one InputError line naming the file and what is wrong, never a traceback. No pickle is ever read.
+
+Shapes use symbolic sizes: N samples of a truth, F detection frames, R Monte Carlo runs, T filter steps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import zipfile
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from envisat_pose.config import InputError
+from envisat_pose.io import save_npz
+
+# (kind, shape, rule): kind 'f' float64, 'b' bool, 'i' int64; shape of ints (fixed) and names (shared sizes);
+# rule 'finite' (every value finite), 'finite_where_visible' (finite where the `visible` mask is true), None.
+_Spec = tuple[str, tuple, str | None]
+
+
+class ContractError(InputError):
+    """A file that does not hold the contract it should: the message names the file and the problem."""
+
+
+def _check_array(path: str, name: str, a: np.ndarray, spec: _Spec, sizes: dict) -> np.ndarray:
+    kind, shape, rule = spec
+    if kind == "f" and a.dtype.kind not in "fiu" or kind == "b" and a.dtype.kind != "b" \
+            or kind == "i" and a.dtype.kind not in "iu":
+        want = {"f": "floating-point", "b": "boolean", "i": "integer"}[kind]
+        raise ContractError(f"{path}: '{name}' has dtype {a.dtype}, expected {want}")
+    if a.ndim != len(shape):
+        raise ContractError(f"{path}: '{name}' has shape {a.shape}, expected {len(shape)} dimensions "
+                            f"({', '.join(str(s) for s in shape)})")
+    for axis, (dim, want) in enumerate(zip(a.shape, shape)):
+        if isinstance(want, str):
+            have = sizes.setdefault(want, dim)
+            if have != dim:
+                raise ContractError(f"{path}: '{name}' has shape {a.shape}: axis {axis} is {dim}, but {want} = {have} "
+                                    "in the arrays before it")
+        elif dim != want:
+            raise ContractError(f"{path}: '{name}' has shape {a.shape}, expected size {want} on axis {axis}")
+    out = {"f": np.float64, "b": np.bool_, "i": np.int64}[kind]
+    return np.asarray(a, dtype=out)
+
+
+def _check_finite(path: str, name: str, a: np.ndarray, rule: str | None, arrays: dict) -> None:
+    if rule is None:
+        return
+    if rule == "finite":
+        ok = np.isfinite(a)
+    else:  # finite where the corner is visible
+        vis = arrays["visible"]
+        ok = np.isfinite(a) | ~vis.reshape(vis.shape + (1,) * (a.ndim - vis.ndim))
+    if not ok.all():
+        first = tuple(int(i) for i in np.argwhere(~ok)[0])
+        raise ContractError(f"{path}: '{name}' holds non-finite values (first at index {first})")
+
+
+class _Contract:
+    """Shared save/load of the contract dataclasses below (each defines SPEC and KIND)."""
+
+    SPEC: ClassVar[dict[str, _Spec]]
+    KIND: ClassVar[str]
+
+    def arrays(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+    @classmethod
+    def validated(cls, data: dict, path: str = "<memory>"):
+        """Check and convert plain arrays (dtype, shape, finiteness) into the contract; ContractError if not."""
+        missing = [k for k in cls.SPEC if k not in data] + (["config_json"] if "config_json" not in data else [])
+        if missing:
+            raise ContractError(f"{path}: not a {cls.KIND} file: missing {', '.join(repr(m) for m in missing)}")
+        sizes: dict = {}
+        arrays = {}
+        for name, spec in cls.SPEC.items():
+            arrays[name] = _check_array(path, name, np.asarray(data[name]), spec, sizes)
+        for name, spec in cls.SPEC.items():
+            _check_finite(path, name, arrays[name], spec[2], arrays)
+        text = data["config_json"]
+        text = str(text.item() if isinstance(text, np.ndarray) else text)
+        try:
+            if not isinstance(json.loads(text), dict):
+                raise ValueError("not a JSON object")
+        except ValueError as err:
+            raise ContractError(f"{path}: 'config_json' is not a JSON object ({err})") from None
+        arrays["config_json"] = text
+        obj = cls(**arrays)
+        obj.check(path)
+        return obj
+
+    def check(self, path: str) -> None:
+        """Rules across arrays beyond shapes (overridden where a contract has them)."""
+
+    def save(self, path: str) -> None:
+        """Check the arrays, then write an .npz atomically; the same contents give the same bytes."""
+        type(self).validated(self.arrays(), path)
+        save_npz(path, {**self.arrays(), "config_json": np.array(self.config_json)})
+
+    @classmethod
+    def load(cls, path: str):
+        """Read and check a file; ContractError (one line, naming the file) when it is not this contract."""
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+        except FileNotFoundError:
+            raise ContractError(f"{path}: no such file") from None
+        except IsADirectoryError:
+            raise ContractError(f"{path}: is a folder, expected a {cls.KIND} .npz file") from None
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as err:
+            # truncated zips, foreign formats, object arrays (refused: no pickles) all end here
+            raise ContractError(f"{path}: cannot be read as a {cls.KIND} .npz file ({type(err).__name__}: {err})") from None
+        return cls.validated(data, path)
+
+    @property
+    def config(self) -> dict:
+        """config_json parsed."""
+        return json.loads(self.config_json)
+
+
+@dataclass
+class TruthTrajectory(_Contract):
+    """A simulated truth (`envisat simulate --out run.npz`), N samples.
+
+    t_s: (N,) s, increasing. x: (N, 12) = (rho_C_m, rhodot_C_m_s, p_mrp with |p| <= 1, w_r_T_rad_s), the paper's
+    state (reference sheet, section 3). chaser_r_m, chaser_rdot_m_s, chaser_theta_rad, chaser_thetadot_rad_s:
+    (N,) the chaser's polar orbit (m, m/s, rad, rad/s).
+    corners_C_m: (N, 8, 3) corners A-H relative to the chaser, in C, m: MuJoCo's corner sites.
+    visible: (N, 8) bool, the exact face test of the box from the chaser.
+    corners_px: (N, 8, 2) MuJoCo's corner sites projected through MuJoCo's chaser camera, px (OpenCV
+    convention: pixel centres at integer coordinates); in_frame: (N, 8) bool, in front of the camera and
+    inside the image.
+    config_json: the full validated scenario config as JSON.
+    """
+
+    t_s: np.ndarray
+    x: np.ndarray
+    chaser_r_m: np.ndarray
+    chaser_rdot_m_s: np.ndarray
+    chaser_theta_rad: np.ndarray
+    chaser_thetadot_rad_s: np.ndarray
+    corners_C_m: np.ndarray
+    visible: np.ndarray
+    corners_px: np.ndarray
+    in_frame: np.ndarray
+    config_json: str
+
+    KIND: ClassVar[str] = "truth trajectory"
+    SPEC: ClassVar[dict[str, _Spec]] = {
+        "t_s": ("f", ("N",), "finite"),
+        "x": ("f", ("N", 12), "finite"),
+        "chaser_r_m": ("f", ("N",), "finite"),
+        "chaser_rdot_m_s": ("f", ("N",), "finite"),
+        "chaser_theta_rad": ("f", ("N",), "finite"),
+        "chaser_thetadot_rad_s": ("f", ("N",), "finite"),
+        "corners_C_m": ("f", ("N", 8, 3), "finite"),
+        "visible": ("b", ("N", 8), None),
+        "corners_px": ("f", ("N", 8, 2), "finite"),
+        "in_frame": ("b", ("N", 8), None),
+    }
+
+    def check(self, path: str) -> None:
+        if len(self.t_s) < 1:
+            raise ContractError(f"{path}: the truth trajectory has no samples")
+        if len(self.t_s) > 1 and not np.all(np.diff(self.t_s) > 0):
+            raise ContractError(f"{path}: 't_s' is not strictly increasing")
+
+
+@dataclass
+class Detections(_Contract):
+    """What perception hands the filter, F frames (design.md, Detections).
+
+    t_s: (F,) frame times, s. corners_px: (F, 8, 2) corners A-H in the full image, px (OpenCV convention).
+    cov_px: (F, 8, 2, 2) calibrated pixel covariance, px^2 (the filter's R). confidence: (F, 8) in [0, 1].
+    visible: (F, 8) bool, the corner was found. Positions and covariances must be finite where visible.
+    config_json: what produced them, as JSON.
+    """
+
+    t_s: np.ndarray
+    corners_px: np.ndarray
+    cov_px: np.ndarray
+    confidence: np.ndarray
+    visible: np.ndarray
+    config_json: str
+
+    KIND: ClassVar[str] = "detections"
+    SPEC: ClassVar[dict[str, _Spec]] = {
+        "visible": ("b", ("F", 8), None),
+        "t_s": ("f", ("F",), "finite"),
+        "corners_px": ("f", ("F", 8, 2), "finite_where_visible"),
+        "cov_px": ("f", ("F", 8, 2, 2), "finite_where_visible"),
+        "confidence": ("f", ("F", 8), "finite"),
+    }
+
+    def check(self, path: str) -> None:
+        if np.any((self.confidence < 0) | (self.confidence > 1)):
+            raise ContractError(f"{path}: 'confidence' has values outside [0, 1]")
+
+
+@dataclass
+class Estimates(_Contract):
+    """What the filter hands analysis (`envisat estimate --out est.npz`), R runs over T steps.
+
+    t_s: (T,) s. x_true: (R, T, 12) the truth on the filter's grid; x_hat: (R, T, 12) posterior means; P:
+    (R, T, 12, 12) posterior covariances (units of the state, squared). n_meas: (R, T) corners used per step.
+    nis: (R, T) normalized innovation squared (0 without measurement). diverged: (R,) bool.
+    config_json: the estimate config, the truth's source and config, as JSON.
+    """
+
+    t_s: np.ndarray
+    x_true: np.ndarray
+    x_hat: np.ndarray
+    P: np.ndarray
+    n_meas: np.ndarray
+    nis: np.ndarray
+    diverged: np.ndarray
+    config_json: str
+
+    KIND: ClassVar[str] = "estimates"
+    SPEC: ClassVar[dict[str, _Spec]] = {
+        "t_s": ("f", ("T",), "finite"),
+        "x_true": ("f", ("R", "T", 12), "finite"),
+        "x_hat": ("f", ("R", "T", 12), "finite"),
+        "P": ("f", ("R", "T", 12, 12), "finite"),
+        "n_meas": ("i", ("R", "T"), None),
+        "nis": ("f", ("R", "T"), "finite"),
+        "diverged": ("b", ("R",), None),
+    }
