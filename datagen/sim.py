@@ -20,6 +20,7 @@ from envisat_pose.attitude import dcm_to_mrp, mrp_to_dcm, quat_to_rotmat, rotmat
 from envisat_pose.geometry import model_path
 
 CORNER_SITES = tuple(f"corner_{c}" for c in "ABCDEFGH")
+CAMERA_NAME = "chaser_cam"
 
 
 def plugin_attributes(cfg: ScenarioConfig) -> dict[str, str]:
@@ -63,6 +64,7 @@ class TruthSim:
         self.qvel_adr = self.model.joint("target_free").dofadr[0]
         self.mocap_id = self.model.body("chaser").mocapid[0]
         self.corner_site_ids = np.array([self.model.site(n).id for n in CORNER_SITES])
+        self.cam_id = self.model.camera(CAMERA_NAME).id
 
     def set_state(self, x: np.ndarray, t_s: float) -> None:
         """Put the target at the relative 12-state x at time t_s and turn the chaser to LVLH."""
@@ -103,6 +105,33 @@ class TruthSim:
         p = dcm_to_mrp(G)
         w_r_T = d.qvel[v + 3 : v + 6] - G @ w_c_C
         return np.concatenate([rho_C, rhodot_C, p, w_r_T])
+
+    def corner_observation(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What the chaser sees of corners A-H now, from MuJoCo's own sites and camera (sync_chaser first).
+
+        Returns corners_C_m (8, 3) relative to the chaser in C; corners_px (8, 2) through camera chaser_cam
+        (intrinsics from MuJoCo's compiled fovy and resolution, OpenCV pixel convention); in_frame (8,) bool,
+        in front of the camera and inside the image; c_T_m (3,) the chaser's position in T.
+        """
+        m, d = self.model, self.data
+        R_N_C = d.mocap_quat[self.mocap_id]
+        R_N_C = quat_to_rotmat(R_N_C)
+        chaser_W = d.mocap_pos[self.mocap_id]
+        sites_W = d.site_xpos[self.corner_site_ids]
+        corners_C = (sites_W - chaser_W) @ R_N_C
+        # MuJoCo's camera frame: x right, y up, looking along -z; K = (x, -y, -z)
+        R_W_cam = d.cam_xmat[self.cam_id].reshape(3, 3)
+        p_K = (sites_W - d.cam_xpos[self.cam_id]) @ R_W_cam * np.array([1.0, -1.0, -1.0])
+        width, height = (int(v) for v in m.cam_resolution[self.cam_id])
+        f_px = 0.5 * height / np.tan(np.radians(m.cam_fovy[self.cam_id]) / 2.0)
+        z = p_K[:, 2]
+        safe_z = np.where(z > 0, z, 1.0)
+        uv = f_px * p_K[:, :2] / safe_z[:, None] + 0.5 * (np.array([width, height]) - 1.0)
+        in_frame = (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] < width - 0.5) & (uv[:, 1] >= -0.5) \
+            & (uv[:, 1] < height - 0.5)
+        R_W_T = d.xmat[self.target_id].reshape(3, 3)
+        c_T = (chaser_W - d.xpos[self.target_id]) @ R_W_T
+        return corners_C, uv, in_frame, c_T
 
     def step(self, nstep: int) -> None:
         """Advance nstep RK4 steps (mj_step: mj_step1/2 would fall back to Euler)."""

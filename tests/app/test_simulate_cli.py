@@ -11,7 +11,7 @@ import pytest
 from envisat_pose.app.cli import main
 
 CONTRACT_KEYS = {"t_s", "x", "chaser_r_m", "chaser_rdot_m_s", "chaser_theta_rad", "chaser_thetadot_rad_s",
-                 "corners_C_m", "visible", "config_json"}
+                 "corners_C_m", "visible", "corners_px", "in_frame", "config_json"}
 
 
 def sha256(path):
@@ -26,8 +26,12 @@ def test_contract_and_plot(tmp_path):
         assert z["t_s"].shape == (31,) and z["x"].shape == (31, 12)
         assert z["corners_C_m"].shape == (31, 8, 3) and z["visible"].dtype == bool
         assert '"seed": 4' in str(z["config_json"])
-        # corners in C are rho + Gamma^T v: their mean is rho (the box is centred on the CoM)
-        np.testing.assert_allclose(z["corners_C_m"].mean(axis=1), z["x"][:, 0:3], atol=1e-12)
+        # corner A relative to the CoM is R_C_from_T v_A, the rotation taken independently from scipy's MRP
+        from scipy.spatial.transform import Rotation
+
+        v_A = np.array([5.0, 1.375, 1.0375])  # reference sheet, section 5
+        arm = z["corners_C_m"][:, 0] - z["x"][:, 0:3]
+        np.testing.assert_allclose(arm, Rotation.from_mrp(z["x"][:, 6:9]).apply(v_A), atol=1e-9)
     assert (tmp_path / "run.png").stat().st_size > 10_000
     assert "seed = 4" in (tmp_path / "run.config.toml").read_text()
 
