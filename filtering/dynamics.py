@@ -4,8 +4,10 @@ Independent of the MuJoCo truth (design.md): the reference sheet's corrected equ
 section 4), integrated with RK4 at the filter step and batched over any leading dimensions (runs x sigma points).
 
 State (the paper's order, section 3): x = (rho_C_m, rhodot_C_m_s, p_mrp, w_r_T_rad_s), shape (..., 12).
-Translation (x[..., 0:6]) and rotation (x[..., 6:12]) are two decoupled 6-state blocks: each derivative depends
-only on its own block and on the chaser's orbit.
+Torque-free, translation (x[..., 0:6]) and rotation (x[..., 6:12]) are two decoupled 6-state blocks: each
+derivative depends only on its own block and on the chaser's orbit. With the gravity-gradient torque (optional,
+as in the truth's MuJoCo plugin) the rotation also depends on rho, and `propagate` takes one RK4 step of the
+full 12-state.
 
 The chaser's orbit is known to the filter: at the start of every filter step it is taken from the truth's
 `chaser_*` arrays (the chaser knows its own orbit from navigation), then propagated through the RK4 stages with
@@ -75,11 +77,26 @@ def translation_rate(x_tr: np.ndarray, c: np.ndarray, mu_m3_s2: float = MU_EARTH
     return np.concatenate([x_tr[..., 3:6], np.stack([xdd, ydd, zdd], axis=-1)], axis=-1)
 
 
-def rotation_rate(x_rot: np.ndarray, c: np.ndarray, J_T: np.ndarray) -> np.ndarray:
-    """MRP kinematics and torque-free relative attitude dynamics. x_rot = (p_mrp, w_r_T_rad_s), (..., 6).
+def gravity_gradient_torque_T(rho_C_m: np.ndarray, p_mrp: np.ndarray, c: np.ndarray, J_T: np.ndarray,
+                              mu_m3_s2: float = MU_EARTH_M3_S2) -> np.ndarray:
+    """Gravity-gradient torque on the target about its CoM, in T, N m: tau = 3 mu / |R|^5 (R x J R).
 
-    w_r' = J^-1 (-w_t x J w_t) + w_r x Gamma w_c - Gamma w_c',  w_t = w_r + Gamma w_c,
-    with w_c = (0, 0, theta') and w_c' = (0, 0, theta'') in C. J_T: (3, 3) kg m^2. Returns (p', w_r'), (..., 6).
+    R is the target's CoM from the Earth's centre, R_T = Gamma (r e_x + rho_C) (C is LVLH, x radial out), as the
+    truth's MuJoCo plugin applies it. rho_C_m (..., 3) m; p_mrp (..., 3); c chaser state (..., 4) (r_m first);
+    J_T (3, 3) kg m^2. Returns (..., 3).
+    """
+    R_C = rho_C_m + c[..., 0, None] * np.array([1.0, 0.0, 0.0])
+    R_T = np.einsum("...ij,...j->...i", mrp_to_dcm(p_mrp), R_C)
+    R2 = np.einsum("...i,...i->...", R_T, R_T)
+    return (3.0 * mu_m3_s2 / (R2 * R2 * np.sqrt(R2)))[..., None] * np.cross(R_T, R_T @ J_T.T)
+
+
+def rotation_rate(x_rot: np.ndarray, c: np.ndarray, J_T: np.ndarray, tau_T: np.ndarray | None = None) -> np.ndarray:
+    """MRP kinematics and relative attitude dynamics. x_rot = (p_mrp, w_r_T_rad_s), (..., 6).
+
+    w_r' = J^-1 (tau - w_t x J w_t) + w_r x Gamma w_c - Gamma w_c',  w_t = w_r + Gamma w_c,
+    with w_c = (0, 0, theta') and w_c' = (0, 0, theta'') in C. J_T: (3, 3) kg m^2. tau_T: external torque in T,
+    N m, (..., 3) (None: torque-free). Returns (p', w_r'), (..., 6).
     """
     p, w_r = x_rot[..., 0:3], x_rot[..., 3:6]
     G = mrp_to_dcm(p)
@@ -89,9 +106,21 @@ def rotation_rate(x_rot: np.ndarray, c: np.ndarray, J_T: np.ndarray) -> np.ndarr
     Gw_cdot = G[..., :, 2] * chaser_thetaddot(c)[..., None]
     w_t = w_r + Gw_c
     Jw_t = w_t @ J_T.T
-    w_r_dot = -np.cross(w_t, Jw_t) @ np.linalg.inv(J_T).T  # J^-1 (-w_t x J w_t), torque-free
+    if tau_T is None:
+        w_r_dot = -np.cross(w_t, Jw_t) @ np.linalg.inv(J_T).T  # J^-1 (-w_t x J w_t), torque-free
+    else:
+        w_r_dot = (tau_T - np.cross(w_t, Jw_t)) @ np.linalg.inv(J_T).T  # J^-1 (tau - w_t x J w_t)
     w_r_dot = w_r_dot + np.cross(w_r, Gw_c) - Gw_cdot
     return np.concatenate([mrp_rate(p, w_r), w_r_dot], axis=-1)
+
+
+def state_rate(x: np.ndarray, c: np.ndarray, J_T: np.ndarray, mu_m3_s2: float = MU_EARTH_M3_S2,
+               gravity_gradient: bool = False) -> np.ndarray:
+    """Derivative of the full 12-state, (..., 12) -> (..., 12); with gravity_gradient the rotation feels the
+    gravity-gradient torque at the target's position rho (gravity_gradient_torque_T)."""
+    tau_T = gravity_gradient_torque_T(x[..., 0:3], x[..., 6:9], c, J_T, mu_m3_s2) if gravity_gradient else None
+    return np.concatenate([translation_rate(x[..., 0:6], c, mu_m3_s2),
+                           rotation_rate(x[..., 6:12], c, J_T, tau_T)], axis=-1)
 
 
 def chaser_stages(c0: np.ndarray, dt_s: float, mu_m3_s2: float = MU_EARTH_M3_S2):
@@ -118,10 +147,13 @@ def _rk4_block(f, y0: np.ndarray, stages, dt_s: float) -> np.ndarray:
 
 
 def propagate(x: np.ndarray, c0: np.ndarray, dt_s: float, J_T: np.ndarray | None = None,
-              mu_m3_s2: float = MU_EARTH_M3_S2, max_step_s: float = 1.0) -> np.ndarray:
+              mu_m3_s2: float = MU_EARTH_M3_S2, max_step_s: float = 1.0, gravity_gradient: bool = False
+              ) -> np.ndarray:
     """Propagate the 12-state over dt_s with RK4 (sub-steps no longer than max_step_s). No shadow switch.
 
     x: (..., 12). c0: chaser state at the start, (4,) or broadcastable to x[..., :4]. Returns (..., 12).
+    Torque-free, the two 6-state blocks are integrated apart; with gravity_gradient (the torque couples them)
+    each sub-step is one RK4 step of the full 12-state.
     The MRP switches to |p| <= 1 between sub-steps only; at the end it is left on the set it was propagated in
     and the caller switches (the UKF does it on the mean, after aligning the sigma points).
     """
@@ -133,8 +165,13 @@ def propagate(x: np.ndarray, c0: np.ndarray, dt_s: float, J_T: np.ndarray | None
     for i in range(n_sub):
         c1, c2, c3, c4, c_end = chaser_stages(c, h, mu_m3_s2)
         st = (c1, c2, c3, c4)
-        x_tr = _rk4_block(lambda y, cc: translation_rate(y, cc, mu_m3_s2), x_tr, st, h)
-        x_rot = _rk4_block(lambda y, cc: rotation_rate(y, cc, J_T), x_rot, st, h)
+        if gravity_gradient:
+            x_full = _rk4_block(lambda y, cc: state_rate(y, cc, J_T, mu_m3_s2, True),
+                                np.concatenate([x_tr, x_rot], axis=-1), st, h)
+            x_tr, x_rot = x_full[..., 0:6], x_full[..., 6:12]
+        else:
+            x_tr = _rk4_block(lambda y, cc: translation_rate(y, cc, mu_m3_s2), x_tr, st, h)
+            x_rot = _rk4_block(lambda y, cc: rotation_rate(y, cc, J_T), x_rot, st, h)
         if i < n_sub - 1:  # a long step may turn through 360 deg, where p -> infinity: switch between sub-steps
             x_rot = np.concatenate([mrp_shadow(x_rot[..., 0:3]), x_rot[..., 3:6]], axis=-1)
         c = c_end

@@ -186,16 +186,17 @@ def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray
 
 def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: np.ndarray, w: SigmaWeights,
             J_T: np.ndarray | None = None, mu_m3_s2: float = MU_EARTH_M3_S2,
-            max_step_s: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+            max_step_s: float = 1.0, gravity_gradient: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """UKF time update of the 12-state over dt_s with the filter's RK4 model and the MRP hooks.
 
     mean (..., 12), cov (..., 12, 12), c0 chaser state (r_m, rdot_m_s, theta_rad, thetadot_rad_s) at the start,
-    (4,) or (..., 4); Q (12, 12) or (..., 12, 12) process noise of the step. Returns the prior (mean, cov).
+    (4,) or (..., 4); Q (12, 12) or (..., 12, 12) process noise of the step; mu_m3_s2 the Earth's gravitational
+    parameter; gravity_gradient: the model applies the gravity-gradient torque. Returns the prior (mean, cov).
     """
     J_T = load_inertia_T_kg_m2() if J_T is None else J_T
     c = np.asarray(c0, dtype=float)
     c = c[..., None, :] if c.ndim > 1 else c
-    fx = lambda sig: propagate(sig, c, dt_s, J_T, mu_m3_s2, max_step_s)  # noqa: E731
+    fx = lambda sig: propagate(sig, c, dt_s, J_T, mu_m3_s2, max_step_s, gravity_gradient)  # noqa: E731
     return ut_predict(mean, cov, fx, Q, w, state_mean, state_residual)
 
 
