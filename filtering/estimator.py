@@ -1,7 +1,11 @@
 """Running the batched UKF over a measurement history for R runs at once, with the robustness a mission needs.
 
-Per step k (t_s[k]): predict from t_(k-1) (skipped at k = 0, where the initial estimate lives), then update
-with the corners measured at t_k. Around the pure steps of filtering/ukf.py this adds, per run:
+The filter is steppable: `init_state` makes a FilterState (everything R runs carry between steps), and the pure
+`filter_step(state, measurement, setup)` predicts from the state's time to the measurement's (no prediction when
+they are equal, as for the first frame at the initial estimate's time), then updates with its corners, and
+returns a new state; `run_filter` is the loop of filter_step over a measurement history. FilterSetup holds the
+model: measurement kind, camera, inertia, mu and the gravity-gradient switch (take the truth's). Around the pure
+steps of filtering/ukf.py a step adds, per run:
 - chi-square gating of each corner (rejects a mis-associated corner);
 - adaptive measurement noise: the detector's per-corner covariance comes in with the data, and an
   innovation-based scale r_scale (covariance matching: E[y y^T] = H P H^T + R) multiplies it;
@@ -20,8 +24,9 @@ import numpy as np
 from scipy.stats import chi2
 
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
-from envisat_pose.filtering.measurements import Camera, measure, predicted_visible
-from envisat_pose.filtering.ukf import merwe_weights, predict, shadow_switch, state_residual, update
+from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
+from envisat_pose.filtering.ukf import SigmaWeights, merwe_weights, predict, shadow_switch, state_residual, update
+from envisat_pose.geometry import PinholeCamera, load_camera
 
 
 @dataclass(frozen=True)
@@ -118,110 +123,224 @@ class FilterResult:
     r_scale: np.ndarray
 
 
+@dataclass(frozen=True)
+class FilterSetup:
+    """What stays fixed over a filter run: the settings and the filter's model.
+
+    cfg: the UKF settings. kind: measurement kind (filtering.measurements.KINDS). camera: the chaser camera
+    (pixel kinds). J_T: (3, 3) target inertia in T, kg m^2. mu_m3_s2: the Earth's gravitational parameter, m^3/s^2
+    (take the truth's). gravity_gradient: the model applies the gravity-gradient torque (as the truth may).
+    weights: the sigma-point weights of cfg. gate_threshold: chi-square bound per corner (None: no gate).
+    """
+
+    cfg: FilterConfig
+    kind: str
+    camera: PinholeCamera
+    J_T: np.ndarray
+    mu_m3_s2: float
+    gravity_gradient: bool
+    weights: SigmaWeights
+    gate_threshold: float | None
+
+    def hx(self, x: np.ndarray) -> np.ndarray:
+        """The measurement model of all 8 corners, (..., 12) -> (..., 8, m)."""
+        return measure(x, self.kind, self.camera)
+
+
+def make_setup(cfg: FilterConfig, kind: str, camera: PinholeCamera | None = None, J_T: np.ndarray | None = None,
+               mu_m3_s2: float = MU_EARTH_M3_S2, gravity_gradient: bool = False) -> FilterSetup:
+    """A FilterSetup with the project's defaults: the MJCF's camera and inertia."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown measurement kind {kind!r}; expected one of {KINDS}")
+    gate = chi2.ppf(cfg.gate_prob, dim_per_corner(kind)) if cfg.gate_prob > 0 else None
+    return FilterSetup(cfg, kind, camera or load_camera(), load_inertia_T_kg_m2() if J_T is None else J_T,
+                       float(mu_m3_s2), bool(gravity_gradient), merwe_weights(12, cfg.alpha, cfg.beta, cfg.kappa),
+                       gate)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """The corners measured at one time for R runs.
+
+    t_s: time, s. chaser: (4,) the chaser's polar orbit at t_s (r_m, rdot_m_s, theta_rad, thetadot_rad_s).
+    z: (R, 8, m) measurements; mask: (R, 8) bool measured corners (a non-finite z counts as not measured);
+    R_c: per-corner noise covariance, broadcastable to (R, 8, m, m).
+    """
+
+    t_s: float
+    chaser: np.ndarray
+    z: np.ndarray
+    mask: np.ndarray
+    R_c: np.ndarray
+
+
+@dataclass(frozen=True)
+class FilterState:
+    """Everything R runs carry from one filter step to the next (never mutated: filter_step returns a new one).
+
+    t_s: time of the estimate, s; chaser: (4,) the chaser's orbit at t_s; k: steps taken so far.
+    mean (R, 12), cov (R, 12, 12): the posterior at t_s. r_scale (R,): adaptive measurement-noise scale.
+    Q_adapt (R, 12, 12): adaptive process noise per second. starved (R,) bool: no measurement used at the last
+    step. locked (R,) int: consecutive steps in which the gate rejected every corner it was given.
+    win_nis, win_dof (W, R): the NIS divergence window (ring buffer, slot k % W). diverged (R,) bool;
+    repaired (R,) int: non-finite steps rolled back. The last step's outputs: n_meas (R,) corners used,
+    nis (R,), dof (R,) measured components used, rejected (R,) corners rejected by the gate.
+    """
+
+    t_s: float
+    chaser: np.ndarray
+    k: int
+    mean: np.ndarray
+    cov: np.ndarray
+    r_scale: np.ndarray
+    Q_adapt: np.ndarray
+    starved: np.ndarray
+    locked: np.ndarray
+    win_nis: np.ndarray
+    win_dof: np.ndarray
+    diverged: np.ndarray
+    repaired: np.ndarray
+    n_meas: np.ndarray
+    nis: np.ndarray
+    dof: np.ndarray
+    rejected: np.ndarray
+
+
 def chaser_states(r_m, rdot_m_s, theta_rad, thetadot_rad_s) -> np.ndarray:
     """Stack the chaser's polar orbit into (T, 4) = (r_m, rdot_m_s, theta_rad, thetadot_rad_s)."""
     return np.stack([r_m, rdot_m_s, theta_rad, thetadot_rad_s], axis=-1).astype(float)
 
 
+def init_state(x0_hat: np.ndarray, P0: np.ndarray, t_s: float, chaser: np.ndarray, cfg: FilterConfig) -> FilterState:
+    """The state of R runs before their first measurement: x0_hat (R, 12) and P0 (12, 12) or (R, 12, 12) at t_s,
+    the chaser's orbit chaser (4,) at t_s. The MRP starts on |p| <= 1."""
+    mean = np.array(x0_hat, dtype=float)
+    R = mean.shape[0]
+    cov = np.broadcast_to(P0, (R, 12, 12)).copy()
+    mean, cov = shadow_switch(mean, cov)
+    W = cfg.divergence_window
+    zeros_i = np.zeros(R, dtype=np.int64)
+    return FilterState(t_s=float(t_s), chaser=np.array(chaser, dtype=float), k=0, mean=mean, cov=cov,
+                       r_scale=np.ones(R), Q_adapt=np.zeros((R, 12, 12)), starved=np.zeros(R, dtype=bool),
+                       locked=zeros_i, win_nis=np.zeros((W, R)), win_dof=np.zeros((W, R)),
+                       diverged=np.zeros(R, dtype=bool), repaired=zeros_i, n_meas=zeros_i, nis=np.zeros(R),
+                       dof=zeros_i, rejected=zeros_i)
+
+
+def _predict_step(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[np.ndarray, np.ndarray]:
+    """The prior at t_s: propagate from state.t_s (none if t_s == state.t_s). Returns (mean, cov)."""
+    cfg = setup.cfg
+    dt = float(t_s - state.t_s)
+    if dt < 0:
+        raise ValueError(f"a measurement at t = {t_s} s is older than the filter state (t = {state.t_s} s)")
+    if dt == 0:
+        return state.mean, state.cov
+    Q = cfg.Q(dt)[None] * np.where(state.starved, cfg.outage_q_scale, 1.0)[:, None, None]
+    if cfg.adaptive_q:
+        Q = Q + state.Q_adapt * dt
+    return predict(state.mean, state.cov, state.chaser, dt, Q, setup.weights, setup.J_T, setup.mu_m3_s2,
+                   cfg.max_rk4_step_s, setup.gravity_gradient)
+
+
+def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup) -> FilterState:
+    """One filter step of R runs: predict to meas.t_s, then update with its corners. Pure: returns a new state.
+
+    Around the UKF update: visibility check, chi-square gate with the lockout rule, rollback of non-finite
+    results, adaptive R and Q, and the windowed NIS divergence monitor (module docstring).
+    """
+    cfg = setup.cfg
+    mean, cov = _predict_step(state, meas.t_s, setup)
+    mean_pred, cov_pred = mean, cov
+    z = np.asarray(meas.z, dtype=float)
+    m = z.shape[-1]
+    R_c = np.broadcast_to(meas.R_c, z.shape + (m,))
+    measured = np.asarray(meas.mask, dtype=bool) & np.isfinite(z).all(-1)  # a non-finite detection is a missing one
+    Rk = R_c * state.r_scale[:, None, None, None]
+    mask_k = measured
+    if cfg.visibility_check:
+        mask_k = mask_k & predicted_visible(mean)
+    gate = setup.gate_threshold
+    thr = None if gate is None else np.where(state.locked >= cfg.gate_lockout_steps, np.inf, gate)
+    mean, cov, info = update(mean, cov, z, mask_k, Rk, setup.hx, setup.weights, thr)
+    # never NaN: roll a run back to its prediction (or its previous posterior) and flag it
+    bad = ~(np.isfinite(mean).all(-1) & np.isfinite(cov).all((-1, -2)))
+    repaired, diverged = state.repaired, state.diverged
+    if bad.any():
+        fallback_ok = np.isfinite(mean_pred).all(-1) & np.isfinite(cov_pred).all((-1, -2))
+        fb_mean = np.where(fallback_ok[:, None], mean_pred, state.mean)
+        fb_cov = np.where(fallback_ok[:, None, None], cov_pred, state.cov)
+        mean = np.where(bad[:, None], fb_mean, mean)
+        cov = np.where(bad[:, None, None], fb_cov, cov)
+        repaired = repaired + bad
+        diverged = diverged | bad
+        info.nis = np.where(bad, 0.0, info.nis)
+        info.dof = np.where(bad, 0, info.dof)
+    used = info.dof > 0
+    r_scale = state.r_scale
+    if cfg.adaptive_r:
+        # covariance matching: E[y^T y] = tr(H P H^T) + r tr(R)  ->  r estimate, smoothed and bounded
+        trR = np.einsum("rcii->r", R_c * info.accepted[..., None, None])
+        r_est = (np.einsum("ri,ri->r", info.y, info.y) - np.einsum("rii->r", info.Pzz_state)) / np.maximum(trR, 1e-300)
+        r_new = (1 - cfg.adaptive_r_rate) * r_scale + cfg.adaptive_r_rate * r_est
+        r_scale = np.where(used, np.clip(r_new, *cfg.adaptive_r_bounds), r_scale)
+    Q_adapt = state.Q_adapt
+    if cfg.adaptive_q:
+        Ky = np.einsum("rij,rj->ri", info.K, info.y)
+        a = cfg.adaptive_q_memory
+        Q_adapt = np.where(used[:, None, None], a * Q_adapt + (1 - a) * Ky[:, :, None] * Ky[:, None, :], Q_adapt)
+    locked = np.where(measured.any(-1) & ~info.accepted.any(-1), state.locked + 1, 0)
+    rejected = (measured & ~info.accepted).sum(-1)
+    # divergence monitor: windowed NIS against its chi-square bound
+    W, k = cfg.divergence_window, state.k
+    win_nis, win_dof = state.win_nis.copy(), state.win_dof.copy()
+    win_nis[k % W] = info.nis
+    win_dof[k % W] = info.dof
+    if k + 1 >= max(W, cfg.divergence_settle_steps):
+        d = win_dof.sum(0)
+        bound = np.where(d > 0, chi2.isf(cfg.divergence_prob, np.maximum(d, 1)), np.inf)
+        diverged = diverged | (win_nis.sum(0) > bound)
+    return FilterState(t_s=float(meas.t_s), chaser=np.array(meas.chaser, dtype=float), k=k + 1, mean=mean, cov=cov,
+                       r_scale=r_scale, Q_adapt=Q_adapt, starved=~used, locked=locked, win_nis=win_nis,
+                       win_dof=win_dof, diverged=diverged, repaired=repaired, n_meas=info.accepted.sum(-1),
+                       nis=info.nis, dof=info.dof, rejected=rejected)
+
+
 def run_filter(x0_hat: np.ndarray, P0: np.ndarray, t_s: np.ndarray, chaser: np.ndarray, z: np.ndarray,
-               mask: np.ndarray, R_c: np.ndarray, kind: str, cfg: FilterConfig, camera: Camera | None = None,
-               J_T: np.ndarray | None = None, mu_m3_s2: float = MU_EARTH_M3_S2, progress: bool = False
-               ) -> FilterResult:
-    """Filter R runs at once.
+               mask: np.ndarray, R_c: np.ndarray, kind: str, cfg: FilterConfig, camera: PinholeCamera | None = None,
+               J_T: np.ndarray | None = None, mu_m3_s2: float = MU_EARTH_M3_S2, progress: bool = False,
+               gravity_gradient: bool = False) -> FilterResult:
+    """Filter R runs at once: `filter_step` over the T measurement times.
 
     x0_hat (R, 12) initial estimates at t_s[0]; P0 (12, 12) or (R, 12, 12); t_s (T,) s; chaser (T, 4) the
     chaser's known orbit at t_s; z (R, T, 8, m) measurements; mask (R, T, 8) measured corners; R_c per-corner
     noise covariance, broadcastable to (R, T, 8, m, m) (the detector's covariance when it gives one).
+    mu_m3_s2 and gravity_gradient: the filter's model (take the truth's, when filtering a simulated truth).
     """
-    J_T = load_inertia_T_kg_m2() if J_T is None else J_T
-    camera = camera or Camera()
-    w = merwe_weights(12, cfg.alpha, cfg.beta, cfg.kappa)
-    R, T = z.shape[0], z.shape[1]
-    m = z.shape[-1]
+    setup = make_setup(cfg, kind, camera, J_T, mu_m3_s2, gravity_gradient)
+    R, T, m = z.shape[0], z.shape[1], z.shape[-1]
     R_c = np.broadcast_to(R_c, z.shape + (m,))
-    gate = chi2.ppf(cfg.gate_prob, m) if cfg.gate_prob > 0 else None
-    hx = lambda x: measure(x, kind, camera)  # noqa: E731
-
-    mean = np.array(x0_hat, dtype=float)
-    cov = np.broadcast_to(P0, (R, 12, 12)).copy()
-    mean, cov = shadow_switch(mean, cov)  # start on |p| <= 1
+    mask = np.broadcast_to(mask, z.shape[:-1])
+    state = init_state(x0_hat, P0, t_s[0], chaser[0], cfg)
     x_hat = np.empty((R, T, 12))
     P = np.empty((R, T, 12, 12))
     n_meas = np.zeros((R, T), dtype=np.int64)
     nis = np.zeros((R, T))
     dof = np.zeros((R, T), dtype=np.int64)
     rejected = np.zeros((R, T), dtype=np.int64)
-    diverged = np.zeros(R, dtype=bool)
-    repaired = np.zeros(R, dtype=np.int64)
-    r_scale = np.ones(R)
-    Q_adapt = np.zeros((R, 12, 12))
-    starved = np.zeros(R, dtype=bool)  # no measurement at the previous step
-    locked = np.zeros(R, dtype=np.int64)  # consecutive steps with every measured corner gated out
-    mask = np.asarray(mask, dtype=bool) & np.isfinite(z).all(-1)  # a non-finite detection is a missing one
-    win_nis = np.zeros((cfg.divergence_window, R))
-    win_dof = np.zeros((cfg.divergence_window, R))
-
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=T, unit="step", desc=f"estimate ({R} runs)", mininterval=0.5)
     for k in range(T):
-        prev_mean, prev_cov = mean, cov
-        if k > 0:
-            dt = float(t_s[k] - t_s[k - 1])
-            Q = cfg.Q(dt)[None] * np.where(starved, cfg.outage_q_scale, 1.0)[:, None, None]
-            if cfg.adaptive_q:
-                Q = Q + Q_adapt * dt
-            mean, cov = predict(mean, cov, chaser[k - 1], dt, Q, w, J_T, mu_m3_s2, cfg.max_rk4_step_s)
-        mean_pred, cov_pred = mean, cov
-        Rk = R_c[:, k] * r_scale[:, None, None, None]
-        mask_k = mask[:, k]
-        if cfg.visibility_check:
-            mask_k = mask_k & predicted_visible(mean)
-        thr = None if gate is None else np.where(locked >= cfg.gate_lockout_steps, np.inf, gate)
-        mean, cov, info = update(mean, cov, z[:, k], mask_k, Rk, hx, w, thr)
-        # never NaN: roll a run back to its prediction (or its previous posterior) and flag it
-        bad = ~(np.isfinite(mean).all(-1) & np.isfinite(cov).all((-1, -2)))
-        if bad.any():
-            fallback_ok = np.isfinite(mean_pred).all(-1) & np.isfinite(cov_pred).all((-1, -2))
-            fb_mean = np.where(fallback_ok[:, None], mean_pred, prev_mean)
-            fb_cov = np.where(fallback_ok[:, None, None], cov_pred, prev_cov)
-            mean = np.where(bad[:, None], fb_mean, mean)
-            cov = np.where(bad[:, None, None], fb_cov, cov)
-            repaired += bad
-            diverged |= bad
-            info.nis = np.where(bad, 0.0, info.nis)
-            info.dof = np.where(bad, 0, info.dof)
-        used = info.dof > 0
-        if cfg.adaptive_r:
-            # covariance matching: E[y^T y] = tr(H P H^T) + r tr(R)  ->  r estimate, smoothed and bounded
-            trR = np.einsum("rcii->r", R_c[:, k] * info.accepted[..., None, None])
-            r_est = (np.einsum("ri,ri->r", info.y, info.y) - np.einsum("rii->r", info.Pzz_state)) / np.maximum(trR, 1e-300)
-            r_new = (1 - cfg.adaptive_r_rate) * r_scale + cfg.adaptive_r_rate * r_est
-            r_scale = np.where(used, np.clip(r_new, *cfg.adaptive_r_bounds), r_scale)
-        if cfg.adaptive_q:
-            Ky = np.einsum("rij,rj->ri", info.K, info.y)
-            a = cfg.adaptive_q_memory
-            Q_adapt = np.where(used[:, None, None], a * Q_adapt + (1 - a) * Ky[:, :, None] * Ky[:, None, :], Q_adapt)
-        starved = ~used
-        locked = np.where(mask[:, k].any(-1) & ~info.accepted.any(-1), locked + 1, 0)
-        x_hat[:, k], P[:, k] = mean, cov
-        n_meas[:, k] = info.accepted.sum(-1)
-        nis[:, k], dof[:, k] = info.nis, info.dof
-        rejected[:, k] = (mask[:, k] & ~info.accepted).sum(-1)
-        # divergence monitor: windowed NIS against its chi-square bound
-        win_nis[k % cfg.divergence_window] = info.nis
-        win_dof[k % cfg.divergence_window] = info.dof
-        if k + 1 >= max(cfg.divergence_window, cfg.divergence_settle_steps):
-            d = win_dof.sum(0)
-            bound = np.where(d > 0, chi2.isf(cfg.divergence_prob, np.maximum(d, 1)), np.inf)
-            diverged |= win_nis.sum(0) > bound
+        state = filter_step(state, Measurement(t_s[k], chaser[k], z[:, k], mask[:, k], R_c[:, k]), setup)
+        x_hat[:, k], P[:, k] = state.mean, state.cov
+        n_meas[:, k], nis[:, k], dof[:, k], rejected[:, k] = state.n_meas, state.nis, state.dof, state.rejected
         if bar is not None:
             bar.update(1)
     if bar is not None:
         bar.close()
-    return FilterResult(x_hat, P, n_meas, nis, dof, rejected, diverged, repaired, r_scale)
+    return FilterResult(x_hat, P, n_meas, nis, dof, rejected, state.diverged, state.repaired, state.r_scale)
 
 
 def nees(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray) -> np.ndarray:

@@ -1,0 +1,93 @@
+"""The steppable filter: `filter_step` frame by frame is `run_filter`, it never mutates its input, and a batch of
+R runs is R independent single-run filters."""
+
+import dataclasses
+
+import numpy as np
+
+from envisat_pose.filtering.estimator import (FilterConfig, Measurement, filter_step, init_state, make_setup,
+                                              run_filter)
+from envisat_pose.filtering.measurements import add_noise, measure
+
+T_STEPS = 120
+
+
+def _inputs(tr, n_runs, seed, sigma_m=0.02):
+    """Noisy 3D corners of the visible corners of a truth, and initial estimates drawn from P0, per run."""
+    cfg = FilterConfig()
+    x = tr.x[:T_STEPS]
+    rng = np.random.default_rng(seed)
+    x0 = x[0] + rng.standard_normal((n_runs, 12)) @ np.linalg.cholesky(cfg.P0).T
+    z = np.stack([add_noise(measure(x, "markers3d"), sigma_m**2 * np.eye(3), rng) for _ in range(n_runs)])
+    mask = np.broadcast_to(tr.visible[:T_STEPS], z.shape[:-1]).copy()
+    mask &= rng.random(mask.shape) > 0.2  # failures: the measured set varies per run
+    return x0, z, mask, sigma_m**2 * np.eye(3)
+
+
+def _snapshot(state):
+    return {f.name: np.array(getattr(state, f.name), copy=True) for f in dataclasses.fields(state)}
+
+
+def test_frames_one_at_a_time_equal_run_filter(truth_600, chaser_of):
+    tr = truth_600
+    ch = chaser_of(tr)[:T_STEPS]
+    t_s = tr.t_s[:T_STEPS]
+    x0, z, mask, R_c = _inputs(tr, 4, seed=1)
+    z[1, 50:53] = z[1, 50:53] + 1.0  # a burst of outliers for the gate (and, with it, the lockout counter)
+    cfg = FilterConfig(adaptive_r=True, adaptive_q=True, divergence_window=10, divergence_settle_steps=20)
+    batch = run_filter(x0, cfg.P0, t_s, ch, z, mask, R_c, "markers3d", cfg)
+    setup = make_setup(cfg, "markers3d")
+    state = init_state(x0, cfg.P0, t_s[0], ch[0], cfg)
+    for k in range(T_STEPS):
+        before = _snapshot(state)
+        new = filter_step(state, Measurement(t_s[k], ch[k], z[:, k], mask[:, k], R_c), setup)
+        after = _snapshot(state)
+        for name in before:  # pure: the input state is untouched
+            np.testing.assert_array_equal(after[name], before[name], err_msg=name)
+        state = new
+        np.testing.assert_array_equal(state.mean, batch.x_hat[:, k])
+        np.testing.assert_array_equal(state.cov, batch.P[:, k])
+        np.testing.assert_array_equal(state.n_meas, batch.n_meas[:, k])
+        np.testing.assert_array_equal(state.nis, batch.nis[:, k])
+        np.testing.assert_array_equal(state.rejected, batch.rejected[:, k])
+    np.testing.assert_array_equal(state.diverged, batch.diverged)
+    np.testing.assert_array_equal(state.r_scale, batch.r_scale)
+    assert batch.rejected[1, 50:53].sum() >= 3  # the outliers went through the gate path
+    assert state.t_s == t_s[-1] and state.k == T_STEPS
+
+
+def test_a_batch_of_runs_is_independent_single_runs(truth_600, chaser_of):
+    tr = truth_600
+    ch = chaser_of(tr)[:T_STEPS]
+    t_s = tr.t_s[:T_STEPS]
+    x0, z, mask, R_c = _inputs(tr, 3, seed=2)
+    z[0, 30:32] = np.nan      # a broken detector in run 0 must not touch runs 1 and 2
+    z[2, 60:66, 0] += 2.0     # a persistent outlier in run 2: gate and lockout per run
+    cfg = FilterConfig(adaptive_r=True, gate_lockout_steps=3)
+    batch = run_filter(x0, cfg.P0, t_s, ch, z, mask, R_c, "markers3d", cfg)
+    for r in range(3):
+        one = run_filter(x0[r:r + 1], cfg.P0, t_s, ch, z[r:r + 1], mask[r:r + 1], R_c, "markers3d", cfg)
+        np.testing.assert_allclose(one.x_hat[0], batch.x_hat[r], rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(one.P[0], batch.P[r], rtol=1e-10, atol=1e-18)
+        np.testing.assert_allclose(one.nis[0], batch.nis[r], rtol=1e-9, atol=1e-12)
+        for name in ("n_meas", "dof", "rejected", "diverged", "repaired"):
+            np.testing.assert_array_equal(getattr(one, name)[0], getattr(batch, name)[r], err_msg=f"{name} run {r}")
+        np.testing.assert_allclose(one.r_scale[0], batch.r_scale[r], rtol=1e-12)
+    assert batch.n_meas[0, 30:32].sum() == 0 and batch.n_meas[1, 30:32].sum() > 0
+    assert batch.rejected[2, 60:66].sum() >= 3
+
+
+def test_a_measurement_older_than_the_state_is_refused(truth_600, chaser_of):
+    tr = truth_600
+    ch = chaser_of(tr)
+    x0, z, mask, R_c = _inputs(tr, 1, seed=3)
+    cfg = FilterConfig()
+    setup = make_setup(cfg, "markers3d")
+    state = filter_step(init_state(x0, cfg.P0, tr.t_s[5], ch[5], cfg),
+                        Measurement(tr.t_s[5], ch[5], z[:, 5], mask[:, 5], R_c), setup)
+    try:
+        filter_step(state, Measurement(tr.t_s[4], ch[4], z[:, 4], mask[:, 4], R_c), setup)
+    except ValueError as err:
+        assert "older" in str(err)
+    else:
+        raise AssertionError("a measurement from the past was accepted")
