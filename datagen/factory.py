@@ -21,6 +21,7 @@ import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm, quat_to_mrp, quat_to_rotmat
 from envisat_pose.config import InputError, check, from_dict, to_dict
+from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks
 
 Severity = Literal["none", "low", "medium", "high", "mixed"]
 MANIFEST_FORMAT = "envisat-pose shards v1"
@@ -263,23 +264,6 @@ def shard_task(cfg_json: str, shard_index: int, out_dir: str) -> dict:
 # Planning, resuming, running
 
 
-def llvmpipe_threads(workers: int) -> int:
-    """Rasterizer threads per worker: the machine's cores shared among the workers."""
-    return max(1, (os.cpu_count() or 1) // max(1, workers))
-
-
-def _worker_init(lp_threads: int) -> None:
-    """Process-pool worker start: its rasterizer threads, and die with the parent (no orphan writers)."""
-    os.environ.setdefault("LP_NUM_THREADS", str(lp_threads))
-    try:
-        import ctypes
-        import signal
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
-
-
 def prepare_out_dir(out_dir: str) -> None:
     """Create out_dir (its parent must exist) or check that it is a writable folder; InputError otherwise."""
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
@@ -342,45 +326,6 @@ def _record(manifest: dict, done: dict[int, dict], out_dir: str, complete: bool)
     write_manifest(out_dir, manifest)
 
 
-def _run_local(cfg_json: str, todo: list[int], out_dir: str, workers: int, on_done: Callable[[dict], None]) -> None:
-    """Run shard tasks in this process (1 worker) or a spawned process pool."""
-    if workers == 1 or len(todo) <= 1:
-        os.environ.setdefault("LP_NUM_THREADS", str(llvmpipe_threads(1)))
-        for idx in todo:
-            on_done(shard_task(cfg_json, idx, out_dir))
-        return
-    import concurrent.futures as cf
-    import multiprocessing as mp
-
-    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_worker_init,
-                                initargs=(llvmpipe_threads(workers),)) as pool:
-        futures = [pool.submit(shard_task, cfg_json, idx, out_dir) for idx in todo]
-        for fut in cf.as_completed(futures):
-            on_done(fut.result())
-
-
-def _run_dask(cfg_json: str, todo: list[int], out_dir: str, workers: int, scheduler: str | None,
-              on_done: Callable[[dict], None]) -> None:
-    """Run shard tasks on a Dask cluster: the one at `scheduler`, or a LocalCluster on 127.0.0.1."""
-    from dask.distributed import Client, LocalCluster, as_completed
-
-    cluster = None
-    if scheduler:
-        client = Client(scheduler)
-    else:
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                               dashboard_address=None, env={"LP_NUM_THREADS": str(llvmpipe_threads(workers))})
-        client = Client(cluster)
-    try:
-        futures = [client.submit(shard_task, cfg_json, idx, os.path.abspath(out_dir), pure=False) for idx in todo]
-        for fut in as_completed(futures):
-            on_done(fut.result())
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-
-
 def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: str = "local",
                  scheduler: str | None = None, progress: bool = False,
                  on_shard: Callable[[dict], None] | None = None) -> dict:
@@ -390,9 +335,10 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
     """
     from envisat_pose.datagen.shards import shard_name
 
-    check(workers >= 1, "workers", workers, "at least 1 worker")
     check(backend in ("local", "dask"), "backend", backend, "'local' or 'dask'")
-    check(scheduler is None or backend == "dask", "scheduler", scheduler, "an address only with --backend dask")
+    # one rasterizer thread count per worker: the machine's cores shared among the workers
+    runner = RunnerConfig(backend, workers, scheduler, {"LP_NUM_THREADS": str(cpu_share(workers))})
+    runner.validate()
     prepare_out_dir(out_dir)
     done = finished_shards(cfg, out_dir) if os.path.isdir(out_dir) else {}
     os.makedirs(out_dir, exist_ok=True)
@@ -426,10 +372,9 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
 
     try:
         cfg_text = config_json(cfg)
-        if backend == "dask":
-            _run_dask(cfg_text, todo, out_dir, workers, scheduler, on_done)
-        else:
-            _run_local(cfg_text, todo, out_dir, workers, on_done)
+        tasks = [(cfg_text, idx, os.path.abspath(out_dir)) for idx in todo]
+        for _, entry in run_tasks(shard_task, tasks, runner):
+            on_done(entry)
     finally:
         if bar is not None:
             bar.close()
