@@ -1,8 +1,9 @@
 """The `envisat` command line: one entry point, one verb per job.
 
-Each package contributes its verbs through a `register(subparsers)` function in its `cli` module; a verb's
-handler takes the parsed arguments and returns an exit code. User errors (ConfigError, InputError) are
-printed as one line on stderr with exit code 2, never as a traceback.
+Each module of the app layer named below adds its verbs with a `register(subparsers)` function; a verb's
+handler takes the parsed arguments and returns an exit code. Stage modules are imported inside the handlers,
+so a verb loads only what it uses (`estimate --truth` never loads MuJoCo). User errors (ConfigError,
+InputError) are printed as one line on stderr with exit code 2, never as a traceback.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import sys
 
 from envisat_pose.config import ConfigError, InputError
 
-# Modules that define register(subparsers); a package whose cli module is absent simply adds no verbs.
+# The app modules that define register(subparsers), in the order their verbs are listed.
 _VERB_MODULES = ("envisat_pose.app.simulate", "envisat_pose.app.generate", "envisat_pose.app.estimate")
 
 
@@ -25,13 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
     sub.required = True
     for name in _VERB_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as err:
-            if err.name == name:
-                continue
-            raise
-        module.register(sub)
+        importlib.import_module(name).register(sub)
     return parser
 
 
