@@ -61,3 +61,39 @@ def test_known_viewpoints():
     np.testing.assert_array_equal(visible_corners(np.array([30.0, 30.0, 30.0])), [1, 1, 1, 1, 1, 1, 0, 1])
     # the paper's u.n < 0 (offset dropped) would call the +x face visible from (2, 40, 0): it is not
     np.testing.assert_array_equal(visible_corners(np.array([2.0, 40.0, 0.0])), [1, 0, 0, 1, 1, 0, 0, 1])
+
+
+def test_camera_equals_mujocos_compiled_camera():
+    """The core's pinhole (read from the MJCF text) against MuJoCo's compiled camera chaser_cam: the same
+    fovy, resolution and mount, and the same projection of a point."""
+    import mujoco
+
+    from envisat_pose.geometry import load_camera, model_path, project_K
+
+    cam = load_camera()
+    m = mujoco.MjModel.from_xml_path(model_path())
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)  # chaser mocap at the origin with the identity attitude: world = C
+    cid = m.camera("chaser_cam").id
+    width, height = m.cam_resolution[cid]
+    assert (cam.width_px, cam.height_px) == (width, height)
+    np.testing.assert_allclose(cam.f_px, 0.5 * height / np.tan(np.radians(m.cam_fovy[cid]) / 2), rtol=1e-12)
+    np.testing.assert_allclose(cam.f_px, 1910.8, atol=0.05)  # reference sheet, section 6
+    R_W_mjcam = d.cam_xmat[cid].reshape(3, 3)
+    np.testing.assert_allclose(cam.R_K_from_C, (R_W_mjcam * [1.0, -1.0, -1.0]).T, atol=1e-12)
+    np.testing.assert_allclose(cam.pos_C_m, d.cam_xpos[cid], atol=1e-12)
+    # boresight +y_C: a point 50 m ahead lands on the principal point; one 1 m radially out (image up) above it
+    p_K = (np.array([[0.0, 50.0, 0.0], [1.0, 50.0, 0.0]]) - cam.pos_C_m) @ cam.R_K_from_C.T
+    uv = project_K(p_K, cam)
+    np.testing.assert_allclose(uv[0], [511.5, 511.5], atol=1e-9)
+    np.testing.assert_allclose(uv[1], [511.5, 511.5 - cam.f_px / 50.0], atol=1e-9)
+
+
+def test_projection_never_mirrors_a_point_behind_the_camera():
+    from envisat_pose.geometry import load_camera, project_K
+
+    cam = load_camera()
+    uv = project_K(np.array([[2.0, -1.0, 10.0], [2.0, -1.0, -10.0], [2.0, -1.0, 0.0]]), cam)
+    assert uv[0, 0] > cam.cu_px and uv[0, 1] < cam.cv_px  # in front: right and up
+    # behind or on the camera plane: same side as the point's x and y, far outside the image
+    assert (uv[1:, 0] > cam.width_px).all() and (uv[1:, 1] < 0).all()
