@@ -109,7 +109,8 @@ class FilterResult:
     x_hat (R, T, 12), P (R, T, 12, 12) posteriors; n_meas (R, T) corners used; nis (R, T) (0 without
     measurement); dof (R, T) measured components used; rejected (R, T) corners rejected by the gate;
     diverged (R,) bool; repaired (R,) number of non-finite steps that were rolled back; r_scale (R,) the final
-    adaptive measurement-noise scale (1 without adaptive_r).
+    adaptive measurement-noise scale (1 without adaptive_r); dropped (R, T) measured corners dropped by the
+    visibility check (not gate rejections).
     """
 
     x_hat: np.ndarray
@@ -121,6 +122,7 @@ class FilterResult:
     diverged: np.ndarray
     repaired: np.ndarray
     r_scale: np.ndarray
+    dropped: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -181,10 +183,12 @@ class FilterState:
     t_s: time of the estimate, s; chaser: (4,) the chaser's orbit at t_s; k: steps taken so far.
     mean (R, 12), cov (R, 12, 12): the posterior at t_s. r_scale (R,): adaptive measurement-noise scale.
     Q_adapt (R, 12, 12): adaptive process noise per second. starved (R,) bool: no measurement used at the last
-    step. locked (R,) int: consecutive steps in which the gate rejected every corner it was given.
+    step. locked (R,) int: consecutive steps in which the gate rejected every corner it was given (corners
+    dropped by the visibility check never reach the gate: they neither count as rejections nor lock it).
     win_nis, win_dof (W, R): the NIS divergence window (ring buffer, slot k % W). diverged (R,) bool;
     repaired (R,) int: non-finite steps rolled back. The last step's outputs: n_meas (R,) corners used,
-    nis (R,), dof (R,) measured components used, rejected (R,) corners rejected by the gate.
+    nis (R,), dof (R,) measured components used, rejected (R,) corners rejected by the gate, dropped (R,)
+    measured corners dropped by the visibility check.
     """
 
     t_s: float
@@ -204,6 +208,7 @@ class FilterState:
     nis: np.ndarray
     dof: np.ndarray
     rejected: np.ndarray
+    dropped: np.ndarray
 
 
 def chaser_states(r_m, rdot_m_s, theta_rad, thetadot_rad_s) -> np.ndarray:
@@ -224,7 +229,7 @@ def init_state(x0_hat: np.ndarray, P0: np.ndarray, t_s: float, chaser: np.ndarra
                        r_scale=np.ones(R), Q_adapt=np.zeros((R, 12, 12)), starved=np.zeros(R, dtype=bool),
                        locked=zeros_i, win_nis=np.zeros((W, R)), win_dof=np.zeros((W, R)),
                        diverged=np.zeros(R, dtype=bool), repaired=zeros_i, n_meas=zeros_i, nis=np.zeros(R),
-                       dof=zeros_i, rejected=zeros_i)
+                       dof=zeros_i, rejected=zeros_i, dropped=zeros_i)
 
 
 def _predict_step(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[np.ndarray, np.ndarray]:
@@ -288,8 +293,9 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup) -> Fi
         Ky = np.einsum("rij,rj->ri", info.K, info.y)
         a = cfg.adaptive_q_memory
         Q_adapt = np.where(used[:, None, None], a * Q_adapt + (1 - a) * Ky[:, :, None] * Ky[:, None, :], Q_adapt)
-    locked = np.where(measured.any(-1) & ~info.accepted.any(-1), state.locked + 1, 0)
-    rejected = (measured & ~info.accepted).sum(-1)
+    # the gate saw mask_k only: corners the visibility check dropped are neither rejections nor a lockout step
+    locked = np.where(mask_k.any(-1) & ~info.accepted.any(-1), state.locked + 1, 0)
+    rejected = (mask_k & ~info.accepted).sum(-1)
     # divergence monitor: windowed NIS against its chi-square bound
     W, k = cfg.divergence_window, state.k
     win_nis, win_dof = state.win_nis.copy(), state.win_dof.copy()
@@ -302,7 +308,7 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup) -> Fi
     return FilterState(t_s=float(meas.t_s), chaser=np.array(meas.chaser, dtype=float), k=k + 1, mean=mean, cov=cov,
                        r_scale=r_scale, Q_adapt=Q_adapt, starved=~used, locked=locked, win_nis=win_nis,
                        win_dof=win_dof, diverged=diverged, repaired=repaired, n_meas=info.accepted.sum(-1),
-                       nis=info.nis, dof=info.dof, rejected=rejected)
+                       nis=info.nis, dof=info.dof, rejected=rejected, dropped=(measured & ~mask_k).sum(-1))
 
 
 def run_filter(x0_hat: np.ndarray, P0: np.ndarray, t_s: np.ndarray, chaser: np.ndarray, z: np.ndarray,
@@ -327,6 +333,7 @@ def run_filter(x0_hat: np.ndarray, P0: np.ndarray, t_s: np.ndarray, chaser: np.n
     nis = np.zeros((R, T))
     dof = np.zeros((R, T), dtype=np.int64)
     rejected = np.zeros((R, T), dtype=np.int64)
+    dropped = np.zeros((R, T), dtype=np.int64)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -336,11 +343,12 @@ def run_filter(x0_hat: np.ndarray, P0: np.ndarray, t_s: np.ndarray, chaser: np.n
         state = filter_step(state, Measurement(t_s[k], chaser[k], z[:, k], mask[:, k], R_c[:, k]), setup)
         x_hat[:, k], P[:, k] = state.mean, state.cov
         n_meas[:, k], nis[:, k], dof[:, k], rejected[:, k] = state.n_meas, state.nis, state.dof, state.rejected
+        dropped[:, k] = state.dropped
         if bar is not None:
             bar.update(1)
     if bar is not None:
         bar.close()
-    return FilterResult(x_hat, P, n_meas, nis, dof, rejected, state.diverged, state.repaired, state.r_scale)
+    return FilterResult(x_hat, P, n_meas, nis, dof, rejected, state.diverged, state.repaired, state.r_scale, dropped)
 
 
 def nees(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray) -> np.ndarray:

@@ -91,3 +91,32 @@ def test_a_measurement_older_than_the_state_is_refused(truth_600, chaser_of):
         assert "older" in str(err)
     else:
         raise AssertionError("a measurement from the past was accepted")
+
+
+def test_corners_dropped_by_the_visibility_check_are_not_gate_rejections_and_do_not_unlock_the_gate(truth_600,
+                                                                                                    chaser_of):
+    """Two steps in which only hidden corners are reported (say, reflections): the visibility check drops them;
+    they are not gate rejections and do not advance the lockout counter, so a gross outlier at the third step
+    is still gated (with gate_lockout_steps = 2, counting them would have switched the gate off)."""
+    tr = truth_600
+    ch = chaser_of(tr)
+    cfg = FilterConfig(gate_lockout_steps=2)
+    setup = make_setup(cfg, "markers3d")
+    R_c = 0.02**2 * np.eye(3)
+    k0 = 10
+    state = init_state(tr.x[k0][None], cfg.P0 / 100.0, tr.t_s[k0], ch[k0], cfg)
+    for k in (k0 + 1, k0 + 2):
+        hidden = ~tr.visible[k]
+        assert hidden.any()
+        state = filter_step(state, Measurement(tr.t_s[k], ch[k], tr.corners_C_m[k][None], hidden[None], R_c), setup)
+        assert state.dropped[0] == hidden.sum() and state.rejected[0] == 0 and state.n_meas[0] == 0
+        assert state.locked[0] == 0
+    k = k0 + 3
+    seen = np.flatnonzero(tr.visible[k])[0]
+    z = tr.corners_C_m[k].copy()
+    z[seen] += 5.0  # metres off: a mis-association the gate must catch
+    only = np.zeros(8, dtype=bool)
+    only[seen] = True
+    state = filter_step(state, Measurement(tr.t_s[k], ch[k], z[None], only[None], R_c), setup)
+    assert state.rejected[0] == 1 and state.n_meas[0] == 0 and state.dropped[0] == 0
+    assert state.locked[0] == 1
