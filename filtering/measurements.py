@@ -5,9 +5,11 @@ Three kinds (per corner i, v_i its position in T from models/envisat.xml via env
 - "pixels": (u, v) of the corner in the chaser camera, px (2 per corner);
 - "pixels+range": (u, v, range_m), range the distance from the camera to the corner, m (3 per corner).
 
-The camera is fixed on the chaser at its origin: boresight +y_C, image right = -z_C, image down = -x_C, so the
-camera frame K (x right, y down, z boresight) is v_K = R_K_from_C v_C with the rows (-z_C, -x_C, +y_C). Pinhole:
-u = f x_K / z_K + c_u, v = f y_K / z_K + c_v (pixel centres at integer coordinates).
+The camera is the one of models/envisat.xml (`envisat_pose.geometry.load_camera()`, a PinholeCamera): fixed on
+the chaser at pos_C_m, a point in C is v_K = R_K_from_C (v_C - pos_C_m) in the camera frame K (x right, y down,
+z boresight), and the guarded pinhole `envisat_pose.geometry.project_K` maps it to pixels,
+u = f x_K / z_K + c_u, v = f y_K / z_K + c_v (pixel centres at integer coordinates); a point behind the camera is
+never mirrored into the image. The range of pixels+range is measured from the camera centre.
 
 Measurements travel as per-corner arrays: z (..., 8, m), mask (..., 8) bool (which corners were measured), and
 per-corner covariances (..., 8, m, m). A filter flattens them to (..., 8 m).
@@ -15,26 +17,13 @@ per-corner covariances (..., 8, m, m). A filter flattens them to (..., 8 m).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm
-from envisat_pose.geometry import load_geometry, visible_corners
+from envisat_pose.geometry import PinholeCamera, load_camera, load_geometry, project_K, visible_corners
 
 KINDS = ("markers3d", "pixels", "pixels+range")
-R_K_FROM_C = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-
-
-@dataclass(frozen=True)
-class Camera:
-    """Pinhole intrinsics of the chaser camera: focal length f_px, principal point (cu_px, cv_px), image size."""
-
-    f_px: float = 1910.8
-    cu_px: float = 511.5
-    cv_px: float = 511.5
-    width_px: int = 1024
-    height_px: int = 1024
+MIN_DEPTH_M = 1e-3  # project_K's guard: a corner closer than this along the boresight (or behind) stays outside
 
 
 def dim_per_corner(kind: str) -> int:
@@ -56,29 +45,40 @@ def predicted_visible(x: np.ndarray) -> np.ndarray:
     return visible_corners(c_T)
 
 
-def project(points_C_m: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Pinhole projection of points in C. (..., 3) -> pixels (..., 2) px and depth z_K (...,) m."""
-    p_K = points_C_m @ R_K_FROM_C.T
-    z_K = p_K[..., 2]
-    uv = np.stack([camera.f_px * p_K[..., 0] / z_K + camera.cu_px, camera.f_px * p_K[..., 1] / z_K + camera.cv_px], -1)
-    return uv, z_K
+def to_camera_K(points_C_m: np.ndarray, camera: PinholeCamera) -> np.ndarray:
+    """Points in C (..., 3) m -> the camera frame K (..., 3) m: R_K_from_C (v_C - pos_C_m)."""
+    return (points_C_m - camera.pos_C_m) @ camera.R_K_from_C.T
 
 
-def measure(x: np.ndarray, kind: str, camera: Camera | None = None) -> np.ndarray:
-    """Noise-free measurement of all 8 corners from the state. (..., 12) -> (..., 8, m), m = dim_per_corner(kind)."""
+def project(points_C_m: np.ndarray, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+    """Guarded pinhole projection of points in C. (..., 3) m -> pixels (..., 2) px and depth z_K (...,) m.
+
+    A point behind the camera lands far outside the image on its own side (project_K), never mirrored.
+    """
+    p_K = to_camera_K(points_C_m, camera)
+    return project_K(p_K, camera, MIN_DEPTH_M), p_K[..., 2]
+
+
+def measure(x: np.ndarray, kind: str, camera: PinholeCamera | None = None) -> np.ndarray:
+    """Noise-free measurement of all 8 corners from the state. (..., 12) -> (..., 8, m), m = dim_per_corner(kind).
+
+    camera: the chaser camera (default: load_camera(), the MJCF's chaser_cam); unused for markers3d.
+    """
     pts = corners_C_m(x)
     if kind == "markers3d":
         return pts
-    uv, _ = project(pts, camera or Camera())
+    camera = camera or load_camera()
+    uv, _ = project(pts, camera)
     if kind == "pixels":
         return uv
     if kind == "pixels+range":
-        return np.concatenate([uv, np.linalg.norm(pts, axis=-1, keepdims=True)], axis=-1)
+        return np.concatenate([uv, np.linalg.norm(pts - camera.pos_C_m, axis=-1, keepdims=True)], axis=-1)
     raise ValueError(f"unknown measurement kind {kind!r}; expected one of {KINDS}")
 
 
-def in_frame(x: np.ndarray, camera: Camera) -> np.ndarray:
+def in_frame(x: np.ndarray, camera: PinholeCamera | None = None) -> np.ndarray:
     """Which corners project inside the image and in front of the camera. (..., 12) -> (..., 8) bool."""
+    camera = camera or load_camera()
     uv, z_K = project(corners_C_m(x), camera)
     return (z_K > 0) & (uv[..., 0] >= -0.5) & (uv[..., 0] <= camera.width_px - 0.5) \
         & (uv[..., 1] >= -0.5) & (uv[..., 1] <= camera.height_px - 0.5)

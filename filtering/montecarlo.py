@@ -1,5 +1,8 @@
 """Monte Carlo inputs for the filter: per-run measurements of a truth trajectory and initial estimates.
 
+Measurements come from the truth, never from the filter's own model: `truth_measurements` turns the truth's
+arrays (MuJoCo's corner sites corners_C_m, their projection corners_px through MuJoCo's camera, the visibility
+and in-frame flags) into noise-free measurements z_true (T, 8, m) and the measurable set (T, 8).
 Runs share one truth trajectory and differ in their initial estimate error (drawn from P0) and in their
 measurement noise and failures. Run r draws everything from its own Generator, made from
 `numpy.random.SeedSequence(seed).spawn(R)[r]`, in a fixed order: initial error, measurement noise, failures.
@@ -13,8 +16,9 @@ from typing import Literal
 import numpy as np
 
 from envisat_pose.config import check
-from envisat_pose.filtering.measurements import (Camera, add_noise, corner_cov, in_frame, limit_markers, measure, outage_mask,
-                                    random_failures)
+from envisat_pose.filtering.measurements import (KINDS, add_noise, corner_cov, limit_markers, outage_mask,
+                                                 random_failures)
+from envisat_pose.geometry import PinholeCamera, load_camera
 
 
 @dataclass(frozen=True)
@@ -27,7 +31,7 @@ class MeasurementConfig:
     failure_prob: each visible corner is independently lost with this probability at each step.
     outages_s: windows [start, end) in s with no measurement at all (eclipse).
     rate_hz: filter and measurement rate; the truth's sample step must divide 1 / rate_hz.
-    f_px, cu_px, cv_px, width_px, height_px: the chaser camera's pinhole intrinsics.
+    The camera is the MJCF's (envisat_pose.geometry.load_camera), not a setting.
     """
 
     kind: Literal["markers3d", "pixels", "pixels+range"] = "markers3d"
@@ -38,11 +42,6 @@ class MeasurementConfig:
     failure_prob: float = 0.0
     outages_s: tuple[tuple[float, float], ...] = ()
     rate_hz: float = 1.0
-    f_px: float = 1910.8
-    cu_px: float = 511.5
-    cv_px: float = 511.5
-    width_px: int = 1024
-    height_px: int = 1024
 
     def validate(self, prefix: str = "measurement") -> None:
         p = f"{prefix}." if prefix else ""
@@ -54,12 +53,6 @@ class MeasurementConfig:
         for i, (a, b) in enumerate(self.outages_s):
             check(0.0 <= a < b, f"{p}outages_s[{i}]", [a, b], "a window [start, end) with 0 <= start < end, s")
         check(0.0 < self.rate_hz <= 100.0, f"{p}rate_hz", self.rate_hz, "a rate in (0, 100] Hz")
-        check(self.f_px > 0, f"{p}f_px", self.f_px, "a positive focal length in pixels")
-        check(self.width_px > 0 and self.height_px > 0, f"{p}width_px", self.width_px, "a positive image size")
-
-    @property
-    def camera(self) -> Camera:
-        return Camera(self.f_px, self.cu_px, self.cv_px, self.width_px, self.height_px)
 
     @property
     def corner_cov(self) -> np.ndarray:
@@ -87,26 +80,61 @@ class RunInputs:
     R_c: np.ndarray
 
 
-def make_run_inputs(x_true: np.ndarray, t_s: np.ndarray, visible: np.ndarray, mcfg: MeasurementConfig,
-                    P0: np.ndarray, seed: int, n_runs: int) -> RunInputs:
+def truth_measurements(kind: str, corners_C_m: np.ndarray, visible: np.ndarray, corners_px: np.ndarray | None = None,
+                       in_frame: np.ndarray | None = None, camera: PinholeCamera | None = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-free measurements of a truth and the corners that can be measured, from the truth's own arrays.
+
+    corners_C_m (T, 8, 3) m: the truth's corners in C (MuJoCo's sites); visible (T, 8) bool; corners_px (T, 8, 2)
+    px and in_frame (T, 8) bool: MuJoCo's projection through its camera (needed by the pixel kinds).
+    markers3d: z = corners_C_m, measurable where visible. pixels: z = corners_px, measurable where visible and
+    in frame. pixels+range: (corners_px, |corners_C_m - camera centre|), same set. camera: for the range's
+    centre (default load_camera()). Returns z_true (T, 8, m), base_mask (T, 8) bool.
+    """
+    corners_C_m = np.asarray(corners_C_m, dtype=float)
+    visible = np.asarray(visible, dtype=bool)
+    if kind == "markers3d":
+        return corners_C_m, visible
+    if kind not in KINDS:
+        raise ValueError(f"unknown measurement kind {kind!r}; expected one of {KINDS}")
+    if corners_px is None or in_frame is None:
+        raise ValueError(f"measurement kind {kind!r} needs the truth's corners_px and in_frame")
+    uv = np.asarray(corners_px, dtype=float)
+    base = visible & np.asarray(in_frame, dtype=bool)
+    if kind == "pixels":
+        return uv, base
+    camera = camera or load_camera()
+    rng_m = np.linalg.norm(corners_C_m - camera.pos_C_m, axis=-1, keepdims=True)
+    return np.concatenate([uv, rng_m], axis=-1), base
+
+
+def make_run_inputs(x0_true: np.ndarray, t_s: np.ndarray, z_true: np.ndarray, base_mask: np.ndarray,
+                    mcfg: MeasurementConfig, P0: np.ndarray, seed: int, n_runs: int) -> RunInputs:
     """Measurements and initial estimates of n_runs runs of one truth.
 
-    x_true (T, 12) and visible (T, 8) on the filter's time grid t_s (T,). The measured set is the visible
-    corners (exact face test), in the image for camera kinds, minus outages and random failures, then limited
-    to max_markers.
+    x0_true (12,): the true state at t_s[0]; t_s (T,) the filter's time grid; z_true (T, 8, m) noise-free
+    measurements and base_mask (T, 8) bool the measurable corners on that grid (truth_measurements). The
+    measured set is base_mask minus outages and random failures, then limited to max_markers. Run r draws, from
+    SeedSequence(seed).spawn(n_runs)[r]: its initial error (P0), its noise, its failures.
     """
-    cam = mcfg.camera
-    z_true = measure(x_true, mcfg.kind, cam)
-    base = np.asarray(visible, dtype=bool) & ~outage_mask(t_s, mcfg.outages_s)[:, None]
-    if mcfg.kind != "markers3d":
-        base &= in_frame(x_true, cam)
+    z_true = np.asarray(z_true, dtype=float)
+    base = np.asarray(base_mask, dtype=bool) & ~outage_mask(np.asarray(t_s), mcfg.outages_s)[:, None]
     L0 = np.linalg.cholesky(P0)
     cov = mcfg.corner_cov
+    if z_true.shape[-1] != cov.shape[-1]:
+        raise ValueError(f"z_true has {z_true.shape[-1]} components per corner; kind {mcfg.kind!r} has {cov.shape[-1]}")
     x0, zs, masks = [], [], []
     for child in np.random.SeedSequence(seed).spawn(n_runs):
         rng = np.random.default_rng(child)
-        x0.append(x_true[0] + L0 @ rng.standard_normal(12))
+        x0.append(np.asarray(x0_true, dtype=float) + L0 @ rng.standard_normal(12))
         zs.append(add_noise(z_true, cov, rng))
         masks.append(limit_markers(random_failures(base, mcfg.failure_prob, rng), mcfg.max_markers))
     return RunInputs(np.stack(x0), np.stack(zs), np.stack(masks), cov)
 
+
+def inputs_from_truth(truth, mcfg: MeasurementConfig, P0: np.ndarray, seed: int, n_runs: int,
+                      sel: slice = slice(None)) -> RunInputs:
+    """make_run_inputs from a truth trajectory (envisat_pose.contracts.TruthTrajectory), sampled at `sel`."""
+    z_true, base = truth_measurements(mcfg.kind, truth.corners_C_m[sel], truth.visible[sel],
+                                      truth.corners_px[sel], truth.in_frame[sel])
+    return make_run_inputs(truth.x[sel][0], truth.t_s[sel], z_true, base, mcfg, P0, seed, n_runs)

@@ -13,8 +13,9 @@ import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, propagate
-from envisat_pose.filtering.measurements import Camera, measure
+from envisat_pose.filtering.measurements import measure
 from envisat_pose.filtering.ukf import shadow_switch, state_mean, state_residual
+from envisat_pose.geometry import PinholeCamera
 
 
 def _fx(x: np.ndarray, dt: float, c0: np.ndarray, J_T: np.ndarray, mu_m3_s2: float, max_step_s: float) -> np.ndarray:
@@ -43,7 +44,7 @@ def reference_predict(ukf: UnscentedKalmanFilter, dt_s: float, c0: np.ndarray, J
 
 
 def reference_update(ukf: UnscentedKalmanFilter, z: np.ndarray, mask_c: np.ndarray, R_c: np.ndarray, kind: str,
-                     camera: Camera | None = None) -> None:
+                     camera: PinholeCamera | None = None) -> None:
     """filterpy update with the measured corners only. z (8, m), mask_c (8,) bool, R_c (8, m, m)."""
     mask_c = np.asarray(mask_c, dtype=bool)
     if not mask_c.any():

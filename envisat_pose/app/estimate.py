@@ -1,7 +1,10 @@
 """`envisat estimate`: the batched UKF over R Monte Carlo runs of one MuJoCo truth, written as est.npz.
 
-The truth comes from `--truth run.npz` (written by `envisat simulate`) or is simulated for `--scenario NAME` by
-the MuJoCo truth simulator (datagen.truth.simulate), never by the filter's own model.
+The truth comes from `--truth run.npz` (written by `envisat simulate`, read as the core's TruthTrajectory
+contract without importing the simulator) or is simulated for `--scenario NAME` by the MuJoCo truth simulator
+(datagen.truth.simulate). Measurements are synthesized from the truth's own arrays (MuJoCo's corner sites and
+their projection through MuJoCo's camera), never from the filter's model; the filter's model takes the truth's
+mu and gravity-gradient switch from its config.
 """
 
 from __future__ import annotations
@@ -96,13 +99,18 @@ def resolve_config(args: argparse.Namespace) -> EstimateConfig:
 
 
 def load_truth(args: argparse.Namespace, cfg: EstimateConfig):
-    """The truth trajectory: read from --truth, or simulated by MuJoCo for --scenario. Returns (truth, source)."""
-    from envisat_pose.datagen.truth import TruthTrajectory
+    """The truth trajectory: read from --truth, or simulated by MuJoCo for --scenario. Returns (truth, source).
 
+    A file that is not a truth trajectory (truncated, foreign, another contract) is one InputError line.
+    """
     if args.truth:
+        from envisat_pose.contracts import TruthTrajectory
+
         if args.duration_s is not None:
             raise InputError("--duration-s applies to --scenario only; the truth file fixes the duration")
-        return TruthTrajectory.load(args.truth), {"truth_file": args.truth}
+        truth = TruthTrajectory.load(args.truth)
+        truth_model(truth, args.truth)  # its config must name the physics the filter needs
+        return truth, {"truth_file": args.truth}
     from envisat_pose.datagen.scenario import scenario_config, scenario_dict
     from envisat_pose.datagen.truth import simulate
 
@@ -114,6 +122,22 @@ def load_truth(args: argparse.Namespace, cfg: EstimateConfig):
     scenario_dict(args.scenario)  # unknown names fail here with the list of known ones
     scfg = scenario_config(args.scenario, **overrides)
     return simulate(scfg, progress=not args.quiet), {"scenario": args.scenario}
+
+
+def truth_model(truth, source: str = "the truth") -> tuple[float, bool]:
+    """The physics of the truth that the filter's model must share: (mu_m3_s2, gravity_gradient), read from the
+    truth's config (orbit.mu_m3_s2, target.gravity_gradient); InputError if the config lacks them."""
+    try:
+        cfg = truth.config
+        mu = float(cfg["orbit"]["mu_m3_s2"])
+        gg = cfg["target"]["gravity_gradient"]
+    except (KeyError, TypeError, ValueError) as err:
+        raise InputError(f"{source}: its config_json does not give orbit.mu_m3_s2 and target.gravity_gradient "
+                         f"({type(err).__name__}: {err})") from None
+    if not (np.isfinite(mu) and mu > 0) or not isinstance(gg, bool):
+        raise InputError(f"{source}: its config_json has orbit.mu_m3_s2 = {mu!r} and target.gravity_gradient = "
+                         f"{gg!r}; expected a positive number and true/false")
+    return mu, gg
 
 
 def output_paths(out: str) -> tuple[str, str]:
@@ -129,14 +153,16 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     diverged (R,) (NIS window or NEES window against the truth).
     """
     from envisat_pose.filtering.estimator import chaser_states, nees_divergence, run_filter
-    from envisat_pose.filtering.montecarlo import filter_stride, make_run_inputs
+    from envisat_pose.filtering.montecarlo import filter_stride, make_run_inputs, truth_measurements
+
+    mu_m3_s2, gravity_gradient = truth_model(truth)
 
     try:
         stride = filter_stride(truth.t_s, cfg.measurement.rate_hz)
     except ValueError as err:
         raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None
     sel = slice(0, None, stride)
-    t_s, x_true, visible = truth.t_s[sel], truth.x[sel], np.asarray(truth.visible[sel], dtype=bool)
+    t_s, x_true = truth.t_s[sel], truth.x[sel]
     chaser = chaser_states(truth.chaser_r_m, truth.chaser_rdot_m_s, truth.chaser_theta_rad,
                            truth.chaser_thetadot_rad_s)[sel]
     R, T = cfg.runs, len(t_s)
@@ -145,9 +171,12 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
         raise ConfigError("runs", R, f"fewer runs or a shorter truth: {R} runs x {T} steps need "
                           f"{need / 2**30:.1f} GiB (limit {MAX_OUTPUT_BYTES / 2**30:.0f} GiB)")
     fcfg = cfg.filter
-    inp = make_run_inputs(x_true, t_s, visible, cfg.measurement, fcfg.P0, cfg.seed, R)
-    res = run_filter(inp.x0_hat, fcfg.P0, t_s, chaser, inp.z, inp.mask, inp.R_c, cfg.measurement.kind, fcfg,
-                     camera=cfg.measurement.camera, progress=progress)
+    kind = cfg.measurement.kind
+    z_true, base = truth_measurements(kind, truth.corners_C_m[sel], truth.visible[sel], truth.corners_px[sel],
+                                      truth.in_frame[sel])
+    inp = make_run_inputs(x_true[0], t_s, z_true, base, cfg.measurement, fcfg.P0, cfg.seed, R)
+    res = run_filter(inp.x0_hat, fcfg.P0, t_s, chaser, inp.z, inp.mask, inp.R_c, kind, fcfg, progress=progress,
+                     mu_m3_s2=mu_m3_s2, gravity_gradient=gravity_gradient)
     diverged = res.diverged | nees_divergence(x_true[None], res.x_hat, res.P, fcfg)
     return {
         "t_s": t_s,
@@ -178,7 +207,8 @@ def summary(arrays: dict) -> str:
 
 
 def run_estimate(args: argparse.Namespace) -> int:
-    from envisat_pose.io import atomic_write_text, check_writable_output, save_npz
+    from envisat_pose.contracts import Estimates
+    from envisat_pose.io import atomic_write_text, check_writable_output
 
     if not args.out.endswith(".npz"):
         raise InputError(f"--out {args.out!r}: expected a path ending in .npz")
@@ -189,9 +219,9 @@ def run_estimate(args: argparse.Namespace) -> int:
     if len(truth.t_s) < 2:
         raise InputError("the truth trajectory has fewer than 2 samples")
     arrays = estimate(truth, cfg, progress=not args.quiet)
-    arrays["config_json"] = np.array(json.dumps({"estimate": to_dict(cfg), "truth_source": source,
-                                                 "truth_config": json.loads(truth.config_json)}, sort_keys=True))
-    save_npz(out, arrays)
+    config_json = json.dumps({"estimate": to_dict(cfg), "truth_source": source, "truth_config": truth.config},
+                             sort_keys=True)
+    Estimates(**arrays, config_json=config_json).save(out)
     atomic_write_text(cfg_path, "# envisat estimate: the full validated config of this job\n" + to_toml(to_dict(cfg)))
     print(f"wrote {out} ({cfg.runs} runs x {len(arrays['t_s'])} steps), config {cfg_path}")
     print(summary(arrays))

@@ -62,7 +62,7 @@ def test_truth_file_and_rate(tmp_path):
     (["--scenario", "default", "--sigma-m", "-1"], "measurement.sigma_m"),
     (["--scenario", "default", "--rate-hz", "0.3", "--duration-s", "10"], "rate_hz"),
     (["--scenario", "no_such"], "scenario"),
-    (["--truth", "/nonexistent/run.npz"], "does not exist"),
+    (["--truth", "/nonexistent/run.npz"], "no such file"),
     (["--scenario", "default", "--runs", "0"], "runs"),
     (["--scenario", "default", "--out", "est.txt"], ".npz"),
 ])
@@ -102,3 +102,95 @@ def test_config_file_unknown_key_is_a_one_line_error(tmp_path, capsys):
     assert main(["estimate", "--scenario", "default", "--config", str(cfg), "--out", str(tmp_path / "e.npz")]) == 2
     err = capsys.readouterr().err
     assert "filter.alpha_typo" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.fixture(scope="module")
+def truth_file(tmp_path_factory):
+    """A 60 s MuJoCo truth of the default scenario, saved as run.npz."""
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.datagen.truth import simulate
+
+    path = tmp_path_factory.mktemp("truth") / "run.npz"
+    simulate(scenario_config("default", duration_s=60.0, seed=2)).save(str(path))
+    return path
+
+
+def test_estimate_from_a_truth_file_does_not_import_mujoco(truth_file, tmp_path):
+    """`estimate --truth` reads the core's contract: neither MuJoCo nor the simulator (datagen.sim, datagen.truth)
+    is imported. (The parser of `envisat simulate` imports datagen.scenario, which is plain Python.)"""
+    import subprocess
+    import sys
+
+    code = ("import sys; from envisat_pose.app.cli import main; "
+            f"rc = main(['estimate', '--truth', {str(truth_file)!r}, '--runs', '2', '--quiet', "
+            f"'--measurements', 'pixels', '--out', {str(tmp_path / 'est.npz')!r}]); "
+            "print('RC', rc, sorted(m for m in sys.modules if m.split('.')[0] == 'mujoco' "
+            "or m in ('envisat_pose.datagen.sim', 'envisat_pose.datagen.truth')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "RC 0 []" in out.stdout, out.stdout
+    from envisat_pose.contracts import Estimates
+
+    est = Estimates.load(str(tmp_path / "est.npz"))
+    assert est.x_hat.shape == (2, 61, 12) and not est.diverged.any()
+
+
+def _contract_valid_truth_without_orbit(truth_file, path):
+    from envisat_pose.contracts import TruthTrajectory
+
+    tr = TruthTrajectory.load(str(truth_file))
+    tr.config_json = json.dumps({"target": {"gravity_gradient": False}})
+    tr.save(str(path))
+
+
+@pytest.mark.parametrize("how", ["truncated", "random_bytes", "estimates_file", "empty", "config_without_orbit"])
+def test_a_corrupt_truth_file_is_one_error_line(truth_file, tmp_path, capsys, how):
+    bad = tmp_path / "bad.npz"
+    data = truth_file.read_bytes()
+    if how == "truncated":
+        bad.write_bytes(data[: len(data) // 2])
+    elif how == "random_bytes":
+        bad.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    elif how == "estimates_file":
+        assert main(["estimate", "--truth", str(truth_file), "--quiet", "--out", str(bad)]) == 0
+        capsys.readouterr()
+    elif how == "empty":
+        bad.write_bytes(b"")
+    else:
+        _contract_valid_truth_without_orbit(truth_file, bad)
+    out = tmp_path / "e.npz"
+    assert main(["estimate", "--truth", str(bad), "--quiet", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err and "bad.npz" in err, err
+    assert not out.exists()
+
+
+def test_the_filter_takes_mu_from_the_truth(tmp_path):
+    """A truth on a world with mu 20 % larger (still a valid orbit): the estimate uses the truth's mu and stays
+    consistent (a filter with the Earth's mu would diverge in every run, mean NEES ~4e4)."""
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.filtering.estimator import nees
+
+    mu = 1.2 * 3.986004418e14
+    tr = simulate(scenario_config("default", duration_s=300.0, seed=3, orbit={"mu_m3_s2": mu}))
+    tr.save(str(tmp_path / "run.npz"))
+    out = tmp_path / "est.npz"
+    assert main(["estimate", "--truth", str(tmp_path / "run.npz"), "--runs", "20", "--seed", "1", "--quiet",
+                 "--out", str(out)]) == 0
+    est = _load(out)
+    assert json.loads(str(est["config_json"]))["truth_config"]["orbit"]["mu_m3_s2"] == mu
+    anees = nees(est["x_true"], est["x_hat"], est["P"]).mean()
+    print(f"mu x 1.2: mean NEES {anees:.2f}")
+    assert not est["diverged"].any() and 6.0 < anees < 24.0
+
+
+def test_the_filter_takes_the_gravity_gradient_switch_from_the_truth(tmp_path):
+    """The gravity_gradient scenario: the truth's config switches the model's torque on, so no run diverges
+    (torque-free with the default Q, every run would)."""
+    out = tmp_path / "est.npz"
+    assert main(["estimate", "--scenario", "gravity_gradient", "--duration-s", "300", "--runs", "10", "--seed", "2",
+                 "--quiet", "--out", str(out)]) == 0
+    est = _load(out)
+    assert json.loads(str(est["config_json"]))["truth_config"]["target"]["gravity_gradient"] is True
+    assert not est["diverged"].any()

@@ -5,8 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from envisat_pose.filtering.measurements import (R_K_FROM_C, Camera, corners_C_m, in_frame, limit_markers, measure,
-                                    outage_mask, predicted_visible, random_failures, swap_corners)
+from envisat_pose.filtering.measurements import (corners_C_m, in_frame, limit_markers, measure, outage_mask,
+                                                 predicted_visible, random_failures, swap_corners)
+from envisat_pose.geometry import load_camera
 
 
 @pytest.fixture(scope="module")
@@ -17,7 +18,8 @@ def mujoco_state():
     from envisat_pose.datagen.sim import TruthSim
     from envisat_pose.datagen.truth import initial_state
 
-    cfg = scenario_config("close_15m")
+    # 15 m: the body overflows the field of view (in_frame is tested below); a few RK4 steps, no trajectory
+    cfg = scenario_config("default", relative={"rho0_C_m": [0.0, 15.0, 0.0]})
     sim = TruthSim(cfg)
     sim.set_state(initial_state(cfg, np.random.default_rng(3)), 0.0)
     sim.step(137)
@@ -37,34 +39,49 @@ def test_3d_corners_equal_mujoco_sites(mujoco_state):
     assert np.abs(wrong - sites_C).max() > 0.5
 
 
-def test_camera_frame_and_focal_length_match_the_mjcf_camera():
-    import mujoco
+def test_filter_pixels_are_mujocos_projection_of_the_truth(truth_600):
+    """The filter's pixel model (the MJCF camera through load_camera) against the truth's corners_px, which MuJoCo
+    projects through its compiled camera: the same camera, to numerical precision (a copied focal length of
+    1910.8 px instead of the MJCF's 1910.85 would be off by ~5e-3 px at the image edges)."""
+    tr = truth_600
+    uv = measure(tr.x, "pixels")
+    seen = tr.in_frame
+    assert seen.mean() > 0.9
+    np.testing.assert_allclose(uv[seen], tr.corners_px[seen], rtol=0, atol=1e-5)
+    uvr = measure(tr.x, "pixels+range")
+    np.testing.assert_allclose(uvr[..., 2], np.linalg.norm(tr.corners_C_m - load_camera().pos_C_m, axis=-1), atol=1e-8)
+    np.testing.assert_array_equal(in_frame(tr.x), tr.in_frame)
 
-    from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.sim import build_model
 
-    model = build_model(scenario_config("default"))
-    data = mujoco.MjData(model)
-    mujoco.mj_forward(model, data)  # chaser mocap at identity: world axes = C
-    cam = model.camera("chaser_cam").id
-    xmat = data.cam_xmat[cam].reshape(3, 3)  # columns: camera x (right), y (up), z (backwards) in C
-    R_K_from_C_mj = np.stack([xmat[:, 0], -xmat[:, 1], -xmat[:, 2]])  # K: x right, y down, z boresight
-    np.testing.assert_allclose(R_K_FROM_C, R_K_from_C_mj, atol=1e-12)
-    f = 0.5 * 1024 / math.tan(math.radians(model.cam_fovy[cam]) / 2)
-    assert abs(f - Camera().f_px) < 0.1
+def test_a_corner_behind_the_camera_is_never_mirrored_into_the_image():
+    """Target 50 m behind the chaser (-y_C): a plain pinhole would mirror every corner into the image (z_K < 0 flips
+    the signs); the guarded projection puts them far outside, on their own side of the principal point."""
+    cam = load_camera()
+    x = np.zeros(12)
+    x[:3] = [3.0, -50.0, 2.0]
+    x[6:9] = [0.1, -0.2, 0.3]
+    pts_K = (corners_C_m(x) - cam.pos_C_m) @ cam.R_K_from_C.T
+    assert (pts_K[:, 2] < 0).all()
+    mirrored = cam.f_px * pts_K[:, :2] / pts_K[:, 2:3] + [cam.cu_px, cam.cv_px]
+    assert ((mirrored >= 0) & (mirrored <= 1023)).all()  # what an unguarded pinhole would report
+    for kind in ("pixels", "pixels+range"):
+        uv = measure(x, kind)[:, :2]
+        assert (np.abs(uv - [cam.cu_px, cam.cv_px]) > 1e4).any(axis=1).all()
+        np.testing.assert_array_equal(np.sign(uv - [cam.cu_px, cam.cv_px]), np.sign(pts_K[:, :2]))
+    assert not in_frame(x).any()
 
 
 def test_pixels_and_range(mujoco_state):
     _, x, sites_C = mujoco_state
-    cam = Camera()
+    cam = load_camera()
     uv = measure(x, "pixels", cam)
     for i in range(8):
-        v_K = R_K_FROM_C @ sites_C[i]
+        v_K = cam.R_K_from_C @ (sites_C[i] - cam.pos_C_m)
         np.testing.assert_allclose(uv[i], [cam.f_px * v_K[0] / v_K[2] + 511.5, cam.f_px * v_K[1] / v_K[2] + 511.5],
                                    atol=1e-6)
     uvr = measure(x, "pixels+range", cam)
     np.testing.assert_allclose(uvr[:, :2], uv)
-    np.testing.assert_allclose(uvr[:, 2], np.linalg.norm(sites_C, axis=1), atol=1e-9)
+    np.testing.assert_allclose(uvr[:, 2], np.linalg.norm(sites_C - cam.pos_C_m, axis=1), atol=1e-9)
     # the target ahead (+y_C) is in the middle of the image; something radially above (+x_C) is up (small v)
     up = np.array([0.0, 0.0, 0.0] + [0.0] * 9)
     up[:3] = [5.0, 50.0, 0.0]

@@ -6,7 +6,7 @@ from scipy.stats import chi2
 
 from envisat_pose.filtering.estimator import FilterConfig, run_filter
 from envisat_pose.filtering.measurements import measure
-from envisat_pose.filtering.montecarlo import MeasurementConfig, make_run_inputs
+from envisat_pose.filtering.montecarlo import MeasurementConfig, inputs_from_truth
 from envisat_pose.filtering.reference import make_reference_ukf, reference_predict, reference_update
 
 
@@ -16,7 +16,7 @@ def test_filterpy_and_batched_agree_over_100_steps(truth_600, chaser_of, kind):
     T, R = 100, 2
     cfg = FilterConfig(gate_prob=0.0, outage_q_scale=1.0, visibility_check=False)  # as the reference
     mcfg = MeasurementConfig(kind=kind, failure_prob=0.3, outages_s=((40.0, 44.0),))
-    inp = make_run_inputs(tr.x[:T], tr.t_s[:T], tr.visible[:T], mcfg, cfg.P0, seed=11, n_runs=R)
+    inp = inputs_from_truth(tr, mcfg, cfg.P0, seed=11, n_runs=R, sel=slice(0, T))
     n_meas = inp.mask.sum(-1)
     assert len(np.unique(n_meas)) >= 5 and (n_meas == 0).any()  # the visible set really varies, with gaps
     c = chaser_of(tr)[:T]
@@ -27,7 +27,7 @@ def test_filterpy_and_batched_agree_over_100_steps(truth_600, chaser_of, kind):
         for k in range(T):
             if k > 0:
                 reference_predict(ukf, 1.0, c[k - 1])
-            reference_update(ukf, inp.z[r, k], inp.mask[r, k], inp.R_c, kind, mcfg.camera)
+            reference_update(ukf, inp.z[r, k], inp.mask[r, k], inp.R_c, kind)
             np.testing.assert_allclose(res.x_hat[r, k], ukf.x, rtol=0, atol=1e-9, err_msg=f"run {r} step {k}")
             np.testing.assert_allclose(res.P[r, k], ukf.P, rtol=0, atol=1e-9, err_msg=f"run {r} step {k}")
         switches += int(np.sum(np.abs(np.diff(res.x_hat[r, :, 6:9], axis=0)).max(-1) > 0.5))
