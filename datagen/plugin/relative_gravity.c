@@ -13,6 +13,11 @@
 //   mu_m3_s2, a_m, e, i_deg, raan_deg, argp_deg, nu0_deg (true anomaly at epoch), epoch_s (sim time of nu0),
 //   gravity_gradient (0 or 1).
 
+#ifndef _GNU_SOURCE
+#define _GNU_SOURCE  // strtod_l, newlocale: parse numbers in the C locale whatever LC_NUMERIC says
+#endif
+
+#include <locale.h>
 #include <math.h>
 #include <stdint.h>
 #include <stdio.h>
@@ -39,15 +44,27 @@ typedef struct {
   int gravity_gradient;
 } Orbit;
 
+// The "C" numeric locale, made once at library load: MJCF numbers use a decimal point whatever the
+// process's LC_NUMERIC (plain strtod would read "0.001" as 0 under a comma-decimal locale).
+static locale_t c_numeric_locale = (locale_t)0;
+
+static int is_blank(char c) { return c == ' ' || c == '\t' || c == '\n' || c == '\r' || c == '\f' || c == '\v'; }
+
+// Parses the whole attribute as one finite number (surrounding whitespace allowed, nothing else).
 static int read_attribute(const mjModel* m, int instance, const char* name, double* out) {
   const char* text = mj_getPluginConfig(m, instance, name);
   if (!text || !text[0]) {
     mju_warning("%s: attribute '%s' is missing", PLUGIN_NAME, name);
     return -1;
   }
+  if (c_numeric_locale == (locale_t)0) {
+    mju_warning("%s: could not create the C numeric locale", PLUGIN_NAME);
+    return -1;
+  }
   char* end = NULL;
-  double value = strtod(text, &end);
-  if (end == text || !isfinite(value)) {
+  double value = strtod_l(text, &end, c_numeric_locale);
+  while (end && is_blank(*end)) ++end;
+  if (end == text || !end || *end != '\0' || !isfinite(value)) {
     mju_warning("%s: attribute '%s'='%s' is not a finite number", PLUGIN_NAME, name, text);
     return -1;
   }
@@ -167,6 +184,7 @@ static void plugin_compute(const mjModel* m, mjData* d, int instance, int capabi
 }
 
 mjPLUGIN_LIB_INIT(envisat_relative_gravity) {
+  if (c_numeric_locale == (locale_t)0) c_numeric_locale = newlocale(LC_NUMERIC_MASK, "C", (locale_t)0);
   mjpPlugin plugin;
   mjp_defaultPlugin(&plugin);
   plugin.name = PLUGIN_NAME;
