@@ -1,7 +1,5 @@
 """Measurement models against MuJoCo (the corner sites and the chaser camera of models/envisat.xml)."""
 
-import math
-
 import numpy as np
 import pytest
 

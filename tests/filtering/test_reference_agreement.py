@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from scipy.stats import chi2
 
 from envisat_pose.filtering.estimator import FilterConfig, run_filter
 from envisat_pose.filtering.measurements import measure
