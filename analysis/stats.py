@@ -202,8 +202,8 @@ def _add(a: CampaignSums, b: CampaignSums) -> CampaignSums:
     """a + b for adjacent blocks (a.run_stop == b.run_start)."""
     if a.run_stop != b.run_start:
         raise ValueError(f"runs [{a.run_start}, {a.run_stop}) and [{b.run_start}, {b.run_stop}) are not adjacent")
-    return dataclasses.replace(a, run_stop=b.run_stop, n_runs=a.n_runs + b.n_runs, n_diverged=a.n_diverged + b.n_diverged,
-                               **{k: getattr(a, k) + getattr(b, k) for k in CampaignSums.ARRAYS})
+    return dataclasses.replace(a, run_stop=b.run_stop, n_runs=a.n_runs + b.n_runs,
+                               n_diverged=a.n_diverged + b.n_diverged, **{k: getattr(a, k) + getattr(b, k) for k in CampaignSums.ARRAYS})
 
 
 def merge_sums(parts) -> CampaignSums:

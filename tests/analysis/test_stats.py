@@ -62,7 +62,8 @@ def test_sample_and_filter_3sigma_rmse_and_containment_of_a_consistent_filter():
 
 
 def test_containment_of_an_overconfident_filter_matches_the_gaussian_closed_form():
-    """P reported 4x too small (sigma halved): |e| <= 3 sigma_reported is |N| <= 1.5; the 3-D block chi2(3) <= 14.16 / 4."""
+    """P reported 4x too small (sigma halved): |e| <= 3 sigma_reported is |N| <= 1.5; a 3-D block is
+    chi2(3) <= 14.16 / 4."""
     rng = np.random.default_rng(2)
     P = _spd(rng, SCALES)
     R = 6000
