@@ -210,7 +210,8 @@ class Estimates(_Contract):
 
     t_s: (T,) s. x_true: (R, T, 12) the truth on the filter's grid; x_hat: (R, T, 12) posterior means; P:
     (R, T, 12, 12) posterior covariances (units of the state, squared). n_meas: (R, T) corners used per step.
-    nis: (R, T) normalized innovation squared (0 without measurement). diverged: (R,) bool.
+    nis: (R, T) normalized innovation squared (0 without measurement); nis_dof: (R, T) its degrees of freedom
+    (measured components used). diverged: (R,) bool.
     config_json: the estimate config, the truth's source and config, as JSON.
     """
 
@@ -220,6 +221,7 @@ class Estimates(_Contract):
     P: np.ndarray
     n_meas: np.ndarray
     nis: np.ndarray
+    nis_dof: np.ndarray
     diverged: np.ndarray
     config_json: str
 
@@ -231,5 +233,6 @@ class Estimates(_Contract):
         "P": ("f", ("R", "T", 12, 12), "finite"),
         "n_meas": ("i", ("R", "T"), None),
         "nis": ("f", ("R", "T"), "finite"),
+        "nis_dof": ("i", ("R", "T"), None),
         "diverged": ("b", ("R",), None),
     }

@@ -46,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="run the UKF on a truth trajectory (R Monte Carlo runs) and write est.npz",
         description="Estimate the relative pose of the tumbling target with the batched UKF over R Monte Carlo runs "
         "(runs differ in the initial error drawn from P0 and in measurement noise) and write est.npz: t_s, x_true, "
-        "x_hat, P, n_meas, nis, diverged, config_json.",
+        "x_hat, P, n_meas, nis, nis_dof, diverged, config_json.",
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--truth", metavar="RUN.npz", help="truth trajectory written by `envisat simulate`")
@@ -149,7 +149,7 @@ def output_paths(out: str) -> tuple[str, str]:
 def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     """Filter cfg.runs runs of a truth trajectory; returns the arrays of est.npz (without config_json).
 
-    Arrays: t_s (T,), x_true (R, T, 12), x_hat (R, T, 12), P (R, T, 12, 12), n_meas (R, T), nis (R, T),
+    Arrays: t_s (T,), x_true (R, T, 12), x_hat (R, T, 12), P (R, T, 12, 12), n_meas (R, T), nis (R, T), nis_dof (R, T),
     diverged (R,) (NIS window or NEES window against the truth).
     """
     from envisat_pose.filtering.estimator import chaser_states, nees_divergence, run_filter
@@ -185,6 +185,7 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
         "P": res.P,
         "n_meas": res.n_meas,
         "nis": res.nis,
+        "nis_dof": res.dof,
         "diverged": diverged,
     }
 

@@ -7,7 +7,7 @@ import pytest
 
 from envisat_pose.app.cli import main
 
-KEYS = {"t_s", "x_true", "x_hat", "P", "n_meas", "nis", "diverged", "config_json"}
+KEYS = {"t_s", "x_true", "x_hat", "P", "n_meas", "nis", "nis_dof", "diverged", "config_json"}
 
 
 def _load(path):
