@@ -5,7 +5,9 @@ arrays (MuJoCo's corner sites corners_C_m, their projection corners_px through M
 and in-frame flags) into noise-free measurements z_true (T, 8, m) and the measurable set (T, 8).
 Runs share one truth trajectory and differ in their initial estimate error (drawn from P0) and in their
 measurement noise and failures. Run r draws everything from its own Generator, made from
-`numpy.random.SeedSequence(seed).spawn(R)[r]`, in a fixed order: initial error, measurement noise, failures.
+`numpy.random.SeedSequence(seed, spawn_key=(r,))` (the same as `SeedSequence(seed).spawn(R)[r]`), in a fixed
+order: initial error, measurement noise, failures. Run r's draws depend on r only, so a block of runs [a, b)
+(`first_run=a`) draws exactly what the whole campaign draws for those runs.
 """
 
 from __future__ import annotations
@@ -109,13 +111,14 @@ def truth_measurements(kind: str, corners_C_m: np.ndarray, visible: np.ndarray, 
 
 
 def make_run_inputs(x0_true: np.ndarray, t_s: np.ndarray, z_true: np.ndarray, base_mask: np.ndarray,
-                    mcfg: MeasurementConfig, P0: np.ndarray, seed: int, n_runs: int) -> RunInputs:
+                    mcfg: MeasurementConfig, P0: np.ndarray, seed: int, n_runs: int, first_run: int = 0) -> RunInputs:
     """Measurements and initial estimates of n_runs runs of one truth.
 
     x0_true (12,): the true state at t_s[0]; t_s (T,) the filter's time grid; z_true (T, 8, m) noise-free
     measurements and base_mask (T, 8) bool the measurable corners on that grid (truth_measurements). The
-    measured set is base_mask minus outages and random failures, then limited to max_markers. Run r draws, from
-    SeedSequence(seed).spawn(n_runs)[r]: its initial error (P0), its noise, its failures.
+    measured set is base_mask minus outages and random failures, then limited to max_markers. The runs are
+    first_run .. first_run + n_runs - 1; run r draws, from SeedSequence(seed, spawn_key=(r,)) (=
+    SeedSequence(seed).spawn(R)[r]): its initial error (P0), its noise, its failures.
     """
     z_true = np.asarray(z_true, dtype=float)
     base = np.asarray(base_mask, dtype=bool) & ~outage_mask(np.asarray(t_s), mcfg.outages_s)[:, None]
@@ -124,8 +127,8 @@ def make_run_inputs(x0_true: np.ndarray, t_s: np.ndarray, z_true: np.ndarray, ba
     if z_true.shape[-1] != cov.shape[-1]:
         raise ValueError(f"z_true has {z_true.shape[-1]} components per corner; kind {mcfg.kind!r} has {cov.shape[-1]}")
     x0, zs, masks = [], [], []
-    for child in np.random.SeedSequence(seed).spawn(n_runs):
-        rng = np.random.default_rng(child)
+    for r in range(first_run, first_run + n_runs):
+        rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(r,)))
         x0.append(np.asarray(x0_true, dtype=float) + L0 @ rng.standard_normal(12))
         zs.append(add_noise(z_true, cov, rng))
         masks.append(limit_markers(random_failures(base, mcfg.failure_prob, rng), mcfg.max_markers))
