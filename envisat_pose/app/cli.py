@@ -15,7 +15,8 @@ import sys
 from envisat_pose.config import ConfigError, InputError
 
 # The app modules that define register(subparsers), in the order their verbs are listed.
-_VERB_MODULES = ("envisat_pose.app.simulate", "envisat_pose.app.generate", "envisat_pose.app.estimate")
+_VERB_MODULES = ("envisat_pose.app.simulate", "envisat_pose.app.generate", "envisat_pose.app.estimate",
+                 "envisat_pose.app.montecarlo", "envisat_pose.app.report")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,606 @@
+"""`envisat montecarlo`: a Monte Carlo campaign of the batched UKF over one MuJoCo truth, in resumable blocks.
+
+The truth is simulated once (MuJoCo) and saved as DIR/truth.npz. The runs are split into blocks of
+`block_runs`; each block is one task of the core runner (`block_task`: plain data in, its manifest entry out)
+that filters its runs with the pure `filter_step` in time chunks, so no covariance history is ever held: per
+chunk, `analysis.stats.reduce_runs` turns it into sums over the block's runs, and per-run summaries are
+accumulated. Memory is O(block_runs x steps) for the inputs and O(block_runs x CHUNK_STEPS) for covariances.
+Run r draws from SeedSequence(seed, spawn_key=(r,)), so a block draws exactly what the campaign draws.
+
+Files in DIR:
+    truth.npz                 the truth (TruthTrajectory contract)
+    blocks/block-NNNN.npz     one per block: CampaignSums arrays, per-run summaries, sample-run errors
+    manifest.json             the config, the truth's sha256 and each finished block's sha256 and wall time
+    campaign.npz              statistics over time (stats.CampaignStats), the PCRLB per block, per-run summaries,
+                              the component errors of the first `sample_runs` runs
+    summary.json              the reproducible scalars: RMSE per block after settle_s, share inside 3-sigma,
+                              mean NEES with its 95 % band, NIS, PCRLB and RMSE/PCRLB per block, diverged runs
+    timing.json               wall times (never part of anything byte-reproducible)
+    envelopes.png, block_norms.png, nees_nis.png, rmse_vs_pcrlb.png
+    montecarlo.config.toml    the full validated config
+
+The same config and seed give the same bytes of blocks, campaign.npz and summary.json whatever the backend
+(local pool, Dask) and worker count: blocks are merged in run-index order (`stats.SumsFolder`). Rerunning the
+same command on DIR keeps the finished blocks whose sha256 matches the manifest; another config is refused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from envisat_pose.config import ConfigError, InputError, check, from_dict, load_toml, set_dotted, to_dict, to_toml
+from envisat_pose.filtering.estimator import FilterConfig
+from envisat_pose.filtering.montecarlo import MeasurementConfig
+
+MANIFEST_FORMAT = "envisat-pose montecarlo v1"
+CHUNK_STEPS = 200  # filter steps per reduction chunk: bounds the covariances held to R x 200 x 144 floats
+FIGURES = ("envelopes.png", "block_norms.png", "nees_nis.png", "rmse_vs_pcrlb.png")
+RUN_KEYS = ("rms_block", "final_block", "max_block", "inside_share", "nees_mean", "nis_per_dof", "diverged")
+
+
+@dataclass(frozen=True)
+class MonteCarloConfig:
+    """One campaign. The results' bytes depend on every field (block_runs fixes the order of the sums).
+
+    scenario: named truth scenario. duration_s: simulated time, s. runs: Monte Carlo runs. seed: root seed (the
+    truth's initial attitude and run r's draws, SeedSequence(seed, spawn_key=(r,))). block_runs: runs per task.
+    settle_s: the statistics of summary.json use the steps at or after t0 + settle_s (None: half the duration,
+    at most 600 s). sample_runs: the first runs whose errors are kept for the figures' grey curves.
+    """
+
+    scenario: str = "default"
+    duration_s: float = 1800.0
+    runs: int = 100
+    seed: int = 0
+    block_runs: int = 125
+    settle_s: float | None = None
+    sample_runs: int = 20
+    measurement: MeasurementConfig = field(default_factory=MeasurementConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+
+    def validate(self, prefix: str = "") -> None:
+        check(self.duration_s > 0, "duration_s", self.duration_s, "a positive duration in seconds")
+        check(1 <= self.runs <= 1_000_000, "runs", self.runs, "a number of runs from 1 to 1000000")
+        check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")
+        check(1 <= self.block_runs <= 10_000, "block_runs", self.block_runs, "an integer from 1 to 10000")
+        check(self.settle_s is None or 0 <= self.settle_s < self.duration_s, "settle_s", self.settle_s,
+              f"a time in [0, duration_s = {self.duration_s:g}) s")
+        check(0 <= self.sample_runs <= 200, "sample_runs", self.sample_runs, "an integer from 0 to 200")
+
+    @property
+    def settle_time_s(self) -> float:
+        return float(self.settle_s) if self.settle_s is not None else min(600.0, 0.5 * self.duration_s)
+
+    @property
+    def n_blocks(self) -> int:
+        return -(-self.runs // self.block_runs)
+
+    def block_range(self, b: int) -> tuple[int, int]:
+        """Runs [start, stop) of block b."""
+        return b * self.block_runs, min(self.runs, (b + 1) * self.block_runs)
+
+
+# ---------------------------------------------------------------- command line
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "montecarlo",
+        help="Monte Carlo campaign of the UKF on one simulated truth: statistics, PCRLB, figures, summary.json",
+        description="Simulate the scenario's truth once, filter N Monte Carlo runs in blocks (parallel, resumable) "
+        "and write DIR/campaign.npz, summary.json, timing.json, the figures and montecarlo.config.toml.",
+    )
+    p.add_argument("--scenario", required=True, metavar="NAME", help="named truth scenario")
+    p.add_argument("--runs", type=int, help="number of Monte Carlo runs (default 100)")
+    p.add_argument("--out", required=True, metavar="DIR", help="campaign folder (rerun on it to resume)")
+    p.add_argument("--config", metavar="FILE.toml", help="campaign config (tables measurement, filter; runs, seed...)")
+    p.add_argument("--duration-s", type=float, help="simulated time, s (default 1800)")
+    p.add_argument("--seed", type=int, help="root seed (default 0)")
+    p.add_argument("--rate-hz", type=float, help="filter/measurement rate, Hz (default 1)")
+    p.add_argument("--measurements", choices=["markers3d", "pixels", "pixels+range"],
+                   help="what is measured of each visible corner (default markers3d)")
+    p.add_argument("--sigma-m", type=float, help="3D corner noise per axis, m (default 0.02)")
+    p.add_argument("--sigma-px", type=float, help="pixel noise per axis, px (default 1)")
+    p.add_argument("--max-markers", type=int, help="use at most N corners per step, the first visible in A..H order")
+    p.add_argument("--block-runs", type=int, help="runs per block (one task; default 125)")
+    p.add_argument("--settle-s", type=float, help="statistics after this time, s (default half, at most 600 s)")
+    p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    p.add_argument("--backend", choices=["local", "dask"], default="local", help="process pool or Dask")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="with --backend dask: an existing scheduler")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=run_montecarlo)
+
+
+def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
+    """Defaults, then the file, then the flags; validated before any work."""
+    data: dict = load_toml(args.config) if args.config else {}
+    flags = {
+        "scenario": args.scenario, "runs": args.runs, "seed": args.seed, "duration_s": args.duration_s,
+        "block_runs": args.block_runs, "settle_s": args.settle_s,
+        "measurement.kind": args.measurements, "measurement.sigma_m": args.sigma_m,
+        "measurement.sigma_px": args.sigma_px, "measurement.max_markers": args.max_markers,
+        "measurement.rate_hz": args.rate_hz,
+    }
+    for key, value in flags.items():
+        if value is not None:
+            data = set_dotted(data, key, value)
+    cfg = from_dict(MonteCarloConfig, data)
+    from envisat_pose.datagen.scenario import scenario_dict
+
+    scenario_dict(cfg.scenario)  # an unknown name fails here with the list of known ones
+    return cfg
+
+
+def runner_config(args: argparse.Namespace):
+    """The core runner's settings, one BLAS thread share per worker."""
+    from envisat_pose.runner import RunnerConfig, cpu_share
+
+    check(args.workers >= 1, "workers", args.workers, "at least 1 worker")
+    check(args.scheduler is None or args.backend == "dask", "scheduler", args.scheduler,
+          "an address only with --backend dask")
+    n = str(cpu_share(args.workers))
+    runner = RunnerConfig(args.backend, args.workers, args.scheduler,
+                          {"OMP_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n, "MKL_NUM_THREADS": n})
+    runner.validate()
+    return runner
+
+
+def run_montecarlo(args: argparse.Namespace) -> int:
+    cfg = resolve_config(args)
+    runner = runner_config(args)
+    t0 = time.perf_counter()
+    summary = run_campaign(cfg, args.out, runner, progress=not args.quiet)
+    print(f"wrote {args.out}: {cfg.runs} runs x {summary['steps']} steps, campaign.npz, summary.json, "
+          f"{len(FIGURES)} figures ({time.perf_counter() - t0:.1f} s)")
+    print(summary_line(summary))
+    return 0
+
+
+def summary_line(s: dict) -> str:
+    """One line of the campaign's main numbers."""
+    r, e = s["rmse"], s["rmse_over_pcrlb"]
+    return (f"after t = {s['settle_s']:.0f} s: RMSE position {100 * r['position']:.3f} cm, attitude "
+            f"{math.degrees(r['attitude']):.4f} deg; RMSE/PCRLB " + ", ".join(f"{b} {v:.3f}" for b, v in e.items())
+            + f"; mean NEES {s['nees_mean']:.2f} (95 % band {s['nees_bounds'][0]:.2f}..{s['nees_bounds'][1]:.2f}); "
+            f"diverged {s['n_diverged']}/{s['n_runs']}")
+
+
+# ---------------------------------------------------------------- the campaign
+
+def _sha256(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def block_name(b: int) -> str:
+    return os.path.join("blocks", f"block-{b:04d}.npz")
+
+
+def read_manifest(out_dir: str) -> dict | None:
+    path = os.path.join(out_dir, "manifest.json")
+    if not os.path.exists(path):
+        return None
+    try:
+        with open(path, encoding="utf-8") as fh:
+            manifest = json.load(fh)
+    except (OSError, ValueError) as err:
+        raise InputError(f"{path}: unreadable manifest ({err}); remove it or use another --out") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
+        raise InputError(f"{path}: not a montecarlo manifest (format {MANIFEST_FORMAT!r} expected)")
+    return manifest
+
+
+def check_same_config(manifest: dict, cfg: MonteCarloConfig, out_dir: str) -> None:
+    """A campaign folder holds one config: another one is one InputError line naming the differences."""
+    theirs, ours = _flat(manifest.get("config", {})), _flat(to_dict(cfg))
+    diff = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
+    if diff:
+        shown = ", ".join(f"{k} = {theirs.get(k)!r} there, {ours.get(k)!r} here" for k in diff[:3])
+        raise InputError(f"--out {out_dir!r} holds a campaign with another config ({shown}"
+                         f"{', ...' if len(diff) > 3 else ''}); rerun with the same settings or use another folder")
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def finished_blocks(manifest: dict | None, cfg: MonteCarloConfig, out_dir: str, truth_sha: str) -> dict:
+    """Blocks of the manifest whose file exists with the recorded sha256 (for this truth). {index: entry}."""
+    if not manifest or manifest.get("truth_sha256") != truth_sha:
+        return {}
+    done = {}
+    for e in manifest.get("blocks", []):
+        path = os.path.join(out_dir, e["file"])
+        if (0 <= e["index"] < cfg.n_blocks and cfg.block_range(e["index"]) == (e["run_start"], e["run_stop"])
+                and os.path.exists(path) and _sha256(path) == e["sha256"]):
+            done[e["index"]] = e
+    return done
+
+
+def write_manifest(out_dir: str, cfg: MonteCarloConfig, truth_sha: str, done: dict) -> None:
+    from envisat_pose.io import atomic_write_text
+
+    manifest = {"format": MANIFEST_FORMAT, "config": to_dict(cfg), "truth_sha256": truth_sha,
+                "n_blocks": cfg.n_blocks, "complete": len(done) == cfg.n_blocks,
+                "blocks": [done[i] for i in sorted(done)]}
+    atomic_write_text(os.path.join(out_dir, "manifest.json"), json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+
+
+def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, progress: bool) -> str:
+    """DIR/truth.npz: kept when the manifest vouches for it, else simulated with MuJoCo. Returns its sha256."""
+    path = os.path.join(out_dir, "truth.npz")
+    if manifest and os.path.exists(path) and _sha256(path) == manifest.get("truth_sha256"):
+        return manifest["truth_sha256"]
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.datagen.truth import simulate
+
+    overrides: dict = {"seed": cfg.seed, "duration_s": cfg.duration_s}
+    if cfg.measurement.rate_hz > 1.0:
+        overrides["dt_s"] = 1.0 / cfg.measurement.rate_hz
+    simulate(scenario_config(cfg.scenario, **overrides), progress=progress).save(path)
+    return _sha256(path)
+
+
+def prepare_out_dir(out_dir: str) -> None:
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise InputError(f"--out {out_dir!r} is a file, expected a campaign folder")
+    try:
+        os.makedirs(os.path.join(out_dir, "blocks"), exist_ok=True)
+    except OSError as err:
+        raise InputError(f"--out {out_dir!r} cannot be created ({err.strerror})") from None
+    if not os.access(out_dir, os.W_OK):
+        raise InputError(f"--out {out_dir!r} is not writable")
+    for folder in (out_dir, os.path.join(out_dir, "blocks")):  # partial files of a killed run
+        for name in os.listdir(folder):
+            if name.startswith(".tmp-"):
+                os.remove(os.path.join(folder, name))
+
+
+def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner, progress: bool = False) -> dict:
+    """Run (or finish) the campaign of cfg in out_dir and write its outputs. Returns summary.json's dict."""
+    from envisat_pose.io import atomic_write_text
+    from envisat_pose.runner import run_tasks
+
+    t_start = time.perf_counter()
+    manifest = read_manifest(out_dir) if os.path.isdir(out_dir) else None
+    if manifest is not None:
+        check_same_config(manifest, cfg, out_dir)
+    prepare_out_dir(out_dir)
+    truth_sha = prepare_truth(cfg, out_dir, manifest, progress)
+    check_filter_rate(cfg, out_dir)
+    done = finished_blocks(manifest, cfg, out_dir, truth_sha)
+    for b in range(cfg.n_blocks):  # a block file the manifest does not vouch for is redone
+        if b not in done and os.path.exists(os.path.join(out_dir, block_name(b))):
+            os.remove(os.path.join(out_dir, block_name(b)))
+    write_manifest(out_dir, cfg, truth_sha, done)
+    atomic_write_text(os.path.join(out_dir, "montecarlo.config.toml"),
+                      "# envisat montecarlo: the full validated config of this campaign\n" + to_toml(to_dict(cfg)))
+    cfg_json = json.dumps(to_dict(cfg), sort_keys=True)
+    tasks = [(os.path.abspath(out_dir), cfg_json, b) for b in range(cfg.n_blocks) if b not in done]
+    bar = _bar(cfg, done, progress)
+    try:
+        for _, entry in run_tasks(block_task, tasks, runner):
+            done[entry["index"]] = entry
+            write_manifest(out_dir, cfg, truth_sha, done)
+            if bar is not None:
+                bar.update(entry["run_stop"] - entry["run_start"])
+    finally:
+        if bar is not None:
+            bar.close()
+    summary = finish_campaign(cfg, out_dir)
+    timing = {"wall_s_this_invocation": time.perf_counter() - t_start,
+              "block_wall_s": {str(i): done[i]["wall_s"] for i in sorted(done)},
+              "block_wall_s_sum": float(sum(e["wall_s"] for e in done.values())),
+              "blocks_run_now": len(tasks), "backend": runner.backend, "workers": runner.workers,
+              "run_steps": cfg.runs * summary["steps"]}
+    atomic_write_text(os.path.join(out_dir, "timing.json"), json.dumps(timing, indent=1, sort_keys=True) + "\n")
+    return summary
+
+
+def _bar(cfg: MonteCarloConfig, done: dict, progress: bool):
+    if not progress:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=cfg.runs, initial=sum(e["run_stop"] - e["run_start"] for e in done.values()), unit="run",
+                desc="montecarlo", mininterval=0.5)
+
+
+def check_filter_rate(cfg: MonteCarloConfig, out_dir: str) -> None:
+    from envisat_pose.contracts import TruthTrajectory
+    from envisat_pose.filtering.montecarlo import filter_stride
+
+    truth = TruthTrajectory.load(os.path.join(out_dir, "truth.npz"))
+    try:
+        filter_stride(truth.t_s, cfg.measurement.rate_hz)
+    except ValueError as err:
+        raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None
+
+
+# ---------------------------------------------------------------- one block (a runner task)
+
+@dataclass(frozen=True)
+class CampaignTruth:
+    """The truth on the filter's grid: t_s (T,), x_true (T, 12), chaser (T, 4), z_true (T, 8, m), base (T, 8)
+    measurable corners (outages not yet removed), and the filter's model constants mu_m3_s2, gravity_gradient."""
+
+    t_s: np.ndarray
+    x_true: np.ndarray
+    chaser: np.ndarray
+    z_true: np.ndarray
+    base: np.ndarray
+    mu_m3_s2: float
+    gravity_gradient: bool
+
+
+def load_campaign_truth(out_dir: str, mcfg: MeasurementConfig) -> CampaignTruth:
+    """DIR/truth.npz sampled at the filter's rate, with its noise-free measurements."""
+    from envisat_pose.app.estimate import truth_model
+    from envisat_pose.contracts import TruthTrajectory
+    from envisat_pose.filtering.estimator import chaser_states
+    from envisat_pose.filtering.montecarlo import filter_stride, truth_measurements
+
+    path = os.path.join(out_dir, "truth.npz")
+    truth = TruthTrajectory.load(path)
+    mu, gg = truth_model(truth, path)
+    sel = slice(0, None, filter_stride(truth.t_s, mcfg.rate_hz))
+    chaser = chaser_states(truth.chaser_r_m, truth.chaser_rdot_m_s, truth.chaser_theta_rad,
+                           truth.chaser_thetadot_rad_s)[sel]
+    z_true, base = truth_measurements(mcfg.kind, truth.corners_C_m[sel], truth.visible[sel], truth.corners_px[sel],
+                                      truth.in_frame[sel])
+    return CampaignTruth(truth.t_s[sel], truth.x[sel], chaser, z_true, base, mu, gg)
+
+
+def block_task(out_dir: str, cfg_json: str, b: int) -> dict:
+    """Runner task: filter and reduce block b of the campaign in out_dir, write blocks/block-NNNN.npz
+    atomically, return its manifest entry {index, run_start, run_stop, file, sha256, wall_s}."""
+    from envisat_pose.io import save_npz
+
+    t0 = time.perf_counter()
+    cfg = from_dict(MonteCarloConfig, json.loads(cfg_json))
+    a, z = cfg.block_range(b)
+    arrays = filter_block(load_campaign_truth(out_dir, cfg.measurement), cfg, a, z)
+    path = os.path.join(out_dir, block_name(b))
+    save_npz(path, arrays)
+    return {"index": b, "run_start": a, "run_stop": z, "file": block_name(b), "sha256": _sha256(path),
+            "wall_s": time.perf_counter() - t0}
+
+
+def filter_block(tr: CampaignTruth, cfg: MonteCarloConfig, run_start: int, run_stop: int) -> dict:
+    """Filter runs [run_start, run_stop) and reduce them chunk by chunk. Returns the block file's arrays:
+    CampaignSums.to_arrays() (over all T steps), run_<key> per-run summaries (stats.RunSummary fields over the
+    settled steps), sample_err (S, T, 12) and sample_norms (S, T, 4) of the block's runs below sample_runs."""
+    from envisat_pose.analysis.stats import block_error_norms, component_errors
+    from envisat_pose.filtering.estimator import Measurement, filter_step, init_state, make_setup
+    from envisat_pose.filtering.montecarlo import make_run_inputs
+
+    fcfg, n = cfg.filter, run_stop - run_start
+    inp = make_run_inputs(tr.x_true[0], tr.t_s, tr.z_true, tr.base, cfg.measurement, fcfg.P0, cfg.seed, n,
+                          first_run=run_start)
+    setup = make_setup(fcfg, cfg.measurement.kind, mu_m3_s2=tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient)
+    R_c = np.broadcast_to(inp.R_c, inp.z.shape[:-1] + inp.R_c.shape[-2:])
+    state = init_state(inp.x0_hat, fcfg.P0, tr.t_s[0], tr.chaser[0], fcfg)
+    T, n_sample = len(tr.t_s), max(0, min(run_stop, cfg.sample_runs) - run_start)
+    acc = RunAccumulator(n, settled_mask(tr.t_s, cfg.settle_time_s))
+    sums, nees_rt = [], np.empty((n, T))
+    sample_err, sample_norms = np.empty((n_sample, T, 12)), np.empty((n_sample, T, 4))
+    for k0 in range(0, T, CHUNK_STEPS):
+        ks = range(k0, min(T, k0 + CHUNK_STEPS))
+        x_hat, P = np.empty((n, len(ks), 12)), np.empty((n, len(ks), 12, 12))
+        nis, dof = np.empty((n, len(ks))), np.empty((n, len(ks)), dtype=np.int64)
+        for j, k in enumerate(ks):
+            state = filter_step(state, Measurement(tr.t_s[k], tr.chaser[k], inp.z[:, k], inp.mask[:, k], R_c[:, k]),
+                                setup)
+            x_hat[:, j], P[:, j], nis[:, j], dof[:, j] = state.mean, state.cov, state.nis, state.dof
+        x_true = np.broadcast_to(tr.x_true[k0:k0 + len(ks)], x_hat.shape)
+        sums.append(_reduce_chunk(x_true, x_hat, P, nis, dof))
+        nees_rt[:, ks.start:ks.stop] = acc.add(ks, x_true, x_hat, P, nis, dof)
+        if n_sample:
+            sample_err[:, ks.start:ks.stop] = component_errors(x_true[:n_sample], x_hat[:n_sample])
+            sample_norms[:, ks.start:ks.stop] = block_error_norms(x_true[:n_sample], x_hat[:n_sample])
+    diverged = state.diverged | nees_window_divergence(nees_rt, fcfg)
+    out = _join_chunks(sums, run_start, run_stop, diverged)
+    out.update({f"run_{k}": v for k, v in acc.result(x_true[:, -1], x_hat[:, -1], diverged).items()})
+    out.update(sample_err=sample_err, sample_norms=sample_norms)
+    return out
+
+
+def _reduce_chunk(x_true, x_hat, P, nis, dof):
+    from envisat_pose.analysis.stats import reduce_runs
+
+    return reduce_runs(x_true, x_hat, P, nis, dof, np.zeros(x_hat.shape[0], dtype=bool))
+
+
+def _join_chunks(sums: list, run_start: int, run_stop: int, diverged: np.ndarray) -> dict:
+    """CampaignSums arrays of consecutive time chunks of the same runs, joined along time."""
+    from envisat_pose.analysis.stats import CampaignSums
+
+    joined = CampaignSums(run_start, run_stop, run_stop - run_start,
+                          **{k: np.concatenate([getattr(s, k) for s in sums]) for k in CampaignSums.ARRAYS},
+                          n_diverged=int(np.count_nonzero(diverged)))
+    return joined.to_arrays()
+
+
+def settled_mask(t_s: np.ndarray, settle_s: float) -> np.ndarray:
+    """(T,) bool: the steps at or after t_s[0] + settle_s (stats.settled)."""
+    from envisat_pose.analysis.stats import settled
+
+    return settled(np.asarray(t_s), settle_s)
+
+
+class RunAccumulator:
+    """Per-run summaries (stats.RunSummary) accumulated over time chunks: sums over the settled steps of
+    |e_b|^2, max |e_b|, steps inside 3-sigma, NEES, NIS and its dofs. R runs; settled (T,) bool."""
+
+    def __init__(self, R: int, settled: np.ndarray):
+        self.settled = settled
+        self.sq = np.zeros((R, 4))
+        self.max = np.zeros((R, 4))
+        self.inside = np.zeros((R, 4), dtype=np.int64)
+        self.nees = np.zeros(R)
+        self.nis = np.zeros(R)
+        self.dof = np.zeros(R, dtype=np.int64)
+        self.steps = 0
+
+    def add(self, ks: range, x_true, x_hat, P, nis, dof) -> np.ndarray:
+        """Fold the chunk of steps ks ((R, K, ...) arrays); returns the NEES of every step (R, K)."""
+        from envisat_pose.analysis.stats import (MAHALANOBIS_3SIGMA_3D, block_error_norms,
+                                                 block_mahalanobis_sq, nees, state_errors)
+
+        e_state = state_errors(x_true, x_hat)
+        nees_rk = nees(e_state, P)
+        k = self.settled[ks.start:ks.stop]
+        if k.any():
+            norms = block_error_norms(x_true[:, k], x_hat[:, k])
+            self.sq += (norms**2).sum(1)
+            self.max = np.maximum(self.max, norms.max(1))
+            self.inside += (block_mahalanobis_sq(e_state[:, k], P[:, k]) <= MAHALANOBIS_3SIGMA_3D).sum(1)
+            self.nees += nees_rk[:, k].sum(1)
+            measured = dof[:, k] > 0
+            self.nis += np.where(measured, nis[:, k], 0.0).sum(1)
+            self.dof += np.where(measured, dof[:, k], 0).sum(1)
+            self.steps += int(k.sum())
+        return nees_rk
+
+    def result(self, x_true_last, x_hat_last, diverged) -> dict:
+        """The RunSummary fields, (R, ...) arrays."""
+        from envisat_pose.analysis.stats import block_error_norms
+
+        steps = max(self.steps, 1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            nis_per_dof = np.where(self.dof > 0, self.nis / np.maximum(self.dof, 1), np.nan)
+        return {"rms_block": np.sqrt(self.sq / steps), "final_block": block_error_norms(x_true_last, x_hat_last),
+                "max_block": self.max, "inside_share": self.inside / steps, "nees_mean": self.nees / steps,
+                "nis_per_dof": nis_per_dof, "diverged": np.asarray(diverged, dtype=bool)}
+
+
+def nees_window_divergence(nees_rt: np.ndarray, cfg: FilterConfig) -> np.ndarray:
+    """estimator.nees_divergence on precomputed NEES (R, T): a window mean NEES above
+    cfg.nees_divergence_factor x 12 after the settle steps, or a non-finite NEES. Returns (R,) bool."""
+    W = cfg.divergence_window
+    e = nees_rt[:, max(cfg.divergence_settle_steps - W + 1, 0):]
+    if e.shape[1] < W:
+        return np.zeros(e.shape[0], dtype=bool)
+    c = np.cumsum(np.concatenate([np.zeros((e.shape[0], 1)), e], axis=1), axis=1)
+    return ((c[:, W:] - c[:, :-W]) > cfg.nees_divergence_factor * 12 * W).any(axis=1) | ~np.isfinite(e).all(axis=1)
+
+
+# ---------------------------------------------------------------- merging, bound, outputs
+
+def load_block(path: str) -> dict:
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def merge_blocks(cfg: MonteCarloConfig, out_dir: str):
+    """Fold the block files in run-index order. Returns (CampaignSums, per-run dict, sample_err, sample_norms)."""
+    from envisat_pose.analysis.stats import CampaignSums, SumsFolder
+
+    folder, runs, s_err, s_norm = SumsFolder(), {k: [] for k in RUN_KEYS}, [], []
+    for b in range(cfg.n_blocks):
+        d = load_block(os.path.join(out_dir, block_name(b)))
+        folder.add(CampaignSums.from_arrays(d))
+        for k in RUN_KEYS:
+            runs[k].append(d[f"run_{k}"])
+        s_err.append(d["sample_err"])
+        s_norm.append(d["sample_norms"])
+    return (folder.result(), {k: np.concatenate(v) for k, v in runs.items()}, np.concatenate(s_err),
+            np.concatenate(s_norm))
+
+
+def campaign_pcrlb(cfg: MonteCarloConfig, tr: CampaignTruth) -> np.ndarray:
+    """PCRLB per block (T, 4) along the truth, with the corners the truth lets the filter measure at each step
+    (visible, in frame for pixels, outside outages, at most max_markers; random failures are not modelled), the
+    filter's P0, the measurement noise of the config and the truth's process noise (none). Statistics' units."""
+    from envisat_pose.analysis.pcrlb import block_bounds, pcrlb_along_truth
+    from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2, propagate
+    from envisat_pose.filtering.measurements import limit_markers, measure, outage_mask
+    from envisat_pose.geometry import load_camera
+
+    mcfg, J_T, camera = cfg.measurement, load_inertia_T_kg_m2(), load_camera()
+    dt_s = 1.0 / mcfg.rate_hz
+    measured = limit_markers(tr.base & ~outage_mask(tr.t_s, mcfg.outages_s)[:, None], mcfg.max_markers)
+
+    def fx(X):
+        return propagate(X, tr.chaser[:-1, None, :], dt_s, J_T, tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient)
+
+    def hx(X):
+        return measure(X, mcfg.kind, camera)
+
+    B = pcrlb_along_truth(fx, hx, tr.x_true, measured, mcfg.corner_cov, cfg.filter.P0, np.zeros((12, 12)))
+    return block_bounds(B, tr.x_true)
+
+
+def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
+    """Merge the blocks, compute the PCRLB, write campaign.npz, summary.json and the figures."""
+    from envisat_pose.analysis.pcrlb import efficiency
+    from envisat_pose.analysis.stats import BLOCKS, campaign_summary, finalize
+    from envisat_pose.io import atomic_write_text, save_npz
+
+    sums, runs, sample_err, sample_norms = merge_blocks(cfg, out_dir)
+    tr = load_campaign_truth(out_dir, cfg.measurement)
+    stats = finalize(sums)
+    bound = campaign_pcrlb(cfg, tr)
+    settle = cfg.settle_time_s
+    arrays = {k: np.asarray(v) for k, v in vars(stats).items()}
+    arrays.update(t_s=tr.t_s, pcrlb_block=bound, sample_err=sample_err, sample_norms=sample_norms,
+                  **{f"run_{k}": v for k, v in runs.items()})
+    save_npz(os.path.join(out_dir, "campaign.npz"), arrays)
+    summary = campaign_summary(sums, tr.t_s, settle)
+    k = settled_mask(tr.t_s, settle)
+    summary.update(
+        scenario=cfg.scenario, runs=cfg.runs, seed=cfg.seed, steps=len(tr.t_s), duration_s=cfg.duration_s,
+        measurement=to_dict(cfg.measurement),
+        pcrlb_rms={b: float(np.sqrt(np.mean(bound[k, i] ** 2))) for i, b in enumerate(BLOCKS)},
+        rmse_over_pcrlb=dict(zip(BLOCKS, (float(v) for v in efficiency(stats.rmse_block, bound, tr.t_s, settle)))),
+        diverged_runs=[int(i) for i in np.flatnonzero(runs["diverged"])],
+    )
+    atomic_write_text(os.path.join(out_dir, "summary.json"), json.dumps(_json_safe(summary), indent=1, sort_keys=True)
+                      + "\n")
+    write_figures(cfg, out_dir, tr.t_s, stats, bound, sample_err, sample_norms)
+    return summary
+
+
+def _json_safe(x):
+    """NaN and infinities as null (strict JSON)."""
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def write_figures(cfg: MonteCarloConfig, out_dir: str, t_s, stats, bound, sample_err, sample_norms) -> None:
+    from envisat_pose.analysis.campaign_figures import (plot_block_norms, plot_error_envelopes, plot_nees_nis,
+                                                        plot_rmse_vs_bound)
+
+    m = cfg.measurement
+    noise = f"{m.sigma_m:g} m" if m.kind == "markers3d" else f"{m.sigma_px:g} px"
+    title = f"{cfg.scenario}: {cfg.runs} runs, {m.kind} at {noise}, {m.rate_hz:g} Hz, seed {cfg.seed}"
+    err = sample_err if len(sample_err) else None
+    norms = sample_norms if len(sample_norms) else None
+    path = os.path.join
+    plot_error_envelopes(t_s, err, stats.filter_3sigma, stats.sample_3sigma, path(out_dir, FIGURES[0]), title=title)
+    plot_block_norms(t_s, norms, stats.rmse_block, stats.filter_3sigma_block, path(out_dir, FIGURES[1]), title=title)
+    plot_nees_nis(t_s, stats.nees_mean, stats.nees_bounds, stats.nis_mean, stats.nis_bounds,
+                  path(out_dir, FIGURES[2]), title=title)
+    plot_rmse_vs_bound(t_s, stats.rmse_block, bound, path(out_dir, FIGURES[3]), title=title,
+                       filter_3sigma_block=stats.filter_3sigma_block)

@@ -1,0 +1,147 @@
+"""`envisat montecarlo`: every output file, figures with data, byte-reproducibility across seeds, worker counts
+and backends, resuming, the streaming block reduction against the whole-array statistics, one-line errors."""
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from envisat_pose.app.cli import main
+
+BASE = ["montecarlo", "--scenario", "default", "--runs", "20", "--duration-s", "200", "--settle-s", "100",
+        "--block-runs", "8", "--seed", "3", "--quiet"]
+OUTPUTS = ("truth.npz", "manifest.json", "campaign.npz", "summary.json", "timing.json", "montecarlo.config.toml",
+           "envelopes.png", "block_norms.png", "nees_nis.png", "rmse_vs_pcrlb.png")
+REPRODUCIBLE = ("summary.json", "campaign.npz", "truth.npz", "blocks/block-0000.npz", "blocks/block-0001.npz",
+                "blocks/block-0002.npz")
+
+
+def _bytes(d, names=REPRODUCIBLE):
+    return {n: (d / n).read_bytes() for n in names}
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    out = tmp_path_factory.mktemp("mc") / "a"
+    assert main(BASE + ["--out", str(out)]) == 0
+    return out
+
+
+def test_campaign_writes_every_file(campaign):
+    for name in OUTPUTS:
+        assert (campaign / name).is_file(), name
+    assert sorted(os.listdir(campaign / "blocks")) == ["block-0000.npz", "block-0001.npz", "block-0002.npz"]
+    manifest = json.loads((campaign / "manifest.json").read_text())
+    assert manifest["complete"] and [(e["run_start"], e["run_stop"]) for e in manifest["blocks"]] == [
+        (0, 8), (8, 16), (16, 20)]
+    s = json.loads((campaign / "summary.json").read_text())
+    assert s["n_runs"] == 20 and s["steps"] == 201 and s["settle_s"] == 100.0
+    assert "wall" not in json.dumps(s)  # timing lives in timing.json only
+    assert json.loads((campaign / "timing.json").read_text())["block_wall_s_sum"] > 0
+    with np.load(campaign / "campaign.npz") as z:
+        assert z["rmse_block"].shape == z["pcrlb_block"].shape == (201, 4)
+        assert z["sample_err"].shape == (20, 201, 12) and z["run_rms_block"].shape == (20, 4)
+        assert np.isfinite(z["pcrlb_block"]).all() and (z["pcrlb_block"] > 0).all()
+    # a converged, consistent filter near the bound (3D corners at 0.02 m)
+    assert s["n_diverged"] == 0 and s["diverged_runs"] == []
+    assert s["rmse"]["position"] < 0.01
+    assert s["nees_bounds"][0] * 0.8 < s["nees_mean"] < s["nees_bounds"][1] * 1.2
+    for b, ratio in s["rmse_over_pcrlb"].items():
+        assert 0.7 < ratio < 1.5, (b, ratio)
+
+
+def test_figures_decode_and_show_data(campaign):
+    from PIL import Image
+
+    for name in ("envelopes.png", "block_norms.png", "nees_nis.png", "rmse_vs_pcrlb.png"):
+        img = np.asarray(Image.open(campaign / name).convert("RGB")).astype(int)
+        assert img.shape[0] > 300 and img.shape[1] > 300
+        non_white = (img < 240).any(-1).mean()
+        assert non_white > 0.02, name  # axes, curves and labels, not a blank canvas
+        colours = {tuple(c) for c in img[::7, ::7].reshape(-1, 3) // 32}
+        assert len(colours) > 4, name
+    env = np.asarray(Image.open(campaign / "envelopes.png").convert("RGB")).astype(int)
+    grey = (np.abs(env[..., 0] - env[..., 1]) < 8) & (np.abs(env[..., 1] - env[..., 2]) < 8) & (env[..., 0] > 100) & (
+        env[..., 0] < 220)
+    red = (env[..., 0] > 180) & (env[..., 1] < 80) & (env[..., 2] < 80)
+    green = (env[..., 1] > 100) & (env[..., 0] < 100) & (env[..., 2] < 100)
+    assert grey.sum() > 1000 and red.sum() > 200 and green.sum() > 200
+
+
+def test_same_seed_same_bytes_across_workers_and_dask(campaign, tmp_path):
+    ref = _bytes(campaign)
+    assert main(BASE + ["--workers", "2", "--out", str(tmp_path / "pool")]) == 0
+    assert _bytes(tmp_path / "pool") == ref
+    assert main(BASE + ["--workers", "2", "--backend", "dask", "--out", str(tmp_path / "dask")]) == 0
+    assert _bytes(tmp_path / "dask") == ref
+    other = BASE[:-3] + ["--seed", "4", "--quiet"]
+    assert main(other + ["--out", str(tmp_path / "seed4")]) == 0
+    assert (tmp_path / "seed4" / "summary.json").read_bytes() != ref["summary.json"]
+
+
+def test_killed_campaign_resumes_to_the_same_bytes(campaign, tmp_path):
+    ref = _bytes(campaign)
+    d = tmp_path / "resume"
+    shutil.copytree(campaign, d)
+    for name in ("campaign.npz", "summary.json", "blocks/block-0001.npz"):
+        (d / name).unlink()
+    (d / "blocks" / "block-0002.npz").write_bytes(b"truncated")  # sha256 no longer matches: redone
+    (d / "blocks" / ".tmp-partial.npz").write_bytes(b"x")  # a partial file of the killed run
+    kept = (d / "blocks" / "block-0000.npz").stat().st_mtime_ns
+    assert main(BASE + ["--out", str(d)]) == 0
+    assert _bytes(d) == ref
+    assert (d / "blocks" / "block-0000.npz").stat().st_mtime_ns == kept  # a finished block is not redone
+    assert not (d / "blocks" / ".tmp-partial.npz").exists()
+    assert json.loads((d / "timing.json").read_text())["blocks_run_now"] == 2
+
+
+def test_other_config_in_folder_is_refused(campaign, tmp_path, capsys):
+    d = tmp_path / "c"
+    shutil.copytree(campaign, d)
+    assert main(BASE[:3] + ["--runs", "24"] + BASE[5:] + ["--out", str(d)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "another config" in err[0] and "runs = 20 there, 24 here" in err[0]
+
+
+@pytest.mark.parametrize("flag, value, field", [
+    ("--runs", "0", "runs"), ("--sigma-m", "-1", "measurement.sigma_m"), ("--block-runs", "0", "block_runs"),
+    ("--settle-s", "500", "settle_s"), ("--rate-hz", "0.3", "measurement.rate_hz"), ("--workers", "0", "workers"),
+    ("--scenario", "nope", "scenario"),
+])
+def test_bad_value_is_one_error_line(tmp_path, capsys, flag, value, field):
+    args = [a for a in BASE]
+    if flag in args:
+        args[args.index(flag) + 1] = value
+    else:
+        args += [flag, value]
+    assert main(args + ["--out", str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("envisat montecarlo: error: ") and field in err[0] and value in err[0]
+
+
+def test_block_reduction_equals_whole_array_statistics(campaign):
+    """The chunked, streaming block equals run_filter over the same runs followed by the whole-array statistics."""
+    from envisat_pose.analysis.stats import reduce_runs, run_summary
+    from envisat_pose.app.montecarlo import CHUNK_STEPS, MonteCarloConfig, filter_block, load_campaign_truth
+    from envisat_pose.filtering.estimator import nees_divergence, run_filter
+    from envisat_pose.filtering.montecarlo import make_run_inputs
+
+    cfg = MonteCarloConfig(runs=20, duration_s=200.0, settle_s=100.0, block_runs=8, seed=3)
+    tr = load_campaign_truth(str(campaign), cfg.measurement)
+    assert len(tr.t_s) > CHUNK_STEPS  # more than one chunk
+    a, b = 8, 14
+    got = filter_block(tr, cfg, a, b)
+    inp = make_run_inputs(tr.x_true[0], tr.t_s, tr.z_true, tr.base, cfg.measurement, cfg.filter.P0, cfg.seed, 20)
+    res = run_filter(inp.x0_hat[a:b], cfg.filter.P0, tr.t_s, tr.chaser, inp.z[a:b], inp.mask[a:b], inp.R_c,
+                     "markers3d", cfg.filter, mu_m3_s2=tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient)
+    x_true = np.broadcast_to(tr.x_true, res.x_hat.shape)
+    diverged = res.diverged | nees_divergence(x_true, res.x_hat, res.P, cfg.filter)
+    want = reduce_runs(x_true, res.x_hat, res.P, res.nis, res.dof, diverged, run_start=a).to_arrays()
+    for k, v in want.items():
+        np.testing.assert_allclose(got[k], v, rtol=1e-9, atol=1e-15, err_msg=k)
+    rs = run_summary(tr.t_s, x_true, res.x_hat, res.P, res.nis, res.dof, diverged, settle_s=100.0)
+    for k in ("rms_block", "final_block", "max_block", "inside_share", "nees_mean", "nis_per_dof", "diverged"):
+        np.testing.assert_allclose(got[f"run_{k}"], getattr(rs, k), rtol=1e-9, err_msg=k)
+    assert got["sample_err"].shape == (b - a, len(tr.t_s), 12)  # runs 8..13 are below sample_runs = 20
