@@ -1,0 +1,150 @@
+"""`envisat report DIR [DIR...] --out report.html`: one self-contained HTML page over Monte Carlo campaigns.
+
+Per campaign folder (written by `envisat montecarlo`): the scenario and its config, a table of RMSE per block
+after the settle time, the share of run-steps inside the filter's 3-sigma, the mean NEES with its 95 % band,
+the PCRLB and RMSE/PCRLB per block, diverged runs and wall time, and the campaign's figures embedded as
+base64 PNG data URIs. Several folders sit side by side (one column each). No external link or resource.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import html
+import json
+import math
+import os
+
+from envisat_pose.config import InputError
+
+BLOCKS = ("position", "velocity", "attitude", "angular_velocity")
+# display unit and scale per block (the summary's units are m, m/s, rad, rad/s)
+DISPLAY = {"position": ("cm", 100.0), "velocity": ("mm/s", 1000.0), "attitude": ("deg", 180.0 / math.pi),
+           "angular_velocity": ("deg/s", 180.0 / math.pi)}
+FIGURE_CAPTIONS = {
+    "envelopes.png": "Errors per component: runs (grey), filter 3-sigma (red dashed), sample 3-sigma (green)",
+    "block_norms.png": "Error norm per block: runs (grey), RMSE (blue), filter 3-sigma (red dashed)",
+    "nees_nis.png": "Mean NEES and NIS with their chi-square 95 % bands",
+    "rmse_vs_pcrlb.png": "Monte Carlo RMSE against the posterior Cramer-Rao lower bound",
+}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "report",
+        help="one self-contained HTML report over Monte Carlo campaign folders",
+        description="Write one HTML file (figures embedded, no external links) comparing campaign folders written by "
+        "`envisat montecarlo`: scenario, config, figures and a table of RMSE, 3-sigma share, NEES, RMSE/PCRLB, "
+        "wall time.",
+    )
+    p.add_argument("dirs", nargs="+", metavar="DIR", help="campaign folders (envisat montecarlo --out)")
+    p.add_argument("--out", default="report.html", help="output HTML file (default report.html)")
+    p.set_defaults(func=run_report)
+
+
+def run_report(args: argparse.Namespace) -> int:
+    from envisat_pose.io import atomic_write_text, check_writable_output
+
+    if not args.out.endswith((".html", ".htm")):
+        raise InputError(f"--out {args.out!r}: expected a path ending in .html")
+    check_writable_output(args.out)
+    campaigns = [load_campaign(d) for d in args.dirs]
+    atomic_write_text(args.out, render_report(campaigns))
+    print(f"wrote {args.out} ({len(campaigns)} campaign{'s' if len(campaigns) > 1 else ''})")
+    return 0
+
+
+def load_campaign(out_dir: str) -> dict:
+    """What the report shows of one folder: summary.json, timing.json (optional), the config text, the PNGs."""
+    path = os.path.join(out_dir, "summary.json")
+    if not os.path.isfile(path):
+        raise InputError(f"{out_dir!r} has no summary.json: not a finished `envisat montecarlo` folder")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            summary = json.load(fh)
+    except (OSError, ValueError) as err:
+        raise InputError(f"{path}: unreadable ({err})") from None
+    timing = _read_json(os.path.join(out_dir, "timing.json"))
+    cfg_path = os.path.join(out_dir, "montecarlo.config.toml")
+    config = open(cfg_path, encoding="utf-8").read() if os.path.isfile(cfg_path) else ""
+    figures = {}
+    for name in FIGURE_CAPTIONS:
+        fig = os.path.join(out_dir, name)
+        if os.path.isfile(fig):
+            with open(fig, "rb") as fh:
+                figures[name] = base64.b64encode(fh.read()).decode("ascii")
+    return {"dir": out_dir, "summary": summary, "timing": timing, "config": config, "figures": figures}
+
+
+def _read_json(path: str) -> dict:
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return json.load(fh)
+    except (OSError, ValueError):
+        return {}
+
+
+def _fmt(v, scale: float = 1.0, digits: int = 4) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "n/a"
+    return f"{v * scale:.{digits}g}"
+
+
+def campaign_rows(c: dict) -> list[tuple[str, str]]:
+    """(label, value) rows of one campaign's table, already formatted."""
+    s, t = c["summary"], c["timing"]
+    m = s.get("measurement", {})
+    noise = f"{m.get('sigma_m')} m" if m.get("kind") == "markers3d" else f"{m.get('sigma_px')} px"
+    rows = [("scenario", str(s.get("scenario"))), ("runs x steps", f"{s.get('runs')} x {s.get('steps')}"),
+            ("measurements", f"{m.get('kind')}, {noise}, {m.get('rate_hz')} Hz, max {m.get('max_markers')} corners"),
+            ("seed", str(s.get("seed"))), ("statistics after", f"{_fmt(s.get('settle_s'))} s")]
+    for b in BLOCKS:
+        unit, k = DISPLAY[b]
+        rows.append((f"RMSE {b} ({unit})", _fmt(s["rmse"].get(b), k)))
+    for b in BLOCKS:
+        unit, k = DISPLAY[b]
+        rows.append((f"PCRLB {b} ({unit})", _fmt(s.get("pcrlb_rms", {}).get(b), k)))
+    for b in BLOCKS:
+        rows.append((f"RMSE / PCRLB {b}", _fmt(s.get("rmse_over_pcrlb", {}).get(b), digits=3)))
+    for b in BLOCKS:
+        rows.append((f"inside 3-sigma {b}", f"{_fmt(s['inside_3sigma_share'].get(b), 100.0, 4)} %"))
+    lo, hi = s.get("nees_bounds", [None, None])
+    rows += [("mean NEES (12 dof)", f"{_fmt(s.get('nees_mean'))} (95 % band {_fmt(lo)} .. {_fmt(hi)})"),
+             ("NIS per dof", _fmt(s.get("nis_mean_per_dof"))),
+             ("diverged runs", f"{s.get('n_diverged')} / {s.get('n_runs')}"),
+             ("wall time", f"{_fmt(t.get('block_wall_s_sum'), digits=4)} s in blocks, "
+                           f"{_fmt(t.get('wall_s_this_invocation'), digits=4)} s last invocation "
+                           f"({t.get('workers', '?')} {t.get('backend', '?')} workers)" if t else "n/a")]
+    return rows
+
+
+STYLE = """body{font-family:sans-serif;margin:1em}table{border-collapse:collapse}td,th{border:1px solid #bbb;
+padding:2px 6px;text-align:right;vertical-align:top}th{background:#eee}td.l{text-align:left}
+.cols{display:flex;gap:1em;align-items:flex-start}.col{flex:1;min-width:0}img{width:100%;height:auto}
+pre{font-size:11px;background:#f6f6f6;padding:4px;overflow-x:auto}"""
+
+
+def render_report(campaigns: list[dict]) -> str:
+    """The whole HTML page: a comparison table (one column per campaign), then per campaign its figures and
+    config, side by side. Every figure is a data:image/png;base64 URI."""
+    e = html.escape
+    names = [os.path.basename(os.path.normpath(c["dir"])) or c["dir"] for c in campaigns]
+    table = ["<table><tr><th></th>" + "".join(f"<th>{e(n)}</th>" for n in names) + "</tr>"]
+    all_rows = [campaign_rows(c) for c in campaigns]
+    for i, (label, _) in enumerate(all_rows[0]):
+        cells = "".join(f"<td>{e(rows[i][1])}</td>" for rows in all_rows)
+        table.append(f"<tr><td class=\"l\">{e(label)}</td>{cells}</tr>")
+    table.append("</table>")
+    cols = []
+    for n, c in zip(names, campaigns):
+        figs = "".join(f"<figure><img alt=\"{e(name)}\" src=\"data:image/png;base64,{data}\">"
+                       f"<figcaption>{e(FIGURE_CAPTIONS[name])}</figcaption></figure>"
+                       for name, data in c["figures"].items())
+        cols.append(f"<div class=\"col\"><h2>{e(n)}</h2><p>{e(c['dir'])}</p>{figs}"
+                    f"<details><summary>config</summary><pre>{e(c['config'])}</pre></details></div>")
+    return ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>envisat Monte Carlo report</title>"
+            f"<style>{STYLE}</style></head><body><h1>Monte Carlo campaigns</h1>"
+            "<p>Statistics over the run-steps after the settle time; RMSE / PCRLB is the ratio of the RMS over time "
+            "of the Monte Carlo RMSE and of the posterior Cramer-Rao lower bound (1: the best any unbiased "
+            "estimator can do). The NEES band assumes independent steps: read it as a guide.</p>"
+            + "\n".join(table) + "<div class=\"cols\">" + "".join(cols) + "</div></body></html>\n")

@@ -1,0 +1,91 @@
+"""`envisat report`: one self-contained HTML page that parses, embeds every figure of every campaign as a PNG
+data URI, links nothing outside itself and puts several campaigns side by side."""
+
+import base64
+import io
+import json
+import shutil
+from html.parser import HTMLParser
+
+import numpy as np
+import pytest
+
+from envisat_pose.app.cli import main
+
+FIGURES = ("envelopes.png", "block_norms.png", "nees_nis.png", "rmse_vs_pcrlb.png")
+
+
+class Collector(HTMLParser):
+    """Images, links and table cells of a page."""
+
+    def __init__(self):
+        super().__init__()
+        self.imgs, self.refs, self.cells, self._cell = [], [], [], None
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag == "img":
+            self.imgs.append(a)
+        for key in ("href", "src"):
+            if key in a and tag != "img":
+                self.refs.append(a[key])
+        if tag in ("td", "th"):
+            self._cell = ""
+
+    def handle_data(self, data):
+        if self._cell is not None:
+            self._cell += data
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th") and self._cell is not None:
+            self.cells.append(self._cell)
+            self._cell = None
+
+
+@pytest.fixture(scope="module")
+def two_campaigns(tmp_path_factory):
+    root = tmp_path_factory.mktemp("rep")
+    args = ["montecarlo", "--scenario", "default", "--runs", "6", "--duration-s", "120", "--settle-s", "60", "--quiet"]
+    assert main(args + ["--out", str(root / "sigma-0.02")]) == 0
+    assert main(args + ["--sigma-m", "0.2", "--out", str(root / "sigma-0.2")]) == 0
+    return root / "sigma-0.02", root / "sigma-0.2"
+
+
+def test_report_embeds_every_figure_and_parses(two_campaigns, tmp_path, capsys):
+    out = tmp_path / "report.html"
+    assert main(["report", *map(str, two_campaigns), "--out", str(out)]) == 0
+    text = out.read_text(encoding="utf-8")
+    page = Collector()
+    page.feed(text)
+    page.close()
+    assert len(page.imgs) == 2 * len(FIGURES)
+    alts = [img["alt"] for img in page.imgs]
+    assert sorted(alts) == sorted(FIGURES * 2)
+    from PIL import Image
+
+    for img, d, name in zip(page.imgs, [two_campaigns[0]] * 4 + [two_campaigns[1]] * 4, alts):
+        prefix = "data:image/png;base64,"
+        assert img["src"].startswith(prefix)
+        raw = base64.b64decode(img["src"][len(prefix):])
+        assert raw == (d / name).read_bytes()  # the campaign's own figure, embedded whole
+        assert np.asarray(Image.open(io.BytesIO(raw))).size > 0
+    assert page.refs == []  # no stylesheet, script or link to anything outside the page
+    assert "http://" not in text.replace("data:", "") or all("http" not in r for r in page.refs)
+    # the table: one column per campaign, the numbers of each summary
+    assert "sigma-0.02" in page.cells and "sigma-0.2" in page.cells
+    for d in two_campaigns:
+        s = json.loads((d / "summary.json").read_text())
+        assert f"{s['rmse']['position'] * 100:.4g}" in page.cells
+        assert f"{s['rmse_over_pcrlb']['attitude']:.3g}" in page.cells
+    assert any(c.startswith("RMSE / PCRLB") for c in page.cells) and any("NEES" in c for c in page.cells)
+    assert any("wall" in c for c in page.cells)
+
+
+def test_report_on_a_folder_without_summary_is_one_error_line(two_campaigns, tmp_path, capsys):
+    d = tmp_path / "half"
+    shutil.copytree(two_campaigns[0], d)
+    (d / "summary.json").unlink()
+    assert main(["report", str(d), "--out", str(tmp_path / "r.html")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "summary.json" in err[0]
+    assert not (tmp_path / "r.html").exists()
