@@ -20,7 +20,10 @@ from typing import Callable, Literal
 import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm, quat_to_mrp, quat_to_rotmat
-from envisat_pose.config import InputError, check, from_dict, to_dict
+from envisat_pose.datagen.labels import DEPTH_MAX_CODE
+from envisat_pose.datagen.clearance import (TargetBoxes, clearance_m, farthest_depth_m, project_target_boxes,
+                                            project_znear_m)
+from envisat_pose.config import ConfigError, InputError, check, from_dict, to_dict
 from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks
 
 Severity = Literal["none", "low", "medium", "high", "mixed"]
@@ -28,8 +31,8 @@ MANIFEST_FORMAT = "envisat-pose shards v1"
 # Camera mount on the chaser (models/envisat.xml, camera chaser_cam): boresight +y_C, image up +x_C.
 # Rows are the K axes (x right, y down, z boresight) in C.
 R_K_FROM_C = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-# Farthest reach of the target from its CoM (solar array tip corner), m: bounds the depth range to encode.
-TARGET_REACH_M = 22.2
+# Random mode redraws a view whose camera is too near the target or whose near plane cuts it, at most this often.
+MAX_VIEW_DRAWS = 1000
 
 
 @dataclass(frozen=True)
@@ -54,6 +57,8 @@ class GenerateConfig:
     eclipse_probability: share of random-mode images in eclipse (sequence mode: Earth's cylindrical shadow).
     earth_probability: share of random-mode images with the Earth backdrop (sequence: > 0 turns it on, at nadir).
     depth_scale_m: metres per unit of the 16-bit depth PNG.
+    keepout_margin_m: random mode: least distance of the camera from any part of the target, m (views closer,
+    or whose near plane cuts the target, are drawn again from the same generator).
     """
 
     mode: Literal["random", "sequence"] = "random"
@@ -71,6 +76,7 @@ class GenerateConfig:
     write_mask: bool = True
     write_depth: bool = True
     depth_scale_m: float = 0.002
+    keepout_margin_m: float = 2.0
     scenario: str = "default"
     frame_dt_s: float = 1.0
     corruption: CorruptionConfig = field(default_factory=CorruptionConfig)
@@ -81,8 +87,9 @@ class GenerateConfig:
         check(self.shard_size >= 1, f"{p}shard_size", self.shard_size, "at least 1 image per shard")
         check(16 <= self.resolution_px <= 4096, f"{p}resolution_px", self.resolution_px, "a resolution in [16, 4096] px")
         check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed below 2^63")
-        check(self.range_min_m > TARGET_REACH_M / 2, f"{p}range_min_m", self.range_min_m,
-              f"a range above {TARGET_REACH_M / 2:.1f} m (the camera must stay outside the target)")
+        reach_m = project_target_boxes().reach_m
+        check(self.range_min_m > reach_m / 2, f"{p}range_min_m", self.range_min_m,
+              f"a range above {reach_m / 2:.1f} m (the camera must stay outside the target)")
         check(self.range_max_m >= self.range_min_m, f"{p}range_max_m", self.range_max_m,
               f"a range no shorter than range_min_m = {self.range_min_m}")
         check(0.0 <= self.max_offset_frac <= 1.0, f"{p}max_offset_frac", self.max_offset_frac, "a fraction in [0, 1]")
@@ -93,9 +100,10 @@ class GenerateConfig:
             check(0.0 <= value <= 1.0, f"{p}{name}", value, "a probability in [0, 1]")
         check(self.depth_scale_m > 0, f"{p}depth_scale_m", self.depth_scale_m, "a positive scale in m")
         if self.mode == "random":
-            reach = self.range_max_m / math.cos(math.radians(30.0)) + TARGET_REACH_M
-            check(65535 * self.depth_scale_m >= reach, f"{p}depth_scale_m", self.depth_scale_m,
+            reach = self.range_max_m / math.cos(math.radians(30.0)) + reach_m
+            check(DEPTH_MAX_CODE * self.depth_scale_m >= reach, f"{p}depth_scale_m", self.depth_scale_m,
                   f"a scale whose 16-bit range (65535 x scale) covers {reach:.1f} m, the farthest target point")
+        check(self.keepout_margin_m >= 0, f"{p}keepout_margin_m", self.keepout_margin_m, "a non-negative distance in m")
         check(self.frame_dt_s > 0, f"{p}frame_dt_s", self.frame_dt_s, "a positive frame interval in s")
         if self.mode == "sequence":
             from envisat_pose.datagen.scenario import scenario_dict
@@ -138,21 +146,47 @@ def unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Generator) -> tuple:
+def view_is_clear(rho_C_m: np.ndarray, R_C_from_T: np.ndarray, boxes: TargetBoxes, margin_m: float,
+                  znear_m: float) -> bool:
+    """Whether the camera (at the origin of C) keeps margin_m from every target geom and every target point
+    lies beyond the near plane (z_K > znear_m: nothing clipped). rho_C_m (3,) m, R_C_from_T (3, 3)."""
+    c_T = -R_C_from_T.T @ rho_C_m
+    if clearance_m(c_T[None], boxes)[0][0] < margin_m:
+        return False
+    z_K = (R_K_FROM_C @ (rho_C_m[:, None] + R_C_from_T @ boxes.corners_T_m.T))[2]
+    return bool(z_K.min() > znear_m)
+
+
+def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Generator,
+                       znear_m: float | None = None, boxes: TargetBoxes | None = None) -> tuple:
     """A domain-randomized view: uniform attitude, range uniform in [range_min_m, range_max_m], target centre
     off the boresight within max_offset_frac of the half field of view, random or configured sun, eclipse
     and Earth backdrop by their probabilities. Velocities are zero (a snapshot).
+
+    A pose whose camera comes within keepout_margin_m of any target geom (body, boom, array), or whose near
+    plane (znear_m, m; default that of models/envisat.xml) cuts the target, is drawn again from the same rng:
+    deterministic, at most MAX_VIEW_DRAWS times (then ConfigError). boxes: the target (default the project's).
 
     Returns (View, x (12,), scene dict). In random mode C is the camera mount's frame; the Earth's direction
     is drawn independently of it.
     """
     from envisat_pose.datagen.render import View
 
-    q = unit(rng.standard_normal(4))
-    range_m = rng.uniform(cfg.range_min_m, cfg.range_max_m)
+    boxes = boxes if boxes is not None else project_target_boxes()
+    znear_m = znear_m if znear_m is not None else project_znear_m()
     tan_half = math.tan(math.radians(fovy_deg) / 2.0)
-    off = rng.uniform(-1.0, 1.0, size=2) * cfg.max_offset_frac * tan_half
-    rho_C = R_K_FROM_C.T @ (range_m * unit([off[0], off[1], 1.0]))
+    for _ in range(MAX_VIEW_DRAWS):
+        q = unit(rng.standard_normal(4))
+        range_m = rng.uniform(cfg.range_min_m, cfg.range_max_m)
+        off = rng.uniform(-1.0, 1.0, size=2) * cfg.max_offset_frac * tan_half
+        rho_C = R_K_FROM_C.T @ (range_m * unit([off[0], off[1], 1.0]))
+        if view_is_clear(rho_C, quat_to_rotmat(q), boxes, cfg.keepout_margin_m, znear_m):
+            break
+    else:
+        raise ConfigError("range_min_m", cfg.range_min_m,
+                          f"ranges that allow a clear view: none of {MAX_VIEW_DRAWS} draws kept the camera "
+                          f"keepout_margin_m = {cfg.keepout_margin_m:g} m from the target with all of it beyond "
+                          f"the near plane ({znear_m:.2f} m)")
     sun_C = unit(cfg.sun_dir) if cfg.sun_dir is not None else unit(rng.standard_normal(3))
     eclipse = bool(rng.random() < cfg.eclipse_probability)
     earth_draw = rng.random() < cfg.earth_probability
@@ -247,7 +281,8 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
             seed = sample_seed(cfg.seed, shard_index, i)
             rng = np.random.default_rng(seed)
             if cfg.mode == "random":
-                view, x, scene = sample_random_view(cfg, renderer.fovy_deg, rng)
+                view, x, scene = sample_random_view(cfg, renderer.fovy_deg, rng, renderer.znear_m,
+                                                    renderer.target_boxes)
             else:
                 view, x, scene = sequence_view(cfg, k)
             writer.write(sample_key(k), render_sample(renderer, cfg, view, x, scene, rng, seed))
@@ -276,6 +311,18 @@ def prepare_out_dir(out_dir: str) -> None:
             raise InputError(f"--out {out_dir!r}: parent folder {parent!r} is not writable")
     elif not os.access(out_dir, os.W_OK):
         raise InputError(f"--out {out_dir!r} is not writable")
+
+
+def check_sequence_depth(cfg: GenerateConfig) -> None:
+    """Sequence mode: ConfigError on depth_scale_m unless 65535 x depth_scale_m covers the farthest target
+    point of every frame (from the simulated truth, which also runs the scenario's keep-out check)."""
+    _, x, _, _, _ = sequence_frames(config_json(cfg))
+    R_K_from_T = R_K_FROM_C @ np.swapaxes(mrp_to_dcm(x[:, 6:9]), 1, 2)
+    far_m = farthest_depth_m(x[:, 0:3] @ R_K_FROM_C.T, R_K_from_T, project_target_boxes())
+    k = int(np.argmax(far_m))
+    check(DEPTH_MAX_CODE * cfg.depth_scale_m >= far_m[k], "depth_scale_m", cfg.depth_scale_m,
+          f"a scale whose 16-bit range (65535 x scale = {DEPTH_MAX_CODE * cfg.depth_scale_m:.1f} m) covers "
+          f"{far_m[k]:.1f} m, the farthest target point of scenario {cfg.scenario!r} (frame {k})")
 
 
 def new_manifest(cfg: GenerateConfig) -> dict:
@@ -340,6 +387,8 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
     runner = RunnerConfig(backend, workers, scheduler, {"LP_NUM_THREADS": str(cpu_share(workers))})
     runner.validate()
     prepare_out_dir(out_dir)
+    if cfg.mode == "sequence":  # before anything is written: the truth's keep-out and the depth range
+        check_sequence_depth(cfg)
     done = finished_shards(cfg, out_dir) if os.path.isdir(out_dir) else {}
     os.makedirs(out_dir, exist_ok=True)
     for stale in glob.glob(os.path.join(out_dir, ".tmp-*")):  # partial shards of a killed run

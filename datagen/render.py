@@ -27,6 +27,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envisat_pose.attitude import rotmat_to_quat  # noqa: E402
+from envisat_pose.datagen.clearance import target_boxes  # noqa: E402
 from envisat_pose.geometry import model_path  # noqa: E402
 
 CAMERA_NAME = "chaser_cam"
@@ -191,6 +192,7 @@ class SceneRenderer:
         self.sun_id = m.light("sun").id
         self.corner_sites = np.array([m.site(f"corner_{c}").id for c in "ABCDEFGH"])
         self.target_geoms = np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] == self.target_body])
+        self.target_boxes = target_boxes(m)  # the whole target as oriented boxes in T (keep-out, near plane)
         self.mask_lut = np.zeros(m.ngeom + 1, dtype=np.uint8)  # index geom id + 1; -1 (none) -> 0
         for name, value in MASK_VALUES.items():
             self.mask_lut[m.geom(name).id + 1] = value

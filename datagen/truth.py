@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from envisat_pose.datagen.clearance import check_keepout, target_boxes
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.datagen.sim import TruthSim
@@ -57,7 +58,7 @@ def simulate(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajectory:
     if bar is not None:
         bar.close()
     orb = chaser_orbit(cfg.orbit, t_s)
-    return TruthTrajectory(
+    traj = TruthTrajectory(
         t_s=t_s,
         x=x,
         chaser_r_m=orb.r_m,
@@ -70,3 +71,12 @@ def simulate(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajectory:
         in_frame=in_frame,
         config_json=to_json(cfg),
     )
+    check_clearance(cfg, traj, sim.model)
+    return traj
+
+
+def check_clearance(cfg: ScenarioConfig, traj: TruthTrajectory, model) -> None:
+    """ConfigError (naming relative.rho0_C_m, the time and the distance) when the simulated chaser comes
+    closer than cfg.keepout_margin_m to any geom of the target (body, boom, solar array) of `model`."""
+    check_keepout(traj.t_s, traj.x, cfg.keepout_margin_m, target_boxes(model), field="relative.rho0_C_m",
+                  value=list(cfg.relative.rho0_C_m))
