@@ -10,6 +10,7 @@ import numpy as np
 
 from envisat_pose.datagen.shards import check_shard, decode_png, read_manifest, read_shard, shard_name
 from envisat_pose.config import InputError
+from envisat_pose.io import atomic_path
 from envisat_pose.geometry import CORNER_NAMES, EDGES
 
 
@@ -131,6 +132,25 @@ def montage(out_dir: str, path: str, count: int = 16, tile_px: int = 256) -> int
     for k, tile in enumerate(tiles):
         r, c = divmod(k, cols)
         grid[r * tile_px : (r + 1) * tile_px, c * tile_px : (c + 1) * tile_px] = tile
-    if not cv2.imwrite(path, grid):
-        raise InputError(f"cannot write the montage to {path!r}")
+    write_image(path, grid)
     return len(tiles)
+
+
+def write_image(path: str, image: np.ndarray) -> None:
+    """Encode an image by the path's extension (.png when none) and write it atomically (a temp file in the
+    same folder, then a rename: a killed run never leaves a partial file). InputError when that fails."""
+    import cv2
+
+    ext = os.path.splitext(path)[1] or ".png"
+    try:
+        ok, data = cv2.imencode(ext, image)
+    except cv2.error:
+        ok = False
+    if not ok:
+        raise InputError(f"cannot encode the montage as {ext!r} for {path!r}: use .png or .jpg")
+    try:
+        with atomic_path(path, suffix=ext) as tmp:
+            with open(tmp, "wb") as fh:
+                fh.write(data.tobytes())
+    except OSError as err:
+        raise InputError(f"cannot write the montage to {path!r} ({err.strerror or err})") from None

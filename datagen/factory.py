@@ -300,17 +300,32 @@ def shard_task(cfg_json: str, shard_index: int, out_dir: str) -> dict:
 
 
 def prepare_out_dir(out_dir: str) -> None:
-    """Create out_dir (its parent must exist) or check that it is a writable folder; InputError otherwise."""
+    """Check, creating nothing, that out_dir is a folder or can become one (its parent exists); InputError."""
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise InputError(f"--out {out_dir!r} exists and is not a folder")
     parent = os.path.dirname(os.path.abspath(out_dir))
-    if not os.path.isdir(out_dir):
-        if not os.path.isdir(parent):
-            raise InputError(f"--out {out_dir!r}: parent folder {parent!r} does not exist")
-        if not os.access(parent, os.W_OK):
-            raise InputError(f"--out {out_dir!r}: parent folder {parent!r} is not writable")
-    elif not os.access(out_dir, os.W_OK):
-        raise InputError(f"--out {out_dir!r} is not writable")
+    if not os.path.isdir(out_dir) and not os.path.isdir(parent):
+        raise InputError(f"--out {out_dir!r}: parent folder {parent!r} does not exist")
+
+
+def make_out_dir(out_dir: str) -> None:
+    """Create out_dir if needed and prove it writable by writing (and removing) a probe file in it.
+
+    os.access says yes to root everywhere (even /proc), so only a real write tells; any OSError becomes one
+    InputError line naming the folder and the system's reason.
+    """
+    import tempfile
+
+    try:
+        os.makedirs(out_dir, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".tmp-probe-", dir=out_dir)
+        try:
+            os.write(fd, b"probe")
+        finally:
+            os.close(fd)
+            os.remove(probe)
+    except OSError as err:
+        raise InputError(f"--out {out_dir!r}: cannot write there ({err.strerror or err})") from None
 
 
 def check_sequence_depth(cfg: GenerateConfig) -> None:
@@ -390,7 +405,7 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
     if cfg.mode == "sequence":  # before anything is written: the truth's keep-out and the depth range
         check_sequence_depth(cfg)
     done = finished_shards(cfg, out_dir) if os.path.isdir(out_dir) else {}
-    os.makedirs(out_dir, exist_ok=True)
+    make_out_dir(out_dir)
     for stale in glob.glob(os.path.join(out_dir, ".tmp-*")):  # partial shards of a killed run
         os.remove(stale)
     for idx in range(cfg.num_shards):  # a shard file the manifest does not vouch for is redone
