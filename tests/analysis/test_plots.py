@@ -1,4 +1,4 @@
-"""Plots: the MRP error compares estimate and truth on one set; the PNGs are written."""
+"""Plots: the MRP error compares estimate and truth on one set; the PNGs decode and show the plotted data."""
 
 import numpy as np
 
@@ -18,7 +18,17 @@ def test_mrp_error_is_small_when_the_estimate_sits_on_the_shadow_set():
     assert np.degrees(mrp_error_angle_rad(p_hat, p_true)) < 0.25
 
 
-def test_plots_are_written(tmp_path):
+def colour_pixels(img_bgr, rgb, tol=40):
+    """Pixels within `tol` per channel of the colour rgb (0-255). (H, W) bool."""
+    return np.all(np.abs(img_bgr.astype(int) - np.array(rgb[::-1])) <= tol, axis=-1)
+
+
+C0, C3 = (31, 119, 180), (214, 39, 40)  # matplotlib's default blue and red
+
+
+def test_plots_are_written_and_show_the_data(tmp_path):
+    import cv2
+
     rng = np.random.default_rng(0)
     T, R = 50, 3
     t_s = np.arange(T, dtype=float)
@@ -28,5 +38,31 @@ def test_plots_are_written(tmp_path):
     P = np.broadcast_to(np.eye(12) * 1e-4, (R, T, 12, 12))
     plot_estimate(t_s, x_true, x_hat, P, str(tmp_path / "est.png"))
     plot_states(t_s, x_true[0], str(tmp_path / "run.png"), visible=np.ones((T, 8), bool))
-    for name in ("est.png", "run.png"):
-        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    est, run = cv2.imread(str(tmp_path / "est.png")), cv2.imread(str(tmp_path / "run.png"))
+    assert est is not None and run is not None, "not decodable PNGs"
+    assert est.shape == (1300, 1300, 3)  # 13 x 13 in at 100 dpi
+    assert run.shape == (1331, 1430, 3)  # 13 x 12.1 in at 110 dpi (5 rows with the visible corners)
+    for img in (est, run):
+        assert img.std() > 20 and np.mean(img > 250) < 0.98  # not blank
+    # the errors of run 0 (blue) and the filter's 3 sigma (red) are drawn in each of the 12 state panels
+    h, w = est.shape[:2]
+    for i in range(12):
+        r, c = divmod(i, 3)
+        cell = est[r * h // 5 : (r + 1) * h // 5, c * w // 3 : (c + 1) * w // 3]
+        assert colour_pixels(cell, C0).sum() > 100 and colour_pixels(cell, C3).sum() > 100, i
+    # the states (blue) are drawn in each panel of the truth plot, and the visible-corner count too
+    h, w = run.shape[:2]
+    for i in range(13):
+        r, c = divmod(i, 3)
+        cell = run[r * h // 5 : (r + 1) * h // 5, c * w // 3 : (c + 1) * w // 3]
+        assert colour_pixels(cell, C0).sum() > 100, i
+
+
+def test_a_plot_without_data_fails_the_check(tmp_path):
+    """The check above can fail: all-NaN states draw no lines, so no panel shows the data colour."""
+    import cv2
+
+    t_s = np.arange(20, dtype=float)
+    plot_states(t_s, np.full((20, 12), np.nan), str(tmp_path / "empty.png"))
+    img = cv2.imread(str(tmp_path / "empty.png"))
+    assert colour_pixels(img, C0).sum() < 50
