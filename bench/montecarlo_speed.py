@@ -1,0 +1,152 @@
+"""Monte Carlo campaign speed: wall time and peak memory of `envisat montecarlo` over 1000 runs x one orbit
+(6000 s) at 1 Hz on 2 worker processes (default scenario, 3D corners at 0.02 m), the cost per run-step, and
+filterpy's time for the same campaign extrapolated from a measured slice (one filterpy UKF run over a few
+steps, bench/ukf_speed.py's reference usage).
+
+Peak memory: the largest total resident memory of this process and all its children (the spawned workers),
+sampled every 0.2 s with psutil, and resource.getrusage's peaks (self; the largest child) as a check.
+
+Run: .venv/bin/python bench/montecarlo_speed.py [--runs 1000] [--duration-s 6000] [--workers 2]
+     [--out bench/results/montecarlo_speed.json]
+Floors (issue 8): under 10 minutes and 4 GB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import shutil
+import sys
+import tempfile
+import threading
+import time
+
+import numpy as np
+
+FLOOR_WALL_S = 600.0
+FLOOR_MEMORY_GB = 4.0
+FILTERPY_STEPS = 40
+
+
+class PeakRSS:
+    """Samples the summed RSS of this process and its descendants in a thread; .peak_bytes is the largest."""
+
+    def __init__(self, every_s: float = 0.2):
+        import psutil
+
+        self._proc, self._every_s, self.peak_bytes = psutil.Process(), every_s, 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+
+    def _sample(self) -> int:
+        import psutil
+
+        total = 0
+        for p in [self._proc] + self._proc.children(recursive=True):
+            try:
+                total += p.memory_info().rss
+            except psutil.Error:
+                pass
+        return total
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self.peak_bytes = max(self.peak_bytes, self._sample())
+            self._stop.wait(self._every_s)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+
+
+def time_campaign(runs: int, duration_s: float, workers: int, block_runs: int, out_dir: str) -> dict:
+    """Run the campaign once through the app's run_campaign; wall time, memory, summary."""
+    from envisat_pose.app.montecarlo import MonteCarloConfig, run_campaign
+    from envisat_pose.runner import RunnerConfig, cpu_share
+
+    cfg = MonteCarloConfig(scenario="default", duration_s=duration_s, runs=runs, seed=0, block_runs=block_runs)
+    n = str(cpu_share(workers))
+    runner = RunnerConfig("local", workers, None, {"OMP_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n})
+    t0 = time.perf_counter()
+    with PeakRSS() as mem:
+        summary = run_campaign(cfg, out_dir, runner, progress=True)
+    wall_s = time.perf_counter() - t0
+    with open(os.path.join(out_dir, "timing.json"), encoding="utf-8") as fh:
+        timing = json.load(fh)
+    return {"wall_s": wall_s, "peak_rss_tree_bytes": mem.peak_bytes, "summary": summary, "timing": timing,
+            "steps": summary["steps"],
+            "maxrss_self_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+            "maxrss_largest_child_bytes": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024}
+
+
+def time_filterpy_slice(steps: int) -> float:
+    """us per run-step of filterpy's UKF on the same problem (one run, `steps` steps, after the first update)."""
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from ukf_speed import _setup, time_filterpy
+
+    _, cfg, inp, chaser = _setup(steps + 1, 1)
+    return time_filterpy(cfg, inp, chaser, steps)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--runs", type=int, default=1000)
+    ap.add_argument("--duration-s", type=float, default=6000.0)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--block-runs", type=int, default=125)
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "montecarlo_speed.json"))
+    args = ap.parse_args()
+    work = tempfile.mkdtemp(prefix="mc-bench-")
+    try:
+        res = time_campaign(args.runs, args.duration_s, args.workers, args.block_runs, os.path.join(work, "mc"))
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    run_steps = args.runs * res["steps"]
+    us_ours = res["wall_s"] / run_steps * 1e6
+    us_fp = time_filterpy_slice(FILTERPY_STEPS)
+    fp_wall_s = us_fp * 1e-6 * run_steps
+    peak_gb = res["peak_rss_tree_bytes"] / 2**30
+    s = res["summary"]
+    rows = [("envisat montecarlo, %d workers (wall)" % args.workers, res["wall_s"], us_ours),
+            ("filterpy UKF, 1 process (extrapolated from %d steps)" % FILTERPY_STEPS, fp_wall_s, us_fp)]
+    print(f"\n{args.runs} runs x {res['steps']} steps = {run_steps:.3g} run-steps")
+    print(f"{'':<55} {'wall s':>10} {'us/run-step':>12}")
+    for name, w, u in rows:
+        print(f"{name:<55} {w:>10.1f} {u:>12.2f}")
+    print(f"peak memory (process tree) {peak_gb:.2f} GiB; speed-up vs filterpy {fp_wall_s / res['wall_s']:.0f}x; "
+          f"floors: {FLOOR_WALL_S:.0f} s, {FLOOR_MEMORY_GB:.0f} GB")
+    result = {
+        "problem": "envisat montecarlo --scenario default: 3D corners (markers3d) at 0.02 m, all visible corners, "
+                   "UKF at 1 Hz, the whole campaign (truth simulation, blocks, merge, PCRLB, figures)",
+        "runs": args.runs, "steps": res["steps"], "run_steps": run_steps, "workers": args.workers,
+        "block_runs": args.block_runs,
+        "wall_s": res["wall_s"], "block_wall_s_sum": res["timing"]["block_wall_s_sum"],
+        "us_per_run_step": us_ours, "us_per_run_step_cpu_blocks": res["timing"]["block_wall_s_sum"] / run_steps * 1e6,
+        "peak_memory_bytes": res["peak_rss_tree_bytes"], "peak_memory_gib": peak_gb,
+        "maxrss_self_bytes": res["maxrss_self_bytes"], "maxrss_largest_child_bytes": res["maxrss_largest_child_bytes"],
+        "filterpy": {"us_per_run_step": us_fp, "measured_steps": FILTERPY_STEPS,
+                     "extrapolated_wall_s_1_process": fp_wall_s,
+                     "extrapolated_wall_s_on_workers": fp_wall_s / args.workers},
+        "speedup_vs_filterpy_same_workers": fp_wall_s / args.workers / res["wall_s"],
+        "floors": {"wall_s": FLOOR_WALL_S, "memory_gb": FLOOR_MEMORY_GB},
+        "meets_floors": bool(res["wall_s"] < FLOOR_WALL_S and res["peak_rss_tree_bytes"] < FLOOR_MEMORY_GB * 1e9),
+        "campaign": {k: s[k] for k in ("rmse", "rmse_over_pcrlb", "nees_mean", "nees_bounds", "n_diverged",
+                                       "settle_s", "inside_3sigma_share")},
+        "machine": {"python": platform.python_version(), "cpu_count": os.cpu_count(), "numpy": np.__version__},
+    }
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w", encoding="utf-8") as fh:
+        json.dump(result, fh, indent=2)
+        fh.write("\n")
+    print(f"wrote {args.out}; meets floors: {result['meets_floors']}")
+
+
+if __name__ == "__main__":
+    main()
