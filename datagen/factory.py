@@ -24,13 +24,14 @@ from envisat_pose.datagen.labels import DEPTH_MAX_CODE
 from envisat_pose.datagen.clearance import (TargetBoxes, clearance_m, farthest_depth_m, project_target_boxes,
                                             project_znear_m)
 from envisat_pose.config import ConfigError, InputError, check, from_dict, to_dict
+from envisat_pose.geometry import load_camera
 from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks
 
 Severity = Literal["none", "low", "medium", "high", "mixed"]
 MANIFEST_FORMAT = "envisat-pose shards v1"
-# Camera mount on the chaser (models/envisat.xml, camera chaser_cam): boresight +y_C, image up +x_C.
+# Camera mount on the chaser, from camera chaser_cam of models/envisat.xml (boresight +y_C, image up +x_C).
 # Rows are the K axes (x right, y down, z boresight) in C.
-R_K_FROM_C = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+R_K_FROM_C = load_camera().R_K_from_C
 # Random mode redraws a view whose camera is too near the target or whose near plane cuts it, at most this often.
 MAX_VIEW_DRAWS = 1000
 

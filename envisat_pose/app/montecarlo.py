@@ -242,18 +242,34 @@ def write_manifest(out_dir: str, cfg: MonteCarloConfig, truth_sha: str, done: di
     atomic_write_text(os.path.join(out_dir, "manifest.json"), json.dumps(manifest, indent=1, sort_keys=True) + "\n")
 
 
+def truth_scenario(cfg: MonteCarloConfig):
+    """The validated ScenarioConfig of the campaign's truth (the filter's rate above 1 Hz refines its step)."""
+    from envisat_pose.datagen.scenario import scenario_config
+
+    overrides: dict = {"seed": cfg.seed, "duration_s": cfg.duration_s}
+    if cfg.measurement.rate_hz > 1.0:
+        overrides["dt_s"] = 1.0 / cfg.measurement.rate_hz
+    return scenario_config(cfg.scenario, **overrides)
+
+
+def check_filter_rate(cfg: MonteCarloConfig, scenario) -> None:
+    """The filter's period must be a whole number of the truth's sample steps (before any work)."""
+    from envisat_pose.filtering.montecarlo import filter_stride
+
+    try:
+        filter_stride(np.array([0.0, scenario.dt_s]), cfg.measurement.rate_hz)
+    except ValueError as err:
+        raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None
+
+
 def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, progress: bool) -> str:
     """DIR/truth.npz: kept when the manifest vouches for it, else simulated with MuJoCo. Returns its sha256."""
     path = os.path.join(out_dir, "truth.npz")
     if manifest and os.path.exists(path) and _sha256(path) == manifest.get("truth_sha256"):
         return manifest["truth_sha256"]
-    from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.datagen.truth import simulate
 
-    overrides: dict = {"seed": cfg.seed, "duration_s": cfg.duration_s}
-    if cfg.measurement.rate_hz > 1.0:
-        overrides["dt_s"] = 1.0 / cfg.measurement.rate_hz
-    simulate(scenario_config(cfg.scenario, **overrides), progress=progress).save(path)
+    simulate(truth_scenario(cfg), progress=progress).save(path)
     return _sha256(path)
 
 
@@ -278,12 +294,12 @@ def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner, progress: bool = F
     from envisat_pose.runner import run_tasks
 
     t_start = time.perf_counter()
+    check_filter_rate(cfg, truth_scenario(cfg))
     manifest = read_manifest(out_dir) if os.path.isdir(out_dir) else None
     if manifest is not None:
         check_same_config(manifest, cfg, out_dir)
     prepare_out_dir(out_dir)
     truth_sha = prepare_truth(cfg, out_dir, manifest, progress)
-    check_filter_rate(cfg, out_dir)
     done = finished_blocks(manifest, cfg, out_dir, truth_sha)
     for b in range(cfg.n_blocks):  # a block file the manifest does not vouch for is redone
         if b not in done and os.path.exists(os.path.join(out_dir, block_name(b))):
@@ -320,17 +336,6 @@ def _bar(cfg: MonteCarloConfig, done: dict, progress: bool):
 
     return tqdm(total=cfg.runs, initial=sum(e["run_stop"] - e["run_start"] for e in done.values()), unit="run",
                 desc="montecarlo", mininterval=0.5)
-
-
-def check_filter_rate(cfg: MonteCarloConfig, out_dir: str) -> None:
-    from envisat_pose.contracts import TruthTrajectory
-    from envisat_pose.filtering.montecarlo import filter_stride
-
-    truth = TruthTrajectory.load(os.path.join(out_dir, "truth.npz"))
-    try:
-        filter_stride(truth.t_s, cfg.measurement.rate_hz)
-    except ValueError as err:
-        raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None
 
 
 # ---------------------------------------------------------------- one block (a runner task)
