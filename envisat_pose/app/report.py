@@ -90,6 +90,27 @@ def _fmt(v, scale: float = 1.0, digits: int = 4) -> str:
     return f"{v * scale:.{digits}g}"
 
 
+def config_differences(campaigns: list[dict]) -> list[str]:
+    """Per campaign, its config values that differ between the campaigns ('' for one campaign)."""
+    import tomllib
+
+    flat = []
+    for c in campaigns:
+        try:
+            flat.append(_flat(tomllib.loads(c["config"])))
+        except tomllib.TOMLDecodeError:
+            flat.append({})
+    keys = sorted({k for f in flat for k in f if len({repr(g.get(k)) for g in flat}) > 1})
+    return ["; ".join(f"{k} = {f.get(k, 'unset')}" for k in keys) for f in flat]
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
 def campaign_rows(c: dict) -> list[tuple[str, str]]:
     """(label, value) rows of one campaign's table, already formatted."""
     s, t = c["summary"], c["timing"]
@@ -131,6 +152,8 @@ def render_report(campaigns: list[dict]) -> str:
     names = [os.path.basename(os.path.normpath(c["dir"])) or c["dir"] for c in campaigns]
     table = ["<table><tr><th></th>" + "".join(f"<th>{e(n)}</th>" for n in names) + "</tr>"]
     all_rows = [campaign_rows(c) for c in campaigns]
+    if len(campaigns) > 1:
+        all_rows = [[("config differences", d)] + rows for d, rows in zip(config_differences(campaigns), all_rows)]
     for i, (label, _) in enumerate(all_rows[0]):
         cells = "".join(f"<td>{e(rows[i][1])}</td>" for rows in all_rows)
         table.append(f"<tr><td class=\"l\">{e(label)}</td>{cells}</tr>")

@@ -79,6 +79,8 @@ def test_report_embeds_every_figure_and_parses(two_campaigns, tmp_path, capsys):
         assert f"{s['rmse_over_pcrlb']['attitude']:.3g}" in page.cells
     assert any(c.startswith("RMSE / PCRLB") for c in page.cells) and any("NEES" in c for c in page.cells)
     assert any("wall" in c for c in page.cells)
+    # what sets the campaigns apart is named in the table
+    assert "measurement.sigma_m = 0.02" in page.cells and "measurement.sigma_m = 0.2" in page.cells
 
 
 def test_report_on_a_folder_without_summary_is_one_error_line(two_campaigns, tmp_path, capsys):
