@@ -27,13 +27,19 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envisat_pose.attitude import rotmat_to_quat  # noqa: E402
+from envisat_pose.datagen.appearance import CLASSES, GEOM_CLASS, Look, class_texture, TEXTURE_PX  # noqa: E402
 from envisat_pose.datagen.clearance import target_boxes  # noqa: E402
 from envisat_pose.geometry import model_path  # noqa: E402
 
 CAMERA_NAME = "chaser_cam"
 # Mask values: 0 background (and the Earth), 1-6 the faces in geometry.FACE_NAMES order, 7 the solar array
 # (its boom included: the contract has one value per face and one for the array).
-MASK_VALUES = {"face_px": 1, "face_mx": 2, "face_py": 3, "face_my": 4, "face_pz": 5, "face_mz": 6, "array": 7, "boom": 7}
+MASK_VALUES = {"face_px": 1, "face_mx": 2, "face_py": 3, "face_my": 4, "face_pz": 5, "face_mz": 6, "array": 7, "boom": 7,
+               "asar": 8, "asar_strut_fwd": 8, "asar_strut_aft": 8, "instr_meris": 8, "instr_aatsr": 8,
+               "instr_doris": 8}
+# The clutter (ASAR antenna, instrument boxes): geom group 4 of models/envisat.xml, drawn when a view asks.
+APPENDAGE_GEOM_GROUP = 4
+APPENDAGE_MASK_VALUE = 8
 EARTH_RADIUS_M = 6378137.0
 # The Earth is drawn shrunk by this factor about the camera: same angular size, but inside the far plane.
 EARTH_SCALE = 0.01
@@ -49,8 +55,12 @@ class View:
 
     rho_C_m: (3,) target CoM relative to the chaser, m. R_C_from_T: (3, 3) target attitude (Gamma^T).
     sun_dir_C: (3,) unit vector toward the sun; None means eclipse (no sunlight).
-    earth_dir_C: (3,) unit vector toward the Earth's centre (nadir); None means no Earth backdrop.
+    earth_dir_C: (3,) unit vector toward the Earth's centre (nadir); None means no Earth (no backdrop, no
+    Earth-shine). earth_backdrop: draw the Earth's disc when earth_dir_C is given.
     earth_distance_m: distance of the Earth's centre from the chaser, m.
+    look: per-geom materials and light intensities (appearance.Look); None keeps the MJCF's materials, the sun
+    at its MJCF intensity and no Earth-shine. appendages: draw the clutter (ASAR antenna, instruments).
+    The Earth-shine light shines from earth_dir_C at the look's intensity.
     """
 
     rho_C_m: np.ndarray
@@ -58,6 +68,9 @@ class View:
     sun_dir_C: np.ndarray | None
     earth_dir_C: np.ndarray | None = None
     earth_distance_m: float = 7142.0e3
+    look: Look | None = None
+    appendages: bool = False
+    earth_backdrop: bool = True
 
 
 @dataclass
@@ -78,10 +91,12 @@ class RenderOutput:
     fovy_deg: float
 
 
-def render_model_xml(resolution_px: int, base_xml: str | None = None) -> str:
+def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_set_size: int = 0) -> str:
     """The project's MJCF prepared for rendering at `resolution_px`: a large enough off-screen buffer, a fixed
-    model extent (the near/far planes and shadow box stay those of models/envisat.xml), and an Earth backdrop
-    body (mocap, geom group 5, hidden by default).
+    model extent (the near/far planes and shadow box stay those of models/envisat.xml), an Earth backdrop
+    body (mocap, geom group 5, hidden by default), an Earth-shine light (off until a look turns it on), and
+    for appearance randomization `texture_set_size` textures per covering class with one material
+    `look_<geom>_<k>` per target geom and texture (texture pixels are written by the renderer).
 
     The XML tree is edited in memory; models/envisat.xml is not changed.
     """
@@ -110,6 +125,19 @@ def render_model_xml(resolution_px: int, base_xml: str | None = None) -> str:
     earth = ET.SubElement(world, "body", name="earth_backdrop", mocap="true", pos="0 0 -1e5")
     ET.SubElement(earth, "geom", name="earth_backdrop", type="sphere", size=repr(EARTH_RADIUS_M * EARTH_SCALE),
                   material="earth_backdrop", group=str(EARTH_GEOM_GROUP), contype="0", conaffinity="0")
+    # Earth-shine: sunlight reflected by the Earth, a directional light from the nadir side, no shadows
+    ET.SubElement(world, "light", name="earthshine", directional="true", castshadow="false", pos="0 0 100",
+                  dir="0 0 -1", diffuse="0 0 0", specular="0 0 0", ambient="0 0 0", active="false")
+    if texture_set_size > 0:
+        for cls in sorted(CLASSES):
+            for k in range(texture_set_size):
+                ET.SubElement(asset, "texture", name=f"tex_{cls}_{k}", type="2d", builtin="flat",
+                              width=str(TEXTURE_PX), height=str(TEXTURE_PX), rgb1="1 1 1")
+        for geom, cls in GEOM_CLASS.items():
+            rep = repr(1.0 / CLASSES[cls].tile_m)
+            for k in range(texture_set_size):
+                ET.SubElement(asset, "material", name=f"look_{geom}_{k}", texture=f"tex_{cls}_{k}",
+                              texuniform="true", texrepeat=f"{rep} {rep}")
     return ET.tostring(root, encoding="unicode")
 
 
@@ -176,10 +204,13 @@ def intrinsics(resolution_px: int, fovy_deg: float) -> np.ndarray:
 class SceneRenderer:
     """One GL context and MuJoCo scene rendering the chaser camera at a fixed square resolution."""
 
-    def __init__(self, resolution_px: int, shadows: bool = True, base_xml: str | None = None):
+    def __init__(self, resolution_px: int, shadows: bool = True, base_xml: str | None = None,
+                 texture_set_size: int = 0, texture_seed: int = 0):
         self.resolution_px = int(resolution_px)
         self.shadows = bool(shadows)
-        self.model = mujoco.MjModel.from_xml_string(render_model_xml(self.resolution_px, base_xml))
+        self.texture_set_size, self.texture_seed = int(texture_set_size), int(texture_seed)
+        self.model = mujoco.MjModel.from_xml_string(render_model_xml(self.resolution_px, base_xml,
+                                                                     self.texture_set_size))
         self.data = mujoco.MjData(self.model)
         m = self.model
         self.cam_id = m.camera(CAMERA_NAME).id
@@ -190,6 +221,16 @@ class SceneRenderer:
         self.earth_mocap = int(m.body("earth_backdrop").mocapid[0])
         self.target_body = m.body("target").id
         self.sun_id = m.light("sun").id
+        self.earthshine_id = m.light("earthshine").id
+        self._sun_diffuse = m.light_diffuse[self.sun_id].copy()
+        self._sun_specular = m.light_specular[self.sun_id].copy()
+        # each target geom's MJCF material and, per texture k, its look material
+        self._geom_ids = {name: m.geom(name).id for name in GEOM_CLASS}
+        self._mjcf_matid = {name: int(m.geom_matid[g]) for name, g in self._geom_ids.items()}
+        self._mjcf_mat = {int(i): (m.mat_rgba[i].copy(), float(m.mat_specular[i]), float(m.mat_shininess[i]),
+                                   float(m.mat_reflectance[i])) for i in set(self._mjcf_matid.values())}
+        self._look_matid = {(name, k): m.material(f"look_{name}_{k}").id for name in GEOM_CLASS
+                            for k in range(self.texture_set_size)}
         self.corner_sites = np.array([m.site(f"corner_{c}").id for c in "ABCDEFGH"])
         self.target_geoms = np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] == self.target_body])
         self.target_boxes = target_boxes(m)  # the whole target as oriented boxes in T (keep-out, near plane)
@@ -219,6 +260,46 @@ class SceneRenderer:
         self._cam.fixedcamid = self.cam_id
         self._rect = mujoco.MjrRect(0, 0, n, n)
         self._rgb = np.empty((n, n, 3), dtype=np.uint8)
+        self._upload_textures()
+
+    def _upload_textures(self) -> None:
+        """Write the procedural textures (appearance.class_texture) into tex_data and send them to both GL
+        render contexts; done once per renderer."""
+        m = self.model
+        for cls in sorted(CLASSES):
+            for k in range(self.texture_set_size):
+                t = m.texture(f"tex_{cls}_{k}").id
+                data = class_texture(self.texture_seed, cls, k)
+                a = int(m.tex_adr[t])
+                m.tex_data[a : a + data.size] = data.ravel()
+                for con in (self._con, self._con_seg):
+                    mujoco.mjr_uploadTexture(m, con, t)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
+
+    def set_look(self, look: Look | None) -> None:
+        """Materials and light intensities of `look` into the model arrays (None: the MJCF's own)."""
+        m = self.model
+        for i, (rgba, spec, shin, refl) in self._mjcf_mat.items():  # a look may have written these
+            m.mat_rgba[i], m.mat_specular[i], m.mat_shininess[i], m.mat_reflectance[i] = rgba, spec, shin, refl
+        for name, g in self._geom_ids.items():
+            m.geom_matid[g] = self._mjcf_matid[name]
+        if look is None:
+            m.light_diffuse[self.sun_id], m.light_specular[self.sun_id] = self._sun_diffuse, self._sun_specular
+            m.light_active[self.earthshine_id] = 0
+            return
+        for name, ml in look.materials.items():
+            if (name, ml.texture) not in self._look_matid:
+                raise ValueError(f"look for geom {name!r} texture {ml.texture}: this renderer has "
+                                 f"{self.texture_set_size} textures per class")
+            i = self._look_matid[(name, ml.texture)]
+            m.geom_matid[self._geom_ids[name]] = i
+            m.mat_rgba[i] = (*ml.rgb, 1.0)
+            m.mat_specular[i], m.mat_shininess[i], m.mat_reflectance[i] = ml.specular, ml.shininess, ml.reflectance
+        s = look.sun_intensity
+        m.light_diffuse[self.sun_id] = (s, s, s)
+        m.light_specular[self.sun_id] = (0.5 * s, 0.5 * s, 0.5 * s)
+        e = look.earthshine_intensity
+        m.light_diffuse[self.earthshine_id] = (e, e, e)
 
     def close(self) -> None:
         """Free the GL resources (also done at interpreter exit by the owner)."""
@@ -246,7 +327,15 @@ class SceneRenderer:
             m.light_dir[self.sun_id] = -s  # light travels away from the sun
             # centre the directional light's shadow box on the target
             m.light_pos[self.sun_id] = np.asarray(view.rho_C_m) + s * m.stat.extent
-        if view.earth_dir_C is None:
+        self.set_look(view.look)
+        self._opt.geomgroup[APPENDAGE_GEOM_GROUP] = int(bool(view.appendages))
+        if view.look is not None and view.look.earthshine_intensity > 0 and view.earth_dir_C is not None:
+            e = np.asarray(view.earth_dir_C, dtype=float)
+            m.light_active[self.earthshine_id] = 1
+            m.light_dir[self.earthshine_id] = -e / np.linalg.norm(e)  # from the Earth toward the target
+        else:
+            m.light_active[self.earthshine_id] = 0
+        if view.earth_dir_C is None or not view.earth_backdrop:
             self._opt.geomgroup[EARTH_GEOM_GROUP] = 0
             d.mocap_pos[self.earth_mocap] = (0.0, 0.0, -1e5)
         else:
@@ -356,12 +445,15 @@ class SceneRenderer:
 _RENDERERS: dict[tuple, SceneRenderer] = {}
 
 
-def shared_renderer(resolution_px: int, shadows: bool = True) -> SceneRenderer:
-    """This process's renderer for (resolution, shadows), created on first use and reused (one per worker)."""
-    key = (int(resolution_px), bool(shadows))
+def shared_renderer(resolution_px: int, shadows: bool = True, texture_set_size: int = 0,
+                    texture_seed: int = 0) -> SceneRenderer:
+    """This process's renderer for (resolution, shadows, texture set), created on first use and reused (one
+    per worker)."""
+    key = (int(resolution_px), bool(shadows), int(texture_set_size), int(texture_seed))
     if key not in _RENDERERS:
         first = not _RENDERERS
-        _RENDERERS[key] = SceneRenderer(resolution_px, shadows)
+        _RENDERERS[key] = SceneRenderer(resolution_px, shadows, texture_set_size=texture_set_size,
+                                        texture_seed=texture_seed)
         if first:
             import atexit
 
