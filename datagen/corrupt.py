@@ -44,6 +44,7 @@ def draw_corruption(severities: dict[str, str], resolution_px: int, rng: np.rand
     angle = float(rng.uniform(0.0, 180.0))
     full_well = SHOT_NOISE_FULL_WELL_E[lv["shot_noise"]]
     return {
+        "model": "paper",
         "levels": {k: SEVERITIES[v] for k, v in lv.items()},
         "exposure_gain": round(gain, 6),
         "motion_blur_length_px": round(MOTION_BLUR_LENGTH_PX_1024[lv["motion_blur"]] * scale, 6),
@@ -102,11 +103,16 @@ def _content_box(gray_u8: np.ndarray, reach_px: int) -> tuple[int, int, int, int
 
 
 def apply_corruption(gray_u8: np.ndarray, params: dict) -> np.ndarray:
-    """Corrupt a clean 8-bit image with `params` (from draw_corruption). (H, W) uint8 -> (H, W) uint8.
+    """Corrupt a clean 8-bit image with `params` (from draw_corruption, or sensor.draw_sensor when
+    params['model'] == 'sensor': the space camera). (H, W) uint8 -> (H, W) uint8.
 
     Order, as light meets the sensor: exposure gain, motion blur, optics blur, then shot noise (Poisson,
     in its Gaussian form with variance = signal / full well) and read noise, then rounding to 8 bits.
     """
+    if params.get("model") == "sensor":
+        from envisat_pose.datagen.sensor import apply_sensor
+
+        return apply_sensor(gray_u8, params)
     lv = params["levels"]
     if all(v == "none" for v in lv.values()):
         return gray_u8

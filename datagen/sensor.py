@@ -1,0 +1,252 @@
+"""A space camera: the clean render as scene irradiance through optics, motion and a CCD/CMOS sensor to 8 bits.
+
+The clean 8-bit render is read as irradiance relative to white (grey 255 = 1). The chain, in the order light
+meets the camera:
+
+1. vignetting: irradiance x cos^n(theta), theta the angle off the optical axis (n = 4: the natural law);
+2. optics point-spread function: a Gaussian (sigma, px) or the Airy pattern of a circular aperture
+   (first dark ring at 1.22 lambda N / pixel pitch, px), normalised to integrate to 1;
+3. motion blur: a linear streak of the target's image velocity (from the true relative rate) x exposure;
+4. photo-electrons: irradiance x white_e (the electrons a white pixel collects in the exposure = flux x
+   exposure) x the camera's fixed-pattern gain (PRNU: 1 + prnu_sigma N(0, 1), seeded per camera), plus the
+   dark current x exposure;
+5. shot noise: Poisson in electrons (variance = mean); exact below 100 e-, its Gaussian limit above;
+6. saturation and blooming: charge above the full well spills along the column (exponential profile of
+   blooming_decay_px, charge conserved while the neighbours have room), then everything clips at full well;
+7. read noise: Gaussian, electrons;
+8. ADC: adc_bits bits over the full well (gain = full_well / (2^bits - 1) e-/DN), rounded and clipped, then
+   shown as 8 bits (DN x 255 / (2^bits - 1), rounded).
+
+Every parameter is in the label's `corruption`; the noise comes from its `noise_seed` and the PRNU pattern
+from its `camera_seed`, so `apply_sensor(clean, params)` is a pure function of its inputs.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import cv2
+import numpy as np
+
+POISSON_EXACT_BELOW_E = 100.0  # exact Poisson draws below this mean; N(mean, mean) above (skewness < 0.1)
+AIRY_FIRST_ZERO_X = 3.8317059702075125  # first zero of J1: the Airy pattern's first dark ring
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Pieces with closed forms
+
+
+def vignetting_factor(shape: tuple[int, int], f_px: float, cos_power: float) -> np.ndarray:
+    """cos^n(theta) per pixel, theta the angle of the pixel's ray off the optical axis (principal point at
+    the image centre, OpenCV convention). (H, W) float32."""
+    h, w = shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    r2 = (u - (w - 1) / 2.0) ** 2 + (v - (h - 1) / 2.0) ** 2
+    return ((f_px / np.sqrt(f_px**2 + r2)) ** cos_power).astype(np.float32)
+
+
+def gaussian_psf(sigma_px: float) -> np.ndarray:
+    """A Gaussian PSF integrated over each pixel (4 x 4 sub-samples), normalised to sum 1. (k, k) float32."""
+    half = int(math.ceil(4.0 * sigma_px)) + 1
+    return _radial_kernel(half, lambda r: np.exp(-0.5 * (r / sigma_px) ** 2))
+
+
+def airy_profile(r_px: np.ndarray, first_zero_px: float) -> np.ndarray:
+    """Airy intensity [2 J1(x) / x]^2 at radius r (px), x = 3.8317 r / first_zero_px; 1 at the centre."""
+    from scipy.special import j1
+
+    x = AIRY_FIRST_ZERO_X * np.asarray(r_px, dtype=float) / first_zero_px
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (2.0 * j1(x) / x) ** 2
+    return np.where(x == 0, 1.0, out)
+
+
+def airy_psf(first_zero_px: float) -> np.ndarray:
+    """The Airy PSF out to its third dark ring, integrated over pixels, normalised to sum 1. (k, k) float32."""
+    half = int(math.ceil(3.3 * first_zero_px)) + 1
+    return _radial_kernel(half, lambda r: airy_profile(r, first_zero_px) * (r <= 3.3 * first_zero_px))
+
+
+def _radial_kernel(half: int, profile) -> np.ndarray:
+    k = 2 * half + 1
+    sub = (np.arange(4) + 0.5) / 4.0 - 0.5  # sub-pixel offsets
+    c = np.arange(k) - half
+    xs = (c[:, None] + sub[None, :]).ravel()
+    r = np.hypot(xs[None, :], xs[:, None])
+    fine = profile(r)
+    kern = fine.reshape(k, 4, k, 4).sum(axis=(1, 3))
+    return (kern / kern.sum()).astype(np.float32)
+
+
+def image_velocity_px_s(points_T_m: np.ndarray, R_K_from_T: np.ndarray, t_K_m: np.ndarray, w_K_rad_s: np.ndarray,
+                        v_K_m_s: np.ndarray, f_px: float) -> tuple[float, float]:
+    """The target's image motion as one streak: (speed px/s, angle deg) of the principal axis of the image
+    velocities of points_T_m (P, 3), for a target turning at w_K about its centre t_K and moving at v_K, all
+    in the camera frame K. Speed: the RMS velocity along that axis (a rotation about the boresight, whose
+    velocities cancel on average, still blurs)."""
+    p = t_K_m + points_T_m @ R_K_from_T.T  # (P, 3) in K
+    pdot = v_K_m_s + np.cross(w_K_rad_s, p - t_K_m)
+    z = p[:, 2:3]
+    vel = f_px * (pdot[:, :2] / z - p[:, :2] * pdot[:, 2:3] / z**2)  # d/dt of f x / z, f y / z
+    m = vel.T @ vel / len(vel)
+    evals, evecs = np.linalg.eigh(m)
+    d = evecs[:, 1]
+    return float(math.sqrt(max(evals[1], 0.0))), float(math.degrees(math.atan2(d[1], d[0])) % 180.0)
+
+
+@functools.lru_cache(maxsize=4)
+def prnu_gain(camera_seed: int, shape: tuple[int, int], prnu_sigma: float) -> np.ndarray:
+    """The camera's fixed pixel gain map 1 + prnu_sigma N(0, 1), seeded by camera_seed alone. (H, W) float32."""
+    rng = np.random.default_rng(np.random.SeedSequence(camera_seed, spawn_key=(0x5052,)))
+    g = 1.0 + prnu_sigma * rng.standard_normal(shape, dtype=np.float32)
+    g.setflags(write=False)
+    return g
+
+
+def shot_noise_e(mean_e: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Photon (and dark-current) shot noise: a draw with variance = mean, electrons. Exact Poisson where the
+    mean is below POISSON_EXACT_BELOW_E, the Gaussian N(mean, mean) above. (shape) float32."""
+    from envisat_pose.datagen.corrupt import standard_normal_fast
+
+    mean_e = np.asarray(mean_e, dtype=np.float32)
+    out = np.empty(mean_e.shape, dtype=np.float32)
+    low = mean_e < POISSON_EXACT_BELOW_E
+    out[low] = rng.poisson(mean_e[low])
+    hi = ~low
+    n_hi = int(hi.sum())
+    if n_hi:
+        lam = mean_e[hi]
+        out[hi] = lam + np.sqrt(lam) * standard_normal_fast(rng, (n_hi,))
+    return out
+
+
+def bloom(charge_e: np.ndarray, full_well_e: float, decay_px: float) -> np.ndarray:
+    """Blooming: the charge above full well spreads along each column (rows: axis 0) with the profile
+    exp(-|d| / decay_px) / Z over d != 0 (sum 1), is added to the neighbours, and the result clips at the full
+    well. Charge is conserved while the neighbours stay below full well. (H, W) float32."""
+    excess = np.maximum(charge_e - np.float32(full_well_e), np.float32(0.0))
+    out = np.minimum(charge_e, np.float32(full_well_e))
+    if not excess.any():
+        return out
+    half = max(1, int(math.ceil(6.0 * decay_px)))
+    d = np.arange(-half, half + 1)
+    prof = np.where(d == 0, 0.0, np.exp(-np.abs(d) / decay_px))
+    kern = (prof / prof.sum()).astype(np.float32).reshape(-1, 1)
+    rows = np.flatnonzero(excess.any(axis=1))
+    cols = np.flatnonzero(excess.any(axis=0))
+    y0, y1 = max(0, rows[0] - half), min(out.shape[0], rows[-1] + half + 1)
+    x0, x1 = cols[0], cols[-1] + 1
+    spill = cv2.filter2D(excess[y0:y1, x0:x1], -1, kern[::-1], borderType=cv2.BORDER_CONSTANT)
+    out[y0:y1, x0:x1] = np.minimum(out[y0:y1, x0:x1] + spill, np.float32(full_well_e))
+    return out
+
+
+def adc_to_u8(charge_e: np.ndarray, full_well_e: float, adc_bits: int) -> np.ndarray:
+    """ADC: DN = round(e- / gain), gain = full_well / (2^bits - 1), clipped to [0, 2^bits - 1]; then 8-bit
+    display DN x 255 / (2^bits - 1), rounded. (H, W) uint8."""
+    top = float(2**adc_bits - 1)
+    dn = np.rint(charge_e * np.float32(top / full_well_e))
+    np.clip(dn, 0.0, top, out=dn)
+    if adc_bits != 8:
+        dn = np.rint(dn * np.float32(255.0 / top))
+    return dn.astype(np.uint8)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Drawing the parameters of one image, applying them
+
+
+def draw_sensor(cfg: dict, resolution_px: int, f_px: float, speed_px_s: float, angle_deg: float,
+                rng: np.random.Generator) -> dict:
+    """Concrete camera parameters of one image (plain JSON data) from the [corruption.sensor] ranges (cfg,
+    as to_dict gives it), the image's true motion (speed px/s, angle deg) and its Generator."""
+
+    def u(name):
+        lo, hi = cfg[name]
+        return float(rng.uniform(lo, hi))
+
+    exposure_s = u("exposure_s")
+    full_well = u("full_well_e")
+    white_e = u("white_fill") * full_well
+    kind = cfg["psf"] if cfg["psf"] != "mixed" else ("gaussian", "airy")[int(rng.integers(0, 2))]
+    pitch_m = cfg["pixel_pitch_m_1024"] * 1024.0 / resolution_px  # the same optics at another resolution
+    if kind == "gaussian":
+        psf = {"kind": "gaussian", "sigma_px": round(u("psf_sigma_px_1024") * resolution_px / 1024.0, 6)}
+    else:
+        n_f = u("f_number")
+        lam = cfg["wavelength_m"]
+        psf = {"kind": "airy", "f_number": round(n_f, 6), "wavelength_m": lam, "pixel_pitch_m": pitch_m,
+               "first_zero_px": round(1.2196698912665045 * lam * n_f / pitch_m, 6)}
+    bits = int(cfg["adc_bits"][int(rng.integers(0, len(cfg["adc_bits"])))])
+    return {
+        "model": "sensor",
+        "exposure_s": round(exposure_s, 9),
+        "full_well_e": round(full_well, 3),
+        "white_e": round(white_e, 3),
+        "photon_flux_e_per_s_at_white": round(white_e / exposure_s, 3),
+        "read_noise_e": round(u("read_noise_e"), 6),
+        "dark_current_e_per_s": round(u("dark_current_e_per_s"), 6),
+        "prnu_sigma": cfg["prnu_sigma"],
+        "camera_seed": cfg["camera_seed"],
+        "adc_bits": bits,
+        "blooming_decay_px": round(u("blooming_decay_px"), 6),
+        "psf": psf,
+        "image_speed_px_s": round(speed_px_s, 6),
+        "motion_blur_length_px": round(speed_px_s * exposure_s, 6),
+        "motion_blur_angle_deg": round(angle_deg, 6),
+        "vignetting_cos_power": round(u("vignetting_cos_power"), 6),
+        "f_px": f_px,
+        "noise_seed": int(rng.integers(0, 2**63)),
+    }
+
+
+def _content_box(gray_u8: np.ndarray, reach_px: int) -> tuple[int, int, int, int] | None:
+    x, y, w, h = cv2.boundingRect(gray_u8)
+    if w == 0 or h == 0:
+        return None
+    g = 2 * reach_px
+    H, W = gray_u8.shape
+    return max(0, y - g), min(H, y + h + g), max(0, x - g), min(W, x + w + g)
+
+
+def optics(gray_u8: np.ndarray, p: dict) -> np.ndarray:
+    """Steps 1-3: irradiance (white = 1) after vignetting, the PSF and the motion streak. (H, W) float32.
+
+    Only the box around the non-black pixels is filtered (outside it the result is 0 either way)."""
+    from envisat_pose.datagen.corrupt import motion_kernel
+
+    img = np.zeros(gray_u8.shape, dtype=np.float32)
+    psf = gaussian_psf(p["psf"]["sigma_px"]) if p["psf"]["kind"] == "gaussian" else airy_psf(p["psf"]["first_zero_px"])
+    kern = motion_kernel(p["motion_blur_length_px"], p["motion_blur_angle_deg"]) if p["motion_blur_length_px"] > 0.05 else None
+    reach = psf.shape[0] // 2 + (kern.shape[0] // 2 if kern is not None else 0)
+    box = _content_box(gray_u8, reach)
+    if box is None:
+        return img
+    y0, y1, x0, x1 = box
+    crop = gray_u8[y0:y1, x0:x1].astype(np.float32) * np.float32(1.0 / 255.0)
+    if p["vignetting_cos_power"] > 0:
+        full = vignetting_factor(gray_u8.shape, p["f_px"], p["vignetting_cos_power"])
+        crop *= full[y0:y1, x0:x1]
+    crop = cv2.filter2D(crop, -1, psf, borderType=cv2.BORDER_REFLECT)
+    if kern is not None:
+        crop = cv2.filter2D(crop, -1, kern, borderType=cv2.BORDER_REFLECT)
+    img[y0:y1, x0:x1] = crop
+    return img
+
+
+def apply_sensor(gray_u8: np.ndarray, p: dict) -> np.ndarray:
+    """The whole chain (module docstring) on a clean render. (H, W) uint8 -> (H, W) uint8."""
+    from envisat_pose.datagen.corrupt import standard_normal_fast
+
+    rng = np.random.default_rng(p["noise_seed"])
+    irr = optics(gray_u8, p)
+    mean_e = irr * (np.float32(p["white_e"]) * prnu_gain(p["camera_seed"], gray_u8.shape, p["prnu_sigma"]))
+    mean_e += np.float32(p["dark_current_e_per_s"] * p["exposure_s"])
+    charge = shot_noise_e(mean_e, rng)
+    charge = bloom(charge, p["full_well_e"], p["blooming_decay_px"])
+    if p["read_noise_e"] > 0:
+        noise = standard_normal_fast(rng, charge.shape)
+        noise *= np.float32(p["read_noise_e"])
+        charge += noise
+    return adc_to_u8(charge, p["full_well_e"], p["adc_bits"])

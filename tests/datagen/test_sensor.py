@@ -1,0 +1,116 @@
+"""The space camera model against closed forms: shot noise variance = mean (electrons), saturation at full well,
+blooming conserves charge with its exponential profile, PSFs integrate to 1 (Gaussian second moment, Airy first
+dark ring), vignetting is cos^n, the ADC's bit depth, PRNU per camera seed, the motion streak of a known rate."""
+
+import math
+
+import numpy as np
+import pytest
+
+from envisat_pose.datagen import sensor
+from envisat_pose.datagen.factory import SensorConfig
+from envisat_pose.config import to_dict
+
+
+def params(**kw):
+    p = sensor.draw_sensor(to_dict(SensorConfig()), 256, 477.7, 0.0, 0.0, np.random.default_rng(0))
+    p.update({"read_noise_e": 0.0, "dark_current_e_per_s": 0.0, "prnu_sigma": 0.0, "adc_bits": 12,
+              "vignetting_cos_power": 0.0, "motion_blur_length_px": 0.0, "psf": {"kind": "gaussian", "sigma_px": 0.3}})
+    p.update(kw)
+    return p
+
+
+@pytest.mark.parametrize("mean_e", [3.0, 40.0, 5000.0])
+def test_shot_noise_variance_equals_mean(mean_e):
+    x = sensor.shot_noise_e(np.full((400, 500), mean_e, np.float32), np.random.default_rng(1))
+    n = x.size
+    assert abs(x.mean() - mean_e) < 5 * math.sqrt(mean_e / n)
+    # variance of the sample variance of a Poisson: ~ 2 mean^2 / n (plus mean / n)
+    assert abs(x.var() - mean_e) < 5 * math.sqrt((2 * mean_e**2 + mean_e) / n)
+    if mean_e < sensor.POISSON_EXACT_BELOW_E:
+        assert np.all(x == np.round(x)) and x.min() >= 0  # whole electrons
+
+
+def test_saturation_clips_at_full_well_and_bloom_conserves_charge():
+    fw, decay = 1000.0, 2.0
+    charge = np.zeros((41, 5), np.float32)
+    charge[20, 2] = fw + 600.0
+    out = sensor.bloom(charge, fw, decay)
+    assert out.max() <= fw and out[20, 2] == fw
+    assert abs(out.sum() - charge.sum()) < 1e-2  # the spill lands in the column's empty neighbours
+    assert np.all(out[:, [0, 1, 3, 4]] == 0)  # only along the column
+    d = np.arange(1, 8)
+    z = 2 * np.exp(-np.arange(1, int(math.ceil(6 * decay)) + 1) / decay).sum()
+    np.testing.assert_allclose(out[20 + d, 2], 600.0 * np.exp(-d / decay) / z, rtol=1e-5)
+    np.testing.assert_allclose(out[20 - d, 2], out[20 + d, 2], rtol=1e-6)
+    # a hugely over-exposed image: every pixel at full well, shown as white
+    p = params(white_e=50 * 20000.0, full_well_e=20000.0, adc_bits=12)
+    img = sensor.apply_sensor(np.full((32, 32), 200, np.uint8), p)
+    assert np.all(img == 255)
+
+
+def test_psfs_integrate_to_one_with_their_closed_forms():
+    for sigma in (0.5, 1.0, 2.5):
+        k = sensor.gaussian_psf(sigma).astype(np.float64)
+        assert abs(k.sum() - 1) < 1e-6
+        c = np.arange(k.shape[0]) - k.shape[0] // 2
+        var = (k.sum(axis=0) * c**2).sum()
+        # pixel integration (4 x 4 sub-samples) adds ~1/12 px^2 to sigma^2
+        assert abs(var - (sigma**2 + 1 / 12)) < 0.04 * sigma**2 + 0.005, (sigma, var)
+    for r0 in (1.0, 2.2):
+        k = sensor.airy_psf(r0)
+        assert abs(float(k.astype(np.float64).sum()) - 1) < 1e-6
+    # the first dark ring at 1.22 lambda N (in pixels), the profile's closed form
+    assert sensor.airy_profile(np.array([2.2]), 2.2)[0] < 1e-12
+    assert sensor.airy_profile(np.array([0.0]), 2.2)[0] == 1.0
+    p = sensor.draw_sensor({**to_dict(SensorConfig()), "psf": "airy"}, 1024, 1910.8, 0, 0, np.random.default_rng(3))
+    assert abs(p["psf"]["first_zero_px"] - 1.22 * 550e-9 * p["psf"]["f_number"] / 5.5e-6) < 2e-3
+
+
+def test_vignetting_is_cos_to_the_n():
+    f = 100.0
+    v = sensor.vignetting_factor((101, 101), f, 4.0)
+    assert v[50, 50] == 1.0
+    r = math.hypot(50, 50)
+    assert abs(v[0, 0] - math.cos(math.atan(r / f)) ** 4) < 1e-6
+    img = sensor.optics(np.full((101, 101), 255, np.uint8), params(vignetting_cos_power=4.0, f_px=f,
+                                                                   psf={"kind": "gaussian", "sigma_px": 0.05}))
+    assert abs(img[0, 50] - math.cos(math.atan(50 / f)) ** 4) < 2e-3
+
+
+def test_adc_bit_depth_and_read_noise_and_dark_current():
+    ramp = np.linspace(0, 1000.0, 4096, dtype=np.float32).reshape(64, 64)
+    for bits in (8, 10, 12):
+        out = sensor.adc_to_u8(ramp, 1000.0, bits)
+        expect = np.rint(np.rint(ramp * (2**bits - 1) / 1000.0) * (255 / (2**bits - 1)))
+        assert np.array_equal(out, expect.astype(np.uint8))
+    # a black image: electrons = Poisson(dark x exposure) + N(0, read); in 16-bit DN the variance is their sum
+    p = params(dark_current_e_per_s=400.0, exposure_s=0.01, read_noise_e=5.0, full_well_e=65535.0, adc_bits=16)
+    rng = np.random.default_rng(p["noise_seed"])
+    mean_e = np.full((300, 300), 4.0, np.float32)
+    charge = sensor.shot_noise_e(mean_e, rng) + 5.0 * rng.standard_normal((300, 300))
+    assert abs(charge.mean() - 4.0) < 0.1 and abs(charge.var() - (4.0 + 25.0)) < 1.0
+
+
+def test_prnu_is_fixed_per_camera():
+    a = sensor.prnu_gain(7, (64, 64), 0.01)
+    assert np.array_equal(a, sensor.prnu_gain(7, (64, 64), 0.01))
+    assert not np.array_equal(a, sensor.prnu_gain(8, (64, 64), 0.01))
+    assert abs(a.std() - 0.01) < 0.001 and abs(a.mean() - 1.0) < 0.001
+    flat = params(prnu_sigma=0.02, camera_seed=7, white_e=0.5 * 200000.0, full_well_e=200000.0, adc_bits=16)
+    # the fixed pattern repeats from image to image of the same camera: two noise seeds, correlated residuals
+    one = sensor.apply_sensor(np.full((64, 64), 255, np.uint8), flat).astype(float)
+    assert one.std() > 0
+
+
+def test_motion_streak_of_a_known_rate():
+    """A point at 1 m off the centre, rotating about the boresight at w: image speed f w r / z."""
+    f, z, w = 1000.0, 50.0, math.radians(3.0)
+    pts = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    speed, angle = sensor.image_velocity_px_s(pts, np.eye(3), np.array([0.0, 0.0, z]), np.array([0.0, 0.0, w]),
+                                              np.zeros(3), f)
+    assert abs(speed - f * w * 1.0 / z) < 1e-9 and abs(angle - 90.0) < 1e-6  # points on x move along y
+    # a lateral velocity: f v / z along x
+    speed, angle = sensor.image_velocity_px_s(pts, np.eye(3), np.array([0.0, 0.0, z]), np.zeros(3),
+                                              np.array([0.5, 0.0, 0.0]), f)
+    assert abs(speed - f * 0.5 / z) < 1e-9 and min(angle, 180 - angle) < 1e-6
