@@ -65,6 +65,30 @@ def iter_samples(out_dir: str, limit: int | None = None):
                 return
 
 
+def sample_image(members: dict[str, bytes], label: dict | None = None):
+    """A sample's image as training sees it: (H, W) uint8, corrupted. A sample stored clean (label
+    image_stored = 'clean') gets its label's corruption applied here, deterministically: the same pixels
+    (and, through sample_png, the same PNG bytes) as storage = 'corrupted' writes."""
+    from envisat_pose.datagen.corrupt import apply_corruption
+
+    label = label if label is not None else json.loads(members["json"])
+    image = decode_png(members["png"])
+    if label.get("image_stored") == "clean":
+        image = apply_corruption(image, label["corruption"])
+    return image
+
+
+def sample_png(members: dict[str, bytes], label: dict | None = None) -> bytes:
+    """The PNG bytes of a sample's corrupted image (corrupting a clean-stored one on read), byte-identical to
+    the member a corrupted-storage dataset holds."""
+    from envisat_pose.datagen.shards import encode_png
+
+    label = label if label is not None else json.loads(members["json"])
+    if label.get("image_stored") != "clean":
+        return members["png"]
+    return encode_png(sample_image(members, label))
+
+
 def dataset_stats(out_dir: str) -> dict:
     """Statistics over every label: counts, range, visible and in-frame corners, eclipses, corruption levels."""
     ranges, n_vis, n_frame, eclipse, earth = [], [], [], 0, 0
@@ -76,7 +100,10 @@ def dataset_stats(out_dir: str) -> dict:
         scene = lab.get("scene", {})
         eclipse += bool(scene.get("eclipse"))
         earth += bool(scene.get("earth_backdrop"))
-        for kind, level in lab["corruption"]["levels"].items():
+        if scene.get("appendages"):
+            levels.setdefault("appendages", {}).setdefault("on", 0)
+            levels["appendages"]["on"] += 1
+        for kind, level in lab["corruption"].get("levels", {"model": lab["corruption"].get("model")}).items():
             levels.setdefault(kind, {}).setdefault(level, 0)
             levels[kind][level] += 1
     n = len(ranges)
@@ -90,7 +117,7 @@ def dataset_stats(out_dir: str) -> dict:
         "in_frame_corners_mean": float(np.mean(n_frame)),
         "eclipse_fraction": eclipse / n,
         "earth_backdrop_fraction": earth / n,
-        "corruption_levels": {k: dict(sorted(v.items())) for k, v in sorted(levels.items())},
+        "corruption_levels": {k: dict(sorted((str(a), b) for a, b in v.items())) for k, v in sorted(levels.items())},
     }
 
 
@@ -122,7 +149,7 @@ def montage(out_dir: str, path: str, count: int = 16, tile_px: int = 256) -> int
 
     tiles = []
     for _, lab, members in iter_samples(out_dir, limit=count):
-        tile = draw_labels(decode_png(members["png"]), lab)
+        tile = draw_labels(sample_image(members, lab), lab)
         tiles.append(cv2.resize(tile, (tile_px, tile_px), interpolation=cv2.INTER_AREA))
     if not tiles:
         raise InputError(f"{out_dir!r} holds no samples to draw")

@@ -36,15 +36,115 @@ R_K_FROM_C = load_camera().R_K_from_C
 MAX_VIEW_DRAWS = 1000
 
 
+Range = tuple[float, float]
+
+
+def _check_range(value: tuple, field_name: str, lo: float, hi: float) -> None:
+    check(lo <= value[0] <= value[1] <= hi, field_name, list(value), f"[low, high] with {lo:g} <= low <= high <= {hi:g}")
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """The space camera (datagen/sensor.py): ranges [low, high] drawn per image, fixed camera properties.
+
+    exposure_s: exposure time, s. full_well_e: full-well capacity, electrons. white_fill: the share of the full
+    well a white (255) clean pixel collects in the exposure (above 1: bright foil saturates and blooms).
+    read_noise_e: read noise, e- RMS. dark_current_e_per_s: dark current, e-/s per pixel. prnu_sigma: pixel
+    gain non-uniformity (fixed pattern, seeded by camera_seed). adc_bits: bit depths to draw from.
+    blooming_decay_px: column spill length of saturated charge. psf: 'gaussian', 'airy' or 'mixed';
+    psf_sigma_px_1024: Gaussian sigma at 1024 px; f_number, wavelength_m, pixel_pitch_m_1024: the Airy
+    optics. vignetting_cos_power: exponent n of cos^n (4: natural vignetting).
+    """
+
+    exposure_s: Range = (0.001, 0.02)
+    full_well_e: Range = (8000.0, 30000.0)
+    white_fill: Range = (0.5, 1.5)
+    read_noise_e: Range = (2.0, 15.0)
+    dark_current_e_per_s: Range = (10.0, 500.0)
+    prnu_sigma: float = 0.01
+    camera_seed: int = 0
+    adc_bits: tuple[int, ...] = (8, 10, 12)
+    blooming_decay_px: Range = (1.0, 6.0)
+    psf: Literal["gaussian", "airy", "mixed"] = "mixed"
+    psf_sigma_px_1024: Range = (0.3, 1.2)
+    f_number: Range = (4.0, 11.0)
+    wavelength_m: float = 550e-9
+    pixel_pitch_m_1024: float = 5.5e-6
+    vignetting_cos_power: Range = (0.0, 4.0)
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        for name, lo, hi in (("exposure_s", 1e-6, 10.0), ("full_well_e", 100.0, 1e7), ("white_fill", 0.0, 100.0),
+                             ("read_noise_e", 0.0, 1e4), ("dark_current_e_per_s", 0.0, 1e6),
+                             ("blooming_decay_px", 0.1, 100.0), ("psf_sigma_px_1024", 0.05, 20.0),
+                             ("f_number", 0.5, 64.0), ("vignetting_cos_power", 0.0, 8.0)):
+            _check_range(getattr(self, name), f"{p}{name}", lo, hi)
+        check(0.0 <= self.prnu_sigma <= 0.2, f"{p}prnu_sigma", self.prnu_sigma, "a gain spread in [0, 0.2]")
+        check(0 <= self.camera_seed < 2**63, f"{p}camera_seed", self.camera_seed, "a non-negative integer seed")
+        check(len(self.adc_bits) >= 1 and all(8 <= b <= 16 for b in self.adc_bits), f"{p}adc_bits",
+              list(self.adc_bits), "one or more bit depths in [8, 16]")
+        check(100e-9 <= self.wavelength_m <= 2e-6, f"{p}wavelength_m", self.wavelength_m, "a wavelength in m")
+        check(0.5e-6 <= self.pixel_pitch_m_1024 <= 1e-4, f"{p}pixel_pitch_m_1024", self.pixel_pitch_m_1024,
+              "a pixel pitch in m")
+
+
 @dataclass(frozen=True)
 class CorruptionConfig:
-    """Severity per corruption kind: none, low, medium, high, or mixed (a level drawn per image)."""
+    """model 'sensor': the space camera (sensor table); 'paper': the paper's Gaussian noise and blur as
+    severities per kind: none, low, medium, high, or mixed (a level drawn per image)."""
 
+    model: Literal["sensor", "paper"] = "sensor"
     exposure: Severity = "mixed"
     motion_blur: Severity = "mixed"
     gaussian_blur: Severity = "mixed"
     shot_noise: Severity = "mixed"
     gaussian_noise: Severity = "mixed"
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+
+
+@dataclass(frozen=True)
+class AppearanceConfig:
+    """Per-image materials within each face's covering class (datagen/appearance.py). enabled: None means on
+    in random mode, off in sequence mode. texture_set_size: textures per class. texture_seed: the texture set.
+    seed: the appearance draws' own seed (mixed with each sample's): another seed, other looks, same poses.
+    specular, shininess, reflectance: ranges of MuJoCo's material terms; brightness: multiplier range on each
+    class's base brightness."""
+
+    enabled: bool | None = None
+    texture_set_size: int = 8
+    texture_seed: int = 0
+    seed: int = 0
+    specular: Range = (0.2, 0.9)
+    shininess: Range = (0.2, 0.9)
+    reflectance: Range = (0.0, 0.1)
+    brightness: Range = (0.7, 1.3)
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(1 <= self.texture_set_size <= 64, f"{p}texture_set_size", self.texture_set_size, "1 to 64 textures")
+        for name in ("texture_seed", "seed"):
+            check(0 <= getattr(self, name) < 2**63, f"{p}{name}", getattr(self, name), "a non-negative integer seed")
+        for name in ("specular", "shininess", "reflectance"):
+            _check_range(getattr(self, name), f"{p}{name}", 0.0, 1.0)
+        _check_range(self.brightness, f"{p}brightness", 0.0, 3.0)
+
+
+@dataclass(frozen=True)
+class LightingConfig:
+    """sun_intensity: range of the sun light's diffuse intensity (MuJoCo units; 1.2 is the MJCF's).
+    earthshine: a light from the nadir side, intensity = sun x albedo x view_factor x the lit fraction of the
+    Earth's disc seen from the target, (1 - sun . nadir) / 2; none in eclipse (the night side)."""
+
+    sun_intensity: Range = (0.9, 1.6)
+    earthshine: bool = True
+    earth_albedo: Range = (0.25, 0.4)
+    earth_view_factor: float = 0.8
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        _check_range(self.sun_intensity, f"{p}sun_intensity", 0.0, 5.0)
+        _check_range(self.earth_albedo, f"{p}earth_albedo", 0.0, 1.0)
+        check(0.0 <= self.earth_view_factor <= 1.0, f"{p}earth_view_factor", self.earth_view_factor, "in [0, 1]")
 
 
 @dataclass(frozen=True)
@@ -60,6 +160,11 @@ class GenerateConfig:
     depth_scale_m: metres per unit of the 16-bit depth PNG.
     keepout_margin_m: random mode: least distance of the camera from any part of the target, m (views closer,
     or whose near plane cuts the target, are drawn again from the same generator).
+    rate_max_deg_s: random mode: the relative tumble rate is drawn uniform in [0, this] about a random axis
+    (it sets the space camera's motion blur and goes into the label's x).
+    appendages: draw the ASAR antenna and instrument boxes (mask value 8); None: on in random mode only.
+    storage: 'corrupted' stores the corrupted image; 'clean' stores the clean render, and
+    dataset.sample_image applies the label's corruption on read (the same bytes).
     """
 
     mode: Literal["random", "sequence"] = "random"
@@ -80,7 +185,21 @@ class GenerateConfig:
     keepout_margin_m: float = 2.0
     scenario: str = "default"
     frame_dt_s: float = 1.0
+    rate_max_deg_s: float = 5.0
+    appendages: bool | None = None
+    storage: Literal["clean", "corrupted"] = "corrupted"
     corruption: CorruptionConfig = field(default_factory=CorruptionConfig)
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
+    lighting: LightingConfig = field(default_factory=LightingConfig)
+
+    @property
+    def appearance_on(self) -> bool:
+        e = self.appearance.enabled
+        return self.mode == "random" if e is None else e
+
+    @property
+    def appendages_on(self) -> bool:
+        return self.mode == "random" if self.appendages is None else self.appendages
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
@@ -106,6 +225,7 @@ class GenerateConfig:
                   f"a scale whose 16-bit range (65535 x scale) covers {reach:.1f} m, the farthest target point")
         check(self.keepout_margin_m >= 0, f"{p}keepout_margin_m", self.keepout_margin_m, "a non-negative distance in m")
         check(self.frame_dt_s > 0, f"{p}frame_dt_s", self.frame_dt_s, "a positive frame interval in s")
+        check(0 <= self.rate_max_deg_s <= 90, f"{p}rate_max_deg_s", self.rate_max_deg_s, "a rate in [0, 90] deg/s")
         if self.mode == "sequence":
             from envisat_pose.datagen.scenario import scenario_dict
 
@@ -162,14 +282,16 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
                        znear_m: float | None = None, boxes: TargetBoxes | None = None) -> tuple:
     """A domain-randomized view: uniform attitude, range uniform in [range_min_m, range_max_m], target centre
     off the boresight within max_offset_frac of the half field of view, random or configured sun, eclipse
-    and Earth backdrop by their probabilities. Velocities are zero (a snapshot).
+    and Earth backdrop by their probabilities, a relative tumble rate uniform in [0, rate_max_deg_s] about a
+    uniform axis (in x; the translation rate is zero).
 
-    A pose whose camera comes within keepout_margin_m of any target geom (body, boom, array), or whose near
-    plane (znear_m, m; default that of models/envisat.xml) cuts the target, is drawn again from the same rng:
-    deterministic, at most MAX_VIEW_DRAWS times (then ConfigError). boxes: the target (default the project's).
+    A pose whose camera comes within keepout_margin_m of any target geom (body, boom, array, clutter), or whose
+    near plane (znear_m, m; default that of models/envisat.xml) cuts the target, is drawn again from the same
+    rng: deterministic, at most MAX_VIEW_DRAWS times (then ConfigError). boxes: the target (default the
+    project's).
 
-    Returns (View, x (12,), scene dict). In random mode C is the camera mount's frame; the Earth's direction
-    is drawn independently of it.
+    Returns (View, x (12,), scene dict) without a look (see with_look). In random mode C is the camera mount's
+    frame; the Earth's direction is drawn independently of it.
     """
     from envisat_pose.datagen.render import View
 
@@ -190,13 +312,78 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
                           f"the near plane ({znear_m:.2f} m)")
     sun_C = unit(cfg.sun_dir) if cfg.sun_dir is not None else unit(rng.standard_normal(3))
     eclipse = bool(rng.random() < cfg.eclipse_probability)
-    earth_draw = rng.random() < cfg.earth_probability
+    earth_draw = bool(rng.random() < cfg.earth_probability)
     earth_C = unit(rng.standard_normal(3))
-    view = View(rho_C, quat_to_rotmat(q), None if eclipse else sun_C, earth_C if earth_draw else None)
-    x = np.concatenate([rho_C, np.zeros(3), quat_to_mrp(q), np.zeros(3)])
+    w_T = unit(rng.standard_normal(3)) * math.radians(rng.uniform(0.0, cfg.rate_max_deg_s))
+    view = View(rho_C, quat_to_rotmat(q), None if eclipse else sun_C, earth_C, earth_backdrop=earth_draw)
+    x = np.concatenate([rho_C, np.zeros(3), quat_to_mrp(q), w_T])
     scene = {"mode": "random", "sun_dir_cam": (R_K_FROM_C @ sun_C).round(9).tolist(), "eclipse": eclipse,
-             "earth_backdrop": bool(earth_draw)}
+             "earth_backdrop": earth_draw}
     return view, x, scene
+
+
+def look_rng(cfg: GenerateConfig, seed: int) -> np.random.Generator:
+    """The generator of a sample's appearance and light intensities: seeded by (sample seed, appearance.seed),
+    apart from the pose's, so appearance on/off or another appearance seed leaves poses and labels alone."""
+    return np.random.default_rng(np.random.SeedSequence([seed, cfg.appearance.seed]))
+
+
+def with_look(cfg: GenerateConfig, view, scene: dict, seed: int) -> tuple:
+    """The view with its appearance (materials if appearance is on, sun intensity, Earth-shine) and clutter,
+    and the scene dict with every choice needed to render it again (view_from_scene). Returns (View, scene)."""
+    import dataclasses
+
+    from envisat_pose.datagen.appearance import GEOM_CLASS, Look, draw_look
+    from envisat_pose.datagen.render import APPENDAGE_MASK_VALUE, MASK_VALUES
+
+    rng = look_rng(cfg, seed)
+    lit = cfg.lighting
+    sun_i = round(float(rng.uniform(*lit.sun_intensity)), 6)
+    albedo = float(rng.uniform(*lit.earth_albedo))
+    geoms = tuple(g for g in GEOM_CLASS if cfg.appendages_on or MASK_VALUES[g] != APPENDAGE_MASK_VALUE)
+    a = cfg.appearance
+    materials = draw_look(rng, a.texture_set_size, a.specular, a.shininess, a.reflectance, a.brightness,
+                          geoms) if cfg.appearance_on else {}
+    phase = 0.0
+    if view.sun_dir_C is not None and view.earth_dir_C is not None:
+        # lit fraction of the Earth's disc seen from the target: 1 with the sun behind us, 0 toward it
+        phase = 0.5 * (1.0 - float(unit(view.sun_dir_C) @ unit(view.earth_dir_C)))
+    earth_i = round(sun_i * albedo * lit.earth_view_factor * phase, 6) if lit.earthshine else 0.0
+    look = Look(materials, sun_i, earth_i)
+    view = dataclasses.replace(view, look=look, appendages=cfg.appendages_on)
+    scene = dict(scene)
+    scene.update({
+        "appearance": cfg.appearance_on,
+        "appendages": cfg.appendages_on,
+        "face_classes": {g: GEOM_CLASS[g] for g in ("face_px", "face_mx", "face_py", "face_my", "face_pz", "face_mz")},
+        "earthshine": {"intensity": earth_i, "earth_phase": round(phase, 6), "albedo": round(albedo, 6),
+                       "dir_cam": None if view.earth_dir_C is None else (-R_K_FROM_C @ unit(view.earth_dir_C)).tolist()},
+        "look": look.to_json(),
+        "render": render_inputs(view),
+    })
+    return view, scene
+
+
+def render_inputs(view) -> dict:
+    """What the renderer needs of a view, exactly (floats round-trip through JSON), for the label."""
+    def vec(v):
+        return None if v is None else [float(c) for c in np.asarray(v, dtype=float)]
+
+    return {"rho_C_m": vec(view.rho_C_m), "R_C_from_T": [vec(r) for r in np.asarray(view.R_C_from_T)],
+            "sun_dir_C": vec(view.sun_dir_C), "earth_dir_C": vec(view.earth_dir_C),
+            "earth_distance_m": float(view.earth_distance_m), "earth_backdrop": bool(view.earth_backdrop),
+            "appendages": bool(view.appendages)}
+
+
+def view_from_scene(scene: dict):
+    """The View a label's scene records (with_look): the same render, bit for bit."""
+    from envisat_pose.datagen.appearance import Look
+    from envisat_pose.datagen.render import View
+
+    r = scene["render"]
+    arr = lambda v: None if v is None else np.array(v, dtype=float)  # noqa: E731
+    return View(arr(r["rho_C_m"]), arr(r["R_C_from_T"]), arr(r["sun_dir_C"]), arr(r["earth_dir_C"]),
+                r["earth_distance_m"], Look.from_json(scene["look"]), r["appendages"], r["earth_backdrop"])
 
 
 @functools.lru_cache(maxsize=2)
@@ -233,8 +420,8 @@ def sequence_view(cfg: GenerateConfig, k: int) -> tuple:
     xk = x[k]
     earth = cfg.earth_probability > 0
     r_m = float(np.linalg.norm(nadir_C[k]))
-    view = View(xk[0:3], mrp_to_dcm(xk[6:9]).T, None if eclipse[k] else sun_C[k],
-                unit(nadir_C[k]) if earth else None, r_m)
+    view = View(xk[0:3], mrp_to_dcm(xk[6:9]).T, None if eclipse[k] else sun_C[k], unit(nadir_C[k]), r_m,
+                earth_backdrop=earth)
     scene = {"mode": "sequence", "t_s": float(t_s[k]), "sun_dir_cam": (R_K_FROM_C @ sun_C[k]).round(9).tolist(),
              "eclipse": bool(eclipse[k]), "earth_backdrop": earth}
     return view, xk, scene
@@ -244,18 +431,43 @@ def sequence_view(cfg: GenerateConfig, k: int) -> tuple:
 # One sample, one shard
 
 
+def image_motion(out, x: np.ndarray, f_px: float, boxes: TargetBoxes) -> tuple[float, float]:
+    """The target's image motion (speed px/s, angle deg) from the state's relative rates: w_r (in T) turns the
+    target about its centre, rho' (in C) moves it; the camera is fixed in C."""
+    from envisat_pose.datagen.sensor import image_velocity_px_s
+
+    w_K = out.R_K_from_T @ x[9:12]
+    v_K = R_K_FROM_C @ x[3:6]
+    return image_velocity_px_s(boxes.corners_T_m, out.R_K_from_T, out.t_K_from_T_m, w_K, v_K, f_px)
+
+
+def draw_corruption_params(cfg: GenerateConfig, out, x: np.ndarray, f_px: float, boxes: TargetBoxes,
+                           rng: np.random.Generator) -> dict:
+    """The corruption parameters of one image: the space camera's (with the true image motion) or the
+    paper's severities."""
+    from envisat_pose.datagen.corrupt import draw_corruption
+    from envisat_pose.datagen.sensor import draw_sensor
+
+    if cfg.corruption.model == "sensor":
+        speed, angle = image_motion(out, x, f_px, boxes)
+        return draw_sensor(to_dict(cfg.corruption.sensor), cfg.resolution_px, f_px, speed, angle, rng)
+    return draw_corruption(to_dict(cfg.corruption), cfg.resolution_px, rng)
+
+
 def render_sample(renderer, cfg: GenerateConfig, view, x: np.ndarray, scene: dict, rng: np.random.Generator,
                   seed: int) -> dict[str, bytes]:
-    """Render, label, corrupt and encode one sample: {suffix: bytes} per the shard contract."""
-    from envisat_pose.datagen.corrupt import apply_corruption, draw_corruption
+    """Render, label, corrupt (unless storage is 'clean') and encode one sample: {suffix: bytes} per the
+    shard contract. `view` carries its look (with_look)."""
+    from envisat_pose.datagen.corrupt import apply_corruption
     from envisat_pose.datagen.labels import encode_depth, make_label
     from envisat_pose.datagen.shards import encode_png, label_bytes
 
     out = renderer.render(view)
-    params = draw_corruption(to_dict(cfg.corruption), cfg.resolution_px, rng)
-    image = apply_corruption(out.gray_u8, params)
+    params = draw_corruption_params(cfg, out, x, renderer.K[0, 0], renderer.target_boxes, rng)
+    image = out.gray_u8 if cfg.storage == "clean" else apply_corruption(out.gray_u8, params)
     label = make_label(out.corners_K_m, out.depth_m, renderer.K, out.R_K_from_T, out.t_K_from_T_m, x,
                        cfg.depth_scale_m, params, seed, scene)
+    label["image_stored"] = cfg.storage
     members = {"png": encode_png(image), "json": label_bytes(label)}
     if cfg.write_mask:
         members["mask.png"] = encode_png(out.mask_u8)
@@ -273,7 +485,8 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
     from envisat_pose.datagen.shards import ShardWriter, sample_key, sha256_file, shard_name
 
     cv2.setNumThreads(1)  # one core per worker; also keeps filters on one code path
-    renderer = shared_renderer(cfg.resolution_px, cfg.shadows)
+    renderer = shared_renderer(cfg.resolution_px, cfg.shadows, cfg.appearance.texture_set_size if cfg.appearance_on
+                               else 0, cfg.appearance.texture_seed)
     path = os.path.join(out_dir, shard_name(shard_index))
     count = cfg.shard_count(shard_index)
     with ShardWriter(path) as writer:
@@ -286,6 +499,7 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
                                                     renderer.target_boxes)
             else:
                 view, x, scene = sequence_view(cfg, k)
+            view, scene = with_look(cfg, view, scene, seed)
             writer.write(sample_key(k), render_sample(renderer, cfg, view, x, scene, rng, seed))
     return {"index": shard_index, "name": shard_name(shard_index), "count": count, "sha256": sha256_file(path),
             "bytes": os.path.getsize(path)}

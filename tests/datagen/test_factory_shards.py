@@ -61,7 +61,7 @@ def test_shard_contract(reference):
         img, mask, depth = decode_png(s["png"]), decode_png(s["mask.png"]), decode_png(s["depth.png"])
         assert img.dtype == np.uint8 and img.shape == (128, 128)
         assert depth.dtype == np.uint16 and mask.dtype == np.uint8
-        assert set(np.unique(mask)) <= set(range(8))
+        assert set(np.unique(mask)) <= set(range(9))  # 8: the clutter (appendages)
         assert np.array_equal(depth > 0, mask > 0)  # 0 is background in both
         R = np.array(lab["R_cam_from_target"])
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
@@ -242,20 +242,24 @@ def test_other_config_in_out_dir_is_refused(reference, tmp_path, capsys):
 
 
 def test_label_replays_the_sample(reference):
-    """A label's seed and corruption parameters reproduce its image from a fresh render."""
+    """A label alone reproduces its image: its seed replays the pose, its scene renders the same clean image
+    (appearance, lights and clutter included), its corruption parameters turn that into the stored bytes."""
     from envisat_pose.datagen.corrupt import apply_corruption
+    from envisat_pose.datagen.factory import view_from_scene
     from envisat_pose.datagen.render import SceneRenderer
 
     out, manifest = reference
     cfg = config_from_json(json.dumps(manifest["config"]))
-    r = SceneRenderer(cfg.resolution_px)
+    assert cfg.appearance_on and cfg.appendages_on  # the defaults of random mode
+    r = SceneRenderer(cfg.resolution_px, texture_set_size=cfg.appearance.texture_set_size)
     try:
         n_corrupted = 0
         for key, members in read_shard(os.path.join(out, manifest["shards"][1]["name"])):
             lab = json.loads(members["json"])
-            view, x, _ = sample_random_view(cfg, r.fovy_deg, np.random.default_rng(lab["seed"]))
+            _, x, _ = sample_random_view(cfg, r.fovy_deg, np.random.default_rng(lab["seed"]))
             np.testing.assert_allclose(x, lab["x"], atol=1e-9)
-            clean = r.render(view).gray_u8
+            assert lab["scene"]["look"]["materials"]["face_py"]["class"] == "mli_gold"
+            clean = r.render(view_from_scene(lab["scene"])).gray_u8
             stored = decode_png(members["png"])
             assert np.array_equal(apply_corruption(clean, lab["corruption"]), stored)
             n_corrupted += not np.array_equal(clean, stored)
