@@ -9,6 +9,12 @@ End-to-end times are wall clock of `run_generate`, worker start-up included.
 
 Floors (issue 3): 1 worker >= 60 % of the raw render rate; 2 workers >= 1.7 x one. A CPU scaling probe
 (zlib in 2 processes vs 1) tells what speedup the machine itself allows two processes.
+
+Issue 9 (`--issue9`, the default): at 1024 px, labelled images/s of run_generate with 1 and 2 workers,
+appearance (materials, clutter) on and off, storage clean and corrupted (the space camera model), next to the
+two-pass render (lit + segmentation/depth) of the same views measured in the same run, with and without the
+appearance; bytes per image of every dataset. Floor: appearance on, clean storage, 1 worker >= 0.8 x the
+two-pass render.
 Run: .venv/bin/python bench/datagen_speed.py  (writes bench/results/datagen_speed.json)
 """
 
@@ -32,12 +38,97 @@ SHARD_SIZE = 16
 SEED = 2024
 
 
-def bench_config(resolution_px: int, n: int):
+def bench_config(resolution_px: int, n: int, **kw):
     from envisat_pose.datagen.factory import GenerateConfig
     from envisat_pose.config import from_dict
 
     return from_dict(GenerateConfig, {"resolution_px": resolution_px, "num_images": n, "shard_size": SHARD_SIZE,
-                                      "seed": SEED})
+                                      "seed": SEED, **kw})
+
+
+def two_pass_rate(cfg, appearance: bool) -> float:
+    """Images/s of SceneRenderer.render (lit + segmentation/depth passes) over the dataset's own views, with
+    the dataset's looks (appearance on) or the MJCF's plain materials (off)."""
+    import dataclasses
+
+    from envisat_pose.datagen.factory import with_look
+    from envisat_pose.datagen.render import SceneRenderer
+
+    r = SceneRenderer(cfg.resolution_px, texture_set_size=cfg.appearance.texture_set_size if appearance else 0)
+    views = []
+    for k, (v, x, sc) in enumerate(sample_views(cfg, r.fovy_deg)):
+        s, i = divmod(k, cfg.shard_size)
+        from envisat_pose.datagen.factory import sample_seed
+
+        v2, _ = with_look(cfg, v, sc, sample_seed(cfg.seed, s, i))
+        views.append(v2 if appearance else dataclasses.replace(v2, look=None, appendages=False))
+    for v in views[:3]:
+        r.render(v)
+    t0 = time.perf_counter()
+    for v in views:
+        r.render(v)
+    rate = len(views) / (time.perf_counter() - t0)
+    r.close()
+    return rate
+
+
+def bytes_per_image(cfg) -> dict:
+    """Mean bytes per image of the dataset's members (png, mask, depth, json), from one shard's samples."""
+    import tempfile as _t
+
+    from envisat_pose.datagen.factory import run_generate
+    from envisat_pose.datagen.shards import read_shard
+
+    out = _t.mkdtemp(prefix="datagen_bytes_")
+    try:
+        m = run_generate(cfg, os.path.join(out, "ds"))
+        sizes: dict[str, list[int]] = {}
+        for e in m["shards"]:
+            for _, members in read_shard(os.path.join(out, "ds", e["name"])):
+                for k, v in members.items():
+                    sizes.setdefault(k, []).append(len(v))
+        res = {k: float(np.mean(v)) for k, v in sizes.items()}
+        res["shard_bytes_per_image"] = sum(e["bytes"] for e in m["shards"]) / cfg.num_images
+        return res
+    finally:
+        shutil.rmtree(out, ignore_errors=True)
+
+
+def issue9() -> dict:
+    """The issue-9 table at 1024 px (module docstring)."""
+    n = int(os.environ.get("BENCH_IMAGES", "64"))
+    res = 1024
+    out = {"images": n, "resolution_px": res, "load_avg_start": os.getloadavg()}
+    base = bench_config(res, n)
+    out["two_pass_appearance_off_img_s"] = two_pass_rate(base, False)
+    out["two_pass_appearance_on_img_s"] = two_pass_rate(base, True)
+    rows = {}
+    for appearance in (True, False):
+        for storage in ("clean", "corrupted"):
+            cfg = bench_config(res, n, storage=storage, appearance={"enabled": appearance}, appendages=appearance)
+            name = f"appearance_{'on' if appearance else 'off'}_{storage}"
+            row = {"bytes": bytes_per_image(bench_config(res, 16, storage=storage, appearance={"enabled": appearance},
+                                                         appendages=appearance, shard_size=16))}
+            for w in (1, 2):
+                e2e, steady = end_to_end(cfg, w)
+                row[f"e2e_{w}w_img_s"], row[f"steady_{w}w_img_s"] = e2e, steady
+            peer = out["two_pass_appearance_on_img_s" if appearance else "two_pass_appearance_off_img_s"]
+            row["ratio_1w_to_two_pass_same_look"] = row["e2e_1w_img_s"] / peer
+            row["ratio_1w_to_two_pass_plain"] = row["e2e_1w_img_s"] / out["two_pass_appearance_off_img_s"]
+            rows[name] = row
+            print(f"{name:28s} 1w {row['e2e_1w_img_s']:6.2f} (steady {row['steady_1w_img_s']:6.2f})  2w "
+                  f"{row['e2e_2w_img_s']:6.2f} (steady {row['steady_2w_img_s']:6.2f}) img/s; "
+                  f"png {row['bytes']['png'] / 1e3:7.1f} kB, shard {row['bytes']['shard_bytes_per_image'] / 1e3:7.1f} kB/img",
+                  flush=True)
+    out["rows"] = rows
+    on = rows["appearance_on_clean"]
+    out["floor_0_8x_same_look_met"] = on["ratio_1w_to_two_pass_same_look"] >= 0.8
+    out["floor_0_8x_plain_met"] = on["ratio_1w_to_two_pass_plain"] >= 0.8
+    out["load_avg_end"] = os.getloadavg()
+    print(f"two-pass render: {out['two_pass_appearance_off_img_s']:.2f} img/s plain, "
+          f"{out['two_pass_appearance_on_img_s']:.2f} with appearance; appearance on + clean, 1 worker: "
+          f"{on['ratio_1w_to_two_pass_same_look']:.2f}x (same look), {on['ratio_1w_to_two_pass_plain']:.2f}x (plain)")
+    return out
 
 
 def sample_views(cfg, fovy_deg: float) -> list:
@@ -172,6 +263,10 @@ def cpu_scaling_probe() -> float:
 
 
 def main() -> None:
+    import sys
+
+    if "--issue3" not in sys.argv:
+        return main_issue9()
     results = {
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                     "load_avg_start": os.getloadavg()},
@@ -221,6 +316,24 @@ def main() -> None:
         json.dump(everything, fh, indent=1, sort_keys=True)
         fh.write("\n")
     print(f"wrote {path} [{tag}]")
+
+
+def main_issue9() -> None:
+    tag = os.environ.get("BENCH_TAG") or f"{os.environ['MUJOCO_GL']}_{os.cpu_count()}cpu"
+    results = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+               "protocol": "LP_NUM_THREADS=1 per process; random mode, default config (sensor camera model), "
+                           "shard size %d; e2e = wall clock of run_generate with worker start-up" % SHARD_SIZE,
+               **issue9()}
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "datagen_speed.json")
+    everything = {}
+    if os.path.exists(path):
+        with open(path, encoding="utf-8") as fh:
+            everything = json.load(fh)
+    everything[f"issue9_{tag}"] = results
+    with open(path, "w", encoding="utf-8") as fh:
+        json.dump(everything, fh, indent=1, sort_keys=True)
+        fh.write("\n")
+    print(f"wrote {path} [issue9_{tag}]")
 
 
 if __name__ == "__main__":
