@@ -155,6 +155,10 @@ class GenerateConfig:
     resolution_px: square image side. range_min_m/range_max_m: target range (random mode).
     max_offset_frac: target centre within this fraction of the half field of view (random mode).
     sun_dir: unit vector toward the sun, in C (random mode) or N (sequence mode); omitted: drawn from the seed.
+    sun_phase_max_deg: random mode: the sun is drawn uniformly on the cap of directions within this phase angle
+    of the direction from the target to the camera (0: sun behind the camera, 90: side light, 180: any), so most
+    views are lit as an approach would plan them; backlit_probability: share of views whose sun is drawn from
+    the whole sphere instead (backlit and silhouette views stay in the set).
     eclipse_probability: share of random-mode images in eclipse (sequence mode: Earth's cylindrical shadow).
     earth_probability: share of random-mode images with the Earth backdrop (sequence: > 0 turns it on, at nadir).
     depth_scale_m: metres per unit of the 16-bit depth PNG.
@@ -176,6 +180,8 @@ class GenerateConfig:
     range_max_m: float = 80.0
     max_offset_frac: float = 0.6
     sun_dir: tuple[float, float, float] | None = None
+    sun_phase_max_deg: float = 100.0
+    backlit_probability: float = 0.15
     eclipse_probability: float = 0.05
     earth_probability: float = 0.0
     shadows: bool = True
@@ -213,6 +219,10 @@ class GenerateConfig:
         check(self.range_max_m >= self.range_min_m, f"{p}range_max_m", self.range_max_m,
               f"a range no shorter than range_min_m = {self.range_min_m}")
         check(0.0 <= self.max_offset_frac <= 1.0, f"{p}max_offset_frac", self.max_offset_frac, "a fraction in [0, 1]")
+        check(0.0 <= self.sun_phase_max_deg <= 180.0, f"{p}sun_phase_max_deg", self.sun_phase_max_deg,
+              "a phase angle in [0, 180] deg")
+        check(0.0 <= self.backlit_probability <= 1.0, f"{p}backlit_probability", self.backlit_probability,
+              "a probability in [0, 1]")
         if self.sun_dir is not None:
             check(np.linalg.norm(self.sun_dir) > 0, f"{p}sun_dir", list(self.sun_dir), "a non-zero vector")
         for name in ("eclipse_probability", "earth_probability"):
@@ -278,6 +288,18 @@ def view_is_clear(rho_C_m: np.ndarray, R_C_from_T: np.ndarray, boxes: TargetBoxe
     return bool(z_K.min() > znear_m)
 
 
+def sample_cap(axis: np.ndarray, half_angle_deg: float, rng: np.random.Generator) -> np.ndarray:
+    """A unit vector uniform on the spherical cap of half_angle_deg around the unit vector `axis`. (3,)"""
+    cos_t = rng.uniform(math.cos(math.radians(half_angle_deg)), 1.0)
+    phi = rng.uniform(0.0, 2.0 * math.pi)
+    a = unit(axis)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = unit(np.cross(a, helper))
+    e2 = np.cross(a, e1)
+    sin_t = math.sqrt(max(0.0, 1.0 - cos_t * cos_t))
+    return cos_t * a + sin_t * (math.cos(phi) * e1 + math.sin(phi) * e2)
+
+
 def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Generator,
                        znear_m: float | None = None, boxes: TargetBoxes | None = None) -> tuple:
     """A domain-randomized view: uniform attitude, range uniform in [range_min_m, range_max_m], target centre
@@ -310,7 +332,11 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
                           f"ranges that allow a clear view: none of {MAX_VIEW_DRAWS} draws kept the camera "
                           f"keepout_margin_m = {cfg.keepout_margin_m:g} m from the target with all of it beyond "
                           f"the near plane ({znear_m:.2f} m)")
-    sun_C = unit(cfg.sun_dir) if cfg.sun_dir is not None else unit(rng.standard_normal(3))
+    if cfg.sun_dir is not None:
+        sun_C = unit(cfg.sun_dir)
+    else:
+        backlit = rng.random() < cfg.backlit_probability
+        sun_C = sample_cap(-unit(rho_C), 180.0 if backlit else cfg.sun_phase_max_deg, rng)
     eclipse = bool(rng.random() < cfg.eclipse_probability)
     earth_draw = bool(rng.random() < cfg.earth_probability)
     earth_C = unit(rng.standard_normal(3))
