@@ -1,0 +1,364 @@
+"""Name corner candidates A-H by fitting the known box wireframe: PnP with RANSAC over the assignments the box allows.
+
+Plain numpy (and OpenCV) in and out: no torch here. Frames: T the target body frame (geometry.load_geometry),
+camera frame with x right, y down, z along the boresight; pixels in the OpenCV convention.
+
+Hypotheses: every convex quadrilateral of four candidates is one visible face of the box (a box seen from
+outside always shows at least one face whole), in the winding every visible face keeps in the image, under each
+of its 4 rotations: 6 x 4 assignments per quadrilateral. Each gives a pose from the face's homography (batched
+DLT, decomposed); all poses are scored at once by reprojection of the corners they predict visible (a
+truncated quadratic), candidates they leave unexplained, and, when given, junction-type and line-verification
+cues. The best few are refined with cv2.solvePnP (iterative LM) on their inliers and scored again.
+
+Symmetry: the box (half sizes a != b != c, centred) maps onto itself under the half-turns about x, y and z of T:
+its corners alone cannot tell these 4 poses apart. The junction type (which end: A-D at +x, E-H at the array's
+-x end) separates the turns about y and z; the half-turn about the long axis x (A<->C, B<->D, E<->G, F<->H) is
+settled only by a cue from the caller (a prior pose, e.g. the filter's prediction); without one both namings
+are returned with their probabilities and the result is flagged ambiguous.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from envisat_pose.geometry import EDGES, TargetGeometry, load_geometry, visible_corners
+
+HALF_TURNS = {"I": (1.0, 1.0, 1.0), "x": (1.0, -1.0, -1.0), "y": (-1.0, 1.0, -1.0), "z": (-1.0, -1.0, 1.0)}
+
+
+@dataclass(frozen=True)
+class NamingConfig:
+    """sigma_px: candidate position noise, px; gate_px: a predicted corner farther than this from every candidate
+    is missed (its cost saturates); coarse_gate_px: the same for the unrefined poses of single faces (a face's
+    homography extrapolates its corners' noise to the far end); unexplained_weight: cost of a candidate no visible corner explains, in units of
+    a missed corner; max_candidates: the best-scored candidates used; refine_top: hypotheses refined by LM;
+    type_weight, line_weight: weights of the cues' negative log-probabilities (nats); ambiguity: the naming is
+    flagged ambiguous when its half-turn alternative has at least this probability; prior_sigma_deg: spread of a
+    prior pose's rotation."""
+
+    sigma_px: float = 1.5
+    gate_px: float = 6.0
+    coarse_gate_px: float = 30.0
+    unexplained_weight: float = 0.5
+    max_candidates: int = 10
+    refine_top: int = 30
+    type_weight: float = 1.0
+    line_weight: float = 1.0
+    ambiguity: float = 0.1
+    prior_sigma_deg: float = 30.0
+
+
+@dataclass(frozen=True)
+class Naming:
+    """A named box fit.
+
+    corners_px: (8, 2) A-H: the matched candidate's pixel where one was matched, else the fitted projection.
+    projected_px: (8, 2) the fitted pose's projection of A-H. visible: (8,) bool, the fitted pose's face test
+    (and in the image when its size was given). matched: (8,) bool, a candidate was assigned; candidate: (8,) int,
+    its index into the input candidates, -1 where none.
+    R_cam_from_target (3, 3), t_cam_from_target_m (3,): the fitted pose. cost: the fit's cost (nats).
+    probability: this naming's probability among the box's symmetric namings.
+    alternative: the half-turn (about x) naming, with its own probability; ambiguous: the image (and the cues
+    given) cannot settle between the two (alternative.probability >= config.ambiguity).
+    """
+
+    corners_px: np.ndarray
+    projected_px: np.ndarray
+    visible: np.ndarray
+    matched: np.ndarray
+    candidate: np.ndarray
+    R_cam_from_target: np.ndarray
+    t_cam_from_target_m: np.ndarray
+    cost: float
+    probability: float
+    alternative: "Naming | None" = None
+    ambiguous: bool = False
+
+
+def symmetry_permutations(geometry: TargetGeometry) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """For each half-turn g of HALF_TURNS: (perm (8,), S (3, 3), d (3,)) with corners[perm[k]] = S corners[k] + d:
+    the pose (R S, t + R d) shows corner perm[k] where (R, t) shows corner k."""
+    X = geometry.corners_T_m
+    centre = X.mean(axis=0)
+    out = {}
+    for name, signs in HALF_TURNS.items():
+        S = np.diag(signs)
+        d = centre - S @ centre
+        mapped = X @ S.T + d
+        perm = np.argmin(np.linalg.norm(mapped[:, None, :] - X[None, :, :], axis=-1), axis=1)
+        if sorted(perm) != list(range(8)) or not np.allclose(X[perm], mapped, atol=1e-6):
+            raise ValueError(f"the box is not symmetric under the half-turn about {name}")
+        out[name] = (perm, S, d)
+    return out
+
+
+def face_windings(geometry: TargetGeometry) -> np.ndarray:
+    """(6, 4) corner indices of each face in the cyclic order of increasing image angle (y down) that every view
+    from outside shows (perspective keeps a front-facing polygon's winding)."""
+    X = geometry.corners_T_m
+    out = []
+    for k in range(6):
+        idx = np.flatnonzero(geometry.face_corners[k])
+        n = geometry.face_normals_T[k]
+        # a camera on the outward normal looking back at the face: z_cam = -n, any x_cam in the face's plane
+        z = -n
+        x = np.cross(z, [0.0, 0.0, 1.0] if abs(z[2]) < 0.9 else [1.0, 0.0, 0.0])
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        R = np.stack([x, y, z])
+        p = (X[idx] - X[idx].mean(axis=0)) @ R.T
+        ang = np.arctan2(p[:, 1], p[:, 0])
+        out.append(idx[np.argsort(ang)])
+    return np.array(out)
+
+
+def _ordered_convex_quads(points: np.ndarray) -> np.ndarray:
+    """(Q, 4) index quadruples of points (M, 2) forming strictly convex quadrilaterals, in increasing angle
+    about their centroid."""
+    m = len(points)
+    if m < 4:
+        return np.zeros((0, 4), np.int64)
+    combos = np.array(list(itertools.combinations(range(m), 4)))
+    p = points[combos]  # (Q, 4, 2)
+    c = p.mean(axis=1, keepdims=True)
+    ang = np.arctan2(p[..., 1] - c[..., 1], p[..., 0] - c[..., 0])
+    order = np.argsort(ang, axis=1)
+    combos = np.take_along_axis(combos, order, axis=1)
+    p = points[combos]
+    e = np.roll(p, -1, axis=1) - p
+    cross = e[:, :, 0] * np.roll(e, -1, axis=1)[:, :, 1] - e[:, :, 1] * np.roll(e, -1, axis=1)[:, :, 0]
+    area = 0.5 * np.abs(np.sum(p[:, :, 0] * np.roll(p, -1, axis=1)[:, :, 1]
+                               - p[:, :, 1] * np.roll(p, -1, axis=1)[:, :, 0], axis=1))
+    convex = np.all(cross > 0, axis=1) & (area > 4.0)
+    return combos[convex]
+
+
+def _homographies(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Exact homographies (N, 3, 3), h33 = 1, mapping src (N, 4, 2) to dst (N, 4, 2) (batched DLT)."""
+    n = len(src)
+    A = np.zeros((n, 8, 8))
+    b = np.zeros((n, 8))
+    x, y = src[..., 0], src[..., 1]
+    u, v = dst[..., 0], dst[..., 1]
+    A[:, 0::2, 0], A[:, 0::2, 1], A[:, 0::2, 2] = x, y, 1.0
+    A[:, 0::2, 6], A[:, 0::2, 7] = -u * x, -u * y
+    A[:, 1::2, 3], A[:, 1::2, 4], A[:, 1::2, 5] = x, y, 1.0
+    A[:, 1::2, 6], A[:, 1::2, 7] = -v * x, -v * y
+    b[:, 0::2], b[:, 1::2] = u, v
+    ok = np.abs(np.linalg.det(A)) > 1e-12
+    h = np.zeros((n, 8))
+    h[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
+    h[~ok] = np.nan
+    return np.concatenate([h, np.ones((n, 1))], axis=1).reshape(n, 3, 3)
+
+
+def _poses_from_faces(quads_px: np.ndarray, faces: np.ndarray, geometry: TargetGeometry,
+                      K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The two IPPE poses (Collins and Bartoli 2014) putting face corners faces (N, 4) (indices into A-H) on
+    quads_px (N, 4, 2): R (2N, 3, 3), t (2N, 3), solution s of hypothesis n at row 2 n + s.
+
+    A face lies in a plane of T: corners = o + X e1 + Y e2. The homography H of (X, Y) to normalized image
+    coordinates has a Jacobian J at the face centre; in a camera turned so the centre's ray is its z axis
+    (R_v), that Jacobian is B = (1 / d) (the top-left 2x2 block of the plane's rotation), d the centre's depth.
+    The block's columns complete to orthonormal 3-vectors only with gamma = 1 / d = the largest singular value
+    of B and a third row +-b, b b^T = I - B^T B / gamma^2: the two signs are planar pose's two solutions (the
+    flip that a nearly affine view of a small face cannot settle; the other corners do)."""
+    X = geometry.corners_T_m[faces]  # (N, 4, 3)
+    o = X.mean(axis=1)
+    e1 = X[:, 1] - X[:, 0]
+    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
+    n = np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 1])
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    e2 = np.cross(n, e1)
+    d = X - o[:, None, :]
+    plane = np.stack([np.einsum("nki,ni->nk", d, e1), np.einsum("nki,ni->nk", d, e2)], axis=-1)
+    Kinv = np.linalg.inv(K)
+    norm = np.einsum("ij,nkj->nki", Kinv, np.concatenate([quads_px, np.ones(quads_px.shape[:2] + (1,))], -1))
+    H = _homographies(plane, norm[..., :2] / norm[..., 2:])
+    H = np.nan_to_num(H)
+    h33 = np.where(np.abs(H[:, 2, 2]) > 1e-12, H[:, 2, 2], 1e-12)
+    u0 = H[:, :2, 2] / h33[:, None]  # the centre's normalized image point
+    J = (H[:, :2, :2] - u0[:, :, None] * H[:, 2:3, :2]) / h33[:, None, None]
+    v = np.concatenate([u0, np.ones((len(u0), 1))], axis=1)
+    s = np.linalg.norm(v, axis=1)
+    v /= s[:, None]
+    a1 = np.cross(np.array([0.0, 1.0, 0.0]), v)
+    a1 /= np.linalg.norm(a1, axis=1, keepdims=True)
+    Rv = np.stack([a1, np.cross(v, a1), v], axis=1)  # rows: R_v v = e_z
+    B = (Rv[:, :2, :2] / s[:, None, None]) @ J
+    BtB = np.transpose(B, (0, 2, 1)) @ B
+    evals, evecs = np.linalg.eigh(BtB)  # ascending
+    gamma = np.sqrt(np.maximum(evals[:, 1], 1e-18))
+    b = np.sqrt(np.clip(1.0 - evals[:, 0] / gamma ** 2, 0.0, 1.0))[:, None] * evecs[:, :, 0]
+    E = np.stack([e1, e2, n], axis=-1)  # columns e1, e2, n
+    Rs, ts = [], []
+    for sign in (1.0, -1.0):
+        c12 = np.concatenate([B / gamma[:, None, None], sign * b[:, None, :]], axis=1)  # (N, 3, 2)
+        Rp = np.concatenate([c12, np.cross(c12[:, :, 0], c12[:, :, 1])[:, :, None]], axis=2)
+        U, _, Vt = np.linalg.svd(Rp)  # clean up rounding: the nearest rotation
+        Rp = U @ Vt
+        R = np.transpose(Rv, (0, 2, 1)) @ Rp @ np.transpose(E, (0, 2, 1))
+        t = v / gamma[:, None] - np.einsum("nij,nj->ni", R, o)
+        Rs.append(R)
+        ts.append(t)
+    return np.stack(Rs, axis=1).reshape(-1, 3, 3), np.stack(ts, axis=1).reshape(-1, 3)
+
+
+@dataclass(frozen=True)
+class _Cues:
+    type_nll: np.ndarray | None  # (M, 2) -log p(type | candidate)
+    line_nll: np.ndarray | None  # (M, M) -log p(edge | pair)
+
+
+def _score(R: np.ndarray, t: np.ndarray, cand: np.ndarray, K: np.ndarray, cues: _Cues, geometry: TargetGeometry,
+           cfg: NamingConfig, image_size: tuple[int, int] | None, gate_px: float | None = None) -> dict[str, np.ndarray]:
+    """Score N poses against M candidates with a gate of gate_px (default cfg.gate_px). Returns cost (N,) in
+    nats and, per pose, visible (N, 8), match (N, 8) candidate index or -1, projected (N, 8, 2)."""
+    Xc = np.einsum("nij,kj->nki", R, geometry.corners_T_m) + t[:, None, :]
+    front = Xc[..., 2] > 1e-3
+    proj = np.einsum("ij,nkj->nki", K, Xc)
+    proj = proj[..., :2] / np.where(front, proj[..., 2], 1.0)[..., None]
+    c_T = -np.einsum("nji,nj->ni", R, t)  # camera centre in T
+    vis = visible_corners(c_T, geometry) & front
+    if image_size is not None:
+        w, h = image_size
+        vis &= (proj[..., 0] > -0.5) & (proj[..., 0] < w - 0.5) & (proj[..., 1] > -0.5) & (proj[..., 1] < h - 0.5)
+    d2 = np.sum((proj[:, :, None, :] - cand[None, None, :, :]) ** 2, axis=-1)  # (N, 8, M)
+    d2 = np.where(np.isfinite(d2), d2, np.inf)
+    j = np.argmin(d2, axis=2)
+    dmin2 = np.take_along_axis(d2, j[..., None], axis=2)[..., 0]
+    gate2 = (gate_px or cfg.gate_px) ** 2
+    s2 = cfg.sigma_px ** 2 * (gate2 / cfg.gate_px ** 2)
+    inlier = vis & (dmin2 < gate2)
+    cost = np.sum(np.where(vis, np.minimum(dmin2, gate2), 0.0), axis=1) / (2 * s2)
+    explained = np.any(vis[:, :, None] & (d2 < gate2), axis=1)  # (N, M)
+    cost += cfg.unexplained_weight * gate2 / (2 * s2) * np.sum(~explained, axis=1)
+    match = np.where(inlier, j, -1)
+    if cues.type_nll is not None:
+        jt = np.array([0, 0, 0, 0, 1, 1, 1, 1])
+        nll = cues.type_nll[np.where(match >= 0, match, 0), jt[None, :]]
+        cost += cfg.type_weight * np.sum(np.where(match >= 0, nll, 0.0), axis=1)
+    if cues.line_nll is not None:
+        for a, b in EDGES:
+            ok = (match[:, a] >= 0) & (match[:, b] >= 0) & (match[:, a] != match[:, b])
+            nll = cues.line_nll[np.maximum(match[:, a], 0), np.maximum(match[:, b], 0)]
+            cost += cfg.line_weight * np.where(ok, nll, 0.0)
+    return {"cost": cost, "visible": vis, "match": match, "projected": proj}
+
+
+def _refine(R: np.ndarray, t: np.ndarray, match: np.ndarray, cand: np.ndarray, K: np.ndarray,
+            geometry: TargetGeometry, robust_px: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """LM refinement (cv2.solvePnP, iterative from the guess) on the matched corners (at least 4); with
+    robust_px, the matches farther than that from the guess's projection are left out first."""
+    k = np.flatnonzero(match >= 0)
+    if robust_px is not None and len(k) > 4:
+        Xc = geometry.corners_T_m[k] @ R.T + t
+        err = np.linalg.norm(Xc[:, :2] / Xc[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2] - cand[match[k]], axis=1)
+        near = err < robust_px
+        if near.sum() >= 4:
+            k = k[near]
+    if len(k) < 4:
+        return R, t
+    rvec, _ = cv2.Rodrigues(R)
+    ok, rvec, tvec = cv2.solvePnP(geometry.corners_T_m[k].astype(np.float64), cand[match[k]].astype(np.float64),
+                                  K.astype(np.float64), None, rvec.copy(), t.reshape(3, 1).copy(),
+                                  useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok or not np.all(np.isfinite(tvec)) or tvec[2, 0] <= 0:
+        return R, t
+    return cv2.Rodrigues(rvec)[0], tvec[:, 0]
+
+
+def _rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    c = (np.trace(Ra.T @ Rb) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None = None,
+                 type_prob: np.ndarray | None = None, edge_prob: np.ndarray | None = None,
+                 image_size: tuple[int, int] | None = None, prior_R_cam_from_target: np.ndarray | None = None,
+                 config: NamingConfig = NamingConfig(), geometry: TargetGeometry | None = None) -> Naming | None:
+    """Fit the box to unnamed junction candidates and name them.
+
+    points_px: (M, 2) candidate pixels. K: (3, 3) intrinsics of the same image. score: (M,) detection scores
+    (the best max_candidates are used; None: all, in the given order). type_prob: (M, 2) probability of junction
+    type 0 (+x end, A-D) and 1 (-x end, E-H). edge_prob: (M, M) line-verification probability that candidates
+    i, j are joined by a box edge. image_size: (width, height) px: corners predicted outside are not expected.
+    prior_R_cam_from_target: (3, 3) a predicted attitude that weighs the symmetric namings.
+    Returns the best Naming (with its half-turn alternative) or None when no hypothesis explains 4 candidates.
+    """
+    g = geometry or load_geometry()
+    cfg = config
+    pts = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
+    keep = np.flatnonzero(np.all(np.isfinite(pts), axis=1))
+    if score is not None:
+        keep = keep[np.argsort(-np.asarray(score)[keep], kind="stable")]
+    keep = keep[: cfg.max_candidates]
+    cand = pts[keep]
+    eps = 1e-4
+    type_nll = None if type_prob is None else -np.log(np.clip(np.asarray(type_prob, float)[keep], eps, 1.0))
+    line_nll = None if edge_prob is None else -np.log(np.clip(np.asarray(edge_prob, float)[np.ix_(keep, keep)],
+                                                              eps, 1.0))
+    cues = _Cues(type_nll, line_nll)
+    quads = _ordered_convex_quads(cand)
+    if len(quads) == 0:
+        return None
+    windings = face_windings(g)
+    rots = np.array([np.roll(np.arange(4), -r) for r in range(4)])
+    faces = windings[:, rots].reshape(-1, 4)  # (24, 4): face f under rotation r
+    qi = np.repeat(np.arange(len(quads)), len(faces))
+    fi = np.tile(np.arange(len(faces)), len(quads))
+    R, t = _poses_from_faces(cand[quads[qi]], faces[fi], g, K)  # two per assignment
+    good = np.all(np.isfinite(R), axis=(1, 2)) & np.all(np.isfinite(t), axis=1) & (t[:, 2] > 0)
+    R, t = R[good], t[good]
+    if len(R) == 0:
+        return None
+    s = _score(R, t, cand, K, cues, g, cfg, image_size, cfg.coarse_gate_px)
+    enough = np.sum(s["match"] >= 0, axis=1) >= 4
+    if not enough.any():
+        return None
+    order = np.flatnonzero(enough)[np.argsort(s["cost"][enough], kind="stable")]
+    _, first = np.unique(s["match"][order], axis=0, return_index=True)  # one hypothesis per association
+    order = order[np.sort(first)][: cfg.refine_top]
+    best = None
+    for h in order:
+        Rr, tr, match = R[h], t[h], s["match"][h]
+        for step, gate in enumerate((2 * cfg.gate_px, cfg.gate_px)):  # refine, re-associate with a tighter gate
+            Rr, tr = _refine(Rr, tr, match, cand, K, g, robust_px=cfg.coarse_gate_px / 4 if step == 0 else None)
+            sr = _score(Rr[None], tr[None], cand, K, cues, g, cfg, image_size, gate)
+            match = sr["match"][0]
+        if best is None or sr["cost"][0] < best[2]["cost"][0]:
+            best = (Rr, tr, sr)
+    Rb, tb, _ = best
+    # the four symmetric namings: the same image, told apart only by the cues and a prior
+    sym = symmetry_permutations(g)
+    variants = {}
+    for name, (perm, S, d) in sym.items():
+        Rg, tg = Rb @ S, tb + Rb @ d
+        sg = _score(Rg[None], tg[None], cand, K, cues, g, cfg, image_size)
+        logp = -sg["cost"][0]
+        if prior_R_cam_from_target is not None:
+            ang = _rotation_angle_deg(prior_R_cam_from_target, Rg)
+            logp -= 0.5 * (ang / cfg.prior_sigma_deg) ** 2
+        variants[name] = (Rg, tg, sg, logp)
+    logps = np.array([v[3] for v in variants.values()])
+    probs = np.exp(logps - logps.max())
+    probs /= probs.sum()
+    prob = dict(zip(variants, probs))
+    top = max(variants, key=lambda n: prob[n])
+    alt = {"I": "x", "x": "I", "y": "z", "z": "y"}[top]
+
+    def naming(name: str) -> Naming:
+        Rg, tg, sg, _ = variants[name]
+        match = sg["match"][0]
+        proj = sg["projected"][0]
+        corners = np.where((match >= 0)[:, None], cand[np.maximum(match, 0)], proj)
+        return Naming(corners, proj, sg["visible"][0], match >= 0, np.where(match >= 0, keep[np.maximum(match, 0)], -1),
+                      Rg, tg, float(sg["cost"][0]), float(prob[name]))
+
+    alternative = naming(alt)
+    main = naming(top)
+    return Naming(**{**main.__dict__, "alternative": alternative, "ambiguous": bool(prob[alt] >= cfg.ambiguity)})
