@@ -1,8 +1,10 @@
 """The truth scenario: the chaser's orbit, the target's tumble, the initial relative state, the time grid.
 
-Defaults are the reference sheet's (shared/reference.md, sections 2 and 6): a 50 m V-bar hold on a
+Defaults are the reference sheet's (docs/reference.md, sections 2 and 6): a 50 m V-bar hold on a
 7142 km, e = 0.001 orbit, ENVISAT spinning with a 134.74 s period. One frozen config per job, validated at
-the boundary by `envisat_pose.config.from_dict`.
+the boundary by `envisat_pose.config.from_dict`. Named scenarios are the TOML files of scenarios/ (read by
+envisat_pose.named_scenarios); this module takes their truth part, and computes the Earth's shadow for
+scenarios with an [eclipse] table.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import numpy as np
 
 from envisat_pose.config import check, from_dict, deep_update
 from envisat_pose.geometry import load_geometry
+from envisat_pose.named_scenarios import table, truth_part
 
 EARTH_RADIUS_M = 6378137.0  # WGS-84 equatorial radius, used only to reject orbits inside the Earth
 MIN_PHYSICS_DT_S = 1e-4  # s: RK4 at 0.05 s is already exact to 1e-8 m over an orbit (reference sheet)
@@ -138,24 +141,50 @@ class ScenarioConfig:
         return max(1, math.ceil(self.dt_s / self.max_physics_dt_s - 1e-9))
 
 
-# Named scenarios: overrides of the defaults (shared/reference.md, section 2: slow and stress cases).
-SCENARIOS: dict[str, dict] = {
-    "default": {},
-    "slow_tumble": {"target": {"spin_period_s": 226.0}},
-    "fast_tumble": {"target": {"spin_period_s": 72.0}},  # 5 deg/s, the stress case
-    # 25 m V-bar hold: the solar array reaches 22.1 m from the CoM, so the chaser keeps ~2.9 m from it
-    # whatever the attitude (15 m flew the chaser through the array in most seeds)
-    "close_25m": {"relative": {"rho0_C_m": [0.0, 25.0, 0.0]}},
-    "gravity_gradient": {"target": {"gravity_gradient": True}},
-}
+@dataclass(frozen=True)
+class EclipseConfig:
+    """A scenario's [eclipse] table: sun_dir_N, the direction toward the sun in the inertial frame N (any length;
+    the sun is taken as infinitely far). The Earth's shadow is a cylinder of one Earth radius along it."""
+
+    sun_dir_N: tuple[float, float, float] = (1.0, 0.0, 0.0)
+
+    def validate(self, prefix: str = "eclipse") -> None:
+        check(np.linalg.norm(self.sun_dir_N) > 0, f"{prefix}.sun_dir_N", list(self.sun_dir_N), "a non-zero vector")
 
 
 def scenario_dict(name: str) -> dict:
-    """The overrides of a named scenario; unknown names raise ConfigError listing the known ones."""
-    check(name in SCENARIOS, "scenario", name, "one of " + ", ".join(sorted(SCENARIOS)))
-    return SCENARIOS[name]
+    """The truth's part of a named scenario (scenarios/NAME.toml): overrides of ScenarioConfig's defaults.
+    Unknown names raise ConfigError listing the known ones."""
+    return truth_part(name)
 
 
 def scenario_config(name: str = "default", **overrides) -> ScenarioConfig:
     """A validated named scenario with optional top-level overrides (duration_s=..., seed=...)."""
-    return from_dict(ScenarioConfig, deep_update(scenario_dict(name), overrides))
+    return from_dict(ScenarioConfig, deep_update(scenario_dict(name), overrides), prefix="")
+
+
+def in_earth_shadow(r_N_m: np.ndarray, sun_dir_N) -> np.ndarray:
+    """(N,) bool: positions r_N_m (N, 3) m inside the Earth's cylindrical shadow: behind the Earth (r . s < 0)
+    and within one Earth radius (EARTH_RADIUS_M) of the sun line through the Earth's centre."""
+    s = np.asarray(sun_dir_N, dtype=float)
+    s = s / np.linalg.norm(s)
+    along = r_N_m @ s
+    perp = np.linalg.norm(r_N_m - along[:, None] * s, axis=1)
+    return (along < 0) & (perp < EARTH_RADIUS_M)
+
+
+def eclipse_windows(cfg: ScenarioConfig, eclipse: EclipseConfig) -> tuple[tuple[float, float], ...]:
+    """The chaser's shadow passes over the scenario's output grid t = 0, dt_s, ... <= duration_s, as windows
+    [start, end) in s (end: the first sample out of the shadow, or the last sample + dt_s)."""
+    from envisat_pose.datagen.orbit import chaser_orbit
+
+    t_s = np.arange(cfg.n_out) * cfg.dt_s
+    dark = in_earth_shadow(chaser_orbit(cfg.orbit, t_s).r_N_m, eclipse.sun_dir_N)
+    edges = np.flatnonzero(np.diff(np.concatenate([[False], dark, [False]]).astype(np.int8)))
+    return tuple((float(t_s[a]), float(t_s[b - 1] + cfg.dt_s)) for a, b in zip(edges[::2], edges[1::2]))
+
+
+def scenario_eclipse(name: str) -> EclipseConfig | None:
+    """The validated [eclipse] table of a named scenario, None if it has none."""
+    data = table(name, "eclipse")
+    return from_dict(EclipseConfig, data, prefix="eclipse") if data else None

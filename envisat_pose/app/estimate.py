@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envisat_pose.config import ConfigError, InputError, check, from_dict, load_toml, set_dotted, to_dict, to_toml
+from envisat_pose.config import (ConfigError, InputError, check, deep_update, from_dict, load_toml, set_dotted, to_dict,
+                                  to_toml)
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig
 
@@ -50,8 +51,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--truth", metavar="RUN.npz", help="truth trajectory written by `envisat simulate`")
-    src.add_argument("--scenario", metavar="NAME", help="simulate this named scenario with the MuJoCo truth first")
-    p.add_argument("--duration-s", type=float, help="with --scenario: simulated time, s (default 1800)")
+    src.add_argument("--scenario", metavar="NAME",
+                     help="simulate this named scenario (`envisat scenarios` lists them) with the MuJoCo truth first; "
+                     "its [measurement] and [filter] tables are the defaults under --config and the flags")
+    p.add_argument("--duration-s", type=float, help="with --scenario: simulated time, s (default: the scenario's)")
     p.add_argument("--config", metavar="FILE.toml", help="estimate config (sections measurement, filter; runs, seed)")
     p.add_argument("--measurements", choices=["markers3d", "pixels", "pixels+range"],
                    help="what is measured of each visible corner (default markers3d)")
@@ -75,8 +78,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def resolve_config(args: argparse.Namespace) -> EstimateConfig:
-    """Defaults, then the file, then the flags; validated before any work."""
-    data: dict = load_toml(args.config) if args.config else {}
+    """Defaults, then the named scenario's [measurement] and [filter] tables (with --scenario), then the file,
+    then the flags; validated before any work. Unknown scenario names fail here with the known ones."""
+    data: dict = {}
+    if args.scenario is not None:
+        from envisat_pose.app.scenarios import job_defaults
+
+        data = {k: v for k, v in job_defaults(args.scenario).items() if k in ("measurement", "filter")}
+    if args.config:
+        data = deep_update(data, load_toml(args.config))
     flags = {
         "measurement.kind": args.measurements,
         "measurement.sigma_m": args.sigma_m,
@@ -102,6 +112,7 @@ def load_truth(args: argparse.Namespace, cfg: EstimateConfig):
     """The truth trajectory: read from --truth, or simulated by MuJoCo for --scenario. Returns (truth, source).
 
     A file that is not a truth trajectory (truncated, foreign, another contract) is one InputError line.
+    With --scenario the scenario's duration applies unless --duration-s is given.
     """
     if args.truth:
         from envisat_pose.contracts import TruthTrajectory
@@ -122,6 +133,20 @@ def load_truth(args: argparse.Namespace, cfg: EstimateConfig):
     scenario_dict(args.scenario)  # unknown names fail here with the list of known ones
     scfg = scenario_config(args.scenario, **overrides)
     return simulate(scfg, progress=not args.quiet), {"scenario": args.scenario}
+
+
+def scenario_outages(args: argparse.Namespace, cfg: EstimateConfig, truth) -> EstimateConfig:
+    """With --scenario NAME whose file has an [eclipse] table: cfg with the Earth's-shadow windows along the
+    simulated truth appended to its outages (app.scenarios.eclipse_outages); cfg otherwise."""
+    if not args.scenario:
+        return cfg
+    import dataclasses
+
+    from envisat_pose.app.scenarios import eclipse_outages, with_outages
+    from envisat_pose.datagen.scenario import ScenarioConfig
+
+    windows = eclipse_outages(args.scenario, from_dict(ScenarioConfig, truth.config))
+    return dataclasses.replace(cfg, measurement=with_outages(cfg.measurement, windows))
 
 
 def truth_model(truth, source: str = "the truth") -> tuple[float, bool]:
@@ -217,6 +242,7 @@ def run_estimate(args: argparse.Namespace) -> int:
     out, cfg_path = output_paths(args.out)
     check_writable_output(out)
     truth, source = load_truth(args, cfg)
+    cfg = scenario_outages(args, cfg, truth)
     if len(truth.t_s) < 2:
         raise InputError("the truth trajectory has fewer than 2 samples")
     arrays = estimate(truth, cfg, progress=not args.quiet)

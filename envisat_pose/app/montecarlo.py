@@ -36,13 +36,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envisat_pose.config import ConfigError, InputError, check, from_dict, load_toml, set_dotted, to_dict, to_toml
+from envisat_pose.config import (ConfigError, InputError, check, deep_update, from_dict, load_toml, set_dotted, to_dict,
+                                  to_toml)
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig
 
 MANIFEST_FORMAT = "envisat-pose montecarlo v1"
 CHUNK_STEPS = 200  # filter steps per reduction chunk: bounds the covariances held to R x 200 x 144 floats
 FIGURES = ("envelopes.png", "block_norms.png", "nees_nis.png", "rmse_vs_pcrlb.png")
+SWEEP_FORMAT = "envisat-pose rate sweep v1"
+SWEEP_FIGURE = "rate_sweep.png"
 RUN_KEYS = ("rms_block", "final_block", "max_block", "inside_share", "nees_mean", "nis_per_dof", "diverged")
 
 
@@ -109,6 +112,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sigma-m", type=float, help="3D corner noise per axis, m (default 0.02)")
     p.add_argument("--sigma-px", type=float, help="pixel noise per axis, px (default 1)")
     p.add_argument("--max-markers", type=int, help="use at most N corners per step, the first visible in A..H order")
+    p.add_argument("--rates-hz", type=float, nargs="+", metavar="HZ",
+                   help="a rate sweep: one campaign per filter rate (default: the scenario's [sweep] rates_hz)")
     p.add_argument("--block-runs", type=int, help="runs per block (one task; default 125)")
     p.add_argument("--settle-s", type=float, help="statistics after this time, s (default half, at most 600 s)")
     p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
@@ -119,8 +124,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
-    """Defaults, then the file, then the flags; validated before any work."""
-    data: dict = load_toml(args.config) if args.config else {}
+    """Defaults, then the named scenario's duration and [measurement] and [filter] tables, then the file, then
+    the flags; validated before any work. A scenario with an [eclipse] table adds the Earth's-shadow outages
+    along its truth (app.scenarios.eclipse_outages)."""
+    from envisat_pose.app.scenarios import job_defaults
+
+    data: dict = job_defaults(args.scenario)  # an unknown name fails here with the list of known ones
+    if args.config:
+        data = deep_update(data, load_toml(args.config))
     flags = {
         "scenario": args.scenario, "runs": args.runs, "seed": args.seed, "duration_s": args.duration_s,
         "block_runs": args.block_runs, "settle_s": args.settle_s,
@@ -132,10 +143,17 @@ def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
         if value is not None:
             data = set_dotted(data, key, value)
     cfg = from_dict(MonteCarloConfig, data)
-    from envisat_pose.datagen.scenario import scenario_dict
+    return with_eclipse(cfg)
 
-    scenario_dict(cfg.scenario)  # an unknown name fails here with the list of known ones
-    return cfg
+
+def with_eclipse(cfg: MonteCarloConfig) -> MonteCarloConfig:
+    """cfg with its scenario's Earth's-shadow windows (if it has an [eclipse] table) appended to the outages."""
+    import dataclasses
+
+    from envisat_pose.app.scenarios import eclipse_outages, with_outages
+
+    windows = eclipse_outages(cfg.scenario, truth_scenario(cfg))
+    return dataclasses.replace(cfg, measurement=with_outages(cfg.measurement, windows))
 
 
 def runner_config(args: argparse.Namespace):
@@ -155,7 +173,14 @@ def runner_config(args: argparse.Namespace):
 def run_montecarlo(args: argparse.Namespace) -> int:
     cfg = resolve_config(args)
     runner = runner_config(args)
+    sweep = sweep_config(args, cfg)
     t0 = time.perf_counter()
+    if sweep is not None:
+        result = run_sweep(cfg, sweep, args.out, runner, progress=not args.quiet)
+        print(f"wrote {args.out}: {len(sweep.rates_hz)} campaigns of {cfg.runs} runs, sweep.json, {SWEEP_FIGURE} "
+              f"({time.perf_counter() - t0:.1f} s)")
+        print(sweep_line(result))
+        return 0
     summary = run_campaign(cfg, args.out, runner, progress=not args.quiet)
     print(f"wrote {args.out}: {cfg.runs} runs x {summary['steps']} steps, campaign.npz, summary.json, "
           f"{len(FIGURES)} figures ({time.perf_counter() - t0:.1f} s)")
@@ -170,6 +195,143 @@ def summary_line(s: dict) -> str:
             f"{math.degrees(r['attitude']):.4f} deg; RMSE/PCRLB " + ", ".join(f"{b} {v:.3f}" for b, v in e.items())
             + f"; mean NEES {s['nees_mean']:.2f} (95 % band {s['nees_bounds'][0]:.2f}..{s['nees_bounds'][1]:.2f}); "
             f"diverged {s['n_diverged']}/{s['n_runs']}")
+
+
+# ---------------------------------------------------------------- the rate sweep
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """A rate sweep: one campaign per filter (and measurement) rate in rates_hz, Hz, each in its own folder.
+
+    A rate converges when at most max_diverged_share of its runs were flagged diverged (the NIS monitor's false
+    alarms, 1e-6 per window, add up over ~1e5 windows per run at 10 Hz) and every block's RMSE/PCRLB is below
+    max_rmse_over_pcrlb."""
+
+    rates_hz: tuple[float, ...] = ()
+    max_rmse_over_pcrlb: float = 2.0
+    max_diverged_share: float = 0.05
+
+    def validate(self, prefix: str = "sweep") -> None:
+        check(1 <= len(self.rates_hz) <= 32, f"{prefix}.rates_hz", list(self.rates_hz), "1 to 32 rates in Hz")
+        for i, r in enumerate(self.rates_hz):
+            check(0.0 < r <= 100.0, f"{prefix}.rates_hz[{i}]", r, "a rate in (0, 100] Hz")
+        check(len(set(self.rates_hz)) == len(self.rates_hz), f"{prefix}.rates_hz", list(self.rates_hz),
+              "distinct rates")
+        check(self.max_rmse_over_pcrlb > 1.0, f"{prefix}.max_rmse_over_pcrlb", self.max_rmse_over_pcrlb,
+              "a ratio above 1")
+        check(0.0 <= self.max_diverged_share < 1.0, f"{prefix}.max_diverged_share", self.max_diverged_share,
+              "a share in [0, 1)")
+
+
+def sweep_config(args: argparse.Namespace, cfg: MonteCarloConfig) -> SweepConfig | None:
+    """The scenario's [sweep] table under --rates-hz, validated, with every rate's step checked against the
+    truth's before any work; None when neither asks for a sweep."""
+    from envisat_pose.named_scenarios import table
+
+    data = table(cfg.scenario, "sweep")
+    if args.rates_hz:
+        data["rates_hz"] = list(args.rates_hz)
+    if not data:
+        return None
+    check(args.rate_hz is None, "rate_hz", args.rate_hz, "no single --rate-hz with a rate sweep (the sweep's "
+          "rates_hz, or --rates-hz, sets the rates)")
+    sweep = from_dict(SweepConfig, data, prefix="sweep")
+    for rate in sweep.rates_hz:
+        sub = at_rate(cfg, rate)
+        check_filter_rate(sub, truth_scenario(sub))
+    return sweep
+
+
+def at_rate(cfg: MonteCarloConfig, rate_hz: float) -> MonteCarloConfig:
+    """The campaign of cfg with the filter and its measurements at rate_hz."""
+    import dataclasses
+
+    return dataclasses.replace(cfg, measurement=dataclasses.replace(cfg.measurement, rate_hz=float(rate_hz)))
+
+
+def rate_folder(rate_hz: float) -> str:
+    """The sub-folder of one rate's campaign: rate-0.05hz, rate-10hz."""
+    return f"rate-{rate_hz:g}hz"
+
+
+def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner, progress: bool = False) -> dict:
+    """One campaign per rate in out_dir/rate-<R>hz (each resumable like any campaign), then out_dir/sweep.json
+    (per rate: RMSE, PCRLB and RMSE/PCRLB per block, diverged share, mean NEES, converged) and rate_sweep.png.
+    Returns sweep.json's dict."""
+    from envisat_pose.analysis.campaign_figures import plot_rate_sweep
+    from envisat_pose.analysis.stats import BLOCKS
+    from envisat_pose.io import atomic_write_text
+
+    prepare_out_dir(out_dir, blocks=False)
+    rates = sorted(sweep.rates_hz)
+    summaries = []
+    for rate in rates:
+        if progress:
+            print(f"rate sweep: {rate:g} Hz -> {os.path.join(out_dir, rate_folder(rate))}")
+        summaries.append(run_campaign(at_rate(cfg, rate), os.path.join(out_dir, rate_folder(rate)), runner, progress))
+    result = sweep_result(cfg, sweep, rates, summaries)
+    atomic_write_text(os.path.join(out_dir, "sweep.json"), json.dumps(_json_safe(result), indent=1, sort_keys=True)
+                      + "\n")
+    atomic_write_text(os.path.join(out_dir, "montecarlo.config.toml"),
+                      "# envisat montecarlo: the validated config of this rate sweep (measurement.rate_hz is set per "
+                      "campaign)\n" + to_toml({**to_dict(cfg), "sweep": to_dict(sweep)}))
+    m = cfg.measurement
+    noise = f"{m.sigma_m:g} m" if m.kind == "markers3d" else f"{m.sigma_px:g} px"
+    plot_rate_sweep(np.array(rates), np.array([[s["rmse"][b] for b in BLOCKS] for s in summaries]),
+                    os.path.join(out_dir, SWEEP_FIGURE),
+                    bound_block=np.array([[s["pcrlb_rms"][b] for b in BLOCKS] for s in summaries]),
+                    diverged_share=np.array(result["diverged_share"]),
+                    title=f"{cfg.scenario}: {cfg.runs} runs per rate, {m.kind} at {noise}, {cfg.duration_s:g} s, "
+                          f"seed {cfg.seed}, statistics after {summaries[0]['settle_s']:g} s")
+    return result
+
+
+def sweep_result(cfg: MonteCarloConfig, sweep: SweepConfig, rates: list, summaries: list) -> dict:
+    """sweep.json: the per-rate numbers of the campaigns' summaries, and the lowest rate from which every rate
+    up converges (None if the fastest does not)."""
+    from envisat_pose.analysis.stats import BLOCKS
+
+    def per_block(key):
+        return {b: [s[key][b] for s in summaries] for b in BLOCKS}
+
+    ratio = per_block("rmse_over_pcrlb")
+    converged = [s["n_diverged"] <= sweep.max_diverged_share * s["n_runs"]
+                 and all(v is not None and math.isfinite(v) and v < sweep.max_rmse_over_pcrlb
+                         for v in (ratio[b][i] for b in BLOCKS))
+                 for i, s in enumerate(summaries)]
+    lowest = None
+    for rate, ok in sorted(zip(rates, converged), reverse=True):
+        if not ok:
+            break
+        lowest = rate
+    return {"format": SWEEP_FORMAT, "scenario": cfg.scenario, "runs": cfg.runs, "seed": cfg.seed,
+            "duration_s": cfg.duration_s, "settle_s": summaries[0]["settle_s"], "rates_hz": list(rates),
+            "campaigns": [rate_folder(r) for r in rates], "steps": [s["steps"] for s in summaries],
+            "rmse": per_block("rmse"), "pcrlb_rms": per_block("pcrlb_rms"), "rmse_over_pcrlb": ratio,
+            "n_diverged": [s["n_diverged"] for s in summaries],
+            "diverged_share": [s["n_diverged"] / s["n_runs"] for s in summaries],
+            "nees_mean": [s["nees_mean"] for s in summaries], "converged": converged,
+            "max_rmse_over_pcrlb": sweep.max_rmse_over_pcrlb, "max_diverged_share": sweep.max_diverged_share,
+            "lowest_converged_rate_hz": lowest}
+
+
+def sweep_line(r: dict) -> str:
+    """One line per rate of a sweep's main numbers, and where it stops converging."""
+    lines = []
+    for i, rate in enumerate(r["rates_hz"]):
+        lines.append(f"{rate:g} Hz: RMSE position {100 * r['rmse']['position'][i]:.3f} cm, attitude "
+                     f"{math.degrees(r['rmse']['attitude'][i]):.4f} deg; RMSE/PCRLB "
+                     + ", ".join(f"{b} {_fmt_ratio(v[i])}" for b, v in r["rmse_over_pcrlb"].items())
+                     + f"; diverged {r['n_diverged'][i]}/{r['runs']}; "
+                     + ("converged" if r["converged"][i] else "NOT converged"))
+    low = r["lowest_converged_rate_hz"]
+    lines.append(f"converges at every rate down to {low:g} Hz" if low is not None
+                 else "does not converge at the fastest rate")
+    return "\n".join(lines)
+
+
+def _fmt_ratio(v) -> str:
+    return "n/a" if v is None or not math.isfinite(v) else f"{v:.3f}"
 
 
 # ---------------------------------------------------------------- the campaign
@@ -273,16 +435,18 @@ def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, pr
     return _sha256(path)
 
 
-def prepare_out_dir(out_dir: str) -> None:
+def prepare_out_dir(out_dir: str, blocks: bool = True) -> None:
+    """Create the campaign folder (and its blocks/ unless blocks=False), check it is writable, remove the
+    partial files of a killed run."""
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise InputError(f"--out {out_dir!r} is a file, expected a campaign folder")
     try:
-        os.makedirs(os.path.join(out_dir, "blocks"), exist_ok=True)
+        os.makedirs(os.path.join(out_dir, "blocks") if blocks else out_dir, exist_ok=True)
     except OSError as err:
         raise InputError(f"--out {out_dir!r} cannot be created ({err.strerror})") from None
     if not os.access(out_dir, os.W_OK):
         raise InputError(f"--out {out_dir!r} is not writable")
-    for folder in (out_dir, os.path.join(out_dir, "blocks")):  # partial files of a killed run
+    for folder in (out_dir, os.path.join(out_dir, "blocks"))[:2 if blocks else 1]:  # partial files of a killed run
         for name in os.listdir(folder):
             if name.startswith(".tmp-"):
                 os.remove(os.path.join(folder, name))

@@ -3,7 +3,8 @@
 Per campaign folder (written by `envisat montecarlo`): the scenario and its config, a table of RMSE per block
 after the settle time, the share of run-steps inside the filter's 3-sigma, the mean NEES with its 95 % band,
 the PCRLB and RMSE/PCRLB per block, diverged runs and wall time, and the campaign's figures embedded as
-base64 PNG data URIs. Several folders sit side by side (one column each). No external link or resource.
+base64 PNG data URIs. Several folders sit side by side (one column each). A rate-sweep folder (sweep.json)
+gets a table with a row per rate and its figure. No external link or resource.
 """
 
 from __future__ import annotations
@@ -27,6 +28,9 @@ FIGURE_CAPTIONS = {
     "nees_nis.png": "Mean NEES and NIS with their chi-square 95 % bands",
     "rmse_vs_pcrlb.png": "Monte Carlo RMSE against the posterior Cramer-Rao lower bound",
 }
+SWEEP_FIGURE = "rate_sweep.png"
+SWEEP_CAPTION = ("Rate sweep: settled RMSE per block (blue) and the PCRLB (black dashed) against the filter rate, "
+                 "and the share of diverged runs (red)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -48,10 +52,59 @@ def run_report(args: argparse.Namespace) -> int:
     if not args.out.endswith((".html", ".htm")):
         raise InputError(f"--out {args.out!r}: expected a path ending in .html")
     check_writable_output(args.out)
-    campaigns = [load_campaign(d) for d in args.dirs]
-    atomic_write_text(args.out, render_report(campaigns))
-    print(f"wrote {args.out} ({len(campaigns)} campaign{'s' if len(campaigns) > 1 else ''})")
+    sweeps = [load_sweep(d) for d in args.dirs if is_sweep(d)]
+    campaigns = [load_campaign(d) for d in args.dirs if not is_sweep(d)]
+    atomic_write_text(args.out, render_report(campaigns, sweeps))
+    print(f"wrote {args.out} ({len(campaigns)} campaign{'s' if len(campaigns) != 1 else ''}"
+          + (f", {len(sweeps)} rate sweep{'s' if len(sweeps) > 1 else ''}" if sweeps else "") + ")")
     return 0
+
+
+def is_sweep(out_dir: str) -> bool:
+    """A rate-sweep folder (`envisat montecarlo` with a sweep): sweep.json, one campaign folder per rate."""
+    return os.path.isfile(os.path.join(out_dir, "sweep.json"))
+
+
+def load_sweep(out_dir: str) -> dict:
+    """What the report shows of a rate sweep: sweep.json, its figure and its config text."""
+    path = os.path.join(out_dir, "sweep.json")
+    sweep = _read_json(path)
+    if not isinstance(sweep, dict) or "rates_hz" not in sweep:
+        raise InputError(f"{path}: unreadable or not a rate sweep's summary")
+    fig = os.path.join(out_dir, SWEEP_FIGURE)
+    figure = ""
+    if os.path.isfile(fig):
+        with open(fig, "rb") as fh:
+            figure = base64.b64encode(fh.read()).decode("ascii")
+    cfg_path = os.path.join(out_dir, "montecarlo.config.toml")
+    config = open(cfg_path, encoding="utf-8").read() if os.path.isfile(cfg_path) else ""
+    return {"dir": out_dir, "sweep": sweep, "figure": figure, "config": config}
+
+
+def render_sweep(c: dict) -> str:
+    """One rate sweep: a table with a row per rate (RMSE and RMSE/PCRLB per block, diverged runs, NEES,
+    converged) and its figure."""
+    e, s = html.escape, c["sweep"]
+    head = ["rate (Hz)"] + [f"RMSE {b} ({DISPLAY[b][0]})" for b in BLOCKS] + [f"RMSE / PCRLB {b}" for b in BLOCKS]
+    head += ["diverged runs", "mean NEES", "converged"]
+    rows = []
+    for i, rate in enumerate(s["rates_hz"]):
+        cells = [f"{rate:g}"] + [_fmt(s["rmse"][b][i], DISPLAY[b][1]) for b in BLOCKS]
+        cells += [_fmt(s["rmse_over_pcrlb"][b][i], digits=3) for b in BLOCKS]
+        cells += [f"{s['n_diverged'][i]} / {s['runs']}", _fmt(s["nees_mean"][i]), "yes" if s["converged"][i] else "no"]
+        rows.append("<tr>" + "".join(f"<td>{e(v)}</td>" for v in cells) + "</tr>")
+    low = s.get("lowest_converged_rate_hz")
+    verdict = (f"Converges (at most {_fmt(s.get('max_diverged_share'), 100.0)} % of runs flagged diverged, RMSE / "
+               f"PCRLB below {s.get('max_rmse_over_pcrlb')} in every block) at "
+               f"every rate down to {low:g} Hz." if low is not None else "Does not converge at the fastest rate.")
+    fig = (f"<figure><img alt=\"{SWEEP_FIGURE}\" src=\"data:image/png;base64,{c['figure']}\"><figcaption>"
+           f"{e(SWEEP_CAPTION)}</figcaption></figure>" if c["figure"] else "")
+    name = os.path.basename(os.path.normpath(c["dir"])) or c["dir"]
+    return (f"<h2>Rate sweep {e(name)}</h2><p>{e(c['dir'])}: scenario {e(str(s.get('scenario')))}, "
+            f"{s.get('runs')} runs per rate over {_fmt(s.get('duration_s'))} s, seed {s.get('seed')}, statistics "
+            f"after {_fmt(s.get('settle_s'))} s. {e(verdict)}</p><table><tr>"
+            + "".join(f"<th>{e(h)}</th>" for h in head) + "</tr>" + "".join(rows) + "</table>" + fig
+            + f"<details><summary>config</summary><pre>{e(c['config'])}</pre></details>")
 
 
 def load_campaign(out_dir: str) -> dict:
@@ -145,10 +198,13 @@ padding:2px 6px;text-align:right;vertical-align:top}th{background:#eee}td.l{text
 pre{font-size:11px;background:#f6f6f6;padding:4px;overflow-x:auto}"""
 
 
-def render_report(campaigns: list[dict]) -> str:
+def render_report(campaigns: list[dict], sweeps: list[dict] = ()) -> str:
     """The whole HTML page: a comparison table (one column per campaign), then per campaign its figures and
-    config, side by side. Every figure is a data:image/png;base64 URI."""
+    config, side by side, then each rate sweep (render_sweep). Every figure is a data:image/png;base64 URI."""
     e = html.escape
+    sweeps_html = "".join(render_sweep(c) for c in sweeps)
+    if not campaigns:
+        return _page(sweeps_html)
     names = [os.path.basename(os.path.normpath(c["dir"])) or c["dir"] for c in campaigns]
     table = ["<table><tr><th></th>" + "".join(f"<th>{e(n)}</th>" for n in names) + "</tr>"]
     all_rows = [campaign_rows(c) for c in campaigns]
@@ -165,9 +221,13 @@ def render_report(campaigns: list[dict]) -> str:
                        for name, data in c["figures"].items())
         cols.append(f"<div class=\"col\"><h2>{e(n)}</h2><p>{e(c['dir'])}</p>{figs}"
                     f"<details><summary>config</summary><pre>{e(c['config'])}</pre></details></div>")
+    return _page("\n".join(table) + "<div class=\"cols\">" + "".join(cols) + "</div>" + sweeps_html)
+
+
+def _page(body: str) -> str:
     return ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>envisat Monte Carlo report</title>"
             f"<style>{STYLE}</style></head><body><h1>Monte Carlo campaigns</h1>"
             "<p>Statistics over the run-steps after the settle time; RMSE / PCRLB is the ratio of the RMS over time "
             "of the Monte Carlo RMSE and of the posterior Cramer-Rao lower bound (1: the best any unbiased "
             "estimator can do). The NEES band assumes independent steps: read it as a guide.</p>"
-            + "\n".join(table) + "<div class=\"cols\">" + "".join(cols) + "</div></body></html>\n")
+            + body + "</body></html>\n")

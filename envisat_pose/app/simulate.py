@@ -17,8 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the truth trajectory: t_s, x (12 states), chaser orbit, corners in C, visibility, config_json.",
     )
     p.add_argument("--config", metavar="FILE.toml", help="scenario config (sections orbit, target, relative)")
-    p.add_argument("--scenario", default="default", help="named scenario the config starts from (default: default)")
-    p.add_argument("--duration-s", type=float, help="simulated time, s (default 1800)")
+    p.add_argument("--scenario", default="default",
+                   help="named scenario the config starts from (default: default; `envisat scenarios` lists them)")
+    p.add_argument("--duration-s", type=float, help="simulated time, s (default: the scenario's, 1800)")
     p.add_argument("--dt-s", type=float, help="output step, s (default 1)")
     p.add_argument("--seed", type=int, help="root seed of the random initial attitude (default 0)")
     p.add_argument("--out", default="run.npz", help="output .npz (default run.npz)")
@@ -28,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def resolve_config(args: argparse.Namespace) -> ScenarioConfig:
-    """Defaults, then the named scenario, then the file, then the flags; validated before any work."""
+    """Defaults, then the named scenario's truth tables, then the file, then the flags; validated before any work."""
     data = deep_update({}, scenario_dict(args.scenario))
     if args.config:
         data = deep_update(data, load_toml(args.config))

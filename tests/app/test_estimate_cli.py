@@ -186,10 +186,10 @@ def test_the_filter_takes_mu_from_the_truth(tmp_path):
 
 
 def test_the_filter_takes_the_gravity_gradient_switch_from_the_truth(tmp_path):
-    """The gravity_gradient scenario: the truth's config switches the model's torque on, so no run diverges
+    """The gravity-gradient scenario: the truth's config switches the model's torque on, so no run diverges
     (torque-free with the default Q, every run would)."""
     out = tmp_path / "est.npz"
-    assert main(["estimate", "--scenario", "gravity_gradient", "--duration-s", "300", "--runs", "10", "--seed", "2",
+    assert main(["estimate", "--scenario", "gravity-gradient", "--duration-s", "300", "--runs", "10", "--seed", "2",
                  "--quiet", "--out", str(out)]) == 0
     est = _load(out)
     assert json.loads(str(est["config_json"]))["truth_config"]["target"]["gravity_gradient"] is True

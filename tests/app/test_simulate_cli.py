@@ -95,10 +95,10 @@ def test_bad_arguments(tmp_path, capsys, args, message):
     assert not (tmp_path / "run.npz").exists()
 
 
-def test_close_25m_runs(tmp_path):
+def test_close_25m_scenario_runs(tmp_path):
     """The named close scenario is physically possible: the keep-out check lets it through."""
     out = tmp_path / "close.npz"
-    assert main(["simulate", "--scenario", "close_25m", "--duration-s", "300", "--seed", "0", "--out", str(out),
+    assert main(["simulate", "--scenario", "close-25m", "--duration-s", "300", "--seed", "0", "--out", str(out),
                  "--quiet"]) == 0
     with np.load(out) as z:
         assert abs(np.linalg.norm(z["x"][0, 0:3]) - 25.0) < 1e-9
@@ -106,7 +106,7 @@ def test_close_25m_runs(tmp_path):
 
 def test_written_config_reproduces_the_run(tmp_path):
     first = tmp_path / "first.npz"
-    assert main(["simulate", "--scenario", "fast_tumble", "--duration-s", "20", "--seed", "9", "--out", str(first), "--quiet"]) == 0
+    assert main(["simulate", "--scenario", "stress-tumble", "--duration-s", "20", "--seed", "9", "--out", str(first), "--quiet"]) == 0
     again = tmp_path / "again.npz"
     assert main(["simulate", "--config", str(tmp_path / "first.config.toml"), "--out", str(again), "--quiet"]) == 0
     assert sha256(first) == sha256(again)

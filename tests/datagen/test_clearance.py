@@ -19,9 +19,10 @@ from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.config import ConfigError, from_dict
 from envisat_pose.datagen.clearance import clearance_m, project_target_boxes
 from envisat_pose.datagen.factory import R_K_FROM_C, GenerateConfig, sample_random_view
-from envisat_pose.datagen.scenario import SCENARIOS, scenario_config
+from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.datagen.truth import simulate
 from envisat_pose.geometry import model_path
+from envisat_pose.named_scenarios import names as scenario_names
 
 SPACING_M = 0.05  # surface sample spacing: a sampled distance overestimates the true one by < SPACING_M
 
@@ -129,11 +130,11 @@ def test_a_15m_hold_through_the_array_is_refused(surface_T, monkeypatch):
 
 
 def test_close_25m_keeps_clear_for_many_seeds(surface_T):
-    assert "close_15m" not in SCENARIOS and "close_25m" in SCENARIOS
+    assert "close-15m" not in scenario_names() and "close-25m" in scenario_names()
     reach_m = np.linalg.norm(surface_T, axis=1).max()
     tree = cKDTree(surface_T)
     for seed in range(6):
-        tr = simulate(scenario_config("close_25m", seed=seed))
+        tr = simulate(scenario_config("close-25m", seed=seed))
         assert abs(tr.x[0, 1] - 25.0) < 1e-12
         # attitude-free: the chaser stays beyond the array's reach plus the margin
         assert np.linalg.norm(tr.x[:, 0:3], axis=1).min() - reach_m > 2.0

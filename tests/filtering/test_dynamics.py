@@ -183,7 +183,7 @@ def test_gravity_gradient_model_follows_the_mujoco_truth_with_the_torque(chaser_
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.datagen.truth import simulate
 
-    tr = simulate(scenario_config("gravity_gradient", duration_s=600.0, seed=5))
+    tr = simulate(scenario_config("gravity-gradient", duration_s=600.0, seed=5))
     c = chaser_of(tr)
     err = {}
     for gg in (False, True):

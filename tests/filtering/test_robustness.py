@@ -111,7 +111,7 @@ def test_adaptive_q_absorbs_an_unmodelled_torque(chaser_of):
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.datagen.truth import simulate
 
-    tr = simulate(scenario_config("gravity_gradient", duration_s=900.0, seed=2))
+    tr = simulate(scenario_config("gravity-gradient", duration_s=900.0, seed=2))
     inp = inputs_from_truth(tr, MeasurementConfig(), FilterConfig().P0, seed=8, n_runs=10)
     late = tr.t_s >= 300.0
     out = {}
@@ -170,7 +170,7 @@ def test_gravity_gradient_in_the_model_keeps_the_filter_consistent(chaser_of):
     from envisat_pose.datagen.truth import simulate
     from envisat_pose.filtering.estimator import nees_divergence
 
-    tr = simulate(scenario_config("gravity_gradient", duration_s=600.0, seed=2))
+    tr = simulate(scenario_config("gravity-gradient", duration_s=600.0, seed=2))
     cfg = FilterConfig()
     inp = inputs_from_truth(tr, MeasurementConfig(), cfg.P0, seed=8, n_runs=50)
     out = {}

@@ -1,0 +1,87 @@
+"""Named scenarios: the documented TOML files of the package `envisat_pose.scenarios` (the repository's
+`scenarios/` folder), listed and read with importlib.resources.
+
+A scenario file holds a one-line `description`, the truth's keys (tables orbit, target, relative; duration_s,
+dt_s, max_physics_dt_s, keepout_margin_m: datagen.scenario.ScenarioConfig validates their contents) and optional
+tables for the jobs that use the truth: [measurement] and [filter] (the defaults of `estimate` and `montecarlo`
+under the user's --config and flags), [sweep] (the filter rates of a rate sweep) and [eclipse] (the sun direction
+from which the Earth's shadow is computed). `base = "NAME"` starts from another scenario's tables.
+Every problem is one ConfigError line naming the file, the key, the value and what was expected.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.resources
+import tomllib
+
+from envisat_pose.config import ConfigError, check, deep_update
+
+PACKAGE = "envisat_pose.scenarios"
+# the truth's keys (datagen.scenario.ScenarioConfig's fields but the seed, which is the job's)
+TRUTH_KEYS = ("orbit", "target", "relative", "duration_s", "dt_s", "max_physics_dt_s", "keepout_margin_m")
+JOB_TABLES = ("measurement", "filter", "sweep", "eclipse")
+MAX_BASE_DEPTH = 8
+
+
+def names() -> list[str]:
+    """The known scenario names, sorted (the stems of the package's *.toml files)."""
+    return sorted(_files())
+
+
+@functools.lru_cache(maxsize=1)
+def _files() -> dict[str, str]:
+    """{name: TOML text} of every scenario file shipped in the package."""
+    root = importlib.resources.files(PACKAGE)
+    return {e.name[:-5]: e.read_text(encoding="utf-8") for e in root.iterdir() if e.name.endswith(".toml")}
+
+
+def check_name(name: str) -> None:
+    """ConfigError listing the known names unless `name` is one of them."""
+    check(isinstance(name, str) and name in _files(), "scenario", name, "one of " + ", ".join(names()))
+
+
+def load(name: str) -> dict:
+    """The full tables of a named scenario, its `base` chain resolved (without `base`), validated by table name."""
+    return _load(name, 0)
+
+
+def _load(name: str, depth: int) -> dict:
+    check_name(name)
+    where = f"scenario {name} ({name}.toml)"
+    try:
+        data = tomllib.loads(_files()[name])
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(where, "...", f"valid TOML ({err})") from None
+    allowed = ("description", "base") + TRUTH_KEYS + JOB_TABLES
+    for key, value in data.items():
+        check(key in allowed, f"{where}: {key}", value, "a known key: " + ", ".join(allowed))
+    check(isinstance(data.get("description"), str) and data["description"].strip() != "", f"{where}: description",
+          data.get("description"), "a one-line description of the case")
+    for key in ("orbit", "target", "relative") + JOB_TABLES:
+        if key in data:
+            check(isinstance(data[key], dict), f"{where}: {key}", data[key], "a table")
+    base = data.pop("base", None)
+    if base is None:
+        return data
+    check(depth < MAX_BASE_DEPTH, f"{where}: base", base, f"a chain of at most {MAX_BASE_DEPTH} bases (a cycle?)")
+    check(base != name, f"{where}: base", base, "another scenario's name")
+    inherited = _load(base, depth + 1)
+    inherited.pop("description", None)
+    return deep_update(inherited, data)
+
+
+def truth_part(name: str) -> dict:
+    """The truth's keys of a named scenario (overrides of ScenarioConfig's defaults)."""
+    return {k: v for k, v in load(name).items() if k in TRUTH_KEYS}
+
+
+def table(name: str, key: str) -> dict:
+    """One of the job tables (measurement, filter, sweep, eclipse) of a named scenario; {} if it has none."""
+    assert key in JOB_TABLES, key
+    return dict(load(name).get(key, {}))
+
+
+def descriptions() -> list[tuple[str, str]]:
+    """(name, one-line description) of every scenario, sorted by name."""
+    return [(n, " ".join(load(n)["description"].split())) for n in names()]
