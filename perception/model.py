@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from envisat_pose.config import check
 from envisat_pose.perception.heatmaps import N_JTYPES
 
 
@@ -43,13 +44,15 @@ class ModelConfig:
 
     stride = 4
 
-    def validate(self) -> None:
-        cells = self.input_px // self.stride
-        if self.input_px % self.stride or cells % (2 ** self.depth):
-            raise ValueError(f"input_px {self.input_px}: must be a multiple of {self.stride * 2 ** self.depth} "
-                             f"(stride {self.stride}, {self.depth} hourglass levels)")
-        if self.line_points % self.line_pool:
-            raise ValueError(f"line_points {self.line_points} must be a multiple of line_pool {self.line_pool}")
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        m = self.stride * 2 ** self.depth
+        check(self.depth >= 1 and self.width >= 1 and self.stem_width >= 1, f"{p}depth", self.depth,
+              "at least one hourglass level and positive widths")
+        check(self.input_px >= m and self.input_px % m == 0, f"{p}input_px", self.input_px,
+              f"a multiple of {m} (stride {self.stride}, {self.depth} hourglass levels)")
+        check(self.line_points % self.line_pool == 0, f"{p}line_points", self.line_points,
+              f"a multiple of line_pool ({self.line_pool})")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -107,8 +110,8 @@ class CornerNet(nn.Module):
                                       nn.Linear(cfg.line_hidden, 1))
         # a junction's prior is rare: start the heatmap logits at sigmoid ~ 0.01 (focal-loss practice)
         with torch.no_grad():
+            self.jhead[-1].bias.zero_()
             self.jhead[-1].bias[: cfg.n_jtypes].fill_(-4.6)
-            self.jhead[-1].bias[cfg.n_jtypes + 2:].fill_(0.0)
 
     def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
         """image (B, 1, S, S) -> features, jmap_logit, joff, jchol (module doc)."""

@@ -1,0 +1,106 @@
+"""Weights as safetensors (no pickle): the model's state plus its ModelConfig in the file's metadata.
+
+A missing, truncated or foreign file, or one whose tensors do not fit the model, is one WeightsError line
+naming the file and the problem. Optimizer state (training only) is torch.save of tensors and plain containers,
+read back with torch.load(weights_only=True), which refuses anything else.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import torch
+
+from envisat_pose.config import InputError, from_dict
+from envisat_pose.io import atomic_path
+from envisat_pose.perception.model import CornerNet, ModelConfig
+
+FORMAT = "envisat-pose corner detector v1"
+
+
+class WeightsError(InputError):
+    """A weights file that cannot be used: the message names the file and the problem."""
+
+
+def save_weights(path: str, model: CornerNet, extra: dict | None = None) -> None:
+    """Write the model's state (parameters and buffers) and its config atomically as safetensors."""
+    from safetensors.torch import save_file
+
+    state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    meta = {"format": FORMAT, "model_config": json.dumps(model.cfg.to_dict(), sort_keys=True)}
+    for k, v in (extra or {}).items():
+        meta[k] = v if isinstance(v, str) else json.dumps(v, sort_keys=True)
+    with atomic_path(path, suffix=".safetensors") as tmp:
+        save_file(state, tmp, metadata=meta)
+
+
+def read_weights(path: str) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """(tensors, metadata) of a safetensors file; WeightsError when it is missing or not one."""
+    from safetensors import SafetensorError
+    from safetensors.torch import safe_open
+
+    if not os.path.exists(path):
+        raise WeightsError(f"{path}: no such weights file")
+    if os.path.isdir(path):
+        raise WeightsError(f"{path}: is a folder, expected a .safetensors weights file")
+    try:
+        with safe_open(path, framework="pt", device="cpu") as fh:
+            meta = dict(fh.metadata() or {})
+            tensors = {k: fh.get_tensor(k) for k in fh.keys()}
+    except (SafetensorError, OSError, ValueError, RuntimeError) as err:
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise WeightsError(f"{path}: not a readable safetensors file ({first})") from None
+    return tensors, meta
+
+
+def load_model(path: str, device: str = "cpu") -> CornerNet:
+    """The CornerNet stored in a weights file, in eval mode. WeightsError (one line) for a truncated or foreign
+    file, a missing config, or tensors whose names or shapes do not fit."""
+    tensors, meta = read_weights(path)
+    if meta.get("format") != FORMAT or "model_config" not in meta:
+        raise WeightsError(f"{path}: not corner-detector weights (metadata format {meta.get('format')!r})")
+    try:
+        cfg = from_dict(ModelConfig, json.loads(meta["model_config"]))
+    except (ValueError, TypeError) as err:
+        raise WeightsError(f"{path}: bad model config in the metadata ({err})") from None
+    model = CornerNet(cfg)
+    load_state(model, tensors, path)
+    return model.to(device).eval()
+
+
+def load_state(model: torch.nn.Module, tensors: dict[str, torch.Tensor], path: str) -> None:
+    """Copy tensors into the model after checking names, shapes and dtypes (WeightsError naming the first)."""
+    want = model.state_dict()
+    missing = sorted(set(want) - set(tensors))
+    extra = sorted(set(tensors) - set(want))
+    if missing or extra:
+        what = f"missing {missing[0]!r}" if missing else f"unexpected {extra[0]!r}"
+        raise WeightsError(f"{path}: tensors do not fit the model: {what} "
+                           f"({len(missing)} missing, {len(extra)} unexpected)")
+    for k, v in want.items():
+        if tuple(tensors[k].shape) != tuple(v.shape):
+            raise WeightsError(f"{path}: tensor {k!r} has shape {tuple(tensors[k].shape)}, the model's is "
+                               f"{tuple(v.shape)}")
+        if tensors[k].dtype != v.dtype:
+            raise WeightsError(f"{path}: tensor {k!r} has dtype {tensors[k].dtype}, the model's is {v.dtype}")
+        if v.is_floating_point() and not torch.isfinite(tensors[k]).all():
+            raise WeightsError(f"{path}: tensor {k!r} holds non-finite values")
+    model.load_state_dict(tensors, strict=True)
+
+
+def save_tensors(path: str, state: dict) -> None:
+    """torch.save of a state made of tensors and plain containers (optimizer state), atomically."""
+    with atomic_path(path, suffix=".pt") as tmp:
+        torch.save(state, tmp)
+
+
+def load_tensors(path: str) -> dict:
+    """Read back save_tensors with weights_only=True (no arbitrary unpickling); WeightsError if unreadable."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise WeightsError(f"{path}: no such file") from None
+    except Exception as err:  # torch raises many types for foreign or truncated files
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise WeightsError(f"{path}: not a readable tensor state ({type(err).__name__}: {first})") from None

@@ -1,0 +1,99 @@
+"""Training: an honest overfit check on a tiny generated set, exact resume, the run directory, CLI errors."""
+
+import json
+import os
+
+import pytest
+import torch
+
+from envisat_pose.app.cli import main
+from envisat_pose.perception.data import DataConfig
+from envisat_pose.perception.model import ModelConfig
+from envisat_pose.perception.train import TrainConfig, train
+from envisat_pose.perception.weights import load_model
+
+
+def small_config(steps, **kw):
+    return TrainConfig(steps=steps, batch_size=4, lr=3e-3, warmup_steps=20, checkpoint_every=10**6,
+                       model=ModelConfig(input_px=128, width=24, depth=2, stem_width=16),
+                       data=DataConfig(input_px=128, **kw))
+
+
+def metrics(run):
+    return [json.loads(line) for line in open(os.path.join(run, "metrics.jsonl"))]
+
+
+def test_overfit_drives_the_loss_down(tiny_dataset, tmp_path):
+    """200 steps on 8 images without augmentation: every term falls far below where it started."""
+    torch.set_num_threads(1)
+    run = str(tmp_path / "run")
+    train(small_config(200, augment=False, crop_scale_jitter=0.0, crop_shift_jitter=0.0), tiny_dataset, run,
+          progress=False)
+    m = metrics(run)
+    first, last = m[0], m[-1]
+    print([(d["step"], round(d["heatmap"], 3), round(d["offset"], 3), round(d["line"], 3)) for d in m[::10]])
+    assert last["step"] == 200
+    assert last["heatmap"] < 0.15 * first["heatmap"]
+    assert last["offset"] < 0.3 * first["offset"]
+    assert last["line"] < 0.3 * first["line"]
+    assert last["nll"] < first["nll"] - 2.0
+    model = load_model(os.path.join(run, "checkpoint.safetensors"))
+    assert model.cfg.input_px == 128
+    cfg = json.load(open(os.path.join(run, "config.json")))
+    assert cfg["train"]["steps"] == 200
+
+
+def test_resume_equals_an_uninterrupted_run(tiny_dataset, tmp_path):
+    torch.set_num_threads(1)
+    whole, part = str(tmp_path / "whole"), str(tmp_path / "part")
+    train(small_config(6), tiny_dataset, whole, progress=False)
+    train(small_config(3), tiny_dataset, part, progress=False)  # stops mid-epoch (2 batches per epoch)
+    train(small_config(6), tiny_dataset, part, resume=True, progress=False)
+    a = load_model(os.path.join(whole, "checkpoint.safetensors")).state_dict()
+    b = load_model(os.path.join(part, "checkpoint.safetensors")).state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert json.load(open(os.path.join(part, "state.json")))["step"] == 6
+
+
+def test_same_seed_same_weights_other_seed_others(tiny_dataset, tmp_path):
+    torch.set_num_threads(1)
+    runs = {}
+    for name, seed in (("a", 0), ("b", 0), ("c", 1)):
+        cfg = TrainConfig(**{**small_config(2).__dict__, "seed": seed})
+        train(cfg, tiny_dataset, str(tmp_path / name), progress=False)
+        runs[name] = load_model(str(tmp_path / name / "checkpoint.safetensors")).state_dict()
+    assert all(torch.equal(runs["a"][k], runs["b"][k]) for k in runs["a"])
+    assert not all(torch.equal(runs["a"][k], runs["c"][k]) for k in runs["a"])
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys, tiny_dataset):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["train", "--data", str(empty), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "empty dataset" in err and "\n" not in err
+    assert main(["train", "--data", tiny_dataset, "--out", str(tmp_path / "nope"), "--resume"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_cli_trains_and_refuses_to_overwrite(tiny_dataset, tmp_path, capsys):
+    toml = tmp_path / "t.toml"
+    toml.write_text("checkpoint_every = 1000\n[model]\ninput_px = 128\nwidth = 16\ndepth = 2\n"
+                    "[data]\ninput_px = 128\n")
+    run = str(tmp_path / "run")
+    args = ["train", "--data", tiny_dataset, "--out", run, "--config", str(toml), "--steps", "2", "--batch-size",
+            "4", "--threads", "1", "--quiet"]
+    assert main(args) == 0
+    assert os.path.exists(os.path.join(run, "checkpoint.safetensors"))
+    cfg = json.load(open(os.path.join(run, "config.json")))
+    assert cfg["git"] and "--steps 2" in cfg["command"]
+    assert main(args) == 2
+    assert "already holds a run" in capsys.readouterr().err
+    assert main(args[:-1] + ["--quiet", "--resume"]) == 0
+
+
+@pytest.mark.parametrize("bad", ["steps = 0\n", "[model]\ninput_px = 100\n", "[data]\ninput_px = 256\n"])
+def test_bad_config(tmp_path, tiny_dataset, bad, capsys):
+    toml = tmp_path / "t.toml"
+    toml.write_text(bad)
+    assert main(["train", "--data", tiny_dataset, "--out", str(tmp_path / "r"), "--config", str(toml)]) == 2

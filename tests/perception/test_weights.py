@@ -1,0 +1,97 @@
+"""Weights load without unpickling; a missing, truncated, foreign or wrong-shape file is one clear line."""
+
+import numpy as np
+import pytest
+import torch
+
+from envisat_pose.perception.model import CornerNet, ModelConfig
+from envisat_pose.perception.weights import WeightsError, load_model, load_tensors, save_tensors, save_weights
+
+
+@pytest.fixture
+def weights(tmp_path):
+    model = CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8))
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.01)
+    path = tmp_path / "w.safetensors"
+    save_weights(str(path), model)
+    return model, path
+
+
+def _one_line(err):
+    assert "\n" not in str(err.value)
+    return str(err.value)
+
+
+def test_round_trip(weights):
+    model, path = weights
+    back = load_model(str(path))
+    assert back.cfg == model.cfg and not back.training
+    for (k, a), (_, b) in zip(model.state_dict().items(), back.state_dict().items()):
+        assert torch.equal(a, b), k
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(WeightsError, match="no such weights file") as err:
+        load_model(str(tmp_path / "none.safetensors"))
+    _one_line(err)
+
+
+def test_truncated_file(weights, tmp_path):
+    _, path = weights
+    data = path.read_bytes()
+    bad = tmp_path / "cut.safetensors"
+    bad.write_bytes(data[: len(data) // 2])
+    with pytest.raises(WeightsError, match="not a readable safetensors") as err:
+        load_model(str(bad))
+    assert str(bad) in _one_line(err)
+
+
+def test_foreign_files(tmp_path):
+    npz = tmp_path / "x.safetensors"
+    np.savez(npz, a=np.zeros(3))
+    with pytest.raises(WeightsError) as err:
+        load_model(str(npz))
+    _one_line(err)
+    from safetensors.torch import save_file
+
+    other = tmp_path / "other.safetensors"
+    save_file({"w": torch.zeros(3)}, str(other))
+    with pytest.raises(WeightsError, match="not corner-detector weights") as err:
+        load_model(str(other))
+
+
+def test_wrong_shapes(weights, tmp_path):
+    model, path = weights
+    from safetensors.torch import safe_open, save_file
+
+    with safe_open(str(path), framework="pt") as fh:
+        meta = fh.metadata()
+        tensors = {k: fh.get_tensor(k) for k in fh.keys()}
+    tensors["line_mlp.0.weight"] = torch.zeros(3, 3)
+    bad = tmp_path / "shape.safetensors"
+    save_file(tensors, str(bad), metadata=meta)
+    with pytest.raises(WeightsError, match="line_mlp.0.weight") as err:
+        load_model(str(bad))
+    _one_line(err)
+    del tensors["line_mlp.0.weight"]
+    save_file(tensors, str(bad), metadata=meta)
+    with pytest.raises(WeightsError, match="missing") as err:
+        load_model(str(bad))
+
+
+def test_optimizer_state_refuses_pickled_objects(tmp_path):
+    opt = torch.optim.AdamW([torch.nn.Parameter(torch.ones(2))])
+    good = tmp_path / "opt.pt"
+    save_tensors(str(good), opt.state_dict())
+    assert load_tensors(str(good))["param_groups"][0]["lr"] == opt.param_groups[0]["lr"]
+    evil = tmp_path / "evil.pt"
+    torch.save({"x": _Evil()}, str(evil))
+    with pytest.raises(WeightsError, match="not a readable tensor state") as err:
+        load_tensors(str(evil))
+    _one_line(err)
+
+
+class _Evil:
+    pass
