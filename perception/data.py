@@ -103,11 +103,17 @@ def decode_label(data: bytes, where: str) -> dict:
     return out
 
 
+def _all_urls(urls):
+    return urls
+
+
 def read_samples(paths: list[str]):
     """(key, image (H, W) uint8, label) for every sample of the shards, in order, through webdataset."""
     import webdataset as wds
 
-    ds = wds.WebDataset(paths, shardshuffle=False, empty_check=False)
+    # every rank and worker reads all shards and keeps its own samples (iterate_samples): no shard splitting
+    ds = wds.WebDataset(paths, shardshuffle=False, empty_check=False, nodesplitter=_all_urls,
+                        workersplitter=_all_urls)
     for sample in ds:
         key = sample.get("__key__", "?")
         where = f"{os.path.basename(sample.get('__url__', '?'))}:{key}"

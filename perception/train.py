@@ -216,7 +216,20 @@ def train(cfg: TrainConfig, data_dir: str, run_dir: str, resume: bool = False, d
             continue
         break
     bar.close()
-    if count:
+    if dist is not None:
+        for b in model.buffers():  # BatchNorm statistics of the last forward are each rank's own: take rank 0's
+            dist.broadcast(b, src=0)
+        sums["ranks_identical"] = float(_ranks_identical(dist, model, world)) * max(count, 1)
+        sums["world"] = float(world) * max(count, 1)
+    if count or dist is not None:
         last = log("end")
     checkpoint()
     return last
+
+
+def _ranks_identical(dist, model: torch.nn.Module, world: int) -> bool:
+    """Every rank holds the same parameters and buffers, bit for bit (gathered and compared on all ranks)."""
+    flat = torch.cat([t.detach().reshape(-1).double().cpu() for t in model.state_dict().values()])
+    gathered = [torch.empty_like(flat) for _ in range(world)]
+    dist.all_gather(gathered, flat)
+    return all(torch.equal(gathered[0], g) for g in gathered[1:])
