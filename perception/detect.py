@@ -1,0 +1,148 @@
+"""Full frames in, named corners out (no label used): coarse pass, crop, network, decode, line verification, naming.
+
+Plain numpy at the boundary: `Detector.detect(image_u8, K)` returns a FrameDetection of arrays in full-image
+pixels (OpenCV convention), the per-frame slice of the core's Detections contract plus the half-turn alternative.
+
+Steps: (1) coarse: the whole frame, padded to a square and resized to the input, gives junctions whose extent
+sets the crop (skipped when the caller gives a region of interest, e.g. the filter's prediction); (2) the crop
+is resized to the input and run again; (3) the top junctions are decoded with their type probabilities and
+2x2 covariances (input px^2, scaled to full px^2); (4) every pair is scored by line verification; (5)
+perception/naming.py fits the box and names them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from envisat_pose.perception.data import IMAGE_MEAN, IMAGE_STD, DataConfig, crop_box, crop_resize, to_full_px
+from envisat_pose.perception.heatmaps import decode_junctions
+from envisat_pose.perception.model import CornerNet
+from envisat_pose.perception.naming import Naming, NamingConfig, name_corners
+
+
+@dataclass(frozen=True)
+class DetectConfig:
+    """top_k: junctions kept per crop; threshold: least junction score; coarse_threshold: the same in the coarse
+    pass; crop_margin: crop side over the coarse junctions' extent."""
+
+    top_k: int = 12
+    threshold: float = 0.2
+    coarse_threshold: float = 0.2
+    crop_margin: float = 1.4
+    naming: NamingConfig = NamingConfig()
+
+
+@dataclass(frozen=True)
+class FrameDetection:
+    """One frame. corners_px (8, 2), cov_px (8, 2, 2) px^2, confidence (8,), visible (8,) bool (found and
+    named; positions NaN elsewhere); alt_corners_px (8, 2) the half-turn naming, alt_probability its
+    probability, ambiguous; crop_px (3,) (x0, y0, side); candidates_px (K, 2) the unnamed junctions."""
+
+    corners_px: np.ndarray
+    cov_px: np.ndarray
+    confidence: np.ndarray
+    visible: np.ndarray
+    alt_corners_px: np.ndarray
+    alt_probability: float
+    ambiguous: bool
+    crop_px: np.ndarray
+    candidates_px: np.ndarray
+
+    @staticmethod
+    def missing(crop: np.ndarray) -> "FrameDetection":
+        nan = np.full((8, 2), np.nan)
+        return FrameDetection(nan, np.full((8, 2, 2), np.nan), np.zeros(8), np.zeros(8, bool), nan.copy(), 0.0,
+                              False, crop.astype(np.float64), np.zeros((0, 2)))
+
+
+class Detector:
+    """A trained CornerNet (eval mode) and the detection steps around it."""
+
+    def __init__(self, model: CornerNet, config: DetectConfig = DetectConfig(), device: str = "cpu"):
+        self.model = model.to(device).eval()
+        self.cfg = config
+        self.device = torch.device(device)
+        self.input_px = model.cfg.input_px
+        self.stride = model.cfg.stride
+
+    def network(self, crop_u8: np.ndarray, box: np.ndarray) -> dict[str, np.ndarray | torch.Tensor]:
+        """Run the network on one input-sized uint8 crop (of the frame's box (x0, y0, side)): jmap (J, H, W) scores, joff (2, H, W), jchol (3, H, W)
+        as numpy, and the features (a tensor kept for line verification)."""
+        x = (crop_u8.astype(np.float32) / 255.0 - IMAGE_MEAN) / IMAGE_STD
+        with torch.inference_mode():
+            out = self.model(torch.from_numpy(x)[None, None].to(self.device))
+        return {"jmap": torch.sigmoid(out["jmap_logit"][0]).cpu().numpy(), "joff": out["joff"][0].cpu().numpy(),
+                "jchol": out["jchol"][0].cpu().numpy(), "features": out["features"]}
+
+    def line_probabilities(self, features, points_in: np.ndarray) -> np.ndarray:
+        """(K, K) symmetric probability that a box edge joins junctions i and j (input px positions (K, 2))."""
+        k = len(points_in)
+        i, j = np.triu_indices(k, 1)
+        prob = np.zeros((k, k))
+        if len(i):
+            segs = torch.from_numpy(np.stack([points_in[i], points_in[j]], axis=1)[None].astype(np.float32))
+            with torch.inference_mode():
+                logits = self.model.line_logits(features, segs.to(self.device))[0].cpu().numpy()
+            prob[i, j] = prob[j, i] = 1.0 / (1.0 + np.exp(-logits))
+        return prob
+
+    def coarse_box(self, image: np.ndarray) -> np.ndarray | None:
+        """The crop (x0, y0, side) around the junctions of the whole frame, or None when there are none."""
+        h, w = image.shape
+        whole = np.array([0, 0, max(h, w)])
+        out = self.network(crop_resize(image, whole, self.input_px), whole)
+        d = decode_junctions(out["jmap"], out["joff"], self.stride, top_k=self.cfg.top_k,
+                             threshold=self.cfg.coarse_threshold)
+        if len(d["points_px"]) == 0:
+            return None
+        pts = to_full_px(d["points_px"], whole, self.input_px)
+        return crop_box(pts, np.ones(len(pts), bool), (h, w), DataConfig(crop_margin=self.cfg.crop_margin), None)
+
+    def detect(self, image: np.ndarray, K: np.ndarray, roi_px: np.ndarray | None = None,
+               prior_R_cam_from_target: np.ndarray | None = None) -> FrameDetection:
+        """Named corners of one full frame (H, W) uint8 with intrinsics K (3, 3). roi_px: (x0, y0, side) crop to
+        use instead of the coarse pass; prior_R_cam_from_target: a predicted attitude for the half-turn."""
+        if image.ndim != 2 or image.dtype != np.uint8:
+            raise ValueError(f"expected an 8-bit grayscale frame, got {image.dtype} of shape {image.shape}")
+        h, w = image.shape
+        box = np.asarray(roi_px, dtype=np.int64) if roi_px is not None else self.coarse_box(image)
+        if box is None:
+            return FrameDetection.missing(np.zeros(3))
+        out = self.network(crop_resize(image, box, self.input_px), box)
+        d = decode_junctions(out["jmap"], out["joff"], self.stride, top_k=self.cfg.top_k,
+                             threshold=self.cfg.threshold)
+        if len(d["points_px"]) < 4:
+            return FrameDetection.missing(box)
+        scale = float(box[2]) / self.input_px
+        pts = to_full_px(d["points_px"], box, self.input_px)
+        rows, cols = d["cell"][:, 0], d["cell"][:, 1]
+        jm = out["jmap"][:, rows, cols].T  # (K, J)
+        type_prob = jm / np.maximum(jm.sum(axis=1, keepdims=True), 1e-9)
+        a, b, c = (out["jchol"][n, rows, cols] for n in range(3))
+        l11, l22 = np.exp(a), np.exp(b)
+        cov = np.stack([np.stack([l11 * l11, l11 * c], -1), np.stack([l11 * c, c * c + l22 * l22], -1)], -2)
+        cov = cov * scale ** 2
+        edge = self.line_probabilities(out["features"], d["points_px"])
+        naming = name_corners(pts, K, score=d["score"], type_prob=type_prob, edge_prob=edge, image_size=(w, h),
+                              prior_R_cam_from_target=prior_R_cam_from_target, config=self.cfg.naming)
+        if naming is None:
+            return FrameDetection.missing(box)
+        return self._frame(naming, pts, d["score"], cov, box)
+
+    @staticmethod
+    def _frame(naming: Naming, pts: np.ndarray, score: np.ndarray, cov: np.ndarray, box: np.ndarray
+               ) -> FrameDetection:
+        found = naming.visible & naming.matched
+        idx = np.maximum(naming.candidate, 0)
+        corners = np.where(found[:, None], pts[idx], np.nan)
+        cov8 = np.where(found[:, None, None], cov[idx], np.nan)
+        conf = np.where(found, score[idx] * naming.probability / max(naming.probability +
+                                                                       naming.alternative.probability, 1e-9), 0.0)
+        alt = naming.alternative
+        alt_found = alt.visible & alt.matched
+        alt_corners = np.where(alt_found[:, None], pts[np.maximum(alt.candidate, 0)], np.nan)
+        return FrameDetection(corners, cov8, conf, found, alt_corners, float(alt.probability), naming.ambiguous,
+                              box.astype(np.float64), pts)

@@ -1,0 +1,56 @@
+"""The detection chain around the network (coarse pass, crop, decode, map back, naming) with an oracle in place
+of the network (heatmaps made from the label), and the real network's output shapes."""
+
+import numpy as np
+import torch
+
+from envisat_pose.perception.data import read_samples, shard_paths, to_input_px
+from envisat_pose.perception.detect import Detector
+from envisat_pose.perception.heatmaps import CORNER_JTYPE, encode_junctions
+from envisat_pose.perception.model import CornerNet, ModelConfig
+
+
+class OracleDetector(Detector):
+    """Network outputs made from the label's corners, as a perfect network would give them."""
+
+    label = None
+
+    def network(self, crop_u8, box):
+        cells = self.input_px // self.stride
+        p = to_input_px(self.label["corners_px"], box, self.input_px)
+        valid = self.label["visible"] & self.label["in_frame"]
+        t = encode_junctions(p, valid, CORNER_JTYPE, (cells, cells), self.stride, sigma_cells=1.0)
+        jchol = np.zeros((3, cells, cells), np.float32)
+        return {"jmap": t["jmap"], "joff": t["joff"], "jchol": jchol, "features": None}
+
+    def line_probabilities(self, features, points_in):
+        return np.full((len(points_in), len(points_in)), 0.5)
+
+
+def test_oracle_chain_recovers_named_corners(tiny_dataset):
+    det = OracleDetector(CornerNet(ModelConfig(input_px=128, width=16, depth=2, stem_width=8)))
+    right = 0
+    n = 0
+    for key, image, label in read_samples(shard_paths(tiny_dataset)):
+        det.label = label
+        f = det.detect(image, label["K"])
+        want = label["visible"] & label["in_frame"]
+        if want.sum() < 4:
+            continue
+        n += 1
+        for corners in (f.corners_px, f.alt_corners_px if f.ambiguous else None):
+            if corners is not None and np.all(np.abs(corners[want] - label["corners_px"][want]) < 0.05):
+                right += 1
+                break
+        assert f.cov_px.shape == (8, 2, 2) and f.confidence.shape == (8,)
+    print(right, n)
+    assert n >= 6 and right >= n - 1
+
+
+def test_untrained_network_runs_end_to_end(tiny_dataset):
+    torch.manual_seed(0)  # the test's own draw for an untrained model: not a library's
+    det = Detector(CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8)))
+    key, image, label = next(read_samples(shard_paths(tiny_dataset)))
+    f = det.detect(image, label["K"], roi_px=np.array([0, 0, 256]))
+    assert f.corners_px.shape == (8, 2) and f.visible.dtype == bool
+    assert np.all(np.isfinite(f.corners_px[f.visible]))
