@@ -1,0 +1,134 @@
+"""`envisat view FILE_OR_RUN_DIR`: open a Rerun recording (`.rrd`) in the viewer, or serve the web viewer.
+
+The viewer is the `rerun` command of the installed rerun-sdk (`python -m rerun_cli`, the same release as the
+SDK that wrote the file). It runs in its own process group (the command is a wrapper around a child binary), so
+Ctrl-C here ends the whole group cleanly. `--web` serves the web viewer and its gRPC proxy on 127.0.0.1 only.
+
+Rerun keeps its analytics settings under $XDG_CONFIG_HOME/rerun and $XDG_DATA_HOME/rerun (default: the home
+folder); `rerun analytics disable` switches them off.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+import signal
+import subprocess
+import sys
+import urllib.parse
+
+from envisat_pose.config import InputError
+
+BIND = "127.0.0.1"
+DEFAULT_PORT = 9876  # Rerun's gRPC proxy
+DEFAULT_WEB_PORT = 9090  # Rerun's web viewer over HTTP
+RUN_DIR_RECORDING = "recording.rrd"  # the recording a run folder holds (issue 11)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "view",
+        help="open a Rerun recording (.rrd, or a run folder) in the viewer; --web serves it on 127.0.0.1",
+        description="Open a recording written by --rrd (or the recording.rrd / .rrd files of a run folder) in the "
+        "Rerun viewer. With --web, serve the web viewer on 127.0.0.1 only and print its address; Ctrl-C stops it.",
+    )
+    p.add_argument("path", metavar="FILE_OR_RUN_DIR", help="a .rrd file, or a folder holding recording.rrd or .rrd files")
+    p.add_argument("--web", action="store_true", help="serve the web viewer on 127.0.0.1 instead of the native viewer")
+    p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"with --web: gRPC port (default {DEFAULT_PORT})")
+    p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT,
+                   help=f"with --web: HTTP port of the web viewer (default {DEFAULT_WEB_PORT})")
+    p.set_defaults(func=run_view)
+
+
+def check_rrd_output(path: str) -> None:
+    """--rrd must name a writable .rrd file: InputError before any work otherwise."""
+    from envisat_pose.io import check_writable_output
+
+    if not path.endswith(".rrd"):
+        raise InputError(f"--rrd {path!r}: expected a path ending in .rrd")
+    check_writable_output(path, field="rrd")
+
+
+def recordings(path: str) -> list[str]:
+    """The .rrd files to open: the file itself, or a folder's recording.rrd, else every .rrd in it (sorted)."""
+    if os.path.isdir(path):
+        main = os.path.join(path, RUN_DIR_RECORDING)
+        if os.path.isfile(main):
+            return [main]
+        found = sorted(glob.glob(os.path.join(glob.escape(path), "*.rrd")))
+        if not found:
+            raise InputError(f"{path!r}: no {RUN_DIR_RECORDING} and no .rrd file in this folder")
+        return found
+    if not os.path.isfile(path):
+        raise InputError(f"{path!r}: no such file or folder")
+    if not path.endswith(".rrd"):
+        raise InputError(f"{path!r}: expected a Rerun recording (.rrd) or a run folder")
+    return [path]
+
+
+def rerun_command() -> list[str]:
+    """The `rerun` command of this environment's rerun-sdk."""
+    return [sys.executable, "-m", "rerun_cli"]
+
+
+def viewer_command(files: list[str], web: bool = False, port: int = DEFAULT_PORT,
+                   web_port: int = DEFAULT_WEB_PORT) -> list[str]:
+    """The command line: `rerun FILE...`, or with web `rerun --serve-web --bind 127.0.0.1 --port P
+    --web-viewer-port W FILE...` (never another address)."""
+    if not web:
+        return rerun_command() + list(files)
+    for name, value in (("port", port), ("web-port", web_port)):
+        if not 1 <= value <= 65535:
+            raise InputError(f"--{name} {value}: expected a port from 1 to 65535")
+    if port == web_port:
+        raise InputError(f"--port and --web-port are both {port}: expected two different ports")
+    return rerun_command() + ["--serve-web", "--bind", BIND, "--port", str(port), "--web-viewer-port", str(web_port),
+                              *files]
+
+
+def web_url(port: int, web_port: int) -> str:
+    """The address of the web viewer, pointed at the gRPC proxy that serves the recording."""
+    proxy = urllib.parse.quote(f"rerun+http://{BIND}:{port}/proxy", safe="")
+    return f"http://{BIND}:{web_port}/?url={proxy}"
+
+
+def start_viewer(cmd: list[str], env: dict | None = None, quiet: bool = False) -> subprocess.Popen:
+    """Start the viewer in its own process group (a new session: Ctrl-C in the terminal does not reach it)."""
+    out = subprocess.DEVNULL if quiet else None
+    return subprocess.Popen(cmd, env=env, start_new_session=True, stdin=subprocess.DEVNULL, stdout=out, stderr=out)
+
+
+def stop_viewer(proc: subprocess.Popen, wait_s: float = 10.0) -> int:
+    """End the viewer's whole process group: SIGINT, then SIGTERM, then SIGKILL if it lingers. Returns its code."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            break
+        try:
+            proc.wait(timeout=wait_s)
+            break
+        except subprocess.TimeoutExpired:
+            continue
+    try:  # the wrapper may be gone while its child still runs
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    return proc.wait()
+
+
+def run_view(args: argparse.Namespace) -> int:
+    files = recordings(args.path)
+    cmd = viewer_command(files, web=args.web, port=args.port, web_port=args.web_port)
+    proc = start_viewer(cmd)
+    if args.web:
+        print(f"serving {', '.join(files)} on {BIND} only: open {web_url(args.port, args.web_port)} "
+              "(Ctrl-C to stop)", flush=True)
+    try:
+        code = proc.wait()
+    except KeyboardInterrupt:
+        stop_viewer(proc)
+        print("envisat view: stopped", file=sys.stderr)
+        return 0
+    return code
