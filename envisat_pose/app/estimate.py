@@ -73,6 +73,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, help="root seed (default 0)")
     p.add_argument("--out", default="est.npz", help="output .npz (default est.npz); its config goes next to it")
     p.add_argument("--plot", action="store_true", help="also write a PNG of the errors with 3-sigma bounds next to --out")
+    p.add_argument("--rrd", metavar="FILE.rrd",
+                   help="also write a Rerun recording: truth, run 0's estimate with its 3-sigma ellipsoid, every run's "
+                   "errors with +-3 sigma bands (`envisat view FILE`)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run_estimate)
 
@@ -241,6 +244,10 @@ def run_estimate(args: argparse.Namespace) -> int:
     cfg = resolve_config(args)
     out, cfg_path = output_paths(args.out)
     check_writable_output(out)
+    if args.rrd:
+        from envisat_pose.app.view import check_rrd_output
+
+        check_rrd_output(args.rrd)
     truth, source = load_truth(args, cfg)
     cfg = scenario_outages(args, cfg, truth)
     if len(truth.t_s) < 2:
@@ -248,7 +255,8 @@ def run_estimate(args: argparse.Namespace) -> int:
     arrays = estimate(truth, cfg, progress=not args.quiet)
     config_json = json.dumps({"estimate": to_dict(cfg), "truth_source": source, "truth_config": truth.config},
                              sort_keys=True)
-    Estimates(**arrays, config_json=config_json).save(out)
+    est = Estimates(**arrays, config_json=config_json)
+    est.save(out)
     atomic_write_text(cfg_path, "# envisat estimate: the full validated config of this job\n" + to_toml(to_dict(cfg)))
     print(f"wrote {out} ({cfg.runs} runs x {len(arrays['t_s'])} steps), config {cfg_path}")
     print(summary(arrays))
@@ -259,4 +267,9 @@ def run_estimate(args: argparse.Namespace) -> int:
         plot_estimate(arrays["t_s"], arrays["x_true"], arrays["x_hat"], arrays["P"], png,
                       title=f"UKF errors, {cfg.measurement.kind}, {cfg.runs} runs, seed {cfg.seed}")
         print(f"wrote {png}")
+    if args.rrd:
+        from envisat_pose.analysis.recording import write_estimates_recording
+
+        write_estimates_recording(args.rrd, est, truth)
+        print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
     return 0

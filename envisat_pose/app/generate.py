@@ -41,6 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     i.add_argument("dir", metavar="DIR")
     i.add_argument("--montage", metavar="FILE.png", help="montage path (default DIR/montage.png)")
     i.add_argument("--count", type=int, default=16, help="images in the montage (default 16)")
+    i.add_argument("--rrd", metavar="FILE.rrd", help="also write the first --count samples as a Rerun recording: "
+                   "images with labelled corners, masks, depth (`envisat view FILE`)")
     i.set_defaults(func=run_inspect_cli)
 
 
@@ -88,9 +90,29 @@ def run_verify_cli(args: argparse.Namespace) -> int:
 def run_inspect_cli(args: argparse.Namespace) -> int:
     from envisat_pose.datagen.dataset import dataset_stats, montage
 
+    if args.rrd:
+        from envisat_pose.app.view import check_rrd_output
+
+        check_rrd_output(args.rrd)
     stats = dataset_stats(args.dir)
     print(json.dumps(stats, indent=1))
     path = args.montage or os.path.join(args.dir, "montage.png")
     n = montage(args.dir, path, count=args.count)
     print(f"wrote {path} ({n} images)")
+    if args.rrd:
+        write_samples_rrd(args.dir, args.rrd, args.count)
+        print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
     return 0
+
+
+def write_samples_rrd(out_dir: str, path: str, count: int) -> None:
+    """The first `count` samples as a Rerun recording (analysis.recording.write_samples_recording), read lazily."""
+    from envisat_pose.analysis.recording import Sample, write_samples_recording
+    from envisat_pose.datagen.dataset import iter_samples, sample_png
+    from envisat_pose.datagen.shards import decode_png
+
+    samples = (Sample(key, sample_png(members, label), label,
+                      mask=decode_png(members["mask.png"]) if "mask.png" in members else None,
+                      depth_png=members.get("depth.png"))
+               for key, label, members in iter_samples(out_dir, limit=count))
+    write_samples_recording(path, samples)

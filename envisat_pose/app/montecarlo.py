@@ -119,6 +119,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     p.add_argument("--backend", choices=["local", "dask"], default="local", help="process pool or Dask")
     p.add_argument("--scheduler", metavar="ADDRESS", help="with --backend dask: an existing scheduler")
+    p.add_argument("--rrd", metavar="FILE.rrd",
+                   help="also write a Rerun recording: truth, run 0's estimate with its 3-sigma ellipsoid, the kept "
+                   "sample runs' errors with the campaign's +-3 sigma bands (`envisat view FILE`)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run_montecarlo)
 
@@ -174,6 +177,12 @@ def run_montecarlo(args: argparse.Namespace) -> int:
     cfg = resolve_config(args)
     runner = runner_config(args)
     sweep = sweep_config(args, cfg)
+    if args.rrd:
+        from envisat_pose.app.view import check_rrd_output
+
+        if sweep is not None:
+            raise InputError("--rrd records one campaign, not a rate sweep")
+        check_rrd_output(args.rrd)
     t0 = time.perf_counter()
     if sweep is not None:
         result = run_sweep(cfg, sweep, args.out, runner, progress=not args.quiet)
@@ -185,7 +194,45 @@ def run_montecarlo(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {cfg.runs} runs x {summary['steps']} steps, campaign.npz, summary.json, "
           f"{len(FIGURES)} figures ({time.perf_counter() - t0:.1f} s)")
     print(summary_line(summary))
+    if args.rrd:
+        write_recording(cfg, args.out, args.rrd)
+        print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
     return 0
+
+
+def write_recording(cfg: MonteCarloConfig, out_dir: str, path: str) -> None:
+    """--rrd: the truth, run 0's estimate and 3-sigma ellipsoid (run 0 filtered again, keeping its means and
+    covariances: it draws what the campaign drew), the sample runs' errors and the campaign's bands from
+    campaign.npz."""
+    from envisat_pose.analysis.recording import write_campaign_recording
+    from envisat_pose.contracts import TruthTrajectory
+
+    tr = load_campaign_truth(out_dir, cfg.measurement)
+    x_hat, P = filter_run_history(tr, cfg, 0)
+    with np.load(os.path.join(out_dir, "campaign.npz"), allow_pickle=False) as z:
+        sample_err, filt, samp = z["sample_err"], z["filter_3sigma"], z["sample_3sigma"]
+    write_campaign_recording(path, tr.t_s, tr.x_true, x_hat, P, sample_err, filt, samp if cfg.runs > 1 else None,
+                             truth=TruthTrajectory.load(os.path.join(out_dir, "truth.npz")))
+
+
+def filter_run_history(tr: "CampaignTruth", cfg: MonteCarloConfig, run: int) -> tuple[np.ndarray, np.ndarray]:
+    """Run `run` of the campaign filtered alone, as filter_block filters it: its means (T, 12) and covariances
+    (T, 12, 12) after every step."""
+    from envisat_pose.filtering.estimator import Measurement, filter_step, init_state, make_setup
+    from envisat_pose.filtering.montecarlo import make_run_inputs
+
+    fcfg = cfg.filter
+    inp = make_run_inputs(tr.x_true[0], tr.t_s, tr.z_true, tr.base, cfg.measurement, fcfg.P0, cfg.seed, 1,
+                          first_run=run)
+    setup = make_setup(fcfg, cfg.measurement.kind, mu_m3_s2=tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient)
+    R_c = np.broadcast_to(inp.R_c, inp.z.shape[:-1] + inp.R_c.shape[-2:])
+    state = init_state(inp.x0_hat, fcfg.P0, tr.t_s[0], tr.chaser[0], fcfg)
+    T = len(tr.t_s)
+    x_hat, P = np.empty((T, 12)), np.empty((T, 12, 12))
+    for k in range(T):
+        state = filter_step(state, Measurement(tr.t_s[k], tr.chaser[k], inp.z[:, k], inp.mask[:, k], R_c[:, k]), setup)
+        x_hat[k], P[k] = state.mean[0], state.cov[0]
+    return x_hat, P
 
 
 def summary_line(s: dict) -> str:

@@ -24,6 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, help="root seed of the random initial attitude (default 0)")
     p.add_argument("--out", default="run.npz", help="output .npz (default run.npz)")
     p.add_argument("--plot", action="store_true", help="also write a PNG of the 12 states next to --out")
+    p.add_argument("--rrd", metavar="FILE.rrd", help="also write a Rerun recording of the truth (`envisat view FILE`)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_simulate)
 
@@ -51,6 +52,10 @@ def run_simulate(args: argparse.Namespace) -> int:
     cfg = resolve_config(args)
     out, cfg_path, png = output_paths(args.out)
     check_writable_output(out)
+    if args.rrd:
+        from envisat_pose.app.view import check_rrd_output
+
+        check_rrd_output(args.rrd)
     from envisat_pose.datagen.truth import simulate
 
     traj = simulate(cfg, progress=not args.quiet)
@@ -63,4 +68,9 @@ def run_simulate(args: argparse.Namespace) -> int:
         plot_states(traj.t_s, traj.x, png, title=f"ENVISAT truth, scenario {args.scenario!r}, seed {cfg.seed}",
                     visible=traj.visible)
         print(f"wrote {png}")
+    if args.rrd:
+        from envisat_pose.analysis.recording import write_truth_recording
+
+        write_truth_recording(args.rrd, traj)
+        print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
     return 0
