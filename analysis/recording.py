@@ -229,7 +229,8 @@ def log_estimate_series(rec: rr.RecordingStream, t_s: np.ndarray, x_hat: np.ndar
     T = len(t_s)
     rec.send_columns("world/target_est/position_3sigma", idx, rr.Ellipsoids3D.columns(
         centers=np.zeros((T, 3)), half_sizes=half, quaternions=quat))
-    rec.log("world/target_est/position_3sigma", rr.Ellipsoids3D.from_fields(colors=[EST_RGB], fill_mode=rr.components.FillMode.MajorWireframe), static=True)
+    rec.log("world/target_est/position_3sigma", rr.Ellipsoids3D.from_fields(
+        colors=[EST_RGB], fill_mode=rr.components.FillMode.MajorWireframe), static=True)
 
 
 def error_entity(i: int) -> str:

@@ -33,7 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Open a recording written by --rrd (or the recording.rrd / .rrd files of a run folder) in the "
         "Rerun viewer. With --web, serve the web viewer on 127.0.0.1 only and print its address; Ctrl-C stops it.",
     )
-    p.add_argument("path", metavar="FILE_OR_RUN_DIR", help="a .rrd file, or a folder holding recording.rrd or .rrd files")
+    p.add_argument("path", metavar="FILE_OR_RUN_DIR",
+                   help="a .rrd file, or a folder holding recording.rrd or .rrd files")
     p.add_argument("--web", action="store_true", help="serve the web viewer on 127.0.0.1 instead of the native viewer")
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"with --web: gRPC port (default {DEFAULT_PORT})")
     p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT,

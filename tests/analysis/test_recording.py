@@ -90,8 +90,9 @@ def test_truth_recording_layout_and_values(tmp_path, short_truth):
     trans = np.array([v[0] for v in tgt["Transform3D:translation"]])
     quat = np.array([v[0] for v in tgt["Transform3D:quaternion"]])
     np.testing.assert_allclose(trans, tr.x[:, 0:3], rtol=1e-6, atol=1e-5)
-    corners_T = np.array([[5.0, 1.375, 1.0375], [5.0, -1.375, 1.0375], [5.0, -1.375, -1.0375], [5.0, 1.375, -1.0375],
-                          [-5.0, 1.375, 1.0375], [-5.0, -1.375, 1.0375], [-5.0, -1.375, -1.0375], [-5.0, 1.375, -1.0375]])
+    corners_T = np.array([[5.0, 1.375, 1.0375], [5.0, -1.375, 1.0375], [5.0, -1.375, -1.0375],
+                          [5.0, 1.375, -1.0375], [-5.0, 1.375, 1.0375], [-5.0, -1.375, 1.0375],
+                          [-5.0, -1.375, -1.0375], [-5.0, 1.375, -1.0375]])  # reference sheet, section 5
     for k in (0, N // 2, N - 1):
         rebuilt = Rotation.from_quat(quat[k]).apply(corners_T) + trans[k]
         np.testing.assert_allclose(rebuilt, tr.corners_C_m[k], atol=2e-4)
@@ -143,13 +144,15 @@ def test_estimates_recording(tmp_path):
     q_est = np.array([v[0] for v in est_pose["Transform3D:quaternion"]])
     for k in (0, T - 1):
         half = np.array(ell["Ellipsoids3D:half_sizes"][k][0], dtype=float)
-        R_C_from_ell = (Rotation.from_quat(q_est[k]) * Rotation.from_quat(ell["Ellipsoids3D:quaternions"][k][0])).as_matrix()
+        q_ell = ell["Ellipsoids3D:quaternions"][k][0]
+        R_C_from_ell = (Rotation.from_quat(q_est[k]) * Rotation.from_quat(q_ell)).as_matrix()
         np.testing.assert_allclose(R_C_from_ell @ np.diag(half**2) @ R_C_from_ell.T, 9 * est.P[0, k, :3, :3],
                                    rtol=1e-4, atol=1e-10)
     # one series per run; position and velocity errors are plain differences; bands from P's diagonal
     for i, entity in ((0, "/metrics/error/position_m/x"), (4, "/metrics/error/velocity_m_s/y")):
         series = temporal[entity]
-        assert series["frame"] == list(range(T)) and static[entity]["SeriesLines:names"] == [f"run {r}" for r in range(R)]
+        assert series["frame"] == list(range(T))
+        assert static[entity]["SeriesLines:names"] == [f"run {r}" for r in range(R)]
         np.testing.assert_allclose(np.array(series["Scalars:scalars"]), (est.x_hat - est.x_true)[:, :, i].T, atol=1e-12)
         band = np.array(temporal[entity + "/filter_3sigma"]["Scalars:scalars"])
         np.testing.assert_allclose(band[:, 0], 3 * np.sqrt(est.P[:, :, i, i].mean(axis=0)), rtol=1e-12)

@@ -144,12 +144,14 @@ def test_dataset_inspect_rrd(tmp_path):
         m = np.array(label["in_frame"])
         np.testing.assert_allclose(temporal["/world/chaser/camera/image/corners_true"]["Points2D:positions"][i],
                                    np.array(label["corners_px"])[m] + 0.5, rtol=1e-6)
-        assert bytes(temporal["/world/chaser/camera/image/depth"]["EncodedDepthImage:blob"][i][0]) == members["depth.png"]
+        depth = temporal["/world/chaser/camera/image/depth"]["EncodedDepthImage:blob"][i][0]
+        assert bytes(depth) == members["depth.png"]
         K = temporal["/world/chaser/camera"]["Pinhole:image_from_camera"][i][0]
         assert K[0] == pytest.approx(label["K"][0][0])
     mask = temporal["/world/chaser/camera/image/mask"]
     assert len(mask["frame"]) == 3
-    assert static["/world"]["AnnotationContext:context"][0][0]["class_description"]["keypoint_annotations"][7]["label"] == "H"
+    check_names = static["/world"]["AnnotationContext:context"][0][0]["class_description"]["keypoint_annotations"]
+    assert [k["label"] for k in check_names] == list(CORNER_NAMES)
 
 
 @pytest.mark.parametrize("verb", [
