@@ -36,7 +36,8 @@ IMAGE_MEAN, IMAGE_STD = 0.5, 0.25
 class DataConfig:
     """input_px: network input side; crop_margin: the crop's side over the corners' extent; crop_scale_jitter,
     crop_shift_jitter: relative jitter of side and centre (training); augment: style augmentation on;
-    sigma_cells: heatmap Gaussian; shuffle_buffer: samples shuffled in memory."""
+    sigma_cells: heatmap Gaussian; shuffle_buffer: samples shuffled in memory; whole_frame_prob: share of
+    training samples showing the whole frame (what the detector's coarse pass sees) instead of the target crop."""
 
     input_px: int = 320
     stride: int = 4
@@ -46,6 +47,7 @@ class DataConfig:
     augment: bool = True
     sigma_cells: float = 1.0
     shuffle_buffer: int = 64
+    whole_frame_prob: float = 0.2
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -231,7 +233,10 @@ def make_sample(image: np.ndarray, label: dict, cfg: DataConfig, rng: np.random.
     """One training (rng given: jittered crop and augmentation) or evaluation (rng None) sample: see the module
     doc. The crop comes from the label (training and evaluation against labels only)."""
     usable = label["in_frame"]
-    box = crop_box(label["corners_px"], usable, image.shape, cfg, rng)
+    if rng is not None and rng.random() < cfg.whole_frame_prob:
+        box = np.array([0, 0, max(image.shape)], dtype=np.int64)
+    else:
+        box = crop_box(label["corners_px"], usable, image.shape, cfg, rng)
     crop = crop_resize(image, box, cfg.input_px)
     x = augment_style(crop, rng) if (rng is not None and cfg.augment) else crop.astype(np.float32) / 255.0
     corners_in = to_input_px(label["corners_px"], box, cfg.input_px)
