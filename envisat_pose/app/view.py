@@ -119,9 +119,16 @@ def stop_viewer(proc: subprocess.Popen, wait_s: float = 10.0) -> int:
     return proc.wait()
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def run_view(args: argparse.Namespace) -> int:
     files = recordings(args.path)
     cmd = viewer_command(files, web=args.web, port=args.port, web_port=args.web_port)
+    # Ctrl-C and SIGTERM end the viewer's group too, even where SIGINT came in ignored (a job started with `&`)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _interrupt)
     proc = start_viewer(cmd)
     if args.web:
         print(f"serving {', '.join(files)} on {BIND} only: open {web_url(args.port, args.web_port)} "

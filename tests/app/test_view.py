@@ -132,8 +132,10 @@ def test_web_viewer_serves_on_loopback_only_and_is_torn_down(tmp_path, rerun_env
     assert listeners(port) == [] and listeners(web_port) == []
 
 
-def test_ctrl_c_stops_envisat_view_cleanly(tmp_path, rerun_env):
-    """`envisat view --web` in a terminal: Ctrl-C (SIGINT to envisat, not to the viewer's own group) ends both."""
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_stops_envisat_view_cleanly(tmp_path, rerun_env, sig):
+    """`envisat view --web` in a terminal: Ctrl-C (SIGINT to envisat, not to the viewer's own group) or SIGTERM
+    ends both."""
     rrd = tmp_path / "run.rrd"
     write_small_recording(rrd)
     port, web_port = free_ports(2)
@@ -143,7 +145,7 @@ def test_ctrl_c_stops_envisat_view_cleanly(tmp_path, rerun_env):
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     try:
         assert wait_http(f"http://127.0.0.1:{web_port}/", proc) == 200
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         out, _ = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
