@@ -508,7 +508,8 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
     import cv2
 
     from envisat_pose.datagen.render import shared_renderer
-    from envisat_pose.datagen.shards import ShardWriter, sample_key, sha256_file, shard_name
+    from envisat_pose.datagen.shards import ShardWriter, sample_key, shard_name
+    from envisat_pose.io import sha256_file
 
     cv2.setNumThreads(1)  # one core per worker; also keeps filters on one code path
     renderer = shared_renderer(cfg.resolution_px, cfg.shadows, cfg.appearance.texture_set_size if cfg.appearance_on

@@ -7,7 +7,6 @@ samples give the same bytes in any process, on any backend.
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 import os
@@ -16,7 +15,7 @@ import tarfile
 import cv2
 import numpy as np
 
-from envisat_pose.io import atomic_path, atomic_write_text
+from envisat_pose.io import atomic_path, atomic_write_text, sha256_file
 
 MANIFEST = "manifest.json"
 MEMBER_SUFFIXES = ("depth.png", "json", "mask.png", "png")  # sorted: the order inside a sample
@@ -68,15 +67,6 @@ def _tar_member(name: str, size: int) -> tarfile.TarInfo:
     info.uid = info.gid = 0
     info.uname = info.gname = ""
     return info
-
-
-def sha256_file(path: str) -> str:
-    """Hex sha256 of a file."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 class ShardWriter:

@@ -27,7 +27,6 @@ same command on DIR keeps the finished blocks whose sha256 matches the manifest;
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import math
 import os
@@ -40,6 +39,7 @@ from envisat_pose.config import (ConfigError, InputError, check, deep_update, fr
                                   to_toml)
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig
+from envisat_pose.io import sha256_file
 
 MANIFEST_FORMAT = "envisat-pose montecarlo v1"
 CHUNK_STEPS = 200  # filter steps per reduction chunk: bounds the covariances held to R x 200 x 144 floats
@@ -383,14 +383,6 @@ def _fmt_ratio(v) -> str:
 
 # ---------------------------------------------------------------- the campaign
 
-def _sha256(path: str) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def block_name(b: int) -> str:
     return os.path.join("blocks", f"block-{b:04d}.npz")
 
@@ -437,7 +429,7 @@ def finished_blocks(manifest: dict | None, cfg: MonteCarloConfig, out_dir: str, 
     for e in manifest.get("blocks", []):
         path = os.path.join(out_dir, e["file"])
         if (0 <= e["index"] < cfg.n_blocks and cfg.block_range(e["index"]) == (e["run_start"], e["run_stop"])
-                and os.path.exists(path) and _sha256(path) == e["sha256"]):
+                and os.path.exists(path) and sha256_file(path) == e["sha256"]):
             done[e["index"]] = e
     return done
 
@@ -474,12 +466,12 @@ def check_filter_rate(cfg: MonteCarloConfig, scenario) -> None:
 def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, progress: bool) -> str:
     """DIR/truth.npz: kept when the manifest vouches for it, else simulated with MuJoCo. Returns its sha256."""
     path = os.path.join(out_dir, "truth.npz")
-    if manifest and os.path.exists(path) and _sha256(path) == manifest.get("truth_sha256"):
+    if manifest and os.path.exists(path) and sha256_file(path) == manifest.get("truth_sha256"):
         return manifest["truth_sha256"]
     from envisat_pose.datagen.truth import simulate
 
     simulate(truth_scenario(cfg), progress=progress).save(path)
-    return _sha256(path)
+    return sha256_file(path)
 
 
 def prepare_out_dir(out_dir: str, blocks: bool = True) -> None:
@@ -594,7 +586,7 @@ def block_task(out_dir: str, cfg_json: str, b: int) -> dict:
     arrays = filter_block(load_campaign_truth(out_dir, cfg.measurement), cfg, a, z)
     path = os.path.join(out_dir, block_name(b))
     save_npz(path, arrays)
-    return {"index": b, "run_start": a, "run_stop": z, "file": block_name(b), "sha256": _sha256(path),
+    return {"index": b, "run_start": a, "run_stop": z, "file": block_name(b), "sha256": sha256_file(path),
             "wall_s": time.perf_counter() - t0}
 
 
