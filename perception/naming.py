@@ -44,7 +44,7 @@ class NamingConfig:
     gate_px: float = 6.0
     coarse_gate_px: float = 30.0
     unexplained_weight: float = 0.5
-    max_candidates: int = 10
+    max_candidates: int = 12
     refine_top: int = 30
     type_weight: float = 1.0
     line_weight: float = 1.0
