@@ -95,7 +95,10 @@ def decode_label(data: bytes, where: str) -> dict:
         out = {"corners_px": np.asarray(label["corners_px"], dtype=np.float64),
                "visible": np.asarray(label["visible"], dtype=bool),
                "in_frame": np.asarray(label["in_frame"], dtype=bool),
-               "K": np.asarray(label["K"], dtype=np.float64)}
+               "K": np.asarray(label["K"], dtype=np.float64),
+               # 'clean': the stored image is the clean render; the factory's corruption is not applied here
+               "image_stored": str(label.get("image_stored", "corrupted")),
+               "corruption": label.get("corruption") if isinstance(label.get("corruption"), dict) else {}}
     except (ValueError, KeyError, TypeError) as err:
         raise InputError(f"{where}: not a corner label ({type(err).__name__}: {err})") from None
     shapes = {"corners_px": (8, 2), "visible": (8,), "in_frame": (8,), "K": (3, 3)}
