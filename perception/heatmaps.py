@@ -5,9 +5,12 @@ has cell (i, j) centred on input pixel ((j + 0.5) s - 0.5, (i + 0.5) s - 0.5); i
 u = (x + 0.5) / s - 0.5, so cell centres sit at integer u. A junction lives in the cell round(u) with the
 sub-cell offset u - round(u) in [-0.5, 0.5]: decoding x = (j + off + 0.5) s - 0.5 is exact.
 
-Junction types (L-CNN's J): 0 for the corners of the +x end face (A-D), 1 for the -x end, the array's end
-(E-H). The box looks the same after a half-turn about any of its axes; the type breaks the turns that swap the
-ends (the array is there to see), leaving the half-turn about the long axis to the naming (perception/naming.py).
+Junction types (L-CNN's J = 4): which end and which side, 2 end + side: end 0 for the +x end face (A-D), 1 for
+the array's -x end (E-H); side 0 for z > 0 (A, B, E, F), 1 for z < 0 (C, D, G, H). The box looks the same after a
+half-turn about any of its axes: the end breaks the turns that swap the ends (the array is there to see); the
+side breaks the half-turn about the long axis only where the image shows what tells +z from -z (the ASAR
+antenna and instruments under -z); elsewhere a network can only split its score between the two sides, and the
+naming (perception/naming.py) reports both namings.
 
 Targets (numpy, float32), for a heatmap of H x W cells:
     jmap:  (J, H, W) junction heatmap, 1 at the junction's cell, a Gaussian of `sigma_cells` around it (CenterNet
@@ -20,9 +23,11 @@ from __future__ import annotations
 
 import numpy as np
 
-N_JTYPES = 2
-# the junction type of corners A-H: 0 at the +x end (A-D), 1 at the array's -x end (E-H)
-CORNER_JTYPE = np.array([0, 0, 0, 0, 1, 1, 1, 1])
+N_JTYPES = 4
+# the junction type of corners A-H: 2 end + side (module doc)
+CORNER_JTYPE = np.array([0, 0, 1, 1, 2, 2, 3, 3])
+# the end alone (0: +x, A-D; 1: -x, E-H), for cues that know only the end
+CORNER_END = CORNER_JTYPE // 2
 
 
 def to_cells(points_px: np.ndarray, stride: int) -> np.ndarray:

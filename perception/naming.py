@@ -11,10 +11,10 @@ truncated quadratic), candidates they leave unexplained, and, when given, juncti
 cues. The best few are refined with cv2.solvePnP (iterative LM) on their inliers and scored again.
 
 Symmetry: the box (half sizes a != b != c, centred) maps onto itself under the half-turns about x, y and z of T:
-its corners alone cannot tell these 4 poses apart. The junction type (which end: A-D at +x, E-H at the array's
--x end) separates the turns about y and z; the half-turn about the long axis x (A<->C, B<->D, E<->G, F<->H) is
-settled only by a cue from the caller (a prior pose, e.g. the filter's prediction); without one both namings
-are returned with their probabilities and the result is flagged ambiguous.
+its corners alone cannot tell these 4 poses apart. The junction type's end (A-D at +x, E-H at the array's -x
+end) separates the turns about y and z; the half-turn about the long axis x (A<->C, B<->D, E<->G, F<->H) is
+settled by the type's side (+z or -z) where the image shows it, or by a prior pose (e.g. the filter's
+prediction); otherwise both namings are returned with their probabilities and the result is flagged ambiguous.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from envisat_pose.geometry import EDGES, TargetGeometry, load_geometry, visible_corners
+from envisat_pose.perception.heatmaps import CORNER_END, CORNER_JTYPE, N_JTYPES
 
 HALF_TURNS = {"I": (1.0, 1.0, 1.0), "x": (1.0, -1.0, -1.0), "y": (-1.0, 1.0, -1.0), "z": (-1.0, -1.0, 1.0)}
 
@@ -210,7 +211,7 @@ def _poses_from_faces(quads_px: np.ndarray, faces: np.ndarray, geometry: TargetG
 
 @dataclass(frozen=True)
 class _Cues:
-    type_nll: np.ndarray | None  # (M, 2) -log p(type | candidate)
+    type_nll: np.ndarray | None  # (M, 4) or (M, 2) -log p(type | candidate)
     line_nll: np.ndarray | None  # (M, M) -log p(edge | pair)
 
 
@@ -239,7 +240,7 @@ def _score(R: np.ndarray, t: np.ndarray, cand: np.ndarray, K: np.ndarray, cues: 
     cost += cfg.unexplained_weight * gate2 / (2 * s2) * np.sum(~explained, axis=1)
     match = np.where(inlier, j, -1)
     if cues.type_nll is not None:
-        jt = np.array([0, 0, 0, 0, 1, 1, 1, 1])
+        jt = CORNER_JTYPE if cues.type_nll.shape[1] == N_JTYPES else CORNER_END
         nll = cues.type_nll[np.where(match >= 0, match, 0), jt[None, :]]
         cost += cfg.type_weight * np.sum(np.where(match >= 0, nll, 0.0), axis=1)
     if cues.line_nll is not None:
@@ -284,8 +285,8 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
     """Fit the box to unnamed junction candidates and name them.
 
     points_px: (M, 2) candidate pixels. K: (3, 3) intrinsics of the same image. score: (M,) detection scores
-    (the best max_candidates are used; None: all, in the given order). type_prob: (M, 2) probability of junction
-    type 0 (+x end, A-D) and 1 (-x end, E-H). edge_prob: (M, M) line-verification probability that candidates
+    (the best max_candidates are used; None: all, in the given order). type_prob: (M, 4) probability of each
+    junction type (perception/heatmaps.py: end and side), or (M, 2) of the end only (+x: A-D, -x: E-H). edge_prob: (M, M) line-verification probability that candidates
     i, j are joined by a box edge. image_size: (width, height) px: corners predicted outside are not expected.
     prior_R_cam_from_target: (3, 3) a predicted attitude that weighs the symmetric namings.
     Returns the best Naming (with its half-turn alternative) or None when no hypothesis explains 4 candidates.

@@ -3,7 +3,7 @@
 import numpy as np
 
 from envisat_pose.geometry import load_camera, load_geometry, visible_corners
-from envisat_pose.perception.heatmaps import CORNER_JTYPE
+from envisat_pose.perception.heatmaps import CORNER_END, CORNER_JTYPE
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -15,9 +15,11 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
-def make_case(rng: np.random.Generator, noise_px: float = 1.0, n_spurious: int = 2, type_acc: float = 0.85):
-    """A view of the box: candidates (shuffled visible corners + noise + spurious), their types' probabilities,
-    and the truth (R, t, corners_px (8, 2), visible (8,))."""
+def make_case(rng: np.random.Generator, noise_px: float = 1.0, n_spurious: int = 2, type_acc: float = 0.85,
+              side_acc: float = 0.5):
+    """A view of the box: candidates (shuffled visible corners + noise + spurious), their types' probabilities
+    (M, 4): the end right with probability type_acc (5 % flipped), the side with side_acc (0.5: the image cannot
+    tell +z from -z), and the truth (R, t, corners_px (8, 2), visible (8,))."""
     cam = load_camera()
     g = load_geometry()
     K = cam.K
@@ -33,7 +35,8 @@ def make_case(rng: np.random.Generator, noise_px: float = 1.0, n_spurious: int =
             break
     idx = np.flatnonzero(vis)
     pts = px[idx] + rng.normal(scale=noise_px, size=(len(idx), 2))
-    types = CORNER_JTYPE[idx]
+    types = CORNER_END[idx]
+    sides = CORNER_JTYPE[idx] % 2
     # spurious junctions somewhere around the target
     centre = px[vis].mean(axis=0)
     span = np.ptp(px[vis], axis=0).max() + 20
@@ -44,8 +47,11 @@ def make_case(rng: np.random.Generator, noise_px: float = 1.0, n_spurious: int =
     flip = rng.random(len(p1)) < 0.05
     p1 = np.where(flip, 1 - p1, p1)
     p1[len(idx):] = 0.5
+    s1 = np.where(np.concatenate([sides, np.zeros(n_spurious, int)]) == 1, side_acc, 1 - side_acc)
+    s1[len(idx):] = 0.5
+    type_prob = np.stack([(1 - p1) * (1 - s1), (1 - p1) * s1, p1 * (1 - s1), p1 * s1], -1)
     order = rng.permutation(len(pts))
-    return {"points_px": pts[order], "truth_id": truth_id[order], "type_prob": np.stack([1 - p1, p1], -1)[order],
+    return {"points_px": pts[order], "truth_id": truth_id[order], "type_prob": type_prob[order],
             "K": K, "R": R, "t": t, "corners_px": px, "visible": vis, "image_size": (cam.width_px, cam.height_px)}
 
 

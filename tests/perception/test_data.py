@@ -40,7 +40,7 @@ def test_samples_have_documented_shapes_and_targets(tiny_dataset):
     checked = 0
     for s, lab in zip(samples, labels):
         assert s["image"].shape == (1, 128, 128) and s["image"].dtype == np.float32
-        assert s["jmap"].shape == (2, 32, 32) and s["joff"].shape == (2, 32, 32) and s["jmask"].shape == (32, 32)
+        assert s["jmap"].shape == (4, 32, 32) and s["joff"].shape == (2, 32, 32) and s["jmask"].shape == (32, 32)
         assert s["segments_px"].shape == (32, 2, 2)
         # the crop maps back to the label's pixels
         assert np.allclose(to_full_px(s["corners_px"], s["crop_px"], 128), lab["corners_px"], atol=1e-3)

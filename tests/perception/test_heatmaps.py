@@ -21,9 +21,9 @@ def test_encode_decode_subpixel():
         # keep junctions at least 3 cells apart so each has its own peak
         while np.min(np.linalg.norm(pts[:, None] - pts[None], axis=-1) + 1e9 * np.eye(n)) < 12:
             pts = rng.uniform(2, 318, size=(n, 2))
-        types = rng.integers(0, 2, n)
+        types = rng.integers(0, 4, n)
         t = encode_junctions(pts, np.ones(n, bool), types, (80, 80), stride=4)
-        assert t["jmap"].shape == (2, 80, 80) and t["joff"].shape == (2, 80, 80)
+        assert t["jmap"].shape == (4, 80, 80) and t["joff"].shape == (2, 80, 80)
         assert np.all(np.abs(t["joff"]) <= 0.5)
         d = decode_junctions(t["jmap"], t["joff"], stride=4, top_k=16, threshold=0.5)
         assert len(d["points_px"]) == n

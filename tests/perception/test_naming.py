@@ -64,6 +64,26 @@ def test_prior_pose_settles_the_half_turn():
     assert settled >= 27
 
 
+def test_side_cue_settles_the_half_turn():
+    """Where the network can tell +z from -z (side right at 80 %), the half-turn is settled without a prior."""
+    rng = np.random.default_rng(5)
+    counts = collections.Counter()
+    for _ in range(40):
+        case = make_case(rng, side_acc=0.8)
+        naming = name_corners(case["points_px"], case["K"], type_prob=case["type_prob"],
+                              image_size=case["image_size"])
+        counts[outcome(case, naming)] += 1
+    assert counts["right"] >= 36
+
+
+def test_end_only_cues_are_accepted():
+    case = make_case(np.random.default_rng(6), n_spurious=0)
+    p = case["type_prob"]
+    end_only = np.stack([p[:, 0] + p[:, 1], p[:, 2] + p[:, 3]], -1)
+    naming = name_corners(case["points_px"], case["K"], type_prob=end_only, image_size=case["image_size"])
+    assert outcome(case, naming) in ("right", "ambiguous") and naming.ambiguous
+
+
 def test_without_type_cues_all_four_half_turns_are_equally_likely():
     case = make_case(np.random.default_rng(4), n_spurious=0)
     naming = name_corners(case["points_px"], case["K"], image_size=case["image_size"])
