@@ -39,7 +39,8 @@ class NamingConfig:
     a missed corner; max_candidates: the best-scored candidates used; refine_top: hypotheses refined by LM;
     type_weight, line_weight: weights of the cues' negative log-probabilities (nats); ambiguity: the naming is
     flagged ambiguous when its half-turn alternative has at least this probability; prior_sigma_deg: spread of a
-    prior pose's rotation."""
+    prior pose's rotation; quad_line_min: with line cues, a quadrilateral is tried as a face only when each of its
+    4 sides has at least this line probability (all are tried when none has)."""
 
     sigma_px: float = 1.5
     gate_px: float = 6.0
@@ -51,6 +52,7 @@ class NamingConfig:
     line_weight: float = 1.0
     ambiguity: float = 0.1
     prior_sigma_deg: float = 30.0
+    quad_line_min: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -307,6 +309,11 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
     quads = _ordered_convex_quads(cand)
     if len(quads) == 0:
         return None
+    if line_nll is not None:  # a face is a cycle of 4 verified lines
+        sides = line_nll[quads, np.roll(quads, -1, axis=1)]
+        lined = np.all(sides <= -np.log(cfg.quad_line_min), axis=1)
+        if lined.any():
+            quads = quads[lined]
     windings = face_windings(g)
     rots = np.array([np.roll(np.arange(4), -r) for r in range(4)])
     faces = windings[:, rots].reshape(-1, 4)  # (24, 4): face f under rotation r

@@ -10,7 +10,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from naming_cases import make_case, outcome  # noqa: E402
 
 from envisat_pose.geometry import load_geometry  # noqa: E402
-from envisat_pose.perception.naming import (_poses_from_faces, face_windings, name_corners,  # noqa: E402
+from envisat_pose.perception.naming import (NamingConfig, _poses_from_faces, face_windings, name_corners,  # noqa: E402,E501
                                             symmetry_permutations)
 
 
@@ -93,3 +93,36 @@ def test_without_type_cues_all_four_half_turns_are_equally_likely():
 def test_too_few_candidates():
     K = np.array([[1000.0, 0, 500], [0, 1000, 500], [0, 0, 1]])
     assert name_corners(np.array([[1.0, 2.0], [30, 40], [50, 10]]), K) is None
+
+
+def _edge_prob(case, p_edge=0.9, p_other=0.1):
+    """Line-verification probabilities of every candidate pair: box edges high, everything else low."""
+    from envisat_pose.geometry import EDGES
+
+    ids = case["truth_id"]
+    edges = {tuple(sorted(e)) for e in EDGES}
+    m = len(ids)
+    prob = np.full((m, m), p_other)
+    for i in range(m):
+        for j in range(m):
+            if ids[i] >= 0 and ids[j] >= 0 and tuple(sorted((ids[i], ids[j]))) in edges:
+                prob[i, j] = p_edge
+    return prob
+
+
+def test_line_cues_help_with_many_spurious_junctions():
+    """2 px noise, 5 spurious junctions: the line-verification cue keeps the naming right more often (measured:
+    83 % right or flagged without it, 88 % with it)."""
+    rates = {}
+    for use_lines in (False, True):
+        rng = np.random.default_rng(7)
+        counts = collections.Counter()
+        for _ in range(60):
+            case = make_case(rng, noise_px=2.0, n_spurious=5)
+            naming = name_corners(case["points_px"], case["K"], type_prob=case["type_prob"],
+                                  edge_prob=_edge_prob(case) if use_lines else None, image_size=case["image_size"],
+                                  config=NamingConfig(sigma_px=3.0, gate_px=12.0, max_candidates=13))
+            counts[outcome(case, naming, tol_px=8.0)] += 1
+        rates[use_lines] = (counts["right"] + counts["ambiguous"]) / 60
+    print(rates)
+    assert rates[True] >= 0.85 and rates[True] > rates[False]
