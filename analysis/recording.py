@@ -453,3 +453,24 @@ def write_samples_recording(path: str, samples: Iterable[Sample]) -> str:
                 translation=base.R_K_from_C.T @ t_K + base.pos_C_m,
                 quaternion=_wxyz_to_xyzw(rotmat_to_quat(base.R_K_from_C.T @ R_KT))))
     return path
+
+
+def read_recording(path: str) -> tuple[dict, dict]:
+    """Read a .rrd back as plain Python: (static, temporal), where static is {entity: {column: value}} and
+    temporal is {entity: {column: [rows sorted by the frame timeline]}} (columns as Rerun names them)."""
+    static: dict = {}
+    temporal: dict = {}
+    for chunk in rr.chunk.RrdReader(str(path)).stream().collect().stream():
+        d = chunk.to_record_batch().to_pydict()
+        d.pop("rerun.controls.RowId", None)
+        if "frame" in d:
+            t = temporal.setdefault(chunk.entity_path, {})
+            for k, v in d.items():
+                t.setdefault(k, []).extend(v)
+        else:
+            static.setdefault(chunk.entity_path, {}).update({k: v[-1] for k, v in d.items()})
+    for t in temporal.values():
+        order = np.argsort(t["frame"], kind="stable")
+        for k in t:
+            t[k] = [t[k][i] for i in order]
+    return static, temporal

@@ -89,7 +89,7 @@ def motion_kernel(length_px: float, angle_deg: float) -> np.ndarray:
     return (kernel / kernel.sum()).astype(np.float32)
 
 
-def _content_box(gray_u8: np.ndarray, reach_px: int) -> tuple[int, int, int, int] | None:
+def content_box(gray_u8: np.ndarray, reach_px: int) -> tuple[int, int, int, int] | None:
     """(y0, y1, x0, x1) of the non-zero pixels grown by 2 x reach_px (clipped to the image), None if all black.
 
     Twice the reach: within the grown box, a filter that reflects at the box's edge reflects only zeros there.
@@ -127,7 +127,7 @@ def apply_corruption(gray_u8: np.ndarray, params: dict) -> np.ndarray:
         # Blur only where the image is not black: the box of its non-zero pixels grown by the kernels' reach.
         # Outside it the blurred image is 0 as well, so the result equals blurring the whole frame.
         reach = (kern.shape[0] // 2 if kern is not None else 0) + (int(np.ceil(4.0 * sigma)) + 1 if sigma > 0 else 0)
-        box = _content_box(gray_u8, reach)
+        box = content_box(gray_u8, reach)
         if box is not None:
             y0, y1, x0, x1 = box
             crop = img[y0:y1, x0:x1]

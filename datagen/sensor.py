@@ -29,6 +29,8 @@ import math
 import cv2
 import numpy as np
 
+from envisat_pose.datagen.corrupt import content_box
+
 POISSON_EXACT_BELOW_E = 100.0  # exact Poisson draws below this mean; N(mean, mean) above (skewness < 0.1)
 AIRY_FIRST_ZERO_X = 3.8317059702075125  # first zero of J1: the Airy pattern's first dark ring
 
@@ -201,15 +203,6 @@ def draw_sensor(cfg: dict, resolution_px: int, f_px: float, speed_px_s: float, a
     }
 
 
-def _content_box(gray_u8: np.ndarray, reach_px: int) -> tuple[int, int, int, int] | None:
-    x, y, w, h = cv2.boundingRect(gray_u8)
-    if w == 0 or h == 0:
-        return None
-    g = 2 * reach_px
-    H, W = gray_u8.shape
-    return max(0, y - g), min(H, y + h + g), max(0, x - g), min(W, x + w + g)
-
-
 def optics(gray_u8: np.ndarray, p: dict) -> np.ndarray:
     """Steps 1-3: irradiance (white = 1) after vignetting, the PSF and the motion streak. (H, W) float32.
 
@@ -220,7 +213,7 @@ def optics(gray_u8: np.ndarray, p: dict) -> np.ndarray:
     psf = gaussian_psf(p["psf"]["sigma_px"]) if p["psf"]["kind"] == "gaussian" else airy_psf(p["psf"]["first_zero_px"])
     kern = motion_kernel(p["motion_blur_length_px"], p["motion_blur_angle_deg"]) if p["motion_blur_length_px"] > 0.05 else None
     reach = psf.shape[0] // 2 + (kern.shape[0] // 2 if kern is not None else 0)
-    box = _content_box(gray_u8, reach)
+    box = content_box(gray_u8, reach)
     if box is None:
         return img
     y0, y1, x0, x1 = box

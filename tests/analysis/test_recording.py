@@ -7,31 +7,12 @@ convention, the covariance rebuilt from the ellipsoid), never against the logger
 import cv2
 import numpy as np
 import pytest
-import rerun as rr
 from scipy.spatial.transform import Rotation
 
 from envisat_pose.analysis import recording
+from envisat_pose.analysis.recording import read_recording as read_rrd
 from envisat_pose.contracts import Estimates
 from envisat_pose.geometry import CORNER_NAMES, EDGES, load_camera
-
-
-def read_rrd(path):
-    """(static, temporal) of a recording: {entity: {column: value}} and {entity: {column: [rows sorted by frame]}}."""
-    static, temporal = {}, {}
-    for chunk in rr.chunk.RrdReader(str(path)).stream().collect().stream():
-        d = chunk.to_record_batch().to_pydict()
-        d.pop("rerun.controls.RowId", None)
-        if "frame" in d:
-            t = temporal.setdefault(chunk.entity_path, {})
-            for k, v in d.items():
-                t.setdefault(k, []).extend(v)
-        else:
-            static.setdefault(chunk.entity_path, {}).update({k: v[-1] for k, v in d.items()})
-    for t in temporal.values():
-        order = np.argsort(t["frame"], kind="stable")
-        for k in t:
-            t[k] = [t[k][i] for i in order]
-    return static, temporal
 
 
 def seconds(durations):
