@@ -69,9 +69,14 @@ class PeakRSS:
 def time_campaign(runs: int, duration_s: float, workers: int, block_runs: int, out_dir: str) -> dict:
     """Run the campaign once through the app's run_campaign; wall time, memory, summary."""
     from envisat_pose.app.montecarlo import MonteCarloConfig, run_campaign
+    from envisat_pose.app.scenarios import job_defaults
+    from envisat_pose.config import deep_update, from_dict
     from envisat_pose.runner import RunnerConfig, cpu_share
 
-    cfg = MonteCarloConfig(scenario="default", duration_s=duration_s, runs=runs, seed=0, block_runs=block_runs)
+    # as `envisat montecarlo --scenario default` builds it: the scenario's [measurement] and [filter] tables
+    data = deep_update(job_defaults("default"), {"scenario": "default", "duration_s": duration_s, "runs": runs,
+                                                 "seed": 0, "block_runs": block_runs})
+    cfg = from_dict(MonteCarloConfig, data)
     n = str(cpu_share(workers))
     runner = RunnerConfig("local", workers, None, {"OMP_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n})
     t0 = time.perf_counter()
