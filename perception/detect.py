@@ -26,12 +26,14 @@ from envisat_pose.perception.naming import Naming, NamingConfig, name_corners
 @dataclass(frozen=True)
 class DetectConfig:
     """top_k: junctions kept per crop; threshold: least junction score; coarse_threshold: the same in the coarse
-    pass; crop_margin: crop side over the coarse junctions' extent."""
+    pass; crop_margin: crop side over the coarse junctions' extent; line_verification: False names the corners
+    without the line head's edge scores (the evaluation's ablation)."""
 
     top_k: int = 12
     threshold: float = 0.2
     coarse_threshold: float = 0.2
     crop_margin: float = 1.4
+    line_verification: bool = True
     naming: NamingConfig = NamingConfig()
 
 
@@ -125,7 +127,7 @@ class Detector:
         l11, l22 = np.exp(a), np.exp(b)
         cov = np.stack([np.stack([l11 * l11, l11 * c], -1), np.stack([l11 * c, c * c + l22 * l22], -1)], -2)
         cov = cov * scale ** 2
-        edge = self.line_probabilities(out["features"], d["points_px"])
+        edge = self.line_probabilities(out["features"], d["points_px"]) if self.cfg.line_verification else None
         naming = name_corners(pts, K, score=d["score"], type_prob=type_prob, edge_prob=edge, image_size=(w, h),
                               prior_R_cam_from_target=prior_R_cam_from_target, config=self.cfg.naming)
         if naming is None:

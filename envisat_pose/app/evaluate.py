@@ -1,0 +1,225 @@
+"""`envisat evaluate`: the corner detector scored against the labels, next to Harris and Shi-Tomasi, by
+corruption group; a table on stdout and every number in a JSON file.
+
+Methods: 'detector' (full frames, no label used but K), 'detector_no_lines' (the same weights, corners named
+without line verification: the ablation), 'harris' and 'shi_tomasi' (cv2.goodFeaturesToTrack refined by
+cornerSubPix, named by oracle nearest-label association: generous to them). Pose: solvePnP (EPnP, then
+iterative) from each method's named corners against the label's R_cam_from_target / t_cam_from_target_m.
+Groups (perception/evaluate.corruption_groups): all; clean, noise_only, blur_only, combined (a partition);
+noise=<level> and blur=<level> (marginals, overlapping the partition).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+
+from envisat_pose.config import InputError
+
+METHODS = ("detector", "detector_no_lines", "harris", "shi_tomasi")
+# webdataset's key of a tar member: the path up to the first dot of the file name
+_KEY = re.compile(r"^((?:.*/|)[^.]+)[.]([^/]*)$")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "evaluate",
+        help="score the corner detector against labels, next to Harris and Shi-Tomasi (table + JSON)",
+        description="Detect and name the corners of every frame of a labelled dataset and score them: per-corner "
+        "error (median, p95), PCK at 2 and 5 px, visibility precision/recall, identity swaps, the half-turn "
+        "ambiguity, covariance calibration (mean e^T C^-1 e), pose error after solvePnP, by corruption group; "
+        "the same for Harris and Shi-Tomasi with oracle association, and the detector without line verification.",
+    )
+    p.add_argument("--weights", required=True, metavar="W.safetensors", help="detector weights")
+    p.add_argument("--data", required=True, metavar="DIR", help="labelled dataset folder (shards)")
+    p.add_argument("--json", required=True, metavar="OUT.json", help="output file of every metric")
+    p.add_argument("--limit", type=int, help="only the first N frames")
+    p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_evaluate_cli)
+
+
+def make_detector(model, config, device: str):
+    """The detector the verb scores (a function so a test can put an oracle network in its place)."""
+    from envisat_pose.perception.detect import Detector
+
+    return Detector(model, config, device=device)
+
+
+def read_poses(paths: list[str]) -> dict[str, tuple]:
+    """{sample key: (R_cam_from_target (3, 3), t_cam_from_target_m (3,))} from the shards' labels (the
+    perception reader keeps only what detection needs)."""
+    import tarfile
+
+    import numpy as np
+
+    out = {}
+    for path in paths:
+        with tarfile.open(path) as tar:
+            for member in tar:
+                m = _KEY.match(member.name)
+                if not member.isfile() or not m or m.group(2) != "json":
+                    continue
+                try:
+                    lab = json.loads(tar.extractfile(member).read())
+                    out[m.group(1)] = (np.asarray(lab["R_cam_from_target"], float),
+                                       np.asarray(lab["t_cam_from_target_m"], float))
+                except (ValueError, KeyError, TypeError):
+                    continue  # a label without a pose: its pose error is left out
+    return out
+
+
+def _clean_json(x):
+    """NaN and inf as null (strict JSON)."""
+    if isinstance(x, dict):
+        return {k: _clean_json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean_json(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def evaluate_frames(detector, ablation, samples, poses: dict, corners_T_m, bar=None, limit: int | None = None
+                    ) -> tuple[dict, list[list[str]]]:
+    """Run every method on every frame. samples: (key, image, label) as perception.data.read_samples gives them,
+    images as the camera saw them. Returns per-method arrays and each frame's groups."""
+    import numpy as np
+
+    from envisat_pose.perception import evaluate as ev
+
+    rows = {m: {"pred": [], "alt": [], "amb": [], "vis": [], "cov": [], "pose": []} for m in METHODS}
+    true, usable, groups = [], [], []
+    for i, (key, image, label) in enumerate(samples):
+        if limit is not None and i >= limit:
+            break
+        use = label["visible"] & label["in_frame"]
+        true.append(label["corners_px"])
+        usable.append(use)
+        groups.append(ev.corruption_groups(*ev.corruption_levels(label["corruption"], image.shape[1])))
+        found = {}
+        for name, det in (("detector", detector), ("detector_no_lines", ablation)):
+            f = det.detect(image, label["K"])
+            found[name] = (f.corners_px, f.alt_corners_px, f.ambiguous, f.visible, f.cov_px)
+        for name, harris in (("harris", True), ("shi_tomasi", False)):
+            pts = ev.associate_nearest(ev.classical_corners(image, harris), label["corners_px"], use)
+            found[name] = (pts, pts, False, np.isfinite(pts[:, 0]), np.full((8, 2, 2), np.nan))
+        for name, (pred, alt, amb, vis, cov) in found.items():
+            r = rows[name]
+            for k, v in zip(("pred", "alt", "amb", "vis", "cov"), (pred, alt, amb, vis, cov)):
+                r[k].append(v)
+            chosen, _ = ev.better_naming(pred[None], alt[None], np.array([amb]), label["corners_px"][None],
+                                         use[None])
+            pose = ev.pose_from_corners(chosen[0], label["K"], corners_T_m)
+            err = (np.nan, np.nan)
+            if pose is not None and key in poses:
+                err = ev.pose_errors(*pose, *poses[key])
+            r["pose"].append(err)
+        if bar is not None:
+            bar.update(1)
+    arrays = {m: {k: np.array(v) for k, v in r.items()} for m, r in rows.items()}
+    arrays["truth"] = {"true": np.array(true), "usable": np.array(usable)}
+    return arrays, groups
+
+
+def summarize(arrays: dict, groups: list[list[str]]) -> dict:
+    """{group: {method: metrics}} for every group of perception.evaluate.GROUP_ORDER ({'frames': 0} when empty)."""
+    import numpy as np
+
+    from envisat_pose.perception import evaluate as ev
+
+    out = {}
+    for g in ev.GROUP_ORDER:
+        sel = np.array([g in gs for gs in groups], bool)
+        out[g] = {}
+        for m in METHODS:
+            if not sel.any():
+                out[g][m] = {"frames": 0}
+                continue
+            a, t = arrays[m], arrays["truth"]
+            classical = m in ("harris", "shi_tomasi")
+            out[g][m] = ev.score_method(
+                a["pred"][sel], t["true"][sel], t["usable"][sel], alt_px=a["alt"][sel], ambiguous=a["amb"][sel],
+                pred_visible=None if classical else a["vis"][sel], cov_px=None if classical else a["cov"][sel],
+                pose_err=a["pose"][sel])
+    return out
+
+
+def _fmt(x, spec: str) -> str:
+    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, spec)
+
+
+def table(summary: dict) -> str:
+    """One line per non-empty group and method."""
+    head = (f"{'group':14s} {'method':18s} {'frames':>6s} {'med px':>7s} {'p95 px':>7s} {'PCK@2':>6s} {'PCK@5':>6s} "
+            f"{'swaps':>6s} {'ambig':>6s} {'vis P':>6s} {'vis R':>6s} {'NEES':>6s} {'t m':>7s} {'rot deg':>7s}")
+    lines = [head, "-" * len(head)]
+    for g, per in summary.items():
+        for m, s in per.items():
+            if not s.get("frames"):
+                continue
+            vis, cal, pose = s.get("visibility", {}), s.get("calibration", {}), s.get("pose", {})
+            lines.append(
+                f"{g:14s} {m:18s} {s['frames']:6d} {_fmt(s['errors']['all']['median_px'], '7.2f')} "
+                f"{_fmt(s['errors']['all']['p95_px'], '7.2f')} {_fmt(s['pck_2px'], '6.1%')} "
+                f"{_fmt(s['pck_5px'], '6.1%')} {_fmt(s['swap_rate_strict'], '6.1%')} "
+                f"{_fmt(s['ambiguous_share'], '6.1%')} {_fmt(vis.get('precision'), '6.1%')} "
+                f"{_fmt(vis.get('recall'), '6.1%')} {_fmt(cal.get('mean_nees'), '6.2f')} "
+                f"{_fmt(pose.get('translation_m_median'), '7.3f')} {_fmt(pose.get('rotation_deg_median'), '7.2f')}")
+    return "\n".join(lines)
+
+
+def run_evaluate_cli(args: argparse.Namespace) -> int:
+    import dataclasses
+    import os
+
+    import torch
+    from tqdm import tqdm
+
+    from envisat_pose.datagen.corrupt import apply_corruption
+    from envisat_pose.geometry import load_geometry
+    from envisat_pose.io import atomic_write_text, check_writable_output
+    from envisat_pose.perception.data import read_samples, shard_paths
+    from envisat_pose.perception.detect import DetectConfig
+    from envisat_pose.perception.evaluate import corruption_groups
+    from envisat_pose.perception.weights import load_model
+
+    if args.limit is not None and args.limit < 1:
+        raise InputError(f"--limit {args.limit}: expected at least 1")
+    if not os.path.isfile(args.weights):
+        raise InputError(f"--weights {args.weights!r}: no such file")
+    check_writable_output(args.json, "json")
+    paths = shard_paths(args.data)
+    if args.threads is not None:
+        if args.threads < 1:
+            raise InputError(f"--threads {args.threads}: expected at least 1")
+        torch.set_num_threads(args.threads)
+    model = load_model(args.weights, args.device)
+    cfg = DetectConfig()
+    detector = make_detector(model, cfg, args.device)
+    ablation = make_detector(model, dataclasses.replace(cfg, line_verification=False), args.device)
+
+    def camera_frames():
+        for key, image, label in read_samples(paths):
+            if label["image_stored"] == "clean":  # stored clean: the camera's corruption, as the label says
+                image = apply_corruption(image, label["corruption"])
+            yield key, image, label
+
+    bar = tqdm(disable=args.quiet, desc="evaluate", unit="frame")
+    arrays, groups = evaluate_frames(detector, ablation, camera_frames(), read_poses(paths),
+                                     load_geometry().corners_T_m, bar=bar, limit=args.limit)
+    bar.close()
+    if not groups:
+        raise InputError(f"--data {args.data!r}: no frames")
+    summary = summarize(arrays, groups)
+    print(table(summary))
+    result = {"weights": args.weights, "data": args.data, "frames": len(groups), "model": model.cfg.to_dict(),
+              "detect_config": dataclasses.asdict(cfg), "match_px": 5.0,
+              "grouping": corruption_groups.__doc__ + " Levels: perception.evaluate.corruption_levels.",
+              "groups": summary}
+    atomic_write_text(args.json, json.dumps(_clean_json(result), indent=1, allow_nan=False) + "\n")
+    print(f"wrote {args.json}: {len(groups)} frames")
+    return 0

@@ -1,0 +1,107 @@
+"""`envisat evaluate` end to end: an oracle network (heatmaps made from the label of the frame it is shown) in
+place of trained weights, on a small freshly generated set with the paper's corruption; and its bad inputs."""
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from envisat_pose.app.cli import main
+from envisat_pose.perception.data import read_samples, shard_paths, to_input_px
+from envisat_pose.perception.detect import Detector
+from envisat_pose.perception.heatmaps import CORNER_JTYPE, encode_junctions
+from envisat_pose.perception.model import CornerNet, ModelConfig
+from envisat_pose.perception.weights import save_weights
+
+TINY = ModelConfig(input_px=128, width=16, depth=2, stem_width=8)
+
+
+class LookupOracle(Detector):
+    """A perfect network: the junction targets of the label of the frame it is shown (found by its pixels)."""
+
+    def __init__(self, model, config, labels: dict):
+        super().__init__(model, config)
+        self.labels = labels
+        self.label = None
+
+    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None):
+        self.label = self.labels[hashlib.sha1(image.tobytes()).hexdigest()]
+        return super().detect(image, K, roi_px, prior_R_cam_from_target)
+
+    def network(self, crop_u8, box):
+        cells = self.input_px // self.stride
+        p = to_input_px(self.label["corners_px"], box, self.input_px)
+        valid = self.label["visible"] & self.label["in_frame"]
+        t = encode_junctions(p, valid, CORNER_JTYPE, (cells, cells), self.stride, sigma_cells=1.0)
+        # log-Cholesky 0: a 1 input-px^2 covariance
+        return {"jmap": t["jmap"], "joff": t["joff"], "jchol": np.zeros((3, cells, cells), np.float32),
+                "features": None}
+
+    def line_probabilities(self, features, points_in):
+        return np.full((len(points_in), len(points_in)), 0.5)
+
+
+@pytest.fixture(scope="module")
+def paper_dataset(tmp_path_factory):
+    """12 images of 320 px, the paper's corruption at mixed levels, written by `envisat generate`."""
+    root = tmp_path_factory.mktemp("evalds")
+    cfg = root / "paper.toml"
+    cfg.write_text('[corruption]\nmodel = "paper"\n')
+    out = root / "ds"
+    assert main(["generate", "--config", str(cfg), "--num-images", "12", "--shard-size", "6", "--resolution", "320",
+                 "--seed", "5", "--out", str(out), "--quiet"]) == 0
+    return str(out)
+
+
+@pytest.fixture(scope="module")
+def weights(tmp_path_factory):
+    import torch
+
+    torch.manual_seed(0)  # the test's own draw of an untrained model
+    path = tmp_path_factory.mktemp("w") / "tiny.safetensors"
+    save_weights(str(path), CornerNet(TINY))
+    return str(path)
+
+
+def test_evaluate_with_oracle_writes_every_group(paper_dataset, weights, tmp_path, monkeypatch, capsys):
+    import envisat_pose.app.evaluate as app
+
+    labels = {hashlib.sha1(img.tobytes()).hexdigest(): lab for _, img, lab in read_samples(shard_paths(paper_dataset))}
+    monkeypatch.setattr(app, "make_detector", lambda model, config, device: LookupOracle(model, config, labels))
+    out = tmp_path / "eval.json"
+    assert main(["evaluate", "--weights", weights, "--data", paper_dataset, "--json", str(out), "--quiet"]) == 0
+    table = capsys.readouterr().out
+    res = json.loads(out.read_text())
+    from envisat_pose.perception.evaluate import GROUP_ORDER
+
+    assert list(res["groups"]) == list(GROUP_ORDER) and res["frames"] == 12
+    allg = res["groups"]["all"]
+    assert set(allg) == {"detector", "detector_no_lines", "harris", "shi_tomasi"}
+    det = allg["detector"]
+    # a perfect network: corners to sub-pixel where named, few swaps, honest visibility, good poses
+    assert det["errors"]["all"]["median_px"] < 0.1
+    assert det["pck_5px"] > 0.8 and det["swap_rate"] < 0.15  # the naming (not scored here) errs on a few
+    assert det["visibility"]["precision"] > 0.9 and det["visibility"]["recall"] > 0.8
+    assert det["pose"]["solved_share"] > 0.8 and det["pose"]["rotation_deg_median"] < 1.0
+    assert det["pose"]["translation_m_median"] < 0.2
+    assert "visibility" not in allg["harris"] and allg["harris"]["frames"] == 12
+    # the partition covers every frame once; the marginals too
+    part = sum(res["groups"][g]["detector"]["frames"] for g in ("clean", "noise_only", "blur_only", "combined"))
+    assert part == 12
+    assert sum(res["groups"][f"noise={s}"]["detector"]["frames"] for s in ("none", "low", "medium", "high")) == 12
+    assert "all" in table and "shi_tomasi" in table and "PCK@5" in table
+
+
+def test_missing_weights_one_line(paper_dataset, tmp_path, capsys):
+    rc = main(["evaluate", "--weights", str(tmp_path / "nope.safetensors"), "--data", paper_dataset, "--json",
+               str(tmp_path / "e.json")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "nope.safetensors" in err
+
+
+def test_empty_dataset_one_line(weights, tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    rc = main(["evaluate", "--weights", weights, "--data", str(tmp_path / "empty"), "--json", str(tmp_path / "e.json")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "empty dataset" in err
