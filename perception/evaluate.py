@@ -112,9 +112,10 @@ def mean_nees(pred_px: np.ndarray, cov_px: np.ndarray, true_px: np.ndarray, usab
 # --- the classical peers ------------------------------------------------------------------------------------
 
 
-def classical_corners(image_u8: np.ndarray, harris: bool, max_corners: int = 200, quality: float = 0.01,
+def classical_corners(image_u8: np.ndarray, harris: bool, max_corners: int = 500, quality: float = 0.001,
                       min_distance_px: float = 5.0, block_size: int = 5) -> np.ndarray:
-    """Harris (harris=True) or Shi-Tomasi corners of an 8-bit frame, refined by cornerSubPix: (M, 2) px."""
+    """Harris (harris=True) or Shi-Tomasi corners of an 8-bit frame, refined by cornerSubPix: (M, 2) px. Generous
+    settings (many corners, a low quality floor): the oracle association then finds more of the box corners."""
     pts = cv2.goodFeaturesToTrack(image_u8, maxCorners=max_corners, qualityLevel=quality,
                                   minDistance=min_distance_px, blockSize=block_size,
                                   useHarrisDetector=harris, k=0.04)
