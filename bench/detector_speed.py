@@ -1,12 +1,16 @@
-"""Detector speed on 2 CPU threads (skeleton; issue 10's benchmark grows from here).
+"""Detector speed on 2 CPU threads (issue 10's benchmark).
 
-Part 1 (now): the network's forward time per input size and width (min and median of repeated runs, so a busy
+Part 1: the network's forward time per input size and width (min and median of repeated runs, so a busy
 machine shows as spread), and the line head on all pairs of 12 junctions.
-Part 2 (with shipped weights, still to do): ms per full 1024 px frame (coarse pass + crop + network + decode +
-naming), with a given region of interest, next to Harris and Shi-Tomasi on the same frames; peak memory.
-Writes bench/results/detector_speed.json.
+Part 2: ms per full 1024 px frame of the whole detector (coarse pass + crop + network + decode + line
+verification + naming), and with a given region of interest (the crop around the label's corners standing in
+for the filter's prediction: no coarse pass), next to Harris and Shi-Tomasi (goodFeaturesToTrack + cornerSubPix,
+as perception/evaluate.py runs them) on the same frames; peak memory (max RSS of this process, which generates
+nothing: the frames come from `envisat generate` in a child process). --weights times trained weights; without
+it an untrained default-size network is timed (random junctions: the naming sees top_k candidates in every
+frame, its slowest case). Writes bench/results/detector_speed.json.
 
-    .venv/bin/python bench/detector_speed.py [--repeats 20] [--out bench/results/detector_speed.json]
+    .venv/bin/python bench/detector_speed.py [--repeats 20] [--frames 8] [--weights W] [--out ...json]
 """
 
 from __future__ import annotations
@@ -15,6 +19,10 @@ import argparse
 import json
 import os
 import platform
+import resource
+import subprocess
+import sys
+import tempfile
 import time
 
 import numpy as np
@@ -45,13 +53,67 @@ def time_forward(cfg: ModelConfig, repeats: int) -> dict:
             "line66_ms_min": 1e3 * min(line), "line66_ms_median": 1e3 * float(np.median(line))}
 
 
+def make_frames(n: int, out_dir: str) -> list:
+    """n full 1024 px frames (the default space camera) from `envisat generate --seed 7` in a child process."""
+    from envisat_pose.perception.data import read_samples, shard_paths
+
+    env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "osmesa"))
+    subprocess.run([sys.executable, "-m", "envisat_pose.app.cli", "generate", "--num-images", str(n), "--seed", "7",
+                    "--resolution", "1024", "--out", out_dir, "--quiet"], check=True, env=env)
+    return list(read_samples(shard_paths(out_dir)))
+
+
+def _ms(fn, repeats: int) -> list[float]:
+    """Median ms of `repeats` calls (after one warm-up call)."""
+    fn()
+    t = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        t.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(t))
+
+
+def time_frames(frames: list, weights: str | None, repeats: int) -> dict:
+    """ms per frame (median over frames of each frame's median) of the detector (full frame, ROI) and the
+    classical peers."""
+    from envisat_pose.perception.data import DataConfig, crop_box
+    from envisat_pose.perception.detect import Detector
+    from envisat_pose.perception.evaluate import classical_corners
+    from envisat_pose.perception.weights import load_model
+
+    if weights:
+        model = load_model(weights)
+    else:
+        torch.manual_seed(0)  # this bench's own draw of untrained weights
+        model = CornerNet(ModelConfig())
+    det = Detector(model)
+    per = {"detector_full_frame": [], "detector_roi": [], "harris": [], "shi_tomasi": []}
+    for _, image, label in frames:
+        use = label["visible"] & label["in_frame"]
+        roi = crop_box(label["corners_px"], use, image.shape, DataConfig(), None)
+        per["detector_full_frame"].append(_ms(lambda: det.detect(image, label["K"]), repeats))
+        per["detector_roi"].append(_ms(lambda: det.detect(image, label["K"], roi_px=roi), repeats))
+        per["harris"].append(_ms(lambda: classical_corners(image, True), repeats))
+        per["shi_tomasi"].append(_ms(lambda: classical_corners(image, False), repeats))
+    return {"model": model.cfg.to_dict(), "trained": bool(weights), "frames": len(frames),
+            "image_px": list(frames[0][1].shape),
+            "ms_per_frame": {k: {"median": float(np.median(v)), "max": float(np.max(v))} for k, v in per.items()}}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--frames", type=int, default=8, help="full 1024 px frames for part 2")
+    ap.add_argument("--frame-repeats", type=int, default=5, help="timed runs per frame in part 2")
+    ap.add_argument("--weights", help="trained weights (default: an untrained default-size network)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "detector_speed.json"))
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    import cv2
+
+    cv2.setNumThreads(args.threads)
     rows = []
     for width in (32, 48, 64):
         for px in (256, 320, 384):
@@ -59,9 +121,25 @@ def main() -> None:
             rows.append(r)
             print(f"width {width:3d} input {px}: {r['params'] / 1e6:.2f} M params, forward {r['forward_ms_min']:.1f} "
                   f"ms min / {r['forward_ms_median']:.1f} median; 66 lines {r['line66_ms_min']:.1f} ms", flush=True)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    with tempfile.TemporaryDirectory() as tmp:
+        frames = make_frames(args.frames, os.path.join(tmp, "ds"))
+    full = time_frames(frames, args.weights, args.frame_repeats)
+    full["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    full["peak_rss_mib_before_part2"] = rss0
+    print(f"\nfull {full['image_px'][1]} px frames ({full['frames']}, {args.threads} threads, "
+          f"{'trained' if full['trained'] else 'untrained'} weights, input {full['model']['input_px']} px):")
+    print(f"{'method':22s} {'ms median':>10s} {'ms max':>8s}")
+    for k, v in full["ms_per_frame"].items():
+        print(f"{k:22s} {v['median']:10.1f} {v['max']:8.1f}")
+    print(f"peak RSS {full['peak_rss_mib']:.0f} MiB (before part 2: {rss0:.0f} MiB); floor: full frame < 100 ms")
     result = {"threads": args.threads, "torch": torch.__version__, "machine": platform.processor() or platform.machine(),
-              "cpu_count": os.cpu_count(), "network": rows,
-              "note": "forward of one image, eval mode, inference_mode; full-frame timing still to do"}
+              "cpu_count": os.cpu_count(), "network": rows, "full_frame": full,
+              "note": "network: forward of one image, eval mode, inference_mode. full_frame: the whole detector "
+                      "(coarse pass, crop, network, decode, line verification, naming) per 1024 px frame; "
+                      + ("trained weights" if args.weights else
+                         "UNTRAINED weights (none shipped yet): the timing is the architecture's, with random "
+                         "junctions giving the naming its full top_k candidates; no accuracy is implied")}
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w", encoding="utf-8") as fh:
         json.dump(result, fh, indent=1, sort_keys=True)
