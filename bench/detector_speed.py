@@ -7,8 +7,8 @@ verification + naming), and with a given region of interest (the crop around the
 for the filter's prediction: no coarse pass), next to Harris and Shi-Tomasi (goodFeaturesToTrack + cornerSubPix,
 as perception/evaluate.py runs them) on the same frames; peak memory (max RSS of this process, which generates
 nothing: the frames come from `envisat generate` in a child process). --weights times trained weights; without
-it an untrained default-size network is timed (random junctions: the naming sees top_k candidates in every
-frame, its slowest case). Writes bench/results/detector_speed.json.
+it an untrained default-size network is timed: it finds no junction above threshold, so each call stops after
+one network pass (a lower bound: trained weights add the crop pass, line verification and naming). Writes bench/results/detector_speed.json.
 
     .venv/bin/python bench/detector_speed.py [--repeats 20] [--frames 8] [--weights W] [--out ...json]
 """
@@ -138,8 +138,9 @@ def main() -> None:
               "note": "network: forward of one image, eval mode, inference_mode. full_frame: the whole detector "
                       "(coarse pass, crop, network, decode, line verification, naming) per 1024 px frame; "
                       + ("trained weights" if args.weights else
-                         "UNTRAINED weights (none shipped yet): the timing is the architecture's, with random "
-                         "junctions giving the naming its full top_k candidates; no accuracy is implied")}
+                         "UNTRAINED weights (none shipped yet): the untrained network finds no junction above "
+                         "threshold, so detector_full_frame and detector_roi stop after one network pass each: a "
+                         "LOWER BOUND, without the crop pass, line verification and naming; no accuracy implied")}
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w", encoding="utf-8") as fh:
         json.dump(result, fh, indent=1, sort_keys=True)
