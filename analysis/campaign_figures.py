@@ -90,6 +90,16 @@ def plot_error_envelopes(t_s: np.ndarray, err: np.ndarray | None, filter_3sigma:
     _save(fig, path)
 
 
+
+def _finish_time_grid(fig, axes, title: str, path: str) -> None:
+    """Legend on the first panel, time labels on the bottom row, the title; then write the PNG."""
+    axes[0, 0].legend(fontsize=8)
+    for ax in axes[-1]:
+        ax.set_xlabel("t [min]")
+    fig.suptitle(title)
+    fig.tight_layout()
+    _save(fig, path)
+
 def plot_block_norms(t_s: np.ndarray, norms: np.ndarray | None, rmse_block: np.ndarray, filter_3sigma_block: np.ndarray,
                      path: str, title: str = "", max_runs: int = 200, max_points: int = 2000) -> None:
     """Per block, |error| of every run (grey; attitude: the error angle), the RMSE over runs (blue) and the
@@ -112,12 +122,7 @@ def plot_block_norms(t_s: np.ndarray, norms: np.ndarray | None, rmse_block: np.n
         ax.autoscale_view()
         ax.set_ylabel(f"|{BLOCK_TITLES[b]} error| [{unit}]")
         ax.grid(alpha=0.3, which="both", color="#c8d4e6")
-    axes[0, 0].legend(fontsize=8)
-    for ax in axes[-1]:
-        ax.set_xlabel("t [min]")
-    fig.suptitle(title or "Error norms per block")
-    fig.tight_layout()
-    _save(fig, path)
+    _finish_time_grid(fig, axes, title or "Error norms per block", path)
 
 
 def plot_nees_nis(t_s: np.ndarray, nees_mean: np.ndarray, nees_bounds: np.ndarray, nis_mean: np.ndarray | None,
@@ -169,12 +174,7 @@ def plot_rmse_vs_bound(t_s: np.ndarray, rmse_block: np.ndarray, bound_block: np.
         ax.set_yscale("log")
         ax.set_ylabel(f"{BLOCK_TITLES[b]} RMSE [{unit}]")
         ax.grid(alpha=0.3, which="both", color="#c8d4e6")
-    axes[0, 0].legend(fontsize=8)
-    for ax in axes[-1]:
-        ax.set_xlabel("t [min]")
-    fig.suptitle(title or "RMSE against the posterior Cramér-Rao lower bound")
-    fig.tight_layout()
-    _save(fig, path)
+    _finish_time_grid(fig, axes, title or "RMSE against the posterior Cramér-Rao lower bound", path)
 
 
 def plot_rate_sweep(rate_hz: np.ndarray, rmse_block: np.ndarray, path: str, bound_block: np.ndarray | None = None,
