@@ -125,17 +125,25 @@ def _check_resume(run_dir: str, cfg: TrainConfig) -> dict:
         return json.load(fh)
 
 
-def train(cfg: TrainConfig, data_dir: str, run_dir: str, resume: bool = False, device: str = "cpu",
-          progress: bool = True, provenance: dict | None = None) -> dict:
-    """Train (or go on training, with resume) into run_dir. Returns the last metrics line."""
+def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: bool = False, device: str = "cpu",
+          progress: bool = True, provenance: dict | None = None, init_weights: str | None = None) -> dict:
+    """Train (or go on training, with resume) into run_dir. Returns the last metrics line.
+
+    data_dir: one dataset folder or several (their shards are read together). init_weights: a safetensors file
+    of the same architecture to start from instead of the seeded initialization (fine-tuning; a new run only).
+    """
     from tqdm import tqdm
 
     dist, rank, world = _dist()
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: no CUDA device is available")
-    paths = shard_paths(data_dir)
+    dirs = [data_dir] if isinstance(data_dir, str) else list(data_dir)
+    paths = [p for d in dirs for p in shard_paths(d)]
     model = init_model(cfg).to(dev)
+    if init_weights is not None and not resume:
+        tensors, _ = read_weights(init_weights)
+        load_state(model, tensors, init_weights)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     state = {"step": 0, "epoch": 0, "batch": 0}
     if resume:

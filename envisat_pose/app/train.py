@@ -16,10 +16,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Train the L-CNN-style corner network on a dataset written by `envisat generate`: crops "
         "around the target, style augmentation, checkpoints as safetensors. Under torchrun it trains with DDP.",
     )
-    p.add_argument("--data", required=True, metavar="DIR", help="dataset folder (shards + manifest.json)")
+    p.add_argument("--data", required=True, nargs="+", metavar="DIR",
+                   help="dataset folder(s) (shards + manifest.json); several are read together")
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (created)")
     p.add_argument("--config", metavar="FILE.toml", help="training config (keys of TrainConfig, [model], [data], [loss])")
     p.add_argument("--resume", action="store_true", help="go on from the run directory's last checkpoint")
+    p.add_argument("--init", metavar="WEIGHTS", help="start from these weights (same architecture; fine-tuning)")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="cpu (default) or cuda")
     p.add_argument("--steps", type=int, help="optimizer steps in all (default 20000)")
     p.add_argument("--batch-size", type=int, help="samples per batch and rank (default 16)")
@@ -76,7 +78,12 @@ def run_train_cli(args: argparse.Namespace) -> int:
     from envisat_pose.perception.train import train
 
     cfg = resolve_config(args)
-    shard_paths(args.data)  # an empty or missing dataset fails before any work
+    for d in args.data:
+        shard_paths(d)  # an empty or missing dataset fails before any work
+    if args.init is not None and args.resume:
+        raise InputError("--init and --resume: a resumed run goes on from its own checkpoint; give one of them")
+    if args.init is not None and not os.path.isfile(args.init):
+        raise InputError(f"--init {args.init!r}: no such weights file")
     if args.resume and not os.path.isdir(args.out):
         raise InputError(f"--resume: {args.out!r} does not exist")
     if args.threads is not None:
@@ -85,10 +92,17 @@ def run_train_cli(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     device = _init_distributed(args.device)
     flags = {k: v for k, v in sorted(vars(args).items()) if k not in ("func", "verb") and v not in (None, False)}
-    provenance = {"command": "envisat train " + " ".join(f"--{k.replace('_', '-')}" + ("" if v is True else f" {v}")
-                                                        for k, v in flags.items()), "git": git_hash(),
-                  "data": os.path.abspath(args.data), "torch": torch.__version__, "device": device}
+
+    def flag(key, value) -> str:
+        shown = "" if value is True else " " + (" ".join(map(str, value)) if isinstance(value, list) else str(value))
+        return f"--{key.replace('_', '-')}{shown}"
+
+    provenance = {"command": "envisat train " + " ".join(flag(k, v) for k, v in flags.items()), "git": git_hash(),
+                  "data": [os.path.abspath(d) for d in args.data], "torch": torch.__version__, "device": device}
+    if args.init is not None:
+        from envisat_pose.io import sha256_file
+        provenance["init"] = {"path": os.path.abspath(args.init), "sha256": sha256_file(args.init)}
     last = train(cfg, args.data, args.out, resume=args.resume, device=device, progress=not args.quiet,
-                 provenance=provenance)
+                 provenance=provenance, init_weights=args.init)
     print(f"trained to step {last.get('step')}: loss {last.get('loss', float('nan')):.4f}; run in {args.out}")
     return 0

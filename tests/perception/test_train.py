@@ -97,3 +97,26 @@ def test_bad_config(tmp_path, tiny_dataset, bad, capsys):
     toml = tmp_path / "t.toml"
     toml.write_text(bad)
     assert main(["train", "--data", tiny_dataset, "--out", str(tmp_path / "r"), "--config", str(toml)]) == 2
+
+
+def test_init_starts_from_given_weights_and_reads_several_folders(tiny_dataset, tmp_path):
+    """--init: step 0 of a new run starts from the given weights (not the seeded draw); two --data folders are
+    read together."""
+    torch.set_num_threads(1)
+    base = str(tmp_path / "base")
+    train(small_config(2), tiny_dataset, base, progress=False)
+    given = os.path.join(base, "checkpoint.safetensors")
+    other = TrainConfig(**{**small_config(1, augment=False).__dict__, "seed": 7, "lr": 1e-12, "warmup_steps": 1})
+    train(other, [tiny_dataset, tiny_dataset], str(tmp_path / "ft"), progress=False, init_weights=given)
+    a = dict(load_model(given).named_parameters())  # parameters: BatchNorm's running statistics move
+    b = dict(load_model(str(tmp_path / "ft" / "checkpoint.safetensors")).named_parameters())
+    assert all(torch.allclose(a[k], b[k], atol=1e-6) for k in a)
+    train(other, [tiny_dataset, tiny_dataset], str(tmp_path / "fresh"), progress=False)
+    c = dict(load_model(str(tmp_path / "fresh" / "checkpoint.safetensors")).named_parameters())
+    assert not all(torch.allclose(a[k], c[k], atol=1e-6) for k in a)
+    assert json.load(open(tmp_path / "ft" / "state.json"))["step"] == 1
+
+
+def test_cli_init_errors(tmp_path, capsys, tiny_dataset):
+    code = main(["train", "--data", tiny_dataset, "--out", str(tmp_path / "r"), "--init", str(tmp_path / "no.st")])
+    assert code == 2 and "--init" in capsys.readouterr().err
