@@ -27,13 +27,15 @@ from envisat_pose.perception.naming import Naming, NamingConfig, name_corners
 class DetectConfig:
     """top_k: junctions kept per crop; threshold: least junction score; coarse_threshold: the same in the coarse
     pass; crop_margin: crop side over the coarse junctions' extent; line_verification: False names the corners
-    without the line head's edge scores (the evaluation's ablation)."""
+    without the line head's edge scores (the evaluation's ablation); cov_scale: the calibration factor s applied
+    to the network's covariances, C -> s C (perception/calibrate.py; shipped in the weights' metadata)."""
 
     top_k: int = 12
     threshold: float = 0.2
     coarse_threshold: float = 0.2
     crop_margin: float = 1.4
     line_verification: bool = True
+    cov_scale: float = 1.0
     naming: NamingConfig = NamingConfig()
 
 
@@ -58,6 +60,28 @@ class FrameDetection:
         nan = np.full((8, 2), np.nan)
         return FrameDetection(nan, np.full((8, 2, 2), np.nan), np.zeros(8), np.zeros(8, bool), nan.copy(), 0.0,
                               False, crop.astype(np.float64), np.zeros((0, 2)))
+
+
+def load_detector(path: str, config: DetectConfig | None = None, device: str = "cpu") -> "Detector":
+    """A Detector from a weights file (perception/weights.py), with the covariance calibration stored in the
+    file's metadata (`cov_scale`, 1 when the weights were never calibrated) unless `config` sets its own."""
+    import dataclasses
+    import json
+
+    from envisat_pose.perception.weights import WeightsError, load_model, read_metadata
+
+    model = load_model(path, device=device)
+    cfg = config or DetectConfig()
+    if config is None:
+        raw = read_metadata(path).get("cov_scale", "1.0")
+        try:
+            scale = float(json.loads(raw))
+        except (ValueError, TypeError):
+            scale = float("nan")
+        if not np.isfinite(scale) or scale <= 0:
+            raise WeightsError(f"{path}: metadata cov_scale {raw!r} is not a positive number")
+        cfg = dataclasses.replace(cfg, cov_scale=scale)
+    return Detector(model, cfg, device=device)
 
 
 class Detector:
@@ -126,7 +150,7 @@ class Detector:
         a, b, c = (out["jchol"][n, rows, cols] for n in range(3))
         l11, l22 = np.exp(a), np.exp(b)
         cov = np.stack([np.stack([l11 * l11, l11 * c], -1), np.stack([l11 * c, c * c + l22 * l22], -1)], -2)
-        cov = cov * scale ** 2
+        cov = cov * (scale ** 2 * self.cfg.cov_scale)
         edge = self.line_probabilities(out["features"], d["points_px"]) if self.cfg.line_verification else None
         naming = name_corners(pts, K, score=d["score"], type_prob=type_prob, edge_prob=edge, image_size=(w, h),
                               prior_R_cam_from_target=prior_R_cam_from_target, config=self.cfg.naming)

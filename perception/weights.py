@@ -54,6 +54,22 @@ def read_weights(path: str) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
     return tensors, meta
 
 
+def read_metadata(path: str) -> dict[str, str]:
+    """The metadata of a weights file (strings; JSON values as text)."""
+    return read_weights(path)[1]
+
+
+def with_metadata(src: str, dst: str, extra: dict) -> None:
+    """Copy a weights file to dst (atomically) with metadata entries added or replaced (e.g. cov_scale)."""
+    from safetensors.torch import save_file
+
+    tensors, meta = read_weights(src)
+    for k, v in extra.items():
+        meta[k] = v if isinstance(v, str) else json.dumps(v, sort_keys=True)
+    with atomic_path(dst, suffix=".safetensors") as tmp:
+        save_file(tensors, tmp, metadata=meta)
+
+
 def load_model(path: str, device: str = "cpu") -> CornerNet:
     """The CornerNet stored in a weights file, in eval mode. WeightsError (one line) for a truncated or foreign
     file, a missing config, or tensors whose names or shapes do not fit."""
