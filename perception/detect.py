@@ -62,25 +62,32 @@ class FrameDetection:
                               False, crop.astype(np.float64), np.zeros((0, 2)))
 
 
-def load_detector(path: str, config: DetectConfig | None = None, device: str = "cpu") -> "Detector":
-    """A Detector from a weights file (perception/weights.py), with the covariance calibration stored in the
-    file's metadata (`cov_scale`, 1 when the weights were never calibrated) unless `config` sets its own."""
-    import dataclasses
+def weights_cov_scale(path: str) -> float:
+    """The covariance calibration factor stored in a weights file's metadata (`cov_scale`; 1.0 when the weights
+    were never calibrated). WeightsError when it is there but not a positive number."""
     import json
 
-    from envisat_pose.perception.weights import WeightsError, load_model, read_metadata
+    from envisat_pose.perception.weights import WeightsError, read_metadata
+
+    raw = read_metadata(path).get("cov_scale", "1.0")
+    try:
+        scale = float(json.loads(raw))
+    except (ValueError, TypeError):
+        scale = float("nan")
+    if not np.isfinite(scale) or scale <= 0:
+        raise WeightsError(f"{path}: metadata cov_scale {raw!r} is not a positive number")
+    return scale
+
+
+def load_detector(path: str, config: DetectConfig | None = None, device: str = "cpu") -> "Detector":
+    """A Detector from a weights file (perception/weights.py), with the covariance calibration stored in the
+    file's metadata (`cov_scale`) unless `config` is given (its own cov_scale then stands)."""
+    import dataclasses
+
+    from envisat_pose.perception.weights import load_model
 
     model = load_model(path, device=device)
-    cfg = config or DetectConfig()
-    if config is None:
-        raw = read_metadata(path).get("cov_scale", "1.0")
-        try:
-            scale = float(json.loads(raw))
-        except (ValueError, TypeError):
-            scale = float("nan")
-        if not np.isfinite(scale) or scale <= 0:
-            raise WeightsError(f"{path}: metadata cov_scale {raw!r} is not a positive number")
-        cfg = dataclasses.replace(cfg, cov_scale=scale)
+    cfg = config or dataclasses.replace(DetectConfig(), cov_scale=weights_cov_scale(path))
     return Detector(model, cfg, device=device)
 
 

@@ -179,11 +179,11 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
-    from envisat_pose.datagen.corrupt import apply_corruption
+    from envisat_pose.app.detect import camera_samples
     from envisat_pose.geometry import load_geometry
     from envisat_pose.io import atomic_write_text, check_writable_output
-    from envisat_pose.perception.data import read_samples, shard_paths
-    from envisat_pose.perception.detect import DetectConfig
+    from envisat_pose.perception.data import shard_paths
+    from envisat_pose.perception.detect import DetectConfig, weights_cov_scale
     from envisat_pose.perception.evaluate import corruption_groups
     from envisat_pose.perception.weights import load_model
 
@@ -198,18 +198,12 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
             raise InputError(f"--threads {args.threads}: expected at least 1")
         torch.set_num_threads(args.threads)
     model = load_model(args.weights, args.device)
-    cfg = DetectConfig()
+    cfg = DetectConfig(cov_scale=weights_cov_scale(args.weights))
     detector = make_detector(model, cfg, args.device)
     ablation = make_detector(model, dataclasses.replace(cfg, line_verification=False), args.device)
 
-    def camera_frames():
-        for key, image, label in read_samples(paths):
-            if label["image_stored"] == "clean":  # stored clean: the camera's corruption, as the label says
-                image = apply_corruption(image, label["corruption"])
-            yield key, image, label
-
     bar = tqdm(disable=args.quiet, desc="evaluate", unit="frame")
-    arrays, groups = evaluate_frames(detector, ablation, camera_frames(), read_poses(paths),
+    arrays, groups = evaluate_frames(detector, ablation, camera_samples(paths), read_poses(paths),
                                      load_geometry().corners_T_m, bar=bar, limit=args.limit)
     bar.close()
     if not groups:

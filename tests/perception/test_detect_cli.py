@@ -31,3 +31,45 @@ def test_detect_bad_weights_one_line(tiny_dataset, tmp_path, capsys):
                      str(tmp_path / "d.npz")]) == 2
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and str(path) in err
+
+
+def _untrained(tmp_path, extra=None):
+    torch.manual_seed(0)  # this test's untrained model
+    w = tmp_path / "w.safetensors"
+    save_weights(str(w), CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8)), extra)
+    return w
+
+
+def test_roi_file_replaces_the_coarse_pass(tiny_dataset, tmp_path):
+    """Frames listed in --roi are cropped exactly there (crop_px is not in the contract: check via the Detector
+    the verb builds, the same call), others get the coarse pass; a calibrated file's cov_scale reaches R."""
+    from envisat_pose.app.detect import camera_samples, read_roi
+    from envisat_pose.perception.data import shard_paths
+    from envisat_pose.perception.detect import load_detector
+
+    w = _untrained(tmp_path, {"cov_scale": 4.0})
+    roi = tmp_path / "roi.npz"
+    np.savez(roi, key=np.array(["000000001", "000000003"]), roi_px=np.array([[10, 20, 100], [0, 0, 256]]))
+    rois = read_roi(str(roi))
+    det = load_detector(str(w))
+    assert det.cfg.cov_scale == 4.0
+    for key, image, label in camera_samples(shard_paths(tiny_dataset)):
+        f = det.detect(image, label["K"], roi_px=rois.get(key))
+        if key in rois:
+            assert np.array_equal(f.crop_px, rois[key])
+    out = tmp_path / "det.npz"
+    assert main(["detect", "--weights", str(w), "--data", tiny_dataset, "--out", str(out), "--quiet",
+                 "--roi", str(roi), "--threads", "1"]) == 0
+    with np.load(out, allow_pickle=False) as z:
+        assert '"cov_scale": 4.0' in str(z["config_json"])
+
+
+def test_bad_roi_file_one_line(tiny_dataset, tmp_path, capsys):
+    w = _untrained(tmp_path)
+    bad = tmp_path / "roi.npz"
+    np.savez(bad, key=np.array(["000000001"]), roi_px=np.array([[10.0, 20.0, -5.0]]))
+    for path in (bad, tmp_path / "missing.npz"):
+        assert main(["detect", "--weights", str(w), "--data", tiny_dataset, "--out", str(tmp_path / "d.npz"),
+                     "--roi", str(path)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "--roi" in err
