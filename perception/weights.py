@@ -23,6 +23,17 @@ class WeightsError(InputError):
     """A weights file that cannot be used: the message names the file and the problem."""
 
 
+def shipped_weights_path() -> str:
+    """The project's shipped detector weights (package data `envisat_pose.models/detector.safetensors`, with its
+    model card detector.json beside it). WeightsError naming the path when the file is absent."""
+    import importlib.resources
+
+    path = str(importlib.resources.files("envisat_pose.models").joinpath("detector.safetensors"))
+    if not os.path.isfile(path):
+        raise WeightsError(f"{path}: the shipped detector weights are missing (give --weights)")
+    return path
+
+
 def save_weights(path: str, model: CornerNet, extra: dict | None = None) -> None:
     """Write the model's state (parameters and buffers) and its config atomically as safetensors."""
     from safetensors.torch import save_file
