@@ -247,14 +247,24 @@ def _predict_step(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[n
                    cfg.max_rk4_step_s, setup.gravity_gradient)
 
 
-def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup) -> FilterState:
+def predict_to(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[np.ndarray, np.ndarray]:
+    """The prior of R runs at t_s (s, not before state.t_s): (mean (R, 12), cov (R, 12, 12)), as the next
+    filter_step to t_s computes it. A closed loop uses it before the measurement exists (the predicted corners
+    give the detector its region of interest) and hands it back to filter_step as `prior`."""
+    return _predict_step(state, t_s, setup)
+
+
+def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
+                prior: tuple[np.ndarray, np.ndarray] | None = None) -> FilterState:
     """One filter step of R runs: predict to meas.t_s, then update with its corners. Pure: returns a new state.
 
     Around the UKF update: visibility check, chi-square gate with the lockout rule, rollback of non-finite
     results, adaptive R and Q, and the windowed NIS divergence monitor (module docstring).
+    prior: (mean, cov) from predict_to(state, meas.t_s, setup), when the caller made it already (the step is
+    then the same, without predicting twice; several measurement hypotheses can share one prediction).
     """
     cfg = setup.cfg
-    mean, cov = _predict_step(state, meas.t_s, setup)
+    mean, cov = prior if prior is not None else _predict_step(state, meas.t_s, setup)
     mean_pred, cov_pred = mean, cov
     z = np.asarray(meas.z, dtype=float)
     m = z.shape[-1]
