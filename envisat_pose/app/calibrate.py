@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "take the correctly named visible corners, fit the scale s that brings the mean e^T (s C)^-1 e to 2, and "
         "write a copy of the weights with s in their metadata. Prints the calibration per corruption group.",
     )
-    p.add_argument("--weights", required=True, metavar="W.safetensors", help="detector weights")
+    p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped weights)")
     p.add_argument("--data", required=True, metavar="DIR", help="held-out labelled dataset folder (shards)")
     p.add_argument("--out", required=True, metavar="OUT.safetensors", help="calibrated weights (may equal --weights)")
     p.add_argument("--limit", type=int, help="only the first N frames")
@@ -78,6 +78,9 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
 
     if args.limit is not None and args.limit < 1:
         raise InputError(f"--limit {args.limit}: expected at least 1")
+    from envisat_pose.perception.weights import shipped_weights_path
+
+    args.weights = args.weights or shipped_weights_path()
     if not os.path.isfile(args.weights):
         raise InputError(f"--weights {args.weights!r}: no such file")
     if os.path.abspath(args.out) != os.path.abspath(args.weights):

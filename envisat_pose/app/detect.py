@@ -17,7 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "verification, naming by fitting the box. Writes det.npz: t_s, corners_px, cov_px, confidence, visible, "
         "config_json, plus key, alt_corners_px, alt_probability and ambiguous (the half-turn alternative).",
     )
-    p.add_argument("--weights", required=True, metavar="W.safetensors", help="detector weights")
+    p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped weights)")
     p.add_argument("--data", required=True, metavar="DIR", help="dataset folder (shards)")
     p.add_argument("--out", required=True, metavar="det.npz", help="output file")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
@@ -73,7 +73,10 @@ def run_detect_cli(args: argparse.Namespace) -> int:
     from envisat_pose.perception.data import shard_paths
     from envisat_pose.perception.detect import load_detector
 
+    from envisat_pose.perception.weights import shipped_weights_path
+
     check_writable_output(args.out)
+    args.weights = args.weights or shipped_weights_path()
     paths = shard_paths(args.data)
     rois = read_roi(args.roi) if args.roi else {}
     if args.threads is not None:

@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "ambiguity, covariance calibration (mean e^T C^-1 e), pose error after solvePnP, by corruption group; "
         "the same for Harris and Shi-Tomasi with oracle association, and the detector without line verification.",
     )
-    p.add_argument("--weights", required=True, metavar="W.safetensors", help="detector weights")
+    p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped weights)")
     p.add_argument("--data", required=True, metavar="DIR", help="labelled dataset folder (shards)")
     p.add_argument("--json", required=True, metavar="OUT.json", help="output file of every metric")
     p.add_argument("--limit", type=int, help="only the first N frames")
@@ -189,6 +189,9 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
 
     if args.limit is not None and args.limit < 1:
         raise InputError(f"--limit {args.limit}: expected at least 1")
+    from envisat_pose.perception.weights import shipped_weights_path
+
+    args.weights = args.weights or shipped_weights_path()
     if not os.path.isfile(args.weights):
         raise InputError(f"--weights {args.weights!r}: no such file")
     check_writable_output(args.json, "json")
