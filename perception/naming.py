@@ -40,12 +40,14 @@ class NamingConfig:
     type_weight, line_weight: weights of the cues' negative log-probabilities (nats); ambiguity: the naming is
     flagged ambiguous when its half-turn alternative has at least this probability; prior_sigma_deg: spread of a
     prior pose's rotation; quad_line_min: with line cues, a quadrilateral is tried as a face only when each of its
-    4 sides has at least this line probability (all are tried when none has)."""
+    4 sides has at least this line probability (all are tried when none has); relative_cues: the cues count as
+    log-likelihood ratios against an uninformed guess (a type drawn among J, an edge at even odds), so that
+    explaining one more candidate is not penalized by its cue's own cost (False: raw negative log-probabilities)."""
 
     sigma_px: float = 1.5
     gate_px: float = 6.0
     coarse_gate_px: float = 30.0
-    unexplained_weight: float = 0.5
+    unexplained_weight: float = 1.0
     max_candidates: int = 12
     refine_top: int = 30
     type_weight: float = 1.0
@@ -53,6 +55,7 @@ class NamingConfig:
     ambiguity: float = 0.1
     prior_sigma_deg: float = 30.0
     quad_line_min: float = 0.3
+    relative_cues: bool = True
 
 
 @dataclass(frozen=True)
@@ -243,12 +246,16 @@ def _score(R: np.ndarray, t: np.ndarray, cand: np.ndarray, K: np.ndarray, cues: 
     match = np.where(inlier, j, -1)
     if cues.type_nll is not None:
         jt = CORNER_JTYPE if cues.type_nll.shape[1] == N_JTYPES else CORNER_END
+        # relative to a type drawn at random (log J): a confident right type lowers the cost, so explaining one
+        # more candidate is not penalized for the cue itself
         nll = cues.type_nll[np.where(match >= 0, match, 0), jt[None, :]]
+        nll = nll - cfg.relative_cues * np.log(cues.type_nll.shape[1])
         cost += cfg.type_weight * np.sum(np.where(match >= 0, nll, 0.0), axis=1)
     if cues.line_nll is not None:
         for a, b in EDGES:
             ok = (match[:, a] >= 0) & (match[:, b] >= 0) & (match[:, a] != match[:, b])
             nll = cues.line_nll[np.maximum(match[:, a], 0), np.maximum(match[:, b], 0)]
+            nll = nll - cfg.relative_cues * np.log(2.0)
             cost += cfg.line_weight * np.where(ok, nll, 0.0)
     return {"cost": cost, "visible": vis, "match": match, "projected": proj}
 
