@@ -3,6 +3,7 @@
 
 demo: setup
 	mkdir -p out
+	.venv/bin/envisat demo --out out/demo
 	.venv/bin/envisat simulate --out out/run.npz --plot
 	.venv/bin/envisat estimate --truth out/run.npz --runs 30 --out out/est.npz --plot
 

@@ -397,6 +397,75 @@ def write_campaign_recording(path: str, t_s: np.ndarray, x_true: np.ndarray, x_h
     return path
 
 
+DETECTED_RGB = (255, 200, 0)
+ROI_RGB = (0, 200, 255)
+
+
+def log_image_series(rec: rr.RecordingStream, t_s: np.ndarray, images: list[bytes],
+                     media_type: str = "image/jpeg", frames: np.ndarray | None = None) -> int:
+    """world/chaser/camera/image: one encoded image (JPEG or PNG bytes) per frame; b'' (a skipped frame, e.g.
+    in eclipse) logs nothing. Returns the number of images logged."""
+    frames = np.arange(len(t_s)) if frames is None else np.asarray(frames)
+    n = 0
+    for k, blob in enumerate(images):
+        if not blob:
+            continue
+        rec.set_time("frame", sequence=int(frames[k]))
+        rec.set_time("sim_time", duration=float(t_s[k]))
+        rec.log("world/chaser/camera/image", rr.EncodedImage(contents=blob, media_type=media_type))
+        n += 1
+    return n
+
+
+def log_detection_series(rec: rr.RecordingStream, t_s: np.ndarray, corners_px: np.ndarray, visible: np.ndarray,
+                         roi_px: np.ndarray | None = None, frames: np.ndarray | None = None) -> None:
+    """The detector's named corners per frame as world/chaser/camera/image/corners_detected (keypoints A-H of
+    the annotation context, so the viewer draws the 12 edges between found corners): corners_px (T, 8, 2)
+    OpenCV px, visible (T, 8) bool (found). roi_px (T, 3) (x0, y0, side), NaN rows without a region of
+    interest: .../image/roi as a box."""
+    idx = _times(t_s, frames)
+    m = np.asarray(visible, dtype=bool) & np.isfinite(corners_px).all(-1)
+    rec.log("world/chaser/camera/image/corners_detected", rr.Points2D.from_fields(colors=[DETECTED_RGB], radii=[3.0]),
+            static=True)
+    rec.send_columns("world/chaser/camera/image/corners_detected", idx, rr.Points2D.columns(
+        positions=np.asarray(corners_px)[m] + 0.5,  # OpenCV pixel centres -> Rerun's
+        keypoint_ids=np.broadcast_to(np.arange(8), m.shape)[m],
+        class_ids=np.full(int(m.sum()), KEYPOINT_CLASS)).partition(m.sum(axis=1)))
+    rec.send_columns("metrics/detected_corners", idx, rr.Scalars.columns(scalars=m.sum(axis=1).astype(float)))
+    if roi_px is not None:
+        roi = np.asarray(roi_px, dtype=float)
+        has = np.isfinite(roi).all(-1)
+        rec.log("world/chaser/camera/image/roi", rr.Boxes2D.from_fields(colors=[ROI_RGB]), static=True)
+        rec.send_columns("world/chaser/camera/image/roi", idx, rr.Boxes2D.columns(
+            centers=roi[has, 0:2] + 0.5 * roi[has, 2:3], half_sizes=np.repeat(0.5 * roi[has, 2:3], 2, axis=1),
+        ).partition(has.astype(int)))
+
+
+def closed_loop_blueprint() -> rrb.Blueprint:
+    cam = rrb.Spatial2DView(origin="world/chaser/camera", name="camera image, true (green/red) and detected corners",
+                            contents=["$origin/**"])
+    left = rrb.Vertical(cam, rrb.Spatial3DView(origin="world", name="3D: chaser LVLH frame C (m)"), row_shares=[1, 1])
+    return rrb.Blueprint(rrb.Horizontal(left, error_plots(), column_shares=[2, 3]), collapse_panels=True)
+
+
+def write_closed_loop_recording(path: str, est: Estimates, truth: TruthTrajectory, images: list[bytes],
+                                corners_px: np.ndarray, visible: np.ndarray, roi_px: np.ndarray | None = None,
+                                media_type: str = "image/jpeg") -> str:
+    """`envisat run`: the truth, run 0's estimate with its 3-sigma ellipsoid, every run's errors with +-3 sigma
+    bands, and run 0's camera: one encoded image per frame (images (T,) bytes, b'' when skipped), the true
+    corners, the detected corners corners_px (T, 8, 2) where visible (T, 8), the region of interest roi_px
+    (T, 3). Timelines: frame = the filter step, sim_time."""
+    err, filt, samp = estimate_bands(est.x_true, est.x_hat, est.P)
+    with _Recording(path, closed_loop_blueprint()) as rec:
+        log_static_scene(rec, estimate=True)
+        _log_truth_on_grid(rec, est.t_s, est.x_true[0], truth)
+        log_estimate_series(rec, est.t_s, est.x_hat[0], est.P[0])
+        log_error_series(rec, est.t_s, err, filt, samp)
+        log_detection_series(rec, est.t_s, corners_px, visible, roi_px)
+        log_image_series(rec, est.t_s, images, media_type)
+    return path
+
+
 @dataclass(frozen=True)
 class Sample:
     """A dataset sample as the recording shows it: image_png (PNG bytes of the 8-bit image as training sees it),
