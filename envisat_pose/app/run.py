@@ -47,7 +47,6 @@ import numpy as np
 from envisat_pose.config import InputError, check, deep_update, from_dict, load_toml, set_dotted, to_dict, to_toml
 from envisat_pose.filtering.estimator import FilterConfig
 
-SHIPPED_WEIGHTS = "detector.safetensors"  # package data of envisat_pose.models
 # the half-turn about the long axis: A<->C, B<->D, E<->G, F<->H (perception's alt_corners_px naming)
 HALF_TURN = np.array([2, 3, 0, 1, 6, 7, 4, 5])
 STAGES = ("simulation", "rendering", "detection", "filtering", "recording")
@@ -65,14 +64,11 @@ LOOP_FILTER = {"adaptive_r": True, "adaptive_r_bounds": (1.0, 100.0), "gate_lock
 
 def default_weights_path() -> str:
     """The shipped detector weights, models/detector.safetensors (package data of envisat_pose.models, found
-    with importlib.resources). InputError naming the path when the file is absent."""
-    import importlib.resources
+    with importlib.resources by perception.weights.shipped_weights_path). InputError (WeightsError) naming the
+    path when the file is absent."""
+    from envisat_pose.perception.weights import shipped_weights_path
 
-    path = str(importlib.resources.files("envisat_pose.models") / SHIPPED_WEIGHTS)
-    if not os.path.isfile(path):
-        raise InputError(f"no shipped detector weights at {path}; give --weights W.safetensors "
-                         "(train them with `envisat train`)")
-    return path
+    return shipped_weights_path()
 
 
 @dataclass(frozen=True)
