@@ -1,0 +1,167 @@
+"""Online closed-loop speed and accuracy: `envisat run` on the default scenario at 1 Hz, one run, with and without
+the region of interest (the filter's predicted corners as the detector's crop).
+
+Measured per frame: the time in each stage (simulation: the MuJoCo truth, per frame; rendering: MuJoCo's render
+and the space camera; detection; filtering: predictions, both half-turn hypotheses; recording: JPEG encoding),
+and the real-time factor, simulated seconds per wall second of the loop. Accuracy: the closed loop's RMSE after
+t = 300 s next to the same filter on ideal pixel measurements (the truth's projected corners, every visible
+in-frame corner, Gaussian noise of the detector's measured noise: the RMS error of its correctly named corners in
+the same run), from the same initial estimate.
+
+Run: .venv/bin/python bench/online_speed.py [--duration-s 600] [--weights W] [--out bench/results/online_speed.json]
+Floor (issue 11): 5x real time on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+FLOOR_RTF = 5.0
+CORRECT_PX = 10.0  # a detected corner within this of the truth counts as correctly named (noise statistics)
+
+
+def closed_loop(weights: str, duration_s: float, roi: bool, seed: int, out_dir: str) -> tuple[dict, object]:
+    from envisat_pose.app import run as loop
+    from envisat_pose.config import from_dict
+
+    loop._stage_types()
+    data = {"scenario": "default", "duration_s": duration_s, "weights": weights, "seed": seed, "workers": 1,
+            "loop": {"roi": roi},
+            "filter": {**loop.LOOP_FILTER, **loop_filter_table()}}
+    cfg = loop.finish_config(from_dict(loop.RunConfig, data))
+    t0 = time.perf_counter()
+    summary = loop.run_closed_loop(cfg, out_dir, progress=False)
+    summary["bench_wall_s"] = time.perf_counter() - t0
+    return summary, cfg
+
+
+def loop_filter_table() -> dict:
+    from envisat_pose.app.scenarios import job_defaults
+
+    return job_defaults("default").get("filter", {})
+
+
+def detector_noise(out_dir: str) -> dict:
+    """The detector's pixel error in a run: RMS per axis of its correctly named corners (within CORRECT_PX of
+    the truth), the share of found corners that are not, and the mean e^T C^-1 e of the correct ones."""
+    from envisat_pose.contracts import TruthTrajectory
+
+    truth = TruthTrajectory.load(os.path.join(out_dir, "truth.npz"))
+    with np.load(os.path.join(out_dir, "det.npz"), allow_pickle=False) as z:
+        c, vis, cov = z["corners_px"], z["visible"], z["cov_px"]
+    e = c - truth.corners_px
+    n = np.linalg.norm(e, axis=-1)
+    found = vis & np.isfinite(n)
+    good = found & (n < CORRECT_PX)
+    eg = e[good]
+    m = np.einsum("ni,nij,nj->n", eg, np.linalg.inv(cov[good]), eg)
+    measurable = truth.visible & truth.in_frame
+    return {"sigma_px": float(np.sqrt(np.mean(eg**2))), "sigma_px_xy": np.sqrt(np.mean(eg**2, axis=0)).tolist(),
+            "bias_px_xy": eg.mean(axis=0).tolist(), "found_corners": int(found.sum()),
+            "measurable_corners": int(measurable.sum()), "wrong_share": float(1 - good.sum() / max(found.sum(), 1)),
+            "within_2px": float(np.mean(n[found] < 2.0)), "within_5px": float(np.mean(n[found] < 5.0)),
+            "mean_mahalanobis_correct": float(m.mean()), "correct_px": CORRECT_PX}
+
+
+def ideal_pixels(out_dir: str, cfg, sigma_px: float, seed: int) -> np.ndarray:
+    """The filter on the truth's projected corners (visible, in frame) + N(0, sigma_px^2), the closed loop's
+    run-0 initial estimate; returns x_hat (T, 12)."""
+    from envisat_pose.app.estimate import truth_model
+    from envisat_pose.contracts import TruthTrajectory
+    from envisat_pose.filtering.estimator import chaser_states, run_filter
+
+    truth = TruthTrajectory.load(os.path.join(out_dir, "truth.npz"))
+    mu, gg = truth_model(truth)
+    rng0 = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0,)))
+    P0 = cfg.filter.P0
+    x0 = truth.x[0] + np.linalg.cholesky(P0) @ rng0.standard_normal(12)  # as closed_loop_task draws run 0's
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(10**6,)))
+    z = truth.corners_px + rng.normal(0.0, sigma_px, truth.corners_px.shape)
+    mask = truth.visible & truth.in_frame
+    ch = chaser_states(truth.chaser_r_m, truth.chaser_rdot_m_s, truth.chaser_theta_rad, truth.chaser_thetadot_rad_s)
+    res = run_filter(x0[None], P0, truth.t_s, ch, z[None], mask[None], sigma_px**2 * np.eye(2), "pixels", cfg.filter,
+                     mu_m3_s2=mu, gravity_gradient=gg)
+    return res.x_hat[0]
+
+
+def rmse(t_s, x_true, x_hat, after_s: float) -> dict:
+    from envisat_pose.attitude import mrp_error_angle_rad
+
+    late = t_s >= after_s
+    pos = np.linalg.norm(x_hat[late, 0:3] - x_true[late, 0:3], axis=-1)
+    ang = np.degrees(mrp_error_angle_rad(x_hat[late, 6:9], x_true[late, 6:9]))
+    vel = np.linalg.norm(x_hat[late, 3:6] - x_true[late, 3:6], axis=-1)
+    rate = np.degrees(np.linalg.norm(x_hat[late, 9:12] - x_true[late, 9:12], axis=-1))
+    r = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
+    return {"position_m": r(pos), "velocity_m_s": r(vel), "attitude_deg": r(ang), "rate_deg_s": r(rate),
+            "max_position_m": float(pos.max()), "max_attitude_deg": float(ang.max())}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration-s", type=float, default=600.0)
+    ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--after-s", type=float, default=300.0, help="RMSE from this time on, s")
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "online_speed.json"))
+    args = ap.parse_args()
+    from envisat_pose.app.run import STAGES, default_weights_path
+    from envisat_pose.contracts import Estimates
+    from envisat_pose.io import atomic_write_text
+
+    weights = args.weights or default_weights_path()
+    load_start = os.getloadavg()
+    result = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": sys.version.split()[0],
+                          "load_avg_start": load_start},
+              "protocol": f"envisat run --scenario default --duration-s {args.duration_s:g} at 1 Hz, one run, one "
+                          "process (torch 1 thread, llvmpipe LP_NUM_THREADS = the cores); stage times per frame; "
+                          "real-time factor = simulated s / wall s of the loop's stages",
+              "weights": weights, "floor_rtf": FLOOR_RTF, "cases": {}}
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="online-speed-") as tmp:
+        for roi in (True, False):
+            name = "roi" if roi else "no_roi"
+            out = os.path.join(tmp, name)
+            summary, cfg = closed_loop(weights, args.duration_s, roi, args.seed, out)
+            est = Estimates.load(os.path.join(out, "est.npz"))
+            case = {"timing_ms_per_frame": summary["timing_ms_per_frame"],
+                    "real_time_factor": summary["real_time_factor_one_run"],
+                    "wall_s": summary["wall_s"], "run0": summary["run0"], "diverged": bool(est.diverged.any()),
+                    "recording_bytes": summary["recording_bytes"],
+                    "rmse_closed_loop": rmse(est.t_s, est.x_true[0], est.x_hat[0], args.after_s),
+                    "detector_noise": detector_noise(out)}
+            x_ideal = ideal_pixels(out, cfg, case["detector_noise"]["sigma_px"], args.seed)
+            case["rmse_ideal_pixels"] = rmse(est.t_s, est.x_true[0], x_ideal, args.after_s)
+            case["floor_met"] = case["real_time_factor"] >= FLOOR_RTF
+            result["cases"][name] = case
+            rows.append((name, case))
+    result["machine"]["load_avg_end"] = os.getloadavg()
+    result["after_s"] = args.after_s
+    atomic_write_text(args.out, json.dumps(result, indent=1, sort_keys=True) + "\n")
+    print(f"online closed loop, default scenario, {args.duration_s:g} s at 1 Hz (load {load_start[0]:.1f} at start)")
+    head = f"{'case':8s} " + " ".join(f"{s[:9]:>9s}" for s in STAGES) + f" {'RTF':>6s} {'pos cm':>8s} {'att deg':>8s}" \
+        + f" {'ideal cm':>9s} {'ideal deg':>9s}"
+    print(head + "   (ms per frame; RMSE after %g s)" % args.after_s)
+    for name, c in rows:
+        t = c["timing_ms_per_frame"]
+        print(f"{name:8s} " + " ".join(f"{t[s]:9.1f}" for s in STAGES)
+              + f" {c['real_time_factor']:6.2f} {100 * c['rmse_closed_loop']['position_m']:8.2f}"
+              f" {c['rmse_closed_loop']['attitude_deg']:8.3f} {100 * c['rmse_ideal_pixels']['position_m']:9.2f}"
+              f" {c['rmse_ideal_pixels']['attitude_deg']:9.3f}")
+    n = result["cases"]["roi"]["detector_noise"]
+    print(f"detector noise (correct corners): {n['sigma_px']:.2f} px RMS per axis, wrong {100 * n['wrong_share']:.1f} % "
+          f"of found corners; floor {FLOOR_RTF:g}x real time: "
+          + ", ".join(f"{k} {'met' if c['floor_met'] else 'NOT met'}" for k, c in result["cases"].items()))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
