@@ -1,0 +1,112 @@
+"""Write the model card (models/detector.json) of the shipped detector weights from what the runs recorded.
+
+Usage: python scripts/model_card.py --weights models/detector.safetensors --runs RUN_DIR [RUN_DIR ...]
+           --datasets DIR [DIR ...] --evaluation NAME=EVAL.json [NAME=EVAL.json ...] [--commands FILE]
+           --hardware TEXT --out models/detector.json
+
+Everything in the card comes from files: each training run's config.json (its exact `envisat train` command, git
+hash, torch), state.json (the steps done) and metrics.jsonl (the last epoch's losses); each dataset's manifest
+(seed, size, config); the weights file (sha256, size, cov_scale and its calibration record); and `envisat
+evaluate`'s JSON per held-out set (the metrics).
+`--commands` adds the lines that made the datasets and the calibration, as they were typed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from envisat_pose.io import atomic_write_text, sha256_file  # noqa: E402
+from envisat_pose.perception.weights import read_metadata  # noqa: E402
+
+
+def run_record(run_dir: str) -> dict:
+    cfg = json.load(open(os.path.join(run_dir, "config.json"), encoding="utf-8"))
+    rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"), encoding="utf-8")]
+    last = rows[-1] if rows else {}
+    state = json.load(open(os.path.join(run_dir, "state.json"), encoding="utf-8"))
+    stopped = state["step"] < cfg["train"]["steps"]
+    return {"command": cfg.get("command"), "git": cfg.get("git"), "torch": cfg.get("torch"),
+            "device": cfg.get("device"), "init": cfg.get("init"), "steps_done": state["step"],
+            "stopped_early": stopped, "weights_used": "checkpoint.safetensors at step %d" % state["step"],
+            # from the run folder's creation (config.json) to its last checkpoint
+            "wall_time_s": round(os.path.getmtime(os.path.join(run_dir, "checkpoint.safetensors"))
+                                 - os.path.getmtime(os.path.join(run_dir, "config.json")), 1),
+            "last_epoch_losses": {k: last[k] for k in ("loss", "heatmap", "offset", "line", "nll") if k in last},
+            "train_config": cfg.get("train")}
+
+
+def dataset_record(path: str) -> dict:
+    man = json.load(open(os.path.join(path, "manifest.json"), encoding="utf-8"))
+    c = man.get("config", {})
+    n = sum(int(s.get("count", 0)) for s in man.get("shards", []))
+    return {"path": os.path.abspath(path), "images": n, "seed": c.get("seed"),
+            "resolution_px": c.get("resolution_px"), "mode": c.get("mode"), "storage": c.get("storage"),
+            "corruption_model": c.get("corruption", {}).get("model")}
+
+
+def headline(evaluation: dict) -> dict:
+    """The floors' numbers per group, detector next to the classical peers."""
+    out = {}
+    for group, per in evaluation["groups"].items():
+        if not per.get("detector", {}).get("frames"):
+            continue
+        row = {}
+        for method, s in per.items():
+            if not s.get("frames"):
+                continue
+            row[method] = {"frames": s["frames"], "median_px": s["errors"]["all"]["median_px"],
+                           "p95_px": s["errors"]["all"]["p95_px"], "pck_2px": s["pck_2px"], "pck_5px": s["pck_5px"],
+                           "swap_rate_strict": s["swap_rate_strict"], "ambiguous_share": s["ambiguous_share"]}
+            if "visibility" in s:
+                row[method]["visibility"] = s["visibility"]
+            if "calibration" in s:
+                row[method]["mean_nees"] = s["calibration"]["mean_nees"]
+            if "pose" in s:
+                row[method]["pose"] = s["pose"]
+        out[group] = row
+    return out
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--weights", required=True)
+    p.add_argument("--runs", nargs="+", required=True)
+    p.add_argument("--datasets", nargs="+", required=True)
+    p.add_argument("--evaluation", nargs="+", required=True, metavar="NAME=EVAL.json",
+                   help="envisat evaluate's JSON per held-out set, each under a name")
+    p.add_argument("--commands", help="text file: the commands that made the datasets, the calibration, the card")
+    p.add_argument("--hardware", required=True)
+    p.add_argument("--out", required=True)
+    a = p.parse_args()
+    meta = read_metadata(a.weights)
+    evaluations = {}
+    for item in a.evaluation:
+        name, _, path = item.partition("=")
+        evaluations[name] = json.load(open(path, encoding="utf-8"))
+    card = {
+        "weights": {"file": os.path.basename(a.weights), "sha256": sha256_file(a.weights),
+                    "bytes": os.path.getsize(a.weights), "model_config": json.loads(meta["model_config"]),
+                    "cov_scale": float(json.loads(meta.get("cov_scale", "1.0"))),
+                    "cov_calibration": json.loads(meta["cov_calibration"]) if "cov_calibration" in meta else None},
+        "hardware": a.hardware,
+        "training_runs": [run_record(r) for r in a.runs],
+        "datasets": [dataset_record(d) for d in a.datasets],
+        "commands": open(a.commands, encoding="utf-8").read().strip().splitlines() if a.commands else [],
+        "evaluations": {name: {"data": e.get("data"), "frames": e.get("frames"),
+                               "detect_config": e.get("detect_config"), "metrics": headline(e)}
+                        for name, e in evaluations.items()},
+    }
+    card["training_time_s"] = sum(r["wall_time_s"] or 0.0 for r in card["training_runs"])
+    atomic_write_text(a.out, json.dumps(card, indent=1, sort_keys=False, allow_nan=False,
+                                        default=lambda x: None) + "\n")
+    print(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
