@@ -135,7 +135,8 @@ def _image_defaults() -> "GenerateConfig":
 
 @dataclass(frozen=True)
 class RunConfig:
-    """One `envisat run` job. scenario: named truth; duration_s: simulated time; rate_hz: camera and filter rate;
+    """One `envisat run` job. scenario: named truth; duration_s: simulated time (the CLI starts from the
+    scenario's); rate_hz: camera and filter rate;
     runs: closed loops on the same truth; workers: processes for them; seed: the truth's random attitude, every
     run's initial error and camera noise; weights: detector weights file. image: the camera frames, as the image
     factory's sequence mode makes them (datagen.factory.GenerateConfig: corruption, appearance, lighting, sun_dir
@@ -195,7 +196,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", default="default", help="named scenario (`envisat scenarios` lists them)")
-    p.add_argument("--duration-s", type=float, help="simulated time, s (default 600)")
+    p.add_argument("--duration-s", type=float, help="simulated time, s (default: the scenario's)")
     p.add_argument("--config", metavar="FILE.toml", help="run config (sections image, filter, loop; top-level keys)")
     p.add_argument("--weights", metavar="W.safetensors",
                    help="detector weights (default: the shipped models/detector.safetensors)")
@@ -213,6 +214,10 @@ def resolve_config(args: argparse.Namespace) -> RunConfig:
     _stage_types()
     defaults = job_defaults(args.scenario)  # unknown names fail here with the known ones
     data: dict = {"scenario": args.scenario, "filter": {**LOOP_FILTER, **defaults.get("filter", {})}}
+    if "duration_s" in defaults:  # the scenario's duration unless the file or --duration-s say otherwise
+        data["duration_s"] = defaults["duration_s"]
+    if "rate_hz" in defaults.get("measurement", {}):  # the camera runs at the scenario's measurement rate
+        data["rate_hz"] = defaults["measurement"]["rate_hz"]
     if args.config:
         data = deep_update(data, load_toml(args.config))
     flags = {
