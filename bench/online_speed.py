@@ -1,8 +1,9 @@
 """Online closed-loop speed and accuracy: `envisat run` on the default scenario at 1 Hz, one run, with and without
 the region of interest (the filter's predicted corners as the detector's crop).
 
-Measured per frame: the time in each stage (simulation: the MuJoCo truth, per frame; rendering: MuJoCo's render
-and the space camera; detection; filtering: predictions, both half-turn hypotheses; recording: JPEG encoding),
+Measured per frame: the time in each stage (simulation: the MuJoCo truth, per frame; rendering: MuJoCo's render;
+camera: the space camera's corruption; detection; filtering: predictions, both half-turn hypotheses; recording:
+JPEG encoding),
 and the real-time factor, simulated seconds per wall second of the loop. Accuracy: the closed loop's RMSE after
 t = 300 s next to the same filter on ideal pixel measurements (the truth's projected corners, every visible
 in-frame corner, Gaussian noise of the detector's measured noise: the RMS error of its correctly named corners in

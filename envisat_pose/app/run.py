@@ -49,7 +49,9 @@ from envisat_pose.filtering.estimator import FilterConfig
 
 # the half-turn about the long axis: A<->C, B<->D, E<->G, F<->H (perception's alt_corners_px naming)
 HALF_TURN = np.array([2, 3, 0, 1, 6, 7, 4, 5])
-STAGES = ("simulation", "rendering", "detection", "filtering", "recording")
+# per-frame stages timed: the MuJoCo truth, MuJoCo rendering, the space camera (corruption), the detector, the
+# filter (predictions and both half-turn hypotheses), JPEG encoding for the recording
+STAGES = ("simulation", "rendering", "camera", "detection", "filtering", "recording")
 # a lit default: the sun 45 deg off the line of sight, behind the camera, from above the orbit plane at t = 0
 # (in C: radial, along-track, normal); in the default orbit the chaser stays out of the Earth's shadow ~20 min
 DEFAULT_SUN_C0 = (0.7, -0.7, 0.15)
@@ -468,7 +470,7 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, keep_images: bool
     Keys: x_hat (T, 12), P (T, 12, 12), n_meas, nis, nis_dof, rejected (T,), diverged, repaired; the detections
     corners_px (T, 8, 2), cov_px (T, 8, 2, 2), confidence (T, 8), visible (T, 8), alt_corners_px,
     alt_probability (T,), ambiguous (T,), crop_px (T, 3); the loop's roi_px (T, 3) (NaN without), roi_used,
-    coarse_fallback, skipped, converged (T,) bool, hypothesis (T,) int, cost (T, 2); timing_s (T, 5) per STAGES;
+    coarse_fallback, skipped, converged (T,) bool, hypothesis (T,) int, cost (T, 2); timing_s (T, 6) s per STAGES;
     jpeg: list of T bytes (b'' for a skipped frame) when keep_images."""
     import cv2
 
@@ -512,7 +514,8 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, keep_images: bool
                 "alt_corners_px": np.full((T, 8, 2), np.nan), "alt_probability": np.zeros(T),
                 "ambiguous": np.zeros(T, bool), "crop_px": np.zeros((T, 3)), "roi_px": np.full((T, 3), np.nan),
                 "roi_used": np.zeros(T, bool), "coarse_fallback": np.zeros(T, bool), "skipped": np.zeros(T, bool),
-                "converged": np.zeros(T, bool), "cost": np.full((T, 2), np.nan), "timing_s": np.zeros((T, 5))})
+                "converged": np.zeros(T, bool), "cost": np.full((T, 2), np.nan),
+                "timing_s": np.zeros((T, len(STAGES)))})
     jpegs: list[bytes] = []
     bar = None
     if progress:
@@ -522,17 +525,19 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, keep_images: bool
     for k in range(T):
         x = truth.x[k]
         image = None
-        t_render = 0.0
+        t_render = t_camera = 0.0
         if not eclipse[k]:
             t0 = time.perf_counter()
             view = View(x[0:3], mrp_to_dcm(x[6:9]).T, sun_C[k], unit(nadir_C[k]), float(np.linalg.norm(nadir_C[k])),
                         earth_backdrop=gcfg.earth_probability > 0)
             view, _ = with_look(gcfg, view, {}, look_seed)
             rendered = renderer.render(view)
+            t_render = time.perf_counter() - t0
+            t0 = time.perf_counter()
             frame_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(run, 1, k)))
             params = draw_corruption_params(gcfg, rendered, x, renderer.K[0, 0], renderer.target_boxes, frame_rng)
             image = apply_corruption(rendered.gray_u8, params)
-            t_render = time.perf_counter() - t0
+            t_camera = time.perf_counter() - t0
         state, rec = loop_step(state, FrameInput(float(truth.t_s[k]), chaser[k], image), detector, setup, lcfg)
         t0 = time.perf_counter()
         if keep_images:
@@ -540,7 +545,7 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, keep_images: bool
                 ".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, lcfg.jpeg_quality])
             jpegs.append(buf.tobytes() if ok else b"")
         _store(out, k, state, rec)
-        out["timing_s"][k] = (sim_s_per_frame, t_render, rec.detect_s, rec.filter_s, time.perf_counter() - t0)
+        out["timing_s"][k] = (sim_s_per_frame, t_render, t_camera, rec.detect_s, rec.filter_s, time.perf_counter() - t0)
         if bar is not None:
             bar.update(1)
     if bar is not None:
@@ -681,7 +686,7 @@ def error_table(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, after_s:
 def make_summary(cfg: RunConfig, truth, est, results: list[dict], sim_s: float, loop_wall_s: float,
                  total_wall_s: float, rrd_bytes: int, rec_s: float) -> dict:
     T = len(truth.t_s)
-    timing = np.stack([r["timing_s"] for r in results])  # (R, T, 5)
+    timing = np.stack([r["timing_s"] for r in results])  # (R, T, stages)
     per_frame_ms = {s: float(1000 * timing[..., i].mean()) for i, s in enumerate(STAGES)}
     r0 = results[0]
     frames_sum = float(timing.sum(axis=-1).mean(axis=0).sum())  # one run's wall time in the stages
