@@ -14,9 +14,11 @@ Per run and frame k (t_k = k / rate_hz):
    projected through the camera and grown by a margin and the prior's 3-sigma, are the detector's region of
    interest, and the predicted attitude its half-turn prior; before that, or when the ROI yields fewer than
    loop.roi_min_corners corners, the detector runs its coarse pass on the whole frame;
-5. the detections become pixel measurements with the detector's calibrated covariance as R (adaptive R scales
-   it, the chi-square gate rejects single wrong corners, the visibility check drops corners the prior says are
-   hidden). The half-turn: the detector's naming and its half-turn alternative (A<->C, B<->D, E<->G, F<->H) are
+5. the detections become pixel measurements with R = the detector's calibrated covariance x loop.r_inflation
+   (its errors are correlated from frame to frame; adaptive R may raise R further, never lower it), the
+   chi-square gate rejects single wrong corners, the visibility check drops corners the prior says are hidden.
+   A run whose gate rejects every corner for loop.reacquire_after_frames frames widens its covariance step by
+   step until corners pass again (instead of the filter's one ungated update, which takes a wrong frame in). The half-turn: the detector's naming and its half-turn alternative (A<->C, B<->D, E<->G, F<->H) are
    both filtered from the same prior, and each scored by its innovation cost, NIS + gate bound x (corners
    rejected or dropped) (~ -2 log likelihood). The cheaper one is kept. Before convergence an ambiguous frame
    is used only when the prior decides it (cost difference > loop.decisive_cost, a likelihood ratio of
@@ -53,7 +55,8 @@ HALF_TURN = np.array([2, 3, 0, 1, 6, 7, 4, 5])
 # filter (predictions and both half-turn hypotheses), JPEG encoding for the recording
 STAGES = ("simulation", "rendering", "camera", "detection", "filtering", "recording")
 # a lit default: the sun 45 deg off the line of sight, behind the camera, from above the orbit plane at t = 0
-# (in C: radial, along-track, normal); in the default orbit the chaser stays out of the Earth's shadow ~20 min
+# (in C: radial, along-track, normal); in the default orbit the chaser enters the Earth's shadow at t = 1203 s
+# (phase angle 46 deg at t = 0, 12 deg at 600 s): longer runs of the default scenario skip the frames in shadow
 DEFAULT_SUN_C0 = (0.7, -0.7, 0.15)
 # the filter's gate lockout (one ungated update after N all-rejected steps) is off in the loop: it re-acquires
 # by inflating the covariance instead (LoopConfig.reacquire_*)
