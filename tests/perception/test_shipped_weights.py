@@ -1,0 +1,91 @@
+"""The shipped detector weights (models/detector.safetensors) on a small set freshly generated here with a seed no
+training or calibration set used: full 1024 px frames, appearance randomization and the space camera on.
+
+The floors are the measured performance of these weights on the 200-frame held-out set of the model card
+(models/detector.json) less a margin for a 24-frame sample (binomial standard error of a share p over ~140
+corners: sqrt(p (1 - p) / 140) ~ 4 points; 3 standard errors). They guard against a regression of the weights
+or of the detection chain; they are not the issue's floors, which these weights do not reach yet (see the model
+card and the README's status).
+"""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from envisat_pose.app.detect import camera_samples
+from envisat_pose.perception.data import shard_paths
+from envisat_pose.perception.detect import load_detector
+from envisat_pose.perception.evaluate import score_method
+from envisat_pose.perception.weights import shipped_weights_path
+
+FRAMES = 24
+SEED = 8_675_309  # not a seed of the card's training (101, 111), calibration (303) or evaluation (404, 505) sets
+
+
+@pytest.fixture(scope="module")
+def fresh_set(tmp_path_factory):
+    from envisat_pose.app.cli import main
+
+    out = tmp_path_factory.mktemp("shipped") / "ds"
+    assert main(["generate", "--num-images", str(FRAMES), "--shard-size", "12", "--seed", str(SEED),
+                 "--out", str(out), "--quiet"]) == 0
+    return str(out)
+
+
+@pytest.fixture(scope="module")
+def scored(fresh_set):
+    import torch
+
+    torch.set_num_threads(2)
+    det = load_detector(shipped_weights_path())
+    rows = {k: [] for k in ("pred", "alt", "amb", "vis", "cov", "true", "use")}
+    for _key, image, label in camera_samples(shard_paths(fresh_set)):
+        f = det.detect(image, label["K"])
+        for k, v in (("pred", f.corners_px), ("alt", f.alt_corners_px), ("amb", f.ambiguous), ("vis", f.visible),
+                     ("cov", f.cov_px), ("true", label["corners_px"]), ("use", label["visible"] & label["in_frame"])):
+            rows[k].append(v)
+    a = {k: np.array(v) for k, v in rows.items()}
+    s = score_method(a["pred"], a["true"], a["use"], alt_px=a["alt"], ambiguous=a["amb"], pred_visible=a["vis"],
+                     cov_px=a["cov"])
+    print(json.dumps({k: s[k] for k in ("pck_2px", "pck_5px", "swap_rate_strict", "ambiguous_share")}),
+          s["errors"]["all"], s["visibility"], s["calibration"])
+    return s
+
+
+def test_the_card_lies_beside_the_weights():
+    path = shipped_weights_path()
+    card = json.load(open(os.path.join(os.path.dirname(path), "detector.json"), encoding="utf-8"))
+    assert os.path.getsize(path) < 20 * 2 ** 20
+    from envisat_pose.io import sha256_file
+
+    assert card["weights"]["sha256"] == sha256_file(path)
+    assert card["training_runs"] and all(r["command"].startswith("envisat train") for r in card["training_runs"])
+
+
+def test_localization_and_naming(scored):
+    assert scored["usable_corners"] >= 100
+    assert scored["errors"]["all"]["median_px"] <= FLOORS["median_px"]
+    assert scored["pck_5px"] >= FLOORS["pck_5px"]
+    assert scored["pck_2px"] >= FLOORS["pck_2px"]
+    assert scored["swap_rate_strict"] <= FLOORS["swap_rate_strict"]
+
+
+def test_visibility(scored):
+    assert scored["visibility"]["precision"] >= FLOORS["vis_precision"]
+    assert scored["visibility"]["recall"] >= FLOORS["vis_recall"]
+
+
+def test_calibrated_covariance(scored):
+    """The shipped cov_scale keeps the mean e^T C^-1 e of correctly named corners near 2 (the issue's band
+    [1.6, 2.6], widened for the sample)."""
+    assert scored["calibration"]["count"] >= 50
+    assert FLOORS["nees_low"] <= scored["calibration"]["mean_nees"] <= FLOORS["nees_high"]
+
+
+# measured on the card's 200-frame held-out set (deval_sensor_camera, all groups: median 1.25 px, PCK@5 59.2 %,
+# PCK@2 49.2 %, strict swaps 14.1 %, visibility precision 90.2 % and recall 77.5 %, mean NEES 2.04), less the
+# margin in the module doc
+FLOORS = {"median_px": 2.0, "pck_5px": 0.45, "pck_2px": 0.36, "swap_rate_strict": 0.26, "vis_precision": 0.80,
+          "vis_recall": 0.65, "nees_low": 1.2, "nees_high": 3.2}
