@@ -7,7 +7,8 @@ demo: setup
 	.venv/bin/envisat simulate --out out/run.npz --plot
 	.venv/bin/envisat estimate --truth out/run.npz --runs 30 --out out/est.npz --plot
 
-test: setup
+test:
+	@WITH_VIEWER_CHECK=1 bash scripts/setup.sh
 	.venv/bin/python -m pytest -q
 
 setup:

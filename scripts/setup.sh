@@ -30,6 +30,20 @@ elif ! ldconfig -p 2>/dev/null | grep -q libOSMesa; then
   echo "setup: warning: no dpkg here and libOSMesa was not found; install OSMesa (or EGL) for rendering" >&2
 fi
 
+# 1b. `make test` (WITH_VIEWER_CHECK=1) also wants Chromium: a test opens a recording in the Rerun web viewer,
+# headless with software GL. Optional: without it (and not root) that one test skips.
+if [ "${WITH_VIEWER_CHECK:-0}" = "1" ] && command -v dpkg-query >/dev/null 2>&1 \
+    && ! command -v chromium >/dev/null 2>&1; then
+  if [ "$(id -u)" = "0" ]; then
+    echo "setup: installing chromium (the web-viewer test)"
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq && apt-get install -y -qq --no-install-recommends chromium >/dev/null \
+      || echo "setup: warning: could not install chromium; the web-viewer test will skip" >&2
+  else
+    echo "setup: note: chromium is not installed; the web-viewer test will skip (sudo apt-get install chromium)" >&2
+  fi
+fi
+
 # 2. The virtual environment.
 if ! command -v "$PYTHON" >/dev/null 2>&1; then
   echo "setup: error: $PYTHON not found; envisat-pose needs Python 3.11 (set PYTHON=/path/to/python3.11)" >&2
