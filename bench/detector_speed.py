@@ -6,11 +6,11 @@ Part 2: ms per full 1024 px frame of the whole detector (coarse pass + crop + ne
 verification + naming), and with a given region of interest (the crop around the label's corners standing in
 for the filter's prediction: no coarse pass), next to Harris and Shi-Tomasi (goodFeaturesToTrack + cornerSubPix,
 as perception/evaluate.py runs them) on the same frames; peak memory (max RSS of this process, which generates
-nothing: the frames come from `envisat generate` in a child process). --weights times trained weights; without
-it an untrained default-size network is timed: it finds no junction above threshold, so each call stops after
-one network pass (a lower bound: trained weights add the crop pass, line verification and naming). Writes bench/results/detector_speed.json.
+nothing: the frames come from `envisat generate` in a child process). The shipped weights are timed by default
+(--weights W for others; --untrained times an untrained default-size network, which finds no junction above
+threshold and stops after one network pass: a lower bound). Writes bench/results/detector_speed.json.
 
-    .venv/bin/python bench/detector_speed.py [--repeats 20] [--frames 8] [--weights W] [--out ...json]
+    .venv/bin/python bench/detector_speed.py [--repeats 20] [--frames 8] [--weights W | --untrained] [--out ...json]
 """
 
 from __future__ import annotations
@@ -78,16 +78,15 @@ def time_frames(frames: list, weights: str | None, repeats: int) -> dict:
     """ms per frame (median over frames of each frame's median) of the detector (full frame, ROI) and the
     classical peers."""
     from envisat_pose.perception.data import DataConfig, crop_box
-    from envisat_pose.perception.detect import Detector
+    from envisat_pose.perception.detect import Detector, load_detector
     from envisat_pose.perception.evaluate import classical_corners
-    from envisat_pose.perception.weights import load_model
 
     if weights:
-        model = load_model(weights)
+        det = load_detector(weights)
     else:
         torch.manual_seed(0)  # this bench's own draw of untrained weights
-        model = CornerNet(ModelConfig())
-    det = Detector(model)
+        det = Detector(CornerNet(ModelConfig()))
+    model = det.model
     per = {"detector_full_frame": [], "detector_roi": [], "harris": [], "shi_tomasi": []}
     for _, image, label in frames:
         use = label["visible"] & label["in_frame"]
@@ -107,9 +106,16 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--frames", type=int, default=8, help="full 1024 px frames for part 2")
     ap.add_argument("--frame-repeats", type=int, default=5, help="timed runs per frame in part 2")
-    ap.add_argument("--weights", help="trained weights (default: an untrained default-size network)")
+    ap.add_argument("--weights", help="trained weights (default: the shipped ones)")
+    ap.add_argument("--untrained", action="store_true", help="time an untrained default-size network instead")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "detector_speed.json"))
     args = ap.parse_args()
+    if not args.untrained and not args.weights:
+        from envisat_pose.perception.weights import shipped_weights_path
+
+        args.weights = shipped_weights_path()
+    if args.untrained:
+        args.weights = None
     torch.set_num_threads(args.threads)
     import cv2
 
@@ -137,8 +143,8 @@ def main() -> None:
               "cpu_count": os.cpu_count(), "network": rows, "full_frame": full,
               "note": "network: forward of one image, eval mode, inference_mode. full_frame: the whole detector "
                       "(coarse pass, crop, network, decode, line verification, naming) per 1024 px frame; "
-                      + ("trained weights" if args.weights else
-                         "UNTRAINED weights (none shipped yet): the untrained network finds no junction above "
+                      + (f"trained weights {os.path.basename(args.weights)}" if args.weights else
+                         "UNTRAINED weights (--untrained): the untrained network finds no junction above "
                          "threshold, so detector_full_frame and detector_roi stop after one network pass each: a "
                          "LOWER BOUND, without the crop pass, line verification and naming; no accuracy implied")}
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
