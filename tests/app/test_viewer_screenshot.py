@@ -9,6 +9,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 
 import cv2
 import numpy as np
@@ -19,17 +20,17 @@ from envisat_pose.app import view
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
-from test_view import free_ports, rerun_env, wait_http  # noqa: E402,F401  (rerun_env: a fixture)
+from test_view import free_ports, listeners, rerun_env, wait_http  # noqa: E402,F401  (rerun_env: a fixture)
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
-def chromium_screenshot(url: str, out_png: str, profile_dir: str, timeout_s: int = 420) -> None:
+def chromium_screenshot(url: str, out_png: str, profile_dir: str, timeout_s: int = 300) -> None:
     """Headless Chromium with software GL (the flags of the platform notes), one screenshot of url."""
     cmd = [CHROMIUM, "--headless=new", "--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader",
            "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist", "--disable-quic", "--no-first-run",
            "--disable-background-networking", "--disable-component-update", "--disable-sync",
-           f"--user-data-dir={profile_dir}", "--window-size=1600,1000", "--virtual-time-budget=120000",
+           f"--user-data-dir={profile_dir}", "--window-size=1600,1000", "--virtual-time-budget=240000",
            f"--screenshot={out_png}", url]
     subprocess.run(cmd, check=True, capture_output=True, timeout=timeout_s, start_new_session=True)
 
@@ -63,11 +64,21 @@ def test_the_recording_opens_in_the_web_viewer(tmp_path, detector_weights, rerun
     shot = tmp_path / "viewer.png"
     try:
         assert wait_http(f"http://127.0.0.1:{web_port}/", proc) == 200
-        chromium_screenshot(view.web_url(port, web_port), str(shot), str(tmp_path / "chrome"))
+        deadline = time.monotonic() + 60  # the recording's gRPC server too (it starts after the web server)
+        while not listeners(port) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert listeners(port), f"the viewer's gRPC port {port} does not listen"
+        # the page's virtual time can run out before the viewer's bundle has loaded (it compiles in real time):
+        # then the screenshot shows the loading screen; look again a little later
+        for attempt in range(8):
+            chromium_screenshot(view.web_url(port, web_port), str(shot), str(tmp_path / "chrome"))
+            counts = shows_the_recording(str(shot))
+            print(attempt, counts)
+            if counts["colours"] > 2000:
+                break
+            time.sleep(5)
     finally:
         view.stop_viewer(proc)
-    counts = shows_the_recording(str(shot))
-    print(counts)
     assert counts["black"] > 0.04 * counts["pixels"], "no camera image in the screenshot"
     assert counts["red"] > 300, "no error plots with their 3-sigma bands"
     assert counts["blue"] > 100, "no 3D view of the target's solar array"
