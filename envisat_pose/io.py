@@ -16,9 +16,11 @@ def atomic_path(path: str, suffix: str = ""):
     os.close(fd)
     umask = os.umask(0)
     os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; outputs get the user's usual mode
+    mode = 0o666 & ~umask
+    os.chmod(tmp, mode)  # mkstemp makes 0600 files; outputs get the user's usual mode
     try:
         yield tmp
+        os.chmod(tmp, mode)  # again: a writer may have replaced the file (safetensors' save_file makes it 0600)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

@@ -1,5 +1,6 @@
 """Weights load without unpickling; a missing, truncated, foreign or wrong-shape file is one clear line."""
 
+import os
 import numpy as np
 import pytest
 import torch
@@ -95,3 +96,21 @@ def test_optimizer_state_refuses_pickled_objects(tmp_path):
 
 class _Evil:
     pass
+
+
+def test_weights_files_get_the_usual_mode(tmp_path):
+    """safetensors' save_file leaves a 0600 file; ours get 0666 & ~umask like every other output."""
+    import stat
+
+    from envisat_pose.perception.weights import with_metadata
+
+    old = os.umask(0o022)
+    try:
+        torch.manual_seed(0)  # this test's untrained model
+        path, copy = str(tmp_path / "w.safetensors"), str(tmp_path / "c.safetensors")
+        save_weights(path, CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8)))
+        with_metadata(path, copy, {"cov_scale": 1.5})
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(os.stat(path).st_mode) == 0o644
+    assert stat.S_IMODE(os.stat(copy).st_mode) == 0o644
