@@ -71,6 +71,18 @@ def _init_distributed(device: str):
     return device
 
 
+def _end_distributed() -> None:
+    """Tear the process group down before the interpreter exits: a rank that leaves with gloo's threads still
+    running can abort ('terminate called without an active exception'; seen in CI on a loaded machine)."""
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        try:
+            dist.barrier()
+        finally:
+            dist.destroy_process_group()
+
+
 def run_train_cli(args: argparse.Namespace) -> int:
     import torch
 
@@ -102,7 +114,10 @@ def run_train_cli(args: argparse.Namespace) -> int:
     if args.init is not None:
         from envisat_pose.io import sha256_file
         provenance["init"] = {"path": os.path.abspath(args.init), "sha256": sha256_file(args.init)}
-    last = train(cfg, args.data, args.out, resume=args.resume, device=device, progress=not args.quiet,
-                 provenance=provenance, init_weights=args.init)
+    try:
+        last = train(cfg, args.data, args.out, resume=args.resume, device=device, progress=not args.quiet,
+                     provenance=provenance, init_weights=args.init)
+    finally:
+        _end_distributed()
     print(f"trained to step {last.get('step')}: loss {last.get('loss', float('nan')):.4f}; run in {args.out}")
     return 0
