@@ -66,30 +66,19 @@ def collect_errors(detector, samples, limit: int | None = None, bar=None):
 def run_calibrate_cli(args: argparse.Namespace) -> int:
     import dataclasses
 
-    import torch
     from tqdm import tqdm
 
-    from envisat_pose.app.detect import camera_samples
+    from envisat_pose.app.detect import camera_samples, detector_inputs
     from envisat_pose.io import check_writable_output
     from envisat_pose.perception.calibrate import calibration_by_group, fit_scale
     from envisat_pose.perception.data import shard_paths
     from envisat_pose.perception.detect import DetectConfig, load_detector
     from envisat_pose.perception.weights import with_metadata
 
-    if args.limit is not None and args.limit < 1:
-        raise InputError(f"--limit {args.limit}: expected at least 1")
-    from envisat_pose.perception.weights import shipped_weights_path
-
-    args.weights = args.weights or shipped_weights_path()
-    if not os.path.isfile(args.weights):
-        raise InputError(f"--weights {args.weights!r}: no such file")
+    detector_inputs(args)
     if os.path.abspath(args.out) != os.path.abspath(args.weights):
         check_writable_output(args.out)
     paths = shard_paths(args.data)
-    if args.threads is not None:
-        if args.threads < 1:
-            raise InputError(f"--threads {args.threads}: expected at least 1")
-        torch.set_num_threads(args.threads)
     # the network's own covariances (scale 1), whatever the file carried before
     det = load_detector(args.weights, config=dataclasses.replace(DetectConfig(), cov_scale=1.0))
     bar = tqdm(disable=args.quiet, desc="calibrate", unit="frame")

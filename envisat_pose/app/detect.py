@@ -31,6 +31,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_detect_cli)
 
 
+def detector_inputs(args: argparse.Namespace) -> None:
+    """The checks the verbs that run the detector share, before any work: --limit at least 1 (where the verb has
+    it), --weights (the shipped file by default) exists, --threads at least 1 (then torch uses that many)."""
+    import os
+
+    import torch
+
+    from envisat_pose.perception.weights import shipped_weights_path
+
+    if getattr(args, "limit", None) is not None and args.limit < 1:
+        raise InputError(f"--limit {args.limit}: expected at least 1")
+    args.weights = args.weights or shipped_weights_path()
+    if not os.path.isfile(args.weights):
+        raise InputError(f"--weights {args.weights!r}: no such file")
+    if args.threads is not None:
+        if args.threads < 1:
+            raise InputError(f"--threads {args.threads}: expected at least 1")
+        torch.set_num_threads(args.threads)
+
+
 def camera_samples(paths: list[str]):
     """(key, image, label) of every sample as the camera saw it: a shard stored clean (`image_stored` 'clean')
     gets its label's recorded sensor corruption applied on read (datagen's space camera, deterministic)."""
@@ -65,7 +85,6 @@ def read_roi(path: str) -> dict[str, "object"]:
 
 def run_detect_cli(args: argparse.Namespace) -> int:
     import numpy as np
-    import torch
     from tqdm import tqdm
 
     from envisat_pose.contracts import Detections
@@ -73,16 +92,10 @@ def run_detect_cli(args: argparse.Namespace) -> int:
     from envisat_pose.perception.data import shard_paths
     from envisat_pose.perception.detect import load_detector
 
-    from envisat_pose.perception.weights import shipped_weights_path
-
     check_writable_output(args.out)
-    args.weights = args.weights or shipped_weights_path()
+    detector_inputs(args)
     paths = shard_paths(args.data)
     rois = read_roi(args.roi) if args.roi else {}
-    if args.threads is not None:
-        if args.threads < 1:
-            raise InputError(f"--threads {args.threads}: expected at least 1")
-        torch.set_num_threads(args.threads)
     det = load_detector(args.weights, device=args.device)
     rows = {k: [] for k in ("key", "t_s", "corners_px", "cov_px", "confidence", "visible", "alt_corners_px",
                             "alt_probability", "ambiguous")}

@@ -174,12 +174,10 @@ def table(summary: dict) -> str:
 
 def run_evaluate_cli(args: argparse.Namespace) -> int:
     import dataclasses
-    import os
 
-    import torch
     from tqdm import tqdm
 
-    from envisat_pose.app.detect import camera_samples
+    from envisat_pose.app.detect import camera_samples, detector_inputs
     from envisat_pose.geometry import load_geometry
     from envisat_pose.io import atomic_write_text, check_writable_output
     from envisat_pose.perception.data import shard_paths
@@ -187,19 +185,9 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
     from envisat_pose.perception.evaluate import corruption_groups
     from envisat_pose.perception.weights import load_model
 
-    if args.limit is not None and args.limit < 1:
-        raise InputError(f"--limit {args.limit}: expected at least 1")
-    from envisat_pose.perception.weights import shipped_weights_path
-
-    args.weights = args.weights or shipped_weights_path()
-    if not os.path.isfile(args.weights):
-        raise InputError(f"--weights {args.weights!r}: no such file")
+    detector_inputs(args)
     check_writable_output(args.json, "json")
     paths = shard_paths(args.data)
-    if args.threads is not None:
-        if args.threads < 1:
-            raise InputError(f"--threads {args.threads}: expected at least 1")
-        torch.set_num_threads(args.threads)
     model = load_model(args.weights, args.device)
     cfg = DetectConfig(cov_scale=weights_cov_scale(args.weights))
     detector = make_detector(model, cfg, args.device)
