@@ -55,6 +55,35 @@ def test_resume_equals_an_uninterrupted_run(tiny_dataset, tmp_path):
     assert json.load(open(os.path.join(part, "state.json")))["step"] == 6
 
 
+def test_resume_after_a_crash_past_the_warmup(tiny_dataset, tmp_path, monkeypatch):
+    """A run killed in its cosine phase goes on from its last checkpoint (the optimizer state written there holds
+    the schedule's learning rate and must read back with weights_only=True) and ends where an uninterrupted run
+    ends."""
+    import envisat_pose.perception.train as train_module
+
+    torch.set_num_threads(1)
+    cfg = TrainConfig(**{**small_config(6).__dict__, "warmup_steps": 2, "checkpoint_every": 2})
+    whole, part = str(tmp_path / "whole"), str(tmp_path / "part")
+    train(cfg, tiny_dataset, whole, progress=False)
+    real_collate, calls = train_module.collate, []
+
+    def crash_on_the_fifth_batch(samples, device):
+        calls.append(1)
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        return real_collate(samples, device)
+
+    monkeypatch.setattr(train_module, "collate", crash_on_the_fifth_batch)
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, tiny_dataset, part, progress=False)
+    assert json.load(open(os.path.join(part, "state.json")))["step"] == 4  # past the warmup
+    monkeypatch.setattr(train_module, "collate", real_collate)
+    train(cfg, tiny_dataset, part, resume=True, progress=False)
+    a = load_model(os.path.join(whole, "checkpoint.safetensors")).state_dict()
+    b = load_model(os.path.join(part, "checkpoint.safetensors")).state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_same_seed_same_weights_other_seed_others(tiny_dataset, tmp_path):
     torch.set_num_threads(1)
     runs = {}
