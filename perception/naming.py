@@ -35,12 +35,16 @@ HALF_TURNS = {"I": (1.0, 1.0, 1.0), "x": (1.0, -1.0, -1.0), "y": (-1.0, 1.0, -1.
 class NamingConfig:
     """sigma_px: candidate position noise, px; gate_px: a predicted corner farther than this from every candidate
     is missed (its cost saturates); coarse_gate_px: the same for the unrefined poses of single faces (a face's
-    homography extrapolates its corners' noise to the far end); unexplained_weight: cost of a candidate no visible corner explains, in units of
-    a missed corner; max_candidates: the best-scored candidates used; refine_top: hypotheses refined by LM;
+    homography extrapolates its corners' noise to the far end); unexplained_weight: cost of a candidate no visible
+    corner explains, in units of a corner at the gate (gate^2 / 2 sigma^2 nats); missed_weight: cost of a corner
+    the pose shows but no candidate is near, in the same units (the network misses about one corner in five, so a
+    miss is cheaper than a candidate left unexplained: a pose is not pushed to hide the corners the network
+    missed by turning its face away); max_candidates: the best-scored candidates used; refine_top: hypotheses
+    refined by LM;
     type_weight, line_weight: weights of the cues' negative log-probabilities (nats); ambiguity: the naming is
     flagged ambiguous when its half-turn alternative has at least this probability; prior_sigma_deg: spread of a
-    prior pose's rotation; quad_line_min: with line cues, a quadrilateral is tried as a face only when each of its
-    4 sides has at least this line probability (all are tried when none has); relative_cues: the cues count as
+    prior pose's rotation; max_quads: with line cues, only the quadrilaterals whose 4 sides are best supported by
+    the line verification (sum of -log p) are tried as faces, at most this many; relative_cues: the cues count as
     log-likelihood ratios against an uninformed guess (a type drawn among J, an edge at even odds), so that
     explaining one more candidate is not penalized by its cue's own cost (False: raw negative log-probabilities)."""
 
@@ -48,13 +52,15 @@ class NamingConfig:
     gate_px: float = 6.0
     coarse_gate_px: float = 30.0
     unexplained_weight: float = 1.0
+    missed_weight: float = 0.3
     max_candidates: int = 12
     refine_top: int = 30
     type_weight: float = 1.0
     line_weight: float = 1.0
     ambiguity: float = 0.1
     prior_sigma_deg: float = 30.0
-    quad_line_min: float = 0.3
+    max_quads: int = 30
+    max_corner_quads: int = 20
     relative_cues: bool = True
 
 
@@ -141,6 +147,28 @@ def _ordered_convex_quads(points: np.ndarray) -> np.ndarray:
                                - p[:, :, 1] * np.roll(p, -1, axis=1)[:, :, 0], axis=1))
     convex = np.all(cross > 0, axis=1) & (area > 4.0)
     return combos[convex]
+
+
+def _corner_quads(cand: np.ndarray, line_nll: np.ndarray, count: int) -> np.ndarray:
+    """(L, 4, 2) quadrilaterals for faces of which only three corners were found: for the `count` candidate
+    triples i-j-k best joined by verified lines at j (least line_nll[i, j] + line_nll[j, k]), the parallelogram
+    i, j, k, i + k - j (the fourth corner as an affine view puts it; the refinement on the real candidates removes
+    the perspective error), in increasing image angle as _ordered_convex_quads orders them."""
+    m = len(cand)
+    if m < 3 or count <= 0:
+        return np.zeros((0, 4, 2))
+    j, i, k = (a.ravel() for a in np.meshgrid(np.arange(m), np.arange(m), np.arange(m), indexing="ij"))
+    ok = (i < k) & (i != j) & (k != j)
+    j, i, k = j[ok], i[ok], k[ok]
+    cost = line_nll[i, j] + line_nll[j, k]
+    best = np.argsort(cost, kind="stable")[:count]
+    pi, pj, pk = cand[i[best]], cand[j[best]], cand[k[best]]
+    quad = np.stack([pi, pj, pk, pi + pk - pj], axis=1)
+    a, b = pj - pi, pk - pj
+    turn = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    quad = np.where((turn < 0)[:, None, None], quad[:, ::-1], quad)  # the winding of increasing angle (y down)
+    area = np.abs(turn)  # the parallelogram's area, px^2
+    return quad[area > 8.0]
 
 
 def _homographies(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -240,7 +268,7 @@ def _score(R: np.ndarray, t: np.ndarray, cand: np.ndarray, K: np.ndarray, cues: 
     gate2 = (gate_px or cfg.gate_px) ** 2
     s2 = cfg.sigma_px ** 2 * (gate2 / cfg.gate_px ** 2)
     inlier = vis & (dmin2 < gate2)
-    cost = np.sum(np.where(vis, np.minimum(dmin2, gate2), 0.0), axis=1) / (2 * s2)
+    cost = np.sum(np.where(inlier, dmin2, np.where(vis, cfg.missed_weight * gate2, 0.0)), axis=1) / (2 * s2)
     explained = np.any(vis[:, :, None] & (d2 < gate2), axis=1)  # (N, M)
     cost += cfg.unexplained_weight * gate2 / (2 * s2) * np.sum(~explained, axis=1)
     match = np.where(inlier, j, -1)
@@ -314,19 +342,20 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
                                                               eps, 1.0))
     cues = _Cues(type_nll, line_nll)
     quads = _ordered_convex_quads(cand)
-    if len(quads) == 0:
-        return None
-    if line_nll is not None:  # a face is a cycle of 4 verified lines
+    if line_nll is not None and len(quads) > cfg.max_quads:  # a face is a cycle of 4 verified lines
         sides = line_nll[quads, np.roll(quads, -1, axis=1)]
-        lined = np.all(sides <= -np.log(cfg.quad_line_min), axis=1)
-        if lined.any():
-            quads = quads[lined]
+        quads = quads[np.argsort(sides.sum(axis=1), kind="stable")[: cfg.max_quads]]
+    quads_px = cand[quads]
+    if line_nll is not None and cfg.max_corner_quads > 0:  # faces seen by three corners only
+        quads_px = np.concatenate([quads_px, _corner_quads(cand, line_nll, cfg.max_corner_quads)])
+    if len(quads_px) == 0:
+        return None
     windings = face_windings(g)
     rots = np.array([np.roll(np.arange(4), -r) for r in range(4)])
     faces = windings[:, rots].reshape(-1, 4)  # (24, 4): face f under rotation r
-    qi = np.repeat(np.arange(len(quads)), len(faces))
-    fi = np.tile(np.arange(len(faces)), len(quads))
-    R, t = _poses_from_faces(cand[quads[qi]], faces[fi], g, K)  # two per assignment
+    qi = np.repeat(np.arange(len(quads_px)), len(faces))
+    fi = np.tile(np.arange(len(faces)), len(quads_px))
+    R, t = _poses_from_faces(quads_px[qi], faces[fi], g, K)  # two per assignment
     good = np.all(np.isfinite(R), axis=(1, 2)) & np.all(np.isfinite(t), axis=1) & (t[:, 2] > 0)
     R, t = R[good], t[good]
     if len(R) == 0:
@@ -338,16 +367,15 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
     order = np.flatnonzero(enough)[np.argsort(s["cost"][enough], kind="stable")]
     _, first = np.unique(s["match"][order], axis=0, return_index=True)  # one hypothesis per association
     order = order[np.sort(first)][: cfg.refine_top]
-    best = None
-    for h in order:
-        Rr, tr, match = R[h], t[h], s["match"][h]
-        for step, gate in enumerate((2 * cfg.gate_px, cfg.gate_px)):  # refine, re-associate with a tighter gate
-            Rr, tr = _refine(Rr, tr, match, cand, K, g, robust_px=cfg.coarse_gate_px / 4 if step == 0 else None)
-            sr = _score(Rr[None], tr[None], cand, K, cues, g, cfg, image_size, gate)
-            match = sr["match"][0]
-        if best is None or sr["cost"][0] < best[2]["cost"][0]:
-            best = (Rr, tr, sr)
-    Rb, tb, _ = best
+    Rr, tr, match = R[order].copy(), t[order].copy(), s["match"][order]
+    for step, gate in enumerate((2 * cfg.gate_px, cfg.gate_px)):  # refine, re-associate with a tighter gate
+        for n in range(len(order)):
+            Rr[n], tr[n] = _refine(Rr[n], tr[n], match[n], cand, K, g,
+                                   robust_px=cfg.coarse_gate_px / 4 if step == 0 else None)
+        sr = _score(Rr, tr, cand, K, cues, g, cfg, image_size, gate)
+        match = sr["match"]
+    best = int(np.argmin(sr["cost"]))  # the first of equals
+    Rb, tb = Rr[best], tr[best]
     # the four symmetric namings: the same image, told apart only by the cues and a prior
     sym = symmetry_permutations(g)
     variants = {}

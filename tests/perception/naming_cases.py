@@ -55,14 +55,18 @@ def make_case(rng: np.random.Generator, noise_px: float = 1.0, n_spurious: int =
             "K": K, "R": R, "t": t, "corners_px": px, "visible": vis, "image_size": (cam.width_px, cam.height_px)}
 
 
-def outcome(case: dict, naming, tol_px: float = 6.0) -> str:
-    """'right' (true names), 'ambiguous' (the half-turn alternative is right and flagged), or 'wrong'."""
+def outcome(case: dict, naming, tol_px: float = 6.0, found_only: bool = False) -> str:
+    """'right' (true names), 'ambiguous' (the half-turn alternative is right and flagged), or 'wrong'.
+    found_only: the corners whose candidate was dropped must be predicted visible, not matched."""
     if naming is None:
         return "wrong"
     vis = case["visible"]
+    found = np.zeros(8, bool)
+    found[case["truth_id"][case["truth_id"] >= 0]] = True
+    check = vis & found if found_only else vis
 
     def fits(n) -> bool:
-        return bool(np.all(np.linalg.norm(n.corners_px[vis] - case["corners_px"][vis], axis=1) < tol_px)
+        return bool(np.all(np.linalg.norm(n.corners_px[check] - case["corners_px"][check], axis=1) < tol_px)
                     and np.array_equal(n.visible, vis))
 
     if fits(naming):
