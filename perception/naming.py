@@ -3,12 +3,14 @@
 Plain numpy (and OpenCV) in and out: no torch here. Frames: T the target body frame (geometry.load_geometry),
 camera frame with x right, y down, z along the boresight; pixels in the OpenCV convention.
 
-Hypotheses: every convex quadrilateral of four candidates is one visible face of the box (a box seen from
-outside always shows at least one face whole), in the winding every visible face keeps in the image, under each
-of its 4 rotations: 6 x 4 assignments per quadrilateral. Each gives a pose from the face's homography (batched
-DLT, decomposed); all poses are scored at once by reprojection of the corners they predict visible (a
-truncated quadratic), candidates they leave unexplained, and, when given, junction-type and line-verification
-cues. The best few are refined with cv2.solvePnP (iterative LM) on their inliers and scored again.
+Hypotheses: a convex quadrilateral of four candidates is one visible face of the box (a box seen from outside
+always shows at least one face whole, but the network may miss one of its corners: three candidates joined at
+a corner by verified lines also stand for a face, completed to a parallelogram), in the winding every visible
+face keeps in the image, under each of its 4 rotations: 6 x 4 assignments per quadrilateral. Each gives a pose
+from the face's homography (batched DLT, decomposed); all poses are scored at once by reprojection of the
+corners they predict visible (a quadratic up to a gate; a visible corner with no candidate costs a miss),
+candidates they leave unexplained, and, when given, junction-type and line-verification cues. The best few are
+refined with cv2.solvePnP (iterative LM) on their inliers and scored again.
 
 Symmetry: the box (half sizes a != b != c, centred) maps onto itself under the half-turns about x, y and z of T:
 its corners alone cannot tell these 4 poses apart. The junction type's end (A-D at +x, E-H at the array's -x
