@@ -46,10 +46,12 @@ class NamingConfig:
     head is under-confident: a temperature fitted per corner on held-out frames is ~3.4, but a frame's corners
     err together; at 2 the namings it settled were the half-turn in 2 of 420 held-out frames, with the shipped
     weights); ambiguity: the naming is flagged ambiguous when its half-turn alternative has at least this
-    probability; prior_sigma_deg: spread of a prior pose's rotation; max_quads: with line cues, only the quadrilaterals whose 4 sides are best supported by
-    the line verification (sum of -log p) are tried as faces, at most this many; relative_cues: the cues count as
-    log-likelihood ratios against an uninformed guess (a type drawn among J, an edge at even odds), so that
-    explaining one more candidate is not penalized by its cue's own cost (False: raw negative log-probabilities)."""
+    probability; prior_sigma_deg: spread of a prior pose's rotation; max_quads: with line cues, only the
+    quadrilaterals whose 4 sides are best supported by the line verification (sum of -log p) are tried as faces,
+    at most this many; max_corner_quads: with line cues, the three-corner faces tried (_corner_quads);
+    relative_cues: the cues count as log-likelihood ratios against an uninformed guess (a type drawn among J, an
+    edge at even odds), so that explaining one more candidate is not penalized by its cue's own cost (False: raw
+    negative log-probabilities)."""
 
     sigma_px: float = 2.0
     gate_px: float = 6.0
