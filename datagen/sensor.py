@@ -39,12 +39,15 @@ AIRY_FIRST_ZERO_X = 3.8317059702075125  # first zero of J1: the Airy pattern's f
 # Pieces with closed forms
 
 
-def vignetting_factor(shape: tuple[int, int], f_px: float, cos_power: float) -> np.ndarray:
+def vignetting_factor(shape: tuple[int, int], f_px: float, cos_power: float,
+                      box: tuple[int, int, int, int] | None = None) -> np.ndarray:
     """cos^n(theta) per pixel, theta the angle of the pixel's ray off the optical axis (principal point at
-    the image centre, OpenCV convention). (H, W) float32."""
+    the image centre, OpenCV convention). (H, W) float32; with box (y0, y1, x0, x1), only that window of it."""
     h, w = shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    r2 = (u - (w - 1) / 2.0) ** 2 + (v - (h - 1) / 2.0) ** 2
+    y0, y1, x0, x1 = box if box is not None else (0, h, 0, w)
+    dv2 = (np.arange(y0, y1, dtype=np.float64) - (h - 1) / 2.0) ** 2
+    du2 = (np.arange(x0, x1, dtype=np.float64) - (w - 1) / 2.0) ** 2
+    r2 = dv2[:, None] + du2[None, :]
     return ((f_px / np.sqrt(f_px**2 + r2)) ** cos_power).astype(np.float32)
 
 
@@ -219,8 +222,7 @@ def optics(gray_u8: np.ndarray, p: dict) -> np.ndarray:
     y0, y1, x0, x1 = box
     crop = gray_u8[y0:y1, x0:x1].astype(np.float32) * np.float32(1.0 / 255.0)
     if p["vignetting_cos_power"] > 0:
-        full = vignetting_factor(gray_u8.shape, p["f_px"], p["vignetting_cos_power"])
-        crop *= full[y0:y1, x0:x1]
+        crop *= vignetting_factor(gray_u8.shape, p["f_px"], p["vignetting_cos_power"], box)
     crop = cv2.filter2D(crop, -1, psf, borderType=cv2.BORDER_REFLECT)
     if kern is not None:
         crop = cv2.filter2D(crop, -1, kern, borderType=cv2.BORDER_REFLECT)

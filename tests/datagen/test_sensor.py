@@ -73,6 +73,7 @@ def test_vignetting_is_cos_to_the_n():
     assert v[50, 50] == 1.0
     r = math.hypot(50, 50)
     assert abs(v[0, 0] - math.cos(math.atan(r / f)) ** 4) < 1e-6
+    assert np.array_equal(sensor.vignetting_factor((101, 101), f, 4.0, (10, 40, 55, 101)), v[10:40, 55:101])
     img = sensor.optics(np.full((101, 101), 255, np.uint8), params(vignetting_cos_power=4.0, f_px=f,
                                                                    psf={"kind": "gaussian", "sigma_px": 0.05}))
     assert abs(img[0, 50] - math.cos(math.atan(50 / f)) ** 4) < 2e-3
