@@ -2,7 +2,7 @@
 
 Usage: python scripts/model_card.py --weights models/detector.safetensors --runs RUN_DIR [RUN_DIR ...]
            --datasets DIR [DIR ...] --evaluation NAME=EVAL.json [NAME=EVAL.json ...] [--commands FILE]
-           --hardware TEXT --out models/detector.json
+           [--idle RUN_DIR=SECONDS ...] --hardware TEXT --out models/detector.json
 
 Everything in the card comes from files: each training run's config.json (its exact `envisat train` command, git
 hash, torch), state.json (the steps done) and metrics.jsonl (the last epoch's losses); each dataset's manifest
@@ -24,7 +24,9 @@ from envisat_pose.io import atomic_write_text, sha256_file  # noqa: E402
 from envisat_pose.perception.weights import read_metadata  # noqa: E402
 
 
-def run_record(run_dir: str) -> dict:
+def run_record(run_dir: str, idle_s: float = 0.0) -> dict:
+    """One training run from its folder; idle_s: seconds it stood stopped before a --resume, left out of its
+    wall time (and recorded)."""
     cfg = json.load(open(os.path.join(run_dir, "config.json"), encoding="utf-8"))
     rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"), encoding="utf-8")]
     last = rows[-1] if rows else {}
@@ -35,7 +37,8 @@ def run_record(run_dir: str) -> dict:
             "stopped_early": stopped, "weights_used": "checkpoint.safetensors at step %d" % state["step"],
             # from the run folder's creation (config.json) to its last checkpoint
             "wall_time_s": round(os.path.getmtime(os.path.join(run_dir, "checkpoint.safetensors"))
-                                 - os.path.getmtime(os.path.join(run_dir, "config.json")), 1),
+                                 - os.path.getmtime(os.path.join(run_dir, "config.json")) - idle_s, 1),
+            "idle_s_excluded": idle_s,
             "last_epoch_losses": {k: last[k] for k in ("loss", "heatmap", "offset", "line", "nll") if k in last},
             "train_config": cfg.get("train")}
 
@@ -80,10 +83,13 @@ def main() -> int:
     p.add_argument("--evaluation", nargs="+", required=True, metavar="NAME=EVAL.json",
                    help="envisat evaluate's JSON per held-out set, each under a name")
     p.add_argument("--commands", help="text file: the commands that made the datasets, the calibration, the card")
+    p.add_argument("--idle", nargs="*", default=[], metavar="RUN_DIR=SECONDS",
+                   help="time a run stood stopped before it was resumed, left out of its wall time")
     p.add_argument("--hardware", required=True)
     p.add_argument("--out", required=True)
     a = p.parse_args()
     meta = read_metadata(a.weights)
+    idle = {os.path.abspath(k): float(v) for k, _, v in (item.partition("=") for item in a.idle)}
     evaluations = {}
     for item in a.evaluation:
         name, _, path = item.partition("=")
@@ -94,7 +100,7 @@ def main() -> int:
                     "cov_scale": float(json.loads(meta.get("cov_scale", "1.0"))),
                     "cov_calibration": json.loads(meta["cov_calibration"]) if "cov_calibration" in meta else None},
         "hardware": a.hardware,
-        "training_runs": [run_record(r) for r in a.runs],
+        "training_runs": [run_record(r, idle.get(os.path.abspath(r), 0.0)) for r in a.runs],
         "datasets": [dataset_record(d) for d in a.datasets],
         "commands": open(a.commands, encoding="utf-8").read().strip().splitlines() if a.commands else [],
         "evaluations": {name: {"data": e.get("data"), "frames": e.get("frames"),
