@@ -1,0 +1,60 @@
+"""The 12-state relative pose: its layout, block names and units, the initial-estimate draw and error summaries.
+
+One home for the state's layout (docs/reference.md, section 3), used by every stage, pipeline and bench:
+
+    x = (rho_C_m (3), rhodot_C_m_s (3), p_mrp (3) of T relative to C, w_r_T_rad_s (3))
+
+Slices: POS, VEL, MRP, RATE; BLOCK_SLICES in that order with BLOCKS (names) and BLOCK_UNITS (the units the
+statistics report a block in: the attitude block as a rotation angle).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from envisat_pose.attitude import mrp_error_angle_rad
+
+N_STATE = 12
+POS = slice(0, 3)  # rho, target relative to chaser, in C, m
+VEL = slice(3, 6)  # rho', in C, m/s
+MRP = slice(6, 9)  # p, MRP of T relative to C (shadow set |p| <= 1)
+RATE = slice(9, 12)  # w_r, angular velocity of T relative to C, in T, rad/s
+BLOCKS = ("position", "velocity", "attitude", "angular_velocity")
+BLOCK_UNITS = ("m", "m/s", "rad", "rad/s")
+BLOCK_SLICES = (POS, VEL, MRP, RATE)
+
+
+def draw_initial_estimate(x0_true: np.ndarray, P0: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A warm start for filter studies: x0_true (12,) plus one draw from N(0, P0) (12, 12), as every campaign
+    draws it (x0 + chol(P0) @ standard normal(12)). The tracker never uses it: it starts from images."""
+    return np.asarray(x0_true, dtype=float) + np.linalg.cholesky(P0) @ rng.standard_normal(N_STATE)
+
+
+def error_magnitudes(x_true: np.ndarray, x_hat: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-sample error magnitudes (..., 12) -> dict of (...): position_m, velocity_m_s (norms in C),
+    attitude_deg (rotation angle between the two MRPs), rate_deg_s (norm in T)."""
+    x_true = np.asarray(x_true, dtype=float)
+    x_hat = np.asarray(x_hat, dtype=float)
+    return {
+        "position_m": np.linalg.norm(x_hat[..., POS] - x_true[..., POS], axis=-1),
+        "velocity_m_s": np.linalg.norm(x_hat[..., VEL] - x_true[..., VEL], axis=-1),
+        "attitude_deg": np.degrees(mrp_error_angle_rad(x_hat[..., MRP], x_true[..., MRP])),
+        "rate_deg_s": np.degrees(np.linalg.norm(x_hat[..., RATE] - x_true[..., RATE], axis=-1)),
+    }
+
+
+def error_summary(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, after_s: float) -> dict:
+    """Errors of R runs (R, T, 12) (x_true may broadcast) from after_s on: per block the RMS over runs and
+    times after, the largest after, and the RMS over runs at the last time. Units in the keys (m, m/s, deg,
+    deg/s). When no sample lies after after_s the whole run counts."""
+    t_s = np.asarray(t_s, dtype=float)
+    late = t_s >= after_s
+    if not late.any():
+        late = np.ones_like(t_s, dtype=bool)
+    out: dict = {"after_s": float(t_s[late][0])}
+    for name, e in error_magnitudes(x_true, x_hat).items():
+        e = np.atleast_2d(e)
+        out[name] = {"rms_after": float(np.sqrt(np.mean(e[:, late] ** 2))),
+                     "max_after": float(np.max(e[:, late])),
+                     "final": float(np.sqrt(np.mean(e[:, -1] ** 2)))}
+    return out
