@@ -4,7 +4,9 @@ Each kind has four levels, 0 'none' .. 3 'high' (a config may also say 'mixed': 
 `draw_corruption` turns levels into concrete parameters with the sample's Generator; `apply_corruption`
 applies them, its noise drawn from the parameters' own `noise_seed`, so the label's `corruption` entry alone
 reproduces the image from the clean render (training can corrupt on the fly the same way). Blur sizes are
-given at 1024 px and scale with the resolution. Level 0 for every kind returns the input unchanged.
+given at 1024 px and scale with the resolution. Level 0 for every kind returns the input unchanged, under
+either model: the space camera (model 'sensor') honours the kinds only when all five are 'none'
+(check_severities refuses any other choice but the default 'mixed' there).
 """
 
 from __future__ import annotations
@@ -31,6 +33,45 @@ def severity_level(name: str, rng: np.random.Generator) -> int:
     if name == "mixed":
         return int(rng.integers(0, len(SEVERITIES)))
     return SEVERITIES.index(name)
+
+
+def corruption_off(severities: dict[str, str]) -> bool:
+    """Whether every kind is 'none': the user asked for uncorrupted frames, whatever the model."""
+    return all(severities[k] == "none" for k in KINDS)
+
+
+def check_severities(model: str, severities: dict[str, str], prefix: str = "corruption") -> None:
+    """ConfigError (one line) unless the per-kind severities mean what they say under `model`.
+
+    'paper' honours each kind. 'sensor' (the space camera, configured by [corruption.sensor]) honours only
+    all five 'none' (uncorrupted frames); any other choice than the default 'mixed' would be ignored silently.
+    """
+    from envisat_pose.config import ConfigError
+
+    if model != "sensor" or corruption_off(severities):
+        return
+    for k in KINDS:
+        if severities[k] != "mixed":
+            raise ConfigError(f"{prefix}.{k}", severities[k],
+                              "'mixed' with model = 'sensor': the severities " + ", ".join(KINDS) + " are "
+                              "honoured by model = 'paper'; 'sensor' takes [corruption.sensor] ranges and "
+                              "honours only all five 'none' (uncorrupted frames)")
+
+
+def no_corruption() -> dict:
+    """The parameters of an uncorrupted image (every kind 'none'; model 'none'): apply_corruption returns
+    the clean render unchanged."""
+    return {
+        "model": "none",
+        "levels": {k: "none" for k in KINDS},
+        "exposure_gain": 1.0,
+        "motion_blur_length_px": 0.0,
+        "motion_blur_angle_deg": 0.0,
+        "gaussian_blur_sigma_px": 0.0,
+        "shot_noise_full_well_e": None,
+        "gaussian_noise_sigma": 0.0,
+        "noise_seed": 0,
+    }
 
 
 def draw_corruption(severities: dict[str, str], resolution_px: int, rng: np.random.Generator) -> dict:

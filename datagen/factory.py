@@ -101,6 +101,11 @@ class CorruptionConfig:
     gaussian_noise: Severity = "mixed"
     sensor: SensorConfig = field(default_factory=SensorConfig)
 
+    def validate(self, prefix: str = "") -> None:
+        from envisat_pose.datagen.corrupt import KINDS, check_severities
+
+        check_severities(self.model, {k: getattr(self, k) for k in KINDS}, prefix or "corruption")
+
 
 @dataclass(frozen=True)
 class AppearanceConfig:
@@ -469,12 +474,14 @@ def image_motion(out, x: np.ndarray, f_px: float, boxes: TargetBoxes) -> tuple[f
 
 def draw_corruption_params(cfg: GenerateConfig, out, x: np.ndarray, f_px: float, boxes: TargetBoxes,
                            rng: np.random.Generator) -> dict:
-    """The corruption parameters of one image: the space camera's (with the true image motion) or the
-    paper's severities."""
-    from envisat_pose.datagen.corrupt import draw_corruption
+    """The corruption parameters of one image: the space camera's (with the true image motion), none when
+    every kind is 'none', or the paper's severities."""
+    from envisat_pose.datagen.corrupt import KINDS, corruption_off, draw_corruption, no_corruption
     from envisat_pose.datagen.sensor import draw_sensor
 
     if cfg.corruption.model == "sensor":
+        if corruption_off({k: getattr(cfg.corruption, k) for k in KINDS}):
+            return no_corruption()  # every kind 'none': the user asked for uncorrupted frames
         speed, angle = image_motion(out, x, f_px, boxes)
         return draw_sensor(to_dict(cfg.corruption.sensor), cfg.resolution_px, f_px, speed, angle, rng)
     return draw_corruption(to_dict(cfg.corruption), cfg.resolution_px, rng)

@@ -1,10 +1,13 @@
 """Corruption: severity 0 leaves the image unchanged; each kind at a higher level changes it as it should;
 parameters are drawn from the sample's Generator only."""
 
+import json
+
 import numpy as np
 import pytest
 
 from envisat_pose.datagen.corrupt import KINDS, apply_corruption, draw_corruption, motion_kernel
+from envisat_pose.datagen.shards import decode_png
 
 
 def make_image():
@@ -93,3 +96,45 @@ def test_blurring_only_the_content_box_equals_blurring_the_whole_frame():
     ref = np.clip(np.rint(cv2.GaussianBlur(edge.astype(np.float32), (0, 0), params["gaussian_blur_sigma_px"],
                                            borderType=cv2.BORDER_REFLECT)), 0, 255).astype(np.uint8)
     assert np.abs(apply_corruption(edge, params).astype(int) - ref).max() <= 1
+
+
+def _generate(tmp_path, name, **kw):
+    from envisat_pose.config import from_dict
+    from envisat_pose.datagen.factory import GenerateConfig, run_generate
+    from envisat_pose.datagen.shards import read_shard
+
+    base = {"num_images": 2, "shard_size": 2, "resolution_px": 96, "seed": 11}
+    base.update(kw)
+    out = tmp_path / name
+    manifest = run_generate(from_dict(GenerateConfig, base), str(out))
+    return list(read_shard(str(out / manifest["shards"][0]["name"])))
+
+
+def test_sensor_model_with_every_kind_none_gives_uncorrupted_frames(tmp_path):
+    """Issue 17 item 6: model 'sensor' with all five kinds 'none' stores the clean render (the same bytes as
+    storage 'clean'), and differs from the space camera's default frames."""
+    off = {"model": "sensor", **{k: "none" for k in KINDS}}
+    stored = _generate(tmp_path, "off", corruption=off)
+    clean = _generate(tmp_path, "clean", corruption=off, storage="clean")
+    noisy = _generate(tmp_path, "noisy")
+    for (key_a, a), (key_b, b), (_, c) in zip(stored, clean, noisy):
+        assert key_a == key_b and a["png"] == b["png"]
+        assert a["png"] != c["png"]  # the default space camera does corrupt
+        lab = json.loads(a["json"])
+        assert lab["corruption"]["model"] == "none" and set(lab["corruption"]["levels"].values()) == {"none"}
+        img = decode_png(b["png"])
+        assert np.array_equal(apply_corruption(img, lab["corruption"]), img)
+
+
+@pytest.mark.parametrize("kind,value", [("gaussian_noise", "none"), ("motion_blur", "high")])
+def test_sensor_model_refuses_severities_it_would_ignore(kind, value):
+    """Any severity but 'mixed' (or all 'none') under model 'sensor' is a one-line ConfigError naming the key
+    and which model honours it."""
+    from envisat_pose.config import ConfigError, from_dict
+    from envisat_pose.datagen.factory import GenerateConfig
+
+    with pytest.raises(ConfigError) as err:
+        from_dict(GenerateConfig, {"corruption": {"model": "sensor", kind: value}})
+    msg = str(err.value)
+    assert "\n" not in msg and f"corruption.{kind}" in msg and "'paper'" in msg
+    from_dict(GenerateConfig, {"corruption": {"model": "paper", kind: value}})  # the paper model honours it
