@@ -81,6 +81,9 @@ def _radial_kernel(half: int, profile) -> np.ndarray:
     r = np.hypot(xs[None, :], xs[:, None])
     fine = profile(r)
     kern = fine.reshape(k, 4, k, 4).sum(axis=(1, 3))
+    if not kern.sum() > 0:  # a PSF so much smaller than a pixel that no sub-sample meets it: all in the centre
+        kern = np.zeros((k, k))
+        kern[half, half] = 1.0
     return (kern / kern.sum()).astype(np.float32)
 
 

@@ -115,3 +115,16 @@ def test_motion_streak_of_a_known_rate():
     speed, angle = sensor.image_velocity_px_s(pts, np.eye(3), np.array([0.0, 0.0, z]), np.zeros(3),
                                               np.array([0.5, 0.0, 0.0]), f)
     assert abs(speed - f * 0.5 / z) < 1e-9 and min(angle, 180 - angle) < 1e-6
+
+
+def test_airy_psf_far_below_a_pixel_is_a_point_not_nan():
+    """At 96 px the default optics put the Airy ring at ~0.05 px: no sub-sample meets it; the PSF is a delta
+    (it was 0/0 = NaN, and the image's cast to uint8 was garbage)."""
+    k = sensor.airy_psf(0.046)
+    assert np.isfinite(k).all() and k[k.shape[0] // 2, k.shape[1] // 2] == 1.0 and k.sum() == 1.0
+    img = np.zeros((40, 40), np.uint8)
+    img[10:30, 12:28] = 200
+    p = params(psf={"kind": "airy", "first_zero_px": 0.046}, white_e=0.5 * 20000.0, full_well_e=20000.0)
+    with np.errstate(all="raise"):
+        out = sensor.apply_sensor(img, p)
+    assert abs(out[12:28, 14:26].mean() - 100.0) < 3.0 and out[:8].max() < 10
