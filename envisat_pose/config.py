@@ -13,7 +13,7 @@ import math
 import tomllib
 import types
 import typing
-from typing import Any
+from typing import Any, Callable
 
 
 class ConfigError(ValueError):
@@ -171,13 +171,26 @@ def set_dotted(data: dict, dotted: str, value: Any) -> dict:
     return deep_update(data, update)
 
 
-def resolve(cls: type, config_path: str | None, overrides: dict[str, Any]) -> Any:
-    """Defaults, then the TOML file (if any), then overrides {'section.key': value} (None values skipped)."""
-    data = load_toml(config_path) if config_path else {}
-    for key, value in overrides.items():
+def resolve_job_config(cls: type, defaults: dict, config_path: str | None, flags: dict[str, Any],
+                       complete: Callable[[dict], dict] | None = None, prefix: str = "") -> Any:
+    """The one config resolution of every verb: the dataclass `cls` built from its defaults, then `defaults` (what
+    the job takes from a named scenario: its tables, its duration), then the TOML file at config_path (if any),
+    then the command-line flags {'section.key': value} (None values are flags not given), validated by
+    `from_dict` before any work.
+
+    complete(data) -> data, if given, runs on the merged data before validation, for values that depend on
+    others (a default worker count from the number of runs, say). prefix: where the config sits in a larger one,
+    for the error messages ('sweep').
+    """
+    data = deep_update({}, defaults)
+    if config_path:
+        data = deep_update(data, load_toml(config_path))
+    for key, value in flags.items():
         if value is not None:
             data = set_dotted(data, key, value)
-    return from_dict(cls, data)
+    if complete is not None:
+        data = complete(data)
+    return from_dict(cls, data, prefix=prefix)
 
 
 def check(cond: bool, field: str, value: Any, expected: str) -> None:

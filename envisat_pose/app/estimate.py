@@ -15,8 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envisat_pose.config import (ConfigError, InputError, check, deep_update, from_dict, load_toml, set_dotted, to_dict,
-                                  to_toml)
+from envisat_pose.config import ConfigError, InputError, check, from_dict, resolve_job_config, to_dict, to_toml
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig
 
@@ -83,13 +82,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 def resolve_config(args: argparse.Namespace) -> EstimateConfig:
     """Defaults, then the named scenario's [measurement] and [filter] tables (with --scenario), then the file,
     then the flags; validated before any work. Unknown scenario names fail here with the known ones."""
-    data: dict = {}
+    defaults: dict = {}
     if args.scenario is not None:
         from envisat_pose.app.scenarios import job_defaults
 
-        data = {k: v for k, v in job_defaults(args.scenario).items() if k in ("measurement", "filter")}
-    if args.config:
-        data = deep_update(data, load_toml(args.config))
+        defaults = {k: v for k, v in job_defaults(args.scenario).items() if k in ("measurement", "filter")}
     flags = {
         "measurement.kind": args.measurements,
         "measurement.sigma_m": args.sigma_m,
@@ -105,10 +102,7 @@ def resolve_config(args: argparse.Namespace) -> EstimateConfig:
         "runs": args.runs,
         "seed": args.seed,
     }
-    for key, value in flags.items():
-        if value is not None:
-            data = set_dotted(data, key, value)
-    return from_dict(EstimateConfig, data)
+    return resolve_job_config(EstimateConfig, defaults, args.config, flags)
 
 
 def load_truth(args: argparse.Namespace, cfg: EstimateConfig):

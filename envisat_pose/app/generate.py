@@ -6,7 +6,7 @@ import argparse
 import json
 import os
 
-from envisat_pose.config import InputError, deep_update, from_dict, load_toml, set_dotted
+from envisat_pose.config import InputError, resolve_job_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -50,13 +50,9 @@ def resolve_config(args: argparse.Namespace):
     """Defaults, then the TOML file, then the flags; validated before any work."""
     from envisat_pose.datagen.factory import GenerateConfig
 
-    data = load_toml(args.config) if args.config else {}
     flags = {"mode": args.mode, "num_images": args.num_images, "shard_size": args.shard_size,
              "resolution_px": args.resolution, "seed": args.seed, "scenario": args.scenario}
-    for key, value in flags.items():
-        if value is not None:
-            data = set_dotted(data, key, value)
-    return from_dict(GenerateConfig, deep_update({}, data))
+    return resolve_job_config(GenerateConfig, {}, args.config, flags)
 
 
 def run_generate_cli(args: argparse.Namespace) -> int:

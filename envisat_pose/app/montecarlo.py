@@ -35,8 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envisat_pose.config import (ConfigError, InputError, check, deep_update, from_dict, load_toml, set_dotted, to_dict,
-                                  to_toml)
+from envisat_pose.config import ConfigError, InputError, check, from_dict, resolve_job_config, to_dict, to_toml
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig
 from envisat_pose.io import sha256_file
@@ -132,9 +131,7 @@ def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
     along its truth (app.scenarios.eclipse_outages)."""
     from envisat_pose.app.scenarios import job_defaults
 
-    data: dict = job_defaults(args.scenario)  # an unknown name fails here with the list of known ones
-    if args.config:
-        data = deep_update(data, load_toml(args.config))
+    defaults = job_defaults(args.scenario)  # an unknown name fails here with the list of known ones
     flags = {
         "scenario": args.scenario, "runs": args.runs, "seed": args.seed, "duration_s": args.duration_s,
         "block_runs": args.block_runs, "settle_s": args.settle_s,
@@ -142,11 +139,7 @@ def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
         "measurement.sigma_px": args.sigma_px, "measurement.max_markers": args.max_markers,
         "measurement.rate_hz": args.rate_hz,
     }
-    for key, value in flags.items():
-        if value is not None:
-            data = set_dotted(data, key, value)
-    cfg = from_dict(MonteCarloConfig, data)
-    return with_eclipse(cfg)
+    return with_eclipse(resolve_job_config(MonteCarloConfig, defaults, args.config, flags))
 
 
 def with_eclipse(cfg: MonteCarloConfig) -> MonteCarloConfig:
@@ -275,14 +268,13 @@ def sweep_config(args: argparse.Namespace, cfg: MonteCarloConfig) -> SweepConfig
     truth's before any work; None when neither asks for a sweep."""
     from envisat_pose.named_scenarios import table
 
-    data = table(cfg.scenario, "sweep")
-    if args.rates_hz:
-        data["rates_hz"] = list(args.rates_hz)
-    if not data:
+    defaults = table(cfg.scenario, "sweep")
+    if not defaults and not args.rates_hz:
         return None
     check(args.rate_hz is None, "rate_hz", args.rate_hz, "no single --rate-hz with a rate sweep (the sweep's "
           "rates_hz, or --rates-hz, sets the rates)")
-    sweep = from_dict(SweepConfig, data, prefix="sweep")
+    flags = {"rates_hz": list(args.rates_hz) if args.rates_hz else None}
+    sweep = resolve_job_config(SweepConfig, defaults, None, flags, prefix="sweep")
     for rate in sweep.rates_hz:
         sub = at_rate(cfg, rate)
         check_filter_rate(sub, truth_scenario(sub))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from envisat_pose.datagen.scenario import ScenarioConfig, scenario_dict
-from envisat_pose.config import InputError, deep_update, from_dict, load_toml, set_dotted, to_dict, to_toml
+from envisat_pose.config import InputError, resolve_job_config, to_dict, to_toml
 from envisat_pose.io import atomic_write_text, check_writable_output
 
 
@@ -31,13 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def resolve_config(args: argparse.Namespace) -> ScenarioConfig:
     """Defaults, then the named scenario's truth tables, then the file, then the flags; validated before any work."""
-    data = deep_update({}, scenario_dict(args.scenario))
-    if args.config:
-        data = deep_update(data, load_toml(args.config))
-    for key, value in (("duration_s", args.duration_s), ("dt_s", args.dt_s), ("seed", args.seed)):
-        if value is not None:
-            data = set_dotted(data, key, value)
-    return from_dict(ScenarioConfig, data)
+    flags = {"duration_s": args.duration_s, "dt_s": args.dt_s, "seed": args.seed}
+    return resolve_job_config(ScenarioConfig, scenario_dict(args.scenario), args.config, flags)
 
 
 def output_paths(out: str) -> tuple[str, str, str]:

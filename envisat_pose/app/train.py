@@ -6,7 +6,7 @@ import argparse
 import os
 import subprocess
 
-from envisat_pose.config import InputError, deep_update, load_toml, set_dotted
+from envisat_pose.config import InputError, resolve_job_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -47,13 +47,10 @@ def git_hash() -> str:
 
 def resolve_config(args: argparse.Namespace):
     """Defaults, then the TOML file, then the flags; validated before any work."""
-    from envisat_pose.perception.train import config_from_dict
+    from envisat_pose.perception.train import TrainConfig
 
-    data = load_toml(args.config) if args.config else {}
-    for key, value in (("steps", args.steps), ("batch_size", args.batch_size), ("seed", args.seed)):
-        if value is not None:
-            data = set_dotted(data, key, value)
-    return config_from_dict(deep_update({}, data))
+    flags = {"steps": args.steps, "batch_size": args.batch_size, "seed": args.seed}
+    return resolve_job_config(TrainConfig, {}, args.config, flags)
 
 
 def _init_distributed(device: str):
