@@ -3,14 +3,14 @@
 A shard is the unit of work: `generate_shard(cfg, index, out_dir)` renders samples from the shard's own
 seeds (`SeedSequence(root, spawn_key=(shard,))`, then `(shard, i)` per sample) and publishes one tar
 atomically. Where it runs (this process, a process pool, a Dask cluster) changes nothing in its bytes.
-`run_generate` plans the shards, skips the finished ones (their sha256 verified), runs the rest and keeps
-`manifest.json` current after each shard, so a killed run resumes where it stopped.
+`run_generate` runs the dataset as the core runner's resumable job (`dataset_job`): it skips the finished shards
+(their sha256 verified), runs the rest and keeps `manifest.json` current after each shard, so a killed run
+resumes where it stopped.
 """
 
 from __future__ import annotations
 
 import functools
-import glob
 import json
 import math
 import os
@@ -23,9 +23,9 @@ from envisat_pose.attitude import mrp_to_dcm, quat_to_mrp, quat_to_rotmat
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
 from envisat_pose.datagen.clearance import (TargetBoxes, clearance_m, farthest_depth_m, project_target_boxes,
                                             project_znear_m)
-from envisat_pose.config import ConfigError, InputError, check, from_dict, to_dict
+from envisat_pose.config import ConfigError, check, from_dict, to_dict
 from envisat_pose.geometry import load_camera
-from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks
+from envisat_pose.runner import ResumableJob, RunnerConfig, check_out_dir, cpu_share, make_out_dir  # noqa: F401
 
 Severity = Literal["none", "low", "medium", "high", "mixed"]
 MANIFEST_FORMAT = "envisat-pose shards v1"
@@ -548,33 +548,9 @@ def shard_task(cfg_json: str, shard_index: int, out_dir: str) -> dict:
 # Planning, resuming, running
 
 
-def prepare_out_dir(out_dir: str) -> None:
-    """Check, creating nothing, that out_dir is a folder or can become one (its parent exists); InputError."""
-    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
-        raise InputError(f"--out {out_dir!r} exists and is not a folder")
-    parent = os.path.dirname(os.path.abspath(out_dir))
-    if not os.path.isdir(out_dir) and not os.path.isdir(parent):
-        raise InputError(f"--out {out_dir!r}: parent folder {parent!r} does not exist")
-
-
-def make_out_dir(out_dir: str) -> None:
-    """Create out_dir if needed and prove it writable by writing (and removing) a probe file in it.
-
-    os.access says yes to root everywhere (even /proc), so only a real write tells; any OSError becomes one
-    InputError line naming the folder and the system's reason.
-    """
-    import tempfile
-
-    try:
-        os.makedirs(out_dir, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".tmp-probe-", dir=out_dir)
-        try:
-            os.write(fd, b"probe")
-        finally:
-            os.close(fd)
-            os.remove(probe)
-    except OSError as err:
-        raise InputError(f"--out {out_dir!r}: cannot write there ({err.strerror or err})") from None
+# The core's output-folder rule, under the names app/run.py and app/demo.py import from here (until they take
+# them from envisat_pose.runner).
+prepare_out_dir = check_out_dir
 
 
 def check_sequence_depth(cfg: GenerateConfig) -> None:
@@ -589,52 +565,20 @@ def check_sequence_depth(cfg: GenerateConfig) -> None:
           f"{far_m[k]:.1f} m, the farthest target point of scenario {cfg.scenario!r} (frame {k})")
 
 
-def new_manifest(cfg: GenerateConfig) -> dict:
-    """The manifest of a dataset before any shard is written."""
+def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
+    """The dataset in out_dir as the core's resumable job: one unit per shard, the config and root seed as its
+    identity, a shard kept on resume only when its sha256 matches and its tar holds the recorded count."""
     from envisat_pose.datagen.render import MASK_VALUES
+    from envisat_pose.datagen.shards import check_shard, shard_name
 
-    return {
-        "format": MANIFEST_FORMAT,
-        "root_seed": cfg.seed,
-        "config": to_dict(cfg),
-        "num_images": cfg.num_images,
-        "num_shards": cfg.num_shards,
-        "complete": False,
-        "mask_values": {"background": 0, **MASK_VALUES},
-        "members": ["png", "json"] + (["mask.png"] if cfg.write_mask else []) + (["depth.png"] if cfg.write_depth else []),
-        "shards": [],
-    }
-
-
-def finished_shards(cfg: GenerateConfig, out_dir: str) -> dict[int, dict]:
-    """Shards of an earlier run of the same config in out_dir whose file matches its recorded sha256.
-
-    A manifest of a different config or seed is an InputError: the folder holds another dataset.
-    """
-    from envisat_pose.datagen.shards import check_shard, read_manifest
-
-    try:
-        manifest = read_manifest(out_dir)
-    except (ValueError, OSError) as err:
-        raise InputError(f"--out {out_dir!r}: unreadable manifest.json ({err}); use another folder") from None
-    if manifest is None:
-        return {}
-    if manifest.get("config") != to_dict(cfg) or manifest.get("root_seed") != cfg.seed:
-        raise InputError(f"--out {out_dir!r} holds a dataset of another config or seed; use another folder")
-    done = {}
-    for entry in manifest.get("shards", []):
-        path = os.path.join(out_dir, entry["name"])
-        if check_shard(path, entry["sha256"], entry["count"]) is None:
-            done[int(entry["index"])] = entry
-    return done
-
-
-def _record(manifest: dict, done: dict[int, dict], out_dir: str, complete: bool) -> None:
-    from envisat_pose.datagen.shards import write_manifest
-
-    manifest["shards"] = [done[i] for i in sorted(done)]
-    manifest["complete"] = complete
-    write_manifest(out_dir, manifest)
+    return ResumableJob(
+        out_dir, MANIFEST_FORMAT, "dataset", {"config": to_dict(cfg), "root_seed": cfg.seed}, "shards",
+        cfg.num_shards, shard_name,
+        header={"num_images": cfg.num_images, "num_shards": cfg.num_shards,
+                "mask_values": {"background": 0, **MASK_VALUES},
+                "members": ["png", "json"] + (["mask.png"] if cfg.write_mask else [])
+                + (["depth.png"] if cfg.write_depth else [])},
+        verify_unit=lambda entry, path: check_shard(path, None, entry["count"]) is None)
 
 
 def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: str = "local",
@@ -644,30 +588,20 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
 
     on_shard, if given, is called with each finished shard's manifest entry once it is recorded.
     """
-    from envisat_pose.datagen.shards import shard_name
+    from envisat_pose.config import to_toml
+    from envisat_pose.io import atomic_write_text
 
     check(backend in ("local", "dask"), "backend", backend, "'local' or 'dask'")
     # one rasterizer thread count per worker: the machine's cores shared among the workers
     runner = RunnerConfig(backend, workers, scheduler, {"LP_NUM_THREADS": str(cpu_share(workers))})
     runner.validate()
-    prepare_out_dir(out_dir)
+    check_out_dir(out_dir)
     if cfg.mode == "sequence":  # before anything is written: the truth's keep-out and the depth range
         check_sequence_depth(cfg)
-    done = finished_shards(cfg, out_dir) if os.path.isdir(out_dir) else {}
-    make_out_dir(out_dir)
-    for stale in glob.glob(os.path.join(out_dir, ".tmp-*")):  # partial shards of a killed run
-        os.remove(stale)
-    for idx in range(cfg.num_shards):  # a shard file the manifest does not vouch for is redone
-        if idx not in done and os.path.exists(os.path.join(out_dir, shard_name(idx))):
-            os.remove(os.path.join(out_dir, shard_name(idx)))
-    manifest = new_manifest(cfg)
-    _record(manifest, done, out_dir, complete=False)
-    from envisat_pose.config import to_toml
-    from envisat_pose.io import atomic_write_text
-
+    job = dataset_job(cfg, out_dir)
+    done = job.resume(job.open())
     atomic_write_text(os.path.join(out_dir, "generate.config.toml"),
                       "# envisat generate: the full validated config of this dataset\n" + to_toml(to_dict(cfg)))
-    todo = [i for i in range(cfg.num_shards) if i not in done]
     bar = None
     if progress:
         from tqdm import tqdm
@@ -675,21 +609,15 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
         bar = tqdm(total=cfg.num_images, initial=sum(e["count"] for e in done.values()), unit="img",
                    desc="generate", mininterval=0.5)
 
-    def on_done(entry: dict) -> None:
-        done[entry["index"]] = entry
-        _record(manifest, done, out_dir, complete=False)
+    def on_unit(entry: dict) -> None:
         if bar is not None:
             bar.update(entry["count"])
         if on_shard is not None:
             on_shard(entry)
 
     try:
-        cfg_text = config_json(cfg)
-        tasks = [(cfg_text, idx, os.path.abspath(out_dir)) for idx in todo]
-        for _, entry in run_tasks(shard_task, tasks, runner):
-            on_done(entry)
+        cfg_text, where = config_json(cfg), os.path.abspath(out_dir)
+        return job.run(shard_task, lambda idx: (cfg_text, idx, where), runner, on_unit)
     finally:
         if bar is not None:
             bar.close()
-    _record(manifest, done, out_dir, complete=len(done) == cfg.num_shards)
-    return manifest
