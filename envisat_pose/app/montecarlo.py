@@ -301,7 +301,10 @@ def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner, p
     from envisat_pose.analysis.stats import BLOCKS
     from envisat_pose.io import atomic_write_text
 
-    prepare_out_dir(out_dir, blocks=False)
+    from envisat_pose.runner import make_out_dir, remove_partial_files
+
+    make_out_dir(out_dir)
+    remove_partial_files(out_dir)
     rates = sorted(sweep.rates_hz)
     summaries = []
     for rate in rates:
@@ -379,60 +382,15 @@ def block_name(b: int) -> str:
     return os.path.join("blocks", f"block-{b:04d}.npz")
 
 
-def read_manifest(out_dir: str) -> dict | None:
-    path = os.path.join(out_dir, "manifest.json")
-    if not os.path.exists(path):
-        return None
-    try:
-        with open(path, encoding="utf-8") as fh:
-            manifest = json.load(fh)
-    except (OSError, ValueError) as err:
-        raise InputError(f"{path}: unreadable manifest ({err}); remove it or use another --out") from None
-    if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
-        raise InputError(f"{path}: not a montecarlo manifest (format {MANIFEST_FORMAT!r} expected)")
-    return manifest
+def campaign_job(cfg: MonteCarloConfig, out_dir: str) -> "ResumableJob":
+    """The campaign in out_dir as the core's resumable job: one unit per block, the config as its identity, a
+    block kept on resume only when its sha256 matches and it covers the runs the config gives it (the truth's
+    sha256 goes in the header once the truth is known)."""
+    from envisat_pose.runner import ResumableJob
 
-
-def check_same_config(manifest: dict, cfg: MonteCarloConfig, out_dir: str) -> None:
-    """A campaign folder holds one config: another one is one InputError line naming the differences."""
-    theirs, ours = _flat(manifest.get("config", {})), _flat(to_dict(cfg))
-    diff = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
-    if diff:
-        shown = ", ".join(f"{k} = {theirs.get(k)!r} there, {ours.get(k)!r} here" for k in diff[:3])
-        raise InputError(f"--out {out_dir!r} holds a campaign with another config ({shown}"
-                         f"{', ...' if len(diff) > 3 else ''}); rerun with the same settings or use another folder")
-
-
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
-def finished_blocks(manifest: dict | None, cfg: MonteCarloConfig, out_dir: str, truth_sha: str) -> dict:
-    """Blocks of the manifest whose file exists with the recorded sha256 (for this truth). {index: entry}."""
-    if not manifest or manifest.get("truth_sha256") != truth_sha:
-        return {}
-    done = {}
-    for e in manifest.get("blocks", []):
-        path = os.path.join(out_dir, e["file"])
-        if (0 <= e["index"] < cfg.n_blocks and cfg.block_range(e["index"]) == (e["run_start"], e["run_stop"])
-                and os.path.exists(path) and sha256_file(path) == e["sha256"]):
-            done[e["index"]] = e
-    return done
-
-
-def write_manifest(out_dir: str, cfg: MonteCarloConfig, truth_sha: str, done: dict) -> None:
-    from envisat_pose.io import atomic_write_text
-
-    manifest = {"format": MANIFEST_FORMAT, "config": to_dict(cfg), "truth_sha256": truth_sha,
-                "n_blocks": cfg.n_blocks, "complete": len(done) == cfg.n_blocks,
-                "blocks": [done[i] for i in sorted(done)]}
-    atomic_write_text(os.path.join(out_dir, "manifest.json"), json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+    return ResumableJob(out_dir, MANIFEST_FORMAT, "campaign", {"config": to_dict(cfg)}, "blocks", cfg.n_blocks,
+                        block_name, header={"n_blocks": cfg.n_blocks},
+                        verify_unit=lambda e, path: cfg.block_range(e["index"]) == (e["run_start"], e["run_stop"]))
 
 
 def truth_scenario(cfg: MonteCarloConfig):
@@ -466,59 +424,35 @@ def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, pr
     return sha256_file(path)
 
 
-def prepare_out_dir(out_dir: str, blocks: bool = True) -> None:
-    """Create the campaign folder (and its blocks/ unless blocks=False), check it is writable, remove the
-    partial files of a killed run."""
-    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
-        raise InputError(f"--out {out_dir!r} is a file, expected a campaign folder")
-    try:
-        os.makedirs(os.path.join(out_dir, "blocks") if blocks else out_dir, exist_ok=True)
-    except OSError as err:
-        raise InputError(f"--out {out_dir!r} cannot be created ({err.strerror})") from None
-    if not os.access(out_dir, os.W_OK):
-        raise InputError(f"--out {out_dir!r} is not writable")
-    for folder in (out_dir, os.path.join(out_dir, "blocks"))[:2 if blocks else 1]:  # partial files of a killed run
-        for name in os.listdir(folder):
-            if name.startswith(".tmp-"):
-                os.remove(os.path.join(folder, name))
-
-
 def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner, progress: bool = False) -> dict:
     """Run (or finish) the campaign of cfg in out_dir and write its outputs. Returns summary.json's dict."""
     from envisat_pose.io import atomic_write_text
-    from envisat_pose.runner import run_tasks
 
     t_start = time.perf_counter()
     check_filter_rate(cfg, truth_scenario(cfg))
-    manifest = read_manifest(out_dir) if os.path.isdir(out_dir) else None
-    if manifest is not None:
-        check_same_config(manifest, cfg, out_dir)
-    prepare_out_dir(out_dir)
-    truth_sha = prepare_truth(cfg, out_dir, manifest, progress)
-    done = finished_blocks(manifest, cfg, out_dir, truth_sha)
-    for b in range(cfg.n_blocks):  # a block file the manifest does not vouch for is redone
-        if b not in done and os.path.exists(os.path.join(out_dir, block_name(b))):
-            os.remove(os.path.join(out_dir, block_name(b)))
-    write_manifest(out_dir, cfg, truth_sha, done)
+    job = campaign_job(cfg, out_dir)
+    previous = job.open()
+    truth_sha = prepare_truth(cfg, out_dir, previous, progress)
+    job.header["truth_sha256"] = truth_sha
+    # blocks filtered on another truth are redone
+    done = job.resume(previous if previous and previous.get("truth_sha256") == truth_sha else None)
     atomic_write_text(os.path.join(out_dir, "montecarlo.config.toml"),
                       "# envisat montecarlo: the full validated config of this campaign\n" + to_toml(to_dict(cfg)))
-    cfg_json = json.dumps(to_dict(cfg), sort_keys=True)
-    tasks = [(os.path.abspath(out_dir), cfg_json, b) for b in range(cfg.n_blocks) if b not in done]
+    cfg_json, where = json.dumps(to_dict(cfg), sort_keys=True), os.path.abspath(out_dir)
+    n_run_now = len(job.todo())
     bar = _bar(cfg, done, progress)
     try:
-        for _, entry in run_tasks(block_task, tasks, runner):
-            done[entry["index"]] = entry
-            write_manifest(out_dir, cfg, truth_sha, done)
-            if bar is not None:
-                bar.update(entry["run_stop"] - entry["run_start"])
+        job.run(block_task, lambda b: (where, cfg_json, b), runner,
+                on_unit=None if bar is None else lambda e: bar.update(e["run_stop"] - e["run_start"]))
     finally:
         if bar is not None:
             bar.close()
+    done = job.done
     summary = finish_campaign(cfg, out_dir)
     timing = {"wall_s_this_invocation": time.perf_counter() - t_start,
               "block_wall_s": {str(i): done[i]["wall_s"] for i in sorted(done)},
               "block_wall_s_sum": float(sum(e["wall_s"] for e in done.values())),
-              "blocks_run_now": len(tasks), "backend": runner.backend, "workers": runner.workers,
+              "blocks_run_now": n_run_now, "backend": runner.backend, "workers": runner.workers,
               "run_steps": cfg.runs * summary["steps"]}
     atomic_write_text(os.path.join(out_dir, "timing.json"), json.dumps(timing, indent=1, sort_keys=True) + "\n")
     return summary
