@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from envisat_pose.perception.data import IMAGE_MEAN, IMAGE_STD, DataConfig, crop_box, crop_resize, to_full_px
+from envisat_pose.perception.errormodel import ErrorModel
 from envisat_pose.perception.heatmaps import decode_junctions
 from envisat_pose.perception.model import CornerNet
 from envisat_pose.perception.naming import Naming, NamingConfig, name_corners
@@ -79,24 +80,44 @@ def weights_cov_scale(path: str) -> float:
     return scale
 
 
+def weights_error_model(path: str) -> ErrorModel:
+    """The error model stored in a weights file's metadata (`error_model`, perception/errormodel.py; its
+    defaults, inflation 1 and rho 0, when the file has none). WeightsError when it is there but unreadable."""
+    from envisat_pose.perception.weights import WeightsError, read_metadata
+
+    raw = read_metadata(path).get("error_model")
+    try:
+        model = ErrorModel.from_json(raw)
+    except (ValueError, TypeError) as err:
+        raise WeightsError(f"{path}: metadata error_model is not readable ({err})") from None
+    if not (np.isfinite(model.inflation) and model.inflation > 0 and abs(model.rho_lag1) < 1):
+        raise WeightsError(f"{path}: metadata error_model has rho_lag1 {model.rho_lag1}, inflation "
+                           f"{model.inflation}: expected |rho| < 1 and a positive inflation")
+    return model
+
+
 def load_detector(path: str, config: DetectConfig | None = None, device: str = "cpu") -> "Detector":
     """A Detector from a weights file (perception/weights.py), with the covariance calibration stored in the
-    file's metadata (`cov_scale`) unless `config` is given (its own cov_scale then stands)."""
+    file's metadata (`cov_scale`) unless `config` is given (its own cov_scale then stands), and the error model
+    (`error_model`, on `detector.error_model`)."""
     import dataclasses
 
     from envisat_pose.perception.weights import load_model
 
     model = load_model(path, device=device)
     cfg = config or dataclasses.replace(DetectConfig(), cov_scale=weights_cov_scale(path))
-    return Detector(model, cfg, device=device)
+    return Detector(model, cfg, device=device, error_model=weights_error_model(path))
 
 
 class Detector:
     """A trained CornerNet (eval mode) and the detection steps around it."""
 
-    def __init__(self, model: CornerNet, config: DetectConfig = DetectConfig(), device: str = "cpu"):
+    def __init__(self, model: CornerNet, config: DetectConfig = DetectConfig(), device: str = "cpu",
+                 error_model: ErrorModel = ErrorModel()):
         self.model = model.to(device).eval()
         self.cfg = config
+        # what a filter needs of the errors: correlation, inflation, bias (perception/errormodel.py)
+        self.error_model = error_model
         self.device = torch.device(device)
         self.input_px = model.cfg.input_px
         self.stride = model.cfg.stride

@@ -109,6 +109,23 @@ def mean_nees(pred_px: np.ndarray, cov_px: np.ndarray, true_px: np.ndarray, usab
     return float(np.mean(nees_px(e, cov[sel]))), int(sel.sum())
 
 
+def label_roi(corners_px: np.ndarray, image_hw: tuple[int, int], margin: float = 1.4, min_side_px: int = 64
+              ) -> np.ndarray:
+    """The region of interest (x0, y0, side) px a perfect prior gives, as the closed loop makes it from the
+    predicted corners (app/run.predicted_roi with no prior uncertainty; its defaults roi_margin 1.4 and
+    roi_min_side_px 64): the square around the extent of the finite labelled corners (8, 2) x margin."""
+    pts = np.asarray(corners_px, float)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    h, w = image_hw
+    if len(pts) == 0:
+        return np.array([0, 0, max(h, w)], dtype=np.int64)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    side = max(float(np.max(hi - lo)) * margin, float(min_side_px))
+    side = int(np.ceil(min(side, 2.0 * max(w, h))))
+    x0, y0 = np.round((lo + hi) / 2 - side / 2).astype(int)
+    return np.array([x0, y0, side], dtype=np.int64)
+
+
 # --- the classical peers ------------------------------------------------------------------------------------
 
 

@@ -1,9 +1,17 @@
-"""`envisat calibrate`: fit the detector's covariance scale on held-out labelled frames and ship it in the weights.
+"""`envisat calibrate`: fit the detector's covariance scale on held-out labelled frames and ship it in the weights;
+on held-out sequences, also the error model a filter needs (issue 16, item 5).
 
 The network's 2x2 covariance per corner is scaled by one factor s (C -> s C) so that the mean of e^T C^-1 e over
 correctly named visible corners is 2, the chi-square-2 mean (perception/calibrate.py). The factor goes into the
 weights file's metadata (`cov_scale`), where `load_detector` and the verbs that detect read it; the result per
 corruption group is printed and stored beside it (`cov_calibration`).
+
+When every --data folder is a sequence (`envisat generate --mode sequence`: consecutive frames of one simulated
+truth), the frame-to-frame correlation of the errors, the AR(1) coefficient, the variance inflation for a filter
+that takes them as white and the residual bias (apparent scale, radial error) are measured too
+(perception/errormodel.py) and stored as `error_model` (the ErrorModel's JSON: what `load_detector` exposes as
+`detector.error_model`) and `error_model_record` (every number measured). `--roi labels` detects in the region
+of interest the labels give (the closed loop's, with a perfect prior) instead of the coarse pass.
 """
 
 from __future__ import annotations
@@ -18,74 +26,141 @@ from envisat_pose.config import InputError
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "calibrate",
-        help="fit the detector's pixel-covariance scale on held-out frames; write weights that carry it",
-        description="Detect the corners of every frame of a held-out labelled dataset (one not used in training), "
+        help="fit the detector's pixel-covariance scale (and, on sequences, its error model); write weights that "
+        "carry it",
+        description="Detect the corners of every frame of held-out labelled datasets (not used in training), "
         "take the correctly named visible corners, fit the scale s that brings the mean e^T (s C)^-1 e to 2, and "
-        "write a copy of the weights with s in their metadata. Prints the calibration per corruption group.",
+        "write a copy of the weights with s in their metadata. Prints the calibration per corruption group. When "
+        "every dataset is a sequence (envisat generate --mode sequence), also measures the errors' frame-to-frame "
+        "autocorrelation, AR(1) coefficient, variance inflation and residual bias, stored as 'error_model'.",
     )
     p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped weights)")
-    p.add_argument("--data", required=True, metavar="DIR", help="held-out labelled dataset folder (shards)")
+    p.add_argument("--data", required=True, nargs="+", metavar="DIR",
+                   help="held-out labelled dataset folder(s) (shards); one sequence per folder")
     p.add_argument("--out", required=True, metavar="OUT.safetensors", help="calibrated weights (may equal --weights)")
-    p.add_argument("--limit", type=int, help="only the first N frames")
+    p.add_argument("--roi", choices=("coarse", "labels"), default="coarse",
+                   help="coarse: the detector's own coarse pass (default); labels: the region of interest of the "
+                   "labelled corners (extent x the crop margin, at least 64 px), as the closed loop gives it")
+    p.add_argument("--keep-scale", action="store_true",
+                   help="leave the weights' cov_scale and cov_calibration as they are (write the error model only)")
+    p.add_argument("--max-lag", type=int, default=10, help="autocorrelation lags measured (default 10)")
+    p.add_argument("--limit", type=int, help="only the first N frames of each dataset")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_calibrate_cli)
 
 
-def collect_errors(detector, samples, limit: int | None = None, bar=None):
-    """Errors e (M, 2) px, covariances C (M, 2, 2) px^2 (as the detector gives them) and the corruption group of
-    the frame (M,) of every usable corner named right within the match radius (an ambiguous frame with its better
-    naming)."""
+def collect_frames(detector, samples, limit: int | None = None, bar=None, roi: str = "coarse") -> dict:
+    """Per frame: key (T,), err_px (T, 8, 2) = detected - label of the usable corners named right within the
+    match radius (NaN elsewhere; an ambiguous frame with its better naming), cov_px (T, 8, 2, 2) as the detector
+    gives them (their names follow the naming), group (T,) the corruption group, scale (T,) the apparent scale
+    and radial_px (T, 8) (perception/errormodel.py). roi 'labels': detect in the labels' region of interest."""
     import numpy as np
 
+    from envisat_pose.perception import errormodel as em
     from envisat_pose.perception import evaluate as ev
 
-    errs, covs, groups = [], [], []
-    for i, (_key, image, label) in enumerate(samples):
+    rows = {k: [] for k in ("key", "err_px", "cov_px", "group", "scale", "radial_px")}
+    for i, (key, image, label) in enumerate(samples):
         if limit is not None and i >= limit:
             break
         use = label["visible"] & label["in_frame"]
-        f = detector.detect(image, label["K"])
         true = label["corners_px"]
+        if roi == "labels":
+            f = detector.detect(image, label["K"], roi_px=ev.label_roi(true, image.shape))
+        else:
+            f = detector.detect(image, label["K"])
         chosen, used_alt = ev.better_naming(f.corners_px[None], f.alt_corners_px[None], np.array([f.ambiguous]),
                                             true[None], use[None])
         # the alternative naming's corners are the same candidates, renamed: their covariances follow them
         cov = f.cov_px[ev.HALF_TURN_PERM] if used_alt[0] else f.cov_px
         hit = ev.hits(chosen, true[None], use[None], ev.MATCH_PX)[0] & np.all(np.isfinite(cov), axis=(1, 2))
-        kind = ev.corruption_groups(*ev.corruption_levels(label["corruption"], image.shape[1]))[1]
-        errs.append(chosen[0][hit] - true[hit])
-        covs.append(cov[hit])
-        groups += [kind] * int(hit.sum())
+        wrong = use & np.isfinite(chosen[0, :, 0]) & ~hit
+        rows["key"].append(key)
+        rows["err_px"].append(np.where(hit[:, None], chosen[0] - true, np.nan))
+        rows["cov_px"].append(cov)
+        rows["group"].append(ev.corruption_groups(*ev.corruption_levels(label["corruption"], image.shape[1]))[1])
+        rows["scale"].append(em.apparent_scale(chosen, true[None], hit[None], wrong[None])[0])
+        rows["radial_px"].append(em.radial_errors(chosen, true[None], hit[None])[0])
         if bar is not None:
             bar.update(1)
-    if not errs:
+    if not rows["key"]:
         raise InputError("no frames")
-    return np.concatenate(errs), np.concatenate(covs), np.array(groups, dtype=str)
+    return {k: np.array(v) for k, v in rows.items()}
+
+
+def collect_errors(detector, samples, limit: int | None = None, bar=None, roi: str = "coarse"):
+    """Errors e (M, 2) px, covariances C (M, 2, 2) px^2 (as the detector gives them) and the corruption group of
+    the frame (M,) of every usable corner named right within the match radius (an ambiguous frame with its better
+    naming)."""
+    return flat_errors(collect_frames(detector, samples, limit, bar, roi))
+
+
+def flat_errors(frames: dict):
+    """collect_errors' (err (M, 2), cov (M, 2, 2), group (M,)) from collect_frames' per-frame arrays."""
+    import numpy as np
+
+    hit = np.isfinite(frames["err_px"][..., 0])
+    groups = np.repeat(frames["group"], hit.sum(axis=1)).astype(str)
+    return frames["err_px"][hit], frames["cov_px"][hit], groups
+
+
+def is_sequence(path: str) -> bool:
+    """Whether a dataset folder was made by `envisat generate --mode sequence` (its manifest's config)."""
+    try:
+        with open(os.path.join(path, "manifest.json")) as fh:
+            return json.load(fh).get("config", {}).get("mode") == "sequence"
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def frame_interval_s(path: str) -> float:
+    """A sequence dataset's frame interval, s (its manifest's config)."""
+    with open(os.path.join(path, "manifest.json")) as fh:
+        return float(json.load(fh)["config"].get("frame_dt_s", 1.0))
+
+
+def sequence_input(frames: dict, dt_s: float) -> dict:
+    """One sequence of perception.errormodel.measure from collect_frames' arrays, in frame (key) order."""
+    import numpy as np
+
+    order = np.argsort(frames["key"].astype(str), kind="stable")
+    sigma = np.sqrt(np.abs(np.diagonal(frames["cov_px"], axis1=-2, axis2=-1)))
+    return {"err_px": frames["err_px"][order], "sigma_px": sigma[order], "scale": frames["scale"][order],
+            "radial_px": frames["radial_px"][order], "dt_s": dt_s}
 
 
 def run_calibrate_cli(args: argparse.Namespace) -> int:
     import dataclasses
 
+    import numpy as np
     from tqdm import tqdm
 
     from envisat_pose.app.detect import camera_samples, detector_inputs
     from envisat_pose.io import check_writable_output
+    from envisat_pose.perception import errormodel as em
     from envisat_pose.perception.calibrate import calibration_by_group, fit_scale
     from envisat_pose.perception.data import shard_paths
     from envisat_pose.perception.detect import DetectConfig, load_detector
     from envisat_pose.perception.weights import with_metadata
 
     detector_inputs(args)
+    if args.max_lag < 1:
+        raise InputError(f"--max-lag {args.max_lag}: expected at least 1")
     if os.path.abspath(args.out) != os.path.abspath(args.weights):
         check_writable_output(args.out)
-    paths = shard_paths(args.data)
+    paths = {d: shard_paths(d) for d in args.data}
+    sequences = all(is_sequence(d) for d in args.data)
     # the network's own covariances (scale 1), whatever the file carried before
     det = load_detector(args.weights, config=dataclasses.replace(DetectConfig(), cov_scale=1.0))
     bar = tqdm(disable=args.quiet, desc="calibrate", unit="frame")
-    err, cov, groups = collect_errors(det, camera_samples(paths), args.limit, bar)
+    per_data = {d: collect_frames(det, camera_samples(p), args.limit, bar, args.roi) for d, p in paths.items()}
     bar.close()
+    flat = [flat_errors(f) for f in per_data.values()]
+    err, cov, groups = (np.concatenate([f[i] for f in flat]) for i in range(3))
+    data_names = " ".join(os.path.abspath(d) for d in args.data)
     if len(err) < 20:
-        raise InputError(f"--data {args.data!r}: only {len(err)} correctly named corners; calibration needs more "
+        raise InputError(f"--data {data_names!r}: only {len(err)} correctly named corners; calibration needs more "
                          "held-out frames (at least 20 corners)")
     scale = fit_scale(err, cov)
     before = calibration_by_group(err, cov, groups)
@@ -93,9 +168,28 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     print(f"{'group':12s} {'corners':>8s} {'NEES raw':>9s} {'NEES calibrated':>16s}")
     for g in before:
         print(f"{g:12s} {before[g]['count']:8d} {before[g]['mean_nees']:9.2f} {after[g]['mean_nees']:16.2f}")
-    record = {"scale": scale, "data": os.path.abspath(args.data), "corners": int(len(err)),
-              "mean_nees_by_group": {g: v["mean_nees"] for g, v in after.items()},
-              "count_by_group": {g: v["count"] for g, v in after.items()}}
-    with_metadata(args.weights, args.out, {"cov_scale": scale, "cov_calibration": json.dumps(record, sort_keys=True)})
-    print(f"cov_scale {scale:.4g} (mean e^T C^-1 e 2.00 on {len(err)} corners); wrote {args.out}")
+    meta = {}
+    if not args.keep_scale:
+        record = {"scale": scale, "data": data_names, "corners": int(len(err)), "roi": args.roi,
+                  "mean_nees_by_group": {g: v["mean_nees"] for g, v in after.items()},
+                  "count_by_group": {g: v["count"] for g, v in after.items()}}
+        meta.update({"cov_scale": scale, "cov_calibration": json.dumps(record, sort_keys=True)})
+    if sequences:
+        seqs = [sequence_input(f, frame_interval_s(d)) for d, f in per_data.items()]
+        model, record = em.measure(seqs, scale, max_lag=args.max_lag, source=f"roi={args.roi}; {data_names}")
+        record["mean_nees_by_group"] = {g: v["mean_nees"] for g, v in after.items()}
+        meta.update({"error_model": model.to_json(), "error_model_record": json.dumps(record, sort_keys=True)})
+        r = record["autocorr_normalized"]
+        print("autocorrelation of the normalized errors, lags 0..: " +
+              " ".join("-" if v is None else f"{v:.3f}" for v in r))
+        print(f"rho_lag1 {model.rho_lag1:.3f}, inflation (1+rho)/(1-rho) {model.inflation:.3f} (measured tau "
+              f"{record['acf_inflation']:.3f}), correlation time {model.corr_time_s:.2f} s")
+        print(f"apparent scale {record['scale']['mean']:.5f} +- {record['scale']['se']:.5f} "
+              f"({record['scale']['frames']} frames), radial error {record['radial_px']['mean']:+.3f} +- "
+              f"{record['radial_px']['se']:.3f} px ({record['radial_px']['corners']} corners)")
+    else:
+        print("not every --data folder is a sequence (envisat generate --mode sequence): no error model")
+    with_metadata(args.weights, args.out, meta)
+    kept = " (kept the file's cov_scale)" if args.keep_scale else ""
+    print(f"cov_scale {scale:.4g} (mean e^T C^-1 e 2.00 on {len(err)} corners){kept}; wrote {args.out}")
     return 0

@@ -69,3 +69,55 @@ def test_too_few_corners_is_one_line(tiny_dataset, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "correctly named corners" in err
     assert not (tmp_path / "c.safetensors").exists()
+
+
+class ScaledLabelDetector:
+    """Test double for a sequence: the label's usable corners scaled by 1 % about their centroid (an outward bias),
+    claiming a 1 px^2 covariance; it must be given the labels' region of interest."""
+
+    def __init__(self, labels):
+        self.labels = labels
+        self.n = 0
+        self.rois = []
+
+    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None):
+        label = self.labels[self.n]
+        self.n += 1
+        self.rois.append(roi_px)
+        use = label["visible"] & label["in_frame"]
+        c = label["corners_px"][use].mean(axis=0)
+        pts = np.where(use[:, None], c + 1.01 * (label["corners_px"] - c), np.nan)
+        cov = np.where(use[:, None, None], np.eye(2), np.nan)
+        return FrameDetection(pts, cov, use * 1.0, use, pts, 0.0, False, np.zeros(3), pts)
+
+
+def test_sequence_error_model_written_and_loaded(tmp_path, monkeypatch, capsys):
+    import envisat_pose.perception.detect as pd
+
+    seq = tmp_path / "seq"
+    assert main(["generate", "--mode", "sequence", "--num-images", "12", "--shard-size", "6", "--resolution", "256",
+                 "--seed", "13", "--out", str(seq), "--quiet"]) == 0
+    samples = list(camera_samples(shard_paths(str(seq))))
+    double = ScaledLabelDetector([s[2] for s in samples])
+    torch.manual_seed(0)  # this test's untrained model (its tensors are copied, never run)
+    w, out = tmp_path / "w.safetensors", tmp_path / "c.safetensors"
+    save_weights(str(w), CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8)))
+    with_metadata(str(w), str(w), {"cov_scale": 1.5})
+    monkeypatch.setattr(pd, "load_detector", lambda *a, **k: double)
+    assert main(["calibrate", "--weights", str(w), "--data", str(seq), "--out", str(out), "--roi", "labels",
+                 "--keep-scale", "--quiet", "--threads", "1"]) == 0
+    assert all(r is not None and r[2] >= 64 for r in double.rois)
+    monkeypatch.undo()
+    meta = read_metadata(str(out))
+    assert meta["cov_scale"] == "1.5"  # kept
+    model = load_detector(str(out)).error_model
+    assert model.n_frames == 12 and "roi=labels" in model.source
+    usable = [s[2]["visible"] & s[2]["in_frame"] for s in samples]
+    framed = sum(int(u.sum() >= 3) for u in usable)
+    record = json.loads(meta["error_model_record"])
+    assert record["scale"]["frames"] == framed
+    assert abs(model.bias_scale - 1.01) < 1e-9 and model.bias_radial_px > 0
+    errs = np.concatenate([(0.01 * (s[2]["corners_px"] - s[2]["corners_px"][u].mean(axis=0)))[u]
+                           for s, u in zip(samples, usable)])
+    assert abs(model.cov_scale - np.mean(np.sum(errs ** 2, axis=1)) / 2) < 1e-9
+    assert "rho_lag1" in capsys.readouterr().out

@@ -1,0 +1,261 @@
+"""The detector's error model for a filter (issue 16, item 5): covariance scale, frame-to-frame correlation and
+residual bias of the errors of correctly named corners, measured on held-out sequences. Plain numpy.
+
+Shapes: T frames of one sequence, 8 corners A-H. err_px (T, 8, 2) = detected - label, px, NaN where the corner
+was not found and named right; sigma_px (T, 8, 2) the detector's predicted standard deviation per image axis
+(sqrt of the covariance's diagonal), px.
+
+Frame-to-frame correlation. The lag-k autocorrelation of a series x_t with gaps is estimated from the pairs
+(t, t + k) both present: r_k = [sum x_t x_{t+k} / n_k] / [sum x_t^2 / n_0], x demeaned by the pooled mean of
+its corner and axis over all sequences (that mean is the residual bias, reported on its own; a bias that
+differs per sequence stays in the correlation, as it does for a filter). Pooled over corners, axes and
+sequences by adding the sums, on errors normalized by the predicted sigma (z = e / sigma), so frames of
+different error size weigh as the filter weighs them. AR(1): rho = r_1 (Yule-Walker), correlation time
+-dt / ln(rho).
+
+Variance inflation for a filter that treats the errors as white. For stationary errors of variance s^2 and
+autocorrelation rho_k, the mean of n consecutive errors has variance
+    (s^2 / n) [1 + 2 sum_{k=1}^{n-1} (1 - k/n) rho_k]  ->  (s^2 / n) tau,  tau = 1 + 2 sum_{k>=1} rho_k,
+as n grows. A filter that takes the errors as white credits n frames with the information n / s^2 about what
+they share (the slowly moving state); they carry n / (s^2 tau). Using R = tau s^2 makes the two agree. For
+AR(1), rho_k = rho^k, so tau = 1 + 2 rho / (1 - rho) = (1 + rho) / (1 - rho). This is the long-memory limit:
+for a filter whose memory is short against the correlation time it is conservative.
+
+The detector's errors are not AR(1) (measured on held-out sequences: r_1 ~ 0.5 but r_2 ~ r_1, then a slow
+decay): they are a white part plus a slowly varying part. The model fitted is that sum, white noise of variance
+share 1 - a plus an AR(1) of share a and coefficient phi: rho_k = a phi^k for k >= 1 (a = 1: pure AR(1)), fitted
+by least squares on log r_k over the leading positive lags, weighted by their pair counts. Its tau is
+1 + 2 a phi / (1 - phi), which is (1 + rho) / (1 - rho) when a = 1; the correlation time is -dt / ln(phi).
+`acf_inflation` sums the measured r_k as a check.
+
+Bias. Per frame with at least 3 corners named right and no found usable corner named wrong, the apparent
+scale: the least-squares s with (p - p_bar) ~ s (q - q_bar) over its right corners (p detected, q labels,
+bars their centroids), s = sum (p - p_bar).(q - q_bar) / sum |q - q_bar|^2. The radial error of a right corner:
+e . u, u the unit vector from the detected corners' centroid to the detected corner (positive outward).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """What a filter needs of the detector's pixel errors (shipped in the weights' metadata as `error_model`).
+
+    cov_scale: the factor s on the network's covariance with mean e^T (s C)^-1 e = 2 on these data.
+    rho_lag1: lag-1 autocorrelation of the normalized errors from frame to frame (pooled).
+    ar1_share, ar1_phi: the fitted model rho_k = ar1_share * ar1_phi^k (k >= 1): white noise plus an AR(1) part
+    of that variance share and coefficient (module doc).
+    inflation: tau = 1 + 2 ar1_share ar1_phi / (1 - ar1_phi), the factor on R for a filter that treats the
+    errors as white ((1 + rho) / (1 - rho) for a pure AR(1)).
+    corr_time_s: -dt / ln(ar1_phi), s, of the AR(1) part (0 when there is none).
+    bias_scale: mean apparent scale of the detected corners about their centroid (1: none).
+    bias_radial_px: mean signed radial error, px (positive outward).
+    n_frames: frames the model was measured on. source: what it was measured on (datasets, ROI mode).
+    """
+
+    cov_scale: float = 1.0
+    rho_lag1: float = 0.0
+    ar1_share: float = 0.0
+    ar1_phi: float = 0.0
+    inflation: float = 1.0
+    corr_time_s: float = 0.0
+    bias_scale: float = 1.0
+    bias_radial_px: float = 0.0
+    n_frames: int = 0
+    source: str = ""
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), sort_keys=True)
+
+    @staticmethod
+    def from_json(text: str | None) -> "ErrorModel":
+        """From the metadata's JSON (unknown keys ignored, missing ones at their defaults); the defaults for None."""
+        if not text:
+            return ErrorModel()
+        raw = json.loads(text)
+        names = {f.name: f.type for f in fields(ErrorModel)}
+        kw = {k: v for k, v in raw.items() if k in names}
+        for k in ("cov_scale", "rho_lag1", "ar1_share", "ar1_phi", "inflation", "corr_time_s", "bias_scale", "bias_radial_px"):
+            if k in kw:
+                kw[k] = float(kw[k])
+        if "n_frames" in kw:
+            kw["n_frames"] = int(kw["n_frames"])
+        if "source" in kw:
+            kw["source"] = str(kw["source"])
+        return ErrorModel(**kw)
+
+
+def lag_sums(x: np.ndarray, max_lag: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sums of x_t x_{t+k} over the pairs both present and the pair counts, k = 0..max_lag, along axis 0 of x
+    (T, ...) (NaN: absent), summed over the other axes: (max_lag + 1,), (max_lag + 1,)."""
+    x = np.asarray(x, dtype=np.float64)
+    num, cnt = np.zeros(max_lag + 1), np.zeros(max_lag + 1)
+    for k in range(min(max_lag, len(x) - 1) + 1):
+        a, b = x[:len(x) - k], x[k:]
+        ok = np.isfinite(a) & np.isfinite(b)
+        num[k] = float(np.sum(np.where(ok, a * b, 0.0)))
+        cnt[k] = float(ok.sum())
+    return num, cnt
+
+
+def autocorrelation(num: np.ndarray, cnt: np.ndarray) -> np.ndarray:
+    """r_k = (num_k / cnt_k) / (num_0 / cnt_0) from lag_sums (NaN where a lag has no pair)."""
+    num, cnt = np.asarray(num, float), np.asarray(cnt, float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cov = np.where(cnt > 0, num / np.maximum(cnt, 1), np.nan)
+        return cov / cov[0]
+
+
+def ar1_inflation(rho: float) -> float:
+    """(1 + rho) / (1 - rho): the variance inflation of AR(1) errors treated as white (module doc)."""
+    return float((1.0 + rho) / (1.0 - rho))
+
+
+def acf_inflation(r: np.ndarray) -> float:
+    """1 + 2 sum_{k>=1} r_k over the leading lags while r_k > 0 (the measured autocorrelation's tau)."""
+    total = 1.0
+    for v in np.asarray(r, float)[1:]:
+        if not np.isfinite(v) or v <= 0:
+            break
+        total += 2.0 * v
+    return float(total)
+
+
+def fit_white_plus_ar1(r: np.ndarray, pairs: np.ndarray) -> tuple[float, float]:
+    """(a, phi) of rho_k = a phi^k (k >= 1) fitted to the measured r_k (max_lag + 1,) by least squares on
+    log r_k over the leading lags while r_k > 0, weighted by the pair counts (max_lag + 1,). One positive lag:
+    a pure AR(1), (1, r_1); none: (0, 0). phi is kept in [0, 1) and a in [0, 1]."""
+    r, w = np.asarray(r, float), np.asarray(pairs, float)
+    k = []
+    for j in range(1, len(r)):
+        if not np.isfinite(r[j]) or r[j] <= 0:
+            break
+        k.append(j)
+    if not k:
+        return 0.0, 0.0
+    if len(k) == 1:
+        return 1.0, float(min(r[1], 1.0 - 1e-9))
+    k = np.array(k)
+    A = np.stack([np.ones(len(k)), k.astype(float)], axis=1) * np.sqrt(w[k])[:, None]
+    coef = np.linalg.lstsq(A, np.log(r[k]) * np.sqrt(w[k]), rcond=None)[0]
+    a, phi = float(np.exp(coef[0])), float(np.exp(coef[1]))
+    phi = min(phi, 1.0 - 1e-9)
+    return float(min(a, 1.0)), phi
+
+
+def model_inflation(a: float, phi: float) -> float:
+    """tau = 1 + 2 a phi / (1 - phi) of rho_k = a phi^k (module doc)."""
+    return float(1.0 + 2.0 * a * phi / (1.0 - phi))
+
+
+def correlation_time(rho: float, dt_s: float) -> float:
+    """-dt / ln(rho) for 0 < rho < 1, s; 0 otherwise."""
+    return float(-dt_s / np.log(rho)) if 0.0 < rho < 1.0 else 0.0
+
+
+def apparent_scale(pred_px: np.ndarray, true_px: np.ndarray, right: np.ndarray, wrong: np.ndarray) -> np.ndarray:
+    """Per frame the least-squares scale of the right corners about their centroid against the labels (module
+    doc): pred_px, true_px (N, 8, 2); right (N, 8) bool corners named right; wrong (N, 8) bool found usable
+    corners named wrong. (N,), NaN for frames with fewer than 3 right corners or any wrong one."""
+    p, q = np.asarray(pred_px, float), np.asarray(true_px, float)
+    right = np.asarray(right, bool)
+    n = right.sum(axis=1)
+    w = right[..., None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pc = np.sum(np.where(w, p, 0.0), axis=1) / n[:, None]
+        qc = np.sum(np.where(w, q, 0.0), axis=1) / n[:, None]
+        dp, dq = p - pc[:, None], q - qc[:, None]
+        s = np.sum(np.where(right, np.sum(dp * dq, -1), 0.0), 1) / np.sum(np.where(right, np.sum(dq * dq, -1), 0.0), 1)
+    ok = (n >= 3) & ~np.asarray(wrong, bool).any(axis=1)
+    return np.where(ok, s, np.nan)
+
+
+def radial_errors(pred_px: np.ndarray, true_px: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """Signed radial error (N, 8) px of the right corners about the centroid of the frame's right detected
+    corners, positive outward; NaN elsewhere and in frames with fewer than 2 right corners."""
+    p, q = np.asarray(pred_px, float), np.asarray(true_px, float)
+    right = np.asarray(right, bool)
+    n = right.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pc = np.sum(np.where(right[..., None], p, 0.0), axis=1) / n[:, None]
+        d = p - pc[:, None]
+        u = d / np.linalg.norm(d, axis=-1, keepdims=True)
+        r = np.sum((p - q) * u, axis=-1)
+    return np.where(right & (n >= 2)[:, None], r, np.nan)
+
+
+def mean_se(x: np.ndarray) -> tuple[float, float, int]:
+    """(mean, standard error of the mean, count) of the finite values (NaN, NaN, 0 when none)."""
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    if len(x) == 0:
+        return float("nan"), float("nan"), 0
+    se = float(np.std(x, ddof=1) / np.sqrt(len(x))) if len(x) > 1 else float("nan")
+    return float(np.mean(x)), se, int(len(x))
+
+
+def measure(sequences: list[dict], cov_scale: float, max_lag: int = 10, source: str = "") -> tuple[ErrorModel, dict]:
+    """The error model of held-out sequences. Each sequence: err_px (T, 8, 2) (NaN where not named right),
+    sigma_px (T, 8, 2) the detector's predicted per-axis sigma at cov_scale 1, scale (T,) apparent scale per
+    frame, radial_px (T, 8), dt_s the frame interval. cov_scale: the fitted scale (the NEES mean 2 on the same
+    corners). Returns the ErrorModel and a record of every number (plain JSON data)."""
+    e_all = np.concatenate([s["err_px"].reshape(-1, 8, 2) for s in sequences])
+    ok = np.isfinite(e_all)
+    bias_px = np.where(ok, e_all, 0.0).sum(axis=0) / np.maximum(ok.sum(axis=0), 1)  # (8, 2), 0 where none
+    pooled_z = [np.zeros(max_lag + 1), np.zeros(max_lag + 1)]
+    pooled_px = [np.zeros(max_lag + 1), np.zeros(max_lag + 1)]
+    per = {c: {a: [np.zeros(max_lag + 1), np.zeros(max_lag + 1)] for a in "xy"} for c in "ABCDEFGH"}
+    for s in sequences:
+        x = s["err_px"] - bias_px[None]
+        z = x / (s["sigma_px"] * np.sqrt(cov_scale))
+        for acc, arr in ((pooled_z, z), (pooled_px, x)):
+            n, c = lag_sums(arr, max_lag)
+            acc[0] += n
+            acc[1] += c
+        for k, name in enumerate("ABCDEFGH"):
+            for a, axis in enumerate("xy"):
+                n, c = lag_sums(x[:, k, a], max_lag)
+                per[name][axis][0] += n
+                per[name][axis][1] += c
+    r_z = autocorrelation(*pooled_z)
+    r_px = autocorrelation(*pooled_px)
+    rho = float(r_z[1]) if len(r_z) > 1 and np.isfinite(r_z[1]) else 0.0
+    a, phi = fit_white_plus_ar1(r_z, pooled_z[1])
+    dts = {float(s["dt_s"]) for s in sequences}
+    dt = dts.pop() if len(dts) == 1 else float("nan")
+    scale_m, scale_se, scale_n = mean_se(np.concatenate([s["scale"] for s in sequences]))
+    # the per-frame scale is itself correlated along a sequence: its own lag-1 and the AR(1) standard error
+    sc = [np.zeros(2), np.zeros(2)]
+    for s in sequences:
+        n, c = lag_sums(s["scale"] - scale_m, 1)
+        sc[0] += n
+        sc[1] += c
+    rho_scale = float(autocorrelation(*sc)[1]) if sc[1][1] > 0 else 0.0
+    rad_m, rad_se, rad_n = mean_se(np.concatenate([s["radial_px"].ravel() for s in sequences]))
+    n_frames = int(sum(len(s["err_px"]) for s in sequences))
+    model = ErrorModel(cov_scale=float(cov_scale), rho_lag1=rho, ar1_share=a, ar1_phi=phi,
+                       inflation=model_inflation(a, phi), corr_time_s=correlation_time(phi, dt), bias_scale=scale_m if scale_n else 1.0,
+                       bias_radial_px=rad_m if rad_n else 0.0, n_frames=n_frames, source=source)
+    clean = lambda a: [None if not np.isfinite(v) else float(v) for v in np.asarray(a, float)]  # noqa: E731
+    record = {
+        "error_model": json.loads(model.to_json()),
+        "dt_s": dt, "max_lag": max_lag,
+        "autocorr_normalized": clean(r_z), "autocorr_px": clean(r_px),
+        "pairs_by_lag": clean(pooled_z[1]),
+        "pure_ar1": {"rho": rho, "inflation": ar1_inflation(rho), "lag2_predicted": rho ** 2,
+                     "lag2_measured": clean(r_z[2:3])[0] if len(r_z) > 2 else None},
+        "fitted_autocorr": [1.0] + [a * phi ** k for k in range(1, max_lag + 1)],
+        "acf_inflation": acf_inflation(r_z),
+        "autocorr_lag1_by_corner": {c: {a: clean(autocorrelation(*per[c][a])[1:2])[0] for a in "xy"} for c in per},
+        "bias_px_by_corner": {c: clean(bias_px[k]) for k, c in enumerate("ABCDEFGH")},
+        "scale": {"mean": scale_m, "se": scale_se, "frames": scale_n, "rho_lag1": rho_scale,
+                  "se_ar1": scale_se * np.sqrt(max(ar1_inflation(rho_scale), 0.0)) if abs(rho_scale) < 1 else None},
+        "radial_px": {"mean": rad_m, "se": rad_se, "corners": rad_n},
+        "corners": int(np.isfinite(e_all[..., 0]).sum()),
+    }
+    return model, record

@@ -1,0 +1,108 @@
+"""The detector's error model: the autocorrelation and inflation estimators against synthetic sequences of known
+correlation, the bias figures against a known scaling, and the model's round trip through the weights' metadata
+to `load_detector(...).error_model`."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from envisat_pose.perception import errormodel as em
+from envisat_pose.perception.detect import load_detector
+from envisat_pose.perception.model import CornerNet, ModelConfig
+from envisat_pose.perception.weights import WeightsError, save_weights, with_metadata
+
+
+def ar1(rng, rho, shape, n):
+    """n steps of a stationary AR(1) of unit variance, independent over `shape`: (n, *shape)."""
+    x = np.empty((n, *shape))
+    x[0] = rng.standard_normal(shape)
+    for t in range(1, n):
+        x[t] = rho * x[t - 1] + np.sqrt(1 - rho ** 2) * rng.standard_normal(shape)
+    return x
+
+
+def sequence(err, sigma=1.0):
+    t = len(err)
+    return {"err_px": err, "sigma_px": np.full_like(err, sigma), "scale": np.full(t, np.nan),
+            "radial_px": np.full((t, 8), np.nan), "dt_s": 2.0}
+
+
+def test_ar1_rho_and_inflation_recovered_with_gaps():
+    rng = np.random.default_rng(0)
+    rho = 0.6
+    seqs = []
+    for _ in range(6):
+        e = 1.7 * ar1(rng, rho, (8, 2), 400) + 0.3  # a constant bias: removed before the correlation
+        e[rng.random((400, 8)) < 0.2] = np.nan  # corners missed at random
+        seqs.append(sequence(e, sigma=1.7))
+    model, record = em.measure(seqs, cov_scale=1.0, max_lag=6)
+    assert abs(model.rho_lag1 - rho) < 0.03
+    assert abs(model.ar1_phi - rho) < 0.05 and model.ar1_share > 0.9
+    assert abs(model.inflation - (1 + rho) / (1 - rho)) < 0.3  # 4.0
+    assert abs(record["pure_ar1"]["inflation"] - (1 + rho) / (1 - rho)) < 0.3
+    assert abs(model.corr_time_s - (-2.0 / np.log(rho))) < 0.4
+    r = np.array(record["autocorr_normalized"])
+    assert np.all(np.abs(r[1:5] - rho ** np.arange(1, 5)) < 0.04)
+    assert abs(record["bias_px_by_corner"]["C"][1] - 0.3) < 0.1
+
+
+def test_white_plus_ar1_share_and_inflation_recovered():
+    rng = np.random.default_rng(3)
+    a, phi = 0.5, 0.85  # rho_k = a phi^k: r_1 = 0.425 alone would say (1.425 / 0.575) = 2.5; tau = 1 + 2 a phi / (1 - phi)
+    tau = 1 + 2 * a * phi / (1 - phi)  # 6.67
+    seqs = []
+    for _ in range(8):
+        e = np.sqrt(a) * ar1(rng, phi, (8, 2), 600) + np.sqrt(1 - a) * rng.standard_normal((600, 8, 2))
+        e[rng.random((600, 8)) < 0.3] = np.nan
+        seqs.append(sequence(e))
+    model, record = em.measure(seqs, cov_scale=1.0, max_lag=8)
+    assert abs(model.rho_lag1 - a * phi) < 0.03
+    assert abs(model.ar1_share - a) < 0.08 and abs(model.ar1_phi - phi) < 0.04
+    assert abs(model.inflation - tau) < 0.15 * tau
+    assert record["pure_ar1"]["inflation"] < 0.5 * tau  # what AR(1) from lag 1 alone would miss
+
+
+def test_white_errors_need_no_inflation():
+    rng = np.random.default_rng(1)
+    seqs = [sequence(rng.standard_normal((500, 8, 2))) for _ in range(3)]
+    model, _ = em.measure(seqs, cov_scale=1.0)
+    assert abs(model.rho_lag1) < 0.03
+    assert abs(model.inflation - 1.0) < 0.1
+
+
+def test_apparent_scale_and_radial_error_of_a_scaled_box():
+    rng = np.random.default_rng(2)
+    true = rng.uniform(100, 300, (5, 8, 2))
+    right = np.ones((5, 8), bool)
+    c = true.mean(axis=1, keepdims=True)
+    pred = c + 1.01 * (true - c) + np.array([3.0, -2.0])  # 1 % larger, shifted: the scale ignores the shift
+    s = em.apparent_scale(pred, true, right, np.zeros((5, 8), bool))
+    np.testing.assert_allclose(s, 1.01, atol=1e-12)
+    r = em.radial_errors(pred - np.array([3.0, -2.0]), true, right)  # unshifted: purely radial errors
+    expect = 0.01 * np.linalg.norm(true - c, axis=-1)  # outward by 1 % of each corner's distance
+    np.testing.assert_allclose(r, expect, atol=1e-9)
+    wrong = np.zeros((5, 8), bool)
+    wrong[1, 3] = True
+    few = right.copy()
+    few[2, 2:] = False
+    s = em.apparent_scale(pred, true, few, wrong)
+    assert np.isnan(s[1]) and np.isnan(s[2]) and np.isfinite(s[0])
+
+
+def test_error_model_round_trips_through_the_weights(tmp_path):
+    torch.manual_seed(0)  # this test's untrained model
+    w, out = tmp_path / "w.safetensors", tmp_path / "e.safetensors"
+    save_weights(str(w), CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8)))
+    assert load_detector(str(w)).error_model == em.ErrorModel()
+    assert load_detector(str(w)).error_model.inflation == 1.0 and load_detector(str(w)).error_model.rho_lag1 == 0.0
+    model = em.ErrorModel(cov_scale=0.8, rho_lag1=0.5, inflation=3.0, corr_time_s=1.44, bias_scale=1.002,
+                          bias_radial_px=0.25, n_frames=300, source="test")
+    with_metadata(str(w), str(out), {"error_model": model.to_json()})
+    assert load_detector(str(out)).error_model == model
+    assert json.loads(model.to_json())["inflation"] == 3.0
+    bad = tmp_path / "bad.safetensors"
+    with_metadata(str(w), str(bad), {"error_model": json.dumps({"rho_lag1": 1.5})})
+    with pytest.raises(WeightsError, match="error_model"):
+        load_detector(str(bad))
