@@ -543,3 +543,192 @@ def read_recording(path: str) -> tuple[dict, dict]:
         for k in t:
             t[k] = [t[k][i] for i in order]
     return static, temporal
+
+
+# ---------------------------------------------------------------- a tracker's run, streamed frame by frame
+
+STATUS_NAMES = ("acquiring", "tracking", "lost")  # the tracker's statuses, logged as 0, 1, 2
+AXIS_RGB = ((230, 60, 60), (40, 170, 60), (60, 110, 240))  # x, y, z
+PLOT_BLOCKS = (("position_m", "position error (m)", 0, 1.0), ("velocity_m_s", "velocity error (m/s)", 3, 1.0),
+               ("attitude_deg", "attitude error (deg)", 6, 180.0 / np.pi),
+               ("angular_velocity_deg_s", "angular velocity error (deg/s)", 9, 180.0 / np.pi))
+NEES_BAND_12 = (4.404, 23.337)  # chi-square 12 dof, 2.5 % and 97.5 %
+
+
+def whole_run(view_kind, **kw):
+    """A time-series view that shows the whole run on both timelines (not a trailing window) with its legend
+    hidden (the series are named in the view's title and coloured x red, y green, z blue)."""
+    ranges = [rrb.VisibleTimeRange(tl, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite())
+              for tl in ("sim_time", "frame")]
+    return view_kind(time_ranges=ranges, plot_legend=rrb.PlotLegend(visible=False), **kw)
+
+
+def track_blueprint(with_truth: bool) -> rrb.Blueprint:
+    """The camera image (detections, projected estimate, region of interest) and the 3D scene on the left; six
+    plots on the right: with a truth the four error blocks with +-3 sigma, NEES, the hypotheses and status;
+    without, the position and attitude 3 sigma, the range, NIS, the hypotheses and status."""
+    cam = rrb.Spatial2DView(origin="world/chaser/camera", name="camera: detected (yellow, rejected red), estimate (blue)",
+                            contents=["$origin/**"])
+    left = rrb.Vertical(cam, rrb.Spatial3DView(origin="world", name="3D: chaser LVLH frame C (m)"), row_shares=[1, 1])
+    if with_truth:
+        plots = [whole_run(rrb.TimeSeriesView, origin=f"metrics/error/{b}",
+                           name=f"{title}: x red, y green, z blue, +-3 sigma thin") for b, title, _, _ in PLOT_BLOCKS]
+        plots.append(whole_run(rrb.TimeSeriesView, origin="metrics/nees", name="NEES (12 dof; 95 % band grey)"))
+    else:
+        plots = [whole_run(rrb.TimeSeriesView, origin="metrics/sigma3/position_m", name="position 3 sigma (m): x, y, z"),
+                 whole_run(rrb.TimeSeriesView, origin="metrics/sigma3/attitude_deg", name="attitude 3 sigma (deg)"),
+                 whole_run(rrb.TimeSeriesView, origin="metrics/range_est_m", name="estimated range (m)"),
+                 whole_run(rrb.TimeSeriesView, origin="metrics/nis", name="NIS / dof")]
+    plots.append(whole_run(rrb.TimeSeriesView, origin="metrics/tracker",
+                           name="tracker: best hypothesis probability, status (0 acquiring, 1 tracking, 2 lost)"))
+    return rrb.Blueprint(rrb.Horizontal(left, rrb.Grid(*plots, grid_columns=2), column_shares=[2, 3]),
+                         collapse_panels=True)
+
+
+def project_state_px(x: np.ndarray, camera: PinholeCamera) -> np.ndarray:
+    """The corners A-H (8, 2) px (OpenCV) of a state (12,) through the camera (core geometry only)."""
+    from envisat_pose.geometry import project_K
+
+    corners_C = x[0:3] + load_geometry().corners_T_m @ mrp_to_dcm(x[6:9])  # rho + Gamma^T v
+    return project_K((corners_C - camera.pos_C_m) @ camera.R_K_from_C.T, camera)
+
+
+class TrackRecorder:
+    """A tracker's run logged to Rerun as it goes, frame by frame (nothing kept in memory).
+
+    sink: 'save:PATH' (a .rrd written under a temporary name and renamed by close()), 'spawn' (a local viewer) or
+    'connect:URL' (a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy). with_truth: error plots (the
+    caller passes x_true per frame) instead of the estimate's own uncertainty."""
+
+    def __init__(self, sink: str, camera: PinholeCamera, with_truth: bool, title: str = ""):
+        self.camera, self.with_truth = camera, with_truth
+        self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=str(uuid.uuid4()), send_properties=False)
+        self.rec.set_log_time_enabled(False)
+        self.rec.set_log_tick_enabled(False)
+        blueprint = track_blueprint(with_truth)
+        self._atomic = None
+        kind, _, arg = sink.partition(":")
+        if kind == "save":
+            self._atomic = atomic_path(arg, suffix=".rrd")
+            self.rec.save(self._atomic.__enter__(), default_blueprint=blueprint)
+        elif kind == "spawn":
+            self.rec.spawn(default_blueprint=blueprint)
+        elif kind == "connect":
+            self.rec.connect_grpc(arg or None, default_blueprint=blueprint)
+        else:
+            raise ValueError(f"recording sink {sink!r}: expected 'save:PATH', 'spawn' or 'connect:URL'")
+        if title:
+            self.rec.log("description", rr.TextDocument(title), static=True)
+        log_static_scene(self.rec, camera, estimate=True)
+        self._log_series_styles()
+        self.status = -1
+
+    def _log_series_styles(self) -> None:
+        rec = self.rec
+        if self.with_truth:
+            for b, _, _, _ in PLOT_BLOCKS:
+                for a, rgb in zip(AXES, AXIS_RGB):
+                    rec.log(f"metrics/error/{b}/{a}", rr.SeriesLines(colors=[rgb], widths=[1.5], names=[a]), static=True)
+                    rec.log(f"metrics/error/{b}/{a}_3sigma", rr.SeriesLines(
+                        colors=[rgb, rgb], widths=[0.5, 0.5], names=[f"+3s {a}", f"-3s {a}"]), static=True)
+            rec.log("metrics/nees/value", rr.SeriesLines(colors=[(20, 20, 20)], widths=[1.5], names=["NEES"]), static=True)
+            rec.log("metrics/nees/band", rr.SeriesLines(colors=[(150, 150, 150)] * 2, widths=[1.0, 1.0],
+                                                        names=["2.5 %", "97.5 %"]), static=True)
+        else:
+            for a, rgb in zip(AXES, AXIS_RGB):
+                rec.log(f"metrics/sigma3/position_m/{a}", rr.SeriesLines(colors=[rgb], names=[a]), static=True)
+                rec.log(f"metrics/sigma3/attitude_deg/{a}", rr.SeriesLines(colors=[rgb], names=[a]), static=True)
+        rec.log("metrics/tracker/p_best", rr.SeriesLines(colors=[(60, 140, 255)], widths=[1.5],
+                                                         names=["best hypothesis"]), static=True)
+        rec.log("metrics/tracker/status", rr.SeriesLines(colors=[(20, 20, 20)], widths=[1.5], names=["status"]),
+                static=True)
+        rec.log("world/chaser/camera/image/corners_detected", rr.Points2D.from_fields(radii=[3.0]), static=True)
+        rec.log("world/chaser/camera/image/corners_estimated", rr.Points2D.from_fields(colors=[EST_RGB], radii=[2.0]),
+                static=True)
+        rec.log("world/chaser/camera/image/roi", rr.Boxes2D.from_fields(colors=[ROI_RGB]), static=True)
+        rec.log("world/target_est/position_3sigma", rr.Ellipsoids3D.from_fields(
+            colors=[EST_RGB], fill_mode=rr.components.FillMode.MajorWireframe), static=True)
+
+    def log_frame(self, k: int, est: dict, image: np.ndarray | None, jpeg_quality: int = 80,
+                  x_true: np.ndarray | None = None, corners_true_px: np.ndarray | None = None,
+                  in_frame: np.ndarray | None = None) -> None:
+        """Frame k: est holds x_hat (12,), P (12, 12), status (int), p_best, nis, nis_dof, corners_px (8, 2),
+        visible (8,), rejected (8,), roi_px (3,) (NaN without); image (H, W) uint8 or None; with a truth, x_true
+        (12,) and the true corners corners_true_px (8, 2) where in_frame (8,)."""
+        import cv2
+
+        rec, cam = self.rec, self.camera
+        rec.set_time("frame", sequence=int(k))
+        t_s = float(est["t_s"]) if "t_s" in est else float(k)
+        rec.set_time("sim_time", duration=t_s)
+        if image is not None:
+            ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+            if ok:
+                rec.log("world/chaser/camera/image", rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
+        status = int(est["status"])
+        if status != self.status:
+            rec.log("events", rr.TextLog(f"t = {t_s:.1f} s: {STATUS_NAMES[status]}",
+                                         level="WARN" if status == 2 else "INFO"))
+            self.status = status
+        rec.log("metrics/tracker/status", rr.Scalars(float(status)))
+        rec.log("metrics/tracker/p_best", rr.Scalars(float(est["p_best"])))
+        m = np.asarray(est["visible"], bool) & np.isfinite(est["corners_px"]).all(-1)
+        rej = np.asarray(est["rejected"], bool)[m]
+        rec.log("world/chaser/camera/image/corners_detected", rr.Points2D(
+            np.asarray(est["corners_px"])[m] + 0.5, keypoint_ids=np.flatnonzero(m), class_ids=KEYPOINT_CLASS,
+            colors=np.where(rej[:, None], np.array(HIDDEN_RGB, np.uint8), np.array(DETECTED_RGB, np.uint8))))
+        x, P = np.asarray(est["x_hat"], float), np.asarray(est["P"], float)
+        if status == 1:
+            uv = project_state_px(x, cam)
+            rec.log("world/chaser/camera/image/corners_estimated", rr.Points2D(
+                uv + 0.5, keypoint_ids=np.arange(8), class_ids=KEYPOINT_CLASS))
+            rec.log("world/target_est", rr.Transform3D(translation=x[0:3],
+                                                       quaternion=_wxyz_to_xyzw(mrp_to_quat(x[6:9]))))
+            half, quat = position_ellipsoids(x[None], P[None])
+            rec.log("world/target_est/position_3sigma", rr.Ellipsoids3D(centers=[[0.0, 0.0, 0.0]], half_sizes=half,
+                                                                         quaternions=quat))
+        else:
+            rec.log("world/chaser/camera/image/corners_estimated", rr.Clear(recursive=False))
+        roi = np.asarray(est["roi_px"], float)
+        if np.isfinite(roi).all():
+            rec.log("world/chaser/camera/image/roi", rr.Boxes2D(centers=[roi[0:2] + 0.5 * roi[2]],
+                                                                half_sizes=[[0.5 * roi[2]] * 2]))
+        else:
+            rec.log("world/chaser/camera/image/roi", rr.Clear(recursive=False))
+        A = display_transform(x[6:9])
+        sig3 = 3.0 * np.sqrt(np.maximum(np.diagonal(A @ P @ A.T), 0.0))  # statistics' units (attitude rad)
+        if x_true is not None:
+            rec.log("world/target", rr.Transform3D(translation=x_true[0:3],
+                                                   quaternion=_wxyz_to_xyzw(mrp_to_quat(x_true[6:9]))))
+            if corners_true_px is not None:
+                f = np.asarray(in_frame, bool)
+                rec.log("world/chaser/camera/image/corners_true", rr.Points2D(
+                    np.asarray(corners_true_px)[f] + 0.5, colors=[VISIBLE_RGB], radii=[1.5]))
+        if self.with_truth and x_true is not None and status == 1:
+            err = component_errors(x_true, x)
+            for b, _, i0, s in PLOT_BLOCKS:
+                for j, a in enumerate(AXES):
+                    rec.log(f"metrics/error/{b}/{a}", rr.Scalars(float(err[i0 + j] * s)))
+                    rec.log(f"metrics/error/{b}/{a}_3sigma", rr.Scalars([float(sig3[i0 + j] * s),
+                                                                         float(-sig3[i0 + j] * s)]))
+            e = component_errors(x_true, x)
+            Pd = A @ P @ A.T
+            rec.log("metrics/nees/value", rr.Scalars(float(e @ np.linalg.solve(Pd, e))))
+            rec.log("metrics/nees/band", rr.Scalars(list(NEES_BAND_12)))
+        elif not self.with_truth and status == 1:
+            for j, a in enumerate(AXES):
+                rec.log(f"metrics/sigma3/position_m/{a}", rr.Scalars(float(sig3[j])))
+                rec.log(f"metrics/sigma3/attitude_deg/{a}", rr.Scalars(float(np.degrees(sig3[6 + j]))))
+            rec.log("metrics/range_est_m", rr.Scalars(float(np.linalg.norm(x[0:3]))))
+            if est["nis_dof"]:
+                rec.log("metrics/nis", rr.Scalars(float(est["nis"]) / float(est["nis_dof"])))
+
+    def close(self) -> None:
+        """Flush; a saved recording is renamed to its path only now (complete)."""
+        try:
+            self.rec.flush()
+            self.rec.disconnect()
+        finally:
+            if self._atomic is not None:
+                self._atomic.__exit__(None, None, None)
+                self._atomic = None

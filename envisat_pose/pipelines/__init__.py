@@ -1,0 +1,7 @@
+"""Pipelines: the stages joined into the jobs users run (design.md, Layers).
+
+Between the stages and the app: a pipeline may import the core and the stages, never the app; the app's verbs are
+argument parsers over it. `tracker` (the truth-free Tracker), `acquisition` (its cold start), `closed_loop`
+(`envisat run`: simulate, render, the space camera, the Tracker), `track` (`envisat track`: a user's frames),
+`scoring` (a run against a truth).
+"""

@@ -1,0 +1,252 @@
+"""Cold start from images: a pose per frame from the named corners, the half-turn hypotheses, a short batch fit.
+
+No prior and no truth: the tracker buffers the first lit frames with enough named corners and hands them here.
+
+1. `pnp_state`: each frame's named corners (A-H, OpenCV px) give a pose by PnP (SQPnP, then Levenberg-Marquardt
+   on the reprojection error): rho (target CoM relative to the chaser, in C, m) and the MRP p of T relative to C.
+2. `align_namings`: a detector's naming may flip under the half-turn about the long axis (A<->C, B<->D, E<->G,
+   F<->H) from one frame to the next. The poses of one physical hypothesis turn by a few degrees per frame; a
+   flip turns them by 180 deg. Each frame takes the naming (the detector's or its half-turn) whose attitude is
+   nearer the previous frame's, so the window holds one consistent sequence (hypothesis 0) and its half-turn
+   (hypothesis 1). The detector's own half-turn probability of each frame is kept as the appearance cue.
+3. `batch_fit`: Gauss-Newton with Levenberg-Marquardt damping on the state at the window's last frame: the
+   filter's own dynamics (filtering.dynamics.propagate, RK4, torque-free plus the relative-orbit gravity) carry a
+   candidate state back over the window (sub-steps of at most 1 s), the pixel model (filtering.measurements)
+   predicts every frame's corners, residuals are whitened by the detector's covariance (times the error model's
+   inflation for frame-to-frame correlation), outliers are down-weighted (Huber) and gated. The fit's covariance
+   is (J^T W J)^-1, scaled up by the reduced chi-square when the residuals are larger than the covariance says.
+   Both half-turn hypotheses are fitted; their chi-square differ through the dynamics (the half-turn flips the
+   sign of two products of inertia, so only one of them is torque-free with the MJCF's inertia tensor).
+4. `hypothesis_log_weights`: -chi^2 / 2 of each fit plus the appearance log-likelihoods.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from envisat_pose.attitude import dcm_to_mrp, mrp_shadow, mrp_to_dcm
+from envisat_pose.geometry import PinholeCamera
+from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
+
+# the half-turn about the long axis: corner i of one naming is corner HALF_TURN[i] of the other; in T it is the
+# rotation diag(1, -1, -1)
+HALF_TURN = np.array([2, 3, 0, 1, 6, 7, 4, 5])
+R_HALF_TURN = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass(frozen=True)
+class FramePose:
+    """One buffered frame of the acquisition window.
+
+    t_s: time, s; chaser (4,): the chaser's polar orbit at t_s; z_px (8, 2) the named corners (NaN where not
+    found), cov_px (8, 2, 2) their covariance, px^2 (already inflated for correlation); p_alt: the detector's
+    probability that the half-turn naming is the right one; x_pnp (12,): the PnP pose (rho, p; velocity and
+    rate zero), or None when PnP failed."""
+
+    t_s: float
+    chaser: np.ndarray
+    z_px: np.ndarray
+    cov_px: np.ndarray
+    p_alt: float
+    x_pnp: np.ndarray | None
+
+
+def pnp_state(z_px: np.ndarray, corners_T_m: np.ndarray, camera: PinholeCamera, min_corners: int = 4
+              ) -> np.ndarray | None:
+    """The pose of the named corners z_px (8, 2) (NaN where missing) as a 12-state (rho_C_m, 0, p_mrp, 0), or None
+    with fewer than min_corners corners or when PnP fails. corners_T_m (8, 3): A-H in T."""
+    import cv2
+
+    ok = np.isfinite(z_px).all(-1)
+    if ok.sum() < max(min_corners, 4):
+        return None
+    obj = np.ascontiguousarray(corners_T_m[ok], dtype=np.float64)
+    img = np.ascontiguousarray(z_px[ok], dtype=np.float64)
+    try:
+        good, rvec, tvec = cv2.solvePnP(obj, img, camera.K, None, flags=cv2.SOLVEPNP_SQPNP)
+        if not good:
+            return None
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera.K, None, rvec, tvec)
+    except cv2.error:
+        return None
+    R_K_from_T = cv2.Rodrigues(rvec)[0]
+    t_K = tvec.reshape(3)
+    if not (np.isfinite(t_K).all() and t_K[2] > 0):
+        return None
+    x = np.zeros(N_STATE)
+    x[POS] = camera.R_K_from_C.T @ t_K + camera.pos_C_m  # rho = R_C_from_K t_K + camera position in C
+    gamma = R_K_from_T.T @ camera.R_K_from_C  # Gamma = T_from_C = (R_K_from_T)^T R_K_from_C
+    x[MRP] = dcm_to_mrp(gamma)
+    return x
+
+
+def half_turn_state(x: np.ndarray) -> np.ndarray:
+    """The same physical pose described by the half-turn naming: T' = half-turn of T, Gamma' = D Gamma, w' = D w
+    (D = diag(1, -1, -1)). (..., 12) -> (..., 12)."""
+    x = np.array(x, dtype=float)
+    G = np.einsum("ij,...jk->...ik", R_HALF_TURN, mrp_to_dcm(x[..., MRP]))
+    x[..., MRP] = dcm_to_mrp(G)
+    x[..., RATE] = x[..., RATE] @ R_HALF_TURN
+    return x
+
+
+def half_turn_naming(z_px: np.ndarray, cov_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The half-turn renaming of corners (8, 2) and covariances (8, 2, 2): corner i takes corner HALF_TURN[i]."""
+    return z_px[HALF_TURN], cov_px[HALF_TURN]
+
+
+def attitude_distance_rad(p_a: np.ndarray, p_b: np.ndarray) -> float:
+    """Rotation angle between two MRP attitudes, rad."""
+    G = mrp_to_dcm(np.asarray(p_a)) @ mrp_to_dcm(np.asarray(p_b)).T
+    return float(np.arccos(np.clip((np.trace(G) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def align_namings(frames: list[FramePose]) -> tuple[list[FramePose], np.ndarray]:
+    """One consistent naming through the window (module docstring, 2). Returns the frames renamed where they
+    flipped (their x_pnp and p_alt follow) and flipped (N,) bool. The first frame keeps the detector's naming."""
+    out, flipped, ref = [], [], None
+    for fr in frames:
+        flip = False
+        if ref is not None and fr.x_pnp is not None:
+            alt = half_turn_state(fr.x_pnp)
+            flip = attitude_distance_rad(alt[MRP], ref) < attitude_distance_rad(fr.x_pnp[MRP], ref)
+        if flip:
+            z, c = half_turn_naming(fr.z_px, fr.cov_px)
+            fr = FramePose(fr.t_s, fr.chaser, z, c, 1.0 - fr.p_alt, half_turn_state(fr.x_pnp))
+        if fr.x_pnp is not None:
+            ref = fr.x_pnp[MRP]
+        out.append(fr)
+        flipped.append(flip)
+    return out, np.array(flipped)
+
+
+def initial_guess(frames: list[FramePose]) -> np.ndarray:
+    """A first state at the last frame from the PnP poses: the last pose, the velocity of a straight-line fit of
+    the positions (m/s, C) and the relative rate from the attitude change over the window (rad/s, T)."""
+    from scipy.spatial.transform import Rotation
+
+    have = [f for f in frames if f.x_pnp is not None]
+    t = np.array([f.t_s for f in have])
+    pos = np.array([f.x_pnp[POS] for f in have])
+    x = have[-1].x_pnp.copy()
+    if len(have) >= 2 and np.ptp(t) > 0:
+        x[VEL] = np.polyfit(t - t[-1], pos, 1)[0]
+        # Gamma' = -[w_r x] Gamma (v_T = Gamma v_C): Gamma_k Gamma_(k-1)^T ~ exp(-[w_r x] dt), rotation vectors
+        # of consecutive pairs, averaged with their time steps
+        rv, dt = [], []
+        for a, b in zip(have[:-1], have[1:]):
+            G = mrp_to_dcm(b.x_pnp[MRP]) @ mrp_to_dcm(a.x_pnp[MRP]).T
+            rv.append(-Rotation.from_matrix(G).as_rotvec())
+            dt.append(b.t_s - a.t_s)
+        x[RATE] = np.sum(rv, axis=0) / np.sum(dt)
+    return x
+
+
+def _propagate_back(x_end: np.ndarray, t_end: float, times: np.ndarray, chaser_at, dyn: dict) -> np.ndarray:
+    """States at `times` (N,) (sorted, <= t_end) from x_end (B, 12) at t_end, through the filter's dynamics in
+    sub-steps of at most 1 s. Returns (B, N, 12)."""
+    from envisat_pose.filtering.dynamics import propagate
+
+    B = x_end.shape[0]
+    out = np.empty((B, len(times), N_STATE))
+    x, t = x_end.copy(), float(t_end)
+    for i in range(len(times) - 1, -1, -1):
+        target = float(times[i])
+        while t - target > 1e-9:
+            h = max(target - t, -dyn["max_step_s"])
+            x = propagate(x, chaser_at(t), h, dyn["J_T"], dyn["mu_m3_s2"], dyn["max_step_s"], dyn["gravity_gradient"])
+            x[:, MRP] = mrp_shadow(x[:, MRP])
+            t += h
+        out[:, i] = x
+    return out
+
+
+@dataclass(frozen=True)
+class BatchFit:
+    """A batch fit of one hypothesis: x (12,) at t_s, P (12, 12), chi2 (whitened residuals' sum of squares of the
+    kept corners), dof (residual components kept minus 12), used (N, 8) bool the corners kept."""
+
+    t_s: float
+    x: np.ndarray
+    P: np.ndarray
+    chi2: float
+    dof: int
+    used: np.ndarray
+
+
+def batch_fit(frames: list[FramePose], x_guess: np.ndarray, chaser_at, camera: PinholeCamera, dyn: dict,
+              iterations: int = 15, huber: float = 3.0, gate: float = 23.0) -> BatchFit:
+    """Gauss-Newton / Levenberg-Marquardt fit of the state at the last frame (module docstring, 3).
+
+    chaser_at(t_s) -> (4,) the chaser's polar orbit; dyn: J_T, mu_m3_s2, gravity_gradient, max_step_s; huber:
+    the whitened residual norm per corner beyond which a corner is down-weighted; gate: chi-square bound per
+    corner beyond which it is dropped after the first iterations."""
+    from envisat_pose.filtering.measurements import measure
+
+    times = np.array([f.t_s for f in frames])
+    t_end = float(times[-1])
+    z = np.stack([f.z_px for f in frames])  # (N, 8, 2)
+    meas = np.isfinite(z).all(-1)
+    L_inv = np.linalg.inv(np.linalg.cholesky(np.where(meas[..., None, None], np.stack([f.cov_px for f in frames]),
+                                                      np.eye(2))))  # whitening, (N, 8, 2, 2)
+    steps = np.array([1e-3] * 3 + [1e-4] * 3 + [1e-5] * 3 + [1e-6] * 3)
+
+    def whitened(X: np.ndarray) -> np.ndarray:
+        """(B, 12) states at t_end -> whitened residuals (B, N, 8, 2) (0 where not measured)."""
+        uv = measure(_propagate_back(X, t_end, times, chaser_at, dyn), "pixels", camera)
+        r = np.where(meas[..., None], z - uv, 0.0)
+        return np.einsum("nkij,bnkj->bnki", L_inv, r)
+
+    x = np.array(x_guess, dtype=float)
+    keep = meas.copy()
+    lam = 1e-3
+    for it in range(iterations):
+        X = np.concatenate([x[None], x[None] + np.diag(steps)])
+        W = whitened(X)
+        r0 = W[0]
+        J = (W[1:] - r0[None]) / steps[:, None, None, None]  # (12, N, 8, 2)
+        norm = np.linalg.norm(r0, axis=-1)
+        if it >= 3:
+            keep = meas & (norm ** 2 < gate)
+        w = np.where(keep, np.minimum(1.0, huber / np.maximum(norm, 1e-12)), 0.0)  # IRLS Huber weights
+        Jm = (J * np.sqrt(w)[None, ..., None]).reshape(12, -1).T
+        rm = (r0 * np.sqrt(w)[..., None]).reshape(-1)
+        H = Jm.T @ Jm
+        g = Jm.T @ rm
+        cost0 = float(rm @ rm)
+        while True:
+            dx = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), -g)
+            x_new = x + dx
+            x_new[MRP] = mrp_shadow(x_new[MRP])
+            r_new = whitened(x_new[None])[0]
+            cost1 = float(np.sum(w[..., None] * r_new ** 2))
+            if cost1 <= cost0 or lam > 1e8:
+                break
+            lam *= 10.0
+        if cost1 <= cost0:
+            x, lam = x_new, max(lam / 10.0, 1e-9)
+        if abs(cost0 - cost1) < 1e-6 * max(cost0, 1.0) and it >= 4:
+            break
+    X = np.concatenate([x[None], x[None] + np.diag(steps)])
+    W = whitened(X)
+    r0 = W[0]
+    norm2 = np.sum(r0 ** 2, axis=-1)
+    keep = meas & (norm2 < gate)
+    J = ((W[1:] - r0[None]) / steps[:, None, None, None])[:, keep].reshape(12, -1).T
+    chi2 = float(norm2[keep].sum())
+    dof = int(2 * keep.sum() - N_STATE)
+    H = J.T @ J
+    P = np.linalg.pinv(H)
+    if dof > 0:
+        P = P * max(1.0, chi2 / dof)  # residuals larger than their covariance: the fit is less certain than H says
+    P = 0.5 * (P + P.T)
+    return BatchFit(t_end, x, P, chi2, dof, keep)
+
+
+def appearance_log_likelihood(frames: list[FramePose], clip: float) -> np.ndarray:
+    """(2,) log-likelihoods of hypothesis 0 (the aligned naming) and 1 (its half-turn) from the detector's
+    per-frame half-turn probabilities, each clipped to [clip, 1 - clip] (one frame never decides alone)."""
+    p = np.clip(np.array([f.p_alt for f in frames], dtype=float), clip, 1.0 - clip)
+    return np.array([np.log1p(-p).sum(), np.log(p).sum()])

@@ -1,0 +1,70 @@
+"""Scoring a tracker's runs against a truth (the truth only scores: nothing here feeds back into a run).
+
+A run has converged at the first time from which its position error stays below POS_TOL_M and its attitude error
+below ATT_TOL_DEG to the end of the run; time to converge counts from its first lit frame. After convergence:
+RMSE per block, mean NEES (12 dof for a consistent filter), the range bias (mean of |rho_hat| - |rho|, m).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from envisat_pose.state import BLOCKS, POS, error_magnitudes, error_summary
+
+POS_TOL_M = 0.10
+ATT_TOL_DEG = 1.0
+
+
+def converged_from(t_s: np.ndarray, pos_err_m: np.ndarray, att_err_deg: np.ndarray) -> float | None:
+    """The time (s) from which both errors (T,) stay below the tolerances to the end; None if never."""
+    ok = (pos_err_m < POS_TOL_M) & (att_err_deg < ATT_TOL_DEG)
+    if not ok[-1]:
+        return None
+    bad = np.flatnonzero(~ok)
+    return float(t_s[0] if bad.size == 0 else t_s[bad[-1] + 1])
+
+
+def score_runs(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, status: np.ndarray,
+               skipped: np.ndarray | None = None) -> dict:
+    """Scores of R runs: x_true, x_hat (R, T, 12), P (R, T, 12, 12), status (R, T) (index into the tracker's
+    STATUSES), skipped (T,) frames without an image (eclipse). Per run: converged, time to converge from the
+    first lit frame (s); over the converged runs after convergence: RMSE per block (m, m/s, deg, deg/s), mean
+    NEES, range bias (m); the error summary over the run's second half."""
+    from envisat_pose.filtering.estimator import nees
+
+    t_s = np.asarray(t_s, dtype=float)
+    R = x_hat.shape[0]
+    lit = ~np.asarray(skipped, bool) if skipped is not None else np.ones(len(t_s), bool)
+    t_first_lit = float(t_s[np.argmax(lit)]) if lit.any() else float(t_s[0])
+    err = error_magnitudes(x_true, x_hat)
+    e_nees = nees(x_true, x_hat, P)  # (R, T)
+    range_err = np.linalg.norm(x_hat[..., POS], axis=-1) - np.linalg.norm(x_true[..., POS], axis=-1)
+    conv_t, sq = [], {b: [] for b in err}
+    nees_after, bias_after = [], []
+    for r in range(R):
+        tc = converged_from(t_s, err["position_m"][r], err["attitude_deg"][r])
+        conv_t.append(tc)
+        if tc is None:
+            continue
+        k = t_s >= tc
+        for b in err:
+            sq[b].append(err[b][r, k] ** 2)
+        nees_after.append(e_nees[r, k])
+        bias_after.append(range_err[r, k])
+    converged = [t is not None for t in conv_t]
+    ttc = [None if t is None else t - t_first_lit for t in conv_t]
+    done = [v for v in ttc if v is not None]
+    out = {
+        "runs": R, "converged": int(sum(converged)), "converged_runs": converged,
+        "time_to_converge_s": ttc,
+        "time_to_converge_median_s": float(np.median(done)) if done else None,
+        "time_to_converge_max_s": float(np.max(done)) if done else None,
+        "first_lit_s": t_first_lit,
+        "rmse_after_convergence": {b: float(np.sqrt(np.mean(np.concatenate(sq[b])))) if sq[b] else None for b in err},
+        "mean_nees_after_convergence": float(np.mean(np.concatenate(nees_after))) if nees_after else None,
+        "range_bias_m": float(np.mean(np.concatenate(bias_after))) if bias_after else None,
+        "frames_acquiring": int((np.asarray(status) == 0).sum()), "frames_lost": int((np.asarray(status) == 2).sum()),
+        "errors": error_summary(t_s, x_true, x_hat, float(t_s[0] + 0.5 * (t_s[-1] - t_s[0]))),
+        "blocks": list(BLOCKS),
+    }
+    return out
