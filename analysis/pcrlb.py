@@ -28,11 +28,11 @@ from collections.abc import Callable
 import numpy as np
 
 from envisat_pose.attitude import align_mrp
+from envisat_pose.state import ATTITUDE, MRP, block_sums
 
 # Central-difference steps for the 12-state (m, m/s, MRP, rad/s): rounding error ~ eps |f| / h and truncation
 # ~ h^2 |f'''| both stay near 1e-10 relative for the ENVISAT scenario (|rho| ~ 50 m, |w| ~ 0.05 rad/s, dt ~ 1 s).
 STATE_FD_STEP = np.array([1e-4] * 3 + [1e-5] * 3 + [1e-6] * 3 + [1e-6] * 3)
-MRP = slice(6, 9)
 
 
 def fd_jacobian(f: Callable[[np.ndarray], np.ndarray], x: np.ndarray, step: np.ndarray | float) -> np.ndarray:
@@ -166,11 +166,10 @@ def block_bounds(B: np.ndarray, x_true: np.ndarray) -> np.ndarray:
     B: (..., 12, 12); x_true: (..., 12) (its MRP sets the attitude scale). Returns (..., 4), comparable with
     `stats.CampaignStats.rmse_block`.
     """
-    d = np.diagonal(B, axis1=-2, axis2=-1)
-    tr = np.maximum(d.reshape(d.shape[:-1] + (4, 3)).sum(-1), 0.0)
+    tr = np.maximum(block_sums(np.diagonal(B, axis1=-2, axis2=-1)), 0.0)
     p = x_true[..., MRP]
     scale = np.ones(tr.shape)
-    scale[..., 2] = 4.0 / (1.0 + np.einsum("...i,...i->...", p, p))
+    scale[..., ATTITUDE] = 4.0 / (1.0 + np.einsum("...i,...i->...", p, p))
     return scale * np.sqrt(tr)
 
 

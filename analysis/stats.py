@@ -1,6 +1,6 @@
 """Monte Carlo statistics over R runs of the 12-state filter, per state block, batched and streamable.
 
-State order (shared/reference.md, section 3): rho_C_m (3), rhodot_C_m_s (3), p_mrp (3), w_r_T_rad_s (3).
+State layout: the core's envisat_pose.state (POS, VEL, MRP, RATE; BLOCKS, BLOCK_UNITS, BLOCK_SLICES).
 The four blocks and the units the statistics use:
 
     position          m       rho error in C
@@ -32,11 +32,8 @@ import numpy as np
 from scipy.stats import chi2
 
 from envisat_pose.attitude import align_mrp, mrp_error_angle_rad, mrp_kinematics_matrix
-
-BLOCKS = ("position", "velocity", "attitude", "angular_velocity")
-BLOCK_UNITS = ("m", "m/s", "rad", "rad/s")
-BLOCK_SLICES = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12))
-MRP = slice(6, 9)
+from envisat_pose.state import (BLOCK_SLICES, BLOCK_UNITS, BLOCKS, MRP, N_STATE, POS, RATE, VEL,  # noqa: F401
+                                block_sums)
 P_3SIGMA = 0.9973002039367398  # P(|N(0,1)| <= 3)
 MAHALANOBIS_3SIGMA_3D = float(chi2.ppf(P_3SIGMA, 3))  # 14.156 for a 3-D block
 P_BAND = (0.025, 0.975)  # two-sided 95 % chi-square band
@@ -69,7 +66,7 @@ def display_transform(p_ref: np.ndarray) -> np.ndarray:
     """The (..., 12, 12) linear map from the state's error to the statistics' units: identity except the MRP
     block, which is M(p_ref) (MRP difference -> rotation vector, rad)."""
     M = mrp_to_rotvec_matrix(p_ref)
-    A = np.broadcast_to(np.eye(12), M.shape[:-2] + (12, 12)).copy()
+    A = np.broadcast_to(np.eye(N_STATE), M.shape[:-2] + (N_STATE, N_STATE)).copy()
     A[..., MRP, MRP] = M
     return A
 
@@ -90,15 +87,9 @@ def component_cov(P: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
 def block_error_norms(x_true: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
     """|error| per block: m, m/s, the exact attitude error angle (rad), rad/s. (..., 12) -> (..., 4)."""
     e = state_errors(x_true, x_hat)
-    return np.stack([np.linalg.norm(e[..., 0:3], axis=-1), np.linalg.norm(e[..., 3:6], axis=-1),
+    return np.stack([np.linalg.norm(e[..., POS], axis=-1), np.linalg.norm(e[..., VEL], axis=-1),
                      mrp_error_angle_rad(x_hat[..., MRP], align_mrp(x_true[..., MRP], x_hat[..., MRP])),
-                     np.linalg.norm(e[..., 9:12], axis=-1)], axis=-1)
-
-
-def block_traces(C: np.ndarray) -> np.ndarray:
-    """Trace of each 3x3 diagonal block of a (..., 12, 12) covariance. -> (..., 4)."""
-    d = np.diagonal(C, axis1=-2, axis2=-1)
-    return d.reshape(d.shape[:-1] + (4, 3)).sum(-1)
+                     np.linalg.norm(e[..., RATE], axis=-1)], axis=-1)
 
 
 def block_mahalanobis_sq(e_state: np.ndarray, P: np.ndarray) -> np.ndarray:
@@ -286,8 +277,8 @@ def finalize(s: CampaignSums) -> CampaignStats:
     n = s.n_runs
     mean = s.err / n
     var = np.maximum(s.sq_err - s.err * mean, 0.0) / (n - 1) if n > 1 else np.full_like(mean, np.nan)
-    vb = var.reshape(var.shape[:-1] + (4, 3)).sum(-1)
-    fb = s.filt_var.reshape(s.filt_var.shape[:-1] + (4, 3)).sum(-1)
+    vb = block_sums(var)
+    fb = block_sums(s.filt_var)
     with np.errstate(invalid="ignore", divide="ignore"):
         nis_mean = np.where(s.nis_runs > 0, s.nis / np.maximum(s.nis_runs, 1), np.nan)
     return CampaignStats(
@@ -295,7 +286,7 @@ def finalize(s: CampaignSums) -> CampaignStats:
         filter_3sigma=3.0 * np.sqrt(s.filt_var / n), filter_3sigma_block=3.0 * np.sqrt(fb / n), mean_err=mean,
         sample_3sigma=3.0 * np.sqrt(var), sample_3sigma_block=3.0 * np.sqrt(vb),
         inside_comp=s.inside_comp / n, inside_block=s.inside_block / n, nees_mean=s.nees / n,
-        nees_bounds=chi2_mean_bounds(12 * n, n), nis_mean=nis_mean, nis_bounds=chi2_mean_bounds(s.nis_dof, s.nis_runs))
+        nees_bounds=chi2_mean_bounds(N_STATE * n, n), nis_mean=nis_mean, nis_bounds=chi2_mean_bounds(s.nis_dof, s.nis_runs))
 
 
 def campaign_stats(x_true, x_hat, P, nis, nis_dof, diverged) -> CampaignStats:
@@ -315,7 +306,7 @@ def campaign_summary(s: CampaignSums, t_s: np.ndarray, settle_s: float = 0.0) ->
     k = settled(t_s, settle_s)
     n_rs = s.n_runs * int(k.sum())
     dof_nis = int(s.nis_dof[k].sum())
-    lo, hi = chi2_mean_bounds(12 * n_rs, n_rs)
+    lo, hi = chi2_mean_bounds(N_STATE * n_rs, n_rs)
     nis_lo, nis_hi = chi2_mean_bounds(dof_nis, int(s.nis_runs[k].sum()))
     return {
         "n_runs": s.n_runs, "n_diverged": s.n_diverged, "settle_s": float(settle_s),
@@ -351,19 +342,57 @@ class RunSummary:
     diverged: np.ndarray
 
 
+class RunAccumulator:
+    """RunSummary streamed over time chunks of the same R runs (a campaign's block never holds all its
+    covariances): sums over the settled steps of |e_b|^2, max |e_b|, steps inside 3-sigma, NEES, NIS and its
+    dofs. settled: (T,) bool over the whole run (`settled`)."""
+
+    def __init__(self, R: int, settled: np.ndarray):
+        self.settled = settled
+        self.sq = np.zeros((R, 4))
+        self.max = np.zeros((R, 4))
+        self.inside = np.zeros((R, 4), dtype=np.int64)
+        self.nees = np.zeros(R)
+        self.nis = np.zeros(R)
+        self.dof = np.zeros(R, dtype=np.int64)
+        self.steps = 0
+
+    def add(self, ks: range, x_true, x_hat, P, nis, nis_dof) -> np.ndarray:
+        """Fold the steps ks of the runs: x_true, x_hat (R, K, 12), P (R, K, 12, 12), nis and nis_dof (R, K).
+        Returns the NEES of every step of the chunk (R, K) (a divergence monitor reads it)."""
+        e_state = state_errors(x_true, x_hat)
+        nees_rk = nees(e_state, P)
+        k = self.settled[ks.start:ks.stop]
+        if k.any():
+            norms = block_error_norms(x_true[:, k], x_hat[:, k])
+            self.sq += (norms**2).sum(1)
+            self.max = np.maximum(self.max, norms.max(1))
+            self.inside += (block_mahalanobis_sq(e_state[:, k], P[:, k]) <= MAHALANOBIS_3SIGMA_3D).sum(1)
+            self.nees += nees_rk[:, k].sum(1)
+            measured = np.asarray(nis_dof)[:, k] > 0
+            self.nis += np.where(measured, nis[:, k], 0.0).sum(1)
+            self.dof += np.where(measured, nis_dof[:, k], 0).sum(1)
+            self.steps += int(k.sum())
+        return nees_rk
+
+    def result(self, x_true_last, x_hat_last, diverged) -> RunSummary:
+        """The summary of the folded steps; x_true_last, x_hat_last (R, 12) the runs' last step."""
+        steps = max(self.steps, 1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            nis_per_dof = np.where(self.dof > 0, self.nis / np.maximum(self.dof, 1), np.nan)
+        return RunSummary(
+            rms_block=np.sqrt(self.sq / steps), final_block=block_error_norms(x_true_last, x_hat_last),
+            max_block=self.max, inside_share=self.inside / steps, nees_mean=self.nees / steps,
+            nis_per_dof=nis_per_dof, diverged=np.asarray(diverged, dtype=bool))
+
+
 def run_summary(t_s, x_true, x_hat, P, nis, nis_dof, diverged, settle_s: float = 0.0) -> RunSummary:
-    """Per-run summary over the steps at or after t_s[0] + settle_s. Shapes as in `reduce_runs`; t_s (T,) s."""
-    k = settled(np.asarray(t_s), settle_s)
-    norms = block_error_norms(x_true[:, k], x_hat[:, k])
-    e_state = state_errors(x_true[:, k], x_hat[:, k])
-    inside = block_mahalanobis_sq(e_state, P[:, k]) <= MAHALANOBIS_3SIGMA_3D
-    dof = np.where(np.asarray(nis_dof) > 0, nis_dof, 0)[:, k].sum(1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        nis_per_dof = np.where(dof > 0, np.where(nis_dof > 0, nis, 0.0)[:, k].sum(1) / np.maximum(dof, 1), np.nan)
-    return RunSummary(
-        rms_block=np.sqrt((norms**2).mean(1)), final_block=block_error_norms(x_true[:, -1], x_hat[:, -1]),
-        max_block=norms.max(1), inside_share=inside.mean(1), nees_mean=nees(e_state, P[:, k]).mean(1),
-        nis_per_dof=nis_per_dof, diverged=np.asarray(diverged, dtype=bool))
+    """Per-run summary over the steps at or after t_s[0] + settle_s. Shapes as in `reduce_runs`; t_s (T,) s.
+    The whole run as one chunk of `RunAccumulator`."""
+    x_true = np.broadcast_to(x_true, np.shape(x_hat))
+    acc = RunAccumulator(x_hat.shape[0], settled(np.asarray(t_s), settle_s))
+    acc.add(range(0, x_hat.shape[1]), x_true, x_hat, P, nis, np.asarray(nis_dof))
+    return acc.result(x_true[:, -1], x_hat[:, -1], diverged)
 
 
 def concat_run_summaries(parts) -> RunSummary:

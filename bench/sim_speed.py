@@ -28,6 +28,7 @@ from scipy.integrate import solve_ivp
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.plugin import PLUGIN_NAME
 from envisat_pose.datagen.scenario import scenario_config
+from envisat_pose.state import MRP, POS, RATE, VEL
 from envisat_pose.datagen.sim import TruthSim, model_xml
 from envisat_pose.datagen.truth import initial_state
 from envisat_pose.attitude import mrp_rate, mrp_shadow, mrp_to_dcm
@@ -80,7 +81,7 @@ def reference_rho_C(cfg, x0, t_end):
     R0, w0 = orb0.R_N_from_C[0], orb0.R_N_from_C[0] @ orb0.w_c_C_rad_s[0]
     f = lambda t, y: np.concatenate([y[3:], -mu * y[:3] / np.linalg.norm(y[:3]) ** 3])  # noqa: E731
     yc = np.concatenate([orb0.r_N_m[0], orb0.v_N_m_s[0]])
-    yt = yc + np.concatenate([R0 @ x0[0:3], R0 @ x0[3:6] + np.cross(w0, R0 @ x0[0:3])])
+    yt = yc + np.concatenate([R0 @ x0[POS], R0 @ x0[VEL] + np.cross(w0, R0 @ x0[POS])])
     ends = [solve_ivp(f, (0, t_end), y, method="DOP853", rtol=1e-13, atol=1e-7).y[:, -1] for y in (yc, yt)]
     R_end = chaser_orbit(cfg.orbit, np.array([t_end])).R_N_from_C[0]
     return R_end.T @ (ends[1][:3] - ends[0][:3])
@@ -92,7 +93,7 @@ def run_plugin(cfg, x0, nstep):
     t0 = time.perf_counter()
     sim.step(nstep)
     wall = time.perf_counter() - t0
-    return wall, sim.relative_state()[0:3]
+    return wall, sim.relative_state()[POS]
 
 
 def run_xfrc(cfg, x0, nstep):
@@ -108,7 +109,7 @@ def run_xfrc(cfg, x0, nstep):
         d.xfrc_applied[b, 0:3] = mass * accel(d.time, d.qpos[a : a + 3])
         mujoco.mj_step(model, d)
     wall = time.perf_counter() - t0
-    return wall, TruthSim.relative_state(sim)[0:3]
+    return wall, TruthSim.relative_state(sim)[POS]
 
 
 def run_passive_callback(cfg, x0, nstep):
@@ -133,7 +134,7 @@ def run_passive_callback(cfg, x0, nstep):
         wall = time.perf_counter() - t0
     finally:
         mujoco.set_mjcb_passive(None)
-    return wall, sim.relative_state()[0:3]
+    return wall, sim.relative_state()[POS]
 
 
 def run_rollout(cfg, x0, nstep, nbatch, nthread):
@@ -144,7 +145,7 @@ def run_rollout(cfg, x0, nstep, nbatch, nthread):
     states = []
     for k in range(nbatch):
         x = x0.copy()
-        x[0:3] += rng.normal(0, 1.0, 3) * (k > 0)
+        x[POS] += rng.normal(0, 1.0, 3) * (k > 0)
         sim.set_state(x, 0.0)
         s = np.empty(mujoco.mj_stateSize(sim.model, spec))
         mujoco.mj_getState(sim.model, sim.data, s, spec)
@@ -154,7 +155,7 @@ def run_rollout(cfg, x0, nstep, nbatch, nthread):
     out, _ = mujoco.rollout.rollout(sim.model, datas, np.array(states), nstep=nstep)
     wall = time.perf_counter() - t0
     mujoco.mj_setState(sim.model, sim.data, out[0, -1], spec)
-    return wall, sim.relative_state()[0:3]
+    return wall, sim.relative_state()[POS]
 
 
 def run_scipy(cfg, x0, t_end, rtol):
@@ -168,17 +169,17 @@ def run_scipy(cfg, x0, t_end, rtol):
     def rhs(t, y):
         r, rd, th, thd = y[12:16]
         thdd = -2 * rd * thd / r
-        x, yy, z = y[0:3]
+        x, yy, z = y[POS]
         D = ((r + x) ** 2 + yy**2 + z**2) ** 1.5
         acc = np.array([2 * thd * y[4] + thdd * yy + thd**2 * x - mu * (r + x) / D + mu / r**2,
                         -2 * thd * y[3] - thdd * x + thd**2 * yy - mu * yy / D,
                         -mu * z / D])
-        p, w_r = y[6:9], y[9:12]
+        p, w_r = y[MRP], y[RATE]
         G = mrp_to_dcm(p)
         w_c, wd_c = np.array([0, 0, thd]), np.array([0, 0, thdd])
         w_t = w_r + G @ w_c
         wd_r = J_inv @ (-np.cross(w_t, J @ w_t)) + np.cross(w_r, G @ w_c) - G @ wd_c
-        return np.concatenate([y[3:6], acc, mrp_rate(p, w_r), wd_r, [rd, r * thd**2 - mu / r**2, thd, thdd]])
+        return np.concatenate([y[VEL], acc, mrp_rate(p, w_r), wd_r, [rd, r * thd**2 - mu / r**2, thd, thdd]])
 
     y0 = np.concatenate([x0, [orb0.r_m[0], orb0.rdot_m_s[0], orb0.theta_rad[0], orb0.thetadot_rad_s[0]]])
     t0 = time.perf_counter()
@@ -188,10 +189,10 @@ def run_scipy(cfg, x0, t_end, rtol):
         t1 = min(t_end, t + 30.0)
         sol = solve_ivp(rhs, (t, t1), y, method="DOP853", rtol=rtol, atol=rtol * 1e-3)
         y = sol.y[:, -1].copy()
-        y[6:9] = mrp_shadow(y[6:9])
+        y[MRP] = mrp_shadow(y[MRP])
         t = t1
     wall = time.perf_counter() - t0
-    return wall, y[0:3]
+    return wall, y[POS]
 
 
 def main() -> None:

@@ -5,7 +5,8 @@ One home for the state's layout (docs/reference.md, section 3), used by every st
     x = (rho_C_m (3), rhodot_C_m_s (3), p_mrp (3) of T relative to C, w_r_T_rad_s (3))
 
 Slices: POS, VEL, MRP, RATE; BLOCK_SLICES in that order with BLOCKS (names) and BLOCK_UNITS (the units the
-statistics report a block in: the attitude block as a rotation angle).
+statistics report a block in: the attitude block as a rotation angle); block_sums folds a per-component
+vector into the four blocks. nees_window_diverged is the divergence monitor on a run's NEES.
 """
 
 from __future__ import annotations
@@ -22,6 +23,25 @@ RATE = slice(9, 12)  # w_r, angular velocity of T relative to C, in T, rad/s
 BLOCKS = ("position", "velocity", "attitude", "angular_velocity")
 BLOCK_UNITS = ("m", "m/s", "rad", "rad/s")
 BLOCK_SLICES = (POS, VEL, MRP, RATE)
+ATTITUDE = BLOCKS.index("attitude")  # the attitude block's place among the four
+
+
+def block_sums(v: np.ndarray) -> np.ndarray:
+    """Per-component values (..., 12) (variances, squared errors) summed within each block -> (..., 4)."""
+    v = np.asarray(v)
+    return np.stack([v[..., s].sum(-1) for s in BLOCK_SLICES], axis=-1)
+
+
+def nees_window_diverged(nees_rt: np.ndarray, window: int, settle_steps: int, factor: float) -> np.ndarray:
+    """The NEES divergence monitor on precomputed NEES (R, T): a mean over `window` steps above factor x 12
+    (the state's dimension) in a window ending at or after step settle_steps, or a non-finite NEES there.
+    Returns (R,) bool. Errors are correlated in time, so this is a factor on the mean, not a chi-square bound."""
+    e = np.asarray(nees_rt, dtype=float)[:, max(settle_steps - window + 1, 0):]
+    if e.shape[1] < window:
+        return np.zeros(e.shape[0], dtype=bool)
+    c = np.cumsum(np.concatenate([np.zeros((e.shape[0], 1)), e], axis=1), axis=1)
+    window_sums = c[:, window:] - c[:, :-window]
+    return (window_sums > factor * N_STATE * window).any(axis=1) | ~np.isfinite(e).all(axis=1)
 
 
 def draw_initial_estimate(x0_true: np.ndarray, P0: np.ndarray, rng: np.random.Generator) -> np.ndarray:

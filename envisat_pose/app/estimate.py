@@ -214,18 +214,16 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
 
 def summary(arrays: dict) -> str:
     """Errors over the second half of the run: RMS position (cm) and attitude angle (deg), ANEES."""
-    from envisat_pose.attitude import mrp_error_angle_rad
     from envisat_pose.filtering.estimator import nees
+    from envisat_pose.state import error_summary
 
-    T = arrays["t_s"].shape[0]
+    t_s = arrays["t_s"]
+    T = t_s.shape[0]
     late = slice(T // 2, None)
-    xt, xh = arrays["x_true"][:, late], arrays["x_hat"][:, late]
-    pos = np.linalg.norm(xh[..., :3] - xt[..., :3], axis=-1)
-    ang = np.degrees(mrp_error_angle_rad(xh[..., 6:9], xt[..., 6:9]))
-    anees = nees(xt, xh, arrays["P"][:, late]).mean()
-    t0 = arrays["t_s"][late][0] if T else 0.0
-    return (f"after t = {t0:.0f} s: RMS position error {100 * np.sqrt(np.mean(pos**2)):.3f} cm, RMS attitude error "
-            f"{np.sqrt(np.mean(ang**2)):.4f} deg, mean NEES {anees:.2f} (12 expected); "
+    e = error_summary(t_s, arrays["x_true"], arrays["x_hat"], after_s=float(t_s[T // 2]) if T else 0.0)
+    anees = nees(arrays["x_true"][:, late], arrays["x_hat"][:, late], arrays["P"][:, late]).mean()
+    return (f"after t = {e['after_s']:.0f} s: RMS position error {100 * e['position_m']['rms_after']:.3f} cm, RMS "
+            f"attitude error {e['attitude_deg']['rms_after']:.4f} deg, mean NEES {anees:.2f} (12 expected); "
             f"diverged runs {int(arrays['diverged'].sum())}/{len(arrays['diverged'])}")
 
 

@@ -38,7 +38,8 @@ import numpy as np
 from envisat_pose.config import ConfigError, InputError, check, from_dict, resolve_job_config, to_dict, to_toml
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig
-from envisat_pose.io import sha256_file
+from envisat_pose.io import json_safe, sha256_file
+from envisat_pose.state import BLOCKS, N_STATE
 
 MANIFEST_FORMAT = "envisat-pose montecarlo v1"
 CHUNK_STEPS = 200  # filter steps per reduction chunk: bounds the covariances held to R x 200 x 144 floats
@@ -221,7 +222,7 @@ def filter_run_history(tr: "CampaignTruth", cfg: MonteCarloConfig, run: int) -> 
     R_c = np.broadcast_to(inp.R_c, inp.z.shape[:-1] + inp.R_c.shape[-2:])
     state = init_state(inp.x0_hat, fcfg.P0, tr.t_s[0], tr.chaser[0], fcfg)
     T = len(tr.t_s)
-    x_hat, P = np.empty((T, 12)), np.empty((T, 12, 12))
+    x_hat, P = np.empty((T, N_STATE)), np.empty((T, N_STATE, N_STATE))
     for k in range(T):
         state = filter_step(state, Measurement(tr.t_s[k], tr.chaser[k], inp.z[:, k], inp.mask[:, k], R_c[:, k]), setup)
         x_hat[k], P[k] = state.mean[0], state.cov[0]
@@ -298,7 +299,6 @@ def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner, p
     (per rate: RMSE, PCRLB and RMSE/PCRLB per block, diverged share, mean NEES, converged) and rate_sweep.png.
     Returns sweep.json's dict."""
     from envisat_pose.analysis.campaign_figures import plot_rate_sweep
-    from envisat_pose.analysis.stats import BLOCKS
     from envisat_pose.io import atomic_write_text
 
     from envisat_pose.runner import make_out_dir, remove_partial_files
@@ -312,7 +312,7 @@ def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner, p
             print(f"rate sweep: {rate:g} Hz -> {os.path.join(out_dir, rate_folder(rate))}")
         summaries.append(run_campaign(at_rate(cfg, rate), os.path.join(out_dir, rate_folder(rate)), runner, progress))
     result = sweep_result(cfg, sweep, rates, summaries)
-    atomic_write_text(os.path.join(out_dir, "sweep.json"), json.dumps(_json_safe(result), indent=1, sort_keys=True)
+    atomic_write_text(os.path.join(out_dir, "sweep.json"), json.dumps(json_safe(result), indent=1, sort_keys=True)
                       + "\n")
     atomic_write_text(os.path.join(out_dir, "montecarlo.config.toml"),
                       "# envisat montecarlo: the validated config of this rate sweep (measurement.rate_hz is set per "
@@ -331,7 +331,6 @@ def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner, p
 def sweep_result(cfg: MonteCarloConfig, sweep: SweepConfig, rates: list, summaries: list) -> dict:
     """sweep.json: the per-rate numbers of the campaigns' summaries, and the lowest rate from which every rate
     up converges (None if the fastest does not)."""
-    from envisat_pose.analysis.stats import BLOCKS
 
     def per_block(key):
         return {b: [s[key][b] for s in summaries] for b in BLOCKS}
@@ -520,9 +519,10 @@ def filter_block(tr: CampaignTruth, cfg: MonteCarloConfig, run_start: int, run_s
     """Filter runs [run_start, run_stop) and reduce them chunk by chunk. Returns the block file's arrays:
     CampaignSums.to_arrays() (over all T steps), run_<key> per-run summaries (stats.RunSummary fields over the
     settled steps), sample_err (S, T, 12) and sample_norms (S, T, 4) of the block's runs below sample_runs."""
-    from envisat_pose.analysis.stats import block_error_norms, component_errors
+    from envisat_pose.analysis.stats import RunAccumulator, block_error_norms, component_errors
     from envisat_pose.filtering.estimator import Measurement, filter_step, init_state, make_setup
     from envisat_pose.filtering.montecarlo import make_run_inputs
+    from envisat_pose.state import nees_window_diverged
 
     fcfg, n = cfg.filter, run_stop - run_start
     inp = make_run_inputs(tr.x_true[0], tr.t_s, tr.z_true, tr.base, cfg.measurement, fcfg.P0, cfg.seed, n,
@@ -533,10 +533,10 @@ def filter_block(tr: CampaignTruth, cfg: MonteCarloConfig, run_start: int, run_s
     T, n_sample = len(tr.t_s), max(0, min(run_stop, cfg.sample_runs) - run_start)
     acc = RunAccumulator(n, settled_mask(tr.t_s, cfg.settle_time_s))
     sums, nees_rt = [], np.empty((n, T))
-    sample_err, sample_norms = np.empty((n_sample, T, 12)), np.empty((n_sample, T, 4))
+    sample_err, sample_norms = np.empty((n_sample, T, N_STATE)), np.empty((n_sample, T, 4))
     for k0 in range(0, T, CHUNK_STEPS):
         ks = range(k0, min(T, k0 + CHUNK_STEPS))
-        x_hat, P = np.empty((n, len(ks), 12)), np.empty((n, len(ks), 12, 12))
+        x_hat, P = np.empty((n, len(ks), N_STATE)), np.empty((n, len(ks), N_STATE, N_STATE))
         nis, dof = np.empty((n, len(ks))), np.empty((n, len(ks)), dtype=np.int64)
         for j, k in enumerate(ks):
             state = filter_step(state, Measurement(tr.t_s[k], tr.chaser[k], inp.z[:, k], inp.mask[:, k], R_c[:, k]),
@@ -548,9 +548,10 @@ def filter_block(tr: CampaignTruth, cfg: MonteCarloConfig, run_start: int, run_s
         if n_sample:
             sample_err[:, ks.start:ks.stop] = component_errors(x_true[:n_sample], x_hat[:n_sample])
             sample_norms[:, ks.start:ks.stop] = block_error_norms(x_true[:n_sample], x_hat[:n_sample])
-    diverged = state.diverged | nees_window_divergence(nees_rt, fcfg)
+    diverged = state.diverged | nees_window_diverged(nees_rt, fcfg.divergence_window, fcfg.divergence_settle_steps,
+                                                     fcfg.nees_divergence_factor)
     out = _join_chunks(sums, run_start, run_stop, diverged)
-    out.update({f"run_{k}": v for k, v in acc.result(x_true[:, -1], x_hat[:, -1], diverged).items()})
+    out.update({f"run_{k}": v for k, v in vars(acc.result(x_true[:, -1], x_hat[:, -1], diverged)).items()})
     out.update(sample_err=sample_err, sample_norms=sample_norms)
     return out
 
@@ -576,63 +577,6 @@ def settled_mask(t_s: np.ndarray, settle_s: float) -> np.ndarray:
     from envisat_pose.analysis.stats import settled
 
     return settled(np.asarray(t_s), settle_s)
-
-
-class RunAccumulator:
-    """Per-run summaries (stats.RunSummary) accumulated over time chunks: sums over the settled steps of
-    |e_b|^2, max |e_b|, steps inside 3-sigma, NEES, NIS and its dofs. R runs; settled (T,) bool."""
-
-    def __init__(self, R: int, settled: np.ndarray):
-        self.settled = settled
-        self.sq = np.zeros((R, 4))
-        self.max = np.zeros((R, 4))
-        self.inside = np.zeros((R, 4), dtype=np.int64)
-        self.nees = np.zeros(R)
-        self.nis = np.zeros(R)
-        self.dof = np.zeros(R, dtype=np.int64)
-        self.steps = 0
-
-    def add(self, ks: range, x_true, x_hat, P, nis, dof) -> np.ndarray:
-        """Fold the chunk of steps ks ((R, K, ...) arrays); returns the NEES of every step (R, K)."""
-        from envisat_pose.analysis.stats import (MAHALANOBIS_3SIGMA_3D, block_error_norms,
-                                                 block_mahalanobis_sq, nees, state_errors)
-
-        e_state = state_errors(x_true, x_hat)
-        nees_rk = nees(e_state, P)
-        k = self.settled[ks.start:ks.stop]
-        if k.any():
-            norms = block_error_norms(x_true[:, k], x_hat[:, k])
-            self.sq += (norms**2).sum(1)
-            self.max = np.maximum(self.max, norms.max(1))
-            self.inside += (block_mahalanobis_sq(e_state[:, k], P[:, k]) <= MAHALANOBIS_3SIGMA_3D).sum(1)
-            self.nees += nees_rk[:, k].sum(1)
-            measured = dof[:, k] > 0
-            self.nis += np.where(measured, nis[:, k], 0.0).sum(1)
-            self.dof += np.where(measured, dof[:, k], 0).sum(1)
-            self.steps += int(k.sum())
-        return nees_rk
-
-    def result(self, x_true_last, x_hat_last, diverged) -> dict:
-        """The RunSummary fields, (R, ...) arrays."""
-        from envisat_pose.analysis.stats import block_error_norms
-
-        steps = max(self.steps, 1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            nis_per_dof = np.where(self.dof > 0, self.nis / np.maximum(self.dof, 1), np.nan)
-        return {"rms_block": np.sqrt(self.sq / steps), "final_block": block_error_norms(x_true_last, x_hat_last),
-                "max_block": self.max, "inside_share": self.inside / steps, "nees_mean": self.nees / steps,
-                "nis_per_dof": nis_per_dof, "diverged": np.asarray(diverged, dtype=bool)}
-
-
-def nees_window_divergence(nees_rt: np.ndarray, cfg: FilterConfig) -> np.ndarray:
-    """estimator.nees_divergence on precomputed NEES (R, T): a window mean NEES above
-    cfg.nees_divergence_factor x 12 after the settle steps, or a non-finite NEES. Returns (R,) bool."""
-    W = cfg.divergence_window
-    e = nees_rt[:, max(cfg.divergence_settle_steps - W + 1, 0):]
-    if e.shape[1] < W:
-        return np.zeros(e.shape[0], dtype=bool)
-    c = np.cumsum(np.concatenate([np.zeros((e.shape[0], 1)), e], axis=1), axis=1)
-    return ((c[:, W:] - c[:, :-W]) > cfg.nees_divergence_factor * 12 * W).any(axis=1) | ~np.isfinite(e).all(axis=1)
 
 
 # ---------------------------------------------------------------- merging, bound, outputs
@@ -677,14 +621,14 @@ def campaign_pcrlb(cfg: MonteCarloConfig, tr: CampaignTruth) -> np.ndarray:
     def hx(X):
         return measure(X, mcfg.kind, camera)
 
-    B = pcrlb_along_truth(fx, hx, tr.x_true, measured, mcfg.corner_cov, cfg.filter.P0, np.zeros((12, 12)))
+    B = pcrlb_along_truth(fx, hx, tr.x_true, measured, mcfg.corner_cov, cfg.filter.P0, np.zeros((N_STATE, N_STATE)))
     return block_bounds(B, tr.x_true)
 
 
 def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
     """Merge the blocks, compute the PCRLB, write campaign.npz, summary.json and the figures."""
     from envisat_pose.analysis.pcrlb import efficiency
-    from envisat_pose.analysis.stats import BLOCKS, campaign_summary, finalize
+    from envisat_pose.analysis.stats import campaign_summary, finalize
     from envisat_pose.io import atomic_write_text, save_npz
 
     sums, runs, sample_err, sample_norms = merge_blocks(cfg, out_dir)
@@ -705,21 +649,10 @@ def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
         rmse_over_pcrlb=dict(zip(BLOCKS, (float(v) for v in efficiency(stats.rmse_block, bound, tr.t_s, settle)))),
         diverged_runs=[int(i) for i in np.flatnonzero(runs["diverged"])],
     )
-    atomic_write_text(os.path.join(out_dir, "summary.json"), json.dumps(_json_safe(summary), indent=1, sort_keys=True)
+    atomic_write_text(os.path.join(out_dir, "summary.json"), json.dumps(json_safe(summary), indent=1, sort_keys=True)
                       + "\n")
     write_figures(cfg, out_dir, tr.t_s, stats, bound, sample_err, sample_norms)
     return summary
-
-
-def _json_safe(x):
-    """NaN and infinities as null (strict JSON)."""
-    if isinstance(x, dict):
-        return {k: _json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_safe(v) for v in x]
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 def write_figures(cfg: MonteCarloConfig, out_dir: str, t_s, stats, bound, sample_err, sample_norms) -> None:
