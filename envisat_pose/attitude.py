@@ -140,16 +140,6 @@ def dcm_to_mrp(gamma_T_from_C: np.ndarray) -> np.ndarray:
     return quat_to_mrp(rotmat_to_quat(np.swapaxes(np.asarray(gamma_T_from_C, dtype=float), -1, -2)))
 
 
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b of (w, x, y, z) quaternions, so R(a * b) = R(a) R(b). (..., 4)."""
-    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    aw, av = a[..., :1], a[..., 1:]
-    bw, bv = b[..., :1], b[..., 1:]
-    w = aw * bw - _dot(av, bv)[..., None]
-    v = aw * bv + bw * av + np.cross(av, bv)
-    return np.concatenate([w, v], axis=-1)
-
-
 def rotation_angle_rad(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
     """Angle of the rotation R_a R_b^T (the attitude error between two DCMs), rad, accurate near 0 and pi."""
     E = np.asarray(R_a) @ np.swapaxes(np.asarray(R_b), -1, -2)
