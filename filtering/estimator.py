@@ -29,6 +29,15 @@ from envisat_pose.filtering.ukf import SigmaWeights, merwe_weights, predict, sha
 from envisat_pose.geometry import PinholeCamera, load_camera
 
 
+KERNELS = ("fast", "reference")  # FilterConfig.kernel: filtering/fast.py's kernels, filtering/ukf.py's numpy
+
+
+def _check_kernel(kernel: str) -> None:
+    if kernel not in KERNELS:
+        raise ValueError(f"unknown filter kernel {kernel!r}; expected one of {KERNELS} (fast: the fused numba "
+                         "kernels, reference: the numpy filter)")
+
+
 @dataclass(frozen=True)
 class FilterConfig:
     """UKF settings. Sigmas are 1-sigma per component; q_* are per second of propagation (Q = q^2 dt).
@@ -48,6 +57,8 @@ class FilterConfig:
     10 deg attitude uncertainty makes the unscented transform optimistic, is not a divergence).
     The default q_sigma suits a torque-free truth; with the gravity-gradient torque raise the w_r term
     (~1e-5 rad/s^2 at most) or switch on adaptive_q.
+    kernel: "fast" (the fused numba kernels of filtering/fast.py, the default) or "reference" (the numpy
+    filter of filtering/ukf.py, which the fast one is tested against): the same filter to round-off.
     """
 
     alpha: float = 1.0
@@ -69,6 +80,7 @@ class FilterConfig:
     nees_divergence_factor: float = 10.0
     divergence_prob: float = 1e-6
     max_rk4_step_s: float = 1.0
+    kernel: str = "fast"
 
     def validate(self, prefix: str = "filter") -> None:
         from envisat_pose.config import check
@@ -91,6 +103,7 @@ class FilterConfig:
         check(0.0 < self.divergence_prob < 1.0, f"{p}divergence_prob", self.divergence_prob, "a probability in (0, 1)")
         check(self.nees_divergence_factor > 1.0, f"{p}nees_divergence_factor", self.nees_divergence_factor, "a factor > 1")
         check(self.max_rk4_step_s > 0.0, f"{p}max_rk4_step_s", self.max_rk4_step_s, "a positive step in seconds")
+        check(self.kernel in KERNELS, f"{p}kernel", self.kernel, f"one of {', '.join(KERNELS)}")
 
     @property
     def P0(self) -> np.ndarray:
@@ -154,6 +167,7 @@ def make_setup(cfg: FilterConfig, kind: str, camera: PinholeCamera | None = None
     """A FilterSetup with the project's defaults: the MJCF's camera and inertia."""
     if kind not in KINDS:
         raise ValueError(f"unknown measurement kind {kind!r}; expected one of {KINDS}")
+    _check_kernel(cfg.kernel)
     gate = chi2.ppf(cfg.gate_prob, dim_per_corner(kind)) if cfg.gate_prob > 0 else None
     return FilterSetup(cfg, kind, camera or load_camera(), load_inertia_T_kg_m2() if J_T is None else J_T,
                        float(mu_m3_s2), bool(gravity_gradient), merwe_weights(12, cfg.alpha, cfg.beta, cfg.kappa),
@@ -243,6 +257,12 @@ def _predict_step(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[n
     Q = cfg.Q(dt)[None] * np.where(state.starved, cfg.outage_q_scale, 1.0)[:, None, None]
     if cfg.adaptive_q:
         Q = Q + state.Q_adapt * dt
+    if cfg.kernel == "fast":
+        from envisat_pose.filtering import fast  # numba compiles (or loads its cache) on first use
+
+        return fast.predict(state.mean, state.cov, state.chaser, dt, Q, setup.weights, setup.J_T, setup.mu_m3_s2,
+                            cfg.max_rk4_step_s, setup.gravity_gradient)
+    _check_kernel(cfg.kernel)
     return predict(state.mean, state.cov, state.chaser, dt, Q, setup.weights, setup.J_T, setup.mu_m3_s2,
                    cfg.max_rk4_step_s, setup.gravity_gradient)
 
@@ -270,13 +290,11 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
     m = z.shape[-1]
     R_c = np.broadcast_to(meas.R_c, z.shape + (m,))
     measured = np.asarray(meas.mask, dtype=bool) & np.isfinite(z).all(-1)  # a non-finite detection is a missing one
-    Rk = R_c * state.r_scale[:, None, None, None]
-    mask_k = measured
-    if cfg.visibility_check:
-        mask_k = mask_k & predicted_visible(mean)
     gate = setup.gate_threshold
     thr = None if gate is None else np.where(state.locked >= cfg.gate_lockout_steps, np.inf, gate)
-    mean, cov, info = update(mean, cov, z, mask_k, Rk, setup.hx, setup.weights, thr)
+    up = _update(mean, cov, z, measured, R_c, state.r_scale, thr, setup)
+    mean, cov, mask_k = up["mean"], up["cov"], up["mask_k"]
+    nis, dof, accepted = up["nis"], up["dof"], up["accepted"]
     # never NaN: roll a run back to its prediction (or its previous posterior) and flag it
     bad = ~(np.isfinite(mean).all(-1) & np.isfinite(cov).all((-1, -2)))
     repaired, diverged = state.repaired, state.diverged
@@ -288,37 +306,57 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
         cov = np.where(bad[:, None, None], fb_cov, cov)
         repaired = repaired + bad
         diverged = diverged | bad
-        info.nis = np.where(bad, 0.0, info.nis)
-        info.dof = np.where(bad, 0, info.dof)
-    used = info.dof > 0
+        nis = np.where(bad, 0.0, nis)
+        dof = np.where(bad, 0, dof)
+    used = dof > 0
     r_scale = state.r_scale
     if cfg.adaptive_r:
         # covariance matching: E[y^T y] = tr(H P H^T) + r tr(R)  ->  r estimate, smoothed and bounded
-        trR = np.einsum("rcii->r", R_c * info.accepted[..., None, None])
-        r_est = (np.einsum("ri,ri->r", info.y, info.y) - np.einsum("rii->r", info.Pzz_state)) / np.maximum(trR, 1e-300)
+        trR = np.einsum("rcii->r", R_c * accepted[..., None, None])
+        r_est = (up["yy"] - up["trPzz"]) / np.maximum(trR, 1e-300)
         r_new = (1 - cfg.adaptive_r_rate) * r_scale + cfg.adaptive_r_rate * r_est
         r_scale = np.where(used, np.clip(r_new, *cfg.adaptive_r_bounds), r_scale)
     Q_adapt = state.Q_adapt
     if cfg.adaptive_q:
-        Ky = np.einsum("rij,rj->ri", info.K, info.y)
+        Ky = up["Ky"]
         a = cfg.adaptive_q_memory
         Q_adapt = np.where(used[:, None, None], a * Q_adapt + (1 - a) * Ky[:, :, None] * Ky[:, None, :], Q_adapt)
     # the gate saw mask_k only: corners the visibility check dropped are neither rejections nor a lockout step
-    locked = np.where(mask_k.any(-1) & ~info.accepted.any(-1), state.locked + 1, 0)
-    rejected = (mask_k & ~info.accepted).sum(-1)
+    locked = np.where(mask_k.any(-1) & ~accepted.any(-1), state.locked + 1, 0)
+    rejected = (mask_k & ~accepted).sum(-1)
     # divergence monitor: windowed NIS against its chi-square bound
     W, k = cfg.divergence_window, state.k
     win_nis, win_dof = state.win_nis.copy(), state.win_dof.copy()
-    win_nis[k % W] = info.nis
-    win_dof[k % W] = info.dof
+    win_nis[k % W] = nis
+    win_dof[k % W] = dof
     if k + 1 >= max(W, cfg.divergence_settle_steps):
         d = win_dof.sum(0)
         bound = np.where(d > 0, chi2.isf(cfg.divergence_prob, np.maximum(d, 1)), np.inf)
         diverged = diverged | (win_nis.sum(0) > bound)
     return FilterState(t_s=float(meas.t_s), chaser=np.array(meas.chaser, dtype=float), k=k + 1, mean=mean, cov=cov,
                        r_scale=r_scale, Q_adapt=Q_adapt, starved=~used, locked=locked, win_nis=win_nis,
-                       win_dof=win_dof, diverged=diverged, repaired=repaired, n_meas=info.accepted.sum(-1),
-                       nis=info.nis, dof=info.dof, rejected=rejected, dropped=(measured & ~mask_k).sum(-1))
+                       win_dof=win_dof, diverged=diverged, repaired=repaired, n_meas=accepted.sum(-1),
+                       nis=nis, dof=dof, rejected=rejected, dropped=(measured & ~mask_k).sum(-1))
+
+
+def _update(mean, cov, z, measured, R_c, r_scale, thr, setup: FilterSetup) -> dict:
+    """The measurement update of a step with setup.cfg.kernel: visibility check, gate, UKF update. Returns a
+    dict of mean, cov, nis, dof, accepted (R, 8), mask_k (R, 8) (the corners the gate saw), Ky (R, 12) = K y,
+    yy (R,) = y.y and trPzz (R,) = tr(Pzz) over the used components (for the adaptive noise)."""
+    cfg = setup.cfg
+    if cfg.kernel == "fast":
+        from envisat_pose.filtering import fast
+
+        return fast.update(mean, cov, z, measured, R_c, r_scale, thr, cfg.visibility_check, setup)
+    _check_kernel(cfg.kernel)
+    Rk = R_c * r_scale[:, None, None, None]
+    mask_k = measured
+    if cfg.visibility_check:
+        mask_k = mask_k & predicted_visible(mean)
+    mean, cov, info = update(mean, cov, z, mask_k, Rk, setup.hx, setup.weights, thr)
+    return {"mean": mean, "cov": cov, "nis": info.nis, "dof": info.dof, "accepted": info.accepted, "mask_k": mask_k,
+            "Ky": np.einsum("rij,rj->ri", info.K, info.y), "yy": np.einsum("ri,ri->r", info.y, info.y),
+            "trPzz": np.einsum("rii->r", info.Pzz_state)}
 
 
 def run_filter(x0_hat: np.ndarray, P0: np.ndarray, t_s: np.ndarray, chaser: np.ndarray, z: np.ndarray,

@@ -1,0 +1,684 @@
+"""The batched UKF in fused numba kernels: the same filter as filtering/ukf.py, one run at a time in compiled code.
+
+Why numba (measured, bench/ukf_speed.py and docs/design.md): the numpy filter (filtering/ukf.py) spends its
+~70-90 us per run-step on ~150 array operations per step over (runs, 25 sigma points, 12) temporaries, each a
+pass through memory, not on arithmetic (a 12-state step is ~1e5 floating-point operations). A restructured
+numpy or torch CPU path keeps that shape (one pass per operation); a compiled loop over runs keeps one run's
+sigma points (25 x 12) in registers and L1 for the whole step. numba compiles plain Python loops with no
+build step (its llvmlite wheel ships LLVM), and with fastmath off its floating-point operations are IEEE and
+deterministic: the same inputs give the same bytes.
+
+The kernels do exactly the reference's steps, in the reference's order where the order matters for
+round-off (the RK4 stage sums, the sigma-point mean, the symmetrization of P):
+- predict: sigma points from chol((n + lam) P), RK4 sub-steps of the filter's model (filtering/dynamics.py,
+  with the gravity-gradient torque when asked) with the MRP switched to |p| <= 1 between sub-steps, MRPs
+  brought to the central point's set before the weighted mean, the mean switched to |p| <= 1, residuals on
+  the mean's set, P = sum Wc r r^T + Q, symmetrized;
+- update: the visibility check (exact face test from the prior mean), sigma points from the prior, the
+  measurement model of the measured corners (markers3d, pixels with the guarded pinhole, pixels+range),
+  per-corner chi-square gate, innovation covariance S, gain, mean and covariance, the shadow switch with its
+  Jacobian, symmetrization.
+Differences from the numpy filter are round-off only: the update works on the measured components (the numpy
+filter gives the others zero innovation and unit variance, which is the same update) and solves with the
+Cholesky factor of S where numpy inverts S. A run whose step needs a covariance repair (a Cholesky factor
+that fails: not positive definite, or not finite) is flagged, and the caller recomputes that run with the
+numpy filter (filtering/ukf.py), so repairs and roll-backs are the reference's own.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from envisat_pose.state import MRP, N_STATE
+
+KIND_CODES = {"markers3d": 0, "pixels": 1, "pixels+range": 2}
+_P0 = MRP.start  # first MRP component in the 12-state (envisat_pose.state.MRP)
+_JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+
+
+# ---------------------------------------------------------------- small dense helpers
+
+@njit(**_JIT)
+def _chol(A, L, n):
+    """Lower Cholesky factor of A[:n, :n] into L[:n, :n]; False when A is not positive definite (or not finite)."""
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return False
+        d = np.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            t = A[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / d
+        for i in range(j):
+            L[i, j] = 0.0
+    return True
+
+
+@njit(**_JIT)
+def _dcm(p, G):
+    """Gamma(p) = I - a1 [p x] + a2 [p x]^2 (envisat_pose.attitude.mrp_to_dcm) into G (3, 3)."""
+    pp = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
+    a1 = 4.0 * (1.0 - pp) / (1.0 + pp) ** 2
+    a2 = 8.0 / (1.0 + pp) ** 2
+    s01, s02, s10, s12, s20, s21 = -p[2], p[1], p[2], -p[0], -p[1], p[0]
+    # [p x]^2, row by column
+    q00 = s01 * s10 + s02 * s20
+    q01 = s02 * s21
+    q02 = s01 * s12
+    q10 = s12 * s20
+    q11 = s10 * s01 + s12 * s21
+    q12 = s10 * s02
+    q20 = s21 * s10
+    q21 = s20 * s01
+    q22 = s20 * s02 + s21 * s12
+    G[0, 0] = (1.0 - a1 * 0.0) + a2 * q00
+    G[0, 1] = (0.0 - a1 * s01) + a2 * q01
+    G[0, 2] = (0.0 - a1 * s02) + a2 * q02
+    G[1, 0] = (0.0 - a1 * s10) + a2 * q10
+    G[1, 1] = (1.0 - a1 * 0.0) + a2 * q11
+    G[1, 2] = (0.0 - a1 * s12) + a2 * q12
+    G[2, 0] = (0.0 - a1 * s20) + a2 * q20
+    G[2, 1] = (0.0 - a1 * s21) + a2 * q21
+    G[2, 2] = (1.0 - a1 * 0.0) + a2 * q22
+
+
+@njit(**_JIT)
+def _align(p, ref, out):
+    """p or its shadow -p/(p.p), whichever is closer to ref (envisat_pose.attitude.align_mrp), into out (3,)."""
+    pp = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
+    den = pp if pp > 0.0 else 1.0
+    s0, s1, s2 = -p[0] / den, -p[1] / den, -p[2] / den
+    ds = np.sqrt((s0 - ref[0]) ** 2 + (s1 - ref[1]) ** 2 + (s2 - ref[2]) ** 2)
+    dp = np.sqrt((p[0] - ref[0]) ** 2 + (p[1] - ref[1]) ** 2 + (p[2] - ref[2]) ** 2)
+    if ds < dp and pp > 0.0:
+        out[0], out[1], out[2] = s0, s1, s2
+    else:
+        out[0], out[1], out[2] = p[0], p[1], p[2]
+
+
+@njit(**_JIT)
+def _shadow(p):
+    """|p| <= 1 in place: p -> -p/(p.p) where p.p > 1 (envisat_pose.attitude.mrp_shadow)."""
+    pp = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
+    if pp > 1.0:
+        p[0], p[1], p[2] = -p[0] / pp, -p[1] / pp, -p[2] / pp
+
+
+# ---------------------------------------------------------------- the model (filtering/dynamics.py)
+
+@njit(**_JIT)
+def _rates(Y, c, J, Jinv, mu, gg, dY):
+    """dY = state_rate(Y, c) for every column (sigma point) of Y (12, S): translation (sheet, section 4), MRP
+    kinematics, relative attitude dynamics, with the gravity-gradient torque when gg. c (4,) the chaser's stage
+    state. Sigma points run along the last axis, so that the loop over them vectorizes."""
+    r, rd, thd = c[0], c[1], c[3]
+    thdd = -2.0 * rd * thd / r
+    thd2 = thd ** 2
+    mu_r2 = mu / r ** 2
+    J00, J01, J02, J10, J11, J12, J20, J21, J22 = (J[0, 0], J[0, 1], J[0, 2], J[1, 0], J[1, 1], J[1, 2],
+                                                   J[2, 0], J[2, 1], J[2, 2])
+    I00, I01, I02, I10, I11, I12, I20, I21, I22 = (Jinv[0, 0], Jinv[0, 1], Jinv[0, 2], Jinv[1, 0], Jinv[1, 1],
+                                                   Jinv[1, 2], Jinv[2, 0], Jinv[2, 1], Jinv[2, 2])
+    for s in range(Y.shape[1]):
+        x, yy, z = Y[0, s], Y[1, s], Y[2, s]
+        xd, yd = Y[3, s], Y[4, s]
+        t = (r + x) ** 2 + yy ** 2 + z ** 2
+        D = t * np.sqrt(t)                                            # t^1.5
+        dY[0, s], dY[1, s], dY[2, s] = Y[3, s], Y[4, s], Y[5, s]
+        dY[3, s] = 2.0 * thd * yd + thdd * yy + thd2 * x - mu * (r + x) / D + mu_r2
+        dY[4, s] = -2.0 * thd * xd - thdd * x + thd2 * yy - mu * yy / D
+        dY[5, s] = -mu * z / D
+        # Gamma(p) = I - a1 [p x] + a2 [p x]^2 (envisat_pose.attitude.mrp_to_dcm)
+        p0, p1, p2 = Y[6, s], Y[7, s], Y[8, s]
+        pp = p0 * p0 + p1 * p1 + p2 * p2
+        a1 = 4.0 * (1.0 - pp) / (1.0 + pp) ** 2
+        a2 = 8.0 / (1.0 + pp) ** 2
+        G00 = 1.0 + a2 * (-p2 * p2 + -p1 * p1)
+        G01 = (0.0 - a1 * -p2) + a2 * (p1 * p0)
+        G02 = (0.0 - a1 * p1) + a2 * (-p2 * -p0)
+        G10 = (0.0 - a1 * p2) + a2 * (-p0 * -p1)
+        G11 = 1.0 + a2 * (p2 * -p2 + -p0 * p0)
+        G12 = (0.0 - a1 * -p0) + a2 * (p2 * p1)
+        G20 = (0.0 - a1 * -p1) + a2 * (p0 * p2)
+        G21 = (0.0 - a1 * p0) + a2 * (-p1 * -p2)
+        G22 = 1.0 + a2 * (-p1 * p1 + p0 * -p0)
+        w0, w1, w2 = Y[9, s], Y[10, s], Y[11, s]
+        g0, g1, g2 = G02 * thd, G12 * thd, G22 * thd                  # Gamma w_c
+        h0, h1, h2 = G02 * thdd, G12 * thdd, G22 * thdd               # Gamma w_c'
+        t0, t1, t2 = w0 + g0, w1 + g1, w2 + g2                        # w_t = w_r + Gamma w_c
+        j0 = J00 * t0 + J01 * t1 + J02 * t2
+        j1 = J10 * t0 + J11 * t1 + J12 * t2
+        j2 = J20 * t0 + J21 * t1 + J22 * t2
+        c0 = t1 * j2 - t2 * j1                                        # w_t x J w_t
+        c1 = t2 * j0 - t0 * j2
+        c2 = t0 * j1 - t1 * j0
+        if gg:
+            # tau = 3 mu / |R|^5 (R x J R), R_T = Gamma (r e_x + rho_C)
+            R0 = x + r
+            T0 = G00 * R0 + G01 * yy + G02 * z
+            T1 = G10 * R0 + G11 * yy + G12 * z
+            T2 = G20 * R0 + G21 * yy + G22 * z
+            RR = T0 * T0 + T1 * T1 + T2 * T2
+            k = 3.0 * mu / (RR * RR * np.sqrt(RR))
+            u0 = J00 * T0 + J01 * T1 + J02 * T2
+            u1 = J10 * T0 + J11 * T1 + J12 * T2
+            u2 = J20 * T0 + J21 * T1 + J22 * T2
+            c0 = k * (T1 * u2 - T2 * u1) - c0                        # tau - w_t x J w_t
+            c1 = k * (T2 * u0 - T0 * u2) - c1
+            c2 = k * (T0 * u1 - T1 * u0) - c2
+        else:
+            c0, c1, c2 = -c0, -c1, -c2
+        dY[9, s] = (I00 * c0 + I01 * c1 + I02 * c2) + (w1 * g2 - w2 * g1) - h0   # J^-1 (...) + w_r x G w_c - G w_c'
+        dY[10, s] = (I10 * c0 + I11 * c1 + I12 * c2) + (w2 * g0 - w0 * g2) - h1
+        dY[11, s] = (I20 * c0 + I21 * c1 + I22 * c2) + (w0 * g1 - w1 * g0) - h2
+        # p' = 1/4 [(1 - p.p) I + 2 [p x] + 2 p p^T] w
+        d = 1.0 - pp
+        dY[6, s] = (0.25 * (d + 2.0 * p0 * p0) * w0 + 0.25 * (2.0 * -p2 + 2.0 * p0 * p1) * w1
+                    + 0.25 * (2.0 * p1 + 2.0 * p0 * p2) * w2)
+        dY[7, s] = (0.25 * (2.0 * p2 + 2.0 * p1 * p0) * w0 + 0.25 * (d + 2.0 * p1 * p1) * w1
+                    + 0.25 * (2.0 * -p0 + 2.0 * p1 * p2) * w2)
+        dY[8, s] = (0.25 * (2.0 * -p1 + 2.0 * p2 * p0) * w0 + 0.25 * (2.0 * p0 + 2.0 * p2 * p1) * w1
+                    + 0.25 * (d + 2.0 * p2 * p2) * w2)
+
+
+@njit(**_JIT)
+def _propagate(X, stages, h, J, Jinv, mu, gg, k1, k2, k3, k4, Ys):
+    """propagate() of filtering/dynamics.py in place on the columns of X (12, S): RK4 sub-steps of h seconds
+    with the chaser's stage states stages (n_sub, 4, 4); the MRP switches to |p| <= 1 between sub-steps only."""
+    n, S = X.shape
+    n_sub = stages.shape[0]
+    hh = 0.5 * h
+    h6 = h / 6.0
+    for st in range(n_sub):
+        _rates(X, stages[st, 0], J, Jinv, mu, gg, k1)
+        for i in range(n):
+            for s in range(S):
+                Ys[i, s] = X[i, s] + hh * k1[i, s]
+        _rates(Ys, stages[st, 1], J, Jinv, mu, gg, k2)
+        for i in range(n):
+            for s in range(S):
+                Ys[i, s] = X[i, s] + hh * k2[i, s]
+        _rates(Ys, stages[st, 2], J, Jinv, mu, gg, k3)
+        for i in range(n):
+            for s in range(S):
+                Ys[i, s] = X[i, s] + h * k3[i, s]
+        _rates(Ys, stages[st, 3], J, Jinv, mu, gg, k4)
+        for i in range(n):
+            for s in range(S):
+                X[i, s] = X[i, s] + h6 * (k1[i, s] + 2.0 * k2[i, s] + 2.0 * k3[i, s] + k4[i, s])
+        if st < n_sub - 1:
+            for s in range(S):
+                p0, p1, p2 = X[_P0, s], X[_P0 + 1, s], X[_P0 + 2, s]
+                pp = p0 * p0 + p1 * p1 + p2 * p2
+                if pp > 1.0:
+                    X[_P0, s], X[_P0 + 1, s], X[_P0 + 2, s] = -p0 / pp, -p1 / pp, -p2 / pp
+
+
+@njit(**_JIT)
+def _sigma_points(mean, cov, scale, A, L, sig):
+    """Scaled symmetric sigma points chi_0 = x, chi_k = x + L[:, k], chi_(n+k) = x - L[:, k], L L^T = scale P.
+    sig (2n + 1, n). False when scale P has no Cholesky factor (the caller repairs it with the numpy filter)."""
+    n = mean.shape[0]
+    for i in range(n):
+        for j in range(n):
+            A[i, j] = scale * cov[i, j]
+    if not _chol(A, L, n):
+        return False
+    for i in range(n):
+        sig[0, i] = mean[i]
+    for k in range(n):
+        for i in range(n):
+            sig[1 + k, i] = mean[i] + L[i, k]
+            sig[1 + n + k, i] = mean[i] - L[i, k]
+    return True
+
+
+@njit(**_JIT)
+def _finite_pd(P, L, n):
+    """Whether P (n, n) is finite and has a Cholesky factor (numpy's repair_cov would leave it as it is)."""
+    for i in range(n):
+        for j in range(n):
+            if not np.isfinite(P[i, j]):
+                return False
+    return _chol(P, L, n)
+
+
+# ---------------------------------------------------------------- predict
+
+@njit(**_JIT)
+def predict_kernel(mean, cov, Q, stages, h, Wm, Wc, scale, J, Jinv, mu, gg, mean_out, cov_out, ok):
+    """UKF time update of R runs (filtering/ukf.predict). mean (R, 12), cov and Q (R, 12, 12); stages
+    (n_sub, 4, 4) the chaser at the RK4 stages of each sub-step of h s. Writes mean_out, cov_out; ok (R,) False
+    where the step needs the numpy filter's covariance repair."""
+    R, n = mean.shape
+    S = 2 * n + 1
+    A = np.empty((n, n))
+    L = np.empty((n, n))
+    sig = np.empty((S, n))
+    X = np.empty((n, S))        # sigma points as columns
+    k1, k2, k3, k4, Ys = (np.empty((n, S)), np.empty((n, S)), np.empty((n, S)), np.empty((n, S)),
+                          np.empty((n, S)))
+    al = np.empty((3, S))
+    m = np.empty(n)
+    P = np.empty((n, n))
+    for r in range(R):
+        ok[r] = _sigma_points(mean[r], cov[r], scale, A, L, sig)
+        if not ok[r]:
+            continue
+        for s in range(S):
+            for i in range(n):
+                X[i, s] = sig[s, i]
+        _propagate(X, stages, h, J, Jinv, mu, gg, k1, k2, k3, k4, Ys)
+        # x = sum Wm chi, with every MRP on the central point's set (align_mrp)
+        q0, q1, q2 = X[_P0, 0], X[_P0 + 1, 0], X[_P0 + 2, 0]
+        _align_cols(X, q0, q1, q2, al)
+        for s in range(S):
+            for i in range(n):
+                sig[s, i] = al[i - _P0, s] if _P0 <= i < _P0 + 3 else X[i, s]
+        for i in range(n):
+            m[i] = 0.0
+        for s in range(S):
+            for i in range(n):
+                m[i] += Wm[s] * sig[s, i]
+        pp = m[_P0] * m[_P0] + m[_P0 + 1] * m[_P0 + 1] + m[_P0 + 2] * m[_P0 + 2]
+        if pp > 1.0:
+            m[_P0], m[_P0 + 1], m[_P0 + 2] = -m[_P0] / pp, -m[_P0 + 1] / pp, -m[_P0 + 2] / pp
+        # residuals chi - x, each MRP on the mean's set, as rows of sig
+        _align_cols(X, m[_P0], m[_P0 + 1], m[_P0 + 2], al)
+        for s in range(S):
+            for i in range(n):
+                sig[s, i] = (al[i - _P0, s] if _P0 <= i < _P0 + 3 else X[i, s]) - m[i]
+        # P = sum Wc (chi - x)(chi - x)^T + Q, symmetrized (the sum over s in order, vectorized over j)
+        for i in range(n):
+            for j in range(n):
+                P[i, j] = 0.0
+        for s in range(S):
+            for i in range(n):
+                a = sig[s, i] * Wc[s]
+                for j in range(n):
+                    P[i, j] += a * sig[s, j]
+        for i in range(n):
+            mean_out[r, i] = m[i]
+            for j in range(n):
+                cov_out[r, i, j] = 0.5 * ((P[i, j] + Q[r, i, j]) + (P[j, i] + Q[r, j, i]))
+        ok[r] = _finite_pd(cov_out[r], L, n)
+
+
+@njit(**_JIT)
+def _align_cols(X, q0, q1, q2, al):
+    """align_mrp of every column's MRP (rows _P0.._P0+2 of X (12, S)) to q, into al (3, S)."""
+    for s in range(X.shape[1]):
+        p0, p1, p2 = X[_P0, s], X[_P0 + 1, s], X[_P0 + 2, s]
+        pp = p0 * p0 + p1 * p1 + p2 * p2
+        den = pp if pp > 0.0 else 1.0
+        s0, s1, s2 = -p0 / den, -p1 / den, -p2 / den
+        ds = np.sqrt((s0 - q0) ** 2 + (s1 - q1) ** 2 + (s2 - q2) ** 2)
+        dp = np.sqrt((p0 - q0) ** 2 + (p1 - q1) ** 2 + (p2 - q2) ** 2)
+        if ds < dp and pp > 0.0:
+            al[0, s], al[1, s], al[2, s] = s0, s1, s2
+        else:
+            al[0, s], al[1, s], al[2, s] = p0, p1, p2
+
+
+# ---------------------------------------------------------------- update
+
+@njit(**_JIT)
+def _measure_corner(sig, G, c, kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_cv, min_depth, out):
+    """The measurement of corner c from the state sig (12,) with G = Gamma(p) (filtering/measurements.measure):
+    markers3d rho + Gamma^T v_c (m); pixels the guarded pinhole (px); pixels+range adds |v_C - camera| (m)."""
+    v0, v1, v2 = corners_T[c, 0], corners_T[c, 1], corners_T[c, 2]
+    q0 = sig[0] + (v0 * G[0, 0] + v1 * G[1, 0] + v2 * G[2, 0])
+    q1 = sig[1] + (v0 * G[0, 1] + v1 * G[1, 1] + v2 * G[2, 1])
+    q2 = sig[2] + (v0 * G[0, 2] + v1 * G[1, 2] + v2 * G[2, 2])
+    if kind == 0:
+        out[0], out[1], out[2] = q0, q1, q2
+        return
+    d0, d1, d2 = q0 - cam_pos[0], q1 - cam_pos[1], q2 - cam_pos[2]
+    x = d0 * cam_R[0, 0] + d1 * cam_R[0, 1] + d2 * cam_R[0, 2]
+    y = d0 * cam_R[1, 0] + d1 * cam_R[1, 1] + d2 * cam_R[1, 2]
+    z = d0 * cam_R[2, 0] + d1 * cam_R[2, 1] + d2 * cam_R[2, 2]
+    z = max(z, min_depth)
+    out[0] = cam_f * x / z + cam_cu
+    out[1] = cam_f * y / z + cam_cv
+    if kind == 2:
+        out[2] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+
+
+@njit(**_JIT)
+def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check, Wm, Wc, scale, kind,
+                  corners_T, face_n, face_h, face_corners, cam_R, cam_pos, cam_f, cam_cu, cam_cv, min_depth,
+                  mean_out, cov_out, nis, accepted, mask_k, Ky, yy, trPzz, ok):
+    """UKF measurement update of R runs (estimator's step around filtering/ukf.update).
+
+    mean (R, 12), cov (R, 12, 12) the prior; z (R, 8, m); measured (R, 8) bool; R_c (R, 8, m, m) per-corner
+    covariance, scaled by r_scale (R,); thr (R,) chi-square bound per corner (inf: gate open), used when
+    use_gate; vis_check: drop measured corners the prior mean says are hidden (face test: face_n (6, 3),
+    face_h (6,), face_corners (6, 8) bool). Writes the posterior (mean_out, cov_out), nis (R,), accepted and
+    mask_k (R, 8) (corners used; corners that reached the gate), Ky (R, 12) = K y, yy (R,) = y.y,
+    trPzz (R,) = tr(Pzz) over the used components; ok (R,) False where the numpy filter must redo the run.
+    """
+    R, n = mean.shape
+    S = 2 * n + 1
+    nc, mdim = z.shape[1], z.shape[2]
+    Mx = nc * mdim
+    A = np.empty((n, n))
+    L = np.empty((n, n))
+    sig = np.empty((S, n))
+    G = np.empty((3, 3))
+    zs = np.empty((S, Mx))
+    zp = np.empty(Mx)
+    dx = np.empty((S, n))
+    al = np.empty(3)
+    Pzz = np.empty((Mx, Mx))
+    Pxz = np.empty((n, Mx))
+    Sm = np.empty((Mx, Mx))
+    Ls = np.empty((Mx, Mx))
+    V = np.empty((Mx, n))
+    u = np.empty(Mx)
+    y = np.empty(Mx)
+    comp = np.empty(Mx, dtype=np.int64)   # compact component -> (corner, axis) index into the 8m vector
+    act = np.empty(nc, dtype=np.int64)
+    buf = np.empty(3)
+    Sc = np.empty((3, 3))
+    Lc = np.empty((3, 3))
+    P = np.empty((n, n))
+    Sj = np.empty((3, 3))
+    for r in range(R):
+        ok[r] = True
+        # which measured corners reach the gate: the visibility check from the prior mean
+        cT0, cT1, cT2 = 0.0, 0.0, 0.0
+        if vis_check:
+            _dcm(mean[r, _P0:_P0 + 3], G)
+            cT0 = -(G[0, 0] * mean[r, 0] + G[0, 1] * mean[r, 1] + G[0, 2] * mean[r, 2])
+            cT1 = -(G[1, 0] * mean[r, 0] + G[1, 1] * mean[r, 1] + G[1, 2] * mean[r, 2])
+            cT2 = -(G[2, 0] * mean[r, 0] + G[2, 1] * mean[r, 1] + G[2, 2] * mean[r, 2])
+        na = 0
+        for c in range(nc):
+            vis = True
+            if vis_check:
+                vis = False
+                for f in range(face_n.shape[0]):
+                    if face_corners[f, c] and (face_n[f, 0] * cT0 + face_n[f, 1] * cT1 + face_n[f, 2] * cT2
+                                               > face_h[f]):
+                        vis = True
+            mask_k[r, c] = measured[r, c] and vis
+            accepted[r, c] = False
+            if mask_k[r, c]:
+                act[na] = c
+                na += 1
+        for i in range(n):
+            mean_out[r, i] = mean[r, i]
+            Ky[r, i] = 0.0
+            for j in range(n):
+                cov_out[r, i, j] = cov[r, i, j]
+        nis[r], yy[r], trPzz[r] = 0.0, 0.0, 0.0
+        if na == 0:
+            # no update: the numpy filter's update with an empty mask leaves a mean on |p| <= 1 and a
+            # positive-definite covariance as they are (otherwise it switches or repairs them: its job)
+            ok[r] = _unchanged_ok(mean[r], cov[r], L, P, n)
+            continue
+        if not _sigma_points(mean[r], cov[r], scale, A, L, sig):
+            ok[r] = False
+            continue
+        M = na * mdim
+        for a in range(na):
+            for d in range(mdim):
+                comp[a * mdim + d] = act[a] * mdim + d
+        # predicted measurement of the measured corners, its spread and the cross covariance
+        for s in range(S):
+            _dcm(sig[s, _P0:_P0 + 3], G)
+            for a in range(na):
+                _measure_corner(sig[s], G, act[a], kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_cv,
+                                min_depth, buf)
+                for d in range(mdim):
+                    zs[s, a * mdim + d] = buf[d]
+            for i in range(n):
+                dx[s, i] = sig[s, i] - mean[r, i]
+            _align(sig[s, _P0:_P0 + 3], mean[r, _P0:_P0 + 3], al)
+            for i in range(3):
+                dx[s, _P0 + i] = al[i] - mean[r, _P0 + i]
+        for a in range(M):
+            zp[a] = 0.0
+        for s in range(S):
+            for a in range(M):
+                zp[a] += Wm[s] * zs[s, a]
+        for s in range(S):
+            for a in range(M):
+                zs[s, a] -= zp[a]                                  # dz = z_s - z_pred
+        # Pzz = sum Wc dz dz^T, Pxz = sum Wc dx dz^T: the sums over s in order, vectorized over the last index
+        for a in range(M):
+            for b in range(M):
+                Pzz[a, b] = 0.0
+            for i in range(n):
+                Pxz[i, a] = 0.0
+        for s in range(S):
+            for a in range(M):
+                c = zs[s, a] * Wc[s]
+                for b in range(a, M):
+                    Pzz[a, b] += c * zs[s, b]
+            for i in range(n):
+                c = dx[s, i] * Wc[s]
+                for a in range(M):
+                    Pxz[i, a] += c * zs[s, a]
+        for a in range(M):
+            for b in range(a + 1, M):
+                Pzz[b, a] = Pzz[a, b]
+        sr = r_scale[r]
+        for a in range(M):
+            ca, da = comp[a] // mdim, comp[a] % mdim
+            y[a] = z[r, ca, da] - zp[a]                            # innovation
+            for b in range(M):
+                cb, db = comp[b] // mdim, comp[b] % mdim
+                Sm[a, b] = Pzz[a, b] + (R_c[r, ca, da, db] * sr if ca == cb else 0.0)
+        # chi-square gate per corner: y_c^T S_cc^-1 y_c <= thr (a NaN distance fails)
+        keep = 0
+        for a in range(na):
+            good = True
+            if use_gate:
+                o = a * mdim
+                for i in range(mdim):
+                    for j in range(mdim):
+                        Sc[i, j] = Sm[o + i, o + j]
+                if not _chol(Sc, Lc, mdim):
+                    ok[r] = False
+                    break
+                d2 = 0.0
+                for i in range(mdim):
+                    t = y[o + i]
+                    for k in range(i):
+                        t -= Lc[i, k] * buf[k]
+                    buf[i] = t / Lc[i, i]
+                    d2 += buf[i] * buf[i]
+                good = d2 <= thr[r]
+            if good:
+                act[keep] = a
+                keep += 1
+                accepted[r, act_corner(comp, a, mdim)] = True
+        if not ok[r]:
+            continue
+        if keep == 0:
+            ok[r] = _unchanged_ok(mean[r], cov[r], L, P, n)  # every measured corner rejected: no update
+            continue
+        # compact to the accepted components, in order
+        Mk = keep * mdim
+        for a in range(keep):
+            for d in range(mdim):
+                comp[a * mdim + d] = act[a] * mdim + d           # now indexes the measured-corner vectors
+        for a in range(Mk):
+            ia = comp[a]
+            u[a] = y[ia]
+            for b in range(Mk):
+                Ls[a, b] = Sm[ia, comp[b]]
+            for i in range(n):
+                V[a, i] = Pxz[i, ia]
+        for a in range(Mk):
+            y[a] = u[a]
+            for b in range(Mk):
+                Sm[a, b] = Ls[a, b]
+        tr = 0.0
+        for a in range(Mk):
+            tr += Pzz[comp[a], comp[a]]
+        if not _chol(Sm, Ls, Mk):
+            ok[r] = False
+            continue
+        # u = L^-1 y, V = L^-1 Pxz^T: K = V^T L^-1, K y = V^T u, K S K^T = V^T V, NIS = u.u
+        ny, yty = 0.0, 0.0
+        for a in range(Mk):
+            t = y[a]
+            for k in range(a):
+                t -= Ls[a, k] * u[k]
+            u[a] = t / Ls[a, a]
+            ny += u[a] * u[a]
+            yty += y[a] * y[a]
+            for i in range(n):
+                t = V[a, i]
+                for k in range(a):
+                    t -= Ls[a, k] * V[k, i]
+                V[a, i] = t / Ls[a, a]
+        for i in range(n):
+            acc = 0.0
+            for a in range(Mk):
+                acc += V[a, i] * u[a]
+            Ky[r, i] = acc
+            mean_out[r, i] = mean[r, i] + acc
+            for j in range(n):
+                acc = 0.0
+                for a in range(Mk):
+                    acc += V[a, i] * V[a, j]
+                P[i, j] = cov[r, i, j] - acc
+        nis[r], yy[r], trPzz[r] = ny, yty, tr
+        # |p| > 1: the mean to its shadow, the covariance with S = (2 p p^T - (p.p) I) / (p.p)^2
+        p0, p1, p2 = mean_out[r, _P0], mean_out[r, _P0 + 1], mean_out[r, _P0 + 2]
+        pp = p0 * p0 + p1 * p1 + p2 * p2
+        if pp > 1.0:
+            pv = (p0, p1, p2)
+            for i in range(3):
+                for j in range(3):
+                    Sj[i, j] = (2.0 * pv[i] * pv[j] - (pp if i == j else 0.0)) / pp ** 2
+            _shadow(mean_out[r, _P0:_P0 + 3])
+            for j in range(n):
+                b0, b1, b2 = P[_P0, j], P[_P0 + 1, j], P[_P0 + 2, j]
+                for i in range(3):
+                    P[_P0 + i, j] = Sj[i, 0] * b0 + Sj[i, 1] * b1 + Sj[i, 2] * b2
+            for i in range(n):
+                b0, b1, b2 = P[i, _P0], P[i, _P0 + 1], P[i, _P0 + 2]
+                for j in range(3):
+                    P[i, _P0 + j] = b0 * Sj[j, 0] + b1 * Sj[j, 1] + b2 * Sj[j, 2]
+        for i in range(n):
+            for j in range(n):
+                cov_out[r, i, j] = 0.5 * (P[i, j] + P[j, i])
+        ok[r] = _finite_pd(cov_out[r], L, n) and np.isfinite(ny)
+        for i in range(n):
+            if not np.isfinite(mean_out[r, i]):
+                ok[r] = False
+
+
+@njit(**_JIT)
+def _unchanged_ok(mean, cov, L, P, n):
+    """A run left as it is by an update without measurements: its MRP on |p| <= 1 and cov positive definite."""
+    pp = mean[_P0] * mean[_P0] + mean[_P0 + 1] * mean[_P0 + 1] + mean[_P0 + 2] * mean[_P0 + 2]
+    for i in range(n):
+        if not np.isfinite(mean[i]):
+            return False
+        for j in range(n):
+            P[i, j] = cov[i, j]
+            if P[i, j] != cov[j, i]:
+                return False
+    return pp <= 1.0 and _finite_pd(P, L, n)
+
+
+@njit(**_JIT)
+def act_corner(comp, a, mdim):
+    """The corner of compact measured-corner slot a (comp holds 8m-vector indices per component)."""
+    return comp[a * mdim] // mdim
+
+
+# ---------------------------------------------------------------- the steps, as filtering/ukf.py's
+
+def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: np.ndarray, w, J_T: np.ndarray,
+            mu_m3_s2: float, max_step_s: float = 1.0, gravity_gradient: bool = False
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """filtering.ukf.predict in the fused kernel. mean (R, 12), cov (R, 12, 12), c0 (4,) the chaser at the
+    start, Q (12, 12) or (R, 12, 12) the step's process noise, w the sigma-point weights. Returns (mean, cov)."""
+    from envisat_pose.filtering import ukf
+    from envisat_pose.filtering.dynamics import chaser_stages
+
+    mean = np.ascontiguousarray(mean, dtype=float)
+    cov = np.ascontiguousarray(cov, dtype=float)
+    R = mean.shape[0]
+    Q = np.ascontiguousarray(np.broadcast_to(Q, (R, N_STATE, N_STATE)), dtype=float)
+    c = np.asarray(c0, dtype=float)
+    if c.ndim != 1:
+        return ukf.predict(mean, cov, c, dt_s, Q, w, J_T, mu_m3_s2, max_step_s, gravity_gradient)
+    n_sub = max(1, int(np.ceil(dt_s / max_step_s - 1e-9)))
+    h = dt_s / n_sub
+    stages = np.empty((n_sub, 4, 4))
+    for i in range(n_sub):  # the chaser's RK4 stages, computed as filtering.dynamics.propagate computes them
+        *st, c = chaser_stages(c, h, mu_m3_s2)
+        stages[i] = st
+    J = np.ascontiguousarray(J_T, dtype=float)
+    mean_out, cov_out, ok = np.empty_like(mean), np.empty_like(cov), np.empty(R, dtype=bool)
+    predict_kernel(mean, cov, Q, stages, float(h), w.Wm, w.Wc, float(w.n + w.lam), J, np.linalg.inv(J),
+                   float(mu_m3_s2), bool(gravity_gradient), mean_out, cov_out, ok)
+    if not ok.all():  # covariance repairs: the numpy filter's, on those runs
+        bad = ~ok
+        mean_out[bad], cov_out[bad] = ukf.predict(mean[bad], cov[bad], c0, dt_s, Q[bad], w, J_T, mu_m3_s2,
+                                                  max_step_s, gravity_gradient)
+    return mean_out, cov_out
+
+
+def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarray, R_c: np.ndarray,
+           r_scale: np.ndarray, thr: np.ndarray | None, vis_check: bool, setup) -> dict:
+    """The estimator's measurement update (visibility check, gate, filtering.ukf.update) in the fused kernel.
+
+    mean (R, 12), cov (R, 12, 12) the prior; z (R, 8, m); measured (R, 8) bool (finite); R_c (R, 8, m, m)
+    per-corner covariance, used as R_c * r_scale (R,); thr (R,) gate bound per run (inf: open) or None (no
+    gate); setup: the estimator's FilterSetup (kind, camera, weights). Returns a dict of mean, cov, nis, dof,
+    accepted (R, 8), mask_k (R, 8) (the corners the gate saw), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,)."""
+    from envisat_pose.filtering import ukf
+    from envisat_pose.filtering.measurements import MIN_DEPTH_M, predicted_visible
+    from envisat_pose.geometry import load_geometry
+
+    mean = np.ascontiguousarray(mean, dtype=float)
+    cov = np.ascontiguousarray(cov, dtype=float)
+    R = mean.shape[0]
+    z = np.ascontiguousarray(np.where(measured[..., None], z, 0.0), dtype=float)
+    m = z.shape[-1]
+    R_c = np.ascontiguousarray(np.broadcast_to(R_c, z.shape + (m,)), dtype=float)
+    r_scale = np.ascontiguousarray(r_scale, dtype=float)
+    use_gate = thr is not None
+    thr_a = np.ascontiguousarray(np.broadcast_to(np.inf if thr is None else thr, (R,)), dtype=float)
+    g, cam, w = load_geometry(), setup.camera, setup.weights
+    out = {k: np.empty((R,)) for k in ("nis", "yy", "trPzz")}
+    out.update(mean=np.empty_like(mean), cov=np.empty_like(cov), Ky=np.empty((R, N_STATE)),
+               accepted=np.empty((R, 8), dtype=bool), mask_k=np.empty((R, 8), dtype=bool))
+    ok = np.empty(R, dtype=bool)
+    update_kernel(mean, cov, z, np.ascontiguousarray(measured, dtype=bool), R_c, r_scale, thr_a, use_gate,
+                  bool(vis_check), w.Wm, w.Wc, float(w.n + w.lam), KIND_CODES[setup.kind],
+                  np.ascontiguousarray(g.corners_T_m, dtype=float), np.ascontiguousarray(g.face_normals_T, dtype=float),
+                  np.ascontiguousarray(g.face_offsets_m, dtype=float), np.ascontiguousarray(g.face_corners, dtype=bool),
+                  np.ascontiguousarray(cam.R_K_from_C, dtype=float), np.ascontiguousarray(cam.pos_C_m, dtype=float),
+                  float(cam.f_px), float(cam.cu_px), float(cam.cv_px), float(MIN_DEPTH_M),
+                  out["mean"], out["cov"], out["nis"], out["accepted"], out["mask_k"], out["Ky"], out["yy"],
+                  out["trPzz"], ok)
+    if not ok.all():  # repairs and non-finite steps: the numpy filter's, on those runs
+        bad = np.flatnonzero(~ok)
+        mk = measured[bad]
+        if vis_check:
+            mk = mk & predicted_visible(mean[bad])
+        Rk = R_c[bad] * r_scale[bad, None, None, None]
+        mb, cb, info = ukf.update(mean[bad], cov[bad], z[bad], mk, Rk, setup.hx, w,
+                                  None if thr is None else thr_a[bad])
+        out["mean"][bad], out["cov"][bad], out["nis"][bad] = mb, cb, info.nis
+        out["accepted"][bad], out["mask_k"][bad] = info.accepted, mk
+        out["Ky"][bad] = np.einsum("rij,rj->ri", info.K, info.y)
+        out["yy"][bad] = np.einsum("ri,ri->r", info.y, info.y)
+        out["trPzz"][bad] = np.einsum("rii->r", info.Pzz_state)
+    out["dof"] = out["accepted"].sum(-1) * m
+    return out
