@@ -1,8 +1,14 @@
-"""The layers of design.md, checked by parsing every import of the package's source.
+"""The layers of design.md and the one-home rules of issue 19, checked by parsing the package's source.
 
-core (envisat_pose/*.py) imports no stage and no app; a stage (datagen, perception, filtering, analysis)
-imports only the core, never another stage nor the app; only the app layer (envisat_pose/app/) combines
-stages. Imports inside functions count too, and so do relative imports and the old top-level names.
+Layers: core (envisat_pose/*.py) imports nothing above it; a stage (datagen, perception, filtering, analysis)
+imports only the core, never another stage, a pipeline or the app; a pipeline (envisat_pose/pipelines/)
+imports the core and the stages, never the app; the app (envisat_pose/app/) imports anything. Imports inside
+functions count too, and so do relative imports and the old top-level names.
+
+One home for each concept: the state's slices are defined only in envisat_pose/state.py; manifest.json is
+written only by the core runner's resumable-job protocol; a verb or pipeline resolves its config only through
+config.resolve_job_config (never by merging layers itself). Each checker runs on a source string, so the tests
+below show it catching a planted copy.
 """
 
 import ast
@@ -12,29 +18,55 @@ import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 STAGES = ("datagen", "perception", "filtering", "analysis")
+UPPER = ("app", "pipelines")  # the sub-packages of envisat_pose above the stages
 # where each layer's files live in the repository, and their import name
 LAYOUT = {"envisat_pose": "envisat_pose", **{s: f"envisat_pose.{s}" for s in STAGES}}
+# scanned for copies of the state's layout besides the package (the benches use it too)
+EXTRA_FOLDERS = ("bench",)
+
+# Copies that other engineers are removing now (issue 19). An entry must name a file that still holds the
+# copy: `test_pending_copies_are_still_there` fails once it is gone, so the entry is deleted with the fix.
+PENDING = {
+    "state_slices": {
+        "filtering/ukf.py": "the filtering engineer switches filtering/ to envisat_pose.state",
+    },
+    "manifest_writers": {
+        "datagen/shards.py": "write_manifest is unused since the factory runs through runner.ResumableJob",
+    },
+    "hand_resolved_configs": {},
+}
 
 
-def source_files():
-    """(path, module name) of every .py file of the package, the stage folders mapped into envisat_pose."""
+def source_files(root: str = ROOT):
+    """(path, module name) of every .py file of the package, the stage folders mapped into envisat_pose,
+    envisat_pose/app and envisat_pose/pipelines (when it exists) included."""
     for folder, package in LAYOUT.items():
-        for dirpath, dirnames, filenames in os.walk(os.path.join(ROOT, folder)):
+        for dirpath, dirnames, filenames in os.walk(os.path.join(root, folder)):
             dirnames[:] = [d for d in dirnames if d != "__pycache__"]
-            if folder == "envisat_pose" and os.path.relpath(dirpath, ROOT) != "envisat_pose":
-                if not os.path.relpath(dirpath, ROOT).startswith(os.path.join("envisat_pose", "app")):
+            rel_dir = os.path.relpath(dirpath, root)
+            if folder == "envisat_pose" and rel_dir != "envisat_pose":
+                if not any(rel_dir.startswith(os.path.join("envisat_pose", u)) for u in UPPER):
                     continue
             for name in filenames:
                 if name.endswith(".py"):
                     path = os.path.join(dirpath, name)
-                    rel = os.path.relpath(path, os.path.join(ROOT, folder))[:-3].replace(os.sep, ".")
+                    rel = os.path.relpath(path, os.path.join(root, folder))[:-3].replace(os.sep, ".")
                     mod = package if rel == "__init__" else f"{package}.{rel.removesuffix('.__init__')}"
                     yield path, mod
 
 
-def imported_modules(path: str, module: str) -> list[tuple[int, str]]:
+def checked_files(root: str = ROOT):
+    """Repository-relative paths of the package's files and the benches'."""
+    paths = [os.path.relpath(p, root) for p, _ in source_files(root)]
+    for folder in EXTRA_FOLDERS:
+        for dirpath, _, filenames in os.walk(os.path.join(root, folder)):
+            paths += [os.path.relpath(os.path.join(dirpath, f), root) for f in filenames if f.endswith(".py")]
+    return sorted(paths)
+
+
+def imported_modules(path: str, module: str, source: str | None = None) -> list[tuple[int, str]]:
     """Every module an import statement in the file names, relative imports resolved."""
-    tree = ast.parse(open(path, encoding="utf-8").read(), path)
+    tree = ast.parse(source if source is not None else open(path, encoding="utf-8").read(), path)
     is_pkg = path.endswith("__init__.py")
     out = []
     for node in ast.walk(tree):
@@ -53,17 +85,32 @@ def imported_modules(path: str, module: str) -> list[tuple[int, str]]:
 
 
 def layer_of(module: str) -> str | None:
-    """'app', a stage name, 'core', a forbidden bare stage name ('bare:...'), or None (not ours)."""
+    """'app', 'pipelines', a stage name, 'core', a forbidden bare stage name ('bare:...'), or None (not ours)."""
     parts = module.split(".")
     if parts[0] in STAGES:
         return f"bare:{parts[0]}"
     if parts[0] != "envisat_pose":
         return None
-    if len(parts) > 1 and parts[1] == "app":
-        return "app"
+    if len(parts) > 1 and parts[1] in UPPER:
+        return parts[1]
     if len(parts) > 1 and parts[1] in STAGES:
         return parts[1]
     return "core"
+
+
+def crossing(own: str, other: str) -> str | None:
+    """Why a module of layer `own` may not import one of layer `other` (None: it may)."""
+    if other.startswith("bare:"):
+        return "the stages install inside envisat_pose"
+    if other == own or own == "app":
+        return None
+    if own == "core" and other != "core":
+        return "the core imports nothing above it"
+    if own in STAGES and other != "core":
+        return "a stage imports only the core"
+    if own == "pipelines" and other == "app":
+        return "a pipeline imports the core and the stages, never the app"
+    return None
 
 
 def violations() -> list[str]:
@@ -72,17 +119,119 @@ def violations() -> list[str]:
         own = layer_of(module)
         for line, name in imported_modules(path, module):
             other = layer_of(name)
-            if other is None or other == own:
-                continue
-            where = f"{os.path.relpath(path, ROOT)}:{line} imports {name}"
-            if other.startswith("bare:"):
-                found.append(f"{where}: the stages install inside envisat_pose")
-            elif own == "core" and other != "core":
-                found.append(f"{where}: the core imports no stage and no app")
-            elif own in STAGES and other != "core":
-                found.append(f"{where}: a stage imports only the core")
+            why = None if other is None else crossing(own, other)
+            if why:
+                found.append(f"{os.path.relpath(path, ROOT)}:{line} imports {name}: {why}")
     return found
 
+
+# ---------------------------------------------------------------- one home for each concept
+
+STATE_FILE = os.path.join("envisat_pose", "state.py")
+RUNNER_FILE = os.path.join("envisat_pose", "runner.py")
+STATE_BOUNDS = {(0, 3), (3, 6), (6, 9), (9, 12)}  # the blocks of the 12-state (envisat_pose.state)
+MERGERS = ("set_dotted", "deep_update")  # the layers of a config, merged by hand
+
+
+def _called_name(node: ast.Call) -> str | None:
+    f = node.func
+    return f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else None
+
+
+def _int_const(node) -> int | None:
+    return node.value if isinstance(node, ast.Constant) and type(node.value) is int else None
+
+
+def state_slice_definitions(source: str) -> list[int]:
+    """Lines that build one of the state's block slices: slice(6, 9) and friends, or np.s_[6:9]."""
+    lines = []
+    for node in ast.walk(ast.parse(source)):
+        bounds = None
+        if isinstance(node, ast.Call) and _called_name(node) == "slice" and len(node.args) == 2:
+            bounds = tuple(_int_const(a) for a in node.args)
+        elif (isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Slice)
+              and isinstance(node.value, (ast.Name, ast.Attribute))
+              and (node.value.id if isinstance(node.value, ast.Name) else node.value.attr) in ("s_", "index_exp")):
+            bounds = (_int_const(node.slice.lower), _int_const(node.slice.upper))
+        if bounds in STATE_BOUNDS:
+            lines.append(node.lineno)
+    return sorted(lines)
+
+
+def _mentions(node: ast.AST, names: set[str]) -> bool:
+    return any((isinstance(n, ast.Constant) and n.value == "manifest.json") or (isinstance(n, ast.Name) and n.id in names)
+               for n in ast.walk(node))
+
+
+def manifest_writes(source: str) -> list[int]:
+    """Lines that write a file named manifest.json (directly, or through names bound to it): a manifest
+    protocol of its own. Reading one (a dataset's, to check it) is fine."""
+    tree = ast.parse(source)
+    tainted: set[str] = set()  # names bound to the manifest's name or path
+    while True:
+        more = {t.id for n in ast.walk(tree) if isinstance(n, (ast.Assign, ast.AnnAssign)) and n.value is not None
+                and _mentions(n.value, tainted)
+                for t in (n.targets if isinstance(n, ast.Assign) else [n.target]) if isinstance(t, ast.Name)}
+        if more <= tainted:
+            break
+        tainted |= more
+    lines = []
+    for n in ast.walk(tree):
+        if not isinstance(n, ast.Call):
+            continue
+        name, target = _called_name(n), None
+        if name in ("atomic_write_text", "atomic_path") and n.args:
+            target = n.args[0]
+        elif name == "open" and n.args:
+            mode = n.args[1] if len(n.args) > 1 else next((k.value for k in n.keywords if k.arg == "mode"), None)
+            if isinstance(mode, ast.Constant) and isinstance(mode.value, str) and set(mode.value) & set("wax"):
+                target = n.args[0]
+        elif name in ("write_text", "write_bytes") and isinstance(n.func, ast.Attribute):
+            target = n.func.value
+        if target is not None and _mentions(target, tainted):
+            lines.append(n.lineno)
+    return sorted(lines)
+
+
+def hand_resolutions(source: str) -> list[int]:
+    """Lines of functions that resolve a config by hand: merging layers (set_dotted, deep_update), or reading a
+    TOML file and building a config from it (load_toml with from_dict) in one function."""
+    lines = []
+    for fn in ast.walk(ast.parse(source)):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        calls = [n for n in ast.walk(fn) if isinstance(n, ast.Call)]
+        names = {_called_name(c) for c in calls}
+        if names & set(MERGERS) or {"load_toml", "from_dict"} <= names:
+            lines.append(fn.lineno)
+    return sorted(set(lines))
+
+
+def resolves_configs(rel: str) -> bool:
+    """Whether a file is a verb or a pipeline (the layers that resolve job configs)."""
+    parts = rel.split(os.sep)
+    return len(parts) > 2 and parts[0] == "envisat_pose" and parts[1] in UPPER
+
+
+def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
+    """{file: lines} of every copy of one kind in the repository (pending ones included)."""
+    found = {}
+    for rel in checked_files(root):
+        source = open(os.path.join(root, rel), encoding="utf-8").read()
+        if kind == "state_slices" and rel != STATE_FILE:
+            lines = state_slice_definitions(source)
+        elif kind == "manifest_writers" and rel != RUNNER_FILE:
+            lines = manifest_writes(source)
+        elif kind == "hand_resolved_configs" and resolves_configs(rel):
+            lines = hand_resolutions(source)
+        else:
+            lines = []
+        if lines:
+            found[rel] = lines
+    return found
+
+
+# ---------------------------------------------------------------- the tests
 
 def test_layers_follow_the_import_rule():
     assert violations() == []
@@ -100,8 +249,93 @@ def test_the_checker_sees_a_crossing(tmp_path):
     assert "envisat_pose.datagen.truth" in found and "envisat_pose.analysis" in found
 
 
+@pytest.mark.parametrize("module, source, reason", [
+    ("envisat_pose.filtering.x", "from envisat_pose.pipelines import track\n", "a stage imports only the core"),
+    ("envisat_pose.state", "def f():\n    from envisat_pose.pipelines.track import x\n", "nothing above it"),
+    ("envisat_pose.pipelines.x", "from envisat_pose.app.cli import main\n", "never the app"),
+])
+def test_pipelines_layer_crossings_are_seen(module, source, reason):
+    why = [crossing(layer_of(module), layer_of(name)) for _, name in imported_modules("x.py", module, source)]
+    assert any(w and reason in w for w in why), why
+
+
+def test_pipelines_may_import_core_and_stages_and_the_app_anything():
+    src = "from envisat_pose.filtering import estimator\nfrom envisat_pose.datagen import render\nimport envisat_pose.state\n"
+    for name in (n for _, n in imported_modules("x.py", "envisat_pose.pipelines.x", src)):
+        assert crossing("pipelines", layer_of(name)) is None, name
+    assert crossing("app", "pipelines") is None
+
+
 def test_every_stage_file_is_seen():
     mods = {m for _, m in source_files()}
     for stage in STAGES:
         assert f"envisat_pose.{stage}" in mods
-    assert "envisat_pose.app.cli" in mods and "envisat_pose.contracts" in mods
+    assert "envisat_pose.app.cli" in mods and "envisat_pose.contracts" in mods and "envisat_pose.state" in mods
+    if os.path.isdir(os.path.join(ROOT, "envisat_pose", "pipelines")):
+        assert "envisat_pose.pipelines" in mods
+
+
+def test_the_pipelines_folder_may_be_missing(tmp_path):
+    """A tree without envisat_pose/pipelines/ is walked without error."""
+    (tmp_path / "envisat_pose" / "app").mkdir(parents=True)
+    (tmp_path / "envisat_pose" / "state.py").write_text("")
+    (tmp_path / "envisat_pose" / "app" / "cli.py").write_text("")
+    mods = {m for _, m in source_files(str(tmp_path))}
+    assert mods == {"envisat_pose.state", "envisat_pose.app.cli"}
+
+
+@pytest.mark.parametrize("kind", sorted(PENDING))
+def test_one_home_for_each_concept(kind):
+    found = {f: lines for f, lines in copies(kind).items() if f not in PENDING[kind]}
+    assert found == {}, f"{kind}: second copies at {found} (one home: see this file's docstring)"
+
+
+@pytest.mark.parametrize("kind", sorted(PENDING))
+def test_pending_copies_are_still_there(kind):
+    """A pending entry whose copy is gone is stale: delete it from PENDING."""
+    found = copies(kind)
+    stale = [f for f in PENDING[kind] if f not in found]
+    assert stale == [], f"{kind}: {stale} no longer hold a copy; remove them from PENDING"
+
+
+def test_the_state_slice_checker_catches_a_planted_copy():
+    planted = ("import numpy as np\nMRP = slice(6, 9)\nBLOCKS = (slice(0, 3), slice(3, 6))\n"
+               "RATE = np.s_[9:12]\nCROP = slice(0, 5)\n")
+    assert state_slice_definitions(planted) == [2, 3, 3, 4]
+    assert state_slice_definitions("from envisat_pose.state import MRP\ny = x[..., MRP]\n") == []
+    assert state_slice_definitions(open(os.path.join(ROOT, STATE_FILE), encoding="utf-8").read())  # the home
+
+
+def test_the_manifest_checker_catches_a_planted_protocol():
+    planted = ("import json, os\nfrom envisat_pose.io import atomic_write_text, sha256_file\n\n"
+               "def record(out_dir, done):\n"
+               "    atomic_write_text(os.path.join(out_dir, 'manifest.json'), json.dumps(done))\n")
+    assert manifest_writes(planted) == [5]
+    indirect = ("import json, os\nMANIFEST = 'manifest.json'\n\ndef record(out_dir, done):\n"
+                "    path = os.path.join(out_dir, MANIFEST)\n"
+                "    with open(path, 'w') as fh:\n        json.dump(done, fh)\n")
+    assert manifest_writes(indirect) == [6]
+    reader = ("import json\n\ndef read(d):\n    m = json.load(open(d + '/manifest.json'))\n"
+              "    open(d + '/summary.json', 'w').write(json.dumps(m))\n")
+    assert manifest_writes(reader) == []
+    assert manifest_writes(open(os.path.join(ROOT, RUNNER_FILE), encoding="utf-8").read())  # the home
+
+
+def test_the_config_checker_catches_a_verb_resolving_by_hand():
+    by_hand = ("from envisat_pose.config import deep_update, from_dict, load_toml, set_dotted\n\n"
+               "def resolve_config(args):\n"
+               "    data = deep_update({}, load_toml(args.config))\n"
+               "    data = set_dotted(data, 'seed', args.seed)\n"
+               "    return from_dict(Cfg, data)\n\n"
+               "def from_file(path):\n"
+               "    return from_dict(Cfg, load_toml(path))\n")
+    assert hand_resolutions(by_hand) == [3, 8]
+    resolved = ("from envisat_pose.config import load_toml, resolve_job_config\n\n"
+                "def resolve_config(args):\n"
+                "    return resolve_job_config(Cfg, {}, args.config, {'seed': args.seed})\n\n"
+                "def camera(path):\n"
+                "    return load_toml(path)['fx']\n")
+    assert hand_resolutions(resolved) == []
+    assert resolves_configs(os.path.join("envisat_pose", "app", "run.py"))
+    assert resolves_configs(os.path.join("envisat_pose", "pipelines", "track.py"))
+    assert not resolves_configs(os.path.join("envisat_pose", "config.py"))
