@@ -41,3 +41,107 @@ def test_bad_runner_config_names_the_field():
         list(run_tasks(math.comb, TASKS, RunnerConfig("local", 0)))
     with pytest.raises(ConfigError, match="scheduler"):
         list(run_tasks(math.comb, TASKS, RunnerConfig("local", 2, scheduler="tcp://127.0.0.1:1")))
+
+
+# ---------------------------------------------------------------- resumable jobs
+
+def unit_file(i: int) -> str:
+    return f"units/u-{i:02d}.txt"
+
+
+def write_unit(out_dir: str, i: int, fail_at: int) -> dict:
+    """A job's task: unit i written atomically; unit fail_at is the moment the job is killed."""
+    import os
+
+    from envisat_pose.io import atomic_write_text, sha256_file
+
+    if i == fail_at:
+        raise KeyboardInterrupt
+    path = os.path.join(out_dir, unit_file(i))
+    atomic_write_text(path, f"unit {i}\n")
+    return {"index": i, "sha256": sha256_file(path), "lines": 1}
+
+
+def make_job(out_dir, seed=0, n=5, verify=None):
+    from envisat_pose.runner import ResumableJob
+
+    return ResumableJob(str(out_dir), "test job v1", "test set", {"config": {"seed": seed, "n": n}}, "units", n,
+                        unit_file, header={"n_units": n}, verify_unit=verify)
+
+
+def run_job(out_dir, fail_at=-1, **kw):
+    job = make_job(out_dir, **kw)
+    job.resume(job.open())
+    return job, job.run(write_unit, lambda i: (str(out_dir), i, fail_at), RunnerConfig("inline"))
+
+
+def test_a_killed_job_resumes_to_the_same_manifest_redoing_only_what_is_unvouched(tmp_path):
+    import json
+    import os
+
+    _, ref = run_job(tmp_path / "ref")
+    assert ref["complete"] and [e["index"] for e in ref["units"]] == list(range(5)) and ref["n_units"] == 5
+    d = tmp_path / "d"
+    with pytest.raises(KeyboardInterrupt):
+        run_job(d, fail_at=3)
+    killed = json.loads((d / "manifest.json").read_text())  # rewritten after every unit
+    assert not killed["complete"] and [e["index"] for e in killed["units"]] == [0, 1, 2]
+    (d / unit_file(1)).write_text("damaged\n")  # its sha256 no longer matches: redone
+    (d / unit_file(4)).write_text("unit 4\n")  # a file the manifest does not vouch for: removed, redone
+    (d / "units" / ".tmp-partial.txt").write_text("x")  # a killed writer's partial file
+    (d / ".tmp-partial.json").write_text("x")
+    kept = os.stat(d / unit_file(0)).st_mtime_ns
+    job = make_job(d)
+    done = job.resume(job.open())
+    assert sorted(done) == [0, 2]
+    assert not (d / unit_file(1)).exists() and not (d / unit_file(4)).exists()
+    assert not (d / "units" / ".tmp-partial.txt").exists() and not (d / ".tmp-partial.json").exists()
+    assert job.todo() == [1, 3, 4]
+    manifest = job.run(write_unit, lambda i: (str(d), i, -1), RunnerConfig("inline"))
+    assert manifest == ref and json.loads((d / "manifest.json").read_text()) == ref
+    assert os.stat(d / unit_file(0)).st_mtime_ns == kept  # a vouched unit is not redone
+
+
+def test_a_unit_that_fails_its_own_check_is_redone(tmp_path):
+    run_job(tmp_path)
+    job = make_job(tmp_path, verify=lambda entry, path: entry["index"] != 2)
+    assert sorted(job.resume(job.open())) == [0, 1, 3, 4]
+
+
+def test_another_config_is_refused_before_anything_is_written(tmp_path):
+    import os
+
+    from envisat_pose.config import InputError
+
+    run_job(tmp_path)
+    before = {f: os.stat(tmp_path / f).st_mtime_ns for f in ("manifest.json", unit_file(0))}
+    with pytest.raises(InputError, match=r"holds a test set of another config or seed \(seed = 0 there, 7 here\)"):
+        make_job(tmp_path, seed=7).open()
+    assert before == {f: os.stat(tmp_path / f).st_mtime_ns for f in before}
+
+
+@pytest.mark.parametrize("text, message", [("{not json", "unreadable manifest.json"),
+                                           ('{"format": "other v1"}', "is not a test set manifest")])
+def test_a_foreign_or_broken_manifest_is_one_error(tmp_path, text, message):
+    from envisat_pose.config import InputError
+
+    (tmp_path / "manifest.json").write_text(text)
+    with pytest.raises(InputError, match=message):
+        make_job(tmp_path).open()
+
+
+def test_the_output_folder_rule(tmp_path):
+    from envisat_pose.config import InputError
+    from envisat_pose.runner import check_out_dir, make_out_dir
+
+    check_out_dir(str(tmp_path / "new"))  # creates nothing
+    assert not (tmp_path / "new").exists()
+    with pytest.raises(InputError, match="does not exist"):
+        check_out_dir(str(tmp_path / "no" / "new"))
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(InputError, match="not a folder"):
+        make_out_dir(str(tmp_path / "file"))
+    make_out_dir(str(tmp_path / "new"), ["a/b"])
+    assert (tmp_path / "new" / "a" / "b").is_dir() and list((tmp_path / "new").iterdir()) == [tmp_path / "new" / "a"]
+    with pytest.raises(InputError, match="cannot write there"):
+        make_out_dir("/proc/envisat-test-out")
