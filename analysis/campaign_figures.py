@@ -16,6 +16,7 @@ import numpy as np  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
 from envisat_pose.io import atomic_path  # noqa: E402
+from envisat_pose.state import BLOCK_SLICES, BLOCKS  # noqa: E402
 
 GREY_RUNS = "#8c8c8c"
 RED_FILTER = "#e00000"
@@ -24,11 +25,11 @@ BLUE_RMSE = "#1f5fd0"
 BLACK_BOUND = "#000000"
 BAND_FILL = "#f2c200"  # chi-square 95 % band
 
-BLOCK_TITLES = ("position", "velocity", "attitude", "angular velocity")
+BLOCK_TITLES = tuple(b.replace("_", " ") for b in BLOCKS)
 BLOCK_DISPLAY = (("m", 1.0), ("mm/s", 1e3), ("deg", 180.0 / np.pi), ("deg/s", 180.0 / np.pi))
 COMPONENT_NAMES = ("rho_x", "rho_y", "rho_z", "rho'_x", "rho'_y", "rho'_z", "dtheta_1", "dtheta_2", "dtheta_3",
                    "w_r1", "w_r2", "w_r3")
-COMPONENT_SCALE = np.repeat([s for _, s in BLOCK_DISPLAY], 3)
+COMPONENT_SCALE = np.concatenate([np.full(s.stop - s.start, scale) for s, (_, scale) in zip(BLOCK_SLICES, BLOCK_DISPLAY)])
 
 
 def _stride(T: int, max_points: int) -> int:
