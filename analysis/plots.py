@@ -9,6 +9,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envisat_pose.io import atomic_path  # noqa: E402
+from envisat_pose.state import MRP, N_STATE, RATE  # noqa: E402
 
 STATE_LABELS = (
     ("rho_x [m]", "rho_y [m]", "rho_z [m]"),
@@ -25,9 +26,9 @@ def plot_states(t_s: np.ndarray, x: np.ndarray, path: str, title: str = "", visi
     rows = 5 if visible is not None else 4
     fig, axes = plt.subplots(rows, 3, figsize=(13, 2.3 * rows + 0.6), sharex=True, squeeze=False)
     t_min = t_s / 60.0
-    scale = np.ones(12)
-    scale[9:12] = 180.0 / np.pi
-    for i in range(12):
+    scale = np.ones(N_STATE)
+    scale[RATE] = 180.0 / np.pi
+    for i in range(N_STATE):
         ax = axes[i // 3, i % 3]
         ax.plot(t_min, x[:, i] * scale[i], lw=0.9)
         ax.set_ylabel(STATE_LABELS[i // 3][i % 3])
@@ -56,8 +57,8 @@ def estimate_errors(x_true: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
     from envisat_pose.attitude import align_mrp, mrp_shadow
 
     err = x_hat - x_true
-    p_true = mrp_shadow(x_true[..., 6:9])
-    err[..., 6:9] = align_mrp(x_hat[..., 6:9], p_true) - p_true
+    p_true = mrp_shadow(x_true[..., MRP])
+    err[..., MRP] = align_mrp(x_hat[..., MRP], p_true) - p_true
     return err
 
 
@@ -68,9 +69,10 @@ def plot_estimate(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.
 
     t_s (T,), x_true / x_hat (R, T, 12), P (R, T, 12, 12). Velocities in mm/s, angular rates in deg/s.
     """
-    from envisat_pose.attitude import mrp_error_angle_rad
+    from envisat_pose.state import error_magnitudes
 
     err = estimate_errors(x_true, x_hat)
+    magnitudes = error_magnitudes(x_true, x_hat)
     sig_filter = np.sqrt(np.mean(np.diagonal(P, axis1=-2, axis2=-1), axis=0))  # (T, 12)
     sig_mc = err.std(axis=0) if err.shape[0] > 1 else None
     scale = np.array([100.0] * 3 + [1000.0] * 3 + [1.0] * 3 + [180.0 / np.pi] * 3)
@@ -78,7 +80,7 @@ def plot_estimate(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.
     names = ["rho_x", "rho_y", "rho_z", "rho'_x", "rho'_y", "rho'_z", "p_1", "p_2", "p_3", "w_r1", "w_r2", "w_r3"]
     fig, axes = plt.subplots(5, 3, figsize=(13, 13), sharex=True)
     t_min = t_s / 60.0
-    for i in range(12):
+    for i in range(N_STATE):
         ax = axes[i // 3, i % 3]
         ax.plot(t_min, err[0, :, i] * scale[i], lw=0.8, color="C0", label="error, run 0")
         ax.plot(t_min, 3 * sig_filter[:, i] * scale[i], lw=0.9, color="C3", label="filter 3 sigma (P)")
@@ -92,13 +94,13 @@ def plot_estimate(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.
         ax.set_ylabel(f"{names[i]} {units[i]}".strip())
         ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=7, loc="upper right")
-    ang_deg = np.degrees(mrp_error_angle_rad(x_hat[..., 6:9], x_true[..., 6:9]))  # (R, T)
+    ang_deg = magnitudes["attitude_deg"]  # (R, T)
     ax = axes[4, 0]
     ax.semilogy(t_min, np.maximum(ang_deg.T, 1e-6), lw=0.5, alpha=0.5)
     ax.set_ylabel("attitude error [deg]")
     ax.grid(alpha=0.3, which="both")
     ax = axes[4, 1]
-    pos_cm = 100 * np.linalg.norm(err[..., 0:3], axis=-1)
+    pos_cm = 100 * magnitudes["position_m"]
     ax.semilogy(t_min, np.maximum(pos_cm.T, 1e-6), lw=0.5, alpha=0.5)
     ax.set_ylabel("position error [cm]")
     ax.grid(alpha=0.3, which="both")
