@@ -23,15 +23,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    from envisat_pose.app.run import output_paths, print_table, resolve_config, run_closed_loop
-    from envisat_pose.datagen.factory import make_out_dir, prepare_out_dir
+    from envisat_pose.app.run import print_table, resolve_config
+    from envisat_pose.pipelines.closed_loop import output_paths, run_closed_loop
+    from envisat_pose.runner import make_out_dir
 
     ns = argparse.Namespace(scenario="default", duration_s=args.duration_s, config=None, weights=args.weights,
-                            runs=1, workers=1, seed=0, no_roi=False, quiet=args.quiet)
+                            runs=1, workers=1, seed=0, no_roi=False, warm_start=False, quiet=args.quiet)
     cfg = resolve_config(ns)
-    prepare_out_dir(args.out)
     make_out_dir(args.out)
-    print(f"envisat demo: closed loop on scenario 'default', {cfg.duration_s:.0f} s simulated at {cfg.rate_hz:g} Hz, "
+    print(f"envisat demo: the tracker, cold start, on scenario 'default', {cfg.duration_s:.0f} s simulated at {cfg.rate_hz:g} Hz, "
           f"weights {cfg.weights}")
     summary = run_closed_loop(cfg, args.out, progress=not args.quiet)
     print_table(summary)
