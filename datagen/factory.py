@@ -25,7 +25,7 @@ from envisat_pose.datagen.clearance import (TargetBoxes, clearance_m, farthest_d
                                             project_znear_m)
 from envisat_pose.config import ConfigError, check, from_dict, to_dict
 from envisat_pose.geometry import load_camera
-from envisat_pose.runner import ResumableJob, RunnerConfig, check_out_dir, cpu_share, make_out_dir  # noqa: F401
+from envisat_pose.runner import ResumableJob, RunnerConfig, check_out_dir, cpu_share
 
 Severity = Literal["none", "low", "medium", "high", "mixed"]
 MANIFEST_FORMAT = "envisat-pose shards v1"
@@ -165,7 +165,10 @@ class GenerateConfig:
     views are lit as an approach would plan them; backlit_probability: share of views whose sun is drawn from
     the whole sphere instead (backlit and silhouette views stay in the set).
     eclipse_probability: share of random-mode images in eclipse (sequence mode: Earth's cylindrical shadow).
-    earth_probability: share of random-mode images with the Earth backdrop (sequence: > 0 turns it on, at nadir).
+    earth_probability: share of random-mode images that look toward the Earth and draw it behind the target
+    (textured, lit by the view's sun; datagen/earth.py); sequence mode: above 0, the Earth is drawn at the
+    orbit's nadir in the frames where it reaches the image. earth_orbit_radius_m: random mode: the chaser's
+    orbit radius range, m (the disc's angular radius is asin(R / r)). earth_seed: the Earth texture set.
     depth_scale_m: metres per unit of the 16-bit depth PNG.
     keepout_margin_m: random mode: least distance of the camera from any part of the target, m (views closer,
     or whose near plane cuts the target, are drawn again from the same generator).
@@ -188,7 +191,9 @@ class GenerateConfig:
     sun_phase_max_deg: float = 100.0
     backlit_probability: float = 0.15
     eclipse_probability: float = 0.05
-    earth_probability: float = 0.0
+    earth_probability: float = 0.3
+    earth_orbit_radius_m: Range = (6978.0e3, 7378.0e3)
+    earth_seed: int = 0
     shadows: bool = True
     write_mask: bool = True
     write_depth: bool = True
@@ -233,6 +238,10 @@ class GenerateConfig:
         for name in ("eclipse_probability", "earth_probability"):
             value = getattr(self, name)
             check(0.0 <= value <= 1.0, f"{p}{name}", value, "a probability in [0, 1]")
+        from envisat_pose.datagen.scenario import EARTH_RADIUS_M
+
+        _check_range(self.earth_orbit_radius_m, f"{p}earth_orbit_radius_m", EARTH_RADIUS_M + 100e3, 1e8)
+        check(0 <= self.earth_seed < 2**63, f"{p}earth_seed", self.earth_seed, "a non-negative integer seed")
         check(self.depth_scale_m > 0, f"{p}depth_scale_m", self.depth_scale_m, "a positive scale in m")
         if self.mode == "random":
             reach = self.range_max_m / math.cos(math.radians(30.0)) + reach_m
@@ -318,7 +327,10 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
     project's).
 
     Returns (View, x (12,), scene dict) without a look (see with_look). In random mode C is the camera mount's
-    frame; the Earth's direction is drawn independently of it.
+    frame; the Earth's direction is drawn independently of it, except in views with the Earth backdrop (a
+    share earth_probability): there the Earth (distance, nadir toward the image, attitude, texture) comes from
+    earth.draw_backdrop with a generator spawned from rng, so poses, labels and the later draws of rng are the
+    same with and without the Earth.
     """
     from envisat_pose.datagen.render import View
 
@@ -347,6 +359,16 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
     earth_C = unit(rng.standard_normal(3))
     w_T = unit(rng.standard_normal(3)) * math.radians(rng.uniform(0.0, cfg.rate_max_deg_s))
     view = View(rho_C, quat_to_rotmat(q), None if eclipse else sun_C, earth_C, earth_backdrop=earth_draw)
+    if earth_draw:
+        import dataclasses
+
+        from envisat_pose.datagen.earth import draw_backdrop
+
+        K = load_camera().scaled(cfg.resolution_px, cfg.resolution_px).K
+        nadir_K, r_m, quat, tex = draw_backdrop(rng.spawn(1)[0], cfg.earth_orbit_radius_m, K, cfg.resolution_px,
+                                                None if eclipse else R_K_FROM_C @ sun_C)
+        view = dataclasses.replace(view, earth_dir_C=R_K_FROM_C.T @ nadir_K, earth_distance_m=r_m,
+                                   earth_quat_C=quat, earth_texture=tex)
     x = np.concatenate([rho_C, np.zeros(3), quat_to_mrp(q), w_T])
     scene = {"mode": "random", "sun_dir_cam": (R_K_FROM_C @ sun_C).round(9).tolist(), "eclipse": eclipse,
              "earth_backdrop": earth_draw}
@@ -403,6 +425,7 @@ def render_inputs(view) -> dict:
     return {"rho_C_m": vec(view.rho_C_m), "R_C_from_T": [vec(r) for r in np.asarray(view.R_C_from_T)],
             "sun_dir_C": vec(view.sun_dir_C), "earth_dir_C": vec(view.earth_dir_C),
             "earth_distance_m": float(view.earth_distance_m), "earth_backdrop": bool(view.earth_backdrop),
+            "earth_quat_C": vec(view.earth_quat_C), "earth_texture": int(view.earth_texture),
             "appendages": bool(view.appendages)}
 
 
@@ -414,7 +437,8 @@ def view_from_scene(scene: dict):
     r = scene["render"]
     arr = lambda v: None if v is None else np.array(v, dtype=float)  # noqa: E731
     return View(arr(r["rho_C_m"]), arr(r["R_C_from_T"]), arr(r["sun_dir_C"]), arr(r["earth_dir_C"]),
-                r["earth_distance_m"], Look.from_json(scene["look"]), r["appendages"], r["earth_backdrop"])
+                r["earth_distance_m"], Look.from_json(scene["look"]), r["appendages"], r["earth_backdrop"],
+                arr(r.get("earth_quat_C")), int(r.get("earth_texture", 0)))
 
 
 @functools.lru_cache(maxsize=2)
@@ -443,16 +467,44 @@ def sequence_frames(cfg_json: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     return t_s, x, sun_C, eclipse, nadir_C
 
 
+@functools.lru_cache(maxsize=2)
+def sequence_earth(cfg_json: str) -> tuple[np.ndarray, np.ndarray, int]:
+    """The Earth of a sequence-mode config at its frame times: (quat_C (N, 4), the Earth's attitude in C (it
+    turns with the orbit and its sidereal rate from an angle drawn from the seed); in_frame (N,) bool, whether
+    its disc reaches the image; texture index)."""
+    from envisat_pose.datagen.earth import EARTH_TEXTURE_SET_SIZE, earth_in_frame, earth_quat_C
+    from envisat_pose.datagen.orbit import chaser_orbit
+    from envisat_pose.datagen.scenario import scenario_config
+
+    cfg = config_from_json(cfg_json)
+    t_s, _, _, _, nadir_C = sequence_frames(cfg_json)
+    scen = scenario_config(cfg.scenario, duration_s=max(cfg.num_images - 1, 1) * cfg.frame_dt_s,
+                           dt_s=cfg.frame_dt_s, seed=cfg.seed)
+    orb = chaser_orbit(scen.orbit, t_s)
+    rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(2**32 - 1, 0xEA27)))
+    theta0 = float(rng.uniform(0.0, 2.0 * math.pi))
+    texture = int(rng.integers(0, EARTH_TEXTURE_SET_SIZE))
+    K = load_camera().scaled(cfg.resolution_px, cfg.resolution_px).K
+    in_frame = np.array([earth_in_frame(R_K_FROM_C @ n, float(np.linalg.norm(n)), K, cfg.resolution_px)
+                         for n in nadir_C], dtype=bool)
+    return earth_quat_C(t_s, orb.R_N_from_C, theta0), in_frame, texture
+
+
 def sequence_view(cfg: GenerateConfig, k: int) -> tuple:
-    """Frame k of a sequence-mode config: (View, x (12,), scene dict)."""
+    """Frame k of a sequence-mode config: (View, x (12,), scene dict). The Earth is drawn (earth_probability
+    above 0) in the frames where its disc reaches the image."""
     from envisat_pose.datagen.render import View
 
     t_s, x, sun_C, eclipse, nadir_C = sequence_frames(config_json(cfg))
     xk = x[k]
-    earth = cfg.earth_probability > 0
+    earth = False
+    quat, texture = None, 0
+    if cfg.earth_probability > 0:
+        quats, in_frame, texture = sequence_earth(config_json(cfg))
+        earth, quat = bool(in_frame[k]), quats[k]
     r_m = float(np.linalg.norm(nadir_C[k]))
     view = View(xk[0:3], mrp_to_dcm(xk[6:9]).T, None if eclipse[k] else sun_C[k], unit(nadir_C[k]), r_m,
-                earth_backdrop=earth)
+                earth_backdrop=earth, earth_quat_C=quat, earth_texture=texture)
     scene = {"mode": "sequence", "t_s": float(t_s[k]), "sun_dir_cam": (R_K_FROM_C @ sun_C[k]).round(9).tolist(),
              "eclipse": bool(eclipse[k]), "earth_backdrop": earth}
     return view, xk, scene
@@ -520,7 +572,7 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
 
     cv2.setNumThreads(1)  # one core per worker; also keeps filters on one code path
     renderer = shared_renderer(cfg.resolution_px, cfg.shadows, cfg.appearance.texture_set_size if cfg.appearance_on
-                               else 0, cfg.appearance.texture_seed)
+                               else 0, cfg.appearance.texture_seed, cfg.earth_seed)
     path = os.path.join(out_dir, shard_name(shard_index))
     count = cfg.shard_count(shard_index)
     with ShardWriter(path) as writer:
@@ -546,11 +598,6 @@ def shard_task(cfg_json: str, shard_index: int, out_dir: str) -> dict:
 
 # ---------------------------------------------------------------------------------------------------------
 # Planning, resuming, running
-
-
-# The core's output-folder rule, under the names app/run.py and app/demo.py import from here (until they take
-# them from envisat_pose.runner).
-prepare_out_dir = check_out_dir
 
 
 def check_sequence_depth(cfg: GenerateConfig) -> None:
