@@ -1,0 +1,161 @@
+"""The Tracker and its cold start: PnP and the batch fit against the MuJoCo truth (an independent simulator),
+and the whole tracker against a stand-in detector that names the truth's corners with pixel noise (fast; the
+shipped-weights tests render real frames: tests/app/test_track.py). Nothing here hands the tracker a truth: the
+stand-in detector reads a frame index written into the image, as a real one reads pixels."""
+
+import numpy as np
+import pytest
+
+from envisat_pose.geometry import load_camera, load_geometry
+from envisat_pose.perception.detect import FrameDetection
+from envisat_pose.pipelines import acquisition as acq
+from envisat_pose.pipelines.tracker import Tracker, TrackerConfig
+from envisat_pose.state import MRP, POS, RATE, error_magnitudes
+
+
+def frame_image(k: int) -> np.ndarray:
+    img = np.zeros((4, 4), np.uint8)
+    img[0, 0], img[0, 1] = k // 256, k % 256
+    return img
+
+
+class NoisyTruthDetector:
+    """Names the truth's visible corners of the frame whose index the image carries, with Gaussian noise (px);
+    `spliced` maps frame indices to another trajectory's corners (frames of another scenario)."""
+
+    def __init__(self, truth, sigma_px=0.7, seed=0, p_alt=0.3, spliced=None):
+        self.truth, self.sigma, self.p_alt, self.spliced = truth, sigma_px, p_alt, spliced or {}
+        self.rng = np.random.default_rng(seed)
+
+    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None):
+        k = int(image[0, 0]) * 256 + int(image[0, 1])
+        tr = self.spliced.get(k, (self.truth, k))
+        src, j = tr
+        vis = src.visible[j] & src.in_frame[j]
+        c = np.where(vis[:, None], src.corners_px[j] + self.rng.normal(0, self.sigma, (8, 2)), np.nan)
+        cov = np.where(vis[:, None, None], np.eye(2) * self.sigma**2, np.nan)
+        alt = c[acq.HALF_TURN]
+        return FrameDetection(c, cov, vis * 0.9, vis, alt, self.p_alt, False, np.array([0.0, 0.0, 1024.0]), c[vis])
+
+
+def chaser_lookup(truth):
+    from envisat_pose.pipelines.closed_loop import chaser_function, orbit_config
+
+    return chaser_function(orbit_config(truth.config))
+
+
+def test_pnp_recovers_the_pose_the_truth_projects(truth_600):
+    """MuJoCo's corner pixels (its own camera) -> PnP -> rho and the attitude of the truth."""
+    cam, corners_T = load_camera(), load_geometry().corners_T_m
+    for k in (0, 37, 211, 500):
+        z = np.where((truth_600.visible[k] & truth_600.in_frame[k])[:, None], truth_600.corners_px[k], np.nan)
+        x = acq.pnp_state(z, corners_T, cam)
+        assert np.linalg.norm(x[POS] - truth_600.x[k, POS]) < 1e-3
+        assert acq.attitude_distance_rad(x[MRP], truth_600.x[k, MRP]) < 1e-5
+
+
+def test_the_half_turn_is_an_involution_of_the_same_pose(truth_600):
+    x = truth_600.x[123]
+    ht = acq.half_turn_state(x)
+    np.testing.assert_allclose(acq.half_turn_state(ht), x, atol=1e-12)
+    assert abs(np.degrees(acq.attitude_distance_rad(ht[MRP], x[MRP])) - 180.0) < 1e-6
+    # the same box in the image: the half-turn state's corner i is the truth's corner HALF_TURN[i]
+    from envisat_pose.filtering.measurements import measure
+
+    cam = load_camera()
+    np.testing.assert_allclose(measure(ht, "pixels", cam), measure(x, "pixels", cam)[acq.HALF_TURN], atol=1e-8)
+
+
+def test_the_batch_fit_recovers_the_state_and_the_dynamics_pick_the_hypothesis(truth_600):
+    """20 s of noisy truth pixels: the fit lands within its own 4 sigma of the truth at the last frame, rate
+    included (the initial guess from PnP differences has the right sign), and the half-turn hypothesis fits worse
+    (its products of inertia flip sign: not torque-free with the MJCF's tensor)."""
+    from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
+
+    cam, corners_T = load_camera(), load_geometry().corners_T_m
+    rng = np.random.default_rng(3)
+    chaser_at = chaser_lookup(truth_600)
+    frames = []
+    for k in range(100, 140):
+        vis = truth_600.visible[k] & truth_600.in_frame[k]
+        z = np.where(vis[:, None], truth_600.corners_px[k] + rng.normal(0, 0.5, (8, 2)), np.nan)
+        cov = np.where(vis[:, None, None], np.eye(2) * 0.25, np.nan)
+        frames.append(acq.FramePose(float(truth_600.t_s[k]), chaser_at(truth_600.t_s[k]), z, cov, 0.5,
+                                    acq.pnp_state(z, corners_T, cam)))
+    dyn = {"J_T": load_inertia_T_kg_m2(), "mu_m3_s2": MU_EARTH_M3_S2, "gravity_gradient": False, "max_step_s": 1.0}
+    guess = acq.initial_guess(frames)
+    x_true = truth_600.x[139]
+    assert np.linalg.norm(guess[RATE] - x_true[RATE]) < 0.2 * np.linalg.norm(x_true[RATE])
+    fit = acq.batch_fit(frames, guess, chaser_at, cam, dyn)
+    e = fit.x - x_true
+    e[MRP] = fit.x[MRP] - x_true[MRP]
+    assert np.all(np.abs(e) < 4 * np.sqrt(np.diag(fit.P)) + 1e-9), (e, np.sqrt(np.diag(fit.P)))
+    alt = [acq.FramePose(f.t_s, f.chaser, *acq.half_turn_naming(f.z_px, f.cov_px), 0.5, acq.half_turn_state(f.x_pnp))
+           for f in frames]
+    fit_alt = acq.batch_fit(alt, acq.half_turn_state(guess), chaser_at, cam, dyn)
+    assert fit_alt.chi2 > fit.chi2 + 10.0, (fit.chi2, fit_alt.chi2)
+
+
+def run_tracker(truth, detector, frames, cfg=TrackerConfig()):
+    tracker = Tracker(load_camera(), detector, chaser_lookup(truth), cfg)
+    return [tracker.step(float(truth.t_s[k]), None if k is None else frame_image(k)) for k in frames]
+
+
+def test_the_tracker_starts_cold_and_converges(truth_600):
+    """No prior: acquiring for the window, then tracking with one hypothesis, within 10 cm and 1 deg, and its
+    covariance consistent with its errors (mean NEES at a white-noise detector)."""
+    from envisat_pose.filtering.estimator import nees
+
+    ests = run_tracker(truth_600, NoisyTruthDetector(truth_600), range(0, 200))
+    status = [e.status for e in ests]
+    assert status[:19] == ["acquiring"] * 19 and set(status[25:]) == {"tracking"}
+    x_hat = np.array([e.x_hat for e in ests[100:]])
+    P = np.array([e.P for e in ests[100:]])
+    err = error_magnitudes(truth_600.x[100:200], x_hat)
+    assert err["position_m"].max() < 0.10 and err["attitude_deg"].max() < 1.0
+    assert len(ests[-1].probabilities) == 1
+    m = nees(truth_600.x[100:200], x_hat, P).mean()
+    assert 3.0 < m < 30.0, m
+
+
+def test_black_frames_and_gaps_are_predictions_only(truth_600):
+    """A frame with nothing found and a frame with no image keep the track (the filter predicts)."""
+    class Blind(NoisyTruthDetector):
+        def detect(self, image, K, **kw):
+            k = int(image[0, 0]) * 256 + int(image[0, 1])
+            fd = super().detect(image, K, **kw)
+            return FrameDetection.missing(fd.crop_px) if 60 <= k < 70 else fd
+
+    ests = run_tracker(truth_600, Blind(truth_600), [*range(0, 50), *([None] * 0), *range(50, 120)])
+    assert all(e.status == "tracking" for e in ests[30:])
+    assert all(not e.measured.any() for e in ests[60:70])
+    err = error_magnitudes(truth_600.x[119], ests[-1].x_hat)
+    assert err["position_m"] < 0.10 and err["attitude_deg"] < 1.0
+
+
+def test_a_lost_track_is_detected_and_recovered(truth_600, truth_1800):
+    """Frames of another trajectory spliced in (another attitude, the same chaser): the tracker declares the
+    track lost, acquires again from the images, and ends on the true trajectory."""
+    spliced = {k: (truth_1800, k + 700) for k in range(90, 140)}
+    ests = run_tracker(truth_600, NoisyTruthDetector(truth_600, spliced=spliced), range(0, 260))
+    status = [e.status for e in ests]
+    assert "lost" in status[90:140], status[90:140]
+    assert "lost" in status[140:200] or all(s == "tracking" for s in status[200:])
+    assert all(s == "tracking" for s in status[230:])
+    err = error_magnitudes(truth_600.x[259], ests[-1].x_hat)
+    assert err["position_m"] < 0.10 and err["attitude_deg"] < 1.0, err
+
+
+def test_the_tracker_takes_no_truth():
+    """Its API: camera, detector, the chaser's own orbit, configs, an optional prior; step(t_s, image)."""
+    import inspect
+
+    params = set(inspect.signature(Tracker.__init__).parameters) | set(inspect.signature(Tracker.step).parameters)
+    assert not any("true" in p or "truth" in p or "label" in p for p in params), params
+
+
+def test_frame_times_must_increase(truth_600):
+    tracker = Tracker(load_camera(), NoisyTruthDetector(truth_600), chaser_lookup(truth_600))
+    tracker.step(0.0, frame_image(0))
+    with pytest.raises(ValueError, match="increase"):
+        tracker.step(0.0, frame_image(1))
