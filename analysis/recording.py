@@ -534,8 +534,10 @@ def read_recording(path: str) -> tuple[dict, dict]:
         d.pop("rerun.controls.RowId", None)
         if "frame" in d:
             t = temporal.setdefault(chunk.entity_path, {})
-            for k, v in d.items():
-                t.setdefault(k, []).extend(v)
+            rows = len(t["frame"]) if "frame" in t else 0
+            n = len(d["frame"])
+            for k in set(t) | set(d):  # chunks of one entity may carry different columns (a Clear, say)
+                t.setdefault(k, [None] * rows).extend(d.get(k, [None] * n))
         else:
             static.setdefault(chunk.entity_path, {}).update({k: v[-1] for k, v in d.items()})
     for t in temporal.values():
