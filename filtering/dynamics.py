@@ -4,7 +4,8 @@ Independent of the MuJoCo truth (design.md): the reference sheet's corrected equ
 section 4), integrated with RK4 at the filter step and batched over any leading dimensions (runs x sigma points).
 
 State (the paper's order, section 3): x = (rho_C_m, rhodot_C_m_s, p_mrp, w_r_T_rad_s), shape (..., 12).
-Torque-free, translation (x[..., 0:6]) and rotation (x[..., 6:12]) are two decoupled 6-state blocks: each
+Torque-free, translation (x[..., TRANSLATION] = rho, rho') and rotation (x[..., ROTATION] = p, w_r) are two
+decoupled 6-state blocks: each
 derivative depends only on its own block and on the chaser's orbit. With the gravity-gradient torque (optional,
 as in the truth's MuJoCo plugin) the rotation also depends on rho, and `propagate` takes one RK4 step of the
 full 12-state.
@@ -24,8 +25,14 @@ import numpy as np
 
 from envisat_pose.attitude import mrp_rate, mrp_shadow, mrp_to_dcm
 from envisat_pose.geometry import model_path
+from envisat_pose.state import MRP, POS, RATE, VEL
 
 MU_EARTH_M3_S2 = 3.986004418e14
+# the two 6-state blocks of the 12-state (envisat_pose.state's layout), and the parts inside each block
+TRANSLATION = slice(POS.start, VEL.stop)
+ROTATION = slice(MRP.start, RATE.stop)
+_RHODOT = slice(VEL.start - POS.start, VEL.stop - POS.start)
+_P, _W = slice(0, MRP.stop - MRP.start), slice(RATE.start - MRP.start, RATE.stop - MRP.start)
 
 
 @functools.lru_cache(maxsize=4)
@@ -74,7 +81,7 @@ def translation_rate(x_tr: np.ndarray, c: np.ndarray, mu_m3_s2: float = MU_EARTH
     xdd = 2.0 * thd * yd + thdd * y + thd**2 * x - mu_m3_s2 * (r + x) / D + mu_m3_s2 / r**2
     ydd = -2.0 * thd * xd - thdd * x + thd**2 * y - mu_m3_s2 * y / D
     zdd = -mu_m3_s2 * z / D
-    return np.concatenate([x_tr[..., 3:6], np.stack([xdd, ydd, zdd], axis=-1)], axis=-1)
+    return np.concatenate([x_tr[..., _RHODOT], np.stack([xdd, ydd, zdd], axis=-1)], axis=-1)
 
 
 def gravity_gradient_torque_T(rho_C_m: np.ndarray, p_mrp: np.ndarray, c: np.ndarray, J_T: np.ndarray,
@@ -98,7 +105,7 @@ def rotation_rate(x_rot: np.ndarray, c: np.ndarray, J_T: np.ndarray, tau_T: np.n
     with w_c = (0, 0, theta') and w_c' = (0, 0, theta'') in C. J_T: (3, 3) kg m^2. tau_T: external torque in T,
     N m, (..., 3) (None: torque-free). Returns (p', w_r'), (..., 6).
     """
-    p, w_r = x_rot[..., 0:3], x_rot[..., 3:6]
+    p, w_r = x_rot[..., _P], x_rot[..., _W]
     G = mrp_to_dcm(p)
     # Gamma w_c = theta' * third column of Gamma (w_c is along z_C)
     thd = c[..., 3]
@@ -118,9 +125,9 @@ def state_rate(x: np.ndarray, c: np.ndarray, J_T: np.ndarray, mu_m3_s2: float = 
                gravity_gradient: bool = False) -> np.ndarray:
     """Derivative of the full 12-state, (..., 12) -> (..., 12); with gravity_gradient the rotation feels the
     gravity-gradient torque at the target's position rho (gravity_gradient_torque_T)."""
-    tau_T = gravity_gradient_torque_T(x[..., 0:3], x[..., 6:9], c, J_T, mu_m3_s2) if gravity_gradient else None
-    return np.concatenate([translation_rate(x[..., 0:6], c, mu_m3_s2),
-                           rotation_rate(x[..., 6:12], c, J_T, tau_T)], axis=-1)
+    tau_T = gravity_gradient_torque_T(x[..., POS], x[..., MRP], c, J_T, mu_m3_s2) if gravity_gradient else None
+    return np.concatenate([translation_rate(x[..., TRANSLATION], c, mu_m3_s2),
+                           rotation_rate(x[..., ROTATION], c, J_T, tau_T)], axis=-1)
 
 
 def chaser_stages(c0: np.ndarray, dt_s: float, mu_m3_s2: float = MU_EARTH_M3_S2):
@@ -160,7 +167,7 @@ def propagate(x: np.ndarray, c0: np.ndarray, dt_s: float, J_T: np.ndarray | None
     J_T = load_inertia_T_kg_m2() if J_T is None else J_T
     n_sub = max(1, int(np.ceil(dt_s / max_step_s - 1e-9)))
     h = dt_s / n_sub
-    x_tr, x_rot = x[..., 0:6], x[..., 6:12]
+    x_tr, x_rot = x[..., TRANSLATION], x[..., ROTATION]
     c = np.asarray(c0, dtype=float)
     for i in range(n_sub):
         c1, c2, c3, c4, c_end = chaser_stages(c, h, mu_m3_s2)
@@ -168,11 +175,11 @@ def propagate(x: np.ndarray, c0: np.ndarray, dt_s: float, J_T: np.ndarray | None
         if gravity_gradient:
             x_full = _rk4_block(lambda y, cc: state_rate(y, cc, J_T, mu_m3_s2, True),
                                 np.concatenate([x_tr, x_rot], axis=-1), st, h)
-            x_tr, x_rot = x_full[..., 0:6], x_full[..., 6:12]
+            x_tr, x_rot = x_full[..., TRANSLATION], x_full[..., ROTATION]
         else:
             x_tr = _rk4_block(lambda y, cc: translation_rate(y, cc, mu_m3_s2), x_tr, st, h)
             x_rot = _rk4_block(lambda y, cc: rotation_rate(y, cc, J_T), x_rot, st, h)
         if i < n_sub - 1:  # a long step may turn through 360 deg, where p -> infinity: switch between sub-steps
-            x_rot = np.concatenate([mrp_shadow(x_rot[..., 0:3]), x_rot[..., 3:6]], axis=-1)
+            x_rot = np.concatenate([mrp_shadow(x_rot[..., _P]), x_rot[..., _W]], axis=-1)
         c = c_end
     return np.concatenate([x_tr, x_rot], axis=-1)

@@ -18,6 +18,7 @@ steps of filtering/ukf.py a step adds, per run:
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -260,8 +261,7 @@ def _predict_step(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[n
     if cfg.kernel == "fast":
         from envisat_pose.filtering import fast  # numba compiles (or loads its cache) on first use
 
-        return fast.predict(state.mean, state.cov, state.chaser, dt, Q, setup.weights, setup.J_T, setup.mu_m3_s2,
-                            cfg.max_rk4_step_s, setup.gravity_gradient)
+        return fast.predict(state.mean, state.cov, state.chaser, dt, Q, setup, cfg.max_rk4_step_s)
     _check_kernel(cfg.kernel)
     return predict(state.mean, state.cov, state.chaser, dt, Q, setup.weights, setup.J_T, setup.mu_m3_s2,
                    cfg.max_rk4_step_s, setup.gravity_gradient)
@@ -331,12 +331,27 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
     win_dof[k % W] = dof
     if k + 1 >= max(W, cfg.divergence_settle_steps):
         d = win_dof.sum(0)
-        bound = np.where(d > 0, chi2.isf(cfg.divergence_prob, np.maximum(d, 1)), np.inf)
+        bound = np.where(d > 0, _nis_bound(cfg.divergence_prob, np.maximum(d, 1)), np.inf)
         diverged = diverged | (win_nis.sum(0) > bound)
     return FilterState(t_s=float(meas.t_s), chaser=np.array(meas.chaser, dtype=float), k=k + 1, mean=mean, cov=cov,
                        r_scale=r_scale, Q_adapt=Q_adapt, starved=~used, locked=locked, win_nis=win_nis,
                        win_dof=win_dof, diverged=diverged, repaired=repaired, n_meas=accepted.sum(-1),
                        nis=nis, dof=dof, rejected=rejected, dropped=(measured & ~mask_k).sum(-1))
+
+
+@functools.lru_cache(maxsize=8)
+def _nis_bound_table(prob: float, n: int) -> np.ndarray:
+    """chi2.isf(prob, d) for d = 0 .. n - 1 (entry 0 unused), computed once: the same values, per element."""
+    return chi2.isf(prob, np.maximum(np.arange(n, dtype=float), 1.0))
+
+
+def _nis_bound(prob: float, d: np.ndarray) -> np.ndarray:
+    """chi2.isf(prob, d) for integer-valued dof counts d >= 1 (...,), from a table that grows as needed."""
+    top = int(d.max(initial=1)) + 1
+    n = 1024
+    while n < top:
+        n *= 2
+    return _nis_bound_table(float(prob), n)[d.astype(np.int64)]
 
 
 def _update(mean, cov, z, measured, R_c, r_scale, thr, setup: FilterSetup) -> dict:

@@ -30,7 +30,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from envisat_pose.state import MRP, N_STATE
+from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
+
+# the kernels' equations index the 12-state of envisat_pose.state directly (rho 0-2, rho' 3-5, p 6-8, w_r 9-11)
+if (POS, VEL, MRP, RATE) != (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)):
+    raise ImportError("filtering/fast.py is written for the state layout (rho, rho', p, w_r); "
+                      "envisat_pose.state changed it: update the kernels")
 
 KIND_CODES = {"markers3d": 0, "pixels": 1, "pixels+range": 2}
 _P0 = MRP.start  # first MRP component in the 12-state (envisat_pose.state.MRP)
@@ -601,35 +606,86 @@ def act_corner(comp, a, mdim):
 
 # ---------------------------------------------------------------- the steps, as filtering/ukf.py's
 
-def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: np.ndarray, w, J_T: np.ndarray,
-            mu_m3_s2: float, max_step_s: float = 1.0, gravity_gradient: bool = False
-            ) -> tuple[np.ndarray, np.ndarray]:
-    """filtering.ukf.predict in the fused kernel. mean (R, 12), cov (R, 12, 12), c0 (4,) the chaser at the
-    start, Q (12, 12) or (R, 12, 12) the step's process noise, w the sigma-point weights. Returns (mean, cov)."""
-    from envisat_pose.filtering import ukf
-    from envisat_pose.filtering.dynamics import chaser_stages
+@njit(**_JIT)
+def _chaser_stages(c0, dt, mu, n_sub, stages):
+    """filtering.dynamics.chaser_stages over n_sub sub-steps of dt s, the same operations: stages (n_sub, 4, 4)
+    the chaser (r_m, rdot_m_s, theta_rad, thetadot_rad_s) at the four RK4 stages of each sub-step."""
+    c = c0.copy()
+    k = np.empty((4, 4))
+    for i in range(n_sub):
+        for q in range(4):
+            if q == 0:
+                cq = c
+            else:
+                f = dt if q == 3 else 0.5 * dt
+                cq = stages[i, q]
+                for j in range(4):
+                    cq[j] = c[j] + f * k[q - 1, j]
+            if q == 0:
+                for j in range(4):
+                    stages[i, 0, j] = c[j]
+            r, rd, thd = cq[0], cq[1], cq[3]
+            k[q, 0] = rd
+            k[q, 1] = r * thd ** 2 - mu / r ** 2
+            k[q, 2] = thd
+            k[q, 3] = -2.0 * rd * thd / r
+        for j in range(4):
+            c[j] = c[j] + dt / 6.0 * (k[0, j] + 2.0 * k[1, j] + 2.0 * k[2, j] + k[3, j])
 
+
+_CONSTANTS: dict = {}
+
+
+def _constants(setup):
+    """The kernels' fixed arrays of a FilterSetup, made once: (J, J^-1, corners, face normals, offsets, face
+    membership, camera rotation, camera position, f, cu, cv, kind code). Keyed by the setup's objects, which
+    the cache keeps alive, so an id is never reused while its entry exists."""
+    key = (id(setup.J_T), id(setup.camera), setup.kind)
+    hit = _CONSTANTS.get(key)
+    if hit is not None and hit[0] is setup.J_T and hit[1] is setup.camera:
+        return hit[2]
+    from envisat_pose.geometry import load_geometry
+
+    g, cam = load_geometry(), setup.camera
+    J = np.ascontiguousarray(setup.J_T, dtype=float)
+    c = lambda a, t=float: np.ascontiguousarray(a, dtype=t)  # noqa: E731
+    consts = (J, np.linalg.inv(J), c(g.corners_T_m), c(g.face_normals_T), c(g.face_offsets_m),
+              c(g.face_corners, bool), c(cam.R_K_from_C), c(cam.pos_C_m), float(cam.f_px), float(cam.cu_px),
+              float(cam.cv_px), KIND_CODES[setup.kind])
+    if len(_CONSTANTS) > 16:
+        _CONSTANTS.clear()
+    _CONSTANTS[key] = (setup.J_T, setup.camera, consts)
+    return consts
+
+
+def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: np.ndarray, setup,
+            max_step_s: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """filtering.ukf.predict in the fused kernel, with the model of setup (a FilterSetup: inertia, mu, gravity
+    gradient, weights). mean (R, 12), cov (R, 12, 12), c0 (4,) the chaser at the start, Q (12, 12) or
+    (R, 12, 12) the step's process noise. Returns (mean, cov)."""
     mean = np.ascontiguousarray(mean, dtype=float)
     cov = np.ascontiguousarray(cov, dtype=float)
     R = mean.shape[0]
     Q = np.ascontiguousarray(np.broadcast_to(Q, (R, N_STATE, N_STATE)), dtype=float)
-    c = np.asarray(c0, dtype=float)
-    if c.ndim != 1:
-        return ukf.predict(mean, cov, c, dt_s, Q, w, J_T, mu_m3_s2, max_step_s, gravity_gradient)
+    c = np.ascontiguousarray(c0, dtype=float)
+    w, mu, gg = setup.weights, float(setup.mu_m3_s2), bool(setup.gravity_gradient)
+    if c.shape != (4,):
+        from envisat_pose.filtering import ukf
+
+        return ukf.predict(mean, cov, c, dt_s, Q, w, setup.J_T, mu, max_step_s, gg)
     n_sub = max(1, int(np.ceil(dt_s / max_step_s - 1e-9)))
     h = dt_s / n_sub
     stages = np.empty((n_sub, 4, 4))
-    for i in range(n_sub):  # the chaser's RK4 stages, computed as filtering.dynamics.propagate computes them
-        *st, c = chaser_stages(c, h, mu_m3_s2)
-        stages[i] = st
-    J = np.ascontiguousarray(J_T, dtype=float)
+    _chaser_stages(c, h, mu, n_sub, stages)
+    J, Jinv = _constants(setup)[:2]
     mean_out, cov_out, ok = np.empty_like(mean), np.empty_like(cov), np.empty(R, dtype=bool)
-    predict_kernel(mean, cov, Q, stages, float(h), w.Wm, w.Wc, float(w.n + w.lam), J, np.linalg.inv(J),
-                   float(mu_m3_s2), bool(gravity_gradient), mean_out, cov_out, ok)
+    predict_kernel(mean, cov, Q, stages, h, w.Wm, w.Wc, float(w.n + w.lam), J, Jinv, mu, gg, mean_out, cov_out, ok)
     if not ok.all():  # covariance repairs: the numpy filter's, on those runs
+        from envisat_pose.filtering import ukf
+
         bad = ~ok
-        mean_out[bad], cov_out[bad] = ukf.predict(mean[bad], cov[bad], c0, dt_s, Q[bad], w, J_T, mu_m3_s2,
-                                                  max_step_s, gravity_gradient)
+        mean_out[bad], cov_out[bad] = ukf.predict(mean[bad], cov[bad], c, dt_s, Q[bad], w, setup.J_T, mu,
+                                                  max_step_s, gg)
     return mean_out, cov_out
 
 
@@ -641,33 +697,32 @@ def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarra
     per-corner covariance, used as R_c * r_scale (R,); thr (R,) gate bound per run (inf: open) or None (no
     gate); setup: the estimator's FilterSetup (kind, camera, weights). Returns a dict of mean, cov, nis, dof,
     accepted (R, 8), mask_k (R, 8) (the corners the gate saw), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,)."""
-    from envisat_pose.filtering import ukf
-    from envisat_pose.filtering.measurements import MIN_DEPTH_M, predicted_visible
-    from envisat_pose.geometry import load_geometry
+    from envisat_pose.filtering.measurements import MIN_DEPTH_M
 
     mean = np.ascontiguousarray(mean, dtype=float)
     cov = np.ascontiguousarray(cov, dtype=float)
     R = mean.shape[0]
-    z = np.ascontiguousarray(np.where(measured[..., None], z, 0.0), dtype=float)
+    measured = np.ascontiguousarray(measured, dtype=bool)
+    z = np.ascontiguousarray(z, dtype=float)  # the kernel reads measured corners only (a NaN elsewhere is fine)
     m = z.shape[-1]
     R_c = np.ascontiguousarray(np.broadcast_to(R_c, z.shape + (m,)), dtype=float)
     r_scale = np.ascontiguousarray(r_scale, dtype=float)
     use_gate = thr is not None
     thr_a = np.ascontiguousarray(np.broadcast_to(np.inf if thr is None else thr, (R,)), dtype=float)
-    g, cam, w = load_geometry(), setup.camera, setup.weights
-    out = {k: np.empty((R,)) for k in ("nis", "yy", "trPzz")}
-    out.update(mean=np.empty_like(mean), cov=np.empty_like(cov), Ky=np.empty((R, N_STATE)),
-               accepted=np.empty((R, 8), dtype=bool), mask_k=np.empty((R, 8), dtype=bool))
+    J, Jinv, corners, fn, fh, fc, cR, cpos, f, cu, cv, kind = _constants(setup)
+    w = setup.weights
+    out = {"mean": np.empty_like(mean), "cov": np.empty_like(cov), "nis": np.empty(R), "yy": np.empty(R),
+           "trPzz": np.empty(R), "Ky": np.empty((R, N_STATE)), "accepted": np.empty((R, 8), dtype=bool),
+           "mask_k": np.empty((R, 8), dtype=bool)}
     ok = np.empty(R, dtype=bool)
-    update_kernel(mean, cov, z, np.ascontiguousarray(measured, dtype=bool), R_c, r_scale, thr_a, use_gate,
-                  bool(vis_check), w.Wm, w.Wc, float(w.n + w.lam), KIND_CODES[setup.kind],
-                  np.ascontiguousarray(g.corners_T_m, dtype=float), np.ascontiguousarray(g.face_normals_T, dtype=float),
-                  np.ascontiguousarray(g.face_offsets_m, dtype=float), np.ascontiguousarray(g.face_corners, dtype=bool),
-                  np.ascontiguousarray(cam.R_K_from_C, dtype=float), np.ascontiguousarray(cam.pos_C_m, dtype=float),
-                  float(cam.f_px), float(cam.cu_px), float(cam.cv_px), float(MIN_DEPTH_M),
+    update_kernel(mean, cov, z, measured, R_c, r_scale, thr_a, use_gate, bool(vis_check), w.Wm, w.Wc,
+                  float(w.n + w.lam), kind, corners, fn, fh, fc, cR, cpos, f, cu, cv, float(MIN_DEPTH_M),
                   out["mean"], out["cov"], out["nis"], out["accepted"], out["mask_k"], out["Ky"], out["yy"],
                   out["trPzz"], ok)
     if not ok.all():  # repairs and non-finite steps: the numpy filter's, on those runs
+        from envisat_pose.filtering import ukf
+        from envisat_pose.filtering.measurements import predicted_visible
+
         bad = np.flatnonzero(~ok)
         mk = measured[bad]
         if vis_check:

@@ -21,6 +21,7 @@ import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.geometry import PinholeCamera, load_camera, load_geometry, project_K, visible_corners
+from envisat_pose.state import MRP, POS
 
 KINDS = ("markers3d", "pixels", "pixels+range")
 MIN_DEPTH_M = 1e-3  # project_K's guard: a corner closer than this along the boresight (or behind) stays outside
@@ -34,14 +35,14 @@ def dim_per_corner(kind: str) -> int:
 def corners_C_m(x: np.ndarray, corners_T_m: np.ndarray | None = None) -> np.ndarray:
     """Corner positions relative to the chaser in C: rho + Gamma^T v_i, m. (..., 12) -> (..., 8, 3)."""
     v_T = load_geometry().corners_T_m if corners_T_m is None else corners_T_m
-    G = mrp_to_dcm(x[..., 6:9])
+    G = mrp_to_dcm(x[..., MRP])
     # (Gamma^T v)_j = sum_i G_ij v_i
-    return x[..., None, 0:3] + v_T @ G
+    return x[..., None, POS] + v_T @ G
 
 
 def predicted_visible(x: np.ndarray) -> np.ndarray:
     """Exact face test from the state: c_T = -Gamma rho, the chaser in T. (..., 12) -> (..., 8) bool."""
-    c_T = -np.einsum("...ij,...j->...i", mrp_to_dcm(x[..., 6:9]), x[..., 0:3])
+    c_T = -np.einsum("...ij,...j->...i", mrp_to_dcm(x[..., MRP]), x[..., POS])
     return visible_corners(c_T)
 
 

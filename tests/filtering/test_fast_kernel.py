@@ -1,0 +1,206 @@
+"""The fused numba kernels (filtering/fast.py, FilterConfig.kernel = "fast", the default) against the numpy
+filter (kernel = "reference", filtering/ukf.py) on the configurations the filter tests cover.
+
+Two kinds of agreement:
+- one step from the same prior: the mean relative to max(|x_i|, sigma_i) and the covariance relative to
+  sqrt(P_ii P_jj), within ONE_STEP_TOL. The difference is round-off (summation order, a Cholesky solve where
+  numpy inverts S, and pow: numpy's x ** 1.5 on an AVX-512 machine is SVML's, 5 % of its results one ulp
+  from the C library's that numba calls). Most components agree to ~1e-15; the worst is the radial velocity,
+  whose two gravity terms mu (r + x) / D and mu / r^2 (~8 m/s^2 each) cancel to ~1e-6 m/s^2, so one ulp of
+  D is ~1e-11 of its standard deviation after a step;
+- whole runs: every decision equal (corners used, gate rejections, visibility drops, dof, divergence flags,
+  repairs) and the estimates no further from the reference than the reference itself moves when its P0 is
+  changed by one unit in the last place. The first update of a run (P0's metre and 2.5 deg against 2 cm
+  corners) cancels ~8 digits in P - K S K^T, so any two implementations of it, and the reference against
+  itself after a 1-ulp change of its input, differ by ~1e-8 there; a fixed 1e-12
+  over a whole run would only hold for bit-identical arithmetic.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from envisat_pose.filtering import fast, ukf
+from envisat_pose.filtering.estimator import FilterConfig, make_setup, run_filter
+from envisat_pose.filtering.measurements import swap_corners
+from envisat_pose.filtering.montecarlo import MeasurementConfig, inputs_from_truth
+from envisat_pose.state import MRP
+
+T_STEPS = 150
+R_RUNS = 4
+ONE_STEP_TOL = 5e-11  # measured: 1.0e-11 at most (radial velocity, see above); 1e-12 needs bit-equal pow
+
+
+def _sigma_errors(x, P, x_ref, P_ref):
+    """Largest |x - x_ref| / max(|x_ref|, sigma) and |P - P_ref| / (sigma_i sigma_j), sigma from P_ref's
+    diagonal: relative errors, where a component near zero counts relative to its standard deviation."""
+    sd = np.sqrt(np.einsum("...ii->...i", P_ref))
+    ex = np.abs(x - x_ref) / np.maximum(np.abs(x_ref), sd)
+    eP = np.abs(P - P_ref) / (sd[..., :, None] * sd[..., None, :])
+    return float(ex.max()), float(eP.max())
+
+
+def _run(tr, chaser_of, kind, cfg, mcfg_kw=None, seed=5, fault=None, P0=None):
+    mcfg = MeasurementConfig(kind=kind, **(mcfg_kw or {}))
+    inp = inputs_from_truth(tr, mcfg, cfg.P0, seed=seed, n_runs=R_RUNS, sel=slice(0, T_STEPS))
+    if fault is not None:
+        fault(inp)
+    out = {}
+    for kernel, p0 in (("reference", cfg.P0), ("fast", cfg.P0), ("reference_ulp", P0)):
+        c = dataclasses.replace(cfg, kernel=kernel.split("_")[0])
+        out[kernel] = run_filter(inp.x0_hat, p0, tr.t_s[:T_STEPS], chaser_of(tr)[:T_STEPS], inp.z, inp.mask,
+                                 inp.R_c, kind, c)
+    return inp, out
+
+
+def _swap(tr):
+    steps = (tr.t_s[:T_STEPS] >= 60.0) & (tr.t_s[:T_STEPS] < 70.0)
+    i, j = np.flatnonzero(tr.visible[:T_STEPS][steps].all(axis=0))[:2]
+
+    def fault(inp):
+        inp.z = swap_corners(inp.z, steps, i, j)
+    return fault
+
+
+def _nan(inp):
+    inp.z[0, 30:33] = np.nan          # a broken detector in run 0
+    inp.z[1, 40, 2] = np.nan          # one NaN corner in run 1
+
+
+CONFIGS = {
+    "markers3d": ("markers3d", {}, {}, None),
+    "pixels": ("pixels", {}, {}, None),
+    "pixels+range": ("pixels+range", {}, {}, None),
+    "adaptive R and Q": ("markers3d", {"adaptive_r": True, "adaptive_q": True}, {}, None),
+    "gating, swapped corner": ("markers3d", {}, {}, "swap"),
+    "outage": ("markers3d", {}, {"outages_s": ((50.0, 90.0),), "failure_prob": 0.2}, None),
+    "NaN input": ("markers3d", {"divergence_window": 10, "divergence_settle_steps": 20}, {}, "nan"),
+}
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_fast_and_reference_agree_over_whole_runs(truth_600, chaser_of, name):
+    kind, cfg_kw, mcfg_kw, fault = CONFIGS[name]
+    cfg = FilterConfig(**cfg_kw)
+    fault = {"swap": _swap(truth_600), "nan": _nan, None: None}[fault]
+    u = np.random.default_rng(0).choice([-1.0, 1.0], 12)
+    P0_ulp = cfg.P0 * (1.0 + 2.0**-52 * u)  # the reference's own sensitivity to one ulp of its input
+    inp, res = _run(truth_600, chaser_of, kind, cfg, mcfg_kw, fault=fault, P0=P0_ulp)
+    ref, fst, ulp = res["reference"], res["fast"], res["reference_ulp"]
+    for field in ("n_meas", "dof", "rejected", "dropped", "diverged", "repaired"):
+        np.testing.assert_array_equal(getattr(fst, field), getattr(ref, field), err_msg=f"{name}: {field}")
+    ex, eP = _sigma_errors(fst.x_hat, fst.P, ref.x_hat, ref.P)
+    ux, uP = _sigma_errors(ulp.x_hat, ulp.P, ref.x_hat, ref.P)
+    print(f"{name}: fast - reference {ex:.2e} sigma (x), {eP:.2e} (P); reference after 1 ulp of P0: "
+          f"{ux:.2e}, {uP:.2e}")
+    assert ex <= 10 * max(ux, 1e-12) and eP <= 10 * max(uP, 1e-12)
+    assert ex < 1e-6 and eP < 1e-6
+    np.testing.assert_allclose(fst.nis, ref.nis, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(fst.r_scale, ref.r_scale, rtol=1e-9)
+    assert np.isfinite(fst.x_hat).all() and np.isfinite(fst.P).all()
+    if name == "gating, swapped corner":
+        assert fst.rejected.sum() >= 5
+    if name == "outage":
+        assert (fst.n_meas[:, 50:90] == 0).all()
+    if name == "NaN input":
+        assert (fst.n_meas[0, 30:33] == 0).all() and fst.n_meas[1, 40] == ref.n_meas[1, 40]
+    if name == "adaptive R and Q":
+        assert np.abs(fst.r_scale - 1.0).min() > 0.1  # the scale really moved in every run
+
+
+def _prior(tr, chaser_of, kind="markers3d", k=60):
+    """A converged prior of R runs at step k: the reference filter run to k, its posterior."""
+    cfg = FilterConfig(kernel="reference")
+    inp = inputs_from_truth(tr, MeasurementConfig(kind=kind), cfg.P0, seed=2, n_runs=R_RUNS, sel=slice(0, k + 2))
+    res = run_filter(inp.x0_hat, cfg.P0, tr.t_s[:k + 1], chaser_of(tr)[:k + 1], inp.z[:, :k + 1],
+                     inp.mask[:, :k + 1], inp.R_c, kind, cfg)
+    return inp, res.x_hat[:, k], res.P[:, k]
+
+
+@pytest.mark.parametrize("dt_s,gravity_gradient", [(1.0, False), (1.0, True), (3.0, False), (2.5, True)])
+def test_one_predict_equals_the_reference(truth_600, chaser_of, dt_s, gravity_gradient):
+    _, mean, cov = _prior(truth_600, chaser_of)
+    mean = mean.copy()
+    mean[0, MRP] *= 0.999 / np.linalg.norm(mean[0, MRP])  # near |p| = 1: sigma points on both sets
+    c = chaser_of(truth_600)[60]
+    cfg = FilterConfig()
+    setup = make_setup(cfg, "markers3d", gravity_gradient=gravity_gradient)
+    Q = cfg.Q(dt_s) * np.array([1.0, 10.0, 1.0, 1.0])[:, None, None]  # per run, as after an outage
+    m_ref, P_ref = ukf.predict(mean, cov, c, dt_s, Q, setup.weights, setup.J_T, setup.mu_m3_s2, 1.0,
+                               gravity_gradient)
+    m_fast, P_fast = fast.predict(mean, cov, c, dt_s, Q, setup, 1.0)
+    ex, eP = _sigma_errors(m_fast, P_fast, m_ref, P_ref)
+    assert ex < ONE_STEP_TOL and eP < ONE_STEP_TOL, (ex, eP)
+    assert (np.linalg.norm(m_fast[:, MRP], axis=-1) <= 1.0).all()
+
+
+@pytest.mark.parametrize("kind", ["markers3d", "pixels", "pixels+range"])
+def test_one_update_equals_the_reference(truth_600, chaser_of, kind):
+    tr = truth_600
+    inp, mean, cov = _prior(tr, chaser_of, kind)
+    cfg = FilterConfig(adaptive_r=True)
+    setup = make_setup(cfg, kind)
+    k = 61
+    z = inp.z[:, k].copy()
+    seen = np.flatnonzero(inp.mask[0, k])
+    z[0, seen[0]] += 0.5 if kind != "pixels" else 40.0   # an outlier for the gate in run 0
+    R_c = np.broadcast_to(inp.R_c, z.shape + (z.shape[-1],))
+    r_scale = np.array([1.0, 2.0, 0.5, 1.0])
+    thr = np.array([setup.gate_threshold, setup.gate_threshold, setup.gate_threshold, np.inf])
+    o = fast.update(mean, cov, z, inp.mask[:, k], R_c, r_scale, thr, True, setup)
+    from envisat_pose.filtering.measurements import predicted_visible
+
+    mk = inp.mask[:, k] & predicted_visible(mean)
+    m_ref, P_ref, info = ukf.update(mean, cov, z, mk, R_c * r_scale[:, None, None, None], setup.hx,
+                                    setup.weights, thr)
+    np.testing.assert_array_equal(o["mask_k"], mk)
+    np.testing.assert_array_equal(o["accepted"], info.accepted)
+    assert mk[0, seen[0]] and not o["accepted"][0, seen[0]]  # the gate took the outlier out
+    np.testing.assert_array_equal(o["dof"], info.dof)
+    ex, eP = _sigma_errors(o["mean"], o["cov"], m_ref, P_ref)
+    assert ex < ONE_STEP_TOL and eP < ONE_STEP_TOL, (ex, eP)
+    np.testing.assert_allclose(o["nis"], info.nis, rtol=1e-10)
+    np.testing.assert_allclose(o["Ky"], np.einsum("rij,rj->ri", info.K, info.y), rtol=1e-9,
+                               atol=1e-12 * np.abs(o["Ky"]).max())
+    np.testing.assert_allclose(o["yy"], np.einsum("ri,ri->r", info.y, info.y), rtol=1e-12)
+    np.testing.assert_allclose(o["trPzz"], np.einsum("rii->r", info.Pzz_state), rtol=1e-12)
+
+
+def test_a_run_that_needs_a_repair_is_the_reference_s(truth_600, chaser_of):
+    """A covariance that is not positive definite: the kernel hands that run to the numpy filter, which
+    repairs it (eigenvalue floor); the other runs stay in the kernel. Both give the reference's result."""
+    inp, mean, cov = _prior(truth_600, chaser_of)
+    cov = cov.copy()
+    cov[1, 0, 1] = cov[1, 1, 0] = 2.0 * np.sqrt(cov[1, 0, 0] * cov[1, 1, 1])  # |correlation| 2: indefinite
+    cfg = FilterConfig()
+    setup = make_setup(cfg, "markers3d")
+    c = chaser_of(truth_600)[60]
+    m_ref, P_ref = ukf.predict(mean, cov, c, 1.0, cfg.Q(1.0), setup.weights, setup.J_T)
+    m_fast, P_fast = fast.predict(mean, cov, c, 1.0, cfg.Q(1.0), setup)
+    np.testing.assert_array_equal(m_fast[1], m_ref[1])
+    np.testing.assert_array_equal(P_fast[1], P_ref[1])
+    ex, eP = _sigma_errors(m_fast[[0, 2, 3]], P_fast[[0, 2, 3]], m_ref[[0, 2, 3]], P_ref[[0, 2, 3]])
+    assert ex < ONE_STEP_TOL and eP < ONE_STEP_TOL
+
+
+def test_the_fast_filter_is_deterministic_and_batch_independent(truth_600, chaser_of):
+    tr = truth_600
+    cfg = FilterConfig(adaptive_r=True, adaptive_q=True)
+    inp = inputs_from_truth(tr, MeasurementConfig(kind="pixels", failure_prob=0.1), cfg.P0, seed=4, n_runs=3,
+                            sel=slice(0, 80))
+    args = (tr.t_s[:80], chaser_of(tr)[:80])
+    a = run_filter(inp.x0_hat, cfg.P0, *args, inp.z, inp.mask, inp.R_c, "pixels", cfg)
+    b = run_filter(inp.x0_hat, cfg.P0, *args, inp.z, inp.mask, inp.R_c, "pixels", cfg)
+    assert a.x_hat.tobytes() == b.x_hat.tobytes() and a.P.tobytes() == b.P.tobytes()
+    one = run_filter(inp.x0_hat[1:2], cfg.P0, *args, inp.z[1:2], inp.mask[1:2], inp.R_c, "pixels", cfg)
+    assert one.x_hat.tobytes() == a.x_hat[1:2].tobytes() and one.P.tobytes() == a.P[1:2].tobytes()
+
+
+def test_an_unknown_kernel_is_refused():
+    with pytest.raises(ValueError, match="kernel"):
+        make_setup(FilterConfig(kernel="gpu"), "markers3d")
+    from envisat_pose.config import ConfigError
+
+    with pytest.raises(ConfigError, match="kernel"):
+        FilterConfig(kernel="numpy").validate()
