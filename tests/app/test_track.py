@@ -1,0 +1,178 @@
+"""`envisat track` on what users have: a generate folder, PNG folders (--rate-hz, --timestamps), a video, a
+512 px sequence with its own camera file; frames whose labels were removed; bad inputs as one line with nothing
+written. The frames are MuJoCo renders of the default scenario (envisat generate --mode sequence)."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from envisat_pose.app.cli import main
+
+
+def generate(out, n, seed=7, resolution=None):
+    args = ["generate", "--mode", "sequence", "--scenario", "default", "--num-images", str(n), "--seed", str(seed),
+            "--workers", "1", "--out", str(out), "--quiet"]
+    if resolution:
+        args += ["--resolution", str(resolution)]
+    assert main(args) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def seq_dir(tmp_path_factory):
+    return generate(tmp_path_factory.mktemp("seq") / "gen", 90)
+
+
+@pytest.fixture(scope="module")
+def png_dir(seq_dir, tmp_path_factory):
+    """The same frames as plain PNG files, labels removed (names sort in time order)."""
+    import cv2
+
+    from envisat_pose.datagen.dataset import iter_samples, sample_image
+
+    out = tmp_path_factory.mktemp("png")
+    for i, (key, label, members) in enumerate(iter_samples(str(seq_dir))):
+        cv2.imwrite(str(out / f"img_{i:04d}.png"), sample_image(members, label))
+    return out
+
+
+def est_errors(run_dir, truth_x):
+    from envisat_pose.contracts import Estimates
+    from envisat_pose.state import error_magnitudes
+
+    est = Estimates.load(str(run_dir / "est.npz"))
+    return est, error_magnitudes(truth_x, est.x_hat[0])
+
+
+def truth_of(seq_dir):
+    from envisat_pose.datagen.dataset import iter_samples
+
+    return np.array([label["x"] for _, label, _ in iter_samples(str(seq_dir))])
+
+
+@pytest.mark.slow
+def test_frames_without_labels_converge_from_a_cold_start(png_dir, seq_dir, tmp_path, detector_weights):
+    """The shipped weights on PNGs with no labels: acquiring, then tracking, within 10 cm and 1 deg at the end;
+    no truth in the outputs (x_true absent, no error plot)."""
+    out = tmp_path / "run"
+    assert main(["track", "--images", str(png_dir), "--rate-hz", "1", "--out", str(out), "--quiet",
+                 "--weights", detector_weights]) == 0
+    est, err = est_errors(out, truth_of(seq_dir))
+    assert np.isnan(est.x_true).all() and not (out / "errors.png").exists()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["final_status"] == "tracking" and summary["first_tracking_s"] <= 40.0, summary
+    assert err["position_m"][-10:].max() < 0.10 and err["attitude_deg"][-10:].max() < 1.0, \
+        (err["position_m"][-10:], err["attitude_deg"][-10:])
+    assert {"est.npz", "det.npz", "track.config.toml", "summary.json", "recording.rrd"} <= set(os.listdir(out))
+
+
+def test_a_generate_folder_is_tracked_and_scored(seq_dir, tmp_path, detector_weights, capsys):
+    out = tmp_path / "gen"
+    assert main(["track", "--images", str(seq_dir), "--out", str(out), "--quiet", "--weights", detector_weights]) == 0
+    est, _ = est_errors(out, truth_of(seq_dir))
+    np.testing.assert_array_equal(est.x_true[0], truth_of(seq_dir))
+    summary = json.loads((out / "summary.json").read_text())
+    assert "scores" in summary and (out / "errors.png").exists()
+    assert "converged" in capsys.readouterr().out
+
+
+def test_timestamps_and_a_video(png_dir, tmp_path, detector_weights):
+    """--timestamps (file,t_s) gives the times; a video written by OpenCV is read at --rate-hz."""
+    import cv2
+
+    files = sorted(os.listdir(png_dir))[:25]
+    sub = tmp_path / "sub"
+    sub.mkdir()
+    for f in files:
+        os.link(png_dir / f, sub / f)
+    csv = tmp_path / "times.csv"
+    csv.write_text("file,t_s\n" + "".join(f"{f},{10.0 + 2 * i}\n" for i, f in enumerate(files)))
+    out = tmp_path / "ts"
+    assert main(["track", "--images", str(sub), "--timestamps", str(csv), "--out", str(out), "--quiet",
+                 "--weights", detector_weights]) == 0
+    with np.load(out / "est.npz") as z:
+        np.testing.assert_allclose(z["t_s"], 10.0 + 2 * np.arange(25))
+    video = tmp_path / "seq.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 1.0, (1024, 1024), isColor=True)
+    for f in files[:12]:
+        w.write(cv2.cvtColor(cv2.imread(str(sub / f), cv2.IMREAD_GRAYSCALE), cv2.COLOR_GRAY2BGR))
+    w.release()
+    out = tmp_path / "vid"
+    assert main(["track", "--images", str(video), "--rate-hz", "2", "--out", str(out), "--quiet",
+                 "--weights", detector_weights]) == 0
+    with np.load(out / "det.npz") as z:
+        np.testing.assert_allclose(z["t_s"], np.arange(12) / 2.0)
+        assert z["visible"].sum(axis=1).max() >= 4  # the detector found the target in the decoded frames
+
+
+def test_a_512_px_sequence_with_its_own_camera(tmp_path, detector_weights):
+    """Frames of another size with a camera file (the MJCF's field of view at 512 px, written as fx, fy, cx, cy):
+    the tracker's pixel model is that camera."""
+    from envisat_pose.geometry import load_camera
+
+    seq = generate(tmp_path / "g512", 25, seed=3, resolution=512)
+    cam = load_camera().scaled(512, 512)
+    camfile = tmp_path / "cam.toml"
+    camfile.write_text(f"fx = {cam.f_px}\nfy = {cam.f_px}\ncx = {cam.cu_px}\ncy = {cam.cv_px}\nwidth = 512\nheight = 512\n")
+    out = tmp_path / "t512"
+    assert main(["track", "--images", str(seq), "--camera", str(camfile), "--out", str(out), "--quiet",
+                 "--weights", detector_weights]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames_by_status"]["tracking"] >= 1, summary
+
+
+def bad(args, capsys, tmp_path):
+    out = tmp_path / "never"
+    code = main(["track", *args, "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert not out.exists(), "a bad input must leave nothing written"
+    return err
+
+
+def test_bad_inputs_are_one_line_and_write_nothing(png_dir, tmp_path, capsys):
+    import cv2
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert "no image files" in bad(["--images", str(empty), "--rate-hz", "1"], capsys, tmp_path)
+    # an unreadable (truncated) image among good ones
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    good = sorted(os.listdir(png_dir))[:3]
+    for f in good:
+        os.link(png_dir / f, broken / f)
+    data = (png_dir / good[0]).read_bytes()
+    (broken / "img_9999.png").write_bytes(data[: len(data) // 2])
+    assert "img_9999.png" in bad(["--images", str(broken), "--rate-hz", "1"], capsys, tmp_path)
+    # frames of mixed sizes
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    for f in good:
+        os.link(png_dir / f, mixed / f)
+    cv2.imwrite(str(mixed / "img_9999.png"), np.zeros((512, 512), np.uint8))
+    assert "img_9999.png" in bad(["--images", str(mixed), "--rate-hz", "1"], capsys, tmp_path)
+    # timestamps not increasing, and missing a file
+    sub = tmp_path / "three"
+    sub.mkdir()
+    for f in good:
+        os.link(png_dir / f, sub / f)
+    csv = tmp_path / "t.csv"
+    csv.write_text("file,t_s\n" + "".join(f"{f},{5 - i}\n" for i, f in enumerate(good)))
+    assert "increase" in bad(["--images", str(sub), "--timestamps", str(csv)], capsys, tmp_path)
+    csv.write_text("file,t_s\n" + "".join(f"{f},{i}\n" for i, f in enumerate(good[:2])))
+    assert good[2] in bad(["--images", str(sub), "--timestamps", str(csv)], capsys, tmp_path)
+    # a folder of images without a rate
+    assert "--rate-hz" in bad(["--images", str(sub)], capsys, tmp_path)
+    # camera files: fx missing, a non-positive focal length
+    cam = tmp_path / "cam.toml"
+    cam.write_text("fy = 1910.0\ncx = 511.5\ncy = 511.5\nwidth = 1024\nheight = 1024\n")
+    assert "'fx'" in bad(["--images", str(sub), "--rate-hz", "1", "--camera", str(cam)], capsys, tmp_path)
+    cam.write_text("fx = -3.0\nfy = 1910.0\ncx = 511.5\ncy = 511.5\nwidth = 1024\nheight = 1024\n")
+    assert "fx = -3.0" in bad(["--images", str(sub), "--rate-hz", "1", "--camera", str(cam)], capsys, tmp_path)
+    # a video that cannot be opened
+    fake = tmp_path / "clip.mp4"
+    fake.write_bytes(b"not a video at all")
+    assert "clip.mp4" in bad(["--images", str(fake), "--rate-hz", "1"], capsys, tmp_path)
