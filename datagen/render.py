@@ -29,6 +29,10 @@ import numpy as np  # noqa: E402
 from envisat_pose.attitude import rotmat_to_quat  # noqa: E402
 from envisat_pose.datagen.appearance import CLASSES, GEOM_CLASS, Look, class_texture, TEXTURE_PX  # noqa: E402
 from envisat_pose.datagen.clearance import target_boxes  # noqa: E402
+from envisat_pose.datagen.earth import (EARTH_MESH_STEPS_DEG, EARTH_SCALE, EARTH_TEXTURE_SET_SIZE,  # noqa: E402
+                                        disc_on_rays, earth_texture, earth_texture_width, mesh_step_for,
+                                        mesh_xml_attributes, pixel_rays_K)
+from envisat_pose.datagen.scenario import EARTH_RADIUS_M  # noqa: E402
 from envisat_pose.geometry import model_path  # noqa: E402
 
 CAMERA_NAME = "chaser_cam"
@@ -40,10 +44,8 @@ MASK_VALUES = {"face_px": 1, "face_mx": 2, "face_py": 3, "face_my": 4, "face_pz"
 # The clutter (ASAR antenna, instrument boxes): geom group 4 of models/envisat.xml, drawn when a view asks.
 APPENDAGE_GEOM_GROUP = 4
 APPENDAGE_MASK_VALUE = 8
-EARTH_RADIUS_M = 6378137.0
-# The Earth is drawn shrunk by this factor about the camera: same angular size, but inside the far plane.
-EARTH_SCALE = 0.01
 EARTH_GEOM_GROUP = 5  # hidden unless a view asks for the backdrop
+EARTH_ALPHA = 0.99  # the Earth's material alpha (see render_model_xml); its texture is scaled up to match
 # The camera frame K of the labels (x right, y down, z boresight) from MuJoCo's camera frame (x right, y up,
 # looking along -z).
 R_K_FROM_MJCAM = np.diag([1.0, -1.0, -1.0])
@@ -56,8 +58,10 @@ class View:
     rho_C_m: (3,) target CoM relative to the chaser, m. R_C_from_T: (3, 3) target attitude (Gamma^T).
     sun_dir_C: (3,) unit vector toward the sun; None means eclipse (no sunlight).
     earth_dir_C: (3,) unit vector toward the Earth's centre (nadir); None means no Earth (no backdrop, no
-    Earth-shine). earth_backdrop: draw the Earth's disc when earth_dir_C is given.
-    earth_distance_m: distance of the Earth's centre from the chaser, m.
+    Earth-shine). earth_backdrop: draw the Earth (textured, lit by the sun) when earth_dir_C is given.
+    earth_distance_m: distance of the Earth's centre from the chaser, m (its disc's angular radius is
+    asin(R / earth_distance_m)). earth_quat_C: (4,) attitude of the Earth's body frame (z to the north pole,
+    x to longitude 0) in C, w x y z; None: the identity. earth_texture: which of the renderer's Earth textures.
     look: per-geom materials and light intensities (appearance.Look); None keeps the MJCF's materials, the sun
     at its MJCF intensity and no Earth-shine. appendages: draw the clutter (ASAR antenna, instruments).
     The Earth-shine light shines from earth_dir_C at the look's intensity.
@@ -71,6 +75,8 @@ class View:
     look: Look | None = None
     appendages: bool = False
     earth_backdrop: bool = True
+    earth_quat_C: np.ndarray | None = None
+    earth_texture: int = 0
 
 
 @dataclass
@@ -91,10 +97,13 @@ class RenderOutput:
     fovy_deg: float
 
 
-def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_set_size: int = 0) -> str:
+def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_set_size: int = 0,
+                     earth_texture_set_size: int = EARTH_TEXTURE_SET_SIZE) -> str:
     """The project's MJCF prepared for rendering at `resolution_px`: a large enough off-screen buffer, a fixed
     model extent (the near/far planes and shadow box stay those of models/envisat.xml), an Earth backdrop
-    body (mocap, geom group 5, hidden by default), an Earth-shine light (off until a look turns it on), and
+    body (mocap, geom group 5, hidden by default: a unit UV-sphere mesh scaled to EARTH_RADIUS_M x EARTH_SCALE,
+    `earth_texture_set_size` equirectangular textures, their pixels written by the renderer), an Earth-shine
+    light (off until a look turns it on), and
     for appearance randomization `texture_set_size` textures per covering class with one material
     `look_<geom>_<k>` per target geom and texture (texture pixels are written by the renderer).
 
@@ -121,10 +130,23 @@ def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_se
         asset = ET.SubElement(root, "asset")
     ET.SubElement(asset, "material", name="earth_backdrop", rgba="0.35 0.42 0.55 1", specular="0.05",
                   shininess="0.05", reflectance="0")
+    w = earth_texture_width(resolution_px)
+    for k in range(earth_texture_set_size):
+        ET.SubElement(asset, "texture", name=f"earth_tex_{k}", type="2d", builtin="flat", width=str(w),
+                      height=str(w // 2), rgb1="0.3 0.3 0.3")
+        # alpha just below 1: the Earth is drawn in mjr_render's transparent pass (once, additively over the
+        # black sky, lit by every light, receiving no shadow), not twice as opaque geoms with a shadow light are
+        ET.SubElement(asset, "material", name=f"earth_{k}", texture=f"earth_tex_{k}", rgba=f"1 1 1 {EARTH_ALPHA}",
+                      specular="0.03", shininess="0.1", reflectance="0")
+    scale = repr(EARTH_RADIUS_M * EARTH_SCALE)
+    for step in EARTH_MESH_STEPS_DEG:  # levels of detail; the view picks one (earth.mesh_step_for)
+        ET.SubElement(asset, "mesh", name=f"earth_sphere_{step:g}", scale=f"{scale} {scale} {scale}",
+                      **mesh_xml_attributes(step))
     world = root.find("worldbody")
     earth = ET.SubElement(world, "body", name="earth_backdrop", mocap="true", pos="0 0 -1e5")
-    ET.SubElement(earth, "geom", name="earth_backdrop", type="sphere", size=repr(EARTH_RADIUS_M * EARTH_SCALE),
-                  material="earth_backdrop", group=str(EARTH_GEOM_GROUP), contype="0", conaffinity="0")
+    ET.SubElement(earth, "geom", name="earth_backdrop", type="mesh", mesh=f"earth_sphere_{EARTH_MESH_STEPS_DEG[0]:g}",
+                  material="earth_0" if earth_texture_set_size else "earth_backdrop", group=str(EARTH_GEOM_GROUP),
+                  contype="0", conaffinity="0")
     # Earth-shine: sunlight reflected by the Earth, a directional light from the nadir side, no shadows
     ET.SubElement(world, "light", name="earthshine", directional="true", castshadow="false", pos="0 0 100",
                   dir="0 0 -1", diffuse="0 0 0", specular="0 0 0", ambient="0 0 0", active="false")
@@ -205,12 +227,15 @@ class SceneRenderer:
     """One GL context and MuJoCo scene rendering the chaser camera at a fixed square resolution."""
 
     def __init__(self, resolution_px: int, shadows: bool = True, base_xml: str | None = None,
-                 texture_set_size: int = 0, texture_seed: int = 0):
+                 texture_set_size: int = 0, texture_seed: int = 0, earth_seed: int = 0,
+                 earth_texture_set_size: int = EARTH_TEXTURE_SET_SIZE):
         self.resolution_px = int(resolution_px)
         self.shadows = bool(shadows)
         self.texture_set_size, self.texture_seed = int(texture_set_size), int(texture_seed)
+        self.earth_seed, self.earth_texture_set_size = int(earth_seed), int(earth_texture_set_size)
         self.model = mujoco.MjModel.from_xml_string(render_model_xml(self.resolution_px, base_xml,
-                                                                     self.texture_set_size))
+                                                                     self.texture_set_size,
+                                                                     self.earth_texture_set_size))
         self.data = mujoco.MjData(self.model)
         m = self.model
         self.cam_id = m.camera(CAMERA_NAME).id
@@ -219,6 +244,10 @@ class SceneRenderer:
         self.qpos_adr = int(m.joint("target_free").qposadr[0])
         self.chaser_mocap = int(m.body("chaser").mocapid[0])
         self.earth_mocap = int(m.body("earth_backdrop").mocapid[0])
+        self.earth_geom = m.geom("earth_backdrop").id
+        self._earth_mesh = {step: m.mesh(f"earth_sphere_{step:g}").id for step in EARTH_MESH_STEPS_DEG}
+        self._earth_matid = [m.material(f"earth_{k}").id for k in range(self.earth_texture_set_size)]
+        self._earth_uploaded: set[int] = set()  # Earth textures are made and sent at first use
         self.target_body = m.body("target").id
         self.sun_id = m.light("sun").id
         self.earthshine_id = m.light("earthshine").id
@@ -260,6 +289,9 @@ class SceneRenderer:
         self._cam.fixedcamid = self.cam_id
         self._rect = mujoco.MjrRect(0, 0, n, n)
         self._rgb = np.empty((n, n, 3), dtype=np.uint8)
+        mujoco.mj_forward(m, self.data)  # the camera's mount: fixed on the chaser at the origin of C
+        self._R_K_from_C = self.camera_pose()[0]
+        self._frame_rays_K = pixel_rays_K(n, self.K, 8).reshape(-1, 3)  # where the image is, for earth_drawn
         self._upload_textures()
 
     def _upload_textures(self) -> None:
@@ -275,6 +307,19 @@ class SceneRenderer:
                 for con in (self._con, self._con_seg):
                     mujoco.mjr_uploadTexture(m, con, t)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
+
+    def _upload_earth_texture(self, k: int) -> None:
+        """Make Earth texture k (earth.earth_texture, seeded by earth_seed) and send it to both GL contexts."""
+        m = self.model
+        t = m.texture(f"earth_tex_{k}").id
+        data = earth_texture(self.earth_seed, int(m.tex_width[t]), k)
+        a = int(m.tex_adr[t])
+        m.tex_data[a : a + data.size] = data.ravel()
+        self._gl.make_current()
+        for con in (self._con, self._con_seg):
+            mujoco.mjr_uploadTexture(m, con, t)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
+        self._earth_uploaded.add(k)
 
     def set_look(self, look: Look | None) -> None:
         """Materials and light intensities of `look` into the model arrays (None: the MJCF's own)."""
@@ -335,14 +380,43 @@ class SceneRenderer:
             m.light_dir[self.earthshine_id] = -e / np.linalg.norm(e)  # from the Earth toward the target
         else:
             m.light_active[self.earthshine_id] = 0
-        if view.earth_dir_C is None or not view.earth_backdrop:
+        if not self.earth_drawn(view):
             self._opt.geomgroup[EARTH_GEOM_GROUP] = 0
             d.mocap_pos[self.earth_mocap] = (0.0, 0.0, -1e5)
         else:
             e = np.asarray(view.earth_dir_C, dtype=float)
             self._opt.geomgroup[EARTH_GEOM_GROUP] = 1
+            # shrunk about the camera (the origin of C): the same angular radius asin(R / r), inside the far plane
             d.mocap_pos[self.earth_mocap] = e / np.linalg.norm(e) * view.earth_distance_m * EARTH_SCALE
+            q = (1.0, 0.0, 0.0, 0.0) if view.earth_quat_C is None else np.asarray(view.earth_quat_C, dtype=float)
+            d.mocap_quat[self.earth_mocap] = np.asarray(q) / np.linalg.norm(q)
+            # the coarsest mesh whose limb is within a fraction of a pixel of the circle at this distance
+            m.geom_dataid[self.earth_geom] = self._earth_mesh[mesh_step_for(view.earth_distance_m, self.K[0, 0])]
+            if self.earth_texture_set_size:
+                k = int(view.earth_texture) % self.earth_texture_set_size
+                if k not in self._earth_uploaded:
+                    self._upload_earth_texture(k)
+                m.geom_matid[self.earth_geom] = self._earth_matid[k]
         mujoco.mj_forward(m, d)
+
+    def earth_drawn(self, view: View) -> bool:
+        """Whether `view` draws the Earth: it asks for the backdrop, gives a nadir, and some of the disc (the
+        cone of half-angle asin(R / earth_distance_m) about the nadir) falls on the image (pixel rays 8 px
+        apart; an Earth out of the frame costs nothing)."""
+        if view.earth_dir_C is None or not view.earth_backdrop:
+            return False
+        return disc_on_rays(self._frame_rays_K, self._R_K_from_C @ np.asarray(view.earth_dir_C, dtype=float),
+                            view.earth_distance_m)
+
+    def _earth_out_of_side_passes(self, scn) -> None:
+        """The Earth's scene geom casts no shadow (category decor: mjr_render skips it in the shadow map; at
+        km it could only shadow itself) and has no segmentation id (the segmentation and depth pass skips it:
+        it is background in the mask and the depth). Its 130k triangles are then drawn in the lit pass only."""
+        for k in range(scn.ngeom):
+            g = scn.geoms[k]
+            if g.objtype == mujoco.mjtObj.mjOBJ_GEOM and g.objid == self.earth_geom:
+                g.category = mujoco.mjtCatBit.mjCAT_DECOR.value
+                g.segid = -1
 
     def camera_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """(R_K_from_W (3, 3), camera position in W (3,)) from the MJCF camera of the current state."""
@@ -367,6 +441,8 @@ class SceneRenderer:
         n = self.resolution_px
         scn, flags = self._scene, self._scene.flags
         mujoco.mjv_updateScene(self.model, self.data, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL.value, scn)
+        self._earth_out_of_side_passes(scn)
+        flags[mujoco.mjtRndFlag.mjRND_ADDITIVE] = True  # the one transparent geom (the Earth) drawn once
         flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows
         R_K_W, cam_W = self.camera_pose()
         box = projected_bbox_px(self._target_hull_K_m(R_K_W, cam_W), self.K, n, self.znear_m)
@@ -436,6 +512,8 @@ class SceneRenderer:
         self._gl.make_current()
         mujoco.mjv_updateScene(self.model, self.data, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL.value,
                                self._scene)
+        self._earth_out_of_side_passes(self._scene)
+        self._scene.flags[mujoco.mjtRndFlag.mjRND_ADDITIVE] = True
         self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows
         mujoco.mjr_render(self._rect, self._scene, self._con)
         mujoco.mjr_readPixels(self._rgb, None, self._rect, self._con)
@@ -446,14 +524,14 @@ _RENDERERS: dict[tuple, SceneRenderer] = {}
 
 
 def shared_renderer(resolution_px: int, shadows: bool = True, texture_set_size: int = 0,
-                    texture_seed: int = 0) -> SceneRenderer:
-    """This process's renderer for (resolution, shadows, texture set), created on first use and reused (one
-    per worker)."""
-    key = (int(resolution_px), bool(shadows), int(texture_set_size), int(texture_seed))
+                    texture_seed: int = 0, earth_seed: int = 0) -> SceneRenderer:
+    """This process's renderer for (resolution, shadows, texture set, Earth texture seed), created on first
+    use and reused (one per worker)."""
+    key = (int(resolution_px), bool(shadows), int(texture_set_size), int(texture_seed), int(earth_seed))
     if key not in _RENDERERS:
         first = not _RENDERERS
         _RENDERERS[key] = SceneRenderer(resolution_px, shadows, texture_set_size=texture_set_size,
-                                        texture_seed=texture_seed)
+                                        texture_seed=texture_seed, earth_seed=earth_seed)
         if first:
             import atexit
 
