@@ -1,9 +1,9 @@
-"""Online closed-loop speed and accuracy: `envisat run` on the default scenario at 1 Hz, one run, with and without
-the region of interest (the filter's predicted corners as the detector's crop).
+"""Online closed-loop speed and accuracy: `envisat run --warm-start` on the default scenario at 1 Hz, one run, with and
+without the region of interest (the filter's predicted corners as the detector's crop).
 
 Measured per frame: the time in each stage (simulation: the MuJoCo truth, per frame; rendering: MuJoCo's render;
-camera: the space camera's corruption; detection; filtering: predictions, both half-turn hypotheses; recording:
-JPEG encoding),
+camera: the space camera's corruption; detection; filtering: the tracker's filter; recording: JPEG encoding and
+logging run 0's frame to the streamed recording),
 and the real-time factor, simulated seconds per wall second of the loop. Accuracy: the closed loop's RMSE after
 t = 300 s next to the same filter on ideal pixel measurements (the truth's projected corners, every visible
 in-frame corner, Gaussian noise of the detector's measured noise: the RMS error of its correctly named corners in
@@ -30,13 +30,15 @@ CORRECT_PX = 10.0  # a detected corner within this of the truth counts as correc
 
 
 def closed_loop(weights: str, duration_s: float, roi: bool, seed: int, out_dir: str) -> tuple[dict, object]:
-    from envisat_pose.app import run as loop
+    """`envisat run --warm-start` (the tracker handed run 0's draw from P0, so the ideal-pixel filter below starts
+    from the same estimate)."""
     from envisat_pose.config import from_dict
+    from envisat_pose.pipelines import closed_loop as loop
+    from envisat_pose.pipelines.tracker import TRACKER_FILTER
 
-    loop._stage_types()
+    loop.stage_types()
     data = {"scenario": "default", "duration_s": duration_s, "weights": weights, "seed": seed, "workers": 1,
-            "loop": {"roi": roi},
-            "filter": {**loop.LOOP_FILTER, **loop_filter_table()}}
+            "warm_start": True, "tracker": {"roi": roi}, "filter": {**TRACKER_FILTER, **loop_filter_table()}}
     cfg = loop.finish_config(from_dict(loop.RunConfig, data))
     t0 = time.perf_counter()
     summary = loop.run_closed_loop(cfg, out_dir, progress=False)
@@ -75,15 +77,16 @@ def detector_noise(out_dir: str) -> dict:
 def ideal_pixels(out_dir: str, cfg, sigma_px: float, seed: int) -> np.ndarray:
     """The filter on the truth's projected corners (visible, in frame) + N(0, sigma_px^2), the closed loop's
     run-0 initial estimate; returns x_hat (T, 12)."""
-    from envisat_pose.app.estimate import truth_model
     from envisat_pose.contracts import TruthTrajectory
     from envisat_pose.filtering.estimator import chaser_states, run_filter
+    from envisat_pose.pipelines.closed_loop import truth_dynamics
+    from envisat_pose.state import draw_initial_estimate
 
     truth = TruthTrajectory.load(os.path.join(out_dir, "truth.npz"))
-    mu, gg = truth_model(truth)
+    mu, gg = truth_dynamics(truth)
     rng0 = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0,)))
     P0 = cfg.filter.P0
-    x0 = truth.x[0] + np.linalg.cholesky(P0) @ rng0.standard_normal(12)  # as closed_loop_task draws run 0's
+    x0 = draw_initial_estimate(truth.x[0], P0, rng0)  # as closed_loop_task draws run 0's warm start
     rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(10**6,)))
     z = truth.corners_px + rng.normal(0.0, sigma_px, truth.corners_px.shape)
     mask = truth.visible & truth.in_frame
@@ -94,16 +97,13 @@ def ideal_pixels(out_dir: str, cfg, sigma_px: float, seed: int) -> np.ndarray:
 
 
 def rmse(t_s, x_true, x_hat, after_s: float) -> dict:
-    from envisat_pose.attitude import mrp_error_angle_rad
+    """RMSE per block after after_s (envisat_pose.state.error_summary) and the largest position and attitude."""
+    from envisat_pose.state import error_summary
 
-    late = t_s >= after_s
-    pos = np.linalg.norm(x_hat[late, 0:3] - x_true[late, 0:3], axis=-1)
-    ang = np.degrees(mrp_error_angle_rad(x_hat[late, 6:9], x_true[late, 6:9]))
-    vel = np.linalg.norm(x_hat[late, 3:6] - x_true[late, 3:6], axis=-1)
-    rate = np.degrees(np.linalg.norm(x_hat[late, 9:12] - x_true[late, 9:12], axis=-1))
-    r = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
-    return {"position_m": r(pos), "velocity_m_s": r(vel), "attitude_deg": r(ang), "rate_deg_s": r(rate),
-            "max_position_m": float(pos.max()), "max_attitude_deg": float(ang.max())}
+    e = error_summary(t_s, x_true[None], x_hat[None], after_s)
+    return {"position_m": e["position_m"]["rms_after"], "velocity_m_s": e["velocity_m_s"]["rms_after"],
+            "attitude_deg": e["attitude_deg"]["rms_after"], "rate_deg_s": e["rate_deg_s"]["rms_after"],
+            "max_position_m": e["position_m"]["max_after"], "max_attitude_deg": e["attitude_deg"]["max_after"]}
 
 
 def main() -> None:
@@ -114,7 +114,8 @@ def main() -> None:
     ap.add_argument("--after-s", type=float, default=300.0, help="RMSE from this time on, s")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "online_speed.json"))
     args = ap.parse_args()
-    from envisat_pose.app.run import STAGES, default_weights_path
+    from envisat_pose.app.run import default_weights_path
+    from envisat_pose.pipelines.closed_loop import STAGES
     from envisat_pose.contracts import Estimates
     from envisat_pose.io import atomic_write_text
 
@@ -135,7 +136,7 @@ def main() -> None:
             est = Estimates.load(os.path.join(out, "est.npz"))
             case = {"timing_ms_per_frame": summary["timing_ms_per_frame"],
                     "real_time_factor": summary["real_time_factor_one_run"],
-                    "wall_s": summary["wall_s"], "run0": summary["run0"], "diverged": bool(est.diverged.any()),
+                    "wall_s": summary["wall_s"], "run0": summary["run0"], "scores": summary["scores"],
                     "recording_bytes": summary["recording_bytes"],
                     "rmse_closed_loop": rmse(est.t_s, est.x_true[0], est.x_hat[0], args.after_s),
                     "detector_noise": detector_noise(out)}

@@ -189,3 +189,30 @@ def test_file_is_written_atomically(tmp_path):
         recording.write_truth_recording(str(path), None)  # fails inside, after the file was opened
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["est.rrd"]
+
+
+def test_the_tracker_recording_shows_the_whole_run_in_six_plots():
+    """The tracker's blueprint: at most six plot panels, each over the whole run on both timelines (not a trailing
+    window) and with its legend off the data; the camera view and the 3D view beside them."""
+    import rerun.blueprint as rrb
+
+    from envisat_pose.analysis.recording import track_blueprint
+
+    for with_truth in (True, False):
+        root = track_blueprint(with_truth).root_container
+        views = []
+
+        def walk(c):
+            for x in getattr(c, "contents", []):
+                views.append(x) if not hasattr(x, "contents") or isinstance(x, rrb.View) else walk(x)
+
+        walk(root)
+        plots = [v for v in views if isinstance(v, rrb.TimeSeriesView)]
+        assert 1 <= len(plots) <= 6
+        assert any(isinstance(v, rrb.Spatial2DView) for v in views) and any(isinstance(v, rrb.Spatial3DView) for v in views)
+        for v in plots:
+            ranges = v.properties["VisibleTimeRanges"].ranges.as_arrow_array().to_pylist()
+            assert {r["timeline"] for r in ranges} == {"sim_time", "frame"}
+            assert all(r["range"]["start"] is None and r["range"]["end"] is None for r in ranges), ranges
+            legend = v.properties["PlotLegend"]
+            assert legend.visible.as_arrow_array().to_pylist() == [False]

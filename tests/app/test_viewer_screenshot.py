@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import pytest
 
-from envisat_pose.app import run as loop
+from envisat_pose.pipelines import closed_loop as loop
 from envisat_pose.app import view
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -95,7 +95,7 @@ def shows_the_recording(png: str) -> dict:
     img = cv2.imread(png, cv2.IMREAD_COLOR)
     b, g, r = (img[..., k].astype(int) for k in range(3))
     black = (img.max(axis=-1) < 6)  # the camera frame's dark sky (the loading screen is grey 13-17)
-    red = (r > 170) & (g < 90) & (b < 90)  # the +-3 sigma series
+    red = (r > 170) & (g < 90) & (b < 90)  # the x components' error series and their +-3 sigma
     blue = (b > 100) & (b - r > 50) & (b - g > 30)  # the solar array's cells in 3D
     return {"black": int(black.sum()), "red": int(red.sum()), "blue": int(blue.sum()),
             "colours": int(len(np.unique(img.reshape(-1, 3), axis=0))), "pixels": int(img.shape[0] * img.shape[1])}
@@ -112,9 +112,11 @@ def test_the_recording_opens_in_the_web_viewer(tmp_path, detector_weights, rerun
     from envisat_pose.app.scenarios import job_defaults
     from envisat_pose.config import from_dict
 
-    loop._stage_types()
-    data = {"scenario": "default", "duration_s": 6.0, "weights": detector_weights, "workers": 1,
-            "filter": {**loop.LOOP_FILTER, **job_defaults("default")["filter"]}}
+    from envisat_pose.pipelines.tracker import TRACKER_FILTER
+
+    loop.stage_types()
+    data = {"scenario": "default", "duration_s": 6.0, "weights": detector_weights, "workers": 1, "warm_start": True,
+            "filter": {**TRACKER_FILTER, **job_defaults("default")["filter"]}}
     cfg = loop.finish_config(from_dict(loop.RunConfig, data))
     run_dir = tmp_path / "run"
     loop.run_closed_loop(cfg, str(run_dir), progress=False)
