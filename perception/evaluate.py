@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from envisat_pose.perception.calibrate import nees_px
+from envisat_pose.perception.errormodel import apparent_scale, mean_se, radial_errors
 
 CORNER_NAMES = "ABCDEFGH"
 # the half-turn about the long axis x: corner k shows where corner HALF_TURN_PERM[k] was (naming.symmetry_permutations)
@@ -239,6 +240,28 @@ def corruption_groups(noise_level: int, blur_level: int) -> list[str]:
 
 GROUP_ORDER = (["all", "clean", "noise_only", "blur_only", "combined"] + [f"noise={s}" for s in SEVERITIES]
                + [f"blur={s}" for s in SEVERITIES])
+# range bins (m) of the frames' target range |t_cam_from_target|: the random sets span 20-80 m
+RANGE_EDGES_M = (35.0, 50.0, 65.0)
+RANGE_GROUPS = ("range<35m", "range=35-50m", "range=50-65m", "range>=65m")
+
+
+def range_group(range_m: float) -> str | None:
+    """The range bin of a frame (RANGE_GROUPS), None when the range is unknown."""
+    if not np.isfinite(range_m):
+        return None
+    return RANGE_GROUPS[int(np.searchsorted(RANGE_EDGES_M, range_m, side="right"))]
+
+
+def bias_stats(chosen_px: np.ndarray, true_px: np.ndarray, usable: np.ndarray, radius_px: float = MATCH_PX) -> dict:
+    """The residual bias of named corners (perception/errormodel.py): the per-frame apparent scale about the
+    centroid (frames with at least 3 corners named right within radius_px and none named wrong) and the signed
+    radial error px (positive outward) of the corners named right, each as mean, standard error and count."""
+    right = hits(chosen_px, true_px, usable, radius_px)
+    wrong = np.asarray(usable, bool) & np.all(np.isfinite(chosen_px), axis=-1) & ~right
+    sm, sse, sn = mean_se(apparent_scale(chosen_px, true_px, right, wrong))
+    rm, rse, rn = mean_se(radial_errors(chosen_px, true_px, right))
+    return {"scale_mean": sm, "scale_se": sse, "scale_frames": sn, "radial_px_mean": rm, "radial_px_se": rse,
+            "radial_corners": rn}
 
 
 # --- one method over a set of frames ------------------------------------------------------------------------
@@ -263,6 +286,7 @@ def score_method(pred_px: np.ndarray, true_px: np.ndarray, usable: np.ndarray, *
            "swap_rate": swap_rate(chosen, true_px, usable),
            "ambiguous_share": float(amb.mean()) if n else float("nan"),
            "alt_naming_used_share": float(used_alt.mean()) if n else float("nan"),
+           "bias": bias_stats(chosen, true_px, usable),
            "half_turn_free": {"errors": error_stats(turned, true_px, usable)["all"],
                               "pck_2px": pck(turned, true_px, usable, 2.0),
                               "pck_5px": pck(turned, true_px, usable, 5.0)}}

@@ -6,7 +6,12 @@ without line verification: the ablation), 'harris' and 'shi_tomasi' (cv2.goodFea
 cornerSubPix, named by oracle nearest-label association: generous to them). Pose: solvePnP (EPnP, then
 iterative) from each method's named corners against the label's R_cam_from_target / t_cam_from_target_m.
 Groups (perception/evaluate.corruption_groups): all; clean, noise_only, blur_only, combined (a partition);
-noise=<level> and blur=<level> (marginals, overlapping the partition).
+noise=<level> and blur=<level> (marginals, overlapping the partition); and the range bins of the label's pose
+(perception/evaluate.RANGE_GROUPS). Every method's residual bias (perception/evaluate.bias_stats): the apparent
+scale of its correctly named corners about their centroid and their signed radial error, per group.
+With --roi FILE or --roi-labels a method 'detector_roi' is added: the same detector given a region of interest
+per frame (the file's, frames not in it get the coarse pass; or the labels' corners, as the closed loop's
+converged prior gives it) instead of its coarse pass.
 """
 
 from __future__ import annotations
@@ -36,6 +41,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True, metavar="DIR", help="labelled dataset folder (shards)")
     p.add_argument("--json", required=True, metavar="OUT.json", help="output file of every metric")
     p.add_argument("--limit", type=int, help="only the first N frames")
+    roi = p.add_mutually_exclusive_group()
+    roi.add_argument("--roi", metavar="ROI.npz", help="regions of interest (as envisat detect --roi): adds the "
+                     "method detector_roi")
+    roi.add_argument("--roi-labels", action="store_true", help="adds the method detector_roi, given the region "
+                     "of interest of the labelled corners (extent x 1.4, at least 64 px)")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -83,15 +93,17 @@ def _clean_json(x):
     return x
 
 
-def evaluate_frames(detector, ablation, samples, poses: dict, corners_T_m, bar=None, limit: int | None = None
-                    ) -> tuple[dict, list[list[str]]]:
+def evaluate_frames(detector, ablation, samples, poses: dict, corners_T_m, bar=None, limit: int | None = None,
+                    roi=None) -> tuple[dict, list[list[str]]]:
     """Run every method on every frame. samples: (key, image, label) as perception.data.read_samples gives them,
-    images as the camera saw them. Returns per-method arrays and each frame's groups."""
+    images as the camera saw them. roi: None; 'labels'; or {key: (x0, y0, side)}: adds 'detector_roi'. Returns
+    per-method arrays and each frame's groups (with its range bin where the pose is known)."""
     import numpy as np
 
     from envisat_pose.perception import evaluate as ev
 
-    rows = {m: {"pred": [], "alt": [], "amb": [], "vis": [], "cov": [], "pose": []} for m in METHODS}
+    methods = METHODS + (("detector_roi",) if roi is not None else ())
+    rows = {m: {"pred": [], "alt": [], "amb": [], "vis": [], "cov": [], "pose": []} for m in methods}
     true, usable, groups = [], [], []
     for i, (key, image, label) in enumerate(samples):
         if limit is not None and i >= limit:
@@ -99,11 +111,17 @@ def evaluate_frames(detector, ablation, samples, poses: dict, corners_T_m, bar=N
         use = label["visible"] & label["in_frame"]
         true.append(label["corners_px"])
         usable.append(use)
-        groups.append(ev.corruption_groups(*ev.corruption_levels(label["corruption"], image.shape[1])))
+        frame_groups = ev.corruption_groups(*ev.corruption_levels(label["corruption"], image.shape[1]))
+        rg = ev.range_group(float(np.linalg.norm(poses[key][1]))) if key in poses else None
+        groups.append(frame_groups + ([rg] if rg else []))
         found = {}
         for name, det in (("detector", detector), ("detector_no_lines", ablation)):
             f = det.detect(image, label["K"])
             found[name] = (f.corners_px, f.alt_corners_px, f.ambiguous, f.visible, f.cov_px)
+        if roi is not None:
+            box = ev.label_roi(label["corners_px"], image.shape) if roi == "labels" else roi.get(key)
+            f = detector.detect(image, label["K"], roi_px=box)
+            found["detector_roi"] = (f.corners_px, f.alt_corners_px, f.ambiguous, f.visible, f.cov_px)
         for name, harris in (("harris", True), ("shi_tomasi", False)):
             pts = ev.associate_nearest(ev.classical_corners(image, harris), label["corners_px"], use)
             found[name] = (pts, pts, False, np.isfinite(pts[:, 0]), np.full((8, 2, 2), np.nan))
@@ -132,10 +150,11 @@ def summarize(arrays: dict, groups: list[list[str]]) -> dict:
     from envisat_pose.perception import evaluate as ev
 
     out = {}
-    for g in ev.GROUP_ORDER:
+    methods = [m for m in arrays if m != "truth"]
+    for g in list(ev.GROUP_ORDER) + list(ev.RANGE_GROUPS):
         sel = np.array([g in gs for gs in groups], bool)
         out[g] = {}
-        for m in METHODS:
+        for m in methods:
             if not sel.any():
                 out[g][m] = {"frames": 0}
                 continue
@@ -155,20 +174,22 @@ def _fmt(x, spec: str) -> str:
 def table(summary: dict) -> str:
     """One line per non-empty group and method."""
     head = (f"{'group':14s} {'method':18s} {'frames':>6s} {'med px':>7s} {'p95 px':>7s} {'PCK@2':>6s} {'PCK@5':>6s} "
-            f"{'swaps':>6s} {'ambig':>6s} {'vis P':>6s} {'vis R':>6s} {'NEES':>6s} {'t m':>7s} {'rot deg':>7s}")
+            f"{'swaps':>6s} {'ambig':>6s} {'vis P':>6s} {'vis R':>6s} {'NEES':>6s} {'t m':>7s} {'rot deg':>7s} "
+            f"{'scale':>7s} {'radial px':>9s}")
     lines = [head, "-" * len(head)]
     for g, per in summary.items():
         for m, s in per.items():
             if not s.get("frames"):
                 continue
-            vis, cal, pose = s.get("visibility", {}), s.get("calibration", {}), s.get("pose", {})
+            vis, cal, pose, bias = (s.get(k, {}) for k in ("visibility", "calibration", "pose", "bias"))
             lines.append(
                 f"{g:14s} {m:18s} {s['frames']:6d} {_fmt(s['errors']['all']['median_px'], '7.2f')} "
                 f"{_fmt(s['errors']['all']['p95_px'], '7.2f')} {_fmt(s['pck_2px'], '6.1%')} "
                 f"{_fmt(s['pck_5px'], '6.1%')} {_fmt(s['swap_rate_strict'], '6.1%')} "
                 f"{_fmt(s['ambiguous_share'], '6.1%')} {_fmt(vis.get('precision'), '6.1%')} "
                 f"{_fmt(vis.get('recall'), '6.1%')} {_fmt(cal.get('mean_nees'), '6.2f')} "
-                f"{_fmt(pose.get('translation_m_median'), '7.3f')} {_fmt(pose.get('rotation_deg_median'), '7.2f')}")
+                f"{_fmt(pose.get('translation_m_median'), '7.3f')} {_fmt(pose.get('rotation_deg_median'), '7.2f')} "
+                f"{_fmt(bias.get('scale_mean'), '7.4f')} {_fmt(bias.get('radial_px_mean'), '+9.3f')}")
     return "\n".join(lines)
 
 
@@ -177,7 +198,7 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from envisat_pose.app.detect import camera_samples, detector_inputs
+    from envisat_pose.app.detect import camera_samples, detector_inputs, read_roi
     from envisat_pose.geometry import load_geometry
     from envisat_pose.io import atomic_write_text, check_writable_output
     from envisat_pose.perception.data import shard_paths
@@ -188,6 +209,7 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
     detector_inputs(args)
     check_writable_output(args.json, "json")
     paths = shard_paths(args.data)
+    roi = read_roi(args.roi) if args.roi else ("labels" if args.roi_labels else None)
     model = load_model(args.weights, args.device)
     cfg = DetectConfig(cov_scale=weights_cov_scale(args.weights))
     detector = make_detector(model, cfg, args.device)
@@ -195,7 +217,7 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
 
     bar = tqdm(disable=args.quiet, desc="evaluate", unit="frame")
     arrays, groups = evaluate_frames(detector, ablation, camera_samples(paths), read_poses(paths),
-                                     load_geometry().corners_T_m, bar=bar, limit=args.limit)
+                                     load_geometry().corners_T_m, bar=bar, limit=args.limit, roi=roi)
     bar.close()
     if not groups:
         raise InputError(f"--data {args.data!r}: no frames")
@@ -203,6 +225,7 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
     print(table(summary))
     result = {"weights": args.weights, "data": args.data, "frames": len(groups), "model": model.cfg.to_dict(),
               "detect_config": dataclasses.asdict(cfg), "match_px": 5.0,
+              "roi": args.roi if args.roi else ("labels" if args.roi_labels else None),
               "grouping": corruption_groups.__doc__ + " Levels: perception.evaluate.corruption_levels.",
               "groups": summary}
     atomic_write_text(args.json, json.dumps(_clean_json(result), indent=1, allow_nan=False) + "\n")

@@ -73,9 +73,10 @@ def test_evaluate_with_oracle_writes_every_group(paper_dataset, weights, tmp_pat
     assert main(["evaluate", "--weights", weights, "--data", paper_dataset, "--json", str(out), "--quiet"]) == 0
     table = capsys.readouterr().out
     res = json.loads(out.read_text())
-    from envisat_pose.perception.evaluate import GROUP_ORDER
+    from envisat_pose.perception.evaluate import GROUP_ORDER, RANGE_GROUPS
 
-    assert list(res["groups"]) == list(GROUP_ORDER) and res["frames"] == 12
+    assert list(res["groups"]) == list(GROUP_ORDER) + list(RANGE_GROUPS) and res["frames"] == 12
+    assert sum(res["groups"][g]["detector"]["frames"] for g in RANGE_GROUPS) == 12
     allg = res["groups"]["all"]
     assert set(allg) == {"detector", "detector_no_lines", "harris", "shi_tomasi"}
     det = allg["detector"]
@@ -91,6 +92,76 @@ def test_evaluate_with_oracle_writes_every_group(paper_dataset, weights, tmp_pat
     assert part == 12
     assert sum(res["groups"][f"noise={s}"]["detector"]["frames"] for s in ("none", "low", "medium", "high")) == 12
     assert "all" in table and "shi_tomasi" in table and "PCK@5" in table
+
+
+class ScaledLabels:
+    """Test double: names every usable labelled corner, moved out from the usable corners' centroid by a known
+    per-frame scale (1, 1.01 or 1.02 by the frame's index); records the regions of interest it is given."""
+
+    def __init__(self, labels: dict, scales: dict):
+        self.labels, self.scales, self.rois = labels, scales, []
+
+    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None):
+        from envisat_pose.perception.detect import FrameDetection
+
+        h = hashlib.sha1(image.tobytes()).hexdigest()
+        lab, s = self.labels[h], self.scales[h]
+        self.rois.append(roi_px)
+        use = lab["visible"] & lab["in_frame"]
+        c = lab["corners_px"][use].mean(axis=0)
+        pts = np.where(use[:, None], c + s * (lab["corners_px"] - c), np.nan)
+        cov = np.where(use[:, None, None], np.eye(2), np.nan)
+        return FrameDetection(pts, cov, use * 1.0, use, pts, 0.0, False, np.zeros(3), pts)
+
+
+def test_scale_and_radial_bias_match_the_labels(paper_dataset, weights, tmp_path, monkeypatch):
+    """evaluate's apparent scale and radial error per corruption group and range bin against the same figures
+    computed here from the labels (the poses and corners read from the tar members themselves)."""
+    import tarfile
+
+    import envisat_pose.app.evaluate as app
+    from envisat_pose.perception.evaluate import RANGE_EDGES_M, RANGE_GROUPS, corruption_groups, corruption_levels
+
+    samples = list(read_samples(shard_paths(paper_dataset)))
+    labels = {hashlib.sha1(img.tobytes()).hexdigest(): lab for _, img, lab in samples}
+    scales = {hashlib.sha1(img.tobytes()).hexdigest(): 1.0 + 0.01 * (i % 3) for i, (_, img, _) in enumerate(samples)}
+    double = ScaledLabels(labels, scales)
+    monkeypatch.setattr(app, "make_detector", lambda model, config, device: double)
+    out = tmp_path / "eval.json"
+    assert main(["evaluate", "--weights", weights, "--data", paper_dataset, "--json", str(out), "--quiet",
+                 "--roi-labels"]) == 0
+    res = json.loads(out.read_text())
+    assert sum(r is not None for r in double.rois) == 12  # detector_roi: one ROI per frame
+    ranges = {}
+    for path in shard_paths(paper_dataset):
+        with tarfile.open(path) as tar:
+            for m in tar.getmembers():
+                if m.name.endswith(".json"):
+                    ranges[m.name.split(".")[0]] = float(np.linalg.norm(json.loads(tar.extractfile(m).read())
+                                                                        ["t_cam_from_target_m"]))
+    per_group = {}
+    for (key, img, lab) in samples:
+        h = hashlib.sha1(img.tobytes()).hexdigest()
+        use = lab["visible"] & lab["in_frame"]
+        q = lab["corners_px"][use]
+        radial = (scales[h] - 1.0) * np.linalg.norm(q - q.mean(axis=0), axis=1)
+        g = corruption_groups(*corruption_levels(lab["corruption"], img.shape[1]))
+        g.append(RANGE_GROUPS[int(np.searchsorted(RANGE_EDGES_M, ranges[key], side="right"))])
+        for name in g:
+            acc = per_group.setdefault(name, {"scale": [], "radial": []})
+            if use.sum() >= 3:
+                acc["scale"].append(scales[h])
+            if use.sum() >= 2:
+                acc["radial"] += radial.tolist()
+    for name, acc in per_group.items():
+        for method in ("detector", "detector_roi"):
+            b = res["groups"][name][method]["bias"]
+            assert b["scale_frames"] == len(acc["scale"]) and b["radial_corners"] == len(acc["radial"])
+            assert abs(b["scale_mean"] - np.mean(acc["scale"])) < 1e-9
+            assert abs(b["radial_px_mean"] - np.mean(acc["radial"])) < 1e-9
+            if len(acc["scale"]) > 1:
+                se = np.std(acc["scale"], ddof=1) / np.sqrt(len(acc["scale"]))
+                assert abs(b["scale_se"] - se) < 1e-9
 
 
 def test_missing_weights_one_line(paper_dataset, tmp_path, capsys):
