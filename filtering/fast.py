@@ -45,23 +45,26 @@ _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
 # ---------------------------------------------------------------- small dense helpers
 
 @njit(**_JIT)
-def _chol(A, L, n):
-    """Lower Cholesky factor of A[:n, :n] into L[:n, :n]; False when A is not positive definite (or not finite)."""
+def _chol(A, U, n):
+    """Cholesky factor of the symmetric A[:n, :n] as U = L^T (row k of U = column k of the lower factor L,
+    A = L L^T), zero below the diagonal; False when A is not positive definite (or not finite). Row by row,
+    so that the inner loops run along rows (vectorized); each entry's sum over k runs in ascending order."""
     for j in range(n):
-        s = A[j, j]
+        for i in range(j):
+            U[j, i] = 0.0
+        for i in range(j, n):
+            U[j, i] = A[j, i]
         for k in range(j):
-            s -= L[j, k] * L[j, k]
+            ukj = U[k, j]
+            for i in range(j, n):
+                U[j, i] -= U[k, i] * ukj
+        s = U[j, j]
         if not s > 0.0:
             return False
         d = np.sqrt(s)
-        L[j, j] = d
+        U[j, j] = d
         for i in range(j + 1, n):
-            t = A[i, j]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / d
-        for i in range(j):
-            L[i, j] = 0.0
+            U[j, i] = U[j, i] / d
     return True
 
 
@@ -227,7 +230,8 @@ def _propagate(X, stages, h, J, Jinv, mu, gg, k1, k2, k3, k4, Ys):
 
 @njit(**_JIT)
 def _sigma_points(mean, cov, scale, A, L, sig):
-    """Scaled symmetric sigma points chi_0 = x, chi_k = x + L[:, k], chi_(n+k) = x - L[:, k], L L^T = scale P.
+    """Scaled symmetric sigma points chi_0 = x, chi_k = x + L[:, k], chi_(n+k) = x - L[:, k], L L^T = scale P
+    (L[:, k] = U[k], L is the lower Cholesky factor).
     sig (2n + 1, n). False when scale P has no Cholesky factor (the caller repairs it with the numpy filter)."""
     n = mean.shape[0]
     for i in range(n):
@@ -239,8 +243,8 @@ def _sigma_points(mean, cov, scale, A, L, sig):
         sig[0, i] = mean[i]
     for k in range(n):
         for i in range(n):
-            sig[1 + k, i] = mean[i] + L[i, k]
-            sig[1 + n + k, i] = mean[i] - L[i, k]
+            sig[1 + k, i] = mean[i] + L[k, i]
+            sig[1 + n + k, i] = mean[i] - L[k, i]
     return True
 
 
@@ -272,6 +276,7 @@ def predict_kernel(mean, cov, Q, stages, h, Wm, Wc, scale, J, Jinv, mu, gg, mean
     al = np.empty((3, S))
     m = np.empty(n)
     P = np.empty((n, n))
+    rw = np.empty((n, S))
     for r in range(R):
         ok[r] = _sigma_points(mean[r], cov[r], scale, A, L, sig)
         if not ok[r]:
@@ -286,11 +291,9 @@ def predict_kernel(mean, cov, Q, stages, h, Wm, Wc, scale, J, Jinv, mu, gg, mean
         for s in range(S):
             for i in range(n):
                 sig[s, i] = al[i - _P0, s] if _P0 <= i < _P0 + 3 else X[i, s]
+        mv = np.dot(Wm, sig)                                      # as numpy's Wm @ s
         for i in range(n):
-            m[i] = 0.0
-        for s in range(S):
-            for i in range(n):
-                m[i] += Wm[s] * sig[s, i]
+            m[i] = mv[i]
         pp = m[_P0] * m[_P0] + m[_P0 + 1] * m[_P0 + 1] + m[_P0 + 2] * m[_P0 + 2]
         if pp > 1.0:
             m[_P0], m[_P0 + 1], m[_P0 + 2] = -m[_P0] / pp, -m[_P0 + 1] / pp, -m[_P0 + 2] / pp
@@ -299,15 +302,11 @@ def predict_kernel(mean, cov, Q, stages, h, Wm, Wc, scale, J, Jinv, mu, gg, mean
         for s in range(S):
             for i in range(n):
                 sig[s, i] = (al[i - _P0, s] if _P0 <= i < _P0 + 3 else X[i, s]) - m[i]
-        # P = sum Wc (chi - x)(chi - x)^T + Q, symmetrized (the sum over s in order, vectorized over j)
+        # P = sum Wc (chi - x)(chi - x)^T + Q (BLAS, as numpy's matmul forms it), symmetrized
         for i in range(n):
-            for j in range(n):
-                P[i, j] = 0.0
-        for s in range(S):
-            for i in range(n):
-                a = sig[s, i] * Wc[s]
-                for j in range(n):
-                    P[i, j] += a * sig[s, j]
+            for s in range(S):
+                rw[i, s] = sig[s, i] * Wc[s]
+        np.dot(rw, sig, P)
         for i in range(n):
             mean_out[r, i] = m[i]
             for j in range(n):
@@ -376,12 +375,14 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
     L = np.empty((n, n))
     sig = np.empty((S, n))
     G = np.empty((3, 3))
-    zs = np.empty((S, Mx))
+    zbuf = np.empty(S * Mx)     # z of the sigma points, (S, M) contiguous for the BLAS products
+    zw = np.empty(Mx * S)       # Wc-weighted dz, transposed: (M, S)
+    xw = np.empty((n, S))       # Wc-weighted dx, transposed
     zp = np.empty(Mx)
     dx = np.empty((S, n))
     al = np.empty(3)
-    Pzz = np.empty((Mx, Mx))
-    Pxz = np.empty((n, Mx))
+    Pbuf = np.empty(Mx * Mx)
+    Xbuf = np.empty(n * Mx)
     Sm = np.empty((Mx, Mx))
     Ls = np.empty((Mx, Mx))
     V = np.empty((Mx, n))
@@ -432,6 +433,10 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
             ok[r] = False
             continue
         M = na * mdim
+        zs = zbuf[:S * M].reshape((S, M))
+        Pzz = Pbuf[:M * M].reshape((M, M))
+        Pxz = Xbuf[:n * M].reshape((n, M))
+        zwM = zw[:M * S].reshape((M, S))
         for a in range(na):
             for d in range(mdim):
                 comp[a * mdim + d] = act[a] * mdim + d
@@ -448,39 +453,32 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
             _align(sig[s, _P0:_P0 + 3], mean[r, _P0:_P0 + 3], al)
             for i in range(3):
                 dx[s, _P0 + i] = al[i] - mean[r, _P0 + i]
+        # z_pred = sum Wm z_s; Pzz = sum Wc dz dz^T, Pxz = sum Wc dx dz^T, as the numpy filter forms them
+        # (matrix products through BLAS: fast on these sizes, and the same products numpy's matmul computes)
+        zpM = np.dot(Wm, zs)
         for a in range(M):
-            zp[a] = 0.0
-        for s in range(S):
-            for a in range(M):
-                zp[a] += Wm[s] * zs[s, a]
+            zp[a] = zpM[a]
         for s in range(S):
             for a in range(M):
                 zs[s, a] -= zp[a]                                  # dz = z_s - z_pred
-        # Pzz = sum Wc dz dz^T, Pxz = sum Wc dx dz^T: the sums over s in order, vectorized over the last index
         for a in range(M):
-            for b in range(M):
-                Pzz[a, b] = 0.0
-            for i in range(n):
-                Pxz[i, a] = 0.0
-        for s in range(S):
-            for a in range(M):
-                c = zs[s, a] * Wc[s]
-                for b in range(a, M):
-                    Pzz[a, b] += c * zs[s, b]
-            for i in range(n):
-                c = dx[s, i] * Wc[s]
-                for a in range(M):
-                    Pxz[i, a] += c * zs[s, a]
-        for a in range(M):
-            for b in range(a + 1, M):
-                Pzz[b, a] = Pzz[a, b]
+            for s in range(S):
+                zwM[a, s] = zs[s, a] * Wc[s]
+        for i in range(n):
+            for s in range(S):
+                xw[i, s] = dx[s, i] * Wc[s]
+        np.dot(zwM, zs, Pzz)
+        np.dot(xw, zs, Pxz)
         sr = r_scale[r]
-        for a in range(M):
-            ca, da = comp[a] // mdim, comp[a] % mdim
-            y[a] = z[r, ca, da] - zp[a]                            # innovation
-            for b in range(M):
-                cb, db = comp[b] // mdim, comp[b] % mdim
-                Sm[a, b] = Pzz[a, b] + (R_c[r, ca, da, db] * sr if ca == cb else 0.0)
+        for ai in range(na):
+            ca = act[ai]
+            for da in range(mdim):
+                a = ai * mdim + da
+                y[a] = z[r, ca, da] - zp[a]                        # innovation
+                for b in range(M):
+                    Sm[a, b] = Pzz[a, b]
+                for db in range(mdim):                             # + R of the corner (block diagonal)
+                    Sm[a, ai * mdim + db] += R_c[r, ca, da, db] * sr
         # chi-square gate per corner: y_c^T S_cc^-1 y_c <= thr (a NaN distance fails)
         keep = 0
         for a in range(na):
@@ -497,7 +495,7 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
                 for i in range(mdim):
                     t = y[o + i]
                     for k in range(i):
-                        t -= Lc[i, k] * buf[k]
+                        t -= Lc[k, i] * buf[k]
                     buf[i] = t / Lc[i, i]
                     d2 += buf[i] * buf[i]
                 good = d2 <= thr[r]
@@ -533,30 +531,38 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
             ok[r] = False
             continue
         # u = L^-1 y, V = L^-1 Pxz^T: K = V^T L^-1, K y = V^T u, K S K^T = V^T V, NIS = u.u
+        # (forward substitution as row operations: each entry's sum over k in ascending order)
+        for a in range(Mk):
+            u[a] = y[a]
+        for k in range(Mk):
+            d = Ls[k, k]
+            u[k] = u[k] / d
+            for i in range(n):
+                V[k, i] = V[k, i] / d
+            for a in range(k + 1, Mk):
+                lka = Ls[k, a]
+                u[a] -= lka * u[k]
+                for i in range(n):
+                    V[a, i] -= lka * V[k, i]
         ny, yty = 0.0, 0.0
         for a in range(Mk):
-            t = y[a]
-            for k in range(a):
-                t -= Ls[a, k] * u[k]
-            u[a] = t / Ls[a, a]
             ny += u[a] * u[a]
             yty += y[a] * y[a]
-            for i in range(n):
-                t = V[a, i]
-                for k in range(a):
-                    t -= Ls[a, k] * V[k, i]
-                V[a, i] = t / Ls[a, a]
         for i in range(n):
-            acc = 0.0
-            for a in range(Mk):
-                acc += V[a, i] * u[a]
-            Ky[r, i] = acc
-            mean_out[r, i] = mean[r, i] + acc
+            Ky[r, i] = 0.0
             for j in range(n):
-                acc = 0.0
-                for a in range(Mk):
-                    acc += V[a, i] * V[a, j]
-                P[i, j] = cov[r, i, j] - acc
+                P[i, j] = 0.0
+        for a in range(Mk):
+            ua = u[a]
+            for i in range(n):
+                Ky[r, i] += V[a, i] * ua
+                vai = V[a, i]
+                for j in range(n):
+                    P[i, j] += vai * V[a, j]
+        for i in range(n):
+            mean_out[r, i] = mean[r, i] + Ky[r, i]
+            for j in range(n):
+                P[i, j] = cov[r, i, j] - P[i, j]
         nis[r], yy[r], trPzz[r] = ny, yty, tr
         # |p| > 1: the mean to its shadow, the covariance with S = (2 p p^T - (p.p) I) / (p.p)^2
         p0, p1, p2 = mean_out[r, _P0], mean_out[r, _P0 + 1], mean_out[r, _P0 + 2]
