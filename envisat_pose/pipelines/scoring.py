@@ -1,8 +1,10 @@
 """Scoring a tracker's runs against a truth (the truth only scores: nothing here feeds back into a run).
 
-A run has converged at the first time from which its position error stays below POS_TOL_M and its attitude error
-below ATT_TOL_DEG to the end of the run; time to converge counts from its first lit frame. After convergence:
-RMSE per block, mean NEES (12 dof for a consistent filter), the range bias (mean of |rho_hat| - |rho|, m).
+A run has converged at the first lit frame from which its position error stays below POS_TOL_M and its attitude
+error below ATT_TOL_DEG on every lit frame to the end of the run (frames in the Earth's shadow carry no image: the
+filter only predicts through them and they are not held against it); time to converge counts from the first lit
+frame. Over the lit frames after convergence: RMSE per block, mean NEES (12 dof for a consistent filter), the
+range bias (mean of |rho_hat| - |rho|, m).
 """
 
 from __future__ import annotations
@@ -35,6 +37,8 @@ def score_runs(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.nda
     t_s = np.asarray(t_s, dtype=float)
     R = x_hat.shape[0]
     lit = ~np.asarray(skipped, bool) if skipped is not None else np.ones(len(t_s), bool)
+    if not lit.any():
+        lit = np.ones(len(t_s), bool)
     t_first_lit = float(t_s[np.argmax(lit)]) if lit.any() else float(t_s[0])
     err = error_magnitudes(x_true, x_hat)
     e_nees = nees(x_true, x_hat, P)  # (R, T)
@@ -42,11 +46,11 @@ def score_runs(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.nda
     conv_t, sq = [], {b: [] for b in err}
     nees_after, bias_after = [], []
     for r in range(R):
-        tc = converged_from(t_s, err["position_m"][r], err["attitude_deg"][r])
+        tc = converged_from(t_s[lit], err["position_m"][r, lit], err["attitude_deg"][r, lit])
         conv_t.append(tc)
         if tc is None:
             continue
-        k = t_s >= tc
+        k = (t_s >= tc) & lit
         for b in err:
             sq[b].append(err[b][r, k] ** 2)
         nees_after.append(e_nees[r, k])
@@ -68,3 +72,12 @@ def score_runs(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.nda
         "blocks": list(BLOCKS),
     }
     return out
+
+
+def after_convergence_masks(t_s: np.ndarray, scores: dict, skipped: np.ndarray | None = None) -> np.ndarray:
+    """(R, T) bool: the lit frames of each run from its convergence on (all False for a run that never did)."""
+    t_s = np.asarray(t_s, dtype=float)
+    lit = ~np.asarray(skipped, bool) if skipped is not None else np.ones(len(t_s), bool)
+    first = scores["first_lit_s"]
+    return np.array([np.zeros(len(t_s), bool) if d is None else (t_s >= first + d) & lit
+                     for d in scores["time_to_converge_s"]])
