@@ -22,18 +22,26 @@ No prior and no truth: the tracker buffers the first lit frames with enough name
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
 from envisat_pose.attitude import dcm_to_mrp, mrp_shadow, mrp_to_dcm
-from envisat_pose.geometry import PinholeCamera
+from envisat_pose.geometry import PinholeCamera, load_geometry
 from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
-# the half-turn about the long axis: corner i of one naming is corner HALF_TURN[i] of the other; in T it is the
-# rotation diag(1, -1, -1)
-HALF_TURN = np.array([2, 3, 0, 1, 6, 7, 4, 5])
-R_HALF_TURN = np.diag([1.0, -1.0, -1.0])
+
+
+@functools.lru_cache(maxsize=1)
+def half_turn() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The half-turn about the long axis as perception's naming derives it from the MJCF's box
+    (perception.naming.symmetry_permutations): (perm (8,), S (3, 3), d (3,) m in T) with corner perm[k] = S corner
+    k + d; A<->C, B<->D, E<->G, F<->H with the box centred on the CoM."""
+    from envisat_pose.perception.naming import symmetry_permutations
+
+    perm, S, d = symmetry_permutations(load_geometry())["x"]
+    return np.asarray(perm), np.asarray(S, dtype=float), np.asarray(d, dtype=float)
 
 
 @dataclass(frozen=True)
@@ -83,18 +91,21 @@ def pnp_state(z_px: np.ndarray, corners_T_m: np.ndarray, camera: PinholeCamera, 
 
 
 def half_turn_state(x: np.ndarray) -> np.ndarray:
-    """The same physical pose described by the half-turn naming: T' = half-turn of T, Gamma' = D Gamma, w' = D w
-    (D = diag(1, -1, -1)). (..., 12) -> (..., 12)."""
+    """The same physical pose described by the half-turn naming (half_turn: S, d): T' has Gamma' = S Gamma, its
+    origin moved by d (rho' = rho + Gamma^T d, zero for a box centred on the CoM) and w' = S w. (..., 12)."""
+    _, S, d = half_turn()
     x = np.array(x, dtype=float)
-    G = np.einsum("ij,...jk->...ik", R_HALF_TURN, mrp_to_dcm(x[..., MRP]))
-    x[..., MRP] = dcm_to_mrp(G)
-    x[..., RATE] = x[..., RATE] @ R_HALF_TURN
+    G = mrp_to_dcm(x[..., MRP])
+    x[..., POS] = x[..., POS] + np.einsum("...ji,j->...i", G, d)
+    x[..., MRP] = dcm_to_mrp(np.einsum("ij,...jk->...ik", S, G))
+    x[..., RATE] = x[..., RATE] @ S.T
     return x
 
 
 def half_turn_naming(z_px: np.ndarray, cov_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The half-turn renaming of corners (8, 2) and covariances (8, 2, 2): corner i takes corner HALF_TURN[i]."""
-    return z_px[HALF_TURN], cov_px[HALF_TURN]
+    """The half-turn renaming of corners (8, 2) and covariances (8, 2, 2): corner i takes corner perm[i]."""
+    perm = half_turn()[0]
+    return z_px[perm], cov_px[perm]
 
 
 def attitude_distance_rad(p_a: np.ndarray, p_b: np.ndarray) -> float:

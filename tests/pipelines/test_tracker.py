@@ -34,7 +34,7 @@ class NoisyTruthDetector:
         vis = src.visible[j] & src.in_frame[j]
         c = np.where(vis[:, None], src.corners_px[j] + self.rng.normal(0, self.sigma, (8, 2)), np.nan)
         cov = np.where(vis[:, None, None], np.eye(2) * self.sigma**2, np.nan)
-        alt = c[acq.HALF_TURN]
+        alt = c[acq.half_turn()[0]]
         return FrameDetection(c, cov, vis * 0.9, vis, alt, self.p_alt, False, np.array([0.0, 0.0, 1024.0]), c[vis])
 
 
@@ -59,11 +59,11 @@ def test_the_half_turn_is_an_involution_of_the_same_pose(truth_600):
     ht = acq.half_turn_state(x)
     np.testing.assert_allclose(acq.half_turn_state(ht), x, atol=1e-12)
     assert abs(np.degrees(acq.attitude_distance_rad(ht[MRP], x[MRP])) - 180.0) < 1e-6
-    # the same box in the image: the half-turn state's corner i is the truth's corner HALF_TURN[i]
+    # the same box in the image: the half-turn state's corner i is the truth's corner perm[i] (perception.naming.symmetry_permutations)
     from envisat_pose.filtering.measurements import measure
 
     cam = load_camera()
-    np.testing.assert_allclose(measure(ht, "pixels", cam), measure(x, "pixels", cam)[acq.HALF_TURN], atol=1e-8)
+    np.testing.assert_allclose(measure(ht, "pixels", cam), measure(x, "pixels", cam)[acq.half_turn()[0]], atol=1e-8)
 
 
 def test_the_batch_fit_recovers_the_state_and_the_dynamics_pick_the_hypothesis(truth_600):
