@@ -1,0 +1,31 @@
+"""envisat-pose: relative pose of the tumbling ENVISAT from camera images (docs/design.md).
+
+The public API, imported on first use (so `import envisat_pose` loads nothing heavy):
+
+- contracts: `TruthTrajectory`, `Detections`, `Estimates` (envisat_pose.contracts);
+- the tracker: `Tracker`, `TrackerConfig`, `TrackEstimate` (envisat_pose.pipelines.tracker);
+- the closed loop: `RunConfig`, `run_closed_loop` (envisat_pose.pipelines.closed_loop); a user's frames:
+  `TrackConfig`, `open_source`, `track_frames` (envisat_pose.pipelines.track);
+- campaigns: `MonteCarloConfig`, `run_campaign` (envisat_pose.app.montecarlo);
+- the state's layout: `envisat_pose.state`.
+"""
+
+_PUBLIC = {
+    "TruthTrajectory": "envisat_pose.contracts", "Detections": "envisat_pose.contracts",
+    "Estimates": "envisat_pose.contracts",
+    "Tracker": "envisat_pose.pipelines.tracker", "TrackerConfig": "envisat_pose.pipelines.tracker",
+    "TrackEstimate": "envisat_pose.pipelines.tracker",
+    "RunConfig": "envisat_pose.pipelines.closed_loop", "run_closed_loop": "envisat_pose.pipelines.closed_loop",
+    "TrackConfig": "envisat_pose.pipelines.track", "open_source": "envisat_pose.pipelines.track",
+    "track_frames": "envisat_pose.pipelines.track",
+    "MonteCarloConfig": "envisat_pose.app.montecarlo", "run_campaign": "envisat_pose.app.montecarlo",
+}
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str):
+    if name in _PUBLIC:
+        import importlib
+
+        return getattr(importlib.import_module(_PUBLIC[name]), name)
+    raise AttributeError(f"module 'envisat_pose' has no attribute {name!r}")
