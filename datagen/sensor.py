@@ -42,13 +42,22 @@ AIRY_FIRST_ZERO_X = 3.8317059702075125  # first zero of J1: the Airy pattern's f
 def vignetting_factor(shape: tuple[int, int], f_px: float, cos_power: float,
                       box: tuple[int, int, int, int] | None = None) -> np.ndarray:
     """cos^n(theta) per pixel, theta the angle of the pixel's ray off the optical axis (principal point at
-    the image centre, OpenCV convention). (H, W) float32; with box (y0, y1, x0, x1), only that window of it."""
+    the image centre, OpenCV convention). (H, W) float32; with box (y0, y1, x0, x1), only that window of it.
+    Computed as exp(n log cos theta) from the camera's cached log cos theta map (float32)."""
     h, w = shape
     y0, y1, x0, x1 = box if box is not None else (0, h, 0, w)
-    dv2 = (np.arange(y0, y1, dtype=np.float64) - (h - 1) / 2.0) ** 2
-    du2 = (np.arange(x0, x1, dtype=np.float64) - (w - 1) / 2.0) ** 2
-    r2 = dv2[:, None] + du2[None, :]
-    return ((f_px / np.sqrt(f_px**2 + r2)) ** cos_power).astype(np.float32)
+    out = _log_cos_map(int(h), int(w), float(f_px))[y0:y1, x0:x1] * np.float32(cos_power)
+    return np.exp(out, out=out)
+
+
+@functools.lru_cache(maxsize=4)
+def _log_cos_map(h: int, w: int, f_px: float) -> np.ndarray:
+    """log cos theta of every pixel's ray, computed in float64 once per camera. (h, w) float32, read-only."""
+    dv2 = (np.arange(h, dtype=np.float64) - (h - 1) / 2.0) ** 2
+    du2 = (np.arange(w, dtype=np.float64) - (w - 1) / 2.0) ** 2
+    out = (-0.5 * np.log1p((dv2[:, None] + du2[None, :]) / f_px**2)).astype(np.float32)
+    out.setflags(write=False)
+    return out
 
 
 def gaussian_psf(sigma_px: float) -> np.ndarray:
@@ -209,39 +218,189 @@ def draw_sensor(cfg: dict, resolution_px: int, f_px: float, speed_px_s: float, a
     }
 
 
-def optics(gray_u8: np.ndarray, p: dict) -> np.ndarray:
-    """Steps 1-3: irradiance (white = 1) after vignetting, the PSF and the motion streak. (H, W) float32.
+def gaussian_psf_1d(sigma_px: float) -> np.ndarray:
+    """The separable factor of gaussian_psf: gaussian_psf(s) = outer(g, g) with g = gaussian_psf_1d(s) (the
+    Gaussian and its 4 x 4 pixel sub-samples both factor in x and y). (k,) float32, sum 1."""
+    half = int(math.ceil(4.0 * sigma_px)) + 1
+    sub = (np.arange(4) + 0.5) / 4.0 - 0.5
+    x = (np.arange(2 * half + 1) - half)[:, None] + sub[None, :]
+    g = np.exp(-0.5 * (x / sigma_px) ** 2).sum(axis=1)
+    return (g / g.sum()).astype(np.float32)
 
-    Only the box around the non-black pixels is filtered (outside it the result is 0 either way)."""
+
+def optics_box(gray_u8: np.ndarray, p: dict) -> tuple[np.ndarray | None, tuple[int, int, int, int] | None]:
+    """Steps 1-3 (irradiance, white = 1, after vignetting, the PSF and the motion streak) on the box around
+    the non-black pixels grown by twice the filters' reach, the only place it is not 0: (crop (h, w) float32,
+    box (y0, y1, x0, x1)), or (None, None) for a black image. A Gaussian PSF is applied as its two separable
+    factors (the same kernel)."""
     from envisat_pose.datagen.corrupt import motion_kernel
 
-    img = np.zeros(gray_u8.shape, dtype=np.float32)
-    psf = gaussian_psf(p["psf"]["sigma_px"]) if p["psf"]["kind"] == "gaussian" else airy_psf(p["psf"]["first_zero_px"])
+    gauss = p["psf"]["kind"] == "gaussian"
+    half = int(math.ceil(4.0 * p["psf"]["sigma_px"])) + 1 if gauss else None
+    psf = gaussian_psf_1d(p["psf"]["sigma_px"]) if gauss else airy_psf(p["psf"]["first_zero_px"])
     kern = motion_kernel(p["motion_blur_length_px"], p["motion_blur_angle_deg"]) if p["motion_blur_length_px"] > 0.05 else None
-    reach = psf.shape[0] // 2 + (kern.shape[0] // 2 if kern is not None else 0)
+    reach = (half if gauss else psf.shape[0] // 2) + (kern.shape[0] // 2 if kern is not None else 0)
     box = content_box(gray_u8, reach)
     if box is None:
-        return img
+        return None, None
     y0, y1, x0, x1 = box
     crop = gray_u8[y0:y1, x0:x1].astype(np.float32) * np.float32(1.0 / 255.0)
     if p["vignetting_cos_power"] > 0:
         crop *= vignetting_factor(gray_u8.shape, p["f_px"], p["vignetting_cos_power"], box)
-    crop = cv2.filter2D(crop, -1, psf, borderType=cv2.BORDER_REFLECT)
+    if gauss:
+        crop = cv2.sepFilter2D(crop, -1, psf, psf, borderType=cv2.BORDER_REFLECT)
+    else:
+        crop = cv2.filter2D(crop, -1, psf, borderType=cv2.BORDER_REFLECT)
     if kern is not None:
         crop = cv2.filter2D(crop, -1, kern, borderType=cv2.BORDER_REFLECT)
-    img[y0:y1, x0:x1] = crop
+    return crop, box
+
+
+def optics(gray_u8: np.ndarray, p: dict) -> np.ndarray:
+    """Steps 1-3 on the whole frame (optics_box, zeros around it). (H, W) float32."""
+    img = np.zeros(gray_u8.shape, dtype=np.float32)
+    crop, box = optics_box(gray_u8, p)
+    if box is not None:
+        y0, y1, x0, x1 = box
+        img[y0:y1, x0:x1] = crop
     return img
 
 
+# ---------------------------------------------------------------------------------------------------------
+# Exact sampling of the unlit pixels: one discrete distribution, drawn by table lookup
+
+
+def sample_discrete(pmf: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """n indices drawn from the probabilities pmf (K <= 256,) by inverse transform: the uniform U = (B + V) / 256
+    with B a random byte and V a uniform of 2^-32 resolution (drawn only where needed). A byte whose interval
+    [B, B + 1) / 256 holds no step of the cdf fixes the index by table lookup (cv2.LUT); the rest (a share
+    below K / 256, in practice a few per cent) are found in the cdf with V. Exact to 2^-40. (n,) uint8."""
+    pmf = np.asarray(pmf, dtype=np.float64)
+    if len(pmf) > 256:
+        raise ValueError(f"sample_discrete takes at most 256 outcomes, got {len(pmf)}")
+    cdf = np.cumsum(pmf)
+    cdf /= cdf[-1]
+    b = np.arange(256)
+    first = np.minimum(np.searchsorted(cdf, b / 256.0, side="right"), len(pmf) - 1)
+    last = np.minimum(np.searchsorted(cdf, (b + 1) / 256.0, side="left"), len(pmf) - 1)
+    value_lut = first.astype(np.uint8)
+    exact_lut = (first == last).astype(np.uint8)
+    byte = np.frombuffer(rng.bytes(n), dtype=np.uint8)
+    out = cv2.LUT(byte, value_lut).ravel()
+    amb = np.flatnonzero(cv2.LUT(byte, exact_lut).ravel() == 0)
+    if amb.size:
+        v = rng.integers(0, 2**32, size=amb.size, dtype=np.uint64).astype(np.float64) * 2.0**-32
+        u = (byte[amb].astype(np.float64) + v) / 256.0
+        out[amb] = np.minimum(np.searchsorted(cdf, u, side="right"), len(pmf) - 1)
+    return out
+
+
+def poisson_pmf(lam: float, kmax: int) -> np.ndarray:
+    """Poisson probabilities of 0 .. kmax events at mean lam. (kmax + 1,) float64."""
+    from scipy.special import gammaln
+
+    k = np.arange(kmax + 1, dtype=np.float64)
+    if lam <= 0:
+        return (k == 0).astype(np.float64)
+    return np.exp(k * math.log(lam) - lam - gammaln(k + 1.0))
+
+
+def _poisson_support(lam: float) -> int:
+    return int(math.ceil(lam + 12.0 * math.sqrt(lam) + 20.0))  # tail beyond it below 1e-25
+
+
+def dark_pixel_pmf(p: dict) -> np.ndarray | None:
+    """The exact distribution of the 8-bit value of a pixel that receives no light (steps 4-8 with only the
+    dark current): shot noise of the dark charge (Poisson below POISSON_EXACT_BELOW_E, its Gaussian above),
+    read noise, the ADC and the 8-bit display, as probabilities of the values 0..255. (256,) float64; None
+    when such a pixel could reach the full well (blooming would couple it to its neighbours)."""
+    from scipy.special import ndtr
+
+    lam = float(np.float32(p["dark_current_e_per_s"] * p["exposure_s"]))
+    sig = float(p["read_noise_e"])
+    fw = float(p["full_well_e"])
+    if lam + 12.0 * math.sqrt(lam) + 20.0 >= fw:
+        return None
+    top = 2 ** int(p["adc_bits"]) - 1
+    s = np.float32(top / fw)  # DN per electron, as adc_to_u8 computes it
+    if lam < POISSON_EXACT_BELOW_E:
+        k = np.arange(_poisson_support(lam) + 1)
+        w = poisson_pmf(lam, len(k) - 1)
+        if sig > 0:  # charge = k + N(0, sig^2): DN = rint(charge s) falls in bins of charge
+            d = np.arange(0, min(top, int(math.ceil((k[-1] + 10 * sig) * float(s))) + 2) + 1)
+            lo = np.where(d == 0, -np.inf, (d - 0.5) / float(s))
+            up = np.where(d == top, np.inf, (d + 0.5) / float(s))
+            p_dn = ((ndtr((up[None, :] - k[:, None]) / sig) - ndtr((lo[None, :] - k[:, None]) / sig))
+                    * w[:, None]).sum(axis=0)
+        else:  # whole electrons, converted exactly as adc_to_u8 does
+            dn = np.clip(np.rint(k.astype(np.float32) * s), 0, top).astype(np.int64)
+            d = np.arange(dn.max() + 1)
+            p_dn = np.bincount(dn, weights=w, minlength=len(d))
+    else:  # the Gaussian limit: charge ~ N(lam, lam + sig^2)
+        sd = math.sqrt(lam + sig * sig)
+        d = np.arange(0, min(top, int(math.ceil((lam + 10 * sd) * float(s))) + 2) + 1)
+        lo = np.where(d == 0, -np.inf, (d - 0.5) / float(s))
+        up = np.where(d == top, np.inf, (d + 0.5) / float(s))
+        p_dn = ndtr((up - lam) / sd) - ndtr((lo - lam) / sd)
+    u8 = d if top == 255 else np.rint(d.astype(np.float32) * np.float32(255.0 / top)).astype(np.int64)
+    return np.bincount(np.clip(u8, 0, 255), weights=p_dn[: len(d)], minlength=256)[:256]
+
+
 def apply_sensor(gray_u8: np.ndarray, p: dict) -> np.ndarray:
-    """The whole chain (module docstring) on a clean render. (H, W) uint8 -> (H, W) uint8."""
+    """The whole chain (module docstring) on a clean render. (H, W) uint8 -> (H, W) uint8.
+
+    Work goes where the light is: the pixels outside the optics box (grown along the columns by the blooming
+    reach) receive no light, so their 8-bit values are independent draws from one exact distribution
+    (dark_pixel_pmf), taken by table lookup; the box runs the chain pixel by pixel (apply_sensor_box). The
+    noise comes from noise_seed: the box's draws first, then the dark pixels'."""
+    h, w = gray_u8.shape
+    rng = np.random.default_rng(p["noise_seed"])
+    crop, box = optics_box(gray_u8, p)
+    pmf = dark_pixel_pmf(p)
+    if pmf is None:  # the dark charge alone may bloom: the whole frame pixel by pixel
+        crop, box = optics(gray_u8, p), (0, h, 0, w)
+    out = np.empty((h, w), dtype=np.uint8)
+    if box is not None:
+        y0, y1, x0, x1 = box
+        if pmf is not None:  # room for the spill of saturated charge along the columns
+            grow = max(1, int(math.ceil(6.0 * p["blooming_decay_px"])))
+            g0, g1 = max(0, y0 - grow), min(h, y1 + grow)
+            irr = np.zeros((g1 - g0, x1 - x0), dtype=np.float32)
+            irr[y0 - g0 : y1 - g0] = crop
+            y0, y1 = g0, g1
+        else:
+            irr = crop
+        out[y0:y1, x0:x1] = apply_sensor_box(irr, (y0, y1, x0, x1), (h, w), p, rng)
+    if pmf is not None:  # the unlit rest: drawn for the whole frame (cheaper than picking pixels), box kept
+        keep = out[y0:y1, x0:x1].copy() if box is not None else None
+        out = sample_discrete(pmf, h * w, rng).reshape(h, w)
+        if keep is not None:
+            out[y0:y1, x0:x1] = keep
+    return out
+
+
+def apply_sensor_box(irr: np.ndarray, box: tuple[int, int, int, int], shape: tuple[int, int], p: dict,
+                     rng: np.random.Generator) -> np.ndarray:
+    """Steps 4-8 pixel by pixel on the irradiance irr (h, w) of the window box (y0, y1, x0, x1) of an image of
+    `shape` (the window of the camera's PRNU map): electrons, shot noise, blooming, read noise, ADC.
+    (h, w) uint8."""
     from envisat_pose.datagen.corrupt import standard_normal_fast
 
-    rng = np.random.default_rng(p["noise_seed"])
-    irr = optics(gray_u8, p)
-    mean_e = irr * (np.float32(p["white_e"]) * prnu_gain(p["camera_seed"], gray_u8.shape, p["prnu_sigma"]))
-    mean_e += np.float32(p["dark_current_e_per_s"] * p["exposure_s"])
-    charge = shot_noise_e(mean_e, rng)
+    y0, y1, x0, x1 = box
+    gain = prnu_gain(p["camera_seed"], shape, p["prnu_sigma"])[y0:y1, x0:x1]
+    lam_dark = np.float32(p["dark_current_e_per_s"] * p["exposure_s"])
+    mean_e = irr * np.float32(p["white_e"])
+    mean_e *= gain
+    mean_e += lam_dark
+    unlit = irr == 0  # mean exactly lam_dark: one Poisson distribution, drawn by table lookup
+    if lam_dark < POISSON_EXACT_BELOW_E and unlit.any():
+        charge = np.empty_like(mean_e)
+        kmax = _poisson_support(float(lam_dark))
+        charge[unlit] = sample_discrete(poisson_pmf(float(lam_dark), kmax), int(unlit.sum()), rng)
+        lit = ~unlit
+        charge[lit] = shot_noise_e(mean_e[lit], rng)
+    else:
+        charge = shot_noise_e(mean_e, rng)
     charge = bloom(charge, p["full_well_e"], p["blooming_decay_px"])
     if p["read_noise_e"] > 0:
         noise = standard_normal_fast(rng, charge.shape)

@@ -128,3 +128,102 @@ def test_airy_psf_far_below_a_pixel_is_a_point_not_nan():
     with np.errstate(all="raise"):
         out = sensor.apply_sensor(img, p)
     assert abs(out[12:28, 14:26].mean() - 100.0) < 3.0 and out[:8].max() < 10
+
+
+# --- the fast path: unlit pixels drawn from their exact distribution, lit ones pixel by pixel -------------
+
+
+def flat_params(**kw):
+    """One electron per DN at 8 bits (full well 255 e-), no PRNU, vignetting or motion: the 8-bit value is
+    the charge rounded, so its moments have closed forms."""
+    return params(full_well_e=255.0, adc_bits=8, white_e=200.0, dark_current_e_per_s=2000.0, exposure_s=0.01,
+                  read_noise_e=4.0, blooming_decay_px=2.0, **kw)
+
+
+def test_pixel_class_moments_match_the_closed_forms():
+    """Per pixel class, mean and variance of the 8-bit output: unlit pixels (dark charge lam_d = 20 e-, exact
+    Poisson), a patch below POISSON_EXACT_BELOW_E (60 e-: exact Poisson) and one above (170 e-: its Gaussian
+    limit): mean = lam, variance = lam (shot) + read^2 + 1/12 (rounding to whole DN)."""
+    img = np.zeros((600, 600), np.uint8)
+    img[60:280, 60:280] = 51  # 51 / 255 x 200 e- = 40 e- of light + 20 e- dark = 60 e-
+    img[320:540, 320:540] = 191  # 150 e- of light (191 / 255 x 200 = 149.8) + 20 e- = 169.8 e-
+    p = flat_params()
+    read2 = 16.0
+    classes = {"unlit": (np.s_[560:600, 0:600], 20.0), "poisson": (np.s_[70:270, 70:270], 20.0 + 200 * 51 / 255),
+               "gaussian": (np.s_[330:530, 330:530], 20.0 + 200 * 191 / 255)}
+    for seed in (1, 2):
+        out = sensor.apply_sensor(img, {**p, "noise_seed": seed}).astype(np.float64)
+        for name, (sl, lam) in classes.items():
+            x = out[sl].ravel()
+            n = x.size
+            var = lam + read2 + 1 / 12
+            assert abs(x.mean() - lam) < 5 * math.sqrt(var / n), (name, x.mean(), lam)
+            assert abs(x.var() - var) < 5 * var * math.sqrt(2 / n), (name, x.var(), var)
+        # the unlit pixels far from the content (the table-drawn ones) and the unlit ones inside the box agree
+        far, near = out[560:600].ravel(), out[285:315, 60:280].ravel()
+        assert abs(far.var() - near.var()) < 5 * 36 * math.sqrt(2 / near.size)
+
+
+def test_same_seed_same_bytes_and_seeds_differ():
+    img = np.zeros((300, 300), np.uint8)
+    img[100:200, 80:220] = 180
+    img[140:150, 140:150] = 255
+    p = params(white_e=30000.0, full_well_e=20000.0, dark_current_e_per_s=300.0, exposure_s=0.01, read_noise_e=6.0,
+               adc_bits=10, prnu_sigma=0.01, vignetting_cos_power=4.0, f_px=400.0)
+    a, b = sensor.apply_sensor(img, p), sensor.apply_sensor(img, dict(p))
+    assert np.array_equal(a, b)
+    c = sensor.apply_sensor(img, {**p, "noise_seed": p["noise_seed"] + 1})
+    assert not np.array_equal(a, c)
+    assert (a[145, 100:200] == 255).all()  # saturated
+
+
+@pytest.mark.parametrize("dark_e,read_e,bits,full_well", [(4.0, 8.0, 8, 14000.0), (20.0, 4.0, 12, 3000.0),
+                                                        (0.5, 0.0, 12, 1000.0), (150.0, 10.0, 10, 2000.0),
+                                                        (9.0, 3.0, 16, 65535.0)])
+def test_dark_pixel_distribution_against_an_independent_simulation(dark_e, read_e, bits, full_well):
+    """dark_pixel_pmf (Poisson or its Gaussian limit, read noise, ADC, 8-bit display, in closed form) against
+    the chain simulated directly in float64 (numpy's Poisson and normal): total variation below 0.004."""
+    p = params(dark_current_e_per_s=dark_e / 0.01, exposure_s=0.01, read_noise_e=read_e, adc_bits=bits,
+               full_well_e=full_well)
+    pmf = sensor.dark_pixel_pmf(p)
+    rng = np.random.default_rng(5)
+    n = 1_000_000
+    lam = float(np.float32(dark_e))
+    charge = rng.poisson(lam, n).astype(np.float64) if lam < sensor.POISSON_EXACT_BELOW_E else \
+        lam + math.sqrt(lam) * rng.standard_normal(n)
+    charge += read_e * rng.standard_normal(n)
+    top = 2**bits - 1
+    dn = np.clip(np.rint(charge * top / full_well), 0, top)
+    u8 = np.rint(dn * 255 / top).astype(int) if bits != 8 else dn.astype(int)
+    hist = np.bincount(u8, minlength=256) / n
+    assert abs(pmf.sum() - 1) < 1e-9
+    assert 0.5 * np.abs(hist - pmf).sum() < 0.004
+    drawn = np.bincount(sensor.sample_discrete(pmf, n, np.random.default_rng(6)), minlength=256) / n
+    assert 0.5 * np.abs(drawn - pmf).sum() < 0.004
+
+
+def test_sample_discrete_is_exact_in_distribution():
+    pmf = np.array([0.5, 0.25 - 1e-4, 1e-4, 0.125, 0.0, 0.125])
+    n = 2_000_000
+    x = sensor.sample_discrete(pmf, n, np.random.default_rng(0))
+    f = np.bincount(x, minlength=6) / n
+    assert f[4] == 0
+    assert np.all(np.abs(f - pmf) < 5 * np.sqrt(pmf * (1 - pmf) / n) + 1e-9)
+    # a distribution with steps in every byte interval: the fallback path does all of it
+    pmf = np.full(256, 1 / 256)
+    f = np.bincount(sensor.sample_discrete(pmf, n, np.random.default_rng(1)), minlength=256) / n
+    assert np.abs(f - pmf).max() < 5 * math.sqrt(pmf[0] / n)
+
+
+def test_blooming_spills_beyond_the_optics_box():
+    """A small saturated spot blooms along its column farther than the optics reach: the spill survives
+    the unlit pixels' draw around it, and the column keeps (most of) the charge."""
+    img = np.zeros((200, 200), np.uint8)
+    img[98:102, 99:101] = 255
+    p = params(white_e=40 * 5000.0, full_well_e=5000.0, blooming_decay_px=6.0, read_noise_e=0.0, adc_bits=12)
+    out = sensor.apply_sensor(img, p)
+    col = out[:, 100].astype(int)
+    assert (col[84:116] == 255).all()  # 8 px x 39 full wells of excess fill ~+-14 rows of the column
+    assert 100 < col[80] < 255 and 100 < col[119] < 255  # and fade out 18 rows away (the optics reach ~3 px)
+    assert (col[:55] == 0).all() and (col[146:] == 0).all()  # beyond the spill window (6 decay lengths)
+    assert (out[:, 90] == 0).all()  # not across columns
