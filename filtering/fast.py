@@ -333,25 +333,51 @@ def _align_cols(X, q0, q1, q2, al):
 # ---------------------------------------------------------------- update
 
 @njit(**_JIT)
-def _measure_corner(sig, G, c, kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_cv, min_depth, out):
-    """The measurement of corner c from the state sig (12,) with G = Gamma(p) (filtering/measurements.measure):
-    markers3d rho + Gamma^T v_c (m); pixels the guarded pinhole (px); pixels+range adds |v_C - camera| (m)."""
+def _dcm_cols(X, Gs):
+    """Gamma(p) (envisat_pose.attitude.mrp_to_dcm) of every column's MRP of X (12, S), row-major into Gs (9, S)."""
+    for s in range(X.shape[1]):
+        p0, p1, p2 = X[_P0, s], X[_P0 + 1, s], X[_P0 + 2, s]
+        pp = p0 * p0 + p1 * p1 + p2 * p2
+        a1 = 4.0 * (1.0 - pp) / (1.0 + pp) ** 2
+        a2 = 8.0 / (1.0 + pp) ** 2
+        Gs[0, s] = 1.0 + a2 * (-p2 * p2 + -p1 * p1)
+        Gs[1, s] = (0.0 - a1 * -p2) + a2 * (p1 * p0)
+        Gs[2, s] = (0.0 - a1 * p1) + a2 * (-p2 * -p0)
+        Gs[3, s] = (0.0 - a1 * p2) + a2 * (-p0 * -p1)
+        Gs[4, s] = 1.0 + a2 * (p2 * -p2 + -p0 * p0)
+        Gs[5, s] = (0.0 - a1 * -p0) + a2 * (p2 * p1)
+        Gs[6, s] = (0.0 - a1 * -p1) + a2 * (p0 * p2)
+        Gs[7, s] = (0.0 - a1 * p0) + a2 * (-p1 * -p2)
+        Gs[8, s] = 1.0 + a2 * (-p1 * p1 + p0 * -p0)
+
+
+@njit(**_JIT)
+def _measure_cols(X, Gs, c, kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_cv, min_depth, out):
+    """Corner c measured from every column of X (12, S), Gs (9, S) their Gamma, into out (m, S): markers3d
+    rho + Gamma^T v_c (m); pixels the guarded pinhole (px); pixels+range adds |v_C - camera| (m)."""
     v0, v1, v2 = corners_T[c, 0], corners_T[c, 1], corners_T[c, 2]
-    q0 = sig[0] + (v0 * G[0, 0] + v1 * G[1, 0] + v2 * G[2, 0])
-    q1 = sig[1] + (v0 * G[0, 1] + v1 * G[1, 1] + v2 * G[2, 1])
-    q2 = sig[2] + (v0 * G[0, 2] + v1 * G[1, 2] + v2 * G[2, 2])
+    S = X.shape[1]
     if kind == 0:
-        out[0], out[1], out[2] = q0, q1, q2
+        for s in range(S):
+            out[0, s] = X[0, s] + (v0 * Gs[0, s] + v1 * Gs[3, s] + v2 * Gs[6, s])
+            out[1, s] = X[1, s] + (v0 * Gs[1, s] + v1 * Gs[4, s] + v2 * Gs[7, s])
+            out[2, s] = X[2, s] + (v0 * Gs[2, s] + v1 * Gs[5, s] + v2 * Gs[8, s])
         return
-    d0, d1, d2 = q0 - cam_pos[0], q1 - cam_pos[1], q2 - cam_pos[2]
-    x = d0 * cam_R[0, 0] + d1 * cam_R[0, 1] + d2 * cam_R[0, 2]
-    y = d0 * cam_R[1, 0] + d1 * cam_R[1, 1] + d2 * cam_R[1, 2]
-    z = d0 * cam_R[2, 0] + d1 * cam_R[2, 1] + d2 * cam_R[2, 2]
-    z = max(z, min_depth)
-    out[0] = cam_f * x / z + cam_cu
-    out[1] = cam_f * y / z + cam_cv
-    if kind == 2:
-        out[2] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    R00, R01, R02, R10, R11, R12, R20, R21, R22 = (cam_R[0, 0], cam_R[0, 1], cam_R[0, 2], cam_R[1, 0],
+                                                   cam_R[1, 1], cam_R[1, 2], cam_R[2, 0], cam_R[2, 1],
+                                                   cam_R[2, 2])
+    c0, c1, c2 = cam_pos[0], cam_pos[1], cam_pos[2]
+    for s in range(S):
+        d0 = (X[0, s] + (v0 * Gs[0, s] + v1 * Gs[3, s] + v2 * Gs[6, s])) - c0
+        d1 = (X[1, s] + (v0 * Gs[1, s] + v1 * Gs[4, s] + v2 * Gs[7, s])) - c1
+        d2 = (X[2, s] + (v0 * Gs[2, s] + v1 * Gs[5, s] + v2 * Gs[8, s])) - c2
+        x = d0 * R00 + d1 * R01 + d2 * R02
+        y = d0 * R10 + d1 * R11 + d2 * R12
+        z = max(d0 * R20 + d1 * R21 + d2 * R22, min_depth)
+        out[0, s] = cam_f * x / z + cam_cu
+        out[1, s] = cam_f * y / z + cam_cv
+        if kind == 2:
+            out[2, s] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
 
 
 @njit(**_JIT)
@@ -375,12 +401,14 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
     L = np.empty((n, n))
     sig = np.empty((S, n))
     G = np.empty((3, 3))
-    zbuf = np.empty(S * Mx)     # z of the sigma points, (S, M) contiguous for the BLAS products
-    zw = np.empty(Mx * S)       # Wc-weighted dz, transposed: (M, S)
-    xw = np.empty((n, S))       # Wc-weighted dx, transposed
+    X = np.empty((n, S))        # sigma points as columns (the loops over them vectorize)
+    Gs = np.empty((9, S))       # Gamma(p) of each sigma point, row-major entries
+    zbuf = np.empty(Mx * S)     # z of the sigma points as rows (M, S), then dz
+    zw = np.empty(Mx * S)       # Wc-weighted dz (M, S)
+    xw = np.empty((n, S))       # Wc-weighted dx (n, S)
     zp = np.empty(Mx)
-    dx = np.empty((S, n))
-    al = np.empty(3)
+    zsb = np.empty(S * Mx)
+    al3 = np.empty((3, S))
     Pbuf = np.empty(Mx * Mx)
     Xbuf = np.empty(n * Mx)
     Sm = np.empty((Mx, Mx))
@@ -433,40 +461,42 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
             ok[r] = False
             continue
         M = na * mdim
-        zs = zbuf[:S * M].reshape((S, M))
+        zT = zbuf[:M * S].reshape((M, S))
+        zwM = zw[:M * S].reshape((M, S))
         Pzz = Pbuf[:M * M].reshape((M, M))
         Pxz = Xbuf[:n * M].reshape((n, M))
-        zwM = zw[:M * S].reshape((M, S))
         for a in range(na):
             for d in range(mdim):
                 comp[a * mdim + d] = act[a] * mdim + d
-        # predicted measurement of the measured corners, its spread and the cross covariance
         for s in range(S):
-            _dcm(sig[s, _P0:_P0 + 3], G)
-            for a in range(na):
-                _measure_corner(sig[s], G, act[a], kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_cv,
-                                min_depth, buf)
-                for d in range(mdim):
-                    zs[s, a * mdim + d] = buf[d]
             for i in range(n):
-                dx[s, i] = sig[s, i] - mean[r, i]
-            _align(sig[s, _P0:_P0 + 3], mean[r, _P0:_P0 + 3], al)
-            for i in range(3):
-                dx[s, _P0 + i] = al[i] - mean[r, _P0 + i]
-        # z_pred = sum Wm z_s; Pzz = sum Wc dz dz^T, Pxz = sum Wc dx dz^T, as the numpy filter forms them
-        # (matrix products through BLAS: fast on these sizes, and the same products numpy's matmul computes)
-        zpM = np.dot(Wm, zs)
+                X[i, s] = sig[s, i]
+        # the measurement model of the measured corners at every sigma point (filtering/measurements.measure)
+        _dcm_cols(X, Gs)
+        for a in range(na):
+            _measure_cols(X, Gs, act[a], kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_cv, min_depth,
+                          zT[a * mdim:(a + 1) * mdim])
+        # dx = chi - x with each MRP on the mean's set, weighted: xw = Wc dx
+        _align_cols(X, mean[r, _P0], mean[r, _P0 + 1], mean[r, _P0 + 2], al3)
+        for i in range(n):
+            mi = mean[r, i]
+            if _P0 <= i < _P0 + 3:
+                for s in range(S):
+                    xw[i, s] = (al3[i - _P0, s] - mi) * Wc[s]
+            else:
+                for s in range(S):
+                    xw[i, s] = (X[i, s] - mi) * Wc[s]
+        # z_pred = sum Wm z_s; Pzz = sum Wc dz dz^T, Pxz = sum Wc dx dz^T (matrix products through BLAS)
+        np.dot(zT, Wm, zp[:M])
         for a in range(M):
-            zp[a] = zpM[a]
+            za = zp[a]
+            for s in range(S):
+                zT[a, s] -= za                                     # dz = z_s - z_pred
+                zwM[a, s] = zT[a, s] * Wc[s]
+        zs = zsb[:S * M].reshape((S, M))
         for s in range(S):
             for a in range(M):
-                zs[s, a] -= zp[a]                                  # dz = z_s - z_pred
-        for a in range(M):
-            for s in range(S):
-                zwM[a, s] = zs[s, a] * Wc[s]
-        for i in range(n):
-            for s in range(S):
-                xw[i, s] = dx[s, i] * Wc[s]
+                zs[s, a] = zT[a, s]
         np.dot(zwM, zs, Pzz)
         np.dot(xw, zs, Pxz)
         sr = r_scale[r]
