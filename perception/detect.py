@@ -12,6 +12,7 @@ perception/naming.py fits the box and names them.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +23,7 @@ from envisat_pose.perception.errormodel import ErrorModel
 from envisat_pose.perception.heatmaps import decode_junctions
 from envisat_pose.perception.model import CornerNet
 from envisat_pose.perception.naming import Naming, NamingConfig, name_corners
+from envisat_pose.perception.refine import RefineConfig, refine_named
 
 
 @dataclass(frozen=True)
@@ -29,7 +31,10 @@ class DetectConfig:
     """top_k: junctions kept per crop; threshold: least junction score; coarse_threshold: the same in the coarse
     pass; crop_margin: crop side over the coarse junctions' extent; line_verification: False names the corners
     without the line head's edge scores (the evaluation's ablation); cov_scale: the calibration factor s applied
-    to the network's covariances, C -> s C (perception/calibrate.py; shipped in the weights' metadata)."""
+    to the network's covariances, C -> s C (perception/calibrate.py; shipped in the weights' metadata); refine:
+    move each named corner to the intersection of its edges fitted to the full-resolution pixels
+    (perception/refine.py), with that fit's covariance (x cov_scale) in place of the network's; refine_config:
+    its settings."""
 
     top_k: int = 12
     threshold: float = 0.2
@@ -38,13 +43,16 @@ class DetectConfig:
     line_verification: bool = True
     cov_scale: float = 1.0
     naming: NamingConfig = NamingConfig()
+    refine: bool = False
+    refine_config: RefineConfig = RefineConfig()
 
 
 @dataclass(frozen=True)
 class FrameDetection:
     """One frame. corners_px (8, 2), cov_px (8, 2, 2) px^2, confidence (8,), visible (8,) bool (found and
     named; positions NaN elsewhere); alt_corners_px (8, 2) the half-turn naming, alt_probability its
-    probability, ambiguous; crop_px (3,) (x0, y0, side); candidates_px (K, 2) the unnamed junctions."""
+    probability, ambiguous; crop_px (3,) (x0, y0, side); candidates_px (K, 2) the unnamed junctions;
+    refined (8,) bool the corners moved by the sub-pixel refinement (None: it was not asked for)."""
 
     corners_px: np.ndarray
     cov_px: np.ndarray
@@ -55,6 +63,7 @@ class FrameDetection:
     ambiguous: bool
     crop_px: np.ndarray
     candidates_px: np.ndarray
+    refined: np.ndarray | None = None
 
     @staticmethod
     def missing(crop: np.ndarray) -> "FrameDetection":
@@ -100,7 +109,6 @@ def load_detector(path: str, config: DetectConfig | None = None, device: str = "
     """A Detector from a weights file (perception/weights.py), with the covariance calibration stored in the
     file's metadata (`cov_scale`) unless `config` is given (its own cov_scale then stands), and the error model
     (`error_model`, on `detector.error_model`)."""
-    import dataclasses
 
     from envisat_pose.perception.weights import load_model
 
@@ -184,7 +192,28 @@ class Detector:
                               prior_R_cam_from_target=prior_R_cam_from_target, config=self.cfg.naming)
         if naming is None:
             return FrameDetection.missing(box)
-        return self._frame(naming, pts, d["score"], cov, box)
+        refined = None
+        if self.cfg.refine:
+            pts, cov, refined = self._refine(image, naming, pts, cov)
+        f = self._frame(naming, pts, d["score"], cov, box)
+        return f if refined is None else dataclasses.replace(f, refined=refined & f.visible)
+
+    def _refine(self, image: np.ndarray, naming: Naming, pts: np.ndarray, cov: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The candidates the naming matched, refined (perception/refine.py): new (pts (K, 2), cov (K, 2, 2)),
+        refined (8,) bool per corner. A candidate keeps its index, so the half-turn naming sees it moved too;
+        the refinement's covariance, scaled by cov_scale, replaces the network's."""
+        from envisat_pose.geometry import EDGES
+
+        found = naming.visible & naming.matched
+        named = np.where(found[:, None], pts[np.maximum(naming.candidate, 0)], np.nan)
+        new, new_cov, done = refine_named(image, named, naming.projected_px, naming.visible, EDGES,
+                                          self.cfg.refine_config)
+        pts, cov = pts.copy(), cov.copy()
+        for k in np.flatnonzero(done & found):
+            pts[naming.candidate[k]] = new[k]
+            cov[naming.candidate[k]] = new_cov[k] * self.cfg.cov_scale
+        return pts, cov, done & found
 
     @staticmethod
     def _frame(naming: Naming, pts: np.ndarray, score: np.ndarray, cov: np.ndarray, box: np.ndarray

@@ -199,7 +199,7 @@ def mean_se(x: np.ndarray) -> tuple[float, float, int]:
     return float(np.mean(x)), se, int(len(x))
 
 
-def measure(sequences: list[dict], cov_scale: float, max_lag: int = 10, source: str = "") -> tuple[ErrorModel, dict]:
+def measure(sequences: list[dict], cov_scale: float, max_lag: int = 20, source: str = "") -> tuple[ErrorModel, dict]:
     """The error model of held-out sequences. Each sequence: err_px (T, 8, 2) (NaN where not named right),
     sigma_px (T, 8, 2) the detector's predicted per-axis sigma at cov_scale 1, scale (T,) apparent scale per
     frame, radial_px (T, 8), dt_s the frame interval. cov_scale: the fitted scale (the NEES mean 2 on the same

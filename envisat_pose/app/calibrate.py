@@ -43,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "labelled corners (extent x the crop margin, at least 64 px), as the closed loop gives it")
     p.add_argument("--keep-scale", action="store_true",
                    help="leave the weights' cov_scale and cov_calibration as they are (write the error model only)")
-    p.add_argument("--max-lag", type=int, default=10, help="autocorrelation lags measured (default 10)")
+    p.add_argument("--max-lag", type=int, default=20, help="autocorrelation lags measured (default 20)")
     p.add_argument("--limit", type=int, help="only the first N frames of each dataset")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -182,8 +182,9 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
         r = record["autocorr_normalized"]
         print("autocorrelation of the normalized errors, lags 0..: " +
               " ".join("-" if v is None else f"{v:.3f}" for v in r))
-        print(f"rho_lag1 {model.rho_lag1:.3f}, inflation (1+rho)/(1-rho) {model.inflation:.3f} (measured tau "
-              f"{record['acf_inflation']:.3f}), correlation time {model.corr_time_s:.2f} s")
+        print(f"rho_lag1 {model.rho_lag1:.3f}; fitted rho_k = {model.ar1_share:.3f} x {model.ar1_phi:.3f}^k: "
+              f"inflation {model.inflation:.3f} (pure AR(1) from lag 1: {record['pure_ar1']['inflation']:.3f}; "
+              f"measured r_k summed: {record['acf_inflation']:.3f}), correlation time {model.corr_time_s:.2f} s")
         print(f"apparent scale {record['scale']['mean']:.5f} +- {record['scale']['se']:.5f} "
               f"({record['scale']['frames']} frames), radial error {record['radial_px']['mean']:+.3f} +- "
               f"{record['radial_px']['se']:.3f} px ({record['radial_px']['corners']} corners)")

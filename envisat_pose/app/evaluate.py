@@ -11,7 +11,8 @@ noise=<level> and blur=<level> (marginals, overlapping the partition); and the r
 scale of its correctly named corners about their centroid and their signed radial error, per group.
 With --roi FILE or --roi-labels a method 'detector_roi' is added: the same detector given a region of interest
 per frame (the file's, frames not in it get the coarse pass; or the labels' corners, as the closed loop's
-converged prior gives it) instead of its coarse pass.
+converged prior gives it) instead of its coarse pass. With --refine, 'detector_refined' (and
+'detector_roi_refined') are the same with the sub-pixel refinement of the named corners (perception/refine.py).
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                      "method detector_roi")
     roi.add_argument("--roi-labels", action="store_true", help="adds the method detector_roi, given the region "
                      "of interest of the labelled corners (extent x 1.4, at least 64 px)")
+    p.add_argument("--refine", action="store_true", help="adds detector_refined (and detector_roi_refined): the "
+                   "named corners refined on the full-resolution pixels (DetectConfig.refine)")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -94,15 +97,18 @@ def _clean_json(x):
 
 
 def evaluate_frames(detector, ablation, samples, poses: dict, corners_T_m, bar=None, limit: int | None = None,
-                    roi=None) -> tuple[dict, list[list[str]]]:
+                    roi=None, refined=None) -> tuple[dict, list[list[str]]]:
     """Run every method on every frame. samples: (key, image, label) as perception.data.read_samples gives them,
-    images as the camera saw them. roi: None; 'labels'; or {key: (x0, y0, side)}: adds 'detector_roi'. Returns
+    images as the camera saw them. roi: None; 'labels'; or {key: (x0, y0, side)}: adds 'detector_roi'. refined:
+    a detector with the sub-pixel refinement, adds 'detector_refined' (and 'detector_roi_refined'). Returns
     per-method arrays and each frame's groups (with its range bin where the pose is known)."""
     import numpy as np
 
     from envisat_pose.perception import evaluate as ev
 
     methods = METHODS + (("detector_roi",) if roi is not None else ())
+    if refined is not None:
+        methods += ("detector_refined",) + (("detector_roi_refined",) if roi is not None else ())
     rows = {m: {"pred": [], "alt": [], "amb": [], "vis": [], "cov": [], "pose": []} for m in methods}
     true, usable, groups = [], [], []
     for i, (key, image, label) in enumerate(samples):
@@ -118,10 +124,14 @@ def evaluate_frames(detector, ablation, samples, poses: dict, corners_T_m, bar=N
         for name, det in (("detector", detector), ("detector_no_lines", ablation)):
             f = det.detect(image, label["K"])
             found[name] = (f.corners_px, f.alt_corners_px, f.ambiguous, f.visible, f.cov_px)
+        box = None
         if roi is not None:
             box = ev.label_roi(label["corners_px"], image.shape) if roi == "labels" else roi.get(key)
-            f = detector.detect(image, label["K"], roi_px=box)
-            found["detector_roi"] = (f.corners_px, f.alt_corners_px, f.ambiguous, f.visible, f.cov_px)
+        for name, det, b in (("detector_roi", detector, box), ("detector_refined", refined, None),
+                             ("detector_roi_refined", refined, box)):
+            if name in methods:
+                f = det.detect(image, label["K"], roi_px=b)
+                found[name] = (f.corners_px, f.alt_corners_px, f.ambiguous, f.visible, f.cov_px)
         for name, harris in (("harris", True), ("shi_tomasi", False)):
             pts = ev.associate_nearest(ev.classical_corners(image, harris), label["corners_px"], use)
             found[name] = (pts, pts, False, np.isfinite(pts[:, 0]), np.full((8, 2, 2), np.nan))
@@ -214,10 +224,12 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
     cfg = DetectConfig(cov_scale=weights_cov_scale(args.weights))
     detector = make_detector(model, cfg, args.device)
     ablation = make_detector(model, dataclasses.replace(cfg, line_verification=False), args.device)
+    refined = make_detector(model, dataclasses.replace(cfg, refine=True), args.device) if args.refine else None
 
     bar = tqdm(disable=args.quiet, desc="evaluate", unit="frame")
     arrays, groups = evaluate_frames(detector, ablation, camera_samples(paths), read_poses(paths),
-                                     load_geometry().corners_T_m, bar=bar, limit=args.limit, roi=roi)
+                                     load_geometry().corners_T_m, bar=bar, limit=args.limit, roi=roi,
+                                     refined=refined)
     bar.close()
     if not groups:
         raise InputError(f"--data {args.data!r}: no frames")
