@@ -3,6 +3,10 @@
 Usage: python scripts/model_card.py --weights models/detector.safetensors --runs RUN_DIR [RUN_DIR ...]
            --datasets DIR [DIR ...] --evaluation NAME=EVAL.json [NAME=EVAL.json ...] [--commands FILE]
            [--idle RUN_DIR=SECONDS ...] --hardware TEXT --out models/detector.json
+       python scripts/model_card.py --refresh models/detector.json --weights models/detector.safetensors
+           [--datasets DIR ...] [--evaluation NAME=EVAL.json ...] [--commands FILE] --out models/detector.json
+           (keeps the card's runs; rewrites its weights entry from the file's metadata, adds the datasets,
+           evaluations and commands given: the metadata written after training, e.g. the error model)
 
 Everything in the card comes from files: each training run's config.json (its exact `envisat train` command, git
 hash, torch), state.json (the steps done) and metrics.jsonl (the last epoch's losses); each dataset's manifest
@@ -71,41 +75,80 @@ def headline(evaluation: dict) -> dict:
                 row[method]["mean_nees"] = s["calibration"]["mean_nees"]
             if "pose" in s:
                 row[method]["pose"] = s["pose"]
+            if "bias" in s:
+                row[method]["bias"] = s["bias"]
         out[group] = row
     return out
+
+
+def weights_record(path: str) -> dict:
+    """The card's weights entry: file, sha256, size, model config and the metadata written after training
+    (cov_scale and its calibration; the error model and its record when present)."""
+    meta = read_metadata(path)
+    out = {"file": os.path.basename(path), "sha256": sha256_file(path), "bytes": os.path.getsize(path),
+           "model_config": json.loads(meta["model_config"]),
+           "cov_scale": float(json.loads(meta.get("cov_scale", "1.0"))),
+           "cov_calibration": json.loads(meta["cov_calibration"]) if "cov_calibration" in meta else None}
+    for key in ("error_model", "error_model_record"):
+        if key in meta:
+            out[key] = json.loads(meta[key])
+    return out
+
+
+def evaluation_record(e: dict) -> dict:
+    return {"data": e.get("data"), "frames": e.get("frames"), "roi": e.get("roi"),
+            "detect_config": e.get("detect_config"), "metrics": headline(e)}
+
+
+def refresh(a) -> int:
+    """--refresh: the card kept, its weights entry rewritten, datasets, evaluations and commands added."""
+    card = json.load(open(a.refresh, encoding="utf-8"))
+    card["weights"] = weights_record(a.weights)
+    known = {d["path"] for d in card.get("datasets", [])}
+    card.setdefault("datasets", []).extend(dataset_record(d) for d in a.datasets or []
+                                           if os.path.abspath(d) not in known)
+    for item in a.evaluation or []:
+        name, _, path = item.partition("=")
+        card.setdefault("evaluations", {})[name] = evaluation_record(json.load(open(path, encoding="utf-8")))
+    if a.commands:
+        card.setdefault("commands", []).extend(open(a.commands, encoding="utf-8").read().strip().splitlines())
+    atomic_write_text(a.out, json.dumps(card, indent=1, sort_keys=False, allow_nan=False,
+                                        default=lambda x: None) + "\n")
+    print(f"wrote {a.out}")
+    return 0
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--weights", required=True)
-    p.add_argument("--runs", nargs="+", required=True)
-    p.add_argument("--datasets", nargs="+", required=True)
-    p.add_argument("--evaluation", nargs="+", required=True, metavar="NAME=EVAL.json",
+    p.add_argument("--refresh", metavar="CARD.json", help="update this card instead of writing one from the runs")
+    p.add_argument("--runs", nargs="+")
+    p.add_argument("--datasets", nargs="+")
+    p.add_argument("--evaluation", nargs="+", metavar="NAME=EVAL.json",
                    help="envisat evaluate's JSON per held-out set, each under a name")
     p.add_argument("--commands", help="text file: the commands that made the datasets, the calibration, the card")
     p.add_argument("--idle", nargs="*", default=[], metavar="RUN_DIR=SECONDS",
                    help="time a run stood stopped before it was resumed, left out of its wall time")
-    p.add_argument("--hardware", required=True)
+    p.add_argument("--hardware")
     p.add_argument("--out", required=True)
     a = p.parse_args()
-    meta = read_metadata(a.weights)
+    if a.refresh:
+        return refresh(a)
+    for name in ("runs", "datasets", "evaluation", "hardware"):
+        if not getattr(a, name):
+            p.error(f"--{name} is required without --refresh")
     idle = {os.path.abspath(k): float(v) for k, _, v in (item.partition("=") for item in a.idle)}
     evaluations = {}
     for item in a.evaluation:
         name, _, path = item.partition("=")
         evaluations[name] = json.load(open(path, encoding="utf-8"))
     card = {
-        "weights": {"file": os.path.basename(a.weights), "sha256": sha256_file(a.weights),
-                    "bytes": os.path.getsize(a.weights), "model_config": json.loads(meta["model_config"]),
-                    "cov_scale": float(json.loads(meta.get("cov_scale", "1.0"))),
-                    "cov_calibration": json.loads(meta["cov_calibration"]) if "cov_calibration" in meta else None},
+        "weights": weights_record(a.weights),
         "hardware": a.hardware,
         "training_runs": [run_record(r, idle.get(os.path.abspath(r), 0.0)) for r in a.runs],
         "datasets": [dataset_record(d) for d in a.datasets],
         "commands": open(a.commands, encoding="utf-8").read().strip().splitlines() if a.commands else [],
-        "evaluations": {name: {"data": e.get("data"), "frames": e.get("frames"),
-                               "detect_config": e.get("detect_config"), "metrics": headline(e)}
-                        for name, e in evaluations.items()},
+        "evaluations": {name: evaluation_record(e) for name, e in evaluations.items()},
     }
     card["training_time_s"] = sum(r["wall_time_s"] or 0.0 for r in card["training_runs"])
     atomic_write_text(a.out, json.dumps(card, indent=1, sort_keys=False, allow_nan=False,
