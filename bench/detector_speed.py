@@ -4,7 +4,8 @@ Part 1: the network's forward time per input size and width (min and median of r
 machine shows as spread), and the line head on all pairs of 12 junctions.
 Part 2: ms per full 1024 px frame of the whole detector (coarse pass + crop + network + decode + line
 verification + naming), and with a given region of interest (the crop around the label's corners standing in
-for the filter's prediction: no coarse pass), next to Harris and Shi-Tomasi (goodFeaturesToTrack + cornerSubPix,
+for the filter's prediction: no coarse pass), both again with the sub-pixel refinement of the named corners
+(DetectConfig.refine, perception/refine.py), next to Harris and Shi-Tomasi (goodFeaturesToTrack + cornerSubPix,
 as perception/evaluate.py runs them) on the same frames; peak memory (max RSS of this process, which generates
 nothing: the frames come from `envisat generate` in a child process). The shipped weights are timed by default
 (--weights W for others; --untrained times an untrained default-size network, which finds no junction above
@@ -87,12 +88,18 @@ def time_frames(frames: list, weights: str | None, repeats: int) -> dict:
         torch.manual_seed(0)  # this bench's own draw of untrained weights
         det = Detector(CornerNet(ModelConfig()))
     model = det.model
-    per = {"detector_full_frame": [], "detector_roi": [], "harris": [], "shi_tomasi": []}
+    import dataclasses
+
+    refined = Detector(model, dataclasses.replace(det.cfg, refine=True))
+    per = {"detector_full_frame": [], "detector_roi": [], "detector_full_frame_refined": [],
+           "detector_roi_refined": [], "harris": [], "shi_tomasi": []}
     for _, image, label in frames:
         use = label["visible"] & label["in_frame"]
         roi = crop_box(label["corners_px"], use, image.shape, DataConfig(), None)
         per["detector_full_frame"].append(_ms(lambda: det.detect(image, label["K"]), repeats))
         per["detector_roi"].append(_ms(lambda: det.detect(image, label["K"], roi_px=roi), repeats))
+        per["detector_full_frame_refined"].append(_ms(lambda: refined.detect(image, label["K"]), repeats))
+        per["detector_roi_refined"].append(_ms(lambda: refined.detect(image, label["K"], roi_px=roi), repeats))
         per["harris"].append(_ms(lambda: classical_corners(image, True), repeats))
         per["shi_tomasi"].append(_ms(lambda: classical_corners(image, False), repeats))
     return {"model": model.cfg.to_dict(), "trained": bool(weights), "frames": len(frames),
