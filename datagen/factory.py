@@ -362,13 +362,14 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
     if earth_draw:
         import dataclasses
 
+        from envisat_pose.attitude import rotmat_to_quat
         from envisat_pose.datagen.earth import draw_backdrop
 
         K = load_camera().scaled(cfg.resolution_px, cfg.resolution_px).K
-        nadir_K, r_m, quat, tex = draw_backdrop(rng.spawn(1)[0], cfg.earth_orbit_radius_m, K, cfg.resolution_px,
-                                                None if eclipse else R_K_FROM_C @ sun_C)
+        nadir_K, r_m, R_K_from_E, tex = draw_backdrop(rng.spawn(1)[0], cfg.earth_orbit_radius_m, K,
+                                                      cfg.resolution_px, None if eclipse else R_K_FROM_C @ sun_C)
         view = dataclasses.replace(view, earth_dir_C=R_K_FROM_C.T @ nadir_K, earth_distance_m=r_m,
-                                   earth_quat_C=quat, earth_texture=tex)
+                                   earth_quat_C=rotmat_to_quat(R_K_FROM_C.T @ R_K_from_E), earth_texture=tex)
     x = np.concatenate([rho_C, np.zeros(3), quat_to_mrp(q), w_T])
     scene = {"mode": "random", "sun_dir_cam": (R_K_FROM_C @ sun_C).round(9).tolist(), "eclipse": eclipse,
              "earth_backdrop": earth_draw}

@@ -30,8 +30,9 @@ from envisat_pose.attitude import rotmat_to_quat  # noqa: E402
 from envisat_pose.datagen.appearance import CLASSES, GEOM_CLASS, Look, class_texture, TEXTURE_PX  # noqa: E402
 from envisat_pose.datagen.clearance import target_boxes  # noqa: E402
 from envisat_pose.datagen.earth import (EARTH_MESH_STEPS_DEG, EARTH_SCALE, EARTH_TEXTURE_SET_SIZE,  # noqa: E402
-                                        disc_on_rays, earth_texture, earth_texture_width, mesh_step_for,
-                                        mesh_xml_attributes, pixel_rays_K)
+                                        cap_mesh_xml_attributes, cap_visible, disc_on_rays, earth_cap_texture,
+                                        earth_texture, earth_texture_width, mesh_step_for, mesh_xml_attributes,
+                                        pixel_rays_K)
 from envisat_pose.datagen.scenario import EARTH_RADIUS_M  # noqa: E402
 from envisat_pose.geometry import model_path  # noqa: E402
 
@@ -132,16 +133,19 @@ def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_se
                   shininess="0.05", reflectance="0")
     w = earth_texture_width(resolution_px)
     for k in range(earth_texture_set_size):
-        ET.SubElement(asset, "texture", name=f"earth_tex_{k}", type="2d", builtin="flat", width=str(w),
-                      height=str(w // 2), rgb1="0.3 0.3 0.3")
-        # alpha just below 1: the Earth is drawn in mjr_render's transparent pass (once, additively over the
-        # black sky, lit by every light, receiving no shadow), not twice as opaque geoms with a shadow light are
-        ET.SubElement(asset, "material", name=f"earth_{k}", texture=f"earth_tex_{k}", rgba=f"1 1 1 {EARTH_ALPHA}",
-                      specular="0.03", shininess="0.1", reflectance="0")
+        # the globe (equirectangular) and the detailed cap a low orbit sees (earth.earth_cap_texture)
+        for kind, height in (("earth", w // 2), ("earth_cap", w)):
+            ET.SubElement(asset, "texture", name=f"{kind}_tex_{k}", type="2d", builtin="flat", width=str(w),
+                          height=str(height), rgb1="0.3 0.3 0.3")
+            # alpha just below 1: the Earth is drawn in mjr_render's transparent pass (once, additively over the
+            # black sky, lit by every light, receiving no shadow), not twice as opaque geoms with a shadow light
+            ET.SubElement(asset, "material", name=f"{kind}_{k}", texture=f"{kind}_tex_{k}",
+                          rgba=f"1 1 1 {EARTH_ALPHA}", specular="0.03", shininess="0.1", reflectance="0")
     scale = repr(EARTH_RADIUS_M * EARTH_SCALE)
     for step in EARTH_MESH_STEPS_DEG:  # levels of detail; the view picks one (earth.mesh_step_for)
         ET.SubElement(asset, "mesh", name=f"earth_sphere_{step:g}", scale=f"{scale} {scale} {scale}",
                       **mesh_xml_attributes(step))
+    ET.SubElement(asset, "mesh", name="earth_cap", scale=f"{scale} {scale} {scale}", **cap_mesh_xml_attributes())
     world = root.find("worldbody")
     earth = ET.SubElement(world, "body", name="earth_backdrop", mocap="true", pos="0 0 -1e5")
     ET.SubElement(earth, "geom", name="earth_backdrop", type="mesh", mesh=f"earth_sphere_{EARTH_MESH_STEPS_DEG[0]:g}",
@@ -246,7 +250,11 @@ class SceneRenderer:
         self.earth_mocap = int(m.body("earth_backdrop").mocapid[0])
         self.earth_geom = m.geom("earth_backdrop").id
         self._earth_mesh = {step: m.mesh(f"earth_sphere_{step:g}").id for step in EARTH_MESH_STEPS_DEG}
-        self._earth_matid = [m.material(f"earth_{k}").id for k in range(self.earth_texture_set_size)]
+        self._earth_matid = {(kind, k): m.material(f"{kind}_{k}").id for kind in ("earth", "earth_cap")
+                             for k in range(self.earth_texture_set_size)}
+        self._earth_cap_mesh = m.mesh("earth_cap").id
+        # the geom's offset changes with its mesh (set_view): MuJoCo must not take it to be the body's frame
+        m.geom_sameframe[self.earth_geom] = mujoco.mjtSameFrame.mjSAMEFRAME_NONE.value
         self._earth_uploaded: set[int] = set()  # Earth textures are made and sent at first use
         self.target_body = m.body("target").id
         self.sun_id = m.light("sun").id
@@ -308,18 +316,20 @@ class SceneRenderer:
                     mujoco.mjr_uploadTexture(m, con, t)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
 
-    def _upload_earth_texture(self, k: int) -> None:
-        """Make Earth texture k (earth.earth_texture, seeded by earth_seed) and send it to both GL contexts."""
+    def _upload_earth_texture(self, kind: str, k: int) -> None:
+        """Make Earth texture k of `kind` ('earth': earth.earth_texture, 'earth_cap': earth.earth_cap_texture;
+        seeded by earth_seed) and send it to both GL contexts."""
         m = self.model
-        t = m.texture(f"earth_tex_{k}").id
-        data = earth_texture(self.earth_seed, int(m.tex_width[t]), k)
+        t = m.texture(f"{kind}_tex_{k}").id
+        make = earth_texture if kind == "earth" else earth_cap_texture
+        data = make(self.earth_seed, int(m.tex_width[t]), k)
         a = int(m.tex_adr[t])
         m.tex_data[a : a + data.size] = data.ravel()
         self._gl.make_current()
         for con in (self._con, self._con_seg):
             mujoco.mjr_uploadTexture(m, con, t)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
-        self._earth_uploaded.add(k)
+        self._earth_uploaded.add((kind, k))
 
     def set_look(self, look: Look | None) -> None:
         """Materials and light intensities of `look` into the model arrays (None: the MJCF's own)."""
@@ -390,13 +400,22 @@ class SceneRenderer:
             d.mocap_pos[self.earth_mocap] = e / np.linalg.norm(e) * view.earth_distance_m * EARTH_SCALE
             q = (1.0, 0.0, 0.0, 0.0) if view.earth_quat_C is None else np.asarray(view.earth_quat_C, dtype=float)
             d.mocap_quat[self.earth_mocap] = np.asarray(q) / np.linalg.norm(q)
-            # the coarsest mesh whose limb is within a fraction of a pixel of the circle at this distance
-            m.geom_dataid[self.earth_geom] = self._earth_mesh[mesh_step_for(view.earth_distance_m, self.K[0, 0])]
+            # the detailed cap when all the chaser sees of the Earth lies on it, else the globe at the coarsest
+            # level of detail whose limb is within a fraction of a pixel of the circle at this distance
+            if cap_visible(view.earth_quat_C, e, view.earth_distance_m):
+                kind, m.geom_dataid[self.earth_geom] = "earth_cap", self._earth_cap_mesh
+            else:
+                kind = "earth"
+                m.geom_dataid[self.earth_geom] = self._earth_mesh[mesh_step_for(view.earth_distance_m, self.K[0, 0])]
+            # MuJoCo stores a mesh about its centroid and puts the offset in the geom frame: switching meshes
+            # takes the new one's offset (the body frame is the Earth's centre)
+            mesh = int(m.geom_dataid[self.earth_geom])
+            m.geom_pos[self.earth_geom], m.geom_quat[self.earth_geom] = m.mesh_pos[mesh], m.mesh_quat[mesh]
             if self.earth_texture_set_size:
                 k = int(view.earth_texture) % self.earth_texture_set_size
-                if k not in self._earth_uploaded:
-                    self._upload_earth_texture(k)
-                m.geom_matid[self.earth_geom] = self._earth_matid[k]
+                if (kind, k) not in self._earth_uploaded:
+                    self._upload_earth_texture(kind, k)
+                m.geom_matid[self.earth_geom] = self._earth_matid[(kind, k)]
         mujoco.mj_forward(m, d)
 
     def earth_drawn(self, view: View) -> bool:

@@ -46,27 +46,37 @@ def emissive_earth(renderer):
     """Make the Earth's materials glow (emission 1): every pixel of the disc shows, lit or not."""
     m = renderer.model
     saved = m.mat_emission.copy()
-    for i in renderer._earth_matid:
+    for i in renderer._earth_matid.values():
         m.mat_emission[i] = 1.0
     return saved
 
 
 
 
-@pytest.mark.parametrize("r_m,off_deg", [(30000e3, 8.0), (42164e3, 0.0), (7142e3, 55.0), (6878e3, 62.0)])
-def test_disc_at_the_predicted_size_and_direction(renderer, r_m, off_deg):
+@pytest.mark.parametrize("r_m,off_deg,facing", [(30000e3, 8.0, False), (42164e3, 0.0, False),
+                                                (7142e3, 55.0, False), (6878e3, 62.0, False),
+                                                (7142e3, 55.0, True), (7378e3, 50.0, True), (6978e3, 52.0, True)])
+def test_disc_at_the_predicted_size_and_direction(renderer, r_m, off_deg, facing):
     """The drawn disc equals the closed-form cone (angular radius asin(R / r) about the nadir) to within the
     one-pixel band of the antialiased limb, far (GEO: the whole disc in the frame) and near (LEO: the limb
-    crossing the image)."""
+    crossing the image), on the globe's mesh and on the detailed cap's (facing: the Earth turned as random
+    mode turns it)."""
+    from envisat_pose.attitude import rotmat_to_quat
+
     R_K_from_C = renderer._R_K_from_C
     a = math.radians(off_deg)
     nadir_K = np.array([math.sin(a) * 0.6, math.sin(a) * 0.8, math.cos(a)])
+    rng = np.random.default_rng(3)
+    quat = rotmat_to_quat(R_K_from_C.T @ earth.facing_attitude(-nadir_K, rng)) if facing else \
+        earth.random_rotation_quat(rng)
+    assert earth.cap_visible(quat, R_K_from_C.T @ nadir_K, r_m) == facing
     saved = emissive_earth(renderer)
     try:
         # the target behind the camera: nothing but the Earth in the image
         view = View(np.array([0.0, -60.0, 0.0]), np.eye(3), R_K_from_C.T @ -nadir_K, R_K_from_C.T @ nadir_K, r_m,
-                    earth_quat_C=earth.random_rotation_quat(np.random.default_rng(3)))
+                    earth_quat_C=quat)
         out = renderer.render(view)
+        assert (renderer.model.geom_dataid[renderer.earth_geom] == renderer._earth_cap_mesh) == facing
     finally:
         renderer.model.mat_emission[:] = saved
     angle, rho, _ = predicted_disc(renderer.K, nadir_K, r_m)
@@ -173,6 +183,32 @@ def test_texture_is_seeded_and_looks_like_the_earth():
     assert 0.2 < dark < 0.75 and 0.15 < bright < 0.7, (dark, bright)
     # seamless at the date line: the first and last columns are neighbours
     assert np.abs(g[:, 0] - g[:, -1]).mean() < 2.5 * np.abs(g[:, 0] - g[:, 1]).mean() + 0.01
+
+
+def test_cap_mesh_faces_outward_and_maps_like_its_texture():
+    m = earth.cap_mesh(2.0, 10.0)
+    v, uv, f = m["vertex"], m["texcoord"], m["face"]
+    assert np.allclose(np.linalg.norm(v, axis=1), 1.0)
+    theta = np.degrees(np.arccos(np.clip(v[:, 0], -1, 1)))
+    assert theta.max() == pytest.approx(earth.CAP_HALF_ANGLE_DEG)
+    # the texture coordinates are those cap_dirs inverts: texel centre -> direction -> the same vertex
+    dirs, _ = earth.cap_dirs(512, 512)
+    iu = np.clip((uv[:, 0] * 512).astype(int), 0, 511)
+    iv = np.clip((uv[:, 1] * 512).astype(int), 0, 511)
+    assert np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", dirs[iv, iu], v), -1, 1))).max() < 0.2
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    normal = np.cross(b - a, c - a)
+    assert (np.linalg.norm(normal, axis=1) > 1e-6).all()
+    assert (np.einsum("ij,ij->i", normal, a + b + c) > 0).all()
+
+
+def test_facing_attitude_puts_the_cap_under_the_chaser():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        up = unit(rng.standard_normal(3))
+        R = earth.facing_attitude(up, rng)
+        assert np.allclose(R.T @ R, np.eye(3), atol=1e-12) and np.linalg.det(R) > 0
+        assert math.degrees(math.acos(min(1.0, R[:, 0] @ up))) <= earth.CAP_TILT_MAX_DEG + 1e-9
 
 
 def test_sphere_mesh_is_closed_and_its_texture_coordinates_are_longitude_latitude():
