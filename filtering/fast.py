@@ -40,9 +40,18 @@ if (POS, VEL, MRP, RATE) != (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
 KIND_CODES = {"markers3d": 0, "pixels": 1, "pixels+range": 2}
 _P0 = MRP.start  # first MRP component in the 12-state (envisat_pose.state.MRP)
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+# sigma points as columns of a flat (12, _SP) array, row i at [i * _SP:(i + 1) * _SP]: a row stride known when
+# compiling lets LLVM prove the rows apart and vectorize the loops over sigma points (25 used, 7 padding)
+_SP = 32
 
 
 # ---------------------------------------------------------------- small dense helpers
+
+@njit(**_JIT)
+def _sq(x):
+    """x * x, as numpy's x ** 2 (a call to pow would keep the loops around it from vectorizing)."""
+    return x * x
+
 
 @njit(**_JIT)
 def _chol(A, U, n):
@@ -72,8 +81,8 @@ def _chol(A, U, n):
 def _dcm(p, G):
     """Gamma(p) = I - a1 [p x] + a2 [p x]^2 (envisat_pose.attitude.mrp_to_dcm) into G (3, 3)."""
     pp = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
-    a1 = 4.0 * (1.0 - pp) / (1.0 + pp) ** 2
-    a2 = 8.0 / (1.0 + pp) ** 2
+    a1 = 4.0 * (1.0 - pp) / _sq(1.0 + pp)
+    a2 = 8.0 / _sq(1.0 + pp)
     s01, s02, s10, s12, s20, s21 = -p[2], p[1], p[2], -p[0], -p[1], p[0]
     # [p x]^2, row by column
     q00 = s01 * s10 + s02 * s20
@@ -102,8 +111,8 @@ def _align(p, ref, out):
     pp = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
     den = pp if pp > 0.0 else 1.0
     s0, s1, s2 = -p[0] / den, -p[1] / den, -p[2] / den
-    ds = np.sqrt((s0 - ref[0]) ** 2 + (s1 - ref[1]) ** 2 + (s2 - ref[2]) ** 2)
-    dp = np.sqrt((p[0] - ref[0]) ** 2 + (p[1] - ref[1]) ** 2 + (p[2] - ref[2]) ** 2)
+    ds = np.sqrt(_sq(s0 - ref[0]) + _sq(s1 - ref[1]) + _sq(s2 - ref[2]))
+    dp = np.sqrt(_sq(p[0] - ref[0]) + _sq(p[1] - ref[1]) + _sq(p[2] - ref[2]))
     if ds < dp and pp > 0.0:
         out[0], out[1], out[2] = s0, s1, s2
     else:
@@ -122,31 +131,31 @@ def _shadow(p):
 
 @njit(**_JIT)
 def _rates(Y, c, J, Jinv, mu, gg, dY):
-    """dY = state_rate(Y, c) for every column (sigma point) of Y (12, S): translation (sheet, section 4), MRP
-    kinematics, relative attitude dynamics, with the gravity-gradient torque when gg. c (4,) the chaser's stage
-    state. Sigma points run along the last axis, so that the loop over them vectorizes."""
+    """dY = state_rate(Y, c) for every column (sigma point) of the flat Y (12, _SP): translation (sheet,
+    section 4), MRP kinematics, relative attitude dynamics, with the gravity-gradient torque when gg. c (4,)
+    the chaser's stage state."""
     r, rd, thd = c[0], c[1], c[3]
     thdd = -2.0 * rd * thd / r
-    thd2 = thd ** 2
-    mu_r2 = mu / r ** 2
+    thd2 = _sq(thd)
+    mu_r2 = mu / _sq(r)
     J00, J01, J02, J10, J11, J12, J20, J21, J22 = (J[0, 0], J[0, 1], J[0, 2], J[1, 0], J[1, 1], J[1, 2],
                                                    J[2, 0], J[2, 1], J[2, 2])
     I00, I01, I02, I10, I11, I12, I20, I21, I22 = (Jinv[0, 0], Jinv[0, 1], Jinv[0, 2], Jinv[1, 0], Jinv[1, 1],
                                                    Jinv[1, 2], Jinv[2, 0], Jinv[2, 1], Jinv[2, 2])
-    for s in range(Y.shape[1]):
-        x, yy, z = Y[0, s], Y[1, s], Y[2, s]
-        xd, yd = Y[3, s], Y[4, s]
-        t = (r + x) ** 2 + yy ** 2 + z ** 2
+    for s in range(_SP):
+        x, yy, z = Y[0 * _SP + s], Y[1 * _SP + s], Y[2 * _SP + s]
+        xd, yd = Y[3 * _SP + s], Y[4 * _SP + s]
+        t = _sq(r + x) + _sq(yy) + _sq(z)
         D = t * np.sqrt(t)                                            # t^1.5
-        dY[0, s], dY[1, s], dY[2, s] = Y[3, s], Y[4, s], Y[5, s]
-        dY[3, s] = 2.0 * thd * yd + thdd * yy + thd2 * x - mu * (r + x) / D + mu_r2
-        dY[4, s] = -2.0 * thd * xd - thdd * x + thd2 * yy - mu * yy / D
-        dY[5, s] = -mu * z / D
+        dY[0 * _SP + s], dY[1 * _SP + s], dY[2 * _SP + s] = Y[3 * _SP + s], Y[4 * _SP + s], Y[5 * _SP + s]
+        dY[3 * _SP + s] = 2.0 * thd * yd + thdd * yy + thd2 * x - mu * (r + x) / D + mu_r2
+        dY[4 * _SP + s] = -2.0 * thd * xd - thdd * x + thd2 * yy - mu * yy / D
+        dY[5 * _SP + s] = -mu * z / D
         # Gamma(p) = I - a1 [p x] + a2 [p x]^2 (envisat_pose.attitude.mrp_to_dcm)
-        p0, p1, p2 = Y[6, s], Y[7, s], Y[8, s]
+        p0, p1, p2 = Y[6 * _SP + s], Y[7 * _SP + s], Y[8 * _SP + s]
         pp = p0 * p0 + p1 * p1 + p2 * p2
-        a1 = 4.0 * (1.0 - pp) / (1.0 + pp) ** 2
-        a2 = 8.0 / (1.0 + pp) ** 2
+        a1 = 4.0 * (1.0 - pp) / _sq(1.0 + pp)
+        a2 = 8.0 / _sq(1.0 + pp)
         G00 = 1.0 + a2 * (-p2 * p2 + -p1 * p1)
         G01 = (0.0 - a1 * -p2) + a2 * (p1 * p0)
         G02 = (0.0 - a1 * p1) + a2 * (-p2 * -p0)
@@ -156,7 +165,7 @@ def _rates(Y, c, J, Jinv, mu, gg, dY):
         G20 = (0.0 - a1 * -p1) + a2 * (p0 * p2)
         G21 = (0.0 - a1 * p0) + a2 * (-p1 * -p2)
         G22 = 1.0 + a2 * (-p1 * p1 + p0 * -p0)
-        w0, w1, w2 = Y[9, s], Y[10, s], Y[11, s]
+        w0, w1, w2 = Y[9 * _SP + s], Y[10 * _SP + s], Y[11 * _SP + s]
         g0, g1, g2 = G02 * thd, G12 * thd, G22 * thd                  # Gamma w_c
         h0, h1, h2 = G02 * thdd, G12 * thdd, G22 * thdd               # Gamma w_c'
         t0, t1, t2 = w0 + g0, w1 + g1, w2 + g2                        # w_t = w_r + Gamma w_c
@@ -182,50 +191,59 @@ def _rates(Y, c, J, Jinv, mu, gg, dY):
             c2 = k * (T0 * u1 - T1 * u0) - c2
         else:
             c0, c1, c2 = -c0, -c1, -c2
-        dY[9, s] = (I00 * c0 + I01 * c1 + I02 * c2) + (w1 * g2 - w2 * g1) - h0   # J^-1 (...) + w_r x G w_c - G w_c'
-        dY[10, s] = (I10 * c0 + I11 * c1 + I12 * c2) + (w2 * g0 - w0 * g2) - h1
-        dY[11, s] = (I20 * c0 + I21 * c1 + I22 * c2) + (w0 * g1 - w1 * g0) - h2
+        dY[9 * _SP + s] = (I00 * c0 + I01 * c1 + I02 * c2) + (w1 * g2 - w2 * g1) - h0   # J^-1 (...) + w_r x G w_c - G w_c'
+        dY[10 * _SP + s] = (I10 * c0 + I11 * c1 + I12 * c2) + (w2 * g0 - w0 * g2) - h1
+        dY[11 * _SP + s] = (I20 * c0 + I21 * c1 + I22 * c2) + (w0 * g1 - w1 * g0) - h2
         # p' = 1/4 [(1 - p.p) I + 2 [p x] + 2 p p^T] w
         d = 1.0 - pp
-        dY[6, s] = (0.25 * (d + 2.0 * p0 * p0) * w0 + 0.25 * (2.0 * -p2 + 2.0 * p0 * p1) * w1
+        dY[6 * _SP + s] = (0.25 * (d + 2.0 * p0 * p0) * w0 + 0.25 * (2.0 * -p2 + 2.0 * p0 * p1) * w1
                     + 0.25 * (2.0 * p1 + 2.0 * p0 * p2) * w2)
-        dY[7, s] = (0.25 * (2.0 * p2 + 2.0 * p1 * p0) * w0 + 0.25 * (d + 2.0 * p1 * p1) * w1
+        dY[7 * _SP + s] = (0.25 * (2.0 * p2 + 2.0 * p1 * p0) * w0 + 0.25 * (d + 2.0 * p1 * p1) * w1
                     + 0.25 * (2.0 * -p0 + 2.0 * p1 * p2) * w2)
-        dY[8, s] = (0.25 * (2.0 * -p1 + 2.0 * p2 * p0) * w0 + 0.25 * (2.0 * p0 + 2.0 * p2 * p1) * w1
+        dY[8 * _SP + s] = (0.25 * (2.0 * -p1 + 2.0 * p2 * p0) * w0 + 0.25 * (2.0 * p0 + 2.0 * p2 * p1) * w1
                     + 0.25 * (d + 2.0 * p2 * p2) * w2)
 
 
 @njit(**_JIT)
 def _propagate(X, stages, h, J, Jinv, mu, gg, k1, k2, k3, k4, Ys):
-    """propagate() of filtering/dynamics.py in place on the columns of X (12, S): RK4 sub-steps of h seconds
-    with the chaser's stage states stages (n_sub, 4, 4); the MRP switches to |p| <= 1 between sub-steps only."""
-    n, S = X.shape
+    """propagate() of filtering/dynamics.py in place on the columns of the flat X (12, _SP): RK4 sub-steps of
+    h seconds with the chaser's stage states stages (n_sub, 4, 4); the MRP switches to |p| <= 1 between
+    sub-steps only."""
+    N = X.shape[0]
     n_sub = stages.shape[0]
     hh = 0.5 * h
     h6 = h / 6.0
     for st in range(n_sub):
         _rates(X, stages[st, 0], J, Jinv, mu, gg, k1)
-        for i in range(n):
-            for s in range(S):
-                Ys[i, s] = X[i, s] + hh * k1[i, s]
+        for j in range(N):
+            Ys[j] = X[j] + hh * k1[j]
         _rates(Ys, stages[st, 1], J, Jinv, mu, gg, k2)
-        for i in range(n):
-            for s in range(S):
-                Ys[i, s] = X[i, s] + hh * k2[i, s]
+        for j in range(N):
+            Ys[j] = X[j] + hh * k2[j]
         _rates(Ys, stages[st, 2], J, Jinv, mu, gg, k3)
-        for i in range(n):
-            for s in range(S):
-                Ys[i, s] = X[i, s] + h * k3[i, s]
+        for j in range(N):
+            Ys[j] = X[j] + h * k3[j]
         _rates(Ys, stages[st, 3], J, Jinv, mu, gg, k4)
-        for i in range(n):
-            for s in range(S):
-                X[i, s] = X[i, s] + h6 * (k1[i, s] + 2.0 * k2[i, s] + 2.0 * k3[i, s] + k4[i, s])
+        for j in range(N):
+            X[j] = X[j] + h6 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
         if st < n_sub - 1:
-            for s in range(S):
-                p0, p1, p2 = X[_P0, s], X[_P0 + 1, s], X[_P0 + 2, s]
+            for s in range(_SP):
+                p0, p1, p2 = X[_P0 * _SP + s], X[(_P0 + 1) * _SP + s], X[(_P0 + 2) * _SP + s]
                 pp = p0 * p0 + p1 * p1 + p2 * p2
                 if pp > 1.0:
-                    X[_P0, s], X[_P0 + 1, s], X[_P0 + 2, s] = -p0 / pp, -p1 / pp, -p2 / pp
+                    p0, p1, p2 = -p0 / pp, -p1 / pp, -p2 / pp
+                X[_P0 * _SP + s], X[(_P0 + 1) * _SP + s], X[(_P0 + 2) * _SP + s] = p0, p1, p2
+
+
+@njit(**_JIT)
+def _to_cols(sig, X):
+    """Sigma points sig (S, n) into the columns of the flat X (n, _SP); the padding columns repeat chi_0."""
+    S, n = sig.shape
+    for i in range(n):
+        for s in range(S):
+            X[i * _SP + s] = sig[s, i]
+        for s in range(S, _SP):
+            X[i * _SP + s] = sig[0, i]
 
 
 @njit(**_JIT)
@@ -270,10 +288,10 @@ def predict_kernel(mean, cov, Q, stages, h, Wm, Wc, scale, J, Jinv, mu, gg, mean
     A = np.empty((n, n))
     L = np.empty((n, n))
     sig = np.empty((S, n))
-    X = np.empty((n, S))        # sigma points as columns
-    k1, k2, k3, k4, Ys = (np.empty((n, S)), np.empty((n, S)), np.empty((n, S)), np.empty((n, S)),
-                          np.empty((n, S)))
-    al = np.empty((3, S))
+    X = np.empty(n * _SP)       # sigma points as columns (flat, see _SP)
+    k1, k2, k3, k4, Ys = (np.empty(n * _SP), np.empty(n * _SP), np.empty(n * _SP), np.empty(n * _SP),
+                          np.empty(n * _SP))
+    al = np.empty((3, _SP))
     m = np.empty(n)
     P = np.empty((n, n))
     rw = np.empty((n, S))
@@ -281,16 +299,14 @@ def predict_kernel(mean, cov, Q, stages, h, Wm, Wc, scale, J, Jinv, mu, gg, mean
         ok[r] = _sigma_points(mean[r], cov[r], scale, A, L, sig)
         if not ok[r]:
             continue
-        for s in range(S):
-            for i in range(n):
-                X[i, s] = sig[s, i]
+        _to_cols(sig, X)
         _propagate(X, stages, h, J, Jinv, mu, gg, k1, k2, k3, k4, Ys)
         # x = sum Wm chi, with every MRP on the central point's set (align_mrp)
-        q0, q1, q2 = X[_P0, 0], X[_P0 + 1, 0], X[_P0 + 2, 0]
+        q0, q1, q2 = X[_P0 * _SP], X[(_P0 + 1) * _SP], X[(_P0 + 2) * _SP]
         _align_cols(X, q0, q1, q2, al)
         for s in range(S):
             for i in range(n):
-                sig[s, i] = al[i - _P0, s] if _P0 <= i < _P0 + 3 else X[i, s]
+                sig[s, i] = al[i - _P0, s] if _P0 <= i < _P0 + 3 else X[i * _SP + s]
         mv = np.dot(Wm, sig)                                      # as numpy's Wm @ s
         for i in range(n):
             m[i] = mv[i]
@@ -301,7 +317,7 @@ def predict_kernel(mean, cov, Q, stages, h, Wm, Wc, scale, J, Jinv, mu, gg, mean
         _align_cols(X, m[_P0], m[_P0 + 1], m[_P0 + 2], al)
         for s in range(S):
             for i in range(n):
-                sig[s, i] = (al[i - _P0, s] if _P0 <= i < _P0 + 3 else X[i, s]) - m[i]
+                sig[s, i] = (al[i - _P0, s] if _P0 <= i < _P0 + 3 else X[i * _SP + s]) - m[i]
         # P = sum Wc (chi - x)(chi - x)^T + Q (BLAS, as numpy's matmul forms it), symmetrized
         for i in range(n):
             for s in range(S):
@@ -316,14 +332,14 @@ def predict_kernel(mean, cov, Q, stages, h, Wm, Wc, scale, J, Jinv, mu, gg, mean
 
 @njit(**_JIT)
 def _align_cols(X, q0, q1, q2, al):
-    """align_mrp of every column's MRP (rows _P0.._P0+2 of X (12, S)) to q, into al (3, S)."""
-    for s in range(X.shape[1]):
-        p0, p1, p2 = X[_P0, s], X[_P0 + 1, s], X[_P0 + 2, s]
+    """align_mrp of every column's MRP (rows _P0.._P0+2 of the flat X (12, _SP)) to q, into al (3, _SP)."""
+    for s in range(_SP):
+        p0, p1, p2 = X[_P0 * _SP + s], X[(_P0 + 1) * _SP + s], X[(_P0 + 2) * _SP + s]
         pp = p0 * p0 + p1 * p1 + p2 * p2
         den = pp if pp > 0.0 else 1.0
         s0, s1, s2 = -p0 / den, -p1 / den, -p2 / den
-        ds = np.sqrt((s0 - q0) ** 2 + (s1 - q1) ** 2 + (s2 - q2) ** 2)
-        dp = np.sqrt((p0 - q0) ** 2 + (p1 - q1) ** 2 + (p2 - q2) ** 2)
+        ds = np.sqrt(_sq(s0 - q0) + _sq(s1 - q1) + _sq(s2 - q2))
+        dp = np.sqrt(_sq(p0 - q0) + _sq(p1 - q1) + _sq(p2 - q2))
         if ds < dp and pp > 0.0:
             al[0, s], al[1, s], al[2, s] = s0, s1, s2
         else:
@@ -334,12 +350,12 @@ def _align_cols(X, q0, q1, q2, al):
 
 @njit(**_JIT)
 def _dcm_cols(X, Gs):
-    """Gamma(p) (envisat_pose.attitude.mrp_to_dcm) of every column's MRP of X (12, S), row-major into Gs (9, S)."""
-    for s in range(X.shape[1]):
-        p0, p1, p2 = X[_P0, s], X[_P0 + 1, s], X[_P0 + 2, s]
+    """Gamma(p) (envisat_pose.attitude.mrp_to_dcm) of every column's MRP of the flat X (12, _SP), row-major into Gs (9, _SP)."""
+    for s in range(_SP):
+        p0, p1, p2 = X[_P0 * _SP + s], X[(_P0 + 1) * _SP + s], X[(_P0 + 2) * _SP + s]
         pp = p0 * p0 + p1 * p1 + p2 * p2
-        a1 = 4.0 * (1.0 - pp) / (1.0 + pp) ** 2
-        a2 = 8.0 / (1.0 + pp) ** 2
+        a1 = 4.0 * (1.0 - pp) / _sq(1.0 + pp)
+        a2 = 8.0 / _sq(1.0 + pp)
         Gs[0, s] = 1.0 + a2 * (-p2 * p2 + -p1 * p1)
         Gs[1, s] = (0.0 - a1 * -p2) + a2 * (p1 * p0)
         Gs[2, s] = (0.0 - a1 * p1) + a2 * (-p2 * -p0)
@@ -353,24 +369,24 @@ def _dcm_cols(X, Gs):
 
 @njit(**_JIT)
 def _measure_cols(X, Gs, c, kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_cv, min_depth, out):
-    """Corner c measured from every column of X (12, S), Gs (9, S) their Gamma, into out (m, S): markers3d
+    """Corner c measured from the first S columns of the flat X (12, _SP), Gs their Gamma, into out (m, S): markers3d
     rho + Gamma^T v_c (m); pixels the guarded pinhole (px); pixels+range adds |v_C - camera| (m)."""
     v0, v1, v2 = corners_T[c, 0], corners_T[c, 1], corners_T[c, 2]
-    S = X.shape[1]
+    S = out.shape[1]
     if kind == 0:
         for s in range(S):
-            out[0, s] = X[0, s] + (v0 * Gs[0, s] + v1 * Gs[3, s] + v2 * Gs[6, s])
-            out[1, s] = X[1, s] + (v0 * Gs[1, s] + v1 * Gs[4, s] + v2 * Gs[7, s])
-            out[2, s] = X[2, s] + (v0 * Gs[2, s] + v1 * Gs[5, s] + v2 * Gs[8, s])
+            out[0, s] = X[0 * _SP + s] + (v0 * Gs[0, s] + v1 * Gs[3, s] + v2 * Gs[6, s])
+            out[1, s] = X[1 * _SP + s] + (v0 * Gs[1, s] + v1 * Gs[4, s] + v2 * Gs[7, s])
+            out[2, s] = X[2 * _SP + s] + (v0 * Gs[2, s] + v1 * Gs[5, s] + v2 * Gs[8, s])
         return
     R00, R01, R02, R10, R11, R12, R20, R21, R22 = (cam_R[0, 0], cam_R[0, 1], cam_R[0, 2], cam_R[1, 0],
                                                    cam_R[1, 1], cam_R[1, 2], cam_R[2, 0], cam_R[2, 1],
                                                    cam_R[2, 2])
     c0, c1, c2 = cam_pos[0], cam_pos[1], cam_pos[2]
     for s in range(S):
-        d0 = (X[0, s] + (v0 * Gs[0, s] + v1 * Gs[3, s] + v2 * Gs[6, s])) - c0
-        d1 = (X[1, s] + (v0 * Gs[1, s] + v1 * Gs[4, s] + v2 * Gs[7, s])) - c1
-        d2 = (X[2, s] + (v0 * Gs[2, s] + v1 * Gs[5, s] + v2 * Gs[8, s])) - c2
+        d0 = (X[0 * _SP + s] + (v0 * Gs[0, s] + v1 * Gs[3, s] + v2 * Gs[6, s])) - c0
+        d1 = (X[1 * _SP + s] + (v0 * Gs[1, s] + v1 * Gs[4, s] + v2 * Gs[7, s])) - c1
+        d2 = (X[2 * _SP + s] + (v0 * Gs[2, s] + v1 * Gs[5, s] + v2 * Gs[8, s])) - c2
         x = d0 * R00 + d1 * R01 + d2 * R02
         y = d0 * R10 + d1 * R11 + d2 * R12
         z = max(d0 * R20 + d1 * R21 + d2 * R22, min_depth)
@@ -401,14 +417,14 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
     L = np.empty((n, n))
     sig = np.empty((S, n))
     G = np.empty((3, 3))
-    X = np.empty((n, S))        # sigma points as columns (the loops over them vectorize)
-    Gs = np.empty((9, S))       # Gamma(p) of each sigma point, row-major entries
+    X = np.empty(n * _SP)       # sigma points as columns (flat, see _SP)
+    Gs = np.empty((9, _SP))     # Gamma(p) of each sigma point, row-major entries
     zbuf = np.empty(Mx * S)     # z of the sigma points as rows (M, S), then dz
     zw = np.empty(Mx * S)       # Wc-weighted dz (M, S)
     xw = np.empty((n, S))       # Wc-weighted dx (n, S)
     zp = np.empty(Mx)
     zsb = np.empty(S * Mx)
-    al3 = np.empty((3, S))
+    al3 = np.empty((3, _SP))
     Pbuf = np.empty(Mx * Mx)
     Xbuf = np.empty(n * Mx)
     Sm = np.empty((Mx, Mx))
@@ -468,9 +484,7 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
         for a in range(na):
             for d in range(mdim):
                 comp[a * mdim + d] = act[a] * mdim + d
-        for s in range(S):
-            for i in range(n):
-                X[i, s] = sig[s, i]
+        _to_cols(sig, X)
         # the measurement model of the measured corners at every sigma point (filtering/measurements.measure)
         _dcm_cols(X, Gs)
         for a in range(na):
@@ -485,7 +499,7 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
                     xw[i, s] = (al3[i - _P0, s] - mi) * Wc[s]
             else:
                 for s in range(S):
-                    xw[i, s] = (X[i, s] - mi) * Wc[s]
+                    xw[i, s] = (X[i * _SP + s] - mi) * Wc[s]
         # z_pred = sum Wm z_s; Pzz = sum Wc dz dz^T, Pxz = sum Wc dx dz^T (matrix products through BLAS)
         np.dot(zT, Wm, zp[:M])
         for a in range(M):
@@ -601,7 +615,7 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
             pv = (p0, p1, p2)
             for i in range(3):
                 for j in range(3):
-                    Sj[i, j] = (2.0 * pv[i] * pv[j] - (pp if i == j else 0.0)) / pp ** 2
+                    Sj[i, j] = (2.0 * pv[i] * pv[j] - (pp if i == j else 0.0)) / _sq(pp)
             _shadow(mean_out[r, _P0:_P0 + 3])
             for j in range(n):
                 b0, b1, b2 = P[_P0, j], P[_P0 + 1, j], P[_P0 + 2, j]
@@ -662,7 +676,7 @@ def _chaser_stages(c0, dt, mu, n_sub, stages):
                     stages[i, 0, j] = c[j]
             r, rd, thd = cq[0], cq[1], cq[3]
             k[q, 0] = rd
-            k[q, 1] = r * thd ** 2 - mu / r ** 2
+            k[q, 1] = r * _sq(thd) - mu / _sq(r)
             k[q, 2] = thd
             k[q, 3] = -2.0 * rd * thd / r
         for j in range(4):
