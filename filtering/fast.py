@@ -420,16 +420,15 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
     X = np.empty(n * _SP)       # sigma points as columns (flat, see _SP)
     Gs = np.empty((9, _SP))     # Gamma(p) of each sigma point, row-major entries
     zbuf = np.empty(Mx * S)     # z of the sigma points as rows (M, S), then dz
-    zw = np.empty(Mx * S)       # Wc-weighted dz (M, S)
-    xw = np.empty((n, S))       # Wc-weighted dx (n, S)
+    Wb = np.empty((Mx + n) * S)  # [Wc-weighted dz (M, S); Wc-weighted dx (n, S)]: one BLAS product for both
     zp = np.empty(Mx)
     zsb = np.empty(S * Mx)
     al3 = np.empty((3, _SP))
-    Pbuf = np.empty(Mx * Mx)
-    Xbuf = np.empty(n * Mx)
+    Cbuf = np.empty((Mx + n) * Mx)  # [Pzz (M, M); Pxz (n, M)]
+    Vtb = np.empty(n * Mx)
     Sm = np.empty((Mx, Mx))
     Ls = np.empty((Mx, Mx))
-    V = np.empty((Mx, n))
+    Vb = np.empty(Mx * n)
     u = np.empty(Mx)
     y = np.empty(Mx)
     comp = np.empty(Mx, dtype=np.int64)   # compact component -> (corner, axis) index into the 8m vector
@@ -478,9 +477,10 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
             continue
         M = na * mdim
         zT = zbuf[:M * S].reshape((M, S))
-        zwM = zw[:M * S].reshape((M, S))
-        Pzz = Pbuf[:M * M].reshape((M, M))
-        Pxz = Xbuf[:n * M].reshape((n, M))
+        Wv = Wb[:(M + n) * S].reshape((M + n, S))
+        C = Cbuf[:(M + n) * M].reshape((M + n, M))
+        Pzz = C[:M]
+        Pxz = C[M:]
         for a in range(na):
             for d in range(mdim):
                 comp[a * mdim + d] = act[a] * mdim + d
@@ -490,29 +490,33 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
         for a in range(na):
             _measure_cols(X, Gs, act[a], kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_cv, min_depth,
                           zT[a * mdim:(a + 1) * mdim])
-        # dx = chi - x with each MRP on the mean's set, weighted: xw = Wc dx
+        # dx = chi - x with each MRP on the mean's set, weighted by Wc, under the weighted dz in Wv
         _align_cols(X, mean[r, _P0], mean[r, _P0 + 1], mean[r, _P0 + 2], al3)
         for i in range(n):
             mi = mean[r, i]
             if _P0 <= i < _P0 + 3:
                 for s in range(S):
-                    xw[i, s] = (al3[i - _P0, s] - mi) * Wc[s]
+                    Wv[M + i, s] = (al3[i - _P0, s] - mi) * Wc[s]
             else:
                 for s in range(S):
-                    xw[i, s] = (X[i * _SP + s] - mi) * Wc[s]
-        # z_pred = sum Wm z_s; Pzz = sum Wc dz dz^T, Pxz = sum Wc dx dz^T (matrix products through BLAS)
-        np.dot(zT, Wm, zp[:M])
-        for a in range(M):
-            za = zp[a]
-            for s in range(S):
-                zT[a, s] -= za                                     # dz = z_s - z_pred
-                zwM[a, s] = zT[a, s] * Wc[s]
+                    Wv[M + i, s] = (X[i * _SP + s] - mi) * Wc[s]
+        # z_pred = sum Wm z_s; Pzz = sum Wc dz dz^T, Pxz = sum Wc dx dz^T (one matrix product through BLAS)
         zs = zsb[:S * M].reshape((S, M))
         for s in range(S):
             for a in range(M):
                 zs[s, a] = zT[a, s]
-        np.dot(zwM, zs, Pzz)
-        np.dot(xw, zs, Pxz)
+        for a in range(M):
+            zp[a] = 0.0
+        for s in range(S):
+            ws = Wm[s]
+            for a in range(M):
+                zp[a] += ws * zs[s, a]
+        for s in range(S):
+            ws = Wc[s]
+            for a in range(M):
+                zs[s, a] -= zp[a]                                  # dz = z_s - z_pred
+                Wv[a, s] = zs[s, a] * ws
+        np.dot(Wv, zs, C)
         sr = r_scale[r]
         for ai in range(na):
             ca = act[ai]
@@ -554,23 +558,30 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
             continue
         # compact to the accepted components, in order
         Mk = keep * mdim
+        V = Vb[:Mk * n].reshape((Mk, n))
+        Vt = Vtb[:n * Mk].reshape((n, Mk))
         for a in range(keep):
             for d in range(mdim):
                 comp[a * mdim + d] = act[a] * mdim + d           # now indexes the measured-corner vectors
-        for a in range(Mk):
-            ia = comp[a]
-            u[a] = y[ia]
-            for b in range(Mk):
-                Ls[a, b] = Sm[ia, comp[b]]
-            for i in range(n):
-                V[a, i] = Pxz[i, ia]
-        for a in range(Mk):
-            y[a] = u[a]
-            for b in range(Mk):
-                Sm[a, b] = Ls[a, b]
         tr = 0.0
         for a in range(Mk):
             tr += Pzz[comp[a], comp[a]]
+        if keep < na:
+            for a in range(Mk):
+                ia = comp[a]
+                u[a] = y[ia]
+                for b in range(Mk):
+                    Ls[a, b] = Sm[ia, comp[b]]
+                for i in range(n):
+                    V[a, i] = Pxz[i, ia]
+            for a in range(Mk):
+                y[a] = u[a]
+                for b in range(Mk):
+                    Sm[a, b] = Ls[a, b]
+        else:
+            for a in range(Mk):
+                for i in range(n):
+                    V[a, i] = Pxz[i, a]
         if not _chol(Sm, Ls, Mk):
             ok[r] = False
             continue
@@ -594,15 +605,14 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
             yty += y[a] * y[a]
         for i in range(n):
             Ky[r, i] = 0.0
-            for j in range(n):
-                P[i, j] = 0.0
         for a in range(Mk):
             ua = u[a]
             for i in range(n):
                 Ky[r, i] += V[a, i] * ua
-                vai = V[a, i]
-                for j in range(n):
-                    P[i, j] += vai * V[a, j]
+        for i in range(n):
+            for a in range(Mk):
+                Vt[i, a] = V[a, i]
+        np.dot(Vt, V, P)                                            # K S K^T = V^T V (BLAS)
         for i in range(n):
             mean_out[r, i] = mean[r, i] + Ky[r, i]
             for j in range(n):
