@@ -4,7 +4,8 @@ Usage: python scripts/model_card.py --weights models/detector.safetensors --runs
            --datasets DIR [DIR ...] --evaluation NAME=EVAL.json [NAME=EVAL.json ...] [--commands FILE]
            [--idle RUN_DIR=SECONDS ...] --hardware TEXT --out models/detector.json
        python scripts/model_card.py --refresh models/detector.json --weights models/detector.safetensors
-           [--datasets DIR ...] [--evaluation NAME=EVAL.json ...] [--commands FILE] --out models/detector.json
+           [--datasets DIR ...] [--evaluation NAME=EVAL.json ...] [--error-model NAME=W.safetensors ...]
+           [--commands FILE] --out models/detector.json
            (keeps the card's runs; rewrites its weights entry from the file's metadata, adds the datasets,
            evaluations and commands given: the metadata written after training, e.g. the error model)
 
@@ -110,6 +111,11 @@ def refresh(a) -> int:
     for item in a.evaluation or []:
         name, _, path = item.partition("=")
         card.setdefault("evaluations", {})[name] = evaluation_record(json.load(open(path, encoding="utf-8")))
+    for item in a.error_model or []:
+        name, _, path = item.partition("=")
+        meta = read_metadata(path)
+        card.setdefault("error_model_measurements", {})[name] = {
+            "error_model": json.loads(meta["error_model"]), "record": json.loads(meta["error_model_record"])}
     if a.commands:
         card.setdefault("commands", []).extend(open(a.commands, encoding="utf-8").read().strip().splitlines())
     atomic_write_text(a.out, json.dumps(card, indent=1, sort_keys=False, allow_nan=False,
@@ -126,6 +132,9 @@ def main() -> int:
     p.add_argument("--datasets", nargs="+")
     p.add_argument("--evaluation", nargs="+", metavar="NAME=EVAL.json",
                    help="envisat evaluate's JSON per held-out set, each under a name")
+    p.add_argument("--error-model", nargs="+", metavar="NAME=W.safetensors",
+                   help="--refresh: error models measured into other weights files (e.g. another ROI mode), "
+                   "kept in the card under error_model_measurements")
     p.add_argument("--commands", help="text file: the commands that made the datasets, the calibration, the card")
     p.add_argument("--idle", nargs="*", default=[], metavar="RUN_DIR=SECONDS",
                    help="time a run stood stopped before it was resumed, left out of its wall time")
