@@ -295,8 +295,16 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
     up = _update(mean, cov, z, measured, R_c, state.r_scale, thr, setup)
     mean, cov, mask_k = up["mean"], up["cov"], up["mask_k"]
     nis, dof, accepted = up["nis"], up["dof"], up["accepted"]
-    # never NaN: roll a run back to its prediction (or its previous posterior) and flag it
-    bad = ~(np.isfinite(mean).all(-1) & np.isfinite(cov).all((-1, -2)))
+    # never NaN: roll a run back to its prediction (or its previous posterior) and flag it (the fast kernel
+    # returns finite results for the runs it finished and says which runs the numpy filter redid: only those
+    # can be non-finite)
+    suspect = up.get("suspect")
+    if suspect is None:
+        bad = ~(np.isfinite(mean).all(-1) & np.isfinite(cov).all((-1, -2)))
+    else:
+        bad = np.zeros(mean.shape[0], dtype=bool)
+        if suspect.size:
+            bad[suspect] = ~(np.isfinite(mean[suspect]).all(-1) & np.isfinite(cov[suspect]).all((-1, -2)))
     repaired, diverged = state.repaired, state.diverged
     if bad.any():
         fallback_ok = np.isfinite(mean_pred).all(-1) & np.isfinite(cov_pred).all((-1, -2))

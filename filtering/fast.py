@@ -756,7 +756,8 @@ def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarra
     mean (R, 12), cov (R, 12, 12) the prior; z (R, 8, m); measured (R, 8) bool (finite); R_c (R, 8, m, m)
     per-corner covariance, used as R_c * r_scale (R,); thr (R,) gate bound per run (inf: open) or None (no
     gate); setup: the estimator's FilterSetup (kind, camera, weights). Returns a dict of mean, cov, nis, dof,
-    accepted (R, 8), mask_k (R, 8) (the corners the gate saw), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,)."""
+    accepted (R, 8), mask_k (R, 8) (the corners the gate saw), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,),
+    suspect (k,) the runs the numpy filter redid (the only ones whose results may be non-finite)."""
     from envisat_pose.filtering.measurements import MIN_DEPTH_M
 
     mean = np.ascontiguousarray(mean, dtype=float)
@@ -775,6 +776,7 @@ def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarra
            "trPzz": np.empty(R), "Ky": np.empty((R, N_STATE)), "accepted": np.empty((R, 8), dtype=bool),
            "mask_k": np.empty((R, 8), dtype=bool)}
     ok = np.empty(R, dtype=bool)
+    out["suspect"] = np.zeros(0, dtype=np.int64)  # runs the numpy filter redid (the kernel's are finite)
     update_kernel(mean, cov, z, measured, R_c, r_scale, thr_a, use_gate, bool(vis_check), w.Wm, w.Wc,
                   float(w.n + w.lam), kind, corners, fn, fh, fc, cR, cpos, f, cu, cv, float(MIN_DEPTH_M),
                   out["mean"], out["cov"], out["nis"], out["accepted"], out["mask_k"], out["Ky"], out["yy"],
@@ -784,6 +786,7 @@ def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarra
         from envisat_pose.filtering.measurements import predicted_visible
 
         bad = np.flatnonzero(~ok)
+        out["suspect"] = bad
         mk = measured[bad]
         if vis_check:
             mk = mk & predicted_visible(mean[bad])
