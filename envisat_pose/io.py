@@ -50,7 +50,9 @@ def check_writable_output(path: str, field: str = "out") -> None:
 def save_npz(path: str, arrays: dict) -> None:
     """Write arrays to an .npz atomically and byte-reproducibly (fixed zip timestamps, sorted keys).
 
-    numpy.savez stamps every member with the current time, so the same data would give different bytes.
+    numpy.savez stamps every member with the current time, so the same data would give different bytes. A
+    value may be a StreamedArray: its chunks are written one after the other, so an array larger than memory is
+    never held whole; the file's bytes are those of the same array given whole.
     """
     import zipfile
 
@@ -62,7 +64,102 @@ def save_npz(path: str, arrays: dict) -> None:
                 info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
                 info.external_attr = 0o644 << 16
                 with zf.open(info, "w", force_zip64=True) as fh:
-                    np.lib.format.write_array(fh, np.asanyarray(arrays[key]), allow_pickle=False)
+                    if isinstance(arrays[key], StreamedArray):
+                        arrays[key].write_npy(fh)
+                    else:
+                        np.lib.format.write_array(fh, np.asanyarray(arrays[key]), allow_pickle=False)
+
+
+class StreamedArray:
+    """An array given as its shape, dtype and chunks (a callable returning an iterable of arrays whose rows,
+    concatenated in C order, make the array), for save_npz."""
+
+    def __init__(self, shape: tuple, dtype, chunks):
+        import numpy as np
+
+        self.shape, self.dtype, self.chunks = tuple(int(n) for n in shape), np.dtype(dtype), chunks
+
+    def write_npy(self, fh) -> None:
+        """The .npy bytes (header as numpy.lib.format.write_array writes it, then the data) to a writable file."""
+        import numpy as np
+
+        write_npy_header(fh, self.shape, self.dtype)
+        want = int(np.prod(self.shape, dtype=np.int64))
+        n = 0
+        for chunk in self.chunks():
+            chunk = np.ascontiguousarray(chunk, dtype=self.dtype)
+            fh.write(chunk.tobytes())
+            n += chunk.size
+        if n != want:
+            raise ValueError(f"streamed array of shape {self.shape}: its chunks held {n} values, expected {want}")
+
+
+def write_npy_header(fh, shape: tuple, dtype) -> None:
+    """An .npy header for a C-ordered array (format 1.0, as numpy.lib.format.write_array picks for it)."""
+    import numpy as np
+
+    fmt = np.lib.format
+    header = {"descr": fmt.dtype_to_descr(np.dtype(dtype)), "fortran_order": False, "shape": tuple(shape)}
+    fmt.write_array_header_1_0(fh, header)
+
+
+class NpyRowWriter:
+    """An .npy file of shape (n_rows, *row_shape) written rows at a time (appended in order), so a long run's
+    per-frame array is never held whole. close() checks that every row was written."""
+
+    def __init__(self, path: str, n_rows: int, row_shape: tuple, dtype):
+        import numpy as np
+
+        self.path, self.n_rows, self.row_shape, self.dtype = path, int(n_rows), tuple(row_shape), np.dtype(dtype)
+        self.written = 0
+        self.fh = open(path, "wb")
+        write_npy_header(self.fh, (self.n_rows,) + self.row_shape, self.dtype)
+
+    def write(self, rows) -> None:
+        import numpy as np
+
+        rows = np.ascontiguousarray(rows, dtype=self.dtype)
+        if rows.shape[1:] != self.row_shape or self.written + len(rows) > self.n_rows:
+            raise ValueError(f"{self.path}: rows of shape {rows.shape} after {self.written} of {self.n_rows} rows "
+                             f"of shape {self.row_shape}")
+        self.fh.write(rows.tobytes())
+        self.written += len(rows)
+
+    def close(self) -> None:
+        self.fh.close()
+        if self.written != self.n_rows:
+            raise ValueError(f"{self.path}: {self.written} of {self.n_rows} rows written")
+
+
+def npy_info(path: str) -> tuple[tuple, "np.dtype", int]:
+    """(shape, dtype, data offset in bytes) of a C-ordered .npy file, from its header."""
+    import numpy as np
+
+    fmt = np.lib.format
+    with open(path, "rb") as fh:
+        version = fmt.read_magic(fh)
+        read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape, fortran, dtype = read(fh)
+        if fortran:
+            raise ValueError(f"{path}: a Fortran-ordered array, expected C order")
+        return shape, dtype, fh.tell()
+
+
+def read_npy_rows(path: str, start: int, stop: int):
+    """Rows [start, stop) of a C-ordered .npy file, read from the file (no memory map: the rows read are the only
+    ones the process holds)."""
+    import numpy as np
+
+    shape, dtype, offset = npy_info(path)
+    start, stop = max(0, int(start)), min(int(stop), shape[0])
+    row = int(np.prod(shape[1:], dtype=np.int64))
+    n = max(stop - start, 0)
+    with open(path, "rb") as fh:
+        fh.seek(offset + start * row * dtype.itemsize)
+        data = np.fromfile(fh, dtype=dtype, count=n * row)
+    if data.size != n * row:
+        raise ValueError(f"{path}: truncated (rows {start}..{stop} of {shape[0]})")
+    return data.reshape((n,) + tuple(shape[1:]))
 
 
 def sha256_file(path: str) -> str:

@@ -79,9 +79,9 @@ class RunConfig:
         check(1 <= self.threads <= 256, "threads", self.threads, "1 to 256 threads")
         check(1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality, "a JPEG quality in [1, 100]")
         cam = load_camera()
-        check(self.image.resolution_px == cam.width_px == cam.height_px, "image.resolution_px",
-              self.image.resolution_px, f"the camera's {cam.width_px} px (models/envisat.xml, camera chaser_cam): "
-              "the filter's pixel model and the detector's training use it")
+        check(cam.width_px == cam.height_px and 16 <= self.image.resolution_px <= 4096, "image.resolution_px",
+              self.image.resolution_px, "a square image side in [16, 4096] px (the MJCF's chaser_cam, "
+              f"{cam.width_px} px, read out at that size: the same field of view)")
 
 
 def stage_types() -> None:
@@ -219,10 +219,80 @@ def store_estimate(out: dict, k: int, est) -> None:
         out["crop_px"][k] = fd.crop_px
 
 
+# rows a run holds before writing them out: ~2.4 kB a frame, so ~2.4 MB per run whatever the run's length
+CHUNK_FRAMES = 1000
+# columns of a run's arrays that go to det.npz (run 0) and est.npz (every run)
+DET_KEYS = ("corners_px", "cov_px", "confidence", "visible", "rejected", "alt_corners_px", "alt_probability",
+            "ambiguous", "crop_px", "roi_px", "converged", "skipped", "naming", "status", "p_best", "n_hypotheses")
+EST_KEYS = ("x_hat", "P", "n_meas", "nis", "nis_dof")
+
+
+class RunRows:
+    """A run's per-frame arrays (record_arrays) streamed to run_dir/<name>.npy, `chunk` frames at a time, with
+    the run's reductions (stage time sums, frame counts) taken per chunk: the run holds one chunk, never the run.
+    Frames come in order: row(k) is frame k's row in `buf` (the chunk before it written out when full)."""
+
+    def __init__(self, run_dir: str, T: int, chunk: int = CHUNK_FRAMES):
+        from envisat_pose.io import NpyRowWriter
+
+        os.makedirs(run_dir, exist_ok=True)
+        self.T, self.chunk, self.start, self.n = T, min(chunk, T), 0, 0
+        self.buf = record_arrays(self.chunk)
+        self.writers = {k: NpyRowWriter(os.path.join(run_dir, f"{k}.npy"), T, a.shape[1:], a.dtype)
+                        for k, a in self.buf.items()}
+        self.sums = {"timing_s": np.zeros(len(STAGES)), "frames_skipped_eclipse": 0, "frames_roi": 0,
+                     "frames_ambiguous": 0, "frames_acquiring": 0, "frames_lost": 0}
+
+    def row(self, k: int) -> int:
+        if k != self.start + self.n:
+            raise ValueError(f"frame {k} out of order (expected {self.start + self.n})")
+        if self.n == self.chunk:
+            self.flush()
+        self.n += 1
+        return self.n - 1
+
+    def flush(self) -> None:
+        b = {k: a[:self.n] for k, a in self.buf.items()}
+        for k, w in self.writers.items():
+            w.write(b[k])
+        s = self.sums
+        s["timing_s"] += b["timing_s"].sum(axis=0)
+        s["frames_skipped_eclipse"] += int(b["skipped"].sum())
+        s["frames_roi"] += int(np.isfinite(b["roi_px"][:, 0]).sum())
+        s["frames_ambiguous"] += int(b["ambiguous"].sum())
+        s["frames_acquiring"] += int((b["status"] == 0).sum())
+        s["frames_lost"] += int((b["status"] == 2).sum())
+        self.start, self.n = self.start + self.n, 0
+        self.buf = record_arrays(self.chunk)  # fresh defaults (NaN where a frame has no detection)
+
+    def close(self) -> dict:
+        """Write the last rows and check every frame was written; returns the run's reductions (plain data)."""
+        if self.n:
+            self.flush()
+        for w in self.writers.values():
+            w.close()
+        return {**self.sums, "timing_s": self.sums["timing_s"].tolist(), "frames": self.T}
+
+
+def run_camera(resolution_px: int):
+    """The MJCF's chaser_cam read out at resolution_px (square): the same field of view and mount."""
+    from envisat_pose.geometry import load_camera
+
+    cam = load_camera()
+    return cam if resolution_px == cam.width_px else cam.scaled(resolution_px, resolution_px)
+
+
+def rescale_px(uv: np.ndarray, src, dst) -> np.ndarray:
+    """Pixels (..., 2) of camera src as camera dst (the same field of view, another size) sees them."""
+    s = dst.f_px / src.f_px
+    return (uv - [src.cu_px, src.cv_px]) * s + [dst.cu_px, dst.cv_px]
+
+
 def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None, progress: bool,
-                     sim_s_per_frame: float) -> dict:
-    """Closed loop `run` over the truth in truth_path; returns its arrays (record_arrays; plain data for the
-    runner). sink: where run 0 streams its recording (analysis.recording.TrackRecorder), None for none."""
+                     sim_s_per_frame: float, run_dir: str) -> dict:
+    """Closed loop `run` over the truth in truth_path; writes its per-frame arrays (record_arrays) to
+    run_dir/<name>.npy chunk by chunk as it goes (RunRows) and returns only the run's reductions (plain data for
+    the runner). sink: where run 0 streams its recording (analysis.recording.TrackRecorder), None for none."""
     import cv2
     import torch
 
@@ -243,7 +313,11 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     truth = TruthTrajectory.load(truth_path)
     mu, gg = truth_dynamics(truth)
     sun_C, eclipse, nadir_C = sun_and_shadow(cfg, truth)
-    camera = load_camera()
+    camera = run_camera(gcfg.resolution_px)
+    # the truth's corners are projected at the MJCF camera's size; the recorder shows them at the frames' size
+    truth_uv = truth.corners_px if camera.width_px == load_camera().width_px else \
+        rescale_px(truth.corners_px, load_camera(), camera)
+    truth_seen = truth.in_frame & truth.visible
     renderer = shared_renderer(gcfg.resolution_px, gcfg.shadows,
                                gcfg.appearance.texture_set_size if gcfg.appearance_on else 0,
                                gcfg.appearance.texture_seed)
@@ -255,7 +329,7 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
                       cfg.filter, mu_m3_s2=mu, gravity_gradient=gg, prior=prior)
     look_seed = sample_seed(cfg.seed, 0, 0)  # one look for the whole sequence: the same target in every run
     T = len(truth.t_s)
-    out = record_arrays(T)
+    rows = RunRows(run_dir, T)
     recorder = None
     if sink:
         from envisat_pose.analysis.recording import TrackRecorder
@@ -284,13 +358,14 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
                 image = apply_corruption(rendered.gray_u8, params)
                 t_camera = time.perf_counter() - t0
             est = tracker.step(float(truth.t_s[k]), image)
-            store_estimate(out, k, est)
-            out["skipped"][k] = image is None
+            i, out = rows.row(k), rows.buf
+            store_estimate(out, i, est)
+            out["skipped"][i] = image is None
             t0 = time.perf_counter()
             if recorder is not None:
-                recorder.log_frame(k, est_row(out, k, float(truth.t_s[k])), image, cfg.jpeg_quality, x_true=x,
-                                   corners_true_px=truth.corners_px[k], in_frame=truth.in_frame[k] & truth.visible[k])
-            out["timing_s"][k] = (sim_s_per_frame, t_render, t_camera, est.timing_s.get("detection", 0.0),
+                recorder.log_frame(k, est_row(out, i, float(truth.t_s[k])), image, cfg.jpeg_quality, x_true=x,
+                                   corners_true_px=truth_uv[k], in_frame=truth_seen[k])
+            out["timing_s"][i] = (sim_s_per_frame, t_render, t_camera, est.timing_s.get("detection", 0.0),
                                   est.timing_s.get("filtering", 0.0), time.perf_counter() - t0)
             if bar is not None:
                 bar.update(1)
@@ -300,11 +375,11 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
             bar.close()
         if recorder is not None:
             recorder.close()
-    return out
+    return rows.close()
 
 
 def est_row(out: dict, k: int, t_s: float) -> dict:
-    """Row k of a run's arrays (at t_s, s) as the plain dict the recorder logs."""
+    """Row k of a run's arrays (record_arrays or a RunRows chunk; at t_s, s) as the plain dict the recorder logs."""
     return {"t_s": t_s} | {name: out[name][k] for name in ("x_hat", "P", "status", "p_best", "n_hypotheses", "nis", "nis_dof",
                                              "corners_px", "visible", "rejected", "roi_px")}
 
@@ -329,11 +404,15 @@ def output_paths(out_dir: str) -> dict[str, str]:
 
 def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: str | None = None) -> dict:
     """The whole job into out_dir; returns the summary dict (also written as summary.json). sink: where run 0's
-    recording goes (default: save to out_dir/recording.rrd; 'spawn' or 'connect:ADDR' for a live viewer)."""
+    recording goes (default: save to out_dir/recording.rrd; 'spawn' or 'connect:ADDR' for a live viewer).
+
+    Memory does not grow with the run's per-frame arrays: each run writes them to out_dir/runs/run-NNNN/ chunk by
+    chunk; est.npz and det.npz are streamed from those files (then removed) and the scores read them chunk by
+    chunk (what stays whole: the truth, and a few scalars per frame: the errors the scores need and the status)."""
+    import shutil
+
     from envisat_pose.config import to_toml
-    from envisat_pose.contracts import Detections, Estimates
-    from envisat_pose.io import atomic_write_text, save_npz
-    from envisat_pose.pipelines.scoring import score_runs
+    from envisat_pose.io import atomic_write_text
     from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks
 
     os.makedirs(out_dir, exist_ok=True)
@@ -349,8 +428,10 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
     if workers == 1:
         os.environ.setdefault("LP_NUM_THREADS", str(cpu_share(1)))
     sink = sink or f"save:{os.path.abspath(paths['recording'])}"
+    runs_dir = os.path.join(out_dir, "runs")
+    run_dirs = [os.path.abspath(os.path.join(runs_dir, f"run-{r:04d}")) for r in range(cfg.runs)]
     tasks = [(cfg_json, r, os.path.abspath(paths["truth"]), sink if r == 0 else None, progress and cfg.runs == 1,
-              sim_s / T) for r in range(cfg.runs)]
+              sim_s / T, run_dirs[r]) for r in range(cfg.runs)]
     results: list[dict | None] = [None] * cfg.runs
     bar = None
     if progress and cfg.runs > 1:
@@ -366,48 +447,145 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
         bar.close()
     loop_wall_s = time.perf_counter() - t0
     R = cfg.runs
-    x_true = np.broadcast_to(truth.x, (R, T, 12)).copy()
-    x_hat = np.stack([r["x_hat"] for r in results])
-    P = np.stack([r["P"] for r in results])
-    status = np.stack([r["status"] for r in results])
-    scores = score_runs(truth.t_s, x_true, x_hat, P, status, skipped=results[0]["skipped"])
     config_json = json.dumps({"run": to_dict(cfg), "truth_source": {"scenario": cfg.scenario},
                               "truth_config": truth.config}, sort_keys=True)
-    est = Estimates(t_s=truth.t_s, x_true=x_true, x_hat=x_hat, P=P,
-                    n_meas=np.stack([r["n_meas"] for r in results]), nis=np.stack([r["nis"] for r in results]),
-                    nis_dof=np.stack([r["nis_dof"] for r in results]),
-                    diverged=~np.array(scores["converged_runs"], bool), config_json=config_json)
-    est.save(paths["est"])
-    r0 = results[0]
-    det = {k: r0[k] for k in ("corners_px", "cov_px", "confidence", "visible", "rejected", "alt_corners_px",
-                              "alt_probability", "ambiguous", "crop_px", "roi_px", "converged", "skipped", "naming",
-                              "status", "p_best", "n_hypotheses")}
-    det["t_s"] = truth.t_s
-    det["key"] = np.array([f"frame-{k:06d}" for k in range(T)])
     det_cfg = json.dumps({"weights": cfg.weights, "run": 0, "scenario": cfg.scenario, "seed": cfg.seed,
                           "roi": cfg.tracker.roi}, sort_keys=True)
-    Detections.validated({**det, "config_json": det_cfg}, paths["det"])
-    save_npz(paths["det"], {**det, "config_json": np.array(det_cfg)})
+    scores = score_run_files(truth.t_s, truth.x, run_dirs, paths, config_json, det_cfg)
+    write_run_files(paths, truth.t_s, truth.x, run_dirs, ~np.array(scores["converged_runs"], bool), config_json,
+                    [f"frame-{k:06d}" for k in range(T)], det_cfg)
     atomic_write_text(paths["config"], "# envisat run: the full validated config of this run\n" + to_toml(to_dict(cfg)))
     from envisat_pose.analysis.plots import plot_estimate
 
-    plot_estimate(truth.t_s, x_true, x_hat, P, paths["plot"],
+    plot_estimate(*plot_inputs(truth.t_s, truth.x, run_dirs), paths["plot"],
                   title=f"closed loop, scenario {cfg.scenario!r}, {R} run(s), seed {cfg.seed}")
-    timing = np.stack([r["timing_s"] for r in results])  # (R, T, stages)
+    shutil.rmtree(runs_dir, ignore_errors=True)
+    timing_sum = np.sum([r["timing_s"] for r in results], axis=0)  # (stages,) over runs and frames
     sim_time_s = float(truth.t_s[-1] - truth.t_s[0]) + 1.0 / cfg.rate_hz
-    frames_sum = float(timing.sum(axis=-1).mean(axis=0).sum())  # one run's wall time in the stages
+    frames_sum = float(timing_sum.sum()) / R  # one run's wall time in the stages
+    r0 = results[0]
     summary = {
         "scenario": cfg.scenario, "runs": R, "frames": T, "duration_s": cfg.duration_s, "roi": cfg.tracker.roi,
         "weights": cfg.weights, "start": "warm" if cfg.warm_start else "cold",
+        "resolution_px": cfg.image.resolution_px,
         "scores": scores,
-        "timing_ms_per_frame": {s: float(1000 * timing[..., i].mean()) for i, s in enumerate(STAGES)},
+        "timing_ms_per_frame": {s: float(1000 * timing_sum[i] / (R * T)) for i, s in enumerate(STAGES)},
         "real_time_factor_one_run": sim_time_s / max(frames_sum, 1e-9),
         "real_time_factor_job": sim_time_s * R / max(loop_wall_s, 1e-9),
         "wall_s": {"truth_simulation": sim_s, "loops": loop_wall_s, "total": time.perf_counter() - wall0},
-        "run0": {"frames_skipped_eclipse": int(r0["skipped"].sum()), "frames_roi": int(np.isfinite(r0["roi_px"][:, 0]).sum()),
-                 "frames_ambiguous": int(r0["ambiguous"].sum()),
-                 "frames_acquiring": int((r0["status"] == 0).sum()), "frames_lost": int((r0["status"] == 2).sum())},
+        "run0": {k: r0[k] for k in ("frames_skipped_eclipse", "frames_roi", "frames_ambiguous", "frames_acquiring",
+                                    "frames_lost")},
         "recording_bytes": os.path.getsize(paths["recording"]) if os.path.isfile(paths["recording"]) else 0,
     }
     atomic_write_text(paths["summary"], json.dumps(summary, indent=1, sort_keys=True) + "\n")
     return summary
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Reading the runs' files back, chunk by chunk (run_closed_loop and `envisat track`)
+
+# the most frames errors.png draws per series: beyond it every k-th frame (a 13-inch figure at 100 dpi shows
+# ~400 px per panel; drawing every frame of a long run would hold every run's covariances at once)
+PLOT_FRAMES = 7200
+
+
+def run_rows(run_dir: str, names, start: int, stop: int) -> dict:
+    """Frames [start, stop) of a run's arrays `names` (RunRows' files), read from the files."""
+    from envisat_pose.io import read_npy_rows
+
+    return {k: read_npy_rows(os.path.join(run_dir, f"{k}.npy"), start, stop) for k in names}
+
+
+def run_array(run_dirs: list[str], name: str, T: int):
+    """The runs' array `name` stacked over runs, (R, T, ...), as an io.StreamedArray read chunk by chunk."""
+    from envisat_pose.io import StreamedArray, npy_info, read_npy_rows
+
+    shape, dtype, _ = npy_info(os.path.join(run_dirs[0], f"{name}.npy"))
+
+    def chunks():
+        for d in run_dirs:
+            for a in range(0, T, CHUNK_FRAMES):
+                yield read_npy_rows(os.path.join(d, f"{name}.npy"), a, a + CHUNK_FRAMES)
+
+    return StreamedArray((len(run_dirs),) + tuple(shape), dtype, chunks)
+
+
+def score_run_files(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], paths: dict, config_json: str,
+                    det_cfg: str, score: bool = True, det_names=DET_KEYS) -> dict | None:
+    """scoring.score_runs of the runs in run_dirs against x_true (T, 12), reading x_hat and P chunk by chunk;
+    each chunk is also checked as est.npz's and (run 0) det.npz's contracts check them on save (score False: only
+    the checks, for x_true all NaN, no truth; returns None). Keeps only per-frame scalars (the errors, status)
+    and the second half's estimates for the error summary."""
+    from envisat_pose.contracts import Detections, Estimates
+    from envisat_pose.pipelines.scoring import frame_errors, score_frames, summary_after_s
+    from envisat_pose.state import error_summary
+
+    T = len(t_s)
+    errors, status = [], []
+    for r, d in enumerate(run_dirs):
+        parts, st = [], []
+        for a in range(0, T, CHUNK_FRAMES):
+            b = min(a + CHUNK_FRAMES, T)
+            c = run_rows(d, set(EST_KEYS + ("status",) + (det_names if r == 0 else ())), a, b)
+            Estimates.validated({"t_s": t_s[a:b], "x_true": x_true[None, a:b], "diverged": np.zeros(1, bool),
+                                 "config_json": config_json} | {k: c[k][None] for k in EST_KEYS}, paths["est"])
+            if r == 0:
+                Detections.validated({"t_s": t_s[a:b], "config_json": det_cfg} | {k: c[k] for k in det_names},
+                                     paths["det"])
+            if not score:
+                continue
+            parts.append(frame_errors(x_true[a:b], c["x_hat"], c["P"]))
+            st.append(c["status"])
+        if score:
+            errors.append({k: np.concatenate([p[k] for p in parts]) for k in parts[0]})
+            status.append(np.concatenate(st))
+    if not score:
+        return None
+    errors = {k: np.stack([e[k] for e in errors]) for k in errors[0]}
+    after_s = summary_after_s(t_s)
+    first = int(np.argmax(t_s >= after_s))
+    x_late = np.stack([run_rows(d, ["x_hat"], first, T)["x_hat"] for d in run_dirs])
+    summary = error_summary(t_s[first:], x_true[first:], x_late, after_s)
+    skipped = run_rows(run_dirs[0], ["skipped"], 0, T)["skipped"]
+    return score_frames(t_s, errors, np.stack(status), skipped, summary)
+
+
+def write_run_files(paths: dict, t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], diverged: np.ndarray,
+                    config_json: str, keys: list[str], det_cfg: str, det_names=DET_KEYS) -> None:
+    """est.npz (every run) and det.npz (run 0) streamed from the runs' files (their contracts checked chunk by
+    chunk in score_run_files): the same bytes as Estimates.save / save_npz of the whole arrays."""
+    from envisat_pose.io import StreamedArray, save_npz
+
+    T, R = len(t_s), len(run_dirs)
+    est = {k: run_array(run_dirs, k, T) for k in EST_KEYS}
+    est["x_true"] = StreamedArray((R, T, 12), np.float64, lambda: (x_true for _ in range(R)))
+    save_npz(paths["est"], est | {"t_s": t_s, "diverged": np.asarray(diverged, bool),
+                                  "config_json": np.array(config_json)})
+    det = {k: run_array(run_dirs[:1], k, T) for k in det_names}
+    det = {k: StreamedArray(a.shape[1:], a.dtype, a.chunks) for k, a in det.items()}
+    key_dtype = np.dtype(f"<U{max(max(map(len, keys), default=1), 1)}")  # as numpy.array(keys) makes it
+    det["key"] = StreamedArray((T,), key_dtype, lambda: (np.array(keys[a:a + CHUNK_FRAMES], key_dtype)
+                                                         for a in range(0, T, CHUNK_FRAMES)))
+    save_npz(paths["det"], det | {"t_s": t_s, "config_json": np.array(det_cfg)})
+
+
+def plot_inputs(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str]) -> tuple:
+    """What plots.plot_estimate draws (t_s, x_true, x_hat, P) at most PLOT_FRAMES frames (every k-th), read from
+    the runs' files: P as its mean over runs (the figure's filter sigma is that mean's diagonal) on the diagonal,
+    one run, so the figure holds one covariance series whatever the number of runs."""
+    T = len(t_s)
+    step = -(-T // PLOT_FRAMES)
+    idx = np.arange(0, T, step)
+    x_hat, p_sum = [], 0.0
+    for d in run_dirs:
+        xs, ps = [], []
+        for a in range(0, T, CHUNK_FRAMES):
+            c = run_rows(d, ["x_hat", "P"], a, a + CHUNK_FRAMES)
+            take = slice((-a) % step, None, step)
+            xs.append(c["x_hat"][take])
+            ps.append(np.diagonal(c["P"][take], axis1=-2, axis2=-1))
+        x_hat.append(np.concatenate(xs))
+        p_sum = p_sum + np.concatenate(ps)
+    P = np.zeros((1, len(idx), 12, 12))
+    P[0][:, np.arange(12), np.arange(12)] = p_sum / len(run_dirs)
+    return t_s[idx], np.repeat(x_true[idx][None], len(run_dirs), axis=0), np.stack(x_hat), P

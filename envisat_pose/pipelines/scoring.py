@@ -32,17 +32,41 @@ def score_runs(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.nda
     STATUSES), skipped (T,) frames without an image (eclipse). Per run: converged, time to converge from the
     first lit frame (s); over the converged runs after convergence: RMSE per block (m, m/s, deg, deg/s), mean
     NEES, range bias (m); the error summary over the run's second half."""
+    t_s = np.asarray(t_s, dtype=float)
+    return score_frames(t_s, frame_errors(x_true, x_hat, P), status, skipped,
+                        error_summary(t_s, x_true, x_hat, summary_after_s(t_s)))
+
+
+def summary_after_s(t_s: np.ndarray) -> float:
+    """Where the error summary starts: the run's second half, s."""
+    return float(t_s[0] + 0.5 * (t_s[-1] - t_s[0]))
+
+
+def frame_errors(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray) -> dict[str, np.ndarray]:
+    """Per frame (...): the error magnitudes (state.error_magnitudes), 'nees' and 'range_m' (|rho_hat| - |rho|, m)
+    of x_true, x_hat (..., 12), P (..., 12, 12). Each frame's values depend on that frame alone, so a long run is
+    scored chunk by chunk (concatenated along time) with the same numbers."""
     from envisat_pose.filtering.estimator import nees
 
+    x_true = np.broadcast_to(x_true, np.shape(x_hat))
+    out = error_magnitudes(x_true, x_hat)
+    out["nees"] = nees(x_true, x_hat, P)
+    out["range_m"] = np.linalg.norm(x_hat[..., POS], axis=-1) - np.linalg.norm(x_true[..., POS], axis=-1)
+    return out
+
+
+def score_frames(t_s: np.ndarray, errors: dict[str, np.ndarray], status: np.ndarray, skipped: np.ndarray | None,
+                 summary: dict) -> dict:
+    """score_runs from the per-frame errors (frame_errors, each (R, T)), status (R, T), skipped (T,) and the
+    error summary over the second half (state.error_summary from summary_after_s)."""
     t_s = np.asarray(t_s, dtype=float)
-    R = x_hat.shape[0]
+    R = errors["nees"].shape[0]
     lit = ~np.asarray(skipped, bool) if skipped is not None else np.ones(len(t_s), bool)
     if not lit.any():
         lit = np.ones(len(t_s), bool)
     t_first_lit = float(t_s[np.argmax(lit)]) if lit.any() else float(t_s[0])
-    err = error_magnitudes(x_true, x_hat)
-    e_nees = nees(x_true, x_hat, P)  # (R, T)
-    range_err = np.linalg.norm(x_hat[..., POS], axis=-1) - np.linalg.norm(x_true[..., POS], axis=-1)
+    err = {b: errors[b] for b in ("position_m", "velocity_m_s", "attitude_deg", "rate_deg_s")}
+    e_nees, range_err = errors["nees"], errors["range_m"]
     conv_t, sq = [], {b: [] for b in err}
     nees_after, bias_after = [], []
     for r in range(R):
@@ -68,7 +92,7 @@ def score_runs(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.nda
         "mean_nees_after_convergence": float(np.mean(np.concatenate(nees_after))) if nees_after else None,
         "range_bias_m": float(np.mean(np.concatenate(bias_after))) if bias_after else None,
         "frames_acquiring": int((np.asarray(status) == 0).sum()), "frames_lost": int((np.asarray(status) == 2).sum()),
-        "errors": error_summary(t_s, x_true, x_hat, float(t_s[0] + 0.5 * (t_s[-1] - t_s[0]))),
+        "errors": summary,
         "blocks": list(BLOCKS),
     }
     return out

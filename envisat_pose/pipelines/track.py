@@ -309,15 +309,17 @@ def track_frames(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, r
     """Run the Tracker over the source's frames; write est.npz, det.npz, track.config.toml, summary.json and
     the recording (streamed to sink, default out_dir/recording.rrd); with a truth also errors.png and the
     scores. Returns the summary."""
+    import shutil
+
     import cv2
     import torch
 
     from envisat_pose.config import to_dict, to_toml
-    from envisat_pose.contracts import Detections, Estimates
     from envisat_pose.analysis.recording import TrackRecorder
-    from envisat_pose.io import atomic_write_text, save_npz
+    from envisat_pose.io import atomic_write_text
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.pipelines.closed_loop import chaser_function, est_row, record_arrays, store_estimate
+    from envisat_pose.pipelines.closed_loop import (DET_KEYS, RunRows, chaser_function, est_row, run_rows,
+                                                    score_run_files, store_estimate, write_run_files)
     from envisat_pose.pipelines.tracker import Tracker
 
     torch.set_num_threads(cfg.threads)
@@ -326,7 +328,10 @@ def track_frames(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, r
     tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(cfg.orbit), cfg.tracker, cfg.filter,
                       mu_m3_s2=cfg.orbit.mu_m3_s2, gravity_gradient=cfg.gravity_gradient)
     T = len(source.t_s)
-    out = record_arrays(T)
+    # the per-frame arrays go to files chunk by chunk (closed_loop.RunRows), est.npz/det.npz are streamed from them
+    runs_dir = os.path.join(out_dir, "runs")
+    run_dir = os.path.abspath(os.path.join(runs_dir, "run-0000"))
+    rows = RunRows(run_dir, T)
     truth = source.truth
     recorder = TrackRecorder(sink, camera, with_truth=truth is not None, title=f"envisat track {source.path}")
     bar = None
@@ -340,13 +345,14 @@ def track_frames(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, r
             if remap is not None:
                 image = cv2.remap(image, remap[0], remap[1], cv2.INTER_LINEAR)
             est = tracker.step(float(source.t_s[k]), image)
-            store_estimate(out, k, est)
+            i, out = rows.row(k), rows.buf
+            store_estimate(out, i, est)
             t0 = time.perf_counter()
-            recorder.log_frame(k, est_row(out, k, float(source.t_s[k])), image, cfg.jpeg_quality,
+            recorder.log_frame(k, est_row(out, i, float(source.t_s[k])), image, cfg.jpeg_quality,
                                x_true=None if truth is None else truth["x"][k],
                                corners_true_px=None if truth is None else truth["corners_px"][k],
                                in_frame=None if truth is None else truth["in_frame"][k])
-            out["timing_s"][k, 3:] = (est.timing_s.get("detection", 0.0), est.timing_s.get("filtering", 0.0),
+            out["timing_s"][i, 3:] = (est.timing_s.get("detection", 0.0), est.timing_s.get("filtering", 0.0),
                                       time.perf_counter() - t0)
             if bar is not None:
                 bar.update(1)
@@ -355,43 +361,40 @@ def track_frames(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, r
         if bar is not None:
             bar.close()
         recorder.close()
+    sums = rows.close()
     wall_s = time.perf_counter() - wall0
-    x_true = (truth["x"] if truth is not None else np.full((T, 12), np.nan))[None]
+    x_true = truth["x"] if truth is not None else np.full((T, 12), np.nan)
     config_json = json.dumps({"track": to_dict(cfg), "source": {"kind": source.kind, "path": source.path}},
                              sort_keys=True)
-    est = Estimates(t_s=source.t_s, x_true=x_true, x_hat=out["x_hat"][None], P=out["P"][None],
-                    n_meas=out["n_meas"][None], nis=out["nis"][None], nis_dof=out["nis_dof"][None],
-                    diverged=np.array([out["status"][-1] != STATUSES.index("tracking")]), config_json=config_json)
-    est.save(paths["est"])
-    det = {k: out[k] for k in ("corners_px", "cov_px", "confidence", "visible", "rejected", "alt_corners_px",
-                               "alt_probability", "ambiguous", "crop_px", "roi_px", "converged", "naming", "status",
-                               "p_best", "n_hypotheses")}
-    det["t_s"] = source.t_s
-    det["key"] = np.array(source.names)
     det_cfg = json.dumps({"weights": cfg.weights, "source": source.path}, sort_keys=True)
-    Detections.validated({**det, "config_json": det_cfg}, paths["det"])
-    save_npz(paths["det"], {**det, "config_json": np.array(det_cfg)})
+    det_names = tuple(k for k in DET_KEYS if k != "skipped")
+    scores = score_run_files(source.t_s, x_true, [run_dir], paths, config_json, det_cfg, score=truth is not None,
+                             det_names=det_names)
+    col = run_rows(run_dir, ["status", "nis", "nis_dof"], 0, T)  # three scalars a frame
+    status = col["status"]
+    write_run_files(paths, source.t_s, x_true, [run_dir], np.array([status[-1] != STATUSES.index("tracking")]),
+                    config_json, source.names, det_cfg, det_names=det_names)
     atomic_write_text(paths["config"], "# envisat track: the full validated config of this job\n" + to_toml(to_dict(cfg)))
-    status = out["status"]
     tracking = np.flatnonzero(status == STATUSES.index("tracking"))
+    timing = np.asarray(sums["timing_s"]) / T
     summary = {
         "source": {"kind": source.kind, "path": source.path, "frames": T},
         "weights": cfg.weights,
         "frames_by_status": {s: int((status == i).sum()) for i, s in enumerate(STATUSES)},
         "first_tracking_s": float(source.t_s[tracking[0]]) if tracking.size else None,
         "final_status": STATUSES[int(status[-1])],
-        "mean_nis_per_dof": float(np.sum(out["nis"]) / max(int(np.sum(out["nis_dof"])), 1)),
-        "timing_ms_per_frame": {"detection": float(1000 * out["timing_s"][:, 3].mean()),
-                                "filtering": float(1000 * out["timing_s"][:, 4].mean()),
-                                "recording": float(1000 * out["timing_s"][:, 5].mean())},
+        "mean_nis_per_dof": float(np.sum(col["nis"]) / max(int(np.sum(col["nis_dof"])), 1)),
+        "timing_ms_per_frame": {"detection": float(1000 * timing[3]), "filtering": float(1000 * timing[4]),
+                                "recording": float(1000 * timing[5])},
         "wall_s": wall_s,
     }
     if truth is not None:
         from envisat_pose.analysis.plots import plot_estimate
-        from envisat_pose.pipelines.scoring import score_runs
+        from envisat_pose.pipelines.closed_loop import plot_inputs
 
-        summary["scores"] = score_runs(source.t_s, x_true, out["x_hat"][None], out["P"][None], status[None])
-        plot_estimate(source.t_s, x_true, out["x_hat"][None], out["P"][None], paths["plot"],
+        summary["scores"] = scores
+        plot_estimate(*plot_inputs(source.t_s, x_true, [run_dir]), paths["plot"],
                       title=f"envisat track {os.path.basename(os.path.abspath(source.path))}")
+    shutil.rmtree(runs_dir, ignore_errors=True)
     atomic_write_text(paths["summary"], json.dumps(summary, indent=1, sort_keys=True) + "\n")
     return summary
