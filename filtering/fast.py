@@ -6,7 +6,8 @@ pass through memory, not on arithmetic (a 12-state step is ~1e5 floating-point o
 numpy or torch CPU path keeps that shape (one pass per operation); a compiled loop over runs keeps one run's
 sigma points (25 x 12) in registers and L1 for the whole step. numba compiles plain Python loops with no
 build step (its llvmlite wheel ships LLVM), and with fastmath off its floating-point operations are IEEE and
-deterministic: the same inputs give the same bytes.
+deterministic: the same inputs give the same bytes (one function, the Cholesky factor of S, lets LLVM
+reassociate its sums so they vectorize: still the same bytes for the same inputs on a machine).
 
 The kernels do exactly the reference's steps, in the reference's order where the order matters for
 round-off (the RK4 stage sums, the sigma-point mean, the symmetrization of P):
@@ -20,7 +21,8 @@ round-off (the RK4 stage sums, the sigma-point mean, the symmetrization of P):
   Jacobian, symmetrization.
 Differences from the numpy filter are round-off only: the update works on the measured components (the numpy
 filter gives the others zero innovation and unit variance, which is the same update) and solves with the
-Cholesky factor of S where numpy inverts S. A run whose step needs a covariance repair (a Cholesky factor
+Cholesky factor of S where numpy inverts S; the weighted sums of sigma points go through the same BLAS
+products numpy's matmul uses; x ** 1.5 is the C library's pow (numpy's may be SVML's: one ulp apart). A run whose step needs a covariance repair (a Cholesky factor
 that fails: not positive definite, or not finite) is flagged, and the caller recomputes that run with the
 numpy filter (filtering/ukf.py), so repairs and roll-backs are the reference's own.
 """
@@ -74,6 +76,30 @@ def _chol(A, U, n):
         U[j, j] = d
         for i in range(j + 1, n):
             U[j, i] = U[j, i] / d
+    return True
+
+
+@njit(cache=True, nogil=True, fastmath={"reassoc", "contract"}, error_model="numpy")
+def _chol_lower(A, L, n):
+    """Lower Cholesky factor of the symmetric A[:n, :n] into L (row-major, zero above the diagonal), its sums
+    as dot products along rows (reassociated so that they vectorize: round-off differs from _chol's); False
+    when A is not positive definite (or not finite)."""
+    for j in range(n):
+        for i in range(j + 1, n):
+            L[j, i] = 0.0
+        acc = 0.0
+        for k in range(j):
+            acc += L[j, k] * L[j, k]
+        s = A[j, j] - acc
+        if not s > 0.0:
+            return False
+        d = np.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            acc = 0.0
+            for k in range(j):
+                acc += L[i, k] * L[j, k]
+            L[i, j] = (A[i, j] - acc) / d
     return True
 
 
@@ -582,23 +608,23 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
             for a in range(Mk):
                 for i in range(n):
                     V[a, i] = Pxz[i, a]
-        if not _chol(Sm, Ls, Mk):
+        if not _chol_lower(Sm, Ls, Mk):
             ok[r] = False
             continue
         # u = L^-1 y, V = L^-1 Pxz^T: K = V^T L^-1, K y = V^T u, K S K^T = V^T V, NIS = u.u
         # (forward substitution as row operations: each entry's sum over k in ascending order)
         for a in range(Mk):
-            u[a] = y[a]
-        for k in range(Mk):
-            d = Ls[k, k]
-            u[k] = u[k] / d
-            for i in range(n):
-                V[k, i] = V[k, i] / d
-            for a in range(k + 1, Mk):
-                lka = Ls[k, a]
-                u[a] -= lka * u[k]
+            t = y[a]
+            for k in range(a):
+                t -= Ls[a, k] * u[k]
+            d = Ls[a, a]
+            u[a] = t / d
+            for k in range(a):
+                lak = Ls[a, k]
                 for i in range(n):
-                    V[a, i] -= lka * V[k, i]
+                    V[a, i] -= lak * V[k, i]
+            for i in range(n):
+                V[a, i] = V[a, i] / d
         ny, yty = 0.0, 0.0
         for a in range(Mk):
             ny += u[a] * u[a]
