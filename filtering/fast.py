@@ -22,7 +22,9 @@ round-off (the RK4 stage sums, the sigma-point mean, the symmetrization of P):
 Differences from the numpy filter are round-off only: the update works on the measured components (the numpy
 filter gives the others zero innovation and unit variance, which is the same update) and solves with the
 Cholesky factor of S where numpy inverts S; the weighted sums of sigma points go through the same BLAS
-products numpy's matmul uses; x ** 1.5 is the C library's pow (numpy's may be SVML's: one ulp apart). A run whose step needs a covariance repair (a Cholesky factor
+products numpy's matmul uses; D = t^1.5 is t sqrt(t) (a call to pow would keep the model's loop from
+vectorizing; numpy's t ** 1.5 is itself SVML's pow on an AVX-512 machine, not the C library's: all three
+round differently in the last place). A run whose step needs a covariance repair (a Cholesky factor
 that fails: not positive definite, or not finite) is flagged, and the caller recomputes that run with the
 numpy filter (filtering/ukf.py), so repairs and roll-backs are the reference's own.
 """

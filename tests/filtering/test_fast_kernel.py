@@ -4,10 +4,10 @@ filter (kernel = "reference", filtering/ukf.py) on the configurations the filter
 Two kinds of agreement:
 - one step from the same prior: the mean relative to max(|x_i|, sigma_i) and the covariance relative to
   sqrt(P_ii P_jj), within ONE_STEP_TOL. The difference is round-off (summation order, a Cholesky solve where
-  numpy inverts S, and pow: numpy's x ** 1.5 on an AVX-512 machine is SVML's, 5 % of its results one ulp
-  from the C library's that numba calls). Most components agree to ~1e-15; the worst is the radial velocity,
-  whose two gravity terms mu (r + x) / D and mu / r^2 (~8 m/s^2 each) cancel to ~1e-6 m/s^2, so one ulp of
-  D is ~1e-11 of its standard deviation after a step;
+  numpy inverts S, and D = t^1.5: the kernel's t sqrt(t) and numpy's t ** 1.5, SVML's pow on an AVX-512
+  machine, differ in the last place for ~18 % of inputs). Most components agree to ~1e-15; the worst is the
+  radial velocity, whose two gravity terms mu (r + x) / D and mu / r^2 (~8 m/s^2 each) cancel to ~1e-6
+  m/s^2, so one ulp of D is ~1e-11 of its standard deviation after a step;
 - whole runs: every decision equal (corners used, gate rejections, visibility drops, dof, divergence flags,
   repairs) and the estimates no further from the reference than the reference itself moves when its P0 is
   changed by one unit in the last place. The first update of a run (P0's metre and 2.5 deg against 2 cm
