@@ -30,8 +30,9 @@ class RefineConfig:
     start_px: first station from the corner at the least; length_px: farthest station (and at most edge_frac of
     the edge); step_px: station spacing; min_stations: fewer fitted stations drop the edge; min_angle_deg: two
     edges closer in direction than this do not make a corner; max_shift_px: refined corners farther than this
-    from the network's are not used; iterations: re-centring of the profile window; min_contrast: a station whose
-    derivative peak is below this many times the profiles' median derivative magnitude has no edge."""
+    from the network's are not used; iterations: re-centring of the profile window (each of the two steps);
+    min_contrast: a station whose contrast across the edge is below this many times the pixel noise (the
+    plateaus' spread) has no edge."""
 
     half_width_px: float = 3.0
     clearance_px: float = 2.0
@@ -58,27 +59,59 @@ def sample_bicubic(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
 def edge_offsets(image: np.ndarray, corner: np.ndarray, direction: np.ndarray, stations: np.ndarray,
                  cfg: RefineConfig) -> tuple[np.ndarray, np.ndarray]:
     """Offsets across the edge (along the left normal of `direction`), px, of the edge at each station s (S,)
-    px from `corner` along the unit `direction`, and each station's weight (its derivative's peak, grey levels
-    per px; 0 where no edge was found): (S,), (S,)."""
+    px from `corner` along the unit `direction`, and each station's weight (its contrast, grey levels; 0 where
+    no edge stands out of the noise): (S,), (S,).
+
+    The edge is first found as the centroid of the profile derivative's magnitude, then located by the area
+    method: with plateaus A and B the means of the profile from h to 2h either side of the current centre c,
+    the edge of a monotone profile is t_e = (c + h) - integral_{c-h}^{c+h} (I - A) / (B - A) dt, exact for a
+    step blurred by a symmetric PSF and linear in I, so zero-mean noise, whatever its level either side (shot
+    noise is larger on the bright side), adds no bias (the derivative's magnitude would be pulled toward the
+    noisier side)."""
     normal = np.array([-direction[1], direction[0]])
     h = cfg.half_width_px
-    t = np.arange(-2.0 * h, 2.0 * h + 1e-9, 0.5)  # a wider profile: the window moves within it
+    dt = 0.5
+    t = np.arange(-3.0 * h, 3.0 * h + 1e-9, dt)  # the window (+- h) and its plateaus (h to 2h) move within it
     pts = corner[None, None] + stations[:, None, None] * direction + t[None, :, None] * normal  # (S, T, 2)
     prof = sample_bicubic(image, pts).astype(np.float64)  # (S, T)
-    deriv = np.abs(np.gradient(prof, 0.5, axis=1))
+    deriv = np.abs(np.gradient(prof, dt, axis=1))
     centre = np.zeros(len(stations))
-    for _ in range(cfg.iterations):
+    for _ in range(cfg.iterations):  # locate: centroid of the derivative's magnitude above the window's floor
         win = np.abs(t[None] - centre[:, None]) <= h
         d = np.where(win, deriv, 0.0)
-        d = np.maximum(d - np.where(win, deriv, np.inf).min(axis=1, keepdims=True), 0.0)  # the window's floor
+        d = np.maximum(d - np.where(win, deriv, np.inf).min(axis=1, keepdims=True), 0.0)
         mass = d.sum(axis=1)
         centre = np.where(mass > 0, (d * t[None]).sum(axis=1) / np.maximum(mass, 1e-12), 0.0)
         centre = np.clip(centre, -h, h)
-    inside = np.abs(t[None] - centre[:, None]) <= h
-    peak = np.where(inside, deriv, 0.0).max(axis=1)
-    # the noise: the derivative's median magnitude over all stations' profiles (an edge fills only a few samples)
-    noise = float(np.median(deriv)) + 1e-9
-    return centre, np.where(peak >= cfg.min_contrast * noise, peak, 0.0)
+    idx = np.arange(len(stations))
+    contrast = np.zeros(len(stations))
+    for _ in range(cfg.iterations):  # refine: the area method
+        rel = t[None] - centre[:, None]
+        lo = (rel >= -2.0 * h) & (rel <= -h)
+        hi = (rel >= h) & (rel <= 2.0 * h)
+        a = np.sum(np.where(lo, prof, 0.0), axis=1) / np.maximum(lo.sum(axis=1), 1)
+        b = np.sum(np.where(hi, prof, 0.0), axis=1) / np.maximum(hi.sum(axis=1), 1)
+        contrast = b - a
+        norm = (prof - a[:, None]) / np.where(np.abs(contrast) > 1e-9, contrast, 1e-9)[:, None]
+        # the window's samples t1..t2 (|t - c| <= h), integrated by the trapezoid rule
+        win = np.abs(rel) <= h
+        first = np.argmax(win, axis=1)
+        last = win.shape[1] - 1 - np.argmax(win[:, ::-1], axis=1)
+        wts = win.astype(np.float64)
+        wts[idx, first] = 0.5
+        wts[idx, last] = 0.5
+        area = np.sum(wts * norm, axis=1) * dt
+        centre = np.clip(t[last] - area, -h, h)
+    # the noise: the spread of the plateaus' samples about their means, pooled over the stations
+    rel = t[None] - centre[:, None]
+    lo = (rel >= -2.0 * h) & (rel <= -h)
+    hi = (rel >= h) & (rel <= 2.0 * h)
+    resid = [(prof - np.sum(np.where(m, prof, 0.0), 1, keepdims=True) / np.maximum(m.sum(1, keepdims=True), 1))[m]
+             for m in (lo, hi)]
+    resid = np.concatenate(resid)
+    noise = float(np.median(np.abs(resid))) / 0.6745 + 1e-9 if len(resid) else 1e-9  # MAD -> sigma
+    strength = np.abs(contrast)
+    return centre, np.where(strength >= cfg.min_contrast * noise, strength, 0.0)
 
 
 def fit_edge(stations: np.ndarray, offsets: np.ndarray, weights: np.ndarray) -> tuple[float, float, float] | None:
@@ -121,7 +154,7 @@ def refine_corner(image: np.ndarray, corner: np.ndarray, directions: np.ndarray,
         # the stations start where the other edges are clear of this one's profile window
         others = np.delete(directions, k, axis=0)
         sin_min = float(np.min(np.abs(others[:, 0] * d[1] - others[:, 1] * d[0]))) if len(others) else 1.0
-        start = max(cfg.start_px, (cfg.half_width_px + cfg.clearance_px) / max(sin_min, 1e-3))
+        start = max(cfg.start_px, (2.0 * cfg.half_width_px + cfg.clearance_px) / max(sin_min, 1e-3))
         far = min(cfg.length_px, cfg.edge_frac * float(length))
         s = np.arange(start, far + 1e-9, cfg.step_px)
         if len(s) < cfg.min_stations:

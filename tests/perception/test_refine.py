@@ -58,6 +58,27 @@ def test_refine_covariance_follows_the_noise():
     assert 1.0 < np.mean(nees) < 4.0
 
 
+def test_no_bias_toward_the_noisier_side():
+    """Shot-like noise (larger on the bright side) must not pull the edges inward (the magnitude of the
+    derivative would: -0.085 +- 0.007 px on these corners)."""
+    rng = np.random.default_rng(5)
+    outward = []
+    for _ in range(150):
+        corner = np.array([48.0, 48.0]) + rng.uniform(-0.5, 0.5, 2)
+        a1 = rng.uniform(0, 360)
+        img, d = wedge(corner, (a1, a1 + rng.uniform(50, 130)), levels=(10.0, 200.0))
+        f = img.astype(float)
+        f = f + rng.normal(0, 1, f.shape) * 0.6 * np.sqrt(f + 4.0)
+        img = np.clip(np.round(f), 0, 255).astype(np.uint8)
+        out = refine_corner(img, corner + np.clip(rng.normal(0, 0.7, 2), -1.5, 1.5), d, np.array([60.0, 60.0]))
+        if out is None:
+            continue
+        inward = (d[0] + d[1]) / np.linalg.norm(d[0] + d[1])  # into the bright wedge
+        outward.append(-(out[0] - corner) @ inward)
+    assert len(outward) > 120
+    assert abs(np.mean(outward)) < 3.5 * np.std(outward) / np.sqrt(len(outward)) + 0.005
+
+
 def test_parallel_edges_and_far_starts_are_refused():
     img, d = wedge(np.array([48.3, 47.6]), (30.0, 33.0))  # 3 degrees apart: no corner
     assert refine_corner(img, np.array([48.3, 47.6]), d, np.array([60.0, 60.0])) is None
