@@ -33,8 +33,9 @@ class DetectConfig:
     without the line head's edge scores (the evaluation's ablation); cov_scale: the calibration factor s applied
     to the network's covariances, C -> s C (perception/calibrate.py; shipped in the weights' metadata); refine:
     move each named corner to the intersection of its edges fitted to the full-resolution pixels
-    (perception/refine.py), with that fit's covariance (x cov_scale) in place of the network's; refine_config:
-    its settings."""
+    (perception/refine.py), with that fit's covariance x refine_cov_scale in place of the network's (its own
+    calibration, fitted by `envisat calibrate --refine` and shipped as `refine_cov_scale`); refine_config: its
+    settings."""
 
     top_k: int = 12
     threshold: float = 0.2
@@ -44,6 +45,7 @@ class DetectConfig:
     cov_scale: float = 1.0
     naming: NamingConfig = NamingConfig()
     refine: bool = False
+    refine_cov_scale: float = 1.0
     refine_config: RefineConfig = RefineConfig()
 
 
@@ -72,20 +74,21 @@ class FrameDetection:
                               False, crop.astype(np.float64), np.zeros((0, 2)))
 
 
-def weights_cov_scale(path: str) -> float:
-    """The covariance calibration factor stored in a weights file's metadata (`cov_scale`; 1.0 when the weights
-    were never calibrated). WeightsError when it is there but not a positive number."""
+def weights_cov_scale(path: str, key: str = "cov_scale") -> float:
+    """The covariance calibration factor stored in a weights file's metadata (`cov_scale`, or `refine_cov_scale`
+    for the refined corners; 1.0 when the weights were never calibrated). WeightsError when it is there but not
+    a positive number."""
     import json
 
     from envisat_pose.perception.weights import WeightsError, read_metadata
 
-    raw = read_metadata(path).get("cov_scale", "1.0")
+    raw = read_metadata(path).get(key, "1.0")
     try:
         scale = float(json.loads(raw))
     except (ValueError, TypeError):
         scale = float("nan")
     if not np.isfinite(scale) or scale <= 0:
-        raise WeightsError(f"{path}: metadata cov_scale {raw!r} is not a positive number")
+        raise WeightsError(f"{path}: metadata {key} {raw!r} is not a positive number")
     return scale
 
 
@@ -107,13 +110,14 @@ def weights_error_model(path: str) -> ErrorModel:
 
 def load_detector(path: str, config: DetectConfig | None = None, device: str = "cpu") -> "Detector":
     """A Detector from a weights file (perception/weights.py), with the covariance calibration stored in the
-    file's metadata (`cov_scale`) unless `config` is given (its own cov_scale then stands), and the error model
+    file's metadata (`cov_scale`, `refine_cov_scale`) unless `config` is given (its own then stand), and the error model
     (`error_model`, on `detector.error_model`)."""
 
     from envisat_pose.perception.weights import load_model
 
     model = load_model(path, device=device)
-    cfg = config or dataclasses.replace(DetectConfig(), cov_scale=weights_cov_scale(path))
+    cfg = config or dataclasses.replace(DetectConfig(), cov_scale=weights_cov_scale(path),
+                                        refine_cov_scale=weights_cov_scale(path, "refine_cov_scale"))
     return Detector(model, cfg, device=device, error_model=weights_error_model(path))
 
 
@@ -202,7 +206,7 @@ class Detector:
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The candidates the naming matched, refined (perception/refine.py): new (pts (K, 2), cov (K, 2, 2)),
         refined (8,) bool per corner. A candidate keeps its index, so the half-turn naming sees it moved too;
-        the refinement's covariance, scaled by cov_scale, replaces the network's."""
+        the refinement's covariance, scaled by refine_cov_scale, replaces the network's."""
         from envisat_pose.geometry import EDGES
 
         found = naming.visible & naming.matched
@@ -212,7 +216,7 @@ class Detector:
         pts, cov = pts.copy(), cov.copy()
         for k in np.flatnonzero(done & found):
             pts[naming.candidate[k]] = new[k]
-            cov[naming.candidate[k]] = new_cov[k] * self.cfg.cov_scale
+            cov[naming.candidate[k]] = new_cov[k] * self.cfg.refine_cov_scale
         return pts, cov, done & found
 
     @staticmethod

@@ -12,6 +12,10 @@ that takes them as white and the residual bias (apparent scale, radial error) ar
 (perception/errormodel.py) and stored as `error_model` (the ErrorModel's JSON: what `load_detector` exposes as
 `detector.error_model`) and `error_model_record` (every number measured). `--roi labels` detects in the region
 of interest the labels give (the closed loop's, with a perfect prior) instead of the coarse pass.
+
+`--refine` calibrates the sub-pixel refinement's covariance instead (DetectConfig.refine, perception/refine.py):
+the scale on the line fits' covariances of the refined corners, written as `refine_cov_scale` (with
+`refine_cov_calibration`); the network's cov_scale and the error model are left as they are.
 """
 
 from __future__ import annotations
@@ -43,6 +47,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "labelled corners (extent x the crop margin, at least 64 px), as the closed loop gives it")
     p.add_argument("--keep-scale", action="store_true",
                    help="leave the weights' cov_scale and cov_calibration as they are (write the error model only)")
+    p.add_argument("--refine", action="store_true",
+                   help="fit the sub-pixel refinement's covariance scale (refine_cov_scale) on the refined corners "
+                   "instead; cov_scale and the error model are kept")
     p.add_argument("--max-lag", type=int, default=20, help="autocorrelation lags measured (default 20)")
     p.add_argument("--limit", type=int, help="only the first N frames of each dataset")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
@@ -60,7 +67,7 @@ def collect_frames(detector, samples, limit: int | None = None, bar=None, roi: s
     from envisat_pose.perception import errormodel as em
     from envisat_pose.perception import evaluate as ev
 
-    rows = {k: [] for k in ("key", "err_px", "cov_px", "group", "scale", "radial_px")}
+    rows = {k: [] for k in ("key", "err_px", "cov_px", "group", "scale", "radial_px", "refined")}
     for i, (key, image, label) in enumerate(samples):
         if limit is not None and i >= limit:
             break
@@ -74,6 +81,8 @@ def collect_frames(detector, samples, limit: int | None = None, bar=None, roi: s
                                             true[None], use[None])
         # the alternative naming's corners are the same candidates, renamed: their covariances follow them
         cov = f.cov_px[ev.HALF_TURN_PERM] if used_alt[0] else f.cov_px
+        refined = np.zeros(8, bool) if getattr(f, "refined", None) is None else np.asarray(f.refined, bool)
+        refined = refined[ev.HALF_TURN_PERM] if used_alt[0] else refined
         hit = ev.hits(chosen, true[None], use[None], ev.MATCH_PX)[0] & np.all(np.isfinite(cov), axis=(1, 2))
         wrong = use & np.isfinite(chosen[0, :, 0]) & ~hit
         rows["key"].append(key)
@@ -82,6 +91,7 @@ def collect_frames(detector, samples, limit: int | None = None, bar=None, roi: s
         rows["group"].append(ev.corruption_groups(*ev.corruption_levels(label["corruption"], image.shape[1]))[1])
         rows["scale"].append(em.apparent_scale(chosen, true[None], hit[None], wrong[None])[0])
         rows["radial_px"].append(em.radial_errors(chosen, true[None], hit[None])[0])
+        rows["refined"].append(refined & hit)
         if bar is not None:
             bar.update(1)
     if not rows["key"]:
@@ -96,11 +106,14 @@ def collect_errors(detector, samples, limit: int | None = None, bar=None, roi: s
     return flat_errors(collect_frames(detector, samples, limit, bar, roi))
 
 
-def flat_errors(frames: dict):
-    """collect_errors' (err (M, 2), cov (M, 2, 2), group (M,)) from collect_frames' per-frame arrays."""
+def flat_errors(frames: dict, refined: bool | None = None):
+    """collect_errors' (err (M, 2), cov (M, 2, 2), group (M,)) from collect_frames' per-frame arrays; only the
+    refined corners with refined=True, only the others with refined=False."""
     import numpy as np
 
     hit = np.isfinite(frames["err_px"][..., 0])
+    if refined is not None:
+        hit = hit & (frames["refined"] if refined else ~frames["refined"])
     groups = np.repeat(frames["group"], hit.sum(axis=1)).astype(str)
     return frames["err_px"][hit], frames["cov_px"][hit], groups
 
@@ -151,12 +164,14 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
         check_writable_output(args.out)
     paths = {d: shard_paths(d) for d in args.data}
     sequences = all(is_sequence(d) for d in args.data)
-    # the network's own covariances (scale 1), whatever the file carried before
-    det = load_detector(args.weights, config=dataclasses.replace(DetectConfig(), cov_scale=1.0))
+    # the network's own covariances (scale 1), whatever the file carried before; the refinement's the same
+    det = load_detector(args.weights, config=dataclasses.replace(DetectConfig(), cov_scale=1.0, refine=args.refine,
+                                                                 refine_cov_scale=1.0))
     bar = tqdm(disable=args.quiet, desc="calibrate", unit="frame")
-    per_data = {d: collect_frames(det, camera_samples(p), args.limit, bar, args.roi) for d, p in paths.items()}
+    # one entry per --data folder, in order (a folder given twice counts twice)
+    per_data = [(d, collect_frames(det, camera_samples(paths[d]), args.limit, bar, args.roi)) for d in args.data]
     bar.close()
-    flat = [flat_errors(f) for f in per_data.values()]
+    flat = [flat_errors(f, True if args.refine else None) for _, f in per_data]
     err, cov, groups = (np.concatenate([f[i] for f in flat]) for i in range(3))
     data_names = " ".join(os.path.abspath(d) for d in args.data)
     if len(err) < 20:
@@ -169,13 +184,24 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     for g in before:
         print(f"{g:12s} {before[g]['count']:8d} {before[g]['mean_nees']:9.2f} {after[g]['mean_nees']:16.2f}")
     meta = {}
+    if args.refine:
+        record = {"scale": scale, "data": data_names, "corners": int(len(err)), "roi": args.roi,
+                  "mean_nees_by_group": {g: v["mean_nees"] for g, v in after.items()},
+                  "count_by_group": {g: v["count"] for g, v in after.items()},
+                  "refined_share": float(sum(f["refined"].sum() for _, f in per_data) / max(
+                      sum(np.isfinite(f["err_px"][..., 0]).sum() for _, f in per_data), 1))}
+        with_metadata(args.weights, args.out, {"refine_cov_scale": scale,
+                                               "refine_cov_calibration": json.dumps(record, sort_keys=True)})
+        print(f"refine_cov_scale {scale:.4g} (mean e^T C^-1 e 2.00 on {len(err)} refined corners, "
+              f"{record['refined_share']:.0%} of those named right); wrote {args.out}")
+        return 0
     if not args.keep_scale:
         record = {"scale": scale, "data": data_names, "corners": int(len(err)), "roi": args.roi,
                   "mean_nees_by_group": {g: v["mean_nees"] for g, v in after.items()},
                   "count_by_group": {g: v["count"] for g, v in after.items()}}
         meta.update({"cov_scale": scale, "cov_calibration": json.dumps(record, sort_keys=True)})
     if sequences:
-        seqs = [sequence_input(f, frame_interval_s(d)) for d, f in per_data.items()]
+        seqs = [sequence_input(f, frame_interval_s(d)) for d, f in per_data]
         model, record = em.measure(seqs, scale, max_lag=args.max_lag, source=f"roi={args.roi}; {data_names}")
         record["mean_nees_by_group"] = {g: v["mean_nees"] for g, v in after.items()}
         meta.update({"error_model": model.to_json(), "error_model_record": json.dumps(record, sort_keys=True)})

@@ -221,7 +221,8 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
     paths = shard_paths(args.data)
     roi = read_roi(args.roi) if args.roi else ("labels" if args.roi_labels else None)
     model = load_model(args.weights, args.device)
-    cfg = DetectConfig(cov_scale=weights_cov_scale(args.weights))
+    cfg = DetectConfig(cov_scale=weights_cov_scale(args.weights),
+                       refine_cov_scale=weights_cov_scale(args.weights, "refine_cov_scale"))
     detector = make_detector(model, cfg, args.device)
     ablation = make_detector(model, dataclasses.replace(cfg, line_verification=False), args.device)
     refined = make_detector(model, dataclasses.replace(cfg, refine=True), args.device) if args.refine else None

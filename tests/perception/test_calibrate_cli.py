@@ -121,3 +121,43 @@ def test_sequence_error_model_written_and_loaded(tmp_path, monkeypatch, capsys):
                            for s, u in zip(samples, usable)])
     assert abs(model.cov_scale - np.mean(np.sum(errs ** 2, axis=1)) / 2) < 1e-9
     assert "rho_lag1" in capsys.readouterr().out
+
+
+class RefinedLabelDetector:
+    """Test double for --refine: the label's usable corners; the even-numbered ones 'refined' with errors of
+    sigma 0.3 px claiming sigma 0.1 px (refine_cov_scale 9), the others with errors of sigma 2 px (ignored)."""
+
+    def __init__(self, labels, seed):
+        self.labels, self.n, self.rng = labels, 0, np.random.default_rng(seed)
+
+    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None):
+        label = self.labels[self.n % len(self.labels)]
+        self.n += 1
+        use = label["visible"] & label["in_frame"]
+        refined = use & (np.arange(8) % 2 == 0)
+        sigma = np.where(refined, 0.3, 2.0)[:, None]
+        pts = np.where(use[:, None], label["corners_px"] + sigma * self.rng.standard_normal((8, 2)), np.nan)
+        cov = np.where(use[:, None, None], np.where(refined[:, None, None], 0.01, 4.0) * np.eye(2), np.nan)
+        return FrameDetection(pts, cov, use * 1.0, use, pts, 0.0, False, np.zeros(3), pts, refined=refined)
+
+
+def test_refine_scale_fitted_on_the_refined_corners(tiny_dataset, tmp_path, monkeypatch):
+    import envisat_pose.perception.detect as pd
+
+    samples = list(camera_samples(shard_paths(tiny_dataset)))
+    double = RefinedLabelDetector([s[2] for s in samples], 1)
+    torch.manual_seed(0)  # this test's untrained model (its tensors are copied, never run)
+    w, out = tmp_path / "w.safetensors", tmp_path / "r.safetensors"
+    save_weights(str(w), CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8)))
+    with_metadata(str(w), str(w), {"cov_scale": 1.5})
+    monkeypatch.setattr(pd, "load_detector", lambda *a, **k: double)
+    data = [tiny_dataset] * 30  # the same 8 frames, new noise each time
+    assert main(["calibrate", "--weights", str(w), "--data", *data, "--out", str(out), "--refine", "--quiet",
+                 "--threads", "1"]) == 0
+    monkeypatch.undo()
+    meta = read_metadata(str(out))
+    assert meta["cov_scale"] == "1.5" and "error_model" not in meta
+    scale = float(meta["refine_cov_scale"])
+    assert abs(scale - 9.0) < 0.15 * 9.0
+    det = load_detector(str(out))
+    assert det.cfg.refine_cov_scale == scale and det.cfg.cov_scale == 1.5
