@@ -123,8 +123,11 @@ def outage_mask(t_s: np.ndarray, outages_s: tuple[tuple[float, float], ...]) -> 
 
 def add_noise(z: np.ndarray, cov: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """z + e with e ~ N(0, cov) per corner. z (..., 8, m), cov broadcastable to (..., 8, m, m)."""
-    cov = np.broadcast_to(cov, z.shape + (z.shape[-1],))
-    L = np.linalg.cholesky(cov)
+    cov = np.asarray(cov, dtype=float)
+    if cov.ndim == 2:  # one covariance for all: one factor (the same numbers as factoring every copy of it)
+        L = np.linalg.cholesky(cov)
+    else:
+        L = np.linalg.cholesky(np.broadcast_to(cov, z.shape + (z.shape[-1],)))
     e = rng.standard_normal(z.shape)
     return z + np.einsum("...ij,...j->...i", L, e)
 
