@@ -6,7 +6,7 @@ pass through memory, not on arithmetic (a 12-state step is ~1e5 floating-point o
 numpy or torch CPU path keeps that shape (one pass per operation); a compiled loop over runs keeps one run's
 sigma points (25 x 12) in registers and L1 for the whole step. numba compiles plain Python loops with no
 build step (its llvmlite wheel ships LLVM), and with fastmath off its floating-point operations are IEEE and
-deterministic: the same inputs give the same bytes (one function, the Cholesky factor of S, lets LLVM
+deterministic: the same inputs give the same bytes (one function, the Cholesky factorization, lets LLVM
 reassociate its sums so they vectorize: still the same bytes for the same inputs on a machine).
 
 The kernels do exactly the reference's steps, in the reference's order where the order matters for
@@ -277,20 +277,20 @@ def _to_cols(sig, X):
 @njit(**_JIT)
 def _sigma_points(mean, cov, scale, A, L, sig):
     """Scaled symmetric sigma points chi_0 = x, chi_k = x + L[:, k], chi_(n+k) = x - L[:, k], L L^T = scale P
-    (L[:, k] = U[k], L is the lower Cholesky factor).
+    (L the lower Cholesky factor).
     sig (2n + 1, n). False when scale P has no Cholesky factor (the caller repairs it with the numpy filter)."""
     n = mean.shape[0]
     for i in range(n):
         for j in range(n):
             A[i, j] = scale * cov[i, j]
-    if not _chol(A, L, n):
+    if not _chol_lower(A, L, n):
         return False
     for i in range(n):
         sig[0, i] = mean[i]
     for k in range(n):
         for i in range(n):
-            sig[1 + k, i] = mean[i] + L[k, i]
-            sig[1 + n + k, i] = mean[i] - L[k, i]
+            sig[1 + k, i] = mean[i] + L[i, k]
+            sig[1 + n + k, i] = mean[i] - L[i, k]
     return True
 
 
@@ -301,7 +301,7 @@ def _finite_pd(P, L, n):
         for j in range(n):
             if not np.isfinite(P[i, j]):
                 return False
-    return _chol(P, L, n)
+    return _chol_lower(P, L, n)
 
 
 # ---------------------------------------------------------------- predict
