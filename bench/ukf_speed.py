@@ -150,6 +150,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=1000)
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "ukf_speed.json"))
     args = ap.parse_args()
+    load_start = os.getloadavg()[0]
     steps_fp, steps_one, steps_batch = 20, 100, 10
     tr, cfg, inp, chaser = _setup(max(steps_fp, steps_one, steps_batch) + 1, args.runs)
     R = args.runs
@@ -203,6 +204,7 @@ def main() -> None:
                 "other work (noisy); every row measured in this same process. 'batched' rows are the pure UKF "
                 "steps (no gate); 'full estimator step' is run_filter with the default FilterConfig (gate, "
                 "visibility check, monitors, storage). filterpy calls fx and hx once per sigma point.",
+        "load_average_1min": {"start": load_start, "end": os.getloadavg()[0]},
         "steps": {"filterpy": steps_fp, "1_run": steps_one, "batched": steps_batch},
         "machine": {"python": platform.python_version(), "cpu_count": os.cpu_count(), "numpy": np.__version__,
                     "numba": __import__("numba").__version__},
