@@ -24,6 +24,25 @@ def fit_scale(err_px: np.ndarray, cov_px: np.ndarray) -> float:
     return float(np.mean(v) / 2.0)
 
 
+def fit_floor(err_px: np.ndarray, cov_px: np.ndarray) -> float:
+    """The variance f >= 0, px^2, with mean(e^T (C + f I)^-1 e) = 2: a floor added to both axes of covariances
+    that leave out an error of their own (the sub-pixel refinement's line fits see the noise, not the model's
+    misfit); 0 when the covariances already cover the errors. Bisection: the mean falls as f grows."""
+    err, cov = np.asarray(err_px, float), np.asarray(cov_px, float)
+    if len(err) == 0:
+        raise ValueError("no corners to calibrate on")
+    mean = lambda f: float(np.mean(nees_px(err, cov + f * np.eye(2))))  # noqa: E731
+    if mean(0.0) <= 2.0:
+        return 0.0
+    lo, hi = 0.0, 1.0
+    while mean(hi) > 2.0:
+        lo, hi = hi, hi * 4.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if mean(mid) > 2.0 else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
 def calibration_by_group(err_px: np.ndarray, cov_px: np.ndarray, group: np.ndarray) -> dict[str, dict]:
     """Mean e^T C^-1 e and count per group label (e.g. corruption level); 'all' over everything."""
     v = nees_px(err_px, cov_px)

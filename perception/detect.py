@@ -33,9 +33,9 @@ class DetectConfig:
     without the line head's edge scores (the evaluation's ablation); cov_scale: the calibration factor s applied
     to the network's covariances, C -> s C (perception/calibrate.py; shipped in the weights' metadata); refine:
     move each named corner to the intersection of its edges fitted to the full-resolution pixels
-    (perception/refine.py), with that fit's covariance x refine_cov_scale in place of the network's (its own
-    calibration, fitted by `envisat calibrate --refine` and shipped as `refine_cov_scale`); refine_config: its
-    settings."""
+    (perception/refine.py), with that fit's covariance + refine_cov_floor_px2 x I in place of the network's (its
+    own calibration, fitted by `envisat calibrate --refine` and shipped as `refine_cov_floor_px2`);
+    refine_config: its settings."""
 
     top_k: int = 12
     threshold: float = 0.2
@@ -45,7 +45,7 @@ class DetectConfig:
     cov_scale: float = 1.0
     naming: NamingConfig = NamingConfig()
     refine: bool = False
-    refine_cov_scale: float = 1.0
+    refine_cov_floor_px2: float = 0.0
     refine_config: RefineConfig = RefineConfig()
 
 
@@ -75,9 +75,8 @@ class FrameDetection:
 
 
 def weights_cov_scale(path: str, key: str = "cov_scale") -> float:
-    """The covariance calibration factor stored in a weights file's metadata (`cov_scale`, or `refine_cov_scale`
-    for the refined corners; 1.0 when the weights were never calibrated). WeightsError when it is there but not
-    a positive number."""
+    """The covariance calibration factor stored in a weights file's metadata (`cov_scale`; 1.0 when the weights
+    were never calibrated). WeightsError when it is there but not a positive number."""
     import json
 
     from envisat_pose.perception.weights import WeightsError, read_metadata
@@ -90,6 +89,23 @@ def weights_cov_scale(path: str, key: str = "cov_scale") -> float:
     if not np.isfinite(scale) or scale <= 0:
         raise WeightsError(f"{path}: metadata {key} {raw!r} is not a positive number")
     return scale
+
+
+def weights_refine_floor(path: str) -> float:
+    """The refinement's covariance floor stored in a weights file's metadata (`refine_cov_floor_px2`, px^2; 0.0
+    when absent). WeightsError when it is there but not a non-negative number."""
+    import json
+
+    from envisat_pose.perception.weights import WeightsError, read_metadata
+
+    raw = read_metadata(path).get("refine_cov_floor_px2", "0.0")
+    try:
+        floor = float(json.loads(raw))
+    except (ValueError, TypeError):
+        floor = float("nan")
+    if not np.isfinite(floor) or floor < 0:
+        raise WeightsError(f"{path}: metadata refine_cov_floor_px2 {raw!r} is not a non-negative number")
+    return floor
 
 
 def weights_error_model(path: str) -> ErrorModel:
@@ -110,14 +126,14 @@ def weights_error_model(path: str) -> ErrorModel:
 
 def load_detector(path: str, config: DetectConfig | None = None, device: str = "cpu") -> "Detector":
     """A Detector from a weights file (perception/weights.py), with the covariance calibration stored in the
-    file's metadata (`cov_scale`, `refine_cov_scale`) unless `config` is given (its own then stand), and the error model
+    file's metadata (`cov_scale`, `refine_cov_floor_px2`) unless `config` is given (its own then stand), the error model
     (`error_model`, on `detector.error_model`)."""
 
     from envisat_pose.perception.weights import load_model
 
     model = load_model(path, device=device)
     cfg = config or dataclasses.replace(DetectConfig(), cov_scale=weights_cov_scale(path),
-                                        refine_cov_scale=weights_cov_scale(path, "refine_cov_scale"))
+                                        refine_cov_floor_px2=weights_refine_floor(path))
     return Detector(model, cfg, device=device, error_model=weights_error_model(path))
 
 
@@ -206,7 +222,7 @@ class Detector:
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The candidates the naming matched, refined (perception/refine.py): new (pts (K, 2), cov (K, 2, 2)),
         refined (8,) bool per corner. A candidate keeps its index, so the half-turn naming sees it moved too;
-        the refinement's covariance, scaled by refine_cov_scale, replaces the network's."""
+        the refinement's covariance plus refine_cov_floor_px2 on both axes replaces the network's."""
         from envisat_pose.geometry import EDGES
 
         found = naming.visible & naming.matched
@@ -216,7 +232,7 @@ class Detector:
         pts, cov = pts.copy(), cov.copy()
         for k in np.flatnonzero(done & found):
             pts[naming.candidate[k]] = new[k]
-            cov[naming.candidate[k]] = new_cov[k] * self.cfg.refine_cov_scale
+            cov[naming.candidate[k]] = new_cov[k] + self.cfg.refine_cov_floor_px2 * np.eye(2)
         return pts, cov, done & found
 
     @staticmethod

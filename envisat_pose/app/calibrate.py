@@ -14,8 +14,9 @@ that takes them as white and the residual bias (apparent scale, radial error) ar
 of interest the labels give (the closed loop's, with a perfect prior) instead of the coarse pass.
 
 `--refine` calibrates the sub-pixel refinement's covariance instead (DetectConfig.refine, perception/refine.py):
-the scale on the line fits' covariances of the refined corners, written as `refine_cov_scale` (with
-`refine_cov_calibration`); the network's cov_scale and the error model are left as they are.
+the variance floor f added to the line fits' covariances of the refined corners (C + f I; the fits see the
+pixel noise, not the misfit of the model), written as `refine_cov_floor_px2` (with `refine_cov_calibration`);
+the network's cov_scale and the error model are left as they are.
 """
 
 from __future__ import annotations
@@ -48,8 +49,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keep-scale", action="store_true",
                    help="leave the weights' cov_scale and cov_calibration as they are (write the error model only)")
     p.add_argument("--refine", action="store_true",
-                   help="fit the sub-pixel refinement's covariance scale (refine_cov_scale) on the refined corners "
-                   "instead; cov_scale and the error model are kept")
+                   help="fit the sub-pixel refinement's covariance floor (refine_cov_floor_px2) on the refined "
+                   "corners instead; cov_scale and the error model are kept")
     p.add_argument("--max-lag", type=int, default=20, help="autocorrelation lags measured (default 20)")
     p.add_argument("--limit", type=int, help="only the first N frames of each dataset")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
@@ -143,6 +144,12 @@ def sequence_input(frames: dict, dt_s: float) -> dict:
             "radial_px": frames["radial_px"][order], "dt_s": dt_s}
 
 
+def _print_groups(before: dict, after: dict) -> None:
+    print(f"{'group':12s} {'corners':>8s} {'NEES raw':>9s} {'NEES calibrated':>16s}")
+    for g in before:
+        print(f"{g:12s} {before[g]['count']:8d} {before[g]['mean_nees']:9.2f} {after[g]['mean_nees']:16.2f}")
+
+
 def run_calibrate_cli(args: argparse.Namespace) -> int:
     import dataclasses
 
@@ -152,7 +159,7 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     from envisat_pose.app.detect import camera_samples, detector_inputs
     from envisat_pose.io import check_writable_output
     from envisat_pose.perception import errormodel as em
-    from envisat_pose.perception.calibrate import calibration_by_group, fit_scale
+    from envisat_pose.perception.calibrate import calibration_by_group, fit_floor, fit_scale
     from envisat_pose.perception.data import shard_paths
     from envisat_pose.perception.detect import DetectConfig, load_detector
     from envisat_pose.perception.weights import with_metadata
@@ -166,7 +173,7 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     sequences = all(is_sequence(d) for d in args.data)
     # the network's own covariances (scale 1), whatever the file carried before; the refinement's the same
     det = load_detector(args.weights, config=dataclasses.replace(DetectConfig(), cov_scale=1.0, refine=args.refine,
-                                                                 refine_cov_scale=1.0))
+                                                                 refine_cov_floor_px2=0.0))
     bar = tqdm(disable=args.quiet, desc="calibrate", unit="frame")
     # one entry per --data folder, in order (a folder given twice counts twice)
     per_data = [(d, collect_frames(det, camera_samples(paths[d]), args.limit, bar, args.roi)) for d in args.data]
@@ -177,24 +184,27 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     if len(err) < 20:
         raise InputError(f"--data {data_names!r}: only {len(err)} correctly named corners; calibration needs more "
                          "held-out frames (at least 20 corners)")
-    scale = fit_scale(err, cov)
-    before = calibration_by_group(err, cov, groups)
-    after = calibration_by_group(err, cov * scale, groups)
-    print(f"{'group':12s} {'corners':>8s} {'NEES raw':>9s} {'NEES calibrated':>16s}")
-    for g in before:
-        print(f"{g:12s} {before[g]['count']:8d} {before[g]['mean_nees']:9.2f} {after[g]['mean_nees']:16.2f}")
-    meta = {}
-    if args.refine:
-        record = {"scale": scale, "data": data_names, "corners": int(len(err)), "roi": args.roi,
+    if args.refine:  # the floor added to the line fits' covariances
+        floor = fit_floor(err, cov)
+        before = calibration_by_group(err, cov, groups)
+        after = calibration_by_group(err, cov + floor * np.eye(2), groups)
+        _print_groups(before, after)
+        record = {"floor_px2": floor, "data": data_names, "corners": int(len(err)), "roi": args.roi,
                   "mean_nees_by_group": {g: v["mean_nees"] for g, v in after.items()},
+                  "mean_nees_by_group_without_floor": {g: v["mean_nees"] for g, v in before.items()},
                   "count_by_group": {g: v["count"] for g, v in after.items()},
                   "refined_share": float(sum(f["refined"].sum() for _, f in per_data) / max(
                       sum(np.isfinite(f["err_px"][..., 0]).sum() for _, f in per_data), 1))}
-        with_metadata(args.weights, args.out, {"refine_cov_scale": scale,
+        with_metadata(args.weights, args.out, {"refine_cov_floor_px2": floor,
                                                "refine_cov_calibration": json.dumps(record, sort_keys=True)})
-        print(f"refine_cov_scale {scale:.4g} (mean e^T C^-1 e 2.00 on {len(err)} refined corners, "
+        print(f"refine_cov_floor_px2 {floor:.4g} (mean e^T C^-1 e 2.00 on {len(err)} refined corners, "
               f"{record['refined_share']:.0%} of those named right); wrote {args.out}")
         return 0
+    scale = fit_scale(err, cov)
+    before = calibration_by_group(err, cov, groups)
+    after = calibration_by_group(err, cov * scale, groups)
+    _print_groups(before, after)
+    meta = {}
     if not args.keep_scale:
         record = {"scale": scale, "data": data_names, "corners": int(len(err)), "roi": args.roi,
                   "mean_nees_by_group": {g: v["mean_nees"] for g, v in after.items()},

@@ -212,7 +212,7 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
     from envisat_pose.geometry import load_geometry
     from envisat_pose.io import atomic_write_text, check_writable_output
     from envisat_pose.perception.data import shard_paths
-    from envisat_pose.perception.detect import DetectConfig, weights_cov_scale
+    from envisat_pose.perception.detect import DetectConfig, weights_cov_scale, weights_refine_floor
     from envisat_pose.perception.evaluate import corruption_groups
     from envisat_pose.perception.weights import load_model
 
@@ -222,7 +222,7 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
     roi = read_roi(args.roi) if args.roi else ("labels" if args.roi_labels else None)
     model = load_model(args.weights, args.device)
     cfg = DetectConfig(cov_scale=weights_cov_scale(args.weights),
-                       refine_cov_scale=weights_cov_scale(args.weights, "refine_cov_scale"))
+                       refine_cov_floor_px2=weights_refine_floor(args.weights))
     detector = make_detector(model, cfg, args.device)
     ablation = make_detector(model, dataclasses.replace(cfg, line_verification=False), args.device)
     refined = make_detector(model, dataclasses.replace(cfg, refine=True), args.device) if args.refine else None

@@ -31,3 +31,16 @@ def test_groups():
     out = calibration_by_group(err, cov, group)
     assert out["clean"]["count"] == 2000 and abs(out["clean"]["mean_nees"] - 2) < 0.2
     assert abs(out["noisy"]["mean_nees"] - 8) < 0.8
+
+
+def test_floor_brings_the_mean_to_two_and_is_zero_when_covered():
+    from envisat_pose.perception.calibrate import fit_floor, nees_px
+
+    rng = np.random.default_rng(4)
+    sig = rng.uniform(0.05, 0.3, 4000)
+    err = rng.normal(0, 1, (4000, 2)) * np.sqrt(sig[:, None] ** 2 + 0.04)  # each claims sig^2, misses 0.04 px^2
+    cov = sig[:, None, None] ** 2 * np.eye(2)
+    f = fit_floor(err, cov)
+    assert abs(f - 0.04) < 0.004
+    assert abs(np.mean(nees_px(err, cov + f * np.eye(2))) - 2.0) < 1e-6
+    assert fit_floor(err, cov * 100.0) == 0.0

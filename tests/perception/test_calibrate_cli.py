@@ -125,7 +125,8 @@ def test_sequence_error_model_written_and_loaded(tmp_path, monkeypatch, capsys):
 
 class RefinedLabelDetector:
     """Test double for --refine: the label's usable corners; the even-numbered ones 'refined' with errors of
-    sigma 0.3 px claiming sigma 0.1 px (refine_cov_scale 9), the others with errors of sigma 2 px (ignored)."""
+    sigma 0.3 px claiming sigma 0.1 px (a floor of 0.09 - 0.01 = 0.08 px^2 makes them honest), the others with
+    errors of sigma 2 px (ignored)."""
 
     def __init__(self, labels, seed):
         self.labels, self.n, self.rng = labels, 0, np.random.default_rng(seed)
@@ -141,7 +142,7 @@ class RefinedLabelDetector:
         return FrameDetection(pts, cov, use * 1.0, use, pts, 0.0, False, np.zeros(3), pts, refined=refined)
 
 
-def test_refine_scale_fitted_on_the_refined_corners(tiny_dataset, tmp_path, monkeypatch):
+def test_refine_floor_fitted_on_the_refined_corners(tiny_dataset, tmp_path, monkeypatch):
     import envisat_pose.perception.detect as pd
 
     samples = list(camera_samples(shard_paths(tiny_dataset)))
@@ -157,7 +158,7 @@ def test_refine_scale_fitted_on_the_refined_corners(tiny_dataset, tmp_path, monk
     monkeypatch.undo()
     meta = read_metadata(str(out))
     assert meta["cov_scale"] == "1.5" and "error_model" not in meta
-    scale = float(meta["refine_cov_scale"])
-    assert abs(scale - 9.0) < 0.15 * 9.0
+    floor = float(meta["refine_cov_floor_px2"])
+    assert abs(floor - 0.08) < 0.015
     det = load_detector(str(out))
-    assert det.cfg.refine_cov_scale == scale and det.cfg.cov_scale == 1.5
+    assert det.cfg.refine_cov_floor_px2 == floor and det.cfg.cov_scale == 1.5
