@@ -129,9 +129,9 @@ def test_scale_and_radial_bias_match_the_labels(paper_dataset, weights, tmp_path
     monkeypatch.setattr(app, "make_detector", lambda model, config, device: double)
     out = tmp_path / "eval.json"
     assert main(["evaluate", "--weights", weights, "--data", paper_dataset, "--json", str(out), "--quiet",
-                 "--roi-labels"]) == 0
+                 "--roi-labels", "--refine"]) == 0
     res = json.loads(out.read_text())
-    assert sum(r is not None for r in double.rois) == 12  # detector_roi: one ROI per frame
+    assert sum(r is not None for r in double.rois) == 24  # detector_roi and detector_roi_refined: one per frame
     ranges = {}
     for path in shard_paths(paper_dataset):
         with tarfile.open(path) as tar:
@@ -154,7 +154,7 @@ def test_scale_and_radial_bias_match_the_labels(paper_dataset, weights, tmp_path
             if use.sum() >= 2:
                 acc["radial"] += radial.tolist()
     for name, acc in per_group.items():
-        for method in ("detector", "detector_roi"):
+        for method in ("detector", "detector_roi", "detector_refined", "detector_roi_refined"):
             b = res["groups"][name][method]["bias"]
             assert b["scale_frames"] == len(acc["scale"]) and b["radial_corners"] == len(acc["radial"])
             assert abs(b["scale_mean"] - np.mean(acc["scale"])) < 1e-9
