@@ -90,7 +90,7 @@ def weights_record(path: str) -> dict:
            "model_config": json.loads(meta["model_config"]),
            "cov_scale": float(json.loads(meta.get("cov_scale", "1.0"))),
            "cov_calibration": json.loads(meta["cov_calibration"]) if "cov_calibration" in meta else None}
-    for key in ("error_model", "error_model_record"):
+    for key in ("error_model", "error_model_record", "refine_cov_floor_px2", "refine_cov_calibration"):
         if key in meta:
             out[key] = json.loads(meta[key])
     return out
