@@ -222,7 +222,8 @@ class Detector:
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The candidates the naming matched, refined (perception/refine.py): new (pts (K, 2), cov (K, 2, 2)),
         refined (8,) bool per corner. A candidate keeps its index, so the half-turn naming sees it moved too;
-        the refinement's covariance plus refine_cov_floor_px2 on both axes replaces the network's."""
+        the refinement's covariance plus refine_cov_floor_px2 on both axes replaces the network's, or, with
+        refine_config.fuse, the two estimates are combined by their information."""
         from envisat_pose.geometry import EDGES
 
         found = naming.visible & naming.matched
@@ -231,8 +232,15 @@ class Detector:
                                           self.cfg.refine_config)
         pts, cov = pts.copy(), cov.copy()
         for k in np.flatnonzero(done & found):
-            pts[naming.candidate[k]] = new[k]
-            cov[naming.candidate[k]] = new_cov[k] + self.cfg.refine_cov_floor_px2 * np.eye(2)
+            c = naming.candidate[k]
+            cov_r = new_cov[k] + self.cfg.refine_cov_floor_px2 * np.eye(2)
+            if self.cfg.refine_config.fuse and np.all(np.isfinite(cov[c])):
+                # the network's estimate and the refined one weighed by their information (taken as independent)
+                info_n, info_r = np.linalg.inv(cov[c]), np.linalg.inv(cov_r)
+                cov[c] = np.linalg.inv(info_n + info_r)
+                pts[c] = cov[c] @ (info_n @ pts[c] + info_r @ new[k])
+            else:
+                pts[c], cov[c] = new[k], cov_r
         return pts, cov, done & found
 
     @staticmethod

@@ -32,7 +32,8 @@ class RefineConfig:
     edges closer in direction than this do not make a corner; max_shift_px: refined corners farther than this
     from the network's are not used; iterations: re-centring of the profile window (each of the two steps);
     min_contrast: a station whose contrast across the edge is below this many times the pixel noise (the
-    plateaus' spread) has no edge."""
+    plateaus' spread) has no edge; fuse: the detector combines the refined corner with the network's by their
+    covariances (information-weighted) instead of replacing it."""
 
     half_width_px: float = 3.0
     clearance_px: float = 2.0
@@ -45,6 +46,7 @@ class RefineConfig:
     max_shift_px: float = 2.5
     iterations: int = 3
     min_contrast: float = 6.0
+    fuse: bool = True
 
 
 def sample_bicubic(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
