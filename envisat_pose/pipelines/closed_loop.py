@@ -11,6 +11,15 @@ Per run and frame k (t_k = k / rate_hz):
 The truth only scores (pipelines/scoring.py). Run r draws its camera noise (and a warm start) from
 SeedSequence(seed, spawn_key=(r,)) and frame k's noise from spawn_key (r, 1, k); runs go through the core's runner.
 Run 0 streams its recording frame by frame to the sink it is handed (analysis.recording.TrackRecorder).
+
+Memory does not grow with the run's length: a run writes its per-frame arrays to runs/run-NNNN/<name>.npy in
+chunks of CHUNK_FRAMES frames as it goes (RunRows, which also reduces the stage times and frame counts per chunk)
+and returns only those reductions through the runner; the job then checks the contracts and scores chunk by
+chunk (scoring.frame_errors: a few scalars per frame are kept), streams est.npz and det.npz from the files
+(io.save_npz with StreamedArray members: the bytes of the whole arrays), draws errors.png from at most
+PLOT_FRAMES frames, and removes runs/. What stays proportional to the frames: the truth's state and times, the
+recorder's corners, a few scalars per frame (bench/memory.py measures it). The image is any square
+image.resolution_px: the MJCF's chaser_cam read out at that size (the same field of view).
 """
 
 from __future__ import annotations
@@ -318,17 +327,19 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     truth_uv = truth.corners_px if camera.width_px == load_camera().width_px else \
         rescale_px(truth.corners_px, load_camera(), camera)
     truth_seen = truth.in_frame & truth.visible
+    t_s, x_truth, orbit = truth.t_s, truth.x, orbit_config(truth.config)
+    del truth  # what the loop reads of it is above; the rest (corners in C, the chaser's orbit) is not held
     renderer = shared_renderer(gcfg.resolution_px, gcfg.shadows,
                                gcfg.appearance.texture_set_size if gcfg.appearance_on else 0,
                                gcfg.appearance.texture_seed)
     rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(run,)))
     prior = None
     if cfg.warm_start:
-        prior = (draw_initial_estimate(truth.x[0], cfg.filter.P0, rng), cfg.filter.P0, float(truth.t_s[0]))
-    tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(orbit_config(truth.config)), cfg.tracker,
+        prior = (draw_initial_estimate(x_truth[0], cfg.filter.P0, rng), cfg.filter.P0, float(t_s[0]))
+    tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(orbit), cfg.tracker,
                       cfg.filter, mu_m3_s2=mu, gravity_gradient=gg, prior=prior)
     look_seed = sample_seed(cfg.seed, 0, 0)  # one look for the whole sequence: the same target in every run
-    T = len(truth.t_s)
+    T = len(t_s)
     rows = RunRows(run_dir, T)
     recorder = None
     if sink:
@@ -342,7 +353,7 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
         bar = tqdm(total=T, unit="frame", desc=f"closed loop (run {run})", mininterval=0.5)
     try:
         for k in range(T):
-            x = truth.x[k]
+            x = x_truth[k]
             image = None
             t_render = t_camera = 0.0
             if not eclipse[k]:
@@ -357,13 +368,13 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
                 params = draw_corruption_params(gcfg, rendered, x, renderer.K[0, 0], renderer.target_boxes, frame_rng)
                 image = apply_corruption(rendered.gray_u8, params)
                 t_camera = time.perf_counter() - t0
-            est = tracker.step(float(truth.t_s[k]), image)
+            est = tracker.step(float(t_s[k]), image)
             i, out = rows.row(k), rows.buf
             store_estimate(out, i, est)
             out["skipped"][i] = image is None
             t0 = time.perf_counter()
             if recorder is not None:
-                recorder.log_frame(k, est_row(out, i, float(truth.t_s[k])), image, cfg.jpeg_quality, x_true=x,
+                recorder.log_frame(k, est_row(out, i, float(t_s[k])), image, cfg.jpeg_quality, x_true=x,
                                    corners_true_px=truth_uv[k], in_frame=truth_seen[k])
             out["timing_s"][i] = (sim_s_per_frame, t_render, t_camera, est.timing_s.get("detection", 0.0),
                                   est.timing_s.get("filtering", 0.0), time.perf_counter() - t0)
@@ -402,6 +413,15 @@ def output_paths(out_dir: str) -> dict[str, str]:
     return {k: os.path.join(out_dir, v) for k, v in names.items()}
 
 
+@dataclass(frozen=True)
+class TruthBrief:
+    """What the job keeps of its truth after saving it: t_s (T,) s, x (T, 12), config (dict)."""
+
+    t_s: np.ndarray
+    x: np.ndarray
+    config: dict
+
+
 def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: str | None = None) -> dict:
     """The whole job into out_dir; returns the summary dict (also written as summary.json). sink: where run 0's
     recording goes (default: save to out_dir/recording.rrd; 'spawn' or 'connect:ADDR' for a live viewer).
@@ -421,6 +441,7 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
     truth = simulate_truth(cfg, progress=False)
     sim_s = time.perf_counter() - wall0
     truth.save(paths["truth"])
+    truth = TruthBrief(truth.t_s, truth.x, truth.config)  # the rest of the truth is in truth.npz, not held
     T = len(truth.t_s)
     cfg_json = json.dumps(to_dict(cfg), sort_keys=True)
     workers = min(cfg.workers, cfg.runs)

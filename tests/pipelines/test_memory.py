@@ -1,0 +1,72 @@
+"""Bounded memory: a long closed loop does not hold its frames. A run of 21000 frames (10 Hz, 64 px, the chaser in
+the Earth's shadow all along, so it is quick) against a short one, in a fresh process: the job's peak memory
+(every Python and numpy allocation, tracemalloc; and the peak resident set) grows by far less than the per-frame
+arrays the run records would take if held (closed_loop.record_arrays, ~2.4 kB a frame: ~50 MB here). Before the
+streaming rewrite a run held them, returned them and stacked them again: its peak grew ~2x faster than that."""
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+
+CHILD = textwrap.dedent("""
+    import json, resource, sys, tracemalloc
+    import numpy as np
+    from envisat_pose.app.scenarios import job_defaults
+    from envisat_pose.config import from_dict
+    from envisat_pose.datagen.orbit import chaser_orbit
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.pipelines import closed_loop as loop
+    from envisat_pose.pipelines.tracker import TRACKER_FILTER
+
+    weights, out, long_s = sys.argv[1], sys.argv[2], float(sys.argv[3])
+    loop.stage_types()
+    # the sun behind the Earth as seen from the chaser at t = 1050 s: the shadow covers ~0..2100 s
+    r_mid = chaser_orbit(scenario_config("default").orbit, np.array([1050.0])).r_N_m[0]
+
+    def cfg(duration_s):
+        data = {"scenario": "default", "duration_s": duration_s, "rate_hz": 10.0, "weights": weights, "workers": 1,
+                "filter": {**TRACKER_FILTER, **job_defaults("default")["filter"]},
+                "image": {"resolution_px": 64, "sun_dir": (-r_mid / np.linalg.norm(r_mid)).tolist()}}
+        return loop.finish_config(from_dict(loop.RunConfig, data))
+
+    def job(duration_s, name):
+        tracemalloc.reset_peak()
+        start = tracemalloc.get_traced_memory()[0]
+        s = loop.run_closed_loop(cfg(duration_s), f"{out}/{name}", progress=False)
+        return {"frames": s["frames"], "skipped": s["run0"]["frames_skipped_eclipse"],
+                "traced_peak": tracemalloc.get_traced_memory()[1] - start,
+                "maxrss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}
+
+    tracemalloc.start()
+    short = job(5.0, "short")
+    long = job(long_s, "long")
+    print(json.dumps({"short": short, "long": long}))
+""")
+
+
+def test_a_long_closed_loop_keeps_its_memory_flat(tmp_path):
+    from envisat_pose.app.run import default_weights_path
+    from envisat_pose.contracts import Estimates
+    from envisat_pose.pipelines.closed_loop import record_arrays
+
+    out = subprocess.run([sys.executable, "-c", CHILD, default_weights_path(), str(tmp_path), "2099.9"],
+                         capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    short, long = res["short"], res["long"]
+    T = long["frames"]
+    assert T == 21000 and long["skipped"] == T, long  # every frame in the shadow: the test is about memory
+    every_frame = T * sum(a.nbytes for a in record_arrays(1).values())
+    grown = long["traced_peak"] - short["traced_peak"]
+    assert grown < every_frame / 3, (grown / 2**20, every_frame / 2**20)
+    assert long["maxrss"] - short["maxrss"] < every_frame, ((long["maxrss"] - short["maxrss"]) / 2**20,
+                                                            every_frame / 2**20)
+    # and the outputs are whole: every frame of the long run in est.npz and det.npz
+    est = Estimates.load(str(tmp_path / "long" / "est.npz"))
+    assert est.x_hat.shape == (1, T, 12) and est.P.shape == (1, T, 12, 12)
+    with np.load(tmp_path / "long" / "det.npz", allow_pickle=False) as z:
+        assert z["skipped"].all() and z["key"][-1] == f"frame-{T - 1:06d}"
+    assert not (tmp_path / "long" / "runs").exists()  # the runs' chunk files are removed once streamed
