@@ -50,11 +50,19 @@ class RefineConfig:
 
 
 def sample_bicubic(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Image values at points xy (..., 2) px, bicubic (OpenCV remap; border replicated): (...,) float32."""
+    """Image values at points xy (..., 2) px, bicubic (OpenCV remap; border replicated): (...,) float32. Only the
+    patch around the points (plus the kernel's reach) is converted, not the whole frame."""
     shape = xy.shape[:-1]
-    flat = xy.reshape(-1, 2).astype(np.float32)
-    mx, my = flat[:, 0].reshape(1, -1), flat[:, 1].reshape(1, -1)
-    out = cv2.remap(image.astype(np.float32), mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+    flat = xy.reshape(-1, 2).astype(np.float64)
+    h, w = image.shape
+    x0 = int(np.clip(np.floor(flat[:, 0].min()) - 3, 0, w - 1))
+    y0 = int(np.clip(np.floor(flat[:, 1].min()) - 3, 0, h - 1))
+    x1 = int(np.clip(np.ceil(flat[:, 0].max()) + 4, x0 + 1, w))
+    y1 = int(np.clip(np.ceil(flat[:, 1].max()) + 4, y0 + 1, h))
+    patch = np.ascontiguousarray(image[y0:y1, x0:x1], dtype=np.float32)
+    mx = (flat[:, 0] - x0).astype(np.float32).reshape(1, -1)
+    my = (flat[:, 1] - y0).astype(np.float32).reshape(1, -1)
+    out = cv2.remap(patch, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(shape)
 
 
