@@ -5,11 +5,14 @@ Measured per job: the process's peak resident set (getrusage's ru_maxrss of the 
 over a short baseline job of the same settings (BASE_S of simulated time: what the process needs whatever the
 run's length: Python, torch, MuJoCo, the detector, Rerun), the job's wall time and frames. Beside it the peer:
 the bytes that holding every frame would take, frames x the per-frame arrays a run records
-(closed_loop.record_arrays, ~2.4 kB a frame; before the streaming rewrite a run held those, returned them through
-the runner and stacked them again for est.npz, so its real peak was a few times that).
+(closed_loop.record_arrays, ~2 kB a frame; before the streaming rewrite a run held those whole, returned them
+through the runner and the job stacked them again for est.npz).
 
 At 1 Hz a frame costs ~0.1 s here (128 px; the detector dominates), so 10 orbits is 60000 frames and ~100 min:
---rate-hz takes fewer frames per orbit (the report says what ran).
+--rate-hz takes fewer frames per orbit (the report says what ran), --orbits fewer orbits. Fresh processes differ
+by tens of MiB in peak RSS (a 301-frame job peaked 5 MiB below the 21-frame baseline), and lit frames grow the
+peak by more than the arrays (measured in one process at 128 px: +10 MiB over 600 lit frames with the Rerun
+recording, +0 without it): what grows is outside the run's arrays.
 
 Run: .venv/bin/python bench/memory.py [--orbits 1 3 10] [--rate-hz 1] [--resolution 128]
      [--out bench/results/memory.json]

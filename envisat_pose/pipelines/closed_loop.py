@@ -228,7 +228,7 @@ def store_estimate(out: dict, k: int, est) -> None:
         out["crop_px"][k] = fd.crop_px
 
 
-# rows a run holds before writing them out: ~2.4 kB a frame, so ~2.4 MB per run whatever the run's length
+# rows a run holds before writing them out: ~2 kB a frame, so ~2 MB per run whatever the run's length
 CHUNK_FRAMES = 1000
 # columns of a run's arrays that go to det.npz (run 0) and est.npz (every run)
 DET_KEYS = ("corners_px", "cov_px", "confidence", "visible", "rejected", "alt_corners_px", "alt_probability",

@@ -1,8 +1,8 @@
 """Bounded memory: a long closed loop does not hold its frames. A run of 21000 frames (10 Hz, 64 px, the chaser in
 the Earth's shadow all along, so it is quick) against a short one, in a fresh process: the job's peak memory
 (every Python and numpy allocation, tracemalloc; and the peak resident set) grows by far less than the per-frame
-arrays the run records would take if held (closed_loop.record_arrays, ~2.4 kB a frame: ~50 MB here). Before the
-streaming rewrite a run held them, returned them and stacked them again: its peak grew ~2x faster than that."""
+arrays the run records would take if held (closed_loop.record_arrays, ~2 kB a frame: ~40 MB here). Before the
+streaming rewrite a run held them whole, returned them through the runner and the job stacked them again."""
 
 import json
 import subprocess
