@@ -6,7 +6,7 @@ The public API, imported on first use (so `import envisat_pose` loads nothing he
 - the tracker: `Tracker`, `TrackerConfig`, `TrackEstimate` (envisat_pose.pipelines.tracker);
 - the closed loop: `RunConfig`, `run_closed_loop` (envisat_pose.pipelines.closed_loop); a user's frames:
   `TrackConfig`, `open_source`, `track_frames` (envisat_pose.pipelines.track);
-- campaigns: `MonteCarloConfig`, `run_campaign` (envisat_pose.app.montecarlo);
+- campaigns: `MonteCarloConfig`, `run_campaign` (envisat_pose.pipelines.campaign);
 - the state's layout: `envisat_pose.state`.
 """
 
@@ -18,7 +18,7 @@ _PUBLIC = {
     "RunConfig": "envisat_pose.pipelines.closed_loop", "run_closed_loop": "envisat_pose.pipelines.closed_loop",
     "TrackConfig": "envisat_pose.pipelines.track", "open_source": "envisat_pose.pipelines.track",
     "track_frames": "envisat_pose.pipelines.track",
-    "MonteCarloConfig": "envisat_pose.app.montecarlo", "run_campaign": "envisat_pose.app.montecarlo",
+    "MonteCarloConfig": "envisat_pose.pipelines.campaign", "run_campaign": "envisat_pose.pipelines.campaign",
 }
 __all__ = sorted(_PUBLIC)
 

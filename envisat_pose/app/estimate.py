@@ -1,43 +1,14 @@
-"""`envisat estimate`: the batched UKF over R Monte Carlo runs of one MuJoCo truth, written as est.npz.
-
-The truth comes from `--truth run.npz` (written by `envisat simulate`, read as the core's TruthTrajectory
-contract without importing the simulator) or is simulated for `--scenario NAME` by the MuJoCo truth simulator
-(datagen.truth.simulate). Measurements are synthesized from the truth's own arrays (MuJoCo's corner sites and
-their projection through MuJoCo's camera), never from the filter's model; the filter's model takes the truth's
-mu and gravity-gradient switch from its config.
+"""`envisat estimate`: the verb over the estimate pipeline (envisat_pose/pipelines/estimate.py): the batched UKF
+over R Monte Carlo runs of one MuJoCo truth (`--truth run.npz` or simulated for `--scenario NAME`), written as
+est.npz. Here: the flags, the config's resolution and the printed lines.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-from dataclasses import dataclass, field
 
-import numpy as np
-
-from envisat_pose.config import ConfigError, InputError, check, from_dict, resolve_job_config, to_dict, to_toml
-from envisat_pose.filtering.estimator import FilterConfig
-from envisat_pose.filtering.montecarlo import MeasurementConfig
-
-MAX_OUTPUT_BYTES = 8 * 2**30  # P alone is R * T * 144 * 8 bytes
-
-
-@dataclass(frozen=True)
-class EstimateConfig:
-    """One `envisat estimate` job: measurements, filter, number of runs and the root seed.
-
-    Run r draws its initial error and noise from SeedSequence(seed).spawn(runs)[r]; with --scenario the
-    truth's random initial attitude comes from the same seed.
-    """
-
-    measurement: MeasurementConfig = field(default_factory=MeasurementConfig)
-    filter: FilterConfig = field(default_factory=FilterConfig)
-    runs: int = 1
-    seed: int = 0
-
-    def validate(self, prefix: str = "") -> None:
-        check(1 <= self.runs <= 100_000, "runs", self.runs, "a number of runs from 1 to 100000")
-        check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")
+from envisat_pose.config import InputError, resolve_job_config
+from envisat_pose.pipelines.estimate import EstimateConfig
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -105,113 +76,6 @@ def resolve_config(args: argparse.Namespace) -> EstimateConfig:
     return resolve_job_config(EstimateConfig, defaults, args.config, flags)
 
 
-def load_truth(args: argparse.Namespace, cfg: EstimateConfig):
-    """The truth trajectory: read from --truth, or simulated by MuJoCo for --scenario. Returns (truth, source).
-
-    A file that is not a truth trajectory (truncated, foreign, another contract) is one InputError line.
-    With --scenario the scenario's duration applies unless --duration-s is given.
-    """
-    if args.truth:
-        from envisat_pose.contracts import TruthTrajectory
-
-        if args.duration_s is not None:
-            raise InputError("--duration-s applies to --scenario only; the truth file fixes the duration")
-        truth = TruthTrajectory.load(args.truth)
-        truth_model(truth, args.truth)  # its config must name the physics the filter needs
-        return truth, {"truth_file": args.truth}
-    from envisat_pose.datagen.scenario import scenario_config, scenario_dict
-    from envisat_pose.datagen.truth import simulate
-
-    overrides: dict = {"seed": cfg.seed}
-    if args.duration_s is not None:
-        overrides["duration_s"] = args.duration_s
-    if cfg.measurement.rate_hz > 1.0:
-        overrides["dt_s"] = 1.0 / cfg.measurement.rate_hz
-    scenario_dict(args.scenario)  # unknown names fail here with the list of known ones
-    scfg = scenario_config(args.scenario, **overrides)
-    return simulate(scfg, progress=not args.quiet), {"scenario": args.scenario}
-
-
-def scenario_outages(args: argparse.Namespace, cfg: EstimateConfig, truth) -> EstimateConfig:
-    """With --scenario NAME whose file has an [eclipse] table: cfg with the Earth's-shadow windows along the
-    simulated truth appended to its outages (app.scenarios.eclipse_outages); cfg otherwise."""
-    if not args.scenario:
-        return cfg
-    import dataclasses
-
-    from envisat_pose.app.scenarios import eclipse_outages, with_outages
-    from envisat_pose.datagen.scenario import ScenarioConfig
-
-    windows = eclipse_outages(args.scenario, from_dict(ScenarioConfig, truth.config))
-    return dataclasses.replace(cfg, measurement=with_outages(cfg.measurement, windows))
-
-
-def truth_model(truth, source: str = "the truth") -> tuple[float, bool]:
-    """The physics of the truth that the filter's model must share: (mu_m3_s2, gravity_gradient), read from the
-    truth's config (orbit.mu_m3_s2, target.gravity_gradient); InputError if the config lacks them."""
-    try:
-        cfg = truth.config
-        mu = float(cfg["orbit"]["mu_m3_s2"])
-        gg = cfg["target"]["gravity_gradient"]
-    except (KeyError, TypeError, ValueError) as err:
-        raise InputError(f"{source}: its config_json does not give orbit.mu_m3_s2 and target.gravity_gradient "
-                         f"({type(err).__name__}: {err})") from None
-    if not (np.isfinite(mu) and mu > 0) or not isinstance(gg, bool):
-        raise InputError(f"{source}: its config_json has orbit.mu_m3_s2 = {mu!r} and target.gravity_gradient = "
-                         f"{gg!r}; expected a positive number and true/false")
-    return mu, gg
-
-
-def output_paths(out: str) -> tuple[str, str]:
-    """est.npz -> (est.npz, est.config.toml)."""
-    stem = out[:-4] if out.endswith(".npz") else out
-    return out, stem + ".config.toml"
-
-
-def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
-    """Filter cfg.runs runs of a truth trajectory; returns the arrays of est.npz (without config_json).
-
-    Arrays: t_s (T,), x_true (R, T, 12), x_hat (R, T, 12), P (R, T, 12, 12), n_meas (R, T), nis (R, T), nis_dof (R, T),
-    diverged (R,) (NIS window or NEES window against the truth).
-    """
-    from envisat_pose.filtering.estimator import chaser_states, nees_divergence, run_filter
-    from envisat_pose.filtering.montecarlo import filter_stride, make_run_inputs, truth_measurements
-
-    mu_m3_s2, gravity_gradient = truth_model(truth)
-
-    try:
-        stride = filter_stride(truth.t_s, cfg.measurement.rate_hz)
-    except ValueError as err:
-        raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None
-    sel = slice(0, None, stride)
-    t_s, x_true = truth.t_s[sel], truth.x[sel]
-    chaser = chaser_states(truth.chaser_r_m, truth.chaser_rdot_m_s, truth.chaser_theta_rad,
-                           truth.chaser_thetadot_rad_s)[sel]
-    R, T = cfg.runs, len(t_s)
-    need = R * T * (144 + 30) * 8
-    if need > MAX_OUTPUT_BYTES:
-        raise ConfigError("runs", R, f"fewer runs or a shorter truth: {R} runs x {T} steps need "
-                          f"{need / 2**30:.1f} GiB (limit {MAX_OUTPUT_BYTES / 2**30:.0f} GiB)")
-    fcfg = cfg.filter
-    kind = cfg.measurement.kind
-    z_true, base = truth_measurements(kind, truth.corners_C_m[sel], truth.visible[sel], truth.corners_px[sel],
-                                      truth.in_frame[sel])
-    inp = make_run_inputs(x_true[0], t_s, z_true, base, cfg.measurement, fcfg.P0, cfg.seed, R)
-    res = run_filter(inp.x0_hat, fcfg.P0, t_s, chaser, inp.z, inp.mask, inp.R_c, kind, fcfg, progress=progress,
-                     mu_m3_s2=mu_m3_s2, gravity_gradient=gravity_gradient)
-    diverged = res.diverged | nees_divergence(x_true[None], res.x_hat, res.P, fcfg)
-    return {
-        "t_s": t_s,
-        "x_true": np.broadcast_to(x_true, (R, T, 12)).copy(),
-        "x_hat": res.x_hat,
-        "P": res.P,
-        "n_meas": res.n_meas,
-        "nis": res.nis,
-        "nis_dof": res.dof,
-        "diverged": diverged,
-    }
-
-
 def summary(arrays: dict) -> str:
     """Errors over the second half of the run: RMS position (cm) and attitude angle (deg), ANEES."""
     from envisat_pose.filtering.estimator import nees
@@ -228,40 +92,24 @@ def summary(arrays: dict) -> str:
 
 
 def run_estimate(args: argparse.Namespace) -> int:
-    from envisat_pose.contracts import Estimates
-    from envisat_pose.io import atomic_write_text, check_writable_output
+    from envisat_pose.io import check_writable_output
+    from envisat_pose.pipelines.estimate import output_paths, run_estimate as run_pipeline
 
     if not args.out.endswith(".npz"):
         raise InputError(f"--out {args.out!r}: expected a path ending in .npz")
     cfg = resolve_config(args)
-    out, cfg_path = output_paths(args.out)
-    check_writable_output(out)
+    check_writable_output(output_paths(args.out)[0])
     if args.rrd:
         from envisat_pose.app.view import check_rrd_output
 
         check_rrd_output(args.rrd)
-    truth, source = load_truth(args, cfg)
-    cfg = scenario_outages(args, cfg, truth)
-    if len(truth.t_s) < 2:
-        raise InputError("the truth trajectory has fewer than 2 samples")
-    arrays = estimate(truth, cfg, progress=not args.quiet)
-    config_json = json.dumps({"estimate": to_dict(cfg), "truth_source": source, "truth_config": truth.config},
-                             sort_keys=True)
-    est = Estimates(**arrays, config_json=config_json)
-    est.save(out)
-    atomic_write_text(cfg_path, "# envisat estimate: the full validated config of this job\n" + to_toml(to_dict(cfg)))
-    print(f"wrote {out} ({cfg.runs} runs x {len(arrays['t_s'])} steps), config {cfg_path}")
+    res = run_pipeline(cfg, args.out, truth_path=args.truth, scenario=args.scenario, duration_s=args.duration_s,
+                       plot=args.plot, rrd=args.rrd, progress=not args.quiet)
+    cfg, arrays = res["config"], res["arrays"]
+    print(f"wrote {res['est']} ({cfg.runs} runs x {len(arrays['t_s'])} steps), config {res['config_toml']}")
     print(summary(arrays))
-    if args.plot:
-        from envisat_pose.analysis.plots import plot_estimate
-
-        png = out[:-4] + ".png"
-        plot_estimate(arrays["t_s"], arrays["x_true"], arrays["x_hat"], arrays["P"], png,
-                      title=f"UKF errors, {cfg.measurement.kind}, {cfg.runs} runs, seed {cfg.seed}")
-        print(f"wrote {png}")
-    if args.rrd:
-        from envisat_pose.analysis.recording import write_estimates_recording
-
-        write_estimates_recording(args.rrd, est, truth)
+    if res["plot"]:
+        print(f"wrote {res['plot']}")
+    if res["rrd"]:
         print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
     return 0

@@ -3,7 +3,8 @@
 A named scenario (scenarios/NAME.toml, read by envisat_pose.named_scenarios) gives `estimate` and `montecarlo`
 their defaults under the user's --config and flags: its [measurement] and [filter] tables, its duration, and,
 for a scenario with an [eclipse] table, the measurement outages of the Earth's shadow computed from the truth's
-orbit (datagen.scenario.eclipse_windows), appended to any configured outages.
+orbit (datagen.scenario.eclipse_windows), appended to any configured outages (the pipelines' job:
+pipelines.estimate.eclipse_outages and with_outages).
 """
 
 from __future__ import annotations
@@ -46,21 +47,3 @@ def job_defaults(name: str) -> dict:
     if "duration_s" in data:
         out["duration_s"] = data["duration_s"]
     return out
-
-
-def eclipse_outages(name: str, truth_cfg) -> tuple[tuple[float, float], ...]:
-    """The Earth's-shadow windows [start, end) s of a named scenario's [eclipse] table along the truth of
-    truth_cfg (a datagen ScenarioConfig); () for a scenario without one."""
-    from envisat_pose.datagen.scenario import eclipse_windows, scenario_eclipse
-
-    eclipse = scenario_eclipse(name)
-    return eclipse_windows(truth_cfg, eclipse) if eclipse is not None else ()
-
-
-def with_outages(mcfg, windows: tuple[tuple[float, float], ...]):
-    """A MeasurementConfig with `windows` appended to its outages (unchanged when there are none)."""
-    import dataclasses
-
-    if not windows:
-        return mcfg
-    return dataclasses.replace(mcfg, outages_s=tuple(mcfg.outages_s) + tuple(windows))

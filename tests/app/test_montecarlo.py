@@ -124,7 +124,7 @@ def test_bad_value_is_one_error_line(tmp_path, capsys, flag, value, field):
 def test_block_reduction_equals_whole_array_statistics(campaign):
     """The chunked, streaming block equals run_filter over the same runs followed by the whole-array statistics."""
     from envisat_pose.analysis.stats import reduce_runs, run_summary
-    from envisat_pose.app.montecarlo import CHUNK_STEPS, MonteCarloConfig, filter_block, load_campaign_truth
+    from envisat_pose.pipelines.campaign import CHUNK_STEPS, MonteCarloConfig, filter_block, load_campaign_truth
     from envisat_pose.filtering.estimator import nees_divergence, run_filter
     from envisat_pose.filtering.montecarlo import make_run_inputs
 
