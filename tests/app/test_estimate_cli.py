@@ -194,3 +194,21 @@ def test_the_filter_takes_the_gravity_gradient_switch_from_the_truth(tmp_path):
     est = _load(out)
     assert json.loads(str(est["config_json"]))["truth_config"]["target"]["gravity_gradient"] is True
     assert not est["diverged"].any()
+
+
+def test_the_pipeline_writes_what_the_verb_writes(truth_file, tmp_path, capsys):
+    """The verb is an argument parser over pipelines.estimate: run_estimate with the config the flags resolve to
+    writes the same est.npz and config; a truth file keeps the configured outages (no scenario, no eclipse)."""
+    from envisat_pose.app.cli import build_parser
+    from envisat_pose.app.estimate import resolve_config
+    from envisat_pose.pipelines.estimate import run_estimate
+
+    args = ["estimate", "--truth", str(truth_file), "--runs", "2", "--outage", "10", "20", "--quiet"]
+    assert main(args + ["--out", str(tmp_path / "cli.npz")]) == 0
+    assert "wrote" in capsys.readouterr().out
+    cfg = resolve_config(build_parser().parse_args(args + ["--out", "unused.npz"]))
+    res = run_estimate(cfg, str(tmp_path / "api.npz"), truth_path=str(truth_file))
+    assert res["config"] == cfg and res["plot"] is None and res["rrd"] is None
+    assert (tmp_path / "api.npz").read_bytes() == (tmp_path / "cli.npz").read_bytes()
+    assert (tmp_path / "api.config.toml").read_text() == (tmp_path / "cli.config.toml").read_text()
+    assert res["arrays"]["x_hat"].shape == (2, 61, 12) and (res["arrays"]["n_meas"][:, 10:20] == 0).all()

@@ -145,3 +145,20 @@ def test_block_reduction_equals_whole_array_statistics(campaign):
     for k in ("rms_block", "final_block", "max_block", "inside_share", "nees_mean", "nis_per_dof", "diverged"):
         np.testing.assert_allclose(got[f"run_{k}"], getattr(rs, k), rtol=1e-9, err_msg=k)
     assert got["sample_err"].shape == (b - a, len(tr.t_s), 12)  # runs 8..13 are below sample_runs = 20
+
+
+def test_the_public_pipeline_writes_what_the_verb_writes(campaign, tmp_path):
+    """The verb is an argument parser over the pipeline: envisat_pose.run_campaign with the config the flags
+    resolve to (no CLI) writes the same bytes."""
+    import envisat_pose
+    from envisat_pose.app.cli import build_parser
+    from envisat_pose.app.montecarlo import resolve_config
+    from envisat_pose.runner import RunnerConfig
+
+    assert envisat_pose.run_campaign.__module__ == envisat_pose.MonteCarloConfig.__module__ == \
+        "envisat_pose.pipelines.campaign"
+    cfg = resolve_config(build_parser().parse_args(BASE + ["--out", "unused"]))
+    assert isinstance(cfg, envisat_pose.MonteCarloConfig)
+    summary = envisat_pose.run_campaign(cfg, str(tmp_path / "api"), RunnerConfig("local", 1, None, {}))
+    assert _bytes(tmp_path / "api") == _bytes(campaign)
+    assert summary == json.loads((campaign / "summary.json").read_text())
