@@ -1,12 +1,13 @@
-"""`envisat simulate`: the MuJoCo truth of a scenario, written as the design's truth trajectory (run.npz)."""
+"""`envisat simulate`: the verb over the simulate pipeline (envisat_pose/pipelines/simulate.py): the MuJoCo truth of
+a scenario, written as the design's truth trajectory (run.npz). Here: the flags, the config and the printed lines."""
 
 from __future__ import annotations
 
 import argparse
 
 from envisat_pose.datagen.scenario import ScenarioConfig, scenario_dict
-from envisat_pose.config import InputError, resolve_job_config, to_dict, to_toml
-from envisat_pose.io import atomic_write_text, check_writable_output
+from envisat_pose.config import InputError, resolve_job_config
+from envisat_pose.io import check_writable_output
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -35,37 +36,22 @@ def resolve_config(args: argparse.Namespace) -> ScenarioConfig:
     return resolve_job_config(ScenarioConfig, scenario_dict(args.scenario), args.config, flags)
 
 
-def output_paths(out: str) -> tuple[str, str, str]:
-    """run.npz -> (run.npz, run.config.toml, run.png)."""
-    stem = out[:-4] if out.endswith(".npz") else out
-    return out, stem + ".config.toml", stem + ".png"
-
-
 def run_simulate(args: argparse.Namespace) -> int:
+    from envisat_pose.pipelines.simulate import output_paths, run_simulate as run_pipeline
+
     if not args.out.endswith(".npz"):
         raise InputError(f"--out {args.out!r}: expected a path ending in .npz")
     cfg = resolve_config(args)
-    out, cfg_path, png = output_paths(args.out)
-    check_writable_output(out)
+    check_writable_output(output_paths(args.out)[0])
     if args.rrd:
         from envisat_pose.app.view import check_rrd_output
 
         check_rrd_output(args.rrd)
-    from envisat_pose.datagen.truth import simulate
-
-    traj = simulate(cfg, progress=not args.quiet)
-    traj.save(out)
-    atomic_write_text(cfg_path, "# envisat simulate: the full validated config of this run\n" + to_toml(to_dict(cfg)))
-    print(f"wrote {out} ({len(traj.t_s)} samples over {traj.t_s[-1]:.0f} s), config {cfg_path}")
-    if args.plot:
-        from envisat_pose.analysis.plots import plot_states
-
-        plot_states(traj.t_s, traj.x, png, title=f"ENVISAT truth, scenario {args.scenario!r}, seed {cfg.seed}",
-                    visible=traj.visible)
-        print(f"wrote {png}")
-    if args.rrd:
-        from envisat_pose.analysis.recording import write_truth_recording
-
-        write_truth_recording(args.rrd, traj)
+    res = run_pipeline(cfg, args.out, plot=args.plot, rrd=args.rrd, progress=not args.quiet, label=args.scenario)
+    traj = res["truth"]
+    print(f"wrote {res['truth_file']} ({len(traj.t_s)} samples over {traj.t_s[-1]:.0f} s), config {res['config_toml']}")
+    if res["plot"]:
+        print(f"wrote {res['plot']}")
+    if res["rrd"]:
         print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
     return 0

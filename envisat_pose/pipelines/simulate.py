@@ -1,0 +1,39 @@
+"""The pipeline of `envisat simulate`: the MuJoCo truth of a scenario, written as the design's truth trajectory
+(run.npz) with its config next to it, and optionally a PNG of the 12 states and a Rerun recording."""
+
+from __future__ import annotations
+
+
+def output_paths(out: str) -> tuple[str, str, str]:
+    """run.npz -> (run.npz, run.config.toml, run.png)."""
+    stem = out[:-4] if out.endswith(".npz") else out
+    return out, stem + ".config.toml", stem + ".png"
+
+
+def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, progress: bool = False,
+                 label: str = "") -> dict:
+    """Simulate the truth of cfg (a validated datagen ScenarioConfig) with MuJoCo and write out (the
+    TruthTrajectory contract) and its config; with plot the states' PNG next to out (titled with label, the
+    scenario's name), with rrd a Rerun recording of the truth. The caller checks the output paths first.
+
+    Returns {"truth": the TruthTrajectory, "truth_file": out, "config_toml": its path, "plot": the PNG or None,
+    "rrd": rrd}.
+    """
+    from envisat_pose.config import to_dict, to_toml
+    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.io import atomic_write_text
+
+    out, cfg_path, png = output_paths(out)
+    traj = simulate(cfg, progress=progress)
+    traj.save(out)
+    atomic_write_text(cfg_path, "# envisat simulate: the full validated config of this run\n" + to_toml(to_dict(cfg)))
+    if plot:
+        from envisat_pose.analysis.plots import plot_states
+
+        plot_states(traj.t_s, traj.x, png, title=f"ENVISAT truth, scenario {label!r}, seed {cfg.seed}",
+                    visible=traj.visible)
+    if rrd:
+        from envisat_pose.analysis.recording import write_truth_recording
+
+        write_truth_recording(rrd, traj)
+    return {"truth": traj, "truth_file": out, "config_toml": cfg_path, "plot": png if plot else None, "rrd": rrd}
