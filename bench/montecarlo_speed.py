@@ -70,11 +70,11 @@ class PeakRSS:
 
 def time_campaign(runs: int, duration_s: float, workers: int, block_runs: int, out_dir: str,
                   kernel: str | None = None) -> dict:
-    """Run the campaign once through the app's run_campaign; wall time, memory, summary. kernel: the filter
-    kernel (None: the default, as `envisat montecarlo` runs it)."""
-    from envisat_pose.pipelines.campaign import MonteCarloConfig, run_campaign
+    """Run the campaign once through the pipeline's run_campaign (envisat_pose.pipelines.campaign); wall time,
+    memory, summary. kernel: the filter kernel (None: the default, as `envisat montecarlo` runs it)."""
     from envisat_pose.app.scenarios import job_defaults
     from envisat_pose.config import deep_update, from_dict
+    from envisat_pose.pipelines.campaign import MonteCarloConfig, run_campaign
     from envisat_pose.runner import RunnerConfig, cpu_share
 
     # as `envisat montecarlo --scenario default` builds it: the scenario's [measurement] and [filter] tables
