@@ -337,6 +337,14 @@ class Tracker:
         chaser = self.chaser_at(t_s)
         prior = predict_to(self.state, t_s, self.setup)
         best = int(np.argmax(self.log_w))
+        if not (np.isfinite(prior[0][best]).all() and np.isfinite(prior[1][best]).all()):
+            # a prediction gone non-finite (a long gap through a bad state): the track is lost, acquire again
+            fd = None if image is None else self._detect(image)[0]
+            est = TrackEstimate(t_s, "lost", np.full(N_STATE, np.nan), np.full((N_STATE, N_STATE), np.nan),
+                                np.zeros((0, N_STATE)), np.zeros(0), fd, -1, np.zeros(8, bool), np.zeros(8, bool),
+                                0.0, 0, None, False, ("lost",), {})
+            self.state, self.log_w, self.buffer, self.locked_frames = None, np.zeros(0), [], 0
+            return est
         pos_sig, att_sig = prior_sigmas(prior[1][best])
         converged = bool(pos_sig < self.cfg.converged_pos_sigma_m and att_sig < self.cfg.converged_att_sigma_deg)
         H = self.state.mean.shape[0]
