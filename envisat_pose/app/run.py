@@ -22,6 +22,19 @@ def default_weights_path() -> str:
     return shipped_weights_path()
 
 
+def with_default_weights(data: dict) -> dict:
+    """A config dict with the shipped weights where it names none (the run and track verbs' default)."""
+    if not data.get("weights"):
+        data["weights"] = default_weights_path()
+    return data
+
+
+def check_weights(path: str) -> None:
+    """InputError when the weights file does not exist (before any work)."""
+    if not os.path.isfile(path):
+        raise InputError(f"--weights {path!r}: no such file")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "run",
@@ -92,13 +105,10 @@ def resolve_config(args: argparse.Namespace):
         if "workers" not in data:  # one process per run, at most one per core
             runs = data.get("runs", 1)
             data["workers"] = max(1, min(runs if isinstance(runs, int) else 1, os.cpu_count() or 1))
-        if not data.get("weights"):
-            data["weights"] = default_weights_path()
-        return data
+        return with_default_weights(data)
 
     cfg = resolve_job_config(RunConfig, defaults, args.config, flags, complete)
-    if not os.path.isfile(cfg.weights):
-        raise InputError(f"--weights {cfg.weights!r}: no such file")
+    check_weights(cfg.weights)
     return finish_config(cfg)
 
 

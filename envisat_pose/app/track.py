@@ -4,7 +4,6 @@ folder, a folder of image files, or a video), cold, with no truth; labels, where
 from __future__ import annotations
 
 import argparse
-import os
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -37,7 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def resolve_config(args: argparse.Namespace, scenario: str):
     """Defaults, then the scenario's orbit and gravity-gradient switch, then --config, then the flags."""
-    from envisat_pose.app.run import default_weights_path
+    from envisat_pose.app.run import check_weights, with_default_weights
     from envisat_pose.app.scenarios import job_defaults
     from envisat_pose.config import resolve_job_config
     from envisat_pose.datagen.scenario import scenario_dict
@@ -51,16 +50,8 @@ def resolve_config(args: argparse.Namespace, scenario: str):
                 "filter": {**TRACKER_FILTER, **job_defaults(scenario).get("filter", {})}}
     flags = {"rate_hz": args.rate_hz, "weights": args.weights}
 
-    def complete(data: dict) -> dict:
-        if not data.get("weights"):
-            data["weights"] = default_weights_path()
-        return data
-
-    cfg = resolve_job_config(TrackConfig, defaults, args.config, flags, complete)
-    if not os.path.isfile(cfg.weights):
-        from envisat_pose.config import InputError
-
-        raise InputError(f"--weights {cfg.weights!r}: no such file")
+    cfg = resolve_job_config(TrackConfig, defaults, args.config, flags, with_default_weights)
+    check_weights(cfg.weights)
     return cfg
 
 
