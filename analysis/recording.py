@@ -40,6 +40,7 @@ from envisat_pose.attitude import mrp_to_dcm, mrp_to_quat, rotmat_to_quat
 from envisat_pose.contracts import Estimates, TruthTrajectory
 from envisat_pose.geometry import CORNER_NAMES, EDGES, PinholeCamera, load_camera, load_geometry, model_path
 from envisat_pose.io import atomic_path
+from envisat_pose.state import MRP, POS, RATE, VEL
 
 from .stats import component_errors, display_transform
 
@@ -178,8 +179,8 @@ def _times(t_s: np.ndarray, frames: np.ndarray | None = None) -> list:
 
 def pose_columns(x: np.ndarray):
     """Transform3D columns of T in C from states (T, 12): translation rho_C, rotation R_C_from_T (xyzw)."""
-    q_wxyz = mrp_to_quat(x[:, 6:9])  # R(q) = Gamma(p)^T = R_C_from_T (envisat_pose.attitude)
-    return rr.Transform3D.columns(translation=x[:, 0:3], quaternion=_wxyz_to_xyzw(q_wxyz))
+    q_wxyz = mrp_to_quat(x[:, MRP])  # R(q) = Gamma(p)^T = R_C_from_T (envisat_pose.attitude)
+    return rr.Transform3D.columns(translation=x[:, POS], quaternion=_wxyz_to_xyzw(q_wxyz))
 
 
 def _point_colors(visible: np.ndarray) -> np.ndarray:
@@ -204,7 +205,7 @@ def log_truth_series(rec: rr.RecordingStream, t_s: np.ndarray, x: np.ndarray, co
         positions=corners_px[m] + 0.5,  # OpenCV pixel centres -> Rerun's
         colors=_point_colors(visible)[m], keypoint_ids=np.broadcast_to(np.arange(8), m.shape)[m],
         class_ids=np.full(int(m.sum()), KEYPOINT_CLASS)).partition(m.sum(axis=1)))
-    rec.send_columns("metrics/range_m", idx, rr.Scalars.columns(scalars=np.linalg.norm(x[:, 0:3], axis=1)))
+    rec.send_columns("metrics/range_m", idx, rr.Scalars.columns(scalars=np.linalg.norm(x[:, POS], axis=1)))
     rec.send_columns("metrics/visible_corners", idx, rr.Scalars.columns(scalars=visible.sum(axis=1).astype(float)))
     rec.send_columns("metrics/in_frame_corners", idx, rr.Scalars.columns(scalars=in_frame.sum(axis=1).astype(float)))
 
@@ -213,9 +214,9 @@ def position_ellipsoids(x_hat: np.ndarray, P: np.ndarray, n_sigma: float = 3.0):
     """The n-sigma ellipsoid of the position covariance P[:3, :3] (in C), expressed in the estimated target frame
     (so it can hang under world/target_est): half sizes (T, 3) m and rotations (T, 4) xyzw (ellipsoid -> T_est).
     x_hat (T, 12), P (T, 12, 12)."""
-    w, V = np.linalg.eigh(P[:, 0:3, 0:3])
+    w, V = np.linalg.eigh(P[:, POS, POS])
     V = V * np.where(np.linalg.det(V) < 0, -1.0, 1.0)[:, None, None]  # a proper rotation
-    R_Test_from_ell = mrp_to_dcm(x_hat[:, 6:9]) @ V  # Gamma(p) = R_T_from_C
+    R_Test_from_ell = mrp_to_dcm(x_hat[:, MRP]) @ V  # Gamma(p) = R_T_from_C
     return n_sigma * np.sqrt(np.maximum(w, 0.0)), _wxyz_to_xyzw(rotmat_to_quat(R_Test_from_ell))
 
 
@@ -271,7 +272,7 @@ def estimate_bands(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray):
     err = component_errors(x_true, x_hat)
     var = np.zeros(x_hat.shape[1:])
     for r in range(x_hat.shape[0]):  # one run at a time: A P A^T of every run at once would double P's memory
-        A = display_transform(x_hat[r, :, 6:9])
+        A = display_transform(x_hat[r, :, MRP])
         var += np.einsum("tij,tjk,tik->ti", A, P[r], A)
     filt = 3.0 * np.sqrt(var / x_hat.shape[0])
     samp = 3.0 * err.std(axis=0, ddof=1) if err.shape[0] > 1 else None
@@ -551,9 +552,9 @@ def read_recording(path: str) -> tuple[dict, dict]:
 
 STATUS_NAMES = ("acquiring", "tracking", "lost")  # the tracker's statuses, logged as 0, 1, 2
 AXIS_RGB = ((230, 60, 60), (40, 170, 60), (60, 110, 240))  # x, y, z
-PLOT_BLOCKS = (("position_m", "position error (m)", 0, 1.0), ("velocity_m_s", "velocity error (m/s)", 3, 1.0),
-               ("attitude_deg", "attitude error (deg)", 6, 180.0 / np.pi),
-               ("angular_velocity_deg_s", "angular velocity error (deg/s)", 9, 180.0 / np.pi))
+PLOT_BLOCKS = (("position_m", "position error (m)", POS, 1.0), ("velocity_m_s", "velocity error (m/s)", VEL, 1.0),
+               ("attitude_deg", "attitude error (deg)", MRP, 180.0 / np.pi),
+               ("angular_velocity_deg_s", "angular velocity error (deg/s)", RATE, 180.0 / np.pi))
 NEES_BAND_12 = (4.404, 23.337)  # chi-square 12 dof, 2.5 % and 97.5 %
 
 
@@ -591,7 +592,7 @@ def project_state_px(x: np.ndarray, camera: PinholeCamera) -> np.ndarray:
     """The corners A-H (8, 2) px (OpenCV) of a state (12,) through the camera (core geometry only)."""
     from envisat_pose.geometry import project_K
 
-    corners_C = x[0:3] + load_geometry().corners_T_m @ mrp_to_dcm(x[6:9])  # rho + Gamma^T v
+    corners_C = x[POS] + load_geometry().corners_T_m @ mrp_to_dcm(x[MRP])  # rho + Gamma^T v
     return project_K((corners_C - camera.pos_C_m) @ camera.R_K_from_C.T, camera)
 
 
@@ -684,8 +685,8 @@ class TrackRecorder:
             uv = project_state_px(x, cam)
             rec.log("world/chaser/camera/image/corners_estimated", rr.Points2D(
                 uv + 0.5, keypoint_ids=np.arange(8), class_ids=KEYPOINT_CLASS))
-            rec.log("world/target_est", rr.Transform3D(translation=x[0:3],
-                                                       quaternion=_wxyz_to_xyzw(mrp_to_quat(x[6:9]))))
+            rec.log("world/target_est", rr.Transform3D(translation=x[POS],
+                                                       quaternion=_wxyz_to_xyzw(mrp_to_quat(x[MRP]))))
             half, quat = position_ellipsoids(x[None], P[None])
             rec.log("world/target_est/position_3sigma", rr.Ellipsoids3D(centers=[[0.0, 0.0, 0.0]], half_sizes=half,
                                                                          quaternions=quat))
@@ -697,31 +698,31 @@ class TrackRecorder:
                                                                 half_sizes=[[0.5 * roi[2]] * 2]))
         else:
             rec.log("world/chaser/camera/image/roi", rr.Clear(recursive=False))
-        A = display_transform(x[6:9])
+        A = display_transform(x[MRP])
         sig3 = 3.0 * np.sqrt(np.maximum(np.diagonal(A @ P @ A.T), 0.0))  # statistics' units (attitude rad)
         if x_true is not None:
-            rec.log("world/target", rr.Transform3D(translation=x_true[0:3],
-                                                   quaternion=_wxyz_to_xyzw(mrp_to_quat(x_true[6:9]))))
+            rec.log("world/target", rr.Transform3D(translation=x_true[POS],
+                                                   quaternion=_wxyz_to_xyzw(mrp_to_quat(x_true[MRP]))))
             if corners_true_px is not None:
                 f = np.asarray(in_frame, bool)
                 rec.log("world/chaser/camera/image/corners_true", rr.Points2D(
                     np.asarray(corners_true_px)[f] + 0.5, colors=[VISIBLE_RGB], radii=[1.5]))
         if self.with_truth and x_true is not None and status == 1:
             err = component_errors(x_true, x)
-            for b, _, i0, s in PLOT_BLOCKS:
+            for b, _, block, s in PLOT_BLOCKS:
                 for j, a in enumerate(AXES):
-                    rec.log(f"metrics/error/{b}/{a}", rr.Scalars(float(err[i0 + j] * s)))
-                    rec.log(f"metrics/error/{b}/{a}_3sigma", rr.Scalars([float(sig3[i0 + j] * s),
-                                                                         float(-sig3[i0 + j] * s)]))
+                    rec.log(f"metrics/error/{b}/{a}", rr.Scalars(float(err[block][j] * s)))
+                    rec.log(f"metrics/error/{b}/{a}_3sigma", rr.Scalars([float(sig3[block][j] * s),
+                                                                         float(-sig3[block][j] * s)]))
             e = component_errors(x_true, x)
             Pd = A @ P @ A.T
             rec.log("metrics/nees/value", rr.Scalars(float(e @ np.linalg.solve(Pd, e))))
             rec.log("metrics/nees/band", rr.Scalars(list(NEES_BAND_12)))
         elif not self.with_truth and status == 1:
             for j, a in enumerate(AXES):
-                rec.log(f"metrics/sigma3/position_m/{a}", rr.Scalars(float(sig3[j])))
-                rec.log(f"metrics/sigma3/attitude_deg/{a}", rr.Scalars(float(np.degrees(sig3[6 + j]))))
-            rec.log("metrics/range_est_m", rr.Scalars(float(np.linalg.norm(x[0:3]))))
+                rec.log(f"metrics/sigma3/position_m/{a}", rr.Scalars(float(sig3[POS][j])))
+                rec.log(f"metrics/sigma3/attitude_deg/{a}", rr.Scalars(float(np.degrees(sig3[MRP][j]))))
+            rec.log("metrics/range_est_m", rr.Scalars(float(np.linalg.norm(x[POS]))))
             if est["nis_dof"]:
                 rec.log("metrics/nis", rr.Scalars(float(est["nis"]) / float(est["nis_dof"])))
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm, quat_to_rotmat
 from envisat_pose.config import ConfigError
+from envisat_pose.state import MRP, POS, RATE, VEL
 
 # 8 sign patterns of a box's corners, (8, 3)
 _SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
@@ -103,15 +104,15 @@ def clearance_m(points_T_m: np.ndarray, boxes: TargetBoxes) -> tuple[np.ndarray,
 def chaser_in_T_m(x: np.ndarray) -> np.ndarray:
     """The chaser's position in T, c_T = -Gamma(p) rho, from 12-states (N, 12) -> (N, 3) m."""
     x = np.asarray(x, dtype=float)
-    return -np.einsum("nij,nj->ni", mrp_to_dcm(x[:, 6:9]), x[:, 0:3])
+    return -np.einsum("nij,nj->ni", mrp_to_dcm(x[:, MRP]), x[:, POS])
 
 
 def chaser_speed_in_T_m_s(x: np.ndarray) -> np.ndarray:
     """|d c_T / dt| = |Gamma rho' + w_r x c_T|, m/s, (N, 12) -> (N,): how fast the chaser moves past the target."""
     x = np.asarray(x, dtype=float)
-    G = mrp_to_dcm(x[:, 6:9])
-    c_T = -np.einsum("nij,nj->ni", G, x[:, 0:3])
-    v = np.einsum("nij,nj->ni", G, x[:, 3:6]) + np.cross(x[:, 9:12], c_T)
+    G = mrp_to_dcm(x[:, MRP])
+    c_T = -np.einsum("nij,nj->ni", G, x[:, POS])
+    v = np.einsum("nij,nj->ni", G, x[:, VEL]) + np.cross(x[:, RATE], c_T)
     return np.linalg.norm(v, axis=1)
 
 
@@ -143,11 +144,11 @@ def check_keepout(t_s: np.ndarray, x: np.ndarray, margin_m: float, boxes: Target
     """
     t_s, x = np.asarray(t_s, dtype=float), np.asarray(x, dtype=float)
     dt_s = float(t_s[1] - t_s[0]) if len(t_s) > 1 else 0.0
-    sphere = np.linalg.norm(x[:, 0:3], axis=1) - boxes.reach_m
-    if lower_bound_m(sphere, np.linalg.norm(x[:, 3:6], axis=1), dt_s) >= margin_m:
+    sphere = np.linalg.norm(x[:, POS], axis=1) - boxes.reach_m
+    if lower_bound_m(sphere, np.linalg.norm(x[:, VEL], axis=1), dt_s) >= margin_m:
         return
     d, nearest = clearance_m(chaser_in_T_m(x), boxes)
-    value = value if value is not None else x[0, 0:3].round(6).tolist()
+    value = value if value is not None else x[0, POS].round(6).tolist()
     expect = f"a relative trajectory that keeps the chaser keepout_margin_m = {margin_m:g} m from every part of " \
              "the target (body, boom, solar array)"
     k = int(np.argmax(d < margin_m)) if np.any(d < margin_m) else None

@@ -26,6 +26,7 @@ from envisat_pose.datagen.clearance import (TargetBoxes, clearance_m, farthest_d
 from envisat_pose.config import ConfigError, check, from_dict, to_dict
 from envisat_pose.geometry import load_camera
 from envisat_pose.runner import ResumableJob, RunnerConfig, check_out_dir, cpu_share
+from envisat_pose.state import MRP, POS, RATE, VEL
 
 Severity = Literal["none", "low", "medium", "high", "mixed"]
 MANIFEST_FORMAT = "envisat-pose shards v1"
@@ -504,7 +505,7 @@ def sequence_view(cfg: GenerateConfig, k: int) -> tuple:
         quats, in_frame, texture = sequence_earth(config_json(cfg))
         earth, quat = bool(in_frame[k]), quats[k]
     r_m = float(np.linalg.norm(nadir_C[k]))
-    view = View(xk[0:3], mrp_to_dcm(xk[6:9]).T, None if eclipse[k] else sun_C[k], unit(nadir_C[k]), r_m,
+    view = View(xk[POS], mrp_to_dcm(xk[MRP]).T, None if eclipse[k] else sun_C[k], unit(nadir_C[k]), r_m,
                 earth_backdrop=earth, earth_quat_C=quat, earth_texture=texture)
     scene = {"mode": "sequence", "t_s": float(t_s[k]), "sun_dir_cam": (R_K_FROM_C @ sun_C[k]).round(9).tolist(),
              "eclipse": bool(eclipse[k]), "earth_backdrop": earth}
@@ -520,8 +521,8 @@ def image_motion(out, x: np.ndarray, f_px: float, boxes: TargetBoxes) -> tuple[f
     target about its centre, rho' (in C) moves it; the camera is fixed in C."""
     from envisat_pose.datagen.sensor import image_velocity_px_s
 
-    w_K = out.R_K_from_T @ x[9:12]
-    v_K = R_K_FROM_C @ x[3:6]
+    w_K = out.R_K_from_T @ x[RATE]
+    v_K = R_K_FROM_C @ x[VEL]
     return image_velocity_px_s(boxes.corners_T_m, out.R_K_from_T, out.t_K_from_T_m, w_K, v_K, f_px)
 
 
@@ -605,8 +606,8 @@ def check_sequence_depth(cfg: GenerateConfig) -> None:
     """Sequence mode: ConfigError on depth_scale_m unless 65535 x depth_scale_m covers the farthest target
     point of every frame (from the simulated truth, which also runs the scenario's keep-out check)."""
     _, x, _, _, _ = sequence_frames(config_json(cfg))
-    R_K_from_T = R_K_FROM_C @ np.swapaxes(mrp_to_dcm(x[:, 6:9]), 1, 2)
-    far_m = farthest_depth_m(x[:, 0:3] @ R_K_FROM_C.T, R_K_from_T, project_target_boxes())
+    R_K_from_T = R_K_FROM_C @ np.swapaxes(mrp_to_dcm(x[:, MRP]), 1, 2)
+    far_m = farthest_depth_m(x[:, POS] @ R_K_FROM_C.T, R_K_from_T, project_target_boxes())
     k = int(np.argmax(far_m))
     check(DEPTH_MAX_CODE * cfg.depth_scale_m >= far_m[k], "depth_scale_m", cfg.depth_scale_m,
           f"a scale whose 16-bit range (65535 x scale = {DEPTH_MAX_CODE * cfg.depth_scale_m:.1f} m) covers "

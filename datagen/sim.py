@@ -18,6 +18,7 @@ from envisat_pose.datagen.plugin import PLUGIN_NAME
 from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.attitude import dcm_to_mrp, mrp_to_dcm, quat_to_rotmat, rotmat_to_quat
 from envisat_pose.geometry import model_path
+from envisat_pose.state import MRP, POS, RATE, VEL
 
 CORNER_SITES = tuple(f"corner_{c}" for c in "ABCDEFGH")
 CAMERA_NAME = "chaser_cam"
@@ -72,7 +73,7 @@ class TruthSim:
         orb = chaser_orbit(self.cfg.orbit, np.array([t_s]))
         R_N_C = orb.R_N_from_C[0]
         w_c_C = orb.w_c_C_rad_s[0]
-        rho_C, rhodot_C, p, w_r_T = x[0:3], x[3:6], x[6:9], x[9:12]
+        rho_C, rhodot_C, p, w_r_T = x[POS], x[VEL], x[MRP], x[RATE]
         G = mrp_to_dcm(p)  # R_T_from_C
         d = self.data
         d.time = t_s
