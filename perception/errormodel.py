@@ -19,7 +19,8 @@ autocorrelation rho_k, the mean of n consecutive errors has variance
 as n grows. A filter that takes the errors as white credits n frames with the information n / s^2 about what
 they share (the slowly moving state); they carry n / (s^2 tau). Using R = tau s^2 makes the two agree. For
 AR(1), rho_k = rho^k, so tau = 1 + 2 rho / (1 - rho) = (1 + rho) / (1 - rho). This is the long-memory limit:
-for a filter whose memory is short against the correlation time it is conservative.
+for a filter whose memory is short against the correlation time it is conservative (memory_inflation
+gives the factor for a filter of a given memory, the one the tracker uses).
 
 The detector's errors are not AR(1) (measured on held-out sequences: r_1 ~ 0.5 but r_2 ~ r_1, then a slow
 decay): they are a white part plus a slowly varying part. The model fitted is that sum, white noise of variance
@@ -151,6 +152,29 @@ def fit_white_plus_ar1(r: np.ndarray, pairs: np.ndarray) -> tuple[float, float]:
 def model_inflation(a: float, phi: float) -> float:
     """tau = 1 + 2 a phi / (1 - phi) of rho_k = a phi^k (module doc)."""
     return float(1.0 + 2.0 * a * phi / (1.0 - phi))
+
+
+def memory_inflation(a: float, phi: float, lam: float) -> float:
+    """tau(lambda) = 1 + 2 a phi lambda / (1 - phi lambda): the inflation of R for a filter with memory lambda.
+
+    A filter whose estimate is (near enough) an exponentially weighted average of its frames, weight
+    K lambda^j on the frame j steps back (lambda = 1 - K), holds the variance
+    K^2 s^2 sum_{i,j} lambda^(i+j) rho_|i-j| = s^2 K / (2 - K) [1 + 2 sum_{k>=1} rho_k lambda^k] of errors with
+    autocorrelation rho_k; the bracket is the factor a white-noise filter misses. For rho_k = a phi^k it sums to
+    1 + 2 a phi lambda / (1 - phi lambda): 1 for lambda = 0 (a filter that keeps nothing of the past), the
+    long-memory tau (model_inflation) as lambda -> 1. a, phi per frame interval; lambda in [0, 1]."""
+    x = float(phi) * float(np.clip(lam, 0.0, 1.0))
+    return float(1.0 + 2.0 * a * x / (1.0 - x)) if x < 1.0 else float("inf")
+
+
+def phi_at(phi: float, corr_time_s: float, dt_s: float) -> float:
+    """The AR(1) coefficient at another frame interval dt_s: exp(-dt / corr_time) (0 without a correlation time;
+    phi itself when dt is not positive)."""
+    if corr_time_s <= 0.0:
+        return 0.0
+    if not dt_s > 0.0:
+        return float(phi)
+    return float(np.exp(-dt_s / corr_time_s))
 
 
 def correlation_time(rho: float, dt_s: float) -> float:

@@ -25,9 +25,16 @@ States (TrackEstimate.status):
   the gate rejected every corner for `lost_after_frames` frames with corners found: the bank is discarded and the
   tracker acquires again from the images (no covariance widening).
 
-The filter's R is the detector's calibrated covariance times the error model's inflation for frame-to-frame
-correlation, both measured by `envisat calibrate` and stored in the weights' metadata (`detector.error_model`);
-a detector without one is taken at its covariance (inflation 1).
+The filter's R is the detector's calibrated covariance times an inflation for the errors' frame-to-frame
+correlation, from the error model `envisat calibrate` measured and stored in the weights' metadata
+(`detector.error_model`: white noise plus an AR(1) part of share a and correlation time T). The inflation a
+filter needs depends on how many frames it averages (perception/errormodel.memory_inflation): with the
+`correlation_model` "filter_memory" (default) the tracker reads its memory lambda from its own last update,
+lambda = (det P_post / det P_prior)^(1/6) over position and attitude (1 - K for a scalar filter), and takes
+tau(lambda) = 1 + 2 a phi lambda / (1 - phi lambda) with phi = exp(-dt / T) at the frame interval; the cold
+start's window of n frames uses lambda = (n - 1) / (n + 1), the exponential average of the same effective
+length. "long_memory" takes the limit lambda = 1 (conservative), "white" no inflation. A detector without an
+error model is taken at its covariance.
 """
 
 from __future__ import annotations
@@ -49,6 +56,8 @@ from envisat_pose.pipelines.acquisition import (BatchFit, FramePose, align_namin
 from envisat_pose.state import MRP, N_STATE, POS
 
 STATUSES = ("acquiring", "tracking", "lost")
+CORRELATION_MODELS = ("filter_memory", "long_memory", "white")
+POSE = np.r_[POS, MRP]  # the directions each frame measures: position and attitude
 # the covariance reported while acquiring (no filter yet): position m, velocity m/s, MRP, rate rad/s (1-sigma)
 ACQUIRING_SIGMA = (5.0, 1.0, 0.5, 0.1)
 # the filter settings the tracker starts from (under a scenario's [filter] table and the user's): adaptive R that
@@ -75,6 +84,8 @@ class TrackerConfig:
     there and the coarse pass runs again. converged_pos_sigma_m / converged_att_sigma_deg: the prior counts as
     converged (ROI, attitude prior) below these. prior_attitude: give the detector the predicted attitude.
     lost_after_frames: frames in a row with every corner rejected that declare the track lost.
+    correlation_model: how R allows for the errors' frame-to-frame correlation (module doc): "filter_memory",
+    "long_memory" or "white".
     correct_scale: undo the detector's measured apparent scale (error model's bias_scale) about the corners'
     centroid. Off by default: the scale depends on the look (measured on a held-out default sequence, seed 5:
     range bias +0.6 cm without the correction, +9.3 cm with the shipped 1.0013).
@@ -98,6 +109,7 @@ class TrackerConfig:
     prior_attitude: bool = True
     lost_after_frames: int = 10
     correct_scale: bool = False
+    correlation_model: str = "filter_memory"
 
     def validate(self, prefix: str = "tracker") -> None:
         p = f"{prefix}." if prefix else ""
@@ -118,6 +130,8 @@ class TrackerConfig:
         check(self.converged_att_sigma_deg > 0, f"{p}converged_att_sigma_deg", self.converged_att_sigma_deg,
               "a positive sigma in deg")
         check(self.lost_after_frames >= 1, f"{p}lost_after_frames", self.lost_after_frames, "at least 1 frame")
+        check(self.correlation_model in CORRELATION_MODELS, f"{p}correlation_model", self.correlation_model,
+              f"one of {', '.join(CORRELATION_MODELS)}")
 
 
 @dataclass(frozen=True)
@@ -193,13 +207,34 @@ def select_runs(state: FilterState, idx: np.ndarray) -> FilterState:
     return FilterState(**out)
 
 
-def detector_error_model(detector) -> tuple[float, float]:
-    """(inflation of the detector's covariance for frame-to-frame correlation, apparent scale of its corners)
-    from the detector's error model (`envisat calibrate`); (1, 1) when it has none."""
+def detector_error_model(detector):
+    """The detector's ErrorModel (`envisat calibrate`), or the white default when it has none."""
+    from envisat_pose.perception.errormodel import ErrorModel
+
     em = getattr(detector, "error_model", None)
-    inflation = float(getattr(em, "inflation", 1.0) or 1.0)
-    scale = float(getattr(em, "bias_scale", 1.0) or 1.0)
-    return max(inflation, 1.0), scale
+    return em if isinstance(em, ErrorModel) else ErrorModel()
+
+
+def correlation_inflation(em, model: str, lam: float, dt_s: float) -> float:
+    """The factor on the detector's covariance for the errors' frame-to-frame correlation (module doc): the error
+    model em's white + AR(1) errors at frame interval dt_s (s) for a filter of memory lam in [0, 1]."""
+    from envisat_pose.perception.errormodel import memory_inflation, phi_at
+
+    if model == "white" or em.ar1_share <= 0.0:
+        return 1.0
+    phi = phi_at(em.ar1_phi, em.corr_time_s, dt_s)
+    return max(memory_inflation(em.ar1_share, phi, 1.0 if model == "long_memory" else lam), 1.0)
+
+
+def filter_memory(P_prior: np.ndarray, P_post: np.ndarray) -> float | None:
+    """lambda = (det P_post / det P_prior)^(1/6) over position and attitude: the share of its past a filter keeps
+    after an update (1 - K in one dimension); None where either is not positive definite."""
+    a, b = P_prior[np.ix_(POSE, POSE)], P_post[np.ix_(POSE, POSE)]
+    sa, la = np.linalg.slogdet(a)
+    sb, lb = np.linalg.slogdet(b)
+    if sa <= 0 or sb <= 0:
+        return None
+    return float(np.clip(np.exp((lb - la) / len(POSE)), 0.0, 1.0))
 
 
 def detection_measurement(fd, inflation: float, scale: float) -> tuple[np.ndarray, np.ndarray, float]:
@@ -239,9 +274,11 @@ class Tracker:
         self.dyn = {"J_T": J_T, "mu_m3_s2": mu, "gravity_gradient": gravity_gradient,
                     "max_step_s": self.fcfg.max_rk4_step_s}
         self.corners_T_m = load_geometry().corners_T_m
-        self.inflation, self.bias_scale = detector_error_model(detector)
-        if not config.correct_scale:
-            self.bias_scale = 1.0
+        self.error_model = detector_error_model(detector)
+        self.bias_scale = self.error_model.bias_scale if config.correct_scale else 1.0
+        n = config.acquire_frames
+        self.memory = (n - 1.0) / (n + 1.0)  # the cold start's window, until the filter's first update
+        self.dt_s = 0.0  # the last frame interval, s
         self.state: FilterState | None = None
         self.log_w = np.zeros(0)
         self.buffer: list[FramePose] = []
@@ -263,10 +300,17 @@ class Tracker:
         t_s = float(t_s)
         if self.t_last is not None and not t_s > self.t_last:
             raise ValueError(f"frame times must increase: t = {t_s} s after t = {self.t_last} s")
+        if self.t_last is not None:
+            self.dt_s = t_s - self.t_last
         self.t_last = t_s
         if self.state is None:
             return self._acquire(t_s, image)
         return self._track(t_s, image)
+
+    @property
+    def inflation(self) -> float:
+        """The factor on the detector's covariance this frame (correlation_inflation at the filter's memory)."""
+        return correlation_inflation(self.error_model, self.cfg.correlation_model, self.memory, self.dt_s)
 
     def _detect(self, image, roi=None, R_prior=None):
         t0 = time.perf_counter()
@@ -317,6 +361,12 @@ class Tracker:
         self.buffer = []
         self._start(np.stack([f.x for f in fits]), np.stack([f.P for f in fits]), fits[0].t_s, log_w)
 
+    def _reset(self) -> None:
+        """Back to acquiring: the bank, the window and the memory dropped."""
+        self.state, self.log_w, self.buffer, self.locked_frames = None, np.zeros(0), [], 0
+        n = self.cfg.acquire_frames
+        self.memory = (n - 1.0) / (n + 1.0)
+
     def _start(self, x: np.ndarray, P: np.ndarray, t0: float, log_w: np.ndarray) -> None:
         self.state = init_state(x, P, t0, self.chaser_at(t0), self.fcfg)
         self.log_w = log_w - np.max(log_w)
@@ -349,7 +399,7 @@ class Tracker:
             est = TrackEstimate(t_s, "lost", np.full(N_STATE, np.nan), np.full((N_STATE, N_STATE), np.nan),
                                 np.zeros((0, N_STATE)), np.zeros(0), fd, -1, np.zeros(8, bool), np.zeros(8, bool),
                                 0.0, 0, None, False, ("lost",), {})
-            self.state, self.log_w, self.buffer, self.locked_frames = None, np.zeros(0), [], 0
+            self._reset()
             return est
         pos_sig, att_sig = prior_sigmas(prior[1][best])
         converged = bool(pos_sig < self.cfg.converged_pos_sigma_m and att_sig < self.cfg.converged_att_sigma_deg)
@@ -402,6 +452,9 @@ class Tracker:
         self.log_w -= np.max(self.log_w)
         self.state = new
         b = int(np.argmax(self.log_w))  # the best hypothesis of this frame, before pruning
+        if new.n_meas[b] > 0:
+            lam = filter_memory(prior[1][b], new.cov[b])
+            self.memory = self.memory if lam is None else lam
         found, accepted_none = bool(mask[b].any()), bool(mask[b].any() and new.n_meas[b] == 0)
         self.locked_frames = self.locked_frames + 1 if accepted_none else (0 if found else self.locked_frames)
         lost = bool(new.diverged[b]) or self.locked_frames >= self.cfg.lost_after_frames
@@ -411,7 +464,7 @@ class Tracker:
         if lost:
             events.append("lost")
             est = self._estimate(t_s, events=tuple(events), status="lost", **out)
-            self.state, self.log_w, self.buffer, self.locked_frames = None, np.zeros(0), [], 0
+            self._reset()
             return est
         if H > 1 and self._prune():
             events.append("hypothesis decided")

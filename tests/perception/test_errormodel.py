@@ -106,3 +106,25 @@ def test_error_model_round_trips_through_the_weights(tmp_path):
     with_metadata(str(w), str(bad), {"error_model": json.dumps({"rho_lag1": 1.5})})
     with pytest.raises(WeightsError, match="error_model"):
         load_detector(str(bad))
+
+
+@pytest.mark.parametrize("a, phi, lam", [(1.0, 0.8, 0.9), (0.5, 0.93, 0.7), (0.3, 0.5, 0.0)])
+def test_memory_inflation_matches_a_simulated_exponential_average(a, phi, lam):
+    """tau(lambda) against the variance of an exponentially weighted average of simulated white + AR(1) errors,
+    over the variance of the same average of white errors of the same variance (Monte Carlo, independent)."""
+    rng = np.random.default_rng(3)
+    n, m = 400, 4000  # steps, independent series
+    slow = ar1(rng, phi, (m,), n)
+    err = np.sqrt(a) * slow + np.sqrt(1 - a) * rng.standard_normal((n, m))
+    white = rng.standard_normal((n, m))
+    w = (1 - lam) * lam ** np.arange(n)[::-1]  # the newest frame last
+    ratio = np.var(w @ err) / np.var(w @ white)
+    assert abs(ratio - em.memory_inflation(a, phi, lam)) < 0.08 * em.memory_inflation(a, phi, lam)
+    assert em.memory_inflation(a, phi, 0.0) == 1.0
+    assert em.memory_inflation(a, phi, 1.0) == pytest.approx(em.model_inflation(a, phi))
+
+
+def test_phi_at_another_frame_interval():
+    assert em.phi_at(0.9, -2.0 / np.log(0.9), 2.0) == pytest.approx(0.9)
+    assert em.phi_at(0.9, -2.0 / np.log(0.9), 4.0) == pytest.approx(0.81)
+    assert em.phi_at(0.9, 0.0, 1.0) == 0.0

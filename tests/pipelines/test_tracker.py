@@ -118,6 +118,45 @@ def test_the_tracker_starts_cold_and_converges(truth_600):
     assert 3.0 < m < 30.0, m
 
 
+class CorrelatedTruthDetector(NoisyTruthDetector):
+    """Errors of white noise plus an AR(1) part (share a, coefficient phi per frame, per corner and axis), of
+    total standard deviation sigma_px, with the matching error model (what `envisat calibrate` measures)."""
+
+    def __init__(self, truth, a=0.6, phi=0.93, **kw):
+        from envisat_pose.perception.errormodel import ErrorModel
+
+        super().__init__(truth, **kw)
+        self.a, self.phi, self.slow = a, phi, self.rng.standard_normal((8, 2))
+        self.error_model = ErrorModel(ar1_share=a, ar1_phi=phi, corr_time_s=-1.0 / np.log(phi))
+
+    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None):
+        k = int(image[0, 0]) * 256 + int(image[0, 1])
+        self.slow = self.phi * self.slow + np.sqrt(1 - self.phi**2) * self.rng.standard_normal((8, 2))
+        e = self.sigma * (np.sqrt(self.a) * self.slow + np.sqrt(1 - self.a) * self.rng.standard_normal((8, 2)))
+        vis = self.truth.visible[k] & self.truth.in_frame[k]
+        c = np.where(vis[:, None], self.truth.corners_px[k] + e, np.nan)
+        cov = np.where(vis[:, None, None], np.eye(2) * self.sigma**2, np.nan)
+        return FrameDetection(c, cov, vis * 0.9, vis, c[acq.half_turn()[0]], self.p_alt, False,
+                              np.array([0.0, 0.0, 1024.0]), c[vis])
+
+
+def test_correlated_detector_errors_are_allowed_for_by_the_filters_memory(truth_600):
+    """A detector whose errors are correlated from frame to frame (the measured kind: white plus a slow AR(1)):
+    with R inflated for the filter's own memory the tracker's NEES is consistent; taken as white, it is
+    over-confident by a wide margin (the same frames and errors)."""
+    from envisat_pose.filtering.estimator import nees
+
+    means = {}
+    for model in ("filter_memory", "white"):
+        ests = run_tracker(truth_600, CorrelatedTruthDetector(truth_600, seed=4), range(0, 300),
+                           TrackerConfig(correlation_model=model))
+        assert all(e.status == "tracking" for e in ests[30:])
+        x_hat, P = np.array([e.x_hat for e in ests[60:]]), np.array([e.P for e in ests[60:]])
+        means[model] = nees(truth_600.x[60:300], x_hat, P).mean()
+    assert 4.0 < means["filter_memory"] < 24.0, means
+    assert means["white"] > 2.0 * means["filter_memory"], means
+
+
 def test_black_frames_and_gaps_are_predictions_only(truth_600):
     """A frame with nothing found and a frame with no image keep the track (the filter predicts)."""
     class Blind(NoisyTruthDetector):
