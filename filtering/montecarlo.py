@@ -21,6 +21,7 @@ from envisat_pose.config import check
 from envisat_pose.filtering.measurements import (KINDS, add_noise, corner_cov, limit_markers, outage_mask,
                                                  random_failures)
 from envisat_pose.geometry import PinholeCamera, load_camera
+from envisat_pose.state import draw_initial_estimate
 
 
 @dataclass(frozen=True)
@@ -122,14 +123,13 @@ def make_run_inputs(x0_true: np.ndarray, t_s: np.ndarray, z_true: np.ndarray, ba
     """
     z_true = np.asarray(z_true, dtype=float)
     base = np.asarray(base_mask, dtype=bool) & ~outage_mask(np.asarray(t_s), mcfg.outages_s)[:, None]
-    L0 = np.linalg.cholesky(P0)
     cov = mcfg.corner_cov
     if z_true.shape[-1] != cov.shape[-1]:
         raise ValueError(f"z_true has {z_true.shape[-1]} components per corner; kind {mcfg.kind!r} has {cov.shape[-1]}")
     x0, zs, masks = [], [], []
     for r in range(first_run, first_run + n_runs):
         rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(r,)))
-        x0.append(np.asarray(x0_true, dtype=float) + L0 @ rng.standard_normal(12))
+        x0.append(draw_initial_estimate(x0_true, P0, rng))
         zs.append(add_noise(z_true, cov, rng))
         masks.append(limit_markers(random_failures(base, mcfg.failure_prob, rng), mcfg.max_markers))
     return RunInputs(np.stack(x0), np.stack(zs), np.stack(masks), cov)
