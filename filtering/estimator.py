@@ -28,6 +28,7 @@ from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
 from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
 from envisat_pose.filtering.ukf import SigmaWeights, merwe_weights, predict, shadow_switch, state_residual, update
 from envisat_pose.geometry import PinholeCamera, load_camera
+from envisat_pose.state import nees_window_diverged
 
 
 KERNELS = ("fast", "reference")  # FilterConfig.kernel: filtering/fast.py's kernels, filtering/ukf.py's numpy
@@ -433,19 +434,13 @@ def nees(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray) -> np.ndarray:
 
 def nees_divergence(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, cfg: FilterConfig) -> np.ndarray:
     """Divergence monitor against a known truth: the NEES averaged over a sliding window of
-    cfg.divergence_window steps above cfg.nees_divergence_factor x 12, after the settle steps.
+    cfg.divergence_window steps above cfg.nees_divergence_factor x 12, after the settle steps
+    (envisat_pose.state.nees_window_diverged on this run's NEES).
 
     Estimation errors are strongly correlated in time, so a chi-square bound on a window of NEES values (which
     assumes independent steps) would raise false alarms; the NIS monitor (white innovations) uses one.
 
     x_true broadcastable to x_hat (R, T, 12); P (R, T, 12, 12). Returns (R,) bool.
     """
-    e = nees(x_true, x_hat, P)  # (R, T)
-    W = cfg.divergence_window
-    start = max(cfg.divergence_settle_steps - W + 1, 0)
-    e = e[:, start:]
-    if e.shape[1] < W:
-        return np.zeros(e.shape[0], dtype=bool)
-    c = np.cumsum(np.concatenate([np.zeros((e.shape[0], 1)), e], axis=1), axis=1)
-    window_sums = c[:, W:] - c[:, :-W]
-    return (window_sums > cfg.nees_divergence_factor * 12 * W).any(axis=1) | ~np.isfinite(e).all(axis=1)
+    return nees_window_diverged(nees(x_true, x_hat, P), cfg.divergence_window, cfg.divergence_settle_steps,
+                                cfg.nees_divergence_factor)
