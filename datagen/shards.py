@@ -15,7 +15,7 @@ import tarfile
 import cv2
 import numpy as np
 
-from envisat_pose.io import atomic_path, atomic_write_text, sha256_file
+from envisat_pose.io import atomic_path, sha256_file
 
 MANIFEST = "manifest.json"
 MEMBER_SUFFIXES = ("depth.png", "json", "mask.png", "png")  # sorted: the order inside a sample
@@ -119,20 +119,15 @@ def read_shard(path: str):
             yield key, members
 
 
-def write_manifest(out_dir: str, manifest: dict) -> None:
-    """Write manifest.json atomically (key-sorted, indented)."""
-    atomic_write_text(os.path.join(out_dir, MANIFEST), json.dumps(manifest, sort_keys=True, indent=1) + "\n")
-
-
 def read_manifest(out_dir: str) -> dict | None:
     """The dataset's manifest, or None when there is none. A malformed file raises ValueError."""
-    path = os.path.join(out_dir, MANIFEST)
-    if not os.path.exists(path):
+    manifest_path = os.path.join(out_dir, MANIFEST)
+    if not os.path.exists(manifest_path):
         return None
-    with open(path, encoding="utf-8") as fh:
+    with open(manifest_path, encoding="utf-8") as fh:
         data = json.load(fh)
     if not isinstance(data, dict) or "shards" not in data:
-        raise ValueError(f"{path} is not a dataset manifest")
+        raise ValueError(f"{manifest_path} is not a dataset manifest")
     return data
 
 

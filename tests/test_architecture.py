@@ -28,9 +28,7 @@ EXTRA_FOLDERS = ("bench",)
 # copy: `test_pending_copies_are_still_there` fails once it is gone, so the entry is deleted with the fix.
 PENDING = {
     "state_slices": {},
-    "manifest_writers": {
-        "datagen/shards.py": "write_manifest is unused since the factory runs through runner.ResumableJob",
-    },
+    "manifest_writers": {},
     "hand_resolved_configs": {},
 }
 
