@@ -165,11 +165,6 @@ def check_keepout(t_s: np.ndarray, x: np.ndarray, margin_m: float, boxes: Target
                                             f"{dt_s:g} s: a shorter dt_s resolves it)")
 
 
-def near_plane_clear(points_K_m: np.ndarray, znear_m: float) -> bool:
-    """Whether every point lies beyond the near plane (z_K > znear_m), so none of the target is clipped."""
-    return bool(np.all(np.asarray(points_K_m)[:, 2] > znear_m))
-
-
 def farthest_depth_m(rho_K_m: np.ndarray, R_K_from_T: np.ndarray, boxes: TargetBoxes) -> np.ndarray:
     """Largest depth along the boresight of any target point per view, m. rho_K_m (N, 3), R_K_from_T (N, 3, 3)."""
     z = rho_K_m[:, 2:3] + np.einsum("nj,kj->nk", R_K_from_T[:, 2, :], boxes.corners_T_m)

@@ -139,10 +139,3 @@ class CornerNet(nn.Module):
         x = sampled.permute(0, 2, 1, 3).reshape(b * m, cfg.line_dim, cfg.line_points)
         x = F.max_pool1d(x, cfg.line_pool).flatten(1)
         return self.line_mlp(x).view(b, m)
-
-
-def covariance_from_chol(jchol: torch.Tensor) -> torch.Tensor:
-    """(..., 3) (log l11, log l22, l21) -> (..., 2, 2) covariance L L^T, px^2."""
-    a, b, c = jchol.unbind(-1)
-    l11, l22 = torch.exp(a), torch.exp(b)
-    return torch.stack([torch.stack([l11 * l11, l11 * c], -1), torch.stack([l11 * c, c * c + l22 * l22], -1)], -2)
