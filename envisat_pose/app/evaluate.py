@@ -85,17 +85,6 @@ def read_poses(paths: list[str]) -> dict[str, tuple]:
     return out
 
 
-def _clean_json(x):
-    """NaN and inf as null (strict JSON)."""
-    if isinstance(x, dict):
-        return {k: _clean_json(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean_json(v) for v in x]
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
 def evaluate_frames(detector, ablation, samples, poses: dict, corners_T_m, bar=None, limit: int | None = None,
                     roi=None, refined=None) -> tuple[dict, list[list[str]]]:
     """Run every method on every frame. samples: (key, image, label) as perception.data.read_samples gives them,
@@ -210,7 +199,7 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
 
     from envisat_pose.app.detect import camera_samples, detector_inputs, read_roi
     from envisat_pose.geometry import load_geometry
-    from envisat_pose.io import atomic_write_text, check_writable_output
+    from envisat_pose.io import atomic_write_text, check_writable_output, json_safe
     from envisat_pose.perception.data import shard_paths
     from envisat_pose.perception.detect import DetectConfig, weights_cov_scale, weights_refine_floor
     from envisat_pose.perception.evaluate import corruption_groups
@@ -241,6 +230,6 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
               "roi": args.roi if args.roi else ("labels" if args.roi_labels else None),
               "grouping": corruption_groups.__doc__ + " Levels: perception.evaluate.corruption_levels.",
               "groups": summary}
-    atomic_write_text(args.json, json.dumps(_clean_json(result), indent=1, allow_nan=False) + "\n")
+    atomic_write_text(args.json, json.dumps(json_safe(result), indent=1, allow_nan=False) + "\n")
     print(f"wrote {args.json}: {len(groups)} frames")
     return 0
