@@ -1,7 +1,8 @@
 """Scoring a tracker's runs against a truth (the truth only scores: nothing here feeds back into a run).
 
-A run has converged at the first lit frame from which its position error stays below POS_TOL_M and its attitude
-error below ATT_TOL_DEG on every lit frame to the end of the run (frames in the Earth's shadow carry no image: the
+A run has converged at the first lit frame from which the tracker is tracking (its filter running: the PnP poses
+of the acquisition carry no velocity or rate, however close they come) and its position error stays below
+POS_TOL_M and its attitude error below ATT_TOL_DEG on every lit frame to the end of the run (frames in the Earth's shadow carry no image: the
 filter only predicts through them and they are not held against it); time to converge counts from the first lit
 frame. Over the lit frames after convergence: RMSE per block, mean NEES (12 dof for a consistent filter), the
 range bias (mean of |rho_hat| - |rho|, m).
@@ -17,9 +18,16 @@ POS_TOL_M = 0.10
 ATT_TOL_DEG = 1.0
 
 
-def converged_from(t_s: np.ndarray, pos_err_m: np.ndarray, att_err_deg: np.ndarray) -> float | None:
-    """The time (s) from which both errors (T,) stay below the tolerances to the end; None if never."""
+TRACKING = 1  # the index of "tracking" in the tracker's STATUSES
+
+
+def converged_from(t_s: np.ndarray, pos_err_m: np.ndarray, att_err_deg: np.ndarray,
+                   tracking: np.ndarray | None = None) -> float | None:
+    """The time (s) from which both errors (T,) stay below the tolerances to the end and the tracker is tracking
+    (tracking (T,) bool; None: every frame); None if never."""
     ok = (pos_err_m < POS_TOL_M) & (att_err_deg < ATT_TOL_DEG)
+    if tracking is not None:
+        ok &= np.asarray(tracking, bool)
     if not ok[-1]:
         return None
     bad = np.flatnonzero(~ok)
@@ -69,8 +77,9 @@ def score_frames(t_s: np.ndarray, errors: dict[str, np.ndarray], status: np.ndar
     e_nees, range_err = errors["nees"], errors["range_m"]
     conv_t, sq = [], {b: [] for b in err}
     nees_after, bias_after = [], []
+    tracking = np.asarray(status) == TRACKING
     for r in range(R):
-        tc = converged_from(t_s[lit], err["position_m"][r, lit], err["attitude_deg"][r, lit])
+        tc = converged_from(t_s[lit], err["position_m"][r, lit], err["attitude_deg"][r, lit], tracking[r, lit])
         conv_t.append(tc)
         if tc is None:
             continue
