@@ -76,7 +76,8 @@ def make_label(corners_K_m: np.ndarray, depth_m: np.ndarray, K: np.ndarray, R_K_
     """The shard contract's label of one image (design.md) as plain JSON data.
 
     corners_px (8, 2) OpenCV convention; visible (8,) depth test; in_frame (8,); x (12,) the paper's state;
-    K (3, 3); R_cam_from_target (3, 3), t_cam_from_target_m (3,) in K; depth_scale_m; corruption; seed.
+    K (3, 3); R_cam_from_target (3, 3), t_cam_from_target_m (3,) in K (the label's names for R_K_from_T and
+    t_K_from_T_m, the arguments); depth_scale_m; corruption; seed.
     `scene` (extra) records the sun, eclipse and Earth backdrop of the view.
     """
     n = depth_m.shape[0]

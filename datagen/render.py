@@ -86,7 +86,8 @@ class RenderOutput:
 
     gray_u8: (H, W) uint8 image. depth_m: (H, W) float32 metres along the boresight, 0 on background.
     mask_u8: (H, W) uint8, MASK_VALUES. corners_K_m: (8, 3) corners A-H in the camera frame K, m.
-    R_K_from_T: (3, 3), t_K_from_T_m: (3,) the target pose in K. fovy_deg: the camera's vertical field of view.
+    R_K_from_T: (3, 3), t_K_from_T_m: (3,) the target pose in K (the label's R_cam_from_target, t_cam_from_target_m).
+    fovy_deg: the camera's vertical field of view.
     """
 
     gray_u8: np.ndarray

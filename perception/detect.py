@@ -186,7 +186,8 @@ class Detector:
     def detect(self, image: np.ndarray, K: np.ndarray, roi_px: np.ndarray | None = None,
                prior_R_cam_from_target: np.ndarray | None = None) -> FrameDetection:
         """Named corners of one full frame (H, W) uint8 with intrinsics K (3, 3). roi_px: (x0, y0, side) crop to
-        use instead of the coarse pass; prior_R_cam_from_target: a predicted attitude for the half-turn."""
+        use instead of the coarse pass; prior_R_cam_from_target: a predicted attitude for the half-turn (R_K_from_T,
+        T to the camera frame K)."""
         if image.ndim != 2 or image.dtype != np.uint8:
             raise ValueError(f"expected an 8-bit grayscale frame, got {image.dtype} of shape {image.shape}")
         h, w = image.shape

@@ -1,7 +1,9 @@
 """Name corner candidates A-H by fitting the known box wireframe: PnP with RANSAC over the assignments the box allows.
 
 Plain numpy (and OpenCV) in and out: no torch here. Frames: T the target body frame (geometry.load_geometry),
-camera frame with x right, y down, z along the boresight; pixels in the OpenCV convention.
+camera frame K with x right, y down, z along the boresight; pixels in the OpenCV convention. A pose here is
+(R_cam_from_target, t_cam_from_target_m), named as the shard labels name it: the same rotation and translation
+as datagen's and the pipelines' (R_K_from_T, t_K_from_T_m), T to K.
 
 Hypotheses: a convex quadrilateral of four candidates is one visible face of the box (a box seen from outside
 always shows at least one face whole, but the network may miss one of its corners: three candidates joined at
@@ -330,7 +332,7 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
     (the best max_candidates are used; None: all, in the given order). type_prob: (M, 4) probability of each
     junction type (perception/heatmaps.py: end and side), or (M, 2) of the end only (+x: A-D, -x: E-H). edge_prob: (M, M) line-verification probability that candidates
     i, j are joined by a box edge. image_size: (width, height) px: corners predicted outside are not expected.
-    prior_R_cam_from_target: (3, 3) a predicted attitude that weighs the symmetric namings.
+    prior_R_cam_from_target: (3, 3) a predicted attitude (R_K_from_T) that weighs the symmetric namings.
     Returns the best Naming (with its half-turn alternative) or None when no hypothesis explains 4 candidates.
     """
     g = geometry or load_geometry()
