@@ -14,6 +14,7 @@ import functools
 import json
 import math
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable, Literal
 
@@ -33,6 +34,12 @@ MANIFEST_FORMAT = "envisat-pose shards v1"
 # Camera mount on the chaser, from camera chaser_cam of models/envisat.xml (boresight +y_C, image up +x_C).
 # Rows are the K axes (x right, y down, z boresight) in C.
 R_K_FROM_C = load_camera().R_K_from_C
+# generate_shard finishes sample k (labels, corruption, PNG encoding, tar) on a helper thread while it renders
+# sample k + 1 (see there); False: one after the other on the calling thread (same bytes; for benchmarks).
+FINISH_BESIDE_RENDER = True
+# Random-mode datasets of at least this many images make the Earth textures on a helper thread from the start
+# (SceneRenderer.prefetch_earth_textures): a long run shows every one of them anyway.
+PREFETCH_EARTH_MIN_IMAGES = 32
 # Random mode redraws a view whose camera is too near the target or whose near plane cuts it, at most this often.
 MAX_VIEW_DRAWS = 1000
 
@@ -545,14 +552,21 @@ def render_sample(renderer, cfg: GenerateConfig, view, x: np.ndarray, scene: dic
                   seed: int) -> dict[str, bytes]:
     """Render, label, corrupt (unless storage is 'clean') and encode one sample: {suffix: bytes} per the
     shard contract. `view` carries its look (with_look)."""
+    return finish_sample(renderer.K, renderer.target_boxes, cfg, renderer.render(view), x, scene, rng, seed)
+
+
+def finish_sample(K: np.ndarray, boxes: TargetBoxes, cfg: GenerateConfig, out, x: np.ndarray, scene: dict,
+                  rng: np.random.Generator, seed: int) -> dict[str, bytes]:
+    """Everything of a sample after its render (`out`, a RenderOutput of the renderer whose intrinsics are K
+    and whose target is `boxes`): the corruption draw, the label, the corruption (unless storage is 'clean')
+    and the PNG and JSON encoding. Touches no GL state, so it may run beside the next render."""
     from envisat_pose.datagen.corrupt import apply_corruption
     from envisat_pose.datagen.labels import encode_depth, make_label
     from envisat_pose.datagen.shards import encode_png, label_bytes
 
-    out = renderer.render(view)
-    params = draw_corruption_params(cfg, out, x, renderer.K[0, 0], renderer.target_boxes, rng)
+    params = draw_corruption_params(cfg, out, x, K[0, 0], boxes, rng)
     image = out.gray_u8 if cfg.storage == "clean" else apply_corruption(out.gray_u8, params)
-    label = make_label(out.corners_K_m, out.depth_m, renderer.K, out.R_K_from_T, out.t_K_from_T_m, x,
+    label = make_label(out.corners_K_m, out.depth_m, K, out.R_K_from_T, out.t_K_from_T_m, x,
                        cfg.depth_scale_m, params, seed, scene)
     label["image_stored"] = cfg.storage
     members = {"png": encode_png(image), "json": label_bytes(label)}
@@ -575,9 +589,22 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
     cv2.setNumThreads(1)  # one core per worker; also keeps filters on one code path
     renderer = shared_renderer(cfg.resolution_px, cfg.shadows, cfg.appearance.texture_set_size if cfg.appearance_on
                                else 0, cfg.appearance.texture_seed, cfg.earth_seed)
+    if cfg.mode == "random" and cfg.earth_probability > 0 and cfg.num_images >= PREFETCH_EARTH_MIN_IMAGES:
+        renderer.prefetch_earth_textures()  # a worker's start-up beside its first renders (no-op once made)
     path = os.path.join(out_dir, shard_name(shard_index))
     count = cfg.shard_count(shard_index)
-    with ShardWriter(path) as writer:
+    K, boxes = renderer.K.copy(), renderer.target_boxes
+
+    def finish_and_write(k, out, x, scene, rng, seed):
+        writer.write(sample_key(k), finish_sample(K, boxes, cfg, out, x, scene, rng, seed))
+
+    # Sample k is finished (corruption draw, label, corruption, PNG encoding, tar) on one helper thread while
+    # this thread renders sample k + 1: the render spends most of its time waiting in GL calls that release the
+    # GIL (llvmpipe's rasterizer thread does the work), so the two overlap. One thread, first in first out, and
+    # each sample's own generator: the same bytes in the same order as finishing them one after the other.
+    # The pool closes (its sample written or failed) before the writer publishes or discards the shard.
+    with ShardWriter(path) as writer, ThreadPoolExecutor(1, thread_name_prefix="finish") as finisher:
+        pending = None
         for i in range(count):
             k = shard_index * cfg.shard_size + i
             seed = sample_seed(cfg.seed, shard_index, i)
@@ -588,7 +615,16 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
             else:
                 view, x, scene = sequence_view(cfg, k)
             view, scene = with_look(cfg, view, scene, seed)
-            writer.write(sample_key(k), render_sample(renderer, cfg, view, x, scene, rng, seed))
+            out = renderer.render(view)
+            if pending is not None:
+                pending.result()  # at most one sample in flight; its error surfaces here
+                pending = None
+            if FINISH_BESIDE_RENDER:
+                pending = finisher.submit(finish_and_write, k, out, x, scene, rng, seed)
+            else:
+                finish_and_write(k, out, x, scene, rng, seed)
+        if pending is not None:
+            pending.result()
     return {"index": shard_index, "name": shard_name(shard_index), "count": count, "sha256": sha256_file(path),
             "bytes": os.path.getsize(path)}
 

@@ -257,6 +257,7 @@ class SceneRenderer:
         # the geom's offset changes with its mesh (set_view): MuJoCo must not take it to be the body's frame
         m.geom_sameframe[self.earth_geom] = mujoco.mjtSameFrame.mjSAMEFRAME_NONE.value
         self._earth_uploaded: set[int] = set()  # Earth textures are made and sent at first use
+        self._earth_prefetch: dict[tuple[str, int], object] = {}  # (kind, k): Future of its pixels
         self.target_body = m.body("target").id
         self.sun_id = m.light("sun").id
         self.earthshine_id = m.light("earthshine").id
@@ -322,8 +323,12 @@ class SceneRenderer:
         seeded by earth_seed) and send it to both GL contexts."""
         m = self.model
         t = m.texture(f"{kind}_tex_{k}").id
-        make = earth_texture if kind == "earth" else earth_cap_texture
-        data = make(self.earth_seed, int(m.tex_width[t]), k)
+        fut = self._earth_prefetch.pop((kind, k), None)
+        if fut is not None:
+            data = fut.result()
+        else:
+            make = earth_texture if kind == "earth" else earth_cap_texture
+            data = make(self.earth_seed, int(m.tex_width[t]), k)
         a = int(m.tex_adr[t])
         m.tex_data[a : a + data.size] = data.ravel()
         self._gl.make_current()
@@ -331,6 +336,36 @@ class SceneRenderer:
             mujoco.mjr_uploadTexture(m, con, t)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
         self._earth_uploaded.add((kind, k))
+
+    def prefetch_earth_textures(self) -> None:
+        """Start making every Earth texture not yet sent (their pixels: numpy and scipy, no GL) on a helper
+        thread, in the order (k, globe then cap); the upload at first use (GL, this thread) then takes the made
+        pixels. The pixels are those of the functions called at first use: no byte changes. Hides most of a
+        worker's start-up behind its first renders when the machine has a core to spare; for long runs (it
+        makes textures a short run may never show). A daemon thread: an exit does not wait for it."""
+        import threading
+        from concurrent.futures import Future
+
+        todo = [(kind, k) for k in range(self.earth_texture_set_size) for kind in ("earth", "earth_cap")
+                if (kind, k) not in self._earth_uploaded and (kind, k) not in self._earth_prefetch]
+        if not todo:
+            return
+        m = self.model
+        jobs = []
+        for kind, k in todo:
+            make = earth_texture if kind == "earth" else earth_cap_texture
+            width = int(m.tex_width[m.texture(f"{kind}_tex_{k}").id])
+            self._earth_prefetch[(kind, k)] = fut = Future()
+            jobs.append((fut, make, width, k))
+
+        def run() -> None:
+            for fut, make, width, k in jobs:
+                try:
+                    fut.set_result(make(self.earth_seed, width, k))
+                except BaseException as err:  # surfaces at the upload
+                    fut.set_exception(err)
+
+        threading.Thread(target=run, name="earth-texture", daemon=True).start()
 
     def set_look(self, look: Look | None) -> None:
         """Materials and light intensities of `look` into the model arrays (None: the MJCF's own)."""

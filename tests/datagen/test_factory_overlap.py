@@ -1,0 +1,73 @@
+"""The factory's hot path (issue 18): finishing sample k beside the render of sample k + 1, and making the Earth
+textures on a helper thread, leave every byte as finishing one sample after the other and making textures at
+first use; an error while finishing a sample publishes no shard."""
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+import numpy as np
+import pytest
+
+from envisat_pose.config import from_dict
+from envisat_pose.datagen import factory
+from envisat_pose.datagen.factory import GenerateConfig, run_generate
+
+
+def cfg_of(**kw):
+    base = {"num_images": 8, "shard_size": 4, "resolution_px": 96, "seed": 11, "earth_probability": 0.5}
+    base.update(kw)
+    return from_dict(GenerateConfig, base)
+
+
+def shas(manifest):
+    return [(e["name"], e["sha256"], e["count"]) for e in manifest["shards"]]
+
+
+@pytest.mark.parametrize("kw", [{}, {"storage": "clean"}, {"mode": "sequence", "num_images": 6}])
+def test_overlap_and_prefetch_same_bytes(tmp_path, monkeypatch, kw):
+    cfg = cfg_of(**kw)
+    monkeypatch.setattr(factory, "FINISH_BESIDE_RENDER", False)
+    monkeypatch.setattr(factory, "PREFETCH_EARTH_MIN_IMAGES", 10**9)
+    serial = run_generate(cfg, str(tmp_path / "serial"))
+    monkeypatch.setattr(factory, "FINISH_BESIDE_RENDER", True)
+    monkeypatch.setattr(factory, "PREFETCH_EARTH_MIN_IMAGES", 1)
+    from envisat_pose.datagen import render
+
+    render.close_renderers()  # a fresh renderer: its Earth textures come from the prefetch
+    overlapped = run_generate(cfg, str(tmp_path / "overlapped"))
+    assert shas(serial) == shas(overlapped)
+
+
+def test_error_while_finishing_publishes_no_shard(tmp_path, monkeypatch):
+    calls = {"n": 0}
+    real = factory.finish_sample
+
+    def failing(*args, **kw):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise RuntimeError("boom")
+        return real(*args, **kw)
+
+    monkeypatch.setattr(factory, "finish_sample", failing)
+    out = tmp_path / "ds"
+    with pytest.raises(RuntimeError, match="boom"):
+        run_generate(cfg_of(), str(out))
+    assert not any(p.name.endswith(".tar") for p in out.iterdir())
+
+
+def test_prefetched_texture_equals_first_use():
+    from envisat_pose.datagen.earth import earth_cap_texture
+    from envisat_pose.datagen.render import SceneRenderer
+
+    r = SceneRenderer(64, earth_seed=7)
+    try:
+        r.prefetch_earth_textures()
+        r._upload_earth_texture("earth_cap", 1)
+        m = r.model
+        t = m.texture("earth_cap_tex_1").id
+        a, w = int(m.tex_adr[t]), int(m.tex_width[t])
+        want = earth_cap_texture(7, w, 1)
+        assert np.array_equal(m.tex_data[a : a + want.size], want.ravel())
+    finally:
+        r.close()
