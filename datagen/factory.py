@@ -34,8 +34,8 @@ MANIFEST_FORMAT = "envisat-pose shards v1"
 # Camera mount on the chaser, from camera chaser_cam of models/envisat.xml (boresight +y_C, image up +x_C).
 # Rows are the K axes (x right, y down, z boresight) in C.
 R_K_FROM_C = load_camera().R_K_from_C
-# generate_shard finishes sample k (labels, corruption, PNG encoding, tar) on a helper thread while it renders
-# sample k + 1 (see there); False: one after the other on the calling thread (same bytes; for benchmarks).
+# generate_shard draws views and finishes sample k (labels, corruption, PNG encoding, tar) on a helper thread
+# while it renders sample k + 1 (see there); False: all on the calling thread in turn (same bytes; benchmarks).
 FINISH_BESIDE_RENDER = True
 # Random-mode datasets of at least this many images make the Earth textures on a helper thread from the start
 # (SceneRenderer.prefetch_earth_textures): a long run shows every one of them anyway.
@@ -594,33 +594,45 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
     path = os.path.join(out_dir, shard_name(shard_index))
     count = cfg.shard_count(shard_index)
     K, boxes = renderer.K.copy(), renderer.target_boxes
+    fovy_deg, znear_m = renderer.fovy_deg, renderer.znear_m
+
+    def prepare(i: int) -> tuple:
+        """Sample i's view with its look: (k, seed, rng, view, x, scene); no GL."""
+        k = shard_index * cfg.shard_size + i
+        seed = sample_seed(cfg.seed, shard_index, i)
+        rng = np.random.default_rng(seed)
+        if cfg.mode == "random":
+            view, x, scene = sample_random_view(cfg, fovy_deg, rng, znear_m, boxes)
+        else:
+            view, x, scene = sequence_view(cfg, k)
+        view, scene = with_look(cfg, view, scene, seed)
+        return k, seed, rng, view, x, scene
 
     def finish_and_write(k, out, x, scene, rng, seed):
         writer.write(sample_key(k), finish_sample(K, boxes, cfg, out, x, scene, rng, seed))
 
-    # Sample k is finished (corruption draw, label, corruption, PNG encoding, tar) on one helper thread while
-    # this thread renders sample k + 1: the render spends most of its time waiting in GL calls that release the
-    # GIL (llvmpipe's rasterizer thread does the work), so the two overlap. One thread, first in first out, and
-    # each sample's own generator: the same bytes in the same order as finishing them one after the other.
+    # This thread only renders. One helper thread draws sample k + 1's view and finishes sample k (corruption
+    # draw, label, corruption, PNG encoding, tar) while sample k + 1 renders: the render spends most of its time
+    # waiting in GL calls that release the GIL (llvmpipe's rasterizer thread does the work), so the two overlap.
+    # One thread, first in first out, each sample's own generator used in the same order (its view, then after
+    # its render its corruption draw): the same bytes in the same order as doing it all one after the other.
     # The pool closes (its sample written or failed) before the writer publishes or discards the shard.
-    with ShardWriter(path) as writer, ThreadPoolExecutor(1, thread_name_prefix="finish") as finisher:
+    with ShardWriter(path) as writer, ThreadPoolExecutor(1, thread_name_prefix="finish") as helper:
+        beside = FINISH_BESIDE_RENDER
         pending = None
+        upcoming = helper.submit(prepare, 0) if beside else None
         for i in range(count):
-            k = shard_index * cfg.shard_size + i
-            seed = sample_seed(cfg.seed, shard_index, i)
-            rng = np.random.default_rng(seed)
-            if cfg.mode == "random":
-                view, x, scene = sample_random_view(cfg, renderer.fovy_deg, rng, renderer.znear_m,
-                                                    renderer.target_boxes)
+            if beside:
+                k, seed, rng, view, x, scene = upcoming.result()
+                upcoming = helper.submit(prepare, i + 1) if i + 1 < count else None
             else:
-                view, x, scene = sequence_view(cfg, k)
-            view, scene = with_look(cfg, view, scene, seed)
+                k, seed, rng, view, x, scene = prepare(i)
             out = renderer.render(view)
             if pending is not None:
                 pending.result()  # at most one sample in flight; its error surfaces here
                 pending = None
-            if FINISH_BESIDE_RENDER:
-                pending = finisher.submit(finish_and_write, k, out, x, scene, rng, seed)
+            if beside:
+                pending = helper.submit(finish_and_write, k, out, x, scene, rng, seed)
             else:
                 finish_and_write(k, out, x, scene, rng, seed)
         if pending is not None:
