@@ -345,7 +345,9 @@ def end_to_end(cfg, workers: int) -> tuple[float, float]:
                                 on_shard=lambda e: stamps.append((time.perf_counter(), e["count"])))
         dt = time.perf_counter() - t0
         assert manifest["complete"]
-        if len(stamps) <= workers:  # no shard after each worker's first: no steady state to measure
+        # a steady state needs a shard after each worker's first; with several workers, two rounds of them
+        # (with one round the last shards overlap the first ones and the interval means nothing)
+        if len(stamps) <= workers or (workers > 1 and len(stamps) < 2 * workers + 1):
             return cfg.num_images / dt, None
         t_w = stamps[workers - 1][0]
         n_after = sum(c for _, c in stamps[workers:])
