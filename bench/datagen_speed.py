@@ -18,13 +18,15 @@ the appearance; bytes per image of every dataset.
 Issue 18 floor: appearance on, clean storage, 1 worker >= 1.0 x the two-pass render of the same look. Measured
 in alternating rounds (two-pass render, factory, factory with FINISH_BESIDE_RENDER off) so the machine's load
 drifts alike for all three; the median ratio is the floor's. The factory finishes sample k (labels, PNG, tar)
-on a helper thread while the render of sample k + 1 waits on llvmpipe's rasterizer thread: it uses more CPU
+on a helper thread while the render of sample k + 1 waits on llvmpipe's rasterizer thread (here, LP_NUM_THREADS=1
+and 1 worker on a multi-core machine, factory.spare_core turns it on): it uses more CPU
 than one core's wall time, so the rounds also give CPU ms per image (process time), and one more round runs
 with every thread of the process pinned to one core (the ratio one core gives). Worker start-up: the seconds a
 fresh process takes to import, build its renderer and make every texture a long run uses, one after the other
 (a child process), and as counted in a run: a fresh process generating the floor's images (its wall time less
-those images at the steady rate; Earth textures made beside the first renders from factory.PREFETCH_EARTH_MIN_IMAGES images on); with the
-steady rate, the rate and ratio of a 1000-image run with start-up counted and excluded.
+those images at the steady rate; the Earth textures are made beside the first renders from
+factory.PREFETCH_EARTH_MIN_IMAGES images on, where a core is spare); with the steady rate, the rate and ratio of
+a 1000-image run with start-up counted and excluded.
 Run: .venv/bin/python bench/datagen_speed.py  (writes bench/results/datagen_speed.json)
 """
 
@@ -131,7 +133,7 @@ def floor_rounds(base, cfg, rounds: int) -> dict:
         try:
             r["serial_e2e_img_s"], r["serial_steady_img_s"] = end_to_end(cfg, 1)
         finally:
-            factory.FINISH_BESIDE_RENDER = True
+            factory.FINISH_BESIDE_RENDER = None  # run_generate's choice (factory.spare_core)
         c3 = time.process_time()
         # the render's CPU includes its 3 warm-up views and the renderer's set-up: an upper bound
         r["two_pass_cpu_ms_per_img_upper"] = 1e3 * (c1 - c0) / (base.num_images + 3)

@@ -34,9 +34,12 @@ MANIFEST_FORMAT = "envisat-pose shards v1"
 # Camera mount on the chaser, from camera chaser_cam of models/envisat.xml (boresight +y_C, image up +x_C).
 # Rows are the K axes (x right, y down, z boresight) in C.
 R_K_FROM_C = load_camera().R_K_from_C
-# generate_shard draws views and finishes sample k (labels, corruption, PNG encoding, tar) on a helper thread
-# while it renders sample k + 1 (see there); False: all on the calling thread in turn (same bytes; benchmarks).
-FINISH_BESIDE_RENDER = True
+# generate_shard's helper threads (same bytes either way): one draws views and finishes sample k (labels,
+# corruption, PNG encoding, tar) while the calling thread renders sample k + 1, one makes the Earth textures
+# from the start. They pay only where the worker has a core its rasterizer leaves idle (spare_core); where every
+# core is busy they measured neutral to a few % slower. None: run_generate decides by spare_core; True/False:
+# forced (benchmarks, tests).
+FINISH_BESIDE_RENDER: bool | None = None
 # Random-mode datasets of at least this many images make the Earth textures on a helper thread from the start
 # (SceneRenderer.prefetch_earth_textures): a long run shows every one of them anyway.
 PREFETCH_EARTH_MIN_IMAGES = 32
@@ -577,9 +580,19 @@ def finish_sample(K: np.ndarray, boxes: TargetBoxes, cfg: GenerateConfig, out, x
     return members
 
 
-def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
+def spare_core(workers: int, backend: str = "local", scheduler: str | None = None) -> bool:
+    """Whether each of `workers` workers has a core its renderer leaves idle: LP_NUM_THREADS (llvmpipe's
+    rasterizer threads, set before the run) below the worker's share of this machine's cores. Unset, the run
+    sets it to that share (no core spare); an existing Dask scheduler's machines are unknown (False)."""
+    lp = os.environ.get("LP_NUM_THREADS", "")
+    if scheduler or not lp.isdigit():
+        return False
+    return int(lp) < cpu_share(workers)
+
+
+def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str, beside: bool = False) -> dict:
     """Write shard `shard_index` of the dataset into out_dir (atomically). Returns its manifest entry:
-    index, name, count, sha256, bytes."""
+    index, name, count, sha256, bytes. beside: use the helper threads (FINISH_BESIDE_RENDER; same bytes)."""
     import cv2
 
     from envisat_pose.datagen.render import shared_renderer
@@ -589,7 +602,9 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
     cv2.setNumThreads(1)  # one core per worker; also keeps filters on one code path
     renderer = shared_renderer(cfg.resolution_px, cfg.shadows, cfg.appearance.texture_set_size if cfg.appearance_on
                                else 0, cfg.appearance.texture_seed, cfg.earth_seed)
-    if cfg.mode == "random" and cfg.earth_probability > 0 and cfg.num_images >= PREFETCH_EARTH_MIN_IMAGES:
+    beside = bool(beside if FINISH_BESIDE_RENDER is None else FINISH_BESIDE_RENDER)
+    if (beside and cfg.mode == "random" and cfg.earth_probability > 0
+            and cfg.num_images >= PREFETCH_EARTH_MIN_IMAGES):
         renderer.prefetch_earth_textures()  # a worker's start-up beside its first renders (no-op once made)
     path = os.path.join(out_dir, shard_name(shard_index))
     count = cfg.shard_count(shard_index)
@@ -618,7 +633,6 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
     # its render its corruption draw): the same bytes in the same order as doing it all one after the other.
     # The pool closes (its sample written or failed) before the writer publishes or discards the shard.
     with ShardWriter(path) as writer, ThreadPoolExecutor(1, thread_name_prefix="finish") as helper:
-        beside = FINISH_BESIDE_RENDER
         pending = None
         upcoming = helper.submit(prepare, 0) if beside else None
         for i in range(count):
@@ -641,9 +655,9 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str) -> dict:
             "bytes": os.path.getsize(path)}
 
 
-def shard_task(cfg_json: str, shard_index: int, out_dir: str) -> dict:
+def shard_task(cfg_json: str, shard_index: int, out_dir: str, beside: bool = False) -> dict:
     """generate_shard for workers: the config travels as JSON text."""
-    return generate_shard(config_from_json(cfg_json), shard_index, out_dir)
+    return generate_shard(config_from_json(cfg_json), shard_index, out_dir, beside)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -714,7 +728,8 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
 
     try:
         cfg_text, where = config_json(cfg), os.path.abspath(out_dir)
-        return job.run(shard_task, lambda idx: (cfg_text, idx, where), runner, on_unit)
+        beside = spare_core(workers, backend, scheduler)
+        return job.run(shard_task, lambda idx: (cfg_text, idx, where, beside), runner, on_unit)
     finally:
         if bar is not None:
             bar.close()

@@ -71,3 +71,14 @@ def test_prefetched_texture_equals_first_use():
         assert np.array_equal(m.tex_data[a : a + want.size], want.ravel())
     finally:
         r.close()
+
+
+def test_helpers_only_where_a_core_is_spare(monkeypatch):
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setenv("LP_NUM_THREADS", "1")
+    assert factory.spare_core(1) and not factory.spare_core(2)
+    assert not factory.spare_core(1, "dask", "tcp://127.0.0.1:8786")
+    monkeypatch.setenv("LP_NUM_THREADS", "2")
+    assert not factory.spare_core(1)
+    monkeypatch.delenv("LP_NUM_THREADS")
+    assert not factory.spare_core(1)  # the run sets it to the worker's share
