@@ -4,14 +4,23 @@ the Earth's shadow all along, so it is quick) against a short one, in a fresh pr
 take if held once (closed_loop.record_arrays, ~2 kB a frame: ~40 MiB here; measured 29 MiB: the truth's
 simulation, errors.png's 7200 frames, a few scalars a frame). Before the streaming rewrite a run held them whole,
 the job stacked x_hat and P again and held the truth twice: more than 3.5 kB a frame. The peak resident set is
-printed, not asserted: it grew by ~140 MiB here, outside the traced allocations (native: Rerun, MuJoCo, torch)."""
+printed, not asserted (+0.6 MiB here before the recorder's fix below, +0.0 after).
+
+Lit frames grew the resident set too, ~45-70 MiB per 1000 (bench/memory.py), outside the traced allocations: Rerun's
+file sink keeps ~2 kB per chunk for the .rrd's footer, and the recorder's default batching cut ~23 chunks a frame
+at ~0.1 s a frame. The shadowed frames above are too quick to show it (a few ms each: one chunk per entity for
+~40 frames) and lit ones too slow for a test, so the second test checks the cause: the run's recording is cut into
+chunks of FILE_CHUNK_ROWS frames however slowly they come, and written without a footer."""
 
 import json
 import subprocess
 import sys
 import textwrap
+import time
+from collections import defaultdict
 
 import numpy as np
+import pytest
 
 CHILD = textwrap.dedent("""
     import json, resource, sys, tracemalloc
@@ -73,3 +82,41 @@ def test_a_long_closed_loop_keeps_its_memory_flat(tmp_path):
     with np.load(tmp_path / "long" / "det.npz", allow_pickle=False) as z:
         assert z["skipped"].all() and z["key"][-1] == f"frame-{T - 1:06d}"
     assert not (tmp_path / "long" / "runs").exists()  # the runs' chunk files are removed once streamed
+
+
+def test_the_run_recording_is_cut_in_chunks_of_many_frames_and_has_no_footer(tmp_path):
+    import rerun as rr
+    import rerun_bindings
+
+    from envisat_pose.analysis.recording import FILE_CHUNK_ROWS, TrackRecorder, read_recording
+    from envisat_pose.pipelines.closed_loop import run_camera
+
+    N = 2 * FILE_CHUNK_ROWS + 50
+    rng = np.random.default_rng(0)
+    path = tmp_path / "recording.rrd"
+    rec = TrackRecorder(f"save:{path}", run_camera(64), with_truth=True)
+    x = np.zeros(12)
+    x[:3] = (0.5, 50.0, 0.3)
+    for k in range(N):
+        corners = rng.uniform(20.0, 40.0, (8, 2))
+        est = {"t_s": float(k), "x_hat": x, "P": np.eye(12) * 0.01, "status": 1, "p_best": 0.9, "nis": 3.0,
+               "nis_dof": 10, "corners_px": corners, "visible": np.ones(8, bool), "rejected": np.zeros(8, bool),
+               "roi_px": np.array([10.0, 10.0, 40.0])}
+        rec.log_frame(k, est, rng.integers(0, 255, (64, 64), dtype=np.uint8), x_true=x + 0.01,
+                      corners_true_px=corners, in_frame=np.ones(8, bool))
+        time.sleep(0.01)  # Rerun's default batcher would cut a chunk of every entity every 200 ms: ~20 frames
+    rec.close()
+    assert not rerun_bindings.check_for_rrd_footer(str(path))  # no per-chunk manifest kept in memory for it
+    rows = defaultdict(list)
+    with pytest.warns(Warning, match="footer"):
+        reader = rr.chunk.RrdReader(str(path))
+    for chunk in reader.stream():
+        if not chunk.is_static:
+            rows[chunk.entity_path].append(chunk.num_rows)
+    per_frame = ["/world/chaser/camera/image", "/world/target", "/world/target_est", "/metrics/tracker/status",
+                 "/metrics/error/position_m/x", "/world/chaser/camera/image/corners_detected"]
+    for entity in per_frame:
+        assert sum(rows[entity]) == N, (entity, rows[entity])
+        assert len(rows[entity]) <= -(-N // FILE_CHUNK_ROWS), (entity, rows[entity])
+    _, temporal = read_recording(str(path))  # and read back whole, without a warning
+    assert temporal["/world/chaser/camera/image"]["frame"] == list(range(N))
