@@ -2,19 +2,32 @@
 orbits of the default orbit (period ~6000 s), one run, cold start, each job a fresh `envisat run` process.
 
 Measured per job: the process's peak resident set (getrusage's ru_maxrss of the child, from os.wait4), its increase
-over a short baseline job of the same settings (BASE_S of simulated time: what the process needs whatever the
-run's length: Python, torch, MuJoCo, the detector, Rerun), the job's wall time and frames. Beside it the peer:
-the bytes that holding every frame would take, frames x the per-frame arrays a run records
-(closed_loop.record_arrays, ~2 kB a frame; before the streaming rewrite a run held those whole, returned them
-through the runner and the job stacked them again for est.npz).
+over a short baseline job of the same settings (BASE_FRAMES frames, at any rate: what the process needs whatever
+the run's length: Python, torch, MuJoCo, the detector, Rerun), the job's wall time and frames, and inside the loop the
+process's resident set every --trace-every frames (the child is `envisat run` itself, in-process, with the
+tracker's step wrapped to read /proc/self/statm: Linux): its growth from the first sample to the last, per 1000
+frames and per 1000 lit frames (frames with an image; in the Earth's shadow a frame is only the filter's
+prediction). That in-loop slope is what tells growth apart; fresh processes' peaks differ by tens of MiB (a
+301-frame job peaked 5 MiB below the 21-frame baseline). Beside it the peer: the bytes that holding every frame
+would take, frames x the per-frame arrays a run records (closed_loop.record_arrays, ~2 kB a frame).
 
-At 1 Hz a frame costs ~0.1 s here (128 px; the detector dominates), so 10 orbits is 60000 frames and ~100 min:
---rate-hz takes fewer frames per orbit (the report says what ran), --orbits fewer orbits. Fresh processes differ
-by tens of MiB in peak RSS (a 301-frame job peaked 5 MiB below the 21-frame baseline), and lit frames grow the
-peak by more than the arrays (measured in one process at 128 px: +10 MiB over 600 lit frames with the Rerun
-recording, +0 without it): what grows is outside the run's arrays.
+Found with it (issue 19): the loop grew 45-70 MiB per 1000 lit frames, all in run 0's Rerun recording (in one
+process at 128 px over 800 lit frames: +45 MiB with the recording, +4 without it, +3 with the recorder only
+setting times). Rerun's file sink keeps ~2 kB of metadata per chunk for the .rrd's footer until the file closes,
+and the default batcher cut ~23 chunks a frame (one per entity at every 200 ms flush, at ~0.1 s a frame).
+analysis.recording.TrackRecorder now writes its file in chunks of FILE_CHUNK_ROWS rows without a footer. At 1 Hz,
+--orbits 0.1 0.3, before -> after: the 0.3-orbit loop grew 68.6 -> 5.5 MiB from frame 200 to 1800 (1003 lit), its
+peak over the baseline 146.5 -> 14.5 MiB, its recording 41.3 -> 4.0 MB; what is left is the first ~1000 frames'
+warm-up (a 0.62-orbit job then grew 1.4 MiB over 2600 frames, through the shadow and out of it).
 
-Run: .venv/bin/python bench/memory.py [--orbits 1 3 10] [--rate-hz 1] [--resolution 128]
+At 1 Hz a lit frame costs ~0.09 s here (128 px; the detector dominates; a frame in the shadow ~5 ms; 65 % of the
+default orbit is lit), so 10 orbits is 60068 frames (39046 lit) and the jobs at 1, 3 and 10 orbits take ~80 min:
+--rate-hz takes fewer frames per orbit (the report says what ran; at 0.5 Hz 10 orbits is 30034 frames and the
+three jobs ~40 min), --orbits fewer orbits. Not below 0.5 Hz: at 0.25 and 0.2 Hz the tracker's cold start gates out
+every corner of its window (pipelines/acquisition.batch_fit keeps 0 of 160), starts tracking with P = pinv(0) = 0
+and the job fails on the singular P (the NEES of the recording and of the scores).
+
+Run: .venv/bin/python bench/memory.py [--orbits 1 3 10] [--rate-hz 1] [--resolution 128] [--trace-every 200]
      [--out bench/results/memory.json]
 """
 
@@ -29,36 +42,80 @@ import sys
 import tempfile
 import time
 
+import numpy as np
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-BASE_S = 20.0  # the baseline job's simulated time, s
+BASE_FRAMES = 21  # the baseline job's frames (20 s at 1 Hz)
 
 
-def envisat_exe() -> list[str]:
-    """The `envisat` entry point next to this Python (the venv's), else `python -m envisat_pose.app.cli`."""
-    exe = os.path.join(os.path.dirname(sys.executable), "envisat")
-    return [exe] if os.path.isfile(exe) else [sys.executable, "-m", "envisat_pose.app.cli"]
+# the child: `envisat run` in this Python, Tracker.step wrapped to sample the resident set every
+# BENCH_TRACE_EVERY frames
+CHILD = """
+import json, os, sys
+from envisat_pose.pipelines import tracker
+
+every, rows, n = int(os.environ["BENCH_TRACE_EVERY"]), [], {"frames": 0, "lit": 0}
+page_mib = os.sysconf("SC_PAGE_SIZE") / 2**20
+step = tracker.Tracker.step
 
 
-def run_job(duration_s: float, config: str, out_dir: str) -> dict:
-    """One `envisat run` in its own process: peak RSS (MiB), wall time (s), and its summary's frames/timing."""
-    cmd = envisat_exe() + ["run", "--scenario", "default", "--duration-s", str(duration_s), "--config", config,
-                           "--out", out_dir, "--quiet"]
+def traced(self, t_s, image):
+    out = step(self, t_s, image)
+    n["frames"] += 1
+    n["lit"] += image is not None
+    if n["frames"] % every == 0:
+        with open("/proc/self/statm") as fh:
+            rows.append([n["frames"], n["lit"], int(fh.read().split()[1]) * page_mib])
+    return out
+
+
+tracker.Tracker.step = traced
+from envisat_pose.app.cli import main
+
+rc = main(sys.argv[1:])
+with open(os.environ["BENCH_TRACE"], "w") as fh:
+    json.dump(rows, fh)
+sys.exit(rc)
+"""
+
+
+def run_job(duration_s: float, config: str, out_dir: str, trace_every: int) -> dict:
+    """One `envisat run` in its own process: peak RSS (MiB), wall time (s), its summary's frames/timing, and the
+    loop's RSS trace (frames, lit frames, MiB) every trace_every frames."""
+    trace = out_dir + ".trace.json"
+    cmd = [sys.executable, "-c", CHILD, "run", "--scenario", "default", "--duration-s", str(duration_s),
+           "--config", config, "--out", out_dir, "--quiet"]
+    env = os.environ | {"BENCH_TRACE": trace, "BENCH_TRACE_EVERY": str(trace_every)}
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    err = proc.stderr.read()  # read before waiting: a full pipe would block the child
+    proc.stderr.close()
     _, status, usage = os.wait4(proc.pid, 0)
     wall_s = time.perf_counter() - t0
-    err = proc.stderr.read()
-    proc.stderr.close()
     proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
         raise SystemExit(f"envisat run failed ({proc.returncode}): {err[-2000:]}")
     with open(os.path.join(out_dir, "summary.json")) as fh:
         summary = json.load(fh)
-    return {"duration_s": duration_s, "frames": summary["frames"], "peak_rss_mib": usage.ru_maxrss / 1024,
-            "wall_s": wall_s, "ms_per_frame": 1000 * summary["wall_s"]["loops"] / summary["frames"],
-            "frames_skipped_eclipse": summary["run0"]["frames_skipped_eclipse"],
+    with open(trace) as fh:
+        rss = json.load(fh)
+    skipped = summary["run0"]["frames_skipped_eclipse"]
+    return {"duration_s": duration_s, "frames": summary["frames"], "lit_frames": summary["frames"] - skipped,
+            "peak_rss_mib": usage.ru_maxrss / 1024, "wall_s": wall_s,
+            "ms_per_frame": 1000 * summary["wall_s"]["loops"] / summary["frames"],
+            "frames_skipped_eclipse": skipped, "recording_bytes": summary["recording_bytes"],
             "est_npz_bytes": os.path.getsize(os.path.join(out_dir, "est.npz")),
-            "det_npz_bytes": os.path.getsize(os.path.join(out_dir, "det.npz"))}
+            "det_npz_bytes": os.path.getsize(os.path.join(out_dir, "det.npz"))} | loop_growth(rss) | {"rss_trace": rss}
+
+
+def loop_growth(rss: list) -> dict:
+    """The loop's RSS growth from its first sample (after trace_every frames; the first ~1000 frames still add ~5 MiB
+    of warm-up) to its last: MiB, per 1000 frames and per 1000 lit frames (None with fewer than two samples)."""
+    if len(rss) < 2:
+        return {"loop_growth_mib": None, "loop_mib_per_1000_frames": None, "loop_mib_per_1000_lit_frames": None}
+    (k0, l0, m0), (k1, l1, m1) = rss[0], rss[-1]
+    return {"loop_growth_mib": m1 - m0, "loop_mib_per_1000_frames": 1000 * (m1 - m0) / (k1 - k0),
+            "loop_mib_per_1000_lit_frames": 1000 * (m1 - m0) / (l1 - l0) if l1 > l0 else None}
 
 
 def frame_bytes() -> int:
@@ -73,6 +130,7 @@ def main(argv=None) -> int:
     ap.add_argument("--orbits", type=float, nargs="+", default=[1, 3, 10])
     ap.add_argument("--rate-hz", type=float, default=1.0, help="camera and filter rate (frames per second)")
     ap.add_argument("--resolution", type=int, default=128, help="image side, px")
+    ap.add_argument("--trace-every", type=int, default=200, help="frames between the loop's RSS samples")
     ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "memory.json"))
     args = ap.parse_args(argv)
     from envisat_pose.datagen.scenario import scenario_config
@@ -84,9 +142,11 @@ def main(argv=None) -> int:
         config = os.path.join(tmp, "run.toml")
         with open(config, "w") as fh:
             fh.write(f"rate_hz = {args.rate_hz}\n[image]\nresolution_px = {args.resolution}\n")
-        jobs = [("baseline", BASE_S)] + [(f"{o:g} orbit(s)", o * period_s) for o in args.orbits]
+        jobs = [("baseline", (BASE_FRAMES - 1) / args.rate_hz)]
+        jobs += [(f"{o:g} orbit(s)", o * period_s) for o in args.orbits]
         for name, duration_s in jobs:
-            row = {"job": name} | run_job(duration_s, config, os.path.join(tmp, name.replace(" ", "_")))
+            row = {"job": name} | run_job(duration_s, config, os.path.join(tmp, name.replace(" ", "_")),
+                                         args.trace_every)
             row["every_frame_mib"] = row["frames"] * per_frame / 2**20
             rows.append(row)
             print(f"{name:>12}: {row['frames']:6d} frames, peak RSS {row['peak_rss_mib']:7.1f} MiB, "
@@ -96,13 +156,26 @@ def main(argv=None) -> int:
         row["peak_over_baseline_mib"] = row["peak_rss_mib"] - base
     print(f"\nenvisat run, default scenario, {args.resolution} px, {args.rate_hz:g} Hz, one run, cold start "
           f"(orbit period {period_s:.0f} s; every frame = frames x {per_frame} B of per-frame arrays)")
-    print(f"{'job':>12} {'frames':>7} {'peak RSS MiB':>13} {'over baseline':>14} {'every frame MiB':>16} "
-          f"{'ms/frame':>9} {'wall s':>8}")
+    print(f"{'job':>12} {'frames':>7} {'lit':>6} {'peak RSS MiB':>13} {'over baseline':>14} {'loop growth':>12} "
+          f"{'MiB/1000 lit':>13} {'every frame MiB':>16} {'rrd MB':>7} {'ms/frame':>9} {'wall s':>8}")
+
+    def num(v, fmt):
+        return format("-", f">{fmt.split('.')[0]}") if v is None else format(v, fmt)
+
     for r in rows:
-        print(f"{r['job']:>12} {r['frames']:7d} {r['peak_rss_mib']:13.1f} {r['peak_over_baseline_mib']:14.1f} "
-              f"{r['every_frame_mib']:16.1f} {r['ms_per_frame']:9.1f} {r['wall_s']:8.1f}")
+        print(f"{r['job']:>12} {r['frames']:7d} {r['lit_frames']:6d} {r['peak_rss_mib']:13.1f} "
+              f"{r['peak_over_baseline_mib']:14.1f} {num(r['loop_growth_mib'], '12.1f')} "
+              f"{num(r['loop_mib_per_1000_lit_frames'], '13.2f')} {r['every_frame_mib']:16.1f} "
+              f"{r['recording_bytes'] / 1e6:7.1f} {r['ms_per_frame']:9.1f} {r['wall_s']:8.1f}")
+    long = rows[1:]
+    if len(long) >= 2:  # the peaks' slope over the jobs (fresh processes: tens of MiB of noise each)
+        lit = np.array([r["lit_frames"] for r in long], float)
+        peak = np.array([r["peak_rss_mib"] for r in long])
+        if np.ptp(lit) > 0:
+            slope = float(np.polyfit(lit, peak, 1)[0]) * 1000
+            print(f"peak RSS against lit frames over the {len(long)} jobs: {slope:+.2f} MiB per 1000 lit frames")
     result = {"scenario": "default", "resolution_px": args.resolution, "rate_hz": args.rate_hz,
-              "orbit_period_s": period_s, "per_frame_bytes": per_frame, "jobs": rows,
+              "orbit_period_s": period_s, "per_frame_bytes": per_frame, "trace_every": args.trace_every, "jobs": rows,
               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
               "date": time.strftime("%Y-%m-%d")}
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
