@@ -177,7 +177,8 @@ def _propagate_back(x_end: np.ndarray, t_end: float, times: np.ndarray, chaser_a
 @dataclass(frozen=True)
 class BatchFit:
     """A batch fit of one hypothesis: x (12,) at t_s, P (12, 12), chi2 (whitened residuals' sum of squares of the
-    kept corners), dof (residual components kept minus 12), used (N, 8) bool the corners kept."""
+    kept corners), dof (residual components kept minus 12), used (N, 8) bool the corners kept, rejected: the
+    measured corners the fit's gate dropped."""
 
     t_s: float
     x: np.ndarray
@@ -185,6 +186,14 @@ class BatchFit:
     chi2: float
     dof: int
     used: np.ndarray
+    rejected: int = 0
+
+    @property
+    def valid(self) -> bool:
+        """A fit a filter can start from: more residuals kept than states, a finite positive-definite P."""
+        if self.dof <= 0 or not (np.isfinite(self.x).all() and np.isfinite(self.P).all()):
+            return False
+        return bool(np.linalg.eigvalsh(self.P).min() > 0.0)
 
 
 def batch_fit(frames: list[FramePose], x_guess: np.ndarray, chaser_at, camera: PinholeCamera, dyn: dict,
@@ -253,7 +262,7 @@ def batch_fit(frames: list[FramePose], x_guess: np.ndarray, chaser_at, camera: P
     if dof > 0:
         P = P * max(1.0, chi2 / dof)  # residuals larger than their covariance: the fit is less certain than H says
     P = 0.5 * (P + P.T)
-    return BatchFit(t_end, x, P, chi2, dof, keep)
+    return BatchFit(t_end, x, P, chi2, dof, keep, int(meas.sum() - keep.sum()))
 
 
 def appearance_log_likelihood(frames: list[FramePose], clip: float) -> np.ndarray:

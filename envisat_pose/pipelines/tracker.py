@@ -12,8 +12,10 @@ States (TrackEstimate.status):
 - "acquiring": no filter yet. Each lit frame's named corners give a PnP pose (pipelines/acquisition.py); once
   `acquire_frames` frames with a pose are buffered (a gap longer than `max_gap_s` restarts the buffer), the
   window is aligned to one naming, both half-turn hypotheses are batch-fitted with the filter's dynamics, and a
-  bank of UKFs starts, one run per hypothesis, with the fits' states and covariances and their log weights
-  (fit chi-square and the detector's appearance cues). The estimate while acquiring is the last PnP pose with a
+  bank of UKFs starts, one run per hypothesis whose fit is valid, with the fits' states and covariances and
+  their log weights (fit chi-square, the gate's bound per rejected corner, and the detector's appearance cues);
+  when neither fit is valid (every corner rejected: no covariance to start from) the older half of the window
+  is dropped and acquisition goes on. The estimate while acquiring is the last PnP pose with a
   wide covariance (ACQUIRING_SIGMA).
 - "tracking": each frame the bank predicts; once the best hypothesis' prior is tight the detector looks only in
   the predicted region of interest with the predicted attitude as its half-turn prior. Each hypothesis takes the
@@ -331,8 +333,7 @@ class Tracker:
                     self.buffer = []
                 self.buffer.append(FramePose(t_s, self.chaser_at(t_s), z, cov, p_alt, x_pnp))
                 self.last_pose = x_pnp
-        if len(self.buffer) >= self.cfg.acquire_frames:
-            self._cold_start()
+        if len(self.buffer) >= self.cfg.acquire_frames and self._cold_start():
             events.append("started")
         t_fit = time.perf_counter() - t0
         if self.state is not None:
@@ -346,8 +347,11 @@ class Tracker:
                              0 if measured.any() else -1, measured, np.zeros(8, bool), 0.0, 0, None, False,
                              tuple(events), {"detection": t_det, "filtering": t_fit})
 
-    def _cold_start(self) -> None:
-        """Both half-turn hypotheses fitted over the buffered window; the bank starts at its last frame."""
+    def _cold_start(self) -> bool:
+        """Both half-turn hypotheses fitted over the buffered window; the bank starts at its last frame with the
+        hypotheses whose fit is valid (BatchFit.valid), weighted by their fit cost (chi-square plus the gate's
+        bound per corner the fit rejected, as while tracking) and appearance. When neither fit is valid the older
+        half of the window is dropped and acquisition goes on (False)."""
         frames, _ = align_namings(self.buffer)
         alt = [FramePose(f.t_s, f.chaser, *half_turn_naming(f.z_px, f.cov_px), 1.0 - f.p_alt, half_turn_state(f.x_pnp))
                for f in frames]
@@ -356,10 +360,15 @@ class Tracker:
         for hyp_frames, x_guess in ((frames, guess), (alt, half_turn_state(guess))):
             fits.append(batch_fit(hyp_frames, x_guess, self.chaser_at, self.camera, self.dyn,
                                   self.cfg.fit_iterations, self.cfg.fit_huber, self.cfg.fit_gate))
-        log_w = np.array([-0.5 * f.chi2 for f in fits]) \
+        log_w = np.array([-0.5 * (f.chi2 + self.cfg.fit_gate * f.rejected) for f in fits]) \
             + appearance_log_likelihood(frames, self.cfg.appearance_clip) / self.cfg.appearance_frames
+        ok = np.array([f.valid for f in fits])
+        if not ok.any():
+            self.buffer = self.buffer[len(self.buffer) // 2:]
+            return False
         self.buffer = []
-        self._start(np.stack([f.x for f in fits]), np.stack([f.P for f in fits]), fits[0].t_s, log_w)
+        self._start(np.stack([f.x for f in fits])[ok], np.stack([f.P for f in fits])[ok], fits[0].t_s, log_w[ok])
+        return True
 
     def _reset(self) -> None:
         """Back to acquiring: the bank, the window and the memory dropped."""

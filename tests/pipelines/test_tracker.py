@@ -198,3 +198,27 @@ def test_frame_times_must_increase(truth_600):
     tracker.step(0.0, frame_image(0))
     with pytest.raises(ValueError, match="increase"):
         tracker.step(0.0, frame_image(1))
+
+
+def test_a_failed_cold_start_fit_keeps_acquiring(truth_600, monkeypatch):
+    """A batch fit that rejected every corner (no covariance to start a filter from) starts nothing: the tracker
+    goes on acquiring from the newer half of its window and starts once a fit is valid."""
+    import envisat_pose.pipelines.tracker as trk
+
+    real, calls = trk.batch_fit, []
+
+    def failing_first(frames, *a, **kw):
+        fit = real(frames, *a, **kw)
+        calls.append(len(frames))
+        if len(calls) <= 2:  # both hypotheses of the first window
+            return acq.BatchFit(fit.t_s, fit.x, np.zeros((12, 12)), 0.0, -12, np.zeros_like(fit.used), 160)
+        return fit
+
+    monkeypatch.setattr(trk, "batch_fit", failing_first)
+    ests = run_tracker(truth_600, NoisyTruthDetector(truth_600), range(0, 60))
+    status = [e.status for e in ests]
+    # 20 frames, a failed fit, 10 more (the window refilled from its newer half), then the start
+    assert status[:29] == ["acquiring"] * 29 and status[29] == "tracking", status[:30]
+    assert calls[:2] == [20, 20] and calls[2] == 20
+    assert status[-1] == "tracking" and np.linalg.eigvalsh(ests[-1].P).min() > 0
+    assert not acq.BatchFit(0.0, np.zeros(12), np.zeros((12, 12)), 0.0, -12, np.zeros((2, 8), bool)).valid
