@@ -85,14 +85,14 @@ class RenderOutput:
     """One rendered view.
 
     gray_u8: (H, W) uint8 image. depth_m: (H, W) float32 metres along the boresight, 0 on background.
-    mask_u8: (H, W) uint8, MASK_VALUES. corners_K_m: (8, 3) corners A-H in the camera frame K, m.
+    mask_u8: (H, W) uint8, MASK_VALUES (depth_m and mask_u8 None when rendered without labels). corners_K_m: (8, 3) corners A-H in the camera frame K, m.
     R_K_from_T: (3, 3), t_K_from_T_m: (3,) the target pose in K (the label's R_cam_from_target, t_cam_from_target_m).
     fovy_deg: the camera's vertical field of view.
     """
 
     gray_u8: np.ndarray
-    depth_m: np.ndarray
-    mask_u8: np.ndarray
+    depth_m: np.ndarray | None
+    mask_u8: np.ndarray | None
     corners_K_m: np.ndarray
     R_K_from_T: np.ndarray
     t_K_from_T_m: np.ndarray
@@ -489,8 +489,10 @@ class SceneRenderer:
             pts.append(d.geom_xpos[g] + local @ d.geom_xmat[g].reshape(3, 3).T)
         return (np.concatenate(pts) - cam_W) @ R_K_W.T
 
-    def render(self, view: View) -> RenderOutput:
-        """Render `view`: the lit grayscale image, then depth and segmentation over the target's box."""
+    def render(self, view: View, labels: bool = True) -> RenderOutput:
+        """Render `view`: the lit grayscale image, then depth and segmentation over the target's box. labels
+        False: the lit pass alone (the same image; depth_m and mask_u8 None), for a caller that needs only the
+        image and the pose (the closed loop)."""
         self.set_view(view)
         self._gl.make_current()
         n = self.resolution_px
@@ -500,9 +502,9 @@ class SceneRenderer:
         flags[mujoco.mjtRndFlag.mjRND_ADDITIVE] = True  # the one transparent geom (the Earth) drawn once
         flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows
         R_K_W, cam_W = self.camera_pose()
-        box = projected_bbox_px(self._target_hull_K_m(R_K_W, cam_W), self.K, n, self.znear_m)
-        depth_m = np.zeros((n, n), dtype=np.float32)
-        mask = np.zeros((n, n), dtype=np.uint8)
+        box = projected_bbox_px(self._target_hull_K_m(R_K_W, cam_W), self.K, n, self.znear_m) if labels else None
+        depth_m = np.zeros((n, n), dtype=np.float32) if labels else None
+        mask = np.zeros((n, n), dtype=np.uint8) if labels else None
         # pass 1: the lit image, full frame
         mujoco.mjr_render(self._rect, scn, self._con)
         mujoco.mjr_readPixels(self._rgb, None, self._rect, self._con)

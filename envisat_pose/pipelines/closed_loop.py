@@ -361,7 +361,7 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
                 view = View(x[POS], mrp_to_dcm(x[MRP]).T, sun_C[k], unit(nadir_C[k]),
                             float(np.linalg.norm(nadir_C[k])), earth_backdrop=gcfg.earth_probability > 0)
                 view, _ = with_look(gcfg, view, {}, look_seed)
-                rendered = renderer.render(view)
+                rendered = renderer.render(view, labels=False)  # the image and the pose: no depth or mask
                 t_render = time.perf_counter() - t0
                 t0 = time.perf_counter()
                 frame_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(run, 1, k)))

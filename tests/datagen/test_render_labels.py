@@ -229,6 +229,19 @@ def test_pose_in_camera_frame_matches_state(renderer):
     np.testing.assert_allclose(out.corners_K_m, corners_K, atol=1e-9)
 
 
+def test_the_lit_pass_alone_gives_the_same_image_and_pose(renderer):
+    """render(view, labels=False) (the closed loop's) skips the depth and mask pass only: the same pixels and
+    pose as with labels, whichever came before."""
+    views = random_views(3, seed=11)
+    full = [renderer.render(v) for v in views]
+    lit = [renderer.render(v, labels=False) for v in views[::-1]][::-1]
+    for a, b in zip(full, lit):
+        assert b.depth_m is None and b.mask_u8 is None
+        assert a.gray_u8.tobytes() == b.gray_u8.tobytes() and a.gray_u8.any()
+        np.testing.assert_array_equal(a.R_K_from_T, b.R_K_from_T)
+        np.testing.assert_array_equal(a.t_K_from_T_m, b.t_K_from_T_m)
+
+
 def test_depth_visibility_agrees_with_face_test_and_sees_the_array(renderer):
     agree = total = 0
     for view in random_views(10, seed=11):
