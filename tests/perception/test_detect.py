@@ -104,3 +104,20 @@ def test_refinement_moves_named_corners_back_to_the_image(tmp_path):
     print(moved, np.median(before), np.median(after))
     assert moved >= 8
     assert np.median(after) < 0.75 * np.median(before)  # 1 px off before; fused with the refined corner after
+
+
+def test_the_folded_network_gives_the_models_detections(tiny_dataset):
+    """The inference copy (batch norms folded into their convolutions, channels_last) is what runs, and it names
+    the same corners as the model itself to float rounding (shipped weights, frames of the tiny dataset)."""
+    from envisat_pose.perception.detect import load_detector
+    from envisat_pose.perception.weights import shipped_weights_path
+
+    det = load_detector(shipped_weights_path())
+    assert det._net is not det.model
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in det._net.modules())
+    plain = load_detector(shipped_weights_path())
+    plain._net = plain.model
+    for _, image, label in list(read_samples(shard_paths(tiny_dataset)))[:3]:
+        a, b = det.detect(image, label["K"]), plain.detect(image, label["K"])
+        np.testing.assert_array_equal(a.visible, b.visible)
+        np.testing.assert_allclose(a.corners_px[a.visible], b.corners_px[b.visible], atol=1e-3)
