@@ -23,9 +23,9 @@ warm-up (a 0.62-orbit job then grew 1.4 MiB over 2600 frames, through the shadow
 At 1 Hz a lit frame costs ~0.09 s here (128 px; the detector dominates; a frame in the shadow ~5 ms; 65 % of the
 default orbit is lit), so 10 orbits is 60068 frames (39046 lit) and the jobs at 1, 3 and 10 orbits take ~80 min:
 --rate-hz takes fewer frames per orbit (the report says what ran; at 0.5 Hz 10 orbits is 30034 frames and the
-three jobs ~40 min), --orbits fewer orbits. Not below 0.5 Hz: at 0.25 and 0.2 Hz the tracker's cold start gates out
-every corner of its window (pipelines/acquisition.batch_fit keeps 0 of 160), starts tracking with P = pinv(0) = 0
-and the job fails on the singular P (the NEES of the recording and of the scores).
+three jobs ~40 min), --orbits fewer orbits. (At 0.25 and 0.2 Hz the tracker's cold start once gated out every
+corner of its window and started tracking with a zero covariance; a fit without a positive-definite covariance now
+starts nothing and acquisition goes on: at 0.2 Hz the default scenario converged 95 s after its first frame.)
 
 Run: .venv/bin/python bench/memory.py [--orbits 1 3 10] [--rate-hz 1] [--resolution 128] [--trace-every 200]
      [--out bench/results/memory.json]
