@@ -231,12 +231,13 @@ def correlation_inflation(em, model: str, lam: float, dt_s: float) -> float:
 def filter_memory(P_prior: np.ndarray, P_post: np.ndarray) -> float | None:
     """lambda = (det P_post / det P_prior)^(1/6) over position and attitude: the share of its past a filter keeps
     after an update (1 - K in one dimension); None where either is not positive definite."""
-    a, b = P_prior[np.ix_(POSE, POSE)], P_post[np.ix_(POSE, POSE)]
-    sa, la = np.linalg.slogdet(a)
-    sb, lb = np.linalg.slogdet(b)
-    if sa <= 0 or sb <= 0:
+    try:
+        la = np.linalg.cholesky(P_prior[np.ix_(POSE, POSE)])
+        lb = np.linalg.cholesky(P_post[np.ix_(POSE, POSE)])
+    except np.linalg.LinAlgError:
         return None
-    return float(np.clip(np.exp((lb - la) / len(POSE)), 0.0, 1.0))
+    log_ratio = 2.0 * (np.sum(np.log(np.diag(lb))) - np.sum(np.log(np.diag(la))))  # log det P_post / det P_prior
+    return float(np.clip(np.exp(log_ratio / len(POSE)), 0.0, 1.0)) if np.isfinite(log_ratio) else None
 
 
 def detection_measurement(fd, inflation: float, scale: float) -> tuple[np.ndarray, np.ndarray, float]:

@@ -222,3 +222,18 @@ def test_a_failed_cold_start_fit_keeps_acquiring(truth_600, monkeypatch):
     assert calls[:2] == [20, 20] and calls[2] == 20
     assert status[-1] == "tracking" and np.linalg.eigvalsh(ests[-1].P).min() > 0
     assert not acq.BatchFit(0.0, np.zeros(12), np.zeros((12, 12)), 0.0, -12, np.zeros((2, 8), bool)).valid
+
+
+def test_the_filters_memory_is_the_share_of_its_past_it_keeps():
+    """filter_memory: 1 - K when every measured direction keeps the same share; velocity and rate do not count."""
+    from envisat_pose.pipelines.tracker import filter_memory
+
+    rng = np.random.default_rng(2)
+    A = rng.normal(size=(12, 12))
+    P_prior = A @ A.T + 12 * np.eye(12)
+    P_post = P_prior.copy()
+    pose = np.r_[0:3, 6:9]
+    P_post[np.ix_(pose, pose)] *= 0.3  # 1 - K = 0.3 in every pose direction
+    P_post[3:6, 3:6] *= 0.01  # velocity: not what a frame measures
+    assert filter_memory(P_prior, P_post) == pytest.approx(0.3)
+    assert filter_memory(P_prior, -P_post) is None
