@@ -228,6 +228,12 @@ def correlation_inflation(em, model: str, lam: float, dt_s: float) -> float:
     return max(memory_inflation(em.ar1_share, phi, 1.0 if model == "long_memory" else lam), 1.0)
 
 
+def window_memory(frames: int) -> float:
+    """(n - 1) / (n + 1): the memory of the exponential average as long (in effective frames) as an equal-weight
+    window of n frames, the cold start's before the filter's first update."""
+    return (frames - 1.0) / (frames + 1.0)
+
+
 def filter_memory(P_prior: np.ndarray, P_post: np.ndarray) -> float | None:
     """lambda = (det P_post / det P_prior)^(1/6) over position and attitude: the share of its past a filter keeps
     after an update (1 - K in one dimension); None where either is not positive definite."""
@@ -279,8 +285,7 @@ class Tracker:
         self.corners_T_m = load_geometry().corners_T_m
         self.error_model = detector_error_model(detector)
         self.bias_scale = self.error_model.bias_scale if config.correct_scale else 1.0
-        n = config.acquire_frames
-        self.memory = (n - 1.0) / (n + 1.0)  # the cold start's window, until the filter's first update
+        self.memory = window_memory(config.acquire_frames)  # until the filter's first update
         self.dt_s = 0.0  # the last frame interval, s
         self.state: FilterState | None = None
         self.log_w = np.zeros(0)
@@ -374,8 +379,7 @@ class Tracker:
     def _reset(self) -> None:
         """Back to acquiring: the bank, the window and the memory dropped."""
         self.state, self.log_w, self.buffer, self.locked_frames = None, np.zeros(0), [], 0
-        n = self.cfg.acquire_frames
-        self.memory = (n - 1.0) / (n + 1.0)
+        self.memory = window_memory(self.cfg.acquire_frames)
 
     def _start(self, x: np.ndarray, P: np.ndarray, t0: float, log_w: np.ndarray) -> None:
         self.state = init_state(x, P, t0, self.chaser_at(t0), self.fcfg)
