@@ -17,9 +17,10 @@ the appearance; bytes per image of every dataset.
 
 Issue 18 floor: appearance on, clean storage, 1 worker >= 1.0 x the two-pass render of the same look. Measured
 in alternating rounds (two-pass render, factory, factory with FINISH_BESIDE_RENDER off) so the machine's load
-drifts alike for all three; the median ratio is the floor's. The factory finishes sample k (labels, PNG, tar)
-on a helper thread while the render of sample k + 1 waits on llvmpipe's rasterizer thread (here, LP_NUM_THREADS=1
-and 1 worker on a multi-core machine, factory.spare_core turns it on): it uses more CPU
+drifts alike for all three; the median ratio is the floor's. The floor's factory runs BENCH_FLOOR_IMAGES (200) in
+shards of the default size (100), as a user's run does. The factory finishes sample k (the passes' pixel work,
+labels, PNG, tar) on a helper thread while the GL passes of sample k + 1 wait on llvmpipe's rasterizer thread
+(here, LP_NUM_THREADS=1 and 1 worker on a multi-core machine, factory.spare_core turns it on): it uses more CPU
 than one core's wall time, so the rounds also give CPU ms per image (process time), and one more round runs
 with every thread of the process pinned to one core (the ratio one core gives). Worker start-up: the seconds a
 fresh process takes to import, build its renderer and make every texture a long run uses, one after the other
@@ -172,7 +173,7 @@ def worker_startup_s() -> float:
     return time.perf_counter() - t0
 
 
-def fresh_process_s(n: int) -> float:
+def fresh_process_s(n: int, shard_size: int = SHARD_SIZE) -> float:
     """Wall seconds of a fresh process that imports the factory and runs run_generate (1 worker, appearance
     on, clean, 1024 px, n images), from its launch to its exit: the worker's start-up counted."""
     import subprocess
@@ -182,7 +183,8 @@ def fresh_process_s(n: int) -> float:
             f"sys.path.insert(0, {os.path.dirname(os.path.abspath(__file__))!r})\n"
             "from datagen_speed import bench_config\n"
             "from envisat_pose.datagen.factory import run_generate\n"
-            f"cfg = bench_config(1024, {n}, storage='clean', appearance={{'enabled': True}}, appendages=True)\n"
+            f"cfg = bench_config(1024, {n}, storage='clean', appearance={{'enabled': True}}, appendages=True, "
+            f"shard_size={shard_size})\n"
             "out = tempfile.mkdtemp()\n"
             "run_generate(cfg, os.path.join(out, 'ds'))\n"
             "shutil.rmtree(out)\n")
@@ -198,16 +200,26 @@ def issue9() -> dict:
     res = 1024
     out = {"images": n, "resolution_px": res, "load_avg_start": os.getloadavg()}
     base = bench_config(res, n)
-    on_clean = bench_config(res, n, storage="clean", appearance={"enabled": True}, appendages=True)
-    end_to_end(on_clean, 1)  # this process's renderer, its textures and imports made once, outside the rounds
-    print("issue-18 floor (appearance on, clean, 1 worker, 1024 px):", flush=True)
-    out["floor_issue18"] = floor = floor_rounds(base, on_clean, rounds)
+    # the floor at the user's default shard size, over enough images for a steady state after the first shard
+    from envisat_pose.datagen.factory import GenerateConfig
+
+    nf = int(os.environ.get("BENCH_FLOOR_IMAGES", "200"))
+    floor_shard = GenerateConfig().shard_size
+    out["floor_images"], out["floor_shard_size"] = nf, floor_shard
+    base_floor = bench_config(res, nf, shard_size=floor_shard)
+    on_clean = bench_config(res, nf, storage="clean", appearance={"enabled": True}, appendages=True,
+                            shard_size=floor_shard)
+    end_to_end(bench_config(res, 16, storage="clean", appearance={"enabled": True}, appendages=True), 1)  # this
+    # process's renderer, its textures and imports made once, outside the rounds
+    print(f"issue-18 floor (appearance on, clean, 1 worker, 1024 px, {nf} images in shards of {floor_shard}):",
+          flush=True)
+    out["floor_issue18"] = floor = floor_rounds(base_floor, on_clean, rounds)
     out["worker_startup_serial_s"] = worker_startup_s()
-    fresh = fresh_process_s(n)
+    fresh = fresh_process_s(nf, floor_shard)
     steady_1w = steady = statistics.median([r["factory_steady_img_s"] for r in floor["rounds"]])
     # start-up as it costs in a run: the fresh process's wall time beyond its images at the steady rate
-    out["fresh_process_e2e_img_s"] = n / fresh
-    out["worker_startup_counted_s"] = startup = max(0.0, fresh - n / steady)
+    out["fresh_process_e2e_img_s"] = nf / fresh
+    out["worker_startup_counted_s"] = startup = max(0.0, fresh - nf / steady)
     out["long_run_1000_img_s_startup_counted"] = 1000.0 / (startup + 1000.0 / steady)
     out["long_run_1000_img_s_startup_excluded"] = steady
     peer = statistics.median([r["two_pass_img_s"] for r in floor["rounds"]])
@@ -242,7 +254,7 @@ def issue9() -> dict:
           f"{floor['one_core']['ratio']:.2f}x, serial {floor['one_core']['ratio_serial']:.2f}x); floor 1.0x "
           f"{'met' if out['floor_1_0x_same_look_met'] else 'NOT met'}")
     print(f"worker start-up: {out['worker_startup_serial_s']:.1f} s made one after the other, {startup:.1f} s as "
-          f"counted in a fresh {n}-image run ({out['fresh_process_e2e_img_s']:.2f} img/s); 1000 images at the "
+          f"counted in a fresh {nf}-image run ({out['fresh_process_e2e_img_s']:.2f} img/s); 1000 images at the "
           f"steady {steady_1w:.2f} img/s: {out['long_run_1000_img_s_startup_counted']:.2f} img/s with start-up counted "
           f"({out['long_run_1000_ratio_startup_counted']:.2f}x the render), "
           f"{out['long_run_1000_ratio_startup_excluded']:.2f}x excluded")

@@ -10,10 +10,13 @@ resumes where it stopped.
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import functools
 import json
 import math
 import os
+import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable, Literal
@@ -40,6 +43,12 @@ R_K_FROM_C = load_camera().R_K_from_C
 # core is busy they measured neutral to a few % slower. None: run_generate decides by spare_core; True/False:
 # forced (benchmarks, tests).
 FINISH_BESIDE_RENDER: bool | None = None
+# While the helper thread runs, the interpreter's GIL switch interval (s). The render thread gives up the GIL in
+# every MuJoCo/GL call and must win it back from the helper; at Python's default 5 ms each call can wait that
+# long (measured at 1024 px: a busy Python thread beside the render doubled its time at 5 ms, none at 50 us).
+GIL_SWITCH_INTERVAL_S = 5e-5
+# Rendered samples that may wait for the finishing thread (each holds its read-back passes, ~4 MB at 1024 px).
+FINISH_QUEUE = 2
 # Random-mode datasets of at least this many images make the Earth textures on a helper thread from the start
 # (SceneRenderer.prefetch_earth_textures): a long run shows every one of them anyway.
 PREFETCH_EARTH_MIN_IMAGES = 32
@@ -580,6 +589,17 @@ def finish_sample(K: np.ndarray, boxes: TargetBoxes, cfg: GenerateConfig, out, x
     return members
 
 
+@contextlib.contextmanager
+def gil_switch_interval(interval_s: float):
+    """Set the interpreter's GIL switch interval (s) inside the block, restore it after."""
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(interval_s)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(before)
+
+
 def spare_core(workers: int, backend: str = "local", scheduler: str | None = None) -> bool:
     """Whether each of `workers` workers has a core its renderer leaves idle: LP_NUM_THREADS (llvmpipe's
     rasterizer threads, set before the run) below the worker's share of this machine's cores. Unset, the run
@@ -626,31 +646,39 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str, beside: 
     def finish_and_write(k, out, x, scene, rng, seed):
         writer.write(sample_key(k), finish_sample(K, boxes, cfg, out, x, scene, rng, seed))
 
-    # This thread only renders. One helper thread draws sample k + 1's view and finishes sample k (corruption
-    # draw, label, corruption, PNG encoding, tar) while sample k + 1 renders: the render spends most of its time
-    # waiting in GL calls that release the GIL (llvmpipe's rasterizer thread does the work), so the two overlap.
-    # One thread, first in first out, each sample's own generator used in the same order (its view, then after
-    # its render its corruption draw): the same bytes in the same order as doing it all one after the other.
-    # The pool closes (its sample written or failed) before the writer publishes or discards the shard.
-    with ShardWriter(path) as writer, ThreadPoolExecutor(1, thread_name_prefix="finish") as helper:
-        pending = None
-        upcoming = helper.submit(prepare, 0) if beside else None
-        for i in range(count):
-            if beside:
-                k, seed, rng, view, x, scene = upcoming.result()
-                upcoming = helper.submit(prepare, i + 1) if i + 1 < count else None
-            else:
+    def decode_finish_and_write(k, passes, x, scene, rng, seed):
+        finish_and_write(k, renderer.decode(passes), x, scene, rng, seed)
+
+    if not beside:
+        with ShardWriter(path) as writer:
+            for i in range(count):
                 k, seed, rng, view, x, scene = prepare(i)
-            out = renderer.render(view)
-            if pending is not None:
-                pending.result()  # at most one sample in flight; its error surfaces here
-                pending = None
-            if beside:
-                pending = helper.submit(finish_and_write, k, out, x, scene, rng, seed)
-            else:
-                finish_and_write(k, out, x, scene, rng, seed)
-        if pending is not None:
-            pending.result()
+                finish_and_write(k, renderer.render(view), x, scene, rng, seed)
+    else:
+        # This thread only renders (the GL passes). One helper thread draws the next samples' views; another
+        # finishes the rendered ones (the passes' pixel work, corruption draw, label, corruption, PNG encoding,
+        # tar) while the next render runs: the render spends most of its time waiting in GL calls that release
+        # the GIL (llvmpipe's rasterizer thread does the work), so they overlap. Up to FINISH_QUEUE samples wait
+        # to be finished, so a slow finish (a tar flush, another process) does not stall the render. Each
+        # sample's own generator is used in the same order (its view, then after its render its corruption draw)
+        # and one finishing thread writes first in first out: the same bytes in the same order as doing it all
+        # one after the other. The pools close (every sample written or failed) before the writer publishes or
+        # discards the shard.
+        with gil_switch_interval(GIL_SWITCH_INTERVAL_S), ShardWriter(path) as writer, \
+                ThreadPoolExecutor(1, thread_name_prefix="finish") as finisher, \
+                ThreadPoolExecutor(1, thread_name_prefix="prepare") as preparer:
+            upcoming = preparer.submit(prepare, 0)
+            pending: collections.deque = collections.deque()
+            for i in range(count):
+                k, seed, rng, view, x, scene = upcoming.result()
+                if i + 1 < count:
+                    upcoming = preparer.submit(prepare, i + 1)
+                passes = renderer.render_passes(view)
+                pending.append(finisher.submit(decode_finish_and_write, k, passes, x, scene, rng, seed))
+                while len(pending) > FINISH_QUEUE:
+                    pending.popleft().result()  # its error surfaces here
+            while pending:
+                pending.popleft().result()
     return {"index": shard_index, "name": shard_name(shard_index), "count": count, "sha256": sha256_file(path),
             "bytes": os.path.getsize(path)}
 

@@ -99,6 +99,27 @@ class RenderOutput:
     fovy_deg: float
 
 
+@dataclass
+class RenderPasses:
+    """What the GL passes of one view read back, before any pixel work (SceneRenderer.decode makes the
+    RenderOutput of it; touching no GL state, that may run on another thread).
+
+    rgb_u8: (H, W, 3) the lit pass, rows bottom-up. box: (u0, v0, u1, v1) px of the segmentation and depth pass
+    (None: rendered without labels). ids_rgb_u8: (h, w, 3) its segmentation colours and depth_raw: (h, w) float32
+    its depth-buffer values, rows bottom-up. slot_value: (n,) uint8 the mask value of each segmentation colour
+    (scene slot + 1). corners_K_m, R_K_from_T, t_K_from_T_m: as in RenderOutput.
+    """
+
+    rgb_u8: np.ndarray
+    box: tuple[int, int, int, int] | None
+    ids_rgb_u8: np.ndarray | None
+    depth_raw: np.ndarray | None
+    slot_value: np.ndarray | None
+    corners_K_m: np.ndarray
+    R_K_from_T: np.ndarray
+    t_K_from_T_m: np.ndarray
+
+
 def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_set_size: int = 0,
                      earth_texture_set_size: int = EARTH_TEXTURE_SET_SIZE) -> str:
     """The project's MJCF prepared for rendering at `resolution_px`: a large enough off-screen buffer, a fixed
@@ -492,7 +513,12 @@ class SceneRenderer:
     def render(self, view: View, labels: bool = True) -> RenderOutput:
         """Render `view`: the lit grayscale image, then depth and segmentation over the target's box. labels
         False: the lit pass alone (the same image; depth_m and mask_u8 None), for a caller that needs only the
-        image and the pose (the closed loop)."""
+        image and the pose (the closed loop). render = decode(render_passes(...))."""
+        return self.decode(self.render_passes(view, labels))
+
+    def render_passes(self, view: View, labels: bool = True) -> RenderPasses:
+        """The GL part of render: both passes of `view`, read back into fresh arrays (a caller may decode them
+        beside the next view's passes)."""
         self.set_view(view)
         self._gl.make_current()
         n = self.resolution_px
@@ -503,12 +529,11 @@ class SceneRenderer:
         flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows
         R_K_W, cam_W = self.camera_pose()
         box = projected_bbox_px(self._target_hull_K_m(R_K_W, cam_W), self.K, n, self.znear_m) if labels else None
-        depth_m = np.zeros((n, n), dtype=np.float32) if labels else None
-        mask = np.zeros((n, n), dtype=np.uint8) if labels else None
         # pass 1: the lit image, full frame
+        rgb = np.empty((n, n, 3), dtype=np.uint8)
         mujoco.mjr_render(self._rect, scn, self._con)
-        mujoco.mjr_readPixels(self._rgb, None, self._rect, self._con)
-        gray = cv2.flip(cv2.cvtColor(self._rgb, cv2.COLOR_RGB2GRAY), 0)  # GL rows run bottom-up
+        mujoco.mjr_readPixels(rgb, None, self._rect, self._con)
+        raw = ids_rgb = slot_value = None
         if box is not None:
             u0, v0, u1, v1 = box
             # pass 2: flat segmentation colours (one id per geom) and depth of the target's box only: the
@@ -539,29 +564,37 @@ class SceneRenderer:
                 g = scn.geoms[k]
                 if g.objtype == mujoco.mjtObj.mjOBJ_GEOM and g.segid >= 0:
                     slot_value[g.segid + 1] = self.mask_lut[g.objid + 1]
-            if scn.ngeom < 255:  # ids fit the red channel
-                crop_mask = slot_value[ids_rgb[..., 0]]
-            else:
-                seg = ids_rgb.astype(np.int32)
-                crop_mask = slot_value[np.clip(seg[..., 0] + (seg[..., 1] << 8) + (seg[..., 2] << 16), 0, scn.ngeom)]
-            crop_mask = crop_mask[::-1]  # GL rows run bottom-up
-            fg = crop_mask > 0
-            crop_depth = np.zeros(raw.shape, dtype=np.float32)
-            crop_depth[fg] = depth_from_buffer(raw[::-1][fg], self.znear_m, self.zfar_m)
-            mask[v0 : v1 + 1, u0 : u1 + 1] = crop_mask
-            depth_m[v0 : v1 + 1, u0 : u1 + 1] = crop_depth
         d = self.data
         corners_W = d.site_xpos[self.corner_sites]
         R_W_T = d.xmat[self.target_body].reshape(3, 3)
-        return RenderOutput(
-            gray_u8=gray,
-            depth_m=depth_m,
-            mask_u8=mask,
-            corners_K_m=(corners_W - cam_W) @ R_K_W.T,
-            R_K_from_T=R_K_W @ R_W_T,
-            t_K_from_T_m=R_K_W @ (d.xpos[self.target_body] - cam_W),
-            fovy_deg=self.fovy_deg,
-        )
+        return RenderPasses(rgb, box, ids_rgb, raw, slot_value, (corners_W - cam_W) @ R_K_W.T, R_K_W @ R_W_T,
+                            R_K_W @ (d.xpos[self.target_body] - cam_W))
+
+    def decode(self, p: RenderPasses) -> RenderOutput:
+        """The pixel work of render: gray image, mask and depth of read-back passes (numpy and OpenCV only; no
+        GL state, so it may run beside the next render_passes)."""
+        n = self.resolution_px
+        gray = cv2.flip(cv2.cvtColor(p.rgb_u8, cv2.COLOR_RGB2GRAY), 0)  # GL rows run bottom-up
+        depth_m = mask = None
+        if p.box is not None:
+            u0, v0, u1, v1 = p.box
+            depth_m = np.zeros((n, n), dtype=np.float32)
+            mask = np.zeros((n, n), dtype=np.uint8)
+            ids_rgb = p.ids_rgb_u8
+            if len(p.slot_value) <= 256:  # ids fit the red channel
+                crop_mask = p.slot_value[ids_rgb[..., 0]]
+            else:
+                seg = ids_rgb.astype(np.int32)
+                crop_mask = p.slot_value[np.clip(seg[..., 0] + (seg[..., 1] << 8) + (seg[..., 2] << 16), 0,
+                                                 len(p.slot_value) - 1)]
+            crop_mask = crop_mask[::-1]  # GL rows run bottom-up
+            fg = crop_mask > 0
+            crop_depth = np.zeros(p.depth_raw.shape, dtype=np.float32)
+            crop_depth[fg] = depth_from_buffer(p.depth_raw[::-1][fg], self.znear_m, self.zfar_m)
+            mask[v0 : v1 + 1, u0 : u1 + 1] = crop_mask
+            depth_m[v0 : v1 + 1, u0 : u1 + 1] = crop_depth
+        return RenderOutput(gray_u8=gray, depth_m=depth_m, mask_u8=mask, corners_K_m=p.corners_K_m,
+                            R_K_from_T=p.R_K_from_T, t_K_from_T_m=p.t_K_from_T_m, fovy_deg=self.fovy_deg)
 
     def render_rgb_only(self, view: View) -> np.ndarray:
         """The lit pass alone, read back as RGB (H, W, 3): the raw render the benchmark compares against."""

@@ -82,3 +82,12 @@ def test_helpers_only_where_a_core_is_spare(monkeypatch):
     assert not factory.spare_core(1)
     monkeypatch.delenv("LP_NUM_THREADS")
     assert not factory.spare_core(1)  # the run sets it to the worker's share
+
+
+def test_gil_switch_interval_restored(tmp_path, monkeypatch):
+    import sys
+
+    before = sys.getswitchinterval()
+    monkeypatch.setattr(factory, "FINISH_BESIDE_RENDER", True)
+    run_generate(cfg_of(num_images=4, earth_probability=0.0), str(tmp_path / "ds"))
+    assert sys.getswitchinterval() == before
