@@ -322,32 +322,12 @@ def _rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None = None,
-                 type_prob: np.ndarray | None = None, edge_prob: np.ndarray | None = None,
-                 image_size: tuple[int, int] | None = None, prior_R_cam_from_target: np.ndarray | None = None,
-                 config: NamingConfig = NamingConfig(), geometry: TargetGeometry | None = None) -> Naming | None:
-    """Fit the box to unnamed junction candidates and name them.
-
-    points_px: (M, 2) candidate pixels. K: (3, 3) intrinsics of the same image. score: (M,) detection scores
-    (the best max_candidates are used; None: all, in the given order). type_prob: (M, 4) probability of each
-    junction type (perception/heatmaps.py: end and side), or (M, 2) of the end only (+x: A-D, -x: E-H). edge_prob: (M, M) line-verification probability that candidates
-    i, j are joined by a box edge. image_size: (width, height) px: corners predicted outside are not expected.
-    prior_R_cam_from_target: (3, 3) a predicted attitude (R_K_from_T) that weighs the symmetric namings.
-    Returns the best Naming (with its half-turn alternative) or None when no hypothesis explains 4 candidates.
-    """
-    g = geometry or load_geometry()
-    cfg = config
-    pts = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
-    keep = np.flatnonzero(np.all(np.isfinite(pts), axis=1))
-    if score is not None:
-        keep = keep[np.argsort(-np.asarray(score)[keep], kind="stable")]
-    keep = keep[: cfg.max_candidates]
-    cand = pts[keep]
-    eps = 1e-4
-    type_nll = None if type_prob is None else -np.log(np.clip(np.asarray(type_prob, float)[keep], eps, 1.0))
-    line_nll = None if edge_prob is None else -np.log(np.clip(np.asarray(edge_prob, float)[np.ix_(keep, keep)],
-                                                              eps, 1.0))
-    cues = _Cues(type_nll, line_nll)
+def _search(cand: np.ndarray, K: np.ndarray, cues: _Cues, g: TargetGeometry, cfg: NamingConfig,
+            image_size: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The best hypotheses from the image alone: every face (24 namings of its corners) on every candidate
+    quadrilateral, both planar poses each, scored with the coarse gate; (R (N, 3, 3), t (N, 3), match (N, 8)) of
+    the refine_top best with a distinct association and at least 4 matched corners, or None."""
+    line_nll = cues.line_nll
     quads = _ordered_convex_quads(cand)
     if line_nll is not None and len(quads) > cfg.max_quads:  # a face is a cycle of 4 verified lines
         sides = line_nll[quads, np.roll(quads, -1, axis=1)]
@@ -374,9 +354,64 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
     order = np.flatnonzero(enough)[np.argsort(s["cost"][enough], kind="stable")]
     _, first = np.unique(s["match"][order], axis=0, return_index=True)  # one hypothesis per association
     order = order[np.sort(first)][: cfg.refine_top]
-    Rr, tr, match = R[order].copy(), t[order].copy(), s["match"][order]
+    return R[order].copy(), t[order].copy(), s["match"][order]
+
+
+def _from_prior(R: np.ndarray, t: np.ndarray, cand: np.ndarray, K: np.ndarray, cues: _Cues, g: TargetGeometry,
+                cfg: NamingConfig, image_size: tuple[int, int] | None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """A predicted pose (R_K_from_T (3, 3), t (3,) m) as the one hypothesis, associated with the coarse gate as
+    the search's are: (R (1, 3, 3), t (1, 3), match (1, 8)), or None when it matches fewer than 4 corners (then
+    the search runs)."""
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and t[2] > 0):
+        return None
+    s = _score(R[None], t[None], cand, K, cues, g, cfg, image_size, cfg.coarse_gate_px)
+    if np.sum(s["match"][0] >= 0) < 4:
+        return None
+    return R[None].copy(), t[None].copy(), s["match"]
+
+
+def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None = None,
+                 type_prob: np.ndarray | None = None, edge_prob: np.ndarray | None = None,
+                 image_size: tuple[int, int] | None = None, prior_R_cam_from_target: np.ndarray | None = None,
+                 config: NamingConfig = NamingConfig(), geometry: TargetGeometry | None = None,
+                 prior_t_cam_from_target_m: np.ndarray | None = None) -> Naming | None:
+    """Fit the box to unnamed junction candidates and name them.
+
+    points_px: (M, 2) candidate pixels. K: (3, 3) intrinsics of the same image. score: (M,) detection scores
+    (the best max_candidates are used; None: all, in the given order). type_prob: (M, 4) probability of each
+    junction type (perception/heatmaps.py: end and side), or (M, 2) of the end only (+x: A-D, -x: E-H). edge_prob: (M, M) line-verification probability that candidates
+    i, j are joined by a box edge. image_size: (width, height) px: corners predicted outside are not expected.
+    prior_R_cam_from_target: (3, 3) a predicted attitude (R_K_from_T) that weighs the symmetric namings.
+    prior_t_cam_from_target_m: (3,) m, with the attitude a predicted pose (T's origin in K): the fit starts from
+    it alone instead of searching every face on every quadrilateral (a tracker's prediction; the search runs
+    when the pose matches fewer than 4 candidates).
+    Returns the best Naming (with its half-turn alternative) or None when no hypothesis explains 4 candidates.
+    """
+    g = geometry or load_geometry()
+    cfg = config
+    pts = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
+    keep = np.flatnonzero(np.all(np.isfinite(pts), axis=1))
+    if score is not None:
+        keep = keep[np.argsort(-np.asarray(score)[keep], kind="stable")]
+    keep = keep[: cfg.max_candidates]
+    cand = pts[keep]
+    eps = 1e-4
+    type_nll = None if type_prob is None else -np.log(np.clip(np.asarray(type_prob, float)[keep], eps, 1.0))
+    line_nll = None if edge_prob is None else -np.log(np.clip(np.asarray(edge_prob, float)[np.ix_(keep, keep)],
+                                                              eps, 1.0))
+    cues = _Cues(type_nll, line_nll)
+    start = None
+    if prior_R_cam_from_target is not None and prior_t_cam_from_target_m is not None:
+        start = _from_prior(np.asarray(prior_R_cam_from_target, float), np.asarray(prior_t_cam_from_target_m, float),
+                            cand, K, cues, g, cfg, image_size)
+    if start is None:
+        start = _search(cand, K, cues, g, cfg, image_size)
+    if start is None:
+        return None
+    Rr, tr, match = start
     for step, gate in enumerate((2 * cfg.gate_px, cfg.gate_px)):  # refine, re-associate with a tighter gate
-        for n in range(len(order)):
+        for n in range(len(Rr)):
             Rr[n], tr[n] = _refine(Rr[n], tr[n], match[n], cand, K, g,
                                    robust_px=cfg.coarse_gate_px / 4 if step == 0 else None)
         sr = _score(Rr, tr, cand, K, cues, g, cfg, image_size, gate)

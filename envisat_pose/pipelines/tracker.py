@@ -5,8 +5,11 @@
         est = tracker.step(t_s, image)      # TrackEstimate: state, covariance, status, hypotheses, detections
 
 No truth enters anywhere: the API takes images, their times, the camera, the detector and the chaser's own orbit
-(known on board: `chaser_at(t_s) -> (r_m, rdot_m_s, theta_rad, thetadot_rad_s)`). A caller may hand in a prior
-(`prior=(x0, P0, t0)`, `envisat run --warm-start` for filter studies); by default the tracker starts cold.
+(known on board: `chaser_at(t_s) -> (r_m, rdot_m_s, theta_rad, thetadot_rad_s)`). The detector is any object with
+`detect(image, K, roi_px=None, prior_R_cam_from_target=None, prior_t_cam_from_target_m=None) -> FrameDetection`
+(perception.detect.Detector; the priors are the tracker's prediction, in the camera frame K). A caller may hand
+in a prior (`prior=(x0, P0, t0)`, `envisat run --warm-start` for filter studies); by default the tracker starts
+cold.
 
 States (TrackEstimate.status):
 - "acquiring": no filter yet. Each lit frame's named corners give a PnP pose (pipelines/acquisition.py); once
@@ -18,8 +21,8 @@ States (TrackEstimate.status):
   is dropped and acquisition goes on. The estimate while acquiring is the last PnP pose with a
   wide covariance (ACQUIRING_SIGMA).
 - "tracking": each frame the bank predicts; once the best hypothesis' prior is tight the detector looks only in
-  the predicted region of interest with the predicted attitude as its half-turn prior. Each hypothesis takes the
-  naming (the detector's or its half-turn) nearest its predicted corners, filter_step updates all of them at
+  the predicted region of interest, with the predicted pose as its naming's start and half-turn prior. Each
+  hypothesis takes the naming (the detector's or its half-turn) nearest its predicted corners, filter_step updates all of them at
   once (gate, visibility check, adaptive R), and its log weight gains -cost/2 (cost: NIS plus the gate bound
   per rejected or dropped corner, ~ -2 log likelihood) plus the appearance log-likelihood of the naming it took.
   A hypothesis whose probability falls below 1 - `decided` is dropped.
@@ -51,6 +54,7 @@ import numpy as np
 from envisat_pose.config import check
 from envisat_pose.filtering.estimator import FilterConfig, FilterState, Measurement, filter_step, init_state, \
     make_setup, predict_to
+from envisat_pose.filtering.measurements import to_camera_K
 from envisat_pose.geometry import PinholeCamera, load_geometry
 from envisat_pose.pipelines.acquisition import (BatchFit, FramePose, align_namings, appearance_log_likelihood,
                                                  batch_fit, half_turn_naming, half_turn_state, initial_guess,
@@ -84,7 +88,10 @@ class TrackerConfig:
     roi: look only in the predicted region of interest once converged; roi_margin: its side over the predicted
     corners' extent (plus 6 x the prior's pixel sigma); roi_min_side_px; roi_min_corners: fewer corners found
     there and the coarse pass runs again. converged_pos_sigma_m / converged_att_sigma_deg: the prior counts as
-    converged (ROI, attitude prior) below these. prior_attitude: give the detector the predicted attitude.
+    converged (ROI, attitude prior) below these. prior_attitude: give the detector the predicted attitude;
+    prior_pose: with it, the predicted position too, so its naming starts from the predicted pose instead of
+    searching every face hypothesis (half of the detector's time in the loop; the search still runs when the
+    predicted pose matches fewer than 4 corners).
     lost_after_frames: frames in a row with every corner rejected that declare the track lost.
     correlation_model: how R allows for the errors' frame-to-frame correlation (module doc): "filter_memory",
     "long_memory" or "white".
@@ -109,6 +116,7 @@ class TrackerConfig:
     converged_pos_sigma_m: float = 0.2
     converged_att_sigma_deg: float = 2.0
     prior_attitude: bool = True
+    prior_pose: bool = True
     lost_after_frames: int = 10
     correct_scale: bool = False
     correlation_model: str = "filter_memory"
@@ -320,9 +328,10 @@ class Tracker:
         """The factor on the detector's covariance this frame (correlation_inflation at the filter's memory)."""
         return correlation_inflation(self.error_model, self.cfg.correlation_model, self.memory, self.dt_s)
 
-    def _detect(self, image, roi=None, R_prior=None):
+    def _detect(self, image, roi=None, R_prior=None, t_prior=None):
         t0 = time.perf_counter()
-        fd = self.detector.detect(image, self.camera.K, roi_px=roi, prior_R_cam_from_target=R_prior)
+        pose = {} if t_prior is None else {"prior_t_cam_from_target_m": t_prior}
+        fd = self.detector.detect(image, self.camera.K, roi_px=roi, prior_R_cam_from_target=R_prior, **pose)
         return fd, time.perf_counter() - t0
 
     def _acquire(self, t_s: float, image) -> TrackEstimate:
@@ -427,14 +436,16 @@ class Tracker:
         if image is not None:
             if self.cfg.roi and converged:
                 roi = predicted_roi(prior[0][best], prior[1][best], self.camera, self.cfg)
-            R_prior = None
+            R_prior = t_prior = None
             if converged and self.cfg.prior_attitude and H == 1:  # a prior would decide the open half-turn
                 from envisat_pose.attitude import mrp_to_dcm
 
                 R_prior = self.camera.R_K_from_C @ mrp_to_dcm(prior[0][best, MRP]).T  # R_K_from_T
-            fd, t_det = self._detect(image, roi, R_prior)
+                if self.cfg.prior_pose:
+                    t_prior = to_camera_K(prior[0][best, POS], self.camera)  # T's origin in K, m
+            fd, t_det = self._detect(image, roi, R_prior, t_prior)
             if roi is not None and int(np.sum(fd.visible)) < self.cfg.roi_min_corners:
-                fd, t2 = self._detect(image, None, R_prior)
+                fd, t2 = self._detect(image, None, R_prior, t_prior)
                 t_det += t2
                 roi = None
             t1 = time.perf_counter()

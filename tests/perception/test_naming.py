@@ -64,6 +64,28 @@ def test_prior_pose_settles_the_half_turn():
     assert settled >= 27
 
 
+def test_prior_pose_start_names_as_the_search_does():
+    """A tracker's predicted pose (a little off the truth) as the start instead of the face search: the same
+    names and pose as the search on every case, nearly all right with the half-turn settled; a prior that matches
+    nothing falls back to the search."""
+    rng = np.random.default_rng(4)
+    right = 0
+    for _ in range(30):
+        case = make_case(rng)
+        nudge = np.array([[1.0, -0.01, 0.0], [0.01, 1.0, 0.0], [0.0, 0.0, 1.0]])  # ~0.6 deg off
+        R_prior = nudge @ case["R"]
+        t_prior = case["t"] + rng.normal(scale=0.05, size=3)
+        kw = dict(type_prob=case["type_prob"], image_size=case["image_size"], prior_R_cam_from_target=R_prior)
+        searched = name_corners(case["points_px"], case["K"], **kw)
+        started = name_corners(case["points_px"], case["K"], prior_t_cam_from_target_m=t_prior, **kw)
+        right += outcome(case, started) == "right" and not started.ambiguous
+        assert np.array_equal(started.candidate, searched.candidate)
+        assert np.allclose(started.R_cam_from_target, searched.R_cam_from_target, atol=1e-6)
+        far = name_corners(case["points_px"], case["K"], prior_t_cam_from_target_m=t_prior + [50.0, 0.0, 0.0], **kw)
+        assert np.array_equal(far.candidate, searched.candidate)
+    assert right >= 27
+
+
 def test_side_cue_settles_the_half_turn():
     """Where the network can tell +z from -z (side right at 80 %), the half-turn is settled without a prior."""
     rng = np.random.default_rng(5)

@@ -27,7 +27,7 @@ class NoisyTruthDetector:
         self.truth, self.sigma, self.p_alt, self.spliced = truth, sigma_px, p_alt, spliced or {}
         self.rng = np.random.default_rng(seed)
 
-    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None):
+    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None, prior_t_cam_from_target_m=None):
         k = int(image[0, 0]) * 256 + int(image[0, 1])
         tr = self.spliced.get(k, (self.truth, k))
         src, j = tr
@@ -129,7 +129,7 @@ class CorrelatedTruthDetector(NoisyTruthDetector):
         self.a, self.phi, self.slow = a, phi, self.rng.standard_normal((8, 2))
         self.error_model = ErrorModel(ar1_share=a, ar1_phi=phi, corr_time_s=-1.0 / np.log(phi))
 
-    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None):
+    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None, prior_t_cam_from_target_m=None):
         k = int(image[0, 0]) * 256 + int(image[0, 1])
         self.slow = self.phi * self.slow + np.sqrt(1 - self.phi**2) * self.rng.standard_normal((8, 2))
         e = self.sigma * (np.sqrt(self.a) * self.slow + np.sqrt(1 - self.a) * self.rng.standard_normal((8, 2)))
