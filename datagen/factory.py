@@ -37,13 +37,13 @@ MANIFEST_FORMAT = "envisat-pose shards v1"
 # Camera mount on the chaser, from camera chaser_cam of models/envisat.xml (boresight +y_C, image up +x_C).
 # Rows are the K axes (x right, y down, z boresight) in C.
 R_K_FROM_C = load_camera().R_K_from_C
-# generate_shard's helper threads (same bytes either way): one draws views and finishes sample k (labels,
-# corruption, PNG encoding, tar) while the calling thread renders sample k + 1, one makes the Earth textures
-# from the start. They pay only where the worker has a core its rasterizer leaves idle (spare_core); where every
-# core is busy they measured neutral to a few % slower. None: run_generate decides by spare_core; True/False:
-# forced (benchmarks, tests).
+# generate_shard's helper threads (same bytes either way): one draws the views, one finishes sample k (the
+# passes' pixels, labels, corruption, PNG encoding, tar) while the calling thread renders sample k + 1, one makes
+# the Earth textures from the start. They pay only where the worker has a core its rasterizer leaves idle
+# (spare_core); where every core is busy they measured neutral to a few % slower. None: run_generate decides by
+# spare_core; True/False: forced (benchmarks, tests).
 FINISH_BESIDE_RENDER: bool | None = None
-# While the helper thread runs, the interpreter's GIL switch interval (s). The render thread gives up the GIL in
+# While the helper threads run, the interpreter's GIL switch interval (s). The render thread gives up the GIL in
 # every MuJoCo/GL call and must win it back from the helper; at Python's default 5 ms each call can wait that
 # long (measured at 1024 px: a busy Python thread beside the render doubled its time at 5 ms, none at 50 us).
 GIL_SWITCH_INTERVAL_S = 5e-5

@@ -22,9 +22,10 @@ States (TrackEstimate.status):
   wide covariance (ACQUIRING_SIGMA).
 - "tracking": each frame the bank predicts; once the best hypothesis' prior is tight the detector looks only in
   the predicted region of interest, with the predicted pose as its naming's start and half-turn prior. Each
-  hypothesis takes the naming (the detector's or its half-turn) nearest its predicted corners, filter_step updates all of them at
-  once (gate, visibility check, adaptive R), and its log weight gains -cost/2 (cost: NIS plus the gate bound
-  per rejected or dropped corner, ~ -2 log likelihood) plus the appearance log-likelihood of the naming it took.
+  hypothesis takes the naming (the detector's or its half-turn) nearest its predicted corners, filter_step
+  updates all of them at once (gate, visibility check, adaptive R), and its log weight gains -cost/2 (cost: NIS
+  plus the gate bound per rejected or dropped corner, ~ -2 log likelihood) plus the appearance log-likelihood of
+  the naming it took.
   A hypothesis whose probability falls below 1 - `decided` is dropped.
 - "lost": the best hypothesis' windowed NIS exceeded its chi-square bound (the filter's divergence monitor), or
   the gate rejected every corner for `lost_after_frames` frames with corners found: the bank is discarded and the
