@@ -5,9 +5,10 @@ Usage: python scripts/model_card.py --weights models/detector.safetensors --runs
            [--idle RUN_DIR=SECONDS ...] --hardware TEXT --out models/detector.json
        python scripts/model_card.py --refresh models/detector.json --weights models/detector.safetensors
            [--datasets DIR ...] [--evaluation NAME=EVAL.json ...] [--error-model NAME=W.safetensors ...]
-           [--commands FILE] --out models/detector.json
-           (keeps the card's runs; rewrites its weights entry from the file's metadata, adds the datasets,
-           evaluations and commands given: the metadata written after training, e.g. the error model)
+           [--runs RUN_DIR ...] [--commands FILE] --out models/detector.json
+           (keeps the card's runs and adds the new legs given; rewrites its weights entry from the file's metadata,
+           adds the datasets, evaluations and commands given: the metadata written after training, e.g. the error
+           model; when the weights changed, the old weights' evaluations move to previous_weights)
 
 Everything in the card comes from files: each training run's config.json (its exact `envisat train` command, git
 hash, torch), state.json (the steps done) and metrics.jsonl (the last epoch's losses); each dataset's manifest
@@ -104,7 +105,17 @@ def evaluation_record(e: dict) -> dict:
 def refresh(a) -> int:
     """--refresh: the card kept, its weights entry rewritten, datasets, evaluations and commands added."""
     card = json.load(open(a.refresh, encoding="utf-8"))
-    card["weights"] = weights_record(a.weights)
+    weights = weights_record(a.weights)
+    if card.get("weights", {}).get("sha256") != weights["sha256"]:
+        # other weights (a new training leg): what was measured of the old ones stays, under their sha256
+        card.setdefault("previous_weights", []).append(
+            {"sha256": card.get("weights", {}).get("sha256"), "evaluations": card.pop("evaluations", {}),
+             "error_model_measurements": card.pop("error_model_measurements", {})})
+    card["weights"] = weights
+    idle = dict(item.partition("=")[::2] for item in a.idle)
+    for r in a.runs or []:  # new training legs
+        card.setdefault("training_runs", []).append(run_record(r, float(idle.get(r, 0.0))))
+    card["training_time_s"] = round(sum(r["wall_time_s"] for r in card.get("training_runs", [])), 1)
     known = {d["path"] for d in card.get("datasets", [])}
     card.setdefault("datasets", []).extend(dataset_record(d) for d in a.datasets or []
                                            if os.path.abspath(d) not in known)
