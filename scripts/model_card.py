@@ -102,6 +102,16 @@ def evaluation_record(e: dict) -> dict:
             "detect_config": e.get("detect_config"), "metrics": headline(e)}
 
 
+def idle_seconds(items: list[str]) -> dict[str, float]:
+    """--idle RUN_DIR=SECONDS items -> {absolute run folder: seconds}."""
+    return {os.path.abspath(k): float(v) for k, _, v in (item.partition("=") for item in items)}
+
+
+def training_time_s(runs: list[dict]) -> float:
+    """Wall seconds of all training runs (a run without a measured time counts 0)."""
+    return sum(r["wall_time_s"] or 0.0 for r in runs)
+
+
 def refresh(a) -> int:
     """--refresh: the card kept, its weights entry rewritten, datasets, evaluations and commands added."""
     card = json.load(open(a.refresh, encoding="utf-8"))
@@ -112,10 +122,10 @@ def refresh(a) -> int:
             {"sha256": card.get("weights", {}).get("sha256"), "evaluations": card.pop("evaluations", {}),
              "error_model_measurements": card.pop("error_model_measurements", {})})
     card["weights"] = weights
-    idle = dict(item.partition("=")[::2] for item in a.idle)
+    idle = idle_seconds(a.idle)
     for r in a.runs or []:  # new training legs
-        card.setdefault("training_runs", []).append(run_record(r, float(idle.get(r, 0.0))))
-    card["training_time_s"] = round(sum(r["wall_time_s"] for r in card.get("training_runs", [])), 1)
+        card.setdefault("training_runs", []).append(run_record(r, idle.get(os.path.abspath(r), 0.0)))
+    card["training_time_s"] = training_time_s(card.get("training_runs", []))
     known = {d["path"] for d in card.get("datasets", [])}
     card.setdefault("datasets", []).extend(dataset_record(d) for d in a.datasets or []
                                            if os.path.abspath(d) not in known)
@@ -157,7 +167,7 @@ def main() -> int:
     for name in ("runs", "datasets", "evaluation", "hardware"):
         if not getattr(a, name):
             p.error(f"--{name} is required without --refresh")
-    idle = {os.path.abspath(k): float(v) for k, _, v in (item.partition("=") for item in a.idle)}
+    idle = idle_seconds(a.idle)
     evaluations = {}
     for item in a.evaluation:
         name, _, path = item.partition("=")
@@ -170,7 +180,7 @@ def main() -> int:
         "commands": open(a.commands, encoding="utf-8").read().strip().splitlines() if a.commands else [],
         "evaluations": {name: evaluation_record(e) for name, e in evaluations.items()},
     }
-    card["training_time_s"] = sum(r["wall_time_s"] or 0.0 for r in card["training_runs"])
+    card["training_time_s"] = training_time_s(card["training_runs"])
     atomic_write_text(a.out, json.dumps(card, indent=1, sort_keys=False, allow_nan=False,
                                         default=lambda x: None) + "\n")
     print(f"wrote {a.out}")
