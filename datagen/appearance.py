@@ -21,17 +21,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from envisat_pose.geometry import FACE_COVERING
+
 TEXTURE_PX = 256  # side of every procedural texture, px
 
 # Class of each geom (the MJCF's names). Appendage geoms are in geom group 4 (models/envisat.xml).
 GEOM_CLASS = {
-    "face_px": "end_panel", "face_mx": "end_panel",
-    "face_py": "mli_gold", "face_my": "mli_black",
-    "face_pz": "mli_silver", "face_mz": "radiator",
+    **{f"face_{f}": c for f, c in FACE_COVERING.items()},  # the body's faces: the core's table
     "array": "solar_cells", "boom": "boom_metal",
     "asar": "asar_tiles", "asar_strut_fwd": "boom_metal", "asar_strut_aft": "boom_metal",
     "instr_meris": "mli_gold", "instr_aatsr": "mli_black", "instr_doris": "end_panel",
 }
+FACE_GEOMS = tuple(f"face_{f}" for f in FACE_COVERING)  # the main body's faces
 
 
 @dataclass(frozen=True)
@@ -104,17 +105,19 @@ def _r(v: float) -> float:
 
 def draw_look(rng: np.random.Generator, set_size: int, specular: tuple[float, float],
               shininess: tuple[float, float], reflectance: tuple[float, float],
-              brightness: tuple[float, float], geoms: tuple[str, ...]) -> dict[str, MaterialLook]:
-    """A MaterialLook per geom of `geoms`, drawn within its covering class: a texture of the class's
-    set_size, brightness = class range x the configured multiplier range, specular = class weight x the
-    configured range, shininess and reflectance from their ranges."""
+              brightness: tuple[float, float], geoms: tuple[str, ...],
+              classes: dict[str, str] | None = None) -> dict[str, MaterialLook]:
+    """A MaterialLook per geom of `geoms`, drawn within its covering class (`classes`, GEOM_CLASS by default): a
+    texture of the class's set_size, brightness = class range x the configured multiplier range, specular =
+    class weight x the configured range, shininess and reflectance from their ranges."""
+    classes = GEOM_CLASS if classes is None else classes
     out = {}
     for g in geoms:
-        c = CLASSES[GEOM_CLASS[g]]
+        c = CLASSES[classes[g]]
         tex = int(rng.integers(0, set_size))
         b = rng.uniform(*c.brightness) * rng.uniform(*brightness)
         rgb = tuple(_r(min(1.0, v * b)) for v in c.rgb)
-        out[g] = MaterialLook(GEOM_CLASS[g], tex, rgb, _r(c.specular_weight * rng.uniform(*specular)),
+        out[g] = MaterialLook(classes[g], tex, rgb, _r(c.specular_weight * rng.uniform(*specular)),
                               _r(rng.uniform(*shininess)), _r(rng.uniform(*reflectance)))
     return out
 

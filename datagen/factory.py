@@ -133,9 +133,11 @@ class AppearanceConfig:
     in random mode, off in sequence mode. texture_set_size: textures per class. texture_seed: the texture set.
     seed: the appearance draws' own seed (mixed with each sample's): another seed, other looks, same poses.
     specular, shininess, reflectance: ranges of MuJoCo's material terms; brightness: multiplier range on each
-    class's base brightness."""
+    class's base brightness. one_covering: draw every face of the main body in this one covering class (a
+    target whose half-turn about x does not show: the face cue's test); None: each face its own class."""
 
     enabled: bool | None = None
+    one_covering: str | None = None
     texture_set_size: int = 8
     texture_seed: int = 0
     seed: int = 0
@@ -152,6 +154,11 @@ class AppearanceConfig:
         for name in ("specular", "shininess", "reflectance"):
             _check_range(getattr(self, name), f"{p}{name}", 0.0, 1.0)
         _check_range(self.brightness, f"{p}brightness", 0.0, 3.0)
+        if self.one_covering is not None:
+            from envisat_pose.datagen.appearance import CLASSES
+
+            check(self.one_covering in CLASSES, f"{p}one_covering", self.one_covering,
+                  f"a covering class ({', '.join(sorted(CLASSES))})")
 
 
 @dataclass(frozen=True)
@@ -407,7 +414,7 @@ def with_look(cfg: GenerateConfig, view, scene: dict, seed: int) -> tuple:
     and the scene dict with every choice needed to render it again (view_from_scene). Returns (View, scene)."""
     import dataclasses
 
-    from envisat_pose.datagen.appearance import GEOM_CLASS, Look, draw_look
+    from envisat_pose.datagen.appearance import FACE_GEOMS, GEOM_CLASS, Look, draw_look
     from envisat_pose.datagen.render import APPENDAGE_MASK_VALUE, MASK_VALUES
 
     rng = look_rng(cfg, seed)
@@ -416,8 +423,11 @@ def with_look(cfg: GenerateConfig, view, scene: dict, seed: int) -> tuple:
     albedo = float(rng.uniform(*lit.earth_albedo))
     geoms = tuple(g for g in GEOM_CLASS if cfg.appendages_on or MASK_VALUES[g] != APPENDAGE_MASK_VALUE)
     a = cfg.appearance
+    classes = dict(GEOM_CLASS)
+    if a.one_covering is not None:
+        classes.update({g: a.one_covering for g in FACE_GEOMS})
     materials = draw_look(rng, a.texture_set_size, a.specular, a.shininess, a.reflectance, a.brightness,
-                          geoms) if cfg.appearance_on else {}
+                          geoms, classes) if cfg.appearance_on else {}
     phase = 0.0
     if view.sun_dir_C is not None and view.earth_dir_C is not None:
         # lit fraction of the Earth's disc seen from the target: 1 with the sun behind us, 0 toward it
@@ -429,7 +439,7 @@ def with_look(cfg: GenerateConfig, view, scene: dict, seed: int) -> tuple:
     scene.update({
         "appearance": cfg.appearance_on,
         "appendages": cfg.appendages_on,
-        "face_classes": {g: GEOM_CLASS[g] for g in ("face_px", "face_mx", "face_py", "face_my", "face_pz", "face_mz")},
+        "face_classes": {g: classes[g] for g in FACE_GEOMS},
         "earthshine": {"intensity": earth_i, "earth_phase": round(phase, 6), "albedo": round(albedo, 6),
                        "dir_cam": None if view.earth_dir_C is None else (-R_K_FROM_C @ unit(view.earth_dir_C)).tolist()},
         "look": look.to_json(),

@@ -27,7 +27,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envisat_pose.attitude import rotmat_to_quat  # noqa: E402
-from envisat_pose.datagen.appearance import CLASSES, GEOM_CLASS, Look, class_texture, TEXTURE_PX  # noqa: E402
+from envisat_pose.datagen.appearance import CLASSES, FACE_GEOMS, GEOM_CLASS, Look, class_texture, TEXTURE_PX  # noqa: E402
 from envisat_pose.datagen.clearance import target_boxes  # noqa: E402
 from envisat_pose.datagen.earth import (EARTH_MESH_STEPS_DEG, EARTH_SCALE, EARTH_TEXTURE_SET_SIZE,  # noqa: E402
                                         cap_mesh_xml_attributes, cap_visible, disc_on_rays, earth_cap_texture,
@@ -182,11 +182,18 @@ def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_se
                 ET.SubElement(asset, "texture", name=f"tex_{cls}_{k}", type="2d", builtin="flat",
                               width=str(TEXTURE_PX), height=str(TEXTURE_PX), rgb1="1 1 1")
         for geom, cls in GEOM_CLASS.items():
-            rep = repr(1.0 / CLASSES[cls].tile_m)
-            for k in range(texture_set_size):
-                ET.SubElement(asset, "material", name=f"look_{geom}_{k}", texture=f"tex_{cls}_{k}",
-                              texuniform="true", texrepeat=f"{rep} {rep}")
+            for c in look_classes(geom):
+                rep = repr(1.0 / CLASSES[c].tile_m)
+                for k in range(texture_set_size):
+                    ET.SubElement(asset, "material", name=f"look_{geom}_{c}_{k}", texture=f"tex_{c}_{k}",
+                                  texuniform="true", texrepeat=f"{rep} {rep}")
     return ET.tostring(root, encoding="unicode")
+
+
+def look_classes(geom: str) -> tuple[str, ...]:
+    """The covering classes a geom's look may take: any for a face of the main body (AppearanceConfig's
+    one_covering), its own class for every other geom."""
+    return tuple(sorted(CLASSES)) if geom in FACE_GEOMS else (GEOM_CLASS[geom],)
 
 
 def _gl_context_class():
@@ -289,8 +296,8 @@ class SceneRenderer:
         self._mjcf_matid = {name: int(m.geom_matid[g]) for name, g in self._geom_ids.items()}
         self._mjcf_mat = {int(i): (m.mat_rgba[i].copy(), float(m.mat_specular[i]), float(m.mat_shininess[i]),
                                    float(m.mat_reflectance[i])) for i in set(self._mjcf_matid.values())}
-        self._look_matid = {(name, k): m.material(f"look_{name}_{k}").id for name in GEOM_CLASS
-                            for k in range(self.texture_set_size)}
+        self._look_matid = {(name, c, k): m.material(f"look_{name}_{c}_{k}").id for name in GEOM_CLASS
+                            for c in look_classes(name) for k in range(self.texture_set_size)}
         self.corner_sites = np.array([m.site(f"corner_{c}").id for c in "ABCDEFGH"])
         self.target_geoms = np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] == self.target_body])
         self.target_boxes = target_boxes(m)  # the whole target as oriented boxes in T (keep-out, near plane)
@@ -400,10 +407,10 @@ class SceneRenderer:
             m.light_active[self.earthshine_id] = 0
             return
         for name, ml in look.materials.items():
-            if (name, ml.texture) not in self._look_matid:
-                raise ValueError(f"look for geom {name!r} texture {ml.texture}: this renderer has "
-                                 f"{self.texture_set_size} textures per class")
-            i = self._look_matid[(name, ml.texture)]
+            if (name, ml.cls, ml.texture) not in self._look_matid:
+                raise ValueError(f"look for geom {name!r} class {ml.cls!r} texture {ml.texture}: this renderer "
+                                 f"has {self.texture_set_size} textures per class, classes {look_classes(name)}")
+            i = self._look_matid[(name, ml.cls, ml.texture)]
             m.geom_matid[self._geom_ids[name]] = i
             m.mat_rgba[i] = (*ml.rgb, 1.0)
             m.mat_specular[i], m.mat_shininess[i], m.mat_reflectance[i] = ml.specular, ml.shininess, ml.reflectance

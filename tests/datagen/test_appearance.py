@@ -196,3 +196,38 @@ def test_bad_appearance_or_camera_config_is_one_named_error(key, value, message)
     with pytest.raises(ConfigError) as err:
         cfg_of(**{key: value})
     assert message in str(err.value)
+
+
+def test_plain_materials_follow_the_covering_classes():
+    """Sequence mode and the closed loop draw the MJCF's own materials: each face's grey level is its covering
+    class's (within 0.2 of the class's base grey), so +y/-y and +z/-z differ there as in the random looks."""
+    import xml.etree.ElementTree as ET
+
+    from envisat_pose.datagen.appearance import CLASSES
+    from envisat_pose.geometry import model_path
+
+    root = ET.parse(model_path()).getroot()
+    grey = lambda rgb: 0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]  # noqa: E731 (OpenCV's RGB2GRAY)
+    mats = {m.get("name"): [float(v) for v in m.get("rgba").split()[:3]] for m in root.iter("material")}
+    geoms = {g.get("name"): g.get("material") for g in root.iter("geom")}
+    for face in ("face_px", "face_mx", "face_py", "face_my", "face_pz", "face_mz"):
+        cls = GEOM_CLASS[face]
+        assert abs(grey(mats[geoms[face]]) - grey(CLASSES[cls].rgb)) < 0.2, (face, cls)
+
+
+def test_one_covering_draws_every_face_in_that_class(tmp_path):
+    """appearance.one_covering: every face of the body in one class (labels, masks and depth unchanged, pixels
+    not); an unknown class is a one-line error naming the field."""
+    from envisat_pose.config import ConfigError
+
+    runs = {}
+    for name, app in (("own", {}), ("one", {"one_covering": "radiator"})):
+        out = str(tmp_path / name)
+        runs[name] = samples(out, run_generate(cfg_of(appearance=app, appendages=False, storage="clean"), out))
+    for (_, a), (_, b) in zip(runs["own"], runs["one"]):
+        la, lb = json.loads(a["json"]), json.loads(b["json"])
+        assert strip(la) == strip(lb) and a["mask.png"] == b["mask.png"] and a["png"] != b["png"]
+        faces = {g: m["class"] for g, m in lb["scene"]["look"]["materials"].items() if g.startswith("face_")}
+        assert len(faces) == 6 and set(faces.values()) == {"radiator"} == set(lb["scene"]["face_classes"].values())
+    with pytest.raises(ConfigError, match="one_covering"):
+        cfg_of(appearance={"one_covering": "chrome"}).validate()
