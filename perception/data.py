@@ -89,7 +89,8 @@ def decode_image(data: bytes, where: str) -> np.ndarray:
 
 
 def decode_label(data: bytes, where: str) -> dict:
-    """The fields of a label this module uses, as arrays, checked; other keys are ignored."""
+    """The fields of a label this module uses, as arrays, checked (the pose R_cam_from_target, t_cam_from_target_m
+    where the label has it); other keys are ignored."""
     try:
         label = json.loads(data)
         out = {"corners_px": np.asarray(label["corners_px"], dtype=np.float64),
@@ -99,11 +100,15 @@ def decode_label(data: bytes, where: str) -> dict:
                # 'clean': the stored image is the clean render; the factory's corruption is not applied here
                "image_stored": str(label.get("image_stored", "corrupted")),
                "corruption": label.get("corruption") if isinstance(label.get("corruption"), dict) else {}}
+        if "R_cam_from_target" in label and "t_cam_from_target_m" in label:  # the pose (the face cue's fit)
+            out["R_cam_from_target"] = np.asarray(label["R_cam_from_target"], dtype=np.float64)
+            out["t_cam_from_target_m"] = np.asarray(label["t_cam_from_target_m"], dtype=np.float64)
     except (ValueError, KeyError, TypeError) as err:
         raise InputError(f"{where}: not a corner label ({type(err).__name__}: {err})") from None
-    shapes = {"corners_px": (8, 2), "visible": (8,), "in_frame": (8,), "K": (3, 3)}
+    shapes = {"corners_px": (8, 2), "visible": (8,), "in_frame": (8,), "K": (3, 3), "R_cam_from_target": (3, 3),
+              "t_cam_from_target_m": (3,)}
     for name, shape in shapes.items():
-        if out[name].shape != shape:
+        if name in out and out[name].shape != shape:
             raise InputError(f"{where}: label '{name}' has shape {out[name].shape}, expected {shape}")
     return out
 

@@ -19,10 +19,12 @@ import numpy as np
 import torch
 
 from envisat_pose.perception.data import IMAGE_MEAN, IMAGE_STD, DataConfig, crop_box, crop_resize, to_full_px
+from envisat_pose.geometry import load_geometry
 from envisat_pose.perception.errormodel import ErrorModel
+from envisat_pose.perception.facecue import FaceCue, half_turn_llr, weigh_naming
 from envisat_pose.perception.heatmaps import decode_junctions
 from envisat_pose.perception.model import CornerNet
-from envisat_pose.perception.naming import Naming, NamingConfig, name_corners
+from envisat_pose.perception.naming import Naming, NamingConfig, face_windings, name_corners
 from envisat_pose.perception.refine import RefineConfig, refine_named
 
 
@@ -30,7 +32,8 @@ from envisat_pose.perception.refine import RefineConfig, refine_named
 class DetectConfig:
     """top_k: junctions kept per crop; threshold: least junction score; coarse_threshold: the same in the coarse
     pass; crop_margin: crop side over the coarse junctions' extent; line_verification: False names the corners
-    without the line head's edge scores (the evaluation's ablation); cov_scale: the calibration factor s applied
+    without the line head's edge scores (the evaluation's ablation); face_cue: weigh the half-turn namings by the
+    swapped faces' looks where the weights carry a fitted cue (perception/facecue.py; False: ablation); cov_scale: the calibration factor s applied
     to the network's covariances, C -> s C (perception/calibrate.py; shipped in the weights' metadata); refine:
     move each named corner to the intersection of its edges fitted to the full-resolution pixels
     (perception/refine.py), with that fit's covariance + refine_cov_floor_px2 x I in place of the network's (its
@@ -44,6 +47,7 @@ class DetectConfig:
     line_verification: bool = True
     cov_scale: float = 1.0
     naming: NamingConfig = NamingConfig()
+    face_cue: bool = True
     refine: bool = False
     refine_cov_floor_px2: float = 0.0
     refine_config: RefineConfig = RefineConfig()
@@ -124,6 +128,17 @@ def weights_error_model(path: str) -> ErrorModel:
     return model
 
 
+def weights_face_cue(path: str) -> FaceCue | None:
+    """The half-turn's appearance cue stored in a weights file's metadata (`face_cue`, perception/facecue.py;
+    None when the file has none). WeightsError when it is there but unreadable."""
+    from envisat_pose.perception.weights import WeightsError, read_metadata
+
+    try:
+        return FaceCue.from_json(read_metadata(path).get("face_cue"))
+    except (ValueError, TypeError, KeyError) as err:
+        raise WeightsError(f"{path}: metadata face_cue is not readable ({err})") from None
+
+
 def load_detector(path: str, config: DetectConfig | None = None, device: str = "cpu") -> "Detector":
     """A Detector from a weights file (perception/weights.py), with the covariance calibration stored in the
     file's metadata (`cov_scale`, `refine_cov_floor_px2`) unless `config` is given (its own then stand), the error model
@@ -134,7 +149,7 @@ def load_detector(path: str, config: DetectConfig | None = None, device: str = "
     model = load_model(path, device=device)
     cfg = config or dataclasses.replace(DetectConfig(), cov_scale=weights_cov_scale(path),
                                         refine_cov_floor_px2=weights_refine_floor(path))
-    return Detector(model, cfg, device=device, error_model=weights_error_model(path))
+    return Detector(model, cfg, device=device, error_model=weights_error_model(path), face_cue=weights_face_cue(path))
 
 
 def fold_batch_norms(module: torch.nn.Module) -> None:
@@ -180,12 +195,16 @@ class Detector:
     """A trained CornerNet (eval mode) and the detection steps around it."""
 
     def __init__(self, model: CornerNet, config: DetectConfig = DetectConfig(), device: str = "cpu",
-                 error_model: ErrorModel = ErrorModel()):
+                 error_model: ErrorModel = ErrorModel(), face_cue: FaceCue | None = None):
         self.model = model.to(device).eval()
         self._net = inference_network(self.model)  # what runs: folded and channels_last (or the model itself)
         self.cfg = config
         # what a filter needs of the errors: correlation, inflation, bias (perception/errormodel.py)
         self.error_model = error_model
+        # the half-turn's appearance cue (perception/facecue.py; None: the corners and junction types alone)
+        self.face_cue = face_cue if config.face_cue else None
+        self._geometry = load_geometry()
+        self._windings = face_windings(self._geometry)
         self.device = torch.device(device)
         self.input_px = model.cfg.input_px
         self.stride = model.cfg.stride
@@ -256,6 +275,10 @@ class Detector:
                               prior_t_cam_from_target_m=prior_t_cam_from_target_m)
         if naming is None:
             return FrameDetection.missing(box)
+        if self.face_cue is not None:  # the half-turn settled by what the swapped faces look like
+            llr = half_turn_llr(self.face_cue, image, naming.R_cam_from_target, naming.t_cam_from_target_m, K,
+                                self._geometry, self._windings)
+            naming = weigh_naming(naming, llr, self.cfg.naming.ambiguity)
         refined = None
         if self.cfg.refine:
             pts, cov, refined = self._refine(image, naming, pts, cov)

@@ -51,6 +51,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--refine", action="store_true",
                    help="fit the sub-pixel refinement's covariance floor (refine_cov_floor_px2) on the refined "
                    "corners instead; cov_scale and the error model are kept")
+    p.add_argument("--face-cue", action="store_true",
+                   help="fit the half-turn's appearance cue (perception/facecue.py) on the labelled frames of --data "
+                   "instead, its temperature on --held-out; stored as 'face_cue'")
+    p.add_argument("--held-out", nargs="+", metavar="DIR",
+                   help="with --face-cue: labelled folders (not in --data) that fit the cue's temperature and its "
+                   "record (default: the odd frames of --data, the even ones fitting the cue)")
     p.add_argument("--max-lag", type=int, default=20, help="autocorrelation lags measured (default 20)")
     p.add_argument("--limit", type=int, help="only the first N frames of each dataset")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
@@ -170,6 +176,8 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     if os.path.abspath(args.out) != os.path.abspath(args.weights):
         check_writable_output(args.out)
     paths = {d: shard_paths(d) for d in args.data}
+    if args.face_cue:
+        return fit_face_cue_cli(args, paths)
     sequences = all(is_sequence(d) for d in args.data)
     # the network's own covariances (scale 1), whatever the file carried before; the refinement's the same
     det = load_detector(args.weights, config=dataclasses.replace(DetectConfig(), cov_scale=1.0, refine=args.refine,
@@ -229,4 +237,51 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     with_metadata(args.weights, args.out, meta)
     kept = " (kept the file's cov_scale)" if args.keep_scale else ""
     print(f"cov_scale {scale:.4g} (mean e^T C^-1 e 2.00 on {len(err)} corners){kept}; wrote {args.out}")
+    return 0
+
+
+def fit_face_cue_cli(args: argparse.Namespace, paths: dict) -> int:
+    """`envisat calibrate --face-cue`: the cue's regions under each frame's labelled pose, even frames of each
+    --data folder to fit, odd ones to temper and score; written into the weights' metadata."""
+    from tqdm import tqdm
+
+    from envisat_pose.app.detect import camera_samples
+    from envisat_pose.geometry import load_geometry
+    from envisat_pose.perception import facecue as fc
+    from envisat_pose.perception.naming import face_windings
+    from envisat_pose.perception.weights import with_metadata
+
+    from envisat_pose.perception.data import shard_paths
+
+    g = load_geometry()
+    windings = face_windings(g)
+    held_paths = {d: shard_paths(d) for d in (args.held_out or [])}
+    fit, held = [], []
+    bar = tqdm(disable=args.quiet, desc="face cue", unit="frame")
+    for flag, folders in (("--data", paths), ("--held-out", held_paths)):
+        for d, shards in folders.items():
+            for i, (key, image, label) in enumerate(camera_samples(shards)):
+                if args.limit is not None and i >= args.limit:
+                    break
+                if "R_cam_from_target" not in label:
+                    raise InputError(f"{flag} {d!r}: sample {key} has no labelled pose (R_cam_from_target, "
+                                     "t_cam_from_target_m); the face cue needs them")
+                regions = fc.frame_regions(image, label["R_cam_from_target"], label["t_cam_from_target_m"],
+                                           label["K"], g, windings)
+                to_fit = flag == "--data" and (held_paths or i % 2 == 0)
+                (fit if to_fit else held).append(regions)
+                bar.update(1)
+    bar.close()
+    try:
+        cue, record = fc.fit_and_temper(fit, held)
+    except ValueError as err:
+        raise InputError(f"--data: {err}") from None
+    record["data"] = " ".join(os.path.abspath(d) for d in args.data)
+    record["held_out"] = " ".join(os.path.abspath(d) for d in held_paths) or "the odd frames of data"
+    with_metadata(args.weights, args.out, {"face_cue": cue.to_json(),
+                                           "face_cue_record": json.dumps(record, sort_keys=True)})
+    print(f"face cue: {record['fit_regions']} regions fitted; on {record['held_out_frames_with_a_face']} held-out "
+          f"frames: right {record['right_share']:.1%}, decided {record['decided_share_at_0.1']:.1%} "
+          f"(wrongly {record['decided_wrong_share_at_0.1']:.1%}), temperature {record['temperature']:.3g}; "
+          f"wrote {args.out}")
     return 0
