@@ -198,23 +198,6 @@ def test_bad_appearance_or_camera_config_is_one_named_error(key, value, message)
     assert message in str(err.value)
 
 
-def test_plain_materials_follow_the_covering_classes():
-    """Sequence mode and the closed loop draw the MJCF's own materials: each face's grey level is its covering
-    class's (within 0.2 of the class's base grey), so +y/-y and +z/-z differ there as in the random looks."""
-    import xml.etree.ElementTree as ET
-
-    from envisat_pose.datagen.appearance import CLASSES
-    from envisat_pose.geometry import model_path
-
-    root = ET.parse(model_path()).getroot()
-    grey = lambda rgb: 0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]  # noqa: E731 (OpenCV's RGB2GRAY)
-    mats = {m.get("name"): [float(v) for v in m.get("rgba").split()[:3]] for m in root.iter("material")}
-    geoms = {g.get("name"): g.get("material") for g in root.iter("geom")}
-    for face in ("face_px", "face_mx", "face_py", "face_my", "face_pz", "face_mz"):
-        cls = GEOM_CLASS[face]
-        assert abs(grey(mats[geoms[face]]) - grey(CLASSES[cls].rgb)) < 0.2, (face, cls)
-
-
 def test_one_covering_draws_every_face_in_that_class(tmp_path):
     """appearance.one_covering: every face of the body in one class (labels, masks and depth unchanged, pixels
     not); an unknown class is a one-line error naming the field."""
