@@ -176,7 +176,11 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     if os.path.abspath(args.out) != os.path.abspath(args.weights):
         check_writable_output(args.out)
     paths = {d: shard_paths(d) for d in args.data}
+    if args.held_out and not args.face_cue:
+        raise InputError("--held-out belongs to --face-cue")
     if args.face_cue:
+        if args.refine or args.keep_scale or args.roi != "coarse":
+            raise InputError("--face-cue fits the appearance cue alone: drop --refine, --keep-scale and --roi")
         return fit_face_cue_cli(args, paths)
     sequences = all(is_sequence(d) for d in args.data)
     # the network's own covariances (scale 1), whatever the file carried before; the refinement's the same
@@ -248,10 +252,9 @@ def fit_face_cue_cli(args: argparse.Namespace, paths: dict) -> int:
     from envisat_pose.app.detect import camera_samples
     from envisat_pose.geometry import load_geometry
     from envisat_pose.perception import facecue as fc
+    from envisat_pose.perception.data import shard_paths
     from envisat_pose.perception.naming import face_windings
     from envisat_pose.perception.weights import with_metadata
-
-    from envisat_pose.perception.data import shard_paths
 
     g = load_geometry()
     windings = face_windings(g)

@@ -140,3 +140,14 @@ def test_calibrate_face_cue_reaches_the_detector(tmp_path):
     assert record["held_out_frames"] == 50 and record["fit_regions"] > 80
     det = load_detector(str(out))
     assert isinstance(det.face_cue, fc.FaceCue) and det.face_cue.temperature > 0
+
+
+def test_calibrate_face_cue_refuses_other_modes(tmp_path, tiny_dataset, capsys):
+    from envisat_pose.app.cli import main
+
+    w = tmp_path / "w.safetensors"
+    for extra, msg in ((["--face-cue", "--refine"], "drop --refine"), (["--held-out", tiny_dataset], "--face-cue")):
+        assert main(["calibrate", *extra, "--data", tiny_dataset, "--out", str(w), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert msg in err and len(err.strip().splitlines()) == 1, err
+    assert not w.exists()
