@@ -98,7 +98,7 @@ class TrackerConfig:
     "long_memory" or "white".
     correct_scale: undo the detector's measured apparent scale (error model's bias_scale) about the corners'
     centroid. Off by default: the scale depends on the look (measured on a held-out default sequence, seed 5:
-    range bias +0.6 cm without the correction, +9.3 cm with the shipped 1.0013).
+    range bias +0.6 cm without the correction, +9.3 cm with the then shipped 1.0013).
     """
 
     acquire_frames: int = 20

@@ -23,6 +23,16 @@ class OracleDetector(Detector):
         jchol = np.zeros((3, cells, cells), np.float32)
         return {"jmap": t["jmap"], "joff": t["joff"], "jchol": jchol, "features": None}
 
+    def patch_network(self, patches_u8, boxes):
+        out = []
+        for box in boxes:
+            cells = patches_u8.shape[-1] // self.stride
+            p = to_input_px(self.label["corners_px"], box, patches_u8.shape[-1])
+            valid = self.label["visible"] & self.label["in_frame"]
+            t = encode_junctions(p, valid, CORNER_JTYPE, (cells, cells), self.stride, sigma_cells=1.0)
+            out.append({"jmap": t["jmap"], "joff": t["joff"], "jchol": np.zeros((3, cells, cells), np.float32)})
+        return out
+
     def line_probabilities(self, features, points_in):
         return np.full((len(points_in), len(points_in)), 0.5)
 
@@ -82,8 +92,10 @@ def test_refinement_moves_named_corners_back_to_the_image(tmp_path):
     assert main(["generate", "--mode", "sequence", "--num-images", "6", "--resolution", "512", "--seed", "633",
                  "--out", str(ds), "--quiet"]) == 0
 
+    from envisat_pose.perception.detect import DetectConfig
+
     model = CornerNet(ModelConfig(input_px=128, width=16, depth=2, stem_width=8))
-    plain = ShiftedOracle(model)
+    plain = ShiftedOracle(model, DetectConfig(patch_px=0))  # the refinement alone (the patch pass would undo the shift)
     refined = ShiftedOracle(model, dataclasses.replace(plain.cfg, refine=True))
     moved, before, after = 0, [], []
     for key, image, label in read_samples(shard_paths(str(ds))):
@@ -121,3 +133,32 @@ def test_the_folded_network_gives_the_models_detections(tiny_dataset):
         a, b = det.detect(image, label["K"]), plain.detect(image, label["K"])
         np.testing.assert_array_equal(a.visible, b.visible)
         np.testing.assert_allclose(a.corners_px[a.visible], b.corners_px[b.visible], atol=1e-3)
+
+
+def test_patch_pass_finds_the_corners_again_magnified(tiny_dataset):
+    """The crop's network is 1 px off (the shifted oracle) and the magnified patches' is exact: the patch pass
+    puts every named corner back on the label and gives it the patch's covariance (1 input px^2 of a patch at
+    zoom 2 is 0.25 image px^2); off, the corners stay 1 px off."""
+    from envisat_pose.perception.detect import DetectConfig
+
+    model = CornerNet(ModelConfig(input_px=128, width=16, depth=2, stem_width=8))
+    off = ShiftedOracle(model, DetectConfig(patch_px=0))
+    on = ShiftedOracle(model, DetectConfig(patch_px=64, patch_zoom=2.0, cov_scale=1.0))
+    n = 0
+    for key, image, label in read_samples(shard_paths(tiny_dataset)):
+        want = label["visible"] & label["in_frame"]
+        if want.sum() < 4:
+            continue
+        off.label = on.label = label
+        f0, f1 = off.detect(image, label["K"]), on.detect(image, label["K"])
+        for f in (f0, f1):  # the naming may prefer the half-turn: score the naming that names the label
+            if f.ambiguous and np.nanmax(np.abs(f.alt_corners_px[want] - label["corners_px"][want])) < 1.5:
+                f.corners_px[:] = f.alt_corners_px
+        found = want & np.isfinite(f1.corners_px[:, 0])
+        assert found.sum() >= 4
+        np.testing.assert_allclose(f1.corners_px[found], label["corners_px"][found], atol=0.05)
+        err0 = np.abs(f0.corners_px[found, 0] - label["corners_px"][found, 0])
+        assert np.all(np.abs(err0 - 1.0) < 0.05)
+        np.testing.assert_allclose(f1.cov_px[found], np.broadcast_to(0.25 * np.eye(2), (found.sum(), 2, 2)), atol=1e-6)
+        n += 1
+    assert n >= 5
