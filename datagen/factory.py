@@ -134,7 +134,7 @@ class AppearanceConfig:
     seed: the appearance draws' own seed (mixed with each sample's): another seed, other looks, same poses.
     specular, shininess, reflectance: ranges of MuJoCo's material terms; brightness: multiplier range on each
     class's base brightness. one_covering: draw every face of the main body in this one covering class (a
-    target whose half-turn about x does not show: the face cue's test); None: each face its own class."""
+    target whose half-turn about x does not show by its coverings); None: each face its own class."""
 
     enabled: bool | None = None
     one_covering: str | None = None

@@ -245,8 +245,9 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
 
 
 def fit_face_cue_cli(args: argparse.Namespace, paths: dict) -> int:
-    """`envisat calibrate --face-cue`: the cue's regions under each frame's labelled pose, even frames of each
-    --data folder to fit, odd ones to temper and score; written into the weights' metadata."""
+    """`envisat calibrate --face-cue`: the cue's regions under each frame's labelled pose; --data fits it and
+    --held-out tempers and scores it (without --held-out: the even frames of each --data folder fit, the odd ones
+    temper); written into the weights' metadata."""
     from tqdm import tqdm
 
     from envisat_pose.app.detect import camera_samples
@@ -271,7 +272,7 @@ def fit_face_cue_cli(args: argparse.Namespace, paths: dict) -> int:
                                      "t_cam_from_target_m); the face cue needs them")
                 regions = fc.frame_regions(image, label["R_cam_from_target"], label["t_cam_from_target_m"],
                                            label["K"], g, windings)
-                to_fit = flag == "--data" and (held_paths or i % 2 == 0)
+                to_fit = flag == "--data" and (bool(held_paths) or i % 2 == 0)
                 (fit if to_fit else held).append(regions)
                 bar.update(1)
     bar.close()
