@@ -31,7 +31,9 @@ States (TrackEstimate.status):
   the gate rejected every corner for `lost_after_frames` frames with corners found: the bank is discarded and the
   tracker acquires again from the images (no covariance widening).
 
-The filter's R is the detector's calibrated covariance times an inflation for the errors' frame-to-frame
+The filter's R is the detector's calibrated covariance, rescaled to the error model's own scale (measured on
+held-out sequences in the loop's regime, where the errors are not those of the random views the detector's
+scale was fitted on: `sequence_scale`), times an inflation for the errors' frame-to-frame
 correlation, from the error model `envisat calibrate` measured and stored in the weights' metadata
 (`detector.error_model`: white noise plus an AR(1) part of share a and correlation time T). The inflation a
 filter needs depends on how many frames it averages (perception/errormodel.memory_inflation): with the
@@ -226,6 +228,15 @@ def detector_error_model(detector):
     return em if isinstance(em, ErrorModel) else ErrorModel()
 
 
+def sequence_scale(em, detector) -> float:
+    """em.cov_scale / the detector's cov_scale: the factor that takes the detector's covariance (calibrated on
+    random views) to the scale the error model measured on held-out sequences; 1 without a measured model."""
+    det_scale = getattr(getattr(detector, "cfg", None), "cov_scale", None)
+    if not em.n_frames or not det_scale or not em.cov_scale > 0:
+        return 1.0
+    return float(em.cov_scale / det_scale)
+
+
 def correlation_inflation(em, model: str, lam: float, dt_s: float) -> float:
     """The factor on the detector's covariance for the errors' frame-to-frame correlation (module doc): the error
     model em's white + AR(1) errors at frame interval dt_s (s) for a filter of memory lam in [0, 1]."""
@@ -293,6 +304,7 @@ class Tracker:
                     "max_step_s": self.fcfg.max_rk4_step_s}
         self.corners_T_m = load_geometry().corners_T_m
         self.error_model = detector_error_model(detector)
+        self.cov_factor = sequence_scale(self.error_model, detector)
         self.bias_scale = self.error_model.bias_scale if config.correct_scale else 1.0
         self.memory = window_memory(config.acquire_frames)  # until the filter's first update
         self.dt_s = 0.0  # the last frame interval, s
@@ -326,8 +338,10 @@ class Tracker:
 
     @property
     def inflation(self) -> float:
-        """The factor on the detector's covariance this frame (correlation_inflation at the filter's memory)."""
-        return correlation_inflation(self.error_model, self.cfg.correlation_model, self.memory, self.dt_s)
+        """The factor on the detector's covariance this frame: the sequences' scale times correlation_inflation
+        at the filter's memory."""
+        return self.cov_factor * correlation_inflation(self.error_model, self.cfg.correlation_model, self.memory,
+                                                       self.dt_s)
 
     def _detect(self, image, roi=None, R_prior=None, t_prior=None):
         t0 = time.perf_counter()

@@ -237,3 +237,17 @@ def test_the_filters_memory_is_the_share_of_its_past_it_keeps():
     P_post[3:6, 3:6] *= 0.01  # velocity: not what a frame measures
     assert filter_memory(P_prior, P_post) == pytest.approx(0.3)
     assert filter_memory(P_prior, -P_post) is None
+
+
+def test_the_filter_takes_the_sequences_covariance_scale():
+    """R = the detector's covariance x (the error model's scale, measured on held-out sequences / the detector's
+    own, fitted on random views) x the correlation inflation; 1 without a measured error model."""
+    from types import SimpleNamespace
+
+    from envisat_pose.perception.errormodel import ErrorModel
+    from envisat_pose.pipelines.tracker import sequence_scale
+
+    det = SimpleNamespace(cfg=SimpleNamespace(cov_scale=2.0))
+    assert sequence_scale(ErrorModel(cov_scale=1.5, n_frames=600), det) == pytest.approx(0.75)
+    assert sequence_scale(ErrorModel(cov_scale=1.5, n_frames=0), det) == 1.0  # not measured
+    assert sequence_scale(ErrorModel(cov_scale=1.5, n_frames=600), SimpleNamespace()) == 1.0  # a detector without one
