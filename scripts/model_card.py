@@ -83,11 +83,28 @@ def headline(evaluation: dict) -> dict:
     return out
 
 
+def tensors_sha256(path: str) -> str:
+    """sha256 of a safetensors file's tensors alone (their header entries, sorted, and the data bytes), not of its
+    metadata: the same for weights whose calibration alone was rewritten."""
+    import hashlib
+    import struct
+
+    with open(path, "rb") as fh:
+        (n,) = struct.unpack("<Q", fh.read(8))
+        header = json.loads(fh.read(n))
+        header.pop("__metadata__", None)
+        h = hashlib.sha256(json.dumps(header, sort_keys=True).encode())
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def weights_record(path: str) -> dict:
     """The card's weights entry: file, sha256, size, model config and the metadata written after training
     (cov_scale and its calibration; the error model and its record when present)."""
     meta = read_metadata(path)
-    out = {"file": os.path.basename(path), "sha256": sha256_file(path), "bytes": os.path.getsize(path),
+    out = {"file": os.path.basename(path), "sha256": sha256_file(path), "tensors_sha256": tensors_sha256(path),
+           "bytes": os.path.getsize(path),
            "model_config": json.loads(meta["model_config"]),
            "cov_scale": float(json.loads(meta.get("cov_scale", "1.0"))),
            "cov_calibration": json.loads(meta["cov_calibration"]) if "cov_calibration" in meta else None}
@@ -113,10 +130,13 @@ def training_time_s(runs: list[dict]) -> float:
 
 
 def refresh(a) -> int:
-    """--refresh: the card kept, its weights entry rewritten, datasets, evaluations and commands added."""
+    """--refresh: the card kept, its weights entry rewritten, datasets, evaluations and commands added. Weights
+    whose tensors are the card's (only their calibration metadata rewritten) keep the card's evaluations."""
     card = json.load(open(a.refresh, encoding="utf-8"))
     weights = weights_record(a.weights)
-    if card.get("weights", {}).get("sha256") != weights["sha256"]:
+    old = card.get("weights", {})
+    same = old.get("sha256") == weights["sha256"] or old.get("tensors_sha256") == weights["tensors_sha256"]
+    if not same:
         # other weights (a new training leg): what was measured of the old ones stays, under their sha256
         card.setdefault("previous_weights", []).append(
             {"sha256": card.get("weights", {}).get("sha256"), "evaluations": card.pop("evaluations", {}),

@@ -68,13 +68,14 @@ def collect_frames(detector, samples, limit: int | None = None, bar=None, roi: s
     """Per frame: key (T,), err_px (T, 8, 2) = detected - label of the usable corners named right within the
     match radius (NaN elsewhere; an ambiguous frame with its better naming), cov_px (T, 8, 2, 2) as the detector
     gives them (their names follow the naming), group (T,) the corruption group, scale (T,) the apparent scale
-    and radial_px (T, 8) (perception/errormodel.py). roi 'labels': detect in the labels' region of interest."""
+    and radial_px (T, 8) (perception/errormodel.py), R_cam_from_target (T, 3, 3) the labels' view. roi
+    'labels': detect in the labels' region of interest."""
     import numpy as np
 
     from envisat_pose.perception import errormodel as em
     from envisat_pose.perception import evaluate as ev
 
-    rows = {k: [] for k in ("key", "err_px", "cov_px", "group", "scale", "radial_px", "refined")}
+    rows = {k: [] for k in ("key", "err_px", "cov_px", "group", "scale", "radial_px", "refined", "R_cam_from_target")}
     for i, (key, image, label) in enumerate(samples):
         if limit is not None and i >= limit:
             break
@@ -99,6 +100,7 @@ def collect_frames(detector, samples, limit: int | None = None, bar=None, roi: s
         rows["scale"].append(em.apparent_scale(chosen, true[None], hit[None], wrong[None])[0])
         rows["radial_px"].append(em.radial_errors(chosen, true[None], hit[None])[0])
         rows["refined"].append(refined & hit)
+        rows["R_cam_from_target"].append(np.asarray(label["R_cam_from_target"], dtype=float))
         if bar is not None:
             bar.update(1)
     if not rows["key"]:
@@ -147,7 +149,8 @@ def sequence_input(frames: dict, dt_s: float) -> dict:
     order = np.argsort(frames["key"].astype(str), kind="stable")
     sigma = np.sqrt(np.abs(np.diagonal(frames["cov_px"], axis1=-2, axis2=-1)))
     return {"err_px": frames["err_px"][order], "sigma_px": sigma[order], "scale": frames["scale"][order],
-            "radial_px": frames["radial_px"][order], "dt_s": dt_s}
+            "radial_px": frames["radial_px"][order], "dt_s": dt_s,
+            "R_cam_from_target": frames["R_cam_from_target"][order]}
 
 
 def _print_groups(before: dict, after: dict) -> None:
@@ -233,6 +236,10 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
         print(f"rho_lag1 {model.rho_lag1:.3f}; fitted rho_k = {model.ar1_share:.3f} x {model.ar1_phi:.3f}^k: "
               f"inflation {model.inflation:.3f} (pure AR(1) from lag 1: {record['pure_ar1']['inflation']:.3f}; "
               f"measured r_k summed: {record['acf_inflation']:.3f}), correlation time {model.corr_time_s:.2f} s")
+        if model.corr_angle_rad > 0:
+            rates = ", ".join(f"{v:.2f}" for v in record["autocorr_by_angle"]["view_rate_deg_s"])
+            print(f"in the view's rotation: rho(theta) = {model.angle_share:.3f} x exp(-theta / "
+                  f"{np.degrees(model.corr_angle_rad):.1f} deg) (sequences turning at {rates} deg/s)")
         print(f"apparent scale {record['scale']['mean']:.5f} +- {record['scale']['se']:.5f} "
               f"({record['scale']['frames']} frames), radial error {record['radial_px']['mean']:+.3f} +- "
               f"{record['radial_px']['se']:.3f} px ({record['radial_px']['corners']} corners)")

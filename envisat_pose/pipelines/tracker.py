@@ -39,9 +39,13 @@ correlation, from the error model `envisat calibrate` measured and stored in the
 filter needs depends on how many frames it averages (perception/errormodel.memory_inflation): with the
 `correlation_model` "filter_memory" (default) the tracker reads its memory lambda from its own last update,
 lambda = (det P_post / det P_prior)^(1/6) over position and attitude (1 - K for a scalar filter), and takes
-tau(lambda) = 1 + 2 a phi lambda / (1 - phi lambda) with phi = exp(-dt / T) at the frame interval; the cold
-start's window of n frames uses lambda = (n - 1) / (n + 1), the exponential average of the same effective
-length. "long_memory" takes the limit lambda = 1 (conservative), "white" no inflation. A detector without an
+tau(lambda) = 1 + 2 a phi lambda / (1 - phi lambda). The errors' correlation falls with the view's rotation
+rather than with time (measured: `envisat calibrate` fits rho(theta) = a exp(-theta / theta_c) over the angle
+the view turned between two frames), so with `correlation_in` "rotation" (default) phi = exp(-|w_r| dt /
+theta_c) at the tracked rate |w_r| (the camera is fixed in C, so the view turns at the target's rate relative
+to C); while acquiring, before any rate is estimated, and with "time", phi = exp(-dt / T) at the frame interval
+from the model's time fit. The cold start's window of n frames uses lambda = (n - 1) / (n + 1), the exponential
+average of the same effective length. "long_memory" takes the limit lambda = 1 (conservative), "white" no inflation. A detector without an
 error model is taken at its covariance.
 """
 
@@ -62,10 +66,11 @@ from envisat_pose.geometry import PinholeCamera, load_geometry
 from envisat_pose.pipelines.acquisition import (BatchFit, FramePose, align_namings, appearance_log_likelihood,
                                                  batch_fit, half_turn_naming, half_turn_state, initial_guess,
                                                  pnp_state)
-from envisat_pose.state import MRP, N_STATE, POS
+from envisat_pose.state import MRP, N_STATE, POS, RATE
 
 STATUSES = ("acquiring", "tracking", "lost")
 CORRELATION_MODELS = ("filter_memory", "long_memory", "white")
+CORRELATION_IN = ("rotation", "time")
 POSE = np.r_[POS, MRP]  # the directions each frame measures: position and attitude
 # the covariance reported while acquiring (no filter yet): position m, velocity m/s, MRP, rate rad/s (1-sigma)
 ACQUIRING_SIGMA = (5.0, 1.0, 0.5, 0.1)
@@ -98,6 +103,8 @@ class TrackerConfig:
     lost_after_frames: frames in a row with every corner rejected that declare the track lost.
     correlation_model: how R allows for the errors' frame-to-frame correlation (module doc): "filter_memory",
     "long_memory" or "white".
+    correlation_in: what the correlation falls with between frames: "rotation" (the view's, at the tracked rate
+    |w_r|, where the error model measured it; time while acquiring, before a rate is estimated) or "time".
     correct_scale: undo the detector's measured apparent scale (error model's bias_scale) about the corners'
     centroid. Off by default: the scale depends on the look (measured on a held-out default sequence, seed 5:
     range bias +0.6 cm without the correction, +9.3 cm with the then shipped 1.0013).
@@ -123,6 +130,7 @@ class TrackerConfig:
     lost_after_frames: int = 10
     correct_scale: bool = False
     correlation_model: str = "filter_memory"
+    correlation_in: str = "rotation"
 
     def validate(self, prefix: str = "tracker") -> None:
         p = f"{prefix}." if prefix else ""
@@ -145,6 +153,8 @@ class TrackerConfig:
         check(self.lost_after_frames >= 1, f"{p}lost_after_frames", self.lost_after_frames, "at least 1 frame")
         check(self.correlation_model in CORRELATION_MODELS, f"{p}correlation_model", self.correlation_model,
               f"one of {', '.join(CORRELATION_MODELS)}")
+        check(self.correlation_in in CORRELATION_IN, f"{p}correlation_in", self.correlation_in,
+              f"one of {', '.join(CORRELATION_IN)}")
 
 
 @dataclass(frozen=True)
@@ -237,15 +247,22 @@ def sequence_scale(em, detector) -> float:
     return float(em.cov_scale / det_scale)
 
 
-def correlation_inflation(em, model: str, lam: float, dt_s: float) -> float:
+def correlation_inflation(em, model: str, lam: float, dt_s: float, rate_rad_s: float | None = None) -> float:
     """The factor on the detector's covariance for the errors' frame-to-frame correlation (module doc): the error
-    model em's white + AR(1) errors at frame interval dt_s (s) for a filter of memory lam in [0, 1]."""
-    from envisat_pose.perception.errormodel import memory_inflation, phi_at
+    model em's white + AR(1) errors at frame interval dt_s (s) for a filter of memory lam in [0, 1]. With the
+    view turning at rate_rad_s (rad/s) and a correlation in rotation in em, the AR(1) part's coefficient is that
+    of the angle turned in dt_s (errormodel.phi_at_rotation); otherwise that of the time (phi_at)."""
+    from envisat_pose.perception.errormodel import memory_inflation, phi_at, phi_at_rotation
 
-    if model == "white" or em.ar1_share <= 0.0:
+    if model == "white":
         return 1.0
-    phi = phi_at(em.ar1_phi, em.corr_time_s, dt_s)
-    return max(memory_inflation(em.ar1_share, phi, 1.0 if model == "long_memory" else lam), 1.0)
+    if rate_rad_s is not None and em.corr_angle_rad > 0.0:
+        a, phi = em.angle_share, phi_at_rotation(em.corr_angle_rad, rate_rad_s, dt_s)
+    else:
+        a, phi = em.ar1_share, phi_at(em.ar1_phi, em.corr_time_s, dt_s)
+    if a <= 0.0:
+        return 1.0
+    return max(memory_inflation(a, phi, 1.0 if model == "long_memory" else lam), 1.0)
 
 
 def window_memory(frames: int) -> float:
@@ -308,6 +325,7 @@ class Tracker:
         self.bias_scale = self.error_model.bias_scale if config.correct_scale else 1.0
         self.memory = window_memory(config.acquire_frames)  # until the filter's first update
         self.dt_s = 0.0  # the last frame interval, s
+        self.rate_rad_s: float | None = None  # the tracked |w_r| (the view's rotation rate), rad/s; None acquiring
         self.state: FilterState | None = None
         self.log_w = np.zeros(0)
         self.buffer: list[FramePose] = []
@@ -340,8 +358,9 @@ class Tracker:
     def inflation(self) -> float:
         """The factor on the detector's covariance this frame: the sequences' scale times correlation_inflation
         at the filter's memory."""
+        rate = self.rate_rad_s if self.cfg.correlation_in == "rotation" else None
         return self.cov_factor * correlation_inflation(self.error_model, self.cfg.correlation_model, self.memory,
-                                                       self.dt_s)
+                                                       self.dt_s, rate)
 
     def _detect(self, image, roi=None, R_prior=None, t_prior=None):
         t0 = time.perf_counter()
@@ -404,6 +423,7 @@ class Tracker:
         """Back to acquiring: the bank, the window and the memory dropped."""
         self.state, self.log_w, self.buffer, self.locked_frames = None, np.zeros(0), [], 0
         self.memory = window_memory(self.cfg.acquire_frames)
+        self.rate_rad_s = None
 
     def _start(self, x: np.ndarray, P: np.ndarray, t0: float, log_w: np.ndarray) -> None:
         self.state = init_state(x, P, t0, self.chaser_at(t0), self.fcfg)
@@ -440,6 +460,7 @@ class Tracker:
             self._reset()
             return est
         pos_sig, att_sig = prior_sigmas(prior[1][best])
+        self.rate_rad_s = float(np.linalg.norm(prior[0][best, RATE]))  # the view's rotation rate, predicted
         converged = bool(pos_sig < self.cfg.converged_pos_sigma_m and att_sig < self.cfg.converged_att_sigma_deg)
         H = self.state.mean.shape[0]
         z = np.full((H, 8, 2), np.nan)

@@ -128,3 +128,49 @@ def test_phi_at_another_frame_interval():
     assert em.phi_at(0.9, -2.0 / np.log(0.9), 2.0) == pytest.approx(0.9)
     assert em.phi_at(0.9, -2.0 / np.log(0.9), 4.0) == pytest.approx(0.81)
     assert em.phi_at(0.9, 0.0, 1.0) == 0.0
+
+
+def turning_views(rate_rad_s, n, dt_s=1.0):
+    """R_cam_from_target (n, 3, 3) of a view turning at rate_rad_s about a fixed tilted axis."""
+    from scipy.spatial.transform import Rotation
+
+    axis = np.array([0.3, -0.5, 0.81]) / np.linalg.norm([0.3, -0.5, 0.81])
+    base = Rotation.from_euler("xyz", [0.4, -1.1, 2.0])
+    return np.stack([(Rotation.from_rotvec(axis * rate_rad_s * dt_s * t) * base).as_matrix() for t in range(n)])
+
+
+def test_rotation_angles_of_a_constant_turn():
+    R = turning_views(np.radians(3.0), 30)
+    np.testing.assert_allclose(np.degrees(em.rotation_angles(R, 1)), 3.0, atol=1e-9)
+    np.testing.assert_allclose(np.degrees(em.rotation_angles(R, 7)), 21.0, atol=1e-9)
+
+
+def test_correlation_in_the_views_rotation_recovered_across_tumble_rates():
+    """Errors whose slow part decays with the angle the view turned (share a, angle theta_c), on sequences turning
+    at 1.5, 2.7 and 5 deg/s: the angle fit finds one (a, theta_c) for all; the time fit (one correlation time)
+    cannot, and phi_at_rotation gives each rate's per-frame coefficient."""
+    rng = np.random.default_rng(5)
+    a, theta_c = 0.4, np.radians(15.0)
+    seqs = []
+    for rate_deg in (1.5, 2.7, 5.0):
+        phi = np.exp(-np.radians(rate_deg) / theta_c)
+        for _ in range(3):
+            e = np.sqrt(a) * ar1(rng, phi, (8, 2), 500) + np.sqrt(1 - a) * rng.standard_normal((500, 8, 2))
+            e[rng.random((500, 8)) < 0.2] = np.nan
+            s = sequence(e)
+            s["dt_s"] = 1.0
+            s["R_cam_from_target"] = turning_views(np.radians(rate_deg), 500)
+            seqs.append(s)
+    model, record = em.measure(seqs, cov_scale=1.0, max_lag=10)
+    assert abs(model.angle_share - a) < 0.06
+    assert abs(np.degrees(model.corr_angle_rad) - 15.0) < 2.0
+    np.testing.assert_allclose(record["autocorr_by_angle"]["view_rate_deg_s"], [1.5] * 3 + [2.7] * 3 + [5.0] * 3,
+                               atol=1e-6)
+    assert em.phi_at_rotation(model.corr_angle_rad, np.radians(5.0), 1.0) < \
+        em.phi_at_rotation(model.corr_angle_rad, np.radians(1.5), 1.0)
+    assert em.phi_at_rotation(theta_c, np.radians(5.0), 2.0) == pytest.approx(np.exp(-np.radians(10.0) / theta_c))
+    assert em.phi_at_rotation(0.0, 1.0, 1.0) == 0.0
+    # without the views the model carries no angle fit
+    plain = [{k: v for k, v in s.items() if k != "R_cam_from_target"} for s in seqs]
+    model2, record2 = em.measure(plain, cov_scale=1.0, max_lag=10)
+    assert model2.corr_angle_rad == 0.0 and record2["autocorr_by_angle"] is None

@@ -157,6 +157,41 @@ def test_correlated_detector_errors_are_allowed_for_by_the_filters_memory(truth_
     assert means["white"] > 2.0 * means["filter_memory"], means
 
 
+class RotationCorrelatedTruthDetector(CorrelatedTruthDetector):
+    """The slow part decays with the angle the view turned (|w_r| dt per frame, correlation angle theta_c), not
+    with time; its error model carries that angle fit and a time fit measured at a slower tumble (30 s)."""
+
+    def __init__(self, truth, a=0.6, theta_c_rad=np.radians(8.0), **kw):
+        from envisat_pose.perception.errormodel import ErrorModel
+
+        super().__init__(truth, a=a, **kw)
+        self.theta_c = theta_c_rad
+        self.error_model = ErrorModel(ar1_share=a, ar1_phi=np.exp(-1.0 / 30.0), corr_time_s=30.0, angle_share=a,
+                                      corr_angle_rad=theta_c_rad)
+
+    def detect(self, image, K, **kw):
+        k = int(image[0, 0]) * 256 + int(image[0, 1])
+        self.phi = float(np.exp(-np.linalg.norm(self.truth.x[k, RATE]) * 1.0 / self.theta_c))  # 1 s frames
+        return super().detect(image, K, **kw)
+
+
+def test_the_correlation_falls_with_the_views_rotation_at_the_tracked_rate(truth_600):
+    """Errors correlated over the view's rotation (the measured kind): with the correlation taken in rotation at
+    the tracked rate the NEES is consistent; the same error model's time fit (measured at a slower tumble)
+    inflates R far beyond what these errors need (the same frames and errors)."""
+    from envisat_pose.filtering.estimator import nees
+
+    means = {}
+    for kind in ("rotation", "time"):
+        ests = run_tracker(truth_600, RotationCorrelatedTruthDetector(truth_600, seed=6), range(0, 300),
+                           TrackerConfig(correlation_in=kind))
+        assert all(e.status == "tracking" for e in ests[30:])
+        x_hat, P = np.array([e.x_hat for e in ests[60:]]), np.array([e.P for e in ests[60:]])
+        means[kind] = nees(truth_600.x[60:300], x_hat, P).mean()
+    assert 4.0 < means["rotation"] < 24.0, means
+    assert means["time"] < 0.6 * means["rotation"], means
+
+
 def test_black_frames_and_gaps_are_predictions_only(truth_600):
     """A frame with nothing found and a frame with no image keep the track (the filter predicts)."""
     class Blind(NoisyTruthDetector):
