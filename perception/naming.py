@@ -32,6 +32,7 @@ import numpy as np
 from envisat_pose.geometry import EDGES, TargetGeometry, load_geometry, visible_corners
 from envisat_pose.perception.heatmaps import CORNER_END, CORNER_JTYPE, N_JTYPES
 
+_EDGE_ENDS = (np.array([a for a, _ in EDGES]), np.array([b for _, b in EDGES]))
 HALF_TURNS = {"I": (1.0, 1.0, 1.0), "x": (1.0, -1.0, -1.0), "y": (-1.0, 1.0, -1.0), "z": (-1.0, -1.0, 1.0)}
 
 
@@ -98,9 +99,29 @@ class Naming:
     ambiguous: bool = False
 
 
+# per-geometry results of the functions below that depend on the geometry alone, computed once per geometry object
+# (a naming asks for them every frame): {(function name, id(geometry)): (geometry, result)}
+_GEOMETRY_CACHE: dict = {}
+
+
+def _cached(name: str, geometry: TargetGeometry, compute):
+    hit = _GEOMETRY_CACHE.get((name, id(geometry)))
+    if hit is None or hit[0] is not geometry:
+        hit = (geometry, compute(geometry))
+        if len(_GEOMETRY_CACHE) > 64:
+            _GEOMETRY_CACHE.clear()
+        _GEOMETRY_CACHE[(name, id(geometry))] = hit
+    return hit[1]
+
+
 def symmetry_permutations(geometry: TargetGeometry) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """For each half-turn g of HALF_TURNS: (perm (8,), S (3, 3), d (3,)) with corners[perm[k]] = S corners[k] + d:
     the pose (R S, t + R d) shows corner perm[k] where (R, t) shows corner k."""
+    cached = _cached("symmetry_permutations", geometry, _symmetry_permutations)
+    return {name: tuple(a.copy() for a in v) for name, v in cached.items()}
+
+
+def _symmetry_permutations(geometry: TargetGeometry) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     X = geometry.corners_T_m
     centre = X.mean(axis=0)
     out = {}
@@ -118,6 +139,10 @@ def symmetry_permutations(geometry: TargetGeometry) -> dict[str, tuple[np.ndarra
 def face_windings(geometry: TargetGeometry) -> np.ndarray:
     """(6, 4) corner indices of each face in the cyclic order of increasing image angle (y down) that every view
     from outside shows (perspective keeps a front-facing polygon's winding)."""
+    return _cached("face_windings", geometry, _face_windings).copy()
+
+
+def _face_windings(geometry: TargetGeometry) -> np.ndarray:
     X = geometry.corners_T_m
     out = []
     for k in range(6):
@@ -198,9 +223,11 @@ def _homographies(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 
 def _poses_from_faces(quads_px: np.ndarray, faces: np.ndarray, geometry: TargetGeometry,
-                      K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                      K: np.ndarray, face_index: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The two IPPE poses (Collins and Bartoli 2014) putting face corners faces (N, 4) (indices into A-H) on
-    quads_px (N, 4, 2): R (2N, 3, 3), t (2N, 3), solution s of hypothesis n at row 2 n + s.
+    quads_px (N, 4, 2): R (2N, 3, 3), t (2N, 3), solution s of hypothesis n at row 2 n + s. With face_index (N,),
+    faces is a table (F, 4) and hypothesis n puts face faces[face_index[n]] on its quadrilateral (the faces' own
+    frames are then computed once per face, not per hypothesis).
 
     A face lies in a plane of T: corners = o + X e1 + Y e2. The homography H of (X, Y) to normalized image
     coordinates has a Jacobian J at the face centre; in a camera turned so the centre's ray is its z axis
@@ -208,7 +235,7 @@ def _poses_from_faces(quads_px: np.ndarray, faces: np.ndarray, geometry: TargetG
     The block's columns complete to orthonormal 3-vectors only with gamma = 1 / d = the largest singular value
     of B and a third row +-b, b b^T = I - B^T B / gamma^2: the two signs are planar pose's two solutions (the
     flip that a nearly affine view of a small face cannot settle; the other corners do)."""
-    X = geometry.corners_T_m[faces]  # (N, 4, 3)
+    X = geometry.corners_T_m[faces]  # (N, 4, 3), or (F, 4, 3) with face_index
     o = X.mean(axis=1)
     e1 = X[:, 1] - X[:, 0]
     e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
@@ -217,6 +244,9 @@ def _poses_from_faces(quads_px: np.ndarray, faces: np.ndarray, geometry: TargetG
     e2 = np.cross(n, e1)
     d = X - o[:, None, :]
     plane = np.stack([np.einsum("nki,ni->nk", d, e1), np.einsum("nki,ni->nk", d, e2)], axis=-1)
+    E = np.stack([e1, e2, n], axis=-1)  # columns e1, e2, n
+    if face_index is not None:
+        o, plane, E = o[face_index], plane[face_index], E[face_index]
     Kinv = np.linalg.inv(K)
     norm = np.einsum("ij,nkj->nki", Kinv, np.concatenate([quads_px, np.ones(quads_px.shape[:2] + (1,))], -1))
     H = _homographies(plane, norm[..., :2] / norm[..., 2:])
@@ -235,18 +265,29 @@ def _poses_from_faces(quads_px: np.ndarray, faces: np.ndarray, geometry: TargetG
     evals, evecs = np.linalg.eigh(BtB)  # ascending
     gamma = np.sqrt(np.maximum(evals[:, 1], 1e-18))
     b = np.sqrt(np.clip(1.0 - evals[:, 0] / gamma ** 2, 0.0, 1.0))[:, None] * evecs[:, :, 0]
-    E = np.stack([e1, e2, n], axis=-1)  # columns e1, e2, n
     Rs, ts = [], []
     for sign in (1.0, -1.0):
         c12 = np.concatenate([B / gamma[:, None, None], sign * b[:, None, :]], axis=1)  # (N, 3, 2)
         Rp = np.concatenate([c12, np.cross(c12[:, :, 0], c12[:, :, 1])[:, :, None]], axis=2)
-        U, _, Vt = np.linalg.svd(Rp)  # clean up rounding: the nearest rotation
-        Rp = U @ Vt
+        Rp = _nearest_rotation(Rp)
         R = np.transpose(Rv, (0, 2, 1)) @ Rp @ np.transpose(E, (0, 2, 1))
         t = v / gamma[:, None] - np.einsum("nij,nj->ni", R, o)
         Rs.append(R)
         ts.append(t)
     return np.stack(Rs, axis=1).reshape(-1, 3, 3), np.stack(ts, axis=1).reshape(-1, 3)
+
+
+def _nearest_rotation(M: np.ndarray, tol: float = 1e-12) -> np.ndarray:
+    """The nearest rotation U V^T (SVD) of each matrix of M (N, 3, 3) whose columns are not orthonormal to tol;
+    the others, rotations to rounding already (IPPE's columns are orthonormal by construction), as they are:
+    they differ from their SVD's U V^T by rounding only, and a batched SVD costs most of the search's poses."""
+    dev = np.abs(np.transpose(M, (0, 2, 1)) @ M - np.eye(3)).max(axis=(1, 2))
+    off = ~(dev <= tol)  # NaN too
+    if off.any():
+        M = M.copy()
+        U, _, Vt = np.linalg.svd(M[off])
+        M[off] = U @ Vt
+    return M
 
 
 @dataclass(frozen=True)
@@ -259,7 +300,7 @@ def _score(R: np.ndarray, t: np.ndarray, cand: np.ndarray, K: np.ndarray, cues: 
            cfg: NamingConfig, image_size: tuple[int, int] | None, gate_px: float | None = None) -> dict[str, np.ndarray]:
     """Score N poses against M candidates with a gate of gate_px (default cfg.gate_px). Returns cost (N,) in
     nats and, per pose, visible (N, 8), match (N, 8) candidate index or -1, projected (N, 8, 2)."""
-    Xc = np.einsum("nij,kj->nki", R, geometry.corners_T_m) + t[:, None, :]
+    Xc = np.matmul(R, geometry.corners_T_m.T).transpose(0, 2, 1) + t[:, None, :]  # (N, 8, 3) corners in K
     front = Xc[..., 2] > 1e-3
     proj = np.einsum("ij,nkj->nki", K, Xc)
     proj = proj[..., :2] / np.where(front, proj[..., 2], 1.0)[..., None]
@@ -268,15 +309,21 @@ def _score(R: np.ndarray, t: np.ndarray, cand: np.ndarray, K: np.ndarray, cues: 
     if image_size is not None:
         w, h = image_size
         vis &= (proj[..., 0] > -0.5) & (proj[..., 0] < w - 0.5) & (proj[..., 1] > -0.5) & (proj[..., 1] < h - 0.5)
-    d2 = np.sum((proj[:, :, None, :] - cand[None, None, :, :]) ** 2, axis=-1)  # (N, 8, M)
-    d2 = np.where(np.isfinite(d2), d2, np.inf)
+    dx = proj[:, :, None, 0] - cand[None, None, :, 0]
+    dy = proj[:, :, None, 1] - cand[None, None, :, 1]
+    d2 = dx * dx  # (N, 8, M) squared distances
+    d2 += dy * dy
+    if np.isnan(proj).any():
+        d2[np.isnan(d2)] = np.inf
     j = np.argmin(d2, axis=2)
     dmin2 = np.take_along_axis(d2, j[..., None], axis=2)[..., 0]
     gate2 = (gate_px or cfg.gate_px) ** 2
     s2 = cfg.sigma_px ** 2 * (gate2 / cfg.gate_px ** 2)
     inlier = vis & (dmin2 < gate2)
     cost = np.sum(np.where(inlier, dmin2, np.where(vis, cfg.missed_weight * gate2, 0.0)), axis=1) / (2 * s2)
-    explained = np.any(vis[:, :, None] & (d2 < gate2), axis=1)  # (N, M)
+    near = d2 < gate2
+    near &= vis[:, :, None]
+    explained = np.any(near, axis=1)  # (N, M)
     cost += cfg.unexplained_weight * gate2 / (2 * s2) * np.sum(~explained, axis=1)
     match = np.where(inlier, j, -1)
     if cues.type_nll is not None:
@@ -287,11 +334,13 @@ def _score(R: np.ndarray, t: np.ndarray, cand: np.ndarray, K: np.ndarray, cues: 
         nll = nll - cfg.relative_cues * np.log(cues.type_nll.shape[1])
         cost += cfg.type_weight * np.sum(np.where(match >= 0, nll, 0.0), axis=1)
     if cues.line_nll is not None:
-        for a, b in EDGES:
-            ok = (match[:, a] >= 0) & (match[:, b] >= 0) & (match[:, a] != match[:, b])
-            nll = cues.line_nll[np.maximum(match[:, a], 0), np.maximum(match[:, b], 0)]
-            nll = nll - cfg.relative_cues * np.log(2.0)
-            cost += cfg.line_weight * np.where(ok, nll, 0.0)
+        ea, eb = _EDGE_ENDS
+        ma, mb = match[:, ea], match[:, eb]  # (N, 12) the candidates at each edge's ends
+        ok = (ma >= 0) & (mb >= 0) & (ma != mb)
+        nll = cues.line_nll[np.maximum(ma, 0), np.maximum(mb, 0)] - cfg.relative_cues * np.log(2.0)
+        term = cfg.line_weight * np.where(ok, nll, 0.0)
+        for e in range(len(ea)):  # edge by edge, in EDGES' order (the same sums as ever)
+            cost += term[:, e]
     return {"cost": cost, "visible": vis, "match": match, "projected": proj}
 
 
@@ -322,6 +371,18 @@ def _rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
+def _first_of_each_row(rows: np.ndarray) -> np.ndarray:
+    """The index of the first occurrence of each distinct row of rows (N, 8) of ints >= -1, in the order of
+    np.unique(rows, axis=0, return_index=True) (each row packed into one integer: cheaper than unique's rows)."""
+    base = int(rows.max(initial=-1)) + 2
+    if base ** rows.shape[1] >= 2 ** 62:
+        return np.unique(rows, axis=0, return_index=True)[1]
+    code = np.zeros(len(rows), np.int64)
+    for c in range(rows.shape[1]):  # the first column most significant: the rows' lexicographic order
+        code = code * base + (rows[:, c] + 1)
+    return np.unique(code, return_index=True)[1]
+
+
 def _search(cand: np.ndarray, K: np.ndarray, cues: _Cues, g: TargetGeometry, cfg: NamingConfig,
             image_size: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The best hypotheses from the image alone: every face (24 namings of its corners) on every candidate
@@ -342,7 +403,7 @@ def _search(cand: np.ndarray, K: np.ndarray, cues: _Cues, g: TargetGeometry, cfg
     faces = windings[:, rots].reshape(-1, 4)  # (24, 4): face f under rotation r
     qi = np.repeat(np.arange(len(quads_px)), len(faces))
     fi = np.tile(np.arange(len(faces)), len(quads_px))
-    R, t = _poses_from_faces(quads_px[qi], faces[fi], g, K)  # two per assignment
+    R, t = _poses_from_faces(quads_px[qi], faces, g, K, face_index=fi)  # two per assignment
     good = np.all(np.isfinite(R), axis=(1, 2)) & np.all(np.isfinite(t), axis=1) & (t[:, 2] > 0)
     R, t = R[good], t[good]
     if len(R) == 0:
@@ -352,7 +413,7 @@ def _search(cand: np.ndarray, K: np.ndarray, cues: _Cues, g: TargetGeometry, cfg
     if not enough.any():
         return None
     order = np.flatnonzero(enough)[np.argsort(s["cost"][enough], kind="stable")]
-    _, first = np.unique(s["match"][order], axis=0, return_index=True)  # one hypothesis per association
+    first = _first_of_each_row(s["match"][order])  # one hypothesis per association
     order = order[np.sort(first)][: cfg.refine_top]
     return R[order].copy(), t[order].copy(), s["match"][order]
 
