@@ -159,10 +159,13 @@ def crop_resize(image: np.ndarray, box: np.ndarray, out_px: int) -> np.ndarray:
     """The square crop box (x0, y0, side) of the image (zeros outside it), resized to out_px (area averaging)."""
     x0, y0, side = (int(v) for v in box)
     h, w = image.shape
-    canvas = np.zeros((side, side), dtype=image.dtype)
     xa, ya, xb, yb = max(x0, 0), max(y0, 0), min(x0 + side, w), min(y0 + side, h)
-    if xb > xa and yb > ya:
-        canvas[ya - y0:yb - y0, xa - x0:xb - x0] = image[ya:yb, xa:xb]
+    if (xa, ya, xb, yb) == (x0, y0, x0 + side, y0 + side):
+        canvas = image[y0:y0 + side, x0:x0 + side]  # inside the image: no copy
+    else:
+        canvas = np.zeros((side, side), dtype=image.dtype)
+        if xb > xa and yb > ya:
+            canvas[ya - y0:yb - y0, xa - x0:xb - x0] = image[ya:yb, xa:xb]
     interp = cv2.INTER_AREA if side >= out_px else cv2.INTER_LINEAR
     return cv2.resize(canvas, (out_px, out_px), interpolation=interp)
 

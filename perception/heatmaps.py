@@ -85,7 +85,13 @@ def decode_junctions(jmap: np.ndarray, joff: np.ndarray, stride: int, top_k: int
     h, w = best.shape
     r = nms_radius
     padded = np.pad(best, r, mode="constant", constant_values=-np.inf)
-    window = np.max([padded[dy:dy + h, dx:dx + w] for dy in range(2 * r + 1) for dx in range(2 * r + 1)], axis=0)
+    # the (2 r + 1)^2 window's maximum, separably: over the rows' shifts, then the columns'
+    rows_max = padded[:, 0:w].copy()
+    for dx in range(1, 2 * r + 1):
+        np.maximum(rows_max, padded[:, dx:dx + w], out=rows_max)
+    window = rows_max[0:h].copy()
+    for dy in range(1, 2 * r + 1):
+        np.maximum(window, rows_max[dy:dy + h], out=window)
     peak = (best >= window) & (best >= threshold)
     rows, cols = np.nonzero(peak)
     order = np.argsort(-best[rows, cols], kind="stable")[:top_k]
