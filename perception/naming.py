@@ -297,10 +297,38 @@ class _Cues:
     line_nll: np.ndarray | None  # (M, M) -log p(edge | pair)
 
 
+def _cost(d2: np.ndarray, dmin2: np.ndarray, vis: np.ndarray, inlier: np.ndarray, match: np.ndarray, cues: _Cues,
+          cfg: NamingConfig, gate2: float, s2: float) -> np.ndarray:
+    """_score's cost (N,) in nats of N poses from their squared distances d2 (N, 8, M) to the candidates."""
+    cost = np.sum(np.where(inlier, dmin2, np.where(vis, cfg.missed_weight * gate2, 0.0)), axis=1) / (2 * s2)
+    near = d2 < gate2
+    near &= vis[:, :, None]
+    explained = np.any(near, axis=1)  # (N, M)
+    cost += cfg.unexplained_weight * gate2 / (2 * s2) * np.sum(~explained, axis=1)
+    if cues.type_nll is not None:
+        jt = CORNER_JTYPE if cues.type_nll.shape[1] == N_JTYPES else CORNER_END
+        # relative to a type drawn at random (log J): a confident right type lowers the cost, so explaining one
+        # more candidate is not penalized for the cue itself
+        nll = cues.type_nll[np.where(match >= 0, match, 0), jt[None, :]]
+        nll = nll - cfg.relative_cues * np.log(cues.type_nll.shape[1])
+        cost += cfg.type_weight * np.sum(np.where(match >= 0, nll, 0.0), axis=1)
+    if cues.line_nll is not None:
+        ea, eb = _EDGE_ENDS
+        ma, mb = match[:, ea], match[:, eb]  # (N, 12) the candidates at each edge's ends
+        ok = (ma >= 0) & (mb >= 0) & (ma != mb)
+        nll = cues.line_nll[np.maximum(ma, 0), np.maximum(mb, 0)] - cfg.relative_cues * np.log(2.0)
+        term = cfg.line_weight * np.where(ok, nll, 0.0)
+        for e in range(len(ea)):  # edge by edge, in EDGES' order (the same sums as ever)
+            cost += term[:, e]
+    return cost
+
+
 def _score(R: np.ndarray, t: np.ndarray, cand: np.ndarray, K: np.ndarray, cues: _Cues, geometry: TargetGeometry,
-           cfg: NamingConfig, image_size: tuple[int, int] | None, gate_px: float | None = None) -> dict[str, np.ndarray]:
+           cfg: NamingConfig, image_size: tuple[int, int] | None, gate_px: float | None = None,
+           min_matches: int = 0) -> dict[str, np.ndarray]:
     """Score N poses against M candidates with a gate of gate_px (default cfg.gate_px). Returns cost (N,) in
-    nats and, per pose, visible (N, 8), match (N, 8) candidate index or -1, projected (N, 8, 2)."""
+    nats and, per pose, visible (N, 8), match (N, 8) candidate index or -1, projected (N, 8, 2). min_matches:
+    the cost of a pose that matches fewer corners is inf (not computed)."""
     Xc = np.matmul(R, geometry.corners_T_m.T).transpose(0, 2, 1) + t[:, None, :]  # (N, 8, 3) corners in K
     front = Xc[..., 2] > 1e-3
     proj = np.einsum("ij,nkj->nki", K, Xc)
@@ -321,27 +349,13 @@ def _score(R: np.ndarray, t: np.ndarray, cand: np.ndarray, K: np.ndarray, cues: 
     gate2 = (gate_px or cfg.gate_px) ** 2
     s2 = cfg.sigma_px ** 2 * (gate2 / cfg.gate_px ** 2)
     inlier = vis & (dmin2 < gate2)
-    cost = np.sum(np.where(inlier, dmin2, np.where(vis, cfg.missed_weight * gate2, 0.0)), axis=1) / (2 * s2)
-    near = d2 < gate2
-    near &= vis[:, :, None]
-    explained = np.any(near, axis=1)  # (N, M)
-    cost += cfg.unexplained_weight * gate2 / (2 * s2) * np.sum(~explained, axis=1)
     match = np.where(inlier, j, -1)
-    if cues.type_nll is not None:
-        jt = CORNER_JTYPE if cues.type_nll.shape[1] == N_JTYPES else CORNER_END
-        # relative to a type drawn at random (log J): a confident right type lowers the cost, so explaining one
-        # more candidate is not penalized for the cue itself
-        nll = cues.type_nll[np.where(match >= 0, match, 0), jt[None, :]]
-        nll = nll - cfg.relative_cues * np.log(cues.type_nll.shape[1])
-        cost += cfg.type_weight * np.sum(np.where(match >= 0, nll, 0.0), axis=1)
-    if cues.line_nll is not None:
-        ea, eb = _EDGE_ENDS
-        ma, mb = match[:, ea], match[:, eb]  # (N, 12) the candidates at each edge's ends
-        ok = (ma >= 0) & (mb >= 0) & (ma != mb)
-        nll = cues.line_nll[np.maximum(ma, 0), np.maximum(mb, 0)] - cfg.relative_cues * np.log(2.0)
-        term = cfg.line_weight * np.where(ok, nll, 0.0)
-        for e in range(len(ea)):  # edge by edge, in EDGES' order (the same sums as ever)
-            cost += term[:, e]
+    if min_matches:  # the cost only where it is asked for (row by row: the same values)
+        rows = np.flatnonzero(np.sum(inlier, axis=1) >= min_matches)
+        cost = np.full(len(R), np.inf)
+        cost[rows] = _cost(d2[rows], dmin2[rows], vis[rows], inlier[rows], match[rows], cues, cfg, gate2, s2)
+    else:
+        cost = _cost(d2, dmin2, vis, inlier, match, cues, cfg, gate2, s2)
     return {"cost": cost, "visible": vis, "match": match, "projected": proj}
 
 
@@ -432,7 +446,7 @@ def _search(cand: np.ndarray, K: np.ndarray, cues: _Cues, g: TargetGeometry, cfg
         R, t = _poses_from_faces(quads_px[qi[rows]], faces, g, K, face_index=fi[rows])  # two per assignment
         good = np.all(np.isfinite(R), axis=(1, 2)) & np.all(np.isfinite(t), axis=1) & (t[:, 2] > 0)
         R, t = R[good], t[good]
-        return R, t, _score(R, t, cand, K, cues, g, cfg, image_size, cfg.coarse_gate_px)
+        return R, t, _score(R, t, cand, K, cues, g, cfg, image_size, cfg.coarse_gate_px, min_matches=4)
 
     shares = _in_parallel(poses, len(qi), workers)
     R, t = np.concatenate([sh[0] for sh in shares]), np.concatenate([sh[1] for sh in shares])
