@@ -529,10 +529,13 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
     Rb, tb = Rr[best], tr[best]
     # the four symmetric namings: the same image, told apart only by the cues and a prior
     sym = symmetry_permutations(g)
+    Rs = np.stack([Rb @ S for _, S, _ in sym.values()])
+    ts = np.stack([tb + Rb @ d for _, _, d in sym.values()])
+    s4 = _score(Rs, ts, cand, K, cues, g, cfg, image_size)  # the four at once (row by row: the same values)
     variants = {}
-    for name, (perm, S, d) in sym.items():
-        Rg, tg = Rb @ S, tb + Rb @ d
-        sg = _score(Rg[None], tg[None], cand, K, cues, g, cfg, image_size)
+    for n, name in enumerate(sym):
+        Rg, tg = Rs[n], ts[n]
+        sg = {k: v[n:n + 1] for k, v in s4.items()}
         logp = -sg["cost"][0]
         if prior_R_cam_from_target is not None:
             ang = _rotation_angle_deg(prior_R_cam_from_target, Rg)
