@@ -290,8 +290,7 @@ class Detector:
         edge = self.line_probabilities(out["features"], d["points_px"]) if self.cfg.line_verification else None
         naming = name_corners(pts, K, score=d["score"], type_prob=type_prob, edge_prob=edge, image_size=(w, h),
                               prior_R_cam_from_target=prior_R_cam_from_target, config=self.cfg.naming,
-                              geometry=self._geometry, prior_t_cam_from_target_m=prior_t_cam_from_target_m,
-                              workers=torch.get_num_threads())  # the network's cores share the search too
+                              geometry=self._geometry, prior_t_cam_from_target_m=prior_t_cam_from_target_m)
         if naming is None:
             return FrameDetection.missing(box)
         if self.face_cue is not None:  # the half-turn settled by what the swapped faces look like

@@ -24,7 +24,6 @@ prediction); otherwise both namings are returned with their probabilities and th
 from __future__ import annotations
 
 import itertools
-import os
 from dataclasses import dataclass
 
 import cv2
@@ -398,34 +397,11 @@ def _first_of_each_row(rows: np.ndarray) -> np.ndarray:
     return np.unique(code, return_index=True)[1]
 
 
-_POOL: dict = {}  # (pid, workers) -> ThreadPoolExecutor of workers - 1 threads (the caller's thread takes a share)
-
-
-def _in_parallel(fn, n: int, workers: int) -> list:
-    """[fn(slice) for the slices of range(n) in `workers` contiguous shares, in order], the shares run on that
-    many threads (numpy's loops and OpenCV release the GIL) where workers > 1; fn must work row by row, so that
-    the results do not depend on the split."""
-    workers = max(1, min(int(workers), n))
-    if workers == 1:
-        return [fn(slice(0, n))]
-    bounds = np.linspace(0, n, workers + 1).round().astype(int)
-    shares = [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
-    key = (os.getpid(), workers)  # a forked child gets its own threads
-    pool = _POOL.get(key)
-    if pool is None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        pool = _POOL[key] = ThreadPoolExecutor(workers - 1, thread_name_prefix="naming")
-    futures = [pool.submit(fn, sh) for sh in shares[1:]]
-    return [fn(shares[0])] + [f.result() for f in futures]
-
-
 def _search(cand: np.ndarray, K: np.ndarray, cues: _Cues, g: TargetGeometry, cfg: NamingConfig,
-            image_size: tuple[int, int] | None, workers: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+            image_size: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The best hypotheses from the image alone: every face (24 namings of its corners) on every candidate
     quadrilateral, both planar poses each, scored with the coarse gate; (R (N, 3, 3), t (N, 3), match (N, 8)) of
-    the refine_top best with a distinct association and at least 4 matched corners, or None. workers: threads
-    that share the poses and their scores (row by row: the same results)."""
+    the refine_top best with a distinct association and at least 4 matched corners, or None."""
     line_nll = cues.line_nll
     quads = _ordered_convex_quads(cand)
     if line_nll is not None and len(quads) > cfg.max_quads:  # a face is a cycle of 4 verified lines
@@ -441,18 +417,12 @@ def _search(cand: np.ndarray, K: np.ndarray, cues: _Cues, g: TargetGeometry, cfg
     faces = windings[:, rots].reshape(-1, 4)  # (24, 4): face f under rotation r
     qi = np.repeat(np.arange(len(quads_px)), len(faces))
     fi = np.tile(np.arange(len(faces)), len(quads_px))
-
-    def poses(rows: slice):
-        R, t = _poses_from_faces(quads_px[qi[rows]], faces, g, K, face_index=fi[rows])  # two per assignment
-        good = np.all(np.isfinite(R), axis=(1, 2)) & np.all(np.isfinite(t), axis=1) & (t[:, 2] > 0)
-        R, t = R[good], t[good]
-        return R, t, _score(R, t, cand, K, cues, g, cfg, image_size, cfg.coarse_gate_px, min_matches=4)
-
-    shares = _in_parallel(poses, len(qi), workers)
-    R, t = np.concatenate([sh[0] for sh in shares]), np.concatenate([sh[1] for sh in shares])
+    R, t = _poses_from_faces(quads_px[qi], faces, g, K, face_index=fi)  # two per assignment
+    good = np.all(np.isfinite(R), axis=(1, 2)) & np.all(np.isfinite(t), axis=1) & (t[:, 2] > 0)
+    R, t = R[good], t[good]
     if len(R) == 0:
         return None
-    s = {k: np.concatenate([sh[2][k] for sh in shares]) for k in shares[0][2]}
+    s = _score(R, t, cand, K, cues, g, cfg, image_size, cfg.coarse_gate_px, min_matches=4)
     enough = np.sum(s["match"] >= 0, axis=1) >= 4
     if not enough.any():
         return None
@@ -480,7 +450,7 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
                  type_prob: np.ndarray | None = None, edge_prob: np.ndarray | None = None,
                  image_size: tuple[int, int] | None = None, prior_R_cam_from_target: np.ndarray | None = None,
                  config: NamingConfig = NamingConfig(), geometry: TargetGeometry | None = None,
-                 prior_t_cam_from_target_m: np.ndarray | None = None, workers: int = 1) -> Naming | None:
+                 prior_t_cam_from_target_m: np.ndarray | None = None) -> Naming | None:
     """Fit the box to unnamed junction candidates and name them.
 
     points_px: (M, 2) candidate pixels. K: (3, 3) intrinsics of the same image. score: (M,) detection scores
@@ -490,8 +460,7 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
     prior_R_cam_from_target: (3, 3) a predicted attitude (R_K_from_T) that weighs the symmetric namings.
     prior_t_cam_from_target_m: (3,) m, with the attitude a predicted pose (T's origin in K): the fit starts from
     it alone instead of searching every face on every quadrilateral (a tracker's prediction; the search runs
-    when the pose matches fewer than 4 candidates). workers: threads that share the search's poses and the
-    refinements (the same results as one; e.g. the cores the caller's network uses).
+    when the pose matches fewer than 4 candidates).
     Returns the best Naming (with its half-turn alternative) or None when no hypothesis explains 4 candidates.
     """
     g = geometry or load_geometry()
@@ -512,17 +481,14 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
         start = _from_prior(np.asarray(prior_R_cam_from_target, float), np.asarray(prior_t_cam_from_target_m, float),
                             cand, K, cues, g, cfg, image_size)
     if start is None:
-        start = _search(cand, K, cues, g, cfg, image_size, workers)
+        start = _search(cand, K, cues, g, cfg, image_size)
     if start is None:
         return None
     Rr, tr, match = start
     for step, gate in enumerate((2 * cfg.gate_px, cfg.gate_px)):  # refine, re-associate with a tighter gate
-        def refine(rows: slice, step=step, match=match) -> None:
-            for n in range(len(Rr))[rows]:
-                Rr[n], tr[n] = _refine(Rr[n], tr[n], match[n], cand, K, g,
-                                       robust_px=cfg.coarse_gate_px / 4 if step == 0 else None)
-
-        _in_parallel(refine, len(Rr), workers if len(Rr) >= 8 else 1)
+        for n in range(len(Rr)):
+            Rr[n], tr[n] = _refine(Rr[n], tr[n], match[n], cand, K, g,
+                                   robust_px=cfg.coarse_gate_px / 4 if step == 0 else None)
         sr = _score(Rr, tr, cand, K, cues, g, cfg, image_size, gate)
         match = sr["match"]
     best = int(np.argmin(sr["cost"]))  # the first of equals

@@ -178,21 +178,3 @@ def test_views_with_missed_corners_are_named():
     print(rates)
     assert rates["default"] >= 0.8 and rates["default"] > rates["whole faces"] + 0.2  # measured 0.86 and 0.51
 
-
-def test_workers_share_the_work_with_the_same_result():
-    """The search's poses and the refinements split over threads (workers) give the one-thread result exactly."""
-    rng = np.random.default_rng(9)
-    for _ in range(6):
-        case = make_case(rng, n_spurious=3)
-        kw = dict(type_prob=case["type_prob"], edge_prob=_edge_prob(case), image_size=case["image_size"])
-        one = name_corners(case["points_px"], case["K"], **kw)
-        for workers in (2, 3):
-            many = name_corners(case["points_px"], case["K"], workers=workers, **kw)
-            assert (one is None) == (many is None)
-            if one is None:
-                continue
-            for a, b in ((one, many), (one.alternative, many.alternative)):
-                for field in ("corners_px", "projected_px", "visible", "matched", "candidate", "R_cam_from_target",
-                              "t_cam_from_target_m", "cost", "probability"):
-                    assert np.array_equal(getattr(a, field), getattr(b, field)), field
-            assert one.ambiguous == many.ambiguous
