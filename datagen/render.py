@@ -300,6 +300,7 @@ class SceneRenderer:
                             for c in look_classes(name) for k in range(self.texture_set_size)}
         self.corner_sites = np.array([m.site(f"corner_{c}").id for c in "ABCDEFGH"])
         self.target_geoms = np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] == self.target_body])
+        self._target_geom_set = {int(g) for g in self.target_geoms}
         self.target_boxes = target_boxes(m)  # the whole target as oriented boxes in T (keep-out, near plane)
         self.mask_lut = np.zeros(m.ngeom + 1, dtype=np.uint8)  # index geom id + 1; -1 (none) -> 0
         for name, value in MASK_VALUES.items():
@@ -535,11 +536,11 @@ class SceneRenderer:
         flags[mujoco.mjtRndFlag.mjRND_ADDITIVE] = True  # the one transparent geom (the Earth) drawn once
         flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows
         R_K_W, cam_W = self.camera_pose()
-        box = projected_bbox_px(self._target_hull_K_m(R_K_W, cam_W), self.K, n, self.znear_m) if labels else None
+        target_box = projected_bbox_px(self._target_hull_K_m(R_K_W, cam_W), self.K, n, self.znear_m)
+        box = target_box if labels else None
         # pass 1: the lit image, full frame
-        rgb = np.empty((n, n, 3), dtype=np.uint8)
         mujoco.mjr_render(self._rect, scn, self._con)
-        mujoco.mjr_readPixels(rgb, None, self._rect, self._con)
+        rgb = self._read_lit(scn, target_box)
         raw = ids_rgb = slot_value = None
         if box is not None:
             u0, v0, u1, v1 = box
@@ -602,6 +603,27 @@ class SceneRenderer:
             depth_m[v0 : v1 + 1, u0 : u1 + 1] = crop_depth
         return RenderOutput(gray_u8=gray, depth_m=depth_m, mask_u8=mask, corners_K_m=p.corners_K_m,
                             R_K_from_T=p.R_K_from_T, t_K_from_T_m=p.t_K_from_T_m, fovy_deg=self.fovy_deg)
+
+    def _read_lit(self, scn, target_box: tuple[int, int, int, int] | None) -> np.ndarray:
+        """The lit pass read back, (n, n, 3) uint8 in GL row order. When every geom drawn is the target's, the
+        pixels outside its box are the clear colour (black, no skybox): only the box is read (the same pixels,
+        a fraction of the read-back at range; tests/datagen/test_render.py compares with the full read) and the
+        rest is left 0. A scene with any other geom (the Earth) is read whole."""
+        n = self.resolution_px
+        only_target = all(scn.geoms[k].objtype == mujoco.mjtObj.mjOBJ_GEOM and scn.geoms[k].objid in self._target_geom_set
+                          for k in range(scn.ngeom))
+        if not only_target:
+            rgb = np.empty((n, n, 3), dtype=np.uint8)
+            mujoco.mjr_readPixels(rgb, None, self._rect, self._con)
+            return rgb
+        rgb = np.zeros((n, n, 3), dtype=np.uint8)
+        if target_box is not None:
+            u0, v0, u1, v1 = target_box
+            w, h = u1 - u0 + 1, v1 - v0 + 1
+            sub = np.empty((h, w, 3), dtype=np.uint8)
+            mujoco.mjr_readPixels(sub, None, mujoco.MjrRect(u0, n - 1 - v1, w, h), self._con)  # GL rows bottom-up
+            rgb[n - 1 - v1:n - v0, u0:u1 + 1] = sub
+        return rgb
 
     def render_rgb_only(self, view: View) -> np.ndarray:
         """The lit pass alone, read back as RGB (H, W, 3): the raw render the benchmark compares against."""

@@ -292,3 +292,31 @@ def test_sun_eclipse_and_earth_backdrop(renderer):
     background = lit.mask_u8 == 0
     assert np.array_equal(earth.mask_u8, lit.mask_u8) and np.array_equal(earth.depth_m, lit.depth_m)
     assert lit.gray_u8[background].mean() < 1 and earth.gray_u8[background].mean() > 20
+
+
+def test_the_lit_pass_reads_back_only_the_targets_box_with_the_same_pixels(renderer):
+    """Where only the target is drawn, the lit pass reads back its box alone and leaves the rest black: byte for
+    byte the full frame's read-back of the same render (views near and far, one clipped by the frame's edge, one
+    in eclipse); with the Earth in the scene the frame is read whole."""
+    import hashlib
+
+    import mujoco
+
+    from envisat_pose.datagen.render import projected_bbox_px
+
+    R = quat_to_rotmat(np.array([0.9, 0.3, -0.2, 0.25]) / np.linalg.norm([0.9, 0.3, -0.2, 0.25]))
+    views = random_views(5, seed=21) + [
+        View(np.array([6.0, 30.0, -3.0]), R, np.array([0.1, -1.0, 0.05])),  # off the boresight: clipped
+        View(np.array([0.0, 45.0, 0.0]), R, None),  # eclipse
+        View(np.array([0.0, 35.0, 0.0]), R, np.array([0.1, -1.0, 0.05]), earth_dir_C=np.array([0.0, 1.0, -0.3]))]
+    boxes = []
+    for v in views:
+        p = renderer.render_passes(v, labels=False)
+        full = np.empty((RES, RES, 3), np.uint8)
+        mujoco.mjr_readPixels(full, None, renderer._rect, renderer._con)  # the same framebuffer, whole
+        assert hashlib.sha256(p.rgb_u8.tobytes()).hexdigest() == hashlib.sha256(full.tobytes()).hexdigest()
+        R_K_W, cam_W = renderer.camera_pose()
+        boxes.append(projected_bbox_px(renderer._target_hull_K_m(R_K_W, cam_W), renderer.K, RES, renderer.znear_m))
+    areas = [(b[2] - b[0] + 1) * (b[3] - b[1] + 1) / RES**2 for b in boxes[:-1] if b is not None]
+    assert min(areas) < 0.5, areas  # the box read is a part of the frame, not all of it
+    assert p.rgb_u8[:4, :4].any() or p.rgb_u8.mean() > 5  # the Earth's frame was read whole, not left black
