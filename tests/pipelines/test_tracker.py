@@ -140,19 +140,22 @@ class CorrelatedTruthDetector(NoisyTruthDetector):
                               np.array([0.0, 0.0, 1024.0]), c[vis])
 
 
+def tracking_nees(truth, detector, cfg) -> float:
+    """The tracker's mean NEES over frames 60-299 of truth (cold start; tracking from frame 30 on, asserted)."""
+    from envisat_pose.filtering.estimator import nees
+
+    ests = run_tracker(truth, detector, range(0, 300), cfg)
+    assert all(e.status == "tracking" for e in ests[30:])
+    x_hat, P = np.array([e.x_hat for e in ests[60:]]), np.array([e.P for e in ests[60:]])
+    return float(nees(truth.x[60:300], x_hat, P).mean())
+
+
 def test_correlated_detector_errors_are_allowed_for_by_the_filters_memory(truth_600):
     """A detector whose errors are correlated from frame to frame (the measured kind: white plus a slow AR(1)):
     with R inflated for the filter's own memory the tracker's NEES is consistent; taken as white, it is
     over-confident by a wide margin (the same frames and errors)."""
-    from envisat_pose.filtering.estimator import nees
-
-    means = {}
-    for model in ("filter_memory", "white"):
-        ests = run_tracker(truth_600, CorrelatedTruthDetector(truth_600, seed=4), range(0, 300),
-                           TrackerConfig(correlation_model=model))
-        assert all(e.status == "tracking" for e in ests[30:])
-        x_hat, P = np.array([e.x_hat for e in ests[60:]]), np.array([e.P for e in ests[60:]])
-        means[model] = nees(truth_600.x[60:300], x_hat, P).mean()
+    means = {model: tracking_nees(truth_600, CorrelatedTruthDetector(truth_600, seed=4),
+                                  TrackerConfig(correlation_model=model)) for model in ("filter_memory", "white")}
     assert 4.0 < means["filter_memory"] < 24.0, means
     assert means["white"] > 2.0 * means["filter_memory"], means
 
@@ -179,15 +182,8 @@ def test_the_correlation_falls_with_the_views_rotation_at_the_tracked_rate(truth
     """Errors correlated over the view's rotation (the measured kind): with the correlation taken in rotation at
     the tracked rate the NEES is consistent; the same error model's time fit (measured at a slower tumble)
     inflates R far beyond what these errors need (the same frames and errors)."""
-    from envisat_pose.filtering.estimator import nees
-
-    means = {}
-    for kind in ("rotation", "time"):
-        ests = run_tracker(truth_600, RotationCorrelatedTruthDetector(truth_600, seed=6), range(0, 300),
-                           TrackerConfig(correlation_in=kind))
-        assert all(e.status == "tracking" for e in ests[30:])
-        x_hat, P = np.array([e.x_hat for e in ests[60:]]), np.array([e.P for e in ests[60:]])
-        means[kind] = nees(truth_600.x[60:300], x_hat, P).mean()
+    means = {kind: tracking_nees(truth_600, RotationCorrelatedTruthDetector(truth_600, seed=6),
+                                 TrackerConfig(correlation_in=kind)) for kind in ("rotation", "time")}
     assert 4.0 < means["rotation"] < 24.0, means
     assert means["time"] < 0.6 * means["rotation"], means
 
