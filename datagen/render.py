@@ -610,8 +610,8 @@ class SceneRenderer:
         a fraction of the read-back at range; tests/datagen/test_render.py compares with the full read) and the
         rest is left 0. A scene with any other geom (the Earth) is read whole."""
         n = self.resolution_px
-        only_target = all(scn.geoms[k].objtype == mujoco.mjtObj.mjOBJ_GEOM and scn.geoms[k].objid in self._target_geom_set
-                          for k in range(scn.ngeom))
+        only_target = all(scn.geoms[k].objtype == mujoco.mjtObj.mjOBJ_GEOM
+                          and scn.geoms[k].objid in self._target_geom_set for k in range(scn.ngeom))
         if not only_target:
             rgb = np.empty((n, n, 3), dtype=np.uint8)
             mujoco.mjr_readPixels(rgb, None, self._rect, self._con)

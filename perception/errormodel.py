@@ -96,8 +96,8 @@ class ErrorModel:
         raw = json.loads(text)
         names = {f.name: f.type for f in fields(ErrorModel)}
         kw = {k: v for k, v in raw.items() if k in names}
-        for k in ("cov_scale", "rho_lag1", "ar1_share", "ar1_phi", "inflation", "corr_time_s", "angle_share", "corr_angle_rad",
-                  "bias_scale", "bias_radial_px"):
+        for k in ("cov_scale", "rho_lag1", "ar1_share", "ar1_phi", "inflation", "corr_time_s", "angle_share",
+                  "corr_angle_rad", "bias_scale", "bias_radial_px"):
             if k in kw:
                 kw[k] = float(kw[k])
         if "n_frames" in kw:

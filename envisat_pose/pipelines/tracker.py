@@ -45,8 +45,8 @@ the view turned between two frames), so with `correlation_in` "rotation" (defaul
 theta_c) at the tracked rate |w_r| (the camera is fixed in C, so the view turns at the target's rate relative
 to C); while acquiring, before any rate is estimated, and with "time", phi = exp(-dt / T) at the frame interval
 from the model's time fit. The cold start's window of n frames uses lambda = (n - 1) / (n + 1), the exponential
-average of the same effective length. "long_memory" takes the limit lambda = 1 (conservative), "white" no inflation. A detector without an
-error model is taken at its covariance.
+average of the same effective length. "long_memory" takes the limit lambda = 1 (conservative), "white" no
+inflation. A detector without an error model is taken at its covariance.
 """
 
 from __future__ import annotations
