@@ -143,23 +143,11 @@ def acf_inflation(r: np.ndarray) -> float:
     return float(total)
 
 
-def fit_log_linear(x: np.ndarray, r: np.ndarray, w: np.ndarray) -> tuple[float, float] | None:
-    """(a, b) of r = a exp(b x) by least squares on log r, weighted by w, over the leading points with r > 0
-    (points with no weight or a non-finite r are skipped; the first r <= 0 ends the run): x, r, w (n,).
-    None with fewer than 2 such points."""
+def fit_log_linear(x: np.ndarray, r: np.ndarray, w: np.ndarray) -> tuple[float, float]:
+    """(a, b) of r = a exp(b x) by least squares on log r weighted by w: x, r (> 0), w (n,), n >= 2."""
     x, r, w = (np.asarray(v, float) for v in (x, r, w))
-    use = []
-    for j in range(len(r)):
-        if not (np.isfinite(r[j]) and w[j] > 0):
-            continue
-        if r[j] <= 0:
-            break
-        use.append(j)
-    if len(use) < 2:
-        return None
-    k = np.array(use)
-    A = np.stack([np.ones(len(k)), x[k]], axis=1) * np.sqrt(w[k])[:, None]
-    coef = np.linalg.lstsq(A, np.log(r[k]) * np.sqrt(w[k]), rcond=None)[0]
+    A = np.stack([np.ones(len(x)), x], axis=1) * np.sqrt(w)[:, None]
+    coef = np.linalg.lstsq(A, np.log(r) * np.sqrt(w), rcond=None)[0]
     return float(np.exp(coef[0])), float(coef[1])
 
 
