@@ -10,6 +10,7 @@ in this run: the RMS per axis of its correctly named corners), mean NEES (12 exp
 real-time factor of one run, and the detector's error model the tracker used.
 
 Run: .venv/bin/python bench/tracking.py [--runs 8] [--duration-s 600] [--scenarios default slow-tumble ...]
+     [--seed 11] [--correlation-in time|rotation]
 Floors (issue 16): every run converges within 120 s of its first lit frame; RMSE/PCRLB <= 2 per block; mean
 NEES in [6, 20]; |range bias| <= 1 cm at 50 m.
 """
@@ -32,7 +33,8 @@ CORRECT_PX = 10.0  # a detected corner within this of the truth counts as correc
 FLOORS = {"converge_s": 120.0, "rmse_over_pcrlb": 2.0, "nees": (6.0, 20.0), "range_bias_m": 0.01}
 
 
-def run_scenario(scenario: str, runs: int, duration_s: float, workers: int, seed: int, weights: str, out: str) -> dict:
+def run_scenario(scenario: str, runs: int, duration_s: float, workers: int, seed: int, weights: str, out: str,
+                 correlation_in: str = "time") -> dict:
     from envisat_pose.app.scenarios import job_defaults
     from envisat_pose.config import from_dict
     from envisat_pose.pipelines import closed_loop as loop
@@ -40,7 +42,8 @@ def run_scenario(scenario: str, runs: int, duration_s: float, workers: int, seed
 
     loop.stage_types()
     data = {"scenario": scenario, "duration_s": duration_s, "runs": runs, "workers": workers, "seed": seed,
-            "weights": weights, "filter": {**TRACKER_FILTER, **job_defaults(scenario).get("filter", {})}}
+            "weights": weights, "filter": {**TRACKER_FILTER, **job_defaults(scenario).get("filter", {})},
+            "tracker": {"correlation_in": correlation_in}}
     cfg = loop.finish_config(from_dict(loop.RunConfig, data))
     t0 = time.perf_counter()
     summary = loop.run_closed_loop(cfg, out, progress=False, sink=f"save:{os.path.join(out, 'recording.rrd')}")
@@ -121,6 +124,8 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
+    ap.add_argument("--correlation-in", choices=("time", "rotation"), default="time",
+                    help="the tracker's correlation_in (pipelines/tracker.TrackerConfig; default: its default)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "tracking.json"))
     args = ap.parse_args()
     from envisat_pose.app.run import default_weights_path
@@ -132,7 +137,8 @@ def main() -> None:
     result = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": sys.version.split()[0],
                           "load_avg_start": os.getloadavg()},
               "protocol": f"envisat run (cold start), {args.runs} runs per scenario, seed {args.seed}, "
-                          f"{args.duration_s:g} s ({ECLIPSE_DURATION_S:g} s for eclipse), 1 Hz, {args.workers} workers",
+                          f"{args.duration_s:g} s ({ECLIPSE_DURATION_S:g} s for eclipse), 1 Hz, {args.workers} workers, "
+                          f"tracker.correlation_in {args.correlation_in}",
               "weights": weights, "error_model": None if em is None else {k: getattr(em, k) for k in vars(em)},
               "floors": FLOORS, "scenarios": {}}
     print(f"cold-start tracking, {args.runs} runs per scenario (load {os.getloadavg()[0]:.1f} at start)")
@@ -142,7 +148,7 @@ def main() -> None:
     for scen in args.scenarios:
         dur = max(args.duration_s, ECLIPSE_DURATION_S) if scen == "eclipse" else args.duration_s
         with tempfile.TemporaryDirectory(prefix=f"tracking-{scen}-") as out:
-            summary = run_scenario(scen, args.runs, dur, args.workers, args.seed, weights, out)
+            summary = run_scenario(scen, args.runs, dur, args.workers, args.seed, weights, out, args.correlation_in)
             sigma = pixel_noise(out)
             ratio = ratios(out, summary, bound_blocks(out, sigma))
         s = summary["scores"]
