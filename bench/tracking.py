@@ -34,7 +34,7 @@ FLOORS = {"converge_s": 120.0, "rmse_over_pcrlb": 2.0, "nees": (6.0, 20.0), "ran
 
 
 def run_scenario(scenario: str, runs: int, duration_s: float, workers: int, seed: int, weights: str, out: str,
-                 correlation_in: str = "time") -> dict:
+                 correlation_in: str | None = None) -> dict:
     from envisat_pose.app.scenarios import job_defaults
     from envisat_pose.config import from_dict
     from envisat_pose.pipelines import closed_loop as loop
@@ -42,8 +42,9 @@ def run_scenario(scenario: str, runs: int, duration_s: float, workers: int, seed
 
     loop.stage_types()
     data = {"scenario": scenario, "duration_s": duration_s, "runs": runs, "workers": workers, "seed": seed,
-            "weights": weights, "filter": {**TRACKER_FILTER, **job_defaults(scenario).get("filter", {})},
-            "tracker": {"correlation_in": correlation_in}}
+            "weights": weights, "filter": {**TRACKER_FILTER, **job_defaults(scenario).get("filter", {})}}
+    if correlation_in is not None:  # else the tracker's default
+        data["tracker"] = {"correlation_in": correlation_in}
     cfg = loop.finish_config(from_dict(loop.RunConfig, data))
     t0 = time.perf_counter()
     summary = loop.run_closed_loop(cfg, out, progress=False, sink=f"save:{os.path.join(out, 'recording.rrd')}")
@@ -124,8 +125,8 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
-    ap.add_argument("--correlation-in", choices=("time", "rotation"), default="time",
-                    help="the tracker's correlation_in (pipelines/tracker.TrackerConfig; default: its default)")
+    ap.add_argument("--correlation-in", choices=("time", "rotation"),
+                    help="the tracker's correlation_in (default: TrackerConfig's, pipelines/tracker.py)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "tracking.json"))
     args = ap.parse_args()
     from envisat_pose.app.run import default_weights_path
@@ -138,7 +139,7 @@ def main() -> None:
                           "load_avg_start": os.getloadavg()},
               "protocol": f"envisat run (cold start), {args.runs} runs per scenario, seed {args.seed}, "
                           f"{args.duration_s:g} s ({ECLIPSE_DURATION_S:g} s for eclipse), 1 Hz, {args.workers} workers, "
-                          f"tracker.correlation_in {args.correlation_in}",
+                          f"tracker.correlation_in {args.correlation_in or 'default'}",
               "weights": weights, "error_model": None if em is None else {k: getattr(em, k) for k in vars(em)},
               "floors": FLOORS, "scenarios": {}}
     print(f"cold-start tracking, {args.runs} runs per scenario (load {os.getloadavg()[0]:.1f} at start)")

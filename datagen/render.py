@@ -538,7 +538,7 @@ class SceneRenderer:
         R_K_W, cam_W = self.camera_pose()
         target_box = projected_bbox_px(self._target_hull_K_m(R_K_W, cam_W), self.K, n, self.znear_m)
         box = target_box if labels else None
-        # pass 1: the lit image, full frame
+        # pass 1: the lit image, full frame (read back over the target's box where nothing else is drawn)
         mujoco.mjr_render(self._rect, scn, self._con)
         rgb = self._read_lit(scn, target_box)
         raw = ids_rgb = slot_value = None
@@ -607,7 +607,7 @@ class SceneRenderer:
     def _read_lit(self, scn, target_box: tuple[int, int, int, int] | None) -> np.ndarray:
         """The lit pass read back, (n, n, 3) uint8 in GL row order. When every geom drawn is the target's, the
         pixels outside its box are the clear colour (black, no skybox): only the box is read (the same pixels,
-        a fraction of the read-back at range; tests/datagen/test_render.py compares with the full read) and the
+        a fraction of the read-back at range; tests/datagen/test_render_labels.py compares with the full read) and the
         rest is left 0. A scene with any other geom (the Earth) is read whole."""
         n = self.resolution_px
         only_target = all(scn.geoms[k].objtype == mujoco.mjtObj.mjOBJ_GEOM
