@@ -43,6 +43,7 @@ from envisat_pose.contracts import Estimates, TruthTrajectory
 from envisat_pose.geometry import CORNER_NAMES, EDGES, PinholeCamera, load_camera, load_geometry, model_path
 from envisat_pose.io import atomic_path
 from envisat_pose.state import MRP, POS, RATE, VEL
+from envisat_pose.status import STATUSES as STATUS_NAMES  # the tracker's statuses by code
 
 from .stats import component_errors, display_transform
 
@@ -555,7 +556,6 @@ def read_recording(path: str) -> tuple[dict, dict]:
 
 # ---------------------------------------------------------------- a tracker's run, streamed frame by frame
 
-STATUS_NAMES = ("acquiring", "tracking", "lost")  # the tracker's statuses, logged as 0, 1, 2
 AXIS_RGB = ((230, 60, 60), (40, 170, 60), (60, 110, 240))  # x, y, z
 PLOT_BLOCKS = (("position_m", "position error (m)", POS, 1.0), ("velocity_m_s", "velocity error (m/s)", VEL, 1.0),
                ("attitude_deg", "attitude error (deg)", MRP, 180.0 / np.pi),

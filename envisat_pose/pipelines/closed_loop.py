@@ -34,7 +34,8 @@ import numpy as np
 
 from envisat_pose.config import check, from_dict, to_dict
 from envisat_pose.filtering.estimator import FilterConfig
-from envisat_pose.pipelines.tracker import STATUSES, TRACKER_FILTER, TrackerConfig
+from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
+from envisat_pose.status import ACQUIRING, LOST, STATUSES
 from envisat_pose.state import MRP, POS
 
 # per-frame stages timed: the MuJoCo truth (its share per frame), MuJoCo rendering, the space camera, the detector,
@@ -269,8 +270,8 @@ class RunRows:
         s["frames_skipped_eclipse"] += int(b["skipped"].sum())
         s["frames_roi"] += int(np.isfinite(b["roi_px"][:, 0]).sum())
         s["frames_ambiguous"] += int(b["ambiguous"].sum())
-        s["frames_acquiring"] += int((b["status"] == 0).sum())
-        s["frames_lost"] += int((b["status"] == 2).sum())
+        s["frames_acquiring"] += int((b["status"] == ACQUIRING).sum())
+        s["frames_lost"] += int((b["status"] == LOST).sum())
         self.start, self.n = self.start + self.n, 0
         self.buf = record_arrays(self.chunk)  # fresh defaults (NaN where a frame has no detection)
 

@@ -13,12 +13,12 @@ from __future__ import annotations
 import numpy as np
 
 from envisat_pose.state import BLOCKS, POS, error_magnitudes, error_summary
+from envisat_pose.status import TRACKING
 
 POS_TOL_M = 0.10
 ATT_TOL_DEG = 1.0
 
 
-TRACKING = 1  # the index of "tracking" in the tracker's STATUSES
 
 
 def converged_from(t_s: np.ndarray, pos_err_m: np.ndarray, att_err_deg: np.ndarray,

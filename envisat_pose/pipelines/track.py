@@ -24,7 +24,8 @@ import numpy as np
 from envisat_pose.config import InputError, check, load_toml
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera, load_camera
-from envisat_pose.pipelines.tracker import STATUSES, TRACKER_FILTER, TrackerConfig
+from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
+from envisat_pose.status import STATUSES
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 

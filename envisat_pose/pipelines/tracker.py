@@ -67,8 +67,8 @@ from envisat_pose.pipelines.acquisition import (BatchFit, FramePose, align_namin
                                                  batch_fit, half_turn_naming, half_turn_state, initial_guess,
                                                  pnp_state)
 from envisat_pose.state import MRP, N_STATE, POS, RATE
+from envisat_pose.status import STATUSES  # noqa: F401 (re-exported for callers of the tracker)
 
-STATUSES = ("acquiring", "tracking", "lost")
 CORRELATION_MODELS = ("filter_memory", "long_memory", "white")
 CORRELATION_IN = ("rotation", "time")
 POSE = np.r_[POS, MRP]  # the directions each frame measures: position and attitude
