@@ -4,12 +4,16 @@ Codes are what the per-frame arrays hold (`det.npz` / `est.npz` `status`, the cl
 `status` series); the names and their meanings travel with every output (`legend()`), so a file read without this
 package still says what 0, 1, 2, 3 mean. Codes never change meaning: a new status takes the next code.
 
-- acquiring (0): no estimate yet; the tracker is collecting frames for its cold start. No state is claimed.
-- tracking (1): the filter runs and its own evidence backs it this frame: corners were used, the innovations are
-  consistent with its covariance and the state is physical (pipelines/integrity.py).
+- acquiring (0): no claim: the tracker is collecting frames for its cold start, or a started bank has not yet
+  earned a claim (its half-turn still open, or not yet confirmed by its own innovations).
+- tracking (1): one confirmed hypothesis whose evidence backs it this frame: corners were used, its windowed
+  innovations are consistent with its covariance, its state is physical, and its 3-sigma is inside the claimed
+  accuracy (pipelines/integrity.py).
 - lost (2): the evidence contradicted the state this frame; the bank is dropped and acquisition starts again.
-- coasting (3): the filter predicts without a measurement this frame (no image, no corner found or every corner
-  rejected); the state is a prediction, its covariance grows, and after a limit the track is declared lost.
+- coasting (3): a confirmed track predicting without a usable measurement this frame (no image, no corner found,
+  every corner rejected) or with a covariance wider than the claim; a prediction, not a fix. Frames with an
+  image and no corner used are limited (then lost); frames without an image coast until the covariance is too
+  wide.
 """
 
 from __future__ import annotations
@@ -18,10 +22,12 @@ STATUSES = ("acquiring", "tracking", "lost", "coasting")
 ACQUIRING, TRACKING, LOST, COASTING = range(len(STATUSES))
 
 MEANINGS = {
-    "acquiring": "no estimate: collecting frames for the cold start (no state claimed)",
-    "tracking": "filter running and backed by this frame's corners: innovations consistent, state physical",
+    "acquiring": "no claim: collecting frames for the cold start, or a started track not yet confirmed",
+    "tracking": "one confirmed hypothesis backed by this frame's corners: innovations consistent, state physical, "
+                "3-sigma inside the claimed accuracy",
     "lost": "the evidence contradicted the state this frame: estimate dropped, acquisition restarts",
-    "coasting": "filter predicting without a usable measurement this frame: a prediction, not a fix",
+    "coasting": "a confirmed track predicting without a usable measurement (or wider than the claim): "
+                "a prediction, not a fix",
 }
 
 # the statuses whose rows hold a filter estimate (mean and covariance of a running filter)

@@ -203,8 +203,10 @@ class FilterState:
     dropped by the visibility check never reach the gate: they neither count as rejections nor lock it).
     win_nis, win_dof (W, R): the NIS divergence window (ring buffer, slot k % W). diverged (R,) bool;
     repaired (R,) int: non-finite steps rolled back. The last step's outputs: n_meas (R,) corners used,
-    nis (R,), dof (R,) measured components used, rejected (R,) corners rejected by the gate, dropped (R,)
-    measured corners dropped by the visibility check.
+    nis (R,) (never negative: an update whose innovation covariance is not positive definite fails instead),
+    dof (R,) measured components used, rejected (R,) corners rejected by the gate, dropped (R,) measured corners
+    dropped by the visibility check, indefinite (R,) bool: the innovation covariance was not positive definite
+    (the update was refused and rolled back to the prediction, and the run flagged diverged).
     """
 
     t_s: float
@@ -225,6 +227,7 @@ class FilterState:
     dof: np.ndarray
     rejected: np.ndarray
     dropped: np.ndarray
+    indefinite: np.ndarray
 
 
 def chaser_states(r_m, rdot_m_s, theta_rad, thetadot_rad_s) -> np.ndarray:
@@ -245,7 +248,7 @@ def init_state(x0_hat: np.ndarray, P0: np.ndarray, t_s: float, chaser: np.ndarra
                        r_scale=np.ones(R), Q_adapt=np.zeros((R, 12, 12)), starved=np.zeros(R, dtype=bool),
                        locked=zeros_i, win_nis=np.zeros((W, R)), win_dof=np.zeros((W, R)),
                        diverged=np.zeros(R, dtype=bool), repaired=zeros_i, n_meas=zeros_i, nis=np.zeros(R),
-                       dof=zeros_i, rejected=zeros_i, dropped=zeros_i)
+                       dof=zeros_i, rejected=zeros_i, dropped=zeros_i, indefinite=np.zeros(R, dtype=bool))
 
 
 def _predict_step(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[np.ndarray, np.ndarray]:
@@ -306,6 +309,9 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
         bad = np.zeros(mean.shape[0], dtype=bool)
         if suspect.size:
             bad[suspect] = ~(np.isfinite(mean[suspect]).all(-1) & np.isfinite(cov[suspect]).all((-1, -2)))
+    # an innovation covariance that is not positive definite is a failed update, never a negative NIS
+    indefinite = np.asarray(up["indefinite"], dtype=bool)
+    bad = bad | indefinite | ~(np.isfinite(nis) & (nis >= 0.0))
     repaired, diverged = state.repaired, state.diverged
     if bad.any():
         fallback_ok = np.isfinite(mean_pred).all(-1) & np.isfinite(cov_pred).all((-1, -2))
@@ -317,6 +323,7 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
         diverged = diverged | bad
         nis = np.where(bad, 0.0, nis)
         dof = np.where(bad, 0, dof)
+        accepted = accepted & ~bad[:, None]  # a rolled-back update used no corner
     used = dof > 0
     r_scale = state.r_scale
     if cfg.adaptive_r:
@@ -345,7 +352,8 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
     return FilterState(t_s=float(meas.t_s), chaser=np.array(meas.chaser, dtype=float), k=k + 1, mean=mean, cov=cov,
                        r_scale=r_scale, Q_adapt=Q_adapt, starved=~used, locked=locked, win_nis=win_nis,
                        win_dof=win_dof, diverged=diverged, repaired=repaired, n_meas=accepted.sum(-1),
-                       nis=nis, dof=dof, rejected=rejected, dropped=(measured & ~mask_k).sum(-1))
+                       nis=nis, dof=dof, rejected=rejected, dropped=(measured & ~mask_k).sum(-1),
+                       indefinite=indefinite)
 
 
 @functools.lru_cache(maxsize=8)
@@ -380,7 +388,7 @@ def _update(mean, cov, z, measured, R_c, r_scale, thr, setup: FilterSetup) -> di
     mean, cov, info = update(mean, cov, z, mask_k, Rk, setup.hx, setup.weights, thr)
     return {"mean": mean, "cov": cov, "nis": info.nis, "dof": info.dof, "accepted": info.accepted, "mask_k": mask_k,
             "Ky": np.einsum("rij,rj->ri", info.K, info.y), "yy": np.einsum("ri,ri->r", info.y, info.y),
-            "trPzz": np.einsum("rii->r", info.Pzz_state)}
+            "trPzz": np.einsum("rii->r", info.Pzz_state), "indefinite": info.indefinite}
 
 
 def run_filter(x0_hat: np.ndarray, P0: np.ndarray, t_s: np.ndarray, chaser: np.ndarray, z: np.ndarray,

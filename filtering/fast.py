@@ -789,7 +789,7 @@ def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarra
     per-corner covariance, used as R_c * r_scale (R,); thr (R,) gate bound per run (inf: open) or None (no
     gate); setup: the estimator's FilterSetup (kind, camera, weights). Returns a dict of mean, cov, nis, dof,
     accepted (R, 8), mask_k (R, 8) (the corners the gate saw), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,),
-    suspect (k,) the runs the numpy filter redid (the only ones whose results may be non-finite)."""
+    indefinite (R,) bool (the innovation covariance was not positive definite: the update failed), suspect (k,) the runs the numpy filter redid (the only ones whose results may be non-finite)."""
     from envisat_pose.filtering.measurements import MIN_DEPTH_M
 
     mean = np.ascontiguousarray(mean, dtype=float)
@@ -809,6 +809,7 @@ def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarra
            "mask_k": np.empty((R, 8), dtype=bool)}
     ok = np.empty(R, dtype=bool)
     out["suspect"] = np.zeros(0, dtype=np.int64)  # runs the numpy filter redid (the kernel's are finite)
+    out["indefinite"] = np.zeros(R, dtype=bool)  # runs whose innovation covariance was not positive definite
     update_kernel(mean, cov, z, measured, R_c, r_scale, thr_a, use_gate, bool(vis_check), w.Wm, w.Wc,
                   float(w.n + w.lam), kind, corners, fn, fh, fc, cR, cpos, f, cu, cv, float(MIN_DEPTH_M),
                   out["mean"], out["cov"], out["nis"], out["accepted"], out["mask_k"], out["Ky"], out["yy"],
@@ -830,5 +831,6 @@ def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarra
         out["Ky"][bad] = np.einsum("rij,rj->ri", info.K, info.y)
         out["yy"][bad] = np.einsum("ri,ri->r", info.y, info.y)
         out["trPzz"][bad] = np.einsum("rii->r", info.Pzz_state)
+        out["indefinite"][bad] = info.indefinite
     out["dof"] = out["accepted"].sum(-1) * m
     return out

@@ -139,15 +139,23 @@ def ut_predict(mean: np.ndarray, cov: np.ndarray, fx: Callable[[np.ndarray], np.
     return m, repair_cov(P)[0]
 
 
-def _safe_inv(S: np.ndarray) -> np.ndarray:
-    """Batched inverse that never raises: a non-finite or singular S gives NaN for its run (rolled back later)."""
+def positive_definite(S: np.ndarray) -> np.ndarray:
+    """(...,) bool: S (..., M, M) is finite, symmetric to rounding and positive definite (its smallest eigenvalue
+    above rounding of its largest)."""
     finite = np.isfinite(S).all(axis=(-1, -2))
-    S_ok = np.where(finite[..., None, None], S, np.eye(S.shape[-1]))
-    try:
-        SI = np.linalg.inv(S_ok)
-    except np.linalg.LinAlgError:
-        SI = np.linalg.pinv(S_ok, hermitian=True)
-    return np.where(finite[..., None, None], SI, np.nan)
+    S_ok = np.where(finite[..., None, None], 0.5 * (S + np.swapaxes(S, -1, -2)), np.eye(S.shape[-1]))
+    w = np.linalg.eigvalsh(S_ok)
+    return finite & (w[..., 0] > 1e-12 * np.maximum(np.abs(w[..., -1]), 1e-300))
+
+
+def _safe_inv(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched inverse that never raises, and which runs it is valid for: an innovation covariance S that is not
+    positive definite (non-finite, singular or indefinite) gives NaN for its run, so its update fails (rolled back
+    and reported by the estimator) instead of producing a negative NIS. Returns (S^-1, pd (...,) bool)."""
+    pd = positive_definite(S)
+    S_ok = np.where(pd[..., None, None], S, np.eye(S.shape[-1]))
+    SI = np.linalg.inv(S_ok)
+    return np.where(pd[..., None, None], SI, np.nan), pd
 
 
 def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray, Rm: np.ndarray,
@@ -158,7 +166,8 @@ def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray
     z (..., M), mask (..., M) bool, Rm (..., M, M) noise covariance; hx maps sigma points (..., S, n) ->
     (..., S, M). Unused components get zero innovation and unit variance, which is exactly the update on the
     used subset. gate: optional callable (y, S_full, mask) -> mask applied before the update.
-    Returns (mean, cov, nis, mask, y, K, Pzz) with Pzz the state part of the innovation covariance.
+    Returns (mean, cov, nis, mask, y, K, Pzz, pd) with Pzz the state part of the innovation covariance and pd
+    (...,) bool: the innovation covariance was positive definite (elsewhere mean, cov and nis are NaN).
     """
     M = z.shape[-1]
     sig = sigma_points(mean, cov, w)
@@ -173,14 +182,14 @@ def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray
         mask = gate(np.where(mask, y_all, 0.0), Pzz + Rm, mask)
     m2 = mask[..., :, None] & mask[..., None, :]
     S = np.where(m2, Pzz + Rm, np.eye(M))                          # innovation covariance
-    SI = _safe_inv(S)
+    SI, pd = _safe_inv(S)
     Pxz = Pxz * mask[..., None, :]
     y = np.where(mask, y_all, 0.0)
     K = Pxz @ SI                                                   # Kalman gain
     mean = mean + (K @ y[..., None])[..., 0]
     cov = cov - K @ S @ np.swapaxes(K, -1, -2)
-    nis = (y[..., None, :] @ SI @ y[..., :, None])[..., 0, 0]
-    return mean, cov, nis, mask, y, K, np.where(m2, Pzz, 0.0)
+    nis = (y[..., None, :] @ SI @ y[..., :, None])[..., 0, 0]  # >= 0 where pd; NaN (a failed update) elsewhere
+    return mean, cov, nis, mask, y, K, np.where(m2, Pzz, 0.0), pd
 
 
 def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: np.ndarray, w: SigmaWeights,
@@ -202,7 +211,8 @@ def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: n
 @dataclass
 class UpdateInfo:
     """What an update saw, per run: nis (...,), dof (...,) measured components used, accepted (..., 8) corners,
-    innovation y (..., M) and gain K (..., n, M) (zero where a component was not used), Pzz_state (..., M, M)."""
+    innovation y (..., M) and gain K (..., n, M) (zero where a component was not used), Pzz_state (..., M, M);
+    indefinite (...,) bool: the innovation covariance was not positive definite (the update failed: NaN)."""
 
     nis: np.ndarray
     dof: np.ndarray
@@ -210,6 +220,7 @@ class UpdateInfo:
     y: np.ndarray
     K: np.ndarray
     Pzz_state: np.ndarray
+    indefinite: np.ndarray
 
 
 def block_diag_corners(cov_c: np.ndarray) -> np.ndarray:
@@ -257,9 +268,10 @@ def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask_c: np.ndarray,
     if gate_threshold is not None:
         gate = lambda y, S, mask: gate_corners(y, S, mask, m, gate_threshold)  # noqa: E731
     mask = np.repeat(np.asarray(mask_c, dtype=bool), m, axis=-1)
-    mean, cov, nis, mask, y, K, Pzz = ut_update(mean, cov, z.reshape(z.shape[:-2] + (M,)), mask, Rm, hx_flat, w,
-                                               state_residual, gate)
+    mean, cov, nis, mask, y, K, Pzz, pd = ut_update(mean, cov, z.reshape(z.shape[:-2] + (M,)), mask, Rm, hx_flat,
+                                                   w, state_residual, gate)
     mean, cov = shadow_switch(mean, cov)
     cov = repair_cov(cov)[0]
     accepted = mask.reshape(mask.shape[:-1] + (nc, m))[..., 0]
-    return mean, cov, UpdateInfo(nis=nis, dof=mask.sum(axis=-1), accepted=accepted, y=y, K=K, Pzz_state=Pzz)
+    return mean, cov, UpdateInfo(nis=nis, dof=mask.sum(axis=-1), accepted=accepted, y=y, K=K, Pzz_state=Pzz,
+                                  indefinite=~pd)

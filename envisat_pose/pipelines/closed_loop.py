@@ -200,7 +200,7 @@ def record_arrays(T: int) -> dict:
 def store_estimate(out: dict, k: int, est) -> None:
     """Row k of record_arrays from a TrackEstimate. While acquiring before any pose the state is NaN: it is kept
     as zeros with a NaN-free wide covariance so the Estimates contract (finite) holds; status says which."""
-    from envisat_pose.pipelines.tracker import ACQUIRING_SIGMA
+    from envisat_pose.pipelines.tracker_config import ACQUIRING_SIGMA
 
     if np.isfinite(est.x_hat).all():
         out["x_hat"][k], out["P"][k] = est.x_hat, est.P

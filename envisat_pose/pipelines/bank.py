@@ -1,0 +1,64 @@
+"""The tracker's bank of hypotheses: one run of the batched filter per open hypothesis (the half-turn twins of a
+cold start), their log weights, the naming each takes, and their pruning.
+
+Each frame every hypothesis takes the naming (the detector's or its half-turn) nearest its predicted corners and
+its log weight gains -cost/2 (cost ~ -2 log likelihood: the NIS, the gate's bound per rejected or dropped corner
+and dof x log of the adaptive R scale, so a hypothesis that explains its misfit by a larger R pays for it) plus
+the appearance log-likelihood of the naming it took, counted as one look per `appearance_frames` frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from envisat_pose.filtering.estimator import FilterState
+from envisat_pose.pipelines.acquisition import half_turn_naming
+
+
+def select_runs(state: FilterState, idx: np.ndarray) -> FilterState:
+    """The FilterState of the runs idx only (a bank of hypotheses pruned)."""
+    idx = np.asarray(idx)
+    out = {}
+    for f in dataclasses.fields(state):
+        v = getattr(state, f.name)
+        if f.name in ("win_nis", "win_dof"):
+            v = v[:, idx]
+        elif isinstance(v, np.ndarray) and f.name != "chaser":
+            v = v[idx]
+        out[f.name] = v
+    return FilterState(**out)
+
+
+def probabilities(log_w: np.ndarray) -> np.ndarray:
+    """(H,) normalized probabilities of log weights (H,)."""
+    if not log_w.size:
+        return log_w
+    w = np.exp(log_w - np.max(log_w))
+    return w / w.sum()
+
+
+def choose_namings(zd: np.ndarray, cd: np.ndarray, p_alt: float, uv_pred: np.ndarray, clip: float,
+                   appearance_frames: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per hypothesis, the naming nearest its predicted corners: zd (8, 2), cd (8, 2, 2) the detector's naming,
+    p_alt its half-turn probability, uv_pred (H, 8, 2) each hypothesis' predicted corners. Returns z (H, 8, 2),
+    cov (H, 8, 2, 2) (identity where not measured), namings (H,) (0 the detector's, 1 its half-turn) and the
+    appearance log-likelihoods (H,) of the namings taken (clipped to [clip, 1 - clip], over appearance_frames)."""
+    H = uv_pred.shape[0]
+    za, ca = half_turn_naming(zd, cd)
+    d0 = np.nanmean(np.linalg.norm(zd[None] - uv_pred, axis=-1), axis=-1)
+    d1 = np.nanmean(np.linalg.norm(za[None] - uv_pred, axis=-1), axis=-1)
+    namings = (d1 < d0).astype(int)
+    z = np.where(namings[:, None, None] == 1, za[None], zd[None])
+    cov = np.where(namings[:, None, None, None] == 1, ca[None], cd[None])
+    cov = np.where(np.isfinite(z).all(-1)[..., None, None], cov, np.eye(2))
+    pa = float(np.clip(p_alt, clip, 1.0 - clip))
+    appearance = np.where(namings == 1, np.log(pa), np.log1p(-pa)) / appearance_frames
+    return z, cov, namings.reshape(H), appearance
+
+
+def update_cost(new: FilterState, gate_bound: float) -> np.ndarray:
+    """(H,) ~ -2 log likelihood of each hypothesis' update: NIS, the gate's bound per rejected or dropped corner,
+    and dof x log of the adaptive R scale."""
+    return new.nis + gate_bound * (new.rejected + new.dropped) + new.dof * np.log(new.r_scale)

@@ -1,0 +1,177 @@
+"""Integrity monitoring: what the tracker's own evidence must show before it claims "tracking", checked every frame.
+
+No truth: every test reads what the tracker itself has, the filter's state and covariance, its innovations and
+the corners it was given, used and rejected.
+
+- A cold-start fit starts a hypothesis only if it kept most of its window's corners (`fit_problems`: the fit's
+  gate may reject at most `max_rejected_share` of the measured corners, and the kept ones must be at least
+  `acquire_min_corners` per frame on average), its reduced chi-square is inside its chi-square bound and its state
+  is physical (`state_problems`).
+- Each hypothesis carries a window of its last `integrity_window` frames (`EvidenceWindow`): the NIS and its
+  degrees of freedom, the corners given to the filter and those rejected. Every frame, a hypothesis fails when its
+  windowed NIS exceeds the chi-square bound of the window's degrees of freedom at `integrity_prob`, when the gate
+  rejected more than `max_rejected_share` of the corners it was given over the window, or when its state is not
+  physical. A failed hypothesis is dropped; the track is lost when none is left.
+- A state is physical when the target's centre is in front of the camera, farther than the box's own radius
+  (the camera cannot be inside the target) and near enough for the image to show the box
+  (`TrackerConfig.min_target_px`), its rate and speed inside the configured bounds, its covariance positive
+  definite and its position and attitude sigmas inside `lost_pos_sigma_share` x range and `lost_att_sigma_deg`.
+- A claim at the tracking accuracy (`claim_holds`): the 3-sigma position within `claim_pos_share` of the range and
+  the 3-sigma attitude within `claim_att_deg` (the same tolerances a benchmark scores a false lock by).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from envisat_pose.geometry import PinholeCamera
+from envisat_pose.state import MRP, POS, RATE, VEL
+
+
+@lru_cache(maxsize=256)
+def chi2_bound(prob: float, dof: int) -> float:
+    """The chi-square quantile a sum of dof squared standard normals exceeds with probability prob."""
+    from scipy.stats import chi2
+
+    return float(chi2.isf(prob, dof))
+
+
+def pose_sigmas(cov: np.ndarray) -> tuple[float, float]:
+    """(largest position sigma, m; largest attitude sigma, deg) of a covariance (12, 12); the MRP sigma is a
+    rotation angle of 4 sigma_p rad (small angles). NaN where the blocks are not finite."""
+    if not np.isfinite(cov).all():
+        return float("nan"), float("nan")
+    pos = float(np.sqrt(max(np.max(np.linalg.eigvalsh(cov[POS, POS])), 0.0)))
+    att = float(np.degrees(4.0 * np.sqrt(max(np.max(np.linalg.eigvalsh(cov[MRP, MRP])), 0.0))))
+    return pos, att
+
+
+def target_radius_m(corners_T_m: np.ndarray) -> float:
+    """The box's radius about the centre of mass, m: no camera can be nearer than this to the centre."""
+    return float(np.max(np.linalg.norm(corners_T_m, axis=-1)))
+
+
+def state_problems(x: np.ndarray, P: np.ndarray, camera: PinholeCamera, radius_m: float, cfg) -> list[str]:
+    """Why the state x (12,) with covariance P (12, 12) is not a physical track (empty when it is). cfg: the
+    TrackerConfig (min_target_px, max_rate_deg_s, max_speed_m_s, lost_pos_sigma_share, lost_att_sigma_deg)."""
+    from envisat_pose.filtering.measurements import to_camera_K
+
+    if not (np.isfinite(x).all() and np.isfinite(P).all()):
+        return ["the state or its covariance is not finite"]
+    out = []
+    depth_m = float(to_camera_K(x[POS], camera)[2])
+    range_m = float(np.linalg.norm(x[POS]))
+    max_range_m = camera.f_px * 2.0 * radius_m / cfg.min_target_px
+    if depth_m <= radius_m:
+        out.append(f"target not in front of the camera (depth {depth_m:.2f} m, the box's radius {radius_m:.2f} m)")
+    elif range_m > max_range_m:
+        out.append(f"range {range_m:.0f} m beyond the {max_range_m:.0f} m at which the box spans "
+                   f"{cfg.min_target_px:g} px")
+    rate = float(np.degrees(np.linalg.norm(x[RATE])))
+    if rate > cfg.max_rate_deg_s:
+        out.append(f"tumble rate {rate:.1f} deg/s beyond {cfg.max_rate_deg_s:g} deg/s")
+    speed = float(np.linalg.norm(x[VEL]))
+    if speed > cfg.max_speed_m_s:
+        out.append(f"relative speed {speed:.2f} m/s beyond {cfg.max_speed_m_s:g} m/s")
+    if np.linalg.eigvalsh(0.5 * (P + P.T)).min() <= 0.0:
+        out.append("covariance not positive definite")
+        return out
+    pos_sig, att_sig = pose_sigmas(P)
+    if pos_sig > cfg.lost_pos_sigma_share * max(range_m, radius_m):
+        out.append(f"position sigma {pos_sig:.3g} m beyond {cfg.lost_pos_sigma_share:.0%} of the {range_m:.1f} m range")
+    if att_sig > cfg.lost_att_sigma_deg:
+        out.append(f"attitude sigma {att_sig:.1f} deg beyond {cfg.lost_att_sigma_deg:g} deg")
+    return out
+
+
+def claim_holds(x: np.ndarray, P: np.ndarray, cfg) -> bool:
+    """The covariance backs a claim at the tracking accuracy: 3-sigma position within claim_pos_share of the
+    range and 3-sigma attitude within claim_att_deg."""
+    pos_sig, att_sig = pose_sigmas(P)
+    range_m = float(np.linalg.norm(x[POS]))
+    return bool(3.0 * pos_sig <= cfg.claim_pos_share * range_m and 3.0 * att_sig <= cfg.claim_att_deg)
+
+
+def fit_problems(fit, frames: int, cfg) -> list[str]:
+    """Why a cold-start BatchFit (pipelines/acquisition.py) over `frames` frames starts no hypothesis (empty when
+    it may): not valid, too many corners rejected, too few kept, a chi-square beyond its bound."""
+    if not fit.valid:
+        return ["the fit has no positive-definite covariance"]
+    kept = int(np.sum(fit.used))
+    measured = kept + int(fit.rejected)
+    out = []
+    if measured and fit.rejected > cfg.max_rejected_share * measured:
+        out.append(f"the fit rejected {fit.rejected} of {measured} corners (at most {cfg.max_rejected_share:.0%})")
+    if kept < cfg.acquire_min_corners * frames:
+        out.append(f"the fit kept {kept / frames:.1f} corners a frame (at least {cfg.acquire_min_corners})")
+    if fit.dof > 0 and fit.chi2 > chi2_bound(cfg.integrity_prob, int(fit.dof)):
+        out.append(f"the fit's chi-square {fit.chi2:.0f} beyond its bound {chi2_bound(cfg.integrity_prob, int(fit.dof)):.0f} "
+                   f"({fit.dof} dof)")
+    return out
+
+
+@dataclass(frozen=True)
+class EvidenceWindow:
+    """The last W frames of evidence of H hypotheses (ring buffers, slot k % W; never mutated).
+
+    nis, dof (H, W): each frame's NIS and its degrees of freedom (0 where no corner was used); given, rejected
+    (H, W): corners given to the filter and, of those, rejected by the gate or the visibility check; used (H, W)
+    bool: the frame used a corner; k: frames pushed so far."""
+
+    nis: np.ndarray
+    dof: np.ndarray
+    given: np.ndarray
+    rejected: np.ndarray
+    used: np.ndarray
+    k: int = 0
+
+    @staticmethod
+    def empty(H: int, W: int) -> "EvidenceWindow":
+        z = np.zeros((H, W))
+        return EvidenceWindow(z, z.copy(), z.copy(), z.copy(), np.zeros((H, W), bool))
+
+    def push(self, nis, dof, given, rejected) -> "EvidenceWindow":
+        """A new window with this frame's (H,) values in the oldest slot."""
+        s = self.k % self.nis.shape[1]
+        arrays = {}
+        for name, v in (("nis", nis), ("dof", dof), ("given", given), ("rejected", rejected)):
+            a = getattr(self, name).copy()
+            a[:, s] = np.asarray(v, dtype=float)
+            arrays[name] = a
+        used = self.used.copy()
+        used[:, s] = np.asarray(dof) > 0
+        return EvidenceWindow(**arrays, used=used, k=self.k + 1)
+
+    def select(self, idx: np.ndarray) -> "EvidenceWindow":
+        """The windows of hypotheses idx only."""
+        return dataclasses.replace(self, **{f: getattr(self, f)[idx] for f in ("nis", "dof", "given", "rejected",
+                                                                                "used")})
+
+    def used_frames(self) -> np.ndarray:
+        """(H,) frames of the window that used a corner."""
+        return self.used.sum(-1)
+
+
+def window_problems(win: EvidenceWindow, cfg) -> list[list[str]]:
+    """Per hypothesis, why its window contradicts it (empty lists where it does not): the windowed NIS beyond
+    its chi-square bound at cfg.integrity_prob, or more than cfg.max_rejected_share of the corners given
+    rejected (once the window holds at least acquire_min_corners given corners)."""
+    out = []
+    for h in range(win.nis.shape[0]):
+        p = []
+        d = int(win.dof[h].sum())
+        if d > 0:
+            bound = chi2_bound(cfg.integrity_prob, d)
+            if win.nis[h].sum() > bound:
+                p.append(f"innovations inconsistent: windowed NIS {win.nis[h].sum():.0f} beyond {bound:.0f} "
+                         f"({d} dof)")
+        given = float(win.given[h].sum())
+        if given >= cfg.acquire_min_corners and win.rejected[h].sum() > cfg.max_rejected_share * given:
+            p.append(f"the gate rejected {win.rejected[h].sum():.0f} of the last {given:.0f} corners "
+                     f"(at most {cfg.max_rejected_share:.0%})")
+        out.append(p)
+    return out

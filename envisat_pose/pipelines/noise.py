@@ -1,0 +1,89 @@
+"""The filter's measurement noise from the detector: its calibrated covariance taken to the error model's scale and
+inflated for the errors' frame-to-frame correlation at the filter's own memory (docs/design.md, "The tracker").
+
+The detector's error model (perception/errormodel.py, fitted by `envisat calibrate` on held-out sequences and stored
+in the weights' metadata) says how its normalized errors correlate from frame to frame: white noise plus an AR(1)
+part of share a and coefficient phi (per frame interval, from the time fit, or per angle the view turned, from the
+rotation fit). A filter that averages its frames with memory lambda misses the factor
+tau(lambda) = 1 + 2 a phi lambda / (1 - phi lambda) (errormodel.memory_inflation), which R takes here. The filter's
+memory is read from its own last update (`filter_memory`); the cold start's window of n frames uses the exponential
+average of the same effective length (`window_memory`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from envisat_pose.state import MRP, POS
+
+CORRELATION_MODELS = ("filter_memory", "long_memory", "white")
+CORRELATION_IN = ("rotation", "time")
+POSE = np.r_[POS, MRP]  # the directions each frame measures: position and attitude
+
+
+def detector_error_model(detector):
+    """The detector's ErrorModel (`envisat calibrate`), or the white default when it has none."""
+    from envisat_pose.perception.errormodel import ErrorModel
+
+    em = getattr(detector, "error_model", None)
+    return em if isinstance(em, ErrorModel) else ErrorModel()
+
+
+def sequence_scale(em, detector) -> float:
+    """em.cov_scale / the detector's cov_scale: the factor that takes the detector's covariance (calibrated on
+    random views) to the scale the error model measured on held-out sequences; 1 without a measured model."""
+    det_scale = getattr(getattr(detector, "cfg", None), "cov_scale", None)
+    if not em.n_frames or not det_scale or not em.cov_scale > 0:
+        return 1.0
+    return float(em.cov_scale / det_scale)
+
+
+def correlation_inflation(em, model: str, lam: float, dt_s: float, rate_rad_s: float | None = None) -> float:
+    """The factor on the detector's covariance for the errors' frame-to-frame correlation (module doc): the error
+    model em's white + AR(1) errors at frame interval dt_s (s) for a filter of memory lam in [0, 1]. With the
+    view turning at rate_rad_s (rad/s) and a correlation in rotation in em, the AR(1) part's coefficient is that
+    of the angle turned in dt_s (errormodel.phi_at_rotation); otherwise that of the time (phi_at)."""
+    from envisat_pose.perception.errormodel import memory_inflation, phi_at, phi_at_rotation
+
+    if model == "white":
+        return 1.0
+    if rate_rad_s is not None and em.corr_angle_rad > 0.0:
+        a, phi = em.angle_share, phi_at_rotation(em.corr_angle_rad, rate_rad_s, dt_s)
+    else:
+        a, phi = em.ar1_share, phi_at(em.ar1_phi, em.corr_time_s, dt_s)
+    if a <= 0.0:
+        return 1.0
+    return max(memory_inflation(a, phi, 1.0 if model == "long_memory" else lam), 1.0)
+
+
+def window_memory(frames: int) -> float:
+    """(n - 1) / (n + 1): the memory of the exponential average as long (in effective frames) as an equal-weight
+    window of n frames, the cold start's before the filter's first update."""
+    return (frames - 1.0) / (frames + 1.0)
+
+
+def filter_memory(P_prior: np.ndarray, P_post: np.ndarray) -> float | None:
+    """lambda = (det P_post / det P_prior)^(1/6) over position and attitude: the share of its past a filter keeps
+    after an update (1 - K in one dimension); None where either is not positive definite."""
+    try:
+        la = np.linalg.cholesky(P_prior[np.ix_(POSE, POSE)])
+        lb = np.linalg.cholesky(P_post[np.ix_(POSE, POSE)])
+    except np.linalg.LinAlgError:
+        return None
+    log_ratio = 2.0 * (np.sum(np.log(np.diag(lb))) - np.sum(np.log(np.diag(la))))  # log det P_post / det P_prior
+    return float(np.clip(np.exp(log_ratio / len(POSE)), 0.0, 1.0)) if np.isfinite(log_ratio) else None
+
+
+def detection_measurement(fd, inflation: float, scale: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """The filter's view of one FrameDetection: named corners (8, 2) (NaN where not found), their covariance
+    (8, 2, 2) x inflation, and the probability of the half-turn naming. The detector's measured apparent scale
+    (its corners sit scale x farther from their centroid than the labels) is undone about the centroid."""
+    z = np.asarray(fd.corners_px, dtype=float)
+    cov = np.asarray(fd.cov_px, dtype=float)
+    ok = np.asarray(fd.visible, bool) & np.isfinite(z).all(-1) & np.isfinite(cov).all((-1, -2))
+    z = np.where(ok[:, None], z, np.nan)
+    if ok.sum() >= 2 and scale != 1.0:
+        c = z[ok].mean(axis=0)
+        z = np.where(ok[:, None], c + (z - c) / scale, np.nan)
+    cov = np.where(ok[:, None, None], 0.5 * (cov + np.swapaxes(cov, -1, -2)) * inflation, np.nan)
+    return z, cov, float(np.clip(np.nan_to_num(fd.alt_probability), 0.0, 1.0))

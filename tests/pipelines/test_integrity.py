@@ -1,0 +1,129 @@
+"""Integrity tests of the tracker (pipelines/integrity.py), each against an independent computation or a planted
+failure: a fit that kept a handful of corners, a target behind the camera, a kilometre-wide covariance, an
+inconsistent window of innovations."""
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from envisat_pose.geometry import load_camera, load_geometry
+from envisat_pose.pipelines import integrity as ig
+from envisat_pose.pipelines.acquisition import BatchFit
+from envisat_pose.pipelines.tracker_config import TrackerConfig
+from envisat_pose.state import MRP, POS, RATE, VEL
+
+CFG = TrackerConfig()
+CAM = load_camera()
+RADIUS = ig.target_radius_m(load_geometry().corners_T_m)
+
+
+def good_state(range_m=50.0):
+    x = np.zeros(12)
+    x[POS] = [0.0, range_m, 0.0]  # along the default camera's boresight (+y of C)
+    x[MRP] = [0.1, -0.2, 0.05]
+    x[RATE] = np.radians([0.0, 2.7, 0.0])
+    # 1 cm, 1 mm/s, 0.2 deg (an MRP sigma of 0.2 deg / 4 rad), 1e-5 rad/s
+    P = np.diag([0.01**2] * 3 + [1e-3**2] * 3 + [(np.radians(0.2) / 4) ** 2] * 3 + [1e-5**2] * 3)
+    return x, P
+
+
+def test_a_physical_state_passes_and_claims():
+    x, P = good_state()
+    assert ig.state_problems(x, P, CAM, RADIUS, CFG) == []
+    assert ig.claim_holds(x, P, CFG)
+
+
+def test_a_target_behind_the_camera_is_not_a_track():
+    x, P = good_state()
+    x[POS] = [0.0, -50.0, 0.0]
+    assert any("not in front of the camera" in p for p in ig.state_problems(x, P, CAM, RADIUS, CFG))
+    x[POS] = [0.0, 0.5 * RADIUS, 0.0]  # the camera inside the box
+    assert any("not in front of the camera" in p for p in ig.state_problems(x, P, CAM, RADIUS, CFG))
+
+
+def test_ranges_rates_and_widths_beyond_their_bounds_are_refused():
+    x, P = good_state()
+    far = x.copy()
+    far[POS] = [0.0, CAM.f_px * 2 * RADIUS / CFG.min_target_px * 1.01, 0.0]  # the box under min_target_px
+    assert any("range" in p for p in ig.state_problems(far, P, CAM, RADIUS, CFG))
+    fast = x.copy()
+    fast[RATE] = np.radians([0.0, CFG.max_rate_deg_s * 1.1, 0.0])
+    assert any("tumble rate" in p for p in ig.state_problems(fast, P, CAM, RADIUS, CFG))
+    moving = x.copy()
+    moving[VEL] = [CFG.max_speed_m_s * 1.1, 0.0, 0.0]
+    assert any("speed" in p for p in ig.state_problems(moving, P, CAM, RADIUS, CFG))
+    wide = P.copy()
+    wide[POS, POS] = np.eye(3) * 1700.0**2  # the 1.7 km sigma once promoted to tracking
+    assert any("position sigma" in p for p in ig.state_problems(x, wide, CAM, RADIUS, CFG))
+    assert not ig.claim_holds(x, wide, CFG)
+    indefinite = P.copy()
+    indefinite[0, 0] = -1.0
+    assert any("not positive definite" in p for p in ig.state_problems(x, indefinite, CAM, RADIUS, CFG))
+
+
+def test_the_claim_is_three_sigma_inside_the_tolerances():
+    x, P = good_state()
+    P2 = P.copy()
+    sig_deg = CFG.claim_att_deg / 3.0 * 1.05  # 3 sigma just beyond the claimed attitude
+    P2[MRP, MRP] = np.eye(3) * (np.radians(sig_deg) / 4.0) ** 2
+    assert not ig.claim_holds(x, P2, CFG)
+    P2[MRP, MRP] = np.eye(3) * (np.radians(sig_deg / 1.1) / 4.0) ** 2
+    assert ig.claim_holds(x, P2, CFG)
+
+
+def fit(kept_per_frame, frames, rejected, chi2_value=None):
+    used = np.zeros((frames, 8), bool)
+    used[:, :kept_per_frame] = True
+    dof = int(2 * used.sum() - 12)
+    x, P = good_state()
+    return BatchFit(0.0, x, P, float(dof if chi2_value is None else chi2_value), dof, used, rejected)
+
+
+def test_a_fit_that_kept_a_handful_of_corners_starts_nothing():
+    assert ig.fit_problems(fit(6, 20, 4), 20, CFG) == []
+    bad = ig.fit_problems(fit(6, 20, 100), 20, CFG)  # 100 of 220 measured corners rejected
+    assert any("rejected 100 of 220" in p for p in bad), bad
+    few = ig.fit_problems(fit(2, 20, 0), 20, CFG)  # 2 corners a frame: not enough named corners
+    assert any("kept 2.0 corners a frame" in p for p in few), few
+
+
+def test_a_fit_beyond_its_chi_square_bound_starts_nothing():
+    f = fit(6, 20, 0)
+    bound = chi2.isf(CFG.integrity_prob, f.dof)
+    assert ig.fit_problems(fit(6, 20, 0, 0.99 * bound), 20, CFG) == []
+    assert any("chi-square" in p for p in ig.fit_problems(fit(6, 20, 0, 1.01 * bound), 20, CFG))
+
+
+def test_the_window_test_fires_at_its_false_alarm_rate_on_consistent_innovations():
+    """Windows of chi-square NIS (consistent by construction, drawn independently of the code): the share that
+    fails is the test's probability, within binomial bounds; scaled by 3 (an over-confident filter) nearly all
+    fail."""
+    import dataclasses
+
+    cfg = dataclasses.replace(CFG, integrity_prob=0.05)
+    rng = np.random.default_rng(11)
+    H, W, dof = 4000, cfg.integrity_window, 12
+    win = ig.EvidenceWindow.empty(H, W)
+    for _ in range(W):
+        win = win.push(rng.chisquare(dof, H), np.full(H, dof), np.full(H, 6), np.zeros(H))
+    fails = np.array([bool(p) for p in ig.window_problems(win, cfg)])
+    assert abs(fails.mean() - 0.05) < 4 * np.sqrt(0.05 * 0.95 / H), fails.mean()
+    hot = dataclasses.replace(win, nis=3.0 * win.nis)
+    assert np.mean([bool(p) for p in ig.window_problems(hot, cfg)]) > 0.99
+
+
+def test_the_window_test_counts_rejected_corners():
+    win = ig.EvidenceWindow.empty(1, CFG.integrity_window)
+    for k in range(CFG.integrity_window):
+        rej = 5 if k >= CFG.integrity_window - 4 else 0  # four frames with 5 of 6 corners rejected
+        win = win.push([1.0], [2], [6], [rej])
+    assert any("rejected 20 of the last 48" in p for p in ig.window_problems(win, CFG)[0])
+    ok = ig.EvidenceWindow.empty(1, CFG.integrity_window).push([1.0], [10], [6], [1])
+    assert ig.window_problems(ok, CFG) == [[]]
+    assert ig.EvidenceWindow.empty(3, 4).push([1, 2, 3], [2, 0, 2], [1, 0, 1], [0, 0, 0]).select([0, 2]).nis.shape \
+        == (2, 4)
+
+
+@pytest.mark.parametrize("prob,dof", [(1e-4, 12), (1e-3, 100)])
+def test_chi2_bound_is_the_quantile(prob, dof):
+    assert ig.chi2_bound(prob, dof) == pytest.approx(chi2.ppf(1 - prob, dof))
