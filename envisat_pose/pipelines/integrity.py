@@ -4,14 +4,15 @@ No truth: every test reads what the tracker itself has, the filter's state and c
 the corners it was given, used and rejected.
 
 - A cold-start fit starts a hypothesis only if it kept most of its window's corners (`fit_problems`: the fit's
-  gate may reject at most `max_rejected_share` of the measured corners, and the kept ones must be at least
+  gate rejected no more than a correct fit would at `expected_reject_share`, and the kept ones are at least
   `acquire_min_corners` per frame on average), its reduced chi-square is inside its chi-square bound and its state
   is physical (`state_problems`).
 - Each hypothesis carries a window of its last `integrity_window` frames (`EvidenceWindow`): the NIS and its
   degrees of freedom, the corners given to the filter and those rejected. Every frame, a hypothesis fails when its
-  windowed NIS exceeds the chi-square bound of the window's degrees of freedom at `integrity_prob`, when the gate
-  rejected more than `max_rejected_share` of the corners it was given over the window, or when its state is not
-  physical. A failed hypothesis is dropped; the track is lost when none is left.
+  windowed NIS exceeds its bound at `integrity_prob` (nis_window_bound: the chi-square of the window's degrees of
+  freedom, dispersed by the detector's frame-to-frame correlation), when the gate rejected more of the corners it
+  was given over the window than a correct track would at `expected_reject_share` (a binomial tail below
+  `integrity_prob`), or when its state is not physical. A failed hypothesis is dropped; the track is lost when none is left.
 - A state is physical when the target's centre is in front of the camera, farther than the box's own radius
   (the camera cannot be inside the target) and near enough for the image to show the box
   (`TrackerConfig.min_target_px`), its rate and speed inside the configured bounds, its covariance positive
@@ -96,16 +97,31 @@ def claim_holds(x: np.ndarray, P: np.ndarray, cfg) -> bool:
     return bool(3.0 * pos_sig <= cfg.claim_pos_share * range_m and 3.0 * att_sig <= cfg.claim_att_deg)
 
 
+def rejections_improbable(rejected: int, given: int, cfg) -> float | None:
+    """The probability of rejecting at least `rejected` of `given` corners when each is rejected with the
+    expected share cfg.expected_reject_share (a binomial tail), where that tail is below cfg.integrity_prob;
+    None where the rejections are as a correct track makes them."""
+    from scipy.stats import binom
+
+    if given <= 0 or rejected <= 0:
+        return None
+    p = float(binom.sf(rejected - 1, given, cfg.expected_reject_share))
+    return p if p < cfg.integrity_prob else None
+
+
 def fit_problems(fit, frames: int, cfg) -> list[str]:
     """Why a cold-start BatchFit (pipelines/acquisition.py) over `frames` frames starts no hypothesis (empty when
-    it may): not valid, too many corners rejected, too few kept, a chi-square beyond its bound."""
+    it may): not valid, more corners rejected than a correct fit would (rejections_improbable), too few kept, a
+    chi-square beyond its bound."""
     if not fit.valid:
         return ["the fit has no positive-definite covariance"]
     kept = int(np.sum(fit.used))
     measured = kept + int(fit.rejected)
     out = []
-    if measured and fit.rejected > cfg.max_rejected_share * measured:
-        out.append(f"the fit rejected {fit.rejected} of {measured} corners (at most {cfg.max_rejected_share:.0%})")
+    p = rejections_improbable(int(fit.rejected), measured, cfg)
+    if p is not None:
+        out.append(f"the fit rejected {fit.rejected} of {measured} corners (p = {p:.1g} at the expected "
+                   f"{cfg.expected_reject_share:.0%})")
     if kept < cfg.acquire_min_corners * frames:
         out.append(f"the fit kept {kept / frames:.1f} corners a frame (at least {cfg.acquire_min_corners})")
     if fit.dof > 0 and fit.chi2 > chi2_bound(cfg.integrity_prob, int(fit.dof)):
@@ -156,22 +172,34 @@ class EvidenceWindow:
         return self.used.sum(-1)
 
 
-def window_problems(win: EvidenceWindow, cfg) -> list[list[str]]:
+def nis_window_bound(prob: float, dof: int, kappa: float = 1.0) -> float:
+    """The bound a window's NIS sum over dof degrees of freedom exceeds with probability prob, the frames'
+    correlation taken as a sum dispersed kappa times the chi-square's (kappa x chi2(dof / kappa): the same mean,
+    kappa times the variance; noise.nis_sum_dispersion)."""
+    from scipy.stats import chi2
+
+    if kappa <= 1.0:
+        return chi2_bound(prob, dof)
+    return float(kappa * chi2.isf(prob, dof / kappa))
+
+
+def window_problems(win: EvidenceWindow, cfg, kappa: float = 1.0) -> list[list[str]]:
     """Per hypothesis, why its window contradicts it (empty lists where it does not): the windowed NIS beyond
-    its chi-square bound at cfg.integrity_prob, or more than cfg.max_rejected_share of the corners given
-    rejected (once the window holds at least acquire_min_corners given corners)."""
+    its bound at cfg.integrity_prob (nis_window_bound, kappa the frames' correlation), or more of the corners
+    given rejected than a correct track would (rejections_improbable)."""
     out = []
     for h in range(win.nis.shape[0]):
         p = []
         d = int(win.dof[h].sum())
         if d > 0:
-            bound = chi2_bound(cfg.integrity_prob, d)
+            bound = nis_window_bound(cfg.integrity_prob, d, kappa)
             if win.nis[h].sum() > bound:
                 p.append(f"innovations inconsistent: windowed NIS {win.nis[h].sum():.0f} beyond {bound:.0f} "
                          f"({d} dof)")
-        given = float(win.given[h].sum())
-        if given >= cfg.acquire_min_corners and win.rejected[h].sum() > cfg.max_rejected_share * given:
-            p.append(f"the gate rejected {win.rejected[h].sum():.0f} of the last {given:.0f} corners "
-                     f"(at most {cfg.max_rejected_share:.0%})")
+        given, rejected = int(win.given[h].sum()), int(win.rejected[h].sum())
+        tail = rejections_improbable(rejected, given, cfg)
+        if tail is not None:
+            p.append(f"the gate rejected {rejected} of the last {given} corners (p = {tail:.1g} at the expected "
+                     f"{cfg.expected_reject_share:.0%})")
         out.append(p)
     return out

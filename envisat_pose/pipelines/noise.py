@@ -87,3 +87,21 @@ def detection_measurement(fd, inflation: float, scale: float) -> tuple[np.ndarra
         z = np.where(ok[:, None], c + (z - c) / scale, np.nan)
     cov = np.where(ok[:, None, None], 0.5 * (cov + np.swapaxes(cov, -1, -2)) * inflation, np.nan)
     return z, cov, float(np.clip(np.nan_to_num(fd.alt_probability), 0.0, 1.0))
+
+
+def nis_sum_dispersion(em, dt_s: float, frames: int, rate_rad_s: float | None = None) -> float:
+    """kappa >= 1: the factor by which the variance of a sum of `frames` frames' NIS exceeds the chi-square's,
+    because the detector's errors correlate from frame to frame (the error model em: white + AR(1) of share a and
+    coefficient phi at the frame interval dt_s, or at the angle turned at rate_rad_s). For Gaussian errors the
+    squares of two with correlation rho correlate by rho^2, so kappa = 1 + 2 sum_k (1 - k/n) (a phi^k)^2; the
+    windowed sum is then taken as kappa x chi2(dof / kappa) (the same mean, kappa times the variance)."""
+    from envisat_pose.perception.errormodel import phi_at, phi_at_rotation
+
+    if rate_rad_s is not None and em.corr_angle_rad > 0.0:
+        a, phi = em.angle_share, phi_at_rotation(em.corr_angle_rad, rate_rad_s, dt_s)
+    else:
+        a, phi = em.ar1_share, phi_at(em.ar1_phi, em.corr_time_s, dt_s)
+    if a <= 0.0 or frames < 2:
+        return 1.0
+    k = np.arange(1, frames)
+    return float(1.0 + 2.0 * np.sum((1.0 - k / frames) * (a * phi ** k) ** 2))

@@ -55,7 +55,7 @@ from envisat_pose.pipelines.bank import choose_namings, probabilities, select_ru
 from envisat_pose.pipelines.integrity import (EvidenceWindow, claim_holds, fit_problems, pose_sigmas,
                                               state_problems, target_radius_m, window_problems)
 from envisat_pose.pipelines.noise import (correlation_inflation, detection_measurement, detector_error_model,
-                                          filter_memory, sequence_scale, window_memory)
+                                          filter_memory, nis_sum_dispersion, sequence_scale, window_memory)
 from envisat_pose.pipelines.tracker_config import ACQUIRING_SIGMA, TRACKER_FILTER, TrackerConfig, TrackEstimate
 from envisat_pose.state import MRP, N_STATE, POS, RATE
 from envisat_pose.status import STATUSES
@@ -336,11 +336,14 @@ class Tracker:
             self._keep(~failed)
         if self._keep(self.probabilities >= 1.0 - self.cfg.decided):
             events.append("hypothesis decided")
-        return self._estimate(t_s, events=tuple(events), status=self._claim(events), timing=timing, **out)
+        status = self._claim(events)  # may add "confirmed" to the events
+        return self._estimate(t_s, events=tuple(events), status=status, timing=timing, **out)
 
     def _problems(self, new: FilterState) -> list[list[str]]:
         """Per hypothesis, why this frame's evidence contradicts it (integrity.py); empty where it does not."""
-        problems = window_problems(self.evidence, self.cfg)
+        rate = self.rate_rad_s if self.cfg.correlation_in == "rotation" else None
+        kappa = nis_sum_dispersion(self.error_model, self.dt_s, self.cfg.integrity_window, rate)
+        problems = window_problems(self.evidence, self.cfg, kappa)
         for h, p in enumerate(problems):
             if new.indefinite[h]:
                 p.insert(0, "innovation covariance not positive definite (the update failed)")

@@ -42,8 +42,10 @@ class TrackerConfig:
     rejected) that declare the track lost. Frames without an image (eclipse, gaps) coast until the covariance
     leaves the lost bounds below.
     Integrity (pipelines/integrity.py): integrity_window frames of evidence per hypothesis; integrity_prob the
-    false-alarm probability of each chi-square test (the cold-start fit's, the windowed NIS); max_rejected_share
-    of the corners given that the fit's or the filter's gate may reject over the window; confirm_frames frames
+    false-alarm probability of each test (the cold-start fit's chi-square, the windowed NIS, the rejections);
+    expected_reject_share: the share of the corners given that a correct track's gate rejects (the detector's
+    mis-named corners: 3-13 % on random views, fewer in the loop's region of interest with the predicted pose as
+    the naming's start), against which a window's rejections are tested (a binomial tail); confirm_frames frames
     with corners used, after the half-turn is decided and with the claim's covariance, before a new bank claims
     "tracking"; claim_pos_share (of the range) and claim_att_deg bound the 3-sigma position and attitude a
     "tracking" frame claims (beyond them a running track reports "coasting"); lost_pos_sigma_share and
@@ -84,8 +86,8 @@ class TrackerConfig:
     correlation_model: str = "filter_memory"
     correlation_in: str = "time"
     integrity_window: int = 8
-    integrity_prob: float = 1e-4
-    max_rejected_share: float = 0.35
+    integrity_prob: float = 1e-6
+    expected_reject_share: float = 0.1
     confirm_frames: int = 5
     claim_pos_share: float = 0.02
     claim_att_deg: float = 5.0
@@ -120,7 +122,7 @@ class TrackerConfig:
               f"one of {', '.join(CORRELATION_IN)}")
         check(self.integrity_window >= 2, f"{p}integrity_window", self.integrity_window, "at least 2 frames")
         check(0.0 < self.integrity_prob < 0.5, f"{p}integrity_prob", self.integrity_prob, "a probability in (0, 0.5)")
-        check(0.0 < self.max_rejected_share < 1.0, f"{p}max_rejected_share", self.max_rejected_share,
+        check(0.0 < self.expected_reject_share < 1.0, f"{p}expected_reject_share", self.expected_reject_share,
               "a share in (0, 1)")
         check(1 <= self.confirm_frames <= self.integrity_window, f"{p}confirm_frames", self.confirm_frames,
               f"1 to integrity_window ({self.integrity_window}) frames")

@@ -80,7 +80,7 @@ def fit(kept_per_frame, frames, rejected, chi2_value=None):
 
 
 def test_a_fit_that_kept_a_handful_of_corners_starts_nothing():
-    assert ig.fit_problems(fit(6, 20, 4), 20, CFG) == []
+    assert ig.fit_problems(fit(6, 20, 12), 20, CFG) == []  # 12 of 132: what a correct fit rejects
     bad = ig.fit_problems(fit(6, 20, 100), 20, CFG)  # 100 of 220 measured corners rejected
     assert any("rejected 100 of 220" in p for p in bad), bad
     few = ig.fit_problems(fit(2, 20, 0), 20, CFG)  # 2 corners a frame: not enough named corners
@@ -112,12 +112,25 @@ def test_the_window_test_fires_at_its_false_alarm_rate_on_consistent_innovations
     assert np.mean([bool(p) for p in ig.window_problems(hot, cfg)]) > 0.99
 
 
-def test_the_window_test_counts_rejected_corners():
+def test_rejections_are_tested_against_the_binomial_tail_of_a_correct_track():
+    """rejections_improbable is scipy's binomial tail, independently summed here; a window whose last frames had
+    every corner rejected (frames of another target) fails, a window with the expected share does not."""
+    from math import comb
+
+    n, p0 = 48, CFG.expected_reject_share
+    for r in (5, 15, 24):
+        tail = sum(comb(n, k) * p0**k * (1 - p0) ** (n - k) for k in range(r, n + 1))
+        got = ig.rejections_improbable(r, n, CFG)
+        assert (got is None) == (tail >= CFG.integrity_prob) and (got is None or got == pytest.approx(tail))
     win = ig.EvidenceWindow.empty(1, CFG.integrity_window)
     for k in range(CFG.integrity_window):
-        rej = 5 if k >= CFG.integrity_window - 4 else 0  # four frames with 5 of 6 corners rejected
+        rej = 6 if k >= CFG.integrity_window - 4 else 0  # four frames with all 6 corners rejected
         win = win.push([1.0], [2], [6], [rej])
-    assert any("rejected 20 of the last 48" in p for p in ig.window_problems(win, CFG)[0])
+    assert any("rejected 24 of the last 48" in p for p in ig.window_problems(win, CFG)[0])
+    win = ig.EvidenceWindow.empty(1, CFG.integrity_window)
+    for k in range(CFG.integrity_window):
+        win = win.push([1.0], [10], [6], [1 if k % 2 else 0])  # 4 of 48: a correct track's share
+    assert ig.window_problems(win, CFG) == [[]]
     ok = ig.EvidenceWindow.empty(1, CFG.integrity_window).push([1.0], [10], [6], [1])
     assert ig.window_problems(ok, CFG) == [[]]
     assert ig.EvidenceWindow.empty(3, 4).push([1, 2, 3], [2, 0, 2], [1, 0, 1], [0, 0, 0]).select([0, 2]).nis.shape \
@@ -127,3 +140,29 @@ def test_the_window_test_counts_rejected_corners():
 @pytest.mark.parametrize("prob,dof", [(1e-4, 12), (1e-3, 100)])
 def test_chi2_bound_is_the_quantile(prob, dof):
     assert ig.chi2_bound(prob, dof) == pytest.approx(chi2.ppf(1 - prob, dof))
+
+
+def test_correlated_windows_are_dispersed_as_the_error_model_says():
+    """Errors white + AR(1) (share a, coefficient phi per frame), simulated: the variance of a window's sum of
+    squares over its chi-square variance is nis_sum_dispersion's kappa, and the windows beyond nis_window_bound
+    at 1 % are about 1 % (the plain chi-square bound would flag several times more)."""
+    from envisat_pose.perception.errormodel import ErrorModel
+    from envisat_pose.pipelines.noise import nis_sum_dispersion
+
+    a, phi, W, comps = 0.6, 0.9, 8, 12
+    em = ErrorModel(ar1_share=a, ar1_phi=phi, corr_time_s=-1.0 / np.log(phi))
+    kappa = nis_sum_dispersion(em, 1.0, W)
+    rng = np.random.default_rng(5)
+    n = 20000
+    slow = rng.standard_normal((n, comps))
+    sums = np.zeros(n)
+    for _ in range(W):
+        slow = phi * slow + np.sqrt(1 - phi**2) * rng.standard_normal((n, comps))
+        e = np.sqrt(a) * slow + np.sqrt(1 - a) * rng.standard_normal((n, comps))
+        sums += np.sum(e**2, axis=-1)
+    dof = W * comps
+    assert sums.mean() == pytest.approx(dof, rel=0.02)
+    assert sums.var() / (2 * dof) == pytest.approx(kappa, rel=0.06), (sums.var() / (2 * dof), kappa)
+    tail = np.mean(sums > ig.nis_window_bound(0.01, dof, kappa))
+    plain = np.mean(sums > ig.chi2_bound(0.01, dof))
+    assert 0.005 < tail < 0.02 and plain > 2 * tail, (tail, plain)
