@@ -34,11 +34,14 @@ Once the best prior is tight the detector looks only in the predicted region of 
 as its naming's start and half-turn prior when one hypothesis is left.
 
 The filter's R is the detector's calibrated covariance at the error model's scale, inflated for the errors'
-frame-to-frame correlation at the filter's own memory (pipelines/noise.py).
+frame-to-frame correlation at the filter's own memory (pipelines/noise.py); the position variance along the line
+of sight is kept at least (the detector's apparent-scale bias x range)^2, the error no frame averages away
+(noise.range_floor, TrackerConfig.range_floor).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Callable
 
@@ -55,7 +58,8 @@ from envisat_pose.pipelines.bank import choose_namings, probabilities, select_ru
 from envisat_pose.pipelines.integrity import (EvidenceWindow, claim_holds, fit_problems, pose_sigmas,
                                               state_problems, target_radius_m, window_problems)
 from envisat_pose.pipelines.noise import (correlation_inflation, detection_measurement, detector_error_model,
-                                          filter_memory, nis_sum_dispersion, sequence_scale, window_memory)
+                                          filter_memory, nis_sum_dispersion, range_floor, scale_sigma,
+                                          sequence_scale, window_memory)
 from envisat_pose.pipelines.tracker_config import ACQUIRING_SIGMA, TRACKER_FILTER, TrackerConfig, TrackEstimate
 from envisat_pose.state import MRP, N_STATE, POS, RATE
 from envisat_pose.status import STATUSES
@@ -108,6 +112,8 @@ class Tracker:
         self.error_model = detector_error_model(detector)
         self.cov_factor = sequence_scale(self.error_model, detector)
         self.bias_scale = self.error_model.bias_scale if config.correct_scale else 1.0
+        # the range error no frame averages away (noise.scale_sigma), kept in the covariance as a floor
+        self.scale_sigma = scale_sigma(self.error_model) if config.range_floor and not config.correct_scale else 0.0
         self.memory = window_memory(config.acquire_frames)  # until the filter's first update
         self.dt_s = 0.0  # the last frame interval, s
         self.rate_rad_s: float | None = None  # the tracked |w_r| (the view's rotation rate), rad/s; None acquiring
@@ -232,7 +238,7 @@ class Tracker:
         self.rate_rad_s = None
 
     def _start(self, x: np.ndarray, P: np.ndarray, t0: float, log_w: np.ndarray) -> None:
-        self.state = init_state(x, P, t0, self.chaser_at(t0), self.fcfg)
+        self.state = init_state(x, range_floor(x, P, self.scale_sigma), t0, self.chaser_at(t0), self.fcfg)
         self.log_w = log_w - np.max(log_w)
         self.evidence = EvidenceWindow.empty(len(log_w), self.cfg.integrity_window)
         self.confirmed = False
@@ -305,6 +311,7 @@ class Tracker:
         mask = np.isfinite(z).all(-1)
         rejected = self._rejected(prior, np.nan_to_num(z), mask, cov, best)
         new = filter_step(self.state, Measurement(t_s, chaser, np.nan_to_num(z), mask, cov), self.setup, prior=prior)
+        new = dataclasses.replace(new, cov=range_floor(new.mean, new.cov, self.scale_sigma))
         used = new.dof > 0
         self.log_w = self.log_w + np.where(mask.any(-1), -0.5 * update_cost(new, self.gate_bound) + appearance, 0.0)
         self.log_w -= np.max(self.log_w)

@@ -202,6 +202,55 @@ def test_the_correlation_falls_with_the_views_rotation_at_the_tracked_rate(truth
     assert means["time"] < 0.6 * means["rotation"], means
 
 
+class ScaledTruthDetector(NoisyTruthDetector):
+    """White noise plus an apparent-scale bias: the corners s times farther from their centroid than the truth's
+    (what the shipped detector does by a few 1e-4), with an error model that measured that scale."""
+
+    def __init__(self, truth, scale=1.002, **kw):
+        from envisat_pose.perception.errormodel import ErrorModel
+
+        super().__init__(truth, **kw)
+        self.scale = scale
+        self.error_model = ErrorModel(bias_scale=scale, n_frames=600)
+
+    def detect(self, image, K, **kw):
+        fd = super().detect(image, K, **kw)
+        ok = np.isfinite(fd.corners_px).all(-1)
+        c = fd.corners_px[ok].mean(axis=0)
+        z = np.where(ok[:, None], c + self.scale * (fd.corners_px - c), np.nan)
+        return FrameDetection(z, fd.cov_px, fd.confidence, fd.visible, z[acq.half_turn()[0]], fd.alt_probability,
+                              False, fd.crop_px, z[ok])
+
+
+def test_the_range_error_no_frame_averages_away_stays_in_the_covariance(truth_600):
+    """A detector whose corners are 0.2 % too far apart puts the target 0.2 % too near (10 cm at 50 m) on every
+    frame. With the range floor (the error model's measured scale) the tracker's NEES stays consistent; without
+    it the filter averages the white noise down and is over-confident about a range it cannot know better."""
+    means = {floor: tracking_nees(truth_600, ScaledTruthDetector(truth_600, seed=8), TrackerConfig(range_floor=floor))
+             for floor in (True, False)}
+    assert 4.0 < means[True] < 24.0, means
+    assert means[False] > 3.0 * means[True], means
+
+
+def test_the_range_floor_raises_only_the_line_of_sight_variance():
+    from envisat_pose.pipelines.noise import range_floor
+
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(12, 12))
+    P = 1e-6 * (A @ A.T) + 1e-8 * np.eye(12)
+    x = np.zeros(12)
+    x[POS] = [3.0, 40.0, -4.0]
+    out = range_floor(x, P, 1e-3)
+    u = x[POS] / np.linalg.norm(x[POS])
+    assert u @ out[POS, POS] @ u == pytest.approx((1e-3 * np.linalg.norm(x[POS])) ** 2)
+    v = np.cross(u, [0.0, 0.0, 1.0])
+    v /= np.linalg.norm(v)
+    assert v @ out[POS, POS] @ v == pytest.approx(v @ P[POS, POS] @ v)  # across the line of sight: unchanged
+    np.testing.assert_array_equal(out[3:, 3:], P[3:, 3:])
+    assert np.linalg.eigvalsh(out).min() > 0
+    np.testing.assert_array_equal(range_floor(x, out, 1e-4), out)  # already above a lower floor
+
+
 class Blind(NoisyTruthDetector):
     """Finds nothing in the frames `blind` (a black frame, or the target out of the image)."""
 
