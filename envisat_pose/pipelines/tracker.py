@@ -312,7 +312,8 @@ class Tracker:
 
         config.validate()
         self.cfg = config
-        self.fcfg = filter_config or FilterConfig(**TRACKER_FILTER)
+        from envisat_pose.pipelines.build import tracker_filter  # only the fields given override the tracker's
+        self.fcfg = tracker_filter(filter_config)
         self.fcfg.validate()
         self.camera = camera
         self.detector = detector
@@ -560,3 +561,11 @@ class Tracker:
         return TrackEstimate(t_s, status, self.state.mean[best].copy(), self.state.cov[best].copy(),
                              self.state.mean.copy(), self.probabilities, fd, naming, np.asarray(measured, bool),
                              np.asarray(rejected, bool), nis, nis_dof, roi, converged, events, timing)
+
+    @classmethod
+    def from_scenario(cls, scenario: str = "default", weights: str | None = None, **kw) -> "Tracker":
+        """A Tracker for the named scenario's geometry (pipelines.build.tracker_from_scenario: its orbit and
+        dynamics, the shipped detector unless weights, the MJCF camera unless camera=)."""
+        from envisat_pose.pipelines.build import tracker_from_scenario
+
+        return tracker_from_scenario(scenario, weights, **kw)
