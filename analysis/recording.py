@@ -44,6 +44,7 @@ from envisat_pose.geometry import CORNER_NAMES, EDGES, PinholeCamera, load_camer
 from envisat_pose.io import atomic_path
 from envisat_pose.state import MRP, POS, RATE, VEL
 from envisat_pose.status import STATUSES as STATUS_NAMES  # the tracker's statuses by code
+from envisat_pose.status import legend_json
 
 from .stats import component_errors, display_transform
 
@@ -533,7 +534,7 @@ def read_recording(path: str) -> tuple[dict, dict]:
     temporal is {entity: {column: [rows sorted by the frame timeline]}} (columns as Rerun names them)."""
     static: dict = {}
     temporal: dict = {}
-    with warnings.catch_warnings():  # a TrackRecorder file has no footer (read whole, as here: nothing is lost)
+    with warnings.catch_warnings():  # older TrackRecorder files have no footer (read whole, as here: nothing lost)
         warnings.filterwarnings("ignore", message=".*no footer/manifest.*")
         reader = rr.chunk.RrdReader(str(path))
     for chunk in reader.stream().collect().stream():
@@ -588,7 +589,8 @@ def track_blueprint(with_truth: bool) -> rrb.Blueprint:
                  whole_run(rrb.TimeSeriesView, origin="metrics/range_est_m", name="estimated range (m)"),
                  whole_run(rrb.TimeSeriesView, origin="metrics/nis", name="NIS / dof")]
     plots.append(whole_run(rrb.TimeSeriesView, origin="metrics/tracker",
-                           name="tracker: best hypothesis probability, status (0 acquiring, 1 tracking, 2 lost)"))
+                           name="tracker: best hypothesis probability, status (0 acquiring, 1 tracking, 2 lost, "
+                           "3 coasting)"))
     return rrb.Blueprint(rrb.Horizontal(left, rrb.Grid(*plots, grid_columns=2), column_shares=[2, 3]),
                          collapse_panels=True)
 
@@ -648,6 +650,8 @@ class TrackRecorder:
             self.rec.connect_grpc(arg or None, default_blueprint=blueprint)
         if title:
             self.rec.log("description", rr.TextDocument(title), static=True)
+        # what the status series' codes mean (envisat_pose.status.legend(), JSON), beside the data
+        self.rec.log("status_legend", rr.TextDocument(legend_json()), static=True)
         log_static_scene(self.rec, camera, estimate=True)
         self._log_series_styles()
         self.status = -1

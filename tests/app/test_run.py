@@ -23,7 +23,7 @@ def run_cfg(weights, duration_s=4.0, **over):
     return loop.finish_config(from_dict(loop.RunConfig, data))
 
 
-def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights):
+def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, verify_rrd):
     from envisat_pose.analysis.recording import read_recording
     from envisat_pose.contracts import Detections, Estimates, TruthTrajectory
 
@@ -48,6 +48,7 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights):
     from envisat_pose.app.view import recordings
 
     assert recordings(str(out)) == [str(out / "recording.rrd")]
+    verify_rrd(out / "recording.rrd")  # footer written: `rerun rrd verify` passes
     static, temporal = read_recording(out / "recording.rrd")
     for entity in ("/world/target", "/world/target_est", "/world/target_est/position_3sigma",
                    "/world/chaser/camera/image", "/world/chaser/camera/image/corners_true",

@@ -56,7 +56,7 @@ def one_line_error(args, capsys, out):
     return err
 
 
-def test_unpadded_names_are_tracked_in_natural_order(tmp_path, fast_cfg, detector_weights, capsys):
+def test_unpadded_names_are_tracked_in_natural_order(tmp_path, fast_cfg, detector_weights, capsys, verify_rrd):
     """frame_0 ... frame_11 (no zero padding): frame_2 before frame_10; the ._ and dot files macOS leaves are
     ignored; det.npz's keys and est.npz's times follow the numbers."""
     names = [f"frame_{i}.png" for i in range(12)]
@@ -72,6 +72,8 @@ def test_unpadded_names_are_tracked_in_natural_order(tmp_path, fast_cfg, detecto
         assert z["key"].tolist() == names
     with np.load(out / "est.npz") as z:
         np.testing.assert_allclose(z["t_s"], np.arange(12) / 2.0)
+    assert "WARN" not in cap.err and "write_footer" not in cap.err, cap.err
+    verify_rrd(out / "recording.rrd")
     # names whose numbers compare equal cannot be ordered
     (src / "frame_01.png").write_bytes((src / "frame_1.png").read_bytes())
     err = one_line_error(["--images", str(src), "--rate-hz", "2"], capsys, tmp_path / "never")
@@ -228,6 +230,10 @@ def test_a_run_with_nothing_tracked_says_so(tmp_path, fast_cfg, detector_weights
     for f in ("est.npz", "det.npz"):
         with np.load(out / f) as z:
             assert json.loads(str(z["status_legend"])) == legend()
+    from envisat_pose.analysis.recording import read_recording
+
+    static, _ = read_recording(out / "recording.rrd")
+    assert json.loads(static["/status_legend"]["TextDocument:text"][0]) == legend()
     summary = json.loads((out / "summary.json").read_text())
     assert summary["tracked"] is False and summary["first_tracking_s"] is None
     assert summary["mean_nis_per_dof"] is None and summary["status_legend"] == legend()
