@@ -184,7 +184,7 @@ def test_an_interrupt_leaves_the_earlier_outputs_and_a_finished_run_removes_stal
     """A finished run into a folder that held an earlier scored run's errors.png removes it; SIGINT during a
     second run (a subprocess) leaves no partial file: the folder holds the first run's files, byte for byte."""
     src = tmp_path / "frames"
-    noise_frames(src, [f"f_{i}.png" for i in range(400)], seed=1)
+    noise_frames(src, [f"f_{i}.png" for i in range(150)], seed=1)
     out = tmp_path / "run"
     out.mkdir()
     (out / "errors.png").write_bytes(b"an earlier run's plot")
