@@ -55,7 +55,14 @@ def _check_finite(path: str, name: str, a: np.ndarray, rule: str | None, arrays:
         return
     if rule == "finite_or_absent" and np.isnan(a).all():  # a quantity the producer did not have (all NaN)
         return
-    if rule in ("finite", "finite_or_absent"):
+    if rule == "finite_where_estimate":  # NaN allowed on rows whose status says they hold no estimate
+        status = arrays.get("status")
+        ok = np.isfinite(a)
+        if status is not None:
+            from envisat_pose.status import has_estimate
+
+            ok |= ~has_estimate(status).reshape(status.shape + (1,) * (a.ndim - status.ndim))
+    elif rule in ("finite", "finite_or_absent"):
         ok = np.isfinite(a)
     else:  # finite where the corner is visible
         vis = arrays["visible"]
@@ -70,9 +77,11 @@ class _Contract:
 
     SPEC: ClassVar[dict[str, _Spec]]
     KIND: ClassVar[str]
+    OPTIONAL: ClassVar[dict[str, _Spec]] = {}  # arrays a file may hold (None in the dataclass when absent)
 
     def arrays(self) -> dict:
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                if not (f.name in self.OPTIONAL and getattr(self, f.name) is None)}
 
     @classmethod
     def validated(cls, data: dict, path: str = "<memory>"):
@@ -82,9 +91,10 @@ class _Contract:
             raise ContractError(f"{path}: not a {cls.KIND} file: missing {', '.join(repr(m) for m in missing)}")
         sizes: dict = {}
         arrays = {}
-        for name, spec in cls.SPEC.items():
-            arrays[name] = _check_array(path, name, np.asarray(data[name]), spec, sizes)
-        for name, spec in cls.SPEC.items():
+        specs = cls.SPEC | {k: v for k, v in cls.OPTIONAL.items() if data.get(k) is not None}
+        for name in sorted(specs, key=lambda k: k not in cls.OPTIONAL):  # optional arrays (status) first
+            arrays[name] = _check_array(path, name, np.asarray(data[name]), specs[name], sizes)
+        for name, spec in specs.items():
             _check_finite(path, name, arrays[name], spec[2], arrays)
         text = data["config_json"]
         text = str(text.item() if isinstance(text, np.ndarray) else text)
@@ -104,7 +114,11 @@ class _Contract:
     def save(self, path: str) -> None:
         """Check the arrays, then write an .npz atomically; the same contents give the same bytes."""
         type(self).validated(self.arrays(), path)
-        save_npz(path, {**self.arrays(), "config_json": np.array(self.config_json)})
+        save_npz(path, {**self.arrays(), "config_json": np.array(self.config_json)} | self.extras())
+
+    def extras(self) -> dict:
+        """Members written beside the arrays (overridden: est.npz's status legend)."""
+        return {}
 
     @classmethod
     def load(cls, path: str):
@@ -215,6 +229,9 @@ class Estimates(_Contract):
     nis: (R, T) normalized innovation squared (0 without measurement); nis_dof: (R, T) its degrees of freedom
     (measured components used). diverged: (R,) bool.
     config_json: the estimate config, the truth's source and config, as JSON.
+    status: optional (R, T) the tracker's status code per row (envisat_pose.status; a file stores its legend as
+    JSON in `status_legend`): x_hat and P are NaN on rows whose status holds no estimate (acquiring, lost) and
+    finite on the others; absent (None), every row is an estimate.
     """
 
     t_s: np.ndarray
@@ -226,15 +243,32 @@ class Estimates(_Contract):
     nis_dof: np.ndarray
     diverged: np.ndarray
     config_json: str
+    status: np.ndarray | None = None
 
     KIND: ClassVar[str] = "estimates"
+    OPTIONAL: ClassVar[dict[str, _Spec]] = {"status": ("i", ("R", "T"), None)}
     SPEC: ClassVar[dict[str, _Spec]] = {
         "t_s": ("f", ("T",), "finite"),
         "x_true": ("f", ("R", "T", 12), "finite_or_absent"),
-        "x_hat": ("f", ("R", "T", 12), "finite"),
-        "P": ("f", ("R", "T", 12, 12), "finite"),
+        "x_hat": ("f", ("R", "T", 12), "finite_where_estimate"),
+        "P": ("f", ("R", "T", 12, 12), "finite_where_estimate"),
         "n_meas": ("i", ("R", "T"), None),
         "nis": ("f", ("R", "T"), "finite"),
         "nis_dof": ("i", ("R", "T"), None),
         "diverged": ("b", ("R",), None),
     }
+
+    def check(self, path: str) -> None:
+        if self.status is not None:
+            from envisat_pose.status import STATUSES
+
+            if np.any((self.status < 0) | (self.status >= len(STATUSES))):
+                raise ContractError(f"{path}: 'status' holds codes outside 0..{len(STATUSES) - 1} "
+                                    "(envisat_pose.status)")
+
+    def extras(self) -> dict:
+        if self.status is None:
+            return {}
+        from envisat_pose.status import legend_json
+
+        return {"status_legend": np.array(legend_json())}

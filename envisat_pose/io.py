@@ -28,6 +28,32 @@ def atomic_path(path: str, suffix: str = ""):
         raise
 
 
+STAGE_PREFIX = ".tmp-stage-"  # staged_folder's folder inside the destination (what a killed job leaves behind)
+
+
+@contextlib.contextmanager
+def staged_folder(out_dir: str, outputs=()):
+    """Yield a fresh hidden folder inside out_dir (created, parents too) for a job's outputs. When the block
+    completes, every file in it is moved into out_dir (os.replace: each file whole), the files named in
+    `outputs` that this job did not write (an earlier run's, now stale) are removed from out_dir, and the
+    folder goes. On an error or an interrupt the folder and its partial files are removed and out_dir is left
+    as it was (an earlier run's outputs intact)."""
+    import shutil
+
+    os.makedirs(out_dir, exist_ok=True)
+    stage = tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=out_dir)
+    try:
+        yield stage
+        written = set(os.listdir(stage))
+        for name in outputs:
+            if name not in written and os.path.isfile(os.path.join(out_dir, name)):
+                os.remove(os.path.join(out_dir, name))
+        for name in sorted(written):
+            os.replace(os.path.join(stage, name), os.path.join(out_dir, name))
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
 def atomic_write_text(path: str, text: str) -> None:
     with atomic_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8") as fh:

@@ -138,16 +138,21 @@ MANIFEST = "manifest.json"
 PARTIAL_PREFIX = ".tmp-"  # io.atomic_path's temporary files: what a killed writer leaves behind
 
 
-def check_out_dir(out_dir: str) -> None:
-    """Check, creating nothing, that out_dir is a folder or can become one (its parent exists); InputError."""
+def check_out_dir(out_dir: str, parents: bool = False) -> None:
+    """Check, creating nothing, that out_dir is a folder or can become one (its parent exists; with parents, its
+    nearest existing ancestor is a folder); InputError."""
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise InputError(f"--out {out_dir!r} exists and is not a folder")
     parent = os.path.dirname(os.path.abspath(out_dir))
+    if parents:
+        while not os.path.exists(parent) and os.path.dirname(parent) != parent:
+            parent = os.path.dirname(parent)
     if not os.path.isdir(out_dir) and not os.path.isdir(parent):
-        raise InputError(f"--out {out_dir!r}: parent folder {parent!r} does not exist")
+        raise InputError(f"--out {out_dir!r}: parent folder {parent!r} " + ("is not a folder" if parents and
+                                                                             os.path.exists(parent) else "does not exist"))
 
 
-def make_out_dir(out_dir: str, subdirs: Sequence[str] = ()) -> None:
+def make_out_dir(out_dir: str, subdirs: Sequence[str] = (), parents: bool = False) -> None:
     """check_out_dir, then create out_dir (and its subdirs) and prove it writable by writing (and removing) a
     probe file in it.
 
@@ -156,7 +161,7 @@ def make_out_dir(out_dir: str, subdirs: Sequence[str] = ()) -> None:
     """
     import tempfile
 
-    check_out_dir(out_dir)
+    check_out_dir(out_dir, parents)
     try:
         for folder in [out_dir, *(os.path.join(out_dir, s) for s in subdirs)]:
             os.makedirs(folder, exist_ok=True)
@@ -170,11 +175,27 @@ def make_out_dir(out_dir: str, subdirs: Sequence[str] = ()) -> None:
         raise InputError(f"--out {out_dir!r}: cannot write there ({err.strerror or err})") from None
 
 
+def real_time_factor(t_s, wall_s: float, period_s: float | None = None) -> float:
+    """Time the frames t_s (s) span, one frame period included (period_s; default the median interval), over the
+    wall time that processed them: above 1 the job keeps up with the camera. The one formula of `envisat run`
+    and `envisat track`."""
+    import numpy as np
+
+    t = np.asarray(t_s, dtype=float)
+    if period_s is None:
+        period_s = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    span = float(t[-1] - t[0]) + period_s if len(t) else 0.0
+    return span / max(float(wall_s), 1e-9)
+
+
 def remove_partial_files(folder: str) -> None:
-    """Remove the temporary files a killed atomic writer left in folder (not below it)."""
+    """Remove the temporary files (and io.staged_folder's folders) a killed writer left in folder."""
+    import shutil
+
     for name in os.listdir(folder):
         if name.startswith(PARTIAL_PREFIX):
-            os.remove(os.path.join(folder, name))
+            path = os.path.join(folder, name)
+            shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
 
 
 def _flat(d: dict, prefix: str = "") -> dict:

@@ -52,3 +52,17 @@ def status_name(code: int) -> str:
 def legend() -> dict[str, dict[str, str]]:
     """{code as text: {"name", "meaning"}}: stored beside every status array (JSON) so a file explains itself."""
     return {str(i): {"name": s, "meaning": MEANINGS[s]} for i, s in enumerate(STATUSES)}
+
+
+def legend_json() -> str:
+    """legend() as the JSON text the outputs store (det.npz / est.npz `status_legend`, summary.json, recordings)."""
+    import json
+
+    return json.dumps(legend(), sort_keys=True)
+
+
+def has_estimate(status):
+    """Per row (any shape of codes): the row holds a filter estimate (tracking or coasting)."""
+    import numpy as np
+
+    return np.isin(np.asarray(status), HAS_ESTIMATE)

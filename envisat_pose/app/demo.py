@@ -25,6 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run_demo(args: argparse.Namespace) -> int:
     from envisat_pose.app.run import print_table, resolve_config
     from envisat_pose.pipelines.closed_loop import output_paths, run_closed_loop
+    from envisat_pose.io import staged_folder
     from envisat_pose.runner import make_out_dir
 
     ns = argparse.Namespace(scenario="default", duration_s=args.duration_s, config=None, weights=args.weights,
@@ -33,7 +34,9 @@ def run_demo(args: argparse.Namespace) -> int:
     make_out_dir(args.out)
     print(f"envisat demo: the tracker, cold start, on scenario 'default', {cfg.duration_s:.0f} s simulated at {cfg.rate_hz:g} Hz, "
           f"weights {cfg.weights}")
-    summary = run_closed_loop(cfg, args.out, progress=not args.quiet)
+    names = [os.path.basename(p) for p in output_paths(args.out).values()]
+    with staged_folder(args.out, names) as stage:  # moved into --out when complete; an interrupt leaves it as it was
+        summary = run_closed_loop(cfg, stage, progress=not args.quiet)
     print_table(summary)
     paths = output_paths(args.out)
     print(f"recording: {paths['recording']} ({summary['recording_bytes'] / 2**20:.1f} MiB); open it with "

@@ -46,7 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "errors.png, run.config.toml, summary.json and recording.rrd into --out (`envisat view RUN_DIR`).",
     )
     add_run_arguments(p)
-    p.add_argument("--out", required=True, metavar="RUN_DIR", help="output folder (created; files are replaced)")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="output folder (created, parents too; files are "
+                   "replaced when the run completes)")
     p.set_defaults(func=run_cli)
 
 
@@ -135,10 +136,14 @@ def run_cli(args: argparse.Namespace) -> int:
     from envisat_pose.pipelines.closed_loop import output_paths, run_closed_loop
     from envisat_pose.runner import make_out_dir
 
+    from envisat_pose.io import staged_folder
+
     cfg = resolve_config(args)
-    make_out_dir(args.out)
-    sink = recording_sink(args, output_paths(args.out)["recording"])
-    summary = run_closed_loop(cfg, args.out, progress=not args.quiet, sink=sink)
+    make_out_dir(args.out, parents=True)
+    names = [os.path.basename(p) for p in output_paths(args.out).values()]
+    with staged_folder(args.out, names) as stage:  # moved into --out when complete; an interrupt leaves it as it was
+        sink = recording_sink(args, output_paths(stage)["recording"])
+        summary = run_closed_loop(cfg, stage, progress=not args.quiet, sink=sink)
     print_table(summary)
     rec = f"recording.rrd ({summary['recording_bytes'] / 2**20:.1f} MiB; `envisat view {args.out}`)" \
         if sink.startswith("save:") else "the recording went to the viewer"

@@ -15,14 +15,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         "covariances, no truth needed",
         description="Run the tracker (corner detector + UKF, cold start from the images) over a sequence of "
         "frames: a folder written by `envisat generate --mode sequence`, a folder of PNG/JPEG/TIFF files whose "
-        "names sort in time order (--rate-hz or --timestamps), or a video file. Every frame is checked before "
-        "anything is written. Writes est.npz, det.npz, track.config.toml, summary.json, recording.rrd (and "
-        "errors.png when the input carries the truth) into --out.",
+        "names sort in time order (natural order: frame_2 before frame_10; hidden files ignored; --rate-hz or "
+        "--timestamps), or a video file. Every frame is checked before anything is written; the outputs are "
+        "moved into --out only when complete (an interrupt leaves an earlier run's as they were). Writes est.npz, "
+        "det.npz, track.config.toml, summary.json, recording.rrd (and errors.png when the input carries the "
+        "truth) into --out.",
     )
     p.add_argument("--images", required=True, metavar="SRC", help="generate folder, image folder or video file")
-    p.add_argument("--out", required=True, metavar="RUN_DIR", help="output folder (created; files are replaced)")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="output folder (created, parents too; files are "
+                   "replaced)")
     p.add_argument("--rate-hz", type=float, help="frame rate of an image folder or a video: frame k at k / R s")
     p.add_argument("--timestamps", metavar="FILE.csv", help="frame times of an image folder (columns file,t_s)")
+    p.add_argument("--bit-depth", type=int, metavar="BITS", help="bits of the data in 16-bit image files: 10, 12, "
+                   "14 or 16 (default: the smallest that holds the sequence's maximum, reported)")
     p.add_argument("--camera", metavar="FILE.toml", help="intrinsics fx, fy, cx, cy (px), width, height, optional "
                    "distortion (default: the MJCF's chaser_cam at the frames' size)")
     p.add_argument("--scenario", help="where the chaser's orbit and the target's dynamics come from (default: a "
@@ -57,32 +62,35 @@ def resolve_config(args: argparse.Namespace, scenario: str):
 
 def track_cli(args: argparse.Namespace) -> int:
     from envisat_pose.app.run import recording_sink
-    from envisat_pose.geometry import load_camera
-    from envisat_pose.pipelines.track import (camera_from_intrinsics, check_source, open_source, output_paths,
-                                              track_frames)
+    from envisat_pose.pipelines.build import load_camera
+    from envisat_pose.pipelines.camera_file import camera_from_intrinsics
+    from envisat_pose.pipelines.frames import open_source, scan_source
+    from envisat_pose.pipelines.outputs import status_line
+    from envisat_pose.pipelines.track import output_paths, track_frames
     from envisat_pose.runner import check_out_dir, make_out_dir
 
-    check_out_dir(args.out)
-    source = open_source(args.images, args.rate_hz or 0.0, args.timestamps)
+    check_out_dir(args.out, parents=True)
+    source = open_source(args.images, args.rate_hz or 0.0, args.timestamps, args.bit_depth)
     cfg = resolve_config(args, args.scenario or source.scenario or "default")
-    if args.camera:
-        camera, remap = camera_from_intrinsics(args.camera)
-    else:
-        first = next(iter(source.frames()))[1]
-        camera, remap = load_camera().scaled(first.shape[1], first.shape[0]), None
-    check_source(source, camera, progress=not args.quiet)
-    make_out_dir(args.out)
+    camera, remap = camera_from_intrinsics(args.camera) if args.camera else (None, None)
+    size = None if camera is None else (camera.width_px, camera.height_px)
+    pixels = scan_source(source, size, min_frames=cfg.tracker.acquire_frames, progress=not args.quiet)
+    if camera is None:
+        camera = load_camera(size_px=source.size_px)
+    make_out_dir(args.out, parents=True)
     sink = recording_sink(args, output_paths(args.out)["recording"])
-    summary = track_frames(cfg, source, camera, remap, args.out, sink, progress=not args.quiet)
-    fb = summary["frames_by_status"]
-    print(f"{summary['source']['frames']} frames: {fb['tracking']} tracking, {fb['acquiring']} acquiring, "
-          f"{fb['lost']} lost; first tracking at t = {summary['first_tracking_s']} s; final status "
-          f"{summary['final_status']}; mean NIS per dof {summary['mean_nis_per_dof']:.2f}")
+    print(f"{args.images}: {len(source.t_s)} frames of {source.size_px[0]} x {source.size_px[1]} px, {pixels}")
+    summary = track_frames(cfg, source, camera, remap, args.out, None if sink.startswith("save:") else sink,
+                           progress=not args.quiet)
+    print(status_line(summary["source"]["frames"], summary["frames_by_status"], summary["first_tracking_s"],
+                      summary["final_status"], summary["mean_nis_per_dof"]))
     if "scores" in summary:
         from envisat_pose.app.run import print_table
 
         print_table({"scores": summary["scores"], "start": "cold", "timing_ms_per_frame": summary["timing_ms_per_frame"],
-                     "real_time_factor_one_run": float(summary["source"]["frames"]) / max(summary["wall_s"], 1e-9)})
+                     "real_time_factor_one_run": summary["real_time_factor"]})
+    else:
+        print(f"real-time factor {summary['real_time_factor']:.1f}x")
     print(f"wrote {args.out}: est.npz, det.npz, track.config.toml, summary.json"
-          + (", errors.png" if "scores" in summary else "") + ", recording.rrd")
+          + (", errors.png" if "scores" in summary else "") + (", recording.rrd" if sink.startswith("save:") else ""))
     return 0

@@ -2,7 +2,10 @@
 
 The viewer is the `rerun` command of the installed rerun-sdk (`python -m rerun_cli`, the same release as the
 SDK that wrote the file). It runs in its own process group (the command is a wrapper around a child binary), so
-Ctrl-C here ends the whole group cleanly. `--web` serves the web viewer and its gRPC proxy on 127.0.0.1 only.
+Ctrl-C here ends the whole group cleanly. Every server it starts listens on 127.0.0.1 only: the native viewer's
+own gRPC server and, with `--web`, the web viewer and its gRPC proxy. A file that is not a Rerun recording (its
+first bytes are not an RRD stream header) is refused in one line; without a display (Linux: neither DISPLAY nor
+WAYLAND_DISPLAY set) the native viewer is not started: the error says to use --web.
 
 Rerun keeps its analytics settings under $XDG_CONFIG_HOME/rerun and $XDG_DATA_HOME/rerun (default: the home
 folder); `rerun analytics disable` switches them off.
@@ -24,6 +27,7 @@ BIND = "127.0.0.1"
 DEFAULT_PORT = 9876  # Rerun's gRPC proxy
 DEFAULT_WEB_PORT = 9090  # Rerun's web viewer over HTTP
 RUN_DIR_RECORDING = "recording.rrd"  # the recording a run folder holds (issue 11)
+RRD_MAGIC = b"RRF"  # an RRD stream's first bytes (b"RRF2" for the current encoding)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -68,6 +72,25 @@ def recordings(path: str) -> list[str]:
     return [path]
 
 
+def check_recording(path: str) -> None:
+    """InputError (one line) when the file does not start like a Rerun recording."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(len(RRD_MAGIC) + 1)
+    except OSError as err:
+        raise InputError(f"{path!r}: cannot be read ({err.strerror or err})") from None
+    if not head.startswith(RRD_MAGIC):
+        raise InputError(f"{path!r}: not a Rerun recording (no RRD header; expected a .rrd written by envisat "
+                         "--rrd, run, track or demo)")
+
+
+def has_display() -> bool:
+    """Whether a native window can be opened: on Linux a DISPLAY or WAYLAND_DISPLAY is set; elsewhere assumed."""
+    if not sys.platform.startswith("linux"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
 def rerun_command() -> list[str]:
     """The `rerun` command of this environment's rerun-sdk."""
     return [sys.executable, "-m", "rerun_cli"]
@@ -75,10 +98,10 @@ def rerun_command() -> list[str]:
 
 def viewer_command(files: list[str], web: bool = False, port: int = DEFAULT_PORT,
                    web_port: int = DEFAULT_WEB_PORT) -> list[str]:
-    """The command line: `rerun FILE...`, or with web `rerun --serve-web --bind 127.0.0.1 --port P
+    """The command line: `rerun --bind 127.0.0.1 FILE...`, or with web `rerun --serve-web --bind 127.0.0.1 --port P
     --web-viewer-port W FILE...` (never another address)."""
     if not web:
-        return rerun_command() + list(files)
+        return rerun_command() + ["--bind", BIND, *files]
     for name, value in (("port", port), ("web-port", web_port)):
         if not 1 <= value <= 65535:
             raise InputError(f"--{name} {value}: expected a port from 1 to 65535")
@@ -125,6 +148,11 @@ def _interrupt(signum, frame):
 
 def run_view(args: argparse.Namespace) -> int:
     files = recordings(args.path)
+    for f in files:
+        check_recording(f)
+    if not args.web and not has_display():
+        raise InputError("no display to open a viewer window on (DISPLAY and WAYLAND_DISPLAY are unset): use "
+                         f"`envisat view {args.path} --web` and open the address it prints in a browser")
     cmd = viewer_command(files, web=args.web, port=args.port, web_port=args.web_port)
     # Ctrl-C and SIGTERM end the viewer's group too, even where SIGINT came in ignored (a job started with `&`)
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -139,4 +167,7 @@ def run_view(args: argparse.Namespace) -> int:
         stop_viewer(proc)
         print("envisat view: stopped", file=sys.stderr)
         return 0
+    if code != 0 and not args.web:
+        print(f"envisat view: error: the viewer exited with code {code} (no window could be opened?): use --web",
+              file=sys.stderr)
     return code

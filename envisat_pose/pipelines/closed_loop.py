@@ -338,7 +338,7 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     if cfg.warm_start:
         prior = (draw_initial_estimate(x_truth[0], cfg.filter.P0, rng), cfg.filter.P0, float(t_s[0]))
     tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(orbit), cfg.tracker,
-                      cfg.filter, mu_m3_s2=mu, gravity_gradient=gg, prior=prior)
+                      dataclasses.asdict(cfg.filter), mu_m3_s2=mu, gravity_gradient=gg, prior=prior)  # exact
     look_seed = sample_seed(cfg.seed, 0, 0)  # one look for the whole sequence: the same target in every run
     T = len(t_s)
     rows = RunRows(run_dir, T)
@@ -434,7 +434,7 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
 
     from envisat_pose.config import to_toml
     from envisat_pose.io import atomic_write_text
-    from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks
+    from envisat_pose.runner import RunnerConfig, cpu_share, real_time_factor, run_tasks
 
     os.makedirs(out_dir, exist_ok=True)
     paths = output_paths(out_dir)
@@ -492,7 +492,7 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
         "resolution_px": cfg.image.resolution_px,
         "scores": scores,
         "timing_ms_per_frame": {s: float(1000 * timing_sum[i] / (R * T)) for i, s in enumerate(STAGES)},
-        "real_time_factor_one_run": sim_time_s / max(frames_sum, 1e-9),
+        "real_time_factor_one_run": real_time_factor(truth.t_s, frames_sum, 1.0 / cfg.rate_hz),
         "real_time_factor_job": sim_time_s * R / max(loop_wall_s, 1e-9),
         "wall_s": {"truth_simulation": sim_s, "loops": loop_wall_s, "total": time.perf_counter() - wall0},
         "run0": {k: r0[k] for k in ("frames_skipped_eclipse", "frames_roi", "frames_ambiguous", "frames_acquiring",
@@ -578,17 +578,20 @@ def write_run_files(paths: dict, t_s: np.ndarray, x_true: np.ndarray, run_dirs: 
     chunk in score_run_files): the same bytes as Estimates.save / save_npz of the whole arrays."""
     from envisat_pose.io import StreamedArray, save_npz
 
+    from envisat_pose.pipelines.outputs import estimate_arrays  # status per row, NaN where no estimate
+    from envisat_pose.status import legend_json
+
     T, R = len(t_s), len(run_dirs)
-    est = {k: run_array(run_dirs, k, T) for k in EST_KEYS}
+    est = estimate_arrays(run_dirs, T)
     est["x_true"] = StreamedArray((R, T, 12), np.float64, lambda: (x_true for _ in range(R)))
     save_npz(paths["est"], est | {"t_s": t_s, "diverged": np.asarray(diverged, bool),
-                                  "config_json": np.array(config_json)})
+                                  "config_json": np.array(config_json), "status_legend": np.array(legend_json())})
     det = {k: run_array(run_dirs[:1], k, T) for k in det_names}
     det = {k: StreamedArray(a.shape[1:], a.dtype, a.chunks) for k, a in det.items()}
     key_dtype = np.dtype(f"<U{max(max(map(len, keys), default=1), 1)}")  # as numpy.array(keys) makes it
     det["key"] = StreamedArray((T,), key_dtype, lambda: (np.array(keys[a:a + CHUNK_FRAMES], key_dtype)
                                                          for a in range(0, T, CHUNK_FRAMES)))
-    save_npz(paths["det"], det | {"t_s": t_s, "config_json": np.array(det_cfg)})
+    save_npz(paths["det"], det | {"t_s": t_s, "config_json": np.array(det_cfg), "status_legend": np.array(legend_json())})
 
 
 def plot_inputs(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str]) -> tuple:

@@ -1,19 +1,23 @@
 """`envisat track`: the Tracker over a user's own frames (no truth needed; labels, where a dataset has them, score).
 
-Inputs (`open_source`), every frame checked before any output is written (`check_source`):
+Inputs (pipelines/frames.py: `open_source`), every frame read once before any output is written (`scan_source`):
 - a folder written by `envisat generate --mode sequence` (manifest.json and shards): frame times from the labels'
   scene, the chaser's orbit from its scenario, the labels' truth for scoring;
-- a folder of image files (PNG, JPEG or TIFF; 8- or 16-bit; gray, or colour converted to gray) whose names sort in
-  time order, with rate_hz (frame k at k / rate_hz s) or a timestamps CSV (columns file,t_s);
+- a folder of image files (PNG, JPEG or TIFF; 8-bit, or 10- to 16-bit data in 16-bit files; gray, or colour
+  converted to gray; hidden files ignored) in natural name order, with rate_hz (frame k at k / rate_hz s) or a
+  timestamps CSV (columns file,t_s);
 - a video file (OpenCV's reader), with rate_hz or the file's own frame rate.
-The camera: a TOML file (fx, fy, cx, cy px, width, height, optional OpenCV distortion) or the MJCF's chaser_cam.
-Frames with distortion or non-square pixels are remapped once per frame to an ideal pinhole of the same size
-(`camera_from_intrinsics`); the camera's mount on the chaser is the MJCF's.
+The camera (pipelines/camera_file.py): a TOML file (fx, fy, cx, cy px, width, height, optional OpenCV distortion)
+or the MJCF's chaser_cam at the frames' size. Frames with distortion or non-square pixels are remapped once per
+frame to an ideal pinhole of the same size; the camera's mount on the chaser is the MJCF's.
+
+Outputs are written into a hidden folder inside out_dir and moved into place when complete (io.staged_folder):
+an error or an interrupt leaves out_dir as it was; a finished run removes an earlier run's outputs it did not
+write (errors.png of a scored run, say).
 """
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import time
@@ -21,22 +25,24 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envisat_pose.config import InputError, check, load_toml
+from envisat_pose.config import check
 from envisat_pose.filtering.estimator import FilterConfig
-from envisat_pose.geometry import PinholeCamera, load_camera
+from envisat_pose.geometry import PinholeCamera
+from envisat_pose.pipelines.camera_file import camera_from_intrinsics  # noqa: F401 (the track API)
+from envisat_pose.pipelines.frames import (FrameSource, open_source, read_gray, read_timestamps,  # noqa: F401
+                                           scan_source, to_gray_u8)
 from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
-from envisat_pose.status import STATUSES
-
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+from envisat_pose.status import STATUSES, legend
 
 
 @dataclass(frozen=True)
 class TrackConfig:
     """One `envisat track` job. scenario: where the chaser's orbit and the target's dynamics come from (a
-    generate folder's own scenario wins); orbit: the chaser's Keplerian orbit (datagen's OrbitConfig; default the
-    scenario's); gravity_gradient: the target feels the gravity-gradient torque (default the scenario's);
-    rate_hz: frame rate of an image folder or a video (0: a video's own rate); weights: detector weights;
-    threads: torch CPU threads; jpeg_quality: the recording's images. filter, tracker: as `envisat run`."""
+    generate folder's own scenario wins); orbit: the chaser's Keplerian orbit (datagen's OrbitConfig; None: the
+    scenario's); gravity_gradient: the target feels the gravity-gradient torque (the app sets the scenario's);
+    rate_hz: frame rate of an image folder or a video (0: a video's own rate); weights: detector weights ("": the
+    shipped ones); threads: torch CPU threads; jpeg_quality: the recording's images. filter, tracker: as
+    `envisat run`."""
 
     scenario: str = "default"
     orbit: "OrbitConfig" = None
@@ -61,273 +67,72 @@ def stage_types() -> None:
     globals()["OrbitConfig"] = OrbitConfig
 
 
-# ---------------------------------------------------------------------------------------------------------
-# The camera
-
-
-def camera_from_intrinsics(path: str) -> tuple[PinholeCamera, tuple | None]:
-    """(the ideal pinhole the tracker uses, remap) from a camera TOML file: fx, fy, cx, cy (px), width, height,
-    optional distortion (OpenCV's k1, k2, p1, p2[, k3...]). remap is None when the frames are already ideal
-    (fx == fy, no distortion), else (map1, map2) for cv2.remap to a pinhole with f = sqrt(fx fy) and the same
-    principal point. InputError naming the file and the key otherwise."""
-    import cv2
-
-    data = load_toml(path)
-    vals = {}
-    for key in ("fx", "fy", "cx", "cy", "width", "height"):
-        if key not in data:
-            raise InputError(f"{path}: camera file has no {key!r} (expected fx, fy, cx, cy in px, width, height)")
-        v = data[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-            raise InputError(f"{path}: {key} = {v!r}: expected a number")
-        vals[key] = float(v)
-    for key in ("fx", "fy"):
-        if vals[key] <= 0:
-            raise InputError(f"{path}: {key} = {data[key]!r}: expected a positive focal length in px")
-    for key in ("width", "height"):
-        if vals[key] < 16 or vals[key] != int(vals[key]):
-            raise InputError(f"{path}: {key} = {data[key]!r}: expected an image size of at least 16 px")
-    w, h = int(vals["width"]), int(vals["height"])
-    dist = data.get("distortion")
-    if dist is not None:
-        if not isinstance(dist, list) or len(dist) not in (4, 5, 8, 12, 14) \
-                or not all(isinstance(d, (int, float)) and np.isfinite(d) for d in dist):
-            raise InputError(f"{path}: distortion = {dist!r}: expected OpenCV's 4, 5, 8, 12 or 14 coefficients")
-    unknown = sorted(set(data) - {"fx", "fy", "cx", "cy", "width", "height", "distortion"})
-    if unknown:
-        raise InputError(f"{path}: unknown camera keys {unknown} (expected fx, fy, cx, cy, width, height, distortion)")
-    f = float(np.sqrt(vals["fx"] * vals["fy"]))
-    mount = load_camera()
-    cam = PinholeCamera(f, vals["cx"], vals["cy"], w, h, mount.R_K_from_C, mount.pos_C_m)
-    if vals["fx"] == vals["fy"] and not (dist and any(dist)):
-        return cam, None
-    K_user = np.array([[vals["fx"], 0, vals["cx"]], [0, vals["fy"], vals["cy"]], [0, 0, 1.0]])
-    maps = cv2.initUndistortRectifyMap(K_user, np.asarray(dist or [0, 0, 0, 0], float), None, cam.K, (w, h),
-                                       cv2.CV_32FC1)
-    return cam, maps
-
-
-# ---------------------------------------------------------------------------------------------------------
-# Frame sources
-
-
-@dataclass
-class FrameSource:
-    """The frames of one input. kind: 'dataset', 'images' or 'video'; path; t_s (N,) s; names (N,) what each frame
-    is called in messages (file, sample key, frame index); truth: None or {x (N, 12), corners_px (N, 8, 2),
-    in_frame (N, 8)} from a dataset's labels; scenario: a dataset's own scenario (None otherwise)."""
-
-    kind: str
-    path: str
-    t_s: np.ndarray
-    names: list[str]
-    truth: dict | None = None
-    scenario: str | None = None
-    files: list[str] = field(default_factory=list)
-
-    def frames(self):
-        """(index, gray uint8 image) in time order; InputError naming the frame when one cannot be read."""
-        if self.kind == "images":
-            for i, f in enumerate(self.files):
-                yield i, read_gray(f)
-        elif self.kind == "video":
-            import cv2
-
-            cap = cv2.VideoCapture(self.path)
-            try:
-                for i in range(len(self.t_s)):
-                    ok, img = cap.read()
-                    if not ok:
-                        raise InputError(f"{self.path}: frame {i} cannot be read (expected {len(self.t_s)} frames)")
-                    yield i, to_gray_u8(img, f"{self.path} frame {i}")
-            finally:
-                cap.release()
-        else:
-            from envisat_pose.datagen.dataset import iter_samples, sample_image
-
-            for i, (key, label, members) in enumerate(iter_samples(self.path)):
-                try:
-                    yield i, sample_image(members, label)
-                except Exception as err:  # a damaged PNG member
-                    raise InputError(f"{self.path}: sample {key}: image cannot be read ({err})") from None
-
-
-def to_gray_u8(img: np.ndarray, name: str) -> np.ndarray:
-    """8- or 16-bit gray or colour (BGR/BGRA, OpenCV's order) -> (H, W) uint8 gray."""
-    import cv2
-
-    if img is None or img.size == 0:
-        raise InputError(f"{name}: cannot be read as an image (expected PNG, JPEG or TIFF)")
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    if img.dtype == np.uint16:
-        img = (img.astype(np.uint32) * 255 + 32767) // 65535
-    elif img.dtype != np.uint8:
-        raise InputError(f"{name}: pixels of type {img.dtype}: expected 8- or 16-bit")
-    return np.ascontiguousarray(img.astype(np.uint8))
-
-
-def read_gray(path: str) -> np.ndarray:
-    """An image file as (H, W) uint8 gray; InputError naming the file when it is unreadable or truncated."""
-    import cv2
-
-    try:
-        with open(path, "rb") as fh:
-            data = np.frombuffer(fh.read(), np.uint8)
-    except OSError as err:
-        raise InputError(f"{path}: cannot be read ({err.strerror or err})") from None
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if img is not None and path.lower().endswith((".jpg", ".jpeg")) and not data[-2:].tobytes() == b"\xff\xd9":
-        img = None  # OpenCV decodes a truncated JPEG with a grey tail and a warning; it is not a whole frame
-    return to_gray_u8(img, path)
-
-
-def read_timestamps(path: str, files: list[str]) -> np.ndarray:
-    """Frame times (N,) s from a CSV with columns file,t_s for the given image files (matched by file name);
-    InputError naming the CSV when a file is missing from it or the times do not increase."""
-    try:
-        with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-    except OSError as err:
-        raise InputError(f"--timestamps {path!r}: cannot be read ({err.strerror or err})") from None
-    if not rows or not {"file", "t_s"} <= set(rows[0]):
-        raise InputError(f"{path}: expected a CSV with a header line and columns file,t_s")
-    times = {}
-    for n, row in enumerate(rows, start=2):
-        try:
-            times[os.path.basename(row["file"].strip())] = float(row["t_s"])
-        except (TypeError, ValueError):
-            raise InputError(f"{path}: line {n}: t_s = {row.get('t_s')!r}: expected a time in s") from None
-    t = []
-    for f in files:
-        name = os.path.basename(f)
-        if name not in times:
-            raise InputError(f"{path}: no time for image {name!r} (expected a row file,t_s for every image)")
-        t.append(times[name])
-    t = np.array(t)
-    if not np.isfinite(t).all() or np.any(np.diff(t) <= 0):
-        k = int(np.argmax(~(np.diff(t) > 0))) + 1 if len(t) > 1 else 0
-        raise InputError(f"{path}: times must increase in the images' name order: {os.path.basename(files[k])} at "
-                         f"t = {t[k]} s does not follow t = {t[k - 1] if k else float('nan')} s")
-    return t
-
-
-def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None) -> FrameSource:
-    """The frames of src (a generate folder, an image folder or a video file) with their times; InputError with
-    one line naming the input and what was expected."""
-    if os.path.isdir(src):
-        if os.path.isfile(os.path.join(src, "manifest.json")):
-            return dataset_source(src)
-        files = sorted(os.path.join(src, f) for f in os.listdir(src) if f.lower().endswith(IMAGE_EXTENSIONS))
-        if not files:
-            raise InputError(f"--images {src!r}: no image files (expected PNG, JPEG or TIFF files, a generate "
-                             "folder or a video)")
-        if timestamps:
-            t = read_timestamps(timestamps, files)
-        elif rate_hz > 0:
-            t = np.arange(len(files)) / rate_hz
-        else:
-            raise InputError(f"--images {src!r}: a folder of images needs --rate-hz R or --timestamps FILE.csv")
-        return FrameSource("images", src, t, [os.path.basename(f) for f in files], files=files)
-    if os.path.isfile(src):
-        return video_source(src, rate_hz)
-    raise InputError(f"--images {src!r}: no such file or folder")
-
-
-def video_source(path: str, rate_hz: float) -> FrameSource:
-    import cv2
-
-    cap = cv2.VideoCapture(path)
-    try:
-        if not cap.isOpened():
-            raise InputError(f"--images {path!r}: cannot be opened as a video (expected a video file OpenCV reads, "
-                             "an image folder or a generate folder)")
-        n = 0
-        while cap.grab():
-            n += 1
-        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-    finally:
-        cap.release()
-    if n == 0:
-        raise InputError(f"--images {path!r}: the video has no readable frames")
-    rate = rate_hz if rate_hz > 0 else fps
-    if not rate > 0:
-        raise InputError(f"--images {path!r}: the video has no frame rate: give --rate-hz")
-    return FrameSource("video", path, np.arange(n) / rate, [f"frame {i}" for i in range(n)])
-
-
-def dataset_source(path: str) -> FrameSource:
-    """A sequence-mode generate folder: times, truth and scenario from the labels and the manifest."""
-    from envisat_pose.datagen.dataset import iter_samples, load_manifest, verify_dataset
-
-    manifest = load_manifest(path)
-    cfg = manifest.get("config", {})
-    if cfg.get("mode") != "sequence":
-        raise InputError(f"--images {path!r}: a generate folder of mode {cfg.get('mode')!r}; expected one written "
-                         "with --mode sequence (frames in time order)")
-    problems = verify_dataset(path)
-    if problems:
-        raise InputError(f"--images {path!r}: {problems[0]} (`envisat dataset verify` lists all)")
-    t, names, x, uv, inf = [], [], [], [], []
-    for key, label, _ in iter_samples(path):
-        t.append(float(label["scene"]["t_s"]))
-        names.append(key)
-        x.append(label["x"])
-        uv.append(label["corners_px"])
-        inf.append(np.asarray(label["in_frame"], bool) & np.asarray(label["visible"], bool))
-    truth = {"x": np.array(x, float), "corners_px": np.array(uv, float), "in_frame": np.array(inf)}
-    return FrameSource("dataset", path, np.array(t), names, truth=truth, scenario=cfg.get("scenario"))
-
-
-def check_source(source: FrameSource, camera: PinholeCamera, progress: bool = False) -> None:
-    """Read every frame once before any output: each must decode and have the camera's size. InputError naming
-    the first frame that does not."""
-    it = source.frames()
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(it, total=len(source.t_s), unit="frame", desc="checking frames", mininterval=0.5)
-    want = (camera.height_px, camera.width_px)
-    for i, img in it:
-        if img.shape != want:
-            where = source.files[i] if source.kind == "images" else f"{source.path}: {source.names[i]}"
-            raise InputError(f"{where}: image is {img.shape[1]} x {img.shape[0]} px; expected {want[1]} x {want[0]} px "
-                             "like the camera (all frames one size; --camera FILE.toml for another camera)")
+def check_source(source: FrameSource, camera: PinholeCamera, progress: bool = False) -> str:
+    """scan_source with the camera's size (kept for callers of the earlier API)."""
+    return scan_source(source, (camera.width_px, camera.height_px), progress=progress)
 
 
 # ---------------------------------------------------------------------------------------------------------
 # The job
 
+OUTPUTS = {"est": "est.npz", "det": "det.npz", "plot": "errors.png", "config": "track.config.toml",
+           "summary": "summary.json", "recording": "recording.rrd"}
+
 
 def output_paths(out_dir: str) -> dict[str, str]:
-    names = {"est": "est.npz", "det": "det.npz", "plot": "errors.png", "config": "track.config.toml",
-             "summary": "summary.json", "recording": "recording.rrd"}
-    return {k: os.path.join(out_dir, v) for k, v in names.items()}
+    return {k: os.path.join(out_dir, v) for k, v in OUTPUTS.items()}
 
 
-def track_frames(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, out_dir: str,
-                 sink: str | None = None, progress: bool = True) -> dict:
-    """Run the Tracker over the source's frames; write est.npz, det.npz, track.config.toml, summary.json and
-    the recording (streamed to sink, default out_dir/recording.rrd); with a truth also errors.png and the
-    scores. Returns the summary."""
+def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCamera | None = None, remap=None,
+                 out_dir: str = "track-out", sink: str | None = None, progress: bool = True) -> dict:
+    """Run the Tracker over the source's frames (a FrameSource, or a path open_source opens at cfg.rate_hz);
+    write est.npz, det.npz, track.config.toml, summary.json and the recording (out_dir/recording.rrd, or
+    streamed to sink: 'spawn' or 'connect:URL'); with a truth also errors.png and the scores. camera: None for
+    the MJCF's chaser_cam at the frames' size; cfg.orbit None: the scenario's; cfg.weights "": the shipped
+    ones. Every output is staged and moved into out_dir when complete (io.staged_folder). Returns the summary."""
+    from envisat_pose.io import staged_folder
+    from envisat_pose.pipelines.build import load_camera, scenario_orbit
+    from envisat_pose.perception.weights import shipped_weights_path
+
+    if isinstance(source, str):
+        source = open_source(source, cfg.rate_hz)
+    if source.size_px is None or not source.bit_depth:
+        scan_source(source, None if camera is None else (camera.width_px, camera.height_px))
+    if camera is None:
+        camera = load_camera(size_px=source.size_px)
+    if cfg.orbit is None or not cfg.weights:
+        import dataclasses
+
+        stage_types()
+        cfg = dataclasses.replace(cfg, orbit=cfg.orbit or scenario_orbit(cfg.scenario),
+                                  weights=cfg.weights or shipped_weights_path())
+    with staged_folder(out_dir, OUTPUTS.values()) as stage:
+        return _track(cfg, source, camera, remap, stage, sink, progress)
+
+
+def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, out_dir: str, sink: str | None,
+           progress: bool) -> dict:
     import shutil
+    from dataclasses import asdict
 
     import cv2
     import torch
 
-    from envisat_pose.config import to_dict, to_toml
     from envisat_pose.analysis.recording import TrackRecorder
+    from envisat_pose.config import to_dict, to_toml
     from envisat_pose.io import atomic_write_text
     from envisat_pose.perception.detect import load_detector
     from envisat_pose.pipelines.closed_loop import (DET_KEYS, RunRows, chaser_function, est_row, run_rows,
                                                     score_run_files, store_estimate, write_run_files)
+    from envisat_pose.pipelines.outputs import first_tracking_s, status_counts
     from envisat_pose.pipelines.tracker import Tracker
+    from envisat_pose.runner import real_time_factor
 
     torch.set_num_threads(cfg.threads)
     paths = output_paths(out_dir)
     sink = sink or f"save:{os.path.abspath(paths['recording'])}"
-    tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(cfg.orbit), cfg.tracker, cfg.filter,
-                      mu_m3_s2=cfg.orbit.mu_m3_s2, gravity_gradient=cfg.gravity_gradient)
+    tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(cfg.orbit), cfg.tracker,
+                      asdict(cfg.filter), mu_m3_s2=cfg.orbit.mu_m3_s2, gravity_gradient=cfg.gravity_gradient)
     T = len(source.t_s)
     # the per-frame arrays go to files chunk by chunk (closed_loop.RunRows), est.npz/det.npz are streamed from them
     runs_dir = os.path.join(out_dir, "runs")
@@ -365,8 +170,8 @@ def track_frames(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, r
     sums = rows.close()
     wall_s = time.perf_counter() - wall0
     x_true = truth["x"] if truth is not None else np.full((T, 12), np.nan)
-    config_json = json.dumps({"track": to_dict(cfg), "source": {"kind": source.kind, "path": source.path}},
-                             sort_keys=True)
+    config_json = json.dumps({"track": to_dict(cfg), "source": {"kind": source.kind, "path": source.path,
+                                                                "bit_depth": source.bit_depth}}, sort_keys=True)
     det_cfg = json.dumps({"weights": cfg.weights, "source": source.path}, sort_keys=True)
     det_names = tuple(k for k in DET_KEYS if k != "skipped")
     scores = score_run_files(source.t_s, x_true, [run_dir], paths, config_json, det_cfg, score=truth is not None,
@@ -376,18 +181,22 @@ def track_frames(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, r
     write_run_files(paths, source.t_s, x_true, [run_dir], np.array([status[-1] != STATUSES.index("tracking")]),
                     config_json, source.names, det_cfg, det_names=det_names)
     atomic_write_text(paths["config"], "# envisat track: the full validated config of this job\n" + to_toml(to_dict(cfg)))
-    tracking = np.flatnonzero(status == STATUSES.index("tracking"))
     timing = np.asarray(sums["timing_s"]) / T
+    dof = int(np.sum(col["nis_dof"]))
+    counts = status_counts(status)
     summary = {
-        "source": {"kind": source.kind, "path": source.path, "frames": T},
+        "source": {"kind": source.kind, "path": source.path, "frames": T, "bit_depth": source.bit_depth},
         "weights": cfg.weights,
-        "frames_by_status": {s: int((status == i).sum()) for i, s in enumerate(STATUSES)},
-        "first_tracking_s": float(source.t_s[tracking[0]]) if tracking.size else None,
+        "frames_by_status": counts,
+        "tracked": counts["tracking"] > 0,
+        "first_tracking_s": first_tracking_s(source.t_s, status),
         "final_status": STATUSES[int(status[-1])],
-        "mean_nis_per_dof": float(np.sum(col["nis"]) / max(int(np.sum(col["nis_dof"])), 1)),
+        "mean_nis_per_dof": float(np.sum(col["nis"]) / dof) if dof else None,
         "timing_ms_per_frame": {"detection": float(1000 * timing[3]), "filtering": float(1000 * timing[4]),
                                 "recording": float(1000 * timing[5])},
+        "real_time_factor": real_time_factor(source.t_s, wall_s),
         "wall_s": wall_s,
+        "status_legend": legend(),
     }
     if truth is not None:
         from envisat_pose.analysis.plots import plot_estimate

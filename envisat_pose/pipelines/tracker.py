@@ -90,14 +90,15 @@ class Tracker:
     """Detector + UKF over a user's frames (module docstring). One object per image sequence."""
 
     def __init__(self, camera: PinholeCamera, detector, chaser_at: Callable[[float], np.ndarray],
-                 config: TrackerConfig = TrackerConfig(), filter_config: FilterConfig | None = None,
+                 config: TrackerConfig = TrackerConfig(), filter_config: FilterConfig | dict | None = None,
                  J_T: np.ndarray | None = None, mu_m3_s2: float | None = None, gravity_gradient: bool = False,
                  prior: tuple[np.ndarray, np.ndarray, float] | None = None):
         from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
 
         config.validate()
         self.cfg = config
-        self.fcfg = filter_config or FilterConfig(**TRACKER_FILTER)
+        from envisat_pose.pipelines.build import tracker_filter  # only the fields given override the tracker's
+        self.fcfg = tracker_filter(filter_config)
         self.fcfg.validate()
         self.camera = camera
         self.detector = detector
@@ -400,3 +401,11 @@ class Tracker:
                              self.state.mean.copy(), self.probabilities, fd, naming, np.asarray(measured, bool),
                              np.asarray(rejected, bool), nis, nis_dof, roi, converged, events, timing,
                              self.confirmed, self.coasting_frames)
+
+    @classmethod
+    def from_scenario(cls, scenario: str = "default", weights: str | None = None, **kw) -> "Tracker":
+        """A Tracker for the named scenario's geometry (pipelines.build.tracker_from_scenario: its orbit and
+        dynamics, the shipped detector unless weights, the MJCF camera unless camera=)."""
+        from envisat_pose.pipelines.build import tracker_from_scenario
+
+        return tracker_from_scenario(scenario, weights, **kw)

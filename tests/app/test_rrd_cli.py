@@ -1,5 +1,6 @@
 """Every `--rrd` verb writes a recording that Rerun's own reader reads back, with the design's entity paths and
-timelines and the values of the arrays it came from (run.npz, est.npz, campaign.npz, the dataset's labels)."""
+timelines and the values of the arrays it came from (run.npz, est.npz, campaign.npz, the dataset's labels), and
+that `rerun rrd verify` passes (footer included)."""
 
 import os
 
@@ -34,9 +35,10 @@ def simulated(tmp_path_factory):
     return out, rrd
 
 
-def test_simulate_rrd(simulated):
+def test_simulate_rrd(simulated, verify_rrd):
     out, rrd = simulated
     tr = TruthTrajectory.load(str(out))
+    verify_rrd(rrd)
     static, temporal = read_rrd(rrd)
     check_model(static)
     N = len(tr.t_s)
@@ -53,13 +55,14 @@ def test_simulate_rrd(simulated):
                                   tr.in_frame.sum(axis=1))
 
 
-def test_estimate_rrd(simulated, tmp_path):
+def test_estimate_rrd(simulated, tmp_path, verify_rrd):
     truth, _ = simulated
     out, rrd = tmp_path / "est.npz", tmp_path / "est.rrd"
     assert main(["estimate", "--truth", str(truth), "--runs", "3", "--rate-hz", "0.5", "--seed", "2", "--out", str(out),
                  "--rrd", str(rrd), "--quiet"]) == 0
     est = Estimates.load(str(out))
     tr = TruthTrajectory.load(str(truth))
+    verify_rrd(rrd)
     static, temporal = read_rrd(rrd)
     check_model(static)
     T = len(est.t_s)
@@ -81,12 +84,13 @@ def test_estimate_rrd(simulated, tmp_path):
     np.testing.assert_allclose(np.sort(half**2, axis=1), 9 * np.linalg.eigvalsh(est.P[0, :, :3, :3]), rtol=1e-4)
 
 
-def test_montecarlo_rrd(tmp_path):
+def test_montecarlo_rrd(tmp_path, verify_rrd):
     out, rrd = tmp_path / "mc", tmp_path / "mc.rrd"
     assert main(["montecarlo", "--scenario", "default", "--duration-s", "40", "--runs", "5", "--block-runs", "2",
                  "--seed", "3", "--out", str(out), "--rrd", str(rrd), "--quiet"]) == 0
     with np.load(out / "campaign.npz") as z:
         sample_err, filt, t_s = z["sample_err"], z["filter_3sigma"], z["t_s"]
+    verify_rrd(rrd)
     static, temporal = read_rrd(rrd)
     check_model(static)
     T = len(t_s)
@@ -109,7 +113,7 @@ def test_montecarlo_rrd_refuses_a_sweep_before_work(tmp_path, capsys):
     assert not (tmp_path / "sw").exists()
 
 
-def test_dataset_inspect_rrd(tmp_path):
+def test_dataset_inspect_rrd(tmp_path, verify_rrd):
     ds, rrd = tmp_path / "ds", tmp_path / "ds.rrd"
     assert main(["generate", "--num-images", "3", "--shard-size", "2", "--resolution", "128", "--seed", "4",
                  "--out", str(ds), "--quiet"]) == 0
@@ -117,6 +121,7 @@ def test_dataset_inspect_rrd(tmp_path):
     from envisat_pose.datagen.dataset import iter_samples, sample_png
 
     samples = list(iter_samples(str(ds)))
+    verify_rrd(rrd)
     static, temporal = read_rrd(rrd)
     image = temporal["/world/chaser/camera/image"]
     assert image["frame"] == [0, 1, 2]

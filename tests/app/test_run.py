@@ -23,7 +23,7 @@ def run_cfg(weights, duration_s=4.0, **over):
     return loop.finish_config(from_dict(loop.RunConfig, data))
 
 
-def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights):
+def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, verify_rrd):
     from envisat_pose.analysis.recording import read_recording
     from envisat_pose.contracts import Detections, Estimates, TruthTrajectory
 
@@ -36,6 +36,7 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights):
     det = Detections.load(str(out / "det.npz"))
     T = 5
     assert est.x_hat.shape == (1, T, 12) and np.isfinite(est.x_hat).all() and len(det.t_s) == T
+    assert (est.status == 1).all()  # warm: every row an estimate
     np.testing.assert_array_equal(est.x_true[0], truth.x)
     with np.load(out / "det.npz", allow_pickle=False) as z:
         for key in ("key", "alt_corners_px", "alt_probability", "ambiguous", "roi_px", "naming", "status", "skipped"):
@@ -47,6 +48,7 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights):
     from envisat_pose.app.view import recordings
 
     assert recordings(str(out)) == [str(out / "recording.rrd")]
+    verify_rrd(out / "recording.rrd")  # footer written: `rerun rrd verify` passes
     static, temporal = read_recording(out / "recording.rrd")
     for entity in ("/world/target", "/world/target_est", "/world/target_est/position_3sigma",
                    "/world/chaser/camera/image", "/world/chaser/camera/image/corners_true",
@@ -81,9 +83,15 @@ def test_frames_in_the_earths_shadow_are_skipped(tmp_path, detector_weights):
     summary = loop.run_closed_loop(cfg, str(out), progress=False)
     assert summary["run0"]["frames_skipped_eclipse"] == 4 and summary["run0"]["frames_acquiring"] == 4
     est = Estimates.load(str(out / "est.npz"))
-    assert np.isfinite(est.x_hat).all() and (est.n_meas == 0).all()
+    # no estimate exists: every row says so (status acquiring, code 0 in the stored legend) and holds NaN, not a
+    # made-up state
+    assert (est.status == 0).all() and np.isnan(est.x_hat).all() and np.isnan(est.P).all()
+    assert (est.n_meas == 0).all()
+    with np.load(out / "est.npz", allow_pickle=False) as z:
+        assert json.loads(str(z["status_legend"]))["0"]["name"] == "acquiring"
     with np.load(out / "det.npz", allow_pickle=False) as z:
         assert z["skipped"].all() and not z["visible"].any()
+        assert json.loads(str(z["status_legend"]))["1"]["name"] == "tracking"
     _, temporal = read_recording(out / "recording.rrd")
     assert "/world/chaser/camera/image" not in temporal
 

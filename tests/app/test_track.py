@@ -96,14 +96,14 @@ def test_timestamps_and_a_video(png_dir, tmp_path, detector_weights):
         np.testing.assert_allclose(z["t_s"], 10.0 + 2 * np.arange(25))
     video = tmp_path / "seq.avi"
     w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 1.0, (1024, 1024), isColor=True)
-    for f in files[:12]:
+    for f in files[:20]:  # the cold start's minimum (TrackerConfig.acquire_frames)
         w.write(cv2.cvtColor(cv2.imread(str(sub / f), cv2.IMREAD_GRAYSCALE), cv2.COLOR_GRAY2BGR))
     w.release()
     out = tmp_path / "vid"
     assert main(["track", "--images", str(video), "--rate-hz", "2", "--out", str(out), "--quiet",
                  "--weights", detector_weights]) == 0
     with np.load(out / "det.npz") as z:
-        np.testing.assert_allclose(z["t_s"], np.arange(12) / 2.0)
+        np.testing.assert_allclose(z["t_s"], np.arange(20) / 2.0)
         assert z["visible"].sum(axis=1).max() >= 4  # the detector found the target in the decoded frames
 
 

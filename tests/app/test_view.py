@@ -100,6 +100,29 @@ def test_view_of_a_missing_file_is_one_error_line(tmp_path, capsys):
     assert "no such file" in capsys.readouterr().err
 
 
+def test_view_refuses_a_file_that_is_not_a_recording_and_a_machine_without_a_display(tmp_path, capsys,
+                                                                                    monkeypatch):
+    """garbage.rrd (--web too: the old code served it, one core at 99 %) is one error line; without a display the
+    native viewer is not started: exit 2 and the line says to use --web (the old code exited 0 after a
+    window-system error)."""
+    junk = tmp_path / "garbage.rrd"
+    junk.write_bytes(b"this is not a recording" * 10)
+    for extra in ([], ["--web"]):
+        assert main(["view", str(junk), *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "not a Rerun recording" in err, err
+    rrd = tmp_path / "run.rrd"
+    write_small_recording(rrd)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+    assert main(["view", str(rrd)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--web" in err and "display" in err, err
+    # the native viewer's own server binds the loopback address too
+    assert view.viewer_command([str(rrd)])[-3:] == ["--bind", "127.0.0.1", str(rrd)]
+
+
 def write_small_recording(path):
     import numpy as np
 

@@ -139,3 +139,53 @@ def test_the_recording_opens_in_the_web_viewer(tmp_path, detector_weights, rerun
     assert counts["red"] > 300, "no error plots with their 3-sigma bands"
     assert counts["blue"] > 100, "no 3D view of the target's solar array"
     assert counts["colours"] > 2000
+
+
+def write_long_recording(path, frames=600, with_error=150):
+    """A 600 s tracker recording at 1 Hz (the demo's length) whose error plots hold data only in the first 150 s
+    (tracking, with a truth), the tracker's status to the end: a plot that shows the whole run draws the red
+    x-component error series over its first quarter; one that shows a trailing window (the last ~50 s) draws none."""
+    from envisat_pose.analysis.recording import TrackRecorder
+    from envisat_pose.geometry import load_camera
+
+    rec = TrackRecorder(f"save:{path}", load_camera().scaled(64, 64), with_truth=True, title="whole-run check")
+    x = np.zeros(12)
+    x[1] = 50.0
+    P = np.diag(np.tile([4.0, 1.0, 0.25], 4)) * 1e-4  # x's 3-sigma lines apart from y's and z's
+    for k in range(frames):
+        status = 1 if k < with_error else 0
+        x_hat = x + 0.05 * np.sin(0.1 * k) * np.tile([1.0, 0.0, 0.0], 4)  # an error in the x components only
+        rec.log_frame(k, {"t_s": float(k), "x_hat": x_hat, "P": P, "status": status, "p_best": 1.0,
+                          "nis": 1.0, "nis_dof": 2, "corners_px": np.full((8, 2), np.nan),
+                          "visible": np.zeros(8, bool), "rejected": np.zeros(8, bool), "roi_px": np.full(3, np.nan)},
+                      None, x_true=x)
+    rec.close()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (make test installs it as root)")
+def test_every_plot_shows_the_whole_run_at_load(tmp_path, rerun_env):
+    """A 600 s recording opened in the web viewer: the error plots show the first 150 s of data (red x-component
+    series), i.e. their time axis spans the whole run at load, not a trailing window at the time cursor."""
+    rrd = tmp_path / "long.rrd"
+    write_long_recording(str(rrd))
+    port, web_port = free_ports(2)
+    proc = view.start_viewer(view.viewer_command([str(rrd)], web=True, port=port, web_port=web_port), env=rerun_env,
+                             quiet=True)
+    shot = tmp_path / "viewer.png"
+
+    def red_shown(png):
+        return shows_the_recording(png)["red"] > 300
+
+    try:
+        assert wait_http(f"http://127.0.0.1:{web_port}/", proc) == 200
+        deadline = time.monotonic() + 60
+        while not listeners(port) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        chromium_screenshot(view.web_url(port, web_port), str(shot), str(tmp_path / "chrome"), red_shown,
+                            timeout_s=150.0)
+    finally:
+        view.stop_viewer(proc)
+    counts = shows_the_recording(str(shot))
+    print(counts)
+    assert counts["red"] > 300, "the error plots do not show the run's first 150 s: not the whole run at load"

@@ -1,0 +1,343 @@
+"""The recording's layout (analysis/recording.py lists the entities): constants, the MJCF's model data, the series
+loggers and the blueprints (what the viewer shows at load). Two conventions change at this edge: Rerun
+quaternions are (x, y, z, w), ours (w, x, y, z); Rerun's pixel (0, 0) covers [0, 1]^2 (centre 0.5), ours follow
+OpenCV (centre 0), so image points and the principal point get +0.5."""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from envisat_pose.attitude import mrp_to_dcm, mrp_to_quat, rotmat_to_quat
+from envisat_pose.geometry import CORNER_NAMES, EDGES, PinholeCamera, load_camera, load_geometry, model_path
+from envisat_pose.state import MRP, POS, RATE, VEL
+
+from .stats import component_errors, display_transform
+
+
+APPLICATION_ID = "envisat_pose"
+KEYPOINT_CLASS = 0  # class of the annotation context whose keypoints are the corners A-H
+BLOCKS = ("position_m", "velocity_m_s", "attitude_deg", "angular_velocity_deg_s")
+AXES = ("x", "y", "z")
+# statistics' units (m, m/s, rad, rad/s; analysis.stats) -> what the plots show (m, m/s, deg, deg/s)
+DISPLAY_SCALE = np.array([1.0] * 6 + [180.0 / np.pi] * 6)
+MASK_CLASSES = ("background", "face +x", "face -x", "face +y", "face -y", "face +z", "face -z", "array and boom",
+                "appendages")  # design.md, Shard: mask values 0-8
+
+VISIBLE_RGB = (40, 200, 60)
+HIDDEN_RGB = (220, 50, 50)
+TRUE_RGB = (200, 200, 210)
+EST_RGB = (60, 140, 255)
+SIGMA_RGB = (220, 50, 50)
+SAMPLE_SIGMA_RGB = (20, 20, 20)
+IMAGE_PLANE_M = 8.0  # where the viewer draws the image plane in 3D, m in front of the camera
+
+
+DETECTED_RGB = (255, 200, 0)
+ROI_RGB = (0, 200, 255)
+
+
+# ---------------------------------------------------------------- model data from the MJCF
+
+@dataclass(frozen=True)
+class Part:
+    """A solid of body `target` as Rerun draws it: a box (half_sizes_m) or a cylinder (radius_m, length_m
+    along its local z), centred at center_T_m, rotated by quat_xyzw (part frame -> T)."""
+
+    name: str
+    kind: str
+    center_T_m: np.ndarray
+    quat_xyzw: np.ndarray
+    half_sizes_m: np.ndarray | None = None
+    radius_m: float = 0.0
+    length_m: float = 0.0
+
+
+def _vec(text: str | None, default: str) -> np.ndarray:
+    return np.array([float(v) for v in (text or default).split()])
+
+
+def _wxyz_to_xyzw(q: np.ndarray) -> np.ndarray:
+    """Our (w, x, y, z) -> Rerun's (x, y, z, w)."""
+    q = np.asarray(q, dtype=float)
+    return np.concatenate([q[..., 1:], q[..., :1]], axis=-1)
+
+
+def target_parts(path: str | None = None) -> list[Part]:
+    """The main body (the box spanned by the corners, load_geometry) and every other solid geom of body `target`
+    in models/envisat.xml that the plain scene shows (boxes and `fromto` cylinders; the face plates are the body,
+    geom group 4, the hidden appendages, is left out). Read with ElementTree like the core's geometry."""
+    path = path or model_path()
+    g = load_geometry(path)
+    lo, hi = g.corners_T_m.min(axis=0), g.corners_T_m.max(axis=0)
+    parts = [Part("body", "box", 0.5 * (lo + hi), np.array([0.0, 0.0, 0.0, 1.0]), half_sizes_m=0.5 * (hi - lo))]
+    target = next(b for b in ET.parse(path).getroot().iter("body") if b.get("name") == "target")
+    for geom in target.iter("geom"):
+        name = geom.get("name", "")
+        if name.startswith("face_") or geom.get("group") == "4":
+            continue
+        size = _vec(geom.get("size"), "0")
+        if geom.get("type") == "box" and len(size) == 3:
+            quat = _wxyz_to_xyzw(_vec(geom.get("quat"), "1 0 0 0"))
+            parts.append(Part(name, "box", _vec(geom.get("pos"), "0 0 0"), quat, half_sizes_m=size))
+        elif geom.get("type") == "cylinder" and geom.get("fromto"):
+            a, b = _vec(geom.get("fromto"), "").reshape(2, 3)
+            axis = (b - a) / np.linalg.norm(b - a)
+            # the rotation taking the cylinder's local z onto its axis
+            z = np.array([0.0, 0.0, 1.0])
+            c = np.cross(z, axis)
+            if np.linalg.norm(c) < 1e-12:
+                q = np.array([1.0, 0.0, 0.0, 0.0]) if axis[2] > 0 else np.array([0.0, 1.0, 0.0, 0.0])
+            else:
+                ang = np.arccos(np.clip(axis[2], -1.0, 1.0))
+                q = np.concatenate([[np.cos(ang / 2)], np.sin(ang / 2) * c / np.linalg.norm(c)])
+            parts.append(Part(name, "cylinder", 0.5 * (a + b), _wxyz_to_xyzw(q), radius_m=float(size[0]),
+                              length_m=float(np.linalg.norm(b - a))))
+    return parts
+
+
+PART_RGB = {"body": (190, 150, 70), "array": (40, 60, 150), "boom": (150, 150, 150)}
+
+
+def log_target_model(rec: rr.RecordingStream, entity: str, parts: list[Part], rgb=None, fill="solid") -> None:
+    """The target's parts under `entity`/model, static, in T."""
+    mode = rr.components.FillMode.Solid if fill == "solid" else rr.components.FillMode.MajorWireframe
+    for p in parts:
+        color = rgb or PART_RGB.get(p.name, (170, 170, 170))
+        path = f"{entity}/model/{p.name}"
+        if p.kind == "box":
+            rec.log(path, rr.Boxes3D(half_sizes=[p.half_sizes_m], centers=[p.center_T_m], quaternions=[p.quat_xyzw],
+                                     colors=[color], fill_mode=mode), static=True)
+        else:
+            rec.log(path, rr.Cylinders3D(lengths=[p.length_m], radii=[p.radius_m], centers=[p.center_T_m],
+                                         quaternions=[p.quat_xyzw], colors=[color], fill_mode=mode), static=True)
+
+
+def corner_annotation() -> rr.AnnotationContext:
+    """Class KEYPOINT_CLASS: keypoints 0-7 named A-H, connected by the 12 edges of the main body."""
+    return rr.AnnotationContext([rr.ClassDescription(
+        info=rr.AnnotationInfo(id=KEYPOINT_CLASS, label="ENVISAT main body"),
+        keypoint_annotations=[rr.AnnotationInfo(id=i, label=n) for i, n in enumerate(CORNER_NAMES)],
+        keypoint_connections=list(EDGES))])
+
+
+def log_camera(rec: rr.RecordingStream, camera: PinholeCamera, static: bool = True) -> None:
+    """world/chaser/camera: the mount (K in C) and the pinhole (x right, y down, z boresight: Rerun's RDF)."""
+    rec.log("world/chaser/camera", rr.Transform3D(translation=camera.pos_C_m, mat3x3=camera.R_K_from_C.T),
+            static=True)
+    rec.log("world/chaser/camera", rr.Pinhole(
+        focal_length=camera.f_px, principal_point=[camera.cu_px + 0.5, camera.cv_px + 0.5],  # OpenCV -> Rerun
+        resolution=[camera.width_px, camera.height_px], camera_xyz=rr.ViewCoordinates.RDF,
+        image_plane_distance=IMAGE_PLANE_M), static=static)
+
+
+def log_static_scene(rec: rr.RecordingStream, camera: PinholeCamera | None = None, estimate: bool = False) -> None:
+    """Everything that does not change: the annotation context, the frame's axes, the target's model (true and,
+    with estimate=True, estimated), the chaser's camera."""
+    rec.log("world", corner_annotation(), static=True)
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_X_UP, static=True)  # C: x radial out (up)
+    parts = target_parts()
+    log_target_model(rec, "world/target", parts)
+    if estimate:
+        log_target_model(rec, "world/target_est", parts, rgb=EST_RGB, fill="wireframe")
+    log_camera(rec, camera or load_camera())
+
+
+# ---------------------------------------------------------------- time series
+
+def _times(t_s: np.ndarray, frames: np.ndarray | None = None) -> list:
+    """The two timelines of a series: sim_time (duration, s) and frame (sequence)."""
+    t_s = np.asarray(t_s, dtype=float)
+    frames = np.arange(len(t_s)) if frames is None else np.asarray(frames)
+    return [rr.TimeColumn("frame", sequence=frames.astype(np.int64)), rr.TimeColumn("sim_time", duration=t_s)]
+
+
+def pose_columns(x: np.ndarray):
+    """Transform3D columns of T in C from states (T, 12): translation rho_C, rotation R_C_from_T (xyzw)."""
+    q_wxyz = mrp_to_quat(x[:, MRP])  # R(q) = Gamma(p)^T = R_C_from_T (envisat_pose.attitude)
+    return rr.Transform3D.columns(translation=x[:, POS], quaternion=_wxyz_to_xyzw(q_wxyz))
+
+
+def _point_colors(visible: np.ndarray) -> np.ndarray:
+    return np.where(visible[..., None], np.array(VISIBLE_RGB, dtype=np.uint8), np.array(HIDDEN_RGB, dtype=np.uint8))
+
+
+def log_truth_series(rec: rr.RecordingStream, t_s: np.ndarray, x: np.ndarray, corners_C_m: np.ndarray,
+                     visible: np.ndarray, corners_px: np.ndarray, in_frame: np.ndarray,
+                     frames: np.ndarray | None = None) -> None:
+    """The truth over time, N samples: world/target's pose from x (N, 12); world/corners_true the corner sites
+    corners_C_m (N, 8, 3) in C, coloured by visible (N, 8); the in-frame corners_px (N, 8, 2) (OpenCV px) as
+    .../image/corners_true; metrics range_m, visible_corners, in_frame_corners."""
+    N = len(t_s)
+    idx = _times(t_s, frames)
+    rec.send_columns("world/target", idx, pose_columns(x))
+    ids = np.tile(np.arange(8), N)
+    rec.send_columns("world/corners_true", idx, rr.Points3D.columns(
+        positions=corners_C_m.reshape(-1, 3), colors=_point_colors(visible).reshape(-1, 3), keypoint_ids=ids,
+        class_ids=np.full(8 * N, KEYPOINT_CLASS)).partition([8] * N))
+    m = in_frame
+    rec.send_columns("world/chaser/camera/image/corners_true", idx, rr.Points2D.columns(
+        positions=corners_px[m] + 0.5,  # OpenCV pixel centres -> Rerun's
+        colors=_point_colors(visible)[m], keypoint_ids=np.broadcast_to(np.arange(8), m.shape)[m],
+        class_ids=np.full(int(m.sum()), KEYPOINT_CLASS)).partition(m.sum(axis=1)))
+    rec.send_columns("metrics/range_m", idx, rr.Scalars.columns(scalars=np.linalg.norm(x[:, POS], axis=1)))
+    rec.send_columns("metrics/visible_corners", idx, rr.Scalars.columns(scalars=visible.sum(axis=1).astype(float)))
+    rec.send_columns("metrics/in_frame_corners", idx, rr.Scalars.columns(scalars=in_frame.sum(axis=1).astype(float)))
+
+
+def position_ellipsoids(x_hat: np.ndarray, P: np.ndarray, n_sigma: float = 3.0):
+    """The n-sigma ellipsoid of the position covariance P[:3, :3] (in C), expressed in the estimated target frame
+    (so it can hang under world/target_est): half sizes (T, 3) m and rotations (T, 4) xyzw (ellipsoid -> T_est).
+    x_hat (T, 12), P (T, 12, 12)."""
+    w, V = np.linalg.eigh(P[:, POS, POS])
+    V = V * np.where(np.linalg.det(V) < 0, -1.0, 1.0)[:, None, None]  # a proper rotation
+    R_Test_from_ell = mrp_to_dcm(x_hat[:, MRP]) @ V  # Gamma(p) = R_T_from_C
+    return n_sigma * np.sqrt(np.maximum(w, 0.0)), _wxyz_to_xyzw(rotmat_to_quat(R_Test_from_ell))
+
+
+def log_estimate_series(rec: rr.RecordingStream, t_s: np.ndarray, x_hat: np.ndarray, P: np.ndarray,
+                        frames: np.ndarray | None = None) -> None:
+    """One run's estimate over T steps: world/target_est's pose from x_hat (T, 12) and the 3-sigma position
+    ellipsoid from P (T, 12, 12)."""
+    idx = _times(t_s, frames)
+    rec.send_columns("world/target_est", idx, pose_columns(x_hat))
+    half, quat = position_ellipsoids(x_hat, P)
+    T = len(t_s)
+    rec.send_columns("world/target_est/position_3sigma", idx, rr.Ellipsoids3D.columns(
+        centers=np.zeros((T, 3)), half_sizes=half, quaternions=quat))
+    rec.log("world/target_est/position_3sigma", rr.Ellipsoids3D.from_fields(
+        colors=[EST_RGB], fill_mode=rr.components.FillMode.MajorWireframe), static=True)
+
+
+def error_entity(i: int) -> str:
+    """metrics/error/<block>/<axis> of state component i (0..11)."""
+    return f"metrics/error/{BLOCKS[i // 3]}/{AXES[i % 3]}"
+
+
+def log_error_series(rec: rr.RecordingStream, t_s: np.ndarray, err: np.ndarray, filter_3sigma: np.ndarray,
+                     sample_3sigma: np.ndarray | None = None, frames: np.ndarray | None = None,
+                     run_ids: Iterable[int] | None = None) -> None:
+    """Error series with their bands, per state component, in the statistics' units (analysis.stats: attitude a
+    rotation vector, rad), shown in BLOCKS' units. err (R, T, 12): one series per run; filter_3sigma (T, 12):
+    the filter's 3 sigma (from P); sample_3sigma (T, 12): 3 sigma of the runs' spread, or None."""
+    R, T = err.shape[0], len(t_s)
+    idx = _times(t_s, frames)
+    run_ids = list(range(R)) if run_ids is None else list(run_ids)
+    for i in range(12):
+        path, s = error_entity(i), DISPLAY_SCALE[i]
+        if R:
+            rec.log(path, rr.SeriesLines(names=[f"run {r}" for r in run_ids], widths=[1.0] * R), static=True)
+            rec.send_columns(path, idx,
+                             rr.Scalars.columns(scalars=(err[:, :, i].T * s).reshape(-1)).partition([R] * T))
+        bands = [("filter_3sigma", filter_3sigma, SIGMA_RGB)]
+        if sample_3sigma is not None:
+            bands.append(("sample_3sigma", sample_3sigma, SAMPLE_SIGMA_RGB))
+        for name, sig, rgb in bands:
+            rec.log(f"{path}/{name}", rr.SeriesLines(names=[f"+{name}", f"-{name}"], colors=[rgb, rgb],
+                                                     widths=[2.0, 2.0]), static=True)
+            band = np.stack([sig[:, i], -sig[:, i]], axis=1) * s
+            rec.send_columns(f"{path}/{name}", idx, rr.Scalars.columns(scalars=band.reshape(-1)).partition([2] * T))
+
+
+def estimate_bands(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray):
+    """Errors and bands of R runs in the statistics' units: err (R, T, 12); the filter's 3 sigma (T, 12) =
+    3 sqrt(mean over runs of the variance of A P A^T) (A: analysis.stats.display_transform, the MRP block as a
+    rotation vector), as analysis.stats.CampaignStats.filter_3sigma; 3 x the sample std over runs (ddof 1) or
+    None for one run."""
+    err = component_errors(x_true, x_hat)
+    var = np.zeros(x_hat.shape[1:])
+    for r in range(x_hat.shape[0]):  # one run at a time: A P A^T of every run at once would double P's memory
+        A = display_transform(x_hat[r, :, MRP])
+        var += np.einsum("tij,tjk,tik->ti", A, P[r], A)
+    filt = 3.0 * np.sqrt(var / x_hat.shape[0])
+    samp = 3.0 * err.std(axis=0, ddof=1) if err.shape[0] > 1 else None
+    return err, filt, samp
+
+
+# ---------------------------------------------------------------- blueprints
+
+def _scene_views(image: bool) -> rrb.Vertical:
+    cam = rrb.Spatial2DView(origin="world/chaser/camera", name="camera image" if image else "camera (corners)",
+                            contents=["$origin/**", "- $origin/image/mask/**", "- $origin/image/depth/**"])
+    return rrb.Vertical(rrb.Spatial3DView(origin="world", name="3D: chaser LVLH frame C (m)"), cam,
+                        row_shares=[3, 2])
+
+
+def error_plots() -> rrb.Grid:
+    """The 12 error plots, one per state component, each with its runs and +-3 sigma bands."""
+    return rrb.Grid(*[rrb.TimeSeriesView(origin=error_entity(i), name=f"{BLOCKS[i // 3]} {AXES[i % 3]} error")
+                      for i in range(12)], grid_columns=3)
+
+
+def truth_blueprint() -> rrb.Blueprint:
+    plots = rrb.Vertical(rrb.TimeSeriesView(origin="metrics/range_m", name="range (m)"),
+                         rrb.TimeSeriesView(origin="metrics", contents=["metrics/visible_corners",
+                                                                         "metrics/in_frame_corners"],
+                                            name="visible / in-frame corners"))
+    return rrb.Blueprint(rrb.Horizontal(_scene_views(False), plots, column_shares=[3, 2]), collapse_panels=True)
+
+
+def estimate_blueprint() -> rrb.Blueprint:
+    return rrb.Blueprint(rrb.Horizontal(_scene_views(False), error_plots(), column_shares=[2, 3]),
+                         collapse_panels=True)
+
+
+def samples_blueprint() -> rrb.Blueprint:
+    cam = "world/chaser/camera"
+    return rrb.Blueprint(rrb.Horizontal(
+        rrb.Spatial2DView(origin=cam, name="image and corners",
+                          contents=["$origin/**", "- $origin/image/mask/**", "- $origin/image/depth/**"]),
+        rrb.Vertical(rrb.Spatial2DView(origin=cam, name="mask", contents=["$origin/image/mask/**",
+                                                                           "$origin/image/corners_true/**"]),
+                     rrb.Spatial2DView(origin=cam, name="depth", contents=["$origin/image/depth/**"]),
+                     rrb.Spatial3DView(origin="world", name="3D: camera frame C (m)")),
+        column_shares=[3, 2]), collapse_panels=True)
+
+
+# ---------------------------------------------------------------- a tracker's run: its blueprint
+
+AXIS_RGB = ((230, 60, 60), (40, 170, 60), (60, 110, 240))  # x, y, z
+PLOT_BLOCKS = (("position_m", "position error (m)", POS, 1.0), ("velocity_m_s", "velocity error (m/s)", VEL, 1.0),
+               ("attitude_deg", "attitude error (deg)", MRP, 180.0 / np.pi),
+               ("angular_velocity_deg_s", "angular velocity error (deg/s)", RATE, 180.0 / np.pi))
+NEES_BAND_12 = (4.404, 23.337)  # chi-square 12 dof, 2.5 % and 97.5 %
+
+
+def whole_run(view_kind, **kw):
+    """A time-series view that shows the whole run on both timelines (not a trailing window) with its legend
+    hidden (the series are named in the view's title and coloured x red, y green, z blue). Two settings make
+    it: the data queried (time_ranges: every time, not the default window at the time cursor) and the plot's
+    own x axis (axis_x: view_range infinite, each view on its own; without it the viewer opens a plot on the
+    ~50 s before the cursor, which a file opens at its end: a 600 s run showed +9m30s..+10m20s)."""
+    inf = rrb.TimeRangeBoundary.infinite()
+    ranges = [rrb.VisibleTimeRange(tl, start=inf, end=inf) for tl in ("sim_time", "frame")]
+    axis = rrb.TimeAxis(link="Independent", view_range=rrb.TimeRange(start=inf, end=inf))
+    return view_kind(time_ranges=ranges, axis_x=axis, plot_legend=rrb.PlotLegend(visible=False), **kw)
+
+
+def track_blueprint(with_truth: bool) -> rrb.Blueprint:
+    """The camera image (detections, projected estimate, region of interest) and the 3D scene on the left; six
+    plots on the right: with a truth the four error blocks with +-3 sigma, NEES, the hypotheses and status;
+    without, the position and attitude 3 sigma, the range, NIS, the hypotheses and status."""
+    cam = rrb.Spatial2DView(origin="world/chaser/camera", name="camera: detected (yellow, rejected red), estimate (blue)",
+                            contents=["$origin/**"])
+    left = rrb.Vertical(cam, rrb.Spatial3DView(origin="world", name="3D: chaser LVLH frame C (m)"), row_shares=[1, 1])
+    if with_truth:
+        plots = [whole_run(rrb.TimeSeriesView, origin=f"metrics/error/{b}",
+                           name=f"{title}: x red, y green, z blue, +-3 sigma thin") for b, title, _, _ in PLOT_BLOCKS]
+        plots.append(whole_run(rrb.TimeSeriesView, origin="metrics/nees", name="NEES (12 dof; 95 % band grey)"))
+    else:
+        plots = [whole_run(rrb.TimeSeriesView, origin="metrics/sigma3/position_m", name="position 3 sigma (m): x, y, z"),
+                 whole_run(rrb.TimeSeriesView, origin="metrics/sigma3/attitude_deg", name="attitude 3 sigma (deg)"),
+                 whole_run(rrb.TimeSeriesView, origin="metrics/range_est_m", name="estimated range (m)"),
+                 whole_run(rrb.TimeSeriesView, origin="metrics/nis", name="NIS / dof")]
+    plots.append(whole_run(rrb.TimeSeriesView, origin="metrics/tracker",
+                           name="tracker: best hypothesis probability, status (0 acquiring, 1 tracking, 2 lost, "
+                           "3 coasting)"))
+    return rrb.Blueprint(rrb.Horizontal(left, rrb.Grid(*plots, grid_columns=2), column_shares=[2, 3]),
+                         collapse_panels=True)

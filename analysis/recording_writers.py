@@ -1,0 +1,158 @@
+"""Recordings written whole from arrays (`--rrd` of simulate, estimate, montecarlo, dataset inspect): each file is
+written under a temporary name, with its footer, and renamed when complete (envisat_pose.io.atomic_path)."""
+
+from __future__ import annotations
+
+import uuid
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from envisat_pose.contracts import Estimates, TruthTrajectory
+from envisat_pose.io import atomic_path
+
+from .recording_layout import (APPLICATION_ID, corner_annotation, CORNER_NAMES, estimate_bands,
+                               estimate_blueprint, IMAGE_PLANE_M, KEYPOINT_CLASS, load_camera,
+                               log_error_series, log_estimate_series, log_static_scene, log_target_model,
+                               log_truth_series, MASK_CLASSES, _point_colors, pose_columns, rotmat_to_quat,
+                               samples_blueprint, target_parts, _times, truth_blueprint, _wxyz_to_xyzw)
+
+
+# ---------------------------------------------------------------- files
+
+class _Recording:
+    """A recording saved to `path` atomically: `with _Recording(path, blueprint) as rec: ...`."""
+
+    def __init__(self, path: str, blueprint: rrb.Blueprint):
+        self.path, self.blueprint = path, blueprint
+
+    def __enter__(self) -> rr.RecordingStream:
+        self._atomic = atomic_path(self.path, suffix=".rrd")
+        tmp = self._atomic.__enter__()
+        self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=str(uuid.uuid4()), send_properties=False)
+        self.rec.set_log_time_enabled(False)  # only the two timelines of the design, sim_time and frame
+        self.rec.set_log_tick_enabled(False)
+        self.rec.save(tmp, default_blueprint=self.blueprint)
+        return self.rec
+
+    def __exit__(self, *exc) -> bool:
+        try:
+            self.rec.flush()
+            self.rec.disconnect()  # closes the file before it is renamed
+        finally:
+            self._atomic.__exit__(*exc)
+        return False
+
+
+def write_truth_recording(path: str, truth: TruthTrajectory) -> str:
+    """`envisat simulate --rrd`: the truth (target pose, corners, visibility over time) as a recording."""
+    with _Recording(path, truth_blueprint()) as rec:
+        log_static_scene(rec)
+        log_truth_series(rec, truth.t_s, truth.x, truth.corners_C_m, truth.visible, truth.corners_px, truth.in_frame)
+    return path
+
+
+def truth_rows(truth: TruthTrajectory, t_s: np.ndarray) -> np.ndarray:
+    """Indices of the truth's samples at the times t_s (the filter's grid is a subsample of the truth's)."""
+    k = np.clip(np.searchsorted(truth.t_s, t_s - 1e-9), 0, len(truth.t_s) - 1)
+    if not np.allclose(truth.t_s[k], t_s, atol=1e-6):
+        raise ValueError("the estimates' times are not samples of the truth")
+    return k
+
+
+def write_estimates_recording(path: str, est: Estimates, truth: TruthTrajectory | None = None,
+                              max_error_runs: int | None = None) -> str:
+    """`envisat estimate --rrd`: truth and run 0's estimate with its 3-sigma ellipsoid, the error series of
+    every run (the first max_error_runs if given) with the filter's and the runs' +-3 sigma bands. With the truth
+    trajectory, its corners and visibility at the filter's steps too."""
+    err, filt, samp = estimate_bands(est.x_true, est.x_hat, est.P)
+    n = err.shape[0] if max_error_runs is None else min(err.shape[0], max_error_runs)
+    with _Recording(path, estimate_blueprint()) as rec:
+        log_static_scene(rec, estimate=True)
+        _log_truth_on_grid(rec, est.t_s, est.x_true[0], truth)
+        log_estimate_series(rec, est.t_s, est.x_hat[0], est.P[0])
+        log_error_series(rec, est.t_s, err[:n], filt, samp)
+    return path
+
+
+def _log_truth_on_grid(rec, t_s, x_true, truth: TruthTrajectory | None) -> None:
+    if truth is None:
+        rec.send_columns("world/target", _times(t_s), pose_columns(x_true))
+        return
+    k = truth_rows(truth, t_s)
+    log_truth_series(rec, t_s, x_true, truth.corners_C_m[k], truth.visible[k], truth.corners_px[k], truth.in_frame[k])
+
+
+def write_campaign_recording(path: str, t_s: np.ndarray, x_true: np.ndarray, x_hat0: np.ndarray, P0: np.ndarray,
+                             sample_err: np.ndarray, filter_3sigma: np.ndarray, sample_3sigma: np.ndarray | None,
+                             truth: TruthTrajectory | None = None) -> str:
+    """`envisat montecarlo --rrd`: the truth x_true (T, 12) and run 0's estimate x_hat0 (T, 12) with its
+    3-sigma ellipsoid from P0 (T, 12, 12); the kept sample runs' errors sample_err (S, T, 12) with the campaign's
+    filter_3sigma and sample_3sigma (T, 12) over all runs (analysis.stats.CampaignStats)."""
+    with _Recording(path, estimate_blueprint()) as rec:
+        log_static_scene(rec, estimate=True)
+        _log_truth_on_grid(rec, t_s, x_true, truth)
+        log_estimate_series(rec, t_s, x_hat0, P0)
+        log_error_series(rec, t_s, sample_err, filter_3sigma, sample_3sigma)
+    return path
+
+
+@dataclass(frozen=True)
+class Sample:
+    """A dataset sample as the recording shows it: image_png (PNG bytes of the 8-bit image as training sees it),
+    label (the label dict: corners_px, visible, in_frame, K, R_cam_from_target, t_cam_from_target_m,
+    depth_scale_m, x, scene), mask (H, W) uint8 or None, depth_png (16-bit PNG bytes) or None."""
+
+    key: str
+    image_png: bytes
+    label: dict
+    mask: np.ndarray | None = None
+    depth_png: bytes | None = None
+
+
+def write_samples_recording(path: str, samples: Iterable[Sample]) -> str:
+    """`envisat dataset inspect --rrd`: per sample (timeline `frame` = its index; `sim_time` where the label's
+    scene has t_s), the image (its PNG as stored), the labelled corners, the mask, the depth, the camera's
+    intrinsics and the target's pose in the camera."""
+    base = load_camera()
+    parts = target_parts()
+    with _Recording(path, samples_blueprint()) as rec:
+        rec.log("world", corner_annotation(), static=True)
+        rec.log("world/chaser/camera/image/mask", rr.AnnotationContext(
+            [rr.AnnotationInfo(id=i, label=n) for i, n in enumerate(MASK_CLASSES)]), static=True)
+        log_target_model(rec, "world/target", parts)
+        rec.log("world/chaser/camera", rr.Transform3D(translation=base.pos_C_m, mat3x3=base.R_K_from_C.T),
+                static=True)
+        for i, s in enumerate(samples):
+            rec.set_time("frame", sequence=i)
+            t = s.label.get("scene", {}).get("t_s")
+            if t is not None:
+                rec.set_time("sim_time", duration=float(t))
+            lab = s.label
+            K = np.asarray(lab["K"], dtype=float)
+            h, w = (s.mask.shape if s.mask is not None else (int(round(2 * K[1, 2] + 1)), int(round(2 * K[0, 2] + 1))))
+            rec.log("world/chaser/camera", rr.Pinhole(
+                focal_length=[K[0, 0], K[1, 1]], principal_point=[K[0, 2] + 0.5, K[1, 2] + 0.5],  # OpenCV -> Rerun
+                resolution=[w, h], image_plane_distance=IMAGE_PLANE_M))
+            rec.log("world/chaser/camera/image", rr.EncodedImage(contents=s.image_png, media_type="image/png"))
+            px = np.asarray(lab["corners_px"], dtype=float)
+            vis = np.asarray(lab["visible"], dtype=bool)
+            m = np.asarray(lab["in_frame"], dtype=bool)
+            rec.log("world/chaser/camera/image/corners_true", rr.Points2D(
+                positions=px[m] + 0.5, keypoint_ids=np.arange(8)[m], class_ids=np.full(int(m.sum()), KEYPOINT_CLASS),
+                colors=_point_colors(vis)[m], labels=[CORNER_NAMES[k] for k in np.flatnonzero(m)]))
+            if s.mask is not None:
+                rec.log("world/chaser/camera/image/mask", rr.SegmentationImage(s.mask, opacity=0.6))
+            if s.depth_png is not None:
+                rec.log("world/chaser/camera/image/depth", rr.EncodedDepthImage(
+                    s.depth_png, media_type="image/png", meter=1.0 / float(lab["depth_scale_m"])))
+            # the target's pose in the camera, then in C: R_C_from_T = R_K_from_C^T R_K_from_T
+            R_KT = np.asarray(lab["R_cam_from_target"], dtype=float)
+            t_K = np.asarray(lab["t_cam_from_target_m"], dtype=float)
+            rec.log("world/target", rr.Transform3D(
+                translation=base.R_K_from_C.T @ t_K + base.pos_C_m,
+                quaternion=_wxyz_to_xyzw(rotmat_to_quat(base.R_K_from_C.T @ R_KT))))
+    return path

@@ -1,0 +1,62 @@
+"""A user's camera for `envisat track`: a TOML file of intrinsics (fx, fy, cx, cy in px, width, height, optional
+OpenCV distortion), checked for sense, as the ideal pinhole the tracker uses and the remap that makes the frames
+ideal. The camera's mount on the chaser is the MJCF's chaser_cam's."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from envisat_pose.config import InputError, load_toml
+from envisat_pose.geometry import PinholeCamera, load_camera
+
+# fx / fy beyond this factor is not a camera (pixels that far from square are a typo or a swapped key)
+MAX_ASPECT = 3.0
+
+
+def camera_from_intrinsics(path: str) -> tuple[PinholeCamera, tuple | None]:
+    """(the ideal pinhole the tracker uses, remap) from a camera TOML file: fx, fy, cx, cy (px), width, height,
+    optional distortion (OpenCV's k1, k2, p1, p2[, k3...]). remap is None when the frames are already ideal
+    (fx == fy, no distortion), else (map1, map2) for cv2.remap to a pinhole with f = sqrt(fx fy) and the same
+    principal point. InputError naming the file and the key otherwise."""
+    import cv2
+
+    data = load_toml(path)
+    vals = {}
+    for key in ("fx", "fy", "cx", "cy", "width", "height"):
+        if key not in data:
+            raise InputError(f"{path}: camera file has no {key!r} (expected fx, fy, cx, cy in px, width, height)")
+        v = data[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise InputError(f"{path}: {key} = {v!r}: expected a number")
+        vals[key] = float(v)
+    for key in ("fx", "fy"):
+        if vals[key] <= 0:
+            raise InputError(f"{path}: {key} = {data[key]!r}: expected a positive focal length in px")
+    for key in ("width", "height"):
+        if vals[key] < 16 or vals[key] != int(vals[key]):
+            raise InputError(f"{path}: {key} = {data[key]!r}: expected an image size of at least 16 px")
+    w, h = int(vals["width"]), int(vals["height"])
+    for key, side in (("cx", w), ("cy", h)):
+        if not 0.0 <= vals[key] <= side:
+            raise InputError(f"{path}: {key} = {data[key]!r}: expected a principal point inside the image "
+                             f"(0 to {side} px)")
+    if not 1.0 / MAX_ASPECT <= vals["fx"] / vals["fy"] <= MAX_ASPECT:
+        raise InputError(f"{path}: fx = {data['fx']!r}, fy = {data['fy']!r}: expected focal lengths within a factor "
+                         f"{MAX_ASPECT:g} of each other (pixels that square, or nearly)")
+    dist = data.get("distortion")
+    if dist is not None:
+        if not isinstance(dist, list) or len(dist) not in (4, 5, 8, 12, 14) \
+                or not all(isinstance(d, (int, float)) and np.isfinite(d) for d in dist):
+            raise InputError(f"{path}: distortion = {dist!r}: expected OpenCV's 4, 5, 8, 12 or 14 coefficients")
+    unknown = sorted(set(data) - {"fx", "fy", "cx", "cy", "width", "height", "distortion"})
+    if unknown:
+        raise InputError(f"{path}: unknown camera keys {unknown} (expected fx, fy, cx, cy, width, height, distortion)")
+    f = float(np.sqrt(vals["fx"] * vals["fy"]))
+    mount = load_camera()
+    cam = PinholeCamera(f, vals["cx"], vals["cy"], w, h, mount.R_K_from_C, mount.pos_C_m)
+    if vals["fx"] == vals["fy"] and not (dist and any(dist)):
+        return cam, None
+    K_user = np.array([[vals["fx"], 0, vals["cx"]], [0, vals["fy"], vals["cy"]], [0, 0, 1.0]])
+    maps = cv2.initUndistortRectifyMap(K_user, np.asarray(dist or [0, 0, 0, 0], float), None, cam.K, (w, h),
+                                       cv2.CV_32FC1)
+    return cam, maps

@@ -1,0 +1,402 @@
+"""The frames of `envisat track` as users have them: a sequence-mode generate folder, a folder of image files or a
+video (`open_source`), every frame read once before any output (`scan_source`).
+
+- Image folders: PNG, JPEG or TIFF files; hidden and dot files (macOS `._*`) are ignored; names are sorted
+  naturally (runs of digits compared as numbers: frame_2 before frame_10); two names whose digits compare equal
+  (frame_01 and frame_1) are refused, their order being unknown.
+- Pixels: 8-bit files as they are; 16-bit files hold `bit_depth`-bit data (10, 12, 14 or 16; default: the
+  smallest depth that holds the sequence's maximum), scaled to 8 bits by 255 / (2^bit_depth - 1).
+- Messages the image and video libraries print (OpenCV, libpng, libtiff, FFmpeg) are kept off the terminal
+  (`native_stderr`); what they said goes into the one-line InputError when a frame cannot be read.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import os
+import re
+import sys
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from envisat_pose.config import InputError
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+BIT_DEPTHS = (8, 10, 12, 14, 16)
+MIN_SIDE_PX = 16
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Third-party messages
+
+
+@contextlib.contextmanager
+def native_stderr():
+    """Send what native libraries write to file descriptor 2 into a temporary file for the block; yields a list
+    that holds, after the block, the text they wrote (for the error message, never the terminal)."""
+    import tempfile
+
+    said: list[str] = []
+    with contextlib.suppress(Exception):
+        sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield said
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            said.append(tmp.read().decode("utf-8", "replace"))
+
+
+def library_said(said: list[str]) -> str:
+    """' (the library: its last line)' from native_stderr's capture, '' when it said nothing."""
+    lines = [ln.strip() for ln in "".join(said).splitlines() if ln.strip()]
+    if not lines:
+        return ""
+    last = lines[-1]
+    return f" ({last[:160]})"
+
+
+def quiet_opencv() -> None:
+    """OpenCV's own logger off (its warnings would otherwise reach the terminal)."""
+    import cv2
+
+    with contextlib.suppress(Exception):
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Names
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key of a file name with its runs of digits compared as numbers (frame_2 < frame_10)."""
+    parts = re.split(r"(\d+)", name)
+    return tuple(int(p) if i % 2 else p for i, p in enumerate(parts))
+
+
+def sorted_frames(folder: str, names: list[str]) -> list[str]:
+    """The image files among names (hidden and dot files skipped), naturally sorted; InputError when two names
+    compare equal (their order cannot be told)."""
+    files = [n for n in names if not n.startswith(".") and n.lower().endswith(IMAGE_EXTENSIONS)
+             and os.path.isfile(os.path.join(folder, n))]
+    files.sort(key=lambda n: (natural_key(n), n))
+    for a, b in zip(files, files[1:]):
+        if natural_key(a) == natural_key(b):
+            raise InputError(f"--images {folder!r}: {a!r} and {b!r} have the same frame number: their order is "
+                             "ambiguous (rename them, e.g. with zero-padded numbers)")
+    return files
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Pixels
+
+
+def to_gray(img: np.ndarray | None, name: str, said: list[str] | None = None) -> np.ndarray:
+    """8- or 16-bit gray or colour (BGR/BGRA, OpenCV's order) -> (H, W) gray of the same depth."""
+    import cv2
+
+    if img is None or img.size == 0:
+        raise InputError(f"{name}: cannot be read as an image (expected PNG, JPEG or TIFF)"
+                         + library_said(said or []))
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    if img.dtype not in (np.uint8, np.uint16):
+        raise InputError(f"{name}: pixels of type {img.dtype}: expected 8- or 16-bit")
+    return np.ascontiguousarray(img)
+
+
+def to_u8(img: np.ndarray, bit_depth: int) -> np.ndarray:
+    """A gray frame of bit_depth-bit data (uint8 or uint16) as uint8: round(v x 255 / (2^bit_depth - 1))."""
+    if img.dtype == np.uint8:
+        return img
+    full = (1 << bit_depth) - 1
+    v = np.minimum(img.astype(np.uint32), full)
+    return ((v * 255 + full // 2) // full).astype(np.uint8)
+
+
+def to_gray_u8(img: np.ndarray, name: str) -> np.ndarray:
+    """8- or 16-bit gray or colour -> (H, W) uint8 (16-bit data taken as full 16-bit)."""
+    return to_u8(to_gray(img, name), 16)
+
+
+def read_gray(path: str) -> np.ndarray:
+    """An image file as (H, W) gray, uint8 or uint16 as stored; InputError naming the file when it is unreadable
+    or truncated (with what the image library said)."""
+    import cv2
+
+    try:
+        with open(path, "rb") as fh:
+            data = np.frombuffer(fh.read(), np.uint8)
+    except OSError as err:
+        raise InputError(f"{path}: cannot be read ({err.strerror or err})") from None
+    with native_stderr() as said:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if img is not None and path.lower().endswith((".jpg", ".jpeg")) and not data[-2:].tobytes() == b"\xff\xd9":
+        img = None  # OpenCV decodes a truncated JPEG with a grey tail and a warning; it is not a whole frame
+        said.append("the JPEG data ends before its end marker")
+    return to_gray(img, path, said)
+
+
+def detect_bit_depth(max_value: int) -> int:
+    """The smallest of 10, 12, 14, 16 bits that holds a 16-bit sequence's maximum value."""
+    for bits in BIT_DEPTHS[1:]:
+        if max_value < (1 << bits):
+            return bits
+    return 16
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Sources
+
+
+@dataclass
+class FrameSource:
+    """The frames of one input. kind: 'dataset', 'images' or 'video'; path; t_s (N,) s; names (N,) what each frame
+    is called in messages (file, sample key, frame index); truth: None or {x (N, 12), corners_px (N, 8, 2),
+    in_frame (N, 8)} from a dataset's labels; scenario: a dataset's own scenario (None otherwise); files: an
+    image folder's files in time order; bit_depth: the data's bits (8, or 10-16 in 16-bit files: scan_source
+    sets it); size_px: (width, height) of every frame (scan_source)."""
+
+    kind: str
+    path: str
+    t_s: np.ndarray
+    names: list[str]
+    truth: dict | None = None
+    scenario: str | None = None
+    files: list[str] = field(default_factory=list)
+    bit_depth: int = 8
+    size_px: tuple[int, int] | None = None
+
+    def where(self, i: int) -> str:
+        """Frame i as a message names it: the file, or the input and the frame."""
+        return self.files[i] if self.kind == "images" else f"{self.path}: {self.names[i]}"
+
+    def raw_frames(self):
+        """(index, gray image as stored: uint8 or uint16) in time order; InputError naming the frame when one cannot
+        be read."""
+        if self.kind == "images":
+            for i, f in enumerate(self.files):
+                yield i, read_gray(f)
+        elif self.kind == "video":
+            import cv2
+
+            quiet_opencv()
+            with native_stderr() as said:
+                cap = cv2.VideoCapture(self.path)
+            try:
+                for i in range(len(self.t_s)):
+                    with native_stderr() as said:
+                        ok, img = cap.read()
+                    if not ok:
+                        raise InputError(f"{self.path}: frame {i} cannot be read (expected {len(self.t_s)} frames)"
+                                         + library_said(said))
+                    yield i, to_gray(img, f"{self.path} frame {i}")
+            finally:
+                cap.release()
+        else:
+            from envisat_pose.datagen.dataset import iter_samples, sample_image
+
+            for i, (key, label, members) in enumerate(iter_samples(self.path)):
+                try:
+                    with native_stderr():
+                        img = sample_image(members, label)
+                except Exception as err:  # a damaged PNG member
+                    raise InputError(f"{self.path}: sample {key}: image cannot be read ({err})") from None
+                yield i, img
+
+    def frames(self):
+        """(index, gray uint8 image) in time order (16-bit data scaled from bit_depth bits)."""
+        for i, img in self.raw_frames():
+            yield i, to_u8(img, self.bit_depth)
+
+
+def read_timestamps(path: str, files: list[str]) -> np.ndarray:
+    """Frame times (N,) s from a CSV with columns file,t_s for the given image files (matched by file name);
+    InputError naming the CSV when a file is missing from it or the times do not increase."""
+    try:
+        with open(path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+    except OSError as err:
+        raise InputError(f"--timestamps {path!r}: cannot be read ({err.strerror or err})") from None
+    if not rows or not {"file", "t_s"} <= set(rows[0]):
+        raise InputError(f"{path}: expected a CSV with a header line and columns file,t_s")
+    times = {}
+    for n, row in enumerate(rows, start=2):
+        try:
+            times[os.path.basename(row["file"].strip())] = float(row["t_s"])
+        except (TypeError, ValueError):
+            raise InputError(f"{path}: line {n}: t_s = {row.get('t_s')!r}: expected a time in s") from None
+    t = []
+    for f in files:
+        name = os.path.basename(f)
+        if name not in times:
+            raise InputError(f"{path}: no time for image {name!r} (expected a row file,t_s for every image)")
+        t.append(times[name])
+    t = np.array(t)
+    if not np.isfinite(t).all() or np.any(np.diff(t) <= 0):
+        k = int(np.argmax(~(np.diff(t) > 0))) + 1 if len(t) > 1 else 0
+        raise InputError(f"{path}: times must increase in the images' name order: {os.path.basename(files[k])} at "
+                         f"t = {t[k]} s does not follow t = {t[k - 1] if k else float('nan')} s")
+    return t
+
+
+def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
+                bit_depth: int | None = None) -> FrameSource:
+    """The frames of src (a generate folder, an image folder or a video file) with their times; InputError with
+    one line naming the input and what was expected, or the flag that does not apply to it. bit_depth: of the
+    data in 16-bit image files (None: detected by scan_source)."""
+    if bit_depth is not None and bit_depth not in BIT_DEPTHS:
+        raise InputError(f"--bit-depth {bit_depth}: expected one of {', '.join(map(str, BIT_DEPTHS))}")
+    if rate_hz and timestamps:
+        raise InputError("--rate-hz and --timestamps: give one of them (the frame times)")
+    if os.path.isdir(src):
+        if os.path.isfile(os.path.join(src, "manifest.json")):
+            for flag, value in (("--rate-hz", rate_hz), ("--timestamps", timestamps), ("--bit-depth", bit_depth)):
+                if value:
+                    raise InputError(f"{flag} does not apply to a generate folder ({src!r}: its labels give the "
+                                     "frame times and its frames are 8-bit)")
+            return dataset_source(src)
+        files = [os.path.join(src, f) for f in sorted_frames(src, os.listdir(src))]
+        if not files:
+            raise InputError(f"--images {src!r}: no image files (expected PNG, JPEG or TIFF files, a generate "
+                             "folder or a video)")
+        if timestamps:
+            t = read_timestamps(timestamps, files)
+        elif rate_hz > 0:
+            t = np.arange(len(files)) / rate_hz
+        else:
+            raise InputError(f"--images {src!r}: a folder of images needs --rate-hz R or --timestamps FILE.csv")
+        source = FrameSource("images", src, t, [os.path.basename(f) for f in files], files=files)
+    elif os.path.isfile(src):
+        if timestamps:
+            raise InputError(f"--timestamps does not apply to a video ({src!r}): its frames are at --rate-hz or the "
+                             "file's own frame rate")
+        if bit_depth:
+            raise InputError(f"--bit-depth does not apply to a video ({src!r}): its frames are 8-bit")
+        source = video_source(src, rate_hz)
+    else:
+        raise InputError(f"--images {src!r}: no such file or folder")
+    source.bit_depth = bit_depth or 0  # 0: detect (scan_source)
+    return source
+
+
+def video_source(path: str, rate_hz: float) -> FrameSource:
+    import cv2
+
+    quiet_opencv()
+    with native_stderr() as said:
+        cap = cv2.VideoCapture(path)
+        try:
+            opened = cap.isOpened()
+            n = 0
+            while opened and cap.grab():
+                n += 1
+            fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0) if opened else 0.0
+        finally:
+            cap.release()
+    if not opened:
+        raise InputError(f"--images {path!r}: cannot be opened as a video (expected a video file OpenCV reads, "
+                         "an image folder or a generate folder)" + library_said(said))
+    if n == 0:
+        raise InputError(f"--images {path!r}: the video has no readable frames" + library_said(said))
+    rate = rate_hz if rate_hz > 0 else fps
+    if not rate > 0:
+        raise InputError(f"--images {path!r}: the video has no frame rate: give --rate-hz")
+    return FrameSource("video", path, np.arange(n) / rate, [f"frame {i}" for i in range(n)])
+
+
+def dataset_source(path: str) -> FrameSource:
+    """A sequence-mode generate folder: times, truth and scenario from the labels and the manifest."""
+    from envisat_pose.datagen.dataset import iter_samples, load_manifest, verify_dataset
+
+    manifest = load_manifest(path)
+    cfg = manifest.get("config", {})
+    if cfg.get("mode") != "sequence":
+        raise InputError(f"--images {path!r}: a generate folder of mode {cfg.get('mode')!r}; expected one written "
+                         "with --mode sequence (frames in time order)")
+    problems = verify_dataset(path)
+    if problems:
+        raise InputError(f"--images {path!r}: {problems[0]} (`envisat dataset verify` lists all)")
+    t, names, x, uv, inf = [], [], [], [], []
+    for key, label, _ in iter_samples(path):
+        t.append(float(label["scene"]["t_s"]))
+        names.append(key)
+        x.append(label["x"])
+        uv.append(label["corners_px"])
+        inf.append(np.asarray(label["in_frame"], bool) & np.asarray(label["visible"], bool))
+    truth = {"x": np.array(x, float), "corners_px": np.array(uv, float), "in_frame": np.array(inf)}
+    return FrameSource("dataset", path, np.array(t), names, truth=truth, scenario=cfg.get("scenario"))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Every frame once, before any output
+
+
+def scan_source(source: FrameSource, size_px: tuple[int, int] | None = None, min_frames: int = 1,
+                progress: bool = False) -> str:
+    """Read every frame once before any output: each must decode, be at least MIN_SIDE_PX a side and have one
+    size (size_px (width, height): the camera's; None: the size most frames have, so the odd frame is the one
+    named); 16-bit data must fit the bit depth (detected when 0). Sets source.size_px and source.bit_depth;
+    returns a line saying what the pixels are. InputError naming the frame at fault, or the frame count when
+    there are fewer than min_frames (the tracker's cold start needs that many)."""
+    it = source.raw_frames()
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, total=len(source.t_s), unit="frame", desc="checking frames", mininterval=0.5)
+    T = len(source.t_s)
+    shapes = np.zeros((T, 2), np.int64)
+    wide = np.zeros(T, bool)
+    peak = np.zeros(T, np.int64)
+    for i, img in it:
+        shapes[i], wide[i], peak[i] = img.shape, img.dtype == np.uint16, int(img.max()) if img.size else 0
+    if size_px is not None:
+        want = (int(size_px[1]), int(size_px[0]))
+    else:
+        sizes, counts = np.unique(shapes, axis=0, return_counts=True)
+        best = sizes[counts == counts.max()]
+        want = tuple(shapes[0]) if any((s == shapes[0]).all() for s in best) else tuple(best[0])
+    bad = np.flatnonzero((shapes != want).any(axis=1))
+    if bad.size:
+        i = int(bad[0])
+        like = "like the camera" if size_px is not None else f"like {T - bad.size} of the {T} frames"
+        raise InputError(f"{source.where(i)}: image is {shapes[i, 1]} x {shapes[i, 0]} px; expected {want[1]} x "
+                         f"{want[0]} px {like} (all frames one size; --camera FILE.toml for another camera)")
+    if min(want) < MIN_SIDE_PX:
+        raise InputError(f"{source.where(0)}: image is {want[1]} x {want[0]} px; expected at least {MIN_SIDE_PX} px "
+                         "a side")
+    if wide.any() and not wide.all():
+        i = int(np.flatnonzero(wide != wide[0])[0])
+        raise InputError(f"{source.where(i)}: a {16 if wide[i] else 8}-bit image among {8 if wide[i] else 16}-bit "
+                         "frames: expected one bit depth for the sequence")
+    source.size_px = (int(want[1]), int(want[0]))
+    if not wide.any():
+        if source.bit_depth not in (0, 8):
+            raise InputError(f"--bit-depth {source.bit_depth} does not apply: the frames are 8-bit files (it gives "
+                             "the depth of the data in 16-bit files)")
+        source.bit_depth = 8
+        line = "8-bit frames"
+    else:
+        top = int(peak.max())
+        if source.bit_depth:
+            over = np.flatnonzero(peak >= (1 << source.bit_depth))
+            if over.size:
+                i = int(over[0])
+                raise InputError(f"{source.where(i)}: pixel value {peak[i]} does not fit --bit-depth "
+                                 f"{source.bit_depth} (at most {(1 << source.bit_depth) - 1})")
+            line = f"16-bit files of {source.bit_depth}-bit data (--bit-depth; maximum {top})"
+        else:
+            source.bit_depth = detect_bit_depth(top)
+            line = (f"16-bit files of {source.bit_depth}-bit data (detected from the maximum {top} over "
+                    f"{T} frames; --bit-depth to set it)")
+        line += f": scaled to 8 bits by 255/{(1 << source.bit_depth) - 1}"
+    if T < min_frames:
+        raise InputError(f"--images {source.path!r}: {T} frame(s); the tracker's cold start needs at least "
+                         f"{min_frames} (tracker.acquire_frames)")
+    return line
