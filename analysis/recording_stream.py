@@ -13,7 +13,7 @@ from envisat_pose.geometry import PinholeCamera, load_geometry
 from envisat_pose.io import atomic_path
 from envisat_pose.state import MRP, POS
 from envisat_pose.status import STATUSES as STATUS_NAMES  # the tracker's statuses by code
-from envisat_pose.status import legend_json
+from envisat_pose.status import HAS_ESTIMATE, LOST, legend_json
 
 from .recording_layout import (APPLICATION_ID, AXES, AXIS_RGB, DETECTED_RGB, EST_RGB, HIDDEN_RGB,
                                KEYPOINT_CLASS, log_static_scene, NEES_BAND_12, PLOT_BLOCKS,
@@ -127,7 +127,7 @@ class TrackRecorder:
         status = int(est["status"])
         if status != self.status:
             rec.log("events", rr.TextLog(f"t = {t_s:.1f} s: {STATUS_NAMES[status]}",
-                                         level="WARN" if status == 2 else "INFO"))
+                                         level="WARN" if status == LOST else "INFO"))
             self.status = status
         rec.log("metrics/tracker/status", rr.Scalars(float(status)))
         rec.log("metrics/tracker/p_best", rr.Scalars(float(est["p_best"])))
@@ -137,7 +137,8 @@ class TrackRecorder:
             np.asarray(est["corners_px"])[m] + 0.5, keypoint_ids=np.flatnonzero(m), class_ids=KEYPOINT_CLASS,
             colors=np.where(rej[:, None], np.array(HIDDEN_RGB, np.uint8), np.array(DETECTED_RGB, np.uint8))))
         x, P = np.asarray(est["x_hat"], float), np.asarray(est["P"], float)
-        if status == 1:
+        estimate = status in HAS_ESTIMATE  # tracking, or coasting (a prediction: shown, and scored, as one)
+        if estimate:
             uv = project_state_px(x, cam)
             rec.log("world/chaser/camera/image/corners_estimated", rr.Points2D(
                 uv + 0.5, keypoint_ids=np.arange(8), class_ids=KEYPOINT_CLASS))
@@ -163,7 +164,7 @@ class TrackRecorder:
                 f = np.asarray(in_frame, bool)
                 rec.log("world/chaser/camera/image/corners_true", rr.Points2D(
                     np.asarray(corners_true_px)[f] + 0.5, colors=[VISIBLE_RGB], radii=[1.5]))
-        if self.with_truth and x_true is not None and status == 1:
+        if self.with_truth and x_true is not None and estimate:
             err = component_errors(x_true, x)
             for b, _, block, s in PLOT_BLOCKS:
                 for j, a in enumerate(AXES):
@@ -174,7 +175,7 @@ class TrackRecorder:
             Pd = A @ P @ A.T
             rec.log("metrics/nees/value", rr.Scalars(float(e @ np.linalg.solve(Pd, e))))
             rec.log("metrics/nees/band", rr.Scalars(list(NEES_BAND_12)))
-        elif not self.with_truth and status == 1:
+        elif not self.with_truth and estimate:
             for j, a in enumerate(AXES):
                 rec.log(f"metrics/sigma3/position_m/{a}", rr.Scalars(float(sig3[POS][j])))
                 rec.log(f"metrics/sigma3/attitude_deg/{a}", rr.Scalars(float(np.degrees(sig3[MRP][j]))))

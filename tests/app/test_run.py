@@ -35,13 +35,16 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, ver
     truth = TruthTrajectory.load(str(out / "truth.npz"))
     det = Detections.load(str(out / "det.npz"))
     T = 5
-    assert est.x_hat.shape == (1, T, 12) and np.isfinite(est.x_hat).all() and len(det.t_s) == T
-    assert (est.status == 1).all()  # warm: every row an estimate
+    assert est.x_hat.shape == (1, T, 12) and len(det.t_s) == T
+    # warm: the prior still earns its claim: "acquiring" (no estimate: NaN) until confirmed by confirm_frames (5)
+    # frames of its own innovations, then tracking
+    assert est.status[0].tolist() == [0, 0, 0, 0, 1], est.status
+    assert np.isnan(est.x_hat[0, :4]).all() and np.isfinite(est.x_hat[0, 4]).all()
     np.testing.assert_array_equal(est.x_true[0], truth.x)
     with np.load(out / "det.npz", allow_pickle=False) as z:
         for key in ("key", "alt_corners_px", "alt_probability", "ambiguous", "roi_px", "naming", "status", "skipped"):
             assert key in z.files and len(z[key]) == T
-        assert (z["status"] == 1).all()  # warm: tracking from the first frame
+        assert z["status"].tolist() == [0, 0, 0, 0, 1]
     cfg = tomllib.loads((out / "run.config.toml").read_text())
     assert cfg["scenario"] == "default" and cfg["image"]["mode"] == "sequence" and cfg["tracker"]["roi"] is True
     assert json.loads((out / "summary.json").read_text())["frames"] == T == summary["frames"]
@@ -61,9 +64,10 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, ver
     assert img["frame"] == list(range(T))
     assert all(bytes(np.asarray(b[0], np.uint8)[:2]) == b"\xff\xd8" for b in img["EncodedImage:blob"])  # JPEG
     xyz = np.array([t[0] for t in temporal["/world/target_est"]["Transform3D:translation"]])
-    np.testing.assert_allclose(xyz, est.x_hat[0, :, 0:3], rtol=0, atol=1e-4)  # float32 in the recording
+    shown = est.status[0] == 1  # the estimate is drawn on the rows that hold one (here: tracking)
+    np.testing.assert_allclose(xyz, est.x_hat[0, shown, 0:3], rtol=0, atol=1e-4)  # float32 in the recording
     ex = np.array([v[0] for v in temporal["/metrics/error/position_m/x"]["Scalars:scalars"]])
-    np.testing.assert_allclose(ex, est.x_hat[0, :, 0] - est.x_true[0, :, 0], atol=1e-9)
+    np.testing.assert_allclose(ex, est.x_hat[0, shown, 0] - est.x_true[0, shown, 0], atol=1e-9)
     d = temporal["/world/chaser/camera/image/corners_detected"]
     n_det = [len(p) if p is not None else 0 for p in d["Points2D:positions"]]
     assert n_det == det.visible.sum(axis=1).tolist()
@@ -115,14 +119,15 @@ def test_the_cli_runs_several_loops_in_parallel(tmp_path, detector_weights, caps
     from envisat_pose.contracts import Estimates
 
     out = tmp_path / "two"
-    assert main(["run", "--scenario", "default", "--duration-s", "2", "--runs", "2", "--workers", "2", "--weights",
+    assert main(["run", "--scenario", "default", "--duration-s", "5", "--runs", "2", "--workers", "2", "--weights",
                  detector_weights, "--seed", "5", "--warm-start", "--out", str(out), "--quiet"]) == 0
     printed = capsys.readouterr().out
     assert "converged" in printed and "NEES" in printed and "real-time factor" in printed
     est = Estimates.load(str(out / "est.npz"))
-    assert est.x_hat.shape == (2, 3, 12) and np.isfinite(est.x_hat).all()
+    # each warm start earns its claim over confirm_frames (5) frames, then tracks
+    assert est.x_hat.shape == (2, 6, 12) and (est.status[:, -1] == 1).all() and np.isfinite(est.x_hat[:, -1]).all()
     np.testing.assert_array_equal(est.x_true[0], est.x_true[1])
-    assert not np.allclose(est.x_hat[0, 0], est.x_hat[1, 0])  # different initial estimates
+    assert not np.allclose(est.x_hat[0, -1], est.x_hat[1, -1])  # different initial estimates
     assert json.loads(est.config_json)["run"]["runs"] == 2
     # a bad flag is one line, before any work
     assert main(["run", "--scenario", "nope", "--out", str(tmp_path / "x"), "--weights", detector_weights]) == 2
