@@ -7,12 +7,14 @@ functions count too, and so do relative imports and the old top-level names.
 
 One home for each concept: the state's slices are defined only in envisat_pose/state.py; manifest.json is
 written only by the core runner's resumable-job protocol; a verb or pipeline resolves its config only through
-config.resolve_job_config (never by merging layers itself). Each checker runs on a source string, so the tests
+config.resolve_job_config (never by merging layers itself); a chi-square gate comes from its probability
+(envisat_pose.gates), never typed as a number. Each checker runs on a source string, so the tests
 below show it catching a planted copy.
 """
 
 import ast
 import os
+import re
 
 import pytest
 
@@ -30,6 +32,9 @@ PENDING = {
     "state_slices": {},
     "manifest_writers": {},
     "hand_resolved_configs": {},
+    # the tracker's batch-fit gate and its fallback gate, typed as 23.0 (the lead switches them to gates.chi2_gate)
+    "typed_gates": {os.path.join("envisat_pose", "pipelines", "tracker.py"),
+                    os.path.join("envisat_pose", "pipelines", "acquisition.py")},
 }
 
 
@@ -124,6 +129,7 @@ def violations() -> list[str]:
 # ---------------------------------------------------------------- one home for each concept
 
 STATE_FILE = os.path.join("envisat_pose", "state.py")
+GATES_FILE = os.path.join("envisat_pose", "gates.py")
 RUNNER_FILE = os.path.join("envisat_pose", "runner.py")
 STATE_BOUNDS = {(0, 3), (3, 6), (6, 9), (9, 12)}  # the blocks of the 12-state (envisat_pose.state)
 MERGERS = ("set_dotted", "deep_update")  # the layers of a config, merged by hand
@@ -208,6 +214,53 @@ def hand_resolutions(source: str) -> list[int]:
     return sorted(set(lines))
 
 
+def _chi2_values() -> list[float]:
+    """Chi-square bounds a gate typed by hand would hold: 1 to 4 dof, tail probabilities 0.05 to 1e-7."""
+    from scipy.stats import chi2
+
+    tails = (0.05, 0.01, 0.0027, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7)
+    return [float(chi2.isf(q, d)) for q in tails for d in (1, 2, 3, 4)]
+
+
+def _near_chi2(node, table) -> bool:
+    v = node.value if isinstance(node, ast.Constant) and type(node.value) in (int, float) else None
+    return v is not None and v > 1.0 and min(abs(v - b) / b for b in table) < 0.005
+
+
+def _speaks_of_gate(text: str) -> bool:
+    """Whether a name in the text is a gate's and carries no unit (a chi-square gate is a pure number; a
+    distance gate like gate_px is not one)."""
+    return any("gate" in n.lower() and not re.search(r"_(px|px2|m|s|deg|rad)$", n)
+               for n in re.findall(r"[A-Za-z_][A-Za-z0-9_]*", text))
+
+
+def typed_gates(source: str) -> list[int]:
+    """Lines where a chi-square gate is typed as a number (within 0.5 % of a chi-square bound of 1-4 dof at a
+    usual tail probability) in a statement that speaks of a gate: a parameter or field named *gate*, or any
+    simple statement (an `if`'s or `while`'s test) whose text names one (names with a unit, like gate_px, are
+    distances, not chi-square gates). The gate comes from its probability
+    (envisat_pose.gates.chi2_gate)."""
+    table = _chi2_values()
+    lines = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            a = node.args
+            pos = a.posonlyargs + a.args
+            pairs = list(zip(pos[len(pos) - len(a.defaults):], a.defaults))
+            pairs += [(k, d) for k, d in zip(a.kwonlyargs, a.kw_defaults) if d is not None]
+            lines += [d.lineno for arg, d in pairs if _speaks_of_gate(arg.arg) and _near_chi2(d, table)]
+            continue
+        if isinstance(node, (ast.If, ast.While)):
+            part = node.test
+        elif isinstance(node, ast.stmt) and not hasattr(node, "body"):
+            part = node
+        else:
+            continue
+        if _speaks_of_gate(ast.unparse(part)):
+            lines += [c.lineno for c in ast.walk(part) if _near_chi2(c, table)]
+    return sorted(set(lines))
+
+
 def resolves_configs(rel: str) -> bool:
     """Whether a file is a verb or a pipeline (the layers that resolve job configs)."""
     parts = rel.split(os.sep)
@@ -225,6 +278,8 @@ def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
             lines = manifest_writes(source)
         elif kind == "hand_resolved_configs" and resolves_configs(rel):
             lines = hand_resolutions(source)
+        elif kind == "typed_gates" and rel != GATES_FILE:
+            lines = typed_gates(source)
         else:
             lines = []
         if lines:
@@ -342,3 +397,22 @@ def test_the_config_checker_catches_a_verb_resolving_by_hand():
     assert resolves_configs(os.path.join("envisat_pose", "app", "run.py"))
     assert resolves_configs(os.path.join("envisat_pose", "pipelines", "track.py"))
     assert not resolves_configs(os.path.join("envisat_pose", "config.py"))
+
+
+def test_the_gate_checker_catches_a_gate_typed_by_hand():
+    planted = ("from dataclasses import dataclass\n\n@dataclass\nclass Cfg:\n    fit_gate: float = 23.0\n\n"
+               "def fit(z, gate: float = 23.0, iterations: int = 15):\n    return z\n\n"
+               "def step(setup, d2):\n    thr = setup.gate_threshold if setup.gate_threshold is not None else 23.0\n"
+               "    if d2 > 25.9 and setup.gated:\n        return thr\n")
+    assert typed_gates(planted) == [5, 7, 11, 12]
+    derived = ("from envisat_pose.gates import GATE_PROB, chi2_gate\n\n"
+               "def fit(z, gate: float = chi2_gate(GATE_PROB, 2), iterations: int = 15):\n"
+               "    width_px = 23.0\n    gate_px: float = 6.0\n    return z\n")
+    assert typed_gates(derived) == []
+    from envisat_pose.gates import GATE_PROB, chi2_bound, chi2_gate
+    from scipy.stats import chi2
+
+    assert chi2_gate(GATE_PROB, 2) == chi2.ppf(GATE_PROB, 2) and abs(chi2_gate(GATE_PROB, 2) - 23.0259) < 1e-4
+    assert chi2_bound(1e-5, 2) == chi2.isf(1e-5, 2)
+    with pytest.raises(ValueError, match="gate probability"):
+        chi2_gate(1.0, 2)
