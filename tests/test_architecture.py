@@ -26,6 +26,9 @@ LAYOUT = {"envisat_pose": "envisat_pose", **{s: f"envisat_pose.{s}" for s in STA
 # scanned for copies of the state's layout besides the package (the benches use it too)
 EXTRA_FOLDERS = ("bench",)
 
+# the kinds whose checker reads the tests' helpers too (a test must not build its own physics for the filter)
+WITH_TESTS = ("physics_builders",)
+
 # Copies that other engineers are removing now (issue 19). An entry must name a file that still holds the
 # copy: `test_pending_copies_are_still_there` fails once it is gone, so the entry is deleted with the fix.
 PENDING = {
@@ -33,6 +36,7 @@ PENDING = {
     "manifest_writers": {},
     "hand_resolved_configs": {},
     # the tracker's batch-fit gate and its fallback gate, typed as 23.0 (the lead switches them to gates.chi2_gate)
+    "physics_builders": {},
     "typed_gates": {os.path.join("envisat_pose", "pipelines", "tracker.py"),
                     os.path.join("envisat_pose", "pipelines", "acquisition.py")},
 }
@@ -56,10 +60,10 @@ def source_files(root: str = ROOT):
                     yield path, mod
 
 
-def checked_files(root: str = ROOT):
-    """Repository-relative paths of the package's files and the benches'."""
+def checked_files(root: str = ROOT, extra=EXTRA_FOLDERS):
+    """Repository-relative paths of the package's files and those of the extra folders (the benches')."""
     paths = [os.path.relpath(p, root) for p, _ in source_files(root)]
-    for folder in EXTRA_FOLDERS:
+    for folder in extra:
         for dirpath, _, filenames in os.walk(os.path.join(root, folder)):
             paths += [os.path.relpath(os.path.join(dirpath, f), root) for f in filenames if f.endswith(".py")]
     return sorted(paths)
@@ -130,6 +134,7 @@ def violations() -> list[str]:
 
 STATE_FILE = os.path.join("envisat_pose", "state.py")
 GATES_FILE = os.path.join("envisat_pose", "gates.py")
+ONBOARD_FILE = os.path.join("envisat_pose", "pipelines", "onboard.py")
 RUNNER_FILE = os.path.join("envisat_pose", "runner.py")
 STATE_BOUNDS = {(0, 3), (3, 6), (6, 9), (9, 12)}  # the blocks of the 12-state (envisat_pose.state)
 MERGERS = ("set_dotted", "deep_update")  # the layers of a config, merged by hand
@@ -261,6 +266,42 @@ def typed_gates(source: str) -> list[int]:
     return sorted(set(lines))
 
 
+def _access(node) -> tuple[str, ast.AST] | None:
+    """(name, container) of `container.name` or `container["name"]`."""
+    if isinstance(node, ast.Attribute):
+        return node.attr, node.value
+    if isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Constant) and isinstance(node.slice.value, str):
+        return node.slice.value, node.value
+    return None
+
+
+def physics_builders(source: str) -> list[int]:
+    """Lines of functions that read the truth's physics for the filter by hand: orbit.mu_m3_s2 together with
+    target.gravity_gradient (as attributes or keys) of one config. One builder: pipelines/onboard.py's
+    onboard_physics."""
+    lines = []
+    for fn in ast.walk(ast.parse(source)):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        seen = set()
+        for n in ast.walk(fn):
+            a = _access(n)
+            if a is not None and a[0] in ("mu_m3_s2", "gravity_gradient"):
+                inner = _access(a[1])
+                if inner is not None and (a[0], inner[0]) in (("mu_m3_s2", "orbit"), ("gravity_gradient", "target")):
+                    seen.add(a[0])
+        if len(seen) == 2:
+            lines.append(fn.lineno)
+    return sorted(lines)
+
+
+def filter_side(rel: str) -> bool:
+    """Whether a file is on the filter's side of the truth (a pipeline, a verb, a bench or a test helper): the
+    truth's own physics (datagen) reads its config freely."""
+    parts = rel.split(os.sep)
+    return (len(parts) > 2 and parts[0] == "envisat_pose" and parts[1] in UPPER) or parts[0] in ("bench", "tests")
+
+
 def resolves_configs(rel: str) -> bool:
     """Whether a file is a verb or a pipeline (the layers that resolve job configs)."""
     parts = rel.split(os.sep)
@@ -270,7 +311,7 @@ def resolves_configs(rel: str) -> bool:
 def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
     """{file: lines} of every copy of one kind in the repository (pending ones included)."""
     found = {}
-    for rel in checked_files(root):
+    for rel in checked_files(root, EXTRA_FOLDERS + (("tests",) if kind in WITH_TESTS else ())):
         source = open(os.path.join(root, rel), encoding="utf-8").read()
         if kind == "state_slices" and rel != STATE_FILE:
             lines = state_slice_definitions(source)
@@ -278,6 +319,8 @@ def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
             lines = manifest_writes(source)
         elif kind == "hand_resolved_configs" and resolves_configs(rel):
             lines = hand_resolutions(source)
+        elif kind == "physics_builders" and rel != ONBOARD_FILE and filter_side(rel):
+            lines = physics_builders(source)
         elif kind == "typed_gates" and rel != GATES_FILE:
             lines = typed_gates(source)
         else:
@@ -416,3 +459,15 @@ def test_the_gate_checker_catches_a_gate_typed_by_hand():
     assert chi2_bound(1e-5, 2) == chi2.isf(1e-5, 2)
     with pytest.raises(ValueError, match="gate probability"):
         chi2_gate(1.0, 2)
+
+
+def test_the_physics_checker_catches_a_second_builder():
+    planted = ("def truth_dynamics(truth):\n    scen = from_dict(ScenarioConfig, truth.config)\n"
+               "    return scen.orbit.mu_m3_s2, scen.target.gravity_gradient\n\n"
+               "def by_keys(truth):\n    c = truth.config\n"
+               "    return float(c['orbit']['mu_m3_s2']), c['target']['gravity_gradient']\n\n"
+               "def track(cfg):\n    return Tracker(mu_m3_s2=cfg.orbit.mu_m3_s2, gravity_gradient=cfg.gravity_gradient)\n")
+    assert physics_builders(planted) == [1, 5]
+    assert physics_builders(open(os.path.join(ROOT, ONBOARD_FILE), encoding="utf-8").read())  # the home
+    assert filter_side(os.path.join("tests", "pipelines", "test_x.py")) and filter_side(os.path.join("bench", "x.py"))
+    assert not filter_side(os.path.join("datagen", "truth.py"))

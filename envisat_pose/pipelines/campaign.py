@@ -353,11 +353,11 @@ def load_campaign_truth(out_dir: str, mcfg: MeasurementConfig) -> CampaignTruth:
     from envisat_pose.contracts import TruthTrajectory
     from envisat_pose.filtering.estimator import chaser_states
     from envisat_pose.filtering.montecarlo import filter_stride, truth_measurements
-    from envisat_pose.pipelines.estimate import truth_model
+    from envisat_pose.pipelines.onboard import onboard_physics
 
     path = os.path.join(out_dir, "truth.npz")
     truth = TruthTrajectory.load(path)
-    mu, gg = truth_model(truth, path)
+    mu, gg = onboard_physics(truth, path)
     sel = slice(0, None, filter_stride(truth.t_s, mcfg.rate_hz))
     chaser = chaser_states(truth.chaser_r_m, truth.chaser_rdot_m_s, truth.chaser_theta_rad,
                            truth.chaser_thetadot_rad_s)[sel]
