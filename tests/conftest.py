@@ -1,6 +1,24 @@
-"""Shared fixtures: MuJoCo truth trajectories from the lead's simulator (datagen), never the filter's model."""
+"""Shared fixtures: MuJoCo truth trajectories from the lead's simulator (datagen), never the filter's model; and
+the slow lane: the tests listed in SLOW are marked `slow` (pyproject.toml), so `make test` (-m "not slow") runs
+in minutes and `make test-slow` / `make test-all` (CI) run them too."""
 
 import pytest
+
+# The slow end-to-end tests, by node id (a parametrized test without its [...] marks every case). Measured with
+# `pytest --durations` on the 2-core machine; each module keeps at least one test in the fast lane.
+# tests/test_architecture.py checks that every id names a test that exists.
+SLOW = (
+)
+
+
+def _slow(nodeid: str) -> bool:
+    return nodeid in SLOW or nodeid.split("[", 1)[0] in SLOW
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if _slow(item.nodeid):
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.fixture(scope="session")

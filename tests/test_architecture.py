@@ -471,3 +471,49 @@ def test_the_physics_checker_catches_a_second_builder():
     assert physics_builders(open(os.path.join(ROOT, ONBOARD_FILE), encoding="utf-8").read())  # the home
     assert filter_side(os.path.join("tests", "pipelines", "test_x.py")) and filter_side(os.path.join("bench", "x.py"))
     assert not filter_side(os.path.join("datagen", "truth.py"))
+
+
+# ---------------------------------------------------------------- the slow lane's list (tests/conftest.py)
+
+def slow_ids(root: str = ROOT) -> tuple[str, ...]:
+    """The SLOW tuple of tests/conftest.py, read without importing it."""
+    tree = ast.parse(open(os.path.join(root, "tests", "conftest.py"), encoding="utf-8").read())
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "SLOW" for t in node.targets):
+            return tuple(ast.literal_eval(node.value))
+    raise AssertionError("tests/conftest.py defines no SLOW")
+
+
+def missing_test(nodeid: str, root: str = ROOT) -> str | None:
+    """Why a node id names no test (None: it does): the file, the test function (or Class::method) in it, and,
+    for an id with [...], a parametrized test."""
+    path, _, rest = nodeid.partition("::")
+    full = os.path.join(root, *path.split("/"))
+    if not os.path.isfile(full):
+        return f"{nodeid}: no file {path}"
+    names = rest.split("[", 1)[0].split("::")
+    scope = ast.parse(open(full, encoding="utf-8").read()).body
+    node = None
+    for name in names:
+        node = next((n for n in scope if isinstance(n, (ast.FunctionDef, ast.ClassDef)) and n.name == name), None)
+        if node is None:
+            return f"{nodeid}: no {name} in {path}"
+        scope = node.body
+    if "[" in rest and not any("parametrize" in ast.unparse(d) for d in node.decorator_list):
+        return f"{nodeid}: {names[-1]} is not parametrized"
+    return None
+
+
+def test_every_slow_id_names_a_test():
+    ids = slow_ids()
+    assert len(set(ids)) == len(ids), "SLOW lists a test twice"
+    assert [why for i in ids if (why := missing_test(i))] == []
+
+
+def test_the_slow_list_checker_sees_a_stale_id():
+    here = "tests/test_architecture.py"
+    assert missing_test(f"{here}::test_every_slow_id_names_a_test") is None
+    assert missing_test(f"{here}::test_one_home_for_each_concept[typed_gates]") is None
+    assert "no test_gone" in missing_test(f"{here}::test_gone")
+    assert "no file" in missing_test("tests/nowhere/test_x.py::test_a")
+    assert "not parametrized" in missing_test(f"{here}::test_every_slow_id_names_a_test[x]")
