@@ -87,7 +87,8 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     from envisat_pose.attitude import mrp_to_dcm
     from envisat_pose.contracts import TruthTrajectory
     from envisat_pose.datagen.corrupt import apply_corruption
-    from envisat_pose.datagen.factory import draw_corruption_params, sample_seed, unit, with_look
+    from envisat_pose.datagen.factory import draw_corruption_params, with_look
+    from envisat_pose.datagen.views import sample_seed, unit
     from envisat_pose.datagen.render import View, shared_renderer
     from envisat_pose.geometry import load_camera
     from envisat_pose.perception.detect import load_detector

@@ -21,7 +21,7 @@ DEFAULT_SUN_C0 = (0.7, -0.7, 0.15)
 
 
 def _image_defaults() -> "GenerateConfig":
-    from envisat_pose.datagen.factory import GenerateConfig
+    from envisat_pose.datagen.generate_config import GenerateConfig
 
     return GenerateConfig(mode="sequence", num_images=1, shard_size=1, write_mask=False, write_depth=False)
 
@@ -71,7 +71,7 @@ class RunConfig:
 def stage_types() -> None:
     """Make the annotation "GenerateConfig" resolvable (typing.get_type_hints reads this module's globals): the
     image factory's config is a stage's type, imported when a run is configured, not when the CLI starts."""
-    from envisat_pose.datagen.factory import GenerateConfig
+    from envisat_pose.datagen.generate_config import GenerateConfig
 
     globals()["GenerateConfig"] = GenerateConfig
 
