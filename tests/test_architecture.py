@@ -517,3 +517,27 @@ def test_the_slow_list_checker_sees_a_stale_id():
     assert "no test_gone" in missing_test(f"{here}::test_gone")
     assert "no file" in missing_test("tests/nowhere/test_x.py::test_a")
     assert "not parametrized" in missing_test(f"{here}::test_every_slow_id_names_a_test[x]")
+
+
+# modules whose every test is slow: the web viewer's screenshot (its one test drives Chromium)
+ONLY_SLOW = {"tests/app/test_viewer_screenshot.py"}
+
+
+def test_every_test_module_keeps_a_fast_test():
+    """The fast lane (make test) still exercises every test module: none is slow in all its tests (ONLY_SLOW
+    apart)."""
+    slow = set(slow_ids())
+    bare = []
+    for dirpath, _, files in os.walk(os.path.join(ROOT, "tests")):
+        for f in files:
+            if not (f.startswith("test_") and f.endswith(".py")):
+                continue
+            path = os.path.join(dirpath, f)
+            rel = os.path.relpath(path, ROOT).replace(os.sep, "/")
+            tests = [n for n in ast.parse(open(path, encoding="utf-8").read()).body
+                     if isinstance(n, ast.FunctionDef) and n.name.startswith("test_")]
+            fast = [n for n in tests if f"{rel}::{n.name}" not in slow
+                    and not any("mark.slow" in ast.unparse(d) for d in n.decorator_list)]
+            if tests and not fast and rel not in ONLY_SLOW:
+                bare.append(rel)
+    assert bare == []
