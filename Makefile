@@ -1,5 +1,7 @@
-# The two commands of the README. Each one installs what it needs first (scripts/setup.sh).
-.PHONY: demo test setup
+# The commands of the README. Each one installs what it needs first (scripts/setup.sh).
+# Tests in two lanes: `make test` the fast one (minutes), `make test-slow` the slow end-to-end tests (marked
+# `slow`: tests/conftest.py), `make test-all` both (what CI runs: .ci/run).
+.PHONY: demo test test-slow test-all setup
 
 demo: setup
 	mkdir -p out
@@ -8,8 +10,18 @@ demo: setup
 	.venv/bin/envisat estimate --truth out/run.npz --runs 30 --out out/est.npz --plot
 
 test:
+	@bash scripts/setup.sh
+	.venv/bin/python -m pytest -q -m "not slow"
+
+test-slow:
 	@WITH_VIEWER_CHECK=1 bash scripts/setup.sh
-	.venv/bin/python -m pytest -q
+	.venv/bin/python -m pytest -q -m slow
+
+# both lanes, the fast one first; the slow lane runs even when the fast one failed, and the exit status is a failure
+# if either failed
+test-all:
+	@WITH_VIEWER_CHECK=1 bash scripts/setup.sh
+	@rc=0; .venv/bin/python -m pytest -q -m "not slow" || rc=1; .venv/bin/python -m pytest -q -m slow || rc=1; exit $$rc
 
 setup:
 	@bash scripts/setup.sh

@@ -83,11 +83,11 @@ def ideal_pixels(out_dir: str, cfg, sigma_px: float, seed: int) -> np.ndarray:
     run-0 initial estimate; returns x_hat (T, 12)."""
     from envisat_pose.contracts import TruthTrajectory
     from envisat_pose.filtering.estimator import chaser_states, run_filter
-    from envisat_pose.pipelines.closed_loop import truth_dynamics
+    from envisat_pose.pipelines.onboard import onboard_physics
     from envisat_pose.state import draw_initial_estimate
 
     truth = TruthTrajectory.load(os.path.join(out_dir, "truth.npz"))
-    mu, gg = truth_dynamics(truth)
+    mu, gg = onboard_physics(truth)
     rng0 = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0,)))
     P0 = cfg.filter.P0
     x0 = draw_initial_estimate(truth.x[0], P0, rng0)  # as closed_loop_task draws run 0's warm start

@@ -22,12 +22,12 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
 from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
 from envisat_pose.filtering.ukf import SigmaWeights, merwe_weights, predict, shadow_switch, state_residual, update
 from envisat_pose.geometry import PinholeCamera, load_camera
+from envisat_pose.gates import GATE_PROB, chi2_bound, chi2_gate
 from envisat_pose.state import nees_window_diverged
 
 
@@ -68,7 +68,7 @@ class FilterConfig:
     kappa: float = 0.0
     p0_sigma: tuple[float, float, float, float] = (1.0, 0.01, 0.044, 1.7e-3)
     q_sigma: tuple[float, float, float, float] = (1e-7, 1e-7, 1e-8, 1e-9)
-    gate_prob: float = 0.99999
+    gate_prob: float = GATE_PROB
     gate_lockout_steps: int = 5
     visibility_check: bool = True
     adaptive_r: bool = False
@@ -170,7 +170,7 @@ def make_setup(cfg: FilterConfig, kind: str, camera: PinholeCamera | None = None
     if kind not in KINDS:
         raise ValueError(f"unknown measurement kind {kind!r}; expected one of {KINDS}")
     _check_kernel(cfg.kernel)
-    gate = chi2.ppf(cfg.gate_prob, dim_per_corner(kind)) if cfg.gate_prob > 0 else None
+    gate = chi2_gate(cfg.gate_prob, dim_per_corner(kind)) if cfg.gate_prob > 0 else None
     return FilterSetup(cfg, kind, camera or load_camera(), load_inertia_T_kg_m2() if J_T is None else J_T,
                        float(mu_m3_s2), bool(gravity_gradient), merwe_weights(12, cfg.alpha, cfg.beta, cfg.kappa),
                        gate)
@@ -358,8 +358,8 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
 
 @functools.lru_cache(maxsize=8)
 def _nis_bound_table(prob: float, n: int) -> np.ndarray:
-    """chi2.isf(prob, d) for d = 0 .. n - 1 (entry 0 unused), computed once: the same values, per element."""
-    return chi2.isf(prob, np.maximum(np.arange(n, dtype=float), 1.0))
+    """chi2_bound(prob, d) for d = 0 .. n - 1 (entry 0 unused), computed once: the same values, per element."""
+    return chi2_bound(prob, np.maximum(np.arange(n, dtype=float), 1.0))
 
 
 def _nis_bound(prob: float, d: np.ndarray) -> np.ndarray:

@@ -10,8 +10,10 @@ the same propagation here takes ~1.2 us, a whole run-step ~9 us (bench/ukf_speed
 Python loops with no build step (its llvmlite wheel ships LLVM), and with fastmath off its floating-point
 operations are IEEE and deterministic: the same inputs give the same bytes (one function, the Cholesky
 factorization, lets LLVM reassociate its sums so they vectorize: still the same bytes for the same inputs on
-a machine). Compiled code is cached next to this file (numba's cache=True): the first use on a machine
-compiles for ~10 s, later processes load it in ~0.3 s.
+a machine). Compiled code is cached in the user's cache folder (numba's cache=True, located by
+`cache_dir()`: NUMBA_CACHE_DIR when set, else $XDG_CACHE_HOME/envisat-pose/numba or ~/.cache/envisat-pose/numba;
+never inside the installed package): the first use on a machine compiles for ~10 s, later processes load it in
+~0.3 s.
 
 The kernels do exactly the reference's steps, in the reference's order where the order matters for
 round-off (the RK4 stage sums, the sigma-point mean, the symmetrization of P):
@@ -35,8 +37,12 @@ numpy filter (filtering/ukf.py), so repairs and roll-backs are the reference's o
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 from numba import njit
+from numba.core import caching as _caching
+from numba.core import config as _numba_config
 
 from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
@@ -44,6 +50,42 @@ from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 if (POS, VEL, MRP, RATE) != (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)):
     raise ImportError("filtering/fast.py is written for the state layout (rho, rho', p, w_r); "
                       "envisat_pose.state changed it: update the kernels")
+
+
+def cache_dir() -> str:
+    """The folder our compiled kernels are cached in: numba's own NUMBA_CACHE_DIR when the user set it, else
+    $XDG_CACHE_HOME/envisat-pose/numba, else ~/.cache/envisat-pose/numba. Never the package's folder (an
+    installed package may be read-only, or shared by users)."""
+    if _numba_config.CACHE_DIR:
+        return _numba_config.CACHE_DIR
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "envisat-pose", "numba")
+
+
+class _UserCacheLocator(_caching._SourceFileBackedLocatorMixin, _caching._CacheLocator):
+    """numba's cache locator for this file's kernels only: the user cache folder of cache_dir(), under a
+    sub-folder named for this file's path (two installs never share entries). Other files, and a set
+    NUMBA_CACHE_DIR, are left to numba's own locators."""
+
+    def __init__(self, py_func, py_file):
+        self._py_file = py_file
+        self._lineno = py_func.__code__.co_firstlineno
+        self._cache_path = os.path.join(cache_dir(), self.get_suitable_cache_subpath(py_file))
+
+    def get_cache_path(self):
+        return self._cache_path
+
+    @classmethod
+    def from_function(cls, py_func, py_file):
+        if _numba_config.CACHE_DIR or os.path.abspath(py_file) != os.path.abspath(__file__):
+            return None
+        return super().from_function(py_func, py_file)
+
+
+_CACHE_IMPL = getattr(_caching, "CacheImpl", None) or _caching._CacheImpl  # _CacheImpl in older numba
+if _UserCacheLocator not in _CACHE_IMPL._locator_classes:
+    _CACHE_IMPL._locator_classes = [_UserCacheLocator, *_CACHE_IMPL._locator_classes]
+
 
 KIND_CODES = {"markers3d": 0, "pixels": 1, "pixels+range": 2}
 _P0 = MRP.start  # first MRP component in the 12-state (envisat_pose.state.MRP)

@@ -3,6 +3,10 @@
 Plain numpy. For correctly named visible corners with errors e (N, 2) px and predicted covariances C (N, 2, 2)
 px^2, e^T C^-1 e follows a chi-square with 2 degrees of freedom when C is honest: its mean is 2 (the issue's
 band: [1.6, 2.6]). One scalar s fitted on held-out data, C -> s C, brings the mean to 2; it ships with the weights.
+
+Here: the fits alone (arrays in, numbers out). The job that runs the detector over held-out frames, matches its
+corners to the labels and writes the fits into the weights is the pipeline envisat_pose/pipelines/calibrate.py
+(`envisat calibrate`).
 """
 
 from __future__ import annotations

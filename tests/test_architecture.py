@@ -7,12 +7,14 @@ functions count too, and so do relative imports and the old top-level names.
 
 One home for each concept: the state's slices are defined only in envisat_pose/state.py; manifest.json is
 written only by the core runner's resumable-job protocol; a verb or pipeline resolves its config only through
-config.resolve_job_config (never by merging layers itself). Each checker runs on a source string, so the tests
+config.resolve_job_config (never by merging layers itself); a chi-square gate comes from its probability
+(envisat_pose.gates), never typed as a number. Each checker runs on a source string, so the tests
 below show it catching a planted copy.
 """
 
 import ast
 import os
+import re
 
 import pytest
 
@@ -24,12 +26,19 @@ LAYOUT = {"envisat_pose": "envisat_pose", **{s: f"envisat_pose.{s}" for s in STA
 # scanned for copies of the state's layout besides the package (the benches use it too)
 EXTRA_FOLDERS = ("bench",)
 
+# the kinds whose checker reads the tests' helpers too (a test must not build its own physics for the filter)
+WITH_TESTS = ("physics_builders",)
+
 # Copies that other engineers are removing now (issue 19). An entry must name a file that still holds the
 # copy: `test_pending_copies_are_still_there` fails once it is gone, so the entry is deleted with the fix.
 PENDING = {
     "state_slices": {},
     "manifest_writers": {},
     "hand_resolved_configs": {},
+    # the tracker's batch-fit gate and its fallback gate, typed as 23.0 (the lead switches them to gates.chi2_gate)
+    "physics_builders": {},
+    "typed_gates": {os.path.join("envisat_pose", "pipelines", "tracker.py"),
+                    os.path.join("envisat_pose", "pipelines", "acquisition.py")},
 }
 
 
@@ -51,10 +60,10 @@ def source_files(root: str = ROOT):
                     yield path, mod
 
 
-def checked_files(root: str = ROOT):
-    """Repository-relative paths of the package's files and the benches'."""
+def checked_files(root: str = ROOT, extra=EXTRA_FOLDERS):
+    """Repository-relative paths of the package's files and those of the extra folders (the benches')."""
     paths = [os.path.relpath(p, root) for p, _ in source_files(root)]
-    for folder in EXTRA_FOLDERS:
+    for folder in extra:
         for dirpath, _, filenames in os.walk(os.path.join(root, folder)):
             paths += [os.path.relpath(os.path.join(dirpath, f), root) for f in filenames if f.endswith(".py")]
     return sorted(paths)
@@ -124,6 +133,8 @@ def violations() -> list[str]:
 # ---------------------------------------------------------------- one home for each concept
 
 STATE_FILE = os.path.join("envisat_pose", "state.py")
+GATES_FILE = os.path.join("envisat_pose", "gates.py")
+ONBOARD_FILE = os.path.join("envisat_pose", "pipelines", "onboard.py")
 RUNNER_FILE = os.path.join("envisat_pose", "runner.py")
 STATE_BOUNDS = {(0, 3), (3, 6), (6, 9), (9, 12)}  # the blocks of the 12-state (envisat_pose.state)
 MERGERS = ("set_dotted", "deep_update")  # the layers of a config, merged by hand
@@ -208,6 +219,89 @@ def hand_resolutions(source: str) -> list[int]:
     return sorted(set(lines))
 
 
+def _chi2_values() -> list[float]:
+    """Chi-square bounds a gate typed by hand would hold: 1 to 4 dof, tail probabilities 0.05 to 1e-7."""
+    from scipy.stats import chi2
+
+    tails = (0.05, 0.01, 0.0027, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7)
+    return [float(chi2.isf(q, d)) for q in tails for d in (1, 2, 3, 4)]
+
+
+def _near_chi2(node, table) -> bool:
+    v = node.value if isinstance(node, ast.Constant) and type(node.value) in (int, float) else None
+    return v is not None and v > 1.0 and min(abs(v - b) / b for b in table) < 0.005
+
+
+def _speaks_of_gate(text: str) -> bool:
+    """Whether a name in the text is a gate's and carries no unit (a chi-square gate is a pure number; a
+    distance gate like gate_px is not one)."""
+    return any("gate" in n.lower() and not re.search(r"_(px|px2|m|s|deg|rad)$", n)
+               for n in re.findall(r"[A-Za-z_][A-Za-z0-9_]*", text))
+
+
+def typed_gates(source: str) -> list[int]:
+    """Lines where a chi-square gate is typed as a number (within 0.5 % of a chi-square bound of 1-4 dof at a
+    usual tail probability) in a statement that speaks of a gate: a parameter or field named *gate*, or any
+    simple statement (an `if`'s or `while`'s test) whose text names one (names with a unit, like gate_px, are
+    distances, not chi-square gates). The gate comes from its probability
+    (envisat_pose.gates.chi2_gate)."""
+    table = _chi2_values()
+    lines = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            a = node.args
+            pos = a.posonlyargs + a.args
+            pairs = list(zip(pos[len(pos) - len(a.defaults):], a.defaults))
+            pairs += [(k, d) for k, d in zip(a.kwonlyargs, a.kw_defaults) if d is not None]
+            lines += [d.lineno for arg, d in pairs if _speaks_of_gate(arg.arg) and _near_chi2(d, table)]
+            continue
+        if isinstance(node, (ast.If, ast.While)):
+            part = node.test
+        elif isinstance(node, ast.stmt) and not hasattr(node, "body"):
+            part = node
+        else:
+            continue
+        if _speaks_of_gate(ast.unparse(part)):
+            lines += [c.lineno for c in ast.walk(part) if _near_chi2(c, table)]
+    return sorted(set(lines))
+
+
+def _access(node) -> tuple[str, ast.AST] | None:
+    """(name, container) of `container.name` or `container["name"]`."""
+    if isinstance(node, ast.Attribute):
+        return node.attr, node.value
+    if isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Constant) and isinstance(node.slice.value, str):
+        return node.slice.value, node.value
+    return None
+
+
+def physics_builders(source: str) -> list[int]:
+    """Lines of functions that read the truth's physics for the filter by hand: orbit.mu_m3_s2 together with
+    target.gravity_gradient (as attributes or keys) of one config. One builder: pipelines/onboard.py's
+    onboard_physics."""
+    lines = []
+    for fn in ast.walk(ast.parse(source)):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        seen = set()
+        for n in ast.walk(fn):
+            a = _access(n)
+            if a is not None and a[0] in ("mu_m3_s2", "gravity_gradient"):
+                inner = _access(a[1])
+                if inner is not None and (a[0], inner[0]) in (("mu_m3_s2", "orbit"), ("gravity_gradient", "target")):
+                    seen.add(a[0])
+        if len(seen) == 2:
+            lines.append(fn.lineno)
+    return sorted(lines)
+
+
+def filter_side(rel: str) -> bool:
+    """Whether a file is on the filter's side of the truth (a pipeline, a verb, a bench or a test helper): the
+    truth's own physics (datagen) reads its config freely."""
+    parts = rel.split(os.sep)
+    return (len(parts) > 2 and parts[0] == "envisat_pose" and parts[1] in UPPER) or parts[0] in ("bench", "tests")
+
+
 def resolves_configs(rel: str) -> bool:
     """Whether a file is a verb or a pipeline (the layers that resolve job configs)."""
     parts = rel.split(os.sep)
@@ -217,7 +311,7 @@ def resolves_configs(rel: str) -> bool:
 def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
     """{file: lines} of every copy of one kind in the repository (pending ones included)."""
     found = {}
-    for rel in checked_files(root):
+    for rel in checked_files(root, EXTRA_FOLDERS + (("tests",) if kind in WITH_TESTS else ())):
         source = open(os.path.join(root, rel), encoding="utf-8").read()
         if kind == "state_slices" and rel != STATE_FILE:
             lines = state_slice_definitions(source)
@@ -225,6 +319,10 @@ def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
             lines = manifest_writes(source)
         elif kind == "hand_resolved_configs" and resolves_configs(rel):
             lines = hand_resolutions(source)
+        elif kind == "physics_builders" and rel != ONBOARD_FILE and filter_side(rel):
+            lines = physics_builders(source)
+        elif kind == "typed_gates" and rel != GATES_FILE:
+            lines = typed_gates(source)
         else:
             lines = []
         if lines:
@@ -342,3 +440,104 @@ def test_the_config_checker_catches_a_verb_resolving_by_hand():
     assert resolves_configs(os.path.join("envisat_pose", "app", "run.py"))
     assert resolves_configs(os.path.join("envisat_pose", "pipelines", "track.py"))
     assert not resolves_configs(os.path.join("envisat_pose", "config.py"))
+
+
+def test_the_gate_checker_catches_a_gate_typed_by_hand():
+    planted = ("from dataclasses import dataclass\n\n@dataclass\nclass Cfg:\n    fit_gate: float = 23.0\n\n"
+               "def fit(z, gate: float = 23.0, iterations: int = 15):\n    return z\n\n"
+               "def step(setup, d2):\n    thr = setup.gate_threshold if setup.gate_threshold is not None else 23.0\n"
+               "    if d2 > 25.9 and setup.gated:\n        return thr\n")
+    assert typed_gates(planted) == [5, 7, 11, 12]
+    derived = ("from envisat_pose.gates import GATE_PROB, chi2_gate\n\n"
+               "def fit(z, gate: float = chi2_gate(GATE_PROB, 2), iterations: int = 15):\n"
+               "    width_px = 23.0\n    gate_px: float = 6.0\n    return z\n")
+    assert typed_gates(derived) == []
+    from envisat_pose.gates import GATE_PROB, chi2_bound, chi2_gate
+    from scipy.stats import chi2
+
+    assert chi2_gate(GATE_PROB, 2) == chi2.ppf(GATE_PROB, 2) and abs(chi2_gate(GATE_PROB, 2) - 23.0259) < 1e-4
+    assert chi2_bound(1e-5, 2) == chi2.isf(1e-5, 2)
+    with pytest.raises(ValueError, match="gate probability"):
+        chi2_gate(1.0, 2)
+
+
+def test_the_physics_checker_catches_a_second_builder():
+    planted = ("def truth_dynamics(truth):\n    scen = from_dict(ScenarioConfig, truth.config)\n"
+               "    return scen.orbit.mu_m3_s2, scen.target.gravity_gradient\n\n"
+               "def by_keys(truth):\n    c = truth.config\n"
+               "    return float(c['orbit']['mu_m3_s2']), c['target']['gravity_gradient']\n\n"
+               "def track(cfg):\n    return Tracker(mu_m3_s2=cfg.orbit.mu_m3_s2, gravity_gradient=cfg.gravity_gradient)\n")
+    assert physics_builders(planted) == [1, 5]
+    assert physics_builders(open(os.path.join(ROOT, ONBOARD_FILE), encoding="utf-8").read())  # the home
+    assert filter_side(os.path.join("tests", "pipelines", "test_x.py")) and filter_side(os.path.join("bench", "x.py"))
+    assert not filter_side(os.path.join("datagen", "truth.py"))
+
+
+# ---------------------------------------------------------------- the slow lane's list (tests/conftest.py)
+
+def slow_ids(root: str = ROOT) -> tuple[str, ...]:
+    """The SLOW tuple of tests/conftest.py, read without importing it."""
+    tree = ast.parse(open(os.path.join(root, "tests", "conftest.py"), encoding="utf-8").read())
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "SLOW" for t in node.targets):
+            return tuple(ast.literal_eval(node.value))
+    raise AssertionError("tests/conftest.py defines no SLOW")
+
+
+def missing_test(nodeid: str, root: str = ROOT) -> str | None:
+    """Why a node id names no test (None: it does): the file, the test function (or Class::method) in it, and,
+    for an id with [...], a parametrized test."""
+    path, _, rest = nodeid.partition("::")
+    full = os.path.join(root, *path.split("/"))
+    if not os.path.isfile(full):
+        return f"{nodeid}: no file {path}"
+    names = rest.split("[", 1)[0].split("::")
+    scope = ast.parse(open(full, encoding="utf-8").read()).body
+    node = None
+    for name in names:
+        node = next((n for n in scope if isinstance(n, (ast.FunctionDef, ast.ClassDef)) and n.name == name), None)
+        if node is None:
+            return f"{nodeid}: no {name} in {path}"
+        scope = node.body
+    if "[" in rest and not any("parametrize" in ast.unparse(d) for d in node.decorator_list):
+        return f"{nodeid}: {names[-1]} is not parametrized"
+    return None
+
+
+def test_every_slow_id_names_a_test():
+    ids = slow_ids()
+    assert len(set(ids)) == len(ids), "SLOW lists a test twice"
+    assert [why for i in ids if (why := missing_test(i))] == []
+
+
+def test_the_slow_list_checker_sees_a_stale_id():
+    here = "tests/test_architecture.py"
+    assert missing_test(f"{here}::test_every_slow_id_names_a_test") is None
+    assert missing_test(f"{here}::test_one_home_for_each_concept[typed_gates]") is None
+    assert "no test_gone" in missing_test(f"{here}::test_gone")
+    assert "no file" in missing_test("tests/nowhere/test_x.py::test_a")
+    assert "not parametrized" in missing_test(f"{here}::test_every_slow_id_names_a_test[x]")
+
+
+# modules whose every test is slow: the web viewer's screenshot (its one test drives Chromium)
+ONLY_SLOW = {"tests/app/test_viewer_screenshot.py"}
+
+
+def test_every_test_module_keeps_a_fast_test():
+    """The fast lane (make test) still exercises every test module: none is slow in all its tests (ONLY_SLOW
+    apart)."""
+    slow = set(slow_ids())
+    bare = []
+    for dirpath, _, files in os.walk(os.path.join(ROOT, "tests")):
+        for f in files:
+            if not (f.startswith("test_") and f.endswith(".py")):
+                continue
+            path = os.path.join(dirpath, f)
+            rel = os.path.relpath(path, ROOT).replace(os.sep, "/")
+            tests = [n for n in ast.parse(open(path, encoding="utf-8").read()).body
+                     if isinstance(n, ast.FunctionDef) and n.name.startswith("test_")]
+            fast = [n for n in tests if f"{rel}::{n.name}" not in slow
+                    and not any("mark.slow" in ast.unparse(d) for d in n.decorator_list)]
+            if tests and not fast and rel not in ONLY_SLOW:
+                bare.append(rel)
+    assert bare == []

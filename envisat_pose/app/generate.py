@@ -48,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def resolve_config(args: argparse.Namespace):
     """Defaults, then the TOML file, then the flags; validated before any work."""
-    from envisat_pose.datagen.factory import GenerateConfig
+    from envisat_pose.datagen.generate_config import GenerateConfig
 
     flags = {"mode": args.mode, "num_images": args.num_images, "shard_size": args.shard_size,
              "resolution_px": args.resolution, "seed": args.seed, "scenario": args.scenario}

@@ -11,7 +11,8 @@ import math
 import time
 
 from envisat_pose.config import InputError, check, resolve_job_config
-from envisat_pose.pipelines.campaign import FIGURES, SWEEP_FIGURE, MonteCarloConfig, SweepConfig
+from envisat_pose.pipelines.campaign import FIGURES, MonteCarloConfig
+from envisat_pose.pipelines.sweep import SWEEP_FIGURE, SweepConfig
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -80,7 +81,8 @@ def runner_config(args: argparse.Namespace):
 
 
 def run_montecarlo(args: argparse.Namespace) -> int:
-    from envisat_pose.pipelines.campaign import run_campaign, run_sweep, write_recording
+    from envisat_pose.pipelines.campaign import run_campaign, write_recording
+    from envisat_pose.pipelines.sweep import run_sweep
 
     cfg = resolve_config(args)
     runner = runner_config(args)
@@ -123,7 +125,8 @@ def sweep_config(args: argparse.Namespace, cfg: MonteCarloConfig) -> SweepConfig
     """The scenario's [sweep] table under --rates-hz, validated, with every rate's step checked against the
     truth's before any work; None when neither asks for a sweep."""
     from envisat_pose.named_scenarios import table
-    from envisat_pose.pipelines.campaign import at_rate, check_filter_rate, truth_scenario
+    from envisat_pose.pipelines.campaign import check_filter_rate, truth_scenario
+    from envisat_pose.pipelines.sweep import at_rate
 
     defaults = table(cfg.scenario, "sweep")
     if not defaults and not args.rates_hz:

@@ -17,6 +17,7 @@ import math
 import os
 
 from envisat_pose.config import InputError
+from envisat_pose.pipelines.sweep import SWEEP_FIGURE
 from envisat_pose.state import BLOCKS
 
 # display unit and scale per block (the summary's units are m, m/s, rad, rad/s)
@@ -28,7 +29,6 @@ FIGURE_CAPTIONS = {
     "nees_nis.png": "Mean NEES and NIS with their chi-square 95 % bands",
     "rmse_vs_pcrlb.png": "Monte Carlo RMSE against the posterior Cramer-Rao lower bound",
 }
-SWEEP_FIGURE = "rate_sweep.png"
 SWEEP_CAPTION = ("Rate sweep: settled RMSE per block (blue) and the PCRLB (black dashed) against the filter rate, "
                  "and the share of diverged runs (red)")
 

@@ -88,7 +88,7 @@ def resolve_config(args: argparse.Namespace):
     before any work."""
     from envisat_pose.app.scenarios import job_defaults
     from envisat_pose.config import resolve_job_config
-    from envisat_pose.pipelines.closed_loop import RunConfig, finish_config, stage_types
+    from envisat_pose.pipelines.run_config import RunConfig, finish_config, stage_types
     from envisat_pose.pipelines.tracker import TRACKER_FILTER
 
     stage_types()

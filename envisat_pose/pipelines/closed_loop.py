@@ -24,116 +24,29 @@ image.resolution_px: the MJCF's chaser_cam read out at that size (the same field
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import check, from_dict, to_dict
-from envisat_pose.filtering.estimator import FilterConfig
-from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
-from envisat_pose.status import ACQUIRING, LOST, STATUSES
+from envisat_pose.config import to_dict
+from envisat_pose.pipelines.onboard import chaser_function, onboard_physics, orbit_config
+from envisat_pose.pipelines.rows import (CHUNK_FRAMES, DET_KEYS, EST_KEYS, STAGES, RunRows, est_row,  # noqa: F401
+                                         record_arrays, store_estimate)
+from envisat_pose.pipelines.run_config import (RunConfig, config_from_json, finish_config,  # noqa: F401
+                                               sun_and_shadow, stage_types)
 from envisat_pose.state import MRP, POS
 
-# per-frame stages timed: the MuJoCo truth (its share per frame), MuJoCo rendering, the space camera, the detector,
-# the filter (with the cold start's fits), the recording (encoding and logging run 0's frame)
-STAGES = ("simulation", "rendering", "camera", "detection", "filtering", "recording")
-# a lit default: the sun 45 deg off the line of sight, behind the camera, from above the orbit plane at t = 0 (in
-# C: radial, along-track, normal); in the default orbit the chaser enters the Earth's shadow at t = 1203 s
-DEFAULT_SUN_C0 = (0.7, -0.7, 0.15)
-
-
-def _image_defaults() -> "GenerateConfig":
-    from envisat_pose.datagen.factory import GenerateConfig
-
-    return GenerateConfig(mode="sequence", num_images=1, shard_size=1, write_mask=False, write_depth=False)
-
-
-@dataclass(frozen=True)
-class RunConfig:
-    """One `envisat run` job. scenario: named truth; duration_s: simulated time; rate_hz: camera and filter rate;
-    runs: closed loops on the same truth; workers: processes for them; seed: the truth's random attitude, every
-    run's camera noise (and warm start); weights: detector weights file. warm_start: start each run's filter from
-    the truth plus a draw from filter.p0_sigma (filter studies), instead of cold from the images. threads: torch
-    CPU threads per run; jpeg_quality: run 0's images in the recording. image: the camera frames as the image
-    factory's sequence mode makes them (its sequence fields are set from the ones above). filter: the UKF (the
-    scenario's [filter] table under the file and the flags). tracker: pipelines.tracker.TrackerConfig."""
-
-    scenario: str = "default"
-    duration_s: float = 600.0
-    rate_hz: float = 1.0
-    runs: int = 1
-    workers: int = 1
-    seed: int = 0
-    weights: str = ""
-    warm_start: bool = False
-    threads: int = 1
-    jpeg_quality: int = 80
-    image: "GenerateConfig" = field(default_factory=_image_defaults)
-    filter: FilterConfig = field(default_factory=lambda: FilterConfig(**TRACKER_FILTER))
-    tracker: TrackerConfig = field(default_factory=TrackerConfig)
-
-    def validate(self, prefix: str = "") -> None:
-        from envisat_pose.geometry import load_camera
-
-        check(self.duration_s > 0, "duration_s", self.duration_s, "a positive duration in s")
-        check(0.0 < self.rate_hz <= 10.0, "rate_hz", self.rate_hz, "a rate in (0, 10] Hz")
-        check(self.duration_s * self.rate_hz <= 200_000, "duration_s", self.duration_s,
-              "at most 200000 frames (duration_s x rate_hz)")
-        check(1 <= self.runs <= 1000, "runs", self.runs, "1 to 1000 runs")
-        check(1 <= self.workers <= 256, "workers", self.workers, "1 to 256 processes")
-        check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")
-        check(1 <= self.threads <= 256, "threads", self.threads, "1 to 256 threads")
-        check(1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality, "a JPEG quality in [1, 100]")
-        cam = load_camera()
-        check(cam.width_px == cam.height_px and 16 <= self.image.resolution_px <= 4096, "image.resolution_px",
-              self.image.resolution_px, "a square image side in [16, 4096] px (the MJCF's chaser_cam, "
-              f"{cam.width_px} px, read out at that size: the same field of view)")
-
-
-def stage_types() -> None:
-    """Make the annotation "GenerateConfig" resolvable (typing.get_type_hints reads this module's globals): the
-    image factory's config is a stage's type, imported when a run is configured, not when the CLI starts."""
-    from envisat_pose.datagen.factory import GenerateConfig
-
-    globals()["GenerateConfig"] = GenerateConfig
-
-
-def finish_config(cfg: RunConfig) -> RunConfig:
-    """The image config's sequence fields from the run's (mode, scenario, seed, frames, frame period) and the sun
-    made explicit (the scenario's [eclipse] sun, else DEFAULT_SUN_C0 at t = 0 turned into N)."""
-    from envisat_pose.datagen.orbit import chaser_orbit
-    from envisat_pose.datagen.scenario import scenario_config, scenario_eclipse
-
-    n = n_frames(cfg)
-    sun = cfg.image.sun_dir
-    if sun is None:
-        ecl = scenario_eclipse(cfg.scenario)
-        if ecl is not None:
-            sun = tuple(float(v) for v in ecl.sun_dir_N)
-        else:
-            orb = chaser_orbit(scenario_config(cfg.scenario).orbit, np.array([0.0]))
-            s_C = np.asarray(DEFAULT_SUN_C0) / np.linalg.norm(DEFAULT_SUN_C0)
-            sun = tuple(round(float(v), 9) for v in orb.R_N_from_C[0] @ s_C)
-    image = dataclasses.replace(cfg.image, mode="sequence", scenario=cfg.scenario, seed=cfg.seed, num_images=n,
-                                shard_size=n, frame_dt_s=1.0 / cfg.rate_hz, sun_dir=sun)
-    return dataclasses.replace(cfg, image=image)
-
-
-def n_frames(cfg: RunConfig) -> int:
-    return int(np.floor(cfg.duration_s * cfg.rate_hz + 1e-9)) + 1
-
-
-def config_from_json(text: str) -> RunConfig:
-    stage_types()
-    return from_dict(RunConfig, json.loads(text))
+# The config (pipelines/run_config.py), the on-board physics and orbit (pipelines/onboard.py) and the per-frame
+# row store (pipelines/rows.py) have their own modules; the names above stay importable from here for
+# pipelines/track.py, the tests and the benches that use them as closed_loop.<name>.
+truth_dynamics = onboard_physics  # the old name (bench/tracking.py imports it): remove once it imports onboard
 
 
 # ---------------------------------------------------------------------------------------------------------
-# The truth, and what the chaser knows of its own orbit
+# The truth
 
 
 def simulate_truth(cfg: RunConfig, progress: bool = False):
@@ -145,143 +58,8 @@ def simulate_truth(cfg: RunConfig, progress: bool = False):
     return simulate(scen, progress=progress)
 
 
-def orbit_config(truth_config: dict):
-    """The chaser's Keplerian orbit (datagen's OrbitConfig) of a truth's config."""
-    from envisat_pose.datagen.scenario import ScenarioConfig
-
-    return from_dict(ScenarioConfig, truth_config).orbit
-
-
-def chaser_function(orbit):
-    """chaser_at(t_s) -> (4,) the chaser's polar orbit (r_m, rdot_m_s, theta_rad, thetadot_rad_s) from its
-    Keplerian elements: what the chaser knows of itself on board."""
-    from envisat_pose.datagen.orbit import chaser_orbit
-
-    def chaser_at(t_s: float) -> np.ndarray:
-        o = chaser_orbit(orbit, np.array([float(t_s)]))
-        return np.array([o.r_m[0], o.rdot_m_s[0], o.theta_rad[0], o.thetadot_rad_s[0]])
-
-    return chaser_at
-
-
-def sun_and_shadow(cfg: RunConfig, truth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per frame: sun_dir_C (N, 3) unit, eclipse (N,) bool (the chaser in the Earth's cylindrical shadow),
-    nadir_C (N, 3) the Earth's centre from the chaser, m."""
-    from envisat_pose.datagen.orbit import chaser_orbit
-    from envisat_pose.datagen.scenario import in_earth_shadow
-
-    orb = chaser_orbit(orbit_config(truth.config), truth.t_s)
-    sun_N = np.asarray(cfg.image.sun_dir, dtype=float)
-    sun_N = sun_N / np.linalg.norm(sun_N)
-    sun_C = np.einsum("nji,j->ni", orb.R_N_from_C, sun_N)
-    eclipse = in_earth_shadow(orb.r_N_m, sun_N)
-    nadir_C = np.zeros((len(truth.t_s), 3))
-    nadir_C[:, 0] = -orb.r_m
-    return sun_C, eclipse, nadir_C
-
-
 # ---------------------------------------------------------------------------------------------------------
 # One closed-loop run (a runner task)
-
-
-def record_arrays(T: int) -> dict:
-    """The per-frame arrays a run keeps (one row per frame)."""
-    out = {k: np.zeros((T,), dtype=np.int64) for k in ("n_meas", "nis_dof", "naming", "status", "n_hypotheses")}
-    out.update({"x_hat": np.empty((T, 12)), "P": np.empty((T, 12, 12)), "nis": np.zeros(T),
-                "p_best": np.zeros(T), "corners_px": np.full((T, 8, 2), np.nan),
-                "cov_px": np.full((T, 8, 2, 2), np.nan), "confidence": np.zeros((T, 8)),
-                "visible": np.zeros((T, 8), bool), "rejected": np.zeros((T, 8), bool),
-                "alt_corners_px": np.full((T, 8, 2), np.nan), "alt_probability": np.zeros(T),
-                "ambiguous": np.zeros(T, bool), "crop_px": np.zeros((T, 3)), "roi_px": np.full((T, 3), np.nan),
-                "converged": np.zeros(T, bool), "skipped": np.zeros(T, bool), "timing_s": np.zeros((T, len(STAGES)))})
-    return out
-
-
-def store_estimate(out: dict, k: int, est) -> None:
-    """Row k of record_arrays from a TrackEstimate. While acquiring before any pose the state is NaN: it is kept
-    as zeros with a NaN-free wide covariance so the Estimates contract (finite) holds; status says which."""
-    from envisat_pose.pipelines.tracker_config import ACQUIRING_SIGMA
-
-    if np.isfinite(est.x_hat).all():
-        out["x_hat"][k], out["P"][k] = est.x_hat, est.P
-    else:
-        out["x_hat"][k], out["P"][k] = 0.0, np.diag(np.repeat(np.square(ACQUIRING_SIGMA), 3)) * 1e4
-    out["status"][k] = STATUSES.index(est.status)
-    out["n_hypotheses"][k] = len(est.probabilities)
-    out["p_best"][k] = float(np.max(est.probabilities)) if len(est.probabilities) else 0.0
-    out["nis"][k], out["nis_dof"][k] = est.nis, est.nis_dof
-    out["n_meas"][k] = int((est.measured & ~est.rejected).sum())
-    out["naming"][k] = est.naming
-    out["rejected"][k] = est.rejected
-    out["converged"][k] = est.converged
-    if est.roi_px is not None:
-        out["roi_px"][k] = est.roi_px
-    fd = est.detection
-    if fd is not None:
-        vis = np.asarray(fd.visible, bool) & np.isfinite(fd.corners_px).all(-1) & np.isfinite(fd.cov_px).all((-1, -2))
-        out["visible"][k] = vis
-        out["corners_px"][k] = np.where(vis[:, None], fd.corners_px, np.nan)
-        out["cov_px"][k] = np.where(vis[:, None, None], fd.cov_px, np.nan)
-        out["confidence"][k] = np.where(vis, np.clip(np.nan_to_num(fd.confidence), 0.0, 1.0), 0.0)
-        out["alt_corners_px"][k] = fd.alt_corners_px
-        out["alt_probability"][k] = float(fd.alt_probability)
-        out["ambiguous"][k] = bool(fd.ambiguous)
-        out["crop_px"][k] = fd.crop_px
-
-
-# rows a run holds before writing them out: ~2 kB a frame, so ~2 MB per run whatever the run's length
-CHUNK_FRAMES = 1000
-# columns of a run's arrays that go to det.npz (run 0) and est.npz (every run)
-DET_KEYS = ("corners_px", "cov_px", "confidence", "visible", "rejected", "alt_corners_px", "alt_probability",
-            "ambiguous", "crop_px", "roi_px", "converged", "skipped", "naming", "status", "p_best", "n_hypotheses")
-EST_KEYS = ("x_hat", "P", "n_meas", "nis", "nis_dof")
-
-
-class RunRows:
-    """A run's per-frame arrays (record_arrays) streamed to run_dir/<name>.npy, `chunk` frames at a time, with
-    the run's reductions (stage time sums, frame counts) taken per chunk: the run holds one chunk, never the run.
-    Frames come in order: row(k) is frame k's row in `buf` (the chunk before it written out when full)."""
-
-    def __init__(self, run_dir: str, T: int, chunk: int = CHUNK_FRAMES):
-        from envisat_pose.io import NpyRowWriter
-
-        os.makedirs(run_dir, exist_ok=True)
-        self.T, self.chunk, self.start, self.n = T, min(chunk, T), 0, 0
-        self.buf = record_arrays(self.chunk)
-        self.writers = {k: NpyRowWriter(os.path.join(run_dir, f"{k}.npy"), T, a.shape[1:], a.dtype)
-                        for k, a in self.buf.items()}
-        self.sums = {"timing_s": np.zeros(len(STAGES)), "frames_skipped_eclipse": 0, "frames_roi": 0,
-                     "frames_ambiguous": 0, "frames_acquiring": 0, "frames_lost": 0}
-
-    def row(self, k: int) -> int:
-        if k != self.start + self.n:
-            raise ValueError(f"frame {k} out of order (expected {self.start + self.n})")
-        if self.n == self.chunk:
-            self.flush()
-        self.n += 1
-        return self.n - 1
-
-    def flush(self) -> None:
-        b = {k: a[:self.n] for k, a in self.buf.items()}
-        for k, w in self.writers.items():
-            w.write(b[k])
-        s = self.sums
-        s["timing_s"] += b["timing_s"].sum(axis=0)
-        s["frames_skipped_eclipse"] += int(b["skipped"].sum())
-        s["frames_roi"] += int(np.isfinite(b["roi_px"][:, 0]).sum())
-        s["frames_ambiguous"] += int(b["ambiguous"].sum())
-        s["frames_acquiring"] += int((b["status"] == ACQUIRING).sum())
-        s["frames_lost"] += int((b["status"] == LOST).sum())
-        self.start, self.n = self.start + self.n, 0
-        self.buf = record_arrays(self.chunk)  # fresh defaults (NaN where a frame has no detection)
-
-    def close(self) -> dict:
-        """Write the last rows and check every frame was written; returns the run's reductions (plain data)."""
-        if self.n:
-            self.flush()
-        for w in self.writers.values():
-            w.close()
-        return {**self.sums, "timing_s": self.sums["timing_s"].tolist(), "frames": self.T}
 
 
 def run_camera(resolution_px: int):
@@ -309,7 +87,8 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     from envisat_pose.attitude import mrp_to_dcm
     from envisat_pose.contracts import TruthTrajectory
     from envisat_pose.datagen.corrupt import apply_corruption
-    from envisat_pose.datagen.factory import draw_corruption_params, sample_seed, unit, with_look
+    from envisat_pose.datagen.factory import draw_corruption_params, with_look
+    from envisat_pose.datagen.views import sample_seed, unit
     from envisat_pose.datagen.render import View, shared_renderer
     from envisat_pose.geometry import load_camera
     from envisat_pose.perception.detect import load_detector
@@ -321,7 +100,7 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     torch.set_num_threads(cfg.threads)
     cv2.setNumThreads(1)
     truth = TruthTrajectory.load(truth_path)
-    mu, gg = truth_dynamics(truth)
+    mu, gg = onboard_physics(truth, truth_path)
     sun_C, eclipse, nadir_C = sun_and_shadow(cfg, truth)
     camera = run_camera(gcfg.resolution_px)
     # the truth's corners are projected at the MJCF camera's size; the recorder shows them at the frames' size
@@ -388,20 +167,6 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
         if recorder is not None:
             recorder.close()
     return rows.close()
-
-
-def est_row(out: dict, k: int, t_s: float) -> dict:
-    """Row k of a run's arrays (record_arrays or a RunRows chunk; at t_s, s) as the plain dict the recorder logs."""
-    return {"t_s": t_s} | {name: out[name][k] for name in ("x_hat", "P", "status", "p_best", "n_hypotheses", "nis", "nis_dof",
-                                             "corners_px", "visible", "rejected", "roi_px")}
-
-
-def truth_dynamics(truth) -> tuple[float, bool]:
-    """(mu, m^3/s^2; gravity-gradient torque on) of the truth's config: the filter models what the truth applies."""
-    from envisat_pose.datagen.scenario import ScenarioConfig
-
-    scen = from_dict(ScenarioConfig, truth.config)
-    return float(scen.orbit.mu_m3_s2), bool(scen.target.gravity_gradient)
 
 
 # ---------------------------------------------------------------------------------------------------------

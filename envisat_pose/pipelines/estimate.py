@@ -5,8 +5,8 @@ The truth comes from a truth file (written by `envisat simulate`, read as the co
 without importing the simulator) or is simulated for a named scenario by the MuJoCo truth simulator
 (datagen.truth.simulate). Measurements are synthesized from the truth's own arrays (MuJoCo's corner sites and
 their projection through MuJoCo's camera), never from the filter's model; the filter's model takes the truth's
-mu and gravity-gradient switch from its config (`truth_model`). A named scenario with an [eclipse] table adds
-the Earth's-shadow outages along its truth (`eclipse_outages`, `with_outages`; the campaigns use them too).
+mu and gravity-gradient switch from its config (pipelines/onboard.py, `onboard_physics`). A named scenario with
+an [eclipse] table adds the Earth's-shadow outages along its truth (`eclipse_outages`, `with_outages`; the campaigns use them too).
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import numpy as np
 from envisat_pose.config import ConfigError, InputError, check, from_dict, to_dict, to_toml
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig
+from envisat_pose.pipelines.onboard import onboard_physics
 
 MAX_OUTPUT_BYTES = 8 * 2**30  # P alone is R * T * 144 * 8 bytes
 
@@ -42,22 +43,6 @@ class EstimateConfig:
 
 
 # ---------------------------------------------------------------- what a job takes from its truth
-
-def truth_model(truth, source: str = "the truth") -> tuple[float, bool]:
-    """The physics of the truth that the filter's model must share: (mu_m3_s2, gravity_gradient), read from the
-    truth's config (orbit.mu_m3_s2, target.gravity_gradient); InputError if the config lacks them."""
-    try:
-        cfg = truth.config
-        mu = float(cfg["orbit"]["mu_m3_s2"])
-        gg = cfg["target"]["gravity_gradient"]
-    except (KeyError, TypeError, ValueError) as err:
-        raise InputError(f"{source}: its config_json does not give orbit.mu_m3_s2 and target.gravity_gradient "
-                         f"({type(err).__name__}: {err})") from None
-    if not (np.isfinite(mu) and mu > 0) or not isinstance(gg, bool):
-        raise InputError(f"{source}: its config_json has orbit.mu_m3_s2 = {mu!r} and target.gravity_gradient = "
-                         f"{gg!r}; expected a positive number and true/false")
-    return mu, gg
-
 
 def eclipse_outages(name: str, truth_cfg) -> tuple[tuple[float, float], ...]:
     """The Earth's-shadow windows [start, end) s of a named scenario's [eclipse] table along the truth of
@@ -91,7 +76,7 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
         if duration_s is not None:
             raise InputError("--duration-s applies to --scenario only; the truth file fixes the duration")
         truth = TruthTrajectory.load(truth_path)
-        truth_model(truth, truth_path)  # its config must name the physics the filter needs
+        onboard_physics(truth, truth_path)  # its config must name the physics the filter needs
         return truth, {"truth_file": truth_path}
     from envisat_pose.datagen.scenario import scenario_config, scenario_dict
     from envisat_pose.datagen.truth import simulate
@@ -136,7 +121,7 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     from envisat_pose.filtering.estimator import chaser_states, nees_divergence, run_filter
     from envisat_pose.filtering.montecarlo import filter_stride, make_run_inputs, truth_measurements
 
-    mu_m3_s2, gravity_gradient = truth_model(truth)
+    mu_m3_s2, gravity_gradient = onboard_physics(truth)
 
     try:
         stride = filter_stride(truth.t_s, cfg.measurement.rate_hz)

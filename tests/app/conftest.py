@@ -3,11 +3,6 @@
 import pytest
 
 
-def pytest_configure(config):
-    config.addinivalue_line("markers", "slow: a test of a minute or more (runs by default, CI included; "
-                            "deselect locally with -m 'not slow')")
-
-
 @pytest.fixture(scope="session")
 def detector_weights() -> str:
     """The shipped detector weights (models/detector.safetensors, package data): the closed loop's default."""

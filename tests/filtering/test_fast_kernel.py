@@ -18,6 +18,9 @@ Two kinds of agreement:
 """
 
 import dataclasses
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -206,3 +209,28 @@ def test_an_unknown_kernel_is_refused():
 
     with pytest.raises(ConfigError, match="kernel"):
         FilterConfig(kernel="numpy").validate()
+
+
+def _files_under(folder):
+    return {os.path.join(d, f): os.stat(os.path.join(d, f)).st_mtime_ns
+            for d, _, names in os.walk(folder) for f in names}
+
+
+@pytest.mark.parametrize("numba_cache_dir", [False, True])
+def test_the_compiled_cache_goes_to_the_user_cache_folder(tmp_path, numba_cache_dir):
+    """A fresh process that imports the kernels and runs one writes its compiled cache under
+    $XDG_CACHE_HOME/envisat-pose/numba (or numba's own NUMBA_CACHE_DIR when set) and nothing inside the package."""
+    package = os.path.dirname(fast.__file__)
+    before = _files_under(package)
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env.update(XDG_CACHE_HOME=str(tmp_path / "xdg"), PYTHONDONTWRITEBYTECODE="1")
+    if numba_cache_dir:
+        env["NUMBA_CACHE_DIR"] = str(tmp_path / "numba")
+    code = ("from envisat_pose.filtering import fast\nimport numpy as np\n"
+            "assert fast._sq(3.0) == 9.0\nprint(fast.cache_dir())\n")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    want = tmp_path / ("numba" if numba_cache_dir else os.path.join("xdg", "envisat-pose", "numba"))
+    assert out.stdout.strip() == str(want)
+    written = [f for f in _files_under(str(want)) if f.endswith((".nbi", ".nbc"))]
+    assert any(os.path.basename(f).startswith("fast._sq-") for f in written), written
+    assert _files_under(package) == before

@@ -58,12 +58,36 @@ def test_oracle_chain_recovers_named_corners(tiny_dataset):
 
 
 def test_untrained_network_runs_end_to_end(tiny_dataset):
+    """The real network (untrained, seeded) through every step of Detector.detect: crop, network, decode, map
+    back to the frame, naming, the patch pass. With no score threshold the decode keeps top_k junctions, the
+    naming matches some of them, and the frame's detection keeps its contract: named corners are candidates
+    (found in the given region), their covariances symmetric positive definite, their confidences in (0, 1],
+    NaN and zero confidence elsewhere."""
+    from envisat_pose.perception.detect import DetectConfig
+
     torch.manual_seed(0)  # the test's own draw for an untrained model: not a library's
-    det = Detector(CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8)))
+    cfg = DetectConfig(threshold=0.0, patch_threshold=0.0)
+    det = Detector(CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8)), cfg)
     key, image, label = next(read_samples(shard_paths(tiny_dataset)))
-    f = det.detect(image, label["K"], roi_px=np.array([0, 0, 256]))
-    assert f.corners_px.shape == (8, 2) and f.visible.dtype == bool
-    assert np.all(np.isfinite(f.corners_px[f.visible]))
+    roi = np.array([0, 0, 256])
+    f = det.detect(image, label["K"], roi_px=roi)
+    assert f.corners_px.shape == (8, 2) and f.cov_px.shape == (8, 2, 2) and f.visible.dtype == bool
+    assert np.array_equal(f.crop_px, roi)
+    # every junction the decode kept, mapped back inside the region (the patch pass moves one by <= its radius)
+    assert f.candidates_px.shape == (cfg.top_k, 2)
+    margin = cfg.patch_radius_px
+    assert np.all((f.candidates_px >= -margin) & (f.candidates_px <= 256 + margin))
+    # the naming matched some of them (an unmatched chain returns no visible corner at all)
+    vis = f.visible
+    assert vis.sum() >= 3, vis
+    for c in f.corners_px[vis]:  # a named corner is one of the candidates, each used once
+        assert np.sum(np.all(f.candidates_px == c, axis=1)) >= 1
+    assert len(np.unique(f.corners_px[vis], axis=0)) == vis.sum()
+    cov = f.cov_px[vis]
+    assert np.allclose(cov, np.swapaxes(cov, 1, 2)) and np.all(np.linalg.eigvalsh(cov) > 0)
+    assert np.all((f.confidence[vis] > 0) & (f.confidence[vis] <= 1))
+    assert np.all(np.isnan(f.corners_px[~vis])) and np.all(np.isnan(f.cov_px[~vis])) and np.all(f.confidence[~vis] == 0)
+    assert 0.0 <= f.alt_probability <= 1.0
 
 
 class ShiftedOracle(OracleDetector):

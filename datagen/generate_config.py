@@ -1,0 +1,261 @@
+"""The image factory's config (`envisat generate`): GenerateConfig and its four parts, the space camera
+(SensorConfig), the corruption severities (CorruptionConfig), the target's looks (AppearanceConfig) and the
+lighting (LightingConfig); one validated config travels to the shard tasks as JSON (config_json /
+config_from_json)."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from envisat_pose.config import check, from_dict, to_dict
+from envisat_pose.datagen.clearance import project_target_boxes
+from envisat_pose.datagen.labels import DEPTH_MAX_CODE
+
+Severity = Literal["none", "low", "medium", "high", "mixed"]
+Range = tuple[float, float]
+
+
+def _check_range(value: tuple, field_name: str, lo: float, hi: float) -> None:
+    check(lo <= value[0] <= value[1] <= hi, field_name, list(value), f"[low, high] with {lo:g} <= low <= high <= {hi:g}")
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """The space camera (datagen/sensor.py): ranges [low, high] drawn per image, fixed camera properties.
+
+    exposure_s: exposure time, s. full_well_e: full-well capacity, electrons. white_fill: the share of the full
+    well a white (255) clean pixel collects in the exposure (above 1: bright foil saturates and blooms).
+    read_noise_e: read noise, e- RMS. dark_current_e_per_s: dark current, e-/s per pixel. prnu_sigma: pixel
+    gain non-uniformity (fixed pattern, seeded by camera_seed). adc_bits: bit depths to draw from.
+    blooming_decay_px: column spill length of saturated charge. psf: 'gaussian', 'airy' or 'mixed';
+    psf_sigma_px_1024: Gaussian sigma at 1024 px; f_number, wavelength_m, pixel_pitch_m_1024: the Airy
+    optics. vignetting_cos_power: exponent n of cos^n (4: natural vignetting).
+    """
+
+    exposure_s: Range = (0.001, 0.02)
+    full_well_e: Range = (8000.0, 30000.0)
+    white_fill: Range = (0.5, 1.5)
+    read_noise_e: Range = (2.0, 15.0)
+    dark_current_e_per_s: Range = (10.0, 500.0)
+    prnu_sigma: float = 0.01
+    camera_seed: int = 0
+    adc_bits: tuple[int, ...] = (8, 10, 12)
+    blooming_decay_px: Range = (1.0, 6.0)
+    psf: Literal["gaussian", "airy", "mixed"] = "mixed"
+    psf_sigma_px_1024: Range = (0.3, 1.2)
+    f_number: Range = (4.0, 11.0)
+    wavelength_m: float = 550e-9
+    pixel_pitch_m_1024: float = 5.5e-6
+    vignetting_cos_power: Range = (0.0, 4.0)
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        for name, lo, hi in (("exposure_s", 1e-6, 10.0), ("full_well_e", 100.0, 1e7), ("white_fill", 0.0, 100.0),
+                             ("read_noise_e", 0.0, 1e4), ("dark_current_e_per_s", 0.0, 1e6),
+                             ("blooming_decay_px", 0.1, 100.0), ("psf_sigma_px_1024", 0.05, 20.0),
+                             ("f_number", 0.5, 64.0), ("vignetting_cos_power", 0.0, 8.0)):
+            _check_range(getattr(self, name), f"{p}{name}", lo, hi)
+        check(0.0 <= self.prnu_sigma <= 0.2, f"{p}prnu_sigma", self.prnu_sigma, "a gain spread in [0, 0.2]")
+        check(0 <= self.camera_seed < 2**63, f"{p}camera_seed", self.camera_seed, "a non-negative integer seed")
+        check(len(self.adc_bits) >= 1 and all(8 <= b <= 16 for b in self.adc_bits), f"{p}adc_bits",
+              list(self.adc_bits), "one or more bit depths in [8, 16]")
+        check(100e-9 <= self.wavelength_m <= 2e-6, f"{p}wavelength_m", self.wavelength_m, "a wavelength in m")
+        check(0.5e-6 <= self.pixel_pitch_m_1024 <= 1e-4, f"{p}pixel_pitch_m_1024", self.pixel_pitch_m_1024,
+              "a pixel pitch in m")
+
+
+@dataclass(frozen=True)
+class CorruptionConfig:
+    """model 'sensor': the space camera (sensor table); 'paper': the paper's Gaussian noise and blur as
+    severities per kind: none, low, medium, high, or mixed (a level drawn per image)."""
+
+    model: Literal["sensor", "paper"] = "sensor"
+    exposure: Severity = "mixed"
+    motion_blur: Severity = "mixed"
+    gaussian_blur: Severity = "mixed"
+    shot_noise: Severity = "mixed"
+    gaussian_noise: Severity = "mixed"
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+
+    def validate(self, prefix: str = "") -> None:
+        from envisat_pose.datagen.corrupt import KINDS, check_severities
+
+        check_severities(self.model, {k: getattr(self, k) for k in KINDS}, prefix or "corruption")
+
+
+@dataclass(frozen=True)
+class AppearanceConfig:
+    """Per-image materials within each face's covering class (datagen/appearance.py). enabled: None means on
+    in random mode, off in sequence mode. texture_set_size: textures per class. texture_seed: the texture set.
+    seed: the appearance draws' own seed (mixed with each sample's): another seed, other looks, same poses.
+    specular, shininess, reflectance: ranges of MuJoCo's material terms; brightness: multiplier range on each
+    class's base brightness. one_covering: draw every face of the main body in this one covering class (a
+    target whose half-turn about x does not show by its coverings); None: each face its own class."""
+
+    enabled: bool | None = None
+    one_covering: str | None = None
+    texture_set_size: int = 8
+    texture_seed: int = 0
+    seed: int = 0
+    specular: Range = (0.2, 0.9)
+    shininess: Range = (0.2, 0.9)
+    reflectance: Range = (0.0, 0.1)
+    brightness: Range = (0.7, 1.3)
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(1 <= self.texture_set_size <= 64, f"{p}texture_set_size", self.texture_set_size, "1 to 64 textures")
+        for name in ("texture_seed", "seed"):
+            check(0 <= getattr(self, name) < 2**63, f"{p}{name}", getattr(self, name), "a non-negative integer seed")
+        for name in ("specular", "shininess", "reflectance"):
+            _check_range(getattr(self, name), f"{p}{name}", 0.0, 1.0)
+        _check_range(self.brightness, f"{p}brightness", 0.0, 3.0)
+        if self.one_covering is not None:
+            from envisat_pose.datagen.appearance import CLASSES
+
+            check(self.one_covering in CLASSES, f"{p}one_covering", self.one_covering,
+                  f"a covering class ({', '.join(sorted(CLASSES))})")
+
+
+@dataclass(frozen=True)
+class LightingConfig:
+    """sun_intensity: range of the sun light's diffuse intensity (MuJoCo units; 1.2 is the MJCF's).
+    earthshine: a light from the nadir side, intensity = sun x albedo x view_factor x the lit fraction of the
+    Earth's disc seen from the target, (1 - sun . nadir) / 2; none in eclipse (the night side)."""
+
+    sun_intensity: Range = (0.9, 1.6)
+    earthshine: bool = True
+    earth_albedo: Range = (0.25, 0.4)
+    earth_view_factor: float = 0.8
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        _check_range(self.sun_intensity, f"{p}sun_intensity", 0.0, 5.0)
+        _check_range(self.earth_albedo, f"{p}earth_albedo", 0.0, 1.0)
+        check(0.0 <= self.earth_view_factor <= 1.0, f"{p}earth_view_factor", self.earth_view_factor, "in [0, 1]")
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    """What `envisat generate` makes.
+
+    mode: 'random' (domain-randomized views) or 'sequence' (frames of a simulated truth every frame_dt_s).
+    resolution_px: square image side. range_min_m/range_max_m: target range (random mode).
+    max_offset_frac: target centre within this fraction of the half field of view (random mode).
+    sun_dir: unit vector toward the sun, in C (random mode) or N (sequence mode); omitted: drawn from the seed.
+    sun_phase_max_deg: random mode: the sun is drawn uniformly on the cap of directions within this phase angle
+    of the direction from the target to the camera (0: sun behind the camera, 90: side light, 180: any), so most
+    views are lit as an approach would plan them; backlit_probability: share of views whose sun is drawn from
+    the whole sphere instead (backlit and silhouette views stay in the set).
+    eclipse_probability: share of random-mode images in eclipse (sequence mode: Earth's cylindrical shadow).
+    earth_probability: share of random-mode images that look toward the Earth and draw it behind the target
+    (textured, lit by the view's sun; datagen/earth.py); sequence mode: above 0, the Earth is drawn at the
+    orbit's nadir in the frames where it reaches the image. earth_orbit_radius_m: random mode: the chaser's
+    orbit radius range, m (the disc's angular radius is asin(R / r)). earth_seed: the Earth texture set.
+    depth_scale_m: metres per unit of the 16-bit depth PNG.
+    keepout_margin_m: random mode: least distance of the camera from any part of the target, m (views closer,
+    or whose near plane cuts the target, are drawn again from the same generator).
+    rate_max_deg_s: random mode: the relative tumble rate is drawn uniform in [0, this] about a random axis
+    (it sets the space camera's motion blur and goes into the label's x).
+    appendages: draw the ASAR antenna and instrument boxes (mask value 8); None: on in random mode only.
+    storage: 'corrupted' stores the corrupted image; 'clean' stores the clean render, and
+    dataset.sample_image applies the label's corruption on read (the same bytes).
+    """
+
+    mode: Literal["random", "sequence"] = "random"
+    num_images: int = 1000
+    shard_size: int = 100
+    resolution_px: int = 1024
+    seed: int = 0
+    range_min_m: float = 20.0
+    range_max_m: float = 80.0
+    max_offset_frac: float = 0.6
+    sun_dir: tuple[float, float, float] | None = None
+    sun_phase_max_deg: float = 100.0
+    backlit_probability: float = 0.15
+    eclipse_probability: float = 0.05
+    earth_probability: float = 0.3
+    earth_orbit_radius_m: Range = (6978.0e3, 7378.0e3)
+    earth_seed: int = 0
+    shadows: bool = True
+    write_mask: bool = True
+    write_depth: bool = True
+    depth_scale_m: float = 0.002
+    keepout_margin_m: float = 2.0
+    scenario: str = "default"
+    frame_dt_s: float = 1.0
+    rate_max_deg_s: float = 5.0
+    appendages: bool | None = None
+    storage: Literal["clean", "corrupted"] = "corrupted"
+    corruption: CorruptionConfig = field(default_factory=CorruptionConfig)
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
+    lighting: LightingConfig = field(default_factory=LightingConfig)
+
+    @property
+    def appearance_on(self) -> bool:
+        e = self.appearance.enabled
+        return self.mode == "random" if e is None else e
+
+    @property
+    def appendages_on(self) -> bool:
+        return self.mode == "random" if self.appendages is None else self.appendages
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(self.num_images >= 1, f"{p}num_images", self.num_images, "at least 1 image")
+        check(self.shard_size >= 1, f"{p}shard_size", self.shard_size, "at least 1 image per shard")
+        check(16 <= self.resolution_px <= 4096, f"{p}resolution_px", self.resolution_px, "a resolution in [16, 4096] px")
+        check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed below 2^63")
+        reach_m = project_target_boxes().reach_m
+        check(self.range_min_m > reach_m / 2, f"{p}range_min_m", self.range_min_m,
+              f"a range above {reach_m / 2:.1f} m (the camera must stay outside the target)")
+        check(self.range_max_m >= self.range_min_m, f"{p}range_max_m", self.range_max_m,
+              f"a range no shorter than range_min_m = {self.range_min_m}")
+        check(0.0 <= self.max_offset_frac <= 1.0, f"{p}max_offset_frac", self.max_offset_frac, "a fraction in [0, 1]")
+        check(0.0 <= self.sun_phase_max_deg <= 180.0, f"{p}sun_phase_max_deg", self.sun_phase_max_deg,
+              "a phase angle in [0, 180] deg")
+        check(0.0 <= self.backlit_probability <= 1.0, f"{p}backlit_probability", self.backlit_probability,
+              "a probability in [0, 1]")
+        if self.sun_dir is not None:
+            check(np.linalg.norm(self.sun_dir) > 0, f"{p}sun_dir", list(self.sun_dir), "a non-zero vector")
+        for name in ("eclipse_probability", "earth_probability"):
+            value = getattr(self, name)
+            check(0.0 <= value <= 1.0, f"{p}{name}", value, "a probability in [0, 1]")
+        from envisat_pose.datagen.scenario import EARTH_RADIUS_M
+
+        _check_range(self.earth_orbit_radius_m, f"{p}earth_orbit_radius_m", EARTH_RADIUS_M + 100e3, 1e8)
+        check(0 <= self.earth_seed < 2**63, f"{p}earth_seed", self.earth_seed, "a non-negative integer seed")
+        check(self.depth_scale_m > 0, f"{p}depth_scale_m", self.depth_scale_m, "a positive scale in m")
+        if self.mode == "random":
+            reach = self.range_max_m / math.cos(math.radians(30.0)) + reach_m
+            check(DEPTH_MAX_CODE * self.depth_scale_m >= reach, f"{p}depth_scale_m", self.depth_scale_m,
+                  f"a scale whose 16-bit range (65535 x scale) covers {reach:.1f} m, the farthest target point")
+        check(self.keepout_margin_m >= 0, f"{p}keepout_margin_m", self.keepout_margin_m, "a non-negative distance in m")
+        check(self.frame_dt_s > 0, f"{p}frame_dt_s", self.frame_dt_s, "a positive frame interval in s")
+        check(0 <= self.rate_max_deg_s <= 90, f"{p}rate_max_deg_s", self.rate_max_deg_s, "a rate in [0, 90] deg/s")
+        if self.mode == "sequence":
+            from envisat_pose.datagen.scenario import scenario_dict
+
+            scenario_dict(self.scenario)  # unknown names raise ConfigError
+
+    @property
+    def num_shards(self) -> int:
+        return math.ceil(self.num_images / self.shard_size)
+
+    def shard_count(self, index: int) -> int:
+        """Number of samples in shard `index` (the last one may be short)."""
+        return min(self.shard_size, self.num_images - index * self.shard_size)
+
+
+def config_from_json(text: str) -> GenerateConfig:
+    """A GenerateConfig from its JSON text (how tasks travel to workers: plain data, never pickles)."""
+    return from_dict(GenerateConfig, json.loads(text))
+
+
+def config_json(cfg: GenerateConfig) -> str:
+    return json.dumps(to_dict(cfg), sort_keys=True)

@@ -1,0 +1,123 @@
+"""The pipeline of `envisat detect`: named corners of every frame of a dataset (full frames, no label used but the
+intrinsics K), written as the core's Detections contract plus the shard keys and the half-turn alternative.
+
+The glue from the image factory's shards into perception lives here too: `camera_samples` (every sample as the
+camera saw it: a shard stored clean gets its recorded sensor corruption applied on read) and `read_roi` (the
+regions of interest that skip the coarse pass). `envisat calibrate` and `envisat evaluate` read frames the same way.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+from envisat_pose.config import InputError, check
+
+
+@dataclass(frozen=True)
+class DetectJobConfig:
+    """One `envisat detect` job. weights: the detector's weights file; device: torch device ("cpu", "cuda");
+    limit: only the first N frames (None: all); roi: an ROI file (key (M,), roi_px (M, 3)) whose frames skip the
+    coarse pass (None: every frame gets it); refine: refine the named corners on the full-resolution pixels
+    (perception.detect.DetectConfig.refine)."""
+
+    weights: str = ""
+    device: str = "cpu"
+    limit: int | None = None
+    roi: str | None = None
+    refine: bool = False
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(self.device in ("cpu", "cuda"), f"{p}device", self.device, "'cpu' or 'cuda'")
+        check(self.limit is None or self.limit >= 1, f"{p}limit", self.limit, "at least 1 frame (or unset: all)")
+
+
+def camera_samples(paths: list[str]):
+    """(key, image, label) of every sample as the camera saw it: a shard stored clean (`image_stored` 'clean')
+    gets its label's recorded sensor corruption applied on read (datagen's space camera, deterministic)."""
+    from envisat_pose.datagen.corrupt import apply_corruption
+    from envisat_pose.perception.data import read_samples
+
+    for key, image, label in read_samples(paths):
+        if label.get("image_stored") == "clean":
+            image = apply_corruption(image, label["corruption"])
+        yield key, image, label
+
+
+def read_roi(path: str) -> dict[str, "object"]:
+    """{key: roi_px (3,) int} from an ROI file (npz of key (M,) str and roi_px (M, 3) finite, side > 0);
+    InputError naming the file and the problem otherwise. Loaded without pickle."""
+    import os
+
+    import numpy as np
+
+    if not os.path.isfile(path):
+        raise InputError(f"--roi {path!r}: no such file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            keys, roi = z["key"].astype(str), np.asarray(z["roi_px"], dtype=np.float64)
+    except (KeyError, ValueError, OSError) as err:
+        raise InputError(f"--roi {path!r}: expected an npz with key (M,) and roi_px (M, 3) ({err})") from None
+    if roi.shape != (len(keys), 3) or not np.all(np.isfinite(roi)) or np.any(roi[:, 2] <= 0):
+        raise InputError(f"--roi {path!r}: roi_px has shape {roi.shape}, expected ({len(keys)}, 3) finite with "
+                         "side > 0")
+    return {k: np.round(r).astype(np.int64) for k, r in zip(keys.tolist(), roi)}
+
+
+def detect_dataset(cfg: DetectJobConfig, data: str, progress: bool = False) -> dict:
+    """Named corners of every frame of the dataset folder `data` (its shards): the arrays of det.npz (the
+    Detections contract's, key, alt_corners_px, alt_probability, ambiguous; config_json a str), checked against
+    the contract. InputError when the folder holds no frames."""
+    import numpy as np
+    from tqdm import tqdm
+
+    from envisat_pose.contracts import Detections
+    from envisat_pose.perception.data import shard_paths
+    from envisat_pose.perception.detect import load_detector
+
+    paths = shard_paths(data)
+    rois = read_roi(cfg.roi) if cfg.roi else {}
+    det = load_detector(cfg.weights, device=cfg.device)
+    if cfg.refine:
+        import dataclasses
+
+        det.cfg = dataclasses.replace(det.cfg, refine=True)
+    rows = {k: [] for k in ("key", "t_s", "corners_px", "cov_px", "confidence", "visible", "alt_corners_px",
+                            "alt_probability", "ambiguous")}
+    bar = tqdm(disable=not progress, desc="detect", unit="frame")
+    for i, (key, image, label) in enumerate(camera_samples(paths)):
+        if cfg.limit is not None and i >= cfg.limit:
+            break
+        # the label's intrinsics only: positions come from the image
+        f = det.detect(image, label["K"], roi_px=rois.get(key))
+        rows["key"].append(key)
+        rows["t_s"].append(float(label.get("t_s", i)))
+        for name in ("corners_px", "cov_px", "confidence", "visible", "alt_corners_px", "alt_probability",
+                     "ambiguous"):
+            rows[name].append(getattr(f, name))
+        bar.update(1)
+    bar.close()
+    if not rows["key"]:
+        raise InputError(f"--data {data!r}: no frames")
+    config = {"weights": cfg.weights, "data": data, "model": det.model.cfg.to_dict(),
+              "cov_scale": det.cfg.cov_scale, "roi": cfg.roi, "refine": bool(cfg.refine)}
+    arrays = {k: np.array(v) for k, v in rows.items()}
+    arrays["key"] = arrays["key"].astype(str)
+    arrays["config_json"] = json.dumps(config, sort_keys=True)
+    Detections.validated(arrays, "det.npz")  # the contract's checks before anything is written
+    return arrays
+
+
+def run_detect(cfg: DetectJobConfig, data: str, out: str, progress: bool = False) -> dict:
+    """The whole job: detect_dataset, then det.npz written atomically at out (the caller checks out is writable
+    before any work). Returns det.npz's arrays."""
+    import numpy as np
+
+    from envisat_pose.contracts import Detections
+    from envisat_pose.io import save_npz
+
+    arrays = detect_dataset(cfg, data, progress)
+    Detections.validated(arrays, out)
+    save_npz(out, {**arrays, "config_json": np.array(arrays["config_json"])})
+    return arrays
