@@ -35,10 +35,8 @@ PENDING = {
     "state_slices": {},
     "manifest_writers": {},
     "hand_resolved_configs": {},
-    # the tracker's batch-fit gate and its fallback gate, typed as 23.0 (the lead switches them to gates.chi2_gate)
     "physics_builders": {},
-    "typed_gates": {os.path.join("envisat_pose", "pipelines", "tracker.py"),
-                    os.path.join("envisat_pose", "pipelines", "acquisition.py")},
+    "typed_gates": {},
 }
 
 

@@ -197,14 +197,16 @@ class BatchFit:
 
 
 def batch_fit(frames: list[FramePose], x_guess: np.ndarray, chaser_at, camera: PinholeCamera, dyn: dict,
-              iterations: int = 15, huber: float = 3.0, gate: float = 23.0) -> BatchFit:
+              iterations: int = 15, huber: float = 3.0, gate: float | None = None) -> BatchFit:
     """Gauss-Newton / Levenberg-Marquardt fit of the state at the last frame (module docstring, 3).
 
     chaser_at(t_s) -> (4,) the chaser's polar orbit; dyn: J_T, mu_m3_s2, gravity_gradient, max_step_s; huber:
     the whitened residual norm per corner beyond which a corner is down-weighted; gate: chi-square bound per
-    corner beyond which it is dropped after the first iterations."""
+    corner beyond which it is dropped after the first iterations (None: gates.chi2_gate(GATE_PROB, 2))."""
     from envisat_pose.filtering.measurements import measure
+    from envisat_pose.gates import GATE_PROB, chi2_gate
 
+    gate = chi2_gate(GATE_PROB, 2) if gate is None else float(gate)
     times = np.array([f.t_s for f in frames])
     t_end = float(times[-1])
     z = np.stack([f.z_px for f in frames])  # (N, 8, 2)

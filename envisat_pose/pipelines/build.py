@@ -81,7 +81,7 @@ def chaser_from_orbit(orbit=None, scenario: str = "default"):
     Keplerian elements (datagen's OrbitConfig, or a dict of its fields; None: the named scenario's orbit)."""
     from envisat_pose.config import from_dict
     from envisat_pose.datagen.scenario import OrbitConfig
-    from envisat_pose.pipelines.closed_loop import chaser_function
+    from envisat_pose.pipelines.onboard import chaser_function
 
     if orbit is None:
         orbit = scenario_orbit(scenario)
@@ -96,12 +96,17 @@ def tracker_from_scenario(scenario: str = "default", weights: str | None = None,
     (gravity gradient, mu) from the scenario, the detector of `weights` (None: shipped), `camera` (None: the
     MJCF's chaser_cam, at size_px = (width, height) when given), TrackerConfig `config` (None: defaults), the
     tracker's filter settings with `filter_config`'s fields over them (tracker_filter)."""
+    from types import SimpleNamespace
+
+    from envisat_pose.config import to_dict
     from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.pipelines.onboard import onboard_physics
     from envisat_pose.pipelines.tracker import Tracker, TrackerConfig
 
     scen = scenario_config(scenario)
+    physics = onboard_physics(SimpleNamespace(config=to_dict(scen)), f"scenario {scenario!r}")
     return Tracker(camera if camera is not None else load_camera(size_px=size_px), load_detector(weights),
                    chaser_from_orbit(scen.orbit), config or TrackerConfig(),
                    dataclasses.asdict(tracker_filter(filter_config, scenario)),
-                   mu_m3_s2=scen.orbit.mu_m3_s2, gravity_gradient=bool(scen.target.gravity_gradient))
+                   mu_m3_s2=physics.mu_m3_s2, gravity_gradient=physics.gravity_gradient)
 

@@ -25,20 +25,11 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from functools import lru_cache
-
 import numpy as np
 
+from envisat_pose.gates import chi2_bound
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.state import MRP, POS, RATE, VEL
-
-
-@lru_cache(maxsize=256)
-def chi2_bound(prob: float, dof: int) -> float:
-    """The chi-square quantile a sum of dof squared standard normals exceeds with probability prob."""
-    from scipy.stats import chi2
-
-    return float(chi2.isf(prob, dof))
 
 
 def pose_sigmas(cov: np.ndarray) -> tuple[float, float]:

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envisat_pose.config import check
+from envisat_pose.gates import GATE_PROB, chi2_gate
 from envisat_pose.pipelines.noise import CORRELATION_IN, CORRELATION_MODELS
 
 # the covariance reported while acquiring (no filter yet): position m, velocity m/s, MRP, rate rad/s (1-sigma)
@@ -30,7 +31,8 @@ class TrackerConfig:
     log-likelihood is divided by it): the detector's half-turn errors repeat from frame to frame while the view
     changes little (measured: on a default-scenario sequence it preferred the wrong half-turn at 0.6-0.98 in 16
     of 20 consecutive frames), so summing them as independent would let one look outvote the dynamics.
-    fit_iterations, fit_huber (whitened px), fit_gate (chi-square per corner): the batch fit.
+    fit_iterations, fit_huber (whitened px), fit_gate_prob (the probability a corner's 2-dof chi-square passes
+    the fit's gate; `fit_gate` the bound): the batch fit.
     roi: look only in the predicted region of interest once converged; roi_margin: its side over the predicted
     corners' extent (plus 6 x the prior's pixel sigma); roi_min_side_px; roi_min_corners: fewer corners found
     there and the coarse pass runs again. converged_pos_sigma_m / converged_att_sigma_deg: the prior counts as
@@ -76,7 +78,7 @@ class TrackerConfig:
     appearance_frames: float = 10.0
     fit_iterations: int = 15
     fit_huber: float = 3.0
-    fit_gate: float = 23.0
+    fit_gate_prob: float = GATE_PROB
     roi: bool = True
     roi_margin: float = 1.4
     roi_min_side_px: int = 64
@@ -102,6 +104,11 @@ class TrackerConfig:
     max_rate_deg_s: float = 30.0
     max_speed_m_s: float = 5.0
 
+    @property
+    def fit_gate(self) -> float:
+        """The batch fit's chi-square gate per corner (2 dof) at fit_gate_prob (23.03 at the default)."""
+        return chi2_gate(self.fit_gate_prob, 2)
+
     def validate(self, prefix: str = "tracker") -> None:
         p = f"{prefix}." if prefix else ""
         check(self.acquire_frames >= 3, f"{p}acquire_frames", self.acquire_frames, "at least 3 frames")
@@ -112,7 +119,7 @@ class TrackerConfig:
         check(self.appearance_frames >= 1.0, f"{p}appearance_frames", self.appearance_frames, "at least 1 frame")
         check(self.fit_iterations >= 1, f"{p}fit_iterations", self.fit_iterations, "at least 1")
         check(self.fit_huber > 0, f"{p}fit_huber", self.fit_huber, "a positive whitened residual")
-        check(self.fit_gate > 0, f"{p}fit_gate", self.fit_gate, "a positive chi-square bound")
+        check(0.5 < self.fit_gate_prob < 1.0, f"{p}fit_gate_prob", self.fit_gate_prob, "a probability in (0.5, 1)")
         check(self.roi_margin >= 1.0, f"{p}roi_margin", self.roi_margin, "a factor >= 1")
         check(16 <= self.roi_min_side_px <= 4096, f"{p}roi_min_side_px", self.roi_min_side_px, "a side in [16, 4096] px")
         check(1 <= self.roi_min_corners <= 8, f"{p}roi_min_corners", self.roi_min_corners, "1 to 8 corners")
