@@ -26,6 +26,7 @@ import json
 import os
 
 from envisat_pose.config import InputError
+from envisat_pose.provenance import dataset_ref
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -195,7 +196,8 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     bar.close()
     flat = [flat_errors(f, True if args.refine else None) for _, f in per_data]
     err, cov, groups = (np.concatenate([f[i] for f in flat]) for i in range(3))
-    data_names = " ".join(os.path.abspath(d) for d in args.data)
+    # named by folder and manifest sha256, not by a path of this machine (the record travels with the weights)
+    data_names = " ".join(dataset_ref(d) for d in args.data)
     if len(err) < 20:
         raise InputError(f"--data {data_names!r}: only {len(err)} correctly named corners; calibration needs more "
                          "held-out frames (at least 20 corners)")
@@ -287,8 +289,8 @@ def fit_face_cue_cli(args: argparse.Namespace, paths: dict) -> int:
         cue, record = fc.fit_and_temper(fit, held)
     except ValueError as err:
         raise InputError(f"--data: {err}") from None
-    record["data"] = " ".join(os.path.abspath(d) for d in args.data)
-    record["held_out"] = " ".join(os.path.abspath(d) for d in held_paths) or "the odd frames of data"
+    record["data"] = " ".join(dataset_ref(d) for d in args.data)
+    record["held_out"] = " ".join(dataset_ref(d) for d in held_paths) or "the odd frames of data"
     with_metadata(args.weights, args.out, {"face_cue": cue.to_json(),
                                            "face_cue_record": json.dumps(record, sort_keys=True)})
     print(f"face cue: {record['fit_regions']} regions fitted; on {record['held_out_frames_with_a_face']} held-out "
