@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -260,12 +261,21 @@ def refresh(a) -> int:
 
 
 def command_for(dataset: dict, commands: list[str]) -> str | None:
-    """The card's recorded `envisat generate` line that made an old dataset record (by its seed), scrubbed."""
+    """The card's recorded `envisat generate` line that made an old dataset record (by its seed), scrubbed: a
+    line that starts with it, else the generate command quoted in a line's comment, else a line that names the
+    seed as '(and N)' with its seed replaced."""
     seed = dataset.get("seed")
-    for line in commands:
-        if "envisat generate" in line and (f"--seed {seed} " in line + " " or f"seed = {seed}," in line
-                                           or f"seed = {seed}" in line.split("#", 1)[-1]):
-            return scrub_paths(line).strip()
+    lines = [scrub_paths(c).strip() for c in commands]
+    for c in lines:
+        if c.startswith("envisat generate") and (f"--seed {seed} " in c + " " or f"seed = {seed}," in c):
+            return c
+    for c in lines:
+        i = c.find("envisat generate", 1)
+        if i > 0 and f"--seed {seed} " in c[i:] + " ":
+            return c[i:].rstrip(")")
+    for c in lines:
+        if c.startswith("envisat generate") and f"(and {seed})" in c:
+            return re.sub(r"--seed \d+", f"--seed {seed}", c.split("#", 1)[0]).strip() + f"  # as recorded: {c}"
     return None
 
 
