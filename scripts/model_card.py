@@ -275,7 +275,9 @@ def command_for(dataset: dict, commands: list[str]) -> str | None:
             return c[i:].rstrip(")")
     for c in lines:
         if c.startswith("envisat generate") and f"(and {seed})" in c:
-            return re.sub(r"--seed \d+", f"--seed {seed}", c.split("#", 1)[0]).strip() + f"  # as recorded: {c}"
+            cmd = c.split("#", 1)[0]
+            recorded = re.search(r"--seed (\d+)", cmd).group(1)
+            return re.sub(recorded, str(seed), cmd).strip() + f"  # as recorded: {c}"
     return None
 
 
