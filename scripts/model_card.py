@@ -204,6 +204,18 @@ def weights_record(path: str) -> dict:
     return out
 
 
+def external_runs(path: str) -> list[dict]:
+    """Training legs run outside `envisat train` (e.g. a harness on a borrowed GPU): a JSON list of records, each
+    with at least its command, the git hash of the code it ran, its device and wall_time_s; kept as given, its
+    paths scrubbed."""
+    runs = json.load(open(path, encoding="utf-8"))
+    for r in runs:
+        for key in ("command", "git", "device", "wall_time_s"):
+            if key not in r:
+                raise Refused(f"refused: {path}: a run without {key!r} (expected command, git, device, wall_time_s)")
+    return scrub(runs)
+
+
 def evaluation_record(e: dict) -> dict:
     data = e.get("data")
     name = dataset_ref(data) if data and os.path.isdir(data) else scrub(data)
@@ -237,6 +249,10 @@ def refresh(a) -> int:
     idle = idle_seconds(a.idle)
     for r in a.runs or []:  # new training legs
         card.setdefault("training_runs", []).append(run_record(r, idle.get(os.path.abspath(r), 0.0)))
+    for path in a.external_runs or []:  # legs trained outside `envisat train`, as their own record says
+        card.setdefault("training_runs", []).extend(external_runs(path))
+    if a.hardware:
+        card["hardware"] = a.hardware
     card["training_time_s"] = training_time_s(card.get("training_runs", []))
     known = {(d.get("name"), d.get("manifest_sha256")) for d in card.get("datasets", [])}
     for d in a.datasets or []:
@@ -326,6 +342,9 @@ def main() -> int:
     p.add_argument("--commands", help="text file: the commands that made the datasets, the calibration, the card")
     p.add_argument("--idle", nargs="*", default=[], metavar="RUN_DIR=SECONDS",
                    help="time a run stood stopped before it was resumed, left out of its wall time")
+    p.add_argument("--external-runs", nargs="+", metavar="RUNS.json",
+                   help="--refresh: training legs run outside `envisat train` (a JSON list: command, git, device, "
+                   "wall_time_s, ...)")
     p.add_argument("--hardware")
     p.add_argument("--out", required=True)
     a = p.parse_args()

@@ -63,7 +63,8 @@ def test_the_card_names_its_data_and_its_code():
     for d in card["datasets"]:
         assert "path" not in d and d["name"]
         assert d["manifest_sha256"] is None or re.fullmatch(r"[0-9a-f]{64}", d["manifest_sha256"])
-    assert all(r["command"].startswith("envisat train") and r["git"] for r in card["training_runs"])
+    assert all((r["command"].startswith("envisat train") or r.get("harness")) and r["git"]
+               for r in card["training_runs"])
 
 
 def test_paths_found_and_relative_names():

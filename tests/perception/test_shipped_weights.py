@@ -61,7 +61,10 @@ def test_the_card_lies_beside_the_weights():
     from envisat_pose.io import sha256_file
 
     assert card["weights"]["sha256"] == sha256_file(path)
-    assert card["training_runs"] and all(r["command"].startswith("envisat train") for r in card["training_runs"])
+    # every leg by its command and git hash: `envisat train`, or a harness over the project's pipeline (the GPU legs)
+    assert card["training_runs"] and all(r["command"].startswith("envisat train") or r.get("harness")
+                                         for r in card["training_runs"])
+    assert all(r["git"] for r in card["training_runs"])
 
 
 def test_localization_and_naming(scored):
