@@ -15,6 +15,11 @@ hash, torch), state.json (the steps done) and metrics.jsonl (the last epoch's lo
 (seed, size, config); the weights file (sha256, size, cov_scale and its calibration record); and `envisat
 evaluate`'s JSON per held-out set (the metrics).
 `--commands` adds the lines that made the datasets and the calibration, as they were typed.
+
+The card travels: it names a dataset by its folder's name, the generate command its manifest implies and the
+sha256 of that manifest; a run by its command and git hash; no absolute path of the machine anywhere (a card that
+would hold one is refused, as is a card written from a tree with uncommitted changes: its git hash would not name
+the code). `--scrub CARD.json` rewrites an older card's history without paths.
 """
 
 from __future__ import annotations
@@ -22,12 +27,59 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
+import subprocess
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from envisat_pose.io import atomic_write_text, sha256_file  # noqa: E402
 from envisat_pose.perception.weights import read_metadata  # noqa: E402
+from envisat_pose.provenance import (dataset_ref, find_absolute_paths, manifest_sha256,  # noqa: E402
+                                     relative_name, scrub_paths)
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+class Refused(Exception):
+    """A card that would not travel or not name its code: one line saying why."""
+
+
+def git_state(repo: str = REPO) -> tuple[str, list[str]]:
+    """(HEAD hash, the lines of `git status --porcelain`: empty for a clean tree)."""
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, check=True)
+    st = subprocess.run(["git", "status", "--porcelain"], cwd=repo, capture_output=True, text=True, check=True)
+    return head.stdout.strip(), [line for line in st.stdout.splitlines() if line.strip()]
+
+
+def require_clean_tree(repo: str = REPO) -> str:
+    """The HEAD hash, or Refused when the tree has uncommitted changes."""
+    head, dirty = git_state(repo)
+    if dirty:
+        raise Refused(f"refused: the tree has {len(dirty)} uncommitted change(s) (git status --porcelain: "
+                      f"{dirty[0].strip()}{' ...' if len(dirty) > 1 else ''}); commit first, so that the card's "
+                      "git hash names the code that made it")
+    return head
+
+
+def scrub(x):
+    """Every string in a JSON value with its absolute machine paths replaced by relative names."""
+    if isinstance(x, str):
+        return scrub_paths(x)
+    if isinstance(x, list):
+        return [scrub(v) for v in x]
+    if isinstance(x, dict):
+        return {k: scrub(v) for k, v in x.items()}
+    return x
+
+
+def card_text(card: dict) -> str:
+    """The card's JSON, or Refused when an absolute machine path is left in it."""
+    text = json.dumps(card, indent=1, sort_keys=False, allow_nan=False, default=lambda x: None) + "\n"
+    left = find_absolute_paths(text)
+    if left:
+        raise Refused(f"refused: the card would hold {len(left)} absolute machine path(s), e.g. {left[0]!r}")
+    return text
 
 
 def run_record(run_dir: str, idle_s: float = 0.0) -> dict:
@@ -38,24 +90,62 @@ def run_record(run_dir: str, idle_s: float = 0.0) -> dict:
     last = rows[-1] if rows else {}
     state = json.load(open(os.path.join(run_dir, "state.json"), encoding="utf-8"))
     stopped = state["step"] < cfg["train"]["steps"]
-    return {"command": cfg.get("command"), "git": cfg.get("git"), "torch": cfg.get("torch"),
-            "device": cfg.get("device"), "init": cfg.get("init"), "steps_done": state["step"],
+    return {"command": scrub(cfg.get("command")), "git": cfg.get("git"), "torch": cfg.get("torch"),
+            "device": cfg.get("device"), "init": scrub(cfg.get("init")), "steps_done": state["step"],
             "stopped_early": stopped, "weights_used": "checkpoint.safetensors at step %d" % state["step"],
             # from the run folder's creation (config.json) to its last checkpoint
             "wall_time_s": round(os.path.getmtime(os.path.join(run_dir, "checkpoint.safetensors"))
                                  - os.path.getmtime(os.path.join(run_dir, "config.json")) - idle_s, 1),
             "idle_s_excluded": idle_s,
             "last_epoch_losses": {k: last[k] for k in ("loss", "heatmap", "offset", "line", "nll") if k in last},
-            "train_config": cfg.get("train")}
+            "train_config": scrub(cfg.get("train"))}
+
+
+def generate_command(config: dict, name: str) -> str:
+    """The `envisat generate` line a manifest's config implies: its flags, and the keys that differ from the
+    default config as the TOML (--config) lines that set them."""
+    from envisat_pose.config import to_dict
+    from envisat_pose.datagen.factory import GenerateConfig
+
+    default = to_dict(GenerateConfig())
+    line = ["envisat generate"]
+    if config.get("mode") != default["mode"]:
+        line.append(f"--mode {config.get('mode')}")
+    if config.get("mode") == "sequence":
+        line.append(f"--scenario {config.get('scenario')}")
+    line.append(f"--num-images {config.get('num_images')} --seed {config.get('seed')}")
+    if config.get("resolution_px") != default["resolution_px"]:
+        line.append(f"--resolution {config.get('resolution_px')}")
+    flags = {"mode", "scenario", "num_images", "seed", "resolution_px", "shard_size"}
+
+    def diff(cur: dict, ref: dict, prefix: str) -> list[str]:
+        out = []
+        for k in sorted(set(cur) | set(ref)):
+            if not prefix and k in flags:
+                continue
+            a, b = cur.get(k), ref.get(k)
+            if isinstance(a, dict) and isinstance(b, dict):
+                out += diff(a, b, f"{prefix}{k}.")
+            elif a != b:
+                out.append(f"{prefix}{k} = {json.dumps(a)}")
+        return out
+
+    keys = diff(config, default, "")
+    if keys:
+        line.append("--config CONFIG.toml  # CONFIG.toml: " + "; ".join(keys))
+    return " ".join(line)
 
 
 def dataset_record(path: str) -> dict:
     man = json.load(open(os.path.join(path, "manifest.json"), encoding="utf-8"))
     c = man.get("config", {})
     n = sum(int(s.get("count", 0)) for s in man.get("shards", []))
-    return {"path": os.path.abspath(path), "images": n, "seed": c.get("seed"),
-            "resolution_px": c.get("resolution_px"), "mode": c.get("mode"), "storage": c.get("storage"),
-            "corruption_model": c.get("corruption", {}).get("model")}
+    name = os.path.basename(os.path.normpath(path))
+    return {"name": name, "manifest_sha256": manifest_sha256(path), "generate": generate_command(c, name),
+            "images": n, "seed": c.get("seed"), "resolution_px": c.get("resolution_px"), "mode": c.get("mode"),
+            "scenario": c.get("scenario") if c.get("mode") == "sequence" else None, "storage": c.get("storage"),
+            "corruption_model": c.get("corruption", {}).get("model"),
+            "earth_probability": c.get("earth_probability")}
 
 
 def headline(evaluation: dict) -> dict:
@@ -114,8 +204,22 @@ def weights_record(path: str) -> dict:
     return out
 
 
+def external_runs(path: str) -> list[dict]:
+    """Training legs run outside `envisat train` (e.g. a harness on a borrowed GPU): a JSON list of records, each
+    with at least its command, the git hash of the code it ran, its device and wall_time_s; kept as given, its
+    paths scrubbed."""
+    runs = json.load(open(path, encoding="utf-8"))
+    for r in runs:
+        for key in ("command", "git", "device", "wall_time_s"):
+            if key not in r:
+                raise Refused(f"refused: {path}: a run without {key!r} (expected command, git, device, wall_time_s)")
+    return scrub(runs)
+
+
 def evaluation_record(e: dict) -> dict:
-    return {"data": e.get("data"), "frames": e.get("frames"), "roi": e.get("roi"),
+    data = e.get("data")
+    name = dataset_ref(data) if data and os.path.isdir(data) else scrub(data)
+    return {"data": name, "weights": scrub(e.get("weights")), "frames": e.get("frames"), "roi": scrub(e.get("roi")),
             "detect_config": e.get("detect_config"), "metrics": headline(e)}
 
 
@@ -145,10 +249,16 @@ def refresh(a) -> int:
     idle = idle_seconds(a.idle)
     for r in a.runs or []:  # new training legs
         card.setdefault("training_runs", []).append(run_record(r, idle.get(os.path.abspath(r), 0.0)))
+    for path in a.external_runs or []:  # legs trained outside `envisat train`, as their own record says
+        card.setdefault("training_runs", []).extend(external_runs(path))
+    if a.hardware:
+        card["hardware"] = a.hardware
     card["training_time_s"] = training_time_s(card.get("training_runs", []))
-    known = {d["path"] for d in card.get("datasets", [])}
-    card.setdefault("datasets", []).extend(dataset_record(d) for d in a.datasets or []
-                                           if os.path.abspath(d) not in known)
+    known = {(d.get("name"), d.get("manifest_sha256")) for d in card.get("datasets", [])}
+    for d in a.datasets or []:
+        rec = dataset_record(d)
+        if (rec["name"], rec["manifest_sha256"]) not in known:
+            card.setdefault("datasets", []).append(rec)
     for item in a.evaluation or []:
         name, _, path = item.partition("=")
         card.setdefault("evaluations", {})[name] = evaluation_record(json.load(open(path, encoding="utf-8")))
@@ -158,17 +268,70 @@ def refresh(a) -> int:
         card.setdefault("error_model_measurements", {})[name] = {
             "error_model": json.loads(meta["error_model"]), "record": json.loads(meta["error_model_record"])}
     if a.commands:
-        card.setdefault("commands", []).extend(open(a.commands, encoding="utf-8").read().strip().splitlines())
-    atomic_write_text(a.out, json.dumps(card, indent=1, sort_keys=False, allow_nan=False,
-                                        default=lambda x: None) + "\n")
+        card.setdefault("commands", []).extend(
+            scrub(open(a.commands, encoding="utf-8").read().strip().splitlines()))
+    card["card_git"] = a.git
+    atomic_write_text(a.out, card_text(card))
+    print(f"wrote {a.out}")
+    return 0
+
+
+def command_for(dataset: dict, commands: list[str]) -> str | None:
+    """The card's recorded `envisat generate` line that made an old dataset record (by its seed), scrubbed: a
+    line that starts with it, else the generate command quoted in a line's comment, else a line that names the
+    seed as '(and N)' with its seed replaced."""
+    seed = dataset.get("seed")
+    lines = [scrub_paths(c).strip() for c in commands]
+    for c in lines:
+        if c.startswith("envisat generate") and (f"--seed {seed} " in c + " " or f"seed = {seed}," in c):
+            return c
+    for c in lines:
+        i = c.find("envisat generate", 1)
+        if i > 0 and f"--seed {seed} " in c[i:] + " ":
+            return c[i:].rstrip(")")
+    for c in lines:
+        if c.startswith("envisat generate") and f"(and {seed})" in c:
+            cmd = c.split("#", 1)[0]
+            recorded = re.search(r"--seed (\d+)", cmd).group(1)
+            return re.sub(recorded, str(seed), cmd).strip() + f"  # as recorded: {c}"
+    return None
+
+
+def scrub_card(a) -> int:
+    """--scrub: an older card rewritten without machine paths: its datasets named (with the generate line the
+    card recorded for them; the manifests' sha256 were not recorded then), every string scrubbed; with --weights,
+    the weights' metadata scrubbed the same way (the tensors untouched) and the card's weights entry rewritten."""
+    card = json.load(open(a.scrub, encoding="utf-8"))
+    commands = card.get("commands", [])
+    datasets = []
+    for d in card.get("datasets", []):
+        if "path" in d:
+            d = dict(d)
+            path = d.pop("path")
+            d = {"name": relative_name(path), "manifest_sha256": d.pop("manifest_sha256", None),
+                 "generate": command_for(d, commands), **d}
+            if d["manifest_sha256"] is None:
+                d["manifest_sha256_note"] = "not recorded when this dataset was made (before the card travelled)"
+        datasets.append(d)
+    card["datasets"] = datasets
+    if a.weights:  # the weights' metadata scrubbed too (the tensors untouched), and the card's entry rewritten
+        from envisat_pose.perception.weights import with_metadata
+
+        meta = read_metadata(a.weights)
+        with_metadata(a.weights, a.weights, {k: scrub_paths(v) for k, v in meta.items() if scrub_paths(v) != v})
+        card["weights"] = weights_record(a.weights)
+    card = scrub(card)
+    card["card_git"] = a.git
+    atomic_write_text(a.out, card_text(card))
     print(f"wrote {a.out}")
     return 0
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--weights", required=True)
+    p.add_argument("--weights")
     p.add_argument("--refresh", metavar="CARD.json", help="update this card instead of writing one from the runs")
+    p.add_argument("--scrub", metavar="CARD.json", help="rewrite this older card without machine paths")
     p.add_argument("--runs", nargs="+")
     p.add_argument("--datasets", nargs="+")
     p.add_argument("--evaluation", nargs="+", metavar="NAME=EVAL.json",
@@ -179,11 +342,27 @@ def main() -> int:
     p.add_argument("--commands", help="text file: the commands that made the datasets, the calibration, the card")
     p.add_argument("--idle", nargs="*", default=[], metavar="RUN_DIR=SECONDS",
                    help="time a run stood stopped before it was resumed, left out of its wall time")
+    p.add_argument("--external-runs", nargs="+", metavar="RUNS.json",
+                   help="--refresh: training legs run outside `envisat train` (a JSON list: command, git, device, "
+                   "wall_time_s, ...)")
     p.add_argument("--hardware")
     p.add_argument("--out", required=True)
     a = p.parse_args()
-    if a.refresh:
-        return refresh(a)
+    try:
+        a.git = require_clean_tree()
+        if a.scrub:
+            return scrub_card(a)
+        if not a.weights:
+            p.error("--weights is required")
+        if a.refresh:
+            return refresh(a)
+        return write_card(a, p)
+    except Refused as err:
+        print(f"model_card: {err}", file=sys.stderr)
+        return 2
+
+
+def write_card(a, p) -> int:
     for name in ("runs", "datasets", "evaluation", "hardware"):
         if not getattr(a, name):
             p.error(f"--{name} is required without --refresh")
@@ -197,12 +376,12 @@ def main() -> int:
         "hardware": a.hardware,
         "training_runs": [run_record(r, idle.get(os.path.abspath(r), 0.0)) for r in a.runs],
         "datasets": [dataset_record(d) for d in a.datasets],
-        "commands": open(a.commands, encoding="utf-8").read().strip().splitlines() if a.commands else [],
+        "commands": scrub(open(a.commands, encoding="utf-8").read().strip().splitlines()) if a.commands else [],
         "evaluations": {name: evaluation_record(e) for name, e in evaluations.items()},
+        "card_git": a.git,
     }
     card["training_time_s"] = training_time_s(card["training_runs"])
-    atomic_write_text(a.out, json.dumps(card, indent=1, sort_keys=False, allow_nan=False,
-                                        default=lambda x: None) + "\n")
+    atomic_write_text(a.out, card_text(card))
     print(f"wrote {a.out}")
     return 0
 

@@ -20,6 +20,7 @@ import os
 from dataclasses import dataclass
 
 from envisat_pose.config import InputError, check
+from envisat_pose.provenance import dataset_ref
 
 
 @dataclass(frozen=True)
@@ -162,7 +163,8 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
     bar.close()
     flat = [flat_errors(f, True if cfg.refine else None) for _, f in per_data]
     err, cov, groups = (np.concatenate([f[i] for f in flat]) for i in range(3))
-    data_names = " ".join(os.path.abspath(d) for d in data)
+    # named by folder and manifest sha256, not by a path of this machine (the record travels with the weights)
+    data_names = " ".join(dataset_ref(d) for d in data)
     if len(err) < 20:
         raise InputError(f"--data {data_names!r}: only {len(err)} correctly named corners; calibration needs more "
                          "held-out frames (at least 20 corners)")
@@ -238,7 +240,7 @@ def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, l
         cue, record = fc.fit_and_temper(fit, held)
     except ValueError as err:
         raise InputError(f"--data: {err}") from None
-    record["data"] = " ".join(os.path.abspath(d) for d in data)
-    record["held_out"] = " ".join(os.path.abspath(d) for d in held_paths) or "the odd frames of data"
+    record["data"] = " ".join(dataset_ref(d) for d in data)
+    record["held_out"] = " ".join(dataset_ref(d) for d in held_paths) or "the odd frames of data"
     with_metadata(weights, out, {"face_cue": cue.to_json(), "face_cue_record": json.dumps(record, sort_keys=True)})
     return record

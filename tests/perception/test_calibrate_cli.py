@@ -1,6 +1,7 @@
 """`envisat calibrate`: the scale fitted from held-out frames, written into the weights' metadata and read back
 by load_detector; too few correctly named corners is a one-line error."""
 
+import hashlib
 import json
 
 import numpy as np
@@ -112,6 +113,10 @@ def test_sequence_error_model_written_and_loaded(tmp_path, monkeypatch, capsys):
     assert meta["cov_scale"] == "1.5"  # kept
     model = load_detector(str(out)).error_model
     assert model.n_frames == 12 and "roi=labels" in model.source
+    # the data named by its folder and its manifest's sha256, never by a path of this machine
+    manifest = hashlib.sha256((seq / "manifest.json").read_bytes()).hexdigest()
+    assert f"seq (manifest sha256 {manifest[:16]})" in model.source
+    assert not any(str(tmp_path) in v for v in meta.values())
     usable = [s[2]["visible"] & s[2]["in_frame"] for s in samples]
     framed = sum(int(u.sum() >= 3) for u in usable)
     record = json.loads(meta["error_model_record"])
