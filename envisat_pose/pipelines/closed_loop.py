@@ -24,6 +24,7 @@ image.resolution_px: the MJCF's chaser_cam read out at that size (the same field
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
