@@ -1,6 +1,6 @@
-"""Training samples streamed from the factory's shards (webdataset), cropped around the target and style-augmented.
+"""Training samples streamed from the factory's shards, cropped around the target and style-augmented.
 
-Reads shards only through webdataset (design.md, Shard): `<key>.png` 8-bit gray, `<key>.json` the label, of which
+Reads shards through the core's one reader (envisat_pose/shard_reader.py; design.md, Shard): `<key>.png` 8-bit gray, `<key>.json` the label, of which
 this module needs corners_px (8, 2), visible (8,), in_frame (8,) and K (3, 3); other keys (scene, mask values,
 corruption) may come and go and are ignored. Every random draw comes from numpy Generators seeded by
 (seed, epoch, sample index), so a sample's crop and augmentation do not depend on workers or ranks.
@@ -113,22 +113,13 @@ def decode_label(data: bytes, where: str) -> dict:
     return out
 
 
-def _all_urls(urls):
-    return urls
-
-
 def read_samples(paths: list[str]):
-    """(key, image (H, W) uint8, label) for every sample of the shards, in order, through webdataset."""
-    import webdataset as wds
+    """(key, image (H, W) uint8, label) for every sample of the shards, in order (envisat_pose/shard_reader.py)."""
+    from envisat_pose.shard_reader import read_shards
 
-    # every rank and worker reads all shards and keeps its own samples (iterate_samples): no shard splitting
-    ds = wds.WebDataset(paths, shardshuffle=False, empty_check=False, nodesplitter=_all_urls,
-                        workersplitter=_all_urls)
-    for sample in ds:
-        key = sample.get("__key__", "?")
-        where = f"{os.path.basename(sample.get('__url__', '?'))}:{key}"
+    for where, key, sample in read_shards(paths):
         if "png" not in sample:
-            members = sorted(k for k in sample if not k.startswith("__"))
+            members = sorted(sample)
             raise InputError(f"{where}: sample has no '.png' image member (members: {', '.join(members)})")
         if "json" not in sample:
             raise InputError(f"{where}: sample has no '.json' label member")

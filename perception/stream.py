@@ -87,8 +87,6 @@ def epoch_loader(paths: list[str], cfg: DataConfig, seed: int, epoch: int, batch
                  rank: int = 0, world: int = 1, pin_memory: bool = False) -> DataLoader:
     """The DataLoader of one epoch: `workers` processes (0: in-process), full batches only, pinned when asked
     (CUDA). Its own torch.Generator (from seed): the global one is neither read nor moved."""
-    import webdataset  # noqa: F401  here, once: forked workers inherit it instead of importing it every epoch
-
     extra = {"prefetch_factor": 4, "worker_init_fn": _worker_init} if workers > 0 else {}
     return DataLoader(ShardStream(paths, cfg, seed, epoch, rank, world), batch_size=batch_size, drop_last=True,
                       num_workers=workers, collate_fn=collate_batch, pin_memory=pin_memory,

@@ -20,13 +20,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 
 from envisat_pose.config import InputError
 
 METHODS = ("detector", "detector_no_lines", "harris", "shi_tomasi")
-# webdataset's key of a tar member: the path up to the first dot of the file name
-_KEY = re.compile(r"^((?:.*/|)[^.]+)[.]([^/]*)$")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -65,23 +62,17 @@ def make_detector(model, config, device: str):
 def read_poses(paths: list[str]) -> dict[str, tuple]:
     """{sample key: (R_cam_from_target (3, 3), t_cam_from_target_m (3,))} from the shards' labels (the
     perception reader keeps only what detection needs)."""
-    import tarfile
-
     import numpy as np
 
+    from envisat_pose.shard_reader import read_shards
+
     out = {}
-    for path in paths:
-        with tarfile.open(path) as tar:
-            for member in tar:
-                m = _KEY.match(member.name)
-                if not member.isfile() or not m or m.group(2) != "json":
-                    continue
-                try:
-                    lab = json.loads(tar.extractfile(member).read())
-                    out[m.group(1)] = (np.asarray(lab["R_cam_from_target"], float),
-                                       np.asarray(lab["t_cam_from_target_m"], float))
-                except (ValueError, KeyError, TypeError):
-                    continue  # a label without a pose: its pose error is left out
+    for _, key, members in read_shards(paths):
+        try:
+            lab = json.loads(members["json"])
+            out[key] = (np.asarray(lab["R_cam_from_target"], float), np.asarray(lab["t_cam_from_target_m"], float))
+        except (ValueError, KeyError, TypeError):
+            continue  # a label without a pose: its pose error is left out
     return out
 
 
