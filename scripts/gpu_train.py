@@ -88,12 +88,15 @@ def round_chunks(leg: int, round_index: int, scenarios: list[str], scale: float)
     for cam in ("clean", "benign", "harsh"):
         chunks.append({"name": f"random-1024-{cam}", "images": n(300), "resolution": 1024,
                        "config": merge(merge(wide, CAMERAS[cam]), {"earth_probability": 0.4})})
-    for name in scenarios:
-        chunks.append({"name": f"sequence-{name}", "images": n(120), "resolution": 1024, "scenario": name,
-                       "config": merge(base, {"mode": "sequence", "scenario": name, "frame_dt_s": 2.0,
-                                              "earth_probability": 1.0,
-                                              "appearance": {"enabled": round_index % 2 == 1}})})
-    return chunks
+    sequences = [{"name": f"sequence-{name}", "images": n(120), "resolution": 1024, "scenario": name,
+                  "config": merge(base, {"mode": "sequence", "scenario": name, "frame_dt_s": 2.0,
+                                         "earth_probability": 1.0,
+                                         "appearance": {"enabled": round_index % 2 == 1}})} for name in scenarios]
+    # interleaved, so a round cut short by the clock still holds both kinds
+    mixed = []
+    for i in range(max(len(chunks), len(sequences))):
+        mixed += chunks[i:i + 1] + sequences[i:i + 1]
+    return mixed
 
 
 def to_toml(data: dict, prefix: str = "") -> str:

@@ -2,8 +2,8 @@
 # One leg of detector training on a borrowed GPU machine (issue 26; README, "Training on a GPU"). Run from the
 # repository root there, with the folder scripts/gpu_carry.sh made here carried (default .gpu-carry):
 #   scripts/gpu_train.sh                          # on the GPU machine: everything, about 9 minutes
-#   OUT=/tmp/o TOTAL_S=240 GEN_S=60 SCALE=0.01 BATCH=2 DEVICE=cpu MUJOCO_GL=osmesa NO_INSTALL=1 \
-#       PY=.venv/bin/python scripts/gpu_train.sh
+#   OUT=/tmp/o TOTAL_S=420 GEN_S=90 SCALE=0.01 BATCH=2 WORKERS=1 DEVICE=cpu MUJOCO_GL=osmesa NO_INSTALL=1 \
+#       SCENARIOS="default slow-tumble" PY=$PWD/.venv/bin/python scripts/gpu_train.sh
 #                                                 # a dry run on a CPU machine with the project's environment
 # Steps: install the carried wheels (mujoco, glfw, pyopengl for cp312, webdataset, braceexpand) into a scratch
 # folder; unpack the carried EGL loader packages and run ldconfig; lay the package out without a build
