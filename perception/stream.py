@@ -83,11 +83,23 @@ def _worker_init(_: int) -> None:
     cv2.setNumThreads(1)
 
 
+def _worker_context():
+    """Workers start from a fork server (a clean process that imported this module), not by forking the training
+    process: a forked child inherits OpenCV's thread pool half-alive (seen here: a worker forked after cv2 had run
+    in the parent hung for good in cv2.setNumThreads, on a condition variable of the parent's pool)."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(["envisat_pose.perception.stream"])  # once the server runs, later calls are moot
+    return ctx
+
+
 def epoch_loader(paths: list[str], cfg: DataConfig, seed: int, epoch: int, batch_size: int, workers: int,
                  rank: int = 0, world: int = 1, pin_memory: bool = False) -> DataLoader:
     """The DataLoader of one epoch: `workers` processes (0: in-process), full batches only, pinned when asked
     (CUDA). Its own torch.Generator (from seed): the global one is neither read nor moved."""
-    extra = {"prefetch_factor": 4, "worker_init_fn": _worker_init} if workers > 0 else {}
+    extra = {"prefetch_factor": 4, "worker_init_fn": _worker_init, "multiprocessing_context": _worker_context()} \
+        if workers > 0 else {}
     return DataLoader(ShardStream(paths, cfg, seed, epoch, rank, world), batch_size=batch_size, drop_last=True,
                       num_workers=workers, collate_fn=collate_batch, pin_memory=pin_memory,
                       generator=torch.Generator().manual_seed(seed), **extra)

@@ -192,7 +192,9 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
     data_dir: one dataset folder or several (their shards are read together). init_weights: a safetensors file
     of the same architecture to start from instead of the seeded initialization (fine-tuning; a new run only).
     workers: DataLoader worker processes feeding the batches (perception/stream.py; 0: in-process); None: the
-    run's own count on resume, else 0. The batches depend on the count, so a resumed run keeps it.
+    run's own count on resume, else 0. The batches depend on the count, so a resumed run keeps it. The workers
+    start from a fork server, so a script calling this with workers guards its main (`if __name__ ==
+    "__main__":`), as any multiprocessing program that does not fork.
     bf16: the network's forward under bfloat16 autocast (CUDA or CPU); losses, weights and optimizer in float32.
     With cfg.time_budget_s the run stops before the next step would leave too little of the budget for the
     final checkpoint (the budget counts from this call's start, plus what a resumed run had already used).
