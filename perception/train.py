@@ -31,7 +31,7 @@ from envisat_pose.io import atomic_write_text
 from envisat_pose.perception.data import DataConfig, shard_paths
 from envisat_pose.perception.losses import LossConfig, corner_losses
 from envisat_pose.perception.model import CornerNet, ModelConfig
-from envisat_pose.perception.stream import collate_batch, epoch_loader
+from envisat_pose.perception.stream import epoch_loader
 from envisat_pose.perception.weights import load_state, load_tensors, read_weights, save_tensors, save_weights
 
 
@@ -90,12 +90,6 @@ def init_model(cfg: TrainConfig) -> CornerNet:
             elif name.endswith(".bias") and not name.startswith("jhead.1"):
                 p.zero_()
     return model
-
-
-def collate(samples: list[dict], device: torch.device) -> dict[str, torch.Tensor]:
-    """A list of samples -> a batch of tensors on device (evaluation and tools; training batches come from
-    perception/stream.py)."""
-    return to_device(collate_batch(samples), device)
 
 
 def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
