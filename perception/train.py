@@ -266,14 +266,19 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
         sums, count = {}, 0
         return line
 
+    def batches_of(epoch: int):
+        return iter(epoch_loader(paths, cfg.data, cfg.seed, epoch, cfg.batch_size, state["workers"], rank, world,
+                                 pin_memory=dev.type == "cuda"))
+
     stop = False
+    upcoming = None  # the next epoch's batches, started early (with workers): no stall at the epoch boundary
     while state["step"] < cfg.steps and not stop:
         n_batches = 0
         skip = state["batch"]  # a resumed epoch: these batches were trained on before
-        loader = epoch_loader(paths, cfg.data, cfg.seed, state["epoch"], cfg.batch_size, state["workers"], rank,
-                              world, pin_memory=dev.type == "cuda")
+        current = upcoming if upcoming is not None else batches_of(state["epoch"])
+        upcoming = batches_of(state["epoch"] + 1) if state["workers"] > 0 else None
         t_ask = time.perf_counter()
-        for i, cpu_batch in enumerate(loader):
+        for i, cpu_batch in enumerate(current):
             if i < skip:
                 t_ask = time.perf_counter()
                 continue
@@ -320,6 +325,7 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
             state["batch"] = 0
             continue
         break
+    current = upcoming = None  # the workers of both epochs shut down
     bar.close()
     ddp = {}
     if dist is not None:
