@@ -1,4 +1,5 @@
-"""WebDataset shards: deterministic tar writing, atomic publication, the manifest, reading and verification.
+"""WebDataset shards: deterministic tar writing, atomic publication, the manifest and verification (reading: the
+core's envisat_pose/shard_reader.py, re-exported here as read_shard).
 
 A shard is a plain tar of samples, each sample's members `<key>.depth.png`, `<key>.json`, `<key>.mask.png`,
 `<key>.png` consecutive (design.md, Shard contract). Members carry a fixed mtime, owner and mode, so the same
@@ -16,6 +17,7 @@ import cv2
 import numpy as np
 
 from envisat_pose.io import atomic_path, sha256_file
+from envisat_pose.shard_reader import read_shard  # noqa: F401  the one reader (core); its users here import it from here too
 
 MANIFEST = "manifest.json"
 MEMBER_SUFFIXES = ("depth.png", "json", "mask.png", "png")  # sorted: the order inside a sample
@@ -100,23 +102,6 @@ class ShardWriter:
                 os.fsync(fh.fileno())
             return self._ctx.__exit__(None, None, None)
         return self._ctx.__exit__(exc_type, exc, tb)
-
-
-def read_shard(path: str):
-    """Iterate the samples of a shard: (key, {suffix: bytes}). Plain tar reading; nothing is unpickled."""
-    with tarfile.open(path, "r") as tar:
-        key, members = None, {}
-        for info in tar:
-            if not info.isfile():
-                continue
-            k, _, suffix = info.name.partition(".")
-            if k != key and key is not None:
-                yield key, members
-                members = {}
-            key = k
-            members[suffix] = tar.extractfile(info).read()
-        if key is not None:
-            yield key, members
 
 
 def read_manifest(out_dir: str) -> dict | None:

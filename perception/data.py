@@ -1,9 +1,9 @@
-"""Training samples streamed from the factory's shards (webdataset), cropped around the target and style-augmented.
+"""Training samples streamed from the factory's shards, cropped around the target and style-augmented.
 
-Reads shards only through webdataset (design.md, Shard): `<key>.png` 8-bit gray, `<key>.json` the label, of which
+Reads shards through the core's one reader (envisat_pose/shard_reader.py; design.md, Shard): `<key>.png` 8-bit gray, `<key>.json` the label, of which
 this module needs corners_px (8, 2), visible (8,), in_frame (8,) and K (3, 3); other keys (scene, mask values,
-corruption) may come and go and are ignored. Every random draw comes from numpy Generators seeded by
-(seed, epoch, sample index), so a sample's crop and augmentation do not depend on workers or ranks.
+corruption) may come and go and are ignored. A training sample's draws come from the Generator its caller seeds
+(perception/stream.py: seed, epoch, shard, index), so its crop and augmentation do not depend on workers or ranks.
 
 A sample (numpy, what the DataLoader collates), for an input of S px and heatmaps of S / 4 cells:
     image:       (1, S, S) float32, (gray / 255 - 0.5) / 0.25
@@ -113,22 +113,13 @@ def decode_label(data: bytes, where: str) -> dict:
     return out
 
 
-def _all_urls(urls):
-    return urls
-
-
 def read_samples(paths: list[str]):
-    """(key, image (H, W) uint8, label) for every sample of the shards, in order, through webdataset."""
-    import webdataset as wds
+    """(key, image (H, W) uint8, label) for every sample of the shards, in order (envisat_pose/shard_reader.py)."""
+    from envisat_pose.shard_reader import read_shards
 
-    # every rank and worker reads all shards and keeps its own samples (iterate_samples): no shard splitting
-    ds = wds.WebDataset(paths, shardshuffle=False, empty_check=False, nodesplitter=_all_urls,
-                        workersplitter=_all_urls)
-    for sample in ds:
-        key = sample.get("__key__", "?")
-        where = f"{os.path.basename(sample.get('__url__', '?'))}:{key}"
+    for where, key, sample in read_shards(paths):
         if "png" not in sample:
-            members = sorted(k for k in sample if not k.startswith("__"))
+            members = sorted(sample)
             raise InputError(f"{where}: sample has no '.png' image member (members: {', '.join(members)})")
         if "json" not in sample:
             raise InputError(f"{where}: sample has no '.json' label member")
@@ -261,28 +252,3 @@ def make_sample(image: np.ndarray, label: dict, cfg: DataConfig, rng: np.random.
             "joff": t["joff"], "jmask": t["jmask"], "corners_px": np.nan_to_num(corners_in).astype(np.float32),
             "valid": valid, "segments_px": segs, "line_label": lab, "line_weight": wt,
             "crop_px": box.astype(np.float32)}
-
-
-def iterate_samples(paths: list[str], cfg: DataConfig, seed: int, epoch: int, rank: int = 0, world: int = 1,
-                    train: bool = True):
-    """Samples of this rank (every world-th), shards in an order drawn from (seed, epoch), shuffled in a
-    buffer; each sample augmented from its own generator (seed, epoch, index). Yields make_sample dicts."""
-    order_rng = np.random.default_rng([seed, epoch, 0x5EED])
-    order = order_rng.permutation(len(paths)) if train else np.arange(len(paths))
-    buffer = []
-    index = 0
-    for key, image, label in read_samples([paths[i] for i in order]):
-        mine = index % world == rank
-        index += 1
-        if not mine:
-            continue
-        rng = np.random.default_rng([seed, epoch, index]) if train else None
-        buffer.append(make_sample(image, label, cfg, rng))
-        if not train:
-            yield buffer.pop()
-        elif len(buffer) >= cfg.shuffle_buffer:
-            yield buffer.pop(int(order_rng.integers(len(buffer))))
-    while buffer:
-        yield buffer.pop(int(order_rng.integers(len(buffer))) if train else 0)
-    if index == 0:
-        raise InputError(f"{os.path.dirname(paths[0]) or '.'}: empty dataset (the shards hold no samples)")

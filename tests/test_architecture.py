@@ -6,7 +6,8 @@ imports the core and the stages, never the app; the app (envisat_pose/app/) impo
 functions count too, and so do relative imports and the old top-level names.
 
 One home for each concept: the state's slices are defined only in envisat_pose/state.py; manifest.json is
-written only by the core runner's resumable-job protocol; a verb or pipeline resolves its config only through
+written only by the core runner's resumable-job protocol; shards are read (a tar opened for reading) only by
+envisat_pose/shard_reader.py; a verb or pipeline resolves its config only through
 config.resolve_job_config (never by merging layers itself); a chi-square gate comes from its probability
 (envisat_pose.gates), never typed as a number. Each checker runs on a source string, so the tests
 below show it catching a planted copy.
@@ -37,6 +38,7 @@ PENDING = {
     "hand_resolved_configs": {},
     "physics_builders": {},
     "typed_gates": {},
+    "shard_readers": {},
 }
 
 
@@ -134,6 +136,7 @@ STATE_FILE = os.path.join("envisat_pose", "state.py")
 GATES_FILE = os.path.join("envisat_pose", "gates.py")
 ONBOARD_FILE = os.path.join("envisat_pose", "pipelines", "onboard.py")
 RUNNER_FILE = os.path.join("envisat_pose", "runner.py")
+SHARD_READER_FILE = os.path.join("envisat_pose", "shard_reader.py")
 STATE_BOUNDS = {(0, 3), (3, 6), (6, 9), (9, 12)}  # the blocks of the 12-state (envisat_pose.state)
 MERGERS = ("set_dotted", "deep_update")  # the layers of a config, merged by hand
 
@@ -200,6 +203,24 @@ def manifest_writes(source: str) -> list[int]:
             target = n.func.value
         if target is not None and _mentions(target, tainted):
             lines.append(n.lineno)
+    return sorted(lines)
+
+
+def tar_reads(source: str) -> list[int]:
+    """Lines that open a tar for reading (tarfile.open without a mode, or with one starting 'r'; a WebDataset
+    or TarFile built directly): a shard reader of its own. Writing a tar is fine."""
+    lines = []
+    for n in ast.walk(ast.parse(source)):
+        if not isinstance(n, ast.Call):
+            continue
+        name = _called_name(n)
+        if name in ("WebDataset", "TarFile"):
+            lines.append(n.lineno)
+        elif name == "open" and isinstance(n.func, ast.Attribute) and isinstance(n.func.value, ast.Name) \
+                and n.func.value.id == "tarfile":
+            mode = n.args[1] if len(n.args) > 1 else next((k.value for k in n.keywords if k.arg == "mode"), None)
+            if mode is None or (isinstance(mode, ast.Constant) and str(mode.value).startswith("r")):
+                lines.append(n.lineno)
     return sorted(lines)
 
 
@@ -321,6 +342,8 @@ def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
             lines = physics_builders(source)
         elif kind == "typed_gates" and rel != GATES_FILE:
             lines = typed_gates(source)
+        elif kind == "shard_readers" and rel != SHARD_READER_FILE:
+            lines = tar_reads(source)
         else:
             lines = []
         if lines:
@@ -418,6 +441,16 @@ def test_the_manifest_checker_catches_a_planted_protocol():
               "    open(d + '/summary.json', 'w').write(json.dumps(m))\n")
     assert manifest_writes(reader) == []
     assert manifest_writes(open(os.path.join(ROOT, RUNNER_FILE), encoding="utf-8").read())  # the home
+
+
+def test_the_shard_reader_checker_catches_a_planted_reader():
+    planted = ("import tarfile\nimport webdataset as wds\n\n"
+               "def poses(path):\n    with tarfile.open(path) as tar:\n        return list(tar)\n\n"
+               "def more(path):\n    return tarfile.open(path, mode='r:*'), wds.WebDataset([path])\n")
+    assert tar_reads(planted) == [5, 9, 9]
+    writer = "import tarfile\n\ndef write(path):\n    return tarfile.open(path, 'w', format=tarfile.USTAR_FORMAT)\n"
+    assert tar_reads(writer) == []
+    assert tar_reads(open(os.path.join(ROOT, SHARD_READER_FILE), encoding="utf-8").read())  # the home
 
 
 def test_the_config_checker_catches_a_verb_resolving_by_hand():

@@ -5,5 +5,7 @@ argument parsers over it. `tracker` (the truth-free Tracker), `acquisition` (its
 (`envisat run`: simulate, render, the space camera, the Tracker), `track` (`envisat track`: a user's frames),
 `scoring` (a run against a truth), `simulate` (`envisat simulate`: a scenario's MuJoCo truth as run.npz),
 `estimate` (`envisat estimate`: the batched UKF over R runs of one truth),
-`campaign` (`envisat montecarlo`: Monte Carlo campaigns in resumable blocks, rate sweeps).
+`campaign` (`envisat montecarlo`: Monte Carlo campaigns in resumable blocks, rate sweeps),
+`train` (`envisat train`: the corner detector trained into a run directory, DDP under torchrun),
+`evaluate` (`envisat evaluate`: the detector scored against labels, next to Harris and Shi-Tomasi).
 """

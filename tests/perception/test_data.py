@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from envisat_pose.config import InputError
-from envisat_pose.perception.data import (DataConfig, iterate_samples, read_samples, shard_paths, to_full_px,
+from envisat_pose.perception.data import (DataConfig, make_sample, read_samples, shard_paths, to_full_px,
                                           to_input_px)
+from envisat_pose.perception.stream import epoch_loader, shard_samples
 from envisat_pose.perception.heatmaps import decode_junctions
 
 
@@ -34,7 +35,7 @@ def _png(image):
 
 def test_samples_have_documented_shapes_and_targets(tiny_dataset):
     cfg = DataConfig(input_px=128, augment=False, crop_scale_jitter=0, crop_shift_jitter=0)
-    samples = list(iterate_samples(shard_paths(tiny_dataset), cfg, seed=0, epoch=0, train=False))
+    samples = [make_sample(image, label, cfg, None) for _, image, label in read_samples(shard_paths(tiny_dataset))]
     assert len(samples) == 8
     labels = [lab for _, _, lab in read_samples(shard_paths(tiny_dataset))]
     checked = 0
@@ -66,18 +67,14 @@ def test_crop_mapping_round_trip():
 
 def test_augmentation_is_seeded(tiny_dataset):
     cfg = DataConfig(input_px=128)
-    a = list(iterate_samples(shard_paths(tiny_dataset), cfg, seed=5, epoch=1))
-    b = list(iterate_samples(shard_paths(tiny_dataset), cfg, seed=5, epoch=1))
-    c = list(iterate_samples(shard_paths(tiny_dataset), cfg, seed=6, epoch=1))
+    path = shard_paths(tiny_dataset)[0]
+    a = list(shard_samples(path, 0, cfg, seed=5, epoch=1))
+    b = list(shard_samples(path, 0, cfg, seed=5, epoch=1))
+    c = list(shard_samples(path, 0, cfg, seed=6, epoch=1))
+    d = list(shard_samples(path, 0, cfg, seed=5, epoch=2))
     assert all(np.array_equal(x["image"], y["image"]) for x, y in zip(a, b))
     assert not all(np.array_equal(x["image"], y["image"]) for x, y in zip(a, c))
-
-
-def test_ranks_split_the_samples(tiny_dataset):
-    cfg = DataConfig(input_px=128, augment=False)
-    crops = [sorted(tuple(s["crop_px"]) for s in iterate_samples(shard_paths(tiny_dataset), cfg, 0, 0, r, 2,
-                                                                 train=False)) for r in (0, 1)]
-    assert len(crops[0]) == len(crops[1]) == 4
+    assert not all(np.array_equal(x["image"], y["image"]) for x, y in zip(a, d))
 
 
 @pytest.mark.parametrize("members, message", [
@@ -90,7 +87,7 @@ def test_ranks_split_the_samples(tiny_dataset):
 def test_bad_members_are_one_clear_error(tmp_path, members, message):
     _write_shard(tmp_path / "shard-000000.tar", [("000000000", members)])
     with pytest.raises(InputError, match=message) as err:
-        list(iterate_samples(shard_paths(str(tmp_path)), DataConfig(input_px=64), 0, 0))
+        list(shard_samples(shard_paths(str(tmp_path))[0], 0, DataConfig(input_px=64), 0, 0))
     assert "\n" not in str(err.value) and "000000000" in str(err.value)
 
 
@@ -98,7 +95,13 @@ def test_empty_dataset(tmp_path):
     with pytest.raises(InputError, match="empty dataset"):
         shard_paths(str(tmp_path))
     _write_shard(tmp_path / "shard-000000.tar", [])
-    with pytest.raises(InputError, match="empty dataset"):
-        list(iterate_samples(shard_paths(str(tmp_path)), DataConfig(input_px=64), 0, 0))
+    assert list(epoch_loader(shard_paths(str(tmp_path)), DataConfig(input_px=64), 0, 0, 1, 0)) == []
+    from envisat_pose.perception.model import ModelConfig
+    from envisat_pose.perception.train import TrainConfig, train
+
+    cfg = TrainConfig(steps=1, batch_size=1, model=ModelConfig(input_px=64, width=16, depth=2, stem_width=8),
+                      data=DataConfig(input_px=64))
+    with pytest.raises(InputError, match="fewer samples than one batch"):
+        train(cfg, str(tmp_path), str(tmp_path / "run"), progress=False)
     with pytest.raises(InputError, match="no such folder"):
         shard_paths(str(tmp_path / "nope"))

@@ -1,4 +1,6 @@
-"""torchrun with 2 processes (gloo, 127.0.0.1 only) trains a few steps; both ranks end with identical weights."""
+"""torchrun with 2 processes (gloo, 127.0.0.1 only) trains a few steps; both ranks end with identical weights. The
+run has a time budget it does not reach: every step shares rank 0's clock (the rate follows it), and the ranks
+still agree bit for bit."""
 
 import json
 import os
@@ -24,11 +26,12 @@ def test_two_ranks_hold_identical_weights(tiny_dataset, tmp_path):
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "1", "--nproc-per-node", "2",
            "--rdzv-backend", "static", "--master-addr", "127.0.0.1", "--master-port", str(free_port()),
            "--node-rank", "0", "-m", "envisat_pose.app.cli", "train", "--data", tiny_dataset, "--out", str(run),
-           "--config", str(toml), "--steps", "3", "--batch-size", "2", "--threads", "1", "--quiet"]
+           "--config", str(toml), "--steps", "3", "--batch-size", "2", "--threads", "1", "--quiet",
+           "--time-budget-s", "600"]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     end = [json.loads(line) for line in open(run / "metrics.jsonl")][-1]
     assert end["kind"] == "end" and end["step"] == 3
-    assert end["world"] == 2.0 and end["ranks_identical"] == 1.0
+    assert end["world"] == 2.0 and end["ranks_identical"] == 1.0 and end["stopped_by"] == "steps"
     assert json.load(open(run / "config.json"))["device"] == "cpu"
     load_model(str(run / "checkpoint.safetensors"))

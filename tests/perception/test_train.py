@@ -65,19 +65,19 @@ def test_resume_after_a_crash_past_the_warmup(tiny_dataset, tmp_path, monkeypatc
     cfg = TrainConfig(**{**small_config(6).__dict__, "warmup_steps": 2, "checkpoint_every": 2})
     whole, part = str(tmp_path / "whole"), str(tmp_path / "part")
     train(cfg, tiny_dataset, whole, progress=False)
-    real_collate, calls = train_module.collate, []
+    real_to_device, calls = train_module.to_device, []
 
-    def crash_on_the_fifth_batch(samples, device):
+    def crash_on_the_fifth_batch(batch, device):
         calls.append(1)
         if len(calls) == 5:
             raise KeyboardInterrupt
-        return real_collate(samples, device)
+        return real_to_device(batch, device)
 
-    monkeypatch.setattr(train_module, "collate", crash_on_the_fifth_batch)
+    monkeypatch.setattr(train_module, "to_device", crash_on_the_fifth_batch)
     with pytest.raises(KeyboardInterrupt):
         train(cfg, tiny_dataset, part, progress=False)
     assert json.load(open(os.path.join(part, "state.json")))["step"] == 4  # past the warmup
-    monkeypatch.setattr(train_module, "collate", real_collate)
+    monkeypatch.setattr(train_module, "to_device", real_to_device)
     train(cfg, tiny_dataset, part, resume=True, progress=False)
     a = load_model(os.path.join(whole, "checkpoint.safetensors")).state_dict()
     b = load_model(os.path.join(part, "checkpoint.safetensors")).state_dict()

@@ -1,0 +1,137 @@
+"""The pipeline of `envisat train`: the corner detector trained on the factory's shards into a run directory.
+
+Around the stage's loop (perception/train.py, its batches from worker processes, perception/stream.py): the
+inputs checked before any work, torch.distributed started and ended under torchrun (gloo on CPU, nccl on CUDA),
+the CUDA speed settings, and the run's provenance (the command, the git hash, the datasets by name and manifest
+hash, the initial weights by name and hash; no path of the machine it ran on).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+
+from envisat_pose.config import InputError
+
+
+def default_workers() -> int:
+    """DataLoader workers when none are asked for: this process's cores (shared among the node's torchrun ranks)
+    less one for the training process itself; 0 (in-process) on one core."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    local_ranks = max(1, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
+    return max(0, cores // local_ranks - 1)
+
+
+def git_hash() -> str:
+    """The source's commit (with '+dirty' when the tree has changes), or 'unknown' outside a checkout."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
+        if head.returncode != 0:
+            return "unknown"
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                               capture_output=True, text=True, timeout=10)
+        return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def dataset_provenance(data_dir: str) -> dict:
+    """A dataset by its folder's name, its manifest's sha256 and image count (None where it has no manifest)."""
+    manifest = os.path.join(data_dir, "manifest.json")
+    record = {"name": os.path.basename(os.path.normpath(data_dir)), "manifest_sha256": None, "images": None}
+    if os.path.isfile(manifest):
+        import json
+
+        with open(manifest, "rb") as fh:
+            raw = fh.read()
+        record["manifest_sha256"] = hashlib.sha256(raw).hexdigest()
+        try:
+            record["images"] = json.loads(raw).get("num_images")
+        except (ValueError, AttributeError):
+            pass
+    return record
+
+
+def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | None, workers: int | None,
+                 threads: int | None) -> None:
+    """Every input of a training run checked before any work; InputError naming the flag."""
+    from envisat_pose.perception.data import shard_paths
+
+    for d in data_dirs:
+        shard_paths(d)  # an empty or missing dataset fails here
+    if init is not None and resume:
+        raise InputError("--init and --resume: a resumed run goes on from its own checkpoint; give one of them")
+    if init is not None and not os.path.isfile(init):
+        raise InputError(f"--init {init!r}: no such weights file")
+    if resume and not os.path.isdir(run_dir):
+        raise InputError(f"--resume: {run_dir!r} does not exist")
+    if workers is not None and workers < 0:
+        raise InputError(f"--workers {workers}: expected 0 (in-process) or more worker processes")
+    if threads is not None and threads < 1:
+        raise InputError(f"--threads {threads}: expected at least 1")
+
+
+def init_distributed(device: str) -> str:
+    """torchrun sets WORLD_SIZE/RANK/MASTER_ADDR: start the process group (gloo on CPU, nccl on CUDA). Returns
+    this rank's device."""
+    import torch
+    import torch.distributed as dist
+
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or dist.is_initialized():
+        return device
+    dist.init_process_group("nccl" if device == "cuda" else "gloo")
+    if device == "cuda":
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        torch.cuda.set_device(local)
+        return f"cuda:{local}"
+    return device
+
+
+def end_distributed() -> None:
+    """Tear the process group down before the interpreter exits: a rank that leaves with gloo's threads still
+    running can abort ('terminate called without an active exception'; seen in CI on a loaded machine)."""
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        try:
+            dist.barrier()
+        finally:
+            dist.destroy_process_group()
+
+
+def train_detector(cfg, data_dirs: list[str], run_dir: str, *, resume: bool = False, init: str | None = None,
+                   device: str = "cpu", workers: int | None = None, bf16: bool = False,
+                   threads: int | None = None, progress: bool = True, command: str = "") -> dict:
+    """Train the detector (cfg: a validated perception TrainConfig) on the shards of data_dirs into run_dir.
+
+    resume: go on from run_dir's last checkpoint (exclusive with init: a safetensors file to start from).
+    workers: DataLoader worker processes (None: the run's own on resume, else default_workers()); bf16: bfloat16
+    autocast; threads: torch's CPU threads in this process; command: the command line, for the provenance.
+    Returns the run's last metrics line (perception/train.py)."""
+    import torch
+
+    from envisat_pose.io import sha256_file
+    from envisat_pose.perception.train import train
+
+    data_dirs = list(data_dirs)
+    check_inputs(data_dirs, run_dir, resume, init, workers, threads)
+    if threads is not None:
+        torch.set_num_threads(threads)
+    if workers is None and not resume:
+        workers = default_workers()
+    rank_device = init_distributed(device)
+    if device == "cuda":  # speed over the last bits: TF32 matrix products, cuDNN's autotuned convolutions
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+        torch.backends.cudnn.benchmark = True
+    provenance = {"command": command, "git": git_hash(), "data": [dataset_provenance(d) for d in data_dirs],
+                  "torch": torch.__version__, "device": device, "bf16": bf16}
+    if init is not None:
+        provenance["init"] = {"name": os.path.basename(init), "sha256": sha256_file(init)}
+    try:
+        return train(cfg, data_dirs, run_dir, resume=resume, device=rank_device, progress=progress,
+                     provenance=provenance, init_weights=init, workers=workers, bf16=bf16)
+    finally:
+        end_distributed()

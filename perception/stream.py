@@ -1,0 +1,105 @@
+"""Training batches from worker processes: torch.utils.data over the factory's shards, each worker its own shards.
+
+One epoch: the shards in an order drawn from (seed, epoch); shard at position i of that order goes to reader slot
+i mod slots, where slots = world x workers (slot = rank + world x worker: with one rank, shard i -> worker
+i mod N), so every shard is read by exactly one worker of one rank per epoch. Each sample is built (crop,
+augmentation, segments) from its own generator seeded by (seed, epoch, shard index, index in the shard): a
+sample does not depend on the worker count. Each worker shuffles its samples in a buffer drawn from
+(seed, epoch, slot) and batches them (its ragged end dropped); the DataLoader merges the workers' batches round
+robin, in order (torch's in-order delivery), so the batches of an epoch are a function of (seed, epoch, workers,
+rank, world) alone. Zero workers (in-process) and one worker give the same batches.
+
+A batch (CPU tensors): the keys of perception/data.py's make_sample stacked, plus sample_id (B, 2) int64: the
+shard's index in `paths` and the sample's index in the shard, and reader_slot (B,) int64: the slot that read it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
+
+from envisat_pose.perception.data import DataConfig, make_sample, read_samples
+
+ORDER_KEY = 0x5EED  # the epoch's shard order: (seed, epoch, ORDER_KEY)
+BUFFER_KEY = 0xB0F  # a slot's shuffle buffer: (seed, epoch, BUFFER_KEY, slot)
+
+
+def shard_order(n_shards: int, seed: int, epoch: int) -> np.ndarray:
+    """The epoch's order of the shards (indices into the dataset's shard list)."""
+    return np.random.default_rng([seed, epoch, ORDER_KEY]).permutation(n_shards)
+
+
+def slot_shards(n_shards: int, seed: int, epoch: int, slot: int, slots: int) -> list[int]:
+    """Indices of the shards that reader slot `slot` of `slots` reads in this epoch (every slots-th of the order)."""
+    return [int(i) for i in shard_order(n_shards, seed, epoch)[slot::slots]]
+
+
+def shard_samples(path: str, shard_index: int, cfg: DataConfig, seed: int, epoch: int):
+    """Training samples of one shard, each from its generator (seed, epoch, shard_index, index in the shard)."""
+    for j, (_, image, label) in enumerate(read_samples([path])):
+        rng = np.random.default_rng([seed, epoch, shard_index, j])
+        sample = make_sample(image, label, cfg, rng)
+        sample["sample_id"] = np.array([shard_index, j], dtype=np.int64)
+        yield sample
+
+
+class ShardStream(IterableDataset):
+    """The samples of one epoch for one rank: in a DataLoader worker w of N, those of slot rank + world * w (see
+    the module doc); in-process, slot rank of world."""
+
+    def __init__(self, paths: list[str], cfg: DataConfig, seed: int, epoch: int, rank: int = 0, world: int = 1):
+        super().__init__()
+        self.paths, self.cfg, self.seed, self.epoch, self.rank, self.world = list(paths), cfg, seed, epoch, rank, world
+
+    def slot(self) -> tuple[int, int]:
+        info = get_worker_info()
+        worker, workers = (info.id, info.num_workers) if info is not None else (0, 1)
+        return self.rank + self.world * worker, self.world * workers
+
+    def __iter__(self):
+        slot, slots = self.slot()
+        buffer_rng = np.random.default_rng([self.seed, self.epoch, BUFFER_KEY, slot])
+        buffer: list[dict] = []
+        for i in slot_shards(len(self.paths), self.seed, self.epoch, slot, slots):
+            for sample in shard_samples(self.paths[i], i, self.cfg, self.seed, self.epoch):
+                sample["reader_slot"] = np.int64(slot)
+                buffer.append(sample)
+                if len(buffer) >= self.cfg.shuffle_buffer:
+                    yield buffer.pop(int(buffer_rng.integers(len(buffer))))
+        while buffer:
+            yield buffer.pop(int(buffer_rng.integers(len(buffer))))
+
+
+def collate_batch(samples: list[dict]) -> dict[str, torch.Tensor]:
+    """Stack a list of samples into CPU tensors (in the worker, so only the batch crosses processes)."""
+    return {k: torch.from_numpy(np.stack([s[k] for s in samples])) for k in samples[0]}
+
+
+def _worker_init(_: int) -> None:
+    """One OpenCV thread per worker: the workers are the parallelism (N workers on N cores, not N x cores)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def _worker_context():
+    """Workers start from a fork server (a clean process that imported this module), not by forking the training
+    process: a forked child inherits OpenCV's thread pool half-alive (seen here: a worker forked after cv2 had run
+    in the parent hung for good in cv2.setNumThreads, on a condition variable of the parent's pool)."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(["envisat_pose.perception.stream"])  # once the server runs, later calls are moot
+    return ctx
+
+
+def epoch_loader(paths: list[str], cfg: DataConfig, seed: int, epoch: int, batch_size: int, workers: int,
+                 rank: int = 0, world: int = 1, pin_memory: bool = False) -> DataLoader:
+    """The DataLoader of one epoch: `workers` processes (0: in-process), full batches only, pinned when asked
+    (CUDA). Its own torch.Generator (from seed): the global one is neither read nor moved."""
+    extra = {"prefetch_factor": 4, "worker_init_fn": _worker_init, "multiprocessing_context": _worker_context()} \
+        if workers > 0 else {}
+    return DataLoader(ShardStream(paths, cfg, seed, epoch, rank, world), batch_size=batch_size, drop_last=True,
+                      num_workers=workers, collate_fn=collate_batch, pin_memory=pin_memory,
+                      generator=torch.Generator().manual_seed(seed), **extra)

@@ -1,0 +1,39 @@
+#!/bin/bash
+# Prepare, on this machine (with network), the folder a GPU machine without network needs for
+# scripts/gpu_train.sh (README, "Training on a GPU"): wheels for CPython 3.12 (mujoco 4.0.0 is three wheels,
+# plus glfw, pyopengl, webdataset, braceexpand), Debian's EGL loader packages for amd64, the compiled gravity
+# plugin of this checkout, and the weights to start from with their leg.json.
+#   scripts/gpu_carry.sh [--init WEIGHTS] [--carry DIR]      (DIR default .gpu-carry, ignored by git)
+# --init: weights to start the next leg from (e.g. the last leg's $OUT/detector.safetensors, its leg.json beside
+# it is copied too); default: models/detector.safetensors at leg 0. About 27 MB; name the folder in `carry`.
+set -euo pipefail
+ROOT=$(cd "$(dirname "$0")/.." && pwd)
+CARRY=$ROOT/.gpu-carry
+INIT=
+while [ $# -gt 0 ]; do
+  case $1 in
+    --init) INIT=$2; shift 2;;
+    --carry) CARRY=$2; shift 2;;
+    *) echo "gpu_carry: unknown argument $1" >&2; exit 2;;
+  esac
+done
+PY=${PY:-$ROOT/.venv/bin/python}
+mkdir -p "$CARRY/wheels" "$CARRY/debs" "$CARRY/plugin" "$CARRY/init"
+WEBDATASET=$("$PY" -c "import webdataset; print(webdataset.__version__)")
+"$PY" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+    --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
+    --platform manylinux2014_x86_64 -d "$CARRY/wheels" \
+    mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 glfw pyopengl "webdataset==$WEBDATASET" braceexpand
+# EGL: the loader packages (the NVIDIA driver's EGL vendor library is on the GPU machine)
+O="-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/gpu-carry-apt"
+mkdir -p /tmp/gpu-carry-apt/partial
+apt-get $O update -qq
+(cd "$CARRY/debs" && apt-get $O download -qq libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
+cp "$ROOT"/datagen/plugin/_relative_gravity*.so "$CARRY/plugin/"
+rm -f "$CARRY/init/detector.safetensors" "$CARRY/init/leg.json"
+if [ -n "$INIT" ]; then
+  cp "$INIT" "$CARRY/init/detector.safetensors"
+  LEGF=$(dirname "$INIT")/leg.json
+  [ -f "$LEGF" ] && cp "$LEGF" "$CARRY/init/leg.json"
+fi
+du -sh "$CARRY"; ls "$CARRY"/*

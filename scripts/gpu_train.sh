@@ -1,0 +1,57 @@
+#!/bin/bash
+# One leg of detector training on a borrowed GPU machine (issue 26; README, "Training on a GPU"). Run from the
+# repository root there, with the folder scripts/gpu_carry.sh made here carried (default .gpu-carry):
+#   scripts/gpu_train.sh                          # on the GPU machine: everything, about 9 minutes
+#   OUT=/tmp/o TOTAL_S=420 GEN_S=90 SCALE=0.01 BATCH=2 WORKERS=1 DEVICE=cpu MUJOCO_GL=osmesa NO_INSTALL=1 \
+#       SCENARIOS="default slow-tumble" PY=$PWD/.venv/bin/python scripts/gpu_train.sh
+#                                                 # a dry run on a CPU machine with the project's environment
+# Steps: install the carried wheels (mujoco, glfw, pyopengl for cp312, webdataset, braceexpand) into a scratch
+# folder; unpack the carried EGL loader packages and run ldconfig; lay the package out without a build
+# (scripts/gpu_layout.py, the compiled gravity plugin from the carry); check torch, CUDA and EGL; then
+# scripts/gpu_train.py: fresh data on every core for GEN_S seconds with seeds of leg N+1 (N from the carried
+# init/leg.json), `envisat train --init ... --workers (cores-2) --bf16 --time-budget-s` for what is left of
+# TOTAL_S, and detector.safetensors, leg.json, metrics.jsonl, config.json, generate.json and gpu_train.log
+# written to $OUT. The next leg carries $OUT's detector.safetensors and leg.json as init/ (gpu_carry.sh --init).
+# env: CARRY, OUT, TOTAL_S (540), GEN_S (170), SCALE (1), DEVICE (cuda), WORKERS (cores-2), BATCH (64),
+#      SCENARIOS (all), INIT, PY (python3), NO_INSTALL, MUJOCO_GL (egl), WORK (/tmp/gpu-leg)
+set -o pipefail
+T0=$(date +%s)
+ROOT=$(cd "$(dirname "$0")/.." && pwd)
+CARRY=${CARRY:-$ROOT/.gpu-carry}
+OUT=${OUT:-$ROOT/out/gpu-leg}
+TOTAL_S=${TOTAL_S:-540}
+WORK=${WORK:-/tmp/gpu-leg}
+PY=${PY:-python3}
+export MUJOCO_GL=${MUJOCO_GL:-egl}
+mkdir -p "$OUT" "$WORK"
+LOG="$OUT/gpu_train.log"
+exec > >(tee "$LOG") 2>&1
+echo "gpu_train: $(date -u +%FT%TZ), $(nproc) cores, MUJOCO_GL=$MUJOCO_GL, budget ${TOTAL_S} s"
+if [ -z "$NO_INSTALL" ]; then
+  $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target "$WORK/site" \
+      "$CARRY"/wheels/*.whl || { echo "gpu_train: wheel install failed"; exit 3; }
+  export PYTHONPATH="$WORK/site${PYTHONPATH:+:$PYTHONPATH}"
+fi
+if [ "$MUJOCO_GL" = egl ] && ls "$CARRY"/debs/*.deb >/dev/null 2>&1; then
+  for f in "$CARRY"/debs/*.deb; do dpkg -x "$f" /; done
+  ldconfig
+fi
+$PY "$ROOT/scripts/gpu_layout.py" "$WORK/pkg" --plugin-from "$CARRY/plugin" || exit 4
+export PYTHONPATH="$WORK/pkg:$PYTHONPATH"
+cd "$WORK" || exit 4  # not the checkout: the laid-out package is the one imported
+$PY -c "import mujoco, torch, envisat_pose; print('mujoco', mujoco.__version__, 'torch', torch.__version__, 'cuda',
+torch.cuda.is_available(), torch.cuda.get_device_name(0) if torch.cuda.is_available() else '')" || exit 5
+if [ "$MUJOCO_GL" = egl ]; then
+  $PY -c "
+from mujoco.egl import GLContext
+c = GLContext(64, 64); c.make_current()
+from OpenGL import GL; print('EGL:', GL.glGetString(GL.GL_RENDERER).decode())" || { echo "gpu_train: EGL failed"; exit 6; }
+fi
+INIT=${INIT:-$CARRY/init/detector.safetensors}
+LEG=$CARRY/init/leg.json
+if [ ! -f "$INIT" ]; then INIT=$ROOT/models/detector.safetensors; LEG=; fi
+echo "gpu_train: init $(basename "$INIT") ($(sha256sum "$INIT" | cut -c1-12)), setup took $(( $(date +%s) - T0 )) s"
+$PY "$ROOT/scripts/gpu_train.py" --init "$INIT" ${LEG:+--leg-file "$LEG"} --out "$OUT" --work "$WORK/leg" \
+    --deadline-s $(( T0 + TOTAL_S )) --gen-s "${GEN_S:-170}" --scale "${SCALE:-1}" --device "${DEVICE:-cuda}" \
+    ${WORKERS:+--workers "$WORKERS"} ${BATCH:+--batch-size "$BATCH"} ${SCENARIOS:+--scenarios $SCENARIOS} || exit 7
+echo "gpu_train: done in $(( $(date +%s) - T0 )) s; in $OUT: $(ls "$OUT" | tr '\n' ' ')"
