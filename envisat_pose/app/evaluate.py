@@ -34,7 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_evaluate_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.app.detect import camera_samples, detector_inputs, read_roi
+    from envisat_pose.app.detect import detector_inputs
+    from envisat_pose.pipelines.detect import camera_samples, read_roi
     from envisat_pose.io import check_writable_output
     from envisat_pose.perception.data import shard_paths
     from envisat_pose.pipelines.evaluate import evaluate_detector, read_poses, table

@@ -15,7 +15,7 @@ import os
 import numpy as np
 import pytest
 
-from envisat_pose.app.detect import camera_samples
+from envisat_pose.pipelines.detect import camera_samples
 from envisat_pose.perception.data import shard_paths
 from envisat_pose.perception.detect import load_detector
 from envisat_pose.perception.evaluate import score_method
