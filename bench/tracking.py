@@ -155,7 +155,9 @@ def floors_met(s: dict, range_m: float) -> dict:
 
 
 def _f(v, fmt: str, scale: float = 1.0) -> str:
-    return "-" if v is None else format(scale * v, fmt)
+    """v formatted (times scale), or '-' as wide when None."""
+    width = int(fmt.split(".")[0]) if fmt[0].isdigit() else 0
+    return "-".rjust(width) if v is None else format(scale * v, fmt)
 
 
 HEAD = (f"{'scenario':14s} {'trk':>5s} {'ok1st':>5s} {'t1 s':>5s} {'tmax':>5s} {'FL s':>5s} {'tail%':>6s} "
