@@ -5,5 +5,6 @@ argument parsers over it. `tracker` (the truth-free Tracker), `acquisition` (its
 (`envisat run`: simulate, render, the space camera, the Tracker), `track` (`envisat track`: a user's frames),
 `scoring` (a run against a truth), `trials` (the benchmarks' random lit suns, attitudes, axes and trial truths),
 `simulate` (`envisat simulate`: a scenario's MuJoCo truth as run.npz), `estimate` (`envisat estimate`: the
-batched UKF over R runs of one truth), `campaign` (`envisat montecarlo`: Monte Carlo campaigns in resumable blocks, rate sweeps).
+batched UKF over R runs of one truth), `campaign` (`envisat montecarlo`: Monte Carlo campaigns in resumable
+blocks, rate sweeps).
 """
