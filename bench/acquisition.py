@@ -77,7 +77,8 @@ def draw_trial(ss: np.random.SeedSequence, range_m: float, rate: str, duration_s
     cfg = resolve_job_config(RunConfig, run_defaults(scenario), None, flags)
     t_s = np.arange(int(np.floor(cfg.duration_s * cfg.rate_hz + 1e-9)) + 1) / cfg.rate_hz
     sun = draw_lit_sun_N(scenario_config(scenario).orbit, t_s, (0.0, range_m, 0.0), rng, phase_max_deg)
-    cfg = finish_config(resolve_job_config(RunConfig, run_defaults(scenario), None, flags | {"image.sun_dir": list(sun)}))
+    flags["image.sun_dir"] = list(sun)
+    cfg = finish_config(resolve_job_config(RunConfig, run_defaults(scenario), None, flags))
     return {"scenario": scenario, "range_m": range_m, "rate": rate, "run_seed": run_seed,
             "p0_mrp": [float(v) for v in p0], "spin_axis_T": [float(v) for v in axis], "sun_dir_N": list(sun),
             "cfg_json": json.dumps(to_dict(cfg), sort_keys=True)}

@@ -178,7 +178,7 @@ def table_row(scen: str, s: dict, pixel_px: float) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, default=8, help="seeds per scenario (run seeds first-seed, first-seed + 1, ...)")
+    ap.add_argument("--seeds", type=int, default=8, help="seeds per scenario (first-seed, first-seed + 1, ...)")
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
     ap.add_argument("--duration-s", type=float, help="simulated time per run (default: each scenario's own)")
@@ -245,7 +245,8 @@ def main() -> None:
     print("columns: runs tracked, first tracks correct, time to the first correct track (median, max, s), false-lock "
           "time (s), NEES beyond its 99.9 % quantile (% of scored frames), SPEC2021 score median and p95, mean NEES, "
           "RMSE/PCRLB per block, range bias (cm), pixel noise (px)")
-    print(f"floors: 0 s false lock, NEES tail <= {100 * FLOORS['nees_tail_share']:g} %, NEES in {list(FLOORS['nees'])}, "
+    print(f"floors: 0 s false lock, NEES tail <= {100 * FLOORS['nees_tail_share']:g} %, NEES in "
+          f"{list(FLOORS['nees'])}, "
           f"RMSE/PCRLB <= {FLOORS['rmse_over_pcrlb']:g}, |range bias| <= {100 * FLOORS['range_bias_m_at_50m']:g} cm "
           f"at 50 m; wrote {args.out}")
 

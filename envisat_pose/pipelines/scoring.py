@@ -64,7 +64,8 @@ def frame_errors(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray) -> dict[s
 
 def correct_frames(errors: dict[str, np.ndarray]) -> np.ndarray:
     """(...) bool: attitude error <= CORRECT_ATT_DEG and position error <= CORRECT_POS_FRAC x the true range."""
-    return (errors["attitude_deg"] <= CORRECT_ATT_DEG) & (errors["position_m"] <= CORRECT_POS_FRAC * errors["range_true_m"])
+    near = errors["position_m"] <= CORRECT_POS_FRAC * errors["range_true_m"]
+    return (errors["attitude_deg"] <= CORRECT_ATT_DEG) & near
 
 
 def spec_score(errors: dict[str, np.ndarray]) -> np.ndarray:
@@ -162,7 +163,8 @@ def pooled_figures(errors: dict[str, np.ndarray], mask: np.ndarray, bound: np.nd
     spec = spec_score(errors)[mask]
     out = {
         "frames": n,
-        "rmse": {b: None if none else float(np.sqrt(np.mean(errors[k][mask] ** 2))) for b, k in zip(BLOCKS, ERROR_KEYS)},
+        "rmse": {b: None if none else float(np.sqrt(np.mean(errors[k][mask] ** 2)))
+                 for b, k in zip(BLOCKS, ERROR_KEYS)},
         "mean_nees": None if none else float(np.mean(nees)),
         "nees_tail_share": None if none else float(np.mean(nees > NEES_TAIL)),
         "spec_score_median": None if none else float(np.median(spec)),
