@@ -101,21 +101,25 @@ def run_trial(trial: dict) -> dict:
     try:
         truth = simulate(truth_cfg)
     except ConfigError as err:
-        return out | {"refused": str(err)}
+        return out | {"refused": str(err), "error": None}
     with tempfile.TemporaryDirectory(prefix="acquisition-") as tmp:
         truth_path, run_dir = os.path.join(tmp, "truth.npz"), os.path.join(tmp, "run")
         truth.save(truth_path)
-        loop.closed_loop_task(trial["cfg_json"], 0, truth_path, None, False, 0.0, run_dir)
+        try:
+            loop.closed_loop_task(trial["cfg_json"], 0, truth_path, None, False, 0.0, run_dir)
+        except Exception as err:  # noqa: BLE001 - a trial that crashes is recorded, the others still run
+            return out | {"refused": None, "error": f"{type(err).__name__}: {err}"[:500]}
         rows = {k: np.load(os.path.join(run_dir, f"{k}.npy")) for k in ("x_hat", "P", "status", "skipped")}
     errors = frame_errors(truth.x, rows["x_hat"], rows["P"])
     rec = run_record(truth.t_s, errors, rows["status"], ~rows["skipped"].astype(bool))
-    return out | {"refused": None, "record": rec, "frames": len(truth.t_s), "wall_s": time.perf_counter() - t0,
-                  "statuses": np.asarray(rows["status"]).tolist()}
+    return out | {"refused": None, "error": None, "record": rec, "frames": len(truth.t_s),
+                  "wall_s": time.perf_counter() - t0, "statuses": np.asarray(rows["status"]).tolist()}
 
 
 def bin_summary(trials: list[dict]) -> dict:
-    """A bin's figures over its trials (refused ones counted apart; a trial that never tracks is a failure)."""
-    flown = [t for t in trials if t["refused"] is None]
+    """A bin's figures over its trials (refused ones and crashed ones counted apart; a trial that never tracks is a
+    failure)."""
+    flown = [t for t in trials if t["refused"] is None and t.get("error") is None]
     recs = [t["record"] for t in flown]
     n = len(recs)
     ok = [bool(r["first_track_correct"]) for r in recs]
@@ -124,7 +128,8 @@ def bin_summary(trials: list[dict]) -> dict:
               and r["time_to_first_correct_track_s"] <= SUCCESS_WITHIN_S for o, r in zip(ok, recs)]
     fl = [r["false_lock_frames"] > 0 for r in recs]
     done = [v for v in t1 if v is not None]
-    return {"trials": len(trials), "refused_keepout": len(trials) - n, "flown": n,
+    refused = sum(t["refused"] is not None for t in trials)
+    return {"trials": len(trials), "refused_keepout": refused, "errors": len(trials) - n - refused, "flown": n,
             "success": int(sum(ok)), "success_rate": sum(ok) / n if n else None,
             "success_within_60_s": int(sum(within)), "success_within_60_s_rate": sum(within) / n if n else None,
             "false_locks": int(sum(fl)), "false_lock_rate": sum(fl) / n if n else None,
@@ -141,12 +146,14 @@ def _f(v, fmt: str, scale: float = 1.0) -> str:
     return "-".rjust(width) if v is None else format(scale * v, fmt)
 
 
-HEAD = (f"{'range m':>7s} {'rate':8s} {'flown':>5s} {'refused':>7s} {'succ %':>6s} {'<=60s %':>7s} {'FL %':>5s} "
+HEAD = (f"{'range m':>7s} {'rate':8s} {'flown':>5s} {'refused':>7s} {'crash':>5s} {'succ %':>6s} {'<=60s %':>7s} "
+        f"{'FL %':>5s} "
         f"{'never':>5s} {'t50 s':>6s} {'tmax s':>6s}")
 
 
 def table_row(range_m: float, rate: str, b: dict) -> str:
-    return (f"{range_m:7g} {rate:8s} {b['flown']:5d} {b['refused_keepout']:7d} {_f(b['success_rate'], '6.1f', 100)} "
+    return (f"{range_m:7g} {rate:8s} {b['flown']:5d} {b['refused_keepout']:7d} {b['errors']:5d} "
+            f"{_f(b['success_rate'], '6.1f', 100)} "
             f"{_f(b['success_within_60_s_rate'], '7.1f', 100)} {_f(b['false_lock_rate'], '5.1f', 100)} "
             f"{b['never_tracked']:5d} {_f(b['time_to_first_correct_track_median_s'], '6.0f')} "
             f"{_f(b['time_to_first_correct_track_max_s'], '6.0f')}")
@@ -185,7 +192,7 @@ def main() -> None:
         results[i] = res
         rec = res.get("record")
         print(f"  trial {i + 1}/{len(trials)}: {res['range_m']:g} m {res['rate']}: "
-              + ("refused by the keep-out" if rec is None else
+              + ("refused by the keep-out" if res["refused"] else f"error: {res['error']}" if rec is None else
                  f"first track {rec['first_tracking_s']} s, correct {rec['first_track_correct']}, false lock "
                  f"{rec['false_lock_s']:g} s"), flush=True)
     wall_s = time.perf_counter() - t0
@@ -210,7 +217,8 @@ def main() -> None:
         "success_within_60_s": all(b["success_within_60_s_rate"] is not None
                                    and b["success_within_60_s_rate"] >= FLOORS["success_within_60_s"]
                                    for b in out["bins"])}
-    print(f"all: {allb['flown']} flown ({allb['refused_keepout']} refused), success {allb['success']}, within 60 s "
+    print(f"all: {allb['flown']} flown ({allb['refused_keepout']} refused, {allb['errors']} crashed), success "
+          f"{allb['success']}, within 60 s "
           f"{allb['success_within_60_s']}, false locks {allb['false_locks']}, never tracked {allb['never_tracked']}; "
           f"wall {wall_s:.0f} s")
     atomic_write_text(args.out, json.dumps(out, indent=1, sort_keys=True) + "\n")

@@ -66,3 +66,9 @@ def test_a_bins_draws_follow_its_seed_not_the_other_bins():
     d = bench.bin_seeds(1, 30.0, "stress", 3)
     states = {tuple(s.generate_state(2).tolist()) for s in a + c + d}
     assert len(states) == 9
+
+
+def test_a_crashed_trial_is_counted_apart():
+    bench = load_bench()
+    b = bench.bin_summary([trial(20), {"refused": None, "error": "MemoryError: ..."}])
+    assert b["flown"] == 1 and b["errors"] == 1 and b["refused_keepout"] == 0 and b["success_rate"] == 1.0
