@@ -240,7 +240,7 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
     det_cfg = json.dumps({"weights": cfg.weights, "run": 0, "scenario": cfg.scenario, "seed": cfg.seed,
                           "roi": cfg.tracker.roi}, sort_keys=True)
     scores = score_run_files(truth.t_s, truth.x, run_dirs, paths, config_json, det_cfg)
-    write_run_files(paths, truth.t_s, truth.x, run_dirs, ~np.array(scores["converged_runs"], bool), config_json,
+    write_run_files(paths, truth.t_s, truth.x, run_dirs, ~np.array(scores["settled_runs"], bool), config_json,
                     [f"frame-{k:06d}" for k in range(T)], det_cfg)
     atomic_write_text(paths["config"], "# envisat run: the full validated config of this run\n" + to_toml(to_dict(cfg)))
     from envisat_pose.analysis.plots import plot_estimate
