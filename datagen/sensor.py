@@ -102,14 +102,27 @@ def _radial_kernel(half: int, profile) -> np.ndarray:
     return (kern / kern.sum()).astype(np.float32)
 
 
+# the widest field of view a camera images: |x / z| and |y / z| up to 4 (76 deg off the axis; no space camera's
+# half field of view comes near it), so only points no camera sees are left out of the image motion
+MAX_TAN_FROM_AXIS = 4.0
+
+
 def image_velocity_px_s(points_T_m: np.ndarray, R_K_from_T: np.ndarray, t_K_m: np.ndarray, w_K_rad_s: np.ndarray,
                         v_K_m_s: np.ndarray, f_px: float) -> tuple[float, float]:
     """The target's image motion as one streak: (speed px/s, angle deg) of the principal axis of the image
     velocities of points_T_m (P, 3), for a target turning at w_K about its centre t_K and moving at v_K, all
     in the camera frame K. Speed: the RMS velocity along that axis (a rotation about the boresight, whose
-    velocities cancel on average, still blurs)."""
+    velocities cancel on average, still blurs). Only points the camera can image count: in front of it and within
+    MAX_TAN_FROM_AXIS of its axis (a point near the camera's plane, such as a solar-array corner beside a near
+    camera, would otherwise divide by its tiny depth: a 123953 px streak was once asked for at 20 m). (0, 0) when
+    none is."""
     p = t_K_m + points_T_m @ R_K_from_T.T  # (P, 3) in K
     pdot = v_K_m_s + np.cross(w_K_rad_s, p - t_K_m)
+    z_all = p[:, 2]
+    seen = (z_all > 0.0) & (np.abs(p[:, :2]).max(axis=1) <= MAX_TAN_FROM_AXIS * np.maximum(z_all, 0.0))
+    if not seen.any():
+        return 0.0, 0.0
+    p, pdot = p[seen], pdot[seen]
     z = p[:, 2:3]
     vel = f_px * (pdot[:, :2] / z - p[:, :2] * pdot[:, 2:3] / z**2)  # d/dt of f x / z, f y / z
     m = vel.T @ vel / len(vel)

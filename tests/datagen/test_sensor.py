@@ -227,3 +227,27 @@ def test_blooming_spills_beyond_the_optics_box():
     assert 100 < col[80] < 255 and 100 < col[119] < 255  # and fade out 18 rows away (the optics reach ~3 px)
     assert (col[:55] == 0).all() and (col[146:] == 0).all()  # beyond the spill window (6 decay lengths)
     assert (out[:, 90] == 0).all()  # not across columns
+
+
+def test_image_motion_ignores_points_no_camera_images():
+    """A point beside a near camera, close to its plane (a solar-array corner at 20 m), is not in any image: it
+    must not set the streak (it once asked for a 123953 px kernel). The streak is that of the points in view,
+    computed here by finite differences of their projections."""
+    from envisat_pose.datagen.sensor import image_velocity_px_s
+
+    f = 1900.0
+    in_view = np.array([[1.0, 0.5, 0.0], [-1.0, 0.5, 0.0], [1.0, -0.5, 0.0], [-1.0, -0.5, 0.0]])
+    beside = np.array([[15.0, 0.0, -19.99]])  # 1 cm in front of the camera's plane, 15 m to the side
+    t_K, R = np.array([0.0, 0.0, 20.0]), np.eye(3)
+    w, v = np.array([0.0, 0.05, 0.0]), np.zeros(3)
+    speed, _ = image_velocity_px_s(np.vstack([in_view, beside]), R, t_K, w, v, f)
+    ref, _ = image_velocity_px_s(in_view, R, t_K, w, v, f)
+    assert speed == ref
+    # the reference itself: the RMS image speed of the in-view points along their principal axis, their image
+    # velocities by finite differences
+    dt = 1e-6
+    rot = lambda a: np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])  # noqa: E731
+    proj = lambda P: f * P[:, :2] / P[:, 2:3]  # noqa: E731
+    vel = (proj(t_K + in_view @ rot(w[1] * dt).T) - proj(t_K + in_view)) / dt
+    assert ref == pytest.approx(np.sqrt(np.linalg.eigvalsh(vel.T @ vel / len(vel))[-1]), rel=1e-4)
+    assert image_velocity_px_s(beside, R, t_K, w, v, f) == (0.0, 0.0)
