@@ -122,11 +122,17 @@ def test_rejections_are_tested_against_the_binomial_tail_of_a_correct_track():
         tail = sum(comb(n, k) * p0**k * (1 - p0) ** (n - k) for k in range(r, n + 1))
         got = ig.rejections_improbable(r, n, CFG)
         assert (got is None) == (tail >= CFG.integrity_prob) and (got is None or got == pytest.approx(tail))
-    win = ig.EvidenceWindow.empty(1, CFG.integrity_window)
-    for k in range(CFG.integrity_window):
-        rej = 6 if k >= CFG.integrity_window - 4 else 0  # four frames with all 6 corners rejected
+    W = CFG.integrity_window
+    win = ig.EvidenceWindow.empty(1, W)
+    for k in range(W):
+        rej = 6 if k >= W - 8 else 0  # eight frames with all 6 corners rejected: the images disagree for good
         win = win.push([1.0], [2], [6], [rej])
-    assert any("rejected 24 of the last 48" in p for p in ig.window_problems(win, CFG)[0])
+    assert any(f"rejected 48 of the last {6 * W}" in p for p in ig.window_problems(win, CFG)[0])
+    burst = ig.EvidenceWindow.empty(1, W)
+    for k in range(W):
+        rej = 4 if k >= W - 4 else 0  # a burst of four frames of mis-named corners: a correct track keeps going
+        burst = burst.push([1.0], [2], [6], [rej])
+    assert ig.window_problems(burst, CFG) == [[]]
     win = ig.EvidenceWindow.empty(1, CFG.integrity_window)
     for k in range(CFG.integrity_window):
         win = win.push([1.0], [10], [6], [1 if k % 2 else 0])  # 4 of 48: a correct track's share
