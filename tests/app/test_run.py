@@ -102,14 +102,19 @@ def test_frames_in_the_earths_shadow_are_skipped(tmp_path, detector_weights):
 
 @pytest.mark.slow
 def test_the_closed_loop_starts_cold_and_converges_on_the_default_scenario(tmp_path, detector_weights):
-    """Rendered frames, the shipped detector, no prior: settled (10 cm, 1 deg, held to the end) within 120 s
-    of the first frame, NEES in a consistent filter's range afterwards."""
+    """Rendered frames, the shipped detector, no prior: the first declared tracking is correct and comes within
+    60 s of the first frame, no frame is claimed while wrong (5 deg, 2 % of range), and over every frame from the
+    first tracking on the filter is consistent (mean NEES near 12, few frames beyond the 99.9 % quantile) with a
+    range bias inside its floor (1 cm at 50 m, with the detector's measured scale bias of ~1e-3 allowed: 5 cm)."""
     cfg = run_cfg(detector_weights, duration_s=200.0)
     summary = loop.run_closed_loop(cfg, str(tmp_path / "conv"), progress=False)
     s = summary["scores"]
-    assert s["settled"] == 1 and s["time_to_settle_s"]["max"] <= 120.0, s
-    assert 3.0 < s["scored"]["mean_nees"] < 60.0, s
-    assert abs(s["scored"]["range_bias_m"]) < 0.05, s
+    assert s["runs_tracked"] == 1 and s["first_track_correct"] == 1, s
+    assert s["time_to_first_correct_track_s"]["max"] <= 60.0, s
+    assert s["false_lock_s"] == 0.0, s
+    sc = s["scored"]
+    assert 6.0 < sc["mean_nees"] < 24.0 and sc["nees_tail_share"] < 0.05, sc
+    assert abs(sc["range_bias_m"]) < 0.05, sc
 
 
 def test_the_cli_runs_several_loops_in_parallel(tmp_path, detector_weights, capsys):
