@@ -50,6 +50,14 @@ SUCCESS_WITHIN_S = 60.0
 FLOORS = {"false_locks": 0, "min_acquisitions": 300, "success_within_60_s": 0.99}
 
 
+
+def weights_ref(path: str) -> dict:
+    """The weights by file name and sha256 (no path of this machine in a result file)."""
+    import hashlib
+
+    with open(path, "rb") as fh:
+        return {"name": os.path.basename(path), "sha256": hashlib.sha256(fh.read()).hexdigest()}
+
 def bin_seeds(seed: int, range_m: float, rate: str, trials: int) -> list[np.random.SeedSequence]:
     """One SeedSequence per trial of the bin (range_m, rate), from the root seed."""
     key = (int(round(100 * range_m)), list(RATES).index(rate))
@@ -203,7 +211,7 @@ def main() -> None:
                        f"at the scenario's rate, random attitude (uniform SO(3)), tumble axis (uniform sphere, in T) "
                        f"and lit sun (phase <= {phase:g} deg all run, no shadow); V-bar hold; the tracker gets the "
                        f"exact chaser orbit and the render camera",
-           "weights": weights, "status_legend": legend(), "floors": FLOORS, "rates": RATES, "wall_s": wall_s,
+           "weights": weights_ref(weights), "status_legend": legend(), "floors": FLOORS, "rates": RATES, "wall_s": wall_s,
            "bins": [], "trials": results}
     print(HEAD)
     for r, rate in bins:

@@ -42,6 +42,14 @@ FLOORS = {"false_lock_s": 0.0, "nees_tail_share": 0.005, "nees": (8.0, 16.0), "r
           "range_bias_m_at_50m": 0.01}
 
 
+
+def weights_ref(path: str) -> dict:
+    """The weights by file name and sha256 (no path of this machine in a result file)."""
+    import hashlib
+
+    with open(path, "rb") as fh:
+        return {"name": os.path.basename(path), "sha256": hashlib.sha256(fh.read()).hexdigest()}
+
 def run_config(scenario: str, seed: int, weights: str, duration_s: float | None, correlation_in: str | None,
                sun_phase_max_deg: float):
     """The closed loop of (scenario, seed) as `envisat run` resolves it, with the seed's lit sun."""
@@ -211,7 +219,7 @@ def main() -> None:
                           f"{' s' if args.duration_s else ''}; tracker.correlation_in "
                           f"{args.correlation_in or 'default'}; the tracker gets the exact chaser orbit and the "
                           f"render camera",
-              "weights": weights, "error_model": None if em is None else {k: getattr(em, k) for k in vars(em)},
+              "weights": weights_ref(weights), "error_model": None if em is None else {k: getattr(em, k) for k in vars(em)},
               "floors": FLOORS, "scenarios": {}}
     print(f"cold-start tracking, seeds {seeds[0]}..{seeds[-1]} per scenario, {args.workers} workers "
           f"(load {os.getloadavg()[0]:.1f} at start)")
