@@ -34,14 +34,20 @@ from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
 
 @functools.lru_cache(maxsize=1)
-def half_turn() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The half-turn about the long axis as perception's naming derives it from the MJCF's box
-    (perception.naming.symmetry_permutations): (perm (8,), S (3, 3), d (3,) m in T) with corner perm[k] = S corner
-    k + d; A<->C, B<->D, E<->G, F<->H with the box centred on the CoM."""
+def box_symmetries() -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The box's half-turns about its x, y and z axes as perception's naming derives them from the MJCF
+    (perception.naming.symmetry_permutations): name -> (perm (8,), S (3, 3), d (3,) m in T) with corner perm[k]
+    = S corner k + d. Each maps the box's corners onto themselves, so a naming may be off by any of them."""
     from envisat_pose.perception.naming import symmetry_permutations
 
-    perm, S, d = symmetry_permutations(load_geometry())["x"]
-    return np.asarray(perm), np.asarray(S, dtype=float), np.asarray(d, dtype=float)
+    return {name: (np.asarray(perm), np.asarray(S, dtype=float), np.asarray(d, dtype=float))
+            for name, (perm, S, d) in symmetry_permutations(load_geometry()).items()}
+
+
+def half_turn() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The half-turn about the long axis (box_symmetries()["x"]): A<->C, B<->D, E<->G, F<->H with the box centred
+    on the CoM; the one symmetry the appearance and the inertia tell apart only slowly."""
+    return box_symmetries()["x"]
 
 
 @dataclass(frozen=True)
@@ -93,7 +99,13 @@ def pnp_state(z_px: np.ndarray, corners_T_m: np.ndarray, camera: PinholeCamera, 
 def half_turn_state(x: np.ndarray) -> np.ndarray:
     """The same physical pose described by the half-turn naming (half_turn: S, d): T' has Gamma' = S Gamma, its
     origin moved by d (rho' = rho + Gamma^T d, zero for a box centred on the CoM) and w' = S w. (..., 12)."""
-    _, S, d = half_turn()
+    return symmetric_state(x, half_turn())
+
+
+def symmetric_state(x: np.ndarray, symmetry: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """The same physical pose described by the naming a box symmetry (perm, S, d) gives (half_turn_state for any
+    of box_symmetries). (..., 12)."""
+    _, S, d = symmetry
     x = np.array(x, dtype=float)
     G = mrp_to_dcm(x[..., MRP])
     x[..., POS] = x[..., POS] + np.einsum("...ji,j->...i", G, d)
@@ -115,43 +127,64 @@ def attitude_distance_rad(p_a: np.ndarray, p_b: np.ndarray) -> float:
 
 
 def align_namings(frames: list[FramePose]) -> tuple[list[FramePose], np.ndarray]:
-    """One consistent naming through the window (module docstring, 2). Returns the frames renamed where they
-    flipped (their x_pnp and p_alt follow) and flipped (N,) bool. The first frame keeps the detector's naming."""
-    out, flipped, ref = [], [], None
+    """One consistent naming through the window (module docstring, 2). Each frame takes the naming (the
+    detector's, or its renaming by one of the box's half-turns, box_symmetries) whose attitude is nearest the
+    previous frame's: the detector's names may be off by any of the box's symmetries, and a physical tumble turns
+    the box by a few degrees between frames, never by 180. Returns the frames renamed (their x_pnp follows; p_alt
+    too under the long-axis half-turn, and 0.5 under the others, which the detector's half-turn probability says
+    nothing about) and renamed (N,) bool. The first frame keeps the detector's naming."""
+    out, renamed, ref = [], [], None
+    syms = box_symmetries()
     for fr in frames:
-        flip = False
+        best = None
         if ref is not None and fr.x_pnp is not None:
-            alt = half_turn_state(fr.x_pnp)
-            flip = attitude_distance_rad(alt[MRP], ref) < attitude_distance_rad(fr.x_pnp[MRP], ref)
-        if flip:
-            z, c = half_turn_naming(fr.z_px, fr.cov_px)
-            fr = FramePose(fr.t_s, fr.chaser, z, c, 1.0 - fr.p_alt, half_turn_state(fr.x_pnp))
+            dist = {name: attitude_distance_rad(symmetric_state(fr.x_pnp, sym)[MRP], ref) for name, sym in syms.items()}
+            name = min(dist, key=dist.get)
+            if dist[name] < attitude_distance_rad(fr.x_pnp[MRP], ref):
+                best = name
+        if best is not None:
+            perm = syms[best][0]
+            p_alt = 1.0 - fr.p_alt if best == "x" else 0.5
+            fr = FramePose(fr.t_s, fr.chaser, fr.z_px[perm], fr.cov_px[perm], p_alt,
+                           symmetric_state(fr.x_pnp, syms[best]))
         if fr.x_pnp is not None:
             ref = fr.x_pnp[MRP]
         out.append(fr)
-        flipped.append(flip)
-    return out, np.array(flipped)
+        renamed.append(best is not None)
+    return out, np.array(renamed)
 
 
 def initial_guess(frames: list[FramePose]) -> np.ndarray:
-    """A first state at the last frame from the PnP poses: the last pose, the velocity of a straight-line fit of
-    the positions (m/s, C) and the relative rate from the attitude change over the window (rad/s, T)."""
+    """A first state at the last frame from the PnP poses, robust to a few mis-named frames: the relative rate
+    (rad/s, T) the median of the consecutive pairs' rotation rates; the attitude that of the last frame whose step
+    from its predecessor agrees with that rate (an isolated wrong pose is never the anchor), carried to the last
+    frame at the rate; the position (m, C) and velocity (m/s) a straight-line fit of the positions through their
+    median residual's inliers."""
     from scipy.spatial.transform import Rotation
 
     have = [f for f in frames if f.x_pnp is not None]
     t = np.array([f.t_s for f in have])
     pos = np.array([f.x_pnp[POS] for f in have])
     x = have[-1].x_pnp.copy()
-    if len(have) >= 2 and np.ptp(t) > 0:
-        x[VEL] = np.polyfit(t - t[-1], pos, 1)[0]
-        # Gamma' = -[w_r x] Gamma (v_T = Gamma v_C): Gamma_k Gamma_(k-1)^T ~ exp(-[w_r x] dt), rotation vectors
-        # of consecutive pairs, averaged with their time steps
-        rv, dt = [], []
-        for a, b in zip(have[:-1], have[1:]):
-            G = mrp_to_dcm(b.x_pnp[MRP]) @ mrp_to_dcm(a.x_pnp[MRP]).T
-            rv.append(-Rotation.from_matrix(G).as_rotvec())
-            dt.append(b.t_s - a.t_s)
-        x[RATE] = np.sum(rv, axis=0) / np.sum(dt)
+    if len(have) < 2 or not np.ptp(t) > 0:
+        return x
+    # Gamma' = -[w_r x] Gamma (v_T = Gamma v_C): Gamma_k Gamma_(k-1)^T ~ exp(-[w_r x] dt) for each pair
+    rates = np.array([-Rotation.from_matrix(mrp_to_dcm(b.x_pnp[MRP]) @ mrp_to_dcm(a.x_pnp[MRP]).T).as_rotvec()
+                      / (b.t_s - a.t_s) for a, b in zip(have[:-1], have[1:])])
+    w = np.median(rates, axis=0)
+    agree = np.linalg.norm(rates - w, axis=1) <= 3.0 * np.median(np.linalg.norm(rates - w, axis=1)) + 1e-9
+    anchor = len(have) - 1
+    while anchor > 0 and not agree[anchor - 1]:
+        anchor -= 1
+    G = Rotation.from_rotvec(-w * (t[-1] - t[anchor])).as_matrix() @ mrp_to_dcm(have[anchor].x_pnp[MRP])
+    x[MRP] = dcm_to_mrp(G)
+    x[RATE] = w
+    fit = np.polyfit(t - t[-1], pos, 1)
+    resid = np.linalg.norm(pos - (np.outer(t - t[-1], fit[0]) + fit[1]), axis=1)
+    inl = resid <= 3.0 * np.median(resid) + 1e-9
+    if inl.sum() >= 2 and np.ptp(t[inl]) > 0:
+        fit = np.polyfit(t[inl] - t[-1], pos[inl], 1)
+    x[VEL], x[POS] = fit[0], fit[1]
     return x
 
 
