@@ -101,10 +101,12 @@ def ideal_pixels(out_dir: str, cfg, sigma_px: float, seed: int) -> np.ndarray:
 
 
 def rmse(t_s, x_true, x_hat, after_s: float) -> dict:
-    """RMSE per block after after_s (envisat_pose.state.error_summary) and the largest position and attitude."""
+    """RMSE per block after after_s (envisat_pose.state.error_summary) and the largest position and attitude, over
+    the rows that hold an estimate (est.npz's rows are NaN where the tracker was acquiring or lost)."""
     from envisat_pose.state import error_summary
 
-    e = error_summary(t_s, x_true[None], x_hat[None], after_s)
+    ok = np.isfinite(x_hat).all(-1)
+    e = error_summary(np.asarray(t_s)[ok], x_true[ok][None], x_hat[ok][None], after_s)
     return {"position_m": e["position_m"]["rms_after"], "velocity_m_s": e["velocity_m_s"]["rms_after"],
             "attitude_deg": e["attitude_deg"]["rms_after"], "rate_deg_s": e["rate_deg_s"]["rms_after"],
             "max_position_m": e["position_m"]["max_after"], "max_attitude_deg": e["attitude_deg"]["max_after"]}
