@@ -202,6 +202,7 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
     from envisat_pose.io import atomic_write_text
     from envisat_pose.runner import RunnerConfig, cpu_share, real_time_factor, run_tasks
 
+    cfg = finish_config(cfg)  # idempotent: a RunConfig a user builds runs as the app's does
     os.makedirs(out_dir, exist_ok=True)
     paths = output_paths(out_dir)
     wall0 = time.perf_counter()

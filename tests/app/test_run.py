@@ -137,3 +137,21 @@ def test_the_cli_runs_several_loops_in_parallel(tmp_path, detector_weights, caps
     # a bad flag is one line, before any work
     assert main(["run", "--scenario", "nope", "--out", str(tmp_path / "x"), "--weights", detector_weights]) == 2
     assert "scenario" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+def test_a_run_config_a_user_builds_runs_without_the_apps_finishing(tmp_path, detector_weights):
+    """run_closed_loop finishes the config itself (finish_config is idempotent): the same outputs as from the
+    config the app finishes."""
+    from envisat_pose.config import from_dict
+    from envisat_pose.pipelines.run_config import RunConfig, finish_config, stage_types
+
+    stage_types()
+    raw = from_dict(RunConfig, {"scenario": "default", "duration_s": 2.0, "weights": detector_weights, "workers": 1,
+                                "warm_start": True})
+    assert finish_config(finish_config(raw)) == finish_config(raw)
+    a = loop.run_closed_loop(raw, str(tmp_path / "raw"), progress=False)
+    b = loop.run_closed_loop(finish_config(raw), str(tmp_path / "fin"), progress=False)
+    assert a["frames"] == b["frames"] == 3
+    with np.load(tmp_path / "raw" / "est.npz") as za, np.load(tmp_path / "fin" / "est.npz") as zb:
+        np.testing.assert_array_equal(za["x_true"], zb["x_true"])
+        np.testing.assert_array_equal(za["status"], zb["status"])
