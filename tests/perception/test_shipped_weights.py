@@ -2,7 +2,7 @@
 training or calibration set used: full 1024 px frames, appearance randomization and the space camera on.
 
 The floors are the measured performance of these weights on 200 held-out random views (seeds 8181 and 9191, 100
-frames each, default generate config; the model card's evaluations and bench/results/detector_floors_i26.json)
+frames each, default generate config; the model card's evaluations and bench/results/detector_floors.json)
 less a margin for a 24-frame sample (binomial standard error of a share p over ~140 corners:
 sqrt(p (1 - p) / 140) ~ 3-4 points; 3 standard errors). They guard against a regression of the weights or of
 the detection chain; they are not issue 26's floors (PCK@5 >= 95 %, named wrongly <= 1.5 %, visibility >= 96 %),
