@@ -227,7 +227,10 @@ class Estimates(_Contract):
     t_s: (T,) s. x_true: (R, T, 12) the truth on the filter's grid; x_hat: (R, T, 12) posterior means; P:
     (R, T, 12, 12) posterior covariances (units of the state, squared). n_meas: (R, T) corners used per step.
     nis: (R, T) normalized innovation squared (0 without measurement); nis_dof: (R, T) its degrees of freedom
-    (measured components used). diverged: (R,) bool.
+    (measured components used). diverged: (R,) bool, one meaning everywhere: the run's estimate was flagged
+    inconsistent by a monitor (the filter's windowed NIS, with a truth the NEES window; for the tracker's runs,
+    any frame it declared lost). Whether a run met a truth's tolerances is a score, not this flag (the closed
+    loop's est.npz stores it beside as `settled`).
     config_json: the estimate config, the truth's source and config, as JSON.
     status: optional (R, T) the tracker's status code per row (envisat_pose.status; a file stores its legend as
     JSON in `status_legend`): x_hat and P are NaN on rows whose status holds no estimate (acquiring, lost) and

@@ -241,8 +241,9 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
     det_cfg = json.dumps({"weights": cfg.weights, "run": 0, "scenario": cfg.scenario, "seed": cfg.seed,
                           "roi": cfg.tracker.roi}, sort_keys=True)
     scores = score_run_files(truth.t_s, truth.x, run_dirs, paths, config_json, det_cfg)
-    write_run_files(paths, truth.t_s, truth.x, run_dirs, ~np.array(scores["settled_runs"], bool), config_json,
-                    [f"frame-{k:06d}" for k in range(T)], det_cfg)
+    write_run_files(paths, truth.t_s, truth.x, run_dirs, lost_runs(run_dirs, T), config_json,
+                    [f"frame-{k:06d}" for k in range(T)], det_cfg,
+                    extra={"settled": np.array(scores["settled_runs"], bool)})
     atomic_write_text(paths["config"], "# envisat run: the full validated config of this run\n" + to_toml(to_dict(cfg)))
     from envisat_pose.analysis.plots import plot_estimate
 
@@ -339,10 +340,19 @@ def score_run_files(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], pa
     return score_frames(t_s, errors, np.stack(status), skipped, summary)
 
 
+def lost_runs(run_dirs: list[str], T: int) -> np.ndarray:
+    """(R,) bool: the runs in which the tracker declared a frame lost (Estimates.diverged for tracker runs)."""
+    from envisat_pose.status import LOST
+
+    return np.array([bool(np.any(run_rows(d, ["status"], 0, T)["status"] == LOST)) for d in run_dirs])
+
+
 def write_run_files(paths: dict, t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], diverged: np.ndarray,
-                    config_json: str, keys: list[str], det_cfg: str, det_names=DET_KEYS) -> None:
+                    config_json: str, keys: list[str], det_cfg: str, det_names=DET_KEYS,
+                    extra: dict | None = None) -> None:
     """est.npz (every run) and det.npz (run 0) streamed from the runs' files (their contracts checked chunk by
-    chunk in score_run_files): the same bytes as Estimates.save / save_npz of the whole arrays."""
+    chunk in score_run_files): the same bytes as Estimates.save / save_npz of the whole arrays. diverged (R,):
+    Estimates.diverged; extra: more (R,) arrays for est.npz (Estimates.load ignores them)."""
     from envisat_pose.io import StreamedArray, save_npz
 
     from envisat_pose.pipelines.outputs import estimate_arrays  # status per row, NaN where no estimate
@@ -351,7 +361,7 @@ def write_run_files(paths: dict, t_s: np.ndarray, x_true: np.ndarray, run_dirs: 
     T, R = len(t_s), len(run_dirs)
     est = estimate_arrays(run_dirs, T)
     est["x_true"] = StreamedArray((R, T, 12), np.float64, lambda: (x_true for _ in range(R)))
-    save_npz(paths["est"], est | {"t_s": t_s, "diverged": np.asarray(diverged, bool),
+    save_npz(paths["est"], est | (extra or {}) | {"t_s": t_s, "diverged": np.asarray(diverged, bool),
                                   "config_json": np.array(config_json), "status_legend": np.array(legend_json())})
     det = {k: run_array(run_dirs[:1], k, T) for k in det_names}
     det = {k: StreamedArray(a.shape[1:], a.dtype, a.chunks) for k, a in det.items()}

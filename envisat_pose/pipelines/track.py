@@ -122,8 +122,8 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     from envisat_pose.config import to_dict, to_toml
     from envisat_pose.io import atomic_write_text
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.pipelines.closed_loop import (DET_KEYS, RunRows, chaser_function, est_row, run_rows,
-                                                    score_run_files, store_estimate, write_run_files)
+    from envisat_pose.pipelines.closed_loop import (DET_KEYS, RunRows, chaser_function, est_row, lost_runs,
+                                                    run_rows, score_run_files, store_estimate, write_run_files)
     from envisat_pose.pipelines.outputs import first_tracking_s, status_counts
     from envisat_pose.pipelines.tracker import Tracker
     from envisat_pose.runner import real_time_factor
@@ -178,8 +178,8 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
                              det_names=det_names)
     col = run_rows(run_dir, ["status", "nis", "nis_dof"], 0, T)  # three scalars a frame
     status = col["status"]
-    write_run_files(paths, source.t_s, x_true, [run_dir], np.array([status[-1] != STATUSES.index("tracking")]),
-                    config_json, source.names, det_cfg, det_names=det_names)
+    write_run_files(paths, source.t_s, x_true, [run_dir], lost_runs([run_dir], T), config_json, source.names,
+                    det_cfg, det_names=det_names)
     atomic_write_text(paths["config"], "# envisat track: the full validated config of this job\n" + to_toml(to_dict(cfg)))
     timing = np.asarray(sums["timing_s"]) / T
     dof = int(np.sum(col["nis_dof"]))

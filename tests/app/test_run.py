@@ -155,3 +155,13 @@ def test_a_run_config_a_user_builds_runs_without_the_apps_finishing(tmp_path, de
     with np.load(tmp_path / "raw" / "est.npz") as za, np.load(tmp_path / "fin" / "est.npz") as zb:
         np.testing.assert_array_equal(za["x_true"], zb["x_true"])
         np.testing.assert_array_equal(za["status"], zb["status"])
+
+
+def test_diverged_means_the_runs_own_monitor_flagged_it(tmp_path, detector_weights):
+    """Estimates.diverged has one meaning (contracts.py): for tracker runs, a frame declared lost; whether a run
+    met the truth's tolerances is stored apart (`settled`)."""
+    out = tmp_path / "d"
+    loop.run_closed_loop(run_cfg(detector_weights, warm_start=True), str(out), progress=False)
+    with np.load(out / "est.npz", allow_pickle=False) as z:
+        assert z["diverged"].tolist() == [bool((z["status"][0] == 2).any())] == [False]
+        assert "settled" in z.files and z["settled"].shape == (1,)
