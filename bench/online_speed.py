@@ -36,24 +36,15 @@ CORRECT_PX = 10.0  # a detected corner within this of the truth counts as correc
 def closed_loop(weights: str, duration_s: float, roi: bool, seed: int, out_dir: str, cores: int) -> tuple[dict, object]:
     """`envisat run --warm-start` (the tracker handed run 0's draw from P0, so the ideal-pixel filter below starts
     from the same estimate)."""
-    from envisat_pose.config import from_dict
+    from envisat_pose.app.run import run_config
     from envisat_pose.pipelines import closed_loop as loop
-    from envisat_pose.pipelines.tracker import TRACKER_FILTER
 
-    loop.stage_types()
-    data = {"scenario": "default", "duration_s": duration_s, "weights": weights, "seed": seed, "workers": 1,
-            "threads": cores, "warm_start": True, "tracker": {"roi": roi}, "filter": {**TRACKER_FILTER, **loop_filter_table()}}
-    cfg = loop.finish_config(from_dict(loop.RunConfig, data))
+    cfg = run_config("default", {"duration_s": duration_s, "weights": weights, "seed": seed, "workers": 1,
+                                 "threads": cores, "warm_start": True, "tracker.roi": roi})
     t0 = time.perf_counter()
     summary = loop.run_closed_loop(cfg, out_dir, progress=False)
     summary["bench_wall_s"] = time.perf_counter() - t0
     return summary, cfg
-
-
-def loop_filter_table() -> dict:
-    from envisat_pose.app.scenarios import job_defaults
-
-    return job_defaults("default").get("filter", {})
 
 
 def detector_noise(out_dir: str) -> dict:

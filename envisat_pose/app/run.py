@@ -102,14 +102,20 @@ def run_defaults(scenario: str) -> dict:
 def resolve_config(args: argparse.Namespace):
     """Defaults, then the scenario's [filter] table and duration, then --config, then the flags; validated
     before any work."""
+    flags = {"duration_s": args.duration_s, "runs": args.runs, "seed": args.seed, "weights": args.weights,
+             "workers": args.workers, "warm_start": True if args.warm_start else None,
+             "tracker.roi": False if args.no_roi else None}
+    return run_config(args.scenario, flags, args.config)
+
+
+def run_config(scenario: str, flags: dict, config_path: str | None = None):
+    """The RunConfig `envisat run` runs for a named scenario, a config file and flags {'section.key': value}
+    (None: not given) over them, resolved by config.resolve_job_config (the scenario's defaults, then the file,
+    then the flags) and validated before any work: what the tests and benchmarks build their runs with too."""
     from envisat_pose.config import resolve_job_config
     from envisat_pose.pipelines.run_config import RunConfig, finish_config, stage_types
 
     stage_types()
-    defaults = run_defaults(args.scenario)
-    flags = {"scenario": args.scenario, "duration_s": args.duration_s, "runs": args.runs, "seed": args.seed,
-             "weights": args.weights, "workers": args.workers, "warm_start": True if args.warm_start else None,
-             "tracker.roi": False if args.no_roi else None}
 
     def complete(data: dict) -> dict:
         if "workers" not in data:  # one process per run, at most one per core
@@ -117,7 +123,8 @@ def resolve_config(args: argparse.Namespace):
             data["workers"] = max(1, min(runs if isinstance(runs, int) else 1, os.cpu_count() or 1))
         return with_default_weights(data)
 
-    cfg = resolve_job_config(RunConfig, defaults, args.config, flags, complete)
+    cfg = resolve_job_config(RunConfig, run_defaults(scenario), config_path, {**flags, "scenario": scenario},
+                             complete)
     check_weights(cfg.weights)
     return finish_config(cfg)
 

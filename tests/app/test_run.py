@@ -12,15 +12,11 @@ import pytest
 from envisat_pose.pipelines import closed_loop as loop
 
 
-def run_cfg(weights, duration_s=4.0, **over):
-    from envisat_pose.app.scenarios import job_defaults
-    from envisat_pose.config import from_dict
-    from envisat_pose.pipelines.tracker import TRACKER_FILTER
+def run_cfg(weights, duration_s=4.0, **flags):
+    """The default scenario's run as `envisat run` resolves it (app.run.run_config), with flags over it."""
+    from envisat_pose.app.run import run_config
 
-    loop.stage_types()
-    data = {"scenario": "default", "duration_s": duration_s, "weights": weights, "workers": 1,
-            "filter": {**TRACKER_FILTER, **job_defaults("default")["filter"]}, **over}
-    return loop.finish_config(from_dict(loop.RunConfig, data))
+    return run_config("default", {"duration_s": duration_s, "weights": weights, "workers": 1, **flags})
 
 
 def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, verify_rrd):
@@ -82,7 +78,7 @@ def test_frames_in_the_earths_shadow_are_skipped(tmp_path, detector_weights):
     from envisat_pose.datagen.scenario import scenario_config
 
     r0 = chaser_orbit(scenario_config("default").orbit, np.array([0.0])).r_N_m[0]
-    cfg = run_cfg(detector_weights, duration_s=3.0, image={"sun_dir": (-r0 / np.linalg.norm(r0)).tolist()})
+    cfg = run_cfg(detector_weights, duration_s=3.0, **{"image.sun_dir": (-r0 / np.linalg.norm(r0)).tolist()})
     out = tmp_path / "dark"
     summary = loop.run_closed_loop(cfg, str(out), progress=False)
     assert summary["run0"]["frames_skipped_eclipse"] == 4 and summary["run0"]["frames_acquiring"] == 4

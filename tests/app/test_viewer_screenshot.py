@@ -109,15 +109,9 @@ def looks_loaded(png: str) -> bool:
 @pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (make test installs it as root)")
 def test_the_recording_opens_in_the_web_viewer(tmp_path, detector_weights, rerun_env):
-    from envisat_pose.app.scenarios import job_defaults
-    from envisat_pose.config import from_dict
+    from envisat_pose.app.run import run_config
 
-    from envisat_pose.pipelines.tracker import TRACKER_FILTER
-
-    loop.stage_types()
-    data = {"scenario": "default", "duration_s": 6.0, "weights": detector_weights, "workers": 1, "warm_start": True,
-            "filter": {**TRACKER_FILTER, **job_defaults("default")["filter"]}}
-    cfg = loop.finish_config(from_dict(loop.RunConfig, data))
+    cfg = run_config("default", {"duration_s": 6.0, "weights": detector_weights, "workers": 1, "warm_start": True})
     run_dir = tmp_path / "run"
     loop.run_closed_loop(cfg, str(run_dir), progress=False)
     port, web_port = free_ports(2)

@@ -26,12 +26,10 @@ import pytest
 CHILD = textwrap.dedent("""
     import json, resource, sys, tracemalloc
     import numpy as np
-    from envisat_pose.app.scenarios import job_defaults
-    from envisat_pose.config import from_dict
+    from envisat_pose.app.run import run_config
     from envisat_pose.datagen.orbit import chaser_orbit
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.pipelines import closed_loop as loop
-    from envisat_pose.pipelines.tracker import TRACKER_FILTER
 
     weights, out, long_s = sys.argv[1], sys.argv[2], float(sys.argv[3])
     loop.stage_types()
@@ -39,10 +37,9 @@ CHILD = textwrap.dedent("""
     r_mid = chaser_orbit(scenario_config("default").orbit, np.array([1050.0])).r_N_m[0]
 
     def cfg(duration_s):
-        data = {"scenario": "default", "duration_s": duration_s, "rate_hz": 10.0, "weights": weights, "workers": 1,
-                "filter": {**TRACKER_FILTER, **job_defaults("default")["filter"]},
-                "image": {"resolution_px": 64, "sun_dir": (-r_mid / np.linalg.norm(r_mid)).tolist()}}
-        return loop.finish_config(from_dict(loop.RunConfig, data))
+        return run_config("default", {"duration_s": duration_s, "rate_hz": 10.0, "weights": weights, "workers": 1,
+                                      "image.resolution_px": 64,
+                                      "image.sun_dir": (-r_mid / np.linalg.norm(r_mid)).tolist()})
 
     def job(duration_s, name):
         tracemalloc.reset_peak()
