@@ -28,7 +28,8 @@ LAYOUT = {"envisat_pose": "envisat_pose", **{s: f"envisat_pose.{s}" for s in STA
 EXTRA_FOLDERS = ("bench",)
 
 # the kinds whose checker reads the tests' helpers too (a test must not build its own physics for the filter)
-WITH_TESTS = ("physics_builders",)
+WITH_TESTS = ("physics_builders", "hand_built_runs")
+THIS_FILE = os.path.join("tests", "test_architecture.py")
 
 # Copies that other engineers are removing now (issue 19). An entry must name a file that still holds the
 # copy: `test_pending_copies_are_still_there` fails once it is gone, so the entry is deleted with the fix.
@@ -39,6 +40,7 @@ PENDING = {
     "physics_builders": {},
     "typed_gates": {},
     "shard_readers": {},
+    "hand_built_runs": {},
 }
 
 
@@ -238,6 +240,20 @@ def hand_resolutions(source: str) -> list[int]:
     return sorted(set(lines))
 
 
+def run_configs_built(source: str) -> list[int]:
+    """Lines where a RunConfig is built straight from a dict (from_dict(RunConfig, ...)) instead of through
+    config.resolve_job_config (app.run.run_config for a scenario's run): the tests' and benchmarks' copies of the
+    app's resolution that issue 29 found."""
+    lines = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Call) and _called_name(node) == "from_dict" and node.args:
+            a = node.args[0]
+            name = a.attr if isinstance(a, ast.Attribute) else getattr(a, "id", "")
+            if name == "RunConfig":
+                lines.append(node.lineno)
+    return sorted(lines)
+
+
 def _chi2_values() -> list[float]:
     """Chi-square bounds a gate typed by hand would hold: 1 to 4 dof, tail probabilities 0.05 to 1e-7."""
     from scipy.stats import chi2
@@ -336,6 +352,8 @@ def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
             lines = state_slice_definitions(source)
         elif kind == "manifest_writers" and rel != RUNNER_FILE:
             lines = manifest_writes(source)
+        elif kind == "hand_built_runs" and rel.split(os.sep)[0] in ("tests", "bench") and rel != THIS_FILE:
+            lines = run_configs_built(source)
         elif kind == "hand_resolved_configs" and resolves_configs(rel):
             lines = hand_resolutions(source)
         elif kind == "physics_builders" and rel != ONBOARD_FILE and filter_side(rel):
@@ -572,3 +590,9 @@ def test_every_test_module_keeps_a_fast_test():
             if tests and not fast and rel not in ONLY_SLOW:
                 bare.append(rel)
     assert bare == []
+
+
+def test_the_run_config_checker_catches_a_hand_built_run():
+    planted = "def cfg(w):\n    return loop.finish_config(from_dict(loop.RunConfig, {'weights': w}))\n"
+    assert run_configs_built(planted) == [2]
+    assert run_configs_built("cfg = run_config('default', {'duration_s': 4.0})\n") == []

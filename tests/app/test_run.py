@@ -138,12 +138,12 @@ def test_the_cli_runs_several_loops_in_parallel(tmp_path, detector_weights, caps
 def test_a_run_config_a_user_builds_runs_without_the_apps_finishing(tmp_path, detector_weights):
     """run_closed_loop finishes the config itself (finish_config is idempotent): the same outputs as from the
     config the app finishes."""
-    from envisat_pose.config import from_dict
+    from envisat_pose.config import resolve_job_config
     from envisat_pose.pipelines.run_config import RunConfig, finish_config, stage_types
 
-    stage_types()
-    raw = from_dict(RunConfig, {"scenario": "default", "duration_s": 2.0, "weights": detector_weights, "workers": 1,
-                                "warm_start": True})
+    stage_types()  # a user's own resolution, without the app's scenario defaults or finishing
+    raw = resolve_job_config(RunConfig, {}, None, {"scenario": "default", "duration_s": 2.0,
+                                                   "weights": detector_weights, "workers": 1, "warm_start": True})
     assert finish_config(finish_config(raw)) == finish_config(raw)
     a = loop.run_closed_loop(raw, str(tmp_path / "raw"), progress=False)
     b = loop.run_closed_loop(finish_config(raw), str(tmp_path / "fin"), progress=False)
