@@ -568,8 +568,9 @@ def test_the_slow_list_checker_sees_a_stale_id():
     assert "not parametrized" in missing_test(f"{here}::test_every_slow_id_names_a_test[x]")
 
 
-# modules whose every test is slow: the web viewer's screenshot (its one test drives Chromium)
-ONLY_SLOW = {"tests/app/test_viewer_screenshot.py"}
+# modules whose every test is slow: the web viewer's screenshot (its one test drives Chromium), the wheel's
+# install into a fresh venv, and DDP's two processes (one end-to-end test each)
+ONLY_SLOW = {"tests/app/test_viewer_screenshot.py", "tests/test_wheel_install.py", "tests/perception/test_ddp.py"}
 
 
 def test_every_test_module_keeps_a_fast_test():
