@@ -115,17 +115,19 @@ def scale_sigma(em) -> float:
     return float(abs(em.bias_scale - 1.0)) if em.n_frames else 0.0
 
 
-def range_floor(mean: np.ndarray, cov: np.ndarray, sigma_rel: float) -> np.ndarray:
-    """cov (..., 12, 12) with the position variance along the line of sight raised to at least
-    (sigma_rel x range)^2 (a rank-one addition u u^T to the position block, u the unit line of sight of mean's
-    position; unchanged where it is already larger or sigma_rel is 0)."""
+def range_consider(mean: np.ndarray, cov: np.ndarray, sigma_rel: float) -> np.ndarray:
+    """cov (..., 12, 12) plus the range error of an apparent-scale error of sigma_rel: (sigma_rel x range)^2 along
+    the line of sight (a rank-one addition u u^T to the position block, u the unit line of sight of mean's
+    position; unchanged where sigma_rel is 0). A scale error s common to every frame moves the estimated position
+    by -(s - 1) x range along the line of sight whatever the filter averages, so its variance adds to the
+    filter's (a consider parameter: reported, never fed back into the gain, where it would make the filter follow
+    each frame's range instead of averaging them)."""
     if sigma_rel <= 0.0:
         return cov
     pos = mean[..., POS]
     r = np.linalg.norm(pos, axis=-1, keepdims=True)
     u = pos / np.maximum(r, 1e-9)
-    var = np.einsum("...i,...ij,...j->...", u, cov[..., POS, POS], u)
-    add = np.maximum((sigma_rel * r[..., 0]) ** 2 - var, 0.0)
+    add = (sigma_rel * r[..., 0]) ** 2
     out = np.array(cov, dtype=float)
     out[..., POS, POS] += add[..., None, None] * u[..., :, None] * u[..., None, :]
     return out

@@ -58,7 +58,7 @@ from envisat_pose.pipelines.bank import choose_namings, probabilities, select_ru
 from envisat_pose.pipelines.integrity import (EvidenceWindow, claim_holds, fit_problems, pose_sigmas,
                                               state_problems, target_radius_m, window_problems)
 from envisat_pose.pipelines.noise import (correlation_inflation, detection_measurement, detector_error_model,
-                                          filter_memory, nis_sum_dispersion, range_floor, scale_sigma,
+                                          filter_memory, nis_sum_dispersion, range_consider, scale_sigma,
                                           sequence_scale, window_memory)
 from envisat_pose.pipelines.tracker_config import ACQUIRING_SIGMA, TRACKER_FILTER, TrackerConfig, TrackEstimate
 from envisat_pose.state import MRP, N_STATE, POS, RATE
@@ -98,7 +98,10 @@ class Tracker:
         config.validate()
         self.cfg = config
         from envisat_pose.pipelines.build import tracker_filter  # only the fields given override the tracker's
-        self.fcfg = tracker_filter(filter_config)
+        fcfg = tracker_filter(filter_config)
+        q = fcfg.q_sigma
+        self.fcfg = dataclasses.replace(fcfg, q_sigma=(q[0], q[1], max(q[2], config.detector_q_sigma[0]),
+                                                       max(q[3], config.detector_q_sigma[1])))
         self.fcfg.validate()
         self.camera = camera
         self.detector = detector
@@ -228,7 +231,8 @@ class Tracker:
             self.buffer = self.buffer[len(self.buffer) // 2:]
             return [f"cold start refused: {'; '.join(problems[0])}"]
         self.buffer = []
-        self._start(np.stack([f.x for f in fits])[ok], np.stack([f.P for f in fits])[ok], fits[0].t_s, log_w[ok])
+        P = np.stack([f.P for f in fits])[ok] * self.cfg.start_cov_factor
+        self._start(np.stack([f.x for f in fits])[ok], P, fits[0].t_s, log_w[ok])
         return ["started"]
 
     def _reset(self) -> None:
@@ -239,7 +243,7 @@ class Tracker:
         self.rate_rad_s = None
 
     def _start(self, x: np.ndarray, P: np.ndarray, t0: float, log_w: np.ndarray) -> None:
-        self.state = init_state(x, range_floor(x, P, self.scale_sigma), t0, self.chaser_at(t0), self.fcfg)
+        self.state = init_state(x, P, t0, self.chaser_at(t0), self.fcfg)
         self.log_w = log_w - np.max(log_w)
         self.evidence = EvidenceWindow.empty(len(log_w), self.cfg.integrity_window)
         self.confirmed = False
@@ -312,7 +316,6 @@ class Tracker:
         mask = np.isfinite(z).all(-1)
         rejected = self._rejected(prior, np.nan_to_num(z), mask, cov, best)
         new = filter_step(self.state, Measurement(t_s, chaser, np.nan_to_num(z), mask, cov), self.setup, prior=prior)
-        new = dataclasses.replace(new, cov=range_floor(new.mean, new.cov, self.scale_sigma))
         used = new.dof > 0
         self.log_w = self.log_w + np.where(mask.any(-1), -0.5 * update_cost(new, self.gate_bound) + appearance, 0.0)
         self.log_w -= np.max(self.log_w)
@@ -397,7 +400,8 @@ class Tracker:
                   nis=0.0, nis_dof=0) -> TrackEstimate:
         """The best hypothesis' state as a TrackEstimate (the bank as it stands after this frame)."""
         best = int(np.argmax(self.log_w))
-        return TrackEstimate(t_s, status, self.state.mean[best].copy(), self.state.cov[best].copy(),
+        P = range_consider(self.state.mean[best], self.state.cov[best], self.scale_sigma)
+        return TrackEstimate(t_s, status, self.state.mean[best].copy(), P,
                              self.state.mean.copy(), self.probabilities, fd, naming, np.asarray(measured, bool),
                              np.asarray(rejected, bool), nis, nis_dof, roi, converged, events, timing,
                              self.confirmed, self.coasting_frames)

@@ -194,6 +194,12 @@ class CorrelatedTruthDetector(NoisyTruthDetector):
                               np.array([0.0, 0.0, 1024.0]), c[vis])
 
 
+# the R model alone: without the process noise and start factor that stand for what the shipped detector's
+# error model misses (TrackerConfig.detector_q_sigma, start_cov_factor), so that a synthetic detector whose errors
+# are exactly its model shows the model's own consistency
+ISOLATED = {"detector_q_sigma": (0.0, 0.0), "start_cov_factor": 1.0}
+
+
 def tracking_nees(truth, detector, cfg) -> float:
     """The tracker's mean NEES over frames 60-299 of truth (cold start; tracking from frame 30 on, asserted)."""
     from envisat_pose.filtering.estimator import nees
@@ -209,7 +215,7 @@ def test_correlated_detector_errors_are_allowed_for_by_the_filters_memory(truth_
     with R inflated for the filter's own memory the tracker's NEES is consistent; taken as white, it is
     over-confident by a wide margin (the same frames and errors)."""
     means = {model: tracking_nees(truth_600, CorrelatedTruthDetector(truth_600, seed=4),
-                                  TrackerConfig(correlation_model=model)) for model in ("filter_memory", "white")}
+                                  TrackerConfig(correlation_model=model, **ISOLATED)) for model in ("filter_memory", "white")}
     assert 4.0 < means["filter_memory"] < 24.0, means
     assert means["white"] > 2.0 * means["filter_memory"], means
 
@@ -237,7 +243,7 @@ def test_the_correlation_falls_with_the_views_rotation_at_the_tracked_rate(truth
     the tracked rate the NEES is consistent; the same error model's time fit (measured at a slower tumble)
     inflates R far beyond what these errors need (the same frames and errors)."""
     means = {kind: tracking_nees(truth_600, RotationCorrelatedTruthDetector(truth_600, seed=6),
-                                 TrackerConfig(correlation_in=kind)) for kind in ("rotation", "time")}
+                                 TrackerConfig(correlation_in=kind, **ISOLATED)) for kind in ("rotation", "time")}
     assert 4.0 < means["rotation"] < 24.0, means
     assert means["time"] < 0.6 * means["rotation"], means
 
@@ -266,29 +272,47 @@ def test_the_range_error_no_frame_averages_away_stays_in_the_covariance(truth_60
     """A detector whose corners are 0.2 % too far apart puts the target 0.2 % too near (10 cm at 50 m) on every
     frame. With the range floor (the error model's measured scale) the tracker's NEES stays consistent; without
     it the filter averages the white noise down and is over-confident about a range it cannot know better."""
-    means = {floor: tracking_nees(truth_600, ScaledTruthDetector(truth_600, seed=8), TrackerConfig(range_floor=floor))
+    means = {floor: tracking_nees(truth_600, ScaledTruthDetector(truth_600, seed=8), TrackerConfig(range_floor=floor, **ISOLATED))
              for floor in (True, False)}
     assert 4.0 < means[True] < 24.0, means
     assert means[False] > 3.0 * means[True], means
 
 
-def test_the_range_floor_raises_only_the_line_of_sight_variance():
-    from envisat_pose.pipelines.noise import range_floor
+def test_the_range_consider_term_adds_only_along_the_line_of_sight():
+    """An apparent-scale error s moves the position by (s - 1) x range along the line of sight whatever the filter
+    averages: its variance is added there (independently computed: u^T P u + (sigma x range)^2) and nowhere else."""
+    from envisat_pose.pipelines.noise import range_consider
 
     rng = np.random.default_rng(4)
     A = rng.normal(size=(12, 12))
     P = 1e-6 * (A @ A.T) + 1e-8 * np.eye(12)
     x = np.zeros(12)
     x[POS] = [3.0, 40.0, -4.0]
-    out = range_floor(x, P, 1e-3)
-    u = x[POS] / np.linalg.norm(x[POS])
-    assert u @ out[POS, POS] @ u == pytest.approx((1e-3 * np.linalg.norm(x[POS])) ** 2)
+    out = range_consider(x, P, 1e-3)
+    r = np.linalg.norm(x[POS])
+    u = x[POS] / r
+    assert u @ out[POS, POS] @ u == pytest.approx(u @ P[POS, POS] @ u + (1e-3 * r) ** 2)
     v = np.cross(u, [0.0, 0.0, 1.0])
     v /= np.linalg.norm(v)
     assert v @ out[POS, POS] @ v == pytest.approx(v @ P[POS, POS] @ v)  # across the line of sight: unchanged
     np.testing.assert_array_equal(out[3:, 3:], P[3:, 3:])
     assert np.linalg.eigvalsh(out).min() > 0
-    np.testing.assert_array_equal(range_floor(x, out, 1e-4), out)  # already above a lower floor
+    np.testing.assert_array_equal(range_consider(x, P, 0.0), P)
+
+
+def test_the_range_consider_term_is_reported_not_fed_back(truth_600):
+    """The scale's range variance is in the reported covariance only: the filter's own state keeps averaging the
+    frames (its line-of-sight sigma falls well below the consider term's) while the reported one holds it."""
+    det = ScaledTruthDetector(truth_600, seed=8)
+    tracker = Tracker(load_camera(), det, chaser_lookup(truth_600), TrackerConfig())
+    for k in range(0, 150):
+        est = tracker.step(float(truth_600.t_s[k]), frame_image(k))
+    assert est.status == "tracking"
+    u = est.x_hat[POS] / np.linalg.norm(est.x_hat[POS])
+    internal = u @ tracker.state.cov[0][POS, POS] @ u
+    consider = (0.002 * np.linalg.norm(est.x_hat[POS])) ** 2
+    assert internal < 0.25 * consider, (internal, consider)
+    assert u @ est.P[POS, POS] @ u == pytest.approx(internal + consider, rel=1e-6)
 
 
 class Blind(NoisyTruthDetector):
@@ -426,3 +450,20 @@ def test_the_filter_takes_the_sequences_covariance_scale():
     assert sequence_scale(ErrorModel(cov_scale=1.5, n_frames=600), det) == pytest.approx(0.75)
     assert sequence_scale(ErrorModel(cov_scale=1.5, n_frames=0), det) == 1.0  # not measured
     assert sequence_scale(ErrorModel(cov_scale=1.5, n_frames=600), SimpleNamespace()) == 1.0  # a detector without one
+
+
+def test_errors_the_error_model_misses_are_allowed_for_by_the_detector_process_noise(truth_600):
+    """A detector whose errors drift (an AR(1) part with a 50-frame correlation, the view-dependent bias of a slow
+    tumble) while its error model says white: the filter's torque-free model alone reads the drift as attitude
+    and rate and is over-confident; with the tracker's detector process noise and start factor (TrackerConfig
+    defaults) it is much less so (the same frames and errors)."""
+    from envisat_pose.perception.errormodel import ErrorModel
+
+    def drifting(seed):
+        det = CorrelatedTruthDetector(truth_600, a=0.5, phi=0.98, seed=seed)
+        det.error_model = ErrorModel()
+        return det
+
+    means = {name: tracking_nees(truth_600, drifting(9), TrackerConfig(**kw))
+             for name, kw in (("defaults", {}), ("isolated", ISOLATED))}
+    assert means["isolated"] > 1.5 * means["defaults"], means
