@@ -15,8 +15,10 @@ No prior and no truth: the tracker buffers the first lit frames with enough name
    predicts every frame's corners, residuals are whitened by the detector's covariance (times the error model's
    inflation for frame-to-frame correlation), outliers are down-weighted (Huber) and gated. The fit's covariance
    is (J^T W J)^-1, scaled up by the reduced chi-square when the residuals are larger than the covariance says.
-   Both half-turn hypotheses are fitted; their chi-square differ through the dynamics (the half-turn flips the
-   sign of two products of inertia, so only one of them is torque-free with the MJCF's inertia tensor).
+   The window is fitted under every naming (NAMINGS: the aligned one and its renaming by each of the box's three
+   half-turns; a window whose first frame was named off by the y or z half-turn has its truth under that one);
+   their chi-square differ through the dynamics (a half-turn flips the sign of two products of inertia, so only
+   one of them is torque-free with the MJCF's inertia tensor).
 4. `hypothesis_log_weights`: -chi^2 / 2 of each fit plus the appearance log-likelihoods.
 """
 
@@ -118,6 +120,43 @@ def half_turn_naming(z_px: np.ndarray, cov_px: np.ndarray) -> tuple[np.ndarray, 
     """The half-turn renaming of corners (8, 2) and covariances (8, 2, 2): corner i takes corner perm[i]."""
     perm = half_turn()[0]
     return z_px[perm], cov_px[perm]
+
+
+# the namings a hypothesis may take of a detection: index 0 the detector's own, 1-3 its renaming by the box's
+# half-turn about x (the long axis, the one the detector's half-turn probability speaks of), y and z
+NAMINGS = ("detector", "x", "y", "z")
+
+
+def renamed(z_px: np.ndarray, cov_px: np.ndarray, naming: int) -> tuple[np.ndarray, np.ndarray]:
+    """Corners (8, 2) and covariances (8, 2, 2) under naming (an index of NAMINGS)."""
+    if naming == 0:
+        return z_px, cov_px
+    perm = box_symmetries()[NAMINGS[naming]][0]
+    return z_px[perm], cov_px[perm]
+
+
+def naming_log_likelihood(p_alt: float, naming: int, clip: float) -> float:
+    """The detector's appearance log-likelihood of a naming: log(1 - p) for its own, log(p) for the long-axis
+    half-turn (p its half-turn probability clipped to [clip, 1 - clip]); the y and z half-turns, on which it gives
+    no probability, the least it ever concedes, log(clip): possible, but only the geometry and the dynamics can
+    make them win."""
+    p = float(np.clip(p_alt, clip, 1.0 - clip))
+    return (float(np.log1p(-p)), float(np.log(p)), float(np.log(clip)), float(np.log(clip)))[naming]
+
+
+def renamed_window(frames: list[FramePose], naming: int) -> list[FramePose]:
+    """The window's frames under naming (an index of NAMINGS): corners, covariances and PnP poses renamed, the
+    half-turn probability taken to the long-axis half-turn's (1 - p) there."""
+    if naming == 0:
+        return list(frames)
+    sym = box_symmetries()[NAMINGS[naming]]
+    return [FramePose(f.t_s, f.chaser, f.z_px[sym[0]], f.cov_px[sym[0]], 1.0 - f.p_alt if naming == 1 else f.p_alt,
+                      None if f.x_pnp is None else symmetric_state(f.x_pnp, sym)) for f in frames]
+
+
+def naming_state(x: np.ndarray, naming: int) -> np.ndarray:
+    """The state x described in naming (an index of NAMINGS)."""
+    return np.array(x, dtype=float) if naming == 0 else symmetric_state(x, box_symmetries()[NAMINGS[naming]])
 
 
 def attitude_distance_rad(p_a: np.ndarray, p_b: np.ndarray) -> float:
@@ -301,7 +340,6 @@ def batch_fit(frames: list[FramePose], x_guess: np.ndarray, chaser_at, camera: P
 
 
 def appearance_log_likelihood(frames: list[FramePose], clip: float) -> np.ndarray:
-    """(2,) log-likelihoods of hypothesis 0 (the aligned naming) and 1 (its half-turn) from the detector's
-    per-frame half-turn probabilities, each clipped to [clip, 1 - clip] (one frame never decides alone)."""
-    p = np.clip(np.array([f.p_alt for f in frames], dtype=float), clip, 1.0 - clip)
-    return np.array([np.log1p(-p).sum(), np.log(p).sum()])
+    """(4,) log-likelihoods of the aligned window under each naming of NAMINGS (naming_log_likelihood summed
+    over the frames: one frame never decides alone)."""
+    return np.array([sum(naming_log_likelihood(f.p_alt, h, clip) for f in frames) for h in range(len(NAMINGS))])

@@ -1,10 +1,11 @@
 """The tracker's bank of hypotheses: one run of the batched filter per open hypothesis (the half-turn twins of a
 cold start), their log weights, the naming each takes, and their pruning.
 
-Each frame every hypothesis takes the naming (the detector's or its half-turn) nearest its predicted corners and
-its log weight gains -cost/2 (cost ~ -2 log likelihood: the NIS, the gate's bound per rejected or dropped corner
-and dof x log of the adaptive R scale, so a hypothesis that explains its misfit by a larger R pays for it) plus
-the appearance log-likelihood of the naming it took, counted as one look per `appearance_frames` frames.
+Each frame every hypothesis takes the naming (the detector's or its renaming by one of the box's half-turns)
+nearest its predicted corners and its log weight gains -cost/2 (cost ~ -2 log likelihood: the NIS, the gate's
+bound per rejected or dropped corner and dof x log of the adaptive R scale, so a hypothesis that explains its
+misfit by a larger R pays for it) plus the appearance log-likelihood of the naming it took, counted as one look
+per `appearance_frames` frames.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import dataclasses
 import numpy as np
 
 from envisat_pose.filtering.estimator import FilterState
-from envisat_pose.pipelines.acquisition import half_turn_naming
+from envisat_pose.pipelines.acquisition import NAMINGS, naming_log_likelihood, renamed
 
 
 def select_runs(state: FilterState, idx: np.ndarray) -> FilterState:
@@ -41,21 +42,20 @@ def probabilities(log_w: np.ndarray) -> np.ndarray:
 
 def choose_namings(zd: np.ndarray, cd: np.ndarray, p_alt: float, uv_pred: np.ndarray, clip: float,
                    appearance_frames: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per hypothesis, the naming nearest its predicted corners: zd (8, 2), cd (8, 2, 2) the detector's naming,
-    p_alt its half-turn probability, uv_pred (H, 8, 2) each hypothesis' predicted corners. Returns z (H, 8, 2),
-    cov (H, 8, 2, 2) (identity where not measured), namings (H,) (0 the detector's, 1 its half-turn) and the
-    appearance log-likelihoods (H,) of the namings taken (clipped to [clip, 1 - clip], over appearance_frames)."""
+    """Per hypothesis, the naming (acquisition.NAMINGS: the detector's, or its renaming by one of the box's
+    half-turns) nearest its predicted corners: zd (8, 2), cd (8, 2, 2) the detector's naming, p_alt its
+    half-turn probability, uv_pred (H, 8, 2) each hypothesis' predicted corners. Returns z (H, 8, 2), cov
+    (H, 8, 2, 2) (identity where not measured), namings (H,) (indices of NAMINGS) and the appearance
+    log-likelihoods (H,) of the namings taken (acquisition.naming_log_likelihood, over appearance_frames)."""
     H = uv_pred.shape[0]
-    za, ca = half_turn_naming(zd, cd)
-    d0 = np.nanmean(np.linalg.norm(zd[None] - uv_pred, axis=-1), axis=-1)
-    d1 = np.nanmean(np.linalg.norm(za[None] - uv_pred, axis=-1), axis=-1)
-    namings = (d1 < d0).astype(int)
-    z = np.where(namings[:, None, None] == 1, za[None], zd[None])
-    cov = np.where(namings[:, None, None, None] == 1, ca[None], cd[None])
+    options = [renamed(zd, cd, n) for n in range(len(NAMINGS))]
+    dist = np.stack([np.nanmean(np.linalg.norm(z[None] - uv_pred, axis=-1), axis=-1) for z, _ in options], axis=-1)
+    namings = np.argmin(np.where(np.isfinite(dist), dist, np.inf), axis=-1).reshape(H)  # (H,); 0 when none seen
+    z = np.stack([options[n][0] for n in namings])
+    cov = np.stack([options[n][1] for n in namings])
     cov = np.where(np.isfinite(z).all(-1)[..., None, None], cov, np.eye(2))
-    pa = float(np.clip(p_alt, clip, 1.0 - clip))
-    appearance = np.where(namings == 1, np.log(pa), np.log1p(-pa)) / appearance_frames
-    return z, cov, namings.reshape(H), appearance
+    appearance = np.array([naming_log_likelihood(p_alt, int(n), clip) for n in namings]) / appearance_frames
+    return z, cov, namings, appearance
 
 
 def update_cost(new: FilterState, gate_bound: float) -> np.ndarray:

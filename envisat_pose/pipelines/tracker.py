@@ -14,8 +14,8 @@ cold. Whatever starts a bank, it claims "tracking" only once its own evidence ba
 Statuses (envisat_pose/status.py), per frame:
 - "acquiring": no claim. Either no bank yet: each lit frame's named corners give a PnP pose
   (pipelines/acquisition.py); once `acquire_frames` frames with a pose are buffered (a gap longer than `max_gap_s`
-  restarts the buffer), the window is aligned to one naming and both half-turn hypotheses are batch-fitted with
-  the filter's dynamics; a fit starts a hypothesis only if it passes its integrity tests (it kept most of its
+  restarts the buffer), the window is aligned to one naming and a hypothesis per naming (that one and its
+  renaming by each of the box's three half-turns) is batch-fitted with the filter's dynamics; a fit starts a hypothesis only if it passes its integrity tests (it kept most of its
   window's corners, its chi-square is inside its bound, its state is physical: pipelines/integrity.py); when
   none does the older half of the window is dropped and acquisition goes on. Or a bank runs but has not yet
   earned a claim: its half-turn is still open, or it has not yet passed `confirm_frames` frames with corners used
@@ -51,9 +51,9 @@ from envisat_pose.filtering.estimator import FilterConfig, FilterState, Measurem
     make_setup, predict_to
 from envisat_pose.filtering.measurements import to_camera_K
 from envisat_pose.geometry import PinholeCamera, load_geometry
-from envisat_pose.pipelines.acquisition import (BatchFit, FramePose, align_namings, appearance_log_likelihood,
-                                                 batch_fit, half_turn_naming, half_turn_state, initial_guess,
-                                                 pnp_state)
+from envisat_pose.pipelines.acquisition import (NAMINGS, BatchFit, FramePose, align_namings,
+                                                 appearance_log_likelihood, batch_fit, initial_guess, naming_state,
+                                                 pnp_state, renamed_window)
 from envisat_pose.pipelines.bank import choose_namings, probabilities, select_runs, update_cost
 from envisat_pose.pipelines.integrity import (EvidenceWindow, claim_holds, fit_problems, pose_sigmas,
                                               state_problems, target_radius_m, window_problems)
@@ -208,20 +208,23 @@ class Tracker:
                              tuple(events), timing)
 
     def _cold_start(self) -> list[str]:
-        """Both half-turn hypotheses fitted over the buffered window; the bank starts at its last frame with the
+        """Every naming of the aligned window fitted (the detector's and its renaming by each of the box's three
+        half-turns: acquisition.NAMINGS; a window aligned to a naming off by the y or z half-turn has its truth
+        there, which a pair of long-axis twins would miss); the bank starts at its last frame with the
         hypotheses whose fit passes its integrity tests (integrity.fit_problems, state_problems), weighted by
         their fit cost (chi-square plus the gate's bound per corner the fit rejected, as while tracking) and
         appearance. When none passes the older half of the window is dropped and acquisition goes on. Returns
         the frame's events."""
         frames, _ = align_namings(self.buffer)
-        alt = [FramePose(f.t_s, f.chaser, *half_turn_naming(f.z_px, f.cov_px), 1.0 - f.p_alt, half_turn_state(f.x_pnp))
-               for f in frames]
         guess = initial_guess(frames)
-        fits: list[BatchFit] = []
-        for hyp_frames, x_guess in ((frames, guess), (alt, half_turn_state(guess))):
-            fits.append(batch_fit(hyp_frames, x_guess, self.chaser_at, self.camera, self.dyn,
-                                  self.cfg.fit_iterations, self.cfg.fit_huber, self.cfg.fit_gate))
-        log_w = np.array([-0.5 * (f.chi2 + self.cfg.fit_gate * f.rejected) for f in fits]) \
+        fits = [batch_fit(renamed_window(frames, h), naming_state(guess, h), self.chaser_at, self.camera, self.dyn,
+                          self.cfg.fit_iterations, self.cfg.fit_huber, self.cfg.fit_gate)
+                for h in range(len(NAMINGS))]
+
+        def cost(f: BatchFit) -> float:
+            return f.chi2 + self.cfg.fit_gate * f.rejected
+
+        log_w = np.array([-0.5 * cost(f) for f in fits]) \
             + appearance_log_likelihood(frames, self.cfg.appearance_clip) / self.cfg.appearance_frames
         problems = [fit_problems(f, len(frames), self.cfg) for f in fits]
         problems = [p or state_problems(f.x, f.P, self.camera, self.radius_m, self.cfg)

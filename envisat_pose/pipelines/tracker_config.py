@@ -181,7 +181,7 @@ class TrackEstimate:
     p_mrp, w_r_T_rad_s); P (12, 12) its covariance (ACQUIRING_SIGMA while acquiring; NaN before any pose).
     hypotheses (H, 12) and probabilities (H,): the half-turn hypotheses still open (H = 0 while acquiring).
     detection: the detector's FrameDetection (None when no image); naming: which naming the best hypothesis took
-    (0 the detector's, 1 its half-turn, -1 none); measured (8,) bool: corners given to the filter; rejected (8,)
+    (acquisition.NAMINGS: 0 the detector's, 1-3 its x, y, z half-turn; -1 none); measured (8,) bool: corners given to the filter; rejected (8,)
     bool: of those, rejected by the gate; nis, nis_dof: the best hypothesis' update. roi_px (3,) or None.
     converged: the prior was tight enough for the region of interest. events: what happened this frame
     ("started", "hypothesis decided", "confirmed", "lost: <why>", "hypothesis dropped: <why>", ...), in words a
