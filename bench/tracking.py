@@ -157,6 +157,9 @@ def floors_met(s: dict, range_m: float) -> dict:
         "false_lock_s": s["false_lock_s"] <= FLOORS["false_lock_s"],
         "nees_tail_share": sc["nees_tail_share"] is not None and sc["nees_tail_share"] <= FLOORS["nees_tail_share"],
         "nees": sc["mean_nees"] is not None and FLOORS["nees"][0] <= sc["mean_nees"] <= FLOORS["nees"][1],
+        "nees_every_run": all(r["scored"]["mean_nees"] is not None
+                              and FLOORS["nees"][0] <= r["scored"]["mean_nees"] <= FLOORS["nees"][1]
+                              for r in s["per_run"]),
         "rmse_over_pcrlb": bool(ratios) and None not in ratios and max(ratios) <= FLOORS["rmse_over_pcrlb"],
         "range_bias": sc["range_bias_m"] is not None and abs(sc["range_bias_m"]) <= bias_floor,
     }
@@ -182,6 +185,17 @@ def table_row(scen: str, s: dict, pixel_px: float) -> str:
             f"{_f(sc['spec_score_p95'], '7.4f')} {_f(sc['mean_nees'], '6.1f')} "
             + " ".join(_f(r.get(b), "5.2f") for b in ("position", "velocity", "attitude", "angular_velocity"))
             + f" {_f(sc['range_bias_m'], '8.2f', 100)} {pixel_px:5.2f}")
+
+
+def per_run_line(s: dict, seeds: list[int]) -> str:
+    """Each run's own mean NEES, NEES tail (%) and range bias (cm): a figure pooled in band may hide a seed out of
+    it (issue 28, item 4)."""
+    cells = []
+    for seed, r in zip(seeds, s["per_run"]):
+        sc = r["scored"]
+        cells.append(f"{seed}: {_f(sc['mean_nees'], '.1f')} / {_f(sc['nees_tail_share'], '.1f', 100)} % / "
+                     f"{_f(sc['range_bias_m'], '.1f', 100)} cm")
+    return "    per seed (NEES / tail / range bias): " + ", ".join(cells)
 
 
 def main() -> None:
@@ -247,6 +261,7 @@ def main() -> None:
                                         for k in runs[0]["timing_ms_per_frame"]},
                 "floors_met": floors_met(s, range_m)}
             print(table_row(scen, s, px), flush=True)
+            print(per_run_line(s, seeds), flush=True)
     result["wall_s"] = time.perf_counter() - t0
     result["machine"]["load_avg_end"] = os.getloadavg()
     atomic_write_text(args.out, json.dumps(result, indent=1, sort_keys=True) + "\n")

@@ -201,7 +201,8 @@ def score_frames(t_s: np.ndarray, errors: dict[str, np.ndarray], status: np.ndar
     """score_runs from the per-frame errors (frame_errors, each (R, T)), status (R, T), skipped (T,) or (R, T),
     the error summary over the second half (state.error_summary from summary_after_s) and an optional bound.
 
-    Keys: runs; per_run (run_record of each); runs_tracked, runs_never_tracking (their indices), first_track_correct
+    Keys: runs; per_run (run_record of each, with its own 'scored': pooled_figures over its frames alone, so that
+    a figure that holds pooled but not on every run shows); runs_tracked, runs_never_tracking (their indices), first_track_correct
     (count of runs whose first declared tracking was correct); false_lock_s (summed over runs), false_lock_runs;
     time_to_first_correct_track_s and time_to_settle_s ({median, max, runs_without}); scored (pooled_figures over
     scored_masks); frames_by_status (counts per status name; 'code N' for a code this package does not know);
@@ -210,7 +211,11 @@ def score_frames(t_s: np.ndarray, errors: dict[str, np.ndarray], status: np.ndar
     status = np.asarray(status)
     R, T = status.shape
     lit = np.ones((R, T), bool) if skipped is None else np.broadcast_to(~np.asarray(skipped, bool), (R, T))
-    runs = [run_record(t_s, {k: v[r] for k, v in errors.items()}, status[r], lit[r]) for r in range(R)]
+    masks = scored_masks(status)
+    runs = [run_record(t_s, {k: v[r] for k, v in errors.items()}, status[r], lit[r])
+            | {"scored": pooled_figures({k: v[r:r + 1] for k, v in errors.items()}, masks[r:r + 1],
+                                        None if bound is None else bound[r:r + 1])}
+            for r in range(R)]
     codes, counts = np.unique(status, return_counts=True)
     by_status = {s: 0 for s in STATUSES} | {(STATUSES[c] if 0 <= c < len(STATUSES) else f"code {c}"): int(n)
                                             for c, n in zip(codes.tolist(), counts.tolist())}
@@ -226,7 +231,7 @@ def score_frames(t_s: np.ndarray, errors: dict[str, np.ndarray], status: np.ndar
         "time_to_settle_s": _stats([r["time_to_settle_s"] for r in runs]),
         "settled": sum(r["settled"] for r in runs),
         "settled_runs": [r["settled"] for r in runs],
-        "scored": pooled_figures(errors, scored_masks(status), bound),
+        "scored": pooled_figures(errors, masks, bound),
         "thresholds": {"correct_attitude_deg": CORRECT_ATT_DEG, "correct_position_of_range": CORRECT_POS_FRAC,
                        "nees_dof": NEES_DOF, "nees_tail_p": NEES_TAIL_P, "nees_tail": NEES_TAIL,
                        "spec_position_floor": SPEC_POS_FLOOR, "spec_attitude_floor_deg": SPEC_ATT_FLOOR_DEG,

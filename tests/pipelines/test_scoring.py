@@ -147,3 +147,17 @@ def test_settling_waits_for_a_claimed_estimate():
     pos[9] = 0.2
     assert settled_from(t, pos, att, claimed) is None
     assert STATUSES[TRACKING] == "tracking" and STATUSES[COASTING] == "coasting"
+
+
+def test_each_run_has_its_own_figures_beside_the_pooled_ones():
+    """Three runs, the second over-confident (its errors 3x its covariance's sigma): the pooled mean NEES mixes
+    them; each run's own figures (over its own scored frames) show which one is out of band."""
+    t, x_true, x_hat, P, status = synthetic_runs(R=3, seed=5)
+    x_hat = x_hat.copy()
+    x_hat[1] = x_true[1] + 3.0 * (x_hat[1] - x_true[1])
+    out = score_runs(t, x_true, x_hat, P, status)
+    per = [r["scored"] for r in out["per_run"]]
+    assert [p["frames"] for p in per] == [90, 90, 90]
+    assert 9.0 < per[0]["mean_nees"] < 15.0 and 9.0 < per[2]["mean_nees"] < 15.0
+    assert 80.0 < per[1]["mean_nees"] < 135.0  # 9 x 12 expected
+    assert out["scored"]["mean_nees"] == pytest.approx(np.mean([p["mean_nees"] for p in per]))
