@@ -202,8 +202,8 @@ def score_frames(t_s: np.ndarray, errors: dict[str, np.ndarray], status: np.ndar
     the error summary over the second half (state.error_summary from summary_after_s) and an optional bound.
 
     Keys: runs; per_run (run_record of each, with its own 'scored': pooled_figures over its frames alone, so that
-    a figure that holds pooled but not on every run shows); runs_tracked, runs_never_tracking (their indices), first_track_correct
-    (count of runs whose first declared tracking was correct); false_lock_s (summed over runs), false_lock_runs;
+    a figure that holds pooled but not on every run shows); runs_tracked, runs_never_tracking (their indices),
+    first_track_correct (count of runs whose first declared tracking was correct); false_lock_s (summed over runs), false_lock_runs;
     time_to_first_correct_track_s and time_to_settle_s ({median, max, runs_without}); scored (pooled_figures over
     scored_masks); frames_by_status (counts per status name; 'code N' for a code this package does not know);
     settled, settled_runs (the old 'converged', renamed: see the module's docstring); errors (the summary)."""

@@ -15,9 +15,10 @@ Statuses (envisat_pose/status.py), per frame:
 - "acquiring": no claim. Either no bank yet: each lit frame's named corners give a PnP pose
   (pipelines/acquisition.py); once `acquire_frames` frames with a pose are buffered (a gap longer than `max_gap_s`
   restarts the buffer), the window is aligned to one naming and a hypothesis per naming (that one and its
-  renaming by each of the box's three half-turns) is batch-fitted with the filter's dynamics; a fit starts a hypothesis only if it passes its integrity tests (it kept most of its
-  window's corners, its chi-square is inside its bound, its state is physical: pipelines/integrity.py); when
-  none does the older half of the window is dropped and acquisition goes on. Or a bank runs but has not yet
+  renaming by each of the box's three half-turns) is batch-fitted with the filter's dynamics; a fit starts a
+  hypothesis only if it passes its integrity tests (it kept most of its window's corners, its chi-square is
+  inside its bound, its state is physical: pipelines/integrity.py); when none does the older half of the window
+  is dropped and acquisition goes on. Or a bank runs but has not yet
   earned a claim: its half-turn is still open, or it has not yet passed `confirm_frames` frames with corners used
   and a covariance inside the claim.
 - "tracking": the bank is decided (one hypothesis) and confirmed, this frame used corners, and the covariance backs
