@@ -123,7 +123,8 @@ class Tracker:
         self.dt_s = 0.0  # the last frame interval, s
         self.rate_rad_s: float | None = None  # the tracked |w_r| (the view's rotation rate), rad/s; None acquiring
         self.state: FilterState | None = None
-        self.log_w = np.zeros(0)
+        self.log_dyn = np.zeros(0)  # per hypothesis: log-likelihood of its fit and innovations
+        self.log_app = np.zeros(0)  # per hypothesis: the detector's appearance log-likelihood, summed
         self.evidence: EvidenceWindow | None = None
         self.confirmed = False
         self.buffer: list[FramePose] = []
@@ -132,13 +133,20 @@ class Tracker:
         self.t_last: float | None = None
         if prior is not None:
             x0, P0, t0 = prior
-            self._start(np.asarray(x0, float)[None], np.asarray(P0, float)[None], float(t0), np.zeros(1))
+            self._start(np.asarray(x0, float)[None], np.asarray(P0, float)[None], float(t0), np.zeros(1), np.zeros(1))
 
     @property
     def status(self) -> str:
         """"acquiring" until a bank is confirmed, then "tracking" (the last frame's own status is in its
         TrackEstimate)."""
         return "tracking" if self.state is not None and self.confirmed else "acquiring"
+
+    @property
+    def log_w(self) -> np.ndarray:
+        """(H,) the hypotheses' log weights: their fits' and innovations' log-likelihood plus the detector's
+        appearance, the latter relative to its best and never below -appearance_max_log (module docstring)."""
+        app = self.log_app - np.max(self.log_app) if self.log_app.size else self.log_app
+        return self.log_dyn + np.maximum(app, -self.cfg.appearance_max_log)
 
     @property
     def probabilities(self) -> np.ndarray:
@@ -225,8 +233,8 @@ class Tracker:
         def cost(f: BatchFit) -> float:
             return f.chi2 + self.cfg.fit_gate * f.rejected
 
-        log_w = np.array([-0.5 * cost(f) for f in fits]) \
-            + appearance_log_likelihood(frames, self.cfg.appearance_clip) / self.cfg.appearance_frames
+        log_dyn = np.array([-0.5 * cost(f) for f in fits])
+        log_app = appearance_log_likelihood(frames, self.cfg.appearance_clip) / self.cfg.appearance_frames
         problems = [fit_problems(f, len(frames), self.cfg) for f in fits]
         problems = [p or state_problems(f.x, f.P, self.camera, self.radius_m, self.cfg)
                     for p, f in zip(problems, fits)]
@@ -236,20 +244,21 @@ class Tracker:
             return [f"cold start refused: {'; '.join(problems[0])}"]
         self.buffer = []
         P = np.stack([f.P for f in fits])[ok] * self.cfg.start_cov_factor
-        self._start(np.stack([f.x for f in fits])[ok], P, fits[0].t_s, log_w[ok])
+        self._start(np.stack([f.x for f in fits])[ok], P, fits[0].t_s, log_dyn[ok], log_app[ok])
         return ["started"]
 
     def _reset(self) -> None:
         """Back to acquiring: the bank, its evidence, the window and the memory dropped."""
-        self.state, self.log_w, self.buffer, self.coasting_frames = None, np.zeros(0), [], 0
+        self.state, self.buffer, self.coasting_frames = None, [], 0
+        self.log_dyn, self.log_app = np.zeros(0), np.zeros(0)
         self.evidence, self.confirmed = None, False
         self.memory = window_memory(self.cfg.acquire_frames)
         self.rate_rad_s = None
 
-    def _start(self, x: np.ndarray, P: np.ndarray, t0: float, log_w: np.ndarray) -> None:
+    def _start(self, x: np.ndarray, P: np.ndarray, t0: float, log_dyn: np.ndarray, log_app: np.ndarray) -> None:
         self.state = init_state(x, P, t0, self.chaser_at(t0), self.fcfg)
-        self.log_w = log_w - np.max(log_w)
-        self.evidence = EvidenceWindow.empty(len(log_w), self.cfg.integrity_window)
+        self.log_dyn, self.log_app = log_dyn - np.max(log_dyn), log_app - np.max(log_app)
+        self.evidence = EvidenceWindow.empty(len(log_dyn), self.cfg.integrity_window)
         self.confirmed = False
         self.coasting_frames = 0
         self._keep(self.probabilities >= 1.0 - self.cfg.decided)
@@ -261,7 +270,8 @@ class Tracker:
         idx = np.flatnonzero(keep)
         self.state = select_runs(self.state, idx)
         self.evidence = self.evidence.select(idx)
-        self.log_w = self.log_w[keep] - np.max(self.log_w[keep])
+        self.log_dyn = self.log_dyn[keep] - np.max(self.log_dyn[keep])
+        self.log_app = self.log_app[keep] - np.max(self.log_app[keep])
         return True
 
     # ------------------------------------------------------------------ tracking
@@ -321,8 +331,11 @@ class Tracker:
         rejected = self._rejected(prior, np.nan_to_num(z), mask, cov, best)
         new = filter_step(self.state, Measurement(t_s, chaser, np.nan_to_num(z), mask, cov), self.setup, prior=prior)
         used = new.dof > 0
-        self.log_w = self.log_w + np.where(mask.any(-1), -0.5 * update_cost(new, self.gate_bound) + appearance, 0.0)
-        self.log_w -= np.max(self.log_w)
+        seen = mask.any(-1)
+        self.log_dyn = self.log_dyn + np.where(seen, -0.5 * update_cost(new, self.gate_bound), 0.0)
+        self.log_app = self.log_app + np.where(seen, appearance, 0.0)
+        self.log_dyn -= np.max(self.log_dyn)
+        self.log_app -= np.max(self.log_app)
         self.state = new
         self.evidence = self.evidence.push(np.where(used, new.nis, 0.0), new.dof, mask.sum(-1),
                                            new.rejected + new.dropped)
@@ -347,7 +360,7 @@ class Tracker:
             return est
         if failed.any():
             events += [f"hypothesis dropped: {'; '.join(p)}" for p in problems if p]
-            self.log_w = np.where(failed, -np.inf, self.log_w)
+            self.log_dyn = np.where(failed, -np.inf, self.log_dyn)
             self._keep(~failed)
         if self._keep(self.probabilities >= 1.0 - self.cfg.decided):
             events.append("hypothesis decided")

@@ -31,6 +31,12 @@ class TrackerConfig:
     log-likelihood is divided by it): the detector's half-turn errors repeat from frame to frame while the view
     changes little (measured: on a default-scenario sequence it preferred the wrong half-turn at 0.6-0.98 in 16
     of 20 consecutive frames), so summing them as independent would let one look outvote the dynamics.
+    appearance_max_log: however many frames repeat it, the detector's appearance never counts for more than this
+    (nats) between two hypotheses (3.0: one confident look, a likelihood ratio of 20), so that it cannot decide a
+    half-turn alone (0.999 needs 6.9): the dynamics must agree. Its half-turn errors persist over a whole view:
+    on a 30 m slow-tumble trial (bench/acquisition.py seed 0, the bin's fifth) it gave the wrong naming p = 0.95
+    on 19 of 20 frames and then on every frame, and the bank decided for the wrong twin while the dynamics
+    slightly favoured the truth (chi-square 35.7 against 37.4): 61 s claimed 180 deg off.
     fit_iterations, fit_huber (whitened px), fit_gate_prob (the probability a corner's 2-dof chi-square passes
     the fit's gate; `fit_gate` the bound): the batch fit.
     roi: look only in the predicted region of interest once converged; roi_margin: its side over the predicted
@@ -92,6 +98,7 @@ class TrackerConfig:
     decided: float = 0.999
     appearance_clip: float = 0.05
     appearance_frames: float = 10.0
+    appearance_max_log: float = 3.0
     fit_iterations: int = 15
     fit_huber: float = 3.0
     fit_gate_prob: float = GATE_PROB
@@ -134,6 +141,8 @@ class TrackerConfig:
         check(self.max_gap_s > 0, f"{p}max_gap_s", self.max_gap_s, "a positive gap in s")
         check(0.5 < self.decided < 1.0, f"{p}decided", self.decided, "a probability in (0.5, 1)")
         check(0.0 < self.appearance_clip < 0.5, f"{p}appearance_clip", self.appearance_clip, "a probability in (0, 0.5)")
+        check(self.appearance_max_log >= 0.0, f"{p}appearance_max_log", self.appearance_max_log,
+              "a non-negative log-likelihood (nats)")
         check(self.appearance_frames >= 1.0, f"{p}appearance_frames", self.appearance_frames, "at least 1 frame")
         check(self.fit_iterations >= 1, f"{p}fit_iterations", self.fit_iterations, "at least 1")
         check(self.fit_huber > 0, f"{p}fit_huber", self.fit_huber, "a positive whitened residual")
