@@ -19,6 +19,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 import urllib.parse
 
 from envisat_pose.config import InputError
@@ -124,7 +125,9 @@ def start_viewer(cmd: list[str], env: dict | None = None, quiet: bool = False) -
 
 
 def stop_viewer(proc: subprocess.Popen, wait_s: float = 10.0) -> int:
-    """End the viewer's whole process group: SIGINT, then SIGTERM, then SIGKILL if it lingers. Returns its code."""
+    """End the viewer's whole process group: SIGINT, then SIGTERM, then SIGKILL if it lingers; returns its code once
+    no process of the group is left (a killed grandchild is reaped by init a moment after the wrapper exits: on a
+    loaded machine the group was still there when this returned), or after wait_s more."""
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
         try:
             os.killpg(proc.pid, sig)
@@ -139,7 +142,15 @@ def stop_viewer(proc: subprocess.Popen, wait_s: float = 10.0) -> int:
         os.killpg(proc.pid, signal.SIGKILL)
     except ProcessLookupError:
         pass
-    return proc.wait()
+    code = proc.wait()
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.05)
+    return code
 
 
 def _interrupt(signum, frame):
