@@ -113,8 +113,9 @@ def test_a_512_px_sequence_with_its_own_camera(tmp_path, detector_weights):
     the tracker's pixel model is that camera."""
     from envisat_pose.geometry import load_camera
 
-    # 45 frames: 20 for the cold start's window, then the bank's confirmation (half-turn decided, 5 frames)
-    seq = generate(tmp_path / "g512", 45, seed=3, resolution=512)
+    # 90 frames: 20 for the cold start's window, then the bank's confirmation (the half-turn decided by the
+    # dynamics as well as the appearance, which on this sequence takes tens of seconds; then 5 frames)
+    seq = generate(tmp_path / "g512", 90, seed=3, resolution=512)
     cam = load_camera().scaled(512, 512)
     camfile = tmp_path / "cam.toml"
     camfile.write_text(f"fx = {cam.f_px}\nfy = {cam.f_px}\ncx = {cam.cu_px}\ncy = {cam.cv_px}\nwidth = 512\nheight = 512\n")
