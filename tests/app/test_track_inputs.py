@@ -193,7 +193,11 @@ def test_an_interrupt_leaves_the_earlier_outputs_and_a_finished_run_removes_stal
                  "--weights", detector_weights, "--quiet"]) == 0
     before = digest(out)
     assert "errors.png" not in before and "notes.txt" in before and "recording.rrd" in before
-    p = subprocess.Popen([sys.executable, "-m", "envisat_pose.app.cli", "track", "--images", str(src), "--rate-hz",
+    # the interrupted run: ten times the frames, so that it is still running when the signal comes (150 frames
+    # of noise finished within the half second on a loaded machine)
+    long_src = tmp_path / "long"
+    noise_frames(long_src, [f"f_{i}.png" for i in range(1500)], seed=2)
+    p = subprocess.Popen([sys.executable, "-m", "envisat_pose.app.cli", "track", "--images", str(long_src), "--rate-hz",
                           "1", "--out", str(out), "--config", fast_cfg, "--weights", detector_weights, "--quiet"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 240
