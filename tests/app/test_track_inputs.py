@@ -199,7 +199,10 @@ def test_an_interrupt_leaves_the_earlier_outputs_and_a_finished_run_removes_stal
     noise_frames(long_src, [f"f_{i}.png" for i in range(1500)], seed=2)
     p = subprocess.Popen([sys.executable, "-m", "envisat_pose.app.cli", "track", "--images", str(long_src), "--rate-hz",
                           "1", "--out", str(out), "--config", fast_cfg, "--weights", detector_weights, "--quiet"],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         # Ctrl-C as a terminal delivers it: a test run started in the background of a
+                         # non-interactive shell inherits SIGINT ignored, and Python then keeps it ignored
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 240
     while time.time() < deadline:  # wait until the run is tracking: its staged rows exist
         stages = [d for d in os.listdir(out) if d.startswith(".tmp-stage-")]
