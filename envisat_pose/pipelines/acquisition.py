@@ -36,10 +36,12 @@ from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
 
 @functools.lru_cache(maxsize=1)
+@functools.lru_cache(maxsize=1)
 def box_symmetries() -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The box's half-turns about its x, y and z axes as perception's naming derives them from the MJCF
     (perception.naming.symmetry_permutations): name -> (perm (8,), S (3, 3), d (3,) m in T) with corner perm[k]
-    = S corner k + d. Each maps the box's corners onto themselves, so a naming may be off by any of them."""
+    = S corner k + d. Each maps the box's corners onto themselves, so a naming may be off by any of them.
+    Computed once (the tracker renames every frame under each); not to be modified."""
     from envisat_pose.perception.naming import symmetry_permutations
 
     return {name: (np.asarray(perm), np.asarray(S, dtype=float), np.asarray(d, dtype=float))
@@ -118,8 +120,7 @@ def symmetric_state(x: np.ndarray, symmetry: tuple[np.ndarray, np.ndarray, np.nd
 
 def half_turn_naming(z_px: np.ndarray, cov_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The half-turn renaming of corners (8, 2) and covariances (8, 2, 2): corner i takes corner perm[i]."""
-    perm = half_turn()[0]
-    return z_px[perm], cov_px[perm]
+    return renamed(z_px, cov_px, 1)
 
 
 # the namings a hypothesis may take of a detection: index 0 the detector's own, 1-3 its renaming by the box's
