@@ -18,7 +18,7 @@ analysis/pcrlb.py, along its truth with the measurable corners of its lit frames
 noise in that run), range bias, and the runs' pixel noise and real-time factor.
 
 Run: .venv/bin/python bench/tracking.py [--seeds 8] [--first-seed 0] [--scenarios default slow-tumble ...]
-     [--duration-s S (default: each scenario's own)] [--workers N] [--correlation-in time|rotation]
+     [--duration-s S (default: each scenario's own)] [--workers N] [--correlation-in slower|rotation|time]
 Floors (issue 28): 0 s false-lock time; NEES beyond its 99.9 % quantile on at most 0.5 % of tracking frames; per
 scenario over all seeds mean NEES in [8, 16], RMSE / PCRLB <= 1.5 per block, |range bias| <= 1 cm at 50 m (scaled
 with the range: 0.5 cm at 25 m).
@@ -207,7 +207,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
     ap.add_argument("--sun-phase-max-deg", type=float, help="a lit sun's largest phase angle (default: trials')")
-    ap.add_argument("--correlation-in", choices=("time", "rotation"),
+    ap.add_argument("--correlation-in", choices=("slower", "rotation", "time"),
                     help="the tracker's correlation_in (default: TrackerConfig's, pipelines/tracker.py)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "tracking.json"))
     args = ap.parse_args()

@@ -137,6 +137,10 @@ def weights_error_model(path: str) -> ErrorModel:
     if not (np.isfinite(model.inflation) and model.inflation > 0 and abs(model.rho_lag1) < 1):
         raise WeightsError(f"{path}: metadata error_model has rho_lag1 {model.rho_lag1}, inflation "
                            f"{model.inflation}: expected |rho| < 1 and a positive inflation")
+    if not (np.isfinite(model.bias_scale) and model.bias_scale > 0 and np.isfinite(model.bias_scale_sd)
+            and model.bias_scale_sd >= 0):
+        raise WeightsError(f"{path}: metadata error_model has bias_scale {model.bias_scale}, bias_scale_sd "
+                           f"{model.bias_scale_sd}: expected a positive scale and a non-negative spread")
     return model
 
 

@@ -69,6 +69,9 @@ class ErrorModel:
     measured (sequences without their rotations).
     bias_scale: mean apparent scale of the detected corners about their centroid (1: none).
     bias_radial_px: mean signed radial error, px (positive outward).
+    bias_scale_sd: how far a new sequence's mean apparent scale falls from bias_scale (each sequence has its own
+    look and light): the standard deviation of the sequences' means about theirs, times sqrt(1 + 1 / n) for the
+    n sequences' mean itself (0: not measured, fewer than two sequences).
     n_frames: frames the model was measured on. source: what it was measured on (datasets, ROI mode).
     """
 
@@ -82,6 +85,7 @@ class ErrorModel:
     corr_angle_rad: float = 0.0
     bias_scale: float = 1.0
     bias_radial_px: float = 0.0
+    bias_scale_sd: float = 0.0
     n_frames: int = 0
     source: str = ""
 
@@ -97,7 +101,7 @@ class ErrorModel:
         names = {f.name: f.type for f in fields(ErrorModel)}
         kw = {k: v for k, v in raw.items() if k in names}
         for k in ("cov_scale", "rho_lag1", "ar1_share", "ar1_phi", "inflation", "corr_time_s", "angle_share",
-                  "corr_angle_rad", "bias_scale", "bias_radial_px"):
+                  "corr_angle_rad", "bias_scale", "bias_radial_px", "bias_scale_sd"):
             if k in kw:
                 kw[k] = float(kw[k])
         if "n_frames" in kw:
@@ -300,6 +304,18 @@ def mean_se(x: np.ndarray) -> tuple[float, float, int]:
     return float(np.mean(x)), se, int(len(x))
 
 
+SCALE_MIN_FRAMES = 10  # a sequence's mean apparent scale counts in the spread between sequences from these frames
+
+
+def scale_spread(scales: list[np.ndarray], min_frames: int = SCALE_MIN_FRAMES) -> tuple[float, list[float]]:
+    """ErrorModel.bias_scale_sd from each sequence's per-frame apparent scales (NaN: none that frame), and the
+    sequences' means (those with at least min_frames frames). (0, means) with fewer than two such sequences."""
+    means = [float(np.mean(x[np.isfinite(x)])) for x in map(np.asarray, scales) if np.isfinite(x).sum() >= min_frames]
+    if len(means) < 2:
+        return 0.0, means
+    return float(np.std(means, ddof=1) * np.sqrt(1.0 + 1.0 / len(means))), means
+
+
 ANGLE_BIN_RAD = np.radians(4.0)  # the view-rotation bins of the correlation in angle
 ANGLE_MAX_RAD = np.radians(90.0)
 ANGLE_MAX_LAG = 40  # frames: under half a spin period of the fastest named tumble (72 s at 1 Hz)
@@ -363,12 +379,13 @@ def measure(sequences: list[dict], cov_scale: float, max_lag: int = 20, source: 
         sc[0] += n
         sc[1] += c
     rho_scale = float(autocorrelation(*sc)[1]) if sc[1][1] > 0 else 0.0
+    scale_sd, scale_means = scale_spread([s["scale"] for s in sequences])
     rad_m, rad_se, rad_n = mean_se(np.concatenate([s["radial_px"].ravel() for s in sequences]))
     n_frames = int(sum(len(s["err_px"]) for s in sequences))
     model = ErrorModel(cov_scale=float(cov_scale), rho_lag1=rho, ar1_share=a, ar1_phi=phi,
                        inflation=model_inflation(a, phi), corr_time_s=correlation_time(phi, dt),
                        angle_share=a_th, corr_angle_rad=th_c, bias_scale=scale_m if scale_n else 1.0,
-                       bias_radial_px=rad_m if rad_n else 0.0, n_frames=n_frames, source=source)
+                       bias_radial_px=rad_m if rad_n else 0.0, bias_scale_sd=scale_sd, n_frames=n_frames, source=source)
     clean = lambda a: [None if not np.isfinite(v) else float(v) for v in np.asarray(a, float)]  # noqa: E731
     record = {
         "error_model": json.loads(model.to_json()),
@@ -387,6 +404,7 @@ def measure(sequences: list[dict], cov_scale: float, max_lag: int = 20, source: 
         "autocorr_lag1_by_corner": {c: {a: clean(autocorrelation(*per[c][a])[1:2])[0] for a in "xy"} for c in per},
         "bias_px_by_corner": {c: clean(bias_px[k]) for k, c in enumerate("ABCDEFGH")},
         "scale": {"mean": scale_m, "se": scale_se, "frames": scale_n, "rho_lag1": rho_scale,
+                  "by_sequence": scale_means, "between_sd": scale_sd,
                   "se_ar1": scale_se * np.sqrt(max(ar1_inflation(rho_scale), 0.0)) if abs(rho_scale) < 1 else None},
         "radial_px": {"mean": rad_m, "se": rad_se, "corners": rad_n},
         "corners": int(np.isfinite(e_all[..., 0]).sum()),

@@ -17,7 +17,7 @@ import numpy as np
 from envisat_pose.state import MRP, POS
 
 CORRELATION_MODELS = ("filter_memory", "long_memory", "white")
-CORRELATION_IN = ("rotation", "time")
+CORRELATION_IN = ("slower", "rotation", "time")
 POSE = np.r_[POS, MRP]  # the directions each frame measures: position and attitude
 
 
@@ -38,19 +38,34 @@ def sequence_scale(em, detector) -> float:
     return float(em.cov_scale / det_scale)
 
 
-def correlation_inflation(em, model: str, lam: float, dt_s: float, rate_rad_s: float | None = None) -> float:
+def ar1_at(em, kind: str, dt_s: float, rate_rad_s: float | None = None) -> tuple[float, float]:
+    """(a, phi): the AR(1) share and per-frame coefficient of the error model em's correlated part between two
+    frames dt_s apart. kind "time": the time fit (phi_at); "rotation": with the view turning at rate_rad_s and a
+    rotation fit in em, that of the angle turned in dt_s (phi_at_rotation), else the time fit; "slower": of the
+    two, the one whose correlation lasts longer (the larger long-memory inflation a phi / (1 - phi)): the errors
+    persist while the view has not turned (a slow tumble) and while the frames are close in time (a fast one)."""
+    from envisat_pose.perception.errormodel import phi_at, phi_at_rotation
+
+    by_time = (em.ar1_share, phi_at(em.ar1_phi, em.corr_time_s, dt_s))
+    if kind == "time" or rate_rad_s is None or em.corr_angle_rad <= 0.0:
+        return by_time
+    by_angle = (em.angle_share, phi_at_rotation(em.corr_angle_rad, rate_rad_s, dt_s))
+    if kind == "rotation":
+        return by_angle
+    lasting = lambda ap: ap[0] * ap[1] / max(1.0 - ap[1], 1e-12)  # noqa: E731
+    return by_angle if lasting(by_angle) > lasting(by_time) else by_time
+
+
+def correlation_inflation(em, model: str, lam: float, dt_s: float, rate_rad_s: float | None = None,
+                          kind: str = "rotation") -> float:
     """The factor on the detector's covariance for the errors' frame-to-frame correlation (module doc): the error
-    model em's white + AR(1) errors at frame interval dt_s (s) for a filter of memory lam in [0, 1]. With the
-    view turning at rate_rad_s (rad/s) and a correlation in rotation in em, the AR(1) part's coefficient is that
-    of the angle turned in dt_s (errormodel.phi_at_rotation); otherwise that of the time (phi_at)."""
-    from envisat_pose.perception.errormodel import memory_inflation, phi_at, phi_at_rotation
+    model em's white + AR(1) errors at frame interval dt_s (s) for a filter of memory lam in [0, 1], the AR(1)
+    part's coefficient as ar1_at(em, kind, dt_s, rate_rad_s) gives it (rate_rad_s: the view's rotation rate)."""
+    from envisat_pose.perception.errormodel import memory_inflation
 
     if model == "white":
         return 1.0
-    if rate_rad_s is not None and em.corr_angle_rad > 0.0:
-        a, phi = em.angle_share, phi_at_rotation(em.corr_angle_rad, rate_rad_s, dt_s)
-    else:
-        a, phi = em.ar1_share, phi_at(em.ar1_phi, em.corr_time_s, dt_s)
+    a, phi = ar1_at(em, kind, dt_s, rate_rad_s)
     if a <= 0.0:
         return 1.0
     return max(memory_inflation(a, phi, 1.0 if model == "long_memory" else lam), 1.0)
@@ -89,30 +104,30 @@ def detection_measurement(fd, inflation: float, scale: float) -> tuple[np.ndarra
     return z, cov, float(np.clip(np.nan_to_num(fd.alt_probability), 0.0, 1.0))
 
 
-def nis_sum_dispersion(em, dt_s: float, frames: int, rate_rad_s: float | None = None) -> float:
+def nis_sum_dispersion(em, dt_s: float, frames: int, rate_rad_s: float | None = None,
+                       kind: str = "rotation") -> float:
     """kappa >= 1: the factor by which the variance of a sum of `frames` frames' NIS exceeds the chi-square's,
     because the detector's errors correlate from frame to frame (the error model em: white + AR(1) of share a and
-    coefficient phi at the frame interval dt_s, or at the angle turned at rate_rad_s). For Gaussian errors the
-    squares of two with correlation rho correlate by rho^2, so kappa = 1 + 2 sum_k (1 - k/n) (a phi^k)^2; the
-    windowed sum is then taken as kappa x chi2(dof / kappa) (the same mean, kappa times the variance)."""
-    from envisat_pose.perception.errormodel import phi_at, phi_at_rotation
-
-    if rate_rad_s is not None and em.corr_angle_rad > 0.0:
-        a, phi = em.angle_share, phi_at_rotation(em.corr_angle_rad, rate_rad_s, dt_s)
-    else:
-        a, phi = em.ar1_share, phi_at(em.ar1_phi, em.corr_time_s, dt_s)
+    coefficient phi, ar1_at(em, kind, dt_s, rate_rad_s)). For Gaussian errors the squares of two with
+    correlation rho correlate by rho^2, so kappa = 1 + 2 sum_k (1 - k/n) (a phi^k)^2; the windowed sum is then
+    taken as kappa x chi2(dof / kappa) (the same mean, kappa times the variance)."""
+    a, phi = ar1_at(em, kind, dt_s, rate_rad_s)
     if a <= 0.0 or frames < 2:
         return 1.0
     k = np.arange(1, frames)
     return float(1.0 + 2.0 * np.sum((1.0 - k / frames) * (a * phi ** k) ** 2))
 
 
-def scale_sigma(em) -> float:
-    """The relative range error a filter cannot average away: the detector's apparent-scale bias |s - 1| (the
-    error model's bias_scale, measured on held-out sequences; a corner pattern s times too large puts the target
-    at range / s). It depends on the look (held-out default and slow-tumble loops measured -1.5 to -5.6 cm at
-    50 m with the shipped weights), so it is not corrected but kept as an uncertainty; 0 without a model."""
-    return float(abs(em.bias_scale - 1.0)) if em.n_frames else 0.0
+def scale_sigma(em, corrected: bool) -> float:
+    """The relative range error a filter cannot average away: a corner pattern s times too large puts the target
+    at range / s on every frame. The error model (held-out sequences) measured the detector's mean apparent scale
+    bias_scale and how far one sequence's scale falls from it (bias_scale_sd: each look and light its own). With
+    the mean undone (`corrected`) what is left is a new run's own scale, bias_scale_sd; without it the mean's
+    offset |s - 1| is added in quadrature. 0 without a measured model."""
+    if not em.n_frames:
+        return 0.0
+    sd = float(em.bias_scale_sd)
+    return sd if corrected else float(np.hypot(em.bias_scale - 1.0, sd))
 
 
 def range_consider(mean: np.ndarray, cov: np.ndarray, sigma_rel: float) -> np.ndarray:

@@ -35,9 +35,10 @@ Once the best prior is tight the detector looks only in the predicted region of 
 as its naming's start and half-turn prior when one hypothesis is left.
 
 The filter's R is the detector's calibrated covariance at the error model's scale, inflated for the errors'
-frame-to-frame correlation at the filter's own memory (pipelines/noise.py); the position variance along the line
-of sight is kept at least (the detector's apparent-scale bias x range)^2, the error no frame averages away
-(noise.range_floor, TrackerConfig.range_floor).
+frame-to-frame correlation at the filter's own memory (pipelines/noise.py). The detector's mean apparent scale
+(measured on held-out sequences) is undone in every frame's corners; what a run's own scale leaves (the spread
+between looks, x range) is added to the reported variance along the line of sight, never to the gain
+(noise.range_consider, TrackerConfig.range_floor and correct_scale).
 """
 
 from __future__ import annotations
@@ -101,8 +102,7 @@ class Tracker:
         from envisat_pose.pipelines.build import tracker_filter  # only the fields given override the tracker's
         fcfg = tracker_filter(filter_config)
         q = fcfg.q_sigma
-        self.fcfg = dataclasses.replace(fcfg, q_sigma=(q[0], q[1], max(q[2], config.detector_q_sigma[0]),
-                                                       max(q[3], config.detector_q_sigma[1])))
+        self.fcfg = dataclasses.replace(fcfg, q_sigma=tuple(max(a, b) for a, b in zip(q, config.detector_q_sigma)))
         self.fcfg.validate()
         self.camera = camera
         self.detector = detector
@@ -117,8 +117,8 @@ class Tracker:
         self.error_model = detector_error_model(detector)
         self.cov_factor = sequence_scale(self.error_model, detector)
         self.bias_scale = self.error_model.bias_scale if config.correct_scale else 1.0
-        # the range error no frame averages away (noise.scale_sigma), kept in the covariance as a floor
-        self.scale_sigma = scale_sigma(self.error_model) if config.range_floor and not config.correct_scale else 0.0
+        # the range error no frame averages away (noise.scale_sigma), in the reported covariance (range_consider)
+        self.scale_sigma = scale_sigma(self.error_model, config.correct_scale) if config.range_floor else 0.0
         self.memory = window_memory(config.acquire_frames)  # until the filter's first update
         self.dt_s = 0.0  # the last frame interval, s
         self.rate_rad_s: float | None = None  # the tracked |w_r| (the view's rotation rate), rad/s; None acquiring
@@ -175,9 +175,8 @@ class Tracker:
     def inflation(self) -> float:
         """The factor on the detector's covariance this frame: the sequences' scale times correlation_inflation
         at the filter's memory."""
-        rate = self.rate_rad_s if self.cfg.correlation_in == "rotation" else None
         return self.cov_factor * correlation_inflation(self.error_model, self.cfg.correlation_model, self.memory,
-                                                       self.dt_s, rate)
+                                                       self.dt_s, self.rate_rad_s, self.cfg.correlation_in)
 
     def _detect(self, image, roi=None, R_prior=None, t_prior=None):
         t0 = time.perf_counter()
@@ -369,8 +368,8 @@ class Tracker:
 
     def _problems(self, new: FilterState) -> list[list[str]]:
         """Per hypothesis, why this frame's evidence contradicts it (integrity.py); empty where it does not."""
-        rate = self.rate_rad_s if self.cfg.correlation_in == "rotation" else None
-        kappa = nis_sum_dispersion(self.error_model, self.dt_s, self.cfg.integrity_window, rate)
+        kappa = nis_sum_dispersion(self.error_model, self.dt_s, self.cfg.integrity_window, self.rate_rad_s,
+                                   self.cfg.correlation_in)
         problems = window_problems(self.evidence, self.cfg, kappa)
         for h, p in enumerate(problems):
             if new.indefinite[h]:

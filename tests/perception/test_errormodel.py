@@ -106,6 +106,24 @@ def test_error_model_round_trips_through_the_weights(tmp_path):
     with_metadata(str(w), str(bad), {"error_model": json.dumps({"rho_lag1": 1.5})})
     with pytest.raises(WeightsError, match="error_model"):
         load_detector(str(bad))
+    with_metadata(str(w), str(bad), {"error_model": json.dumps({"bias_scale_sd": -1e-4})})
+    with pytest.raises(WeightsError, match="bias_scale_sd"):
+        load_detector(str(bad))
+
+
+def test_the_scale_spread_is_that_of_the_sequences_means():
+    """Three sequences whose per-frame scales average 1.000, 1.001 and 1.002 (NaN frames skipped): their sample
+    standard deviation 0.001 times sqrt(1 + 1/3); a sequence with too few frames does not count."""
+    rng = np.random.default_rng(5)
+    seqs = []
+    for m in (1.000, 1.001, 1.002):
+        x = m + rng.normal(0.0, 1e-4, 40)
+        x -= x.mean() - m  # each sequence's mean exactly m
+        seqs.append(np.r_[x, np.nan, np.nan])
+    sd, means = em.scale_spread(seqs + [np.array([1.5, np.nan])])
+    np.testing.assert_allclose(means, [1.000, 1.001, 1.002], atol=1e-12)
+    assert sd == pytest.approx(0.001 * np.sqrt(4.0 / 3.0), rel=1e-9)
+    assert em.scale_spread(seqs[:1]) == (0.0, means[:1])
 
 
 @pytest.mark.parametrize("a, phi, lam", [(1.0, 0.8, 0.9), (0.5, 0.93, 0.7), (0.3, 0.5, 0.0)])

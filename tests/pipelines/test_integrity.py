@@ -172,3 +172,24 @@ def test_correlated_windows_are_dispersed_as_the_error_model_says():
     tail = np.mean(sums > ig.nis_window_bound(0.01, dof, kappa))
     plain = np.mean(sums > ig.chi2_bound(0.01, dof))
     assert 0.005 < tail < 0.02 and plain > 2 * tail, (tail, plain)
+
+
+def test_the_slower_correlation_is_the_one_that_lasts_longer():
+    """An error model with a time fit (share 0.3, 12.8 s) and a rotation fit (share 0.31, 32 deg): at 1.6 deg/s
+    (a slow tumble) the view's correlation, exp(-1.6/32) per 1 s frame, outlasts the time's, exp(-1/12.8), and
+    "slower" takes it; at 5 deg/s it takes the time's. Without a rate it is the time fit."""
+    from envisat_pose.perception.errormodel import ErrorModel
+    from envisat_pose.pipelines.noise import ar1_at, correlation_inflation
+
+    em = ErrorModel(ar1_share=0.3, ar1_phi=np.exp(-1 / 12.8), corr_time_s=12.8, angle_share=0.31,
+                    corr_angle_rad=np.radians(32.0))
+    slow, fast = np.radians(1.6), np.radians(5.0)
+    assert ar1_at(em, "slower", 1.0, slow) == pytest.approx((0.31, np.exp(-1.6 / 32.0)))
+    assert ar1_at(em, "slower", 1.0, fast) == pytest.approx((0.3, np.exp(-1 / 12.8)))
+    assert ar1_at(em, "slower", 1.0, None) == pytest.approx((0.3, np.exp(-1 / 12.8)))
+    assert ar1_at(em, "rotation", 1.0, fast) == pytest.approx((0.31, np.exp(-5.0 / 32.0)))
+    # the long-memory inflation 1 + 2 a phi / (1 - phi) of the chosen fit, never below either one's
+    for rate in (slow, fast):
+        tau = correlation_inflation(em, "long_memory", 1.0, 1.0, rate, "slower")
+        each = [1 + 2 * a * p / (1 - p) for a, p in (ar1_at(em, k, 1.0, rate) for k in ("time", "rotation"))]
+        assert tau == pytest.approx(max(each))

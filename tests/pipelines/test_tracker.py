@@ -197,7 +197,7 @@ class CorrelatedTruthDetector(NoisyTruthDetector):
 # the R model alone: without the process noise and start factor that stand for what the shipped detector's
 # error model misses (TrackerConfig.detector_q_sigma, start_cov_factor), so that a synthetic detector whose errors
 # are exactly its model shows the model's own consistency
-ISOLATED = {"detector_q_sigma": (0.0, 0.0), "start_cov_factor": 1.0}
+ISOLATED = {"detector_q_sigma": (0.0, 0.0, 0.0, 0.0), "start_cov_factor": 1.0}
 
 
 def tracking_nees(truth, detector, cfg) -> float:
@@ -272,10 +272,37 @@ def test_the_range_error_no_frame_averages_away_stays_in_the_covariance(truth_60
     """A detector whose corners are 0.2 % too far apart puts the target 0.2 % too near (10 cm at 50 m) on every
     frame. With the range floor (the error model's measured scale) the tracker's NEES stays consistent; without
     it the filter averages the white noise down and is over-confident about a range it cannot know better."""
-    means = {floor: tracking_nees(truth_600, ScaledTruthDetector(truth_600, seed=8), TrackerConfig(range_floor=floor, **ISOLATED))
+    means = {floor: tracking_nees(truth_600, ScaledTruthDetector(truth_600, seed=8),
+                                  TrackerConfig(range_floor=floor, correct_scale=False, **ISOLATED))
              for floor in (True, False)}
     assert 4.0 < means[True] < 24.0, means
     assert means[False] > 3.0 * means[True], means
+
+
+def test_a_measured_apparent_scale_is_undone_and_its_spread_reported(truth_600):
+    """Corners 0.2 % too far apart put the target 0.2 % too near (about -10 cm at 50 m) when nothing undoes it;
+    with the error model's measured scale undone the range bias is gone. A run whose own scale differs from the
+    measured mean by the measured spread keeps a consistent NEES only with that spread in its covariance."""
+    def range_bias_m(detector, cfg):
+        ests = run_tracker(truth_600, detector, range(0, 300), cfg)
+        assert all(e.status == "tracking" for e in ests[60:]), [e.status[0] for e in ests]
+        r_hat = np.linalg.norm([e.x_hat[POS] for e in ests[60:]], axis=1)
+        return float(np.mean(r_hat - np.linalg.norm(truth_600.x[60:300, POS], axis=1)))
+
+    r_m = float(np.mean(np.linalg.norm(truth_600.x[60:300, POS], axis=1)))
+    raw = range_bias_m(ScaledTruthDetector(truth_600, seed=8), TrackerConfig(correct_scale=False, **ISOLATED))
+    fixed = range_bias_m(ScaledTruthDetector(truth_600, seed=8), TrackerConfig(correct_scale=True, **ISOLATED))
+    assert raw == pytest.approx(r_m / 1.002 - r_m, rel=0.25), (raw, fixed)
+    assert abs(fixed) < 0.15 * abs(raw), (raw, fixed)
+
+    from envisat_pose.perception.errormodel import ErrorModel
+
+    off = ScaledTruthDetector(truth_600, scale=1.002, seed=8)  # the run's scale: 2 sd from the model's mean
+    off.error_model = ErrorModel(bias_scale=1.0, bias_scale_sd=0.001, n_frames=600)
+    means = {floor: tracking_nees(truth_600, off, TrackerConfig(range_floor=floor, correct_scale=True, **ISOLATED))
+             for floor in (True, False)}
+    assert means[True] < 24.0, means
+    assert means[False] > 2.0 * means[True], means
 
 
 def test_the_range_consider_term_adds_only_along_the_line_of_sight():
@@ -304,7 +331,7 @@ def test_the_range_consider_term_is_reported_not_fed_back(truth_600):
     """The scale's range variance is in the reported covariance only: the filter's own state keeps averaging the
     frames (its line-of-sight sigma falls well below the consider term's) while the reported one holds it."""
     det = ScaledTruthDetector(truth_600, seed=8)
-    tracker = Tracker(load_camera(), det, chaser_lookup(truth_600), TrackerConfig())
+    tracker = Tracker(load_camera(), det, chaser_lookup(truth_600), TrackerConfig(correct_scale=False))
     for k in range(0, 150):
         est = tracker.step(float(truth_600.t_s[k]), frame_image(k))
     assert est.status == "tracking"
