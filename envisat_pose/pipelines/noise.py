@@ -123,11 +123,14 @@ def scale_sigma(em, corrected: bool) -> float:
     at range / s on every frame. The error model (held-out sequences) measured the detector's mean apparent scale
     bias_scale and how far one sequence's scale falls from it (bias_scale_sd: each look and light its own). With
     the mean undone (`corrected`) what is left is a new run's own scale, bias_scale_sd; without it the mean's
-    offset |s - 1| is added in quadrature. 0 without a measured model."""
+    offset |s - 1| is added in quadrature. A model without a measured spread (older weights: bias_scale_sd 0)
+    takes |s - 1| for it. 0 without a measured model."""
     if not em.n_frames:
         return 0.0
-    sd = float(em.bias_scale_sd)
-    return sd if corrected else float(np.hypot(em.bias_scale - 1.0, sd))
+    offset, sd = abs(float(em.bias_scale) - 1.0), float(em.bias_scale_sd)
+    if corrected:
+        return sd if sd > 0.0 else offset
+    return float(np.hypot(offset, sd))
 
 
 def range_consider(mean: np.ndarray, cov: np.ndarray, sigma_rel: float) -> np.ndarray:

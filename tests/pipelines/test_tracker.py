@@ -537,3 +537,17 @@ def test_a_confidently_wrong_appearance_cannot_decide_the_half_turn_alone():
     assert max(uncapped) > 170.0  # the trap is real: summed appearance claims the twin
     capped = claims(TrackerConfig())
     assert capped and max(capped) < 5.0, capped[:5]
+
+
+def test_the_range_consider_sigma_follows_what_is_undone():
+    """noise.scale_sigma: with the mean scale undone, the spread between looks; without, the mean's offset and the
+    spread in quadrature; a model without a measured spread takes the offset for it; none without a model."""
+    from envisat_pose.perception.errormodel import ErrorModel
+    from envisat_pose.pipelines.noise import scale_sigma
+
+    em = ErrorModel(bias_scale=1.0004, bias_scale_sd=0.0003, n_frames=100)
+    assert scale_sigma(em, True) == pytest.approx(0.0003)
+    assert scale_sigma(em, False) == pytest.approx(0.0005)  # 3-4-5
+    old = ErrorModel(bias_scale=1.0004, n_frames=100)
+    assert scale_sigma(old, True) == pytest.approx(0.0004) and scale_sigma(old, False) == pytest.approx(0.0004)
+    assert scale_sigma(ErrorModel(), True) == 0.0
