@@ -349,7 +349,10 @@ class Tracker:
         if image is not None:
             self.coasting_frames = 0 if used[b] else self.coasting_frames + 1
         if self.coasting_frames >= self.cfg.lost_after_frames:
-            problems[b].append(f"no corner used in {self.coasting_frames} frames with an image")
+            # the bank's, not one hypothesis's: dropping the best alone would hand its twin the claim by
+            # elimination, with no evidence for it (a 20 m acquisition trial claimed a 180-deg twin for 55 s so)
+            for p in problems:
+                p.append(f"no corner used in {self.coasting_frames} frames with an image")
         failed = np.array([bool(p) for p in problems])
         timing = {"detection": t_det, "filtering": t_filter + time.perf_counter() - t1}
         if failed.all():
