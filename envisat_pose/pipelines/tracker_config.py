@@ -46,8 +46,8 @@ class TrackerConfig:
     prior_pose: with it, the predicted position too, so its naming starts from the predicted pose instead of
     searching every face hypothesis (half of the detector's time in the loop; the search still runs when the
     predicted pose matches fewer than 4 corners).
-    lost_after_frames: frames in a row with an image and no corner used (coasting: nothing found, or every corner
-    rejected) that declare the track lost. Frames without an image (eclipse, gaps) coast until the covariance
+    lost_after_frames: frames in a row with an image and no corner used by the best hypothesis (coasting: nothing
+    found, or every corner rejected) that declare the track lost, every hypothesis of the bank with it. Frames without an image (eclipse, gaps) coast until the covariance
     leaves the lost bounds below.
     Integrity (pipelines/integrity.py): integrity_window frames of evidence per hypothesis (20: long enough that
     a burst of a few frames of mis-named corners, which the gate rejects while the state stays right, does not
