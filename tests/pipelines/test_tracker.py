@@ -551,3 +551,21 @@ def test_the_range_consider_sigma_follows_what_is_undone():
     old = ErrorModel(bias_scale=1.0004, n_frames=100)
     assert scale_sigma(old, True) == pytest.approx(0.0004) and scale_sigma(old, False) == pytest.approx(0.0004)
     assert scale_sigma(ErrorModel(), True) == 0.0
+
+
+def test_a_bank_gone_blind_is_lost_whole_not_handed_to_a_twin(truth_600):
+    """Nothing found from the frame after the cold start's bank starts, while it still holds several half-turn
+    hypotheses: after lost_after_frames frames the whole bank is lost at once. Dropping only the best one (as
+    before) would leave its twins to be decided by elimination, with no evidence for them."""
+    cfg = TrackerConfig()
+    first = run_tracker(truth_600, NoisyTruthDetector(truth_600, seed=3), range(0, 40), cfg)
+    k0 = next(k for k, e in enumerate(first) if "started" in e.events)
+    assert len(first[k0].probabilities) > 1, first[k0].probabilities  # several hypotheses when blindness begins
+    n = cfg.lost_after_frames
+    ests = run_tracker(truth_600, Blind(truth_600, range(k0 + 1, k0 + 1 + 2 * n), seed=3), range(0, k0 + 1 + 2 * n),
+                       cfg)
+    events = [ev for e in ests for ev in e.events]
+    assert not any(ev.startswith("hypothesis dropped") and "no corner used" in ev for ev in events), events
+    assert ests[k0 + n].status == "lost" and "no corner used" in " ".join(ests[k0 + n].events), \
+        [(e.status, e.events) for e in ests[k0:]]
+    assert all(e.status in ("acquiring", "lost") for e in ests[k0:]), [e.status for e in ests[k0:]]
