@@ -268,11 +268,13 @@ class Detector:
 
     def detect(self, image: np.ndarray, K: np.ndarray, roi_px: np.ndarray | None = None,
                prior_R_cam_from_target: np.ndarray | None = None,
-               prior_t_cam_from_target_m: np.ndarray | None = None) -> FrameDetection:
+               prior_t_cam_from_target_m: np.ndarray | None = None,
+               prior_weighs_namings: bool = True) -> FrameDetection:
         """Named corners of one full frame (H, W) uint8 with intrinsics K (3, 3). roi_px: (x0, y0, side) crop to
         use instead of the coarse pass; prior_R_cam_from_target: a predicted attitude for the half-turn (R_K_from_T,
         T to the camera frame K); prior_t_cam_from_target_m: with it, the predicted pose the naming starts from
-        (T's origin in K, m; naming.name_corners)."""
+        (T's origin in K, m; naming.name_corners); prior_weighs_namings: False where the prior only seeds the
+        naming's fit and the half-turn's probability is to come from the image alone."""
         if image.ndim != 2 or image.dtype != np.uint8:
             raise ValueError(f"expected an 8-bit grayscale frame, got {image.dtype} of shape {image.shape}")
         h, w = image.shape
@@ -294,7 +296,8 @@ class Detector:
         edge = self.line_probabilities(out["features"], d["points_px"]) if self.cfg.line_verification else None
         naming = name_corners(pts, K, score=d["score"], type_prob=type_prob, edge_prob=edge, image_size=(w, h),
                               prior_R_cam_from_target=prior_R_cam_from_target, config=self.cfg.naming,
-                              geometry=self._geometry, prior_t_cam_from_target_m=prior_t_cam_from_target_m)
+                              geometry=self._geometry, prior_t_cam_from_target_m=prior_t_cam_from_target_m,
+                              prior_weighs_namings=prior_weighs_namings)
         if naming is None:
             return FrameDetection.missing(box)
         if self.face_cue is not None:  # the half-turn settled by what the swapped faces look like

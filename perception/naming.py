@@ -450,7 +450,8 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
                  type_prob: np.ndarray | None = None, edge_prob: np.ndarray | None = None,
                  image_size: tuple[int, int] | None = None, prior_R_cam_from_target: np.ndarray | None = None,
                  config: NamingConfig = NamingConfig(), geometry: TargetGeometry | None = None,
-                 prior_t_cam_from_target_m: np.ndarray | None = None) -> Naming | None:
+                 prior_t_cam_from_target_m: np.ndarray | None = None, prior_weighs_namings: bool = True
+                 ) -> Naming | None:
     """Fit the box to unnamed junction candidates and name them.
 
     points_px: (M, 2) candidate pixels. K: (3, 3) intrinsics of the same image. score: (M,) detection scores
@@ -460,7 +461,9 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
     prior_R_cam_from_target: (3, 3) a predicted attitude (R_K_from_T) that weighs the symmetric namings.
     prior_t_cam_from_target_m: (3,) m, with the attitude a predicted pose (T's origin in K): the fit starts from
     it alone instead of searching every face on every quadrilateral (a tracker's prediction; the search runs
-    when the pose matches fewer than 4 candidates).
+    when the pose matches fewer than 4 candidates). prior_weighs_namings: False for a prior that only seeds the
+    fit (a tracker whose hypotheses are still the pose and its symmetric twins: the symmetric namings'
+    probabilities then come from the image's cues alone, never from the prior they are to test).
     Returns the best Naming (with its half-turn alternative) or None when no hypothesis explains 4 candidates.
     """
     g = geometry or load_geometry()
@@ -503,7 +506,7 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
         Rg, tg = Rs[n], ts[n]
         sg = {k: v[n:n + 1] for k, v in s4.items()}
         logp = -sg["cost"][0]
-        if prior_R_cam_from_target is not None:
+        if prior_R_cam_from_target is not None and prior_weighs_namings:
             ang = _rotation_angle_deg(prior_R_cam_from_target, Rg)
             logp -= 0.5 * (ang / cfg.prior_sigma_deg) ** 2
         variants[name] = (Rg, tg, sg, logp)

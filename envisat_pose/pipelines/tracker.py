@@ -178,9 +178,11 @@ class Tracker:
         return self.cov_factor * correlation_inflation(self.error_model, self.cfg.correlation_model, self.memory,
                                                        self.dt_s, self.rate_rad_s, self.cfg.correlation_in)
 
-    def _detect(self, image, roi=None, R_prior=None, t_prior=None):
+    def _detect(self, image, roi=None, R_prior=None, t_prior=None, weigh_namings=True):
         t0 = time.perf_counter()
         pose = {} if t_prior is None else {"prior_t_cam_from_target_m": t_prior}
+        if R_prior is not None and not weigh_namings:
+            pose["prior_weighs_namings"] = False
         fd = self.detector.detect(image, self.camera.K, roi_px=roi, prior_R_cam_from_target=R_prior, **pose)
         return fd, time.perf_counter() - t0
 
@@ -281,15 +283,20 @@ class Tracker:
         roi = predicted_roi(prior[0][best], prior[1][best], self.camera, self.cfg) \
             if self.cfg.roi and converged else None
         R_prior = t_prior = None
-        if converged and self.cfg.prior_attitude and prior[0].shape[0] == 1:  # a prior would decide the half-turn
+        decided = prior[0].shape[0] == 1
+        # one hypothesis: its attitude weighs the detector's half-turn and its pose seeds the naming; twins still
+        # open: the best one's pose only seeds the naming (they are one physical pose, their corners the same
+        # points under other names), the half-turn's probability comes from the image alone, never from the
+        # prior it is to test
+        if converged and self.cfg.prior_attitude and (decided or (self.cfg.prior_pose and self.cfg.prior_pose_twins)):
             from envisat_pose.attitude import mrp_to_dcm
 
             R_prior = self.camera.R_K_from_C @ mrp_to_dcm(prior[0][best, MRP]).T  # R_K_from_T
             if self.cfg.prior_pose:
                 t_prior = to_camera_K(prior[0][best, POS], self.camera)  # T's origin in K, m
-        fd, t_det = self._detect(image, roi, R_prior, t_prior)
+        fd, t_det = self._detect(image, roi, R_prior, t_prior, decided)
         if roi is not None and int(np.sum(fd.visible)) < self.cfg.roi_min_corners:
-            fd, t2 = self._detect(image, None, R_prior, t_prior)
+            fd, t2 = self._detect(image, None, R_prior, t_prior, decided)
             t_det += t2
             roi = None
         return fd, roi, t_det

@@ -45,7 +45,13 @@ class TrackerConfig:
     converged (ROI, attitude prior) below these. prior_attitude: give the detector the predicted attitude;
     prior_pose: with it, the predicted position too, so its naming starts from the predicted pose instead of
     searching every face hypothesis (half of the detector's time in the loop; the search still runs when the
-    predicted pose matches fewer than 4 corners).
+    predicted pose matches fewer than 4 corners). prior_pose_twins: while the bank still holds a pose and its
+    symmetric twins, the best one's predicted pose seeds the naming too, without weighing the half-turn (the
+    twins are one physical pose; the detector's half-turn probability stays the image's own). Without it the
+    detector searched every face on its own in those frames, and on near end-on views named four corners of one
+    face wrongly for several frames in a row; a young bank's window then held more rejections than a correct
+    track's and a correct start was lost (bench/acquisition.py seed 1, 30 m slow tumble, trial 5: started right
+    at 19 s, lost at 24 s with 12 of 21 corners rejected, tracking only from 81 s).
     lost_after_frames: frames in a row with an image and no corner used by the best hypothesis (coasting: nothing
     found, or every corner rejected) that declare the track lost, every hypothesis of the bank with it. Frames without an image (eclipse, gaps) coast until the covariance
     leaves the lost bounds below.
@@ -121,6 +127,7 @@ class TrackerConfig:
     converged_att_sigma_deg: float = 2.0
     prior_attitude: bool = True
     prior_pose: bool = True
+    prior_pose_twins: bool = True
     lost_after_frames: int = 10
     correct_scale: bool = True
     detector_q_sigma: tuple[float, float, float, float] = (0.0, 3e-6, 1e-5, 3e-6)

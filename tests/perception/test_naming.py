@@ -86,6 +86,31 @@ def test_prior_pose_start_names_as_the_search_does():
     assert right >= 27
 
 
+def test_a_seeding_prior_leaves_the_half_turn_to_the_image():
+    """A prior that only seeds the fit (prior_weighs_namings=False), here the true pose's half-turn twin (a
+    tracker's bank before it has decided): the same names and half-turn probabilities as the search without any
+    prior, where a weighing prior pulls the naming to the twin it was given."""
+    rng = np.random.default_rng(6)
+    _, S, d = symmetry_permutations(load_geometry())["x"]
+    pulled = 0
+    for _ in range(30):
+        case = make_case(rng)
+        R_twin, t_twin = case["R"] @ S, case["t"] + case["R"] @ d
+        kw = dict(type_prob=case["type_prob"], image_size=case["image_size"])
+        free = name_corners(case["points_px"], case["K"], **kw)
+        seeded = name_corners(case["points_px"], case["K"], prior_R_cam_from_target=R_twin,
+                              prior_t_cam_from_target_m=t_twin, prior_weighs_namings=False, **kw)
+        weighed = name_corners(case["points_px"], case["K"], prior_R_cam_from_target=R_twin,
+                               prior_t_cam_from_target_m=t_twin, **kw)
+        def pair(n):  # the naming and its half-turn: names -> probability (which of equals leads is arbitrary)
+            return {tuple(m.candidate): round(m.probability, 6) for m in (n, n.alternative)}
+
+        assert pair(seeded) == pair(free)
+        pulled += outcome(case, weighed) == "wrong" or weighed.probability < free.probability - 1e-6 \
+            or not np.allclose(weighed.corners_px, free.corners_px, equal_nan=True)
+    assert pulled >= 20  # the weighing prior does move the naming: the test above can tell the two apart
+
+
 def test_side_cue_settles_the_half_turn():
     """Where the network can tell +z from -z (side right at 80 %), the half-turn is settled without a prior."""
     rng = np.random.default_rng(5)

@@ -27,7 +27,7 @@ class NoisyTruthDetector:
         self.truth, self.sigma, self.p_alt, self.spliced = truth, sigma_px, p_alt, spliced or {}
         self.rng = np.random.default_rng(seed)
 
-    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None, prior_t_cam_from_target_m=None):
+    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None, prior_t_cam_from_target_m=None, **kw):
         k = int(image[0, 0]) * 256 + int(image[0, 1])
         tr = self.spliced.get(k, (self.truth, k))
         src, j = tr
@@ -172,6 +172,37 @@ def test_the_tracker_starts_cold_and_converges(truth_600):
     assert 3.0 < m < 30.0, m
 
 
+class PriorRecordingDetector(NoisyTruthDetector):
+    """Records, per frame, the prior the tracker handed the detector."""
+
+    def __init__(self, truth, **kw):
+        super().__init__(truth, **kw)
+        self.calls = {}
+
+    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None, prior_t_cam_from_target_m=None, **kw):
+        k = int(image[0, 0]) * 256 + int(image[0, 1])
+        self.calls[k] = (prior_R_cam_from_target is not None, prior_t_cam_from_target_m is not None,
+                         kw.get("prior_weighs_namings", True))
+        return super().detect(image, K, roi_px, prior_R_cam_from_target, prior_t_cam_from_target_m)
+
+
+def test_twins_still_open_seed_the_naming_without_weighing_the_half_turn(truth_600):
+    """While the bank holds a pose and its symmetric twins, the detector is given the best one's predicted pose to
+    start its naming from, but not as a weight on the half-turn (its half-turn probability must stay the image's
+    own); once one hypothesis is left, the prior weighs it too. Without prior_pose_twins: no prior while twins
+    are open."""
+    for twins in (True, False):
+        det = PriorRecordingDetector(truth_600, p_alt=0.45)
+        ests = run_tracker(truth_600, det, range(0, 80), TrackerConfig(prior_pose_twins=twins))
+        open_ = [k for k in range(21, 80) if len(ests[k - 1].probabilities) > 1 and ests[k].converged]
+        decided = [k for k in range(21, 80) if len(ests[k - 1].probabilities) == 1 and ests[k].converged]
+        assert open_ and decided, [len(e.probabilities) for e in ests]
+        for k in open_:
+            assert det.calls[k] == ((True, True, False) if twins else (False, False, True)), (k, det.calls[k])
+        for k in decided:
+            assert det.calls[k] == (True, True, True), (k, det.calls[k])
+
+
 class CorrelatedTruthDetector(NoisyTruthDetector):
     """Errors of white noise plus an AR(1) part (share a, coefficient phi per frame, per corner and axis), of
     total standard deviation sigma_px, with the matching error model (what `envisat calibrate` measures)."""
@@ -183,7 +214,7 @@ class CorrelatedTruthDetector(NoisyTruthDetector):
         self.a, self.phi, self.slow = a, phi, self.rng.standard_normal((8, 2))
         self.error_model = ErrorModel(ar1_share=a, ar1_phi=phi, corr_time_s=-1.0 / np.log(phi))
 
-    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None, prior_t_cam_from_target_m=None):
+    def detect(self, image, K, roi_px=None, prior_R_cam_from_target=None, prior_t_cam_from_target_m=None, **kw):
         k = int(image[0, 0]) * 256 + int(image[0, 1])
         self.slow = self.phi * self.slow + np.sqrt(1 - self.phi**2) * self.rng.standard_normal((8, 2))
         e = self.sigma * (np.sqrt(self.a) * self.slow + np.sqrt(1 - self.a) * self.rng.standard_normal((8, 2)))
