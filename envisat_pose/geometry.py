@@ -87,6 +87,30 @@ def load_geometry(path: str | None = None) -> TargetGeometry:
     return TargetGeometry(corners_T, np.array(normals), np.array(offsets), np.array(members))
 
 
+@functools.lru_cache(maxsize=4)
+def load_array_outline(path: str | None = None) -> np.ndarray:
+    """The solar array's outline in T, m: (4, 3) the corners of geom `array`'s mid-plane (a box of body `target`
+    with no rotation of its own; its thinnest axis dropped), in order around it. The box's half-turns about y and z
+    carry it to the other end of the body; the one about x maps it onto itself (perception/arraycue.py)."""
+    path = path or model_path()
+    root = ET.parse(path).getroot()
+    target = next((b for b in root.iter("body") if b.get("name") == "target"), None)
+    geom = None if target is None else next((g for g in target.iter("geom") if g.get("name") == "array"), None)
+    if geom is None or geom.get("type") != "box":
+        raise ValueError(f"{path}: body 'target' has no box geom named 'array'")
+    if any(geom.get(k) for k in ("quat", "axisangle", "xyaxes", "zaxis", "euler")):
+        raise ValueError(f"{path}: geom 'array' is rotated; its outline is read for an axis-aligned box only")
+    pos, size = _parse_vec(geom.get("pos", "0 0 0")), _parse_vec(geom.get("size"))
+    a, b = np.sort(np.argsort(size)[1:])  # the two long axes
+    out = []
+    for sa, sb in ((1, 1), (1, -1), (-1, -1), (-1, 1)):
+        c = pos.copy()
+        c[a] += sa * size[a]
+        c[b] += sb * size[b]
+        out.append(c)
+    return np.array(out)
+
+
 def visible_faces(c_T_m: np.ndarray, geometry: TargetGeometry | None = None) -> np.ndarray:
     """Faces seen from the viewpoint c_T (chaser position in T, m): n_k . c_T > h_k. (..., 3) -> (..., 6) bool."""
     g = geometry or load_geometry()

@@ -5,7 +5,8 @@ Each frame every hypothesis takes the naming (the detector's or its renaming by 
 nearest its predicted corners and its log weight gains -cost/2 (cost ~ -2 log likelihood: the NIS, the gate's
 bound per rejected or dropped corner and dof x log of the adaptive R scale, so a hypothesis that explains its
 misfit by a larger R pays for it) plus the appearance log-likelihood of the naming it took, counted as one look
-per `appearance_frames` frames.
+per `appearance_frames` frames, and what the image shows of the solar array's end (perception/arraycue.py: the
+twins by a half-turn about y or z put it at the other end of the body).
 """
 
 from __future__ import annotations
@@ -62,3 +63,23 @@ def update_cost(new: FilterState, gate_bound: float) -> np.ndarray:
     """(H,) ~ -2 log likelihood of each hypothesis' update: NIS, the gate's bound per rejected or dropped corner,
     and dof x log of the adaptive R scale."""
     return new.nis + gate_bound * (new.rejected + new.dropped) + new.dof * np.log(new.r_scale)
+
+
+def same_array_end(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """(H,) bool: each hypothesis of x (H, 12) puts the solar array (T's -x end) at the same end of the body as
+    the state ref (12,): its long axis points the same way in C (the x half-turn keeps it, y and z reverse it)."""
+    from envisat_pose.attitude import mrp_to_dcm
+    from envisat_pose.state import MRP
+
+    x_axis_C = mrp_to_dcm(np.asarray(x)[:, MRP])[:, 0, :]  # Gamma = T_from_C: its first row is T's x in C
+    return x_axis_C @ mrp_to_dcm(np.asarray(ref)[MRP])[0] > 0.0
+
+
+def array_log_likelihood(cue: int, x: np.ndarray, ref: np.ndarray, per_frame: float) -> np.ndarray:
+    """(H,) log-likelihoods of the hypotheses x (H, 12) from one frame's array cue, read under the pose ref (12,)
+    (+1: the array where ref puts it, -1: at the other end, 0: no reading): per_frame nats to every hypothesis
+    that puts it where the image shows it, 0 to the others."""
+    same = same_array_end(x, ref)
+    if cue == 0:
+        return np.zeros(len(same))
+    return np.where(same == (cue > 0), float(per_frame), 0.0)

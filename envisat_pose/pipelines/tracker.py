@@ -56,7 +56,8 @@ from envisat_pose.geometry import PinholeCamera, load_geometry
 from envisat_pose.pipelines.acquisition import (NAMINGS, BatchFit, FramePose, align_namings,
                                                  appearance_log_likelihood, batch_fit, initial_guess, naming_state,
                                                  pnp_state, renamed_window)
-from envisat_pose.pipelines.bank import choose_namings, probabilities, select_runs, update_cost
+from envisat_pose.pipelines.bank import (array_log_likelihood, choose_namings, probabilities, same_array_end,
+                                        select_runs, update_cost)
 from envisat_pose.pipelines.integrity import (EvidenceWindow, claim_holds, fit_problems, pose_sigmas,
                                               state_problems, target_radius_m, window_problems)
 from envisat_pose.pipelines.noise import (correlation_inflation, detection_measurement, detector_error_model,
@@ -125,6 +126,7 @@ class Tracker:
         self.state: FilterState | None = None
         self.log_dyn = np.zeros(0)  # per hypothesis: log-likelihood of its fit and innovations
         self.log_app = np.zeros(0)  # per hypothesis: the detector's appearance log-likelihood, summed
+        self.log_array = np.zeros(0)  # per hypothesis: the array cue's log-likelihood, summed
         self.evidence: EvidenceWindow | None = None
         self.confirmed = False
         self.buffer: list[FramePose] = []
@@ -144,9 +146,14 @@ class Tracker:
     @property
     def log_w(self) -> np.ndarray:
         """(H,) the hypotheses' log weights: their fits' and innovations' log-likelihood plus the detector's
-        appearance, the latter relative to its best and never below -appearance_max_log (module docstring)."""
-        app = self.log_app - np.max(self.log_app) if self.log_app.size else self.log_app
-        return self.log_dyn + np.maximum(app, -self.cfg.appearance_max_log)
+        appearance and the array cue, each relative to its best and never below -appearance_max_log and
+        -array_cue_max_log (module docstring)."""
+        if not self.log_app.size:
+            return self.log_dyn
+        app = self.log_app - np.max(self.log_app)
+        arr = self.log_array - np.max(self.log_array)
+        return self.log_dyn + np.maximum(app, -self.cfg.appearance_max_log) \
+            + np.maximum(arr, -self.cfg.array_cue_max_log)
 
     @property
     def probabilities(self) -> np.ndarray:
@@ -251,7 +258,7 @@ class Tracker:
     def _reset(self) -> None:
         """Back to acquiring: the bank, its evidence, the window and the memory dropped."""
         self.state, self.buffer, self.coasting_frames = None, [], 0
-        self.log_dyn, self.log_app = np.zeros(0), np.zeros(0)
+        self.log_dyn, self.log_app, self.log_array = np.zeros(0), np.zeros(0), np.zeros(0)
         self.evidence, self.confirmed = None, False
         self.memory = window_memory(self.cfg.acquire_frames)
         self.rate_rad_s = None
@@ -259,6 +266,7 @@ class Tracker:
     def _start(self, x: np.ndarray, P: np.ndarray, t0: float, log_dyn: np.ndarray, log_app: np.ndarray) -> None:
         self.state = init_state(x, P, t0, self.chaser_at(t0), self.fcfg)
         self.log_dyn, self.log_app = log_dyn - np.max(log_dyn), log_app - np.max(log_app)
+        self.log_array = np.zeros(len(log_dyn))
         self.evidence = EvidenceWindow.empty(len(log_dyn), self.cfg.integrity_window)
         self.confirmed = False
         self.coasting_frames = 0
@@ -273,6 +281,7 @@ class Tracker:
         self.evidence = self.evidence.select(idx)
         self.log_dyn = self.log_dyn[keep] - np.max(self.log_dyn[keep])
         self.log_app = self.log_app[keep] - np.max(self.log_app[keep])
+        self.log_array = self.log_array[keep] - np.max(self.log_array[keep])
         return True
 
     # ------------------------------------------------------------------ tracking
@@ -340,8 +349,11 @@ class Tracker:
         seen = mask.any(-1)
         self.log_dyn = self.log_dyn + np.where(seen, -0.5 * update_cost(new, self.gate_bound), 0.0)
         self.log_app = self.log_app + np.where(seen, appearance, 0.0)
+        if image is not None and converged:
+            self.log_array = self.log_array + self._array_cue(image, prior[0], best)
         self.log_dyn -= np.max(self.log_dyn)
         self.log_app -= np.max(self.log_app)
+        self.log_array -= np.max(self.log_array)
         self.state = new
         self.evidence = self.evidence.push(np.where(used, new.nis, 0.0), new.dof, mask.sum(-1),
                                            new.rejected + new.dropped)
@@ -375,6 +387,20 @@ class Tracker:
             events.append("hypothesis decided")
         status = self._claim(events)  # may add "confirmed" to the events
         return self._estimate(t_s, events=tuple(events), status=status, timing=timing, **out)
+
+    def _array_cue(self, image, x_prior: np.ndarray, best: int) -> np.ndarray:
+        """(H,) this frame's array-cue log-likelihoods (bank.array_log_likelihood), read under the best
+        hypothesis' predicted pose; zeros when the cue is off or every hypothesis puts the array at one end."""
+        H = x_prior.shape[0]
+        if not self.cfg.array_cue or same_array_end(x_prior, x_prior[best]).all():
+            return np.zeros(H)
+        from envisat_pose.attitude import mrp_to_dcm
+        from envisat_pose.perception.arraycue import array_end
+
+        R = self.camera.R_K_from_C @ mrp_to_dcm(x_prior[best, MRP]).T  # R_K_from_T
+        t = to_camera_K(x_prior[best, POS], self.camera)
+        cue, _ = array_end(image, self.camera.K, R, t, self.corners_T_m)
+        return array_log_likelihood(cue, x_prior, x_prior[best], self.cfg.array_cue_per_frame)
 
     def _problems(self, new: FilterState) -> list[list[str]]:
         """Per hypothesis, why this frame's evidence contradicts it (integrity.py); empty where it does not."""
