@@ -131,6 +131,7 @@ class Tracker:
         self.confirmed = False
         self.buffer: list[FramePose] = []
         self.coasting_frames = 0
+        self.array_against = 0  # array-cue readings in a row against the one hypothesis left
         self.last_pose: np.ndarray | None = None
         self.t_last: float | None = None
         if prior is not None:
@@ -260,6 +261,7 @@ class Tracker:
         self.state, self.buffer, self.coasting_frames = None, [], 0
         self.log_dyn, self.log_app, self.log_array = np.zeros(0), np.zeros(0), np.zeros(0)
         self.evidence, self.confirmed = None, False
+        self.array_against = 0
         self.memory = window_memory(self.cfg.acquire_frames)
         self.rate_rad_s = None
 
@@ -350,7 +352,7 @@ class Tracker:
         self.log_dyn = self.log_dyn + np.where(seen, -0.5 * update_cost(new, self.gate_bound), 0.0)
         self.log_app = self.log_app + np.where(seen, appearance, 0.0)
         if image is not None and converged:
-            self.log_array = self.log_array + self._array_cue(image, prior[0], best)
+            self._array_cue(image, prior[0], best)
         self.log_dyn -= np.max(self.log_dyn)
         self.log_app -= np.max(self.log_app)
         self.log_array -= np.max(self.log_array)
@@ -365,6 +367,9 @@ class Tracker:
                    nis=float(new.nis[b]), nis_dof=int(new.dof[b]))
         # integrity: every hypothesis against its own evidence; a failed one is dropped, none left is lost
         problems = self._problems(new)
+        if H == 1 and self.array_against >= self.cfg.array_lost_readings:
+            problems[0].append(f"the image shows the solar array at the other end of the body ({self.array_against} "
+                               "readings in a row)")
         if image is not None:
             self.coasting_frames = 0 if used[b] else self.coasting_frames + 1
         if self.coasting_frames >= self.cfg.lost_after_frames:
@@ -388,19 +393,26 @@ class Tracker:
         status = self._claim(events)  # may add "confirmed" to the events
         return self._estimate(t_s, events=tuple(events), status=status, timing=timing, **out)
 
-    def _array_cue(self, image, x_prior: np.ndarray, best: int) -> np.ndarray:
-        """(H,) this frame's array-cue log-likelihoods (bank.array_log_likelihood), read under the best
-        hypothesis' predicted pose; zeros when the cue is off or every hypothesis puts the array at one end."""
+    def _array_cue(self, image, x_prior: np.ndarray, best: int) -> None:
+        """Read the array cue (perception/arraycue.py) under the best hypothesis' predicted pose: while the bank
+        holds hypotheses at both ends of the body, they gain its log-likelihoods (bank.array_log_likelihood); with
+        one hypothesis left, a reading against it counts into array_against (one for it resets the count, an
+        abstention leaves it). Nothing when the cue is off or the open hypotheses all put the array at one end."""
         H = x_prior.shape[0]
-        if not self.cfg.array_cue or same_array_end(x_prior, x_prior[best]).all():
-            return np.zeros(H)
+        both_ends = H > 1 and not same_array_end(x_prior, x_prior[best]).all()
+        if not self.cfg.array_cue or not (both_ends or H == 1):
+            return
         from envisat_pose.attitude import mrp_to_dcm
         from envisat_pose.perception.arraycue import array_end
 
         R = self.camera.R_K_from_C @ mrp_to_dcm(x_prior[best, MRP]).T  # R_K_from_T
         t = to_camera_K(x_prior[best, POS], self.camera)
         cue, _ = array_end(image, self.camera.K, R, t, self.corners_T_m)
-        return array_log_likelihood(cue, x_prior, x_prior[best], self.cfg.array_cue_per_frame)
+        if both_ends:
+            self.log_array = self.log_array + array_log_likelihood(cue, x_prior, x_prior[best],
+                                                                   self.cfg.array_cue_per_frame)
+        elif cue:
+            self.array_against = self.array_against + 1 if cue < 0 else 0
 
     def _problems(self, new: FilterState) -> list[list[str]]:
         """Per hypothesis, why this frame's evidence contradicts it (integrity.py); empty where it does not."""

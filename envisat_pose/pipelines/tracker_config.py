@@ -47,7 +47,9 @@ class TrackerConfig:
     1981 abstained on the 24 held-out loop sequences (4 scenarios x seeds 9001-9006, 150 frames each); 123 right,
     0 wrong, 177 abstained on 300 random views (seed 4242, the Earth behind the target in a third, where the cue
     abstains). Capped below the 6.9 nats a decision needs, so the dynamics and the detector's appearance must not
-    contradict it.
+    contradict it. With one hypothesis left the cue is read every converged frame as an integrity test:
+    array_lost_readings readings in a row against it (abstentions between them allowed) lose the track (a
+    decided y or z twin would claim a pose 180 deg off while every corner fits).
     fit_iterations, fit_huber (whitened px), fit_gate_prob (the probability a corner's 2-dof chi-square passes
     the fit's gate; `fit_gate` the bound): the batch fit.
     roi: look only in the predicted region of interest once converged; roi_margin: its side over the predicted
@@ -130,6 +132,7 @@ class TrackerConfig:
     array_cue: bool = True
     array_cue_per_frame: float = 1.0
     array_cue_max_log: float = 6.0
+    array_lost_readings: int = 3
     fit_iterations: int = 15
     fit_huber: float = 3.0
     fit_gate_prob: float = GATE_PROB
@@ -180,6 +183,7 @@ class TrackerConfig:
               "a non-negative log-likelihood (nats)")
         check(self.array_cue_max_log >= 0.0, f"{p}array_cue_max_log", self.array_cue_max_log,
               "a non-negative log-likelihood (nats)")
+        check(self.array_lost_readings >= 1, f"{p}array_lost_readings", self.array_lost_readings, "at least 1 reading")
         check(self.fit_iterations >= 1, f"{p}fit_iterations", self.fit_iterations, "at least 1")
         check(self.fit_huber > 0, f"{p}fit_huber", self.fit_huber, "a positive whitened residual")
         check(0.5 < self.fit_gate_prob < 1.0, f"{p}fit_gate_prob", self.fit_gate_prob, "a probability in (0.5, 1)")

@@ -203,6 +203,35 @@ def test_twins_still_open_seed_the_naming_without_weighing_the_half_turn(truth_6
             assert det.calls[k] == (True, True, True), (k, det.calls[k])
 
 
+def test_an_array_seen_at_the_other_end_loses_a_decided_track(truth_600, monkeypatch):
+    """With one hypothesis left, array-cue readings against it (the image shows the solar array where a y or z
+    twin would put it) lose the track after array_lost_readings of them in a row; abstentions between them do not
+    reset the count, and readings that agree keep the track."""
+    import envisat_pose.perception.arraycue as arraycue
+
+    state = {"from": 10_000, "cue": -1}
+
+    def fake_array_end(image, K, R, t, corners, cfg=None):
+        k = int(image[0, 0]) * 256 + int(image[0, 1])
+        if k < state["from"]:
+            return 0, {}
+        return (state["cue"] if k % 2 == 0 else 0), {}  # a reading every other frame, abstaining between
+
+    monkeypatch.setattr(arraycue, "array_end", fake_array_end)
+    ests = run_tracker(truth_600, NoisyTruthDetector(truth_600), range(0, 60))
+    assert ests[-1].status == "tracking"
+    for cue, lost in ((-1, True), (1, False)):
+        state.update({"from": 70, "cue": cue})
+        ests = run_tracker(truth_600, NoisyTruthDetector(truth_600), range(0, 90))
+        assert all(e.status == "tracking" for e in ests[40:70])
+        first_lost = next((k for k, e in enumerate(ests) if e.status == "lost"), None)
+        if lost:
+            assert first_lost == 74, [e.status for e in ests[68:80]]  # readings at 70, 72, 74
+            assert "solar array at the other end" in " ".join(ests[74].events)
+        else:
+            assert first_lost is None
+
+
 class CorrelatedTruthDetector(NoisyTruthDetector):
     """Errors of white noise plus an AR(1) part (share a, coefficient phi per frame, per corner and axis), of
     total standard deviation sigma_px, with the matching error model (what `envisat calibrate` measures)."""
