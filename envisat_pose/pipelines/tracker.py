@@ -300,11 +300,10 @@ class Tracker:
         # points under other names), the half-turn's probability comes from the image alone, never from the
         # prior it is to test
         if converged and self.cfg.prior_attitude and (decided or (self.cfg.prior_pose and self.cfg.prior_pose_twins)):
-            from envisat_pose.attitude import mrp_to_dcm
-
-            R_prior = self.camera.R_K_from_C @ mrp_to_dcm(prior[0][best, MRP]).T  # R_K_from_T
+            R_K, t_K = self._pose_K(prior[0][best])
+            R_prior = R_K
             if self.cfg.prior_pose:
-                t_prior = to_camera_K(prior[0][best, POS], self.camera)  # T's origin in K, m
+                t_prior = t_K
         fd, t_det = self._detect(image, roi, R_prior, t_prior, decided)
         if roi is not None and int(np.sum(fd.visible)) < self.cfg.roi_min_corners:
             fd, t2 = self._detect(image, None, R_prior, t_prior, decided)
@@ -393,6 +392,12 @@ class Tracker:
         status = self._claim(events)  # may add "confirmed" to the events
         return self._estimate(t_s, events=tuple(events), status=status, timing=timing, **out)
 
+    def _pose_K(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The target's pose in the camera frame K of a state x (12,): R_K_from_T (3, 3) and T's origin in K (3,), m."""
+        from envisat_pose.attitude import mrp_to_dcm
+
+        return self.camera.R_K_from_C @ mrp_to_dcm(x[MRP]).T, to_camera_K(x[POS], self.camera)
+
     def _array_cue(self, image, x_prior: np.ndarray, best: int) -> None:
         """Read the array cue (perception/arraycue.py) under the best hypothesis' predicted pose: while the bank
         holds hypotheses at both ends of the body, they gain its log-likelihoods (bank.array_log_likelihood); with
@@ -402,12 +407,9 @@ class Tracker:
         both_ends = H > 1 and not same_array_end(x_prior, x_prior[best]).all()
         if not self.cfg.array_cue or not (both_ends or H == 1):
             return
-        from envisat_pose.attitude import mrp_to_dcm
         from envisat_pose.perception.arraycue import array_end
 
-        R = self.camera.R_K_from_C @ mrp_to_dcm(x_prior[best, MRP]).T  # R_K_from_T
-        t = to_camera_K(x_prior[best, POS], self.camera)
-        cue, _ = array_end(image, self.camera.K, R, t, self.corners_T_m)
+        cue, _ = array_end(image, self.camera.K, *self._pose_K(x_prior[best]), self.corners_T_m)
         if both_ends:
             self.log_array = self.log_array + array_log_likelihood(cue, x_prior, x_prior[best],
                                                                    self.cfg.array_cue_per_frame)
