@@ -39,6 +39,7 @@ import platform
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -65,9 +66,10 @@ def bin_seeds(seed: int, range_m: float, rate: str, trials: int) -> list[np.rand
 
 
 def draw_trial(ss: np.random.SeedSequence, range_m: float, rate: str, duration_s: float, weights: str,
-               phase_max_deg: float) -> dict:
+               phase_max_deg: float, config_path: str | None = None) -> dict:
     """A trial's draws and its run config (JSON) from its SeedSequence (two children: the run seed, i.e. the camera
-    noise; then attitude, axis and sun from one generator)."""
+    noise; then attitude, axis and sun from one generator); config_path: a run-config TOML over the scenario's
+    (`envisat run --config`)."""
     from envisat_pose.app.run import run_defaults
     from envisat_pose.config import resolve_job_config, to_dict
     from envisat_pose.datagen.scenario import scenario_config
@@ -82,11 +84,11 @@ def draw_trial(ss: np.random.SeedSequence, range_m: float, rate: str, duration_s
     p0 = random_attitude_mrp(rng)
     axis = unit_vector(rng)
     flags = {"seed": run_seed, "runs": 1, "workers": 1, "weights": weights, "duration_s": duration_s}
-    cfg = resolve_job_config(RunConfig, run_defaults(scenario), None, flags)
+    cfg = resolve_job_config(RunConfig, run_defaults(scenario), config_path, flags)
     t_s = np.arange(int(np.floor(cfg.duration_s * cfg.rate_hz + 1e-9)) + 1) / cfg.rate_hz
     sun = draw_lit_sun_N(scenario_config(scenario).orbit, t_s, (0.0, range_m, 0.0), rng, phase_max_deg)
     flags["image.sun_dir"] = list(sun)
-    cfg = finish_config(resolve_job_config(RunConfig, run_defaults(scenario), None, flags))
+    cfg = finish_config(resolve_job_config(RunConfig, run_defaults(scenario), config_path, flags))
     return {"scenario": scenario, "range_m": range_m, "rate": rate, "run_seed": run_seed,
             "p0_mrp": [float(v) for v in p0], "spin_axis_T": [float(v) for v in axis], "sun_dir_N": list(sun),
             "cfg_json": json.dumps(to_dict(cfg), sort_keys=True)}
@@ -177,6 +179,8 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
     ap.add_argument("--sun-phase-max-deg", type=float, help="a lit sun's largest phase angle (default: trials')")
+    ap.add_argument("--config", help="a run-config TOML applied to every trial, as `envisat run --config` takes it "
+                                     "(an ablation: [tracker] acquire_frames = 12, say); its text goes into the result")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "acquisition.json"))
     args = ap.parse_args()
     from envisat_pose.app.run import default_weights_path
@@ -189,7 +193,7 @@ def main() -> None:
     phase = args.sun_phase_max_deg if args.sun_phase_max_deg is not None else SUN_PHASE_MAX_DEG
     load_start = os.getloadavg()
     bins = [(r, rate) for rate in args.rates for r in args.ranges_m]
-    trials = [draw_trial(ss, r, rate, args.duration_s, weights, phase)
+    trials = [draw_trial(ss, r, rate, args.duration_s, weights, phase, args.config)
               for r, rate in bins for ss in bin_seeds(args.seed, r, rate, args.trials_per_bin)]
     print(f"acquisition: {len(bins)} bins x {args.trials_per_bin} trials, seed {args.seed}, {args.duration_s:g} s "
           f"each, {args.workers} workers (load {os.getloadavg()[0]:.1f} at start)")
@@ -211,6 +215,7 @@ def main() -> None:
                        f"at the scenario's rate, random attitude (uniform SO(3)), tumble axis (uniform sphere, in T) "
                        f"and lit sun (phase <= {phase:g} deg all run, no shadow); V-bar hold; the tracker gets the "
                        f"exact chaser orbit and the render camera",
+           "config": None if args.config is None else Path(args.config).read_text(),
            "weights": weights_ref(weights), "status_legend": legend(), "floors": FLOORS, "rates": RATES, "wall_s": wall_s,
            "bins": [], "trials": results}
     print(HEAD)

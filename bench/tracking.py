@@ -33,6 +33,7 @@ import platform
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -51,8 +52,9 @@ def weights_ref(path: str) -> dict:
         return {"name": os.path.basename(path), "sha256": hashlib.sha256(fh.read()).hexdigest()}
 
 def run_config(scenario: str, seed: int, weights: str, duration_s: float | None, correlation_in: str | None,
-               sun_phase_max_deg: float):
-    """The closed loop of (scenario, seed) as `envisat run` resolves it, with the seed's lit sun."""
+               sun_phase_max_deg: float, config_path: str | None = None):
+    """The closed loop of (scenario, seed) as `envisat run --config config_path` resolves it, with the seed's lit
+    sun."""
     from envisat_pose.app.run import run_defaults
     from envisat_pose.config import resolve_job_config
     from envisat_pose.pipelines.closed_loop import RunConfig, finish_config, stage_types
@@ -61,10 +63,10 @@ def run_config(scenario: str, seed: int, weights: str, duration_s: float | None,
     stage_types()
     flags = {"seed": seed, "runs": 1, "workers": 1, "weights": weights, "duration_s": duration_s,
              "tracker.correlation_in": correlation_in}
-    cfg = resolve_job_config(RunConfig, run_defaults(scenario), None, flags)
+    cfg = resolve_job_config(RunConfig, run_defaults(scenario), config_path, flags)
     sun = scenario_sun_N(scenario, cfg.duration_s, cfg.rate_hz, seed, sun_phase_max_deg)
     if sun is not None:
-        cfg = resolve_job_config(RunConfig, run_defaults(scenario), None, flags | {"image.sun_dir": list(sun)})
+        cfg = resolve_job_config(RunConfig, run_defaults(scenario), config_path, flags | {"image.sun_dir": list(sun)})
     return finish_config(cfg)
 
 
@@ -209,6 +211,8 @@ def main() -> None:
     ap.add_argument("--sun-phase-max-deg", type=float, help="a lit sun's largest phase angle (default: trials')")
     ap.add_argument("--correlation-in", choices=("slower", "rotation", "time"),
                     help="the tracker's correlation_in (default: TrackerConfig's, pipelines/tracker.py)")
+    ap.add_argument("--config", help="a run-config TOML applied to every run, as `envisat run --config` takes it "
+                                     "(an ablation: [tracker] acquire_frames = 12, say); its text goes into the result")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "tracking.json"))
     args = ap.parse_args()
     from envisat_pose.app.run import default_weights_path
@@ -223,7 +227,7 @@ def main() -> None:
     phase = args.sun_phase_max_deg if args.sun_phase_max_deg is not None else SUN_PHASE_MAX_DEG
     em = getattr(load_detector(weights), "error_model", None)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
-    cfgs = {(scen, seed): run_config(scen, seed, weights, args.duration_s, args.correlation_in, phase)
+    cfgs = {(scen, seed): run_config(scen, seed, weights, args.duration_s, args.correlation_in, phase, args.config)
             for scen in args.scenarios for seed in seeds}
     result = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": sys.version.split()[0],
                           "load_avg_start": os.getloadavg()},
@@ -233,6 +237,7 @@ def main() -> None:
                           f"{' s' if args.duration_s else ''}; tracker.correlation_in "
                           f"{args.correlation_in or 'default'}; the tracker gets the exact chaser orbit and the "
                           f"render camera",
+              "config": None if args.config is None else Path(args.config).read_text(),
               "weights": weights_ref(weights), "error_model": None if em is None else {k: getattr(em, k) for k in vars(em)},
               "floors": FLOORS, "scenarios": {}}
     print(f"cold-start tracking, seeds {seeds[0]}..{seeds[-1]} per scenario, {args.workers} workers "
