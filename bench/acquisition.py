@@ -51,14 +51,6 @@ SUCCESS_WITHIN_S = 60.0
 FLOORS = {"false_locks": 0, "min_acquisitions": 300, "success_within_60_s": 0.99}
 
 
-
-def weights_ref(path: str) -> dict:
-    """The weights by file name and sha256 (no path of this machine in a result file)."""
-    import hashlib
-
-    with open(path, "rb") as fh:
-        return {"name": os.path.basename(path), "sha256": hashlib.sha256(fh.read()).hexdigest()}
-
 def bin_seeds(seed: int, range_m: float, rate: str, trials: int) -> list[np.random.SeedSequence]:
     """One SeedSequence per trial of the bin (range_m, rate), from the root seed."""
     key = (int(round(100 * range_m)), list(RATES).index(rate))
@@ -185,6 +177,7 @@ def main() -> None:
     args = ap.parse_args()
     from envisat_pose.app.run import default_weights_path
     from envisat_pose.io import atomic_write_text
+    from envisat_pose.provenance import weights_ref
     from envisat_pose.pipelines.trials import SUN_PHASE_MAX_DEG
     from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks
     from envisat_pose.status import legend

@@ -43,14 +43,6 @@ FLOORS = {"false_lock_s": 0.0, "nees_tail_share": 0.005, "nees": (8.0, 16.0), "r
           "range_bias_m_at_50m": 0.01}
 
 
-
-def weights_ref(path: str) -> dict:
-    """The weights by file name and sha256 (no path of this machine in a result file)."""
-    import hashlib
-
-    with open(path, "rb") as fh:
-        return {"name": os.path.basename(path), "sha256": hashlib.sha256(fh.read()).hexdigest()}
-
 def run_config(scenario: str, seed: int, weights: str, duration_s: float | None, correlation_in: str | None,
                sun_phase_max_deg: float, config_path: str | None = None):
     """The closed loop of (scenario, seed) as `envisat run --config config_path` resolves it, with the seed's lit
@@ -219,6 +211,7 @@ def main() -> None:
     from envisat_pose.config import to_dict
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.io import atomic_write_text
+    from envisat_pose.provenance import weights_ref
     from envisat_pose.perception.detect import load_detector
     from envisat_pose.pipelines.trials import SUN_PHASE_MAX_DEG
     from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks

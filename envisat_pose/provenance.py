@@ -63,3 +63,8 @@ def dataset_ref(folder: str) -> str:
     name = os.path.basename(os.path.normpath(folder)) or "."
     h = manifest_sha256(folder)
     return f"{name} (manifest sha256 {h[:16]})" if h else relative_name(os.path.normpath(folder))
+
+
+def weights_ref(path: str) -> dict:
+    """A weights file named by its file name and sha256 (no path of this machine in a result file)."""
+    return {"name": os.path.basename(path), "sha256": sha256_file(path)}
