@@ -177,8 +177,8 @@ def main() -> None:
     args = ap.parse_args()
     from envisat_pose.app.run import default_weights_path
     from envisat_pose.io import atomic_write_text
-    from envisat_pose.provenance import weights_ref
     from envisat_pose.pipelines.trials import SUN_PHASE_MAX_DEG
+    from envisat_pose.provenance import weights_ref
     from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks
     from envisat_pose.status import legend
 

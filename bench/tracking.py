@@ -211,9 +211,9 @@ def main() -> None:
     from envisat_pose.config import to_dict
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.io import atomic_write_text
-    from envisat_pose.provenance import weights_ref
     from envisat_pose.perception.detect import load_detector
     from envisat_pose.pipelines.trials import SUN_PHASE_MAX_DEG
+    from envisat_pose.provenance import weights_ref
     from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks
 
     weights = args.weights or default_weights_path()
