@@ -2,7 +2,7 @@
 # Prepare, on this machine (with network), the folder a GPU machine without network needs for
 # scripts/gpu_train.sh (README, "Training on a GPU"): wheels for CPython 3.12 (mujoco 4.0.0 is three wheels,
 # plus glfw, pyopengl, webdataset, braceexpand), Debian's EGL loader packages for amd64, the compiled gravity
-# plugin of this checkout, and the weights to start from with their leg.json.
+# plugin of this checkout, its commit (source_git), and the weights to start from with their leg.json.
 #   scripts/gpu_carry.sh [--init WEIGHTS] [--carry DIR]      (DIR default .gpu-carry, ignored by git)
 # --init: weights to start the next leg from (e.g. the last leg's $OUT/detector.safetensors, its leg.json beside
 # it is copied too); default: models/detector.safetensors at leg 0. About 27 MB; name the folder in `carry`.
@@ -30,6 +30,10 @@ mkdir -p /tmp/gpu-carry-apt/partial
 apt-get $O update -qq
 (cd "$CARRY/debs" && apt-get $O download -qq libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
 cp "$ROOT"/datagen/plugin/_relative_gravity*.so "$CARRY/plugin/"
+# the commit the GPU machine's copy is (it has no .git): recorded by its runs as their git hash
+GIT=$(git -C "$ROOT" rev-parse HEAD)
+[ -n "$(git -C "$ROOT" status --porcelain --untracked-files=no)" ] && GIT="$GIT+dirty"
+echo "$GIT" > "$CARRY/source_git"
 rm -f "$CARRY/init/detector.safetensors" "$CARRY/init/leg.json"
 if [ -n "$INIT" ]; then
   cp "$INIT" "$CARRY/init/detector.safetensors"

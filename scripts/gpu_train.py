@@ -2,8 +2,11 @@
 train` from the last leg's weights for what is left of the time, the results written where they come back.
 
 The data of a leg (seeds 1,000,000 + 1,000 x leg + chunk: never an evaluation seed, new every leg; the looks'
-texture, appearance, Earth and camera seeds 2,000,000 + 10 x leg + 0..3 move with the leg too), generated in rounds until --gen-s is spent
-(a round, at --scale 1, is about 4,700 images, about 45 s on 16 cores with EGL), each round:
+texture, appearance, Earth and camera seeds 2,000,000 + 10 x leg + 0..3 move with the leg too), generated in rounds
+until --gen-s is spent. A round runs its chunks at once, each an `envisat generate` with its share of the cores,
+sized to its time at the rate the last round measured (leg 1, one `generate` per chunk in turn, spent 140 of its
+163 s starting workers: about 10 s a chunk). Each round, in these proportions:
+- random views of the default generate config at 1024 px (the held-out sets' look), the Earth behind in 40 %;
 - random views at 512, 768, 1024, 1536 and 2048 px with the Earth behind the target in 35-50 % of them;
 - the space camera at every severity: uncorrupted, a benign camera, the default ranges and a harsh one, and the
   paper's per-kind corruptions (severities drawn per image);
@@ -32,6 +35,11 @@ SEED_BASE = 1_000_000  # training data seeds: evaluation sets use seeds far belo
 SEED_LEG = 1_000
 LOOK_SEED_BASE = 2_000_000  # the looks' seeds (textures, appearance, Earth, camera pattern): 10 per leg
 IMAGE_COST = {512: 0.3, 768: 0.6, 1024: 1.0, 1536: 2.2, 2048: 4.0}  # render + write, relative to 1024 px
+IMAGES_PER_S = 170.0  # 1024-px images/s on a GPU machine's 16 cores with EGL, start-up apart (2026-11-27: 165-176, H200)
+START_S = 12.0  # a round's start-up: every generate process's workers build the model and the looks
+FIRST_SHARE = 0.6  # the first round takes this share of the generation time, at the expected rate
+MIN_ROUND_S = 30.0
+GRACE_S = 15.0  # a chunk still running this long after the generation time is left out
 
 WIDE_LOOKS = {
     "backlit_probability": 0.25, "sun_phase_max_deg": 130.0,
@@ -69,31 +77,31 @@ def leg_seeds(leg: int) -> dict:
             "corruption": {"sensor": {"camera_seed": s + 3}}}
 
 
-def round_chunks(leg: int, round_index: int, scenarios: list[str], scale: float) -> list[dict]:
-    """The chunks of one round: {"name", "images", "resolution", "config" (GenerateConfig keys)}; seeds later."""
-    n = lambda k: max(2, int(round(k * scale)))  # noqa: E731
+def round_chunks(leg: int, round_index: int, scenarios: list[str]) -> list[dict]:
+    """The chunks of one round in their proportions: {"name", "images", "resolution", "config" (GenerateConfig
+    keys)}; the round is sized to its time later (sized_round), the seeds given then."""
     base = leg_seeds(leg)
     wide = merge(base, WIDE_LOOKS)
     chunks = [
-        {"name": "random-1024-default", "images": n(800), "resolution": 1024,
+        {"name": "random-1024-default", "images": 2000, "resolution": 1024,
          "config": merge(base, {"earth_probability": 0.4})},
-        {"name": "random-512-wide", "images": n(800), "resolution": 512,
+        {"name": "random-512-wide", "images": 800, "resolution": 512,
          "config": merge(wide, {"earth_probability": 0.5})},
-        {"name": "random-768-paper", "images": n(400), "resolution": 768,
+        {"name": "random-768-paper", "images": 400, "resolution": 768,
          "config": merge(merge(wide, CAMERAS["paper"]), {"earth_probability": 0.35})},
-        {"name": "random-1536-wide", "images": n(300), "resolution": 1536,
+        {"name": "random-1536-wide", "images": 300, "resolution": 1536,
          "config": merge(wide, {"earth_probability": 0.4})},
-        {"name": "random-2048-wide", "images": n(150), "resolution": 2048,
+        {"name": "random-2048-wide", "images": 150, "resolution": 2048,
          "config": merge(wide, {"earth_probability": 0.4})},
     ]
     for cam in ("clean", "benign", "harsh"):
-        chunks.append({"name": f"random-1024-{cam}", "images": n(300), "resolution": 1024,
+        chunks.append({"name": f"random-1024-{cam}", "images": 300, "resolution": 1024,
                        "config": merge(merge(wide, CAMERAS[cam]), {"earth_probability": 0.4})})
-    sequences = [{"name": f"sequence-{name}", "images": n(120), "resolution": 1024, "scenario": name,
+    sequences = [{"name": f"sequence-{name}", "images": 120, "resolution": 1024, "scenario": name,
                   "config": merge(base, {"mode": "sequence", "scenario": name, "frame_dt_s": 2.0,
                                          "earth_probability": 1.0,
                                          "appearance": {"enabled": round_index % 2 == 1}})} for name in scenarios]
-    # interleaved, so a round cut short by the clock still holds both kinds
+    # interleaved: the seeds alternate between the kinds
     mixed = []
     for i in range(max(len(chunks), len(sequences))):
         mixed += chunks[i:i + 1] + sequences[i:i + 1]
@@ -118,42 +126,91 @@ def to_toml(data: dict, prefix: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(cmd: list[str], log) -> int:
-    log.write("$ " + " ".join(cmd) + "\n")
-    log.flush()
-    return subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode
+def chunk_command(chunk: dict, seed: int, workers: int, work: str) -> tuple[list[str], str]:
+    """The `envisat generate` command of one chunk (its config written beside its folder) and the folder."""
+    folder = os.path.join(work, f"d{seed}-{chunk['name']}")
+    toml = folder + ".toml"
+    with open(toml, "w", encoding="utf-8") as fh:
+        fh.write(to_toml(chunk["config"]))
+    shard = max(1, min(64, chunk["images"] // max(workers, 1)))
+    return [sys.executable, "-m", "envisat_pose.app.cli", "generate", "--config", toml, "--num-images",
+            str(chunk["images"]), "--shard-size", str(shard), "--resolution", str(chunk["resolution"]), "--seed",
+            str(seed), "--workers", str(workers), "--out", folder, "--quiet"], folder
 
 
-def generate(work: str, leg: int, scenarios: list[str], gen_s: float, scale: float, workers: int, log) -> list[dict]:
-    """Chunks in rounds until the next one would pass gen_s (the first always runs). Returns the made chunks."""
+def load_of(chunk: dict) -> float:
+    """A chunk's rendering load in 1024-px image equivalents."""
+    return chunk["images"] * IMAGE_COST[chunk["resolution"]]
+
+
+def sized_round(chunks: list[dict], seconds: float, rate: float, cores: int) -> list[dict]:
+    """The round's chunks scaled so their load takes about `seconds` at `rate` (1024-px images/s on all the
+    cores) after the start-up, each given workers in proportion to its load (at least one)."""
+    total = sum(load_of(c) for c in chunks)
+    factor = max(0.0, seconds - START_S) * rate / total
+    out = []
+    for c in chunks:
+        c = dict(c, images=max(2, int(round(c["images"] * factor))))
+        out.append(dict(c, workers=max(1, int(round(cores * load_of(c) / (total * factor or 1.0))))))
+    return out
+
+
+def run_round(chunks: list[dict], first_seed: int, work: str, deadline: float, log) -> list[dict]:
+    """Every chunk of a round at once, each its own `envisat generate` with its share of the cores (one start-up
+    per round, not per chunk: a start-up costs every worker about 10 s). A chunk still running at the deadline
+    is stopped and left out (generate writes its manifest last). Returns the chunks made, with their seconds."""
+    procs = []
+    for i, chunk in enumerate(chunks):
+        cmd, folder = chunk_command(chunk, first_seed + i, chunk["workers"], work)
+        log.write("$ " + " ".join(cmd) + "\n")
+        log.flush()
+        procs.append((chunk, first_seed + i, cmd, folder, time.time(),
+                      subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)))
+    made = []
+    for chunk, seed, cmd, folder, t0, proc in procs:
+        try:
+            rc = proc.wait(timeout=max(1.0, deadline - time.time()))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            print(f"chunk {chunk['name']} seed {seed}: stopped at the deadline, left out", flush=True)
+            continue
+        if rc != 0:
+            raise SystemExit(f"generate failed: {' '.join(cmd)} (see the log)")
+        sec = time.time() - t0
+        made.append({"name": chunk["name"], "seed": seed, "images": chunk["images"],
+                     "resolution": chunk["resolution"], "workers": chunk["workers"], "seconds": round(sec, 1),
+                     "folder": folder, "config": chunk["config"],
+                     "command": "envisat generate " + " ".join(
+                         os.path.basename(c) if c in (folder + ".toml", folder) else c for c in cmd[4:])})
+        print(f"chunk {chunk['name']} seed {seed}: {chunk['images']} images, {chunk['workers']} workers, "
+              f"{sec:.1f} s", flush=True)
+    return made
+
+
+def generate(work: str, leg: int, scenarios: list[str], gen_s: float, rate: float, cores: int) -> list[dict]:
+    """Rounds of chunks until gen_s is spent: the first sized to FIRST_SHARE of it at the expected rate, the
+    next ones to what is left at the rate the last round measured (no round under MIN_ROUND_S). Returns the
+    chunks made."""
     t0 = time.time()
-    done, cost_s, k, r = [], None, 0, 0
+    made, r, k = [], 0, 0
+    log = open(os.path.join(work, "commands.log"), "a", encoding="utf-8")
     while True:
-        for chunk in round_chunks(leg, r, scenarios, scale):
-            load = chunk["images"] * IMAGE_COST[chunk["resolution"]]
-            if done and (time.time() - t0 + (cost_s or 0.0) * load > gen_s or k >= SEED_LEG):
-                return done  # out of time, or of the leg's block of seeds
-            seed = SEED_BASE + SEED_LEG * leg + k
-            k += 1
-            folder = os.path.join(work, f"d{seed}-{chunk['name']}")
-            toml = folder + ".toml"
-            with open(toml, "w", encoding="utf-8") as fh:
-                fh.write(to_toml(chunk["config"]))
-            cmd = [sys.executable, "-m", "envisat_pose.app.cli", "generate", "--config", toml, "--num-images",
-                   str(chunk["images"]), "--shard-size", str(max(1, min(64, chunk["images"] // max(workers, 1)))),
-                   "--resolution", str(chunk["resolution"]), "--seed", str(seed), "--workers", str(workers),
-                   "--out", folder, "--quiet"]
-            tc = time.time()
-            if run(cmd, log) != 0:
-                raise SystemExit(f"generate failed: {' '.join(cmd)} (see the log)")
-            sec = time.time() - tc
-            cost_s = sec / load if cost_s is None else 0.5 * cost_s + 0.5 * sec / load
-            done.append({"name": chunk["name"], "seed": seed, "images": chunk["images"],
-                         "resolution": chunk["resolution"], "seconds": round(sec, 1), "folder": folder,
-                         "config": chunk["config"],
-                         "command": "envisat generate " + " ".join(
-                             os.path.basename(c) if c in (toml, folder) else c for c in cmd[4:])})
-            print(f"chunk {chunk['name']} seed {seed}: {chunk['images']} images in {sec:.1f} s", flush=True)
+        left = gen_s - (time.time() - t0)
+        if made and left < MIN_ROUND_S:
+            return made
+        if r and k + len(round_chunks(leg, r, scenarios)) > SEED_LEG:
+            return made  # the leg's block of seeds is used up
+        share = FIRST_SHARE if r == 0 else 0.9
+        chunks = sized_round(round_chunks(leg, r, scenarios), max(left * share, MIN_ROUND_S), rate, cores)
+        tr = time.time()
+        new = run_round(chunks, SEED_BASE + SEED_LEG * leg + k, work, t0 + gen_s + GRACE_S, log)
+        k += len(chunks)
+        made += new
+        sec = time.time() - tr
+        rate = max(sum(load_of(c) for c in new) / max(sec - START_S, 1.0), 1e-3)
+        print(f"round {r}: {sum(c['images'] for c in new)} images in {len(new)} chunks, {sec:.0f} s "
+              f"({rate:.0f} 1024-px images/s after start-up)", flush=True)
         r += 1
 
 
@@ -165,7 +222,8 @@ def main() -> int:
     ap.add_argument("--work", default="/tmp/gpu-leg", help="scratch folder (data, run)")
     ap.add_argument("--deadline-s", type=float, required=True, help="epoch seconds by which everything is written")
     ap.add_argument("--gen-s", type=float, default=170.0, help="seconds of generation")
-    ap.add_argument("--scale", type=float, default=1.0, help="images per chunk x this (dry runs: 0.01)")
+    ap.add_argument("--rate", type=float, default=IMAGES_PER_S,
+                    help="expected 1024-px images/s on all the cores, to size the first round (dry runs: 1)")
     ap.add_argument("--gen-workers", type=int, default=os.cpu_count())
     ap.add_argument("--workers", type=int, default=max(0, (os.cpu_count() or 2) - 2))
     ap.add_argument("--device", default="cuda")
@@ -188,9 +246,8 @@ def main() -> int:
         shutil.rmtree(args.work)
     os.makedirs(args.work)
     scenarios = args.scenarios if args.scenarios is not None else named_scenarios.names()
-    log = open(os.path.join(args.work, "commands.log"), "w", encoding="utf-8")
     t0 = time.time()
-    chunks = generate(args.work, leg, scenarios, args.gen_s, args.scale, args.gen_workers, log)
+    chunks = generate(args.work, leg, scenarios, args.gen_s, args.rate, args.gen_workers)
     gen_s = time.time() - t0
     images = sum(c["images"] for c in chunks)
     print(f"leg {leg}: {images} images in {len(chunks)} chunks, {gen_s:.0f} s ({images / gen_s:.0f} images/s)",

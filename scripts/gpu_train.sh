@@ -2,7 +2,7 @@
 # One leg of detector training on a borrowed GPU machine (issue 26; README, "Training on a GPU"). Run from the
 # repository root there, with the folder scripts/gpu_carry.sh made here carried (default .gpu-carry):
 #   scripts/gpu_train.sh                          # on the GPU machine: everything, about 9 minutes
-#   OUT=/tmp/o TOTAL_S=420 GEN_S=90 SCALE=0.01 BATCH=2 WORKERS=1 DEVICE=cpu MUJOCO_GL=osmesa NO_INSTALL=1 \
+#   OUT=/tmp/o TOTAL_S=240 GEN_S=60 RATE=1 BATCH=2 WORKERS=1 DEVICE=cpu MUJOCO_GL=osmesa NO_INSTALL=1 \
 #       SCENARIOS="default slow-tumble" PY=$PWD/.venv/bin/python scripts/gpu_train.sh
 #                                                 # a dry run on a CPU machine with the project's environment
 # Steps: install the carried wheels (mujoco, glfw, pyopengl for cp312, webdataset, braceexpand) into a scratch
@@ -12,7 +12,7 @@
 # init/leg.json), `envisat train --init ... --workers (cores-2) --bf16 --time-budget-s` for what is left of
 # TOTAL_S, and detector.safetensors, leg.json, metrics.jsonl, config.json, generate.json and gpu_train.log
 # written to $OUT. The next leg carries $OUT's detector.safetensors and leg.json as init/ (gpu_carry.sh --init).
-# env: CARRY, OUT, TOTAL_S (540), GEN_S (170), SCALE (1), DEVICE (cuda), WORKERS (cores-2), BATCH (64),
+# env: CARRY, OUT, TOTAL_S (540), GEN_S (170), RATE (expected 1024-px images/s: 170), DEVICE (cuda), WORKERS (cores-2), BATCH (64),
 #      SCENARIOS (all), INIT, PY (python3), NO_INSTALL, MUJOCO_GL (egl), WORK (/tmp/gpu-leg)
 set -o pipefail
 T0=$(date +%s)
@@ -47,11 +47,13 @@ from mujoco.egl import GLContext
 c = GLContext(64, 64); c.make_current()
 from OpenGL import GL; print('EGL:', GL.glGetString(GL.GL_RENDERER).decode())" || { echo "gpu_train: EGL failed"; exit 6; }
 fi
+# the laid-out copy has no .git: its runs record the commit gpu_carry.sh wrote
+[ -f "$CARRY/source_git" ] && export ENVISAT_SOURCE_GIT=$(cat "$CARRY/source_git")
 INIT=${INIT:-$CARRY/init/detector.safetensors}
 LEG=$CARRY/init/leg.json
 if [ ! -f "$INIT" ]; then INIT=$ROOT/models/detector.safetensors; LEG=; fi
 echo "gpu_train: init $(basename "$INIT") ($(sha256sum "$INIT" | cut -c1-12)), setup took $(( $(date +%s) - T0 )) s"
 $PY "$ROOT/scripts/gpu_train.py" --init "$INIT" ${LEG:+--leg-file "$LEG"} --out "$OUT" --work "$WORK/leg" \
-    --deadline-s $(( T0 + TOTAL_S )) --gen-s "${GEN_S:-170}" --scale "${SCALE:-1}" --device "${DEVICE:-cuda}" \
+    --deadline-s $(( T0 + TOTAL_S )) --gen-s "${GEN_S:-170}" ${RATE:+--rate "$RATE"} --device "${DEVICE:-cuda}" \
     ${WORKERS:+--workers "$WORKERS"} ${BATCH:+--batch-size "$BATCH"} ${SCENARIOS:+--scenarios $SCENARIOS} || exit 7
 echo "gpu_train: done in $(( $(date +%s) - T0 )) s; in $OUT: $(ls "$OUT" | tr '\n' ' ')"

@@ -24,17 +24,20 @@ def default_workers() -> int:
 
 
 def git_hash() -> str:
-    """The source's commit (with '+dirty' when the tree has changes), or 'unknown' outside a checkout."""
+    """The source's commit (with '+dirty' when the tree has changes); outside a checkout (a copy laid out without
+    .git, as on a borrowed GPU machine) the commit the copy was made from, given as ENVISAT_SOURCE_GIT; else
+    'unknown'."""
     here = os.path.dirname(os.path.abspath(__file__))
+    given = os.environ.get("ENVISAT_SOURCE_GIT", "").strip() or "unknown"
     try:
         head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
         if head.returncode != 0:
-            return "unknown"
+            return given
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
                                capture_output=True, text=True, timeout=10)
         return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
+        return given
 
 
 def dataset_provenance(data_dir: str) -> dict:

@@ -33,11 +33,12 @@ def test_laid_out_package_imports_from_its_folder_and_loads_the_plugin(tmp_path)
              "from importlib import metadata, resources\n"
              "from envisat_pose.datagen import plugin\n"
              "from envisat_pose import named_scenarios\n"
+             "from envisat_pose.pipelines.train import git_hash\n"
              "eps = [e for e in metadata.entry_points(group='mujoco.plugins') if e.name == 'envisat_relative_gravity']\n"
              "print(json.dumps({'pkg': envisat_pose.__file__, 'lib': plugin._HANDLES[0]._name if plugin._HANDLES else None,"
              " 'mjcf': str(resources.files('envisat_pose.models')), 'scenarios': named_scenarios.names(),"
-             " 'entry': [e.value for e in eps], 'cli': metadata.entry_points(group='console_scripts')['envisat'].value}))\n")
-    env = {**os.environ, "PYTHONPATH": str(dest), "MUJOCO_GL": "osmesa"}
+             " 'git': git_hash(), 'entry': [e.value for e in eps], 'cli': metadata.entry_points(group='console_scripts')['envisat'].value}))\n")
+    env = {**os.environ, "PYTHONPATH": str(dest), "MUJOCO_GL": "osmesa", "ENVISAT_SOURCE_GIT": "0123abc"}
     proc = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env, cwd=tmp_path,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -48,11 +49,12 @@ def test_laid_out_package_imports_from_its_folder_and_loads_the_plugin(tmp_path)
         assert got[key] and got[key].startswith(str(dest)), (key, got[key])  # not the checkout's
     assert got["entry"] == ["envisat_pose.datagen.plugin:load"] and got["cli"] == "envisat_pose.app.cli:main"
     assert got["scenarios"] == named_scenarios.names()
+    assert got["git"] == "0123abc"  # no .git in a laid-out copy: the commit gpu_carry.sh recorded
 
 
 def plan(leg, rounds=2):
     gt = script("gpu_train")
-    return gt, [c for r in range(rounds) for c in gt.round_chunks(leg, r, named_scenarios.names(), 1.0)]
+    return gt, [c for r in range(rounds) for c in gt.round_chunks(leg, r, named_scenarios.names())]
 
 
 @pytest.mark.parametrize("leg", [1, 7])
@@ -82,8 +84,24 @@ def test_a_legs_chunks_are_valid_generate_configs_with_the_asked_mix(leg, tmp_pa
 
 def test_legs_never_share_a_data_seed():
     gt = script("gpu_train")
-    chunks_per_round = len(gt.round_chunks(1, 0, named_scenarios.names(), 1.0))
+    chunks_per_round = len(gt.round_chunks(1, 0, named_scenarios.names()))
     assert chunks_per_round * 20 < gt.SEED_LEG  # 20 rounds of a leg stay inside its block of seeds
+
+
+def test_a_round_is_sized_to_its_time_and_shares_the_cores_by_load():
+    gt, chunks = plan(1, rounds=1)
+    sized = gt.sized_round(chunks, seconds=100.0, rate=50.0, cores=16)
+    load = sum(gt.load_of(c) for c in sized)
+    assert abs(load - (100.0 - gt.START_S) * 50.0) < 0.02 * load  # the load the time allows at that rate
+    assert [c["name"] for c in sized] == [c["name"] for c in chunks]
+    for before, after in zip(chunks, sized):  # the proportions kept
+        assert abs(after["images"] / before["images"] - sized[0]["images"] / chunks[0]["images"]) < 0.05
+    assert all(c["workers"] >= 1 for c in sized)
+    assert 16 <= sum(c["workers"] for c in sized) <= 16 + len(sized)  # every core, rounding aside
+    big = max(sized, key=gt.load_of)
+    assert big["workers"] == max(c["workers"] for c in sized)
+    default = next(c for c in sized if c["name"] == "random-1024-default")
+    assert gt.load_of(default) >= 0.3 * load  # the held-out sets' look keeps the largest share
 
 
 def test_the_widest_looks_and_a_sequence_chunk_render(tmp_path):
