@@ -17,13 +17,11 @@ import argparse
 import json
 import os
 import platform
-import sys
 import time
 
 import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
 
 METHODS = ("detector", "detector_roi")
 COLUMNS = (("median px", "median_px", ".3f"), ("p95 px", "p95_px", ".1f"), ("PCK@2", "pck_2px", ".3f"),
@@ -58,13 +56,13 @@ def figures(score: dict) -> dict:
             "scale_minus_1": scale - 1.0 if np.isfinite(scale) else None}
 
 
-def score_weights(weights: str, frames: list) -> dict[str, dict]:
+def score_weights(weights: str, frames: list, device: str = "cpu") -> dict[str, dict]:
     """{method: figures} of one weights file over one set's frames [(key, image, label)]."""
     from envisat_pose.perception.detect import DetectConfig, Detector, weights_cov_scale
     from envisat_pose.perception.evaluate import label_roi, score_method
     from envisat_pose.perception.weights import load_model
 
-    det = Detector(load_model(weights, "cpu"), DetectConfig(cov_scale=weights_cov_scale(weights)), device="cpu")
+    det = Detector(load_model(weights, device), DetectConfig(cov_scale=weights_cov_scale(weights)), device=device)
     found = {m: {"pred": [], "alt": [], "amb": [], "vis": [], "cov": []} for m in METHODS}
     true, usable = [], []
     for _, image, label in frames:
@@ -90,6 +88,7 @@ def main() -> None:
     ap.add_argument("--data", nargs="+", required=True, help="NAME=DIR, labelled held-out sets")
     ap.add_argument("--limit", type=int, help="only the first N frames of each set")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "detector_candidates.json"))
     args = ap.parse_args()
     import torch
@@ -106,7 +105,7 @@ def main() -> None:
     for set_name, folder in sets.items():
         frames = list(camera_samples(shard_paths(folder)))[:args.limit]
         for w_name, path in tqdm(weights.items(), desc=set_name, unit="weights"):
-            for method, fig in score_weights(path, frames).items():
+            for method, fig in score_weights(path, frames, args.device).items():
                 rows.append({"weights": w_name, "set": set_name, "method": method, **fig})
     head = f"{'set':8s} {'method':13s} {'weights':10s} " + " ".join(f"{c[0]:>9s}" for c in COLUMNS)
     print(head)
@@ -117,7 +116,7 @@ def main() -> None:
               "weights": {n: {"sha256": sha256_file(p), "file": os.path.basename(p)} for n, p in weights.items()},
               "sets": {n: {"manifest_sha256": manifest_sha256(p), "frames": args.limit or "all"}
                        for n, p in sets.items()},
-              "machine": platform.machine(), "torch_threads": args.threads, "wall_s": round(time.time() - t0, 1),
+              "machine": platform.machine(), "device": args.device, "torch_threads": args.threads, "wall_s": round(time.time() - t0, 1),
               "rows": rows}
     atomic_write_text(args.out, json.dumps(json_safe(result), indent=1) + "\n")
     print(f"wrote {args.out}")

@@ -16,7 +16,9 @@ sized to its time at the rate the last round measured (leg 1, one `generate` per
   off in even rounds as the closed loop renders it, on in odd ones).
 Then `envisat train --init W --workers N --bf16 --time-budget-s T` into a run folder, and into --out:
 detector.safetensors, leg.json (this leg's number, data, init hash, the end line), metrics.jsonl,
-config.json, generate.json (every chunk's command, images and seconds).
+config.json, generate.json (every chunk's command, images and seconds), and candidates.json: the leg's own check,
+bench/detector_candidates.py on 60 held-out views each of seeds 7171, 7272 and 7373 (the Earth behind), init
+against the leg's weights, so that a leg that made things worse is seen before its weights travel on.
 
     python3 scripts/gpu_train.py --init W --leg-file L --out DIR --deadline-s EPOCH [--device cuda] ...
 """
@@ -40,6 +42,11 @@ START_S = 12.0  # a round's start-up: every generate process's workers build the
 FIRST_SHARE = 0.6  # the first round takes this share of the generation time, at the expected rate
 MIN_ROUND_S = 30.0
 GRACE_S = 15.0  # a chunk still running this long after the generation time is left out
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# the leg's own check, init against the leg's weights: held-out random views of seeds no leg trains on (and not
+# the README's test seeds 8181, 9191, 8282), the default config and the Earth behind the target in every view
+VALIDATION = (("v7171", 7171, None), ("v7272", 7272, None),
+              ("e7373", 7373, os.path.join(ROOT, "bench", "configs", "earth_eval.toml")))
 
 WIDE_LOOKS = {
     "backlit_probability": 0.25, "sun_phase_max_deg": 130.0,
@@ -214,6 +221,42 @@ def generate(work: str, leg: int, scenarios: list[str], gen_s: float, rate: floa
         r += 1
 
 
+def start_validation(work: str, images: int, log) -> list[tuple[str, str, subprocess.Popen]]:
+    """Generate the validation sets in the background (3 workers each), beside the first round."""
+    procs = []
+    for name, seed, config in VALIDATION:
+        folder = os.path.join(work, f"val-{name}")
+        cmd = [sys.executable, "-m", "envisat_pose.app.cli", "generate", "--num-images", str(images),
+               "--seed", str(seed), "--workers", "3", "--out", folder, "--quiet"] + (
+                   ["--config", config] if config else [])
+        log.write("$ " + " ".join(cmd) + "\n")
+        log.flush()
+        procs.append((name, folder, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)))
+    return procs
+
+
+def validate(procs, init: str, weights: str, out_json: str, device: str, deadline: float) -> str | None:
+    """bench/detector_candidates.py on the validation sets, init against the leg's weights; None when it
+    cannot finish before the deadline (the weights matter more than their check)."""
+    sets = []
+    for name, folder, proc in procs:
+        try:
+            if proc.wait(timeout=max(1.0, deadline - time.time())) == 0:
+                sets.append(f"{name}={folder}")
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    if not sets:
+        return None
+    cmd = [sys.executable, os.path.join(ROOT, "bench", "detector_candidates.py"), "--weights", f"init={init}",
+           f"leg={weights}", "--data", *sets, "--device", device,
+           "--threads", "4", "--out", out_json]
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=max(1.0, deadline - time.time()))
+    except subprocess.TimeoutExpired:
+        return None
+    return proc.stdout if proc.returncode == 0 else None
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--init", required=True, help="weights to start from")
@@ -231,6 +274,9 @@ def main() -> int:
     ap.add_argument("--lr", type=float, default=1.5e-3)
     ap.add_argument("--no-bf16", action="store_true")
     ap.add_argument("--reserve-s", type=float, default=25.0, help="kept for the train process's start and the copy")
+    ap.add_argument("--validate-images", type=int, default=60, help="views in each validation set")
+    ap.add_argument("--validate-s", type=float, default=50.0,
+                    help="kept for the leg's check of its weights against init on held-out views (0: none)")
     ap.add_argument("--scenarios", nargs="*", help="named scenarios (default: all)")
     args = ap.parse_args()
     from envisat_pose import named_scenarios
@@ -247,6 +293,10 @@ def main() -> int:
     os.makedirs(args.work)
     scenarios = args.scenarios if args.scenarios is not None else named_scenarios.names()
     t0 = time.time()
+    val = []
+    if args.validate_s > 0:
+        log = open(os.path.join(args.work, "validation.log"), "w", encoding="utf-8")
+        val = start_validation(args.work, args.validate_images, log)
     chunks = generate(args.work, leg, scenarios, args.gen_s, args.rate, args.gen_workers)
     gen_s = time.time() - t0
     images = sum(c["images"] for c in chunks)
@@ -255,7 +305,7 @@ def main() -> int:
     with open(os.path.join(args.out, "generate.json"), "w", encoding="utf-8") as fh:
         json.dump({"leg": leg, "seconds": round(gen_s, 1), "images": images,
                    "chunks": [{k: v for k, v in c.items() if k != "folder"} for c in chunks]}, fh, indent=1)
-    budget = args.deadline_s - time.time() - args.reserve_s
+    budget = args.deadline_s - time.time() - args.reserve_s - (args.validate_s if val else 0.0)
     if budget < 30:
         raise SystemExit(f"no time left to train ({budget:.0f} s)")
     toml = os.path.join(args.work, "train.toml")
@@ -281,6 +331,10 @@ def main() -> int:
                    "train_budget_s": round(budget), "end": end}, fh, indent=1)
     print(f"leg {leg} done: step {end['step']}, loss {end.get('loss', float('nan')):.4f}, "
           f"{end.get('samples_s')} samples/s, {time.time() - t0:.0f} s", flush=True)
+    if val:
+        table = validate(val, args.init, os.path.join(args.out, "detector.safetensors"),
+                         os.path.join(args.out, "candidates.json"), args.device, args.deadline_s - 5.0)
+        print(table if table else "validation: not finished in its time (no candidates.json)", flush=True)
     return 0
 
 
