@@ -3,10 +3,13 @@
 The pipeline the verb calls (envisat_pose/pipelines/train.py: DataLoader workers each reading their own shards,
 the default network, the losses, AdamW, checkpoints) trains a fresh run for a few dozen steps per row: workers
 0 (in-process), 1 and the cores less one, in float32 and with bf16 autocast; on CUDA (`torch.cuda.is_available()`)
-the cores less one at a GPU's batch, both precisions. samples/s counts from the first batch's arrival to the
-final checkpoint (the workers' start-up is `first_batch_s`, apart); `data_wait_s` is the time the loop waited for
-batches. The data: `envisat generate --seed 1` in a child process (--images, --shard-size; 1024 px, the default
-config), or --data. Writes bench/results/train_speed.json.
+the cores less one at each of the GPU batches asked for (--gpu-batch-sizes), both precisions. samples/s counts
+from the first batch's arrival to the final checkpoint (the workers' start-up is `first_batch_s`, apart);
+`data_wait_s` is the time the loop waited for batches. The data: `envisat generate --seed 1` in a child process
+(--images, --shard-size; 1024 px, the default config), or --data. Writes bench/results/train_speed.json. Run it
+where the package is installed, or from outside the checkout when the package is laid out by
+scripts/gpu_layout.py (its worker processes start from the current folder, whose `envisat_pose/` holds the core
+alone).
 
     nice -n 10 .venv/bin/python bench/train_speed.py [--steps 24] [--batch-size 8] [--data DIR] [--out ...json]
 """
@@ -59,7 +62,8 @@ def main() -> None:
     ap.add_argument("--images", type=int, default=40, help="images generated for the CPU rows")
     ap.add_argument("--shard-size", type=int, default=10)
     ap.add_argument("--gpu-steps", type=int, default=300, help="steps per GPU row")
-    ap.add_argument("--gpu-batch-size", type=int, default=64)
+    ap.add_argument("--gpu-batch-sizes", type=int, nargs="+", default=[64],
+                    help="batches of the GPU rows, each in both precisions (e.g. 64 128 256)")
     ap.add_argument("--gpu-images", type=int, default=1920, help="images generated for the GPU rows")
     ap.add_argument("--gpu-shard-size", type=int, default=64)
     ap.add_argument("--data", help="an existing dataset for every row instead of generating")
@@ -78,8 +82,8 @@ def main() -> None:
                 plans += [(data, "cpu", workers, bf16, args.steps, args.batch_size) for bf16 in (False, True)]
         if torch.cuda.is_available():
             data = args.data or make_data(os.path.join(tmp, "gpu"), args.gpu_images, args.gpu_shard_size)
-            plans += [(data, "cuda", max(cores - 1, 0), bf16, args.gpu_steps, args.gpu_batch_size)
-                      for bf16 in (False, True)]
+            plans += [(data, "cuda", max(cores - 1, 0), bf16, args.gpu_steps, batch)
+                      for batch in args.gpu_batch_sizes for bf16 in (False, True)]
         for i, plan in enumerate(plans):
             row = time_training(plan[0], os.path.join(tmp, f"run{i}"), *plan[1:])
             rows.append(row)
