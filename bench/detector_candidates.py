@@ -110,14 +110,14 @@ def main() -> None:
     head = f"{'set':8s} {'method':13s} {'weights':10s} " + " ".join(f"{c[0]:>9s}" for c in COLUMNS)
     print(head)
     for r in sorted(rows, key=lambda r: (r["set"], r["method"], r["weights"])):
-        print(f"{r['set']:8s} {r['method']:13s} {r['weights']:10s} " + " ".join(
-            f"{'-':>9s}" if r[c[1]] is None else f"{r[c[1]]:9{c[2]}}" for c in COLUMNS))
+        cells = (f"{'-':>9s}" if r[c[1]] is None else f"{r[c[1]]:9{c[2]}}" for c in COLUMNS)
+        print(f"{r['set']:8s} {r['method']:13s} {r['weights']:10s} " + " ".join(cells))
     result = {"what": __doc__.split("\n\n")[1].replace("\n", " "),
               "weights": {n: {"sha256": sha256_file(p), "file": os.path.basename(p)} for n, p in weights.items()},
               "sets": {n: {"manifest_sha256": manifest_sha256(p), "frames": args.limit or "all"}
                        for n, p in sets.items()},
-              "machine": platform.machine(), "device": args.device, "torch_threads": args.threads, "wall_s": round(time.time() - t0, 1),
-              "rows": rows}
+              "machine": platform.machine(), "device": args.device, "torch_threads": args.threads,
+              "wall_s": round(time.time() - t0, 1), "rows": rows}
     atomic_write_text(args.out, json.dumps(json_safe(result), indent=1) + "\n")
     print(f"wrote {args.out}")
 

@@ -2,18 +2,20 @@
 # One leg of detector training on a borrowed GPU machine (issue 26; README, "Training on a GPU"). Run from the
 # repository root there, with the folder scripts/gpu_carry.sh made here carried (default .gpu-carry):
 #   scripts/gpu_train.sh                          # on the GPU machine: everything, about 9 minutes
-#   OUT=/tmp/o TOTAL_S=300 GEN_S=60 RATE=1 VAL_IMAGES=3 VAL_S=60 BATCH=2 WORKERS=1 DEVICE=cpu MUJOCO_GL=osmesa NO_INSTALL=1 \
-#       SCENARIOS="default slow-tumble" PY=$PWD/.venv/bin/python scripts/gpu_train.sh
+#   OUT=/tmp/o TOTAL_S=300 GEN_S=60 RATE=1 VAL_IMAGES=3 VAL_S=60 BATCH=2 WORKERS=1 DEVICE=cpu \
+#       MUJOCO_GL=osmesa NO_INSTALL=1 SCENARIOS="default slow-tumble" PY=$PWD/.venv/bin/python scripts/gpu_train.sh
 #                                                 # a dry run on a CPU machine with the project's environment
 # Steps: install the carried wheels (mujoco, glfw, pyopengl for cp312, webdataset, braceexpand) into a scratch
 # folder; unpack the carried EGL loader packages and run ldconfig; lay the package out without a build
 # (scripts/gpu_layout.py, the compiled gravity plugin from the carry); check torch, CUDA and EGL; then
 # scripts/gpu_train.py: fresh data on every core for GEN_S seconds with seeds of leg N+1 (N from the carried
 # init/leg.json), `envisat train --init ... --workers (cores-2) --bf16 --time-budget-s` for what is left of
-# TOTAL_S, and detector.safetensors, leg.json, metrics.jsonl, config.json, generate.json, candidates.json (the leg checked against its init on held-out views) and gpu_train.log
-# written to $OUT. The next leg carries $OUT's detector.safetensors and leg.json as init/ (gpu_carry.sh --init).
-# env: CARRY, OUT, TOTAL_S (540), GEN_S (170), RATE (expected 1024-px images/s: 170), DEVICE (cuda), WORKERS (cores-2), BATCH (64),
-#      VAL_IMAGES (60), VAL_S (50), SCENARIOS (all), INIT, PY (python3), NO_INSTALL, MUJOCO_GL (egl), WORK (/tmp/gpu-leg)
+# TOTAL_S, and detector.safetensors, leg.json, metrics.jsonl, config.json, generate.json, candidates.json (the
+# leg's weights checked against its init on held-out views) and gpu_train.log written to $OUT. The next leg
+# carries $OUT's detector.safetensors and leg.json as init/ (gpu_carry.sh --init) when they beat their init.
+# env: CARRY, OUT, TOTAL_S (540), GEN_S (170), RATE (expected 1024-px images/s: 170), DEVICE (cuda),
+#      WORKERS (cores-2), BATCH (64), VAL_IMAGES (60), VAL_S (50), SCENARIOS (all), INIT, PY (python3), NO_INSTALL,
+#      MUJOCO_GL (egl), WORK (/tmp/gpu-leg)
 set -o pipefail
 T0=$(date +%s)
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
