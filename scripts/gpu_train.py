@@ -173,18 +173,22 @@ def run_round(chunks: list[dict], first_seed: int, work: str, deadline: float, l
         log.flush()
         procs.append((chunk, first_seed + i, cmd, folder, time.time(),
                       subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)))
+    ended = {}  # index: (return code, seconds), each chunk timed to its own end
+    while len(ended) < len(procs) and time.time() < deadline:
+        for i, (_, _, _, _, t0, proc) in enumerate(procs):
+            if i not in ended and proc.poll() is not None:
+                ended[i] = (proc.returncode, time.time() - t0)
+        time.sleep(0.2)
     made = []
-    for chunk, seed, cmd, folder, t0, proc in procs:
-        try:
-            rc = proc.wait(timeout=max(1.0, deadline - time.time()))
-        except subprocess.TimeoutExpired:
+    for i, (chunk, seed, cmd, folder, _, proc) in enumerate(procs):
+        if i not in ended:
             proc.kill()
             proc.wait()
             print(f"chunk {chunk['name']} seed {seed}: stopped at the deadline, left out", flush=True)
             continue
+        rc, sec = ended[i]
         if rc != 0:
             raise SystemExit(f"generate failed: {' '.join(cmd)} (see the log)")
-        sec = time.time() - t0
         made.append({"name": chunk["name"], "seed": seed, "images": chunk["images"],
                      "resolution": chunk["resolution"], "workers": chunk["workers"], "seconds": round(sec, 1),
                      "folder": folder, "config": chunk["config"],
