@@ -56,8 +56,8 @@ from envisat_pose.geometry import PinholeCamera, load_geometry
 from envisat_pose.pipelines.acquisition import (NAMINGS, BatchFit, FramePose, align_namings,
                                                  appearance_log_likelihood, batch_fit, initial_guess, naming_state,
                                                  pnp_state, renamed_window)
-from envisat_pose.pipelines.bank import (array_log_likelihood, choose_namings, probabilities, same_array_end,
-                                        select_runs, update_cost)
+from envisat_pose.pipelines.bank import (array_log_likelihood, choose_namings, frame_discriminates, probabilities,
+                                         same_array_end, select_runs, update_cost)
 from envisat_pose.pipelines.integrity import (EvidenceWindow, claim_holds, fit_problems, pose_sigmas,
                                               state_problems, target_radius_m, window_problems)
 from envisat_pose.pipelines.noise import (correlation_inflation, detection_measurement, detector_error_model,
@@ -348,7 +348,10 @@ class Tracker:
         new = filter_step(self.state, Measurement(t_s, chaser, np.nan_to_num(z), mask, cov), self.setup, prior=prior)
         used = new.dof > 0
         seen = mask.any(-1)
-        self.log_dyn = self.log_dyn + np.where(seen, -0.5 * update_cost(new, self.gate_bound), 0.0)
+        if frame_discriminates(new.nis, new.dof, self.cfg.evidence_prob):
+            self.log_dyn = self.log_dyn + np.where(seen, -0.5 * update_cost(new, self.gate_bound), 0.0)
+        elif H > 1:
+            events.append("no evidence between the hypotheses: the frame's innovations contradict them all")
         self.log_app = self.log_app + np.where(seen, appearance, 0.0)
         if image is not None and converged:
             self._array_cue(image, prior[0], best)

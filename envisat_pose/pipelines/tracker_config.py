@@ -26,6 +26,9 @@ class TrackerConfig:
     acquire_frames: lit frames with a PnP pose in the cold-start window; acquire_min_corners: named corners a
     frame needs for a pose; max_gap_s: a longer gap between buffered frames restarts the window.
     decided: a half-turn hypothesis whose probability exceeds this wins and the other is dropped.
+    evidence_prob: a frame whose innovations every hypothesis finds beyond the chi-square bound at this tail
+    probability adds nothing to their dynamics' log-likelihoods (bank.frame_discriminates): it contradicts them
+    all, so their NIS differences are the detector's error, not evidence between the twins.
     appearance_clip: the detector's per-frame half-turn probability is clipped to [clip, 1 - clip].
     appearance_frames: consecutive frames whose appearance cues count as one independent look (each frame's
     log-likelihood is divided by it): the detector's half-turn errors repeat from frame to frame while the view
@@ -128,6 +131,7 @@ class TrackerConfig:
     acquire_min_corners: int = 4
     max_gap_s: float = 30.0
     decided: float = 0.999
+    evidence_prob: float = 0.01
     appearance_clip: float = 0.05
     appearance_frames: float = 10.0
     appearance_max_log: float = 3.0
@@ -177,6 +181,7 @@ class TrackerConfig:
         check(4 <= self.acquire_min_corners <= 8, f"{p}acquire_min_corners", self.acquire_min_corners, "4 to 8 corners")
         check(self.max_gap_s > 0, f"{p}max_gap_s", self.max_gap_s, "a positive gap in s")
         check(0.5 < self.decided < 1.0, f"{p}decided", self.decided, "a probability in (0.5, 1)")
+        check(0.0 < self.evidence_prob < 0.5, f"{p}evidence_prob", self.evidence_prob, "a probability in (0, 0.5)")
         check(0.0 < self.appearance_clip < 0.5, f"{p}appearance_clip", self.appearance_clip, "a probability in (0, 0.5)")
         check(self.appearance_max_log >= 0.0, f"{p}appearance_max_log", self.appearance_max_log,
               "a non-negative log-likelihood (nats)")

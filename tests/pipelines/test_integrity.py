@@ -193,3 +193,20 @@ def test_the_slower_correlation_is_the_one_that_lasts_longer():
         tau = correlation_inflation(em, "long_memory", 1.0, 1.0, rate, "slower")
         each = [1 + 2 * a * p / (1 - p) for a, p in (ar1_at(em, k, 1.0, rate) for k in ("time", "rotation"))]
         assert tau == pytest.approx(max(each))
+
+
+def test_a_frame_that_contradicts_every_hypothesis_is_no_evidence_between_them():
+    from envisat_pose.pipelines.bank import frame_discriminates
+
+    b12 = chi2.isf(0.01, 12)  # 26.2
+    # the 30 m slow-tumble trial's frame: both twins far beyond their bound, their difference no evidence
+    assert not frame_discriminates(np.array([36.2, 31.1]), np.array([12, 12]), 0.01)
+    # one hypothesis explains the frame: its rival's large NIS is evidence against the rival
+    assert frame_discriminates(np.array([b12 - 0.1, 60.0]), np.array([12, 12]), 0.01)
+    assert not frame_discriminates(np.array([b12 + 0.1, 60.0]), np.array([12, 12]), 0.01)
+    # each against its own dof: 20 is beyond the bound at 6 dof (16.8), not at 12
+    assert frame_discriminates(np.array([20.0, 20.0]), np.array([6, 12]), 0.01)
+    assert not frame_discriminates(np.array([20.0, 20.0]), np.array([6, 6]), 0.01)
+    # a hypothesis that used no corner has no say; none used at all: nothing to discard
+    assert not frame_discriminates(np.array([40.0, 0.0]), np.array([12, 0]), 0.01)
+    assert frame_discriminates(np.array([0.0, 0.0]), np.array([0, 0]), 0.01)
