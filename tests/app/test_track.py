@@ -25,17 +25,30 @@ def seq_dir(tmp_path_factory):
     return generate(tmp_path_factory.mktemp("seq") / "gen", 90)
 
 
-@pytest.fixture(scope="module")
-def png_dir(seq_dir, tmp_path_factory):
-    """The same frames as plain PNG files, labels removed (names sort in time order)."""
+def as_pngs(gen_dir, out):
+    """A generate folder's frames as plain PNG files, labels removed (names sort in time order)."""
     import cv2
 
     from envisat_pose.datagen.dataset import iter_samples, sample_image
 
-    out = tmp_path_factory.mktemp("png")
-    for i, (key, label, members) in enumerate(iter_samples(str(seq_dir))):
+    out.mkdir(parents=True, exist_ok=True)
+    for i, (key, label, members) in enumerate(iter_samples(str(gen_dir))):
         cv2.imwrite(str(out / f"img_{i:04d}.png"), sample_image(members, label))
     return out
+
+
+@pytest.fixture(scope="module")
+def png_dir(seq_dir, tmp_path_factory):
+    """The module's sequence as plain PNG files, labels removed."""
+    return as_pngs(seq_dir, tmp_path_factory.mktemp("png"))
+
+
+@pytest.fixture(scope="module")
+def three_pngs(tmp_path_factory):
+    """Three frames as plain PNG files: all the bad-input checks need (the fast lane's; the 90-frame sequence is
+    the slow tests')."""
+    base = tmp_path_factory.mktemp("three")
+    return as_pngs(generate(base / "gen", 3), base / "png")
 
 
 def est_errors(run_dir, truth_x):
@@ -135,7 +148,7 @@ def bad(args, capsys, tmp_path):
     return err
 
 
-def test_bad_inputs_are_one_line_and_write_nothing(png_dir, tmp_path, capsys):
+def test_bad_inputs_are_one_line_and_write_nothing(three_pngs, tmp_path, capsys):
     import cv2
 
     empty = tmp_path / "empty"
@@ -144,24 +157,24 @@ def test_bad_inputs_are_one_line_and_write_nothing(png_dir, tmp_path, capsys):
     # an unreadable (truncated) image among good ones
     broken = tmp_path / "broken"
     broken.mkdir()
-    good = sorted(os.listdir(png_dir))[:3]
+    good = sorted(os.listdir(three_pngs))[:3]
     for f in good:
-        os.link(png_dir / f, broken / f)
-    data = (png_dir / good[0]).read_bytes()
+        os.link(three_pngs / f, broken / f)
+    data = (three_pngs / good[0]).read_bytes()
     (broken / "img_9999.png").write_bytes(data[: len(data) // 2])
     assert "img_9999.png" in bad(["--images", str(broken), "--rate-hz", "1"], capsys, tmp_path)
     # frames of mixed sizes
     mixed = tmp_path / "mixed"
     mixed.mkdir()
     for f in good:
-        os.link(png_dir / f, mixed / f)
+        os.link(three_pngs / f, mixed / f)
     cv2.imwrite(str(mixed / "img_9999.png"), np.zeros((512, 512), np.uint8))
     assert "img_9999.png" in bad(["--images", str(mixed), "--rate-hz", "1"], capsys, tmp_path)
     # timestamps not increasing, and missing a file
     sub = tmp_path / "three"
     sub.mkdir()
     for f in good:
-        os.link(png_dir / f, sub / f)
+        os.link(three_pngs / f, sub / f)
     csv = tmp_path / "t.csv"
     csv.write_text("file,t_s\n" + "".join(f"{f},{5 - i}\n" for i, f in enumerate(good)))
     assert "increase" in bad(["--images", str(sub), "--timestamps", str(csv)], capsys, tmp_path)
