@@ -1,6 +1,6 @@
 """Training speed of `envisat train`'s own loop (issue 26): samples/s on this CPU and, where one is, on a GPU.
 
-The pipeline the verb calls (envisat_pose/pipelines/train.py: DataLoader workers each reading their own shards,
+The pipeline the verb calls (pipelines/train.py: DataLoader workers each reading their own shards,
 the default network, the losses, AdamW, checkpoints) trains a fresh run for a few dozen steps per row: workers
 0 (in-process), 1 and the cores less one, in float32 and with bf16 autocast; on CUDA (`torch.cuda.is_available()`)
 the cores less one at each of the GPU batches asked for (--gpu-batch-sizes), both precisions. samples/s counts

@@ -1,8 +1,9 @@
 """The layers of design.md and the one-home rules of issue 19, checked by parsing the package's source.
 
-Layers: core (envisat_pose/*.py) imports nothing above it; a stage (datagen, perception, filtering, analysis)
-imports only the core, never another stage, a pipeline or the app; a pipeline (envisat_pose/pipelines/)
-imports the core and the stages, never the app; the app (envisat_pose/app/) imports anything. Imports inside
+Layers, one folder each at the repository's root, all installed inside envisat_pose: core (envisat_pose/*.py)
+imports nothing above it; a stage (datagen, perception, filtering, analysis) imports only the core, never another
+stage, a pipeline or the app; a pipeline (pipelines/) imports the core and the stages, never the app; the app
+(app/) imports anything. Imports inside
 functions count too, and so do relative imports and the old top-level names.
 
 One home for each concept: the state's slices are defined only in envisat_pose/state.py; manifest.json is
@@ -21,9 +22,9 @@ import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 STAGES = ("datagen", "perception", "filtering", "analysis")
-UPPER = ("app", "pipelines")  # the sub-packages of envisat_pose above the stages
-# where each layer's files live in the repository, and their import name
-LAYOUT = {"envisat_pose": "envisat_pose", **{s: f"envisat_pose.{s}" for s in STAGES}}
+UPPER = ("app", "pipelines")  # the layers above the stages
+# where each layer's files live in the repository (a folder at the root), and their import name
+LAYOUT = {"envisat_pose": "envisat_pose", **{s: f"envisat_pose.{s}" for s in STAGES + UPPER}}
 # scanned for copies of the state's layout besides the package (the benches use it too)
 EXTRA_FOLDERS = ("bench",)
 
@@ -45,15 +46,14 @@ PENDING = {
 
 
 def source_files(root: str = ROOT):
-    """(path, module name) of every .py file of the package, the stage folders mapped into envisat_pose,
-    envisat_pose/app and envisat_pose/pipelines (when it exists) included."""
+    """(path, module name) of every .py file of the package: the core (envisat_pose/, its own files only) and
+    the folders of the stages, pipelines/ and app/, mapped into envisat_pose (a folder missing is skipped)."""
     for folder, package in LAYOUT.items():
         for dirpath, dirnames, filenames in os.walk(os.path.join(root, folder)):
             dirnames[:] = [d for d in dirnames if d != "__pycache__"]
             rel_dir = os.path.relpath(dirpath, root)
             if folder == "envisat_pose" and rel_dir != "envisat_pose":
-                if not any(rel_dir.startswith(os.path.join("envisat_pose", u)) for u in UPPER):
-                    continue
+                continue
             for name in filenames:
                 if name.endswith(".py"):
                     path = os.path.join(dirpath, name)
@@ -136,7 +136,7 @@ def violations() -> list[str]:
 
 STATE_FILE = os.path.join("envisat_pose", "state.py")
 GATES_FILE = os.path.join("envisat_pose", "gates.py")
-ONBOARD_FILE = os.path.join("envisat_pose", "pipelines", "onboard.py")
+ONBOARD_FILE = os.path.join("pipelines", "onboard.py")
 RUNNER_FILE = os.path.join("envisat_pose", "runner.py")
 SHARD_READER_FILE = os.path.join("envisat_pose", "shard_reader.py")
 STATE_BOUNDS = {(0, 3), (3, 6), (6, 9), (9, 12)}  # the blocks of the 12-state (envisat_pose.state)
@@ -334,13 +334,13 @@ def filter_side(rel: str) -> bool:
     """Whether a file is on the filter's side of the truth (a pipeline, a verb, a bench or a test helper): the
     truth's own physics (datagen) reads its config freely."""
     parts = rel.split(os.sep)
-    return (len(parts) > 2 and parts[0] == "envisat_pose" and parts[1] in UPPER) or parts[0] in ("bench", "tests")
+    return (len(parts) > 1 and parts[0] in UPPER) or parts[0] in ("bench", "tests")
 
 
 def resolves_configs(rel: str) -> bool:
     """Whether a file is a verb or a pipeline (the layers that resolve job configs)."""
     parts = rel.split(os.sep)
-    return len(parts) > 2 and parts[0] == "envisat_pose" and parts[1] in UPPER
+    return len(parts) > 1 and parts[0] in UPPER
 
 
 def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
@@ -409,17 +409,31 @@ def test_every_stage_file_is_seen():
     for stage in STAGES:
         assert f"envisat_pose.{stage}" in mods
     assert "envisat_pose.app.cli" in mods and "envisat_pose.contracts" in mods and "envisat_pose.state" in mods
-    if os.path.isdir(os.path.join(ROOT, "envisat_pose", "pipelines")):
-        assert "envisat_pose.pipelines" in mods
+    assert "envisat_pose.pipelines" in mods and "envisat_pose.pipelines.tracker" in mods
 
 
-def test_the_pipelines_folder_may_be_missing(tmp_path):
-    """A tree without envisat_pose/pipelines/ is walked without error."""
-    (tmp_path / "envisat_pose" / "app").mkdir(parents=True)
+def test_a_missing_layer_folder_is_walked_without_error(tmp_path):
+    (tmp_path / "envisat_pose").mkdir()
+    (tmp_path / "app").mkdir()
     (tmp_path / "envisat_pose" / "state.py").write_text("")
-    (tmp_path / "envisat_pose" / "app" / "cli.py").write_text("")
+    (tmp_path / "app" / "cli.py").write_text("")
     mods = {m for _, m in source_files(str(tmp_path))}
     assert mods == {"envisat_pose.state", "envisat_pose.app.cli"}
+
+
+def test_each_layer_is_a_folder_at_the_root_installed_inside_envisat_pose():
+    """The repository's own picture: envisat_pose/ holds the core alone, every other layer is a folder beside
+    it, and the package's build maps each folder into envisat_pose."""
+    import tomllib
+
+    core = os.path.join(ROOT, "envisat_pose")
+    assert not [d for d in os.listdir(core) if os.path.isfile(os.path.join(core, d, "__init__.py"))]
+    with open(os.path.join(ROOT, "pyproject.toml"), "rb") as fh:
+        package_dir = tomllib.load(fh)["tool"]["setuptools"]["package-dir"]
+    for folder, package in LAYOUT.items():
+        if folder != "envisat_pose":
+            assert package_dir.get(package) == folder, package
+            assert os.path.isfile(os.path.join(ROOT, folder, "__init__.py")), folder
 
 
 @pytest.mark.parametrize("kind", sorted(PENDING))
@@ -486,8 +500,8 @@ def test_the_config_checker_catches_a_verb_resolving_by_hand():
                 "def camera(path):\n"
                 "    return load_toml(path)['fx']\n")
     assert hand_resolutions(resolved) == []
-    assert resolves_configs(os.path.join("envisat_pose", "app", "run.py"))
-    assert resolves_configs(os.path.join("envisat_pose", "pipelines", "track.py"))
+    assert resolves_configs(os.path.join("app", "run.py"))
+    assert resolves_configs(os.path.join("pipelines", "track.py"))
     assert not resolves_configs(os.path.join("envisat_pose", "config.py"))
 
 

@@ -1,4 +1,4 @@
-"""`envisat estimate`: the verb over the estimate pipeline (envisat_pose/pipelines/estimate.py): the batched UKF
+"""`envisat estimate`: the verb over the estimate pipeline (pipelines/estimate.py): the batched UKF
 over R Monte Carlo runs of one MuJoCo truth (`--truth run.npz` or simulated for `--scenario NAME`), written as
 est.npz. Here: the flags, the config's resolution and the printed lines.
 """

@@ -1,4 +1,4 @@
-"""`envisat simulate`: the verb over the simulate pipeline (envisat_pose/pipelines/simulate.py): the MuJoCo truth of
+"""`envisat simulate`: the verb over the simulate pipeline (pipelines/simulate.py): the MuJoCo truth of
 a scenario, written as the design's truth trajectory (run.npz). Here: the flags, the config and the printed lines."""
 
 from __future__ import annotations

@@ -25,7 +25,7 @@ The same config and seed give the same bytes of blocks, campaign.npz and summary
 same command on DIR keeps the finished blocks whose sha256 matches the manifest; another config is refused.
 
 A rate sweep (pipelines/sweep.py) runs one such campaign per filter rate. `with_eclipse` adds a scenario's Earth's-shadow outages to a resolved config.
-The app's verb (envisat_pose/app/montecarlo.py) parses the flags, resolves the config and prints.
+The app's verb (app/montecarlo.py) parses the flags, resolves the config and prints.
 """
 
 from __future__ import annotations

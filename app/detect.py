@@ -1,6 +1,6 @@
 """`envisat detect`: named corners of every frame of a dataset (full frames, no label used but the intrinsics K),
 written as the core's Detections contract plus the shard keys and the half-turn alternative. The verb parses the
-flags and calls the pipeline (envisat_pose/pipelines/detect.py: run_detect)."""
+flags and calls the pipeline (pipelines/detect.py: run_detect)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""`envisat run`: the verb over the closed loop (envisat_pose/pipelines/closed_loop.py): MuJoCo truth -> rendered
+"""`envisat run`: the verb over the closed loop (pipelines/closed_loop.py): MuJoCo truth -> rendered
 camera frames -> the space camera -> the Tracker (cold start from the images; `--warm-start` hands each run's
 filter the truth plus a draw from P0, for filter studies). The truth only scores.
 

@@ -1,4 +1,4 @@
-"""`envisat train`: the verb over the training pipeline (envisat_pose/pipelines/train.py): the corner detector
+"""`envisat train`: the verb over the training pipeline (pipelines/train.py): the corner detector
 trained on the factory's shards into a run directory. Here: the flags, the config and the printed line."""
 
 from __future__ import annotations

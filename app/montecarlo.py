@@ -1,4 +1,4 @@
-"""`envisat montecarlo`: the verb over the campaign pipeline (envisat_pose/pipelines/campaign.py): a Monte Carlo
+"""`envisat montecarlo`: the verb over the campaign pipeline (pipelines/campaign.py): a Monte Carlo
 campaign of the batched UKF over one MuJoCo truth in resumable blocks, or a rate sweep of such campaigns. Here:
 the flags, the config's resolution (the campaign's, the sweep's, the runner's) and the printed lines; what the
 campaign writes into DIR is described in the pipeline.

@@ -1,4 +1,4 @@
-"""`envisat evaluate`: the verb over the evaluation pipeline (envisat_pose/pipelines/evaluate.py): the corner
+"""`envisat evaluate`: the verb over the evaluation pipeline (pipelines/evaluate.py): the corner
 detector scored against the labels, next to Harris and Shi-Tomasi; a table on stdout and every number in a JSON
 file. Here: the flags, the checked inputs, the frames as the camera saw them, the printed table."""
 

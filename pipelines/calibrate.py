@@ -9,7 +9,7 @@ of its corners, written into a copy of the weights' metadata.
 - fit_face_cue: the half-turn's appearance cue (perception/facecue.py; `face_cue`, `face_cue_record`).
 The fits themselves are the stage's (perception/calibrate.py: the chi-square scale and floor; errormodel.py;
 facecue.py); here: label matching (collect_frames: which detected corner is which labelled one, the better of the
-two half-turn namings), the per-sequence inputs and the job. The verb (envisat_pose/app/calibrate.py) parses
+two half-turn namings), the per-sequence inputs and the job. The verb (app/calibrate.py) parses
 the flags and prints.
 """
 
