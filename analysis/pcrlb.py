@@ -178,3 +178,68 @@ def efficiency(rmse_block: np.ndarray, bound_block: np.ndarray, t_s: np.ndarray,
     each. (T, 4), (T, 4), (T,) -> (4,); 1 is the best any unbiased estimator can do."""
     k = t_s >= t_s[0] + settle_s
     return np.sqrt(np.mean(rmse_block[k] ** 2, axis=0) / np.mean(bound_block[k] ** 2, axis=0))
+
+
+def pcrlb_with_error_model(fx: Callable, hx: Callable, x_true: np.ndarray, measured: np.ndarray, sigma_px: float,
+                           P0: np.ndarray, Q: np.ndarray, share: float, phi: np.ndarray, scale_sd: float,
+                           step: np.ndarray | float = STATE_FD_STEP, info_at_first: bool = True,
+                           align: Callable | None = align_state_mrp) -> np.ndarray:
+    """The bound when the corners' pixel errors are what a detector's error model says, not white noise.
+
+    Each corner's error per pixel axis is white noise of variance (1 - share) sigma_px^2 plus a first-order
+    Gauss-Markov part of variance share sigma_px^2 that carries over from step k to k + 1 with the coefficient
+    phi[k] (perception/errormodel.py: share = angle_share, phi = exp(-theta_k / corr_angle_rad) for a view that
+    turned by theta_k); and the image's scale about the measured corners' centroid is off by a constant s ~ N(0,
+    scale_sd^2) for the whole run (a run's apparent scale, bias_scale_sd). Both are estimated with the state: the
+    12-state is augmented with s and the 2c error states (F: 1 and phi[k]; their process noise (1 - phi^2) share
+    sigma^2), each corner's Jacobian gains its offset from the centroid (d pixel / d s) and its own error states,
+    and `pcrlb_recursion` runs on the augmented system. With share = 0 and scale_sd = 0 it is `pcrlb_along_truth`
+    at sigma_px.
+
+    fx, hx, x_true, measured, P0 (n, n), Q (n, n), step, info_at_first, align: as in `pcrlb_along_truth` (hx
+    returns (..., c, 2) pixels); phi (T-1,). Returns the bound of the state itself, (T, n, n).
+    """
+    if not 0.0 <= share < 1.0:
+        raise ValueError(f"share = {share}: expected the correlated part's share of the variance in [0, 1)")
+    if scale_sd < 0.0:
+        raise ValueError(f"scale_sd = {scale_sd}: expected >= 0")
+    x_true = np.asarray(x_true, dtype=float)
+    T, n = x_true.shape
+    if np.shape(phi) != (T - 1,) or not np.all((np.asarray(phi) >= 0.0) & (np.asarray(phi) <= 1.0)):
+        raise ValueError(f"phi: expected (T - 1,) = ({T - 1},) coefficients in [0, 1], got shape {np.shape(phi)}")
+    F = transition_jacobians(fx, x_true, step, align)
+    H = measurement_jacobians(hx, x_true, step)  # (T, c, 2, n)
+    c = H.shape[1]
+    u = np.asarray(hx(x_true[:, None, :]), dtype=float)[:, 0]  # (T, c, 2), the noise-free pixels
+    measured = np.asarray(measured, dtype=bool)
+    count = np.maximum(measured.sum(1), 1)[:, None]
+    centroid = (u * measured[..., None]).sum(1) / count  # (T, 2)
+    var = sigma_px**2
+    phi = np.asarray(phi, dtype=float)
+    with_scale, with_corr = scale_sd > 0.0, share > 0.0
+    i_s = n
+    i_e = n + int(with_scale)
+    N = i_e + (2 * c if with_corr else 0)
+    Ha = np.zeros((T, c, 2, N))
+    Ha[..., :n] = H
+    if with_scale:
+        Ha[..., i_s] = u - centroid[:, None, :]
+    if with_corr:
+        for i in range(c):
+            Ha[:, i, :, i_e + 2 * i:i_e + 2 * i + 2] = np.eye(2)
+    info = measurement_information(Ha, measured, (1.0 - share) * var * np.eye(2))
+    Fa = np.zeros((T - 1, N, N))
+    Fa[:, :n, :n] = F
+    Qa = np.zeros((T - 1, N, N))
+    Qa[:, :n, :n] = Q
+    P0a = np.zeros((N, N))
+    P0a[:n, :n] = P0
+    if with_scale:
+        Fa[:, i_s, i_s] = 1.0
+        P0a[i_s, i_s] = scale_sd**2
+    if with_corr:
+        e = np.arange(i_e, N)
+        Fa[:, e, e] = phi[:, None]
+        Qa[:, e, e] = ((1.0 - phi**2) * share * var)[:, None]
+        P0a[e, e] = share * var
+    return pcrlb_recursion(P0a, Fa, Qa, info, info_at_first)[:, :n, :n]

@@ -219,3 +219,81 @@ def test_fd_jacobian_shapes_and_accuracy_on_a_nonlinear_function():
     ref[..., 0, 1] = np.sin(x[..., 0])
     ref[..., 1, 2] = np.exp(x[..., 2])
     assert np.allclose(J, ref, rtol=1e-8, atol=1e-9)
+
+
+def _batch_bound_with_error_model(Fm, Hm, offsets, P0, sigma, share, phi, scale_sd, measured):
+    """The same bound by another road: every measurement of the record stacked, y = A x0 + b s + e + v, with
+    the errors' full covariance written out (AR(1) between steps of one corner axis, white on the diagonal) and
+    the posterior information of (x0, s) inverted densely; x_k = Fm^k x0 (no process noise)."""
+    T, c = measured.shape
+    n = Fm.shape[0]
+    rows_A, rows_b, keys = [], [], []
+    Fk = np.eye(n)
+    for k in range(T):
+        for i in range(c):
+            if measured[k, i]:
+                for a in range(2):
+                    rows_A.append(Hm[i, a] @ Fk)
+                    rows_b.append(offsets[k, i, a])
+                    keys.append((k, i, a))
+        Fk = Fm @ Fk
+    A, b = np.array(rows_A), np.array(rows_b)
+    m = len(keys)
+    S = np.zeros((m, m))
+    for p, (k1, i1, a1) in enumerate(keys):
+        for q, (k2, i2, a2) in enumerate(keys):
+            if (i1, a1) == (i2, a2):
+                lo, hi = min(k1, k2), max(k1, k2)
+                S[p, q] = share * sigma**2 * np.prod(phi[lo:hi])
+        S[p, p] += (1 - share) * sigma**2
+    G = np.hstack([A, b[:, None]])
+    prior = np.zeros((n + 1, n + 1))
+    prior[:n, :n] = np.linalg.inv(P0)
+    prior[n, n] = 1.0 / scale_sd**2
+    C = np.linalg.inv(prior + G.T @ np.linalg.solve(S, G))[:n, :n]
+    FT = np.linalg.matrix_power(Fm, T - 1)
+    return FT @ C @ FT.T
+
+
+def test_the_error_model_bound_equals_a_batch_inversion_of_the_whole_record():
+    """A linear 2-state model seen by three corners (a scale about their centroid, errors correlated from step to
+    step with a varying coefficient, one corner missing in some steps): the augmented recursion's last bound is
+    the dense batch inversion's."""
+    from envisat_pose.analysis.pcrlb import pcrlb_along_truth, pcrlb_with_error_model
+
+    dt, T, sigma, share, scale_sd = 0.5, 12, 0.7, 0.4, 0.05
+    Fm = np.array([[1.0, dt], [0.0, 1.0]])
+    d = np.array([[-3.0, 1.0], [2.0, -1.0], [0.5, 4.0]])  # the corners' offsets from the target's point
+    Hm = np.stack([np.array([[1.0, 0.2], [0.3, -0.5]]) * (1 + 0.1 * i) for i in range(3)])  # (c, 2, n)
+
+    def hx(X):
+        return np.einsum("ipn,...n->...ip", Hm, X) + d
+
+    def fx(X):
+        return X @ Fm.T
+
+    x = np.zeros((T, 2))
+    x[0] = [1.0, 0.3]
+    for k in range(1, T):
+        x[k] = Fm @ x[k - 1]
+    measured = np.ones((T, 3), bool)
+    measured[[3, 4, 8], 2] = False
+    phi = np.linspace(0.9, 0.3, T - 1)
+    P0 = np.diag([4.0, 1.0])
+    u = hx(x[:, None, :])[:, 0]
+    cen = (u * measured[..., None]).sum(1) / measured.sum(1)[:, None]
+    offsets = u - cen[:, None, :]
+    B = pcrlb_with_error_model(fx, hx, x, measured, sigma, P0, np.zeros((2, 2)), share, phi, scale_sd, step=1e-3,
+                               align=None)
+    batch = _batch_bound_with_error_model(Fm, Hm, offsets, P0, sigma, share, phi, scale_sd, measured)
+    np.testing.assert_allclose(B[-1], batch, rtol=1e-8, atol=1e-12)
+    # white noise and no scale: the plain bound at the same sigma, and correlated errors only ever raise it
+    plain = pcrlb_along_truth(fx, hx, x, measured, sigma**2 * np.eye(2), P0, np.zeros((2, 2)), step=1e-3,
+                              align=None)
+    tiny = pcrlb_with_error_model(fx, hx, x, measured, sigma, P0, np.zeros((2, 2)), 0.0, phi, 0.0, step=1e-3,
+                                  align=None)
+    np.testing.assert_allclose(tiny, plain, rtol=1e-10, atol=1e-14)
+    assert np.all(np.diagonal(B, axis1=1, axis2=2) >= np.diagonal(plain, axis1=1, axis2=2) * (1 - 1e-9))
+    assert np.all(np.diag(B[-1]) > 1.25 * np.diag(plain[-1]))  # here by 1.31 and 1.49
+    with pytest.raises(ValueError, match="share"):
+        pcrlb_with_error_model(fx, hx, x, measured, sigma, P0, np.zeros((2, 2)), 1.0, phi, 0.0, align=None)
