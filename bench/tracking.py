@@ -15,9 +15,7 @@ correct track from the first lit frame (median, max), false-lock time (claimed w
 share of scored frames whose NEES exceeds its chi-square 99.9 % quantile (12 dof), the SPEC2021 score (median,
 95th percentile), mean NEES (12 expected), RMSE / PCRLB per block (the posterior Cramer-Rao bound of each run,
 analysis/pcrlb.py, along its truth with the measurable corners of its lit frames at the detector's measured pixel
-noise in that run, white), range bias, and the runs' pixel noise and real-time factor; beside the white bound,
-RMSE over the bound for errors as the weights' error model describes them (a share correlated while the view
-turns, the run's apparent scale drawn from the sequences' spread: analysis.pcrlb.pcrlb_with_error_model).
+noise in that run), range bias, and the runs' pixel noise and real-time factor.
 
 Run: .venv/bin/python bench/tracking.py [--seeds 8] [--first-seed 0] [--scenarios default slow-tumble ...]
      [--duration-s S (default: each scenario's own)] [--workers N] [--correlation-in slower|rotation|time]
@@ -77,18 +75,10 @@ def pixel_noise(out: str) -> float:
     return float(np.sqrt(np.mean(e[good] ** 2))) if good.any() else float("nan")
 
 
-def bound_blocks(out: str, sigma_px: float, em=None) -> tuple[np.ndarray, np.ndarray | None]:
+def bound_blocks(out: str, sigma_px: float) -> np.ndarray:
     """PCRLB per block (T, 4) (m, m/s, rad, rad/s) along the run's truth with the measurable corners of the lit
-    frames, from an uninformative prior (the tracker starts cold): (white, with the error model). white: each
-    corner's errors white at sigma_px. With the error model em (the weights', perception/errormodel.py; None:
-    not computed): the same sigma_px, a share em.angle_share of it correlated from frame to frame as the view
-    turns (exp(-theta / em.corr_angle_rad), theta the truth's view rotation between the frames) and the run's
-    apparent scale off by N(0, em.bias_scale_sd^2) (analysis.pcrlb.pcrlb_with_error_model): the bound for a
-    detector whose errors are what its error model measured."""
-    from envisat_pose.analysis.pcrlb import block_bounds, pcrlb_along_truth, pcrlb_with_error_model
-    from envisat_pose.attitude import mrp_to_dcm
-    from envisat_pose.perception.errormodel import rotation_angles
-    from envisat_pose.state import MRP
+    frames at sigma_px, from an uninformative prior (the tracker starts cold)."""
+    from envisat_pose.analysis.pcrlb import block_bounds, pcrlb_along_truth
     from envisat_pose.contracts import TruthTrajectory
     from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2, propagate
     from envisat_pose.filtering.estimator import chaser_states
@@ -110,22 +100,15 @@ def bound_blocks(out: str, sigma_px: float, em=None) -> tuple[np.ndarray, np.nda
 
     measured = truth.visible & truth.in_frame & lit[:, None]
     P0 = np.diag(np.repeat(np.square(ACQUIRING_SIGMA), 3)) * 100.0
-    hx = lambda X: measure(X, "pixels", cam)  # noqa: E731
-    B = pcrlb_along_truth(fx, hx, truth.x, measured, sigma_px**2 * np.eye(2), P0, np.zeros((12, 12)))
-    if em is None or not np.isfinite(sigma_px):
-        return block_bounds(B, truth.x), None
-    theta = rotation_angles(mrp_to_dcm(truth.x[:, MRP]), 1)
-    phi = np.exp(-theta / em.corr_angle_rad) if em.corr_angle_rad > 0 else np.zeros_like(theta)
-    B_em = pcrlb_with_error_model(fx, hx, truth.x, measured, sigma_px, P0, np.zeros((12, 12)), em.angle_share, phi,
-                                  em.bias_scale_sd)
-    return block_bounds(B, truth.x), block_bounds(B_em, truth.x)
+    B = pcrlb_along_truth(fx, lambda X: measure(X, "pixels", cam), truth.x, measured, sigma_px**2 * np.eye(2), P0,
+                          np.zeros((12, 12)))
+    return block_bounds(B, truth.x)
 
 
 def run_one(cfg_json: str) -> dict:
     """One closed loop (a runner task): its per-frame errors (scoring.frame_errors), status, skipped frames, the
     PCRLB per block, the truth and estimate (for the error summary), the pixel noise and the timings."""
     from envisat_pose.contracts import Estimates
-    from envisat_pose.perception.detect import weights_error_model
     from envisat_pose.pipelines import closed_loop as loop
     from envisat_pose.pipelines.scoring import frame_errors
 
@@ -135,21 +118,18 @@ def run_one(cfg_json: str) -> dict:
         summary = loop.run_closed_loop(cfg, out, progress=False, sink=f"save:{os.path.join(out, 'recording.rrd')}")
         wall_s = time.perf_counter() - t0
         sigma = pixel_noise(out)
-        em = weights_error_model(cfg.weights) if cfg.weights else None
-        bound, bound_em = bound_blocks(out, sigma, em if em is not None and em.n_frames else None)
+        bound = bound_blocks(out, sigma)
         est = Estimates.load(os.path.join(out, "est.npz"))
         with np.load(os.path.join(out, "det.npz"), allow_pickle=False) as z:
             status, skipped = z["status"], z["skipped"]
     return {"t_s": est.t_s, "errors": frame_errors(est.x_true[0], est.x_hat[0], est.P[0]), "status": status,
-            "skipped": skipped, "bound": bound, "bound_error_model": bound_em, "x_true": est.x_true[0], "x_hat": est.x_hat[0], "pixel_noise_px": sigma,
+            "skipped": skipped, "bound": bound, "x_true": est.x_true[0], "x_hat": est.x_hat[0], "pixel_noise_px": sigma,
             "real_time_factor_one_run": summary["real_time_factor_one_run"],
             "timing_ms_per_frame": summary["timing_ms_per_frame"], "wall_s": wall_s}
 
 
 def score_scenario(runs: list[dict]) -> dict:
-    """scoring.score_frames over a scenario's runs (one per seed, the same frame times), with their PCRLBs; RMSE
-    over the error model's bound beside it (`rmse_over_pcrlb_error_model`, pooled and per run) where every run has
-    one."""
+    """scoring.score_frames over a scenario's runs (one per seed, the same frame times), with their PCRLBs."""
     from envisat_pose.pipelines.scoring import score_frames, summary_after_s
     from envisat_pose.state import error_summary
 
@@ -157,21 +137,14 @@ def score_scenario(runs: list[dict]) -> dict:
     errors = {k: np.stack([r["errors"][k] for r in runs]) for k in runs[0]["errors"]}
     x_true, x_hat = np.stack([r["x_true"] for r in runs]), np.stack([r["x_hat"] for r in runs])
     summary = error_summary(t_s, x_true, x_hat, summary_after_s(t_s))
-    status, skipped = np.stack([r["status"] for r in runs]), np.stack([r["skipped"] for r in runs])
-    s = score_frames(t_s, errors, status, skipped, summary, np.stack([r["bound"] for r in runs]))
-    if all(r.get("bound_error_model") is not None for r in runs):
-        s_em = score_frames(t_s, errors, status, skipped, summary, np.stack([r["bound_error_model"] for r in runs]))
-        s["scored"]["rmse_over_pcrlb_error_model"] = s_em["scored"].get("rmse_over_pcrlb")
-        for rec, rec_em in zip(s["per_run"], s_em["per_run"]):
-            rec["scored"]["rmse_over_pcrlb_error_model"] = rec_em["scored"].get("rmse_over_pcrlb")
-    return s
+    return score_frames(t_s, errors, np.stack([r["status"] for r in runs]), np.stack([r["skipped"] for r in runs]),
+                        summary, np.stack([r["bound"] for r in runs]))
 
 
 def floors_met(s: dict, range_m: float) -> dict:
     """Issue 28's floors for one scenario's scores (s: score_frames; range_m: the hold's range)."""
     sc = s["scored"]
     ratios = list((sc.get("rmse_over_pcrlb") or {}).values())
-    em_ratios = list((sc.get("rmse_over_pcrlb_error_model") or {}).values())
     bias_floor = FLOORS["range_bias_m_at_50m"] * range_m / 50.0
     return {
         "every_run_tracked": s["runs_tracked"] == s["runs"],
@@ -182,8 +155,6 @@ def floors_met(s: dict, range_m: float) -> dict:
                               and FLOORS["nees"][0] <= r["scored"]["mean_nees"] <= FLOORS["nees"][1]
                               for r in s["per_run"]),
         "rmse_over_pcrlb": bool(ratios) and None not in ratios and max(ratios) <= FLOORS["rmse_over_pcrlb"],
-        "rmse_over_pcrlb_error_model": bool(em_ratios) and None not in em_ratios
-                                       and max(em_ratios) <= FLOORS["rmse_over_pcrlb"],
         "range_bias": sc["range_bias_m"] is not None and abs(sc["range_bias_m"]) <= bias_floor,
     }
 
@@ -218,11 +189,7 @@ def per_run_line(s: dict, seeds: list[int]) -> str:
         sc = r["scored"]
         cells.append(f"{seed}: {_f(sc['mean_nees'], '.1f')} / {_f(sc['nees_tail_share'], '.1f', 100)} % / "
                      f"{_f(sc['range_bias_m'], '.1f', 100)} cm")
-    em = s["scored"].get("rmse_over_pcrlb_error_model")
-    em_line = "" if not em else ("\n    RMSE / PCRLB with the detector's error model (pos vel att rate): "
-                                 + " ".join(_f(em.get(b), ".2f") for b in ("position", "velocity", "attitude",
-                                                                           "angular_velocity")))
-    return "    per seed (NEES / tail / range bias): " + ", ".join(cells) + em_line
+    return "    per seed (NEES / tail / range bias): " + ", ".join(cells)
 
 
 def main() -> None:
