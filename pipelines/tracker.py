@@ -344,12 +344,20 @@ class Tracker:
             t_filter += time.perf_counter() - t1
         t1 = time.perf_counter()
         mask = np.isfinite(z).all(-1)
-        rejected = self._rejected(prior, np.nan_to_num(z), mask, cov, best)
+        seen = mask.any(-1)
+        pre = np.zeros(mask.shape, bool)  # corners gated against the detector's own covariance (cfg.gate_raw)
+        if self.cfg.gate_raw and self.setup.gate_threshold is not None and mask.any():
+            raw = cov * (self.cov_factor / self.inflation)
+            pre = np.stack([mask[h] & (self._corner_d2(prior, np.nan_to_num(z), raw, h) > self.setup.gate_threshold)
+                            for h in range(H)])
+            mask = mask & ~pre
+        rejected = self._rejected(prior, np.nan_to_num(z), mask, cov, best) | pre[best]
         new = filter_step(self.state, Measurement(t_s, chaser, np.nan_to_num(z), mask, cov), self.setup, prior=prior)
         used = new.dof > 0
-        seen = mask.any(-1)
+        n_pre = pre.sum(-1)
         if frame_discriminates(new.nis, new.dof, self.cfg.evidence_prob):
-            self.log_dyn = self.log_dyn + np.where(seen, -0.5 * update_cost(new, self.gate_bound), 0.0)
+            cost = update_cost(new, self.gate_bound) + self.gate_bound * n_pre
+            self.log_dyn = self.log_dyn + np.where(seen, -0.5 * cost, 0.0)
         elif H > 1:
             events.append("no evidence between the hypotheses: the frame's innovations contradict them all")
         self.log_app = self.log_app + np.where(seen, appearance, 0.0)
@@ -359,13 +367,13 @@ class Tracker:
         self.log_app -= np.max(self.log_app)
         self.log_array -= np.max(self.log_array)
         self.state = new
-        self.evidence = self.evidence.push(np.where(used, new.nis, 0.0), new.dof, mask.sum(-1),
-                                           new.rejected + new.dropped)
+        self.evidence = self.evidence.push(np.where(used, new.nis, 0.0), new.dof, mask.sum(-1) + n_pre,
+                                           new.rejected + new.dropped + n_pre)
         b = int(np.argmax(self.log_w))  # the best hypothesis of this frame, before pruning
         if used[b]:
             lam = filter_memory(prior[1][b], new.cov[b])
             self.memory = self.memory if lam is None else lam
-        out = dict(fd=fd, naming=int(namings[b]), measured=mask[b], rejected=rejected, roi=roi, converged=converged,
+        out = dict(fd=fd, naming=int(namings[b]), measured=mask[b] | pre[b], rejected=rejected, roi=roi, converged=converged,
                    nis=float(new.nis[b]), nis_dof=int(new.dof[b]))
         # integrity: every hypothesis against its own evidence; a failed one is dropped, none left is lost
         problems = self._problems(new)
@@ -450,20 +458,26 @@ class Tracker:
         """Corners of the best hypothesis the chi-square gate rejects (its own per-corner rule from the prior's
         sigma points; the visibility check's drops count as rejected too)."""
         from envisat_pose.filtering.measurements import predicted_visible
-        from envisat_pose.filtering.ukf import sigma_points
 
         if not mask[best].any() or self.setup.gate_threshold is None:
             return np.zeros(8, bool)
-        S = sigma_points(prior[0][best], prior[1][best], self.setup.weights)  # (25, 12)
+        d2 = self._corner_d2(prior, z, cov, best)
+        vis = predicted_visible(prior[0][best]) if self.fcfg.visibility_check else np.ones(8, bool)
+        return mask[best] & ((d2 > self.setup.gate_threshold) | ~vis)
+
+    def _corner_d2(self, prior, z, cov, h) -> np.ndarray:
+        """(8,) each corner's squared Mahalanobis distance from hypothesis h's predicted corner, under the prior's
+        spread (its sigma points through the measurement model) plus cov[h] (8, 2, 2) at the filter's R scale."""
+        from envisat_pose.filtering.ukf import sigma_points
+
+        S = sigma_points(prior[0][h], prior[1][h], self.setup.weights)  # (25, 12)
         uv = self.setup.hx(S)  # (25, 8, 2)
         Wm, Wc = self.setup.weights.Wm, self.setup.weights.Wc
         mu = np.einsum("s,skj->kj", Wm, uv)
         d = uv - mu
-        Pzz = np.einsum("s,ski,skj->kij", Wc, d, d) + cov[best] * self.state.r_scale[best]
-        y = z[best] - mu
-        d2 = np.einsum("ki,ki->k", y, np.linalg.solve(Pzz, y[..., None])[..., 0])
-        vis = predicted_visible(prior[0][best]) if self.fcfg.visibility_check else np.ones(8, bool)
-        return mask[best] & ((d2 > self.setup.gate_threshold) | ~vis)
+        Pzz = np.einsum("s,ski,skj->kij", Wc, d, d) + cov[h] * self.state.r_scale[h]
+        y = z[h] - mu
+        return np.einsum("ki,ki->k", y, np.linalg.solve(Pzz, y[..., None])[..., 0])
 
     def _estimate(self, t_s, fd, naming, measured, rejected, roi, converged, events, timing, status,
                   nis=0.0, nis_dof=0) -> TrackEstimate:

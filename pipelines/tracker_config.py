@@ -119,6 +119,13 @@ class TrackerConfig:
     frames are fewer than the errors' correlation allows a fit to average (twenty frames against a 13 s
     correlation time); without it the first ~30 s after a start were over-confident (NEES per block 10-30 of 3 on
     slow-tumble seeds 0 and 7) while the state was right.
+    gate_raw: gate each corner against the detector's own covariance at the error model's scale (without the
+    correlation's inflation) plus the prior's spread, before the update; a corner beyond the gate is dropped and
+    counts as rejected. The inflation says how little a filter may average the errors, not how large one
+    frame's error may be: gated against the inflated R (x 5-8 at the filter's memory), corners the detector
+    placed 4-5 px off with a 0.5-0.9 px covariance passed for 15 frames (slow-tumble seed 0, 300 s) and pulled
+    the range 16 cm off (NEES above its 99.9 % quantile for 50 frames). Off by default: measured as an ablation
+    (docs/history.md).
     correct_scale: undo the detector's mean apparent scale (the error model's bias_scale) about the corners'
     centroid in every frame; what is left, a run's own scale about that mean (bias_scale_sd), stays in the
     reported covariance. The mean must be measured in the loop's regime (lit sequences of every scenario, the
@@ -153,6 +160,7 @@ class TrackerConfig:
     prior_pose_twins: bool = True
     lost_after_frames: int = 10
     correct_scale: bool = True
+    gate_raw: bool = False
     detector_q_sigma: tuple[float, float, float, float] = (0.0, 3e-6, 1e-5, 3e-6)
     start_cov_factor: float = 4.0
     range_floor: bool = True
