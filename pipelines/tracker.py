@@ -373,8 +373,8 @@ class Tracker:
         if used[b]:
             lam = filter_memory(prior[1][b], new.cov[b])
             self.memory = self.memory if lam is None else lam
-        out = dict(fd=fd, naming=int(namings[b]), measured=mask[b] | pre[b], rejected=rejected, roi=roi, converged=converged,
-                   nis=float(new.nis[b]), nis_dof=int(new.dof[b]))
+        out = dict(fd=fd, naming=int(namings[b]), measured=mask[b] | pre[b], rejected=rejected, roi=roi,
+                   converged=converged, nis=float(new.nis[b]), nis_dof=int(new.dof[b]))
         # integrity: every hypothesis against its own evidence; a failed one is dropped, none left is lost
         problems = self._problems(new)
         if H == 1 and self.array_against >= self.cfg.array_lost_readings:
