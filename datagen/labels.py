@@ -60,11 +60,6 @@ def encode_depth(depth_m: np.ndarray, depth_scale_m: float) -> np.ndarray:
     return code
 
 
-def decode_depth(depth_u16: np.ndarray, depth_scale_m: float) -> np.ndarray:
-    """Inverse of encode_depth: metres along the boresight, 0 on background. (H, W) float64."""
-    return depth_u16.astype(np.float64) * depth_scale_m
-
-
 def _round_list(a: np.ndarray, ndigits: int) -> list:
     """A JSON-ready nested list with values rounded (stable text, no float noise in the last digit)."""
     return np.round(np.asarray(a, dtype=float), ndigits).tolist()

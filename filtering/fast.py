@@ -180,20 +180,6 @@ def _dcm(p, G):
 
 
 @njit(**_JIT)
-def _align(p, ref, out):
-    """p or its shadow -p/(p.p), whichever is closer to ref (envisat_pose.attitude.align_mrp), into out (3,)."""
-    pp = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
-    den = pp if pp > 0.0 else 1.0
-    s0, s1, s2 = -p[0] / den, -p[1] / den, -p[2] / den
-    ds = np.sqrt(_sq(s0 - ref[0]) + _sq(s1 - ref[1]) + _sq(s2 - ref[2]))
-    dp = np.sqrt(_sq(p[0] - ref[0]) + _sq(p[1] - ref[1]) + _sq(p[2] - ref[2]))
-    if ds < dp and pp > 0.0:
-        out[0], out[1], out[2] = s0, s1, s2
-    else:
-        out[0], out[1], out[2] = p[0], p[1], p[2]
-
-
-@njit(**_JIT)
 def _shadow(p):
     """|p| <= 1 in place: p -> -p/(p.p) where p.p > 1 (envisat_pose.attitude.mrp_shadow)."""
     pp = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]

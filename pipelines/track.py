@@ -67,11 +67,6 @@ def stage_types() -> None:
     globals()["OrbitConfig"] = OrbitConfig
 
 
-def check_source(source: FrameSource, camera: PinholeCamera, progress: bool = False) -> str:
-    """scan_source with the camera's size (kept for callers of the earlier API)."""
-    return scan_source(source, (camera.width_px, camera.height_px), progress=progress)
-
-
 # ---------------------------------------------------------------------------------------------------------
 # The job
 
