@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
+import shlex
+import sys
 
 from envisat_pose.config import resolve_job_config
-
-PATH_FLAGS = ("data", "out", "config", "init")  # recorded by name only: no path of this machine in a run
-
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -21,17 +21,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--data", required=True, nargs="+", metavar="DIR",
                    help="dataset folder(s) (shards + manifest.json); several are read together")
-    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (created)")
+    p.add_argument("--out", required=True, metavar="RUN_DIR",
+                   help="run directory (created with its parents when the first step is trained)")
     p.add_argument("--config", metavar="FILE.toml", help="training config (keys of TrainConfig, [model], [data], [loss])")
-    p.add_argument("--resume", action="store_true", help="go on from the run directory's last checkpoint")
+    p.add_argument("--resume", action="store_true",
+                   help="go on from the run directory's last checkpoint, with its own config (--steps and "
+                   "--time-budget-s may change; the data may not); Ctrl-C writes one")
     p.add_argument("--init", metavar="WEIGHTS", help="start from these weights (same architecture; fine-tuning)")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="cpu (default) or cuda")
     p.add_argument("--steps", type=int, help="optimizer steps in all (default 20000; with --time-budget-s a cap)")
     p.add_argument("--batch-size", type=int, help="samples per batch and rank (default 16)")
     p.add_argument("--seed", type=int, help="root seed (default 0)")
     p.add_argument("--time-budget-s", type=float, metavar="S",
-                   help="train for S seconds: the rate decays over them and the run stops inside them with a "
-                   "checkpoint (default: over the steps)")
+                   help="train for S seconds (S > 0): the rate decays over them and the run stops inside them "
+                   "with a checkpoint; with --resume, S seconds more (default: train by --steps)")
     p.add_argument("--workers", type=int, metavar="N",
                    help="DataLoader worker processes building the batches (default: the cores less one; 0: in this "
                    "process; a resumed run keeps its own)")
@@ -42,36 +45,58 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def resolve_config(args: argparse.Namespace):
-    """Defaults, then the TOML file, then the flags; validated before any work."""
+    """Defaults (a resumed run's own config), then the TOML file, then the flags; validated before any work."""
     from envisat_pose.perception.train import TrainConfig
+    from envisat_pose.pipelines.train import read_run_config
 
+    base = read_run_config(args.out) if args.resume and os.path.isdir(args.out) else {}
     flags = {"steps": args.steps, "batch_size": args.batch_size, "seed": args.seed,
              "time_budget_s": args.time_budget_s}
-    return resolve_job_config(TrainConfig, {}, args.config, flags)
+    return resolve_job_config(TrainConfig, base, args.config, flags)
 
 
 def command_line(args: argparse.Namespace) -> str:
-    """The command as run, its flags sorted, paths by their last name."""
-    def shown(key, value) -> str:
-        if value is True:
-            return ""
-        values = value if isinstance(value, list) else [value]
-        if key in PATH_FLAGS:
-            values = [os.path.basename(os.path.normpath(str(v))) for v in values]
-        return " " + " ".join(map(str, values))
+    """The command exactly as typed (its words quoted for a shell; relative paths kept as they were)."""
+    return shlex.join(["envisat", *getattr(args, "argv", [])])
 
-    flags = {k: v for k, v in sorted(vars(args).items()) if k not in ("func", "verb") and v not in (None, False)}
-    return "envisat train " + " ".join(f"--{k.replace('_', '-')}{shown(k, v)}" for k, v in flags.items())
+
+# the library's argument and field names -> this verb's flags (errors name what the user typed)
+FLAGS = {"data_dirs": "--data", "data": "--data", "run_dir": "--out", "init": "--init", "resume": "--resume",
+         "workers": "--workers", "threads": "--threads", "time_budget_s": "--time-budget-s", "device": "--device",
+         "steps": "--steps", "batch_size": "--batch-size", "seed": "--seed"}
+_LEADING_NAME = re.compile(r"^(\w+)\b")
+
+
+def as_flags(message: str) -> str:
+    """A library error's leading argument name as this verb's flag ('init ...' -> '--init ...')."""
+    return _LEADING_NAME.sub(lambda m: FLAGS.get(m.group(1), m.group(1)), message, count=1)
 
 
 def run_train_cli(args: argparse.Namespace) -> int:
+    from envisat_pose.config import ConfigError, InputError
+    from envisat_pose.perception.train import TrainingInterrupted
     from envisat_pose.pipelines.train import train_detector
 
-    cfg = resolve_config(args)
-    last = train_detector(cfg, args.data, args.out, resume=args.resume, init=args.init, device=args.device,
-                          workers=args.workers, bf16=args.bf16, threads=args.threads, progress=not args.quiet,
-                          command=command_line(args))
-    print(f"trained to step {last.get('step')}: loss {last.get('loss', float('nan')):.4f}, "
+    try:
+        cfg = resolve_config(args)
+        last = train_detector(cfg, args.data, args.out, resume=args.resume, init=args.init, device=args.device,
+                              workers=args.workers, bf16=args.bf16, threads=args.threads,
+                              progress=not args.quiet, command=command_line(args))
+    except ConfigError as err:
+        raise InputError(as_flags(str(err))) from None
+    except InputError as err:
+        raise type(err)(as_flags(str(err))) from None
+    except TrainingInterrupted as stop:
+        hint = f"; go on with: envisat train --resume --out {shlex.quote(args.out)}" if stop.step else ""
+        print(f"envisat train: {stop}{hint}", file=sys.stderr)
+        return 130
+    if last.get("stopped_by") == "nothing_to_do":
+        more = "--time-budget-s S to train S seconds more" if last.get("why") == "budget_spent" else \
+            f"--steps above {last.get('step')} to go further"
+        print(f"nothing to do: {args.out} is at step {last.get('step')}, its "
+              f"{'budget spent' if last.get('why') == 'budget_spent' else 'steps reached'}; give {more}")
+        return 0
+    print(f"trained to step {last.get('step')} ({last.get('steps_run')} this run): loss {last.get('loss', float('nan')):.4f}, "
           f"{last.get('samples_s', 0):.0f} samples/s with {last.get('workers')} workers "
           f"({last.get('stopped_by')}); run in {args.out}")
     return 0

@@ -28,35 +28,43 @@ class LossConfig:
 
 
 def focal_loss(logit: torch.Tensor, target: torch.Tensor, alpha: float, beta: float) -> torch.Tensor:
-    """CenterNet's penalty-reduced focal loss over (B, J, H, W), normalized by the number of positives."""
+    """CenterNet's penalty-reduced focal loss over (B, J, H, W), normalized by the number of positives.
+
+    Positives and negatives are weights, not boolean indices: no data-dependent shapes, so no host sync (a
+    `nonzero`) on a GPU; the sums are those of the indexed form (tests/perception/test_losses.py)."""
     p = torch.sigmoid(logit).clamp(1e-6, 1 - 1e-6)
-    pos = target >= 1.0
+    pos = (target >= 1.0).to(logit.dtype)
     log_p, log_1mp = F.logsigmoid(logit), F.logsigmoid(-logit)
-    pos_loss = -((1 - p) ** alpha * log_p)[pos].sum()
-    neg_loss = -(((1 - target) ** beta) * p ** alpha * log_1mp)[~pos].sum()
-    return (pos_loss + neg_loss) / pos.sum().clamp(min=1)
+    pos_loss = (1 - p) ** alpha * log_p
+    neg_loss = ((1 - target) ** beta) * p ** alpha * log_1mp
+    return -(pos * pos_loss + (1 - pos) * neg_loss).sum() / pos.sum().clamp(min=1)
 
 
-def chol_nll(err_px: torch.Tensor, jchol: torch.Tensor) -> torch.Tensor:
-    """Gaussian negative log-likelihood (without the constant) of errors (N, 2) px under L L^T, jchol (N, 3) =
-    (log l11, log l22, l21): 0.5 |L^-1 e|^2 + log l11 + log l22."""
-    a, b, c = jchol.unbind(-1)
-    z1 = err_px[:, 0] / torch.exp(a)
-    z2 = (err_px[:, 1] - c * z1) / torch.exp(b)
+def chol_nll(err_px: torch.Tensor, jchol: torch.Tensor, dim: int = -1) -> torch.Tensor:
+    """Gaussian negative log-likelihood (without the constant) of errors under L L^T: err_px holds (x, y) px and
+    jchol (log l11, log l22, l21) along `dim` (-1: (N, 2) and (N, 3); 1: maps (B, 2, H, W) and (B, 3, H, W)):
+    0.5 |L^-1 e|^2 + log l11 + log l22, with `dim` reduced."""
+    a, b, c = jchol.unbind(dim)
+    ex, ey = err_px.unbind(dim)
+    z1 = ex / torch.exp(a)
+    z2 = (ey - c * z1) / torch.exp(b)
     return 0.5 * (z1 ** 2 + z2 ** 2) + a + b
 
 
 def corner_losses(out: dict, batch: dict, line_logits: torch.Tensor, cfg: LossConfig, stride: int) -> dict:
-    """The terms and their weighted total ('loss'), each a scalar tensor."""
+    """The terms and their weighted total ('loss'), each a scalar tensor. The junction cells (jmask) weight the
+    offset and covariance terms over the whole map (no boolean indexing: see focal_loss)."""
     focal = focal_loss(out["jmap_logit"], batch["jmap"], cfg.focal_alpha, cfg.focal_beta)
-    mask = batch["jmask"] > 0  # (B, H, W)
+    on = batch["jmask"] > 0  # (B, H, W)
+    mask = on.to(out["joff"].dtype)
     n = mask.sum().clamp(min=1)
-    off_pred = out["joff"].permute(0, 2, 3, 1)[mask]  # (N, 2)
-    off_true = batch["joff"].permute(0, 2, 3, 1)[mask]
-    offset = (off_pred - off_true).abs().sum() / n
-    # the covariance learns the offset's actual error (detached: the NLL must not move the position)
-    err_px = (off_pred.detach() - off_true) * stride
-    nll = chol_nll(err_px, out["jchol"].permute(0, 2, 3, 1)[mask]).sum() / n
+    off_err = out["joff"] - batch["joff"]  # (B, 2, H, W)
+    offset = (off_err.abs().sum(1) * mask).sum() / n
+    # the covariance learns the offset's actual error (detached: the NLL must not move the position); cells off
+    # the junctions get a neutral factor, so an extreme logit there cannot make inf * 0 = nan in the gradient
+    err_px = off_err.detach() * stride
+    jchol = torch.where(on[:, None], out["jchol"], torch.zeros_like(out["jchol"]))
+    nll = (chol_nll(err_px, jchol, dim=1) * mask).sum() / n
     w = batch["line_weight"]
     line = (F.binary_cross_entropy_with_logits(line_logits, batch["line_label"], reduction="none") * w).sum() \
         / w.sum().clamp(min=1)

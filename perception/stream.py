@@ -15,10 +15,16 @@ shard's index in `paths` and the sample's index in the shard, and reader_slot (B
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import sys
+import types
+
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
+from envisat_pose.config import InputError
 from envisat_pose.perception.data import DataConfig, make_sample, read_samples
 
 ORDER_KEY = 0x5EED  # the epoch's shard order: (seed, epoch, ORDER_KEY)
@@ -77,10 +83,14 @@ def collate_batch(samples: list[dict]) -> dict[str, torch.Tensor]:
 
 
 def _worker_init(_: int) -> None:
-    """One OpenCV thread per worker: the workers are the parallelism (N workers on N cores, not N x cores)."""
+    """One OpenCV thread per worker: the workers are the parallelism (N workers on N cores, not N x cores).
+    SIGINT and SIGTERM are the training process's to handle (it stops after its step with a checkpoint, then
+    shuts the workers down): a Ctrl-C that reaches the whole process group must not kill them first."""
     import cv2
 
     cv2.setNumThreads(1)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def _worker_context():
@@ -92,6 +102,54 @@ def _worker_context():
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(["envisat_pose.perception.stream"])  # once the server runs, later calls are moot
     return ctx
+
+
+@contextlib.contextmanager
+def _without_main_script():
+    """While worker processes start: `__main__` seen as a module without a file, so the fork server and the
+    workers do not import the calling script again (multiprocessing re-runs a script's top level in every
+    child it starts; a plain script that trains without `if __name__ == "__main__":` would train again in each).
+    The workers need nothing of the script: the dataset, the collate and init functions live in this module."""
+    main = sys.modules.get("__main__")
+    if main is None or getattr(main, "__file__", None) is None:
+        yield
+        return
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        sys.modules["__main__"] = main
+
+
+def epoch_batches(paths: list[str], cfg: DataConfig, seed: int, epoch: int, batch_size: int, workers: int,
+                  rank: int = 0, world: int = 1, pin_memory: bool = False):
+    """The iterator of one epoch's batches (epoch_loader's), its workers started without the calling script."""
+    with _without_main_script():
+        return iter(epoch_loader(paths, cfg, seed, epoch, batch_size, workers, rank, world, pin_memory))
+
+
+def worker_error_line(err: Exception) -> str:
+    """The one line a worker's exception said: torch re-raises it in the trainer with a 'Caught ... in DataLoader
+    worker' header and the worker's whole traceback; a user error keeps only its own message."""
+    lines = [ln for ln in str(err).strip().splitlines() if ln.strip()]
+    if len(lines) > 1 and lines[0].startswith("Caught "):
+        last = lines[-1]
+        name = type(err).__name__
+        return last.split(f"{name}: ", 1)[1] if f"{name}: " in last else last
+    return str(err)
+
+
+def loader_batches(batches, flag: dict | None = None):
+    """The batches of an epoch iterator, with a worker's user error (InputError: a damaged shard, a bad label) as
+    its own one line, and the loader's end after a stop signal (its workers gone) as a plain end."""
+    try:
+        yield from batches
+    except InputError as err:
+        raise type(err)(worker_error_line(err)) from None
+    except RuntimeError:
+        if flag and flag.get("signal"):
+            return
+        raise
 
 
 def epoch_loader(paths: list[str], cfg: DataConfig, seed: int, epoch: int, batch_size: int, workers: int,

@@ -14,24 +14,30 @@ worker count); a resumed run skips the batches its epoch already did. With a tim
 follows the clock, so such a run is not bitwise repeatable (its data order still is).
 DDP: when torch.distributed is initialized (torchrun), each rank reads its own shards (perception/stream.py),
 gradients are averaged, and only rank 0 writes; a budgeted run stops on rank 0's clock.
+The run folder appears with the first step trained (a run refused or failing before it leaves nothing). SIGINT
+(Ctrl-C) or SIGTERM stops the run after the step in progress with a checkpoint and raises TrainingInterrupted (a
+KeyboardInterrupt) that says how to resume; a second Ctrl-C stops at once.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
 
-from envisat_pose.config import InputError, from_dict
+from envisat_pose.config import InputError
 from envisat_pose.io import atomic_write_text
 from envisat_pose.perception.data import DataConfig, shard_paths
 from envisat_pose.perception.losses import LossConfig, corner_losses
 from envisat_pose.perception.model import CornerNet, ModelConfig
-from envisat_pose.perception.stream import epoch_loader
+from envisat_pose.perception.stream import epoch_batches, loader_batches
 from envisat_pose.perception.weights import load_state, load_tensors, read_weights, save_tensors, save_weights
 
 
@@ -40,8 +46,9 @@ class TrainConfig:
     """steps: optimizer steps in all; batch_size: per rank; lr: AdamW peak rate (cosine decay after warmup_steps);
     seed: root seed of the weights' initialization and the data order; checkpoint_every: steps between
     checkpoints; line_jitter_px: noise on the segments' end points (the verifier sees detected, not true, corners);
-    time_budget_s: when positive, the run's seconds: the rate decays over them instead of over the steps and the
-    run stops inside them with a checkpoint (steps then only caps it)."""
+    time_budget_s: the run's seconds (None: train by steps): the rate decays over them instead of over the steps
+    and the run stops inside them with a checkpoint (steps then only caps it). A resumed run given another
+    budget than its own trains that many seconds more. Validated when built."""
 
     steps: int = 20000
     batch_size: int = 16
@@ -51,7 +58,7 @@ class TrainConfig:
     seed: int = 0
     checkpoint_every: int = 500
     line_jitter_px: float = 1.0
-    time_budget_s: float = 0.0
+    time_budget_s: float | None = None
     model: ModelConfig = field(default_factory=ModelConfig)
     data: DataConfig = field(default_factory=DataConfig)
     loss: LossConfig = field(default_factory=LossConfig)
@@ -64,17 +71,20 @@ class TrainConfig:
         check(self.batch_size >= 1, f"{p}batch_size", self.batch_size, "at least 1 sample per batch")
         check(self.lr > 0, f"{p}lr", self.lr, "a positive learning rate")
         check(self.warmup_steps >= 1, f"{p}warmup_steps", self.warmup_steps, "at least 1 step")
-        check(self.time_budget_s >= 0, f"{p}time_budget_s", self.time_budget_s, "seconds >= 0 (0: no budget)")
+        check(self.time_budget_s is None or self.time_budget_s > 0, f"{p}time_budget_s", self.time_budget_s,
+              "seconds > 0 (leave it out to train by steps)")
+        check(self.weight_decay >= 0, f"{p}weight_decay", self.weight_decay, "a decay >= 0")
+        check(self.checkpoint_every >= 1, f"{p}checkpoint_every", self.checkpoint_every, "at least 1 step")
+        check(self.line_jitter_px >= 0, f"{p}line_jitter_px", self.line_jitter_px, "pixels >= 0")
         check(self.model.input_px == self.data.input_px, f"{p}data.input_px", self.data.input_px,
               f"the model's input_px ({self.model.input_px})")
         check(self.data.stride == self.model.stride, f"{p}data.stride", self.data.stride, "the model's stride (4)")
 
+    def __post_init__(self) -> None:
+        self.validate()
+
     def to_dict(self) -> dict:
         return json.loads(json.dumps(asdict(self)))
-
-
-def config_from_dict(data: dict) -> TrainConfig:
-    return from_dict(TrainConfig, data)
 
 
 def init_model(cfg: TrainConfig) -> CornerNet:
@@ -102,13 +112,15 @@ def cosine_factor(frac: float) -> float:
     return 0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * min(max(frac, 0.0), 1.0)))
 
 
-def lr_at(cfg: TrainConfig, step: int, elapsed_s: float = 0.0) -> float:
+def lr_at(cfg: TrainConfig, step: int, elapsed_s: float = 0.0, budget_end_s: float | None = None) -> float:
     """The learning rate of optimizer step `step`: a linear warm-up over warmup_steps, then a cosine decay to 5 %
-    over the steps, or, with a time budget, over the budget's seconds (the lower of the warm-up ramp and the
-    decay at elapsed_s: a run stopped by its budget ends decayed even if its warm-up was not done)."""
+    over the steps, or, with a time budget, over the run's seconds up to budget_end_s (default the config's
+    budget; the lower of the warm-up ramp and the decay at elapsed_s: a run stopped by its budget ends decayed
+    even if its warm-up was not done)."""
     ramp = (step + 1) / cfg.warmup_steps if step < cfg.warmup_steps else 1.0
-    if cfg.time_budget_s > 0:
-        factor = min(ramp, cosine_factor(elapsed_s / cfg.time_budget_s))
+    end_s = budget_end_s if budget_end_s is not None else cfg.time_budget_s
+    if end_s is not None:
+        factor = min(ramp, cosine_factor(elapsed_s / end_s))
     elif step < cfg.warmup_steps:
         factor = ramp
     else:
@@ -128,45 +140,94 @@ def _dist():
 RESUMABLE_CHANGES = ("steps", "time_budget_s")  # a resumed run may go further or longer, nothing else
 
 
-def _check_resume(run_dir: str, cfg: TrainConfig) -> dict:
+class TrainingInterrupted(KeyboardInterrupt):
+    """A run stopped by SIGINT or SIGTERM after its checkpoint was written: step, run_dir and how to go on."""
+
+    def __init__(self, step: int, run_dir: str, signal_name: str):
+        self.step, self.run_dir, self.signal_name = step, run_dir, signal_name
+        if step > 0:
+            text = f"{signal_name} at step {step}: checkpoint written in {run_dir!r}; go on with --resume"
+        else:
+            text = f"{signal_name} before the first step: nothing written"
+        super().__init__(text)
+
+
+def _flat(data: dict, prefix: str = "") -> dict:
+    """{'a.b': value} of a nested dict."""
+    out = {}
+    for k, v in data.items():
+        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def _data_name(records: list[dict]) -> str:
+    return ", ".join(f"{r.get('name')} ({r.get('images')} images, manifest "
+                     f"{(r.get('manifest_sha256') or 'none')[:12]})" for r in records)
+
+
+def _check_resume(run_dir: str, cfg: TrainConfig, data: list[dict] | None) -> tuple[dict, dict]:
+    """(state.json, the run's config.json) of a run to resume; InputError when it is not one, or when the config
+    (other than steps and the budget) or the data (by manifest hash) differ: each difference spelled out."""
     path = os.path.join(run_dir, "config.json")
-    if not os.path.exists(path):
-        raise InputError(f"--resume: {run_dir!r} holds no config.json (not a run directory)")
+    if not os.path.exists(path) or not os.path.exists(os.path.join(run_dir, "state.json")):
+        raise InputError(f"resume: {run_dir!r} holds no trained run (no config.json and state.json)")
     with open(path, encoding="utf-8") as fh:
-        old = json.load(fh)["train"]
-    new = cfg.to_dict()
-    changed = sorted(k for k in new if k not in RESUMABLE_CHANGES and old.get(k) != new[k])
+        saved = json.load(fh)
+    old, new = _flat(saved["train"]), _flat(cfg.to_dict())
+    changed = [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(set(old) | set(new))
+               if k not in RESUMABLE_CHANGES and old.get(k) != new.get(k)]
     if changed:
-        raise InputError(f"--resume: {run_dir!r} was trained with another config ({', '.join(changed)} differ)")
+        raise InputError(f"resume: {run_dir!r} was trained with another config: {'; '.join(changed)} (only steps "
+                         "and time_budget_s may change; start a new run with init=its checkpoint instead)")
+    if data is not None and "data" in saved:
+        def key(records):
+            return [r.get("manifest_sha256") or r.get("name") for r in records]
+
+        if key(saved["data"]) != key(data):
+            raise InputError(f"resume: {run_dir!r} was trained on {_data_name(saved['data'])}, not on "
+                             f"{_data_name(data)}: resume with the same data, or start a new run with "
+                             "init=its checkpoint")
     with open(os.path.join(run_dir, "state.json"), encoding="utf-8") as fh:
-        return json.load(fh)
+        return json.load(fh), saved
 
 
 SHUTDOWN_RESERVE_S = 1.0  # a budgeted run keeps this for the final log, checkpoint and the workers' shutdown
+POSTFIX_EVERY = 10  # steps between the progress bar's loss readings (each one waits for the device)
 
 
 def _autocast(dev: torch.device, bf16: bool):
     return torch.autocast(device_type=dev.type, dtype=torch.bfloat16, enabled=bf16)
 
 
+def make_optimizer(model: torch.nn.Module, cfg: TrainConfig, dev: torch.device) -> torch.optim.Optimizer:
+    """AdamW over the model, its update as one fused kernel on CUDA and as multi-tensor (foreach) ops elsewhere:
+    the same arithmetic as the per-parameter loop, in a few dozen ops instead of thousands."""
+    fast = {"fused": True} if dev.type == "cuda" else {"foreach": True}
+    return torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, **fast)
+
+
 def _train_step(model: CornerNet, net: torch.nn.Module, opt, batch: dict, cfg: TrainConfig, step: int,
                 dev: torch.device, bf16: bool) -> dict:
     """One optimizer step on a batch already on dev: the network (bf16 autocast when asked), the losses in
-    float32, clipped gradients. Returns the loss terms (tensors)."""
+    float32, clipped gradients (multi-tensor norm). Returns the loss terms (tensors on dev: nothing here waits
+    for the device)."""
+    image = batch["image"]
+    if dev.type == "cuda":
+        image = image.contiguous(memory_format=torch.channels_last)
     with _autocast(dev, bf16):
-        out = net(batch["image"])
+        out = net(image)
         segs = batch["segments_px"]
         if cfg.line_jitter_px > 0:
             gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)  # resumable: per step
-            segs = segs + cfg.line_jitter_px * torch.randn(segs.shape, generator=gen).to(dev)
+            segs = segs + cfg.line_jitter_px * torch.randn(segs.shape, generator=gen).to(dev, non_blocking=True)
         logits = model.line_logits(out["features"], segs)
     out = {k: v.float() for k, v in out.items()}
     terms = corner_losses(out, batch, logits.float(), cfg.loss, cfg.model.stride)
     opt.zero_grad(set_to_none=True)
     terms["loss"].backward()
-    torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+    torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0, foreach=True)
     opt.step()
-    return terms
+    return {k: v.detach() for k, v in terms.items()}
 
 
 def _shared_clock(dist, dev: torch.device, elapsed_s: float, reserve_s: float) -> tuple[float, float]:
@@ -178,75 +239,141 @@ def _shared_clock(dist, dev: torch.device, elapsed_s: float, reserve_s: float) -
     return float(t[0]), float(t[1])
 
 
-def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: bool = False, device: str = "cpu",
-          progress: bool = True, provenance: dict | None = None, init_weights: str | None = None,
-          workers: int | None = None, bf16: bool = False, clock=time.perf_counter) -> dict:
-    """Train (or go on training, with resume) into run_dir. Returns the last metrics line.
+@contextlib.contextmanager
+def _stop_on_signals(flag: dict):
+    """While training: SIGINT and SIGTERM set flag['signal'] (the loop stops after its step, with a checkpoint);
+    a second SIGINT raises KeyboardInterrupt at once. Only in the main thread (signals are delivered there)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
 
-    data_dir: one dataset folder or several (their shards are read together). init_weights: a safetensors file
-    of the same architecture to start from instead of the seeded initialization (fine-tuning; a new run only).
-    workers: DataLoader worker processes feeding the batches (perception/stream.py; 0: in-process); None: the
-    run's own count on resume, else 0. The batches depend on the count, so a resumed run keeps it. The workers
-    start from a fork server, so a script calling this with workers guards its main (`if __name__ ==
-    "__main__":`), as any multiprocessing program that does not fork.
-    bf16: the network's forward under bfloat16 autocast (CUDA or CPU); losses, weights and optimizer in float32.
-    With cfg.time_budget_s the run stops before the next step would leave too little of the budget for the
-    final checkpoint (the budget counts from this call's start, plus what a resumed run had already used).
-    clock: the seconds every time figure and the budget are read from (a test gives its own).
-    """
+    def handler(signum, _frame):
+        if flag.get("signal") and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        flag["signal"] = signal.Signals(signum).name
+
+    old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+
+
+def _budget_end_s(cfg: TrainConfig, saved: dict | None, state: dict) -> float | None:
+    """The run's clock reading at which a budgeted call stops: the config's budget for a new run, or for a
+    resumed run given its own budget again (what is left of it); time_s + the new budget for a resumed run given
+    another (that many seconds more). None: by steps."""
+    if cfg.time_budget_s is None:
+        return None
+    if saved is None:
+        return cfg.time_budget_s
+    if state.get("budget_end_s") is not None and saved["train"].get("time_budget_s") == cfg.time_budget_s:
+        return float(state["budget_end_s"])
+    return float(state["time_s"]) + cfg.time_budget_s
+
+
+def _progress(cfg: TrainConfig, state: dict, budget_end_s: float | None, time0: float, enabled: bool):
+    """A step bar, or under a budget a bar of the budget's seconds (elapsed / budget)."""
     from tqdm import tqdm
 
+    if budget_end_s is None:
+        return tqdm(total=cfg.steps, initial=state["step"], disable=not enabled, desc="train", unit="step")
+    return tqdm(total=round(budget_end_s - time0, 1), disable=not enabled, desc="train", unit="s",
+                bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s of the budget{postfix}")
+
+
+def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: bool = False, device: str = "cpu",
+          progress: bool = True, provenance: dict | None = None, init_weights: str | None = None,
+          workers: int | None = None, bf16: bool = False, clock=time.perf_counter,
+          paths: list[str] | None = None) -> dict:
+    """Train (or go on training, with resume) into run_dir. Returns the last metrics line.
+
+    data_dir: one dataset folder or several (their shards are read together); paths: the shard files to read
+    when the caller checked them already (else every shard of data_dir). init_weights: a safetensors file of
+    the same architecture to start from instead of the seeded initialization (fine-tuning; a new run only).
+    workers: DataLoader worker processes feeding the batches (perception/stream.py; 0: in-process); None: the
+    run's own count on resume, else 0. The batches depend on the count, so a resumed run keeps it. The workers
+    start from a fork server without the calling script (perception/stream.py), so a plain script needs no
+    `if __name__ == "__main__":` guard.
+    bf16: the network's forward under bfloat16 autocast (CUDA or CPU); losses, weights and optimizer in float32.
+    With a time budget the run stops before the next step would leave too little of it for the final checkpoint
+    (the budget counts from this call's start, plus what a resumed run had already used; see _budget_end_s); a
+    budget too short for one step is an InputError. A resumed run already at its steps or budget trains nothing
+    and returns an end line with stopped_by 'nothing_to_do'.
+    clock: the seconds every time figure and the budget are read from (a test gives its own).
+    Raises TrainingInterrupted after the checkpoint when SIGINT or SIGTERM stopped it.
+    """
     dist, rank, world = _dist()
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: no CUDA device is available")
+        raise InputError("device 'cuda': no CUDA device is available")
     if workers is not None and workers < 0:
-        raise InputError(f"--workers {workers}: expected 0 (in-process) or more worker processes")
+        raise InputError(f"workers = {workers}: expected 0 (in-process) or more worker processes")
     t_start = clock()
     dirs = [data_dir] if isinstance(data_dir, str) else list(data_dir)
-    paths = [p for d in dirs for p in shard_paths(d)]
+    if paths is None:
+        paths = [p for d in dirs for p in shard_paths(d)]
+    state = {"step": 0, "epoch": 0, "batch": 0, "workers": 0 if workers is None else workers, "time_s": 0.0}
+    saved = None
+    if resume:
+        saved_state, saved = _check_resume(run_dir, cfg, (provenance or {}).get("data"))
+        ran_with = int(saved_state.get("workers", 0))
+        if workers is not None and workers != ran_with:
+            raise InputError(f"workers = {workers}: {run_dir!r} was trained with {ran_with} (its batches depend "
+                             f"on the count); resume it with --workers {ran_with}")
+        state = {**state, **saved_state, "workers": ran_with}
+    elif os.path.exists(os.path.join(run_dir, "state.json")):
+        raise InputError(f"run_dir {run_dir!r} already holds a run: resume it, or give another folder")
+    time0 = float(state["time_s"])
+    budget_end_s = _budget_end_s(cfg, saved, state)
+    state["budget_end_s"] = budget_end_s
+    if resume and (state["step"] >= cfg.steps or (budget_end_s is not None and time0 >= budget_end_s)):
+        why = "budget_spent" if state["step"] < cfg.steps else "steps_reached"
+        return {"kind": "end", "step": state["step"], "epoch": state["epoch"], "steps_run": 0,
+                "stopped_by": "nothing_to_do", "why": why, "time_s": time0, "workers": state["workers"]}
     model = init_model(cfg).to(dev)
     if init_weights is not None and not resume:
         tensors, _ = read_weights(init_weights)
         load_state(model, tensors, init_weights)
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    state = {"step": 0, "epoch": 0, "batch": 0, "workers": 0 if workers is None else workers, "time_s": 0.0}
     if resume:
-        saved = _check_resume(run_dir, cfg)
-        ran_with = int(saved.get("workers", 0))
-        if workers is not None and workers != ran_with:
-            raise InputError(f"--workers {workers}: {run_dir!r} was trained with {ran_with} (its batches depend on "
-                             f"the count); resume it with --workers {ran_with}")
-        state = {**state, **saved, "workers": ran_with}
         tensors, _ = read_weights(os.path.join(run_dir, "checkpoint.safetensors"))
         load_state(model, tensors, os.path.join(run_dir, "checkpoint.safetensors"))
+    if dev.type == "cuda":
+        model = model.to(memory_format=torch.channels_last)
+    opt = make_optimizer(model, cfg, dev)
+    if resume:
         opt.load_state_dict(load_tensors(os.path.join(run_dir, "optimizer.pt")))
-    elif rank == 0:
-        os.makedirs(run_dir, exist_ok=True)
-        if os.path.exists(os.path.join(run_dir, "state.json")):
-            raise InputError(f"--out {run_dir!r} already holds a run: use --resume, or another folder")
-        atomic_write_text(os.path.join(run_dir, "config.json"), json.dumps(
-            {"train": cfg.to_dict(), **(provenance or {})}, indent=1, sort_keys=True) + "\n")
     net = model
     if dist is not None:
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
     model.train()
-    time0 = float(state["time_s"])
+    started = {"run": resume}  # the run folder exists (a resumed run's does)
 
     def elapsed() -> float:
         return time0 + clock() - t_start
 
-    bar = tqdm(total=cfg.steps, initial=state["step"], disable=not progress or rank != 0, desc="train", unit="step")
-    sums: dict[str, float] = {}
+    def start_run() -> None:
+        """The run folder and its config.json, once the first step is trained (nothing half-made before)."""
+        if started["run"]:
+            return
+        started["run"] = True
+        if rank == 0:
+            os.makedirs(run_dir, exist_ok=True)
+            atomic_write_text(os.path.join(run_dir, "config.json"), json.dumps(
+                {"train": cfg.to_dict(), **(provenance or {})}, indent=1, sort_keys=True) + "\n")
+
+    bar = _progress(cfg, state, budget_end_s, time0, progress and rank == 0)
+    sums: dict[str, torch.Tensor] = {}
     count = 0
     terms_mean: dict[str, float] = {}
-    lr = lr_at(cfg, state["step"], time0)
+    lr = lr_at(cfg, state["step"], time0, budget_end_s)
     run = {"steps": 0, "first_batch_s": None, "data_wait_s": 0.0}  # this call's own figures
     iter_s: list[float] = []  # the last steps' wall times, data wait included
     checkpoint_s = 0.5  # until one is measured
 
     def checkpoint() -> None:
-        if rank != 0:
+        if rank != 0 or not started["run"]:
             return
         state["time_s"] = round(elapsed(), 3)
         save_weights(os.path.join(run_dir, "checkpoint.safetensors"), model, {"step": str(state["step"])})
@@ -255,91 +382,105 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
 
     def log(kind: str, extra: dict | None = None) -> dict:
         """A metrics line: the loss terms averaged since the last line (an end line right after an epoch line
-        repeats that line's terms)."""
+        repeats that line's terms). The one place the terms are read back from the device."""
         nonlocal sums, count, terms_mean
         if count:
-            terms_mean = {k: v / count for k, v in sums.items()}
+            terms_mean = {k: float(v) / count for k, v in sums.items()}
         line = {"kind": kind, "epoch": state["epoch"], "step": state["step"], "lr": lr, "time_s": round(elapsed(), 3),
                 **terms_mean, **(extra or {})}
-        if rank == 0:
+        if rank == 0 and started["run"]:
             with open(os.path.join(run_dir, "metrics.jsonl"), "a", encoding="utf-8") as fh:
                 fh.write(json.dumps(line, sort_keys=True) + "\n")
         sums, count = {}, 0
         return line
 
     def batches_of(epoch: int):
-        return iter(epoch_loader(paths, cfg.data, cfg.seed, epoch, cfg.batch_size, state["workers"], rank, world,
-                                 pin_memory=dev.type == "cuda"))
+        return epoch_batches(paths, cfg.data, cfg.seed, epoch, cfg.batch_size, state["workers"], rank, world,
+                             pin_memory=dev.type == "cuda")
 
-    stop = False
+    flag: dict = {}
+    stop = None  # why the loop ended early: 'time_budget' or the signal's name
     upcoming = None  # the next epoch's batches, started early (with workers): no stall at the epoch boundary
-    while state["step"] < cfg.steps and not stop:
-        n_batches = 0
-        skip = state["batch"]  # a resumed epoch: these batches were trained on before
-        current = upcoming if upcoming is not None else batches_of(state["epoch"])
-        upcoming = batches_of(state["epoch"] + 1) if state["workers"] > 0 else None
-        t_ask = clock()
-        for i, cpu_batch in enumerate(current):
-            if i < skip:
-                t_ask = clock()
-                continue
-            if state["step"] >= cfg.steps:
-                break
-            t_got = clock()
-            run["data_wait_s"] += t_got - t_ask
-            if run["first_batch_s"] is None:
-                run["first_batch_s"] = t_got - t_start
-            if cfg.time_budget_s > 0:
-                reserve = 1.5 * max(iter_s[-10:], default=0.0) + checkpoint_s + SHUTDOWN_RESERVE_S
-                now_s, reserve = _shared_clock(dist, dev, elapsed(), reserve)
-                if now_s + reserve >= cfg.time_budget_s:
-                    stop = True
-                    break
-            else:
-                now_s = elapsed()
-            lr = lr_at(cfg, state["step"], now_s)
-            for g in opt.param_groups:
-                g["lr"] = lr
-            terms = _train_step(model, net, opt, to_device(cpu_batch, dev), cfg, state["step"], dev, bf16)
-            state["step"] += 1
-            state["batch"] = i + 1
-            n_batches += 1
-            run["steps"] += 1
-            for k, v in terms.items():
-                sums[k] = sums.get(k, 0.0) + float(v.detach())
-            count += 1
-            bar.update(1)
-            bar.set_postfix(loss=f"{float(terms['loss'].detach()):.3f}")
-            if state["step"] % cfg.checkpoint_every == 0:
-                t_ck = clock()
-                checkpoint()
-                checkpoint_s = clock() - t_ck
-            iter_s.append(clock() - t_ask)
+    with _stop_on_signals(flag):
+        while state["step"] < cfg.steps and stop is None:
+            n_batches = 0
+            skip = state["batch"]  # a resumed epoch: these batches were trained on before
+            current = upcoming if upcoming is not None else batches_of(state["epoch"])
+            upcoming = batches_of(state["epoch"] + 1) if state["workers"] > 0 else None
             t_ask = clock()
-        else:
-            if n_batches == 0 and state["batch"] == 0:
-                raise InputError(f"--data {data_dir!r}: fewer samples than one batch of {cfg.batch_size} per "
-                                 f"worker ({state['workers']} workers, {len(paths)} shards, {world} ranks): "
-                                 "use fewer workers or a smaller batch")
-            log("epoch")
-            state["epoch"] += 1
-            state["batch"] = 0
-            continue
-        break
-    current = upcoming = None  # the workers of both epochs shut down
-    bar.close()
-    ddp = {}
-    if dist is not None:
-        for b in model.buffers():  # BatchNorm statistics of the last forward are each rank's own: take rank 0's
-            dist.broadcast(b, src=0)
-        ddp = {"ranks_identical": float(_ranks_identical(dist, model, world)), "world": float(world)}
-    checkpoint()
+            for i, cpu_batch in enumerate(loader_batches(current, flag)):
+                if i < skip:
+                    t_ask = clock()
+                    continue
+                if state["step"] >= cfg.steps or flag.get("signal"):
+                    break
+                t_got = clock()
+                run["data_wait_s"] += t_got - t_ask
+                if run["first_batch_s"] is None:
+                    run["first_batch_s"] = t_got - t_start
+                now_s = elapsed()
+                if budget_end_s is not None:
+                    reserve = 1.5 * max(iter_s[-10:], default=0.0) + checkpoint_s + SHUTDOWN_RESERVE_S
+                    now_s, reserve = _shared_clock(dist, dev, now_s, reserve)
+                    if now_s + reserve >= budget_end_s:
+                        if run["steps"] == 0:
+                            raise InputError(
+                                f"time_budget_s = {cfg.time_budget_s:g}: too short for one step (the first batch "
+                                f"came {now_s - time0:.1f} s into it; a step, the checkpoint and the shutdown need "
+                                f"~{reserve:.1f} s more): give a longer budget")
+                        stop = "time_budget"
+                        break
+                lr = lr_at(cfg, state["step"], now_s, budget_end_s)
+                for g in opt.param_groups:
+                    g["lr"] = lr
+                terms = _train_step(model, net, opt, to_device(cpu_batch, dev), cfg, state["step"], dev, bf16)
+                start_run()
+                state["step"] += 1
+                state["batch"] = i + 1
+                n_batches += 1
+                run["steps"] += 1
+                for k, v in terms.items():
+                    sums[k] = sums[k] + v if k in sums else v
+                count += 1
+                bar.update(1 if budget_end_s is None else round(elapsed() - time0, 1) - bar.n)
+                if state["step"] % POSTFIX_EVERY == 0 or run["steps"] == 1:
+                    bar.set_postfix(step=state["step"], loss=f"{float(terms['loss']):.3f}")
+                if state["step"] % cfg.checkpoint_every == 0:
+                    t_ck = clock()
+                    checkpoint()
+                    checkpoint_s = clock() - t_ck
+                iter_s.append(clock() - t_ask)
+                t_ask = clock()
+            else:
+                if n_batches == 0 and state["batch"] == 0 and not flag.get("signal"):
+                    raise InputError(f"data {data_dir!r}: fewer samples than one batch of {cfg.batch_size} per "
+                                     f"worker ({state['workers']} workers, {len(paths)} shards, {world} ranks): "
+                                     "use fewer workers or a smaller batch")
+                if not flag.get("signal"):
+                    log("epoch")
+                    state["epoch"] += 1
+                    state["batch"] = 0
+                    continue
+            if flag.get("signal"):
+                stop = flag["signal"]
+            break
+        current = upcoming = None  # the workers of both epochs shut down
+        bar.close()
+        ddp = {}
+        if dist is not None:
+            for b in model.buffers():  # BatchNorm statistics of the last forward are each rank's own: take rank 0's
+                dist.broadcast(b, src=0)
+            ddp = {"ranks_identical": float(_ranks_identical(dist, model, world)), "world": float(world)}
+        checkpoint()
     loop_s = clock() - t_start - (run["first_batch_s"] or 0.0)
     speed = {"steps_run": run["steps"], "workers": state["workers"], "bf16": bf16,
              "samples_s": round(run["steps"] * cfg.batch_size * world / max(loop_s, 1e-9), 2),
              "first_batch_s": round(run["first_batch_s"] or 0.0, 3), "data_wait_s": round(run["data_wait_s"], 3),
-             "stopped_by": "time_budget" if stop else "steps"}
-    return log("end", {**ddp, **speed})
+             "stopped_by": "steps" if stop is None else ("time_budget" if stop == "time_budget" else "signal")}
+    end = log("end", {**ddp, **speed})
+    if stop not in (None, "time_budget"):
+        raise TrainingInterrupted(state["step"] if started["run"] else 0, run_dir, stop)
+    return end
 
 
 def _ranks_identical(dist, model: torch.nn.Module, world: int) -> bool:

@@ -59,21 +59,36 @@ def dataset_provenance(data_dir: str) -> dict:
 
 def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | None, workers: int | None,
                  threads: int | None) -> None:
-    """Every input of a training run checked before any work; InputError naming the flag."""
-    from envisat_pose.perception.data import shard_paths
+    """Every input of a training run but the shards checked before any work; InputError naming the argument."""
+    from envisat_pose.runner import check_out_dir
 
-    for d in data_dirs:
-        shard_paths(d)  # an empty or missing dataset fails here
+    if not data_dirs:
+        raise InputError("data_dirs: no dataset folder given")
     if init is not None and resume:
-        raise InputError("--init and --resume: a resumed run goes on from its own checkpoint; give one of them")
+        raise InputError("init and resume: a resumed run goes on from its own checkpoint; give one of them")
     if init is not None and not os.path.isfile(init):
-        raise InputError(f"--init {init!r}: no such weights file")
+        raise InputError(f"init {init!r}: no such weights file")
     if resume and not os.path.isdir(run_dir):
-        raise InputError(f"--resume: {run_dir!r} does not exist")
+        raise InputError(f"resume: run_dir {run_dir!r} does not exist")
+    check_out_dir(run_dir, parents=True)  # a file, or a path under one, is refused here
     if workers is not None and workers < 0:
-        raise InputError(f"--workers {workers}: expected 0 (in-process) or more worker processes")
+        raise InputError(f"workers = {workers}: expected 0 (in-process) or more worker processes")
     if threads is not None and threads < 1:
-        raise InputError(f"--threads {threads}: expected at least 1")
+        raise InputError(f"threads = {threads}: expected at least 1")
+
+
+def read_run_config(run_dir: str) -> dict:
+    """The TrainConfig (as a dict) a run folder was trained with: the base a resumed run starts from."""
+    import json
+
+    path = os.path.join(run_dir, "config.json")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return json.load(fh)["train"]
+    except FileNotFoundError:
+        raise InputError(f"resume: {run_dir!r} holds no config.json (not a run folder)") from None
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise InputError(f"resume: {path!r} is unreadable ({err})") from None
 
 
 def init_distributed(device: str) -> str:
@@ -104,21 +119,25 @@ def end_distributed() -> None:
             dist.destroy_process_group()
 
 
-def train_detector(cfg, data_dirs: list[str], run_dir: str, *, resume: bool = False, init: str | None = None,
-                   device: str = "cpu", workers: int | None = None, bf16: bool = False,
+def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: bool = False,
+                   init: str | None = None, device: str = "cpu", workers: int | None = None, bf16: bool = False,
                    threads: int | None = None, progress: bool = True, command: str = "") -> dict:
-    """Train the detector (cfg: a validated perception TrainConfig) on the shards of data_dirs into run_dir.
+    """Train the detector (cfg: a perception TrainConfig, validated when built) on the shards of data_dirs (one
+    folder or several) into run_dir (created with its parents once the first step is trained).
 
-    resume: go on from run_dir's last checkpoint (exclusive with init: a safetensors file to start from).
-    workers: DataLoader worker processes (None: the run's own on resume, else default_workers()); bf16: bfloat16
-    autocast; threads: torch's CPU threads in this process; command: the command line, for the provenance.
-    Returns the run's last metrics line (perception/train.py)."""
+    resume: go on from run_dir's last checkpoint (exclusive with init: a safetensors file to start from); the
+    config may differ from the run's in steps and time_budget_s only, the data not at all (InputError spelling
+    out the difference). workers: DataLoader worker processes (None: the run's own on resume, else
+    default_workers()); bf16: bfloat16 autocast; threads: torch's CPU threads in this process; command: the
+    command line as typed, for the record. Returns the run's last metrics line (perception/train.py); raises
+    perception.train.TrainingInterrupted after a checkpoint when SIGINT or SIGTERM stopped it. Callable from a
+    plain script: its workers never import the script."""
     import torch
 
     from envisat_pose.io import sha256_file
     from envisat_pose.perception.train import train
 
-    data_dirs = list(data_dirs)
+    data_dirs = [data_dirs] if isinstance(data_dirs, str) else list(data_dirs)
     check_inputs(data_dirs, run_dir, resume, init, workers, threads)
     if threads is not None:
         torch.set_num_threads(threads)
