@@ -15,9 +15,9 @@ import rerun.blueprint as rrb
 
 from envisat_pose.attitude import mrp_to_dcm, mrp_to_quat, rotmat_to_quat
 from envisat_pose.geometry import CORNER_NAMES, EDGES, PinholeCamera, load_camera, load_geometry, model_path
-from envisat_pose.state import MRP, POS, RATE, VEL
+from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
-from .stats import component_errors, display_transform
+from .stats import chi2_mean_bounds, component_errors, display_transform
 
 
 APPLICATION_ID = "envisat_pose"
@@ -305,7 +305,8 @@ AXIS_RGB = ((230, 60, 60), (40, 170, 60), (60, 110, 240))  # x, y, z
 PLOT_BLOCKS = (("position_m", "position error (m)", POS, 1.0), ("velocity_m_s", "velocity error (m/s)", VEL, 1.0),
                ("attitude_deg", "attitude error (deg)", MRP, 180.0 / np.pi),
                ("angular_velocity_deg_s", "angular velocity error (deg/s)", RATE, 180.0 / np.pi))
-NEES_BAND_12 = (4.404, 23.337)  # chi-square 12 dof, 2.5 % and 97.5 %
+# one run's NEES: chi-square of the state's 12 dof, the two-sided 95 % band (stats.P_BAND: 4.40 and 23.34)
+NEES_BAND_12 = tuple(float(b) for b in chi2_mean_bounds(N_STATE, 1))
 
 
 def whole_run(view_kind, **kw):

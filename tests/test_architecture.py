@@ -10,11 +10,14 @@ One home for each concept: the state's slices are defined only in envisat_pose/s
 written only by the core runner's resumable-job protocol; shards are read (a tar opened for reading) only by
 envisat_pose/shard_reader.py; a verb or pipeline resolves its config only through
 config.resolve_job_config (never by merging layers itself); a chi-square gate comes from its probability
-(envisat_pose.gates), never typed as a number. Each checker runs on a source string, so the tests
-below show it catching a planted copy.
+(envisat_pose.gates), never typed as a number, and so does a band of NEES or NIS (scipy.stats.chi2, as
+analysis.stats.chi2_mean_bounds computes it). The benches and the scripts are read for every one-home rule; they
+import no verb (the job a verb runs is the library's). A verb file stays thin: at most VERB_MAX_LINES lines.
+Each checker runs on a source string, so the tests below show it catching a planted copy.
 """
 
 import ast
+import functools
 import os
 import re
 
@@ -25,8 +28,8 @@ STAGES = ("datagen", "perception", "filtering", "analysis")
 UPPER = ("app", "pipelines")  # the layers above the stages
 # where each layer's files live in the repository (a folder at the root), and their import name
 LAYOUT = {"envisat_pose": "envisat_pose", **{s: f"envisat_pose.{s}" for s in STAGES + UPPER}}
-# scanned for copies of the state's layout besides the package (the benches use it too)
-EXTRA_FOLDERS = ("bench",)
+# scanned for every one-home rule besides the package (the benches and the scripts are code people copy from)
+EXTRA_FOLDERS = ("bench", "scripts")
 
 # the kinds whose checker reads the tests' helpers too (a test must not build its own physics for the filter)
 WITH_TESTS = ("physics_builders", "hand_built_runs")
@@ -42,6 +45,13 @@ PENDING = {
     "typed_gates": {},
     "shard_readers": {},
     "hand_built_runs": {},
+    "typed_bands": {},
+    # a bench or script getting a verb's job from app/ (issue 39, item 1 moves these into the library)
+    "app_imports": {os.path.join("bench", "acquisition.py"): "app.run.run_defaults, default_weights_path",
+                    os.path.join("bench", "montecarlo_speed.py"): "app.scenarios.job_defaults",
+                    os.path.join("bench", "online_speed.py"): "app.run.run_config, default_weights_path",
+                    os.path.join("bench", "tracking.py"): "app.run.run_defaults, default_weights_path",
+                    os.path.join("scripts", "loop_sequences.py"): "app.run.run_defaults"},
 }
 
 
@@ -301,6 +311,50 @@ def typed_gates(source: str) -> list[int]:
     return sorted(set(lines))
 
 
+@functools.cache
+def _chi2_band_values() -> tuple[float, ...]:
+    """Chi-square quantiles a band typed by hand would hold: 1 to 36 dof, the usual one- and two-sided levels."""
+    from scipy.stats import chi2
+
+    levels = (0.001, 0.005, 0.01, 0.025, 0.05, 0.95, 0.975, 0.99, 0.995, 0.999)
+    return tuple(float(chi2.ppf(p, d)) for p in levels for d in range(1, 37))
+
+
+def _typed_quantile(node, table) -> bool:
+    """A float literal of 3 or more significant digits within 0.2 % of a table value (a round 8.0 or 16.0 is a
+    floor someone chose, not a quantile copied from a table)."""
+    if not (isinstance(node, ast.Constant) and type(node.value) is float and node.value > 0.0):
+        return False
+    digits = repr(node.value).split("e")[0].replace(".", "").strip("0")
+    return len(digits) >= 3 and min(abs(node.value - b) / b for b in table) < 0.002
+
+
+def typed_bands(source: str) -> list[int]:
+    """Lines where a chi-square band (of NEES, NIS, a consistency test) is typed as numbers: a float literal
+    within 0.2 % of a chi-square quantile (1-36 dof) in a simple statement (an `if`'s or `while`'s test) whose
+    text names a band, NEES, NIS or chi-square. The band comes from scipy.stats.chi2 (analysis.stats'
+    chi2_mean_bounds, envisat_pose.gates)."""
+    table = _chi2_band_values()
+    lines = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, (ast.If, ast.While)):
+            part = node.test
+        elif isinstance(node, ast.stmt) and not hasattr(node, "body"):
+            part = node
+        else:
+            continue
+        if re.search(r"band|nees|nis|chi", ast.unparse(part), re.IGNORECASE):
+            lines += [c.lineno for c in ast.walk(part) if _typed_quantile(c, table)]
+    return sorted(set(lines))
+
+
+def app_imports(path: str, source: str | None = None) -> list[int]:
+    """Lines where a file outside the package (a bench, a script) imports a verb module (envisat_pose.app.*) or
+    a stage by its old top-level name."""
+    return sorted({line for line, name in imported_modules(path, "outside", source)
+                   if (layer_of(name) or "") == "app" or (layer_of(name) or "").startswith("bare:")})
+
+
 def _access(node) -> tuple[str, ast.AST] | None:
     """(name, container) of `container.name` or `container["name"]`."""
     if isinstance(node, ast.Attribute):
@@ -334,7 +388,7 @@ def filter_side(rel: str) -> bool:
     """Whether a file is on the filter's side of the truth (a pipeline, a verb, a bench or a test helper): the
     truth's own physics (datagen) reads its config freely."""
     parts = rel.split(os.sep)
-    return (len(parts) > 1 and parts[0] in UPPER) or parts[0] in ("bench", "tests")
+    return (len(parts) > 1 and parts[0] in UPPER) or parts[0] in ("bench", "scripts", "tests")
 
 
 def resolves_configs(rel: str) -> bool:
@@ -352,7 +406,7 @@ def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
             lines = state_slice_definitions(source)
         elif kind == "manifest_writers" and rel != RUNNER_FILE:
             lines = manifest_writes(source)
-        elif kind == "hand_built_runs" and rel.split(os.sep)[0] in ("tests", "bench") and rel != THIS_FILE:
+        elif kind == "hand_built_runs" and rel.split(os.sep)[0] in ("tests", "bench", "scripts") and rel != THIS_FILE:
             lines = run_configs_built(source)
         elif kind == "hand_resolved_configs" and resolves_configs(rel):
             lines = hand_resolutions(source)
@@ -362,6 +416,10 @@ def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
             lines = typed_gates(source)
         elif kind == "shard_readers" and rel != SHARD_READER_FILE:
             lines = tar_reads(source)
+        elif kind == "typed_bands":
+            lines = typed_bands(source)
+        elif kind == "app_imports" and rel.split(os.sep)[0] in EXTRA_FOLDERS:
+            lines = app_imports(rel, source)
         else:
             lines = []
         if lines:
@@ -534,6 +592,90 @@ def test_the_physics_checker_catches_a_second_builder():
     assert physics_builders(open(os.path.join(ROOT, ONBOARD_FILE), encoding="utf-8").read())  # the home
     assert filter_side(os.path.join("tests", "pipelines", "test_x.py")) and filter_side(os.path.join("bench", "x.py"))
     assert not filter_side(os.path.join("datagen", "truth.py"))
+
+
+def test_the_band_checker_catches_a_band_typed_by_hand():
+    planted = ("NEES_BAND_12 = (4.404, 23.337)  # chi-square 12 dof\n"
+               "def consistent(nis):\n    return 0.216 < nis < 9.348\n"
+               "lo_nis, hi_nis = 1.237, 14.449\n"
+               "if mean_nees > 26.217:\n    pass\n")
+    assert typed_bands(planted) == [1, 3, 4, 5]
+    derived = ("from scipy.stats import chi2\nNEES_BAND = tuple(chi2.ppf([0.025, 0.975], 12))\n"
+               "FLOORS = {'nees': (8.0, 16.0)}\nnees_window_s = 60.0\n")
+    assert typed_bands(derived) == []
+    from envisat_pose.analysis.recording_layout import NEES_BAND_12
+    from scipy.stats import chi2
+
+    assert NEES_BAND_12 == tuple(chi2.ppf([0.025, 0.975], 12))
+
+
+def test_the_app_import_checker_catches_a_bench_using_a_verb():
+    planted = ("def cfg():\n    from envisat_pose.app.run import run_config\n    return run_config('default')\n"
+               "import envisat_pose.app.cli\nfrom filtering import fast\n")
+    assert app_imports("bench/x.py", planted) == [2, 4, 5]
+    assert app_imports("bench/x.py", "from envisat_pose.pipelines.run_config import RunConfig\n") == []
+    assert "scripts" in EXTRA_FOLDERS and "bench" in EXTRA_FOLDERS
+
+
+# ---------------------------------------------------------------- thin verbs
+
+VERB_MAX_LINES = 160  # issue 39: a verb parses flags, resolves one config, calls one pipeline function, prints
+# Verb files over the limit today (their line counts when the guard came in, issue 39). The list only shrinks:
+# a file on it may not grow past its count, one that comes down to the limit must leave the list
+# (test_long_verbs_are_still_long), and a file not on it may not pass VERB_MAX_LINES.
+LONG_VERBS = {
+    os.path.join("app", "report.py"): 233,  # the whole HTML report, no pipeline under it yet
+    os.path.join("app", "view.py"): 184,
+    os.path.join("app", "run.py"): 175,
+}
+
+
+def verb_lengths(root: str = ROOT) -> dict[str, int]:
+    """{repository-relative path: lines} of every .py file of app/. Every file counts, cli.py (the dispatcher)
+    and helpers included: the app layer is thin as a whole, so a helper of the verbs lives below it."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(os.path.join(root, "app")):
+        dirnames[:] = [d for d in dirnames if d != "__pycache__"]
+        for name in filenames:
+            if name.endswith(".py"):
+                path = os.path.join(dirpath, name)
+                with open(path, encoding="utf-8") as fh:
+                    out[os.path.relpath(path, root)] = len(fh.read().splitlines())
+    return out
+
+
+def thick_verbs(lengths: dict[str, int], allowed: dict[str, int] = LONG_VERBS) -> dict[str, str]:
+    """{file: why} of the verb files over their limit: VERB_MAX_LINES, or the count a listed file had."""
+    out = {}
+    for rel, n in lengths.items():
+        limit = allowed.get(rel, VERB_MAX_LINES)
+        if n > limit:
+            out[rel] = f"{n} lines, over {limit}" + (" (its count on LONG_VERBS: it may only shrink)"
+                                                     if rel in allowed else "")
+    return out
+
+
+def test_every_verb_file_stays_thin():
+    assert thick_verbs(verb_lengths()) == {}, "move the work into a pipeline (pipelines/) or analysis/"
+
+
+def test_long_verbs_are_still_long():
+    """An entry of LONG_VERBS whose file is gone or back within the limit is stale: delete it."""
+    lengths = verb_lengths()
+    stale = [f for f in LONG_VERBS if lengths.get(f, 0) <= VERB_MAX_LINES]
+    assert stale == [], f"{stale} are within {VERB_MAX_LINES} lines now (or gone): remove them from LONG_VERBS"
+
+
+def test_the_verb_length_checker_sees_a_thick_verb(tmp_path):
+    (tmp_path / "app").mkdir()
+    (tmp_path / "app" / "thin.py").write_text("x = 1\n" * VERB_MAX_LINES)
+    (tmp_path / "app" / "thick.py").write_text("x = 1\n" * (VERB_MAX_LINES + 1))
+    (tmp_path / "app" / "listed.py").write_text("x = 1\n" * 201)
+    lengths = verb_lengths(str(tmp_path))
+    assert lengths[os.path.join("app", "thin.py")] == VERB_MAX_LINES
+    found = thick_verbs(lengths, {os.path.join("app", "listed.py"): 200})
+    assert sorted(found) == [os.path.join("app", "listed.py"), os.path.join("app", "thick.py")]
+    assert thick_verbs(lengths, {os.path.join("app", "listed.py"): 201}) == {os.path.join("app", "thick.py"): "161 lines, over 160"}
 
 
 # ---------------------------------------------------------------- the slow lane's list (tests/conftest.py)
