@@ -156,6 +156,22 @@ def draw_corruption_params(cfg: GenerateConfig, out, x: np.ndarray, f_px: float,
     return draw_corruption(to_dict(cfg.corruption), cfg.resolution_px, rng)
 
 
+def sample_view(cfg: GenerateConfig, shard_index: int, i: int, fovy_deg: float, znear_m: float,
+                boxes: TargetBoxes) -> tuple:
+    """Sample i of shard `shard_index`: its view with its look, from its own seed (sample_seed); no GL.
+    Returns (k, seed, rng, view, x, scene): k the sample's index in the dataset, rng its Generator after the
+    view's draws (the corruption draw continues it)."""
+    k = shard_index * cfg.shard_size + i
+    seed = sample_seed(cfg.seed, shard_index, i)
+    rng = np.random.default_rng(seed)
+    if cfg.mode == "random":
+        view, x, scene = sample_random_view(cfg, fovy_deg, rng, znear_m, boxes)
+    else:
+        view, x, scene = sequence_view(cfg, k)
+    view, scene = with_look(cfg, view, scene, seed)
+    return k, seed, rng, view, x, scene
+
+
 def render_sample(renderer, cfg: GenerateConfig, view, x: np.ndarray, scene: dict, rng: np.random.Generator,
                   seed: int) -> dict[str, bytes]:
     """Render, label, corrupt (unless storage is 'clean') and encode one sample: {suffix: bytes} per the
@@ -163,20 +179,31 @@ def render_sample(renderer, cfg: GenerateConfig, view, x: np.ndarray, scene: dic
     return finish_sample(renderer.K, renderer.target_boxes, cfg, renderer.render(view), x, scene, rng, seed)
 
 
-def finish_sample(K: np.ndarray, boxes: TargetBoxes, cfg: GenerateConfig, out, x: np.ndarray, scene: dict,
-                  rng: np.random.Generator, seed: int) -> dict[str, bytes]:
-    """Everything of a sample after its render (`out`, a RenderOutput of the renderer whose intrinsics are K
-    and whose target is `boxes`): the corruption draw, the label, the corruption (unless storage is 'clean')
-    and the PNG and JSON encoding. Touches no GL state, so it may run beside the next render."""
+def sample_arrays(K: np.ndarray, boxes: TargetBoxes, cfg: GenerateConfig, out, x: np.ndarray, scene: dict,
+                  rng: np.random.Generator, seed: int) -> tuple[np.ndarray, dict]:
+    """A sample's image and label before any encoding (finish_sample encodes them; the online trainer,
+    pipelines/online.py, takes them as they are): the corruption draw, the image ((H, W) uint8, corrupted
+    unless storage is 'clean') and the label (plain JSON data, labels.make_label). No GL state."""
     from envisat_pose.datagen.corrupt import apply_corruption
-    from envisat_pose.datagen.labels import encode_depth, make_label
-    from envisat_pose.datagen.shards import encode_png, label_bytes
+    from envisat_pose.datagen.labels import make_label
 
     params = draw_corruption_params(cfg, out, x, K[0, 0], boxes, rng)
     image = out.gray_u8 if cfg.storage == "clean" else apply_corruption(out.gray_u8, params)
     label = make_label(out.corners_K_m, out.depth_m, K, out.R_K_from_T, out.t_K_from_T_m, x,
                        cfg.depth_scale_m, params, seed, scene)
     label["image_stored"] = cfg.storage
+    return image, label
+
+
+def finish_sample(K: np.ndarray, boxes: TargetBoxes, cfg: GenerateConfig, out, x: np.ndarray, scene: dict,
+                  rng: np.random.Generator, seed: int) -> dict[str, bytes]:
+    """Everything of a sample after its render (`out`, a RenderOutput of the renderer whose intrinsics are K
+    and whose target is `boxes`): the corruption draw, the label, the corruption (unless storage is 'clean')
+    and the PNG and JSON encoding. Touches no GL state, so it may run beside the next render."""
+    from envisat_pose.datagen.labels import encode_depth
+    from envisat_pose.datagen.shards import encode_png, label_bytes
+
+    image, label = sample_arrays(K, boxes, cfg, out, x, scene, rng, seed)
     members = {"png": encode_png(image), "json": label_bytes(label)}
     if cfg.write_mask:
         members["mask.png"] = encode_png(out.mask_u8)
@@ -228,16 +255,7 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str, beside: 
     fovy_deg, znear_m = renderer.fovy_deg, renderer.znear_m
 
     def prepare(i: int) -> tuple:
-        """Sample i's view with its look: (k, seed, rng, view, x, scene); no GL."""
-        k = shard_index * cfg.shard_size + i
-        seed = sample_seed(cfg.seed, shard_index, i)
-        rng = np.random.default_rng(seed)
-        if cfg.mode == "random":
-            view, x, scene = sample_random_view(cfg, fovy_deg, rng, znear_m, boxes)
-        else:
-            view, x, scene = sequence_view(cfg, k)
-        view, scene = with_look(cfg, view, scene, seed)
-        return k, seed, rng, view, x, scene
+        return sample_view(cfg, shard_index, i, fovy_deg, znear_m, boxes)
 
     def finish_and_write(k, out, x, scene, rng, seed):
         writer.write(sample_key(k), finish_sample(K, boxes, cfg, out, x, scene, rng, seed))
