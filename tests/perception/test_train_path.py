@@ -1,0 +1,170 @@
+"""The training user's path (issue 41): budgets that mean what they say, Ctrl-C then resume, resume refusing other
+data or another model with the difference spelled out, `--out` on or under a file, the record that reproduces
+the command, a plain script without a `__main__` guard, configs validated when built."""
+
+import json
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from envisat_pose.app.cli import main
+from envisat_pose.config import ConfigError, InputError
+from envisat_pose.perception.data import DataConfig
+from envisat_pose.perception.model import ModelConfig
+from envisat_pose.perception.train import TrainConfig, train
+
+SMALL_TOML = """steps = 100000
+batch_size = 2
+warmup_steps = 5
+checkpoint_every = 100000
+[model]
+input_px = 128
+width = 16
+depth = 2
+stem_width = 8
+[data]
+input_px = 128
+"""
+
+
+def small(steps=4, **kw):
+    return TrainConfig(steps=steps, batch_size=2, warmup_steps=2, checkpoint_every=10 ** 6,
+                       model=ModelConfig(input_px=128, width=16, depth=2, stem_width=8),
+                       data=DataConfig(input_px=128), **kw)
+
+
+def one_line_error(capsys, code) -> str:
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+def test_configs_are_validated_when_built():
+    with pytest.raises(ConfigError, match="steps"):
+        TrainConfig(steps=0)
+    with pytest.raises(ConfigError, match="time_budget_s"):
+        TrainConfig(time_budget_s=0.0)
+
+
+def test_a_zero_budget_is_refused_with_a_hint(tiny_dataset, tmp_path, capsys):
+    run = tmp_path / "run"
+    err = one_line_error(capsys, main(["train", "--data", tiny_dataset, "--out", str(run), "--time-budget-s", "0",
+                                       "--quiet"]))
+    assert "--time-budget-s" in err and "leave it out" in err
+    assert not run.exists()
+
+
+class SlowClock:
+    """Every reading 30 s after the last: the first batch arrives long after any small budget."""
+
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        self.t += 30.0
+        return self.t
+
+
+def test_a_budget_too_short_for_one_step_is_refused_and_leaves_nothing(tiny_dataset, tmp_path):
+    run = tmp_path / "sub" / "run"
+    with pytest.raises(InputError, match="too short for one step"):
+        train(small(time_budget_s=40.0), tiny_dataset, str(run), progress=False, clock=SlowClock())
+    assert not run.exists()
+
+
+def test_resume_refuses_another_model_and_other_data_spelling_out_the_difference(tiny_dataset, tmp_path):
+    from envisat_pose.pipelines.train import train_detector
+
+    run = str(tmp_path / "run")
+    train_detector(small(2), [tiny_dataset], run, workers=0, progress=False)
+    wider = TrainConfig(**{**small(4).__dict__, "model": ModelConfig(input_px=128, width=24, depth=2, stem_width=8)})
+    with pytest.raises(InputError, match=r"model\.width 16 -> 24"):
+        train_detector(wider, [tiny_dataset], run, resume=True, progress=False)
+    other = tmp_path / "other"
+    assert main(["generate", "--num-images", "2", "--shard-size", "2", "--resolution", "128", "--seed", "12",
+                 "--out", str(other), "--quiet"]) == 0
+    with pytest.raises(InputError, match=r"trained on ds \(8 images.*not on other \(2 images"):
+        train_detector(small(4), [str(other)], run, resume=True, progress=False)
+    end = train_detector(small(4), [tiny_dataset], run, resume=True, progress=False)  # the same data: goes on
+    assert end["step"] == 4 and end["steps_run"] == 2
+
+
+@pytest.mark.parametrize("under", [False, True])
+def test_out_on_or_under_a_file_is_one_line(tiny_dataset, tmp_path, capsys, under):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    out = blocker / "run" if under else blocker
+    err = one_line_error(capsys, main(["train", "--data", tiny_dataset, "--out", str(out), "--steps", "1",
+                                       "--quiet"]))
+    assert "--out" in err
+    assert blocker.read_text() == "x"
+
+
+def test_the_record_holds_the_command_as_typed_and_reproduces_the_config(tiny_dataset, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    os.symlink(tiny_dataset, "data")
+    (tmp_path / "small.toml").write_text(SMALL_TOML)
+    argv = ["train", "--data", "data", "--out", "runs/det", "--config", "small.toml", "--steps", "2", "--seed",
+            "3", "--workers", "0", "--quiet"]
+    assert main(argv) == 0  # runs/ did not exist: parents are made
+    record = json.load(open("runs/det/config.json"))
+    assert record["command"] == "envisat train --data data --out runs/det --config small.toml --steps 2 --seed 3 " \
+                                "--workers 0 --quiet"
+    again = shlex.split(record["command"])[1:]
+    again[again.index("runs/det")] = "runs/again"
+    assert main(again) == 0
+    assert json.load(open("runs/again/config.json"))["train"] == record["train"]
+
+
+def test_ctrl_c_writes_a_checkpoint_and_resume_honours_a_new_budget(tiny_dataset, tmp_path):
+    """Ctrl-C reaches the whole process group (trainer and its worker) as from a terminal: the run stops after its
+    step with a checkpoint and a resume hint (rc 130); `--resume --time-budget-s` trains that many seconds more."""
+    (tmp_path / "small.toml").write_text(SMALL_TOML)
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "envisat_pose.app.cli", "train", "--data", tiny_dataset, "--out", str(run),
+           "--config", str(tmp_path / "small.toml"), "--workers", "1", "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env=dict(os.environ, OMP_NUM_THREADS="1"))
+    deadline = time.monotonic() + 120
+    while not (run / "config.json").exists() and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    time.sleep(1.0)
+    os.killpg(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "go on with: envisat train --resume" in err, err
+    state = json.load(open(run / "state.json"))
+    assert state["step"] >= 1 and (run / "checkpoint.safetensors").exists()
+    resumed = subprocess.run([sys.executable, "-m", "envisat_pose.app.cli", "train", "--data", tiny_dataset,
+                              "--out", str(run), "--resume", "--time-budget-s", "20", "--quiet"],
+                             capture_output=True, text=True, timeout=180)
+    assert resumed.returncode == 0, resumed.stderr
+    after = json.load(open(run / "state.json"))
+    assert after["step"] > state["step"], resumed.stdout
+    assert after["time_s"] - state["time_s"] <= 20.0
+    assert "(time_budget)" in resumed.stdout
+
+
+def test_a_plain_script_without_a_main_guard_trains_with_workers(tiny_dataset, tmp_path):
+    script = tmp_path / "plain.py"
+    script.write_text(textwrap.dedent(f"""
+        from envisat_pose.perception.data import DataConfig
+        from envisat_pose.perception.model import ModelConfig
+        from envisat_pose.perception.train import TrainConfig
+        from envisat_pose.pipelines.train import train_detector
+
+        cfg = TrainConfig(steps=2, batch_size=2, warmup_steps=1,
+                          model=ModelConfig(input_px=128, width=16, depth=2, stem_width=8),
+                          data=DataConfig(input_px=128))
+        end = train_detector(cfg, {tiny_dataset!r}, {str(tmp_path / "run")!r}, workers=1, progress=False)
+        print("TRAINED", end["step"])
+    """))
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=180, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.count("TRAINED") == 1 and "TRAINED 2" in done.stdout
