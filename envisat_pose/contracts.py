@@ -20,7 +20,7 @@ import numpy as np
 from envisat_pose.config import InputError
 from envisat_pose.io import save_npz
 
-# (kind, shape, rule): kind 'f' float64, 'b' bool, 'i' int64; shape of ints (fixed) and names (shared sizes);
+# (kind, shape, rule): kind 'f' float64, 'b' bool, 'i' int64, 's' text; shape of ints (fixed) and names (shared sizes);
 # rule 'finite' (every value finite), 'finite_where_visible' (finite where the `visible` mask is true), None.
 _Spec = tuple[str, tuple, str | None]
 
@@ -32,8 +32,8 @@ class ContractError(InputError):
 def _check_array(path: str, name: str, a: np.ndarray, spec: _Spec, sizes: dict) -> np.ndarray:
     kind, shape, rule = spec
     if kind == "f" and a.dtype.kind not in "fiu" or kind == "b" and a.dtype.kind != "b" \
-            or kind == "i" and a.dtype.kind not in "iu":
-        want = {"f": "floating-point", "b": "boolean", "i": "integer"}[kind]
+            or kind == "i" and a.dtype.kind not in "iu" or kind == "s" and a.dtype.kind != "U":
+        want = {"f": "floating-point", "b": "boolean", "i": "integer", "s": "text"}[kind]
         raise ContractError(f"{path}: '{name}' has dtype {a.dtype}, expected {want}")
     if a.ndim != len(shape):
         raise ContractError(f"{path}: '{name}' has shape {a.shape}, expected {len(shape)} dimensions "
@@ -46,6 +46,8 @@ def _check_array(path: str, name: str, a: np.ndarray, spec: _Spec, sizes: dict) 
                                     "in the arrays before it")
         elif dim != want:
             raise ContractError(f"{path}: '{name}' has shape {a.shape}, expected size {want} on axis {axis}")
+    if kind == "s":
+        return np.asarray(a)
     out = {"f": np.float64, "b": np.bool_, "i": np.int64}[kind]
     return np.asarray(a, dtype=out)
 
@@ -197,6 +199,9 @@ class Detections(_Contract):
     cov_px: (F, 8, 2, 2) calibrated pixel covariance, px^2 (the filter's R). confidence: (F, 8) in [0, 1].
     visible: (F, 8) bool, the corner was found. Positions and covariances must be finite where visible.
     config_json: what produced them, as JSON.
+    Optional (`envisat detect` writes them; None where a file lacks them): key (F,) str, the frame's sample key;
+    alt_corners_px (F, 8, 2) px, the half-turn alternative naming (A<->C, B<->D, E<->G, F<->H; NaN where none);
+    alt_probability (F,) its probability; ambiguous (F,) bool, the naming could not be decided.
     """
 
     t_s: np.ndarray
@@ -205,6 +210,10 @@ class Detections(_Contract):
     confidence: np.ndarray
     visible: np.ndarray
     config_json: str
+    key: np.ndarray | None = None
+    alt_corners_px: np.ndarray | None = None
+    alt_probability: np.ndarray | None = None
+    ambiguous: np.ndarray | None = None
 
     KIND: ClassVar[str] = "detections"
     SPEC: ClassVar[dict[str, _Spec]] = {
@@ -213,6 +222,10 @@ class Detections(_Contract):
         "corners_px": ("f", ("F", 8, 2), "finite_where_visible"),
         "cov_px": ("f", ("F", 8, 2, 2), "finite_where_visible"),
         "confidence": ("f", ("F", 8), "finite"),
+    }
+    OPTIONAL: ClassVar[dict[str, _Spec]] = {
+        "key": ("s", ("F",), None), "alt_corners_px": ("f", ("F", 8, 2), None),
+        "alt_probability": ("f", ("F",), None), "ambiguous": ("b", ("F",), None),
     }
 
     def check(self, path: str) -> None:
