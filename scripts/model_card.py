@@ -8,13 +8,17 @@ Usage: python scripts/model_card.py --weights models/detector.safetensors --runs
            [--runs RUN_DIR ...] [--commands FILE] --out models/detector.json
            (keeps the card's runs and adds the new legs given; rewrites its weights entry from the file's metadata,
            adds the datasets, evaluations and commands given: the metadata written after training, e.g. the error
-           model; when the weights changed, the old weights' evaluations move to previous_weights)
+           model; when the weights changed, the old weights' evaluations move to the history file)
 
 Everything in the card comes from files: each training run's config.json (its exact `envisat train` command, git
 hash, torch), state.json (the steps done) and metrics.jsonl (the last epoch's losses); each dataset's manifest
 (seed, size, config); the weights file (sha256, size, cov_scale and its calibration record); and `envisat
 evaluate`'s JSON per held-out set (the metrics).
 `--commands` adds the lines that made the datasets and the calibration, as they were typed.
+
+The card describes the weights it lies beside. What was measured of earlier weights (their evaluations and error
+models, under their sha256, oldest first) lives in a file of its own beside it, detector_history.json
+(HISTORY_FILE; the card names it under `previous_weights_file`), so the card stays the size of one set of weights.
 
 The card travels: it names a dataset by its folder's name, the generate command its manifest implies and the
 sha256 of that manifest; a run by its command and git hash; no absolute path of the machine anywhere (a card that
@@ -39,6 +43,10 @@ from envisat_pose.provenance import (dataset_ref, find_absolute_paths, manifest_
                                      relative_name, scrub_paths)
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+HISTORY_FILE = "detector_history.json"  # beside the card: what was measured of the earlier weights
+HISTORY_ABOUT = ("What was measured of the detector's earlier weights, oldest first, each under its sha256: the "
+                 "card (detector.json, beside this file) describes the current weights only. Written by "
+                 "scripts/model_card.py --refresh when the weights change.")
 
 
 class Refused(Exception):
@@ -233,19 +241,49 @@ def training_time_s(runs: list[dict]) -> float:
     return sum(r["wall_time_s"] or 0.0 for r in runs)
 
 
-def refresh(a) -> int:
-    """--refresh: the card kept, its weights entry rewritten, datasets, evaluations and commands added. Weights
-    whose tensors are the card's (only their calibration metadata rewritten) keep the card's evaluations."""
-    card = json.load(open(a.refresh, encoding="utf-8"))
-    weights = weights_record(a.weights)
+def history_path(card_path: str) -> str:
+    """The history file beside a card."""
+    return os.path.join(os.path.dirname(os.path.abspath(card_path)), HISTORY_FILE)
+
+
+def read_history(path: str) -> list[dict]:
+    """The earlier weights' records of a history file ([] when there is none yet)."""
+    if not os.path.isfile(path):
+        return []
+    return json.load(open(path, encoding="utf-8"))["previous_weights"]
+
+
+def history_text(previous: list[dict]) -> str:
+    """The history file's JSON (no machine path, as the card)."""
+    return card_text({"about": HISTORY_ABOUT, "previous_weights": previous})
+
+
+def retire_weights(card: dict, previous: list[dict], new_weights: dict) -> tuple[dict, list[dict]]:
+    """(card, history) once the card's weights give way to new_weights: when their tensors differ (a new
+    training leg), what was measured of the old ones (evaluations, error models) leaves the card for the history,
+    under their sha256; weights whose tensors are the card's (only their calibration metadata rewritten) keep
+    the card's evaluations. A card that still holds previous_weights inline (written before the history had its
+    own file) hands them over first. Neither argument is changed."""
+    card = dict(card)
+    previous = list(previous) + list(card.pop("previous_weights", []))
     old = card.get("weights", {})
-    same = old.get("sha256") == weights["sha256"] or old.get("tensors_sha256") == weights["tensors_sha256"]
+    same = old.get("sha256") == new_weights["sha256"] or old.get("tensors_sha256") == new_weights["tensors_sha256"]
     if not same:
-        # other weights (a new training leg): what was measured of the old ones stays, under their sha256
-        card.setdefault("previous_weights", []).append(
-            {"sha256": card.get("weights", {}).get("sha256"), "evaluations": card.pop("evaluations", {}),
-             "error_model_measurements": card.pop("error_model_measurements", {})})
-    card["weights"] = weights
+        previous.append({"sha256": old.get("sha256"), "evaluations": card.pop("evaluations", {}),
+                         "error_model_measurements": card.pop("error_model_measurements", {})})
+    card["weights"] = new_weights
+    if previous:
+        card["previous_weights_file"] = HISTORY_FILE
+    return card, previous
+
+
+def refresh(a) -> int:
+    """--refresh: the card kept, its weights entry rewritten, datasets, evaluations and commands added; the old
+    weights' measurements moved to the history file beside the output card when the weights changed
+    (retire_weights)."""
+    card = json.load(open(a.refresh, encoding="utf-8"))
+    hist_in, hist_out = history_path(a.refresh), history_path(a.out)
+    card, previous = retire_weights(card, read_history(hist_in), weights_record(a.weights))
     idle = idle_seconds(a.idle)
     for r in a.runs or []:  # new training legs
         card.setdefault("training_runs", []).append(run_record(r, idle.get(os.path.abspath(r), 0.0)))
@@ -271,7 +309,11 @@ def refresh(a) -> int:
         card.setdefault("commands", []).extend(
             scrub(open(a.commands, encoding="utf-8").read().strip().splitlines()))
     card["card_git"] = a.git
-    atomic_write_text(a.out, card_text(card))
+    text = card_text(card)
+    if previous:
+        atomic_write_text(hist_out, history_text(previous))
+        print(f"wrote {hist_out}")
+    atomic_write_text(a.out, text)
     print(f"wrote {a.out}")
     return 0
 

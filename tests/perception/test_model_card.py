@@ -1,6 +1,7 @@
 """The model card travels (issue 26, item 4): no absolute path of the machine that made it, in
-models/detector.json or in the shipped weights' metadata; scripts/model_card.py refuses a dirty tree and names
-datasets by their generate command and manifest sha256."""
+models/detector.json, its history file or the shipped weights' metadata; scripts/model_card.py refuses a dirty
+tree and names datasets by their generate command and manifest sha256. The card describes the weights beside it;
+what was measured of earlier weights lives in models/detector_history.json (issue 39, item 7)."""
 
 import importlib.util
 import json
@@ -40,10 +41,14 @@ def machine_paths(value) -> list[str]:
                    if PATH_START.match(s.strip("\"'(),;=")) or any(r in s for r in MACHINE_ROOTS)})
 
 
+def shipped_card(name: str = "detector.json") -> dict:
+    return json.load(open(os.path.join(os.path.dirname(shipped_weights_path()), name), encoding="utf-8"))
+
+
 def test_no_absolute_path_in_the_card_or_the_weights_metadata():
     path = shipped_weights_path()
-    card = json.load(open(os.path.join(os.path.dirname(path), "detector.json"), encoding="utf-8"))
-    assert machine_paths(card) == []
+    assert machine_paths(shipped_card()) == []
+    assert machine_paths(json.load(open(os.path.join(ROOT, "models", "detector_history.json"), encoding="utf-8"))) == []
     meta = read_metadata(path)
     decoded = {}
     for k, v in meta.items():  # metadata values are strings, most of them JSON
@@ -58,13 +63,54 @@ def test_no_absolute_path_in_the_card_or_the_weights_metadata():
 
 
 def test_the_card_names_its_data_and_its_code():
-    card = json.load(open(os.path.join(os.path.dirname(shipped_weights_path()), "detector.json"), encoding="utf-8"))
+    card = shipped_card()
     assert re.fullmatch(r"[0-9a-f]{40}", card["card_git"])
     for d in card["datasets"]:
         assert "path" not in d and d["name"]
         assert d["manifest_sha256"] is None or re.fullmatch(r"[0-9a-f]{64}", d["manifest_sha256"])
     assert all((r["command"].startswith("envisat train") or r.get("harness")) and r["git"]
                for r in card["training_runs"])
+
+
+def test_the_card_holds_the_current_weights_and_names_its_history():
+    card = shipped_card()
+    assert "previous_weights" not in card and card["previous_weights_file"] == "detector_history.json"
+    with open(os.path.join(ROOT, "models", card["previous_weights_file"]), encoding="utf-8") as fh:
+        history = json.load(fh)
+    shas = [p["sha256"] for p in history["previous_weights"]]
+    assert shas and all(re.fullmatch(r"[0-9a-f]{64}", s) for s in shas) and len(set(shas)) == len(shas)
+    assert card["weights"]["sha256"] not in shas
+    assert all(set(p) == {"sha256", "evaluations", "error_model_measurements"} for p in history["previous_weights"])
+
+
+def test_new_weights_retire_the_old_ones_into_the_history():
+    mc = load_script()
+    card = {"weights": {"sha256": "a" * 64, "tensors_sha256": "b" * 64}, "evaluations": {"e": 1},
+            "error_model_measurements": {"m": 2}, "previous_weights": [{"sha256": "0" * 64}], "card_git": "x"}
+    before = json.dumps(card)
+    # the same tensors, only the calibration rewritten: the evaluations stay; an inline history leaves the card
+    same, hist = mc.retire_weights(card, [], {"sha256": "c" * 64, "tensors_sha256": "b" * 64})
+    assert same["evaluations"] == {"e": 1} and hist == [{"sha256": "0" * 64}]
+    assert "previous_weights" not in same and same["previous_weights_file"] == mc.HISTORY_FILE
+    # other tensors: the old weights' measurements move, under their sha256, after the earlier history
+    new, hist = mc.retire_weights(card, [{"sha256": "f" * 64}], {"sha256": "d" * 64, "tensors_sha256": "e" * 64})
+    assert [p["sha256"] for p in hist] == ["f" * 64, "0" * 64, "a" * 64]
+    assert hist[-1] == {"sha256": "a" * 64, "evaluations": {"e": 1}, "error_model_measurements": {"m": 2}}
+    assert "evaluations" not in new and new["weights"]["sha256"] == "d" * 64 and list(new)[0] == "weights"
+    assert json.dumps(card) == before  # the caller's card untouched
+    # no history yet: none named
+    fresh, hist = mc.retire_weights({"weights": {"sha256": "a" * 64}}, [], {"sha256": "a" * 64, "tensors_sha256": ""})
+    assert hist == [] and "previous_weights_file" not in fresh
+
+
+def test_the_history_file_round_trips(tmp_path):
+    mc = load_script()
+    card = tmp_path / "detector.json"
+    assert mc.history_path(str(card)) == str(tmp_path / mc.HISTORY_FILE) and mc.read_history(str(card) + "x") == []
+    (tmp_path / mc.HISTORY_FILE).write_text(mc.history_text([{"sha256": "a" * 64, "evaluations": {}}]))
+    assert mc.read_history(mc.history_path(str(card))) == [{"sha256": "a" * 64, "evaluations": {}}]
+    with pytest.raises(mc.Refused):
+        mc.history_text([{"sha256": "a" * 64, "evaluations": {"e": {"data": "/tmp/dcal"}}}])
 
 
 def test_paths_found_and_relative_names():
