@@ -73,7 +73,7 @@ def source_files(root: str = ROOT):
 
 
 def checked_files(root: str = ROOT, extra=EXTRA_FOLDERS):
-    """Repository-relative paths of the package's files and those of the extra folders (the benches')."""
+    """Repository-relative paths of the package's files and those of the extra folders (benches, scripts)."""
     paths = [os.path.relpath(p, root) for p, _ in source_files(root)]
     for folder in extra:
         for dirpath, _, filenames in os.walk(os.path.join(root, folder)):
