@@ -7,6 +7,9 @@ Run directory (one per run, as L-CNN's):
                         the end line also this call's speed (samples_s, first_batch_s, data_wait_s, workers)
     checkpoint.safetensors   the model (perception/weights.py: safetensors, the ModelConfig in its metadata)
     optimizer.pt        AdamW state, tensors only (torch.load(weights_only=True) reads it)
+    pre_cooldown.safetensors, pre_cooldown_optimizer.pt   (schedule 'constant_cooldown') the same at the
+                        cooldown's first step: the next leg's start (`--init`)
+    ema.safetensors     (ema_decay > 0) the moving average of the weights
     state.json          step, epoch, batch within the epoch, workers, time_s: where --resume goes on
 Determinism: the model is initialized from a torch.Generator seeded by cfg.seed (no global seeding), each
 sample's crop and augmentation from (seed, epoch, shard, index), the batches of an epoch from (seed, epoch,
@@ -28,6 +31,7 @@ import signal
 import threading
 import time
 from dataclasses import asdict, dataclass, field
+from typing import Literal
 
 import numpy as np
 import torch
@@ -48,7 +52,13 @@ class TrainConfig:
     checkpoints; line_jitter_px: noise on the segments' end points (the verifier sees detected, not true, corners);
     time_budget_s: the run's seconds (None: train by steps): the rate decays over them instead of over the steps
     and the run stops inside them with a checkpoint (steps then only caps it). A resumed run given another
-    budget than its own trains that many seconds more. Validated when built."""
+    budget than its own trains that many seconds more.
+    schedule: 'cosine' (to 5 % over the steps or the budget) or 'constant_cooldown' (the peak rate, then a
+    1 - sqrt cooldown to zero over the last cooldown_frac of the steps or the budget; the weights and optimizer
+    at the cooldown's start are kept as pre_cooldown.safetensors / pre_cooldown_optimizer.pt, the next leg's
+    start: Hagele et al., NeurIPS 2024). ema_decay: when positive, an exponential moving average of the weights
+    (and batch-norm statistics) kept beside them as ema.safetensors, to evaluate next to the last weights.
+    Validated when built."""
 
     steps: int = 20000
     batch_size: int = 16
@@ -59,6 +69,9 @@ class TrainConfig:
     checkpoint_every: int = 500
     line_jitter_px: float = 1.0
     time_budget_s: float | None = None
+    schedule: Literal["cosine", "constant_cooldown"] = "cosine"
+    cooldown_frac: float = 0.2
+    ema_decay: float = 0.0
     model: ModelConfig = field(default_factory=ModelConfig)
     data: DataConfig = field(default_factory=DataConfig)
     loss: LossConfig = field(default_factory=LossConfig)
@@ -73,6 +86,10 @@ class TrainConfig:
         check(self.warmup_steps >= 1, f"{p}warmup_steps", self.warmup_steps, "at least 1 step")
         check(self.time_budget_s is None or self.time_budget_s > 0, f"{p}time_budget_s", self.time_budget_s,
               "seconds > 0 (leave it out to train by steps)")
+        check(self.schedule in ("cosine", "constant_cooldown"), f"{p}schedule", self.schedule,
+              "'cosine' or 'constant_cooldown'")
+        check(0 < self.cooldown_frac <= 1, f"{p}cooldown_frac", self.cooldown_frac, "a share of the run in (0, 1]")
+        check(0 <= self.ema_decay < 1, f"{p}ema_decay", self.ema_decay, "a decay in [0, 1) (0: no average)")
         check(self.weight_decay >= 0, f"{p}weight_decay", self.weight_decay, "a decay >= 0")
         check(self.checkpoint_every >= 1, f"{p}checkpoint_every", self.checkpoint_every, "at least 1 step")
         check(self.line_jitter_px >= 0, f"{p}line_jitter_px", self.line_jitter_px, "pixels >= 0")
@@ -112,19 +129,42 @@ def cosine_factor(frac: float) -> float:
     return 0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * min(max(frac, 0.0), 1.0)))
 
 
-def lr_at(cfg: TrainConfig, step: int, elapsed_s: float = 0.0, budget_end_s: float | None = None) -> float:
-    """The learning rate of optimizer step `step`: a linear warm-up over warmup_steps, then a cosine decay to 5 %
-    over the steps, or, with a time budget, over the run's seconds up to budget_end_s (default the config's
-    budget; the lower of the warm-up ramp and the decay at elapsed_s: a run stopped by its budget ends decayed
-    even if its warm-up was not done)."""
-    ramp = (step + 1) / cfg.warmup_steps if step < cfg.warmup_steps else 1.0
+def cooldown_factor(frac: float, cooldown_frac: float) -> float:
+    """The constant-then-cooldown factor: 1 until 1 - cooldown_frac of the run, then 1 - sqrt(x) over the
+    cooldown's share x, 0 at the end (and after)."""
+    x = (min(max(frac, 0.0), 1.0) - (1.0 - cooldown_frac)) / cooldown_frac
+    return 1.0 if x <= 0 else float(1.0 - np.sqrt(min(x, 1.0)))
+
+
+def run_fraction(cfg: TrainConfig, step: int, elapsed_s: float, budget_end_s: float | None) -> float:
+    """How far through its decay the run is: the budget's seconds used, or the steps after the warm-up."""
     end_s = budget_end_s if budget_end_s is not None else cfg.time_budget_s
     if end_s is not None:
-        factor = min(ramp, cosine_factor(elapsed_s / end_s))
+        return elapsed_s / end_s
+    return (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+
+
+def in_cooldown(cfg: TrainConfig, step: int, elapsed_s: float = 0.0, budget_end_s: float | None = None) -> bool:
+    """A constant_cooldown run is past its constant phase at this step."""
+    return cfg.schedule == "constant_cooldown" and \
+        run_fraction(cfg, step, elapsed_s, budget_end_s) > 1.0 - cfg.cooldown_frac
+
+
+def lr_at(cfg: TrainConfig, step: int, elapsed_s: float = 0.0, budget_end_s: float | None = None) -> float:
+    """The learning rate of optimizer step `step`: a linear warm-up over warmup_steps, then the schedule's decay
+    (cosine to 5 %, or constant then a cooldown to 0) over the steps, or, with a time budget, over the run's
+    seconds up to budget_end_s (default the config's budget; the lower of the warm-up ramp and the decay at
+    elapsed_s: a run stopped by its budget ends decayed even if its warm-up was not done)."""
+    ramp = (step + 1) / cfg.warmup_steps if step < cfg.warmup_steps else 1.0
+    by_time = (budget_end_s if budget_end_s is not None else cfg.time_budget_s) is not None
+    frac = run_fraction(cfg, step, elapsed_s, budget_end_s)
+    decay = cosine_factor(frac) if cfg.schedule == "cosine" else cooldown_factor(frac, cfg.cooldown_frac)
+    if by_time:
+        factor = min(ramp, decay)
     elif step < cfg.warmup_steps:
         factor = ramp
     else:
-        factor = cosine_factor((step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps))
+        factor = decay
     # a Python float: it goes into the optimizer's state, which torch.load(weights_only=True) must read back
     return float(cfg.lr * factor)
 
@@ -228,6 +268,15 @@ def _train_step(model: CornerNet, net: torch.nn.Module, opt, batch: dict, cfg: T
     torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0, foreach=True)
     opt.step()
     return {k: v.detach() for k, v in terms.items()}
+
+
+def make_ema(model: CornerNet, cfg: TrainConfig):
+    """The moving average of the weights and buffers (torch's AveragedModel), or None when ema_decay is 0."""
+    if cfg.ema_decay <= 0:
+        return None
+    from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+    return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay), use_buffers=True)
 
 
 def _shared_clock(dist, dev: torch.device, elapsed_s: float, reserve_s: float) -> tuple[float, float]:
@@ -344,6 +393,11 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
     opt = make_optimizer(model, cfg, dev)
     if resume:
         opt.load_state_dict(load_tensors(os.path.join(run_dir, "optimizer.pt")))
+    ema = make_ema(model, cfg)
+    ema_path = os.path.join(run_dir, "ema.safetensors")
+    if ema is not None and resume and os.path.exists(ema_path):
+        load_state(ema.module, read_weights(ema_path)[0], ema_path)
+        ema.n_averaged.fill_(max(1, int(state["step"])))
     net = model
     if dist is not None:
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
@@ -378,7 +432,17 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
         state["time_s"] = round(elapsed(), 3)
         save_weights(os.path.join(run_dir, "checkpoint.safetensors"), model, {"step": str(state["step"])})
         save_tensors(os.path.join(run_dir, "optimizer.pt"), opt.state_dict())
+        if ema is not None:
+            save_weights(ema_path, ema.module, {"step": str(state["step"]), "ema_decay": str(cfg.ema_decay)})
         atomic_write_text(os.path.join(run_dir, "state.json"), json.dumps(state, sort_keys=True) + "\n")
+
+    def save_pre_cooldown() -> None:
+        """The weights and optimizer before the cooldown's first step: where the next leg starts."""
+        state["pre_cooldown_step"] = state["step"]
+        if rank == 0:
+            save_weights(os.path.join(run_dir, "pre_cooldown.safetensors"), model,
+                         {"step": str(state["step"]), "pre_cooldown": "true"})
+            save_tensors(os.path.join(run_dir, "pre_cooldown_optimizer.pt"), opt.state_dict())
 
     def log(kind: str, extra: dict | None = None) -> dict:
         """A metrics line: the loss terms averaged since the last line (an end line right after an epoch line
@@ -430,10 +494,15 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
                                 f"~{reserve:.1f} s more): give a longer budget")
                         stop = "time_budget"
                         break
+                if "pre_cooldown_step" not in state and in_cooldown(cfg, state["step"], now_s, budget_end_s):
+                    start_run()
+                    save_pre_cooldown()
                 lr = lr_at(cfg, state["step"], now_s, budget_end_s)
                 for g in opt.param_groups:
                     g["lr"] = lr
                 terms = _train_step(model, net, opt, to_device(cpu_batch, dev), cfg, state["step"], dev, bf16)
+                if ema is not None:
+                    ema.update_parameters(model)
                 start_run()
                 state["step"] += 1
                 state["batch"] = i + 1
