@@ -1,4 +1,9 @@
-"""Training speed of `envisat train`'s own loop (issue 26): samples/s on this CPU and, where one is, on a GPU.
+"""Training speed of `envisat train`'s own loop (issues 26, 38): samples/s on this CPU and, where one is, on a GPU.
+
+Three parts side by side in one run (issue 38, item 4): the model step alone on a synthetic batch (no data:
+forward, losses, backward, clipping, AdamW; the multi-tensor optimizer against the per-parameter loop, fp32 and
+bf16, with the op count of one step from torch.profiler and, on CUDA, the GPU busy share: kernel time over wall
+time), the data path alone (the DataLoader's batches, nothing trained), and the whole loop below.
 
 The pipeline the verb calls (pipelines/train.py: DataLoader workers each reading their own shards,
 the default network, the losses, AdamW, checkpoints) trains a fresh run for a few dozen steps per row: workers
@@ -55,6 +60,99 @@ def time_training(data: str, run_dir: str, device: str, workers: int, bf16: bool
             "loss_end": round(end["loss"], 4)}
 
 
+def synthetic_batch(batch_size: int, input_px: int, seed: int) -> dict:
+    """A batch of the trainer's shapes from real targets (corners drawn in the input, encoded as in training)."""
+    import numpy as np
+
+    from envisat_pose.perception.data import line_targets
+    from envisat_pose.perception.heatmaps import CORNER_JTYPE, encode_junctions
+    from envisat_pose.perception.stream import collate_batch
+
+    rng = np.random.default_rng(seed)
+    samples = []
+    for _ in range(batch_size):
+        corners = rng.uniform(0.2, 0.8, (8, 2)) * input_px
+        valid = rng.random(8) < 0.75
+        cells = input_px // 4
+        t = encode_junctions(corners, valid, CORNER_JTYPE, (cells, cells), 4, 1.0)
+        segs, lab, wt = line_targets(corners, valid, rng, input_px)
+        samples.append({"image": rng.normal(size=(1, input_px, input_px)).astype(np.float32), "jmap": t["jmap"],
+                        "joff": t["joff"], "jmask": t["jmask"], "segments_px": segs, "line_label": lab,
+                        "line_weight": wt})
+    return collate_batch(samples)
+
+
+def time_step(device: str, batch_size: int, bf16: bool, foreach: bool, steps: int) -> dict:
+    """The model step alone (default network) on one synthetic batch, repeated: ms a step, samples/s, aten ops
+    of one step (profiler), and on CUDA the busy share (kernel time / wall time over the profiled steps)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from envisat_pose.perception.train import TrainConfig, _train_step, init_model
+
+    cfg = TrainConfig(batch_size=batch_size)
+    dev = torch.device(device)
+    model = init_model(cfg).to(dev)
+    if dev.type == "cuda":
+        model = model.to(memory_format=torch.channels_last)
+    kind = {"fused": True} if (foreach and dev.type == "cuda") else {"foreach": foreach}
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, **kind)
+    batch = {k: v.to(dev) for k, v in synthetic_batch(batch_size, cfg.model.input_px, 0).items()}
+
+    def sync():
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+
+    for step in range(2):  # warm-up: allocator, cuDNN's choice of kernels
+        _train_step(model, model, opt, batch, cfg, step, dev, bf16)
+    sync()
+    t0 = time.perf_counter()
+    for step in range(steps):
+        _train_step(model, model, opt, batch, cfg, step, dev, bf16)
+    sync()
+    ms = (time.perf_counter() - t0) / steps * 1e3
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+    n_prof = 3
+    with profile(activities=acts) as prof:
+        t1 = time.perf_counter()
+        for step in range(n_prof):
+            _train_step(model, model, opt, batch, cfg, step, dev, bf16)
+        sync()
+        wall = time.perf_counter() - t1
+    events = prof.key_averages()
+    ops = sum(e.count for e in events if e.key.startswith("aten::")) / n_prof
+    # the calls that read a value back to the host (each stalls a GPU's queue; on a CPU they cost nothing)
+    syncs = sum(e.count for e in events if e.key in ("aten::nonzero", "aten::item"))
+    busy = None
+    if dev.type == "cuda":
+        kernel_us = sum(getattr(e, "self_device_time_total", 0.0) for e in events)
+        busy = round(kernel_us * 1e-6 / wall, 3)
+    return {"part": "step", "device": device, "batch_size": batch_size, "bf16": bf16,
+            "optimizer": ("fused" if dev.type == "cuda" else "foreach") if foreach else "per-parameter",
+            "ms_step": round(ms, 1), "samples_s": round(batch_size / ms * 1e3, 1), "aten_ops_step": round(ops),
+            "host_reads_step": round(syncs / n_prof, 1), "gpu_busy": busy}
+
+
+def time_data(data: str, workers: int, batch_size: int, batches: int) -> dict:
+    """The data path alone: the first `batches` batches of epoch 0 from `workers` processes, nothing trained."""
+    from envisat_pose.perception.data import DataConfig, shard_paths
+    from envisat_pose.perception.stream import epoch_batches
+
+    t0 = time.perf_counter()
+    it = epoch_batches(shard_paths(data), DataConfig(), 0, 0, batch_size, workers)
+    n, first = 0, None
+    for _ in it:
+        n += 1
+        if first is None:
+            first = time.perf_counter() - t0
+        if n >= batches:
+            break
+    total = time.perf_counter() - t0
+    del it
+    # from the call to the last batch, the workers' start included (a shuffle buffer fills before the first batch)
+    return {"part": "data", "workers": workers, "batch_size": batch_size, "batches": n,
+            "first_batch_s": round(first or 0.0, 2), "samples_s": round(n * batch_size / total, 1)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=24, help="steps per CPU row")
@@ -68,11 +166,24 @@ def main() -> None:
     ap.add_argument("--gpu-shard-size", type=int, default=64)
     ap.add_argument("--data", help="an existing dataset for every row instead of generating")
     ap.add_argument("--no-cpu", action="store_true", help="GPU rows only")
+    ap.add_argument("--step-steps", type=int, default=4, help="timed steps per model-step row (CPU)")
+    ap.add_argument("--no-whole", action="store_true", help="the step and data parts only")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "train_speed.json"))
     args = ap.parse_args()
     from envisat_pose.pipelines.train import dataset_provenance
 
     cores = len(os.sched_getaffinity(0))
+    parts = []
+    devices = ([] if args.no_cpu else ["cpu"]) + (["cuda"] if torch.cuda.is_available() else [])
+    for device in devices:
+        for batch in ([args.batch_size] if device == "cpu" else args.gpu_batch_sizes):
+            for bf16 in (False, True):
+                for foreach in (False, True):
+                    row = time_step(device, batch, bf16, foreach, args.step_steps if device == "cpu" else 50)
+                    parts.append(row)
+                    print(f"step  {device:5s} batch {batch:3d} {'bf16' if bf16 else 'fp32'} {row['optimizer']:13s}: "
+                          f"{row['ms_step']:8.1f} ms, {row['samples_s']:8.1f} samples/s, {row['aten_ops_step']} aten "
+                          f"ops, {row['host_reads_step']} host reads, GPU busy {row['gpu_busy']}", flush=True)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         plans = []
@@ -84,7 +195,13 @@ def main() -> None:
             data = args.data or make_data(os.path.join(tmp, "gpu"), args.gpu_images, args.gpu_shard_size)
             plans += [(data, "cuda", max(cores - 1, 0), bf16, args.gpu_steps, batch)
                       for batch in args.gpu_batch_sizes for bf16 in (False, True)]
-        for i, plan in enumerate(plans):
+        for data, device, workers in sorted({(p[0], p[1], p[2]) for p in plans}):
+            batch = args.batch_size if device == "cpu" else max(args.gpu_batch_sizes)
+            row = time_data(data, workers, batch, 6 if device == "cpu" else 100)
+            parts.append({**row, "device": device})
+            print(f"data  {device:5s} workers {workers:2d} batch {batch:3d}: {row['samples_s']} samples/s (first batch "
+                  f"{row['first_batch_s']} s)", flush=True)
+        for i, plan in enumerate([] if args.no_whole else plans):
             row = time_training(plan[0], os.path.join(tmp, f"run{i}"), *plan[1:])
             rows.append(row)
             print(f"{row['device']:5s} workers {row['workers']:2d} {'bf16' if row['bf16'] else 'fp32'} batch "
@@ -100,10 +217,12 @@ def main() -> None:
               "data": dataset_provenance(args.data) if args.data else
               {"generate": f"--num-images {args.images} --shard-size {args.shard_size} --seed 1 (1024 px, defaults)",
                "gpu_generate": f"--num-images {args.gpu_images} --shard-size {args.gpu_shard_size} --seed 1"},
-              "rows": rows,
+              "rows": rows, "parts": parts,
               "note": "envisat train's loop through envisat_pose.pipelines.train.train_detector, the default "
                       "network (TrainConfig defaults), a fresh run per row; samples/s from the first batch to the "
-                      "final checkpoint. A loaded machine (load average above the cores) reads slower."}
+                      "final checkpoint. parts: the model step alone on a synthetic batch (its optimizer per "
+                      "parameter or multi-tensor) and the data path alone. A loaded machine (load average above "
+                      "the cores) reads slower."}
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w", encoding="utf-8") as fh:
         json.dump(result, fh, indent=1, sort_keys=True)
