@@ -11,6 +11,7 @@ import numpy as np
 from envisat_pose.datagen.shards import check_shard, decode_png, read_manifest, read_shard, shard_name
 from envisat_pose.config import InputError
 from envisat_pose.io import atomic_path
+from envisat_pose.shard_reader import checked_shards
 from envisat_pose.geometry import CORNER_NAMES, EDGES
 
 
@@ -53,13 +54,27 @@ def verify_dataset(out_dir: str) -> list[str]:
     return problems
 
 
-def iter_samples(out_dir: str, limit: int | None = None):
-    """(key, label dict, members) of a dataset's samples in shard order, at most `limit`."""
-    manifest = load_manifest(out_dir)
+def dataset_shards(source: str | list[str]) -> list[str]:
+    """The shard files of source: a dataset folder (its manifest's shards, checked against it: the core's
+    checked_shards; a damaged one is one InputError) or a list of shard files already checked."""
+    if isinstance(source, str):
+        load_manifest(source)
+        return checked_shards(source, False, "dataset")[0]
+    return list(source)
+
+
+def iter_samples(source: str | list[str], limit: int | None = None):
+    """(key, label dict, members) of a dataset's samples in shard order, at most `limit`. source: a dataset folder
+    or its checked shard files (dataset_shards)."""
     n = 0
-    for entry in manifest["shards"]:
-        for key, members in read_shard(os.path.join(out_dir, entry["name"])):
-            yield key, json.loads(members["json"]), members
+    for path in dataset_shards(source):
+        for key, members in read_shard(path):
+            where = f"{os.path.basename(path)}:{key}"
+            try:
+                label = json.loads(members["json"])
+            except (KeyError, ValueError) as err:
+                raise InputError(f"{where}: no readable .json label ({type(err).__name__}: {err})") from None
+            yield key, label, members
             n += 1
             if limit is not None and n >= limit:
                 return
@@ -89,11 +104,12 @@ def sample_png(members: dict[str, bytes], label: dict | None = None) -> bytes:
     return encode_png(sample_image(members, label))
 
 
-def dataset_stats(out_dir: str) -> dict:
-    """Statistics over every label: counts, range, visible and in-frame corners, eclipses, corruption levels."""
+def dataset_stats(source: str | list[str]) -> dict:
+    """Statistics over every label: counts, range, visible and in-frame corners, eclipses, corruption levels.
+    source: a dataset folder or its checked shard files."""
     ranges, n_vis, n_frame, eclipse, earth = [], [], [], 0, 0
     levels: dict[str, dict[str, int]] = {}
-    for _, lab, _ in iter_samples(out_dir):
+    for _, lab, _ in iter_samples(source):
         ranges.append(float(np.linalg.norm(lab["t_cam_from_target_m"])))
         n_vis.append(int(np.sum(lab["visible"])))
         n_frame.append(int(np.sum(lab["in_frame"])))
@@ -143,16 +159,17 @@ def draw_labels(gray_u8: np.ndarray, label: dict) -> np.ndarray:
     return img
 
 
-def montage(out_dir: str, path: str, count: int = 16, tile_px: int = 256) -> int:
-    """Write a grid of the first `count` images with their labels drawn; returns how many were drawn."""
+def montage(source: str | list[str], path: str, count: int = 16, tile_px: int = 256) -> int:
+    """Write a grid of the first `count` images with their labels drawn; returns how many were drawn. source: a
+    dataset folder or its checked shard files."""
     import cv2
 
     tiles = []
-    for _, lab, members in iter_samples(out_dir, limit=count):
+    for _, lab, members in iter_samples(source, limit=count):
         tile = draw_labels(sample_image(members, lab), lab)
         tiles.append(cv2.resize(tile, (tile_px, tile_px), interpolation=cv2.INTER_AREA))
     if not tiles:
-        raise InputError(f"{out_dir!r} holds no samples to draw")
+        raise InputError(f"no samples to draw in the montage (count {count})")
     cols = int(np.ceil(np.sqrt(len(tiles))))
     rows = int(np.ceil(len(tiles) / cols))
     grid = np.zeros((rows * tile_px, cols * tile_px, 3), dtype=np.uint8)

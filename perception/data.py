@@ -16,9 +16,7 @@ A sample (numpy, what the DataLoader collates), for an input of S px and heatmap
 
 from __future__ import annotations
 
-import glob
 import json
-import os
 from dataclasses import asdict, dataclass
 
 import cv2
@@ -26,6 +24,7 @@ import numpy as np
 
 from envisat_pose.config import InputError
 from envisat_pose.geometry import EDGES
+from envisat_pose.shard_reader import checked_shards  # noqa: F401  the one check of a dataset's shards (core)
 from envisat_pose.perception.heatmaps import CORNER_JTYPE, encode_junctions
 
 N_SEGMENTS = 32
@@ -53,25 +52,11 @@ class DataConfig:
         return asdict(self)
 
 
-def shard_paths(data_dir: str) -> list[str]:
-    """The dataset's shard files: those its manifest lists, else every *.tar. InputError when there are none."""
-    if not os.path.isdir(data_dir):
-        raise InputError(f"--data {data_dir!r}: no such folder")
-    manifest = os.path.join(data_dir, "manifest.json")
-    paths = []
-    if os.path.exists(manifest):
-        try:
-            with open(manifest, encoding="utf-8") as fh:
-                entries = json.load(fh).get("shards", [])
-            paths = [os.path.join(data_dir, e["name"]) for e in entries if e.get("count", 0) > 0]
-        except (ValueError, AttributeError, KeyError, TypeError) as err:
-            raise InputError(f"{manifest}: unreadable manifest ({err})") from None
-        paths = [p for p in paths if os.path.exists(p)]
-    else:
-        paths = sorted(glob.glob(os.path.join(data_dir, "*.tar")))
-    if not paths:
-        raise InputError(f"--data {data_dir!r}: empty dataset (no shards with samples)")
-    return paths
+def shard_paths(data_dir: str, field: str = "--data") -> list[str]:
+    """The dataset's shard files to read, each checked against its manifest (the core's checked_shards: size, then
+    sha256; a folder without a manifest: every *.tar). InputError naming the field when there are none or one is
+    damaged; readers that may go on without damaged shards call checked_shards(data_dir, skip_damaged)."""
+    return checked_shards(data_dir, False, field)[0]
 
 
 def decode_image(data: bytes, where: str) -> np.ndarray:

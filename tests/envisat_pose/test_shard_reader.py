@@ -1,0 +1,96 @@
+"""The core's check of a dataset's shards (envisat_pose/shard_reader.py: checked_shards) and its reader's one-line
+errors: shards written by hand with a manifest as the factory writes it (name, count, sha256, bytes)."""
+
+import hashlib
+import io
+import json
+import os
+import tarfile
+
+import pytest
+
+from envisat_pose.config import InputError
+from envisat_pose.shard_reader import DamagedShardError, ShardReadError, checked_shards, read_shard
+
+
+def write_dataset(folder, n_shards=3, per_shard=2, manifest=True):
+    """n_shards tars of per_shard samples (key.json, key.png of filler bytes) and, if asked, their manifest."""
+    folder.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for s in range(n_shards):
+        path = folder / f"shard-{s:06d}.tar"
+        with tarfile.open(path, "w", format=tarfile.USTAR_FORMAT) as tar:
+            for i in range(per_shard):
+                for suffix, data in (("json", b'{"k": 1}'), ("png", bytes(range(256)) * 8)):
+                    info = tarfile.TarInfo(f"{s * per_shard + i:09d}.{suffix}")
+                    info.size = len(data)
+                    tar.addfile(info, io.BytesIO(data))
+        data = path.read_bytes()
+        entries.append({"index": s, "name": path.name, "count": per_shard, "bytes": len(data),
+                        "sha256": hashlib.sha256(data).hexdigest()})
+    if manifest:
+        (folder / "manifest.json").write_text(json.dumps({"format": "test", "shards": entries, "complete": True}))
+    return [str(folder / e["name"]) for e in entries]
+
+
+def truncate(path, keep=None):
+    os.truncate(path, os.path.getsize(path) // 2 if keep is None else keep)
+
+
+def flip(path, at=None):
+    data = bytearray(open(path, "rb").read())
+    data[len(data) // 3 if at is None else at] ^= 0x01
+    open(path, "wb").write(bytes(data))
+
+
+def test_a_sound_dataset_is_read_in_manifest_order(tmp_path):
+    paths = write_dataset(tmp_path / "ds")
+    assert checked_shards(str(tmp_path / "ds")) == (paths, [])
+
+
+@pytest.mark.parametrize("damage, why", [(truncate, r"size \d+ bytes, manifest says \d+"),
+                                         (flip, r"sha256 [0-9a-f]{12}\.\.\., manifest says [0-9a-f]{12}\.\.\."),
+                                         (os.remove, "missing")])
+def test_a_damaged_shard_is_one_line_naming_it_or_skipped(tmp_path, damage, why):
+    paths = write_dataset(tmp_path / "ds")
+    damage(paths[1])
+    with pytest.raises(DamagedShardError, match=f"data_dir '.*ds': shard shard-000001.tar is damaged \\({why}\\)$"
+                       ) as err:
+        checked_shards(str(tmp_path / "ds"))
+    assert "\n" not in str(err.value) and err.value.name == "shard-000001.tar"
+    assert checked_shards(str(tmp_path / "ds"), skip_damaged=True) == ([paths[0], paths[2]], ["shard-000001.tar"])
+
+
+def test_a_flip_the_tar_reader_would_not_see_is_refused(tmp_path):
+    """A flipped bit in a tar's zero padding reads back fine: only the sha256 finds it."""
+    paths = write_dataset(tmp_path / "ds", n_shards=1)
+    flip(paths[0], at=os.path.getsize(paths[0]) - 10)
+    assert len(list(read_shard(paths[0]))) == 2
+    with pytest.raises(DamagedShardError, match="sha256"):
+        checked_shards(str(tmp_path / "ds"))
+
+
+def test_nothing_left_and_no_folder(tmp_path):
+    paths = write_dataset(tmp_path / "ds", n_shards=1)
+    truncate(paths[0])
+    with pytest.raises(InputError, match=r"empty dataset .*1 damaged shard\(s\) skipped: shard-000000.tar"):
+        checked_shards(str(tmp_path / "ds"), skip_damaged=True)
+    with pytest.raises(InputError, match="--data '.*nope': no such folder"):
+        checked_shards(str(tmp_path / "nope"), field="--data")
+
+
+def test_without_a_manifest_every_tar_is_read_as_it_is(tmp_path):
+    paths = write_dataset(tmp_path / "ds", manifest=False)
+    truncate(paths[2])
+    assert checked_shards(str(tmp_path / "ds")) == (paths, [])  # nothing to check against
+
+
+def test_a_shard_failing_while_read_is_one_line_naming_it(tmp_path):
+    paths = write_dataset(tmp_path / "ds", n_shards=1, per_shard=6)
+    truncate(paths[0], 3000)  # inside the second member's data
+    with pytest.raises(InputError, match="shard '.*shard-000000.tar' cannot be read") as err:
+        list(read_shard(paths[0]))
+    assert "\n" not in str(err.value)
+    assert isinstance(err.value, tarfile.TarError)  # what the dataset verifier lists as a problem
+    with pytest.raises(ShardReadError):
+        list(read_shard(str(tmp_path / "ds" / "absent.tar")))
