@@ -135,13 +135,36 @@ def test_the_output_folder_rule(tmp_path):
     from envisat_pose.runner import check_out_dir, make_out_dir
 
     check_out_dir(str(tmp_path / "new"))  # creates nothing
-    assert not (tmp_path / "new").exists()
+    check_out_dir(str(tmp_path / "no" / "new"))  # parents are made by make_out_dir
+    assert not (tmp_path / "new").exists() and not (tmp_path / "no").exists()
     with pytest.raises(InputError, match="does not exist"):
-        check_out_dir(str(tmp_path / "no" / "new"))
+        check_out_dir(str(tmp_path / "no" / "new"), parents=False)
     (tmp_path / "file").write_text("x")
     with pytest.raises(InputError, match="not a folder"):
         make_out_dir(str(tmp_path / "file"))
+    for under in (tmp_path / "file" / "run", tmp_path / "file" / "a" / "b"):  # under a file: one line, no traceback
+        with pytest.raises(InputError, match=r"'.*file' is a file, not a folder") as err:
+            make_out_dir(str(under))
+        assert "\n" not in str(err.value) and str(under) in str(err.value)
+    make_out_dir(str(tmp_path / "p" / "q" / "r"))
+    assert (tmp_path / "p" / "q" / "r").is_dir()
     make_out_dir(str(tmp_path / "new"), ["a/b"])
     assert (tmp_path / "new" / "a" / "b").is_dir() and list((tmp_path / "new").iterdir()) == [tmp_path / "new" / "a"]
     with pytest.raises(InputError, match="cannot write there"):
         make_out_dir("/proc/envisat-test-out")
+
+
+def test_the_output_file_rule(tmp_path):
+    from envisat_pose.config import InputError
+    from envisat_pose.runner import check_out_file, make_out_file_dir
+
+    target = tmp_path / "a" / "b" / "det.npz"
+    check_out_file(str(target))  # creates nothing
+    assert not (tmp_path / "a").exists()
+    make_out_file_dir(str(target))
+    assert (tmp_path / "a" / "b").is_dir() and list((tmp_path / "a" / "b").iterdir()) == []
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(InputError, match="is a file, not a folder"):
+        check_out_file(str(tmp_path / "f" / "det.npz"), "--json")
+    with pytest.raises(InputError, match="--out .* is a folder"):
+        check_out_file(str(tmp_path / "a"))
