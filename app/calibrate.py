@@ -22,8 +22,8 @@ the network's cov_scale and the error model are left as they are.
 from __future__ import annotations
 
 import argparse
-import os
 
+from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 from envisat_pose.config import InputError
 # label matching and the sequences' inputs are the pipeline's (tests import them from here too)
 from envisat_pose.pipelines.calibrate import (collect_errors, collect_frames, flat_errors,  # noqa: F401
@@ -63,6 +63,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--limit", type=int, help="only the first N frames of each dataset")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_skip_damaged_argument(p)
     p.set_defaults(func=run_calibrate_cli)
 
 
@@ -78,7 +79,8 @@ def resolve_config(args: argparse.Namespace):
     from envisat_pose.pipelines.calibrate import CalibrateJobConfig
 
     flags = {"weights": args.weights, "roi": args.roi, "keep_scale": bool(args.keep_scale),
-             "refine": bool(args.refine), "max_lag": args.max_lag, "limit": args.limit}
+             "refine": bool(args.refine), "max_lag": args.max_lag, "limit": args.limit,
+             "skip_damaged": bool(args.skip_damaged)}
     return resolve_job_config(CalibrateJobConfig, {}, None, flags)
 
 
@@ -86,29 +88,32 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     import numpy as np
 
     from envisat_pose.app.detect import detector_inputs
-    from envisat_pose.io import check_writable_output
-    from envisat_pose.perception.data import shard_paths
     from envisat_pose.pipelines.calibrate import fit_face_cue, run_calibration
+    from envisat_pose.runner import check_out_file
 
     detector_inputs(args)
     if args.max_lag < 1:
         raise InputError(f"--max-lag {args.max_lag}: expected at least 1")
-    if os.path.abspath(args.out) != os.path.abspath(args.weights):
-        check_writable_output(args.out)
-    for d in args.data:  # a folder without shards: one line before anything else
-        shard_paths(d)
+    check_out_file(args.out)
     if args.held_out and not args.face_cue:
         raise InputError("--held-out belongs to --face-cue")
     if args.face_cue:
         if args.refine or args.keep_scale or args.roi != "coarse":
             raise InputError("--face-cue fits the appearance cue alone: drop --refine, --keep-scale and --roi")
-        record = fit_face_cue(args.weights, args.data, args.held_out or [], args.out, args.limit, not args.quiet)
+        with skip_hint():
+            record = fit_face_cue(args.weights, args.data, args.held_out or [], args.out, args.limit, not args.quiet,
+                                  args.skip_damaged)
         print(f"face cue: {record['fit_regions']} regions fitted; on {record['held_out_frames_with_a_face']} "
               f"held-out frames: right {record['right_share']:.1%}, decided {record['decided_share_at_0.1']:.1%} "
               f"(wrongly {record['decided_wrong_share_at_0.1']:.1%}), temperature {record['temperature']:.3g}; "
               f"wrote {args.out}")
+        if record["skipped_damaged_shards"]:
+            print(skipped_line(record["skipped_damaged_shards"]))
         return 0
-    res = run_calibration(resolve_config(args), args.data, args.out, progress=not args.quiet)
+    with skip_hint():
+        res = run_calibration(resolve_config(args), args.data, args.out, progress=not args.quiet)
+    if res["skipped"]:
+        print(skipped_line(res["skipped"]))
     _print_groups(res["before"], res["after"])
     if res["refine"]:
         print(f"refine_cov_floor_px2 {res['floor']:.4g} (mean e^T C^-1 e 2.00 on {res['corners']} refined corners, "

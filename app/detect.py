@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 
+from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 from envisat_pose.config import InputError
 # the frames as the camera saw them and the ROI files: the pipeline's (calibrate, evaluate and the tests import
 # them from here too)
@@ -35,6 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "edges fitted and intersected, fused with the network's corner; off by default: it did not pay "
                    "in every corruption group on held-out data)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_skip_damaged_argument(p)
     p.set_defaults(func=run_detect_cli)
 
 
@@ -64,18 +66,24 @@ def resolve_config(args: argparse.Namespace):
     from envisat_pose.pipelines.detect import DetectJobConfig
 
     flags = {"weights": args.weights, "device": args.device, "limit": args.limit, "roi": args.roi,
-             "refine": bool(args.refine)}
+             "refine": bool(args.refine), "skip_damaged": bool(args.skip_damaged)}
     return resolve_job_config(DetectJobConfig, {}, None, flags)
 
 
 def run_detect_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.io import check_writable_output
-    from envisat_pose.pipelines.detect import run_detect
+    import json
 
-    check_writable_output(args.out)
+    from envisat_pose.pipelines.detect import run_detect
+    from envisat_pose.runner import check_out_file
+
+    check_out_file(args.out)
     detector_inputs(args)
-    arrays = run_detect(resolve_config(args), args.data, args.out, progress=not args.quiet)
+    with skip_hint():
+        arrays = run_detect(resolve_config(args), args.data, args.out, progress=not args.quiet)
     n = int(arrays["visible"].sum())
     print(f"wrote {args.out}: {len(arrays['key'])} frames, {n} corners found, "
           f"{int(arrays['ambiguous'].sum())} frames ambiguous under the half-turn")
+    skipped = json.loads(str(arrays["config_json"]))["skipped_damaged_shards"]
+    if skipped:
+        print(skipped_line(skipped))
     return 0

@@ -92,17 +92,17 @@ def summary(arrays: dict) -> str:
 
 
 def run_estimate(args: argparse.Namespace) -> int:
-    from envisat_pose.io import check_writable_output
+    from envisat_pose.runner import make_out_file_dirs
     from envisat_pose.pipelines.estimate import output_paths, run_estimate as run_pipeline
 
     if not args.out.endswith(".npz"):
         raise InputError(f"--out {args.out!r}: expected a path ending in .npz")
     cfg = resolve_config(args)
-    check_writable_output(output_paths(args.out)[0])
     if args.rrd:
         from envisat_pose.app.view import check_rrd_output
 
         check_rrd_output(args.rrd)
+    make_out_file_dirs({**{p: "--out" for p in output_paths(args.out)}, **({args.rrd: "--rrd"} if args.rrd else {})})
     res = run_pipeline(cfg, args.out, truth_path=args.truth, scenario=args.scenario, duration_s=args.duration_s,
                        plot=args.plot, rrd=args.rrd, progress=not args.quiet)
     cfg, arrays = res["config"], res["arrays"]

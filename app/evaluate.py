@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import argparse
 
+from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -30,23 +32,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_skip_damaged_argument(p)
     p.set_defaults(func=run_evaluate_cli)
 
 
 def run_evaluate_cli(args: argparse.Namespace) -> int:
     from envisat_pose.app.detect import detector_inputs
+    from envisat_pose.pipelines.dataset_inputs import skip_hint, skipped_line
     from envisat_pose.pipelines.detect import camera_samples, read_roi
-    from envisat_pose.io import check_writable_output
-    from envisat_pose.perception.data import shard_paths
     from envisat_pose.pipelines.evaluate import evaluate_detector, read_poses, table
+    from envisat_pose.runner import check_out_file
+    from envisat_pose.shard_reader import checked_shards
 
     detector_inputs(args)
-    check_writable_output(args.json, "json")
-    paths = shard_paths(args.data)
+    check_out_file(args.json, "--json")
+    with skip_hint():
+        paths, skipped = checked_shards(args.data, args.skip_damaged, "--data")
     roi = read_roi(args.roi) if args.roi else ("labels" if args.roi_labels else None)
     result = evaluate_detector(args.weights, camera_samples(paths), read_poses(paths), args.json, device=args.device,
                                limit=args.limit, roi=roi, refine=args.refine, data_name=args.data,
-                               roi_name=args.roi, progress=not args.quiet)
+                               roi_name=args.roi, progress=not args.quiet, skipped_shards=skipped)
     print(table(result["groups"]))
     print(f"wrote {args.json}: {result['frames']} frames")
+    if skipped:
+        print(skipped_line(skipped))
     return 0

@@ -7,6 +7,7 @@ import json
 import os
 
 from envisat_pose.config import InputError, resolve_job_config
+from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -27,7 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     g.add_argument("--backend", default="local", choices=("local", "dask"), help="local process pool or Dask")
     g.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler address (default: a LocalCluster on 127.0.0.1)")
-    g.add_argument("--out", required=True, metavar="DIR", help="dataset folder (created; resumed if it exists)")
+    g.add_argument("--out", required=True, metavar="DIR", help="dataset folder (created, parents too; resumed if it "
+                   "exists)")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     g.set_defaults(func=run_generate_cli)
 
@@ -43,6 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     i.add_argument("--count", type=int, default=16, help="images in the montage (default 16)")
     i.add_argument("--rrd", metavar="FILE.rrd", help="also write the first --count samples as a Rerun recording: "
                    "images with labelled corners, masks, depth (`envisat view FILE`)")
+    add_skip_damaged_argument(i)
     i.set_defaults(func=run_inspect_cli)
 
 
@@ -63,11 +66,22 @@ def run_generate_cli(args: argparse.Namespace) -> int:
     if args.scheduler and args.backend != "dask":
         raise InputError("--scheduler needs --backend dask")
     cfg = resolve_config(args)
+    written: list[dict] = []
     manifest = run_generate(cfg, args.out, workers=args.workers, backend=args.backend, scheduler=args.scheduler,
-                            progress=not args.quiet)
-    n = sum(e["count"] for e in manifest["shards"])
-    print(f"wrote {n} images in {len(manifest['shards'])} shards to {args.out} (manifest.json, generate.config.toml)")
+                            progress=not args.quiet, on_shard=written.append)
+    print(generate_line(manifest, written, args.out))
     return 0 if manifest["complete"] else 1
+
+
+def generate_line(manifest: dict, written: list[dict], out: str) -> str:
+    """What a generate run did: the images it wrote now, and those an earlier run had written."""
+    n_all = sum(e["count"] for e in manifest["shards"])
+    n_now = sum(e["count"] for e in written)
+    if not written:
+        return f"nothing to do: {n_all} images already there in {len(manifest['shards'])} shards in {out}"
+    before = f"; {n_all - n_now} images already there" if n_all > n_now else ""
+    return (f"wrote {n_now} images in {len(written)} shards to {out}{before} (manifest.json, "
+            "generate.config.toml)")
 
 
 def run_verify_cli(args: argparse.Namespace) -> int:
@@ -84,25 +98,38 @@ def run_verify_cli(args: argparse.Namespace) -> int:
 
 
 def run_inspect_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.datagen.dataset import dataset_stats, montage
+    from envisat_pose.datagen.dataset import dataset_stats, load_manifest, montage
+    from envisat_pose.runner import check_out_file, make_out_file_dir
+    from envisat_pose.shard_reader import checked_shards
 
+    path = args.montage or os.path.join(args.dir, "montage.png")
+    check_out_file(path, "--montage")
     if args.rrd:
         from envisat_pose.app.view import check_rrd_output
 
         check_rrd_output(args.rrd)
-    stats = dataset_stats(args.dir)
+    load_manifest(args.dir)
+    with skip_hint():
+        shards, skipped = checked_shards(args.dir, args.skip_damaged, "dataset")
+    stats = dataset_stats(shards)
+    if skipped:
+        stats["skipped_damaged_shards"] = skipped
     print(json.dumps(stats, indent=1))
-    path = args.montage or os.path.join(args.dir, "montage.png")
-    n = montage(args.dir, path, count=args.count)
+    make_out_file_dir(path, "--montage")
+    n = montage(shards, path, count=args.count)
     print(f"wrote {path} ({n} images)")
     if args.rrd:
-        write_samples_rrd(args.dir, args.rrd, args.count)
+        make_out_file_dir(args.rrd, "--rrd")
+        write_samples_rrd(shards, args.rrd, args.count)
         print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
+    if skipped:
+        print(skipped_line(skipped))
     return 0
 
 
-def write_samples_rrd(out_dir: str, path: str, count: int) -> None:
-    """The first `count` samples as a Rerun recording (analysis.recording.write_samples_recording), read lazily."""
+def write_samples_rrd(source: str | list[str], path: str, count: int) -> None:
+    """The first `count` samples as a Rerun recording (analysis.recording.write_samples_recording), read lazily.
+    source: a dataset folder or its checked shard files."""
     from envisat_pose.analysis.recording import Sample, write_samples_recording
     from envisat_pose.datagen.dataset import iter_samples, sample_png
     from envisat_pose.datagen.shards import decode_png
@@ -110,5 +137,5 @@ def write_samples_rrd(out_dir: str, path: str, count: int) -> None:
     samples = (Sample(key, sample_png(members, label), label,
                       mask=decode_png(members["mask.png"]) if "mask.png" in members else None,
                       depth_png=members.get("depth.png"))
-               for key, label, members in iter_samples(out_dir, limit=count))
+               for key, label, members in iter_samples(source, limit=count))
     write_samples_recording(path, samples)

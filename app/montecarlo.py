@@ -16,8 +16,7 @@ from envisat_pose.pipelines.sweep import SWEEP_FIGURE, SweepConfig
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "montecarlo",
+    p = sub.add_parser("montecarlo",
         help="Monte Carlo campaign of the UKF on one simulated truth: statistics, PCRLB, figures, summary.json",
         description="Simulate the scenario's truth once, filter N Monte Carlo runs in blocks (parallel, resumable) "
         "and write DIR/campaign.npz, summary.json, timing.json, the figures and montecarlo.config.toml.",
@@ -61,8 +60,7 @@ def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
         "block_runs": args.block_runs, "settle_s": args.settle_s,
         "measurement.kind": args.measurements, "measurement.sigma_m": args.sigma_m,
         "measurement.sigma_px": args.sigma_px, "measurement.max_markers": args.max_markers,
-        "measurement.rate_hz": args.rate_hz,
-    }
+        "measurement.rate_hz": args.rate_hz}
     return with_eclipse(resolve_job_config(MonteCarloConfig, defaults, args.config, flags))
 
 
@@ -83,6 +81,7 @@ def runner_config(args: argparse.Namespace):
 def run_montecarlo(args: argparse.Namespace) -> int:
     from envisat_pose.pipelines.campaign import run_campaign, write_recording
     from envisat_pose.pipelines.sweep import run_sweep
+    from envisat_pose.runner import make_out_file_dirs
 
     cfg = resolve_config(args)
     runner = runner_config(args)
@@ -105,6 +104,7 @@ def run_montecarlo(args: argparse.Namespace) -> int:
           f"{len(FIGURES)} figures ({time.perf_counter() - t0:.1f} s)")
     print(summary_line(summary))
     if args.rrd:
+        make_out_file_dirs({args.rrd: "--rrd"})
         write_recording(cfg, args.out, args.rrd)
         print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
     return 0

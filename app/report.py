@@ -34,26 +34,26 @@ SWEEP_CAPTION = ("Rate sweep: settled RMSE per block (blue) and the PCRLB (black
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "report",
+    p = sub.add_parser("report",
         help="one self-contained HTML report over Monte Carlo campaign folders",
         description="Write one HTML file (figures embedded, no external links) comparing campaign folders written by "
         "`envisat montecarlo`: scenario, config, figures and a table of RMSE, 3-sigma share, NEES, RMSE/PCRLB, "
-        "wall time.",
-    )
+        "wall time.")
     p.add_argument("dirs", nargs="+", metavar="DIR", help="campaign folders (envisat montecarlo --out)")
     p.add_argument("--out", default="report.html", help="output HTML file (default report.html)")
     p.set_defaults(func=run_report)
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from envisat_pose.io import atomic_write_text, check_writable_output
+    from envisat_pose.io import atomic_write_text
+    from envisat_pose.runner import check_out_file, make_out_file_dirs
 
     if not args.out.endswith((".html", ".htm")):
         raise InputError(f"--out {args.out!r}: expected a path ending in .html")
-    check_writable_output(args.out)
+    check_out_file(args.out)
     sweeps = [load_sweep(d) for d in args.dirs if is_sweep(d)]
     campaigns = [load_campaign(d) for d in args.dirs if not is_sweep(d)]
+    make_out_file_dirs({args.out: "--out"})
     atomic_write_text(args.out, render_report(campaigns, sweeps))
     print(f"wrote {args.out} ({len(campaigns)} campaign{'s' if len(campaigns) != 1 else ''}"
           + (f", {len(sweeps)} rate sweep{'s' if len(sweeps) > 1 else ''}" if sweeps else "") + ")")

@@ -7,7 +7,6 @@ import argparse
 
 from envisat_pose.datagen.scenario import ScenarioConfig, scenario_dict
 from envisat_pose.config import InputError, resolve_job_config
-from envisat_pose.io import check_writable_output
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -37,16 +36,17 @@ def resolve_config(args: argparse.Namespace) -> ScenarioConfig:
 
 
 def run_simulate(args: argparse.Namespace) -> int:
+    from envisat_pose.runner import make_out_file_dirs
     from envisat_pose.pipelines.simulate import output_paths, run_simulate as run_pipeline
 
     if not args.out.endswith(".npz"):
         raise InputError(f"--out {args.out!r}: expected a path ending in .npz")
     cfg = resolve_config(args)
-    check_writable_output(output_paths(args.out)[0])
     if args.rrd:
         from envisat_pose.app.view import check_rrd_output
 
         check_rrd_output(args.rrd)
+    make_out_file_dirs({**{p: "--out" for p in output_paths(args.out)}, **({args.rrd: "--rrd"} if args.rrd else {})})
     res = run_pipeline(cfg, args.out, plot=args.plot, rrd=args.rrd, progress=not args.quiet, label=args.scenario)
     traj = res["truth"]
     print(f"wrote {res['truth_file']} ({len(traj.t_s)} samples over {traj.t_s[-1]:.0f} s), config {res['config_toml']}")

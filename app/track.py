@@ -7,6 +7,7 @@ import argparse
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument
     from envisat_pose.app.run import add_recording_arguments
 
     p = sub.add_parser(
@@ -35,6 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", metavar="FILE.toml", help="track config (orbit, filter, tracker; top-level keys)")
     p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped ones)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_skip_damaged_argument(p)
     add_recording_arguments(p)
     p.set_defaults(func=track_cli)
 
@@ -61,6 +63,7 @@ def resolve_config(args: argparse.Namespace, scenario: str):
 
 
 def track_cli(args: argparse.Namespace) -> int:
+    from envisat_pose.pipelines.dataset_inputs import skip_hint, skipped_line
     from envisat_pose.app.run import recording_sink
     from envisat_pose.pipelines.build import load_camera
     from envisat_pose.pipelines.camera_file import camera_from_intrinsics
@@ -69,17 +72,20 @@ def track_cli(args: argparse.Namespace) -> int:
     from envisat_pose.pipelines.track import output_paths, track_frames
     from envisat_pose.runner import check_out_dir, make_out_dir
 
-    check_out_dir(args.out, parents=True)
-    source = open_source(args.images, args.rate_hz or 0.0, args.timestamps, args.bit_depth)
+    check_out_dir(args.out)
+    with skip_hint():
+        source = open_source(args.images, args.rate_hz or 0.0, args.timestamps, args.bit_depth, args.skip_damaged)
     cfg = resolve_config(args, args.scenario or source.scenario or "default")
     camera, remap = camera_from_intrinsics(args.camera) if args.camera else (None, None)
     size = None if camera is None else (camera.width_px, camera.height_px)
     pixels = scan_source(source, size, min_frames=cfg.tracker.acquire_frames, progress=not args.quiet)
     if camera is None:
         camera = load_camera(size_px=source.size_px)
-    make_out_dir(args.out, parents=True)
+    make_out_dir(args.out)
     sink = recording_sink(args, output_paths(args.out)["recording"])
     print(f"{args.images}: {len(source.t_s)} frames of {source.size_px[0]} x {source.size_px[1]} px, {pixels}")
+    if source.skipped:
+        print(skipped_line(source.skipped))
     summary = track_frames(cfg, source, camera, remap, args.out, None if sink.startswith("save:") else sink,
                            progress=not args.quiet)
     print(status_line(summary["source"]["frames"], summary["frames_by_status"], summary["first_tracking_s"],

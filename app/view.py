@@ -48,12 +48,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def check_rrd_output(path: str) -> None:
-    """--rrd must name a writable .rrd file: InputError before any work otherwise."""
-    from envisat_pose.io import check_writable_output
+    """--rrd must name a .rrd file that can be written (runner.check_out_file): InputError before any work."""
+    from envisat_pose.runner import check_out_file
 
     if not path.endswith(".rrd"):
         raise InputError(f"--rrd {path!r}: expected a path ending in .rrd")
-    check_writable_output(path, field="rrd")
+    check_out_file(path, "--rrd")
 
 
 def recordings(path: str) -> list[str]:

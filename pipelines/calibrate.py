@@ -29,7 +29,8 @@ class CalibrateJobConfig:
     "coarse" (the detector's own coarse pass) or "labels" (the labels' region of interest, as the closed loop
     gives it); keep_scale: leave the file's cov_scale and cov_calibration (write the error model only); refine:
     fit the refinement's covariance floor instead; max_lag: autocorrelation lags measured; limit: only the first N
-    frames of each folder (None: all)."""
+    frames of each folder (None: all); skip_damaged: go on without the shards that do not match their folder's
+    manifest (named in the record), instead of refusing the folder."""
 
     weights: str = ""
     roi: str = "coarse"
@@ -37,6 +38,7 @@ class CalibrateJobConfig:
     refine: bool = False
     max_lag: int = 20
     limit: int | None = None
+    skip_damaged: bool = False
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
@@ -134,12 +136,32 @@ def sequence_input(frames: dict, dt_s: float) -> dict:
             "R_cam_from_target": frames["R_cam_from_target"][order]}
 
 
+def data_shards(data: list[str], skip_damaged: bool, field: str = "data") -> tuple[dict[str, list[str]], list[str]]:
+    """Each folder's shard files, checked against its manifest (shard_reader.checked_shards), and the damaged ones
+    left out as 'folder/shard' (skip_damaged; else a damaged shard is one InputError). A sequence with a shard
+    left out is refused: its frame-to-frame error model needs consecutive frames."""
+    from envisat_pose.shard_reader import checked_shards
+
+    paths, skipped = {}, []
+    for d in data:
+        if d in paths:
+            continue
+        paths[d], left_out = checked_shards(d, skip_damaged, field)
+        if left_out and is_sequence(d):
+            raise InputError(f"{field} {d!r}: a sequence with damaged shard(s) {', '.join(left_out)}: left out, its "
+                             "frames would no longer follow each other; regenerate them (`envisat generate` with the "
+                             "same settings on the folder redoes them)")
+        skipped += [os.path.join(os.path.basename(os.path.normpath(d)), name) for name in left_out]
+    return paths, skipped
+
+
 def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress: bool = False) -> dict:
     """The covariance calibration of the detector in cfg.weights on the held-out folders `data` (one sequence per
     folder when they are sequences), written into out (a copy of the weights with the fits in its metadata; may
     be the weights file itself). Returns what was fitted: {"refine": bool, "corners": M, "before", "after":
     calibration_by_group without and with the fit, "scale" or "floor", "record", and, for sequences,
-    "error_model" (the ErrorModel) and "error_model_record" (None when not every folder is a sequence)}."""
+    "error_model" (the ErrorModel) and "error_model_record" (None when not every folder is a sequence),
+    "skipped": the damaged shards left out (cfg.skip_damaged)}."""
     import dataclasses
 
     import numpy as np
@@ -147,12 +169,13 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
 
     from envisat_pose.perception import errormodel as em
     from envisat_pose.perception.calibrate import calibration_by_group, fit_floor, fit_scale
-    from envisat_pose.perception.data import shard_paths
     from envisat_pose.perception.detect import DetectConfig, load_detector
     from envisat_pose.perception.weights import with_metadata
     from envisat_pose.pipelines.detect import camera_samples
+    from envisat_pose.runner import check_out_file, make_out_file_dir
 
-    paths = {d: shard_paths(d) for d in data}
+    check_out_file(out, "out")
+    paths, skipped = data_shards(data, cfg.skip_damaged)
     sequences = all(is_sequence(d) for d in data)
     # the network's own covariances (scale 1), whatever the file carried before; the refinement's the same
     det = load_detector(cfg.weights, config=dataclasses.replace(DetectConfig(), cov_scale=1.0, refine=cfg.refine,
@@ -165,6 +188,7 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
     err, cov, groups = (np.concatenate([f[i] for f in flat]) for i in range(3))
     # named by folder and manifest sha256, not by a path of this machine (the record travels with the weights)
     data_names = " ".join(dataset_ref(d) for d in data)
+    make_out_file_dir(out, "out")
     if len(err) < 20:
         raise InputError(f"--data {data_names!r}: only {len(err)} correctly named corners; calibration needs more "
                          "held-out frames (at least 20 corners)")
@@ -173,6 +197,7 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
         before = calibration_by_group(err, cov, groups)
         after = calibration_by_group(err, cov + floor * np.eye(2), groups)
         record = {"floor_px2": floor, "data": data_names, "corners": int(len(err)), "roi": cfg.roi,
+                  "skipped_damaged_shards": skipped,
                   "mean_nees_by_group": {g: v["mean_nees"] for g, v in after.items()},
                   "mean_nees_by_group_without_floor": {g: v["mean_nees"] for g, v in before.items()},
                   "count_by_group": {g: v["count"] for g, v in after.items()},
@@ -181,13 +206,14 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
         with_metadata(cfg.weights, out, {"refine_cov_floor_px2": floor,
                                          "refine_cov_calibration": json.dumps(record, sort_keys=True)})
         return {"refine": True, "corners": int(len(err)), "before": before, "after": after, "floor": floor,
-                "record": record}
+                "record": record, "skipped": skipped}
     scale = fit_scale(err, cov)
     before = calibration_by_group(err, cov, groups)
     after = calibration_by_group(err, cov * scale, groups)
     meta, record = {}, None
     if not cfg.keep_scale:
         record = {"scale": scale, "data": data_names, "corners": int(len(err)), "roi": cfg.roi,
+                  "skipped_damaged_shards": skipped,
                   "mean_nees_by_group": {g: v["mean_nees"] for g, v in after.items()},
                   "count_by_group": {g: v["count"] for g, v in after.items()}}
         meta.update({"cov_scale": scale, "cov_calibration": json.dumps(record, sort_keys=True)})
@@ -199,27 +225,29 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
         meta.update({"error_model": model.to_json(), "error_model_record": json.dumps(model_record, sort_keys=True)})
     with_metadata(cfg.weights, out, meta)
     return {"refine": False, "corners": int(len(err)), "before": before, "after": after, "scale": scale,
-            "record": record, "error_model": model, "error_model_record": model_record}
+            "record": record, "error_model": model, "error_model_record": model_record, "skipped": skipped}
 
 
 def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, limit: int | None = None,
-                 progress: bool = False) -> dict:
+                 progress: bool = False, skip_damaged: bool = False) -> dict:
     """The half-turn's appearance cue: its regions under each frame's labelled pose; `data` fits it and
     `held_out` tempers and scores it (without held_out: the even frames of each data folder fit, the odd ones
-    temper); written into out (a copy of weights with `face_cue` and `face_cue_record`). Returns the record."""
+    temper); written into out (a copy of weights with `face_cue` and `face_cue_record`). skip_damaged: go on
+    without the shards that do not match their manifest (named in the record). Returns the record."""
     from tqdm import tqdm
 
     from envisat_pose.geometry import load_geometry
     from envisat_pose.perception import facecue as fc
-    from envisat_pose.perception.data import shard_paths
     from envisat_pose.perception.naming import face_windings
     from envisat_pose.perception.weights import with_metadata
     from envisat_pose.pipelines.detect import camera_samples
+    from envisat_pose.runner import check_out_file, make_out_file_dir
 
+    check_out_file(out, "out")
+    paths, skipped = data_shards(data, skip_damaged)
+    held_paths, held_skipped = data_shards(held_out or [], skip_damaged, "held_out")
     g = load_geometry()
     windings = face_windings(g)
-    paths = {d: shard_paths(d) for d in data}
-    held_paths = {d: shard_paths(d) for d in (held_out or [])}
     fit, held = [], []
     bar = tqdm(disable=not progress, desc="face cue", unit="frame")
     for flag, folders in (("--data", paths), ("--held-out", held_paths)):
@@ -242,5 +270,7 @@ def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, l
         raise InputError(f"--data: {err}") from None
     record["data"] = " ".join(dataset_ref(d) for d in data)
     record["held_out"] = " ".join(dataset_ref(d) for d in held_paths) or "the odd frames of data"
+    record["skipped_damaged_shards"] = skipped + held_skipped
+    make_out_file_dir(out, "out")
     with_metadata(weights, out, {"face_cue": cue.to_json(), "face_cue_record": json.dumps(record, sort_keys=True)})
     return record

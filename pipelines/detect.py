@@ -19,13 +19,15 @@ class DetectJobConfig:
     """One `envisat detect` job. weights: the detector's weights file; device: torch device ("cpu", "cuda");
     limit: only the first N frames (None: all); roi: an ROI file (key (M,), roi_px (M, 3)) whose frames skip the
     coarse pass (None: every frame gets it); refine: refine the named corners on the full-resolution pixels
-    (perception.detect.DetectConfig.refine)."""
+    (perception.detect.DetectConfig.refine); skip_damaged: go on without the shards that do not match the dataset's
+    manifest (named in det.npz's config_json), instead of refusing the dataset."""
 
     weights: str = ""
     device: str = "cpu"
     limit: int | None = None
     roi: str | None = None
     refine: bool = False
+    skip_damaged: bool = False
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
@@ -68,15 +70,16 @@ def read_roi(path: str) -> dict[str, "object"]:
 def detect_dataset(cfg: DetectJobConfig, data: str, progress: bool = False) -> dict:
     """Named corners of every frame of the dataset folder `data` (its shards): the arrays of det.npz (the
     Detections contract's, key, alt_corners_px, alt_probability, ambiguous; config_json a str), checked against
-    the contract. InputError when the folder holds no frames."""
+    the contract; config_json names the damaged shards left out (skipped_damaged_shards). InputError when the
+    folder holds no frames or a damaged shard (unless cfg.skip_damaged)."""
     import numpy as np
     from tqdm import tqdm
 
     from envisat_pose.contracts import Detections
-    from envisat_pose.perception.data import shard_paths
     from envisat_pose.perception.detect import load_detector
+    from envisat_pose.shard_reader import checked_shards
 
-    paths = shard_paths(data)
+    paths, skipped = checked_shards(data, cfg.skip_damaged, "data")
     rois = read_roi(cfg.roi) if cfg.roi else {}
     det = load_detector(cfg.weights, device=cfg.device)
     if cfg.refine:
@@ -99,9 +102,10 @@ def detect_dataset(cfg: DetectJobConfig, data: str, progress: bool = False) -> d
         bar.update(1)
     bar.close()
     if not rows["key"]:
-        raise InputError(f"--data {data!r}: no frames")
+        raise InputError(f"data {data!r}: no frames")
     config = {"weights": cfg.weights, "data": data, "model": det.model.cfg.to_dict(),
-              "cov_scale": det.cfg.cov_scale, "roi": cfg.roi, "refine": bool(cfg.refine)}
+              "cov_scale": det.cfg.cov_scale, "roi": cfg.roi, "refine": bool(cfg.refine),
+              "skipped_damaged_shards": skipped}
     arrays = {k: np.array(v) for k, v in rows.items()}
     arrays["key"] = arrays["key"].astype(str)
     arrays["config_json"] = json.dumps(config, sort_keys=True)
@@ -110,14 +114,17 @@ def detect_dataset(cfg: DetectJobConfig, data: str, progress: bool = False) -> d
 
 
 def run_detect(cfg: DetectJobConfig, data: str, out: str, progress: bool = False) -> dict:
-    """The whole job: detect_dataset, then det.npz written atomically at out (the caller checks out is writable
-    before any work). Returns det.npz's arrays."""
+    """The whole job: detect_dataset, then det.npz written atomically at out, its folder made then (parents too):
+    a run stopped before leaves nothing. Returns det.npz's arrays."""
     import numpy as np
 
     from envisat_pose.contracts import Detections
     from envisat_pose.io import save_npz
+    from envisat_pose.runner import check_out_file, make_out_file_dir
 
+    check_out_file(out, "out")
     arrays = detect_dataset(cfg, data, progress)
     Detections.validated(arrays, out)
+    make_out_file_dir(out, "out")
     save_npz(out, {**arrays, "config_json": np.array(arrays["config_json"])})
     return arrays

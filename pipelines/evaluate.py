@@ -156,11 +156,13 @@ def table(summary: dict) -> str:
 
 def evaluate_detector(weights: str, samples, poses: dict, json_path: str, *, device: str = "cpu",
                       limit: int | None = None, roi=None, refine: bool = False, data_name: str = "",
-                      roi_name: str | None = None, progress: bool = False) -> dict:
+                      roi_name: str | None = None, progress: bool = False, skipped_shards: list[str] = ()) -> dict:
     """Score the detector of `weights` on samples ((key, image, label) as the camera saw them) and write every
-    number to json_path. poses: {key: (R, t)} (read_poses); roi: None, 'labels', or {key: (x0, y0, side)} (adds
-    detector_roi; roi_name: how the JSON names a dict roi, its file); refine: adds the refined methods;
-    data_name: the dataset as the JSON names it. Returns the JSON's content (its 'groups' is the summary)."""
+    number to json_path (its folder made then, parents too). poses: {key: (R, t)} (read_poses); roi: None,
+    'labels', or {key: (x0, y0, side)} (adds detector_roi; roi_name: how the JSON names a dict roi, its file);
+    refine: adds the refined methods; data_name: the dataset as the JSON names it; skipped_shards: the damaged
+    shards the samples left out (shard_reader.checked_shards), recorded. Returns the JSON's content (its 'groups'
+    is the summary)."""
     import dataclasses
 
     from tqdm import tqdm
@@ -171,7 +173,9 @@ def evaluate_detector(weights: str, samples, poses: dict, json_path: str, *, dev
     from envisat_pose.perception.detect import DetectConfig, weights_cov_scale, weights_refine_floor
     from envisat_pose.perception.evaluate import corruption_groups
     from envisat_pose.perception.weights import load_model
+    from envisat_pose.runner import check_out_file, make_out_file_dir
 
+    check_out_file(json_path, "json_path")
     model = load_model(weights, device)
     cfg = DetectConfig(cov_scale=weights_cov_scale(weights), refine_cov_floor_px2=weights_refine_floor(weights))
     detector = make_detector(model, cfg, device)
@@ -182,12 +186,13 @@ def evaluate_detector(weights: str, samples, poses: dict, json_path: str, *, dev
                                      limit=limit, roi=roi, refined=refined)
     bar.close()
     if not groups:
-        raise InputError(f"--data {data_name!r}: no frames")
+        raise InputError(f"data {data_name!r}: no frames")
     summary = summarize(arrays, groups)
     result = {"weights": weights, "data": data_name, "frames": len(groups), "model": model.cfg.to_dict(),
               "detect_config": dataclasses.asdict(cfg), "match_px": 5.0,
               "roi": roi if isinstance(roi, str) or roi is None else (roi_name or "given"),
               "grouping": corruption_groups.__doc__ + " Levels: perception.evaluate.corruption_levels.",
-              "groups": summary}
+              "skipped_damaged_shards": list(skipped_shards), "groups": summary}
+    make_out_file_dir(json_path, "json_path")
     atomic_write_text(json_path, json.dumps(json_safe(result), indent=1, allow_nan=False) + "\n")
     return result

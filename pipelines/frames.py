@@ -160,8 +160,9 @@ class FrameSource:
     """The frames of one input. kind: 'dataset', 'images' or 'video'; path; t_s (N,) s; names (N,) what each frame
     is called in messages (file, sample key, frame index); truth: None or {x (N, 12), corners_px (N, 8, 2),
     in_frame (N, 8)} from a dataset's labels; scenario: a dataset's own scenario (None otherwise); files: an
-    image folder's files in time order; bit_depth: the data's bits (8, or 10-16 in 16-bit files: scan_source
-    sets it); size_px: (width, height) of every frame (scan_source)."""
+    image folder's files in time order (a dataset's: its checked shard files); bit_depth: the data's bits (8, or
+    10-16 in 16-bit files: scan_source sets it); size_px: (width, height) of every frame (scan_source); skipped:
+    a dataset's damaged shards left out (open_source's skip_damaged)."""
 
     kind: str
     path: str
@@ -172,6 +173,7 @@ class FrameSource:
     files: list[str] = field(default_factory=list)
     bit_depth: int = 8
     size_px: tuple[int, int] | None = None
+    skipped: list[str] = field(default_factory=list)
 
     def where(self, i: int) -> str:
         """Frame i as a message names it: the file, or the input and the frame."""
@@ -202,7 +204,7 @@ class FrameSource:
         else:
             from envisat_pose.datagen.dataset import iter_samples, sample_image
 
-            for i, (key, label, members) in enumerate(iter_samples(self.path)):
+            for i, (key, label, members) in enumerate(iter_samples(self.files)):
                 try:
                     with native_stderr():
                         img = sample_image(members, label)
@@ -247,10 +249,11 @@ def read_timestamps(path: str, files: list[str]) -> np.ndarray:
 
 
 def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
-                bit_depth: int | None = None) -> FrameSource:
+                bit_depth: int | None = None, skip_damaged: bool = False) -> FrameSource:
     """The frames of src (a generate folder, an image folder or a video file) with their times; InputError with
     one line naming the input and what was expected, or the flag that does not apply to it. bit_depth: of the
-    data in 16-bit image files (None: detected by scan_source)."""
+    data in 16-bit image files (None: detected by scan_source). A generate folder's shards are checked against
+    its manifest: a damaged one is refused, or with skip_damaged left out (source.skipped names it)."""
     if bit_depth is not None and bit_depth not in BIT_DEPTHS:
         raise InputError(f"--bit-depth {bit_depth}: expected one of {', '.join(map(str, BIT_DEPTHS))}")
     if rate_hz and timestamps:
@@ -261,7 +264,7 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
                 if value:
                     raise InputError(f"{flag} does not apply to a generate folder ({src!r}: its labels give the "
                                      "frame times and its frames are 8-bit)")
-            return dataset_source(src)
+            return dataset_source(src, skip_damaged)
         files = [os.path.join(src, f) for f in sorted_frames(src, os.listdir(src))]
         if not files:
             raise InputError(f"--images {src!r}: no image files (expected PNG, JPEG or TIFF files, a generate "
@@ -311,27 +314,31 @@ def video_source(path: str, rate_hz: float) -> FrameSource:
     return FrameSource("video", path, np.arange(n) / rate, [f"frame {i}" for i in range(n)])
 
 
-def dataset_source(path: str) -> FrameSource:
-    """A sequence-mode generate folder: times, truth and scenario from the labels and the manifest."""
-    from envisat_pose.datagen.dataset import iter_samples, load_manifest, verify_dataset
+def dataset_source(path: str, skip_damaged: bool = False) -> FrameSource:
+    """A sequence-mode generate folder: times, truth and scenario from the labels and the manifest; its shards
+    checked against the manifest (shard_reader.checked_shards: a damaged one refused, or left out with
+    skip_damaged: its frames are then missing from the sequence, the times say where)."""
+    from envisat_pose.datagen.dataset import iter_samples, load_manifest
+    from envisat_pose.shard_reader import checked_shards
 
     manifest = load_manifest(path)
     cfg = manifest.get("config", {})
     if cfg.get("mode") != "sequence":
         raise InputError(f"--images {path!r}: a generate folder of mode {cfg.get('mode')!r}; expected one written "
                          "with --mode sequence (frames in time order)")
-    problems = verify_dataset(path)
-    if problems:
-        raise InputError(f"--images {path!r}: {problems[0]} (`envisat dataset verify` lists all)")
+    if not manifest.get("complete"):
+        raise InputError(f"--images {path!r}: an unfinished dataset (run `envisat generate` on it again to finish it)")
+    files, skipped = checked_shards(path, skip_damaged, "--images")
     t, names, x, uv, inf = [], [], [], [], []
-    for key, label, _ in iter_samples(path):
+    for key, label, _ in iter_samples(files):
         t.append(float(label["scene"]["t_s"]))
         names.append(key)
         x.append(label["x"])
         uv.append(label["corners_px"])
         inf.append(np.asarray(label["in_frame"], bool) & np.asarray(label["visible"], bool))
     truth = {"x": np.array(x, float), "corners_px": np.array(uv, float), "in_frame": np.array(inf)}
-    return FrameSource("dataset", path, np.array(t), names, truth=truth, scenario=cfg.get("scenario"))
+    return FrameSource("dataset", path, np.array(t), names, truth=truth, scenario=cfg.get("scenario"), files=files,
+                       skipped=skipped)
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -166,7 +166,9 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     wall_s = time.perf_counter() - wall0
     x_true = truth["x"] if truth is not None else np.full((T, 12), np.nan)
     config_json = json.dumps({"track": to_dict(cfg), "source": {"kind": source.kind, "path": source.path,
-                                                                "bit_depth": source.bit_depth}}, sort_keys=True)
+                                                                "bit_depth": source.bit_depth,
+                                                                "skipped_damaged_shards": source.skipped}},
+                             sort_keys=True)
     det_cfg = json.dumps({"weights": cfg.weights, "source": source.path}, sort_keys=True)
     det_names = tuple(k for k in DET_KEYS if k != "skipped")
     scores = score_run_files(source.t_s, x_true, [run_dir], paths, config_json, det_cfg, score=truth is not None,
@@ -180,7 +182,8 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     dof = int(np.sum(col["nis_dof"]))
     counts = status_counts(status)
     summary = {
-        "source": {"kind": source.kind, "path": source.path, "frames": T, "bit_depth": source.bit_depth},
+        "source": {"kind": source.kind, "path": source.path, "frames": T, "bit_depth": source.bit_depth,
+                   "skipped_damaged_shards": source.skipped},
         "weights": cfg.weights,
         "frames_by_status": counts,
         "tracked": counts["tracking"] > 0,

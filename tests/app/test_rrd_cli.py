@@ -150,5 +150,7 @@ def test_bad_rrd_path_fails_before_work(tmp_path, capsys, verb):
     assert main(verb + out + ["--rrd", str(tmp_path / "x.txt"), "--quiet"]) == 2
     assert "--rrd" in capsys.readouterr().err
     assert os.listdir(tmp_path) == []
-    assert main(verb + out + ["--rrd", str(tmp_path / "missing" / "x.rrd"), "--quiet"]) == 2
-    assert os.listdir(tmp_path) == []
+    (tmp_path / "file").write_text("x")  # a missing folder is made (issue 41); a file where one must be is refused
+    assert main(verb + out + ["--rrd", str(tmp_path / "file" / "x.rrd"), "--quiet"]) == 2
+    assert "--rrd" in capsys.readouterr().err
+    assert os.listdir(tmp_path) == ["file"]
