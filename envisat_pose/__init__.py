@@ -9,6 +9,7 @@ The public API, imported on first use (so `import envisat_pose` loads nothing he
 - the closed loop: `RunConfig`, `run_closed_loop` (envisat_pose.pipelines.closed_loop); a user's frames:
   `TrackConfig`, `open_source`, `track_frames` (envisat_pose.pipelines.track);
 - campaigns: `MonteCarloConfig`, `run_campaign` (envisat_pose.pipelines.campaign);
+- the detector: `TrainConfig` (envisat_pose.perception.train), `train_detector` (envisat_pose.pipelines.train);
 - the state's layout: `envisat_pose.state`.
 """
 
@@ -24,6 +25,7 @@ _PUBLIC = {
     "TrackConfig": "envisat_pose.pipelines.track", "open_source": "envisat_pose.pipelines.track",
     "track_frames": "envisat_pose.pipelines.track",
     "MonteCarloConfig": "envisat_pose.pipelines.campaign", "run_campaign": "envisat_pose.pipelines.campaign",
+    "TrainConfig": "envisat_pose.perception.train", "train_detector": "envisat_pose.pipelines.train",
 }
 __all__ = sorted(_PUBLIC)
 
