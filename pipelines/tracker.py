@@ -215,15 +215,16 @@ class Tracker:
         t_fit = time.perf_counter() - t0
         timing = {"detection": t_det, "filtering": t_fit}
         if self.state is not None:
-            return self._estimate(t_s, fd, 0, measured, np.zeros(8, bool), None, False, tuple(events), timing,
-                                  status="acquiring")
+            return self._estimate(t_s, fd=fd, naming=0, measured=measured, rejected=np.zeros(8, bool), roi=None,
+                                  converged=False, events=tuple(events), timing=timing, status="acquiring")
         P = np.diag(np.repeat(np.square(ACQUIRING_SIGMA), 3))
         x = self.last_pose if self.last_pose is not None else np.full(N_STATE, np.nan)
         if self.last_pose is None:
             P = np.full((N_STATE, N_STATE), np.nan)
-        return TrackEstimate(t_s, "acquiring", x.copy(), P, np.zeros((0, N_STATE)), np.zeros(0), fd,
-                             0 if measured.any() else -1, measured, np.zeros(8, bool), 0.0, 0, None, False,
-                             tuple(events), timing)
+        return TrackEstimate(t_s=t_s, status="acquiring", x_hat=x.copy(), P=P, hypotheses=np.zeros((0, N_STATE)),
+                             probabilities=np.zeros(0), detection=fd, naming=0 if measured.any() else -1,
+                             measured=measured, rejected=np.zeros(8, bool), nis=0.0, nis_dof=0, roi_px=None,
+                             converged=False, events=tuple(events), timing_s=timing)
 
     def _cold_start(self) -> list[str]:
         """Every naming of the aligned window fitted (the detector's and its renaming by each of the box's three
@@ -320,9 +321,11 @@ class Tracker:
         if not (np.isfinite(prior[0][best]).all() and np.isfinite(prior[1][best]).all()):
             # a prediction gone non-finite (a long gap through a bad state): the track is lost, acquire again
             fd = None if image is None else self._detect(image)[0]
-            est = TrackEstimate(t_s, "lost", np.full(N_STATE, np.nan), np.full((N_STATE, N_STATE), np.nan),
-                                np.zeros((0, N_STATE)), np.zeros(0), fd, -1, np.zeros(8, bool), np.zeros(8, bool),
-                                0.0, 0, None, False, ("lost: the prediction is not finite",), {})
+            est = TrackEstimate(t_s=t_s, status="lost", x_hat=np.full(N_STATE, np.nan),
+                                P=np.full((N_STATE, N_STATE), np.nan), hypotheses=np.zeros((0, N_STATE)),
+                                probabilities=np.zeros(0), detection=fd, naming=-1, measured=np.zeros(8, bool),
+                                rejected=np.zeros(8, bool), nis=0.0, nis_dof=0, roi_px=None, converged=False,
+                                events=("lost: the prediction is not finite",), timing_s={})
             self._reset()
             return est
         pos_sig, att_sig = pose_sigmas(prior[1][best])
@@ -479,15 +482,16 @@ class Tracker:
         y = z[h] - mu
         return np.einsum("ki,ki->k", y, np.linalg.solve(Pzz, y[..., None])[..., 0])
 
-    def _estimate(self, t_s, fd, naming, measured, rejected, roi, converged, events, timing, status,
+    def _estimate(self, t_s, *, fd, naming, measured, rejected, roi, converged, events, timing, status,
                   nis=0.0, nis_dof=0) -> TrackEstimate:
         """The best hypothesis' state as a TrackEstimate (the bank as it stands after this frame)."""
         best = int(np.argmax(self.log_w))
         P = range_consider(self.state.mean[best], self.state.cov[best], self.scale_sigma)
-        return TrackEstimate(t_s, status, self.state.mean[best].copy(), P,
-                             self.state.mean.copy(), self.probabilities, fd, naming, np.asarray(measured, bool),
-                             np.asarray(rejected, bool), nis, nis_dof, roi, converged, events, timing,
-                             self.confirmed, self.coasting_frames)
+        return TrackEstimate(t_s=t_s, status=status, x_hat=self.state.mean[best].copy(), P=P,
+                             hypotheses=self.state.mean.copy(), probabilities=self.probabilities, detection=fd,
+                             naming=naming, measured=np.asarray(measured, bool), rejected=np.asarray(rejected, bool),
+                             nis=nis, nis_dof=nis_dof, roi_px=roi, converged=converged, events=events,
+                             timing_s=timing, confirmed=self.confirmed, coasting_frames=self.coasting_frames)
 
     @classmethod
     def from_scenario(cls, scenario: str = "default", weights: str | None = None, **kw) -> "Tracker":

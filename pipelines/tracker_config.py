@@ -237,9 +237,9 @@ class TrackerConfig:
         check(self.max_speed_m_s > 0, f"{p}max_speed_m_s", self.max_speed_m_s, "a positive speed in m/s")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class TrackEstimate:
-    """What the tracker says after one frame.
+    """What the tracker says after one frame (built by keywords only).
 
     t_s: frame time, s. status: one of envisat_pose.status.STATUSES ("tracking" only when the frame's evidence
     backs it: pipelines/integrity.py). x_hat (12,): the best hypothesis' state (rho_C_m, rhodot_C_m_s,

@@ -675,3 +675,11 @@ def test_a_burst_beyond_the_detectors_own_covariance_is_gated_with_gate_raw(trut
     assert out[True][0] >= 20 and out[True][1] >= 0.9 * out[True][0], out
     assert out[False][1] <= 0.5 * out[False][0], out  # the inflated gate let most through
     assert out[True][2] < 0.7 * out[False][2], out
+
+
+def test_a_track_estimate_is_built_by_keywords_only():
+    """16 fields in a row are too many to place by position: a positional TrackEstimate is refused."""
+    from envisat_pose.pipelines.tracker import TrackEstimate
+
+    with pytest.raises(TypeError):
+        TrackEstimate(0.0, "acquiring")
