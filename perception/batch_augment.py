@@ -41,6 +41,8 @@ RESAMPLE_CHUNK = 32
 # the pairs of corners (i < j) in data.line_targets' order, and which are box edges
 PAIRS = [(i, j) for i in range(8) for j in range(i + 1, 8)]
 EDGE_SET = {tuple(sorted(e)) for e in EDGES}
+BLUR_SIGMA_MAX = 1.8  # data.augment_style's largest blur
+BLUR_KSIZE_MAX = round(BLUR_SIGMA_MAX * 8 + 1) | 1  # cv2's kernel size for it (float images)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -86,6 +88,13 @@ def crop_boxes(corners_px: torch.Tensor, usable: torch.Tensor, image_hw: tuple[i
     return box
 
 
+def max_crop_side(image_hw: tuple[int, int], cfg: DataConfig) -> int:
+    """A bound on crop_boxes' sides for an image of image_hw: the whole frame, or the margin and the largest scale
+    jitter over the usable corners' extent (within the frame, at least 16 px; the box at least 32 px)."""
+    extent = max(*image_hw, 16)  # in-frame corners span at most the frame
+    return max(extent, 32, math.ceil(extent * cfg.crop_margin * math.exp(cfg.crop_scale_jitter)) + 1)
+
+
 def to_input_px(points_px: torch.Tensor, box: torch.Tensor, out_px: int) -> torch.Tensor:
     """data.to_input_px for a batch, in float64 with the same operations: full-image px (N, P, 2) -> input px
     of each sample's crop box (N, 3)."""
@@ -98,55 +107,66 @@ def to_input_px(points_px: torch.Tensor, box: torch.Tensor, out_px: int) -> torc
 # Crop and resize
 
 
-def area_weights(origin: torch.Tensor, side: torch.Tensor, length: int, out_px: int) -> torch.Tensor:
-    """cv2.INTER_AREA along one axis, for crops that shrink (side >= out_px): (N, out_px, length) float32,
-    row j the overlap of each frame pixel with [j r, (j + 1) r) of the crop (r = side / out_px), over r.
-    origin (N,), side (N,) int64: the crop's first pixel and size on this axis (frame pixels outside: none)."""
-    dev = origin.device
-    c = torch.arange(length, device=dev, dtype=torch.float64)[None, None, :] - origin[:, None, None]
+def area_taps(origin: torch.Tensor, side: torch.Tensor, out_px: int, taps: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """cv2.INTER_AREA along one axis, for crops that shrink (side >= out_px): output j averages the crop's
+    [j r, (j + 1) r) (r = side / out_px), each pixel weighted by its overlap over r. Returns the frame pixel
+    (N, out_px, T) int64 and weight (N, out_px, T) float32 of each of its `taps` >= ceil(r) + 1 taps. origin (N,),
+    side (N,) int64: the crop's first pixel and size on this axis."""
     r = (side.to(torch.float64) / out_px)[:, None, None]
-    j = torch.arange(out_px, device=dev, dtype=torch.float64)[None, :, None]
+    j = torch.arange(out_px, device=origin.device, dtype=torch.float64)[None, :, None]
+    c = torch.floor(j * r) + torch.arange(taps, device=origin.device, dtype=torch.float64)[None, None, :]
     overlap = torch.minimum(c + 1, (j + 1) * r) - torch.maximum(c, j * r)
-    return (overlap.clamp(min=0) / r).to(torch.float32)
+    return (c + origin[:, None, None]).to(torch.int64), (overlap.clamp(min=0) / r).to(torch.float32)
 
 
-def linear_weights(origin: torch.Tensor, side: torch.Tensor, length: int, out_px: int) -> torch.Tensor:
-    """cv2.INTER_LINEAR along one axis, for crops that grow (side < out_px): (N, out_px, length) float32,
-    source x = (j + 0.5) side / out_px - 0.5 in the crop, its two neighbours weighted 1 - t and t, the crop's
-    edge pixels repeated beyond it (cv2's border), frame pixels outside the frame contributing zero."""
-    dev = origin.device
+def linear_taps(origin: torch.Tensor, side: torch.Tensor, out_px: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """cv2.INTER_LINEAR along one axis, for crops that grow (side < out_px): source x = (j + 0.5) side / out_px - 0.5
+    in the crop, its two neighbours weighted 1 - t and t, the crop's edge pixels repeated beyond it (cv2's
+    border). Returns frame pixels and weights (N, out_px, 2) as area_taps."""
     d = side.to(torch.float64)[:, None]
-    fx = (torch.arange(out_px, device=dev, dtype=torch.float64)[None, :] + 0.5) * d / out_px - 0.5
+    fx = (torch.arange(out_px, device=origin.device, dtype=torch.float64)[None, :] + 0.5) * d / out_px - 0.5
     sx = torch.floor(fx)
     t = fx - sx
     low, high = sx < 0, sx >= d - 1
     t = torch.where(low | high, torch.zeros_like(t), t)
     sx = torch.where(low, torch.zeros_like(sx), torch.where(high, d - 1, sx))
-    i0 = (sx + origin.to(torch.float64)[:, None])[..., None]  # frame pixel of the left neighbour (N, S, 1)
-    i1 = i0 + torch.where(high, 0.0, 1.0)[..., None]
-    pix = torch.arange(length, device=dev, dtype=torch.float64)[None, None, :]
-    return ((1 - t)[..., None] * (pix == i0) + t[..., None] * (pix == i1)).to(torch.float32)
+    i0 = sx + origin.to(torch.float64)[:, None]
+    i1 = i0 + torch.where(high, 0.0, 1.0)  # the weight there is 0 where clamped
+    return torch.stack([i0, i1], -1).to(torch.int64), torch.stack([1 - t, t], -1).to(torch.float32)
 
 
-def axis_weights(origin: torch.Tensor, side: torch.Tensor, length: int, out_px: int) -> torch.Tensor:
-    """The resampling matrix of one axis (N, out_px, length): area weights where the crop shrinks, bilinear where
-    it grows (data.crop_resize's choice)."""
-    shrink = (side >= out_px)[:, None, None]
-    return torch.where(shrink, area_weights(origin, side, length, out_px),
-                       linear_weights(origin, side, length, out_px))
+def axis_weights(origin: torch.Tensor, side: torch.Tensor, length: int, out_px: int, max_side: int) -> torch.Tensor:
+    """The resampling matrix of one axis (N, out_px, length) float32: area weights where the crop shrinks,
+    bilinear where it grows (data.crop_resize's choice); frame pixels outside the frame contribute zero (the
+    crop's zero padding). Built from each output's taps (the additions are exact: distinct pixels, or a 0);
+    max_side bounds the sides (the tap count, fixed so that nothing waits for the device)."""
+    shrink = side >= out_px
+    taps = max(2, -(-int(max_side) // out_px) + 1)
+    ia, wa = area_taps(origin, torch.where(shrink, side, torch.full_like(side, out_px)), out_px, taps)
+    il, wl = linear_taps(origin, side, out_px)
+    il = torch.cat([il, il[..., :1].expand(-1, -1, taps - 2)], -1)
+    wl = torch.cat([wl, torch.zeros_like(wl[..., :1]).expand(-1, -1, taps - 2)], -1)
+    idx = torch.where(shrink[:, None, None], ia, il)
+    wt = torch.where(shrink[:, None, None], wa, wl)
+    inside = (idx >= 0) & (idx < length)
+    wt = torch.where(inside, wt, torch.zeros_like(wt))
+    m = torch.zeros((len(side), out_px, length), dtype=torch.float32, device=origin.device)
+    return m.scatter_add_(2, idx.clamp(0, length - 1), wt)
 
 
 def crop_resize(frames: torch.Tensor, frame_of_sample: torch.Tensor, box: torch.Tensor, out_px: int,
-                quantize: bool = True) -> torch.Tensor:
+                quantize: bool = True, max_side: int | None = None) -> torch.Tensor:
     """data.crop_resize for a batch: (N, out_px, out_px) float32 gray levels, sample n the square box (x0, y0, side)
     of frame frame_of_sample[n] (zeros outside the frame) resized to out_px; rounded to whole levels (what cv2
-    gives on uint8) unless quantize is False. frames (B, H, W) uint8 or float levels."""
+    gives on uint8) unless quantize is False. frames (B, H, W) uint8 or float levels. max_side: a bound on the
+    boxes' sides (max_crop_side; None: read from box, which waits for the device)."""
     _, h, w = frames.shape
+    max_side = int(box[:, 2].max()) if max_side is None else max_side
     out = []
     for a in range(0, len(box), RESAMPLE_CHUNK):
         b = box[a:a + RESAMPLE_CHUNK]
-        wy = axis_weights(b[:, 1], b[:, 2], h, out_px)
-        wx = axis_weights(b[:, 0], b[:, 2], w, out_px)
+        wy = axis_weights(b[:, 1], b[:, 2], h, out_px, max_side)
+        wx = axis_weights(b[:, 0], b[:, 2], w, out_px, max_side)
         f = frames[frame_of_sample[a:a + RESAMPLE_CHUNK]].to(torch.float32)
         out.append(torch.bmm(torch.bmm(wy, f), wx.transpose(1, 2)))
     x = torch.cat(out)
@@ -174,7 +194,7 @@ def draw_style_params(n: int, out_px: int, generator: torch.Generator) -> dict[s
     p = {"on_gain": flag(0.8), "gain": u(0.5, 1.6), "offset": u(-0.08, 0.08),
          "on_contrast": flag(0.5), "contrast": u(0.6, 1.4),
          "on_gamma": flag(0.5), "gamma": u(0.6, 1.6),
-         "on_blur": flag(0.4), "blur_sigma": u(0.3, 1.8),
+         "on_blur": flag(0.4), "blur_sigma": u(0.3, BLUR_SIGMA_MAX),
          "on_glare": flag(0.3), "glare_centre": u(0, out_px, (n, 2)), "glare_size": u(0.03, 0.3, (n, 2)) * out_px,
          "glare_amp": u(0.2, 0.9),
          "on_erase": flag(0.3)}
@@ -188,10 +208,9 @@ def draw_style_params(n: int, out_px: int, generator: torch.Generator) -> dict[s
 
 def gaussian_kernels(sigma: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
     """cv2.GaussianBlur's 1-D kernels for float images (size round(8 sigma + 1) | 1, normalized), centred in
-    a common odd size (N, K) float32; a unit impulse where `on` is False (no blur)."""
+    a common odd size (N, BLUR_KSIZE_MAX) float32; a unit impulse where `on` is False (no blur)."""
     ksize = torch.bitwise_or(torch.round(sigma * 8 + 1).to(torch.int64), 1)
-    kmax = int(ksize.max()) if len(ksize) else 1
-    r = (kmax - 1) // 2
+    r = (BLUR_KSIZE_MAX - 1) // 2  # a fixed size: nothing waits for the device
     x = torch.arange(-r, r + 1, dtype=torch.float64, device=sigma.device)[None, :]
     k = torch.exp(-x ** 2 / (2 * sigma[:, None] ** 2)) * (x.abs() <= ((ksize - 1) // 2)[:, None])
     k = k / k.sum(1, keepdim=True)
@@ -279,15 +298,22 @@ def encode_junctions(points_px: torch.Tensor, valid: torch.Tensor, jtypes: torch
     same = (c[:, :, None, :] == c[:, None, :, :]).all(-1) & mark[:, None, :]
     later = torch.triu(torch.ones(npt, npt, dtype=torch.bool, device=dev), diagonal=1)
     keep = mark & ~(same & later).any(-1)
-    bi, pi = torch.nonzero(keep, as_tuple=True)
-    col, row = c[bi, pi, 0], c[bi, pi, 1]
-    jmap[bi, jt[pi], row, col] = 1.0
-    joff = torch.zeros((n, 2, h, w), dtype=torch.float32, device=dev)
-    off = (u[bi, pi] - c[bi, pi].to(torch.float64)).to(torch.float32)  # (M, 2) x, y
-    joff[bi, 0, row, col] = off[:, 0]
-    joff[bi, 1, row, col] = off[:, 1]
-    jmask = torch.zeros((n, h, w), dtype=torch.float32, device=dev)
-    jmask[bi, row, col] = 1.0
+    # written through flat indices with one spare cell for the junctions not kept (no nonzero: nothing waits for
+    # the device; the kept ones are distinct cells, so every write is determined)
+    cell = torch.where(keep, c[..., 1] * w + c[..., 0], torch.full_like(c[..., 0], h * w))  # (N, P)
+    flat = jmap.reshape(n, N_JTYPES * h * w)
+    spare = torch.zeros((n, 1), dtype=torch.float32, device=dev)
+    peak = torch.cat([flat, spare], 1)
+    target = torch.where(keep, jt[None, :] * h * w + cell, N_JTYPES * h * w)
+    peak.scatter_(1, target, torch.ones_like(cell, dtype=torch.float32))
+    jmap = peak[:, :-1].reshape(n, N_JTYPES, h, w)
+    off = (u - c.to(torch.float64)).to(torch.float32)  # (N, P, 2) x, y
+    joff = torch.zeros((n, 2, h * w + 1), dtype=torch.float32, device=dev)
+    joff.scatter_(2, cell[:, None, :].expand(n, 2, npt), off.transpose(1, 2))
+    joff = joff[..., :-1].reshape(n, 2, h, w)
+    jmask = torch.zeros((n, h * w + 1), dtype=torch.float32, device=dev)
+    jmask.scatter_(1, cell, torch.ones_like(cell, dtype=torch.float32))
+    jmask = jmask[:, :-1].reshape(n, h, w)
     return {"jmap": jmap, "joff": joff, "jmask": jmask}
 
 
@@ -350,11 +376,12 @@ def batch_from_boxes(frames: torch.Tensor, corners_px: torch.Tensor, visible: to
     """The batch of the crop boxes `box` (N, 3) int64 of frames frame_of_sample (N,): the keys of make_sample
     stacked (data.py's module doc): image (N, 1, S, S), jmap (N, 4, S/s, S/s), joff (N, 2, ., .), jmask (N, ., .),
     corners_px (N, 8, 2) input px, valid (N, 8) bool, segments_px (N, L, 2, 2), line_label (N, L),
-    line_weight (N, L), crop_px (N, 3) float32. style: augment_style's draws, None for none."""
+    line_weight (N, L), crop_px (N, 3) float32. style: augment_style's draws, None for none. The sides must not
+    exceed max_crop_side (crop_boxes' never do): the resampling's tap count is fixed by it."""
     s = cfg.input_px
     fs = frame_of_sample.to(frames.device)
     box = box.to(frames.device)
-    x = crop_resize(frames, fs, box, s, quantize=True) / 255.0
+    x = crop_resize(frames, fs, box, s, True, max_crop_side(tuple(frames.shape[1:]), cfg)) / 255.0
     if style is not None:
         x = augment_style(x, style)
     corners = corners_px[fs].to(torch.float64)
