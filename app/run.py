@@ -104,7 +104,7 @@ def resolve_config(args: argparse.Namespace):
     before any work."""
     flags = {"duration_s": args.duration_s, "runs": args.runs, "seed": args.seed, "weights": args.weights,
              "workers": args.workers, "warm_start": True if args.warm_start else None,
-             "tracker.roi": False if args.no_roi else None}
+             "tracker.roi.enabled": False if args.no_roi else None}
     return run_config(args.scenario, flags, args.config)
 
 

@@ -78,7 +78,7 @@ def track_cli(args: argparse.Namespace) -> int:
     cfg = resolve_config(args, args.scenario or source.scenario or "default")
     camera, remap = camera_from_intrinsics(args.camera) if args.camera else (None, None)
     size = None if camera is None else (camera.width_px, camera.height_px)
-    pixels = scan_source(source, size, min_frames=cfg.tracker.acquire_frames, progress=not args.quiet)
+    pixels = scan_source(source, size, min_frames=cfg.tracker.acquire.frames, progress=not args.quiet)
     if camera is None:
         camera = load_camera(size_px=source.size_px)
     make_out_dir(args.out)

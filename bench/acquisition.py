@@ -172,7 +172,7 @@ def main() -> None:
     ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
     ap.add_argument("--sun-phase-max-deg", type=float, help="a lit sun's largest phase angle (default: trials')")
     ap.add_argument("--config", help="a run-config TOML applied to every trial, as `envisat run --config` takes it "
-                                     "(an ablation: [tracker] acquire_frames = 12, say); its text goes into the result")
+                                     "(an ablation: [tracker.acquire] frames = 12, say); its text goes into the result")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "acquisition.json"))
     args = ap.parse_args()
     from envisat_pose.app.run import default_weights_path

@@ -40,7 +40,7 @@ def closed_loop(weights: str, duration_s: float, roi: bool, seed: int, out_dir: 
     from envisat_pose.pipelines import closed_loop as loop
 
     cfg = run_config("default", {"duration_s": duration_s, "weights": weights, "seed": seed, "workers": 1,
-                                 "threads": cores, "warm_start": True, "tracker.roi": roi})
+                                 "threads": cores, "warm_start": True, "tracker.roi.enabled": roi})
     t0 = time.perf_counter()
     summary = loop.run_closed_loop(cfg, out_dir, progress=False)
     summary["bench_wall_s"] = time.perf_counter() - t0

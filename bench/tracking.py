@@ -54,7 +54,7 @@ def run_config(scenario: str, seed: int, weights: str, duration_s: float | None,
 
     stage_types()
     flags = {"seed": seed, "runs": 1, "workers": 1, "weights": weights, "duration_s": duration_s,
-             "tracker.correlation_in": correlation_in}
+             "tracker.noise.correlation_in": correlation_in}
     cfg = resolve_job_config(RunConfig, run_defaults(scenario), config_path, flags)
     sun = scenario_sun_N(scenario, cfg.duration_s, cfg.rate_hz, seed, sun_phase_max_deg)
     if sun is not None:
@@ -202,9 +202,9 @@ def main() -> None:
     ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
     ap.add_argument("--sun-phase-max-deg", type=float, help="a lit sun's largest phase angle (default: trials')")
     ap.add_argument("--correlation-in", choices=("slower", "rotation", "time"),
-                    help="the tracker's correlation_in (default: TrackerConfig's, pipelines/tracker.py)")
+                    help="the tracker's noise.correlation_in (default: NoiseConfig's, pipelines/tracker_config.py)")
     ap.add_argument("--config", help="a run-config TOML applied to every run, as `envisat run --config` takes it "
-                                     "(an ablation: [tracker] acquire_frames = 12, say); its text goes into the result")
+                                     "(an ablation: [tracker.acquire] frames = 12, say); its text goes into the result")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "tracking.json"))
     args = ap.parse_args()
     from envisat_pose.app.run import default_weights_path
@@ -227,7 +227,7 @@ def main() -> None:
               "protocol": f"envisat run (cold start), {len(seeds)} seeds per scenario ({seeds[0]}..{seeds[-1]}), "
                           f"each its own random attitude, camera noise and lit sun (phase <= {phase:g} deg, no "
                           f"shadow; eclipse: its own sun); duration: {args.duration_s or 'each scenario'}"
-                          f"{' s' if args.duration_s else ''}; tracker.correlation_in "
+                          f"{' s' if args.duration_s else ''}; tracker.noise.correlation_in "
                           f"{args.correlation_in or 'default'}; the tracker gets the exact chaser orbit and the "
                           f"render camera",
               "config": None if args.config is None else Path(args.config).read_text(),

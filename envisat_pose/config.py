@@ -24,6 +24,18 @@ class ConfigError(ValueError):
         super().__init__(f"{field} = {value!r}: expected {expected}")
 
 
+class MovedKeyError(ConfigError):
+    """A key of an older layout of a config: one line naming it and its new home ('tracker.gate_raw: moved to
+    tracker.gate.raw')."""
+
+    def __init__(self, field: str, value: Any, new_field: str):
+        super().__init__(field, value, f"the key {new_field}")
+        self.args = (f"{field}: moved to {new_field}",)
+
+    def __str__(self) -> str:
+        return self.args[0]
+
+
 class InputError(ValueError):
     """A user error that is not about one config field (a missing or unreadable file, say)."""
 
@@ -106,9 +118,12 @@ def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
     """Build the dataclass `cls` from `data` over its defaults; validates types, then `validate()`."""
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
+    moved = getattr(cls, "moved_keys", {})  # {old key: "section.key"} of a config that was regrouped
     for key in data:
+        where = f"{prefix}.{key}" if prefix else key
+        if key in moved and not isinstance(data[key], dict):
+            raise MovedKeyError(where, data[key], f"{prefix}.{moved[key]}" if prefix else moved[key])
         if key not in names:
-            where = f"{prefix}.{key}" if prefix else key
             raise ConfigError(where, data[key], "a known key: " + ", ".join(sorted(names)))
     kwargs = {}
     for f in dataclasses.fields(cls):

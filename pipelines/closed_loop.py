@@ -239,7 +239,7 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
     config_json = json.dumps({"run": to_dict(cfg), "truth_source": {"scenario": cfg.scenario},
                               "truth_config": truth.config}, sort_keys=True)
     det_cfg = json.dumps({"weights": cfg.weights, "run": 0, "scenario": cfg.scenario, "seed": cfg.seed,
-                          "roi": cfg.tracker.roi}, sort_keys=True)
+                          "roi": cfg.tracker.roi.enabled}, sort_keys=True)
     scores = score_run_files(truth.t_s, truth.x, run_dirs, paths, config_json, det_cfg)
     write_run_files(paths, truth.t_s, truth.x, run_dirs, lost_runs(run_dirs, T), config_json,
                     [f"frame-{k:06d}" for k in range(T)], det_cfg,
@@ -255,7 +255,7 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
     frames_sum = float(timing_sum.sum()) / R  # one run's wall time in the stages
     r0 = results[0]
     summary = {
-        "scenario": cfg.scenario, "runs": R, "frames": T, "duration_s": cfg.duration_s, "roi": cfg.tracker.roi,
+        "scenario": cfg.scenario, "runs": R, "frames": T, "duration_s": cfg.duration_s, "roi": cfg.tracker.roi.enabled,
         "weights": cfg.weights, "start": "warm" if cfg.warm_start else "cold",
         "resolution_px": cfg.image.resolution_px,
         "scores": scores,

@@ -3,19 +3,21 @@
 No truth: every test reads what the tracker itself has, the filter's state and covariance, its innovations and
 the corners it was given, used and rejected.
 
+The bounds are TrackerConfig.integrity's (IntegrityConfig: `window`, `prob`, ...), passed in as `cfg`.
+
 - A cold-start fit starts a hypothesis only if it kept most of its window's corners (`fit_problems`: the fit's
   gate rejected no more than a correct fit would at `expected_reject_share`, and the kept ones are at least
-  `acquire_min_corners` per frame on average), its reduced chi-square is inside its chi-square bound and its state
+  `acquire.min_corners` per frame on average), its reduced chi-square is inside its chi-square bound and its state
   is physical (`state_problems`).
-- Each hypothesis carries a window of its last `integrity_window` frames (`EvidenceWindow`): the NIS and its
+- Each hypothesis carries a window of its last `window` frames (`EvidenceWindow`): the NIS and its
   degrees of freedom, the corners given to the filter and those rejected. Every frame, a hypothesis fails when its
-  windowed NIS exceeds its bound at `integrity_prob` (nis_window_bound: the chi-square of the window's degrees of
+  windowed NIS exceeds its bound at `prob` (nis_window_bound: the chi-square of the window's degrees of
   freedom, dispersed by the detector's frame-to-frame correlation), when the gate rejected more of the corners it
   was given over the window than a correct track would at `expected_reject_share` (a binomial tail below
-  `integrity_prob`), or when its state is not physical. A failed hypothesis is dropped; the track is lost when none is left.
+  `prob`), or when its state is not physical. A failed hypothesis is dropped; the track is lost when none is left.
 - A state is physical when the target's centre is in front of the camera, farther than the box's own radius
   (the camera cannot be inside the target) and near enough for the image to show the box
-  (`TrackerConfig.min_target_px`), its rate and speed inside the configured bounds, its covariance positive
+  (`IntegrityConfig.min_target_px`), its rate and speed inside the configured bounds, its covariance positive
   definite and its position and attitude sigmas inside `lost_pos_sigma_share` x range and `lost_att_sigma_deg`.
 - A claim at the tracking accuracy (`claim_holds`): the 3-sigma position within `claim_pos_share` of the range and
   the 3-sigma attitude within `claim_att_deg` (the same tolerances a benchmark scores a false lock by).
@@ -49,7 +51,7 @@ def target_radius_m(corners_T_m: np.ndarray) -> float:
 
 def state_problems(x: np.ndarray, P: np.ndarray, camera: PinholeCamera, radius_m: float, cfg) -> list[str]:
     """Why the state x (12,) with covariance P (12, 12) is not a physical track (empty when it is). cfg: the
-    TrackerConfig (min_target_px, max_rate_deg_s, max_speed_m_s, lost_pos_sigma_share, lost_att_sigma_deg)."""
+    IntegrityConfig (min_target_px, max_rate_deg_s, max_speed_m_s, lost_pos_sigma_share, lost_att_sigma_deg)."""
     from envisat_pose.filtering.measurements import to_camera_K
 
     if not (np.isfinite(x).all() and np.isfinite(P).all()):
@@ -90,20 +92,22 @@ def claim_holds(x: np.ndarray, P: np.ndarray, cfg) -> bool:
 
 def rejections_improbable(rejected: int, given: int, cfg) -> float | None:
     """The probability of rejecting at least `rejected` of `given` corners when each is rejected with the
-    expected share cfg.expected_reject_share (a binomial tail), where that tail is below cfg.integrity_prob;
+    expected share cfg.expected_reject_share (a binomial tail), where that tail is below cfg.prob (cfg: the
+    IntegrityConfig);
     None where the rejections are as a correct track makes them."""
     from scipy.stats import binom
 
     if given <= 0 or rejected <= 0:
         return None
     p = float(binom.sf(rejected - 1, given, cfg.expected_reject_share))
-    return p if p < cfg.integrity_prob else None
+    return p if p < cfg.prob else None
 
 
-def fit_problems(fit, frames: int, cfg) -> list[str]:
+def fit_problems(fit, frames: int, cfg, min_corners: int) -> list[str]:
     """Why a cold-start BatchFit (pipelines/acquisition.py) over `frames` frames starts no hypothesis (empty when
-    it may): not valid, more corners rejected than a correct fit would (rejections_improbable), too few kept, a
-    chi-square beyond its bound."""
+    it may): not valid, more corners rejected than a correct fit would (rejections_improbable), fewer than
+    min_corners (AcquireConfig.min_corners) kept a frame on average, a chi-square beyond its bound at cfg.prob
+    (cfg: the IntegrityConfig)."""
     if not fit.valid:
         return ["the fit has no positive-definite covariance"]
     kept = int(np.sum(fit.used))
@@ -113,10 +117,10 @@ def fit_problems(fit, frames: int, cfg) -> list[str]:
     if p is not None:
         out.append(f"the fit rejected {fit.rejected} of {measured} corners (p = {p:.1g} at the expected "
                    f"{cfg.expected_reject_share:.0%})")
-    if kept < cfg.acquire_min_corners * frames:
-        out.append(f"the fit kept {kept / frames:.1f} corners a frame (at least {cfg.acquire_min_corners})")
-    if fit.dof > 0 and fit.chi2 > chi2_bound(cfg.integrity_prob, int(fit.dof)):
-        out.append(f"the fit's chi-square {fit.chi2:.0f} beyond its bound {chi2_bound(cfg.integrity_prob, int(fit.dof)):.0f} "
+    if kept < min_corners * frames:
+        out.append(f"the fit kept {kept / frames:.1f} corners a frame (at least {min_corners})")
+    if fit.dof > 0 and fit.chi2 > chi2_bound(cfg.prob, int(fit.dof)):
+        out.append(f"the fit's chi-square {fit.chi2:.0f} beyond its bound {chi2_bound(cfg.prob, int(fit.dof)):.0f} "
                    f"({fit.dof} dof)")
     return out
 
@@ -176,14 +180,14 @@ def nis_window_bound(prob: float, dof: int, kappa: float = 1.0) -> float:
 
 def window_problems(win: EvidenceWindow, cfg, kappa: float = 1.0) -> list[list[str]]:
     """Per hypothesis, why its window contradicts it (empty lists where it does not): the windowed NIS beyond
-    its bound at cfg.integrity_prob (nis_window_bound, kappa the frames' correlation), or more of the corners
+    its bound at cfg.prob (nis_window_bound, kappa the frames' correlation), or more of the corners
     given rejected than a correct track would (rejections_improbable)."""
     out = []
     for h in range(win.nis.shape[0]):
         p = []
         d = int(win.dof[h].sum())
         if d > 0:
-            bound = nis_window_bound(cfg.integrity_prob, d, kappa)
+            bound = nis_window_bound(cfg.prob, d, kappa)
             if win.nis[h].sum() > bound:
                 p.append(f"innovations inconsistent: windowed NIS {win.nis[h].sum():.0f} beyond {bound:.0f} "
                          f"({d} dof)")

@@ -13,24 +13,24 @@ cold. Whatever starts a bank, it claims "tracking" only once its own evidence ba
 
 Statuses (envisat_pose/status.py), per frame:
 - "acquiring": no claim. Either no bank yet: each lit frame's named corners give a PnP pose
-  (pipelines/acquisition.py); once `acquire_frames` frames with a pose are buffered (a gap longer than `max_gap_s`
-  restarts the buffer), the window is aligned to one naming and a hypothesis per naming (that one and its
+  (pipelines/acquisition.py); once `acquire.frames` frames with a pose are buffered (a gap longer than
+  `acquire.max_gap_s` restarts the buffer), the window is aligned to one naming and a hypothesis per naming (that one and its
   renaming by each of the box's three half-turns) is batch-fitted with the filter's dynamics; a fit starts a
   hypothesis only if it passes its integrity tests (it kept most of its window's corners, its chi-square is
   inside its bound, its state is physical: pipelines/integrity.py); when none does the older half of the window
   is dropped and acquisition goes on. Or a bank runs but has not yet
-  earned a claim: its half-turn is still open, or it has not yet passed `confirm_frames` frames with corners used
-  and a covariance inside the claim.
+  earned a claim: its half-turn is still open, or it has not yet passed `integrity.confirm_frames` frames with
+  corners used and a covariance inside the claim.
 - "tracking": the bank is decided (one hypothesis) and confirmed, this frame used corners, and the covariance backs
-  the claim (3-sigma within `claim_pos_share` of the range and `claim_att_deg`).
+  the claim (3-sigma within `integrity.claim_pos_share` of the range and `integrity.claim_att_deg`).
 - "coasting": the confirmed bank predicts without a usable measurement (no image, nothing found, every corner
   rejected) or its covariance is wider than the claim (after an outage). A prediction, never a fix.
 - "lost": the evidence contradicted the state this frame: every hypothesis failed its integrity tests (windowed
   NIS beyond its chi-square bound, too many corners rejected, a state that is not physical, an innovation
-  covariance that is not positive definite, the filter's divergence monitor), or `lost_after_frames` frames in a
-  row with an image used no corner. The bank is dropped and the tracker acquires again from the images.
+  covariance that is not positive definite, the filter's divergence monitor), or `integrity.lost_after_frames`
+  frames in a row with an image used no corner. The bank is dropped and the tracker acquires again from the images.
 Each frame every hypothesis takes the naming nearest its predicted corners and the bank is updated at once
-(pipelines/bank.py); a hypothesis below 1 - `decided` is dropped, and so is one that fails its integrity tests.
+(pipelines/bank.py); a hypothesis below 1 - `bank.decided` is dropped, and so is one that fails its integrity tests.
 Once the best prior is tight the detector looks only in the predicted region of interest, with the predicted pose
 as its naming's start and half-turn prior when one hypothesis is left.
 
@@ -38,7 +38,7 @@ The filter's R is the detector's calibrated covariance at the error model's scal
 frame-to-frame correlation at the filter's own memory (pipelines/noise.py). The detector's mean apparent scale
 (measured on held-out sequences) is undone in every frame's corners; what a run's own scale leaves (the spread
 between looks, x range) is added to the reported variance along the line of sight, never to the gain
-(noise.range_consider, TrackerConfig.range_floor and correct_scale).
+(noise.range_consider, TrackerConfig.noise.range_floor and correct_scale).
 """
 
 from __future__ import annotations
@@ -63,16 +63,17 @@ from envisat_pose.pipelines.integrity import (EvidenceWindow, claim_holds, fit_p
 from envisat_pose.pipelines.noise import (correlation_inflation, detection_measurement, detector_error_model,
                                           filter_memory, nis_sum_dispersion, range_consider, scale_sigma,
                                           sequence_scale, window_memory)
-from envisat_pose.pipelines.tracker_config import ACQUIRING_SIGMA, TRACKER_FILTER, TrackerConfig, TrackEstimate
+from envisat_pose.pipelines.tracker_config import (ACQUIRING_SIGMA, TRACKER_FILTER, RoiConfig, TrackerConfig,
+                                                   TrackEstimate)
 from envisat_pose.state import MRP, N_STATE, POS, RATE
 from envisat_pose.status import STATUSES
 
 __all__ = ["Tracker", "TrackerConfig", "TrackEstimate", "TRACKER_FILTER", "STATUSES", "predicted_roi"]
 
 
-def predicted_roi(mean: np.ndarray, cov: np.ndarray, camera: PinholeCamera, cfg: TrackerConfig) -> np.ndarray | None:
+def predicted_roi(mean: np.ndarray, cov: np.ndarray, camera: PinholeCamera, cfg: RoiConfig) -> np.ndarray | None:
     """The detector's region of interest (x0, y0, side) px from a prior (12,), (12, 12): the predicted corners'
-    extent x roi_margin plus 6 x the prior's position sigma in pixels; None when no corner is predicted in view."""
+    extent x cfg.margin plus 6 x the prior's position sigma in pixels; None when no corner is predicted in view."""
     from envisat_pose.filtering.measurements import measure
 
     uv = measure(mean[None], "pixels", camera)[0]
@@ -83,7 +84,7 @@ def predicted_roi(mean: np.ndarray, cov: np.ndarray, camera: PinholeCamera, cfg:
         return None
     lo, hi = uv.min(axis=0), uv.max(axis=0)
     sigma_px = camera.f_px * pose_sigmas(cov)[0] / max(float(np.linalg.norm(mean[POS])), 1.0)
-    side = max(float(np.max(hi - lo)) * cfg.roi_margin + 6.0 * sigma_px, float(cfg.roi_min_side_px))
+    side = max(float(np.max(hi - lo)) * cfg.margin + 6.0 * sigma_px, float(cfg.min_side_px))
     side = int(np.ceil(min(side, 2.0 * max(w, h))))
     x0, y0 = np.round((lo + hi) / 2 - side / 2).astype(int)
     return np.array([x0, y0, side], dtype=np.int64)
@@ -103,7 +104,8 @@ class Tracker:
         from envisat_pose.pipelines.build import tracker_filter  # only the fields given override the tracker's
         fcfg = tracker_filter(filter_config)
         q = fcfg.q_sigma
-        self.fcfg = dataclasses.replace(fcfg, q_sigma=tuple(max(a, b) for a, b in zip(q, config.detector_q_sigma)))
+        q_detector = config.noise.detector_q_sigma
+        self.fcfg = dataclasses.replace(fcfg, q_sigma=tuple(max(a, b) for a, b in zip(q, q_detector)))
         self.fcfg.validate()
         self.camera = camera
         self.detector = detector
@@ -117,10 +119,11 @@ class Tracker:
         self.radius_m = target_radius_m(self.corners_T_m)
         self.error_model = detector_error_model(detector)
         self.cov_factor = sequence_scale(self.error_model, detector)
-        self.bias_scale = self.error_model.bias_scale if config.correct_scale else 1.0
+        self.bias_scale = self.error_model.bias_scale if config.noise.correct_scale else 1.0
         # the range error no frame averages away (noise.scale_sigma), in the reported covariance (range_consider)
-        self.scale_sigma = scale_sigma(self.error_model, config.correct_scale) if config.range_floor else 0.0
-        self.memory = window_memory(config.acquire_frames)  # until the filter's first update
+        self.scale_sigma = scale_sigma(self.error_model, config.noise.correct_scale) if config.noise.range_floor \
+            else 0.0
+        self.memory = window_memory(config.acquire.frames)  # until the filter's first update
         self.dt_s = 0.0  # the last frame interval, s
         self.rate_rad_s: float | None = None  # the tracked |w_r| (the view's rotation rate), rad/s; None acquiring
         self.state: FilterState | None = None
@@ -147,14 +150,14 @@ class Tracker:
     @property
     def log_w(self) -> np.ndarray:
         """(H,) the hypotheses' log weights: their fits' and innovations' log-likelihood plus the detector's
-        appearance and the array cue, each relative to its best and never below -appearance_max_log and
-        -array_cue_max_log (module docstring)."""
+        appearance and the array cue, each relative to its best and never below -bank.appearance_max_log and
+        -array_cue.max_log (module docstring)."""
         if not self.log_app.size:
             return self.log_dyn
         app = self.log_app - np.max(self.log_app)
         arr = self.log_array - np.max(self.log_array)
-        return self.log_dyn + np.maximum(app, -self.cfg.appearance_max_log) \
-            + np.maximum(arr, -self.cfg.array_cue_max_log)
+        return self.log_dyn + np.maximum(app, -self.cfg.bank.appearance_max_log) \
+            + np.maximum(arr, -self.cfg.array_cue.max_log)
 
     @property
     def probabilities(self) -> np.ndarray:
@@ -163,7 +166,7 @@ class Tracker:
     @property
     def gate_bound(self) -> float:
         """The filter's chi-square gate per corner (the cost of a corner it rejects)."""
-        return self.setup.gate_threshold if self.setup.gate_threshold is not None else self.cfg.fit_gate
+        return self.setup.gate_threshold if self.setup.gate_threshold is not None else self.cfg.fit.gate
 
     # ------------------------------------------------------------------ the step
 
@@ -183,8 +186,8 @@ class Tracker:
     def inflation(self) -> float:
         """The factor on the detector's covariance this frame: the sequences' scale times correlation_inflation
         at the filter's memory."""
-        return self.cov_factor * correlation_inflation(self.error_model, self.cfg.correlation_model, self.memory,
-                                                       self.dt_s, self.rate_rad_s, self.cfg.correlation_in)
+        return self.cov_factor * correlation_inflation(self.error_model, self.cfg.noise.correlation_model, self.memory,
+                                                       self.dt_s, self.rate_rad_s, self.cfg.noise.correlation_in)
 
     def _detect(self, image, roi=None, R_prior=None, t_prior=None, weigh_namings=True):
         t0 = time.perf_counter()
@@ -204,13 +207,13 @@ class Tracker:
         if fd is not None:
             z, cov, p_alt = detection_measurement(fd, self.inflation, self.bias_scale)
             measured = np.isfinite(z).all(-1)
-            x_pnp = pnp_state(z, self.corners_T_m, self.camera, self.cfg.acquire_min_corners)
+            x_pnp = pnp_state(z, self.corners_T_m, self.camera, self.cfg.acquire.min_corners)
             if x_pnp is not None:
-                if self.buffer and t_s - self.buffer[-1].t_s > self.cfg.max_gap_s:
+                if self.buffer and t_s - self.buffer[-1].t_s > self.cfg.acquire.max_gap_s:
                     self.buffer = []
                 self.buffer.append(FramePose(t_s, self.chaser_at(t_s), z, cov, p_alt, x_pnp))
                 self.last_pose = x_pnp
-        if len(self.buffer) >= self.cfg.acquire_frames:
+        if len(self.buffer) >= self.cfg.acquire.frames:
             events += self._cold_start()
         t_fit = time.perf_counter() - t0
         timing = {"detection": t_det, "filtering": t_fit}
@@ -237,23 +240,23 @@ class Tracker:
         frames, _ = align_namings(self.buffer)
         guess = initial_guess(frames)
         fits = [batch_fit(renamed_window(frames, h), naming_state(guess, h), self.chaser_at, self.camera, self.dyn,
-                          self.cfg.fit_iterations, self.cfg.fit_huber, self.cfg.fit_gate)
+                          self.cfg.fit.iterations, self.cfg.fit.huber, self.cfg.fit.gate)
                 for h in range(len(NAMINGS))]
 
         def cost(f: BatchFit) -> float:
-            return f.chi2 + self.cfg.fit_gate * f.rejected
+            return f.chi2 + self.cfg.fit.gate * f.rejected
 
         log_dyn = np.array([-0.5 * cost(f) for f in fits])
-        log_app = appearance_log_likelihood(frames, self.cfg.appearance_clip) / self.cfg.appearance_frames
-        problems = [fit_problems(f, len(frames), self.cfg) for f in fits]
-        problems = [p or state_problems(f.x, f.P, self.camera, self.radius_m, self.cfg)
+        log_app = appearance_log_likelihood(frames, self.cfg.bank.appearance_clip) / self.cfg.bank.appearance_frames
+        problems = [fit_problems(f, len(frames), self.cfg.integrity, self.cfg.acquire.min_corners) for f in fits]
+        problems = [p or state_problems(f.x, f.P, self.camera, self.radius_m, self.cfg.integrity)
                     for p, f in zip(problems, fits)]
         ok = np.array([not p for p in problems])
         if not ok.any():
             self.buffer = self.buffer[len(self.buffer) // 2:]
             return [f"cold start refused: {'; '.join(problems[0])}"]
         self.buffer = []
-        P = np.stack([f.P for f in fits])[ok] * self.cfg.start_cov_factor
+        P = np.stack([f.P for f in fits])[ok] * self.cfg.acquire.start_cov_factor
         self._start(np.stack([f.x for f in fits])[ok], P, fits[0].t_s, log_dyn[ok], log_app[ok])
         return ["started"]
 
@@ -263,17 +266,17 @@ class Tracker:
         self.log_dyn, self.log_app, self.log_array = np.zeros(0), np.zeros(0), np.zeros(0)
         self.evidence, self.confirmed = None, False
         self.array_against = 0
-        self.memory = window_memory(self.cfg.acquire_frames)
+        self.memory = window_memory(self.cfg.acquire.frames)
         self.rate_rad_s = None
 
     def _start(self, x: np.ndarray, P: np.ndarray, t0: float, log_dyn: np.ndarray, log_app: np.ndarray) -> None:
         self.state = init_state(x, P, t0, self.chaser_at(t0), self.fcfg)
         self.log_dyn, self.log_app = log_dyn - np.max(log_dyn), log_app - np.max(log_app)
         self.log_array = np.zeros(len(log_dyn))
-        self.evidence = EvidenceWindow.empty(len(log_dyn), self.cfg.integrity_window)
+        self.evidence = EvidenceWindow.empty(len(log_dyn), self.cfg.integrity.window)
         self.confirmed = False
         self.coasting_frames = 0
-        self._keep(self.probabilities >= 1.0 - self.cfg.decided)
+        self._keep(self.probabilities >= 1.0 - self.cfg.bank.decided)
 
     def _keep(self, keep: np.ndarray) -> bool:
         """Keep the hypotheses `keep` (H,) bool of the bank (at least one); True when any was dropped."""
@@ -292,21 +295,22 @@ class Tracker:
     def _look(self, image, prior, best: int, converged: bool):
         """Detect in this frame with the bank's prediction: the region of interest once converged, the predicted
         pose as the naming's start and half-turn prior when one hypothesis is left. Returns (fd, roi, t_det)."""
-        roi = predicted_roi(prior[0][best], prior[1][best], self.camera, self.cfg) \
-            if self.cfg.roi and converged else None
+        roi = predicted_roi(prior[0][best], prior[1][best], self.camera, self.cfg.roi) \
+            if self.cfg.roi.enabled and converged else None
         R_prior = t_prior = None
         decided = prior[0].shape[0] == 1
         # one hypothesis: its attitude weighs the detector's half-turn and its pose seeds the naming; twins still
         # open: the best one's pose only seeds the naming (they are one physical pose, their corners the same
         # points under other names), the half-turn's probability comes from the image alone, never from the
         # prior it is to test
-        if converged and self.cfg.prior_attitude and (decided or (self.cfg.prior_pose and self.cfg.prior_pose_twins)):
+        rc = self.cfg.roi
+        if converged and rc.prior_attitude and (decided or (rc.prior_pose and rc.prior_pose_twins)):
             R_K, t_K = self._pose_K(prior[0][best])
             R_prior = R_K
-            if self.cfg.prior_pose:
+            if rc.prior_pose:
                 t_prior = t_K
         fd, t_det = self._detect(image, roi, R_prior, t_prior, decided)
-        if roi is not None and int(np.sum(fd.visible)) < self.cfg.roi_min_corners:
+        if roi is not None and int(np.sum(fd.visible)) < rc.min_corners:
             fd, t2 = self._detect(image, None, R_prior, t_prior, decided)
             t_det += t2
             roi = None
@@ -330,7 +334,8 @@ class Tracker:
             return est
         pos_sig, att_sig = pose_sigmas(prior[1][best])
         self.rate_rad_s = float(np.linalg.norm(prior[0][best, RATE]))  # the view's rotation rate, predicted
-        converged = bool(pos_sig < self.cfg.converged_pos_sigma_m and att_sig < self.cfg.converged_att_sigma_deg)
+        converged = bool(pos_sig < self.cfg.roi.converged_pos_sigma_m
+                         and att_sig < self.cfg.roi.converged_att_sigma_deg)
         H = self.state.mean.shape[0]
         z = np.full((H, 8, 2), np.nan)
         cov = np.broadcast_to(np.eye(2), (H, 8, 2, 2)).copy()
@@ -343,13 +348,14 @@ class Tracker:
             zd, cd, p_alt = detection_measurement(fd, self.inflation, self.bias_scale)
             if np.isfinite(zd).all(-1).any():
                 z, cov, namings, appearance = choose_namings(zd, cd, p_alt, self.setup.hx(prior[0]),
-                                                             self.cfg.appearance_clip, self.cfg.appearance_frames)
+                                                             self.cfg.bank.appearance_clip,
+                                                             self.cfg.bank.appearance_frames)
             t_filter += time.perf_counter() - t1
         t1 = time.perf_counter()
         mask = np.isfinite(z).all(-1)
         seen = mask.any(-1)
-        pre = np.zeros(mask.shape, bool)  # corners gated against the detector's own covariance (cfg.gate_raw)
-        if self.cfg.gate_raw and self.setup.gate_threshold is not None and mask.any():
+        pre = np.zeros(mask.shape, bool)  # corners gated against the detector's own covariance (cfg.gate.raw)
+        if self.cfg.gate.raw and self.setup.gate_threshold is not None and mask.any():
             raw = cov * (self.cov_factor / self.inflation)
             pre = np.stack([mask[h] & (self._corner_d2(prior, np.nan_to_num(z), raw, h) > self.setup.gate_threshold)
                             for h in range(H)])
@@ -358,7 +364,7 @@ class Tracker:
         new = filter_step(self.state, Measurement(t_s, chaser, np.nan_to_num(z), mask, cov), self.setup, prior=prior)
         used = new.dof > 0
         n_pre = pre.sum(-1)
-        if frame_discriminates(new.nis, new.dof, self.cfg.evidence_prob):
+        if frame_discriminates(new.nis, new.dof, self.cfg.bank.evidence_prob):
             cost = update_cost(new, self.gate_bound) + self.gate_bound * n_pre
             self.log_dyn = self.log_dyn + np.where(seen, -0.5 * cost, 0.0)
         elif H > 1:
@@ -380,12 +386,12 @@ class Tracker:
                    converged=converged, nis=float(new.nis[b]), nis_dof=int(new.dof[b]))
         # integrity: every hypothesis against its own evidence; a failed one is dropped, none left is lost
         problems = self._problems(new)
-        if H == 1 and self.array_against >= self.cfg.array_lost_readings:
+        if H == 1 and self.array_against >= self.cfg.array_cue.lost_readings:
             problems[0].append(f"the image shows the solar array at the other end of the body ({self.array_against} "
                                "readings in a row)")
         if image is not None:
             self.coasting_frames = 0 if used[b] else self.coasting_frames + 1
-        if self.coasting_frames >= self.cfg.lost_after_frames:
+        if self.coasting_frames >= self.cfg.integrity.lost_after_frames:
             # the bank's, not one hypothesis's: dropping the best alone would hand its twin the claim by
             # elimination, with no evidence for it (a 20 m acquisition trial claimed a 180-deg twin for 55 s so)
             for p in problems:
@@ -401,7 +407,7 @@ class Tracker:
             events += [f"hypothesis dropped: {'; '.join(p)}" for p in problems if p]
             self.log_dyn = np.where(failed, -np.inf, self.log_dyn)
             self._keep(~failed)
-        if self._keep(self.probabilities >= 1.0 - self.cfg.decided):
+        if self._keep(self.probabilities >= 1.0 - self.cfg.bank.decided):
             events.append("hypothesis decided")
         status = self._claim(events)  # may add "confirmed" to the events
         return self._estimate(t_s, events=tuple(events), status=status, timing=timing, **out)
@@ -419,28 +425,28 @@ class Tracker:
         abstention leaves it). Nothing when the cue is off or the open hypotheses all put the array at one end."""
         H = x_prior.shape[0]
         both_ends = H > 1 and not same_array_end(x_prior, x_prior[best]).all()
-        if not self.cfg.array_cue or not (both_ends or H == 1):
+        if not self.cfg.array_cue.enabled or not (both_ends or H == 1):
             return
         from envisat_pose.perception.arraycue import array_end
 
         cue, _ = array_end(image, self.camera.K, *self._pose_K(x_prior[best]), self.corners_T_m)
         if both_ends:
             self.log_array = self.log_array + array_log_likelihood(cue, x_prior, x_prior[best],
-                                                                   self.cfg.array_cue_per_frame)
+                                                                   self.cfg.array_cue.per_frame)
         elif cue:
             self.array_against = self.array_against + 1 if cue < 0 else 0
 
     def _problems(self, new: FilterState) -> list[list[str]]:
         """Per hypothesis, why this frame's evidence contradicts it (integrity.py); empty where it does not."""
-        kappa = nis_sum_dispersion(self.error_model, self.dt_s, self.cfg.integrity_window, self.rate_rad_s,
-                                   self.cfg.correlation_in)
-        problems = window_problems(self.evidence, self.cfg, kappa)
+        kappa = nis_sum_dispersion(self.error_model, self.dt_s, self.cfg.integrity.window, self.rate_rad_s,
+                                   self.cfg.noise.correlation_in)
+        problems = window_problems(self.evidence, self.cfg.integrity, kappa)
         for h, p in enumerate(problems):
             if new.indefinite[h]:
                 p.insert(0, "innovation covariance not positive definite (the update failed)")
             elif new.diverged[h]:
                 p.insert(0, "the filter's windowed NIS beyond its bound (divergence monitor)")
-            p += state_problems(new.mean[h], new.cov[h], self.camera, self.radius_m, self.cfg)
+            p += state_problems(new.mean[h], new.cov[h], self.camera, self.radius_m, self.cfg.integrity)
         return problems
 
     def _claim(self, events: list[str]) -> str:
@@ -448,10 +454,10 @@ class Tracker:
         confirmed (events gains "confirmed" the frame it is), then "tracking" when it used corners and its
         covariance backs the claim, else "coasting"."""
         mean, cov = self.state.mean[0], self.state.cov[0]
-        backed = bool(self.state.dof[0] > 0) and claim_holds(mean, cov, self.cfg)
+        backed = bool(self.state.dof[0] > 0) and claim_holds(mean, cov, self.cfg.integrity)
         if not self.confirmed:
             if self.state.mean.shape[0] > 1 or not backed \
-                    or self.evidence.used_frames()[0] < self.cfg.confirm_frames:
+                    or self.evidence.used_frames()[0] < self.cfg.integrity.confirm_frames:
                 return "acquiring"
             self.confirmed = True
             events.append("confirmed")

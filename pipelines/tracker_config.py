@@ -1,9 +1,14 @@
-"""The tracker's types: its config (TrackerConfig), what it says after each frame (TrackEstimate), and the filter
-settings it starts from (TRACKER_FILTER)."""
+"""The tracker's types: its config (TrackerConfig, one section per component), what it says after each frame
+(TrackEstimate), and the filter settings it starts from (TRACKER_FILTER).
+
+In a TOML file the sections are tables under [tracker]: `[tracker.acquire]`, `[tracker.bank]`, `[tracker.fit]`,
+`[tracker.array_cue]`, `[tracker.roi]`, `[tracker.integrity]`, `[tracker.noise]`, `[tracker.gate]`. A key of the
+old flat layout directly under [tracker] is refused with one line naming its new home (MOVED_KEYS)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -19,12 +24,64 @@ ACQUIRING_SIGMA = (5.0, 1.0, 0.5, 0.1)
 TRACKER_FILTER = {"adaptive_r": True, "adaptive_r_bounds": (1.0, 100.0), "gate_lockout_steps": 1_000_000}
 
 
-@dataclass(frozen=True)
-class TrackerConfig:
-    """How the tracker uses the detector and the filter.
+def _dot(prefix: str) -> str:
+    return f"{prefix}." if prefix else ""
 
-    acquire_frames: lit frames with a PnP pose in the cold-start window; acquire_min_corners: named corners a
-    frame needs for a pose; max_gap_s: a longer gap between buffered frames restarts the window.
+
+@dataclass(frozen=True)
+class AcquireConfig:
+    """The cold start (pipelines/acquisition.py).
+
+    frames: lit frames with a PnP pose in the cold-start window; min_corners: named corners a frame needs for a
+    pose (and the corners a cold-start fit must keep per frame on average: integrity.fit_problems); max_gap_s: a
+    longer gap between buffered frames restarts the window.
+    start_cov_factor: the cold-start fit's covariance is multiplied by this when a bank starts. The window's
+    frames are fewer than the errors' correlation allows a fit to average (twenty frames against a 13 s
+    correlation time); without it the first ~30 s after a start were over-confident (NEES per block 10-30 of 3 on
+    slow-tumble seeds 0 and 7) while the state was right.
+    """
+
+    frames: int = 20
+    min_corners: int = 4
+    max_gap_s: float = 30.0
+    start_cov_factor: float = 4.0
+
+    def validate(self, prefix: str = "tracker.acquire") -> None:
+        p = _dot(prefix)
+        check(self.frames >= 3, f"{p}frames", self.frames, "at least 3 frames")
+        check(4 <= self.min_corners <= 8, f"{p}min_corners", self.min_corners, "4 to 8 corners")
+        check(self.max_gap_s > 0, f"{p}max_gap_s", self.max_gap_s, "a positive gap in s")
+        check(self.start_cov_factor >= 1.0, f"{p}start_cov_factor", self.start_cov_factor, "a factor >= 1")
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """The cold start's batch fit (acquisition.batch_fit).
+
+    iterations, huber (whitened px), gate_prob (the probability a corner's 2-dof chi-square passes the fit's
+    gate; `gate` the bound): the batch fit.
+    """
+
+    iterations: int = 15
+    huber: float = 3.0
+    gate_prob: float = GATE_PROB
+
+    @property
+    def gate(self) -> float:
+        """The batch fit's chi-square gate per corner (2 dof) at gate_prob (23.03 at the default)."""
+        return chi2_gate(self.gate_prob, 2)
+
+    def validate(self, prefix: str = "tracker.fit") -> None:
+        p = _dot(prefix)
+        check(self.iterations >= 1, f"{p}iterations", self.iterations, "at least 1")
+        check(self.huber > 0, f"{p}huber", self.huber, "a positive whitened residual")
+        check(0.5 < self.gate_prob < 1.0, f"{p}gate_prob", self.gate_prob, "a probability in (0.5, 1)")
+
+
+@dataclass(frozen=True)
+class BankConfig:
+    """The bank of half-turn hypotheses and the evidence between them (pipelines/bank.py).
+
     decided: a half-turn hypothesis whose probability exceeds this wins and the other is dropped.
     evidence_prob: a frame whose innovations every hypothesis finds beyond the chi-square bound at this tail
     probability adds nothing to their dynamics' log-likelihoods (bank.frame_discriminates): it contradicts them
@@ -40,51 +97,159 @@ class TrackerConfig:
     on a 30 m slow-tumble trial (bench/acquisition.py seed 0, the bin's fifth) it gave the wrong naming p = 0.95
     on 19 of 20 frames and then on every frame, and the bank decided for the wrong twin while the dynamics
     slightly favoured the truth (chi-square 35.7 against 37.4): 61 s claimed 180 deg off.
-    array_cue: weigh the twins by the half-turn about y or z by where the image shows the solar array
+    """
+
+    decided: float = 0.999
+    evidence_prob: float = 0.01
+    appearance_clip: float = 0.05
+    appearance_frames: float = 10.0
+    appearance_max_log: float = 3.0
+
+    def validate(self, prefix: str = "tracker.bank") -> None:
+        p = _dot(prefix)
+        check(0.5 < self.decided < 1.0, f"{p}decided", self.decided, "a probability in (0.5, 1)")
+        check(0.0 < self.evidence_prob < 0.5, f"{p}evidence_prob", self.evidence_prob, "a probability in (0, 0.5)")
+        check(0.0 < self.appearance_clip < 0.5, f"{p}appearance_clip", self.appearance_clip,
+              "a probability in (0, 0.5)")
+        check(self.appearance_max_log >= 0.0, f"{p}appearance_max_log", self.appearance_max_log,
+              "a non-negative log-likelihood (nats)")
+        check(self.appearance_frames >= 1.0, f"{p}appearance_frames", self.appearance_frames, "at least 1 frame")
+
+
+@dataclass(frozen=True)
+class ArrayCueConfig:
+    """The solar array cue (perception/arraycue.py, bank.array_log_likelihood).
+
+    enabled: weigh the twins by the half-turn about y or z by where the image shows the solar array
     (perception/arraycue.py; read under the best hypothesis' predicted pose once it is converged, while the bank
-    holds hypotheses at both ends): array_cue_per_frame nats a frame to the hypotheses at the end it shows, at
-    most array_cue_max_log (nats) between two hypotheses in all. Those twins put the corners where the truth does
-    and differ from it in the dynamics only by the signs of two small products of inertia (the y twin keeps Ixz,
-    the largest): on a slow tumble the bank kept the y twin near 4 % for 50 s after every other was decided (seed
-    1, 40 m slow tumble, trial 15: decided at 88 s). Measured under the true pose: 1619 frames read right, 0 wrong,
+    holds hypotheses at both ends): per_frame nats a frame to the hypotheses at the end it shows, at most
+    max_log (nats) between two hypotheses in all. Those twins put the corners where the truth does and differ
+    from it in the dynamics only by the signs of two small products of inertia (the y twin keeps Ixz, the
+    largest): on a slow tumble the bank kept the y twin near 4 % for 50 s after every other was decided (seed 1,
+    40 m slow tumble, trial 15: decided at 88 s). Measured under the true pose: 1619 frames read right, 0 wrong,
     1981 abstained on the 24 held-out loop sequences (4 scenarios x seeds 9001-9006, 150 frames each); 123 right,
     0 wrong, 177 abstained on 300 random views (seed 4242, the Earth behind the target in a third, where the cue
     abstains). Capped below the 6.9 nats a decision needs, so the dynamics and the detector's appearance must not
     contradict it. With one hypothesis left the cue is read every converged frame as an integrity test:
-    array_lost_readings readings in a row against it (abstentions between them allowed) lose the track (a
-    decided y or z twin would claim a pose 180 deg off while every corner fits).
-    fit_iterations, fit_huber (whitened px), fit_gate_prob (the probability a corner's 2-dof chi-square passes
-    the fit's gate; `fit_gate` the bound): the batch fit.
-    roi: look only in the predicted region of interest once converged; roi_margin: its side over the predicted
-    corners' extent (plus 6 x the prior's pixel sigma); roi_min_side_px; roi_min_corners: fewer corners found
-    there and the coarse pass runs again. converged_pos_sigma_m / converged_att_sigma_deg: the prior counts as
-    converged (ROI, attitude prior) below these. prior_attitude: give the detector the predicted attitude;
-    prior_pose: with it, the predicted position too, so its naming starts from the predicted pose instead of
-    searching every face hypothesis (half of the detector's time in the loop; the search still runs when the
-    predicted pose matches fewer than 4 corners). prior_pose_twins: while the bank still holds a pose and its
-    symmetric twins, the best one's predicted pose seeds the naming too, without weighing the half-turn (the
-    twins are one physical pose; the detector's half-turn probability stays the image's own). Without it the
-    detector searched every face on its own in those frames, and on near end-on views named four corners of one
-    face wrongly for several frames in a row; a young bank's window then held more rejections than a correct
-    track's and a correct start was lost (bench/acquisition.py seed 1, 30 m slow tumble, trial 5: started right
-    at 19 s, lost at 24 s with 12 of 21 corners rejected, tracking only from 81 s).
+    lost_readings readings in a row against it (abstentions between them allowed) lose the track (a decided y or
+    z twin would claim a pose 180 deg off while every corner fits).
+    """
+
+    enabled: bool = True
+    per_frame: float = 1.0
+    max_log: float = 6.0
+    lost_readings: int = 3
+
+    def validate(self, prefix: str = "tracker.array_cue") -> None:
+        p = _dot(prefix)
+        check(self.per_frame >= 0.0, f"{p}per_frame", self.per_frame, "a non-negative log-likelihood (nats)")
+        check(self.max_log >= 0.0, f"{p}max_log", self.max_log, "a non-negative log-likelihood (nats)")
+        check(self.lost_readings >= 1, f"{p}lost_readings", self.lost_readings, "at least 1 reading")
+
+
+@dataclass(frozen=True)
+class RoiConfig:
+    """The region of interest and the priors the detector is given (tracker.predicted_roi, Tracker._look).
+
+    enabled: look only in the predicted region of interest once converged; margin: its side over the predicted
+    corners' extent (plus 6 x the prior's pixel sigma); min_side_px; min_corners: fewer corners found there and
+    the coarse pass runs again. converged_pos_sigma_m / converged_att_sigma_deg: the prior counts as converged
+    (ROI, attitude prior) below these. prior_attitude: give the detector the predicted attitude; prior_pose: with
+    it, the predicted position too, so its naming starts from the predicted pose instead of searching every face
+    hypothesis (half of the detector's time in the loop; the search still runs when the predicted pose matches
+    fewer than 4 corners). prior_pose_twins: while the bank still holds a pose and its symmetric twins, the best
+    one's predicted pose seeds the naming too, without weighing the half-turn (the twins are one physical pose;
+    the detector's half-turn probability stays the image's own). Without it the detector searched every face on
+    its own in those frames, and on near end-on views named four corners of one face wrongly for several frames
+    in a row; a young bank's window then held more rejections than a correct track's and a correct start was
+    lost (bench/acquisition.py seed 1, 30 m slow tumble, trial 5: started right at 19 s, lost at 24 s with 12 of
+    21 corners rejected, tracking only from 81 s).
+    """
+
+    enabled: bool = True
+    margin: float = 1.4
+    min_side_px: int = 64
+    min_corners: int = 4
+    converged_pos_sigma_m: float = 0.2
+    converged_att_sigma_deg: float = 2.0
+    prior_attitude: bool = True
+    prior_pose: bool = True
+    prior_pose_twins: bool = True
+
+    def validate(self, prefix: str = "tracker.roi") -> None:
+        p = _dot(prefix)
+        check(self.margin >= 1.0, f"{p}margin", self.margin, "a factor >= 1")
+        check(16 <= self.min_side_px <= 4096, f"{p}min_side_px", self.min_side_px, "a side in [16, 4096] px")
+        check(1 <= self.min_corners <= 8, f"{p}min_corners", self.min_corners, "1 to 8 corners")
+        check(self.converged_pos_sigma_m > 0, f"{p}converged_pos_sigma_m", self.converged_pos_sigma_m,
+              "a positive sigma in m")
+        check(self.converged_att_sigma_deg > 0, f"{p}converged_att_sigma_deg", self.converged_att_sigma_deg,
+              "a positive sigma in deg")
+
+
+@dataclass(frozen=True)
+class IntegrityConfig:
+    """Integrity and loss (pipelines/integrity.py): the tests a hypothesis' own evidence must pass every frame,
+    the claim's bounds, and when a track is lost.
+
     lost_after_frames: frames in a row with an image and no corner used by the best hypothesis (coasting: nothing
-    found, or every corner rejected) that declare the track lost, every hypothesis of the bank with it. Frames without an image (eclipse, gaps) coast until the covariance
-    leaves the lost bounds below.
-    Integrity (pipelines/integrity.py): integrity_window frames of evidence per hypothesis (20: long enough that
-    a burst of a few frames of mis-named corners, which the gate rejects while the state stays right, does not
-    lose a correct track: with 8 frames, 4 such frames lost correct tracks at 0.06 deg and 6-8 cm on default
-    seed 7 and slow-tumble seed 4; a track that disagrees with the images for good still fails within ~5 frames); integrity_prob the
-    false-alarm probability of each test (the cold-start fit's chi-square, the windowed NIS, the rejections);
-    expected_reject_share: the share of the corners given that a correct track's gate rejects (the detector's
-    mis-named corners: 3-13 % on random views, fewer in the loop's region of interest with the predicted pose as
-    the naming's start), against which a window's rejections are tested (a binomial tail); confirm_frames frames
-    with corners used, after the half-turn is decided and with the claim's covariance, before a new bank claims
-    "tracking"; claim_pos_share (of the range) and claim_att_deg bound the 3-sigma position and attitude a
-    "tracking" frame claims (beyond them a running track reports "coasting"); lost_pos_sigma_share and
-    lost_att_sigma_deg bound the 1-sigma a track may reach before it is lost; min_target_px the smallest
-    apparent size of the box (twice its radius) the image can show, which bounds the range; max_rate_deg_s and
-    max_speed_m_s the tumble rate and relative speed a state may have.
+    found, or every corner rejected) that declare the track lost, every hypothesis of the bank with it. Frames
+    without an image (eclipse, gaps) coast until the covariance leaves the lost bounds below.
+    window: frames of evidence per hypothesis (20: long enough that a burst of a few frames of mis-named corners,
+    which the gate rejects while the state stays right, does not lose a correct track: with 8 frames, 4 such
+    frames lost correct tracks at 0.06 deg and 6-8 cm on default seed 7 and slow-tumble seed 4; a track that
+    disagrees with the images for good still fails within ~5 frames); prob: the false-alarm probability of each
+    test (the cold-start fit's chi-square, the windowed NIS, the rejections); expected_reject_share: the share of
+    the corners given that a correct track's gate rejects (the detector's mis-named corners: 3-13 % on random
+    views, fewer in the loop's region of interest with the predicted pose as the naming's start), against which a
+    window's rejections are tested (a binomial tail); confirm_frames frames with corners used, after the
+    half-turn is decided and with the claim's covariance, before a new bank claims "tracking"; claim_pos_share
+    (of the range) and claim_att_deg bound the 3-sigma position and attitude a "tracking" frame claims (beyond
+    them a running track reports "coasting"); lost_pos_sigma_share and lost_att_sigma_deg bound the 1-sigma a
+    track may reach before it is lost; min_target_px the smallest apparent size of the box (twice its radius) the
+    image can show, which bounds the range; max_rate_deg_s and max_speed_m_s the tumble rate and relative speed a
+    state may have.
+    """
+
+    lost_after_frames: int = 10
+    window: int = 20
+    prob: float = 1e-6
+    expected_reject_share: float = 0.1
+    confirm_frames: int = 5
+    claim_pos_share: float = 0.02
+    claim_att_deg: float = 5.0
+    lost_pos_sigma_share: float = 0.1
+    lost_att_sigma_deg: float = 20.0
+    min_target_px: float = 8.0
+    max_rate_deg_s: float = 30.0
+    max_speed_m_s: float = 5.0
+
+    def validate(self, prefix: str = "tracker.integrity") -> None:
+        p = _dot(prefix)
+        check(self.lost_after_frames >= 1, f"{p}lost_after_frames", self.lost_after_frames, "at least 1 frame")
+        check(self.window >= 2, f"{p}window", self.window, "at least 2 frames")
+        check(0.0 < self.prob < 0.5, f"{p}prob", self.prob, "a probability in (0, 0.5)")
+        check(0.0 < self.expected_reject_share < 1.0, f"{p}expected_reject_share", self.expected_reject_share,
+              "a share in (0, 1)")
+        check(1 <= self.confirm_frames <= self.window, f"{p}confirm_frames", self.confirm_frames,
+              f"1 to window ({self.window}) frames")
+        check(0.0 < self.claim_pos_share < self.lost_pos_sigma_share * 3.0, f"{p}claim_pos_share",
+              self.claim_pos_share, "a share of the range in (0, 3 x lost_pos_sigma_share)")
+        check(0.0 < self.claim_att_deg < 3.0 * self.lost_att_sigma_deg, f"{p}claim_att_deg", self.claim_att_deg,
+              "an angle in deg in (0, 3 x lost_att_sigma_deg)")
+        check(0.0 < self.lost_pos_sigma_share <= 1.0, f"{p}lost_pos_sigma_share", self.lost_pos_sigma_share,
+              "a share of the range in (0, 1]")
+        check(0.0 < self.lost_att_sigma_deg <= 90.0, f"{p}lost_att_sigma_deg", self.lost_att_sigma_deg,
+              "an angle in (0, 90] deg")
+        check(self.min_target_px > 0, f"{p}min_target_px", self.min_target_px, "a positive size in px")
+        check(self.max_rate_deg_s > 0, f"{p}max_rate_deg_s", self.max_rate_deg_s, "a positive rate in deg/s")
+        check(self.max_speed_m_s > 0, f"{p}max_speed_m_s", self.max_speed_m_s, "a positive speed in m/s")
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """The filter's R and process noise from the detector (pipelines/noise.py).
+
     correlation_model: how R allows for the errors' frame-to-frame correlation (module doc): "filter_memory",
     "long_memory" or "white".
     correlation_in: what the correlation falls with between frames (noise.ar1_at): "rotation" (default: the
@@ -115,17 +280,6 @@ class TrackerConfig:
     (NEES per block: position 4.4 and 3.6, velocity 5.1 and 3.7 of 3 on held-out slow-tumble seeds 20 and 21, the
     line of sight consistent): 3e-6 m/s brought those runs' mean NEES 19.6 -> 13.9 and 18.5 -> 9.2, default's
     14.7 -> 10.9 and 9.9 -> 6.4, at the same RMSE (1e-5: 12.8, 7.7, 9.7, 5.1).
-    start_cov_factor: the cold-start fit's covariance is multiplied by this when a bank starts. The window's
-    frames are fewer than the errors' correlation allows a fit to average (twenty frames against a 13 s
-    correlation time); without it the first ~30 s after a start were over-confident (NEES per block 10-30 of 3 on
-    slow-tumble seeds 0 and 7) while the state was right.
-    gate_raw: gate each corner against the detector's own covariance at the error model's scale (without the
-    correlation's inflation) plus the prior's spread, before the update; a corner beyond the gate is dropped and
-    counts as rejected. The inflation says how little a filter may average the errors, not how large one
-    frame's error may be: gated against the inflated R (x 5-8 at the filter's memory), corners the detector
-    placed 4-5 px off with a 0.5-0.9 px covariance passed for 15 frames (slow-tumble seed 0, 300 s) and pulled
-    the range 16 cm off (NEES above its 99.9 % quantile for 50 frames). Off by default: measured as an ablation
-    (docs/history.md).
     correct_scale: undo the detector's mean apparent scale (the error model's bias_scale) about the corners'
     centroid in every frame; what is left, a run's own scale about that mean (bias_scale_sd), stays in the
     reported covariance. The mean must be measured in the loop's regime (lit sequences of every scenario, the
@@ -134,107 +288,91 @@ class TrackerConfig:
     the former would have moved the range by +2.7 cm too far at 50 m.
     """
 
-    acquire_frames: int = 20
-    acquire_min_corners: int = 4
-    max_gap_s: float = 30.0
-    decided: float = 0.999
-    evidence_prob: float = 0.01
-    appearance_clip: float = 0.05
-    appearance_frames: float = 10.0
-    appearance_max_log: float = 3.0
-    array_cue: bool = True
-    array_cue_per_frame: float = 1.0
-    array_cue_max_log: float = 6.0
-    array_lost_readings: int = 3
-    fit_iterations: int = 15
-    fit_huber: float = 3.0
-    fit_gate_prob: float = GATE_PROB
-    roi: bool = True
-    roi_margin: float = 1.4
-    roi_min_side_px: int = 64
-    roi_min_corners: int = 4
-    converged_pos_sigma_m: float = 0.2
-    converged_att_sigma_deg: float = 2.0
-    prior_attitude: bool = True
-    prior_pose: bool = True
-    prior_pose_twins: bool = True
-    lost_after_frames: int = 10
-    correct_scale: bool = True
-    gate_raw: bool = False
-    detector_q_sigma: tuple[float, float, float, float] = (0.0, 3e-6, 1e-5, 3e-6)
-    start_cov_factor: float = 4.0
-    range_floor: bool = True
     correlation_model: str = "filter_memory"
     correlation_in: str = "rotation"
-    integrity_window: int = 20
-    integrity_prob: float = 1e-6
-    expected_reject_share: float = 0.1
-    confirm_frames: int = 5
-    claim_pos_share: float = 0.02
-    claim_att_deg: float = 5.0
-    lost_pos_sigma_share: float = 0.1
-    lost_att_sigma_deg: float = 20.0
-    min_target_px: float = 8.0
-    max_rate_deg_s: float = 30.0
-    max_speed_m_s: float = 5.0
+    range_floor: bool = True
+    detector_q_sigma: tuple[float, float, float, float] = (0.0, 3e-6, 1e-5, 3e-6)
+    correct_scale: bool = True
 
-    @property
-    def fit_gate(self) -> float:
-        """The batch fit's chi-square gate per corner (2 dof) at fit_gate_prob (23.03 at the default)."""
-        return chi2_gate(self.fit_gate_prob, 2)
-
-    def validate(self, prefix: str = "tracker") -> None:
-        p = f"{prefix}." if prefix else ""
-        check(self.acquire_frames >= 3, f"{p}acquire_frames", self.acquire_frames, "at least 3 frames")
-        check(4 <= self.acquire_min_corners <= 8, f"{p}acquire_min_corners", self.acquire_min_corners, "4 to 8 corners")
-        check(self.max_gap_s > 0, f"{p}max_gap_s", self.max_gap_s, "a positive gap in s")
-        check(0.5 < self.decided < 1.0, f"{p}decided", self.decided, "a probability in (0.5, 1)")
-        check(0.0 < self.evidence_prob < 0.5, f"{p}evidence_prob", self.evidence_prob, "a probability in (0, 0.5)")
-        check(0.0 < self.appearance_clip < 0.5, f"{p}appearance_clip", self.appearance_clip, "a probability in (0, 0.5)")
-        check(self.appearance_max_log >= 0.0, f"{p}appearance_max_log", self.appearance_max_log,
-              "a non-negative log-likelihood (nats)")
-        check(self.appearance_frames >= 1.0, f"{p}appearance_frames", self.appearance_frames, "at least 1 frame")
-        check(self.array_cue_per_frame >= 0.0, f"{p}array_cue_per_frame", self.array_cue_per_frame,
-              "a non-negative log-likelihood (nats)")
-        check(self.array_cue_max_log >= 0.0, f"{p}array_cue_max_log", self.array_cue_max_log,
-              "a non-negative log-likelihood (nats)")
-        check(self.array_lost_readings >= 1, f"{p}array_lost_readings", self.array_lost_readings, "at least 1 reading")
-        check(self.fit_iterations >= 1, f"{p}fit_iterations", self.fit_iterations, "at least 1")
-        check(self.fit_huber > 0, f"{p}fit_huber", self.fit_huber, "a positive whitened residual")
-        check(0.5 < self.fit_gate_prob < 1.0, f"{p}fit_gate_prob", self.fit_gate_prob, "a probability in (0.5, 1)")
-        check(self.roi_margin >= 1.0, f"{p}roi_margin", self.roi_margin, "a factor >= 1")
-        check(16 <= self.roi_min_side_px <= 4096, f"{p}roi_min_side_px", self.roi_min_side_px, "a side in [16, 4096] px")
-        check(1 <= self.roi_min_corners <= 8, f"{p}roi_min_corners", self.roi_min_corners, "1 to 8 corners")
-        check(self.converged_pos_sigma_m > 0, f"{p}converged_pos_sigma_m", self.converged_pos_sigma_m,
-              "a positive sigma in m")
-        check(self.converged_att_sigma_deg > 0, f"{p}converged_att_sigma_deg", self.converged_att_sigma_deg,
-              "a positive sigma in deg")
-        check(self.lost_after_frames >= 1, f"{p}lost_after_frames", self.lost_after_frames, "at least 1 frame")
+    def validate(self, prefix: str = "tracker.noise") -> None:
+        p = _dot(prefix)
         check(self.correlation_model in CORRELATION_MODELS, f"{p}correlation_model", self.correlation_model,
               f"one of {', '.join(CORRELATION_MODELS)}")
         check(self.correlation_in in CORRELATION_IN, f"{p}correlation_in", self.correlation_in,
               f"one of {', '.join(CORRELATION_IN)}")
-        check(self.integrity_window >= 2, f"{p}integrity_window", self.integrity_window, "at least 2 frames")
-        check(0.0 < self.integrity_prob < 0.5, f"{p}integrity_prob", self.integrity_prob, "a probability in (0, 0.5)")
-        check(0.0 < self.expected_reject_share < 1.0, f"{p}expected_reject_share", self.expected_reject_share,
-              "a share in (0, 1)")
-        check(1 <= self.confirm_frames <= self.integrity_window, f"{p}confirm_frames", self.confirm_frames,
-              f"1 to integrity_window ({self.integrity_window}) frames")
-        check(0.0 < self.claim_pos_share < self.lost_pos_sigma_share * 3.0, f"{p}claim_pos_share",
-              self.claim_pos_share, "a share of the range in (0, 3 x lost_pos_sigma_share)")
-        check(0.0 < self.claim_att_deg < 3.0 * self.lost_att_sigma_deg, f"{p}claim_att_deg", self.claim_att_deg,
-              "an angle in deg in (0, 3 x lost_att_sigma_deg)")
-        check(0.0 < self.lost_pos_sigma_share <= 1.0, f"{p}lost_pos_sigma_share", self.lost_pos_sigma_share,
-              "a share of the range in (0, 1]")
-        check(0.0 < self.lost_att_sigma_deg <= 90.0, f"{p}lost_att_sigma_deg", self.lost_att_sigma_deg,
-              "an angle in (0, 90] deg")
         check(len(self.detector_q_sigma) == 4 and all(q >= 0 for q in self.detector_q_sigma),
               f"{p}detector_q_sigma", list(self.detector_q_sigma),
               "four non-negative sigmas per sqrt(s), as filter.q_sigma (m, m/s, MRP, rad/s)")
-        check(self.start_cov_factor >= 1.0, f"{p}start_cov_factor", self.start_cov_factor, "a factor >= 1")
-        check(self.min_target_px > 0, f"{p}min_target_px", self.min_target_px, "a positive size in px")
-        check(self.max_rate_deg_s > 0, f"{p}max_rate_deg_s", self.max_rate_deg_s, "a positive rate in deg/s")
-        check(self.max_speed_m_s > 0, f"{p}max_speed_m_s", self.max_speed_m_s, "a positive speed in m/s")
+
+
+@dataclass(frozen=True)
+class GateConfig:
+    """Which covariance the tracker gates a corner against before the filter's update.
+
+    raw: gate each corner against the detector's own covariance at the error model's scale (without the
+    correlation's inflation) plus the prior's spread, before the update; a corner beyond the gate is dropped and
+    counts as rejected. The inflation says how little a filter may average the errors, not how large one
+    frame's error may be: gated against the inflated R (x 5-8 at the filter's memory), corners the detector
+    placed 4-5 px off with a 0.5-0.9 px covariance passed for 15 frames (slow-tumble seed 0, 300 s) and pulled
+    the range 16 cm off (NEES above its 99.9 % quantile for 50 frames). Off by default: measured as an ablation
+    (docs/history.md).
+    """
+
+    raw: bool = False
+
+    def validate(self, prefix: str = "tracker.gate") -> None:
+        pass
+
+
+SECTIONS = ("acquire", "fit", "bank", "array_cue", "roi", "integrity", "noise", "gate")
+# the flat layout's keys (before the sections) -> their section.key, for the one-line hint on an old file
+MOVED_KEYS = {
+    "acquire_frames": "acquire.frames", "acquire_min_corners": "acquire.min_corners",
+    "max_gap_s": "acquire.max_gap_s", "start_cov_factor": "acquire.start_cov_factor",
+    "fit_iterations": "fit.iterations", "fit_huber": "fit.huber", "fit_gate_prob": "fit.gate_prob",
+    "decided": "bank.decided", "evidence_prob": "bank.evidence_prob", "appearance_clip": "bank.appearance_clip",
+    "appearance_frames": "bank.appearance_frames", "appearance_max_log": "bank.appearance_max_log",
+    "array_cue": "array_cue.enabled", "array_cue_per_frame": "array_cue.per_frame",
+    "array_cue_max_log": "array_cue.max_log", "array_lost_readings": "array_cue.lost_readings",
+    "roi": "roi.enabled", "roi_margin": "roi.margin", "roi_min_side_px": "roi.min_side_px",
+    "roi_min_corners": "roi.min_corners", "converged_pos_sigma_m": "roi.converged_pos_sigma_m",
+    "converged_att_sigma_deg": "roi.converged_att_sigma_deg", "prior_attitude": "roi.prior_attitude",
+    "prior_pose": "roi.prior_pose", "prior_pose_twins": "roi.prior_pose_twins",
+    "lost_after_frames": "integrity.lost_after_frames", "integrity_window": "integrity.window",
+    "integrity_prob": "integrity.prob", "expected_reject_share": "integrity.expected_reject_share",
+    "confirm_frames": "integrity.confirm_frames", "claim_pos_share": "integrity.claim_pos_share",
+    "claim_att_deg": "integrity.claim_att_deg", "lost_pos_sigma_share": "integrity.lost_pos_sigma_share",
+    "lost_att_sigma_deg": "integrity.lost_att_sigma_deg", "min_target_px": "integrity.min_target_px",
+    "max_rate_deg_s": "integrity.max_rate_deg_s", "max_speed_m_s": "integrity.max_speed_m_s",
+    "correlation_model": "noise.correlation_model", "correlation_in": "noise.correlation_in",
+    "range_floor": "noise.range_floor", "detector_q_sigma": "noise.detector_q_sigma",
+    "correct_scale": "noise.correct_scale", "gate_raw": "gate.raw",
+}
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """How the tracker uses the detector and the filter, one frozen section per component (each documents its
+    fields and their measured justifications): acquire (the cold start's window), fit (its batch fit), bank (the
+    half-turn hypotheses and the evidence between them), array_cue (the solar array cue), roi (the region of
+    interest and the priors given to the detector), integrity (the tests of a hypothesis' evidence, the claim and
+    loss), noise (R and the process noise from the detector's error model), gate (what a corner is gated
+    against). In TOML: [tracker.acquire], [tracker.fit], ... (module docstring)."""
+
+    acquire: AcquireConfig = field(default_factory=AcquireConfig)
+    fit: FitConfig = field(default_factory=FitConfig)
+    bank: BankConfig = field(default_factory=BankConfig)
+    array_cue: ArrayCueConfig = field(default_factory=ArrayCueConfig)
+    roi: RoiConfig = field(default_factory=RoiConfig)
+    integrity: IntegrityConfig = field(default_factory=IntegrityConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    gate: GateConfig = field(default_factory=GateConfig)
+
+    moved_keys: ClassVar[dict[str, str]] = MOVED_KEYS  # config.from_dict's hint for a flat file's key
+
+    def validate(self, prefix: str = "tracker") -> None:
+        for name in SECTIONS:
+            getattr(self, name).validate(f"{_dot(prefix)}{name}")
 
 
 @dataclass(frozen=True, kw_only=True)

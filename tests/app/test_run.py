@@ -42,7 +42,8 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, ver
             assert key in z.files and len(z[key]) == T
         assert z["status"].tolist() == [0, 0, 0, 0, 1]
     cfg = tomllib.loads((out / "run.config.toml").read_text())
-    assert cfg["scenario"] == "default" and cfg["image"]["mode"] == "sequence" and cfg["tracker"]["roi"] is True
+    assert cfg["scenario"] == "default" and cfg["image"]["mode"] == "sequence"
+    assert cfg["tracker"]["roi"]["enabled"] is True
     assert json.loads((out / "summary.json").read_text())["frames"] == T == summary["frames"]
     from envisat_pose.app.view import recordings
 

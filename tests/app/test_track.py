@@ -110,7 +110,7 @@ def test_timestamps_and_a_video(png_dir, tmp_path, detector_weights):
         np.testing.assert_allclose(z["t_s"], 10.0 + 2 * np.arange(25))
     video = tmp_path / "seq.avi"
     w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 1.0, (1024, 1024), isColor=True)
-    for f in files[:20]:  # the cold start's minimum (TrackerConfig.acquire_frames)
+    for f in files[:20]:  # the cold start's minimum (TrackerConfig.acquire.frames)
         w.write(cv2.cvtColor(cv2.imread(str(sub / f), cv2.IMREAD_GRAYSCALE), cv2.COLOR_GRAY2BGR))
     w.release()
     out = tmp_path / "vid"

@@ -2,7 +2,7 @@
 flags that do not apply, camera files that make no sense, hidden files, too few frames, the odd frame named,
 --out in a missing folder, third-party messages off the terminal; outputs staged (an interrupt leaves an earlier
 run's outputs intact, a finished run removes stale ones); est.npz's status rows and the legend; plain summaries
-when nothing was tracked. Small synthetic frames (128 px noise) and acquire_frames = 3 keep it fast: what is
+when nothing was tracked. Small synthetic frames (128 px noise) and [tracker.acquire] frames = 3 keep it fast: what is
 checked is the input handling, not the tracking."""
 
 import hashlib
@@ -39,7 +39,7 @@ def noise_frames(folder, names, seed=0, dtype=np.uint8, scale=1):
 @pytest.fixture()
 def fast_cfg(tmp_path):
     cfg = tmp_path / "fast.toml"
-    cfg.write_text("[tracker]\nacquire_frames = 3\n")
+    cfg.write_text("[tracker.acquire]\nframes = 3\n")
     return str(cfg)
 
 
@@ -141,9 +141,14 @@ def test_flags_that_do_not_apply_and_inputs_that_make_no_sense(tmp_path, fast_cf
     assert "cx = 5000.0" in one_line_error(["--images", str(src), "--rate-hz", "1", "--camera", str(cam)], capsys, never)
     cam.write_text(f"fx = 240.0\nfy = 1200.0\ncx = 64.0\ncy = 64.0\nwidth = {SIDE}\nheight = {SIDE}\n")
     assert "fy = 1200.0" in one_line_error(["--images", str(src), "--rate-hz", "1", "--camera", str(cam)], capsys, never)
-    # fewer frames than the cold start needs (the default acquire_frames = 20): the minimum is named
+    # fewer frames than the cold start needs (the default tracker.acquire.frames = 20): the minimum is named
     err = one_line_error(["--images", str(src), "--rate-hz", "1"], capsys, never)
     assert "4 frame(s)" in err and "at least 20" in err
+    # a config of the tracker's flat layout (before its sections): the key and its new home, in one line
+    flat = tmp_path / "flat.toml"
+    flat.write_text("[tracker]\nacquire_frames = 3\n")
+    err = one_line_error(["--images", str(src), "--rate-hz", "1", "--config", str(flat)], capsys, never)
+    assert "tracker.acquire_frames: moved to tracker.acquire.frames" in err
     # one 1 x 1 image
     tiny = tmp_path / "tiny"
     tiny.mkdir()

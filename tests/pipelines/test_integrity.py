@@ -9,10 +9,11 @@ from scipy.stats import chi2
 from envisat_pose.geometry import load_camera, load_geometry
 from envisat_pose.pipelines import integrity as ig
 from envisat_pose.pipelines.acquisition import BatchFit
-from envisat_pose.pipelines.tracker_config import TrackerConfig
+from envisat_pose.pipelines.tracker_config import AcquireConfig, IntegrityConfig
 from envisat_pose.state import MRP, POS, RATE, VEL
 
-CFG = TrackerConfig()
+CFG = IntegrityConfig()
+MIN_CORNERS = AcquireConfig().min_corners
 CAM = load_camera()
 RADIUS = ig.target_radius_m(load_geometry().corners_T_m)
 
@@ -80,18 +81,18 @@ def fit(kept_per_frame, frames, rejected, chi2_value=None):
 
 
 def test_a_fit_that_kept_a_handful_of_corners_starts_nothing():
-    assert ig.fit_problems(fit(6, 20, 12), 20, CFG) == []  # 12 of 132: what a correct fit rejects
-    bad = ig.fit_problems(fit(6, 20, 100), 20, CFG)  # 100 of 220 measured corners rejected
+    assert ig.fit_problems(fit(6, 20, 12), 20, CFG, MIN_CORNERS) == []  # 12 of 132: what a correct fit rejects
+    bad = ig.fit_problems(fit(6, 20, 100), 20, CFG, MIN_CORNERS)  # 100 of 220 measured corners rejected
     assert any("rejected 100 of 220" in p for p in bad), bad
-    few = ig.fit_problems(fit(2, 20, 0), 20, CFG)  # 2 corners a frame: not enough named corners
+    few = ig.fit_problems(fit(2, 20, 0), 20, CFG, MIN_CORNERS)  # 2 corners a frame: not enough named corners
     assert any("kept 2.0 corners a frame" in p for p in few), few
 
 
 def test_a_fit_beyond_its_chi_square_bound_starts_nothing():
     f = fit(6, 20, 0)
-    bound = chi2.isf(CFG.integrity_prob, f.dof)
-    assert ig.fit_problems(fit(6, 20, 0, 0.99 * bound), 20, CFG) == []
-    assert any("chi-square" in p for p in ig.fit_problems(fit(6, 20, 0, 1.01 * bound), 20, CFG))
+    bound = chi2.isf(CFG.prob, f.dof)
+    assert ig.fit_problems(fit(6, 20, 0, 0.99 * bound), 20, CFG, MIN_CORNERS) == []
+    assert any("chi-square" in p for p in ig.fit_problems(fit(6, 20, 0, 1.01 * bound), 20, CFG, MIN_CORNERS))
 
 
 def test_the_window_test_fires_at_its_false_alarm_rate_on_consistent_innovations():
@@ -100,9 +101,9 @@ def test_the_window_test_fires_at_its_false_alarm_rate_on_consistent_innovations
     fail."""
     import dataclasses
 
-    cfg = dataclasses.replace(CFG, integrity_prob=0.05)
+    cfg = dataclasses.replace(CFG, prob=0.05)
     rng = np.random.default_rng(11)
-    H, W, dof = 4000, cfg.integrity_window, 12
+    H, W, dof = 4000, cfg.window, 12
     win = ig.EvidenceWindow.empty(H, W)
     for _ in range(W):
         win = win.push(rng.chisquare(dof, H), np.full(H, dof), np.full(H, 6), np.zeros(H))
@@ -121,8 +122,8 @@ def test_rejections_are_tested_against_the_binomial_tail_of_a_correct_track():
     for r in (5, 15, 24):
         tail = sum(comb(n, k) * p0**k * (1 - p0) ** (n - k) for k in range(r, n + 1))
         got = ig.rejections_improbable(r, n, CFG)
-        assert (got is None) == (tail >= CFG.integrity_prob) and (got is None or got == pytest.approx(tail))
-    W = CFG.integrity_window
+        assert (got is None) == (tail >= CFG.prob) and (got is None or got == pytest.approx(tail))
+    W = CFG.window
     win = ig.EvidenceWindow.empty(1, W)
     for k in range(W):
         rej = 6 if k >= W - 8 else 0  # eight frames with all 6 corners rejected: the images disagree for good
@@ -133,11 +134,11 @@ def test_rejections_are_tested_against_the_binomial_tail_of_a_correct_track():
         rej = 4 if k >= W - 4 else 0  # a burst of four frames of mis-named corners: a correct track keeps going
         burst = burst.push([1.0], [2], [6], [rej])
     assert ig.window_problems(burst, CFG) == [[]]
-    win = ig.EvidenceWindow.empty(1, CFG.integrity_window)
-    for k in range(CFG.integrity_window):
+    win = ig.EvidenceWindow.empty(1, CFG.window)
+    for k in range(CFG.window):
         win = win.push([1.0], [10], [6], [1 if k % 2 else 0])  # 4 of 48: a correct track's share
     assert ig.window_problems(win, CFG) == [[]]
-    ok = ig.EvidenceWindow.empty(1, CFG.integrity_window).push([1.0], [10], [6], [1])
+    ok = ig.EvidenceWindow.empty(1, CFG.window).push([1.0], [10], [6], [1])
     assert ig.window_problems(ok, CFG) == [[]]
     assert ig.EvidenceWindow.empty(3, 4).push([1, 2, 3], [2, 0, 2], [1, 0, 1], [0, 0, 0]).select([0, 2]).nis.shape \
         == (2, 4)

@@ -10,6 +10,8 @@ from envisat_pose.geometry import load_camera, load_geometry
 from envisat_pose.perception.detect import FrameDetection
 from envisat_pose.pipelines import acquisition as acq
 from envisat_pose.pipelines.tracker import Tracker, TrackerConfig
+from envisat_pose.pipelines.tracker_config import (AcquireConfig, BankConfig, GateConfig, NoiseConfig,
+                                                   RoiConfig)
 from envisat_pose.state import MRP, POS, RATE, error_magnitudes
 
 
@@ -193,7 +195,7 @@ def test_twins_still_open_seed_the_naming_without_weighing_the_half_turn(truth_6
     are open."""
     for twins in (True, False):
         det = PriorRecordingDetector(truth_600, p_alt=0.45)
-        ests = run_tracker(truth_600, det, range(0, 80), TrackerConfig(prior_pose_twins=twins))
+        ests = run_tracker(truth_600, det, range(0, 80), TrackerConfig(roi=RoiConfig(prior_pose_twins=twins)))
         open_ = [k for k in range(21, 80) if len(ests[k - 1].probabilities) > 1 and ests[k].converged]
         decided = [k for k in range(21, 80) if len(ests[k - 1].probabilities) == 1 and ests[k].converged]
         assert open_ and decided, [len(e.probabilities) for e in ests]
@@ -255,9 +257,14 @@ class CorrelatedTruthDetector(NoisyTruthDetector):
 
 
 # the R model alone: without the process noise and start factor that stand for what the shipped detector's
-# error model misses (TrackerConfig.detector_q_sigma, start_cov_factor), so that a synthetic detector whose errors
-# are exactly its model shows the model's own consistency
-ISOLATED = {"detector_q_sigma": (0.0, 0.0, 0.0, 0.0), "start_cov_factor": 1.0}
+# error model misses (TrackerConfig.noise.detector_q_sigma, acquire.start_cov_factor), so that a synthetic detector
+# whose errors are exactly its model shows the model's own consistency
+
+
+def isolated(**noise) -> TrackerConfig:
+    """The tracker's config without the detector process noise and start factor; `noise`: NoiseConfig fields."""
+    return TrackerConfig(noise=NoiseConfig(detector_q_sigma=(0.0, 0.0, 0.0, 0.0), **noise),
+                         acquire=AcquireConfig(start_cov_factor=1.0))
 
 
 def tracking_nees(truth, detector, cfg) -> float:
@@ -275,7 +282,7 @@ def test_correlated_detector_errors_are_allowed_for_by_the_filters_memory(truth_
     with R inflated for the filter's own memory the tracker's NEES is consistent; taken as white, it is
     over-confident by a wide margin (the same frames and errors)."""
     means = {model: tracking_nees(truth_600, CorrelatedTruthDetector(truth_600, seed=4),
-                                  TrackerConfig(correlation_model=model, **ISOLATED)) for model in ("filter_memory", "white")}
+                                  isolated(correlation_model=model)) for model in ("filter_memory", "white")}
     assert 4.0 < means["filter_memory"] < 24.0, means
     assert means["white"] > 2.0 * means["filter_memory"], means
 
@@ -303,7 +310,7 @@ def test_the_correlation_falls_with_the_views_rotation_at_the_tracked_rate(truth
     the tracked rate the NEES is consistent; the same error model's time fit (measured at a slower tumble)
     inflates R far beyond what these errors need (the same frames and errors)."""
     means = {kind: tracking_nees(truth_600, RotationCorrelatedTruthDetector(truth_600, seed=6),
-                                 TrackerConfig(correlation_in=kind, **ISOLATED)) for kind in ("rotation", "time")}
+                                 isolated(correlation_in=kind)) for kind in ("rotation", "time")}
     assert 4.0 < means["rotation"] < 24.0, means
     assert means["time"] < 0.6 * means["rotation"], means
 
@@ -333,7 +340,7 @@ def test_the_range_error_no_frame_averages_away_stays_in_the_covariance(truth_60
     frame. With the range floor (the error model's measured scale) the tracker's NEES stays consistent; without
     it the filter averages the white noise down and is over-confident about a range it cannot know better."""
     means = {floor: tracking_nees(truth_600, ScaledTruthDetector(truth_600, seed=8),
-                                  TrackerConfig(range_floor=floor, correct_scale=False, **ISOLATED))
+                                  isolated(range_floor=floor, correct_scale=False))
              for floor in (True, False)}
     assert 4.0 < means[True] < 24.0, means
     assert means[False] > 3.0 * means[True], means
@@ -350,8 +357,8 @@ def test_a_measured_apparent_scale_is_undone_and_its_spread_reported(truth_600):
         return float(np.mean(r_hat - np.linalg.norm(truth_600.x[60:300, POS], axis=1)))
 
     r_m = float(np.mean(np.linalg.norm(truth_600.x[60:300, POS], axis=1)))
-    raw = range_bias_m(ScaledTruthDetector(truth_600, seed=8), TrackerConfig(correct_scale=False, **ISOLATED))
-    fixed = range_bias_m(ScaledTruthDetector(truth_600, seed=8), TrackerConfig(correct_scale=True, **ISOLATED))
+    raw = range_bias_m(ScaledTruthDetector(truth_600, seed=8), isolated(correct_scale=False))
+    fixed = range_bias_m(ScaledTruthDetector(truth_600, seed=8), isolated(correct_scale=True))
     assert raw == pytest.approx(r_m / 1.002 - r_m, rel=0.25), (raw, fixed)
     assert abs(fixed) < 0.15 * abs(raw), (raw, fixed)
 
@@ -359,7 +366,7 @@ def test_a_measured_apparent_scale_is_undone_and_its_spread_reported(truth_600):
 
     off = ScaledTruthDetector(truth_600, scale=1.002, seed=8)  # the run's scale: 2 sd from the model's mean
     off.error_model = ErrorModel(bias_scale=1.0, bias_scale_sd=0.001, n_frames=600)
-    means = {floor: tracking_nees(truth_600, off, TrackerConfig(range_floor=floor, correct_scale=True, **ISOLATED))
+    means = {floor: tracking_nees(truth_600, off, isolated(range_floor=floor, correct_scale=True))
              for floor in (True, False)}
     assert means[True] < 24.0, means
     assert means[False] > 2.0 * means[True], means
@@ -391,7 +398,8 @@ def test_the_range_consider_term_is_reported_not_fed_back(truth_600):
     """The scale's range variance is in the reported covariance only: the filter's own state keeps averaging the
     frames (its line-of-sight sigma falls well below the consider term's) while the reported one holds it."""
     det = ScaledTruthDetector(truth_600, seed=8)
-    tracker = Tracker(load_camera(), det, chaser_lookup(truth_600), TrackerConfig(correct_scale=False))
+    tracker = Tracker(load_camera(), det, chaser_lookup(truth_600),
+                      TrackerConfig(noise=NoiseConfig(correct_scale=False)))
     for k in range(0, 150):
         est = tracker.step(float(truth_600.t_s[k]), frame_image(k))
     assert est.status == "tracking"
@@ -442,7 +450,7 @@ def test_a_target_that_leaves_the_frame_is_coasted_then_lost(truth_600):
     cfg = TrackerConfig()
     ests = run_tracker(truth_600, Blind(truth_600, range(100, 200)), range(0, 130), cfg)
     status = [e.status for e in ests]
-    n = cfg.lost_after_frames
+    n = cfg.integrity.lost_after_frames
     assert status[95:100] == ["tracking"] * 5
     assert status[100:100 + n - 1] == ["coasting"] * (n - 1) and status[100 + n - 1] == "lost", status[100:112]
     assert any(e.startswith("lost: no corner used") for e in ests[100 + n - 1].events), ests[100 + n - 1].events
@@ -552,8 +560,8 @@ def test_errors_the_error_model_misses_are_allowed_for_by_the_detector_process_n
         det.error_model = ErrorModel()
         return det
 
-    means = {name: tracking_nees(truth_600, drifting(9), TrackerConfig(**kw))
-             for name, kw in (("defaults", {}), ("isolated", ISOLATED))}
+    means = {name: tracking_nees(truth_600, drifting(9), cfg)
+             for name, cfg in (("defaults", TrackerConfig()), ("isolated", isolated()))}
     assert means["isolated"] > 1.5 * means["defaults"], means
 
 
@@ -582,7 +590,7 @@ def test_a_confidently_wrong_appearance_cannot_decide_the_half_turn_alone():
     """On a slow tumble (226 s spin) the twins' dynamics part slowly; a detector that gives the wrong half-turn
     naming p = 0.99 on every frame (what the shipped one did on a 30 m slow-tumble trial) made a bank that sums
     its appearance decide for the twin and claim tracking 180 deg off. With the appearance capped at one
-    confident look (TrackerConfig.appearance_max_log) the tracker waits for the dynamics and claims only the
+    confident look (TrackerConfig.bank.appearance_max_log) the tracker waits for the dynamics and claims only the
     truth's attitude."""
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.datagen.truth import simulate
@@ -593,7 +601,7 @@ def test_a_confidently_wrong_appearance_cannot_decide_the_half_turn_alone():
         ests = run_tracker(truth, NoisyTruthDetector(truth, p_alt=0.99, seed=2), range(0, 150), cfg)
         return [claim_errors(e, truth.x[k])[0] for k, e in enumerate(ests) if e.status == "tracking"]
 
-    uncapped = claims(TrackerConfig(appearance_max_log=100.0))
+    uncapped = claims(TrackerConfig(bank=BankConfig(appearance_max_log=100.0)))
     assert max(uncapped) > 170.0  # the trap is real: summed appearance claims the twin
     capped = claims(TrackerConfig())
     assert capped and max(capped) < 5.0, capped[:5]
@@ -621,7 +629,7 @@ def test_a_bank_gone_blind_is_lost_whole_not_handed_to_a_twin(truth_600):
     first = run_tracker(truth_600, NoisyTruthDetector(truth_600, seed=3), range(0, 40), cfg)
     k0 = next(k for k, e in enumerate(first) if "started" in e.events)
     assert len(first[k0].probabilities) > 1, first[k0].probabilities  # several hypotheses when blindness begins
-    n = cfg.lost_after_frames
+    n = cfg.integrity.lost_after_frames
     ests = run_tracker(truth_600, Blind(truth_600, range(k0 + 1, k0 + 1 + 2 * n), seed=3), range(0, k0 + 1 + 2 * n),
                        cfg)
     events = [ev for e in ests for ev in e.events]
@@ -665,7 +673,7 @@ def test_a_burst_beyond_the_detectors_own_covariance_is_gated_with_gate_raw(trut
     out = {}
     for raw in (False, True):
         det = BurstTruthDetector(truth_600, burst, seed=5)
-        ests = run_tracker(truth_600, det, range(0, 160), TrackerConfig(gate_raw=raw))
+        ests = run_tracker(truth_600, det, range(0, 160), TrackerConfig(gate=GateConfig(raw=raw)))
         assert all(e.status == "tracking" for e in ests[60:100]), [e.status[0] for e in ests]
         shifted = [(ests[k].measured[6:8], ests[k].rejected[6:8]) for k in burst]
         n_meas = sum(int(m.sum()) for m, _ in shifted)
