@@ -10,6 +10,7 @@ import shlex
 import sys
 
 from envisat_pose.config import resolve_job_config
+from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -41,6 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bf16", action="store_true", help="bfloat16 autocast of the network (CUDA or CPU)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_skip_damaged_argument(p)
     p.set_defaults(func=run_train_cli)
 
 
@@ -75,13 +77,16 @@ def as_flags(message: str) -> str:
 def run_train_cli(args: argparse.Namespace) -> int:
     from envisat_pose.config import ConfigError, InputError
     from envisat_pose.perception.train import TrainingInterrupted
+    from envisat_pose.pipelines.dataset_inputs import skip_hint, skipped_line
     from envisat_pose.pipelines.train import train_detector
 
     try:
         cfg = resolve_config(args)
-        last = train_detector(cfg, args.data, args.out, resume=args.resume, init=args.init, device=args.device,
-                              workers=args.workers, bf16=args.bf16, threads=args.threads,
-                              progress=not args.quiet, command=command_line(args))
+        with skip_hint():
+            last = train_detector(cfg, args.data, args.out, resume=args.resume, init=args.init,
+                                  device=args.device, workers=args.workers, bf16=args.bf16, threads=args.threads,
+                                  progress=not args.quiet, command=command_line(args),
+                                  skip_damaged=args.skip_damaged)
     except ConfigError as err:
         raise InputError(as_flags(str(err))) from None
     except InputError as err:
@@ -90,6 +95,8 @@ def run_train_cli(args: argparse.Namespace) -> int:
         hint = f"; go on with: envisat train --resume --out {shlex.quote(args.out)}" if stop.step else ""
         print(f"envisat train: {stop}{hint}", file=sys.stderr)
         return 130
+    if skipped_line(last.get("skipped_damaged_shards", [])):
+        print(skipped_line(last["skipped_damaged_shards"]))
     if last.get("stopped_by") == "nothing_to_do":
         more = "--time-budget-s S to train S seconds more" if last.get("why") == "budget_spent" else \
             f"--steps above {last.get('step')} to go further"

@@ -121,7 +121,8 @@ def end_distributed() -> None:
 
 def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: bool = False,
                    init: str | None = None, device: str = "cpu", workers: int | None = None, bf16: bool = False,
-                   threads: int | None = None, progress: bool = True, command: str = "") -> dict:
+                   threads: int | None = None, progress: bool = True, command: str = "",
+                   skip_damaged: bool = False) -> dict:
     """Train the detector (cfg: a perception TrainConfig, validated when built) on the shards of data_dirs (one
     folder or several) into run_dir (created with its parents once the first step is trained).
 
@@ -129,7 +130,10 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     config may differ from the run's in steps and time_budget_s only, the data not at all (InputError spelling
     out the difference). workers: DataLoader worker processes (None: the run's own on resume, else
     default_workers()); bf16: bfloat16 autocast; threads: torch's CPU threads in this process; command: the
-    command line as typed, for the record. Returns the run's last metrics line (perception/train.py); raises
+    command line as typed, for the record. Every shard is checked against its dataset's manifest first (size,
+    then sha256: envisat_pose.shard_reader.checked_shards); a damaged one stops the run before anything is
+    written (DamagedShardError naming it) unless skip_damaged, which leaves it out and records it in config.json
+    (skipped_damaged_shards) and the end line. Returns the run's last metrics line (perception/train.py); raises
     perception.train.TrainingInterrupted after a checkpoint when SIGINT or SIGTERM stopped it. Callable from a
     plain script: its workers never import the script."""
     import torch
@@ -148,12 +152,20 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
         torch.backends.cuda.matmul.allow_tf32 = True
         torch.backends.cudnn.allow_tf32 = True
         torch.backends.cudnn.benchmark = True
+    from envisat_pose.shard_reader import checked_shards
+
+    paths, skipped = [], []
+    for d in data_dirs:
+        mine, left_out = checked_shards(d, skip_damaged, "data_dirs")
+        paths += mine
+        skipped += [f"{os.path.basename(os.path.normpath(d))}/{name}" for name in left_out]
     provenance = {"command": command, "git": git_hash(), "data": [dataset_provenance(d) for d in data_dirs],
-                  "torch": torch.__version__, "device": device, "bf16": bf16}
+                  "torch": torch.__version__, "device": device, "bf16": bf16, "skipped_damaged_shards": skipped}
     if init is not None:
         provenance["init"] = {"name": os.path.basename(init), "sha256": sha256_file(init)}
     try:
-        return train(cfg, data_dirs, run_dir, resume=resume, device=rank_device, progress=progress,
-                     provenance=provenance, init_weights=init, workers=workers, bf16=bf16)
+        end = train(cfg, data_dirs, run_dir, resume=resume, device=rank_device, progress=progress,
+                    provenance=provenance, init_weights=init, workers=workers, bf16=bf16, paths=paths)
+        return {**end, "skipped_damaged_shards": skipped}
     finally:
         end_distributed()
