@@ -41,7 +41,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except (ConfigError, InputError) as err:
-        print(f"envisat {args.verb}: error: {err}", file=sys.stderr)
+        from envisat_pose.app.common import EVERY_VERB, as_flags
+
+        names = {**EVERY_VERB, **getattr(args, "flag_names", {})}
+        text = str(err) if isinstance(err, ConfigError) else as_flags(str(err), names)
+        print(f"envisat {args.verb}: error: {text}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"envisat {args.verb}: interrupted", file=sys.stderr)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import os
 
+from envisat_pose.app.common import add_common
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -14,29 +16,22 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Run `envisat run --scenario default --duration-s 600` with the shipped detector weights "
         "(models/detector.safetensors) and print where the recording, the plots and the summary are.",
     )
-    p.add_argument("--out", default=os.path.join("out", "demo"), metavar="RUN_DIR",
-                   help="output folder (default out/demo)")
     p.add_argument("--duration-s", type=float, default=600.0, help="simulated time, s (default 600)")
-    p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped ones)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_common(p, out="output folder (default out/demo)", out_default=os.path.join("out", "demo"),
+               out_metavar="RUN_DIR", weights=True)
     p.set_defaults(func=run_demo)
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    from envisat_pose.app.run import print_table, resolve_config
+    from envisat_pose.app.run import print_table
     from envisat_pose.pipelines.closed_loop import output_paths, run_closed_loop
-    from envisat_pose.io import staged_folder
-    from envisat_pose.runner import make_out_dir
+    from envisat_pose.pipelines.run_config import RunConfig
 
-    ns = argparse.Namespace(scenario="default", duration_s=args.duration_s, config=None, weights=args.weights,
-                            runs=1, workers=1, seed=0, no_roi=False, warm_start=False, quiet=args.quiet)
-    cfg = resolve_config(ns)
-    make_out_dir(args.out)
+    cfg = RunConfig.from_scenario("default", duration_s=args.duration_s, weights=args.weights, runs=1, workers=1,
+                                  seed=0)
     print(f"envisat demo: the tracker, cold start, on scenario 'default', {cfg.duration_s:.0f} s simulated at {cfg.rate_hz:g} Hz, "
           f"weights {cfg.weights}")
-    names = [os.path.basename(p) for p in output_paths(args.out).values()]
-    with staged_folder(args.out, names) as stage:  # moved into --out when complete; an interrupt leaves it as it was
-        summary = run_closed_loop(cfg, stage, progress=not args.quiet)
+    summary = run_closed_loop(cfg, args.out, progress=not args.quiet)  # staged: an interrupt leaves --out as it was
     print_table(summary)
     paths = output_paths(args.out)
     print(f"recording: {paths['recording']} ({summary['recording_bytes'] / 2**20:.1f} MiB); open it with "

@@ -7,8 +7,13 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.config import InputError, resolve_job_config
+from envisat_pose.app.common import add_common
+from envisat_pose.config import InputError
 from envisat_pose.pipelines.estimate import EstimateConfig
+
+# the library's argument names -> this verb's flags (app/common.as_flags)
+FLAGS = {"truth_path": "--truth", "scenario": "--scenario", "duration_s": "--duration-s", "rrd": "--rrd",
+         "plot": "--plot"}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,7 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="simulate this named scenario (`envisat scenarios` lists them) with the MuJoCo truth first; "
                      "its [measurement] and [filter] tables are the defaults under --config and the flags")
     p.add_argument("--duration-s", type=float, help="with --scenario: simulated time, s (default: the scenario's)")
-    p.add_argument("--config", metavar="FILE.toml", help="estimate config (sections measurement, filter; runs, seed)")
+    add_common(p, out="output .npz (default est.npz); its config goes next to it", out_default="est.npz",
+               out_metavar="EST.npz", config="estimate config (sections measurement, filter; runs, seed)",
+               seed="root seed (default 0)", quiet=False, flag_names=FLAGS)
     p.add_argument("--measurements", choices=["markers3d", "pixels", "pixels+range"],
                    help="what is measured of each visible corner (default markers3d)")
     p.add_argument("--sigma-m", type=float, help="3D corner noise per axis, m (default 0.02)")
@@ -40,8 +47,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--adaptive-q", action="store_const", const=True, help="residual-based process noise")
     p.add_argument("--no-gate", action="store_const", const=True, help="switch the chi-square gate off")
     p.add_argument("--runs", type=int, help="number of Monte Carlo runs, filtered as one batch (default 1)")
-    p.add_argument("--seed", type=int, help="root seed (default 0)")
-    p.add_argument("--out", default="est.npz", help="output .npz (default est.npz); its config goes next to it")
     p.add_argument("--plot", action="store_true", help="also write a PNG of the errors with 3-sigma bounds next to --out")
     p.add_argument("--rrd", metavar="FILE.rrd",
                    help="also write a Rerun recording: truth, run 0's estimate with its 3-sigma ellipsoid, every run's "
@@ -51,13 +56,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def resolve_config(args: argparse.Namespace) -> EstimateConfig:
-    """Defaults, then the named scenario's [measurement] and [filter] tables (with --scenario), then the file,
-    then the flags; validated before any work. Unknown scenario names fail here with the known ones."""
-    defaults: dict = {}
-    if args.scenario is not None:
-        from envisat_pose.app.scenarios import job_defaults
-
-        defaults = {k: v for k, v in job_defaults(args.scenario).items() if k in ("measurement", "filter")}
+    """The named scenario's [measurement] and [filter] tables (with --scenario; EstimateConfig.from_scenario),
+    then the file, then the flags; validated before any work. Unknown scenario names fail with the known ones."""
     flags = {
         "measurement.kind": args.measurements,
         "measurement.sigma_m": args.sigma_m,
@@ -73,7 +73,7 @@ def resolve_config(args: argparse.Namespace) -> EstimateConfig:
         "runs": args.runs,
         "seed": args.seed,
     }
-    return resolve_job_config(EstimateConfig, defaults, args.config, flags)
+    return EstimateConfig.from_scenario(args.scenario, args.config, flags)
 
 
 def summary(arrays: dict) -> str:
@@ -99,7 +99,7 @@ def run_estimate(args: argparse.Namespace) -> int:
         raise InputError(f"--out {args.out!r}: expected a path ending in .npz")
     cfg = resolve_config(args)
     if args.rrd:
-        from envisat_pose.app.view import check_rrd_output
+        from envisat_pose.app.common import check_rrd_output
 
         check_rrd_output(args.rrd)
     make_out_file_dirs({**{p: "--out" for p in output_paths(args.out)}, **({args.rrd: "--rrd"} if args.rrd else {})})

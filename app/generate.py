@@ -105,7 +105,7 @@ def run_inspect_cli(args: argparse.Namespace) -> int:
     path = args.montage or os.path.join(args.dir, "montage.png")
     check_out_file(path, "--montage")
     if args.rrd:
-        from envisat_pose.app.view import check_rrd_output
+        from envisat_pose.app.common import check_rrd_output
 
         check_rrd_output(args.rrd)
     load_manifest(args.dir)

@@ -10,9 +10,10 @@ import argparse
 import math
 import time
 
-from envisat_pose.config import InputError, check, resolve_job_config
+from envisat_pose.app.common import add_common
+from envisat_pose.config import InputError, check
 from envisat_pose.pipelines.campaign import FIGURES, MonteCarloConfig
-from envisat_pose.pipelines.sweep import SWEEP_FIGURE, SweepConfig
+from envisat_pose.pipelines.sweep import SWEEP_FIGURE
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -23,10 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--scenario", required=True, metavar="NAME", help="named truth scenario")
     p.add_argument("--runs", type=int, help="number of Monte Carlo runs (default 100)")
-    p.add_argument("--out", required=True, metavar="DIR", help="campaign folder (rerun on it to resume)")
-    p.add_argument("--config", metavar="FILE.toml", help="campaign config (tables measurement, filter; runs, seed...)")
+    add_common(p, out="campaign folder (rerun on it to resume)", config="campaign config (tables measurement, "
+               "filter; runs, seed...)", seed="root seed (default 0)", quiet=False)
     p.add_argument("--duration-s", type=float, help="simulated time, s (default 1800)")
-    p.add_argument("--seed", type=int, help="root seed (default 0)")
     p.add_argument("--rate-hz", type=float, help="filter/measurement rate, Hz (default 1)")
     p.add_argument("--measurements", choices=["markers3d", "pixels", "pixels+range"],
                    help="what is measured of each visible corner (default markers3d)")
@@ -48,20 +48,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
-    """Defaults, then the named scenario's duration and [measurement] and [filter] tables, then the file, then
-    the flags; validated before any work. A scenario with an [eclipse] table adds the Earth's-shadow outages
-    along its truth (pipelines.campaign.with_eclipse)."""
-    from envisat_pose.app.scenarios import job_defaults
-    from envisat_pose.pipelines.campaign import with_eclipse
-
-    defaults = job_defaults(args.scenario)  # an unknown name fails here with the list of known ones
+    """The scenario's campaign (MonteCarloConfig.from_scenario: its duration, [measurement] and [filter] tables and
+    [eclipse] outages), then the file, then the flags; validated before any work."""
     flags = {
-        "scenario": args.scenario, "runs": args.runs, "seed": args.seed, "duration_s": args.duration_s,
+        "runs": args.runs, "seed": args.seed, "duration_s": args.duration_s,
         "block_runs": args.block_runs, "settle_s": args.settle_s,
         "measurement.kind": args.measurements, "measurement.sigma_m": args.sigma_m,
         "measurement.sigma_px": args.sigma_px, "measurement.max_markers": args.max_markers,
         "measurement.rate_hz": args.rate_hz}
-    return with_eclipse(resolve_job_config(MonteCarloConfig, defaults, args.config, flags))
+    return MonteCarloConfig.from_scenario(args.scenario, args.config, flags)
 
 
 def runner_config(args: argparse.Namespace):
@@ -80,14 +75,14 @@ def runner_config(args: argparse.Namespace):
 
 def run_montecarlo(args: argparse.Namespace) -> int:
     from envisat_pose.pipelines.campaign import run_campaign, write_recording
-    from envisat_pose.pipelines.sweep import run_sweep
+    from envisat_pose.pipelines.sweep import run_sweep, sweep_for
     from envisat_pose.runner import make_out_file_dirs
 
     cfg = resolve_config(args)
     runner = runner_config(args)
-    sweep = sweep_config(args, cfg)
+    sweep = sweep_for(cfg, args.rates_hz, rate_given=args.rate_hz is not None)
     if args.rrd:
-        from envisat_pose.app.view import check_rrd_output
+        from envisat_pose.app.common import check_rrd_output
 
         if sweep is not None:
             raise InputError("--rrd records one campaign, not a rate sweep")
@@ -120,26 +115,6 @@ def summary_line(s: dict) -> str:
 
 
 # ---------------------------------------------------------------- the rate sweep
-
-def sweep_config(args: argparse.Namespace, cfg: MonteCarloConfig) -> SweepConfig | None:
-    """The scenario's [sweep] table under --rates-hz, validated, with every rate's step checked against the
-    truth's before any work; None when neither asks for a sweep."""
-    from envisat_pose.named_scenarios import table
-    from envisat_pose.pipelines.campaign import check_filter_rate, truth_scenario
-    from envisat_pose.pipelines.sweep import at_rate
-
-    defaults = table(cfg.scenario, "sweep")
-    if not defaults and not args.rates_hz:
-        return None
-    check(args.rate_hz is None, "rate_hz", args.rate_hz, "no single --rate-hz with a rate sweep (the sweep's "
-          "rates_hz, or --rates-hz, sets the rates)")
-    flags = {"rates_hz": list(args.rates_hz) if args.rates_hz else None}
-    sweep = resolve_job_config(SweepConfig, defaults, None, flags, prefix="sweep")
-    for rate in sweep.rates_hz:
-        sub = at_rate(cfg, rate)
-        check_filter_rate(sub, truth_scenario(sub))
-    return sweep
-
 
 def sweep_line(r: dict) -> str:
     """One line per rate of a sweep's main numbers, and where it stops converging."""

@@ -1,11 +1,6 @@
-"""`envisat scenarios`: the named scenarios with their one-line descriptions; and what a job takes from one.
-
-A named scenario (scenarios/NAME.toml, read by envisat_pose.named_scenarios) gives `estimate` and `montecarlo`
-their defaults under the user's --config and flags: its [measurement] and [filter] tables, its duration, and,
-for a scenario with an [eclipse] table, the measurement outages of the Earth's shadow computed from the truth's
-orbit (datagen.scenario.eclipse_windows), appended to any configured outages (the pipelines' job:
-pipelines.estimate.eclipse_outages and with_outages).
-"""
+"""`envisat scenarios`: the named scenarios with their one-line descriptions (scenarios/NAME.toml, read by
+envisat_pose.named_scenarios). What a job takes from one is the library's: pipelines/jobs.py (resolve_job,
+scenario_defaults; each config's from_scenario)."""
 
 from __future__ import annotations
 
@@ -37,13 +32,3 @@ def run_scenarios(args: argparse.Namespace) -> int:
     for name, text in rows:
         print(f"{name:<{width}}  {text}")
     return 0
-
-
-def job_defaults(name: str) -> dict:
-    """What a named scenario sets of an estimate or montecarlo config: measurement, filter, duration_s.
-    Unknown names raise ConfigError listing the known ones."""
-    data = named_scenarios.load(name)
-    out = {k: dict(data[k]) for k in ("measurement", "filter") if k in data}
-    if "duration_s" in data:
-        out["duration_s"] = data["duration_s"]
-    return out

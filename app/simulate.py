@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.datagen.scenario import ScenarioConfig, scenario_dict
-from envisat_pose.config import InputError, resolve_job_config
+from envisat_pose.app.common import add_common
+from envisat_pose.config import InputError
+from envisat_pose.datagen.scenario import ScenarioConfig
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -16,13 +17,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Simulate the truth of a scenario with MuJoCo (RK4, relative-orbit gravity plugin) and write "
         "the truth trajectory: t_s, x (12 states), chaser orbit, corners in C, visibility, config_json.",
     )
-    p.add_argument("--config", metavar="FILE.toml", help="scenario config (sections orbit, target, relative)")
+    add_common(p, out="output .npz (default run.npz)", out_default="run.npz", out_metavar="RUN.npz",
+               config="scenario config (sections orbit, target, relative)",
+               seed="root seed of the random initial attitude (default 0)", quiet=False)
     p.add_argument("--scenario", default="default",
                    help="named scenario the config starts from (default: default; `envisat scenarios` lists them)")
     p.add_argument("--duration-s", type=float, help="simulated time, s (default: the scenario's, 1800)")
     p.add_argument("--dt-s", type=float, help="output step, s (default 1)")
-    p.add_argument("--seed", type=int, help="root seed of the random initial attitude (default 0)")
-    p.add_argument("--out", default="run.npz", help="output .npz (default run.npz)")
     p.add_argument("--plot", action="store_true", help="also write a PNG of the 12 states next to --out")
     p.add_argument("--rrd", metavar="FILE.rrd", help="also write a Rerun recording of the truth (`envisat view FILE`)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -30,9 +31,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def resolve_config(args: argparse.Namespace) -> ScenarioConfig:
-    """Defaults, then the named scenario's truth tables, then the file, then the flags; validated before any work."""
+    """The named scenario's truth tables (pipelines.jobs.resolve_job), then the file, then the flags; validated
+    before any work."""
+    from envisat_pose.pipelines.jobs import resolve_job
+
     flags = {"duration_s": args.duration_s, "dt_s": args.dt_s, "seed": args.seed}
-    return resolve_job_config(ScenarioConfig, scenario_dict(args.scenario), args.config, flags)
+    return resolve_job("simulate", args.scenario, args.config, flags)
 
 
 def run_simulate(args: argparse.Namespace) -> int:
@@ -43,7 +47,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         raise InputError(f"--out {args.out!r}: expected a path ending in .npz")
     cfg = resolve_config(args)
     if args.rrd:
-        from envisat_pose.app.view import check_rrd_output
+        from envisat_pose.app.common import check_rrd_output
 
         check_rrd_output(args.rrd)
     make_out_file_dirs({**{p: "--out" for p in output_paths(args.out)}, **({args.rrd: "--rrd"} if args.rrd else {})})

@@ -1,11 +1,7 @@
-"""`envisat view FILE_OR_RUN_DIR`: open a Rerun recording (`.rrd`) in the viewer, or serve the web viewer.
-
-The viewer is the `rerun` command of the installed rerun-sdk (`python -m rerun_cli`, the same release as the
-SDK that wrote the file). It runs in its own process group (the command is a wrapper around a child binary), so
-Ctrl-C here ends the whole group cleanly. Every server it starts listens on 127.0.0.1 only: the native viewer's
-own gRPC server and, with `--web`, the web viewer and its gRPC proxy. A file that is not a Rerun recording (its
-first bytes are not an RRD stream header) is refused in one line; without a display (Linux: neither DISPLAY nor
-WAYLAND_DISPLAY set) the native viewer is not started: the error says to use --web.
+"""`envisat view FILE_OR_RUN_DIR`: open a Rerun recording (`.rrd`) in the viewer, or serve the web viewer
+(analysis/viewer.py: the recordings, the command line, the process group). Ctrl-C here ends the viewer's whole
+group cleanly; without a display (Linux: neither DISPLAY nor WAYLAND_DISPLAY set) the native viewer is not started:
+the error says to use --web.
 
 Rerun keeps its analytics settings under $XDG_CONFIG_HOME/rerun and $XDG_DATA_HOME/rerun (default: the home
 folder); `rerun analytics disable` switches them off.
@@ -14,21 +10,11 @@ folder); `rerun analytics disable` switches them off.
 from __future__ import annotations
 
 import argparse
-import glob
-import os
 import signal
-import subprocess
 import sys
-import time
-import urllib.parse
 
+from envisat_pose.analysis.viewer import DEFAULT_PORT, DEFAULT_WEB_PORT
 from envisat_pose.config import InputError
-
-BIND = "127.0.0.1"
-DEFAULT_PORT = 9876  # Rerun's gRPC proxy
-DEFAULT_WEB_PORT = 9090  # Rerun's web viewer over HTTP
-RUN_DIR_RECORDING = "recording.rrd"  # the recording a run folder holds (issue 11)
-RRD_MAGIC = b"RRF"  # an RRD stream's first bytes (b"RRF2" for the current encoding)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -44,113 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"with --web: gRPC port (default {DEFAULT_PORT})")
     p.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT,
                    help=f"with --web: HTTP port of the web viewer (default {DEFAULT_WEB_PORT})")
-    p.set_defaults(func=run_view)
-
-
-def check_rrd_output(path: str) -> None:
-    """--rrd must name a .rrd file that can be written (runner.check_out_file): InputError before any work."""
-    from envisat_pose.runner import check_out_file
-
-    if not path.endswith(".rrd"):
-        raise InputError(f"--rrd {path!r}: expected a path ending in .rrd")
-    check_out_file(path, "--rrd")
-
-
-def recordings(path: str) -> list[str]:
-    """The .rrd files to open: the file itself, or a folder's recording.rrd, else every .rrd in it (sorted)."""
-    if os.path.isdir(path):
-        main = os.path.join(path, RUN_DIR_RECORDING)
-        if os.path.isfile(main):
-            return [main]
-        found = sorted(glob.glob(os.path.join(glob.escape(path), "*.rrd")))
-        if not found:
-            raise InputError(f"{path!r}: no {RUN_DIR_RECORDING} and no .rrd file in this folder")
-        return found
-    if not os.path.isfile(path):
-        raise InputError(f"{path!r}: no such file or folder")
-    if not path.endswith(".rrd"):
-        raise InputError(f"{path!r}: expected a Rerun recording (.rrd) or a run folder")
-    return [path]
-
-
-def check_recording(path: str) -> None:
-    """InputError (one line) when the file does not start like a Rerun recording."""
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(len(RRD_MAGIC) + 1)
-    except OSError as err:
-        raise InputError(f"{path!r}: cannot be read ({err.strerror or err})") from None
-    if not head.startswith(RRD_MAGIC):
-        raise InputError(f"{path!r}: not a Rerun recording (no RRD header; expected a .rrd written by envisat "
-                         "--rrd, run, track or demo)")
-
-
-def has_display() -> bool:
-    """Whether a native window can be opened: on Linux a DISPLAY or WAYLAND_DISPLAY is set; elsewhere assumed."""
-    if not sys.platform.startswith("linux"):
-        return True
-    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-
-
-def rerun_command() -> list[str]:
-    """The `rerun` command of this environment's rerun-sdk."""
-    return [sys.executable, "-m", "rerun_cli"]
-
-
-def viewer_command(files: list[str], web: bool = False, port: int = DEFAULT_PORT,
-                   web_port: int = DEFAULT_WEB_PORT) -> list[str]:
-    """The command line: `rerun --bind 127.0.0.1 FILE...`, or with web `rerun --serve-web --bind 127.0.0.1 --port P
-    --web-viewer-port W FILE...` (never another address)."""
-    if not web:
-        return rerun_command() + ["--bind", BIND, *files]
-    for name, value in (("port", port), ("web-port", web_port)):
-        if not 1 <= value <= 65535:
-            raise InputError(f"--{name} {value}: expected a port from 1 to 65535")
-    if port == web_port:
-        raise InputError(f"--port and --web-port are both {port}: expected two different ports")
-    return rerun_command() + ["--serve-web", "--bind", BIND, "--port", str(port), "--web-viewer-port", str(web_port),
-                              *files]
-
-
-def web_url(port: int, web_port: int) -> str:
-    """The address of the web viewer, pointed at the gRPC proxy that serves the recording."""
-    proxy = urllib.parse.quote(f"rerun+http://{BIND}:{port}/proxy", safe="")
-    return f"http://{BIND}:{web_port}/?url={proxy}"
-
-
-def start_viewer(cmd: list[str], env: dict | None = None, quiet: bool = False) -> subprocess.Popen:
-    """Start the viewer in its own process group (a new session: Ctrl-C in the terminal does not reach it)."""
-    out = subprocess.DEVNULL if quiet else None
-    return subprocess.Popen(cmd, env=env, start_new_session=True, stdin=subprocess.DEVNULL, stdout=out, stderr=out)
-
-
-def stop_viewer(proc: subprocess.Popen, wait_s: float = 10.0) -> int:
-    """End the viewer's whole process group: SIGINT, then SIGTERM, then SIGKILL if it lingers; returns its code once
-    no process of the group is left (a killed grandchild is reaped by init a moment after the wrapper exits: on a
-    loaded machine the group was still there when this returned), or after wait_s more."""
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
-        try:
-            os.killpg(proc.pid, sig)
-        except ProcessLookupError:
-            break
-        try:
-            proc.wait(timeout=wait_s)
-            break
-        except subprocess.TimeoutExpired:
-            continue
-    try:  # the wrapper may be gone while its child still runs
-        os.killpg(proc.pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-    code = proc.wait()
-    deadline = time.monotonic() + wait_s
-    while time.monotonic() < deadline:
-        try:
-            os.killpg(proc.pid, 0)
-        except ProcessLookupError:
-            break
-        time.sleep(0.05)
-    return code
+    p.set_defaults(func=run_view, flag_names={"port": "--port", "web_port": "--web-port"})
 
 
 def _interrupt(signum, frame):
@@ -158,6 +38,9 @@ def _interrupt(signum, frame):
 
 
 def run_view(args: argparse.Namespace) -> int:
+    from envisat_pose.analysis.viewer import (BIND, check_recording, has_display, recordings, start_viewer,
+                                              stop_viewer, viewer_command, web_url)
+
     files = recordings(args.path)
     for f in files:
         check_recording(f)

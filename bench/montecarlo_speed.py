@@ -72,17 +72,12 @@ def time_campaign(runs: int, duration_s: float, workers: int, block_runs: int, o
                   kernel: str | None = None) -> dict:
     """Run the campaign once through the pipeline's run_campaign (envisat_pose.pipelines.campaign); wall time,
     memory, summary. kernel: the filter kernel (None: the default, as `envisat montecarlo` runs it)."""
-    from envisat_pose.app.scenarios import job_defaults
-    from envisat_pose.config import deep_update, from_dict
     from envisat_pose.pipelines.campaign import MonteCarloConfig, run_campaign
     from envisat_pose.runner import RunnerConfig, cpu_share
 
     # as `envisat montecarlo --scenario default` builds it: the scenario's [measurement] and [filter] tables
-    data = deep_update(job_defaults("default"), {"scenario": "default", "duration_s": duration_s, "runs": runs,
-                                                 "seed": 0, "block_runs": block_runs})
-    if kernel is not None:
-        data = deep_update(data, {"filter": {"kernel": kernel}})
-    cfg = from_dict(MonteCarloConfig, data)
+    cfg = MonteCarloConfig.from_scenario("default", overrides={"filter.kernel": kernel}, duration_s=duration_s,
+                                         runs=runs, seed=0, block_runs=block_runs)
     n = str(cpu_share(workers))
     runner = RunnerConfig("local", workers, None, {"OMP_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n})
     t0 = time.perf_counter()

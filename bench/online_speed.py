@@ -36,11 +36,12 @@ CORRECT_PX = 10.0  # a detected corner within this of the truth counts as correc
 def closed_loop(weights: str, duration_s: float, roi: bool, seed: int, out_dir: str, cores: int) -> tuple[dict, object]:
     """`envisat run --warm-start` (the tracker handed run 0's draw from P0, so the ideal-pixel filter below starts
     from the same estimate)."""
-    from envisat_pose.app.run import run_config
     from envisat_pose.pipelines import closed_loop as loop
+    from envisat_pose.pipelines.run_config import RunConfig
 
-    cfg = run_config("default", {"duration_s": duration_s, "weights": weights, "seed": seed, "workers": 1,
-                                 "threads": cores, "warm_start": True, "tracker.roi.enabled": roi})
+    cfg = RunConfig.from_scenario("default", overrides={"duration_s": duration_s, "weights": weights, "seed": seed,
+                                                        "workers": 1, "threads": cores, "warm_start": True,
+                                                        "tracker.roi.enabled": roi})
     t0 = time.perf_counter()
     summary = loop.run_closed_loop(cfg, out_dir, progress=False)
     summary["bench_wall_s"] = time.perf_counter() - t0
@@ -114,7 +115,7 @@ def main() -> None:
     args = ap.parse_args()
     os.sched_setaffinity(0, set(sorted(os.sched_getaffinity(0))[:args.cores]))
     os.environ["LP_NUM_THREADS"] = str(args.cores)
-    from envisat_pose.app.run import default_weights_path
+    from envisat_pose.pipelines.jobs import default_weights_path
     from envisat_pose.pipelines.closed_loop import STAGES
     from envisat_pose.contracts import Estimates
     from envisat_pose.io import atomic_write_text

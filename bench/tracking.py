@@ -3,7 +3,7 @@ Tracker started with no prior) over several seeds per scenario, each seed its ow
 and random lit sun, scored against the truth so that a failure shows (pipelines/scoring.py).
 
 Each (scenario, seed) is one closed loop resolved as `envisat run --scenario S --seed N` resolves it
-(app.run.run_defaults, then config.resolve_job_config: the scenario's duration, rate and filter table) with the
+(RunConfig.from_scenario: the scenario's duration, rate and filter table) with the
 seed's lit sun (pipelines.trials.scenario_sun_N: uniform over the suns that light the whole run within a 90 deg
 phase angle, out of the Earth's shadow; the eclipse scenario keeps its own sun, whose shadow is the case). The
 simulated tracker is handed the chaser's exact orbit and the render camera: a mission would know neither exactly.
@@ -47,19 +47,16 @@ def run_config(scenario: str, seed: int, weights: str, duration_s: float | None,
                sun_phase_max_deg: float, config_path: str | None = None):
     """The closed loop of (scenario, seed) as `envisat run --config config_path` resolves it, with the seed's lit
     sun."""
-    from envisat_pose.app.run import run_defaults
-    from envisat_pose.config import resolve_job_config
-    from envisat_pose.pipelines.closed_loop import RunConfig, finish_config, stage_types
+    from envisat_pose.pipelines.run_config import RunConfig
     from envisat_pose.pipelines.trials import scenario_sun_N
 
-    stage_types()
     flags = {"seed": seed, "runs": 1, "workers": 1, "weights": weights, "duration_s": duration_s,
              "tracker.noise.correlation_in": correlation_in}
-    cfg = resolve_job_config(RunConfig, run_defaults(scenario), config_path, flags)
+    cfg = RunConfig.from_scenario(scenario, config_path, flags)
     sun = scenario_sun_N(scenario, cfg.duration_s, cfg.rate_hz, seed, sun_phase_max_deg)
     if sun is not None:
-        cfg = resolve_job_config(RunConfig, run_defaults(scenario), config_path, flags | {"image.sun_dir": list(sun)})
-    return finish_config(cfg)
+        cfg = RunConfig.from_scenario(scenario, config_path, flags | {"image.sun_dir": list(sun)})
+    return cfg
 
 
 def pixel_noise(out: str) -> float:
@@ -207,7 +204,7 @@ def main() -> None:
                                      "(an ablation: [tracker.acquire] frames = 12, say); its text goes into the result")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "tracking.json"))
     args = ap.parse_args()
-    from envisat_pose.app.run import default_weights_path
+    from envisat_pose.pipelines.jobs import default_weights_path
     from envisat_pose.config import to_dict
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.io import atomic_write_text

@@ -33,6 +33,15 @@ class MonteCarloConfig:
     measurement: MeasurementConfig = field(default_factory=MeasurementConfig)
     filter: FilterConfig = field(default_factory=FilterConfig)
 
+    @classmethod
+    def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
+                      **fields) -> "MonteCarloConfig":
+        """The job `envisat montecarlo --scenario NAME` runs: this config resolved from the named scenario, the TOML
+        file at config_path, then overrides ({'section.key': value}) and fields (pipelines.jobs.resolve_job)."""
+        from envisat_pose.pipelines.jobs import resolve_job
+
+        return resolve_job("montecarlo", name, config_path, overrides, **fields)
+
     def validate(self, prefix: str = "") -> None:
         check(self.duration_s > 0, "duration_s", self.duration_s, "a positive duration in seconds")
         check(1 <= self.runs <= 1_000_000, "runs", self.runs, "a number of runs from 1 to 1000000")

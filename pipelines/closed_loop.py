@@ -190,20 +190,33 @@ class TruthBrief:
 
 
 def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: str | None = None) -> dict:
-    """The whole job into out_dir; returns the summary dict (also written as summary.json). sink: where run 0's
-    recording goes (default: save to out_dir/recording.rrd; 'spawn' or 'connect:ADDR' for a live viewer).
+    """The whole job into out_dir (created, parents too); returns the summary dict (also written as
+    summary.json). sink: where run 0's recording goes (None: save to out_dir/recording.rrd; 'spawn' or
+    'connect:ADDR' for a live viewer).
 
-    Memory does not grow with the run's per-frame arrays: each run writes them to out_dir/runs/run-NNNN/ chunk by
-    chunk; est.npz and det.npz are streamed from those files (then removed) and the scores read them chunk by
-    chunk (what stays whole: the truth, and a few scalars per frame: the errors the scores need and the status)."""
+    Every output is written into a hidden folder inside out_dir and moved into place when the job completes
+    (io.staged_folder): an error or an interrupt leaves out_dir as it was (an earlier run's outputs intact).
+    Memory does not grow with the run's per-frame arrays: each run writes them to runs/run-NNNN/ (in the staged
+    folder) chunk by chunk; est.npz and det.npz are streamed from those files (then removed) and the scores read
+    them chunk by chunk (what stays whole: the truth, and a few scalars per frame: the errors the scores need
+    and the status)."""
+    from envisat_pose.io import staged_folder
+    from envisat_pose.runner import make_out_dir
+
+    cfg = finish_config(cfg)  # idempotent: a RunConfig a user builds runs as the app's does
+    make_out_dir(out_dir, parents=True, field="out_dir")
+    names = [os.path.basename(p) for p in output_paths(out_dir).values()]
+    with staged_folder(out_dir, names) as stage:
+        return _run_closed_loop(cfg, stage, progress, sink)
+
+
+def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | None) -> dict:
     import shutil
 
     from envisat_pose.config import to_toml
     from envisat_pose.io import atomic_write_text
     from envisat_pose.runner import RunnerConfig, cpu_share, real_time_factor, run_tasks
 
-    cfg = finish_config(cfg)  # idempotent: a RunConfig a user builds runs as the app's does
-    os.makedirs(out_dir, exist_ok=True)
     paths = output_paths(out_dir)
     wall0 = time.perf_counter()
     truth = simulate_truth(cfg, progress=False)

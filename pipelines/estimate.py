@@ -37,6 +37,15 @@ class EstimateConfig:
     runs: int = 1
     seed: int = 0
 
+    @classmethod
+    def from_scenario(cls, name: str | None = None, config_path: str | None = None, overrides: dict | None = None,
+                      **fields) -> "EstimateConfig":
+        """The job `envisat estimate --scenario NAME` runs: this config resolved from the named scenario, the TOML
+        file at config_path, then overrides ({'section.key': value}) and fields (pipelines.jobs.resolve_job)."""
+        from envisat_pose.pipelines.jobs import resolve_job
+
+        return resolve_job("estimate", name, config_path, overrides, **fields)
+
     def validate(self, prefix: str = "") -> None:
         check(1 <= self.runs <= 100_000, "runs", self.runs, "a number of runs from 1 to 100000")
         check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")
@@ -74,7 +83,8 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
         from envisat_pose.contracts import TruthTrajectory
 
         if duration_s is not None:
-            raise InputError("--duration-s applies to --scenario only; the truth file fixes the duration")
+            raise InputError("duration_s applies to a `scenario` only; the truth file (`truth_path`) fixes the "
+                             "duration")
         truth = TruthTrajectory.load(truth_path)
         onboard_physics(truth, truth_path)  # its config must name the physics the filter needs
         return truth, {"truth_file": truth_path}

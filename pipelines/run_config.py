@@ -50,6 +50,15 @@ class RunConfig:
     filter: FilterConfig = field(default_factory=lambda: FilterConfig(**TRACKER_FILTER))
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
 
+    @classmethod
+    def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
+                      **fields) -> "RunConfig":
+        """The job `envisat run --scenario NAME` runs: this config resolved from the named scenario, the TOML
+        file at config_path, then overrides ({'section.key': value}) and fields (pipelines.jobs.resolve_job)."""
+        from envisat_pose.pipelines.jobs import resolve_job
+
+        return resolve_job("run", name, config_path, overrides, **fields)
+
     def validate(self, prefix: str = "") -> None:
         from envisat_pose.geometry import load_camera
 

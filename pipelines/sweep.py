@@ -45,6 +45,27 @@ class SweepConfig:
               "a share in [0, 1)")
 
 
+def sweep_for(cfg: MonteCarloConfig, rates_hz=None, rate_given: bool = False) -> SweepConfig | None:
+    """The rate sweep of a campaign: its scenario's [sweep] table under rates_hz (None: the table's), validated,
+    every rate's step checked against the truth's before any work; None when neither asks for one. rate_given:
+    the caller set the campaign's single rate too (refused with a sweep: the sweep sets the rates)."""
+    from envisat_pose.config import resolve_job_config
+    from envisat_pose.named_scenarios import table
+    from envisat_pose.pipelines.campaign import check_filter_rate, truth_scenario
+
+    defaults = table(cfg.scenario, "sweep")
+    if not defaults and not rates_hz:
+        return None
+    check(not rate_given, "measurement.rate_hz", cfg.measurement.rate_hz, "no single rate with a rate sweep (the "
+          "sweep's rates_hz sets the rates)")
+    sweep = resolve_job_config(SweepConfig, defaults, None, {"rates_hz": list(rates_hz) if rates_hz else None},
+                               prefix="sweep")
+    for rate in sweep.rates_hz:
+        sub = at_rate(cfg, rate)
+        check_filter_rate(sub, truth_scenario(sub))
+    return sweep
+
+
 def at_rate(cfg: MonteCarloConfig, rate_hz: float) -> MonteCarloConfig:
     """The campaign of cfg with the filter and its measurements at rate_hz."""
     import dataclasses

@@ -54,6 +54,15 @@ class TrackConfig:
     filter: FilterConfig = field(default_factory=lambda: FilterConfig(**TRACKER_FILTER))
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
 
+    @classmethod
+    def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
+                      **fields) -> "TrackConfig":
+        """The job `envisat track --scenario NAME` runs: this config resolved from the named scenario, the TOML
+        file at config_path, then overrides ({'section.key': value}) and fields (pipelines.jobs.resolve_job)."""
+        from envisat_pose.pipelines.jobs import resolve_job
+
+        return resolve_job("track", name, config_path, overrides, **fields)
+
     def validate(self, prefix: str = "") -> None:
         check(self.rate_hz >= 0, "rate_hz", self.rate_hz, "a frame rate in Hz (0: a video's own)")
         check(1 <= self.threads <= 256, "threads", self.threads, "1 to 256 threads")
@@ -78,21 +87,29 @@ def output_paths(out_dir: str) -> dict[str, str]:
     return {k: os.path.join(out_dir, v) for k, v in OUTPUTS.items()}
 
 
-def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCamera | None = None, remap=None,
+def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCamera | str | None = None, remap=None,
                  out_dir: str = "track-out", sink: str | None = None, progress: bool = True) -> dict:
     """Run the Tracker over the source's frames (a FrameSource, or a path open_source opens at cfg.rate_hz);
     write est.npz, det.npz, track.config.toml, summary.json and the recording (out_dir/recording.rrd, or
-    streamed to sink: 'spawn' or 'connect:URL'); with a truth also errors.png and the scores. camera: None for
-    the MJCF's chaser_cam at the frames' size; cfg.orbit None: the scenario's; cfg.weights "": the shipped
-    ones. Every output is staged and moved into out_dir when complete (io.staged_folder). Returns the summary."""
+    streamed to sink: 'spawn' or 'connect:URL'); with a truth also errors.png and the scores. camera: a
+    PinholeCamera (remap: its cv2.remap maps, or None), a camera TOML file (camera_file.camera_from_intrinsics), or
+    None for the MJCF's chaser_cam at the frames' size; cfg.orbit None: the scenario's; cfg.weights "": the shipped
+    ones (TrackConfig.from_scenario resolves the job `envisat track` runs). Every frame is read once before any
+    output (frames.scan_source: one size, decodable, at least the cold start's frames); every output is staged
+    and moved into out_dir when complete (io.staged_folder). Returns the summary (its source's `pixels`: what
+    the scan found of the pixels)."""
     from envisat_pose.io import staged_folder
     from envisat_pose.pipelines.build import load_camera, scenario_orbit
     from envisat_pose.perception.weights import shipped_weights_path
+    from envisat_pose.runner import check_out_dir, make_out_dir
 
+    check_out_dir(out_dir, field="out_dir")
     if isinstance(source, str):
         source = open_source(source, cfg.rate_hz)
-    if source.size_px is None or not source.bit_depth:
-        scan_source(source, None if camera is None else (camera.width_px, camera.height_px))
+    if isinstance(camera, str):
+        camera, remap = camera_from_intrinsics(camera)
+    pixels = scan_source(source, None if camera is None else (camera.width_px, camera.height_px),
+                         min_frames=cfg.tracker.acquire.frames, progress=progress)
     if camera is None:
         camera = load_camera(size_px=source.size_px)
     if cfg.orbit is None or not cfg.weights:
@@ -101,12 +118,13 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
         stage_types()
         cfg = dataclasses.replace(cfg, orbit=cfg.orbit or scenario_orbit(cfg.scenario),
                                   weights=cfg.weights or shipped_weights_path())
+    make_out_dir(out_dir, field="out_dir")
     with staged_folder(out_dir, OUTPUTS.values()) as stage:
-        return _track(cfg, source, camera, remap, stage, sink, progress)
+        return _track(cfg, source, camera, remap, stage, sink, progress, pixels)
 
 
 def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, out_dir: str, sink: str | None,
-           progress: bool) -> dict:
+           progress: bool, pixels: str) -> dict:
     import shutil
     from dataclasses import asdict
 
@@ -183,7 +201,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     counts = status_counts(status)
     summary = {
         "source": {"kind": source.kind, "path": source.path, "frames": T, "bit_depth": source.bit_depth,
-                   "skipped_damaged_shards": source.skipped},
+                   "size_px": list(source.size_px), "pixels": pixels, "skipped_damaged_shards": source.skipped},
         "weights": cfg.weights,
         "frames_by_status": counts,
         "tracked": counts["tracking"] > 0,

@@ -17,19 +17,16 @@ import sys
 
 def sequence_config(scenario: str, seed: int, frames: int, phase_max_deg: float = 90.0):
     """The GenerateConfig of the closed loop's frames of (scenario, seed) over its first `frames` frames, lit."""
-    from envisat_pose.app.run import run_defaults
-    from envisat_pose.config import resolve_job_config
-    from envisat_pose.pipelines.run_config import RunConfig, finish_config, stage_types
+    from envisat_pose.pipelines.run_config import RunConfig
     from envisat_pose.pipelines.trials import scenario_sun_N
 
-    stage_types()
     flags = {"seed": seed, "runs": 1, "workers": 1}
-    rate_hz = resolve_job_config(RunConfig, run_defaults(scenario), None, flags).rate_hz
+    rate_hz = RunConfig.from_scenario(scenario, overrides=flags).rate_hz
     flags["duration_s"] = (frames - 1) / rate_hz
     sun = scenario_sun_N(scenario, flags["duration_s"], rate_hz, seed, phase_max_deg)
     if sun is not None:
         flags["image.sun_dir"] = list(sun)
-    return finish_config(resolve_job_config(RunConfig, run_defaults(scenario), None, flags)).image
+    return RunConfig.from_scenario(scenario, overrides=flags).image
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -13,10 +13,11 @@ from envisat_pose.pipelines import closed_loop as loop
 
 
 def run_cfg(weights, duration_s=4.0, **flags):
-    """The default scenario's run as `envisat run` resolves it (app.run.run_config), with flags over it."""
-    from envisat_pose.app.run import run_config
+    """The default scenario's run as `envisat run` resolves it (RunConfig.from_scenario), with flags over it."""
+    from envisat_pose.pipelines.run_config import RunConfig
 
-    return run_config("default", {"duration_s": duration_s, "weights": weights, "workers": 1, **flags})
+    return RunConfig.from_scenario("default", overrides={"duration_s": duration_s, "weights": weights, "workers": 1,
+                                                         **flags})
 
 
 def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, verify_rrd):
@@ -45,7 +46,7 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, ver
     assert cfg["scenario"] == "default" and cfg["image"]["mode"] == "sequence"
     assert cfg["tracker"]["roi"]["enabled"] is True
     assert json.loads((out / "summary.json").read_text())["frames"] == T == summary["frames"]
-    from envisat_pose.app.view import recordings
+    from envisat_pose.analysis.viewer import recordings
 
     assert recordings(str(out)) == [str(out / "recording.rrd")]
     verify_rrd(out / "recording.rrd")  # footer written: `rerun rrd verify` passes

@@ -18,7 +18,7 @@ ISSUE_NAMES = ["close-25m", "default", "eclipse", "gravity-gradient", "paper-3ma
 def test_the_shipped_scenarios_are_the_issues_and_every_one_validates():
     import dataclasses
 
-    from envisat_pose.app.scenarios import job_defaults
+    from envisat_pose.pipelines.jobs import scenario_defaults
     from envisat_pose.datagen.scenario import ScenarioConfig, scenario_config
     from envisat_pose.pipelines.campaign import MonteCarloConfig
 
@@ -27,27 +27,29 @@ def test_the_shipped_scenarios_are_the_issues_and_every_one_validates():
     assert set(named_scenarios.TRUTH_KEYS) == {f.name for f in dataclasses.fields(ScenarioConfig)} - {"seed"}
     for name in ISSUE_NAMES:
         scenario_config(name)  # the truth part is a valid ScenarioConfig
-        from_dict(MonteCarloConfig, {"scenario": name, **job_defaults(name)})  # and so are its job tables
+        from_dict(MonteCarloConfig, {"scenario": name, **scenario_defaults("montecarlo", name)})  # and its job tables
         assert "\n" not in named_scenarios.load(name)["description"]
 
 
 def test_scenarios_say_what_the_issue_asks():
-    from envisat_pose.app.scenarios import job_defaults
+    from envisat_pose.pipelines.jobs import scenario_defaults
     from envisat_pose.datagen.scenario import scenario_config
 
     assert scenario_config("slow-tumble").target.spin_period_s == 226.0
     assert math.isclose(math.degrees(np.linalg.norm(scenario_config("stress-tumble").target.w0_T_rad_s)), 5.0)
     assert scenario_config("close-25m").relative.rho0_C_m == (0.0, 25.0, 0.0)
     assert scenario_config("gravity-gradient").target.gravity_gradient is True
-    m = {n: job_defaults(n)["measurement"] for n in ("paper-all-0.02", "paper-all-0.2", "paper-3markers-0.02")}
+    m = {n: scenario_defaults("estimate", n)["measurement"]
+         for n in ("paper-all-0.02", "paper-all-0.2", "paper-3markers-0.02")}
     assert [(v["kind"], v["sigma_m"], v["max_markers"]) for v in m.values()] == [
         ("markers3d", 0.02, 8), ("markers3d", 0.2, 8), ("markers3d", 0.02, 3)]
-    assert job_defaults("pixels-1px")["measurement"]["kind"] == "pixels"
+    assert scenario_defaults("estimate", "pixels-1px")["measurement"]["kind"] == "pixels"
     rates = named_scenarios.table("rate-sweep", "sweep")["rates_hz"]
     assert min(rates) == 0.05 and max(rates) == 10.0
     # a base's tables are inherited, the child's keys win
     assert scenario_config("paper-all-0.2").orbit == scenario_config("default").orbit
-    assert job_defaults("paper-all-0.2")["filter"] == job_defaults("default")["filter"]
+    filters = [scenario_defaults("estimate", n)["filter"] for n in ("paper-all-0.2", "default")]
+    assert filters[0] == filters[1]
 
 
 def test_unknown_names_and_malformed_files_are_one_line(monkeypatch, capsys):

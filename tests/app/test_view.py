@@ -12,7 +12,7 @@ import urllib.request
 
 import pytest
 
-from envisat_pose.app import view
+from envisat_pose.analysis import viewer as view
 from envisat_pose.app.cli import main
 from envisat_pose.config import InputError
 

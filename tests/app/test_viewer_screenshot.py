@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from envisat_pose.pipelines import closed_loop as loop
-from envisat_pose.app import view
+from envisat_pose.analysis import viewer as view
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
@@ -109,9 +109,9 @@ def looks_loaded(png: str) -> bool:
 @pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (make test installs it as root)")
 def test_the_recording_opens_in_the_web_viewer(tmp_path, detector_weights, rerun_env):
-    from envisat_pose.app.run import run_config
+    from envisat_pose.pipelines.run_config import RunConfig
 
-    cfg = run_config("default", {"duration_s": 6.0, "weights": detector_weights, "workers": 1, "warm_start": True})
+    cfg = RunConfig.from_scenario("default", duration_s=6.0, weights=detector_weights, workers=1, warm_start=True)
     run_dir = tmp_path / "run"
     loop.run_closed_loop(cfg, str(run_dir), progress=False)
     port, web_port = free_ports(2)

@@ -26,7 +26,7 @@ import pytest
 CHILD = textwrap.dedent("""
     import json, resource, sys, tracemalloc
     import numpy as np
-    from envisat_pose.app.run import run_config
+    from envisat_pose.pipelines.run_config import RunConfig
     from envisat_pose.datagen.orbit import chaser_orbit
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.pipelines import closed_loop as loop
@@ -37,9 +37,9 @@ CHILD = textwrap.dedent("""
     r_mid = chaser_orbit(scenario_config("default").orbit, np.array([1050.0])).r_N_m[0]
 
     def cfg(duration_s):
-        return run_config("default", {"duration_s": duration_s, "rate_hz": 10.0, "weights": weights, "workers": 1,
-                                      "image.resolution_px": 64,
-                                      "image.sun_dir": (-r_mid / np.linalg.norm(r_mid)).tolist()})
+        return RunConfig.from_scenario("default", overrides={
+            "duration_s": duration_s, "rate_hz": 10.0, "weights": weights, "workers": 1, "image.resolution_px": 64,
+            "image.sun_dir": (-r_mid / np.linalg.norm(r_mid)).tolist()})
 
     def job(duration_s, name):
         tracemalloc.reset_peak()
@@ -58,7 +58,7 @@ CHILD = textwrap.dedent("""
 
 
 def test_a_long_closed_loop_keeps_its_memory_flat(tmp_path):
-    from envisat_pose.app.run import default_weights_path
+    from envisat_pose.pipelines.jobs import default_weights_path
     from envisat_pose.contracts import Estimates
     from envisat_pose.pipelines.closed_loop import record_arrays
 

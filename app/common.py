@@ -1,0 +1,76 @@
+"""What the verbs share: the common flags (--out, --config, --weights, --seed, --quiet; the recording's --spawn and
+--connect) and the mapping of a library error's argument names onto a verb's flags.
+
+The library names its arguments and config fields in its errors ('out_dir ...', 'weights ...', '`rate_hz`'); a
+verb lists which of them are its flags (`flag_names`, set on the parser with set_defaults) and the command line
+(app/cli.py) prints the error with those names turned into the flags the user typed (`as_flags`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+# library argument / field names -> flags, for every verb that adds the flag with add_common
+COMMON_FLAGS = {"out": "--out", "out_dir": "--out", "config_path": "--config", "weights": "--weights",
+                "seed": "--seed"}
+# ... and for every verb (a damaged shard's hint names --skip-damaged on every verb that reads a dataset)
+EVERY_VERB = {"skip_damaged": "--skip-damaged"}
+
+
+def add_common(p: argparse.ArgumentParser, *, out: str | None = None, out_default: str | None = None,
+               out_metavar: str = "DIR", config: str | None = None, weights: bool = False, seed: str | None = None,
+               quiet: bool = True, flag_names: dict[str, str] | None = None) -> None:
+    """Add the common flags to a verb's parser: --out (help text `out`; required unless out_default), --config
+    (help `config`), --weights (the detector's), --seed (help `seed`), --quiet; and record which library names
+    are its flags (COMMON_FLAGS, then flag_names) for its errors (as_flags)."""
+    if out is not None:
+        p.add_argument("--out", required=out_default is None, default=out_default, metavar=out_metavar, help=out)
+    if config is not None:
+        p.add_argument("--config", metavar="FILE.toml", help=config)
+    if weights:
+        p.add_argument("--weights", metavar="W.safetensors",
+                       help="detector weights (default: the shipped models/detector.safetensors)")
+    if seed is not None:
+        p.add_argument("--seed", type=int, help=seed)
+    if quiet:
+        p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(flag_names={**COMMON_FLAGS, **(flag_names or {})})
+
+
+def add_recording_arguments(p: argparse.ArgumentParser) -> None:
+    """--spawn / --connect URL: the recording streamed to a viewer instead of the output folder's recording.rrd."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--spawn", action="store_true", help="stream the recording to a new local Rerun viewer")
+    g.add_argument("--connect", metavar="URL", help="stream the recording to a running viewer "
+                   "(e.g. rerun+http://127.0.0.1:9876/proxy) instead of RUN_DIR/recording.rrd")
+
+
+def recording_sink(args: argparse.Namespace) -> str | None:
+    """The recording sink of the flags (Rerun's own examples' --spawn/--connect); None: the job's own file."""
+    if getattr(args, "spawn", False):
+        return "spawn"
+    if getattr(args, "connect", None):
+        return f"connect:{args.connect}"
+    return None
+
+
+_LEADING_NAME = re.compile(r"^(\w+)\b")
+_QUOTED_NAME = re.compile(r"`(\w+)`")
+
+
+def as_flags(message: str, names: dict[str, str]) -> str:
+    """A library error with its argument names as a verb's flags: the leading name ('src ...' -> '--images ...')
+    and every `name` in backquotes that is one of `names` (others lose only their quotes)."""
+    message = _LEADING_NAME.sub(lambda m: names.get(m.group(1), m.group(1)), message, count=1)
+    return _QUOTED_NAME.sub(lambda m: names.get(m.group(1), m.group(1)), message)
+
+
+def check_rrd_output(path: str) -> None:
+    """--rrd must name a .rrd file that can be written (runner.check_out_file): InputError before any work."""
+    from envisat_pose.config import InputError
+    from envisat_pose.runner import check_out_file
+
+    if not path.endswith(".rrd"):
+        raise InputError(f"--rrd {path!r}: expected a path ending in .rrd")
+    check_out_file(path, "--rrd")
