@@ -90,6 +90,13 @@ if _UserCacheLocator not in _CACHE_IMPL._locator_classes:
 KIND_CODES = {"markers3d": 0, "pixels": 1, "pixels+range": 2}
 _P0 = MRP.start  # first MRP component in the 12-state (envisat_pose.state.MRP)
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+# the update's parts (update_kernel calls them in order), compiled without numba's reference counting (the
+# internal `_nrt=False`: they allocate nothing) and handed whole arrays and the run's index: with reference counts
+# on each array they are handed (compiled as usual, or inlined into the kernel: 5-12 % slower) or a row view per
+# run (a count each) the update was slower than in one function; so it is ~6 % faster than the one 249-line
+# function was (both timed in one process on the same inputs). Only the kernel calls np.dot (its out= needs the
+# counts).
+_JIT_PART = dict(_JIT, _nrt=False)
 # sigma points as columns of a flat (12, _SP) array, row i at [i * _SP:(i + 1) * _SP]: a row stride known when
 # compiling lets LLVM prove the rows apart and vectorize the loops over sigma points (25 used, 7 padding)
 _SP = 32
@@ -456,19 +463,270 @@ def _measure_cols(X, Gs, c, kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_
             out[2, s] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
 
 
+@njit(**_JIT_PART)
+def _reaching_gate(mean, measured, r, vis_check, face_n, face_h, face_corners, G, mask_k, accepted, act):
+    """Which measured corners of run r reach the gate: measured (R, 8) and, when vis_check, visible from the prior
+    mean (R, 12) (the face test: face_n (6, 3), face_h (6,), face_corners (6, 8) bool). Writes row r of mask_k
+    (R, 8), clears accepted's (R, 8), lists the corners in act; returns their number."""
+    nc = measured.shape[1]
+    cT0, cT1, cT2 = 0.0, 0.0, 0.0
+    if vis_check:
+        _dcm(mean[r, _P0:_P0 + 3], G)
+        cT0 = -(G[0, 0] * mean[r, 0] + G[0, 1] * mean[r, 1] + G[0, 2] * mean[r, 2])
+        cT1 = -(G[1, 0] * mean[r, 0] + G[1, 1] * mean[r, 1] + G[1, 2] * mean[r, 2])
+        cT2 = -(G[2, 0] * mean[r, 0] + G[2, 1] * mean[r, 1] + G[2, 2] * mean[r, 2])
+    na = 0
+    for c in range(nc):
+        vis = True
+        if vis_check:
+            vis = False
+            for f in range(face_n.shape[0]):
+                if face_corners[f, c] and (face_n[f, 0] * cT0 + face_n[f, 1] * cT1 + face_n[f, 2] * cT2
+                                           > face_h[f]):
+                    vis = True
+        mask_k[r, c] = measured[r, c] and vis
+        accepted[r, c] = False
+        if mask_k[r, c]:
+            act[na] = c
+            na += 1
+    return na
+
+
+@njit(**_JIT_PART)
+def _keep_prior(mean, cov, r, mean_out, cov_out, Ky):
+    """The posterior of run r set to its prior (mean (R, 12), cov (R, 12, 12)) and K y to zero, before any
+    update."""
+    n = mean.shape[1]
+    for i in range(n):
+        mean_out[r, i] = mean[r, i]
+        Ky[r, i] = 0.0
+        for j in range(n):
+            cov_out[r, i, j] = cov[r, i, j]
+
+
+@njit(**_JIT_PART)
+def _predicted_moments(X, mean, r, act, na, mdim, Wm, Wc, kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_cv,
+                       min_depth, Gs, al3, zT, zs, zp, Wv):
+    """The unscented transform of run r's sigma points (columns of the flat X) through the measurement model of
+    its na corners act (filtering/measurements.measure): zp (M,) = sum Wm z_s, dz = z_s - z_pred into zs (S, M),
+    and Wv (M + 12, S) = [Wc dz; Wc dx], dx = chi - x with each MRP on the mean's set, so that Wv @ zs is
+    [Pzz; Pxz] (the caller's one matrix product through BLAS). zT (M, S) is work space (M = na mdim)."""
+    n = mean.shape[1]
+    S = zs.shape[0]
+    M = na * mdim
+    _dcm_cols(X, Gs)
+    for a in range(na):
+        _measure_cols(X, Gs, act[a], kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_cv, min_depth,
+                      zT[a * mdim:(a + 1) * mdim])
+    # dx = chi - x with each MRP on the mean's set, weighted by Wc, under the weighted dz in Wv
+    _align_cols(X, mean[r, _P0], mean[r, _P0 + 1], mean[r, _P0 + 2], al3)
+    for i in range(n):
+        mi = mean[r, i]
+        if _P0 <= i < _P0 + 3:
+            for s in range(S):
+                Wv[M + i, s] = (al3[i - _P0, s] - mi) * Wc[s]
+        else:
+            for s in range(S):
+                Wv[M + i, s] = (X[i * _SP + s] - mi) * Wc[s]
+    for s in range(S):
+        for a in range(M):
+            zs[s, a] = zT[a, s]
+    for a in range(M):
+        zp[a] = 0.0
+    for s in range(S):
+        ws = Wm[s]
+        for a in range(M):
+            zp[a] += ws * zs[s, a]
+    for s in range(S):
+        ws = Wc[s]
+        for a in range(M):
+            zs[s, a] -= zp[a]                                  # dz = z_s - z_pred
+            Wv[a, s] = zs[s, a] * ws
+
+
+@njit(**_JIT_PART)
+def _innovation(z, R_c, r, sr, act, na, mdim, zp, Pzz, y, Sm):
+    """Run r's innovation y (M,) = z - z_pred of its corners act (z (R, 8, m)), and its covariance Sm (M, M) = Pzz
+    plus each corner's R_c (R, 8, m, m) x sr (block diagonal)."""
+    M = na * mdim
+    for ai in range(na):
+        ca = act[ai]
+        for da in range(mdim):
+            a = ai * mdim + da
+            y[a] = z[r, ca, da] - zp[a]                        # innovation
+            for b in range(M):
+                Sm[a, b] = Pzz[a, b]
+            for db in range(mdim):                             # + R of the corner (block diagonal)
+                Sm[a, ai * mdim + db] += R_c[r, ca, da, db] * sr
+
+
+@njit(**_JIT_PART)
+def _gate(Sm, y, na, mdim, thr, use_gate, comp, act, accepted, r, Sc, Lc, buf):
+    """The chi-square gate per corner, y_c^T S_cc^-1 y_c <= thr (a NaN distance fails), when use_gate: the kept
+    corners' slots moved to the front of act and marked in row r of accepted (R, 8). Returns how many were kept,
+    -1 where a corner's S_cc has no Cholesky factor (the numpy filter redoes the run)."""
+    keep = 0
+    for a in range(na):
+        good = True
+        if use_gate:
+            o = a * mdim
+            for i in range(mdim):
+                for j in range(mdim):
+                    Sc[i, j] = Sm[o + i, o + j]
+            if not _chol(Sc, Lc, mdim):
+                return -1
+            d2 = 0.0
+            for i in range(mdim):
+                t = y[o + i]
+                for k in range(i):
+                    t -= Lc[k, i] * buf[k]
+                buf[i] = t / Lc[i, i]
+                d2 += buf[i] * buf[i]
+            good = d2 <= thr
+        if good:
+            act[keep] = a
+            keep += 1
+            accepted[r, act_corner(comp, a, mdim)] = True
+    return keep
+
+
+@njit(**_JIT_PART)
+def _compact(keep, na, mdim, n, act, comp, y, Sm, Pzz, Pxz, u, Ls, V):
+    """y, Sm and V (Mk, 12) = Pxz^T compacted to the keep accepted corners' components, in order (u and Ls work
+    space). Returns tr(Pzz) over them."""
+    Mk = keep * mdim
+    for a in range(keep):
+        for d in range(mdim):
+            comp[a * mdim + d] = act[a] * mdim + d           # now indexes the measured-corner vectors
+    tr = 0.0
+    for a in range(Mk):
+        tr += Pzz[comp[a], comp[a]]
+    if keep < na:
+        for a in range(Mk):
+            ia = comp[a]
+            u[a] = y[ia]
+            for b in range(Mk):
+                Ls[a, b] = Sm[ia, comp[b]]
+            for i in range(n):
+                V[a, i] = Pxz[i, ia]
+        for a in range(Mk):
+            y[a] = u[a]
+            for b in range(Mk):
+                Sm[a, b] = Ls[a, b]
+    else:
+        for a in range(Mk):
+            for i in range(n):
+                V[a, i] = Pxz[i, a]
+    return tr
+
+
+@njit(**_JIT_PART)
+def _whiten(Ls, y, Mk, n, u, V):
+    """u = L^-1 y and V = L^-1 Pxz^T in place (L = Ls, the lower Cholesky factor of S): K = V^T L^-1, K y = V^T u,
+    K S K^T = V^T V, NIS = u.u (forward substitution as row operations: each entry's sum over k in ascending
+    order). Returns (NIS, y.y)."""
+    for a in range(Mk):
+        t = y[a]
+        for k in range(a):
+            t -= Ls[a, k] * u[k]
+        d = Ls[a, a]
+        u[a] = t / d
+        for k in range(a):
+            lak = Ls[a, k]
+            for i in range(n):
+                V[a, i] -= lak * V[k, i]
+        for i in range(n):
+            V[a, i] = V[a, i] / d
+    ny, yty = 0.0, 0.0
+    for a in range(Mk):
+        ny += u[a] * u[a]
+        yty += y[a] * y[a]
+    return ny, yty
+
+
+@njit(**_JIT_PART)
+def _gain_terms(V, u, Mk, r, Ky, Vt):
+    """Run r's K y = V^T u into Ky (R, 12), and Vt (12, Mk) = V^T (for K S K^T = V^T V)."""
+    n = V.shape[1]
+    for i in range(n):
+        Ky[r, i] = 0.0
+    for a in range(Mk):
+        ua = u[a]
+        for i in range(n):
+            Ky[r, i] += V[a, i] * ua
+    for i in range(n):
+        for a in range(Mk):
+            Vt[i, a] = V[a, i]
+
+
+@njit(**_JIT_PART)
+def _posterior(mean, cov, r, Ky, mean_out, P):
+    """Run r's x+ = x + K y into mean_out (R, 12), and P = cov - K S K^T in place (P holds K S K^T)."""
+    n = mean.shape[1]
+    for i in range(n):
+        mean_out[r, i] = mean[r, i] + Ky[r, i]
+        for j in range(n):
+            P[i, j] = cov[r, i, j] - P[i, j]
+
+
+@njit(**_JIT_PART)
+def _shadow_switch(mean, r, P, Sj):
+    """|p| > 1: run r's mean (row r of (R, 12)) to its shadow set, the covariance P (12, 12) with
+    S = (2 p p^T - (p.p) I) / (p.p)^2 (Sj work space). Nothing when |p| <= 1."""
+    n = mean.shape[1]
+    p0, p1, p2 = mean[r, _P0], mean[r, _P0 + 1], mean[r, _P0 + 2]
+    pp = p0 * p0 + p1 * p1 + p2 * p2
+    if pp <= 1.0:
+        return
+    pv = (p0, p1, p2)
+    for i in range(3):
+        for j in range(3):
+            Sj[i, j] = (2.0 * pv[i] * pv[j] - (pp if i == j else 0.0)) / _sq(pp)
+    _shadow(mean[r, _P0:_P0 + 3])
+    for j in range(n):
+        b0, b1, b2 = P[_P0, j], P[_P0 + 1, j], P[_P0 + 2, j]
+        for i in range(3):
+            P[_P0 + i, j] = Sj[i, 0] * b0 + Sj[i, 1] * b1 + Sj[i, 2] * b2
+    for i in range(n):
+        b0, b1, b2 = P[i, _P0], P[i, _P0 + 1], P[i, _P0 + 2]
+        for j in range(3):
+            P[i, _P0 + j] = b0 * Sj[j, 0] + b1 * Sj[j, 1] + b2 * Sj[j, 2]
+
+
+@njit(**_JIT_PART)
+def _symmetrized_ok(P, cov_out, mean_out, r, ny, L):
+    """Run r's cov_out = (P + P^T) / 2; whether its posterior is usable: the covariance finite and positive
+    definite, the NIS and the mean finite."""
+    n = P.shape[0]
+    for i in range(n):
+        for j in range(n):
+            cov_out[r, i, j] = 0.5 * (P[i, j] + P[j, i])
+    ok = _finite_pd(cov_out[r], L, n) and np.isfinite(ny)
+    for i in range(n):
+        if not np.isfinite(mean_out[r, i]):
+            ok = False
+    return ok
+
+
 @njit(**_JIT)
-def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check, Wm, Wc, scale, kind,
-                  corners_T, face_n, face_h, face_corners, cam_R, cam_pos, cam_f, cam_cu, cam_cv, min_depth,
-                  mean_out, cov_out, nis, accepted, mask_k, Ky, yy, trPzz, ok):
-    """UKF measurement update of R runs (estimator's step around filtering/ukf.update).
+def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check, weights, geometry, camera, out):
+    """UKF measurement update of R runs (estimator's step around filtering/ukf.update), one run at a time: the
+    corners that reach the gate, sigma points, the measurement model's moments, the innovation, the gate, the
+    accepted components, the gain and the posterior, the shadow switch (the helpers above, in this order).
 
     mean (R, 12), cov (R, 12, 12) the prior; z (R, 8, m); measured (R, 8) bool; R_c (R, 8, m, m) per-corner
     covariance, scaled by r_scale (R,); thr (R,) chi-square bound per corner (inf: gate open), used when
-    use_gate; vis_check: drop measured corners the prior mean says are hidden (face test: face_n (6, 3),
-    face_h (6,), face_corners (6, 8) bool). Writes the posterior (mean_out, cov_out), nis (R,), accepted and
-    mask_k (R, 8) (corners used; corners that reached the gate), Ky (R, 12) = K y, yy (R,) = y.y,
-    trPzz (R,) = tr(Pzz) over the used components; ok (R,) False where the numpy filter must redo the run.
+    use_gate; vis_check: drop measured corners the prior mean says are hidden. weights: (Wm, Wc, scale) of the
+    sigma points; geometry: (corners_T (8, 3), face_n (6, 3), face_h (6,), face_corners (6, 8) bool); camera:
+    (R_K_from_C, pos_C_m, f, cu, cv, min_depth) for the pixel kinds and kind (0 markers3d, 1 pixels, 2
+    pixels+range) last. out: (mean_out, cov_out, nis (R,), accepted and mask_k (R, 8) (corners used; corners
+    that reached the gate), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,) = tr(Pzz) over the used components, ok
+    (R,) False where the numpy filter must redo the run), written.
     """
+    Wm, Wc, scale = weights
+    corners_T, face_n, face_h, face_corners = geometry
+    cam_R, cam_pos, cam_f, cam_cu, cam_cv, min_depth, kind = camera
+    mean_out, cov_out, nis, accepted, mask_k, Ky, yy, trPzz, ok = out
     R, n = mean.shape
     S = 2 * n + 1
     nc, mdim = z.shape[1], z.shape[2]
@@ -500,32 +758,8 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
     Sj = np.empty((3, 3))
     for r in range(R):
         ok[r] = True
-        # which measured corners reach the gate: the visibility check from the prior mean
-        cT0, cT1, cT2 = 0.0, 0.0, 0.0
-        if vis_check:
-            _dcm(mean[r, _P0:_P0 + 3], G)
-            cT0 = -(G[0, 0] * mean[r, 0] + G[0, 1] * mean[r, 1] + G[0, 2] * mean[r, 2])
-            cT1 = -(G[1, 0] * mean[r, 0] + G[1, 1] * mean[r, 1] + G[1, 2] * mean[r, 2])
-            cT2 = -(G[2, 0] * mean[r, 0] + G[2, 1] * mean[r, 1] + G[2, 2] * mean[r, 2])
-        na = 0
-        for c in range(nc):
-            vis = True
-            if vis_check:
-                vis = False
-                for f in range(face_n.shape[0]):
-                    if face_corners[f, c] and (face_n[f, 0] * cT0 + face_n[f, 1] * cT1 + face_n[f, 2] * cT2
-                                               > face_h[f]):
-                        vis = True
-            mask_k[r, c] = measured[r, c] and vis
-            accepted[r, c] = False
-            if mask_k[r, c]:
-                act[na] = c
-                na += 1
-        for i in range(n):
-            mean_out[r, i] = mean[r, i]
-            Ky[r, i] = 0.0
-            for j in range(n):
-                cov_out[r, i, j] = cov[r, i, j]
+        na = _reaching_gate(mean, measured, r, vis_check, face_n, face_h, face_corners, G, mask_k, accepted, act)
+        _keep_prior(mean, cov, r, mean_out, cov_out, Ky)
         nis[r], yy[r], trPzz[r] = 0.0, 0.0, 0.0
         if na == 0:
             # no update: the numpy filter's update with an empty mask leaves a mean on |p| <= 1 and a
@@ -536,172 +770,38 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
             ok[r] = False
             continue
         M = na * mdim
-        zT = zbuf[:M * S].reshape((M, S))
-        Wv = Wb[:(M + n) * S].reshape((M + n, S))
         C = Cbuf[:(M + n) * M].reshape((M + n, M))
-        Pzz = C[:M]
-        Pxz = C[M:]
         for a in range(na):
             for d in range(mdim):
                 comp[a * mdim + d] = act[a] * mdim + d
         _to_cols(sig, X)
-        # the measurement model of the measured corners at every sigma point (filtering/measurements.measure)
-        _dcm_cols(X, Gs)
-        for a in range(na):
-            _measure_cols(X, Gs, act[a], kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_cv, min_depth,
-                          zT[a * mdim:(a + 1) * mdim])
-        # dx = chi - x with each MRP on the mean's set, weighted by Wc, under the weighted dz in Wv
-        _align_cols(X, mean[r, _P0], mean[r, _P0 + 1], mean[r, _P0 + 2], al3)
-        for i in range(n):
-            mi = mean[r, i]
-            if _P0 <= i < _P0 + 3:
-                for s in range(S):
-                    Wv[M + i, s] = (al3[i - _P0, s] - mi) * Wc[s]
-            else:
-                for s in range(S):
-                    Wv[M + i, s] = (X[i * _SP + s] - mi) * Wc[s]
-        # z_pred = sum Wm z_s; Pzz = sum Wc dz dz^T, Pxz = sum Wc dx dz^T (one matrix product through BLAS)
         zs = zsb[:S * M].reshape((S, M))
-        for s in range(S):
-            for a in range(M):
-                zs[s, a] = zT[a, s]
-        for a in range(M):
-            zp[a] = 0.0
-        for s in range(S):
-            ws = Wm[s]
-            for a in range(M):
-                zp[a] += ws * zs[s, a]
-        for s in range(S):
-            ws = Wc[s]
-            for a in range(M):
-                zs[s, a] -= zp[a]                                  # dz = z_s - z_pred
-                Wv[a, s] = zs[s, a] * ws
-        np.dot(Wv, zs, C)
-        sr = r_scale[r]
-        for ai in range(na):
-            ca = act[ai]
-            for da in range(mdim):
-                a = ai * mdim + da
-                y[a] = z[r, ca, da] - zp[a]                        # innovation
-                for b in range(M):
-                    Sm[a, b] = Pzz[a, b]
-                for db in range(mdim):                             # + R of the corner (block diagonal)
-                    Sm[a, ai * mdim + db] += R_c[r, ca, da, db] * sr
-        # chi-square gate per corner: y_c^T S_cc^-1 y_c <= thr (a NaN distance fails)
-        keep = 0
-        for a in range(na):
-            good = True
-            if use_gate:
-                o = a * mdim
-                for i in range(mdim):
-                    for j in range(mdim):
-                        Sc[i, j] = Sm[o + i, o + j]
-                if not _chol(Sc, Lc, mdim):
-                    ok[r] = False
-                    break
-                d2 = 0.0
-                for i in range(mdim):
-                    t = y[o + i]
-                    for k in range(i):
-                        t -= Lc[k, i] * buf[k]
-                    buf[i] = t / Lc[i, i]
-                    d2 += buf[i] * buf[i]
-                good = d2 <= thr[r]
-            if good:
-                act[keep] = a
-                keep += 1
-                accepted[r, act_corner(comp, a, mdim)] = True
-        if not ok[r]:
+        Wv = Wb[:(M + n) * S].reshape((M + n, S))
+        _predicted_moments(X, mean, r, act, na, mdim, Wm, Wc, kind, corners_T, cam_R, cam_pos, cam_f, cam_cu,
+                           cam_cv, min_depth, Gs, al3, zbuf[:M * S].reshape((M, S)), zs, zp, Wv)
+        np.dot(Wv, zs, C)                                          # [Pzz; Pxz] (BLAS)
+        _innovation(z, R_c, r, r_scale[r], act, na, mdim, zp, C[:M], y, Sm)
+        keep = _gate(Sm, y, na, mdim, thr[r], use_gate, comp, act, accepted, r, Sc, Lc, buf)
+        if keep < 0:
+            ok[r] = False
             continue
         if keep == 0:
             ok[r] = _unchanged_ok(mean[r], cov[r], L, P, n)  # every measured corner rejected: no update
             continue
-        # compact to the accepted components, in order
         Mk = keep * mdim
         V = Vb[:Mk * n].reshape((Mk, n))
-        Vt = Vtb[:n * Mk].reshape((n, Mk))
-        for a in range(keep):
-            for d in range(mdim):
-                comp[a * mdim + d] = act[a] * mdim + d           # now indexes the measured-corner vectors
-        tr = 0.0
-        for a in range(Mk):
-            tr += Pzz[comp[a], comp[a]]
-        if keep < na:
-            for a in range(Mk):
-                ia = comp[a]
-                u[a] = y[ia]
-                for b in range(Mk):
-                    Ls[a, b] = Sm[ia, comp[b]]
-                for i in range(n):
-                    V[a, i] = Pxz[i, ia]
-            for a in range(Mk):
-                y[a] = u[a]
-                for b in range(Mk):
-                    Sm[a, b] = Ls[a, b]
-        else:
-            for a in range(Mk):
-                for i in range(n):
-                    V[a, i] = Pxz[i, a]
+        tr = _compact(keep, na, mdim, n, act, comp, y, Sm, C[:M], C[M:], u, Ls, V)
         if not _chol_lower(Sm, Ls, Mk):
             ok[r] = False
             continue
-        # u = L^-1 y, V = L^-1 Pxz^T: K = V^T L^-1, K y = V^T u, K S K^T = V^T V, NIS = u.u
-        # (forward substitution as row operations: each entry's sum over k in ascending order)
-        for a in range(Mk):
-            t = y[a]
-            for k in range(a):
-                t -= Ls[a, k] * u[k]
-            d = Ls[a, a]
-            u[a] = t / d
-            for k in range(a):
-                lak = Ls[a, k]
-                for i in range(n):
-                    V[a, i] -= lak * V[k, i]
-            for i in range(n):
-                V[a, i] = V[a, i] / d
-        ny, yty = 0.0, 0.0
-        for a in range(Mk):
-            ny += u[a] * u[a]
-            yty += y[a] * y[a]
-        for i in range(n):
-            Ky[r, i] = 0.0
-        for a in range(Mk):
-            ua = u[a]
-            for i in range(n):
-                Ky[r, i] += V[a, i] * ua
-        for i in range(n):
-            for a in range(Mk):
-                Vt[i, a] = V[a, i]
-        np.dot(Vt, V, P)                                            # K S K^T = V^T V (BLAS)
-        for i in range(n):
-            mean_out[r, i] = mean[r, i] + Ky[r, i]
-            for j in range(n):
-                P[i, j] = cov[r, i, j] - P[i, j]
+        ny, yty = _whiten(Ls, y, Mk, n, u, V)
+        Vt = Vtb[:n * Mk].reshape((n, Mk))
+        _gain_terms(V, u, Mk, r, Ky, Vt)
+        np.dot(Vt, V, P)                                           # K S K^T = V^T V (BLAS)
+        _posterior(mean, cov, r, Ky, mean_out, P)
         nis[r], yy[r], trPzz[r] = ny, yty, tr
-        # |p| > 1: the mean to its shadow, the covariance with S = (2 p p^T - (p.p) I) / (p.p)^2
-        p0, p1, p2 = mean_out[r, _P0], mean_out[r, _P0 + 1], mean_out[r, _P0 + 2]
-        pp = p0 * p0 + p1 * p1 + p2 * p2
-        if pp > 1.0:
-            pv = (p0, p1, p2)
-            for i in range(3):
-                for j in range(3):
-                    Sj[i, j] = (2.0 * pv[i] * pv[j] - (pp if i == j else 0.0)) / _sq(pp)
-            _shadow(mean_out[r, _P0:_P0 + 3])
-            for j in range(n):
-                b0, b1, b2 = P[_P0, j], P[_P0 + 1, j], P[_P0 + 2, j]
-                for i in range(3):
-                    P[_P0 + i, j] = Sj[i, 0] * b0 + Sj[i, 1] * b1 + Sj[i, 2] * b2
-            for i in range(n):
-                b0, b1, b2 = P[i, _P0], P[i, _P0 + 1], P[i, _P0 + 2]
-                for j in range(3):
-                    P[i, _P0 + j] = b0 * Sj[j, 0] + b1 * Sj[j, 1] + b2 * Sj[j, 2]
-        for i in range(n):
-            for j in range(n):
-                cov_out[r, i, j] = 0.5 * (P[i, j] + P[j, i])
-        ok[r] = _finite_pd(cov_out[r], L, n) and np.isfinite(ny)
-        for i in range(n):
-            if not np.isfinite(mean_out[r, i]):
-                ok[r] = False
+        _shadow_switch(mean_out, r, P, Sj)
+        ok[r] = _symmetrized_ok(P, cov_out, mean_out, r, ny, L)
 
 
 @njit(**_JIT)
@@ -838,10 +938,11 @@ def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarra
     ok = np.empty(R, dtype=bool)
     out["suspect"] = np.zeros(0, dtype=np.int64)  # runs the numpy filter redid (the kernel's are finite)
     out["indefinite"] = np.zeros(R, dtype=bool)  # runs whose innovation covariance was not positive definite
-    update_kernel(mean, cov, z, measured, R_c, r_scale, thr_a, use_gate, bool(vis_check), w.Wm, w.Wc,
-                  float(w.n + w.lam), kind, corners, fn, fh, fc, cR, cpos, f, cu, cv, float(MIN_DEPTH_M),
-                  out["mean"], out["cov"], out["nis"], out["accepted"], out["mask_k"], out["Ky"], out["yy"],
-                  out["trPzz"], ok)
+    update_kernel(mean, cov, z, measured, R_c, r_scale, thr_a, use_gate, bool(vis_check),
+                  (w.Wm, w.Wc, float(w.n + w.lam)), (corners, fn, fh, fc),
+                  (cR, cpos, f, cu, cv, float(MIN_DEPTH_M), kind),
+                  (out["mean"], out["cov"], out["nis"], out["accepted"], out["mask_k"], out["Ky"], out["yy"],
+                   out["trPzz"], ok))
     if not ok.all():  # repairs and non-finite steps: the numpy filter's, on those runs
         from envisat_pose.filtering import ukf
         from envisat_pose.filtering.measurements import predicted_visible
