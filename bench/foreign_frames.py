@@ -335,7 +335,7 @@ def make_sequence(out_dir: str, scenario: str, seed: int, num_images: int, resol
                   frame_dt_s: float = 1.0, habits: Habits = Habits(), progress: bool = True) -> dict:
     """Render and write one foreign sequence into out_dir (module docstring). Returns meta.json's content."""
     from envisat_pose.attitude import mrp_to_dcm
-    from envisat_pose.geometry import load_camera
+    from envisat_pose.geometry import PinholeCamera, load_camera
     from envisat_pose.io import atomic_path, atomic_write_text, save_npz
     from envisat_pose.pipelines.pseudo_labels import corner_labels
     from envisat_pose.state import MRP, POS
@@ -377,8 +377,8 @@ def make_sequence(out_dir: str, scenario: str, seed: int, num_images: int, resol
     ideal_cam = load_camera().scaled(n, n)
     lab = corner_labels(x, ideal_cam)
     # the pinhole the tracker remaps the frames to: f = sqrt(fx fy), principal point (cx, cy) (camera_file.py)
-    remapped = ideal_cam.__class__(float(K_c[0, 0]), float(K_c[0, 2]), float(K_c[1, 2]), n, n,
-                                   ideal_cam.R_K_from_C, ideal_cam.pos_C_m)
+    remapped = PinholeCamera(float(K_c[0, 0]), float(K_c[0, 2]), float(K_c[1, 2]), n, n,
+                             ideal_cam.R_K_from_C, ideal_cam.pos_C_m)
     save_npz(os.path.join(out_dir, "truth.npz"), {
         "t_s": t_s, "x": x, "corners_px": distort_px(lab["corners_px"], K_i, K_c, habits.distortion),
         "corners_ideal_px": corner_labels(x, remapped)["corners_px"], "visible": lab["visible"],
