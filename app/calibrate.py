@@ -64,7 +64,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_skip_damaged_argument(p)
-    p.set_defaults(func=run_calibrate_cli)
+    p.set_defaults(func=run_calibrate_cli, flag_names={"data": "--data", "held_out": "--held-out", "out": "--out"})
 
 
 def _print_groups(before: dict, after: dict) -> None:

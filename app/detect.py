@@ -37,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "in every corruption group on held-out data)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_skip_damaged_argument(p)
-    p.set_defaults(func=run_detect_cli)
+    p.set_defaults(func=run_detect_cli, flag_names={"roi": "--roi", "out": "--out"})
 
 
 def detector_inputs(args: argparse.Namespace) -> None:

@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_skip_damaged_argument(p)
-    p.set_defaults(func=run_evaluate_cli)
+    p.set_defaults(func=run_evaluate_cli, flag_names={"roi": "--roi", "out": "--out"})
 
 
 def run_evaluate_cli(args: argparse.Namespace) -> int:

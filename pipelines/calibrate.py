@@ -190,7 +190,7 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
     data_names = " ".join(dataset_ref(d) for d in data)
     make_out_file_dir(out, "out")
     if len(err) < 20:
-        raise InputError(f"--data {data_names!r}: only {len(err)} correctly named corners; calibration needs more "
+        raise InputError(f"data {data_names!r}: only {len(err)} correctly named corners; calibration needs more "
                          "held-out frames (at least 20 corners)")
     if cfg.refine:  # the floor added to the line fits' covariances
         floor = fit_floor(err, cov)
@@ -250,7 +250,7 @@ def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, l
     windings = face_windings(g)
     fit, held = [], []
     bar = tqdm(disable=not progress, desc="face cue", unit="frame")
-    for flag, folders in (("--data", paths), ("--held-out", held_paths)):
+    for flag, folders in (("data", paths), ("held_out", held_paths)):
         for d, shards in folders.items():
             for i, (key, image, label) in enumerate(camera_samples(shards)):
                 if limit is not None and i >= limit:
@@ -260,14 +260,14 @@ def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, l
                                      "t_cam_from_target_m); the face cue needs them")
                 regions = fc.frame_regions(image, label["R_cam_from_target"], label["t_cam_from_target_m"],
                                            label["K"], g, windings)
-                to_fit = flag == "--data" and (bool(held_paths) or i % 2 == 0)
+                to_fit = flag == "data" and (bool(held_paths) or i % 2 == 0)
                 (fit if to_fit else held).append(regions)
                 bar.update(1)
     bar.close()
     try:
         cue, record = fc.fit_and_temper(fit, held)
     except ValueError as err:
-        raise InputError(f"--data: {err}") from None
+        raise InputError(f"data: {err}") from None
     record["data"] = " ".join(dataset_ref(d) for d in data)
     record["held_out"] = " ".join(dataset_ref(d) for d in held_paths) or "the odd frames of data"
     record["skipped_damaged_shards"] = skipped + held_skipped

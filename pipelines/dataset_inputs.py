@@ -25,7 +25,7 @@ def skip_hint():
     try:
         yield
     except DamagedShardError as err:
-        raise InputError(f"{err}; --skip-damaged goes on without it, `envisat dataset verify` lists every "
+        raise InputError(f"{err}; `skip_damaged` goes on without it, `envisat dataset verify` lists every "
                          "problem") from None
 
 

@@ -55,14 +55,14 @@ def read_roi(path: str) -> dict[str, "object"]:
     import numpy as np
 
     if not os.path.isfile(path):
-        raise InputError(f"--roi {path!r}: no such file")
+        raise InputError(f"roi {path!r}: no such file")
     try:
         with np.load(path, allow_pickle=False) as z:
             keys, roi = z["key"].astype(str), np.asarray(z["roi_px"], dtype=np.float64)
     except (KeyError, ValueError, OSError) as err:
-        raise InputError(f"--roi {path!r}: expected an npz with key (M,) and roi_px (M, 3) ({err})") from None
+        raise InputError(f"roi {path!r}: expected an npz with key (M,) and roi_px (M, 3) ({err})") from None
     if roi.shape != (len(keys), 3) or not np.all(np.isfinite(roi)) or np.any(roi[:, 2] <= 0):
-        raise InputError(f"--roi {path!r}: roi_px has shape {roi.shape}, expected ({len(keys)}, 3) finite with "
+        raise InputError(f"roi {path!r}: roi_px has shape {roi.shape}, expected ({len(keys)}, 3) finite with "
                          "side > 0")
     return {k: np.round(r).astype(np.int64) for k, r in zip(keys.tolist(), roi)}
 

@@ -88,7 +88,7 @@ def sorted_frames(folder: str, names: list[str]) -> list[str]:
     files.sort(key=lambda n: (natural_key(n), n))
     for a, b in zip(files, files[1:]):
         if natural_key(a) == natural_key(b):
-            raise InputError(f"--images {folder!r}: {a!r} and {b!r} have the same frame number: their order is "
+            raise InputError(f"src {folder!r}: {a!r} and {b!r} have the same frame number: their order is "
                              "ambiguous (rename them, e.g. with zero-padded numbers)")
     return files
 
@@ -225,7 +225,7 @@ def read_timestamps(path: str, files: list[str]) -> np.ndarray:
         with open(path, newline="") as fh:
             rows = list(csv.DictReader(fh))
     except OSError as err:
-        raise InputError(f"--timestamps {path!r}: cannot be read ({err.strerror or err})") from None
+        raise InputError(f"timestamps {path!r}: cannot be read ({err.strerror or err})") from None
     if not rows or not {"file", "t_s"} <= set(rows[0]):
         raise InputError(f"{path}: expected a CSV with a header line and columns file,t_s")
     times = {}
@@ -255,36 +255,37 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
     data in 16-bit image files (None: detected by scan_source). A generate folder's shards are checked against
     its manifest: a damaged one is refused, or with skip_damaged left out (source.skipped names it)."""
     if bit_depth is not None and bit_depth not in BIT_DEPTHS:
-        raise InputError(f"--bit-depth {bit_depth}: expected one of {', '.join(map(str, BIT_DEPTHS))}")
+        raise InputError(f"bit_depth {bit_depth}: expected one of {', '.join(map(str, BIT_DEPTHS))}")
     if rate_hz and timestamps:
-        raise InputError("--rate-hz and --timestamps: give one of them (the frame times)")
+        raise InputError("rate_hz and `timestamps`: give one of them (the frame times)")
     if os.path.isdir(src):
         if os.path.isfile(os.path.join(src, "manifest.json")):
-            for flag, value in (("--rate-hz", rate_hz), ("--timestamps", timestamps), ("--bit-depth", bit_depth)):
+            for flag, value in (("rate_hz", rate_hz), ("timestamps", timestamps), ("bit_depth", bit_depth)):
                 if value:
                     raise InputError(f"{flag} does not apply to a generate folder ({src!r}: its labels give the "
                                      "frame times and its frames are 8-bit)")
             return dataset_source(src, skip_damaged)
         files = [os.path.join(src, f) for f in sorted_frames(src, os.listdir(src))]
         if not files:
-            raise InputError(f"--images {src!r}: no image files (expected PNG, JPEG or TIFF files, a generate "
+            raise InputError(f"src {src!r}: no image files (expected PNG, JPEG or TIFF files, a generate "
                              "folder or a video)")
         if timestamps:
             t = read_timestamps(timestamps, files)
         elif rate_hz > 0:
             t = np.arange(len(files)) / rate_hz
         else:
-            raise InputError(f"--images {src!r}: a folder of images needs --rate-hz R or --timestamps FILE.csv")
+            raise InputError(f"src {src!r}: a folder of images needs a frame rate (`rate_hz`) or "
+                             "a timestamps file (`timestamps`)")
         source = FrameSource("images", src, t, [os.path.basename(f) for f in files], files=files)
     elif os.path.isfile(src):
         if timestamps:
-            raise InputError(f"--timestamps does not apply to a video ({src!r}): its frames are at --rate-hz or the "
+            raise InputError(f"timestamps does not apply to a video ({src!r}): its frames are at `rate_hz` or the "
                              "file's own frame rate")
         if bit_depth:
-            raise InputError(f"--bit-depth does not apply to a video ({src!r}): its frames are 8-bit")
+            raise InputError(f"bit_depth does not apply to a video ({src!r}): its frames are 8-bit")
         source = video_source(src, rate_hz)
     else:
-        raise InputError(f"--images {src!r}: no such file or folder")
+        raise InputError(f"src {src!r}: no such file or folder")
     source.bit_depth = bit_depth or 0  # 0: detect (scan_source)
     return source
 
@@ -304,13 +305,13 @@ def video_source(path: str, rate_hz: float) -> FrameSource:
         finally:
             cap.release()
     if not opened:
-        raise InputError(f"--images {path!r}: cannot be opened as a video (expected a video file OpenCV reads, "
+        raise InputError(f"src {path!r}: cannot be opened as a video (expected a video file OpenCV reads, "
                          "an image folder or a generate folder)" + library_said(said))
     if n == 0:
-        raise InputError(f"--images {path!r}: the video has no readable frames" + library_said(said))
+        raise InputError(f"src {path!r}: the video has no readable frames" + library_said(said))
     rate = rate_hz if rate_hz > 0 else fps
     if not rate > 0:
-        raise InputError(f"--images {path!r}: the video has no frame rate: give --rate-hz")
+        raise InputError(f"src {path!r}: the video has no frame rate: give `rate_hz`")
     return FrameSource("video", path, np.arange(n) / rate, [f"frame {i}" for i in range(n)])
 
 
@@ -324,11 +325,11 @@ def dataset_source(path: str, skip_damaged: bool = False) -> FrameSource:
     manifest = load_manifest(path)
     cfg = manifest.get("config", {})
     if cfg.get("mode") != "sequence":
-        raise InputError(f"--images {path!r}: a generate folder of mode {cfg.get('mode')!r}; expected one written "
-                         "with --mode sequence (frames in time order)")
+        raise InputError(f"src {path!r}: a generate folder of mode {cfg.get('mode')!r}; expected one written "
+                         "in sequence mode (`envisat generate --mode sequence`: frames in time order)")
     if not manifest.get("complete"):
-        raise InputError(f"--images {path!r}: an unfinished dataset (run `envisat generate` on it again to finish it)")
-    files, skipped = checked_shards(path, skip_damaged, "--images")
+        raise InputError(f"src {path!r}: an unfinished dataset (run `envisat generate` on it again to finish it)")
+    files, skipped = checked_shards(path, skip_damaged, "src")
     t, names, x, uv, inf = [], [], [], [], []
     for key, label, _ in iter_samples(files):
         t.append(float(label["scene"]["t_s"]))
@@ -374,7 +375,7 @@ def scan_source(source: FrameSource, size_px: tuple[int, int] | None = None, min
         i = int(bad[0])
         like = "like the camera" if size_px is not None else f"like {T - bad.size} of the {T} frames"
         raise InputError(f"{source.where(i)}: image is {shapes[i, 1]} x {shapes[i, 0]} px; expected {want[1]} x "
-                         f"{want[0]} px {like} (all frames one size; --camera FILE.toml for another camera)")
+                         f"{want[0]} px {like} (all frames one size; a `camera` file for another camera)")
     if min(want) < MIN_SIDE_PX:
         raise InputError(f"{source.where(0)}: image is {want[1]} x {want[0]} px; expected at least {MIN_SIDE_PX} px "
                          "a side")
@@ -385,7 +386,7 @@ def scan_source(source: FrameSource, size_px: tuple[int, int] | None = None, min
     source.size_px = (int(want[1]), int(want[0]))
     if not wide.any():
         if source.bit_depth not in (0, 8):
-            raise InputError(f"--bit-depth {source.bit_depth} does not apply: the frames are 8-bit files (it gives "
+            raise InputError(f"bit_depth {source.bit_depth} does not apply: the frames are 8-bit files (it gives "
                              "the depth of the data in 16-bit files)")
         source.bit_depth = 8
         line = "8-bit frames"
@@ -395,7 +396,7 @@ def scan_source(source: FrameSource, size_px: tuple[int, int] | None = None, min
             over = np.flatnonzero(peak >= (1 << source.bit_depth))
             if over.size:
                 i = int(over[0])
-                raise InputError(f"{source.where(i)}: pixel value {peak[i]} does not fit --bit-depth "
+                raise InputError(f"{source.where(i)}: pixel value {peak[i]} does not fit `bit_depth` "
                                  f"{source.bit_depth} (at most {(1 << source.bit_depth) - 1})")
             line = f"16-bit files of {source.bit_depth}-bit data (--bit-depth; maximum {top})"
         else:
@@ -404,6 +405,6 @@ def scan_source(source: FrameSource, size_px: tuple[int, int] | None = None, min
                     f"{T} frames; --bit-depth to set it)")
         line += f": scaled to 8 bits by 255/{(1 << source.bit_depth) - 1}"
     if T < min_frames:
-        raise InputError(f"--images {source.path!r}: {T} frame(s); the tracker's cold start needs at least "
-                         f"{min_frames} (tracker.acquire_frames)")
+        raise InputError(f"src {source.path!r}: {T} frame(s); the tracker's cold start needs at least "
+                         f"{min_frames} (tracker.acquire.frames)")
     return line

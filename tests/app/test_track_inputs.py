@@ -99,7 +99,7 @@ def test_twelve_bit_data_in_16_bit_pngs_is_detected_and_scaled(tmp_path):
     source = open_source(str(src14), rate_hz=1.0, bit_depth=12)
     from envisat_pose.config import InputError
 
-    with pytest.raises(InputError, match="f00.png.*does not fit --bit-depth 12"):
+    with pytest.raises(InputError, match="f00.png.*does not fit `bit_depth` 12"):  # the argument, not the flag
         scan_source(source)
     source = open_source(str(src14), rate_hz=1.0, bit_depth=14)
     scan_source(source)

@@ -161,7 +161,7 @@ def test_track_on_a_generate_folder(sequence_set, kind, tmp_path, capsys):
     shutil.copytree(sequence_set, ds)
     damage(str(ds / DAMAGED), kind)
     cfg = tmp_path / "fast.toml"
-    cfg.write_text("[tracker]\nacquire_frames = 3\n")
+    cfg.write_text("[tracker.acquire]\nframes = 3\n")
     out = tmp_path / "runs" / "t"
     args = ["track", "--images", str(ds), "--config", str(cfg), "--out", str(out), "--quiet"]
     refused(args, capsys, out, tmp_path / "runs")
