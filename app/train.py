@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import shlex
 import sys
 
-from envisat_pose.config import resolve_job_config
+from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -20,8 +19,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         "around the target, style augmentation, checkpoints as safetensors, batches built by worker processes "
         "(each reading its own shards). Under torchrun it trains with DDP.",
     )
-    p.add_argument("--data", required=True, nargs="+", metavar="DIR",
+    p.add_argument("--data", nargs="+", metavar="DIR",
                    help="dataset folder(s) (shards + manifest.json); several are read together")
+    p.add_argument("--online", action="store_true",
+                   help="instead of --data: train on frames rendered as training goes (no files; crops and "
+                   "augmentation on the device), each frame cropped at most --uses-per-frame times")
+    p.add_argument("--generate-config", metavar="FILE.toml",
+                   help="--online: the looks, as `envisat generate --config` takes them (random mode)")
+    p.add_argument("--resolution", type=int, metavar="PX", help="--online: the renders' side (default 1024)")
+    p.add_argument("--uses-per-frame", type=int, metavar="K", help="--online: crops per rendered frame (1-8, default 8)")
+    p.add_argument("--render-workers", type=int, metavar="N",
+                   help="--online: renderer processes (default: the cores less one, at least 1)")
     p.add_argument("--out", required=True, metavar="RUN_DIR",
                    help="run directory (created with its parents when the first step is trained)")
     p.add_argument("--config", metavar="FILE.toml", help="training config (keys of TrainConfig, [model], [data], [loss])")
@@ -43,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_skip_damaged_argument(p)
-    p.set_defaults(func=run_train_cli)
+    p.set_defaults(func=run_train_cli, flag_names=FLAGS)
 
 
 def resolve_config(args: argparse.Namespace):
@@ -57,40 +65,55 @@ def resolve_config(args: argparse.Namespace):
     return resolve_job_config(TrainConfig, base, args.config, flags)
 
 
+def online_config(args: argparse.Namespace):
+    """The online source of the flags (a resumed online run: its own, renderer processes from the flag), or None."""
+    from envisat_pose.pipelines.train import OnlineConfig, default_workers, read_run_record
+
+    saved = read_run_record(args.out).get("online") if args.resume and os.path.isdir(args.out) else None
+    if saved is not None:
+        return OnlineConfig.from_record(saved, args.render_workers)
+    if not args.online:
+        if args.data is None:
+            raise InputError("give --data DIR (shards) or --online (frames rendered as training goes)")
+        return None
+    if args.data:
+        raise InputError("--data and --online: train on shards or on rendered frames, not both")
+    from envisat_pose.datagen.generate_config import GenerateConfig
+
+    gen = resolve_job_config(GenerateConfig, {"mode": "random"}, args.generate_config,
+                             {"resolution_px": args.resolution})
+    uses = {} if args.uses_per_frame is None else {"uses_per_frame": args.uses_per_frame}
+    return OnlineConfig(gen, args.render_workers or max(1, default_workers()), **uses)
+
+
 def command_line(args: argparse.Namespace) -> str:
     """The command exactly as typed (its words quoted for a shell; relative paths kept as they were)."""
     return shlex.join(["envisat", *getattr(args, "argv", [])])
 
 
-# the library's argument and field names -> this verb's flags (errors name what the user typed)
+# the library's argument and config field names -> this verb's flags (its errors name what the user typed)
 FLAGS = {"data_dirs": "--data", "data": "--data", "run_dir": "--out", "init": "--init", "resume": "--resume",
          "workers": "--workers", "threads": "--threads", "time_budget_s": "--time-budget-s", "device": "--device",
-         "steps": "--steps", "batch_size": "--batch-size", "seed": "--seed"}
-_LEADING_NAME = re.compile(r"^(\w+)\b")
-
-
-def as_flags(message: str) -> str:
-    """A library error's leading argument name as this verb's flag ('init ...' -> '--init ...')."""
-    return _LEADING_NAME.sub(lambda m: FLAGS.get(m.group(1), m.group(1)), message, count=1)
+         "steps": "--steps", "batch_size": "--batch-size", "seed": "--seed", "online": "--online"}
 
 
 def run_train_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.config import ConfigError, InputError
+    from envisat_pose.app.common import as_flags
+    from envisat_pose.config import ConfigError
     from envisat_pose.perception.train import TrainingInterrupted
     from envisat_pose.pipelines.dataset_inputs import skip_hint, skipped_line
     from envisat_pose.pipelines.train import train_detector
 
     try:
         cfg = resolve_config(args)
+        online = online_config(args)
         with skip_hint():
-            last = train_detector(cfg, args.data, args.out, resume=args.resume, init=args.init,
+            last = train_detector(cfg, [] if online else args.data, args.out, resume=args.resume, init=args.init,
                                   device=args.device, workers=args.workers, bf16=args.bf16, threads=args.threads,
                                   progress=not args.quiet, command=command_line(args),
-                                  skip_damaged=args.skip_damaged)
-    except ConfigError as err:
-        raise InputError(as_flags(str(err))) from None
-    except InputError as err:
-        raise type(err)(as_flags(str(err))) from None
+                                  skip_damaged=args.skip_damaged, online=online)
+    except ConfigError as err:  # a value of a flag: named as the flag
+        raise InputError(as_flags(str(err), FLAGS)) from None
     except TrainingInterrupted as stop:
         hint = f"; go on with: envisat train --resume --out {shlex.quote(args.out)}" if stop.step else ""
         print(f"envisat train: {stop}{hint}", file=sys.stderr)
@@ -105,5 +128,7 @@ def run_train_cli(args: argparse.Namespace) -> int:
         return 0
     print(f"trained to step {last.get('step')} ({last.get('steps_run')} this run): loss {last.get('loss', float('nan')):.4f}, "
           f"{last.get('samples_s', 0):.0f} samples/s with {last.get('workers')} workers "
-          f"({last.get('stopped_by')}); run in {args.out}")
+          f"({last.get('stopped_by')}); run in {args.out}"
+          + (f"; each rendered frame cropped at most {last.get('max_uses')} times (K = {last.get('uses_per_frame')})"
+             if last.get("uses_per_frame") else ""))
     return 0

@@ -139,6 +139,16 @@ def worker_error_line(err: Exception) -> str:
     return str(err)
 
 
+def close_batches(batches) -> None:
+    """Stop an epoch iterator's worker processes now. Left to the garbage collector, an iterator caught in a
+    reference cycle (a generator's frame held by an exception's traceback) is finalized late, or at the
+    interpreter's exit, where joining its workers was seen to hang. torch's DataLoader iterator has no public
+    close: `_shutdown_workers` is what its own __del__ calls."""
+    shutdown = getattr(batches, "_shutdown_workers", None)
+    if shutdown is not None:
+        shutdown()
+
+
 def loader_batches(batches, flag: dict | None = None):
     """The batches of an epoch iterator, with a worker's user error (InputError: a damaged shard, a bad label) as
     its own one line, and the loader's end after a stop signal (its workers gone) as a plain end."""

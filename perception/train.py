@@ -41,7 +41,7 @@ from envisat_pose.io import atomic_write_text
 from envisat_pose.perception.data import DataConfig, shard_paths
 from envisat_pose.perception.losses import LossConfig, corner_losses
 from envisat_pose.perception.model import CornerNet, ModelConfig
-from envisat_pose.perception.stream import epoch_batches, loader_batches
+from envisat_pose.perception.stream import close_batches, epoch_batches, loader_batches
 from envisat_pose.perception.weights import load_state, load_tensors, read_weights, save_tensors, save_weights
 
 
@@ -335,7 +335,7 @@ def _progress(cfg: TrainConfig, state: dict, budget_end_s: float | None, time0: 
 def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: bool = False, device: str = "cpu",
           progress: bool = True, provenance: dict | None = None, init_weights: str | None = None,
           workers: int | None = None, bf16: bool = False, clock=time.perf_counter,
-          paths: list[str] | None = None) -> dict:
+          paths: list[str] | None = None, online=None) -> dict:
     """Train (or go on training, with resume) into run_dir. Returns the last metrics line.
 
     data_dir: one dataset folder or several (their shards are read together); paths: the shard files to read
@@ -351,6 +351,9 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
     budget too short for one step is an InputError. A resumed run already at its steps or budget trains nothing
     and returns an end line with stopped_by 'nothing_to_do'.
     clock: the seconds every time figure and the budget are read from (a test gives its own).
+    online: instead of shards, a function start_state -> iterator of (batch on the device, state) (frames
+    rendered as training goes: pipelines/online.py); each step's state is kept in state.json under 'online' and
+    handed back on resume; no epochs, data_dir and paths unused.
     Raises TrainingInterrupted after the checkpoint when SIGINT or SIGTERM stopped it.
     """
     dist, rank, world = _dist()
@@ -361,7 +364,7 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
         raise InputError(f"workers = {workers}: expected 0 (in-process) or more worker processes")
     t_start = clock()
     dirs = [data_dir] if isinstance(data_dir, str) else list(data_dir)
-    if paths is None:
+    if paths is None and online is None:
         paths = [p for d in dirs for p in shard_paths(d)]
     state = {"step": 0, "epoch": 0, "batch": 0, "workers": 0 if workers is None else workers, "time_s": 0.0}
     saved = None
@@ -462,20 +465,45 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
         return epoch_batches(paths, cfg.data, cfg.seed, epoch, cfg.batch_size, state["workers"], rank, world,
                              pin_memory=dev.type == "cuda")
 
+    def offline_batches():
+        """(batch, where the run stands after training it) from the shards, epoch after epoch; an epoch's end
+        logged. The next epoch's workers start early (no stall at the boundary)."""
+        current = upcoming = None
+        try:
+            while True:
+                skip, n = state["batch"], 0  # a resumed epoch: its first batches were trained on before
+                current = upcoming if upcoming is not None else batches_of(state["epoch"])
+                upcoming = batches_of(state["epoch"] + 1) if state["workers"] > 0 else None
+                for i, cpu_batch in enumerate(loader_batches(current, flag)):
+                    if i >= skip:
+                        n += 1
+                        yield cpu_batch, {"batch": i + 1}
+                if flag.get("signal"):
+                    return
+                if n == 0 and skip == 0:
+                    raise InputError(f"data {data_dir!r}: fewer samples than one batch of {cfg.batch_size} per "
+                                     f"worker ({state['workers']} workers, {len(paths)} shards, {world} ranks): "
+                                     "use fewer workers or a smaller batch")
+                close_batches(current)
+                log("epoch")
+                state["epoch"] += 1
+                state["batch"] = 0
+        finally:  # the workers of both epochs stop here, on the run's end or an error alike
+            for batches in (current, upcoming):
+                close_batches(batches)
+
+    def online_batches():
+        """(batch on the device, the source's state) from frames rendered as training goes (online(start))."""
+        for batch, source_state in online(state.get("online")):
+            yield batch, {"online": source_state}
+
     flag: dict = {}
     stop = None  # why the loop ended early: 'time_budget' or the signal's name
-    upcoming = None  # the next epoch's batches, started early (with workers): no stall at the epoch boundary
     with _stop_on_signals(flag):
-        while state["step"] < cfg.steps and stop is None:
-            n_batches = 0
-            skip = state["batch"]  # a resumed epoch: these batches were trained on before
-            current = upcoming if upcoming is not None else batches_of(state["epoch"])
-            upcoming = batches_of(state["epoch"] + 1) if state["workers"] > 0 else None
+        source = online_batches() if online is not None else offline_batches()
+        try:
             t_ask = clock()
-            for i, cpu_batch in enumerate(loader_batches(current, flag)):
-                if i < skip:
-                    t_ask = clock()
-                    continue
+            for cpu_batch, position in source:
                 if state["step"] >= cfg.steps or flag.get("signal"):
                     break
                 t_got = clock()
@@ -505,8 +533,7 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
                     ema.update_parameters(model)
                 start_run()
                 state["step"] += 1
-                state["batch"] = i + 1
-                n_batches += 1
+                state.update(position)
                 run["steps"] += 1
                 for k, v in terms.items():
                     sums[k] = sums[k] + v if k in sums else v
@@ -520,20 +547,10 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
                     checkpoint_s = clock() - t_ck
                 iter_s.append(clock() - t_ask)
                 t_ask = clock()
-            else:
-                if n_batches == 0 and state["batch"] == 0 and not flag.get("signal"):
-                    raise InputError(f"data {data_dir!r}: fewer samples than one batch of {cfg.batch_size} per "
-                                     f"worker ({state['workers']} workers, {len(paths)} shards, {world} ranks): "
-                                     "use fewer workers or a smaller batch")
-                if not flag.get("signal"):
-                    log("epoch")
-                    state["epoch"] += 1
-                    state["batch"] = 0
-                    continue
-            if flag.get("signal"):
+            if flag.get("signal") and stop is None:
                 stop = flag["signal"]
-            break
-        current = upcoming = None  # the workers of both epochs shut down
+        finally:
+            source.close()  # the loader's or the renderers' workers shut down, on an error too
         bar.close()
         ddp = {}
         if dist is not None:

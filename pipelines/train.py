@@ -11,8 +11,44 @@ from __future__ import annotations
 import hashlib
 import os
 import subprocess
+from dataclasses import dataclass
 
-from envisat_pose.config import InputError
+from envisat_pose.config import InputError, check
+
+
+@dataclass(frozen=True)
+class OnlineConfig:
+    """Training on frames as they are rendered (pipelines/online.py) instead of shards. generate: the looks, a
+    random-mode GenerateConfig (frame f is sample f of the dataset it would generate; its seed, resolution,
+    appearance and corruption); workers: renderer processes; uses_per_frame: K, the most crops any frame gives
+    (1-8). Validated when built."""
+
+    generate: object
+    workers: int = 1
+    uses_per_frame: int = 8
+
+    def __post_init__(self) -> None:
+        from envisat_pose.pipelines.online import MAX_USES_PER_FRAME
+
+        check(getattr(self.generate, "mode", None) == "random", "online.generate.mode",
+              getattr(self.generate, "mode", None), "'random' (online training renders random views)")
+        check(self.workers >= 1, "online.workers", self.workers, "at least 1 renderer process")
+        check(1 <= self.uses_per_frame <= MAX_USES_PER_FRAME, "online.uses_per_frame", self.uses_per_frame,
+              f"an integer in [1, {MAX_USES_PER_FRAME}]")
+
+    def record(self) -> dict:
+        """What config.json keeps of it (a resumed run rebuilds it from this)."""
+        from envisat_pose.config import to_dict
+
+        return {"generate": to_dict(self.generate), "workers": self.workers, "uses_per_frame": self.uses_per_frame}
+
+    @classmethod
+    def from_record(cls, record: dict, workers: int | None = None) -> "OnlineConfig":
+        from envisat_pose.config import from_dict
+        from envisat_pose.datagen.generate_config import GenerateConfig
+
+        return cls(from_dict(GenerateConfig, record["generate"], "online.generate"),
+                   workers or int(record.get("workers", 1)), int(record["uses_per_frame"]))
 
 
 def default_workers() -> int:
@@ -58,11 +94,11 @@ def dataset_provenance(data_dir: str) -> dict:
 
 
 def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | None, workers: int | None,
-                 threads: int | None) -> None:
+                 threads: int | None, online: bool = False) -> None:
     """Every input of a training run but the shards checked before any work; InputError naming the argument."""
     from envisat_pose.runner import check_out_dir
 
-    if not data_dirs:
+    if not data_dirs and not online:
         raise InputError("data_dirs: no dataset folder given")
     if init is not None and resume:
         raise InputError("init and resume: a resumed run goes on from its own checkpoint; give one of them")
@@ -79,16 +115,35 @@ def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | N
 
 def read_run_config(run_dir: str) -> dict:
     """The TrainConfig (as a dict) a run folder was trained with: the base a resumed run starts from."""
+    return read_run_record(run_dir)["train"]
+
+
+def read_run_record(run_dir: str) -> dict:
+    """A run folder's config.json: the TrainConfig ('train'), the command, the data, 'online' where it has it."""
     import json
 
     path = os.path.join(run_dir, "config.json")
     try:
         with open(path, encoding="utf-8") as fh:
-            return json.load(fh)["train"]
+            record = json.load(fh)
+        if not isinstance(record, dict) or not isinstance(record.get("train"), dict):
+            raise KeyError("train")
+        return record
     except FileNotFoundError:
         raise InputError(f"resume: {run_dir!r} holds no config.json (not a run folder)") from None
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise InputError(f"resume: {path!r} is unreadable ({err})") from None
+
+
+def online_max_uses(run_dir: str) -> int | None:
+    """The most crops any rendered frame gave in an online run so far (its state.json)."""
+    import json
+
+    try:
+        with open(os.path.join(run_dir, "state.json"), encoding="utf-8") as fh:
+            return int(json.load(fh)["online"]["max_uses"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def init_distributed(device: str) -> str:
@@ -122,7 +177,7 @@ def end_distributed() -> None:
 def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: bool = False,
                    init: str | None = None, device: str = "cpu", workers: int | None = None, bf16: bool = False,
                    threads: int | None = None, progress: bool = True, command: str = "",
-                   skip_damaged: bool = False) -> dict:
+                   skip_damaged: bool = False, online: OnlineConfig | None = None) -> dict:
     """Train the detector (cfg: a perception TrainConfig, validated when built) on the shards of data_dirs (one
     folder or several) into run_dir (created with its parents once the first step is trained).
 
@@ -133,7 +188,9 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     command line as typed, for the record. Every shard is checked against its dataset's manifest first (size,
     then sha256: envisat_pose.shard_reader.checked_shards); a damaged one stops the run before anything is
     written (DamagedShardError naming it) unless skip_damaged, which leaves it out and records it in config.json
-    (skipped_damaged_shards) and the end line. Returns the run's last metrics line (perception/train.py); raises
+    (skipped_damaged_shards) and the end line. online: train on frames rendered as training goes instead
+    (data_dirs then empty; OnlineConfig), recorded in config.json under 'online'; the end line then holds
+    uses_per_frame and max_uses (the most crops any frame gave). Returns the run's last metrics line (perception/train.py); raises
     perception.train.TrainingInterrupted after a checkpoint when SIGINT or SIGTERM stopped it. Callable from a
     plain script: its workers never import the script."""
     import torch
@@ -141,15 +198,20 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     from envisat_pose.io import sha256_file
     from envisat_pose.perception.train import train
 
-    data_dirs = [data_dirs] if isinstance(data_dirs, str) else list(data_dirs)
-    check_inputs(data_dirs, run_dir, resume, init, workers, threads)
+    data_dirs = [data_dirs] if isinstance(data_dirs, str) else list(data_dirs or [])
+    if online is not None and data_dirs:
+        raise InputError("data_dirs and online: train on shards or on frames rendered as training goes, not both")
+    check_inputs(data_dirs, run_dir, resume, init, workers, threads, online is not None)
     if threads is not None:
         torch.set_num_threads(threads)
-    if workers is None and not resume:
+    if online is not None:
+        workers = 0  # no DataLoader: the renderer processes are online.workers
+    elif workers is None and not resume:
         workers = default_workers()
     rank_device = init_distributed(device)
     if device == "cuda":  # speed over the last bits: TF32 matrix products, cuDNN's autotuned convolutions
-        torch.backends.cuda.matmul.allow_tf32 = True
+        # (not online: its crops are resampling matrix products, which TF32 would round to ~0.1 gray level)
+        torch.backends.cuda.matmul.allow_tf32 = online is None
         torch.backends.cudnn.allow_tf32 = True
         torch.backends.cudnn.benchmark = True
     from envisat_pose.shard_reader import checked_shards
@@ -159,13 +221,29 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
         mine, left_out = checked_shards(d, skip_damaged, "data_dirs")
         paths += mine
         skipped += [f"{os.path.basename(os.path.normpath(d))}/{name}" for name in left_out]
-    provenance = {"command": command, "git": git_hash(), "data": [dataset_provenance(d) for d in data_dirs],
-                  "torch": torch.__version__, "device": device, "bf16": bf16, "skipped_damaged_shards": skipped}
+    data = [dataset_provenance(d) for d in data_dirs]
+    source = None
+    if online is not None:
+        from envisat_pose.pipelines.online import online_batches, run_identity
+
+        identity = run_identity(online.generate, cfg.data, cfg.seed, cfg.batch_size, online.uses_per_frame)
+        data = [{"name": "online", "manifest_sha256": identity["config_sha256"], "images": None}]
+
+        def source(start_state):
+            return online_batches(online.generate, cfg.data, cfg.seed, cfg.batch_size, online.workers,
+                                  rank_device, online.uses_per_frame, start_state)
+    provenance = {"command": command, "git": git_hash(), "data": data, "torch": torch.__version__,
+                  "device": device, "bf16": bf16, "skipped_damaged_shards": skipped}
+    if online is not None:
+        provenance["online"] = online.record()
     if init is not None:
         provenance["init"] = {"name": os.path.basename(init), "sha256": sha256_file(init)}
     try:
         end = train(cfg, data_dirs, run_dir, resume=resume, device=rank_device, progress=progress,
-                    provenance=provenance, init_weights=init, workers=workers, bf16=bf16, paths=paths)
+                    provenance=provenance, init_weights=init, workers=workers, bf16=bf16, paths=paths,
+                    online=source)
+        if online is not None:
+            end = {**end, "uses_per_frame": online.uses_per_frame, "max_uses": online_max_uses(run_dir)}
         return {**end, "skipped_damaged_shards": skipped}
     finally:
         end_distributed()

@@ -51,6 +51,8 @@ SLOW = (
     "tests/app/test_track_inputs.py::test_an_interrupt_leaves_the_earlier_outputs_and_a_finished_run_removes_stale_ones",
     # a trainer and its worker interrupted by a process-group SIGINT, then resumed under a 20 s budget
     "tests/perception/test_train_path.py::test_ctrl_c_writes_a_checkpoint_and_resume_honours_a_new_budget",  # 26 s
+    # three online runs, each starting a renderer process
+    "tests/pipelines/test_online_train.py::test_an_online_run_resumes_to_the_weights_of_an_uninterrupted_one",  # 15 s
 )
 
 
