@@ -5,6 +5,8 @@
 # runs in one, since several of its tests start worker processes of their own.
 TEST_WORKERS ?= 2
 FAST = .venv/bin/python -m pytest -q -m "not slow" -n $(TEST_WORKERS) --dist loadfile
+# ruff (pyproject.toml [tool.ruff]): unused imports and variables, undefined names, import order
+LINT = .venv/bin/ruff check .
 .PHONY: demo test test-slow test-all setup
 
 demo: setup
@@ -15,17 +17,18 @@ demo: setup
 
 test:
 	@bash scripts/setup.sh
+	$(LINT)
 	$(FAST)
 
 test-slow:
 	@WITH_VIEWER_CHECK=1 bash scripts/setup.sh
 	.venv/bin/python -m pytest -q -m slow
 
-# both lanes, the fast one first; the slow lane runs even when the fast one failed, and the exit status is a failure
-# if either failed
+# the linter, then both lanes, the fast one first; every part runs even when one before it failed, and the exit
+# status is a failure if any failed
 test-all:
 	@WITH_VIEWER_CHECK=1 bash scripts/setup.sh
-	@rc=0; $(FAST) || rc=1; .venv/bin/python -m pytest -q -m slow || rc=1; exit $$rc
+	@rc=0; $(LINT) || rc=1; $(FAST) || rc=1; .venv/bin/python -m pytest -q -m slow || rc=1; exit $$rc
 
 setup:
 	@bash scripts/setup.sh

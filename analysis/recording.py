@@ -36,5 +36,13 @@ from .recording_layout import *  # noqa: F401,F403
 from .recording_layout import _point_colors, _scene_views, _times, _vec, _wxyz_to_xyzw  # noqa: F401
 from .recording_reader import read_recording  # noqa: F401
 from .recording_stream import FILE_CHUNK_ROWS, FILE_FLUSH_TICK_S, TrackRecorder, file_batcher, project_state_px  # noqa: F401
-from .recording_writers import (Sample, _log_truth_on_grid, _Recording, truth_rows, write_campaign_recording,  # noqa: F401
-                                write_estimates_recording, write_samples_recording, write_truth_recording)
+from .recording_writers import (  # noqa: F401
+                                Sample,
+                                _log_truth_on_grid,
+                                _Recording,
+                                truth_rows,
+                                write_campaign_recording,
+                                write_estimates_recording,
+                                write_samples_recording,
+                                write_truth_recording,
+)

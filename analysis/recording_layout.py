@@ -19,7 +19,6 @@ from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
 from .stats import chi2_mean_bounds, component_errors, display_transform
 
-
 APPLICATION_ID = "envisat_pose"
 KEYPOINT_CLASS = 0  # class of the annotation context whose keypoints are the corners A-H
 BLOCKS = ("position_m", "velocity_m_s", "attitude_deg", "angular_velocity_deg_s")

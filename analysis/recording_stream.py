@@ -12,12 +12,26 @@ from envisat_pose.attitude import mrp_to_dcm, mrp_to_quat
 from envisat_pose.geometry import PinholeCamera, load_geometry
 from envisat_pose.io import atomic_path
 from envisat_pose.state import MRP, POS
-from envisat_pose.status import STATUSES as STATUS_NAMES  # the tracker's statuses by code
 from envisat_pose.status import HAS_ESTIMATE, LOST, legend_json
+from envisat_pose.status import STATUSES as STATUS_NAMES  # the tracker's statuses by code
 
-from .recording_layout import (APPLICATION_ID, AXES, AXIS_RGB, DETECTED_RGB, EST_RGB, HIDDEN_RGB,
-                               KEYPOINT_CLASS, log_static_scene, NEES_BAND_12, PLOT_BLOCKS,
-                               position_ellipsoids, ROI_RGB, track_blueprint, VISIBLE_RGB, _wxyz_to_xyzw)
+from .recording_layout import (
+    APPLICATION_ID,
+    AXES,
+    AXIS_RGB,
+    DETECTED_RGB,
+    EST_RGB,
+    HIDDEN_RGB,
+    KEYPOINT_CLASS,
+    NEES_BAND_12,
+    PLOT_BLOCKS,
+    ROI_RGB,
+    VISIBLE_RGB,
+    _wxyz_to_xyzw,
+    log_static_scene,
+    position_ellipsoids,
+    track_blueprint,
+)
 from .stats import component_errors, display_transform
 
 

@@ -14,12 +14,30 @@ import rerun.blueprint as rrb
 from envisat_pose.contracts import Estimates, TruthTrajectory
 from envisat_pose.io import atomic_path
 
-from .recording_layout import (APPLICATION_ID, corner_annotation, CORNER_NAMES, estimate_bands,
-                               estimate_blueprint, IMAGE_PLANE_M, KEYPOINT_CLASS, load_camera,
-                               log_error_series, log_estimate_series, log_static_scene, log_target_model,
-                               log_truth_series, MASK_CLASSES, _point_colors, pose_columns, rotmat_to_quat,
-                               samples_blueprint, target_parts, _times, truth_blueprint, _wxyz_to_xyzw)
-
+from .recording_layout import (
+    APPLICATION_ID,
+    CORNER_NAMES,
+    IMAGE_PLANE_M,
+    KEYPOINT_CLASS,
+    MASK_CLASSES,
+    _point_colors,
+    _times,
+    _wxyz_to_xyzw,
+    corner_annotation,
+    estimate_bands,
+    estimate_blueprint,
+    load_camera,
+    log_error_series,
+    log_estimate_series,
+    log_static_scene,
+    log_target_model,
+    log_truth_series,
+    pose_columns,
+    rotmat_to_quat,
+    samples_blueprint,
+    target_parts,
+    truth_blueprint,
+)
 
 # ---------------------------------------------------------------- files
 

@@ -92,8 +92,9 @@ def summary(arrays: dict) -> str:
 
 
 def run_estimate(args: argparse.Namespace) -> int:
+    from envisat_pose.pipelines.estimate import output_paths
+    from envisat_pose.pipelines.estimate import run_estimate as run_pipeline
     from envisat_pose.runner import make_out_file_dirs
-    from envisat_pose.pipelines.estimate import output_paths, run_estimate as run_pipeline
 
     if not args.out.endswith(".npz"):
         raise InputError(f"--out {args.out!r}: expected a path ending in .npz")

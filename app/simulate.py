@@ -40,8 +40,9 @@ def resolve_config(args: argparse.Namespace) -> ScenarioConfig:
 
 
 def run_simulate(args: argparse.Namespace) -> int:
+    from envisat_pose.pipelines.simulate import output_paths
+    from envisat_pose.pipelines.simulate import run_simulate as run_pipeline
     from envisat_pose.runner import make_out_file_dirs
-    from envisat_pose.pipelines.simulate import output_paths, run_simulate as run_pipeline
 
     if not args.out.endswith(".npz"):
         raise InputError(f"--out {args.out!r}: expected a path ending in .npz")

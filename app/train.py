@@ -11,6 +11,7 @@ import sys
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument
 
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "train",

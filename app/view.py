@@ -38,8 +38,16 @@ def _interrupt(signum, frame):
 
 
 def run_view(args: argparse.Namespace) -> int:
-    from envisat_pose.analysis.viewer import (BIND, check_recording, has_display, recordings, start_viewer,
-                                              stop_viewer, viewer_command, web_url)
+    from envisat_pose.analysis.viewer import (
+        BIND,
+        check_recording,
+        has_display,
+        recordings,
+        start_viewer,
+        stop_viewer,
+        viewer_command,
+        web_url,
+    )
 
     files = recordings(args.path)
     for f in files:

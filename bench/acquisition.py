@@ -173,8 +173,8 @@ def main() -> None:
                                      "(an ablation: [tracker.acquire] frames = 12, say); its text goes into the result")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "acquisition.json"))
     args = ap.parse_args()
-    from envisat_pose.pipelines.jobs import default_weights_path
     from envisat_pose.io import atomic_write_text
+    from envisat_pose.pipelines.jobs import default_weights_path
     from envisat_pose.pipelines.trials import SUN_PHASE_MAX_DEG
     from envisat_pose.provenance import weights_ref
     from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks

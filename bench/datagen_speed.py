@@ -53,8 +53,8 @@ SEED = 2024
 
 
 def bench_config(resolution_px: int, n: int, **kw):
-    from envisat_pose.datagen.factory import GenerateConfig
     from envisat_pose.config import from_dict
+    from envisat_pose.datagen.factory import GenerateConfig
 
     return from_dict(GenerateConfig, {"resolution_px": resolution_px, "num_images": n, "shard_size": SHARD_SIZE,
                                       "seed": SEED, **kw})
@@ -277,12 +277,12 @@ def raw_rates(cfg) -> dict:
     plus the per-stage milliseconds of one labelled sample."""
     import mujoco
 
+    from envisat_pose.config import to_dict
     from envisat_pose.datagen.corrupt import apply_corruption, draw_corruption
     from envisat_pose.datagen.factory import render_sample
     from envisat_pose.datagen.labels import encode_depth
     from envisat_pose.datagen.render import SceneRenderer, render_model_xml
     from envisat_pose.datagen.shards import encode_png
-    from envisat_pose.config import to_dict
 
     r = SceneRenderer(cfg.resolution_px)
     views = sample_views(cfg, r.fovy_deg)

@@ -288,8 +288,9 @@ class FilamentRenderer:
         import cv2
 
         mujoco, m, d = self._mujoco, self.model, self.data
-        from envisat_pose.attitude import rotmat_to_quat
         from mujoco.rendering.filament.renderer import View
+
+        from envisat_pose.attitude import rotmat_to_quat
 
         a = self.qpos_adr
         d.qpos[a:a + 3] = rho_C_m

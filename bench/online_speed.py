@@ -115,10 +115,10 @@ def main() -> None:
     args = ap.parse_args()
     os.sched_setaffinity(0, set(sorted(os.sched_getaffinity(0))[:args.cores]))
     os.environ["LP_NUM_THREADS"] = str(args.cores)
-    from envisat_pose.pipelines.jobs import default_weights_path
-    from envisat_pose.pipelines.closed_loop import STAGES
     from envisat_pose.contracts import Estimates
     from envisat_pose.io import atomic_write_text
+    from envisat_pose.pipelines.closed_loop import STAGES
+    from envisat_pose.pipelines.jobs import default_weights_path
 
     weights = args.weights or default_weights_path()
     load_start = os.getloadavg()

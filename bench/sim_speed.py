@@ -25,13 +25,13 @@ import mujoco.rollout
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from envisat_pose.attitude import mrp_rate, mrp_shadow, mrp_to_dcm
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.plugin import PLUGIN_NAME
 from envisat_pose.datagen.scenario import scenario_config
-from envisat_pose.state import MRP, POS, RATE, VEL
 from envisat_pose.datagen.sim import TruthSim, model_xml
 from envisat_pose.datagen.truth import initial_state
-from envisat_pose.attitude import mrp_rate, mrp_shadow, mrp_to_dcm
+from envisat_pose.state import MRP, POS, RATE, VEL
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

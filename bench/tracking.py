@@ -204,11 +204,11 @@ def main() -> None:
                                      "(an ablation: [tracker.acquire] frames = 12, say); its text goes into the result")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "tracking.json"))
     args = ap.parse_args()
-    from envisat_pose.pipelines.jobs import default_weights_path
     from envisat_pose.config import to_dict
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.io import atomic_write_text
     from envisat_pose.perception.detect import load_detector
+    from envisat_pose.pipelines.jobs import default_weights_path
     from envisat_pose.pipelines.trials import SUN_PHASE_MAX_DEG
     from envisat_pose.provenance import weights_ref
     from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks

@@ -27,12 +27,22 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envisat_pose.attitude import rotmat_to_quat  # noqa: E402
-from envisat_pose.datagen.appearance import CLASSES, FACE_GEOMS, GEOM_CLASS, Look, class_texture, TEXTURE_PX  # noqa: E402
+from envisat_pose.datagen.appearance import CLASSES, FACE_GEOMS, GEOM_CLASS, TEXTURE_PX, Look, class_texture  # noqa: E402
 from envisat_pose.datagen.clearance import target_boxes  # noqa: E402
-from envisat_pose.datagen.earth import (EARTH_MESH_STEPS_DEG, EARTH_SCALE, EARTH_TEXTURE_SET_SIZE,  # noqa: E402
-                                        cap_mesh_xml_attributes, cap_visible, disc_on_rays, earth_cap_texture,
-                                        earth_texture, earth_texture_width, mesh_step_for, mesh_xml_attributes,
-                                        pixel_rays_K)
+from envisat_pose.datagen.earth import (  # noqa: E402
+    EARTH_MESH_STEPS_DEG,
+    EARTH_SCALE,
+    EARTH_TEXTURE_SET_SIZE,
+    cap_mesh_xml_attributes,
+    cap_visible,
+    disc_on_rays,
+    earth_cap_texture,
+    earth_texture,
+    earth_texture_width,
+    mesh_step_for,
+    mesh_xml_attributes,
+    pixel_rays_K,
+)
 from envisat_pose.datagen.scenario import EARTH_RADIUS_M  # noqa: E402
 from envisat_pose.geometry import model_path  # noqa: E402
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envisat_pose.config import check, from_dict, deep_update
+from envisat_pose.config import check, deep_update, from_dict
 from envisat_pose.geometry import load_geometry
 from envisat_pose.named_scenarios import table, truth_part
 

@@ -13,10 +13,10 @@ import xml.etree.ElementTree as ET
 import mujoco
 import numpy as np
 
+from envisat_pose.attitude import dcm_to_mrp, mrp_to_dcm, quat_to_rotmat, rotmat_to_quat
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.plugin import PLUGIN_NAME
 from envisat_pose.datagen.scenario import ScenarioConfig
-from envisat_pose.attitude import dcm_to_mrp, mrp_to_dcm, quat_to_rotmat, rotmat_to_quat
 from envisat_pose.geometry import model_path
 from envisat_pose.state import MRP, POS, RATE, VEL
 

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from envisat_pose.attitude import mrp_to_dcm, quat_to_mrp
+from envisat_pose.config import to_json
+from envisat_pose.contracts import TruthTrajectory
 from envisat_pose.datagen.clearance import check_keepout, target_boxes
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.datagen.sim import TruthSim
-from envisat_pose.attitude import mrp_to_dcm, quat_to_mrp
-from envisat_pose.config import to_json
-from envisat_pose.contracts import TruthTrajectory
 from envisat_pose.geometry import visible_corners
 
 

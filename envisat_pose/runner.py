@@ -220,10 +220,10 @@ def make_out_file_dir(path: str, field: str = "--out") -> None:
 def make_out_file_dirs(outputs: dict[str, str]) -> None:
     """Every output file {path: field} checked (check_out_file), then their folders made (make_out_file_dir):
     nothing is made unless every one can be written."""
-    for path, field in outputs.items():
-        check_out_file(path, field)
-    for path, field in outputs.items():
-        make_out_file_dir(path, field)
+    for path, name in outputs.items():
+        check_out_file(path, name)
+    for path, name in outputs.items():
+        make_out_file_dir(path, name)
 
 
 def real_time_factor(t_s, wall_s: float, period_s: float | None = None) -> float:

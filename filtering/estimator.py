@@ -26,10 +26,9 @@ import numpy as np
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
 from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
 from envisat_pose.filtering.ukf import SigmaWeights, merwe_weights, predict, shadow_switch, state_residual, update
-from envisat_pose.geometry import PinholeCamera, load_camera
 from envisat_pose.gates import GATE_PROB, chi2_bound, chi2_gate
+from envisat_pose.geometry import PinholeCamera, load_camera
 from envisat_pose.state import nees_window_diverged
-
 
 KERNELS = ("fast", "reference")  # FilterConfig.kernel: filtering/fast.py's kernels, filtering/ukf.py's numpy
 

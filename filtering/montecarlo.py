@@ -18,8 +18,14 @@ from typing import Literal
 import numpy as np
 
 from envisat_pose.config import check
-from envisat_pose.filtering.measurements import (KINDS, add_noise, corner_cov, limit_markers, outage_mask,
-                                                 random_failures)
+from envisat_pose.filtering.measurements import (
+    KINDS,
+    add_noise,
+    corner_cov,
+    limit_markers,
+    outage_mask,
+    random_failures,
+)
 from envisat_pose.geometry import PinholeCamera, load_camera
 from envisat_pose.state import draw_initial_estimate
 

@@ -34,7 +34,6 @@ from envisat_pose.geometry import PinholeCamera, load_geometry
 from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
 
-
 @functools.lru_cache(maxsize=1)
 @functools.lru_cache(maxsize=1)
 def box_symmetries() -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:

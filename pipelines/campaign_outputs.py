@@ -10,8 +10,13 @@ import numpy as np
 
 from envisat_pose.config import to_dict
 from envisat_pose.io import json_safe
-from envisat_pose.pipelines.campaign_block import CampaignTruth, block_name, filter_run_history, \
-    load_campaign_truth, settled_mask
+from envisat_pose.pipelines.campaign_block import (
+    CampaignTruth,
+    block_name,
+    filter_run_history,
+    load_campaign_truth,
+    settled_mask,
+)
 from envisat_pose.pipelines.campaign_config import MonteCarloConfig
 from envisat_pose.state import BLOCKS, N_STATE
 
@@ -94,8 +99,12 @@ def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
 
 
 def write_figures(cfg: MonteCarloConfig, out_dir: str, t_s, stats, bound, sample_err, sample_norms) -> None:
-    from envisat_pose.analysis.campaign_figures import (plot_block_norms, plot_error_envelopes, plot_nees_nis,
-                                                        plot_rmse_vs_bound)
+    from envisat_pose.analysis.campaign_figures import (
+        plot_block_norms,
+        plot_error_envelopes,
+        plot_nees_nis,
+        plot_rmse_vs_bound,
+    )
 
     m = cfg.measurement
     noise = f"{m.sigma_m:g} m" if m.kind == "markers3d" else f"{m.sigma_px:g} px"

@@ -34,10 +34,17 @@ import numpy as np
 
 from envisat_pose.config import to_dict
 from envisat_pose.pipelines.onboard import chaser_function, onboard_physics, orbit_config
-from envisat_pose.pipelines.rows import (CHUNK_FRAMES, DET_KEYS, EST_KEYS, STAGES, RunRows, est_row,  # noqa: F401
-                                         record_arrays, store_estimate)
-from envisat_pose.pipelines.run_config import (RunConfig, config_from_json, finish_config,  # noqa: F401
-                                               sun_and_shadow, stage_types)
+from envisat_pose.pipelines.rows import (  # noqa: F401
+    CHUNK_FRAMES,
+    DET_KEYS,
+    EST_KEYS,
+    STAGES,
+    RunRows,
+    est_row,
+    record_arrays,
+    store_estimate,
+)
+from envisat_pose.pipelines.run_config import RunConfig, config_from_json, finish_config, stage_types, sun_and_shadow  # noqa: F401
 from envisat_pose.state import MRP, POS
 
 # The config (pipelines/run_config.py), the on-board physics and orbit (pipelines/onboard.py) and the per-frame
@@ -89,8 +96,8 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     from envisat_pose.contracts import TruthTrajectory
     from envisat_pose.datagen.corrupt import apply_corruption
     from envisat_pose.datagen.factory import draw_corruption_params, with_look
-    from envisat_pose.datagen.views import sample_seed, unit
     from envisat_pose.datagen.render import View, shared_renderer
+    from envisat_pose.datagen.views import sample_seed, unit
     from envisat_pose.geometry import load_camera
     from envisat_pose.perception.detect import load_detector
     from envisat_pose.pipelines.tracker import Tracker
@@ -367,7 +374,6 @@ def write_run_files(paths: dict, t_s: np.ndarray, x_true: np.ndarray, run_dirs: 
     chunk in score_run_files): the same bytes as Estimates.save / save_npz of the whole arrays. diverged (R,):
     Estimates.diverged; extra: more (R,) arrays for est.npz (Estimates.load ignores them)."""
     from envisat_pose.io import StreamedArray, save_npz
-
     from envisat_pose.pipelines.outputs import estimate_arrays  # status per row, NaN where no estimate
     from envisat_pose.status import legend_json
 

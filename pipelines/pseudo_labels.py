@@ -42,7 +42,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from envisat_pose.attitude import mrp_kinematics_matrix, mrp_to_dcm, dcm_to_mrp
+from envisat_pose.attitude import dcm_to_mrp, mrp_kinematics_matrix, mrp_to_dcm
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, propagate
 from envisat_pose.filtering.measurements import corners_C_m, project
 from envisat_pose.filtering.ukf import merwe_weights

@@ -18,6 +18,7 @@ import os
 from envisat_pose.config import InputError
 from envisat_pose.pipelines.sweep import SWEEP_FIGURE
 from envisat_pose.state import BLOCKS
+
 # display unit and scale per block (the summary's units are m, m/s, rad, rad/s)
 DISPLAY = {"position": ("cm", 100.0), "velocity": ("mm/s", 1000.0), "attitude": ("deg", 180.0 / math.pi),
            "angular_velocity": ("deg/s", 180.0 / math.pi)}

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -14,6 +15,9 @@ from envisat_pose.config import check, from_dict
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.pipelines.onboard import orbit_config
 from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
+
+if TYPE_CHECKING:  # the stage's type for annotations; imported where a config is made
+    from envisat_pose.datagen.generate_config import GenerateConfig
 
 # a lit default: the sun 45 deg off the line of sight, behind the camera, from above the orbit plane at t = 0 (in
 # C: radial, along-track, normal); in the default orbit the chaser enters the Earth's shadow at t = 1203 s

@@ -22,6 +22,7 @@ import json
 import os
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,10 +30,12 @@ from envisat_pose.config import check
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.pipelines.camera_file import camera_from_intrinsics  # noqa: F401 (the track API)
-from envisat_pose.pipelines.frames import (FrameSource, open_source, read_gray, read_timestamps,  # noqa: F401
-                                           scan_source, to_gray_u8)
+from envisat_pose.pipelines.frames import FrameSource, open_source, read_gray, read_timestamps, scan_source, to_gray_u8  # noqa: F401
 from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
 from envisat_pose.status import STATUSES, legend
+
+if TYPE_CHECKING:  # the stage's type for annotations (stage_types resolves it at run time)
+    from envisat_pose.datagen.scenario import OrbitConfig
 
 
 @dataclass(frozen=True)
@@ -99,8 +102,8 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     and moved into out_dir when complete (io.staged_folder). Returns the summary (its source's `pixels`: what
     the scan found of the pixels)."""
     from envisat_pose.io import staged_folder
-    from envisat_pose.pipelines.build import load_camera, scenario_orbit
     from envisat_pose.perception.weights import shipped_weights_path
+    from envisat_pose.pipelines.build import load_camera, scenario_orbit
     from envisat_pose.runner import check_out_dir, make_out_dir
 
     check_out_dir(out_dir, field="out_dir")
@@ -135,8 +138,17 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     from envisat_pose.config import to_dict, to_toml
     from envisat_pose.io import atomic_write_text
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.pipelines.closed_loop import (DET_KEYS, RunRows, chaser_function, est_row, lost_runs,
-                                                    run_rows, score_run_files, store_estimate, write_run_files)
+    from envisat_pose.pipelines.closed_loop import (
+        DET_KEYS,
+        RunRows,
+        chaser_function,
+        est_row,
+        lost_runs,
+        run_rows,
+        score_run_files,
+        store_estimate,
+        write_run_files,
+    )
     from envisat_pose.pipelines.outputs import first_tracking_s, status_counts
     from envisat_pose.pipelines.tracker import Tracker
     from envisat_pose.runner import real_time_factor

@@ -49,22 +49,65 @@ from typing import Callable
 
 import numpy as np
 
-from envisat_pose.filtering.estimator import FilterConfig, FilterState, Measurement, filter_step, init_state, \
-    make_setup, predict_to
+from envisat_pose.filtering.estimator import (
+    FilterConfig,
+    FilterState,
+    Measurement,
+    filter_step,
+    init_state,
+    make_setup,
+    predict_to,
+)
 from envisat_pose.filtering.measurements import to_camera_K
 from envisat_pose.geometry import PinholeCamera, load_geometry
-from envisat_pose.pipelines.acquisition import (NAMINGS, BatchFit, FramePose, align_namings,
-                                                 appearance_log_likelihood, batch_fit, initial_guess, naming_state,
-                                                 pnp_state, renamed_window)
-from envisat_pose.pipelines.bank import (array_log_likelihood, choose_namings, frame_discriminates, probabilities,
-                                         same_array_end, select_runs, update_cost)
-from envisat_pose.pipelines.integrity import (EvidenceWindow, claim_holds, fit_problems, pose_sigmas,
-                                              state_problems, target_radius_m, window_problems)
-from envisat_pose.pipelines.noise import (correlation_inflation, detection_measurement, detector_error_model,
-                                          filter_memory, nis_sum_dispersion, range_consider, scale_sigma,
-                                          sequence_scale, window_memory)
-from envisat_pose.pipelines.tracker_config import (ACQUIRING_SIGMA, TRACKER_FILTER, RoiConfig, TrackerConfig,
-                                                   TrackEstimate)
+from envisat_pose.pipelines.acquisition import (
+    NAMINGS,
+    BatchFit,
+    FramePose,
+    align_namings,
+    appearance_log_likelihood,
+    batch_fit,
+    initial_guess,
+    naming_state,
+    pnp_state,
+    renamed_window,
+)
+from envisat_pose.pipelines.bank import (
+    array_log_likelihood,
+    choose_namings,
+    frame_discriminates,
+    probabilities,
+    same_array_end,
+    select_runs,
+    update_cost,
+)
+from envisat_pose.pipelines.integrity import (
+    EvidenceWindow,
+    claim_holds,
+    fit_problems,
+    pose_sigmas,
+    state_problems,
+    target_radius_m,
+    window_problems,
+)
+from envisat_pose.pipelines.noise import (
+    correlation_inflation,
+    detection_measurement,
+    detector_error_model,
+    filter_memory,
+    nis_sum_dispersion,
+    range_consider,
+    scale_sigma,
+    sequence_scale,
+    window_memory,
+)
+from envisat_pose.pipelines.tracker_config import (
+    ACQUIRING_SIGMA,
+    TRACKER_FILTER,
+    RoiConfig,
+    TrackerConfig,
+    TrackEstimate,
+)
 from envisat_pose.state import MRP, N_STATE, POS, RATE
 from envisat_pose.status import STATUSES
 

@@ -39,8 +39,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from envisat_pose.io import atomic_write_text, sha256_file  # noqa: E402
 from envisat_pose.perception.weights import read_metadata  # noqa: E402
-from envisat_pose.provenance import (dataset_ref, find_absolute_paths, manifest_sha256,  # noqa: E402
-                                     relative_name, scrub_paths)
+from envisat_pose.provenance import dataset_ref, find_absolute_paths, manifest_sha256, relative_name, scrub_paths  # noqa: E402
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 HISTORY_FILE = "detector_history.json"  # beside the card: what was measured of the earlier weights

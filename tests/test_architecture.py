@@ -568,8 +568,9 @@ def test_the_gate_checker_catches_a_gate_typed_by_hand():
                "def fit(z, gate: float = chi2_gate(GATE_PROB, 2), iterations: int = 15):\n"
                "    width_px = 23.0\n    gate_px: float = 6.0\n    return z\n")
     assert typed_gates(derived) == []
-    from envisat_pose.gates import GATE_PROB, chi2_bound, chi2_gate
     from scipy.stats import chi2
+
+    from envisat_pose.gates import GATE_PROB, chi2_bound, chi2_gate
 
     assert chi2_gate(GATE_PROB, 2) == chi2.ppf(GATE_PROB, 2) and abs(chi2_gate(GATE_PROB, 2) - 23.0259) < 1e-4
     assert chi2_bound(1e-5, 2) == chi2.isf(1e-5, 2)
@@ -598,8 +599,9 @@ def test_the_band_checker_catches_a_band_typed_by_hand():
     derived = ("from scipy.stats import chi2\nNEES_BAND = tuple(chi2.ppf([0.025, 0.975], 12))\n"
                "FLOORS = {'nees': (8.0, 16.0)}\nnees_window_s = 60.0\n")
     assert typed_bands(derived) == []
-    from envisat_pose.analysis.recording_layout import NEES_BAND_12
     from scipy.stats import chi2
+
+    from envisat_pose.analysis.recording_layout import NEES_BAND_12
 
     assert NEES_BAND_12 == tuple(chi2.ppf([0.025, 0.975], 12))
 

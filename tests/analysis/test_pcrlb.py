@@ -4,8 +4,16 @@ import numpy as np
 import pytest
 
 from envisat_pose.analysis.pcrlb import (
-    STATE_FD_STEP, block_bounds, efficiency, fd_jacobian, measurement_information, measurement_jacobians,
-    pcrlb_along_truth, pcrlb_recursion, transition_jacobians)
+    STATE_FD_STEP,
+    block_bounds,
+    efficiency,
+    fd_jacobian,
+    measurement_information,
+    measurement_jacobians,
+    pcrlb_along_truth,
+    pcrlb_recursion,
+    transition_jacobians,
+)
 from envisat_pose.attitude import dcm_to_mrp, mrp_kinematics_matrix, mrp_to_dcm, skew
 from envisat_pose.geometry import load_geometry
 

@@ -5,9 +5,23 @@ import pytest
 from scipy.stats import chi2, norm
 
 from envisat_pose.analysis.stats import (
-    MAHALANOBIS_3SIGMA_3D, P_3SIGMA, CampaignSums, SumsFolder, block_error_norms, campaign_stats,
-    campaign_summary, chi2_mean_bounds, component_cov, component_errors, concat_run_summaries, finalize,
-    merge_sums, reduce_runs, run_summary, state_errors)
+    MAHALANOBIS_3SIGMA_3D,
+    P_3SIGMA,
+    CampaignSums,
+    SumsFolder,
+    block_error_norms,
+    campaign_stats,
+    campaign_summary,
+    chi2_mean_bounds,
+    component_cov,
+    component_errors,
+    concat_run_summaries,
+    finalize,
+    merge_sums,
+    reduce_runs,
+    run_summary,
+    state_errors,
+)
 from envisat_pose.attitude import mrp_error_angle_rad, mrp_shadow
 
 P_TRUE_MRP = np.array([0.3, -0.5, 0.6])  # |p|^2 = 0.7: an error angle of 4|dp| would be 70 % too large

@@ -7,8 +7,8 @@ import os
 import numpy as np
 import pytest
 
-from envisat_pose.app.cli import main
 from envisat_pose.analysis.recording import read_recording as read_rrd
+from envisat_pose.app.cli import main
 from envisat_pose.contracts import Estimates, TruthTrajectory
 from envisat_pose.geometry import CORNER_NAMES, EDGES, load_camera
 

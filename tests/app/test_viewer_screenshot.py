@@ -17,8 +17,8 @@ import cv2
 import numpy as np
 import pytest
 
-from envisat_pose.pipelines import closed_loop as loop
 from envisat_pose.analysis import viewer as view
+from envisat_pose.pipelines import closed_loop as loop
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
@@ -108,7 +108,7 @@ def looks_loaded(png: str) -> bool:
 
 @pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (make test installs it as root)")
-def test_the_recording_opens_in_the_web_viewer(tmp_path, detector_weights, rerun_env):
+def test_the_recording_opens_in_the_web_viewer(tmp_path, detector_weights, rerun_env):  # noqa: F811 (a fixture)
     from envisat_pose.pipelines.run_config import RunConfig
 
     cfg = RunConfig.from_scenario("default", duration_s=6.0, weights=detector_weights, workers=1, warm_start=True)
@@ -158,7 +158,7 @@ def write_long_recording(path, frames=600, with_error=150):
 
 @pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (make test installs it as root)")
-def test_every_plot_shows_the_whole_run_at_load(tmp_path, rerun_env):
+def test_every_plot_shows_the_whole_run_at_load(tmp_path, rerun_env):  # noqa: F811 (a fixture)
     """A 600 s recording opened in the web viewer: the error plots show the first 150 s of data (red x-component
     series), i.e. their time axis spans the whole run at load, not a trailing window at the time cursor."""
     rrd = tmp_path / "long.rrd"

@@ -70,7 +70,7 @@ def test_the_calibration_file_is_read_by_track_and_its_remap_undoes_the_lens(ff,
 
     n, f = 512, 955.4
     habits = ff.Habits()
-    K_i, K_c = ff.ideal_K(n, f), ff.foreign_K(n, f, habits)
+    K_c = ff.foreign_K(n, f, habits)
     path = tmp_path / "camera.toml"
     path.write_text(ff.camera_toml_text(K_c, n, habits.distortion))
     cam, remap = camera_from_intrinsics(str(path))

@@ -105,8 +105,9 @@ def test_half_turn_about_the_long_axis_is_visible(renderer):
 def test_clutter_has_its_own_mask_value_and_can_hide_corners(renderer):
     """The ASAR antenna stands 0.5 m off -z: seen from below at a slant, it hides body pixels and is mask 8;
     the box's corners and pose are unchanged by the switch."""
-    from envisat_pose.datagen.labels import make_label
     from scipy.spatial.transform import Rotation
+
+    from envisat_pose.datagen.labels import make_label
 
     d_T = np.array([0.25, 0.45, -1.0])
     d_T /= np.linalg.norm(d_T)

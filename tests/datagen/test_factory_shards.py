@@ -15,11 +15,11 @@ import time
 import numpy as np
 import pytest
 
+from envisat_pose.app.cli import main as envisat_main
+from envisat_pose.attitude import mrp_to_dcm
+from envisat_pose.config import from_dict
 from envisat_pose.datagen.factory import GenerateConfig, config_from_json, run_generate, sample_random_view
 from envisat_pose.datagen.shards import decode_png, read_manifest, read_shard
-from envisat_pose.attitude import mrp_to_dcm
-from envisat_pose.app.cli import main as envisat_main
-from envisat_pose.config import from_dict
 
 ENVISAT = [sys.executable, "-m", "envisat_pose.app.cli"]
 

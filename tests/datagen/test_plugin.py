@@ -87,7 +87,7 @@ def comma_locale(tmp_path) -> tuple[str, str] | None:
         return None
     out = tmp_path / "locales"
     out.mkdir()
-    proc = subprocess.run(["localedef", "-i", "de_DE", "-f", "UTF-8", str(out / "de_DE.UTF-8")],
+    subprocess.run(["localedef", "-i", "de_DE", "-f", "UTF-8", str(out / "de_DE.UTF-8")],
                           capture_output=True, text=True)
     if not (out / "de_DE.UTF-8").exists():
         return None

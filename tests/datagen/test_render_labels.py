@@ -15,9 +15,9 @@ def cross2(a, b):
     """z of the cross product of 2D vectors (..., 2)."""
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
+from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.datagen.labels import make_label
 from envisat_pose.datagen.render import MASK_VALUES, SceneRenderer, View
-from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.geometry import load_geometry, visible_corners
 
 RES = 256

@@ -5,8 +5,7 @@ import dataclasses
 
 import numpy as np
 
-from envisat_pose.filtering.estimator import (FilterConfig, Measurement, filter_step, init_state, make_setup,
-                                              run_filter)
+from envisat_pose.filtering.estimator import FilterConfig, Measurement, filter_step, init_state, make_setup, run_filter
 from envisat_pose.filtering.measurements import add_noise, measure
 
 T_STEPS = 120

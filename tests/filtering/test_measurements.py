@@ -3,8 +3,16 @@
 import numpy as np
 import pytest
 
-from envisat_pose.filtering.measurements import (corners_C_m, in_frame, limit_markers, measure, outage_mask,
-                                                 predicted_visible, random_failures, swap_corners)
+from envisat_pose.filtering.measurements import (
+    corners_C_m,
+    in_frame,
+    limit_markers,
+    measure,
+    outage_mask,
+    predicted_visible,
+    random_failures,
+    swap_corners,
+)
 from envisat_pose.geometry import load_camera
 
 

@@ -5,8 +5,7 @@ detector's) are taken as given."""
 
 import numpy as np
 
-from envisat_pose.filtering.estimator import (FilterConfig, Measurement, filter_step, init_state, make_setup,
-                                              predict_to)
+from envisat_pose.filtering.estimator import FilterConfig, Measurement, filter_step, init_state, make_setup, predict_to
 from envisat_pose.filtering.measurements import measure
 
 

@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from envisat_pose.filtering.estimator import FilterConfig, run_filter
-from envisat_pose.filtering.measurements import measure
 from envisat_pose.filtering.montecarlo import MeasurementConfig, inputs_from_truth
 from envisat_pose.filtering.reference import make_reference_ukf, reference_predict, reference_update
 

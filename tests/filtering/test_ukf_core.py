@@ -4,8 +4,17 @@ covariance repair keeps a broken covariance usable, and the shadow-set hooks kee
 import numpy as np
 
 from envisat_pose.attitude import mrp_error_angle_rad, mrp_shadow, mrp_to_dcm
-from envisat_pose.filtering.ukf import (align_mrp, merwe_weights, repair_cov, shadow_switch, sigma_points, state_mean,
-                           state_residual, ut_predict, ut_update)
+from envisat_pose.filtering.ukf import (
+    align_mrp,
+    merwe_weights,
+    repair_cov,
+    shadow_switch,
+    sigma_points,
+    state_mean,
+    state_residual,
+    ut_predict,
+    ut_update,
+)
 
 
 def _kf_predict(x, P, F, Q):

@@ -8,13 +8,11 @@ os.environ.setdefault("MUJOCO_GL", "osmesa")
 
 import cv2
 import numpy as np
-import pytest
 import torch
 
 from envisat_pose.geometry import EDGES
 from envisat_pose.perception import batch_augment as ba
-from envisat_pose.perception.data import (DataConfig, augment_style, crop_box, crop_resize, line_targets,
-                                          make_sample)
+from envisat_pose.perception.data import DataConfig, augment_style, crop_box, crop_resize, line_targets, make_sample
 from envisat_pose.perception.heatmaps import CORNER_JTYPE, encode_junctions
 
 

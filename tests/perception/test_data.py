@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 
 from envisat_pose.config import InputError
-from envisat_pose.perception.data import (DataConfig, make_sample, read_samples, shard_paths, to_full_px,
-                                          to_input_px)
-from envisat_pose.perception.stream import epoch_loader, shard_samples
+from envisat_pose.perception.data import DataConfig, make_sample, read_samples, shard_paths, to_full_px, to_input_px
 from envisat_pose.perception.heatmaps import decode_junctions
+from envisat_pose.perception.stream import epoch_loader, shard_samples
 
 
 def _write_shard(path, samples):

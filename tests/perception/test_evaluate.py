@@ -98,8 +98,9 @@ def test_associate_nearest_takes_closest_pairs_first():
 
 
 def test_pose_from_exact_corners_and_errors():
-    from envisat_pose.geometry import load_geometry
     from scipy.spatial.transform import Rotation
+
+    from envisat_pose.geometry import load_geometry
 
     X = load_geometry().corners_T_m
     K = np.array([[800.0, 0, 512], [0, 800.0, 512], [0, 0, 1]])

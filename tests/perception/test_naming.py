@@ -10,8 +10,13 @@ sys.path.insert(0, os.path.dirname(__file__))
 from naming_cases import make_case, outcome  # noqa: E402
 
 from envisat_pose.geometry import load_geometry  # noqa: E402
-from envisat_pose.perception.naming import (NamingConfig, _poses_from_faces, face_windings, name_corners,  # noqa: E402,E501
-                                            symmetry_permutations)
+from envisat_pose.perception.naming import (  # noqa: E402,E501
+    NamingConfig,
+    _poses_from_faces,
+    face_windings,
+    name_corners,
+    symmetry_permutations,
+)
 
 
 def test_face_poses_exact_without_noise():

@@ -1,6 +1,7 @@
 """Weights load without unpickling; a missing, truncated, foreign or wrong-shape file is one clear line."""
 
 import os
+
 import numpy as np
 import pytest
 import torch

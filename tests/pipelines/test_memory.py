@@ -21,7 +21,6 @@ import warnings
 from collections import defaultdict
 
 import numpy as np
-import pytest
 
 CHILD = textwrap.dedent("""
     import json, resource, sys, tracemalloc
@@ -58,9 +57,9 @@ CHILD = textwrap.dedent("""
 
 
 def test_a_long_closed_loop_keeps_its_memory_flat(tmp_path):
-    from envisat_pose.pipelines.jobs import default_weights_path
     from envisat_pose.contracts import Estimates
     from envisat_pose.pipelines.closed_loop import record_arrays
+    from envisat_pose.pipelines.jobs import default_weights_path
 
     out = subprocess.run([sys.executable, "-c", CHILD, default_weights_path(), str(tmp_path), "2099.9"],
                          capture_output=True, text=True, timeout=900)

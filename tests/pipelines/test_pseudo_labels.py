@@ -10,11 +10,18 @@ import numpy as np
 import pytest
 
 from envisat_pose.attitude import mrp_error_angle_rad, mrp_kinematics_matrix, mrp_shadow, mrp_to_dcm, quat_to_mrp
-from envisat_pose.pipelines.pseudo_labels import (corner_labels, label_record, label_sigma_px, smooth_track,
-                                                  state_minus, state_plus, tracked_segments, trusted_frames,
-                                                  unscented_rts)
+from envisat_pose.pipelines.pseudo_labels import (
+    corner_labels,
+    label_record,
+    label_sigma_px,
+    smooth_track,
+    state_minus,
+    state_plus,
+    tracked_segments,
+    trusted_frames,
+    unscented_rts,
+)
 from envisat_pose.status import ACQUIRING, COASTING, LOST, TRACKING
-
 
 # ---------------------------------------------------------------------------------------------------------
 # segments

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from envisat_pose.pipelines.scoring import (NEES_TAIL, scored_masks, score_runs, settled_from, spec_score)
+from envisat_pose.pipelines.scoring import NEES_TAIL, score_runs, scored_masks, settled_from, spec_score
 from envisat_pose.status import ACQUIRING, COASTING, LOST, STATUSES, TRACKING
 
 RANGE_M = 50.0

@@ -10,8 +10,7 @@ from envisat_pose.geometry import load_camera, load_geometry
 from envisat_pose.perception.detect import FrameDetection
 from envisat_pose.pipelines import acquisition as acq
 from envisat_pose.pipelines.tracker import Tracker, TrackerConfig
-from envisat_pose.pipelines.tracker_config import (AcquireConfig, BankConfig, GateConfig, NoiseConfig,
-                                                   RoiConfig)
+from envisat_pose.pipelines.tracker_config import AcquireConfig, BankConfig, GateConfig, NoiseConfig, RoiConfig
 from envisat_pose.state import MRP, POS, RATE, error_magnitudes
 
 
@@ -105,7 +104,6 @@ def test_namings_off_by_any_box_symmetry_are_aligned_and_a_wrong_pose_does_not_s
     start's attitude nor its rate: the batch fit keeps its corners (before: 180 deg jumps left in the window, a
     start at 26.9 deg/s for a 1.6 deg/s tumble, every corner rejected)."""
     from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
-    from envisat_pose.state import error_magnitudes
 
     cam, corners_T = load_camera(), load_geometry().corners_T_m
     rng = np.random.default_rng(5)

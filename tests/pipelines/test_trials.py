@@ -7,8 +7,14 @@ import pytest
 
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.scenario import scenario_config
-from envisat_pose.pipelines.trials import (draw_lit_sun_N, random_attitude_mrp, scenario_sun_N, sun_rng,
-                                           trial_truth_config, unit_vector)
+from envisat_pose.pipelines.trials import (
+    draw_lit_sun_N,
+    random_attitude_mrp,
+    scenario_sun_N,
+    sun_rng,
+    trial_truth_config,
+    unit_vector,
+)
 
 EARTH_RADIUS_M = 6378137.0  # WGS-84 equatorial radius
 
