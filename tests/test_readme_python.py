@@ -12,12 +12,16 @@ import numpy as np
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
-def python_example() -> str:
+def python_examples() -> list[str]:
     text = README.read_text()
     section = text.split("## From Python", 1)[1].split("\n## ", 1)[0]
     blocks = re.findall(r"```python\n(.*?)```", section, flags=re.S)
-    assert len(blocks) == 1, "the section holds one Python example"
-    return blocks[0]
+    assert len(blocks) >= 2, "the section holds the tracking and the training examples"
+    return blocks
+
+
+def python_example() -> str:
+    return python_examples()[0]
 
 
 def test_the_readme_python_example_runs_as_written(tmp_path, monkeypatch, capsys):
@@ -32,3 +36,20 @@ def test_the_readme_python_example_runs_as_written(tmp_path, monkeypatch, capsys
     assert out[0].startswith("0.0 acquiring") and "nan" in out[0]
     assert out[-1] == "{'acquiring': 20, 'tracking': 0, 'lost': 0, 'coasting': 0} acquiring"
     assert {"est.npz", "det.npz", "summary.json", "recording.rrd"} <= set(os.listdir("out/mine"))
+
+
+def test_the_readme_training_example_runs_as_written(tmp_path, monkeypatch, capsys):
+    """The training example (issue 41) on the folders it names, made here by `envisat generate`: it trains, writes
+    a run folder, detects with its weights and loads every column of det.npz."""
+    from envisat_pose.app.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    for name, n, seed in (("train", 4, 21), ("heldout", 2, 22)):
+        assert main(["generate", "--num-images", str(n), "--shard-size", str(n), "--resolution", "128", "--seed",
+                     str(seed), "--out", f"data/{name}", "--quiet"]) == 0
+    capsys.readouterr()
+    exec(compile(python_examples()[1], str(README), "exec"), {"__name__": "readme"})
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "4 steps"
+    assert out[-1].startswith("(2, 8, 2) [")
+    assert {"config.json", "checkpoint.safetensors", "state.json", "det.npz"} <= set(os.listdir("runs/det"))
