@@ -261,6 +261,18 @@ def validate(procs, init: str, weights: str, out_json: str, device: str, deadlin
     return proc.stdout if proc.returncode == 0 else None
 
 
+def online_looks(work: str, leg: int) -> str:
+    """The looks of an online leg: the factory's random-mode defaults at 1024 px with the leg's own seeds (its
+    frames the first seed of the leg's data range; a generate config file for `envisat train --generate-config`).
+    One look for the whole leg: the online path takes one config (the offline recipe's mix of scenarios,
+    cameras and wide looks is not yet online)."""
+    looks = merge({"mode": "random", "resolution_px": 1024, "seed": SEED_BASE + SEED_LEG * leg}, leg_seeds(leg))
+    path = os.path.join(work, "online_looks.toml")
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(to_toml(looks))
+    return path
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--init", required=True, help="weights to start from")
@@ -282,6 +294,12 @@ def main() -> int:
     ap.add_argument("--validate-s", type=float, default=50.0,
                     help="kept for the leg's check of its weights against init on held-out views (0: none)")
     ap.add_argument("--scenarios", nargs="*", help="named scenarios (default: all)")
+    ap.add_argument("--online", action="store_true",
+                    help="train on frames rendered as training goes (envisat train --online: random views of the "
+                    "default looks at 1024 px, --render-workers = the cores less two, K = --uses-per-frame) instead "
+                    "of generating shards first; the rate constant, then a cooldown; the pre-cooldown weights and "
+                    "the moving average come back beside the last ones")
+    ap.add_argument("--uses-per-frame", type=int, default=8)
     args = ap.parse_args()
     from envisat_pose import named_scenarios
     from envisat_pose.io import sha256_file
@@ -301,7 +319,7 @@ def main() -> int:
     if args.validate_s > 0:
         log = open(os.path.join(args.work, "validation.log"), "w", encoding="utf-8")
         val = start_validation(args.work, args.validate_images, log)
-    chunks = generate(args.work, leg, scenarios, args.gen_s, args.rate, args.gen_workers)
+    chunks = [] if args.online else generate(args.work, leg, scenarios, args.gen_s, args.rate, args.gen_workers)
     gen_s = time.time() - t0
     images = sum(c["images"] for c in chunks)
     print(f"leg {leg}: {images} images in {len(chunks)} chunks, {gen_s:.0f} s ({images / gen_s:.0f} images/s)",
@@ -314,20 +332,24 @@ def main() -> int:
         raise SystemExit(f"no time left to train ({budget:.0f} s)")
     toml = os.path.join(args.work, "train.toml")
     with open(toml, "w", encoding="utf-8") as fh:
-        fh.write(f"lr = {args.lr!r}\nwarmup_steps = 200\ncheckpoint_every = 1000\nseed = {SEED_BASE + leg}\n")
+        fh.write(f"lr = {args.lr!r}\nwarmup_steps = 200\ncheckpoint_every = 1000\nseed = {SEED_BASE + leg}\n"
+                 + ('schedule = "constant_cooldown"\nema_decay = 0.999\n' if args.online else ""))
     run_dir = os.path.join(args.work, "run")
-    cmd = [sys.executable, "-m", "envisat_pose.app.cli", "train", "--data", *[c["folder"] for c in chunks],
-           "--out", run_dir, "--config", toml, "--init", args.init, "--device", args.device, "--workers",
-           str(args.workers), "--batch-size", str(args.batch_size), "--steps", "10000000", "--time-budget-s",
-           f"{budget:.0f}", "--quiet"] + ([] if args.no_bf16 else ["--bf16"])
+    source = (["--online", "--render-workers", str(max(1, args.gen_workers - 2)), "--uses-per-frame",
+               str(args.uses_per_frame), "--generate-config", online_looks(args.work, leg)] if args.online
+              else ["--data", *[c["folder"] for c in chunks], "--workers", str(args.workers)])
+    cmd = [sys.executable, "-m", "envisat_pose.app.cli", "train", *source, "--out", run_dir, "--config", toml,
+           "--init", args.init, "--device", args.device, "--batch-size", str(args.batch_size), "--steps",
+           "10000000", "--time-budget-s", f"{budget:.0f}", "--quiet"] + ([] if args.no_bf16 else ["--bf16"])
     print(f"training for {budget:.0f} s: {' '.join(cmd[3:6])} ...", flush=True)
     rc = subprocess.run(cmd).returncode
     if rc != 0:
         raise SystemExit(f"envisat train failed ({rc})")
     end = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"), encoding="utf-8")][-1]
     shutil.copy2(os.path.join(run_dir, "checkpoint.safetensors"), os.path.join(args.out, "detector.safetensors"))
-    for name in ("metrics.jsonl", "config.json"):
-        shutil.copy2(os.path.join(run_dir, name), os.path.join(args.out, name))
+    for name in ("metrics.jsonl", "config.json", "state.json", "pre_cooldown.safetensors", "ema.safetensors"):
+        if os.path.exists(os.path.join(run_dir, name)):  # the last three: online legs (their schedule)
+            shutil.copy2(os.path.join(run_dir, name), os.path.join(args.out, name))
     with open(os.path.join(args.out, "leg.json"), "w", encoding="utf-8") as fh:
         json.dump({"leg": leg, "previous_leg": prev, "init_sha256": sha256_file(args.init),
                    "weights_sha256": sha256_file(os.path.join(args.out, "detector.safetensors")),

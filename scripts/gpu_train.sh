@@ -15,7 +15,8 @@
 # carries $OUT's detector.safetensors and leg.json as init/ (gpu_carry.sh --init) when they beat their init.
 # env: CARRY, OUT, TOTAL_S (540), GEN_S (170), RATE (expected 1024-px images/s: 170), DEVICE (cuda),
 #      WORKERS (cores-2), BATCH (64), VAL_IMAGES (60), VAL_S (50), SCENARIOS (all), INIT, PY (python3), NO_INSTALL,
-#      MUJOCO_GL (egl), WORK (/tmp/gpu-leg)
+#      MUJOCO_GL (egl), WORK (/tmp/gpu-leg), ONLINE (set: `envisat train --online` from frames rendered as it
+#      trains, no shards; the schedule constant then cooled down, pre_cooldown.safetensors and ema.safetensors back)
 set -o pipefail
 T0=$(date +%s)
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
@@ -57,6 +58,7 @@ if [ ! -f "$INIT" ]; then INIT=$ROOT/models/detector.safetensors; LEG=; fi
 echo "gpu_train: init $(basename "$INIT") ($(sha256sum "$INIT" | cut -c1-12)), setup took $(( $(date +%s) - T0 )) s"
 $PY "$ROOT/scripts/gpu_train.py" --init "$INIT" ${LEG:+--leg-file "$LEG"} --out "$OUT" --work "$WORK/leg" \
     --deadline-s $(( T0 + TOTAL_S )) --gen-s "${GEN_S:-170}" ${RATE:+--rate "$RATE"} --device "${DEVICE:-cuda}" \
+    ${ONLINE:+--online} \
     ${VAL_IMAGES:+--validate-images "$VAL_IMAGES"} ${VAL_S:+--validate-s "$VAL_S"} \
     ${WORKERS:+--workers "$WORKERS"} ${BATCH:+--batch-size "$BATCH"} ${SCENARIOS:+--scenarios $SCENARIOS} || exit 7
 echo "gpu_train: done in $(( $(date +%s) - T0 )) s; in $OUT: $(ls "$OUT" | tr '\n' ' ')"
