@@ -19,7 +19,7 @@ _VERB_MODULES = ("envisat_pose.app.simulate", "envisat_pose.app.generate", "envi
                  "envisat_pose.app.montecarlo", "envisat_pose.app.report", "envisat_pose.app.scenarios",
                  "envisat_pose.app.train", "envisat_pose.app.detect", "envisat_pose.app.calibrate",
                  "envisat_pose.app.evaluate", "envisat_pose.app.view", "envisat_pose.app.run", "envisat_pose.app.track",
-                 "envisat_pose.app.demo")
+                 "envisat_pose.app.adapt", "envisat_pose.app.demo")
 
 
 def build_parser() -> argparse.ArgumentParser:

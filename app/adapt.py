@@ -1,0 +1,78 @@
+"""`envisat adapt`: the verb over pipelines/adapt.py: teach the detector the look of your own frames (tracked cold,
+pseudo-labelled at the smoothed track, fine-tuned, recalibrated, tracked again), judged on a held-out final part."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from envisat_pose.app.common import add_common
+
+    p = sub.add_parser(
+        "adapt",
+        help="adapt the detector to your own frames, with no labels: track, pseudo-label, fine-tune, track again",
+        description="Track the frames cold, label the frames the tracker trusts (tracking, half-turn decided, "
+        "tight covariance) at its smoothed estimate, fine-tune the detector on them, recalibrate its covariance "
+        "and track again. The final quarter is held out: if the adapted weights do worse there, the original ones "
+        "are kept and the verb exits 1 saying why. Writes detector.safetensors and detector.json (only when "
+        "adopted), report.json, before/ and after/ (the two track runs) into --out.",
+    )
+    p.add_argument("--images", required=True, metavar="SRC", help="generate folder, image folder or video file")
+    p.add_argument("--rate-hz", type=float, help="frame rate of an image folder or a video: frame k at k / R s")
+    p.add_argument("--timestamps", metavar="FILE.csv", help="frame times of an image folder (columns file,t_s)")
+    p.add_argument("--bit-depth", type=int, metavar="BITS", help="bits of the data in 16-bit image files: 10, 12, "
+                   "14 or 16 (default: the smallest that holds the sequence's maximum)")
+    p.add_argument("--camera", metavar="FILE.toml", help="intrinsics fx, fy, cx, cy (px), width, height, optional "
+                   "distortion (default: the MJCF's chaser_cam at the frames' size)")
+    p.add_argument("--scenario", help="where the chaser's orbit and the target's dynamics come from (default: a "
+                   "generate folder's own, else 'default')")
+    p.add_argument("--rounds", type=int, default=1, help="track-label-fine-tune-track rounds (default 1)")
+    p.add_argument("--steps", type=int, help="fine-tune steps per round (default 60)")
+    p.add_argument("--lr", type=float, help="fine-tune peak learning rate (default 5e-4)")
+    p.add_argument("--whole-network", action="store_true",
+                   help="fine-tune every layer (default: the normalization layers and the heads)")
+    p.add_argument("--device", default="cpu", help="torch device of the fine-tune: cpu (default), cuda")
+    add_common(p, out="output folder (created; an earlier run's outputs are replaced)", out_metavar="RUN_DIR",
+               config="track config (orbit, filter, tracker; top-level keys)", weights=True,
+               seed="seed of the fine-tune's crops, augmentation and batches (default 0)", flag_names=FLAGS)
+    p.set_defaults(func=adapt_cli)
+
+
+# the library's argument names -> this verb's flags (app/common.as_flags)
+FLAGS = {"src": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps", "bit_depth": "--bit-depth",
+         "camera": "--camera", "rounds": "--rounds", "steps": "--steps", "lr": "--lr", "device": "--device"}
+
+
+def adapt_cli(args: argparse.Namespace) -> int:
+    import sys
+
+    from envisat_pose.pipelines.adapt import AdaptConfig, adapt
+    from envisat_pose.pipelines.frames import open_source
+    from envisat_pose.pipelines.track import TrackConfig
+    from envisat_pose.runner import check_out_dir
+
+    check_out_dir(args.out)
+    source = open_source(args.images, args.rate_hz or 0.0, args.timestamps, args.bit_depth)
+    track = TrackConfig.from_scenario(args.scenario or source.scenario or "default", args.config,
+                                      rate_hz=args.rate_hz, weights=args.weights)
+    fields = {"steps": args.steps, "lr": args.lr, "seed": args.seed}
+    cfg = AdaptConfig(track=track, rounds=args.rounds, params="all" if args.whole_network else "norm_heads",
+                      device=args.device, **{k: v for k, v in fields.items() if v is not None})
+    report = adapt(cfg, source, args.out, camera=args.camera, progress=not args.quiet,
+                   command=["envisat"] + list(getattr(args, "argv", [])))
+    print(f"{args.images}: {report['source']['frames']} frames; held out from frame "
+          f"{report['held_out_from_frame']}; {report['rounds'][-1]['labels']} pseudo-labelled frames")
+    for name in ("before", "after"):
+        f = report[name]
+        if f is None:
+            continue
+        nis = "n/a" if f["mean_nis_per_dof"] is None else f"{f['mean_nis_per_dof']:.2f}"
+        print(f"{name:>6}: held-out tracked {f['tracked_share']:.0%}, mean NIS/dof {nis}, pose stays tracked "
+              f"from frame {f['stays_tracked_from']}")
+    print(f"took {report['timing_s']['total']:.0f} s")
+    if not report["adopted"]:
+        print(f"envisat adapt: kept the original weights: {report['reason']}", file=sys.stderr)
+        return 1
+    print(f"wrote {args.out}: detector.safetensors, detector.json, report.json, before/, after/")
+    return 0

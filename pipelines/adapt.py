@@ -1,0 +1,504 @@
+"""`envisat adapt`: teach the detector the look of a user's own frames from a cold start, with no labels (issue 40).
+
+The steps (one round; `rounds` repeats 2-5 from the last track):
+1. track the sequence cold with the given weights (pipelines/track.py `track_frames`): the 'before' run;
+2. take the frames of the first part (all but the held-out final `held_out` share) where the tracker claims
+   tracking with its half-turn decided (pseudo_labels.trusted_frames, over the smoothed segments) and whose label
+   is tight (the largest corner 1-sigma of the smoothed covariance, label_sigma_px, below `max_label_sigma_px`);
+   a lost, coasting or never-decided frame contributes nothing;
+3. label them at the smoothed estimate (pipelines/pseudo_labels.py: an unscented RTS smoother over each tracked
+   segment, the box's corners projected with the face test's visibility);
+4. fine-tune the detector on those (image, label) pairs in memory with the project's crops, augmentation and
+   losses (perception/data.make_sample, perception/train's step): the normalization layers and the heads
+   (`params='norm_heads'`), or the whole network (`params='all'`);
+5. recalibrate the covariance scale on the pseudo-labels' residuals (perception/calibrate.fit_scale, the
+   network's own covariances, the labels' region of interest, as `envisat calibrate`);
+then track again with the adapted weights: the 'after' run. The held-out final part decides: if the adapted
+weights do worse there than the original ones (tracked share, mean NIS per degree of freedom, the frame from which
+the pose stays tracked: `worse_reason`), the original weights are kept and the report says why in one line.
+
+Pseudo-labels carry what the tracker believes, its biases included: a detector that sees the target a little
+smaller than it is gives a range a little long, and labels projected from that pose are a little small. Fine-tuning
+on them teaches the look, not the size; the truth never enters here.
+
+Outputs (staged inside out_dir and moved into place at the end, io.staged_folder; an error leaves out_dir as it
+was):
+    detector.safetensors   the adapted weights, only when adopted (their cov_scale recalibrated)
+    detector.json          the model card: the source frames by content hash, the command, the figures
+    report.json            the same figures and, when not adopted, the reason
+    before/, after/        the two track runs (est.npz, det.npz, summary.json, recording.rrd, ...)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from envisat_pose.config import InputError, check
+from envisat_pose.pipelines.track import TrackConfig
+from envisat_pose.status import TRACKING
+
+OUTPUTS = ("detector.safetensors", "detector.json", "report.json")
+RUN_DIRS = ("before", "after")
+# what "worse on the held-out part" means (worse_reason): margins below which a change is noise
+SHARE_MARGIN = 0.02          # tracked share may drop by at most 2 points
+STAY_MARGIN_FRAMES = 3       # the pose may start to stay tracked at most 3 frames later
+NIS_MARGIN = np.log(1.5)     # |ln(mean NIS / dof)| may grow by at most ln 1.5
+
+
+@dataclass(frozen=True)
+class AdaptConfig:
+    """One `envisat adapt` job. track: the tracker's job (TrackConfig.from_scenario resolves it; its weights the
+    ones adapted, "" the shipped); held_out: the final share of the sequence kept out of the labels and used to
+    judge (0.25: the final quarter); rounds: track-label-fine-tune-track rounds; steps, lr, batch_size: the
+    fine-tune's AdamW steps, peak rate (short warm-up, cosine decay) and batch; params: 'norm_heads' (the
+    normalization layers and the heads) or 'all' (the whole network); min_trusted: the fewest labelled frames
+    accepted; max_label_sigma_px: a label's largest corner 1-sigma (px) under the smoothed covariance;
+    max_labels: at most this many labelled frames, evenly spread (memory); max_calibration_frames: the
+    recalibration's frames (evenly spread over the labelled ones); seed: the fine-tune's crops,
+    augmentation and batches; device: torch device of the fine-tune ('cpu', 'cuda'); threads: torch CPU threads of
+    the fine-tune (0: torch's default). Validated when built."""
+
+    track: TrackConfig = field(default_factory=TrackConfig)
+    held_out: float = 0.25
+    rounds: int = 1
+    steps: int = 60
+    lr: float = 5e-4
+    batch_size: int = 8
+    params: str = "norm_heads"
+    min_trusted: int = 20
+    max_label_sigma_px: float = 0.5
+    max_labels: int = 240
+    max_calibration_frames: int = 60
+    seed: int = 0
+    device: str = "cpu"
+    threads: int = 0
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(0.05 <= self.held_out <= 0.5, f"{p}held_out", self.held_out, "a share of the sequence in [0.05, 0.5]")
+        check(1 <= self.rounds <= 10, f"{p}rounds", self.rounds, "1 to 10 rounds")
+        check(self.steps >= 1, f"{p}steps", self.steps, "at least 1 fine-tune step")
+        check(self.lr > 0, f"{p}lr", self.lr, "a positive learning rate")
+        check(self.batch_size >= 1, f"{p}batch_size", self.batch_size, "at least 1 sample per batch")
+        check(self.params in ("norm_heads", "all"), f"{p}params", self.params, "'norm_heads' or 'all'")
+        check(self.min_trusted >= 1, f"{p}min_trusted", self.min_trusted, "at least 1 frame")
+        check(self.max_label_sigma_px > 0, f"{p}max_label_sigma_px", self.max_label_sigma_px, "pixels > 0")
+        check(self.max_labels >= self.min_trusted, f"{p}max_labels", self.max_labels, "at least min_trusted")
+        check(self.max_calibration_frames >= 1, f"{p}max_calibration_frames", self.max_calibration_frames,
+              "at least 1 frame")
+        check(self.threads >= 0, f"{p}threads", self.threads, "threads >= 0 (0: torch's default)")
+        self.track.validate(f"{p}track")
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Figures of a track run
+
+
+def track_figures(run_dir: str, held_from: int) -> dict:
+    """What a track run (est.npz) did on its held-out frames [held_from, T): tracked_share (of those frames),
+    mean_nis_per_dof (sum NIS / sum dof over them; None without a measurement), stays_tracked_from (the first
+    frame from which the status stays tracking to the end of the sequence; None when the last frame is not
+    tracking), and the same over the whole sequence (tracked_share_all, frames)."""
+    with np.load(os.path.join(run_dir, "est.npz")) as est:
+        status, nis, dof = est["status"][0], est["nis"][0], est["nis_dof"][0]
+    T = len(status)
+    tracking = status == TRACKING
+    held = slice(held_from, T)
+    n_dof = float(np.sum(dof[held]))
+    not_tracking = np.flatnonzero(~tracking)
+    stays = None if not tracking[-1] else int(not_tracking[-1] + 1 if len(not_tracking) else 0)
+    return {"frames": T, "held_out_from": int(held_from), "tracked_share": float(np.mean(tracking[held])),
+            "mean_nis_per_dof": float(np.sum(nis[held]) / n_dof) if n_dof else None,
+            "stays_tracked_from": stays, "tracked_share_all": float(np.mean(tracking))}
+
+
+def worse_reason(before: dict, after: dict) -> str | None:
+    """One line saying how the adapted weights did worse on the held-out part than the original ones (beyond the
+    margins SHARE_MARGIN, STAY_MARGIN_FRAMES, NIS_MARGIN), or None."""
+    if after["tracked_share"] < before["tracked_share"] - SHARE_MARGIN:
+        return (f"the adapted weights tracked {after['tracked_share']:.0%} of the held-out frames, the original "
+                f"ones {before['tracked_share']:.0%}")
+    b, a = before["stays_tracked_from"], after["stays_tracked_from"]
+    if b is not None and (a is None or a > b + STAY_MARGIN_FRAMES):
+        return (f"with the adapted weights the pose stays tracked from frame {a}, with the original ones from "
+                f"frame {b}" if a is not None else
+                f"with the adapted weights the track does not hold to the end (the original ones: from frame {b})")
+    nb, na = before["mean_nis_per_dof"], after["mean_nis_per_dof"]
+    if nb is not None and (na is None or abs(np.log(na)) > abs(np.log(nb)) + NIS_MARGIN):
+        return (f"the held-out mean NIS per degree of freedom is {na:.2f} with the adapted weights, {nb:.2f} with "
+                "the original ones" if na is not None else
+                "the adapted weights gave the filter no measurement on the held-out frames")
+    return None
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Labels from a track
+
+
+def pseudo_labels(run_dir: str, camera, orbit, q_sigma, dyn: dict, cut: int, cfg: AdaptConfig) -> dict:
+    """The labels of a track run: the smoothed segments (pseudo_labels.smooth_track), the trusted frames before
+    `cut` whose largest corner sigma is below cfg.max_label_sigma_px, at most cfg.max_labels of them evenly
+    spread. Returns {frames (N,) int, labels [label_record], sigma_px (N,) the largest corner sigma, trusted: all
+    trusted frames before cut}."""
+    from envisat_pose.pipelines.onboard import chaser_function
+    from envisat_pose.pipelines.pseudo_labels import label_record, label_sigma_px, smooth_track
+
+    with np.load(os.path.join(run_dir, "est.npz")) as est, np.load(os.path.join(run_dir, "det.npz")) as det:
+        t_s, x_hat, P, status = est["t_s"], est["x_hat"][0], est["P"][0], est["status"][0]
+        n_hyp = det["n_hypotheses"]
+    chaser_at = chaser_function(orbit)
+    chaser = np.array([chaser_at(t) for t in t_s])
+    sm = smooth_track(t_s, x_hat, P, status, chaser, q_sigma, n_hyp, **dyn)
+    trusted = np.flatnonzero(sm.trusted[:cut])
+    sigma = label_sigma_px(sm.x[trusted], sm.P[trusted], camera).max(axis=1) if len(trusted) else np.zeros(0)
+    keep = trusted[sigma < cfg.max_label_sigma_px]
+    sigma = sigma[sigma < cfg.max_label_sigma_px]
+    if len(keep) > cfg.max_labels:
+        pick = np.unique(np.linspace(0, len(keep) - 1, cfg.max_labels).round().astype(int))
+        keep, sigma = keep[pick], sigma[pick]
+    return {"frames": keep, "labels": [label_record(sm.x[k], camera) for k in keep], "sigma_px": sigma,
+            "trusted": int(len(trusted))}
+
+
+def read_frames(source, remap, keep: np.ndarray) -> dict[int, np.ndarray]:
+    """The frames `keep` of the source as the tracker saw them (remapped to its pinhole): {k: (H, W) uint8}."""
+    import cv2
+
+    want, out = set(int(k) for k in keep), {}
+    for k, image in source.frames():
+        if k in want:
+            out[k] = image if remap is None else cv2.remap(image, remap[0], remap[1], cv2.INTER_LINEAR)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The fine-tune
+
+
+def trainable(model, params: str) -> list:
+    """The parameters fine-tuned: every one ('all'), or the normalization layers' and the heads' ('norm_heads':
+    batch-norm affine weights, the junction head, the line head)."""
+    import torch
+
+    if params == "all":
+        return list(model.parameters())
+    chosen = {id(p) for m in model.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)
+              for p in m.parameters()}
+    for name in ("jhead", "line_reduce", "line_mlp"):
+        chosen |= {id(p) for p in getattr(model, name).parameters()}
+    return [p for p in model.parameters() if id(p) in chosen]
+
+
+def fine_tune(weights: str, images: list[np.ndarray], labels: list[dict], cfg: AdaptConfig,
+              seed: np.random.SeedSequence, bar=None) -> tuple[object, dict]:
+    """Fine-tune the detector in `weights` on (image, label) pairs (label: label_record's fields) with the
+    project's crops, augmentation and losses (perception/data.make_sample, perception/train's step). Returns the
+    model (CPU, eval mode) and {loss_first, loss_last (mean of the first and last tenth of the steps), steps,
+    trainable (parameters)}."""
+    import torch
+    from torch.utils.data import default_collate
+
+    from envisat_pose.perception.data import DataConfig, decode_label, make_sample
+    from envisat_pose.perception.train import TrainConfig, _train_step, cosine_factor, to_device
+    from envisat_pose.perception.weights import load_model
+
+    dev = torch.device(cfg.device)
+    model = load_model(weights, device=cfg.device)
+    params = trainable(model, cfg.params)
+    for p in model.parameters():
+        p.requires_grad_(False)
+    for p in params:
+        p.requires_grad_(True)
+    model.train()
+    for m in model.modules():  # running statistics kept: a batch of one sequence's frames is no population
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+            m.eval()
+    data = DataConfig(input_px=model.cfg.input_px, stride=model.cfg.stride)
+    warmup = max(1, min(20, cfg.steps // 10))
+    tcfg = TrainConfig(steps=cfg.steps, batch_size=cfg.batch_size, lr=cfg.lr, warmup_steps=warmup,
+                       seed=int(seed.generate_state(1)[0]), model=model.cfg, data=data)
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=0.0)
+    decoded = [decode_label(json.dumps(lab).encode(), f"pseudo-label {i}") for i, lab in enumerate(labels)]
+    rng = np.random.default_rng(seed)
+    losses = []
+    for step in range(cfg.steps):
+        lr = cfg.lr * min(1.0, (step + 1) / warmup) * cosine_factor(step / max(cfg.steps - 1, 1))
+        for g in opt.param_groups:
+            g["lr"] = lr
+        pick = rng.integers(0, len(images), size=cfg.batch_size)
+        batch = default_collate([make_sample(images[i], decoded[i], data, rng) for i in pick])
+        terms = _train_step(model, model, opt, to_device(batch, dev), tcfg, step, dev, False)
+        losses.append(float(terms["loss"]))
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix_str(f"loss {losses[-1]:.3f}", refresh=False)
+    tenth = max(1, len(losses) // 10)
+    return model.cpu().eval(), {"steps": cfg.steps, "trainable": int(sum(p.numel() for p in params)),
+                                "loss_first": float(np.mean(losses[:tenth])),
+                                "loss_last": float(np.mean(losses[-tenth:]))}
+
+
+def save_adapted(model, base: str, path: str, extra: dict) -> bool:
+    """Write the model's tensors with the base weights' metadata (error model, face cue, ...) and `extra` on top.
+    False (nothing written) when a tensor is not finite (a diverged fine-tune)."""
+    import torch
+
+    from envisat_pose.perception.weights import read_metadata, save_weights
+
+    if not all(torch.isfinite(v).all() for v in model.state_dict().values() if v.is_floating_point()):
+        return False
+    meta = {k: v for k, v in read_metadata(base).items() if k not in ("format", "model_config")}
+    save_weights(path, model, {**meta, **extra})
+    return True
+
+
+def recalibrate(weights: str, images: list[np.ndarray], labels: list[dict], bar=None) -> dict:
+    """The covariance scale of `weights` refitted on the pseudo-labels' residuals (perception/calibrate.fit_scale
+    over the correctly named corners, the network's own covariances, the labels' region of interest: what
+    `envisat calibrate --roi labels` fits). {scale, corners, mean_nees_before (at the file's scale)}; scale None
+    when fewer than 20 corners matched."""
+    from envisat_pose.perception.calibrate import fit_scale, nees_px
+    from envisat_pose.perception.data import decode_label
+    from envisat_pose.perception.detect import DetectConfig, load_detector, weights_cov_scale
+    from envisat_pose.pipelines.calibrate import collect_frames, flat_errors
+
+    det = load_detector(weights, config=dataclasses.replace(DetectConfig(), cov_scale=1.0, refine=False,
+                                                            refine_cov_floor_px2=0.0))
+    samples = ((str(i), im, decode_label(json.dumps(lab).encode(), f"pseudo-label {i}"))
+               for i, (im, lab) in enumerate(zip(images, labels)))
+    err, cov, _ = flat_errors(collect_frames(det, samples, bar=bar, roi="labels"))
+    if len(err) < 20:
+        return {"scale": None, "corners": int(len(err)), "mean_nees_before": None}
+    old = weights_cov_scale(weights)
+    return {"scale": fit_scale(err, cov), "corners": int(len(err)),
+            "mean_nees_before": float(np.mean(nees_px(err, cov * old)))}
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The job
+
+
+def content_sha256(source) -> str:
+    """The source frames by content: sha256 of the sorted list of its files' sha256 (an image folder's frames, a
+    dataset's shards, a video file)."""
+    files = list(source.files) or [source.path]
+    hashes = []
+    for f in files:
+        h = hashlib.sha256()
+        with open(f, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+        hashes.append(h.hexdigest())
+    return hashlib.sha256("\n".join(sorted(hashes)).encode()).hexdigest()
+
+
+def _bar(progress: bool, total: int, desc: str, unit: str):
+    if not progress:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, mininterval=0.5)
+
+
+def _close(bar) -> None:
+    if bar is not None:
+        bar.close()
+
+
+def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool = True,
+          command: list[str] | None = None) -> dict:
+    """Adapt the detector in cfg.track.weights ("" the shipped) to the frames of `source` (a FrameSource or a path
+    open_source opens at cfg.track.rate_hz) and write out_dir (module doc). camera: a PinholeCamera, a camera TOML
+    file or None (the MJCF's chaser_cam at the frames' size), as track_frames; command: the command line, for the
+    model card. Returns the report: {adopted, reason (None when adopted), before, after (track_figures), rounds
+    (per round: labels, fine-tune, calibration), source, timing_s}. InputError (one line) when the first part
+    holds fewer than cfg.min_trusted labelled frames; nothing is written then."""
+    from envisat_pose.io import staged_folder
+    from envisat_pose.perception.weights import shipped_weights_path
+    from envisat_pose.pipelines.build import load_camera, scenario_orbit
+    from envisat_pose.pipelines.camera_file import camera_from_intrinsics
+    from envisat_pose.pipelines.frames import open_source, scan_source
+    from envisat_pose.runner import check_out_dir, make_out_dir
+
+    check_out_dir(out_dir, field="out_dir")
+    tcfg = cfg.track
+    if isinstance(source, str):
+        source = open_source(source, tcfg.rate_hz)
+    remap = None
+    if isinstance(camera, str):
+        camera, remap = camera_from_intrinsics(camera)
+    scan_source(source, None if camera is None else (camera.width_px, camera.height_px),
+                min_frames=tcfg.tracker.acquire.frames, progress=False)
+    if camera is None:
+        camera = load_camera(size_px=source.size_px)
+    if tcfg.orbit is None or not tcfg.weights:
+        from envisat_pose.pipelines.track import stage_types
+
+        stage_types()
+        tcfg = dataclasses.replace(tcfg, orbit=tcfg.orbit or scenario_orbit(tcfg.scenario),
+                                   weights=tcfg.weights or shipped_weights_path())
+    make_out_dir(out_dir, field="out_dir")
+    with staged_folder(out_dir, OUTPUTS) as stage:
+        report = _adapt(cfg, tcfg, source, camera, remap, stage, progress, command)
+        _replace_dirs(out_dir, stage)
+    return report
+
+
+def _replace_dirs(out_dir: str, stage: str) -> None:
+    """Make room for the staged before/ and after/ folders: an earlier run's go to a folder removed at once."""
+    import shutil
+    import tempfile
+
+    from envisat_pose.io import STAGE_PREFIX
+
+    old = [d for d in RUN_DIRS if os.path.isdir(os.path.join(out_dir, d))]
+    if old:
+        trash = tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=out_dir)
+        for d in old:
+            os.replace(os.path.join(out_dir, d), os.path.join(trash, d))
+        shutil.rmtree(trash, ignore_errors=True)
+
+
+def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: str, progress: bool,
+           command: list[str] | None) -> dict:
+    import shutil
+
+    import torch
+
+    from envisat_pose.pipelines.track import track_frames
+    from envisat_pose.pipelines.tracker import Tracker
+
+    t0 = time.perf_counter()
+    timing = {}
+    T = len(source.t_s)
+    cut = int(np.floor(T * (1.0 - cfg.held_out)))
+    base = tcfg.weights
+    # the filter's model as the tracker builds it (its q_sigma raised to the detector's), for the smoother
+    from envisat_pose.perception.detect import load_detector
+    from envisat_pose.pipelines.onboard import chaser_function
+
+    probe = Tracker(camera, load_detector(base), chaser_function(tcfg.orbit), tcfg.tracker,
+                    dataclasses.asdict(tcfg.filter), mu_m3_s2=tcfg.orbit.mu_m3_s2,
+                    gravity_gradient=tcfg.gravity_gradient)
+    q_sigma, dyn = probe.fcfg.q_sigma, dict(probe.dyn)
+    del probe
+    before_dir = os.path.join(stage, "before")
+    track_frames(tcfg, source, camera, remap, before_dir, progress=progress)
+    timing["track_before"] = time.perf_counter() - t0
+    before = track_figures(before_dir, cut)
+    seeds = np.random.SeedSequence(cfg.seed).spawn(cfg.rounds)
+    last_dir, weights, rounds = before_dir, base, []
+    for r in range(cfg.rounds):
+        t1 = time.perf_counter()
+        lab = pseudo_labels(last_dir, camera, tcfg.orbit, q_sigma, dyn, cut, cfg)
+        if len(lab["frames"]) < cfg.min_trusted:
+            raise InputError(
+                f"src {source.path!r}: only {len(lab['frames'])} trusted frames in the first {1 - cfg.held_out:.0%} "
+                f"of the sequence (tracking, half-turn decided, label sigma < {cfg.max_label_sigma_px:g} px; "
+                f"{lab['trusted']} before the sigma test); adapt needs at least {cfg.min_trusted} (min_trusted)")
+        frames = read_frames(source, remap, lab["frames"])
+        images = [frames[int(k)] for k in lab["frames"]]
+        timing[f"labels_{r}"] = time.perf_counter() - t1
+        threads = torch.get_num_threads()
+        torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
+        bar = _bar(progress, cfg.steps, f"fine-tune {r + 1}/{cfg.rounds}", "step")
+        try:
+            t1 = time.perf_counter()
+            model, ft = fine_tune(weights, images, lab["labels"], cfg, seeds[r], bar)
+            timing[f"fine_tune_{r}"] = time.perf_counter() - t1
+        finally:
+            _close(bar)
+        candidate = os.path.join(stage, f"round-{r}.safetensors")
+        info = {"round": r, "labels": int(len(lab["frames"])), "trusted_before_sigma_test": lab["trusted"],
+                "label_sigma_px_median": float(np.median(lab["sigma_px"])), "fine_tune": ft}
+        if not save_adapted(model, base, candidate, {}):
+            torch.set_num_threads(threads)
+            info["diverged"] = True
+            rounds.append(info)
+            return _finish(cfg, tcfg, source, stage, command, before, None, rounds, timing, t0,
+                           "the fine-tune diverged (non-finite weights)")
+        t1 = time.perf_counter()
+        sub = np.unique(np.linspace(0, len(images) - 1, min(len(images), cfg.max_calibration_frames)).round()
+                        .astype(int))
+        bar = _bar(progress, len(sub), "recalibrate", "frame")
+        try:
+            cal = recalibrate(candidate, [images[i] for i in sub], [lab["labels"][i] for i in sub], bar)
+        finally:
+            _close(bar)
+        torch.set_num_threads(threads)
+        info["calibration"] = cal
+        if cal["scale"] is not None:
+            save_adapted(model, base, candidate, {"cov_scale": cal["scale"], "cov_calibration": json.dumps(
+                {"scale": cal["scale"], "corners": cal["corners"], "data": "pseudo-labels of "
+                 f"{content_sha256(source)}", "roi": "labels", "by": "envisat adapt"}, sort_keys=True)})
+        timing[f"recalibrate_{r}"] = time.perf_counter() - t1
+        after_dir = os.path.join(stage, "after" if r == cfg.rounds - 1 else f"round-{r}")
+        t1 = time.perf_counter()
+        track_frames(dataclasses.replace(tcfg, weights=candidate), source, camera, remap, after_dir,
+                     progress=progress)
+        timing[f"track_after_{r}"] = time.perf_counter() - t1
+        info["after"] = track_figures(after_dir, cut)
+        rounds.append(info)
+        if last_dir != before_dir:
+            shutil.rmtree(last_dir, ignore_errors=True)
+        if weights != base:
+            os.remove(weights)
+        last_dir, weights = after_dir, candidate
+    after = rounds[-1]["after"]
+    reason = worse_reason(before, after)
+    if reason is None:
+        os.replace(weights, os.path.join(stage, "detector.safetensors"))
+    else:
+        os.remove(weights)
+    return _finish(cfg, tcfg, source, stage, command, before, after, rounds, timing, t0, reason)
+
+
+def _finish(cfg, tcfg, source, stage, command, before, after, rounds, timing, t0, reason) -> dict:
+    """Write report.json and the model card detector.json into the stage; the report."""
+    from envisat_pose.config import to_dict
+    from envisat_pose.io import atomic_write_text
+
+    for f in os.listdir(stage):
+        if f.startswith("round-"):
+            p = os.path.join(stage, f)
+            if os.path.isdir(p):
+                import shutil
+
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                os.remove(p)
+    timing["total"] = time.perf_counter() - t0
+    adopted = reason is None
+    report = {
+        "adopted": adopted,
+        "reason": reason,
+        "source": {"path": source.path, "kind": source.kind, "frames": len(source.t_s),
+                   "size_px": list(source.size_px), "content_sha256": content_sha256(source)},
+        "base_weights": tcfg.weights,
+        "command": command,
+        "config": to_dict(dataclasses.replace(cfg, track=tcfg)),
+        "held_out_from_frame": int(np.floor(len(source.t_s) * (1.0 - cfg.held_out))),
+        "before": before,
+        "after": after,
+        "rounds": rounds,
+        "timing_s": timing,
+    }
+    text = json.dumps(report, indent=1, sort_keys=True, default=str) + "\n"
+    atomic_write_text(os.path.join(stage, "report.json"), text)
+    if adopted:  # the model card beside the weights
+        card = {k: report[k] for k in ("source", "base_weights", "command", "config", "held_out_from_frame",
+                                       "before", "after", "rounds")}
+        card["weights"] = "detector.safetensors"
+        atomic_write_text(os.path.join(stage, "detector.json"),
+                          json.dumps(card, indent=1, sort_keys=True, default=str) + "\n")
+    return report

@@ -1,0 +1,104 @@
+"""`envisat adapt` (issue 40): too few trusted frames refused in one line with nothing written; a fine-tune forced
+to damage the weights (a huge learning rate over the whole network) is caught on the held-out part and the
+original weights kept; adapt then track --weights RUN_DIR/detector.safetensors end to end. The frames are MuJoCo
+renders of the default scenario (envisat generate --mode sequence), small."""
+
+import json
+import os
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+import numpy as np
+import pytest
+
+from envisat_pose.app.cli import main
+from envisat_pose.pipelines.adapt import AdaptConfig, track_figures, worse_reason
+from envisat_pose.status import LOST, TRACKING
+
+
+def generate(out, n, resolution, seed=7):
+    assert main(["generate", "--mode", "sequence", "--scenario", "default", "--num-images", str(n), "--seed",
+                 str(seed), "--workers", "1", "--resolution", str(resolution), "--out", str(out), "--quiet"]) == 0
+    return str(out)
+
+
+@pytest.fixture(scope="module")
+def short_seq(tmp_path_factory):
+    """30 frames at 128 px: the cold start needs 20 of them, so at most 2 of the first 22 can be labelled."""
+    return generate(tmp_path_factory.mktemp("short") / "gen", 30, 128)
+
+
+@pytest.fixture(scope="module")
+def long_seq(tmp_path_factory):
+    """80 frames at 256 px: tracked from about frame 35 with the shipped weights."""
+    return generate(tmp_path_factory.mktemp("long") / "gen", 80, 256)
+
+
+def test_the_config_is_validated_when_built():
+    with pytest.raises(Exception, match="held_out"):
+        AdaptConfig(held_out=0.9)
+    with pytest.raises(Exception, match="params"):
+        AdaptConfig(params="backbone")
+
+
+def test_worse_reason_reads_share_acquisition_and_nis(tmp_path):
+    status = np.full((1, 40), TRACKING)
+    status[0, :10] = LOST
+    nis = np.full((1, 40), 16.0)
+    np.savez(tmp_path / "est.npz", status=status, nis=nis, nis_dof=np.full((1, 40), 16))
+    f = track_figures(str(tmp_path), 30)
+    assert f == {"frames": 40, "held_out_from": 30, "tracked_share": 1.0, "mean_nis_per_dof": 1.0,
+                 "stays_tracked_from": 10, "tracked_share_all": 0.75}
+    assert worse_reason(f, f) is None
+    assert "held-out frames" in worse_reason(f, {**f, "tracked_share": 0.9})
+    assert "frame 20" in worse_reason(f, {**f, "stays_tracked_from": 20})
+    assert worse_reason(f, {**f, "stays_tracked_from": 12}) is None  # within the margin
+    assert "NIS" in worse_reason(f, {**f, "mean_nis_per_dof": 2.0})
+    assert worse_reason(f, {**f, "mean_nis_per_dof": 1.3}) is None
+
+
+@pytest.mark.slow  # ~20 s: a sequence generated and tracked
+def test_too_few_trusted_frames_is_one_line_and_writes_nothing(short_seq, tmp_path, capsys, detector_weights):
+    out = tmp_path / "run"
+    rc = main(["adapt", "--images", short_seq, "--out", str(out), "--quiet", "--weights", detector_weights])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    assert "--images" in err and "at least 20" in err and "trusted frames" in err, err
+    assert not out.exists() or not [f for f in os.listdir(out) if not f.startswith(".")]
+
+
+@pytest.mark.slow
+def test_a_damaging_fine_tune_keeps_the_original_weights(long_seq, tmp_path, capsys, detector_weights):
+    """A learning rate of 0.05 over the whole network for 8 steps wrecks the detector: the held-out quarter says
+    so, the verb exits 1 with one line, and no adapted weights are written (the recordings are)."""
+    out = tmp_path / "run"
+    rc = main(["adapt", "--images", long_seq, "--out", str(out), "--quiet", "--weights", detector_weights,
+               "--whole-network", "--lr", "0.05", "--steps", "8"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and err.startswith("envisat adapt: kept the original weights:") and len(err.splitlines()) == 1
+    assert not (out / "detector.safetensors").exists() and not (out / "detector.json").exists()
+    report = json.loads((out / "report.json").read_text())
+    assert report["adopted"] is False and report["reason"]
+    assert (out / "before" / "recording.rrd").exists() and (out / "after" / "est.npz").exists()
+
+
+@pytest.mark.slow
+def test_adapt_then_track_with_the_adapted_weights(long_seq, tmp_path, detector_weights):
+    """A gentle fine-tune (a few steps at a small rate) is adopted; its weights carry a recalibrated scale and
+    the base's other metadata, and `envisat track --weights` runs on them."""
+    from envisat_pose.perception.weights import read_metadata
+
+    out = tmp_path / "run"
+    assert main(["adapt", "--images", long_seq, "--out", str(out), "--quiet", "--weights", detector_weights,
+                 "--lr", "1e-6", "--steps", "4"]) == 0
+    card = json.loads((out / "detector.json").read_text())
+    assert len(card["source"]["content_sha256"]) == 64 and card["command"][:2] == ["envisat", "adapt"]
+    assert card["after"]["tracked_share"] >= card["before"]["tracked_share"] - 0.02
+    meta, base = read_metadata(str(out / "detector.safetensors")), read_metadata(detector_weights)
+    assert float(meta["cov_scale"]) > 0 and "envisat adapt" in meta["cov_calibration"]
+    assert meta.get("error_model") == base.get("error_model")
+    track = tmp_path / "track"
+    assert main(["track", "--images", long_seq, "--out", str(track), "--quiet", "--weights",
+                 str(out / "detector.safetensors")]) == 0
+    summary = json.loads((track / "summary.json").read_text())
+    assert summary["tracked"] and summary["weights"].endswith("detector.safetensors")
