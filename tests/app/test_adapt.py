@@ -69,8 +69,8 @@ def test_too_few_trusted_frames_is_one_line_and_writes_nothing(short_seq, tmp_pa
 
 @pytest.mark.slow
 def test_a_damaging_fine_tune_keeps_the_original_weights(long_seq, tmp_path, capsys, detector_weights):
-    """A learning rate of 0.05 over the whole network for 8 steps wrecks the detector: the held-out quarter says
-    so, the verb exits 1 with one line, and no adapted weights are written (the recordings are)."""
+    """A learning rate of 0.05 over the whole network for 8 steps wrecks the detector (non-finite weights, or a
+    held-out quarter tracked worse): the verb exits 1 with one line, and no adapted weights are written (the recordings are)."""
     out = tmp_path / "run"
     rc = main(["adapt", "--images", long_seq, "--out", str(out), "--quiet", "--weights", detector_weights,
                "--whole-network", "--lr", "0.05", "--steps", "8"])
@@ -79,7 +79,9 @@ def test_a_damaging_fine_tune_keeps_the_original_weights(long_seq, tmp_path, cap
     assert not (out / "detector.safetensors").exists() and not (out / "detector.json").exists()
     report = json.loads((out / "report.json").read_text())
     assert report["adopted"] is False and report["reason"]
-    assert (out / "before" / "recording.rrd").exists() and (out / "after" / "est.npz").exists()
+    assert (out / "before" / "recording.rrd").exists()
+    # either the wrecked weights were tracked and lost on the held-out part, or they were not even finite
+    assert (out / "after" / "est.npz").exists() or "diverged" in report["reason"], report["reason"]
 
 
 @pytest.mark.slow

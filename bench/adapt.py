@@ -1,0 +1,164 @@
+"""`envisat adapt` scored (issue 40 item 4): before and after on foreign frames, the project's own renders of the same
+poses as the reference, and what the adapted weights cost on the project's own look.
+
+Per (scenario, seed, resolution):
+- foreign frames (bench/foreign_frames.py: MuJoCo Filament, a real camera's habits) as a user's folder; `adapt`
+  over them (pipelines/adapt.py, the shipped weights, its defaults) gives the before and after tracks;
+- the same poses rendered by the project (`envisat generate --mode sequence`, same scenario, seed, frames, size),
+  tracked with the shipped weights: the reference;
+- each track scored against the truth (truth.npz / the generate labels; the truth only scores): the frame from
+  which the pose stays right (pipelines/scoring.settled_from: < 10 cm and < 1 deg, claimed, to the end), the
+  second-half RMS position and attitude (frames with an estimate), the false-lock frames (claiming an estimate
+  with attitude > 5 deg or position > 2 % of range), the held-out quarter's verdict (adopted or why not);
+- PCK@5 of the adapted weights and of the shipped ones on the own renders (`envisat evaluate`).
+
+Run:  .venv/bin/python bench/adapt.py --scenarios default --seeds 0 1 --resolutions 512 --num-images 300 \\
+          --work /tmp/adapt-bench --out bench/results/adapt.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def scores(t_s: np.ndarray, x_true: np.ndarray, est_path: str, lit: np.ndarray) -> dict:
+    """A track's figures against the truth x_true (T, 12): stays_right_from_frame, rms_position_m and
+    rms_attitude_deg over the second half's frames with an estimate, false_lock_frames, tracked_frames."""
+    from envisat_pose.pipelines.scoring import claims_estimate, correct_frames, frame_errors
+
+    with np.load(est_path) as est:
+        x_hat, P, status = est["x_hat"][0], est["P"][0], est["status"][0]
+    x_true = np.asarray(x_true).reshape(-1, 12)
+    err = frame_errors(x_true, np.nan_to_num(x_hat), np.nan_to_num(P) + np.eye(12) * (~np.isfinite(P[:, 0, 0]))[
+        :, None, None])
+    claimed = claims_estimate(status)
+    ok = claimed & (err["position_m"] < 0.10) & (err["attitude_deg"] < 1.0)
+    ok_lit = ok | ~lit
+    stays = None if not ok_lit[-1] else int(np.flatnonzero(~ok_lit)[-1] + 1 if (~ok_lit).any() else 0)
+    half = np.arange(len(t_s)) >= len(t_s) // 2
+    use = half & claimed
+    rms = (lambda v: float(np.sqrt(np.mean(v[use] ** 2))) if use.any() else None)
+    return {"stays_right_from_frame": stays, "rms_position_m": rms(err["position_m"]),
+            "rms_attitude_deg": rms(err["attitude_deg"]),
+            "false_lock_frames": int((claimed & ~correct_frames(err)).sum()),
+            "tracked_frames": int((status == 1).sum())}
+
+
+def envisat(*args: str) -> None:
+    subprocess.run([os.path.join(os.path.dirname(sys.executable), "envisat"), *args, "--quiet"], check=True,
+                   stdout=subprocess.DEVNULL)
+
+
+def pck5(weights: str, data: str, out_json: str) -> float:
+    envisat("evaluate", "--weights", weights, "--data", data, "--json", out_json)
+    with open(out_json) as fh:
+        return float(json.load(fh)["groups"]["all"]["detector"]["pck_5px"])
+
+
+def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int | None) -> dict:
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import foreign_frames
+
+    from envisat_pose.perception.weights import shipped_weights_path
+    from envisat_pose.pipelines.adapt import AdaptConfig, adapt
+    from envisat_pose.pipelines.frames import open_source
+    from envisat_pose.pipelines.track import TrackConfig
+
+    case = os.path.join(work, f"{scenario}-{seed}-{res}-{n}")
+    foreign, own = os.path.join(case, "foreign"), os.path.join(case, "own")
+    t0 = time.perf_counter()
+    if not os.path.exists(os.path.join(foreign, "truth.npz")):
+        foreign_frames.make_sequence(foreign, scenario, seed, n, res, progress=False)
+    if not os.path.exists(os.path.join(own, "manifest.json")):
+        envisat("generate", "--mode", "sequence", "--scenario", scenario, "--seed", str(seed), "--num-images",
+                str(n), "--resolution", str(res), "--workers", "1", "--out", own)
+    t_make = time.perf_counter() - t0
+    # the reference: the project's own renders of the same poses, the shipped weights
+    envisat("track", "--images", own, "--out", os.path.join(case, "own-track"))
+    with np.load(os.path.join(case, "own-track", "est.npz")) as est:
+        t_own, x_own = est["t_s"], est["x_true"].reshape(-1, 12)[-len(est["t_s"]):]
+    ref = scores(t_own, x_own, os.path.join(case, "own-track", "est.npz"), np.ones(len(t_own), bool))
+    # adapt on the foreign frames (the truth is not handed to it)
+    src = open_source(os.path.join(foreign, "frames"), timestamps=os.path.join(foreign, "timestamps.csv"))
+    fields = {} if steps is None else {"steps": steps}
+    cfg = AdaptConfig(track=TrackConfig.from_scenario(scenario), **fields)
+    t1 = time.perf_counter()
+    run = os.path.join(case, "adapt")
+    try:
+        report = adapt(cfg, src, run, camera=os.path.join(foreign, "camera.toml"), progress=False)
+        refused = None
+    except Exception as err:  # too few trusted frames: recorded, the case scored before only
+        report, refused = None, f"{type(err).__name__}: {err}"
+    t_adapt = time.perf_counter() - t1
+    with np.load(os.path.join(foreign, "truth.npz")) as tr:
+        t_f, x_f, lit = tr["t_s"], tr["x"], ~tr["eclipse"].astype(bool)
+    out = {"scenario": scenario, "seed": seed, "resolution_px": res, "frames": n, "own": ref,
+           "make_s": t_make, "adapt_s": t_adapt, "refused": refused}
+    if report is not None:
+        out["before"] = scores(t_f, x_f, os.path.join(run, "before", "est.npz"), lit)
+        out["after"] = scores(t_f, x_f, os.path.join(run, "after", "est.npz"), lit)
+        out["adopted"], out["reason"] = report["adopted"], report["reason"]
+        out["held_out"] = {"before": report["before"], "after": report["after"]}
+        out["labels"] = report["rounds"][-1]["labels"]
+        out["label_sigma_px_median"] = report["rounds"][-1]["label_sigma_px_median"]
+        out["timing_s"] = report["timing_s"]
+        if report["adopted"]:
+            out["pck5_own"] = {"shipped": pck5(shipped_weights_path(), own, os.path.join(case, "eval-shipped.json")),
+                               "adapted": pck5(os.path.join(run, "detector.safetensors"), own,
+                                               os.path.join(case, "eval-adapted.json"))}
+    return out
+
+
+def table(rows: list[dict]) -> str:
+    def f(v, fmt):
+        return "-" if v is None else format(v, fmt)
+
+    lines = ["| scenario | seed | px | run | stays right from | 2nd-half RMS pos | att | false locks |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        for name in ("own", "before", "after"):
+            s = r.get(name)
+            if s is None:
+                continue
+            lines.append(f"| {r['scenario']} | {r['seed']} | {r['resolution_px']} | {name} | "
+                         f"{f(s['stays_right_from_frame'], 'd')} | {f(s['rms_position_m'] and 100 * s['rms_position_m'], '.1f')} cm | "
+                         f"{f(s['rms_attitude_deg'], '.2f')} deg | {s['false_lock_frames']} |")
+        lines.append(f"| | | | adopted: {r.get('adopted')} | {r.get('reason') or r.get('refused') or ''} | "
+                     f"adapt {r['adapt_s']:.0f} s | | |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scenarios", nargs="+", default=["default"])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
+    ap.add_argument("--resolutions", nargs="+", type=int, default=[512])
+    ap.add_argument("--num-images", type=int, default=300)
+    ap.add_argument("--steps", type=int, help="fine-tune steps (default: AdaptConfig's)")
+    ap.add_argument("--work", default="/tmp/adapt-bench")
+    ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "adapt.json"))
+    args = ap.parse_args(argv)
+    os.environ.setdefault("MUJOCO_GL", "osmesa")
+    rows = []
+    for scenario in args.scenarios:
+        for res in args.resolutions:
+            for seed in args.seeds:
+                rows.append(one_case(scenario, seed, res, args.num_images, args.work, args.steps))
+                with open(args.out, "w") as fh:  # after each case: a killed run keeps what it measured
+                    json.dump({"cases": rows, "cores": os.cpu_count(), "argv": sys.argv[1:]}, fh, indent=1)
+                print(table(rows[-1:]), flush=True)
+    print(table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
