@@ -411,8 +411,15 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
         return time0 + clock() - t_start
 
     def start_run() -> None:
-        """The run folder and its config.json, once the first step is trained (nothing half-made before)."""
+        """The run folder and its config.json, once the first step is trained (nothing half-made before); a
+        resumed run's record takes its new steps or budget and keeps each resuming command under 'resumes'."""
         if started["run"]:
+            if saved is not None and not started.get("recorded") and rank == 0:
+                started["recorded"] = True
+                resumes = saved.get("resumes", []) + [{"command": (provenance or {}).get("command", ""),
+                                                       "git": (provenance or {}).get("git"), "step": state["step"]}]
+                atomic_write_text(os.path.join(run_dir, "config.json"), json.dumps(
+                    {**saved, "train": cfg.to_dict(), "resumes": resumes}, indent=1, sort_keys=True) + "\n")
             return
         started["run"] = True
         if rank == 0:

@@ -91,8 +91,11 @@ def test_resume_refuses_another_model_and_other_data_spelling_out_the_difference
                  "--out", str(other), "--quiet"]) == 0
     with pytest.raises(InputError, match=r"trained on ds \(8 images.*not on other \(2 images"):
         train_detector(small(4), [str(other)], run, resume=True, progress=False)
-    end = train_detector(small(4), [tiny_dataset], run, resume=True, progress=False)  # the same data: goes on
-    assert end["step"] == 4 and end["steps_run"] == 2
+    end = train_detector(small(4), [tiny_dataset], run, resume=True, progress=False, command="envisat again")
+    assert end["step"] == 4 and end["steps_run"] == 2  # the same data: goes on
+    record = json.load(open(os.path.join(run, "config.json")))
+    assert record["train"]["steps"] == 4 and record["resumes"][0]["command"] == "envisat again"
+    assert record["resumes"][0]["step"] == 2
 
 
 @pytest.mark.parametrize("under", [False, True])
