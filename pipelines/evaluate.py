@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 METHODS = ("detector", "detector_no_lines", "harris", "shi_tomasi")
 
@@ -129,7 +130,11 @@ def summarize(arrays: dict, groups: list[list[str]]) -> dict:
 
 
 def _fmt(x, spec: str) -> str:
-    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, spec)
+    """x in its column's format; an absent value as '-' padded to the column's width (the spec's leading digits)."""
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        width = re.match(r"[+-]?(\d*)", spec).group(1)
+        return "-".rjust(int(width) if width else 1)
+    return format(x, spec)
 
 
 def table(summary: dict) -> str:
