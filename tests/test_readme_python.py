@@ -53,3 +53,18 @@ def test_the_readme_training_example_runs_as_written(tmp_path, monkeypatch, caps
     assert out[0] == "4 steps"
     assert out[-1].startswith("(2, 8, 2) [")
     assert {"config.json", "checkpoint.safetensors", "state.json", "det.npz"} <= set(os.listdir("runs/det"))
+
+
+def test_the_readme_adapt_example_names_what_the_library_has():
+    """The adapting example (issue 40: minutes of work, run for real by tests/app/test_adapt.py's slow tests)
+    compiles, and every name it imports and every argument it passes exist."""
+    import inspect
+
+    from envisat_pose.pipelines.adapt import adapt
+    from envisat_pose.pipelines.track import track_frames
+
+    code = python_examples()[2]
+    compile(code, str(README), "exec")
+    assert "from envisat_pose.pipelines.adapt import AdaptConfig, adapt" in code
+    assert {"camera"} <= set(inspect.signature(adapt).parameters)
+    assert {"camera", "out_dir"} <= set(inspect.signature(track_frames).parameters)
