@@ -1,5 +1,5 @@
-"""`envisat adapt` (issue 40): too few trusted frames refused in one line with nothing written; a fine-tune forced
-to damage the weights (a huge learning rate over the whole network) is caught on the held-out part and the
+"""`envisat adapt` (issue 40): too few trusted frames refused in one line with nothing written; a fine-tune that
+wrecks the detector is caught on the held-out part and the
 original weights kept; adapt then track --weights RUN_DIR/detector.safetensors end to end. The frames are MuJoCo
 renders of the default scenario (envisat generate --mode sequence), small."""
 
@@ -10,6 +10,7 @@ os.environ.setdefault("MUJOCO_GL", "osmesa")
 
 import numpy as np
 import pytest
+import torch
 
 from envisat_pose.app.cli import main
 from envisat_pose.pipelines.adapt import AdaptConfig, track_figures, worse_reason
@@ -68,20 +69,32 @@ def test_too_few_trusted_frames_is_one_line_and_writes_nothing(short_seq, tmp_pa
 
 
 @pytest.mark.slow
-def test_a_damaging_fine_tune_keeps_the_original_weights(long_seq, tmp_path, capsys, detector_weights):
-    """A learning rate of 0.05 over the whole network for 8 steps wrecks the detector (non-finite weights, or a
-    held-out quarter tracked worse): the verb exits 1 with one line, and no adapted weights are written (the recordings are)."""
+def test_a_damaging_fine_tune_keeps_the_original_weights(long_seq, tmp_path, capsys, detector_weights,
+                                                        monkeypatch):
+    """A fine-tune that wrecks the detector (here made certain: after its steps the junction heatmap's bias is
+    pushed to -30, so the adapted detector finds no corner and the held-out quarter is never tracked) is caught
+    on the held-out part: the verb exits 1 with one line, and no adapted weights are written (the recordings
+    are)."""
+    import envisat_pose.pipelines.adapt as adapt_module
+
+    real = adapt_module.fine_tune
+
+    def wrecking(*args, **kwargs):
+        model, figures = real(*args, **kwargs)
+        with torch.no_grad():
+            model.jhead[-1].bias[: model.cfg.n_jtypes].fill_(-30.0)
+        return model, figures
+
+    monkeypatch.setattr(adapt_module, "fine_tune", wrecking)
     out = tmp_path / "run"
     rc = main(["adapt", "--images", long_seq, "--out", str(out), "--quiet", "--weights", detector_weights,
-               "--whole-network", "--lr", "0.05", "--steps", "8"])
+               "--steps", "2"])
     err = capsys.readouterr().err.strip()
     assert rc == 1 and err.startswith("envisat adapt: kept the original weights:") and len(err.splitlines()) == 1
     assert not (out / "detector.safetensors").exists() and not (out / "detector.json").exists()
     report = json.loads((out / "report.json").read_text())
-    assert report["adopted"] is False and report["reason"]
-    assert (out / "before" / "recording.rrd").exists()
-    # either the wrecked weights were tracked and lost on the held-out part, or they were not even finite
-    assert (out / "after" / "est.npz").exists() or "diverged" in report["reason"], report["reason"]
+    assert report["adopted"] is False and "held-out" in report["reason"], report["reason"]
+    assert (out / "before" / "recording.rrd").exists() and (out / "after" / "est.npz").exists()
 
 
 @pytest.mark.slow
