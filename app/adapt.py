@@ -7,7 +7,7 @@ import argparse
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from envisat_pose.app.common import add_common
+    from envisat_pose.app.common import add_common, add_frame_inputs
 
     p = sub.add_parser(
         "adapt",
@@ -18,15 +18,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "are kept and the verb exits 1 saying why. Writes detector.safetensors and detector.json (only when "
         "adopted), report.json, before/ and after/ (the two track runs) into --out.",
     )
-    p.add_argument("--images", required=True, metavar="SRC", help="generate folder, image folder or video file")
-    p.add_argument("--rate-hz", type=float, help="frame rate of an image folder or a video: frame k at k / R s")
-    p.add_argument("--timestamps", metavar="FILE.csv", help="frame times of an image folder (columns file,t_s)")
-    p.add_argument("--bit-depth", type=int, metavar="BITS", help="bits of the data in 16-bit image files: 10, 12, "
-                   "14 or 16 (default: the smallest that holds the sequence's maximum)")
-    p.add_argument("--camera", metavar="FILE.toml", help="intrinsics fx, fy, cx, cy (px), width, height, optional "
-                   "distortion (default: the MJCF's chaser_cam at the frames' size)")
-    p.add_argument("--scenario", help="where the chaser's orbit and the target's dynamics come from (default: a "
-                   "generate folder's own, else 'default')")
+    add_frame_inputs(p)
     p.add_argument("--rounds", type=int, default=1, help="track-label-fine-tune-track rounds (default 1)")
     p.add_argument("--steps", type=int, help="fine-tune steps per round (default 60)")
     p.add_argument("--lr", type=float, help="fine-tune peak learning rate (default 5e-4)")

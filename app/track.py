@@ -7,7 +7,7 @@ import argparse
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from envisat_pose.app.common import add_common, add_recording_arguments
+    from envisat_pose.app.common import add_common, add_frame_inputs, add_recording_arguments
     from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument
 
     p = sub.add_parser(
@@ -22,15 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "det.npz, track.config.toml, summary.json, recording.rrd (and errors.png when the input carries the "
         "truth) into --out.",
     )
-    p.add_argument("--images", required=True, metavar="SRC", help="generate folder, image folder or video file")
-    p.add_argument("--rate-hz", type=float, help="frame rate of an image folder or a video: frame k at k / R s")
-    p.add_argument("--timestamps", metavar="FILE.csv", help="frame times of an image folder (columns file,t_s)")
-    p.add_argument("--bit-depth", type=int, metavar="BITS", help="bits of the data in 16-bit image files: 10, 12, "
-                   "14 or 16 (default: the smallest that holds the sequence's maximum, reported)")
-    p.add_argument("--camera", metavar="FILE.toml", help="intrinsics fx, fy, cx, cy (px), width, height, optional "
-                   "distortion (default: the MJCF's chaser_cam at the frames' size)")
-    p.add_argument("--scenario", help="where the chaser's orbit and the target's dynamics come from (default: a "
-                   "generate folder's own, else 'default')")
+    add_frame_inputs(p)
     add_common(p, out="output folder (created, parents too; files are replaced)", out_metavar="RUN_DIR",
                config="track config (orbit, filter, tracker; top-level keys)", weights=True, flag_names=FLAGS)
     add_skip_damaged_argument(p)
