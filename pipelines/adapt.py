@@ -324,29 +324,11 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
     (per round: labels, fine-tune, calibration), source, timing_s}. InputError (one line) when the first part
     holds fewer than cfg.min_trusted labelled frames; nothing is written then."""
     from envisat_pose.io import staged_folder
-    from envisat_pose.perception.weights import shipped_weights_path
-    from envisat_pose.pipelines.build import load_camera, scenario_orbit
-    from envisat_pose.pipelines.camera_file import camera_from_intrinsics
-    from envisat_pose.pipelines.frames import open_source, scan_source
+    from envisat_pose.pipelines.track import prepare_frames
     from envisat_pose.runner import check_out_dir, make_out_dir
 
     check_out_dir(out_dir, field="out_dir")
-    tcfg = cfg.track
-    if isinstance(source, str):
-        source = open_source(source, tcfg.rate_hz)
-    remap = None
-    if isinstance(camera, str):
-        camera, remap = camera_from_intrinsics(camera)
-    scan_source(source, None if camera is None else (camera.width_px, camera.height_px),
-                min_frames=tcfg.tracker.acquire.frames, progress=False)
-    if camera is None:
-        camera = load_camera(size_px=source.size_px)
-    if tcfg.orbit is None or not tcfg.weights:
-        from envisat_pose.pipelines.track import stage_types
-
-        stage_types()
-        tcfg = dataclasses.replace(tcfg, orbit=tcfg.orbit or scenario_orbit(tcfg.scenario),
-                                   weights=tcfg.weights or shipped_weights_path())
+    tcfg, source, camera, remap, _ = prepare_frames(cfg.track, source, camera)
     make_out_dir(out_dir, field="out_dir")
     with staged_folder(out_dir, OUTPUTS) as stage:
         report = _adapt(cfg, tcfg, source, camera, remap, stage, progress, command)

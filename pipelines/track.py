@@ -90,6 +90,32 @@ def output_paths(out_dir: str) -> dict[str, str]:
     return {k: os.path.join(out_dir, v) for k, v in OUTPUTS.items()}
 
 
+def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCamera | str | None = None,
+                   remap=None, progress: bool = False) -> tuple:
+    """A user's frames made ready for a job over them (track_frames, adapt): the source opened (a path at
+    cfg.rate_hz), the camera read (a TOML file: its remap too) or the MJCF's at the frames' size, every frame
+    scanned once (frames.scan_source: one size, decodable, at least the cold start's frames), cfg's orbit and
+    weights filled from its scenario and the shipped ones. Returns (cfg, source, camera, remap, pixels)."""
+    import dataclasses
+
+    from envisat_pose.perception.weights import shipped_weights_path
+    from envisat_pose.pipelines.build import load_camera, scenario_orbit
+
+    if isinstance(source, str):
+        source = open_source(source, cfg.rate_hz)
+    if isinstance(camera, str):
+        camera, remap = camera_from_intrinsics(camera)
+    pixels = scan_source(source, None if camera is None else (camera.width_px, camera.height_px),
+                         min_frames=cfg.tracker.acquire.frames, progress=progress)
+    if camera is None:
+        camera = load_camera(size_px=source.size_px)
+    if cfg.orbit is None or not cfg.weights:
+        stage_types()
+        cfg = dataclasses.replace(cfg, orbit=cfg.orbit or scenario_orbit(cfg.scenario),
+                                  weights=cfg.weights or shipped_weights_path())
+    return cfg, source, camera, remap, pixels
+
+
 def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCamera | str | None = None, remap=None,
                  out_dir: str = "track-out", sink: str | None = None, progress: bool = True) -> dict:
     """Run the Tracker over the source's frames (a FrameSource, or a path open_source opens at cfg.rate_hz);
@@ -102,25 +128,10 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     and moved into out_dir when complete (io.staged_folder). Returns the summary (its source's `pixels`: what
     the scan found of the pixels)."""
     from envisat_pose.io import staged_folder
-    from envisat_pose.perception.weights import shipped_weights_path
-    from envisat_pose.pipelines.build import load_camera, scenario_orbit
     from envisat_pose.runner import check_out_dir, make_out_dir
 
     check_out_dir(out_dir, field="out_dir")
-    if isinstance(source, str):
-        source = open_source(source, cfg.rate_hz)
-    if isinstance(camera, str):
-        camera, remap = camera_from_intrinsics(camera)
-    pixels = scan_source(source, None if camera is None else (camera.width_px, camera.height_px),
-                         min_frames=cfg.tracker.acquire.frames, progress=progress)
-    if camera is None:
-        camera = load_camera(size_px=source.size_px)
-    if cfg.orbit is None or not cfg.weights:
-        import dataclasses
-
-        stage_types()
-        cfg = dataclasses.replace(cfg, orbit=cfg.orbit or scenario_orbit(cfg.scenario),
-                                  weights=cfg.weights or shipped_weights_path())
+    cfg, source, camera, remap, pixels = prepare_frames(cfg, source, camera, remap, progress)
     make_out_dir(out_dir, field="out_dir")
     with staged_folder(out_dir, OUTPUTS.values()) as stage:
         return _track(cfg, source, camera, remap, stage, sink, progress, pixels)
