@@ -476,11 +476,13 @@ def test_a_missing_layer_folder_is_walked_without_error(tmp_path):
 
 def test_each_layer_is_a_folder_at_the_root_installed_inside_envisat_pose():
     """The repository's own picture: envisat_pose/ holds the core alone, every other layer is a folder beside
-    it, and the package's build maps each folder into envisat_pose."""
+    it (inside envisat_pose/ only as a link to it, for editors: tests/test_editor_layout.py), and the package's
+    build maps each folder into envisat_pose."""
     import tomllib
 
     core = os.path.join(ROOT, "envisat_pose")
-    assert not [d for d in os.listdir(core) if os.path.isfile(os.path.join(core, d, "__init__.py"))]
+    assert not [d for d in os.listdir(core) if os.path.isfile(os.path.join(core, d, "__init__.py"))
+                and not os.path.islink(os.path.join(core, d))]
     with open(os.path.join(ROOT, "pyproject.toml"), "rb") as fh:
         package_dir = tomllib.load(fh)["tool"]["setuptools"]["package-dir"]
     for folder, package in LAYOUT.items():
