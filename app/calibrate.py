@@ -24,16 +24,6 @@ from __future__ import annotations
 import argparse
 
 from envisat_pose.config import InputError
-
-# label matching and the sequences' inputs are the pipeline's (tests import them from here too)
-from envisat_pose.pipelines.calibrate import (  # noqa: F401
-    collect_errors,
-    collect_frames,
-    flat_errors,
-    frame_interval_s,
-    is_sequence,
-    sequence_input,
-)
 from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 
 

@@ -9,10 +9,6 @@ import argparse
 from envisat_pose.config import InputError
 from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 
-# the frames as the camera saw them and the ROI files: the pipeline's (calibrate, evaluate and the tests import
-# them from here too)
-from envisat_pose.pipelines.detect import camera_samples, read_roi  # noqa: F401
-
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(

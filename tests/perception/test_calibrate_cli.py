@@ -7,13 +7,13 @@ import json
 import numpy as np
 import torch
 
-from envisat_pose.app.calibrate import collect_errors
 from envisat_pose.app.cli import main
-from envisat_pose.app.detect import camera_samples
 from envisat_pose.perception.data import shard_paths
 from envisat_pose.perception.detect import FrameDetection, load_detector
 from envisat_pose.perception.model import CornerNet, ModelConfig
 from envisat_pose.perception.weights import read_metadata, save_weights, with_metadata
+from envisat_pose.pipelines.calibrate import collect_errors
+from envisat_pose.pipelines.detect import camera_samples
 
 
 class NoisyLabelDetector:
