@@ -33,7 +33,7 @@ from scipy.stats import chi2
 
 from envisat_pose.attitude import align_mrp, mrp_error_angle_rad, mrp_kinematics_matrix
 from envisat_pose.gates import chi2_gate
-from envisat_pose.state import BLOCK_SLICES, BLOCK_UNITS, BLOCKS, MRP, N_STATE, POS, RATE, VEL, block_sums  # noqa: F401
+from envisat_pose.state import BLOCK_SLICES, BLOCK_UNITS, BLOCKS, MRP, N_STATE, POS, RATE, VEL, block_sums
 
 P_3SIGMA = 0.9973002039367398  # P(|N(0,1)| <= 3)
 MAHALANOBIS_3SIGMA_3D = chi2_gate(P_3SIGMA, 3)  # 14.156 for a 3-D block

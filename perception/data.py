@@ -25,7 +25,7 @@ import numpy as np
 from envisat_pose.config import InputError
 from envisat_pose.geometry import EDGES
 from envisat_pose.perception.heatmaps import CORNER_JTYPE, encode_junctions
-from envisat_pose.shard_reader import checked_shards  # noqa: F401  the one check of a dataset's shards (core)
+from envisat_pose.shard_reader import checked_shards  # the one check of a dataset's shards (core)
 
 N_SEGMENTS = 32
 IMAGE_MEAN, IMAGE_STD = 0.5, 0.25
