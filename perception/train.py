@@ -8,7 +8,7 @@ Run directory (one per run, as L-CNN's):
     checkpoint.safetensors   the model (perception/weights.py: safetensors, the ModelConfig in its metadata)
     optimizer.pt        AdamW state, tensors only (torch.load(weights_only=True) reads it)
     pre_cooldown.safetensors, pre_cooldown_optimizer.pt   (schedule 'constant_cooldown') the same at the
-                        cooldown's first step: the next leg's start (`--init`)
+                        cooldown's first step (or at a budget's stop that came before it): the next leg's start
     ema.safetensors     (ema_decay > 0) the moving average of the weights
     state.json          step, epoch, batch within the epoch, workers, time_s: where --resume goes on
 Determinism: the model is initialized from a torch.Generator seeded by cfg.seed (no global seeding), each
@@ -528,6 +528,8 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
                                 f"came {now_s - time0:.1f} s into it; a step, the checkpoint and the shutdown need "
                                 f"~{reserve:.1f} s more): give a longer budget")
                         stop = "time_budget"
+                        if cfg.schedule == "constant_cooldown" and "pre_cooldown_step" not in state:
+                            save_pre_cooldown()  # stopped before its cooldown: these weights are the next start
                         break
                 if "pre_cooldown_step" not in state and in_cooldown(cfg, state["step"], now_s, budget_end_s):
                     start_run()

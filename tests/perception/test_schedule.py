@@ -49,6 +49,21 @@ def test_the_weights_at_the_cooldowns_start_are_kept_for_the_next_leg(tiny_datas
     assert os.path.exists(os.path.join(leg2, "checkpoint.safetensors"))
 
 
+def test_a_budget_that_ends_before_the_cooldown_still_leaves_the_next_legs_start(tiny_dataset, tmp_path):
+    """A budgeted run stops once its clock plus a reserve (at least 1 s) reaches the budget, so with the cooldown
+    in the last 2 % of 8 s (after 7.84 s) no step can be in it: its last weights, never cooled, are the next
+    leg's start (as on a slow machine, where the last steps come late)."""
+    torch.set_num_threads(1)
+    run = str(tmp_path / "leg")
+    cfg = small(10 ** 6, time_budget_s=8.0, schedule="constant_cooldown", cooldown_frac=0.02)
+    train(cfg, tiny_dataset, run, progress=False)
+    state = json.load(open(os.path.join(run, "state.json")))
+    pre, meta = read_weights(os.path.join(run, "pre_cooldown.safetensors"))
+    end, _ = read_weights(os.path.join(run, "checkpoint.safetensors"))
+    assert state["pre_cooldown_step"] == state["step"] == int(meta["step"]) > 0
+    assert all(torch.equal(pre[k], end[k]) for k in pre)
+
+
 def test_the_moving_average_follows_its_formula(tiny_dataset, tmp_path):
     """Warm-up rates do not depend on the run's length, so a 1-step run gives the weights after step 1: the
     average after step 2 is d W1 + (1 - d) W2 (the first update copies)."""
