@@ -10,7 +10,8 @@ Per run and frame k (t_k = k / rate_hz):
    `warm_start`, where it is handed the truth plus a draw from the filter's P0 (filter studies only).
 The truth only scores (pipelines/scoring.py). Run r draws its camera noise (and a warm start) from
 SeedSequence(seed, spawn_key=(r,)) and frame k's noise from spawn_key (r, 1, k); runs go through the core's runner.
-Run 0 streams its recording frame by frame to the sink it is handed (analysis.recording.TrackRecorder).
+Run 0 streams its recording frame by frame to the sink it is handed (analysis.recording.TrackRecorder). The frames
+go through the per-frame loop `envisat track` shares (pipelines/frame_loop.py: tracker, rows, recording, stage times).
 
 Memory does not grow with the run's length: a run writes its per-frame arrays to runs/run-NNNN/<name>.npy in
 chunks of CHUNK_FRAMES frames as it goes (RunRows, which also reduces the stage times and frame counts per chunk)
@@ -33,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from envisat_pose.config import to_dict
+from envisat_pose.pipelines.frame_loop import FrameInput, run_frames
 from envisat_pose.pipelines.onboard import chaser_function, onboard_physics, orbit_config
 from envisat_pose.pipelines.rows import (  # noqa: F401
     CHUNK_FRAMES,
@@ -40,16 +42,14 @@ from envisat_pose.pipelines.rows import (  # noqa: F401
     EST_KEYS,
     STAGES,
     RunRows,
-    est_row,
     record_arrays,
-    store_estimate,
 )
 from envisat_pose.pipelines.run_config import RunConfig, config_from_json, finish_config, stage_types, sun_and_shadow  # noqa: F401
 from envisat_pose.state import MRP, POS
 
 # The config (pipelines/run_config.py), the on-board physics and orbit (pipelines/onboard.py) and the per-frame
 # row store (pipelines/rows.py) have their own modules; the names above stay importable from here for
-# pipelines/track.py, the tests and the benches that use them as closed_loop.<name>.
+# pipelines/outputs.py, the tests and the benches that use them as closed_loop.<name>.
 truth_dynamics = onboard_physics  # the old name (bench/tracking.py imports it): remove once it imports onboard
 
 
@@ -127,20 +127,16 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(orbit), cfg.tracker,
                       dataclasses.asdict(cfg.filter), mu_m3_s2=mu, gravity_gradient=gg, prior=prior)  # exact
     look_seed = sample_seed(cfg.seed, 0, 0)  # one look for the whole sequence: the same target in every run
-    T = len(t_s)
-    rows = RunRows(run_dir, T)
+    rows = RunRows(run_dir, len(t_s))
     recorder = None
     if sink:
         from envisat_pose.analysis.recording import TrackRecorder
 
         recorder = TrackRecorder(sink, camera, with_truth=True, title=f"envisat run {cfg.scenario}, run {run}")
-    bar = None
-    if progress:
-        from tqdm import tqdm
 
-        bar = tqdm(total=T, unit="frame", desc=f"closed loop (run {run})", mininterval=0.5)
-    try:
-        for k in range(T):
+    def frames():
+        """Frame k rendered from the truth and corrupted by the space camera (None in the Earth's shadow)."""
+        for k in range(len(t_s)):
             x = x_truth[k]
             image = None
             t_render = t_camera = 0.0
@@ -156,25 +152,14 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
                 params = draw_corruption_params(gcfg, rendered, x, renderer.K[0, 0], renderer.target_boxes, frame_rng)
                 image = apply_corruption(rendered.gray_u8, params)
                 t_camera = time.perf_counter() - t0
-            est = tracker.step(float(t_s[k]), image)
-            i, out = rows.row(k), rows.buf
-            store_estimate(out, i, est)
-            out["skipped"][i] = image is None
-            t0 = time.perf_counter()
-            if recorder is not None:
-                recorder.log_frame(k, est_row(out, i, float(t_s[k])), image, cfg.jpeg_quality, x_true=x,
-                                   corners_true_px=truth_uv[k], in_frame=truth_seen[k])
-            out["timing_s"][i] = (sim_s_per_frame, t_render, t_camera, est.timing_s.get("detection", 0.0),
-                                  est.timing_s.get("filtering", 0.0), time.perf_counter() - t0)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix_str(est.status, refresh=False)
-    finally:
-        if bar is not None:
-            bar.close()
-        if recorder is not None:
-            recorder.close()
-    return rows.close()
+            if recorder is None:
+                yield FrameInput(k, float(t_s[k]), image, (sim_s_per_frame, t_render, t_camera))
+            else:  # the truth only for the recording
+                yield FrameInput(k, float(t_s[k]), image, (sim_s_per_frame, t_render, t_camera), x_true=x,
+                                 corners_true_px=truth_uv[k], in_frame=truth_seen[k])
+
+    return run_frames(tracker, frames(), rows, recorder, cfg.jpeg_quality,
+                      f"closed loop (run {run})" if progress else None)
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -149,18 +149,11 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     from envisat_pose.config import to_dict, to_toml
     from envisat_pose.io import atomic_write_text
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.pipelines.closed_loop import (
-        DET_KEYS,
-        RunRows,
-        chaser_function,
-        est_row,
-        lost_runs,
-        run_rows,
-        score_run_files,
-        store_estimate,
-        write_run_files,
-    )
+    from envisat_pose.pipelines.closed_loop import lost_runs, run_rows, score_run_files, write_run_files
+    from envisat_pose.pipelines.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
+    from envisat_pose.pipelines.onboard import chaser_function
     from envisat_pose.pipelines.outputs import first_tracking_s, status_counts
+    from envisat_pose.pipelines.rows import DET_KEYS, STAGES, RunRows
     from envisat_pose.pipelines.tracker import Tracker
     from envisat_pose.runner import real_time_factor
 
@@ -170,40 +163,26 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(cfg.orbit), cfg.tracker,
                       asdict(cfg.filter), mu_m3_s2=cfg.orbit.mu_m3_s2, gravity_gradient=cfg.gravity_gradient)
     T = len(source.t_s)
-    # the per-frame arrays go to files chunk by chunk (closed_loop.RunRows), est.npz/det.npz are streamed from them
+    # the per-frame arrays go to files chunk by chunk (rows.RunRows), est.npz/det.npz are streamed from them
     runs_dir = os.path.join(out_dir, "runs")
     run_dir = os.path.abspath(os.path.join(runs_dir, "run-0000"))
     rows = RunRows(run_dir, T)
     truth = source.truth
     recorder = TrackRecorder(sink, camera, with_truth=truth is not None, title=f"envisat track {source.path}")
-    bar = None
-    if progress:
-        from tqdm import tqdm
 
-        bar = tqdm(total=T, unit="frame", desc="tracking", mininterval=0.5)
-    wall0 = time.perf_counter()
-    try:
+    def frames():
+        """The source's frames (remapped to the ideal pinhole where the camera has one), with their truth."""
         for k, image in source.frames():
             if remap is not None:
                 image = cv2.remap(image, remap[0], remap[1], cv2.INTER_LINEAR)
-            est = tracker.step(float(source.t_s[k]), image)
-            i, out = rows.row(k), rows.buf
-            store_estimate(out, i, est)
-            t0 = time.perf_counter()
-            recorder.log_frame(k, est_row(out, i, float(source.t_s[k])), image, cfg.jpeg_quality,
-                               x_true=None if truth is None else truth["x"][k],
-                               corners_true_px=None if truth is None else truth["corners_px"][k],
-                               in_frame=None if truth is None else truth["in_frame"][k])
-            out["timing_s"][i, 3:] = (est.timing_s.get("detection", 0.0), est.timing_s.get("filtering", 0.0),
-                                      time.perf_counter() - t0)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix_str(est.status, refresh=False)
-    finally:
-        if bar is not None:
-            bar.close()
-        recorder.close()
-    sums = rows.close()
+            if truth is None:
+                yield FrameInput(k, float(source.t_s[k]), image)
+            else:
+                yield FrameInput(k, float(source.t_s[k]), image, x_true=truth["x"][k],
+                                 corners_true_px=truth["corners_px"][k], in_frame=truth["in_frame"][k])
+
+    wall0 = time.perf_counter()
+    sums = run_frames(tracker, frames(), rows, recorder, cfg.jpeg_quality, "tracking" if progress else None)
     wall_s = time.perf_counter() - wall0
     x_true = truth["x"] if truth is not None else np.full((T, 12), np.nan)
     config_json = json.dumps({"track": to_dict(cfg), "source": {"kind": source.kind, "path": source.path,
@@ -231,8 +210,8 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
         "first_tracking_s": first_tracking_s(source.t_s, status),
         "final_status": STATUSES[int(status[-1])],
         "mean_nis_per_dof": float(np.sum(col["nis"]) / dof) if dof else None,
-        "timing_ms_per_frame": {"detection": float(1000 * timing[3]), "filtering": float(1000 * timing[4]),
-                                "recording": float(1000 * timing[5])},
+        # the stages timed here: the frames are read, not made (no simulation, rendering or camera)
+        "timing_ms_per_frame": {s: float(1000 * timing[i]) for i, s in enumerate(STAGES) if s not in BEFORE_TRACKER},
         "real_time_factor": real_time_factor(source.t_s, wall_s),
         "wall_s": wall_s,
         "status_legend": legend(),
