@@ -91,7 +91,7 @@ def bytes_per_image(cfg) -> dict:
     import tempfile as _t
 
     from envisat_pose.datagen.factory import run_generate
-    from envisat_pose.datagen.shards import read_shard
+    from envisat_pose.shard_reader import read_shard
 
     out = _t.mkdtemp(prefix="datagen_bytes_")
     try:

@@ -106,7 +106,8 @@ def measure_look(name: str, extra: dict, images: int, seed: int, tmp: str) -> di
     from envisat_pose.config import from_dict
     from envisat_pose.datagen.corrupt import apply_corruption
     from envisat_pose.datagen.factory import GenerateConfig, run_generate
-    from envisat_pose.datagen.shards import decode_png, read_shard
+    from envisat_pose.datagen.shards import decode_png
+    from envisat_pose.shard_reader import read_shard
 
     cfg = from_dict(GenerateConfig, {"num_images": images, "shard_size": images, "resolution_px": 1024,
                                      "seed": seed, "storage": "clean", **extra})

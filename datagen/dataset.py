@@ -9,10 +9,10 @@ import os
 import numpy as np
 
 from envisat_pose.config import InputError
-from envisat_pose.datagen.shards import check_shard, decode_png, read_manifest, read_shard, shard_name
+from envisat_pose.datagen.shards import check_shard, decode_png, read_manifest, shard_name
 from envisat_pose.geometry import CORNER_NAMES, EDGES
 from envisat_pose.io import atomic_path
-from envisat_pose.shard_reader import checked_shards
+from envisat_pose.shard_reader import checked_shards, read_shard
 
 
 def load_manifest(out_dir: str) -> dict:

@@ -1,5 +1,5 @@
 """WebDataset shards: deterministic tar writing, atomic publication, the manifest and verification (reading: the
-core's envisat_pose/shard_reader.py, re-exported here as read_shard).
+core's envisat_pose/shard_reader.py: read_shard, which verify uses here).
 
 A shard is a plain tar of samples, each sample's members `<key>.depth.png`, `<key>.json`, `<key>.mask.png`,
 `<key>.png` consecutive (design.md, Shard contract). Members carry a fixed mtime, owner and mode, so the same
@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from envisat_pose.io import atomic_path, sha256_file
-from envisat_pose.shard_reader import read_shard  # noqa: F401  the one reader (core); its users here import it from here too
+from envisat_pose.shard_reader import read_shard  # the one reader (core)
 
 MANIFEST = "manifest.json"
 MEMBER_SUFFIXES = ("depth.png", "json", "mask.png", "png")  # sorted: the order inside a sample

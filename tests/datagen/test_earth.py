@@ -247,7 +247,7 @@ def test_labels_equal_with_and_without_the_earth(tmp_path):
     entries), masks and depth; the images differ; twice the same bytes."""
     from envisat_pose.config import from_dict
     from envisat_pose.datagen.factory import GenerateConfig, run_generate
-    from envisat_pose.datagen.shards import read_shard
+    from envisat_pose.shard_reader import read_shard
 
     def shard(name, p):
         cfg = from_dict(GenerateConfig, {"num_images": 4, "shard_size": 4, "resolution_px": 96, "seed": 3,

@@ -101,7 +101,7 @@ def test_blurring_only_the_content_box_equals_blurring_the_whole_frame():
 def _generate(tmp_path, name, **kw):
     from envisat_pose.config import from_dict
     from envisat_pose.datagen.factory import GenerateConfig, run_generate
-    from envisat_pose.datagen.shards import read_shard
+    from envisat_pose.shard_reader import read_shard
 
     base = {"num_images": 2, "shard_size": 2, "resolution_px": 96, "seed": 11}
     base.update(kw)
