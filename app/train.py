@@ -127,8 +127,10 @@ def run_train_cli(args: argparse.Namespace) -> int:
         print(f"nothing to do: {args.out} is at step {last.get('step')}, its "
               f"{'budget spent' if last.get('why') == 'budget_spent' else 'steps reached'}; give {more}")
         return 0
+    workers = (f"{last['render_workers']} render workers" if "render_workers" in last
+               else f"{last.get('workers')} workers")
     print(f"trained to step {last.get('step')} ({last.get('steps_run')} this run): "
-          f"loss {last.get('loss', float('nan')):.4f}, {last.get('samples_s', 0):.0f} samples/s with {last.get('workers')} workers "
+          f"loss {last.get('loss', float('nan')):.4f}, {last.get('samples_s', 0):.0f} samples/s with {workers} "
           f"({last.get('stopped_by')}); run in {args.out}"
           + (f"; each rendered frame cropped at most {last.get('max_uses')} times "
              f"(K = {last.get('uses_per_frame')})" if last.get("uses_per_frame") else ""))

@@ -243,7 +243,8 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
                     provenance=provenance, init_weights=init, workers=workers, bf16=bf16, paths=paths,
                     online=source)
         if online is not None:
-            end = {**end, "uses_per_frame": online.uses_per_frame, "max_uses": online_max_uses(run_dir)}
+            end = {**end, "uses_per_frame": online.uses_per_frame, "max_uses": online_max_uses(run_dir),
+                   "render_workers": online.workers}
         return {**end, "skipped_damaged_shards": skipped}
     finally:
         end_distributed()
