@@ -305,9 +305,34 @@ class FilamentRenderer:
         mujoco.mj_forward(m, d)
         mujoco.mjv_updateScene(m, d, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL.value, self._mjv_scene)
         self._scene.update(d)
-        self._renderer.render([View(scene="scn", target="out", camera=self._mjv_scene.camera[0], skybox=False,
-                                    haze=False, headlight=False)])
+        self._renderer.render([View(scene="scn", target="out", camera=self.gl_camera(), skybox=False, haze=False,
+                                    headlight=False)])
         return cv2.cvtColor(self._rgb, cv2.COLOR_RGB2GRAY)
+
+    def gl_camera(self):
+        """The chaser camera of the last updated scene, as MuJoCo's own renderer draws it: the average of the
+        scene's two eyes (mjv_averageCamera). mjv_updateScene puts camera[0] and camera[1] ipd / 2 (the model's
+        visual/global ipd, 0.068 m) to the left and right of the camera; mjr_render averages them for a mono
+        view. Rendering from camera[0] put the camera 3.4 cm to the left of the truth's: the target +0.64 px to
+        the right at 50 m and 512 px (bench/foreign_scale.py)."""
+        return self._mujoco.mjv_averageCamera(self._mjv_scene.camera[0], self._mjv_scene.camera[1])
+
+    def segmentation(self) -> np.ndarray:
+        """The mask (H, W) uint8 of the last rendered view in the project's values (datagen/render.MASK_VALUES:
+        box faces 1-6, array and boom 7, background 0), from Filament's segmentation pass (red = geom id + 1)."""
+        from mujoco import mjrf
+        from mujoco.rendering.filament.renderer import View
+
+        from envisat_pose.datagen.render import MASK_VALUES
+
+        self._renderer.render([View(scene="scn", target="out", camera=self.gl_camera(), skybox=False, haze=False,
+                                    headlight=False, post_processing=False,
+                                    draw_mode=mjrf.DrawMode.DRAW_MODE_SEGMENTATION_BY_ID)])
+        m = self.model
+        lut = np.zeros(256, dtype=np.uint8)
+        for g in range(min(m.ngeom, 255)):
+            lut[g + 1] = MASK_VALUES.get(m.geom(g).name, 0)
+        return lut[self._rgb[..., 0]]
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -123,3 +123,42 @@ def test_a_short_filament_sequence(ff, tmp_path):
         assert len(bright) > 20
         inside = np.array([cv2.pointPolygonTest(hull, tuple(map(float, p)), True) > -3.0 for p in bright])
         assert inside.mean() > 0.8  # the lit pixels are the box's (the boom and array are dark)
+
+
+def test_filament_draws_the_box_where_a_pinhole_at_the_camera_projects_it(ff):
+    """Where Filament runs: its silhouette of the box (the segmentation pass) sits where OpenCV's pinhole
+    projection of the box's corners puts it, from the camera's own position. MuJoCo's scene holds two eyes
+    ipd / 2 = 3.4 cm either side of the camera; rendering from one of them drew the target 3.4 cm / range
+    sideways (0.65 px here), which no calibration file can say."""
+    problem = ff.filament_problem()
+    if problem:
+        pytest.skip(problem)
+    import cv2
+
+    from envisat_pose.geometry import load_camera, load_geometry
+
+    n = 256
+    r = ff.FilamentRenderer(n)
+    cam = load_camera()
+    R_C_from_T = cv2.Rodrigues(np.array([0.4, -0.7, 0.3]))[0]
+    rho_C = np.linalg.inv(cam.R_K_from_C) @ np.array([0.3, -0.2, 25.0]) + cam.pos_C_m  # 25 m down the boresight
+    r.render(rho_C, R_C_from_T, np.array([0.0, 0.0, 1.0]))
+    mask = r.segmentation()
+    # OpenCV's projection of the corners: T -> C -> the camera frame K, through the renderer's pinhole
+    R_K_T = cam.R_K_from_C @ R_C_from_T
+    t_K = cam.R_K_from_C @ (rho_C - cam.pos_C_m)
+    uv = cv2.projectPoints(load_geometry().corners_T_m, cv2.Rodrigues(R_K_T)[0], t_K, ff.ideal_K(n, r.f_px),
+                           None)[0].reshape(-1, 2)
+    hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
+    S = 8  # the hull's coverage of each pixel, 8 x 8 samples (pixel centres at integers)
+    fine = np.zeros((n * S, n * S), np.uint8)
+    cv2.fillPoly(fine, [np.round(((hull + 0.5) * S - 0.5) * 16).astype(np.int32)], 1, shift=4)
+    cover = fine.reshape(n, S, n, S).mean(axis=(1, 3))
+    keep = mask != 7  # the array and the boom hide parts of the box
+    box = ((mask >= 1) & (mask <= 6)).astype(float) * keep
+    cover = cover * keep
+    v, u = np.mgrid[0:n, 0:n]
+    assert box.sum() > 2000 and abs(box.sum() / cover.sum() - 1.0) < 0.02
+    got = np.array([(u * box).sum(), (v * box).sum()]) / box.sum()
+    want = np.array([(u * cover).sum(), (v * cover).sum()]) / cover.sum()
+    assert np.abs(got - want).max() < 0.12, (got, want)
