@@ -4,10 +4,10 @@ orbits of the default orbit (period ~6000 s), one run, cold start, each job a fr
 Measured per job: the process's peak resident set (getrusage's ru_maxrss of the child, from os.wait4), its increase
 over a short baseline job of the same settings (BASE_FRAMES frames, at any rate: what the process needs whatever
 the run's length: Python, torch, MuJoCo, the detector, Rerun), the job's wall time and frames, and inside the loop the
-process's resident set every --trace-every frames (the child is `envisat run` itself, in-process, with the
-tracker's step wrapped to read /proc/self/statm: Linux): its growth from the first sample to the last, per 1000
-frames and per 1000 lit frames (frames with an image; in the Earth's shadow a frame is only the filter's
-prediction). That in-loop slope is what tells growth apart; fresh processes' peaks differ by tens of MiB (a
+process's resident set every --trace-every frames (the child runs `envisat run`'s job in-process,
+RunConfig.from_scenario then run_closed_loop, with the tracker's step wrapped to read /proc/self/statm: Linux): its
+growth from the first sample to the last, per 1000 frames and per 1000 lit frames (frames with an image; in the
+Earth's shadow a frame is only the filter's prediction). That in-loop slope is what tells growth apart; fresh processes' peaks differ by tens of MiB (a
 301-frame job peaked 5 MiB below the 21-frame baseline). Beside it the peer: the bytes that holding every frame
 would take, frames x the per-frame arrays a run records (closed_loop.record_arrays, ~2 kB a frame).
 
@@ -48,7 +48,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BASE_FRAMES = 21  # the baseline job's frames (20 s at 1 Hz)
 
 
-# the child: `envisat run` in this Python, Tracker.step wrapped to sample the resident set every
+# the child: the job of `envisat run --scenario default --duration-s D --config C --out O` (the pipeline the verb
+# calls, resolved as the verb resolves it: RunConfig.from_scenario) in this Python, Tracker.step wrapped to sample the resident set every
 # BENCH_TRACE_EVERY frames
 CHILD = """
 import json, os, sys
@@ -70,12 +71,13 @@ def traced(self, t_s, image):
 
 
 tracker.Tracker.step = traced
-from envisat_pose.app.cli import main
+from envisat_pose.pipelines.closed_loop import run_closed_loop
+from envisat_pose.pipelines.run_config import RunConfig
 
-rc = main(sys.argv[1:])
+duration_s, config, out_dir = float(sys.argv[1]), sys.argv[2], sys.argv[3]
+run_closed_loop(RunConfig.from_scenario("default", config, duration_s=duration_s), out_dir, progress=False)
 with open(os.environ["BENCH_TRACE"], "w") as fh:
     json.dump(rows, fh)
-sys.exit(rc)
 """
 
 
@@ -83,8 +85,7 @@ def run_job(duration_s: float, config: str, out_dir: str, trace_every: int) -> d
     """One `envisat run` in its own process: peak RSS (MiB), wall time (s), its summary's frames/timing, and the
     loop's RSS trace (frames, lit frames, MiB) every trace_every frames."""
     trace = out_dir + ".trace.json"
-    cmd = [sys.executable, "-c", CHILD, "run", "--scenario", "default", "--duration-s", str(duration_s),
-           "--config", config, "--out", out_dir, "--quiet"]
+    cmd = [sys.executable, "-c", CHILD, str(duration_s), config, out_dir]
     env = os.environ | {"BENCH_TRACE": trace, "BENCH_TRACE_EVERY": str(trace_every)}
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
@@ -94,7 +95,7 @@ def run_job(duration_s: float, config: str, out_dir: str, trace_every: int) -> d
     wall_s = time.perf_counter() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
-        raise SystemExit(f"envisat run failed ({proc.returncode}): {err[-2000:]}")
+        raise SystemExit(f"the run job failed ({proc.returncode}): {err[-2000:]}")
     with open(os.path.join(out_dir, "summary.json")) as fh:
         summary = json.load(fh)
     with open(trace) as fh:
