@@ -54,7 +54,8 @@ def time_training(data: str, run_dir: str, device: str, workers: int, bf16: bool
     t0 = time.perf_counter()
     end = train_detector(cfg, [data], run_dir, device=device, workers=workers, bf16=bf16, progress=False,
                          command="bench/train_speed.py")
-    return {"device": device, "workers": workers, "bf16": bf16, "batch_size": batch_size, "steps": end["step"],
+    return {"source": "shards", "device": device, "workers": workers, "bf16": bf16, "batch_size": batch_size,
+            "steps": end["step"],
             "samples_s": end["samples_s"], "first_batch_s": end["first_batch_s"],
             "data_wait_s": end["data_wait_s"], "wall_s": round(time.perf_counter() - t0, 2),
             "loss_end": round(end["loss"], 4)}
@@ -149,9 +150,62 @@ def time_data(data: str, workers: int, batch_size: int, batches: int) -> dict:
     total = time.perf_counter() - t0
     del it
     # from the call to the last batch, the workers' start included (a shuffle buffer fills before the first batch)
-    return {"part": "data", "workers": workers, "batch_size": batch_size, "batches": n,
+    return {"part": "data", "source": "shards", "workers": workers, "batch_size": batch_size, "batches": n,
             "first_batch_s": round(first or 0.0, 2), "samples_s": round(n * batch_size / total, 1)}
 
+
+
+def online_config(resolution_px: int, workers: int):
+    """The online source of `envisat train --online` at resolution_px (the generate defaults in random mode, seed
+    1), K = 8."""
+    from envisat_pose.datagen.generate_config import GenerateConfig
+    from envisat_pose.pipelines.train import OnlineConfig
+
+    return OnlineConfig(GenerateConfig(mode="random", resolution_px=resolution_px, seed=1), workers, 8)
+
+
+def time_online_data(resolution_px: int, workers: int, batch_size: int, batches: int, device: str) -> dict:
+    """The online data path alone: `batches` batches of pipelines/online.online_batches (renderer processes, the
+    crops and augmentation in batch on the device), nothing trained; the renderers' start is first_batch_s."""
+    from envisat_pose.perception.data import DataConfig
+    from envisat_pose.pipelines.online import online_batches
+
+    src = online_config(resolution_px, workers)
+    t0 = time.perf_counter()
+    it = online_batches(src.generate, DataConfig(), 0, batch_size, workers, device, src.uses_per_frame)
+    n, first, state = 0, None, {}
+    try:
+        for _, state in it:
+            n += 1
+            if first is None:
+                first = time.perf_counter() - t0
+                t1 = time.perf_counter()
+            if n > batches:
+                break
+    finally:
+        it.close()
+    span = time.perf_counter() - t1
+    frames = state.get("frames_taken", 0)
+    return {"part": "data", "source": "online", "device": device, "workers": workers, "batch_size": batch_size,
+            "resolution_px": resolution_px, "batches": batches, "first_batch_s": round(first or 0.0, 2),
+            "samples_s": round(batches * batch_size / span, 1), "frames_rendered": frames,
+            "frames_s": round(batches * batch_size / src.uses_per_frame / span, 1)}
+
+
+def time_online_training(run_dir: str, device: str, workers: int, bf16: bool, steps: int, batch_size: int,
+                         resolution_px: int) -> dict:
+    """One fresh online run (`envisat train --online`) of `steps` steps through the pipeline."""
+    from envisat_pose.perception.train import TrainConfig
+    from envisat_pose.pipelines.train import train_detector
+
+    cfg = TrainConfig(steps=steps, batch_size=batch_size, warmup_steps=min(10, steps), checkpoint_every=10 ** 6)
+    t0 = time.perf_counter()
+    end = train_detector(cfg, [], run_dir, device=device, bf16=bf16, progress=False, command="bench/train_speed.py",
+                         online=online_config(resolution_px, workers))
+    return {"source": "online", "device": device, "workers": workers, "bf16": bf16, "batch_size": batch_size,
+            "resolution_px": resolution_px, "steps": end["step"], "samples_s": end["samples_s"],
+            "first_batch_s": end["first_batch_s"], "data_wait_s": end["data_wait_s"],
+            "wall_s": round(time.perf_counter() - t0, 2), "loss_end": round(end["loss"], 4)}
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -168,6 +222,10 @@ def main() -> None:
     ap.add_argument("--no-cpu", action="store_true", help="GPU rows only")
     ap.add_argument("--step-steps", type=int, default=4, help="timed steps per model-step row (CPU)")
     ap.add_argument("--no-whole", action="store_true", help="the step and data parts only")
+    ap.add_argument("--no-online", action="store_true", help="no online rows (frames rendered as training goes)")
+    ap.add_argument("--online-resolution", type=int, default=512,
+                    help="renders' side of the CPU's online rows (the GPU's: 1024, the recipe's)")
+    ap.add_argument("--online-steps", type=int, default=12, help="steps per CPU online row")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "train_speed.json"))
     args = ap.parse_args()
     from envisat_pose.pipelines.train import dataset_provenance
@@ -207,10 +265,30 @@ def main() -> None:
             print(f"{row['device']:5s} workers {row['workers']:2d} {'bf16' if row['bf16'] else 'fp32'} batch "
                   f"{row['batch_size']:3d}: {row['samples_s']:8.1f} samples/s (first batch {row['first_batch_s']:.1f} "
                   f"s, waited for data {row['data_wait_s']:.1f} s of {row['wall_s']:.1f} s)", flush=True)
-    print(f"\n{'device':6s} {'workers':>7s} {'precision':>9s} {'batch':>5s} {'samples/s':>10s} {'data wait s':>11s}")
+        # online: renderer processes (the cores less one) hand frames straight to the trainer, no shards
+        online_plans = [] if args.no_online else \
+            ([("cpu", max(cores - 1, 1), args.online_steps, args.batch_size, args.online_resolution)]
+             if not args.no_cpu else []) + \
+            ([("cuda", max(cores - 1, 1), args.gpu_steps, b, 1024) for b in args.gpu_batch_sizes]
+             if torch.cuda.is_available() else [])
+        for device, workers, steps, batch, res in online_plans:
+            row = time_online_data(res, workers, batch, 6 if device == "cpu" else 50, device)
+            parts.append(row)
+            print(f"data  {device:5s} online {res} px, {workers:2d} renderers, batch {batch:3d}: {row['samples_s']} "
+                  f"samples/s, {row['frames_s']} frames/s (first batch {row['first_batch_s']} s)", flush=True)
+        for i, (device, workers, steps, batch, res) in enumerate([] if args.no_whole else online_plans):
+            for bf16 in ((True,) if device == "cpu" else (False, True)):
+                row = time_online_training(os.path.join(tmp, f"online{i}{int(bf16)}"), device, workers, bf16, steps,
+                                           batch, res)
+                rows.append(row)
+                print(f"{device:5s} online {res} px, {workers:2d} renderers {'bf16' if bf16 else 'fp32'} batch "
+                      f"{batch:3d}: {row['samples_s']:8.1f} samples/s (first batch {row['first_batch_s']:.1f} s, "
+                      f"waited for data {row['data_wait_s']:.1f} s of {row['wall_s']:.1f} s)", flush=True)
+    print(f"\n{'source':7s} {'device':6s} {'workers':>7s} {'precision':>9s} {'batch':>5s} {'samples/s':>10s} "
+          f"{'data wait s':>11s}")
     for r in rows:
-        print(f"{r['device']:6s} {r['workers']:7d} {'bf16' if r['bf16'] else 'fp32':>9s} {r['batch_size']:5d} "
-              f"{r['samples_s']:10.1f} {r['data_wait_s']:11.1f}")
+        print(f"{r['source']:7s} {r['device']:6s} {r['workers']:7d} {'bf16' if r['bf16'] else 'fp32':>9s} "
+              f"{r['batch_size']:5d} {r['samples_s']:10.1f} {r['data_wait_s']:11.1f}")
     result = {"torch": torch.__version__, "machine": platform.processor() or platform.machine(), "cores": cores,
               "torch_threads": torch.get_num_threads(), "load_average_1min_end": round(os.getloadavg()[0], 2),
               "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
