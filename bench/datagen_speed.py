@@ -54,7 +54,7 @@ SEED = 2024
 
 def bench_config(resolution_px: int, n: int, **kw):
     from envisat_pose.config import from_dict
-    from envisat_pose.datagen.factory import GenerateConfig
+    from envisat_pose.datagen.generate_config import GenerateConfig
 
     return from_dict(GenerateConfig, {"resolution_px": resolution_px, "num_images": n, "shard_size": SHARD_SIZE,
                                       "seed": SEED, **kw})
@@ -72,7 +72,7 @@ def two_pass_rate(cfg, appearance: bool) -> float:
     views = []
     for k, (v, x, sc) in enumerate(sample_views(cfg, r.fovy_deg)):
         s, i = divmod(k, cfg.shard_size)
-        from envisat_pose.datagen.factory import sample_seed
+        from envisat_pose.datagen.views import sample_seed
 
         v2, _ = with_look(cfg, v, sc, sample_seed(cfg.seed, s, i))
         views.append(v2 if appearance else dataclasses.replace(v2, look=None, appendages=False))
@@ -201,7 +201,7 @@ def issue9() -> dict:
     out = {"images": n, "resolution_px": res, "load_avg_start": os.getloadavg()}
     base = bench_config(res, n)
     # the floor at the user's default shard size, over enough images for a steady state after the first shard
-    from envisat_pose.datagen.factory import GenerateConfig
+    from envisat_pose.datagen.generate_config import GenerateConfig
 
     nf = int(os.environ.get("BENCH_FLOOR_IMAGES", "200"))
     floor_shard = GenerateConfig().shard_size
@@ -263,7 +263,7 @@ def issue9() -> dict:
 
 def sample_views(cfg, fovy_deg: float) -> list:
     """The dataset's own views (same seeds as generate_shard)."""
-    from envisat_pose.datagen.factory import sample_random_view, sample_seed
+    from envisat_pose.datagen.views import sample_random_view, sample_seed
 
     views = []
     for k in range(cfg.num_images):

@@ -52,14 +52,10 @@ def closed_loop_frames(n: int) -> list[tuple[np.ndarray, dict]]:
     """n clean 1024 px frames of the default scenario (sequence mode, 30 s apart) with their space-camera
     parameters, drawn as the closed loop draws them."""
     from envisat_pose.config import from_dict
-    from envisat_pose.datagen.factory import (
-        GenerateConfig,
-        draw_corruption_params,
-        sample_seed,
-        sequence_view,
-        with_look,
-    )
+    from envisat_pose.datagen.factory import draw_corruption_params, with_look
+    from envisat_pose.datagen.generate_config import GenerateConfig
     from envisat_pose.datagen.render import shared_renderer
+    from envisat_pose.datagen.views import sample_seed, sequence_view
 
     cfg = from_dict(GenerateConfig, {"mode": "sequence", "num_images": 30 * n, "resolution_px": 1024})
     r = shared_renderer(cfg.resolution_px, cfg.shadows, 0, 0)

@@ -105,7 +105,8 @@ def summary(rows: list[tuple[float, bool]]) -> dict:
 def measure_look(name: str, extra: dict, images: int, seed: int, tmp: str) -> dict:
     from envisat_pose.config import from_dict
     from envisat_pose.datagen.corrupt import apply_corruption
-    from envisat_pose.datagen.factory import GenerateConfig, run_generate
+    from envisat_pose.datagen.factory import run_generate
+    from envisat_pose.datagen.generate_config import GenerateConfig
     from envisat_pose.datagen.shards import decode_png
     from envisat_pose.shard_reader import read_shard
 

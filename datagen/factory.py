@@ -24,32 +24,9 @@ import numpy as np
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.config import check, to_dict
 from envisat_pose.datagen.clearance import TargetBoxes, farthest_depth_m, project_target_boxes
-
-# the config (datagen/generate_config.py) and the views (datagen/views.py) have their own modules; their names
-# stay importable from here (the tests, the benches and `envisat generate` use factory.<name>)
-from envisat_pose.datagen.generate_config import (  # noqa: F401
-    AppearanceConfig,
-    CorruptionConfig,
-    GenerateConfig,
-    LightingConfig,
-    SensorConfig,
-    Severity,
-    config_from_json,
-    config_json,
-)
+from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
-from envisat_pose.datagen.views import (  # noqa: F401
-    MAX_VIEW_DRAWS,
-    R_K_FROM_C,
-    sample_cap,
-    sample_random_view,
-    sample_seed,
-    sequence_earth,
-    sequence_frames,
-    sequence_view,
-    unit,
-    view_is_clear,
-)
+from envisat_pose.datagen.views import R_K_FROM_C, sample_random_view, sample_seed, sequence_frames, sequence_view, unit
 from envisat_pose.runner import ResumableJob, RunnerConfig, check_out_dir, cpu_share
 from envisat_pose.state import MRP, POS, RATE, VEL
 

@@ -158,7 +158,7 @@ def render_worker(cfg_json: str, worker: int, workers: int, first_frame: int, sh
     try:
         import cv2
 
-        from envisat_pose.datagen.factory import config_from_json
+        from envisat_pose.datagen.generate_config import config_from_json
         from envisat_pose.datagen.render import SceneRenderer
 
         cv2.setNumThreads(1)
@@ -197,7 +197,7 @@ class FrameSource:
         import multiprocessing
         from multiprocessing import shared_memory
 
-        from envisat_pose.datagen.factory import config_json
+        from envisat_pose.datagen.generate_config import config_json
 
         ctx = multiprocessing.get_context("spawn")  # a clean process: no GL, torch or OpenCV state inherited
         self.workers, self.next_frame, self.res = workers, first_frame, gen_cfg.resolution_px

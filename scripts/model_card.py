@@ -112,7 +112,7 @@ def generate_command(config: dict, name: str) -> str:
     """The `envisat generate` line a manifest's config implies: its flags, and the keys that differ from the
     default config as the TOML (--config) lines that set them."""
     from envisat_pose.config import to_dict
-    from envisat_pose.datagen.factory import GenerateConfig
+    from envisat_pose.datagen.generate_config import GenerateConfig
 
     default = to_dict(GenerateConfig())
     line = ["envisat generate"]

@@ -18,9 +18,10 @@ from scipy.spatial import cKDTree
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.config import ConfigError, from_dict
 from envisat_pose.datagen.clearance import clearance_m, project_target_boxes
-from envisat_pose.datagen.factory import R_K_FROM_C, GenerateConfig, sample_random_view
+from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.datagen.truth import simulate
+from envisat_pose.datagen.views import R_K_FROM_C, sample_random_view
 from envisat_pose.geometry import model_path
 from envisat_pose.named_scenarios import names as scenario_names
 

@@ -246,7 +246,8 @@ def test_labels_equal_with_and_without_the_earth(tmp_path):
     """The same seed with the Earth in every view and in none: the same labels (but the scene's Earth
     entries), masks and depth; the images differ; twice the same bytes."""
     from envisat_pose.config import from_dict
-    from envisat_pose.datagen.factory import GenerateConfig, run_generate
+    from envisat_pose.datagen.factory import run_generate
+    from envisat_pose.datagen.generate_config import GenerateConfig
     from envisat_pose.shard_reader import read_shard
 
     def shard(name, p):

@@ -100,7 +100,8 @@ def test_blurring_only_the_content_box_equals_blurring_the_whole_frame():
 
 def _generate(tmp_path, name, **kw):
     from envisat_pose.config import from_dict
-    from envisat_pose.datagen.factory import GenerateConfig, run_generate
+    from envisat_pose.datagen.factory import run_generate
+    from envisat_pose.datagen.generate_config import GenerateConfig
     from envisat_pose.shard_reader import read_shard
 
     base = {"num_images": 2, "shard_size": 2, "resolution_px": 96, "seed": 11}
@@ -131,7 +132,7 @@ def test_sensor_model_refuses_severities_it_would_ignore(kind, value):
     """Any severity but 'mixed' (or all 'none') under model 'sensor' is a one-line ConfigError naming the key
     and which model honours it."""
     from envisat_pose.config import ConfigError, from_dict
-    from envisat_pose.datagen.factory import GenerateConfig
+    from envisat_pose.datagen.generate_config import GenerateConfig
 
     with pytest.raises(ConfigError) as err:
         from_dict(GenerateConfig, {"corruption": {"model": "sensor", kind: value}})

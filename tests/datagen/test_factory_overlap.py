@@ -11,7 +11,8 @@ import pytest
 
 from envisat_pose.config import from_dict
 from envisat_pose.datagen import factory
-from envisat_pose.datagen.factory import GenerateConfig, run_generate
+from envisat_pose.datagen.factory import run_generate
+from envisat_pose.datagen.generate_config import GenerateConfig
 
 
 def cfg_of(**kw):

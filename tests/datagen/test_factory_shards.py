@@ -18,8 +18,10 @@ import pytest
 from envisat_pose.app.cli import main as envisat_main
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.config import from_dict
-from envisat_pose.datagen.factory import GenerateConfig, config_from_json, run_generate, sample_random_view
+from envisat_pose.datagen.factory import run_generate
+from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json
 from envisat_pose.datagen.shards import decode_png, read_manifest
+from envisat_pose.datagen.views import sample_random_view
 from envisat_pose.shard_reader import read_shard
 
 ENVISAT = [sys.executable, "-m", "envisat_pose.app.cli"]

@@ -9,7 +9,7 @@ import pytest
 
 from envisat_pose.config import to_dict
 from envisat_pose.datagen import sensor
-from envisat_pose.datagen.factory import SensorConfig
+from envisat_pose.datagen.generate_config import SensorConfig
 
 
 def params(**kw):

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from envisat_pose.config import ConfigError, from_dict
-from envisat_pose.datagen.factory import GenerateConfig, sample_cap, sample_random_view
+from envisat_pose.datagen.generate_config import GenerateConfig
+from envisat_pose.datagen.views import sample_cap, sample_random_view
 
 
 def test_cap_samples_are_uniform_on_the_cap():

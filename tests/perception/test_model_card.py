@@ -153,7 +153,7 @@ def test_a_card_with_a_path_is_refused():
 
 def test_generate_command_from_a_manifest_config():
     from envisat_pose.config import to_dict
-    from envisat_pose.datagen.factory import GenerateConfig
+    from envisat_pose.datagen.generate_config import GenerateConfig
 
     mc = load_script()
     assert mc.generate_command(to_dict(GenerateConfig(num_images=300, seed=303)), "dcal") == \

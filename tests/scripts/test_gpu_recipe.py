@@ -13,7 +13,7 @@ os.environ.setdefault("MUJOCO_GL", "osmesa")
 
 from envisat_pose import named_scenarios  # noqa: E402
 from envisat_pose.config import resolve_job_config  # noqa: E402
-from envisat_pose.datagen.factory import GenerateConfig  # noqa: E402
+from envisat_pose.datagen.generate_config import GenerateConfig  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
