@@ -9,7 +9,7 @@ RunConfig.from_scenario then run_closed_loop, with the tracker's step wrapped to
 growth from the first sample to the last, per 1000 frames and per 1000 lit frames (frames with an image; in the
 Earth's shadow a frame is only the filter's prediction). That in-loop slope is what tells growth apart; fresh processes' peaks differ by tens of MiB (a
 301-frame job peaked 5 MiB below the 21-frame baseline). Beside it the peer: the bytes that holding every frame
-would take, frames x the per-frame arrays a run records (closed_loop.record_arrays, ~2 kB a frame).
+would take, frames x the per-frame arrays a run records (rows.record_arrays, ~2 kB a frame).
 
 Found with it (issue 19): the loop grew 45-70 MiB per 1000 lit frames, all in run 0's Rerun recording (in one
 process at 128 px over 800 lit frames: +45 MiB with the recording, +4 without it, +3 with the recorder only
@@ -120,8 +120,8 @@ def loop_growth(rss: list) -> dict:
 
 
 def frame_bytes() -> int:
-    """Bytes of one frame of the arrays a run records (closed_loop.record_arrays)."""
-    from envisat_pose.pipelines.closed_loop import record_arrays
+    """Bytes of one frame of the arrays a run records (rows.record_arrays)."""
+    from envisat_pose.pipelines.rows import record_arrays
 
     return sum(a.nbytes for a in record_arrays(1).values())
 

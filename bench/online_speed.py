@@ -117,8 +117,8 @@ def main() -> None:
     os.environ["LP_NUM_THREADS"] = str(args.cores)
     from envisat_pose.contracts import Estimates
     from envisat_pose.io import atomic_write_text
-    from envisat_pose.pipelines.closed_loop import STAGES
     from envisat_pose.pipelines.jobs import default_weights_path
+    from envisat_pose.pipelines.rows import STAGES
 
     weights = args.weights or default_weights_path()
     load_start = os.getloadavg()

@@ -81,13 +81,13 @@ def bound_blocks(out: str, sigma_px: float) -> np.ndarray:
     from envisat_pose.filtering.estimator import chaser_states
     from envisat_pose.filtering.measurements import measure
     from envisat_pose.geometry import load_camera
-    from envisat_pose.pipelines.closed_loop import truth_dynamics
+    from envisat_pose.pipelines.onboard import onboard_physics
     from envisat_pose.pipelines.tracker import ACQUIRING_SIGMA
 
     truth = TruthTrajectory.load(os.path.join(out, "truth.npz"))
     with np.load(os.path.join(out, "det.npz"), allow_pickle=False) as z:
         lit = ~z["skipped"]
-    mu, gg = truth_dynamics(truth)
+    mu, gg = onboard_physics(truth)
     J, cam = load_inertia_T_kg_m2(), load_camera()
     ch = chaser_states(truth.chaser_r_m, truth.chaser_rdot_m_s, truth.chaser_theta_rad, truth.chaser_thetadot_rad_s)
     dt = float(truth.t_s[1] - truth.t_s[0])
@@ -107,9 +107,10 @@ def run_one(cfg_json: str) -> dict:
     PCRLB per block, the truth and estimate (for the error summary), the pixel noise and the timings."""
     from envisat_pose.contracts import Estimates
     from envisat_pose.pipelines import closed_loop as loop
+    from envisat_pose.pipelines.run_config import config_from_json
     from envisat_pose.pipelines.scoring import frame_errors
 
-    cfg = loop.config_from_json(cfg_json)
+    cfg = config_from_json(cfg_json)
     with tempfile.TemporaryDirectory(prefix=f"tracking-{cfg.scenario}-{cfg.seed}-") as out:
         t0 = time.perf_counter()
         summary = loop.run_closed_loop(cfg, out, progress=False, sink=f"save:{os.path.join(out, 'recording.rrd')}")

@@ -36,21 +36,12 @@ import numpy as np
 from envisat_pose.config import to_dict
 from envisat_pose.pipelines.frame_loop import FrameInput, run_frames
 from envisat_pose.pipelines.onboard import chaser_function, onboard_physics, orbit_config
-from envisat_pose.pipelines.rows import (  # noqa: F401
-    CHUNK_FRAMES,
-    DET_KEYS,
-    EST_KEYS,
-    STAGES,
-    RunRows,
-    record_arrays,
-)
-from envisat_pose.pipelines.run_config import RunConfig, config_from_json, finish_config, stage_types, sun_and_shadow  # noqa: F401
+from envisat_pose.pipelines.rows import CHUNK_FRAMES, DET_KEYS, EST_KEYS, STAGES, RunRows
+from envisat_pose.pipelines.run_config import RunConfig, config_from_json, finish_config, sun_and_shadow
 from envisat_pose.state import MRP, POS
 
 # The config (pipelines/run_config.py), the on-board physics and orbit (pipelines/onboard.py) and the per-frame
-# row store (pipelines/rows.py) have their own modules; the names above stay importable from here for
-# pipelines/outputs.py, the tests and the benches that use them as closed_loop.<name>.
-truth_dynamics = onboard_physics  # the old name (bench/tracking.py imports it): remove once it imports onboard
+# row store (pipelines/rows.py) have their own modules: import their names from there.
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -18,10 +18,11 @@ def no_estimate_nan(a: np.ndarray, status: np.ndarray) -> np.ndarray:
 
 
 def estimate_arrays(run_dirs: list[str], T: int) -> dict:
-    """est.npz's per-run arrays (closed_loop.EST_KEYS and status, each (R, T, ...)) streamed from the runs' files,
+    """est.npz's per-run arrays (rows.EST_KEYS and status, each (R, T, ...)) streamed from the runs' files,
     x_hat and P NaN on rows without an estimate."""
     from envisat_pose.io import StreamedArray
-    from envisat_pose.pipelines.closed_loop import CHUNK_FRAMES, EST_KEYS, run_array, run_rows
+    from envisat_pose.pipelines.closed_loop import run_array, run_rows
+    from envisat_pose.pipelines.rows import CHUNK_FRAMES, EST_KEYS
 
     est = {k: run_array(run_dirs, k, T) for k in EST_KEYS + ("status",)}
     for k in ("x_hat", "P"):

@@ -29,8 +29,8 @@ import numpy as np
 from envisat_pose.config import check
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
-from envisat_pose.pipelines.camera_file import camera_from_intrinsics  # noqa: F401 (the track API)
-from envisat_pose.pipelines.frames import FrameSource, open_source, read_gray, read_timestamps, scan_source, to_gray_u8  # noqa: F401
+from envisat_pose.pipelines.camera_file import camera_from_intrinsics
+from envisat_pose.pipelines.frames import FrameSource, open_source, scan_source
 from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
 from envisat_pose.status import STATUSES, legend
 

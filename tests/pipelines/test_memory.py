@@ -1,7 +1,7 @@
 """Bounded memory: a long closed loop does not hold its frames. A run of 21000 frames (10 Hz, 64 px, the chaser in
 the Earth's shadow all along, so it is quick) against a short one, in a fresh process: the job's peak memory
 (every Python and numpy allocation, tracemalloc) grows by less than the per-frame arrays the run records would
-take if held once (closed_loop.record_arrays, ~2 kB a frame: ~40 MiB here; measured 29 MiB: the truth's
+take if held once (rows.record_arrays, ~2 kB a frame: ~40 MiB here; measured 29 MiB: the truth's
 simulation, errors.png's 7200 frames, a few scalars a frame). Before the streaming rewrite a run held them whole,
 the job stacked x_hat and P again and held the truth twice: more than 3.5 kB a frame. The peak resident set is
 printed, not asserted (+0.6 MiB here before the recorder's fix below, +0.0 after).
@@ -29,9 +29,10 @@ CHILD = textwrap.dedent("""
     from envisat_pose.datagen.orbit import chaser_orbit
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.pipelines import closed_loop as loop
+    from envisat_pose.pipelines.run_config import stage_types
 
     weights, out, long_s = sys.argv[1], sys.argv[2], float(sys.argv[3])
-    loop.stage_types()
+    stage_types()
     # the sun behind the Earth as seen from the chaser at t = 1050 s: the shadow covers ~0..2100 s
     r_mid = chaser_orbit(scenario_config("default").orbit, np.array([1050.0])).r_N_m[0]
 
@@ -58,8 +59,8 @@ CHILD = textwrap.dedent("""
 
 def test_a_long_closed_loop_keeps_its_memory_flat(tmp_path):
     from envisat_pose.contracts import Estimates
-    from envisat_pose.pipelines.closed_loop import record_arrays
     from envisat_pose.pipelines.jobs import default_weights_path
+    from envisat_pose.pipelines.rows import record_arrays
 
     out = subprocess.run([sys.executable, "-c", CHILD, default_weights_path(), str(tmp_path), "2099.9"],
                          capture_output=True, text=True, timeout=900)
@@ -85,7 +86,8 @@ def test_the_run_recording_is_cut_in_chunks_of_many_frames_and_has_its_footer(tm
     import rerun as rr
     import rerun_bindings
 
-    from envisat_pose.analysis.recording import FILE_CHUNK_ROWS, TrackRecorder, read_recording
+    from envisat_pose.analysis.recording import TrackRecorder, read_recording
+    from envisat_pose.analysis.recording_stream import FILE_CHUNK_ROWS
     from envisat_pose.pipelines.closed_loop import run_camera
 
     N = 2 * FILE_CHUNK_ROWS + 50

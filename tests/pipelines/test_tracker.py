@@ -40,7 +40,7 @@ class NoisyTruthDetector:
 
 
 def chaser_lookup(truth):
-    from envisat_pose.pipelines.closed_loop import chaser_function, orbit_config
+    from envisat_pose.pipelines.onboard import chaser_function, orbit_config
 
     return chaser_function(orbit_config(truth.config))
 
