@@ -22,9 +22,10 @@ sample index). Long series go in through `send_columns`; model data is logged on
 written under a temporary name, with its footer (`rerun rrd verify` passes), and renamed when complete
 (envisat_pose.io.atomic_path).
 
-One job a file, all names importable from here: recording_layout.py (constants, model data, series loggers,
-blueprints), recording_writers.py (recordings written whole from arrays), recording_reader.py (read back),
-recording_stream.py (TrackRecorder: a run logged frame by frame).
+One job a file: recording_layout.py (constants, model data, series loggers, blueprints), recording_writers.py
+(recordings written whole from arrays), recording_reader.py (read back), recording_stream.py (TrackRecorder: a run
+logged frame by frame). This module is their public face: the names in __all__ (what the app, the pipelines and
+users import); every other name is imported from its own module.
 
 Two conventions change at this edge: Rerun quaternions are (x, y, z, w), ours (w, x, y, z); Rerun's pixel (0, 0)
 covers [0, 1]^2 (centre 0.5), ours follow OpenCV (centre 0), so image points and the principal point get +0.5.
@@ -32,17 +33,23 @@ covers [0, 1]^2 (centre 0.5), ours follow OpenCV (centre 0), so image points and
 
 from __future__ import annotations
 
-from .recording_layout import *  # noqa: F401,F403
-from .recording_layout import _point_colors, _scene_views, _times, _vec, _wxyz_to_xyzw  # noqa: F401
-from .recording_reader import read_recording  # noqa: F401
-from .recording_stream import FILE_CHUNK_ROWS, FILE_FLUSH_TICK_S, TrackRecorder, file_batcher, project_state_px  # noqa: F401
-from .recording_writers import (  # noqa: F401
-                                Sample,
-                                _log_truth_on_grid,
-                                _Recording,
-                                truth_rows,
-                                write_campaign_recording,
-                                write_estimates_recording,
-                                write_samples_recording,
-                                write_truth_recording,
+# the public face of the recording modules (see above): these names are re-exported on purpose
+from .recording_reader import read_recording
+from .recording_stream import TrackRecorder
+from .recording_writers import (
+    Sample,
+    write_campaign_recording,
+    write_estimates_recording,
+    write_samples_recording,
+    write_truth_recording,
 )
+
+__all__ = [
+    "Sample",
+    "TrackRecorder",
+    "read_recording",
+    "write_campaign_recording",
+    "write_estimates_recording",
+    "write_samples_recording",
+    "write_truth_recording",
+]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from envisat_pose.analysis import recording
+from envisat_pose.analysis import recording, recording_layout
 from envisat_pose.analysis.recording import read_recording as read_rrd
 from envisat_pose.contracts import Estimates
 from envisat_pose.geometry import CORNER_NAMES, EDGES, load_camera
@@ -28,7 +28,7 @@ def short_truth():
 
 
 def test_target_parts_from_the_mjcf():
-    parts = {p.name: p for p in recording.target_parts()}
+    parts = {p.name: p for p in recording_layout.target_parts()}
     assert set(parts) == {"body", "array", "boom"}
     np.testing.assert_allclose(parts["body"].half_sizes_m, [5.0, 1.375, 1.0375])  # reference sheet, section 5
     np.testing.assert_allclose(parts["array"].half_sizes_m, [7.0, 2.5, 0.02])
@@ -82,7 +82,7 @@ def test_truth_recording_layout_and_values(tmp_path, short_truth):
     for k in (0, N // 3, N - 1):
         np.testing.assert_allclose(np.array(pts["Points3D:positions"][k]), tr.corners_C_m[k], rtol=1e-6, atol=1e-5)
         assert pts["Points3D:keypoint_ids"][k] == list(range(8))
-        r, g, b = recording.VISIBLE_RGB
+        r, g, b = recording_layout.VISIBLE_RGB
         green = np.array(pts["Points3D:colors"][k]) == (r << 24 | g << 16 | b << 8 | 255)  # packed RGBA
         np.testing.assert_array_equal(green, tr.visible[k])
     # the image-plane corners: the in-frame ones, OpenCV px + 0.5
@@ -196,7 +196,7 @@ def test_the_tracker_recording_shows_the_whole_run_in_six_plots():
     window) and with its legend off the data; the camera view and the 3D view beside them."""
     import rerun.blueprint as rrb
 
-    from envisat_pose.analysis.recording import track_blueprint
+    from envisat_pose.analysis.recording_layout import track_blueprint
 
     for with_truth in (True, False):
         root = track_blueprint(with_truth).root_container
