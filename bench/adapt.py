@@ -10,10 +10,14 @@ Per (scenario, seed, resolution):
   which the pose stays right (pipelines/scoring.settled_from: < 10 cm and < 1 deg, claimed, to the end), the
   second-half RMS position and attitude (frames with an estimate), the false-lock frames (claiming an estimate
   with attitude > 5 deg or position > 2 % of range), the held-out quarter's verdict (adopted or why not);
-- PCK@5 of the adapted weights and of the shipped ones on the own renders (`envisat evaluate`).
+- PCK@5 of the adapted weights and of the shipped ones on the own renders (`envisat evaluate`);
+- the pseudo-labels' range against the truth's (label_range): as smoothed, corrected by the sequence's edge scale,
+  corrected frame by frame (pipelines/edge_range.py; the report records the edge fits whatever --edge-range
+  applies), so both ways of correcting are scored from one run.
 
 Run:  .venv/bin/python bench/adapt.py --scenarios default --seeds 0 1 --resolutions 512 --num-images 300 \\
-          --work /tmp/adapt-bench --out bench/results/adapt.json
+          --work /tmp/adapt-bench --edge-range sequence --out bench/results/adapt_edge_range.json
+(frames already under --work are reused; each --edge-range mode adapts into its own folder adapt-MODE.)
 """
 
 from __future__ import annotations
@@ -53,6 +57,28 @@ def scores(t_s: np.ndarray, x_true: np.ndarray, est_path: str, lit: np.ndarray) 
             "tracked_frames": int((status == 1).sum())}
 
 
+def label_range(report: dict, x_true: np.ndarray, pos_C_m: np.ndarray) -> dict | None:
+    """The labelled frames' range error (m, label minus truth) as smoothed ('smoothed'), corrected by the
+    sequence's edge scale ('sequence'), by each frame's ('frame'; unmeasured frames as smoothed): mean, RMS, and
+    the frames measured. None without the edge record."""
+    last = report["rounds"][-1]
+    rec = last.get("edge_range")
+    if not rec or "range_m" not in rec:
+        return None
+    k = np.asarray(last["label_frames"], int)
+    r = np.asarray(rec["range_m"])
+    r_true = np.linalg.norm(np.asarray(x_true).reshape(-1, 12)[k, :3] - pos_C_m, axis=1)
+    d_seq = rec["sequence"]["delta"]
+    d_frame = np.array([np.nan if d is None else d for d in rec["delta"]])
+    ranges = {"smoothed": r, "sequence": r / (1.0 + (d_seq if d_seq is not None else 0.0)),
+              "frame": np.where(np.isfinite(d_frame), r / (1.0 + np.nan_to_num(d_frame)), r)}
+    out = {name: {"mean_m": float(np.mean(v - r_true)), "rms_m": float(np.sqrt(np.mean((v - r_true) ** 2)))}
+           for name, v in ranges.items()}
+    out.update(frames=int(len(k)), frames_measured=rec["frames_measured"], sequence_fit=rec["sequence"],
+               applied=rec["mode"], range_true_median_m=float(np.median(r_true)))
+    return out
+
+
 def envisat(*args: str) -> None:
     subprocess.run([os.path.join(os.path.dirname(sys.executable), "envisat"), *args, "--quiet"], check=True,
                    stdout=subprocess.DEVNULL)
@@ -64,7 +90,7 @@ def pck5(weights: str, data: str, out_json: str) -> float:
         return float(json.load(fh)["groups"]["all"]["detector"]["pck_5px"])
 
 
-def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int | None) -> dict:
+def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int | None, edge_range: str) -> dict:
     sys.path.insert(0, os.path.join(ROOT, "bench"))
     import foreign_frames
 
@@ -89,10 +115,10 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
     ref = scores(t_own, x_own, os.path.join(case, "own-track", "est.npz"), np.ones(len(t_own), bool))
     # adapt on the foreign frames (the truth is not handed to it)
     src = open_source(os.path.join(foreign, "frames"), timestamps=os.path.join(foreign, "timestamps.csv"))
-    fields = {} if steps is None else {"steps": steps}
+    fields = {"edge_range": edge_range} if steps is None else {"steps": steps, "edge_range": edge_range}
     cfg = AdaptConfig(track=TrackConfig.from_scenario(scenario), **fields)
     t1 = time.perf_counter()
-    run = os.path.join(case, "adapt")
+    run = os.path.join(case, f"adapt-{edge_range}")
     try:
         report = adapt(cfg, src, run, camera=os.path.join(foreign, "camera.toml"), progress=False)
         refused = None
@@ -101,7 +127,7 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
     t_adapt = time.perf_counter() - t1
     with np.load(os.path.join(foreign, "truth.npz")) as tr:
         t_f, x_f, lit = tr["t_s"], tr["x"], ~tr["eclipse"].astype(bool)
-    out = {"scenario": scenario, "seed": seed, "resolution_px": res, "frames": n, "own": ref,
+    out = {"scenario": scenario, "seed": seed, "resolution_px": res, "frames": n, "edge_range": edge_range, "own": ref,
            "make_s": t_make, "adapt_s": t_adapt, "refused": refused}
     if report is not None:
         out["before"] = scores(t_f, x_f, os.path.join(run, "before", "est.npz"), lit)
@@ -110,6 +136,10 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
         out["held_out"] = {"before": report["before"], "after": report["after"]}
         out["labels"] = report["rounds"][-1]["labels"]
         out["label_sigma_px_median"] = report["rounds"][-1]["label_sigma_px_median"]
+        from envisat_pose.pipelines.camera_file import camera_from_intrinsics
+
+        cam_user, _ = camera_from_intrinsics(os.path.join(foreign, "camera.toml"))
+        out["label_range"] = label_range(report, x_f, cam_user.pos_C_m)
         out["timing_s"] = report["timing_s"]
         if report["adopted"]:
             out["pck5_own"] = {"shipped": pck5(shipped_weights_path(), own, os.path.join(case, "eval-shipped.json")),
@@ -145,6 +175,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--num-images", type=int, default=300)
     ap.add_argument("--steps", type=int, help="fine-tune steps (default: AdaptConfig's)")
     ap.add_argument("--work", default="/tmp/adapt-bench")
+    ap.add_argument("--edge-range", default="sequence", choices=["sequence", "frame", "off"],
+                    help="AdaptConfig.edge_range: how the labels' range is corrected by the silhouette edges")
     ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "adapt.json"))
     args = ap.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
@@ -152,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     for scenario in args.scenarios:
         for res in args.resolutions:
             for seed in args.seeds:
-                rows.append(one_case(scenario, seed, res, args.num_images, args.work, args.steps))
+                rows.append(one_case(scenario, seed, res, args.num_images, args.work, args.steps, args.edge_range))
                 with open(args.out, "w") as fh:  # after each case: a killed run keeps what it measured
                     json.dump({"cases": rows, "cores": os.cpu_count(), "argv": sys.argv[1:]}, fh, indent=1)
                 print(table(rows[-1:]), flush=True)

@@ -13,7 +13,8 @@ at grazing incidence and slivers would bias the plateau, not the edge). Rows:
 per look (random views with the MJCF's plain materials; random views with the appearance on; the default
 scenario's sequence), clean and through the space camera, all stations and split by whether the profile
 reaches the 8-bit ceiling (>= 250: clipped, bloomed). The segmentation mask's own edge is checked the same way
-(the render's geometry against the labels).
+(the render's geometry against the labels). The station and area-method math is the library's
+(pipelines/edge_range.py, which `envisat adapt` uses without a mask); this bench passes the render's mask.
 
 Run: .venv/bin/python bench/silhouette_bias.py [--images 40]  (writes bench/results/silhouette_bias.json)
 """
@@ -31,10 +32,7 @@ os.environ.setdefault("MUJOCO_GL", "osmesa")
 
 import numpy as np
 
-MIN_EDGE_PX = 60.0
-STEP_PX, END_PX = 2.0, 20.0
-T = np.arange(-6.0, 6.0 + 1e-9, 0.25)
-CLIPPED = 250.0
+MIN_EDGE_PX, END_PX = 60.0, 20.0  # at 1024 px (the library's defaults reach the box's short edges at 512 px)
 
 LOOKS = {
     "random_plain": {"appearance": {"enabled": False}, "appendages": False},
@@ -45,49 +43,12 @@ LOOKS = {
 
 def edge_offsets(image: np.ndarray, mask: np.ndarray, corners_px: np.ndarray, visible: np.ndarray
                  ) -> list[tuple[float, bool]]:
-    """(offset px, clipped) of every usable station of the hull's edges (module doc)."""
-    from scipy.spatial import ConvexHull
+    """(offset px, clipped) of every usable station of the hull's edges (module doc): the library's
+    pipelines/edge_range.edge_stations with the render's mask and this bench's 60 px edges, 20 px from their ends."""
+    from envisat_pose.pipelines.edge_range import edge_stations
 
-    from envisat_pose.perception.refine import sample_bicubic
-
-    q = corners_px[visible]
-    if len(q) < 3:
-        return []
-    idx = np.flatnonzero(visible)[ConvexHull(q).vertices]
-    centre = q.mean(axis=0)
-    h, w = mask.shape
-    out = []
-    for a, b in zip(idx, np.roll(idx, -1)):
-        pa, pb = corners_px[a], corners_px[b]
-        length = float(np.linalg.norm(pb - pa))
-        if length < MIN_EDGE_PX:
-            continue
-        d = (pb - pa) / length
-        n = np.array([-d[1], d[0]])
-        n = n if n @ ((pa + pb) / 2 - centre) > 0 else -n  # outward
-        s = np.arange(END_PX, length - END_PX, STEP_PX)
-        base = pa[None] + s[:, None] * d
-        prof = sample_bicubic(image, base[:, None] + T[None, :, None] * n).astype(np.float64)
-        inside = prof[:, T <= -4.0].mean(axis=1)
-        outside = prof[:, T >= 4.0].mean(axis=1)
-        probe = {o: np.round(base + o * n).astype(int) for o in (-6.0, -5.0, -3.0, -1.0, 3.0)}
-        contrast = inside - outside
-        # a uniform inside (its samples 1 to 6 px in within 10 % of the contrast): no texture, shadow acne or
-        # sliver of another face for the plateau to misjudge
-        flat = prof[:, (T >= -6.0) & (T <= -1.0)].std(axis=1) < 0.1 * np.abs(contrast)
-        ok = (contrast > 20.0) & flat
-        for o, p in probe.items():
-            ok &= (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
-        cls = {o: np.where(ok, mask[np.clip(p[:, 1], 0, h - 1), np.clip(p[:, 0], 0, w - 1)], -1)
-               for o, p in probe.items()}
-        ok &= (cls[3.0] == 0) & (cls[-1.0] >= 1) & (cls[-1.0] <= 6)
-        for o in (-3.0, -5.0, -6.0):
-            ok &= cls[o] == cls[-1.0]
-        win = (T >= -4.0) & (T <= 4.0)
-        for i in np.flatnonzero(ok):
-            norm = (prof[i] - outside[i]) / (inside[i] - outside[i])
-            out.append((float(-4.0 + np.trapezoid(norm[win], T[win])), bool(prof[i, win].max() >= CLIPPED)))
-    return out
+    st = edge_stations(image, corners_px, visible, mask=mask, min_edge_px=MIN_EDGE_PX, end_px=END_PX)
+    return [(float(o), bool(c)) for o, c in zip(st.offset_px, st.clipped)]
 
 
 def summary(rows: list[tuple[float, bool]]) -> dict:

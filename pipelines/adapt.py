@@ -7,7 +7,8 @@ The steps (one round; `rounds` repeats 2-5 from the last track):
    is tight (the largest corner 1-sigma of the smoothed covariance, label_sigma_px, below `max_label_sigma_px`);
    a lost, coasting or never-decided frame contributes nothing;
 3. label them at the smoothed estimate (pipelines/pseudo_labels.py: an unscented RTS smoother over each tracked
-   segment, the box's corners projected with the face test's visibility);
+   segment, the box's corners projected with the face test's visibility), its range first corrected by the
+   frames' own silhouette edges (`edge_range`, pipelines/edge_range.py) where they can be measured;
 4. fine-tune the detector on those (image, label) pairs in memory with the project's crops, augmentation and
    losses (perception/data.make_sample, perception/train's step): the normalization layers and the heads
    (`params='norm_heads'`), or the whole network (`params='all'`);
@@ -19,7 +20,10 @@ the pose stays tracked: `worse_reason`), the original weights are kept and the r
 
 Pseudo-labels carry what the tracker believes, its biases included: a detector that sees the target a little
 smaller than it is gives a range a little long, and labels projected from that pose are a little small. Fine-tuning
-on them teaches the look, not the size; the truth never enters here.
+on them alone teaches the look, not the size. The image's silhouette edges do not share the detector's bias: the
+box's outline in the frames against the outline projected at the smoothed pose gives the image's scale error
+delta, and the labels' range is divided by (1 + delta) (edge_range: one delta for the whole labelled set,
+'sequence'; one per frame, 'frame'; or 'off'). The truth never enters here.
 
 Outputs (staged inside out_dir and moved into place at the end, io.staged_folder; an error leaves out_dir as it
 was):
@@ -50,6 +54,7 @@ RUN_DIRS = ("before", "after")
 SHARE_MARGIN = 0.02          # tracked share may drop by at most 2 points
 STAY_MARGIN_FRAMES = 3       # the pose may start to stay tracked at most 3 frames later
 NIS_MARGIN = np.log(1.5)     # |ln(mean NIS / dof)| may grow by at most ln 1.5
+EDGE_RANGE_MODES = ("sequence", "frame", "off")
 
 
 @dataclass(frozen=True)
@@ -60,7 +65,11 @@ class AdaptConfig:
     fine-tune's AdamW steps, peak rate (short warm-up, cosine decay) and batch; params: 'norm_heads' (the
     normalization layers and the heads) or 'all' (the whole network); min_trusted: the fewest labelled frames
     accepted; max_label_sigma_px: a label's largest corner 1-sigma (px) under the smoothed covariance;
-    max_labels: at most this many labelled frames, evenly spread (memory); max_calibration_frames: the
+    max_labels: at most this many labelled frames, evenly spread (memory); edge_range: how the labels' range is
+    corrected by the frames' silhouette edges (pipelines/edge_range.py): 'sequence' (one scale for all labelled
+    frames: the detector's bias is the sequence's), 'frame' (each frame's own; a frame without a measurable outline
+    keeps its range), 'off'; edge_min_frames: the fewest measured frames 'sequence' corrects with (fewer: no
+    correction); max_calibration_frames: the
     recalibration's frames (evenly spread over the labelled ones); seed: the fine-tune's crops,
     augmentation and batches; device: torch device of the fine-tune ('cpu', 'cuda'); threads: torch CPU threads of
     the fine-tune (0: torch's default). Validated when built."""
@@ -75,6 +84,8 @@ class AdaptConfig:
     min_trusted: int = 20
     max_label_sigma_px: float = 0.5
     max_labels: int = 240
+    edge_range: str = "sequence"
+    edge_min_frames: int = 10
     max_calibration_frames: int = 60
     seed: int = 0
     device: str = "cpu"
@@ -91,6 +102,9 @@ class AdaptConfig:
         check(self.min_trusted >= 1, f"{p}min_trusted", self.min_trusted, "at least 1 frame")
         check(self.max_label_sigma_px > 0, f"{p}max_label_sigma_px", self.max_label_sigma_px, "pixels > 0")
         check(self.max_labels >= self.min_trusted, f"{p}max_labels", self.max_labels, "at least min_trusted")
+        check(self.edge_range in EDGE_RANGE_MODES, f"{p}edge_range", self.edge_range,
+              "'sequence', 'frame' or 'off'")
+        check(self.edge_min_frames >= 1, f"{p}edge_min_frames", self.edge_min_frames, "at least 1 frame")
         check(self.max_calibration_frames >= 1, f"{p}max_calibration_frames", self.max_calibration_frames,
               "at least 1 frame")
         check(self.threads >= 0, f"{p}threads", self.threads, "threads >= 0 (0: torch's default)")
@@ -148,10 +162,10 @@ def worse_reason(before: dict, after: dict) -> str | None:
 def pseudo_labels(run_dir: str, camera, orbit, q_sigma, dyn: dict, cut: int, cfg: AdaptConfig) -> dict:
     """The labels of a track run: the smoothed segments (pseudo_labels.smooth_track), the trusted frames before
     `cut` whose largest corner sigma is below cfg.max_label_sigma_px, at most cfg.max_labels of them evenly
-    spread. Returns {frames (N,) int, labels [label_record], sigma_px (N,) the largest corner sigma, trusted: all
-    trusted frames before cut}."""
+    spread. Returns {frames (N,) int, x (N, 12) their smoothed states, sigma_px (N,) the largest corner sigma,
+    trusted: all trusted frames before cut}; label_record(x[i], camera) labels frame i."""
     from envisat_pose.pipelines.onboard import chaser_function
-    from envisat_pose.pipelines.pseudo_labels import label_record, label_sigma_px, smooth_track
+    from envisat_pose.pipelines.pseudo_labels import label_sigma_px, smooth_track
 
     with np.load(os.path.join(run_dir, "est.npz")) as est, np.load(os.path.join(run_dir, "det.npz")) as det:
         t_s, x_hat, P, status = est["t_s"], est["x_hat"][0], est["P"][0], est["status"][0]
@@ -166,8 +180,38 @@ def pseudo_labels(run_dir: str, camera, orbit, q_sigma, dyn: dict, cut: int, cfg
     if len(keep) > cfg.max_labels:
         pick = np.unique(np.linspace(0, len(keep) - 1, cfg.max_labels).round().astype(int))
         keep, sigma = keep[pick], sigma[pick]
-    return {"frames": keep, "labels": [label_record(sm.x[k], camera) for k in keep], "sigma_px": sigma,
-            "trusted": int(len(trusted))}
+    return {"frames": keep, "x": sm.x[keep], "sigma_px": sigma, "trusted": int(len(trusted))}
+
+
+def edge_corrected(x: np.ndarray, images: list[np.ndarray], camera, mode: str, min_frames: int
+                   ) -> tuple[np.ndarray, dict]:
+    """The labels' states x (N, 12) with their range corrected by the frames' silhouette edges (images: the N
+    frames as the tracker saw them; pipelines/edge_range.py): mode 'sequence' divides every range by (1 + delta)
+    of the sequence (edge_range.sequence_scale over the frames' fits; none below min_frames measured frames),
+    'frame' each by its own frame's (a frame without one keeps its range), 'off' leaves x (the edges are
+    measured and recorded all the same). Returns (x corrected,
+    record: mode, per-frame delta / delta_se / stations (None where not measured) and range_m (before the
+    correction), the sequence's fit, the frames measured and the factor applied per frame (1: none))."""
+    from envisat_pose.pipelines.edge_range import correct_range, frame_scale, sequence_scale
+    from envisat_pose.pipelines.pseudo_labels import corner_labels
+
+    lab = corner_labels(x, camera)
+    fits = [frame_scale(im, lab["corners_px"][i], lab["visible"][i] & lab["in_frame"][i])
+            for i, im in enumerate(images)]
+    seq = sequence_scale(fits, min_frames)
+    if mode == "sequence":
+        delta = np.full(len(x), np.nan if seq.delta is None else seq.delta)
+    elif mode == "frame":
+        delta = np.array([np.nan if f.delta is None else f.delta for f in fits])
+    else:  # 'off': measured and recorded, not applied
+        delta = np.full(len(x), np.nan)
+    record = {"mode": mode, "sequence": seq.record(), "frames_measured": int(sum(f.delta is not None for f in fits)),
+              "range_m": [float(v) for v in np.linalg.norm(x[:, :3] - camera.pos_C_m, axis=1)],
+              "delta": [f.delta for f in fits], "delta_se": [f.delta_se for f in fits],
+              "stations": [f.stations for f in fits],
+              "range_factor": [float(v) for v in np.where(np.isfinite(delta), 1.0 / (1.0 + np.nan_to_num(delta)),
+                                                          1.0)]}
+    return correct_range(x, camera.pos_C_m, delta), record
 
 
 def read_frames(source, remap, keep: np.ndarray) -> dict[int, np.ndarray]:
@@ -357,6 +401,7 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
 
     import torch
 
+    from envisat_pose.pipelines.pseudo_labels import label_record
     from envisat_pose.pipelines.track import track_frames
     from envisat_pose.pipelines.tracker import Tracker
 
@@ -390,6 +435,8 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
                 f"{lab['trusted']} before the sigma test); adapt needs at least {cfg.min_trusted} (min_trusted)")
         frames = read_frames(source, remap, lab["frames"])
         images = [frames[int(k)] for k in lab["frames"]]
+        x_lab, edges = edge_corrected(lab["x"], images, camera, cfg.edge_range, cfg.edge_min_frames)
+        lab["labels"] = [label_record(v, camera) for v in x_lab]
         timing[f"labels_{r}"] = time.perf_counter() - t1
         threads = torch.get_num_threads()
         torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
@@ -402,7 +449,8 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
             _close(bar)
         candidate = os.path.join(stage, f"round-{r}.safetensors")
         info = {"round": r, "labels": int(len(lab["frames"])), "trusted_before_sigma_test": lab["trusted"],
-                "label_sigma_px_median": float(np.median(lab["sigma_px"])), "fine_tune": ft}
+                "label_sigma_px_median": float(np.median(lab["sigma_px"])), "fine_tune": ft,
+                "label_frames": [int(k) for k in lab["frames"]], "edge_range": edges}
         if not save_adapted(model, base, candidate, {}):
             torch.set_num_threads(threads)
             info["diverged"] = True

@@ -40,6 +40,28 @@ def test_the_config_is_validated_when_built():
         AdaptConfig(held_out=0.9)
     with pytest.raises(Exception, match="params"):
         AdaptConfig(params="backbone")
+    with pytest.raises(Exception, match="edge_range"):
+        AdaptConfig(edge_range="on")
+    with pytest.raises(Exception, match="edge_min_frames"):
+        AdaptConfig(edge_min_frames=0)
+
+
+@pytest.mark.parametrize("mode", ["sequence", "frame", "off"])
+def test_frames_without_a_measurable_outline_leave_the_labels_range(mode):
+    """Blank frames (no contrast): no delta in any frame, the states returned as they came, the record says so."""
+    from envisat_pose.geometry import load_camera
+    from envisat_pose.pipelines.adapt import edge_corrected
+
+    cam = load_camera().scaled(256, 256)
+    rng = np.random.default_rng(41)
+    x = np.zeros((12, 12))
+    x[:, :3] = cam.pos_C_m + np.array([0.0, 50.0, 0.0]) + rng.normal(0.0, 0.5, (12, 3))
+    x[:, 6:9] = rng.normal(0.0, 0.3, (12, 3))
+    images = [np.full((256, 256), 3, np.uint8) for _ in range(12)]
+    y, rec = edge_corrected(x, images, cam, mode, min_frames=5)
+    assert np.array_equal(y, x)
+    assert rec["mode"] == mode and rec["frames_measured"] == 0 and rec["sequence"]["delta"] is None
+    assert rec["range_factor"] == [1.0] * 12 and len(rec["range_m"]) == 12
 
 
 def test_worse_reason_reads_share_acquisition_and_nis(tmp_path):
@@ -109,6 +131,10 @@ def test_adapt_then_track_with_the_adapted_weights(long_seq, tmp_path, detector_
     card = json.loads((out / "detector.json").read_text())
     assert len(card["source"]["content_sha256"]) == 64 and card["command"][:2] == ["envisat", "adapt"]
     assert card["after"]["tracked_share"] >= card["before"]["tracked_share"] - 0.02
+    edges = card["rounds"][-1]["edge_range"]  # the labels' edge cue recorded (own renders: no bias to speak of)
+    assert edges["mode"] == "sequence" and len(edges["delta"]) == card["rounds"][-1]["labels"]
+    if edges["sequence"]["delta"] is not None:
+        assert abs(edges["sequence"]["delta"]) < 0.003 and edges["sequence"]["delta_se"] > 0
     meta, base = read_metadata(str(out / "detector.safetensors")), read_metadata(detector_weights)
     assert float(meta["cov_scale"]) > 0 and "envisat adapt" in meta["cov_calibration"]
     assert meta.get("error_model") == base.get("error_model")
