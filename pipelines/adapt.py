@@ -12,8 +12,10 @@ The steps (one round; `rounds` repeats 2-5 from the last track):
 4. fine-tune the detector on those (image, label) pairs in memory with the project's crops, augmentation and
    losses (perception/data.make_sample, perception/train's step): the normalization layers and the heads
    (`params='norm_heads'`), or the whole network (`params='all'`);
-5. recalibrate the covariance scale on the pseudo-labels' residuals (perception/calibrate.fit_scale, the
-   network's own covariances, the labels' region of interest, as `envisat calibrate`);
+5. recalibrate on the pseudo-labels: the covariance scale on their residuals (perception/calibrate.fit_scale, the
+   network's own covariances, the labels' region of interest, as `envisat calibrate`) and, when the labels' range
+   was corrected by the edges, the detector's apparent scale on this look (the error model's bias_scale, which
+   the tracker undoes in every frame: `tracker.noise.correct_scale`);
 then track again with the adapted weights: the 'after' run. The held-out final part decides: if the adapted
 weights do worse there than the original ones (tracked share, mean NIS per degree of freedom, the frame from which
 the pose stays tracked: `worse_reason`), the original weights are kept and the report says why in one line.
@@ -23,7 +25,9 @@ smaller than it is gives a range a little long, and labels projected from that p
 on them alone teaches the look, not the size. The image's silhouette edges do not share the detector's bias: the
 box's outline in the frames against the outline projected at the smoothed pose gives the image's scale error
 delta, and the labels' range is divided by (1 + delta) (edge_range: one delta for the whole labelled set,
-'sequence'; one per frame, 'frame'; or 'off'). The truth never enters here.
+'sequence'; one per frame, 'frame'; or 'off'). A few dozen fine-tune steps hardly move a sub-pixel scale, so the
+adapted detector's apparent scale against those corrected labels is measured too and stored as its error model's
+bias_scale: the tracker undoes it, as it undoes the shipped weights' own. The truth never enters here.
 
 Outputs (staged inside out_dir and moved into place at the end, io.staged_folder; an error leaves out_dir as it
 was):
@@ -309,23 +313,31 @@ def save_adapted(model, base: str, path: str, extra: dict) -> bool:
 def recalibrate(weights: str, images: list[np.ndarray], labels: list[dict], bar=None) -> dict:
     """The covariance scale of `weights` refitted on the pseudo-labels' residuals (perception/calibrate.fit_scale
     over the correctly named corners, the network's own covariances, the labels' region of interest: what
-    `envisat calibrate --roi labels` fits). {scale, corners, mean_nees_before (at the file's scale)}; scale None
-    when fewer than 20 corners matched."""
+    `envisat calibrate --roi labels` fits), and the detector's apparent scale against the labels (each frame's
+    least-squares scale of its right corners about their centroid, perception/errormodel.apparent_scale: the
+    quantity the error model's bias_scale holds). {scale, corners, mean_nees_before (at the file's scale),
+    apparent_scale, apparent_scale_se, apparent_scale_frames}; scale None when fewer than 20 corners matched,
+    apparent_scale None below SCALE_MIN_FRAMES frames with one."""
     from envisat_pose.perception.calibrate import fit_scale, nees_px
     from envisat_pose.perception.data import decode_label
     from envisat_pose.perception.detect import DetectConfig, load_detector, weights_cov_scale
+    from envisat_pose.perception.errormodel import SCALE_MIN_FRAMES, mean_se
     from envisat_pose.pipelines.calibrate import collect_frames, flat_errors
 
     det = load_detector(weights, config=dataclasses.replace(DetectConfig(), cov_scale=1.0, refine=False,
                                                             refine_cov_floor_px2=0.0))
     samples = ((str(i), im, decode_label(json.dumps(lab).encode(), f"pseudo-label {i}"))
                for i, (im, lab) in enumerate(zip(images, labels)))
-    err, cov, _ = flat_errors(collect_frames(det, samples, bar=bar, roi="labels"))
+    frames = collect_frames(det, samples, bar=bar, roi="labels")
+    err, cov, _ = flat_errors(frames)
+    s_mean, s_se, s_n = mean_se(frames["scale"])
+    scale = {"apparent_scale": s_mean if s_n >= SCALE_MIN_FRAMES else None,
+             "apparent_scale_se": s_se if s_n >= SCALE_MIN_FRAMES else None, "apparent_scale_frames": s_n}
     if len(err) < 20:
-        return {"scale": None, "corners": int(len(err)), "mean_nees_before": None}
+        return {"scale": None, "corners": int(len(err)), "mean_nees_before": None, **scale}
     old = weights_cov_scale(weights)
     return {"scale": fit_scale(err, cov), "corners": int(len(err)),
-            "mean_nees_before": float(np.mean(nees_px(err, cov * old)))}
+            "mean_nees_before": float(np.mean(nees_px(err, cov * old))), **scale}
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -411,7 +423,7 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
     cut = int(np.floor(T * (1.0 - cfg.held_out)))
     base = tcfg.weights
     # the filter's model as the tracker builds it (its q_sigma raised to the detector's), for the smoother
-    from envisat_pose.perception.detect import load_detector
+    from envisat_pose.perception.detect import load_detector, weights_error_model
     from envisat_pose.pipelines.onboard import chaser_function
 
     probe = Tracker(camera, load_detector(base), chaser_function(tcfg.orbit), tcfg.tracker,
@@ -467,10 +479,20 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
             _close(bar)
         torch.set_num_threads(threads)
         info["calibration"] = cal
+        extra = {}
         if cal["scale"] is not None:
-            save_adapted(model, base, candidate, {"cov_scale": cal["scale"], "cov_calibration": json.dumps(
+            extra |= {"cov_scale": cal["scale"], "cov_calibration": json.dumps(
                 {"scale": cal["scale"], "corners": cal["corners"], "data": "pseudo-labels of "
-                 f"{content_sha256(source)}", "roi": "labels", "by": "envisat adapt"}, sort_keys=True)})
+                 f"{content_sha256(source)}", "roi": "labels", "by": "envisat adapt"}, sort_keys=True)}
+        # the apparent scale is only learned from labels whose range the edges corrected (uncorrected labels carry
+        # the track's scale, so measuring against them would only give back the scale the tracker assumed)
+        corrected = any(f != 1.0 for f in edges["range_factor"])
+        if corrected and cal["apparent_scale"] is not None:
+            em = dataclasses.replace(weights_error_model(base), bias_scale=cal["apparent_scale"])
+            extra["error_model"] = em.to_json()
+        info["apparent_scale_adopted"] = bool(corrected and cal["apparent_scale"] is not None)
+        if extra:
+            save_adapted(model, base, candidate, extra)
         timing[f"recalibrate_{r}"] = time.perf_counter() - t1
         after_dir = os.path.join(stage, "after" if r == cfg.rounds - 1 else f"round-{r}")
         t1 = time.perf_counter()
