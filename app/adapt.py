@@ -1,5 +1,6 @@
 """`envisat adapt`: the verb over pipelines/adapt.py: teach the detector the look of your own frames (tracked cold,
-pseudo-labelled at the smoothed track, fine-tuned, recalibrated, tracked again), judged on a held-out final part."""
+pseudo-labelled at the smoothed track, recalibrated and optionally fine-tuned, tracked again), judged on a held-out
+final part."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "adapt",
         help="adapt the detector to your own frames, with no labels: track, pseudo-label, fine-tune, track again",
         description="Track the frames cold, label the frames the tracker trusts (tracking, half-turn decided, "
-        "tight covariance) at its smoothed estimate, fine-tune the detector on them, recalibrate its covariance "
+        "tight covariance) at its smoothed estimate, their range corrected by the frames' own silhouette edges, "
+        "recalibrate the detector on them (its covariance and apparent scale; --fine-tune to train it too) "
         "and track again. The final quarter is held out: if the adapted weights do worse there, the original ones "
         "are kept and the verb exits 1 saying why. Writes detector.safetensors and detector.json (only when "
         "adopted), report.json, before/ and after/ (the two track runs) into --out.",
@@ -22,8 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rounds", type=int, default=1, help="track-label-fine-tune-track rounds (default 1)")
     p.add_argument("--steps", type=int, help="fine-tune steps per round (default 60)")
     p.add_argument("--lr", type=float, help="fine-tune peak learning rate (default 5e-4)")
-    p.add_argument("--whole-network", action="store_true",
-                   help="fine-tune every layer (default: the normalization layers and the heads)")
+    p.add_argument("--fine-tune", choices=["none", "norm_heads", "all"],
+                   help="what the fine-tune trains: none (default: the detector recalibrated on the labels only, "
+                   "its covariance and apparent scale), norm_heads (the normalization layers and the heads), all")
     p.add_argument("--device", default="cpu", help="torch device of the fine-tune: cpu (default), cuda")
     add_common(p, out="output folder (created; an earlier run's outputs are replaced)", out_metavar="RUN_DIR",
                config="track config (orbit, filter, tracker; top-level keys)", weights=True,
@@ -33,7 +36,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 # the library's argument names -> this verb's flags (app/common.as_flags)
 FLAGS = {"src": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps", "bit_depth": "--bit-depth",
-         "camera": "--camera", "rounds": "--rounds", "steps": "--steps", "lr": "--lr", "device": "--device"}
+         "camera": "--camera", "rounds": "--rounds", "steps": "--steps", "lr": "--lr", "device": "--device",
+         "params": "--fine-tune"}
 
 
 def adapt_cli(args: argparse.Namespace) -> int:
@@ -48,9 +52,9 @@ def adapt_cli(args: argparse.Namespace) -> int:
     source = open_source(args.images, args.rate_hz or 0.0, args.timestamps, args.bit_depth)
     track = TrackConfig.from_scenario(args.scenario or source.scenario or "default", args.config,
                                       rate_hz=args.rate_hz, weights=args.weights)
-    fields = {"steps": args.steps, "lr": args.lr, "seed": args.seed}
-    cfg = AdaptConfig(track=track, rounds=args.rounds, params="all" if args.whole_network else "norm_heads",
-                      device=args.device, **{k: v for k, v in fields.items() if v is not None})
+    fields = {"steps": args.steps, "lr": args.lr, "seed": args.seed, "params": args.fine_tune}
+    cfg = AdaptConfig(track=track, rounds=args.rounds, device=args.device,
+                      **{k: v for k, v in fields.items() if v is not None})
     report = adapt(cfg, source, args.out, camera=args.camera, progress=not args.quiet,
                    command=["envisat"] + list(getattr(args, "argv", [])))
     print(f"{args.images}: {report['source']['frames']} frames; held out from frame "

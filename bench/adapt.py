@@ -90,7 +90,8 @@ def pck5(weights: str, data: str, out_json: str) -> float:
         return float(json.load(fh)["groups"]["all"]["detector"]["pck_5px"])
 
 
-def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int | None, edge_range: str) -> dict:
+def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int | None, edge_range: str,
+             params: str = "none") -> dict:
     sys.path.insert(0, os.path.join(ROOT, "bench"))
     import foreign_frames
 
@@ -115,10 +116,10 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
     ref = scores(t_own, x_own, os.path.join(case, "own-track", "est.npz"), np.ones(len(t_own), bool))
     # adapt on the foreign frames (the truth is not handed to it)
     src = open_source(os.path.join(foreign, "frames"), timestamps=os.path.join(foreign, "timestamps.csv"))
-    fields = {"edge_range": edge_range} if steps is None else {"steps": steps, "edge_range": edge_range}
+    fields = {"edge_range": edge_range, "params": params} | ({} if steps is None else {"steps": steps})
     cfg = AdaptConfig(track=TrackConfig.from_scenario(scenario), **fields)
     t1 = time.perf_counter()
-    run = os.path.join(case, f"adapt-{edge_range}")
+    run = os.path.join(case, f"adapt-{edge_range}-{params}")
     try:
         report = adapt(cfg, src, run, camera=os.path.join(foreign, "camera.toml"), progress=False)
         refused = None
@@ -127,7 +128,8 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
     t_adapt = time.perf_counter() - t1
     with np.load(os.path.join(foreign, "truth.npz")) as tr:
         t_f, x_f, lit = tr["t_s"], tr["x"], ~tr["eclipse"].astype(bool)
-    out = {"scenario": scenario, "seed": seed, "resolution_px": res, "frames": n, "edge_range": edge_range, "own": ref,
+    out = {"scenario": scenario, "seed": seed, "resolution_px": res, "frames": n, "edge_range": edge_range,
+           "params": params, "own": ref,
            "make_s": t_make, "adapt_s": t_adapt, "refused": refused}
     if report is not None:
         out["before"] = scores(t_f, x_f, os.path.join(run, "before", "est.npz"), lit)
@@ -136,6 +138,10 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
         out["held_out"] = {"before": report["before"], "after": report["after"]}
         out["labels"] = report["rounds"][-1]["labels"]
         out["label_sigma_px_median"] = report["rounds"][-1]["label_sigma_px_median"]
+        cal = report["rounds"][-1].get("calibration") or {}
+        out["apparent_scale"] = {"value": cal.get("apparent_scale"), "se": cal.get("apparent_scale_se"),
+                                 "frames": cal.get("apparent_scale_frames"),
+                                 "adopted": report["rounds"][-1].get("apparent_scale_adopted")}
         from envisat_pose.pipelines.camera_file import camera_from_intrinsics
 
         cam_user, _ = camera_from_intrinsics(os.path.join(foreign, "camera.toml"))
@@ -177,6 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", default="/tmp/adapt-bench")
     ap.add_argument("--edge-range", default="sequence", choices=["sequence", "frame", "off"],
                     help="AdaptConfig.edge_range: how the labels' range is corrected by the silhouette edges")
+    ap.add_argument("--params", default="none", choices=["none", "norm_heads", "all"],
+                    help="AdaptConfig.params: what the fine-tune trains ('none': recalibration only)")
     ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "adapt.json"))
     args = ap.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
@@ -184,7 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     for scenario in args.scenarios:
         for res in args.resolutions:
             for seed in args.seeds:
-                rows.append(one_case(scenario, seed, res, args.num_images, args.work, args.steps, args.edge_range))
+                rows.append(one_case(scenario, seed, res, args.num_images, args.work, args.steps, args.edge_range,
+                                     args.params))
                 with open(args.out, "w") as fh:  # after each case: a killed run keeps what it measured
                     json.dump({"cases": rows, "cores": os.cpu_count(), "argv": sys.argv[1:]}, fh, indent=1)
                 print(table(rows[-1:]), flush=True)

@@ -46,6 +46,18 @@ def test_the_config_is_validated_when_built():
         AdaptConfig(edge_min_frames=0)
 
 
+def test_params_none_returns_the_original_network_untrained(detector_weights):
+    """params='none' (recalibration only): the fine-tune hands back the file's own tensors, no step taken."""
+    from envisat_pose.perception.weights import read_weights
+    from envisat_pose.pipelines.adapt import fine_tune
+
+    model, info = fine_tune(detector_weights, [], [], AdaptConfig(params="none"), np.random.SeedSequence(0))
+    assert info["steps"] == 0 and info["trainable"] == 0
+    saved, _ = read_weights(detector_weights)
+    state = model.state_dict()
+    assert all(torch.equal(state[k], v) for k, v in saved.items())
+
+
 @pytest.mark.parametrize("mode", ["sequence", "frame", "off"])
 def test_frames_without_a_measurable_outline_leave_the_labels_range(mode):
     """Blank frames (no contrast): no delta in any frame, the states returned as they came, the record says so."""
@@ -110,7 +122,7 @@ def test_a_damaging_fine_tune_keeps_the_original_weights(long_seq, tmp_path, cap
     monkeypatch.setattr(adapt_module, "fine_tune", wrecking)
     out = tmp_path / "run"
     rc = main(["adapt", "--images", long_seq, "--out", str(out), "--quiet", "--weights", detector_weights,
-               "--steps", "2"])
+               "--fine-tune", "norm_heads", "--steps", "2"])
     err = capsys.readouterr().err.strip()
     assert rc == 1 and err.startswith("envisat adapt: kept the original weights:") and len(err.splitlines()) == 1
     assert not (out / "detector.safetensors").exists() and not (out / "detector.json").exists()
@@ -127,7 +139,7 @@ def test_adapt_then_track_with_the_adapted_weights(long_seq, tmp_path, detector_
 
     out = tmp_path / "run"
     assert main(["adapt", "--images", long_seq, "--out", str(out), "--quiet", "--weights", detector_weights,
-                 "--lr", "1e-6", "--steps", "4"]) == 0
+                 "--fine-tune", "norm_heads", "--lr", "1e-6", "--steps", "4"]) == 0
     card = json.loads((out / "detector.json").read_text())
     assert len(card["source"]["content_sha256"]) == 64 and card["command"][:2] == ["envisat", "adapt"]
     assert card["after"]["tracked_share"] >= card["before"]["tracked_share"] - 0.02
