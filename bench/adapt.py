@@ -16,8 +16,9 @@ Per (scenario, seed, resolution):
   applies), so both ways of correcting are scored from one run.
 
 Run:  .venv/bin/python bench/adapt.py --scenarios default --seeds 0 1 --resolutions 512 --num-images 300 \\
-          --work /tmp/adapt-bench --edge-range sequence --out bench/results/adapt_edge_range.json
-(frames already under --work are reused; each --edge-range mode adapts into its own folder adapt-MODE.)
+          --work /tmp/adapt-bench --out bench/results/adapt.json   [--params norm_heads] [--edge-range off]
+(frames already under --work are reused; each --edge-range and --params adapts into its own folder
+adapt-MODE-PARAMS.)
 """
 
 from __future__ import annotations
