@@ -46,6 +46,13 @@ def test_the_config_is_validated_when_built():
         AdaptConfig(edge_min_frames=0)
 
 
+def test_fine_tune_flags_without_a_fine_tune_are_one_line(tmp_path, capsys):
+    rc = main(["adapt", "--images", str(tmp_path / "none"), "--out", str(tmp_path / "run"), "--steps", "5"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "--fine-tune" in err, err
+    assert not (tmp_path / "run").exists()
+
+
 def test_params_none_returns_the_original_network_untrained(detector_weights):
     """params='none' (recalibration only): the fine-tune hands back the file's own tensors, no step taken."""
     from envisat_pose.perception.weights import read_weights
