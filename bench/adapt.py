@@ -148,7 +148,9 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
         cam_user, _ = camera_from_intrinsics(os.path.join(foreign, "camera.toml"))
         out["label_range"] = label_range(report, x_f, cam_user.pos_C_m)
         out["timing_s"] = report["timing_s"]
-        if report["adopted"]:
+        if report["adopted"] and params == "none":  # the same network: its corners, so its PCK, unchanged
+            out["pck5_own"] = {"same_network": True}
+        elif report["adopted"]:
             out["pck5_own"] = {"shipped": pck5(shipped_weights_path(), own, os.path.join(case, "eval-shipped.json")),
                                "adapted": pck5(os.path.join(run, "detector.safetensors"), own,
                                                os.path.join(case, "eval-adapted.json"))}
