@@ -34,7 +34,7 @@ bias_scale: the tracker undoes it, as it undoes the shipped weights' own. The tr
 
 Outputs (staged inside out_dir and moved into place at the end, io.staged_folder; an error leaves out_dir as it
 was):
-    detector.safetensors   the adapted weights, only when adopted (their cov_scale recalibrated)
+    detector.safetensors   the adapted weights, only when adopted (their cov_scale and apparent scale recalibrated)
     detector.json          the model card: the source frames by content hash, the command, the figures
     report.json            the same figures and, when not adopted, the reason
     before/, after/        the two track runs (est.npz, det.npz, summary.json, recording.rrd, ...)
