@@ -689,3 +689,39 @@ def test_a_track_estimate_is_built_by_keywords_only():
 
     with pytest.raises(TypeError):
         TrackEstimate(0.0, "acquiring")
+
+
+def test_twins_failing_only_their_fit_statistics_start_beside_the_one_that_passes(truth_600, monkeypatch):
+    """The cold start's fits share one window: when the detector's naming passes its fit tests and its three
+    half-turn twins fail theirs (a chi-square just past its bound), the bank still starts with all four (the
+    window's noise is no evidence between them; a lone survivor would be decided with none) and decides by the
+    evidence that follows: the truth. A twin whose state is not physical never starts."""
+    import envisat_pose.pipelines.tracker as trk
+
+    real_fit, real_state, calls = trk.fit_problems, trk.state_problems, []
+
+    def twins_fail(fit, frames, cfg, min_corners):
+        calls.append(len(calls))
+        return real_fit(fit, frames, cfg, min_corners) + (["a chi-square past its bound"] if len(calls) > 1 else [])
+
+    monkeypatch.setattr(trk, "fit_problems", twins_fail)
+    ests = run_tracker(truth_600, NoisyTruthDetector(truth_600, p_alt=0.5), range(0, 80))
+    start = next(k for k, e in enumerate(ests) if "started" in e.events)
+    assert len(ests[start].hypotheses) >= 2, ests[start].probabilities  # alone: decided with no evidence
+    assert ests[-1].status == "tracking"
+    att_deg, pos_share = claim_errors(ests[-1], truth_600.x[79])
+    assert att_deg < 5.0 and pos_share < 0.02
+
+    # a twin that is not physical does not start, whatever its fit
+    calls.clear()
+    state_calls = []
+
+    def twin_unphysical(x, P, camera, radius_m, cfg):
+        state_calls.append(1)
+        return ["target not in front of the camera"] if 2 <= len(state_calls) <= len(acq.NAMINGS) else \
+            real_state(x, P, camera, radius_m, cfg)
+
+    monkeypatch.setattr(trk, "state_problems", twin_unphysical)
+    ests = run_tracker(truth_600, NoisyTruthDetector(truth_600, p_alt=0.5), range(0, 25))
+    start = next(k for k, e in enumerate(ests) if "started" in e.events)
+    assert len(ests[start].hypotheses) <= 1
