@@ -18,7 +18,7 @@ The steps (one round; `rounds` repeats 2-5 from the last track):
 5. recalibrate on the pseudo-labels: the covariance scale on their residuals (perception/calibrate.fit_scale, the
    network's own covariances, the labels' region of interest, as `envisat calibrate`) and, when the labels' range
    was corrected by the edges, the detector's apparent scale on this look (the error model's bias_scale, which
-   the tracker undoes in every frame: `tracker.noise.correct_scale`);
+   the tracker undoes in every frame: `tracker.noise.correct_scale`; `adapted_scale`);
 then track again with the adapted weights: the 'after' run. The held-out final part decides: if the adapted
 weights do worse there than the original ones (tracked share, mean NIS per degree of freedom, the frame from which
 the pose stays tracked: `worse_reason`), the original weights are kept and the report says why in one line.
@@ -29,8 +29,10 @@ on them alone teaches the look, not the size. The image's silhouette edges do no
 box's outline in the frames against the outline projected at the smoothed pose gives the image's scale error
 delta, and the labels' range is divided by (1 + delta) (edge_range: one delta for the whole labelled set,
 'sequence'; one per frame, 'frame'; or 'off'). A few dozen fine-tune steps hardly move a sub-pixel scale, so the
-adapted detector's apparent scale against those corrected labels is measured too and stored as its error model's
-bias_scale: the tracker undoes it, as it undoes the shipped weights' own. The truth never enters here.
+detector's apparent scale on this look is stored as the adapted weights' error model's bias_scale, which the
+tracker undoes as it undoes the shipped weights' own: for the unchanged network (params 'none') the track's own
+scale over (1 + delta), every measured station of the sequence behind it; for a fine-tuned one its corners'
+scale against the corrected labels. The truth never enters here.
 
 Outputs (staged inside out_dir and moved into place at the end, io.staged_folder; an error leaves out_dir as it
 was):
@@ -61,6 +63,11 @@ RUN_DIRS = ("before", "after")
 SHARE_MARGIN = 0.02          # tracked share may drop by at most 2 points
 STAY_MARGIN_FRAMES = 3       # the pose may start to stay tracked at most 3 frames later
 NIS_MARGIN = np.log(1.5)     # |ln(mean NIS / dof)| may grow by at most ln 1.5
+# How far a rendered outline's edge may sit from the true one, px (+ outward): on MuJoCo Filament frames at the
+# true pose the area method reads the lit faces' edges 0.02-0.12 px inward by brightness (a darker rim pixel), a
+# sequence's mean -0.03 to -0.08 px (bench/edge_truth.py, default scenario, seeds 0-3, 512 px): the scale the
+# edges give is not known better than this over the outline's radius.
+EDGE_OFFSET_PX = 0.08
 EDGE_RANGE_MODES = ("sequence", "frame", "off")
 ADAPT_PARAMS = ("norm_heads", "all", "none")  # what the fine-tune trains (AdaptConfig.params)
 
@@ -200,13 +207,16 @@ def edge_corrected(x: np.ndarray, images: list[np.ndarray], camera, mode: str, m
     'frame' each by its own frame's (a frame without one keeps its range), 'off' leaves x (the edges are
     measured and recorded all the same). Returns (x corrected,
     record: mode, per-frame delta / delta_se / stations (None where not measured) and range_m (before the
-    correction), the sequence's fit, the frames measured and the factor applied per frame (1: none))."""
+    correction), the sequence's fit, the frames measured, the outline's median radius (px, the RMS distance of
+    the used corners from their centroid) and the factor applied per frame (1: none))."""
     from envisat_pose.pipelines.edge_range import correct_range, frame_scale, sequence_scale
     from envisat_pose.pipelines.pseudo_labels import corner_labels
 
     lab = corner_labels(x, camera)
-    fits = [frame_scale(im, lab["corners_px"][i], lab["visible"][i] & lab["in_frame"][i])
-            for i, im in enumerate(images)]
+    use = lab["visible"] & lab["in_frame"]
+    fits = [frame_scale(im, lab["corners_px"][i], use[i]) for i, im in enumerate(images)]
+    radius = [float(np.sqrt(np.mean(np.sum((c[u] - c[u].mean(axis=0)) ** 2, axis=1))))
+              for c, u in zip(lab["corners_px"], use) if u.sum() >= 3]
     seq = sequence_scale(fits, min_frames)
     if mode == "sequence":
         delta = np.full(len(x), np.nan if seq.delta is None else seq.delta)
@@ -215,6 +225,7 @@ def edge_corrected(x: np.ndarray, images: list[np.ndarray], camera, mode: str, m
     else:  # 'off': measured and recorded, not applied
         delta = np.full(len(x), np.nan)
     record = {"mode": mode, "sequence": seq.record(), "frames_measured": int(sum(f.delta is not None for f in fits)),
+              "outline_radius_px": float(np.median(radius)) if radius else None,
               "range_m": [float(v) for v in np.linalg.norm(x[:, :3] - camera.pos_C_m, axis=1)],
               "delta": [f.delta for f in fits], "delta_se": [f.delta_se for f in fits],
               "stations": [f.stations for f in fits],
@@ -317,6 +328,27 @@ def save_adapted(model, base: str, path: str, extra: dict) -> bool:
     meta = {k: v for k, v in read_metadata(base).items() if k not in ("format", "model_config")}
     save_weights(path, model, {**meta, **extra})
     return True
+
+
+def adapted_scale(params: str, applied: float, edges: dict, cal: dict) -> dict | None:
+    """The apparent scale the adapted weights' error model holds, or None. params 'none' (the network that made
+    the track, unchanged) with the sequence's edge fit: its range was off by (1 + delta) with the scale `applied`
+    undone (the track's bias_scale; 1 when the tracker does not correct it), so the detector's scale on this look
+    is applied / (1 + delta), from every measured station of the sequence (edge_range.sequence_scale). Otherwise
+    (a fine-tuned network, or no sequence fit) the corners' least-squares scale against the corrected labels
+    (recalibrate's apparent_scale; None below SCALE_MIN_FRAMES frames). sd: how far it may be from the truth:
+    the fit's standard error and the outline's own offset (EDGE_OFFSET_PX over the outline's median radius),
+    in quadrature. Returns {value, se, sd, method}."""
+    seq = edges.get("sequence") or {}
+    radius = edges.get("outline_radius_px")
+    floor = EDGE_OFFSET_PX / radius if radius else 0.0
+    if params == "none" and seq.get("delta") is not None:
+        value, se = applied / (1.0 + seq["delta"]), applied * seq["delta_se"] / (1.0 + seq["delta"]) ** 2
+        return {"value": value, "se": se, "sd": float(np.hypot(se, floor)), "method": "edges"}
+    if cal.get("apparent_scale") is None:
+        return None
+    se = cal["apparent_scale_se"]
+    return {"value": cal["apparent_scale"], "se": se, "sd": float(np.hypot(se, floor)), "method": "corners"}
 
 
 def recalibrate(weights: str, images: list[np.ndarray], labels: list[dict], bar=None) -> dict:
@@ -496,10 +528,15 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
         # the apparent scale is only learned from labels whose range the edges corrected (uncorrected labels carry
         # the track's scale, so measuring against them would only give back the scale the tracker assumed)
         corrected = any(f != 1.0 for f in edges["range_factor"])
-        if corrected and cal["apparent_scale"] is not None:
-            em = dataclasses.replace(weights_error_model(base), bias_scale=cal["apparent_scale"])
+        tracked = weights_error_model(weights)
+        applied = tracked.bias_scale if tcfg.tracker.noise.correct_scale else 1.0
+        scale = adapted_scale(cfg.params, applied, edges, cal) if corrected else None
+        if scale is not None:
+            em = dataclasses.replace(weights_error_model(base), bias_scale=scale["value"],
+                                     bias_scale_sd=max(tracked.bias_scale_sd, scale["sd"]))
             extra["error_model"] = em.to_json()
-        info["apparent_scale_adopted"] = bool(corrected and cal["apparent_scale"] is not None)
+        info["apparent_scale"] = scale
+        info["apparent_scale_adopted"] = scale is not None
         if extra:
             save_adapted(model, base, candidate, extra)
         timing[f"recalibrate_{r}"] = time.perf_counter() - t1

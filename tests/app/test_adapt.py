@@ -159,7 +159,9 @@ def test_adapt_then_track_with_the_adapted_weights(long_seq, tmp_path, detector_
     last = card["rounds"][-1]
     if last["apparent_scale_adopted"]:  # labels the edges corrected: the look's apparent scale, the rest as based
         em, em0 = json.loads(meta["error_model"]), json.loads(base["error_model"])
-        assert em.pop("bias_scale") == last["calibration"]["apparent_scale"]
+        assert last["apparent_scale"]["method"] == "corners"  # a fine-tuned network: its own corners' scale
+        assert em.pop("bias_scale") == last["apparent_scale"]["value"] == last["calibration"]["apparent_scale"]
+        assert em.pop("bias_scale_sd") == max(em0.pop("bias_scale_sd"), last["apparent_scale"]["sd"])
         em0.pop("bias_scale")
         assert em == em0
     else:
@@ -195,3 +197,21 @@ def test_the_apparent_scale_is_measured_against_the_labels(long_seq, detector_we
     assert a["apparent_scale_frames"] >= 10 and abs(a["apparent_scale"] - 1.0) < 0.005  # own renders: ~1
     assert b["apparent_scale_frames"] == a["apparent_scale_frames"]
     assert b["apparent_scale"] == pytest.approx(a["apparent_scale"] / 1.003, abs=2e-4)
+
+
+def test_the_unchanged_network_takes_the_tracks_scale_over_the_edges_delta():
+    """A track whose range came out (1 + delta) long with the scale `applied` undone saw the target at
+    applied / (1 + delta): undoing that instead brings the range to the edges' (r ~ applied / s). A fine-tuned
+    network is a new detector: its corners' scale against the corrected labels. The sd never undercuts the
+    outline's own offset over its radius."""
+    from envisat_pose.pipelines.adapt import EDGE_OFFSET_PX, adapted_scale
+
+    edges = {"sequence": {"delta": 0.004, "delta_se": 1e-4}, "outline_radius_px": 50.0}
+    cal = {"apparent_scale": 0.9970, "apparent_scale_se": 3e-4}
+    s = adapted_scale("none", 1.0004, edges, cal)
+    assert s["method"] == "edges" and s["value"] == pytest.approx(1.0004 / 1.004, rel=1e-12)
+    assert s["sd"] == pytest.approx(np.hypot(1.0004 * 1e-4 / 1.004**2, EDGE_OFFSET_PX / 50.0))
+    assert adapted_scale("norm_heads", 1.0004, edges, cal)["value"] == 0.9970
+    no_fit = {"sequence": {"delta": None, "delta_se": None}, "outline_radius_px": None}
+    assert adapted_scale("none", 1.0, no_fit, cal) == {"value": 0.9970, "se": 3e-4, "sd": 3e-4, "method": "corners"}
+    assert adapted_scale("none", 1.0, no_fit, {"apparent_scale": None}) is None
