@@ -140,8 +140,9 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
         out["labels"] = report["rounds"][-1]["labels"]
         out["label_sigma_px_median"] = report["rounds"][-1]["label_sigma_px_median"]
         cal = report["rounds"][-1].get("calibration") or {}
-        out["apparent_scale"] = {"value": cal.get("apparent_scale"), "se": cal.get("apparent_scale_se"),
-                                 "frames": cal.get("apparent_scale_frames"),
+        out["apparent_scale"] = {**(report["rounds"][-1].get("apparent_scale") or {}),
+                                 "corners": cal.get("apparent_scale"), "corners_se": cal.get("apparent_scale_se"),
+                                 "corners_frames": cal.get("apparent_scale_frames"),
                                  "adopted": report["rounds"][-1].get("apparent_scale_adopted")}
         from envisat_pose.pipelines.camera_file import camera_from_intrinsics
 

@@ -63,10 +63,11 @@ RUN_DIRS = ("before", "after")
 SHARE_MARGIN = 0.02          # tracked share may drop by at most 2 points
 STAY_MARGIN_FRAMES = 3       # the pose may start to stay tracked at most 3 frames later
 NIS_MARGIN = np.log(1.5)     # |ln(mean NIS / dof)| may grow by at most ln 1.5
-# How far a rendered outline's edge may sit from the true one, px (+ outward): on MuJoCo Filament frames at the
-# true pose the area method reads the lit faces' edges 0.02-0.12 px inward by brightness (a darker rim pixel), a
-# sequence's mean -0.03 to -0.08 px (bench/edge_truth.py, default scenario, seeds 0-3, 512 px): the scale the
-# edges give is not known better than this over the outline's radius.
+# How far a rendered outline's edge may sit from the true one, px: on MuJoCo Filament frames at the true pose the
+# area method reads the lit faces' edges up to 0.12 px inward, the more the brighter the face (a darker rim pixel),
+# and a sequence's scale error -0.02 to -0.16 % at 512 px (0.01-0.13 px over an outline radius of ~80 px), 0.00 to
+# -0.10 % at 1024 px (bench/edge_truth.py, default scenario, seeds 0-3): the scale the edges give is not known
+# better than this over the outline's radius.
 EDGE_OFFSET_PX = 0.08
 EDGE_RANGE_MODES = ("sequence", "frame", "off")
 ADAPT_PARAMS = ("norm_heads", "all", "none")  # what the fine-tune trains (AdaptConfig.params)
