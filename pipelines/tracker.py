@@ -293,10 +293,10 @@ class Tracker:
 
         log_dyn = np.array([-0.5 * cost(f) for f in fits])
         log_app = appearance_log_likelihood(frames, self.cfg.bank.appearance_clip) / self.cfg.bank.appearance_frames
-        physical = [state_problems(f.x, f.P, self.camera, self.radius_m, self.cfg.integrity) if f.valid
-                    else ["the fit has no positive-definite covariance"] for f in fits]
+        state = [state_problems(f.x, f.P, self.camera, self.radius_m, self.cfg.integrity) if f.valid else []
+                 for f in fits]  # an invalid fit's problem is fit_problems' own
         problems = [fit_problems(f, len(frames), self.cfg.integrity, self.cfg.acquire.min_corners) or s
-                    for f, s in zip(fits, physical)]
+                    for f, s in zip(fits, state)]
         ok = np.array([not p for p in problems])
         if not ok.any():
             self.buffer = self.buffer[len(self.buffer) // 2:]
@@ -307,7 +307,7 @@ class Tracker:
         # generate seed 3, 512 px: costs 673-678 for all four, the one passing at chi-square 305 against a bound
         # of 312 started alone and was claimed 180 deg off for 83 frames). The bank weighs them by their fit cost
         # and appearance and drops at once those below 1 - bank.decided, so a far worse fit never starts.
-        start = np.array([not s for s in physical])
+        start = np.array([f.valid and not s for f, s in zip(fits, state)])
         self.buffer = []
         P = np.stack([f.P for f in fits])[start] * self.cfg.acquire.start_cov_factor
         self._start(np.stack([f.x for f in fits])[start], P, fits[0].t_s, log_dyn[start], log_app[start])
