@@ -26,7 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="instead of --data: train on frames rendered as training goes (no files; crops and "
                    "augmentation on the device), each frame cropped at most --uses-per-frame times")
     p.add_argument("--generate-config", metavar="FILE.toml",
-                   help="--online: the looks, as `envisat generate --config` takes them (random mode)")
+                   help="--online: the look, as `envisat generate --config` takes it (random mode)")
+    p.add_argument("--looks", metavar="FILE.toml", help="--online: a mix of looks instead, [[look]] tables of a "
+                   "name, a weight and generate keys (random or sequence mode; docs/usage.md)")
     p.add_argument("--resolution", type=int, metavar="PX", help="--online: the renders' side (default 1024)")
     p.add_argument("--uses-per-frame", type=int, metavar="K", help="--online: crops per rendered frame (1-8, default 8)")
     p.add_argument("--render-workers", type=int, metavar="N",
@@ -79,10 +81,17 @@ def online_config(args: argparse.Namespace):
         return None
     if args.data:
         raise InputError("--data and --online: train on shards or on rendered frames, not both")
-    from envisat_pose.datagen.generate_config import GenerateConfig
+    if args.looks:
+        from envisat_pose.pipelines.online import read_looks
 
-    gen = resolve_job_config(GenerateConfig, {"mode": "random"}, args.generate_config,
-                             {"resolution_px": args.resolution})
+        if args.generate_config or args.resolution:
+            raise InputError("--looks and --generate-config/--resolution: the looks file holds every look's config")
+        gen = read_looks(args.looks)
+    else:
+        from envisat_pose.datagen.generate_config import GenerateConfig
+
+        gen = resolve_job_config(GenerateConfig, {"mode": "random"}, args.generate_config,
+                                 {"resolution_px": args.resolution})
     uses = {} if args.uses_per_frame is None else {"uses_per_frame": args.uses_per_frame}
     return OnlineConfig(gen, args.render_workers or max(1, default_workers()), **uses)
 

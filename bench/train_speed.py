@@ -172,7 +172,7 @@ def time_online_data(resolution_px: int, workers: int, batch_size: int, batches:
 
     src = online_config(resolution_px, workers)
     t0 = time.perf_counter()
-    it = online_batches(src.generate, DataConfig(), 0, batch_size, workers, device, src.uses_per_frame)
+    it = online_batches(src.looks, DataConfig(), 0, batch_size, workers, device, src.uses_per_frame)
     n, first, state = 0, None, {}
     try:
         for _, state in it:

@@ -123,7 +123,7 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
     return view, x, scene
 
 
-@functools.lru_cache(maxsize=2)
+@functools.lru_cache(maxsize=16)
 def sequence_frames(cfg_json: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The truth of a sequence-mode config at its frame times: (t_s (N,), x (N, 12), sun_dir_C (N, 3),
     eclipse (N,) bool, nadir_C (N, 3) with chaser_r_m folded in as its norm)."""
@@ -149,7 +149,7 @@ def sequence_frames(cfg_json: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     return t_s, x, sun_C, eclipse, nadir_C
 
 
-@functools.lru_cache(maxsize=2)
+@functools.lru_cache(maxsize=16)
 def sequence_earth(cfg_json: str) -> tuple[np.ndarray, np.ndarray, int]:
     """The Earth of a sequence-mode config at its frame times: (quat_C (N, 4), the Earth's attitude in C (it
     turns with the orbit and its sidereal rate from an angle drawn from the seed); in_frame (N,) bool, whether

@@ -58,23 +58,26 @@ def draw_crop_params(n: int, cfg: DataConfig, generator: torch.Generator) -> dic
     return {"whole": whole, "u_scale": u_scale, "u_shift": u_shift}
 
 
-def crop_boxes(corners_px: torch.Tensor, usable: torch.Tensor, image_hw: tuple[int, int], cfg: DataConfig,
-               params: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
+def crop_boxes(corners_px: torch.Tensor, usable: torch.Tensor, image_hw: tuple[int, int] | torch.Tensor,
+               cfg: DataConfig, params: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
     """data.crop_box for a batch: (N, 3) int64 (x0, y0, side) square boxes around the usable corners (the image
     centre and min(H, W) when none), side = margin x their extent (at least 16 px, the box at least 32 px);
     jittered by params (draw_crop_params, on the corners' device), whole frames where params['whole'].
-    corners_px (N, 8, 2) float64 full-image px; usable (N, 8) bool. params None: no jitter, no whole frames."""
-    h, w = image_hw
+    corners_px (N, 8, 2) float64 full-image px; usable (N, 8) bool; image_hw (H, W) of every sample, or each
+    sample's own (N, 2) int64 (frames of several sizes). params None: no jitter, no whole frames."""
     c = corners_px.to(torch.float64)
+    if torch.is_tensor(image_hw):
+        h, w = image_hw[:, 0].to(c.device, torch.float64), image_hw[:, 1].to(c.device, torch.float64)
+    else:
+        h, w = (torch.full((len(c),), float(v), dtype=torch.float64, device=c.device) for v in image_hw)
     ok = usable & torch.isfinite(c).all(-1)
     inf = torch.tensor(math.inf, dtype=torch.float64, device=c.device)
     lo = torch.where(ok[..., None], c, inf).amin(1)
     hi = torch.where(ok[..., None], c, -inf).amax(1)
     some = ok.any(1)
-    mid = torch.tensor([w / 2, h / 2], dtype=torch.float64, device=c.device)
+    mid = torch.stack([w / 2, h / 2], dim=1)
     centre = torch.where(some[:, None], (lo + hi) / 2, mid)
-    extent = torch.where(some, (hi - lo).amax(-1).clamp(min=16.0), torch.full_like(some, float(min(h, w)),
-                                                                                    dtype=torch.float64))
+    extent = torch.where(some, (hi - lo).amax(-1).clamp(min=16.0), torch.minimum(h, w))
     side = extent * cfg.crop_margin
     if params is not None:
         side = side * torch.exp(params["u_scale"] * cfg.crop_scale_jitter)
@@ -83,7 +86,8 @@ def crop_boxes(corners_px: torch.Tensor, usable: torch.Tensor, image_hw: tuple[i
     origin = torch.round(centre - side[:, None] / 2)
     box = torch.cat([origin, side[:, None]], dim=1).to(torch.int64)
     if params is not None:
-        whole = torch.tensor([0, 0, max(h, w)], dtype=torch.int64, device=c.device)
+        zero = torch.zeros_like(h)
+        whole = torch.stack([zero, zero, torch.maximum(h, w)], dim=1).to(torch.int64)
         box = torch.where(params["whole"][:, None], whole, box)
     return box
 
@@ -400,11 +404,14 @@ def batch_from_boxes(frames: torch.Tensor, corners_px: torch.Tensor, visible: to
 
 def training_batch(frames: torch.Tensor, corners_px: torch.Tensor, visible: torch.Tensor, in_frame: torch.Tensor,
                    cfg: DataConfig, generator: torch.Generator | None,
-                   frame_of_sample: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                   frame_of_sample: torch.Tensor | None = None,
+                   frame_hw: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """make_sample + collate_batch on the device: sample n a crop of frame frame_of_sample[n] (default: each frame
     once) with its own draws from `generator` (a CPU torch.Generator the caller seeds: crop jitter and the whole
     frame share, style augmentation when cfg.augment, line segments); generator None: evaluation samples (no
     jitter, no whole frames, no augmentation, line segments from a generator seeded 0), as make_sample's rng None.
+    frame_hw: frames of several sizes, (B, 2) int64 each frame's own (H, W), held in the top-left of its frames
+    entry with zeros beyond (what the crops' zero padding reads there); None: every frame the whole entry.
     Returns batch_from_boxes's dict, on the frames' device."""
     dev = frames.device
     fs = torch.arange(len(frames), device=dev) if frame_of_sample is None else frame_of_sample.to(dev)
@@ -412,7 +419,8 @@ def training_batch(frames: torch.Tensor, corners_px: torch.Tensor, visible: torc
     params = None
     if generator is not None:
         params = {k: v.to(dev) for k, v in draw_crop_params(n, cfg, generator).items()}
-    box = crop_boxes(corners_px[fs], in_frame[fs].bool(), tuple(frames.shape[1:]), cfg, params)
+    image_hw = tuple(frames.shape[1:]) if frame_hw is None else frame_hw.to(dev)[fs]
+    box = crop_boxes(corners_px[fs], in_frame[fs].bool(), image_hw, cfg, params)
     style = None
     if generator is not None and cfg.augment:
         style = draw_style_params(n, cfg.input_px, generator)

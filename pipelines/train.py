@@ -18,37 +18,46 @@ from envisat_pose.config import InputError, check
 
 @dataclass(frozen=True)
 class OnlineConfig:
-    """Training on frames as they are rendered (pipelines/online.py) instead of shards. generate: the looks, a
-    random-mode GenerateConfig (frame f is sample f of the dataset it would generate; its seed, resolution,
-    appearance and corruption); workers: renderer processes; uses_per_frame: K, the most crops any frame gives
-    (1-8). Validated when built."""
+    """Training on frames as they are rendered (pipelines/online.py) instead of shards. looks: what is rendered,
+    a GenerateConfig (frame f is sample f of the dataset it would generate; its seed, resolution, appearance and
+    corruption) or a sequence of online.Look (a mix by weight: resolutions, cameras, scenarios), kept as a tuple
+    of Looks; workers: renderer processes; uses_per_frame: K, the most crops any frame gives (1-8). Validated
+    when built."""
 
-    generate: object
+    looks: object
     workers: int = 1
     uses_per_frame: int = 8
 
     def __post_init__(self) -> None:
-        from envisat_pose.pipelines.online import MAX_USES_PER_FRAME
+        from envisat_pose.pipelines.online import MAX_USES_PER_FRAME, as_looks
 
-        check(getattr(self.generate, "mode", None) == "random", "online.generate.mode",
-              getattr(self.generate, "mode", None), "'random' (online training renders random views)")
-        check(self.workers >= 1, "online.workers", self.workers, "at least 1 renderer process")
-        check(1 <= self.uses_per_frame <= MAX_USES_PER_FRAME, "online.uses_per_frame", self.uses_per_frame,
-              f"an integer in [1, {MAX_USES_PER_FRAME}]")
+        object.__setattr__(self, "looks", as_looks(self.looks))
+        check(isinstance(self.workers, int) and self.workers >= 1, "online.workers", self.workers,
+              "at least 1 renderer process")
+        check(isinstance(self.uses_per_frame, int) and 1 <= self.uses_per_frame <= MAX_USES_PER_FRAME,
+              "online.uses_per_frame", self.uses_per_frame, f"an integer in [1, {MAX_USES_PER_FRAME}]")
 
     def record(self) -> dict:
-        """What config.json keeps of it (a resumed run rebuilds it from this)."""
-        from envisat_pose.config import to_dict
+        """What config.json keeps of it (a resumed run rebuilds it from this): the looks with their shares of the
+        period, the renderer processes and K."""
+        from envisat_pose.pipelines.online import look_shares
 
-        return {"generate": to_dict(self.generate), "workers": self.workers, "uses_per_frame": self.uses_per_frame}
+        looks = [dict(look.record(), share=int(n)) for look, n in zip(self.looks, look_shares(self.looks))]
+        return {"looks": looks, "workers": self.workers, "uses_per_frame": self.uses_per_frame}
 
     @classmethod
     def from_record(cls, record: dict, workers: int | None = None) -> "OnlineConfig":
+        """From record()'s dict, or an earlier run's with one 'generate' config."""
         from envisat_pose.config import from_dict
         from envisat_pose.datagen.generate_config import GenerateConfig
+        from envisat_pose.pipelines.online import Look
 
-        return cls(from_dict(GenerateConfig, record["generate"], "online.generate"),
-                   workers or int(record.get("workers", 1)), int(record["uses_per_frame"]))
+        if "looks" in record:
+            looks = tuple(Look.from_record({k: v for k, v in r.items() if k != "share"}, "online.looks")
+                          for r in record["looks"])
+        else:
+            looks = from_dict(GenerateConfig, record["generate"], "online.generate")
+        return cls(looks, workers or int(record.get("workers", 1)), int(record["uses_per_frame"]))
 
 
 def default_workers() -> int:
@@ -226,11 +235,11 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     if online is not None:
         from envisat_pose.pipelines.online import online_batches, run_identity
 
-        identity = run_identity(online.generate, cfg.data, cfg.seed, cfg.batch_size, online.uses_per_frame)
+        identity = run_identity(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.uses_per_frame)
         data = [{"name": "online", "manifest_sha256": identity["config_sha256"], "images": None}]
 
         def source(start_state):
-            return online_batches(online.generate, cfg.data, cfg.seed, cfg.batch_size, online.workers,
+            return online_batches(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.workers,
                                   rank_device, online.uses_per_frame, start_state)
     provenance = {"command": command, "git": git_hash(), "data": data, "torch": torch.__version__,
                   "device": device, "bf16": bf16, "skipped_damaged_shards": skipped}

@@ -261,15 +261,28 @@ def validate(procs, init: str, weights: str, out_json: str, device: str, deadlin
     return proc.stdout if proc.returncode == 0 else None
 
 
-def online_looks(work: str, leg: int) -> str:
-    """The looks of an online leg: the factory's random-mode defaults at 1024 px with the leg's own seeds (its
-    frames the first seed of the leg's data range; a generate config file for `envisat train --generate-config`).
-    One look for the whole leg: the online path takes one config (the offline recipe's mix of scenarios,
-    cameras and wide looks is not yet online)."""
-    looks = merge({"mode": "random", "resolution_px": 1024, "seed": SEED_BASE + SEED_LEG * leg}, leg_seeds(leg))
+def online_looks(work: str, leg: int, scenarios: list[str]) -> str:
+    """The looks of an online leg (a looks file for `envisat train --looks`): the offline recipe's mix, each chunk
+    of a round a look weighted by its images (resolutions, cameras, wide looks, the Earth), every scenario's
+    sequences twice at half weight (appearance off, as the closed loop renders it, and on), each look seeded
+    with the leg's data seeds in turn (SEED_BASE + SEED_LEG x leg + its index)."""
+    from envisat_pose.config import from_dict
+    from envisat_pose.datagen.generate_config import GenerateConfig
+    from envisat_pose.pipelines.online import Look, looks_toml
+
+    chunks = round_chunks(leg, 0, scenarios)
+    chunks += [dict(c, name=c["name"] + "-appearance") for c in round_chunks(leg, 1, scenarios) if "scenario" in c]
+    looks = []
+    for j, c in enumerate(chunks):
+        sequence = "scenario" in c
+        cfg = merge(c["config"], {"resolution_px": c["resolution"], "seed": SEED_BASE + SEED_LEG * leg + j})
+        if sequence:
+            cfg["num_images"] = c["images"]
+        looks.append(Look(c["name"], from_dict(GenerateConfig, cfg, c["name"]),
+                          c["images"] / 2 if sequence else c["images"]))
     path = os.path.join(work, "online_looks.toml")
     with open(path, "w", encoding="utf-8") as fh:
-        fh.write(to_toml(looks))
+        fh.write(looks_toml(looks))
     return path
 
 
@@ -295,8 +308,8 @@ def main() -> int:
                     help="kept for the leg's check of its weights against init on held-out views (0: none)")
     ap.add_argument("--scenarios", nargs="*", help="named scenarios (default: all)")
     ap.add_argument("--online", action="store_true",
-                    help="train on frames rendered as training goes (envisat train --online: random views of the "
-                    "default looks at 1024 px, --render-workers = the cores less two, K = --uses-per-frame) instead "
+                    help="train on frames rendered as training goes (envisat train --online --looks: the offline "
+                    "recipe's mix of looks, --render-workers = the cores less two, K = --uses-per-frame) instead "
                     "of generating shards first; the rate constant, then a cooldown; the pre-cooldown weights and "
                     "the moving average come back beside the last ones")
     ap.add_argument("--uses-per-frame", type=int, default=8)
@@ -336,7 +349,7 @@ def main() -> int:
                  + ('schedule = "constant_cooldown"\nema_decay = 0.999\n' if args.online else ""))
     run_dir = os.path.join(args.work, "run")
     source = (["--online", "--render-workers", str(max(1, args.gen_workers - 2)), "--uses-per-frame",
-               str(args.uses_per_frame), "--generate-config", online_looks(args.work, leg)] if args.online
+               str(args.uses_per_frame), "--looks", online_looks(args.work, leg, scenarios)] if args.online
               else ["--data", *[c["folder"] for c in chunks], "--workers", str(args.workers)])
     cmd = [sys.executable, "-m", "envisat_pose.app.cli", "train", *source, "--out", run_dir, "--config", toml,
            "--init", args.init, "--device", args.device, "--batch-size", str(args.batch_size), "--steps",

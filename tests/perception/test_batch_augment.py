@@ -73,6 +73,31 @@ def test_crop_boxes_follow_crop_box_exactly():
     assert (ba.crop_boxes(c, f, (256, 256), cfg, params)[:5] == torch.tensor([0, 0, 256])).all()
 
 
+def test_crop_boxes_of_frames_of_several_sizes_follow_crop_box_at_each_size():
+    """A mix of frame sizes (online looks at several resolutions): each sample's box is data.crop_box's at its own
+    frame's size, the centre fallback and the whole frame included."""
+    cfg = DataConfig(input_px=96)
+    corners, visible, in_frame = random_labels(120, 128, 7)
+    in_frame[:6] = False
+    sides = np.resize([128, 256, 512], 120)
+    rng = np.random.default_rng(8)
+    u_scale, u_shift = rng.uniform(-1, 1, 120), rng.uniform(-1, 1, (120, 2))
+    whole = np.zeros(120, bool)
+    whole[[0, 1, 2, 50, 51, 52]] = True
+    params = {"whole": torch.from_numpy(whole), "u_scale": torch.from_numpy(u_scale),
+              "u_shift": torch.from_numpy(u_shift)}
+    c, f = tensors(corners, in_frame)
+    hw = torch.from_numpy(np.stack([sides, sides], 1).astype(np.int64))
+    got = ba.crop_boxes(c, f, hw, cfg, params).numpy()
+    for n in range(120):
+        size = (int(sides[n]), int(sides[n]))
+        if whole[n]:
+            assert got[n].tolist() == [0, 0, size[0]], n
+            continue
+        want = crop_box(corners[n], in_frame[n], size, cfg, Replay([u_scale[n], *u_shift[n]]))
+        assert np.array_equal(got[n], want), n
+
+
 def test_crop_resize_matches_opencv_area_and_linear():
     frame = textured_frames(1, 300, 3)[0]
     rng = np.random.default_rng(4)

@@ -55,9 +55,9 @@ def test_frames_are_the_factory_samples(tmp_path):
     image = np.zeros((128, 128), np.uint8)
     with FrameSource(cfg, 1, 2) as source:  # from frame 2: a resumed run renders no earlier frame
         for f in range(2, 6):
-            frame, corners, visible, in_frame = source.take(image)
+            frame, corners, visible, in_frame, side = source.take(image)
             _, want_image, want = offline[f]
-            assert frame == f and np.array_equal(image, want_image)
+            assert frame == f and side == 128 and np.array_equal(image, want_image)
             assert np.array_equal(corners, want["corners_px"]) and np.array_equal(visible, want["visible"])
             assert np.array_equal(in_frame, want["in_frame"])
     assert not multiprocessing.active_children()
@@ -135,3 +135,92 @@ def test_online_and_offline_label_statistics_agree(tmp_path):
         x, y = a[name][0], b[name][0]
         se = np.sqrt(x.var() / len(x) + y.var() / len(y))
         assert abs(x.mean() - y.mean()) < 4 * se + 1e-9, (name, x.mean(), y.mean(), se)
+
+
+def test_a_mix_deals_its_frames_by_weight_and_its_file_reads_back(tmp_path):
+    """Each look gets its rounded share of every LOOK_PERIOD frames, spread over the period, and its samples
+    0, 1, 2, ... in frame order; the looks file round-trips and bad files name the field."""
+    from envisat_pose.config import ConfigError
+    from envisat_pose.pipelines import online
+
+    Look, LOOK_PERIOD = online.Look, online.LOOK_PERIOD
+    looks = (Look("big", GEN, 2000.0), Look("mid", GEN, 800.0), Look("tiny", GEN, 1.0),
+             Look("seq", GenerateConfig(mode="sequence", scenario="slow-tumble", resolution_px=96, num_images=7,
+                                        **CHEAP), 300.0))
+    shares = online.look_shares(looks)
+    assert shares.sum() == LOOK_PERIOD and shares.tolist() == [64, 26, 1, 9]  # 64.5 / 25.8 / 0.03 / 9.7, tiny >= 1
+    pattern = online.look_pattern(shares)
+    samples = [[] for _ in looks]
+    first_period = []
+    for f in range(3 * LOOK_PERIOD):
+        j, i = online.frame_look(f, shares, pattern)
+        samples[j].append(i)
+        if f < LOOK_PERIOD:
+            first_period.append(j)
+    assert [s == list(range(3 * n)) for s, n in zip(samples, shares)] == [True] * 4
+    gaps = np.diff([f for f, j in enumerate(first_period) if j == 1])
+    assert gaps.max() <= 5  # 'mid' every ~3.8 frames, not in one block
+    path = tmp_path / "looks.toml"
+    path.write_text(online.looks_toml(looks))
+    assert online.read_looks(str(path)) == looks
+    path.write_text('seed = 5\n[[look]]\nname = "a"\nweight = 2\n[[look]]\nname = "b"\nresolution_px = 64\n')
+    a, b = online.read_looks(str(path))
+    assert (a.generate.seed, b.generate.seed, b.generate.resolution_px, a.weight, b.weight) == (5, 5, 64, 2, 1.0)
+    for text, field in [('[[look]]\nweight = 1\n', "look[0].name"), ("seed = 1\n", "look"),
+                        ('[[look]]\nname = "a"\nweight = -1\n', "looks.a.weight"),
+                        ('[[look]]\nname = "a"\nrange_min_m = "x"\n', "look.a.range_min_m"),
+                        ('[[look]]\nname = "a"\n[[look]]\nname = "a"\n', "looks")]:
+        path.write_text(text)
+        with pytest.raises(ConfigError, match=field.replace(".", r"\.").replace("[", r"\[")):
+            online.read_looks(str(path))
+
+
+def test_a_mix_of_sizes_and_scenarios_renders_each_looks_own_frames(tmp_path):
+    """A random look at 128 px and a sequence look at 96 px: each frame is its look's sample (the random look's
+    dataset sample, the sequence's frame as `envisat generate` writes that sequence), the smaller one top-left in
+    the slot with zeros beyond; the batches crop each frame within its own size."""
+    from envisat_pose.datagen.factory import generate_shard
+    from envisat_pose.perception.data import read_samples
+    from envisat_pose.pipelines.online import Look, frame_look, look_pattern, look_shares, sequence_seed
+
+    seq_cfg = GenerateConfig(mode="sequence", scenario="slow-tumble", resolution_px=96, num_images=4,
+                             shard_size=4, seed=12, frame_dt_s=5.0, **CHEAP)
+    looks = (Look("random", GEN, 1.0), Look("seq", seq_cfg, 1.0))
+    shares = look_shares(looks)
+    pattern = look_pattern(shares)
+    want_seq = {}
+    for q in range(2):  # the look's sequences 0 and 1, as `envisat generate` writes them
+        cfg_q = GenerateConfig(**{**seq_cfg.__dict__, "seed": sequence_seed(seq_cfg.seed, q)})
+        folder = tmp_path / f"seq{q}"
+        folder.mkdir()
+        name = generate_shard(cfg_q, 0, str(folder))["name"]
+        for k, (_, image, label) in enumerate(read_samples([str(folder / name)])):
+            want_seq[q * 4 + k] = (image, label)
+    rnd = tmp_path / "random"
+    rnd.mkdir()
+    want_rnd = [s[1:] for s in read_samples([str(rnd / generate_shard(GEN, i, str(rnd))["name"]) for i in (0, 1)])]
+    image = np.zeros((128, 128), np.uint8)
+    seen = set()
+    with FrameSource(looks, 2, 0) as source:
+        for f in range(12):
+            frame, corners, visible, in_frame, side = source.take(image)
+            j, i = frame_look(f, shares, pattern)
+            seen.add(j)
+            want_image, want = (want_rnd if j == 0 else want_seq)[i]
+            assert frame == f and side == (128 if j == 0 else 96)
+            assert np.array_equal(image[:side, :side], want_image) and not image[side:].any()
+            assert not image[:, side:].any()
+            assert np.array_equal(corners, want["corners_px"]) and np.array_equal(visible, want["visible"])
+    assert seen == {0, 1}
+    it = online_batches(looks, DATA, seed=3, batch_size=8, workers=1, device="cpu", uses_per_frame=2)
+    try:
+        for _ in range(3):
+            batch, _ = next(it)
+            frames = batch["sample_id"][:, 0].tolist()
+            small = torch.tensor([frame_look(f, shares, pattern)[0] == 1 for f in frames])
+            box = batch["crop_px"]
+            whole = (box[:, 0] == 0) & (box[:, 1] == 0) & (box[:, 2] >= 96)
+            assert (box[small & whole, 2] == 96).all() and (box[~small & whole, 2] == 128).all()
+    finally:
+        it.close()
+    assert not multiprocessing.active_children()

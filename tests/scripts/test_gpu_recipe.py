@@ -82,6 +82,34 @@ def test_a_legs_chunks_are_valid_generate_configs_with_the_asked_mix(leg, tmp_pa
     assert any(g.appearance.specular != GenerateConfig().appearance.specular for g in random)
 
 
+def test_an_online_leg_trains_on_the_offline_rounds_mix(tmp_path):
+    """The online leg's looks file: every chunk of a round a look, at its resolution and camera, weighted by its
+    images; every scenario's sequences with appearance off and on; seeds inside the leg's block."""
+    from envisat_pose.pipelines.online import look_shares, read_looks
+
+    gt, chunks = plan(3, rounds=1)
+    looks = read_looks(gt.online_looks(str(tmp_path), 3, named_scenarios.names()))
+    by_name = {look.name: look for look in looks}
+    for c in chunks:
+        look = by_name[c["name"]]
+        assert look.generate.resolution_px == c["resolution"]
+        if "scenario" in c:
+            assert look.generate.mode == "sequence" and look.generate.scenario == c["scenario"]
+            assert not look.generate.appearance_on and by_name[c["name"] + "-appearance"].generate.appearance_on
+            assert look.generate.num_images == c["images"]
+        else:
+            assert look.weight == c["images"] and look.generate.earth_probability == c["config"]["earth_probability"]
+    assert len(looks) == len(chunks) + len(named_scenarios.names())
+    shares = dict(zip(by_name, look_shares(looks)))
+    assert shares["random-1024-default"] == max(shares.values())
+    seq_share = sum(n for name, n in shares.items() if name.startswith("sequence-"))
+    offline = sum(c["images"] for c in chunks if "scenario" in c) / sum(c["images"] for c in chunks)
+    assert abs(seq_share / 100 - offline) < 0.05
+    seeds = [look.generate.seed for look in looks]
+    assert len(set(seeds)) == len(seeds) and all(gt.SEED_BASE + 3 * gt.SEED_LEG <= s < gt.SEED_BASE + 4 * gt.SEED_LEG
+                                                 for s in seeds)
+
+
 def test_legs_never_share_a_data_seed():
     gt = script("gpu_train")
     chunks_per_round = len(gt.round_chunks(1, 0, named_scenarios.names()))
