@@ -32,6 +32,7 @@ import time
 
 import torch
 
+TOP_OPS = 10  # the step rows name the ops with the most self time
 
 def make_data(out_dir: str, images: int, shard_size: int) -> str:
     """`envisat generate --num-images images --shard-size shard_size --seed 1` on every core (child process)."""
@@ -121,6 +122,12 @@ def time_step(device: str, batch_size: int, bf16: bool, foreach: bool, steps: in
         wall = time.perf_counter() - t1
     events = prof.key_averages()
     ops = sum(e.count for e in events if e.key.startswith("aten::")) / n_prof
+    # where the time goes: the ops with the most self time (the device's on CUDA, the host's on a CPU)
+    own = [(e.key, (getattr(e, "self_device_time_total", 0.0) if dev.type == "cuda" else e.self_cpu_time_total))
+           for e in events]
+    total_us = sum(t for _, t in own) or 1.0
+    top = [{"op": k, "ms_step": round(t / n_prof * 1e-3, 2), "share": round(t / total_us, 3)}
+           for k, t in sorted(own, key=lambda kt: -kt[1])[:TOP_OPS] if t > 0]
     # the calls that read a value back to the host (each stalls a GPU's queue; on a CPU they cost nothing)
     syncs = sum(e.count for e in events if e.key in ("aten::nonzero", "aten::item"))
     busy = None
@@ -130,7 +137,7 @@ def time_step(device: str, batch_size: int, bf16: bool, foreach: bool, steps: in
     return {"part": "step", "device": device, "batch_size": batch_size, "bf16": bf16,
             "optimizer": ("fused" if dev.type == "cuda" else "foreach") if foreach else "per-parameter",
             "ms_step": round(ms, 1), "samples_s": round(batch_size / ms * 1e3, 1), "aten_ops_step": round(ops),
-            "host_reads_step": round(syncs / n_prof, 1), "gpu_busy": busy}
+            "host_reads_step": round(syncs / n_prof, 1), "gpu_busy": busy, "top_ops": top}
 
 
 def time_data(data: str, workers: int, batch_size: int, batches: int) -> dict:
@@ -207,6 +214,29 @@ def time_online_training(run_dir: str, device: str, workers: int, bf16: bool, st
             "first_batch_s": end["first_batch_s"], "data_wait_s": end["data_wait_s"],
             "wall_s": round(time.perf_counter() - t0, 2), "loss_end": round(end["loss"], 4)}
 
+def save(args, rows: list[dict], parts: list[dict]) -> None:
+    """Write what was measured so far (after every row: a run stopped at its time limit keeps its rows),
+    atomically."""
+    from envisat_pose.io import atomic_write_text
+    from envisat_pose.pipelines.train import dataset_provenance
+
+    cores = len(os.sched_getaffinity(0))
+    result = {"torch": torch.__version__, "machine": platform.processor() or platform.machine(), "cores": cores,
+              "torch_threads": torch.get_num_threads(), "load_average_1min_end": round(os.getloadavg()[0], 2),
+              "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+              "data": dataset_provenance(args.data) if args.data else
+              {"generate": f"--num-images {args.images} --shard-size {args.shard_size} --seed 1 (1024 px, defaults)",
+               "gpu_generate": f"--num-images {args.gpu_images} --shard-size {args.gpu_shard_size} --seed 1"},
+              "rows": rows, "parts": parts,
+              "note": "envisat train's loop through envisat_pose.pipelines.train.train_detector, the default "
+                      "network (TrainConfig defaults), a fresh run per row; samples/s from the first batch to the "
+                      "final checkpoint. parts: the model step alone on a synthetic batch (its optimizer per "
+                      "parameter or multi-tensor; top_ops: where its time goes) and the data path alone. A loaded "
+                      "machine (load average above the cores) reads slower."}
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    atomic_write_text(args.out, json.dumps(result, indent=1, sort_keys=True) + "\n")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=24, help="steps per CPU row")
@@ -221,6 +251,7 @@ def main() -> None:
     ap.add_argument("--data", help="an existing dataset for every row instead of generating")
     ap.add_argument("--no-cpu", action="store_true", help="GPU rows only")
     ap.add_argument("--step-steps", type=int, default=4, help="timed steps per model-step row (CPU)")
+    ap.add_argument("--gpu-step-steps", type=int, default=50, help="timed steps per model-step row (GPU)")
     ap.add_argument("--no-whole", action="store_true", help="the step and data parts only")
     ap.add_argument("--no-online", action="store_true", help="no online rows (frames rendered as training goes)")
     ap.add_argument("--online-resolution", type=int, default=512,
@@ -228,21 +259,21 @@ def main() -> None:
     ap.add_argument("--online-steps", type=int, default=12, help="steps per CPU online row")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "train_speed.json"))
     args = ap.parse_args()
-    from envisat_pose.pipelines.train import dataset_provenance
-
     cores = len(os.sched_getaffinity(0))
-    parts = []
+    parts, rows = [], []
     devices = ([] if args.no_cpu else ["cpu"]) + (["cuda"] if torch.cuda.is_available() else [])
     for device in devices:
         for batch in ([args.batch_size] if device == "cpu" else args.gpu_batch_sizes):
             for bf16 in (False, True):
                 for foreach in (False, True):
-                    row = time_step(device, batch, bf16, foreach, args.step_steps if device == "cpu" else 50)
+                    row = time_step(device, batch, bf16, foreach,
+                                    args.step_steps if device == "cpu" else args.gpu_step_steps)
                     parts.append(row)
+                    save(args, rows, parts)
                     print(f"step  {device:5s} batch {batch:3d} {'bf16' if bf16 else 'fp32'} {row['optimizer']:13s}: "
                           f"{row['ms_step']:8.1f} ms, {row['samples_s']:8.1f} samples/s, {row['aten_ops_step']} aten "
-                          f"ops, {row['host_reads_step']} host reads, GPU busy {row['gpu_busy']}", flush=True)
-    rows = []
+                          f"ops, {row['host_reads_step']} host reads, GPU busy {row['gpu_busy']}; most time: "
+                          + ", ".join(f"{t['op']} {100 * t['share']:.0f} %" for t in row["top_ops"][:4]), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         plans = []
         if not args.no_cpu:
@@ -257,11 +288,13 @@ def main() -> None:
             batch = args.batch_size if device == "cpu" else max(args.gpu_batch_sizes)
             row = time_data(data, workers, batch, 6 if device == "cpu" else 100)
             parts.append({**row, "device": device})
+            save(args, rows, parts)
             print(f"data  {device:5s} workers {workers:2d} batch {batch:3d}: {row['samples_s']} samples/s (first batch "
                   f"{row['first_batch_s']} s)", flush=True)
         for i, plan in enumerate([] if args.no_whole else plans):
             row = time_training(plan[0], os.path.join(tmp, f"run{i}"), *plan[1:])
             rows.append(row)
+            save(args, rows, parts)
             print(f"{row['device']:5s} workers {row['workers']:2d} {'bf16' if row['bf16'] else 'fp32'} batch "
                   f"{row['batch_size']:3d}: {row['samples_s']:8.1f} samples/s (first batch {row['first_batch_s']:.1f} "
                   f"s, waited for data {row['data_wait_s']:.1f} s of {row['wall_s']:.1f} s)", flush=True)
@@ -274,6 +307,7 @@ def main() -> None:
         for device, workers, steps, batch, res in online_plans:
             row = time_online_data(res, workers, batch, 6 if device == "cpu" else 50, device)
             parts.append(row)
+            save(args, rows, parts)
             print(f"data  {device:5s} online {res} px, {workers:2d} renderers, batch {batch:3d}: {row['samples_s']} "
                   f"samples/s, {row['frames_s']} frames/s (first batch {row['first_batch_s']} s)", flush=True)
         for i, (device, workers, steps, batch, res) in enumerate([] if args.no_whole else online_plans):
@@ -281,6 +315,7 @@ def main() -> None:
                 row = time_online_training(os.path.join(tmp, f"online{i}{int(bf16)}"), device, workers, bf16, steps,
                                            batch, res)
                 rows.append(row)
+                save(args, rows, parts)
                 print(f"{device:5s} online {res} px, {workers:2d} renderers {'bf16' if bf16 else 'fp32'} batch "
                       f"{batch:3d}: {row['samples_s']:8.1f} samples/s (first batch {row['first_batch_s']:.1f} s, "
                       f"waited for data {row['data_wait_s']:.1f} s of {row['wall_s']:.1f} s)", flush=True)
@@ -289,22 +324,7 @@ def main() -> None:
     for r in rows:
         print(f"{r['source']:7s} {r['device']:6s} {r['workers']:7d} {'bf16' if r['bf16'] else 'fp32':>9s} "
               f"{r['batch_size']:5d} {r['samples_s']:10.1f} {r['data_wait_s']:11.1f}")
-    result = {"torch": torch.__version__, "machine": platform.processor() or platform.machine(), "cores": cores,
-              "torch_threads": torch.get_num_threads(), "load_average_1min_end": round(os.getloadavg()[0], 2),
-              "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
-              "data": dataset_provenance(args.data) if args.data else
-              {"generate": f"--num-images {args.images} --shard-size {args.shard_size} --seed 1 (1024 px, defaults)",
-               "gpu_generate": f"--num-images {args.gpu_images} --shard-size {args.gpu_shard_size} --seed 1"},
-              "rows": rows, "parts": parts,
-              "note": "envisat train's loop through envisat_pose.pipelines.train.train_detector, the default "
-                      "network (TrainConfig defaults), a fresh run per row; samples/s from the first batch to the "
-                      "final checkpoint. parts: the model step alone on a synthetic batch (its optimizer per "
-                      "parameter or multi-tensor) and the data path alone. A loaded machine (load average above "
-                      "the cores) reads slower."}
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    with open(args.out, "w", encoding="utf-8") as fh:
-        json.dump(result, fh, indent=1, sort_keys=True)
-        fh.write("\n")
+    save(args, rows, parts)
     print(f"wrote {args.out}")
 
 

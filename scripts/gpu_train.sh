@@ -15,8 +15,13 @@
 # carries $OUT's detector.safetensors and leg.json as init/ (gpu_carry.sh --init) when they beat their init.
 # env: CARRY, OUT, TOTAL_S (540), GEN_S (170), RATE (expected 1024-px images/s: 170), DEVICE (cuda),
 #      WORKERS (cores-2), BATCH (64), VAL_IMAGES (60), VAL_S (50), SCENARIOS (all), INIT, PY (python3), NO_INSTALL,
-#      MUJOCO_GL (egl), WORK (/tmp/gpu-leg), ONLINE (set: `envisat train --online` from frames rendered as it
-#      trains, no shards; the schedule constant then cooled down, pre_cooldown.safetensors and ema.safetensors back)
+#      MUJOCO_GL (egl), WORK (/tmp/gpu-leg), ONLINE (set: `envisat train --online --looks` from frames rendered
+#      as it trains, no shards; the schedule constant then cooled down, pre_cooldown.safetensors and
+#      ema.safetensors back), SPEED_S (seconds of bench/train_speed.py's GPU rows first, inside TOTAL_S; its
+#      train_speed.json written row by row, so a row cut at the limit loses only itself), PACK (set: every output
+#      but gpu_train.log and train_speed.json in one leg.tar, since a borrowed machine returns at most 8 files)
+# A lease (issue 38, item 5), from the last leg's pre-cooldown weights carried as init (scripts/gpu_carry.sh
+# --init RUN/pre_cooldown.safetensors):  ONLINE=1 SPEED_S=90 PACK=1 TOTAL_S=530 OUT=$OUT scripts/gpu_train.sh
 set -o pipefail
 T0=$(date +%s)
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
@@ -56,9 +61,20 @@ INIT=${INIT:-$CARRY/init/detector.safetensors}
 LEG=$CARRY/init/leg.json
 if [ ! -f "$INIT" ]; then INIT=$ROOT/models/detector.safetensors; LEG=; fi
 echo "gpu_train: init $(basename "$INIT") ($(sha256sum "$INIT" | cut -c1-12)), setup took $(( $(date +%s) - T0 )) s"
+if [ "${SPEED_S:-0}" -gt 0 ]; then
+  echo "gpu_train: the speed benchmark's GPU rows for at most ${SPEED_S} s"
+  timeout "$SPEED_S" $PY "$ROOT/bench/train_speed.py" --no-cpu --no-whole --gpu-batch-sizes 64 256 \
+      --gpu-images 256 --gpu-shard-size 32 --gpu-step-steps 20 --out "$OUT/train_speed.json" \
+      || echo "gpu_train: the speed benchmark ended with rc $? (its rows so far are in train_speed.json)"
+fi
 $PY "$ROOT/scripts/gpu_train.py" --init "$INIT" ${LEG:+--leg-file "$LEG"} --out "$OUT" --work "$WORK/leg" \
     --deadline-s $(( T0 + TOTAL_S )) --gen-s "${GEN_S:-170}" ${RATE:+--rate "$RATE"} --device "${DEVICE:-cuda}" \
     ${ONLINE:+--online} \
     ${VAL_IMAGES:+--validate-images "$VAL_IMAGES"} ${VAL_S:+--validate-s "$VAL_S"} \
     ${WORKERS:+--workers "$WORKERS"} ${BATCH:+--batch-size "$BATCH"} ${SCENARIOS:+--scenarios $SCENARIOS} || exit 7
+if [ -n "$PACK" ]; then
+  FILES=$(cd "$OUT" && ls | grep -v -x -e gpu_train.log -e train_speed.json -e leg.tar)
+  (cd "$OUT" && tar -cf leg.tar $FILES && rm -f $FILES) || exit 8
+  echo "gpu_train: packed into leg.tar: $(echo $FILES | tr '\n' ' ')"
+fi
 echo "gpu_train: done in $(( $(date +%s) - T0 )) s; in $OUT: $(ls "$OUT" | tr '\n' ' ')"
