@@ -74,20 +74,26 @@ def iter_samples(source: str | list[str], limit: int | None = None):
                 label = json.loads(members["json"])
             except (KeyError, ValueError) as err:
                 raise InputError(f"{where}: no readable .json label ({type(err).__name__}: {err})") from None
+            if not members.get("png"):
+                raise InputError(f"{where}: sample has no '.png' image member (members: {', '.join(sorted(members))})")
             yield key, label, members
             n += 1
             if limit is not None and n >= limit:
                 return
 
 
-def sample_image(members: dict[str, bytes], label: dict | None = None):
+def sample_image(members: dict[str, bytes], label: dict | None = None, where: str = "sample"):
     """A sample's image as training sees it: (H, W) uint8, corrupted. A sample stored clean (label
     image_stored = 'clean') gets its label's corruption applied here, deterministically: the same pixels
     (and, through sample_png, the same PNG bytes) as storage = 'corrupted' writes."""
     from envisat_pose.datagen.corrupt import apply_corruption
 
     label = label if label is not None else json.loads(members["json"])
+    if not members.get("png"):
+        raise InputError(f"{where}: no '.png' image member (members: {', '.join(sorted(members))})")
     image = decode_png(members["png"])
+    if image is None:
+        raise InputError(f"{where}.png: not an image (cannot be decoded as PNG)")
     if label.get("image_stored") == "clean":
         image = apply_corruption(image, label["corruption"])
     return image
@@ -165,8 +171,8 @@ def montage(source: str | list[str], path: str, count: int = 16, tile_px: int = 
     import cv2
 
     tiles = []
-    for _, lab, members in iter_samples(source, limit=count):
-        tile = draw_labels(sample_image(members, lab), lab)
+    for key, lab, members in iter_samples(source, limit=count):
+        tile = draw_labels(sample_image(members, lab, f"sample {key}"), lab)
         tiles.append(cv2.resize(tile, (tile_px, tile_px), interpolation=cv2.INTER_AREA))
     if not tiles:
         raise InputError(f"no samples to draw in the montage (count {count})")

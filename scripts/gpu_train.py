@@ -38,6 +38,8 @@ SEED_LEG = 1_000
 LOOK_SEED_BASE = 2_000_000  # the looks' seeds (textures, appearance, Earth, camera pattern): 10 per leg
 IMAGE_COST = {512: 0.3, 768: 0.6, 1024: 1.0, 1536: 2.2, 2048: 4.0}  # render + write, relative to 1024 px
 IMAGES_PER_S = 170.0  # 1024-px images/s, 16 cores with EGL, start-up apart (2026-11-27, an H200 machine: 165-176)
+RENDERER_MB = 650.0  # host memory of one SceneRenderer with a 12-texture set and the Earth (OSMesa, 512-2048 px)
+MEMORY_SHARE = 0.6  # of the available memory, for the online leg's renderers
 START_S = 12.0  # a round's start-up: every generate process's workers build the model and the looks
 FIRST_SHARE = 0.6  # the first round takes this share of the generation time, at the expected rate
 MIN_ROUND_S = 30.0
@@ -261,6 +263,26 @@ def validate(procs, init: str, weights: str, out_json: str, device: str, deadlin
     return proc.stdout if proc.returncode == 0 else None
 
 
+def render_workers(looks_path: str, cores: int) -> int:
+    """Renderer processes for an online leg: the cores less two, fewer where memory would not hold every
+    worker's renderers (one per resolution and texture set among the looks, ~RENDERER_MB each, built as the looks
+    first need them) within MEMORY_SHARE of the memory available."""
+    from envisat_pose.pipelines.online import read_looks, renderer_key
+
+    keys = len({renderer_key(look.generate) for look in read_looks(looks_path)})
+    available_mb = cores * 8000.0
+    try:
+        with open("/proc/meminfo", encoding="utf-8") as fh:
+            available_mb = next(int(line.split()[1]) / 1024 for line in fh if line.startswith("MemAvailable:"))
+    except (OSError, StopIteration, ValueError):
+        pass
+    fit = int(MEMORY_SHARE * available_mb / (keys * RENDERER_MB))
+    workers = max(1, min(cores - 2, fit))
+    print(f"online: {keys} renderers a worker (~{keys * RENDERER_MB / 1000:.1f} GB), {available_mb / 1000:.0f} GB "
+          f"available: {workers} renderer workers", flush=True)
+    return workers
+
+
 def online_looks(work: str, leg: int, scenarios: list[str]) -> str:
     """The looks of an online leg (a looks file for `envisat train --looks`): the offline recipe's mix, each chunk
     of a round a look weighted by its images (resolutions, cameras, wide looks, the Earth), every scenario's
@@ -348,9 +370,12 @@ def main() -> int:
         fh.write(f"lr = {args.lr!r}\nwarmup_steps = 200\ncheckpoint_every = 1000\nseed = {SEED_BASE + leg}\n"
                  + ('schedule = "constant_cooldown"\nema_decay = 0.999\n' if args.online else ""))
     run_dir = os.path.join(args.work, "run")
-    source = (["--online", "--render-workers", str(max(1, args.gen_workers - 2)), "--uses-per-frame",
-               str(args.uses_per_frame), "--looks", online_looks(args.work, leg, scenarios)] if args.online
-              else ["--data", *[c["folder"] for c in chunks], "--workers", str(args.workers)])
+    if args.online:
+        looks = online_looks(args.work, leg, scenarios)
+        source = ["--online", "--render-workers", str(render_workers(looks, args.gen_workers)), "--uses-per-frame",
+                  str(args.uses_per_frame), "--looks", looks]
+    else:
+        source = ["--data", *[c["folder"] for c in chunks], "--workers", str(args.workers)]
     cmd = [sys.executable, "-m", "envisat_pose.app.cli", "train", *source, "--out", run_dir, "--config", toml,
            "--init", args.init, "--device", args.device, "--batch-size", str(args.batch_size), "--steps",
            "10000000", "--time-budget-s", f"{budget:.0f}", "--quiet"] + ([] if args.no_bf16 else ["--bf16"])
