@@ -73,8 +73,11 @@ def online_config(args: argparse.Namespace):
     from envisat_pose.pipelines.train import OnlineConfig, default_workers, read_run_record
 
     saved = read_run_record(args.out).get("online") if args.resume and os.path.isdir(args.out) else None
-    if saved is not None:
+    looks_given = args.looks or args.generate_config or args.resolution or args.uses_per_frame
+    if saved is not None and not looks_given:
         return OnlineConfig.from_record(saved, args.render_workers)
+    if saved is not None:  # looks given to a resumed run: checked against its own as other data would be
+        args.online = True
     if not args.online:
         if args.data is None:
             raise InputError("give --data DIR (shards) or --online (frames rendered as training goes)")

@@ -201,8 +201,13 @@ def _flat(data: dict, prefix: str = "") -> dict:
 
 
 def _data_name(records: list[dict]) -> str:
-    return ", ".join(f"{r.get('name')} ({r.get('images')} images, manifest "
-                     f"{(r.get('manifest_sha256') or 'none')[:12]})" for r in records)
+    def one(r):
+        sha = (r.get("manifest_sha256") or "none")[:12]
+        if r.get("images") is None:  # frames rendered online: its configs' hash
+            return f"{r.get('name')} (configs {sha})"
+        return f"{r.get('name')} ({r.get('images')} images, manifest {sha})"
+
+    return ", ".join(one(r) for r in records)
 
 
 def _check_resume(run_dir: str, cfg: TrainConfig, data: list[dict] | None) -> tuple[dict, dict]:

@@ -236,7 +236,11 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
         from envisat_pose.pipelines.online import online_batches, run_identity
 
         identity = run_identity(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.uses_per_frame)
-        data = [{"name": "online", "manifest_sha256": identity["config_sha256"], "images": None}]
+        from envisat_pose.pipelines.online import look_shares
+
+        mix = ", ".join(f"{look.name} {n} %" for look, n in zip(online.looks, look_shares(online.looks)))
+        data = [{"name": f"online ({mix}, K = {online.uses_per_frame})", "manifest_sha256": identity["config_sha256"],
+                 "images": None}]
 
         def source(start_state):
             return online_batches(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.workers,
