@@ -19,8 +19,9 @@ its frames. Frames of several sizes travel in the slots of the largest, top-left
 Workers. `workers` spawned processes, each with its own SceneRenderers (one per resolution and texture set
 among the looks; MUJOCO_GL: osmesa on a CPU, egl where the device is CUDA, unless set), worker w rendering frames
 f = w, w + W, w + 2W, ... into its ring of shared-memory slots (multiprocessing.shared_memory: image (H, W)
-uint8, corners_px (8, 2) float64, visible, in_frame (8,) bool, frame index, side). The trainer takes frames in order f = 0, 1, 2, ... (frame f from worker f mod W), copies each into
-its device pool (through pinned host buffers on CUDA) and gives the slot back. A slow worker stalls the trainer
+uint8, corners_px (8, 2) float64, visible, in_frame (8,) bool, frame index, side). The trainer takes frames in
+order f = 0, 1, 2, ... (frame f from worker f mod W), copies each into its device pool (through pinned host
+buffers on CUDA) and gives the slot back. A slow worker stalls the trainer
 rather than reorder anything.
 
 Schedule (K uses per frame, N samples per batch). Step s trains on the window of N consecutive frames
@@ -31,8 +32,8 @@ scale and augmentation. Step s's crops, augmentation and line segments come from
 
 State (yielded after each step, JSON-able): the step to run next, the window's first frame (the first frame a
 resumed run renders), the frames taken so far, the most uses any frame has had, and the run's identity (seed,
-batch size, K, the sha256 of the configs and the looks' shares); `online_batches(..., start_state=state)` continues with the next step, and
-frames that left the window are never rendered again.
+batch size, K, the sha256 of the configs and the looks' shares); `online_batches(..., start_state=state)`
+continues with the next step, and frames that left the window are never rendered again.
 """
 
 from __future__ import annotations
@@ -444,8 +445,9 @@ class FrameSource:
 
 class DevicePool:
     """The window's frames on the device, frame f in slot f mod N: frames (N, H, W) uint8, corners_px (N, 8, 2)
-    float64, visible and in_frame (N, 8) bool, frame (N,) int64, hw (N, 2) int64 (each frame's own size). New frames go through a pinned host buffer on
-    CUDA (copied without waiting for the device; two buffers in turn, each reused after its copy is done)."""
+    float64, visible and in_frame (N, 8) bool, frame (N,) int64, hw (N, 2) int64 (each frame's own size). New
+    frames go through a pinned host buffer on CUDA (copied without waiting for the device; two buffers in turn,
+    each reused after its copy is done)."""
 
     def __init__(self, n: int, res: int, device):
         import torch
