@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "in every corruption group on held-out data)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_skip_damaged_argument(p)
-    p.set_defaults(func=run_detect_cli, flag_names={"roi": "--roi", "out": "--out"})
+    p.set_defaults(func=run_detect_cli, flag_names={"roi": "--roi", "out": "--out", "data": "--data"})
 
 
 def detector_inputs(args: argparse.Namespace) -> None:

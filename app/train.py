@@ -63,6 +63,8 @@ def resolve_config(args: argparse.Namespace):
     from envisat_pose.pipelines.train import read_run_config
 
     base = read_run_config(args.out) if args.resume and os.path.isdir(args.out) else {}
+    if args.steps is not None and args.time_budget_s is None:
+        base.pop("time_budget_s", None)  # a resumed budgeted run given --steps trains to that step
     flags = {"steps": args.steps, "batch_size": args.batch_size, "seed": args.seed,
              "time_budget_s": args.time_budget_s}
     return resolve_job_config(TrainConfig, base, args.config, flags)
@@ -99,6 +101,12 @@ def online_config(args: argparse.Namespace):
     return OnlineConfig(gen, args.render_workers or max(1, default_workers()), **uses)
 
 
+def resume_command(args: argparse.Namespace) -> str:
+    """The command that goes on with an interrupted run: its data (a resumed run rereads its shards) and folder."""
+    data = ["--data", *args.data] if args.data else []
+    return shlex.join(["envisat", "train", "--resume", *data, "--out", args.out])
+
+
 def command_line(args: argparse.Namespace) -> str:
     """The command exactly as typed (its words quoted for a shell; relative paths kept as they were)."""
     return shlex.join(["envisat", *getattr(args, "argv", [])])
@@ -128,7 +136,7 @@ def run_train_cli(args: argparse.Namespace) -> int:
     except ConfigError as err:  # a value of a flag: named as the flag
         raise InputError(as_flags(str(err), FLAGS)) from None
     except TrainingInterrupted as stop:
-        hint = f"; go on with: envisat train --resume --out {shlex.quote(args.out)}" if stop.step else ""
+        hint = f"; go on with: {resume_command(args)}" if stop.step else ""
         print(f"envisat train: {stop}{hint}", file=sys.stderr)
         return 130
     if skipped_line(last.get("skipped_damaged_shards", [])):

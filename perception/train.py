@@ -186,7 +186,7 @@ class TrainingInterrupted(KeyboardInterrupt):
     def __init__(self, step: int, run_dir: str, signal_name: str):
         self.step, self.run_dir, self.signal_name = step, run_dir, signal_name
         if step > 0:
-            text = f"{signal_name} at step {step}: checkpoint written in {run_dir!r}; go on with --resume"
+            text = f"{signal_name} at step {step}: checkpoint written in {run_dir!r}"
         else:
             text = f"{signal_name} before the first step: nothing written"
         super().__init__(text)
@@ -222,8 +222,8 @@ def _check_resume(run_dir: str, cfg: TrainConfig, data: list[dict] | None) -> tu
     changed = [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(set(old) | set(new))
                if k not in RESUMABLE_CHANGES and old.get(k) != new.get(k)]
     if changed:
-        raise InputError(f"resume: {run_dir!r} was trained with another config: {'; '.join(changed)} (only steps "
-                         "and time_budget_s may change; start a new run with init=its checkpoint instead)")
+        raise InputError(f"resume: {run_dir!r} was trained with another config: {'; '.join(changed)} (only `steps` "
+                         "and `time_budget_s` may change; start a new run with `init` = its checkpoint instead)")
     if data is not None and "data" in saved:
         def key(records):
             return [r.get("manifest_sha256") or r.get("name") for r in records]
@@ -231,7 +231,7 @@ def _check_resume(run_dir: str, cfg: TrainConfig, data: list[dict] | None) -> tu
         if key(saved["data"]) != key(data):
             raise InputError(f"resume: {run_dir!r} was trained on {_data_name(saved['data'])}, not on "
                              f"{_data_name(data)}: resume with the same data, or start a new run with "
-                             "init=its checkpoint")
+                             "`init` = its checkpoint")
     with open(os.path.join(run_dir, "state.json"), encoding="utf-8") as fh:
         return json.load(fh), saved
 
@@ -335,6 +335,12 @@ def _progress(cfg: TrainConfig, state: dict, budget_end_s: float | None, time0: 
         return tqdm(total=cfg.steps, initial=state["step"], disable=not enabled, desc="train", unit="step")
     return tqdm(total=round(budget_end_s - time0, 1), disable=not enabled, desc="train", unit="s",
                 bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s of the budget{postfix}")
+
+
+def _advance_budget_bar(bar, seconds: float) -> None:
+    """Move a budget's bar to `seconds` into it, never past its end: tqdm drops the total of a bar past it, and
+    the bar's percentage then fails to format (a last step that ends after the budget's end)."""
+    bar.update(max(0.0, min(round(seconds, 1), bar.total) - bar.n))
 
 
 def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: bool = False, device: str = "cpu",
@@ -552,14 +558,19 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
                 for k, v in terms.items():
                     sums[k] = sums[k] + v if k in sums else v
                 count += 1
-                bar.update(1 if budget_end_s is None else round(elapsed() - time0, 1) - bar.n)
+                if budget_end_s is None:
+                    bar.update(1)
+                else:
+                    _advance_budget_bar(bar, elapsed() - time0)
                 if state["step"] % POSTFIX_EVERY == 0 or run["steps"] == 1:
                     bar.set_postfix(step=state["step"], loss=f"{float(terms['loss']):.3f}")
                 if state["step"] % cfg.checkpoint_every == 0:
                     t_ck = clock()
                     checkpoint()
                     checkpoint_s = clock() - t_ck
-                iter_s.append(clock() - t_ask)
+                # a step's wall time, its wait for data included, except the run's first (the loaders' start-up,
+                # seconds that no later step waits again, would hold back a budget's last steps)
+                iter_s.append(clock() - (t_got if run["steps"] == 1 else t_ask))
                 t_ask = clock()
             if flag.get("signal") and stop is None:
                 stop = flag["signal"]

@@ -85,8 +85,9 @@ def git_hash() -> str:
         return given
 
 
-def dataset_provenance(data_dir: str) -> dict:
-    """A dataset by its folder's name, its manifest's sha256 and image count (None where it has no manifest)."""
+def dataset_provenance(data_dir: str, skipped: list[str] = ()) -> dict:
+    """A dataset by its folder's name, its manifest's sha256 and image count (None where it has no manifest): the
+    images trained on, the shards `skipped` (damaged, --skip-damaged) left out."""
     manifest = os.path.join(data_dir, "manifest.json")
     record = {"name": os.path.basename(os.path.normpath(data_dir)), "manifest_sha256": None, "images": None}
     if os.path.isfile(manifest):
@@ -96,8 +97,10 @@ def dataset_provenance(data_dir: str) -> dict:
             raw = fh.read()
         record["manifest_sha256"] = hashlib.sha256(raw).hexdigest()
         try:
-            record["images"] = json.loads(raw).get("num_images")
-        except (ValueError, AttributeError):
+            manifest = json.loads(raw)
+            left_out = sum(int(sh.get("count", 0)) for sh in manifest.get("shards", []) if sh.get("name") in skipped)
+            record["images"] = manifest.get("num_images") - left_out if manifest.get("num_images") else None
+        except (ValueError, AttributeError, TypeError):
             pass
     return record
 
@@ -225,12 +228,12 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
         torch.backends.cudnn.benchmark = True
     from envisat_pose.shard_reader import checked_shards
 
-    paths, skipped = [], []
+    paths, skipped, data = [], [], []
     for d in data_dirs:
         mine, left_out = checked_shards(d, skip_damaged, "data_dirs")
         paths += mine
         skipped += [f"{os.path.basename(os.path.normpath(d))}/{name}" for name in left_out]
-    data = [dataset_provenance(d) for d in data_dirs]
+        data.append(dataset_provenance(d, left_out))
     source = None
     if online is not None:
         from envisat_pose.pipelines.online import online_batches, run_identity

@@ -146,6 +146,38 @@ def test_a_shard_failing_mid_run_is_one_line(tiny_dataset, tiny_weights, tmp_pat
     assert not out.exists()
 
 
+def test_an_image_that_breaks_mid_read_is_one_line_in_inspect(tiny_dataset, tmp_path, capsys):
+    """A shard whose manifest was rewritten to match it (nothing to catch first) and whose first PNG is garbage,
+    or whose first sample has no PNG: `dataset inspect` stops in one line naming the sample."""
+    import io
+    import tarfile
+
+    for case in ("garbage", "missing"):
+        ds = tmp_path / case
+        shutil.copytree(tiny_dataset, ds)
+        src = tarfile.open(ds / DAMAGED)
+        members = [(m, src.extractfile(m).read()) for m in src.getmembers()]
+        src.close()
+        first_png = next(m.name for m, _ in members if m.name.endswith(".png") and m.name.count(".") == 1)
+        with tarfile.open(ds / DAMAGED, "w") as dst:
+            for m, data in members:
+                if m.name == first_png:
+                    if case == "missing":
+                        continue
+                    data = b"\x89PNG not really" + bytes(64)
+                m.size = len(data)
+                dst.addfile(m, io.BytesIO(data))
+        manifest = json.loads((ds / "manifest.json").read_text())
+        for sh in manifest["shards"]:  # the manifest made to match: nothing to catch before the read
+            if sh["name"] == DAMAGED:
+                sh["bytes"] = os.path.getsize(ds / DAMAGED)
+                sh["sha256"] = hashlib.sha256((ds / DAMAGED).read_bytes()).hexdigest()
+        (ds / "manifest.json").write_text(json.dumps(manifest))
+        assert main(["dataset", "inspect", str(ds), "--count", "8"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "png" in err and "Traceback" not in err, err
+
+
 @pytest.fixture(scope="module")
 def sequence_set(tmp_path_factory):
     """6 frames of 128 px in 2 shards of 3, `envisat generate --mode sequence`."""

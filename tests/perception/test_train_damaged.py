@@ -44,6 +44,9 @@ def test_a_damaged_shard_stops_train_in_one_line_and_skip_damaged_goes_on(tiny_d
     assert f"skipped 1 damaged shard(s): ds/{DAMAGED}" in out
     record = json.load(open(run / "config.json"))
     assert record["skipped_damaged_shards"] == [f"ds/{DAMAGED}"]
+    manifest = json.load(open(ds / "manifest.json"))
+    kept = sum(sh["count"] for sh in manifest["shards"] if sh["name"] != DAMAGED)
+    assert record["data"][0]["images"] == kept < manifest["num_images"]  # the images trained on
     assert json.load(open(run / "state.json"))["step"] == 2
 
 

@@ -125,6 +125,18 @@ def test_the_record_holds_the_command_as_typed_and_reproduces_the_config(tiny_da
     assert json.load(open("runs/again/config.json"))["train"] == record["train"]
 
 
+def test_a_budgets_bar_stops_at_its_end_when_the_last_step_ends_after_it(capsys):
+    from envisat_pose.perception.train import _advance_budget_bar, _progress
+
+    bar = _progress(small(time_budget_s=4.0), {"step": 0}, 4.0, 0.0, True)
+    for seconds in (1.2, 3.9, 4.6, 5.3):  # the last two after the budget's end
+        _advance_budget_bar(bar, seconds)
+        bar.refresh()
+    bar.close()
+    err = capsys.readouterr().err
+    assert "4/4 s of the budget" in err and "100%" in err
+
+
 def test_ctrl_c_writes_a_checkpoint_and_resume_honours_a_new_budget(tiny_dataset, tmp_path):
     """Ctrl-C reaches the whole process group (trainer and its worker) as from a terminal: the run stops after its
     step with a checkpoint and a resume hint (rc 130); `--resume --time-budget-s` trains that many seconds more."""
@@ -141,17 +153,24 @@ def test_ctrl_c_writes_a_checkpoint_and_resume_honours_a_new_budget(tiny_dataset
     os.killpg(proc.pid, signal.SIGINT)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err
-    assert "Traceback" not in err and "go on with: envisat train --resume" in err, err
+    assert "Traceback" not in err and err.count("go on with") == 1, err
     state = json.load(open(run / "state.json"))
     assert state["step"] >= 1 and (run / "checkpoint.safetensors").exists()
-    resumed = subprocess.run([sys.executable, "-m", "envisat_pose.app.cli", "train", "--data", tiny_dataset,
-                              "--out", str(run), "--resume", "--time-budget-s", "20", "--quiet"],
-                             capture_output=True, text=True, timeout=180)
+    # the hint as printed, run as a user would paste it, with a new budget
+    hint = shlex.split(err.strip().split("go on with: ")[1])
+    assert hint[:3] == ["envisat", "train", "--resume"]
+    resumed = subprocess.run([sys.executable, "-m", "envisat_pose.app.cli", *hint[1:], "--time-budget-s", "20",
+                              "--quiet"], capture_output=True, text=True, timeout=180)
     assert resumed.returncode == 0, resumed.stderr
     after = json.load(open(run / "state.json"))
-    assert after["step"] > state["step"], resumed.stdout
+    assert after["step"] > state["step"] + 1, resumed.stdout  # the loaders' start-up spends no budget of the steps
     assert after["time_s"] - state["time_s"] <= 20.0
     assert "(time_budget)" in resumed.stdout
+    # after a budgeted leg, --steps alone trains to that step
+    more = subprocess.run([sys.executable, "-m", "envisat_pose.app.cli", *hint[1:], "--steps",
+                           str(after["step"] + 2), "--quiet"], capture_output=True, text=True, timeout=180)
+    assert more.returncode == 0, more.stderr
+    assert json.load(open(run / "state.json"))["step"] == after["step"] + 2
 
 
 def test_a_plain_script_without_a_main_guard_trains_with_workers(tiny_dataset, tmp_path):
