@@ -71,6 +71,20 @@ def correlation_inflation(em, model: str, lam: float, dt_s: float, rate_rad_s: f
     return max(memory_inflation(a, phi, 1.0 if model == "long_memory" else lam), 1.0)
 
 
+def evidence_weight(em, model: str, lam: float, dt_s: float, rate_rad_s: float | None = None,
+                    kind: str = "rotation") -> float:
+    """The weight of one frame's cost in a log-likelihood summed over many frames: tau(lam) / tau(1). The cost's
+    NIS reads the innovations against R x tau(lam) (correlation_inflation at the filter's memory lam), but a sum
+    over all the frames holds the errors' whole correlation, tau(1) (the long-memory inflation), so a frame counts
+    for tau(lam) / tau(1) of an independent one. 1 for white errors or where tau(1) is not finite."""
+    if model == "white":
+        return 1.0
+    long = correlation_inflation(em, "long_memory", 1.0, dt_s, rate_rad_s, kind)
+    if not np.isfinite(long) or long <= 0.0:
+        return 1.0
+    return float(min(1.0, correlation_inflation(em, model, lam, dt_s, rate_rad_s, kind) / long))
+
+
 def window_memory(frames: int) -> float:
     """(n - 1) / (n + 1): the memory of the exponential average as long (in effective frames) as an equal-weight
     window of n frames, the cold start's before the filter's first update."""

@@ -95,6 +95,7 @@ from envisat_pose.pipelines.noise import (
     correlation_inflation,
     detection_measurement,
     detector_error_model,
+    evidence_weight,
     filter_memory,
     nis_sum_dispersion,
     range_consider,
@@ -232,6 +233,14 @@ class Tracker:
         at the filter's memory."""
         return self.cov_factor * correlation_inflation(self.error_model, self.cfg.noise.correlation_model, self.memory,
                                                        self.dt_s, self.rate_rad_s, self.cfg.noise.correlation_in)
+
+    @property
+    def evidence_weight(self) -> float:
+        """The weight of this frame's cost in the bank's dynamics log-likelihoods (bank.evidence_memory)."""
+        if self.cfg.bank.evidence_memory == "filter":
+            return 1.0
+        return evidence_weight(self.error_model, self.cfg.noise.correlation_model, self.memory, self.dt_s,
+                               self.rate_rad_s, self.cfg.noise.correlation_in)
 
     def _detect(self, image, roi=None, R_prior=None, t_prior=None, weigh_namings=True):
         t0 = time.perf_counter()
@@ -419,7 +428,7 @@ class Tracker:
         n_pre = pre.sum(-1)
         if frame_discriminates(new.nis, new.dof, self.cfg.bank.evidence_prob):
             cost = update_cost(new, self.gate_bound) + self.gate_bound * n_pre
-            self.log_dyn = self.log_dyn + np.where(seen, -0.5 * cost, 0.0)
+            self.log_dyn = self.log_dyn + np.where(seen, -0.5 * cost * self.evidence_weight, 0.0)
         elif H > 1:
             events.append("no evidence between the hypotheses: the frame's innovations contradict them all")
         self.log_app = self.log_app + np.where(seen, appearance, 0.0)

@@ -196,6 +196,26 @@ def test_the_slower_correlation_is_the_one_that_lasts_longer():
         assert tau == pytest.approx(max(each))
 
 
+def test_a_frames_evidence_weight_is_its_share_of_the_errors_whole_correlation():
+    """bank.evidence_memory = "long": a frame's cost, read against R x tau(lambda), counts tau(lambda) / tau(1) in
+    a sum over every frame. The series 1 + 2 sum_k rho_k lambda^k, summed term by term, against the closed form;
+    1 for white errors and a filter that keeps everything."""
+    from envisat_pose.perception.errormodel import ErrorModel
+    from envisat_pose.pipelines.noise import evidence_weight
+
+    em = ErrorModel(ar1_share=0.4, ar1_phi=0.9, corr_time_s=-1 / np.log(0.9), angle_share=0.35,
+                    corr_angle_rad=np.radians(20.0))
+    k = np.arange(1, 5000)
+    for kind, rate, (a, phi) in [("time", None, (0.4, 0.9)),
+                                 ("rotation", np.radians(2.0), (0.35, np.exp(-2.0 / 20.0)))]:
+        for lam in (0.0, 0.5, 0.85, 0.99):
+            want = (1 + 2 * np.sum(a * phi ** k * lam ** k)) / (1 + 2 * np.sum(a * phi ** k))
+            assert evidence_weight(em, "filter_memory", lam, 1.0, rate, kind) == pytest.approx(want, rel=1e-9)
+    assert evidence_weight(em, "white", 0.5, 1.0, None, "time") == 1.0
+    assert evidence_weight(em, "long_memory", 0.5, 1.0, None, "time") == pytest.approx(1.0)
+    assert evidence_weight(ErrorModel(), "filter_memory", 0.5, 1.0, None, "time") == 1.0  # no correlation measured
+
+
 def test_a_frame_that_contradicts_every_hypothesis_is_no_evidence_between_them():
     from envisat_pose.pipelines.bank import frame_discriminates
 
