@@ -725,3 +725,31 @@ def test_twins_failing_only_their_fit_statistics_start_beside_the_one_that_passe
     ests = run_tracker(truth_600, NoisyTruthDetector(truth_600, p_alt=0.5), range(0, 25))
     start = next(k for k, e in enumerate(ests) if "started" in e.events)
     assert len(ests[start].hypotheses) <= 1
+
+
+def test_evidence_counted_at_the_errors_whole_correlation_weighs_less_a_frame(truth_600):
+    """bank.evidence_memory = "long" (off by default): with errors correlated from frame to frame each bank frame's
+    cost counts tau(lambda) / tau(1) < 1 of itself, so the twins drift apart more slowly on the same frames and
+    errors; nothing else of the frame changes (the same filter updates)."""
+    import dataclasses
+
+    gains = {}
+    for memory in ("filter", "long"):
+        cfg = isolated()
+        cfg = dataclasses.replace(cfg, bank=dataclasses.replace(cfg.bank, evidence_memory=memory))
+        tracker = Tracker(load_camera(), CorrelatedTruthDetector(truth_600, seed=4), chaser_lookup(truth_600), cfg)
+        spread, weights = [], []
+        for k in range(60):
+            est = tracker.step(float(truth_600.t_s[k]), frame_image(k))
+            if len(est.hypotheses) > 1:
+                spread.append(float(np.ptp(tracker.log_dyn)))
+                weights.append(tracker.evidence_weight)
+        gains[memory] = (spread, weights)
+    (plain, w1), (long_, w2) = gains["filter"], gains["long"]
+    assert min(len(plain), len(long_)) >= 9, (len(plain), len(long_))
+    assert set(w1) == {1.0} and all(0.0 < w < 1.0 for w in w2), w2
+    # the same start's weights, then over the first bank frames (before either drops a hypothesis) the twins'
+    # log-likelihoods drift apart at a fraction of the pace
+    assert long_[0] == pytest.approx(plain[0])
+    assert all(long_[k] < plain[k] for k in range(1, 9)), (plain[:9], long_[:9])
+    assert long_[8] < 0.5 * plain[8], (plain[:9], long_[:9])
