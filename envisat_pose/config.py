@@ -175,6 +175,14 @@ def deep_update(base: dict, update: dict) -> dict:
     return out
 
 
+def flatten(data: dict, prefix: str = "") -> dict:
+    """{'a.b': value} of a nested dict (tables key by key; the inverse of set_dotted's paths)."""
+    out: dict = {}
+    for key, value in data.items():
+        out.update(flatten(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
+    return out
+
+
 def set_dotted(data: dict, dotted: str, value: Any) -> dict:
     """Return a copy of `data` with `a.b.c` set to value (used for command-line overrides)."""
     parts = dotted.split(".")

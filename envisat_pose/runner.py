@@ -23,7 +23,7 @@ import os
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Literal, Sequence
 
-from envisat_pose.config import InputError, check
+from envisat_pose.config import InputError, check, flatten
 from envisat_pose.io import atomic_write_text, sha256_file
 
 Backend = Literal["inline", "local", "dask"]
@@ -249,15 +249,6 @@ def remove_partial_files(folder: str) -> None:
             shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
 
 
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
 
 @dataclass
 class ResumableJob:
@@ -305,8 +296,8 @@ class ResumableJob:
         if not isinstance(manifest, dict) or manifest.get("format") != self.format:
             raise InputError(f"--out {self.out_dir!r}: {MANIFEST} is not a {self.what} manifest (format "
                              f"{self.format!r} expected); use another folder")
-        theirs = _flat({k: manifest.get(k) for k in self.identity})
-        ours = _flat(self.identity)
+        theirs = flatten({k: manifest.get(k) for k in self.identity})
+        ours = flatten(self.identity)
         diff = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
         if diff:
             def shown(k: str) -> str:

@@ -36,7 +36,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from envisat_pose.config import InputError
+from envisat_pose.config import InputError, flatten
 from envisat_pose.io import atomic_write_text
 from envisat_pose.perception.data import DataConfig, shard_paths
 from envisat_pose.perception.losses import LossConfig, corner_losses
@@ -192,14 +192,6 @@ class TrainingInterrupted(KeyboardInterrupt):
         super().__init__(text)
 
 
-def _flat(data: dict, prefix: str = "") -> dict:
-    """{'a.b': value} of a nested dict."""
-    out = {}
-    for k, v in data.items():
-        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
-    return out
-
-
 def _data_name(records: list[dict]) -> str:
     def one(r):
         sha = (r.get("manifest_sha256") or "none")[:12]
@@ -218,7 +210,7 @@ def _check_resume(run_dir: str, cfg: TrainConfig, data: list[dict] | None) -> tu
         raise InputError(f"resume: {run_dir!r} holds no trained run (no config.json and state.json)")
     with open(path, encoding="utf-8") as fh:
         saved = json.load(fh)
-    old, new = _flat(saved["train"]), _flat(cfg.to_dict())
+    old, new = flatten(saved["train"]), flatten(cfg.to_dict())
     changed = [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(set(old) | set(new))
                if k not in RESUMABLE_CHANGES and old.get(k) != new.get(k)]
     if changed:

@@ -135,7 +135,7 @@ def read_looks(path: str) -> tuple[Look, ...]:
     """The looks of a TOML file: each [[look]] table a name, a weight and the keys of `envisat generate
     --config` (mode 'random' unless given); keys outside the [[look]] tables are every look's defaults (a look's
     own win). InputError or ConfigError naming the file's field."""
-    from envisat_pose.config import deep_update, from_dict, load_toml
+    from envisat_pose.config import flatten, load_toml, resolve_job_config
     from envisat_pose.datagen.generate_config import GenerateConfig
 
     data = load_toml(path)
@@ -148,7 +148,9 @@ def read_looks(path: str) -> tuple[Look, ...]:
         name = entry.pop("name", None)
         check(isinstance(name, str) and name != "", f"look[{n}].name", name, "a look's name (a string)")
         weight = entry.pop("weight", 1.0)
-        cfg = from_dict(GenerateConfig, deep_update(deep_update({"mode": "random"}, data), entry), f"look.{name}")
+        # the file's shared keys under the look's own (its tables key by key)
+        cfg = resolve_job_config(GenerateConfig, {"mode": "random", **data}, None, flatten(entry),
+                                 prefix=f"look.{name}")
         looks.append(Look(name, cfg, weight))
     return as_looks(looks)
 

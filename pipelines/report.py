@@ -15,7 +15,7 @@ import json
 import math
 import os
 
-from envisat_pose.config import InputError
+from envisat_pose.config import InputError, flatten
 from envisat_pose.pipelines.sweep import SWEEP_FIGURE
 from envisat_pose.state import BLOCKS
 
@@ -138,18 +138,13 @@ def config_differences(campaigns: list[dict]) -> list[str]:
     flat = []
     for c in campaigns:
         try:
-            flat.append(_flat(tomllib.loads(c["config"])))
+            flat.append(flatten(tomllib.loads(c["config"])))
         except tomllib.TOMLDecodeError:
             flat.append({})
     keys = sorted({k for f in flat for k in f if len({repr(g.get(k)) for g in flat}) > 1})
     return ["; ".join(f"{k} = {f.get(k, 'unset')}" for k in keys) for f in flat]
 
 
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
-    return out
 
 
 def campaign_rows(c: dict) -> list[tuple[str, str]]:
