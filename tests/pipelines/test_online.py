@@ -175,6 +175,7 @@ def test_a_mix_deals_its_frames_by_weight_and_its_file_reads_back(tmp_path):
             online.read_looks(str(path))
 
 
+@pytest.mark.slow  # renders two looks at two sizes (~10 s)
 def test_a_mix_of_sizes_and_scenarios_renders_each_looks_own_frames(tmp_path):
     """A random look at 128 px and a sequence look at 96 px: each frame is its look's sample (the random look's
     dataset sample, the sequence's frame as `envisat generate` writes that sequence), the smaller one top-left in

@@ -55,6 +55,7 @@ def test_the_verb_takes_data_or_online_not_both(tmp_path, capsys):
         OnlineConfig(GenerateConfig(mode="random"), uses_per_frame=9)
 
 
+@pytest.mark.slow  # renders two looks at two sizes (~10 s)
 def test_the_verb_trains_on_a_mix_of_looks_and_resumes_only_its_own(tmp_path, capsys):
     """`envisat train --online --looks`: a mix of a random look and a scenario's sequence at two sizes trains and
     records its looks; --resume goes on with them, and refuses a different looks file."""
