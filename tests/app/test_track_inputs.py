@@ -208,8 +208,7 @@ def test_an_interrupt_leaves_the_earlier_outputs_and_a_finished_run_removes_stal
                          # Ctrl-C as a terminal delivers it: a test run started in the background of a
                          # non-interactive shell inherits SIGINT ignored, and Python then keeps it ignored
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    deadline = time.time() + 240
-    while time.time() < deadline:  # wait until the run is tracking: its staged rows exist
+    for _ in range(4800):  # wait (at most 4 minutes) until the run is tracking: its staged rows exist
         stages = [d for d in os.listdir(out) if d.startswith(".tmp-stage-")]
         if stages and os.path.isdir(out / stages[0] / "runs" / "run-0000"):
             break
