@@ -30,7 +30,6 @@ MASK_CLASSES = ("background", "face +x", "face -x", "face +y", "face -y", "face 
 
 VISIBLE_RGB = (40, 200, 60)
 HIDDEN_RGB = (220, 50, 50)
-TRUE_RGB = (200, 200, 210)
 EST_RGB = (60, 140, 255)
 SIGMA_RGB = (220, 50, 50)
 SAMPLE_SIGMA_RGB = (20, 20, 20)

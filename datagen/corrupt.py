@@ -16,7 +16,6 @@ import numpy as np
 
 SEVERITIES = ("none", "low", "medium", "high")
 KINDS = ("exposure", "motion_blur", "gaussian_blur", "shot_noise", "gaussian_noise")
-CHOICES = SEVERITIES + ("mixed",)
 
 # Per level 0..3. Gaussian noise: sigma in grey levels. Gaussian blur: sigma in px at 1024 px. Shot noise:
 # electrons at full scale (255), fewer electrons = more noise. Motion blur: streak length in px at 1024 px.

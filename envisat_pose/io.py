@@ -64,19 +64,6 @@ def atomic_write_text(path: str, text: str) -> None:
             fh.write(text)
 
 
-def check_writable_output(path: str, field: str = "out") -> None:
-    """Fail early (InputError) when `path` cannot be written: its folder is missing or read-only."""
-    from envisat_pose.config import InputError
-
-    folder = os.path.dirname(os.path.abspath(path)) or "."
-    if os.path.isdir(path):
-        raise InputError(f"--{field} {path!r} is a directory, expected a file path")
-    if not os.path.isdir(folder):
-        raise InputError(f"--{field} {path!r}: folder {folder!r} does not exist")
-    if not os.access(folder, os.W_OK):
-        raise InputError(f"--{field} {path!r}: folder {folder!r} is not writable")
-
-
 def save_npz(path: str, arrays: dict) -> None:
     """Write arrays to an .npz atomically and byte-reproducibly (fixed zip timestamps, sorted keys).
 

@@ -120,11 +120,6 @@ def to_u8(img: np.ndarray, bit_depth: int) -> np.ndarray:
     return ((v * 255 + full // 2) // full).astype(np.uint8)
 
 
-def to_gray_u8(img: np.ndarray, name: str) -> np.ndarray:
-    """8- or 16-bit gray or colour -> (H, W) uint8 (16-bit data taken as full 16-bit)."""
-    return to_u8(to_gray(img, name), 16)
-
-
 def read_gray(path: str) -> np.ndarray:
     """An image file as (H, W) gray, uint8 or uint16 as stored; InputError naming the file when it is unreadable
     or truncated (with what the image library said)."""
