@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 
+from envisat_pose.app.common import add_common
 from envisat_pose.config import InputError
 from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 
@@ -59,7 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-lag", type=int, default=20, help="autocorrelation lags measured (default 20)")
     p.add_argument("--limit", type=int, help="only the first N frames of each dataset")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_common(p)  # the shared --quiet
     add_skip_damaged_argument(p)
     p.set_defaults(func=run_calibrate_cli, flag_names={"data": "--data", "held_out": "--held-out", "out": "--out"})
 

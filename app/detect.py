@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 
+from envisat_pose.app.common import add_common
 from envisat_pose.config import InputError
 from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 
@@ -32,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="refine the named corners on the full-resolution pixels (DetectConfig.refine: the box's "
                    "edges fitted and intersected, fused with the network's corner; off by default: it did not pay "
                    "in every corruption group on held-out data)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_common(p)  # the shared --quiet
     add_skip_damaged_argument(p)
     p.set_defaults(func=run_detect_cli, flag_names={"roi": "--roi", "out": "--out", "data": "--data"})
 

@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration-s", type=float, help="with --scenario: simulated time, s (default: the scenario's)")
     add_common(p, out="output .npz (default est.npz); its config goes next to it", out_default="est.npz",
                out_metavar="EST.npz", config="estimate config (sections measurement, filter; runs, seed)",
-               seed="root seed (default 0)", quiet=False, flag_names=FLAGS)
+               seed="root seed (default 0)", flag_names=FLAGS)
     p.add_argument("--measurements", choices=["markers3d", "pixels", "pixels+range"],
                    help="what is measured of each visible corner (default markers3d)")
     p.add_argument("--sigma-m", type=float, help="3D corner noise per axis, m (default 0.02)")
@@ -51,7 +51,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rrd", metavar="FILE.rrd",
                    help="also write a Rerun recording: truth, run 0's estimate with its 3-sigma ellipsoid, every run's "
                    "errors with +-3 sigma bands (`envisat view FILE`)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run_estimate)
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 
+from envisat_pose.app.common import add_common
 from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument
 
 
@@ -31,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "named corners refined on the full-resolution pixels (DetectConfig.refine)")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_common(p)  # the shared --quiet
     add_skip_damaged_argument(p)
     p.set_defaults(func=run_evaluate_cli, flag_names={"roi": "--roi", "out": "--out"})
 

@@ -19,14 +19,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_common(p, out="output .npz (default run.npz)", out_default="run.npz", out_metavar="RUN.npz",
                config="scenario config (sections orbit, target, relative)",
-               seed="root seed of the random initial attitude (default 0)", quiet=False)
+               seed="root seed of the random initial attitude (default 0)")
     p.add_argument("--scenario", default="default",
                    help="named scenario the config starts from (default: default; `envisat scenarios` lists them)")
     p.add_argument("--duration-s", type=float, help="simulated time, s (default: the scenario's, 1800)")
     p.add_argument("--dt-s", type=float, help="output step, s (default 1)")
     p.add_argument("--plot", action="store_true", help="also write a PNG of the 12 states next to --out")
     p.add_argument("--rrd", metavar="FILE.rrd", help="also write a Rerun recording of the truth (`envisat view FILE`)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_simulate)
 
 

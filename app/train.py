@@ -8,6 +8,7 @@ import os
 import shlex
 import sys
 
+from envisat_pose.app.common import add_common
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument
 
@@ -52,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "process; a resumed run keeps its own)")
     p.add_argument("--bf16", action="store_true", help="bfloat16 autocast of the network (CUDA or CPU)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_common(p)  # the shared --quiet
     add_skip_damaged_argument(p)
     p.set_defaults(func=run_train_cli, flag_names=FLAGS)
 
