@@ -25,7 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scenario", required=True, metavar="NAME", help="named truth scenario")
     p.add_argument("--runs", type=int, help="number of Monte Carlo runs (default 100)")
     add_common(p, out="campaign folder (rerun on it to resume)", config="campaign config (tables measurement, "
-               "filter; runs, seed...)", seed="root seed (default 0)", quiet=False)
+               "filter; runs, seed...)", seed="root seed (default 0)")
     p.add_argument("--duration-s", type=float, help="simulated time, s (default 1800)")
     p.add_argument("--rate-hz", type=float, help="filter/measurement rate, Hz (default 1)")
     p.add_argument("--measurements", choices=["markers3d", "pixels", "pixels+range"],
@@ -43,7 +43,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rrd", metavar="FILE.rrd",
                    help="also write a Rerun recording: truth, run 0's estimate with its 3-sigma ellipsoid, the kept "
                    "sample runs' errors with the campaign's +-3 sigma bands (`envisat view FILE`)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run_montecarlo)
 
 
@@ -61,14 +60,12 @@ def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
 
 def runner_config(args: argparse.Namespace):
     """The core runner's settings, one BLAS thread share per worker."""
-    from envisat_pose.runner import RunnerConfig, cpu_share
+    from envisat_pose.runner import BLAS_THREADS, RunnerConfig, thread_env
 
     check(args.workers >= 1, "workers", args.workers, "at least 1 worker")
     check(args.scheduler is None or args.backend == "dask", "scheduler", args.scheduler,
           "an address only with --backend dask")
-    n = str(cpu_share(args.workers))
-    runner = RunnerConfig(args.backend, args.workers, args.scheduler,
-                          {"OMP_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n, "MKL_NUM_THREADS": n})
+    runner = RunnerConfig(args.backend, args.workers, args.scheduler, thread_env(args.workers, BLAS_THREADS))
     runner.validate()
     return runner
 

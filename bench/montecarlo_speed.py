@@ -73,13 +73,12 @@ def time_campaign(runs: int, duration_s: float, workers: int, block_runs: int, o
     """Run the campaign once through the pipeline's run_campaign (envisat_pose.pipelines.campaign); wall time,
     memory, summary. kernel: the filter kernel (None: the default, as `envisat montecarlo` runs it)."""
     from envisat_pose.pipelines.campaign import MonteCarloConfig, run_campaign
-    from envisat_pose.runner import RunnerConfig, cpu_share
+    from envisat_pose.runner import BLAS_THREADS, RunnerConfig, thread_env
 
     # as `envisat montecarlo --scenario default` builds it: the scenario's [measurement] and [filter] tables
     cfg = MonteCarloConfig.from_scenario("default", overrides={"filter.kernel": kernel}, duration_s=duration_s,
                                          runs=runs, seed=0, block_runs=block_runs)
-    n = str(cpu_share(workers))
-    runner = RunnerConfig("local", workers, None, {"OMP_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n})
+    runner = RunnerConfig("local", workers, None, thread_env(workers, BLAS_THREADS))
     t0 = time.perf_counter()
     cpu0 = _cpu_s()
     with PeakRSS() as mem:

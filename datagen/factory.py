@@ -27,7 +27,7 @@ from envisat_pose.datagen.clearance import TargetBoxes, farthest_depth_m, projec
 from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
 from envisat_pose.datagen.views import R_K_FROM_C, sample_random_view, sample_seed, sequence_frames, sequence_view, unit
-from envisat_pose.runner import ResumableJob, RunnerConfig, check_out_dir, cpu_share
+from envisat_pose.runner import ResumableJob, RunnerConfig, check_out_dir, cpu_share, thread_env
 from envisat_pose.state import MRP, POS, RATE, VEL
 
 MANIFEST_FORMAT = "envisat-pose shards v1"
@@ -340,7 +340,7 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
 
     check(backend in ("local", "dask"), "backend", backend, "'local' or 'dask'")
     # one rasterizer thread count per worker: the machine's cores shared among the workers
-    runner = RunnerConfig(backend, workers, scheduler, {"LP_NUM_THREADS": str(cpu_share(workers))})
+    runner = RunnerConfig(backend, workers, scheduler, thread_env(workers))
     runner.validate()
     check_out_dir(out_dir)
     if cfg.mode == "sequence":  # before anything is written: the truth's keep-out and the depth range

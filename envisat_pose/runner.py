@@ -54,6 +54,17 @@ def cpu_share(workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(1, workers))
 
 
+RASTERIZER_THREADS = ("LP_NUM_THREADS",)  # llvmpipe's threads: MuJoCo's software renderer (OSMesa, EGL on a CPU)
+BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")  # numpy's and scipy's linear algebra
+
+
+def thread_env(workers: int, variables: tuple[str, ...] = RASTERIZER_THREADS) -> dict[str, str]:
+    """The one home of the worker thread environment: each of `variables` set to the machine's cores shared among
+    `workers` processes (cpu_share), for RunnerConfig.env (a worker keeps a value its parent already set)."""
+    n = str(cpu_share(workers))
+    return {name: n for name in variables}
+
+
 def _worker_init(env: dict[str, str]) -> None:
     """Process-pool worker start: its environment, and death with the parent (no orphan writers)."""
     for key, value in env.items():

@@ -302,12 +302,12 @@ def gl_environment(device_type: str, workers: int) -> dict[str, str]:
     """The renderer processes' environment: MUJOCO_GL (the caller's, else egl for a CUDA device, osmesa
     otherwise), EGL_PLATFORM surfaceless with egl, LP_NUM_THREADS (llvmpipe's threads) the machine's cores shared
     among the workers unless set."""
-    from envisat_pose.runner import cpu_share
+    from envisat_pose.runner import thread_env
 
     env = {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl" if device_type == "cuda" else "osmesa")}
     if env["MUJOCO_GL"].lower() == "egl":
         env["EGL_PLATFORM"] = os.environ.get("EGL_PLATFORM", "surfaceless")
-    env["LP_NUM_THREADS"] = os.environ.get("LP_NUM_THREADS", str(cpu_share(workers)))
+    env.update({name: os.environ.get(name, n) for name, n in thread_env(workers).items()})
     return env
 
 
