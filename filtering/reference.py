@@ -5,6 +5,8 @@ before averaging, the mean switched to |p| <= 1) and `residual_x` (a sigma point
 point it is compared with); `state_add` is plain addition, and after an update that takes |p| over 1 the mean
 and the covariance are switched together (`shadow_switch`), since a hook cannot touch P.
 A varying number of corners is passed as a full R matrix and an hx that returns only the measured corners.
+Only the tests and the benchmarks import this module: filterpy is their extra (`pip install envisat-pose[test]`),
+not a dependency of the package.
 """
 
 from __future__ import annotations

@@ -61,6 +61,7 @@ if [ "$(cat .venv/.setup-stamp 2>/dev/null)" != "$stamp" ] || ! ls datagen/plugi
   .venv/bin/python -m pip install -q --upgrade pip
   # torch first, exactly the pinned CPU build; a range would fetch a multi-GB CUDA build.
   .venv/bin/python -m pip install -q "torch==2.13.0"
-  .venv/bin/python -m pip install -q -e ".[dev]"
+  # dev: pytest and ruff; test and bench: what only the tests and the benchmarks import (filterpy, webdataset)
+  .venv/bin/python -m pip install -q -e ".[dev,test,bench]"
   echo "$stamp" > .venv/.setup-stamp
 fi
