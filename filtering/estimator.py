@@ -439,15 +439,15 @@ def nees(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray) -> np.ndarray:
     return np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
 
 
-def nees_divergence(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, cfg: FilterConfig) -> np.ndarray:
-    """Divergence monitor against a known truth: the NEES averaged over a sliding window of
-    cfg.divergence_window steps above cfg.nees_divergence_factor x 12, after the settle steps
-    (envisat_pose.state.nees_window_diverged on this run's NEES).
+def diverged_against_truth(nis_diverged: np.ndarray, nees_rt: np.ndarray, cfg: FilterConfig) -> np.ndarray:
+    """The divergence rule of runs whose truth is known (the one home of it): a run diverged when the filter's own
+    NIS monitor flagged it, or when its NEES averaged over a sliding window of cfg.divergence_window steps is
+    above cfg.nees_divergence_factor x 12 after the settle steps (envisat_pose.state.nees_window_diverged).
 
     Estimation errors are strongly correlated in time, so a chi-square bound on a window of NEES values (which
     assumes independent steps) would raise false alarms; the NIS monitor (white innovations) uses one.
 
-    x_true broadcastable to x_hat (R, T, 12); P (R, T, 12, 12). Returns (R,) bool.
+    nis_diverged (R,) bool (FilterResult.diverged, FilterState.diverged); nees_rt (R, T) (`nees`). Returns (R,) bool.
     """
-    return nees_window_diverged(nees(x_true, x_hat, P), cfg.divergence_window, cfg.divergence_settle_steps,
-                                cfg.nees_divergence_factor)
+    return nis_diverged | nees_window_diverged(nees_rt, cfg.divergence_window, cfg.divergence_settle_steps,
+                                               cfg.nees_divergence_factor)

@@ -77,9 +77,14 @@ def filter_block(tr: CampaignTruth, cfg: MonteCarloConfig, run_start: int, run_s
     CampaignSums.to_arrays() (over all T steps), run_<key> per-run summaries (stats.RunSummary fields over the
     settled steps), sample_err (S, T, 12) and sample_norms (S, T, 4) of the block's runs below sample_runs."""
     from envisat_pose.analysis.stats import RunAccumulator, block_error_norms, component_errors
-    from envisat_pose.filtering.estimator import Measurement, filter_step, init_state, make_setup
+    from envisat_pose.filtering.estimator import (
+        Measurement,
+        diverged_against_truth,
+        filter_step,
+        init_state,
+        make_setup,
+    )
     from envisat_pose.filtering.montecarlo import make_run_inputs
-    from envisat_pose.state import nees_window_diverged
 
     fcfg, n = cfg.filter, run_stop - run_start
     inp = make_run_inputs(tr.x_true[0], tr.t_s, tr.z_true, tr.base, cfg.measurement, fcfg.P0, cfg.seed, n,
@@ -105,8 +110,7 @@ def filter_block(tr: CampaignTruth, cfg: MonteCarloConfig, run_start: int, run_s
         if n_sample:
             sample_err[:, ks.start:ks.stop] = component_errors(x_true[:n_sample], x_hat[:n_sample])
             sample_norms[:, ks.start:ks.stop] = block_error_norms(x_true[:n_sample], x_hat[:n_sample])
-    diverged = state.diverged | nees_window_diverged(nees_rt, fcfg.divergence_window, fcfg.divergence_settle_steps,
-                                                     fcfg.nees_divergence_factor)
+    diverged = diverged_against_truth(state.diverged, nees_rt, fcfg)
     out = _join_chunks(sums, run_start, run_stop, diverged)
     out.update({f"run_{k}": v for k, v in vars(acc.result(x_true[:, -1], x_hat[:, -1], diverged)).items()})
     out.update(sample_err=sample_err, sample_norms=sample_norms)

@@ -124,7 +124,7 @@ def test_bad_value_is_one_error_line(tmp_path, capsys, flag, value, field):
 def test_block_reduction_equals_whole_array_statistics(campaign):
     """The chunked, streaming block equals run_filter over the same runs followed by the whole-array statistics."""
     from envisat_pose.analysis.stats import reduce_runs, run_summary
-    from envisat_pose.filtering.estimator import nees_divergence, run_filter
+    from envisat_pose.filtering.estimator import diverged_against_truth, nees, run_filter
     from envisat_pose.filtering.montecarlo import make_run_inputs
     from envisat_pose.pipelines.campaign import MonteCarloConfig
     from envisat_pose.pipelines.campaign_block import CHUNK_STEPS, filter_block, load_campaign_truth
@@ -138,7 +138,7 @@ def test_block_reduction_equals_whole_array_statistics(campaign):
     res = run_filter(inp.x0_hat[a:b], cfg.filter.P0, tr.t_s, tr.chaser, inp.z[a:b], inp.mask[a:b], inp.R_c,
                      "markers3d", cfg.filter, mu_m3_s2=tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient)
     x_true = np.broadcast_to(tr.x_true, res.x_hat.shape)
-    diverged = res.diverged | nees_divergence(x_true, res.x_hat, res.P, cfg.filter)
+    diverged = diverged_against_truth(res.diverged, nees(x_true, res.x_hat, res.P), cfg.filter)
     want = reduce_runs(x_true, res.x_hat, res.P, res.nis, res.dof, diverged, run_start=a).to_arrays()
     for k, v in want.items():
         np.testing.assert_allclose(got[k], v, rtol=1e-9, atol=1e-15, err_msg=k)
