@@ -36,6 +36,7 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, ver
     # warm: the prior still earns its claim: "acquiring" (no estimate: NaN) until confirmed by confirm_frames (5)
     # frames of its own innovations, then tracking
     assert est.status[0].tolist() == [0, 0, 0, 0, 1], est.status
+    assert est.diverged.tolist() == [False]  # no frame lost (test_diverged_... loses one)
     assert np.isnan(est.x_hat[0, :4]).all() and np.isfinite(est.x_hat[0, 4]).all()
     np.testing.assert_array_equal(est.x_true[0], truth.x)
     with np.load(out / "det.npz", allow_pickle=False) as z:
@@ -157,9 +158,20 @@ def test_a_run_config_a_user_builds_runs_without_the_apps_finishing(tmp_path, de
 
 def test_diverged_means_the_runs_own_monitor_flagged_it(tmp_path, detector_weights):
     """Estimates.diverged has one meaning (contracts.py): for tracker runs, a frame declared lost; whether a run
-    met the truth's tolerances is stored apart (`settled`)."""
+    met the truth's tolerances is stored apart (`settled`). A warm start drawn from a P0 far too wide for the
+    filter (an attitude sigma of 1 per MRP component: rotations of order 180 deg) is contradicted by the rendered frames' corners: the
+    tracker declares the frame lost, drops its estimate and acquires again, and the run is diverged (the tight
+    warm start of the first test loses nothing: diverged False there)."""
     out = tmp_path / "d"
-    loop.run_closed_loop(run_cfg(detector_weights, warm_start=True), str(out), progress=False)
+    cfg = run_cfg(detector_weights, duration_s=3.0, warm_start=True,
+                  **{"filter.p0_sigma": [1.0, 0.01, 1.0, 1.7e-3]})
+    summary = loop.run_closed_loop(cfg, str(out), progress=False)
     with np.load(out / "est.npz", allow_pickle=False) as z:
-        assert z["diverged"].tolist() == [bool((z["status"][0] == 2).any())] == [False]
-        assert "settled" in z.files and z["settled"].shape == (1,)
+        lost = z["status"][0] == 2
+        assert lost.any(), z["status"]
+        assert z["diverged"].tolist() == [True]
+        assert summary["run0"]["frames_lost"] == int(lost.sum())
+        k = int(np.argmax(lost))
+        # dropped: no estimate from the lost frame on until a new bank is confirmed (not within 3 s)
+        assert np.isnan(z["x_hat"][0, k:]).all() and (z["status"][0, k + 1:] == 0).all(), z["status"]
+        assert z["settled"].tolist() == [False]
