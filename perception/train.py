@@ -20,16 +20,17 @@ gradients are averaged, and only rank 0 writes; a budgeted run stops on rank 0's
 The run folder appears with the first step trained (a run refused or failing before it leaves nothing). SIGINT
 (Ctrl-C) or SIGTERM stops the run after the step in progress with a checkpoint and raises TrainingInterrupted (a
 KeyboardInterrupt) that says how to resume; a second Ctrl-C stops at once.
+Structure: `train` builds a `Trainer` (the model, the optimizer, the state.json dict and the step); the budget,
+the moving average, the pre-cooldown weights, the run folder, checkpoints, metrics, the progress bar, timing,
+DDP agreement and signals are hooks of perception/trainer_hooks.py, called at named points in a fixed order.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import signal
-import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Literal
 
@@ -37,12 +38,25 @@ import numpy as np
 import torch
 
 from envisat_pose.config import InputError, flatten
-from envisat_pose.io import atomic_write_text
 from envisat_pose.perception.data import DataConfig, shard_paths
 from envisat_pose.perception.losses import LossConfig, corner_losses
 from envisat_pose.perception.model import CornerNet, ModelConfig
 from envisat_pose.perception.stream import close_batches, epoch_batches, loader_batches
-from envisat_pose.perception.weights import load_state, load_tensors, read_weights, save_tensors, save_weights
+from envisat_pose.perception.trainer_hooks import (
+    Budget,
+    Checkpoints,
+    DdpAgreement,
+    Hook,
+    Metrics,
+    MovingAverage,
+    PreCooldown,
+    Progress,
+    RunFolder,
+    StopOnSignals,
+    Timing,
+    progress_bar,
+)
+from envisat_pose.perception.weights import load_state, load_tensors, read_weights
 
 
 @dataclass(frozen=True)
@@ -228,10 +242,6 @@ def _check_resume(run_dir: str, cfg: TrainConfig, data: list[dict] | None) -> tu
         return json.load(fh), saved
 
 
-SHUTDOWN_RESERVE_S = 1.0  # a budgeted run keeps this for the final log, checkpoint and the workers' shutdown
-POSTFIX_EVERY = 10  # steps between the progress bar's loss readings (each one waits for the device)
-
-
 def _autocast(dev: torch.device, bf16: bool):
     return torch.autocast(device_type=dev.type, dtype=torch.bfloat16, enabled=bf16)
 
@@ -276,36 +286,6 @@ def make_ema(model: CornerNet, cfg: TrainConfig):
     return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay), use_buffers=True)
 
 
-def _shared_clock(dist, dev: torch.device, elapsed_s: float, reserve_s: float) -> tuple[float, float]:
-    """Rank 0's clock for every rank (a budgeted DDP run must stop at the same step on all ranks)."""
-    if dist is None:
-        return elapsed_s, reserve_s
-    t = torch.tensor([elapsed_s, reserve_s], dtype=torch.float64, device=dev)
-    dist.broadcast(t, src=0)
-    return float(t[0]), float(t[1])
-
-
-@contextlib.contextmanager
-def _stop_on_signals(flag: dict):
-    """While training: SIGINT and SIGTERM set flag['signal'] (the loop stops after its step, with a checkpoint);
-    a second SIGINT raises KeyboardInterrupt at once. Only in the main thread (signals are delivered there)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, _frame):
-        if flag.get("signal") and signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        flag["signal"] = signal.Signals(signum).name
-
-    old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for sig, h in old.items():
-            signal.signal(sig, h)
-
-
 def _budget_end_s(cfg: TrainConfig, saved: dict | None, state: dict) -> float | None:
     """The run's clock reading at which a budgeted call stops: the config's budget for a new run, or for a
     resumed run given its own budget again (what is left of it); time_s + the new budget for a resumed run given
@@ -319,20 +299,246 @@ def _budget_end_s(cfg: TrainConfig, saved: dict | None, state: dict) -> float | 
     return float(state["time_s"]) + cfg.time_budget_s
 
 
-def _progress(cfg: TrainConfig, state: dict, budget_end_s: float | None, time0: float, enabled: bool):
-    """A step bar, or under a budget a bar of the budget's seconds (elapsed / budget)."""
-    from tqdm import tqdm
-
-    if budget_end_s is None:
-        return tqdm(total=cfg.steps, initial=state["step"], disable=not enabled, desc="train", unit="step")
-    return tqdm(total=round(budget_end_s - time0, 1), disable=not enabled, desc="train", unit="s",
-                bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s of the budget{postfix}")
 
 
-def _advance_budget_bar(bar, seconds: float) -> None:
-    """Move a budget's bar to `seconds` into it, never past its end: tqdm drops the total of a bar past it, and
-    the bar's percentage then fails to format (a last step that ends after the budget's end)."""
-    bar.update(max(0.0, min(round(seconds, 1), bar.total) - bar.n))
+@dataclass(frozen=True)
+class TrainData:
+    """Where a run's batches come from. data_dir: one dataset folder or several (their shards are read
+    together); paths: the shard files to read when the caller checked them already (None: every shard of
+    data_dir); online: instead of shards, a function start_state -> iterator of (batch on the device, state)
+    (frames rendered as training goes: pipelines/online.py), each step's state kept in state.json under 'online'
+    and handed back on resume (no epochs; data_dir and paths unused)."""
+
+    data_dir: str | list[str] = ()
+    paths: list[str] | None = None
+    online: Callable | None = None
+
+
+@dataclass(frozen=True)
+class TrainOptions:
+    """How one train() call runs, apart from what it learns (TrainConfig): see train() for each field."""
+
+    resume: bool = False
+    device: str = "cpu"
+    progress: bool = True
+    provenance: dict | None = None
+    init_weights: str | None = None
+    workers: int | None = None
+    bf16: bool = False
+    clock: Callable[[], float] = time.perf_counter
+
+
+class Trainer:
+    """One train() call: the model, its optimizer and the run's state (the dict state.json holds: step, epoch,
+    batch, workers, time_s, budget_end_s, pre_cooldown_step, online), trained step by step; every other concern
+    is a hook (perception/trainer_hooks.py) called at named points. Trainer(cfg, data, run_dir, opts).run()."""
+
+    def __init__(self, cfg: TrainConfig, data: TrainData, run_dir: str, opts: TrainOptions):
+        self.cfg, self.data, self.run_dir, self.opts = cfg, data, run_dir, opts
+        self.dist, self.rank, self.world = _dist()
+        self.dev = torch.device(opts.device)
+        self.clock = opts.clock
+        self.signals = StopOnSignals()
+        self.steps_run = 0  # this call's own steps
+        self.hooks: list[Hook] = []
+
+    def run(self) -> dict:
+        """Train; the last metrics line (see train())."""
+        self._check_call()
+        self.t_start = self.clock()
+        self.paths = self._shard_paths()
+        self.state, self.saved = self._start_state()
+        self.time0 = float(self.state["time_s"])
+        self.budget_end_s = _budget_end_s(self.cfg, self.saved, self.state)
+        self.state["budget_end_s"] = self.budget_end_s
+        if self.saved is not None and self._nothing_to_do():
+            why = "budget_spent" if self.state["step"] < self.cfg.steps else "steps_reached"
+            return {"kind": "end", "step": self.state["step"], "epoch": self.state["epoch"], "steps_run": 0,
+                    "stopped_by": "nothing_to_do", "why": why, "time_s": self.time0, "workers": self.state["workers"]}
+        self._build_model()
+        self._make_hooks()
+        self.lr = lr_at(self.cfg, self.state["step"], self.time0, self.budget_end_s)
+        return self._finish(self._train())
+
+    def elapsed(self) -> float:
+        """The run's clock, seconds: what it had used before this call (a resumed run's time_s) plus this call's."""
+        return self.time0 + self.clock() - self.t_start
+
+    def _now(self) -> float:
+        """The run clock for the next step (seconds): under a budget and DDP rank 0's (Budget.share_clock)."""
+        now_s = self.elapsed()
+        return now_s if self.budget is None else self.budget.share_clock(now_s)
+
+    def in_cooldown(self, now_s: float) -> bool:
+        """The next step, at run-clock now_s, is in a constant_cooldown run's cooldown."""
+        return in_cooldown(self.cfg, self.state["step"], now_s, self.budget_end_s)
+
+    def _check_call(self) -> None:
+        if self.dev.type == "cuda" and not torch.cuda.is_available():
+            raise InputError("device 'cuda': no CUDA device is available")
+        workers = self.opts.workers
+        if workers is not None and workers < 0:
+            raise InputError(f"workers = {workers}: expected 0 (in-process) or more worker processes")
+
+    def _shard_paths(self) -> list[str] | None:
+        if self.data.paths is not None or self.data.online is not None:
+            return self.data.paths
+        dirs = [self.data.data_dir] if isinstance(self.data.data_dir, str) else list(self.data.data_dir)
+        return [p for d in dirs for p in shard_paths(d)]
+
+    def _start_state(self) -> tuple[dict, dict | None]:
+        """The state to start from and, on resume, the run's config.json (None: a new run). InputError when a new
+        run's folder holds a run, or when resume's checks fail (perception/train.py _check_resume, the workers)."""
+        workers, run_dir = self.opts.workers, self.run_dir
+        state = {"step": 0, "epoch": 0, "batch": 0, "workers": 0 if workers is None else workers, "time_s": 0.0}
+        if not self.opts.resume:
+            if os.path.exists(os.path.join(run_dir, "state.json")):
+                raise InputError(f"run_dir {run_dir!r} already holds a run: resume it, or give another folder")
+            return state, None
+        saved_state, saved = _check_resume(run_dir, self.cfg, (self.opts.provenance or {}).get("data"))
+        ran_with = int(saved_state.get("workers", 0))
+        if workers is not None and workers != ran_with:
+            raise InputError(f"workers = {workers}: {run_dir!r} was trained with {ran_with} (its batches depend "
+                             f"on the count); resume it with --workers {ran_with}")
+        return {**state, **saved_state, "workers": ran_with}, saved
+
+    def _nothing_to_do(self) -> bool:
+        """A resumed run already at its steps or at its budget's end."""
+        spent = self.budget_end_s is not None and self.time0 >= self.budget_end_s
+        return self.state["step"] >= self.cfg.steps or spent
+
+    def _build_model(self) -> None:
+        """The model (seeded, from init_weights, or a resumed run's checkpoint), its optimizer (resumed too), the
+        moving average, and `net`: the model itself or its DDP wrapper."""
+        cfg, opts, dev = self.cfg, self.opts, self.dev
+        self.model = init_model(cfg).to(dev)
+        start = os.path.join(self.run_dir, "checkpoint.safetensors") if opts.resume else opts.init_weights
+        if start is not None:
+            load_state(self.model, read_weights(start)[0], start)
+        if dev.type == "cuda":
+            self.model = self.model.to(memory_format=torch.channels_last)
+        self.opt = make_optimizer(self.model, cfg, dev)
+        if opts.resume:
+            self.opt.load_state_dict(load_tensors(os.path.join(self.run_dir, "optimizer.pt")))
+        ema = make_ema(self.model, cfg)
+        self.average = None if ema is None else MovingAverage(ema, cfg.ema_decay,
+                                                              os.path.join(self.run_dir, "ema.safetensors"))
+        if self.average is not None and opts.resume:
+            self.average.resume(self.state["step"])
+        self.net = self.model
+        if self.dist is not None:
+            self.net = torch.nn.parallel.DistributedDataParallel(
+                self.model, device_ids=[dev.index] if dev.type == "cuda" else None)
+        self.model.train()
+
+    def _make_hooks(self) -> None:
+        """The hooks, in the order they are called at each point (perception/trainer_hooks.py)."""
+        cfg = self.cfg
+        self.folder = RunFolder(self.saved, self.opts.provenance, self.state["step"])
+        self.timing, self.metrics = Timing(), Metrics(self.folder)
+        self.checkpoints = Checkpoints(self.folder, cfg.checkpoint_every)
+        bar = progress_bar(cfg.steps, self.state, self.budget_end_s, self.time0, self.opts.progress and self.rank == 0)
+        self.ddp = None if self.dist is None else DdpAgreement(self.dist, self.world)
+        self.budget = None if self.budget_end_s is None else Budget(self.budget_end_s, self.timing, self.checkpoints)
+        hooks = [
+            self.budget, PreCooldown(self.folder) if cfg.schedule == "constant_cooldown" else None,
+            self.average, self.folder, self.metrics, Progress(bar, self.budget_end_s is not None), self.ddp,
+            self.checkpoints, self.timing,
+        ]
+        self.hooks = [h for h in hooks if h is not None]
+        for hook in self.hooks:
+            hook.trainer = self
+
+    def _train(self) -> str | None:
+        """The loop under the signal handlers, its batch source closed on every way out, then the hooks'
+        after_train (the last checkpoint among them). Why it stopped early: 'time_budget', a signal's name, None."""
+        with self.signals:
+            source = self._online_batches() if self.data.online is not None else self._shard_batches()
+            try:
+                stop = self._loop(source)
+            finally:
+                source.close()  # the loader's or the renderers' workers shut down, on an error too
+            for hook in self.hooks:
+                hook.after_train()
+        return stop
+
+    def _loop(self, source) -> str | None:
+        """Steps on the source's batches until the steps are done, a hook stops the run before a step or a
+        signal came (the step in progress finishes)."""
+        self.timing.ask()
+        for cpu_batch, position in source:
+            if self.state["step"] >= self.cfg.steps or self.signals.caught:
+                break
+            self.timing.got()
+            now_s = self._now()
+            for hook in self.hooks:
+                reason = hook.before_step(now_s)
+                if reason is not None:
+                    for h in self.hooks:
+                        h.on_stop(reason)
+                    return reason
+            terms = self._step(cpu_batch, now_s)
+            self.state["step"] += 1
+            self.state.update(position)
+            self.steps_run += 1
+            for hook in self.hooks:
+                hook.after_step(terms)
+        return self.signals.caught
+
+    def _step(self, cpu_batch: dict, now_s: float) -> dict:
+        """One optimizer step at the schedule's rate for this step and run-clock now_s; the loss terms."""
+        self.lr = lr_at(self.cfg, self.state["step"], now_s, self.budget_end_s)
+        for g in self.opt.param_groups:
+            g["lr"] = self.lr
+        return _train_step(self.model, self.net, self.opt, to_device(cpu_batch, self.dev), self.cfg,
+                           self.state["step"], self.dev, self.opts.bf16)
+
+    def _epoch_batches(self, epoch: int):
+        return epoch_batches(self.paths, self.cfg.data, self.cfg.seed, epoch, self.cfg.batch_size,
+                             self.state["workers"], self.rank, self.world, pin_memory=self.dev.type == "cuda")
+
+    def _shard_batches(self):
+        """(batch, where the run stands after training it) from the shards, epoch after epoch; an epoch's end
+        logged. The next epoch's workers start early (no stall at the boundary)."""
+        state, current, upcoming = self.state, None, None
+        try:
+            while True:
+                skip, n = state["batch"], 0  # a resumed epoch: its first batches were trained on before
+                current = upcoming if upcoming is not None else self._epoch_batches(state["epoch"])
+                upcoming = self._epoch_batches(state["epoch"] + 1) if state["workers"] > 0 else None
+                for i, cpu_batch in enumerate(loader_batches(current, self.signals.flag)):
+                    if i >= skip:
+                        n += 1
+                        yield cpu_batch, {"batch": i + 1}
+                if self.signals.caught:
+                    return
+                if n == 0 and skip == 0:
+                    raise InputError(f"data {self.data.data_dir!r}: fewer samples than one batch of "
+                                     f"{self.cfg.batch_size} per worker ({state['workers']} workers, "
+                                     f"{len(self.paths)} shards, {self.world} ranks): use fewer workers or a "
+                                     "smaller batch")
+                close_batches(current)
+                self.metrics.log("epoch")
+                state["epoch"] += 1
+                state["batch"] = 0
+        finally:  # the workers of both epochs stop here, on the run's end or an error alike
+            for batches in (current, upcoming):
+                close_batches(batches)
+
+    def _online_batches(self):
+        """(batch on the device, the source's state) from frames rendered as training goes."""
+        for batch, source_state in self.data.online(self.state.get("online")):
+            yield batch, {"online": source_state}
+
+    def _finish(self, stop: str | None) -> dict:
+        """The end line (the last terms, this call's speed, why it stopped, under DDP the ranks' agreement);
+        TrainingInterrupted after it when a signal stopped the run."""
+        speed = {**self.timing.figures(self.cfg.batch_size, self.world),
+                 "stopped_by": "steps" if stop is None else ("time_budget" if stop == "time_budget" else "signal")}
+        end = self.metrics.log("end", {**(self.ddp.figures if self.ddp else {}), **speed})
+        if stop not in (None, "time_budget"):
+            raise TrainingInterrupted(self.state["step"] if self.folder.started else 0, self.run_dir, stop)
+        return end
 
 
 def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: bool = False, device: str = "cpu",
@@ -359,236 +565,6 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
     handed back on resume; no epochs, data_dir and paths unused.
     Raises TrainingInterrupted after the checkpoint when SIGINT or SIGTERM stopped it.
     """
-    dist, rank, world = _dist()
-    dev = torch.device(device)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("device 'cuda': no CUDA device is available")
-    if workers is not None and workers < 0:
-        raise InputError(f"workers = {workers}: expected 0 (in-process) or more worker processes")
-    t_start = clock()
-    dirs = [data_dir] if isinstance(data_dir, str) else list(data_dir)
-    if paths is None and online is None:
-        paths = [p for d in dirs for p in shard_paths(d)]
-    state = {"step": 0, "epoch": 0, "batch": 0, "workers": 0 if workers is None else workers, "time_s": 0.0}
-    saved = None
-    if resume:
-        saved_state, saved = _check_resume(run_dir, cfg, (provenance or {}).get("data"))
-        ran_with = int(saved_state.get("workers", 0))
-        if workers is not None and workers != ran_with:
-            raise InputError(f"workers = {workers}: {run_dir!r} was trained with {ran_with} (its batches depend "
-                             f"on the count); resume it with --workers {ran_with}")
-        state = {**state, **saved_state, "workers": ran_with}
-    elif os.path.exists(os.path.join(run_dir, "state.json")):
-        raise InputError(f"run_dir {run_dir!r} already holds a run: resume it, or give another folder")
-    time0 = float(state["time_s"])
-    budget_end_s = _budget_end_s(cfg, saved, state)
-    state["budget_end_s"] = budget_end_s
-    if resume and (state["step"] >= cfg.steps or (budget_end_s is not None and time0 >= budget_end_s)):
-        why = "budget_spent" if state["step"] < cfg.steps else "steps_reached"
-        return {"kind": "end", "step": state["step"], "epoch": state["epoch"], "steps_run": 0,
-                "stopped_by": "nothing_to_do", "why": why, "time_s": time0, "workers": state["workers"]}
-    model = init_model(cfg).to(dev)
-    if init_weights is not None and not resume:
-        tensors, _ = read_weights(init_weights)
-        load_state(model, tensors, init_weights)
-    if resume:
-        tensors, _ = read_weights(os.path.join(run_dir, "checkpoint.safetensors"))
-        load_state(model, tensors, os.path.join(run_dir, "checkpoint.safetensors"))
-    if dev.type == "cuda":
-        model = model.to(memory_format=torch.channels_last)
-    opt = make_optimizer(model, cfg, dev)
-    if resume:
-        opt.load_state_dict(load_tensors(os.path.join(run_dir, "optimizer.pt")))
-    ema = make_ema(model, cfg)
-    ema_path = os.path.join(run_dir, "ema.safetensors")
-    if ema is not None and resume and os.path.exists(ema_path):
-        load_state(ema.module, read_weights(ema_path)[0], ema_path)
-        ema.n_averaged.fill_(max(1, int(state["step"])))
-    net = model
-    if dist is not None:
-        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[dev.index] if dev.type == "cuda" else None)
-    model.train()
-    started = {"run": resume}  # the run folder exists (a resumed run's does)
-
-    def elapsed() -> float:
-        return time0 + clock() - t_start
-
-    def start_run() -> None:
-        """The run folder and its config.json, once the first step is trained (nothing half-made before); a
-        resumed run's record takes its new steps or budget and keeps each resuming command under 'resumes'."""
-        if started["run"]:
-            if saved is not None and not started.get("recorded") and rank == 0:
-                started["recorded"] = True
-                resumes = saved.get("resumes", []) + [{"command": (provenance or {}).get("command", ""),
-                                                       "git": (provenance or {}).get("git"), "step": state["step"]}]
-                atomic_write_text(os.path.join(run_dir, "config.json"), json.dumps(
-                    {**saved, "train": cfg.to_dict(), "resumes": resumes}, indent=1, sort_keys=True) + "\n")
-            return
-        started["run"] = True
-        if rank == 0:
-            os.makedirs(run_dir, exist_ok=True)
-            atomic_write_text(os.path.join(run_dir, "config.json"), json.dumps(
-                {"train": cfg.to_dict(), **(provenance or {})}, indent=1, sort_keys=True) + "\n")
-
-    bar = _progress(cfg, state, budget_end_s, time0, progress and rank == 0)
-    sums: dict[str, torch.Tensor] = {}
-    count = 0
-    terms_mean: dict[str, float] = {}
-    lr = lr_at(cfg, state["step"], time0, budget_end_s)
-    run = {"steps": 0, "first_batch_s": None, "data_wait_s": 0.0}  # this call's own figures
-    iter_s: list[float] = []  # the last steps' wall times, data wait included
-    checkpoint_s = 0.5  # until one is measured
-
-    def checkpoint() -> None:
-        if rank != 0 or not started["run"]:
-            return
-        state["time_s"] = round(elapsed(), 3)
-        save_weights(os.path.join(run_dir, "checkpoint.safetensors"), model, {"step": str(state["step"])})
-        save_tensors(os.path.join(run_dir, "optimizer.pt"), opt.state_dict())
-        if ema is not None:
-            save_weights(ema_path, ema.module, {"step": str(state["step"]), "ema_decay": str(cfg.ema_decay)})
-        atomic_write_text(os.path.join(run_dir, "state.json"), json.dumps(state, sort_keys=True) + "\n")
-
-    def save_pre_cooldown() -> None:
-        """The weights and optimizer before the cooldown's first step: where the next leg starts."""
-        state["pre_cooldown_step"] = state["step"]
-        if rank == 0:
-            save_weights(os.path.join(run_dir, "pre_cooldown.safetensors"), model,
-                         {"step": str(state["step"]), "pre_cooldown": "true"})
-            save_tensors(os.path.join(run_dir, "pre_cooldown_optimizer.pt"), opt.state_dict())
-
-    def log(kind: str, extra: dict | None = None) -> dict:
-        """A metrics line: the loss terms averaged since the last line (an end line right after an epoch line
-        repeats that line's terms). The one place the terms are read back from the device."""
-        nonlocal sums, count, terms_mean
-        if count:
-            terms_mean = {k: float(v) / count for k, v in sums.items()}
-        line = {"kind": kind, "epoch": state["epoch"], "step": state["step"], "lr": lr, "time_s": round(elapsed(), 3),
-                **terms_mean, **(extra or {})}
-        if rank == 0 and started["run"]:
-            with open(os.path.join(run_dir, "metrics.jsonl"), "a", encoding="utf-8") as fh:
-                fh.write(json.dumps(line, sort_keys=True) + "\n")
-        sums, count = {}, 0
-        return line
-
-    def batches_of(epoch: int):
-        return epoch_batches(paths, cfg.data, cfg.seed, epoch, cfg.batch_size, state["workers"], rank, world,
-                             pin_memory=dev.type == "cuda")
-
-    def offline_batches():
-        """(batch, where the run stands after training it) from the shards, epoch after epoch; an epoch's end
-        logged. The next epoch's workers start early (no stall at the boundary)."""
-        current = upcoming = None
-        try:
-            while True:
-                skip, n = state["batch"], 0  # a resumed epoch: its first batches were trained on before
-                current = upcoming if upcoming is not None else batches_of(state["epoch"])
-                upcoming = batches_of(state["epoch"] + 1) if state["workers"] > 0 else None
-                for i, cpu_batch in enumerate(loader_batches(current, flag)):
-                    if i >= skip:
-                        n += 1
-                        yield cpu_batch, {"batch": i + 1}
-                if flag.get("signal"):
-                    return
-                if n == 0 and skip == 0:
-                    raise InputError(f"data {data_dir!r}: fewer samples than one batch of {cfg.batch_size} per "
-                                     f"worker ({state['workers']} workers, {len(paths)} shards, {world} ranks): "
-                                     "use fewer workers or a smaller batch")
-                close_batches(current)
-                log("epoch")
-                state["epoch"] += 1
-                state["batch"] = 0
-        finally:  # the workers of both epochs stop here, on the run's end or an error alike
-            for batches in (current, upcoming):
-                close_batches(batches)
-
-    def online_batches():
-        """(batch on the device, the source's state) from frames rendered as training goes (online(start))."""
-        for batch, source_state in online(state.get("online")):
-            yield batch, {"online": source_state}
-
-    flag: dict = {}
-    stop = None  # why the loop ended early: 'time_budget' or the signal's name
-    with _stop_on_signals(flag):
-        source = online_batches() if online is not None else offline_batches()
-        try:
-            t_ask = clock()
-            for cpu_batch, position in source:
-                if state["step"] >= cfg.steps or flag.get("signal"):
-                    break
-                t_got = clock()
-                run["data_wait_s"] += t_got - t_ask
-                if run["first_batch_s"] is None:
-                    run["first_batch_s"] = t_got - t_start
-                now_s = elapsed()
-                if budget_end_s is not None:
-                    reserve = 1.5 * max(iter_s[-10:], default=0.0) + checkpoint_s + SHUTDOWN_RESERVE_S
-                    now_s, reserve = _shared_clock(dist, dev, now_s, reserve)
-                    if now_s + reserve >= budget_end_s:
-                        if run["steps"] == 0:
-                            raise InputError(
-                                f"time_budget_s = {cfg.time_budget_s:g}: too short for one step (the first batch "
-                                f"came {now_s - time0:.1f} s into it; a step, the checkpoint and the shutdown need "
-                                f"~{reserve:.1f} s more): give a longer budget")
-                        stop = "time_budget"
-                        if cfg.schedule == "constant_cooldown" and "pre_cooldown_step" not in state:
-                            save_pre_cooldown()  # stopped before its cooldown: these weights are the next start
-                        break
-                if "pre_cooldown_step" not in state and in_cooldown(cfg, state["step"], now_s, budget_end_s):
-                    start_run()
-                    save_pre_cooldown()
-                lr = lr_at(cfg, state["step"], now_s, budget_end_s)
-                for g in opt.param_groups:
-                    g["lr"] = lr
-                terms = _train_step(model, net, opt, to_device(cpu_batch, dev), cfg, state["step"], dev, bf16)
-                if ema is not None:
-                    ema.update_parameters(model)
-                start_run()
-                state["step"] += 1
-                state.update(position)
-                run["steps"] += 1
-                for k, v in terms.items():
-                    sums[k] = sums[k] + v if k in sums else v
-                count += 1
-                if budget_end_s is None:
-                    bar.update(1)
-                else:
-                    _advance_budget_bar(bar, elapsed() - time0)
-                if state["step"] % POSTFIX_EVERY == 0 or run["steps"] == 1:
-                    bar.set_postfix(step=state["step"], loss=f"{float(terms['loss']):.3f}")
-                if state["step"] % cfg.checkpoint_every == 0:
-                    t_ck = clock()
-                    checkpoint()
-                    checkpoint_s = clock() - t_ck
-                # a step's wall time, its wait for data included, except the run's first (the loaders' start-up,
-                # seconds that no later step waits again, would hold back a budget's last steps)
-                iter_s.append(clock() - (t_got if run["steps"] == 1 else t_ask))
-                t_ask = clock()
-            if flag.get("signal") and stop is None:
-                stop = flag["signal"]
-        finally:
-            source.close()  # the loader's or the renderers' workers shut down, on an error too
-        bar.close()
-        ddp = {}
-        if dist is not None:
-            for b in model.buffers():  # BatchNorm statistics of the last forward are each rank's own: take rank 0's
-                dist.broadcast(b, src=0)
-            ddp = {"ranks_identical": float(_ranks_identical(dist, model, world)), "world": float(world)}
-        checkpoint()
-    loop_s = clock() - t_start - (run["first_batch_s"] or 0.0)
-    speed = {"steps_run": run["steps"], "workers": state["workers"], "bf16": bf16,
-             "samples_s": round(run["steps"] * cfg.batch_size * world / max(loop_s, 1e-9), 2),
-             "first_batch_s": round(run["first_batch_s"] or 0.0, 3), "data_wait_s": round(run["data_wait_s"], 3),
-             "stopped_by": "steps" if stop is None else ("time_budget" if stop == "time_budget" else "signal")}
-    end = log("end", {**ddp, **speed})
-    if stop not in (None, "time_budget"):
-        raise TrainingInterrupted(state["step"] if started["run"] else 0, run_dir, stop)
-    return end
-
-
-def _ranks_identical(dist, model: torch.nn.Module, world: int) -> bool:
-    """Every rank holds the same parameters and buffers, bit for bit (gathered and compared on all ranks)."""
-    flat = torch.cat([t.detach().reshape(-1).double().cpu() for t in model.state_dict().values()])
-    gathered = [torch.empty_like(flat) for _ in range(world)]
-    dist.all_gather(gathered, flat)
-    return all(torch.equal(gathered[0], g) for g in gathered[1:])
+    opts = TrainOptions(resume=resume, device=device, progress=progress, provenance=provenance,
+                        init_weights=init_weights, workers=workers, bf16=bf16, clock=clock)
+    return Trainer(cfg, TrainData(data_dir, paths, online), run_dir, opts).run()

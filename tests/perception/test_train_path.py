@@ -126,11 +126,11 @@ def test_the_record_holds_the_command_as_typed_and_reproduces_the_config(tiny_da
 
 
 def test_a_budgets_bar_stops_at_its_end_when_the_last_step_ends_after_it(capsys):
-    from envisat_pose.perception.train import _advance_budget_bar, _progress
+    from envisat_pose.perception.trainer_hooks import advance_budget_bar, progress_bar
 
-    bar = _progress(small(time_budget_s=4.0), {"step": 0}, 4.0, 0.0, True)
+    bar = progress_bar(small(time_budget_s=4.0).steps, {"step": 0}, 4.0, 0.0, True)
     for seconds in (1.2, 3.9, 4.6, 5.3):  # the last two after the budget's end
-        _advance_budget_bar(bar, seconds)
+        advance_budget_bar(bar, seconds)
         bar.refresh()
     bar.close()
     err = capsys.readouterr().err
