@@ -15,8 +15,8 @@ import sys
 from envisat_pose.config import ConfigError, InputError
 
 # The app modules that define register(subparsers), in the order their verbs are listed.
-_VERB_MODULES = ("envisat_pose.app.simulate", "envisat_pose.app.generate", "envisat_pose.app.estimate",
-                 "envisat_pose.app.montecarlo", "envisat_pose.app.report", "envisat_pose.app.scenarios",
+_VERB_MODULES = ("envisat_pose.app.simulate", "envisat_pose.app.generate", "envisat_pose.app.dataset",
+                 "envisat_pose.app.estimate", "envisat_pose.app.montecarlo", "envisat_pose.app.report", "envisat_pose.app.scenarios",
                  "envisat_pose.app.train", "envisat_pose.app.detect", "envisat_pose.app.calibrate",
                  "envisat_pose.app.evaluate", "envisat_pose.app.view", "envisat_pose.app.run", "envisat_pose.app.track",
                  "envisat_pose.app.adapt", "envisat_pose.app.demo")

@@ -1,0 +1,114 @@
+"""`envisat dataset verify|inspect|export`: a generated dataset read back: checked against its manifest,
+summarised with a labelled montage, or exported into the formats the field trains on (docs/formats.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+from envisat_pose.app.common import add_common
+from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    d = sub.add_parser("dataset", help="check, summarise or export a generated dataset")
+    dsub = d.add_subparsers(dest="dataset_verb", metavar="ACTION")
+    dsub.required = True
+    v = dsub.add_parser("verify", help="report missing, partial or corrupt shards (exit 1 if any)")
+    v.add_argument("dir", metavar="DIR")
+    v.set_defaults(func=run_verify_cli)
+    i = dsub.add_parser("inspect", help="print statistics and write a montage PNG with the labelled corners")
+    i.add_argument("dir", metavar="DIR")
+    i.add_argument("--montage", metavar="FILE.png", help="montage path (default DIR/montage.png)")
+    i.add_argument("--count", type=int, default=16, help="images in the montage (default 16)")
+    i.add_argument("--rrd", metavar="FILE.rrd", help="also write the first --count samples as a Rerun recording: "
+                   "images with labelled corners, masks, depth (`envisat view FILE`)")
+    add_skip_damaged_argument(i)
+    i.set_defaults(func=run_inspect_cli)
+    e = dsub.add_parser("export", help="write a dataset as SPEED+, COCO keypoints, BOP or YOLO-pose",
+                        description="Export a generated dataset (random or sequence mode) into a new folder of a "
+                        "format the field trains on; conventions in the folder's README.md and docs/formats.md.")
+    e.add_argument("src", metavar="SRC", help="dataset folder written by `envisat generate`")
+    e.add_argument("--format", required=True, choices=("speedplus", "coco", "bop", "yolo-pose"))
+    e.add_argument("--image-format", default="png", choices=("png", "jpg"),
+                   help="png: the shards' bytes unchanged (default); jpg: re-encoded at quality 95")
+    e.add_argument("--val-fraction", type=float, metavar="F", help="share of images in the validation split "
+                   "(default 0.2 for random views; a sequence: 0, else its last frames)")
+    e.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="local worker processes (default: "
+                   "one per core)")
+    add_common(e, out="new folder (refused if it exists and is not empty)", seed="seed of the train/validation "
+               "split (default 0)", flag_names={"src": "SRC", "format": "--format", "image_format": "--image-format",
+                                                "val_fraction": "--val-fraction", "workers": "--workers"})
+    add_skip_damaged_argument(e)
+    e.set_defaults(func=run_export_cli)
+
+
+def run_verify_cli(args: argparse.Namespace) -> int:
+    from envisat_pose.datagen.dataset import verify_dataset
+
+    problems = verify_dataset(args.dir)
+    for line in problems:
+        print(f"PROBLEM {line}")
+    if problems:
+        print(f"{args.dir}: {len(problems)} problem(s)")
+        return 1
+    print(f"{args.dir}: all shards present and verified")
+    return 0
+
+
+def run_inspect_cli(args: argparse.Namespace) -> int:
+    from envisat_pose.datagen.dataset import dataset_stats, load_manifest, montage
+    from envisat_pose.runner import check_out_file, make_out_file_dir
+    from envisat_pose.shard_reader import checked_shards
+
+    path = args.montage or os.path.join(args.dir, "montage.png")
+    check_out_file(path, "--montage")
+    if args.rrd:
+        from envisat_pose.app.common import check_rrd_output
+
+        check_rrd_output(args.rrd)
+    load_manifest(args.dir)
+    with skip_hint():
+        shards, skipped = checked_shards(args.dir, args.skip_damaged, "dataset")
+    stats = dataset_stats(shards)
+    if skipped:
+        stats["skipped_damaged_shards"] = skipped
+    print(json.dumps(stats, indent=1))
+    make_out_file_dir(path, "--montage")
+    n = montage(shards, path, count=args.count)
+    print(f"wrote {path} ({n} images)")
+    if args.rrd:
+        make_out_file_dir(args.rrd, "--rrd")
+        write_samples_rrd(shards, args.rrd, args.count)
+        print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
+    if skipped:
+        print(skipped_line(skipped))
+    return 0
+
+
+def write_samples_rrd(source: str | list[str], path: str, count: int) -> None:
+    """The first `count` samples as a Rerun recording (analysis.recording.write_samples_recording), read lazily.
+    source: a dataset folder or its checked shard files."""
+    from envisat_pose.analysis.recording import Sample, write_samples_recording
+    from envisat_pose.datagen.dataset import iter_samples, sample_png
+    from envisat_pose.datagen.shards import decode_png
+
+    samples = (Sample(key, sample_png(members, label), label,
+                      mask=decode_png(members["mask.png"]) if "mask.png" in members else None,
+                      depth_png=members.get("depth.png"))
+               for key, label, members in iter_samples(source, limit=count))
+    write_samples_recording(path, samples)
+
+
+def run_export_cli(args: argparse.Namespace) -> int:
+    from envisat_pose.pipelines.export import ExportConfig, export_dataset
+
+    cfg = ExportConfig(args.format, args.image_format, args.val_fraction, 0 if args.seed is None else args.seed)
+    summary = export_dataset(args.src, args.out, cfg, workers=args.workers, skip_damaged=args.skip_damaged,
+                             progress=not args.quiet)
+    counts = ", ".join(f"{n} {name}" for name, n in summary.images.items())
+    print(f"wrote {summary.fmt} export of {args.src} to {summary.out_dir} ({counts}; conventions in README.md)")
+    if summary.skipped:
+        print(skipped_line(summary.skipped))
+    return 0

@@ -1,0 +1,167 @@
+"""One factory label in the conventions of the formats the field trains on (docs/formats.md states each one):
+SPEED+ (SPNv2 and its descendants), COCO keypoints, BOP, Ultralytics YOLO-pose. Pure functions of a label
+(datagen/labels.py: camera frame K = OpenCV's, x right, y down, z along the boresight; pixel centres at integer
+coordinates) and of the image's mask; nothing here reads or writes a file.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from envisat_pose.attitude import rotmat_to_quat
+
+FORMATS = ("speedplus", "coco", "bop", "yolo-pose")
+VISIBLE, HIDDEN, OUTSIDE = 2, 1, 0  # COCO's (and YOLO-pose's) visibility codes
+JPEG_QUALITY = 95
+
+
+def visibility_codes(label: dict) -> np.ndarray:
+    """(K,) int: 2 visible (depth test), 1 in the frame but hidden, 0 outside the frame (or behind the camera)."""
+    in_frame = np.asarray(label["in_frame"], dtype=bool)
+    visible = np.asarray(label["visible"], dtype=bool) & in_frame
+    return np.where(visible, VISIBLE, np.where(in_frame, HIDDEN, OUTSIDE))
+
+
+def pose_cam_from_target(label: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(R_cam_from_target (3, 3), t_cam_from_target_m (3,)): x_cam = R x_T + t, camera frame OpenCV's."""
+    return np.asarray(label["R_cam_from_target"], dtype=float), np.asarray(label["t_cam_from_target_m"], dtype=float)
+
+
+def quat_wxyz(R: np.ndarray) -> list[float]:
+    """The unit quaternion of rotation matrix R, scalar first, Hamilton's product, R active (v' = R v), w >= 0."""
+    return [float(c) for c in rotmat_to_quat(R)]
+
+
+# --- boxes ----------------------------------------------------------------------------------------------------
+
+def mask_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(x_min, y_min, x_max, y_max) pixel indices of the target's pixels (mask > 0), inclusive; None: none."""
+    cols = np.flatnonzero(mask.any(axis=0))
+    if cols.size == 0:
+        return None
+    rows = np.flatnonzero(mask.any(axis=1))
+    return int(cols[0]), int(rows[0]), int(cols[-1]), int(rows[-1])
+
+
+def outline_box(vertices_px: np.ndarray, width: int, height: int, clip: bool) -> tuple[int, int, int, int] | None:
+    """The pixel indices whose centres the projected outline spans, (x_min, y_min, x_max, y_max) inclusive:
+    ceil of the smallest and floor of the largest coordinate; clipped to the image when `clip` (None when
+    nothing is left). vertices_px: (V, 2) projections of the points in front of the camera."""
+    if len(vertices_px) == 0:
+        return None
+    x0, y0 = np.ceil(vertices_px.min(axis=0)).astype(int)
+    x1, y1 = np.floor(vertices_px.max(axis=0)).astype(int)
+    if clip:
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width - 1), min(y1, height - 1)
+    if x1 < x0 or y1 < y0:
+        return None
+    return int(x0), int(y0), int(x1), int(y1)
+
+
+def project_points_px(points_T_m: np.ndarray, label: dict) -> np.ndarray:
+    """Pinhole projection of points of T with the label's pose and K, keeping those in front of the camera."""
+    R, t = pose_cam_from_target(label)
+    K = np.asarray(label["K"], dtype=float)
+    p = points_T_m @ R.T + t
+    p = p[p[:, 2] > 1e-6]
+    return p[:, :2] / p[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
+
+
+# --- SPEED+ ---------------------------------------------------------------------------------------------------
+
+def speedplus_entry(filename: str, label: dict) -> dict:
+    """A SPEED+ label: q_vbs2tango_true (scalar first) with x_cam = R(q) x_body + r, r_Vo2To_vbs_true in metres."""
+    R, t = pose_cam_from_target(label)
+    return {"filename": filename, "q_vbs2tango_true": quat_wxyz(R), "r_Vo2To_vbs_true": [float(v) for v in t]}
+
+
+def speedplus_camera(K: np.ndarray, width: int, height: int, pixel_pitch_m: float) -> dict:
+    """SPEED+'s camera.json: sizes, pixel pitch and focal lengths in metres, the intrinsic matrix, no distortion,
+    the horizontal field of view in degrees."""
+    K = np.asarray(K, dtype=float)
+    return {"Nu": int(width), "Nv": int(height), "ppx": pixel_pitch_m, "ppy": pixel_pitch_m,
+            "fx": float(K[0, 0]) * pixel_pitch_m, "fy": float(K[1, 1]) * pixel_pitch_m,
+            "ccx": float(K[0, 2]), "ccy": float(K[1, 2]), "cameraMatrix": K.tolist(), "distCoeffs": [0.0] * 5,
+            "horizontalFOV": math.degrees(2 * math.atan(0.5 * width / float(K[0, 0])))}
+
+
+# --- COCO keypoints -------------------------------------------------------------------------------------------
+
+def coco_keypoints(label: dict) -> list[float]:
+    """[x1, y1, v1, ...]: the label's pixel coordinates (centres at integers), x = y = 0 where v = 0."""
+    codes = visibility_codes(label)
+    out: list[float] = []
+    for (u, v), code in zip(label["corners_px"], codes):
+        out += [float(u), float(v), int(code)] if code else [0.0, 0.0, 0]
+    return out
+
+
+def coco_bbox(box: tuple[int, int, int, int]) -> list[float]:
+    """[x, y, w, h] over whole pixels (pixel i covers [i, i + 1]: COCO's box edges)."""
+    x0, y0, x1, y1 = box
+    return [float(x0), float(y0), float(x1 - x0 + 1), float(y1 - y0 + 1)]
+
+
+def coco_skeleton(edges) -> list[list[int]]:
+    """The box's edges as COCO's 1-based keypoint pairs."""
+    return [[a + 1, b + 1] for a, b in edges]
+
+
+# --- YOLO-pose ------------------------------------------------------------------------------------------------
+
+def yolo_row(label: dict, box: tuple[int, int, int, int], width: int, height: int, class_id: int = 0) -> str:
+    """One object's row: class, box centre and size, then x y v per keypoint, all normalized by the image's size
+    (x = u / W, the label's pixel coordinate, as Ultralytics converts COCO); outside the frame `0 0 0`."""
+    x0, y0, x1, y1 = box
+    vals = [(x0 + x1 + 1) / 2 / width, (y0 + y1 + 1) / 2 / height, (x1 - x0 + 1) / width, (y1 - y0 + 1) / height]
+    codes = visibility_codes(label)
+    kps = []
+    for (u, v), code in zip(label["corners_px"], codes):
+        kps += [f"{u / width:.7f}", f"{v / height:.7f}", str(int(code))] if code else ["0", "0", "0"]
+    return " ".join([str(class_id), *(f"{x:.7f}" for x in vals), *kps])
+
+
+# --- BOP ------------------------------------------------------------------------------------------------------
+
+def bop_gt(label: dict, obj_id: int = 1) -> dict:
+    """scene_gt.json's entry: cam_R_m2c row-major, cam_t_m2c in millimetres."""
+    R, t = pose_cam_from_target(label)
+    return {"cam_R_m2c": [float(v) for v in R.reshape(-1)], "cam_t_m2c": [float(v) * 1000.0 for v in t],
+            "obj_id": int(obj_id)}
+
+
+def bop_camera(label: dict, depth_scale_mm: float | None) -> dict:
+    """scene_camera.json's entry: cam_K row-major (and depth_scale, mm per depth unit, when depth ships)."""
+    entry = {"cam_K": [float(v) for v in np.asarray(label["K"], dtype=float).reshape(-1)]}
+    if depth_scale_mm is not None:
+        entry["depth_scale"] = float(depth_scale_mm)
+    return entry
+
+
+def bop_box(box: tuple[int, int, int, int] | None) -> list[int]:
+    """BOP's [x, y, w, h] of pixel indices (w = x_max - x_min, as the BOP toolkit's calc_2d_bbox), or -1s."""
+    if box is None:
+        return [-1, -1, -1, -1]
+    x0, y0, x1, y1 = box
+    return [x0, y0, x1 - x0, y1 - y0]
+
+
+def bop_gt_info(mask: np.ndarray, outline_px: np.ndarray) -> dict:
+    """scene_gt_info.json's entry from the factory's mask: the target is the scene's one object, so its whole
+    silhouette in the image is its visible one (px_count_all = px_count_visib); bbox_obj spans the projected
+    model, also where it leaves the image, bbox_visib the mask."""
+    h, w = mask.shape
+    n = int(np.count_nonzero(mask))
+    return {"bbox_obj": bop_box(outline_box(outline_px, w, h, clip=False)), "bbox_visib": bop_box(mask_box(mask)),
+            "px_count_all": n, "px_count_valid": n, "px_count_visib": n, "visib_fract": 1.0 if n else 0.0}
+
+
+def bop_model_info(vertices_mm: np.ndarray) -> dict:
+    """models_info.json's entry: extent and diameter (the largest distance between two vertices), mm."""
+    lo, hi = vertices_mm.min(axis=0), vertices_mm.max(axis=0)
+    d = vertices_mm[:, None, :] - vertices_mm[None, :, :]
+    diameter = float(np.sqrt((d * d).sum(-1).max()))
+    return {"diameter": diameter, "min_x": float(lo[0]), "min_y": float(lo[1]), "min_z": float(lo[2]),
+            "size_x": float(hi[0] - lo[0]), "size_y": float(hi[1] - lo[1]), "size_z": float(hi[2] - lo[2])}

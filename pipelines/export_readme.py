@@ -1,0 +1,77 @@
+"""The README.md an export writes into its folder: the dataset's numbers and the conventions of its format, so
+the folder explains itself wherever it is copied (docs/formats.md is the project's page on the formats)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+_COMMON = """\
+## Conventions
+- Camera frame: OpenCV's: x right, y down, z along the boresight (MuJoCo's camera looks along -z with y up; the
+  exporter converts). Target body frame: the MJCF body `target`'s frame (origin at the centre of mass).
+- Pose: x_cam = R x_body + t. R is R_cam_from_target; t is the target's origin in the camera frame.
+- Pixels: pixel centres at integer coordinates (OpenCV's convention); the principal point of an N-px image is
+  ((N - 1) / 2, (N - 1) / 2). Keypoint coordinates are the projections of the keypoints' 3-D positions.
+- Keypoints ({k}, in this order): {names}. Visible = no nearer surface covers it in the rendered depth;
+  in-frame = its projection falls within [-0.5, N - 0.5) on both axes, in front of the camera.
+- Intrinsics: fx = fy = {f:.6f} px, cx = {cx:.1f}, cy = {cy:.1f}, {n} x {n} px, no distortion.
+"""
+
+_FORMAT = {
+    "speedplus": """\
+## SPEED+ layout (SPNv2 and its descendants)
+- `camera.json`: Nu, Nv (px); ppx, ppy: pixel pitch ({pitch:.4g} m); fx, fy: focal length in metres (= f_px x
+  pitch); ccx, ccy: principal point (px); cameraMatrix; distCoeffs (5 zeros, OpenCV order); horizontalFOV (deg).
+- Random views: `synthetic/images/`, `synthetic/train.json`, `synthetic/validation.json` (a seeded split).
+  A sequence: `<name>/synthetic/images/`, `<name>/<name>.json` (frames in time order), `<name>/metadata.json`
+  (each frame's time t_s, s) - the SHIRT layout.
+- Each entry: `filename`; `q_vbs2tango_true`: unit quaternion, scalar first (w, x, y, z), Hamilton's product,
+  of R with x_cam = R(q) x_body + r (w >= 0); `r_Vo2To_vbs_true`: r, metres, camera frame.
+- `models/keypoints.mat`: variable `tango3Dpoints`, 3 x K, metres, body frame (as SPNv2's loader reads it).
+""",
+    "coco": """\
+## COCO keypoints layout
+- `images/<split>/`, `annotations/keypoints_<split>.json` with `images` (id, file_name relative to `images/`,
+  width, height, and K), `annotations` (bbox [x, y, w, h] of the target's mask over whole pixels: pixel i covers
+  [i, i + 1]; area: the mask's pixel count; iscrowd 0; keypoints [x, y, v] per keypoint; num_keypoints: count of
+  v > 0; pose: R_cam_from_target, q_cam_from_target_wxyz, t_cam_from_target_m), `categories` (keypoint names,
+  skeleton: the box's edges, 1-based; keypoints_3d_m: the keypoints in the body frame).
+- v = 2 visible, 1 in the frame but hidden, 0 outside the frame (then x = y = 0). x, y: the pixel coordinates
+  above (centres at integers: COCO's keypoint convention as detectron2 reads it).
+- Images with no target pixel have no annotation.
+- OKS: a sigma of 0.025 per keypoint is suggested (corners are sharp; COCO's eyes use 0.025).
+""",
+    "bop": """\
+## BOP layout (one object, obj_id 1)
+- `camera.json`: cx, cy, fx, fy (px), width, height, depth_scale (mm per depth unit).
+- `models/obj_000001.ply`: the target's geoms as triangles, millimetres, body frame; `models/models_info.json`:
+  diameter and extent (mm); no symmetries (the target is not symmetric). `models/keypoints_3d.json` (an extra):
+  the keypoints in mm.
+- `train_pbr/NNNNNN/` (random views: 1000 images a scene; a sequence: one scene): `rgb/` (8-bit gray images),
+  `depth/` (16-bit, z along the boresight, x depth_scale mm; 0 = no target), `mask_visib/<im>_000000.png`
+  (255 = target), `scene_gt.json` (cam_R_m2c row-major, cam_t_m2c mm), `scene_camera.json` (cam_K
+  row-major, depth_scale), `scene_gt_info.json` (bbox_obj: the projected model, may leave the image;
+  bbox_visib: the mask; both [x, y, w, h] with w = x_max - x_min over pixel indices, as the BOP toolkit;
+  px_count_all = px_count_visib = the mask's pixels: the target is the one object; visib_fract).
+""",
+    "yolo-pose": """\
+## Ultralytics YOLO-pose layout
+- `images/<split>/`, `labels/<split>/` (one .txt per image; empty: no target pixel), `data.yaml` (kpt_shape
+  [K, 3]; no flip_idx: the target is chiral, a mirrored image shows another object).
+- A row: class 0, box centre x, y and width, height (the mask's whole pixels), then x y v per keypoint, all
+  divided by the image's width (x) or height (y); x = u / W with u the pixel coordinate above (centres at
+  integers, as Ultralytics's own COCO converter divides); v = 2 visible, 1 hidden, a keypoint outside the
+  frame `0 0 0`.
+""",
+}
+
+
+def readme_text(layout, K: np.ndarray, n: int, pitch_m: float, manifest: dict) -> str:
+    """The folder's README: where it came from, the common conventions, the format's layout."""
+    head = (f"# {layout.target}: {layout.fmt} export of an envisat-pose dataset\n\n"
+            f"Made by `envisat dataset export` from a {layout.mode}-mode dataset (root seed "
+            f"{manifest.get('root_seed')}, {manifest.get('num_images')} images, {n} px). `export.json` records "
+            "the export's settings and image counts.\n\n")
+    common = _COMMON.format(k=len(layout.keypoint_names), names=", ".join(layout.keypoint_names),
+                            f=float(K[0, 0]), cx=float(K[0, 2]), cy=float(K[1, 2]), n=n)
+    return head + common + "\n" + _FORMAT[layout.fmt].format(pitch=pitch_m)
