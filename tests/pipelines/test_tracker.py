@@ -475,12 +475,27 @@ def test_a_lost_track_is_detected_and_recovered(truth_600, truth_1800):
     assert err["position_m"] < 0.10 and err["attitude_deg"] < 1.0, err
 
 
-def test_the_tracker_takes_no_truth():
-    """Its API: camera, detector, the chaser's own orbit, configs, an optional prior; step(t_s, image)."""
+def test_the_tracker_takes_no_truth(truth_600, truth_1800):
+    """Its API: camera, detector, the chaser's own orbit, configs, an optional prior; step(t_s, image). And its
+    estimates are the images' alone: a detector whose images show truth_600 while its `truth` attribute (all a
+    tracker could read of a truth through what it is given) is another trajectory (truth_1800: another attitude,
+    the same chaser) gives bitwise the same estimates as one whose `truth` is the images' own, and they land on
+    truth_600 (scored here), not on the decoy."""
     import inspect
 
     params = set(inspect.signature(Tracker.__init__).parameters) | set(inspect.signature(Tracker.step).parameters)
     assert not any("true" in p or "truth" in p or "label" in p for p in params), params
+    frames = range(0, 45)
+    shown = {k: (truth_600, k) for k in frames}  # every frame's image: truth_600's corners
+    runs = {name: run_tracker(truth_600, NoisyTruthDetector(decoy, spliced=shown), frames)
+            for name, decoy in (("own", truth_600), ("decoy", truth_1800))}
+    for key in ("x_hat", "P", "status"):
+        np.testing.assert_array_equal(*(np.array([getattr(e, key) for e in runs[n]]) for n in ("own", "decoy")))
+    last = runs["decoy"][-1]
+    assert last.status == "tracking", [e.status for e in runs["decoy"]]
+    err = error_magnitudes(truth_600.x[44], last.x_hat)
+    assert err["position_m"] < 0.10 and err["attitude_deg"] < 1.0, err
+    assert error_magnitudes(truth_1800.x[44], last.x_hat)["attitude_deg"] > 10.0  # the decoy is another pose
 
 
 def test_frame_times_must_increase(truth_600):
