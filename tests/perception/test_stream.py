@@ -163,7 +163,25 @@ def test_time_budget_stops_inside_it_with_a_checkpoint_and_a_decayed_rate(many_s
 
 
 def test_bf16_autocast_trains_on_the_cpu(many_shards, tmp_path):
+    """--bf16: the training steps' convolutions run under CPU autocast, their outputs bfloat16 (a global forward
+    hook sees every module's output), and the loss stays finite; without it they run in float32 (the control,
+    one step)."""
     torch.set_num_threads(1)
-    end = train(small_config(3), many_shards, str(tmp_path / "bf16"), progress=False, workers=0, bf16=True)
-    assert end["bf16"] is True and end["step"] == 3
+    dtypes = {True: set(), False: set()}
+    flag = None
+
+    def conv_output(module, args, output):
+        if isinstance(module, torch.nn.Conv2d) and module.training:
+            dtypes[flag].add(output.dtype)
+
+    handle = torch.nn.modules.module.register_module_forward_hook(conv_output)
+    try:
+        flag = True
+        end = train(small_config(3), many_shards, str(tmp_path / "bf16"), progress=False, workers=0, bf16=True)
+        flag = False
+        plain = train(small_config(1), many_shards, str(tmp_path / "fp32"), progress=False, workers=0)
+    finally:
+        handle.remove()
+    assert end["bf16"] is True and end["step"] == 3 and plain["bf16"] is False
+    assert dtypes == {True: {torch.bfloat16}, False: {torch.float32}}, dtypes
     assert np.isfinite(end["loss"]) and end["loss"] > 0
