@@ -138,13 +138,46 @@ def test_selection_rules():
     np.testing.assert_array_equal(sw[0], z[0])
 
 
-def test_batched_shapes():
-    x = np.zeros((4, 25, 12))
-    x[..., 1] = 50.0
-    assert corners_C_m(x).shape == (4, 25, 8, 3)
-    assert measure(x, "pixels").shape == (4, 25, 8, 2)
-    assert measure(x, "pixels+range").shape == (4, 25, 8, 3)
-    assert predicted_visible(x).shape == (4, 25, 8)
+def test_batched_states_each_get_their_own_measurements():
+    """(4, 25, 12) states, all different (range 40-60 m, any attitude): every batched output has the leading
+    shape and equals, element by element, an independent computation for that one state: the corners
+    rho + R v with R from scipy's MRP rotation (active, Gamma^T), the pinhole u = f x_K / z_K + c in the camera
+    frame, the range from the camera, and a corner visible iff the chaser is outside the box's slab of one of its
+    three faces (s_j c_T[j] > h_j, c_T = -Gamma rho); and in_frame equals the pixel bounds."""
+    from scipy.spatial.transform import Rotation
+
+    from envisat_pose.geometry import load_geometry
+
+    rng = np.random.default_rng(7)
+    B = (4, 25)
+    x = np.zeros(B + (12,))
+    x[..., 0:3] = rng.normal(0.0, 4.0, B + (3,)) + [0.0, 50.0, 0.0]
+    x[..., 3:6] = rng.normal(0.0, 0.01, B + (3,))
+    x[..., 6:9] = rng.uniform(-0.6, 0.6, B + (3,))
+    x[..., 9:12] = rng.normal(0.0, 0.03, B + (3,))
+    cam, g = load_camera(), load_geometry()
+    got = {"corners": corners_C_m(x), "pixels": measure(x, "pixels", cam), "pr": measure(x, "pixels+range", cam),
+           "visible": predicted_visible(x), "in_frame": in_frame(x, cam)}
+    assert got["corners"].shape == B + (8, 3) and got["pixels"].shape == B + (8, 2)
+    assert got["pr"].shape == B + (8, 3) and got["visible"].shape == got["in_frame"].shape == B + (8,)
+    signs = np.sign(g.corners_T_m)
+    for idx in np.ndindex(*B):
+        xi = x[idx]
+        R = Rotation.from_mrp(xi[6:9]).as_matrix()  # active: Gamma^T
+        c = xi[0:3] + g.corners_T_m @ R.T
+        np.testing.assert_allclose(got["corners"][idx], c, rtol=0, atol=1e-12)
+        p_K = (c - cam.pos_C_m) @ cam.R_K_from_C.T
+        uv = cam.f_px * p_K[:, :2] / p_K[:, 2:3] + [cam.cu_px, cam.cv_px]
+        np.testing.assert_allclose(got["pixels"][idx], uv, rtol=0, atol=1e-8)
+        np.testing.assert_allclose(got["pr"][idx][:, :2], uv, rtol=0, atol=1e-8)
+        np.testing.assert_allclose(got["pr"][idx][:, 2], np.linalg.norm(c - cam.pos_C_m, axis=1), rtol=0, atol=1e-9)
+        c_T = -R.T @ xi[0:3]
+        np.testing.assert_array_equal(got["visible"][idx], (signs * c_T > g.half_sizes_m).any(axis=1))
+        inside = (uv >= -0.5).all(axis=1) & (uv[:, 0] <= cam.width_px - 0.5) & (uv[:, 1] <= cam.height_px - 0.5)
+        np.testing.assert_array_equal(got["in_frame"][idx], inside & (p_K[:, 2] > 0))
+    # the states differ, and so do their measurements (a batch that broadcast one state would pass the shapes)
+    assert np.ptp(got["pixels"], axis=(0, 1)).min() > 10.0
+    assert got["visible"].reshape(-1, 8).any(axis=0).all() and not got["visible"].all()
 
 
 def test_detections_become_filter_input():
