@@ -51,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rrd", metavar="FILE.rrd",
                    help="also write a Rerun recording: truth, run 0's estimate with its 3-sigma ellipsoid, every run's "
                    "errors with +-3 sigma bands (`envisat view FILE`)")
-    p.set_defaults(func=run_estimate)
+    p.set_defaults(func=run_estimate_cli)
 
 
 def resolve_config(args: argparse.Namespace) -> EstimateConfig:
@@ -90,7 +90,7 @@ def summary(arrays: dict) -> str:
             f"diverged runs {int(arrays['diverged'].sum())}/{len(arrays['diverged'])}")
 
 
-def run_estimate(args: argparse.Namespace) -> int:
+def run_estimate_cli(args: argparse.Namespace) -> int:
     from envisat_pose.pipelines.estimate import output_paths
     from envisat_pose.pipelines.estimate import run_estimate as run_pipeline
     from envisat_pose.runner import make_out_file_dirs

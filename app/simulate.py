@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dt-s", type=float, help="output step, s (default 1)")
     p.add_argument("--plot", action="store_true", help="also write a PNG of the 12 states next to --out")
     p.add_argument("--rrd", metavar="FILE.rrd", help="also write a Rerun recording of the truth (`envisat view FILE`)")
-    p.set_defaults(func=run_simulate)
+    p.set_defaults(func=run_simulate_cli)
 
 
 def resolve_config(args: argparse.Namespace) -> ScenarioConfig:
@@ -38,7 +38,7 @@ def resolve_config(args: argparse.Namespace) -> ScenarioConfig:
     return resolve_job("simulate", args.scenario, args.config, flags)
 
 
-def run_simulate(args: argparse.Namespace) -> int:
+def run_simulate_cli(args: argparse.Namespace) -> int:
     from envisat_pose.pipelines.simulate import output_paths
     from envisat_pose.pipelines.simulate import run_simulate as run_pipeline
     from envisat_pose.runner import make_out_file_dirs

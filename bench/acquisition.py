@@ -175,10 +175,10 @@ def main() -> None:
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "acquisition.json"))
     args = ap.parse_args()
     from envisat_pose.io import atomic_write_text
-    from envisat_pose.pipelines.jobs import default_weights_path
+    from envisat_pose.pipelines.job_defaults import default_weights_path
     from envisat_pose.pipelines.trials import SUN_PHASE_MAX_DEG
     from envisat_pose.provenance import weights_ref
-    from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks
+    from envisat_pose.runner import RunnerConfig, run_tasks, thread_env
     from envisat_pose.status import legend
 
     weights = args.weights or default_weights_path()
@@ -189,7 +189,7 @@ def main() -> None:
               for r, rate in bins for ss in bin_seeds(args.seed, r, rate, args.trials_per_bin)]
     print(f"acquisition: {len(bins)} bins x {args.trials_per_bin} trials, seed {args.seed}, {args.duration_s:g} s "
           f"each, {args.workers} workers (load {os.getloadavg()[0]:.1f} at start)")
-    runner = RunnerConfig("local", args.workers, env={"LP_NUM_THREADS": str(cpu_share(args.workers))})
+    runner = RunnerConfig("local", args.workers, env=thread_env(args.workers))
     results: list[dict | None] = [None] * len(trials)
     t0 = time.perf_counter()
     for i, res in run_tasks(run_trial, [(t,) for t in trials], runner):

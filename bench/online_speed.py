@@ -117,7 +117,7 @@ def main() -> None:
     os.environ["LP_NUM_THREADS"] = str(args.cores)
     from envisat_pose.contracts import Estimates
     from envisat_pose.io import atomic_write_text
-    from envisat_pose.pipelines.jobs import default_weights_path
+    from envisat_pose.pipelines.job_defaults import default_weights_path
     from envisat_pose.pipelines.rows import STAGES
 
     weights = args.weights or default_weights_path()

@@ -209,10 +209,10 @@ def main() -> None:
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.io import atomic_write_text
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.pipelines.jobs import default_weights_path
+    from envisat_pose.pipelines.job_defaults import default_weights_path
     from envisat_pose.pipelines.trials import SUN_PHASE_MAX_DEG
     from envisat_pose.provenance import weights_ref
-    from envisat_pose.runner import RunnerConfig, cpu_share, run_tasks
+    from envisat_pose.runner import RunnerConfig, run_tasks, thread_env
 
     weights = args.weights or default_weights_path()
     phase = args.sun_phase_max_deg if args.sun_phase_max_deg is not None else SUN_PHASE_MAX_DEG
@@ -235,7 +235,7 @@ def main() -> None:
           f"(load {os.getloadavg()[0]:.1f} at start)")
     keys = list(cfgs)
     tasks = [(json.dumps(to_dict(cfgs[k]), sort_keys=True),) for k in keys]
-    runner = RunnerConfig("local", args.workers, env={"LP_NUM_THREADS": str(cpu_share(args.workers))})
+    runner = RunnerConfig("local", args.workers, env=thread_env(args.workers))
     done: dict = {}
     t0 = time.perf_counter()
     print(HEAD)

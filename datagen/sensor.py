@@ -35,7 +35,7 @@ import math
 import cv2
 import numpy as np
 
-from envisat_pose.datagen.corrupt import content_box
+from envisat_pose.datagen.image_kernels import content_box, motion_kernel, standard_normal_fast
 
 POISSON_EXACT_BELOW_E = 100.0  # exact Poisson draws below this mean; N(mean, mean) above (skewness < 0.1)
 AIRY_FIRST_ZERO_X = 3.8317059702075125  # first zero of J1: the Airy pattern's first dark ring
@@ -143,8 +143,6 @@ def prnu_gain(camera_seed: int, shape: tuple[int, int], prnu_sigma: float) -> np
 def shot_noise_e(mean_e: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Photon (and dark-current) shot noise: a draw with variance = mean, electrons. Exact Poisson where the
     mean is below POISSON_EXACT_BELOW_E, the Gaussian N(mean, mean) above. (shape) float32."""
-    from envisat_pose.datagen.corrupt import standard_normal_fast
-
     mean_e = np.asarray(mean_e, dtype=np.float32)
     out = np.empty(mean_e.shape, dtype=np.float32)
     low = mean_e < POISSON_EXACT_BELOW_E
@@ -252,8 +250,6 @@ def optics_box(gray_u8: np.ndarray, p: dict) -> tuple[np.ndarray | None, tuple[i
     the non-black pixels grown by twice the filters' reach, the only place it is not 0: (crop (h, w) float32,
     box (y0, y1, x0, x1)), or (None, None) for a black image. A Gaussian PSF is applied as its two separable
     factors (the same kernel)."""
-    from envisat_pose.datagen.corrupt import motion_kernel
-
     gauss = p["psf"]["kind"] == "gaussian"
     half = int(math.ceil(4.0 * p["psf"]["sigma_px"])) + 1 if gauss else None
     psf = gaussian_psf_1d(p["psf"]["sigma_px"]) if gauss else airy_psf(p["psf"]["first_zero_px"])
@@ -403,8 +399,6 @@ def apply_sensor_box(irr: np.ndarray, box: tuple[int, int, int, int], shape: tup
     """Steps 4-8 pixel by pixel on the irradiance irr (h, w) of the window box (y0, y1, x0, x1) of an image of
     `shape` (the window of the camera's PRNU map): electrons, shot noise, blooming, read noise, ADC.
     (h, w) uint8."""
-    from envisat_pose.datagen.corrupt import standard_normal_fast
-
     y0, y1, x0, x1 = box
     gain = prnu_gain(p["camera_seed"], shape, p["prnu_sigma"])[y0:y1, x0:x1]
     lam_dark = np.float32(p["dark_current_e_per_s"] * p["exposure_s"])

@@ -3,9 +3,9 @@
 The public API, imported on first use (so `import envisat_pose` loads nothing heavy):
 
 - contracts: `TruthTrajectory`, `Detections`, `Estimates` (envisat_pose.contracts);
-- the tracker: `Tracker` (`Tracker.from_scenario`), `TrackerConfig`, `TrackEstimate` (envisat_pose.pipelines.tracker);
-  what it is built from: `load_camera`, `load_detector`, `chaser_from_orbit`, `tracker_filter`,
-  `tracker_from_scenario` (envisat_pose.pipelines.build);
+- the tracker: `Tracker` (`Tracker.from_scenario`), `TrackerConfig`, `TrackEstimate`, `tracker_from_scenario`
+  (envisat_pose.pipelines.tracker); what it is built from: `tracker_camera`, `tracker_detector`, `chaser_from_orbit`,
+  `tracker_filter` (envisat_pose.pipelines.build);
 - the closed loop: `RunConfig`, `run_closed_loop` (envisat_pose.pipelines.closed_loop); a user's frames:
   `TrackConfig`, `open_source`, `track_frames` (envisat_pose.pipelines.track);
 - campaigns: `MonteCarloConfig`, `run_campaign` (envisat_pose.pipelines.campaign);
@@ -18,9 +18,9 @@ _PUBLIC = {
     "Estimates": "envisat_pose.contracts",
     "Tracker": "envisat_pose.pipelines.tracker", "TrackerConfig": "envisat_pose.pipelines.tracker",
     "TrackEstimate": "envisat_pose.pipelines.tracker",
-    "load_camera": "envisat_pose.pipelines.build", "load_detector": "envisat_pose.pipelines.build",
+    "tracker_camera": "envisat_pose.pipelines.build", "tracker_detector": "envisat_pose.pipelines.build",
     "chaser_from_orbit": "envisat_pose.pipelines.build", "tracker_filter": "envisat_pose.pipelines.build",
-    "tracker_from_scenario": "envisat_pose.pipelines.build",
+    "tracker_from_scenario": "envisat_pose.pipelines.tracker",
     "RunConfig": "envisat_pose.pipelines.closed_loop", "run_closed_loop": "envisat_pose.pipelines.closed_loop",
     "TrackConfig": "envisat_pose.pipelines.track", "open_source": "envisat_pose.pipelines.track",
     "track_frames": "envisat_pose.pipelines.track",

@@ -176,7 +176,7 @@ def worse_reason(before: dict, after: dict) -> str | None:
 # Labels from a track
 
 
-def pseudo_labels(run_dir: str, camera, orbit, q_sigma, dyn: dict, cut: int, cfg: AdaptConfig) -> dict:
+def track_run_labels(run_dir: str, camera, orbit, q_sigma, dyn: dict, cut: int, cfg: AdaptConfig) -> dict:
     """The labels of a track run: the smoothed segments (pseudo_labels.smooth_track), the trusted frames before
     `cut` whose largest corner sigma is below cfg.max_label_sigma_px, at most cfg.max_labels of them evenly
     spread. Returns {frames (N,) int, x (N, 12) their smoothed states, sigma_px (N,) the largest corner sigma,
@@ -481,7 +481,7 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
     last_dir, weights, rounds = before_dir, base, []
     for r in range(cfg.rounds):
         t1 = time.perf_counter()
-        lab = pseudo_labels(last_dir, camera, tcfg.orbit, q_sigma, dyn, cut, cfg)
+        lab = track_run_labels(last_dir, camera, tcfg.orbit, q_sigma, dyn, cut, cfg)
         if len(lab["frames"]) < cfg.min_trusted:
             raise InputError(
                 f"src {source.path!r}: only {len(lab['frames'])} trusted frames in the first {1 - cfg.held_out:.0%} "

@@ -1,13 +1,10 @@
-"""The tracker as a library user builds it (the public API's builders, exported from `envisat_pose`):
+"""The parts a library user builds a tracker from (the public API's builders, exported from `envisat_pose`).
 
-    from envisat_pose import Tracker
-    tracker = Tracker.from_scenario("default")      # the shipped detector, the MJCF camera, the scenario's orbit
-    est = tracker.step(t_s, image)                   # image: (H, W) uint8 gray, or None (no frame)
-
-`load_camera` (the MJCF's chaser_cam, at a frame size, or a camera TOML file), `load_detector` (the shipped
+`tracker_camera` (the MJCF's chaser_cam, at a frame size, or a camera TOML file), `tracker_detector` (the shipped
 weights by default), `chaser_from_orbit` (what the chaser knows of its own orbit: chaser_at(t_s) -> r, rdot,
 theta, thetadot) and `tracker_filter` (the tracker's filter settings with a user's overrides: only the fields
-given change) are what `Tracker.from_scenario` joins; each may be used alone.
+given change) are what `Tracker.from_scenario` (pipelines.tracker.tracker_from_scenario) joins; each may be used
+alone. They know nothing of the Tracker itself, so the tracker imports them and not the other way round.
 """
 
 from __future__ import annotations
@@ -23,7 +20,7 @@ def tracker_filter(overrides: FilterConfig | dict | None = None, scenario: str |
     fields whose values differ from FilterConfig()'s defaults (to set a field back to FilterConfig's own default,
     give a dict)."""
     from envisat_pose.config import from_dict, to_dict
-    from envisat_pose.pipelines.tracker import TRACKER_FILTER
+    from envisat_pose.pipelines.tracker_config import TRACKER_FILTER
 
     base = dict(TRACKER_FILTER)
     if scenario is not None:
@@ -44,7 +41,7 @@ def tracker_filter(overrides: FilterConfig | dict | None = None, scenario: str |
     return from_dict(FilterConfig, merged, prefix="filter")
 
 
-def load_camera(path: str | None = None, size_px: tuple[int, int] | None = None):
+def tracker_camera(path: str | None = None, size_px: tuple[int, int] | None = None):
     """The tracker's camera (geometry.PinholeCamera): the MJCF's chaser_cam (read out at size_px = (width,
     height) when given: the same field of view), or a camera TOML file's ideal pinhole (fx, fy, cx, cy,
     width, height; frames with distortion or non-square pixels need pipelines.camera_file.camera_from_intrinsics'
@@ -61,12 +58,12 @@ def load_camera(path: str | None = None, size_px: tuple[int, int] | None = None)
     return cam
 
 
-def load_detector(weights: str | None = None, device: str = "cpu"):
+def tracker_detector(weights: str | None = None, device: str = "cpu"):
     """The corner detector (perception.detect.Detector) of a weights file; None: the shipped weights."""
-    from envisat_pose.perception.detect import load_detector as load
+    from envisat_pose.perception.detect import load_detector
     from envisat_pose.perception.weights import shipped_weights_path
 
-    return load(weights or shipped_weights_path(), device=device)
+    return load_detector(weights or shipped_weights_path(), device=device)
 
 
 def scenario_orbit(scenario: str = "default"):
@@ -88,25 +85,3 @@ def chaser_from_orbit(orbit=None, scenario: str = "default"):
     elif isinstance(orbit, dict):
         orbit = from_dict(OrbitConfig, orbit, prefix="orbit")
     return chaser_function(orbit)
-
-
-def tracker_from_scenario(scenario: str = "default", weights: str | None = None, camera=None,
-                          config=None, filter_config: FilterConfig | dict | None = None, size_px=None):
-    """A Tracker for frames of the named scenario's geometry: the chaser's orbit and the target's dynamics
-    (gravity gradient, mu) from the scenario, the detector of `weights` (None: shipped), `camera` (None: the
-    MJCF's chaser_cam, at size_px = (width, height) when given), TrackerConfig `config` (None: defaults), the
-    tracker's filter settings with `filter_config`'s fields over them (tracker_filter)."""
-    from types import SimpleNamespace
-
-    from envisat_pose.config import to_dict
-    from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.pipelines.onboard import onboard_physics
-    from envisat_pose.pipelines.tracker import Tracker, TrackerConfig
-
-    scen = scenario_config(scenario)
-    physics = onboard_physics(SimpleNamespace(config=to_dict(scen)), f"scenario {scenario!r}")
-    return Tracker(camera if camera is not None else load_camera(size_px=size_px), load_detector(weights),
-                   chaser_from_orbit(scen.orbit), config or TrackerConfig(),
-                   dataclasses.asdict(tracker_filter(filter_config, scenario)),
-                   mu_m3_s2=physics.mu_m3_s2, gravity_gradient=physics.gravity_gradient)
-

@@ -8,9 +8,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envisat_pose.config import ConfigError, check
+from envisat_pose.config import ConfigError, check, resolve_job_config
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig
+from envisat_pose.pipelines.job_defaults import scenario_defaults
 
 
 @dataclass(frozen=True)
@@ -37,10 +38,10 @@ class MonteCarloConfig:
     def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
                       **fields) -> "MonteCarloConfig":
         """The job `envisat montecarlo --scenario NAME` runs: this config resolved from the named scenario, the TOML
-        file at config_path, then overrides ({'section.key': value}) and fields (pipelines.jobs.resolve_job)."""
-        from envisat_pose.pipelines.jobs import resolve_job
-
-        return resolve_job("montecarlo", name, config_path, overrides, **fields)
+        file at config_path, then overrides ({'section.key': value}) and fields (pipelines/job_defaults.py's layers),
+        with the scenario's Earth's-shadow outages (with_eclipse)."""
+        flags = {**(overrides or {}), **fields, "scenario": name}  # the named scenario is the job's, whatever the file
+        return with_eclipse(resolve_job_config(cls, scenario_defaults("montecarlo", name), config_path, flags))
 
     def validate(self, prefix: str = "") -> None:
         check(self.duration_s > 0, "duration_s", self.duration_s, "a positive duration in seconds")

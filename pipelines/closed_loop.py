@@ -18,7 +18,7 @@ chunks of CHUNK_FRAMES frames as it goes (RunRows, which also reduces the stage 
 and returns only those reductions through the runner; the job then checks the contracts and scores chunk by
 chunk (scoring.frame_errors: a few scalars per frame are kept), streams est.npz and det.npz from the files
 (io.save_npz with StreamedArray members: the bytes of the whole arrays), draws errors.png from at most
-PLOT_FRAMES frames, and removes runs/. What stays proportional to the frames: the truth's state and times, the
+PLOT_FRAMES frames (pipelines/run_files.py), and removes runs/. What stays proportional to the frames: the truth's state and times, the
 recorder's corners, a few scalars per frame (bench/memory.py measures it). The image is any square
 image.resolution_px: the MJCF's chaser_cam read out at that size (the same field of view).
 """
@@ -36,12 +36,14 @@ import numpy as np
 from envisat_pose.config import to_dict
 from envisat_pose.pipelines.frame_loop import FrameInput, run_frames
 from envisat_pose.pipelines.onboard import chaser_function, onboard_physics, orbit_config
-from envisat_pose.pipelines.rows import CHUNK_FRAMES, DET_KEYS, EST_KEYS, STAGES, RunRows
+from envisat_pose.pipelines.rows import STAGES, RunRows
 from envisat_pose.pipelines.run_config import RunConfig, config_from_json, finish_config, sun_and_shadow
+from envisat_pose.pipelines.run_files import lost_runs, plot_inputs, score_run_files, write_run_files
 from envisat_pose.state import MRP, POS
 
-# The config (pipelines/run_config.py), the on-board physics and orbit (pipelines/onboard.py) and the per-frame
-# row store (pipelines/rows.py) have their own modules: import their names from there.
+# The config (pipelines/run_config.py), the on-board physics and orbit (pipelines/onboard.py), the per-frame
+# row store (pipelines/rows.py) and the runs' files read back (pipelines/run_files.py) have their own modules:
+# import their names from there.
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -198,7 +200,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
 
     from envisat_pose.config import to_toml
     from envisat_pose.io import atomic_write_text
-    from envisat_pose.runner import RunnerConfig, cpu_share, real_time_factor, run_tasks
+    from envisat_pose.runner import RunnerConfig, real_time_factor, run_tasks, thread_env
 
     paths = output_paths(out_dir)
     wall0 = time.perf_counter()
@@ -209,9 +211,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
     T = len(truth.t_s)
     cfg_json = json.dumps(to_dict(cfg), sort_keys=True)
     workers = min(cfg.workers, cfg.runs)
-    runner = RunnerConfig("local", workers, env={"LP_NUM_THREADS": str(cpu_share(workers))})
-    if workers == 1:
-        os.environ.setdefault("LP_NUM_THREADS", str(cpu_share(1)))
+    runner = RunnerConfig("local", workers, env=thread_env(workers))  # one worker: run_tasks sets it here
     sink = sink or f"save:{os.path.abspath(paths['recording'])}"
     runs_dir = os.path.join(out_dir, "runs")
     run_dirs = [os.path.abspath(os.path.join(runs_dir, f"run-{r:04d}")) for r in range(cfg.runs)]
@@ -265,124 +265,3 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
     }
     atomic_write_text(paths["summary"], json.dumps(summary, indent=1, sort_keys=True) + "\n")
     return summary
-
-
-# ---------------------------------------------------------------------------------------------------------
-# Reading the runs' files back, chunk by chunk (run_closed_loop and `envisat track`)
-
-# the most frames errors.png draws per series: beyond it every k-th frame (a 13-inch figure at 100 dpi shows
-# ~400 px per panel; drawing every frame of a long run would hold every run's covariances at once)
-PLOT_FRAMES = 7200
-
-
-def run_rows(run_dir: str, names, start: int, stop: int) -> dict:
-    """Frames [start, stop) of a run's arrays `names` (RunRows' files), read from the files."""
-    from envisat_pose.io import read_npy_rows
-
-    return {k: read_npy_rows(os.path.join(run_dir, f"{k}.npy"), start, stop) for k in names}
-
-
-def run_array(run_dirs: list[str], name: str, T: int):
-    """The runs' array `name` stacked over runs, (R, T, ...), as an io.StreamedArray read chunk by chunk."""
-    from envisat_pose.io import StreamedArray, npy_info, read_npy_rows
-
-    shape, dtype, _ = npy_info(os.path.join(run_dirs[0], f"{name}.npy"))
-
-    def chunks():
-        for d in run_dirs:
-            for a in range(0, T, CHUNK_FRAMES):
-                yield read_npy_rows(os.path.join(d, f"{name}.npy"), a, a + CHUNK_FRAMES)
-
-    return StreamedArray((len(run_dirs),) + tuple(shape), dtype, chunks)
-
-
-def score_run_files(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], paths: dict, config_json: str,
-                    det_cfg: str, score: bool = True, det_names=DET_KEYS) -> dict | None:
-    """scoring.score_runs of the runs in run_dirs against x_true (T, 12), reading x_hat and P chunk by chunk;
-    each chunk is also checked as est.npz's and (run 0) det.npz's contracts check them on save (score False: only
-    the checks, for x_true all NaN, no truth; returns None). Keeps only per-frame scalars (the errors, status)
-    and the second half's estimates for the error summary."""
-    from envisat_pose.contracts import Detections, Estimates
-    from envisat_pose.pipelines.scoring import frame_errors, score_frames, summary_after_s
-    from envisat_pose.state import error_summary
-
-    T = len(t_s)
-    errors, status = [], []
-    for r, d in enumerate(run_dirs):
-        parts, st = [], []
-        for a in range(0, T, CHUNK_FRAMES):
-            b = min(a + CHUNK_FRAMES, T)
-            c = run_rows(d, set(EST_KEYS + ("status",) + (det_names if r == 0 else ())), a, b)
-            Estimates.validated({"t_s": t_s[a:b], "x_true": x_true[None, a:b], "diverged": np.zeros(1, bool),
-                                 "config_json": config_json} | {k: c[k][None] for k in EST_KEYS}, paths["est"])
-            if r == 0:
-                Detections.validated({"t_s": t_s[a:b], "config_json": det_cfg} | {k: c[k] for k in det_names},
-                                     paths["det"])
-            if not score:
-                continue
-            parts.append(frame_errors(x_true[a:b], c["x_hat"], c["P"]))
-            st.append(c["status"])
-        if score:
-            errors.append({k: np.concatenate([p[k] for p in parts]) for k in parts[0]})
-            status.append(np.concatenate(st))
-    if not score:
-        return None
-    errors = {k: np.stack([e[k] for e in errors]) for k in errors[0]}
-    after_s = summary_after_s(t_s)
-    first = int(np.argmax(t_s >= after_s))
-    x_late = np.stack([run_rows(d, ["x_hat"], first, T)["x_hat"] for d in run_dirs])
-    summary = error_summary(t_s[first:], x_true[first:], x_late, after_s)
-    skipped = run_rows(run_dirs[0], ["skipped"], 0, T)["skipped"]
-    return score_frames(t_s, errors, np.stack(status), skipped, summary)
-
-
-def lost_runs(run_dirs: list[str], T: int) -> np.ndarray:
-    """(R,) bool: the runs in which the tracker declared a frame lost (Estimates.diverged for tracker runs)."""
-    from envisat_pose.status import LOST
-
-    return np.array([bool(np.any(run_rows(d, ["status"], 0, T)["status"] == LOST)) for d in run_dirs])
-
-
-def write_run_files(paths: dict, t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], diverged: np.ndarray,
-                    config_json: str, keys: list[str], det_cfg: str, det_names=DET_KEYS,
-                    extra: dict | None = None) -> None:
-    """est.npz (every run) and det.npz (run 0) streamed from the runs' files (their contracts checked chunk by
-    chunk in score_run_files): the same bytes as Estimates.save / save_npz of the whole arrays. diverged (R,):
-    Estimates.diverged; extra: more (R,) arrays for est.npz (Estimates.load ignores them)."""
-    from envisat_pose.io import StreamedArray, save_npz
-    from envisat_pose.pipelines.outputs import estimate_arrays  # status per row, NaN where no estimate
-    from envisat_pose.status import legend_json
-
-    T, R = len(t_s), len(run_dirs)
-    est = estimate_arrays(run_dirs, T)
-    est["x_true"] = StreamedArray((R, T, 12), np.float64, lambda: (x_true for _ in range(R)))
-    save_npz(paths["est"], est | (extra or {}) | {"t_s": t_s, "diverged": np.asarray(diverged, bool),
-                                  "config_json": np.array(config_json), "status_legend": np.array(legend_json())})
-    det = {k: run_array(run_dirs[:1], k, T) for k in det_names}
-    det = {k: StreamedArray(a.shape[1:], a.dtype, a.chunks) for k, a in det.items()}
-    key_dtype = np.dtype(f"<U{max(max(map(len, keys), default=1), 1)}")  # as numpy.array(keys) makes it
-    det["key"] = StreamedArray((T,), key_dtype, lambda: (np.array(keys[a:a + CHUNK_FRAMES], key_dtype)
-                                                         for a in range(0, T, CHUNK_FRAMES)))
-    save_npz(paths["det"], det | {"t_s": t_s, "config_json": np.array(det_cfg), "status_legend": np.array(legend_json())})
-
-
-def plot_inputs(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str]) -> tuple:
-    """What plots.plot_estimate draws (t_s, x_true, x_hat, P) at most PLOT_FRAMES frames (every k-th), read from
-    the runs' files: P as its mean over runs (the figure's filter sigma is that mean's diagonal) on the diagonal,
-    one run, so the figure holds one covariance series whatever the number of runs."""
-    T = len(t_s)
-    step = -(-T // PLOT_FRAMES)
-    idx = np.arange(0, T, step)
-    x_hat, p_sum = [], 0.0
-    for d in run_dirs:
-        xs, ps = [], []
-        for a in range(0, T, CHUNK_FRAMES):
-            c = run_rows(d, ["x_hat", "P"], a, a + CHUNK_FRAMES)
-            take = slice((-a) % step, None, step)
-            xs.append(c["x_hat"][take])
-            ps.append(np.diagonal(c["P"][take], axis1=-2, axis2=-1))
-        x_hat.append(np.concatenate(xs))
-        p_sum = p_sum + np.concatenate(ps)
-    P = np.zeros((1, len(idx), 12, 12))
-    P[0][:, np.arange(12), np.arange(12)] = p_sum / len(run_dirs)
-    return t_s[idx], np.repeat(x_true[idx][None], len(run_dirs), axis=0), np.stack(x_hat), P

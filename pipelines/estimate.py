@@ -16,9 +16,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envisat_pose.config import ConfigError, InputError, check, from_dict, to_dict, to_toml
+from envisat_pose.config import ConfigError, InputError, check, from_dict, resolve_job_config, to_dict, to_toml
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig
+from envisat_pose.pipelines.job_defaults import scenario_defaults
 from envisat_pose.pipelines.onboard import onboard_physics
 
 MAX_OUTPUT_BYTES = 8 * 2**30  # P alone is R * T * 144 * 8 bytes
@@ -41,10 +42,10 @@ class EstimateConfig:
     def from_scenario(cls, name: str | None = None, config_path: str | None = None, overrides: dict | None = None,
                       **fields) -> "EstimateConfig":
         """The job `envisat estimate --scenario NAME` runs: this config resolved from the named scenario, the TOML
-        file at config_path, then overrides ({'section.key': value}) and fields (pipelines.jobs.resolve_job)."""
-        from envisat_pose.pipelines.jobs import resolve_job
-
-        return resolve_job("estimate", name, config_path, overrides, **fields)
+        file at config_path, then overrides ({'section.key': value}) and fields (pipelines/job_defaults.py's layers;
+        no name: none, for an estimate of a truth file)."""
+        flags = {**(overrides or {}), **fields}
+        return resolve_job_config(cls, scenario_defaults("estimate", name), config_path, flags)
 
     def validate(self, prefix: str = "") -> None:
         check(1 <= self.runs <= 100_000, "runs", self.runs, "a number of runs from 1 to 100000")
@@ -128,7 +129,7 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     Arrays: t_s (T,), x_true (R, T, 12), x_hat (R, T, 12), P (R, T, 12, 12), n_meas (R, T), nis (R, T), nis_dof (R, T),
     diverged (R,) (NIS window or NEES window against the truth).
     """
-    from envisat_pose.filtering.estimator import chaser_states, nees_divergence, run_filter
+    from envisat_pose.filtering.estimator import chaser_states, diverged_against_truth, nees, run_filter
     from envisat_pose.filtering.montecarlo import filter_stride, make_run_inputs, truth_measurements
 
     mu_m3_s2, gravity_gradient = onboard_physics(truth)
@@ -153,7 +154,7 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     inp = make_run_inputs(x_true[0], t_s, z_true, base, cfg.measurement, fcfg.P0, cfg.seed, R)
     res = run_filter(inp.x0_hat, fcfg.P0, t_s, chaser, inp.z, inp.mask, inp.R_c, kind, fcfg, progress=progress,
                      mu_m3_s2=mu_m3_s2, gravity_gradient=gravity_gradient)
-    diverged = res.diverged | nees_divergence(x_true[None], res.x_hat, res.P, fcfg)
+    diverged = diverged_against_truth(res.diverged, nees(x_true[None], res.x_hat, res.P), fcfg)
     return {
         "t_s": t_s,
         "x_true": np.broadcast_to(x_true, (R, T, 12)).copy(),

@@ -8,7 +8,7 @@ renderer process unless storage is 'clean', the label by labels.make_label). Its
 (gen_cfg, f): they equal that dataset's PNG and JSON where the GL rasterizer is the same (llvmpipe here; another
 driver, an EGL GPU, may differ by a few pixel levels along edges, and then so do the batches).
 
-A mix of looks (Look: a name, a weight and a GenerateConfig each; resolutions, cameras, scenarios may differ).
+A mix of looks (WeightedLook: a name, a weight and a GenerateConfig each; resolutions, cameras, scenarios may differ).
 The weights are rounded to whole shares of LOOK_PERIOD frames (each look at least one), and the frames of a
 period are dealt out evenly (look_pattern): frame f = c LOOK_PERIOD + p is sample i = c n_j + r_p of look j =
 pattern[p], r_p the count of look j's entries before p. A random-mode look's sample i is its dataset's sample i,
@@ -101,7 +101,7 @@ def run_identity(looks, data_cfg, seed: int, batch_size: int, uses_per_frame: in
 
 
 @dataclass(frozen=True)
-class Look:
+class WeightedLook:
     """One kind of frame in an online run: name, generate (a GenerateConfig, random or sequence mode: its
     resolution, looks, camera, scenario) and weight (its share of the frames, relative to the other looks')."""
 
@@ -119,7 +119,7 @@ class Look:
         return {"name": self.name, "weight": float(self.weight), "generate": to_dict(self.generate)}
 
     @classmethod
-    def from_record(cls, record: dict, where: str = "looks") -> "Look":
+    def from_record(cls, record: dict, where: str = "looks") -> "WeightedLook":
         """A look from its record ({name, weight, generate} as record() writes it; ConfigError naming the field)."""
         from envisat_pose.config import from_dict
         from envisat_pose.datagen.generate_config import GenerateConfig
@@ -131,7 +131,7 @@ class Look:
                    record.get("weight", 1.0))
 
 
-def read_looks(path: str) -> tuple[Look, ...]:
+def read_looks(path: str) -> tuple[WeightedLook, ...]:
     """The looks of a TOML file: each [[look]] table a name, a weight and the keys of `envisat generate
     --config` (mode 'random' unless given); keys outside the [[look]] tables are every look's defaults (a look's
     own win). InputError or ConfigError naming the file's field."""
@@ -151,7 +151,7 @@ def read_looks(path: str) -> tuple[Look, ...]:
         # the file's shared keys under the look's own (its tables key by key)
         cfg = resolve_job_config(GenerateConfig, {"mode": "random", **data}, None, flatten(entry),
                                  prefix=f"look.{name}")
-        looks.append(Look(name, cfg, weight))
+        looks.append(WeightedLook(name, cfg, weight))
     return as_looks(looks)
 
 
@@ -164,10 +164,10 @@ def looks_toml(looks) -> str:
                    for look in as_looks(looks))
 
 
-def as_looks(looks) -> tuple[Look, ...]:
+def as_looks(looks) -> tuple[WeightedLook, ...]:
     """A GenerateConfig (one look, 'default') or a sequence of Looks, as a tuple of Looks with distinct names."""
     if hasattr(looks, "mode"):
-        return (Look("default", looks),)
+        return (WeightedLook("default", looks),)
     looks = tuple(looks)
     check(1 <= len(looks) <= LOOK_PERIOD, "looks", len(looks), f"1 to {LOOK_PERIOD} looks")
     names = [look.name for look in looks]
@@ -326,7 +326,7 @@ def render_worker(looks_json: str, worker: int, workers: int, first_frame: int, 
         from envisat_pose.datagen.render import SceneRenderer
 
         cv2.setNumThreads(1)
-        looks = [Look.from_record(r) for r in json.loads(looks_json)]
+        looks = [WeightedLook.from_record(r) for r in json.loads(looks_json)]
         shares = look_shares(looks)
         pattern = look_pattern(shares)
         shm = shared_memory.SharedMemory(name=shm_name)
@@ -359,7 +359,7 @@ def render_worker(looks_json: str, worker: int, workers: int, first_frame: int, 
 # The trainer's side
 
 
-class FrameSource:
+class RenderPool:
     """Renderer processes and their shared-memory rings; frames handed out in order from first_frame.
     Use as a context manager (close() ends the processes and frees the memory)."""
 
@@ -392,7 +392,7 @@ class FrameSource:
             self.close()
             raise
 
-    def __enter__(self) -> "FrameSource":
+    def __enter__(self) -> "RenderPool":
         return self
 
     def __exit__(self, *exc) -> None:
@@ -477,7 +477,7 @@ class DevicePool:
                 "visible": t((n, 8), torch.bool), "in_frame": t((n, 8), torch.bool), "frame": t((n,), torch.int64),
                 "hw": t((n, 2), torch.int64)}
 
-    def load(self, source: FrameSource, count: int) -> None:
+    def load(self, source: RenderPool, count: int) -> None:
         """Take the next `count` frames from source into their slots."""
         import torch
 
@@ -548,7 +548,7 @@ def online_batches(looks, data_cfg, seed: int, batch_size: int, workers: int, de
     first = window_start(step, n, k)
     uses = {f: uses_before(f, step, n, k) for f in range(first, first + n)}
     pool = DevicePool(n, max_side(looks), device)
-    with FrameSource(looks, workers, first, device.type) as source:
+    with RenderPool(looks, workers, first, device.type) as source:
         loaded = first
         while True:
             f0 = window_start(step, n, k)

@@ -17,25 +17,6 @@ def no_estimate_nan(a: np.ndarray, status: np.ndarray) -> np.ndarray:
     return a
 
 
-def estimate_arrays(run_dirs: list[str], T: int) -> dict:
-    """est.npz's per-run arrays (rows.EST_KEYS and status, each (R, T, ...)) streamed from the runs' files,
-    x_hat and P NaN on rows without an estimate."""
-    from envisat_pose.io import StreamedArray
-    from envisat_pose.pipelines.closed_loop import run_array, run_rows
-    from envisat_pose.pipelines.rows import CHUNK_FRAMES, EST_KEYS
-
-    est = {k: run_array(run_dirs, k, T) for k in EST_KEYS + ("status",)}
-    for k in ("x_hat", "P"):
-        def chunks(k=k):
-            for d in run_dirs:
-                for a in range(0, T, CHUNK_FRAMES):
-                    c = run_rows(d, [k, "status"], a, a + CHUNK_FRAMES)
-                    yield no_estimate_nan(c[k], c["status"])
-
-        est[k] = StreamedArray(est[k].shape, np.float64, chunks)
-    return est
-
-
 def status_counts(status: np.ndarray) -> dict[str, int]:
     """Frames per status name."""
     status = np.asarray(status)

@@ -11,8 +11,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from envisat_pose.config import check, from_dict
+from envisat_pose.config import check, from_dict, resolve_job_config
 from envisat_pose.filtering.estimator import FilterConfig
+from envisat_pose.pipelines.job_defaults import check_weights, run_complete, scenario_defaults
 from envisat_pose.pipelines.onboard import orbit_config
 from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
 
@@ -58,10 +59,13 @@ class RunConfig:
     def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
                       **fields) -> "RunConfig":
         """The job `envisat run --scenario NAME` runs: this config resolved from the named scenario, the TOML
-        file at config_path, then overrides ({'section.key': value}) and fields (pipelines.jobs.resolve_job)."""
-        from envisat_pose.pipelines.jobs import resolve_job
-
-        return resolve_job("run", name, config_path, overrides, **fields)
+        file at config_path, then overrides ({'section.key': value}) and fields (pipelines/job_defaults.py's layers),
+        one worker per run up to the cores, the shipped weights where none are named; finished (finish_config)."""
+        stage_types()
+        flags = {**(overrides or {}), **fields, "scenario": name}  # the named scenario is the job's, whatever the file
+        cfg = resolve_job_config(cls, scenario_defaults("run", name), config_path, flags, run_complete)
+        check_weights(cfg.weights)
+        return finish_config(cfg)
 
     def validate(self, prefix: str = "") -> None:
         from envisat_pose.geometry import load_camera

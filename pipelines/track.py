@@ -26,11 +26,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from envisat_pose.config import check
+from envisat_pose.config import check, resolve_job_config
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.pipelines.camera_file import camera_from_intrinsics
 from envisat_pose.pipelines.frames import FrameSource, open_source, scan_source
+from envisat_pose.pipelines.job_defaults import check_weights, scenario_defaults, with_default_weights
 from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
 from envisat_pose.status import STATUSES, legend
 
@@ -61,10 +62,13 @@ class TrackConfig:
     def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
                       **fields) -> "TrackConfig":
         """The job `envisat track --scenario NAME` runs: this config resolved from the named scenario, the TOML
-        file at config_path, then overrides ({'section.key': value}) and fields (pipelines.jobs.resolve_job)."""
-        from envisat_pose.pipelines.jobs import resolve_job
-
-        return resolve_job("track", name, config_path, overrides, **fields)
+        file at config_path, then overrides ({'section.key': value}) and fields (pipelines/job_defaults.py's layers),
+        the shipped weights where none are named."""
+        stage_types()
+        flags = {**(overrides or {}), **fields, "scenario": name}  # the named scenario is the job's, whatever the file
+        cfg = resolve_job_config(cls, scenario_defaults("track", name), config_path, flags, with_default_weights)
+        check_weights(cfg.weights)
+        return cfg
 
     def validate(self, prefix: str = "") -> None:
         check(self.rate_hz >= 0, "rate_hz", self.rate_hz, "a frame rate in Hz (0: a video's own)")
@@ -99,7 +103,7 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
     import dataclasses
 
     from envisat_pose.perception.weights import shipped_weights_path
-    from envisat_pose.pipelines.build import load_camera, scenario_orbit
+    from envisat_pose.pipelines.build import scenario_orbit, tracker_camera
 
     if isinstance(source, str):
         source = open_source(source, cfg.rate_hz)
@@ -108,7 +112,7 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
     pixels = scan_source(source, None if camera is None else (camera.width_px, camera.height_px),
                          min_frames=cfg.tracker.acquire.frames, progress=progress)
     if camera is None:
-        camera = load_camera(size_px=source.size_px)
+        camera = tracker_camera(size_px=source.size_px)
     if cfg.orbit is None or not cfg.weights:
         stage_types()
         cfg = dataclasses.replace(cfg, orbit=cfg.orbit or scenario_orbit(cfg.scenario),
@@ -149,11 +153,11 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     from envisat_pose.config import to_dict, to_toml
     from envisat_pose.io import atomic_write_text
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.pipelines.closed_loop import lost_runs, run_rows, score_run_files, write_run_files
     from envisat_pose.pipelines.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
     from envisat_pose.pipelines.onboard import chaser_function
     from envisat_pose.pipelines.outputs import first_tracking_s, status_counts
     from envisat_pose.pipelines.rows import DET_KEYS, STAGES, RunRows
+    from envisat_pose.pipelines.run_files import lost_runs, run_rows, score_run_files, write_run_files
     from envisat_pose.pipelines.tracker import Tracker
     from envisat_pose.runner import real_time_factor
 
@@ -218,7 +222,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     }
     if truth is not None:
         from envisat_pose.analysis.plots import plot_estimate
-        from envisat_pose.pipelines.closed_loop import plot_inputs
+        from envisat_pose.pipelines.run_files import plot_inputs
 
         summary["scores"] = scores
         plot_estimate(*plot_inputs(source.t_s, x_true, [run_dir]), paths["plot"],

@@ -82,6 +82,7 @@ from envisat_pose.pipelines.bank import (
     select_runs,
     update_cost,
 )
+from envisat_pose.pipelines.build import chaser_from_orbit, tracker_camera, tracker_detector, tracker_filter
 from envisat_pose.pipelines.integrity import (
     EvidenceWindow,
     claim_holds,
@@ -113,7 +114,8 @@ from envisat_pose.pipelines.tracker_config import (
 from envisat_pose.state import MRP, N_STATE, POS, RATE
 from envisat_pose.status import STATUSES
 
-__all__ = ["Tracker", "TrackerConfig", "TrackEstimate", "TRACKER_FILTER", "STATUSES", "predicted_roi"]
+__all__ = ["Tracker", "TrackerConfig", "TrackEstimate", "TRACKER_FILTER", "STATUSES", "predicted_roi",
+           "tracker_from_scenario"]
 
 
 def predicted_roi(mean: np.ndarray, cov: np.ndarray, camera: PinholeCamera, cfg: RoiConfig) -> np.ndarray | None:
@@ -146,8 +148,7 @@ class Tracker:
 
         config.validate()
         self.cfg = config
-        from envisat_pose.pipelines.build import tracker_filter  # only the fields given override the tracker's
-        fcfg = tracker_filter(filter_config)
+        fcfg = tracker_filter(filter_config)  # only the fields given override the tracker's
         q = fcfg.q_sigma
         q_detector = config.noise.detector_q_sigma
         self.fcfg = dataclasses.replace(fcfg, q_sigma=tuple(max(a, b) for a, b in zip(q, q_detector)))
@@ -563,8 +564,26 @@ class Tracker:
 
     @classmethod
     def from_scenario(cls, scenario: str = "default", weights: str | None = None, **kw) -> "Tracker":
-        """A Tracker for the named scenario's geometry (pipelines.build.tracker_from_scenario: its orbit and
-        dynamics, the shipped detector unless weights, the MJCF camera unless camera=)."""
-        from envisat_pose.pipelines.build import tracker_from_scenario
-
+        """A Tracker for the named scenario's geometry (tracker_from_scenario: its orbit and dynamics, the shipped
+        detector unless weights, the MJCF camera unless camera=)."""
         return tracker_from_scenario(scenario, weights, **kw)
+
+
+def tracker_from_scenario(scenario: str = "default", weights: str | None = None, camera=None,
+                          config=None, filter_config: FilterConfig | dict | None = None, size_px=None) -> Tracker:
+    """A Tracker for frames of the named scenario's geometry: the chaser's orbit and the target's dynamics
+    (gravity gradient, mu) from the scenario, the detector of `weights` (None: shipped), `camera` (None: the
+    MJCF's chaser_cam, at size_px = (width, height) when given), TrackerConfig `config` (None: defaults), the
+    tracker's filter settings with `filter_config`'s fields over them (pipelines.build.tracker_filter)."""
+    from types import SimpleNamespace
+
+    from envisat_pose.config import to_dict
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.pipelines.onboard import onboard_physics
+
+    scen = scenario_config(scenario)
+    physics = onboard_physics(SimpleNamespace(config=to_dict(scen)), f"scenario {scenario!r}")
+    return Tracker(camera if camera is not None else tracker_camera(size_px=size_px), tracker_detector(weights),
+                   chaser_from_orbit(scen.orbit), config or TrackerConfig(),
+                   dataclasses.asdict(tracker_filter(filter_config, scenario)),
+                   mu_m3_s2=physics.mu_m3_s2, gravity_gradient=physics.gravity_gradient)

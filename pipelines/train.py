@@ -20,7 +20,7 @@ from envisat_pose.config import InputError, check
 class OnlineConfig:
     """Training on frames as they are rendered (pipelines/online.py) instead of shards. looks: what is rendered,
     a GenerateConfig (frame f is sample f of the dataset it would generate; its seed, resolution, appearance and
-    corruption) or a sequence of online.Look (a mix by weight: resolutions, cameras, scenarios), kept as a tuple
+    corruption) or a sequence of online.WeightedLook (a mix by weight: resolutions, cameras, scenarios), kept as a tuple
     of Looks; workers: renderer processes; uses_per_frame: K, the most crops any frame gives (1-8). Validated
     when built."""
 
@@ -50,10 +50,10 @@ class OnlineConfig:
         """From record()'s dict, or an earlier run's with one 'generate' config."""
         from envisat_pose.config import from_dict
         from envisat_pose.datagen.generate_config import GenerateConfig
-        from envisat_pose.pipelines.online import Look
+        from envisat_pose.pipelines.online import WeightedLook
 
         if "looks" in record:
-            looks = tuple(Look.from_record({k: v for k, v in r.items() if k != "share"}, "online.looks")
+            looks = tuple(WeightedLook.from_record({k: v for k, v in r.items() if k != "share"}, "online.looks")
                           for r in record["looks"])
         else:
             looks = from_dict(GenerateConfig, record["generate"], "online.generate")

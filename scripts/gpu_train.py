@@ -290,7 +290,7 @@ def online_looks(work: str, leg: int, scenarios: list[str]) -> str:
     with the leg's data seeds in turn (SEED_BASE + SEED_LEG x leg + its index)."""
     from envisat_pose.config import from_dict
     from envisat_pose.datagen.generate_config import GenerateConfig
-    from envisat_pose.pipelines.online import Look, looks_toml
+    from envisat_pose.pipelines.online import WeightedLook, looks_toml
 
     chunks = round_chunks(leg, 0, scenarios)
     chunks += [dict(c, name=c["name"] + "-appearance") for c in round_chunks(leg, 1, scenarios) if "scenario" in c]
@@ -300,7 +300,7 @@ def online_looks(work: str, leg: int, scenarios: list[str]) -> str:
         cfg = merge(c["config"], {"resolution_px": c["resolution"], "seed": SEED_BASE + SEED_LEG * leg + j})
         if sequence:
             cfg["num_images"] = c["images"]
-        looks.append(Look(c["name"], from_dict(GenerateConfig, cfg, c["name"]),
+        looks.append(WeightedLook(c["name"], from_dict(GenerateConfig, cfg, c["name"]),
                           c["images"] / 2 if sequence else c["images"]))
     path = os.path.join(work, "online_looks.toml")
     with open(path, "w", encoding="utf-8") as fh:

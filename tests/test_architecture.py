@@ -4,7 +4,8 @@ Layers, one folder each at the repository's root, all installed inside envisat_p
 imports nothing above it; a stage (datagen, perception, filtering, analysis) imports only the core, never another
 stage, a pipeline or the app; a pipeline (pipelines/) imports the core and the stages, never the app; the app
 (app/) imports anything. Imports inside
-functions count too, and so do relative imports and the old top-level names.
+functions count too, and so do relative imports and the old top-level names. No two modules import each other,
+directly or around a loop, even inside functions (0 import cycles).
 
 One home for each concept: the state's slices are defined only in envisat_pose/state.py; manifest.json is
 written only by the core runner's resumable-job protocol; shards are read (a tar opened for reading) only by
@@ -134,6 +135,124 @@ def violations() -> list[str]:
             why = None if other is None else crossing(own, other)
             if why:
                 found.append(f"{os.path.relpath(path, ROOT)}:{line} imports {name}: {why}")
+    return found
+
+
+# ---------------------------------------------------------------- no import cycles
+
+def module_graph(root: str = ROOT) -> dict[str, set[str]]:
+    """{module: the package's modules it imports}, imports inside functions included: each imported name resolved
+    to the longest prefix that is one of the package's modules (`from envisat_pose.pipelines import jobs` is jobs)."""
+    files = {module: path for path, module in source_files(root)}
+    graph = {}
+    for module, path in files.items():
+        deps = set()
+        for _, name in imported_modules(path, module):
+            parts = name.split(".")
+            target = next((".".join(parts[:k]) for k in range(len(parts), 0, -1) if ".".join(parts[:k]) in files),
+                          None)
+            if target is not None and target != module:
+                deps.add(target)
+        graph[module] = deps
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The graph's strongly connected components of more than one module (Tarjan's algorithm, iterative): each is
+    a set of modules that import one another, at import time or inside a function. Sorted, for the message."""
+    index, low, on_stack, stack, found = {}, {}, set(), [], []
+    for start in sorted(graph):
+        if start in index:
+            continue
+        work = [(start, iter(sorted(graph[start])))]
+        index[start] = low[start] = len(index)
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph.get(child, ())))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    m = stack.pop()
+                    on_stack.discard(m)
+                    component.append(m)
+                    if m == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return sorted(found)
+
+
+# ---------------------------------------------------------------- one name per concept
+
+# the verbs' protocol: app/cli.py calls each verb module's register, and each verb resolves its config in
+# resolve_config; one name on purpose
+VERB_PROTOCOL = ("register", "resolve_config")
+# Collisions that are still to be renamed (issue 50, item 4). An entry must still collide:
+# `test_pending_collisions_are_still_there` fails once it is gone, so the entry is deleted with the rename.
+PENDING_COLLISIONS = {
+    "ArrayCueConfig", "augment_style", "config_from_json", "crop_resize", "encode_junctions", "fit_scale", "in_frame",
+    "line_targets", "load", "measure", "nees", "output_paths", "predict",
+    "sequence_scale", "stage_types", "table", "to_input_px", "update", "module:simulate",
+}
+
+
+def public_names(root: str = ROOT) -> dict[str, list[str]]:
+    """{name: the modules that define it}: every public (no leading underscore) function or class at a module's
+    top level, and as 'module:NAME' every public one named like another module of the package (a function
+    `pseudo_labels` beside the module pseudo_labels.py; a module's main function named like it is not one)."""
+    found: dict[str, list[str]] = {}
+    modules = {}
+    for path, module in source_files(root):
+        modules.setdefault(module.rsplit(".", 1)[-1], []).append(module)
+        for node in ast.parse(open(path, encoding="utf-8").read(), path).body:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and not node.name.startswith("_"):
+                found.setdefault(node.name, []).append(module)
+    for name, where in list(found.items()):
+        own = any(m.rsplit(".", 1)[-1] == name for m in where)  # a module's main function: estimate.estimate
+        others = [m for m in modules.get(name, []) if m not in where]
+        if others and not own:
+            found[f"module:{name}"] = sorted(where + others)
+    return found
+
+
+def collisions(root: str = ROOT) -> dict[str, list[str]]:
+    """{name: modules} of the public names defined in more than one module (or named like another module),
+    the verbs' protocol apart."""
+    return {name: sorted(where) for name, where in public_names(root).items()
+            if (len(where) > 1 or name.startswith("module:")) and name not in VERB_PROTOCOL}
+
+
+# ---------------------------------------------------------------- what only the tests and benchmarks need
+
+# pyproject.toml's `test` and `bench` extras: the package's own code imports none of them, but the reference UKF the
+# tests and the benches compare with, which is the package's module for them to share
+TEST_ONLY = ("filterpy", "webdataset")
+TEST_ONLY_HOMES = (os.path.join("filtering", "reference.py"),)
+
+
+def imports_of_test_extras(root: str = ROOT) -> list[str]:
+    """'file:line imports name' for each import of a test-only library by the package's code (homes apart)."""
+    found = []
+    for path, module in source_files(root):
+        rel = os.path.relpath(path, root)
+        if rel in TEST_ONLY_HOMES:
+            continue
+        found += [f"{rel}:{line} imports {name}" for line, name in imported_modules(path, module)
+                  if name.split(".")[0] in TEST_ONLY]
     return found
 
 
@@ -455,6 +574,73 @@ def test_pipelines_may_import_core_and_stages_and_the_app_anything():
     for name in (n for _, n in imported_modules("x.py", "envisat_pose.pipelines.x", src)):
         assert crossing("pipelines", layer_of(name)) is None, name
     assert crossing("app", "pipelines") is None
+
+
+def test_no_import_cycles():
+    """Modules that import one another, even through an import inside a function (which hides the cycle from
+    Python until the call), are one module's job in two files: move the shared piece down (floor: 0 cycles)."""
+    assert import_cycles(module_graph()) == []
+
+
+def test_the_cycle_checker_sees_a_cycle_hidden_in_a_function(tmp_path):
+    (tmp_path / "pipelines").mkdir()
+    (tmp_path / "pipelines" / "a.py").write_text("from envisat_pose.pipelines.b import x\n")
+    (tmp_path / "pipelines" / "b.py").write_text("def x():\n    from envisat_pose.pipelines import c\n")
+    (tmp_path / "pipelines" / "c.py").write_text("def y():\n    from .a import z\n")
+    (tmp_path / "pipelines" / "d.py").write_text("from envisat_pose.pipelines.a import z\n")  # imports, not in one
+    graph = module_graph(str(tmp_path))
+    assert graph["envisat_pose.pipelines.c"] == {"envisat_pose.pipelines.a"}
+    assert import_cycles(graph) == [["envisat_pose.pipelines.a", "envisat_pose.pipelines.b", "envisat_pose.pipelines.c"]]
+    assert import_cycles({"a": {"b"}, "b": set(), "c": {"a", "b"}}) == []
+
+
+def test_one_name_per_concept():
+    """No two modules define the same public name (floor: 0 besides PENDING_COLLISIONS, which only shrinks):
+    a reader who meets `FrameSource` must know which one it is without reading the import."""
+    found = {n: w for n, w in collisions().items() if n not in PENDING_COLLISIONS}
+    assert found == {}, f"public names defined twice: {found}; name each for what it is"
+
+
+def test_pending_collisions_are_still_there():
+    """A pending entry whose name no longer collides is stale: delete it from PENDING_COLLISIONS."""
+    stale = sorted(PENDING_COLLISIONS - set(collisions()))
+    assert stale == [], f"{stale} no longer collide; remove them from PENDING_COLLISIONS"
+
+
+def test_the_name_checker_sees_a_planted_twin(tmp_path):
+    for folder in ("pipelines", "app"):
+        (tmp_path / folder).mkdir()
+    (tmp_path / "pipelines" / "frames.py").write_text("class FrameSource:\n    pass\n\ndef _helper():\n    pass\n")
+    (tmp_path / "pipelines" / "online.py").write_text("class FrameSource:\n    pass\n\ndef _helper():\n    pass\n")
+    (tmp_path / "pipelines" / "labels.py").write_text("X = 1\n")
+    (tmp_path / "pipelines" / "adapt.py").write_text("def labels(run):\n    return run\n")
+    (tmp_path / "app" / "a.py").write_text("def register(sub):\n    pass\n")
+    (tmp_path / "app" / "b.py").write_text("def register(sub):\n    pass\n")
+    assert collisions(str(tmp_path)) == {
+        "FrameSource": ["envisat_pose.pipelines.frames", "envisat_pose.pipelines.online"],
+        "module:labels": ["envisat_pose.pipelines.adapt", "envisat_pose.pipelines.labels"]}
+
+
+def test_the_package_does_not_need_the_test_extras():
+    """filterpy and webdataset are extras for the tests and the benchmarks (pyproject.toml), not dependencies:
+    no runtime module imports them, and the extras list them."""
+    import tomllib
+
+    assert imports_of_test_extras() == []
+    with open(os.path.join(ROOT, "pyproject.toml"), "rb") as fh:
+        project = tomllib.load(fh)["project"]
+    deps = " ".join(project["dependencies"])
+    extras = " ".join(project["optional-dependencies"]["test"] + project["optional-dependencies"]["bench"])
+    assert [n for n in TEST_ONLY if n in deps] == [] and all(n in extras for n in TEST_ONLY)
+
+
+def test_the_test_only_checker_sees_a_runtime_import(tmp_path):
+    (tmp_path / "filtering").mkdir()
+    (tmp_path / "filtering" / "x.py").write_text("def f():\n    from filterpy.kalman import UnscentedKalmanFilter\n")
+    (tmp_path / "filtering" / "reference.py").write_text("import filterpy\n")
+    assert imports_of_test_extras(str(tmp_path)) == [f"{os.path.join('filtering', 'x.py')}:2 imports filterpy.kalman",
+                                                f"{os.path.join('filtering', 'x.py')}:2 imports "
+                                                "filterpy.kalman.UnscentedKalmanFilter"]
 
 
 def test_every_stage_file_is_seen():

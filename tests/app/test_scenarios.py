@@ -20,7 +20,7 @@ def test_the_shipped_scenarios_are_the_issues_and_every_one_validates():
 
     from envisat_pose.datagen.scenario import ScenarioConfig, scenario_config
     from envisat_pose.pipelines.campaign import MonteCarloConfig
-    from envisat_pose.pipelines.jobs import scenario_defaults
+    from envisat_pose.pipelines.job_defaults import scenario_defaults
 
     assert named_scenarios.names() == ISSUE_NAMES
     # the core's list of truth keys is ScenarioConfig's fields but the job's seed
@@ -33,7 +33,7 @@ def test_the_shipped_scenarios_are_the_issues_and_every_one_validates():
 
 def test_scenarios_say_what_the_issue_asks():
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.pipelines.jobs import scenario_defaults
+    from envisat_pose.pipelines.job_defaults import scenario_defaults
 
     assert scenario_config("slow-tumble").target.spin_period_s == 226.0
     assert math.isclose(math.degrees(np.linalg.norm(scenario_config("stress-tumble").target.w0_T_rad_s)), 5.0)

@@ -6,7 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from envisat_pose.datagen.corrupt import KINDS, apply_corruption, draw_corruption, motion_kernel
+from envisat_pose.datagen.corrupt import KINDS, apply_corruption, draw_corruption
+from envisat_pose.datagen.image_kernels import motion_kernel
 from envisat_pose.datagen.shards import decode_png
 
 

@@ -14,9 +14,9 @@ def test_the_builders_are_public_and_build_what_they_say():
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.geometry import load_camera
 
-    for name in ("load_camera", "load_detector", "chaser_from_orbit", "tracker_filter", "tracker_from_scenario"):
+    for name in ("tracker_camera", "tracker_detector", "chaser_from_orbit", "tracker_filter", "tracker_from_scenario"):
         assert name in envisat_pose.__all__ and callable(getattr(envisat_pose, name))
-    cam = envisat_pose.load_camera(size_px=(512, 256))
+    cam = envisat_pose.tracker_camera(size_px=(512, 256))
     mjcf = load_camera()
     # the same vertical field of view (MuJoCo's fovy) read out at another size: f scales with the height
     assert (cam.width_px, cam.height_px) == (512, 256) and cam.f_px == pytest.approx(mjcf.f_px * 256 / mjcf.height_px)

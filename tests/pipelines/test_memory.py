@@ -59,7 +59,7 @@ CHILD = textwrap.dedent("""
 
 def test_a_long_closed_loop_keeps_its_memory_flat(tmp_path):
     from envisat_pose.contracts import Estimates
-    from envisat_pose.pipelines.jobs import default_weights_path
+    from envisat_pose.pipelines.job_defaults import default_weights_path
     from envisat_pose.pipelines.rows import record_arrays
 
     out = subprocess.run([sys.executable, "-c", CHILD, default_weights_path(), str(tmp_path), "2099.9"],

@@ -14,7 +14,7 @@ import torch
 
 from envisat_pose.datagen.generate_config import AppearanceConfig, GenerateConfig
 from envisat_pose.perception.data import DataConfig
-from envisat_pose.pipelines.online import FrameSource, online_batches, uses_before, window_start
+from envisat_pose.pipelines.online import RenderPool, online_batches, uses_before, window_start
 
 # the fast tests' looks: one texture per class and no Earth (its textures take seconds to make at first use);
 # the slow statistics test renders the default looks
@@ -53,7 +53,7 @@ def test_frames_are_the_factory_samples(tmp_path):
     paths = [generate_shard(cfg, i, str(tmp_path))["name"] for i in range(2)]
     offline = list(read_samples([str(tmp_path / p) for p in paths]))
     image = np.zeros((128, 128), np.uint8)
-    with FrameSource(cfg, 1, 2) as source:  # from frame 2: a resumed run renders no earlier frame
+    with RenderPool(cfg, 1, 2) as source:  # from frame 2: a resumed run renders no earlier frame
         for f in range(2, 6):
             frame, corners, visible, in_frame, side = source.take(image)
             _, want_image, want = offline[f]
@@ -143,9 +143,9 @@ def test_a_mix_deals_its_frames_by_weight_and_its_file_reads_back(tmp_path):
     from envisat_pose.config import ConfigError
     from envisat_pose.pipelines import online
 
-    Look, LOOK_PERIOD = online.Look, online.LOOK_PERIOD
-    looks = (Look("big", GEN, 2000.0), Look("mid", GEN, 800.0), Look("tiny", GEN, 1.0),
-             Look("seq", GenerateConfig(mode="sequence", scenario="slow-tumble", resolution_px=96, num_images=7,
+    WeightedLook, LOOK_PERIOD = online.WeightedLook, online.LOOK_PERIOD
+    looks = (WeightedLook("big", GEN, 2000.0), WeightedLook("mid", GEN, 800.0), WeightedLook("tiny", GEN, 1.0),
+             WeightedLook("seq", GenerateConfig(mode="sequence", scenario="slow-tumble", resolution_px=96, num_images=7,
                                         **CHEAP), 300.0))
     shares = online.look_shares(looks)
     assert shares.sum() == LOOK_PERIOD and shares.tolist() == [64, 26, 1, 9]  # 64.5 / 25.8 / 0.03 / 9.7, tiny >= 1
@@ -182,11 +182,11 @@ def test_a_mix_of_sizes_and_scenarios_renders_each_looks_own_frames(tmp_path):
     the slot with zeros beyond; the batches crop each frame within its own size."""
     from envisat_pose.datagen.factory import generate_shard
     from envisat_pose.perception.data import read_samples
-    from envisat_pose.pipelines.online import Look, frame_look, look_pattern, look_shares, sequence_seed
+    from envisat_pose.pipelines.online import WeightedLook, frame_look, look_pattern, look_shares, sequence_seed
 
     seq_cfg = GenerateConfig(mode="sequence", scenario="slow-tumble", resolution_px=96, num_images=4,
                              shard_size=4, seed=12, frame_dt_s=5.0, **CHEAP)
-    looks = (Look("random", GEN, 1.0), Look("seq", seq_cfg, 1.0))
+    looks = (WeightedLook("random", GEN, 1.0), WeightedLook("seq", seq_cfg, 1.0))
     shares = look_shares(looks)
     pattern = look_pattern(shares)
     want_seq = {}
@@ -202,7 +202,7 @@ def test_a_mix_of_sizes_and_scenarios_renders_each_looks_own_frames(tmp_path):
     want_rnd = [s[1:] for s in read_samples([str(rnd / generate_shard(GEN, i, str(rnd))["name"]) for i in (0, 1)])]
     image = np.zeros((128, 128), np.uint8)
     seen = set()
-    with FrameSource(looks, 2, 0) as source:
+    with RenderPool(looks, 2, 0) as source:
         for f in range(12):
             frame, corners, visible, in_frame, side = source.take(image)
             j, i = frame_look(f, shares, pattern)
