@@ -533,7 +533,8 @@ class Trainer:
     def _finish(self, stop: str | None) -> dict:
         """The end line (the last terms, this call's speed, why it stopped, under DDP the ranks' agreement);
         TrainingInterrupted after it when a signal stopped the run."""
-        speed = {**self.timing.figures(self.cfg.batch_size, self.world),
+        speed = {**self.timing.figures(self.cfg.batch_size, self.world), "workers": self.state["workers"],
+                 "bf16": self.opts.bf16,
                  "stopped_by": "steps" if stop is None else ("time_budget" if stop == "time_budget" else "signal")}
         end = self.metrics.log("end", {**(self.ddp.figures if self.ddp else {}), **speed})
         if stop not in (None, "time_budget"):

@@ -106,12 +106,11 @@ class Timing(Hook):
         self.ask()
 
     def figures(self, batch_size: int, world: int) -> dict:
-        """The end line's speed figures: steps run, samples a second after the first batch, its wait, the data
-        wait."""
+        """The end line's speed figures: this call's steps, samples a second after the first batch came, the
+        first batch's wait and the whole data wait (seconds)."""
         tr = self.trainer
         loop_s = tr.clock() - tr.t_start - (self.first_batch_s or 0.0)
-        return {"steps_run": tr.steps_run, "workers": tr.state["workers"], "bf16": tr.opts.bf16,
-                "samples_s": round(tr.steps_run * batch_size * world / max(loop_s, 1e-9), 2),
+        return {"steps_run": tr.steps_run, "samples_s": round(tr.steps_run * batch_size * world / max(loop_s, 1e-9), 2),
                 "first_batch_s": round(self.first_batch_s or 0.0, 3), "data_wait_s": round(self.data_wait_s, 3)}
 
 
