@@ -12,9 +12,7 @@ The steps (one round; `rounds` repeats 2-5 from the last track):
 4. fine-tune the detector on those (image, label) pairs in memory with the project's crops, augmentation and
    losses (perception/data.make_sample, perception/train's step): the normalization layers and the heads
    (`params='norm_heads'`), the whole network (`params='all'`), or nothing (`params='none'`, the default: the
-   original network, recalibrated in step 5 only; measured on Filament frames of the default scenario, seeds 0
-   and 1, it was adopted on both where the 60-step fine-tune of the normalization layers and heads was refused by
-   the held-out quarter on seed 0 and stayed right from frame 204 against 66 on seed 1: bench/results/adapt.json);
+   original network, recalibrated in step 5 only; docs/design.md has the figures behind that default);
 5. recalibrate on the pseudo-labels: the covariance scale on their residuals (perception/calibrate.fit_scale, the
    network's own covariances, the labels' region of interest, as `envisat calibrate`) and, when the labels' range
    was corrected by the edges, the detector's apparent scale on this look (the error model's bias_scale, which
@@ -49,6 +47,7 @@ import hashlib
 import json
 import os
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -449,110 +448,189 @@ def _replace_dirs(out_dir: str, stage: str) -> None:
         shutil.rmtree(trash, ignore_errors=True)
 
 
-def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: str, progress: bool,
-           command: list[str] | None) -> dict:
-    import shutil
+@dataclass(frozen=True)
+class AdaptRun:
+    """What every step of one adapt job reads: the job (cfg) and the tracker's (tcfg, its weights the base), the
+    frames (source, remap: cv2.remap maps to the pinhole, or None), the pinhole camera, the stage folder, whether
+    to show progress, the first held-out frame (cut) and the smoother's model (q_sigma, dyn: smoother_model)."""
 
+    cfg: AdaptConfig
+    tcfg: TrackConfig
+    source: object
+    camera: object
+    remap: tuple | None
+    stage: str
+    progress: bool
+    cut: int
+    q_sigma: tuple
+    dyn: dict
+
+
+def smoother_model(tcfg: TrackConfig) -> tuple[tuple, dict]:
+    """The filter's model as the tracker builds it (pipelines/tracker.Tracker), for the smoother: q_sigma, each
+    component the larger of the filter's and the detector's (tracker.noise.detector_q_sigma), and the dynamics
+    (J_T, mu_m3_s2, gravity_gradient, max_step_s). Nothing of the detector is needed."""
+    from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2
+    from envisat_pose.pipelines.build import tracker_filter
+
+    fcfg = tracker_filter(dataclasses.asdict(tcfg.filter))
+    q = tuple(max(a, b) for a, b in zip(fcfg.q_sigma, tcfg.tracker.noise.detector_q_sigma))
+    return q, {"J_T": load_inertia_T_kg_m2(), "mu_m3_s2": float(tcfg.orbit.mu_m3_s2),
+               "gravity_gradient": tcfg.gravity_gradient, "max_step_s": fcfg.max_rk4_step_s}
+
+
+@contextmanager
+def torch_threads(n: int):
+    """torch's CPU thread count set to n (0: os.cpu_count()) inside the block, restored on every way out."""
     import torch
 
+    old = torch.get_num_threads()
+    torch.set_num_threads(n or os.cpu_count() or 1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def label_step(run: AdaptRun, track_dir: str) -> tuple[dict, list[np.ndarray]]:
+    """Step 2-3: the labelled frames of a track run (track_run_labels), their images, their states corrected by
+    the silhouette edges (edge_corrected) and labelled there. Returns (lab with 'labels' and 'edges' added,
+    images); InputError (one line) below cfg.min_trusted labelled frames."""
     from envisat_pose.pipelines.pseudo_labels import label_record
+
+    cfg = run.cfg
+    lab = track_run_labels(track_dir, run.camera, run.tcfg.orbit, run.q_sigma, run.dyn, run.cut, cfg)
+    if len(lab["frames"]) < cfg.min_trusted:
+        raise InputError(
+            f"src {run.source.path!r}: only {len(lab['frames'])} trusted frames in the first {1 - cfg.held_out:.0%} "
+            f"of the sequence (tracking, half-turn decided, label sigma < {cfg.max_label_sigma_px:g} px; "
+            f"{lab['trusted']} before the sigma test); adapt needs at least {cfg.min_trusted} (min_trusted)")
+    frames = read_frames(run.source, run.remap, lab["frames"])
+    images = [frames[int(k)] for k in lab["frames"]]
+    x_lab, lab["edges"] = edge_corrected(lab["x"], images, run.camera, cfg.edge_range, cfg.edge_min_frames)
+    lab["labels"] = [label_record(v, run.camera) for v in x_lab]
+    return lab, images
+
+
+def calibration_frames(n: int, most: int) -> np.ndarray:
+    """Indices of at most `most` of n labelled frames, evenly spread."""
+    return np.unique(np.linspace(0, n - 1, min(n, most)).round().astype(int))
+
+
+def recalibration_step(run: AdaptRun, weights: str, candidate: str, model, images: list[np.ndarray],
+                       lab: dict) -> dict:
+    """Step 5: the candidate's covariance scale and apparent scale on the labels (recalibrate, adapted_scale),
+    written into its file (save_adapted). weights: the network that made the labels' track. Returns
+    {calibration, apparent_scale, apparent_scale_adopted}."""
+    cfg, edges = run.cfg, lab["edges"]
+    sub = calibration_frames(len(images), cfg.max_calibration_frames)
+    bar = _bar(run.progress, len(sub), "recalibrate", "frame")
+    try:
+        cal = recalibrate(candidate, [images[i] for i in sub], [lab["labels"][i] for i in sub], bar)
+    finally:
+        _close(bar)
+    extra = {}
+    if cal["scale"] is not None:
+        extra |= {"cov_scale": cal["scale"], "cov_calibration": json.dumps(
+            {"scale": cal["scale"], "corners": cal["corners"], "data": "pseudo-labels of "
+             f"{content_sha256(run.source)}", "roi": "labels", "by": "envisat adapt"}, sort_keys=True)}
+    scale = scale_step(run, weights, edges, cal)
+    if scale is not None:
+        extra["error_model"] = scale.pop("error_model")
+    if extra:
+        save_adapted(model, run.tcfg.weights, candidate, extra)
+    return {"calibration": cal, "apparent_scale": scale, "apparent_scale_adopted": scale is not None}
+
+
+def scale_step(run: AdaptRun, weights: str, edges: dict, cal: dict) -> dict | None:
+    """The apparent scale the candidate's error model takes (adapted_scale) with that error model as JSON under
+    'error_model', or None. Only labels whose range the edges corrected teach a scale: uncorrected ones carry the
+    track's own, so measuring against them gives back the scale the tracker assumed."""
+    from envisat_pose.perception.detect import weights_error_model
+
+    if not any(f != 1.0 for f in edges["range_factor"]):
+        return None
+    tracked = weights_error_model(weights)
+    applied = tracked.bias_scale if run.tcfg.tracker.noise.correct_scale else 1.0
+    scale = adapted_scale(run.cfg.params, applied, edges, cal)
+    if scale is None:
+        return None
+    em = dataclasses.replace(weights_error_model(run.tcfg.weights), bias_scale=scale["value"],
+                             bias_scale_sd=max(tracked.bias_scale_sd, scale["sd"]))
+    return {**scale, "error_model": em.to_json()}
+
+
+def round_dir(run: AdaptRun, r: int) -> str:
+    """Where round r's track goes: after/ for the last round, round-r/ (removed later) before it."""
+    return os.path.join(run.stage, "after" if r == run.cfg.rounds - 1 else f"round-{r}")
+
+
+def adapt_round(run: AdaptRun, r: int, track_dir: str, weights: str, seed: np.random.SeedSequence,
+                timing: dict) -> tuple[dict, str | None]:
+    """One round: label the track in track_dir, fine-tune `weights` on the labels, recalibrate, write the
+    candidate round-r.safetensors into the stage and track with it (into after/ on the last round, round-r/
+    before). Returns (the round's record, the candidate's path; None when the fine-tune diverged: the record
+    says so and nothing was tracked)."""
     from envisat_pose.pipelines.track import track_frames
-    from envisat_pose.pipelines.tracker import Tracker
+
+    cfg, t1 = run.cfg, time.perf_counter()
+    lab, images = label_step(run, track_dir)
+    timing[f"labels_{r}"] = time.perf_counter() - t1
+    info = {"round": r, "labels": int(len(lab["frames"])), "trusted_before_sigma_test": lab["trusted"],
+            "label_sigma_px_median": float(np.median(lab["sigma_px"])),
+            "label_frames": [int(k) for k in lab["frames"]], "edge_range": lab["edges"]}
+    candidate = os.path.join(run.stage, f"round-{r}.safetensors")
+    with torch_threads(cfg.threads):
+        bar = _bar(run.progress, cfg.steps, f"fine-tune {r + 1}/{cfg.rounds}", "step")
+        t1 = time.perf_counter()
+        try:
+            model, info["fine_tune"] = fine_tune(weights, images, lab["labels"], cfg, seed, bar)
+        finally:
+            _close(bar)
+        timing[f"fine_tune_{r}"] = time.perf_counter() - t1
+        if not save_adapted(model, run.tcfg.weights, candidate, {}):
+            return {**info, "diverged": True}, None
+        t1 = time.perf_counter()
+        info |= recalibration_step(run, weights, candidate, model, images, lab)
+        timing[f"recalibrate_{r}"] = time.perf_counter() - t1
+    after_dir = round_dir(run, r)
+    t1 = time.perf_counter()
+    track_frames(dataclasses.replace(run.tcfg, weights=candidate), run.source, run.camera, run.remap, after_dir,
+                 progress=run.progress)
+    timing[f"track_after_{r}"] = time.perf_counter() - t1
+    info["after"] = track_figures(after_dir, run.cut)
+    return info, candidate
+
+
+def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: str, progress: bool,
+           command: list[str] | None) -> dict:
+    """The job inside its stage: track before, cfg.rounds adapt_round's (each from the last round's track and
+    weights, the earlier round's files removed), the held-out verdict (worse_reason), _finish."""
+    import shutil
+
+    from envisat_pose.pipelines.track import track_frames
 
     t0 = time.perf_counter()
-    timing = {}
     T = len(source.t_s)
-    cut = int(np.floor(T * (1.0 - cfg.held_out)))
-    base = tcfg.weights
-    # the filter's model as the tracker builds it (its q_sigma raised to the detector's), for the smoother
-    from envisat_pose.perception.detect import load_detector, weights_error_model
-    from envisat_pose.pipelines.onboard import chaser_function
-
-    probe = Tracker(camera, load_detector(base), chaser_function(tcfg.orbit), tcfg.tracker,
-                    dataclasses.asdict(tcfg.filter), mu_m3_s2=tcfg.orbit.mu_m3_s2,
-                    gravity_gradient=tcfg.gravity_gradient)
-    q_sigma, dyn = probe.fcfg.q_sigma, dict(probe.dyn)
-    del probe
+    run = AdaptRun(cfg, tcfg, source, camera, remap, stage, progress, int(np.floor(T * (1.0 - cfg.held_out))),
+                   *smoother_model(tcfg))
     before_dir = os.path.join(stage, "before")
     track_frames(tcfg, source, camera, remap, before_dir, progress=progress)
-    timing["track_before"] = time.perf_counter() - t0
-    before = track_figures(before_dir, cut)
+    timing = {"track_before": time.perf_counter() - t0}
+    before = track_figures(before_dir, run.cut)
     seeds = np.random.SeedSequence(cfg.seed).spawn(cfg.rounds)
-    last_dir, weights, rounds = before_dir, base, []
+    last_dir, weights, rounds = before_dir, tcfg.weights, []
     for r in range(cfg.rounds):
-        t1 = time.perf_counter()
-        lab = track_run_labels(last_dir, camera, tcfg.orbit, q_sigma, dyn, cut, cfg)
-        if len(lab["frames"]) < cfg.min_trusted:
-            raise InputError(
-                f"src {source.path!r}: only {len(lab['frames'])} trusted frames in the first {1 - cfg.held_out:.0%} "
-                f"of the sequence (tracking, half-turn decided, label sigma < {cfg.max_label_sigma_px:g} px; "
-                f"{lab['trusted']} before the sigma test); adapt needs at least {cfg.min_trusted} (min_trusted)")
-        frames = read_frames(source, remap, lab["frames"])
-        images = [frames[int(k)] for k in lab["frames"]]
-        x_lab, edges = edge_corrected(lab["x"], images, camera, cfg.edge_range, cfg.edge_min_frames)
-        lab["labels"] = [label_record(v, camera) for v in x_lab]
-        timing[f"labels_{r}"] = time.perf_counter() - t1
-        threads = torch.get_num_threads()
-        torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
-        bar = _bar(progress, cfg.steps, f"fine-tune {r + 1}/{cfg.rounds}", "step")
-        try:
-            t1 = time.perf_counter()
-            model, ft = fine_tune(weights, images, lab["labels"], cfg, seeds[r], bar)
-            timing[f"fine_tune_{r}"] = time.perf_counter() - t1
-        finally:
-            _close(bar)
-        candidate = os.path.join(stage, f"round-{r}.safetensors")
-        info = {"round": r, "labels": int(len(lab["frames"])), "trusted_before_sigma_test": lab["trusted"],
-                "label_sigma_px_median": float(np.median(lab["sigma_px"])), "fine_tune": ft,
-                "label_frames": [int(k) for k in lab["frames"]], "edge_range": edges}
-        if not save_adapted(model, base, candidate, {}):
-            torch.set_num_threads(threads)
-            info["diverged"] = True
-            rounds.append(info)
+        info, candidate = adapt_round(run, r, last_dir, weights, seeds[r], timing)
+        rounds.append(info)
+        if candidate is None:
             return _finish(cfg, tcfg, source, stage, command, before, None, rounds, timing, t0,
                            "the fine-tune diverged (non-finite weights)")
-        t1 = time.perf_counter()
-        sub = np.unique(np.linspace(0, len(images) - 1, min(len(images), cfg.max_calibration_frames)).round()
-                        .astype(int))
-        bar = _bar(progress, len(sub), "recalibrate", "frame")
-        try:
-            cal = recalibrate(candidate, [images[i] for i in sub], [lab["labels"][i] for i in sub], bar)
-        finally:
-            _close(bar)
-        torch.set_num_threads(threads)
-        info["calibration"] = cal
-        extra = {}
-        if cal["scale"] is not None:
-            extra |= {"cov_scale": cal["scale"], "cov_calibration": json.dumps(
-                {"scale": cal["scale"], "corners": cal["corners"], "data": "pseudo-labels of "
-                 f"{content_sha256(source)}", "roi": "labels", "by": "envisat adapt"}, sort_keys=True)}
-        # the apparent scale is only learned from labels whose range the edges corrected (uncorrected labels carry
-        # the track's scale, so measuring against them would only give back the scale the tracker assumed)
-        corrected = any(f != 1.0 for f in edges["range_factor"])
-        tracked = weights_error_model(weights)
-        applied = tracked.bias_scale if tcfg.tracker.noise.correct_scale else 1.0
-        scale = adapted_scale(cfg.params, applied, edges, cal) if corrected else None
-        if scale is not None:
-            em = dataclasses.replace(weights_error_model(base), bias_scale=scale["value"],
-                                     bias_scale_sd=max(tracked.bias_scale_sd, scale["sd"]))
-            extra["error_model"] = em.to_json()
-        info["apparent_scale"] = scale
-        info["apparent_scale_adopted"] = scale is not None
-        if extra:
-            save_adapted(model, base, candidate, extra)
-        timing[f"recalibrate_{r}"] = time.perf_counter() - t1
-        after_dir = os.path.join(stage, "after" if r == cfg.rounds - 1 else f"round-{r}")
-        t1 = time.perf_counter()
-        track_frames(dataclasses.replace(tcfg, weights=candidate), source, camera, remap, after_dir,
-                     progress=progress)
-        timing[f"track_after_{r}"] = time.perf_counter() - t1
-        info["after"] = track_figures(after_dir, cut)
-        rounds.append(info)
         if last_dir != before_dir:
             shutil.rmtree(last_dir, ignore_errors=True)
-        if weights != base:
+        if weights != tcfg.weights:
             os.remove(weights)
-        last_dir, weights = after_dir, candidate
+        last_dir, weights = round_dir(run, r), candidate
     after = rounds[-1]["after"]
     reason = worse_reason(before, after)
     if reason is None:

@@ -215,3 +215,49 @@ def test_the_unchanged_network_takes_the_tracks_scale_over_the_edges_delta():
     no_fit = {"sequence": {"delta": None, "delta_se": None}, "outline_radius_px": None}
     assert adapted_scale("none", 1.0, no_fit, cal) == {"value": 0.9970, "se": 3e-4, "sd": 3e-4, "method": "corners"}
     assert adapted_scale("none", 1.0, no_fit, {"apparent_scale": None}) is None
+
+
+def test_the_smoother_takes_the_filter_model_the_tracker_builds(detector_weights):
+    """smoother_model (no detector, no Tracker) gives the q_sigma and dynamics a Tracker builds for the same job,
+    in a scenario with its own filter tuning and gravity gradient too."""
+    import dataclasses
+
+    from envisat_pose.geometry import load_camera
+    from envisat_pose.perception.detect import load_detector
+    from envisat_pose.pipelines.adapt import smoother_model
+    from envisat_pose.pipelines.onboard import chaser_function
+    from envisat_pose.pipelines.track import TrackConfig
+    from envisat_pose.pipelines.tracker import Tracker
+
+    for scenario in ("default", "close-25m"):
+        t = TrackConfig.from_scenario(scenario)
+        tracker = Tracker(load_camera().scaled(256, 256), load_detector(detector_weights), chaser_function(t.orbit),
+                          t.tracker, dataclasses.asdict(t.filter), mu_m3_s2=t.orbit.mu_m3_s2,
+                          gravity_gradient=t.gravity_gradient)
+        q, dyn = smoother_model(t)
+        assert q == tracker.fcfg.q_sigma
+        assert set(dyn) == set(tracker.dyn) and all(np.array_equal(dyn[k], tracker.dyn[k]) for k in dyn)
+
+
+def test_a_fine_tune_that_raises_leaves_torchs_thread_count(monkeypatch, tmp_path):
+    """adapt_round sets torch's threads for the fine-tune (cfg.threads) and puts them back on the way out, an
+    exception included."""
+    import envisat_pose.pipelines.adapt as adapt_module
+
+    def boom(*args, **kwargs):
+        assert torch.get_num_threads() == 2  # cfg.threads in force inside
+        raise RuntimeError("out of memory")
+
+    lab = {"frames": np.arange(3), "trusted": 3, "sigma_px": np.ones(3), "edges": {}, "labels": [{}] * 3}
+    monkeypatch.setattr(adapt_module, "label_step", lambda run, d: (lab, [np.zeros((8, 8), np.uint8)] * 3))
+    monkeypatch.setattr(adapt_module, "fine_tune", boom)
+    run = adapt_module.AdaptRun(AdaptConfig(threads=2), AdaptConfig().track, None, None, None, str(tmp_path),
+                                False, 10, (), {})
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with pytest.raises(RuntimeError, match="out of memory"):
+            adapt_module.adapt_round(run, 0, str(tmp_path), "w.safetensors", np.random.SeedSequence(0), {})
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
