@@ -6,6 +6,8 @@ The Trainer calls its hooks in a fixed order, which is part of their contract: b
 then the pre-cooldown weights; after a step the moving average, the run folder, the metrics, the progress bar,
 the checkpoint, then the step's timing; after training the progress bar, the DDP agreement, the last checkpoint.
 A hook reads the training state through `trainer` (step, model, optimizer, clock), set when the Trainer is built.
+Two hooks also have calls of their own at points inside the loop: Timing.ask and Timing.got around each wait for
+a batch, and Budget.share_clock, which gives every DDP rank rank 0's clock for the step (its rate and its stop).
 """
 
 from __future__ import annotations

@@ -116,3 +116,25 @@ def test_a_resumed_run_records_its_command_and_the_step_it_resumed_from_once(tmp
     record = json.load(open(os.path.join(tmp_path, "config.json")))
     assert record["train"] == {"steps": 3} and record["command"] == "first"
     assert record["resumes"] == [{"command": "again", "git": "abc", "step": 2}]
+
+
+def test_checkpoints_wait_for_the_folder_then_write_every_n_steps_with_the_other_hooks_files(tmp_path):
+    model = CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8))
+    folder = SimpleNamespace(started=False)
+    checkpoints = th.Checkpoints(folder, every=2)
+    saved = []
+    other = SimpleNamespace(on_checkpoint=lambda: saved.append(json.loads(
+        open(tmp_path / "state.json").read())["step"] if (tmp_path / "state.json").exists() else None))
+    checkpoints.trainer = stand_in(run_dir=str(tmp_path), model=model, opt=torch.optim.AdamW(model.parameters()),
+                                   state={"step": 2}, clock=Clock(1.0, 1.25), elapsed=lambda: 3.14159,
+                                   hooks=[other, checkpoints])
+    checkpoints.write()
+    assert not os.listdir(tmp_path) and saved == []  # no folder yet: nothing
+    folder.started = True
+    checkpoints.after_step({})  # step 2: due
+    assert saved == [None]  # the other hooks' files before state.json (written last)
+    assert json.load(open(tmp_path / "state.json")) == {"step": 2, "time_s": 3.142}
+    assert {"checkpoint.safetensors", "optimizer.pt"} <= set(os.listdir(tmp_path)) and checkpoints.checkpoint_s == 0.25
+    checkpoints.trainer.state["step"] = 3
+    checkpoints.after_step({})  # not due
+    assert json.load(open(tmp_path / "state.json"))["step"] == 2
