@@ -16,7 +16,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "visibility by depth test, pose, mask, depth), corrupt them, and write tar shards plus manifest.json. "
         "Running it again on the same --out finishes an interrupted dataset.",
     )
-    g.add_argument("--config", metavar="FILE.toml", help="generate config (keys of GenerateConfig, [corruption])")
+    g.add_argument("--config", metavar="FILE.toml", help="generate config (keys of GenerateConfig; tables [random], [sequence], [corruption], ...)")
     g.add_argument("--mode", help="random (domain-randomized views) or sequence (frames of a simulated truth)")
     g.add_argument("--num-images", type=int, help="number of images (default 1000)")
     g.add_argument("--shard-size", type=int, help="images per shard (default 100)")
@@ -37,7 +37,7 @@ def resolve_config(args: argparse.Namespace):
     from envisat_pose.datagen.generate_config import GenerateConfig
 
     flags = {"mode": args.mode, "num_images": args.num_images, "shard_size": args.shard_size,
-             "resolution_px": args.resolution, "seed": args.seed, "scenario": args.scenario}
+             "resolution_px": args.resolution, "seed": args.seed, "sequence.scenario": args.scenario}
     return resolve_job_config(GenerateConfig, {}, args.config, flags)
 
 

@@ -345,13 +345,13 @@ def sequence_truth(scenario: str, seed: int, num_images: int, resolution_px: int
     frame_dt_s, sun_dir): (t_s (N,), x (N, 12), sun_dir_C (N, 3), eclipse (N,) bool, config_json). lit_sun: the
     sun is the seed's lit sun of the closed-loop benchmarks (pipelines/trials.scenario_sun_N: the camera sees a
     sunlit side on every frame), given to generate as its sun_dir; else generate's own draw from the seed."""
-    from envisat_pose.datagen.generate_config import GenerateConfig, config_json
+    from envisat_pose.datagen.generate_config import GenerateConfig, SequenceModeConfig, config_json
     from envisat_pose.datagen.views import sequence_frames
     from envisat_pose.pipelines.trials import scenario_sun_N
 
     sun_N = scenario_sun_N(scenario, (num_images - 1) * frame_dt_s, 1.0 / frame_dt_s, seed) if lit_sun else None
     cfg = GenerateConfig(mode="sequence", num_images=num_images, resolution_px=resolution_px, seed=seed,
-                         scenario=scenario, frame_dt_s=frame_dt_s, sun_dir=sun_N)
+                         sequence=SequenceModeConfig(scenario, frame_dt_s), sun_dir=sun_N)
     text = config_json(cfg)
     t_s, x, sun_C, eclipse, _ = sequence_frames(text)
     return t_s, x, sun_C, eclipse, text

@@ -139,11 +139,11 @@ def own_frames(cfg_json: str, n: int, work: str):
     from envisat_pose.config import from_dict
     from envisat_pose.datagen.corrupt import apply_corruption
     from envisat_pose.datagen.factory import run_generate
-    from envisat_pose.datagen.generate_config import GenerateConfig
+    from envisat_pose.datagen.generate_config import GenerateConfig, nest_moved_keys
     from envisat_pose.datagen.shards import decode_png
     from envisat_pose.shard_reader import read_shard
 
-    d = json.loads(cfg_json)
+    d = nest_moved_keys(json.loads(cfg_json))
     d.update(storage="clean", shard_size=n)
     cfg = from_dict(GenerateConfig, {k: v for k, v in d.items() if k in GenerateConfig.__dataclass_fields__})
     out = os.path.join(work, "own")

@@ -309,7 +309,7 @@ def check_sequence_depth(cfg: GenerateConfig) -> None:
     k = int(np.argmax(far_m))
     check(DEPTH_MAX_CODE * cfg.depth_scale_m >= far_m[k], "depth_scale_m", cfg.depth_scale_m,
           f"a scale whose 16-bit range (65535 x scale = {DEPTH_MAX_CODE * cfg.depth_scale_m:.1f} m) covers "
-          f"{far_m[k]:.1f} m, the farthest target point of scenario {cfg.scenario!r} (frame {k})")
+          f"{far_m[k]:.1f} m, the farthest target point of scenario {cfg.sequence.scenario!r} (frame {k})")
 
 
 def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:

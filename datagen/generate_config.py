@@ -1,4 +1,5 @@
-"""The image factory's config (`envisat generate`): GenerateConfig and its four parts, the space camera
+"""The image factory's config (`envisat generate`): GenerateConfig, its two mode tables ([random]:
+RandomModeConfig, [sequence]: SequenceModeConfig) and its four parts, the space camera
 (SensorConfig), the corruption severities (CorruptionConfig), the target's looks (AppearanceConfig) and the
 lighting (LightingConfig); one validated config travels to the shard tasks as JSON (config_json /
 config_from_json)."""
@@ -7,11 +8,12 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Literal
 
 import numpy as np
 
+from envisat_pose.camera_response import parse_response
 from envisat_pose.config import check, from_dict, to_dict
 from envisat_pose.datagen.clearance import project_target_boxes
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
@@ -34,7 +36,8 @@ class SensorConfig:
     gain non-uniformity (fixed pattern, seeded by camera_seed). adc_bits: bit depths to draw from.
     blooming_decay_px: column spill length of saturated charge. psf: 'gaussian', 'airy' or 'mixed';
     psf_sigma_px_1024: Gaussian sigma at 1024 px; f_number, wavelength_m, pixel_pitch_m_1024: the Airy
-    optics. vignetting_cos_power: exponent n of cos^n (4: natural vignetting).
+    optics. vignetting_cos_power: exponent n of cos^n (4: natural vignetting). response: how the 8-bit output
+    stores the light, encoded after optics and sensor: 'linear', 'srgb' or 'gamma G' (envisat_pose/camera_response.py).
     """
 
     exposure_s: Range = (0.001, 0.02)
@@ -52,9 +55,11 @@ class SensorConfig:
     wavelength_m: float = 550e-9
     pixel_pitch_m_1024: float = 5.5e-6
     vignetting_cos_power: Range = (0.0, 4.0)
+    response: str = "linear"
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
+        parse_response(self.response, f"{p}response")
         for name, lo, hi in (("exposure_s", 1e-6, 10.0), ("full_well_e", 100.0, 1e7), ("white_fill", 0.0, 100.0),
                              ("read_noise_e", 0.0, 1e4), ("dark_current_e_per_s", 0.0, 1e6),
                              ("blooming_decay_px", 0.1, 100.0), ("psf_sigma_px_1024", 0.05, 20.0),
@@ -141,57 +146,102 @@ class LightingConfig:
 
 
 @dataclass(frozen=True)
+class RandomModeConfig:
+    """Random mode's view draws (table [random]; unused in sequence mode).
+
+    range_min_m/range_max_m: target range, m. max_offset_frac: target centre within this fraction of the half
+    field of view. sun_phase_max_deg: the sun is drawn uniformly on the cap of directions within this phase angle
+    of the direction from the target to the camera (0: sun behind the camera, 90: side light, 180: any), so most
+    views are lit as an approach would plan them; backlit_probability: share of views whose sun is drawn from
+    the whole sphere instead (backlit and silhouette views stay in the set). eclipse_probability: share of images
+    in eclipse. earth_orbit_radius_m: the chaser's orbit radius range, m (the Earth disc's angular radius is
+    asin(R / r)). keepout_margin_m: least distance of the camera from any part of the target, m (views closer,
+    or whose near plane cuts the target, are drawn again from the same generator). rate_max_deg_s: the relative
+    tumble rate is drawn uniform in [0, this] about a random axis (it sets the space camera's motion blur and
+    goes into the label's x).
+    """
+
+    range_min_m: float = 20.0
+    range_max_m: float = 80.0
+    max_offset_frac: float = 0.6
+    sun_phase_max_deg: float = 100.0
+    backlit_probability: float = 0.15
+    eclipse_probability: float = 0.05
+    earth_orbit_radius_m: Range = (6978.0e3, 7378.0e3)
+    keepout_margin_m: float = 2.0
+    rate_max_deg_s: float = 5.0
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(self.range_max_m >= self.range_min_m, f"{p}range_max_m", self.range_max_m,
+              f"a range no shorter than range_min_m = {self.range_min_m}")
+        check(0.0 <= self.max_offset_frac <= 1.0, f"{p}max_offset_frac", self.max_offset_frac, "a fraction in [0, 1]")
+        check(0.0 <= self.sun_phase_max_deg <= 180.0, f"{p}sun_phase_max_deg", self.sun_phase_max_deg,
+              "a phase angle in [0, 180] deg")
+        check(0.0 <= self.backlit_probability <= 1.0, f"{p}backlit_probability", self.backlit_probability,
+              "a probability in [0, 1]")
+        check(0.0 <= self.eclipse_probability <= 1.0, f"{p}eclipse_probability", self.eclipse_probability,
+              "a probability in [0, 1]")
+        from envisat_pose.datagen.scenario import EARTH_RADIUS_M
+
+        _check_range(self.earth_orbit_radius_m, f"{p}earth_orbit_radius_m", EARTH_RADIUS_M + 100e3, 1e8)
+        check(self.keepout_margin_m >= 0, f"{p}keepout_margin_m", self.keepout_margin_m, "a non-negative distance in m")
+        check(0 <= self.rate_max_deg_s <= 90, f"{p}rate_max_deg_s", self.rate_max_deg_s, "a rate in [0, 90] deg/s")
+
+
+@dataclass(frozen=True)
+class SequenceModeConfig:
+    """Sequence mode's truth (table [sequence]; unused in random mode): scenario, the named truth scenario whose
+    simulation the frames show; frame_dt_s, the interval between frames, s."""
+
+    scenario: str = "default"
+    frame_dt_s: float = 1.0
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(self.frame_dt_s > 0, f"{p}frame_dt_s", self.frame_dt_s, "a positive frame interval in s")
+
+
+# The keys that moved from the top level into [random] and [sequence] (datasets written before keep reading:
+# nest_moved_keys; a config file or flag with the old key gets one line naming its new home).
+MOVED_KEYS = {**{f.name: f"random.{f.name}" for f in fields(RandomModeConfig)},
+              **{f.name: f"sequence.{f.name}" for f in fields(SequenceModeConfig)}}
+
+
+@dataclass(frozen=True)
 class GenerateConfig:
     """What `envisat generate` makes.
 
-    mode: 'random' (domain-randomized views) or 'sequence' (frames of a simulated truth every frame_dt_s).
-    resolution_px: square image side. range_min_m/range_max_m: target range (random mode).
-    max_offset_frac: target centre within this fraction of the half field of view (random mode).
+    mode: 'random' (domain-randomized views, drawn by the [random] table) or 'sequence' (frames of a simulated
+    truth, the [sequence] table). resolution_px: square image side.
     sun_dir: unit vector toward the sun, in C (random mode) or N (sequence mode); omitted: drawn from the seed.
-    sun_phase_max_deg: random mode: the sun is drawn uniformly on the cap of directions within this phase angle
-    of the direction from the target to the camera (0: sun behind the camera, 90: side light, 180: any), so most
-    views are lit as an approach would plan them; backlit_probability: share of views whose sun is drawn from
-    the whole sphere instead (backlit and silhouette views stay in the set).
-    eclipse_probability: share of random-mode images in eclipse (sequence mode: Earth's cylindrical shadow).
     earth_probability: share of random-mode images that look toward the Earth and draw it behind the target
     (textured, lit by the view's sun; datagen/earth.py); sequence mode: above 0, the Earth is drawn at the
-    orbit's nadir in the frames where it reaches the image. earth_orbit_radius_m: random mode: the chaser's
-    orbit radius range, m (the disc's angular radius is asin(R / r)). earth_seed: the Earth texture set.
+    orbit's nadir in the frames where it reaches the image. earth_seed: the Earth texture set.
     depth_scale_m: metres per unit of the 16-bit depth PNG.
-    keepout_margin_m: random mode: least distance of the camera from any part of the target, m (views closer,
-    or whose near plane cuts the target, are drawn again from the same generator).
-    rate_max_deg_s: random mode: the relative tumble rate is drawn uniform in [0, this] about a random axis
-    (it sets the space camera's motion blur and goes into the label's x).
     appendages: draw the ASAR antenna and instrument boxes (mask value 8); None: on in random mode only.
     storage: 'corrupted' stores the corrupted image; 'clean' stores the clean render, and
     dataset.sample_image applies the label's corruption on read (the same bytes).
     """
+
+    moved_keys = MOVED_KEYS
 
     mode: Literal["random", "sequence"] = "random"
     num_images: int = 1000
     shard_size: int = 100
     resolution_px: int = 1024
     seed: int = 0
-    range_min_m: float = 20.0
-    range_max_m: float = 80.0
-    max_offset_frac: float = 0.6
     sun_dir: tuple[float, float, float] | None = None
-    sun_phase_max_deg: float = 100.0
-    backlit_probability: float = 0.15
-    eclipse_probability: float = 0.05
     earth_probability: float = 0.3
-    earth_orbit_radius_m: Range = (6978.0e3, 7378.0e3)
     earth_seed: int = 0
     shadows: bool = True
     write_mask: bool = True
     write_depth: bool = True
     depth_scale_m: float = 0.002
-    keepout_margin_m: float = 2.0
-    scenario: str = "default"
-    frame_dt_s: float = 1.0
-    rate_max_deg_s: float = 5.0
     appendages: bool | None = None
     storage: Literal["clean", "corrupted"] = "corrupted"
+    random: RandomModeConfig = field(default_factory=RandomModeConfig)
+    sequence: SequenceModeConfig = field(default_factory=SequenceModeConfig)
     corruption: CorruptionConfig = field(default_factory=CorruptionConfig)
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     lighting: LightingConfig = field(default_factory=LightingConfig)
@@ -212,36 +262,22 @@ class GenerateConfig:
         check(16 <= self.resolution_px <= 4096, f"{p}resolution_px", self.resolution_px, "a resolution in [16, 4096] px")
         check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed below 2^63")
         reach_m = project_target_boxes().reach_m
-        check(self.range_min_m > reach_m / 2, f"{p}range_min_m", self.range_min_m,
+        check(self.random.range_min_m > reach_m / 2, f"{p}random.range_min_m", self.random.range_min_m,
               f"a range above {reach_m / 2:.1f} m (the camera must stay outside the target)")
-        check(self.range_max_m >= self.range_min_m, f"{p}range_max_m", self.range_max_m,
-              f"a range no shorter than range_min_m = {self.range_min_m}")
-        check(0.0 <= self.max_offset_frac <= 1.0, f"{p}max_offset_frac", self.max_offset_frac, "a fraction in [0, 1]")
-        check(0.0 <= self.sun_phase_max_deg <= 180.0, f"{p}sun_phase_max_deg", self.sun_phase_max_deg,
-              "a phase angle in [0, 180] deg")
-        check(0.0 <= self.backlit_probability <= 1.0, f"{p}backlit_probability", self.backlit_probability,
-              "a probability in [0, 1]")
         if self.sun_dir is not None:
             check(np.linalg.norm(self.sun_dir) > 0, f"{p}sun_dir", list(self.sun_dir), "a non-zero vector")
-        for name in ("eclipse_probability", "earth_probability"):
-            value = getattr(self, name)
-            check(0.0 <= value <= 1.0, f"{p}{name}", value, "a probability in [0, 1]")
-        from envisat_pose.datagen.scenario import EARTH_RADIUS_M
-
-        _check_range(self.earth_orbit_radius_m, f"{p}earth_orbit_radius_m", EARTH_RADIUS_M + 100e3, 1e8)
+        check(0.0 <= self.earth_probability <= 1.0, f"{p}earth_probability", self.earth_probability,
+              "a probability in [0, 1]")
         check(0 <= self.earth_seed < 2**63, f"{p}earth_seed", self.earth_seed, "a non-negative integer seed")
         check(self.depth_scale_m > 0, f"{p}depth_scale_m", self.depth_scale_m, "a positive scale in m")
         if self.mode == "random":
-            reach = self.range_max_m / math.cos(math.radians(30.0)) + reach_m
+            reach = self.random.range_max_m / math.cos(math.radians(30.0)) + reach_m
             check(DEPTH_MAX_CODE * self.depth_scale_m >= reach, f"{p}depth_scale_m", self.depth_scale_m,
                   f"a scale whose 16-bit range (65535 x scale) covers {reach:.1f} m, the farthest target point")
-        check(self.keepout_margin_m >= 0, f"{p}keepout_margin_m", self.keepout_margin_m, "a non-negative distance in m")
-        check(self.frame_dt_s > 0, f"{p}frame_dt_s", self.frame_dt_s, "a positive frame interval in s")
-        check(0 <= self.rate_max_deg_s <= 90, f"{p}rate_max_deg_s", self.rate_max_deg_s, "a rate in [0, 90] deg/s")
         if self.mode == "sequence":
             from envisat_pose.datagen.scenario import scenario_dict
 
-            scenario_dict(self.scenario)  # unknown names raise ConfigError
+            scenario_dict(self.sequence.scenario)  # unknown names raise ConfigError
 
     @property
     def num_shards(self) -> int:
@@ -252,9 +288,20 @@ class GenerateConfig:
         return min(self.shard_size, self.num_images - index * self.shard_size)
 
 
+def nest_moved_keys(data: dict) -> dict:
+    """A stored generate config (a dataset's manifest, a look's record) with the keys of the flat layout (before
+    [random] and [sequence]) moved into their tables; a config of the nested layout comes back unchanged."""
+    out = {k: v for k, v in data.items() if k not in MOVED_KEYS}
+    for key, value in data.items():
+        if key in MOVED_KEYS:
+            table, name = MOVED_KEYS[key].split(".")
+            out[table] = {**out.get(table, {}), name: value}
+    return out
+
+
 def config_from_json(text: str) -> GenerateConfig:
     """A GenerateConfig from its JSON text (how tasks travel to workers: plain data, never pickles)."""
-    return from_dict(GenerateConfig, json.loads(text))
+    return from_dict(GenerateConfig, nest_moved_keys(json.loads(text)))
 
 
 def config_json(cfg: GenerateConfig) -> str:

@@ -63,8 +63,8 @@ def sample_cap(axis: np.ndarray, half_angle_deg: float, rng: np.random.Generator
 
 def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Generator,
                        znear_m: float | None = None, boxes: TargetBoxes | None = None) -> tuple:
-    """A domain-randomized view: uniform attitude, range uniform in [range_min_m, range_max_m], target centre
-    off the boresight within max_offset_frac of the half field of view, random or configured sun, eclipse
+    """A domain-randomized view (cfg.random's draws): uniform attitude, range uniform in [range_min_m,
+    range_max_m], target centre off the boresight within max_offset_frac of the half field of view, random or configured sun, eclipse
     and Earth backdrop by their probabilities, a relative tumble rate uniform in [0, rate_max_deg_s] about a
     uniform axis (in x; the translation rate is zero).
 
@@ -83,28 +83,29 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
 
     boxes = boxes if boxes is not None else project_target_boxes()
     znear_m = znear_m if znear_m is not None else project_znear_m()
+    r = cfg.random
     tan_half = math.tan(math.radians(fovy_deg) / 2.0)
     for _ in range(MAX_VIEW_DRAWS):
         q = unit(rng.standard_normal(4))
-        range_m = rng.uniform(cfg.range_min_m, cfg.range_max_m)
-        off = rng.uniform(-1.0, 1.0, size=2) * cfg.max_offset_frac * tan_half
+        range_m = rng.uniform(r.range_min_m, r.range_max_m)
+        off = rng.uniform(-1.0, 1.0, size=2) * r.max_offset_frac * tan_half
         rho_C = R_K_FROM_C.T @ (range_m * unit([off[0], off[1], 1.0]))
-        if view_is_clear(rho_C, quat_to_rotmat(q), boxes, cfg.keepout_margin_m, znear_m):
+        if view_is_clear(rho_C, quat_to_rotmat(q), boxes, r.keepout_margin_m, znear_m):
             break
     else:
-        raise ConfigError("range_min_m", cfg.range_min_m,
+        raise ConfigError("random.range_min_m", r.range_min_m,
                           f"ranges that allow a clear view: none of {MAX_VIEW_DRAWS} draws kept the camera "
-                          f"keepout_margin_m = {cfg.keepout_margin_m:g} m from the target with all of it beyond "
+                          f"random.keepout_margin_m = {r.keepout_margin_m:g} m from the target with all of it beyond "
                           f"the near plane ({znear_m:.2f} m)")
     if cfg.sun_dir is not None:
         sun_C = unit(cfg.sun_dir)
     else:
-        backlit = rng.random() < cfg.backlit_probability
-        sun_C = sample_cap(-unit(rho_C), 180.0 if backlit else cfg.sun_phase_max_deg, rng)
-    eclipse = bool(rng.random() < cfg.eclipse_probability)
+        backlit = rng.random() < r.backlit_probability
+        sun_C = sample_cap(-unit(rho_C), 180.0 if backlit else r.sun_phase_max_deg, rng)
+    eclipse = bool(rng.random() < r.eclipse_probability)
     earth_draw = bool(rng.random() < cfg.earth_probability)
     earth_C = unit(rng.standard_normal(3))
-    w_T = unit(rng.standard_normal(3)) * math.radians(rng.uniform(0.0, cfg.rate_max_deg_s))
+    w_T = unit(rng.standard_normal(3)) * math.radians(rng.uniform(0.0, r.rate_max_deg_s))
     view = View(rho_C, quat_to_rotmat(q), None if eclipse else sun_C, earth_C, earth_backdrop=earth_draw)
     if earth_draw:
         import dataclasses
@@ -113,7 +114,7 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
         from envisat_pose.datagen.earth import draw_backdrop
 
         K = load_camera().scaled(cfg.resolution_px, cfg.resolution_px).K
-        nadir_K, r_m, R_K_from_E, tex = draw_backdrop(rng.spawn(1)[0], cfg.earth_orbit_radius_m, K,
+        nadir_K, r_m, R_K_from_E, tex = draw_backdrop(rng.spawn(1)[0], r.earth_orbit_radius_m, K,
                                                       cfg.resolution_px, None if eclipse else R_K_FROM_C @ sun_C)
         view = dataclasses.replace(view, earth_dir_C=R_K_FROM_C.T @ nadir_K, earth_distance_m=r_m,
                                    earth_quat_C=rotmat_to_quat(R_K_FROM_C.T @ R_K_from_E), earth_texture=tex)
@@ -133,7 +134,8 @@ def sequence_frames(cfg_json: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
 
     cfg = config_from_json(cfg_json)
     n = cfg.num_images
-    scen = scenario_config(cfg.scenario, duration_s=max(n - 1, 1) * cfg.frame_dt_s, dt_s=cfg.frame_dt_s, seed=cfg.seed)
+    seq = cfg.sequence
+    scen = scenario_config(seq.scenario, duration_s=max(n - 1, 1) * seq.frame_dt_s, dt_s=seq.frame_dt_s, seed=cfg.seed)
     traj = simulate(scen)
     t_s, x = traj.t_s[:n], traj.x[:n]
     orb = chaser_orbit(scen.orbit, t_s)
@@ -160,8 +162,9 @@ def sequence_earth(cfg_json: str) -> tuple[np.ndarray, np.ndarray, int]:
 
     cfg = config_from_json(cfg_json)
     t_s, _, _, _, nadir_C = sequence_frames(cfg_json)
-    scen = scenario_config(cfg.scenario, duration_s=max(cfg.num_images - 1, 1) * cfg.frame_dt_s,
-                           dt_s=cfg.frame_dt_s, seed=cfg.seed)
+    seq = cfg.sequence
+    scen = scenario_config(seq.scenario, duration_s=max(cfg.num_images - 1, 1) * seq.frame_dt_s,
+                           dt_s=seq.frame_dt_s, seed=cfg.seed)
     orb = chaser_orbit(scen.orbit, t_s)
     rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(2**32 - 1, 0xEA27)))
     theta0 = float(rng.uniform(0.0, 2.0 * math.pi))

@@ -122,7 +122,9 @@ def is_sequence(path: str) -> bool:
 def frame_interval_s(path: str) -> float:
     """A sequence dataset's frame interval, s (its manifest's config)."""
     with open(os.path.join(path, "manifest.json")) as fh:
-        return float(json.load(fh)["config"].get("frame_dt_s", 1.0))
+        from envisat_pose.datagen.generate_config import nest_moved_keys
+
+        return float(nest_moved_keys(json.load(fh)["config"]).get("sequence", {}).get("frame_dt_s", 1.0))
 
 
 def sequence_input(frames: dict, dt_s: float) -> dict:

@@ -315,6 +315,7 @@ def dataset_source(path: str, skip_damaged: bool = False) -> FrameSource:
     checked against the manifest (shard_reader.checked_shards: a damaged one refused, or left out with
     skip_damaged: its frames are then missing from the sequence, the times say where)."""
     from envisat_pose.datagen.dataset import iter_samples, load_manifest
+    from envisat_pose.datagen.generate_config import nest_moved_keys
     from envisat_pose.shard_reader import checked_shards
 
     manifest = load_manifest(path)
@@ -333,7 +334,7 @@ def dataset_source(path: str, skip_damaged: bool = False) -> FrameSource:
         uv.append(label["corners_px"])
         inf.append(np.asarray(label["in_frame"], bool) & np.asarray(label["visible"], bool))
     truth = {"x": np.array(x, float), "corners_px": np.array(uv, float), "in_frame": np.array(inf)}
-    return FrameSource("dataset", path, np.array(t), names, truth=truth, scenario=cfg.get("scenario"), files=files,
+    return FrameSource("dataset", path, np.array(t), names, truth=truth, scenario=nest_moved_keys(cfg).get("sequence", {}).get("scenario"), files=files,
                        skipped=skipped)
 
 

@@ -109,8 +109,9 @@ def finish_config(cfg: RunConfig) -> RunConfig:
             orb = chaser_orbit(scenario_config(cfg.scenario).orbit, np.array([0.0]))
             s_C = np.asarray(DEFAULT_SUN_C0) / np.linalg.norm(DEFAULT_SUN_C0)
             sun = tuple(round(float(v), 9) for v in orb.R_N_from_C[0] @ s_C)
-    image = dataclasses.replace(cfg.image, mode="sequence", scenario=cfg.scenario, seed=cfg.seed, num_images=n,
-                                shard_size=n, frame_dt_s=1.0 / cfg.rate_hz, sun_dir=sun)
+    sequence = dataclasses.replace(cfg.image.sequence, scenario=cfg.scenario, frame_dt_s=1.0 / cfg.rate_hz)
+    image = dataclasses.replace(cfg.image, mode="sequence", sequence=sequence, seed=cfg.seed, num_images=n,
+                                shard_size=n, sun_dir=sun)
     return dataclasses.replace(cfg, image=image)
 
 

@@ -51,7 +51,7 @@ VALIDATION = (("v7171", 7171, None), ("v7272", 7272, None),
               ("e7373", 7373, os.path.join(ROOT, "bench", "configs", "earth_eval.toml")))
 
 WIDE_LOOKS = {
-    "backlit_probability": 0.25, "sun_phase_max_deg": 130.0,
+    "random": {"backlit_probability": 0.25, "sun_phase_max_deg": 130.0},
     "appearance": {"specular": [0.0, 1.0], "shininess": [0.0, 1.0], "reflectance": [0.0, 0.3],
                    "brightness": [0.4, 1.9], "texture_set_size": 12},  # 32 passes MuJoCo's 1000 materials
     "lighting": {"sun_intensity": [0.5, 2.6], "earth_albedo": [0.2, 0.5]},
@@ -107,7 +107,7 @@ def round_chunks(leg: int, round_index: int, scenarios: list[str]) -> list[dict]
         chunks.append({"name": f"random-1024-{cam}", "images": 300, "resolution": 1024,
                        "config": merge(merge(wide, CAMERAS[cam]), {"earth_probability": 0.4})})
     sequences = [{"name": f"sequence-{name}", "images": 120, "resolution": 1024, "scenario": name,
-                  "config": merge(base, {"mode": "sequence", "scenario": name, "frame_dt_s": 2.0,
+                  "config": merge(base, {"mode": "sequence", "sequence": {"scenario": name, "frame_dt_s": 2.0},
                                          "earth_probability": 1.0,
                                          "appearance": {"enabled": round_index % 2 == 1}})} for name in scenarios]
     # interleaved: the seeds alternate between the kinds

@@ -112,23 +112,24 @@ def generate_command(config: dict, name: str) -> str:
     """The `envisat generate` line a manifest's config implies: its flags, and the keys that differ from the
     default config as the TOML (--config) lines that set them."""
     from envisat_pose.config import to_dict
-    from envisat_pose.datagen.generate_config import GenerateConfig
+    from envisat_pose.datagen.generate_config import GenerateConfig, nest_moved_keys
 
+    config = nest_moved_keys(config)  # a dataset written before [random] and [sequence]
     default = to_dict(GenerateConfig())
     line = ["envisat generate"]
     if config.get("mode") != default["mode"]:
         line.append(f"--mode {config.get('mode')}")
     if config.get("mode") == "sequence":
-        line.append(f"--scenario {config.get('scenario')}")
+        line.append(f"--scenario {config.get('sequence', {}).get('scenario')}")
     line.append(f"--num-images {config.get('num_images')} --seed {config.get('seed')}")
     if config.get("resolution_px") != default["resolution_px"]:
         line.append(f"--resolution {config.get('resolution_px')}")
-    flags = {"mode", "scenario", "num_images", "seed", "resolution_px", "shard_size"}
+    flags = {"mode", "sequence.scenario", "num_images", "seed", "resolution_px", "shard_size"}
 
     def diff(cur: dict, ref: dict, prefix: str) -> list[str]:
         out = []
         for k in sorted(set(cur) | set(ref)):
-            if not prefix and k in flags:
+            if prefix + k in flags:
                 continue
             a, b = cur.get(k), ref.get(k)
             if isinstance(a, dict) and isinstance(b, dict):
@@ -145,12 +146,14 @@ def generate_command(config: dict, name: str) -> str:
 
 def dataset_record(path: str) -> dict:
     man = json.load(open(os.path.join(path, "manifest.json"), encoding="utf-8"))
-    c = man.get("config", {})
+    from envisat_pose.datagen.generate_config import nest_moved_keys
+
+    c = nest_moved_keys(man.get("config", {}))
     n = sum(int(s.get("count", 0)) for s in man.get("shards", []))
     name = os.path.basename(os.path.normpath(path))
     return {"name": name, "manifest_sha256": manifest_sha256(path), "generate": generate_command(c, name),
             "images": n, "seed": c.get("seed"), "resolution_px": c.get("resolution_px"), "mode": c.get("mode"),
-            "scenario": c.get("scenario") if c.get("mode") == "sequence" else None, "storage": c.get("storage"),
+            "scenario": c.get("sequence", {}).get("scenario") if c.get("mode") == "sequence" else None, "storage": c.get("storage"),
             "corruption_model": c.get("corruption", {}).get("model"),
             "earth_probability": c.get("earth_probability")}
 

@@ -168,7 +168,7 @@ def test_random_views_keep_the_camera_clear_and_the_target_beyond_the_near_plane
     """Down to 12 m (allowed: range_min_m > reach / 2) the array can reach the camera; every drawn view must
     still keep keepout_margin_m from the sampled surface and put all of it in front of the near plane."""
     znear_m, fovy_deg = znear_of_renderer()
-    cfg = from_dict(GenerateConfig, {"range_min_m": 12.0, "range_max_m": 30.0, "max_offset_frac": 1.0})
+    cfg = from_dict(GenerateConfig, {"random": {"range_min_m": 12.0, "range_max_m": 30.0, "max_offset_frac": 1.0}})
     tree = cKDTree(surface_T)
     min_clear, min_z = np.inf, np.inf
     for seed in range(1500):

@@ -276,7 +276,7 @@ def test_sequence_mode_follows_the_truth(tmp_path):
     from envisat_pose.datagen.truth import simulate
 
     cfg = from_dict(GenerateConfig, {"mode": "sequence", "num_images": 4, "shard_size": 3, "resolution_px": 128,
-                                     "seed": 2, "frame_dt_s": 5.0})
+                                     "seed": 2, "sequence": {"frame_dt_s": 5.0}})
     manifest = run_generate(cfg, str(tmp_path / "seq"))
     labels = [json.loads(m["json"]) for e in manifest["shards"]
               for _, m in read_shard(os.path.join(tmp_path / "seq", e["name"]))]

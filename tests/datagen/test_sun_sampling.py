@@ -36,15 +36,15 @@ def test_default_views_are_mostly_front_lit_with_a_backlit_share():
         to_camera = -np.asarray(view.rho_C_m) / np.linalg.norm(view.rho_C_m)
         phase.append(math.degrees(math.acos(np.clip(np.asarray(view.sun_dir_C) @ to_camera, -1, 1))))
     phase = np.array(phase)
-    beyond = np.mean(phase > cfg.sun_phase_max_deg)
+    beyond = np.mean(phase > cfg.random.sun_phase_max_deg)
     # only backlit draws (15 %, the sphere's share beyond 100 deg: (1 + cos 100)/2 = 41 %) pass the cap: ~6 %
-    expected = cfg.backlit_probability * (1 + math.cos(math.radians(cfg.sun_phase_max_deg))) / 2
+    expected = cfg.random.backlit_probability * (1 + math.cos(math.radians(cfg.random.sun_phase_max_deg))) / 2
     assert abs(beyond - expected) < 0.03
     assert np.mean(phase < 90.0) > 0.75
 
 
 def test_sun_phase_is_validated():
-    with pytest.raises(ConfigError, match="sun_phase_max_deg"):
-        from_dict(GenerateConfig, {"sun_phase_max_deg": 200.0})
-    with pytest.raises(ConfigError, match="backlit_probability"):
-        from_dict(GenerateConfig, {"backlit_probability": -0.1})
+    with pytest.raises(ConfigError, match="random.sun_phase_max_deg"):
+        from_dict(GenerateConfig, {"random": {"sun_phase_max_deg": 200.0}})
+    with pytest.raises(ConfigError, match="random.backlit_probability"):
+        from_dict(GenerateConfig, {"random": {"backlit_probability": -0.1}})

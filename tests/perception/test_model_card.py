@@ -153,13 +153,13 @@ def test_a_card_with_a_path_is_refused():
 
 def test_generate_command_from_a_manifest_config():
     from envisat_pose.config import to_dict
-    from envisat_pose.datagen.generate_config import GenerateConfig
+    from envisat_pose.datagen.generate_config import GenerateConfig, SequenceModeConfig
 
     mc = load_script()
     assert mc.generate_command(to_dict(GenerateConfig(num_images=300, seed=303)), "dcal") == \
         "envisat generate --num-images 300 --seed 303"
-    assert mc.generate_command(to_dict(GenerateConfig(mode="sequence", scenario="slow-tumble", num_images=150,
-                                                      seed=644)), "hseq644") == \
+    assert mc.generate_command(to_dict(GenerateConfig(mode="sequence", sequence=SequenceModeConfig("slow-tumble"),
+                                                      num_images=150, seed=644)), "hseq644") == \
         "envisat generate --mode sequence --scenario slow-tumble --num-images 150 --seed 644"
     assert mc.generate_command(to_dict(GenerateConfig(num_images=100, seed=8282, earth_probability=1.0)), "e") == \
         "envisat generate --num-images 100 --seed 8282 --config CONFIG.toml  # CONFIG.toml: earth_probability = 1.0"

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from envisat_pose.datagen.generate_config import AppearanceConfig, GenerateConfig
+from envisat_pose.datagen.generate_config import AppearanceConfig, GenerateConfig, SequenceModeConfig
 from envisat_pose.perception.data import DataConfig
 from envisat_pose.pipelines.online import RenderPool, online_batches, uses_before, window_start
 
@@ -145,7 +145,7 @@ def test_a_mix_deals_its_frames_by_weight_and_its_file_reads_back(tmp_path):
 
     WeightedLook, LOOK_PERIOD = online.WeightedLook, online.LOOK_PERIOD
     looks = (WeightedLook("big", GEN, 2000.0), WeightedLook("mid", GEN, 800.0), WeightedLook("tiny", GEN, 1.0),
-             WeightedLook("seq", GenerateConfig(mode="sequence", scenario="slow-tumble", resolution_px=96, num_images=7,
+             WeightedLook("seq", GenerateConfig(mode="sequence", sequence=SequenceModeConfig("slow-tumble"), resolution_px=96, num_images=7,
                                         **CHEAP), 300.0))
     shares = online.look_shares(looks)
     assert shares.sum() == LOOK_PERIOD and shares.tolist() == [64, 26, 1, 9]  # 64.5 / 25.8 / 0.03 / 9.7, tiny >= 1
@@ -168,7 +168,8 @@ def test_a_mix_deals_its_frames_by_weight_and_its_file_reads_back(tmp_path):
     assert (a.generate.seed, b.generate.seed, b.generate.resolution_px, a.weight, b.weight) == (5, 5, 64, 2, 1.0)
     for text, field in [('[[look]]\nweight = 1\n', "look[0].name"), ("seed = 1\n", "look"),
                         ('[[look]]\nname = "a"\nweight = -1\n', "looks.a.weight"),
-                        ('[[look]]\nname = "a"\nrange_min_m = "x"\n', "look.a.range_min_m"),
+                        ('[[look]]\nname = "a"\n[look.random]\nrange_min_m = "x"\n', "look.a.random.range_min_m"),
+                        ('[[look]]\nname = "a"\nrange_min_m = 30\n', "look.a.range_min_m: moved to look.a.random.range_min_m"),
                         ('[[look]]\nname = "a"\n[[look]]\nname = "a"\n', "looks")]:
         path.write_text(text)
         with pytest.raises(ConfigError, match=field.replace(".", r"\.").replace("[", r"\[")):
@@ -184,8 +185,8 @@ def test_a_mix_of_sizes_and_scenarios_renders_each_looks_own_frames(tmp_path):
     from envisat_pose.perception.data import read_samples
     from envisat_pose.pipelines.online import WeightedLook, frame_look, look_pattern, look_shares, sequence_seed
 
-    seq_cfg = GenerateConfig(mode="sequence", scenario="slow-tumble", resolution_px=96, num_images=4,
-                             shard_size=4, seed=12, frame_dt_s=5.0, **CHEAP)
+    seq_cfg = GenerateConfig(mode="sequence", sequence=SequenceModeConfig("slow-tumble", 5.0), resolution_px=96,
+                             num_images=4, shard_size=4, seed=12, **CHEAP)
     looks = (WeightedLook("random", GEN, 1.0), WeightedLook("seq", seq_cfg, 1.0))
     shares = look_shares(looks)
     pattern = look_pattern(shares)

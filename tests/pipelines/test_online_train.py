@@ -65,14 +65,14 @@ def test_the_verb_trains_on_a_mix_of_looks_and_resumes_only_its_own(tmp_path, ca
     looks = tmp_path / "looks.toml"
     looks.write_text('seed = 3\nearth_probability = 0.0\n[appearance]\ntexture_set_size = 1\n'
                      '[[look]]\nname = "random"\nweight = 2\nresolution_px = 128\n'
-                     '[[look]]\nname = "slow"\nmode = "sequence"\nscenario = "slow-tumble"\nresolution_px = 96\n'
-                     'num_images = 5\nframe_dt_s = 4.0\n')
+                     '[[look]]\nname = "slow"\nmode = "sequence"\nresolution_px = 96\nnum_images = 5\n'
+                     '[look.sequence]\nscenario = "slow-tumble"\nframe_dt_s = 4.0\n')
     run = str(tmp_path / "run")
     common = ["--out", run, "--config", str(cfg), "--batch-size", "2", "--render-workers", "1", "--quiet"]
     assert main(["train", "--online", "--looks", str(looks), "--uses-per-frame", "2", "--steps", "2", *common]) == 0
     record = json.load(open(os.path.join(run, "config.json")))
     assert [(look["name"], look["share"]) for look in record["online"]["looks"]] == [("random", 67), ("slow", 33)]
-    assert record["online"]["looks"][1]["generate"]["scenario"] == "slow-tumble"
+    assert record["online"]["looks"][1]["generate"]["sequence"]["scenario"] == "slow-tumble"
     capsys.readouterr()
     assert main(["train", "--resume", "--steps", "3", *common]) == 0
     assert json.load(open(os.path.join(run, "state.json")))["step"] == 3

@@ -70,7 +70,7 @@ def test_a_legs_chunks_are_valid_generate_configs_with_the_asked_mix(leg, tmp_pa
     assert all(g.earth_probability >= 1 / 3 for g in random)  # the Earth behind the target in a third or more
     assert {g.resolution_px for g in random} >= {512, 1024, 2048}
     assert min(g.resolution_px for g in configs) == 512 and max(g.resolution_px for g in configs) == 2048
-    seq = {g.scenario for g in configs if g.mode == "sequence"}
+    seq = {g.sequence.scenario for g in configs if g.mode == "sequence"}
     assert seq == set(named_scenarios.names())  # every named scenario
     # the space camera at every severity: uncorrupted, benign, default and harsh ranges, and the paper's kinds
     read_noise = {g.corruption.sensor.read_noise_e for g in random if g.corruption.model == "sensor"}
@@ -94,7 +94,7 @@ def test_an_online_leg_trains_on_the_offline_rounds_mix(tmp_path):
         look = by_name[c["name"]]
         assert look.generate.resolution_px == c["resolution"]
         if "scenario" in c:
-            assert look.generate.mode == "sequence" and look.generate.scenario == c["scenario"]
+            assert look.generate.mode == "sequence" and look.generate.sequence.scenario == c["scenario"]
             assert not look.generate.appearance_on and by_name[c["name"] + "-appearance"].generate.appearance_on
             assert look.generate.num_images == c["images"]
         else:

@@ -25,7 +25,7 @@ def test_a_held_out_sequence_is_the_closed_loops_image_config():
         cfg = seqs.sequence_config(scenario, 9001, 40)
         run = bench.run_config(scenario, 9001, os.path.join(ROOT, "models", "detector.safetensors"), 39.0, None,
                                90.0).image
-        assert (cfg.mode, cfg.scenario, cfg.seed, cfg.num_images, cfg.shard_size) == ("sequence", scenario, 9001, 40, 40)
+        assert (cfg.mode, cfg.sequence.scenario, cfg.seed, cfg.num_images, cfg.shard_size) == ("sequence", scenario, 9001, 40, 40)
         assert cfg.sun_dir is not None and np.isclose(np.linalg.norm(cfg.sun_dir), 1.0, atol=1e-6)
         assert dataclasses.asdict(cfg) == dataclasses.asdict(dataclasses.replace(run, shard_size=40))
     other = seqs.sequence_config("default", 9002, 40)
