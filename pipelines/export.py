@@ -279,7 +279,8 @@ def export_shard(layout_dict: dict, path: str, stage: str, index: int, start: in
             ok, data = cv2.imencode(".jpg", sample_image(members, label, where), [cv2.IMWRITE_JPEG_QUALITY,
                                                                                   fx.JPEG_QUALITY])
             image = data.tobytes()
-        mask = decode_png(members["mask.png"]) if members.get("mask.png") else None
+        needs_mask = layout.fmt != "speedplus" and members.get("mask.png")
+        mask = decode_png(members["mask.png"]) if needs_mask else None
         split = "val" if val_flags[k] else "train"
         lines.append(json.dumps(lay.write_sample(layout, stage, start + k, split, label, image, mask,
                                                  members.get("depth.png") if layout.depth_scale_mm else None)))

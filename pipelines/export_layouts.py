@@ -176,9 +176,9 @@ def _assemble_speedplus(layout: Layout, stage: str, splits: tuple[str, ...]) -> 
     if layout.mode == "sequence":
         seq = layout.sequence
         n = _write_array(os.path.join(stage, seq, f"{seq}.json"), (r["entry"] for r in read_records(stage)))
-        times = [r["t_s"] for r in read_records(stage)]  # one float per frame: small beside the images
-        meta = {"sequence": seq, "frames": n, "t_s": times, "filenames": None}
-        meta["filenames"] = [r["entry"]["filename"] for r in read_records(stage)]
+        # one time and one name per frame: small beside the images
+        meta = {"sequence": seq, "frames": n, "t_s": [r["t_s"] for r in read_records(stage)],
+                "filenames": [r["entry"]["filename"] for r in read_records(stage)]}
         with open(os.path.join(stage, seq, "metadata.json"), "w", encoding="utf-8") as fh:
             json.dump(meta, fh, indent=1)
         return {seq: n}
