@@ -9,6 +9,7 @@ mesh's vertices in the mesh's own frame; the geom's pose puts them in T). Planes
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -88,9 +89,10 @@ def _geom_mesh(model, g: int) -> TriangleMesh | None:
     return None
 
 
+@functools.lru_cache(maxsize=8)
 def target_mesh(model_path: str, appendages: bool) -> TriangleMesh:
     """The surface of body `target` of the MJCF at model_path in T, m: every geom MuJoCo renders in the
-    factory's scene (the appendages' group too when `appendages`)."""
+    factory's scene (the appendages' group too when `appendages`). Cached: treat the arrays as read-only."""
     import mujoco
 
     from envisat_pose.attitude import quat_to_rotmat

@@ -11,6 +11,7 @@ non-empty `out_dir` is refused.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -98,18 +99,10 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         for folder in made:
-            with _suppress():
+            with contextlib.suppress(OSError):
                 os.rmdir(folder)
         raise
     return ExportSummary(out_dir, cfg.fmt, images, skipped)
-
-
-class _suppress:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return exc[0] is not None and issubclass(exc[0], OSError)
 
 
 def _generate_config(src: str, manifest: dict):
