@@ -149,25 +149,44 @@ def test_speedplus_check_fails_on_a_wrong_convention(datasets, exports, defect):
 
 # --- BOP: the toolkit's pose and box conventions -------------------------------------------------------------------
 
+def bop_frames(folder, defect=None):
+    """(corners projected with the BOP pose and cam_K, mask_visib, gt_info, scene_camera) of every image, read
+    as the BOP toolkit reads them (cam_R_m2c row-major, mm); `defect` plants a convention error."""
+    kp_mm = load_geometry().corners_T_m * 1000.0  # the MJCF's sites, the one source of the geometry
+    got = []
+    for scene in sorted(os.listdir(os.path.join(folder, "train_pbr"))):
+        base = os.path.join(folder, "train_pbr", scene)
+        gt = json.load(open(os.path.join(base, "scene_gt.json")))
+        cams = json.load(open(os.path.join(base, "scene_camera.json")))
+        info = json.load(open(os.path.join(base, "scene_gt_info.json")))
+        for im in sorted(gt, key=int):
+            R = np.asarray(gt[im][0]["cam_R_m2c"], float).reshape(3, 3)
+            t = np.asarray(gt[im][0]["cam_t_m2c"], float)
+            K = np.asarray(cams[im]["cam_K"], float).reshape(3, 3)
+            if defect == "principal point + 0.5 px":
+                K[0, 2] += 0.5
+            elif defect == "rotation transposed":
+                R = R.T
+            elif defect == "translation in metres":
+                t = t / 1000.0
+            p = (kp_mm @ R.T + t) @ K.T
+            mask = _read_gray(os.path.join(base, "mask_visib", f"{int(im):06d}_000000.png"))
+            got.append((p[:, :2] / p[:, 2:], mask, info[im][0], cams[im]))
+    return got
+
+
+@pytest.mark.parametrize("defect", ["principal point + 0.5 px", "rotation transposed", "translation in metres"])
+def test_bop_check_fails_on_a_wrong_convention(datasets, exports, defect):
+    labels = labels_of(datasets["rand"])
+    got = bop_frames(exports["rand", "bop"], defect)
+    worst = max(np.abs(uv - np.asarray(lab["corners_px"])).max() for (uv, *_), (lab, _, _) in zip(got, labels))
+    assert worst > 0.4
+
+
 def test_bop_pose_masks_and_model(datasets, exports):
     for case in ("rand", "seq"):
-        folder = exports[case, "bop"]
         labels = labels_of(datasets[case])
-        kp_mm = load_geometry().corners_T_m * 1000.0  # the MJCF's sites, the one source of the geometry
-        scenes = sorted(os.listdir(os.path.join(folder, "train_pbr")))
-        got = []
-        for scene in scenes:
-            base = os.path.join(folder, "train_pbr", scene)
-            gt = json.load(open(os.path.join(base, "scene_gt.json")))
-            cams = json.load(open(os.path.join(base, "scene_camera.json")))
-            info = json.load(open(os.path.join(base, "scene_gt_info.json")))
-            for im in sorted(gt, key=int):
-                R = np.asarray(gt[im][0]["cam_R_m2c"], float).reshape(3, 3)  # row-major
-                t = np.asarray(gt[im][0]["cam_t_m2c"], float)
-                K = np.asarray(cams[im]["cam_K"], float).reshape(3, 3)
-                p = (kp_mm @ R.T + t) @ K.T
-                mask = _read_gray(os.path.join(base, "mask_visib", f"{int(im):06d}_000000.png"))
-                got.append((p[:, :2] / p[:, 2:], mask, info[im][0], cams[im]))
+        got = bop_frames(exports[case, "bop"])
         assert len(got) == len(labels)
         for (uv, mask, inf, cam), (lab, _, fmask) in zip(got, labels):
             assert np.abs(uv - np.asarray(lab["corners_px"])).max() < 1e-3
