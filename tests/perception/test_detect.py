@@ -1,5 +1,5 @@
 """The detection chain around the network (coarse pass, crop, decode, map back, naming) with an oracle in place
-of the network (heatmaps made from the label), and the real network's output shapes."""
+of the network (heatmaps made from the label), and the real network's output contract."""
 
 import numpy as np
 import torch
@@ -38,9 +38,13 @@ class OracleDetector(Detector):
 
 
 def test_oracle_chain_recovers_named_corners(tiny_dataset):
-    det = OracleDetector(CornerNet(ModelConfig(input_px=128, width=16, depth=2, stem_width=8)))
-    right = 0
+    from envisat_pose.perception.detect import DetectConfig
+
+    model = CornerNet(ModelConfig(input_px=128, width=16, depth=2, stem_width=8))
+    det, crop_only = OracleDetector(model), OracleDetector(model, DetectConfig(patch_px=0))
+    right = sure = 0
     n = 0
+    crop_px2 = []
     for key, image, label in read_samples(shard_paths(tiny_dataset)):
         det.label = label
         f = det.detect(image, label["K"])
@@ -52,9 +56,29 @@ def test_oracle_chain_recovers_named_corners(tiny_dataset):
             if corners is not None and np.all(np.abs(corners[want] - label["corners_px"][want]) < 0.05):
                 right += 1
                 break
-        assert f.cov_px.shape == (8, 2, 2) and f.confidence.shape == (8,)
+        # values, not only shapes: the oracle's covariance is 1 input px^2 (a zero log-Cholesky map) and the patch
+        # pass finds each corner again in a patch of patch_px / patch_zoom image px seen at patch_px input px: in
+        # the frame, (1 / patch_zoom)^2 px^2; its heatmap peaks at 1 on every corner, so an unambiguous naming's
+        # corners are found with confidence 1; a corner not found has none
+        found = f.visible
+        assert found.sum() >= 4, found
+        np.testing.assert_allclose(f.cov_px[found], np.broadcast_to(np.eye(2) / det.cfg.patch_zoom**2,
+                                                                    (found.sum(), 2, 2)), rtol=0, atol=1e-6)
+        assert np.isnan(f.cov_px[~found]).all() and (f.confidence[~found] == 0).all()
+        if not f.ambiguous:
+            np.testing.assert_allclose(f.confidence[found], 1.0, atol=1e-3)
+            sure += 1
+        # without the patch pass: 1 input px of the crop is crop side / input_px frame px
+        crop_only.label = label
+        g = crop_only.detect(image, label["K"])
+        px2 = (g.crop_px[2] / crop_only.input_px) ** 2
+        np.testing.assert_allclose(g.cov_px[g.visible], np.broadcast_to(px2 * np.eye(2), (g.visible.sum(), 2, 2)),
+                                   rtol=1e-6)
+        assert g.visible.sum() >= 4
+        crop_px2.append(px2)
     print(right, n)
-    assert n >= 6 and right >= n - 1
+    assert n >= 6 and right >= n - 1 and sure >= n - 1
+    assert min(crop_px2) < 0.25  # crops far from the input's size: a dropped scale would show
 
 
 def test_untrained_network_runs_end_to_end(tiny_dataset):
