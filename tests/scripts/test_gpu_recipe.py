@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
@@ -132,16 +133,71 @@ def test_a_round_is_sized_to_its_time_and_shares_the_cores_by_load():
     assert gt.load_of(default) >= 0.3 * load  # the held-out sets' look keeps the largest share
 
 
+def leaves(d: dict, prefix: str = "") -> dict:
+    """A nested config as {"a.b.c": value} (lists as tuples)."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(leaves(v, f"{prefix}{k}."))
+        else:
+            out[prefix + k] = tuple(v) if isinstance(v, list) else v
+    return out
+
+
+def inside(value, bounds) -> bool:
+    return bounds[0] - 1e-9 <= value <= bounds[1] + 1e-9
+
+
 def test_the_widest_looks_and_a_sequence_chunk_render(tmp_path):
     """One image of the widest random chunk and two frames of a sequence chunk through `envisat generate` (64 px):
-    configs that validate can still fail in MuJoCo (32 texture sets passed 1000 materials)."""
+    configs that validate can still fail in MuJoCo (32 texture sets passed 1000 materials). What the dry run
+    writes is the chunk's: every key of its config in the data set's recorded config, the images 64 px with the
+    MJCF camera's intrinsics at that size (f = 1024-px f x 64/1024), the wide look's draws inside its ranges, the
+    leg's camera seed, and the sequence's frames frame_dt_s apart on the default scenario's 50 m hold."""
     from envisat_pose.app.cli import main
+    from envisat_pose.datagen.dataset import iter_samples, load_manifest, sample_image
+    from envisat_pose.geometry import load_camera
 
     gt, chunks = plan(1, rounds=1)
+    f_64 = load_camera().f_px * 64 / 1024
+    out = {}
     for name in ("random-512-wide", "sequence-default"):
         chunk = next(c for c in chunks if c["name"] == name)
         toml = tmp_path / f"{name}.toml"
         toml.write_text(gt.to_toml(chunk["config"]))
-        rc = main(["generate", "--config", str(toml), "--num-images", "2" if "sequence" in name else "1",
-                   "--resolution", "64", "--seed", "3", "--out", str(tmp_path / name), "--quiet"])
+        n = 2 if "sequence" in name else 1
+        rc = main(["generate", "--config", str(toml), "--num-images", str(n), "--resolution", "64", "--seed", "3",
+                   "--out", str(tmp_path / name), "--quiet"])
         assert rc == 0
+        manifest = load_manifest(str(tmp_path / name))
+        recorded = leaves(manifest["config"])
+        asked = leaves(chunk["config"])
+        assert {k: recorded.get(k) for k in asked} == asked  # the chunk's settings reached the data set
+        samples = [(label, sample_image(members, label)) for _, label, members in iter_samples(str(tmp_path / name))]
+        assert len(samples) == n
+        for label, image in samples:
+            # a lit frame shows the target; one in the Earth's shadow (the sequence's sun is drawn) is dark
+            assert image.shape == (64, 64) and (image.std() > 1.0) != label["scene"]["eclipse"], image.std()
+            np.testing.assert_allclose(np.array(label["K"]), [[f_64, 0, 31.5], [0, f_64, 31.5], [0, 0, 1]], rtol=1e-9)
+            assert label["corruption"]["camera_seed"] == gt.LOOK_SEED_BASE + 10 + 3  # leg 1's camera
+        out[name] = (chunk["config"], [label for label, _ in samples])
+
+    wide, (label,) = out["random-512-wide"]
+    scene = label["scene"]
+    assert scene["mode"] == "random" and scene["appearance"] and scene["appendages"]
+    for part in scene["look"]["materials"].values():
+        for key in ("specular", "shininess", "reflectance"):
+            assert inside(part[key], wide["appearance"][key]), (key, part[key])
+    assert inside(scene["look"]["sun_intensity"], wide["lighting"]["sun_intensity"])
+    assert inside(scene["earthshine"]["albedo"], wide["lighting"]["earth_albedo"])
+
+    seq, labels = out["sequence-default"]
+    assert [lab["scene"]["mode"] for lab in labels] == ["sequence"] * 2
+    assert not any(lab["scene"]["appearance"] for lab in labels)  # round 0: appearance off
+    t = [lab["scene"]["t_s"] for lab in labels]
+    assert t[1] - t[0] == pytest.approx(seq["sequence"]["frame_dt_s"]) == pytest.approx(2.0)
+    for lab in labels:  # the default scenario: a 50 m V-bar hold
+        np.testing.assert_allclose(lab["x"][:3], [0.0, 50.0, 0.0], atol=1e-3)
+        assert np.linalg.norm(lab["t_cam_from_target_m"]) == pytest.approx(50.0, abs=1e-3)
+    # the target tumbles between the frames (its attitude changed) while the hold keeps it in place
+    assert not np.allclose(labels[0]["x"][6:9], labels[1]["x"][6:9], atol=1e-3)
