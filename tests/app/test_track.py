@@ -121,22 +121,56 @@ def test_timestamps_and_a_video(png_dir, tmp_path, detector_weights):
         assert z["visible"].sum(axis=1).max() >= 4  # the detector found the target in the decoded frames
 
 
-def test_a_512_px_sequence_with_its_own_camera(tmp_path, detector_weights):
-    """Frames of another size with a camera file (the MJCF's field of view at 512 px, written as fx, fy, cx, cy):
-    the tracker's pixel model is that camera."""
+@pytest.fixture(scope="module")
+def track_512(tmp_path_factory, detector_weights):
+    """Frames of another size with a camera file (the MJCF's field of view at 512 px, written as fx, fy, cx, cy)
+    tracked: (the output folder, the frames' truth (T, 12))."""
     from envisat_pose.geometry import load_camera
 
+    base = tmp_path_factory.mktemp("t512")
     # 90 frames: 20 for the cold start's window, then the bank's confirmation (the half-turn decided by the
     # dynamics as well as the appearance, which on this sequence takes tens of seconds; then 5 frames)
-    seq = generate(tmp_path / "g512", 90, seed=3, resolution=512)
+    seq = generate(base / "g512", 90, seed=3, resolution=512)
     cam = load_camera().scaled(512, 512)
-    camfile = tmp_path / "cam.toml"
+    camfile = base / "cam.toml"
     camfile.write_text(f"fx = {cam.f_px}\nfy = {cam.f_px}\ncx = {cam.cu_px}\ncy = {cam.cv_px}\nwidth = 512\nheight = 512\n")
-    out = tmp_path / "t512"
+    out = base / "t512"
     assert main(["track", "--images", str(seq), "--camera", str(camfile), "--out", str(out), "--quiet",
                  "--weights", detector_weights]) == 0
+    return out, truth_of(seq)
+
+
+def test_a_512_px_sequence_with_its_own_camera(track_512):
+    """The tracker's pixel model is the file's camera: on every frame it claims tracking, its position is within
+    1 % of the range of the truth's (the frames' labels), along the line of sight (range) and across it. A camera
+    not taken from the file shows there: the focal length 2 % off puts the range 0.8 m (1.6 %) off on this
+    sequence; the file's camera leaves 0.2 m (the detector's apparent scale at 512 px)."""
+    from envisat_pose.state import POS
+
+    out, truth_x = track_512
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames_by_status"]["tracking"] >= 1, summary
+    est, err = est_errors(out, truth_x)
+    np.testing.assert_array_equal(est.x_true[0], truth_x)
+    claimed = est.status[0] == 1
+    r_true = np.linalg.norm(truth_x[claimed][:, POS], axis=1)
+    r_hat = np.linalg.norm(est.x_hat[0, claimed][:, POS], axis=1)
+    assert np.all(np.abs(r_hat - r_true) < 0.01 * r_true), r_hat - r_true
+    assert np.all(err["position_m"][claimed] < 0.01 * r_true), err["position_m"][claimed]
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="a known false lock: on this sequence (default scenario, seed 3, 512 px) the tracker claims "
+                   "the half-turn twin, 179.8 deg off, on all 12 frames it calls tracking; bank.evidence_memory = "
+                   "'long' (off by default) is reported to stop it. Strict: it fails once the claims are right, so "
+                   "that this mark is removed.")
+def test_the_512_px_track_claims_the_truths_attitude(track_512):
+    """Every frame claimed tracking is within 5 deg of the truth's attitude (the project's false-lock bound)."""
+    out, truth_x = track_512
+    est, err = est_errors(out, truth_x)
+    claimed = est.status[0] == 1
+    assert claimed.any() and np.all(err["attitude_deg"][claimed] < 5.0), err["attitude_deg"][claimed]
 
 
 def bad(args, capsys, tmp_path):
