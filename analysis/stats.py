@@ -105,7 +105,7 @@ def block_mahalanobis_sq(e_state: np.ndarray, P: np.ndarray) -> np.ndarray:
     return np.stack(out, axis=-1)
 
 
-def nees(e_state: np.ndarray, P: np.ndarray) -> np.ndarray:
+def nees_of_errors(e_state: np.ndarray, P: np.ndarray) -> np.ndarray:
     """Normalized estimation error squared e^T P^-1 e (12 dof). (..., 12), (..., 12, 12) -> (...,)."""
     return np.einsum("...i,...i->...", e_state, np.linalg.solve(P, e_state[..., None])[..., 0])
 
@@ -185,7 +185,7 @@ def reduce_runs(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, nis: np.nd
         sq_norm=(norms**2).sum(0), err=e.sum(0), sq_err=(e**2).sum(0), filt_var=var.sum(0),
         inside_comp=(e**2 <= 9.0 * var).sum(0).astype(np.int64),
         inside_block=(block_mahalanobis_sq(e_state, P) <= MAHALANOBIS_3SIGMA_3D).sum(0).astype(np.int64),
-        nees=nees(e_state, P).sum(0), nis=np.where(measured, nis, 0.0).sum(0),
+        nees=nees_of_errors(e_state, P).sum(0), nis=np.where(measured, nis, 0.0).sum(0),
         nis_dof=np.where(measured, nis_dof, 0).sum(0).astype(np.int64),
         nis_runs=measured.sum(0).astype(np.int64), n_diverged=int(np.count_nonzero(diverged)))
 
@@ -362,7 +362,7 @@ class RunAccumulator:
         """Fold the steps ks of the runs: x_true, x_hat (R, K, 12), P (R, K, 12, 12), nis and nis_dof (R, K).
         Returns the NEES of every step of the chunk (R, K) (a divergence monitor reads it)."""
         e_state = state_errors(x_true, x_hat)
-        nees_rk = nees(e_state, P)
+        nees_rk = nees_of_errors(e_state, P)
         k = self.settled[ks.start:ks.stop]
         if k.any():
             norms = block_error_norms(x_true[:, k], x_hat[:, k])

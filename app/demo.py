@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run_demo(args: argparse.Namespace) -> int:
     from envisat_pose.app.run import print_table
-    from envisat_pose.pipelines.closed_loop import output_paths, run_closed_loop
+    from envisat_pose.pipelines.closed_loop import run_closed_loop, run_output_paths
     from envisat_pose.pipelines.run_config import RunConfig
 
     cfg = RunConfig.from_scenario("default", duration_s=args.duration_s, weights=args.weights, runs=1, workers=1,
@@ -33,7 +33,7 @@ def run_demo(args: argparse.Namespace) -> int:
           f"weights {cfg.weights}")
     summary = run_closed_loop(cfg, args.out, progress=not args.quiet)  # staged: an interrupt leaves --out as it was
     print_table(summary)
-    paths = output_paths(args.out)
+    paths = run_output_paths(args.out)
     print(f"recording: {paths['recording']} ({summary['recording_bytes'] / 2**20:.1f} MiB); open it with "
           f"`envisat view {args.out}`")
     print(f"plots:     {paths['plot']}")

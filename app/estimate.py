@@ -91,7 +91,7 @@ def summary(arrays: dict) -> str:
 
 
 def run_estimate_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.pipelines.estimate import output_paths
+    from envisat_pose.pipelines.estimate import estimate_output_paths
     from envisat_pose.pipelines.estimate import run_estimate as run_pipeline
     from envisat_pose.runner import make_out_file_dirs
 
@@ -102,7 +102,7 @@ def run_estimate_cli(args: argparse.Namespace) -> int:
         from envisat_pose.app.common import check_rrd_output
 
         check_rrd_output(args.rrd)
-    make_out_file_dirs({**{p: "--out" for p in output_paths(args.out)}, **({args.rrd: "--rrd"} if args.rrd else {})})
+    make_out_file_dirs({**{p: "--out" for p in estimate_output_paths(args.out)}, **({args.rrd: "--rrd"} if args.rrd else {})})
     res = run_pipeline(cfg, args.out, truth_path=args.truth, scenario=args.scenario, duration_s=args.duration_s,
                        plot=args.plot, rrd=args.rrd, progress=not args.quiet)
     cfg, arrays = res["config"], res["arrays"]

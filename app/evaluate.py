@@ -41,7 +41,7 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
     from envisat_pose.app.detect import detector_inputs
     from envisat_pose.pipelines.dataset_inputs import skip_hint, skipped_line
     from envisat_pose.pipelines.detect import camera_samples, read_roi
-    from envisat_pose.pipelines.evaluate import evaluate_detector, read_poses, table
+    from envisat_pose.pipelines.evaluate import evaluate_detector, groups_table, read_poses
     from envisat_pose.runner import check_out_file
     from envisat_pose.shard_reader import checked_shards
 
@@ -53,7 +53,7 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
     result = evaluate_detector(args.weights, camera_samples(paths), read_poses(paths), args.json, device=args.device,
                                limit=args.limit, roi=roi, refine=args.refine, data_name=args.data,
                                roi_name=args.roi, progress=not args.quiet, skipped_shards=skipped)
-    print(table(result["groups"]))
+    print(groups_table(result["groups"]))
     print(f"wrote {args.json}: {result['frames']} frames")
     if skipped:
         print(skipped_line(skipped))

@@ -24,7 +24,7 @@ def run_scenarios(args: argparse.Namespace) -> int:
     from envisat_pose.config import to_toml
 
     if args.show is not None:
-        data = named_scenarios.load(args.show)
+        data = named_scenarios.scenario_tables(args.show)
         print(f"# scenario {args.show}: {' '.join(data.pop('description').split())}\n" + to_toml(data), end="")
         return 0
     rows = named_scenarios.descriptions()

@@ -90,11 +90,11 @@ def run_trial(trial: dict) -> dict:
     from envisat_pose.config import ConfigError
     from envisat_pose.datagen.truth import simulate
     from envisat_pose.pipelines import closed_loop as loop
-    from envisat_pose.pipelines.run_config import config_from_json
+    from envisat_pose.pipelines.run_config import run_config_from_json
     from envisat_pose.pipelines.scoring import frame_errors, run_record
     from envisat_pose.pipelines.trials import trial_truth_config
 
-    cfg = config_from_json(trial["cfg_json"])
+    cfg = run_config_from_json(trial["cfg_json"])
     truth_cfg = trial_truth_config(trial["scenario"], cfg.duration_s, cfg.rate_hz, cfg.seed, trial["range_m"],
                                    trial["spin_axis_T"], trial["p0_mrp"])
     out = {k: v for k, v in trial.items() if k != "cfg_json"}

@@ -107,10 +107,10 @@ def run_one(cfg_json: str) -> dict:
     PCRLB per block, the truth and estimate (for the error summary), the pixel noise and the timings."""
     from envisat_pose.contracts import Estimates
     from envisat_pose.pipelines import closed_loop as loop
-    from envisat_pose.pipelines.run_config import config_from_json
+    from envisat_pose.pipelines.run_config import run_config_from_json
     from envisat_pose.pipelines.scoring import frame_errors
 
-    cfg = config_from_json(cfg_json)
+    cfg = run_config_from_json(cfg_json)
     with tempfile.TemporaryDirectory(prefix=f"tracking-{cfg.scenario}-{cfg.seed}-") as out:
         t0 = time.perf_counter()
         summary = loop.run_closed_loop(cfg, out, progress=False, sink=f"save:{os.path.join(out, 'recording.rrd')}")

@@ -87,8 +87,8 @@ def time_steps(cfg, inp, chaser, steps: int, runs: int, kernel: str) -> float:
             mean, cov, _ = ukf.update(mean, cov, inp.z[:runs, k], inp.mask[:runs, k], inp.R_c, hx, w)
             return mean, cov
         if k > 0:
-            mean, cov = fast.predict(mean, cov, chaser[k - 1], 1.0, Q, setup)
-        o = fast.update(mean, cov, inp.z[:runs, k], inp.mask[:runs, k], R_c, ones, None, False, setup)
+            mean, cov = fast.predict_fused(mean, cov, chaser[k - 1], 1.0, Q, setup)
+        o = fast.update_fused(mean, cov, inp.z[:runs, k], inp.mask[:runs, k], R_c, ones, None, False, setup)
         return o["mean"], o["cov"]
 
     mean0, cov0 = step(inp.x0_hat[:runs].copy(), np.broadcast_to(cfg.P0, (runs, 12, 12)).copy(), 0)

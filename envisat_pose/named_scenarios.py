@@ -41,7 +41,7 @@ def check_name(name: str) -> None:
     check(isinstance(name, str) and name in _files(), "scenario", name, "one of " + ", ".join(names()))
 
 
-def load(name: str) -> dict:
+def scenario_tables(name: str) -> dict:
     """The full tables of a named scenario, its `base` chain resolved (without `base`), validated by table name."""
     return _load(name, 0)
 
@@ -73,15 +73,15 @@ def _load(name: str, depth: int) -> dict:
 
 def truth_part(name: str) -> dict:
     """The truth's keys of a named scenario (overrides of ScenarioConfig's defaults)."""
-    return {k: v for k, v in load(name).items() if k in TRUTH_KEYS}
+    return {k: v for k, v in scenario_tables(name).items() if k in TRUTH_KEYS}
 
 
 def table(name: str, key: str) -> dict:
     """One of the job tables (measurement, filter, sweep, eclipse) of a named scenario; {} if it has none."""
     assert key in JOB_TABLES, key
-    return dict(load(name).get(key, {}))
+    return dict(scenario_tables(name).get(key, {}))
 
 
 def descriptions() -> list[tuple[str, str]]:
     """(name, one-line description) of every scenario, sorted by name."""
-    return [(n, " ".join(load(n)["description"].split())) for n in names()]
+    return [(n, " ".join(scenario_tables(n)["description"].split())) for n in names()]

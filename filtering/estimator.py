@@ -264,7 +264,7 @@ def _predict_step(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[n
     if cfg.kernel == "fast":
         from envisat_pose.filtering import fast  # numba compiles (or loads its cache) on first use
 
-        return fast.predict(state.mean, state.cov, state.chaser, dt, Q, setup, cfg.max_rk4_step_s)
+        return fast.predict_fused(state.mean, state.cov, state.chaser, dt, Q, setup, cfg.max_rk4_step_s)
     _check_kernel(cfg.kernel)
     return predict(state.mean, state.cov, state.chaser, dt, Q, setup.weights, setup.J_T, setup.mu_m3_s2,
                    cfg.max_rk4_step_s, setup.gravity_gradient)
@@ -378,7 +378,7 @@ def _update(mean, cov, z, measured, R_c, r_scale, thr, setup: FilterSetup) -> di
     if cfg.kernel == "fast":
         from envisat_pose.filtering import fast
 
-        return fast.update(mean, cov, z, measured, R_c, r_scale, thr, cfg.visibility_check, setup)
+        return fast.update_fused(mean, cov, z, measured, R_c, r_scale, thr, cfg.visibility_check, setup)
     _check_kernel(cfg.kernel)
     Rk = R_c * r_scale[:, None, None, None]
     mask_k = measured

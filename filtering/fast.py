@@ -878,7 +878,7 @@ def _constants(setup):
     return consts
 
 
-def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: np.ndarray, setup,
+def predict_fused(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: np.ndarray, setup,
             max_step_s: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """filtering.ukf.predict in the fused kernel, with the model of setup (a FilterSetup: inertia, mu, gravity
     gradient, weights). mean (R, 12), cov (R, 12, 12), c0 (4,) the chaser at the start, Q (12, 12) or
@@ -909,7 +909,7 @@ def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: n
     return mean_out, cov_out
 
 
-def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarray, R_c: np.ndarray,
+def update_fused(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarray, R_c: np.ndarray,
            r_scale: np.ndarray, thr: np.ndarray | None, vis_check: bool, setup) -> dict:
     """The estimator's measurement update (visibility check, gate, filtering.ukf.update) in the fused kernel.
 

@@ -77,7 +77,7 @@ def measure(x: np.ndarray, kind: str, camera: PinholeCamera | None = None) -> np
     raise ValueError(f"unknown measurement kind {kind!r}; expected one of {KINDS}")
 
 
-def in_frame(x: np.ndarray, camera: PinholeCamera | None = None) -> np.ndarray:
+def corners_in_frame(x: np.ndarray, camera: PinholeCamera | None = None) -> np.ndarray:
     """Which corners project inside the image and in front of the camera. (..., 12) -> (..., 8) bool."""
     camera = camera or load_camera()
     uv, z_K = project(corners_C_m(x), camera)

@@ -26,7 +26,7 @@ from envisat_pose.geometry import load_array_outline
 
 
 @dataclass(frozen=True)
-class ArrayCueConfig:
+class ArrayReadingConfig:
     """min_area_px: the least area of each region (px, after the exclusions) for the cue to speak; occupied,
     empty: the shares of a region's pixels above the background that say "the array is here" / "nothing is
     here"; margin: the background's noise spreads (MAD x 1.4826) a pixel must exceed; min_margin: at least
@@ -56,7 +56,7 @@ def _project(points_T_m: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray
 
 
 def array_end(image: np.ndarray, K: np.ndarray, R_cam_from_target: np.ndarray, t_cam_from_target_m: np.ndarray,
-              corners_T_m: np.ndarray, cfg: ArrayCueConfig = ArrayCueConfig()) -> tuple[int, dict]:
+              corners_T_m: np.ndarray, cfg: ArrayReadingConfig = ArrayReadingConfig()) -> tuple[int, dict]:
     """(+1, 0 or -1, details): whether the image (H, W) shows the array at the end where the pose puts it (+1), at
     the other end (-1), or cannot tell (0). corners_T_m (8, 3): the body's corners A-H in T. details: the two
     regions' areas (px of the measured image) and occupied shares, the threshold (grey levels)."""

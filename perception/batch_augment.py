@@ -99,7 +99,7 @@ def max_crop_side(image_hw: tuple[int, int], cfg: DataConfig) -> int:
     return max(extent, 32, math.ceil(extent * cfg.crop_margin * math.exp(cfg.crop_scale_jitter)) + 1)
 
 
-def to_input_px(points_px: torch.Tensor, box: torch.Tensor, out_px: int) -> torch.Tensor:
+def to_input_px_batch(points_px: torch.Tensor, box: torch.Tensor, out_px: int) -> torch.Tensor:
     """data.to_input_px for a batch, in float64 with the same operations: full-image px (N, P, 2) -> input px
     of each sample's crop box (N, 3)."""
     b = box.to(torch.float64)
@@ -158,7 +158,7 @@ def axis_weights(origin: torch.Tensor, side: torch.Tensor, length: int, out_px: 
     return m.scatter_add_(2, idx.clamp(0, length - 1), wt)
 
 
-def crop_resize(frames: torch.Tensor, frame_of_sample: torch.Tensor, box: torch.Tensor, out_px: int,
+def crop_resize_batch(frames: torch.Tensor, frame_of_sample: torch.Tensor, box: torch.Tensor, out_px: int,
                 quantize: bool = True, max_side: int | None = None) -> torch.Tensor:
     """data.crop_resize for a batch: (N, out_px, out_px) float32 gray levels, sample n the square box (x0, y0, side)
     of frame frame_of_sample[n] (zeros outside the frame) resized to out_px; rounded to whole levels (what cv2
@@ -233,7 +233,7 @@ def blur(x: torch.Tensor, kernels: torch.Tensor) -> torch.Tensor:
     return F.conv2d(y, kernels[:, None, :, None], groups=n)[0]
 
 
-def augment_style(x: torch.Tensor, p: dict[str, torch.Tensor]) -> torch.Tensor:
+def augment_style_batch(x: torch.Tensor, p: dict[str, torch.Tensor]) -> torch.Tensor:
     """data.augment_style for a batch: images (N, S, S) float32 in [0, 1] -> (N, S, S) float32 in [0, 1], each
     sample with its draws p (draw_style_params, moved to x's device): gain and offset, contrast about the mean,
     clip, gamma, Gaussian blur, a glare blob, random erasing, signal-dependent noise, clip."""
@@ -275,7 +275,7 @@ def augment_style(x: torch.Tensor, p: dict[str, torch.Tensor]) -> torch.Tensor:
 # Targets
 
 
-def encode_junctions(points_px: torch.Tensor, valid: torch.Tensor, jtypes: torch.Tensor, shape_hw: tuple[int, int],
+def encode_junctions_batch(points_px: torch.Tensor, valid: torch.Tensor, jtypes: torch.Tensor, shape_hw: tuple[int, int],
                      stride: int, sigma_cells: float = 1.0) -> dict[str, torch.Tensor]:
     """heatmaps.encode_junctions for a batch, equal to it: points_px (N, P, 2) input px (float64), valid (N, P)
     bool, jtypes (P,) int64 in [0, N_JTYPES). Returns jmap (N, J, H, W), joff (N, 2, H, W), jmask (N, H, W)
@@ -321,7 +321,7 @@ def encode_junctions(points_px: torch.Tensor, valid: torch.Tensor, jtypes: torch
     return {"jmap": jmap, "joff": joff, "jmask": jmask}
 
 
-def line_targets(corners_in: torch.Tensor, valid: torch.Tensor, generator: torch.Generator, out_px: int,
+def line_targets_batch(corners_in: torch.Tensor, valid: torch.Tensor, generator: torch.Generator, out_px: int,
                  n_segments: int = N_SEGMENTS) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """data.line_targets for a batch: segments (N, L, 2, 2) float32, labels (N, L), weights (N, L). Per sample:
     every box edge between valid corners (label 1), then non-edge pairs of valid corners in a random order up to
@@ -380,22 +380,22 @@ def batch_from_boxes(frames: torch.Tensor, corners_px: torch.Tensor, visible: to
     """The batch of the crop boxes `box` (N, 3) int64 of frames frame_of_sample (N,): the keys of make_sample
     stacked (data.py's module doc): image (N, 1, S, S), jmap (N, 4, S/s, S/s), joff (N, 2, ., .), jmask (N, ., .),
     corners_px (N, 8, 2) input px, valid (N, 8) bool, segments_px (N, L, 2, 2), line_label (N, L),
-    line_weight (N, L), crop_px (N, 3) float32. style: augment_style's draws, None for none. The sides must not
+    line_weight (N, L), crop_px (N, 3) float32. style: augment_style_batch's draws, None for none. The sides must not
     exceed max_crop_side (crop_boxes' never do): the resampling's tap count is fixed by it."""
     s = cfg.input_px
     fs = frame_of_sample.to(frames.device)
     box = box.to(frames.device)
-    x = crop_resize(frames, fs, box, s, True, max_crop_side(tuple(frames.shape[1:]), cfg)) / 255.0
+    x = crop_resize_batch(frames, fs, box, s, True, max_crop_side(tuple(frames.shape[1:]), cfg)) / 255.0
     if style is not None:
-        x = augment_style(x, style)
+        x = augment_style_batch(x, style)
     corners = corners_px[fs].to(torch.float64)
-    corners_in = to_input_px(corners, box, s)
+    corners_in = to_input_px_batch(corners, box, s)
     inside = ((corners_in > -0.5) & (corners_in < s - 0.5)).all(-1)
     valid = visible[fs].bool() & in_frame[fs].bool() & inside & torch.isfinite(corners_in).all(-1)
     cells = s // cfg.stride
     jtypes = torch.as_tensor(CORNER_JTYPE, dtype=torch.int64)
-    t = encode_junctions(corners_in, valid, jtypes, (cells, cells), cfg.stride, cfg.sigma_cells)
-    segs, lab, wt = line_targets(corners_in, valid, line_generator, s)
+    t = encode_junctions_batch(corners_in, valid, jtypes, (cells, cells), cfg.stride, cfg.sigma_cells)
+    segs, lab, wt = line_targets_batch(corners_in, valid, line_generator, s)
     return {"image": ((x - IMAGE_MEAN) / IMAGE_STD)[:, None].to(torch.float32), "jmap": t["jmap"],
             "joff": t["joff"], "jmask": t["jmask"], "corners_px": torch.nan_to_num(corners_in).to(torch.float32),
             "valid": valid, "segments_px": segs, "line_label": lab, "line_weight": wt,

@@ -321,7 +321,7 @@ ANGLE_MAX_RAD = np.radians(90.0)
 ANGLE_MAX_LAG = 40  # frames: under half a spin period of the fastest named tumble (72 s at 1 Hz)
 
 
-def measure(sequences: list[dict], cov_scale: float, max_lag: int = 20, source: str = "") -> tuple[ErrorModel, dict]:
+def measure_error_model(sequences: list[dict], cov_scale: float, max_lag: int = 20, source: str = "") -> tuple[ErrorModel, dict]:
     """The error model of held-out sequences. Each sequence: err_px (T, 8, 2) (NaN where not named right),
     sigma_px (T, 8, 2) the detector's predicted per-axis sigma at cov_scale 1, scale (T,) apparent scale per
     frame, radial_px (T, 8), dt_s the frame interval, and optionally R_cam_from_target (T, 3, 3) (the labels'

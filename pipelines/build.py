@@ -26,7 +26,7 @@ def tracker_filter(overrides: FilterConfig | dict | None = None, scenario: str |
     if scenario is not None:
         from envisat_pose import named_scenarios
 
-        base.update(named_scenarios.load(scenario).get("filter", {}))
+        base.update(named_scenarios.scenario_tables(scenario).get("filter", {}))
     if overrides is None:
         given = {}
     elif isinstance(overrides, dict):

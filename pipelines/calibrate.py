@@ -128,7 +128,7 @@ def frame_interval_s(path: str) -> float:
 
 
 def sequence_input(frames: dict, dt_s: float) -> dict:
-    """One sequence of perception.errormodel.measure from collect_frames' arrays, in frame (key) order."""
+    """One sequence of perception.errormodel.measure_error_model from collect_frames' arrays, in frame (key) order."""
     import numpy as np
 
     order = np.argsort(frames["key"].astype(str), kind="stable")
@@ -222,7 +222,7 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
     model = model_record = None
     if sequences:
         seqs = [sequence_input(f, frame_interval_s(d)) for d, f in per_data]
-        model, model_record = em.measure(seqs, scale, max_lag=cfg.max_lag, source=f"roi={cfg.roi}; {data_names}")
+        model, model_record = em.measure_error_model(seqs, scale, max_lag=cfg.max_lag, source=f"roi={cfg.roi}; {data_names}")
         model_record["mean_nees_by_group"] = {g: v["mean_nees"] for g, v in after.items()}
         meta.update({"error_model": model.to_json(), "error_model_record": json.dumps(model_record, sort_keys=True)})
     with_metadata(cfg.weights, out, meta)

@@ -37,7 +37,7 @@ from envisat_pose.config import to_dict
 from envisat_pose.pipelines.frame_loop import FrameInput, run_frames
 from envisat_pose.pipelines.onboard import chaser_function, onboard_physics, orbit_config
 from envisat_pose.pipelines.rows import STAGES, RunRows
-from envisat_pose.pipelines.run_config import RunConfig, config_from_json, finish_config, sun_and_shadow
+from envisat_pose.pipelines.run_config import RunConfig, finish_config, run_config_from_json, sun_and_shadow
 from envisat_pose.pipelines.run_files import lost_runs, plot_inputs, score_run_files, write_run_files
 from envisat_pose.state import MRP, POS
 
@@ -96,7 +96,7 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     from envisat_pose.pipelines.tracker import Tracker
     from envisat_pose.state import draw_initial_estimate
 
-    cfg = config_from_json(cfg_json)
+    cfg = run_config_from_json(cfg_json)
     gcfg = cfg.image
     torch.set_num_threads(cfg.threads)
     cv2.setNumThreads(1)
@@ -159,7 +159,7 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
 # The job: truth, runs, outputs
 
 
-def output_paths(out_dir: str) -> dict[str, str]:
+def run_output_paths(out_dir: str) -> dict[str, str]:
     names = {"truth": "truth.npz", "est": "est.npz", "det": "det.npz", "plot": "errors.png",
              "config": "run.config.toml", "summary": "summary.json", "recording": "recording.rrd"}
     return {k: os.path.join(out_dir, v) for k, v in names.items()}
@@ -190,7 +190,7 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
 
     cfg = finish_config(cfg)  # idempotent: a RunConfig a user builds runs as the app's does
     make_out_dir(out_dir, parents=True, field="out_dir")
-    names = [os.path.basename(p) for p in output_paths(out_dir).values()]
+    names = [os.path.basename(p) for p in run_output_paths(out_dir).values()]
     with staged_folder(out_dir, names) as stage:
         return _run_closed_loop(cfg, stage, progress, sink)
 
@@ -202,7 +202,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
     from envisat_pose.io import atomic_write_text
     from envisat_pose.runner import RunnerConfig, real_time_factor, run_tasks, thread_env
 
-    paths = output_paths(out_dir)
+    paths = run_output_paths(out_dir)
     wall0 = time.perf_counter()
     truth = simulate_truth(cfg, progress=False)
     sim_s = time.perf_counter() - wall0

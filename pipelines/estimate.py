@@ -117,7 +117,7 @@ def scenario_outages(cfg: EstimateConfig, scenario: str | None, truth) -> Estima
 
 # ---------------------------------------------------------------- the filter over R runs
 
-def output_paths(out: str) -> tuple[str, str]:
+def estimate_output_paths(out: str) -> tuple[str, str]:
     """est.npz -> (est.npz, est.config.toml)."""
     stem = out[:-4] if out.endswith(".npz") else out
     return out, stem + ".config.toml"
@@ -180,7 +180,7 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     from envisat_pose.contracts import Estimates
     from envisat_pose.io import atomic_write_text
 
-    out, cfg_path = output_paths(out)
+    out, cfg_path = estimate_output_paths(out)
     truth, source = load_truth(cfg, truth_path, scenario, duration_s, progress)
     cfg = scenario_outages(cfg, scenario, truth)
     if len(truth.t_s) < 2:

@@ -137,7 +137,7 @@ def _fmt(x, spec: str) -> str:
     return format(x, spec)
 
 
-def table(summary: dict) -> str:
+def groups_table(summary: dict) -> str:
     """One line per non-empty group and method."""
     head = (f"{'group':14s} {'method':18s} {'frames':>6s} {'med px':>7s} {'p95 px':>7s} {'PCK@2':>6s} {'PCK@5':>6s} "
             f"{'swaps':>6s} {'ambig':>6s} {'vis P':>6s} {'vis R':>6s} {'NEES':>6s} {'t m':>7s} {'rot deg':>7s} "

@@ -31,7 +31,7 @@ def scenario_defaults(kind: str, scenario: str) -> dict:
         raise ValueError(f"kind {kind!r}: expected one of {', '.join(JOBS)}")
     if kind == "simulate":
         return named_scenarios.truth_part(scenario)
-    data = named_scenarios.load(scenario)
+    data = named_scenarios.scenario_tables(scenario)
     tables = {k: dict(data[k]) for k in ("measurement", "filter") if k in data}
     if kind == "estimate":
         return tables

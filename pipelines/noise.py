@@ -29,7 +29,7 @@ def detector_error_model(detector):
     return em if isinstance(em, ErrorModel) else ErrorModel()
 
 
-def sequence_scale(em, detector) -> float:
+def sequence_cov_factor(em, detector) -> float:
     """em.cov_scale / the detector's cov_scale: the factor that takes the detector's covariance (calibrated on
     random views) to the scale the error model measured on held-out sequences; 1 without a measured model."""
     det_scale = getattr(getattr(detector, "cfg", None), "cov_scale", None)

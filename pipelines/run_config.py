@@ -61,7 +61,7 @@ class RunConfig:
         """The job `envisat run --scenario NAME` runs: this config resolved from the named scenario, the TOML
         file at config_path, then overrides ({'section.key': value}) and fields (pipelines/job_defaults.py's layers),
         one worker per run up to the cores, the shipped weights where none are named; finished (finish_config)."""
-        stage_types()
+        run_stage_types()
         flags = {**(overrides or {}), **fields, "scenario": name}  # the named scenario is the job's, whatever the file
         cfg = resolve_job_config(cls, scenario_defaults("run", name), config_path, flags, run_complete)
         check_weights(cfg.weights)
@@ -85,7 +85,7 @@ class RunConfig:
               f"{cam.width_px} px, read out at that size: the same field of view)")
 
 
-def stage_types() -> None:
+def run_stage_types() -> None:
     """Make the annotation "GenerateConfig" resolvable (typing.get_type_hints reads this module's globals): the
     image factory's config is a stage's type, imported when a run is configured, not when the CLI starts."""
     from envisat_pose.datagen.generate_config import GenerateConfig
@@ -119,8 +119,8 @@ def n_frames(cfg: RunConfig) -> int:
     return int(np.floor(cfg.duration_s * cfg.rate_hz + 1e-9)) + 1
 
 
-def config_from_json(text: str) -> RunConfig:
-    stage_types()
+def run_config_from_json(text: str) -> RunConfig:
+    run_stage_types()
     return from_dict(RunConfig, json.loads(text))
 
 

@@ -35,7 +35,7 @@ from envisat_pose.pipelines.job_defaults import check_weights, scenario_defaults
 from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
 from envisat_pose.status import STATUSES, legend
 
-if TYPE_CHECKING:  # the stage's type for annotations (stage_types resolves it at run time)
+if TYPE_CHECKING:  # the stage's type for annotations (track_stage_types resolves it at run time)
     from envisat_pose.datagen.scenario import OrbitConfig
 
 
@@ -64,7 +64,7 @@ class TrackConfig:
         """The job `envisat track --scenario NAME` runs: this config resolved from the named scenario, the TOML
         file at config_path, then overrides ({'section.key': value}) and fields (pipelines/job_defaults.py's layers),
         the shipped weights where none are named."""
-        stage_types()
+        track_stage_types()
         flags = {**(overrides or {}), **fields, "scenario": name}  # the named scenario is the job's, whatever the file
         cfg = resolve_job_config(cls, scenario_defaults("track", name), config_path, flags, with_default_weights)
         check_weights(cfg.weights)
@@ -76,7 +76,7 @@ class TrackConfig:
         check(1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality, "a JPEG quality in [1, 100]")
 
 
-def stage_types() -> None:
+def track_stage_types() -> None:
     """Make the annotation "OrbitConfig" resolvable (a stage's type, imported when a job is configured)."""
     from envisat_pose.datagen.scenario import OrbitConfig
 
@@ -90,7 +90,7 @@ OUTPUTS = {"est": "est.npz", "det": "det.npz", "plot": "errors.png", "config": "
            "summary": "summary.json", "recording": "recording.rrd"}
 
 
-def output_paths(out_dir: str) -> dict[str, str]:
+def track_output_paths(out_dir: str) -> dict[str, str]:
     return {k: os.path.join(out_dir, v) for k, v in OUTPUTS.items()}
 
 
@@ -114,7 +114,7 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
     if camera is None:
         camera = tracker_camera(size_px=source.size_px)
     if cfg.orbit is None or not cfg.weights:
-        stage_types()
+        track_stage_types()
         cfg = dataclasses.replace(cfg, orbit=cfg.orbit or scenario_orbit(cfg.scenario),
                                   weights=cfg.weights or shipped_weights_path())
     return cfg, source, camera, remap, pixels
@@ -162,7 +162,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     from envisat_pose.runner import real_time_factor
 
     torch.set_num_threads(cfg.threads)
-    paths = output_paths(out_dir)
+    paths = track_output_paths(out_dir)
     sink = sink or f"save:{os.path.abspath(paths['recording'])}"
     tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(cfg.orbit), cfg.tracker,
                       asdict(cfg.filter), mu_m3_s2=cfg.orbit.mu_m3_s2, gravity_gradient=cfg.gravity_gradient)

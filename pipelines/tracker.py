@@ -101,7 +101,7 @@ from envisat_pose.pipelines.noise import (
     nis_sum_dispersion,
     range_consider,
     scale_sigma,
-    sequence_scale,
+    sequence_cov_factor,
     window_memory,
 )
 from envisat_pose.pipelines.tracker_config import (
@@ -164,7 +164,7 @@ class Tracker:
         self.corners_T_m = load_geometry().corners_T_m
         self.radius_m = target_radius_m(self.corners_T_m)
         self.error_model = detector_error_model(detector)
-        self.cov_factor = sequence_scale(self.error_model, detector)
+        self.cov_factor = sequence_cov_factor(self.error_model, detector)
         self.bias_scale = self.error_model.bias_scale if config.noise.correct_scale else 1.0
         # the range error no frame averages away (noise.scale_sigma), in the reported covariance (range_consider)
         self.scale_sigma = scale_sigma(self.error_model, config.noise.correct_scale) if config.noise.range_floor \

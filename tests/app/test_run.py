@@ -142,9 +142,9 @@ def test_a_run_config_a_user_builds_runs_without_the_apps_finishing(tmp_path, de
     """run_closed_loop finishes the config itself (finish_config is idempotent): the same outputs as from the
     config the app finishes."""
     from envisat_pose.config import resolve_job_config
-    from envisat_pose.pipelines.run_config import RunConfig, finish_config, stage_types
+    from envisat_pose.pipelines.run_config import RunConfig, finish_config, run_stage_types
 
-    stage_types()  # a user's own resolution, without the app's scenario defaults or finishing
+    run_stage_types()  # a user's own resolution, without the app's scenario defaults or finishing
     raw = resolve_job_config(RunConfig, {}, None, {"scenario": "default", "duration_s": 2.0,
                                                    "weights": detector_weights, "workers": 1, "warm_start": True})
     assert finish_config(finish_config(raw)) == finish_config(raw)

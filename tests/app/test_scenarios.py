@@ -28,7 +28,7 @@ def test_the_shipped_scenarios_are_the_issues_and_every_one_validates():
     for name in ISSUE_NAMES:
         scenario_config(name)  # the truth part is a valid ScenarioConfig
         from_dict(MonteCarloConfig, {"scenario": name, **scenario_defaults("montecarlo", name)})  # and its job tables
-        assert "\n" not in named_scenarios.load(name)["description"]
+        assert "\n" not in named_scenarios.scenario_tables(name)["description"]
 
 
 def test_scenarios_say_what_the_issue_asks():
@@ -68,7 +68,7 @@ def test_unknown_names_and_malformed_files_are_one_line(monkeypatch, capsys):
     monkeypatch.setattr(named_scenarios, "_files", lambda: files)
     for name, field in (("a", "measurment"), ("b", "description"), ("c", "base")):
         with pytest.raises(ConfigError) as err:
-            named_scenarios.load(name)
+            named_scenarios.scenario_tables(name)
         assert field in str(err.value) and f"{name}.toml" in str(err.value) and "\n" not in str(err.value)
 
 

@@ -134,7 +134,7 @@ def test_one_predict_equals_the_reference(truth_600, chaser_of, dt_s, gravity_gr
     Q = cfg.Q(dt_s) * np.array([1.0, 10.0, 1.0, 1.0])[:, None, None]  # per run, as after an outage
     m_ref, P_ref = ukf.predict(mean, cov, c, dt_s, Q, setup.weights, setup.J_T, setup.mu_m3_s2, 1.0,
                                gravity_gradient)
-    m_fast, P_fast = fast.predict(mean, cov, c, dt_s, Q, setup, 1.0)
+    m_fast, P_fast = fast.predict_fused(mean, cov, c, dt_s, Q, setup, 1.0)
     ex, eP = _sigma_errors(m_fast, P_fast, m_ref, P_ref)
     assert ex < PREDICT_TOL and eP < PREDICT_TOL, (ex, eP)
     assert (np.linalg.norm(m_fast[:, MRP], axis=-1) <= 1.0).all()
@@ -153,7 +153,7 @@ def test_one_update_equals_the_reference(truth_600, chaser_of, kind):
     R_c = np.broadcast_to(inp.R_c, z.shape + (z.shape[-1],))
     r_scale = np.array([1.0, 2.0, 0.5, 1.0])
     thr = np.array([setup.gate_threshold, setup.gate_threshold, setup.gate_threshold, np.inf])
-    o = fast.update(mean, cov, z, inp.mask[:, k], R_c, r_scale, thr, True, setup)
+    o = fast.update_fused(mean, cov, z, inp.mask[:, k], R_c, r_scale, thr, True, setup)
     from envisat_pose.filtering.measurements import predicted_visible
 
     mk = inp.mask[:, k] & predicted_visible(mean)
@@ -182,7 +182,7 @@ def test_a_run_that_needs_a_repair_is_the_reference_s(truth_600, chaser_of):
     setup = make_setup(cfg, "markers3d")
     c = chaser_of(truth_600)[60]
     m_ref, P_ref = ukf.predict(mean, cov, c, 1.0, cfg.Q(1.0), setup.weights, setup.J_T)
-    m_fast, P_fast = fast.predict(mean, cov, c, 1.0, cfg.Q(1.0), setup)
+    m_fast, P_fast = fast.predict_fused(mean, cov, c, 1.0, cfg.Q(1.0), setup)
     np.testing.assert_array_equal(m_fast[1], m_ref[1])
     np.testing.assert_array_equal(P_fast[1], P_ref[1])
     ex, eP = _sigma_errors(m_fast[[0, 2, 3]], P_fast[[0, 2, 3]], m_ref[[0, 2, 3]], P_ref[[0, 2, 3]])

@@ -5,7 +5,7 @@ import pytest
 
 from envisat_pose.filtering.measurements import (
     corners_C_m,
-    in_frame,
+    corners_in_frame,
     limit_markers,
     measure,
     outage_mask,
@@ -56,7 +56,7 @@ def test_filter_pixels_are_mujocos_projection_of_the_truth(truth_600):
     np.testing.assert_allclose(uv[seen], tr.corners_px[seen], rtol=0, atol=1e-5)
     uvr = measure(tr.x, "pixels+range")
     np.testing.assert_allclose(uvr[..., 2], np.linalg.norm(tr.corners_C_m - load_camera().pos_C_m, axis=-1), atol=1e-8)
-    np.testing.assert_array_equal(in_frame(tr.x), tr.in_frame)
+    np.testing.assert_array_equal(corners_in_frame(tr.x), tr.in_frame)
 
 
 def test_a_corner_behind_the_camera_is_never_mirrored_into_the_image():
@@ -74,7 +74,7 @@ def test_a_corner_behind_the_camera_is_never_mirrored_into_the_image():
         uv = measure(x, kind)[:, :2]
         assert (np.abs(uv - [cam.cu_px, cam.cv_px]) > 1e4).any(axis=1).all()
         np.testing.assert_array_equal(np.sign(uv - [cam.cu_px, cam.cv_px]), np.sign(pts_K[:, :2]))
-    assert not in_frame(x).any()
+    assert not corners_in_frame(x).any()
 
 
 def test_pixels_and_range(mujoco_state):
@@ -93,10 +93,10 @@ def test_pixels_and_range(mujoco_state):
     up[:3] = [5.0, 50.0, 0.0]
     assert measure(up, "pixels", cam)[:, 1].mean() < 511.5
     # at 15 m the 10 m body overflows the 30 deg field of view; at 50 m every corner is in the image
-    assert not in_frame(x, cam).all()
+    assert not corners_in_frame(x, cam).all()
     x50 = x.copy()
     x50[:3] = [0.0, 50.0, 0.0]
-    assert in_frame(x50, cam).all()
+    assert corners_in_frame(x50, cam).all()
 
 
 def test_predicted_visibility_is_the_exact_face_test(mujoco_state):
@@ -157,7 +157,7 @@ def test_batched_states_each_get_their_own_measurements():
     x[..., 9:12] = rng.normal(0.0, 0.03, B + (3,))
     cam, g = load_camera(), load_geometry()
     got = {"corners": corners_C_m(x), "pixels": measure(x, "pixels", cam), "pr": measure(x, "pixels+range", cam),
-           "visible": predicted_visible(x), "in_frame": in_frame(x, cam)}
+           "visible": predicted_visible(x), "in_frame": corners_in_frame(x, cam)}
     assert got["corners"].shape == B + (8, 3) and got["pixels"].shape == B + (8, 2)
     assert got["pr"].shape == B + (8, 3) and got["visible"].shape == got["in_frame"].shape == B + (8,)
     signs = np.sign(g.corners_T_m)

@@ -103,7 +103,7 @@ def test_crop_resize_matches_opencv_area_and_linear():
     rng = np.random.default_rng(4)
     boxes = np.array([[rng.integers(-80, 250), rng.integers(-80, 250), rng.integers(33, 420)] for _ in range(120)]
                      + [[0, 0, 300], [10, 20, 256], [5, 5, 64], [-40, 250, 128]])
-    out = ba.crop_resize(torch.from_numpy(frame)[None], torch.zeros(len(boxes), dtype=torch.int64),
+    out = ba.crop_resize_batch(torch.from_numpy(frame)[None], torch.zeros(len(boxes), dtype=torch.int64),
                          torch.from_numpy(boxes), 128).numpy()
     diffs = []
     for k, box in enumerate(boxes):
@@ -151,7 +151,7 @@ def test_junction_targets_equal_numpy():
     points[:, 5] = points[:, 4] + rng.uniform(-1, 1, (64, 2))  # often the same cell
     points[3, 2] = np.nan
     valid = rng.random((64, 8)) < 0.8
-    got = ba.encode_junctions(torch.from_numpy(points), torch.from_numpy(valid), torch.from_numpy(CORNER_JTYPE),
+    got = ba.encode_junctions_batch(torch.from_numpy(points), torch.from_numpy(valid), torch.from_numpy(CORNER_JTYPE),
                               (32, 32), 4, 1.0)
     for n in range(64):
         want = encode_junctions(points[n], valid[n], CORNER_JTYPE, (32, 32), 4, 1.0)
@@ -166,7 +166,7 @@ def test_line_target_choices_have_the_numpy_statistics():
     valid[:] = [True, True, True, False, True, True, True, True]
     n = 2000
     c = torch.from_numpy(np.repeat(corners[None], n, 0))
-    segs, lab, wt = ba.line_targets(c, torch.from_numpy(np.repeat(valid[None], n, 0)),
+    segs, lab, wt = ba.line_targets_batch(c, torch.from_numpy(np.repeat(valid[None], n, 0)),
                                     torch.Generator().manual_seed(9), 128)
     rng = np.random.default_rng(10)
     ref = [line_targets(corners, valid, rng, 128) for _ in range(n)]
@@ -197,7 +197,7 @@ def test_style_augmentation_has_the_numpy_distributions():
     cfg = DataConfig(input_px=64)
     params = ba.draw_style_params(n, 64, torch.Generator().manual_seed(12))
     x = torch.from_numpy(np.repeat(crop[None], n, 0).astype(np.float32) / 255.0)
-    got = ba.augment_style(x, params).numpy()
+    got = ba.augment_style_batch(x, params).numpy()
     rng = np.random.default_rng(13)
     want = np.stack([augment_style(crop, rng) for _ in range(n)])
     assert cfg.input_px == got.shape[1] and got.dtype == np.float32 and got.min() >= 0 and got.max() <= 1
@@ -295,11 +295,11 @@ def test_crop_moves_labels_as_the_equivalent_camera_sees_them():
                 centre = (lo + hi) / 2 + rng.uniform(-0.1, 0.1, 2) * side
                 # the crop inside the frame (the equivalent camera sees beyond it, the frame's crop does not)
                 box = np.array([*np.clip(np.round(centre - side / 2).astype(int), 0, 512 - side), side])
-                a = ba.crop_resize(torch.from_numpy(out.gray_u8)[None], torch.zeros(1, dtype=torch.int64),
+                a = ba.crop_resize_batch(torch.from_numpy(out.gray_u8)[None], torch.zeros(1, dtype=torch.int64),
                                    torch.from_numpy(box)[None], s_px)[0].numpy()
                 b = cv2.resize(render_box(renderer, view, box, 4 * s_px), (s_px, s_px), interpolation=cv2.INTER_AREA)
                 t, e, c = displacement_px(a, b)
-                labels_in = ba.to_input_px(torch.from_numpy(corners)[None], torch.from_numpy(box)[None], s_px)[0]
+                labels_in = ba.to_input_px_batch(torch.from_numpy(corners)[None], torch.from_numpy(box)[None], s_px)[0]
                 k2 = renderer.K.copy()
                 k2[:2] *= s_px / side
                 k2[:2, 2] = (renderer.K[:2, 2] - box[:2] + 0.5) * s_px / side - 0.5

@@ -37,7 +37,7 @@ def test_ar1_rho_and_inflation_recovered_with_gaps():
         e = 1.7 * ar1(rng, rho, (8, 2), 400) + 0.3  # a constant bias: removed before the correlation
         e[rng.random((400, 8)) < 0.2] = np.nan  # corners missed at random
         seqs.append(sequence(e, sigma=1.7))
-    model, record = em.measure(seqs, cov_scale=1.0, max_lag=6)
+    model, record = em.measure_error_model(seqs, cov_scale=1.0, max_lag=6)
     assert abs(model.rho_lag1 - rho) < 0.03
     assert abs(model.ar1_phi - rho) < 0.05 and model.ar1_share > 0.9
     assert abs(model.inflation - (1 + rho) / (1 - rho)) < 0.3  # 4.0
@@ -57,7 +57,7 @@ def test_white_plus_ar1_share_and_inflation_recovered():
         e = np.sqrt(a) * ar1(rng, phi, (8, 2), 600) + np.sqrt(1 - a) * rng.standard_normal((600, 8, 2))
         e[rng.random((600, 8)) < 0.3] = np.nan
         seqs.append(sequence(e))
-    model, record = em.measure(seqs, cov_scale=1.0, max_lag=8)
+    model, record = em.measure_error_model(seqs, cov_scale=1.0, max_lag=8)
     assert abs(model.rho_lag1 - a * phi) < 0.03
     assert abs(model.ar1_share - a) < 0.08 and abs(model.ar1_phi - phi) < 0.04
     assert abs(model.inflation - tau) < 0.15 * tau
@@ -67,7 +67,7 @@ def test_white_plus_ar1_share_and_inflation_recovered():
 def test_white_errors_need_no_inflation():
     rng = np.random.default_rng(1)
     seqs = [sequence(rng.standard_normal((500, 8, 2))) for _ in range(3)]
-    model, _ = em.measure(seqs, cov_scale=1.0)
+    model, _ = em.measure_error_model(seqs, cov_scale=1.0)
     assert abs(model.rho_lag1) < 0.03
     assert abs(model.inflation - 1.0) < 0.1
 
@@ -179,7 +179,7 @@ def test_correlation_in_the_views_rotation_recovered_across_tumble_rates():
             s["dt_s"] = 1.0
             s["R_cam_from_target"] = turning_views(np.radians(rate_deg), 500)
             seqs.append(s)
-    model, record = em.measure(seqs, cov_scale=1.0, max_lag=10)
+    model, record = em.measure_error_model(seqs, cov_scale=1.0, max_lag=10)
     assert abs(model.angle_share - a) < 0.06
     assert abs(np.degrees(model.corr_angle_rad) - 15.0) < 2.0
     np.testing.assert_allclose(record["autocorr_by_angle"]["view_rate_deg_s"], [1.5] * 3 + [2.7] * 3 + [5.0] * 3,
@@ -190,5 +190,5 @@ def test_correlation_in_the_views_rotation_recovered_across_tumble_rates():
     assert em.phi_at_rotation(0.0, 1.0, 1.0) == 0.0
     # without the views the model carries no angle fit
     plain = [{k: v for k, v in s.items() if k != "R_cam_from_target"} for s in seqs]
-    model2, record2 = em.measure(plain, cov_scale=1.0, max_lag=10)
+    model2, record2 = em.measure_error_model(plain, cov_scale=1.0, max_lag=10)
     assert model2.corr_angle_rad == 0.0 and record2["autocorr_by_angle"] is None

@@ -1,7 +1,7 @@
 """`envisat evaluate`'s table: a method without a figure (the classical peers have no visibility, no covariance)
 shows '-' in its columns' width, so every row lines up under the header (issue 41)."""
 
-from envisat_pose.pipelines.evaluate import table
+from envisat_pose.pipelines.evaluate import groups_table
 
 
 def row(full: bool) -> dict:
@@ -12,7 +12,7 @@ def row(full: bool) -> dict:
 
 
 def test_empty_cells_keep_the_columns():
-    lines = table({"clean": {"detector": row(True), "harris": row(False)}}).splitlines()
+    lines = groups_table({"clean": {"detector": row(True), "harris": row(False)}}).splitlines()
     head, full, empty = lines[0], lines[2], lines[3]
     assert len(full) == len(empty) == len(head)
     # each '-' stands where its column's values end (right-aligned), not one column to the left

@@ -29,7 +29,7 @@ def test_a_scenario_resolves_into_the_job_the_verb_runs():
     from envisat_pose.pipelines.run_config import RunConfig
     from envisat_pose.pipelines.track import TrackConfig
 
-    q = named_scenarios.load("default")["filter"]
+    q = named_scenarios.scenario_tables("default")["filter"]
     run = RunConfig.from_scenario("default", overrides={"tracker.roi.enabled": False}, duration_s=3.0)
     assert run.duration_s == 3.0 and not run.tracker.roi.enabled and run.weights and run.image.sun_dir is not None
     assert all(getattr(run.filter, k) == pytest.approx(v) for k, v in q.items() if not isinstance(v, dict))

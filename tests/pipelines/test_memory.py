@@ -29,10 +29,10 @@ CHILD = textwrap.dedent("""
     from envisat_pose.datagen.orbit import chaser_orbit
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.pipelines import closed_loop as loop
-    from envisat_pose.pipelines.run_config import stage_types
+    from envisat_pose.pipelines.run_config import run_stage_types
 
     weights, out, long_s = sys.argv[1], sys.argv[2], float(sys.argv[3])
-    stage_types()
+    run_stage_types()
     # the sun behind the Earth as seen from the chaser at t = 1050 s: the shadow covers ~0..2100 s
     r_mid = chaser_orbit(scenario_config("default").orbit, np.array([1050.0])).r_N_m[0]
 

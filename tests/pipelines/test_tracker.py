@@ -553,12 +553,12 @@ def test_the_filter_takes_the_sequences_covariance_scale():
     from types import SimpleNamespace
 
     from envisat_pose.perception.errormodel import ErrorModel
-    from envisat_pose.pipelines.noise import sequence_scale
+    from envisat_pose.pipelines.noise import sequence_cov_factor
 
     det = SimpleNamespace(cfg=SimpleNamespace(cov_scale=2.0))
-    assert sequence_scale(ErrorModel(cov_scale=1.5, n_frames=600), det) == pytest.approx(0.75)
-    assert sequence_scale(ErrorModel(cov_scale=1.5, n_frames=0), det) == 1.0  # not measured
-    assert sequence_scale(ErrorModel(cov_scale=1.5, n_frames=600), SimpleNamespace()) == 1.0  # a detector without one
+    assert sequence_cov_factor(ErrorModel(cov_scale=1.5, n_frames=600), det) == pytest.approx(0.75)
+    assert sequence_cov_factor(ErrorModel(cov_scale=1.5, n_frames=0), det) == 1.0  # not measured
+    assert sequence_cov_factor(ErrorModel(cov_scale=1.5, n_frames=600), SimpleNamespace()) == 1.0  # a detector without one
 
 
 def test_errors_the_error_model_misses_are_allowed_for_by_the_detector_process_noise(truth_600):
