@@ -31,6 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "format the field trains on; conventions in the folder's README.md and docs/formats.md.")
     e.add_argument("src", metavar="SRC", help="dataset folder written by `envisat generate`")
     e.add_argument("--format", required=True, choices=("speedplus", "coco", "bop", "yolo-pose"))
+    e.add_argument("--target", metavar="FILE.xml", help="the dataset's target file, where the path its manifest "
+                   "records is not found from here (its sha256 must match; default: the recorded one)")
     e.add_argument("--image-format", default="png", choices=("png", "jpg"),
                    help="png: the shards' bytes unchanged (default); jpg: re-encoded at quality 95")
     e.add_argument("--val-fraction", type=float, metavar="F", help="share of images in the validation split "
@@ -104,7 +106,8 @@ def write_samples_rrd(source: str | list[str], path: str, count: int) -> None:
 def run_export_cli(args: argparse.Namespace) -> int:
     from envisat_pose.pipelines.export import ExportConfig, export_dataset
 
-    cfg = ExportConfig(args.format, args.image_format, args.val_fraction, 0 if args.seed is None else args.seed)
+    cfg = ExportConfig(args.format, args.image_format, args.val_fraction, 0 if args.seed is None else args.seed,
+                       args.target)
     summary = export_dataset(args.src, args.out, cfg, workers=args.workers, skip_damaged=args.skip_damaged,
                              progress=not args.quiet)
     counts = ", ".join(f"{n} {name}" for name, n in summary.images.items())

@@ -11,7 +11,7 @@ from envisat_pose.config import InputError, resolve_job_config
 def register(sub: argparse._SubParsersAction) -> None:
     g = sub.add_parser(
         "generate",
-        help="render labelled, corrupted images of ENVISAT into WebDataset shards",
+        help="render labelled, corrupted images of ENVISAT (or another --target) into WebDataset shards",
         description="Render images of the tumbling target with MuJoCo (off-screen), label them (corners, "
         "visibility by depth test, pose, mask, depth), corrupt them, and write tar shards plus manifest.json. "
         "Running it again on the same --out finishes an interrupted dataset.",
@@ -23,6 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--resolution", type=int, metavar="PX", help="square image side in pixels (default 1024)")
     g.add_argument("--seed", type=int, help="root seed (default 0)")
     g.add_argument("--scenario", help="named truth scenario of sequence mode (default: default)")
+    g.add_argument("--target", metavar="FILE.xml", help="the target's MJCF file: a body 'target' with its inertial, "
+                   "geoms and keypoint sites kp_<name> (default models/envisat.xml; models/cubesat_3u.xml and "
+                   "models/upper_stage.xml ship too)")
     g.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     g.add_argument("--backend", default="local", choices=("local", "dask"), help="local process pool or Dask")
     g.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler address (default: a LocalCluster on 127.0.0.1)")
@@ -37,7 +40,8 @@ def resolve_config(args: argparse.Namespace):
     from envisat_pose.datagen.generate_config import GenerateConfig
 
     flags = {"mode": args.mode, "num_images": args.num_images, "shard_size": args.shard_size,
-             "resolution_px": args.resolution, "seed": args.seed, "sequence.scenario": args.scenario}
+             "resolution_px": args.resolution, "seed": args.seed, "sequence.scenario": args.scenario,
+             "target": args.target}
     return resolve_job_config(GenerateConfig, {}, args.config, flags)
 
 

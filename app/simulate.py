@@ -24,6 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="named scenario the config starts from (default: default; `envisat scenarios` lists them)")
     p.add_argument("--duration-s", type=float, help="simulated time, s (default: the scenario's, 1800)")
     p.add_argument("--dt-s", type=float, help="output step, s (default 1)")
+    p.add_argument("--target", metavar="FILE.xml", help="the target's MJCF file (its inertia drives the tumble, its "
+                   "kp_ sites are the keypoints; default models/envisat.xml)")
     p.add_argument("--plot", action="store_true", help="also write a PNG of the 12 states next to --out")
     p.add_argument("--rrd", metavar="FILE.rrd", help="also write a Rerun recording of the truth (`envisat view FILE`)")
     p.set_defaults(func=run_simulate_cli)
@@ -34,7 +36,7 @@ def resolve_config(args: argparse.Namespace) -> ScenarioConfig:
     before any work."""
     from envisat_pose.pipelines.jobs import resolve_job
 
-    flags = {"duration_s": args.duration_s, "dt_s": args.dt_s, "seed": args.seed}
+    flags = {"duration_s": args.duration_s, "dt_s": args.dt_s, "seed": args.seed, "target.file": args.target}
     return resolve_job("simulate", args.scenario, args.config, flags)
 
 

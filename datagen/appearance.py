@@ -122,6 +122,23 @@ def draw_look(rng: np.random.Generator, set_size: int, specular: tuple[float, fl
     return out
 
 
+OWN_CLASS = "own"  # another target's looks (datagen/target_model.py): each geom's own material, varied
+
+
+def draw_own_look(rng: np.random.Generator, base_rgb: dict[str, tuple[float, float, float]],
+                  specular: tuple[float, float], shininess: tuple[float, float], reflectance: tuple[float, float],
+                  brightness: tuple[float, float]) -> dict[str, MaterialLook]:
+    """A MaterialLook per geom of another target, over its own material: the material's RGB (base_rgb, its
+    texture kept) times a brightness drawn from `brightness`, specular, shininess and reflectance from their
+    ranges. Geoms in the order of base_rgb (the file's)."""
+    out = {}
+    for g, rgb in base_rgb.items():
+        b = rng.uniform(*brightness)
+        out[g] = MaterialLook(OWN_CLASS, 0, tuple(_r(min(1.0, v * b)) for v in rgb), _r(rng.uniform(*specular)),
+                              _r(rng.uniform(*shininess)), _r(rng.uniform(*reflectance)))
+    return out
+
+
 # ---------------------------------------------------------------------------------------------------------
 # Procedural textures (grey patterns, mean near 0.8, modulating the material colour)
 

@@ -57,10 +57,47 @@ def target_boxes(model) -> TargetBoxes:
     R_geom = np.array([quat_to_rotmat(model.geom_quat[g]) for g in geoms])  # R_T_from_geom
     aabb = np.array([model.geom_aabb[g] for g in geoms])  # centre (3) and half sizes (3), geom frame
     centre = np.array([model.geom_pos[g] for g in geoms]) + np.einsum("gij,gj->gi", R_geom, aabb[:, :3])
-    sites = np.array([model.site_pos[model.site(f"corner_{c}").id] for c in "ABCDEFGH"])
+    try:
+        sites = np.array([model.site_pos[model.site(f"corner_{c}").id] for c in "ABCDEFGH"])
+    except KeyError:  # another target (datagen/target_model.py): its own geoms only
+        return TargetBoxes(names[:-1], centre, R_geom, aabb[:, 3:].copy())
     lo, hi = sites.min(axis=0), sites.max(axis=0)
     return TargetBoxes(names, np.vstack([centre, 0.5 * (lo + hi)]), np.concatenate([R_geom, np.eye(3)[None]]),
                        np.vstack([aabb[:, 3:], 0.5 * (hi - lo)]))
+
+
+@functools.lru_cache(maxsize=16)
+def _scene_model(path: str, sha256: str):
+    """The compiled scene of a target file (its sha256 in the key: an edited file compiles again)."""
+    import mujoco
+
+    from envisat_pose.datagen.target_model import load_target, scene_xml
+
+    return mujoco.MjModel.from_xml_string(scene_xml(load_target(path)))
+
+
+def target_file_boxes(given: str, field: str = "target") -> TargetBoxes:
+    """target_boxes of the scene of a `target` file (ENVISAT: project_target_boxes); a bad file is a ConfigError
+    naming `field`."""
+    from envisat_pose.datagen.target_model import load_target
+
+    t = load_target(given, field)
+    if t.is_envisat:
+        return project_target_boxes()
+    return _file_boxes(t.path, t.sha256)
+
+
+def target_occlusion_floor_m(given: str) -> float:
+    """The floor of a target's occlusion tolerance, m: labels.occlusion_floor_m of its reach (ENVISAT: 0.25)."""
+    from envisat_pose.datagen.labels import OCCLUSION_FLOOR_M, occlusion_floor_m
+    from envisat_pose.datagen.target_model import load_target
+
+    return OCCLUSION_FLOOR_M if load_target(given).is_envisat else occlusion_floor_m(target_file_boxes(given).reach_m)
+
+
+@functools.lru_cache(maxsize=16)
+def _file_boxes(path: str, sha256: str) -> TargetBoxes:
+    return target_boxes(_scene_model(path, sha256))
 
 
 @functools.lru_cache(maxsize=1)

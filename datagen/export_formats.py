@@ -17,6 +17,11 @@ VISIBLE, HIDDEN, OUTSIDE = 2, 1, 0  # COCO's (and YOLO-pose's) visibility codes
 JPEG_QUALITY = 95
 
 
+def keypoints_px(label: dict) -> list:
+    """(K, 2) the label's keypoints, px: `keypoints_px` (any target) or ENVISAT's `corners_px`."""
+    return label["keypoints_px"] if "keypoints_px" in label else label["corners_px"]
+
+
 def visibility_codes(label: dict) -> np.ndarray:
     """(K,) int: 2 visible (depth test), 1 in the frame but hidden, 0 outside the frame (or behind the camera)."""
     in_frame = np.asarray(label["in_frame"], dtype=bool)
@@ -93,7 +98,7 @@ def coco_keypoints(label: dict) -> list[float]:
     """[x1, y1, v1, ...]: the label's pixel coordinates (centres at integers), x = y = 0 where v = 0."""
     codes = visibility_codes(label)
     out: list[float] = []
-    for (u, v), code in zip(label["corners_px"], codes):
+    for (u, v), code in zip(keypoints_px(label), codes):
         out += [float(u), float(v), int(code)] if code else [0.0, 0.0, 0]
     return out
 
@@ -118,7 +123,7 @@ def yolo_row(label: dict, box: tuple[int, int, int, int], width: int, height: in
     vals = [(x0 + x1 + 1) / 2 / width, (y0 + y1 + 1) / 2 / height, (x1 - x0 + 1) / width, (y1 - y0 + 1) / height]
     codes = visibility_codes(label)
     kps = []
-    for (u, v), code in zip(label["corners_px"], codes):
+    for (u, v), code in zip(keypoints_px(label), codes):
         kps += [f"{u / width:.7f}", f"{v / height:.7f}", str(int(code))] if code else ["0", "0", "0"]
     return " ".join([str(class_id), *(f"{x:.7f}" for x in vals), *kps])
 

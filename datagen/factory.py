@@ -23,7 +23,7 @@ import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.config import check, to_dict
-from envisat_pose.datagen.clearance import TargetBoxes, farthest_depth_m, project_target_boxes
+from envisat_pose.datagen.clearance import TargetBoxes, farthest_depth_m, target_file_boxes, target_occlusion_floor_m
 from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
 from envisat_pose.datagen.views import R_K_FROM_C, sample_random_view, sample_seed, sequence_frames, sequence_view, unit
@@ -63,20 +63,27 @@ def with_look(cfg: GenerateConfig, view, scene: dict, seed: int) -> tuple:
     and the scene dict with every choice needed to render it again (view_from_scene). Returns (View, scene)."""
     import dataclasses
 
-    from envisat_pose.datagen.appearance import FACE_GEOMS, GEOM_CLASS, Look, draw_look
+    from envisat_pose.datagen.appearance import FACE_GEOMS, GEOM_CLASS, Look, draw_look, draw_own_look
     from envisat_pose.datagen.render import APPENDAGE_MASK_VALUE, MASK_VALUES
+    from envisat_pose.datagen.target_model import load_target, target_scene
 
     rng = look_rng(cfg, seed)
     lit = cfg.lighting
     sun_i = round(float(rng.uniform(*lit.sun_intensity)), 6)
     albedo = float(rng.uniform(*lit.earth_albedo))
-    geoms = tuple(g for g in GEOM_CLASS if cfg.appendages_on or MASK_VALUES[g] != APPENDAGE_MASK_VALUE)
     a = cfg.appearance
+    target = load_target(cfg.target)
     classes = dict(GEOM_CLASS)
-    if a.one_covering is not None:
-        classes.update({g: a.one_covering for g in FACE_GEOMS})
-    materials = draw_look(rng, a.texture_set_size, a.specular, a.shininess, a.reflectance, a.brightness,
-                          geoms, classes) if cfg.appearance_on else {}
+    if not target.is_envisat:  # another target: each geom's own material, varied (appearance.draw_own_look)
+        base_rgb = target_scene(target).base_rgb
+        materials = draw_own_look(rng, base_rgb, a.specular, a.shininess, a.reflectance, a.brightness) \
+            if cfg.appearance_on else {}
+    else:
+        geoms = tuple(g for g in GEOM_CLASS if cfg.appendages_on or MASK_VALUES[g] != APPENDAGE_MASK_VALUE)
+        if a.one_covering is not None:
+            classes.update({g: a.one_covering for g in FACE_GEOMS})
+        materials = draw_look(rng, a.texture_set_size, a.specular, a.shininess, a.reflectance, a.brightness,
+                              geoms, classes) if cfg.appearance_on else {}
     phase = 0.0
     if view.sun_dir_C is not None and view.earth_dir_C is not None:
         # lit fraction of the Earth's disc seen from the target: 1 with the sun behind us, 0 toward it
@@ -88,7 +95,7 @@ def with_look(cfg: GenerateConfig, view, scene: dict, seed: int) -> tuple:
     scene.update({
         "appearance": cfg.appearance_on,
         "appendages": cfg.appendages_on,
-        "face_classes": {g: classes[g] for g in FACE_GEOMS},
+        **({"face_classes": {g: classes[g] for g in FACE_GEOMS}} if target.is_envisat else {}),
         "earthshine": {"intensity": earth_i, "earth_phase": round(phase, 6), "albedo": round(albedo, 6),
                        "dir_cam": None if view.earth_dir_C is None else (-R_K_FROM_C @ unit(view.earth_dir_C)).tolist()},
         "look": look.to_json(),
@@ -180,11 +187,14 @@ def sample_arrays(K: np.ndarray, boxes: TargetBoxes, cfg: GenerateConfig, out, x
     unless storage is 'clean') and the label (plain JSON data, labels.make_label). No GL state."""
     from envisat_pose.datagen.corrupt import apply_corruption
     from envisat_pose.datagen.labels import make_label
+    from envisat_pose.datagen.target_model import load_target
 
     params = draw_corruption_params(cfg, out, x, K[0, 0], boxes, rng)
     image = out.gray_u8 if cfg.storage == "clean" else apply_corruption(out.gray_u8, params)
+    target = load_target(cfg.target)
     label = make_label(out.corners_K_m, out.depth_m, K, out.R_K_from_T, out.t_K_from_T_m, x,
-                       cfg.depth_scale_m, params, seed, scene)
+                       cfg.depth_scale_m, params, seed, scene,
+                       None if target.is_envisat else target.keypoint_names, target_occlusion_floor_m(cfg.target))
     label["image_stored"] = cfg.storage
     return image, label
 
@@ -238,7 +248,7 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str, beside: 
 
     cv2.setNumThreads(1)  # one core per worker; also keeps filters on one code path
     renderer = shared_renderer(cfg.resolution_px, cfg.shadows, cfg.appearance.texture_set_size if cfg.appearance_on
-                               else 0, cfg.appearance.texture_seed, cfg.earth_seed)
+                               else 0, cfg.appearance.texture_seed, cfg.earth_seed, cfg.target)
     beside = bool(beside if FINISH_BESIDE_RENDER is None else FINISH_BESIDE_RENDER)
     if (beside and cfg.mode == "random" and cfg.earth_probability > 0
             and cfg.num_images >= PREFETCH_EARTH_MIN_IMAGES):
@@ -305,7 +315,7 @@ def check_sequence_depth(cfg: GenerateConfig) -> None:
     point of every frame (from the simulated truth, which also runs the scenario's keep-out check)."""
     _, x, _, _, _ = sequence_frames(config_json(cfg))
     R_K_from_T = R_K_FROM_C @ np.swapaxes(mrp_to_dcm(x[:, MRP]), 1, 2)
-    far_m = farthest_depth_m(x[:, POS] @ R_K_FROM_C.T, R_K_from_T, project_target_boxes())
+    far_m = farthest_depth_m(x[:, POS] @ R_K_FROM_C.T, R_K_from_T, target_file_boxes(cfg.target))
     k = int(np.argmax(far_m))
     check(DEPTH_MAX_CODE * cfg.depth_scale_m >= far_m[k], "depth_scale_m", cfg.depth_scale_m,
           f"a scale whose 16-bit range (65535 x scale = {DEPTH_MAX_CODE * cfg.depth_scale_m:.1f} m) covers "
@@ -317,12 +327,15 @@ def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
     identity, a shard kept on resume only when its sha256 matches and its tar holds the recorded count."""
     from envisat_pose.datagen.render import MASK_VALUES
     from envisat_pose.datagen.shards import check_shard, shard_name
+    from envisat_pose.datagen.target_model import load_target, target_scene
 
+    target = load_target(cfg.target)
+    masks = MASK_VALUES if target.is_envisat else target_scene(target).mask_values
     return ResumableJob(
         out_dir, MANIFEST_FORMAT, "dataset", {"config": to_dict(cfg), "root_seed": cfg.seed}, "shards",
         cfg.num_shards, shard_name,
-        header={"num_images": cfg.num_images, "num_shards": cfg.num_shards,
-                "mask_values": {"background": 0, **MASK_VALUES},
+        header={"num_images": cfg.num_images, "num_shards": cfg.num_shards, "target": target.record(cfg.target),
+                "mask_values": {"background": 0, **masks},
                 "members": ["png", "json"] + (["mask.png"] if cfg.write_mask else [])
                 + (["depth.png"] if cfg.write_depth else [])},
         verify_unit=lambda entry, path: check_shard(path, None, entry["count"]) is None)

@@ -15,7 +15,7 @@ import numpy as np
 
 from envisat_pose.camera_response import parse_response
 from envisat_pose.config import check, from_dict, to_dict
-from envisat_pose.datagen.clearance import project_target_boxes
+from envisat_pose.datagen.clearance import target_file_boxes
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
 
 Severity = Literal["none", "low", "medium", "high", "mixed"]
@@ -213,7 +213,9 @@ class GenerateConfig:
     """What `envisat generate` makes.
 
     mode: 'random' (domain-randomized views, drawn by the [random] table) or 'sequence' (frames of a simulated
-    truth, the [sequence] table). resolution_px: square image side.
+    truth, the [sequence] table). target: the target's MJCF file (datagen/target_model.py: a body 'target' with its
+    inertial, geoms and keypoint sites kp_<name>; default ENVISAT, models/envisat.xml). resolution_px: square
+    image side.
     sun_dir: unit vector toward the sun, in C (random mode) or N (sequence mode); omitted: drawn from the seed.
     earth_probability: share of random-mode images that look toward the Earth and draw it behind the target
     (textured, lit by the view's sun; datagen/earth.py); sequence mode: above 0, the Earth is drawn at the
@@ -227,6 +229,7 @@ class GenerateConfig:
     moved_keys = MOVED_KEYS
 
     mode: Literal["random", "sequence"] = "random"
+    target: str = "models/envisat.xml"
     num_images: int = 1000
     shard_size: int = 100
     resolution_px: int = 1024
@@ -261,7 +264,7 @@ class GenerateConfig:
         check(self.shard_size >= 1, f"{p}shard_size", self.shard_size, "at least 1 image per shard")
         check(16 <= self.resolution_px <= 4096, f"{p}resolution_px", self.resolution_px, "a resolution in [16, 4096] px")
         check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed below 2^63")
-        reach_m = project_target_boxes().reach_m
+        reach_m = target_file_boxes(self.target, f"{p}target").reach_m
         check(self.random.range_min_m > reach_m / 2, f"{p}random.range_min_m", self.random.range_min_m,
               f"a range above {reach_m / 2:.1f} m (the camera must stay outside the target)")
         if self.sun_dir is not None:

@@ -27,7 +27,15 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envisat_pose.attitude import rotmat_to_quat  # noqa: E402
-from envisat_pose.datagen.appearance import CLASSES, FACE_GEOMS, GEOM_CLASS, TEXTURE_PX, Look, class_texture  # noqa: E402
+from envisat_pose.datagen.appearance import (  # noqa: E402
+    CLASSES,
+    FACE_GEOMS,
+    GEOM_CLASS,
+    OWN_CLASS,
+    TEXTURE_PX,
+    Look,
+    class_texture,
+)
 from envisat_pose.datagen.clearance import target_boxes  # noqa: E402
 from envisat_pose.datagen.earth import (  # noqa: E402
     EARTH_MESH_STEPS_DEG,
@@ -44,6 +52,7 @@ from envisat_pose.datagen.earth import (  # noqa: E402
     pixel_rays_K,
 )
 from envisat_pose.datagen.scenario import EARTH_RADIUS_M  # noqa: E402
+from envisat_pose.datagen.target_model import ENVISAT_TARGET, load_target, scene_xml, target_scene  # noqa: E402
 from envisat_pose.geometry import model_path  # noqa: E402
 
 CAMERA_NAME = "chaser_cam"
@@ -95,7 +104,8 @@ class RenderOutput:
     """One rendered view.
 
     gray_u8: (H, W) uint8 image. depth_m: (H, W) float32 metres along the boresight, 0 on background.
-    mask_u8: (H, W) uint8, MASK_VALUES (depth_m and mask_u8 None when rendered without labels). corners_K_m: (8, 3) corners A-H in the camera frame K, m.
+    mask_u8: (H, W) uint8, MASK_VALUES, or another target's geom order (depth_m and mask_u8 None when rendered
+    without labels). corners_K_m: (K, 3) the target's keypoints (ENVISAT: corners A-H) in the camera frame K, m.
     R_K_from_T: (3, 3), t_K_from_T_m: (3,) the target pose in K (the label's R_cam_from_target, t_cam_from_target_m).
     fovy_deg: the camera's vertical field of view.
     """
@@ -186,7 +196,11 @@ def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_se
     # Earth-shine: sunlight reflected by the Earth, a directional light from the nadir side, no shadows
     ET.SubElement(world, "light", name="earthshine", directional="true", castshadow="false", pos="0 0 100",
                   dir="0 0 -1", diffuse="0 0 0", specular="0 0 0", ambient="0 0 0", active="false")
-    if texture_set_size > 0:
+    body = next(b for b in world.iter("body") if b.get("name") == "target")
+    own = body.find("geom[@name='face_px']") is None  # another target (datagen/target_model.py): its own looks
+    if texture_set_size > 0 and own:
+        _own_look_materials(asset, body)
+    elif texture_set_size > 0:
         for cls in sorted(CLASSES):
             for k in range(texture_set_size):
                 ET.SubElement(asset, "texture", name=f"tex_{cls}_{k}", type="2d", builtin="flat",
@@ -198,6 +212,20 @@ def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_se
                     ET.SubElement(asset, "material", name=f"look_{geom}_{c}_{k}", texture=f"tex_{c}_{k}",
                                   texuniform="true", texrepeat=f"{rep} {rep}")
     return ET.tostring(root, encoding="unicode")
+
+
+def _own_look_materials(asset: ET.Element, body: ET.Element) -> None:
+    """Another target's looks: one material `look_<geom>_own_0` per geom of body `target`, a copy of the geom's
+    own material (its texture kept; a geom without one gets its rgba), whose colour and specular terms a look
+    writes (appearance.draw_own_look)."""
+    import copy
+
+    materials = {m.get("name"): m for m in asset.findall("material")}
+    for geom in body.findall("geom"):
+        src = materials.get(geom.get("material", ""))
+        mat = copy.deepcopy(src) if src is not None else ET.Element("material", rgba=geom.get("rgba", "0.5 0.5 0.5 1"))
+        mat.set("name", f"look_{geom.get('name')}_{OWN_CLASS}_0")
+        asset.append(mat)
 
 
 def look_classes(geom: str) -> tuple[str, ...]:
@@ -271,7 +299,10 @@ class SceneRenderer:
 
     def __init__(self, resolution_px: int, shadows: bool = True, base_xml: str | None = None,
                  texture_set_size: int = 0, texture_seed: int = 0, earth_seed: int = 0,
-                 earth_texture_set_size: int = EARTH_TEXTURE_SET_SIZE):
+                 earth_texture_set_size: int = EARTH_TEXTURE_SET_SIZE, target: str = ENVISAT_TARGET):
+        self.target = load_target(target)
+        if base_xml is None and not self.target.is_envisat:
+            base_xml = scene_xml(self.target)
         self.resolution_px = int(resolution_px)
         self.shadows = bool(shadows)
         self.texture_set_size, self.texture_seed = int(texture_set_size), int(texture_seed)
@@ -302,18 +333,25 @@ class SceneRenderer:
         self._sun_diffuse = m.light_diffuse[self.sun_id].copy()
         self._sun_specular = m.light_specular[self.sun_id].copy()
         # each target geom's MJCF material and, per texture k, its look material
-        self._geom_ids = {name: m.geom(name).id for name in GEOM_CLASS}
+        if self.target.is_envisat:
+            self.mask_values = MASK_VALUES
+            look_geoms, classes_of = tuple(GEOM_CLASS), look_classes
+        else:
+            self.mask_values = target_scene(self.target).mask_values
+            look_geoms, classes_of = tuple(self.mask_values), lambda name: (OWN_CLASS,)
+        self._geom_ids = {name: m.geom(name).id for name in look_geoms}
         self._mjcf_matid = {name: int(m.geom_matid[g]) for name, g in self._geom_ids.items()}
         self._mjcf_mat = {int(i): (m.mat_rgba[i].copy(), float(m.mat_specular[i]), float(m.mat_shininess[i]),
                                    float(m.mat_reflectance[i])) for i in set(self._mjcf_matid.values())}
-        self._look_matid = {(name, c, k): m.material(f"look_{name}_{c}_{k}").id for name in GEOM_CLASS
-                            for c in look_classes(name) for k in range(self.texture_set_size)}
-        self.corner_sites = np.array([m.site(f"corner_{c}").id for c in "ABCDEFGH"])
+        self._look_matid = {(name, c, k): m.material(f"look_{name}_{c}_{k}").id for name in look_geoms
+                            for c in classes_of(name) for k in range(min(self.texture_set_size, 1)
+                                                                    if c == OWN_CLASS else self.texture_set_size)}
+        self.corner_sites = np.array([m.site(s).id for s in self.target.keypoint_sites])  # the K keypoints
         self.target_geoms = np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] == self.target_body])
         self._target_geom_set = {int(g) for g in self.target_geoms}
         self.target_boxes = target_boxes(m)  # the whole target as oriented boxes in T (keep-out, near plane)
         self.mask_lut = np.zeros(m.ngeom + 1, dtype=np.uint8)  # index geom id + 1; -1 (none) -> 0
-        for name, value in MASK_VALUES.items():
+        for name, value in self.mask_values.items():
             self.mask_lut[m.geom(name).id + 1] = value
         self.znear_m = float(m.vis.map.znear * m.stat.extent)
         self.zfar_m = float(m.vis.map.zfar * m.stat.extent)
@@ -347,7 +385,7 @@ class SceneRenderer:
         """Write the procedural textures (appearance.class_texture) into tex_data and send them to both GL
         render contexts; done once per renderer."""
         m = self.model
-        for cls in sorted(CLASSES):
+        for cls in sorted(CLASSES) if self.target.is_envisat else ():  # another target keeps its own textures
             for k in range(self.texture_set_size):
                 t = m.texture(f"tex_{cls}_{k}").id
                 data = class_texture(self.texture_seed, cls, k)
@@ -420,7 +458,7 @@ class SceneRenderer:
         for name, ml in look.materials.items():
             if (name, ml.cls, ml.texture) not in self._look_matid:
                 raise ValueError(f"look for geom {name!r} class {ml.cls!r} texture {ml.texture}: this renderer "
-                                 f"has {self.texture_set_size} textures per class, classes {look_classes(name)}")
+                                 f"has {self.texture_set_size} textures per class and no such look material")
             i = self._look_matid[(name, ml.cls, ml.texture)]
             m.geom_matid[self._geom_ids[name]] = i
             m.mat_rgba[i] = (*ml.rgb, 1.0)
@@ -653,14 +691,15 @@ _RENDERERS: dict[tuple, SceneRenderer] = {}
 
 
 def shared_renderer(resolution_px: int, shadows: bool = True, texture_set_size: int = 0,
-                    texture_seed: int = 0, earth_seed: int = 0) -> SceneRenderer:
-    """This process's renderer for (resolution, shadows, texture set, Earth texture seed), created on first
-    use and reused (one per worker)."""
-    key = (int(resolution_px), bool(shadows), int(texture_set_size), int(texture_seed), int(earth_seed))
+                    texture_seed: int = 0, earth_seed: int = 0, target: str = ENVISAT_TARGET) -> SceneRenderer:
+    """This process's renderer for (resolution, shadows, texture set, Earth texture seed, target file and its
+    sha256), created on first use and reused (one per worker)."""
+    key = (int(resolution_px), bool(shadows), int(texture_set_size), int(texture_seed), int(earth_seed), target,
+           load_target(target).sha256)
     if key not in _RENDERERS:
         first = not _RENDERERS
         _RENDERERS[key] = SceneRenderer(resolution_px, shadows, texture_set_size=texture_set_size,
-                                        texture_seed=texture_seed, earth_seed=earth_seed)
+                                        texture_seed=texture_seed, earth_seed=earth_seed, target=target)
         if first:
             import atexit
 

@@ -58,16 +58,22 @@ class TargetConfig:
 
     p0_mrp: initial MRP of T relative to C; omitted (None) draws a uniformly random attitude from the seed.
     gravity_gradient: whether the truth applies the gravity-gradient torque (the filter model does not).
+    file: the target's MJCF file (datagen/target_model.py; default ENVISAT): its body `target`'s inertia drives the
+    tumble, its sites are the keypoints.
     """
 
     spin_period_s: float = 134.74
     spin_axis_T: tuple[float, float, float] = (0.12, -0.20, 1.0)
     p0_mrp: tuple[float, float, float] | None = None
     gravity_gradient: bool = False
+    file: str = "models/envisat.xml"
 
     def validate(self, prefix: str = "target") -> None:
         check(self.spin_period_s > 0, f"{prefix}.spin_period_s", self.spin_period_s, "a positive period in seconds")
         check(np.linalg.norm(self.spin_axis_T) > 0, f"{prefix}.spin_axis_T", list(self.spin_axis_T), "a non-zero vector")
+        from envisat_pose.datagen.target_model import load_target
+
+        load_target(self.file, f"{prefix}.file")  # a bad target file: one line before any work
         if self.p0_mrp is not None:
             check(np.linalg.norm(self.p0_mrp) <= 1.0 + 1e-12, f"{prefix}.p0_mrp", list(self.p0_mrp),
                   "an MRP with |p| <= 1 (use the shadow set -p/|p|^2)")

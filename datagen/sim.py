@@ -1,4 +1,5 @@
-"""The MuJoCo truth: the model built from models/envisat.xml and a thin stateful wrapper around it.
+"""The MuJoCo truth: the model built from the scenario's target file (default models/envisat.xml; another
+target is put into ENVISAT's scene, datagen/target_model.py) and a thin stateful wrapper around it.
 
 World frame W: non-rotating (axes of N), origin at the chaser. The target body's frame is T (origin at its
 centre of mass). The chaser is a mocap body turned to LVLH (C) at every `set_state` / `sync_chaser`.
@@ -17,7 +18,6 @@ from envisat_pose.attitude import dcm_to_mrp, mrp_to_dcm, quat_to_rotmat, rotmat
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.plugin import PLUGIN_NAME
 from envisat_pose.datagen.scenario import ScenarioConfig
-from envisat_pose.geometry import model_path
 from envisat_pose.state import MRP, POS, RATE, VEL
 
 CORNER_SITES = tuple(f"corner_{c}" for c in "ABCDEFGH")
@@ -36,9 +36,14 @@ def plugin_attributes(cfg: ScenarioConfig) -> dict[str, str]:
 
 
 def model_xml(cfg: ScenarioConfig, path: str | None = None) -> str:
-    """The MJCF text with the scenario's orbit in the plugin attributes and its physics step."""
-    tree = ET.parse(path or model_path())
-    root = tree.getroot()
+    """The MJCF text with the scenario's orbit in the plugin attributes and its physics step: the scene of
+    `path` if given (an MJCF scene file), else of the scenario's target file (cfg.target.file)."""
+    if path is not None:
+        root = ET.parse(path).getroot()
+    else:
+        from envisat_pose.datagen.target_model import load_target, scene_xml
+
+        root = ET.fromstring(scene_xml(load_target(cfg.target.file, "target.file")))
     attrs = plugin_attributes(cfg)
     plugin = next(p for p in root.iter("plugin") if p.get("plugin") == PLUGIN_NAME)
     for conf in plugin.iter("config"):
@@ -64,7 +69,10 @@ class TruthSim:
         self.qpos_adr = self.model.joint("target_free").qposadr[0]
         self.qvel_adr = self.model.joint("target_free").dofadr[0]
         self.mocap_id = self.model.body("chaser").mocapid[0]
-        self.corner_site_ids = np.array([self.model.site(n).id for n in CORNER_SITES])
+        from envisat_pose.datagen.target_model import load_target
+
+        self.target = load_target(cfg.target.file, "target.file")
+        self.corner_site_ids = np.array([self.model.site(n).id for n in self.target.keypoint_sites])
         self.cam_id = self.model.camera(CAMERA_NAME).id
 
     def set_state(self, x: np.ndarray, t_s: float) -> None:
@@ -108,10 +116,11 @@ class TruthSim:
         return np.concatenate([rho_C, rhodot_C, p, w_r_T])
 
     def corner_observation(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """What the chaser sees of corners A-H now, from MuJoCo's own sites and camera (sync_chaser first).
+        """What the chaser sees of the K keypoints (ENVISAT: corners A-H) now, from MuJoCo's own sites and camera
+        (sync_chaser first).
 
-        Returns corners_C_m (8, 3) relative to the chaser in C; corners_px (8, 2) through camera chaser_cam
-        (intrinsics from MuJoCo's compiled fovy and resolution, OpenCV pixel convention); in_frame (8,) bool,
+        Returns corners_C_m (K, 3) relative to the chaser in C; corners_px (K, 2) through camera chaser_cam
+        (intrinsics from MuJoCo's compiled fovy and resolution, OpenCV pixel convention); in_frame (K,) bool,
         in front of the camera and inside the image; c_T_m (3,) the chaser's position in T.
         """
         m, d = self.model, self.data
@@ -133,6 +142,29 @@ class TruthSim:
         R_W_T = d.xmat[self.target_id].reshape(3, 3)
         c_T = (chaser_W - d.xpos[self.target_id]) @ R_W_T
         return corners_C, uv, in_frame, c_T
+
+    def keypoint_visibility(self, floor_m: float | None = None) -> np.ndarray:
+        """(K,) bool: nothing of the target lies on the line of sight from the camera to each keypoint nearer than
+        the keypoint less the occlusion tolerance (labels.occlusion_tolerance_m with the target's floor): a ray
+        cast through the model (mujoco.mj_ray), the chaser's own geoms excluded. Another target's truth uses it;
+        ENVISAT's keeps the box's face rule (geometry.visible_corners)."""
+        from envisat_pose.datagen.clearance import target_occlusion_floor_m
+        from envisat_pose.datagen.labels import occlusion_tolerance_m
+
+        m, d = self.model, self.data
+        cam = d.cam_xpos[self.cam_id]
+        pts = d.site_xpos[self.corner_site_ids]
+        dist = np.linalg.norm(pts - cam, axis=1)
+        f_px = 0.5 * m.cam_resolution[self.cam_id][1] / np.tan(np.radians(m.cam_fovy[self.cam_id]) / 2.0)
+        floor = target_occlusion_floor_m(self.target.path) if floor_m is None else floor_m
+        tol = occlusion_tolerance_m(dist, f_px, floor)
+        chaser = m.body("chaser").id
+        geomid = np.zeros(1, dtype=np.int32)
+        out = np.empty(len(pts), dtype=bool)
+        for k in range(len(pts)):
+            hit = mujoco.mj_ray(m, d, cam, (pts[k] - cam) / dist[k], None, 1, chaser, geomid)
+            out[k] = hit < 0 or hit >= dist[k] - tol[k]
+        return out
 
     def step(self, nstep: int) -> None:
         """Advance nstep RK4 steps (mj_step: mj_step1/2 would fall back to Euler)."""

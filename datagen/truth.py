@@ -32,13 +32,14 @@ def simulate(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajectory:
     """Simulate the scenario with MuJoCo (RK4, relative gravity in the C plugin) and sample it every dt_s."""
     rng = np.random.default_rng(np.random.SeedSequence(cfg.seed))
     sim = TruthSim(cfg)
-    n = cfg.n_out
+    n, K = cfg.n_out, len(sim.target.keypoint_names)
     t_s = np.arange(n) * cfg.dt_s
     x = np.empty((n, 12))
-    corners_C_m = np.empty((n, 8, 3))
-    corners_px = np.empty((n, 8, 2))
-    in_frame = np.empty((n, 8), dtype=bool)
+    corners_C_m = np.empty((n, K, 3))
+    corners_px = np.empty((n, K, 2))
+    in_frame = np.empty((n, K), dtype=bool)
     c_T_m = np.empty((n, 3))
+    ray_visible = None if sim.target.is_envisat else np.empty((n, K), dtype=bool)
     sim.set_state(initial_state(cfg, rng), 0.0)
     bar = None
     if progress:
@@ -53,6 +54,8 @@ def simulate(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajectory:
             sim.sync_chaser()
         x[k] = sim.relative_state()
         corners_C_m[k], corners_px[k], in_frame[k], c_T_m[k] = sim.corner_observation()
+        if ray_visible is not None:
+            ray_visible[k] = sim.keypoint_visibility()
         if bar is not None and (k % chunk == 0 or k == n - 1):
             bar.update(k + 1 - bar.n)
     if bar is not None:
@@ -66,7 +69,7 @@ def simulate(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajectory:
         chaser_theta_rad=orb.theta_rad,
         chaser_thetadot_rad_s=orb.thetadot_rad_s,
         corners_C_m=corners_C_m,
-        visible=visible_corners(c_T_m),
+        visible=visible_corners(c_T_m) if ray_visible is None else ray_visible,
         corners_px=corners_px,
         in_frame=in_frame,
         config_json=to_json(cfg),

@@ -135,7 +135,8 @@ def sequence_frames(cfg_json: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     cfg = config_from_json(cfg_json)
     n = cfg.num_images
     seq = cfg.sequence
-    scen = scenario_config(seq.scenario, duration_s=max(n - 1, 1) * seq.frame_dt_s, dt_s=seq.frame_dt_s, seed=cfg.seed)
+    scen = scenario_config(seq.scenario, duration_s=max(n - 1, 1) * seq.frame_dt_s, dt_s=seq.frame_dt_s, seed=cfg.seed,
+                           target={"file": cfg.target})
     traj = simulate(scen)
     t_s, x = traj.t_s[:n], traj.x[:n]
     orb = chaser_orbit(scen.orbit, t_s)

@@ -150,10 +150,11 @@ class TruthTrajectory(_Contract):
     t_s: (N,) s, increasing. x: (N, 12) = (rho_C_m, rhodot_C_m_s, p_mrp with |p| <= 1, w_r_T_rad_s), the paper's
     state (reference sheet, section 3). chaser_r_m, chaser_rdot_m_s, chaser_theta_rad, chaser_thetadot_rad_s:
     (N,) the chaser's polar orbit (m, m/s, rad, rad/s).
-    corners_C_m: (N, 8, 3) corners A-H relative to the chaser, in C, m: MuJoCo's corner sites.
-    visible: (N, 8) bool, the exact face test of the box from the chaser.
-    corners_px: (N, 8, 2) MuJoCo's corner sites projected through MuJoCo's chaser camera, px (OpenCV
-    convention: pixel centres at integer coordinates); in_frame: (N, 8) bool, in front of the camera and
+    corners_C_m: (N, K, 3) the target's K keypoints (ENVISAT: K = 8, corners A-H) relative to the chaser, in C, m:
+    MuJoCo's keypoint sites (the target file's, config_json's target.file). visible: (N, K) bool, ENVISAT: the exact
+    face test of the box from the chaser; another target: a ray cast through the model (TruthSim.keypoint_visibility).
+    corners_px: (N, K, 2) MuJoCo's keypoint sites projected through MuJoCo's chaser camera, px (OpenCV
+    convention: pixel centres at integer coordinates); in_frame: (N, K) bool, in front of the camera and
     inside the image.
     config_json: the full validated scenario config as JSON.
     """
@@ -178,10 +179,10 @@ class TruthTrajectory(_Contract):
         "chaser_rdot_m_s": ("f", ("N",), "finite"),
         "chaser_theta_rad": ("f", ("N",), "finite"),
         "chaser_thetadot_rad_s": ("f", ("N",), "finite"),
-        "corners_C_m": ("f", ("N", 8, 3), "finite"),
-        "visible": ("b", ("N", 8), None),
-        "corners_px": ("f", ("N", 8, 2), "finite"),
-        "in_frame": ("b", ("N", 8), None),
+        "corners_C_m": ("f", ("N", "K", 3), "finite"),
+        "visible": ("b", ("N", "K"), None),
+        "corners_px": ("f", ("N", "K", 2), "finite"),
+        "in_frame": ("b", ("N", "K"), None),
     }
 
     def check(self, path: str) -> None:

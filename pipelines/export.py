@@ -12,6 +12,7 @@ non-empty `out_dir` is refused.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import re
@@ -32,12 +33,15 @@ STAGE_PREFIX = ".tmp-export-"
 class ExportConfig:
     """fmt: speedplus | coco | bop | yolo-pose. image_format: png (the shards' bytes) or jpg (quality 95).
     val_fraction: share of the images in the validation split (None: 0.2 for random views, 0 for a sequence,
-    whose split is its last frames); seed: the split's seed."""
+    whose split is its last frames); seed: the split's seed. target: the target's MJCF file where the dataset's
+    recorded one (its config's `target`) is not found from here; None: the recorded one. Either way its sha256
+    must be the one the manifest recorded."""
 
     fmt: str
     image_format: str = "png"
     val_fraction: float | None = None
     seed: int = 0
+    target: str | None = None
 
     def validate(self) -> None:
         check(self.fmt in fx.FORMATS, "format", self.fmt, " | ".join(fx.FORMATS))
@@ -75,7 +79,9 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     with skip_hint():
         shards, skipped = checked_shards(src, skip_damaged, "src")
     gen = _generate_config(src, manifest)
-    layout = _layout(cfg, gen, src)
+    if cfg.target is not None:
+        gen = dataclasses.replace(gen, target=cfg.target)
+    layout = _layout(cfg, gen, src, manifest)
     if cfg.fmt == "bop" and not gen.write_mask:
         raise InputError(f"src {src!r}: bop needs the dataset's masks (it was generated with write_mask = false)")
     if cfg.fmt == "speedplus" and layout.mode == "sequence" and cfg.val_fraction:
@@ -114,18 +120,35 @@ def _generate_config(src: str, manifest: dict):
         raise InputError(f"src {src!r}: manifest.json holds no readable generate config ({err})") from None
 
 
-def _layout(cfg: ExportConfig, gen, src: str) -> lay.Layout:
+def _layout(cfg: ExportConfig, gen, src: str, manifest: dict) -> lay.Layout:
     """What every sample shares: the target's keypoints and model outline from its MJCF, the sequence's name."""
     from envisat_pose.datagen.target_mesh import target_mesh
-    from envisat_pose.geometry import CORNER_NAMES, load_geometry, model_path
+    from envisat_pose.geometry import CORNER_NAMES, load_geometry
 
-    path = model_path()
+    target = _dataset_target(src, gen, manifest)
+    path = target.path
     mesh = target_mesh(path, gen.appendages_on) if cfg.fmt in ("bop", "coco", "yolo-pose") else None
     name = re.sub(r"[^A-Za-z0-9_.-]+", "_", os.path.basename(os.path.normpath(os.path.abspath(src)))) or "sequence"
     depth_mm = gen.depth_scale_m * 1000.0 if gen.write_depth else None
-    return lay.Layout(cfg.fmt, cfg.image_format, gen.mode, name, "envisat", tuple(CORNER_NAMES),
-                      load_geometry(path).corners_T_m.tolist(),
+    if target.is_envisat:
+        names, points = tuple(CORNER_NAMES), load_geometry(path).corners_T_m.tolist()
+    else:
+        names, points = target.keypoint_names, target.keypoints_T_m.tolist()
+    return lay.Layout(cfg.fmt, cfg.image_format, gen.mode, name, target.name, names, points,
                       mesh.vertices_T_m.tolist() if mesh is not None else [], depth_mm)
+
+
+def _dataset_target(src: str, gen, manifest: dict):
+    """The dataset's target (its config's `target` file; datasets written before it: ENVISAT), refused when the
+    file's sha256 differs from the one its manifest recorded."""
+    from envisat_pose.datagen.target_model import load_target
+
+    target = load_target(gen.target, "target")
+    recorded = (manifest.get("target") or {}).get("sha256")
+    if recorded is not None and recorded != target.sha256:
+        raise InputError(f"src {src!r}: its target file {gen.target!r} changed since the dataset was generated "
+                         f"(sha256 {target.sha256[:12]}..., the manifest recorded {recorded[:12]}...)")
+    return target
 
 
 def _shard_counts(manifest: dict, shards: list[str]) -> list[int]:
@@ -198,9 +221,9 @@ def _write_static(layout: lay.Layout, stage: str, gen, manifest: dict, has_val: 
 
 def _write_bop_model(layout: lay.Layout, stage: str, gen, K: np.ndarray) -> None:
     from envisat_pose.datagen.target_mesh import ply_bytes, target_mesh
-    from envisat_pose.geometry import model_path
+    from envisat_pose.datagen.target_model import load_target
 
-    mesh = target_mesh(model_path(), gen.appendages_on)
+    mesh = target_mesh(load_target(gen.target).path, gen.appendages_on)
     folder = os.path.join(stage, "models")
     os.makedirs(folder, exist_ok=True)
     with open(os.path.join(folder, "obj_000001.ply"), "wb") as fh:

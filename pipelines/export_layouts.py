@@ -193,7 +193,7 @@ def _assemble_coco(layout: Layout, stage: str, split: str) -> int:
     from envisat_pose.geometry import EDGES
 
     category = {"id": 1, "name": layout.target, "supercategory": "spacecraft",
-                "keypoints": list(layout.keypoint_names), "skeleton": fx.coco_skeleton(EDGES),
+                "keypoints": list(layout.keypoint_names), "skeleton": fx.coco_skeleton(EDGES) if layout.target == "envisat" else [],
                 "keypoints_3d_m": layout.keypoints_T_m}
     n = 0
     with open(path, "w", encoding="utf-8") as fh:
