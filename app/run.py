@@ -82,9 +82,11 @@ def _fmt(v, digits: int = 0) -> str:
 
 
 def run_cli(args: argparse.Namespace) -> int:
+    from envisat_pose.datagen.target_model import require_envisat
     from envisat_pose.pipelines.closed_loop import run_closed_loop
 
     cfg = resolve_config(args)
+    require_envisat(cfg.image.target, "image.target", "run")
     sink = recording_sink(args)
     summary = run_closed_loop(cfg, args.out, progress=not args.quiet, sink=sink)  # staged: nothing half-written
     print_table(summary)

@@ -325,8 +325,31 @@ def envisat_target() -> TargetModel:
     return load_target(ENVISAT_TARGET)
 
 
+def _only_envisat(verb: str) -> str:
+    return (f"ENVISAT ({ENVISAT_TARGET}): `envisat {verb}` and the detector know ENVISAT's corners A-H only; "
+            "another target's images and labels come from `envisat generate --target` (docs/usage.md)")
+
+
 def require_envisat(given: str, field: str, verb: str) -> None:
-    """ConfigError unless `given` names ENVISAT: the detector and the verbs built on it know ENVISAT only."""
-    if not load_target(given, field).is_envisat:
-        raise ConfigError(field, given, f"ENVISAT ({ENVISAT_TARGET}): `envisat {verb}` and the shipped detector "
-                                        "know ENVISAT only (another target's images come from `envisat generate`)")
+    """ConfigError unless the `target` value `given` names ENVISAT: the detector and the verbs built on it (track,
+    run, adapt, train, detect) know ENVISAT only."""
+    if given != ENVISAT_TARGET and not load_target(given, field).is_envisat:
+        raise ConfigError(field, given, _only_envisat(verb))
+
+
+def require_envisat_dataset(folder: str, field: str, verb: str) -> None:
+    """ConfigError unless the dataset in `folder` (its manifest.json) shows ENVISAT: its config's `target` is
+    ENVISAT's (a dataset written before targets had none: ENVISAT). A folder without a manifest passes (the verb
+    reports it)."""
+    import json
+
+    try:
+        with open(os.path.join(folder, "manifest.json"), encoding="utf-8") as fh:
+            manifest = json.load(fh)
+    except (OSError, ValueError):
+        return
+    record = manifest.get("target") or {}
+    given = (manifest.get("config") or {}).get("target", ENVISAT_TARGET)
+    if given != ENVISAT_TARGET and (record.get("name") != "envisat" or
+                                    record.get("keypoint_names") != list(CORNER_NAMES)):
+        raise ConfigError(field, folder, _only_envisat(verb) + f"; this dataset's target is {given!r}")

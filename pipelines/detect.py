@@ -76,9 +76,11 @@ def detect_dataset(cfg: DetectJobConfig, data: str, progress: bool = False) -> d
     from tqdm import tqdm
 
     from envisat_pose.contracts import Detections
+    from envisat_pose.datagen.target_model import require_envisat_dataset
     from envisat_pose.perception.detect import load_detector
     from envisat_pose.shard_reader import checked_shards
 
+    require_envisat_dataset(data, "data", "detect")
     paths, skipped = checked_shards(data, cfg.skip_damaged, "data")
     rois = read_roi(cfg.roi) if cfg.roi else {}
     det = load_detector(cfg.weights, device=cfg.device)

@@ -316,8 +316,10 @@ def dataset_source(path: str, skip_damaged: bool = False) -> FrameSource:
     skip_damaged: its frames are then missing from the sequence, the times say where)."""
     from envisat_pose.datagen.dataset import iter_samples, load_manifest
     from envisat_pose.datagen.generate_config import nest_moved_keys
+    from envisat_pose.datagen.target_model import require_envisat_dataset
     from envisat_pose.shard_reader import checked_shards
 
+    require_envisat_dataset(path, "src", "track` / `envisat adapt")
     manifest = load_manifest(path)
     cfg = manifest.get("config", {})
     if cfg.get("mode") != "sequence":

@@ -29,9 +29,12 @@ class OnlineConfig:
     uses_per_frame: int = 8
 
     def __post_init__(self) -> None:
+        from envisat_pose.datagen.target_model import require_envisat
         from envisat_pose.pipelines.online import MAX_USES_PER_FRAME, as_looks
 
         object.__setattr__(self, "looks", as_looks(self.looks))
+        for look in self.looks:
+            require_envisat(look.generate.target, f"looks.{look.name}.generate.target", "train")
         check(isinstance(self.workers, int) and self.workers >= 1, "online.workers", self.workers,
               "at least 1 renderer process")
         check(isinstance(self.uses_per_frame, int) and 1 <= self.uses_per_frame <= MAX_USES_PER_FRAME,
@@ -108,10 +111,13 @@ def dataset_provenance(data_dir: str, skipped: list[str] = ()) -> dict:
 def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | None, workers: int | None,
                  threads: int | None, online: bool = False) -> None:
     """Every input of a training run but the shards checked before any work; InputError naming the argument."""
+    from envisat_pose.datagen.target_model import require_envisat_dataset
     from envisat_pose.runner import check_out_dir
 
     if not data_dirs and not online:
         raise InputError("data_dirs: no dataset folder given")
+    for folder in data_dirs:
+        require_envisat_dataset(folder, "data_dirs", "train")
     if init is not None and resume:
         raise InputError("init and resume: a resumed run goes on from its own checkpoint; give one of them")
     if init is not None and not os.path.isfile(init):

@@ -348,3 +348,25 @@ def test_a_shipped_target_matches_its_note_and_generates(name, mass_kg, inertia,
         label = json.loads(members["json"])
         assert len(label["keypoints_px"]) == len(label["visible"]) == len(label["in_frame"]) == 12
         assert label["keypoint_names"] == list(target.keypoint_names) and any(label["visible"])
+
+
+def test_the_detector_verbs_refuse_another_target_in_one_line(target_files, tmp_path, capsys):
+    """detect, train, track and adapt on a dataset of the test's target, run with it as its image target: exit 2,
+    one line naming the field and ENVISAT, nothing written."""
+    plain, _ = target_files
+    data = tmp_path / "seq"
+    assert main(["generate", "--target", plain, "--mode", "sequence", "--num-images", "2", "--resolution", "64",
+                 "--out", str(data), "--quiet"]) == 0
+    run_config = tmp_path / "run.toml"
+    run_config.write_text(f'[image]\ntarget = "{plain}"\n')
+    out = tmp_path / "out"
+    for argv, field in [(["detect", "--data", str(data), "--out", str(out / "det.npz")], "data"),
+                        (["train", "--data", str(data), "--out", str(out)], "data"),
+                        (["track", "--images", str(data), "--out", str(out)], "src"),
+                        (["adapt", "--images", str(data), "--out", str(out)], "src"),
+                        (["run", "--config", str(run_config), "--duration-s", "5", "--out", str(out)], "image.target")]:
+        capsys.readouterr()
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and field in err and "ENVISAT" in err and f"envisat {argv[0]}" in err, err
+        assert not out.exists()
