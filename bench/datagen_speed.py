@@ -28,6 +28,8 @@ fresh process takes to import, build its renderer and make every texture a long 
 those images at the steady rate; the Earth textures are made beside the first renders from
 factory.PREFETCH_EARTH_MIN_IMAGES images on, where a core is spare); with the steady rate, the rate and ratio of
 a 1000-image run with start-up counted and excluded.
+Issue 48 (`--targets --baseline DIR`): ENVISAT's time per image against a baseline tree's and the shipped targets'
+against ENVISAT's, in one run (TARGET_RUNS, main_targets).
 Run: .venv/bin/python bench/datagen_speed.py  (writes bench/results/datagen_speed.json)
 """
 
@@ -396,9 +398,87 @@ def cpu_scaling_probe() -> float:
     return 2.0 * one / two
 
 
+# Issue 48 (`--targets [--baseline DIR]`): seconds per image of run_generate, 1 worker, 1024 px, random mode with
+# the default config, for ENVISAT at this tree and at a baseline tree (DIR: a `git archive` of the commit before the
+# target work, its plugin built), and for the shipped targets at ranges where they fill the image about as ENVISAT
+# does at 20-80 m; alternating rounds, each run in a fresh process after a warm-up dataset, medians. Floors:
+# ENVISAT within 5 % of the baseline, each shipped target within 1.5x of ENVISAT's time per image.
+TARGET_RUNS = {
+    "envisat": {},
+    "cubesat_3u": {"target": "models/cubesat_3u.xml",
+                   "random": {"range_min_m": 1.5, "range_max_m": 5.0, "keepout_margin_m": 0.5}},
+    "upper_stage": {"target": "models/upper_stage.xml"},
+}
+
+
+def target_run_s(extra: dict, n: int, tree: str | None) -> float:
+    """Seconds per image of run_generate (n images, 1024 px, shards of SHARD_SIZE) in a fresh process whose
+    envisat_pose comes from `tree` (None: the installed one), after a 4-image warm-up dataset of the same config."""
+    import subprocess
+    import sys
+
+    code = ("import json, os, sys, tempfile, shutil, time\n"
+            + (f"sys.path.insert(0, {tree!r})\n" if tree else "")
+            + "from envisat_pose.config import from_dict\n"
+            "from envisat_pose.datagen.generate_config import GenerateConfig\n"
+            "from envisat_pose.datagen.factory import run_generate\n"
+            f"base = dict(resolution_px=1024, shard_size={SHARD_SIZE}, seed={SEED}, **json.loads({json.dumps(extra)!r}))\n"
+            "out = tempfile.mkdtemp()\n"
+            "run_generate(from_dict(GenerateConfig, dict(base, num_images=4)), os.path.join(out, 'warm'))\n"
+            "t0 = time.perf_counter()\n"
+            f"run_generate(from_dict(GenerateConfig, dict(base, num_images={n})), os.path.join(out, 'ds'))\n"
+            f"print(json.dumps((time.perf_counter() - t0) / {n}))\n"
+            "shutil.rmtree(out)\n")
+    res = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True,
+                         env=dict(os.environ), cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    return float(res.stdout.strip().splitlines()[-1])
+
+
+def main_targets(baseline: str | None) -> None:
+    n = int(os.environ.get("BENCH_IMAGES", "24"))
+    rounds = int(os.environ.get("BENCH_ROUNDS", "3"))
+    out = {"images": n, "rounds": [], "resolution_px": 1024, "seed": SEED, "baseline": baseline,
+           "load_avg_start": os.getloadavg(), "machine": {"cpus": os.cpu_count(), "platform": platform.platform()}}
+    for r in range(rounds):
+        row = {}
+        if baseline:
+            row["envisat_baseline"] = target_run_s({}, n, baseline)
+        for name, extra in TARGET_RUNS.items():
+            row[name] = target_run_s(extra, n, None)
+        row["load_avg_1min"] = os.getloadavg()[0]
+        out["rounds"].append(row)
+        print(f"round {r}: " + ", ".join(f"{k} {v:.3f}" + (" s/img" if k != "load_avg_1min" else "")
+                                         for k, v in row.items()), flush=True)
+    med = {k: statistics.median(row[k] for row in out["rounds"]) for k in out["rounds"][0] if k != "load_avg_1min"}
+    out["median_s_per_image"] = med
+    if baseline:
+        out["envisat_vs_baseline"] = med["envisat"] / med["envisat_baseline"]
+        out["floor_envisat_within_5pct_met"] = abs(out["envisat_vs_baseline"] - 1.0) <= 0.05
+    for name in TARGET_RUNS:
+        if name != "envisat":
+            out[f"{name}_vs_envisat"] = med[name] / med["envisat"]
+            out[f"floor_{name}_within_1_5x_met"] = out[f"{name}_vs_envisat"] <= 1.5
+    out["load_avg_end"] = os.getloadavg()
+    print(json.dumps({k: v for k, v in out.items() if k not in ("rounds", "machine")}, indent=1))
+    tag = os.environ.get("BENCH_TAG") or f"{os.environ['MUJOCO_GL']}_{os.cpu_count()}cpu"
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "datagen_speed.json")
+    everything = {}
+    if os.path.exists(path):
+        with open(path, encoding="utf-8") as fh:
+            everything = json.load(fh)
+    everything[f"issue48_targets_{tag}"] = out
+    with open(path, "w", encoding="utf-8") as fh:
+        json.dump(everything, fh, indent=1, sort_keys=True)
+        fh.write("\n")
+    print(f"wrote {path} [issue48_targets_{tag}]")
+
+
 def main() -> None:
     import sys
 
+    if "--targets" in sys.argv:
+        i = sys.argv.index("--baseline") if "--baseline" in sys.argv else None
+        return main_targets(sys.argv[i + 1] if i is not None else None)
     if "--issue3" not in sys.argv:
         return main_issue9()  # the issue-9 table with issue 18's floor
     results = {
