@@ -164,7 +164,7 @@ def _write_array(path: str, items) -> int:
 def assemble(layout: Layout, stage: str, splits: tuple[str, ...]) -> dict[str, int]:
     """Write the annotation files from the records; returns the images per split."""
     if layout.fmt == "speedplus":
-        return _assemble_speedplus(layout, stage, splits)
+        return _assemble_speedplus(layout, stage)
     if layout.fmt == "coco":
         return {s: _assemble_coco(layout, stage, s) for s in splits}
     if layout.fmt == "bop":
@@ -172,7 +172,7 @@ def assemble(layout: Layout, stage: str, splits: tuple[str, ...]) -> dict[str, i
     return {s: sum(1 for r in read_records(stage) if r["split"] == s) for s in splits}
 
 
-def _assemble_speedplus(layout: Layout, stage: str, splits: tuple[str, ...]) -> dict[str, int]:
+def _assemble_speedplus(layout: Layout, stage: str) -> dict[str, int]:
     if layout.mode == "sequence":
         seq = layout.sequence
         n = _write_array(os.path.join(stage, seq, f"{seq}.json"), (r["entry"] for r in read_records(stage)))
@@ -182,9 +182,9 @@ def _assemble_speedplus(layout: Layout, stage: str, splits: tuple[str, ...]) -> 
         with open(os.path.join(stage, seq, "metadata.json"), "w", encoding="utf-8") as fh:
             json.dump(meta, fh, indent=1)
         return {seq: n}
-    names = {"train": "train.json", "val": "validation.json"}
+    names = {"train": "train.json", "val": "validation.json"}  # both, as SPEED+ has (one may be empty)
     return {s: _write_array(os.path.join(stage, "synthetic", names[s]),
-                            (r["entry"] for r in read_records(stage) if r["split"] == s)) for s in splits}
+                            (r["entry"] for r in read_records(stage) if r["split"] == s)) for s in names}
 
 
 def _assemble_coco(layout: Layout, stage: str, split: str) -> int:

@@ -353,3 +353,35 @@ def test_jpg_images(datasets, tmp_path):
     entries = json.load(open(os.path.join(out, "seq", "seq.json")))
     first = _read_gray(os.path.join(out, "seq", "synthetic", "images", entries[0]["filename"]))
     assert entries[0]["filename"].endswith(".jpg") and first.shape == (512, 512)
+
+
+def test_another_target_exports_its_own_keypoints(tmp_path):
+    """A shipped non-ENVISAT target (the 3U CubeSat, 12 keypoints): every format carries its K keypoints and its
+    name, and the poses reproject its own 3-D keypoints onto the labels."""
+    from envisat_pose.geometry import model_path
+
+    cube = os.path.join(os.path.dirname(model_path()), "cubesat_3u.xml")
+    src = str(tmp_path / "cube")
+    run_generate(from_dict(GenerateConfig, {"target": cube, "num_images": 3, "shard_size": 3, "resolution_px": 256,
+                                            "seed": 3, "random": {"range_min_m": 4.0, "range_max_m": 7.0,
+                                                                  "keepout_margin_m": 1.0}}), src)
+    labels = [lab for _, lab, _ in iter_samples(src)]
+    names = labels[0]["keypoint_names"]
+    assert len(names) == 12
+    outs = {f: export_dataset(src, str(tmp_path / f), ExportConfig(f, val_fraction=0.0), progress=False).out_dir
+            for f in FORMATS}
+    camera, points, entries, _ = speedplus_errors_px(outs["speedplus"])
+    assert points.shape == (3, 12)
+    for e, lab in zip(sorted(entries, key=lambda e: e["filename"]), labels):
+        uv = spnv2_project(e["q_vbs2tango_true"], e["r_Vo2To_vbs_true"], camera, points)
+        assert np.abs(uv - np.asarray(lab["keypoints_px"])).max() < 1e-3
+    coco = json.load(open(os.path.join(outs["coco"], "annotations", "keypoints_train.json")))
+    assert coco["categories"][0]["name"] == "cubesat_3u" and coco["categories"][0]["keypoints"] == names
+    for ann, lab in zip(coco["annotations"], labels):
+        kp = np.asarray(ann["keypoints"], float).reshape(-1, 3)
+        inside = kp[:, 2] > 0
+        assert kp.shape == (12, 3) and np.abs(kp[inside, :2] - np.asarray(lab["keypoints_px"])[inside]).max() < 0.01
+    assert "kpt_shape: [12, 3]" in open(os.path.join(outs["yolo-pose"], "data.yaml")).read()
+    bop_kp = json.load(open(os.path.join(outs["bop"], "models", "keypoints_3d.json")))["1"]
+    assert bop_kp["names"] == names and np.allclose(np.asarray(bop_kp["points_mm"]).T, points * 1000.0)
+    assert json.load(open(os.path.join(outs["bop"], "export.json")))["target"] == "cubesat_3u"
