@@ -398,9 +398,10 @@ def cpu_scaling_probe() -> float:
     return 2.0 * one / two
 
 
-# Issue 48 (`--targets [--baseline DIR]`): seconds per image of run_generate, 1 worker, 1024 px, random mode with
-# the default config, for ENVISAT at this tree and at a baseline tree (DIR: a `git archive` of the commit before the
-# target work, its plugin built), and for the shipped targets at ranges where they fill the image about as ENVISAT
+# Issue 48 (`--targets [--baseline DIR] [--current DIR]`): seconds per image of run_generate, 1 worker, 1024 px,
+# random mode with the default config, for ENVISAT at this tree (or at --current DIR: a `git archive` of the commit
+# measured, so edits in the working tree stay out) and at a baseline tree (DIR: a `git archive` of the commit before
+# the target work, its plugin's .so copied in), and for the shipped targets at ranges where they fill the image about as ENVISAT
 # does at 20-80 m; alternating rounds, each run in a fresh process after a warm-up dataset, medians. Floors:
 # ENVISAT within 5 % of the baseline, each shipped target within 1.5x of ENVISAT's time per image.
 TARGET_RUNS = {
@@ -429,22 +430,24 @@ def target_run_s(extra: dict, n: int, tree: str | None) -> float:
             f"run_generate(from_dict(GenerateConfig, dict(base, num_images={n})), os.path.join(out, 'ds'))\n"
             f"print(json.dumps((time.perf_counter() - t0) / {n}))\n"
             "shutil.rmtree(out)\n")
-    res = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True,
-                         env=dict(os.environ), cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=dict(os.environ), cwd=tree or os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    if res.returncode != 0:
+        raise RuntimeError(f"the run of {extra} in {tree or 'this tree'} failed:\n{res.stderr[-2000:]}")
     return float(res.stdout.strip().splitlines()[-1])
 
 
-def main_targets(baseline: str | None) -> None:
+def main_targets(baseline: str | None, current: str | None = None) -> None:
     n = int(os.environ.get("BENCH_IMAGES", "24"))
     rounds = int(os.environ.get("BENCH_ROUNDS", "3"))
-    out = {"images": n, "rounds": [], "resolution_px": 1024, "seed": SEED, "baseline": baseline,
+    out = {"images": n, "rounds": [], "resolution_px": 1024, "seed": SEED, "baseline": baseline, "current": current,
            "load_avg_start": os.getloadavg(), "machine": {"cpus": os.cpu_count(), "platform": platform.platform()}}
     for r in range(rounds):
         row = {}
         if baseline:
             row["envisat_baseline"] = target_run_s({}, n, baseline)
         for name, extra in TARGET_RUNS.items():
-            row[name] = target_run_s(extra, n, None)
+            row[name] = target_run_s(extra, n, current)
         row["load_avg_1min"] = os.getloadavg()[0]
         out["rounds"].append(row)
         print(f"round {r}: " + ", ".join(f"{k} {v:.3f}" + (" s/img" if k != "load_avg_1min" else "")
@@ -477,8 +480,10 @@ def main() -> None:
     import sys
 
     if "--targets" in sys.argv:
-        i = sys.argv.index("--baseline") if "--baseline" in sys.argv else None
-        return main_targets(sys.argv[i + 1] if i is not None else None)
+        def value(flag: str) -> str | None:
+            return sys.argv[sys.argv.index(flag) + 1] if flag in sys.argv else None
+
+        return main_targets(value("--baseline"), value("--current"))
     if "--issue3" not in sys.argv:
         return main_issue9()  # the issue-9 table with issue 18's floor
     results = {

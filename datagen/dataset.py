@@ -144,15 +144,18 @@ def dataset_stats(source: str | list[str]) -> dict:
 
 
 def draw_labels(gray_u8: np.ndarray, label: dict) -> np.ndarray:
-    """A BGR copy of an image with the labelled box edges and corners (green visible, red hidden) and letters."""
+    """A BGR copy of an image with the labelled box edges and corners (green visible, red hidden) and letters;
+    another target's label: its keypoints and their names."""
     import cv2
 
     img = cv2.cvtColor(gray_u8, cv2.COLOR_GRAY2BGR)
     n = gray_u8.shape[0]
     scale = 16  # cv2 draws with 4 fractional bits: sub-pixel positions
-    pts = [(int(round(u * scale)), int(round(v * scale))) for u, v in label["corners_px"]]
+    envisat = "corners_px" in label  # another target: its named keypoints, no box edges
+    names = CORNER_NAMES if envisat else label["keypoint_names"]
+    pts = [(int(round(u * scale)), int(round(v * scale))) for u, v in label["corners_px" if envisat else "keypoints_px"]]
     thick = max(1, n // 512)
-    for a, b in EDGES:
+    for a, b in EDGES if envisat else ():
         if label["in_frame"][a] or label["in_frame"][b]:
             cv2.line(img, pts[a], pts[b], (255, 160, 0), thick, cv2.LINE_AA, shift=4)
     for i, (p, vis, inside) in enumerate(zip(pts, label["visible"], label["in_frame"])):
@@ -160,7 +163,7 @@ def draw_labels(gray_u8: np.ndarray, label: dict) -> np.ndarray:
             continue
         color = (0, 220, 0) if vis else (0, 0, 255)
         cv2.circle(img, p, max(3, n // 100) * scale, color, thick, cv2.LINE_AA, shift=4)
-        cv2.putText(img, CORNER_NAMES[i], (p[0] // scale + 4, p[1] // scale - 4), cv2.FONT_HERSHEY_SIMPLEX,
+        cv2.putText(img, names[i], (p[0] // scale + 4, p[1] // scale - 4), cv2.FONT_HERSHEY_SIMPLEX,
                     max(0.35, n / 1400), color, thick, cv2.LINE_AA)
     return img
 

@@ -30,7 +30,7 @@ OCCLUSION_FLOOR_REACH_FRACTION = 0.02  # another target's floor: this share of i
 
 def occlusion_floor_m(reach_m: float) -> float:
     """The floor of a target's occlusion tolerance, m: 2 % of its reach (farthest geom point from the CoM), at
-    most 0.25 m (ENVISAT's reach is 23 m: 0.25 m; a 3U CubeSat with wings, 0.3 m: 6 mm)."""
+    most 0.25 m (ENVISAT's reach is 22 m: 0.25 m; the 3U CubeSat with wings, 0.29 m: 6 mm)."""
     return min(OCCLUSION_FLOOR_M, OCCLUSION_FLOOR_REACH_FRACTION * reach_m)
 
 

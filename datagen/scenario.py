@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envisat_pose.config import check, deep_update, from_dict
-from envisat_pose.geometry import load_geometry
 from envisat_pose.named_scenarios import table, truth_part
 
 EARTH_RADIUS_M = 6378137.0  # WGS-84 equatorial radius, used only to reject orbits inside the Earth
@@ -91,11 +90,12 @@ class RelativeConfig:
     rho0_C_m: tuple[float, float, float] = (0.0, 50.0, 0.0)
     rhodot0_C_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
-    def validate(self, prefix: str = "relative") -> None:
-        radius = float(np.linalg.norm(load_geometry().half_sizes_m))
+    def check_outside(self, radius_m: float, prefix: str = "relative") -> None:
+        """ConfigError unless |rho0| exceeds radius_m, the target's keypoints' circumscribed radius (ENVISAT: its
+        main body's corners, 5.29 m)."""
         rng = float(np.linalg.norm(self.rho0_C_m))
-        check(rng > radius, f"{prefix}.rho0_C_m", list(self.rho0_C_m),
-              f"a range above {radius:.2f} m (the main body's circumscribed radius); "
+        check(rng > radius_m, f"{prefix}.rho0_C_m", list(self.rho0_C_m),
+              f"a range above {radius_m:.2f} m (the main body's circumscribed radius); "
               f"|rho0| = {rng:.2f} m puts the chaser inside the target")
 
 
@@ -131,6 +131,10 @@ class ScenarioConfig:
         check(self.keepout_margin_m >= 0, f"{p}keepout_margin_m", self.keepout_margin_m,
               "a non-negative distance in m")
         check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed")
+        from envisat_pose.datagen.target_model import load_target
+
+        keypoints = load_target(self.target.file, f"{p}target.file").keypoints_T_m
+        self.relative.check_outside(float(np.linalg.norm(keypoints, axis=1).max()), f"{p}relative")
 
     @property
     def n_out(self) -> int:
