@@ -15,7 +15,9 @@ meets the camera:
    blooming_decay_px, charge conserved while the neighbours have room), then everything clips at full well;
 7. read noise: Gaussian, electrons;
 8. ADC: adc_bits bits over the full well (gain = full_well / (2^bits - 1) e-/DN), rounded and clipped, then
-   shown as 8 bits (DN x 255 / (2^bits - 1), rounded).
+   shown as 8 bits (DN x 255 / (2^bits - 1), rounded);
+9. response: the 8 bits stored linear (the default) or encoded, by the sRGB curve or a gamma (the label's
+   `response`, envisat_pose/camera_response.py: an 8-bit lookup table, as a camera's JPEG or a renderer's PNG).
 
 Every parameter is in the label's `corruption`; the noise comes from its `noise_seed` and the PRNU pattern
 from its `camera_seed`, so `apply_sensor(clean, params)` is a pure function of its inputs.
@@ -35,6 +37,7 @@ import math
 import cv2
 import numpy as np
 
+from envisat_pose.camera_response import parse_response
 from envisat_pose.datagen.image_kernels import content_box, motion_kernel, standard_normal_fast
 
 POISSON_EXACT_BELOW_E = 100.0  # exact Poisson draws below this mean; N(mean, mean) above (skewness < 0.1)
@@ -232,7 +235,7 @@ def draw_sensor(cfg: dict, resolution_px: int, f_px: float, speed_px_s: float, a
         "vignetting_cos_power": round(u("vignetting_cos_power"), 6),
         "f_px": f_px,
         "noise_seed": int(rng.integers(0, 2**63)),
-    }
+    } | ({} if cfg.get("response", "linear") == "linear" else {"response": cfg["response"]})
 
 
 def gaussian_psf_1d(sigma_px: float) -> np.ndarray:
@@ -391,7 +394,14 @@ def apply_sensor(gray_u8: np.ndarray, p: dict) -> np.ndarray:
         out = sample_discrete(pmf, h * w, rng).reshape(h, w)
         if keep is not None:
             out[y0:y1, x0:x1] = keep
-    return out
+    return encode_response(out, p)
+
+
+def encode_response(out_u8: np.ndarray, p: dict) -> np.ndarray:
+    """Step 9: the 8-bit linear output stored by the label's response (absent or 'linear': as it is)."""
+    if p.get("response", "linear") == "linear":
+        return out_u8
+    return cv2.LUT(out_u8, parse_response(p["response"], "response").encode_lut())
 
 
 def apply_sensor_box(irr: np.ndarray, box: tuple[int, int, int, int], shape: tuple[int, int], p: dict,

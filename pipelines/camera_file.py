@@ -1,16 +1,21 @@
 """A user's camera for `envisat track`: a TOML file of intrinsics (fx, fy, cx, cy in px, width, height, optional
 OpenCV distortion), checked for sense, as the ideal pinhole the tracker uses and the remap that makes the frames
-ideal. The camera's mount on the chaser is the MJCF's chaser_cam's."""
+ideal; and, where known, how the camera stores light (`response`: "linear", "srgb" or a gamma such as 2.2;
+envisat_pose/camera_response.py) and the width of its blur (`psf_sigma_px`: a Gaussian PSF's sigma, px), read by
+camera_look. The camera's mount on the chaser is the MJCF's chaser_cam's."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from envisat_pose.config import InputError, load_toml
+from envisat_pose.camera_response import Response, parse_response
+from envisat_pose.config import ConfigError, InputError, load_toml
 from envisat_pose.geometry import PinholeCamera, load_camera
 
 # fx / fy beyond this factor is not a camera (pixels that far from square are a typo or a swapped key)
 MAX_ASPECT = 3.0
+KEYS = ("fx", "fy", "cx", "cy", "width", "height", "distortion", "response", "psf_sigma_px")
+MAX_PSF_SIGMA_PX = 10.0  # a blur wider than this leaves no edge to locate
 
 
 def camera_from_intrinsics(path: str) -> tuple[PinholeCamera, tuple | None]:
@@ -48,9 +53,10 @@ def camera_from_intrinsics(path: str) -> tuple[PinholeCamera, tuple | None]:
         if not isinstance(dist, list) or len(dist) not in (4, 5, 8, 12, 14) \
                 or not all(isinstance(d, (int, float)) and np.isfinite(d) for d in dist):
             raise InputError(f"{path}: distortion = {dist!r}: expected OpenCV's 4, 5, 8, 12 or 14 coefficients")
-    unknown = sorted(set(data) - {"fx", "fy", "cx", "cy", "width", "height", "distortion"})
+    unknown = sorted(set(data) - set(KEYS))
     if unknown:
-        raise InputError(f"{path}: unknown camera keys {unknown} (expected fx, fy, cx, cy, width, height, distortion)")
+        raise InputError(f"{path}: unknown camera keys {unknown} (expected {', '.join(KEYS)})")
+    camera_look(path, data)
     f = float(np.sqrt(vals["fx"] * vals["fy"]))
     mount = load_camera()
     cam = PinholeCamera(f, vals["cx"], vals["cy"], w, h, mount.R_K_from_C, mount.pos_C_m)
@@ -60,3 +66,24 @@ def camera_from_intrinsics(path: str) -> tuple[PinholeCamera, tuple | None]:
     maps = cv2.initUndistortRectifyMap(K_user, np.asarray(dist or [0, 0, 0, 0], float), None, cam.K, (w, h),
                                        cv2.CV_32FC1)
     return cam, maps
+
+
+def camera_look(path: str, data: dict | None = None) -> tuple[Response | None, float | None]:
+    """(response, psf_sigma_px) of a camera TOML file, each None where the file does not give it (adapt then
+    estimates it from the frames). data: the file's parsed table (read from path when None). InputError naming
+    the file and the key for a value that is no response or no blur width (0 to MAX_PSF_SIGMA_PX px)."""
+    data = load_toml(path) if data is None else data
+    response = None
+    if "response" in data:
+        try:
+            response = parse_response(data["response"], "response")
+        except ConfigError as err:
+            raise InputError(f"{path}: response = {data['response']!r}: expected 'linear', 'srgb' or a gamma "
+                             f"(a number such as 2.2) ({err})") from None
+    sigma = data.get("psf_sigma_px")
+    if sigma is not None:
+        if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not 0.0 <= sigma <= MAX_PSF_SIGMA_PX:
+            raise InputError(f"{path}: psf_sigma_px = {sigma!r}: expected a Gaussian PSF's sigma in px, 0 to "
+                             f"{MAX_PSF_SIGMA_PX:g}")
+        sigma = float(sigma)
+    return response, sigma

@@ -48,7 +48,7 @@ MIN_EDGE_PX = 30.0          # shorter hull edges give too few stations and sit c
 STEP_PX = 2.0               # station spacing along an edge
 END_PX = 10.0               # stations kept this far from an edge's ends (the profile reaches 6 px across)
 PARALLEL = 1e-2             # normals this close to one direction (smallest/largest eigenvalue of sum n n^T)
-T_PX = np.arange(-6.0, 6.0 + 1e-9, 0.25)  # the profile's samples across the edge, px (+ outward)
+REACH_PX = 4.0              # the area integral's half-width (and the plateaus' start) for a PSF sigma up to ~1 px
 MIN_CONTRAST = 20.0         # grey levels, inside plateau minus outside plateau
 FLAT_SHARE = 0.1            # a plateau's samples' std within this share of the contrast
 CLIPPED = 250.0             # a profile reaching this is clipped at the 8-bit ceiling
@@ -112,43 +112,61 @@ def outline_edges(corners_px: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, 
     return np.stack([a, b], axis=1), n
 
 
+def profile_reach_px(blur_px: float | None) -> float:
+    """Half-width of the area method's integral, px: REACH_PX up to a PSF sigma of ~1 px, else 3.5 sigmas of the
+    blur with the pixel's own footprint (sqrt(blur^2 + 1/12)), rounded up: the plateaus must lie beyond the
+    blurred edge. blur_px None: REACH_PX."""
+    if blur_px is None:
+        return REACH_PX
+    return float(max(REACH_PX, np.ceil(3.5 * np.sqrt(blur_px**2 + 1.0 / 12.0))))
+
+
 def edge_stations(image: np.ndarray, corners_px: np.ndarray, use: np.ndarray, mask: np.ndarray | None = None,
-                  min_edge_px: float = MIN_EDGE_PX, end_px: float = END_PX) -> Stations:
+                  min_edge_px: float = MIN_EDGE_PX, end_px: float = END_PX, light=None,
+                  blur_px: float | None = None) -> Stations:
     """The usable stations (module doc) of the outline of corners_px (8, 2) px, use (8,) bool, in image (H, W)
     (8-bit grey levels, any dtype); mask (H, W) the render's segmentation values, None for a user's frame;
-    min_edge_px, end_px: the shortest hull edge measured and the stations' distance from its ends, px."""
+    min_edge_px, end_px: the shortest hull edge measured and the stations' distance from its ends, px.
+    light: the frames' response (envisat_pose.camera_response.Response; None or linear: the image is light): the
+    edge is located on the profile in linear light (the guards read the stored values, whose noise they know);
+    blur_px: the PSF's sigma, px, which sets the profile's reach (profile_reach_px; None: REACH_PX)."""
     from envisat_pose.perception.refine import sample_bicubic
 
     edges, normals = outline_edges(corners_px, use)
     h, w = image.shape
     centre = np.asarray(corners_px, float)[np.asarray(use, bool)].mean(axis=0) if len(edges) else np.zeros(2)
     rows = {k: [] for k in ("offset_px", "point_px", "normal", "edge", "clipped")}
-    win = (T_PX >= -4.0) & (T_PX <= 4.0)
+    reach = profile_reach_px(blur_px)
+    t_px = np.arange(-(reach + 2.0), reach + 2.0 + 1e-9, 0.25)
+    win = (t_px >= -reach) & (t_px <= reach)
+    end_px = max(end_px, reach + 6.0)
+    lin = None if light is None or light.is_linear else light.linearize(image)
     for e, ((pa, pb), n) in enumerate(zip(edges, normals)):
         length = float(np.linalg.norm(pb - pa))
         if length < min_edge_px:
             continue
         d = (pb - pa) / length
         base = pa[None] + np.arange(end_px, length - end_px, STEP_PX)[:, None] * d
-        prof = sample_bicubic(image, base[:, None] + T_PX[None, :, None] * n).astype(np.float64)
-        inside, outside = prof[:, T_PX <= -4.0].mean(axis=1), prof[:, T_PX >= 4.0].mean(axis=1)
+        pts = base[:, None] + t_px[None, :, None] * n
+        prof = sample_bicubic(image, pts).astype(np.float64)
+        inside, outside = prof[:, t_px <= -reach].mean(axis=1), prof[:, t_px >= reach].mean(axis=1)
         contrast = inside - outside
-        ok = (contrast > MIN_CONTRAST) & (prof[:, (T_PX >= -6.0) & (T_PX <= -1.0)].std(axis=1)
+        ok = (contrast > MIN_CONTRAST) & (prof[:, (t_px >= -(reach + 2.0)) & (t_px <= -reach / 4.0)].std(axis=1)
                                           < FLAT_SHARE * np.abs(contrast))
-        probe = {o: np.round(base + o * n).astype(int) for o in (-6.0, -5.0, -3.0, -1.0, 3.0, 6.0)}
+        probe = {o: np.round(base + o * n).astype(int) for o in (-(reach + 2.0), -5.0, -3.0, -1.0, 3.0, reach + 2.0)}
         for p in probe.values():
             ok &= (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
         if mask is None:
-            ok &= prof[:, (T_PX >= 2.0) & (T_PX <= 6.0)].std(axis=1) < FLAT_SHARE * np.abs(contrast)
+            ok &= prof[:, (t_px >= reach / 2.0) & (t_px <= reach + 2.0)].std(axis=1) < FLAT_SHARE * np.abs(contrast)
         else:
             cls = {o: np.where(ok, mask[np.clip(p[:, 1], 0, h - 1), np.clip(p[:, 0], 0, w - 1)], -1)
                    for o, p in probe.items()}
             ok &= (cls[3.0] == 0) & (cls[-1.0] >= 1) & (cls[-1.0] <= 6)
-            for o in (-3.0, -5.0, -6.0):
+            for o in (-3.0, -5.0, -(reach + 2.0)):
                 ok &= cls[o] == cls[-1.0]
         i = np.flatnonzero(ok)
-        norm = (prof[i] - outside[i, None]) / contrast[i, None]
-        rows["offset_px"].append(-4.0 + np.trapezoid(norm[:, win], T_PX[win], axis=1))
+        lin_prof = prof[i] if lin is None or not len(i) else sample_bicubic(lin, pts[i]).astype(np.float64)
+        rows["offset_px"].append(area_edge_px(lin_prof, t_px, reach))
         rows["point_px"].append(base[i])
         rows["normal"].append(np.broadcast_to(n, (len(i), 2)))
         rows["edge"].append(np.full(len(i), e))
@@ -157,6 +175,16 @@ def edge_stations(image: np.ndarray, corners_px: np.ndarray, use: np.ndarray, ma
     cat = {k: np.concatenate(v) if v else np.zeros(shapes[k]) for k, v in rows.items()}
     return Stations(cat["offset_px"], cat["point_px"], cat["normal"], cat["edge"].astype(int),
                     cat["clipped"].astype(bool), centre)
+
+
+def area_edge_px(prof: np.ndarray, t_px: np.ndarray, reach: float) -> np.ndarray:
+    """The area method on profiles prof (S, len(t_px)) sampled at t_px (+ outward, the body inside): with the
+    plateaus the means beyond +-reach, edge = -reach + integral over [-reach, reach] of the normalized profile,
+    px (exact for a straight step blurred by a symmetric PSF in linear light). (S,)."""
+    inside, outside = prof[:, t_px <= -reach].mean(axis=1), prof[:, t_px >= reach].mean(axis=1)
+    win = (t_px >= -reach) & (t_px <= reach)
+    norm = (prof[:, win] - outside[:, None]) / (inside - outside)[:, None]
+    return -reach + np.trapezoid(norm, t_px[win], axis=1)
 
 
 def fit_scale(st: Stations, min_stations: int = MIN_STATIONS, min_edges: int = MIN_EDGES) -> ScaleFit:
@@ -192,11 +220,11 @@ def fit_scale(st: Stations, min_stations: int = MIN_STATIONS, min_edges: int = M
                     int(n_edges))
 
 
-def frame_scale(image: np.ndarray, corners_px: np.ndarray, use: np.ndarray, mask: np.ndarray | None = None
-                ) -> ScaleFit:
-    """One frame's outline scale error against corners_px (8, 2) px, use (8,) bool: edge_stations then
-    fit_scale."""
-    return fit_scale(edge_stations(image, corners_px, use, mask))
+def frame_scale(image: np.ndarray, corners_px: np.ndarray, use: np.ndarray, mask: np.ndarray | None = None,
+                light=None, blur_px: float | None = None) -> ScaleFit:
+    """One frame's outline scale error against corners_px (8, 2) px, use (8,) bool: edge_stations (in linear
+    light by `light`, the reach set by blur_px) then fit_scale."""
+    return fit_scale(edge_stations(image, corners_px, use, mask, light=light, blur_px=blur_px))
 
 
 def sequence_scale(fits: list[ScaleFit], min_frames: int = 5) -> ScaleFit:
