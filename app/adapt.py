@@ -44,10 +44,10 @@ def adapt_cli(args: argparse.Namespace) -> int:
     import sys
 
     from envisat_pose.config import InputError
+    from envisat_pose.out_dirs import check_out_dir
     from envisat_pose.pipelines.adapt import AdaptConfig, adapt
     from envisat_pose.pipelines.frames import open_source
     from envisat_pose.pipelines.track import TrackConfig
-    from envisat_pose.runner import check_out_dir
 
     if args.fine_tune in (None, "none") and (args.steps is not None or args.lr is not None):
         raise InputError("--steps and --lr set the fine-tune, which is off by default: add --fine-tune norm_heads "

@@ -1,5 +1,5 @@
 """`envisat calibrate`: fit the detector's covariance scale on held-out labelled frames and ship it in the weights;
-on held-out sequences, also the error model a filter needs (issue 16, item 5).
+on held-out sequences, also the error model a filter needs.
 
 The network's 2x2 covariance per corner is scaled by one factor s (C -> s C) so that the mean of e^T C^-1 e over
 correctly named visible corners is 2, the chi-square-2 mean (perception/calibrate.py). The factor goes into the
@@ -86,8 +86,8 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     import numpy as np
 
     from envisat_pose.app.detect import detector_inputs
+    from envisat_pose.out_dirs import check_out_file
     from envisat_pose.pipelines.calibrate import fit_face_cue, run_calibration
-    from envisat_pose.runner import check_out_file
 
     detector_inputs(args)
     if args.max_lag < 1:

@@ -67,9 +67,9 @@ def as_flags(message: str, names: dict[str, str]) -> str:
 
 
 def check_rrd_output(path: str) -> None:
-    """--rrd must name a .rrd file that can be written (runner.check_out_file): InputError before any work."""
+    """--rrd must name a .rrd file that can be written (out_dirs.check_out_file): InputError before any work."""
     from envisat_pose.config import InputError
-    from envisat_pose.runner import check_out_file
+    from envisat_pose.out_dirs import check_out_file
 
     if not path.endswith(".rrd"):
         raise InputError(f"--rrd {path!r}: expected a path ending in .rrd")

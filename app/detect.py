@@ -71,8 +71,8 @@ def resolve_config(args: argparse.Namespace):
 def run_detect_cli(args: argparse.Namespace) -> int:
     import json
 
+    from envisat_pose.out_dirs import check_out_file
     from envisat_pose.pipelines.detect import run_detect
-    from envisat_pose.runner import check_out_file
 
     check_out_file(args.out)
     detector_inputs(args)

@@ -91,9 +91,9 @@ def summary(arrays: dict) -> str:
 
 
 def run_estimate_cli(args: argparse.Namespace) -> int:
+    from envisat_pose.out_dirs import make_out_file_dirs
     from envisat_pose.pipelines.estimate import estimate_output_paths
     from envisat_pose.pipelines.estimate import run_estimate as run_pipeline
-    from envisat_pose.runner import make_out_file_dirs
 
     if not args.out.endswith(".npz"):
         raise InputError(f"--out {args.out!r}: expected a path ending in .npz")

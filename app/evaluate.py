@@ -39,10 +39,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run_evaluate_cli(args: argparse.Namespace) -> int:
     from envisat_pose.app.detect import detector_inputs
+    from envisat_pose.out_dirs import check_out_file
     from envisat_pose.pipelines.dataset_inputs import skip_hint, skipped_line
     from envisat_pose.pipelines.detect import camera_samples, read_roi
     from envisat_pose.pipelines.evaluate import evaluate_detector, groups_table, read_poses
-    from envisat_pose.runner import check_out_file
     from envisat_pose.shard_reader import checked_shards
 
     detector_inputs(args)

@@ -71,9 +71,9 @@ def runner_config(args: argparse.Namespace):
 
 
 def run_montecarlo(args: argparse.Namespace) -> int:
+    from envisat_pose.out_dirs import make_out_file_dirs
     from envisat_pose.pipelines.campaign import run_campaign, write_recording
     from envisat_pose.pipelines.sweep import run_sweep, sweep_for
-    from envisat_pose.runner import make_out_file_dirs
 
     cfg = resolve_config(args)
     runner = runner_config(args)

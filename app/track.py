@@ -38,11 +38,11 @@ FLAGS = {"src": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps"
 def track_cli(args: argparse.Namespace) -> int:
     from envisat_pose.app.common import recording_sink
     from envisat_pose.app.run import print_table
+    from envisat_pose.out_dirs import check_out_dir
     from envisat_pose.pipelines.dataset_inputs import skip_hint, skipped_line
     from envisat_pose.pipelines.frames import open_source
     from envisat_pose.pipelines.outputs import status_line
     from envisat_pose.pipelines.track import TrackConfig, track_frames
-    from envisat_pose.runner import check_out_dir
 
     check_out_dir(args.out)
     with skip_hint():

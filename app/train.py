@@ -88,7 +88,7 @@ def online_config(args: argparse.Namespace):
     if args.data:
         raise InputError("--data and --online: train on shards or on rendered frames, not both")
     if args.looks:
-        from envisat_pose.pipelines.online import read_looks
+        from envisat_pose.pipelines.look_mix import read_looks
 
         if args.generate_config or args.resolution:
             raise InputError("--looks and --generate-config/--resolution: the looks file holds every look's config")

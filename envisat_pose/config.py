@@ -66,6 +66,9 @@ def _convert(value: Any, hint: Any, field: str) -> Any:
         args = typing.get_args(hint)
         if value is None and type(None) in args:
             return None
+        tables = [a for a in args if dataclasses.is_dataclass(a)]
+        if isinstance(value, dict) and len(tables) == 1:  # an optional table: its own errors, by their dotted key
+            return _convert(value, tables[0], field)
         errors = []
         for arg in args:
             if arg is type(None):
@@ -112,6 +115,12 @@ def _convert(value: Any, hint: Any, field: str) -> Any:
             raise ConfigError(field, value, "one of " + ", ".join(repr(a) for a in allowed))
         return value
     return value
+
+
+def field_value(cls: type, name: str, value: Any) -> Any:
+    """value checked and converted for the field `name` of the dataclass cls, as from_dict converts it (a table
+    into its dataclass, an int into a float field's float)."""
+    return _convert(value, typing.get_type_hints(cls)[name], name)
 
 
 def from_dict(cls: type, data: dict, prefix: str = "") -> Any:

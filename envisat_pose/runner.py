@@ -11,9 +11,11 @@ cluster started here listens on 127.0.0.1 only; `scheduler` connects to an exist
 
 Resumable jobs (`ResumableJob`): the one protocol for outputs written unit by unit into a folder (the image
 factory's shards, a campaign's blocks): units with sha256 in manifest.json, rewritten atomically after each
-unit; a folder of another config refused; unvouched unit files and partial files removed and redone. The one
-output-folder rule is `check_out_dir` (creating nothing) and `make_out_dir` (create, parents too, prove writable);
-for an output file, `check_out_file` and `make_out_file_dir` (its folder). A file on the path is one InputError.
+unit; a folder of another config refused; unvouched unit files and partial files removed and redone.
+
+In their own modules: the output-folder rule (envisat_pose/out_dirs.py) and the real-time factor
+(envisat_pose/realtime.py), re-exported here for the files that still import them from the runner (other
+engineers' files, being edited now).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from typing import Any, Callable, Iterator, Literal, Sequence
 
 from envisat_pose.config import InputError, check, flatten
 from envisat_pose.io import atomic_write_text, sha256_file
+from envisat_pose.out_dirs import PARTIAL_PREFIX, make_out_dir
 
 Backend = Literal["inline", "local", "dask"]
 
@@ -143,111 +146,11 @@ def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Resumable jobs: the one output-folder rule and the one manifest protocol (the image factory's shards, the
-# Monte Carlo campaign's blocks)
+# Resumable jobs: the one manifest protocol (the image factory's shards, the Monte Carlo campaign's blocks), run on
+# the pools above. Its home is to be envisat_pose/resumable.py once datagen/factory.py (another engineer's file
+# now) imports it from there: a re-export here would make the two modules import each other.
 
 MANIFEST = "manifest.json"
-PARTIAL_PREFIX = ".tmp-"  # io.atomic_path's temporary files: what a killed writer leaves behind
-
-
-def _file_in_the_way(path: str) -> str | None:
-    """The existing path at or above `path` that is not a folder (a file where a folder must be), or None; named
-    as the user named path (relative stays relative)."""
-    here = os.path.abspath(path)
-    while not os.path.lexists(here):
-        if os.path.dirname(here) == here:
-            return None
-        here = os.path.dirname(here)
-    if os.path.isdir(here):
-        return None
-    return here if os.path.isabs(path) else os.path.relpath(here)
-
-
-def check_out_dir(out_dir: str, parents: bool = True, field: str = "--out") -> None:
-    """Check, creating nothing, that out_dir is a folder or can become one: nothing on its path is a file (out_dir
-    itself, or a folder above it); without parents, its parent must exist too. InputError naming the field."""
-    blocker = _file_in_the_way(out_dir)
-    if blocker is not None:
-        where = "exists and is not a folder" if os.path.abspath(blocker) == os.path.abspath(out_dir) else \
-            f"{blocker!r} is a file, not a folder"
-        raise InputError(f"{field} {out_dir!r}: {where}; expected a folder (or a path where one can be made)")
-    parent = os.path.dirname(os.path.abspath(out_dir))
-    if not parents and not os.path.isdir(parent):
-        raise InputError(f"{field} {out_dir!r}: parent folder {parent!r} does not exist")
-
-
-def make_out_dir(out_dir: str, subdirs: Sequence[str] = (), parents: bool = True, field: str = "--out") -> None:
-    """check_out_dir, then create out_dir (its parents too, and its subdirs) and prove it writable by writing
-    (and removing) a probe file in it.
-
-    os.access says yes to root everywhere (even /proc), so only a real write tells; any OSError becomes one
-    InputError line naming the folder and the system's reason.
-    """
-    check_out_dir(out_dir, parents, field)
-    reason = _made_writable([out_dir, *(os.path.join(out_dir, s) for s in subdirs)])
-    if reason:
-        raise InputError(f"{field} {out_dir!r}: cannot write there ({reason})")
-
-
-def _made_writable(folders: list[str]) -> str | None:
-    """Make the folders (parents too) and write and remove a probe file in the first; the system's reason when
-    that fails, else None."""
-    import tempfile
-
-    try:
-        for folder in folders:
-            os.makedirs(folder, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=PARTIAL_PREFIX + "probe-", dir=folders[0])
-        try:
-            os.write(fd, b"probe")
-        finally:
-            os.close(fd)
-            os.remove(probe)
-    except OSError as err:
-        return str(err.strerror or err)
-    return None
-
-
-def check_out_file(path: str, field: str = "--out") -> None:
-    """Check, creating nothing, that an output file can be written at path: it is not a folder and nothing above
-    it is a file (its missing folders are made by make_out_file_dir when the job writes). InputError."""
-    if os.path.isdir(path):
-        raise InputError(f"{field} {path!r} is a folder; expected a file path")
-    blocker = _file_in_the_way(os.path.dirname(path) or ".")
-    if blocker is not None:
-        raise InputError(f"{field} {path!r}: {blocker!r} is a file, not a folder; expected a file path in a folder "
-                         "(or where one can be made)")
-
-
-def make_out_file_dir(path: str, field: str = "--out") -> None:
-    """check_out_file, then make the output file's folder (parents too) and prove it writable (make_out_dir)."""
-    check_out_file(path, field)
-    folder = os.path.dirname(os.path.abspath(path))
-    reason = _made_writable([folder])
-    if reason:
-        raise InputError(f"{field} {path!r}: cannot write in its folder {folder!r} ({reason})")
-
-
-def make_out_file_dirs(outputs: dict[str, str]) -> None:
-    """Every output file {path: field} checked (check_out_file), then their folders made (make_out_file_dir):
-    nothing is made unless every one can be written."""
-    for path, name in outputs.items():
-        check_out_file(path, name)
-    for path, name in outputs.items():
-        make_out_file_dir(path, name)
-
-
-def real_time_factor(t_s, wall_s: float, period_s: float | None = None) -> float:
-    """Time the frames t_s (s) span, one frame period included (period_s; default the median interval), over the
-    wall time that processed them: above 1 the job keeps up with the camera. The one formula of `envisat run`
-    and `envisat track`."""
-    import numpy as np
-
-    t = np.asarray(t_s, dtype=float)
-    if period_s is None:
-        period_s = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
-    span = float(t[-1] - t[0]) + period_s if len(t) else 0.0
-    return span / max(float(wall_s), 1e-9)
 
 
 def remove_partial_files(folder: str) -> None:
@@ -258,7 +161,6 @@ def remove_partial_files(folder: str) -> None:
         if name.startswith(PARTIAL_PREFIX):
             path = os.path.join(folder, name)
             shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
-
 
 
 @dataclass
@@ -375,3 +277,10 @@ class ResumableJob:
             if on_unit is not None:
                 on_unit(entry)
         return self.manifest()
+
+
+# the output-folder rule and the real-time factor live in their own modules; re-exported for the modules still
+# importing them from here (datagen/factory.py, pipelines/export.py, pipelines/adapt.py, app/dataset.py,
+# app/simulate.py: other engineers' files now)
+from envisat_pose.out_dirs import check_out_dir, check_out_file, make_out_file_dir, make_out_file_dirs  # noqa: E402, F401, I001
+from envisat_pose.realtime import real_time_factor  # noqa: E402, F401

@@ -1,4 +1,4 @@
-"""The detector's error model for a filter (issue 16, item 5): covariance scale, frame-to-frame correlation and
+"""The detector's error model for a filter: covariance scale, frame-to-frame correlation and
 residual bias of the errors of correctly named corners, measured on held-out sequences. Plain numpy.
 
 Shapes: T frames of one sequence, 8 corners A-H. err_px (T, 8, 2) = detected - label, px, NaN where the corner
@@ -331,54 +331,20 @@ def measure_error_model(sequences: list[dict], cov_scale: float, max_lag: int = 
     e_all = np.concatenate([s["err_px"].reshape(-1, 8, 2) for s in sequences])
     ok = np.isfinite(e_all)
     bias_px = np.where(ok, e_all, 0.0).sum(axis=0) / np.maximum(ok.sum(axis=0), 1)  # (8, 2), 0 where none
-    pooled_z = [np.zeros(max_lag + 1), np.zeros(max_lag + 1)]
-    pooled_px = [np.zeros(max_lag + 1), np.zeros(max_lag + 1)]
-    per = {c: {a: [np.zeros(max_lag + 1), np.zeros(max_lag + 1)] for a in "xy"} for c in "ABCDEFGH"}
     by_angle = all("R_cam_from_target" in s for s in sequences)
     n_bins = int(np.ceil(ANGLE_MAX_RAD / ANGLE_BIN_RAD))
-    pooled_angle = [np.zeros(n_bins), np.zeros(n_bins), np.zeros(n_bins)]
-    view_rate_deg_s = []
-    for s in sequences:
-        x = s["err_px"] - bias_px[None]
-        z = x / (s["sigma_px"] * np.sqrt(cov_scale))
-        if by_angle:
-            for acc, v in zip(pooled_angle, angle_sums(z, s["R_cam_from_target"], ANGLE_MAX_LAG, ANGLE_BIN_RAD,
-                                                       ANGLE_MAX_RAD)):
-                acc += v
-            view_rate_deg_s.append(float(np.degrees(np.median(rotation_angles(s["R_cam_from_target"], 1)))
-                                         / float(s["dt_s"])))
-        for acc, arr in ((pooled_z, z), (pooled_px, x)):
-            n, c = lag_sums(arr, max_lag)
-            acc[0] += n
-            acc[1] += c
-        for k, name in enumerate("ABCDEFGH"):
-            for a, axis in enumerate("xy"):
-                n, c = lag_sums(x[:, k, a], max_lag)
-                per[name][axis][0] += n
-                per[name][axis][1] += c
+    pooled_z, pooled_px, per, pooled_angle, view_rate_deg_s = _pooled_sums(sequences, bias_px, cov_scale, max_lag,
+                                                                           by_angle, n_bins)
     r_z = autocorrelation(*pooled_z)
     r_px = autocorrelation(*pooled_px)
     rho = float(r_z[1]) if len(r_z) > 1 and np.isfinite(r_z[1]) else 0.0
     a, phi = fit_white_plus_ar1(r_z, pooled_z[1])
     a_th, th_c, r_th, theta_mean = 0.0, 0.0, np.full(n_bins, np.nan), np.full(n_bins, np.nan)
     if by_angle:
-        # the lag-0 variance is the time series' own (pooled_z): r(theta) on the same footing as r_k
-        with np.errstate(invalid="ignore", divide="ignore"):
-            r_th = np.where(pooled_angle[1] > 0, pooled_angle[0] / np.maximum(pooled_angle[1], 1), np.nan) / (
-                pooled_z[0][0] / pooled_z[1][0])
-            theta_mean = pooled_angle[2] / pooled_angle[1]
-        a_th, th_c = fit_exponential_decay(theta_mean, r_th, pooled_angle[1])
-        a_th = min(a_th, 1.0)
+        a_th, th_c, r_th, theta_mean = _angle_fit(pooled_angle, pooled_z)
     dts = {float(s["dt_s"]) for s in sequences}
     dt = dts.pop() if len(dts) == 1 else float("nan")
-    scale_m, scale_se, scale_n = mean_se(np.concatenate([s["scale"] for s in sequences]))
-    # the per-frame scale is itself correlated along a sequence: its own lag-1 and the AR(1) standard error
-    sc = [np.zeros(2), np.zeros(2)]
-    for s in sequences:
-        n, c = lag_sums(s["scale"] - scale_m, 1)
-        sc[0] += n
-        sc[1] += c
-    rho_scale = float(autocorrelation(*sc)[1]) if sc[1][1] > 0 else 0.0
+    scale_m, scale_se, scale_n, rho_scale = _scale_stats(sequences)
     scale_sd, scale_means = scale_spread([s["scale"] for s in sequences])
     rad_m, rad_se, rad_n = mean_se(np.concatenate([s["radial_px"].ravel() for s in sequences]))
     n_frames = int(sum(len(s["err_px"]) for s in sequences))
@@ -410,3 +376,60 @@ def measure_error_model(sequences: list[dict], cov_scale: float, max_lag: int = 
         "corners": int(np.isfinite(e_all[..., 0]).sum()),
     }
     return model, record
+
+
+def _pooled_sums(sequences: list[dict], bias_px: np.ndarray, cov_scale: float, max_lag: int, by_angle: bool,
+                 n_bins: int) -> tuple:
+    """The lag sums (lag_sums: counts, products) of the sequences' errors less the bias, pooled over them:
+    normalized by the predicted sigma at cov_scale (pooled_z) and in px (pooled_px), per corner and axis in px
+    (per), and, by_angle, by the view's rotation angle (angle_sums: n_bins bins) with each sequence's median
+    view rate, deg/s. Returns (pooled_z, pooled_px, per, pooled_angle, view_rate_deg_s)."""
+    pooled_z = [np.zeros(max_lag + 1), np.zeros(max_lag + 1)]
+    pooled_px = [np.zeros(max_lag + 1), np.zeros(max_lag + 1)]
+    per = {c: {a: [np.zeros(max_lag + 1), np.zeros(max_lag + 1)] for a in "xy"} for c in "ABCDEFGH"}
+    pooled_angle = [np.zeros(n_bins), np.zeros(n_bins), np.zeros(n_bins)]
+    view_rate_deg_s = []
+    for s in sequences:
+        x = s["err_px"] - bias_px[None]
+        z = x / (s["sigma_px"] * np.sqrt(cov_scale))
+        if by_angle:
+            for acc, v in zip(pooled_angle, angle_sums(z, s["R_cam_from_target"], ANGLE_MAX_LAG, ANGLE_BIN_RAD,
+                                                       ANGLE_MAX_RAD)):
+                acc += v
+            view_rate_deg_s.append(float(np.degrees(np.median(rotation_angles(s["R_cam_from_target"], 1)))
+                                         / float(s["dt_s"])))
+        for acc, arr in ((pooled_z, z), (pooled_px, x)):
+            n, c = lag_sums(arr, max_lag)
+            acc[0] += n
+            acc[1] += c
+        for k, name in enumerate("ABCDEFGH"):
+            for a, axis in enumerate("xy"):
+                n, c = lag_sums(x[:, k, a], max_lag)
+                per[name][axis][0] += n
+                per[name][axis][1] += c
+    return pooled_z, pooled_px, per, pooled_angle, view_rate_deg_s
+
+
+def _angle_fit(pooled_angle: list[np.ndarray], pooled_z: list[np.ndarray]) -> tuple:
+    """The correlation by the view's rotation angle, r(theta), and its exponential fit (share at most 1).
+    Returns (share, correlation angle rad, r per bin, mean angle per bin rad)."""
+    # the lag-0 variance is the time series' own (pooled_z): r(theta) on the same footing as r_k
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r_th = np.where(pooled_angle[1] > 0, pooled_angle[0] / np.maximum(pooled_angle[1], 1), np.nan) / (
+            pooled_z[0][0] / pooled_z[1][0])
+        theta_mean = pooled_angle[2] / pooled_angle[1]
+    a_th, th_c = fit_exponential_decay(theta_mean, r_th, pooled_angle[1])
+    return min(a_th, 1.0), th_c, r_th, theta_mean
+
+
+def _scale_stats(sequences: list[dict]) -> tuple[float, float, int, float]:
+    """The apparent scale over every frame: (mean, standard error, frames, lag-1 autocorrelation along the
+    sequences: the per-frame scale is itself correlated, so its AR(1) standard error is wider)."""
+    scale_m, scale_se, scale_n = mean_se(np.concatenate([s["scale"] for s in sequences]))
+    sc = [np.zeros(2), np.zeros(2)]
+    for s in sequences:
+        n, c = lag_sums(s["scale"] - scale_m, 1)
+        sc[0] += n
+        sc[1] += c
+    rho_scale = float(autocorrelation(*sc)[1]) if sc[1][1] > 0 else 0.0
+    return scale_m, scale_se, scale_n, rho_scale

@@ -479,10 +479,29 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
     line_nll = None if edge_prob is None else -np.log(np.clip(np.asarray(edge_prob, float)[np.ix_(keep, keep)],
                                                               eps, 1.0))
     cues = _Cues(type_nll, line_nll)
+    fit = _fit_box(cand, K, cues, g, cfg, image_size, prior_R_cam_from_target, prior_t_cam_from_target_m)
+    if fit is None:
+        return None
+    variants, prob = _symmetric_variants(*fit, cand, K, cues, g, cfg, image_size,
+                                         prior_R_cam_from_target if prior_weighs_namings else None)
+    top = max(variants, key=lambda n: prob[n])
+    alt = {"I": "x", "x": "I", "y": "z", "z": "y"}[top]
+    alternative = _naming(variants[alt], prob[alt], cand, keep)
+    main = _naming(variants[top], prob[top], cand, keep)
+    return Naming(**{**main.__dict__, "alternative": alternative, "ambiguous": bool(prob[alt] >= cfg.ambiguity)})
+
+
+def _fit_box(cand: np.ndarray, K: np.ndarray, cues: _Cues, g: TargetGeometry, cfg: NamingConfig,
+             image_size: tuple[int, int] | None, prior_R: np.ndarray | None,
+             prior_t_m: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box's pose that best explains the candidates cand (M, 2) px: started from the prior pose (both given)
+    or by the search over faces and quadrilaterals, refined and re-associated twice (a gate of 2 gate_px, then
+    gate_px). Returns (R_cam_from_target (3, 3), t_cam_from_target_m (3,)) of the least cost, or None when no
+    hypothesis explains 4 candidates."""
     start = None
-    if prior_R_cam_from_target is not None and prior_t_cam_from_target_m is not None:
-        start = _from_prior(np.asarray(prior_R_cam_from_target, float), np.asarray(prior_t_cam_from_target_m, float),
-                            cand, K, cues, g, cfg, image_size)
+    if prior_R is not None and prior_t_m is not None:
+        start = _from_prior(np.asarray(prior_R, float), np.asarray(prior_t_m, float), cand, K, cues, g, cfg,
+                            image_size)
     if start is None:
         start = _search(cand, K, cues, g, cfg, image_size)
     if start is None:
@@ -495,8 +514,15 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
         sr = _score(Rr, tr, cand, K, cues, g, cfg, image_size, gate)
         match = sr["match"]
     best = int(np.argmin(sr["cost"]))  # the first of equals
-    Rb, tb = Rr[best], tr[best]
-    # the four symmetric namings: the same image, told apart only by the cues and a prior
+    return Rr[best], tr[best]
+
+
+def _symmetric_variants(Rb: np.ndarray, tb: np.ndarray, cand: np.ndarray, K: np.ndarray, cues: _Cues,
+                        g: TargetGeometry, cfg: NamingConfig, image_size: tuple[int, int] | None,
+                        prior_R: np.ndarray | None) -> tuple[dict, dict]:
+    """The four symmetric namings of the fitted pose (Rb, tb): the same image, told apart only by the cues and,
+    given, the prior attitude prior_R (a Gaussian in the angle between them, prior_sigma_deg). Returns
+    ({name: (R, t, its score, log-probability)}, {name: probability})."""
     sym = symmetry_permutations(g)
     Rs = np.stack([Rb @ S for _, S, _ in sym.values()])
     ts = np.stack([tb + Rb @ d for _, _, d in sym.values()])
@@ -506,25 +532,22 @@ def name_corners(points_px: np.ndarray, K: np.ndarray, score: np.ndarray | None 
         Rg, tg = Rs[n], ts[n]
         sg = {k: v[n:n + 1] for k, v in s4.items()}
         logp = -sg["cost"][0]
-        if prior_R_cam_from_target is not None and prior_weighs_namings:
-            ang = _rotation_angle_deg(prior_R_cam_from_target, Rg)
+        if prior_R is not None:
+            ang = _rotation_angle_deg(prior_R, Rg)
             logp -= 0.5 * (ang / cfg.prior_sigma_deg) ** 2
         variants[name] = (Rg, tg, sg, logp)
     logps = np.array([v[3] for v in variants.values()])
     probs = np.exp(logps - logps.max())
     probs /= probs.sum()
-    prob = dict(zip(variants, probs))
-    top = max(variants, key=lambda n: prob[n])
-    alt = {"I": "x", "x": "I", "y": "z", "z": "y"}[top]
+    return variants, dict(zip(variants, probs))
 
-    def naming(name: str) -> Naming:
-        Rg, tg, sg, _ = variants[name]
-        match = sg["match"][0]
-        proj = sg["projected"][0]
-        corners = np.where((match >= 0)[:, None], cand[np.maximum(match, 0)], proj)
-        return Naming(corners, proj, sg["visible"][0], match >= 0, np.where(match >= 0, keep[np.maximum(match, 0)], -1),
-                      Rg, tg, float(sg["cost"][0]), float(prob[name]))
 
-    alternative = naming(alt)
-    main = naming(top)
-    return Naming(**{**main.__dict__, "alternative": alternative, "ambiguous": bool(prob[alt] >= cfg.ambiguity)})
+def _naming(variant: tuple, prob: float, cand: np.ndarray, keep: np.ndarray) -> Naming:
+    """One symmetric naming as a Naming: matched corners at their candidates, the others where projected; keep
+    maps the candidates back to the caller's indices."""
+    Rg, tg, sg, _ = variant
+    match = sg["match"][0]
+    proj = sg["projected"][0]
+    corners = np.where((match >= 0)[:, None], cand[np.maximum(match, 0)], proj)
+    return Naming(corners, proj, sg["visible"][0], match >= 0, np.where(match >= 0, keep[np.maximum(match, 0)], -1),
+                  Rg, tg, float(sg["cost"][0]), float(prob))

@@ -169,12 +169,12 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
     import numpy as np
     from tqdm import tqdm
 
+    from envisat_pose.out_dirs import check_out_file, make_out_file_dir
     from envisat_pose.perception import errormodel as em
     from envisat_pose.perception.calibrate import calibration_by_group, fit_floor, fit_scale
     from envisat_pose.perception.detect import DetectConfig, load_detector
     from envisat_pose.perception.weights import with_metadata
     from envisat_pose.pipelines.detect import camera_samples
-    from envisat_pose.runner import check_out_file, make_out_file_dir
 
     check_out_file(out, "out")
     paths, skipped = data_shards(data, cfg.skip_damaged)
@@ -239,11 +239,11 @@ def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, l
     from tqdm import tqdm
 
     from envisat_pose.geometry import load_geometry
+    from envisat_pose.out_dirs import check_out_file, make_out_file_dir
     from envisat_pose.perception import facecue as fc
     from envisat_pose.perception.naming import face_windings
     from envisat_pose.perception.weights import with_metadata
     from envisat_pose.pipelines.detect import camera_samples
-    from envisat_pose.runner import check_out_file, make_out_file_dir
 
     check_out_file(out, "out")
     paths, skipped = data_shards(data, skip_damaged)

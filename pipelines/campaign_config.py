@@ -4,14 +4,14 @@ a scenario's Earth's-shadow outages (with_eclipse)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from envisat_pose.config import ConfigError, check, resolve_job_config
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig
-from envisat_pose.pipelines.job_defaults import scenario_defaults
+from envisat_pose.pipelines.job_defaults import fill_from_scenario, scenario_defaults
 
 
 @dataclass(frozen=True)
@@ -21,18 +21,28 @@ class MonteCarloConfig:
     scenario: named truth scenario. duration_s: simulated time, s. runs: Monte Carlo runs. seed: root seed (the
     truth's initial attitude and run r's draws, SeedSequence(seed, spawn_key=(r,))). block_runs: runs per task.
     settle_s: the statistics of summary.json use the steps at or after t0 + settle_s (None: half the duration,
-    at most 600 s). sample_runs: the first runs whose errors are kept for the figures' grey curves.
+    at most 600 s). sample_runs: the first runs whose errors are kept for the figures' grey curves. duration_s,
+    measurement and filter left None take the scenario's when the config is made (job_defaults.fill_from_scenario:
+    its duration, [measurement] and [filter] tables, else 1800 s and the classes' defaults; the measurement with
+    the scenario's Earth's-shadow outages, with_eclipse), so `MonteCarloConfig(scenario=NAME)` is the job of
+    `MonteCarloConfig.from_scenario(NAME)` and `envisat montecarlo`.
     """
 
     scenario: str = "default"
-    duration_s: float = 1800.0
+    duration_s: float | None = None
     runs: int = 100
     seed: int = 0
     block_runs: int = 125
     settle_s: float | None = None
     sample_runs: int = 20
-    measurement: MeasurementConfig = field(default_factory=MeasurementConfig)
-    filter: FilterConfig = field(default_factory=FilterConfig)
+    measurement: MeasurementConfig | None = None
+    filter: FilterConfig | None = None
+
+    def __post_init__(self) -> None:
+        eclipse = self.measurement is None
+        fill_from_scenario(self, "montecarlo", MONTECARLO_FALLBACKS)
+        if eclipse:  # the scenario's measurement, with its outages (from_scenario: with_eclipse on the resolved one)
+            object.__setattr__(self, "measurement", with_eclipse(self).measurement)
 
     @classmethod
     def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
@@ -41,7 +51,8 @@ class MonteCarloConfig:
         file at config_path, then overrides ({'section.key': value}) and fields (pipelines/job_defaults.py's layers),
         with the scenario's Earth's-shadow outages (with_eclipse)."""
         flags = {**(overrides or {}), **fields, "scenario": name}  # the named scenario is the job's, whatever the file
-        return with_eclipse(resolve_job_config(cls, scenario_defaults("montecarlo", name), config_path, flags))
+        defaults = {"measurement": {}, **scenario_defaults("montecarlo", name)}  # made here: with_eclipse once
+        return with_eclipse(resolve_job_config(cls, defaults, config_path, flags))
 
     def validate(self, prefix: str = "") -> None:
         check(self.duration_s > 0, "duration_s", self.duration_s, "a positive duration in seconds")
@@ -63,6 +74,10 @@ class MonteCarloConfig:
     def block_range(self, b: int) -> tuple[int, int]:
         """Runs [start, stop) of block b."""
         return b * self.block_runs, min(self.runs, (b + 1) * self.block_runs)
+
+
+# what a campaign takes where its scenario sets nothing
+MONTECARLO_FALLBACKS = {"duration_s": lambda: 1800.0, "measurement": MeasurementConfig, "filter": FilterConfig}
 
 
 def with_eclipse(cfg: MonteCarloConfig) -> MonteCarloConfig:

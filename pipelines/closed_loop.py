@@ -186,7 +186,7 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
     them chunk by chunk (what stays whole: the truth, and a few scalars per frame: the errors the scores need
     and the status)."""
     from envisat_pose.io import staged_folder
-    from envisat_pose.runner import make_out_dir
+    from envisat_pose.out_dirs import make_out_dir
 
     cfg = finish_config(cfg)  # idempotent: a RunConfig a user builds runs as the app's does
     make_out_dir(out_dir, parents=True, field="out_dir")
@@ -200,7 +200,8 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
 
     from envisat_pose.config import to_toml
     from envisat_pose.io import atomic_write_text
-    from envisat_pose.runner import RunnerConfig, real_time_factor, run_tasks, thread_env
+    from envisat_pose.realtime import real_time_factor
+    from envisat_pose.runner import RunnerConfig, run_tasks, thread_env
 
     paths = run_output_paths(out_dir)
     wall0 = time.perf_counter()

@@ -122,7 +122,7 @@ def run_detect(cfg: DetectJobConfig, data: str, out: str, progress: bool = False
 
     from envisat_pose.contracts import Detections
     from envisat_pose.io import save_npz
-    from envisat_pose.runner import check_out_file, make_out_file_dir
+    from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 
     check_out_file(out, "out")
     arrays = detect_dataset(cfg, data, progress)

@@ -175,10 +175,10 @@ def evaluate_detector(weights: str, samples, poses: dict, json_path: str, *, dev
     from envisat_pose.config import InputError
     from envisat_pose.geometry import load_geometry
     from envisat_pose.io import atomic_write_text, json_safe
+    from envisat_pose.out_dirs import check_out_file, make_out_file_dir
     from envisat_pose.perception.detect import DetectConfig, weights_cov_scale, weights_refine_floor
     from envisat_pose.perception.evaluate import corruption_groups
     from envisat_pose.perception.weights import load_model
-    from envisat_pose.runner import check_out_file, make_out_file_dir
 
     check_out_file(json_path, "json_path")
     model = load_model(weights, device)

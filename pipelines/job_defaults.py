@@ -11,9 +11,10 @@ per run up to the cores. Errors name the config field ('weights', 'measurement.r
 from __future__ import annotations
 
 import os
+from typing import Any, Callable
 
 from envisat_pose import named_scenarios
-from envisat_pose.config import InputError
+from envisat_pose.config import InputError, field_value
 from envisat_pose.pipelines.tracker_config import TRACKER_FILTER
 
 JOBS = ("simulate", "estimate", "montecarlo", "run", "track")
@@ -47,6 +48,21 @@ def scenario_defaults(kind: str, scenario: str) -> dict:
     if "rate_hz" in tables.get("measurement", {}):  # the camera runs at the scenario's measurement rate
         out["rate_hz"] = tables["measurement"]["rate_hz"]
     return out
+
+
+def fill_from_scenario(cfg: Any, kind: str, fallbacks: dict[str, Callable[[], Any]]) -> None:
+    """The plain constructor's half of one job: each field of cfg named in fallbacks and left None takes what
+    cfg.scenario sets for a `kind` job (scenario_defaults: the layer `from_scenario` puts under the file and the
+    flags), or fallbacks[name]() where the scenario sets nothing. So `Cfg(scenario=NAME)` and
+    `Cfg.from_scenario(NAME)` are one job; a field given explicitly is kept. Called from a frozen config's
+    __post_init__ (its stage types resolvable first)."""
+    missing = [name for name in fallbacks if getattr(cfg, name) is None]
+    if not missing:
+        return
+    values = scenario_defaults(kind, cfg.scenario)
+    for name in missing:
+        value = field_value(type(cfg), name, values[name]) if name in values else fallbacks[name]()
+        object.__setattr__(cfg, name, value)
 
 
 def run_complete(data: dict) -> dict:

@@ -13,7 +13,7 @@ import numpy as np
 
 from envisat_pose.config import check, from_dict, resolve_job_config
 from envisat_pose.filtering.estimator import FilterConfig
-from envisat_pose.pipelines.job_defaults import check_weights, run_complete, scenario_defaults
+from envisat_pose.pipelines.job_defaults import check_weights, fill_from_scenario, run_complete, scenario_defaults
 from envisat_pose.pipelines.onboard import orbit_config
 from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
 
@@ -34,16 +34,19 @@ def _image_defaults() -> "GenerateConfig":
 @dataclass(frozen=True)
 class RunConfig:
     """One `envisat run` job. scenario: named truth; duration_s: simulated time; rate_hz: camera and filter rate;
+    filter: the UKF (the scenario's [filter] table over TRACKER_FILTER). Those three left None take the scenario's
+    when the config is made (job_defaults.fill_from_scenario; its duration and [measurement] rate, else 600 s and
+    1 Hz), so `RunConfig(scenario=NAME)` is the job of `RunConfig.from_scenario(NAME)` and `envisat run`;
     runs: closed loops on the same truth; workers: processes for them; seed: the truth's random attitude, every
     run's camera noise (and warm start); weights: detector weights file. warm_start: start each run's filter from
     the truth plus a draw from filter.p0_sigma (filter studies), instead of cold from the images. threads: torch
     CPU threads per run; jpeg_quality: run 0's images in the recording. image: the camera frames as the image
-    factory's sequence mode makes them (its sequence fields are set from the ones above). filter: the UKF (the
-    scenario's [filter] table under the file and the flags). tracker: pipelines.tracker.TrackerConfig."""
+    factory's sequence mode makes them (its sequence fields are set from the ones above). tracker:
+    pipelines.tracker.TrackerConfig."""
 
     scenario: str = "default"
-    duration_s: float = 600.0
-    rate_hz: float = 1.0
+    duration_s: float | None = None
+    rate_hz: float | None = None
     runs: int = 1
     workers: int = 1
     seed: int = 0
@@ -52,8 +55,11 @@ class RunConfig:
     threads: int = 1
     jpeg_quality: int = 80
     image: "GenerateConfig" = field(default_factory=_image_defaults)
-    filter: FilterConfig = field(default_factory=lambda: FilterConfig(**TRACKER_FILTER))
+    filter: FilterConfig | None = None
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
+
+    def __post_init__(self) -> None:
+        fill_from_scenario(self, "run", RUN_FALLBACKS)
 
     @classmethod
     def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
@@ -83,6 +89,10 @@ class RunConfig:
         check(cam.width_px == cam.height_px and 16 <= self.image.resolution_px <= 4096, "image.resolution_px",
               self.image.resolution_px, "a square image side in [16, 4096] px (the MJCF's chaser_cam, "
               f"{cam.width_px} px, read out at that size: the same field of view)")
+
+
+# what a run takes where its scenario sets nothing (no duration_s, no [measurement] rate_hz)
+RUN_FALLBACKS = {"duration_s": lambda: 600.0, "rate_hz": lambda: 1.0, "filter": lambda: FilterConfig(**TRACKER_FILTER)}
 
 
 def run_stage_types() -> None:

@@ -31,7 +31,12 @@ from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.pipelines.camera_file import camera_from_intrinsics
 from envisat_pose.pipelines.frames import FrameSource, open_source, scan_source
-from envisat_pose.pipelines.job_defaults import check_weights, scenario_defaults, with_default_weights
+from envisat_pose.pipelines.job_defaults import (
+    check_weights,
+    fill_from_scenario,
+    scenario_defaults,
+    with_default_weights,
+)
 from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
 from envisat_pose.status import STATUSES, legend
 
@@ -41,22 +46,28 @@ if TYPE_CHECKING:  # the stage's type for annotations (track_stage_types resolve
 
 @dataclass(frozen=True)
 class TrackConfig:
-    """One `envisat track` job. scenario: where the chaser's orbit and the target's dynamics come from (a
-    generate folder's own scenario wins); orbit: the chaser's Keplerian orbit (datagen's OrbitConfig; None: the
-    scenario's); gravity_gradient: the target feels the gravity-gradient torque (the app sets the scenario's);
-    rate_hz: frame rate of an image folder or a video (0: a video's own rate); weights: detector weights ("": the
-    shipped ones); threads: torch CPU threads; jpeg_quality: the recording's images. filter, tracker: as
-    `envisat run`."""
+    """One `envisat track` job. scenario: where the chaser's orbit, the target's dynamics and the filter's tuning
+    come from (a generate folder's own scenario wins in the verb); orbit: the chaser's Keplerian orbit (datagen's
+    OrbitConfig); gravity_gradient: the target feels the gravity-gradient torque; filter: the UKF (the scenario's
+    [filter] table over TRACKER_FILTER). Those three left None take the scenario's when the config is made
+    (job_defaults.fill_from_scenario), so `TrackConfig(scenario=NAME)` is the job of
+    `TrackConfig.from_scenario(NAME)` and of `envisat track --scenario NAME`. rate_hz: frame rate of an image
+    folder or a video (0: a video's own rate); weights: detector weights ("": the shipped ones); threads: torch
+    CPU threads; jpeg_quality: the recording's images. tracker: as `envisat run`."""
 
     scenario: str = "default"
-    orbit: "OrbitConfig" = None
-    gravity_gradient: bool = False
+    orbit: "OrbitConfig | None" = None
+    gravity_gradient: bool | None = None
     rate_hz: float = 0.0
     weights: str = ""
     threads: int = 1
     jpeg_quality: int = 80
-    filter: FilterConfig = field(default_factory=lambda: FilterConfig(**TRACKER_FILTER))
+    filter: FilterConfig | None = None
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
+
+    def __post_init__(self) -> None:
+        track_stage_types()
+        fill_from_scenario(self, "track", TRACK_FALLBACKS)
 
     @classmethod
     def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
@@ -74,6 +85,11 @@ class TrackConfig:
         check(self.rate_hz >= 0, "rate_hz", self.rate_hz, "a frame rate in Hz (0: a video's own)")
         check(1 <= self.threads <= 256, "threads", self.threads, "1 to 256 threads")
         check(1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality, "a JPEG quality in [1, 100]")
+
+
+# what a scenario sets of a track job when it has no such table (every named scenario has an orbit)
+TRACK_FALLBACKS = {"orbit": lambda: OrbitConfig(), "gravity_gradient": lambda: False,
+                   "filter": lambda: FilterConfig(**TRACKER_FILTER)}
 
 
 def track_stage_types() -> None:
@@ -98,12 +114,12 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
                    remap=None, progress: bool = False) -> tuple:
     """A user's frames made ready for a job over them (track_frames, adapt): the source opened (a path at
     cfg.rate_hz), the camera read (a TOML file: its remap too) or the MJCF's at the frames' size, every frame
-    scanned once (frames.scan_source: one size, decodable, at least the cold start's frames), cfg's orbit and
-    weights filled from its scenario and the shipped ones. Returns (cfg, source, camera, remap, pixels)."""
+    scanned once (frames.scan_source: one size, decodable, at least the cold start's frames), cfg's weights
+    filled with the shipped ones where it names none. Returns (cfg, source, camera, remap, pixels)."""
     import dataclasses
 
     from envisat_pose.perception.weights import shipped_weights_path
-    from envisat_pose.pipelines.build import scenario_orbit, tracker_camera
+    from envisat_pose.pipelines.build import tracker_camera
 
     if isinstance(source, str):
         source = open_source(source, cfg.rate_hz)
@@ -113,10 +129,8 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
                          min_frames=cfg.tracker.acquire.frames, progress=progress)
     if camera is None:
         camera = tracker_camera(size_px=source.size_px)
-    if cfg.orbit is None or not cfg.weights:
-        track_stage_types()
-        cfg = dataclasses.replace(cfg, orbit=cfg.orbit or scenario_orbit(cfg.scenario),
-                                  weights=cfg.weights or shipped_weights_path())
+    if not cfg.weights:
+        cfg = dataclasses.replace(cfg, weights=shipped_weights_path())
     return cfg, source, camera, remap, pixels
 
 
@@ -126,13 +140,13 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     write est.npz, det.npz, track.config.toml, summary.json and the recording (out_dir/recording.rrd, or
     streamed to sink: 'spawn' or 'connect:URL'); with a truth also errors.png and the scores. camera: a
     PinholeCamera (remap: its cv2.remap maps, or None), a camera TOML file (camera_file.camera_from_intrinsics), or
-    None for the MJCF's chaser_cam at the frames' size; cfg.orbit None: the scenario's; cfg.weights "": the shipped
+    None for the MJCF's chaser_cam at the frames' size; cfg.weights "": the shipped
     ones (TrackConfig.from_scenario resolves the job `envisat track` runs). Every frame is read once before any
     output (frames.scan_source: one size, decodable, at least the cold start's frames); every output is staged
     and moved into out_dir when complete (io.staged_folder). Returns the summary (its source's `pixels`: what
     the scan found of the pixels)."""
     from envisat_pose.io import staged_folder
-    from envisat_pose.runner import check_out_dir, make_out_dir
+    from envisat_pose.out_dirs import check_out_dir, make_out_dir
 
     check_out_dir(out_dir, field="out_dir")
     cfg, source, camera, remap, pixels = prepare_frames(cfg, source, camera, remap, progress)
@@ -146,20 +160,17 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     import shutil
     from dataclasses import asdict
 
-    import cv2
     import torch
 
     from envisat_pose.analysis.recording import TrackRecorder
     from envisat_pose.config import to_dict, to_toml
     from envisat_pose.io import atomic_write_text
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.pipelines.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
+    from envisat_pose.pipelines.frame_loop import run_frames
     from envisat_pose.pipelines.onboard import chaser_function
-    from envisat_pose.pipelines.outputs import first_tracking_s, status_counts
-    from envisat_pose.pipelines.rows import DET_KEYS, STAGES, RunRows
+    from envisat_pose.pipelines.rows import DET_KEYS, RunRows
     from envisat_pose.pipelines.run_files import lost_runs, run_rows, score_run_files, write_run_files
     from envisat_pose.pipelines.tracker import Tracker
-    from envisat_pose.runner import real_time_factor
 
     torch.set_num_threads(cfg.threads)
     paths = track_output_paths(out_dir)
@@ -174,19 +185,9 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     truth = source.truth
     recorder = TrackRecorder(sink, camera, with_truth=truth is not None, title=f"envisat track {source.path}")
 
-    def frames():
-        """The source's frames (remapped to the ideal pinhole where the camera has one), with their truth."""
-        for k, image in source.frames():
-            if remap is not None:
-                image = cv2.remap(image, remap[0], remap[1], cv2.INTER_LINEAR)
-            if truth is None:
-                yield FrameInput(k, float(source.t_s[k]), image)
-            else:
-                yield FrameInput(k, float(source.t_s[k]), image, x_true=truth["x"][k],
-                                 corners_true_px=truth["corners_px"][k], in_frame=truth["in_frame"][k])
-
     wall0 = time.perf_counter()
-    sums = run_frames(tracker, frames(), rows, recorder, cfg.jpeg_quality, "tracking" if progress else None)
+    sums = run_frames(tracker, frame_inputs(source, remap), rows, recorder, cfg.jpeg_quality,
+                      "tracking" if progress else None)
     wall_s = time.perf_counter() - wall0
     x_true = truth["x"] if truth is not None else np.full((T, 12), np.nan)
     config_json = json.dumps({"track": to_dict(cfg), "source": {"kind": source.kind, "path": source.path,
@@ -198,28 +199,10 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     scores = score_run_files(source.t_s, x_true, [run_dir], paths, config_json, det_cfg, score=truth is not None,
                              det_names=det_names)
     col = run_rows(run_dir, ["status", "nis", "nis_dof"], 0, T)  # three scalars a frame
-    status = col["status"]
     write_run_files(paths, source.t_s, x_true, [run_dir], lost_runs([run_dir], T), config_json, source.names,
                     det_cfg, det_names=det_names)
     atomic_write_text(paths["config"], "# envisat track: the full validated config of this job\n" + to_toml(to_dict(cfg)))
-    timing = np.asarray(sums["timing_s"]) / T
-    dof = int(np.sum(col["nis_dof"]))
-    counts = status_counts(status)
-    summary = {
-        "source": {"kind": source.kind, "path": source.path, "frames": T, "bit_depth": source.bit_depth,
-                   "size_px": list(source.size_px), "pixels": pixels, "skipped_damaged_shards": source.skipped},
-        "weights": cfg.weights,
-        "frames_by_status": counts,
-        "tracked": counts["tracking"] > 0,
-        "first_tracking_s": first_tracking_s(source.t_s, status),
-        "final_status": STATUSES[int(status[-1])],
-        "mean_nis_per_dof": float(np.sum(col["nis"]) / dof) if dof else None,
-        # the stages timed here: the frames are read, not made (no simulation, rendering or camera)
-        "timing_ms_per_frame": {s: float(1000 * timing[i]) for i, s in enumerate(STAGES) if s not in BEFORE_TRACKER},
-        "real_time_factor": real_time_factor(source.t_s, wall_s),
-        "wall_s": wall_s,
-        "status_legend": legend(),
-    }
+    summary = track_summary(source, cfg.weights, pixels, col, np.asarray(sums["timing_s"]) / T, wall_s)
     if truth is not None:
         from envisat_pose.analysis.plots import plot_estimate
         from envisat_pose.pipelines.run_files import plot_inputs
@@ -230,3 +213,53 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     shutil.rmtree(runs_dir, ignore_errors=True)
     atomic_write_text(paths["summary"], json.dumps(summary, indent=1, sort_keys=True) + "\n")
     return summary
+
+
+def track_summary(source: FrameSource, weights: str, pixels: str, col: dict, timing_s: np.ndarray,
+                  wall_s: float) -> dict:
+    """summary.json of a track (without its scores): the source, the frames by status, the first tracking time,
+    the mean NIS per degree of freedom, the stages' time per frame (ms; the frames are read, not made: no
+    simulation, rendering or camera) and the real-time factor. col: the run's status, nis and nis_dof per frame
+    (T,); timing_s: (len(STAGES),) s per frame."""
+    from envisat_pose.pipelines.frame_loop import BEFORE_TRACKER
+    from envisat_pose.pipelines.outputs import first_tracking_s, status_counts
+    from envisat_pose.pipelines.rows import STAGES
+    from envisat_pose.realtime import real_time_factor
+
+    T = len(source.t_s)
+    status = col["status"]
+    dof = int(np.sum(col["nis_dof"]))
+    counts = status_counts(status)
+    return {
+        "source": {"kind": source.kind, "path": source.path, "frames": T, "bit_depth": source.bit_depth,
+                   "size_px": list(source.size_px), "pixels": pixels, "skipped_damaged_shards": source.skipped},
+        "weights": weights,
+        "frames_by_status": counts,
+        "tracked": counts["tracking"] > 0,
+        "first_tracking_s": first_tracking_s(source.t_s, status),
+        "final_status": STATUSES[int(status[-1])],
+        "mean_nis_per_dof": float(np.sum(col["nis"]) / dof) if dof else None,
+        # the stages timed here: the frames are read, not made (no simulation, rendering or camera)
+        "timing_ms_per_frame": {s: float(1000 * timing_s[i]) for i, s in enumerate(STAGES) if s not in BEFORE_TRACKER},
+        "real_time_factor": real_time_factor(source.t_s, wall_s),
+        "wall_s": wall_s,
+        "status_legend": legend(),
+    }
+
+
+def frame_inputs(source: FrameSource, remap):
+    """The source's frames as the frame loop's FrameInputs (remapped to the ideal pinhole where the camera has
+    one: remap, cv2.remap's maps), with their truth where the source has one."""
+    import cv2
+
+    from envisat_pose.pipelines.frame_loop import FrameInput
+
+    truth = source.truth
+    for k, image in source.frames():
+        if remap is not None:
+            image = cv2.remap(image, remap[0], remap[1], cv2.INTER_LINEAR)
+        if truth is None:
+            yield FrameInput(k, float(source.t_s[k]), image)
+        else:
+            yield FrameInput(k, float(source.t_s[k]), image, x_true=truth["x"][k],
+                             corners_true_px=truth["corners_px"][k], in_frame=truth["in_frame"][k])

@@ -137,6 +137,30 @@ def predicted_roi(mean: np.ndarray, cov: np.ndarray, camera: PinholeCamera, cfg:
     return np.array([x0, y0, side], dtype=np.int64)
 
 
+@dataclasses.dataclass(frozen=True)
+class FrameMeasurement:
+    """One frame measured for the bank's H hypotheses (Tracker._measure). fd: the FrameDetection (None: no
+    image); roi: the region of interest it was detected in, px (None: the whole frame); z: (H, 8, 2) px, each
+    hypothesis' naming of the corners (NaN: not measured); cov: (H, 8, 2, 2) px^2; mask: (H, 8) bool corners
+    given to the filter; pre: (H, 8) bool corners gated before it (gate.raw); seen: (H,) bool any corner
+    measured; namings: (H,) the naming each hypothesis chose (-1: none); appearance: (H,) its appearance
+    log-likelihood, nats; rejected: (8,) bool the best hypothesis' rejected corners; t_det, t_filter: s spent
+    detecting and in the rest of the measurement."""
+
+    fd: object
+    roi: np.ndarray | None
+    z: np.ndarray
+    cov: np.ndarray
+    mask: np.ndarray
+    pre: np.ndarray
+    seen: np.ndarray
+    namings: np.ndarray
+    appearance: np.ndarray
+    rejected: np.ndarray
+    t_det: float
+    t_filter: float
+
+
 class Tracker:
     """Detector + UKF over a user's frames (module docstring). One object per image sequence."""
 
@@ -380,41 +404,58 @@ class Tracker:
         return fd, roi, t_det
 
     def _track(self, t_s: float, image) -> TrackEstimate:
+        """One frame of a started bank: every hypothesis predicted to t_s, then the frame measured under the
+        prediction (_measure), the bank updated (_update_bank) and judged (_judge: integrity, pruning, the claim)."""
         t0 = time.perf_counter()
-        events: list[str] = []
         chaser = self.chaser_at(t_s)
         prior = predict_to(self.state, t_s, self.setup)
         best = int(np.argmax(self.log_w))
         if not (np.isfinite(prior[0][best]).all() and np.isfinite(prior[1][best]).all()):
-            # a prediction gone non-finite (a long gap through a bad state): the track is lost, acquire again
-            fd = None if image is None else self._detect(image)[0]
-            est = TrackEstimate(t_s=t_s, status="lost", x_hat=np.full(N_STATE, np.nan),
-                                P=np.full((N_STATE, N_STATE), np.nan), hypotheses=np.zeros((0, N_STATE)),
-                                probabilities=np.zeros(0), detection=fd, naming=-1, measured=np.zeros(8, bool),
-                                rejected=np.zeros(8, bool), nis=0.0, nis_dof=0, roi_px=None, converged=False,
-                                events=("lost: the prediction is not finite",), timing_s={})
-            self._reset()
-            return est
+            return self._lost_prediction(t_s, image)
         pos_sig, att_sig = pose_sigmas(prior[1][best])
         self.rate_rad_s = float(np.linalg.norm(prior[0][best, RATE]))  # the view's rotation rate, predicted
         converged = bool(pos_sig < self.cfg.roi.converged_pos_sigma_m
                          and att_sig < self.cfg.roi.converged_att_sigma_deg)
+        t_predict = time.perf_counter() - t0
+        m = self._measure(image, prior, best, converged)
+        t1 = time.perf_counter()
+        events: list[str] = []
+        new, b = self._update_bank(Measurement(t_s, chaser, np.nan_to_num(m.z), m.mask, m.cov), prior, best,
+                                   converged, image, m, events)
+        out = dict(fd=m.fd, naming=int(m.namings[b]), measured=m.mask[b] | m.pre[b], rejected=m.rejected, roi=m.roi,
+                   converged=converged, nis=float(new.nis[b]), nis_dof=int(new.dof[b]))
+        return self._judge(t_s, image, new, b, events, out, lambda: {
+            "detection": m.t_det, "filtering": t_predict + m.t_filter + time.perf_counter() - t1})
+
+    def _lost_prediction(self, t_s: float, image) -> TrackEstimate:
+        """A prediction gone non-finite (a long gap through a bad state): the track is lost, acquire again."""
+        fd = None if image is None else self._detect(image)[0]
+        est = TrackEstimate(t_s=t_s, status="lost", x_hat=np.full(N_STATE, np.nan),
+                            P=np.full((N_STATE, N_STATE), np.nan), hypotheses=np.zeros((0, N_STATE)),
+                            probabilities=np.zeros(0), detection=fd, naming=-1, measured=np.zeros(8, bool),
+                            rejected=np.zeros(8, bool), nis=0.0, nis_dof=0, roi_px=None, converged=False,
+                            events=("lost: the prediction is not finite",), timing_s={})
+        self._reset()
+        return est
+
+    def _measure(self, image, prior, best: int, converged: bool) -> FrameMeasurement:
+        """The frame measured for every hypothesis under the bank's prediction prior (means (H, 12), covariances
+        (H, 12, 12)): detected (_look), its corners named per hypothesis (choose_namings), gated against the
+        detector's own covariance (gate.raw) and the best hypothesis' rejected corners flagged. No image: nothing
+        measured."""
+        t0 = time.perf_counter()
         H = self.state.mean.shape[0]
         z = np.full((H, 8, 2), np.nan)
         cov = np.broadcast_to(np.eye(2), (H, 8, 2, 2)).copy()
         namings, appearance = np.full(H, -1), np.zeros(H)
         fd, roi, t_det = None, None, 0.0
-        t_filter = time.perf_counter() - t0
         if image is not None:
             fd, roi, t_det = self._look(image, prior, best, converged)
-            t1 = time.perf_counter()
             zd, cd, p_alt = detection_measurement(fd, self.inflation, self.bias_scale)
             if np.isfinite(zd).all(-1).any():
                 z, cov, namings, appearance = choose_namings(zd, cd, p_alt, self.setup.hx(prior[0]),
                                                              self.cfg.bank.appearance_clip,
                                                              self.cfg.bank.appearance_frames)
-            t_filter += time.perf_counter() - t1
-        t1 = time.perf_counter()
         mask = np.isfinite(z).all(-1)
         seen = mask.any(-1)
         pre = np.zeros(mask.shape, bool)  # corners gated against the detector's own covariance (cfg.gate.raw)
@@ -424,46 +465,61 @@ class Tracker:
                             for h in range(H)])
             mask = mask & ~pre
         rejected = self._rejected(prior, np.nan_to_num(z), mask, cov, best) | pre[best]
-        new = filter_step(self.state, Measurement(t_s, chaser, np.nan_to_num(z), mask, cov), self.setup, prior=prior)
+        return FrameMeasurement(fd=fd, roi=roi, z=z, cov=cov, mask=mask, pre=pre, seen=seen, namings=namings,
+                                appearance=appearance, rejected=rejected, t_det=t_det,
+                                t_filter=time.perf_counter() - t0 - t_det)
+
+    def _update_bank(self, meas: Measurement, prior, best: int, converged: bool, image, m: FrameMeasurement,
+                     events: list[str]) -> tuple[FilterState, int]:
+        """The bank updated with the frame: every hypothesis' UKF step, its dynamics log-likelihood (the frame's
+        cost, where the frame discriminates), the detector's appearance and the array cue, the evidence windows
+        and the filter's memory. Returns (the updated state, this frame's best hypothesis before pruning)."""
+        H = self.state.mean.shape[0]
+        new = filter_step(self.state, meas, self.setup, prior=prior)
         used = new.dof > 0
-        n_pre = pre.sum(-1)
+        n_pre = m.pre.sum(-1)
         if frame_discriminates(new.nis, new.dof, self.cfg.bank.evidence_prob):
             cost = update_cost(new, self.gate_bound) + self.gate_bound * n_pre
-            self.log_dyn = self.log_dyn + np.where(seen, -0.5 * cost * self.evidence_weight, 0.0)
+            self.log_dyn = self.log_dyn + np.where(m.seen, -0.5 * cost * self.evidence_weight, 0.0)
         elif H > 1:
             events.append("no evidence between the hypotheses: the frame's innovations contradict them all")
-        self.log_app = self.log_app + np.where(seen, appearance, 0.0)
+        self.log_app = self.log_app + np.where(m.seen, m.appearance, 0.0)
         if image is not None and converged:
             self._array_cue(image, prior[0], best)
         self.log_dyn -= np.max(self.log_dyn)
         self.log_app -= np.max(self.log_app)
         self.log_array -= np.max(self.log_array)
         self.state = new
-        self.evidence = self.evidence.push(np.where(used, new.nis, 0.0), new.dof, mask.sum(-1) + n_pre,
+        self.evidence = self.evidence.push(np.where(used, new.nis, 0.0), new.dof, m.mask.sum(-1) + n_pre,
                                            new.rejected + new.dropped + n_pre)
         b = int(np.argmax(self.log_w))  # the best hypothesis of this frame, before pruning
         if used[b]:
             lam = filter_memory(prior[1][b], new.cov[b])
             self.memory = self.memory if lam is None else lam
-        out = dict(fd=fd, naming=int(namings[b]), measured=mask[b] | pre[b], rejected=rejected, roi=roi,
-                   converged=converged, nis=float(new.nis[b]), nis_dof=int(new.dof[b]))
-        # integrity: every hypothesis against its own evidence; a failed one is dropped, none left is lost
+        return new, b
+
+    def _judge(self, t_s: float, image, new: FilterState, b: int, events: list[str], out: dict,
+               timing: Callable[[], dict]) -> TrackEstimate:
+        """Integrity: every hypothesis against its own evidence (and, one left, the array cue; the bank against
+        integrity.lost_after_frames frames without a corner used); a failed one is dropped, none left is lost;
+        a decided bank is pruned to its winner; then the frame's claim (_claim). timing() gives the frame's
+        timing_s when the outcome is known."""
+        H = new.mean.shape[0]
         problems = self._problems(new)
         if H == 1 and self.array_against >= self.cfg.array_cue.lost_readings:
             problems[0].append(f"the image shows the solar array at the other end of the body ({self.array_against} "
                                "readings in a row)")
         if image is not None:
-            self.coasting_frames = 0 if used[b] else self.coasting_frames + 1
+            self.coasting_frames = 0 if new.dof[b] > 0 else self.coasting_frames + 1
         if self.coasting_frames >= self.cfg.integrity.lost_after_frames:
             # the bank's, not one hypothesis's: dropping the best alone would hand its twin the claim by
             # elimination, with no evidence for it (a 20 m acquisition trial claimed a 180-deg twin for 55 s so)
             for p in problems:
                 p.append(f"no corner used in {self.coasting_frames} frames with an image")
         failed = np.array([bool(p) for p in problems])
-        timing = {"detection": t_det, "filtering": t_filter + time.perf_counter() - t1}
         if failed.all():
             events.append(f"lost: {'; '.join(problems[b])}")
-            est = self._estimate(t_s, events=tuple(events), status="lost", timing=timing, **out)
+            est = self._estimate(t_s, events=tuple(events), status="lost", timing=timing(), **out)
             self._reset()
             return est
         if failed.any():
@@ -473,7 +529,7 @@ class Tracker:
         if self._keep(self.probabilities >= 1.0 - self.cfg.bank.decided):
             events.append("hypothesis decided")
         status = self._claim(events)  # may add "confirmed" to the events
-        return self._estimate(t_s, events=tuple(events), status=status, timing=timing, **out)
+        return self._estimate(t_s, events=tuple(events), status=status, timing=timing(), **out)
 
     def _pose_K(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The target's pose in the camera frame K of a state x (12,): R_K_from_T (3, 3) and T's origin in K (3,), m."""

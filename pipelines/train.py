@@ -30,7 +30,8 @@ class OnlineConfig:
 
     def __post_init__(self) -> None:
         from envisat_pose.datagen.target_model import require_envisat
-        from envisat_pose.pipelines.online import MAX_USES_PER_FRAME, as_looks
+        from envisat_pose.pipelines.look_mix import as_looks
+        from envisat_pose.pipelines.online import MAX_USES_PER_FRAME
 
         object.__setattr__(self, "looks", as_looks(self.looks))
         for look in self.looks:
@@ -43,7 +44,7 @@ class OnlineConfig:
     def record(self) -> dict:
         """What config.json keeps of it (a resumed run rebuilds it from this): the looks with their shares of the
         period, the renderer processes and K."""
-        from envisat_pose.pipelines.online import look_shares
+        from envisat_pose.pipelines.look_mix import look_shares
 
         looks = [dict(look.record(), share=int(n)) for look, n in zip(self.looks, look_shares(self.looks))]
         return {"looks": looks, "workers": self.workers, "uses_per_frame": self.uses_per_frame}
@@ -53,7 +54,7 @@ class OnlineConfig:
         """From record()'s dict, or an earlier run's with one 'generate' config."""
         from envisat_pose.config import from_dict
         from envisat_pose.datagen.generate_config import GenerateConfig
-        from envisat_pose.pipelines.online import WeightedLook
+        from envisat_pose.pipelines.look_mix import WeightedLook
 
         if "looks" in record:
             looks = tuple(WeightedLook.from_record({k: v for k, v in r.items() if k != "share"}, "online.looks")
@@ -112,7 +113,7 @@ def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | N
                  threads: int | None, online: bool = False) -> None:
     """Every input of a training run but the shards checked before any work; InputError naming the argument."""
     from envisat_pose.datagen.target_model import require_envisat_dataset
-    from envisat_pose.runner import check_out_dir
+    from envisat_pose.out_dirs import check_out_dir
 
     if not data_dirs and not online:
         raise InputError("data_dirs: no dataset folder given")
@@ -245,7 +246,7 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
         from envisat_pose.pipelines.online import online_batches, run_identity
 
         identity = run_identity(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.uses_per_frame)
-        from envisat_pose.pipelines.online import look_shares
+        from envisat_pose.pipelines.look_mix import look_shares
 
         mix = ", ".join(f"{look.name} {n} %" for look, n in zip(online.looks, look_shares(online.looks)))
         data = [{"name": f"online ({mix}, K = {online.uses_per_frame})", "manifest_sha256": identity["config_sha256"],

@@ -860,6 +860,82 @@ def test_the_verb_length_checker_sees_a_thick_verb(tmp_path):
     assert thick_verbs(lengths, {os.path.join("app", "listed.py"): 201}) == {thick: "161 lines, over 160"}
 
 
+# ---------------------------------------------------------------- short functions
+
+FUNCTION_MAX_LINES = 80  # issue 50: a function's steps get names; a longer one is several jobs in one body
+# Functions over the limit that other engineers hold now: {"path:qualified name": why}. An entry must still be
+# over the limit (test_pending_long_functions_are_still_long), so it is deleted with the split.
+PENDING_LONG_FUNCTIONS = {
+    # issue 48 is editing datagen/ (render.py among its files): the renderer's set-up to be split there
+    os.path.join("datagen", "render.py") + ":SceneRenderer.__init__": "issue 48 (datagen/)",
+}
+
+
+def is_numba_kernel(node: ast.AST) -> bool:
+    """A function compiled by numba (@njit, @jit, @numba.njit(...), ...): one loop body the compiler fuses, exempt
+    from the limit."""
+    for dec in getattr(node, "decorator_list", ()):
+        target = dec.func if isinstance(dec, ast.Call) else dec
+        name = target.attr if isinstance(target, ast.Attribute) else getattr(target, "id", "")
+        if name in ("njit", "jit", "vectorize", "guvectorize", "stencil"):
+            return True
+    return False
+
+
+def function_lengths(source: str, path: str = "<source>") -> dict[str, int]:
+    """{qualified name: lines from `def` to its last line} of every function and method of a source, nested ones
+    included (Outer.inner), numba kernels apart."""
+    out = {}
+
+    def walk(node, prefix):
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                name = f"{prefix}{child.name}"
+                if not isinstance(child, ast.ClassDef) and not is_numba_kernel(child):
+                    out[name] = child.end_lineno - child.lineno + 1
+                walk(child, f"{name}.")
+            else:
+                walk(child, prefix)
+
+    walk(ast.parse(source, path), "")
+    return out
+
+
+def long_functions(root: str = ROOT) -> dict[str, int]:
+    """{"path:qualified name": lines} of the package's functions over FUNCTION_MAX_LINES."""
+    out = {}
+    for path, _ in source_files(root):
+        rel = os.path.relpath(path, root)
+        with open(path, encoding="utf-8") as fh:
+            for name, n in function_lengths(fh.read(), rel).items():
+                if n > FUNCTION_MAX_LINES:
+                    out[f"{rel}:{name}"] = n
+    return out
+
+
+def test_no_function_over_the_limit():
+    """Floor of issue 50: 0 functions over FUNCTION_MAX_LINES lines outside numba kernels (those pending apart)."""
+    found = {k: n for k, n in long_functions().items() if k not in PENDING_LONG_FUNCTIONS}
+    assert found == {}, f"split these into named steps (<= {FUNCTION_MAX_LINES} lines each): {found}"
+
+
+def test_pending_long_functions_are_still_long():
+    stale = sorted(set(PENDING_LONG_FUNCTIONS) - set(long_functions()))
+    assert stale == [], f"{stale} are within {FUNCTION_MAX_LINES} lines now (or gone): remove them from the list"
+
+
+def test_the_function_length_checker_sees_a_long_function_and_exempts_a_kernel():
+    body = "    x = 1\n" * FUNCTION_MAX_LINES
+    source = ("import numba\n\n\ndef short():\n" + body[: -len("    x = 1\n")] +
+              "\n\nclass A:\n    def long(self):\n" + "        x = 1\n" * FUNCTION_MAX_LINES +
+              "\n\n@numba.njit(cache=True)\ndef kernel():\n" + body +
+              "\n\ndef outer():\n    def inner():\n" + "        x = 1\n" * FUNCTION_MAX_LINES + "    return inner\n")
+    lengths = function_lengths(source)
+    assert lengths["short"] == FUNCTION_MAX_LINES and lengths["A.long"] == FUNCTION_MAX_LINES + 1
+    assert "kernel" not in lengths and lengths["outer.inner"] == FUNCTION_MAX_LINES + 1
+    assert lengths["outer"] == FUNCTION_MAX_LINES + 3
+
+
 # ---------------------------------------------------------------- the slow lane's list (tests/conftest.py)
 
 def slow_ids(root: str = ROOT) -> tuple[str, ...]:

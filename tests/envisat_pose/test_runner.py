@@ -132,7 +132,7 @@ def test_a_foreign_or_broken_manifest_is_one_error(tmp_path, text, message):
 
 def test_the_output_folder_rule(tmp_path):
     from envisat_pose.config import InputError
-    from envisat_pose.runner import check_out_dir, make_out_dir
+    from envisat_pose.out_dirs import check_out_dir, make_out_dir
 
     check_out_dir(str(tmp_path / "new"))  # creates nothing
     check_out_dir(str(tmp_path / "no" / "new"))  # parents are made by make_out_dir
@@ -156,7 +156,7 @@ def test_the_output_folder_rule(tmp_path):
 
 def test_the_output_file_rule(tmp_path):
     from envisat_pose.config import InputError
-    from envisat_pose.runner import check_out_file, make_out_file_dir
+    from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 
     target = tmp_path / "a" / "b" / "det.npz"
     check_out_file(str(target))  # creates nothing

@@ -37,8 +37,49 @@ def test_a_scenario_resolves_into_the_job_the_verb_runs():
     assert track.gravity_gradient and track.rate_hz == 2.0 and track.orbit is not None and track.weights
     mc = MonteCarloConfig.from_scenario("eclipse", runs=2)
     assert mc.measurement.outages_s and mc.runs == 2
-    assert MonteCarloConfig(scenario="eclipse").measurement.outages_s == ()  # the class alone knows no scenario
+    assert MonteCarloConfig(scenario="eclipse") == mc.__class__.from_scenario("eclipse")  # the class resolves it too
     assert resolve_job("simulate", "close-25m", seed=4).relative.rho0_C_m == (0.0, 25.0, 0.0)
+
+
+def scenario_names():
+    from envisat_pose import named_scenarios
+
+    return named_scenarios.names()
+
+
+@pytest.mark.parametrize("name", scenario_names())
+def test_the_plain_constructor_with_a_scenario_is_the_scenarios_job(name):
+    """Cfg(scenario=NAME) and Cfg.from_scenario(NAME) are one job for every config with a scenario field: the
+    gravity-gradient switch, the orbit and the filter's tuning of track, the duration, rate and filter of run, the
+    duration, tables and eclipse outages of montecarlo (the plain constructor once took only part of them)."""
+    from envisat_pose.pipelines.campaign_config import MonteCarloConfig
+    from envisat_pose.pipelines.run_config import RunConfig, finish_config
+    from envisat_pose.pipelines.track import TrackConfig
+
+    track = TrackConfig.from_scenario(name)
+    assert TrackConfig(scenario=name, weights=track.weights) == track
+    run = RunConfig.from_scenario(name)
+    assert finish_config(RunConfig(scenario=name, weights=run.weights, workers=run.workers)) == run
+    assert MonteCarloConfig(scenario=name) == MonteCarloConfig.from_scenario(name)
+
+
+def test_the_plain_constructor_and_from_scenario_give_the_same_estimates(tmp_path):
+    """A short warm closed loop on the gravity-gradient scenario (its own [filter] tuning): the plain constructor
+    and from_scenario write the same est.npz and det.npz."""
+    from envisat_pose.pipelines.closed_loop import run_closed_loop
+    from envisat_pose.pipelines.run_config import RunConfig
+
+    small = {"duration_s": 3.0, "seed": 5, "warm_start": True, "workers": 1}
+    resolved = RunConfig.from_scenario("gravity-gradient", overrides={**small, "image.resolution_px": 64})
+    plain = RunConfig(scenario="gravity-gradient", weights=resolved.weights, image=resolved.image, **small)
+    from envisat_pose.filtering.estimator import FilterConfig
+    from envisat_pose.pipelines.tracker_config import TRACKER_FILTER
+
+    assert plain.filter == resolved.filter != FilterConfig(**TRACKER_FILTER)  # the scenario's tuning, not the class's
+    run_closed_loop(resolved, str(tmp_path / "a"), progress=False)
+    run_closed_loop(plain, str(tmp_path / "b"), progress=False)
+    for name in ("est.npz", "det.npz"):
+        same_arrays(tmp_path / "a" / name, tmp_path / "b" / name, skip=("config_json",))
 
 
 def test_library_errors_name_the_argument_and_the_verb_its_flag(tmp_path, capsys):

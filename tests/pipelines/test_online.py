@@ -14,7 +14,8 @@ import torch
 
 from envisat_pose.datagen.generate_config import AppearanceConfig, GenerateConfig, SequenceModeConfig
 from envisat_pose.perception.data import DataConfig
-from envisat_pose.pipelines.online import RenderPool, online_batches, uses_before, window_start
+from envisat_pose.pipelines.online import online_batches, uses_before, window_start
+from envisat_pose.pipelines.render_pool import RenderPool
 
 # the fast tests' looks: one texture per class and no Earth (its textures take seconds to make at first use);
 # the slow statistics test renders the default looks
@@ -141,19 +142,19 @@ def test_a_mix_deals_its_frames_by_weight_and_its_file_reads_back(tmp_path):
     """Each look gets its rounded share of every LOOK_PERIOD frames, spread over the period, and its samples
     0, 1, 2, ... in frame order; the looks file round-trips and bad files name the field."""
     from envisat_pose.config import ConfigError
-    from envisat_pose.pipelines import online
+    from envisat_pose.pipelines import look_mix
 
-    WeightedLook, LOOK_PERIOD = online.WeightedLook, online.LOOK_PERIOD
+    WeightedLook, LOOK_PERIOD = look_mix.WeightedLook, look_mix.LOOK_PERIOD
     looks = (WeightedLook("big", GEN, 2000.0), WeightedLook("mid", GEN, 800.0), WeightedLook("tiny", GEN, 1.0),
              WeightedLook("seq", GenerateConfig(mode="sequence", sequence=SequenceModeConfig("slow-tumble"), resolution_px=96, num_images=7,
                                         **CHEAP), 300.0))
-    shares = online.look_shares(looks)
+    shares = look_mix.look_shares(looks)
     assert shares.sum() == LOOK_PERIOD and shares.tolist() == [64, 26, 1, 9]  # 64.5 / 25.8 / 0.03 / 9.7, tiny >= 1
-    pattern = online.look_pattern(shares)
+    pattern = look_mix.look_pattern(shares)
     samples = [[] for _ in looks]
     first_period = []
     for f in range(3 * LOOK_PERIOD):
-        j, i = online.frame_look(f, shares, pattern)
+        j, i = look_mix.frame_look(f, shares, pattern)
         samples[j].append(i)
         if f < LOOK_PERIOD:
             first_period.append(j)
@@ -161,10 +162,10 @@ def test_a_mix_deals_its_frames_by_weight_and_its_file_reads_back(tmp_path):
     gaps = np.diff([f for f, j in enumerate(first_period) if j == 1])
     assert gaps.max() <= 5  # 'mid' every ~3.8 frames, not in one block
     path = tmp_path / "looks.toml"
-    path.write_text(online.looks_toml(looks))
-    assert online.read_looks(str(path)) == looks
+    path.write_text(look_mix.looks_toml(looks))
+    assert look_mix.read_looks(str(path)) == looks
     path.write_text('seed = 5\n[[look]]\nname = "a"\nweight = 2\n[[look]]\nname = "b"\nresolution_px = 64\n')
-    a, b = online.read_looks(str(path))
+    a, b = look_mix.read_looks(str(path))
     assert (a.generate.seed, b.generate.seed, b.generate.resolution_px, a.weight, b.weight) == (5, 5, 64, 2, 1.0)
     for text, field in [('[[look]]\nweight = 1\n', "look[0].name"), ("seed = 1\n", "look"),
                         ('[[look]]\nname = "a"\nweight = -1\n', "looks.a.weight"),
@@ -173,7 +174,7 @@ def test_a_mix_deals_its_frames_by_weight_and_its_file_reads_back(tmp_path):
                         ('[[look]]\nname = "a"\n[[look]]\nname = "a"\n', "looks")]:
         path.write_text(text)
         with pytest.raises(ConfigError, match=field.replace(".", r"\.").replace("[", r"\[")):
-            online.read_looks(str(path))
+            look_mix.read_looks(str(path))
 
 
 @pytest.mark.slow  # renders two looks at two sizes (~10 s)
@@ -183,7 +184,7 @@ def test_a_mix_of_sizes_and_scenarios_renders_each_looks_own_frames(tmp_path):
     the slot with zeros beyond; the batches crop each frame within its own size."""
     from envisat_pose.datagen.factory import generate_shard
     from envisat_pose.perception.data import read_samples
-    from envisat_pose.pipelines.online import WeightedLook, frame_look, look_pattern, look_shares, sequence_seed
+    from envisat_pose.pipelines.look_mix import WeightedLook, frame_look, look_pattern, look_shares, sequence_seed
 
     seq_cfg = GenerateConfig(mode="sequence", sequence=SequenceModeConfig("slow-tumble", 5.0), resolution_px=96,
                              num_images=4, shard_size=4, seed=12, **CHEAP)

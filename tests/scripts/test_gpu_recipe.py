@@ -86,7 +86,7 @@ def test_a_legs_chunks_are_valid_generate_configs_with_the_asked_mix(leg, tmp_pa
 def test_an_online_leg_trains_on_the_offline_rounds_mix(tmp_path):
     """The online leg's looks file: every chunk of a round a look, at its resolution and camera, weighted by its
     images; every scenario's sequences with appearance off and on; seeds inside the leg's block."""
-    from envisat_pose.pipelines.online import look_shares, read_looks
+    from envisat_pose.pipelines.look_mix import look_shares, read_looks
 
     gt, chunks = plan(3, rounds=1)
     looks = read_looks(gt.online_looks(str(tmp_path), 3, named_scenarios.names()))

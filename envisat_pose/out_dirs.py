@@ -1,0 +1,100 @@
+"""The one output-folder rule of every job: `check_out_dir` (creating nothing) and `make_out_dir` (create, parents
+too, prove writable by a real write); for an output file, `check_out_file` and `make_out_file_dir(s)` (its
+folder). A file on the path is one InputError naming the field and the path.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Sequence
+
+from envisat_pose.config import InputError
+
+PARTIAL_PREFIX = ".tmp-"  # io.atomic_path's temporary files: what a killed writer leaves behind
+
+
+def _file_in_the_way(path: str) -> str | None:
+    """The existing path at or above `path` that is not a folder (a file where a folder must be), or None; named
+    as the user named path (relative stays relative)."""
+    here = os.path.abspath(path)
+    while not os.path.lexists(here):
+        if os.path.dirname(here) == here:
+            return None
+        here = os.path.dirname(here)
+    if os.path.isdir(here):
+        return None
+    return here if os.path.isabs(path) else os.path.relpath(here)
+
+
+def check_out_dir(out_dir: str, parents: bool = True, field: str = "--out") -> None:
+    """Check, creating nothing, that out_dir is a folder or can become one: nothing on its path is a file (out_dir
+    itself, or a folder above it); without parents, its parent must exist too. InputError naming the field."""
+    blocker = _file_in_the_way(out_dir)
+    if blocker is not None:
+        where = "exists and is not a folder" if os.path.abspath(blocker) == os.path.abspath(out_dir) else \
+            f"{blocker!r} is a file, not a folder"
+        raise InputError(f"{field} {out_dir!r}: {where}; expected a folder (or a path where one can be made)")
+    parent = os.path.dirname(os.path.abspath(out_dir))
+    if not parents and not os.path.isdir(parent):
+        raise InputError(f"{field} {out_dir!r}: parent folder {parent!r} does not exist")
+
+
+def make_out_dir(out_dir: str, subdirs: Sequence[str] = (), parents: bool = True, field: str = "--out") -> None:
+    """check_out_dir, then create out_dir (its parents too, and its subdirs) and prove it writable by writing
+    (and removing) a probe file in it.
+
+    os.access says yes to root everywhere (even /proc), so only a real write tells; any OSError becomes one
+    InputError line naming the folder and the system's reason.
+    """
+    check_out_dir(out_dir, parents, field)
+    reason = _made_writable([out_dir, *(os.path.join(out_dir, s) for s in subdirs)])
+    if reason:
+        raise InputError(f"{field} {out_dir!r}: cannot write there ({reason})")
+
+
+def _made_writable(folders: list[str]) -> str | None:
+    """Make the folders (parents too) and write and remove a probe file in the first; the system's reason when
+    that fails, else None."""
+    import tempfile
+
+    try:
+        for folder in folders:
+            os.makedirs(folder, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=PARTIAL_PREFIX + "probe-", dir=folders[0])
+        try:
+            os.write(fd, b"probe")
+        finally:
+            os.close(fd)
+            os.remove(probe)
+    except OSError as err:
+        return str(err.strerror or err)
+    return None
+
+
+def check_out_file(path: str, field: str = "--out") -> None:
+    """Check, creating nothing, that an output file can be written at path: it is not a folder and nothing above
+    it is a file (its missing folders are made by make_out_file_dir when the job writes). InputError."""
+    if os.path.isdir(path):
+        raise InputError(f"{field} {path!r} is a folder; expected a file path")
+    blocker = _file_in_the_way(os.path.dirname(path) or ".")
+    if blocker is not None:
+        raise InputError(f"{field} {path!r}: {blocker!r} is a file, not a folder; expected a file path in a folder "
+                         "(or where one can be made)")
+
+
+def make_out_file_dir(path: str, field: str = "--out") -> None:
+    """check_out_file, then make the output file's folder (parents too) and prove it writable (make_out_dir)."""
+    check_out_file(path, field)
+    folder = os.path.dirname(os.path.abspath(path))
+    reason = _made_writable([folder])
+    if reason:
+        raise InputError(f"{field} {path!r}: cannot write in its folder {folder!r} ({reason})")
+
+
+def make_out_file_dirs(outputs: dict[str, str]) -> None:
+    """Every output file {path: field} checked (check_out_file), then their folders made (make_out_file_dir):
+    nothing is made unless every one can be written."""
+    for path, name in outputs.items():
+        check_out_file(path, name)
+    for path, name in outputs.items():
+        make_out_file_dir(path, name)
