@@ -20,7 +20,7 @@ from envisat_pose.config import InputError
 BIND = "127.0.0.1"
 DEFAULT_PORT = 9876  # Rerun's gRPC proxy
 DEFAULT_WEB_PORT = 9090  # Rerun's web viewer over HTTP
-RUN_DIR_RECORDING = "recording.rrd"  # the recording a run folder holds (issue 11)
+RUN_DIR_RECORDING = "recording.rrd"  # the recording a run folder holds
 RRD_MAGIC = b"RRF"  # an RRD stream's first bytes (b"RRF2" for the current encoding)
 
 

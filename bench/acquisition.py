@@ -26,7 +26,7 @@ hold legal whatever the attitude). A refused trial is not flown and not redrawn:
 
 Run: .venv/bin/python bench/acquisition.py [--trials-per-bin 10] [--seed 0] [--ranges-m 20 30 40 50]
      [--rates slow envisat stress] [--duration-s 90] [--workers N]
-Floors (issue 28): 0 false locks in at least 300 acquisitions; success >= 99 % within 60 s of the first lit frame
+Floors: 0 false locks in at least 300 acquisitions; success >= 99 % within 60 s of the first lit frame
 in every range bin and tumble rate.
 """
 

@@ -1,4 +1,4 @@
-"""`envisat adapt` scored (issue 40 item 4): before and after on foreign frames, the project's own renders of the same
+"""`envisat adapt` scored: before and after on foreign frames, the project's own renders of the same
 poses as the reference, and what the adapted weights cost on the project's own look.
 
 Per (scenario, seed, resolution):

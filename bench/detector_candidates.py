@@ -1,4 +1,4 @@
-"""Detector weights side by side on the same held-out sets: which to ship (issue 26).
+"""Detector weights side by side on the same held-out sets: which to ship.
 
 Each candidate runs the shipped detection chain (DetectConfig defaults, its own cov_scale: coarse pass, crop,
 patch pass, naming) on every frame of every set, on the full frame ('detector', a cold start's regime) and in

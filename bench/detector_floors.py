@@ -1,4 +1,5 @@
-"""Issue 26's detector floors against `envisat evaluate` JSONs: which hold, which do not, with the figures.
+"""The detector's floors (PCK@5, swaps, ambiguity, visibility) against `envisat evaluate` JSONs: which hold,
+which do not, with the figures.
 
     .venv/bin/python bench/detector_floors.py --random EVAL.json [EVAL.json ...] [--earth EVAL.json ...]
         [--sequence EVAL.json ...] [--speed bench/results/detector_speed.json] [--out bench/results/X.json]

@@ -1,4 +1,4 @@
-"""Detector speed on 2 CPU threads (issue 10's benchmark).
+"""Detector speed on 2 CPU threads.
 
 Part 1: the network's forward time per input size and width (min and median of repeated runs, so a busy
 machine shows as spread), and the line head on all pairs of 12 junctions.

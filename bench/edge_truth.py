@@ -1,5 +1,5 @@
 """The edge cue (pipelines/edge_range.py) read at the true pose of foreign frames: what it says where the answer is
-known, so its own bias is separated from the tracker's (issue 40).
+known, so its own bias is separated from the tracker's.
 
 Per (scenario, seed, resolution), on the foreign sequence bench/adapt.py renders (bench/foreign_frames.py:
 MuJoCo Filament, a real camera's habits; made here when missing) and every `--stride`-th frame, remapped to the
@@ -11,8 +11,19 @@ pinhole as the tracker sees them:
 A perfect cue reads 0 at the true pose; its reading there is the part of adapt's range correction that no
 tracker can remove. The truth is the bench's, never the library's.
 
+With `--looks` the grid of looks (issue 49) on the project's own renders instead: one clean sequence per
+(seed, resolution) (`envisat generate --mode sequence`, storage 'clean'), every `--stride`-th frame put through
+the space camera (datagen/sensor.py) with a fixed look: response linear, sRGB, gamma 1.8 or 2.4; Gaussian PSF
+sigma 0.3 / 1.0 / 2.5 px; blooming off (white at 0.8 of the full well) or on (1.5, 4 px spill); no motion blur,
+no vignetting. Per look the sequence's delta at the labels' true corners: in the stored values (the cue as it
+was), linearized by the known response with the reach of the known PSF, and by the response and PSF the frames
+give (pipelines/edge_look.estimate_look); and the estimate itself. The Filament rows (without --looks) record
+the same three readings, their response unknown.
+
 Run:  .venv/bin/python bench/edge_truth.py --seeds 0 1 2 3 --resolutions 512 1024 --work /tmp/adapt-bench
-(writes bench/results/edge_truth.json and prints a table).
+(writes bench/results/edge_truth.json and prints a table);
+      .venv/bin/python bench/edge_truth.py --looks --seeds 0 --resolutions 512 1024 --work /tmp/adapt-bench \
+          --out bench/results/edge_truth_looks.json
 """
 
 from __future__ import annotations
@@ -21,6 +32,7 @@ import argparse
 import json
 import os
 import sys
+import time
 
 import numpy as np
 
@@ -67,6 +79,8 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, stride: int,
         seq = sequence_scale(fits)
         out[f"range_x{1 + e:.4f}"] = {"delta": seq.delta, "delta_se": seq.delta_se,
                                       "frames_measured": int(sum(f.delta is not None for f in fits))}
+    lab = corner_labels(x[ks], camera)
+    out["readings"] = three_readings([images[k] for k in ks], lab["corners_px"], lab["visible"] & lab["in_frame"])
     off, br = np.concatenate(offsets), np.concatenate(inside)
     out["offset_px_by_inside_grey"] = [
         {"grey": [lo, hi], "stations": int(m.sum()), "mean_px": float(off[m].mean()),
@@ -74,6 +88,112 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, stride: int,
         for lo, hi in BRIGHTNESS for m in [(br >= lo) & (br < hi)] if m.sum() >= 20]
     out["offset_px_mean"], out["stations"] = float(off.mean()), int(len(off))
     return out
+
+
+RESPONSES = ("linear", "srgb", "gamma 1.8", "gamma 2.4")
+PSF_SIGMAS_PX = (0.3, 1.0, 2.5)
+LOOK_FRAMES = 20  # frames of a sequence the response and blur are estimated from (evenly spread)
+
+
+def own_clean(scenario: str, seed: int, res: int, n: int, work: str) -> str:
+    """A clean own-render sequence (storage 'clean'), made when missing: its folder."""
+    import subprocess
+
+    out = os.path.join(work, f"{scenario}-{seed}-{res}-{n}", "own-clean")
+    if not os.path.exists(os.path.join(out, "manifest.json")):
+        os.makedirs(os.path.dirname(out), exist_ok=True)
+        toml = out + ".toml"
+        with open(toml, "w") as fh:
+            fh.write('storage = "clean"\n')
+        subprocess.run([os.path.join(os.path.dirname(sys.executable), "envisat"), "generate", "--config", toml,
+                        "--mode", "sequence", "--scenario", scenario, "--seed", str(seed), "--num-images", str(n),
+                        "--resolution", str(res), "--workers", "1", "--out", out, "--quiet"], check=True)
+    return out
+
+
+def clean_frames(folder: str, stride: int) -> list[tuple[np.ndarray, dict]]:
+    """Every stride-th (clean image (H, W) uint8, label) of a generated sequence, in order."""
+    import glob
+
+    from envisat_pose.datagen.dataset import decode_png
+    from envisat_pose.shard_reader import read_shards
+
+    out = []
+    for i, (_, _, m) in enumerate(read_shards(sorted(glob.glob(os.path.join(folder, "*.tar"))))):
+        if i % stride == 0:
+            out.append((decode_png(m["png"]), json.loads(m["json"])))
+    return out
+
+
+def look_params(response: str, sigma_px: float, bloom: bool, res: int, seed: int) -> dict:
+    """The space camera's parameters of one fixed look (datagen/sensor.draw_sensor over degenerate ranges)."""
+    from envisat_pose.config import to_dict
+    from envisat_pose.datagen.generate_config import SensorConfig
+    from envisat_pose.datagen.sensor import draw_sensor
+
+    fill = (1.5, 1.5) if bloom else (0.8, 0.8)
+    cfg = SensorConfig(exposure_s=(0.005, 0.005), full_well_e=(20000.0, 20000.0), white_fill=fill,
+                       read_noise_e=(5.0, 5.0), dark_current_e_per_s=(50.0, 50.0), adc_bits=(12,),
+                       blooming_decay_px=(4.0, 4.0), psf="gaussian",
+                       psf_sigma_px_1024=(sigma_px * 1024.0 / res,) * 2, vignetting_cos_power=(0.0, 0.0),
+                       response=response)
+    return draw_sensor(to_dict(cfg), res, 1.0, 0.0, 0.0, np.random.default_rng(seed))
+
+
+def sequence_delta(images, corners, use, light=None, blur_px=None) -> dict:
+    """The sequence's delta at the given corners (edge_range.sequence_scale over the frames' fits)."""
+    from envisat_pose.pipelines.edge_range import frame_scale, sequence_scale
+
+    fits = [frame_scale(im, c, u, light=light, blur_px=blur_px) for im, c, u in zip(images, corners, use)]
+    seq = sequence_scale(fits)
+    return {"delta": seq.delta, "delta_se": seq.delta_se, "frames_measured": int(sum(f.delta is not None
+                                                                                      for f in fits))}
+
+
+def three_readings(images, corners, use, known=None, blur_px=None) -> dict:
+    """The cue in the stored values, by the known response and blur (when given), by the estimated ones."""
+    from envisat_pose.pipelines.edge_look import estimate_look
+
+    pick = np.unique(np.linspace(0, len(images) - 1, min(len(images), LOOK_FRAMES)).round().astype(int))
+    look = estimate_look([images[i] for i in pick], corners[pick], use[pick])
+    out = {"stored": sequence_delta(images, corners, use), "estimated_look": look.record(),
+           "estimated": sequence_delta(images, corners, use, look.response, look.psf_sigma_px)}
+    if known is not None:
+        out["known"] = sequence_delta(images, corners, use, known, blur_px)
+    return out
+
+
+def looks_case(scenario: str, seed: int, res: int, n: int, work: str, stride: int) -> list[dict]:
+    """The grid of looks on one own-render sequence (module doc): one row per look."""
+    from envisat_pose.camera_response import parse_response
+    from envisat_pose.datagen.sensor import apply_sensor
+
+    frames = clean_frames(own_clean(scenario, seed, res, n, work), stride)
+    corners = np.array([lab["corners_px"] for _, lab in frames], float)
+    use = np.array([np.asarray(lab["visible"], bool) & np.asarray(lab["in_frame"], bool) for _, lab in frames])
+    rows = []
+    for response in RESPONSES:
+        for sigma in PSF_SIGMAS_PX:
+            for bloom in (False, True):
+                t0 = time.perf_counter()
+                images = [apply_sensor(im, {**look_params(response, sigma, bloom, res, seed), "noise_seed": 1000 + k})
+                          for k, (im, _) in enumerate(frames)]
+                row = {"scenario": scenario, "seed": seed, "resolution_px": res, "frames": len(frames),
+                       "response": response, "psf_sigma_px": sigma, "blooming": bloom,
+                       **three_readings(images, corners, use, parse_response(response, "response"), sigma)}
+                row["seconds"] = time.perf_counter() - t0
+                rows.append(row)
+                print(looks_line(row), flush=True)
+    return rows
+
+
+def looks_line(r: dict) -> str:
+    pct = (lambda v: "-" if v is None else f"{100 * v:+.3f} %")
+    lk = r["estimated_look"]
+    return (f"| {r['scenario']} | {r['seed']} | {r['resolution_px']} | {r['response']} | {r['psf_sigma_px']} | "
+            f"{'on' if r['blooming'] else 'off'} | {pct(r['stored']['delta'])} | "
+            f"{pct(r.get('known', {}).get('delta'))} | {pct(r['estimated']['delta'])} | {lk['response']} "
+            f"({'-' if lk['gamma'] is None else format(lk['gamma'], '.2f')}), psf {lk['psf_sigma_px'] or 0:.2f} |")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -86,8 +206,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--step", type=float, default=0.005)
     ap.add_argument("--work", default="/tmp/adapt-bench")
     ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "edge_truth.json"))
+    ap.add_argument("--looks", action="store_true", help="the grid of looks on own renders (module doc)")
     args = ap.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
+    if args.looks:
+        return main_looks(args)
     rows = []
     print("| scenario | seed | px | delta at truth | at range x(1-step) | x(1+step) | mean offset px | stations |")
     print("|---|---|---|---|---|---|---|---|")
@@ -104,6 +227,22 @@ def main(argv: list[str] | None = None) -> int:
 
                 atomic_write_text(args.out, json.dumps({"cases": rows, "argv": sys.argv[1:], "stride": args.stride,
                                                         "step": args.step}, indent=1))
+    return 0
+
+
+def main_looks(args) -> int:
+    from envisat_pose.io import atomic_write_text
+
+    print("| scenario | seed | px | response | PSF sigma px | blooming | delta stored | known look | estimated look "
+          "| estimate |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    rows = []
+    for scenario in args.scenarios:
+        for res in args.resolutions:
+            for seed in args.seeds:
+                rows += looks_case(scenario, seed, res, args.num_images, args.work, args.stride)
+                atomic_write_text(args.out, json.dumps({"looks": rows, "argv": sys.argv[1:], "stride": args.stride},
+                                                       indent=1))
     return 0
 
 

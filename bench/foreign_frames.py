@@ -1,4 +1,4 @@
-"""Frames the project never trained on (issue 40): the poses of a project sequence, another renderer, a real camera's
+"""Frames the project never trained on: the poses of a project sequence, another renderer, a real camera's
 habits on top, written as a user would hand them to `envisat track` / `envisat adapt`.
 
 The poses and the sun are those of `envisat generate --mode sequence --scenario S --seed K --num-images N

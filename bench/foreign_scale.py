@@ -1,4 +1,4 @@
-"""Where the foreign frames' scale bias comes from (issue 40): the shipped detector's corners against the true
+"""Where the foreign frames' scale bias comes from: the shipped detector's corners against the true
 projected corners, frame by frame, under conditions that add the foreign frames' differences one at a time.
 
 The poses and sun are those of bench/foreign_frames.py (`envisat generate --mode sequence`'s truth, the seed's lit

@@ -11,7 +11,7 @@ Earth's shadow a frame is only the filter's prediction). That in-loop slope is w
 301-frame job peaked 5 MiB below the 21-frame baseline). Beside it the peer: the bytes that holding every frame
 would take, frames x the per-frame arrays a run records (rows.record_arrays, ~2 kB a frame).
 
-Found with it (issue 19): the loop grew 45-70 MiB per 1000 lit frames, all in run 0's Rerun recording (in one
+Found with it: the loop grew 45-70 MiB per 1000 lit frames, all in run 0's Rerun recording (in one
 process at 128 px over 800 lit frames: +45 MiB with the recording, +4 without it, +3 with the recorder only
 setting times). Rerun's file sink keeps ~2 kB of metadata per chunk for the .rrd's footer until the file closes,
 and the default batcher cut ~23 chunks a frame (one per entity at every 200 ms flush, at ~0.1 s a frame).

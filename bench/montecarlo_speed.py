@@ -10,7 +10,7 @@ sampled every 0.2 s with psutil, and resource.getrusage's peaks (self; the large
 
 Run: .venv/bin/python bench/montecarlo_speed.py [--runs 1000] [--duration-s 6000] [--workers 2]
      [--reference-duration-s 600] [--out bench/results/montecarlo_speed.json]
-Floors (issue 18): at most 90 s and 2 GiB (issue 8's were 10 minutes and 4 GB).
+Floors: at most 90 s and 2 GiB (earlier: 10 minutes and 4 GB).
 """
 
 from __future__ import annotations

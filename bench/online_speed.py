@@ -9,12 +9,12 @@ t = 300 s next to the same filter on ideal pixel measurements (the truth's proje
 in-frame corner, Gaussian noise of the detector's measured noise: the RMS error of its correctly named corners in
 the same run), from the same initial estimate.
 
-One core by default (issue 18's protocol): the process pinned to --cores CPUs (sched_setaffinity), torch with
+One core by default (the floor's protocol): the process pinned to --cores CPUs (sched_setaffinity), torch with
 that many threads and llvmpipe with LP_NUM_THREADS = that many.
 
 Run: .venv/bin/python bench/online_speed.py [--duration-s 600] [--cores 1] [--weights W]
      [--out bench/results/online_speed.json]
-Floor (issue 18): 10x real time with the region of interest on one core (goal 20x); RMSE unchanged within noise.
+Floor: 10x real time with the region of interest on one core (goal 20x); RMSE unchanged within noise.
 """
 
 from __future__ import annotations

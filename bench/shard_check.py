@@ -1,4 +1,4 @@
-"""What checking a dataset's shards costs its readers (issue 41): `shard_reader.checked_shards` (each shard's size,
+"""What checking a dataset's shards costs its readers: `shard_reader.checked_shards` (each shard's size,
 then its sha256, against manifest.json; once per run) next to one training epoch's data loading over the same
 dataset on this CPU.
 

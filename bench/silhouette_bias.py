@@ -1,4 +1,4 @@
-"""Where the target's silhouette sits in the image itself, before any detector (issue 17, the bias's causes).
+"""Where the target's silhouette sits in the image itself, before any detector (the bias's causes).
 
 For freshly rendered frames (1024 px, stored clean; the space camera applied on read, as a detector sees them)
 it measures the silhouette edges of the box against the labelled corners' projection: along every edge of the

@@ -19,7 +19,7 @@ noise in that run), range bias, and the runs' pixel noise and real-time factor.
 
 Run: .venv/bin/python bench/tracking.py [--seeds 8] [--first-seed 0] [--scenarios default slow-tumble ...]
      [--duration-s S (default: each scenario's own)] [--workers N] [--correlation-in slower|rotation|time]
-Floors (issue 28): 0 s false-lock time; NEES beyond its 99.9 % quantile on at most 0.5 % of tracking frames; per
+Floors: 0 s false-lock time; NEES beyond its 99.9 % quantile on at most 0.5 % of tracking frames; per
 scenario over all seeds mean NEES in [8, 16], RMSE / PCRLB <= 1.5 per block, |range bias| <= 1 cm at 50 m (scaled
 with the range: 0.5 cm at 25 m).
 """
@@ -140,7 +140,7 @@ def score_scenario(runs: list[dict]) -> dict:
 
 
 def floors_met(s: dict, range_m: float) -> dict:
-    """Issue 28's floors for one scenario's scores (s: score_frames; range_m: the hold's range)."""
+    """The floors (module docstring) for one scenario's scores (s: score_frames; range_m: the hold's range)."""
     sc = s["scored"]
     ratios = list((sc.get("rmse_over_pcrlb") or {}).values())
     bias_floor = FLOORS["range_bias_m_at_50m"] * range_m / 50.0
@@ -181,7 +181,7 @@ def table_row(scen: str, s: dict, pixel_px: float) -> str:
 
 def per_run_line(s: dict, seeds: list[int]) -> str:
     """Each run's own mean NEES, NEES tail (%) and range bias (cm): a figure pooled in band may hide a seed out of
-    it (issue 28, item 4)."""
+    it."""
     cells = []
     for seed, r in zip(seeds, s["per_run"]):
         sc = r["scored"]

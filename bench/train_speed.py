@@ -1,6 +1,6 @@
-"""Training speed of `envisat train`'s own loop (issues 26, 38): samples/s on this CPU and, where one is, on a GPU.
+"""Training speed of `envisat train`'s own loop: samples/s on this CPU and, where one is, on a GPU.
 
-Three parts side by side in one run (issue 38, item 4): the model step alone on a synthetic batch (no data:
+Three parts side by side in one run: the model step alone on a synthetic batch (no data:
 forward, losses, backward, clipping, AdamW; the multi-tensor optimizer against the per-parameter loop, fp32 and
 bf16, with the op count of one step from torch.profiler and, on CUDA, the GPU busy share: kernel time over wall
 time), the data path alone (the DataLoader's batches, nothing trained), and the whole loop below.

@@ -10,7 +10,7 @@ One core: BLAS and OpenMP are held to one thread (set before numpy loads), so ev
 Times are the best of a few repeats of process CPU time (the machine is shared; CPU time is what a run costs).
 
 Run: .venv/bin/python bench/ukf_speed.py [--runs 1000] [--out bench/results/ukf_speed.json]
-Floors (issue 18): batched over 1000 runs >= 1000x filterpy per run-step (goal: within 10x of the arithmetic
+Floors: batched over 1000 runs >= 1000x filterpy per run-step (goal: within 10x of the arithmetic
 bound); one run >= 50x.
 """
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from envisat_pose.attitude import align_mrp, mrp_shadow, mrp_shadow_jacobian
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, propagate
-from envisat_pose.state import MRP  # the 12-state's layout has one home (issue 19)
+from envisat_pose.state import MRP  # the 12-state's layout has one home
 
 
 @dataclass(frozen=True)

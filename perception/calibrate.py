@@ -1,4 +1,4 @@
-"""Calibration of the per-corner pixel covariance on held-out data (issue 10: the filter uses it as R).
+"""Calibration of the per-corner pixel covariance on held-out data (the filter uses it as R).
 
 Plain numpy. For correctly named visible corners with errors e (N, 2) px and predicted covariances C (N, 2, 2)
 px^2, e^T C^-1 e follows a chi-square with 2 degrees of freedom when C is honest: its mean is 2 (the issue's

@@ -1,4 +1,4 @@
-"""Scoring named corners against labels (issue 10, evaluation): pure functions over plain arrays.
+"""Scoring named corners against labels: pure functions over plain arrays.
 
 Shapes: N frames, 8 corners A-H. pred_px (N, 8, 2) px, NaN where a corner was not found; true_px (N, 8, 2) px;
 usable (N, 8) bool, the labelled corners a detector should find (visible and in frame). A corner counts as a hit

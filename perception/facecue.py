@@ -1,4 +1,4 @@
-"""The half-turn's appearance cue (issue 17, item 3): which face the image shows where a pose puts one, told from
+"""The half-turn's appearance cue: which face the image shows where a pose puts one, told from
 the pixels inside it. Plain numpy + OpenCV (scipy's L-BFGS for the fit).
 
 The box's corners cannot tell a pose from its half-turn about the long axis x (A<->C, B<->D, E<->G, F<->H): the

@@ -1,4 +1,4 @@
-"""Sub-pixel refinement of named corners from the full-resolution pixels (issue 17, item 2). Plain numpy + OpenCV.
+"""Sub-pixel refinement of named corners from the full-resolution pixels. Plain numpy + OpenCV.
 
 A named corner of the box is where its visible edges meet. For each edge of the wireframe (geometry.EDGES) from
 the corner to a visible neighbour, the fitted pose's projection gives its direction; along it, at stations s

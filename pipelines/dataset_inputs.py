@@ -1,4 +1,4 @@
-"""What the verbs that read a generated dataset share (issue 41): the --skip-damaged flag, its hint when a damaged
+"""What the verbs that read a generated dataset share: the --skip-damaged flag, its hint when a damaged
 shard stops a run, and the line naming the shards it left out. The check itself is the core's
 (envisat_pose/shard_reader.py: checked_shards); the pipelines call it with their own argument's name."""
 

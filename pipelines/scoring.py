@@ -1,6 +1,6 @@
 """Scoring a tracker's runs against a truth (the truth only scores: nothing here feeds back into a run).
 
-Scores that would show a failure (issue 28): nothing is scored only where it went well.
+Scores that would show a failure: nothing is scored only where it went well.
 
 - A frame is *correct* when the attitude error is within CORRECT_ATT_DEG and the position error within
   CORRECT_POS_FRAC of the true range; the tracker *claims* an estimate on a frame whose status is one of
@@ -27,7 +27,7 @@ from scipy.stats import chi2
 from envisat_pose.state import BLOCKS, POS, error_magnitudes, error_summary
 from envisat_pose.status import HAS_ESTIMATE, STATUSES, TRACKING
 
-# a correct track (issue 28; the success criterion of pose-acquisition studies): attitude within 5 deg and
+# a correct track (the success criterion of pose-acquisition studies): attitude within 5 deg and
 # position within 2 % of the range
 CORRECT_ATT_DEG = 5.0
 CORRECT_POS_FRAC = 0.02

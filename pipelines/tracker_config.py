@@ -88,23 +88,19 @@ class BankConfig:
     all, so their NIS differences are the detector's error, not evidence between the twins.
     appearance_clip: the detector's per-frame half-turn probability is clipped to [clip, 1 - clip].
     appearance_frames: consecutive frames whose appearance cues count as one independent look (each frame's
-    log-likelihood is divided by it): the detector's half-turn errors repeat from frame to frame while the view
-    changes little (measured: on a default-scenario sequence it preferred the wrong half-turn at 0.6-0.98 in 16
-    of 20 consecutive frames), so summing them as independent would let one look outvote the dynamics.
-    appearance_max_log: however many frames repeat it, the detector's appearance never counts for more than this
-    (nats) between two hypotheses (3.0: one confident look, a likelihood ratio of 20), so that it cannot decide a
-    half-turn alone (0.999 needs 6.9): the dynamics must agree. Its half-turn errors persist over a whole view:
-    on a 30 m slow-tumble trial (bench/acquisition.py seed 0, the bin's fifth) it gave the wrong naming p = 0.95
-    on 19 of 20 frames and then on every frame, and the bank decided for the wrong twin while the dynamics
-    slightly favoured the truth (chi-square 35.7 against 37.4): 61 s claimed 180 deg off.
+    log-likelihood is divided by it): the detector's half-turn errors repeat while the view changes little (wrong
+    in 16 of 20 consecutive frames of a default sequence), so independent sums would let one look outvote the
+    dynamics.
+    appearance_max_log: the most (nats) the detector's appearance counts between two hypotheses however many
+    frames repeat it (3.0: one confident look, a likelihood ratio of 20), below the 6.9 a decision at 0.999 needs:
+    the appearance never decides a half-turn alone, the dynamics must agree (its errors persist over a whole
+    view: without the cap a slow-tumble trial claimed the twin 180 deg off for 61 s; docs/history.md).
     evidence_memory: the memory at which the detector's frame-to-frame error correlation is counted in the
     dynamics' log-likelihoods. "filter": as the filter's update counts it, at the filter's own memory (R x
     tau(lambda)); "long": as a sum over every frame of the bank needs it, each frame's cost weighted by
-    tau(lambda) / tau(1) (noise.evidence_weight). Twins whose predicted corners differ by a fraction of a pixel gain
-    evidence mostly from the detector's errors projected on that difference, and those repeat while the view has
-    not turned: on default seed 3 at 512 px (own renders, 1 Hz) the twins' predictions differed by <= 0.25 px,
-    1.8 nats of separation at most over 17 frames, while their NIS sums drew 9.6 nats apart and the truth was
-    dropped (tau(lambda) 1.5-3.2, tau(1) 8.1 there).
+    tau(lambda) / tau(1) (noise.evidence_weight). Twins whose predicted corners differ by a fraction of a pixel
+    gain evidence mostly from the detector's repeated errors projected on that difference (0.25 px apart: 1.8 nats
+    of separation at most over 17 frames, against NIS sums 9.6 nats apart; docs/history.md).
     """
 
     decided: float = 0.999
@@ -136,12 +132,10 @@ class ArrayCueConfig:
     holds hypotheses at both ends): per_frame nats a frame to the hypotheses at the end it shows, at most
     max_log (nats) between two hypotheses in all. Those twins put the corners where the truth does and differ
     from it in the dynamics only by the signs of two small products of inertia (the y twin keeps Ixz, the
-    largest): on a slow tumble the bank kept the y twin near 4 % for 50 s after every other was decided (seed 1,
-    40 m slow tumble, trial 15: decided at 88 s). Measured under the true pose: 1619 frames read right, 0 wrong,
-    1981 abstained on the 24 held-out loop sequences (4 scenarios x seeds 9001-9006, 150 frames each); 123 right,
-    0 wrong, 177 abstained on 300 random views (seed 4242, the Earth behind the target in a third, where the cue
-    abstains). Capped below the 6.9 nats a decision needs, so the dynamics and the detector's appearance must not
-    contradict it. With one hypothesis left the cue is read every converged frame as an integrity test:
+    largest), so the dynamics take tens of seconds to part them on a slow tumble. The cue is read right or not at
+    all: under the true pose 0 wrong readings of 1742 given (1619 of 3600 loop frames, 123 of 300 random views; it
+    abstains on the rest, the Earth behind the target among them; docs/history.md). Capped below the 6.9 nats a
+    decision needs, so the dynamics and the detector's appearance must not contradict it. With one hypothesis left the cue is read every converged frame as an integrity test:
     lost_readings readings in a row against it (abstentions between them allowed) lose the track (a decided y or
     z twin would claim a pose 180 deg off while every corner fits).
     """
@@ -170,11 +164,9 @@ class RoiConfig:
     hypothesis (half of the detector's time in the loop; the search still runs when the predicted pose matches
     fewer than 4 corners). prior_pose_twins: while the bank still holds a pose and its symmetric twins, the best
     one's predicted pose seeds the naming too, without weighing the half-turn (the twins are one physical pose;
-    the detector's half-turn probability stays the image's own). Without it the detector searched every face on
-    its own in those frames, and on near end-on views named four corners of one face wrongly for several frames
-    in a row; a young bank's window then held more rejections than a correct track's and a correct start was
-    lost (bench/acquisition.py seed 1, 30 m slow tumble, trial 5: started right at 19 s, lost at 24 s with 12 of
-    21 corners rejected, tracking only from 81 s).
+    the detector's half-turn probability stays the image's own). Without it the detector searches every face on
+    its own in those frames and, on near end-on views, names four corners of one face wrongly for frames in a
+    row: enough rejections in a young bank's window to lose a correct start (docs/history.md).
     """
 
     enabled: bool = True
@@ -206,10 +198,9 @@ class IntegrityConfig:
     lost_after_frames: frames in a row with an image and no corner used by the best hypothesis (coasting: nothing
     found, or every corner rejected) that declare the track lost, every hypothesis of the bank with it. Frames
     without an image (eclipse, gaps) coast until the covariance leaves the lost bounds below.
-    window: frames of evidence per hypothesis (20: long enough that a burst of a few frames of mis-named corners,
-    which the gate rejects while the state stays right, does not lose a correct track: with 8 frames, 4 such
-    frames lost correct tracks at 0.06 deg and 6-8 cm on default seed 7 and slow-tumble seed 4; a track that
-    disagrees with the images for good still fails within ~5 frames); prob: the false-alarm probability of each
+    window: frames of evidence per hypothesis (20: a burst of 4 frames of mis-named corners, which the gate
+    rejects while the state stays right, does not lose a correct track, as it did with 8; a track that disagrees
+    with the images for good still fails within ~5 frames); prob: the false-alarm probability of each
     test (the cold-start fit's chi-square, the windowed NIS, the rejections); expected_reject_share: the share of
     the corners given that a correct track's gate rejects (the detector's mis-named corners: 3-13 % on random
     views, fewer in the loop's region of interest with the predicted pose as the naming's start), against which a
@@ -267,36 +258,23 @@ class NoiseConfig:
     view's, at the tracked rate |w_r|, where the error model measured it; time while acquiring, before a rate is
     estimated), "time" (the time fit, one correlation time pooled over the held-out tumble rates) or "slower"
     (whichever of the two lasts longer at the tracked rate). The detector's errors persist while the view has not
-    turned: fitted on each scenario's six held-out loop sequences of the shipped model's calibration, the
-    correlation time is 7.6 s at 5 deg/s, 11.7 s at 2.7 and 14.9 s at 1.6 deg/s while the correlation angle
-    stays 33, 31 and 26 deg (pooled: 12.8 s, 31.8 deg), so one pooled time over-inflates the fast tumble and
-    under-inflates the slow one. Seeds 0-7 x 150 s: stress-tumble mean NEES 7.6 with "slower" (the pooled time
-    fit at 5 deg/s), 9.8 with "rotation"; default and slow-tumble unchanged (11.7, 17.1). With an earlier model
-    (fewer, partly unlit sequences) "rotation" alone was over-confident on a fast tumble (stress-tumble seed 12:
-    mean NEES 31.8 against 17.7 with "time", bench/results/tracking_rotation_seed12.json).
+    turned: their correlation angle stays near 30 deg (26-33) while their correlation time runs from 7.6 s at 5
+    deg/s to 14.9 s at 1.6 deg/s, so one pooled time over-inflates a fast tumble and under-inflates a slow one.
     range_floor: report the position variance along the line of sight plus (noise.scale_sigma x range)^2, the
     range error of the detector's apparent scale that no number of frames averages away (pipelines/noise.
-    range_consider: a consider term in the reported covariance, not in the filter's gain). Without it the
-    shipped detector's loops were over-confident in range (slow-tumble seed 4, 300 s: mean NEES 50.9, range bias
-    -5.6 cm); with it fed back into the gain (before 2026-11-26) the filter followed each frame's range instead
-    of averaging them (default and slow-tumble seeds 0, 2, 5, 6: range bias -1.1 to -3.6 cm against -1.3 to
-    -4.7 cm).
+    range_consider: a consider term in the reported covariance, not in the filter's gain: in the gain the filter
+    follows each frame's range instead of averaging them). Without it the loops are over-confident in range (mean
+    NEES 50.9 on a slow tumble).
     detector_q_sigma: process noise per sqrt(s) in filter.q_sigma's groups (position m, velocity m/s, MRP, rad/s)
     that stands for the detector's errors the error model does not carry: view-dependent biases that persist for
     tens of seconds on a slow tumble and that a filter with a torque-free model and an exactly known relative
     orbit (the scenarios' q_sigma 1e-8, 1e-8, 1e-9, 1e-10) would read as attitude, rate and velocity; the
-    filter's own q_sigma is raised to at least these. On attitude and rate (slow-tumble seeds 0 and 7, 300 s):
-    mean NEES 36.5 -> 18.4 and 21.3 -> 12.6 at the same RMSE (attitude 0.098 -> 0.104 and 0.101 -> 0.096 deg,
-    rate 0.0027 -> 0.0030 and 0.0063 -> 0.0061 deg/s). On velocity, where the remaining over-confidence was
-    (NEES per block: position 4.4 and 3.6, velocity 5.1 and 3.7 of 3 on held-out slow-tumble seeds 20 and 21, the
-    line of sight consistent): 3e-6 m/s brought those runs' mean NEES 19.6 -> 13.9 and 18.5 -> 9.2, default's
-    14.7 -> 10.9 and 9.9 -> 6.4, at the same RMSE (1e-5: 12.8, 7.7, 9.7, 5.1).
+    filter's own q_sigma is raised to at least these: on a slow tumble, mean NEES 36.5 -> 18.4 with the attitude
+    and rate terms, then 19.6 -> 13.9 with the velocity term, at the same RMSE.
     correct_scale: undo the detector's mean apparent scale (the error model's bias_scale) about the corners'
     centroid in every frame; what is left, a run's own scale about that mean (bias_scale_sd), stays in the
     reported covariance. The mean must be measured in the loop's regime (lit sequences of every scenario, the
-    labels' region of interest, the patch pass): the shipped weights' first model, from six sequences under
-    whatever sun their seed drew, said 1.00095 where 24 lit sequences (4 scenarios x 6 seeds) say 1.0004, and
-    the former would have moved the range by +2.7 cm too far at 50 m.
+    labels' region of interest, the patch pass): a mean off by 5.5e-4 moves the range 2.7 cm at 50 m.
     """
 
     correlation_model: str = "filter_memory"
@@ -323,9 +301,8 @@ class GateConfig:
     raw: gate each corner against the detector's own covariance at the error model's scale (without the
     correlation's inflation) plus the prior's spread, before the update; a corner beyond the gate is dropped and
     counts as rejected. The inflation says how little a filter may average the errors, not how large one
-    frame's error may be: gated against the inflated R (x 5-8 at the filter's memory), corners the detector
-    placed 4-5 px off with a 0.5-0.9 px covariance passed for 15 frames (slow-tumble seed 0, 300 s) and pulled
-    the range 16 cm off (NEES above its 99.9 % quantile for 50 frames). Off by default: measured as an ablation
+    frame's error may be: gated against the inflated R (x 5-8 at the filter's memory), corners 4-5 px off with a
+    0.5-0.9 px covariance pass and can pull the range 16 cm off. Off by default: measured as an ablation
     (docs/history.md).
     """
 
