@@ -8,7 +8,10 @@ The steps (one round; `rounds` repeats 2-5 from the last track):
    a lost, coasting or never-decided frame contributes nothing;
 3. label them at the smoothed estimate (pipelines/pseudo_labels.py: an unscented RTS smoother over each tracked
    segment, the box's corners projected with the face test's visibility), its range first corrected by the
-   frames' own silhouette edges (`edge_range`, pipelines/edge_range.py) where they can be measured;
+   frames' own silhouette edges (`edge_range`, pipelines/edge_range.py) where they can be measured, read in
+   linear light: the camera's response and PSF from its TOML file where it gives them, else estimated from the
+   labelled frames' edge profiles (pipelines/edge_look.py; frames_look), the edges read again under the
+   response the estimate leaves open (look_record: the scale's look term);
 4. fine-tune the detector on those (image, label) pairs in memory with the project's crops, augmentation and
    losses (perception/data.make_sample, perception/train's step): the normalization layers and the heads
    (`params='norm_heads'`), the whole network (`params='all'`), or nothing (`params='none'`, the default: the
@@ -16,7 +19,10 @@ The steps (one round; `rounds` repeats 2-5 from the last track):
 5. recalibrate on the pseudo-labels: the covariance scale on their residuals (perception/calibrate.fit_scale, the
    network's own covariances, the labels' region of interest, as `envisat calibrate`) and, when the labels' range
    was corrected by the edges, the detector's apparent scale on this look (the error model's bias_scale, which
-   the tracker undoes in every frame: `tracker.noise.correct_scale`; `adapted_scale`);
+   the tracker undoes in every frame: `tracker.noise.correct_scale`; `adapted_scale`), its sd (the fit's, the
+   outline's own offset, the look's) the error model's bias_scale_sd, so the tracker's range covariance carries
+   it; where the detector's own corners read that scale beyond AGREE_Z sd of the edges' the original scale is
+   kept and the report's scale_note says why in one line (`disagreement`);
 then track again with the adapted weights: the 'after' run. The held-out final part decides: if the adapted
 weights do worse there than the original ones (tracked share, mean NIS per degree of freedom, the frame from which
 the pose stays tracked: `worse_reason`), the original weights are kept and the report says why in one line.
@@ -68,6 +74,12 @@ NIS_MARGIN = np.log(1.5)     # |ln(mean NIS / dof)| may grow by at most ln 1.5
 # -0.10 % at 1024 px (bench/edge_truth.py, default scenario, seeds 0-3): the scale the edges give is not known
 # better than this over the outline's radius.
 EDGE_OFFSET_PX = 0.08
+# The edge cue's scale bias at the true pose over the grid of looks (responses linear, sRGB, gamma 1.8 and 2.4;
+# PSF sigma 0.3-2.5 px; blooming on and off; each read in linear light by its known response and blur:
+# bench/edge_truth.py --looks): carried in the adapted scale's sd beside the outline's own offset.
+EDGE_LOOK_SD = 3e-4
+LOOK_FRAMES = 30        # labelled frames the response and blur are estimated from (evenly spread)
+AGREE_Z = 3.0           # edges and corners disagree beyond this many standard deviations of their difference
 EDGE_RANGE_MODES = ("sequence", "frame", "off")
 ADAPT_PARAMS = ("norm_heads", "all", "none")  # what the fine-tune trains (AdaptConfig.params)
 
@@ -199,8 +211,8 @@ def track_run_labels(run_dir: str, camera, orbit, q_sigma, dyn: dict, cut: int, 
     return {"frames": keep, "x": sm.x[keep], "sigma_px": sigma, "trusted": int(len(trusted))}
 
 
-def edge_corrected(x: np.ndarray, images: list[np.ndarray], camera, mode: str, min_frames: int
-                   ) -> tuple[np.ndarray, dict]:
+def edge_corrected(x: np.ndarray, images: list[np.ndarray], camera, mode: str, min_frames: int, light=None,
+                   blur_px: float | None = None) -> tuple[np.ndarray, dict]:
     """The labels' states x (N, 12) with their range corrected by the frames' silhouette edges (images: the N
     frames as the tracker saw them; pipelines/edge_range.py): mode 'sequence' divides every range by (1 + delta)
     of the sequence (edge_range.sequence_scale over the frames' fits; none below min_frames measured frames),
@@ -208,13 +220,15 @@ def edge_corrected(x: np.ndarray, images: list[np.ndarray], camera, mode: str, m
     measured and recorded all the same). Returns (x corrected,
     record: mode, per-frame delta / delta_se / stations (None where not measured) and range_m (before the
     correction), the sequence's fit, the frames measured, the outline's median radius (px, the RMS distance of
-    the used corners from their centroid) and the factor applied per frame (1: none))."""
+    the used corners from their centroid) and the factor applied per frame (1: none)). light, blur_px: the
+    frames' response and PSF sigma (px) the edges are located with (edge_range.edge_stations; None: as stored,
+    the default reach)."""
     from envisat_pose.pipelines.edge_range import correct_range, frame_scale, sequence_scale
     from envisat_pose.pipelines.pseudo_labels import corner_labels
 
     lab = corner_labels(x, camera)
     use = lab["visible"] & lab["in_frame"]
-    fits = [frame_scale(im, lab["corners_px"][i], use[i]) for i, im in enumerate(images)]
+    fits = [frame_scale(im, lab["corners_px"][i], use[i], light=light, blur_px=blur_px) for i, im in enumerate(images)]
     radius = [float(np.sqrt(np.mean(np.sum((c[u] - c[u].mean(axis=0)) ** 2, axis=1))))
               for c, u in zip(lab["corners_px"], use) if u.sum() >= 3]
     seq = sequence_scale(fits, min_frames)
@@ -232,6 +246,35 @@ def edge_corrected(x: np.ndarray, images: list[np.ndarray], camera, mode: str, m
               "range_factor": [float(v) for v in np.where(np.isfinite(delta), 1.0 / (1.0 + np.nan_to_num(delta)),
                                                           1.0)]}
     return correct_range(x, camera.pos_C_m, delta), record
+
+
+def frames_look(x: np.ndarray, images: list[np.ndarray], camera, given: tuple) -> dict:
+    """The frames' response and blur: given (the camera file's (response, psf_sigma_px), each None where not
+    given) or estimated from LOOK_FRAMES of the labelled frames, evenly spread (pipelines/edge_look.py, along the
+    outline of each label's visible corners). Returns {response (Response), psf_sigma_px, estimate (the
+    estimate's record), given: which came from the file, alternative: the response the edges are read under
+    too (the estimate's own doubt: the fitted power one standard error further from the chosen curve, or for a
+    response without a measured power the other named curve; None when the response was given)}."""
+    from envisat_pose.camera_response import GAMMA_RANGE, LINEAR, SRGB, Response
+    from envisat_pose.pipelines.edge_look import estimate_look
+    from envisat_pose.pipelines.pseudo_labels import corner_labels
+
+    response, psf = given
+    pick = calibration_frames(len(images), LOOK_FRAMES)
+    lab = corner_labels(x[pick], camera)
+    fit = estimate_look([images[i] for i in pick], lab["corners_px"], lab["visible"] & lab["in_frame"])
+    alternative = None
+    if response is None:
+        response = fit.response
+        if fit.gamma is None:
+            alternative = LINEAR if response == SRGB else SRGB
+        else:  # the fitted power, one standard error away from the chosen curve's own
+            nominal = {"linear": 1.0, "srgb": 2.2}.get(response.kind, fit.gamma)
+            g = fit.gamma + (fit.gamma_se or 0.0) * (1.0 if fit.gamma >= nominal else -1.0)
+            alternative = Response("gamma", float(np.clip(g, *GAMMA_RANGE)))
+    return {"response": response, "psf_sigma_px": fit.psf_sigma_px if psf is None else psf,
+            "estimate": fit.record(), "given": {"response": given[0] is not None, "psf_sigma_px": given[1] is not None},
+            "alternative": alternative}
 
 
 def read_frames(source, remap, keep: np.ndarray) -> dict[int, np.ndarray]:
@@ -338,10 +381,13 @@ def adapted_scale(params: str, applied: float, edges: dict, cal: dict) -> dict |
     (a fine-tuned network, or no sequence fit) the corners' least-squares scale against the corrected labels
     (recalibrate's apparent_scale; None below SCALE_MIN_FRAMES frames). sd: how far it may be from the truth:
     the fit's standard error and the outline's own offset (EDGE_OFFSET_PX over the outline's median radius),
-    in quadrature. Returns {value, se, sd, method}."""
+    in quadrature, and with the look's part: the cue's dependence on what the frames leave open of their response
+    (edges' look delta_sd) and its bias at the true pose over the grid of looks (EDGE_LOOK_SD). Returns
+    {value, se, sd, method}."""
     seq = edges.get("sequence") or {}
     radius = edges.get("outline_radius_px")
-    floor = EDGE_OFFSET_PX / radius if radius else 0.0
+    look = (edges.get("look") or {}).get("delta_sd", 0.0)
+    floor = float(np.hypot(EDGE_OFFSET_PX / radius if radius else 0.0, np.hypot(look, EDGE_LOOK_SD)))
     if params == "none" and seq.get("delta") is not None:
         value, se = applied / (1.0 + seq["delta"]), applied * seq["delta_se"] / (1.0 + seq["delta"]) ** 2
         return {"value": value, "se": se, "sd": float(np.hypot(se, floor)), "method": "edges"}
@@ -417,18 +463,21 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
     """Adapt the detector in cfg.track.weights ("" the shipped) to the frames of `source` (a FrameSource or a path
     open_source opens at cfg.track.rate_hz) and write out_dir (module doc). camera: a PinholeCamera, a camera TOML
     file or None (the MJCF's chaser_cam at the frames' size), as track_frames; command: the command line, for the
-    model card. Returns the report: {adopted, reason (None when adopted), before, after (track_figures), rounds
+    model card. Returns the report: {adopted, reason (None when adopted), scale_note (one line when the edges'
+    scale was not adopted: disagreement; else None), before, after (track_figures), rounds
     (per round: labels, fine-tune, calibration), source, timing_s}. InputError (one line) when the first part
     holds fewer than cfg.min_trusted labelled frames; nothing is written then."""
     from envisat_pose.io import staged_folder
+    from envisat_pose.pipelines.camera_file import camera_look
     from envisat_pose.pipelines.track import prepare_frames
     from envisat_pose.runner import check_out_dir, make_out_dir
 
     check_out_dir(out_dir, field="out_dir")
+    look = camera_look(camera) if isinstance(camera, str) else (None, None)
     tcfg, source, camera, remap, _ = prepare_frames(cfg.track, source, camera)
     make_out_dir(out_dir, field="out_dir")
     with staged_folder(out_dir, OUTPUTS) as stage:
-        report = _adapt(cfg, tcfg, source, camera, remap, stage, progress, command)
+        report = _adapt(cfg, tcfg, source, camera, remap, stage, progress, command, look)
         _replace_dirs(out_dir, stage)
     return report
 
@@ -452,7 +501,8 @@ def _replace_dirs(out_dir: str, stage: str) -> None:
 class AdaptRun:
     """What every step of one adapt job reads: the job (cfg) and the tracker's (tcfg, its weights the base), the
     frames (source, remap: cv2.remap maps to the pinhole, or None), the pinhole camera, the stage folder, whether
-    to show progress, the first held-out frame (cut) and the smoother's model (q_sigma, dyn: smoother_model)."""
+    to show progress, the first held-out frame (cut), the smoother's model (q_sigma, dyn: smoother_model) and
+    the camera's response and PSF sigma where its file gives them (look)."""
 
     cfg: AdaptConfig
     tcfg: TrackConfig
@@ -464,6 +514,7 @@ class AdaptRun:
     cut: int
     q_sigma: tuple
     dyn: dict
+    look: tuple = (None, None)  # the camera file's (response, psf_sigma_px), None where it does not say
 
 
 def smoother_model(tcfg: TrackConfig) -> tuple[tuple, dict]:
@@ -507,9 +558,27 @@ def label_step(run: AdaptRun, track_dir: str) -> tuple[dict, list[np.ndarray]]:
             f"{lab['trusted']} before the sigma test); adapt needs at least {cfg.min_trusted} (min_trusted)")
     frames = read_frames(run.source, run.remap, lab["frames"])
     images = [frames[int(k)] for k in lab["frames"]]
-    x_lab, lab["edges"] = edge_corrected(lab["x"], images, run.camera, cfg.edge_range, cfg.edge_min_frames)
+    look = frames_look(lab["x"], images, run.camera, run.look)
+    x_lab, lab["edges"] = edge_corrected(lab["x"], images, run.camera, cfg.edge_range, cfg.edge_min_frames,
+                                         look["response"], look["psf_sigma_px"])
+    lab["edges"]["look"] = look_record(look, lab["x"], images, run.camera, lab["edges"], cfg.edge_min_frames)
     lab["labels"] = [label_record(v, run.camera) for v in x_lab]
     return lab, images
+
+
+def look_record(look: dict, x: np.ndarray, images: list[np.ndarray], camera, edges: dict, min_frames: int
+                ) -> dict:
+    """The look the edges were read with (frames_look) as JSON data, and the sequence's delta under its
+    alternative response: delta_sd, the two deltas' difference (0 without an alternative or a fit), is how much
+    the cue depends on what the frames leave open of their response (adapted_scale's look term)."""
+    delta, alt = edges["sequence"]["delta"], None
+    if look["alternative"] is not None and delta is not None:
+        _, rec = edge_corrected(x, images, camera, "off", min_frames, look["alternative"], look["psf_sigma_px"])
+        alt = rec["sequence"]["delta"]
+    return {"response": look["response"].name(), "psf_sigma_px": look["psf_sigma_px"], "given": look["given"],
+            "estimate": look["estimate"],
+            "alternative": None if look["alternative"] is None else look["alternative"].name(),
+            "alternative_delta": alt, "delta_sd": 0.0 if alt is None else abs(alt - delta)}
 
 
 def calibration_frames(n: int, most: int) -> np.ndarray:
@@ -535,16 +604,34 @@ def recalibration_step(run: AdaptRun, weights: str, candidate: str, model, image
             {"scale": cal["scale"], "corners": cal["corners"], "data": "pseudo-labels of "
              f"{content_sha256(run.source)}", "roi": "labels", "by": "envisat adapt"}, sort_keys=True)}
     scale = scale_step(run, weights, edges, cal)
-    if scale is not None:
+    if scale is not None and "error_model" in scale:
         extra["error_model"] = scale.pop("error_model")
     if extra:
         save_adapted(model, run.tcfg.weights, candidate, extra)
-    return {"calibration": cal, "apparent_scale": scale, "apparent_scale_adopted": scale is not None}
+    return {"calibration": cal, "apparent_scale": scale,
+            "apparent_scale_adopted": scale is not None and "kept" not in scale}
+
+
+def disagreement(scale: dict, cal: dict) -> str | None:
+    """One line saying why an edges' scale is not adopted, or None: the detector's own corners, measured against
+    the same edge-corrected labels (recalibrate's apparent_scale), are a second reading of the same scale; where
+    the two differ by more than AGREE_Z standard deviations of their difference (the edges' sd, look included,
+    and the corners' standard error), one of them is wrong and neither is evidence. No check without a corners'
+    reading (fewer than SCALE_MIN_FRAMES frames with one) or for the corners' own scale."""
+    corners, se = cal.get("apparent_scale"), cal.get("apparent_scale_se")
+    if scale["method"] != "edges" or corners is None or se is None:
+        return None
+    sd = float(np.hypot(scale["sd"], se))
+    if abs(scale["value"] - corners) <= AGREE_Z * sd:
+        return None
+    return (f"the original scale kept: the edges read the detector's scale as {scale['value']:.5f} +- "
+            f"{scale['sd']:.5f}, its own corners as {corners:.5f} +- {se:.5f} ({abs(scale['value'] - corners) / sd:.1f}"
+            f" sd apart, over {AGREE_Z:g})")
 
 
 def scale_step(run: AdaptRun, weights: str, edges: dict, cal: dict) -> dict | None:
     """The apparent scale the candidate's error model takes (adapted_scale) with that error model as JSON under
-    'error_model', or None. Only labels whose range the edges corrected teach a scale: uncorrected ones carry the
+    'error_model'; with 'kept' (one line, disagreement) instead where the evidence does not hold; or None. Only labels whose range the edges corrected teach a scale: uncorrected ones carry the
     track's own, so measuring against them gives back the scale the tracker assumed."""
     from envisat_pose.perception.detect import weights_error_model
 
@@ -555,6 +642,9 @@ def scale_step(run: AdaptRun, weights: str, edges: dict, cal: dict) -> dict | No
     scale = adapted_scale(run.cfg.params, applied, edges, cal)
     if scale is None:
         return None
+    reason = disagreement(scale, cal)
+    if reason is not None:
+        return {**scale, "kept": reason}
     em = dataclasses.replace(weights_error_model(run.tcfg.weights), bias_scale=scale["value"],
                              bias_scale_sd=max(tracked.bias_scale_sd, scale["sd"]))
     return {**scale, "error_model": em.to_json()}
@@ -603,7 +693,7 @@ def adapt_round(run: AdaptRun, r: int, track_dir: str, weights: str, seed: np.ra
 
 
 def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: str, progress: bool,
-           command: list[str] | None) -> dict:
+           command: list[str] | None, look: tuple = (None, None)) -> dict:
     """The job inside its stage: track before, cfg.rounds adapt_round's (each from the last round's track and
     weights, the earlier round's files removed), the held-out verdict (worse_reason), _finish."""
     import shutil
@@ -613,7 +703,7 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
     t0 = time.perf_counter()
     T = len(source.t_s)
     run = AdaptRun(cfg, tcfg, source, camera, remap, stage, progress, int(np.floor(T * (1.0 - cfg.held_out))),
-                   *smoother_model(tcfg))
+                   *smoother_model(tcfg), look)
     before_dir = os.path.join(stage, "before")
     track_frames(tcfg, source, camera, remap, before_dir, progress=progress)
     timing = {"track_before": time.perf_counter() - t0}
@@ -667,6 +757,7 @@ def _finish(cfg, tcfg, source, stage, command, before, after, rounds, timing, t0
         "held_out_from_frame": int(np.floor(len(source.t_s) * (1.0 - cfg.held_out))),
         "before": before,
         "after": after,
+        "scale_note": (rounds[-1].get("apparent_scale") or {}).get("kept") if rounds else None,
         "rounds": rounds,
         "timing_s": timing,
     }

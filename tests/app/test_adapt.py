@@ -204,16 +204,18 @@ def test_the_unchanged_network_takes_the_tracks_scale_over_the_edges_delta():
     applied / (1 + delta): undoing that instead brings the range to the edges' (r ~ applied / s). A fine-tuned
     network is a new detector: its corners' scale against the corrected labels. The sd never undercuts the
     outline's own offset over its radius."""
-    from envisat_pose.pipelines.adapt import EDGE_OFFSET_PX, adapted_scale
+    from envisat_pose.pipelines.adapt import EDGE_LOOK_SD, EDGE_OFFSET_PX, adapted_scale
 
-    edges = {"sequence": {"delta": 0.004, "delta_se": 1e-4}, "outline_radius_px": 50.0}
+    edges = {"sequence": {"delta": 0.004, "delta_se": 1e-4}, "outline_radius_px": 50.0, "look": {"delta_sd": 5e-4}}
     cal = {"apparent_scale": 0.9970, "apparent_scale_se": 3e-4}
     s = adapted_scale("none", 1.0004, edges, cal)
     assert s["method"] == "edges" and s["value"] == pytest.approx(1.0004 / 1.004, rel=1e-12)
-    assert s["sd"] == pytest.approx(np.hypot(1.0004 * 1e-4 / 1.004**2, EDGE_OFFSET_PX / 50.0))
+    parts = [1.0004 * 1e-4 / 1.004**2, EDGE_OFFSET_PX / 50.0, 5e-4, EDGE_LOOK_SD]  # fit, outline, look, grid
+    assert s["sd"] == pytest.approx(np.sqrt(np.sum(np.square(parts))))
     assert adapted_scale("norm_heads", 1.0004, edges, cal)["value"] == 0.9970
     no_fit = {"sequence": {"delta": None, "delta_se": None}, "outline_radius_px": None}
-    assert adapted_scale("none", 1.0, no_fit, cal) == {"value": 0.9970, "se": 3e-4, "sd": 3e-4, "method": "corners"}
+    assert adapted_scale("none", 1.0, no_fit, cal) == {"value": 0.9970, "se": 3e-4, "sd": pytest.approx(
+        np.hypot(3e-4, EDGE_LOOK_SD)), "method": "corners"}
     assert adapted_scale("none", 1.0, no_fit, {"apparent_scale": None}) is None
 
 
@@ -261,3 +263,19 @@ def test_a_fine_tune_that_raises_leaves_torchs_thread_count(monkeypatch, tmp_pat
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)
+
+
+def test_edges_and_corners_that_disagree_keep_the_original_scale():
+    """The edges' scale is adopted only where the detector's own corners (against the same corrected labels) read
+    it within AGREE_Z sd of their difference; beyond, the scale is kept and one line says why, naming both."""
+    from envisat_pose.pipelines.adapt import AGREE_Z, disagreement
+
+    edges = {"value": 0.9980, "se": 1e-4, "sd": 4e-4, "method": "edges"}
+    sd = np.hypot(4e-4, 3e-4)  # 5e-4
+    near = {"apparent_scale": 0.9980 + 0.9 * AGREE_Z * sd, "apparent_scale_se": 3e-4}
+    far = {"apparent_scale": 0.9980 + 1.1 * AGREE_Z * sd, "apparent_scale_se": 3e-4}
+    assert disagreement(edges, near) is None
+    line = disagreement(edges, far)
+    assert line is not None and "\n" not in line and "kept" in line and "0.99800" in line and "0.99965" in line
+    assert disagreement(edges, {"apparent_scale": None, "apparent_scale_se": None}) is None  # nothing to check
+    assert disagreement({**edges, "method": "corners"}, far) is None  # the corners' own scale: one reading
