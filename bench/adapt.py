@@ -19,6 +19,15 @@ Run:  .venv/bin/python bench/adapt.py --scenarios default --seeds 0 1 --resoluti
           --work /tmp/adapt-bench --out bench/results/adapt.json   [--params norm_heads] [--edge-range off]
 (frames already under --work are reused; each --edge-range and --params adapts into its own folder
 adapt-MODE-PARAMS.)
+
+With `--looks RESPONSE:SIGMA[:bloom][:given] ...` the grid of looks (issue 49) instead: the project's own clean
+render of the sequence (bench/edge_truth.own_clean) put through the space camera with that fixed look
+(edge_truth.look_params: response, Gaussian PSF sigma px, blooming), written as a user's PNG folder with a
+camera.toml (its response and PSF in the file only with ':given'; else adapt estimates them), adapted and scored
+as above (the frames' truth from the labels). The reference ('own') is the look 'linear:1.0' tracked with the
+shipped weights (the camera the detector was trained on, stored linearly). Example:
+      .venv/bin/python bench/adapt.py --looks srgb:1.0 srgb:1.0:given linear:1.0 --seeds 9393 --num-images 240 \
+          --work /tmp/adapt-bench --out bench/results/adapt_looks.json
 """
 
 from __future__ import annotations
@@ -158,6 +167,105 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
     return out
 
 
+def look_folder(clean: str, look: str, seed: int, res: int, out: str) -> str:
+    """The clean sequence `clean` through the space camera's fixed look 'RESPONSE:SIGMA[:bloom][:given]' as a
+    user's folder out/: frames/*.png, timestamps.csv, camera.toml, truth.npz (x, t_s; scoring only). Made when
+    missing; returns out."""
+    import cv2
+
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import edge_truth
+
+    from envisat_pose.datagen.sensor import apply_sensor
+
+    if os.path.exists(os.path.join(out, "truth.npz")):
+        return out
+    parts = look.split(":")
+    response, sigma, bloom, given = parts[0].replace("gamma", "gamma "), float(parts[1]), "bloom" in parts, \
+        "given" in parts
+    frames = edge_truth.clean_frames(clean, 1)
+    os.makedirs(os.path.join(out, "frames"), exist_ok=True)
+    names, t_s, x = [], [], []
+    for k, (im, lab) in enumerate(frames):
+        p = {**edge_truth.look_params(response, sigma, bloom, res, seed), "noise_seed": 7000 + k}
+        names.append(f"frame_{k:05d}.png")
+        cv2.imwrite(os.path.join(out, "frames", names[-1]), apply_sensor(im, p))
+        t_s.append(float(lab["scene"]["t_s"]) if "t_s" in lab.get("scene", {}) else float(k))
+        x.append(lab["x"])
+    with open(os.path.join(out, "timestamps.csv"), "w") as fh:
+        fh.write("file,t_s\n" + "".join(f"{n},{t!r}\n" for n, t in zip(names, t_s)))
+    K = np.asarray(frames[0][1]["K"], float)
+    extra = (f'response = "{response}"\npsf_sigma_px = {sigma}\n' if given else "")
+    with open(os.path.join(out, "camera.toml"), "w") as fh:
+        fh.write(f"fx = {K[0, 0]!r}\nfy = {K[1, 1]!r}\ncx = {K[0, 2]!r}\ncy = {K[1, 2]!r}\nwidth = {res}\n"
+                 f"height = {res}\n{extra}")
+    np.savez(os.path.join(out, "truth.npz"), x=np.asarray(x, float), t_s=np.asarray(t_s, float))
+    return out
+
+
+def look_case(look: str, scenario: str, seed: int, res: int, n: int, work: str) -> dict:
+    """One look of the grid (module doc): adapt on the look's folder, before and after scored against the
+    labels' truth, beside the reference look's track."""
+    sys.path.insert(0, os.path.join(ROOT, "bench"))
+    import edge_truth
+
+    from envisat_pose.pipelines.adapt import AdaptConfig, adapt
+    from envisat_pose.pipelines.frames import open_source
+    from envisat_pose.pipelines.track import TrackConfig, prepare_frames, track_frames
+
+    clean = edge_truth.own_clean(scenario, seed, res, n, work)
+    case = os.path.join(work, f"{scenario}-{seed}-{res}-{n}")
+    out = {"scenario": scenario, "seed": seed, "resolution_px": res, "frames": n, "look": look}
+    ref = look_folder(clean, "linear:1.0", seed, res, os.path.join(case, "look-linear-1.0"))
+    with np.load(os.path.join(ref, "truth.npz")) as tr:
+        t_f, x_f = tr["t_s"], tr["x"]
+    lit = np.ones(len(t_f), bool)
+    ref_track = os.path.join(ref, "track")
+    if not os.path.exists(os.path.join(ref_track, "est.npz")):
+        src = open_source(os.path.join(ref, "frames"), timestamps=os.path.join(ref, "timestamps.csv"))
+        tcfg, src, cam, remap, _ = prepare_frames(TrackConfig.from_scenario(scenario), src,
+                                                  os.path.join(ref, "camera.toml"))
+        track_frames(tcfg, src, cam, remap, ref_track, progress=False)
+    out["own"] = scores(t_f, x_f, os.path.join(ref_track, "est.npz"), lit)
+    folder = look_folder(clean, look, seed, res, os.path.join(case, "look-" + look.replace(":", "-")))
+    src = open_source(os.path.join(folder, "frames"), timestamps=os.path.join(folder, "timestamps.csv"))
+    run = os.path.join(folder, "adapt")
+    t1 = time.perf_counter()
+    try:
+        report = adapt(AdaptConfig(track=TrackConfig.from_scenario(scenario)), src, run,
+                       camera=os.path.join(folder, "camera.toml"), progress=False)
+        out["refused"] = None
+    except Exception as err:  # too few trusted frames: recorded
+        report, out["refused"] = None, f"{type(err).__name__}: {err}"
+    out["adapt_s"] = time.perf_counter() - t1
+    if report is not None:
+        last = report["rounds"][-1]
+        out["before"] = scores(t_f, x_f, os.path.join(run, "before", "est.npz"), lit)
+        out["after"] = scores(t_f, x_f, os.path.join(run, "after", "est.npz"), lit)
+        for name in ("before", "after"):
+            out[name]["range_error_2nd_half_m"] = range_error(t_f, x_f, os.path.join(run, name, "est.npz"))
+        out["own"]["range_error_2nd_half_m"] = range_error(t_f, x_f, os.path.join(ref_track, "est.npz"))
+        out.update(adopted=report["adopted"], reason=report["reason"], scale_note=report.get("scale_note"),
+                   apparent_scale=last.get("apparent_scale"), look_read=last["edge_range"].get("look"),
+                   edge_sequence=last["edge_range"]["sequence"])
+    return out
+
+
+def range_error(t_s: np.ndarray, x_true: np.ndarray, est_path: str) -> float | None:
+    """The second half's mean range error (m, estimate minus truth, frames with a claimed estimate), range from
+    the chaser's camera: the target's position norm (the camera sits at the chaser's origin to a few cm, common to
+    both)."""
+    from envisat_pose.pipelines.scoring import claims_estimate
+
+    with np.load(est_path) as est:
+        x_hat, status = est["x_hat"][0], est["status"][0]
+    x_true = np.asarray(x_true).reshape(-1, 12)
+    use = claims_estimate(status) & (np.arange(len(t_s)) >= len(t_s) // 2)
+    if not use.any():
+        return None
+    return float(np.mean(np.linalg.norm(x_hat[use, :3], axis=1) - np.linalg.norm(x_true[use, :3], axis=1)))
+
+
 def table(rows: list[dict]) -> str:
     def f(v, fmt):
         return "-" if v is None else format(v, fmt)
@@ -190,9 +298,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--params", default="none", choices=["none", "norm_heads", "all"],
                     help="AdaptConfig.params: what the fine-tune trains ('none': recalibration only)")
     ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "adapt.json"))
+    ap.add_argument("--looks", nargs="+", help="the grid of looks on own renders (module doc): RESPONSE:SIGMA...")
     args = ap.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     rows = []
+    if args.looks:
+        for seed in args.seeds:
+            for look in args.looks:
+                rows.append(look_case(look, args.scenarios[0], seed, args.resolutions[0], args.num_images,
+                                      args.work))
+                with open(args.out, "w") as fh:
+                    json.dump({"cases": rows, "cores": os.cpu_count(), "argv": sys.argv[1:]}, fh, indent=1)
+                print(json.dumps({k: rows[-1].get(k) for k in ("look", "own", "before", "after", "adopted",
+                                                               "reason", "scale_note", "refused")}), flush=True)
+        return 0
     for scenario in args.scenarios:
         for res in args.resolutions:
             for seed in args.seeds:
