@@ -403,7 +403,7 @@ def cpu_scaling_probe() -> float:
 # measured, so edits in the working tree stay out) and at a baseline tree (DIR: a `git archive` of the commit before
 # the target work, its plugin's .so copied in), and for the shipped targets at ranges where they fill the image about as ENVISAT
 # does at 20-80 m; alternating rounds, each run in a fresh process after a warm-up dataset, medians. Floors:
-# ENVISAT within 5 % of the baseline, each shipped target within 1.5x of ENVISAT's time per image.
+# ENVISAT at most 5 % slower than the baseline, each shipped target within 1.5x of ENVISAT's time per image.
 TARGET_RUNS = {
     "envisat": {},
     "cubesat_3u": {"target": "models/cubesat_3u.xml",
@@ -456,7 +456,8 @@ def main_targets(baseline: str | None, current: str | None = None) -> None:
     out["median_s_per_image"] = med
     if baseline:
         out["envisat_vs_baseline"] = med["envisat"] / med["envisat_baseline"]
-        out["floor_envisat_within_5pct_met"] = abs(out["envisat_vs_baseline"] - 1.0) <= 0.05
+        # the floor bounds a slowdown: a faster tree meets it (the two trees differ by every commit between them)
+        out["floor_envisat_at_most_5pct_slower_met"] = out["envisat_vs_baseline"] <= 1.05
     for name in TARGET_RUNS:
         if name != "envisat":
             out[f"{name}_vs_envisat"] = med[name] / med["envisat"]

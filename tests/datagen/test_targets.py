@@ -370,3 +370,31 @@ def test_the_detector_verbs_refuse_another_target_in_one_line(target_files, tmp_
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and field in err and "ENVISAT" in err and f"envisat {argv[0]}" in err, err
         assert not out.exists()
+
+
+def test_every_export_format_carries_the_targets_keypoints_and_name(target_files, tmp_path):
+    """A dataset of the test's target exported as SPEED+, COCO, BOP and YOLO-pose: each names the target and its
+    K = 10 keypoints (in their file order) and writes K per image; COCO has no box skeleton."""
+    from envisat_pose.datagen.factory import run_generate
+    from envisat_pose.pipelines.export import ExportConfig, export_dataset
+
+    plain, _ = target_files
+    src = str(tmp_path / "d")
+    run_generate(from_dict(GenerateConfig, {"target": plain, "num_images": 3, "shard_size": 3, "resolution_px": 96,
+                                            "seed": 9, "random": {"range_min_m": 3.0, "range_max_m": 5.0,
+                                                                  "keepout_margin_m": 0.5}}), src)
+    names = list(KEYPOINTS_T_M)
+    for fmt in ("speedplus", "coco", "bop", "yolo-pose"):
+        out = tmp_path / fmt
+        export_dataset(src, str(out), ExportConfig(fmt, val_fraction=0.0), progress=False)
+        record = json.loads((out / "export.json").read_text())
+        assert record["target"] == "test_brick" and record["keypoint_names"] == names, fmt
+    coco = json.loads((tmp_path / "coco" / "annotations" / "keypoints_train.json").read_text())
+    assert coco["categories"][0]["keypoints"] == names and coco["categories"][0]["skeleton"] == []
+    assert all(len(a["keypoints"]) == 3 * len(names) for a in coco["annotations"])
+    rows = [line.split() for p in (tmp_path / "yolo-pose" / "labels" / "train").iterdir() for line in p.read_text().splitlines()]
+    assert rows and all(len(r) == 5 + 3 * len(names) for r in rows)
+    assert f"kpt_shape: [{len(names)}, 3]" in (tmp_path / "yolo-pose" / "data.yaml").read_text()
+    points = json.loads((tmp_path / "bop" / "models" / "keypoints_3d.json").read_text())["1"]
+    assert points["names"] == names and np.allclose(np.array(points["points_mm"]) / 1000.0,
+                                                    np.array(list(KEYPOINTS_T_M.values())))
