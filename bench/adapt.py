@@ -197,7 +197,8 @@ def look_folder(clean: str, look: str, seed: int, res: int, out: str) -> str:
     K = np.asarray(frames[0][1]["K"], float)
     extra = (f'response = "{response}"\npsf_sigma_px = {sigma}\n' if given else "")
     with open(os.path.join(out, "camera.toml"), "w") as fh:
-        fh.write(f"fx = {K[0, 0]!r}\nfy = {K[1, 1]!r}\ncx = {K[0, 2]!r}\ncy = {K[1, 2]!r}\nwidth = {res}\n"
+        fh.write(f"fx = {float(K[0, 0])!r}\nfy = {float(K[1, 1])!r}\ncx = {float(K[0, 2])!r}\n"
+                 f"cy = {float(K[1, 2])!r}\nwidth = {res}\n"
                  f"height = {res}\n{extra}")
     np.savez(os.path.join(out, "truth.npz"), x=np.asarray(x, float), t_s=np.asarray(t_s, float))
     return out

@@ -147,6 +147,8 @@ def edge_stations(image: np.ndarray, corners_px: np.ndarray, use: np.ndarray, ma
             continue
         d = (pb - pa) / length
         base = pa[None] + np.arange(end_px, length - end_px, STEP_PX)[:, None] * d
+        if not len(base):  # shorter than its two ends' margins (the reach grows them with the blur)
+            continue
         pts = base[:, None] + t_px[None, :, None] * n
         prof = sample_bicubic(image, pts).astype(np.float64)
         inside, outside = prof[:, t_px <= -reach].mean(axis=1), prof[:, t_px >= reach].mean(axis=1)

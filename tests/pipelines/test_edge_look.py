@@ -112,3 +112,13 @@ def test_the_response_curves_invert_and_parse():
     for bad in ("log", True, 9.0, "gamma x"):
         with pytest.raises(Exception, match="response|x"):
             parse_response(bad, "x")
+
+
+def test_an_edge_shorter_than_its_margins_gives_no_station_and_no_error():
+    """A wide blur grows the stations' distance from an edge's ends (reach + 6 px: 17 px at a 3 px sigma): an
+    edge of 30-34 px then holds none, which must leave it out, not fail."""
+    tri = np.array([[100.0, 100.0], [132.0, 100.0], [116.0, 72.3]])  # edges of 32 px
+    corners = np.concatenate([tri, tri.mean(axis=0) + np.zeros((5, 2))])
+    img = store(polygon_light(tri, 3.0, size=200, ss=2), None)
+    st = edge_stations(img, corners, np.ones(8, bool), light=LINEAR, blur_px=3.0)
+    assert len(st.offset_px) == 0
