@@ -69,9 +69,8 @@ def frame_discriminates(nis: np.ndarray, dof: np.ndarray, prob: float) -> bool:
     """Whether one frame's innovations can tell the hypotheses apart: False when every hypothesis that used
     corners (dof > 0) finds them beyond the chi-square bound at tail probability prob for its dof. Such a frame
     contradicts them all (a detector error the model does not hold: a corner on the boom's edge, a wrong naming
-    of one corner), and the differences between their NIS are then the error's, not evidence for one twin: a
-    30 m slow-tumble cold start (bench/acquisition.py seed 2, the bin's eighth trial) gained 3.4 nats for the
-    wrong twin from three such frames (NIS 29-51 on 12 dof for both) and claimed it for 5 s."""
+    of one corner), and the differences between their NIS are then the error's, not evidence for one twin
+    (three such frames, NIS 29-51 on 12 dof for both, once gave the wrong twin 3.4 nats; docs/history.md)."""
     from envisat_pose.gates import chi2_bound
 
     nis, dof = np.asarray(nis, float), np.asarray(dof)

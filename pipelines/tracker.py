@@ -337,10 +337,10 @@ class Tracker:
             return [f"cold start refused: {'; '.join(problems[0])}"]
         # Once one fit passes, every twin whose fit is valid and physical starts beside it, failed fit statistics
         # or not: the twins fit the same window, so a chi-square or rejection count just past its bound for one
-        # and just inside it for another is the window's noise, not evidence between them (default scenario,
-        # generate seed 3, 512 px: costs 673-678 for all four, the one passing at chi-square 305 against a bound
-        # of 312 started alone and was claimed 180 deg off for 83 frames). The bank weighs them by their fit cost
-        # and appearance and drops at once those below 1 - bank.decided, so a far worse fit never starts.
+        # and just inside it for another is the window's noise, not evidence between them (the four twins' costs
+        # can lie within 1 % of each other; one started alone was claimed 180 deg off: docs/history.md). The bank
+        # weighs them by their fit cost and appearance and drops at once those below 1 - bank.decided, so a far
+        # worse fit never starts.
         start = np.array([f.valid and not s for f, s in zip(fits, state)])
         self.buffer = []
         P = np.stack([f.P for f in fits])[start] * self.cfg.acquire.start_cov_factor
