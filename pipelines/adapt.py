@@ -21,8 +21,9 @@ The steps (one round; `rounds` repeats 2-5 from the last track):
    was corrected by the edges, the detector's apparent scale on this look (the error model's bias_scale, which
    the tracker undoes in every frame: `tracker.noise.correct_scale`; `adapted_scale`), its sd (the fit's, the
    outline's own offset, the look's) the error model's bias_scale_sd, so the tracker's range covariance carries
-   it; where the detector's own corners read that scale beyond AGREE_Z sd of the edges' the original scale is
-   kept and the report's scale_note says why in one line (`disagreement`);
+   it; where the detector's own corners read that scale beyond AGREE_Z sd of the edges', or the scale lies
+   within MOVE_Z of its sd of the one the track undid, the original scale is kept and the report's scale_note
+   says why in one line (`disagreement`, `no_evidence`);
 then track again with the adapted weights: the 'after' run. The held-out final part decides: if the adapted
 weights do worse there than the original ones (tracked share, mean NIS per degree of freedom, the frame from which
 the pose stays tracked: `worse_reason`), the original weights are kept and the report says why in one line.
@@ -80,6 +81,7 @@ EDGE_OFFSET_PX = 0.08
 EDGE_LOOK_SD = 3e-4
 LOOK_FRAMES = 30        # labelled frames the response and blur are estimated from (evenly spread)
 AGREE_Z = 3.0           # edges and corners disagree beyond this many standard deviations of their difference
+MOVE_Z = 2.0            # a scale is moved only by more than this many of its standard deviations
 EDGE_RANGE_MODES = ("sequence", "frame", "off")
 ADAPT_PARAMS = ("norm_heads", "all", "none")  # what the fine-tune trains (AdaptConfig.params)
 
@@ -612,6 +614,16 @@ def recalibration_step(run: AdaptRun, weights: str, candidate: str, model, image
             "apparent_scale_adopted": scale is not None and "kept" not in scale}
 
 
+def no_evidence(scale: dict, applied: float) -> str | None:
+    """One line saying why a scale is not adopted, or None: a scale within MOVE_Z of its own sd of the one the
+    track undid (`applied`) is no evidence that it should move (an estimated response can leave the edges' scale
+    uncertain by most of a per cent: its look term)."""
+    if abs(scale["value"] - applied) > MOVE_Z * scale["sd"]:
+        return None
+    return (f"the original scale kept: the {scale['method']}' scale {scale['value']:.5f} +- {scale['sd']:.5f} is "
+            f"within {MOVE_Z:g} sd of the one the track undid ({applied:.5f})")
+
+
 def disagreement(scale: dict, cal: dict) -> str | None:
     """One line saying why an edges' scale is not adopted, or None: the detector's own corners, measured against
     the same edge-corrected labels (recalibrate's apparent_scale), are a second reading of the same scale; where
@@ -642,7 +654,7 @@ def scale_step(run: AdaptRun, weights: str, edges: dict, cal: dict) -> dict | No
     scale = adapted_scale(run.cfg.params, applied, edges, cal)
     if scale is None:
         return None
-    reason = disagreement(scale, cal)
+    reason = disagreement(scale, cal) or no_evidence(scale, applied)
     if reason is not None:
         return {**scale, "kept": reason}
     em = dataclasses.replace(weights_error_model(run.tcfg.weights), bias_scale=scale["value"],

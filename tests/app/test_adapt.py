@@ -313,3 +313,15 @@ def test_an_srgb_sequence_is_adapted_without_making_its_range_worse(tmp_path, de
     look = report["rounds"][-1]["edge_range"]["look"]
     assert look["given"]["response"] is False and look["estimate"]["stations"] > 0
     assert range_error_m("after") <= range_error_m("before") + 0.005, (report["rounds"][-1]["apparent_scale"], look)
+
+
+def test_a_scale_within_its_own_uncertainty_of_the_tracks_is_not_adopted():
+    """An edges' scale whose sd (an estimated response's look term can make it most of a per cent) covers the
+    distance to the scale the track undid is no evidence to move it: kept, one line naming both; a scale moved
+    by more than MOVE_Z sd is adopted."""
+    from envisat_pose.pipelines.adapt import MOVE_Z, no_evidence
+
+    scale = {"value": 0.9944, "se": 3e-4, "sd": 8.3e-3, "method": "edges"}
+    line = no_evidence(scale, 1.0004)
+    assert line is not None and "\n" not in line and "0.99440" in line and "1.00040" in line
+    assert no_evidence({**scale, "sd": abs(0.9944 - 1.0004) / (1.1 * MOVE_Z)}, 1.0004) is None
