@@ -71,6 +71,8 @@ def adapt_cli(args: argparse.Namespace) -> int:
         print(f"{name:>6}: held-out tracked {f['tracked_share']:.0%}, mean NIS/dof {nis}, pose stays tracked "
               f"from frame {f['stays_tracked_from']}")
     print(f"took {report['timing_s']['total']:.0f} s")
+    if report.get("scale_note"):
+        print(f"apparent scale: {report['scale_note']}")
     if not report["adopted"]:
         print(f"envisat adapt: kept the original weights: {report['reason']}", file=sys.stderr)
         return 1
