@@ -60,7 +60,7 @@ def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
 
 def runner_config(args: argparse.Namespace):
     """The core runner's settings, one BLAS thread share per worker."""
-    from envisat_pose.runner import BLAS_THREADS, RunnerConfig, thread_env
+    from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
 
     check(args.workers >= 1, "workers", args.workers, "at least 1 worker")
     check(args.scheduler is None or args.backend == "dask", "scheduler", args.scheduler,

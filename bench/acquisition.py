@@ -177,8 +177,8 @@ def main() -> None:
     from envisat_pose.io import atomic_write_text
     from envisat_pose.pipelines.job_defaults import default_weights_path
     from envisat_pose.pipelines.trials import SUN_PHASE_MAX_DEG
+    from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
     from envisat_pose.provenance import weights_ref
-    from envisat_pose.runner import RunnerConfig, run_tasks, thread_env
     from envisat_pose.status import legend
 
     weights = args.weights or default_weights_path()

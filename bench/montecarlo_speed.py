@@ -73,7 +73,7 @@ def time_campaign(runs: int, duration_s: float, workers: int, block_runs: int, o
     """Run the campaign once through the pipeline's run_campaign (envisat_pose.pipelines.campaign); wall time,
     memory, summary. kernel: the filter kernel (None: the default, as `envisat montecarlo` runs it)."""
     from envisat_pose.pipelines.campaign import MonteCarloConfig, run_campaign
-    from envisat_pose.runner import BLAS_THREADS, RunnerConfig, thread_env
+    from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
 
     # as `envisat montecarlo --scenario default` builds it: the scenario's [measurement] and [filter] tables
     cfg = MonteCarloConfig.from_scenario("default", overrides={"filter.kernel": kernel}, duration_s=duration_s,

@@ -211,8 +211,8 @@ def main() -> None:
     from envisat_pose.perception.detect import load_detector
     from envisat_pose.pipelines.job_defaults import default_weights_path
     from envisat_pose.pipelines.trials import SUN_PHASE_MAX_DEG
+    from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
     from envisat_pose.provenance import weights_ref
-    from envisat_pose.runner import RunnerConfig, run_tasks, thread_env
 
     weights = args.weights or default_weights_path()
     phase = args.sun_phase_max_deg if args.sun_phase_max_deg is not None else SUN_PHASE_MAX_DEG

@@ -53,7 +53,7 @@ __all__ = ["run_campaign", "campaign_job", "prepare_truth", "MANIFEST_FORMAT", "
            "check_filter_rate", "truth_scenario", "FIGURES", "write_recording"]
 
 if TYPE_CHECKING:
-    from envisat_pose.runner import ResumableJob
+    from envisat_pose.resumable import ResumableJob
 
 MANIFEST_FORMAT = "envisat-pose montecarlo v1"
 
@@ -62,7 +62,7 @@ def campaign_job(cfg: MonteCarloConfig, out_dir: str) -> ResumableJob:
     """The campaign in out_dir as the core's resumable job: one unit per block, the config as its identity, a
     block kept on resume only when its sha256 matches and it covers the runs the config gives it (the truth's
     sha256 goes in the header once the truth is known)."""
-    from envisat_pose.runner import ResumableJob
+    from envisat_pose.resumable import ResumableJob
 
     return ResumableJob(out_dir, MANIFEST_FORMAT, "campaign", {"config": to_dict(cfg)}, "blocks", cfg.n_blocks,
                         block_name, header={"n_blocks": cfg.n_blocks},

@@ -200,8 +200,8 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
 
     from envisat_pose.config import to_toml
     from envisat_pose.io import atomic_write_text
+    from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
     from envisat_pose.realtime import real_time_factor
-    from envisat_pose.runner import RunnerConfig, run_tasks, thread_env
 
     paths = run_output_paths(out_dir)
     wall0 = time.perf_counter()

@@ -110,7 +110,7 @@ def gl_environment(device_type: str, workers: int) -> dict[str, str]:
     """The renderer processes' environment: MUJOCO_GL (the caller's, else egl for a CUDA device, osmesa
     otherwise), EGL_PLATFORM surfaceless with egl, LP_NUM_THREADS (llvmpipe's threads) the machine's cores shared
     among the workers unless set."""
-    from envisat_pose.runner import thread_env
+    from envisat_pose.pools import thread_env
 
     env = {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl" if device_type == "cuda" else "osmesa")}
     if env["MUJOCO_GL"].lower() == "egl":

@@ -85,7 +85,7 @@ def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner, p
     from envisat_pose.analysis.campaign_figures import plot_rate_sweep
     from envisat_pose.io import atomic_write_text
     from envisat_pose.out_dirs import make_out_dir
-    from envisat_pose.runner import remove_partial_files
+    from envisat_pose.resumable import remove_partial_files
 
     make_out_dir(out_dir)
     remove_partial_files(out_dir)

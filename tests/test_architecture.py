@@ -8,8 +8,8 @@ functions count too, and so do relative imports and the old top-level names. No 
 directly or around a loop, even inside functions (0 import cycles).
 
 One home for each concept: the state's slices are defined only in envisat_pose/state.py; manifest.json is
-written only by the core runner's resumable-job protocol; shards are read (a tar opened for reading) only by
-envisat_pose/shard_reader.py; a verb or pipeline resolves its config only through
+written only by the core's resumable-job protocol (envisat_pose/resumable.py); shards are read (a tar opened for
+reading) only by envisat_pose/shard_reader.py; a verb or pipeline resolves its config only through
 config.resolve_job_config (never by merging layers itself); a chi-square gate comes from its probability
 (envisat_pose.gates), never typed as a number, and so does a band of NEES or NIS (scipy.stats.chi2, as
 analysis.stats.chi2_mean_bounds computes it). The benches and the scripts are read for every one-home rule; they
@@ -261,7 +261,7 @@ def imports_of_test_extras(root: str = ROOT) -> list[str]:
 STATE_FILE = os.path.join("envisat_pose", "state.py")
 GATES_FILE = os.path.join("envisat_pose", "gates.py")
 ONBOARD_FILE = os.path.join("pipelines", "onboard.py")
-RUNNER_FILE = os.path.join("envisat_pose", "runner.py")
+RESUMABLE_FILE = os.path.join("envisat_pose", "resumable.py")  # the manifest protocol (ResumableJob)
 SHARD_READER_FILE = os.path.join("envisat_pose", "shard_reader.py")
 STATE_BOUNDS = {(0, 3), (3, 6), (6, 9), (9, 12)}  # the blocks of the 12-state (envisat_pose.state)
 MERGERS = ("set_dotted", "deep_update")  # the layers of a config, merged by hand
@@ -518,7 +518,7 @@ def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
         source = open(os.path.join(root, rel), encoding="utf-8").read()
         if kind == "state_slices" and rel != STATE_FILE:
             lines = state_slice_definitions(source)
-        elif kind == "manifest_writers" and rel != RUNNER_FILE:
+        elif kind == "manifest_writers" and rel != RESUMABLE_FILE:
             lines = manifest_writes(source)
         elif kind == "hand_built_runs" and rel.split(os.sep)[0] in ("tests", "bench", "scripts") and rel != THIS_FILE:
             lines = run_configs_built(source)
@@ -713,7 +713,7 @@ def test_the_manifest_checker_catches_a_planted_protocol():
     reader = ("import json\n\ndef read(d):\n    m = json.load(open(d + '/manifest.json'))\n"
               "    open(d + '/summary.json', 'w').write(json.dumps(m))\n")
     assert manifest_writes(reader) == []
-    assert manifest_writes(open(os.path.join(ROOT, RUNNER_FILE), encoding="utf-8").read())  # the home
+    assert manifest_writes(open(os.path.join(ROOT, RESUMABLE_FILE), encoding="utf-8").read())  # the home
 
 
 def test_the_shard_reader_checker_catches_a_planted_reader():

@@ -155,7 +155,7 @@ def test_the_public_pipeline_writes_what_the_verb_writes(campaign, tmp_path):
     from envisat_pose.app.cli import build_parser
     from envisat_pose.app.montecarlo import resolve_config
     from envisat_pose.pipelines import campaign as pipeline  # the config in campaign_config.py, importable here
-    from envisat_pose.runner import RunnerConfig
+    from envisat_pose.pools import RunnerConfig
 
     assert envisat_pose.run_campaign is pipeline.run_campaign and envisat_pose.MonteCarloConfig is \
         pipeline.MonteCarloConfig

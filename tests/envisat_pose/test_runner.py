@@ -5,7 +5,7 @@ import math
 import pytest
 
 from envisat_pose.config import ConfigError
-from envisat_pose.runner import RunnerConfig, run_tasks
+from envisat_pose.pools import RunnerConfig, run_tasks
 
 TASKS = [(n, k) for n in range(20, 26) for k in (3, 7)]
 EXPECTED = {i: math.comb(*args) for i, args in enumerate(TASKS)}
@@ -63,7 +63,7 @@ def write_unit(out_dir: str, i: int, fail_at: int) -> dict:
 
 
 def make_job(out_dir, seed=0, n=5, verify=None):
-    from envisat_pose.runner import ResumableJob
+    from envisat_pose.resumable import ResumableJob
 
     return ResumableJob(str(out_dir), "test job v1", "test set", {"config": {"seed": seed, "n": n}}, "units", n,
                         unit_file, header={"n_units": n}, verify_unit=verify)

@@ -122,7 +122,7 @@ def test_estimate_verb_and_library_agree(tmp_path):
 
 def test_montecarlo_verb_and_library_agree(tmp_path):
     from envisat_pose.pipelines.campaign import MonteCarloConfig, run_campaign
-    from envisat_pose.runner import RunnerConfig
+    from envisat_pose.pools import RunnerConfig
 
     a, b = tmp_path / "a", tmp_path / "b"
     assert main(["montecarlo", "--scenario", "eclipse", "--runs", "2", "--duration-s", "20", "--block-runs", "1",

@@ -1,0 +1,135 @@
+"""One runner for every parallel job (design.md, Scale): a task function over a list of argument tuples, run
+in this process, on a local process pool, or on a Dask cluster, with results yielded as they finish
+(`run_tasks(fn, tasks, RunnerConfig)`); `thread_env` the workers' thread shares.
+
+A task is a module-level function (importable by name in a worker) whose arguments and result are plain data:
+numbers, strings, lists, dicts, numpy arrays. Each task draws its randomness from its own arguments (a seed),
+never from where or when it runs, so the results are the same whatever the backend and the worker count; the
+caller reassembles them by index (or writes each unit of output by its index, as the image factory does).
+
+Local pools use spawned processes (no state inherited from the parent) that die with the parent. A Dask
+cluster started here listens on 127.0.0.1 only; `scheduler` connects to an existing one instead.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterator, Literal, Sequence
+
+from envisat_pose.config import check
+
+Backend = Literal["inline", "local", "dask"]
+
+
+@dataclass(frozen=True)
+class RunnerConfig:
+    """Where tasks run. backend: 'inline' (this process), 'local' (process pool; one worker runs inline) or
+    'dask'. workers: processes for 'local' and for a LocalCluster. scheduler: address of an existing Dask
+    scheduler (then workers is ignored). env: environment variables set in every worker before its first task
+    (e.g. LP_NUM_THREADS, the rasterizer's threads per worker)."""
+
+    backend: Backend = "local"
+    workers: int = 1
+    scheduler: str | None = None
+    env: dict[str, str] = field(default_factory=dict)
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(self.backend in ("inline", "local", "dask"), f"{p}backend", self.backend, "'inline', 'local' or 'dask'")
+        check(self.workers >= 1, f"{p}workers", self.workers, "at least 1 worker")
+        check(self.scheduler is None or self.backend == "dask", f"{p}scheduler", self.scheduler,
+              "an address only with backend 'dask'")
+
+
+def cpu_share(workers: int) -> int:
+    """The machine's cores shared among `workers` processes (at least 1 each)."""
+    return max(1, (os.cpu_count() or 1) // max(1, workers))
+
+
+RASTERIZER_THREADS = ("LP_NUM_THREADS",)  # llvmpipe's threads: MuJoCo's software renderer (OSMesa, EGL on a CPU)
+BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")  # numpy's and scipy's linear algebra
+
+
+def thread_env(workers: int, variables: tuple[str, ...] = RASTERIZER_THREADS) -> dict[str, str]:
+    """The one home of the worker thread environment: each of `variables` set to the machine's cores shared among
+    `workers` processes (cpu_share), for RunnerConfig.env (a worker keeps a value its parent already set)."""
+    n = str(cpu_share(workers))
+    return {name: n for name in variables}
+
+
+def _worker_init(env: dict[str, str]) -> None:
+    """Process-pool worker start: its environment, and death with the parent (no orphan writers)."""
+    for key, value in env.items():
+        os.environ.setdefault(key, value)
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _dask_task(fn: Callable, env: dict[str, str], args: tuple) -> Any:
+    for key, value in env.items():
+        os.environ.setdefault(key, value)
+    return fn(*args)
+
+
+def run_tasks(fn: Callable[..., Any], tasks: Sequence[tuple], cfg: RunnerConfig = RunnerConfig()
+              ) -> Iterator[tuple[int, Any]]:
+    """Run fn(*tasks[i]) for every i and yield (i, result) as each one finishes (completion order).
+
+    An exception in a task propagates to the caller, after which no more results are yielded (results
+    already yielded stay valid: a resumable job has recorded them).
+    """
+    cfg.validate()
+    if not tasks:
+        return
+    if cfg.backend == "inline" or (cfg.backend == "local" and (cfg.workers == 1 or len(tasks) == 1)):
+        for key, value in cfg.env.items():
+            os.environ.setdefault(key, value)
+        for i, args in enumerate(tasks):
+            yield i, fn(*args)
+        return
+    if cfg.backend == "local":
+        yield from _run_pool(fn, tasks, cfg)
+    else:
+        yield from _run_dask(fn, tasks, cfg)
+
+
+def _run_pool(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterator[tuple[int, Any]]:
+    import concurrent.futures as cf
+    import multiprocessing as mp
+
+    with cf.ProcessPoolExecutor(max_workers=min(cfg.workers, len(tasks)), mp_context=mp.get_context("spawn"),
+                                initializer=_worker_init, initargs=(dict(cfg.env),)) as pool:
+        futures = {pool.submit(fn, *args): i for i, args in enumerate(tasks)}
+        try:
+            for fut in cf.as_completed(futures):
+                yield futures[fut], fut.result()
+        finally:
+            for fut in futures:
+                fut.cancel()
+
+
+def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterator[tuple[int, Any]]:
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    cluster = None
+    if cfg.scheduler:
+        client = Client(cfg.scheduler)
+    else:
+        cluster = LocalCluster(n_workers=cfg.workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                               dashboard_address=None, env=dict(cfg.env))
+        client = Client(cluster)
+    try:
+        futures = {client.submit(_dask_task, fn, dict(cfg.env), tuple(args), pure=False): i
+                   for i, args in enumerate(tasks)}
+        for fut in as_completed(futures):
+            yield futures[fut], fut.result()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()

@@ -1,0 +1,145 @@
+"""Resumable jobs (`ResumableJob`): the one protocol for outputs written unit by unit into a folder (the image
+factory's shards, a Monte Carlo campaign's blocks), run as tasks of the pools (envisat_pose/pools.py): units
+with sha256 in manifest.json, rewritten atomically after each unit; a folder of another config refused; unvouched
+unit files and partial files removed and redone.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from typing import Callable
+
+from envisat_pose.config import InputError, flatten
+from envisat_pose.io import atomic_write_text, sha256_file
+from envisat_pose.out_dirs import PARTIAL_PREFIX, make_out_dir
+from envisat_pose.pools import RunnerConfig, run_tasks
+
+MANIFEST = "manifest.json"
+
+
+def remove_partial_files(folder: str) -> None:
+    """Remove the temporary files (and io.staged_folder's folders) a killed writer left in folder."""
+    import shutil
+
+    for name in os.listdir(folder):
+        if name.startswith(PARTIAL_PREFIX):
+            path = os.path.join(folder, name)
+            shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
+
+
+@dataclass
+class ResumableJob:
+    """A job whose output is `n_units` files in one folder, each written atomically by one task (a shard, a
+    block of Monte Carlo runs) and vouched for by the folder's manifest.json, rewritten atomically after every
+    unit, so a killed job resumes where it stopped with the same bytes.
+
+    The protocol: a folder holds one job (`identity`: the full config, the root seed); a rerun with another is
+    refused before anything is written. A rerun keeps a unit the manifest lists only when its file still has the
+    recorded sha256 (and passes `verify_unit`); every other unit file, and every partial file of a killed
+    writer, is removed and redone.
+
+    format: the manifest's format string. what: the job's output in messages ('dataset', 'campaign').
+    units_key: the manifest's list of unit entries ('shards', 'blocks'). unit_file(i): unit i's path relative
+    to out_dir. header: further manifest fields (counts, a prerequisite's sha256). verify_unit(entry, path):
+    checks beyond the sha256. A unit's entry (its task's result) holds at least 'index' and 'sha256'.
+    """
+
+    out_dir: str
+    format: str
+    what: str
+    identity: dict
+    units_key: str
+    n_units: int
+    unit_file: Callable[[int], str]
+    header: dict = field(default_factory=dict)
+    verify_unit: Callable[[dict, str], bool] | None = None
+    done: dict[int, dict] = field(default_factory=dict, init=False)
+
+    def unit_path(self, index: int) -> str:
+        return os.path.join(self.out_dir, self.unit_file(index))
+
+    def previous(self) -> dict | None:
+        """The manifest of an earlier run in out_dir (None: none yet). InputError when it is unreadable, of
+        another kind of job, or of another identity (the message names the first differences)."""
+        path = os.path.join(self.out_dir, MANIFEST)
+        if not os.path.isfile(path):
+            return None
+        try:
+            with open(path, encoding="utf-8") as fh:
+                manifest = json.load(fh)
+        except (OSError, ValueError) as err:
+            raise InputError(f"--out {self.out_dir!r}: unreadable {MANIFEST} ({err}); remove it or use another "
+                             "folder") from None
+        if not isinstance(manifest, dict) or manifest.get("format") != self.format:
+            raise InputError(f"--out {self.out_dir!r}: {MANIFEST} is not a {self.what} manifest (format "
+                             f"{self.format!r} expected); use another folder")
+        theirs = flatten({k: manifest.get(k) for k in self.identity})
+        ours = flatten(self.identity)
+        diff = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
+        if diff:
+            def shown(k: str) -> str:
+                return f"{k.removeprefix('config.')} = {theirs.get(k)!r} there, {ours.get(k)!r} here"
+
+            raise InputError(f"--out {self.out_dir!r} holds a {self.what} of another config or seed ("
+                             + ", ".join(shown(k) for k in diff[:3]) + (", ..." if len(diff) > 3 else "")
+                             + "); rerun with the same settings or use another folder")
+        return manifest
+
+    def open(self) -> dict | None:
+        """Refuse another job's folder, then create the folder (and the units' subfolders), prove it writable
+        and remove partial files. Returns the earlier run's manifest (None: none)."""
+        previous = self.previous() if os.path.isdir(self.out_dir) else None
+        subdirs = sorted({os.path.dirname(self.unit_file(i)) for i in range(self.n_units)} - {""})
+        make_out_dir(self.out_dir, subdirs)
+        for folder in [self.out_dir, *(os.path.join(self.out_dir, s) for s in subdirs)]:
+            remove_partial_files(folder)
+        return previous
+
+    def resume(self, previous: dict | None) -> dict[int, dict]:
+        """Keep the units `previous` vouches for, remove every other unit file, write the manifest. Pass None
+        to redo every unit (a prerequisite changed). Returns {index: entry} of the kept units."""
+        self.done = {}
+        for entry in (previous or {}).get(self.units_key, []):
+            i = entry.get("index")
+            if not (isinstance(i, int) and 0 <= i < self.n_units):
+                continue
+            path = self.unit_path(i)
+            if (os.path.isfile(path) and sha256_file(path) == entry.get("sha256")
+                    and (self.verify_unit is None or self.verify_unit(entry, path))):
+                self.done[i] = entry
+        for i in range(self.n_units):  # a unit file the manifest does not vouch for is redone
+            if i not in self.done and os.path.exists(self.unit_path(i)):
+                os.remove(self.unit_path(i))
+        self.write()
+        return dict(self.done)
+
+    def manifest(self) -> dict:
+        return {"format": self.format, **self.identity, **self.header,
+                self.units_key: [self.done[i] for i in sorted(self.done)],
+                "complete": len(self.done) == self.n_units}
+
+    def write(self) -> None:
+        """Rewrite manifest.json atomically (key-sorted, indented)."""
+        atomic_write_text(os.path.join(self.out_dir, MANIFEST),
+                          json.dumps(self.manifest(), sort_keys=True, indent=1) + "\n")
+
+    def record(self, entry: dict) -> None:
+        """A finished unit: add its entry and rewrite the manifest."""
+        self.done[int(entry["index"])] = entry
+        self.write()
+
+    def todo(self) -> list[int]:
+        return [i for i in range(self.n_units) if i not in self.done]
+
+    def run(self, fn: Callable[..., dict], args_of: Callable[[int], tuple], cfg: RunnerConfig,
+            on_unit: Callable[[dict], None] | None = None) -> dict:
+        """Run fn(*args_of(i)) for every unit not done (tasks of `run_tasks`; each returns its unit's entry),
+        recording each as it finishes and then calling on_unit(entry). Returns the final manifest."""
+        todo = self.todo()
+        for _, entry in run_tasks(fn, [args_of(i) for i in todo], cfg):
+            self.record(entry)
+            if on_unit is not None:
+                on_unit(entry)
+        return self.manifest()
