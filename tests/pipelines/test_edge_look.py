@@ -81,7 +81,8 @@ def test_the_edge_in_linear_light_sits_on_the_true_step(name):
 @pytest.mark.parametrize("name", list(RESPONSES))
 def test_the_response_and_blur_are_read_from_the_frames(name):
     """estimate_look recovers the response where the blur shows it (1 and 2.5 px): linear by name; sRGB by name
-    or as a power within 0.1 of its nominal 2.2; a gamma within 0.1. Linearized by what it found, the edge is
+    or as a power within 0.1 of its nominal 2.2; a gamma's power within 0.1 (the curve chosen may be sRGB where
+    the power cannot be told from 2.2). Linearized by what it found, the edge is
     within 0.05 px of the true step (0.03 of error in the power moves a 2.5 px blur's edge by 0.02 px: adapt
     carries that as the scale's look term). At 0.3 px no power is claimed and a named curve is chosen. The PSF's
     sigma within 0.1 px throughout."""
@@ -98,7 +99,7 @@ def test_the_response_and_blur_are_read_from_the_frames(name):
         elif kind == "srgb":
             assert fit.response == SRGB or abs(fit.response.gamma - 2.2) < 0.1, (name, sigma, fit)
         else:
-            assert abs(fit.gamma - kind) < 0.1 and fit.response.kind == "gamma", (name, sigma, fit)
+            assert abs(fit.gamma - kind) < 0.1 and fit.response != LINEAR, (name, sigma, fit)
         assert abs(mean_offset_px(ims, corners, use, fit.response, fit.psf_sigma_px)) < 0.05, (name, sigma, fit)
 
 
