@@ -75,10 +75,13 @@ NIS_MARGIN = np.log(1.5)     # |ln(mean NIS / dof)| may grow by at most ln 1.5
 # -0.10 % at 1024 px (bench/edge_truth.py, default scenario, seeds 0-3): the scale the edges give is not known
 # better than this over the outline's radius.
 EDGE_OFFSET_PX = 0.08
-# The edge cue's scale bias at the true pose over the grid of looks (responses linear, sRGB, gamma 1.8 and 2.4;
-# PSF sigma 0.3-2.5 px; blooming on and off; each read in linear light by its known response and blur:
-# bench/edge_truth.py --looks): carried in the adapted scale's sd beside the outline's own offset.
-EDGE_LOOK_SD = 3e-4
+# The edge cue's scale bias at the true pose over the grid of looks, each read in linear light by its known
+# response and blur (bench/edge_truth.py --looks, own renders of default seed 0 at 512 px): RMS 0.045 % over the
+# 12 measurable looks with a PSF sigma of 0.3 or 1 px, 0.23 % over the 6 at 2.5 px. Carried in the adapted scale's
+# sd beside the outline's own offset (edge_look_sd).
+EDGE_LOOK_SD = 4.5e-4
+EDGE_LOOK_SD_WIDE = 2.3e-3
+WIDE_PSF_PX = 1.75      # a PSF sigma above this takes EDGE_LOOK_SD_WIDE
 LOOK_FRAMES = 30        # labelled frames the response and blur are estimated from (evenly spread)
 AGREE_Z = 3.0           # edges and corners disagree beyond this many standard deviations of their difference
 MOVE_Z = 2.0            # a scale is moved only by more than this many of its standard deviations
@@ -375,6 +378,11 @@ def save_adapted(model, base: str, path: str, extra: dict) -> bool:
     return True
 
 
+def edge_look_sd(psf_sigma_px: float | None) -> float:
+    """The edge cue's look-dependence at the true pose (EDGE_LOOK_SD; EDGE_LOOK_SD_WIDE above WIDE_PSF_PX)."""
+    return EDGE_LOOK_SD_WIDE if psf_sigma_px is not None and psf_sigma_px > WIDE_PSF_PX else EDGE_LOOK_SD
+
+
 def adapted_scale(params: str, applied: float, edges: dict, cal: dict) -> dict | None:
     """The apparent scale the adapted weights' error model holds, or None. params 'none' (the network that made
     the track, unchanged) with the sequence's edge fit: its range was off by (1 + delta) with the scale `applied`
@@ -384,12 +392,13 @@ def adapted_scale(params: str, applied: float, edges: dict, cal: dict) -> dict |
     (recalibrate's apparent_scale; None below SCALE_MIN_FRAMES frames). sd: how far it may be from the truth:
     the fit's standard error and the outline's own offset (EDGE_OFFSET_PX over the outline's median radius),
     in quadrature, and with the look's part: the cue's dependence on what the frames leave open of their response
-    (edges' look delta_sd) and its bias at the true pose over the grid of looks (EDGE_LOOK_SD). Returns
+    (edges' look delta_sd) and its bias at the true pose over the grid of looks (edge_look_sd). Returns
     {value, se, sd, method}."""
     seq = edges.get("sequence") or {}
     radius = edges.get("outline_radius_px")
-    look = (edges.get("look") or {}).get("delta_sd", 0.0)
-    floor = float(np.hypot(EDGE_OFFSET_PX / radius if radius else 0.0, np.hypot(look, EDGE_LOOK_SD)))
+    look = edges.get("look") or {}
+    floor = float(np.hypot(EDGE_OFFSET_PX / radius if radius else 0.0,
+                           np.hypot(look.get("delta_sd", 0.0), edge_look_sd(look.get("psf_sigma_px")))))
     if params == "none" and seq.get("delta") is not None:
         value, se = applied / (1.0 + seq["delta"]), applied * seq["delta_se"] / (1.0 + seq["delta"]) ** 2
         return {"value": value, "se": se, "sd": float(np.hypot(se, floor)), "method": "edges"}

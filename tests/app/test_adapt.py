@@ -204,14 +204,17 @@ def test_the_unchanged_network_takes_the_tracks_scale_over_the_edges_delta():
     applied / (1 + delta): undoing that instead brings the range to the edges' (r ~ applied / s). A fine-tuned
     network is a new detector: its corners' scale against the corrected labels. The sd never undercuts the
     outline's own offset over its radius."""
-    from envisat_pose.pipelines.adapt import EDGE_LOOK_SD, EDGE_OFFSET_PX, adapted_scale
+    from envisat_pose.pipelines.adapt import EDGE_LOOK_SD, EDGE_LOOK_SD_WIDE, EDGE_OFFSET_PX, adapted_scale
 
-    edges = {"sequence": {"delta": 0.004, "delta_se": 1e-4}, "outline_radius_px": 50.0, "look": {"delta_sd": 5e-4}}
+    edges = {"sequence": {"delta": 0.004, "delta_se": 1e-4}, "outline_radius_px": 50.0,
+             "look": {"delta_sd": 5e-4, "psf_sigma_px": 1.0}}
     cal = {"apparent_scale": 0.9970, "apparent_scale_se": 3e-4}
     s = adapted_scale("none", 1.0004, edges, cal)
     assert s["method"] == "edges" and s["value"] == pytest.approx(1.0004 / 1.004, rel=1e-12)
     parts = [1.0004 * 1e-4 / 1.004**2, EDGE_OFFSET_PX / 50.0, 5e-4, EDGE_LOOK_SD]  # fit, outline, look, grid
     assert s["sd"] == pytest.approx(np.sqrt(np.sum(np.square(parts))))
+    wide = adapted_scale("none", 1.0004, {**edges, "look": {"delta_sd": 5e-4, "psf_sigma_px": 2.5}}, cal)
+    assert wide["sd"] == pytest.approx(np.sqrt(np.sum(np.square(parts[:3] + [EDGE_LOOK_SD_WIDE]))))
     assert adapted_scale("norm_heads", 1.0004, edges, cal)["value"] == 0.9970
     no_fit = {"sequence": {"delta": None, "delta_se": None}, "outline_radius_px": None}
     assert adapted_scale("none", 1.0, no_fit, cal) == {"value": 0.9970, "se": 3e-4, "sd": pytest.approx(
