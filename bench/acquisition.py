@@ -88,7 +88,7 @@ def run_trial(trial: dict) -> dict:
     """One cold start (a runner task): the truth with the trial's range, axis and attitude (None and the keep-out's
     message when it is refused), the closed loop's run task on it, scored per frame (scoring.run_record)."""
     from envisat_pose.config import ConfigError
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
     from envisat_pose.pipelines import closed_loop as loop
     from envisat_pose.pipelines.run_config import run_config_from_json
     from envisat_pose.pipelines.scoring import frame_errors, run_record
@@ -100,7 +100,7 @@ def run_trial(trial: dict) -> dict:
     out = {k: v for k, v in trial.items() if k != "cfg_json"}
     t0 = time.perf_counter()
     try:
-        truth = simulate(truth_cfg)
+        truth = simulate_truth(truth_cfg)
     except ConfigError as err:
         return out | {"refused": str(err), "error": None}
     with tempfile.TemporaryDirectory(prefix="acquisition-") as tmp:

@@ -33,11 +33,11 @@ REPEATS = 3
 
 def _setup(n_steps: int, n_runs: int):
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
     from envisat_pose.filtering.estimator import FilterConfig, chaser_states
     from envisat_pose.filtering.montecarlo import MeasurementConfig, inputs_from_truth
 
-    tr = simulate(scenario_config("default", duration_s=float(n_steps), seed=0))
+    tr = simulate_truth(scenario_config("default", duration_s=float(n_steps), seed=0))
     cfg = FilterConfig(gate_prob=0.0)
     inp = inputs_from_truth(tr, MeasurementConfig(), cfg.P0, seed=1, n_runs=n_runs)
     chaser = chaser_states(tr.chaser_r_m, tr.chaser_rdot_m_s, tr.chaser_theta_rad, tr.chaser_thetadot_rad_s)

@@ -28,7 +28,7 @@ def initial_state(cfg: ScenarioConfig, rng: np.random.Generator) -> np.ndarray:
     return np.concatenate([cfg.relative.rho0_C_m, cfg.relative.rhodot0_C_m_s, p0, w_r0_T])
 
 
-def simulate(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajectory:
+def simulate_truth(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajectory:
     """Simulate the scenario with MuJoCo (RK4, relative gravity in the C plugin) and sample it every dt_s."""
     rng = np.random.default_rng(np.random.SeedSequence(cfg.seed))
     sim = TruthSim(cfg)

@@ -130,14 +130,14 @@ def sequence_frames(cfg_json: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     eclipse (N,) bool, nadir_C (N, 3) with chaser_r_m folded in as its norm)."""
     from envisat_pose.datagen.orbit import chaser_orbit
     from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
     cfg = config_from_json(cfg_json)
     n = cfg.num_images
     seq = cfg.sequence
     scen = scenario_config(seq.scenario, duration_s=max(n - 1, 1) * seq.frame_dt_s, dt_s=seq.frame_dt_s, seed=cfg.seed,
                            target={"file": cfg.target})
-    traj = simulate(scen)
+    traj = simulate_truth(scen)
     t_s, x = traj.t_s[:n], traj.x[:n]
     orb = chaser_orbit(scen.orbit, t_s)
     rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(2**32 - 1,)))

@@ -74,9 +74,9 @@ def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, pr
     path = os.path.join(out_dir, "truth.npz")
     if manifest and os.path.exists(path) and sha256_file(path) == manifest.get("truth_sha256"):
         return manifest["truth_sha256"]
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
-    simulate(truth_scenario(cfg), progress=progress).save(path)
+    simulate_truth(truth_scenario(cfg), progress=progress).save(path)
     return sha256_file(path)
 
 

@@ -1,7 +1,7 @@
 """The closed loop of `envisat run`: MuJoCo truth -> rendered camera frames -> the space camera -> the Tracker.
 
 Per run and frame k (t_k = k / rate_hz):
-1. the truth at t_k is the MuJoCo truth simulation of `envisat simulate` (datagen.truth.simulate, run once before
+1. the truth at t_k is the MuJoCo truth simulation of `envisat simulate` (datagen.truth.simulate_truth, run once before
    the loops: it refuses a trajectory that breaks the keep-out margin before any image is made);
 2. in the Earth's shadow (the chaser's own orbit and the sun direction) there is no frame: the tracker predicts;
 3. MuJoCo renders the chaser camera (datagen's SceneRenderer, the factory's sequence-mode view and look), and
@@ -50,13 +50,13 @@ from envisat_pose.state import MRP, POS
 # The truth
 
 
-def simulate_truth(cfg: RunConfig, progress: bool = False):
-    """The MuJoCo truth of the run on the frame grid (datagen.truth.simulate, as `envisat simulate`)."""
+def run_truth(cfg: RunConfig, progress: bool = False):
+    """The MuJoCo truth of the run on the frame grid (datagen.truth.simulate_truth, as `envisat simulate`)."""
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
     scen = scenario_config(cfg.scenario, duration_s=cfg.duration_s, dt_s=1.0 / cfg.rate_hz, seed=cfg.seed)
-    return simulate(scen, progress=progress)
+    return simulate_truth(scen, progress=progress)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -205,7 +205,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
 
     paths = run_output_paths(out_dir)
     wall0 = time.perf_counter()
-    truth = simulate_truth(cfg, progress=False)
+    truth = run_truth(cfg, progress=False)
     sim_s = time.perf_counter() - wall0
     truth.save(paths["truth"])
     truth = TruthBrief(truth.t_s, truth.x, truth.config)  # the rest of the truth is in truth.npz, not held

@@ -3,7 +3,7 @@ est.npz (the Estimates contract) with its config next to it.
 
 The truth comes from a truth file (written by `envisat simulate`, read as the core's TruthTrajectory contract
 without importing the simulator) or is simulated for a named scenario by the MuJoCo truth simulator
-(datagen.truth.simulate). Measurements are synthesized from the truth's own arrays (MuJoCo's corner sites and
+(datagen.truth.simulate_truth). Measurements are synthesized from the truth's own arrays (MuJoCo's corner sites and
 their projection through MuJoCo's camera), never from the filter's model; the filter's model takes the truth's
 mu and gravity-gradient switch from its config (pipelines/onboard.py, `onboard_physics`). A named scenario with
 an [eclipse] table adds the Earth's-shadow outages along its truth (`eclipse_outages`, `with_outages`; the campaigns use them too).
@@ -90,7 +90,7 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
         onboard_physics(truth, truth_path)  # its config must name the physics the filter needs
         return truth, {"truth_file": truth_path}
     from envisat_pose.datagen.scenario import scenario_config, scenario_dict
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
     overrides: dict = {"seed": cfg.seed}
     if duration_s is not None:
@@ -99,7 +99,7 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
         overrides["dt_s"] = 1.0 / cfg.measurement.rate_hz
     scenario_dict(scenario)  # unknown names fail here with the list of known ones
     scfg = scenario_config(scenario, **overrides)
-    return simulate(scfg, progress=progress), {"scenario": scenario}
+    return simulate_truth(scfg, progress=progress), {"scenario": scenario}
 
 
 def scenario_outages(cfg: EstimateConfig, scenario: str | None, truth) -> EstimateConfig:

@@ -20,11 +20,11 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
     "rrd": rrd}.
     """
     from envisat_pose.config import to_dict, to_toml
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
     from envisat_pose.io import atomic_write_text
 
     out, cfg_path, png = output_paths(out)
-    traj = simulate(cfg, progress=progress)
+    traj = simulate_truth(cfg, progress=progress)
     traj.save(out)
     atomic_write_text(cfg_path, "# envisat simulate: the full validated config of this run\n" + to_toml(to_dict(cfg)))
     if plot:

@@ -72,18 +72,18 @@ def pytest_collection_modifyitems(config, items):
 def truth_600():
     """The default scenario (50 m V-bar hold, 134.74 s tumble), 600 s at 1 s, simulated by MuJoCo."""
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
-    return simulate(scenario_config("default", duration_s=600.0, seed=0))
+    return simulate_truth(scenario_config("default", duration_s=600.0, seed=0))
 
 
 @pytest.fixture(scope="session")
 def truth_1800():
     """The default scenario over its full 1800 s (MuJoCo), another random initial attitude."""
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
-    return simulate(scenario_config("default", duration_s=1800.0, seed=1))
+    return simulate_truth(scenario_config("default", duration_s=1800.0, seed=1))
 
 
 @pytest.fixture(scope="session")

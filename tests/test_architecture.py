@@ -207,7 +207,7 @@ VERB_PROTOCOL = ("register", "resolve_config")
 # fit_cov_scale) is imported by pipelines/adapt.py (issue 49), the other fit_scale (the range scale) is
 # edge_range.py's (issue 49); module:simulate is datagen/truth.py's function `simulate` (issue 48: to be named for
 # what it returns, the truth) beside the modules app/simulate.py and pipelines/simulate.py.
-PENDING_COLLISIONS = {"fit_scale", "module:simulate"}
+PENDING_COLLISIONS = {"fit_scale"}
 
 
 def public_names(root: str = ROOT) -> dict[str, list[str]]:

@@ -22,9 +22,9 @@ def seconds(durations):
 @pytest.fixture(scope="module")
 def short_truth():
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
-    return simulate(scenario_config("default", duration_s=40.0, seed=3))
+    return simulate_truth(scenario_config("default", duration_s=40.0, seed=3))
 
 
 def test_target_parts_from_the_mjcf():

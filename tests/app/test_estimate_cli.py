@@ -43,9 +43,9 @@ def test_scenario_run_writes_the_contract_and_is_deterministic(tmp_path, capsys)
 
 def test_truth_file_and_rate(tmp_path):
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
-    tr = simulate(scenario_config("default", duration_s=200.0, seed=3))
+    tr = simulate_truth(scenario_config("default", duration_s=200.0, seed=3))
     tr.save(str(tmp_path / "run.npz"))
     out = tmp_path / "est.npz"
     assert main(["estimate", "--truth", str(tmp_path / "run.npz"), "--rate-hz", "0.5", "--runs", "2",
@@ -108,10 +108,10 @@ def test_config_file_unknown_key_is_a_one_line_error(tmp_path, capsys):
 def truth_file(tmp_path_factory):
     """A 60 s MuJoCo truth of the default scenario, saved as run.npz."""
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
     path = tmp_path_factory.mktemp("truth") / "run.npz"
-    simulate(scenario_config("default", duration_s=60.0, seed=2)).save(str(path))
+    simulate_truth(scenario_config("default", duration_s=60.0, seed=2)).save(str(path))
     return path
 
 
@@ -169,11 +169,11 @@ def test_the_filter_takes_mu_from_the_truth(tmp_path):
     """A truth on a world with mu 20 % larger (still a valid orbit): the estimate uses the truth's mu and stays
     consistent (a filter with the Earth's mu would diverge in every run, mean NEES ~4e4)."""
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
     from envisat_pose.filtering.estimator import nees
 
     mu = 1.2 * 3.986004418e14
-    tr = simulate(scenario_config("default", duration_s=300.0, seed=3, orbit={"mu_m3_s2": mu}))
+    tr = simulate_truth(scenario_config("default", duration_s=300.0, seed=3, orbit={"mu_m3_s2": mu}))
     tr.save(str(tmp_path / "run.npz"))
     out = tmp_path / "est.npz"
     assert main(["estimate", "--truth", str(tmp_path / "run.npz"), "--runs", "20", "--seed", "1", "--quiet",

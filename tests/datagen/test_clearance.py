@@ -20,7 +20,7 @@ from envisat_pose.config import ConfigError, from_dict
 from envisat_pose.datagen.clearance import clearance_m, project_target_boxes
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.datagen.scenario import scenario_config
-from envisat_pose.datagen.truth import simulate
+from envisat_pose.datagen.truth import simulate_truth
 from envisat_pose.datagen.views import R_K_FROM_C, sample_random_view
 from envisat_pose.geometry import model_path
 from envisat_pose.named_scenarios import names as scenario_names
@@ -113,7 +113,7 @@ def test_a_15m_hold_through_the_array_is_refused(surface_T, monkeypatch):
 
     cfg = scenario_config(seed=0, relative={"rho0_C_m": [0.0, 15.0, 0.0]})
     with pytest.raises(ConfigError) as err:
-        simulate(cfg)
+        simulate_truth(cfg)
     text = str(err.value)
     assert err.value.field == "relative.rho0_C_m" and err.value.value == [0.0, 15.0, 0.0]
     assert "keepout_margin_m = 2 m" in text and "from geom 'array'" in text
@@ -121,7 +121,7 @@ def test_a_15m_hold_through_the_array_is_refused(surface_T, monkeypatch):
     dist_m = float(text.split("the chaser is ")[1].split(" m")[0])
     # independent: the same truth without the check; the chaser in T against the sampled surface
     monkeypatch.setattr(truth, "check_clearance", lambda *args: None)
-    tr = simulate(cfg)
+    tr = simulate_truth(cfg)
     k = int(np.flatnonzero(tr.t_s == t_s)[0])
     c_T = -mrp_to_dcm(tr.x[:, 6:9]) @ tr.x[:, 0:3, None]
     d_ref = cKDTree(surface_T).query(c_T[:, :, 0])[0]
@@ -135,7 +135,7 @@ def test_close_25m_keeps_clear_for_many_seeds(surface_T):
     reach_m = np.linalg.norm(surface_T, axis=1).max()
     tree = cKDTree(surface_T)
     for seed in range(6):
-        tr = simulate(scenario_config("close-25m", seed=seed))
+        tr = simulate_truth(scenario_config("close-25m", seed=seed))
         assert abs(tr.x[0, 1] - 25.0) < 1e-12
         # attitude-free: the chaser stays beyond the array's reach plus the margin
         assert np.linalg.norm(tr.x[:, 0:3], axis=1).min() - reach_m > 2.0

@@ -273,14 +273,14 @@ def test_label_replays_the_sample(reference):
 
 def test_sequence_mode_follows_the_truth(tmp_path):
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
     cfg = from_dict(GenerateConfig, {"mode": "sequence", "num_images": 4, "shard_size": 3, "resolution_px": 128,
                                      "seed": 2, "sequence": {"frame_dt_s": 5.0}})
     manifest = run_generate(cfg, str(tmp_path / "seq"))
     labels = [json.loads(m["json"]) for e in manifest["shards"]
               for _, m in read_shard(os.path.join(tmp_path / "seq", e["name"]))]
-    truth = simulate(scenario_config("default", duration_s=15.0, dt_s=5.0, seed=2))
+    truth = simulate_truth(scenario_config("default", duration_s=15.0, dt_s=5.0, seed=2))
     assert [lab["scene"]["t_s"] for lab in labels] == [0.0, 5.0, 10.0, 15.0]
     # independent paths to the same pixels: the truth projects MuJoCo's corner sites through its camera in the
     # inertial world at 1024 px; the label projects the render world's corners through K at 128 px

@@ -204,12 +204,12 @@ def test_truth_of_the_tests_target_follows_eulers_equations_and_the_orbits(targe
     are not the file's): attitude within 1e-6 rad and relative rates within 1e-9 rad/s of Euler's equations
     integrated by scipy with J_TEST, the relative position within 1e-5 m of two inertial two-body orbits."""
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
     plain, _ = target_files
     cfg = scenario_config(duration_s=1800.0, dt_s=10.0, seed=4, target={"file": plain, "spin_period_s": 60.0},
                           relative={"rho0_C_m": [0.5, 8.0, -0.3], "rhodot0_C_m_s": [0.001, 0.0, -0.002]})
-    traj = simulate(cfg)
+    traj = simulate_truth(cfg)
     o = cfg.orbit
     t = traj.t_s
     r_c0, v_c0 = _elements_to_rv(o.a_m, o.e, o.i_deg, o.raan_deg, o.argp_deg, o.nu0_deg)

@@ -13,7 +13,7 @@ from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
 from envisat_pose.datagen.scenario import scenario_config
-from envisat_pose.datagen.truth import simulate
+from envisat_pose.datagen.truth import simulate_truth
 
 MU = 3.986004418e14
 J_T = np.array([[17023.3, 397.1, -2171.4], [397.1, 124825.7, 344.2], [-2171.4, 344.2, 129112.2]])
@@ -72,7 +72,7 @@ def orbit_run():
         duration_s=6006.0, dt_s=6.0, seed=3,
         relative={"rho0_C_m": [3.0, 50.0, -2.0], "rhodot0_C_m_s": [0.01, -0.02, 0.005]},
     )
-    return cfg, simulate(cfg)
+    return cfg, simulate_truth(cfg)
 
 
 @pytest.fixture(scope="module")
@@ -161,8 +161,8 @@ def test_clohessy_wiltshire_limit_of_a_circular_chief():
     # the tumbling solar array (0.01 m/s would bring it to 12 m, through the array's sweep)
     v0 = np.array([0.005, -2 * n_circ * x0[0], 0.002])
     kw = dict(duration_s=6000.0, dt_s=10.0, relative={"rho0_C_m": list(x0), "rhodot0_C_m_s": list(v0)})
-    circ = simulate(scenario_config(orbit={"e": 0.0}, **kw))
-    ecc = simulate(scenario_config(**kw))
+    circ = simulate_truth(scenario_config(orbit={"e": 0.0}, **kw))
+    ecc = simulate_truth(scenario_config(**kw))
     cw = cw_solution(n_circ, circ.t_s, x0, v0)
     # at 50 m the linearisation error is millimetres (measured 6.0 mm); with e = 0.001 CW misses by decimetres
     # (33 cm here; the reference sheet quotes up to 1.4 m per orbit), so the nonlinear form is kept
@@ -173,7 +173,7 @@ def test_clohessy_wiltshire_limit_of_a_circular_chief():
 def test_gravity_gradient_torque_vs_independent_integration():
     """With the option on, the plugin's torque 3 mu / R^5 (R x J R) matches an independent rigid-body model."""
     cfg = scenario_config(duration_s=1500.0, dt_s=5.0, seed=5, target={"gravity_gradient": True})
-    traj = simulate(cfg)
+    traj = simulate_truth(cfg)
     o = cfg.orbit
     r_c0, v_c0 = elements_to_rv(o.a_m, o.e, o.i_deg, o.raan_deg, o.argp_deg, o.nu0_deg)
     R0, w0 = lvlh(r_c0, v_c0)
@@ -198,7 +198,7 @@ def test_gravity_gradient_torque_vs_independent_integration():
     R_N_C, _ = lvlh(r_c, v_c)
     gamma_ref = np.swapaxes(Rotation.from_quat(sol.y[6:10].T).as_matrix(), 1, 2) @ R_N_C
     err_gg = np.degrees(angle_between(mrp_to_passive(traj.x[:, 6:9]), gamma_ref)).max()
-    free = simulate(scenario_config(duration_s=1500.0, dt_s=5.0, seed=5))
+    free = simulate_truth(scenario_config(duration_s=1500.0, dt_s=5.0, seed=5))
     err_free = np.degrees(angle_between(mrp_to_passive(free.x[:, 6:9]), gamma_ref)).max()
     assert err_gg < 1e-5  # measured 2.4e-6 deg; without the torque the truth is off by 1.4 deg
     assert err_free > 100 * err_gg  # the torque matters, so the comparison can tell it apart
@@ -227,7 +227,7 @@ def test_truth_corners_and_visibility_against_independent_computations():
 
     g = load_geometry()
     half = g.half_sizes_m
-    traj = simulate(scenario_config(duration_s=400.0, dt_s=2.0, seed=8, relative={"rho0_C_m": [3.0, 30.0, -2.0]}))
+    traj = simulate_truth(scenario_config(duration_s=400.0, dt_s=2.0, seed=8, relative={"rho0_C_m": [3.0, 30.0, -2.0]}))
     seen = set()
     for k in range(0, len(traj.t_s), 5):
         rho, p = traj.x[k, 0:3], traj.x[k, 6:9]
@@ -243,7 +243,7 @@ def test_truth_corners_and_visibility_against_independent_computations():
 def test_truth_pixels_are_mujoco_sites_through_the_pinhole():
     """corners_px against an independent pinhole: f from the 30 deg field of view over 1024 px, the camera
     looking along +y_C with image right -z_C and image down -x_C (models/envisat.xml)."""
-    traj = simulate(scenario_config(duration_s=60.0, dt_s=3.0, seed=4))
+    traj = simulate_truth(scenario_config(duration_s=60.0, dt_s=3.0, seed=4))
     f = 512.0 / np.tan(np.radians(15.0))
     pts = traj.corners_C_m
     u = f * (-pts[..., 2]) / pts[..., 1] + 511.5

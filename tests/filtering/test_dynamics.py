@@ -181,9 +181,9 @@ def test_gravity_gradient_torque_equals_the_point_mass_sum():
 def test_gravity_gradient_model_follows_the_mujoco_truth_with_the_torque(chaser_of):
     """The MuJoCo plugin's torque (truth) and the filter's model: 600 s of RK4 at 1 s agree; torque-free does not."""
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
-    tr = simulate(scenario_config("gravity-gradient", duration_s=600.0, seed=5))
+    tr = simulate_truth(scenario_config("gravity-gradient", duration_s=600.0, seed=5))
     c = chaser_of(tr)
     err = {}
     for gg in (False, True):

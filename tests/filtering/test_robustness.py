@@ -109,9 +109,9 @@ def test_adaptive_r_learns_a_wrong_noise_level(truth_600, chaser_of):
 def test_adaptive_q_absorbs_an_unmodelled_torque(chaser_of):
     """Truth with the gravity-gradient torque, filter torque-free with a tiny Q: adaptive Q keeps it consistent."""
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
-    tr = simulate(scenario_config("gravity-gradient", duration_s=900.0, seed=2))
+    tr = simulate_truth(scenario_config("gravity-gradient", duration_s=900.0, seed=2))
     inp = inputs_from_truth(tr, MeasurementConfig(), FilterConfig().P0, seed=8, n_runs=10)
     late = tr.t_s >= 300.0
     out = {}
@@ -167,10 +167,10 @@ def test_gravity_gradient_in_the_model_keeps_the_filter_consistent(chaser_of):
     """Truth with the gravity-gradient torque (MuJoCo plugin), 50 runs over 600 s: the torque-free model with the
     default tiny Q diverges in every run; with the torque in the model the runs stay consistent (NEES near 12)."""
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
     from envisat_pose.filtering.estimator import diverged_against_truth
 
-    tr = simulate(scenario_config("gravity-gradient", duration_s=600.0, seed=2))
+    tr = simulate_truth(scenario_config("gravity-gradient", duration_s=600.0, seed=2))
     cfg = FilterConfig()
     inp = inputs_from_truth(tr, MeasurementConfig(), cfg.P0, seed=8, n_runs=50)
     out = {}

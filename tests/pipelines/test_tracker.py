@@ -606,9 +606,9 @@ def test_a_confidently_wrong_appearance_cannot_decide_the_half_turn_alone():
     confident look (TrackerConfig.bank.appearance_max_log) the tracker waits for the dynamics and claims only the
     truth's attitude."""
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.datagen.truth import simulate
+    from envisat_pose.datagen.truth import simulate_truth
 
-    truth = simulate(scenario_config("slow-tumble", duration_s=150.0, seed=0))
+    truth = simulate_truth(scenario_config("slow-tumble", duration_s=150.0, seed=0))
 
     def claims(cfg):
         ests = run_tracker(truth, NoisyTruthDetector(truth, p_alt=0.99, seed=2), range(0, 150), cfg)
