@@ -355,6 +355,15 @@ class SceneRenderer:
             self.mask_lut[m.geom(name).id + 1] = value
         self.znear_m = float(m.vis.map.znear * m.stat.extent)
         self.zfar_m = float(m.vis.map.zfar * m.stat.extent)
+        self._open_gl()
+        mujoco.mj_forward(m, self.data)  # the camera's mount: fixed on the chaser at the origin of C
+        self._R_K_from_C = self.camera_pose()[0]
+        self._frame_rays_K = pixel_rays_K(self.resolution_px, self.K, 8).reshape(-1, 3)  # where the image is, for earth_drawn
+        self._upload_textures()
+
+    def _open_gl(self) -> None:
+        """The GL context, its two render contexts, the scene, the fixed camera and the read-back buffer."""
+        m = self.model
         n = self.resolution_px
         self._gl = _gl_context_class()(n, n)
         self._gl.make_current()
@@ -376,10 +385,6 @@ class SceneRenderer:
         self._cam.fixedcamid = self.cam_id
         self._rect = mujoco.MjrRect(0, 0, n, n)
         self._rgb = np.empty((n, n, 3), dtype=np.uint8)
-        mujoco.mj_forward(m, self.data)  # the camera's mount: fixed on the chaser at the origin of C
-        self._R_K_from_C = self.camera_pose()[0]
-        self._frame_rays_K = pixel_rays_K(n, self.K, 8).reshape(-1, 3)  # where the image is, for earth_drawn
-        self._upload_textures()
 
     def _upload_textures(self) -> None:
         """Write the procedural textures (appearance.class_texture) into tex_data and send them to both GL

@@ -865,10 +865,7 @@ def test_the_verb_length_checker_sees_a_thick_verb(tmp_path):
 FUNCTION_MAX_LINES = 80  # issue 50: a function's steps get names; a longer one is several jobs in one body
 # Functions over the limit that other engineers hold now: {"path:qualified name": why}. An entry must still be
 # over the limit (test_pending_long_functions_are_still_long), so it is deleted with the split.
-PENDING_LONG_FUNCTIONS = {
-    # issue 48 is editing datagen/ (render.py among its files): the renderer's set-up to be split there
-    os.path.join("datagen", "render.py") + ":SceneRenderer.__init__": "issue 48 (datagen/)",
-}
+PENDING_LONG_FUNCTIONS: dict[str, str] = {}
 
 
 def is_numba_kernel(node: ast.AST) -> bool:
