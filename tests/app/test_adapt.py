@@ -328,3 +328,23 @@ def test_a_scale_within_its_own_uncertainty_of_the_tracks_is_not_adopted():
     line = no_evidence(scale, 1.0004)
     assert line is not None and "\n" not in line and "0.99440" in line and "1.00040" in line
     assert no_evidence({**scale, "sd": abs(0.9944 - 1.0004) / (1.1 * MOVE_Z)}, 1.0004) is None
+
+
+def test_the_look_term_is_the_largest_swing_over_the_open_responses(monkeypatch):
+    """look_record reads the sequence's delta under every alternative response frames_look leaves open and keeps
+    the largest difference from the delta applied; an alternative under which nothing is measured makes the
+    term infinite (the cue is not held); a given response (no alternatives) adds nothing."""
+    import envisat_pose.pipelines.adapt as adapt_module
+    from envisat_pose.camera_response import SRGB, Response
+
+    readings = {"gamma 1.2": 0.001, "gamma 2.4": -0.004, "linear": None}
+    monkeypatch.setattr(adapt_module, "edge_corrected", lambda x, im, cam, mode, n, r, b: (
+        x, {"sequence": {"delta": readings[r.name()]}}))
+    look = {"response": SRGB, "psf_sigma_px": 1.0, "given": {}, "estimate": {},
+            "alternatives": [Response("gamma", 1.2), Response("gamma", 2.4)]}
+    edges = {"sequence": {"delta": 0.002}}
+    assert adapt_module.look_record(look, None, [], None, edges, 5)["delta_sd"] == pytest.approx(0.006)
+    from envisat_pose.camera_response import LINEAR
+    assert adapt_module.look_record({**look, "alternatives": [LINEAR]}, None, [], None, edges, 5)["delta_sd"] \
+        == float("inf")
+    assert adapt_module.look_record({**look, "alternatives": []}, None, [], None, edges, 5)["delta_sd"] == 0.0
