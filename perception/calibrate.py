@@ -20,7 +20,7 @@ def nees_px(err_px: np.ndarray, cov_px: np.ndarray) -> np.ndarray:
     return np.einsum("ni,ni->n", err, np.linalg.solve(np.asarray(cov_px, dtype=np.float64), err[..., None])[..., 0])
 
 
-def fit_scale(err_px: np.ndarray, cov_px: np.ndarray) -> float:
+def fit_cov_scale(err_px: np.ndarray, cov_px: np.ndarray) -> float:
     """The scalar s with mean(e^T (s C)^-1 e) = 2 (the chi-square-2 mean)."""
     v = nees_px(err_px, cov_px)
     if len(v) == 0:

@@ -16,7 +16,7 @@ The steps (one round; `rounds` repeats 2-5 from the last track):
    losses (perception/data.make_sample, perception/train's step): the normalization layers and the heads
    (`params='norm_heads'`), the whole network (`params='all'`), or nothing (`params='none'`, the default: the
    original network, recalibrated in step 5 only; docs/design.md has the figures behind that default);
-5. recalibrate on the pseudo-labels: the covariance scale on their residuals (perception/calibrate.fit_scale, the
+5. recalibrate on the pseudo-labels: the covariance scale on their residuals (perception/calibrate.fit_cov_scale, the
    network's own covariances, the labels' region of interest, as `envisat calibrate`) and, when the labels' range
    was corrected by the edges, the detector's apparent scale on this look (the error model's bias_scale, which
    the tracker undoes in every frame: `tracker.noise.correct_scale`; `adapted_scale`), its sd (the fit's, the
@@ -412,14 +412,14 @@ def adapted_scale(params: str, applied: float, edges: dict, cal: dict) -> dict |
 
 
 def recalibrate(weights: str, images: list[np.ndarray], labels: list[dict], bar=None) -> dict:
-    """The covariance scale of `weights` refitted on the pseudo-labels' residuals (perception/calibrate.fit_scale
+    """The covariance scale of `weights` refitted on the pseudo-labels' residuals (perception/calibrate.fit_cov_scale
     over the correctly named corners, the network's own covariances, the labels' region of interest: what
     `envisat calibrate --roi labels` fits), and the detector's apparent scale against the labels (each frame's
     least-squares scale of its right corners about their centroid, perception/errormodel.apparent_scale: the
     quantity the error model's bias_scale holds). {scale, corners, mean_nees_before (at the file's scale),
     apparent_scale, apparent_scale_se, apparent_scale_frames}; scale None when fewer than 20 corners matched,
     apparent_scale None below SCALE_MIN_FRAMES frames with one."""
-    from envisat_pose.perception.calibrate import fit_scale, nees_px
+    from envisat_pose.perception.calibrate import fit_cov_scale, nees_px
     from envisat_pose.perception.data import decode_label
     from envisat_pose.perception.detect import DetectConfig, load_detector, weights_cov_scale
     from envisat_pose.perception.errormodel import SCALE_MIN_FRAMES, mean_se
@@ -437,7 +437,7 @@ def recalibrate(weights: str, images: list[np.ndarray], labels: list[dict], bar=
     if len(err) < 20:
         return {"scale": None, "corners": int(len(err)), "mean_nees_before": None, **scale}
     old = weights_cov_scale(weights)
-    return {"scale": fit_scale(err, cov), "corners": int(len(err)),
+    return {"scale": fit_cov_scale(err, cov), "corners": int(len(err)),
             "mean_nees_before": float(np.mean(nees_px(err, cov * old))), **scale}
 
 

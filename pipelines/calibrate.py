@@ -171,7 +171,7 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
 
     from envisat_pose.out_dirs import check_out_file, make_out_file_dir
     from envisat_pose.perception import errormodel as em
-    from envisat_pose.perception.calibrate import calibration_by_group, fit_floor, fit_scale
+    from envisat_pose.perception.calibrate import calibration_by_group, fit_cov_scale, fit_floor
     from envisat_pose.perception.detect import DetectConfig, load_detector
     from envisat_pose.perception.weights import with_metadata
     from envisat_pose.pipelines.detect import camera_samples
@@ -209,7 +209,7 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
                                          "refine_cov_calibration": json.dumps(record, sort_keys=True)})
         return {"refine": True, "corners": int(len(err)), "before": before, "after": after, "floor": floor,
                 "record": record, "skipped": skipped}
-    scale = fit_scale(err, cov)
+    scale = fit_cov_scale(err, cov)
     before = calibration_by_group(err, cov, groups)
     after = calibration_by_group(err, cov * scale, groups)
     meta, record = {}, None

@@ -203,11 +203,7 @@ def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 VERB_PROTOCOL = ("register", "resolve_config")
 # Collisions that are still to be renamed (issue 50, item 4). An entry must still collide:
 # `test_pending_collisions_are_still_there` fails once it is gone, so the entry is deleted with the rename.
-# Both are left for the engineers who hold the files now: fit_scale (perception.calibrate's covariance scale, to be
-# fit_cov_scale) is imported by pipelines/adapt.py (issue 49), the other fit_scale (the range scale) is
-# edge_range.py's (issue 49); module:simulate is datagen/truth.py's function `simulate` (issue 48: to be named for
-# what it returns, the truth) beside the modules app/simulate.py and pipelines/simulate.py.
-PENDING_COLLISIONS = {"fit_scale"}
+PENDING_COLLISIONS: set[str] = set()
 
 
 def public_names(root: str = ROOT) -> dict[str, list[str]]:

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from envisat_pose.perception.calibrate import calibration_by_group, fit_scale, nees_px
+from envisat_pose.perception.calibrate import calibration_by_group, fit_cov_scale, nees_px
 
 
 def _samples(rng, n):
@@ -19,7 +19,7 @@ def test_honest_covariance_has_mean_two():
 
 def test_fit_scale_recovers_a_misscaled_covariance():
     err, cov = _samples(np.random.default_rng(1), 20000)
-    s = fit_scale(err, cov / 3.0)  # the network claims 3x too little variance
+    s = fit_cov_scale(err, cov / 3.0)  # the network claims 3x too little variance
     assert abs(s - 3.0) < 0.15
     assert abs(np.mean(nees_px(err, s * cov / 3.0)) - 2.0) < 1e-9
 

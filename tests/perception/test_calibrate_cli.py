@@ -40,14 +40,14 @@ class NoisyLabelDetector:
 
 
 def test_collect_errors_finds_the_true_scale(tiny_dataset):
-    from envisat_pose.perception.calibrate import fit_scale
+    from envisat_pose.perception.calibrate import fit_cov_scale
 
     det = NoisyLabelDetector(0)
     samples = list(camera_samples(shard_paths(tiny_dataset))) * 40
     det.labels = {i: s[2] for i, s in enumerate(samples)}
     err, cov, groups = collect_errors(det, samples)
     assert len(err) > 500 and len(groups) == len(err)
-    assert abs(fit_scale(err, cov) - 9.0) < 0.1 * 9.0
+    assert abs(fit_cov_scale(err, cov) - 9.0) < 0.1 * 9.0
     assert np.all(np.abs(err) < 5.0)
 
 
