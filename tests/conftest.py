@@ -69,6 +69,14 @@ SLOW = (
     "tests/pipelines/test_jobs.py::test_montecarlo_verb_and_library_agree",  # 8 s
     "tests/perception/test_train_path.py::test_a_plain_script_without_a_main_guard_trains_with_workers",  # 8 s
     "tests/perception/test_naming.py::test_line_cues_help_with_many_spurious_junctions",  # 8 s
+    # with those moved the lane took 5:01 (780 tests, warm): seven more
+    "tests/pipelines/test_tracker.py::test_a_lost_track_is_detected_and_recovered",  # 6 s
+    "tests/pipelines/test_tracker.py::test_a_burst_beyond_the_detectors_own_covariance_is_gated_with_gate_raw",  # 6 s
+    "tests/pipelines/test_pseudo_labels.py::test_the_smoother_does_not_reach_across_a_lost_frame",  # 7 s
+    "tests/datagen/test_truth_physics.py::test_clohessy_wiltshire_limit_of_a_circular_chief",  # 7 s
+    "tests/pipelines/test_edge_range.py::test_unmeasurable_frames_give_no_delta",  # 7 s
+    "tests/perception/test_schedule.py::test_a_budget_that_ends_before_the_cooldown_still_leaves_the_next_legs_start",
+    "tests/pipelines/test_jobs.py::test_the_plain_constructor_and_from_scenario_give_the_same_estimates",  # 6 s
 )
 
 
