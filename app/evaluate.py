@@ -39,6 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run_evaluate_cli(args: argparse.Namespace) -> int:
     from envisat_pose.app.detect import detector_inputs
+    from envisat_pose.datagen.target_model import require_envisat_dataset
     from envisat_pose.out_dirs import check_out_file
     from envisat_pose.pipelines.dataset_inputs import skip_hint, skipped_line
     from envisat_pose.pipelines.detect import camera_samples, read_roi
@@ -47,6 +48,7 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
 
     detector_inputs(args)
     check_out_file(args.json, "--json")
+    require_envisat_dataset(args.data, "--data", "evaluate")
     with skip_hint():
         paths, skipped = checked_shards(args.data, args.skip_damaged, "--data")
     roi = read_roi(args.roi) if args.roi else ("labels" if args.roi_labels else None)

@@ -142,12 +142,14 @@ def data_shards(data: list[str], skip_damaged: bool, field: str = "data") -> tup
     """Each folder's shard files, checked against its manifest (shard_reader.checked_shards), and the damaged ones
     left out as 'folder/shard' (skip_damaged; else a damaged shard is one InputError). A sequence with a shard
     left out is refused: its frame-to-frame error model needs consecutive frames."""
+    from envisat_pose.datagen.target_model import require_envisat_dataset
     from envisat_pose.shard_reader import checked_shards
 
     paths, skipped = {}, []
     for d in data:
         if d in paths:
             continue
+        require_envisat_dataset(d, field, "calibrate")
         paths[d], left_out = checked_shards(d, skip_damaged, field)
         if left_out and is_sequence(d):
             raise InputError(f"{field} {d!r}: a sequence with damaged shard(s) {', '.join(left_out)}: left out, its "

@@ -351,7 +351,8 @@ def test_a_shipped_target_matches_its_note_and_generates(name, mass_kg, inertia,
 
 
 def test_the_detector_verbs_refuse_another_target_in_one_line(target_files, tmp_path, capsys):
-    """detect, train, track and adapt on a dataset of the test's target, run with it as its image target: exit 2,
+    """detect, train, track, adapt, calibrate and evaluate on a dataset of the test's target, run with it as its
+    image target: exit 2,
     one line naming the field and ENVISAT, nothing written."""
     plain, _ = target_files
     data = tmp_path / "seq"
@@ -364,7 +365,9 @@ def test_the_detector_verbs_refuse_another_target_in_one_line(target_files, tmp_
                         (["train", "--data", str(data), "--out", str(out)], "data"),
                         (["track", "--images", str(data), "--out", str(out)], "src"),
                         (["adapt", "--images", str(data), "--out", str(out)], "src"),
-                        (["run", "--config", str(run_config), "--duration-s", "5", "--out", str(out)], "image.target")]:
+                        (["run", "--config", str(run_config), "--duration-s", "5", "--out", str(out)], "image.target"),
+                        (["calibrate", "--data", str(data), "--out", str(out / "w.safetensors")], "data"),
+                        (["evaluate", "--data", str(data), "--json", str(out / "eval.json")], "data")]:
         capsys.readouterr()
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
