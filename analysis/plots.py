@@ -8,8 +8,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from envisat_pose.attitude import align_mrp, mrp_shadow
 from envisat_pose.io import atomic_path  # noqa: E402
-from envisat_pose.state import MRP, N_STATE, RATE  # noqa: E402
+from envisat_pose.state import MRP, N_STATE, RATE, error_magnitudes  # noqa: E402
 
 STATE_LABELS = (
     ("rho_x [m]", "rho_y [m]", "rho_z [m]"),
@@ -54,7 +55,6 @@ def plot_states(t_s: np.ndarray, x: np.ndarray, path: str, title: str = "", visi
 
 def estimate_errors(x_true: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
     """Errors x_hat - x_true (R, T, 12); the MRP error compares both on the truth's set (|p| <= 1 near it)."""
-    from envisat_pose.attitude import align_mrp, mrp_shadow
 
     err = x_hat - x_true
     p_true = mrp_shadow(x_true[..., MRP])
@@ -69,7 +69,6 @@ def plot_estimate(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.
 
     t_s (T,), x_true / x_hat (R, T, 12), P (R, T, 12, 12). Velocities in mm/s, angular rates in deg/s.
     """
-    from envisat_pose.state import error_magnitudes
 
     err = estimate_errors(x_true, x_hat)
     magnitudes = error_magnitudes(x_true, x_hat)

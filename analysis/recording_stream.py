@@ -9,7 +9,7 @@ import numpy as np
 import rerun as rr
 
 from envisat_pose.attitude import mrp_to_dcm, mrp_to_quat
-from envisat_pose.geometry import PinholeCamera, load_geometry
+from envisat_pose.geometry import PinholeCamera, load_geometry, project_K
 from envisat_pose.io import atomic_path
 from envisat_pose.state import MRP, POS
 from envisat_pose.status import HAS_ESTIMATE, LOST, legend_json
@@ -37,7 +37,6 @@ from .stats import component_errors, display_transform
 
 def project_state_px(x: np.ndarray, camera: PinholeCamera) -> np.ndarray:
     """The corners A-H (8, 2) px (OpenCV) of a state (12,) through the camera (core geometry only)."""
-    from envisat_pose.geometry import project_K
 
     corners_C = x[POS] + load_geometry().corners_T_m @ mrp_to_dcm(x[MRP])  # rho + Gamma^T v
     return project_K((corners_C - camera.pos_C_m) @ camera.R_K_from_C.T, camera)

@@ -6,10 +6,13 @@ from __future__ import annotations
 
 import argparse
 
+from envisat_pose.app.common import add_common, add_frame_inputs
+from envisat_pose.config import InputError
+from envisat_pose.out_dirs import check_out_dir
+from envisat_pose.pipelines.frames import open_source
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from envisat_pose.app.common import add_common, add_frame_inputs
-
     p = sub.add_parser(
         "adapt",
         help="adapt the detector to your own frames, with no labels: track, pseudo-label, fine-tune, track again",
@@ -43,10 +46,7 @@ FLAGS = {"src": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps"
 def adapt_cli(args: argparse.Namespace) -> int:
     import sys
 
-    from envisat_pose.config import InputError
-    from envisat_pose.out_dirs import check_out_dir
     from envisat_pose.pipelines.adapt import AdaptConfig, adapt
-    from envisat_pose.pipelines.frames import open_source
     from envisat_pose.pipelines.track import TrackConfig
 
     if args.fine_tune in (None, "none") and (args.steps is not None or args.lr is not None):

@@ -24,7 +24,10 @@ from __future__ import annotations
 import argparse
 
 from envisat_pose.app.common import add_common
-from envisat_pose.config import InputError
+from envisat_pose.app.detect import detector_inputs
+from envisat_pose.config import InputError, resolve_job_config
+from envisat_pose.out_dirs import check_out_file
+from envisat_pose.pipelines.calibrate import CalibrateJobConfig, fit_face_cue, run_calibration
 from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 
 
@@ -73,8 +76,6 @@ def _print_groups(before: dict, after: dict) -> None:
 
 def resolve_config(args: argparse.Namespace):
     """The job's config from the flags (after detector_inputs: the weights file resolved), validated."""
-    from envisat_pose.config import resolve_job_config
-    from envisat_pose.pipelines.calibrate import CalibrateJobConfig
 
     flags = {"weights": args.weights, "roi": args.roi, "keep_scale": bool(args.keep_scale),
              "refine": bool(args.refine), "max_lag": args.max_lag, "limit": args.limit,
@@ -84,10 +85,6 @@ def resolve_config(args: argparse.Namespace):
 
 def run_calibrate_cli(args: argparse.Namespace) -> int:
     import numpy as np
-
-    from envisat_pose.app.detect import detector_inputs
-    from envisat_pose.out_dirs import check_out_file
-    from envisat_pose.pipelines.calibrate import fit_face_cue, run_calibration
 
     detector_inputs(args)
     if args.max_lag < 1:

@@ -12,6 +12,7 @@ import argparse
 import importlib
 import sys
 
+from envisat_pose.app.common import EVERY_VERB, as_flags
 from envisat_pose.config import ConfigError, InputError
 
 # The app modules that define register(subparsers), in the order their verbs are listed.
@@ -41,8 +42,6 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except (ConfigError, InputError) as err:
-        from envisat_pose.app.common import EVERY_VERB, as_flags
-
         names = {**EVERY_VERB, **getattr(args, "flag_names", {})}
         text = str(err) if isinstance(err, ConfigError) else as_flags(str(err), names)
         print(f"envisat {args.verb}: error: {text}", file=sys.stderr)

@@ -11,6 +11,9 @@ from __future__ import annotations
 import argparse
 import re
 
+from envisat_pose.config import InputError
+from envisat_pose.out_dirs import check_out_file
+
 # library argument / field names -> flags, for every verb that adds the flag with add_common
 COMMON_FLAGS = {"out": "--out", "out_dir": "--out", "config_path": "--config", "weights": "--weights",
                 "seed": "--seed"}
@@ -68,8 +71,6 @@ def as_flags(message: str, names: dict[str, str]) -> str:
 
 def check_rrd_output(path: str) -> None:
     """--rrd must name a .rrd file that can be written (out_dirs.check_out_file): InputError before any work."""
-    from envisat_pose.config import InputError
-    from envisat_pose.out_dirs import check_out_file
 
     if not path.endswith(".rrd"):
         raise InputError(f"--rrd {path!r}: expected a path ending in .rrd")

@@ -7,8 +7,11 @@ import argparse
 import json
 import os
 
-from envisat_pose.app.common import add_common
+from envisat_pose.app.common import add_common, check_rrd_output
+from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
+from envisat_pose.pipelines.export import ExportConfig, export_dataset
+from envisat_pose.shard_reader import checked_shards
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -61,14 +64,10 @@ def run_verify_cli(args: argparse.Namespace) -> int:
 
 def run_inspect_cli(args: argparse.Namespace) -> int:
     from envisat_pose.datagen.dataset import dataset_stats, load_manifest, montage
-    from envisat_pose.runner import check_out_file, make_out_file_dir
-    from envisat_pose.shard_reader import checked_shards
 
     path = args.montage or os.path.join(args.dir, "montage.png")
     check_out_file(path, "--montage")
     if args.rrd:
-        from envisat_pose.app.common import check_rrd_output
-
         check_rrd_output(args.rrd)
     load_manifest(args.dir)
     with skip_hint():
@@ -104,8 +103,6 @@ def write_samples_rrd(source: str | list[str], path: str, count: int) -> None:
 
 
 def run_export_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.pipelines.export import ExportConfig, export_dataset
-
     cfg = ExportConfig(args.format, args.image_format, args.val_fraction, 0 if args.seed is None else args.seed,
                        args.target)
     summary = export_dataset(args.src, args.out, cfg, workers=args.workers, skip_damaged=args.skip_damaged,

@@ -7,6 +7,7 @@ import argparse
 import os
 
 from envisat_pose.app.common import add_common
+from envisat_pose.app.run import print_table
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -23,7 +24,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    from envisat_pose.app.run import print_table
     from envisat_pose.pipelines.closed_loop import run_closed_loop, run_output_paths
     from envisat_pose.pipelines.run_config import RunConfig
 

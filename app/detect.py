@@ -7,8 +7,10 @@ from __future__ import annotations
 import argparse
 
 from envisat_pose.app.common import add_common
-from envisat_pose.config import InputError
+from envisat_pose.config import InputError, resolve_job_config
+from envisat_pose.out_dirs import check_out_file
 from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
+from envisat_pose.pipelines.detect import DetectJobConfig, run_detect
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -60,8 +62,6 @@ def detector_inputs(args: argparse.Namespace) -> None:
 
 def resolve_config(args: argparse.Namespace):
     """The job's config from the flags (after detector_inputs: the weights file resolved), validated."""
-    from envisat_pose.config import resolve_job_config
-    from envisat_pose.pipelines.detect import DetectJobConfig
 
     flags = {"weights": args.weights, "device": args.device, "limit": args.limit, "roi": args.roi,
              "refine": bool(args.refine), "skip_damaged": bool(args.skip_damaged)}
@@ -70,9 +70,6 @@ def resolve_config(args: argparse.Namespace):
 
 def run_detect_cli(args: argparse.Namespace) -> int:
     import json
-
-    from envisat_pose.out_dirs import check_out_file
-    from envisat_pose.pipelines.detect import run_detect
 
     check_out_file(args.out)
     detector_inputs(args)

@@ -7,7 +7,13 @@ from __future__ import annotations
 import argparse
 
 from envisat_pose.app.common import add_common
-from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument
+from envisat_pose.app.detect import detector_inputs
+from envisat_pose.datagen.target_model import require_envisat_dataset
+from envisat_pose.out_dirs import check_out_file
+from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
+from envisat_pose.pipelines.detect import camera_samples, read_roi
+from envisat_pose.pipelines.evaluate import evaluate_detector, groups_table, read_poses
+from envisat_pose.shard_reader import checked_shards
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -38,14 +44,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_evaluate_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.app.detect import detector_inputs
-    from envisat_pose.datagen.target_model import require_envisat_dataset
-    from envisat_pose.out_dirs import check_out_file
-    from envisat_pose.pipelines.dataset_inputs import skip_hint, skipped_line
-    from envisat_pose.pipelines.detect import camera_samples, read_roi
-    from envisat_pose.pipelines.evaluate import evaluate_detector, groups_table, read_poses
-    from envisat_pose.shard_reader import checked_shards
-
     detector_inputs(args)
     check_out_file(args.json, "--json")
     require_envisat_dataset(args.data, "--data", "evaluate")

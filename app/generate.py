@@ -6,6 +6,8 @@ import argparse
 
 from envisat_pose.app.common import add_common
 from envisat_pose.config import InputError, resolve_job_config
+from envisat_pose.datagen.factory import run_generate
+from envisat_pose.datagen.generate_config import GenerateConfig
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -37,7 +39,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def resolve_config(args: argparse.Namespace):
     """Defaults, then the TOML file, then the flags; validated before any work."""
-    from envisat_pose.datagen.generate_config import GenerateConfig
 
     flags = {"mode": args.mode, "num_images": args.num_images, "shard_size": args.shard_size,
              "resolution_px": args.resolution, "seed": args.seed, "sequence.scenario": args.scenario,
@@ -46,8 +47,6 @@ def resolve_config(args: argparse.Namespace):
 
 
 def run_generate_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.datagen.factory import run_generate
-
     if args.workers < 1:
         raise InputError(f"--workers {args.workers}: expected at least 1")
     if args.scheduler and args.backend != "dask":

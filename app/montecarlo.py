@@ -10,10 +10,12 @@ import argparse
 import math
 import time
 
-from envisat_pose.app.common import add_common
+from envisat_pose.app.common import add_common, check_rrd_output
 from envisat_pose.config import InputError, check
-from envisat_pose.pipelines.campaign import FIGURES, MonteCarloConfig
-from envisat_pose.pipelines.sweep import SWEEP_FIGURE
+from envisat_pose.out_dirs import make_out_file_dirs
+from envisat_pose.pipelines.campaign import FIGURES, MonteCarloConfig, run_campaign, write_recording
+from envisat_pose.pipelines.sweep import SWEEP_FIGURE, run_sweep, sweep_for
+from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -60,7 +62,6 @@ def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
 
 def runner_config(args: argparse.Namespace):
     """The core runner's settings, one BLAS thread share per worker."""
-    from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
 
     check(args.workers >= 1, "workers", args.workers, "at least 1 worker")
     check(args.scheduler is None or args.backend == "dask", "scheduler", args.scheduler,
@@ -71,16 +72,10 @@ def runner_config(args: argparse.Namespace):
 
 
 def run_montecarlo(args: argparse.Namespace) -> int:
-    from envisat_pose.out_dirs import make_out_file_dirs
-    from envisat_pose.pipelines.campaign import run_campaign, write_recording
-    from envisat_pose.pipelines.sweep import run_sweep, sweep_for
-
     cfg = resolve_config(args)
     runner = runner_config(args)
     sweep = sweep_for(cfg, args.rates_hz, rate_given=args.rate_hz is not None)
     if args.rrd:
-        from envisat_pose.app.common import check_rrd_output
-
         if sweep is not None:
             raise InputError("--rrd records one campaign, not a rate sweep")
         check_rrd_output(args.rrd)

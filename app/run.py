@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 
 from envisat_pose.app.common import add_common, add_recording_arguments, recording_sink
+from envisat_pose.datagen.target_model import require_envisat
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -82,7 +83,6 @@ def _fmt(v, digits: int = 0) -> str:
 
 
 def run_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.datagen.target_model import require_envisat
     from envisat_pose.pipelines.closed_loop import run_closed_loop
 
     cfg = resolve_config(args)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 
 from envisat_pose import named_scenarios
+from envisat_pose.config import to_toml
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,8 +22,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_scenarios(args: argparse.Namespace) -> int:
-    from envisat_pose.config import to_toml
-
     if args.show is not None:
         data = named_scenarios.scenario_tables(args.show)
         print(f"# scenario {args.show}: {' '.join(data.pop('description').split())}\n" + to_toml(data), end="")

@@ -5,9 +5,12 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import add_common
+from envisat_pose.app.common import add_common, check_rrd_output
 from envisat_pose.config import InputError
 from envisat_pose.datagen.scenario import ScenarioConfig
+from envisat_pose.out_dirs import make_out_file_dirs
+from envisat_pose.pipelines.simulate import output_paths
+from envisat_pose.pipelines.simulate import run_simulate as run_pipeline
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -41,16 +44,10 @@ def resolve_config(args: argparse.Namespace) -> ScenarioConfig:
 
 
 def run_simulate_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.pipelines.simulate import output_paths
-    from envisat_pose.pipelines.simulate import run_simulate as run_pipeline
-    from envisat_pose.runner import make_out_file_dirs
-
     if not args.out.endswith(".npz"):
         raise InputError(f"--out {args.out!r}: expected a path ending in .npz")
     cfg = resolve_config(args)
     if args.rrd:
-        from envisat_pose.app.common import check_rrd_output
-
         check_rrd_output(args.rrd)
     make_out_file_dirs({**{p: "--out" for p in output_paths(args.out)}, **({args.rrd: "--rrd"} if args.rrd else {})})
     res = run_pipeline(cfg, args.out, plot=args.plot, rrd=args.rrd, progress=not args.quiet, label=args.scenario)

@@ -5,11 +5,15 @@ from __future__ import annotations
 
 import argparse
 
+from envisat_pose.app.common import add_common, add_frame_inputs, add_recording_arguments, recording_sink
+from envisat_pose.app.run import print_table
+from envisat_pose.out_dirs import check_out_dir
+from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
+from envisat_pose.pipelines.frames import open_source
+from envisat_pose.pipelines.outputs import status_line
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from envisat_pose.app.common import add_common, add_frame_inputs, add_recording_arguments
-    from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument
-
     p = sub.add_parser(
         "track",
         help="track the target in your own frames (image folder, video or generate folder): pose history with "
@@ -36,12 +40,6 @@ FLAGS = {"src": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps"
 
 
 def track_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.app.common import recording_sink
-    from envisat_pose.app.run import print_table
-    from envisat_pose.out_dirs import check_out_dir
-    from envisat_pose.pipelines.dataset_inputs import skip_hint, skipped_line
-    from envisat_pose.pipelines.frames import open_source
-    from envisat_pose.pipelines.outputs import status_line
     from envisat_pose.pipelines.track import TrackConfig, track_frames
 
     check_out_dir(args.out)

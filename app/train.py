@@ -8,9 +8,12 @@ import os
 import shlex
 import sys
 
-from envisat_pose.app.common import add_common
-from envisat_pose.config import InputError, resolve_job_config
-from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument
+from envisat_pose.app.common import add_common, as_flags
+from envisat_pose.config import ConfigError, InputError, resolve_job_config
+from envisat_pose.datagen.generate_config import GenerateConfig
+from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
+from envisat_pose.pipelines.look_mix import read_looks
+from envisat_pose.pipelines.train import OnlineConfig, default_workers, read_run_config, read_run_record, train_detector
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -61,7 +64,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 def resolve_config(args: argparse.Namespace):
     """Defaults (a resumed run's own config), then the TOML file, then the flags; validated before any work."""
     from envisat_pose.perception.train import TrainConfig
-    from envisat_pose.pipelines.train import read_run_config
 
     base = read_run_config(args.out) if args.resume and os.path.isdir(args.out) else {}
     if args.steps is not None and args.time_budget_s is None:
@@ -73,7 +75,6 @@ def resolve_config(args: argparse.Namespace):
 
 def online_config(args: argparse.Namespace):
     """The online source of the flags (a resumed online run: its own, renderer processes from the flag), or None."""
-    from envisat_pose.pipelines.train import OnlineConfig, default_workers, read_run_record
 
     saved = read_run_record(args.out).get("online") if args.resume and os.path.isdir(args.out) else None
     looks_given = args.looks or args.generate_config or args.resolution or args.uses_per_frame
@@ -88,14 +89,10 @@ def online_config(args: argparse.Namespace):
     if args.data:
         raise InputError("--data and --online: train on shards or on rendered frames, not both")
     if args.looks:
-        from envisat_pose.pipelines.look_mix import read_looks
-
         if args.generate_config or args.resolution:
             raise InputError("--looks and --generate-config/--resolution: the looks file holds every look's config")
         gen = read_looks(args.looks)
     else:
-        from envisat_pose.datagen.generate_config import GenerateConfig
-
         gen = resolve_job_config(GenerateConfig, {"mode": "random"}, args.generate_config,
                                  {"resolution_px": args.resolution})
     uses = {} if args.uses_per_frame is None else {"uses_per_frame": args.uses_per_frame}
@@ -120,11 +117,7 @@ FLAGS = {"data_dirs": "--data", "data": "--data", "run_dir": "--out", "init": "-
 
 
 def run_train_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.app.common import as_flags
-    from envisat_pose.config import ConfigError
     from envisat_pose.perception.train import TrainingInterrupted
-    from envisat_pose.pipelines.dataset_inputs import skip_hint, skipped_line
-    from envisat_pose.pipelines.train import train_detector
 
     try:
         cfg = resolve_config(args)

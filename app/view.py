@@ -13,7 +13,18 @@ import argparse
 import signal
 import sys
 
-from envisat_pose.analysis.viewer import DEFAULT_PORT, DEFAULT_WEB_PORT
+from envisat_pose.analysis.viewer import (
+    BIND,
+    DEFAULT_PORT,
+    DEFAULT_WEB_PORT,
+    check_recording,
+    has_display,
+    recordings,
+    start_viewer,
+    stop_viewer,
+    viewer_command,
+    web_url,
+)
 from envisat_pose.config import InputError
 
 
@@ -38,17 +49,6 @@ def _interrupt(signum, frame):
 
 
 def run_view(args: argparse.Namespace) -> int:
-    from envisat_pose.analysis.viewer import (
-        BIND,
-        check_recording,
-        has_display,
-        recordings,
-        start_viewer,
-        stop_viewer,
-        viewer_command,
-        web_url,
-    )
-
     files = recordings(args.path)
     for f in files:
         check_recording(f)

@@ -15,6 +15,9 @@ import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm, quat_to_rotmat
 from envisat_pose.config import ConfigError
+from envisat_pose.datagen.labels import OCCLUSION_FLOOR_M, occlusion_floor_m
+from envisat_pose.datagen.target_model import load_target, scene_xml
+from envisat_pose.geometry import model_path
 from envisat_pose.state import MRP, POS, RATE, VEL
 
 # 8 sign patterns of a box's corners, (8, 3)
@@ -71,15 +74,12 @@ def _scene_model(path: str, sha256: str):
     """The compiled scene of a target file (its sha256 in the key: an edited file compiles again)."""
     import mujoco
 
-    from envisat_pose.datagen.target_model import load_target, scene_xml
-
     return mujoco.MjModel.from_xml_string(scene_xml(load_target(path)))
 
 
 def target_file_boxes(given: str, field: str = "target") -> TargetBoxes:
     """target_boxes of the scene of a `target` file (ENVISAT: project_target_boxes); a bad file is a ConfigError
     naming `field`."""
-    from envisat_pose.datagen.target_model import load_target
 
     t = load_target(given, field)
     if t.is_envisat:
@@ -89,8 +89,6 @@ def target_file_boxes(given: str, field: str = "target") -> TargetBoxes:
 
 def target_occlusion_floor_m(given: str) -> float:
     """The floor of a target's occlusion tolerance, m: labels.occlusion_floor_m of its reach (ENVISAT: 0.25)."""
-    from envisat_pose.datagen.labels import OCCLUSION_FLOOR_M, occlusion_floor_m
-    from envisat_pose.datagen.target_model import load_target
 
     return OCCLUSION_FLOOR_M if load_target(given).is_envisat else occlusion_floor_m(target_file_boxes(given).reach_m)
 
@@ -103,8 +101,6 @@ def _file_boxes(path: str, sha256: str) -> TargetBoxes:
 @functools.lru_cache(maxsize=1)
 def _project_model():
     import mujoco
-
-    from envisat_pose.geometry import model_path
 
     return mujoco.MjModel.from_xml_path(model_path())
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from envisat_pose.config import ConfigError
 from envisat_pose.datagen.image_kernels import content_box, motion_kernel, standard_normal_fast
 from envisat_pose.datagen.sensor import apply_sensor
 
@@ -48,7 +49,6 @@ def check_severities(model: str, severities: dict[str, str], prefix: str = "corr
     'paper' honours each kind. 'sensor' (the space camera, configured by [corruption.sensor]) honours only
     all five 'none' (uncorrupted frames); any other choice than the default 'mixed' would be ignored silently.
     """
-    from envisat_pose.config import ConfigError
 
     if model != "sensor" or corruption_off(severities):
         return

@@ -9,7 +9,8 @@ import os
 import numpy as np
 
 from envisat_pose.config import InputError
-from envisat_pose.datagen.shards import check_shard, decode_png, read_manifest, shard_name
+from envisat_pose.datagen.corrupt import apply_corruption
+from envisat_pose.datagen.shards import check_shard, decode_png, encode_png, read_manifest, shard_name
 from envisat_pose.geometry import CORNER_NAMES, EDGES
 from envisat_pose.io import atomic_path
 from envisat_pose.shard_reader import checked_shards, read_shard
@@ -86,7 +87,6 @@ def sample_image(members: dict[str, bytes], label: dict | None = None, where: st
     """A sample's image as training sees it: (H, W) uint8, corrupted. A sample stored clean (label
     image_stored = 'clean') gets its label's corruption applied here, deterministically: the same pixels
     (and, through sample_png, the same PNG bytes) as storage = 'corrupted' writes."""
-    from envisat_pose.datagen.corrupt import apply_corruption
 
     label = label if label is not None else json.loads(members["json"])
     if not members.get("png"):
@@ -102,7 +102,6 @@ def sample_image(members: dict[str, bytes], label: dict | None = None, where: st
 def sample_png(members: dict[str, bytes], label: dict | None = None) -> bytes:
     """The PNG bytes of a sample's corrupted image (corrupting a clean-stored one on read), byte-identical to
     the member a corrupted-storage dataset holds."""
-    from envisat_pose.datagen.shards import encode_png
 
     label = label if label is not None else json.loads(members["json"])
     if label.get("image_stored") != "clean":

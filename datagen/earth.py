@@ -26,6 +26,7 @@ import math
 
 import numpy as np
 
+from envisat_pose.attitude import quat_to_rotmat, rotmat_to_quat
 from envisat_pose.datagen.scenario import EARTH_RADIUS_M
 
 # The Earth is drawn shrunk by this factor about the camera: same angular size, inside the far plane (287 km)
@@ -118,7 +119,6 @@ def earth_quat_C(t_s: np.ndarray, R_N_from_C: np.ndarray, theta0_rad: float) -> 
     """The Earth's attitude in the chaser frame C along an orbit: its body frame E (z to the north pole, x to
     longitude 0) turns about N z at EARTH_ROTATION_RAD_S from the angle theta0_rad at t = 0, and
     R_C_from_E = R_N_from_C^T R_N_from_E. t_s (N,), R_N_from_C (N, 3, 3) -> quaternions (N, 4), w x y z."""
-    from envisat_pose.attitude import rotmat_to_quat
 
     R_N_from_E = np.stack([rotation_z(theta0_rad + EARTH_ROTATION_RAD_S * t) for t in np.asarray(t_s, dtype=float)])
     return rotmat_to_quat(np.swapaxes(R_N_from_C, 1, 2) @ R_N_from_E)
@@ -201,7 +201,6 @@ def cap_visible(quat_C: np.ndarray | None, nadir_C: np.ndarray, r_m: float) -> b
     """Whether everything the chaser sees of the Earth (the cap of arccos(R / r) about the point below it) lies
     within the cap mesh (CAP_HALF_ANGLE_DEG about the Earth's +x axis) for the Earth's attitude quat_C
     (w x y z, in C; None: the identity) and the unit-free nadir direction nadir_C (in C)."""
-    from envisat_pose.attitude import quat_to_rotmat
 
     R_C_from_E = np.eye(3) if quat_C is None else quat_to_rotmat(np.asarray(quat_C, dtype=float))
     up_E = R_C_from_E.T @ -(np.asarray(nadir_C, dtype=float) / np.linalg.norm(nadir_C))  # toward the chaser

@@ -22,12 +22,17 @@ from typing import Callable
 import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm
-from envisat_pose.config import check, to_dict
+from envisat_pose.config import check, to_dict, to_toml
+from envisat_pose.datagen.appearance import FACE_GEOMS, GEOM_CLASS, Look, draw_look, draw_own_look
 from envisat_pose.datagen.clearance import TargetBoxes, farthest_depth_m, target_file_boxes, target_occlusion_floor_m
 from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
-from envisat_pose.datagen.labels import DEPTH_MAX_CODE
+from envisat_pose.datagen.labels import DEPTH_MAX_CODE, encode_depth, make_label
+from envisat_pose.datagen.target_model import load_target, target_scene
 from envisat_pose.datagen.views import R_K_FROM_C, sample_random_view, sample_seed, sequence_frames, sequence_view, unit
-from envisat_pose.runner import ResumableJob, RunnerConfig, check_out_dir, cpu_share, thread_env
+from envisat_pose.io import atomic_write_text, sha256_file
+from envisat_pose.out_dirs import check_out_dir
+from envisat_pose.pools import RunnerConfig, cpu_share, thread_env
+from envisat_pose.resumable import ResumableJob
 from envisat_pose.state import MRP, POS, RATE, VEL
 
 MANIFEST_FORMAT = "envisat-pose shards v1"
@@ -63,9 +68,7 @@ def with_look(cfg: GenerateConfig, view, scene: dict, seed: int) -> tuple:
     and the scene dict with every choice needed to render it again (view_from_scene). Returns (View, scene)."""
     import dataclasses
 
-    from envisat_pose.datagen.appearance import FACE_GEOMS, GEOM_CLASS, Look, draw_look, draw_own_look
     from envisat_pose.datagen.render import APPENDAGE_MASK_VALUE, MASK_VALUES
-    from envisat_pose.datagen.target_model import load_target, target_scene
 
     rng = look_rng(cfg, seed)
     lit = cfg.lighting
@@ -118,7 +121,6 @@ def render_inputs(view) -> dict:
 
 def view_from_scene(scene: dict):
     """The View a label's scene records (with_look): the same render, bit for bit."""
-    from envisat_pose.datagen.appearance import Look
     from envisat_pose.datagen.render import View
 
     r = scene["render"]
@@ -186,8 +188,6 @@ def sample_arrays(K: np.ndarray, boxes: TargetBoxes, cfg: GenerateConfig, out, x
     pipelines/online.py, takes them as they are): the corruption draw, the image ((H, W) uint8, corrupted
     unless storage is 'clean') and the label (plain JSON data, labels.make_label). No GL state."""
     from envisat_pose.datagen.corrupt import apply_corruption
-    from envisat_pose.datagen.labels import make_label
-    from envisat_pose.datagen.target_model import load_target
 
     params = draw_corruption_params(cfg, out, x, K[0, 0], boxes, rng)
     image = out.gray_u8 if cfg.storage == "clean" else apply_corruption(out.gray_u8, params)
@@ -204,7 +204,6 @@ def finish_sample(K: np.ndarray, boxes: TargetBoxes, cfg: GenerateConfig, out, x
     """Everything of a sample after its render (`out`, a RenderOutput of the renderer whose intrinsics are K
     and whose target is `boxes`): the corruption draw, the label, the corruption (unless storage is 'clean')
     and the PNG and JSON encoding. Touches no GL state, so it may run beside the next render."""
-    from envisat_pose.datagen.labels import encode_depth
     from envisat_pose.datagen.shards import encode_png, label_bytes
 
     image, label = sample_arrays(K, boxes, cfg, out, x, scene, rng, seed)
@@ -244,7 +243,6 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str, beside: 
 
     from envisat_pose.datagen.render import shared_renderer
     from envisat_pose.datagen.shards import ShardWriter, sample_key, shard_name
-    from envisat_pose.io import sha256_file
 
     cv2.setNumThreads(1)  # one core per worker; also keeps filters on one code path
     renderer = shared_renderer(cfg.resolution_px, cfg.shadows, cfg.appearance.texture_set_size if cfg.appearance_on
@@ -327,7 +325,6 @@ def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
     identity, a shard kept on resume only when its sha256 matches and its tar holds the recorded count."""
     from envisat_pose.datagen.render import MASK_VALUES
     from envisat_pose.datagen.shards import check_shard, shard_name
-    from envisat_pose.datagen.target_model import load_target, target_scene
 
     target = load_target(cfg.target)
     masks = MASK_VALUES if target.is_envisat else target_scene(target).mask_values
@@ -348,8 +345,6 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
 
     on_shard, if given, is called with each finished shard's manifest entry once it is recorded.
     """
-    from envisat_pose.config import to_toml
-    from envisat_pose.io import atomic_write_text
 
     check(backend in ("local", "dask"), "backend", backend, "'local' or 'dask'")
     # one rasterizer thread count per worker: the machine's cores shared among the workers

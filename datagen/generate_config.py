@@ -15,8 +15,10 @@ import numpy as np
 
 from envisat_pose.camera_response import parse_response
 from envisat_pose.config import check, from_dict, to_dict
+from envisat_pose.datagen.appearance import CLASSES
 from envisat_pose.datagen.clearance import target_file_boxes
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
+from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_dict
 
 Severity = Literal["none", "low", "medium", "high", "mixed"]
 Range = tuple[float, float]
@@ -121,8 +123,6 @@ class AppearanceConfig:
             _check_range(getattr(self, name), f"{p}{name}", 0.0, 1.0)
         _check_range(self.brightness, f"{p}brightness", 0.0, 3.0)
         if self.one_covering is not None:
-            from envisat_pose.datagen.appearance import CLASSES
-
             check(self.one_covering in CLASSES, f"{p}one_covering", self.one_covering,
                   f"a covering class ({', '.join(sorted(CLASSES))})")
 
@@ -182,7 +182,6 @@ class RandomModeConfig:
               "a probability in [0, 1]")
         check(0.0 <= self.eclipse_probability <= 1.0, f"{p}eclipse_probability", self.eclipse_probability,
               "a probability in [0, 1]")
-        from envisat_pose.datagen.scenario import EARTH_RADIUS_M
 
         _check_range(self.earth_orbit_radius_m, f"{p}earth_orbit_radius_m", EARTH_RADIUS_M + 100e3, 1e8)
         check(self.keepout_margin_m >= 0, f"{p}keepout_margin_m", self.keepout_margin_m, "a non-negative distance in m")
@@ -278,8 +277,6 @@ class GenerateConfig:
             check(DEPTH_MAX_CODE * self.depth_scale_m >= reach, f"{p}depth_scale_m", self.depth_scale_m,
                   f"a scale whose 16-bit range (65535 x scale) covers {reach:.1f} m, the farthest target point")
         if self.mode == "sequence":
-            from envisat_pose.datagen.scenario import scenario_dict
-
             scenario_dict(self.sequence.scenario)  # unknown names raise ConfigError
 
     @property

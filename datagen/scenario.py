@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envisat_pose.config import check, deep_update, from_dict
+from envisat_pose.datagen.orbit import chaser_orbit
+from envisat_pose.datagen.target_model import load_target
 from envisat_pose.named_scenarios import table, truth_part
 
 EARTH_RADIUS_M = 6378137.0  # WGS-84 equatorial radius, used only to reject orbits inside the Earth
@@ -70,7 +72,6 @@ class TargetConfig:
     def validate(self, prefix: str = "target") -> None:
         check(self.spin_period_s > 0, f"{prefix}.spin_period_s", self.spin_period_s, "a positive period in seconds")
         check(np.linalg.norm(self.spin_axis_T) > 0, f"{prefix}.spin_axis_T", list(self.spin_axis_T), "a non-zero vector")
-        from envisat_pose.datagen.target_model import load_target
 
         load_target(self.file, f"{prefix}.file")  # a bad target file: one line before any work
         if self.p0_mrp is not None:
@@ -131,7 +132,6 @@ class ScenarioConfig:
         check(self.keepout_margin_m >= 0, f"{p}keepout_margin_m", self.keepout_margin_m,
               "a non-negative distance in m")
         check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed")
-        from envisat_pose.datagen.target_model import load_target
 
         keypoints = load_target(self.target.file, f"{p}target.file").keypoints_T_m
         self.relative.check_outside(float(np.linalg.norm(keypoints, axis=1).max()), f"{p}relative")
@@ -186,7 +186,6 @@ def in_earth_shadow(r_N_m: np.ndarray, sun_dir_N) -> np.ndarray:
 def eclipse_windows(cfg: ScenarioConfig, eclipse: EclipseConfig) -> tuple[tuple[float, float], ...]:
     """The chaser's shadow passes over the scenario's output grid t = 0, dt_s, ... <= duration_s, as windows
     [start, end) in s (end: the first sample out of the shadow, or the last sample + dt_s)."""
-    from envisat_pose.datagen.orbit import chaser_orbit
 
     t_s = np.arange(cfg.n_out) * cfg.dt_s
     dark = in_earth_shadow(chaser_orbit(cfg.orbit, t_s).r_N_m, eclipse.sun_dir_N)

@@ -15,9 +15,12 @@ import mujoco
 import numpy as np
 
 from envisat_pose.attitude import dcm_to_mrp, mrp_to_dcm, quat_to_rotmat, rotmat_to_quat
+from envisat_pose.datagen.clearance import target_occlusion_floor_m
+from envisat_pose.datagen.labels import occlusion_tolerance_m
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.plugin import PLUGIN_NAME
 from envisat_pose.datagen.scenario import ScenarioConfig
+from envisat_pose.datagen.target_model import load_target, scene_xml
 from envisat_pose.state import MRP, POS, RATE, VEL
 
 CORNER_SITES = tuple(f"corner_{c}" for c in "ABCDEFGH")
@@ -41,8 +44,6 @@ def model_xml(cfg: ScenarioConfig, path: str | None = None) -> str:
     if path is not None:
         root = ET.parse(path).getroot()
     else:
-        from envisat_pose.datagen.target_model import load_target, scene_xml
-
         root = ET.fromstring(scene_xml(load_target(cfg.target.file, "target.file")))
     attrs = plugin_attributes(cfg)
     plugin = next(p for p in root.iter("plugin") if p.get("plugin") == PLUGIN_NAME)
@@ -69,7 +70,6 @@ class TruthSim:
         self.qpos_adr = self.model.joint("target_free").qposadr[0]
         self.qvel_adr = self.model.joint("target_free").dofadr[0]
         self.mocap_id = self.model.body("chaser").mocapid[0]
-        from envisat_pose.datagen.target_model import load_target
 
         self.target = load_target(cfg.target.file, "target.file")
         self.corner_site_ids = np.array([self.model.site(n).id for n in self.target.keypoint_sites])
@@ -148,8 +148,6 @@ class TruthSim:
         the keypoint less the occlusion tolerance (labels.occlusion_tolerance_m with the target's floor): a ray
         cast through the model (mujoco.mj_ray), the chaser's own geoms excluded. Another target's truth uses it;
         ENVISAT's keeps the box's face rule (geometry.visible_corners)."""
-        from envisat_pose.datagen.clearance import target_occlusion_floor_m
-        from envisat_pose.datagen.labels import occlusion_tolerance_m
 
         m, d = self.model, self.data
         cam = d.cam_xpos[self.cam_id]

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from envisat_pose.attitude import quat_to_rotmat
+
 APPENDAGE_GROUP = 4  # geom group of the clutter `appendages` switches on (models/envisat.xml)
 _SIDES = 32  # polygon sides of a round geom's cross-section
 _RINGS = 16  # latitude rings of a sphere or an ellipsoid
@@ -94,8 +96,6 @@ def target_mesh(model_path: str, appendages: bool) -> TriangleMesh:
     """The surface of body `target` of the MJCF at model_path in T, m: every geom MuJoCo renders in the
     factory's scene (the appendages' group too when `appendages`). Cached: treat the arrays as read-only."""
     import mujoco
-
-    from envisat_pose.attitude import quat_to_rotmat
 
     model = mujoco.MjModel.from_xml_path(model_path)
     body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "target")

@@ -10,10 +10,13 @@ import math
 
 import numpy as np
 
-from envisat_pose.attitude import mrp_to_dcm, quat_to_mrp, quat_to_rotmat
+from envisat_pose.attitude import mrp_to_dcm, quat_to_mrp, quat_to_rotmat, rotmat_to_quat
 from envisat_pose.config import ConfigError
 from envisat_pose.datagen.clearance import TargetBoxes, clearance_m, project_target_boxes, project_znear_m
+from envisat_pose.datagen.earth import EARTH_TEXTURE_SET_SIZE, draw_backdrop, earth_in_frame, earth_quat_C
 from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
+from envisat_pose.datagen.orbit import chaser_orbit
+from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_config
 from envisat_pose.geometry import load_camera
 from envisat_pose.state import MRP, POS
 
@@ -110,9 +113,6 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
     if earth_draw:
         import dataclasses
 
-        from envisat_pose.attitude import rotmat_to_quat
-        from envisat_pose.datagen.earth import draw_backdrop
-
         K = load_camera().scaled(cfg.resolution_px, cfg.resolution_px).K
         nadir_K, r_m, R_K_from_E, tex = draw_backdrop(rng.spawn(1)[0], r.earth_orbit_radius_m, K,
                                                       cfg.resolution_px, None if eclipse else R_K_FROM_C @ sun_C)
@@ -128,8 +128,6 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
 def sequence_frames(cfg_json: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The truth of a sequence-mode config at its frame times: (t_s (N,), x (N, 12), sun_dir_C (N, 3),
     eclipse (N,) bool, nadir_C (N, 3) with chaser_r_m folded in as its norm)."""
-    from envisat_pose.datagen.orbit import chaser_orbit
-    from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_config
     from envisat_pose.datagen.truth import simulate_truth
 
     cfg = config_from_json(cfg_json)
@@ -157,9 +155,6 @@ def sequence_earth(cfg_json: str) -> tuple[np.ndarray, np.ndarray, int]:
     """The Earth of a sequence-mode config at its frame times: (quat_C (N, 4), the Earth's attitude in C (it
     turns with the orbit and its sidereal rate from an angle drawn from the seed); in_frame (N,) bool, whether
     its disc reaches the image; texture index)."""
-    from envisat_pose.datagen.earth import EARTH_TEXTURE_SET_SIZE, earth_in_frame, earth_quat_C
-    from envisat_pose.datagen.orbit import chaser_orbit
-    from envisat_pose.datagen.scenario import scenario_config
 
     cfg = config_from_json(cfg_json)
     t_s, _, _, _, nadir_C = sequence_frames(cfg_json)

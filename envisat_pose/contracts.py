@@ -19,6 +19,7 @@ import numpy as np
 
 from envisat_pose.config import InputError
 from envisat_pose.io import save_npz
+from envisat_pose.status import STATUSES, has_estimate, legend_json
 
 # (kind, shape, rule): kind 'f' float64, 'b' bool, 'i' int64, 's' text; shape of ints (fixed) and names (shared sizes);
 # rule 'finite' (every value finite), 'finite_where_visible' (finite where the `visible` mask is true), None.
@@ -61,8 +62,6 @@ def _check_finite(path: str, name: str, a: np.ndarray, rule: str | None, arrays:
         status = arrays.get("status")
         ok = np.isfinite(a)
         if status is not None:
-            from envisat_pose.status import has_estimate
-
             ok |= ~has_estimate(status).reshape(status.shape + (1,) * (a.ndim - status.ndim))
     elif rule in ("finite", "finite_or_absent"):
         ok = np.isfinite(a)
@@ -277,8 +276,6 @@ class Estimates(_Contract):
 
     def check(self, path: str) -> None:
         if self.status is not None:
-            from envisat_pose.status import STATUSES
-
             if np.any((self.status < 0) | (self.status >= len(STATUSES))):
                 raise ContractError(f"{path}: 'status' holds codes outside 0..{len(STATUSES) - 1} "
                                     "(envisat_pose.status)")
@@ -286,6 +283,5 @@ class Estimates(_Contract):
     def extras(self) -> dict:
         if self.status is None:
             return {}
-        from envisat_pose.status import legend_json
 
         return {"status_legend": np.array(legend_json())}

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from envisat_pose.config import check
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
 from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
 from envisat_pose.filtering.ukf import SigmaWeights, merwe_weights, predict, shadow_switch, state_residual, update
@@ -84,8 +85,6 @@ class FilterConfig:
     kernel: str = "fast"
 
     def validate(self, prefix: str = "filter") -> None:
-        from envisat_pose.config import check
-
         p = f"{prefix}." if prefix else ""
         check(0.0 < self.alpha <= 1.0, f"{p}alpha", self.alpha, "a sigma-point spread in (0, 1]")
         check(self.beta >= 0.0, f"{p}beta", self.beta, "a non-negative number")

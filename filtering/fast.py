@@ -44,6 +44,9 @@ from numba import njit
 from numba.core import caching as _caching
 from numba.core import config as _numba_config
 
+from envisat_pose.filtering import ukf
+from envisat_pose.filtering.measurements import MIN_DEPTH_M, predicted_visible
+from envisat_pose.geometry import load_geometry
 from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
 # the kernels' equations index the 12-state of envisat_pose.state directly (rho 0-2, rho' 3-5, p 6-8, w_r 9-11)
@@ -864,7 +867,6 @@ def _constants(setup):
     hit = _CONSTANTS.get(key)
     if hit is not None and hit[0] is setup.J_T and hit[1] is setup.camera:
         return hit[2]
-    from envisat_pose.geometry import load_geometry
 
     g, cam = load_geometry(), setup.camera
     J = np.ascontiguousarray(setup.J_T, dtype=float)
@@ -890,8 +892,6 @@ def predict_fused(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float
     c = np.ascontiguousarray(c0, dtype=float)
     w, mu, gg = setup.weights, float(setup.mu_m3_s2), bool(setup.gravity_gradient)
     if c.shape != (4,):
-        from envisat_pose.filtering import ukf
-
         return ukf.predict(mean, cov, c, dt_s, Q, w, setup.J_T, mu, max_step_s, gg)
     n_sub = max(1, int(np.ceil(dt_s / max_step_s - 1e-9)))
     h = dt_s / n_sub
@@ -901,7 +901,6 @@ def predict_fused(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float
     mean_out, cov_out, ok = np.empty_like(mean), np.empty_like(cov), np.empty(R, dtype=bool)
     predict_kernel(mean, cov, Q, stages, h, w.Wm, w.Wc, float(w.n + w.lam), J, Jinv, mu, gg, mean_out, cov_out, ok)
     if not ok.all():  # covariance repairs: the numpy filter's, on those runs
-        from envisat_pose.filtering import ukf
 
         bad = ~ok
         mean_out[bad], cov_out[bad] = ukf.predict(mean[bad], cov[bad], c, dt_s, Q[bad], w, setup.J_T, mu,
@@ -918,7 +917,6 @@ def update_fused(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.
     gate); setup: the estimator's FilterSetup (kind, camera, weights). Returns a dict of mean, cov, nis, dof,
     accepted (R, 8), mask_k (R, 8) (the corners the gate saw), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,),
     indefinite (R,) bool (the innovation covariance was not positive definite: the update failed), suspect (k,) the runs the numpy filter redid (the only ones whose results may be non-finite)."""
-    from envisat_pose.filtering.measurements import MIN_DEPTH_M
 
     mean = np.ascontiguousarray(mean, dtype=float)
     cov = np.ascontiguousarray(cov, dtype=float)
@@ -944,8 +942,6 @@ def update_fused(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.
                   (out["mean"], out["cov"], out["nis"], out["accepted"], out["mask_k"], out["Ky"], out["yy"],
                    out["trPzz"], ok))
     if not ok.all():  # repairs and non-finite steps: the numpy filter's, on those runs
-        from envisat_pose.filtering import ukf
-        from envisat_pose.filtering.measurements import predicted_visible
 
         bad = np.flatnonzero(~ok)
         out["suspect"] = bad

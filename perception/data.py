@@ -25,7 +25,10 @@ import numpy as np
 from envisat_pose.config import InputError
 from envisat_pose.geometry import EDGES
 from envisat_pose.perception.heatmaps import CORNER_JTYPE, encode_junctions
-from envisat_pose.shard_reader import checked_shards  # the one check of a dataset's shards (core)
+from envisat_pose.shard_reader import (
+    checked_shards,  # the one check of a dataset's shards (core)
+    read_shards,
+)
 
 N_SEGMENTS = 32
 IMAGE_MEAN, IMAGE_STD = 0.5, 0.25
@@ -100,7 +103,6 @@ def decode_label(data: bytes, where: str) -> dict:
 
 def read_samples(paths: list[str]):
     """(key, image (H, W) uint8, label) for every sample of the shards, in order (envisat_pose/shard_reader.py)."""
-    from envisat_pose.shard_reader import read_shards
 
     for where, key, sample in read_shards(paths):
         if "png" not in sample:

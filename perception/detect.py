@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from envisat_pose.geometry import load_geometry
+from envisat_pose.geometry import EDGES, load_geometry
 from envisat_pose.perception.data import IMAGE_MEAN, IMAGE_STD, DataConfig, crop_box, crop_resize, to_full_px
 from envisat_pose.perception.errormodel import ErrorModel
 from envisat_pose.perception.facecue import FaceCue, half_turn_llr, weigh_naming
@@ -26,6 +26,7 @@ from envisat_pose.perception.heatmaps import decode_junctions
 from envisat_pose.perception.model import CornerNet
 from envisat_pose.perception.naming import Naming, NamingConfig, face_windings, name_corners
 from envisat_pose.perception.refine import RefineConfig, refine_named
+from envisat_pose.perception.weights import WeightsError, load_model, read_metadata
 
 
 @dataclass(frozen=True)
@@ -95,8 +96,6 @@ def weights_cov_scale(path: str, key: str = "cov_scale") -> float:
     were never calibrated). WeightsError when it is there but not a positive number."""
     import json
 
-    from envisat_pose.perception.weights import WeightsError, read_metadata
-
     raw = read_metadata(path).get(key, "1.0")
     try:
         scale = float(json.loads(raw))
@@ -112,8 +111,6 @@ def weights_refine_floor(path: str) -> float:
     when absent). WeightsError when it is there but not a non-negative number."""
     import json
 
-    from envisat_pose.perception.weights import WeightsError, read_metadata
-
     raw = read_metadata(path).get("refine_cov_floor_px2", "0.0")
     try:
         floor = float(json.loads(raw))
@@ -127,7 +124,6 @@ def weights_refine_floor(path: str) -> float:
 def weights_error_model(path: str) -> ErrorModel:
     """The error model stored in a weights file's metadata (`error_model`, perception/errormodel.py; its
     defaults, inflation 1 and rho 0, when the file has none). WeightsError when it is there but unreadable."""
-    from envisat_pose.perception.weights import WeightsError, read_metadata
 
     raw = read_metadata(path).get("error_model")
     try:
@@ -155,7 +151,6 @@ def cell_covariances(jchol: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> n
 def weights_face_cue(path: str) -> FaceCue | None:
     """The half-turn's appearance cue stored in a weights file's metadata (`face_cue`, perception/facecue.py;
     None when the file has none). WeightsError when it is there but unreadable."""
-    from envisat_pose.perception.weights import WeightsError, read_metadata
 
     try:
         return FaceCue.from_json(read_metadata(path).get("face_cue"))
@@ -167,8 +162,6 @@ def load_detector(path: str, config: DetectConfig | None = None, device: str = "
     """A Detector from a weights file (perception/weights.py), with the covariance calibration stored in the
     file's metadata (`cov_scale`, `refine_cov_floor_px2`) unless `config` is given (its own then stand), the error model
     (`error_model`, on `detector.error_model`)."""
-
-    from envisat_pose.perception.weights import load_model
 
     model = load_model(path, device=device)
     cfg = config or dataclasses.replace(DetectConfig(), cov_scale=weights_cov_scale(path),
@@ -359,7 +352,6 @@ class Detector:
         refined (8,) bool per corner. A candidate keeps its index, so the half-turn naming sees it moved too;
         the refinement's covariance plus refine_cov_floor_px2 on both axes replaces the network's, or, with
         refine_config.fuse, the two estimates are combined by their information."""
-        from envisat_pose.geometry import EDGES
 
         found = naming.visible & naming.matched
         named = np.where(found[:, None], pts[np.maximum(naming.candidate, 0)], np.nan)

@@ -37,7 +37,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from envisat_pose.config import InputError, flatten
+from envisat_pose.config import InputError, check, flatten
 from envisat_pose.perception.data import DataConfig, shard_paths
 from envisat_pose.perception.losses import LossConfig, corner_losses
 from envisat_pose.perception.model import CornerNet, ModelConfig
@@ -91,8 +91,6 @@ class TrainConfig:
     loss: LossConfig = field(default_factory=LossConfig)
 
     def validate(self, prefix: str = "") -> None:
-        from envisat_pose.config import check
-
         p = f"{prefix}." if prefix else ""
         check(self.steps >= 1, f"{p}steps", self.steps, "at least 1 step")
         check(self.batch_size >= 1, f"{p}batch_size", self.batch_size, "at least 1 sample per batch")

@@ -30,6 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from envisat_pose.attitude import dcm_to_mrp, mrp_shadow, mrp_to_dcm
+from envisat_pose.filtering.dynamics import propagate
+from envisat_pose.filtering.measurements import measure
 from envisat_pose.geometry import PinholeCamera, load_geometry
 from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
@@ -230,7 +232,6 @@ def initial_guess(frames: list[FramePose]) -> np.ndarray:
 def _propagate_back(x_end: np.ndarray, t_end: float, times: np.ndarray, chaser_at, dyn: dict) -> np.ndarray:
     """States at `times` (N,) (sorted, <= t_end) from x_end (B, 12) at t_end, through the filter's dynamics in
     sub-steps of at most 1 s. Returns (B, N, 12)."""
-    from envisat_pose.filtering.dynamics import propagate
 
     B = x_end.shape[0]
     out = np.empty((B, len(times), N_STATE))
@@ -275,7 +276,6 @@ def batch_fit(frames: list[FramePose], x_guess: np.ndarray, chaser_at, camera: P
     chaser_at(t_s) -> (4,) the chaser's polar orbit; dyn: J_T, mu_m3_s2, gravity_gradient, max_step_s; huber:
     the whitened residual norm per corner beyond which a corner is down-weighted; gate: chi-square bound per
     corner beyond which it is dropped after the first iterations (None: gates.chi2_gate(GATE_PROB, 2))."""
-    from envisat_pose.filtering.measurements import measure
     from envisat_pose.gates import GATE_PROB, chi2_gate
 
     gate = chi2_gate(GATE_PROB, 2) if gate is None else float(gate)

@@ -1,4 +1,4 @@
-"""`envisat adapt`: teach the detector the look of a user's own frames from a cold start, with no labels (issue 40).
+"""`envisat adapt`: teach the detector the look of a user's own frames from a cold start, with no labels.
 
 The steps (one round; `rounds` repeats 2-5 from the last track):
 1. track the sequence cold with the given weights (pipelines/track.py `track_frames`): the 'before' run;
@@ -59,8 +59,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envisat_pose.config import InputError, check
-from envisat_pose.pipelines.track import TrackConfig
+from envisat_pose.camera_response import GAMMA_RANGE, LINEAR, SRGB, Response
+from envisat_pose.config import InputError, check, to_dict
+from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2
+from envisat_pose.io import STAGE_PREFIX, atomic_write_text, staged_folder
+from envisat_pose.out_dirs import check_out_dir, make_out_dir
+from envisat_pose.perception.calibrate import fit_cov_scale, nees_px
+from envisat_pose.perception.errormodel import SCALE_MIN_FRAMES, mean_se
+from envisat_pose.pipelines.build import tracker_filter
+from envisat_pose.pipelines.calibrate import collect_frames, flat_errors
+from envisat_pose.pipelines.camera_file import camera_look
+from envisat_pose.pipelines.edge_look import estimate_look
+from envisat_pose.pipelines.edge_range import correct_range, frame_scale, sequence_scale
+from envisat_pose.pipelines.onboard import chaser_function
+from envisat_pose.pipelines.pseudo_labels import corner_labels, label_record, label_sigma_px, smooth_track
+from envisat_pose.pipelines.track import TrackConfig, prepare_frames, track_frames
 from envisat_pose.status import TRACKING
 
 OUTPUTS = ("detector.safetensors", "detector.json", "report.json")
@@ -201,8 +214,6 @@ def track_run_labels(run_dir: str, camera, orbit, q_sigma, dyn: dict, cut: int, 
     `cut` whose largest corner sigma is below cfg.max_label_sigma_px, at most cfg.max_labels of them evenly
     spread. Returns {frames (N,) int, x (N, 12) their smoothed states, sigma_px (N,) the largest corner sigma,
     trusted: all trusted frames before cut}; label_record(x[i], camera) labels frame i."""
-    from envisat_pose.pipelines.onboard import chaser_function
-    from envisat_pose.pipelines.pseudo_labels import label_sigma_px, smooth_track
 
     with np.load(os.path.join(run_dir, "est.npz")) as est, np.load(os.path.join(run_dir, "det.npz")) as det:
         t_s, x_hat, P, status = est["t_s"], est["x_hat"][0], est["P"][0], est["status"][0]
@@ -232,8 +243,6 @@ def edge_corrected(x: np.ndarray, images: list[np.ndarray], camera, mode: str, m
     the used corners from their centroid) and the factor applied per frame (1: none)). light, blur_px: the
     frames' response and PSF sigma (px) the edges are located with (edge_range.edge_stations; None: as stored,
     the default reach)."""
-    from envisat_pose.pipelines.edge_range import correct_range, frame_scale, sequence_scale
-    from envisat_pose.pipelines.pseudo_labels import corner_labels
 
     lab = corner_labels(x, camera)
     use = lab["visible"] & lab["in_frame"]
@@ -264,9 +273,6 @@ def frames_look(x: np.ndarray, images: list[np.ndarray], camera, given: tuple) -
     estimate's record), given: which came from the file, alternatives: the responses the edges are read under
     too, what the estimate leaves open (its power GAMMA_EST_SD either side, or for a response without a measured
     power the other named curve; none when the response was given)}."""
-    from envisat_pose.camera_response import GAMMA_RANGE, LINEAR, SRGB, Response
-    from envisat_pose.pipelines.edge_look import estimate_look
-    from envisat_pose.pipelines.pseudo_labels import corner_labels
 
     response, psf = given
     pick = calibration_frames(len(images), LOOK_FRAMES)
@@ -419,11 +425,8 @@ def recalibrate(weights: str, images: list[np.ndarray], labels: list[dict], bar=
     quantity the error model's bias_scale holds). {scale, corners, mean_nees_before (at the file's scale),
     apparent_scale, apparent_scale_se, apparent_scale_frames}; scale None when fewer than 20 corners matched,
     apparent_scale None below SCALE_MIN_FRAMES frames with one."""
-    from envisat_pose.perception.calibrate import fit_cov_scale, nees_px
     from envisat_pose.perception.data import decode_label
     from envisat_pose.perception.detect import DetectConfig, load_detector, weights_cov_scale
-    from envisat_pose.perception.errormodel import SCALE_MIN_FRAMES, mean_se
-    from envisat_pose.pipelines.calibrate import collect_frames, flat_errors
 
     det = load_detector(weights, config=dataclasses.replace(DetectConfig(), cov_scale=1.0, refine=False,
                                                             refine_cov_floor_px2=0.0))
@@ -481,10 +484,6 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
     scale was not adopted: disagreement; else None), before, after (track_figures), rounds
     (per round: labels, fine-tune, calibration), source, timing_s}. InputError (one line) when the first part
     holds fewer than cfg.min_trusted labelled frames; nothing is written then."""
-    from envisat_pose.io import staged_folder
-    from envisat_pose.pipelines.camera_file import camera_look
-    from envisat_pose.pipelines.track import prepare_frames
-    from envisat_pose.runner import check_out_dir, make_out_dir
 
     check_out_dir(out_dir, field="out_dir")
     look = camera_look(camera) if isinstance(camera, str) else (None, None)
@@ -500,8 +499,6 @@ def _replace_dirs(out_dir: str, stage: str) -> None:
     """Make room for the staged before/ and after/ folders: an earlier run's go to a folder removed at once."""
     import shutil
     import tempfile
-
-    from envisat_pose.io import STAGE_PREFIX
 
     old = [d for d in RUN_DIRS if os.path.isdir(os.path.join(out_dir, d))]
     if old:
@@ -535,8 +532,6 @@ def smoother_model(tcfg: TrackConfig) -> tuple[tuple, dict]:
     """The filter's model as the tracker builds it (pipelines/tracker.Tracker), for the smoother: q_sigma, each
     component the larger of the filter's and the detector's (tracker.noise.detector_q_sigma), and the dynamics
     (J_T, mu_m3_s2, gravity_gradient, max_step_s). Nothing of the detector is needed."""
-    from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2
-    from envisat_pose.pipelines.build import tracker_filter
 
     fcfg = tracker_filter(dataclasses.asdict(tcfg.filter))
     q = tuple(max(a, b) for a, b in zip(fcfg.q_sigma, tcfg.tracker.noise.detector_q_sigma))
@@ -561,7 +556,6 @@ def label_step(run: AdaptRun, track_dir: str) -> tuple[dict, list[np.ndarray]]:
     """Step 2-3: the labelled frames of a track run (track_run_labels), their images, their states corrected by
     the silhouette edges (edge_corrected) and labelled there. Returns (lab with 'labels' and 'edges' added,
     images); InputError (one line) below cfg.min_trusted labelled frames."""
-    from envisat_pose.pipelines.pseudo_labels import label_record
 
     cfg = run.cfg
     lab = track_run_labels(track_dir, run.camera, run.tcfg.orbit, run.q_sigma, run.dyn, run.cut, cfg)
@@ -689,7 +683,6 @@ def adapt_round(run: AdaptRun, r: int, track_dir: str, weights: str, seed: np.ra
     candidate round-r.safetensors into the stage and track with it (into after/ on the last round, round-r/
     before). Returns (the round's record, the candidate's path; None when the fine-tune diverged: the record
     says so and nothing was tracked)."""
-    from envisat_pose.pipelines.track import track_frames
 
     cfg, t1 = run.cfg, time.perf_counter()
     lab, images = label_step(run, track_dir)
@@ -726,8 +719,6 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
     weights, the earlier round's files removed), the held-out verdict (worse_reason), _finish."""
     import shutil
 
-    from envisat_pose.pipelines.track import track_frames
-
     t0 = time.perf_counter()
     T = len(source.t_s)
     run = AdaptRun(cfg, tcfg, source, camera, remap, stage, progress, int(np.floor(T * (1.0 - cfg.held_out))),
@@ -760,8 +751,6 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
 
 def _finish(cfg, tcfg, source, stage, command, before, after, rounds, timing, t0, reason) -> dict:
     """Write report.json and the model card detector.json into the stage; the report."""
-    from envisat_pose.config import to_dict
-    from envisat_pose.io import atomic_write_text
 
     for f in os.listdir(stage):
         if f.startswith("round-"):

@@ -15,8 +15,11 @@ import dataclasses
 
 import numpy as np
 
+from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.filtering.estimator import FilterState
+from envisat_pose.gates import chi2_bound
 from envisat_pose.pipelines.acquisition import NAMINGS, naming_log_likelihood, renamed
+from envisat_pose.state import MRP
 
 
 def select_runs(state: FilterState, idx: np.ndarray) -> FilterState:
@@ -71,7 +74,6 @@ def frame_discriminates(nis: np.ndarray, dof: np.ndarray, prob: float) -> bool:
     contradicts them all (a detector error the model does not hold: a corner on the boom's edge, a wrong naming
     of one corner), and the differences between their NIS are then the error's, not evidence for one twin
     (three such frames, NIS 29-51 on 12 dof for both, once gave the wrong twin 3.4 nats; docs/history.md)."""
-    from envisat_pose.gates import chi2_bound
 
     nis, dof = np.asarray(nis, float), np.asarray(dof)
     ok = dof > 0
@@ -83,8 +85,6 @@ def frame_discriminates(nis: np.ndarray, dof: np.ndarray, prob: float) -> bool:
 def same_array_end(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """(H,) bool: each hypothesis of x (H, 12) puts the solar array (T's -x end) at the same end of the body as
     the state ref (12,): its long axis points the same way in C (the x half-turn keeps it, y and z reverse it)."""
-    from envisat_pose.attitude import mrp_to_dcm
-    from envisat_pose.state import MRP
 
     x_axis_C = mrp_to_dcm(np.asarray(x)[:, MRP])[:, 0, :]  # Gamma = T_from_C: its first row is T's x in C
     return x_axis_C @ mrp_to_dcm(np.asarray(ref)[MRP])[0] > 0.0

@@ -11,7 +11,13 @@ from __future__ import annotations
 
 import dataclasses
 
+from envisat_pose import geometry, named_scenarios
+from envisat_pose.config import from_dict, to_dict
+from envisat_pose.datagen.scenario import OrbitConfig, scenario_config
 from envisat_pose.filtering.estimator import FilterConfig
+from envisat_pose.pipelines.camera_file import camera_from_intrinsics
+from envisat_pose.pipelines.onboard import chaser_function
+from envisat_pose.pipelines.tracker_config import TRACKER_FILTER
 
 
 def tracker_filter(overrides: FilterConfig | dict | None = None, scenario: str | None = None) -> FilterConfig:
@@ -19,13 +25,9 @@ def tracker_filter(overrides: FilterConfig | dict | None = None, scenario: str |
     scenario's [filter] table) with the fields a user gives: a dict sets exactly its keys; a FilterConfig sets the
     fields whose values differ from FilterConfig()'s defaults (to set a field back to FilterConfig's own default,
     give a dict)."""
-    from envisat_pose.config import from_dict, to_dict
-    from envisat_pose.pipelines.tracker_config import TRACKER_FILTER
 
     base = dict(TRACKER_FILTER)
     if scenario is not None:
-        from envisat_pose import named_scenarios
-
         base.update(named_scenarios.scenario_tables(scenario).get("filter", {}))
     if overrides is None:
         given = {}
@@ -46,11 +48,8 @@ def tracker_camera(path: str | None = None, size_px: tuple[int, int] | None = No
     height) when given: the same field of view), or a camera TOML file's ideal pinhole (fx, fy, cx, cy,
     width, height; frames with distortion or non-square pixels need pipelines.camera_file.camera_from_intrinsics'
     remap first)."""
-    from envisat_pose import geometry
 
     if path is not None:
-        from envisat_pose.pipelines.camera_file import camera_from_intrinsics
-
         return camera_from_intrinsics(path)[0]
     cam = geometry.load_camera()
     if size_px is not None and tuple(size_px) != (cam.width_px, cam.height_px):
@@ -68,7 +67,6 @@ def tracker_detector(weights: str | None = None, device: str = "cpu"):
 
 def scenario_orbit(scenario: str = "default"):
     """The chaser's Keplerian orbit (datagen's OrbitConfig) of a named scenario."""
-    from envisat_pose.datagen.scenario import scenario_config
 
     return scenario_config(scenario).orbit
 
@@ -76,9 +74,6 @@ def scenario_orbit(scenario: str = "default"):
 def chaser_from_orbit(orbit=None, scenario: str = "default"):
     """chaser_at(t_s) -> (4,) the chaser's polar orbit (r_m, rdot_m_s, theta_rad, thetadot_rad_s) from its
     Keplerian elements (datagen's OrbitConfig, or a dict of its fields; None: the named scenario's orbit)."""
-    from envisat_pose.config import from_dict
-    from envisat_pose.datagen.scenario import OrbitConfig
-    from envisat_pose.pipelines.onboard import chaser_function
 
     if orbit is None:
         orbit = scenario_orbit(scenario)

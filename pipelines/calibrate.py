@@ -20,7 +20,15 @@ import os
 from dataclasses import dataclass
 
 from envisat_pose.config import InputError, check
+from envisat_pose.datagen.generate_config import nest_moved_keys
+from envisat_pose.datagen.target_model import require_envisat_dataset
+from envisat_pose.geometry import load_geometry
+from envisat_pose.out_dirs import check_out_file, make_out_file_dir
+from envisat_pose.perception import errormodel as em
+from envisat_pose.perception.calibrate import calibration_by_group, fit_cov_scale, fit_floor
+from envisat_pose.pipelines.detect import camera_samples
 from envisat_pose.provenance import dataset_ref
+from envisat_pose.shard_reader import checked_shards
 
 
 @dataclass(frozen=True)
@@ -55,7 +63,6 @@ def collect_frames(detector, samples, limit: int | None = None, bar=None, roi: s
     'labels': detect in the labels' region of interest."""
     import numpy as np
 
-    from envisat_pose.perception import errormodel as em
     from envisat_pose.perception import evaluate as ev
 
     rows = {k: [] for k in ("key", "err_px", "cov_px", "group", "scale", "radial_px", "refined", "R_cam_from_target")}
@@ -122,8 +129,6 @@ def is_sequence(path: str) -> bool:
 def frame_interval_s(path: str) -> float:
     """A sequence dataset's frame interval, s (its manifest's config)."""
     with open(os.path.join(path, "manifest.json")) as fh:
-        from envisat_pose.datagen.generate_config import nest_moved_keys
-
         return float(nest_moved_keys(json.load(fh)["config"]).get("sequence", {}).get("frame_dt_s", 1.0))
 
 
@@ -142,8 +147,6 @@ def data_shards(data: list[str], skip_damaged: bool, field: str = "data") -> tup
     """Each folder's shard files, checked against its manifest (shard_reader.checked_shards), and the damaged ones
     left out as 'folder/shard' (skip_damaged; else a damaged shard is one InputError). A sequence with a shard
     left out is refused: its frame-to-frame error model needs consecutive frames."""
-    from envisat_pose.datagen.target_model import require_envisat_dataset
-    from envisat_pose.shard_reader import checked_shards
 
     paths, skipped = {}, []
     for d in data:
@@ -171,12 +174,8 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
     import numpy as np
     from tqdm import tqdm
 
-    from envisat_pose.out_dirs import check_out_file, make_out_file_dir
-    from envisat_pose.perception import errormodel as em
-    from envisat_pose.perception.calibrate import calibration_by_group, fit_cov_scale, fit_floor
     from envisat_pose.perception.detect import DetectConfig, load_detector
     from envisat_pose.perception.weights import with_metadata
-    from envisat_pose.pipelines.detect import camera_samples
 
     check_out_file(out, "out")
     paths, skipped = data_shards(data, cfg.skip_damaged)
@@ -240,12 +239,9 @@ def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, l
     without the shards that do not match their manifest (named in the record). Returns the record."""
     from tqdm import tqdm
 
-    from envisat_pose.geometry import load_geometry
-    from envisat_pose.out_dirs import check_out_file, make_out_file_dir
     from envisat_pose.perception import facecue as fc
     from envisat_pose.perception.naming import face_windings
     from envisat_pose.perception.weights import with_metadata
-    from envisat_pose.pipelines.detect import camera_samples
 
     check_out_file(out, "out")
     paths, skipped = data_shards(data, skip_damaged)

@@ -43,10 +43,11 @@ import time
 from typing import TYPE_CHECKING
 
 from envisat_pose.config import to_dict, to_toml
-from envisat_pose.io import sha256_file
+from envisat_pose.io import atomic_write_text, sha256_file
 from envisat_pose.pipelines.campaign_block import block_name, block_task
 from envisat_pose.pipelines.campaign_config import MonteCarloConfig, check_filter_rate, truth_scenario, with_eclipse
 from envisat_pose.pipelines.campaign_outputs import FIGURES, finish_campaign, write_recording
+from envisat_pose.resumable import ResumableJob
 
 # the entry points, and the parts' names the verb (app/montecarlo.py) and users import from here
 __all__ = ["run_campaign", "campaign_job", "prepare_truth", "MANIFEST_FORMAT", "MonteCarloConfig", "with_eclipse",
@@ -62,7 +63,6 @@ def campaign_job(cfg: MonteCarloConfig, out_dir: str) -> ResumableJob:
     """The campaign in out_dir as the core's resumable job: one unit per block, the config as its identity, a
     block kept on resume only when its sha256 matches and it covers the runs the config gives it (the truth's
     sha256 goes in the header once the truth is known)."""
-    from envisat_pose.resumable import ResumableJob
 
     return ResumableJob(out_dir, MANIFEST_FORMAT, "campaign", {"config": to_dict(cfg)}, "blocks", cfg.n_blocks,
                         block_name, header={"n_blocks": cfg.n_blocks},
@@ -82,7 +82,6 @@ def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, pr
 
 def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner, progress: bool = False) -> dict:
     """Run (or finish) the campaign of cfg in out_dir and write its outputs. Returns summary.json's dict."""
-    from envisat_pose.io import atomic_write_text
 
     t_start = time.perf_counter()
     check_filter_rate(cfg, truth_scenario(cfg))

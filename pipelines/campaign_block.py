@@ -12,10 +12,28 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from envisat_pose.analysis.stats import (
+    CampaignSums,
+    RunAccumulator,
+    block_error_norms,
+    component_errors,
+    reduce_runs,
+    settled,
+)
 from envisat_pose.config import from_dict
-from envisat_pose.filtering.montecarlo import MeasurementConfig
-from envisat_pose.io import sha256_file
+from envisat_pose.contracts import TruthTrajectory
+from envisat_pose.filtering.estimator import (
+    Measurement,
+    chaser_states,
+    diverged_against_truth,
+    filter_step,
+    init_state,
+    make_setup,
+)
+from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
+from envisat_pose.io import save_npz, sha256_file
 from envisat_pose.pipelines.campaign_config import MonteCarloConfig
+from envisat_pose.pipelines.onboard import onboard_physics
 from envisat_pose.state import N_STATE
 
 CHUNK_STEPS = 200  # filter steps per reduction chunk: bounds the covariances held to R x 200 x 144 floats
@@ -41,10 +59,6 @@ class CampaignTruth:
 
 def load_campaign_truth(out_dir: str, mcfg: MeasurementConfig) -> CampaignTruth:
     """DIR/truth.npz sampled at the filter's rate, with its noise-free measurements."""
-    from envisat_pose.contracts import TruthTrajectory
-    from envisat_pose.filtering.estimator import chaser_states
-    from envisat_pose.filtering.montecarlo import filter_stride, truth_measurements
-    from envisat_pose.pipelines.onboard import onboard_physics
 
     path = os.path.join(out_dir, "truth.npz")
     truth = TruthTrajectory.load(path)
@@ -60,7 +74,6 @@ def load_campaign_truth(out_dir: str, mcfg: MeasurementConfig) -> CampaignTruth:
 def block_task(out_dir: str, cfg_json: str, b: int) -> dict:
     """Runner task: filter and reduce block b of the campaign in out_dir, write blocks/block-NNNN.npz
     atomically, return its manifest entry {index, run_start, run_stop, file, sha256, wall_s}."""
-    from envisat_pose.io import save_npz
 
     t0 = time.perf_counter()
     cfg = from_dict(MonteCarloConfig, json.loads(cfg_json))
@@ -76,15 +89,6 @@ def filter_block(tr: CampaignTruth, cfg: MonteCarloConfig, run_start: int, run_s
     """Filter runs [run_start, run_stop) and reduce them chunk by chunk. Returns the block file's arrays:
     CampaignSums.to_arrays() (over all T steps), run_<key> per-run summaries (stats.RunSummary fields over the
     settled steps), sample_err (S, T, 12) and sample_norms (S, T, 4) of the block's runs below sample_runs."""
-    from envisat_pose.analysis.stats import RunAccumulator, block_error_norms, component_errors
-    from envisat_pose.filtering.estimator import (
-        Measurement,
-        diverged_against_truth,
-        filter_step,
-        init_state,
-        make_setup,
-    )
-    from envisat_pose.filtering.montecarlo import make_run_inputs
 
     fcfg, n = cfg.filter, run_stop - run_start
     inp = make_run_inputs(tr.x_true[0], tr.t_s, tr.z_true, tr.base, cfg.measurement, fcfg.P0, cfg.seed, n,
@@ -118,14 +122,11 @@ def filter_block(tr: CampaignTruth, cfg: MonteCarloConfig, run_start: int, run_s
 
 
 def _reduce_chunk(x_true, x_hat, P, nis, dof):
-    from envisat_pose.analysis.stats import reduce_runs
-
     return reduce_runs(x_true, x_hat, P, nis, dof, np.zeros(x_hat.shape[0], dtype=bool))
 
 
 def _join_chunks(sums: list, run_start: int, run_stop: int, diverged: np.ndarray) -> dict:
     """CampaignSums arrays of consecutive time chunks of the same runs, joined along time."""
-    from envisat_pose.analysis.stats import CampaignSums
 
     joined = CampaignSums(run_start, run_stop, run_stop - run_start,
                           **{k: np.concatenate([getattr(s, k) for s in sums]) for k in CampaignSums.ARRAYS},
@@ -135,7 +136,6 @@ def _join_chunks(sums: list, run_start: int, run_stop: int, diverged: np.ndarray
 
 def settled_mask(t_s: np.ndarray, settle_s: float) -> np.ndarray:
     """(T,) bool: the steps at or after t_s[0] + settle_s (stats.settled)."""
-    from envisat_pose.analysis.stats import settled
 
     return settled(np.asarray(t_s), settle_s)
 
@@ -143,8 +143,6 @@ def settled_mask(t_s: np.ndarray, settle_s: float) -> np.ndarray:
 def filter_run_history(tr: "CampaignTruth", cfg: MonteCarloConfig, run: int) -> tuple[np.ndarray, np.ndarray]:
     """Run `run` of the campaign filtered alone, as filter_block filters it: its means (T, 12) and covariances
     (T, 12, 12) after every step."""
-    from envisat_pose.filtering.estimator import Measurement, filter_step, init_state, make_setup
-    from envisat_pose.filtering.montecarlo import make_run_inputs
 
     fcfg = cfg.filter
     inp = make_run_inputs(tr.x_true[0], tr.t_s, tr.z_true, tr.base, cfg.measurement, fcfg.P0, cfg.seed, 1,

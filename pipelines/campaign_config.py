@@ -9,8 +9,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from envisat_pose.config import ConfigError, check, resolve_job_config
+from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.filtering.estimator import FilterConfig
-from envisat_pose.filtering.montecarlo import MeasurementConfig
+from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride
+from envisat_pose.pipelines.estimate import eclipse_outages, with_outages
 from envisat_pose.pipelines.job_defaults import fill_from_scenario, scenario_defaults
 
 
@@ -85,15 +87,12 @@ def with_eclipse(cfg: MonteCarloConfig) -> MonteCarloConfig:
     (pipelines.estimate.eclipse_outages)."""
     import dataclasses
 
-    from envisat_pose.pipelines.estimate import eclipse_outages, with_outages
-
     windows = eclipse_outages(cfg.scenario, truth_scenario(cfg))
     return dataclasses.replace(cfg, measurement=with_outages(cfg.measurement, windows))
 
 
 def truth_scenario(cfg: MonteCarloConfig):
     """The validated ScenarioConfig of the campaign's truth (the filter's rate above 1 Hz refines its step)."""
-    from envisat_pose.datagen.scenario import scenario_config
 
     overrides: dict = {"seed": cfg.seed, "duration_s": cfg.duration_s}
     if cfg.measurement.rate_hz > 1.0:
@@ -103,7 +102,6 @@ def truth_scenario(cfg: MonteCarloConfig):
 
 def check_filter_rate(cfg: MonteCarloConfig, scenario) -> None:
     """The filter's period must be a whole number of the truth's sample steps (before any work)."""
-    from envisat_pose.filtering.montecarlo import filter_stride
 
     try:
         filter_stride(np.array([0.0, scenario.dt_s]), cfg.measurement.rate_hz)

@@ -8,8 +8,14 @@ import os
 
 import numpy as np
 
+from envisat_pose.analysis.pcrlb import block_bounds, efficiency, pcrlb_along_truth
+from envisat_pose.analysis.stats import CampaignSums, SumsFolder, campaign_summary, finalize
 from envisat_pose.config import to_dict
-from envisat_pose.io import json_safe
+from envisat_pose.contracts import TruthTrajectory
+from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2, propagate
+from envisat_pose.filtering.measurements import limit_markers, measure, outage_mask
+from envisat_pose.geometry import load_camera
+from envisat_pose.io import atomic_write_text, json_safe, save_npz
 from envisat_pose.pipelines.campaign_block import (
     CampaignTruth,
     block_name,
@@ -31,7 +37,6 @@ def load_block(path: str) -> dict:
 
 def merge_blocks(cfg: MonteCarloConfig, out_dir: str):
     """Fold the block files in run-index order. Returns (CampaignSums, per-run dict, sample_err, sample_norms)."""
-    from envisat_pose.analysis.stats import CampaignSums, SumsFolder
 
     folder, runs, s_err, s_norm = SumsFolder(), {k: [] for k in RUN_KEYS}, [], []
     for b in range(cfg.n_blocks):
@@ -49,10 +54,6 @@ def campaign_pcrlb(cfg: MonteCarloConfig, tr: CampaignTruth) -> np.ndarray:
     """PCRLB per block (T, 4) along the truth, with the corners the truth lets the filter measure at each step
     (visible, in frame for pixels, outside outages, at most max_markers; random failures are not modelled), the
     filter's P0, the measurement noise of the config and the truth's process noise (none). Statistics' units."""
-    from envisat_pose.analysis.pcrlb import block_bounds, pcrlb_along_truth
-    from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2, propagate
-    from envisat_pose.filtering.measurements import limit_markers, measure, outage_mask
-    from envisat_pose.geometry import load_camera
 
     mcfg, J_T, camera = cfg.measurement, load_inertia_T_kg_m2(), load_camera()
     dt_s = 1.0 / mcfg.rate_hz
@@ -70,9 +71,6 @@ def campaign_pcrlb(cfg: MonteCarloConfig, tr: CampaignTruth) -> np.ndarray:
 
 def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
     """Merge the blocks, compute the PCRLB, write campaign.npz, summary.json and the figures."""
-    from envisat_pose.analysis.pcrlb import efficiency
-    from envisat_pose.analysis.stats import campaign_summary, finalize
-    from envisat_pose.io import atomic_write_text, save_npz
 
     sums, runs, sample_err, sample_norms = merge_blocks(cfg, out_dir)
     tr = load_campaign_truth(out_dir, cfg.measurement)
@@ -125,7 +123,6 @@ def write_recording(cfg: MonteCarloConfig, out_dir: str, path: str) -> None:
     again, keeping its means and covariances: it draws what the campaign drew), the sample runs' errors and the
     campaign's bands from campaign.npz."""
     from envisat_pose.analysis.recording import write_campaign_recording
-    from envisat_pose.contracts import TruthTrajectory
 
     tr = load_campaign_truth(out_dir, cfg.measurement)
     x_hat, P = filter_run_history(tr, cfg, 0)

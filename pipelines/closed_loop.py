@@ -33,13 +33,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import to_dict
+from envisat_pose.attitude import mrp_to_dcm
+from envisat_pose.config import to_dict, to_toml
+from envisat_pose.contracts import TruthTrajectory
+from envisat_pose.datagen.factory import draw_corruption_params, with_look
+from envisat_pose.datagen.scenario import scenario_config
+from envisat_pose.datagen.views import sample_seed, unit
+from envisat_pose.geometry import load_camera
+from envisat_pose.io import atomic_write_text, staged_folder
+from envisat_pose.out_dirs import make_out_dir
 from envisat_pose.pipelines.frame_loop import FrameInput, run_frames
 from envisat_pose.pipelines.onboard import chaser_function, onboard_physics, orbit_config
 from envisat_pose.pipelines.rows import STAGES, RunRows
 from envisat_pose.pipelines.run_config import RunConfig, finish_config, run_config_from_json, sun_and_shadow
 from envisat_pose.pipelines.run_files import lost_runs, plot_inputs, score_run_files, write_run_files
-from envisat_pose.state import MRP, POS
+from envisat_pose.pipelines.tracker import Tracker
+from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
+from envisat_pose.realtime import real_time_factor
+from envisat_pose.state import MRP, POS, draw_initial_estimate
 
 # The config (pipelines/run_config.py), the on-board physics and orbit (pipelines/onboard.py), the per-frame
 # row store (pipelines/rows.py) and the runs' files read back (pipelines/run_files.py) have their own modules:
@@ -52,7 +63,6 @@ from envisat_pose.state import MRP, POS
 
 def run_truth(cfg: RunConfig, progress: bool = False):
     """The MuJoCo truth of the run on the frame grid (datagen.truth.simulate_truth, as `envisat simulate`)."""
-    from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.datagen.truth import simulate_truth
 
     scen = scenario_config(cfg.scenario, duration_s=cfg.duration_s, dt_s=1.0 / cfg.rate_hz, seed=cfg.seed)
@@ -65,7 +75,6 @@ def run_truth(cfg: RunConfig, progress: bool = False):
 
 def run_camera(resolution_px: int):
     """The MJCF's chaser_cam read out at resolution_px (square): the same field of view and mount."""
-    from envisat_pose.geometry import load_camera
 
     cam = load_camera()
     return cam if resolution_px == cam.width_px else cam.scaled(resolution_px, resolution_px)
@@ -85,16 +94,9 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     import cv2
     import torch
 
-    from envisat_pose.attitude import mrp_to_dcm
-    from envisat_pose.contracts import TruthTrajectory
     from envisat_pose.datagen.corrupt import apply_corruption
-    from envisat_pose.datagen.factory import draw_corruption_params, with_look
     from envisat_pose.datagen.render import View, shared_renderer
-    from envisat_pose.datagen.views import sample_seed, unit
-    from envisat_pose.geometry import load_camera
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.pipelines.tracker import Tracker
-    from envisat_pose.state import draw_initial_estimate
 
     cfg = run_config_from_json(cfg_json)
     gcfg = cfg.image
@@ -185,8 +187,6 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
     folder) chunk by chunk; est.npz and det.npz are streamed from those files (then removed) and the scores read
     them chunk by chunk (what stays whole: the truth, and a few scalars per frame: the errors the scores need
     and the status)."""
-    from envisat_pose.io import staged_folder
-    from envisat_pose.out_dirs import make_out_dir
 
     cfg = finish_config(cfg)  # idempotent: a RunConfig a user builds runs as the app's does
     make_out_dir(out_dir, parents=True, field="out_dir")
@@ -197,11 +197,6 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
 
 def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | None) -> dict:
     import shutil
-
-    from envisat_pose.config import to_toml
-    from envisat_pose.io import atomic_write_text
-    from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
-    from envisat_pose.realtime import real_time_factor
 
     paths = run_output_paths(out_dir)
     wall0 = time.perf_counter()

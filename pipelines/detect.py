@@ -12,6 +12,11 @@ import json
 from dataclasses import dataclass
 
 from envisat_pose.config import InputError, check
+from envisat_pose.contracts import Detections
+from envisat_pose.datagen.target_model import require_envisat_dataset
+from envisat_pose.io import save_npz
+from envisat_pose.out_dirs import check_out_file, make_out_file_dir
+from envisat_pose.shard_reader import checked_shards
 
 
 @dataclass(frozen=True)
@@ -75,10 +80,7 @@ def detect_dataset(cfg: DetectJobConfig, data: str, progress: bool = False) -> d
     import numpy as np
     from tqdm import tqdm
 
-    from envisat_pose.contracts import Detections
-    from envisat_pose.datagen.target_model import require_envisat_dataset
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.shard_reader import checked_shards
 
     require_envisat_dataset(data, "data", "detect")
     paths, skipped = checked_shards(data, cfg.skip_damaged, "data")
@@ -119,10 +121,6 @@ def run_detect(cfg: DetectJobConfig, data: str, out: str, progress: bool = False
     """The whole job: detect_dataset, then det.npz written atomically at out, its folder made then (parents too):
     a run stopped before leaves nothing. Returns det.npz's arrays."""
     import numpy as np
-
-    from envisat_pose.contracts import Detections
-    from envisat_pose.io import save_npz
-    from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 
     check_out_file(out, "out")
     arrays = detect_dataset(cfg, data, progress)

@@ -1,4 +1,4 @@
-"""The image's own silhouette edges as a cue for range (issue 40): where the box's outline sits in a frame against
+"""The image's own silhouette edges as a cue for range: where the box's outline sits in a frame against
 the outline projected at a pose, fitted as a scale and a shift, and the pose's range corrected by that scale.
 
 Pure functions over numpy arrays (OpenCV for the bicubic samples); no I/O, no truth.

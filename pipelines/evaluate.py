@@ -21,6 +21,12 @@ import json
 import math
 import re
 
+from envisat_pose.config import InputError
+from envisat_pose.geometry import load_geometry
+from envisat_pose.io import atomic_write_text, json_safe
+from envisat_pose.out_dirs import check_out_file, make_out_file_dir
+from envisat_pose.shard_reader import read_shards
+
 METHODS = ("detector", "detector_no_lines", "harris", "shi_tomasi")
 
 
@@ -35,8 +41,6 @@ def read_poses(paths: list[str]) -> dict[str, tuple]:
     """{sample key: (R_cam_from_target (3, 3), t_cam_from_target_m (3,))} from the shards' labels (the
     perception reader keeps only what detection needs)."""
     import numpy as np
-
-    from envisat_pose.shard_reader import read_shards
 
     out = {}
     for _, key, members in read_shards(paths):
@@ -172,10 +176,6 @@ def evaluate_detector(weights: str, samples, poses: dict, json_path: str, *, dev
 
     from tqdm import tqdm
 
-    from envisat_pose.config import InputError
-    from envisat_pose.geometry import load_geometry
-    from envisat_pose.io import atomic_write_text, json_safe
-    from envisat_pose.out_dirs import check_out_file, make_out_file_dir
     from envisat_pose.perception.detect import DetectConfig, weights_cov_scale, weights_refine_floor
     from envisat_pose.perception.evaluate import corruption_groups
     from envisat_pose.perception.weights import load_model

@@ -24,7 +24,16 @@ import numpy as np
 
 from envisat_pose.config import InputError, check
 from envisat_pose.datagen import export_formats as fx
+from envisat_pose.datagen.generate_config import config_from_json
+from envisat_pose.datagen.target_mesh import ply_bytes, target_mesh
+from envisat_pose.datagen.target_model import load_target
+from envisat_pose.geometry import CORNER_NAMES, load_camera, load_geometry
+from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pipelines import export_layouts as lay
+from envisat_pose.pipelines.dataset_inputs import skip_hint
+from envisat_pose.pipelines.export_readme import readme_text
+from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
+from envisat_pose.shard_reader import checked_shards, read_shard
 
 STAGE_PREFIX = ".tmp-export-"
 
@@ -66,9 +75,6 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     on_shard(count): called after each shard (a progress hook). InputError for a bad argument, a missing or
     damaged dataset (naming the shard) or an `out_dir` that exists and holds anything."""
     from envisat_pose.datagen.dataset import load_manifest
-    from envisat_pose.pipelines.dataset_inputs import skip_hint
-    from envisat_pose.runner import check_out_dir
-    from envisat_pose.shard_reader import checked_shards
 
     cfg.validate()
     check(workers >= 1, "workers", workers, "at least 1")
@@ -112,8 +118,6 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
 
 
 def _generate_config(src: str, manifest: dict):
-    from envisat_pose.datagen.generate_config import config_from_json
-
     try:
         return config_from_json(json.dumps(manifest["config"]))
     except (KeyError, TypeError, ValueError) as err:
@@ -122,8 +126,6 @@ def _generate_config(src: str, manifest: dict):
 
 def _layout(cfg: ExportConfig, gen, src: str, manifest: dict) -> lay.Layout:
     """What every sample shares: the target's keypoints and model outline from its MJCF, the sequence's name."""
-    from envisat_pose.datagen.target_mesh import target_mesh
-    from envisat_pose.geometry import CORNER_NAMES, load_geometry
 
     target = _dataset_target(src, gen, manifest)
     path = target.path
@@ -141,7 +143,6 @@ def _layout(cfg: ExportConfig, gen, src: str, manifest: dict) -> lay.Layout:
 def _dataset_target(src: str, gen, manifest: dict):
     """The dataset's target (its config's `target` file; datasets written before it: ENVISAT), refused when the
     file's sha256 differs from the one its manifest recorded."""
-    from envisat_pose.datagen.target_model import load_target
 
     target = load_target(gen.target, "target")
     recorded = (manifest.get("target") or {}).get("sha256")
@@ -199,8 +200,6 @@ def _pixel_pitch_m(gen) -> float:
 
 def _write_static(layout: lay.Layout, stage: str, gen, manifest: dict, has_val: bool) -> None:
     """The files an export writes once: camera, model, keypoints, data.yaml, the folder's README."""
-    from envisat_pose.geometry import load_camera
-    from envisat_pose.pipelines.export_readme import readme_text
 
     n = gen.resolution_px
     K = load_camera().scaled(n, n).K
@@ -220,9 +219,6 @@ def _write_static(layout: lay.Layout, stage: str, gen, manifest: dict, has_val: 
 
 
 def _write_bop_model(layout: lay.Layout, stage: str, gen, K: np.ndarray) -> None:
-    from envisat_pose.datagen.target_mesh import ply_bytes, target_mesh
-    from envisat_pose.datagen.target_model import load_target
-
     mesh = target_mesh(load_target(gen.target).path, gen.appendages_on)
     folder = os.path.join(stage, "models")
     os.makedirs(folder, exist_ok=True)
@@ -257,8 +253,6 @@ def _run_shards(layout, stage, shards, counts, splits, workers, progress, on_sha
     """One task per shard on the local pool; a progress bar over the images."""
     from tqdm import tqdm
 
-    from envisat_pose.runner import RunnerConfig, run_tasks, thread_env
-
     starts = np.concatenate([[0], np.cumsum(counts)]).astype(int)
     tasks = [(asdict(layout), path, stage, k, int(starts[k]), splits[starts[k]:starts[k + 1]].tolist())
              for k, path in enumerate(shards)]
@@ -278,7 +272,6 @@ def export_shard(layout_dict: dict, path: str, stage: str, index: int, start: in
 
     from envisat_pose.datagen.dataset import sample_image, sample_png
     from envisat_pose.datagen.shards import decode_png
-    from envisat_pose.shard_reader import read_shard
 
     cv2.setNumThreads(1)
     layout = lay.Layout(**{**layout_dict, "keypoint_names": tuple(layout_dict["keypoint_names"])})

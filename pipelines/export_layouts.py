@@ -16,6 +16,7 @@ from typing import Iterator
 import numpy as np
 
 from envisat_pose.datagen import export_formats as fx
+from envisat_pose.geometry import EDGES
 
 RECORDS = ".records"
 BOP_SCENE_SIZE = 1000  # images per BOP scene in random mode (BOP's own PBR scenes hold 1000)
@@ -190,7 +191,6 @@ def _assemble_speedplus(layout: Layout, stage: str) -> dict[str, int]:
 def _assemble_coco(layout: Layout, stage: str, split: str) -> int:
     path = os.path.join(stage, "annotations", f"keypoints_{split}.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    from envisat_pose.geometry import EDGES
 
     category = {"id": 1, "name": layout.target, "supercategory": "spacecraft",
                 "keypoints": list(layout.keypoint_names), "skeleton": fx.coco_skeleton(EDGES) if layout.target == "envisat" else [],

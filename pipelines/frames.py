@@ -22,6 +22,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envisat_pose.config import InputError
+from envisat_pose.datagen.generate_config import nest_moved_keys
+from envisat_pose.datagen.target_model import require_envisat_dataset
+from envisat_pose.shard_reader import checked_shards
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 BIT_DEPTHS = (8, 10, 12, 14, 16)
@@ -315,9 +318,6 @@ def dataset_source(path: str, skip_damaged: bool = False) -> FrameSource:
     checked against the manifest (shard_reader.checked_shards: a damaged one refused, or left out with
     skip_damaged: its frames are then missing from the sequence, the times say where)."""
     from envisat_pose.datagen.dataset import iter_samples, load_manifest
-    from envisat_pose.datagen.generate_config import nest_moved_keys
-    from envisat_pose.datagen.target_model import require_envisat_dataset
-    from envisat_pose.shard_reader import checked_shards
 
     require_envisat_dataset(path, "src", "track` / `envisat adapt")
     manifest = load_manifest(path)

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from envisat_pose.filtering.measurements import to_camera_K
 from envisat_pose.gates import chi2_bound
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.state import MRP, POS, RATE, VEL
@@ -53,7 +54,6 @@ def target_radius_m(corners_T_m: np.ndarray) -> float:
 def state_problems(x: np.ndarray, P: np.ndarray, camera: PinholeCamera, radius_m: float, cfg) -> list[str]:
     """Why the state x (12,) with covariance P (12, 12) is not a physical track (empty when it is). cfg: the
     IntegrityConfig (min_target_px, max_rate_deg_s, max_speed_m_s, lost_pos_sigma_share, lost_att_sigma_deg)."""
-    from envisat_pose.filtering.measurements import to_camera_K
 
     if not (np.isfinite(x).all() and np.isfinite(P).all()):
         return ["the state or its covariance is not finite"]

@@ -21,7 +21,12 @@ from __future__ import annotations
 from typing import Any
 
 from envisat_pose.config import resolve_job_config
+from envisat_pose.datagen.scenario import ScenarioConfig
+from envisat_pose.pipelines.campaign_config import MonteCarloConfig
+from envisat_pose.pipelines.estimate import EstimateConfig
 from envisat_pose.pipelines.job_defaults import JOBS, scenario_defaults
+from envisat_pose.pipelines.run_config import RunConfig
+from envisat_pose.pipelines.track import TrackConfig
 
 
 def resolve_job(kind: str, scenario: str | None = "default", config_path: str | None = None,
@@ -32,7 +37,6 @@ def resolve_job(kind: str, scenario: str | None = "default", config_path: str | 
     Each job but simulate is its config class's `from_scenario`."""
     if kind in JOBS and kind != "simulate":
         return _config_class(kind).from_scenario(scenario, config_path, overrides, **fields)
-    from envisat_pose.datagen.scenario import ScenarioConfig
 
     defaults = scenario_defaults(kind, scenario)  # the truth's tables; no scenario or an unknown kind raises
     return resolve_job_config(ScenarioConfig, defaults, config_path, {**(overrides or {}), **fields})
@@ -40,17 +44,10 @@ def resolve_job(kind: str, scenario: str | None = "default", config_path: str | 
 
 def _config_class(kind: str) -> type:
     if kind == "estimate":
-        from envisat_pose.pipelines.estimate import EstimateConfig
-
         return EstimateConfig
     if kind == "montecarlo":
-        from envisat_pose.pipelines.campaign_config import MonteCarloConfig
-
         return MonteCarloConfig
     if kind == "track":
-        from envisat_pose.pipelines.track import TrackConfig
-
         return TrackConfig
-    from envisat_pose.pipelines.run_config import RunConfig
 
     return RunConfig

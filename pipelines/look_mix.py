@@ -16,7 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import check, to_dict
+from envisat_pose.config import check, flatten, from_dict, load_toml, resolve_job_config, to_dict, to_toml
+from envisat_pose.datagen.generate_config import GenerateConfig
 
 LOOK_PERIOD = 100  # a mix of looks repeats its order every LOOK_PERIOD frames: the weights in whole percent
 SEQUENCE_KEY = 0x5E0  # a sequence look's q-th sequence: seed SeedSequence([seed, SEQUENCE_KEY, q])
@@ -43,8 +44,6 @@ class WeightedLook:
     @classmethod
     def from_record(cls, record: dict, where: str = "looks") -> "WeightedLook":
         """A look from its record ({name, weight, generate} as record() writes it; ConfigError naming the field)."""
-        from envisat_pose.config import from_dict
-        from envisat_pose.datagen.generate_config import GenerateConfig
 
         check(isinstance(record, dict) and isinstance(record.get("name"), str), f"{where}.name",
               record.get("name") if isinstance(record, dict) else record, "a look's name (a string)")
@@ -57,8 +56,6 @@ def read_looks(path: str) -> tuple[WeightedLook, ...]:
     """The looks of a TOML file: each [[look]] table a name, a weight and the keys of `envisat generate
     --config` (mode 'random' unless given); keys outside the [[look]] tables are every look's defaults (a look's
     own win). InputError or ConfigError naming the file's field."""
-    from envisat_pose.config import flatten, load_toml, resolve_job_config
-    from envisat_pose.datagen.generate_config import GenerateConfig
 
     data = load_toml(path)
     entries = data.pop("look", None)
@@ -79,7 +76,6 @@ def read_looks(path: str) -> tuple[WeightedLook, ...]:
 
 def looks_toml(looks) -> str:
     """The looks as read_looks reads them back (each look's whole config)."""
-    from envisat_pose.config import to_toml
 
     return "".join("[[look]]\n" + to_toml(dict(name=look.name, weight=float(look.weight),
                                                 **to_dict(look.generate)), prefix="look.") + "\n"

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from envisat_pose.perception.errormodel import ErrorModel, memory_inflation, phi_at, phi_at_rotation
 from envisat_pose.state import MRP, POS
 
 CORRELATION_MODELS = ("filter_memory", "long_memory", "white")
@@ -23,7 +24,6 @@ POSE = np.r_[POS, MRP]  # the directions each frame measures: position and attit
 
 def detector_error_model(detector):
     """The detector's ErrorModel (`envisat calibrate`), or the white default when it has none."""
-    from envisat_pose.perception.errormodel import ErrorModel
 
     em = getattr(detector, "error_model", None)
     return em if isinstance(em, ErrorModel) else ErrorModel()
@@ -44,7 +44,6 @@ def ar1_at(em, kind: str, dt_s: float, rate_rad_s: float | None = None) -> tuple
     rotation fit in em, that of the angle turned in dt_s (phi_at_rotation), else the time fit; "slower": of the
     two, the one whose correlation lasts longer (the larger long-memory inflation a phi / (1 - phi)): the errors
     persist while the view has not turned (a slow tumble) and while the frames are close in time (a fast one)."""
-    from envisat_pose.perception.errormodel import phi_at, phi_at_rotation
 
     by_time = (em.ar1_share, phi_at(em.ar1_phi, em.corr_time_s, dt_s))
     if kind == "time" or rate_rad_s is None or em.corr_angle_rad <= 0.0:
@@ -61,7 +60,6 @@ def correlation_inflation(em, model: str, lam: float, dt_s: float, rate_rad_s: f
     """The factor on the detector's covariance for the errors' frame-to-frame correlation (module doc): the error
     model em's white + AR(1) errors at frame interval dt_s (s) for a filter of memory lam in [0, 1], the AR(1)
     part's coefficient as ar1_at(em, kind, dt_s, rate_rad_s) gives it (rate_rad_s: the view's rotation rate)."""
-    from envisat_pose.perception.errormodel import memory_inflation
 
     if model == "white":
         return 1.0

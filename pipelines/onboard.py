@@ -9,6 +9,8 @@ from typing import NamedTuple
 import numpy as np
 
 from envisat_pose.config import InputError, from_dict
+from envisat_pose.datagen.orbit import chaser_orbit
+from envisat_pose.datagen.scenario import ScenarioConfig
 
 
 class OnboardPhysics(NamedTuple):
@@ -38,7 +40,6 @@ def onboard_physics(truth, source: str = "the truth") -> OnboardPhysics:
 
 def orbit_config(truth_config: dict):
     """The chaser's Keplerian orbit (datagen's OrbitConfig) of a truth's config."""
-    from envisat_pose.datagen.scenario import ScenarioConfig
 
     return from_dict(ScenarioConfig, truth_config).orbit
 
@@ -46,7 +47,6 @@ def orbit_config(truth_config: dict):
 def chaser_function(orbit):
     """chaser_at(t_s) -> (4,) the chaser's polar orbit (r_m, rdot_m_s, theta_rad, thetadot_rad_s) from its
     Keplerian elements: what the chaser knows of itself on board."""
-    from envisat_pose.datagen.orbit import chaser_orbit
 
     def chaser_at(t_s: float) -> np.ndarray:
         o = chaser_orbit(orbit, np.array([float(t_s)]))

@@ -23,7 +23,9 @@ import json
 import numpy as np
 
 from envisat_pose.config import check, to_dict
+from envisat_pose.pipelines.device_pool import DevicePool
 from envisat_pose.pipelines.look_mix import as_looks, look_shares, max_side
+from envisat_pose.pipelines.render_pool import RenderPool
 
 ONLINE_FORMAT = "envisat-pose online v1"
 DEFAULT_USES_PER_FRAME = 8
@@ -96,8 +98,6 @@ def online_batches(looks, data_cfg, seed: int, batch_size: int, workers: int, de
     import torch
 
     from envisat_pose.perception import batch_augment
-    from envisat_pose.pipelines.device_pool import DevicePool
-    from envisat_pose.pipelines.render_pool import RenderPool
 
     looks = as_looks(looks)
     check(isinstance(batch_size, int) and batch_size >= 1, "batch_size", batch_size, "at least 1")

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from envisat_pose.datagen.factory import sample_arrays, sample_view
 from envisat_pose.pipelines.look_mix import (
     WeightedLook,
     as_looks,
@@ -38,6 +39,7 @@ from envisat_pose.pipelines.look_mix import (
     max_side,
     renderer_key,
 )
+from envisat_pose.pools import thread_env
 
 SLOTS_PER_WORKER = 4  # frames a worker may render ahead of the trainer
 WAIT_POLL_S = 1.0
@@ -51,7 +53,6 @@ def frame_sample(gen_cfg, frame: int) -> tuple[int, int]:
 def render_frame(renderer, gen_cfg, frame: int) -> tuple[np.ndarray, dict]:
     """Sample `frame` of gen_cfg's dataset, (image (H, W) uint8, label dict), nothing encoded; of a sequence-mode
     config, that frame of its sequence."""
-    from envisat_pose.datagen.factory import sample_arrays, sample_view
 
     shard, i = frame_sample(gen_cfg, frame)
     _, seed, rng, view, x, scene = sample_view(gen_cfg, shard, i, renderer.fovy_deg, renderer.znear_m,
@@ -110,7 +111,6 @@ def gl_environment(device_type: str, workers: int) -> dict[str, str]:
     """The renderer processes' environment: MUJOCO_GL (the caller's, else egl for a CUDA device, osmesa
     otherwise), EGL_PLATFORM surfaceless with egl, LP_NUM_THREADS (llvmpipe's threads) the machine's cores shared
     among the workers unless set."""
-    from envisat_pose.pools import thread_env
 
     env = {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl" if device_type == "cuda" else "osmesa")}
     if env["MUJOCO_GL"].lower() == "egl":

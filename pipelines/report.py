@@ -16,6 +16,8 @@ import math
 import os
 
 from envisat_pose.config import InputError, flatten
+from envisat_pose.io import atomic_write_text
+from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.pipelines.sweep import SWEEP_FIGURE
 from envisat_pose.state import BLOCKS
 
@@ -35,8 +37,6 @@ SWEEP_CAPTION = ("Rate sweep: settled RMSE per block (blue) and the PCRLB (black
 def write_report(dirs: list[str], out: str) -> dict:
     """The report over the campaign and rate-sweep folders `dirs`, written atomically to out (.html; its folder
     made when every input reads). Returns {"campaigns": n, "sweeps": n}. InputError naming `out` or the folder."""
-    from envisat_pose.io import atomic_write_text
-    from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 
     if not out.endswith((".html", ".htm")):
         raise InputError(f"out {out!r}: expected a path ending in .html")

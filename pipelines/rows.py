@@ -8,6 +8,7 @@ import os
 
 import numpy as np
 
+from envisat_pose.io import NpyRowWriter
 from envisat_pose.status import ACQUIRING, LOST, STATUSES
 
 # per-frame stages timed: the MuJoCo truth (its share per frame), MuJoCo rendering, the space camera, the detector,
@@ -74,8 +75,6 @@ class RunRows:
     Frames come in order: row(k) is frame k's row in `buf` (the chunk before it written out when full)."""
 
     def __init__(self, run_dir: str, T: int, chunk: int = CHUNK_FRAMES):
-        from envisat_pose.io import NpyRowWriter
-
         os.makedirs(run_dir, exist_ok=True)
         self.T, self.chunk, self.start, self.n = T, min(chunk, T), 0, 0
         self.buf = record_arrays(self.chunk)

@@ -12,7 +12,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from envisat_pose.config import check, from_dict, resolve_job_config
+from envisat_pose.datagen.generate_config import GenerateConfig
+from envisat_pose.datagen.orbit import chaser_orbit
+from envisat_pose.datagen.scenario import in_earth_shadow, scenario_config, scenario_eclipse
 from envisat_pose.filtering.estimator import FilterConfig
+from envisat_pose.geometry import load_camera
 from envisat_pose.pipelines.job_defaults import check_weights, fill_from_scenario, run_complete, scenario_defaults
 from envisat_pose.pipelines.onboard import orbit_config
 from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
@@ -26,8 +30,6 @@ DEFAULT_SUN_C0 = (0.7, -0.7, 0.15)
 
 
 def _image_defaults() -> "GenerateConfig":
-    from envisat_pose.datagen.generate_config import GenerateConfig
-
     return GenerateConfig(mode="sequence", num_images=1, shard_size=1, write_mask=False, write_depth=False)
 
 
@@ -74,8 +76,6 @@ class RunConfig:
         return finish_config(cfg)
 
     def validate(self, prefix: str = "") -> None:
-        from envisat_pose.geometry import load_camera
-
         check(self.duration_s > 0, "duration_s", self.duration_s, "a positive duration in s")
         check(0.0 < self.rate_hz <= 10.0, "rate_hz", self.rate_hz, "a rate in (0, 10] Hz")
         check(self.duration_s * self.rate_hz <= 200_000, "duration_s", self.duration_s,
@@ -98,7 +98,6 @@ RUN_FALLBACKS = {"duration_s": lambda: 600.0, "rate_hz": lambda: 1.0, "filter": 
 def run_stage_types() -> None:
     """Make the annotation "GenerateConfig" resolvable (typing.get_type_hints reads this module's globals): the
     image factory's config is a stage's type, imported when a run is configured, not when the CLI starts."""
-    from envisat_pose.datagen.generate_config import GenerateConfig
 
     globals()["GenerateConfig"] = GenerateConfig
 
@@ -106,8 +105,6 @@ def run_stage_types() -> None:
 def finish_config(cfg: RunConfig) -> RunConfig:
     """The image config's sequence fields from the run's (mode, scenario, seed, frames, frame period) and the sun
     made explicit (the scenario's [eclipse] sun, else DEFAULT_SUN_C0 at t = 0 turned into N)."""
-    from envisat_pose.datagen.orbit import chaser_orbit
-    from envisat_pose.datagen.scenario import scenario_config, scenario_eclipse
 
     n = n_frames(cfg)
     sun = cfg.image.sun_dir
@@ -137,8 +134,6 @@ def run_config_from_json(text: str) -> RunConfig:
 def sun_and_shadow(cfg: RunConfig, truth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per frame: sun_dir_C (N, 3) unit, eclipse (N,) bool (the chaser in the Earth's cylindrical shadow),
     nadir_C (N, 3) the Earth's centre from the chaser, m."""
-    from envisat_pose.datagen.orbit import chaser_orbit
-    from envisat_pose.datagen.scenario import in_earth_shadow
 
     orb = chaser_orbit(orbit_config(truth.config), truth.t_s)
     sun_N = np.asarray(cfg.image.sun_dir, dtype=float)

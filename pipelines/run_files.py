@@ -10,8 +10,12 @@ import os
 
 import numpy as np
 
+from envisat_pose.contracts import Detections, Estimates
+from envisat_pose.io import StreamedArray, npy_info, read_npy_rows, save_npz
 from envisat_pose.pipelines.outputs import no_estimate_nan
 from envisat_pose.pipelines.rows import CHUNK_FRAMES, DET_KEYS, EST_KEYS
+from envisat_pose.state import error_summary
+from envisat_pose.status import LOST, legend_json
 
 # the most frames errors.png draws per series: beyond it every k-th frame (a 13-inch figure at 100 dpi shows
 # ~400 px per panel; drawing every frame of a long run would hold every run's covariances at once)
@@ -20,14 +24,12 @@ PLOT_FRAMES = 7200
 
 def run_rows(run_dir: str, names, start: int, stop: int) -> dict:
     """Frames [start, stop) of a run's arrays `names` (RunRows' files), read from the files."""
-    from envisat_pose.io import read_npy_rows
 
     return {k: read_npy_rows(os.path.join(run_dir, f"{k}.npy"), start, stop) for k in names}
 
 
 def run_array(run_dirs: list[str], name: str, T: int):
     """The runs' array `name` stacked over runs, (R, T, ...), as an io.StreamedArray read chunk by chunk."""
-    from envisat_pose.io import StreamedArray, npy_info, read_npy_rows
 
     shape, dtype, _ = npy_info(os.path.join(run_dirs[0], f"{name}.npy"))
 
@@ -42,7 +44,6 @@ def run_array(run_dirs: list[str], name: str, T: int):
 def estimate_arrays(run_dirs: list[str], T: int) -> dict:
     """est.npz's per-run arrays (rows.EST_KEYS and status, each (R, T, ...)) streamed from the runs' files,
     x_hat and P NaN on rows without an estimate."""
-    from envisat_pose.io import StreamedArray
 
     est = {k: run_array(run_dirs, k, T) for k in EST_KEYS + ("status",)}
     for k in ("x_hat", "P"):
@@ -62,9 +63,7 @@ def score_run_files(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], pa
     each chunk is also checked as est.npz's and (run 0) det.npz's contracts check them on save (score False: only
     the checks, for x_true all NaN, no truth; returns None). Keeps only per-frame scalars (the errors, status)
     and the second half's estimates for the error summary."""
-    from envisat_pose.contracts import Detections, Estimates
     from envisat_pose.pipelines.scoring import frame_errors, score_frames, summary_after_s
-    from envisat_pose.state import error_summary
 
     T = len(t_s)
     errors, status = [], []
@@ -98,7 +97,6 @@ def score_run_files(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], pa
 
 def lost_runs(run_dirs: list[str], T: int) -> np.ndarray:
     """(R,) bool: the runs in which the tracker declared a frame lost (Estimates.diverged for tracker runs)."""
-    from envisat_pose.status import LOST
 
     return np.array([bool(np.any(run_rows(d, ["status"], 0, T)["status"] == LOST)) for d in run_dirs])
 
@@ -109,8 +107,6 @@ def write_run_files(paths: dict, t_s: np.ndarray, x_true: np.ndarray, run_dirs: 
     """est.npz (every run) and det.npz (run 0) streamed from the runs' files (their contracts checked chunk by
     chunk in score_run_files): the same bytes as Estimates.save / save_npz of the whole arrays. diverged (R,):
     Estimates.diverged; extra: more (R,) arrays for est.npz (Estimates.load ignores them)."""
-    from envisat_pose.io import StreamedArray, save_npz
-    from envisat_pose.status import legend_json
 
     T, R = len(t_s), len(run_dirs)
     est = estimate_arrays(run_dirs, T)  # status per row, NaN where no estimate

@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
+from envisat_pose.filtering.estimator import nees
 from envisat_pose.state import BLOCKS, POS, error_magnitudes, error_summary
 from envisat_pose.status import HAS_ESTIMATE, STATUSES, TRACKING
 
@@ -51,7 +52,6 @@ def frame_errors(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray) -> dict[s
     """Per frame (...): the error magnitudes (state.error_magnitudes), 'nees', 'range_error_m' (|rho_hat| - |rho|,
     m) and 'range_true_m' (|rho|, m) of x_true, x_hat (..., 12), P (..., 12, 12). Each frame's values depend on
     that frame alone, so a long run is scored chunk by chunk (concatenated along time) with the same numbers."""
-    from envisat_pose.filtering.estimator import nees
 
     x_true = np.broadcast_to(x_true, np.shape(x_hat))
     out = error_magnitudes(x_true, x_hat)

@@ -12,9 +12,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import check, to_dict, to_toml
-from envisat_pose.io import json_safe
-from envisat_pose.pipelines.campaign import MonteCarloConfig, run_campaign
+from envisat_pose.config import check, resolve_job_config, to_dict, to_toml
+from envisat_pose.io import atomic_write_text, json_safe
+from envisat_pose.named_scenarios import table
+from envisat_pose.out_dirs import make_out_dir
+from envisat_pose.pipelines.campaign import MonteCarloConfig, check_filter_rate, run_campaign, truth_scenario
+from envisat_pose.resumable import remove_partial_files
 from envisat_pose.state import BLOCKS
 
 SWEEP_FORMAT = "envisat-pose rate sweep v1"
@@ -49,9 +52,6 @@ def sweep_for(cfg: MonteCarloConfig, rates_hz=None, rate_given: bool = False) ->
     """The rate sweep of a campaign: its scenario's [sweep] table under rates_hz (None: the table's), validated,
     every rate's step checked against the truth's before any work; None when neither asks for one. rate_given:
     the caller set the campaign's single rate too (refused with a sweep: the sweep sets the rates)."""
-    from envisat_pose.config import resolve_job_config
-    from envisat_pose.named_scenarios import table
-    from envisat_pose.pipelines.campaign import check_filter_rate, truth_scenario
 
     defaults = table(cfg.scenario, "sweep")
     if not defaults and not rates_hz:
@@ -83,9 +83,6 @@ def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner, p
     (per rate: RMSE, PCRLB and RMSE/PCRLB per block, diverged share, mean NEES, converged) and rate_sweep.png.
     Returns sweep.json's dict."""
     from envisat_pose.analysis.campaign_figures import plot_rate_sweep
-    from envisat_pose.io import atomic_write_text
-    from envisat_pose.out_dirs import make_out_dir
-    from envisat_pose.resumable import remove_partial_files
 
     make_out_dir(out_dir)
     remove_partial_files(out_dir)

@@ -26,10 +26,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from envisat_pose.config import check, resolve_job_config
+from envisat_pose.config import check, resolve_job_config, to_dict, to_toml
+from envisat_pose.datagen.scenario import OrbitConfig
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
+from envisat_pose.io import atomic_write_text, staged_folder
+from envisat_pose.out_dirs import check_out_dir, make_out_dir
+from envisat_pose.pipelines.build import tracker_camera
 from envisat_pose.pipelines.camera_file import camera_from_intrinsics
+from envisat_pose.pipelines.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
 from envisat_pose.pipelines.frames import FrameSource, open_source, scan_source
 from envisat_pose.pipelines.job_defaults import (
     check_weights,
@@ -37,7 +42,12 @@ from envisat_pose.pipelines.job_defaults import (
     scenario_defaults,
     with_default_weights,
 )
-from envisat_pose.pipelines.tracker import TRACKER_FILTER, TrackerConfig
+from envisat_pose.pipelines.onboard import chaser_function
+from envisat_pose.pipelines.outputs import first_tracking_s, status_counts
+from envisat_pose.pipelines.rows import DET_KEYS, STAGES, RunRows
+from envisat_pose.pipelines.run_files import lost_runs, plot_inputs, run_rows, score_run_files, write_run_files
+from envisat_pose.pipelines.tracker import TRACKER_FILTER, Tracker, TrackerConfig
+from envisat_pose.realtime import real_time_factor
 from envisat_pose.status import STATUSES, legend
 
 if TYPE_CHECKING:  # the stage's type for annotations (track_stage_types resolves it at run time)
@@ -94,7 +104,6 @@ TRACK_FALLBACKS = {"orbit": lambda: OrbitConfig(), "gravity_gradient": lambda: F
 
 def track_stage_types() -> None:
     """Make the annotation "OrbitConfig" resolvable (a stage's type, imported when a job is configured)."""
-    from envisat_pose.datagen.scenario import OrbitConfig
 
     globals()["OrbitConfig"] = OrbitConfig
 
@@ -119,7 +128,6 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
     import dataclasses
 
     from envisat_pose.perception.weights import shipped_weights_path
-    from envisat_pose.pipelines.build import tracker_camera
 
     if isinstance(source, str):
         source = open_source(source, cfg.rate_hz)
@@ -145,8 +153,6 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     output (frames.scan_source: one size, decodable, at least the cold start's frames); every output is staged
     and moved into out_dir when complete (io.staged_folder). Returns the summary (its source's `pixels`: what
     the scan found of the pixels)."""
-    from envisat_pose.io import staged_folder
-    from envisat_pose.out_dirs import check_out_dir, make_out_dir
 
     check_out_dir(out_dir, field="out_dir")
     cfg, source, camera, remap, pixels = prepare_frames(cfg, source, camera, remap, progress)
@@ -163,14 +169,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     import torch
 
     from envisat_pose.analysis.recording import TrackRecorder
-    from envisat_pose.config import to_dict, to_toml
-    from envisat_pose.io import atomic_write_text
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.pipelines.frame_loop import run_frames
-    from envisat_pose.pipelines.onboard import chaser_function
-    from envisat_pose.pipelines.rows import DET_KEYS, RunRows
-    from envisat_pose.pipelines.run_files import lost_runs, run_rows, score_run_files, write_run_files
-    from envisat_pose.pipelines.tracker import Tracker
 
     torch.set_num_threads(cfg.threads)
     paths = track_output_paths(out_dir)
@@ -205,7 +204,6 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     summary = track_summary(source, cfg.weights, pixels, col, np.asarray(sums["timing_s"]) / T, wall_s)
     if truth is not None:
         from envisat_pose.analysis.plots import plot_estimate
-        from envisat_pose.pipelines.run_files import plot_inputs
 
         summary["scores"] = scores
         plot_estimate(*plot_inputs(source.t_s, x_true, [run_dir]), paths["plot"],
@@ -221,10 +219,6 @@ def track_summary(source: FrameSource, weights: str, pixels: str, col: dict, tim
     the mean NIS per degree of freedom, the stages' time per frame (ms; the frames are read, not made: no
     simulation, rendering or camera) and the real-time factor. col: the run's status, nis and nis_dof per frame
     (T,); timing_s: (len(STAGES),) s per frame."""
-    from envisat_pose.pipelines.frame_loop import BEFORE_TRACKER
-    from envisat_pose.pipelines.outputs import first_tracking_s, status_counts
-    from envisat_pose.pipelines.rows import STAGES
-    from envisat_pose.realtime import real_time_factor
 
     T = len(source.t_s)
     status = col["status"]
@@ -251,8 +245,6 @@ def frame_inputs(source: FrameSource, remap):
     """The source's frames as the frame loop's FrameInputs (remapped to the ideal pinhole where the camera has
     one: remap, cv2.remap's maps), with their truth where the source has one."""
     import cv2
-
-    from envisat_pose.pipelines.frame_loop import FrameInput
 
     truth = source.truth
     for k, image in source.frames():

@@ -50,6 +50,10 @@ from typing import Callable
 
 import numpy as np
 
+from envisat_pose.attitude import mrp_to_dcm
+from envisat_pose.config import to_dict
+from envisat_pose.datagen.scenario import scenario_config
+from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
 from envisat_pose.filtering.estimator import (
     FilterConfig,
     FilterState,
@@ -59,7 +63,8 @@ from envisat_pose.filtering.estimator import (
     make_setup,
     predict_to,
 )
-from envisat_pose.filtering.measurements import to_camera_K
+from envisat_pose.filtering.measurements import measure, predicted_visible, to_camera_K
+from envisat_pose.filtering.ukf import sigma_points
 from envisat_pose.geometry import PinholeCamera, load_geometry
 from envisat_pose.pipelines.acquisition import (
     NAMINGS,
@@ -104,6 +109,7 @@ from envisat_pose.pipelines.noise import (
     sequence_cov_factor,
     window_memory,
 )
+from envisat_pose.pipelines.onboard import onboard_physics
 from envisat_pose.pipelines.tracker_config import (
     ACQUIRING_SIGMA,
     TRACKER_FILTER,
@@ -121,7 +127,6 @@ __all__ = ["Tracker", "TrackerConfig", "TrackEstimate", "TRACKER_FILTER", "STATU
 def predicted_roi(mean: np.ndarray, cov: np.ndarray, camera: PinholeCamera, cfg: RoiConfig) -> np.ndarray | None:
     """The detector's region of interest (x0, y0, side) px from a prior (12,), (12, 12): the predicted corners'
     extent x cfg.margin plus 6 x the prior's position sigma in pixels; None when no corner is predicted in view."""
-    from envisat_pose.filtering.measurements import measure
 
     uv = measure(mean[None], "pixels", camera)[0]
     w, h = camera.width_px, camera.height_px
@@ -168,8 +173,6 @@ class Tracker:
                  config: TrackerConfig = TrackerConfig(), filter_config: FilterConfig | dict | None = None,
                  J_T: np.ndarray | None = None, mu_m3_s2: float | None = None, gravity_gradient: bool = False,
                  prior: tuple[np.ndarray, np.ndarray, float] | None = None):
-        from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
-
         config.validate()
         self.cfg = config
         fcfg = tracker_filter(filter_config)  # only the fields given override the tracker's
@@ -533,7 +536,6 @@ class Tracker:
 
     def _pose_K(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The target's pose in the camera frame K of a state x (12,): R_K_from_T (3, 3) and T's origin in K (3,), m."""
-        from envisat_pose.attitude import mrp_to_dcm
 
         return self.camera.R_K_from_C @ mrp_to_dcm(x[MRP]).T, to_camera_K(x[POS], self.camera)
 
@@ -585,7 +587,6 @@ class Tracker:
     def _rejected(self, prior, z, mask, cov, best) -> np.ndarray:
         """Corners of the best hypothesis the chi-square gate rejects (its own per-corner rule from the prior's
         sigma points; the visibility check's drops count as rejected too)."""
-        from envisat_pose.filtering.measurements import predicted_visible
 
         if not mask[best].any() or self.setup.gate_threshold is None:
             return np.zeros(8, bool)
@@ -596,7 +597,6 @@ class Tracker:
     def _corner_d2(self, prior, z, cov, h) -> np.ndarray:
         """(8,) each corner's squared Mahalanobis distance from hypothesis h's predicted corner, under the prior's
         spread (its sigma points through the measurement model) plus cov[h] (8, 2, 2) at the filter's R scale."""
-        from envisat_pose.filtering.ukf import sigma_points
 
         S = sigma_points(prior[0][h], prior[1][h], self.setup.weights)  # (25, 12)
         uv = self.setup.hx(S)  # (25, 8, 2)
@@ -632,10 +632,6 @@ def tracker_from_scenario(scenario: str = "default", weights: str | None = None,
     MJCF's chaser_cam, at size_px = (width, height) when given), TrackerConfig `config` (None: defaults), the
     tracker's filter settings with `filter_config`'s fields over them (pipelines.build.tracker_filter)."""
     from types import SimpleNamespace
-
-    from envisat_pose.config import to_dict
-    from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.pipelines.onboard import onboard_physics
 
     scen = scenario_config(scenario)
     physics = onboard_physics(SimpleNamespace(config=to_dict(scen)), f"scenario {scenario!r}")

@@ -13,7 +13,14 @@ import os
 import subprocess
 from dataclasses import dataclass
 
-from envisat_pose.config import InputError, check
+from envisat_pose.config import InputError, check, from_dict
+from envisat_pose.datagen.generate_config import GenerateConfig
+from envisat_pose.datagen.target_model import require_envisat, require_envisat_dataset
+from envisat_pose.io import sha256_file
+from envisat_pose.out_dirs import check_out_dir
+from envisat_pose.pipelines.look_mix import WeightedLook, as_looks, look_shares
+from envisat_pose.pipelines.online import MAX_USES_PER_FRAME, online_batches, run_identity
+from envisat_pose.shard_reader import checked_shards
 
 
 @dataclass(frozen=True)
@@ -29,10 +36,6 @@ class OnlineConfig:
     uses_per_frame: int = 8
 
     def __post_init__(self) -> None:
-        from envisat_pose.datagen.target_model import require_envisat
-        from envisat_pose.pipelines.look_mix import as_looks
-        from envisat_pose.pipelines.online import MAX_USES_PER_FRAME
-
         object.__setattr__(self, "looks", as_looks(self.looks))
         for look in self.looks:
             require_envisat(look.generate.target, f"looks.{look.name}.generate.target", "train")
@@ -44,7 +47,6 @@ class OnlineConfig:
     def record(self) -> dict:
         """What config.json keeps of it (a resumed run rebuilds it from this): the looks with their shares of the
         period, the renderer processes and K."""
-        from envisat_pose.pipelines.look_mix import look_shares
 
         looks = [dict(look.record(), share=int(n)) for look, n in zip(self.looks, look_shares(self.looks))]
         return {"looks": looks, "workers": self.workers, "uses_per_frame": self.uses_per_frame}
@@ -52,9 +54,6 @@ class OnlineConfig:
     @classmethod
     def from_record(cls, record: dict, workers: int | None = None) -> "OnlineConfig":
         """From record()'s dict, or an earlier run's with one 'generate' config."""
-        from envisat_pose.config import from_dict
-        from envisat_pose.datagen.generate_config import GenerateConfig
-        from envisat_pose.pipelines.look_mix import WeightedLook
 
         if "looks" in record:
             looks = tuple(WeightedLook.from_record({k: v for k, v in r.items() if k != "share"}, "online.looks")
@@ -112,8 +111,6 @@ def dataset_provenance(data_dir: str, skipped: list[str] = ()) -> dict:
 def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | None, workers: int | None,
                  threads: int | None, online: bool = False) -> None:
     """Every input of a training run but the shards checked before any work; InputError naming the argument."""
-    from envisat_pose.datagen.target_model import require_envisat_dataset
-    from envisat_pose.out_dirs import check_out_dir
 
     if not data_dirs and not online:
         raise InputError("data_dirs: no dataset folder given")
@@ -214,7 +211,6 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     plain script: its workers never import the script."""
     import torch
 
-    from envisat_pose.io import sha256_file
     from envisat_pose.perception.train import train
 
     data_dirs = [data_dirs] if isinstance(data_dirs, str) else list(data_dirs or [])
@@ -233,7 +229,6 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
         torch.backends.cuda.matmul.allow_tf32 = online is None
         torch.backends.cudnn.allow_tf32 = True
         torch.backends.cudnn.benchmark = True
-    from envisat_pose.shard_reader import checked_shards
 
     paths, skipped, data = [], [], []
     for d in data_dirs:
@@ -243,10 +238,7 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
         data.append(dataset_provenance(d, left_out))
     source = None
     if online is not None:
-        from envisat_pose.pipelines.online import online_batches, run_identity
-
         identity = run_identity(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.uses_per_frame)
-        from envisat_pose.pipelines.look_mix import look_shares
 
         mix = ", ".join(f"{look.name} {n} %" for look, n in zip(online.looks, look_shares(online.looks)))
         data = [{"name": f"online ({mix}, K = {online.uses_per_frame})", "manifest_sha256": identity["config_sha256"],

@@ -12,6 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from envisat_pose.attitude import quat_to_mrp
+from envisat_pose.datagen.orbit import chaser_orbit
+from envisat_pose.datagen.scenario import in_earth_shadow, scenario_config, scenario_eclipse
+
 # the most phase angle of a lit view, deg: side light at worst (the training views' sun lies within 100 deg,
 # datagen/factory.py's sun_phase_max_deg)
 SUN_PHASE_MAX_DEG = 90.0
@@ -34,7 +38,6 @@ def unit_vector(rng: np.random.Generator) -> np.ndarray:
 
 def random_attitude_mrp(rng: np.random.Generator) -> np.ndarray:
     """(3,) an MRP uniform on SO(3) (a normalised 4D Gaussian quaternion, the shadow set with |p| <= 1)."""
-    from envisat_pose.attitude import quat_to_mrp
 
     return quat_to_mrp(rng.standard_normal(4))
 
@@ -51,7 +54,6 @@ def phase_angles_deg(sun_N: np.ndarray, R_N_from_C: np.ndarray, rho_C_m: np.ndar
 def is_lit(sun_N: np.ndarray, orbit, rho_C_m: np.ndarray, phase_max_deg: float) -> bool:
     """Whether sun_N (3,) lights every frame of a chaser orbit (datagen.orbit.ChaserOrbit at the frames' times)
     looking along rho_C_m (3,) or (T, 3): phase within phase_max_deg and out of the Earth's shadow."""
-    from envisat_pose.datagen.scenario import in_earth_shadow
 
     return bool((phase_angles_deg(sun_N, orbit.R_N_from_C, rho_C_m) <= phase_max_deg).all()
                 and not in_earth_shadow(orbit.r_N_m, sun_N).any())
@@ -61,7 +63,6 @@ def draw_lit_sun_N(orbit_cfg, t_s: np.ndarray, rho_C_m, rng: np.random.Generator
                    phase_max_deg: float = SUN_PHASE_MAX_DEG) -> tuple[float, float, float]:
     """A sun direction in N (unit) uniform over those lighting every frame t_s (s) of the chaser's orbit (datagen's
     OrbitConfig) as seen along rho_C_m (the hold's line of sight, m, in C). ValueError when none is found."""
-    from envisat_pose.datagen.orbit import chaser_orbit
 
     orbit = chaser_orbit(orbit_cfg, np.asarray(t_s, dtype=float))
     for _ in range(MAX_SUN_DRAWS):
@@ -76,7 +77,6 @@ def scenario_sun_N(scenario: str, duration_s: float, rate_hz: float, seed: int,
                    phase_max_deg: float = SUN_PHASE_MAX_DEG) -> tuple[float, float, float] | None:
     """Run seed `seed`'s lit sun for a named scenario's hold over [0, duration_s] at rate_hz (sun_rng); None for a
     scenario whose sun is part of its definition (an [eclipse] table: its shadow is the case studied)."""
-    from envisat_pose.datagen.scenario import scenario_config, scenario_eclipse
 
     if scenario_eclipse(scenario) is not None:
         return None
@@ -90,7 +90,6 @@ def trial_truth_config(scenario: str, duration_s: float, rate_hz: float, seed: i
     """The truth (datagen's ScenarioConfig) of an acquisition trial: a named scenario's orbit and tumble period,
     the chaser held range_m ahead on V-bar, the tumble about spin_axis_T (3,) from attitude p0_mrp (3,), sampled
     at rate_hz over [0, duration_s]; validated (the keep-out is checked when it is simulated)."""
-    from envisat_pose.datagen.scenario import scenario_config
 
     return scenario_config(scenario, duration_s=float(duration_s), dt_s=1.0 / rate_hz, seed=int(seed),
                            relative={"rho0_C_m": [0.0, float(range_m), 0.0], "rhodot0_C_m_s": [0.0, 0.0, 0.0]},

@@ -5,7 +5,8 @@ imports nothing above it; a stage (datagen, perception, filtering, analysis) imp
 stage, a pipeline or the app; a pipeline (pipelines/) imports the core and the stages, never the app; the app
 (app/) imports anything. Imports inside
 functions count too, and so do relative imports and the old top-level names. No two modules import each other,
-directly or around a loop, even inside functions (0 import cycles).
+directly or around a loop, even inside functions (0 import cycles); an import inside a function defers a heavy
+third-party module, else it stands at the top of its module.
 
 One home for each concept: the state's slices are defined only in envisat_pose/state.py; manifest.json is
 written only by the core's resumable-job protocol (envisat_pose/resumable.py); shards are read (a tar opened for
@@ -194,6 +195,100 @@ def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
                 if len(component) > 1:
                     found.append(sorted(component))
     return sorted(found)
+
+
+# ---------------------------------------------------------------- lazy imports defer something heavy
+
+# third-party modules whose import costs time, memory or a GL / thread set-up that must come first
+HEAVY = frozenset({"torch", "mujoco", "cv2", "rerun", "dask", "distributed", "OpenGL", "numba", "scipy",
+                   "matplotlib", "safetensors", "webdataset", "filterpy", "pycocotools"})
+
+
+def split_imports(path: str, module: str, source: str | None = None):
+    """([(line, name)] of the module-level imports, [(line, [names])] of each import inside a function), names
+    resolved as `imported_modules` does (a `from` import also names `module.name`)."""
+    tree = ast.parse(source if source is not None else open(path, encoding="utf-8").read(), path)
+    is_pkg = path.endswith("__init__.py")
+    top, inner = [], []
+
+    def names(node):
+        if isinstance(node, ast.Import):
+            return [a.name for a in node.names]
+        base = node.module or ""
+        if node.level:
+            parts = module.split(".")
+            base = ".".join(parts[: len(parts) - node.level + (1 if is_pkg else 0)] + ([base] if base else []))
+        return [base] + [f"{base}.{a.name}" for a in node.names]
+
+    def visit(node, in_function):
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.Import, ast.ImportFrom)):
+                if in_function:
+                    inner.append((child.lineno, names(child)))
+                else:
+                    top.extend((child.lineno, n) for n in names(child))
+            visit(child, in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))
+
+    visit(tree, False)
+    return top, inner
+
+
+def needless_lazy_imports(root: str = ROOT) -> list[str]:
+    """Imports of the package's own modules inside a function that defer no heavy third-party module: the
+    imported module pulls in (at import time, through the package's own module-level imports) nothing of HEAVY
+    that the importing module does not pull in already. Such an import hides a dependency for no gain."""
+    files = {module: path for path, module in source_files(root)}
+
+    def own(name):
+        parts = name.split(".")
+        return next((".".join(parts[:k]) for k in range(len(parts), 0, -1) if ".".join(parts[:k]) in files), None)
+
+    deps, heavy, inner = {}, {}, {}
+    for module, path in files.items():
+        top, inner[module] = split_imports(path, module)
+        parents = {".".join(module.split(".")[:k]) for k in range(1, module.count(".") + 1)}
+        deps[module] = {own(n) for _, n in top} - {None, module} | (parents & set(files))
+        heavy[module] = {n.split(".")[0] for _, n in top if own(n) is None and n.split(".")[0] in HEAVY}
+
+    @functools.cache
+    def pulled(module):
+        seen, todo, found = {module}, [module], set()
+        while todo:
+            m = todo.pop()
+            found |= heavy[m]
+            todo += [d for d in deps[m] if d not in seen]
+            seen |= deps[m]
+        return frozenset(found)
+
+    found = []
+    for module, imports in inner.items():
+        for line, names in imports:
+            targets = {own(n) for n in names} - {None, module}
+            if targets and not set().union(*(pulled(t) for t in targets)) - pulled(module):
+                found.append(f"{os.path.relpath(files[module], root)}:{line} imports {sorted(targets)} inside a "
+                             f"function, which defers nothing heavy")
+    return sorted(found)
+
+
+def test_lazy_imports_only_defer_heavy_modules():
+    """An import inside a function is kept for a heavy third-party module (torch, mujoco, OpenCV, Rerun, Dask,
+    OpenGL...), directly or through the package's module that pulls it in; any other import stands at the top
+    of its module, where a reader sees the dependency (floor: 0)."""
+    assert needless_lazy_imports() == []
+
+
+def test_the_lazy_import_checker_sees_a_needless_one_and_keeps_a_heavy_one(tmp_path):
+    (tmp_path / "pipelines").mkdir()
+    (tmp_path / "pipelines" / "light.py").write_text("import numpy\n")
+    (tmp_path / "pipelines" / "heavy.py").write_text("import torch\n")
+    (tmp_path / "pipelines" / "user.py").write_text(
+        "def f():\n    from envisat_pose.pipelines.light import x\n\n"
+        "def g():\n    from . import heavy\n")
+    (tmp_path / "pipelines" / "has_torch.py").write_text(
+        "import torch\n\ndef h():\n    from envisat_pose.pipelines import heavy\n")
+    found = needless_lazy_imports(str(tmp_path))
+    assert [f.split(" imports")[0] for f in found] == [os.path.join("pipelines", "has_torch.py") + ":4",
+                                                       os.path.join("pipelines", "user.py") + ":2"]
 
 
 # ---------------------------------------------------------------- one name per concept
