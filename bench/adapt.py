@@ -20,7 +20,7 @@ Run:  .venv/bin/python bench/adapt.py --scenarios default --seeds 0 1 --resoluti
 (frames already under --work are reused; each --edge-range and --params adapts into its own folder
 adapt-MODE-PARAMS.)
 
-With `--looks RESPONSE:SIGMA[:bloom][:given] ...` the grid of looks (issue 49) instead: the project's own clean
+With `--looks RESPONSE:SIGMA[:bloom][:given] ...` the grid of looks (response, PSF, blooming) instead: the project's own clean
 render of the sequence (bench/edge_truth.own_clean) put through the space camera with that fixed look
 (edge_truth.look_params: response, Gaussian PSF sigma px, blooming), written as a user's PNG folder with a
 camera.toml (its response and PSF in the file only with ':given'; else adapt estimates them), adapted and scored

@@ -7,15 +7,15 @@ alone (mjr_render of the sun-lit, shadowed, 4x multisampled scene plus the RGB r
 before any label. For context it also times the stock mujoco.Renderer producing RGB, depth and segmentation.
 End-to-end times are wall clock of `run_generate`, worker start-up included.
 
-Floors (issue 3): 1 worker >= 60 % of the raw render rate; 2 workers >= 1.7 x one. A CPU scaling probe
+Scaling floors (`--scaling`; `--issue3` accepted): 1 worker >= 60 % of the raw render rate; 2 workers >= 1.7 x one. A CPU scaling probe
 (zlib in 2 processes vs 1) tells what speedup the machine itself allows two processes.
 
-Issue 9 (the default mode; `--issue9` accepted): at 1024 px, labelled images/s of run_generate with 1 and 2
+The default mode: at 1024 px, labelled images/s of run_generate with 1 and 2
 workers, appearance (materials, clutter) on and off, storage clean and corrupted (the space camera model), next
 to the two-pass render (lit + segmentation/depth) of the same views measured in the same run, with and without
 the appearance; bytes per image of every dataset.
 
-Issue 18 floor: appearance on, clean storage, 1 worker >= 1.0 x the two-pass render of the same look. Measured
+Two-pass floor: appearance on, clean storage, 1 worker >= 1.0 x the two-pass render of the same look. Measured
 in alternating rounds (two-pass render, factory, factory with FINISH_BESIDE_RENDER off) so the machine's load
 drifts alike for all three; the median ratio is the floor's. The floor's factory runs BENCH_FLOOR_IMAGES (200) in
 shards of the default size (100), as a user's run does. The factory finishes sample k (the passes' pixel work,
@@ -28,7 +28,7 @@ fresh process takes to import, build its renderer and make every texture a long 
 those images at the steady rate; the Earth textures are made beside the first renders from
 factory.PREFETCH_EARTH_MIN_IMAGES images on, where a core is spare); with the steady rate, the rate and ratio of
 a 1000-image run with start-up counted and excluded.
-Issue 48 (`--targets --baseline DIR`): ENVISAT's time per image against a baseline tree's and the shipped targets'
+Targets (`--targets --baseline DIR`): ENVISAT's time per image against a baseline tree's and the shipped targets'
 against ENVISAT's, in one run (TARGET_RUNS, main_targets).
 Run: .venv/bin/python bench/datagen_speed.py  (writes bench/results/datagen_speed.json)
 """
@@ -120,7 +120,7 @@ def _pin_process(cpus: set[int]) -> None:
 
 
 def floor_rounds(base, cfg, rounds: int) -> dict:
-    """The issue-18 floor: alternating rounds of the two-pass render of the same look, the factory (1 worker)
+    """The two-pass floor: alternating rounds of the two-pass render of the same look, the factory (1 worker)
     and the factory finishing each sample after its render (FINISH_BESIDE_RENDER off); then one round pinned
     to one core. Rates img/s, CPU ms per image (process time: every thread), ratios to the round's render."""
     from envisat_pose.datagen import factory
@@ -195,8 +195,8 @@ def fresh_process_s(n: int, shard_size: int = SHARD_SIZE) -> float:
     return time.perf_counter() - t0
 
 
-def issue9() -> dict:
-    """The issue-9 table at 1024 px and issue 18's floor (module docstring)."""
+def default_mode_table() -> dict:
+    """The default mode's table at 1024 px and the two-pass floor (module docstring)."""
     n = int(os.environ.get("BENCH_IMAGES", "64"))
     rounds = int(os.environ.get("BENCH_ROUNDS", "3"))
     res = 1024
@@ -213,7 +213,7 @@ def issue9() -> dict:
                             shard_size=floor_shard)
     end_to_end(bench_config(res, 16, storage="clean", appearance={"enabled": True}, appendages=True), 1)  # this
     # process's renderer, its textures and imports made once, outside the rounds
-    print(f"issue-18 floor (appearance on, clean, 1 worker, 1024 px, {nf} images in shards of {floor_shard}):",
+    print(f"two-pass floor (appearance on, clean, 1 worker, 1024 px, {nf} images in shards of {floor_shard}):",
           flush=True)
     out["floor_issue18"] = floor = floor_rounds(base_floor, on_clean, rounds)
     out["worker_startup_serial_s"] = worker_startup_s()
@@ -251,7 +251,7 @@ def issue9() -> dict:
     out["rows"] = rows
     out["floor_1_0x_same_look_met"] = floor["median_ratio"] >= 1.0
     out["load_avg_end"] = os.getloadavg()
-    print(f"issue-18 floor: factory / two-pass render of the same look, 1 worker: median {floor['median_ratio']:.2f}x "
+    print(f"two-pass floor: factory / two-pass render of the same look, 1 worker: median {floor['median_ratio']:.2f}x "
           f"(finishing after each render: {floor['median_ratio_serial']:.2f}x; pinned to one core: "
           f"{floor['one_core']['ratio']:.2f}x, serial {floor['one_core']['ratio_serial']:.2f}x); floor 1.0x "
           f"{'met' if out['floor_1_0x_same_look_met'] else 'NOT met'}")
@@ -398,7 +398,7 @@ def cpu_scaling_probe() -> float:
     return 2.0 * one / two
 
 
-# Issue 48 (`--targets [--baseline DIR] [--current DIR]`): seconds per image of run_generate, 1 worker, 1024 px,
+# Targets (`--targets [--baseline DIR] [--current DIR]`): seconds per image of run_generate, 1 worker, 1024 px,
 # random mode with the default config, for ENVISAT at this tree (or at --current DIR: a `git archive` of the commit
 # measured, so edits in the working tree stay out) and at a baseline tree (DIR: a `git archive` of the commit before
 # the target work, its plugin's .so copied in), and for the shipped targets at ranges where they fill the image about as ENVISAT
@@ -485,8 +485,8 @@ def main() -> None:
             return sys.argv[sys.argv.index(flag) + 1] if flag in sys.argv else None
 
         return main_targets(value("--baseline"), value("--current"))
-    if "--issue3" not in sys.argv:
-        return main_issue9()  # the issue-9 table with issue 18's floor
+    if "--scaling" not in sys.argv and "--issue3" not in sys.argv:
+        return main_default_mode()  # the default mode's table with the two-pass floor
     results = {
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                     "load_avg_start": os.getloadavg()},
@@ -538,7 +538,7 @@ def main() -> None:
     print(f"wrote {path} [{tag}]")
 
 
-def main_issue9() -> None:
+def main_default_mode() -> None:
     tag = os.environ.get("BENCH_TAG") or f"{os.environ['MUJOCO_GL']}_{os.cpu_count()}cpu"
     results = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
                "protocol": "LP_NUM_THREADS=1 per process; random mode, default config (sensor camera model), "
@@ -546,17 +546,18 @@ def main_issue9() -> None:
                            "worker_startup_serial_s: a fresh process's imports, renderer and Earth textures one after the other; "
                            "worker_startup_counted_s: a fresh process's run less its images at the steady rate; "
                            "floor_issue18: alternating rounds, median ratio" % SHARD_SIZE,
-               **issue9()}
+               **default_mode_table()}
     path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "datagen_speed.json")
     everything = {}
     if os.path.exists(path):
         with open(path, encoding="utf-8") as fh:
             everything = json.load(fh)
-    everything[f"issue18_{tag}"] = results  # issue9_* entries: the earlier runs, kept
+    key = f"issue18_{tag}"  # the results file's key for this table (issue9_* keys: earlier runs, kept)
+    everything[key] = results
     with open(path, "w", encoding="utf-8") as fh:
         json.dump(everything, fh, indent=1, sort_keys=True)
         fh.write("\n")
-    print(f"wrote {path} [issue18_{tag}]")
+    print(f"wrote {path} [{key}]")
 
 
 if __name__ == "__main__":

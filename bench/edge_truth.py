@@ -11,7 +11,7 @@ pinhole as the tracker sees them:
 A perfect cue reads 0 at the true pose; its reading there is the part of adapt's range correction that no
 tracker can remove. The truth is the bench's, never the library's.
 
-With `--looks` the grid of looks (issue 49) on the project's own renders instead: one clean sequence per
+With `--looks` the grid of looks (response, PSF, blooming) on the project's own renders instead: one clean sequence per
 (seed, resolution) (`envisat generate --mode sequence`, storage 'clean'), every `--stride`-th frame put through
 the space camera (datagen/sensor.py) with a fixed look: response linear, sRGB, gamma 1.8 or 2.4; Gaussian PSF
 sigma 0.3 / 1.0 / 2.5 px; blooming off (white at 0.8 of the full well) or on (1.5, 4 px spill); no motion blur,
