@@ -7,9 +7,13 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import add_common
+from envisat_pose.app.common import add_common, check_rrd_output
 from envisat_pose.config import InputError
-from envisat_pose.pipelines.estimate import EstimateConfig
+from envisat_pose.filtering.estimator import nees
+from envisat_pose.out_dirs import check_out_file
+from envisat_pose.pipelines.estimate import EstimateConfig, estimate_output_paths
+from envisat_pose.pipelines.estimate import run_estimate as run_pipeline
+from envisat_pose.state import error_summary
 
 # the library's argument names -> this verb's flags (app/common.as_flags)
 FLAGS = {"truth_path": "--truth", "scenario": "--scenario", "duration_s": "--duration-s", "rrd": "--rrd",
@@ -77,8 +81,6 @@ def resolve_config(args: argparse.Namespace) -> EstimateConfig:
 
 def summary(arrays: dict) -> str:
     """Errors over the second half of the run: RMS position (cm) and attitude angle (deg), ANEES."""
-    from envisat_pose.filtering.estimator import nees
-    from envisat_pose.state import error_summary
 
     t_s = arrays["t_s"]
     T = t_s.shape[0]
@@ -91,18 +93,13 @@ def summary(arrays: dict) -> str:
 
 
 def run_estimate_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.out_dirs import make_out_file_dirs
-    from envisat_pose.pipelines.estimate import estimate_output_paths
-    from envisat_pose.pipelines.estimate import run_estimate as run_pipeline
-
     if not args.out.endswith(".npz"):
         raise InputError(f"--out {args.out!r}: expected a path ending in .npz")
     cfg = resolve_config(args)
     if args.rrd:
-        from envisat_pose.app.common import check_rrd_output
-
         check_rrd_output(args.rrd)
-    make_out_file_dirs({**{p: "--out" for p in estimate_output_paths(args.out)}, **({args.rrd: "--rrd"} if args.rrd else {})})
+    for path in estimate_output_paths(args.out):
+        check_out_file(path, "--out")  # the folders are made once the truth is read (run_estimate)
     res = run_pipeline(cfg, args.out, truth_path=args.truth, scenario=args.scenario, duration_s=args.duration_s,
                        plot=args.plot, rrd=args.rrd, progress=not args.quiet)
     cfg, arrays = res["config"], res["arrays"]

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.config import ConfigError
 from envisat_pose.geometry import CORNER_NAMES, model_path
 
@@ -98,7 +99,6 @@ def inertia_of(inertial: ET.Element) -> np.ndarray:
     diag = _vec(inertial.get("diaginertia"), 3)
     if diag is None:
         raise ValueError("no fullinertia or diaginertia")
-    from envisat_pose.attitude import quat_to_rotmat
 
     q = _vec(inertial.get("quat"), 4, (1.0, 0.0, 0.0, 0.0))
     R = quat_to_rotmat(q / np.linalg.norm(q))
@@ -335,6 +335,22 @@ def require_envisat(given: str, field: str, verb: str) -> None:
     run, adapt, train, detect) know ENVISAT only."""
     if given != ENVISAT_TARGET and not load_target(given, field).is_envisat:
         raise ConfigError(field, given, _only_envisat(verb))
+
+
+def require_envisat_truth(config: dict, field: str, given: str, verb: str) -> None:
+    """ConfigError unless a truth file's config (TruthTrajectory.config, `given` its path) shows ENVISAT: the
+    filter's measurement model holds ENVISAT's corners A-H, so another target's truth would be estimated with the
+    wrong body (a confident wrong answer)."""
+    target = (config.get("target") or {}).get("file", ENVISAT_TARGET)
+    if target == ENVISAT_TARGET:
+        return
+    try:
+        if load_target(target, field).is_envisat:
+            return
+    except ConfigError:
+        pass
+    raise ConfigError(field, given, f"a truth of ENVISAT ({ENVISAT_TARGET}): `envisat {verb}`'s filter measures "
+                      f"ENVISAT's corners A-H only; this truth's target is {target!r}")
 
 
 def require_envisat_dataset(folder: str, field: str, verb: str) -> None:

@@ -17,8 +17,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envisat_pose.config import ConfigError, InputError, check, from_dict, resolve_job_config, to_dict, to_toml
-from envisat_pose.filtering.estimator import FilterConfig
-from envisat_pose.filtering.montecarlo import MeasurementConfig
+from envisat_pose.contracts import Estimates, TruthTrajectory
+from envisat_pose.datagen.scenario import (
+    ScenarioConfig,
+    eclipse_windows,
+    scenario_config,
+    scenario_dict,
+    scenario_eclipse,
+)
+from envisat_pose.datagen.target_model import require_envisat_truth
+from envisat_pose.filtering.estimator import FilterConfig, chaser_states, diverged_against_truth, nees, run_filter
+from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
+from envisat_pose.io import atomic_write_text
+from envisat_pose.out_dirs import make_out_file_dirs
 from envisat_pose.pipelines.job_defaults import scenario_defaults
 from envisat_pose.pipelines.onboard import onboard_physics
 
@@ -57,7 +68,6 @@ class EstimateConfig:
 def eclipse_outages(name: str, truth_cfg) -> tuple[tuple[float, float], ...]:
     """The Earth's-shadow windows [start, end) s of a named scenario's [eclipse] table along the truth of
     truth_cfg (a datagen ScenarioConfig); () for a scenario without one."""
-    from envisat_pose.datagen.scenario import eclipse_windows, scenario_eclipse
 
     eclipse = scenario_eclipse(name)
     return eclipse_windows(truth_cfg, eclipse) if eclipse is not None else ()
@@ -81,15 +91,13 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
     With a scenario its duration applies unless duration_s is given; a truth file fixes the duration.
     """
     if truth_path:
-        from envisat_pose.contracts import TruthTrajectory
-
         if duration_s is not None:
             raise InputError("duration_s applies to a `scenario` only; the truth file (`truth_path`) fixes the "
                              "duration")
         truth = TruthTrajectory.load(truth_path)
+        require_envisat_truth(truth.config, "truth_path", truth_path, "estimate")
         onboard_physics(truth, truth_path)  # its config must name the physics the filter needs
         return truth, {"truth_file": truth_path}
-    from envisat_pose.datagen.scenario import scenario_config, scenario_dict
     from envisat_pose.datagen.truth import simulate_truth
 
     overrides: dict = {"seed": cfg.seed}
@@ -109,8 +117,6 @@ def scenario_outages(cfg: EstimateConfig, scenario: str | None, truth) -> Estima
         return cfg
     import dataclasses
 
-    from envisat_pose.datagen.scenario import ScenarioConfig
-
     windows = eclipse_outages(scenario, from_dict(ScenarioConfig, truth.config))
     return dataclasses.replace(cfg, measurement=with_outages(cfg.measurement, windows))
 
@@ -129,8 +135,6 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     Arrays: t_s (T,), x_true (R, T, 12), x_hat (R, T, 12), P (R, T, 12, 12), n_meas (R, T), nis (R, T), nis_dof (R, T),
     diverged (R,) (NIS window or NEES window against the truth).
     """
-    from envisat_pose.filtering.estimator import chaser_states, diverged_against_truth, nees, run_filter
-    from envisat_pose.filtering.montecarlo import filter_stride, make_run_inputs, truth_measurements
 
     mu_m3_s2, gravity_gradient = onboard_physics(truth)
 
@@ -172,19 +176,19 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
                  progress: bool = False) -> dict:
     """The whole job: load or simulate the truth (load_truth), add a scenario's eclipse outages, filter
     cfg.runs runs (estimate), write out (Estimates) and its config (output_paths), and with plot the errors'
-    PNG next to out, with rrd a Rerun recording. The caller checks the output paths before any work.
+    PNG next to out, with rrd a Rerun recording. The output folders are made once the truth is read (a refused
+    truth writes nothing); the caller checks the paths (check_out_file) before any work.
 
     Returns {"config": the EstimateConfig run (outages added), "arrays": est.npz's arrays, "est": out,
     "config_toml": its path, "plot": the PNG's path or None, "rrd": rrd}.
     """
-    from envisat_pose.contracts import Estimates
-    from envisat_pose.io import atomic_write_text
 
     out, cfg_path = estimate_output_paths(out)
     truth, source = load_truth(cfg, truth_path, scenario, duration_s, progress)
     cfg = scenario_outages(cfg, scenario, truth)
     if len(truth.t_s) < 2:
         raise InputError("the truth trajectory has fewer than 2 samples")
+    make_out_file_dirs({out: "out", cfg_path: "out", **({rrd: "rrd"} if rrd else {})})
     arrays = estimate(truth, cfg, progress=progress)
     config_json = json.dumps({"estimate": to_dict(cfg), "truth_source": source, "truth_config": truth.config},
                              sort_keys=True)

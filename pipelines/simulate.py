@@ -3,6 +3,10 @@
 
 from __future__ import annotations
 
+from envisat_pose.config import to_dict, to_toml
+from envisat_pose.datagen.target_model import load_target
+from envisat_pose.io import atomic_write_text
+
 
 def output_paths(out: str) -> tuple[str, str, str]:
     """run.npz -> (run.npz, run.config.toml, run.png)."""
@@ -19,9 +23,7 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
     Returns {"truth": the TruthTrajectory, "truth_file": out, "config_toml": its path, "plot": the PNG or None,
     "rrd": rrd}.
     """
-    from envisat_pose.config import to_dict, to_toml
     from envisat_pose.datagen.truth import simulate_truth
-    from envisat_pose.io import atomic_write_text
 
     out, cfg_path, png = output_paths(out)
     traj = simulate_truth(cfg, progress=progress)
@@ -30,7 +32,7 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
     if plot:
         from envisat_pose.analysis.plots import plot_states
 
-        plot_states(traj.t_s, traj.x, png, title=f"ENVISAT truth, scenario {label!r}, seed {cfg.seed}",
+        plot_states(traj.t_s, traj.x, png, title=f"{load_target(cfg.target.file).name} truth, scenario {label!r}, seed {cfg.seed}",
                     visible=traj.visible)
     if rrd:
         from envisat_pose.analysis.recording import write_truth_recording
