@@ -881,7 +881,7 @@ def _constants(setup):
 
 
 def predict_fused(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: np.ndarray, setup,
-            max_step_s: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+                  max_step_s: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """filtering.ukf.predict in the fused kernel, with the model of setup (a FilterSetup: inertia, mu, gravity
     gradient, weights). mean (R, 12), cov (R, 12, 12), c0 (4,) the chaser at the start, Q (12, 12) or
     (R, 12, 12) the step's process noise. Returns (mean, cov)."""
@@ -901,7 +901,6 @@ def predict_fused(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float
     mean_out, cov_out, ok = np.empty_like(mean), np.empty_like(cov), np.empty(R, dtype=bool)
     predict_kernel(mean, cov, Q, stages, h, w.Wm, w.Wc, float(w.n + w.lam), J, Jinv, mu, gg, mean_out, cov_out, ok)
     if not ok.all():  # covariance repairs: the numpy filter's, on those runs
-
         bad = ~ok
         mean_out[bad], cov_out[bad] = ukf.predict(mean[bad], cov[bad], c, dt_s, Q[bad], w, setup.J_T, mu,
                                                   max_step_s, gg)
@@ -909,7 +908,7 @@ def predict_fused(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float
 
 
 def update_fused(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarray, R_c: np.ndarray,
-           r_scale: np.ndarray, thr: np.ndarray | None, vis_check: bool, setup) -> dict:
+                 r_scale: np.ndarray, thr: np.ndarray | None, vis_check: bool, setup) -> dict:
     """The estimator's measurement update (visibility check, gate, filtering.ukf.update) in the fused kernel.
 
     mean (R, 12), cov (R, 12, 12) the prior; z (R, 8, m); measured (R, 8) bool (finite); R_c (R, 8, m, m)
@@ -942,7 +941,6 @@ def update_fused(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.
                   (out["mean"], out["cov"], out["nis"], out["accepted"], out["mask_k"], out["Ky"], out["yy"],
                    out["trPzz"], ok))
     if not ok.all():  # repairs and non-finite steps: the numpy filter's, on those runs
-
         bad = np.flatnonzero(~ok)
         out["suspect"] = bad
         mk = measured[bad]
