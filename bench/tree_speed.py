@@ -10,7 +10,7 @@ Floor of a change that must not slow anything: every figure within 5 % of the ba
 time; closed loop: at least 0.95x the real-time factor).
 
 Run: .venv/bin/python bench/tree_speed.py --baseline DIR [--current DIR] [--rounds 2] [--duration-s 300]
-     [--only ukf|loop] [--out bench/results/tree_speed.json]
+     [--only ukf|loop] [--out bench/results/tree_speed.json]  (each run appended to the file's runs)
 """
 
 from __future__ import annotations
@@ -84,17 +84,22 @@ def main() -> None:
               f"{'' if k not in met else 'met' if met[k] else 'MISSED'}")
     result = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_avg_end": os.getloadavg()},
               "protocol": f"each tree's own bench/ukf_speed.py (default) and bench/online_speed.py "
-                          f"(--duration-s {args.duration_s}; only: {args.only or 'both'}), {args.rounds} alternating rounds; medians, and the "
-                          f"ratio as the median of the rounds' paired ratios",
+                          f"(--duration-s {args.duration_s}; only: {args.only or 'both'}), {args.rounds} alternating rounds; "
+                          f"medians, and the ratio as the median of the rounds' paired ratios",
               "trees": {name: os.path.basename(path.rstrip("/")) for name, path in trees.items()},
               "rounds": rounds, "median": median, "ratio_current_to_baseline": ratio, "floor_met": met}
+    # one file, every run appended (runs of one pair of trees side by side, each with its protocol)
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
+    runs = []
+    if os.path.exists(args.out):
+        with open(args.out, encoding="utf-8") as fh:
+            runs = json.load(fh)["runs"]
     tmp = args.out + ".tmp"
     with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(result, fh, indent=1, sort_keys=True)
+        json.dump({"runs": runs + [result]}, fh, indent=1, sort_keys=True)
         fh.write("\n")
     os.replace(tmp, args.out)
-    print(f"wrote {args.out}")
+    print(f"wrote {args.out} (run {len(runs) + 1})")
 
 
 if __name__ == "__main__":
