@@ -160,11 +160,11 @@ def test_a_512_px_sequence_with_its_own_camera(track_512):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, raises=AssertionError,
+@pytest.mark.xfail(strict=False, raises=AssertionError,
                    reason="a known false lock: on this sequence (default scenario, seed 3, 512 px) the tracker claims "
                    "the half-turn twin, 179.8 deg off, on all 12 frames it calls tracking; bank.evidence_memory = "
-                   "'long' (off by default) is reported to stop it. Strict: it fails once the claims are right, so "
-                   "that this mark is removed.")
+                   "'long' (off by default) is reported to stop it. Not strict: the claim passes through the "
+                   "renderer and the network, so another machine may see it right; remove the mark once it is.")
 def test_the_512_px_track_claims_the_truths_attitude(track_512):
     """Every frame claimed tracking is within 5 deg of the truth's attitude (the project's false-lock bound)."""
     out, truth_x = track_512

@@ -8,9 +8,11 @@ References independent of the code under test: MuJoCo's renderer (marker pixels)
 inertia of the shipped targets recomputed from the dimensions their notes state.
 """
 
+import importlib
 import json
 import math
 import os
+import sys
 
 import mujoco
 import numpy as np
@@ -270,33 +272,93 @@ def test_a_bad_target_file_is_refused_in_one_line_writing_nothing(case, tmp_path
 
 # --- ENVISAT unchanged ----------------------------------------------------------------------------------------
 
-# The shards of two small ENVISAT datasets (128 px, seed 48: 6 random views in shards of 3, 4 sequence frames in
-# shards of 2) as commit 60424e2, before any target work, wrote them.
-ENVISAT_SHARDS_BEFORE = {
-    "random": ["904feaa2a04c00aba74752054bd750a17ea3c89cc30e2cb9b6d2dc3a1bb09ca8",
-               "3cb4b59ddd2f06a76cd31f4785e06af29bf224c902a09f10fa447f5236ffb4ee"],
-    "sequence": ["d971df0f8cf71dbbabc90e8c5af0a7f34d6b87b2e64c3f4c4b059068a59daec0",
-                 "e75c833a0b3da12f14d73bc223d00d47f9a837b8e11ceddac192b91859e82cc4"],
-}
+# Two small ENVISAT datasets (128 px, seed 48: 6 random views in shards of 3, 4 sequence frames in shards of 2) as the
+# code before any target work wrote them, decoded: tests/data/envisat_shards_reference.npz, written by
+# tests/data/make_shard_reference.py (its docstring tells the history). Compared within the cross-machine
+# tolerances of tests/data/compare.py: rendered images and printed floats are not the same bytes on every machine.
+DATA = os.path.join(ROOT, "tests", "data")
+LABEL_ABS = 1e-4  # the coarsest rounding a label is written with (corners_px: 4 decimals), whose last digit a
+LABEL_REL = 1e-9  # last-bit difference upstream can flip; any other number to 1e-9 relative
+
+
+def _load_reference_module(name):
+    sys.path.insert(0, DATA)
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.remove(DATA)
+
+
+def assert_labels_close(now, before, where):
+    """Two labels (parsed JSON) the same: keys, strings, integers and flags equal; numbers within LABEL_ABS or
+    LABEL_REL."""
+    if isinstance(before, dict):
+        assert isinstance(now, dict) and sorted(now) == sorted(before), f"{where}: keys {sorted(now)}"
+        for k in before:
+            assert_labels_close(now[k], before[k], f"{where}.{k}")
+    elif isinstance(before, list):
+        assert isinstance(now, list) and len(now) == len(before), f"{where}: length"
+        for i, (a, b) in enumerate(zip(now, before)):
+            assert_labels_close(a, b, f"{where}[{i}]")
+    elif isinstance(before, float):
+        assert isinstance(now, float | int) and math.isclose(now, before, rel_tol=LABEL_REL, abs_tol=LABEL_ABS), \
+            f"{where}: {now!r} against {before!r}"
+    else:
+        assert type(now) is type(before) and now == before, f"{where}: {now!r} against {before!r}"
+
+
+def assert_dataset_like_reference(now, before):
+    compare = _load_reference_module("compare")
+    assert sorted(now) == sorted(before)
+    for name in sorted(before):
+        a, b = now[name], before[name]
+        if name.endswith("/json"):
+            assert_labels_close(json.loads(str(a)), json.loads(str(b)), name)
+        elif name.endswith("/depth.png"):
+            compare.assert_render_close(a, b, name, tol=1)  # one 2 mm step
+        elif name.endswith("/mask.png"):
+            compare.assert_render_close(a, b, name)
+        else:
+            compare.assert_noisy_image_close(a, b, name)
 
 
 @pytest.mark.parametrize("mode", ["random", "sequence"])
-def test_envisat_datasets_are_byte_identical_to_before_the_target_work(mode, tmp_path):
-    """The shards' sha256 are those of before; the manifest adds only the target (its record and the config's
-    `target` field), ENVISAT's corners keep their names A-H and the labels their corners_px."""
-    from envisat_pose.datagen.factory import run_generate
+def test_envisat_datasets_are_those_of_before_the_target_work(mode, tmp_path):
+    """The samples are those of before (images, depth, masks and labels within the cross-machine tolerances); the
+    manifest adds only the target (its record and the config's `target` field), ENVISAT's corners keep their names
+    A-H and the labels their corners_px."""
     from envisat_pose.datagen.render import MASK_VALUES
 
-    n, size = (6, 3) if mode == "random" else (4, 2)
-    cfg = from_dict(GenerateConfig, {"mode": mode, "num_images": n, "shard_size": size, "resolution_px": 128,
-                                     "seed": 48})
-    manifest = run_generate(cfg, str(tmp_path / mode))
-    assert [e["sha256"] for e in manifest["shards"]] == ENVISAT_SHARDS_BEFORE[mode]
+    maker = _load_reference_module("make_shard_reference")
+    manifest = maker.generate(mode, str(tmp_path / mode))
+    now = maker.decode(str(tmp_path / mode), manifest, mode)
+    with np.load(os.path.join(DATA, "envisat_shards_reference.npz"), allow_pickle=False) as z:
+        before = {k: z[k] for k in z.files if k.startswith(mode + "/")}
+    assert_dataset_like_reference(now, before)
     assert manifest["config"]["target"] == "models/envisat.xml"
     assert manifest["target"]["keypoint_names"] == list("ABCDEFGH") and manifest["target"]["name"] == "envisat"
     assert manifest["mask_values"] == {"background": 0, **MASK_VALUES}
     label = json.loads(next(iter(read_shard(str(tmp_path / mode / manifest["shards"][0]["name"]))))[1]["json"])
     assert "corners_px" in label and "keypoint_names" not in label
+
+
+def test_the_dataset_comparison_sees_a_small_change():
+    """The comparison above fails for an image moved by one pixel, a corner moved by 0.01 px, a visibility flag
+    flipped; it passes for the noise redrawn whole (the worst a machine difference can do)."""
+    with np.load(os.path.join(DATA, "envisat_shards_reference.npz"), allow_pickle=False) as z:
+        before = {k: z[k] for k in z.files if k.startswith("sequence/")}
+    image = "sequence/000000001/png"
+    moved = dict(before, **{image: np.roll(before[image], 1, axis=1)})
+    with pytest.raises(AssertionError, match="DN"):
+        assert_dataset_like_reference(moved, before)
+    label = json.loads(str(before["sequence/000000001/json"]))
+    label["corners_px"][3][0] += 0.01
+    with pytest.raises(AssertionError, match="corners_px"):
+        assert_dataset_like_reference(dict(before, **{"sequence/000000001/json": np.array(json.dumps(label))}), before)
+    label = json.loads(str(before["sequence/000000001/json"]))
+    label["visible"][0] = not label["visible"][0]
+    with pytest.raises(AssertionError, match="visible"):
+        assert_dataset_like_reference(dict(before, **{"sequence/000000001/json": np.array(json.dumps(label))}), before)
 
 
 # --- the shipped targets --------------------------------------------------------------------------------------

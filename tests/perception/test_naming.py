@@ -163,19 +163,20 @@ def _edge_prob(case, p_edge=0.9, p_other=0.1):
 
 
 def test_line_cues_help_with_many_spurious_junctions():
-    """2 px noise, 5 spurious junctions: the line-verification cue keeps the naming right more often (measured:
-    83 % right or flagged without it, 88 % with it)."""
+    """2 px noise, 5 spurious junctions: the line-verification cue keeps the naming right more often (measured on
+    the 100 cases, 2026-12-02: 87 % right or flagged without it, 90 % with it; named wrongly 13 and 10 times. On
+    60 cases the margin was one case, which a PnP solve's last bits on another CPU can take away)."""
     rates = {}
     for use_lines in (False, True):
         rng = np.random.default_rng(7)
         counts = collections.Counter()
-        for _ in range(60):
+        for _ in range(100):
             case = make_case(rng, noise_px=2.0, n_spurious=5)
             naming = name_corners(case["points_px"], case["K"], type_prob=case["type_prob"],
                                   edge_prob=_edge_prob(case) if use_lines else None, image_size=case["image_size"],
                                   config=NamingConfig(sigma_px=3.0, gate_px=12.0, max_candidates=13))
             counts[outcome(case, naming, tol_px=8.0)] += 1
-        rates[use_lines] = (counts["right"] + counts["ambiguous"]) / 60
+        rates[use_lines] = (counts["right"] + counts["ambiguous"]) / 100
     print(rates)
     assert rates[True] >= 0.85 and rates[True] > rates[False]
 
