@@ -1,4 +1,4 @@
-"""`envisat adapt`: the verb over pipelines/adapt.py: teach the detector the look of your own frames (tracked cold,
+"""`envisat adapt`: the verb over pipelines/adaptation/adapt.py: teach the detector the look of your own frames (tracked cold,
 pseudo-labelled at the smoothed track, recalibrated and optionally fine-tuned, tracked again), judged on a held-out
 final part."""
 
@@ -9,7 +9,7 @@ import argparse
 from envisat_pose.app.common import add_common, add_frame_inputs
 from envisat_pose.config import InputError
 from envisat_pose.out_dirs import check_out_dir
-from envisat_pose.pipelines.frames import open_source
+from envisat_pose.pipelines.runs.frames import open_source
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -46,8 +46,8 @@ FLAGS = {"src": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps"
 def adapt_cli(args: argparse.Namespace) -> int:
     import sys
 
-    from envisat_pose.pipelines.adapt import AdaptConfig, adapt
-    from envisat_pose.pipelines.track import TrackConfig
+    from envisat_pose.pipelines.adaptation.adapt import AdaptConfig, adapt
+    from envisat_pose.pipelines.runs.track import TrackConfig
 
     if args.fine_tune in (None, "none") and (args.steps is not None or args.lr is not None):
         raise InputError("--steps and --lr set the fine-tune, which is off by default: add --fine-tune norm_heads "

@@ -27,8 +27,8 @@ from envisat_pose.app.common import add_common
 from envisat_pose.app.detect import detector_inputs
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.out_dirs import check_out_file
-from envisat_pose.pipelines.calibrate import CalibrateJobConfig, fit_face_cue, run_calibration
-from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
+from envisat_pose.pipelines.common.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
+from envisat_pose.pipelines.detector.calibrate import CalibrateJobConfig, fit_face_cue, run_calibration
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -9,8 +9,8 @@ import os
 
 from envisat_pose.app.common import add_common, check_rrd_output
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
-from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
-from envisat_pose.pipelines.export import ExportConfig, export_dataset
+from envisat_pose.pipelines.common.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
+from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
 from envisat_pose.shard_reader import checked_shards
 
 

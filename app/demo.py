@@ -24,8 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    from envisat_pose.pipelines.closed_loop import run_closed_loop, run_output_paths
-    from envisat_pose.pipelines.run_config import RunConfig
+    from envisat_pose.pipelines.runs.closed_loop import run_closed_loop, run_output_paths
+    from envisat_pose.pipelines.runs.run_config import RunConfig
 
     cfg = RunConfig.from_scenario("default", duration_s=args.duration_s, weights=args.weights, runs=1, workers=1,
                                   seed=0)

@@ -1,6 +1,6 @@
 """`envisat detect`: named corners of every frame of a dataset (full frames, no label used but the intrinsics K),
 written as the core's Detections contract plus the shard keys and the half-turn alternative. The verb parses the
-flags and calls the pipeline (pipelines/detect.py: run_detect)."""
+flags and calls the pipeline (pipelines/detector/detect.py: run_detect)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import argparse
 from envisat_pose.app.common import add_common
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.out_dirs import check_out_file
-from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
-from envisat_pose.pipelines.detect import DetectJobConfig, run_detect
+from envisat_pose.pipelines.common.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
+from envisat_pose.pipelines.detector.detect import DetectJobConfig, run_detect
 
 
 def register(sub: argparse._SubParsersAction) -> None:

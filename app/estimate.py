@@ -1,4 +1,4 @@
-"""`envisat estimate`: the verb over the estimate pipeline (pipelines/estimate.py): the batched UKF
+"""`envisat estimate`: the verb over the estimate pipeline (pipelines/campaigns/estimate.py): the batched UKF
 over R Monte Carlo runs of one MuJoCo truth (`--truth run.npz` or simulated for `--scenario NAME`), written as
 est.npz. Here: the flags, the config's resolution and the printed lines.
 """
@@ -11,8 +11,8 @@ from envisat_pose.app.common import add_common, check_rrd_output
 from envisat_pose.config import InputError
 from envisat_pose.filtering.estimator import nees
 from envisat_pose.out_dirs import check_out_file
-from envisat_pose.pipelines.estimate import EstimateConfig, estimate_output_paths
-from envisat_pose.pipelines.estimate import run_estimate as run_pipeline
+from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, estimate_output_paths
+from envisat_pose.pipelines.campaigns.estimate import run_estimate as run_pipeline
 from envisat_pose.state import error_summary
 
 # the library's argument names -> this verb's flags (app/common.as_flags)

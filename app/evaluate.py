@@ -1,4 +1,4 @@
-"""`envisat evaluate`: the verb over the evaluation pipeline (pipelines/evaluate.py): the corner
+"""`envisat evaluate`: the verb over the evaluation pipeline (pipelines/detector/evaluate.py): the corner
 detector scored against the labels, next to Harris and Shi-Tomasi; a table on stdout and every number in a JSON
 file. Here: the flags, the checked inputs, the frames as the camera saw them, the printed table."""
 
@@ -10,9 +10,9 @@ from envisat_pose.app.common import add_common
 from envisat_pose.app.detect import detector_inputs
 from envisat_pose.datagen.target_model import require_envisat_dataset
 from envisat_pose.out_dirs import check_out_file
-from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
-from envisat_pose.pipelines.detect import camera_samples, read_roi
-from envisat_pose.pipelines.evaluate import evaluate_detector, groups_table, read_poses
+from envisat_pose.pipelines.common.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
+from envisat_pose.pipelines.detector.detect import camera_samples, read_roi
+from envisat_pose.pipelines.detector.evaluate import evaluate_detector, groups_table, read_poses
 from envisat_pose.shard_reader import checked_shards
 
 

@@ -1,4 +1,4 @@
-"""`envisat montecarlo`: the verb over the campaign pipeline (pipelines/campaign.py): a Monte Carlo
+"""`envisat montecarlo`: the verb over the campaign pipeline (pipelines/campaigns/campaign.py): a Monte Carlo
 campaign of the batched UKF over one MuJoCo truth in resumable blocks, or a rate sweep of such campaigns. Here:
 the flags, the config's resolution (the campaign's, the sweep's, the runner's) and the printed lines; what the
 campaign writes into DIR is described in the pipeline.
@@ -13,8 +13,8 @@ import time
 from envisat_pose.app.common import add_common, check_rrd_output
 from envisat_pose.config import InputError, check
 from envisat_pose.out_dirs import make_out_file_dirs
-from envisat_pose.pipelines.campaign import FIGURES, MonteCarloConfig, run_campaign, write_recording
-from envisat_pose.pipelines.sweep import SWEEP_FIGURE, run_sweep, sweep_for
+from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, run_campaign, write_recording
+from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE, run_sweep, sweep_for
 from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
 
 

@@ -1,5 +1,5 @@
 """`envisat report DIR [DIR...] --out report.html`: one self-contained HTML page over Monte Carlo campaigns and
-rate sweeps (the report is pipelines/report.py's: write_report)."""
+rate sweeps (the report is pipelines/campaigns/report.py's: write_report)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from envisat_pose.pipelines.report import write_report
+    from envisat_pose.pipelines.campaigns.report import write_report
 
     n = write_report(args.dirs, args.out)
     print(f"wrote {args.out} ({n['campaigns']} campaign{'s' if n['campaigns'] != 1 else ''}"

@@ -1,4 +1,4 @@
-"""`envisat run`: the verb over the closed loop (pipelines/closed_loop.py): MuJoCo truth -> rendered
+"""`envisat run`: the verb over the closed loop (pipelines/runs/closed_loop.py): MuJoCo truth -> rendered
 camera frames -> the space camera -> the Tracker (cold start from the images; `--warm-start` hands each run's
 filter the truth plus a draw from P0, for filter studies). The truth only scores.
 
@@ -47,7 +47,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
 def resolve_config(args: argparse.Namespace):
     """The scenario's job (RunConfig.from_scenario: its [filter] table, duration and rate), then --config, then
     the flags; validated before any work."""
-    from envisat_pose.pipelines.run_config import RunConfig
+    from envisat_pose.pipelines.runs.run_config import RunConfig
 
     flags = {"duration_s": args.duration_s, "runs": args.runs, "seed": args.seed, "weights": args.weights,
              "workers": args.workers, "warm_start": True if args.warm_start else None,
@@ -56,7 +56,7 @@ def resolve_config(args: argparse.Namespace):
 
 
 def print_table(summary: dict) -> None:
-    """The scores (pipelines/scoring.py: first track, false locks, statistics over every frame from the first
+    """The scores (pipelines/runs/scoring.py: first track, false locks, statistics over every frame from the first
     declared tracking on which the tracker claims an estimate) and the time per stage."""
     s = summary["scores"]
     ttc, settle, sc = s["time_to_first_correct_track_s"], s["time_to_settle_s"], s["scored"]
@@ -83,7 +83,7 @@ def _fmt(v, digits: int = 0) -> str:
 
 
 def run_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.pipelines.closed_loop import run_closed_loop
+    from envisat_pose.pipelines.runs.closed_loop import run_closed_loop
 
     cfg = resolve_config(args)
     require_envisat(cfg.image.target, "image.target", "run")

@@ -1,4 +1,4 @@
-"""`envisat simulate`: the verb over the simulate pipeline (pipelines/simulate.py): the MuJoCo truth of
+"""`envisat simulate`: the verb over the simulate pipeline (pipelines/campaigns/simulate.py): the MuJoCo truth of
 a scenario, written as the design's truth trajectory (run.npz). Here: the flags, the config and the printed lines."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from envisat_pose.app.common import add_common, check_rrd_output
 from envisat_pose.config import InputError
 from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.out_dirs import make_out_file_dirs
-from envisat_pose.pipelines.simulate import output_paths
-from envisat_pose.pipelines.simulate import run_simulate as run_pipeline
+from envisat_pose.pipelines.campaigns.simulate import output_paths
+from envisat_pose.pipelines.campaigns.simulate import run_simulate as run_pipeline
 
 
 def register(sub: argparse._SubParsersAction) -> None:

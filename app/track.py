@@ -1,4 +1,4 @@
-"""`envisat track`: the verb over pipelines/track.py: the Tracker on a user's frames (a sequence-mode generate
+"""`envisat track`: the verb over pipelines/runs/track.py: the Tracker on a user's frames (a sequence-mode generate
 folder, a folder of image files, or a video), cold, with no truth; labels, where present, only score."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ import argparse
 from envisat_pose.app.common import add_common, add_frame_inputs, add_recording_arguments, recording_sink
 from envisat_pose.app.run import print_table
 from envisat_pose.out_dirs import check_out_dir
-from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
-from envisat_pose.pipelines.frames import open_source
-from envisat_pose.pipelines.outputs import status_line
+from envisat_pose.pipelines.common.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
+from envisat_pose.pipelines.runs.frames import open_source
+from envisat_pose.pipelines.runs.outputs import status_line
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -40,7 +40,7 @@ FLAGS = {"src": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps"
 
 
 def track_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.pipelines.track import TrackConfig, track_frames
+    from envisat_pose.pipelines.runs.track import TrackConfig, track_frames
 
     check_out_dir(args.out)
     with skip_hint():

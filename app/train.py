@@ -1,4 +1,4 @@
-"""`envisat train`: the verb over the training pipeline (pipelines/train.py): the corner detector
+"""`envisat train`: the verb over the training pipeline (pipelines/detector/train.py): the corner detector
 trained on the factory's shards into a run directory. Here: the flags, the config and the printed line."""
 
 from __future__ import annotations
@@ -11,9 +11,15 @@ import sys
 from envisat_pose.app.common import add_common, as_flags
 from envisat_pose.config import ConfigError, InputError, resolve_job_config
 from envisat_pose.datagen.generate_config import GenerateConfig
-from envisat_pose.pipelines.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
-from envisat_pose.pipelines.look_mix import read_looks
-from envisat_pose.pipelines.train import OnlineConfig, default_workers, read_run_config, read_run_record, train_detector
+from envisat_pose.pipelines.common.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
+from envisat_pose.pipelines.detector.look_mix import read_looks
+from envisat_pose.pipelines.detector.train import (
+    OnlineConfig,
+    default_workers,
+    read_run_config,
+    read_run_record,
+    train_detector,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -4,12 +4,12 @@ the Tracker with no prior) over random attitudes, tumble axes and lit suns, per 
 A trial holds the chaser range_m ahead on V-bar in a named scenario's orbit (the rate's scenario: slow-tumble
 226 s, default = ENVISAT's 134.74 s, stress-tumble 72 s spin period), with the target's initial attitude uniform on
 SO(3), its tumble axis uniform on the sphere (in the body frame T) and a sun uniform over those lighting every frame
-within a 90 deg phase angle out of the Earth's shadow (pipelines/trials.py); the run config is resolved as `envisat
+within a 90 deg phase angle out of the Earth's shadow (pipelines/runs/trials.py); the run config is resolved as `envisat
 run --scenario RATE_SCENARIO` resolves it (RunConfig.from_scenario) with the trial's seed,
 duration and sun; the truth is the scenario's with the trial's range, axis and attitude (trials.trial_truth_config,
 the keep-out checked when it is simulated); the loop is the closed loop's own run task (closed_loop.closed_loop_task)
 from a cold start for --duration-s of frames (all lit: time counts from the first frame). Scored with
-pipelines/scoring.py: a trial succeeds when its first frame declared "tracking" is correct (attitude within 5 deg,
+pipelines/runs/scoring.py: a trial succeeds when its first frame declared "tracking" is correct (attitude within 5 deg,
 position within 2 % of the range); it false-locks when it claims an estimate (tracking or coasting) while wrong on
 any frame; time to the first correct track from the first lit frame.
 
@@ -64,8 +64,8 @@ def draw_trial(ss: np.random.SeedSequence, range_m: float, rate: str, duration_s
     (`envisat run --config`)."""
     from envisat_pose.config import to_dict
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.pipelines.run_config import RunConfig
-    from envisat_pose.pipelines.trials import draw_lit_sun_N, random_attitude_mrp, unit_vector
+    from envisat_pose.pipelines.runs.run_config import RunConfig
+    from envisat_pose.pipelines.runs.trials import draw_lit_sun_N, random_attitude_mrp, unit_vector
 
     scenario = RATES[rate]
     noise_ss, draw_ss = ss.spawn(2)
@@ -89,10 +89,10 @@ def run_trial(trial: dict) -> dict:
     message when it is refused), the closed loop's run task on it, scored per frame (scoring.run_record)."""
     from envisat_pose.config import ConfigError
     from envisat_pose.datagen.truth import simulate_truth
-    from envisat_pose.pipelines import closed_loop as loop
-    from envisat_pose.pipelines.run_config import run_config_from_json
-    from envisat_pose.pipelines.scoring import frame_errors, run_record
-    from envisat_pose.pipelines.trials import trial_truth_config
+    from envisat_pose.pipelines.runs import closed_loop as loop
+    from envisat_pose.pipelines.runs.run_config import run_config_from_json
+    from envisat_pose.pipelines.runs.scoring import frame_errors, run_record
+    from envisat_pose.pipelines.runs.trials import trial_truth_config
 
     cfg = run_config_from_json(trial["cfg_json"])
     truth_cfg = trial_truth_config(trial["scenario"], cfg.duration_s, cfg.rate_hz, cfg.seed, trial["range_m"],
@@ -175,8 +175,8 @@ def main() -> None:
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "acquisition.json"))
     args = ap.parse_args()
     from envisat_pose.io import atomic_write_text
-    from envisat_pose.pipelines.job_defaults import default_weights_path
-    from envisat_pose.pipelines.trials import SUN_PHASE_MAX_DEG
+    from envisat_pose.pipelines.common.job_defaults import default_weights_path
+    from envisat_pose.pipelines.runs.trials import SUN_PHASE_MAX_DEG
     from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
     from envisat_pose.provenance import weights_ref
     from envisat_pose.status import legend

@@ -3,16 +3,16 @@ poses as the reference, and what the adapted weights cost on the project's own l
 
 Per (scenario, seed, resolution):
 - foreign frames (bench/foreign_frames.py: MuJoCo Filament, a real camera's habits) as a user's folder; `adapt`
-  over them (pipelines/adapt.py, the shipped weights, its defaults) gives the before and after tracks;
+  over them (pipelines/adaptation/adapt.py, the shipped weights, its defaults) gives the before and after tracks;
 - the same poses rendered by the project (`envisat generate --mode sequence`, same scenario, seed, frames, size),
   tracked with the shipped weights: the reference;
 - each track scored against the truth (truth.npz / the generate labels; the truth only scores): the frame from
-  which the pose stays right (pipelines/scoring.settled_from: < 10 cm and < 1 deg, claimed, to the end), the
+  which the pose stays right (pipelines/runs/scoring.settled_from: < 10 cm and < 1 deg, claimed, to the end), the
   second-half RMS position and attitude (frames with an estimate), the false-lock frames (claiming an estimate
   with attitude > 5 deg or position > 2 % of range), the held-out quarter's verdict (adopted or why not);
 - PCK@5 of the adapted weights and of the shipped ones on the own renders (`envisat evaluate`);
 - the pseudo-labels' range against the truth's (label_range): as smoothed, corrected by the sequence's edge scale,
-  corrected frame by frame (pipelines/edge_range.py; the report records the edge fits whatever --edge-range
+  corrected frame by frame (pipelines/adaptation/edge_range.py; the report records the edge fits whatever --edge-range
   applies), so both ways of correcting are scored from one run.
 
 Run:  .venv/bin/python bench/adapt.py --scenarios default --seeds 0 1 --resolutions 512 --num-images 300 \\
@@ -47,7 +47,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def scores(t_s: np.ndarray, x_true: np.ndarray, est_path: str, lit: np.ndarray) -> dict:
     """A track's figures against the truth x_true (T, 12): stays_right_from_frame, rms_position_m and
     rms_attitude_deg over the second half's frames with an estimate, false_lock_frames, tracked_frames."""
-    from envisat_pose.pipelines.scoring import claims_estimate, correct_frames, frame_errors
+    from envisat_pose.pipelines.runs.scoring import claims_estimate, correct_frames, frame_errors
 
     with np.load(est_path) as est:
         x_hat, P, status = est["x_hat"][0], est["P"][0], est["status"][0]
@@ -106,9 +106,9 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
     import foreign_frames
 
     from envisat_pose.perception.weights import shipped_weights_path
-    from envisat_pose.pipelines.adapt import AdaptConfig, adapt
-    from envisat_pose.pipelines.frames import open_source
-    from envisat_pose.pipelines.track import TrackConfig
+    from envisat_pose.pipelines.adaptation.adapt import AdaptConfig, adapt
+    from envisat_pose.pipelines.runs.frames import open_source
+    from envisat_pose.pipelines.runs.track import TrackConfig
 
     case = os.path.join(work, f"{scenario}-{seed}-{res}-{n}")
     foreign, own = os.path.join(case, "foreign"), os.path.join(case, "own")
@@ -153,7 +153,7 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
                                  "corners": cal.get("apparent_scale"), "corners_se": cal.get("apparent_scale_se"),
                                  "corners_frames": cal.get("apparent_scale_frames"),
                                  "adopted": report["rounds"][-1].get("apparent_scale_adopted")}
-        from envisat_pose.pipelines.camera_file import camera_from_intrinsics
+        from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
 
         cam_user, _ = camera_from_intrinsics(os.path.join(foreign, "camera.toml"))
         out["label_range"] = label_range(report, x_f, cam_user.pos_C_m)
@@ -210,9 +210,9 @@ def look_case(look: str, scenario: str, seed: int, res: int, n: int, work: str) 
     sys.path.insert(0, os.path.join(ROOT, "bench"))
     import edge_truth
 
-    from envisat_pose.pipelines.adapt import AdaptConfig, adapt
-    from envisat_pose.pipelines.frames import open_source
-    from envisat_pose.pipelines.track import TrackConfig, prepare_frames, track_frames
+    from envisat_pose.pipelines.adaptation.adapt import AdaptConfig, adapt
+    from envisat_pose.pipelines.runs.frames import open_source
+    from envisat_pose.pipelines.runs.track import TrackConfig, prepare_frames, track_frames
 
     clean = edge_truth.own_clean(scenario, seed, res, n, work)
     case = os.path.join(work, f"{scenario}-{seed}-{res}-{n}")
@@ -256,7 +256,7 @@ def range_error(t_s: np.ndarray, x_true: np.ndarray, est_path: str) -> float | N
     """The second half's mean range error (m, estimate minus truth, frames with a claimed estimate), range from
     the chaser's camera: the target's position norm (the camera sits at the chaser's origin to a few cm, common to
     both)."""
-    from envisat_pose.pipelines.scoring import claims_estimate
+    from envisat_pose.pipelines.runs.scoring import claims_estimate
 
     with np.load(est_path) as est:
         x_hat, status = est["x_hat"][0], est["status"][0]

@@ -96,7 +96,7 @@ def main() -> None:
 
     from envisat_pose.io import atomic_write_text, json_safe, sha256_file
     from envisat_pose.perception.data import shard_paths
-    from envisat_pose.pipelines.detect import camera_samples
+    from envisat_pose.pipelines.detector.detect import camera_samples
     from envisat_pose.provenance import manifest_sha256
 
     torch.set_num_threads(args.threads)

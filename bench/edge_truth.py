@@ -1,4 +1,4 @@
-"""The edge cue (pipelines/edge_range.py) read at the true pose of foreign frames: what it says where the answer is
+"""The edge cue (pipelines/adaptation/edge_range.py) read at the true pose of foreign frames: what it says where the answer is
 known, so its own bias is separated from the tracker's.
 
 Per (scenario, seed, resolution), on the foreign sequence bench/adapt.py renders (bench/foreign_frames.py:
@@ -17,7 +17,7 @@ the space camera (datagen/sensor.py) with a fixed look: response linear, sRGB, g
 sigma 0.3 / 1.0 / 2.5 px; blooming off (white at 0.8 of the full well) or on (1.5, 4 px spill); no motion blur,
 no vignetting. Per look the sequence's delta at the labels' true corners: in the stored values (the cue as it
 was), linearized by the known response with the reach of the known PSF, and by the response and PSF the frames
-give (pipelines/edge_look.estimate_look); and the estimate itself. The Filament rows (without --looks) record
+give (pipelines/adaptation/edge_look.estimate_look); and the estimate itself. The Filament rows (without --looks) record
 the same three readings, their response unknown.
 
 Run:  .venv/bin/python bench/edge_truth.py --seeds 0 1 2 3 --resolutions 512 1024 --work /tmp/adapt-bench
@@ -46,10 +46,10 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, stride: int,
     sys.path.insert(0, os.path.join(ROOT, "bench"))
     import foreign_frames
 
-    from envisat_pose.pipelines.edge_range import correct_range, edge_stations, fit_scale, sequence_scale
-    from envisat_pose.pipelines.frames import open_source
-    from envisat_pose.pipelines.pseudo_labels import corner_labels
-    from envisat_pose.pipelines.track import TrackConfig, prepare_frames
+    from envisat_pose.pipelines.adaptation.edge_range import correct_range, edge_stations, fit_scale, sequence_scale
+    from envisat_pose.pipelines.adaptation.pseudo_labels import corner_labels
+    from envisat_pose.pipelines.runs.frames import open_source
+    from envisat_pose.pipelines.runs.track import TrackConfig, prepare_frames
 
     foreign = os.path.join(work, f"{scenario}-{seed}-{res}-{n}", "foreign")
     if not os.path.exists(os.path.join(foreign, "truth.npz")):
@@ -142,7 +142,7 @@ def look_params(response: str, sigma_px: float, bloom: bool, res: int, seed: int
 
 def sequence_delta(images, corners, use, light=None, blur_px=None) -> dict:
     """The sequence's delta at the given corners (edge_range.sequence_scale over the frames' fits)."""
-    from envisat_pose.pipelines.edge_range import frame_scale, sequence_scale
+    from envisat_pose.pipelines.adaptation.edge_range import frame_scale, sequence_scale
 
     fits = [frame_scale(im, c, u, light=light, blur_px=blur_px) for im, c, u in zip(images, corners, use)]
     seq = sequence_scale(fits)
@@ -152,7 +152,7 @@ def sequence_delta(images, corners, use, light=None, blur_px=None) -> dict:
 
 def three_readings(images, corners, use, known=None, blur_px=None) -> dict:
     """The cue in the stored values, by the known response and blur (when given), by the estimated ones."""
-    from envisat_pose.pipelines.edge_look import estimate_look
+    from envisat_pose.pipelines.adaptation.edge_look import estimate_look
 
     pick = np.unique(np.linspace(0, len(images) - 1, min(len(images), LOOK_FRAMES)).round().astype(int))
     look = estimate_look([images[i] for i in pick], corners[pick], use[pick])

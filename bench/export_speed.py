@@ -48,7 +48,7 @@ if kind == "extract":
                         fh.write(tar.extractfile(m).read())
                     n += 1
 else:
-    from envisat_pose.pipelines.export import ExportConfig, export_dataset
+    from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
     s = export_dataset(src, out, ExportConfig(fmt, image_format), workers=2, progress=False)
     n = sum(s.images.values())
 dt = time.perf_counter() - t0

@@ -15,8 +15,8 @@ camera model (datagen/sensor.py) never drew:
 
 Output folder (one per scenario, seed and resolution):
     frames/frame_00000.jpg ...   the images (gray JPEG)
-    timestamps.csv               file,t_s (pipelines/frames.py read_timestamps)
-    camera.toml                  fx, fy, cx, cy, width, height, distortion (pipelines/camera_file.py)
+    timestamps.csv               file,t_s (pipelines/runs/frames.py read_timestamps)
+    camera.toml                  fx, fy, cx, cy, width, height, distortion (pipelines/tracking/camera_file.py)
     truth.npz                    for scoring only, never read by the tracker: t_s (N,), x (N, 12), corners_px
                                  (N, 8, 2) in the distorted frames, corners_ideal_px (N, 8, 2) through the ideal
                                  pinhole the tracker remaps to, visible (N, 8) (face test), in_frame (N, 8),
@@ -173,7 +173,7 @@ def encode_frame(frame_u8: np.ndarray, jpeg_quality: int) -> tuple[bytes, str]:
 
 
 def camera_toml_text(K_cam: np.ndarray, size_px: int, distortion: tuple[float, ...]) -> str:
-    """The foreign camera's calibration as the camera file `envisat track --camera` reads (pipelines/camera_file.py:
+    """The foreign camera's calibration as the camera file `envisat track --camera` reads (pipelines/tracking/camera_file.py:
     fx, fy, cx, cy px, width, height, OpenCV distortion k1, k2, p1, p2)."""
     d = ", ".join(repr(float(v)) for v in distortion)
     return ("# the foreign camera's calibration (OpenCV model), as a user would give it to envisat track\n"
@@ -343,11 +343,11 @@ def sequence_truth(scenario: str, seed: int, num_images: int, resolution_px: int
                    lit_sun: bool = True):
     """The poses and sun of `envisat generate --mode sequence` for (scenario, seed, num_images, resolution,
     frame_dt_s, sun_dir): (t_s (N,), x (N, 12), sun_dir_C (N, 3), eclipse (N,) bool, config_json). lit_sun: the
-    sun is the seed's lit sun of the closed-loop benchmarks (pipelines/trials.scenario_sun_N: the camera sees a
+    sun is the seed's lit sun of the closed-loop benchmarks (pipelines/runs/trials.scenario_sun_N: the camera sees a
     sunlit side on every frame), given to generate as its sun_dir; else generate's own draw from the seed."""
     from envisat_pose.datagen.generate_config import GenerateConfig, SequenceModeConfig, config_json
     from envisat_pose.datagen.views import sequence_frames
-    from envisat_pose.pipelines.trials import scenario_sun_N
+    from envisat_pose.pipelines.runs.trials import scenario_sun_N
 
     sun_N = scenario_sun_N(scenario, (num_images - 1) * frame_dt_s, 1.0 / frame_dt_s, seed) if lit_sun else None
     cfg = GenerateConfig(mode="sequence", num_images=num_images, resolution_px=resolution_px, seed=seed,
@@ -363,7 +363,7 @@ def make_sequence(out_dir: str, scenario: str, seed: int, num_images: int, resol
     from envisat_pose.attitude import mrp_to_dcm
     from envisat_pose.geometry import PinholeCamera, load_camera
     from envisat_pose.io import atomic_path, atomic_write_text, save_npz
-    from envisat_pose.pipelines.pseudo_labels import corner_labels
+    from envisat_pose.pipelines.adaptation.pseudo_labels import corner_labels
     from envisat_pose.state import MRP, POS
 
     t_s, x, sun_C, eclipse, cfg_json = sequence_truth(scenario, seed, num_images, resolution_px, frame_dt_s)

@@ -8,7 +8,7 @@ sun); every condition sees the same frames:
 - filament_ideal:   Filament's render (bench/foreign_frames.FilamentRenderer), no habits at all;
 - filament_sensor:  Filament + the sensor (Poisson-Gaussian noise, pedestal) + JPEG, an ideal lens;
 - filament_lens:    Filament + the lens alone (distortion, principal point offset; rounded to 8 bits), then the
-                    tracker's own path back to a pinhole (camera.toml -> pipelines/camera_file.py -> cv2.remap);
+                    tracker's own path back to a pinhole (camera.toml -> pipelines/tracking/camera_file.py -> cv2.remap);
 - filament_full:    every habit (the frames bench/foreign_frames.py writes), the tracker's path back.
 The truth of each condition is the labels' projection through the camera the tracker uses (the MJCF's pinhole, or
 camera_file's pinhole of camera.toml). The detector runs as in a converged track: its region of interest from the
@@ -83,7 +83,7 @@ class Detection:
     def __init__(self):
         from envisat_pose.perception.detect import load_detector
         from envisat_pose.perception.weights import shipped_weights_path
-        from envisat_pose.pipelines.tracker_config import RoiConfig
+        from envisat_pose.pipelines.tracking.tracker_config import RoiConfig
 
         self.det = load_detector(shipped_weights_path())
         self.roi_cfg = RoiConfig()
@@ -91,7 +91,7 @@ class Detection:
     def corners(self, image: np.ndarray, x: np.ndarray, camera) -> np.ndarray:
         """(8, 2) detected corners (NaN: not found) in image (H, W) uint8 for the true state x (12,)."""
         from envisat_pose.attitude import mrp_to_dcm
-        from envisat_pose.pipelines.tracker import predicted_roi
+        from envisat_pose.pipelines.tracking.tracker import predicted_roi
         from envisat_pose.state import MRP
 
         roi = predicted_roi(x, np.eye(12) * 1e-6, camera, self.roi_cfg)
@@ -161,8 +161,8 @@ def run(scenario: str, seed: int, n: int, res: int, work: str, stride: int = 1) 
 
     from envisat_pose.attitude import mrp_to_dcm
     from envisat_pose.geometry import load_camera
-    from envisat_pose.pipelines.camera_file import camera_from_intrinsics
-    from envisat_pose.pipelines.pseudo_labels import corner_labels
+    from envisat_pose.pipelines.adaptation.pseudo_labels import corner_labels
+    from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
     from envisat_pose.state import MRP, POS
 
     t_s, x, sun_C, eclipse, cfg_json = ff.sequence_truth(scenario, seed, n, res)

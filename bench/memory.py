@@ -53,7 +53,7 @@ BASE_FRAMES = 21  # the baseline job's frames (20 s at 1 Hz)
 # BENCH_TRACE_EVERY frames
 CHILD = """
 import json, os, sys
-from envisat_pose.pipelines import tracker
+from envisat_pose.pipelines.tracking import tracker
 
 every, rows, n = int(os.environ["BENCH_TRACE_EVERY"]), [], {"frames": 0, "lit": 0}
 page_mib = os.sysconf("SC_PAGE_SIZE") / 2**20
@@ -71,8 +71,8 @@ def traced(self, t_s, image):
 
 
 tracker.Tracker.step = traced
-from envisat_pose.pipelines.closed_loop import run_closed_loop
-from envisat_pose.pipelines.run_config import RunConfig
+from envisat_pose.pipelines.runs.closed_loop import run_closed_loop
+from envisat_pose.pipelines.runs.run_config import RunConfig
 
 duration_s, config, out_dir = float(sys.argv[1]), sys.argv[2], sys.argv[3]
 run_closed_loop(RunConfig.from_scenario("default", config, duration_s=duration_s), out_dir, progress=False)
@@ -121,7 +121,7 @@ def loop_growth(rss: list) -> dict:
 
 def frame_bytes() -> int:
     """Bytes of one frame of the arrays a run records (rows.record_arrays)."""
-    from envisat_pose.pipelines.rows import record_arrays
+    from envisat_pose.pipelines.runs.rows import record_arrays
 
     return sum(a.nbytes for a in record_arrays(1).values())
 

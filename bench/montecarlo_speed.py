@@ -70,9 +70,9 @@ class PeakRSS:
 
 def time_campaign(runs: int, duration_s: float, workers: int, block_runs: int, out_dir: str,
                   kernel: str | None = None) -> dict:
-    """Run the campaign once through the pipeline's run_campaign (envisat_pose.pipelines.campaign); wall time,
+    """Run the campaign once through the pipeline's run_campaign (envisat_pose.pipelines.campaigns.campaign); wall time,
     memory, summary. kernel: the filter kernel (None: the default, as `envisat montecarlo` runs it)."""
-    from envisat_pose.pipelines.campaign import MonteCarloConfig, run_campaign
+    from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig, run_campaign
     from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
 
     # as `envisat montecarlo --scenario default` builds it: the scenario's [measurement] and [filter] tables

@@ -36,8 +36,8 @@ CORRECT_PX = 10.0  # a detected corner within this of the truth counts as correc
 def closed_loop(weights: str, duration_s: float, roi: bool, seed: int, out_dir: str, cores: int) -> tuple[dict, object]:
     """`envisat run --warm-start` (the tracker handed run 0's draw from P0, so the ideal-pixel filter below starts
     from the same estimate)."""
-    from envisat_pose.pipelines import closed_loop as loop
-    from envisat_pose.pipelines.run_config import RunConfig
+    from envisat_pose.pipelines.runs import closed_loop as loop
+    from envisat_pose.pipelines.runs.run_config import RunConfig
 
     cfg = RunConfig.from_scenario("default", overrides={"duration_s": duration_s, "weights": weights, "seed": seed,
                                                         "workers": 1, "threads": cores, "warm_start": True,
@@ -75,7 +75,7 @@ def ideal_pixels(out_dir: str, cfg, sigma_px: float, seed: int) -> np.ndarray:
     run-0 initial estimate; returns x_hat (T, 12)."""
     from envisat_pose.contracts import TruthTrajectory
     from envisat_pose.filtering.estimator import chaser_states, run_filter
-    from envisat_pose.pipelines.onboard import onboard_physics
+    from envisat_pose.pipelines.tracking.onboard import onboard_physics
     from envisat_pose.state import draw_initial_estimate
 
     truth = TruthTrajectory.load(os.path.join(out_dir, "truth.npz"))
@@ -117,8 +117,8 @@ def main() -> None:
     os.environ["LP_NUM_THREADS"] = str(args.cores)
     from envisat_pose.contracts import Estimates
     from envisat_pose.io import atomic_write_text
-    from envisat_pose.pipelines.job_defaults import default_weights_path
-    from envisat_pose.pipelines.rows import STAGES
+    from envisat_pose.pipelines.common.job_defaults import default_weights_path
+    from envisat_pose.pipelines.runs.rows import STAGES
 
     weights = args.weights or default_weights_path()
     load_start = os.getloadavg()

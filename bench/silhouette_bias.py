@@ -14,7 +14,7 @@ per look (random views with the MJCF's plain materials; random views with the ap
 scenario's sequence), clean and through the space camera, all stations and split by whether the profile
 reaches the 8-bit ceiling (>= 250: clipped, bloomed). The segmentation mask's own edge is checked the same way
 (the render's geometry against the labels). The station and area-method math is the library's
-(pipelines/edge_range.py, which `envisat adapt` uses without a mask); this bench passes the render's mask.
+(pipelines/adaptation/edge_range.py, which `envisat adapt` uses without a mask); this bench passes the render's mask.
 
 Run: .venv/bin/python bench/silhouette_bias.py [--images 40]  (writes bench/results/silhouette_bias.json)
 """
@@ -44,8 +44,8 @@ LOOKS = {
 def edge_offsets(image: np.ndarray, mask: np.ndarray, corners_px: np.ndarray, visible: np.ndarray
                  ) -> list[tuple[float, bool]]:
     """(offset px, clipped) of every usable station of the hull's edges (module doc): the library's
-    pipelines/edge_range.edge_stations with the render's mask and this bench's 60 px edges, 20 px from their ends."""
-    from envisat_pose.pipelines.edge_range import edge_stations
+    pipelines/adaptation/edge_range.edge_stations with the render's mask and this bench's 60 px edges, 20 px from their ends."""
+    from envisat_pose.pipelines.adaptation.edge_range import edge_stations
 
     st = edge_stations(image, corners_px, visible, mask=mask, min_edge_px=MIN_EDGE_PX, end_px=END_PX)
     return [(float(o), bool(c)) for o, c in zip(st.offset_px, st.clipped)]

@@ -1,6 +1,6 @@
 """Cold-start tracking benchmark: `envisat run` (MuJoCo renders, the space camera, the shipped detector, the
 Tracker started with no prior) over several seeds per scenario, each seed its own random attitude, camera noise
-and random lit sun, scored against the truth so that a failure shows (pipelines/scoring.py).
+and random lit sun, scored against the truth so that a failure shows (pipelines/runs/scoring.py).
 
 Each (scenario, seed) is one closed loop resolved as `envisat run --scenario S --seed N` resolves it
 (RunConfig.from_scenario: the scenario's duration, rate and filter table) with the
@@ -47,8 +47,8 @@ def run_config(scenario: str, seed: int, weights: str, duration_s: float | None,
                sun_phase_max_deg: float, config_path: str | None = None):
     """The closed loop of (scenario, seed) as `envisat run --config config_path` resolves it, with the seed's lit
     sun."""
-    from envisat_pose.pipelines.run_config import RunConfig
-    from envisat_pose.pipelines.trials import scenario_sun_N
+    from envisat_pose.pipelines.runs.run_config import RunConfig
+    from envisat_pose.pipelines.runs.trials import scenario_sun_N
 
     flags = {"seed": seed, "runs": 1, "workers": 1, "weights": weights, "duration_s": duration_s,
              "tracker.noise.correlation_in": correlation_in}
@@ -81,8 +81,8 @@ def bound_blocks(out: str, sigma_px: float) -> np.ndarray:
     from envisat_pose.filtering.estimator import chaser_states
     from envisat_pose.filtering.measurements import measure
     from envisat_pose.geometry import load_camera
-    from envisat_pose.pipelines.onboard import onboard_physics
-    from envisat_pose.pipelines.tracker import ACQUIRING_SIGMA
+    from envisat_pose.pipelines.tracking.onboard import onboard_physics
+    from envisat_pose.pipelines.tracking.tracker import ACQUIRING_SIGMA
 
     truth = TruthTrajectory.load(os.path.join(out, "truth.npz"))
     with np.load(os.path.join(out, "det.npz"), allow_pickle=False) as z:
@@ -106,9 +106,9 @@ def run_one(cfg_json: str) -> dict:
     """One closed loop (a runner task): its per-frame errors (scoring.frame_errors), status, skipped frames, the
     PCRLB per block, the truth and estimate (for the error summary), the pixel noise and the timings."""
     from envisat_pose.contracts import Estimates
-    from envisat_pose.pipelines import closed_loop as loop
-    from envisat_pose.pipelines.run_config import run_config_from_json
-    from envisat_pose.pipelines.scoring import frame_errors
+    from envisat_pose.pipelines.runs import closed_loop as loop
+    from envisat_pose.pipelines.runs.run_config import run_config_from_json
+    from envisat_pose.pipelines.runs.scoring import frame_errors
 
     cfg = run_config_from_json(cfg_json)
     with tempfile.TemporaryDirectory(prefix=f"tracking-{cfg.scenario}-{cfg.seed}-") as out:
@@ -128,7 +128,7 @@ def run_one(cfg_json: str) -> dict:
 
 def score_scenario(runs: list[dict]) -> dict:
     """scoring.score_frames over a scenario's runs (one per seed, the same frame times), with their PCRLBs."""
-    from envisat_pose.pipelines.scoring import score_frames, summary_after_s
+    from envisat_pose.pipelines.runs.scoring import score_frames, summary_after_s
     from envisat_pose.state import error_summary
 
     t_s = runs[0]["t_s"]
@@ -200,7 +200,7 @@ def main() -> None:
     ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
     ap.add_argument("--sun-phase-max-deg", type=float, help="a lit sun's largest phase angle (default: trials')")
     ap.add_argument("--correlation-in", choices=("slower", "rotation", "time"),
-                    help="the tracker's noise.correlation_in (default: NoiseConfig's, pipelines/tracker_config.py)")
+                    help="the tracker's noise.correlation_in (default: NoiseConfig's, pipelines/tracking/tracker_config.py)")
     ap.add_argument("--config", help="a run-config TOML applied to every run, as `envisat run --config` takes it "
                                      "(an ablation: [tracker.acquire] frames = 12, say); its text goes into the result")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "tracking.json"))
@@ -209,8 +209,8 @@ def main() -> None:
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.io import atomic_write_text
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.pipelines.job_defaults import default_weights_path
-    from envisat_pose.pipelines.trials import SUN_PHASE_MAX_DEG
+    from envisat_pose.pipelines.common.job_defaults import default_weights_path
+    from envisat_pose.pipelines.runs.trials import SUN_PHASE_MAX_DEG
     from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
     from envisat_pose.provenance import weights_ref
 

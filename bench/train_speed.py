@@ -5,7 +5,7 @@ forward, losses, backward, clipping, AdamW; the multi-tensor optimizer against t
 bf16, with the op count of one step from torch.profiler and, on CUDA, the GPU busy share: kernel time over wall
 time), the data path alone (the DataLoader's batches, nothing trained), and the whole loop below.
 
-The pipeline the verb calls (pipelines/train.py: DataLoader workers each reading their own shards,
+The pipeline the verb calls (pipelines/detector/train.py: DataLoader workers each reading their own shards,
 the default network, the losses, AdamW, checkpoints) trains a fresh run for a few dozen steps per row: workers
 0 (in-process), 1 and the cores less one, in float32 and with bf16 autocast; on CUDA (`torch.cuda.is_available()`)
 the cores less one at each of the GPU batches asked for (--gpu-batch-sizes), both precisions. samples/s counts
@@ -48,7 +48,7 @@ def time_training(data: str, run_dir: str, device: str, workers: int, bf16: bool
                   batch_size: int) -> dict:
     """One fresh run of `steps` steps through the pipeline; its end line's speed figures."""
     from envisat_pose.perception.train import TrainConfig
-    from envisat_pose.pipelines.train import train_detector
+    from envisat_pose.pipelines.detector.train import train_detector
 
     cfg = TrainConfig(steps=steps, batch_size=batch_size, warmup_steps=min(10, steps),
                       checkpoint_every=10 ** 6)
@@ -166,16 +166,16 @@ def online_config(resolution_px: int, workers: int):
     """The online source of `envisat train --online` at resolution_px (the generate defaults in random mode, seed
     1), K = 8."""
     from envisat_pose.datagen.generate_config import GenerateConfig
-    from envisat_pose.pipelines.train import OnlineConfig
+    from envisat_pose.pipelines.detector.train import OnlineConfig
 
     return OnlineConfig(GenerateConfig(mode="random", resolution_px=resolution_px, seed=1), workers, 8)
 
 
 def time_online_data(resolution_px: int, workers: int, batch_size: int, batches: int, device: str) -> dict:
-    """The online data path alone: `batches` batches of pipelines/online.online_batches (renderer processes, the
+    """The online data path alone: `batches` batches of pipelines/detector/online.online_batches (renderer processes, the
     crops and augmentation in batch on the device), nothing trained; the renderers' start is first_batch_s."""
     from envisat_pose.perception.data import DataConfig
-    from envisat_pose.pipelines.online import online_batches
+    from envisat_pose.pipelines.detector.online import online_batches
 
     src = online_config(resolution_px, workers)
     t0 = time.perf_counter()
@@ -203,7 +203,7 @@ def time_online_training(run_dir: str, device: str, workers: int, bf16: bool, st
                          resolution_px: int) -> dict:
     """One fresh online run (`envisat train --online`) of `steps` steps through the pipeline."""
     from envisat_pose.perception.train import TrainConfig
-    from envisat_pose.pipelines.train import train_detector
+    from envisat_pose.pipelines.detector.train import train_detector
 
     cfg = TrainConfig(steps=steps, batch_size=batch_size, warmup_steps=min(10, steps), checkpoint_every=10 ** 6)
     t0 = time.perf_counter()
@@ -218,7 +218,7 @@ def save(args, rows: list[dict], parts: list[dict]) -> None:
     """Write what was measured so far (after every row: a run stopped at its time limit keeps its rows),
     atomically."""
     from envisat_pose.io import atomic_write_text
-    from envisat_pose.pipelines.train import dataset_provenance
+    from envisat_pose.pipelines.detector.train import dataset_provenance
 
     cores = len(os.sched_getaffinity(0))
     result = {"torch": torch.__version__, "machine": platform.processor() or platform.machine(), "cores": cores,
@@ -228,7 +228,7 @@ def save(args, rows: list[dict], parts: list[dict]) -> None:
               {"generate": f"--num-images {args.images} --shard-size {args.shard_size} --seed 1 (1024 px, defaults)",
                "gpu_generate": f"--num-images {args.gpu_images} --shard-size {args.gpu_shard_size} --seed 1"},
               "rows": rows, "parts": parts,
-              "note": "envisat train's loop through envisat_pose.pipelines.train.train_detector, the default "
+              "note": "envisat train's loop through envisat_pose.pipelines.detector.train.train_detector, the default "
                       "network (TrainConfig defaults), a fresh run per row; samples/s from the first batch to the "
                       "final checkpoint. parts: the model step alone on a synthetic batch (its optimizer per "
                       "parameter or multi-tensor; top_ops: where its time goes) and the data path alone. A loaded "

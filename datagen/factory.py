@@ -185,7 +185,7 @@ def render_sample(renderer, cfg: GenerateConfig, view, x: np.ndarray, scene: dic
 def sample_arrays(K: np.ndarray, boxes: TargetBoxes, cfg: GenerateConfig, out, x: np.ndarray, scene: dict,
                   rng: np.random.Generator, seed: int) -> tuple[np.ndarray, dict]:
     """A sample's image and label before any encoding (finish_sample encodes them; the online trainer,
-    pipelines/online.py, takes them as they are): the corruption draw, the image ((H, W) uint8, corrupted
+    pipelines/detector/online.py, takes them as they are): the corruption draw, the image ((H, W) uint8, corrupted
     unless storage is 'clean') and the label (plain JSON data, labels.make_label). No GL state."""
     from envisat_pose.datagen.corrupt import apply_corruption
 

@@ -4,28 +4,28 @@ The public API, imported on first use (so `import envisat_pose` loads nothing he
 
 - contracts: `TruthTrajectory`, `Detections`, `Estimates` (envisat_pose.contracts);
 - the tracker: `Tracker` (`Tracker.from_scenario`), `TrackerConfig`, `TrackEstimate`, `tracker_from_scenario`
-  (envisat_pose.pipelines.tracker); what it is built from: `tracker_camera`, `tracker_detector`, `chaser_from_orbit`,
-  `tracker_filter` (envisat_pose.pipelines.build);
-- the closed loop: `RunConfig`, `run_closed_loop` (envisat_pose.pipelines.closed_loop); a user's frames:
-  `TrackConfig`, `open_source`, `track_frames` (envisat_pose.pipelines.track);
-- campaigns: `MonteCarloConfig`, `run_campaign` (envisat_pose.pipelines.campaign);
-- the detector: `TrainConfig` (envisat_pose.perception.train), `train_detector` (envisat_pose.pipelines.train);
+  (envisat_pose.pipelines.tracking.tracker); what it is built from: `tracker_camera`, `tracker_detector`, `chaser_from_orbit`,
+  `tracker_filter` (envisat_pose.pipelines.tracking.build);
+- the closed loop: `RunConfig`, `run_closed_loop` (envisat_pose.pipelines.runs.closed_loop); a user's frames:
+  `TrackConfig`, `open_source`, `track_frames` (envisat_pose.pipelines.runs.track);
+- campaigns: `MonteCarloConfig`, `run_campaign` (envisat_pose.pipelines.campaigns.campaign);
+- the detector: `TrainConfig` (envisat_pose.perception.train), `train_detector` (envisat_pose.pipelines.detector.train);
 - the state's layout: `envisat_pose.state`.
 """
 
 _PUBLIC = {
     "TruthTrajectory": "envisat_pose.contracts", "Detections": "envisat_pose.contracts",
     "Estimates": "envisat_pose.contracts",
-    "Tracker": "envisat_pose.pipelines.tracker", "TrackerConfig": "envisat_pose.pipelines.tracker",
-    "TrackEstimate": "envisat_pose.pipelines.tracker",
-    "tracker_camera": "envisat_pose.pipelines.build", "tracker_detector": "envisat_pose.pipelines.build",
-    "chaser_from_orbit": "envisat_pose.pipelines.build", "tracker_filter": "envisat_pose.pipelines.build",
-    "tracker_from_scenario": "envisat_pose.pipelines.tracker",
-    "RunConfig": "envisat_pose.pipelines.closed_loop", "run_closed_loop": "envisat_pose.pipelines.closed_loop",
-    "TrackConfig": "envisat_pose.pipelines.track", "open_source": "envisat_pose.pipelines.track",
-    "track_frames": "envisat_pose.pipelines.track",
-    "MonteCarloConfig": "envisat_pose.pipelines.campaign", "run_campaign": "envisat_pose.pipelines.campaign",
-    "TrainConfig": "envisat_pose.perception.train", "train_detector": "envisat_pose.pipelines.train",
+    "Tracker": "envisat_pose.pipelines.tracking.tracker", "TrackerConfig": "envisat_pose.pipelines.tracking.tracker",
+    "TrackEstimate": "envisat_pose.pipelines.tracking.tracker",
+    "tracker_camera": "envisat_pose.pipelines.tracking.build", "tracker_detector": "envisat_pose.pipelines.tracking.build",
+    "chaser_from_orbit": "envisat_pose.pipelines.tracking.build", "tracker_filter": "envisat_pose.pipelines.tracking.build",
+    "tracker_from_scenario": "envisat_pose.pipelines.tracking.tracker",
+    "RunConfig": "envisat_pose.pipelines.runs.closed_loop", "run_closed_loop": "envisat_pose.pipelines.runs.closed_loop",
+    "TrackConfig": "envisat_pose.pipelines.runs.track", "open_source": "envisat_pose.pipelines.runs.track",
+    "track_frames": "envisat_pose.pipelines.runs.track",
+    "MonteCarloConfig": "envisat_pose.pipelines.campaigns.campaign", "run_campaign": "envisat_pose.pipelines.campaigns.campaign",
+    "TrainConfig": "envisat_pose.perception.train", "train_detector": "envisat_pose.pipelines.detector.train",
 }
 __all__ = sorted(_PUBLIC)
 

@@ -8,7 +8,7 @@ package still says what 0, 1, 2, 3 mean. Codes never change meaning: a new statu
   earned a claim (its half-turn still open, or not yet confirmed by its own innovations).
 - tracking (1): one confirmed hypothesis whose evidence backs it this frame: corners were used, its windowed
   innovations are consistent with its covariance, its state is physical, and its 3-sigma is inside the claimed
-  accuracy (pipelines/integrity.py).
+  accuracy (pipelines/tracking/integrity.py).
 - lost (2): the evidence contradicted the state this frame; the bank is dropped and acquisition starts again.
 - coasting (3): a confirmed track predicting without a usable measurement this frame (no image, no corner found,
   every corner rejected) or with a covariance wider than the claim; a prediction, not a fix. Frames with an

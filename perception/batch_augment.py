@@ -1,6 +1,6 @@
 """Training batches made on the device from whole frames: crops, resizing, style augmentation and targets, in batch.
 
-The online trainer (pipelines/online.py) hands raw rendered frames and their labels as tensors; this module makes
+The online trainer (pipelines/detector/online.py) hands raw rendered frames and their labels as tensors; this module makes
 of them the batch that perception/data.py's make_sample + perception/stream.py's collate_batch make from shards
 (the same keys, shapes, dtypes and meaning; the same distributions), as torch ops over the whole batch with
 per-sample parameters:

@@ -5,7 +5,7 @@ px^2, e^T C^-1 e follows a chi-square with 2 degrees of freedom when C is honest
 band: [1.6, 2.6]). One scalar s fitted on held-out data, C -> s C, brings the mean to 2; it ships with the weights.
 
 Here: the fits alone (arrays in, numbers out). The job that runs the detector over held-out frames, matches its
-corners to the labels and writes the fits into the weights is the pipeline pipelines/calibrate.py
+corners to the labels and writes the fits into the weights is the pipeline pipelines/detector/calibrate.py
 (`envisat calibrate`).
 """
 

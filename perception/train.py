@@ -304,7 +304,7 @@ class TrainData:
     """Where a run's batches come from. data_dir: one dataset folder or several (their shards are read
     together); paths: the shard files to read when the caller checked them already (None: every shard of
     data_dir); online: instead of shards, a function start_state -> iterator of (batch on the device, state)
-    (frames rendered as training goes: pipelines/online.py), each step's state kept in state.json under 'online'
+    (frames rendered as training goes: pipelines/detector/online.py), each step's state kept in state.json under 'online'
     and handed back on resume (no epochs; data_dir and paths unused)."""
 
     data_dir: str | list[str] = ()
@@ -560,7 +560,7 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
     and returns an end line with stopped_by 'nothing_to_do'.
     clock: the seconds every time figure and the budget are read from (a test gives its own).
     online: instead of shards, a function start_state -> iterator of (batch on the device, state) (frames
-    rendered as training goes: pipelines/online.py); each step's state is kept in state.json under 'online' and
+    rendered as training goes: pipelines/detector/online.py); each step's state is kept in state.json under 'online' and
     handed back on resume; no epochs, data_dir and paths unused.
     Raises TrainingInterrupted after the checkpoint when SIGINT or SIGTERM stopped it.
     """

@@ -4,7 +4,7 @@ the same name runs, and each job's config has it as `Cfg.from_scenario(name, ...
 EstimateConfig, MonteCarloConfig; the truth of `simulate` is datagen's ScenarioConfig).
 
 The layers, each over the last (config.resolve_job_config): the config class's defaults; what the job takes from
-the named scenario (pipelines/job_defaults.py's `scenario_defaults`: the tracker's filter under the scenario's [filter] table, its
+the named scenario (pipelines/common/job_defaults.py's `scenario_defaults`: the tracker's filter under the scenario's [filter] table, its
 [measurement] table, its duration and camera rate, the chaser's orbit and the gravity-gradient switch); the TOML
 file at config_path; the overrides {'section.key': value} (None: not given; a dict value is merged into its
 table). Then what the job needs before any work: the shipped detector weights where none are named (and the file
@@ -12,7 +12,7 @@ checked), a worker per run up to the cores (run), the image factory's sequence f
 run_config.finish_config), the Earth's-shadow outages of a scenario with an [eclipse] table (montecarlo,
 campaign_config.with_eclipse; estimate adds them along its truth in run_estimate).
 
-The config classes resolve themselves from the layers of pipelines/job_defaults.py, below them and below this
+The config classes resolve themselves from the layers of pipelines/common/job_defaults.py, below them and below this
 module, which alone knows every job by its name. Errors name the config field ('weights', 'measurement.rate_hz'); the verbs map them onto their flags.
 """
 
@@ -22,11 +22,11 @@ from typing import Any
 
 from envisat_pose.config import resolve_job_config
 from envisat_pose.datagen.scenario import ScenarioConfig
-from envisat_pose.pipelines.campaign_config import MonteCarloConfig
-from envisat_pose.pipelines.estimate import EstimateConfig
-from envisat_pose.pipelines.job_defaults import JOBS, scenario_defaults
-from envisat_pose.pipelines.run_config import RunConfig
-from envisat_pose.pipelines.track import TrackConfig
+from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig
+from envisat_pose.pipelines.campaigns.estimate import EstimateConfig
+from envisat_pose.pipelines.common.job_defaults import JOBS, scenario_defaults
+from envisat_pose.pipelines.runs.run_config import RunConfig
+from envisat_pose.pipelines.runs.track import TrackConfig
 
 
 def resolve_job(kind: str, scenario: str | None = "default", config_path: str | None = None,

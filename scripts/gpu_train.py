@@ -267,7 +267,7 @@ def render_workers(looks_path: str, cores: int) -> int:
     """Renderer processes for an online leg: the cores less two, fewer where memory would not hold every
     worker's renderers (one per resolution and texture set among the looks, ~RENDERER_MB each, built as the looks
     first need them) within MEMORY_SHARE of the memory available."""
-    from envisat_pose.pipelines.look_mix import read_looks, renderer_key
+    from envisat_pose.pipelines.detector.look_mix import read_looks, renderer_key
 
     keys = len({renderer_key(look.generate) for look in read_looks(looks_path)})
     available_mb = cores * 8000.0
@@ -290,7 +290,7 @@ def online_looks(work: str, leg: int, scenarios: list[str]) -> str:
     with the leg's data seeds in turn (SEED_BASE + SEED_LEG x leg + its index)."""
     from envisat_pose.config import from_dict
     from envisat_pose.datagen.generate_config import GenerateConfig
-    from envisat_pose.pipelines.look_mix import WeightedLook, looks_toml
+    from envisat_pose.pipelines.detector.look_mix import WeightedLook, looks_toml
 
     chunks = round_chunks(leg, 0, scenarios)
     chunks += [dict(c, name=c["name"] + "-appearance") for c in round_chunks(leg, 1, scenarios) if "scenario" in c]

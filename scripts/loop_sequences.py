@@ -17,8 +17,8 @@ import sys
 
 def sequence_config(scenario: str, seed: int, frames: int, phase_max_deg: float = 90.0):
     """The GenerateConfig of the closed loop's frames of (scenario, seed) over its first `frames` frames, lit."""
-    from envisat_pose.pipelines.run_config import RunConfig
-    from envisat_pose.pipelines.trials import scenario_sun_N
+    from envisat_pose.pipelines.runs.run_config import RunConfig
+    from envisat_pose.pipelines.runs.trials import scenario_sun_N
 
     flags = {"seed": seed, "runs": 1, "workers": 1}
     rate_hz = RunConfig.from_scenario(scenario, overrides=flags).rate_hz

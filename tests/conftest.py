@@ -13,7 +13,7 @@ import pytest
 # convergence, test_track's cold start from unlabelled frames, the web viewer's screenshot).
 # tests/test_architecture.py checks that every id names a test that exists.
 SLOW = (
-    "tests/pipelines/test_memory.py::test_a_long_closed_loop_keeps_its_memory_flat",  # 401 s
+    "tests/pipelines/runs/test_memory.py::test_a_long_closed_loop_keeps_its_memory_flat",  # 401 s
     "tests/datagen/test_clearance.py::test_random_views_keep_the_camera_clear_and_the_target_beyond_the_near_plane",  # 336 s
     "tests/datagen/test_clearance.py::test_close_25m_keeps_clear_for_many_seeds",  # 58 s
     "tests/app/test_run.py::test_the_cli_runs_several_loops_in_parallel",  # 171 s
@@ -52,33 +52,33 @@ SLOW = (
     # a trainer and its worker interrupted by a process-group SIGINT, then resumed under a 20 s budget
     "tests/perception/test_train_path.py::test_ctrl_c_writes_a_checkpoint_and_resume_honours_a_new_budget",  # 26 s
     # three online runs, each starting a renderer process
-    "tests/pipelines/test_online_train.py::test_an_online_run_resumes_to_the_weights_of_an_uninterrupted_one",  # 15 s
+    "tests/pipelines/detector/test_online_train.py::test_an_online_run_resumes_to_the_weights_of_an_uninterrupted_one",  # 15 s
     # two renderers at 2048 px for the marker plates of another target (issue 48)
     "tests/datagen/test_targets.py::test_labels_land_on_the_rendered_site_markers",  # 17 s
     # the fast lane took 5:43 on a quiet clean checkout (2026-11-28, 792 tests; the floor is 5 minutes): its
     # slowest moved here (call times of a --durations run, partly loaded), each file keeping fast tests
-    "tests/pipelines/test_tracker.py::test_a_measured_apparent_scale_is_undone_and_its_spread_reported",  # 18 s
-    "tests/pipelines/test_tracker.py::test_the_correlation_falls_with_the_views_rotation_at_the_tracked_rate",  # 14 s
-    "tests/pipelines/test_tracker.py::test_correlated_detector_errors_are_allowed_for_by_the_filters_memory",  # 12 s
-    "tests/pipelines/test_tracker.py::test_a_confidently_wrong_appearance_cannot_decide_the_half_turn_alone",  # 11 s
-    "tests/pipelines/test_tracker.py::test_errors_the_error_model_misses_are_allowed_for_by_the_detector_process_noise",
-    "tests/pipelines/test_tracker.py::test_an_array_seen_at_the_other_end_loses_a_decided_track",  # 9 s
-    "tests/pipelines/test_tracker.py::test_the_range_error_no_frame_averages_away_stays_in_the_covariance",  # 9 s
-    "tests/pipelines/test_pseudo_labels.py::test_smoothing_a_tumbling_truth_beats_the_filter",  # 10 s
-    "tests/pipelines/test_online.py::test_batches_repeat_and_a_stopped_run_resumes_after_what_it_trained",  # 9 s
+    "tests/pipelines/tracking/test_tracker.py::test_a_measured_apparent_scale_is_undone_and_its_spread_reported",  # 18 s
+    "tests/pipelines/tracking/test_tracker.py::test_the_correlation_falls_with_the_views_rotation_at_the_tracked_rate",  # 14 s
+    "tests/pipelines/tracking/test_tracker.py::test_correlated_detector_errors_are_allowed_for_by_the_filters_memory",  # 12 s
+    "tests/pipelines/tracking/test_tracker.py::test_a_confidently_wrong_appearance_cannot_decide_the_half_turn_alone",  # 11 s
+    "tests/pipelines/tracking/test_tracker.py::test_errors_the_error_model_misses_are_allowed_for_by_the_detector_process_noise",
+    "tests/pipelines/tracking/test_tracker.py::test_an_array_seen_at_the_other_end_loses_a_decided_track",  # 9 s
+    "tests/pipelines/tracking/test_tracker.py::test_the_range_error_no_frame_averages_away_stays_in_the_covariance",  # 9 s
+    "tests/pipelines/adaptation/test_pseudo_labels.py::test_smoothing_a_tumbling_truth_beats_the_filter",  # 10 s
+    "tests/pipelines/detector/test_online.py::test_batches_repeat_and_a_stopped_run_resumes_after_what_it_trained",  # 9 s
     "tests/pipelines/test_jobs.py::test_montecarlo_verb_and_library_agree",  # 8 s
     "tests/perception/test_train_path.py::test_a_plain_script_without_a_main_guard_trains_with_workers",  # 8 s
     "tests/perception/test_naming.py::test_line_cues_help_with_many_spurious_junctions",  # 8 s
     # with those moved the lane took 5:01 (780 tests, warm): seven more
-    "tests/pipelines/test_tracker.py::test_a_lost_track_is_detected_and_recovered",  # 6 s
-    "tests/pipelines/test_tracker.py::test_a_burst_beyond_the_detectors_own_covariance_is_gated_with_gate_raw",  # 6 s
-    "tests/pipelines/test_pseudo_labels.py::test_the_smoother_does_not_reach_across_a_lost_frame",  # 7 s
+    "tests/pipelines/tracking/test_tracker.py::test_a_lost_track_is_detected_and_recovered",  # 6 s
+    "tests/pipelines/tracking/test_tracker.py::test_a_burst_beyond_the_detectors_own_covariance_is_gated_with_gate_raw",  # 6 s
+    "tests/pipelines/adaptation/test_pseudo_labels.py::test_the_smoother_does_not_reach_across_a_lost_frame",  # 7 s
     "tests/datagen/test_truth_physics.py::test_clohessy_wiltshire_limit_of_a_circular_chief",  # 7 s
-    "tests/pipelines/test_edge_range.py::test_unmeasurable_frames_give_no_delta",  # 7 s
+    "tests/pipelines/adaptation/test_edge_range.py::test_unmeasurable_frames_give_no_delta",  # 7 s
     "tests/perception/test_schedule.py::test_a_budget_that_ends_before_the_cooldown_still_leaves_the_next_legs_start",
     "tests/pipelines/test_jobs.py::test_the_plain_constructor_and_from_scenario_give_the_same_estimates",  # 6 s
     # a clean checkout's lane took 5:08 and a warm one 5:13 (775 tests, 2026-11-29): three more (4:18 after)
-    "tests/pipelines/test_tracker.py::test_the_tracker_starts_cold_and_converges",  # 24 s
+    "tests/pipelines/tracking/test_tracker.py::test_the_tracker_starts_cold_and_converges",  # 24 s
     "tests/app/test_out_folders.py::test_montecarlo_makes_its_parents",  # 16 s
     "tests/app/test_adapt.py::test_the_apparent_scale_is_measured_against_the_labels",  # 13 s with its fixture
 )

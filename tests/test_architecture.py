@@ -351,7 +351,7 @@ def imports_of_test_extras(root: str = ROOT) -> list[str]:
 
 STATE_FILE = os.path.join("envisat_pose", "state.py")
 GATES_FILE = os.path.join("envisat_pose", "gates.py")
-ONBOARD_FILE = os.path.join("pipelines", "onboard.py")
+ONBOARD_FILE = os.path.join("pipelines", "tracking", "onboard.py")
 RESUMABLE_FILE = os.path.join("envisat_pose", "resumable.py")  # the manifest protocol (ResumableJob)
 SHARD_READER_FILE = os.path.join("envisat_pose", "shard_reader.py")
 STATE_BOUNDS = {(0, 3), (3, 6), (6, 9), (9, 12)}  # the blocks of the 12-state (envisat_pose.state)
@@ -571,7 +571,7 @@ def _access(node) -> tuple[str, ast.AST] | None:
 
 def physics_builders(source: str) -> list[int]:
     """Lines of functions that read the truth's physics for the filter by hand: orbit.mu_m3_s2 together with
-    target.gravity_gradient (as attributes or keys) of one config. One builder: pipelines/onboard.py's
+    target.gravity_gradient (as attributes or keys) of one config. One builder: pipelines/tracking/onboard.py's
     onboard_physics."""
     lines = []
     for fn in ast.walk(ast.parse(source)):
@@ -651,8 +651,8 @@ def test_the_checker_sees_a_crossing(tmp_path):
 
 
 @pytest.mark.parametrize("module, source, reason", [
-    ("envisat_pose.filtering.x", "from envisat_pose.pipelines import track\n", "a stage imports only the core"),
-    ("envisat_pose.state", "def f():\n    from envisat_pose.pipelines.track import x\n", "nothing above it"),
+    ("envisat_pose.filtering.x", "from envisat_pose.pipelines.runs import track\n", "a stage imports only the core"),
+    ("envisat_pose.state", "def f():\n    from envisat_pose.pipelines.runs.track import x\n", "nothing above it"),
     ("envisat_pose.pipelines.x", "from envisat_pose.app.cli import main\n", "never the app"),
 ])
 def test_pipelines_layer_crossings_are_seen(module, source, reason):
@@ -683,6 +683,72 @@ def test_the_cycle_checker_sees_a_cycle_hidden_in_a_function(tmp_path):
     assert graph["envisat_pose.pipelines.c"] == {"envisat_pose.pipelines.a"}
     assert import_cycles(graph) == [["envisat_pose.pipelines.a", "envisat_pose.pipelines.b", "envisat_pose.pipelines.c"]]
     assert import_cycles({"a": {"b"}, "b": set(), "c": {"a", "b"}}) == []
+
+
+# ---------------------------------------------------------------- pipelines/ grouped by job
+
+# The sub-packages of pipelines/, one per job, and the modules allowed at its root: jobs.py resolves a named scenario
+# into any job's config, so it sits above every group (no group imports it).
+PIPELINE_GROUPS = ("common", "tracking", "runs", "campaigns", "detector", "adaptation", "datasets")
+PIPELINE_ROOT_MODULES = ("envisat_pose.pipelines", "envisat_pose.pipelines.jobs")
+
+
+def pipeline_group(module: str, packages: set[str]) -> str | None:
+    """The group of a pipelines module ('root' for the package and its root modules), None outside pipelines/.
+    packages: the modules that are packages (a group's own __init__ belongs to the group)."""
+    parts = module.split(".")
+    if parts[:2] != ["envisat_pose", "pipelines"] or len(parts) < 3 and module != "envisat_pose.pipelines":
+        return None
+    return parts[2] if len(parts) > 3 or module in packages else "root"
+
+
+def pipeline_groups_problems(graph: dict[str, set[str]]) -> list[str]:
+    """What breaks the grouping: a module at pipelines/'s root besides PIPELINE_ROOT_MODULES or in an unknown
+    group, a group that imports the root, and the cycles of the groups' import graph (a group's edge to another
+    stands for every import between their modules)."""
+    found = []
+    groups: dict[str, set[str]] = {}
+    packages = {m.rsplit(".", 1)[0] for m in graph if m.count(".") > 2}
+    for module, deps in graph.items():
+        own = pipeline_group(module, packages)
+        if own is None:
+            continue
+        if own == "root" and module not in PIPELINE_ROOT_MODULES and module.count(".") == 2:
+            found.append(f"{module} lies at pipelines/'s root: move it into the group of its job")
+        elif own != "root" and own not in PIPELINE_GROUPS:
+            found.append(f"{module} is in an unknown group {own!r} (PIPELINE_GROUPS lists them)")
+        for dep in deps:
+            other = pipeline_group(dep, packages)
+            if other is None or other == own:
+                continue
+            if other == "root" and own != "root":
+                found.append(f"{module} imports {dep}: a group never imports pipelines/'s root")
+            groups.setdefault(own, set()).add(other)
+    found += [f"the groups {' and '.join(c)} import one another" for c in import_cycles(
+        {g: groups.get(g, set()) for g in set(groups) | {d for ds in groups.values() for d in ds}})]
+    return found
+
+
+def test_pipelines_are_grouped_by_job_without_loops():
+    """Every pipeline lives in the group of its job (pipelines/<group>/); the groups import one another without a
+    loop and never the root (floor: 0 problems)."""
+    assert pipeline_groups_problems(module_graph()) == []
+
+
+def test_the_group_checker_sees_a_loop_a_stray_and_an_import_of_the_root(tmp_path):
+    for group in ("runs", "tracking"):
+        (tmp_path / "pipelines" / group).mkdir(parents=True)
+        (tmp_path / "pipelines" / group / "__init__.py").write_text("")
+    (tmp_path / "pipelines" / "jobs.py").write_text("from envisat_pose.pipelines.runs import track\n")
+    (tmp_path / "pipelines" / "stray.py").write_text("")
+    (tmp_path / "pipelines" / "runs" / "track.py").write_text("from envisat_pose.pipelines.tracking.tracker import T\n")
+    (tmp_path / "pipelines" / "tracking" / "tracker.py").write_text(
+        "def f():\n    from envisat_pose.pipelines.runs.rows import x\n")
+    (tmp_path / "pipelines" / "runs" / "rows.py").write_text("from envisat_pose.pipelines import jobs\n")
+    assert sorted(pipeline_groups_problems(module_graph(str(tmp_path)))) == [
+        "envisat_pose.pipelines.runs.rows imports envisat_pose.pipelines.jobs: a group never imports pipelines/'s root",
+        "envisat_pose.pipelines.stray lies at pipelines/'s root: move it into the group of its job",
+        "the groups root and runs and tracking import one another"]  # rows -> jobs -> runs too
 
 
 def test_one_name_per_concept():
@@ -739,7 +805,7 @@ def test_every_stage_file_is_seen():
     for stage in STAGES:
         assert f"envisat_pose.{stage}" in mods
     assert "envisat_pose.app.cli" in mods and "envisat_pose.contracts" in mods and "envisat_pose.state" in mods
-    assert "envisat_pose.pipelines" in mods and "envisat_pose.pipelines.tracker" in mods
+    assert "envisat_pose.pipelines" in mods and "envisat_pose.pipelines.tracking.tracker" in mods
 
 
 def test_a_missing_layer_folder_is_walked_without_error(tmp_path):
@@ -833,7 +899,7 @@ def test_the_config_checker_catches_a_verb_resolving_by_hand():
                 "    return load_toml(path)['fx']\n")
     assert hand_resolutions(resolved) == []
     assert resolves_configs(os.path.join("app", "run.py"))
-    assert resolves_configs(os.path.join("pipelines", "track.py"))
+    assert resolves_configs(os.path.join("pipelines", "runs", "track.py"))
     assert not resolves_configs(os.path.join("envisat_pose", "config.py"))
 
 
@@ -889,7 +955,7 @@ def test_the_app_import_checker_catches_a_bench_using_a_verb():
     planted = ("def cfg():\n    from envisat_pose.app.run import run_config\n    return run_config('default')\n"
                "import envisat_pose.app.cli\nfrom filtering import fast\n")
     assert app_imports("bench/x.py", planted) == [2, 4, 5]
-    assert app_imports("bench/x.py", "from envisat_pose.pipelines.run_config import RunConfig\n") == []
+    assert app_imports("bench/x.py", "from envisat_pose.pipelines.runs.run_config import RunConfig\n") == []
     assert "scripts" in EXTRA_FOLDERS and "bench" in EXTRA_FOLDERS
 
 

@@ -60,11 +60,11 @@ def test_the_readme_adapt_example_names_what_the_library_has():
     compiles, and every name it imports and every argument it passes exist."""
     import inspect
 
-    from envisat_pose.pipelines.adapt import adapt
-    from envisat_pose.pipelines.track import track_frames
+    from envisat_pose.pipelines.adaptation.adapt import adapt
+    from envisat_pose.pipelines.runs.track import track_frames
 
     code = python_examples()[2]
     compile(code, str(README), "exec")
-    assert "from envisat_pose.pipelines.adapt import AdaptConfig, adapt" in code
+    assert "from envisat_pose.pipelines.adaptation.adapt import AdaptConfig, adapt" in code
     assert {"camera"} <= set(inspect.signature(adapt).parameters)
     assert {"camera", "out_dir"} <= set(inspect.signature(track_frames).parameters)

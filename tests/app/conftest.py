@@ -6,7 +6,7 @@ import pytest
 @pytest.fixture(scope="session")
 def detector_weights() -> str:
     """The shipped detector weights (models/detector.safetensors, package data): the closed loop's default."""
-    from envisat_pose.pipelines.job_defaults import default_weights_path
+    from envisat_pose.pipelines.common.job_defaults import default_weights_path
 
     return default_weights_path()
 

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from envisat_pose.app.cli import main
-from envisat_pose.pipelines.adapt import AdaptConfig, track_figures, worse_reason
+from envisat_pose.pipelines.adaptation.adapt import AdaptConfig, track_figures, worse_reason
 from envisat_pose.status import LOST, TRACKING
 
 
@@ -56,7 +56,7 @@ def test_fine_tune_flags_without_a_fine_tune_are_one_line(tmp_path, capsys):
 def test_params_none_returns_the_original_network_untrained(detector_weights):
     """params='none' (recalibration only): the fine-tune hands back the file's own tensors, no step taken."""
     from envisat_pose.perception.weights import read_weights
-    from envisat_pose.pipelines.adapt import fine_tune
+    from envisat_pose.pipelines.adaptation.adapt import fine_tune
 
     model, info = fine_tune(detector_weights, [], [], AdaptConfig(params="none"), np.random.SeedSequence(0))
     assert info["steps"] == 0 and info["trainable"] == 0
@@ -69,7 +69,7 @@ def test_params_none_returns_the_original_network_untrained(detector_weights):
 def test_frames_without_a_measurable_outline_leave_the_labels_range(mode):
     """Blank frames (no contrast): no delta in any frame, the states returned as they came, the record says so."""
     from envisat_pose.geometry import load_camera
-    from envisat_pose.pipelines.adapt import edge_corrected
+    from envisat_pose.pipelines.adaptation.adapt import edge_corrected
 
     cam = load_camera().scaled(256, 256)
     rng = np.random.default_rng(41)
@@ -116,7 +116,7 @@ def test_a_damaging_fine_tune_keeps_the_original_weights(long_seq, tmp_path, cap
     pushed to -30, so the adapted detector finds no corner and the held-out quarter is never tracked) is caught
     on the held-out part: the verb exits 1 with one line, and no adapted weights are written (the recordings
     are)."""
-    import envisat_pose.pipelines.adapt as adapt_module
+    import envisat_pose.pipelines.adaptation.adapt as adapt_module
 
     real = adapt_module.fine_tune
 
@@ -178,9 +178,9 @@ def test_the_apparent_scale_is_measured_against_the_labels(long_seq, detector_we
     against the labels (the error model's bias_scale). Labels spread 0.3 % wider about the visible corners'
     centroid read it 1.003 times smaller (the same detections: the scale is linear in the labels' spread; within
     2e-4, as a frame's right corners may be fewer than its visible ones)."""
-    from envisat_pose.pipelines.adapt import recalibrate
-    from envisat_pose.pipelines.pseudo_labels import label_record
-    from envisat_pose.pipelines.track import TrackConfig, prepare_frames
+    from envisat_pose.pipelines.adaptation.adapt import recalibrate
+    from envisat_pose.pipelines.adaptation.pseudo_labels import label_record
+    from envisat_pose.pipelines.runs.track import TrackConfig, prepare_frames
 
     _, source, camera, _, _ = prepare_frames(TrackConfig(), long_seq)
     frames = dict(source.frames())
@@ -204,7 +204,7 @@ def test_the_unchanged_network_takes_the_tracks_scale_over_the_edges_delta():
     applied / (1 + delta): undoing that instead brings the range to the edges' (r ~ applied / s). A fine-tuned
     network is a new detector: its corners' scale against the corrected labels. The sd never undercuts the
     outline's own offset over its radius."""
-    from envisat_pose.pipelines.adapt import EDGE_LOOK_SD, EDGE_LOOK_SD_WIDE, EDGE_OFFSET_PX, adapted_scale
+    from envisat_pose.pipelines.adaptation.adapt import EDGE_LOOK_SD, EDGE_LOOK_SD_WIDE, EDGE_OFFSET_PX, adapted_scale
 
     edges = {"sequence": {"delta": 0.004, "delta_se": 1e-4}, "outline_radius_px": 50.0,
              "look": {"delta_sd": 5e-4, "psf_sigma_px": 1.0}}
@@ -229,10 +229,10 @@ def test_the_smoother_takes_the_filter_model_the_tracker_builds(detector_weights
 
     from envisat_pose.geometry import load_camera
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.pipelines.adapt import smoother_model
-    from envisat_pose.pipelines.onboard import chaser_function
-    from envisat_pose.pipelines.track import TrackConfig
-    from envisat_pose.pipelines.tracker import Tracker
+    from envisat_pose.pipelines.adaptation.adapt import smoother_model
+    from envisat_pose.pipelines.runs.track import TrackConfig
+    from envisat_pose.pipelines.tracking.onboard import chaser_function
+    from envisat_pose.pipelines.tracking.tracker import Tracker
 
     for scenario in ("default", "close-25m"):
         t = TrackConfig.from_scenario(scenario)
@@ -247,7 +247,7 @@ def test_the_smoother_takes_the_filter_model_the_tracker_builds(detector_weights
 def test_a_fine_tune_that_raises_leaves_torchs_thread_count(monkeypatch, tmp_path):
     """adapt_round sets torch's threads for the fine-tune (cfg.threads) and puts them back on the way out, an
     exception included."""
-    import envisat_pose.pipelines.adapt as adapt_module
+    import envisat_pose.pipelines.adaptation.adapt as adapt_module
 
     def boom(*args, **kwargs):
         assert torch.get_num_threads() == 2  # cfg.threads in force inside
@@ -271,7 +271,7 @@ def test_a_fine_tune_that_raises_leaves_torchs_thread_count(monkeypatch, tmp_pat
 def test_edges_and_corners_that_disagree_keep_the_original_scale():
     """The edges' scale is adopted only where the detector's own corners (against the same corrected labels) read
     it within AGREE_Z sd of their difference; beyond, the scale is kept and one line says why, naming both."""
-    from envisat_pose.pipelines.adapt import AGREE_Z, disagreement
+    from envisat_pose.pipelines.adaptation.adapt import AGREE_Z, disagreement
 
     edges = {"value": 0.9980, "se": 1e-4, "sd": 4e-4, "method": "edges"}
     sd = np.hypot(4e-4, 3e-4)  # 5e-4
@@ -290,10 +290,10 @@ def test_an_srgb_sequence_is_adapted_without_making_its_range_worse(tmp_path, de
     reads the edges in linear light (the response estimated from the frames: the camera file does not say), and
     the after-track's second-half mean range error is no worse than the before-track's by more than 0.5 cm
     (scored here against the labels' truth, which adapt never sees)."""
-    from envisat_pose.pipelines.adapt import AdaptConfig, adapt
-    from envisat_pose.pipelines.frames import open_source
-    from envisat_pose.pipelines.scoring import claims_estimate
-    from envisat_pose.pipelines.track import TrackConfig
+    from envisat_pose.pipelines.adaptation.adapt import AdaptConfig, adapt
+    from envisat_pose.pipelines.runs.frames import open_source
+    from envisat_pose.pipelines.runs.scoring import claims_estimate
+    from envisat_pose.pipelines.runs.track import TrackConfig
 
     config = tmp_path / "srgb.toml"
     config.write_text('[corruption.sensor]\nresponse = "srgb"\npsf = "gaussian"\n')
@@ -322,7 +322,7 @@ def test_a_scale_within_its_own_uncertainty_of_the_tracks_is_not_adopted():
     """An edges' scale whose sd (an estimated response's look term can make it most of a per cent) covers the
     distance to the scale the track undid is no evidence to move it: kept, one line naming both; a scale moved
     by more than MOVE_Z sd is adopted."""
-    from envisat_pose.pipelines.adapt import MOVE_Z, no_evidence
+    from envisat_pose.pipelines.adaptation.adapt import MOVE_Z, no_evidence
 
     scale = {"value": 0.9944, "se": 3e-4, "sd": 8.3e-3, "method": "edges"}
     line = no_evidence(scale, 1.0004)
@@ -334,7 +334,7 @@ def test_the_look_term_is_the_largest_swing_over_the_open_responses(monkeypatch)
     """look_record reads the sequence's delta under every alternative response frames_look leaves open and keeps
     the largest difference from the delta applied; an alternative under which nothing is measured makes the
     term infinite (the cue is not held); a given response (no alternatives) adds nothing."""
-    import envisat_pose.pipelines.adapt as adapt_module
+    import envisat_pose.pipelines.adaptation.adapt as adapt_module
     from envisat_pose.camera_response import SRGB, Response
 
     readings = {"gamma 1.2": 0.001, "gamma 2.4": -0.004, "linear": None}

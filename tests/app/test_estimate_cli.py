@@ -201,7 +201,7 @@ def test_the_pipeline_writes_what_the_verb_writes(truth_file, tmp_path, capsys):
     writes the same est.npz and config; a truth file keeps the configured outages (no scenario, no eclipse)."""
     from envisat_pose.app.cli import build_parser
     from envisat_pose.app.estimate import resolve_config
-    from envisat_pose.pipelines.estimate import run_estimate
+    from envisat_pose.pipelines.campaigns.estimate import run_estimate
 
     args = ["estimate", "--truth", str(truth_file), "--runs", "2", "--outage", "10", "20", "--quiet"]
     assert main(args + ["--out", str(tmp_path / "cli.npz")]) == 0

@@ -126,8 +126,8 @@ def test_block_reduction_equals_whole_array_statistics(campaign):
     from envisat_pose.analysis.stats import reduce_runs, run_summary
     from envisat_pose.filtering.estimator import diverged_against_truth, nees, run_filter
     from envisat_pose.filtering.montecarlo import make_run_inputs
-    from envisat_pose.pipelines.campaign import MonteCarloConfig
-    from envisat_pose.pipelines.campaign_block import CHUNK_STEPS, filter_block, load_campaign_truth
+    from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig
+    from envisat_pose.pipelines.campaigns.campaign_block import CHUNK_STEPS, filter_block, load_campaign_truth
 
     cfg = MonteCarloConfig(runs=20, duration_s=200.0, settle_s=100.0, block_runs=8, seed=3)
     tr = load_campaign_truth(str(campaign), cfg.measurement)
@@ -154,7 +154,9 @@ def test_the_public_pipeline_writes_what_the_verb_writes(campaign, tmp_path):
     import envisat_pose
     from envisat_pose.app.cli import build_parser
     from envisat_pose.app.montecarlo import resolve_config
-    from envisat_pose.pipelines import campaign as pipeline  # the config in campaign_config.py, importable here
+    from envisat_pose.pipelines.campaigns import (
+        campaign as pipeline,  # the config in campaign_config.py, importable here
+    )
     from envisat_pose.pools import RunnerConfig
 
     assert envisat_pose.run_campaign is pipeline.run_campaign and envisat_pose.MonteCarloConfig is \

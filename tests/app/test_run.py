@@ -9,12 +9,12 @@ import tomllib
 import numpy as np
 import pytest
 
-from envisat_pose.pipelines import closed_loop as loop
+from envisat_pose.pipelines.runs import closed_loop as loop
 
 
 def run_cfg(weights, duration_s=4.0, **flags):
     """The default scenario's run as `envisat run` resolves it (RunConfig.from_scenario), with flags over it."""
-    from envisat_pose.pipelines.run_config import RunConfig
+    from envisat_pose.pipelines.runs.run_config import RunConfig
 
     return RunConfig.from_scenario("default", overrides={"duration_s": duration_s, "weights": weights, "workers": 1,
                                                          **flags})
@@ -142,7 +142,7 @@ def test_a_run_config_a_user_builds_runs_without_the_apps_finishing(tmp_path, de
     """run_closed_loop finishes the config itself (finish_config is idempotent): the same outputs as from the
     config the app finishes."""
     from envisat_pose.config import resolve_job_config
-    from envisat_pose.pipelines.run_config import RunConfig, finish_config, run_stage_types
+    from envisat_pose.pipelines.runs.run_config import RunConfig, finish_config, run_stage_types
 
     run_stage_types()  # a user's own resolution, without the app's scenario defaults or finishing
     raw = resolve_job_config(RunConfig, {}, None, {"scenario": "default", "duration_s": 2.0,

@@ -19,8 +19,8 @@ def test_the_shipped_scenarios_are_the_issues_and_every_one_validates():
     import dataclasses
 
     from envisat_pose.datagen.scenario import ScenarioConfig, scenario_config
-    from envisat_pose.pipelines.campaign import MonteCarloConfig
-    from envisat_pose.pipelines.job_defaults import scenario_defaults
+    from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig
+    from envisat_pose.pipelines.common.job_defaults import scenario_defaults
 
     assert named_scenarios.names() == ISSUE_NAMES
     # the core's list of truth keys is ScenarioConfig's fields but the job's seed
@@ -33,7 +33,7 @@ def test_the_shipped_scenarios_are_the_issues_and_every_one_validates():
 
 def test_scenarios_say_what_the_issue_asks():
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.pipelines.job_defaults import scenario_defaults
+    from envisat_pose.pipelines.common.job_defaults import scenario_defaults
 
     assert scenario_config("slow-tumble").target.spin_period_s == 226.0
     assert math.isclose(math.degrees(np.linalg.norm(scenario_config("stress-tumble").target.w0_T_rad_s)), 5.0)
@@ -109,7 +109,7 @@ def test_eclipse_windows_match_the_cylindrical_shadow_in_closed_form():
     """Sun in the orbit plane: the shadow covers asin(R_E / a) / pi of a near-circular orbit (~35 %); sun along
     the orbit normal: no shadow; the eclipse scenario's sun puts one ~2110 s window starting near 600 s."""
     from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_config
-    from envisat_pose.pipelines.estimate import eclipse_outages
+    from envisat_pose.pipelines.campaigns.estimate import eclipse_outages
 
     a, i = 7142.0e3, math.radians(98.4)
     windows, share = _shadow_share((1.0, 0.0, 0.0))  # RAAN 0: N's x axis lies in the orbit plane

@@ -84,7 +84,7 @@ def test_twelve_bit_data_in_16_bit_pngs_is_detected_and_scaled(tmp_path):
     """8-bit frames stored as 12-bit data (v x 4095 / 255 in 16-bit PNGs): the depth is detected from the
     sequence's maximum (12), reported, and the frames the tracker sees are the 8-bit originals (to rounding);
     the old reading divided by 257: 16 times too dark."""
-    from envisat_pose.pipelines.frames import open_source, scan_source
+    from envisat_pose.pipelines.runs.frames import open_source, scan_source
 
     src = tmp_path / "twelve"
     imgs = noise_frames(src, [f"f{i:02d}.png" for i in range(4)], dtype=np.uint16, scale=4095 / 255)

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from envisat_pose.analysis import viewer as view
-from envisat_pose.pipelines import closed_loop as loop
+from envisat_pose.pipelines.runs import closed_loop as loop
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
@@ -109,7 +109,7 @@ def looks_loaded(png: str) -> bool:
 @pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (make test installs it as root)")
 def test_the_recording_opens_in_the_web_viewer(tmp_path, detector_weights, rerun_env):  # noqa: F811 (a fixture)
-    from envisat_pose.pipelines.run_config import RunConfig
+    from envisat_pose.pipelines.runs.run_config import RunConfig
 
     cfg = RunConfig.from_scenario("default", duration_s=6.0, weights=detector_weights, workers=1, warm_start=True)
     run_dir = tmp_path / "run"

@@ -7,7 +7,7 @@ import os
 
 import numpy as np
 
-from envisat_pose.pipelines.scoring import frame_errors, run_record
+from envisat_pose.pipelines.runs.scoring import frame_errors, run_record
 from envisat_pose.status import ACQUIRING, COASTING, TRACKING
 
 HERE = os.path.dirname(os.path.abspath(__file__))

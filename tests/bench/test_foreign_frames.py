@@ -66,7 +66,7 @@ def test_the_sensor_noise_is_poisson_gaussian_with_its_gain(ff):
 def test_the_calibration_file_is_read_by_track_and_its_remap_undoes_the_lens(ff, tmp_path):
     import cv2
 
-    from envisat_pose.pipelines.camera_file import camera_from_intrinsics
+    from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
 
     n, f = 512, 955.4
     habits = ff.Habits()
@@ -108,7 +108,7 @@ def test_a_short_filament_sequence(ff, tmp_path):
         pytest.skip(problem)
     import cv2
 
-    from envisat_pose.pipelines.frames import read_timestamps
+    from envisat_pose.pipelines.runs.frames import read_timestamps
 
     meta = ff.make_sequence(str(tmp_path), "default", 0, 3, 128, progress=False)
     names = sorted(os.listdir(tmp_path / "frames"))

@@ -1,5 +1,5 @@
 """Write tests/data/track_reference.npz: every array of the est.npz and det.npz of two fixed, seeded tracks, read by
-tests/pipelines/test_track_reference.py (a guard against behaviour changes in refactors).
+tests/pipelines/runs/test_track_reference.py (a guard against behaviour changes in refactors).
 
 The two tracks:
 - closed: run_closed_loop on the default scenario, 256 px frames, 12 s at 1 Hz, seed 2, warm start (acquiring, then
@@ -43,8 +43,8 @@ def summarize(out_dir: str, prefix: str) -> dict[str, np.ndarray]:
 
 
 def closed_track(out_dir: str) -> dict[str, np.ndarray]:
-    from envisat_pose.pipelines.closed_loop import run_closed_loop
-    from envisat_pose.pipelines.run_config import RunConfig
+    from envisat_pose.pipelines.runs.closed_loop import run_closed_loop
+    from envisat_pose.pipelines.runs.run_config import RunConfig
 
     cfg = RunConfig.from_scenario("default", overrides={"duration_s": 12.0, "seed": 2, "warm_start": True,
                                                         "workers": 1, "image.resolution_px": 256})
@@ -54,7 +54,7 @@ def closed_track(out_dir: str) -> dict[str, np.ndarray]:
 
 def frames_track(work: str) -> dict[str, np.ndarray]:
     from envisat_pose.app.cli import main
-    from envisat_pose.pipelines.track import TrackConfig, track_frames
+    from envisat_pose.pipelines.runs.track import TrackConfig, track_frames
 
     gen = os.path.join(work, "gen")
     assert main(["generate", "--mode", "sequence", "--scenario", "default", "--num-images", "21", "--seed", "7",

@@ -444,7 +444,7 @@ def test_every_export_format_carries_the_targets_keypoints_and_name(target_files
     """A dataset of the test's target exported as SPEED+, COCO, BOP and YOLO-pose: each names the target and its
     K = 10 keypoints (in their file order) and writes K per image; COCO has no box skeleton."""
     from envisat_pose.datagen.factory import run_generate
-    from envisat_pose.pipelines.export import ExportConfig, export_dataset
+    from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
 
     plain, _ = target_files
     src = str(tmp_path / "d")

@@ -12,8 +12,8 @@ from envisat_pose.perception.data import shard_paths
 from envisat_pose.perception.detect import FrameDetection, load_detector
 from envisat_pose.perception.model import CornerNet, ModelConfig
 from envisat_pose.perception.weights import read_metadata, save_weights, with_metadata
-from envisat_pose.pipelines.calibrate import collect_errors
-from envisat_pose.pipelines.detect import camera_samples
+from envisat_pose.pipelines.detector.calibrate import collect_errors
+from envisat_pose.pipelines.detector.detect import camera_samples
 
 
 class NoisyLabelDetector:

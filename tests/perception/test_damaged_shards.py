@@ -113,7 +113,7 @@ class LabelLookupDetector:
 def test_calibrate(damaged_set, tiny_dataset, tiny_weights, tmp_path, capsys, monkeypatch):
     import envisat_pose.perception.detect as pd
     from envisat_pose.perception.data import shard_paths
-    from envisat_pose.pipelines.detect import camera_samples
+    from envisat_pose.pipelines.detector.detect import camera_samples
 
     samples = list(camera_samples(shard_paths(tiny_dataset)))
     monkeypatch.setattr(pd, "load_detector", lambda *a, **k: LabelLookupDetector(

@@ -45,7 +45,7 @@ def test_roi_file_replaces_the_coarse_pass(tiny_dataset, tmp_path):
     the verb builds, the same call), others get the coarse pass; a calibrated file's cov_scale reaches R."""
     from envisat_pose.perception.data import shard_paths
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.pipelines.detect import camera_samples, read_roi
+    from envisat_pose.pipelines.detector.detect import camera_samples, read_roi
 
     w = _untrained(tmp_path, {"cov_scale": 4.0})
     roi = tmp_path / "roi.npz"

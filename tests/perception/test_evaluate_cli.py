@@ -65,7 +65,7 @@ def weights(tmp_path_factory):
 
 
 def test_evaluate_with_oracle_writes_every_group(paper_dataset, weights, tmp_path, monkeypatch, capsys):
-    import envisat_pose.pipelines.evaluate as app
+    import envisat_pose.pipelines.detector.evaluate as app
 
     labels = {hashlib.sha1(img.tobytes()).hexdigest(): lab for _, img, lab in read_samples(shard_paths(paper_dataset))}
     monkeypatch.setattr(app, "make_detector", lambda model, config, device: LookupOracle(model, config, labels))
@@ -119,7 +119,7 @@ def test_scale_and_radial_bias_match_the_labels(paper_dataset, weights, tmp_path
     computed here from the labels (the poses and corners read from the tar members themselves)."""
     import tarfile
 
-    import envisat_pose.pipelines.evaluate as app
+    import envisat_pose.pipelines.detector.evaluate as app
     from envisat_pose.perception.evaluate import RANGE_EDGES_M, RANGE_GROUPS, corruption_groups, corruption_levels
 
     samples = list(read_samples(shard_paths(paper_dataset)))

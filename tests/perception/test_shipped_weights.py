@@ -19,7 +19,7 @@ from envisat_pose.perception.data import shard_paths
 from envisat_pose.perception.detect import load_detector
 from envisat_pose.perception.evaluate import score_method
 from envisat_pose.perception.weights import shipped_weights_path
-from envisat_pose.pipelines.detect import camera_samples
+from envisat_pose.pipelines.detector.detect import camera_samples
 
 FRAMES = 24
 SEED = 8_675_309  # not a seed of the card's training (101, 111), calibration (303) or evaluation (404, 505) sets

@@ -79,7 +79,7 @@ def test_a_budget_too_short_for_one_step_is_refused_and_leaves_nothing(tiny_data
 
 
 def test_resume_refuses_another_model_and_other_data_spelling_out_the_difference(tiny_dataset, tmp_path):
-    from envisat_pose.pipelines.train import train_detector
+    from envisat_pose.pipelines.detector.train import train_detector
 
     run = str(tmp_path / "run")
     train_detector(small(2), [tiny_dataset], run, workers=0, progress=False)
@@ -179,7 +179,7 @@ def test_a_plain_script_without_a_main_guard_trains_with_workers(tiny_dataset, t
         from envisat_pose.perception.data import DataConfig
         from envisat_pose.perception.model import ModelConfig
         from envisat_pose.perception.train import TrainConfig
-        from envisat_pose.pipelines.train import train_detector
+        from envisat_pose.pipelines.detector.train import train_detector
 
         cfg = TrainConfig(steps=2, batch_size=2, warmup_steps=1,
                           model=ModelConfig(input_px=128, width=16, depth=2, stem_width=8),

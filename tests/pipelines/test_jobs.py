@@ -24,10 +24,10 @@ def test_a_scenario_resolves_into_the_job_the_verb_runs():
     """What the verbs take from a scenario: the tuned [filter] table under the tracker's, the gravity-gradient
     switch and orbit for track, the duration and rate for run, the eclipse outages for montecarlo."""
     from envisat_pose import named_scenarios
-    from envisat_pose.pipelines.campaign import MonteCarloConfig
+    from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig
     from envisat_pose.pipelines.jobs import resolve_job
-    from envisat_pose.pipelines.run_config import RunConfig
-    from envisat_pose.pipelines.track import TrackConfig
+    from envisat_pose.pipelines.runs.run_config import RunConfig
+    from envisat_pose.pipelines.runs.track import TrackConfig
 
     q = named_scenarios.scenario_tables("default")["filter"]
     run = RunConfig.from_scenario("default", overrides={"tracker.roi.enabled": False}, duration_s=3.0)
@@ -52,9 +52,9 @@ def test_the_plain_constructor_with_a_scenario_is_the_scenarios_job(name):
     """Cfg(scenario=NAME) and Cfg.from_scenario(NAME) are one job for every config with a scenario field: the
     gravity-gradient switch, the orbit and the filter's tuning of track, the duration, rate and filter of run, the
     duration, tables and eclipse outages of montecarlo (the plain constructor once took only part of them)."""
-    from envisat_pose.pipelines.campaign_config import MonteCarloConfig
-    from envisat_pose.pipelines.run_config import RunConfig, finish_config
-    from envisat_pose.pipelines.track import TrackConfig
+    from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig
+    from envisat_pose.pipelines.runs.run_config import RunConfig, finish_config
+    from envisat_pose.pipelines.runs.track import TrackConfig
 
     track = TrackConfig.from_scenario(name)
     assert TrackConfig(scenario=name, weights=track.weights) == track
@@ -66,14 +66,14 @@ def test_the_plain_constructor_with_a_scenario_is_the_scenarios_job(name):
 def test_the_plain_constructor_and_from_scenario_give_the_same_estimates(tmp_path):
     """A short warm closed loop on the gravity-gradient scenario (its own [filter] tuning): the plain constructor
     and from_scenario write the same est.npz and det.npz."""
-    from envisat_pose.pipelines.closed_loop import run_closed_loop
-    from envisat_pose.pipelines.run_config import RunConfig
+    from envisat_pose.pipelines.runs.closed_loop import run_closed_loop
+    from envisat_pose.pipelines.runs.run_config import RunConfig
 
     small = {"duration_s": 3.0, "seed": 5, "warm_start": True, "workers": 1}
     resolved = RunConfig.from_scenario("gravity-gradient", overrides={**small, "image.resolution_px": 64})
     plain = RunConfig(scenario="gravity-gradient", weights=resolved.weights, image=resolved.image, **small)
     from envisat_pose.filtering.estimator import FilterConfig
-    from envisat_pose.pipelines.tracker_config import TRACKER_FILTER
+    from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
 
     assert plain.filter == resolved.filter != FilterConfig(**TRACKER_FILTER)  # the scenario's tuning, not the class's
     run_closed_loop(resolved, str(tmp_path / "a"), progress=False)
@@ -84,13 +84,13 @@ def test_the_plain_constructor_and_from_scenario_give_the_same_estimates(tmp_pat
 
 def test_library_errors_name_the_argument_and_the_verb_its_flag(tmp_path, capsys):
     from envisat_pose.config import InputError
-    from envisat_pose.pipelines.run_config import RunConfig
+    from envisat_pose.pipelines.runs.run_config import RunConfig
 
     with pytest.raises(InputError, match=r"^weights '.*nope.safetensors': no such file"):
         RunConfig.from_scenario("default", weights=str(tmp_path / "nope.safetensors"))
     assert main(["run", "--weights", str(tmp_path / "nope.safetensors"), "--out", str(tmp_path / "r")]) == 2
     assert "error: --weights " in capsys.readouterr().err
-    from envisat_pose.pipelines.frames import open_source
+    from envisat_pose.pipelines.runs.frames import open_source
 
     with pytest.raises(InputError, match=r"^src '.*nothing': no such file or folder"):
         open_source(str(tmp_path / "nothing"), 1.0)
@@ -99,8 +99,8 @@ def test_library_errors_name_the_argument_and_the_verb_its_flag(tmp_path, capsys
 
 
 def test_simulate_verb_and_library_agree(tmp_path):
+    from envisat_pose.pipelines.campaigns.simulate import run_simulate
     from envisat_pose.pipelines.jobs import resolve_job
-    from envisat_pose.pipelines.simulate import run_simulate
 
     a, b = str(tmp_path / "a.npz"), str(tmp_path / "b.npz")
     assert main(["simulate", "--scenario", "slow-tumble", "--duration-s", "6", "--seed", "3", "--out", a,
@@ -110,7 +110,7 @@ def test_simulate_verb_and_library_agree(tmp_path):
 
 
 def test_estimate_verb_and_library_agree(tmp_path):
-    from envisat_pose.pipelines.estimate import EstimateConfig, run_estimate
+    from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, run_estimate
 
     a, b = str(tmp_path / "a.npz"), str(tmp_path / "b.npz")
     assert main(["estimate", "--scenario", "pixels-1px", "--duration-s", "8", "--runs", "2", "--seed", "5",
@@ -121,7 +121,7 @@ def test_estimate_verb_and_library_agree(tmp_path):
 
 
 def test_montecarlo_verb_and_library_agree(tmp_path):
-    from envisat_pose.pipelines.campaign import MonteCarloConfig, run_campaign
+    from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig, run_campaign
     from envisat_pose.pools import RunnerConfig
 
     a, b = tmp_path / "a", tmp_path / "b"
@@ -136,8 +136,8 @@ def test_montecarlo_verb_and_library_agree(tmp_path):
 def test_run_verb_and_library_agree(tmp_path, monkeypatch):
     """`envisat run` and run_closed_loop(RunConfig.from_scenario(...)): the same arrays; the library stages its
     outputs too (an earlier run's outputs stay when a job fails)."""
-    from envisat_pose.pipelines.closed_loop import run_closed_loop
-    from envisat_pose.pipelines.run_config import RunConfig
+    from envisat_pose.pipelines.runs.closed_loop import run_closed_loop
+    from envisat_pose.pipelines.runs.run_config import RunConfig
 
     toml = tmp_path / "small.toml"
     toml.write_text("[image]\nresolution_px = 96\n")
@@ -161,7 +161,7 @@ def test_run_verb_and_library_agree(tmp_path, monkeypatch):
 
 @pytest.mark.slow  # ~14 s: 21 frames generated, tracked twice
 def test_track_verb_and_library_agree(tmp_path):
-    from envisat_pose.pipelines.track import TrackConfig, track_frames
+    from envisat_pose.pipelines.runs.track import TrackConfig, track_frames
 
     gen = tmp_path / "gen"
     assert main(["generate", "--mode", "sequence", "--scenario", "default", "--num-images", "21", "--seed", "7",

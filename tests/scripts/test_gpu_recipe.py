@@ -34,7 +34,7 @@ def test_laid_out_package_imports_from_its_folder_and_loads_the_plugin(tmp_path)
              "from importlib import metadata, resources\n"
              "from envisat_pose.datagen import plugin\n"
              "from envisat_pose import named_scenarios\n"
-             "from envisat_pose.pipelines.train import git_hash\n"
+             "from envisat_pose.pipelines.detector.train import git_hash\n"
              "eps = [e for e in metadata.entry_points(group='mujoco.plugins') if e.name == 'envisat_relative_gravity']\n"
              "print(json.dumps({'pkg': envisat_pose.__file__, 'lib': plugin._HANDLES[0]._name if plugin._HANDLES else None,"
              " 'mjcf': str(resources.files('envisat_pose.models')), 'scenarios': named_scenarios.names(),"
@@ -86,7 +86,7 @@ def test_a_legs_chunks_are_valid_generate_configs_with_the_asked_mix(leg, tmp_pa
 def test_an_online_leg_trains_on_the_offline_rounds_mix(tmp_path):
     """The online leg's looks file: every chunk of a round a look, at its resolution and camera, weighted by its
     images; every scenario's sequences with appearance off and on; seeds inside the leg's block."""
-    from envisat_pose.pipelines.look_mix import look_shares, read_looks
+    from envisat_pose.pipelines.detector.look_mix import look_shares, read_looks
 
     gt, chunks = plan(3, rounds=1)
     looks = read_looks(gt.online_looks(str(tmp_path), 3, named_scenarios.names()))

@@ -1,0 +1,127 @@
+"""The campaign pipeline of `envisat montecarlo`: a Monte Carlo campaign of the batched UKF over one MuJoCo
+truth, in resumable blocks.
+
+The truth is simulated once (MuJoCo) and saved as DIR/truth.npz. The runs are split into blocks of
+`block_runs`; each block is one task of the core runner (`block_task`: plain data in, its manifest entry out)
+that filters its runs with the pure `filter_step` in time chunks, so no covariance history is ever held: per
+chunk, `analysis.stats.reduce_runs` turns it into sums over the block's runs, and per-run summaries are
+accumulated. Memory is O(block_runs x steps) for the inputs and O(block_runs x CHUNK_STEPS) for covariances.
+Run r draws from SeedSequence(seed, spawn_key=(r,)), so a block draws exactly what the campaign draws.
+
+Files in DIR:
+    truth.npz                 the truth (TruthTrajectory contract)
+    blocks/block-NNNN.npz     one per block: CampaignSums arrays, per-run summaries, sample-run errors
+    manifest.json             the config, the truth's sha256 and each finished block's sha256 and wall time
+    campaign.npz              statistics over time (stats.CampaignStats), the PCRLB per block, per-run summaries,
+                              the component errors of the first `sample_runs` runs
+    summary.json              the reproducible scalars: RMSE per block after settle_s, share inside 3-sigma,
+                              mean NEES with its 95 % band, NIS, PCRLB and RMSE/PCRLB per block, diverged runs
+    timing.json               wall times (never part of anything byte-reproducible)
+    envelopes.png, block_norms.png, nees_nis.png, rmse_vs_pcrlb.png
+    montecarlo.config.toml    the full validated config
+
+The same config and seed give the same bytes of blocks, campaign.npz and summary.json whatever the backend
+(local pool, Dask) and worker count: blocks are merged in run-index order (`stats.SumsFolder`). Rerunning the
+same command on DIR keeps the finished blocks whose sha256 matches the manifest; another config is refused.
+
+A rate sweep (pipelines/campaigns/sweep.py) runs one such campaign per filter rate. `with_eclipse` adds a scenario's Earth's-shadow outages to a resolved config.
+The app's verb (app/montecarlo.py) parses the flags, resolves the config and prints.
+
+This module runs the campaign (run_campaign: the truth, the resumable job of blocks, the outputs); the parts, one
+job each: its config (campaign_config.py: MonteCarloConfig, the truth's scenario, the rate check, eclipses), one
+block (campaign_block.py: the runner's task, the chunked filter and its reduction) and the outputs
+(campaign_outputs.py: merging, the PCRLB, summary.json, the figures, the recording). Their public names are
+importable from here as before (`envisat_pose.pipelines.campaigns.campaign.run_campaign`, `MonteCarloConfig`, ...).
+"""
+
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from typing import TYPE_CHECKING
+
+from envisat_pose.config import to_dict, to_toml
+from envisat_pose.io import atomic_write_text, sha256_file
+from envisat_pose.pipelines.campaigns.campaign_block import block_name, block_task
+from envisat_pose.pipelines.campaigns.campaign_config import (
+    MonteCarloConfig,
+    check_filter_rate,
+    truth_scenario,
+    with_eclipse,
+)
+from envisat_pose.pipelines.campaigns.campaign_outputs import FIGURES, finish_campaign, write_recording
+from envisat_pose.resumable import ResumableJob
+
+# the entry points, and the parts' names the verb (app/montecarlo.py) and users import from here
+__all__ = ["run_campaign", "campaign_job", "prepare_truth", "MANIFEST_FORMAT", "MonteCarloConfig", "with_eclipse",
+           "check_filter_rate", "truth_scenario", "FIGURES", "write_recording"]
+
+if TYPE_CHECKING:
+    from envisat_pose.resumable import ResumableJob
+
+MANIFEST_FORMAT = "envisat-pose montecarlo v1"
+
+
+def campaign_job(cfg: MonteCarloConfig, out_dir: str) -> ResumableJob:
+    """The campaign in out_dir as the core's resumable job: one unit per block, the config as its identity, a
+    block kept on resume only when its sha256 matches and it covers the runs the config gives it (the truth's
+    sha256 goes in the header once the truth is known)."""
+
+    return ResumableJob(out_dir, MANIFEST_FORMAT, "campaign", {"config": to_dict(cfg)}, "blocks", cfg.n_blocks,
+                        block_name, header={"n_blocks": cfg.n_blocks},
+                        verify_unit=lambda e, path: cfg.block_range(e["index"]) == (e["run_start"], e["run_stop"]))
+
+
+def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, progress: bool) -> str:
+    """DIR/truth.npz: kept when the manifest vouches for it, else simulated with MuJoCo. Returns its sha256."""
+    path = os.path.join(out_dir, "truth.npz")
+    if manifest and os.path.exists(path) and sha256_file(path) == manifest.get("truth_sha256"):
+        return manifest["truth_sha256"]
+    from envisat_pose.datagen.truth import simulate_truth
+
+    simulate_truth(truth_scenario(cfg), progress=progress).save(path)
+    return sha256_file(path)
+
+
+def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner, progress: bool = False) -> dict:
+    """Run (or finish) the campaign of cfg in out_dir and write its outputs. Returns summary.json's dict."""
+
+    t_start = time.perf_counter()
+    check_filter_rate(cfg, truth_scenario(cfg))
+    job = campaign_job(cfg, out_dir)
+    previous = job.open()
+    truth_sha = prepare_truth(cfg, out_dir, previous, progress)
+    job.header["truth_sha256"] = truth_sha
+    # blocks filtered on another truth are redone
+    done = job.resume(previous if previous and previous.get("truth_sha256") == truth_sha else None)
+    atomic_write_text(os.path.join(out_dir, "montecarlo.config.toml"),
+                      "# envisat montecarlo: the full validated config of this campaign\n" + to_toml(to_dict(cfg)))
+    cfg_json, where = json.dumps(to_dict(cfg), sort_keys=True), os.path.abspath(out_dir)
+    n_run_now = len(job.todo())
+    bar = _bar(cfg, done, progress)
+    try:
+        job.run(block_task, lambda b: (where, cfg_json, b), runner,
+                on_unit=None if bar is None else lambda e: bar.update(e["run_stop"] - e["run_start"]))
+    finally:
+        if bar is not None:
+            bar.close()
+    done = job.done
+    summary = finish_campaign(cfg, out_dir)
+    timing = {"wall_s_this_invocation": time.perf_counter() - t_start,
+              "block_wall_s": {str(i): done[i]["wall_s"] for i in sorted(done)},
+              "block_wall_s_sum": float(sum(e["wall_s"] for e in done.values())),
+              "blocks_run_now": n_run_now, "backend": runner.backend, "workers": runner.workers,
+              "run_steps": cfg.runs * summary["steps"]}
+    atomic_write_text(os.path.join(out_dir, "timing.json"), json.dumps(timing, indent=1, sort_keys=True) + "\n")
+    return summary
+
+
+def _bar(cfg: MonteCarloConfig, done: dict, progress: bool):
+    if not progress:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=cfg.runs, initial=sum(e["run_stop"] - e["run_start"] for e in done.values()), unit="run",
+                desc="montecarlo", mininterval=0.5)

@@ -1,0 +1,109 @@
+"""The config of a Monte Carlo campaign (`envisat montecarlo`, pipelines/campaigns/campaign.py) and what it resolves to
+before any work: the truth's scenario (truth_scenario), the filter's rate checked against it (check_filter_rate) and
+a scenario's Earth's-shadow outages (with_eclipse)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from envisat_pose.config import ConfigError, check, resolve_job_config
+from envisat_pose.datagen.scenario import scenario_config
+from envisat_pose.filtering.estimator import FilterConfig
+from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride
+from envisat_pose.pipelines.campaigns.estimate import eclipse_outages, with_outages
+from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, scenario_defaults
+
+
+@dataclass(frozen=True)
+class MonteCarloConfig:
+    """One campaign. The results' bytes depend on every field (block_runs fixes the order of the sums).
+
+    scenario: named truth scenario. duration_s: simulated time, s. runs: Monte Carlo runs. seed: root seed (the
+    truth's initial attitude and run r's draws, SeedSequence(seed, spawn_key=(r,))). block_runs: runs per task.
+    settle_s: the statistics of summary.json use the steps at or after t0 + settle_s (None: half the duration,
+    at most 600 s). sample_runs: the first runs whose errors are kept for the figures' grey curves. duration_s,
+    measurement and filter left None take the scenario's when the config is made (job_defaults.fill_from_scenario:
+    its duration, [measurement] and [filter] tables, else 1800 s and the classes' defaults; the measurement with
+    the scenario's Earth's-shadow outages, with_eclipse), so `MonteCarloConfig(scenario=NAME)` is the job of
+    `MonteCarloConfig.from_scenario(NAME)` and `envisat montecarlo`.
+    """
+
+    scenario: str = "default"
+    duration_s: float | None = None
+    runs: int = 100
+    seed: int = 0
+    block_runs: int = 125
+    settle_s: float | None = None
+    sample_runs: int = 20
+    measurement: MeasurementConfig | None = None
+    filter: FilterConfig | None = None
+
+    def __post_init__(self) -> None:
+        eclipse = self.measurement is None
+        fill_from_scenario(self, "montecarlo", MONTECARLO_FALLBACKS)
+        if eclipse:  # the scenario's measurement, with its outages (from_scenario: with_eclipse on the resolved one)
+            object.__setattr__(self, "measurement", with_eclipse(self).measurement)
+
+    @classmethod
+    def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
+                      **fields) -> "MonteCarloConfig":
+        """The job `envisat montecarlo --scenario NAME` runs: this config resolved from the named scenario, the TOML
+        file at config_path, then overrides ({'section.key': value}) and fields (pipelines/common/job_defaults.py's layers),
+        with the scenario's Earth's-shadow outages (with_eclipse)."""
+        flags = {**(overrides or {}), **fields, "scenario": name}  # the named scenario is the job's, whatever the file
+        defaults = {"measurement": {}, **scenario_defaults("montecarlo", name)}  # made here: with_eclipse once
+        return with_eclipse(resolve_job_config(cls, defaults, config_path, flags))
+
+    def validate(self, prefix: str = "") -> None:
+        check(self.duration_s > 0, "duration_s", self.duration_s, "a positive duration in seconds")
+        check(1 <= self.runs <= 1_000_000, "runs", self.runs, "a number of runs from 1 to 1000000")
+        check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")
+        check(1 <= self.block_runs <= 10_000, "block_runs", self.block_runs, "an integer from 1 to 10000")
+        check(self.settle_s is None or 0 <= self.settle_s < self.duration_s, "settle_s", self.settle_s,
+              f"a time in [0, duration_s = {self.duration_s:g}) s")
+        check(0 <= self.sample_runs <= 200, "sample_runs", self.sample_runs, "an integer from 0 to 200")
+
+    @property
+    def settle_time_s(self) -> float:
+        return float(self.settle_s) if self.settle_s is not None else min(600.0, 0.5 * self.duration_s)
+
+    @property
+    def n_blocks(self) -> int:
+        return -(-self.runs // self.block_runs)
+
+    def block_range(self, b: int) -> tuple[int, int]:
+        """Runs [start, stop) of block b."""
+        return b * self.block_runs, min(self.runs, (b + 1) * self.block_runs)
+
+
+# what a campaign takes where its scenario sets nothing
+MONTECARLO_FALLBACKS = {"duration_s": lambda: 1800.0, "measurement": MeasurementConfig, "filter": FilterConfig}
+
+
+def with_eclipse(cfg: MonteCarloConfig) -> MonteCarloConfig:
+    """cfg with its scenario's Earth's-shadow windows (if it has an [eclipse] table) appended to the outages
+    (pipelines.estimate.eclipse_outages)."""
+    import dataclasses
+
+    windows = eclipse_outages(cfg.scenario, truth_scenario(cfg))
+    return dataclasses.replace(cfg, measurement=with_outages(cfg.measurement, windows))
+
+
+def truth_scenario(cfg: MonteCarloConfig):
+    """The validated ScenarioConfig of the campaign's truth (the filter's rate above 1 Hz refines its step)."""
+
+    overrides: dict = {"seed": cfg.seed, "duration_s": cfg.duration_s}
+    if cfg.measurement.rate_hz > 1.0:
+        overrides["dt_s"] = 1.0 / cfg.measurement.rate_hz
+    return scenario_config(cfg.scenario, **overrides)
+
+
+def check_filter_rate(cfg: MonteCarloConfig, scenario) -> None:
+    """The filter's period must be a whole number of the truth's sample steps (before any work)."""
+
+    try:
+        filter_stride(np.array([0.0, scenario.dt_s]), cfg.measurement.rate_hz)
+    except ValueError as err:
+        raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None

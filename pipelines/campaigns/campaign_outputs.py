@@ -1,0 +1,132 @@
+"""A Monte Carlo campaign's outputs (pipelines/campaigns/campaign.py): its blocks merged in run-index order, the PCRLB
+along the truth, campaign.npz, summary.json, the figures and the Rerun recording."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+from envisat_pose.analysis.pcrlb import block_bounds, efficiency, pcrlb_along_truth
+from envisat_pose.analysis.stats import CampaignSums, SumsFolder, campaign_summary, finalize
+from envisat_pose.config import to_dict
+from envisat_pose.contracts import TruthTrajectory
+from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2, propagate
+from envisat_pose.filtering.measurements import limit_markers, measure, outage_mask
+from envisat_pose.geometry import load_camera
+from envisat_pose.io import atomic_write_text, json_safe, save_npz
+from envisat_pose.pipelines.campaigns.campaign_block import (
+    CampaignTruth,
+    block_name,
+    filter_run_history,
+    load_campaign_truth,
+    settled_mask,
+)
+from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig
+from envisat_pose.state import BLOCKS, N_STATE
+
+FIGURES = ("envelopes.png", "block_norms.png", "nees_nis.png", "rmse_vs_pcrlb.png")
+RUN_KEYS = ("rms_block", "final_block", "max_block", "inside_share", "nees_mean", "nis_per_dof", "diverged")
+
+
+def load_block(path: str) -> dict:
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def merge_blocks(cfg: MonteCarloConfig, out_dir: str):
+    """Fold the block files in run-index order. Returns (CampaignSums, per-run dict, sample_err, sample_norms)."""
+
+    folder, runs, s_err, s_norm = SumsFolder(), {k: [] for k in RUN_KEYS}, [], []
+    for b in range(cfg.n_blocks):
+        d = load_block(os.path.join(out_dir, block_name(b)))
+        folder.add(CampaignSums.from_arrays(d))
+        for k in RUN_KEYS:
+            runs[k].append(d[f"run_{k}"])
+        s_err.append(d["sample_err"])
+        s_norm.append(d["sample_norms"])
+    return (folder.result(), {k: np.concatenate(v) for k, v in runs.items()}, np.concatenate(s_err),
+            np.concatenate(s_norm))
+
+
+def campaign_pcrlb(cfg: MonteCarloConfig, tr: CampaignTruth) -> np.ndarray:
+    """PCRLB per block (T, 4) along the truth, with the corners the truth lets the filter measure at each step
+    (visible, in frame for pixels, outside outages, at most max_markers; random failures are not modelled), the
+    filter's P0, the measurement noise of the config and the truth's process noise (none). Statistics' units."""
+
+    mcfg, J_T, camera = cfg.measurement, load_inertia_T_kg_m2(), load_camera()
+    dt_s = 1.0 / mcfg.rate_hz
+    measured = limit_markers(tr.base & ~outage_mask(tr.t_s, mcfg.outages_s)[:, None], mcfg.max_markers)
+
+    def fx(X):
+        return propagate(X, tr.chaser[:-1, None, :], dt_s, J_T, tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient)
+
+    def hx(X):
+        return measure(X, mcfg.kind, camera)
+
+    B = pcrlb_along_truth(fx, hx, tr.x_true, measured, mcfg.corner_cov, cfg.filter.P0, np.zeros((N_STATE, N_STATE)))
+    return block_bounds(B, tr.x_true)
+
+
+def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
+    """Merge the blocks, compute the PCRLB, write campaign.npz, summary.json and the figures."""
+
+    sums, runs, sample_err, sample_norms = merge_blocks(cfg, out_dir)
+    tr = load_campaign_truth(out_dir, cfg.measurement)
+    stats = finalize(sums)
+    bound = campaign_pcrlb(cfg, tr)
+    settle = cfg.settle_time_s
+    arrays = {k: np.asarray(v) for k, v in vars(stats).items()}
+    arrays.update(t_s=tr.t_s, pcrlb_block=bound, sample_err=sample_err, sample_norms=sample_norms,
+                  **{f"run_{k}": v for k, v in runs.items()})
+    save_npz(os.path.join(out_dir, "campaign.npz"), arrays)
+    summary = campaign_summary(sums, tr.t_s, settle)
+    k = settled_mask(tr.t_s, settle)
+    summary.update(
+        scenario=cfg.scenario, runs=cfg.runs, seed=cfg.seed, steps=len(tr.t_s), duration_s=cfg.duration_s,
+        measurement=to_dict(cfg.measurement),
+        pcrlb_rms={b: float(np.sqrt(np.mean(bound[k, i] ** 2))) for i, b in enumerate(BLOCKS)},
+        rmse_over_pcrlb=dict(zip(BLOCKS, (float(v) for v in efficiency(stats.rmse_block, bound, tr.t_s, settle)))),
+        diverged_runs=[int(i) for i in np.flatnonzero(runs["diverged"])],
+    )
+    atomic_write_text(os.path.join(out_dir, "summary.json"), json.dumps(json_safe(summary), indent=1, sort_keys=True)
+                      + "\n")
+    write_figures(cfg, out_dir, tr.t_s, stats, bound, sample_err, sample_norms)
+    return summary
+
+
+def write_figures(cfg: MonteCarloConfig, out_dir: str, t_s, stats, bound, sample_err, sample_norms) -> None:
+    from envisat_pose.analysis.campaign_figures import (
+        plot_block_norms,
+        plot_error_envelopes,
+        plot_nees_nis,
+        plot_rmse_vs_bound,
+    )
+
+    m = cfg.measurement
+    noise = f"{m.sigma_m:g} m" if m.kind == "markers3d" else f"{m.sigma_px:g} px"
+    title = f"{cfg.scenario}: {cfg.runs} runs, {m.kind} at {noise}, {m.rate_hz:g} Hz, seed {cfg.seed}"
+    err = sample_err if len(sample_err) else None
+    norms = sample_norms if len(sample_norms) else None
+    path = os.path.join
+    plot_error_envelopes(t_s, err, stats.filter_3sigma, stats.sample_3sigma, path(out_dir, FIGURES[0]), title=title)
+    plot_block_norms(t_s, norms, stats.rmse_block, stats.filter_3sigma_block, path(out_dir, FIGURES[1]), title=title)
+    plot_nees_nis(t_s, stats.nees_mean, stats.nees_bounds, stats.nis_mean, stats.nis_bounds,
+                  path(out_dir, FIGURES[2]), title=title)
+    plot_rmse_vs_bound(t_s, stats.rmse_block, bound, path(out_dir, FIGURES[3]), title=title,
+                       filter_3sigma_block=stats.filter_3sigma_block)
+
+
+def write_recording(cfg: MonteCarloConfig, out_dir: str, path: str) -> None:
+    """A Rerun recording at path (--rrd): the truth, run 0's estimate and 3-sigma ellipsoid (run 0 filtered
+    again, keeping its means and covariances: it draws what the campaign drew), the sample runs' errors and the
+    campaign's bands from campaign.npz."""
+    from envisat_pose.analysis.recording import write_campaign_recording
+
+    tr = load_campaign_truth(out_dir, cfg.measurement)
+    x_hat, P = filter_run_history(tr, cfg, 0)
+    with np.load(os.path.join(out_dir, "campaign.npz"), allow_pickle=False) as z:
+        sample_err, filt, samp = z["sample_err"], z["filter_3sigma"], z["sample_3sigma"]
+    write_campaign_recording(path, tr.t_s, tr.x_true, x_hat, P, sample_err, filt, samp if cfg.runs > 1 else None,
+                             truth=TruthTrajectory.load(os.path.join(out_dir, "truth.npz")))

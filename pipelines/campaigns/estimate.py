@@ -1,0 +1,209 @@
+"""The pipeline of `envisat estimate`: the batched UKF over R Monte Carlo runs of one MuJoCo truth, written as
+est.npz (the Estimates contract) with its config next to it.
+
+The truth comes from a truth file (written by `envisat simulate`, read as the core's TruthTrajectory contract
+without importing the simulator) or is simulated for a named scenario by the MuJoCo truth simulator
+(datagen.truth.simulate_truth). Measurements are synthesized from the truth's own arrays (MuJoCo's corner sites and
+their projection through MuJoCo's camera), never from the filter's model; the filter's model takes the truth's
+mu and gravity-gradient switch from its config (pipelines/tracking/onboard.py, `onboard_physics`). A named scenario with
+an [eclipse] table adds the Earth's-shadow outages along its truth (`eclipse_outages`, `with_outages`; the campaigns use them too).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from envisat_pose.config import ConfigError, InputError, check, from_dict, resolve_job_config, to_dict, to_toml
+from envisat_pose.contracts import Estimates, TruthTrajectory
+from envisat_pose.datagen.scenario import (
+    ScenarioConfig,
+    eclipse_windows,
+    scenario_config,
+    scenario_dict,
+    scenario_eclipse,
+)
+from envisat_pose.datagen.target_model import require_envisat_truth
+from envisat_pose.filtering.estimator import FilterConfig, chaser_states, diverged_against_truth, nees, run_filter
+from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
+from envisat_pose.io import atomic_write_text
+from envisat_pose.out_dirs import make_out_file_dirs
+from envisat_pose.pipelines.common.job_defaults import scenario_defaults
+from envisat_pose.pipelines.tracking.onboard import onboard_physics
+
+MAX_OUTPUT_BYTES = 8 * 2**30  # P alone is R * T * 144 * 8 bytes
+
+
+@dataclass(frozen=True)
+class EstimateConfig:
+    """One `envisat estimate` job: measurements, filter, number of runs and the root seed.
+
+    Run r draws its initial error and noise from SeedSequence(seed).spawn(runs)[r]; with a scenario the
+    truth's random initial attitude comes from the same seed.
+    """
+
+    measurement: MeasurementConfig = field(default_factory=MeasurementConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    runs: int = 1
+    seed: int = 0
+
+    @classmethod
+    def from_scenario(cls, name: str | None = None, config_path: str | None = None, overrides: dict | None = None,
+                      **fields) -> "EstimateConfig":
+        """The job `envisat estimate --scenario NAME` runs: this config resolved from the named scenario, the TOML
+        file at config_path, then overrides ({'section.key': value}) and fields (pipelines/common/job_defaults.py's layers;
+        no name: none, for an estimate of a truth file)."""
+        flags = {**(overrides or {}), **fields}
+        return resolve_job_config(cls, scenario_defaults("estimate", name), config_path, flags)
+
+    def validate(self, prefix: str = "") -> None:
+        check(1 <= self.runs <= 100_000, "runs", self.runs, "a number of runs from 1 to 100000")
+        check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")
+
+
+# ---------------------------------------------------------------- what a job takes from its truth
+
+def eclipse_outages(name: str, truth_cfg) -> tuple[tuple[float, float], ...]:
+    """The Earth's-shadow windows [start, end) s of a named scenario's [eclipse] table along the truth of
+    truth_cfg (a datagen ScenarioConfig); () for a scenario without one."""
+
+    eclipse = scenario_eclipse(name)
+    return eclipse_windows(truth_cfg, eclipse) if eclipse is not None else ()
+
+
+def with_outages(mcfg, windows: tuple[tuple[float, float], ...]):
+    """A MeasurementConfig with `windows` appended to its outages (unchanged when there are none)."""
+    import dataclasses
+
+    if not windows:
+        return mcfg
+    return dataclasses.replace(mcfg, outages_s=tuple(mcfg.outages_s) + tuple(windows))
+
+
+def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str | None = None,
+               duration_s: float | None = None, progress: bool = False):
+    """The truth trajectory: read from truth_path, or simulated by MuJoCo for the named scenario (exactly one of
+    them). Returns (truth, source) with source {"truth_file": path} or {"scenario": name}.
+
+    A file that is not a truth trajectory (truncated, foreign, another contract) is one InputError line.
+    With a scenario its duration applies unless duration_s is given; a truth file fixes the duration.
+    """
+    if truth_path:
+        if duration_s is not None:
+            raise InputError("duration_s applies to a `scenario` only; the truth file (`truth_path`) fixes the "
+                             "duration")
+        truth = TruthTrajectory.load(truth_path)
+        require_envisat_truth(truth.config, "truth_path", truth_path, "estimate")
+        onboard_physics(truth, truth_path)  # its config must name the physics the filter needs
+        return truth, {"truth_file": truth_path}
+    from envisat_pose.datagen.truth import simulate_truth
+
+    overrides: dict = {"seed": cfg.seed}
+    if duration_s is not None:
+        overrides["duration_s"] = duration_s
+    if cfg.measurement.rate_hz > 1.0:
+        overrides["dt_s"] = 1.0 / cfg.measurement.rate_hz
+    scenario_dict(scenario)  # unknown names fail here with the list of known ones
+    scfg = scenario_config(scenario, **overrides)
+    return simulate_truth(scfg, progress=progress), {"scenario": scenario}
+
+
+def scenario_outages(cfg: EstimateConfig, scenario: str | None, truth) -> EstimateConfig:
+    """With a named scenario whose file has an [eclipse] table: cfg with the Earth's-shadow windows along the
+    simulated truth appended to its outages (eclipse_outages); cfg otherwise (no scenario: a truth file)."""
+    if not scenario:
+        return cfg
+    import dataclasses
+
+    windows = eclipse_outages(scenario, from_dict(ScenarioConfig, truth.config))
+    return dataclasses.replace(cfg, measurement=with_outages(cfg.measurement, windows))
+
+
+# ---------------------------------------------------------------- the filter over R runs
+
+def estimate_output_paths(out: str) -> tuple[str, str]:
+    """est.npz -> (est.npz, est.config.toml)."""
+    stem = out[:-4] if out.endswith(".npz") else out
+    return out, stem + ".config.toml"
+
+
+def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
+    """Filter cfg.runs runs of a truth trajectory; returns the arrays of est.npz (without config_json).
+
+    Arrays: t_s (T,), x_true (R, T, 12), x_hat (R, T, 12), P (R, T, 12, 12), n_meas (R, T), nis (R, T), nis_dof (R, T),
+    diverged (R,) (NIS window or NEES window against the truth).
+    """
+
+    mu_m3_s2, gravity_gradient = onboard_physics(truth)
+
+    try:
+        stride = filter_stride(truth.t_s, cfg.measurement.rate_hz)
+    except ValueError as err:
+        raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None
+    sel = slice(0, None, stride)
+    t_s, x_true = truth.t_s[sel], truth.x[sel]
+    chaser = chaser_states(truth.chaser_r_m, truth.chaser_rdot_m_s, truth.chaser_theta_rad,
+                           truth.chaser_thetadot_rad_s)[sel]
+    R, T = cfg.runs, len(t_s)
+    need = R * T * (144 + 30) * 8
+    if need > MAX_OUTPUT_BYTES:
+        raise ConfigError("runs", R, f"fewer runs or a shorter truth: {R} runs x {T} steps need "
+                          f"{need / 2**30:.1f} GiB (limit {MAX_OUTPUT_BYTES / 2**30:.0f} GiB)")
+    fcfg = cfg.filter
+    kind = cfg.measurement.kind
+    z_true, base = truth_measurements(kind, truth.corners_C_m[sel], truth.visible[sel], truth.corners_px[sel],
+                                      truth.in_frame[sel])
+    inp = make_run_inputs(x_true[0], t_s, z_true, base, cfg.measurement, fcfg.P0, cfg.seed, R)
+    res = run_filter(inp.x0_hat, fcfg.P0, t_s, chaser, inp.z, inp.mask, inp.R_c, kind, fcfg, progress=progress,
+                     mu_m3_s2=mu_m3_s2, gravity_gradient=gravity_gradient)
+    diverged = diverged_against_truth(res.diverged, nees(x_true[None], res.x_hat, res.P), fcfg)
+    return {
+        "t_s": t_s,
+        "x_true": np.broadcast_to(x_true, (R, T, 12)).copy(),
+        "x_hat": res.x_hat,
+        "P": res.P,
+        "n_meas": res.n_meas,
+        "nis": res.nis,
+        "nis_dof": res.dof,
+        "diverged": diverged,
+    }
+
+
+def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, scenario: str | None = None,
+                 duration_s: float | None = None, plot: bool = False, rrd: str | None = None,
+                 progress: bool = False) -> dict:
+    """The whole job: load or simulate the truth (load_truth), add a scenario's eclipse outages, filter
+    cfg.runs runs (estimate), write out (Estimates) and its config (output_paths), and with plot the errors'
+    PNG next to out, with rrd a Rerun recording. The output folders are made once the truth is read (a refused
+    truth writes nothing); the caller checks the paths (check_out_file) before any work.
+
+    Returns {"config": the EstimateConfig run (outages added), "arrays": est.npz's arrays, "est": out,
+    "config_toml": its path, "plot": the PNG's path or None, "rrd": rrd}.
+    """
+
+    out, cfg_path = estimate_output_paths(out)
+    truth, source = load_truth(cfg, truth_path, scenario, duration_s, progress)
+    cfg = scenario_outages(cfg, scenario, truth)
+    if len(truth.t_s) < 2:
+        raise InputError("the truth trajectory has fewer than 2 samples")
+    make_out_file_dirs({out: "out", cfg_path: "out", **({rrd: "rrd"} if rrd else {})})
+    arrays = estimate(truth, cfg, progress=progress)
+    config_json = json.dumps({"estimate": to_dict(cfg), "truth_source": source, "truth_config": truth.config},
+                             sort_keys=True)
+    est = Estimates(**arrays, config_json=config_json)
+    est.save(out)
+    atomic_write_text(cfg_path, "# envisat estimate: the full validated config of this job\n" + to_toml(to_dict(cfg)))
+    png = None
+    if plot:
+        from envisat_pose.analysis.plots import plot_estimate
+
+        png = out[:-4] + ".png"
+        plot_estimate(arrays["t_s"], arrays["x_true"], arrays["x_hat"], arrays["P"], png,
+                      title=f"UKF errors, {cfg.measurement.kind}, {cfg.runs} runs, seed {cfg.seed}")
+    if rrd:
+        from envisat_pose.analysis.recording import write_estimates_recording
+
+        write_estimates_recording(rrd, est, truth)
+    return {"config": cfg, "arrays": arrays, "est": out, "config_toml": cfg_path, "plot": png, "rrd": rrd}

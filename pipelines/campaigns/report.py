@@ -1,0 +1,216 @@
+"""The HTML report over Monte Carlo campaigns (`envisat report`): one self-contained page.
+
+Per campaign folder (written by `envisat montecarlo`): the scenario and its config, a table of RMSE per block
+after the settle time, the share of run-steps inside the filter's 3-sigma, the mean NEES with its 95 % band,
+the PCRLB and RMSE/PCRLB per block, diverged runs and wall time, and the campaign's figures embedded as
+base64 PNG data URIs. Several folders sit side by side (one column each). A rate-sweep folder (sweep.json)
+gets a table with a row per rate and its figure. No external link or resource. `write_report` is the job.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+import os
+
+from envisat_pose.config import InputError, flatten
+from envisat_pose.io import atomic_write_text
+from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
+from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE
+from envisat_pose.state import BLOCKS
+
+# display unit and scale per block (the summary's units are m, m/s, rad, rad/s)
+DISPLAY = {"position": ("cm", 100.0), "velocity": ("mm/s", 1000.0), "attitude": ("deg", 180.0 / math.pi),
+           "angular_velocity": ("deg/s", 180.0 / math.pi)}
+FIGURE_CAPTIONS = {
+    "envelopes.png": "Errors per component: runs (grey), filter 3-sigma (red dashed), sample 3-sigma (green)",
+    "block_norms.png": "Error norm per block: runs (grey), RMSE (blue), filter 3-sigma (red dashed)",
+    "nees_nis.png": "Mean NEES and NIS with their chi-square 95 % bands",
+    "rmse_vs_pcrlb.png": "Monte Carlo RMSE against the posterior Cramer-Rao lower bound",
+}
+SWEEP_CAPTION = ("Rate sweep: settled RMSE per block (blue) and the PCRLB (black dashed) against the filter rate, "
+                 "and the share of diverged runs (red)")
+
+
+def write_report(dirs: list[str], out: str) -> dict:
+    """The report over the campaign and rate-sweep folders `dirs`, written atomically to out (.html; its folder
+    made when every input reads). Returns {"campaigns": n, "sweeps": n}. InputError naming `out` or the folder."""
+
+    if not out.endswith((".html", ".htm")):
+        raise InputError(f"out {out!r}: expected a path ending in .html")
+    check_out_file(out, "out")
+    sweeps = [load_sweep(d) for d in dirs if is_sweep(d)]
+    campaigns = [load_campaign(d) for d in dirs if not is_sweep(d)]
+    make_out_file_dirs({out: "out"})
+    atomic_write_text(out, render_report(campaigns, sweeps))
+    return {"campaigns": len(campaigns), "sweeps": len(sweeps)}
+
+
+def is_sweep(out_dir: str) -> bool:
+    """A rate-sweep folder (`envisat montecarlo` with a sweep): sweep.json, one campaign folder per rate."""
+    return os.path.isfile(os.path.join(out_dir, "sweep.json"))
+
+
+def load_sweep(out_dir: str) -> dict:
+    """What the report shows of a rate sweep: sweep.json, its figure and its config text."""
+    path = os.path.join(out_dir, "sweep.json")
+    sweep = _read_json(path)
+    if not isinstance(sweep, dict) or "rates_hz" not in sweep:
+        raise InputError(f"{path}: unreadable or not a rate sweep's summary")
+    fig = os.path.join(out_dir, SWEEP_FIGURE)
+    figure = ""
+    if os.path.isfile(fig):
+        with open(fig, "rb") as fh:
+            figure = base64.b64encode(fh.read()).decode("ascii")
+    cfg_path = os.path.join(out_dir, "montecarlo.config.toml")
+    config = open(cfg_path, encoding="utf-8").read() if os.path.isfile(cfg_path) else ""
+    return {"dir": out_dir, "sweep": sweep, "figure": figure, "config": config}
+
+
+def render_sweep(c: dict) -> str:
+    """One rate sweep: a table with a row per rate (RMSE and RMSE/PCRLB per block, diverged runs, NEES,
+    converged) and its figure."""
+    e, s = html.escape, c["sweep"]
+    head = ["rate (Hz)"] + [f"RMSE {b} ({DISPLAY[b][0]})" for b in BLOCKS] + [f"RMSE / PCRLB {b}" for b in BLOCKS]
+    head += ["diverged runs", "mean NEES", "converged"]
+    rows = []
+    for i, rate in enumerate(s["rates_hz"]):
+        cells = [f"{rate:g}"] + [_fmt(s["rmse"][b][i], DISPLAY[b][1]) for b in BLOCKS]
+        cells += [_fmt(s["rmse_over_pcrlb"][b][i], digits=3) for b in BLOCKS]
+        cells += [f"{s['n_diverged'][i]} / {s['runs']}", _fmt(s["nees_mean"][i]), "yes" if s["converged"][i] else "no"]
+        rows.append("<tr>" + "".join(f"<td>{e(v)}</td>" for v in cells) + "</tr>")
+    low = s.get("lowest_converged_rate_hz")
+    verdict = (f"Converges (at most {_fmt(s.get('max_diverged_share'), 100.0)} % of runs flagged diverged, RMSE / "
+               f"PCRLB below {s.get('max_rmse_over_pcrlb')} in every block) at "
+               f"every rate down to {low:g} Hz." if low is not None else "Does not converge at the fastest rate.")
+    fig = (f"<figure><img alt=\"{SWEEP_FIGURE}\" src=\"data:image/png;base64,{c['figure']}\"><figcaption>"
+           f"{e(SWEEP_CAPTION)}</figcaption></figure>" if c["figure"] else "")
+    name = os.path.basename(os.path.normpath(c["dir"])) or c["dir"]
+    return (f"<h2>Rate sweep {e(name)}</h2><p>{e(c['dir'])}: scenario {e(str(s.get('scenario')))}, "
+            f"{s.get('runs')} runs per rate over {_fmt(s.get('duration_s'))} s, seed {s.get('seed')}, statistics "
+            f"after {_fmt(s.get('settle_s'))} s. {e(verdict)}</p><table><tr>"
+            + "".join(f"<th>{e(h)}</th>" for h in head) + "</tr>" + "".join(rows) + "</table>" + fig
+            + f"<details><summary>config</summary><pre>{e(c['config'])}</pre></details>")
+
+
+def load_campaign(out_dir: str) -> dict:
+    """What the report shows of one folder: summary.json, timing.json (optional), the config text, the PNGs."""
+    path = os.path.join(out_dir, "summary.json")
+    if not os.path.isfile(path):
+        raise InputError(f"{out_dir!r} has no summary.json: not a finished `envisat montecarlo` folder")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            summary = json.load(fh)
+    except (OSError, ValueError) as err:
+        raise InputError(f"{path}: unreadable ({err})") from None
+    timing = _read_json(os.path.join(out_dir, "timing.json"))
+    cfg_path = os.path.join(out_dir, "montecarlo.config.toml")
+    config = open(cfg_path, encoding="utf-8").read() if os.path.isfile(cfg_path) else ""
+    figures = {}
+    for name in FIGURE_CAPTIONS:
+        fig = os.path.join(out_dir, name)
+        if os.path.isfile(fig):
+            with open(fig, "rb") as fh:
+                figures[name] = base64.b64encode(fh.read()).decode("ascii")
+    return {"dir": out_dir, "summary": summary, "timing": timing, "config": config, "figures": figures}
+
+
+def _read_json(path: str) -> dict:
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return json.load(fh)
+    except (OSError, ValueError):
+        return {}
+
+
+def _fmt(v, scale: float = 1.0, digits: int = 4) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "n/a"
+    return f"{v * scale:.{digits}g}"
+
+
+def config_differences(campaigns: list[dict]) -> list[str]:
+    """Per campaign, its config values that differ between the campaigns ('' for one campaign)."""
+    import tomllib
+
+    flat = []
+    for c in campaigns:
+        try:
+            flat.append(flatten(tomllib.loads(c["config"])))
+        except tomllib.TOMLDecodeError:
+            flat.append({})
+    keys = sorted({k for f in flat for k in f if len({repr(g.get(k)) for g in flat}) > 1})
+    return ["; ".join(f"{k} = {f.get(k, 'unset')}" for k in keys) for f in flat]
+
+
+
+
+def campaign_rows(c: dict) -> list[tuple[str, str]]:
+    """(label, value) rows of one campaign's table, already formatted."""
+    s, t = c["summary"], c["timing"]
+    m = s.get("measurement", {})
+    noise = f"{m.get('sigma_m')} m" if m.get("kind") == "markers3d" else f"{m.get('sigma_px')} px"
+    rows = [("scenario", str(s.get("scenario"))), ("runs x steps", f"{s.get('runs')} x {s.get('steps')}"),
+            ("measurements", f"{m.get('kind')}, {noise}, {m.get('rate_hz')} Hz, max {m.get('max_markers')} corners"),
+            ("seed", str(s.get("seed"))), ("statistics after", f"{_fmt(s.get('settle_s'))} s")]
+    for b in BLOCKS:
+        unit, k = DISPLAY[b]
+        rows.append((f"RMSE {b} ({unit})", _fmt(s["rmse"].get(b), k)))
+    for b in BLOCKS:
+        unit, k = DISPLAY[b]
+        rows.append((f"PCRLB {b} ({unit})", _fmt(s.get("pcrlb_rms", {}).get(b), k)))
+    for b in BLOCKS:
+        rows.append((f"RMSE / PCRLB {b}", _fmt(s.get("rmse_over_pcrlb", {}).get(b), digits=3)))
+    for b in BLOCKS:
+        rows.append((f"inside 3-sigma {b}", f"{_fmt(s['inside_3sigma_share'].get(b), 100.0, 4)} %"))
+    lo, hi = s.get("nees_bounds", [None, None])
+    rows += [("mean NEES (12 dof)", f"{_fmt(s.get('nees_mean'))} (95 % band {_fmt(lo)} .. {_fmt(hi)})"),
+             ("NIS per dof", _fmt(s.get("nis_mean_per_dof"))),
+             ("diverged runs", f"{s.get('n_diverged')} / {s.get('n_runs')}"),
+             ("wall time", f"{_fmt(t.get('block_wall_s_sum'), digits=4)} s in blocks, "
+                           f"{_fmt(t.get('wall_s_this_invocation'), digits=4)} s last invocation "
+                           f"({t.get('workers', '?')} {t.get('backend', '?')} workers)" if t else "n/a")]
+    return rows
+
+
+STYLE = """body{font-family:sans-serif;margin:1em}table{border-collapse:collapse}td,th{border:1px solid #bbb;
+padding:2px 6px;text-align:right;vertical-align:top}th{background:#eee}td.l{text-align:left}
+.cols{display:flex;gap:1em;align-items:flex-start}.col{flex:1;min-width:0}img{width:100%;height:auto}
+pre{font-size:11px;background:#f6f6f6;padding:4px;overflow-x:auto}"""
+
+
+def render_report(campaigns: list[dict], sweeps: list[dict] = ()) -> str:
+    """The whole HTML page: a comparison table (one column per campaign), then per campaign its figures and
+    config, side by side, then each rate sweep (render_sweep). Every figure is a data:image/png;base64 URI."""
+    e = html.escape
+    sweeps_html = "".join(render_sweep(c) for c in sweeps)
+    if not campaigns:
+        return _page(sweeps_html)
+    names = [os.path.basename(os.path.normpath(c["dir"])) or c["dir"] for c in campaigns]
+    table = ["<table><tr><th></th>" + "".join(f"<th>{e(n)}</th>" for n in names) + "</tr>"]
+    all_rows = [campaign_rows(c) for c in campaigns]
+    if len(campaigns) > 1:
+        all_rows = [[("config differences", d)] + rows for d, rows in zip(config_differences(campaigns), all_rows)]
+    for i, (label, _) in enumerate(all_rows[0]):
+        cells = "".join(f"<td>{e(rows[i][1])}</td>" for rows in all_rows)
+        table.append(f"<tr><td class=\"l\">{e(label)}</td>{cells}</tr>")
+    table.append("</table>")
+    cols = []
+    for n, c in zip(names, campaigns):
+        figs = "".join(f"<figure><img alt=\"{e(name)}\" src=\"data:image/png;base64,{data}\">"
+                       f"<figcaption>{e(FIGURE_CAPTIONS[name])}</figcaption></figure>"
+                       for name, data in c["figures"].items())
+        cols.append(f"<div class=\"col\"><h2>{e(n)}</h2><p>{e(c['dir'])}</p>{figs}"
+                    f"<details><summary>config</summary><pre>{e(c['config'])}</pre></details></div>")
+    return _page("\n".join(table) + "<div class=\"cols\">" + "".join(cols) + "</div>" + sweeps_html)
+
+
+def _page(body: str) -> str:
+    return ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>envisat Monte Carlo report</title>"
+            f"<style>{STYLE}</style></head><body><h1>Monte Carlo campaigns</h1>"
+            "<p>Statistics over the run-steps after the settle time; RMSE / PCRLB is the ratio of the RMS over time "
+            "of the Monte Carlo RMSE and of the posterior Cramer-Rao lower bound (1: the best any unbiased "
+            "estimator can do). The NEES band assumes independent steps: read it as a guide.</p>"
+            + body + "</body></html>\n")

@@ -1,0 +1,137 @@
+"""The rate sweep of `envisat montecarlo --rates`: one campaign (pipelines/campaigns/campaign.py) per filter (and
+measurement) rate in DIR/rate-<R>hz, each resumable like any campaign, then DIR/sweep.json (per rate: RMSE, PCRLB
+and RMSE/PCRLB per block, diverged share, mean NEES, converged; the lowest rate from which every rate up
+converges) and rate_sweep.png."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from envisat_pose.config import check, resolve_job_config, to_dict, to_toml
+from envisat_pose.io import atomic_write_text, json_safe
+from envisat_pose.named_scenarios import table
+from envisat_pose.out_dirs import make_out_dir
+from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig, check_filter_rate, run_campaign, truth_scenario
+from envisat_pose.resumable import remove_partial_files
+from envisat_pose.state import BLOCKS
+
+SWEEP_FORMAT = "envisat-pose rate sweep v1"
+SWEEP_FIGURE = "rate_sweep.png"
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """A rate sweep: one campaign per filter (and measurement) rate in rates_hz, Hz, each in its own folder.
+
+    A rate converges when at most max_diverged_share of its runs were flagged diverged (the NIS monitor's false
+    alarms, 1e-6 per window, add up over ~1e5 windows per run at 10 Hz) and every block's RMSE/PCRLB is below
+    max_rmse_over_pcrlb."""
+
+    rates_hz: tuple[float, ...] = ()
+    max_rmse_over_pcrlb: float = 2.0
+    max_diverged_share: float = 0.05
+
+    def validate(self, prefix: str = "sweep") -> None:
+        check(1 <= len(self.rates_hz) <= 32, f"{prefix}.rates_hz", list(self.rates_hz), "1 to 32 rates in Hz")
+        for i, r in enumerate(self.rates_hz):
+            check(0.0 < r <= 100.0, f"{prefix}.rates_hz[{i}]", r, "a rate in (0, 100] Hz")
+        check(len(set(self.rates_hz)) == len(self.rates_hz), f"{prefix}.rates_hz", list(self.rates_hz),
+              "distinct rates")
+        check(self.max_rmse_over_pcrlb > 1.0, f"{prefix}.max_rmse_over_pcrlb", self.max_rmse_over_pcrlb,
+              "a ratio above 1")
+        check(0.0 <= self.max_diverged_share < 1.0, f"{prefix}.max_diverged_share", self.max_diverged_share,
+              "a share in [0, 1)")
+
+
+def sweep_for(cfg: MonteCarloConfig, rates_hz=None, rate_given: bool = False) -> SweepConfig | None:
+    """The rate sweep of a campaign: its scenario's [sweep] table under rates_hz (None: the table's), validated,
+    every rate's step checked against the truth's before any work; None when neither asks for one. rate_given:
+    the caller set the campaign's single rate too (refused with a sweep: the sweep sets the rates)."""
+
+    defaults = table(cfg.scenario, "sweep")
+    if not defaults and not rates_hz:
+        return None
+    check(not rate_given, "measurement.rate_hz", cfg.measurement.rate_hz, "no single rate with a rate sweep (the "
+          "sweep's rates_hz sets the rates)")
+    sweep = resolve_job_config(SweepConfig, defaults, None, {"rates_hz": list(rates_hz) if rates_hz else None},
+                               prefix="sweep")
+    for rate in sweep.rates_hz:
+        sub = at_rate(cfg, rate)
+        check_filter_rate(sub, truth_scenario(sub))
+    return sweep
+
+
+def at_rate(cfg: MonteCarloConfig, rate_hz: float) -> MonteCarloConfig:
+    """The campaign of cfg with the filter and its measurements at rate_hz."""
+    import dataclasses
+
+    return dataclasses.replace(cfg, measurement=dataclasses.replace(cfg.measurement, rate_hz=float(rate_hz)))
+
+
+def rate_folder(rate_hz: float) -> str:
+    """The sub-folder of one rate's campaign: rate-0.05hz, rate-10hz."""
+    return f"rate-{rate_hz:g}hz"
+
+
+def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner, progress: bool = False) -> dict:
+    """One campaign per rate in out_dir/rate-<R>hz (each resumable like any campaign), then out_dir/sweep.json
+    (per rate: RMSE, PCRLB and RMSE/PCRLB per block, diverged share, mean NEES, converged) and rate_sweep.png.
+    Returns sweep.json's dict."""
+    from envisat_pose.analysis.campaign_figures import plot_rate_sweep
+
+    make_out_dir(out_dir)
+    remove_partial_files(out_dir)
+    rates = sorted(sweep.rates_hz)
+    summaries = []
+    for rate in rates:
+        if progress:
+            print(f"rate sweep: {rate:g} Hz -> {os.path.join(out_dir, rate_folder(rate))}")
+        summaries.append(run_campaign(at_rate(cfg, rate), os.path.join(out_dir, rate_folder(rate)), runner, progress))
+    result = sweep_result(cfg, sweep, rates, summaries)
+    atomic_write_text(os.path.join(out_dir, "sweep.json"), json.dumps(json_safe(result), indent=1, sort_keys=True)
+                      + "\n")
+    atomic_write_text(os.path.join(out_dir, "montecarlo.config.toml"),
+                      "# envisat montecarlo: the validated config of this rate sweep (measurement.rate_hz is set per "
+                      "campaign)\n" + to_toml({**to_dict(cfg), "sweep": to_dict(sweep)}))
+    m = cfg.measurement
+    noise = f"{m.sigma_m:g} m" if m.kind == "markers3d" else f"{m.sigma_px:g} px"
+    plot_rate_sweep(np.array(rates), np.array([[s["rmse"][b] for b in BLOCKS] for s in summaries]),
+                    os.path.join(out_dir, SWEEP_FIGURE),
+                    bound_block=np.array([[s["pcrlb_rms"][b] for b in BLOCKS] for s in summaries]),
+                    diverged_share=np.array(result["diverged_share"]),
+                    title=f"{cfg.scenario}: {cfg.runs} runs per rate, {m.kind} at {noise}, {cfg.duration_s:g} s, "
+                          f"seed {cfg.seed}, statistics after {summaries[0]['settle_s']:g} s")
+    return result
+
+
+def sweep_result(cfg: MonteCarloConfig, sweep: SweepConfig, rates: list, summaries: list) -> dict:
+    """sweep.json: the per-rate numbers of the campaigns' summaries, and the lowest rate from which every rate
+    up converges (None if the fastest does not)."""
+
+    def per_block(key):
+        return {b: [s[key][b] for s in summaries] for b in BLOCKS}
+
+    ratio = per_block("rmse_over_pcrlb")
+    converged = [s["n_diverged"] <= sweep.max_diverged_share * s["n_runs"]
+                 and all(v is not None and math.isfinite(v) and v < sweep.max_rmse_over_pcrlb
+                         for v in (ratio[b][i] for b in BLOCKS))
+                 for i, s in enumerate(summaries)]
+    lowest = None
+    for rate, ok in sorted(zip(rates, converged), reverse=True):
+        if not ok:
+            break
+        lowest = rate
+    return {"format": SWEEP_FORMAT, "scenario": cfg.scenario, "runs": cfg.runs, "seed": cfg.seed,
+            "duration_s": cfg.duration_s, "settle_s": summaries[0]["settle_s"], "rates_hz": list(rates),
+            "campaigns": [rate_folder(r) for r in rates], "steps": [s["steps"] for s in summaries],
+            "rmse": per_block("rmse"), "pcrlb_rms": per_block("pcrlb_rms"), "rmse_over_pcrlb": ratio,
+            "n_diverged": [s["n_diverged"] for s in summaries],
+            "diverged_share": [s["n_diverged"] / s["n_runs"] for s in summaries],
+            "nees_mean": [s["nees_mean"] for s in summaries], "converged": converged,
+            "max_rmse_over_pcrlb": sweep.max_rmse_over_pcrlb, "max_diverged_share": sweep.max_diverged_share,
+            "lowest_converged_rate_hz": lowest}

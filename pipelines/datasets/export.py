@@ -1,0 +1,300 @@
+"""`envisat dataset export`: a generated dataset (random or sequence mode, any resolution) into a folder of a
+format the field trains on: SPEED+, COCO keypoints, BOP or YOLO-pose (docs/formats.md states every convention).
+
+The shards are checked against the manifest first (a damaged one stops the export in one line, or is left out
+with skip_damaged). One task per shard, on the local process pool, converts its samples: images (the PNG bytes
+of the shard unchanged, or JPEG on request), masks, depth, and a record per sample. The annotation files are
+then assembled from the records, streamed. Everything is written into a hidden staging folder beside `out_dir`,
+renamed to `out_dir` only when complete: an error or an interrupt leaves nothing behind, and an existing
+non-empty `out_dir` is refused.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import re
+import shutil
+import tempfile
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from envisat_pose.config import InputError, check
+from envisat_pose.datagen import export_formats as fx
+from envisat_pose.datagen.generate_config import config_from_json
+from envisat_pose.datagen.target_mesh import ply_bytes, target_mesh
+from envisat_pose.datagen.target_model import load_target
+from envisat_pose.geometry import CORNER_NAMES, load_camera, load_geometry
+from envisat_pose.out_dirs import check_out_dir
+from envisat_pose.pipelines.common.dataset_inputs import skip_hint
+from envisat_pose.pipelines.datasets import export_layouts as lay
+from envisat_pose.pipelines.datasets.export_readme import readme_text
+from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
+from envisat_pose.shard_reader import checked_shards, read_shard
+
+STAGE_PREFIX = ".tmp-export-"
+
+
+@dataclass(frozen=True)
+class ExportConfig:
+    """fmt: speedplus | coco | bop | yolo-pose. image_format: png (the shards' bytes) or jpg (quality 95).
+    val_fraction: share of the images in the validation split (None: 0.2 for random views, 0 for a sequence,
+    whose split is its last frames); seed: the split's seed. target: the target's MJCF file where the dataset's
+    recorded one (its config's `target`) is not found from here; None: the recorded one. Either way its sha256
+    must be the one the manifest recorded."""
+
+    fmt: str
+    image_format: str = "png"
+    val_fraction: float | None = None
+    seed: int = 0
+    target: str | None = None
+
+    def validate(self) -> None:
+        check(self.fmt in fx.FORMATS, "format", self.fmt, " | ".join(fx.FORMATS))
+        check(self.image_format in ("png", "jpg"), "image_format", self.image_format, "png or jpg")
+        vf = self.val_fraction
+        check(vf is None or 0.0 <= vf < 1.0, "val_fraction", vf, "a fraction in [0, 1)")
+
+
+@dataclass(frozen=True)
+class ExportSummary:
+    """out_dir: the folder written; images: per split (or sequence / scene set); skipped: damaged shards left out."""
+
+    out_dir: str
+    fmt: str
+    images: dict
+    skipped: list
+
+
+def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 1, skip_damaged: bool = False,
+                   progress: bool = True, on_shard=None) -> ExportSummary:
+    """Export the dataset folder `src` into the new folder `out_dir` in cfg's format (module docstring).
+    on_shard(count): called after each shard (a progress hook). InputError for a bad argument, a missing or
+    damaged dataset (naming the shard) or an `out_dir` that exists and holds anything."""
+    from envisat_pose.datagen.dataset import load_manifest
+
+    cfg.validate()
+    check(workers >= 1, "workers", workers, "at least 1")
+    check_out_dir(out_dir, field="out_dir")
+    if os.path.isdir(out_dir) and os.listdir(out_dir):
+        raise InputError(f"out_dir {out_dir!r} exists and is not empty: an export writes a new folder")
+    manifest = load_manifest(src)
+    with skip_hint():
+        shards, skipped = checked_shards(src, skip_damaged, "src")
+    gen = _generate_config(src, manifest)
+    if cfg.target is not None:
+        gen = dataclasses.replace(gen, target=cfg.target)
+    layout = _layout(cfg, gen, src, manifest)
+    if cfg.fmt == "bop" and not gen.write_mask:
+        raise InputError(f"src {src!r}: bop needs the dataset's masks (it was generated with write_mask = false)")
+    if cfg.fmt == "speedplus" and layout.mode == "sequence" and cfg.val_fraction:
+        raise InputError(f"val_fraction {cfg.val_fraction}: a sequence exports as one SHIRT-style sequence "
+                         "folder, not split")
+    counts = _shard_counts(manifest, shards)
+    splits = _split_flags(sum(counts), cfg, layout.mode)
+    stage, made = _make_stage(out_dir)
+    try:
+        _write_static(layout, stage, gen, manifest, bool(splits.any()))
+        _run_shards(layout, stage, shards, counts, splits, workers, progress, on_shard)
+        images = lay.assemble(layout, stage, ("train", "val") if splits.any() else ("train",))
+        shutil.rmtree(os.path.join(stage, lay.RECORDS))
+        _write_json(os.path.join(stage, "export.json"), {
+            "format": cfg.fmt, "config": asdict(cfg), "source": os.path.abspath(src),
+            "source_manifest_root_seed": manifest.get("root_seed"), "images": images, "skipped_damaged_shards": skipped,
+            "target": layout.target, "keypoint_names": list(layout.keypoint_names)})
+        if os.path.isdir(out_dir):
+            os.rmdir(out_dir)  # empty (checked above): the staging folder takes its place
+        os.rename(stage, out_dir)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        for folder in made:
+            with contextlib.suppress(OSError):
+                os.rmdir(folder)
+        raise
+    return ExportSummary(out_dir, cfg.fmt, images, skipped)
+
+
+def _generate_config(src: str, manifest: dict):
+    try:
+        return config_from_json(json.dumps(manifest["config"]))
+    except (KeyError, TypeError, ValueError) as err:
+        raise InputError(f"src {src!r}: manifest.json holds no readable generate config ({err})") from None
+
+
+def _layout(cfg: ExportConfig, gen, src: str, manifest: dict) -> lay.Layout:
+    """What every sample shares: the target's keypoints and model outline from its MJCF, the sequence's name."""
+
+    target = _dataset_target(src, gen, manifest)
+    path = target.path
+    mesh = target_mesh(path, gen.appendages_on) if cfg.fmt in ("bop", "coco", "yolo-pose") else None
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "_", os.path.basename(os.path.normpath(os.path.abspath(src)))) or "sequence"
+    depth_mm = gen.depth_scale_m * 1000.0 if gen.write_depth else None
+    if target.is_envisat:
+        names, points = tuple(CORNER_NAMES), load_geometry(path).corners_T_m.tolist()
+    else:
+        names, points = target.keypoint_names, target.keypoints_T_m.tolist()
+    return lay.Layout(cfg.fmt, cfg.image_format, gen.mode, name, target.name, names, points,
+                      mesh.vertices_T_m.tolist() if mesh is not None else [], depth_mm)
+
+
+def _dataset_target(src: str, gen, manifest: dict):
+    """The dataset's target (its config's `target` file; datasets written before it: ENVISAT), refused when the
+    file's sha256 differs from the one its manifest recorded."""
+
+    target = load_target(gen.target, "target")
+    recorded = (manifest.get("target") or {}).get("sha256")
+    if recorded is not None and recorded != target.sha256:
+        raise InputError(f"src {src!r}: its target file {gen.target!r} changed since the dataset was generated "
+                         f"(sha256 {target.sha256[:12]}..., the manifest recorded {recorded[:12]}...)")
+    return target
+
+
+def _shard_counts(manifest: dict, shards: list[str]) -> list[int]:
+    counts = {e["name"]: int(e["count"]) for e in manifest["shards"]}
+    return [counts.get(os.path.basename(p), 0) for p in shards]
+
+
+def _split_flags(n: int, cfg: ExportConfig, mode: str) -> np.ndarray:
+    """(n,) bool, True for validation: a seeded random share of random views; a sequence's last frames."""
+    vf = cfg.val_fraction if cfg.val_fraction is not None else (0.2 if mode == "random" else 0.0)
+    n_val = int(round(vf * n))
+    flags = np.zeros(n, dtype=bool)
+    if n_val == 0:
+        return flags
+    if mode == "sequence":
+        flags[n - n_val:] = True
+    else:
+        flags[np.random.default_rng(cfg.seed).permutation(n)[:n_val]] = True
+    return flags
+
+
+def _make_stage(out_dir: str) -> tuple[str, list[str]]:
+    """A hidden staging folder beside out_dir (same file system: one rename at the end) and the parent folders
+    made for it (removed again when the export fails)."""
+    parent = os.path.dirname(os.path.abspath(out_dir))
+    made, here = [], parent
+    while not os.path.isdir(here):
+        made.append(here)
+        here = os.path.dirname(here)
+    try:
+        os.makedirs(parent, exist_ok=True)
+        stage = tempfile.mkdtemp(prefix=STAGE_PREFIX + os.path.basename(os.path.abspath(out_dir)) + "-", dir=parent)
+    except OSError as err:
+        raise InputError(f"out_dir {out_dir!r}: cannot write there ({err.strerror or err})") from None
+    return stage, made
+
+
+def _write_json(path: str, data) -> None:
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "w", encoding="utf-8") as fh:
+        json.dump(data, fh, indent=1)
+        fh.write("\n")
+
+
+def _pixel_pitch_m(gen) -> float:
+    return gen.corruption.sensor.pixel_pitch_m_1024 * 1024.0 / gen.resolution_px
+
+
+def _write_static(layout: lay.Layout, stage: str, gen, manifest: dict, has_val: bool) -> None:
+    """The files an export writes once: camera, model, keypoints, data.yaml, the folder's README."""
+
+    n = gen.resolution_px
+    K = load_camera().scaled(n, n).K
+    if layout.fmt == "speedplus":
+        from scipy.io import savemat
+
+        _write_json(os.path.join(stage, "camera.json"), fx.speedplus_camera(K, n, n, _pixel_pitch_m(gen)))
+        os.makedirs(os.path.join(stage, "models"), exist_ok=True)
+        savemat(os.path.join(stage, "models", "keypoints.mat"),
+                {"tango3Dpoints": np.asarray(layout.keypoints_T_m).T})
+    elif layout.fmt == "bop":
+        _write_bop_model(layout, stage, gen, K)
+    elif layout.fmt == "yolo-pose":
+        _write_yolo_yaml(layout, stage, has_val)
+    with open(os.path.join(stage, "README.md"), "w", encoding="utf-8") as fh:
+        fh.write(readme_text(layout, K, n, _pixel_pitch_m(gen), manifest))
+
+
+def _write_bop_model(layout: lay.Layout, stage: str, gen, K: np.ndarray) -> None:
+    mesh = target_mesh(load_target(gen.target).path, gen.appendages_on)
+    folder = os.path.join(stage, "models")
+    os.makedirs(folder, exist_ok=True)
+    with open(os.path.join(folder, "obj_000001.ply"), "wb") as fh:
+        fh.write(ply_bytes(mesh, scale=1000.0))
+    _write_json(os.path.join(folder, "models_info.json"), {"1": fx.bop_model_info(mesh.vertices_T_m * 1000.0)})
+    _write_json(os.path.join(folder, "keypoints_3d.json"),
+                {"1": {"names": list(layout.keypoint_names),
+                       "points_mm": (np.asarray(layout.keypoints_T_m) * 1000.0).tolist()}})
+    n = gen.resolution_px
+    camera = {"cx": float(K[0, 2]), "cy": float(K[1, 2]), "fx": float(K[0, 0]), "fy": float(K[1, 1]),
+              "width": n, "height": n}
+    if layout.depth_scale_mm is not None:
+        camera["depth_scale"] = layout.depth_scale_mm
+    _write_json(os.path.join(stage, "camera.json"), camera)
+
+
+def _write_yolo_yaml(layout: lay.Layout, stage: str, has_val: bool) -> None:
+    k = len(layout.keypoint_names)
+    val = "images/val" if has_val else "images/train  # no validation split was asked for (--val-fraction)"
+    text = ("# Ultralytics YOLO-pose dataset (envisat-pose export; conventions in README.md)\n"
+            f"path: .\ntrain: images/train\nval: {val}\n"
+            f"kpt_shape: [{k}, 3]\n"
+            "# no flip_idx: the target is chiral, a mirrored image shows another object\n"
+            f"kpt_names:\n  0: [{', '.join(layout.keypoint_names)}]\n"
+            f"names:\n  0: {layout.target}\n")
+    with open(os.path.join(stage, "data.yaml"), "w", encoding="utf-8") as fh:
+        fh.write(text)
+
+
+def _run_shards(layout, stage, shards, counts, splits, workers, progress, on_shard) -> None:
+    """One task per shard on the local pool; a progress bar over the images."""
+    from tqdm import tqdm
+
+    starts = np.concatenate([[0], np.cumsum(counts)]).astype(int)
+    tasks = [(asdict(layout), path, stage, k, int(starts[k]), splits[starts[k]:starts[k + 1]].tolist())
+             for k, path in enumerate(shards)]
+    runner = RunnerConfig(backend="local", workers=min(workers, len(tasks)),
+                          env=thread_env(workers, ("OMP_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")))
+    with tqdm(total=int(starts[-1]), unit="img", desc="export", disable=not progress) as bar:
+        for _, n in run_tasks(export_shard, tasks, runner):
+            bar.update(n)
+            if on_shard is not None:
+                on_shard(n)
+
+
+def export_shard(layout_dict: dict, path: str, stage: str, index: int, start: int, val_flags: list) -> int:
+    """A worker's task: every sample of one shard into the staging folder, its records to .records/; returns the
+    samples written. Sample k of the shard is the export's sample start + k."""
+    import cv2
+
+    from envisat_pose.datagen.dataset import sample_image, sample_png
+    from envisat_pose.datagen.shards import decode_png
+
+    cv2.setNumThreads(1)
+    layout = lay.Layout(**{**layout_dict, "keypoint_names": tuple(layout_dict["keypoint_names"])})
+    lines = []
+    for k, (key, members) in enumerate(read_shard(path)):
+        where = f"{os.path.basename(path)}:{key}"
+        try:
+            label = json.loads(members["json"])
+        except (KeyError, ValueError) as err:
+            raise InputError(f"{where}: no readable .json label ({err})") from None
+        if layout.ext == "png":
+            image = sample_png(members, label)
+        else:
+            ok, data = cv2.imencode(".jpg", sample_image(members, label, where), [cv2.IMWRITE_JPEG_QUALITY,
+                                                                                  fx.JPEG_QUALITY])
+            image = data.tobytes()
+        needs_mask = layout.fmt != "speedplus" and members.get("mask.png")
+        mask = decode_png(members["mask.png"]) if needs_mask else None
+        split = "val" if val_flags[k] else "train"
+        lines.append(json.dumps(lay.write_sample(layout, stage, start + k, split, label, image, mask,
+                                                 members.get("depth.png") if layout.depth_scale_mm else None)))
+    folder = os.path.join(stage, lay.RECORDS)
+    os.makedirs(folder, exist_ok=True)
+    with open(os.path.join(folder, f"{index:06d}.jsonl"), "w", encoding="utf-8") as fh:
+        fh.write("".join(line + "\n" for line in lines))
+    return len(lines)

@@ -1,0 +1,265 @@
+"""The pipeline of `envisat train`: the corner detector trained on the factory's shards into a run directory.
+
+Around the stage's loop (perception/train.py, its batches from worker processes, perception/stream.py): the
+inputs checked before any work, torch.distributed started and ended under torchrun (gloo on CPU, nccl on CUDA),
+the CUDA speed settings, and the run's provenance (the command, the git hash, the datasets by name and manifest
+hash, the initial weights by name and hash; no path of the machine it ran on).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+from dataclasses import dataclass
+
+from envisat_pose.config import InputError, check, from_dict
+from envisat_pose.datagen.generate_config import GenerateConfig
+from envisat_pose.datagen.target_model import require_envisat, require_envisat_dataset
+from envisat_pose.io import sha256_file
+from envisat_pose.out_dirs import check_out_dir
+from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, look_shares
+from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_identity
+from envisat_pose.shard_reader import checked_shards
+
+
+@dataclass(frozen=True)
+class OnlineConfig:
+    """Training on frames as they are rendered (pipelines/detector/online.py) instead of shards. looks: what is rendered,
+    a GenerateConfig (frame f is sample f of the dataset it would generate; its seed, resolution, appearance and
+    corruption) or a sequence of online.WeightedLook (a mix by weight: resolutions, cameras, scenarios), kept as a tuple
+    of Looks; workers: renderer processes; uses_per_frame: K, the most crops any frame gives (1-8). Validated
+    when built."""
+
+    looks: object
+    workers: int = 1
+    uses_per_frame: int = 8
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "looks", as_looks(self.looks))
+        for look in self.looks:
+            require_envisat(look.generate.target, f"looks.{look.name}.generate.target", "train")
+        check(isinstance(self.workers, int) and self.workers >= 1, "online.workers", self.workers,
+              "at least 1 renderer process")
+        check(isinstance(self.uses_per_frame, int) and 1 <= self.uses_per_frame <= MAX_USES_PER_FRAME,
+              "online.uses_per_frame", self.uses_per_frame, f"an integer in [1, {MAX_USES_PER_FRAME}]")
+
+    def record(self) -> dict:
+        """What config.json keeps of it (a resumed run rebuilds it from this): the looks with their shares of the
+        period, the renderer processes and K."""
+
+        looks = [dict(look.record(), share=int(n)) for look, n in zip(self.looks, look_shares(self.looks))]
+        return {"looks": looks, "workers": self.workers, "uses_per_frame": self.uses_per_frame}
+
+    @classmethod
+    def from_record(cls, record: dict, workers: int | None = None) -> "OnlineConfig":
+        """From record()'s dict, or an earlier run's with one 'generate' config."""
+
+        if "looks" in record:
+            looks = tuple(WeightedLook.from_record({k: v for k, v in r.items() if k != "share"}, "online.looks")
+                          for r in record["looks"])
+        else:
+            looks = from_dict(GenerateConfig, record["generate"], "online.generate")
+        return cls(looks, workers or int(record.get("workers", 1)), int(record["uses_per_frame"]))
+
+
+def default_workers() -> int:
+    """DataLoader workers when none are asked for: this process's cores (shared among the node's torchrun ranks)
+    less one for the training process itself; 0 (in-process) on one core."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    local_ranks = max(1, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
+    return max(0, cores // local_ranks - 1)
+
+
+def git_hash() -> str:
+    """The source's commit (with '+dirty' when the tree has changes); outside a checkout (a copy laid out without
+    .git, as on a borrowed GPU machine) the commit the copy was made from, given as ENVISAT_SOURCE_GIT; else
+    'unknown'."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    given = os.environ.get("ENVISAT_SOURCE_GIT", "").strip() or "unknown"
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
+        if head.returncode != 0:
+            return given
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                               capture_output=True, text=True, timeout=10)
+        return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.SubprocessError):
+        return given
+
+
+def dataset_provenance(data_dir: str, skipped: list[str] = ()) -> dict:
+    """A dataset by its folder's name, its manifest's sha256 and image count (None where it has no manifest): the
+    images trained on, the shards `skipped` (damaged, --skip-damaged) left out."""
+    manifest = os.path.join(data_dir, "manifest.json")
+    record = {"name": os.path.basename(os.path.normpath(data_dir)), "manifest_sha256": None, "images": None}
+    if os.path.isfile(manifest):
+        import json
+
+        with open(manifest, "rb") as fh:
+            raw = fh.read()
+        record["manifest_sha256"] = hashlib.sha256(raw).hexdigest()
+        try:
+            manifest = json.loads(raw)
+            left_out = sum(int(sh.get("count", 0)) for sh in manifest.get("shards", []) if sh.get("name") in skipped)
+            record["images"] = manifest.get("num_images") - left_out if manifest.get("num_images") else None
+        except (ValueError, AttributeError, TypeError):
+            pass
+    return record
+
+
+def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | None, workers: int | None,
+                 threads: int | None, online: bool = False) -> None:
+    """Every input of a training run but the shards checked before any work; InputError naming the argument."""
+
+    if not data_dirs and not online:
+        raise InputError("data_dirs: no dataset folder given")
+    for folder in data_dirs:
+        require_envisat_dataset(folder, "data_dirs", "train")
+    if init is not None and resume:
+        raise InputError("init and resume: a resumed run goes on from its own checkpoint; give one of them")
+    if init is not None and not os.path.isfile(init):
+        raise InputError(f"init {init!r}: no such weights file")
+    if resume and not os.path.isdir(run_dir):
+        raise InputError(f"resume: run_dir {run_dir!r} does not exist")
+    check_out_dir(run_dir, parents=True)  # a file, or a path under one, is refused here
+    if workers is not None and workers < 0:
+        raise InputError(f"workers = {workers}: expected 0 (in-process) or more worker processes")
+    if threads is not None and threads < 1:
+        raise InputError(f"threads = {threads}: expected at least 1")
+
+
+def read_run_config(run_dir: str) -> dict:
+    """The TrainConfig (as a dict) a run folder was trained with: the base a resumed run starts from."""
+    return read_run_record(run_dir)["train"]
+
+
+def read_run_record(run_dir: str) -> dict:
+    """A run folder's config.json: the TrainConfig ('train'), the command, the data, 'online' where it has it."""
+    import json
+
+    path = os.path.join(run_dir, "config.json")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            record = json.load(fh)
+        if not isinstance(record, dict) or not isinstance(record.get("train"), dict):
+            raise KeyError("train")
+        return record
+    except FileNotFoundError:
+        raise InputError(f"resume: {run_dir!r} holds no config.json (not a run folder)") from None
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise InputError(f"resume: {path!r} is unreadable ({err})") from None
+
+
+def online_max_uses(run_dir: str) -> int | None:
+    """The most crops any rendered frame gave in an online run so far (its state.json)."""
+    import json
+
+    try:
+        with open(os.path.join(run_dir, "state.json"), encoding="utf-8") as fh:
+            return int(json.load(fh)["online"]["max_uses"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def init_distributed(device: str) -> str:
+    """torchrun sets WORLD_SIZE/RANK/MASTER_ADDR: start the process group (gloo on CPU, nccl on CUDA). Returns
+    this rank's device."""
+    import torch
+    import torch.distributed as dist
+
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or dist.is_initialized():
+        return device
+    dist.init_process_group("nccl" if device == "cuda" else "gloo")
+    if device == "cuda":
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        torch.cuda.set_device(local)
+        return f"cuda:{local}"
+    return device
+
+
+def end_distributed() -> None:
+    """Tear the process group down before the interpreter exits: a rank that leaves with gloo's threads still
+    running can abort ('terminate called without an active exception'; seen in CI on a loaded machine)."""
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        try:
+            dist.barrier()
+        finally:
+            dist.destroy_process_group()
+
+
+def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: bool = False,
+                   init: str | None = None, device: str = "cpu", workers: int | None = None, bf16: bool = False,
+                   threads: int | None = None, progress: bool = True, command: str = "",
+                   skip_damaged: bool = False, online: OnlineConfig | None = None) -> dict:
+    """Train the detector (cfg: a perception TrainConfig, validated when built) on the shards of data_dirs (one
+    folder or several) into run_dir (created with its parents once the first step is trained).
+
+    resume: go on from run_dir's last checkpoint (exclusive with init: a safetensors file to start from); the
+    config may differ from the run's in steps and time_budget_s only, the data not at all (InputError spelling
+    out the difference). workers: DataLoader worker processes (None: the run's own on resume, else
+    default_workers()); bf16: bfloat16 autocast; threads: torch's CPU threads in this process; command: the
+    command line as typed, for the record. Every shard is checked against its dataset's manifest first (size,
+    then sha256: envisat_pose.shard_reader.checked_shards); a damaged one stops the run before anything is
+    written (DamagedShardError naming it) unless skip_damaged, which leaves it out and records it in config.json
+    (skipped_damaged_shards) and the end line. online: train on frames rendered as training goes instead
+    (data_dirs then empty; OnlineConfig), recorded in config.json under 'online'; the end line then holds
+    uses_per_frame and max_uses (the most crops any frame gave). Returns the run's last metrics line (perception/train.py); raises
+    perception.train.TrainingInterrupted after a checkpoint when SIGINT or SIGTERM stopped it. Callable from a
+    plain script: its workers never import the script."""
+    import torch
+
+    from envisat_pose.perception.train import train
+
+    data_dirs = [data_dirs] if isinstance(data_dirs, str) else list(data_dirs or [])
+    if online is not None and data_dirs:
+        raise InputError("data_dirs and online: train on shards or on frames rendered as training goes, not both")
+    check_inputs(data_dirs, run_dir, resume, init, workers, threads, online is not None)
+    if threads is not None:
+        torch.set_num_threads(threads)
+    if online is not None:
+        workers = 0  # no DataLoader: the renderer processes are online.workers
+    elif workers is None and not resume:
+        workers = default_workers()
+    rank_device = init_distributed(device)
+    if device == "cuda":  # speed over the last bits: TF32 matrix products, cuDNN's autotuned convolutions
+        # (not online: its crops are resampling matrix products, which TF32 would round to ~0.1 gray level)
+        torch.backends.cuda.matmul.allow_tf32 = online is None
+        torch.backends.cudnn.allow_tf32 = True
+        torch.backends.cudnn.benchmark = True
+
+    paths, skipped, data = [], [], []
+    for d in data_dirs:
+        mine, left_out = checked_shards(d, skip_damaged, "data_dirs")
+        paths += mine
+        skipped += [f"{os.path.basename(os.path.normpath(d))}/{name}" for name in left_out]
+        data.append(dataset_provenance(d, left_out))
+    source = None
+    if online is not None:
+        identity = run_identity(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.uses_per_frame)
+
+        mix = ", ".join(f"{look.name} {n} %" for look, n in zip(online.looks, look_shares(online.looks)))
+        data = [{"name": f"online ({mix}, K = {online.uses_per_frame})", "manifest_sha256": identity["config_sha256"],
+                 "images": None}]
+
+        def source(start_state):
+            return online_batches(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.workers,
+                                  rank_device, online.uses_per_frame, start_state)
+    provenance = {"command": command, "git": git_hash(), "data": data, "torch": torch.__version__,
+                  "device": device, "bf16": bf16, "skipped_damaged_shards": skipped}
+    if online is not None:
+        provenance["online"] = online.record()
+    if init is not None:
+        provenance["init"] = {"name": os.path.basename(init), "sha256": sha256_file(init)}
+    try:
+        end = train(cfg, data_dirs, run_dir, resume=resume, device=rank_device, progress=progress,
+                    provenance=provenance, init_weights=init, workers=workers, bf16=bf16, paths=paths,
+                    online=source)
+        if online is not None:
+            end = {**end, "uses_per_frame": online.uses_per_frame, "max_uses": online_max_uses(run_dir),
+                   "render_workers": online.workers}
+        return {**end, "skipped_damaged_shards": skipped}
+    finally:
+        end_distributed()

@@ -1,0 +1,263 @@
+"""The closed loop of `envisat run`: MuJoCo truth -> rendered camera frames -> the space camera -> the Tracker.
+
+Per run and frame k (t_k = k / rate_hz):
+1. the truth at t_k is the MuJoCo truth simulation of `envisat simulate` (datagen.truth.simulate_truth, run once before
+   the loops: it refuses a trajectory that breaks the keep-out margin before any image is made);
+2. in the Earth's shadow (the chaser's own orbit and the sun direction) there is no frame: the tracker predicts;
+3. MuJoCo renders the chaser camera (datagen's SceneRenderer, the factory's sequence-mode view and look), and
+   datagen's space camera corrupts it with the run's own noise;
+4. the Tracker (pipelines/tracking/tracker.py) takes (t_k, image) and nothing else: it starts cold from the images unless
+   `warm_start`, where it is handed the truth plus a draw from the filter's P0 (filter studies only).
+The truth only scores (pipelines/runs/scoring.py). Run r draws its camera noise (and a warm start) from
+SeedSequence(seed, spawn_key=(r,)) and frame k's noise from spawn_key (r, 1, k); runs go through the core's runner.
+Run 0 streams its recording frame by frame to the sink it is handed (analysis.recording.TrackRecorder). The frames
+go through the per-frame loop `envisat track` shares (pipelines/runs/frame_loop.py: tracker, rows, recording, stage times).
+
+Memory does not grow with the run's length: a run writes its per-frame arrays to runs/run-NNNN/<name>.npy in
+chunks of CHUNK_FRAMES frames as it goes (RunRows, which also reduces the stage times and frame counts per chunk)
+and returns only those reductions through the runner; the job then checks the contracts and scores chunk by
+chunk (scoring.frame_errors: a few scalars per frame are kept), streams est.npz and det.npz from the files
+(io.save_npz with StreamedArray members: the bytes of the whole arrays), draws errors.png from at most
+PLOT_FRAMES frames (pipelines/runs/run_files.py), and removes runs/. What stays proportional to the frames: the truth's state and times, the
+recorder's corners, a few scalars per frame (bench/memory.py measures it). The image is any square
+image.resolution_px: the MJCF's chaser_cam read out at that size (the same field of view).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from envisat_pose.attitude import mrp_to_dcm
+from envisat_pose.config import to_dict, to_toml
+from envisat_pose.contracts import TruthTrajectory
+from envisat_pose.datagen.factory import draw_corruption_params, with_look
+from envisat_pose.datagen.scenario import scenario_config
+from envisat_pose.datagen.views import sample_seed, unit
+from envisat_pose.geometry import load_camera
+from envisat_pose.io import atomic_write_text, staged_folder
+from envisat_pose.out_dirs import make_out_dir
+from envisat_pose.pipelines.runs.frame_loop import FrameInput, run_frames
+from envisat_pose.pipelines.tracking.onboard import chaser_function, onboard_physics, orbit_config
+from envisat_pose.pipelines.runs.rows import STAGES, RunRows
+from envisat_pose.pipelines.runs.run_config import RunConfig, finish_config, run_config_from_json, sun_and_shadow
+from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, score_run_files, write_run_files
+from envisat_pose.pipelines.tracking.tracker import Tracker
+from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
+from envisat_pose.realtime import real_time_factor
+from envisat_pose.state import MRP, POS, draw_initial_estimate
+
+# The config (pipelines/runs/run_config.py), the on-board physics and orbit (pipelines/tracking/onboard.py), the per-frame
+# row store (pipelines/runs/rows.py) and the runs' files read back (pipelines/runs/run_files.py) have their own modules:
+# import their names from there.
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The truth
+
+
+def run_truth(cfg: RunConfig, progress: bool = False):
+    """The MuJoCo truth of the run on the frame grid (datagen.truth.simulate_truth, as `envisat simulate`)."""
+    from envisat_pose.datagen.truth import simulate_truth
+
+    scen = scenario_config(cfg.scenario, duration_s=cfg.duration_s, dt_s=1.0 / cfg.rate_hz, seed=cfg.seed)
+    return simulate_truth(scen, progress=progress)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# One closed-loop run (a runner task)
+
+
+def run_camera(resolution_px: int):
+    """The MJCF's chaser_cam read out at resolution_px (square): the same field of view and mount."""
+
+    cam = load_camera()
+    return cam if resolution_px == cam.width_px else cam.scaled(resolution_px, resolution_px)
+
+
+def rescale_px(uv: np.ndarray, src, dst) -> np.ndarray:
+    """Pixels (..., 2) of camera src as camera dst (the same field of view, another size) sees them."""
+    s = dst.f_px / src.f_px
+    return (uv - [src.cu_px, src.cv_px]) * s + [dst.cu_px, dst.cv_px]
+
+
+def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None, progress: bool,
+                     sim_s_per_frame: float, run_dir: str) -> dict:
+    """Closed loop `run` over the truth in truth_path; writes its per-frame arrays (record_arrays) to
+    run_dir/<name>.npy chunk by chunk as it goes (RunRows) and returns only the run's reductions (plain data for
+    the runner). sink: where run 0 streams its recording (analysis.recording.TrackRecorder), None for none."""
+    import cv2
+    import torch
+
+    from envisat_pose.datagen.corrupt import apply_corruption
+    from envisat_pose.datagen.render import View, shared_renderer
+    from envisat_pose.perception.detect import load_detector
+
+    cfg = run_config_from_json(cfg_json)
+    gcfg = cfg.image
+    torch.set_num_threads(cfg.threads)
+    cv2.setNumThreads(1)
+    truth = TruthTrajectory.load(truth_path)
+    mu, gg = onboard_physics(truth, truth_path)
+    sun_C, eclipse, nadir_C = sun_and_shadow(cfg, truth)
+    camera = run_camera(gcfg.resolution_px)
+    # the truth's corners are projected at the MJCF camera's size; the recorder shows them at the frames' size
+    truth_uv = truth.corners_px if camera.width_px == load_camera().width_px else \
+        rescale_px(truth.corners_px, load_camera(), camera)
+    truth_seen = truth.in_frame & truth.visible
+    t_s, x_truth, orbit = truth.t_s, truth.x, orbit_config(truth.config)
+    del truth  # what the loop reads of it is above; the rest (corners in C, the chaser's orbit) is not held
+    renderer = shared_renderer(gcfg.resolution_px, gcfg.shadows,
+                               gcfg.appearance.texture_set_size if gcfg.appearance_on else 0,
+                               gcfg.appearance.texture_seed)
+    rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(run,)))
+    prior = None
+    if cfg.warm_start:
+        prior = (draw_initial_estimate(x_truth[0], cfg.filter.P0, rng), cfg.filter.P0, float(t_s[0]))
+    tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(orbit), cfg.tracker,
+                      dataclasses.asdict(cfg.filter), mu_m3_s2=mu, gravity_gradient=gg, prior=prior)  # exact
+    look_seed = sample_seed(cfg.seed, 0, 0)  # one look for the whole sequence: the same target in every run
+    rows = RunRows(run_dir, len(t_s))
+    recorder = None
+    if sink:
+        from envisat_pose.analysis.recording import TrackRecorder
+
+        recorder = TrackRecorder(sink, camera, with_truth=True, title=f"envisat run {cfg.scenario}, run {run}")
+
+    def frames():
+        """Frame k rendered from the truth and corrupted by the space camera (None in the Earth's shadow)."""
+        for k in range(len(t_s)):
+            x = x_truth[k]
+            image = None
+            t_render = t_camera = 0.0
+            if not eclipse[k]:
+                t0 = time.perf_counter()
+                view = View(x[POS], mrp_to_dcm(x[MRP]).T, sun_C[k], unit(nadir_C[k]),
+                            float(np.linalg.norm(nadir_C[k])), earth_backdrop=gcfg.earth_probability > 0)
+                view, _ = with_look(gcfg, view, {}, look_seed)
+                rendered = renderer.render(view, labels=False)  # the image and the pose: no depth or mask
+                t_render = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                frame_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(run, 1, k)))
+                params = draw_corruption_params(gcfg, rendered, x, renderer.K[0, 0], renderer.target_boxes, frame_rng)
+                image = apply_corruption(rendered.gray_u8, params)
+                t_camera = time.perf_counter() - t0
+            if recorder is None:
+                yield FrameInput(k, float(t_s[k]), image, (sim_s_per_frame, t_render, t_camera))
+            else:  # the truth only for the recording
+                yield FrameInput(k, float(t_s[k]), image, (sim_s_per_frame, t_render, t_camera), x_true=x,
+                                 corners_true_px=truth_uv[k], in_frame=truth_seen[k])
+
+    return run_frames(tracker, frames(), rows, recorder, cfg.jpeg_quality,
+                      f"closed loop (run {run})" if progress else None)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The job: truth, runs, outputs
+
+
+def run_output_paths(out_dir: str) -> dict[str, str]:
+    names = {"truth": "truth.npz", "est": "est.npz", "det": "det.npz", "plot": "errors.png",
+             "config": "run.config.toml", "summary": "summary.json", "recording": "recording.rrd"}
+    return {k: os.path.join(out_dir, v) for k, v in names.items()}
+
+
+@dataclass(frozen=True)
+class TruthBrief:
+    """What the job keeps of its truth after saving it: t_s (T,) s, x (T, 12), config (dict)."""
+
+    t_s: np.ndarray
+    x: np.ndarray
+    config: dict
+
+
+def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: str | None = None) -> dict:
+    """The whole job into out_dir (created, parents too); returns the summary dict (also written as
+    summary.json). sink: where run 0's recording goes (None: save to out_dir/recording.rrd; 'spawn' or
+    'connect:ADDR' for a live viewer).
+
+    Every output is written into a hidden folder inside out_dir and moved into place when the job completes
+    (io.staged_folder): an error or an interrupt leaves out_dir as it was (an earlier run's outputs intact).
+    Memory does not grow with the run's per-frame arrays: each run writes them to runs/run-NNNN/ (in the staged
+    folder) chunk by chunk; est.npz and det.npz are streamed from those files (then removed) and the scores read
+    them chunk by chunk (what stays whole: the truth, and a few scalars per frame: the errors the scores need
+    and the status)."""
+
+    cfg = finish_config(cfg)  # idempotent: a RunConfig a user builds runs as the app's does
+    make_out_dir(out_dir, parents=True, field="out_dir")
+    names = [os.path.basename(p) for p in run_output_paths(out_dir).values()]
+    with staged_folder(out_dir, names) as stage:
+        return _run_closed_loop(cfg, stage, progress, sink)
+
+
+def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | None) -> dict:
+    import shutil
+
+    paths = run_output_paths(out_dir)
+    wall0 = time.perf_counter()
+    truth = run_truth(cfg, progress=False)
+    sim_s = time.perf_counter() - wall0
+    truth.save(paths["truth"])
+    truth = TruthBrief(truth.t_s, truth.x, truth.config)  # the rest of the truth is in truth.npz, not held
+    T = len(truth.t_s)
+    cfg_json = json.dumps(to_dict(cfg), sort_keys=True)
+    workers = min(cfg.workers, cfg.runs)
+    runner = RunnerConfig("local", workers, env=thread_env(workers))  # one worker: run_tasks sets it here
+    sink = sink or f"save:{os.path.abspath(paths['recording'])}"
+    runs_dir = os.path.join(out_dir, "runs")
+    run_dirs = [os.path.abspath(os.path.join(runs_dir, f"run-{r:04d}")) for r in range(cfg.runs)]
+    tasks = [(cfg_json, r, os.path.abspath(paths["truth"]), sink if r == 0 else None, progress and cfg.runs == 1,
+              sim_s / T, run_dirs[r]) for r in range(cfg.runs)]
+    results: list[dict | None] = [None] * cfg.runs
+    bar = None
+    if progress and cfg.runs > 1:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.runs, unit="run", desc=f"closed loop ({workers} workers)")
+    t0 = time.perf_counter()
+    for i, res in run_tasks(closed_loop_task, tasks, runner):
+        results[i] = res
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    loop_wall_s = time.perf_counter() - t0
+    R = cfg.runs
+    config_json = json.dumps({"run": to_dict(cfg), "truth_source": {"scenario": cfg.scenario},
+                              "truth_config": truth.config}, sort_keys=True)
+    det_cfg = json.dumps({"weights": cfg.weights, "run": 0, "scenario": cfg.scenario, "seed": cfg.seed,
+                          "roi": cfg.tracker.roi.enabled}, sort_keys=True)
+    scores = score_run_files(truth.t_s, truth.x, run_dirs, paths, config_json, det_cfg)
+    write_run_files(paths, truth.t_s, truth.x, run_dirs, lost_runs(run_dirs, T), config_json,
+                    [f"frame-{k:06d}" for k in range(T)], det_cfg,
+                    extra={"settled": np.array(scores["settled_runs"], bool)})
+    atomic_write_text(paths["config"], "# envisat run: the full validated config of this run\n" + to_toml(to_dict(cfg)))
+    from envisat_pose.analysis.plots import plot_estimate
+
+    plot_estimate(*plot_inputs(truth.t_s, truth.x, run_dirs), paths["plot"],
+                  title=f"closed loop, scenario {cfg.scenario!r}, {R} run(s), seed {cfg.seed}")
+    shutil.rmtree(runs_dir, ignore_errors=True)
+    timing_sum = np.sum([r["timing_s"] for r in results], axis=0)  # (stages,) over runs and frames
+    sim_time_s = float(truth.t_s[-1] - truth.t_s[0]) + 1.0 / cfg.rate_hz
+    frames_sum = float(timing_sum.sum()) / R  # one run's wall time in the stages
+    r0 = results[0]
+    summary = {
+        "scenario": cfg.scenario, "runs": R, "frames": T, "duration_s": cfg.duration_s, "roi": cfg.tracker.roi.enabled,
+        "weights": cfg.weights, "start": "warm" if cfg.warm_start else "cold",
+        "resolution_px": cfg.image.resolution_px,
+        "scores": scores,
+        "timing_ms_per_frame": {s: float(1000 * timing_sum[i] / (R * T)) for i, s in enumerate(STAGES)},
+        "real_time_factor_one_run": real_time_factor(truth.t_s, frames_sum, 1.0 / cfg.rate_hz),
+        "real_time_factor_job": sim_time_s * R / max(loop_wall_s, 1e-9),
+        "wall_s": {"truth_simulation": sim_s, "loops": loop_wall_s, "total": time.perf_counter() - wall0},
+        "run0": {k: r0[k] for k in ("frames_skipped_eclipse", "frames_roi", "frames_ambiguous", "frames_acquiring",
+                                    "frames_lost")},
+        "recording_bytes": os.path.getsize(paths["recording"]) if os.path.isfile(paths["recording"]) else 0,
+    }
+    atomic_write_text(paths["summary"], json.dumps(summary, indent=1, sort_keys=True) + "\n")
+    return summary

@@ -1,0 +1,145 @@
+"""The config of `envisat run` (RunConfig) and what finishing it makes explicit: the image factory's sequence
+fields and the sun (finish_config), and the sun and the Earth's shadow per frame along the chaser's orbit
+(sun_and_shadow). The closed loop (pipelines/runs/closed_loop.py) runs a finished RunConfig."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from envisat_pose.config import check, from_dict, resolve_job_config
+from envisat_pose.datagen.generate_config import GenerateConfig
+from envisat_pose.datagen.orbit import chaser_orbit
+from envisat_pose.datagen.scenario import in_earth_shadow, scenario_config, scenario_eclipse
+from envisat_pose.filtering.estimator import FilterConfig
+from envisat_pose.geometry import load_camera
+from envisat_pose.pipelines.common.job_defaults import check_weights, fill_from_scenario, run_complete, scenario_defaults
+from envisat_pose.pipelines.tracking.onboard import orbit_config
+from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, TrackerConfig
+
+if TYPE_CHECKING:  # the stage's type for annotations; imported where a config is made
+    from envisat_pose.datagen.generate_config import GenerateConfig
+
+# a lit default: the sun 45 deg off the line of sight, behind the camera, from above the orbit plane at t = 0 (in
+# C: radial, along-track, normal); in the default orbit the chaser enters the Earth's shadow at t = 1203 s
+DEFAULT_SUN_C0 = (0.7, -0.7, 0.15)
+
+
+def _image_defaults() -> "GenerateConfig":
+    return GenerateConfig(mode="sequence", num_images=1, shard_size=1, write_mask=False, write_depth=False)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """One `envisat run` job. scenario: named truth; duration_s: simulated time; rate_hz: camera and filter rate;
+    filter: the UKF (the scenario's [filter] table over TRACKER_FILTER). Those three left None take the scenario's
+    when the config is made (job_defaults.fill_from_scenario; its duration and [measurement] rate, else 600 s and
+    1 Hz), so `RunConfig(scenario=NAME)` is the job of `RunConfig.from_scenario(NAME)` and `envisat run`;
+    runs: closed loops on the same truth; workers: processes for them; seed: the truth's random attitude, every
+    run's camera noise (and warm start); weights: detector weights file. warm_start: start each run's filter from
+    the truth plus a draw from filter.p0_sigma (filter studies), instead of cold from the images. threads: torch
+    CPU threads per run; jpeg_quality: run 0's images in the recording. image: the camera frames as the image
+    factory's sequence mode makes them (its sequence fields are set from the ones above). tracker:
+    pipelines.tracker.TrackerConfig."""
+
+    scenario: str = "default"
+    duration_s: float | None = None
+    rate_hz: float | None = None
+    runs: int = 1
+    workers: int = 1
+    seed: int = 0
+    weights: str = ""
+    warm_start: bool = False
+    threads: int = 1
+    jpeg_quality: int = 80
+    image: "GenerateConfig" = field(default_factory=_image_defaults)
+    filter: FilterConfig | None = None
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+
+    def __post_init__(self) -> None:
+        fill_from_scenario(self, "run", RUN_FALLBACKS)
+
+    @classmethod
+    def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
+                      **fields) -> "RunConfig":
+        """The job `envisat run --scenario NAME` runs: this config resolved from the named scenario, the TOML
+        file at config_path, then overrides ({'section.key': value}) and fields (pipelines/common/job_defaults.py's layers),
+        one worker per run up to the cores, the shipped weights where none are named; finished (finish_config)."""
+        run_stage_types()
+        flags = {**(overrides or {}), **fields, "scenario": name}  # the named scenario is the job's, whatever the file
+        cfg = resolve_job_config(cls, scenario_defaults("run", name), config_path, flags, run_complete)
+        check_weights(cfg.weights)
+        return finish_config(cfg)
+
+    def validate(self, prefix: str = "") -> None:
+        check(self.duration_s > 0, "duration_s", self.duration_s, "a positive duration in s")
+        check(0.0 < self.rate_hz <= 10.0, "rate_hz", self.rate_hz, "a rate in (0, 10] Hz")
+        check(self.duration_s * self.rate_hz <= 200_000, "duration_s", self.duration_s,
+              "at most 200000 frames (duration_s x rate_hz)")
+        check(1 <= self.runs <= 1000, "runs", self.runs, "1 to 1000 runs")
+        check(1 <= self.workers <= 256, "workers", self.workers, "1 to 256 processes")
+        check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")
+        check(1 <= self.threads <= 256, "threads", self.threads, "1 to 256 threads")
+        check(1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality, "a JPEG quality in [1, 100]")
+        cam = load_camera()
+        check(cam.width_px == cam.height_px and 16 <= self.image.resolution_px <= 4096, "image.resolution_px",
+              self.image.resolution_px, "a square image side in [16, 4096] px (the MJCF's chaser_cam, "
+              f"{cam.width_px} px, read out at that size: the same field of view)")
+
+
+# what a run takes where its scenario sets nothing (no duration_s, no [measurement] rate_hz)
+RUN_FALLBACKS = {"duration_s": lambda: 600.0, "rate_hz": lambda: 1.0, "filter": lambda: FilterConfig(**TRACKER_FILTER)}
+
+
+def run_stage_types() -> None:
+    """Make the annotation "GenerateConfig" resolvable (typing.get_type_hints reads this module's globals): the
+    image factory's config is a stage's type, imported when a run is configured, not when the CLI starts."""
+
+    globals()["GenerateConfig"] = GenerateConfig
+
+
+def finish_config(cfg: RunConfig) -> RunConfig:
+    """The image config's sequence fields from the run's (mode, scenario, seed, frames, frame period) and the sun
+    made explicit (the scenario's [eclipse] sun, else DEFAULT_SUN_C0 at t = 0 turned into N)."""
+
+    n = n_frames(cfg)
+    sun = cfg.image.sun_dir
+    if sun is None:
+        ecl = scenario_eclipse(cfg.scenario)
+        if ecl is not None:
+            sun = tuple(float(v) for v in ecl.sun_dir_N)
+        else:
+            orb = chaser_orbit(scenario_config(cfg.scenario).orbit, np.array([0.0]))
+            s_C = np.asarray(DEFAULT_SUN_C0) / np.linalg.norm(DEFAULT_SUN_C0)
+            sun = tuple(round(float(v), 9) for v in orb.R_N_from_C[0] @ s_C)
+    sequence = dataclasses.replace(cfg.image.sequence, scenario=cfg.scenario, frame_dt_s=1.0 / cfg.rate_hz)
+    image = dataclasses.replace(cfg.image, mode="sequence", sequence=sequence, seed=cfg.seed, num_images=n,
+                                shard_size=n, sun_dir=sun)
+    return dataclasses.replace(cfg, image=image)
+
+
+def n_frames(cfg: RunConfig) -> int:
+    return int(np.floor(cfg.duration_s * cfg.rate_hz + 1e-9)) + 1
+
+
+def run_config_from_json(text: str) -> RunConfig:
+    run_stage_types()
+    return from_dict(RunConfig, json.loads(text))
+
+
+def sun_and_shadow(cfg: RunConfig, truth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per frame: sun_dir_C (N, 3) unit, eclipse (N,) bool (the chaser in the Earth's cylindrical shadow),
+    nadir_C (N, 3) the Earth's centre from the chaser, m."""
+
+    orb = chaser_orbit(orbit_config(truth.config), truth.t_s)
+    sun_N = np.asarray(cfg.image.sun_dir, dtype=float)
+    sun_N = sun_N / np.linalg.norm(sun_N)
+    sun_C = np.einsum("nji,j->ni", orb.R_N_from_C, sun_N)
+    eclipse = in_earth_shadow(orb.r_N_m, sun_N)
+    nadir_C = np.zeros((len(truth.t_s), 3))
+    nadir_C[:, 0] = -orb.r_m
+    return sun_C, eclipse, nadir_C

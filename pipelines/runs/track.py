@@ -1,0 +1,257 @@
+"""`envisat track`: the Tracker over a user's own frames (no truth needed; labels, where a dataset has them, score).
+
+Inputs (pipelines/runs/frames.py: `open_source`), every frame read once before any output is written (`scan_source`):
+- a folder written by `envisat generate --mode sequence` (manifest.json and shards): frame times from the labels'
+  scene, the chaser's orbit from its scenario, the labels' truth for scoring;
+- a folder of image files (PNG, JPEG or TIFF; 8-bit, or 10- to 16-bit data in 16-bit files; gray, or colour
+  converted to gray; hidden files ignored) in natural name order, with rate_hz (frame k at k / rate_hz s) or a
+  timestamps CSV (columns file,t_s);
+- a video file (OpenCV's reader), with rate_hz or the file's own frame rate.
+The camera (pipelines/tracking/camera_file.py): a TOML file (fx, fy, cx, cy px, width, height, optional OpenCV distortion)
+or the MJCF's chaser_cam at the frames' size. Frames with distortion or non-square pixels are remapped once per
+frame to an ideal pinhole of the same size; the camera's mount on the chaser is the MJCF's.
+
+Outputs are written into a hidden folder inside out_dir and moved into place when complete (io.staged_folder):
+an error or an interrupt leaves out_dir as it was; a finished run removes an earlier run's outputs it did not
+write (errors.png of a scored run, say).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from envisat_pose.config import check, resolve_job_config, to_dict, to_toml
+from envisat_pose.datagen.scenario import OrbitConfig
+from envisat_pose.filtering.estimator import FilterConfig
+from envisat_pose.geometry import PinholeCamera
+from envisat_pose.io import atomic_write_text, staged_folder
+from envisat_pose.out_dirs import check_out_dir, make_out_dir
+from envisat_pose.pipelines.tracking.build import tracker_camera
+from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
+from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
+from envisat_pose.pipelines.runs.frames import FrameSource, open_source, scan_source
+from envisat_pose.pipelines.common.job_defaults import (
+    check_weights,
+    fill_from_scenario,
+    scenario_defaults,
+    with_default_weights,
+)
+from envisat_pose.pipelines.tracking.onboard import chaser_function
+from envisat_pose.pipelines.runs.outputs import first_tracking_s, status_counts
+from envisat_pose.pipelines.runs.rows import DET_KEYS, STAGES, RunRows
+from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, run_rows, score_run_files, write_run_files
+from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, Tracker, TrackerConfig
+from envisat_pose.realtime import real_time_factor
+from envisat_pose.status import STATUSES, legend
+
+if TYPE_CHECKING:  # the stage's type for annotations (track_stage_types resolves it at run time)
+    from envisat_pose.datagen.scenario import OrbitConfig
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """One `envisat track` job. scenario: where the chaser's orbit, the target's dynamics and the filter's tuning
+    come from (a generate folder's own scenario wins in the verb); orbit: the chaser's Keplerian orbit (datagen's
+    OrbitConfig); gravity_gradient: the target feels the gravity-gradient torque; filter: the UKF (the scenario's
+    [filter] table over TRACKER_FILTER). Those three left None take the scenario's when the config is made
+    (job_defaults.fill_from_scenario), so `TrackConfig(scenario=NAME)` is the job of
+    `TrackConfig.from_scenario(NAME)` and of `envisat track --scenario NAME`. rate_hz: frame rate of an image
+    folder or a video (0: a video's own rate); weights: detector weights ("": the shipped ones); threads: torch
+    CPU threads; jpeg_quality: the recording's images. tracker: as `envisat run`."""
+
+    scenario: str = "default"
+    orbit: "OrbitConfig | None" = None
+    gravity_gradient: bool | None = None
+    rate_hz: float = 0.0
+    weights: str = ""
+    threads: int = 1
+    jpeg_quality: int = 80
+    filter: FilterConfig | None = None
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+
+    def __post_init__(self) -> None:
+        track_stage_types()
+        fill_from_scenario(self, "track", TRACK_FALLBACKS)
+
+    @classmethod
+    def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
+                      **fields) -> "TrackConfig":
+        """The job `envisat track --scenario NAME` runs: this config resolved from the named scenario, the TOML
+        file at config_path, then overrides ({'section.key': value}) and fields (pipelines/common/job_defaults.py's layers),
+        the shipped weights where none are named."""
+        track_stage_types()
+        flags = {**(overrides or {}), **fields, "scenario": name}  # the named scenario is the job's, whatever the file
+        cfg = resolve_job_config(cls, scenario_defaults("track", name), config_path, flags, with_default_weights)
+        check_weights(cfg.weights)
+        return cfg
+
+    def validate(self, prefix: str = "") -> None:
+        check(self.rate_hz >= 0, "rate_hz", self.rate_hz, "a frame rate in Hz (0: a video's own)")
+        check(1 <= self.threads <= 256, "threads", self.threads, "1 to 256 threads")
+        check(1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality, "a JPEG quality in [1, 100]")
+
+
+# what a scenario sets of a track job when it has no such table (every named scenario has an orbit)
+TRACK_FALLBACKS = {"orbit": lambda: OrbitConfig(), "gravity_gradient": lambda: False,
+                   "filter": lambda: FilterConfig(**TRACKER_FILTER)}
+
+
+def track_stage_types() -> None:
+    """Make the annotation "OrbitConfig" resolvable (a stage's type, imported when a job is configured)."""
+
+    globals()["OrbitConfig"] = OrbitConfig
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The job
+
+OUTPUTS = {"est": "est.npz", "det": "det.npz", "plot": "errors.png", "config": "track.config.toml",
+           "summary": "summary.json", "recording": "recording.rrd"}
+
+
+def track_output_paths(out_dir: str) -> dict[str, str]:
+    return {k: os.path.join(out_dir, v) for k, v in OUTPUTS.items()}
+
+
+def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCamera | str | None = None,
+                   remap=None, progress: bool = False) -> tuple:
+    """A user's frames made ready for a job over them (track_frames, adapt): the source opened (a path at
+    cfg.rate_hz), the camera read (a TOML file: its remap too) or the MJCF's at the frames' size, every frame
+    scanned once (frames.scan_source: one size, decodable, at least the cold start's frames), cfg's weights
+    filled with the shipped ones where it names none. Returns (cfg, source, camera, remap, pixels)."""
+    import dataclasses
+
+    from envisat_pose.perception.weights import shipped_weights_path
+
+    if isinstance(source, str):
+        source = open_source(source, cfg.rate_hz)
+    if isinstance(camera, str):
+        camera, remap = camera_from_intrinsics(camera)
+    pixels = scan_source(source, None if camera is None else (camera.width_px, camera.height_px),
+                         min_frames=cfg.tracker.acquire.frames, progress=progress)
+    if camera is None:
+        camera = tracker_camera(size_px=source.size_px)
+    if not cfg.weights:
+        cfg = dataclasses.replace(cfg, weights=shipped_weights_path())
+    return cfg, source, camera, remap, pixels
+
+
+def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCamera | str | None = None, remap=None,
+                 out_dir: str = "track-out", sink: str | None = None, progress: bool = True) -> dict:
+    """Run the Tracker over the source's frames (a FrameSource, or a path open_source opens at cfg.rate_hz);
+    write est.npz, det.npz, track.config.toml, summary.json and the recording (out_dir/recording.rrd, or
+    streamed to sink: 'spawn' or 'connect:URL'); with a truth also errors.png and the scores. camera: a
+    PinholeCamera (remap: its cv2.remap maps, or None), a camera TOML file (camera_file.camera_from_intrinsics), or
+    None for the MJCF's chaser_cam at the frames' size; cfg.weights "": the shipped
+    ones (TrackConfig.from_scenario resolves the job `envisat track` runs). Every frame is read once before any
+    output (frames.scan_source: one size, decodable, at least the cold start's frames); every output is staged
+    and moved into out_dir when complete (io.staged_folder). Returns the summary (its source's `pixels`: what
+    the scan found of the pixels)."""
+
+    check_out_dir(out_dir, field="out_dir")
+    cfg, source, camera, remap, pixels = prepare_frames(cfg, source, camera, remap, progress)
+    make_out_dir(out_dir, field="out_dir")
+    with staged_folder(out_dir, OUTPUTS.values()) as stage:
+        return _track(cfg, source, camera, remap, stage, sink, progress, pixels)
+
+
+def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, out_dir: str, sink: str | None,
+           progress: bool, pixels: str) -> dict:
+    import shutil
+    from dataclasses import asdict
+
+    import torch
+
+    from envisat_pose.analysis.recording import TrackRecorder
+    from envisat_pose.perception.detect import load_detector
+
+    torch.set_num_threads(cfg.threads)
+    paths = track_output_paths(out_dir)
+    sink = sink or f"save:{os.path.abspath(paths['recording'])}"
+    tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(cfg.orbit), cfg.tracker,
+                      asdict(cfg.filter), mu_m3_s2=cfg.orbit.mu_m3_s2, gravity_gradient=cfg.gravity_gradient)
+    T = len(source.t_s)
+    # the per-frame arrays go to files chunk by chunk (rows.RunRows), est.npz/det.npz are streamed from them
+    runs_dir = os.path.join(out_dir, "runs")
+    run_dir = os.path.abspath(os.path.join(runs_dir, "run-0000"))
+    rows = RunRows(run_dir, T)
+    truth = source.truth
+    recorder = TrackRecorder(sink, camera, with_truth=truth is not None, title=f"envisat track {source.path}")
+
+    wall0 = time.perf_counter()
+    sums = run_frames(tracker, frame_inputs(source, remap), rows, recorder, cfg.jpeg_quality,
+                      "tracking" if progress else None)
+    wall_s = time.perf_counter() - wall0
+    x_true = truth["x"] if truth is not None else np.full((T, 12), np.nan)
+    config_json = json.dumps({"track": to_dict(cfg), "source": {"kind": source.kind, "path": source.path,
+                                                                "bit_depth": source.bit_depth,
+                                                                "skipped_damaged_shards": source.skipped}},
+                             sort_keys=True)
+    det_cfg = json.dumps({"weights": cfg.weights, "source": source.path}, sort_keys=True)
+    det_names = tuple(k for k in DET_KEYS if k != "skipped")
+    scores = score_run_files(source.t_s, x_true, [run_dir], paths, config_json, det_cfg, score=truth is not None,
+                             det_names=det_names)
+    col = run_rows(run_dir, ["status", "nis", "nis_dof"], 0, T)  # three scalars a frame
+    write_run_files(paths, source.t_s, x_true, [run_dir], lost_runs([run_dir], T), config_json, source.names,
+                    det_cfg, det_names=det_names)
+    atomic_write_text(paths["config"], "# envisat track: the full validated config of this job\n" + to_toml(to_dict(cfg)))
+    summary = track_summary(source, cfg.weights, pixels, col, np.asarray(sums["timing_s"]) / T, wall_s)
+    if truth is not None:
+        from envisat_pose.analysis.plots import plot_estimate
+
+        summary["scores"] = scores
+        plot_estimate(*plot_inputs(source.t_s, x_true, [run_dir]), paths["plot"],
+                      title=f"envisat track {os.path.basename(os.path.abspath(source.path))}")
+    shutil.rmtree(runs_dir, ignore_errors=True)
+    atomic_write_text(paths["summary"], json.dumps(summary, indent=1, sort_keys=True) + "\n")
+    return summary
+
+
+def track_summary(source: FrameSource, weights: str, pixels: str, col: dict, timing_s: np.ndarray,
+                  wall_s: float) -> dict:
+    """summary.json of a track (without its scores): the source, the frames by status, the first tracking time,
+    the mean NIS per degree of freedom, the stages' time per frame (ms; the frames are read, not made: no
+    simulation, rendering or camera) and the real-time factor. col: the run's status, nis and nis_dof per frame
+    (T,); timing_s: (len(STAGES),) s per frame."""
+
+    T = len(source.t_s)
+    status = col["status"]
+    dof = int(np.sum(col["nis_dof"]))
+    counts = status_counts(status)
+    return {
+        "source": {"kind": source.kind, "path": source.path, "frames": T, "bit_depth": source.bit_depth,
+                   "size_px": list(source.size_px), "pixels": pixels, "skipped_damaged_shards": source.skipped},
+        "weights": weights,
+        "frames_by_status": counts,
+        "tracked": counts["tracking"] > 0,
+        "first_tracking_s": first_tracking_s(source.t_s, status),
+        "final_status": STATUSES[int(status[-1])],
+        "mean_nis_per_dof": float(np.sum(col["nis"]) / dof) if dof else None,
+        # the stages timed here: the frames are read, not made (no simulation, rendering or camera)
+        "timing_ms_per_frame": {s: float(1000 * timing_s[i]) for i, s in enumerate(STAGES) if s not in BEFORE_TRACKER},
+        "real_time_factor": real_time_factor(source.t_s, wall_s),
+        "wall_s": wall_s,
+        "status_legend": legend(),
+    }
+
+
+def frame_inputs(source: FrameSource, remap):
+    """The source's frames as the frame loop's FrameInputs (remapped to the ideal pinhole where the camera has
+    one: remap, cv2.remap's maps), with their truth where the source has one."""
+    import cv2
+
+    truth = source.truth
+    for k, image in source.frames():
+        if remap is not None:
+            image = cv2.remap(image, remap[0], remap[1], cv2.INTER_LINEAR)
+        if truth is None:
+            yield FrameInput(k, float(source.t_s[k]), image)
+        else:
+            yield FrameInput(k, float(source.t_s[k]), image, x_true=truth["x"][k],
+                             corners_true_px=truth["corners_px"][k], in_frame=truth["in_frame"][k])

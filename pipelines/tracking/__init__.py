@@ -1,0 +1,1 @@
+"""The truth-free tracker: the Tracker and its config, its cold start, its bank of hypotheses, its integrity checks, the filter's measurement noise, what the chaser knows on board, a user's camera file and the public builders."""

@@ -1,0 +1,82 @@
+"""The parts a library user builds a tracker from (the public API's builders, exported from `envisat_pose`).
+
+`tracker_camera` (the MJCF's chaser_cam, at a frame size, or a camera TOML file), `tracker_detector` (the shipped
+weights by default), `chaser_from_orbit` (what the chaser knows of its own orbit: chaser_at(t_s) -> r, rdot,
+theta, thetadot) and `tracker_filter` (the tracker's filter settings with a user's overrides: only the fields
+given change) are what `Tracker.from_scenario` (pipelines.tracker.tracker_from_scenario) joins; each may be used
+alone. They know nothing of the Tracker itself, so the tracker imports them and not the other way round.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from envisat_pose import geometry, named_scenarios
+from envisat_pose.config import from_dict, to_dict
+from envisat_pose.datagen.scenario import OrbitConfig, scenario_config
+from envisat_pose.filtering.estimator import FilterConfig
+from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
+from envisat_pose.pipelines.tracking.onboard import chaser_function
+from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
+
+
+def tracker_filter(overrides: FilterConfig | dict | None = None, scenario: str | None = None) -> FilterConfig:
+    """The tracker's filter settings (pipelines.tracker.TRACKER_FILTER over FilterConfig's defaults, then the named
+    scenario's [filter] table) with the fields a user gives: a dict sets exactly its keys; a FilterConfig sets the
+    fields whose values differ from FilterConfig()'s defaults (to set a field back to FilterConfig's own default,
+    give a dict)."""
+
+    base = dict(TRACKER_FILTER)
+    if scenario is not None:
+        base.update(named_scenarios.scenario_tables(scenario).get("filter", {}))
+    if overrides is None:
+        given = {}
+    elif isinstance(overrides, dict):
+        given = dict(overrides)
+    elif isinstance(overrides, FilterConfig):
+        default = FilterConfig()
+        given = {f.name: getattr(overrides, f.name) for f in dataclasses.fields(FilterConfig)
+                 if getattr(overrides, f.name) != getattr(default, f.name)}
+    else:
+        raise TypeError(f"filter settings {overrides!r}: expected a FilterConfig, a dict of its fields or None")
+    merged = {**base, **{k: (to_dict(v) if dataclasses.is_dataclass(v) else v) for k, v in given.items()}}
+    return from_dict(FilterConfig, merged, prefix="filter")
+
+
+def tracker_camera(path: str | None = None, size_px: tuple[int, int] | None = None):
+    """The tracker's camera (geometry.PinholeCamera): the MJCF's chaser_cam (read out at size_px = (width,
+    height) when given: the same field of view), or a camera TOML file's ideal pinhole (fx, fy, cx, cy,
+    width, height; frames with distortion or non-square pixels need pipelines.camera_file.camera_from_intrinsics'
+    remap first)."""
+
+    if path is not None:
+        return camera_from_intrinsics(path)[0]
+    cam = geometry.load_camera()
+    if size_px is not None and tuple(size_px) != (cam.width_px, cam.height_px):
+        cam = cam.scaled(int(size_px[0]), int(size_px[1]))
+    return cam
+
+
+def tracker_detector(weights: str | None = None, device: str = "cpu"):
+    """The corner detector (perception.detect.Detector) of a weights file; None: the shipped weights."""
+    from envisat_pose.perception.detect import load_detector
+    from envisat_pose.perception.weights import shipped_weights_path
+
+    return load_detector(weights or shipped_weights_path(), device=device)
+
+
+def scenario_orbit(scenario: str = "default"):
+    """The chaser's Keplerian orbit (datagen's OrbitConfig) of a named scenario."""
+
+    return scenario_config(scenario).orbit
+
+
+def chaser_from_orbit(orbit=None, scenario: str = "default"):
+    """chaser_at(t_s) -> (4,) the chaser's polar orbit (r_m, rdot_m_s, theta_rad, thetadot_rad_s) from its
+    Keplerian elements (datagen's OrbitConfig, or a dict of its fields; None: the named scenario's orbit)."""
+
+    if orbit is None:
+        orbit = scenario_orbit(scenario)
+    elif isinstance(orbit, dict):
+        orbit = from_dict(OrbitConfig, orbit, prefix="orbit")
+    return chaser_function(orbit)

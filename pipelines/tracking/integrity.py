@@ -1,0 +1,201 @@
+"""Integrity monitoring: what the tracker's own evidence must show before it claims "tracking", checked every frame.
+
+No truth: every test reads what the tracker itself has, the filter's state and covariance, its innovations and
+the corners it was given, used and rejected.
+
+The bounds are TrackerConfig.integrity's (IntegrityConfig: `window`, `prob`, ...), passed in as `cfg`.
+
+- A cold-start fit starts a hypothesis only if it kept most of its window's corners (`fit_problems`: the fit's
+  gate rejected no more than a correct fit would at `expected_reject_share`, and the kept ones are at least
+  `acquire.min_corners` per frame on average), its reduced chi-square is inside its chi-square bound and its state
+  is physical (`state_problems`).
+- Each hypothesis carries a window of its last `window` frames (`EvidenceWindow`): the NIS and its
+  degrees of freedom, the corners given to the filter and those rejected. Every frame, a hypothesis fails when its
+  windowed NIS exceeds its bound at `prob` (nis_window_bound: the chi-square of the window's degrees of
+  freedom, dispersed by the detector's frame-to-frame correlation), when the gate rejected more of the corners it
+  was given over the window than a correct track would at `expected_reject_share` (a binomial tail below
+  `prob`), or when its state is not physical. A failed hypothesis is dropped; the track is lost when none is left.
+- A state is physical when the target's centre is in front of the camera, farther than the box's own radius
+  (the camera cannot be inside the target) and near enough for the image to show the box
+  (`IntegrityConfig.min_target_px`), its rate and speed inside the configured bounds, its covariance positive
+  definite and its position and attitude sigmas inside `lost_pos_sigma_share` x range and `lost_att_sigma_deg`.
+- A claim at the tracking accuracy (`claim_holds`): the 3-sigma position within `claim_pos_share` of the range and
+  the 3-sigma attitude within `claim_att_deg` (the same tolerances a benchmark scores a false lock by).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from envisat_pose.filtering.measurements import to_camera_K
+from envisat_pose.gates import chi2_bound
+from envisat_pose.geometry import PinholeCamera
+from envisat_pose.state import MRP, POS, RATE, VEL
+
+
+def pose_sigmas(cov: np.ndarray) -> tuple[float, float]:
+    """(largest position sigma, m; largest attitude sigma, deg) of a covariance (12, 12); the MRP sigma is a
+    rotation angle of 4 sigma_p rad (small angles). NaN where the blocks are not finite."""
+    if not np.isfinite(cov).all():
+        return float("nan"), float("nan")
+    pos = float(np.sqrt(max(np.max(np.linalg.eigvalsh(cov[POS, POS])), 0.0)))
+    att = float(np.degrees(4.0 * np.sqrt(max(np.max(np.linalg.eigvalsh(cov[MRP, MRP])), 0.0))))
+    return pos, att
+
+
+def target_radius_m(corners_T_m: np.ndarray) -> float:
+    """The box's radius about the centre of mass, m: no camera can be nearer than this to the centre."""
+    return float(np.max(np.linalg.norm(corners_T_m, axis=-1)))
+
+
+def state_problems(x: np.ndarray, P: np.ndarray, camera: PinholeCamera, radius_m: float, cfg) -> list[str]:
+    """Why the state x (12,) with covariance P (12, 12) is not a physical track (empty when it is). cfg: the
+    IntegrityConfig (min_target_px, max_rate_deg_s, max_speed_m_s, lost_pos_sigma_share, lost_att_sigma_deg)."""
+
+    if not (np.isfinite(x).all() and np.isfinite(P).all()):
+        return ["the state or its covariance is not finite"]
+    out = []
+    depth_m = float(to_camera_K(x[POS], camera)[2])
+    range_m = float(np.linalg.norm(x[POS]))
+    max_range_m = camera.f_px * 2.0 * radius_m / cfg.min_target_px
+    if depth_m <= radius_m:
+        out.append(f"target not in front of the camera (depth {depth_m:.2f} m, the box's radius {radius_m:.2f} m)")
+    elif range_m > max_range_m:
+        out.append(f"range {range_m:.0f} m beyond the {max_range_m:.0f} m at which the box spans "
+                   f"{cfg.min_target_px:g} px")
+    rate = float(np.degrees(np.linalg.norm(x[RATE])))
+    if rate > cfg.max_rate_deg_s:
+        out.append(f"tumble rate {rate:.1f} deg/s beyond {cfg.max_rate_deg_s:g} deg/s")
+    speed = float(np.linalg.norm(x[VEL]))
+    if speed > cfg.max_speed_m_s:
+        out.append(f"relative speed {speed:.2f} m/s beyond {cfg.max_speed_m_s:g} m/s")
+    if np.linalg.eigvalsh(0.5 * (P + P.T)).min() <= 0.0:
+        out.append("covariance not positive definite")
+        return out
+    pos_sig, att_sig = pose_sigmas(P)
+    if pos_sig > cfg.lost_pos_sigma_share * max(range_m, radius_m):
+        out.append(f"position sigma {pos_sig:.3g} m beyond {cfg.lost_pos_sigma_share:.0%} of the {range_m:.1f} m range")
+    if att_sig > cfg.lost_att_sigma_deg:
+        out.append(f"attitude sigma {att_sig:.1f} deg beyond {cfg.lost_att_sigma_deg:g} deg")
+    return out
+
+
+def claim_holds(x: np.ndarray, P: np.ndarray, cfg) -> bool:
+    """The covariance backs a claim at the tracking accuracy: 3-sigma position within claim_pos_share of the
+    range and 3-sigma attitude within claim_att_deg."""
+    pos_sig, att_sig = pose_sigmas(P)
+    range_m = float(np.linalg.norm(x[POS]))
+    return bool(3.0 * pos_sig <= cfg.claim_pos_share * range_m and 3.0 * att_sig <= cfg.claim_att_deg)
+
+
+def rejections_improbable(rejected: int, given: int, cfg) -> float | None:
+    """The probability of rejecting at least `rejected` of `given` corners when each is rejected with the
+    expected share cfg.expected_reject_share (a binomial tail), where that tail is below cfg.prob (cfg: the
+    IntegrityConfig);
+    None where the rejections are as a correct track makes them."""
+    from scipy.stats import binom
+
+    if given <= 0 or rejected <= 0:
+        return None
+    p = float(binom.sf(rejected - 1, given, cfg.expected_reject_share))
+    return p if p < cfg.prob else None
+
+
+def fit_problems(fit, frames: int, cfg, min_corners: int) -> list[str]:
+    """Why a cold-start BatchFit (pipelines/tracking/acquisition.py) over `frames` frames starts no hypothesis (empty when
+    it may): not valid, more corners rejected than a correct fit would (rejections_improbable), fewer than
+    min_corners (AcquireConfig.min_corners) kept a frame on average, a chi-square beyond its bound at cfg.prob
+    (cfg: the IntegrityConfig)."""
+    if not fit.valid:
+        return ["the fit has no positive-definite covariance"]
+    kept = int(np.sum(fit.used))
+    measured = kept + int(fit.rejected)
+    out = []
+    p = rejections_improbable(int(fit.rejected), measured, cfg)
+    if p is not None:
+        out.append(f"the fit rejected {fit.rejected} of {measured} corners (p = {p:.1g} at the expected "
+                   f"{cfg.expected_reject_share:.0%})")
+    if kept < min_corners * frames:
+        out.append(f"the fit kept {kept / frames:.1f} corners a frame (at least {min_corners})")
+    if fit.dof > 0 and fit.chi2 > chi2_bound(cfg.prob, int(fit.dof)):
+        out.append(f"the fit's chi-square {fit.chi2:.0f} beyond its bound {chi2_bound(cfg.prob, int(fit.dof)):.0f} "
+                   f"({fit.dof} dof)")
+    return out
+
+
+@dataclass(frozen=True)
+class EvidenceWindow:
+    """The last W frames of evidence of H hypotheses (ring buffers, slot k % W; never mutated).
+
+    nis, dof (H, W): each frame's NIS and its degrees of freedom (0 where no corner was used); given, rejected
+    (H, W): corners given to the filter and, of those, rejected by the gate or the visibility check; used (H, W)
+    bool: the frame used a corner; k: frames pushed so far."""
+
+    nis: np.ndarray
+    dof: np.ndarray
+    given: np.ndarray
+    rejected: np.ndarray
+    used: np.ndarray
+    k: int = 0
+
+    @staticmethod
+    def empty(H: int, W: int) -> "EvidenceWindow":
+        z = np.zeros((H, W))
+        return EvidenceWindow(z, z.copy(), z.copy(), z.copy(), np.zeros((H, W), bool))
+
+    def push(self, nis, dof, given, rejected) -> "EvidenceWindow":
+        """A new window with this frame's (H,) values in the oldest slot."""
+        s = self.k % self.nis.shape[1]
+        arrays = {}
+        for name, v in (("nis", nis), ("dof", dof), ("given", given), ("rejected", rejected)):
+            a = getattr(self, name).copy()
+            a[:, s] = np.asarray(v, dtype=float)
+            arrays[name] = a
+        used = self.used.copy()
+        used[:, s] = np.asarray(dof) > 0
+        return EvidenceWindow(**arrays, used=used, k=self.k + 1)
+
+    def select(self, idx: np.ndarray) -> "EvidenceWindow":
+        """The windows of hypotheses idx only."""
+        return dataclasses.replace(self, **{f: getattr(self, f)[idx] for f in ("nis", "dof", "given", "rejected",
+                                                                                "used")})
+
+    def used_frames(self) -> np.ndarray:
+        """(H,) frames of the window that used a corner."""
+        return self.used.sum(-1)
+
+
+def nis_window_bound(prob: float, dof: int, kappa: float = 1.0) -> float:
+    """The bound a window's NIS sum over dof degrees of freedom exceeds with probability prob, the frames'
+    correlation taken as a sum dispersed kappa times the chi-square's (kappa x chi2(dof / kappa): the same mean,
+    kappa times the variance; noise.nis_sum_dispersion)."""
+    from scipy.stats import chi2
+
+    if kappa <= 1.0:
+        return chi2_bound(prob, dof)
+    return float(kappa * chi2.isf(prob, dof / kappa))
+
+
+def window_problems(win: EvidenceWindow, cfg, kappa: float = 1.0) -> list[list[str]]:
+    """Per hypothesis, why its window contradicts it (empty lists where it does not): the windowed NIS beyond
+    its bound at cfg.prob (nis_window_bound, kappa the frames' correlation), or more of the corners
+    given rejected than a correct track would (rejections_improbable)."""
+    out = []
+    for h in range(win.nis.shape[0]):
+        p = []
+        d = int(win.dof[h].sum())
+        if d > 0:
+            bound = nis_window_bound(cfg.prob, d, kappa)
+            if win.nis[h].sum() > bound:
+                p.append(f"innovations inconsistent: windowed NIS {win.nis[h].sum():.0f} beyond {bound:.0f} "
+                         f"({d} dof)")
+        given, rejected = int(win.given[h].sum()), int(win.rejected[h].sum())
+        tail = rejections_improbable(rejected, given, cfg)
+        if tail is not None:
+            p.append(f"the gate rejected {rejected} of the last {given} corners (p = {tail:.1g} at the expected "
+                     f"{cfg.expected_reject_share:.0%})")
+        out.append(p)
+    return out

@@ -1,0 +1,400 @@
+"""The tracker's types: its config (TrackerConfig, one section per component), what it says after each frame
+(TrackEstimate), and the filter settings it starts from (TRACKER_FILTER).
+
+In a TOML file the sections are tables under [tracker]: `[tracker.acquire]`, `[tracker.bank]`, `[tracker.fit]`,
+`[tracker.array_cue]`, `[tracker.roi]`, `[tracker.integrity]`, `[tracker.noise]`, `[tracker.gate]`. A key of the
+old flat layout directly under [tracker] is refused with one line naming its new home (MOVED_KEYS)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+
+from envisat_pose.config import check
+from envisat_pose.gates import GATE_PROB, chi2_gate
+from envisat_pose.pipelines.tracking.noise import CORRELATION_IN, CORRELATION_MODELS
+
+# the covariance reported while acquiring (no filter yet): position m, velocity m/s, MRP, rate rad/s (1-sigma)
+ACQUIRING_SIGMA = (5.0, 1.0, 0.5, 0.1)
+# the filter settings the tracker starts from (under a scenario's [filter] table and the user's): adaptive R that
+# only ever raises R above the detector's modelled covariance, and no gate lockout (a lost track is re-acquired
+# from the images instead of taking one frame ungated)
+TRACKER_FILTER = {"adaptive_r": True, "adaptive_r_bounds": (1.0, 100.0), "gate_lockout_steps": 1_000_000}
+
+
+def _dot(prefix: str) -> str:
+    return f"{prefix}." if prefix else ""
+
+
+@dataclass(frozen=True)
+class AcquireConfig:
+    """The cold start (pipelines/tracking/acquisition.py).
+
+    frames: lit frames with a PnP pose in the cold-start window; min_corners: named corners a frame needs for a
+    pose (and the corners a cold-start fit must keep per frame on average: integrity.fit_problems); max_gap_s: a
+    longer gap between buffered frames restarts the window.
+    start_cov_factor: the cold-start fit's covariance is multiplied by this when a bank starts. The window's
+    frames are fewer than the errors' correlation allows a fit to average (twenty frames against a 13 s
+    correlation time); without it the first ~30 s after a start were over-confident (NEES per block 10-30 of 3 on
+    slow-tumble seeds 0 and 7) while the state was right.
+    """
+
+    frames: int = 20
+    min_corners: int = 4
+    max_gap_s: float = 30.0
+    start_cov_factor: float = 4.0
+
+    def validate(self, prefix: str = "tracker.acquire") -> None:
+        p = _dot(prefix)
+        check(self.frames >= 3, f"{p}frames", self.frames, "at least 3 frames")
+        check(4 <= self.min_corners <= 8, f"{p}min_corners", self.min_corners, "4 to 8 corners")
+        check(self.max_gap_s > 0, f"{p}max_gap_s", self.max_gap_s, "a positive gap in s")
+        check(self.start_cov_factor >= 1.0, f"{p}start_cov_factor", self.start_cov_factor, "a factor >= 1")
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """The cold start's batch fit (acquisition.batch_fit).
+
+    iterations, huber (whitened px), gate_prob (the probability a corner's 2-dof chi-square passes the fit's
+    gate; `gate` the bound): the batch fit.
+    """
+
+    iterations: int = 15
+    huber: float = 3.0
+    gate_prob: float = GATE_PROB
+
+    @property
+    def gate(self) -> float:
+        """The batch fit's chi-square gate per corner (2 dof) at gate_prob (23.03 at the default)."""
+        return chi2_gate(self.gate_prob, 2)
+
+    def validate(self, prefix: str = "tracker.fit") -> None:
+        p = _dot(prefix)
+        check(self.iterations >= 1, f"{p}iterations", self.iterations, "at least 1")
+        check(self.huber > 0, f"{p}huber", self.huber, "a positive whitened residual")
+        check(0.5 < self.gate_prob < 1.0, f"{p}gate_prob", self.gate_prob, "a probability in (0.5, 1)")
+
+
+@dataclass(frozen=True)
+class BankConfig:
+    """The bank of half-turn hypotheses and the evidence between them (pipelines/tracking/bank.py).
+
+    decided: a half-turn hypothesis whose probability exceeds this wins and the other is dropped.
+    evidence_prob: a frame whose innovations every hypothesis finds beyond the chi-square bound at this tail
+    probability adds nothing to their dynamics' log-likelihoods (bank.frame_discriminates): it contradicts them
+    all, so their NIS differences are the detector's error, not evidence between the twins.
+    appearance_clip: the detector's per-frame half-turn probability is clipped to [clip, 1 - clip].
+    appearance_frames: consecutive frames whose appearance cues count as one independent look (each frame's
+    log-likelihood is divided by it): the detector's half-turn errors repeat while the view changes little (wrong
+    in 16 of 20 consecutive frames of a default sequence), so independent sums would let one look outvote the
+    dynamics.
+    appearance_max_log: the most (nats) the detector's appearance counts between two hypotheses however many
+    frames repeat it (3.0: one confident look, a likelihood ratio of 20), below the 6.9 a decision at 0.999 needs:
+    the appearance never decides a half-turn alone, the dynamics must agree (its errors persist over a whole
+    view: without the cap a slow-tumble trial claimed the twin 180 deg off for 61 s; docs/history.md).
+    evidence_memory: the memory at which the detector's frame-to-frame error correlation is counted in the
+    dynamics' log-likelihoods. "filter": as the filter's update counts it, at the filter's own memory (R x
+    tau(lambda)); "long": as a sum over every frame of the bank needs it, each frame's cost weighted by
+    tau(lambda) / tau(1) (noise.evidence_weight). Twins whose predicted corners differ by a fraction of a pixel
+    gain evidence mostly from the detector's repeated errors projected on that difference (0.25 px apart: 1.8 nats
+    of separation at most over 17 frames, against NIS sums 9.6 nats apart; docs/history.md).
+    """
+
+    decided: float = 0.999
+    evidence_prob: float = 0.01
+    appearance_clip: float = 0.05
+    appearance_frames: float = 10.0
+    appearance_max_log: float = 3.0
+    evidence_memory: str = "filter"
+
+    def validate(self, prefix: str = "tracker.bank") -> None:
+        p = _dot(prefix)
+        check(0.5 < self.decided < 1.0, f"{p}decided", self.decided, "a probability in (0.5, 1)")
+        check(0.0 < self.evidence_prob < 0.5, f"{p}evidence_prob", self.evidence_prob, "a probability in (0, 0.5)")
+        check(0.0 < self.appearance_clip < 0.5, f"{p}appearance_clip", self.appearance_clip,
+              "a probability in (0, 0.5)")
+        check(self.appearance_max_log >= 0.0, f"{p}appearance_max_log", self.appearance_max_log,
+              "a non-negative log-likelihood (nats)")
+        check(self.appearance_frames >= 1.0, f"{p}appearance_frames", self.appearance_frames, "at least 1 frame")
+        check(self.evidence_memory in ("filter", "long"), f"{p}evidence_memory", self.evidence_memory,
+              "'filter' or 'long'")
+
+
+@dataclass(frozen=True)
+class ArrayCueConfig:
+    """The solar array cue (perception/arraycue.py, bank.array_log_likelihood).
+
+    enabled: weigh the twins by the half-turn about y or z by where the image shows the solar array
+    (perception/arraycue.py; read under the best hypothesis' predicted pose once it is converged, while the bank
+    holds hypotheses at both ends): per_frame nats a frame to the hypotheses at the end it shows, at most
+    max_log (nats) between two hypotheses in all. Those twins put the corners where the truth does and differ
+    from it in the dynamics only by the signs of two small products of inertia (the y twin keeps Ixz, the
+    largest), so the dynamics take tens of seconds to part them on a slow tumble. The cue is read right or not at
+    all: under the true pose 0 wrong readings of 1742 given (1619 of 3600 loop frames, 123 of 300 random views; it
+    abstains on the rest, the Earth behind the target among them; docs/history.md). Capped below the 6.9 nats a
+    decision needs, so the dynamics and the detector's appearance must not contradict it. With one hypothesis left the cue is read every converged frame as an integrity test:
+    lost_readings readings in a row against it (abstentions between them allowed) lose the track (a decided y or
+    z twin would claim a pose 180 deg off while every corner fits).
+    """
+
+    enabled: bool = True
+    per_frame: float = 1.0
+    max_log: float = 6.0
+    lost_readings: int = 3
+
+    def validate(self, prefix: str = "tracker.array_cue") -> None:
+        p = _dot(prefix)
+        check(self.per_frame >= 0.0, f"{p}per_frame", self.per_frame, "a non-negative log-likelihood (nats)")
+        check(self.max_log >= 0.0, f"{p}max_log", self.max_log, "a non-negative log-likelihood (nats)")
+        check(self.lost_readings >= 1, f"{p}lost_readings", self.lost_readings, "at least 1 reading")
+
+
+@dataclass(frozen=True)
+class RoiConfig:
+    """The region of interest and the priors the detector is given (tracker.predicted_roi, Tracker._look).
+
+    enabled: look only in the predicted region of interest once converged; margin: its side over the predicted
+    corners' extent (plus 6 x the prior's pixel sigma); min_side_px; min_corners: fewer corners found there and
+    the coarse pass runs again. converged_pos_sigma_m / converged_att_sigma_deg: the prior counts as converged
+    (ROI, attitude prior) below these. prior_attitude: give the detector the predicted attitude; prior_pose: with
+    it, the predicted position too, so its naming starts from the predicted pose instead of searching every face
+    hypothesis (half of the detector's time in the loop; the search still runs when the predicted pose matches
+    fewer than 4 corners). prior_pose_twins: while the bank still holds a pose and its symmetric twins, the best
+    one's predicted pose seeds the naming too, without weighing the half-turn (the twins are one physical pose;
+    the detector's half-turn probability stays the image's own). Without it the detector searches every face on
+    its own in those frames and, on near end-on views, names four corners of one face wrongly for frames in a
+    row: enough rejections in a young bank's window to lose a correct start (docs/history.md).
+    """
+
+    enabled: bool = True
+    margin: float = 1.4
+    min_side_px: int = 64
+    min_corners: int = 4
+    converged_pos_sigma_m: float = 0.2
+    converged_att_sigma_deg: float = 2.0
+    prior_attitude: bool = True
+    prior_pose: bool = True
+    prior_pose_twins: bool = True
+
+    def validate(self, prefix: str = "tracker.roi") -> None:
+        p = _dot(prefix)
+        check(self.margin >= 1.0, f"{p}margin", self.margin, "a factor >= 1")
+        check(16 <= self.min_side_px <= 4096, f"{p}min_side_px", self.min_side_px, "a side in [16, 4096] px")
+        check(1 <= self.min_corners <= 8, f"{p}min_corners", self.min_corners, "1 to 8 corners")
+        check(self.converged_pos_sigma_m > 0, f"{p}converged_pos_sigma_m", self.converged_pos_sigma_m,
+              "a positive sigma in m")
+        check(self.converged_att_sigma_deg > 0, f"{p}converged_att_sigma_deg", self.converged_att_sigma_deg,
+              "a positive sigma in deg")
+
+
+@dataclass(frozen=True)
+class IntegrityConfig:
+    """Integrity and loss (pipelines/tracking/integrity.py): the tests a hypothesis' own evidence must pass every frame,
+    the claim's bounds, and when a track is lost.
+
+    lost_after_frames: frames in a row with an image and no corner used by the best hypothesis (coasting: nothing
+    found, or every corner rejected) that declare the track lost, every hypothesis of the bank with it. Frames
+    without an image (eclipse, gaps) coast until the covariance leaves the lost bounds below.
+    window: frames of evidence per hypothesis (20: a burst of 4 frames of mis-named corners, which the gate
+    rejects while the state stays right, does not lose a correct track, as it did with 8; a track that disagrees
+    with the images for good still fails within ~5 frames); prob: the false-alarm probability of each
+    test (the cold-start fit's chi-square, the windowed NIS, the rejections); expected_reject_share: the share of
+    the corners given that a correct track's gate rejects (the detector's mis-named corners: 3-13 % on random
+    views, fewer in the loop's region of interest with the predicted pose as the naming's start), against which a
+    window's rejections are tested (a binomial tail); confirm_frames frames with corners used, after the
+    half-turn is decided and with the claim's covariance, before a new bank claims "tracking"; claim_pos_share
+    (of the range) and claim_att_deg bound the 3-sigma position and attitude a "tracking" frame claims (beyond
+    them a running track reports "coasting"); lost_pos_sigma_share and lost_att_sigma_deg bound the 1-sigma a
+    track may reach before it is lost; min_target_px the smallest apparent size of the box (twice its radius) the
+    image can show, which bounds the range; max_rate_deg_s and max_speed_m_s the tumble rate and relative speed a
+    state may have.
+    """
+
+    lost_after_frames: int = 10
+    window: int = 20
+    prob: float = 1e-6
+    expected_reject_share: float = 0.1
+    confirm_frames: int = 5
+    claim_pos_share: float = 0.02
+    claim_att_deg: float = 5.0
+    lost_pos_sigma_share: float = 0.1
+    lost_att_sigma_deg: float = 20.0
+    min_target_px: float = 8.0
+    max_rate_deg_s: float = 30.0
+    max_speed_m_s: float = 5.0
+
+    def validate(self, prefix: str = "tracker.integrity") -> None:
+        p = _dot(prefix)
+        check(self.lost_after_frames >= 1, f"{p}lost_after_frames", self.lost_after_frames, "at least 1 frame")
+        check(self.window >= 2, f"{p}window", self.window, "at least 2 frames")
+        check(0.0 < self.prob < 0.5, f"{p}prob", self.prob, "a probability in (0, 0.5)")
+        check(0.0 < self.expected_reject_share < 1.0, f"{p}expected_reject_share", self.expected_reject_share,
+              "a share in (0, 1)")
+        check(1 <= self.confirm_frames <= self.window, f"{p}confirm_frames", self.confirm_frames,
+              f"1 to window ({self.window}) frames")
+        check(0.0 < self.claim_pos_share < self.lost_pos_sigma_share * 3.0, f"{p}claim_pos_share",
+              self.claim_pos_share, "a share of the range in (0, 3 x lost_pos_sigma_share)")
+        check(0.0 < self.claim_att_deg < 3.0 * self.lost_att_sigma_deg, f"{p}claim_att_deg", self.claim_att_deg,
+              "an angle in deg in (0, 3 x lost_att_sigma_deg)")
+        check(0.0 < self.lost_pos_sigma_share <= 1.0, f"{p}lost_pos_sigma_share", self.lost_pos_sigma_share,
+              "a share of the range in (0, 1]")
+        check(0.0 < self.lost_att_sigma_deg <= 90.0, f"{p}lost_att_sigma_deg", self.lost_att_sigma_deg,
+              "an angle in (0, 90] deg")
+        check(self.min_target_px > 0, f"{p}min_target_px", self.min_target_px, "a positive size in px")
+        check(self.max_rate_deg_s > 0, f"{p}max_rate_deg_s", self.max_rate_deg_s, "a positive rate in deg/s")
+        check(self.max_speed_m_s > 0, f"{p}max_speed_m_s", self.max_speed_m_s, "a positive speed in m/s")
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """The filter's R and process noise from the detector (pipelines/tracking/noise.py).
+
+    correlation_model: how R allows for the errors' frame-to-frame correlation (module doc): "filter_memory",
+    "long_memory" or "white".
+    correlation_in: what the correlation falls with between frames (noise.ar1_at): "rotation" (default: the
+    view's, at the tracked rate |w_r|, where the error model measured it; time while acquiring, before a rate is
+    estimated), "time" (the time fit, one correlation time pooled over the held-out tumble rates) or "slower"
+    (whichever of the two lasts longer at the tracked rate). The detector's errors persist while the view has not
+    turned: their correlation angle stays near 30 deg (26-33) while their correlation time runs from 7.6 s at 5
+    deg/s to 14.9 s at 1.6 deg/s, so one pooled time over-inflates a fast tumble and under-inflates a slow one.
+    range_floor: report the position variance along the line of sight plus (noise.scale_sigma x range)^2, the
+    range error of the detector's apparent scale that no number of frames averages away (pipelines/tracking/noise.
+    range_consider: a consider term in the reported covariance, not in the filter's gain: in the gain the filter
+    follows each frame's range instead of averaging them). Without it the loops are over-confident in range (mean
+    NEES 50.9 on a slow tumble).
+    detector_q_sigma: process noise per sqrt(s) in filter.q_sigma's groups (position m, velocity m/s, MRP, rad/s)
+    that stands for the detector's errors the error model does not carry: view-dependent biases that persist for
+    tens of seconds on a slow tumble and that a filter with a torque-free model and an exactly known relative
+    orbit (the scenarios' q_sigma 1e-8, 1e-8, 1e-9, 1e-10) would read as attitude, rate and velocity; the
+    filter's own q_sigma is raised to at least these: on a slow tumble, mean NEES 36.5 -> 18.4 with the attitude
+    and rate terms, then 19.6 -> 13.9 with the velocity term, at the same RMSE.
+    correct_scale: undo the detector's mean apparent scale (the error model's bias_scale) about the corners'
+    centroid in every frame; what is left, a run's own scale about that mean (bias_scale_sd), stays in the
+    reported covariance. The mean must be measured in the loop's regime (lit sequences of every scenario, the
+    labels' region of interest, the patch pass): a mean off by 5.5e-4 moves the range 2.7 cm at 50 m.
+    """
+
+    correlation_model: str = "filter_memory"
+    correlation_in: str = "rotation"
+    range_floor: bool = True
+    detector_q_sigma: tuple[float, float, float, float] = (0.0, 3e-6, 1e-5, 3e-6)
+    correct_scale: bool = True
+
+    def validate(self, prefix: str = "tracker.noise") -> None:
+        p = _dot(prefix)
+        check(self.correlation_model in CORRELATION_MODELS, f"{p}correlation_model", self.correlation_model,
+              f"one of {', '.join(CORRELATION_MODELS)}")
+        check(self.correlation_in in CORRELATION_IN, f"{p}correlation_in", self.correlation_in,
+              f"one of {', '.join(CORRELATION_IN)}")
+        check(len(self.detector_q_sigma) == 4 and all(q >= 0 for q in self.detector_q_sigma),
+              f"{p}detector_q_sigma", list(self.detector_q_sigma),
+              "four non-negative sigmas per sqrt(s), as filter.q_sigma (m, m/s, MRP, rad/s)")
+
+
+@dataclass(frozen=True)
+class GateConfig:
+    """Which covariance the tracker gates a corner against before the filter's update.
+
+    raw: gate each corner against the detector's own covariance at the error model's scale (without the
+    correlation's inflation) plus the prior's spread, before the update; a corner beyond the gate is dropped and
+    counts as rejected. The inflation says how little a filter may average the errors, not how large one
+    frame's error may be: gated against the inflated R (x 5-8 at the filter's memory), corners 4-5 px off with a
+    0.5-0.9 px covariance pass and can pull the range 16 cm off. Off by default: measured as an ablation
+    (docs/history.md).
+    """
+
+    raw: bool = False
+
+    def validate(self, prefix: str = "tracker.gate") -> None:
+        pass
+
+
+SECTIONS = ("acquire", "fit", "bank", "array_cue", "roi", "integrity", "noise", "gate")
+# the flat layout's keys (before the sections) -> their section.key, for the one-line hint on an old file
+MOVED_KEYS = {
+    "acquire_frames": "acquire.frames", "acquire_min_corners": "acquire.min_corners",
+    "max_gap_s": "acquire.max_gap_s", "start_cov_factor": "acquire.start_cov_factor",
+    "fit_iterations": "fit.iterations", "fit_huber": "fit.huber", "fit_gate_prob": "fit.gate_prob",
+    "decided": "bank.decided", "evidence_prob": "bank.evidence_prob", "appearance_clip": "bank.appearance_clip",
+    "appearance_frames": "bank.appearance_frames", "appearance_max_log": "bank.appearance_max_log",
+    "array_cue": "array_cue.enabled", "array_cue_per_frame": "array_cue.per_frame",
+    "array_cue_max_log": "array_cue.max_log", "array_lost_readings": "array_cue.lost_readings",
+    "roi": "roi.enabled", "roi_margin": "roi.margin", "roi_min_side_px": "roi.min_side_px",
+    "roi_min_corners": "roi.min_corners", "converged_pos_sigma_m": "roi.converged_pos_sigma_m",
+    "converged_att_sigma_deg": "roi.converged_att_sigma_deg", "prior_attitude": "roi.prior_attitude",
+    "prior_pose": "roi.prior_pose", "prior_pose_twins": "roi.prior_pose_twins",
+    "lost_after_frames": "integrity.lost_after_frames", "integrity_window": "integrity.window",
+    "integrity_prob": "integrity.prob", "expected_reject_share": "integrity.expected_reject_share",
+    "confirm_frames": "integrity.confirm_frames", "claim_pos_share": "integrity.claim_pos_share",
+    "claim_att_deg": "integrity.claim_att_deg", "lost_pos_sigma_share": "integrity.lost_pos_sigma_share",
+    "lost_att_sigma_deg": "integrity.lost_att_sigma_deg", "min_target_px": "integrity.min_target_px",
+    "max_rate_deg_s": "integrity.max_rate_deg_s", "max_speed_m_s": "integrity.max_speed_m_s",
+    "correlation_model": "noise.correlation_model", "correlation_in": "noise.correlation_in",
+    "range_floor": "noise.range_floor", "detector_q_sigma": "noise.detector_q_sigma",
+    "correct_scale": "noise.correct_scale", "gate_raw": "gate.raw",
+}
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """How the tracker uses the detector and the filter, one frozen section per component (each documents its
+    fields and their measured justifications): acquire (the cold start's window), fit (its batch fit), bank (the
+    half-turn hypotheses and the evidence between them), array_cue (the solar array cue), roi (the region of
+    interest and the priors given to the detector), integrity (the tests of a hypothesis' evidence, the claim and
+    loss), noise (R and the process noise from the detector's error model), gate (what a corner is gated
+    against). In TOML: [tracker.acquire], [tracker.fit], ... (module docstring)."""
+
+    acquire: AcquireConfig = field(default_factory=AcquireConfig)
+    fit: FitConfig = field(default_factory=FitConfig)
+    bank: BankConfig = field(default_factory=BankConfig)
+    array_cue: ArrayCueConfig = field(default_factory=ArrayCueConfig)
+    roi: RoiConfig = field(default_factory=RoiConfig)
+    integrity: IntegrityConfig = field(default_factory=IntegrityConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    gate: GateConfig = field(default_factory=GateConfig)
+
+    moved_keys: ClassVar[dict[str, str]] = MOVED_KEYS  # config.from_dict's hint for a flat file's key
+
+    def validate(self, prefix: str = "tracker") -> None:
+        for name in SECTIONS:
+            getattr(self, name).validate(f"{_dot(prefix)}{name}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrackEstimate:
+    """What the tracker says after one frame (built by keywords only).
+
+    t_s: frame time, s. status: one of envisat_pose.status.STATUSES ("tracking" only when the frame's evidence
+    backs it: pipelines/tracking/integrity.py). x_hat (12,): the best hypothesis' state (rho_C_m, rhodot_C_m_s,
+    p_mrp, w_r_T_rad_s); P (12, 12) its covariance (ACQUIRING_SIGMA while acquiring; NaN before any pose).
+    hypotheses (H, 12) and probabilities (H,): the half-turn hypotheses still open (H = 0 while acquiring).
+    detection: the detector's FrameDetection (None when no image); naming: which naming the best hypothesis took
+    (acquisition.NAMINGS: 0 the detector's, 1-3 its x, y, z half-turn; -1 none); measured (8,) bool: corners given to the filter; rejected (8,)
+    bool: of those, rejected by the gate; nis, nis_dof: the best hypothesis' update. roi_px (3,) or None.
+    converged: the prior was tight enough for the region of interest. events: what happened this frame
+    ("started", "hypothesis decided", "confirmed", "lost: <why>", "hypothesis dropped: <why>", ...), in words a
+    user can act on. timing_s: detection and filtering, s. confirmed: the bank passed its confirmation (its
+    evidence backed a claim once); coasting_frames: frames in a row with an image and no corner used.
+    """
+
+    t_s: float
+    status: str
+    x_hat: np.ndarray
+    P: np.ndarray
+    hypotheses: np.ndarray
+    probabilities: np.ndarray
+    detection: object | None
+    naming: int
+    measured: np.ndarray
+    rejected: np.ndarray
+    nis: float
+    nis_dof: int
+    roi_px: np.ndarray | None
+    converged: bool
+    events: tuple[str, ...] = ()
+    timing_s: dict = field(default_factory=dict)
+    confirmed: bool = False
+    coasting_frames: int = 0

@@ -1,0 +1,387 @@
+"""`envisat dataset export`: each format read back by code written here from that format's published conventions
+(SPNv2's projection for SPEED+, pycocotools for COCO, the BOP toolkit's pose and box rules, Ultralytics's row
+layout), never through the exporter's helpers; and the export's safety: interrupted, damaged, existing --out."""
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+import hashlib
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from envisat_pose.app.cli import main as envisat_main
+from envisat_pose.config import InputError, from_dict
+from envisat_pose.datagen.dataset import iter_samples
+from envisat_pose.datagen.factory import run_generate
+from envisat_pose.datagen.generate_config import GenerateConfig
+from envisat_pose.geometry import CORNER_NAMES, load_geometry
+from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
+
+FORMATS = ("speedplus", "coco", "bop", "yolo-pose")
+
+
+@pytest.fixture(scope="module")
+def datasets(tmp_path_factory):
+    """The floors' two cases: 1024 px random views (appendages, Earth, sensor model) and a 512 px sequence."""
+    root = tmp_path_factory.mktemp("export")
+    rand = str(root / "rand")
+    run_generate(from_dict(GenerateConfig, {"num_images": 5, "shard_size": 2, "resolution_px": 1024, "seed": 21,
+                                            "earth_probability": 0.5}), rand, workers=2)
+    seq = str(root / "seq")
+    run_generate(from_dict(GenerateConfig, {"mode": "sequence", "num_images": 4, "shard_size": 3,
+                                            "resolution_px": 512, "seed": 4}), seq, workers=2)
+    return {"rand": rand, "seq": seq}
+
+
+@pytest.fixture(scope="module")
+def exports(datasets, tmp_path_factory):
+    root = tmp_path_factory.mktemp("exported")
+    out = {}
+    for name, src in datasets.items():
+        for fmt in FORMATS:
+            vf = 0.25 if fmt in ("coco", "yolo-pose") else None  # a sequence's split: its last frames
+            out[name, fmt] = export_dataset(src, str(root / f"{name}-{fmt}"), ExportConfig(fmt, val_fraction=vf),
+                                            workers=1, progress=False).out_dir  # inline: no pool to start
+    return out
+
+
+def labels_of(src):
+    """[(label, png bytes, mask)] in sample order, read with the factory's reader."""
+    from envisat_pose.datagen.shards import decode_png
+
+    return [(lab, m["png"], decode_png(m["mask.png"])) for _, lab, m in iter_samples(src)]
+
+
+# --- SPEED+: SPNv2's own projection ------------------------------------------------------------------------------
+
+def spnv2_quat2dcm(q):
+    """SPNv2's quat2dcm (scalar first; the DCM whose transpose takes body to camera)."""
+    q = np.asarray(q, float) / np.linalg.norm(q)
+    q0, q1, q2, q3 = q
+    return np.array([[2 * q0**2 - 1 + 2 * q1**2, 2 * q1 * q2 + 2 * q0 * q3, 2 * q1 * q3 - 2 * q0 * q2],
+                     [2 * q1 * q2 - 2 * q0 * q3, 2 * q0**2 - 1 + 2 * q2**2, 2 * q2 * q3 + 2 * q0 * q1],
+                     [2 * q1 * q3 + 2 * q0 * q2, 2 * q2 * q3 - 2 * q0 * q1, 2 * q0**2 - 1 + 2 * q3**2]])
+
+
+def spnv2_project(q, r, camera, points_3xn):
+    """SPNv2's project_keypoints: [R^T(q) | r] on homogeneous points, OpenCV distortion, the camera matrix."""
+    pose = np.hstack([spnv2_quat2dcm(q).T, np.asarray(r, float)[:, None]])
+    xyz = pose @ np.vstack([points_3xn, np.ones((1, points_3xn.shape[1]))])
+    x0, y0 = xyz[0] / xyz[2], xyz[1] / xyz[2]
+    d = np.asarray(camera["distCoeffs"], float)
+    r2 = x0 * x0 + y0 * y0
+    c = 1 + d[0] * r2 + d[1] * r2 * r2 + d[4] * r2**3
+    x = x0 * c + d[2] * 2 * x0 * y0 + d[3] * (r2 + 2 * x0 * x0)
+    y = y0 * c + d[2] * (r2 + 2 * y0 * y0) + d[3] * 2 * x0 * y0
+    K = np.asarray(camera["cameraMatrix"], float)
+    return np.stack([K[0, 0] * x + K[0, 2], K[1, 1] * y + K[1, 2]], axis=1)
+
+
+def speedplus_errors_px(folder, sequence=None):
+    """The largest reprojection error of every entry against the factory's labels, and the image names."""
+    from scipy.io import loadmat
+
+    with open(os.path.join(folder, "camera.json")) as fh:
+        camera = json.load(fh)
+    points = loadmat(os.path.join(folder, "models", "keypoints.mat"))["tango3Dpoints"]
+    if sequence:
+        files = [os.path.join(folder, sequence, f"{sequence}.json")]
+        images = os.path.join(folder, sequence, "synthetic", "images")
+    else:
+        files = [os.path.join(folder, "synthetic", n) for n in ("train.json", "validation.json")]
+        images = os.path.join(folder, "synthetic", "images")
+    entries = [e for f in files for e in json.load(open(f))]
+    return camera, points, entries, images
+
+
+@pytest.mark.parametrize("case", ["rand", "seq"])
+def test_speedplus_reprojects_onto_labels(datasets, exports, case):
+    folder = exports[case, "speedplus"]
+    seq = "seq" if case == "seq" else None
+    camera, points, entries, images = speedplus_errors_px(folder, seq)
+    assert points.shape == (3, 8)
+    labels = labels_of(datasets[case])
+    assert len(entries) == len(labels)
+    by_name = {e["filename"]: e for e in entries}
+    names = sorted(by_name)
+    if seq:
+        assert [e["filename"] for e in entries] == names  # frames in time order
+        meta = json.load(open(os.path.join(folder, seq, "metadata.json")))
+        assert meta["t_s"] == [lab["scene"]["t_s"] for lab, _, _ in labels]
+    worst = 0.0
+    for name, (lab, png, _) in zip(names, labels):
+        e = by_name[name]
+        uv = spnv2_project(e["q_vbs2tango_true"], e["r_Vo2To_vbs_true"], camera, points)
+        worst = max(worst, np.abs(uv - np.asarray(lab["corners_px"])).max())
+        with open(os.path.join(images, name), "rb") as fh:  # the shard's bytes, unchanged
+            assert hashlib.sha256(fh.read()).hexdigest() == hashlib.sha256(png).hexdigest()
+    assert worst < 1e-3
+    n = labels[0][2].shape[0]
+    K = np.asarray(camera["cameraMatrix"])
+    assert camera["Nu"] == camera["Nv"] == n and K[0, 2] == K[1, 2] == (n - 1) / 2
+    assert camera["fx"] == pytest.approx(K[0, 0] * camera["ppx"]) and len(camera["distCoeffs"]) == 5
+    assert camera["horizontalFOV"] == pytest.approx(30.0, abs=1e-6)  # the MJCF's fovy, a square image
+
+
+@pytest.mark.parametrize("defect", ["principal point + 0.5 px", "rotation transposed", "quaternion scalar last"])
+def test_speedplus_check_fails_on_a_wrong_convention(datasets, exports, defect):
+    """The reader above is able to fail: each convention error an exporter could make moves the reprojection."""
+    camera, points, entries, _ = speedplus_errors_px(exports["rand", "speedplus"])
+    labels = labels_of(datasets["rand"])
+    entries = sorted(entries, key=lambda e: e["filename"])
+    worst = 0.0
+    for e, (lab, _, _) in zip(entries, labels):
+        cam, q = json.loads(json.dumps(camera)), np.asarray(e["q_vbs2tango_true"])
+        if defect.startswith("principal"):
+            cam["cameraMatrix"][0][2] += 0.5
+        elif defect.startswith("rotation"):
+            q = q * [1, -1, -1, -1]
+        else:
+            q = np.roll(q, -1)
+        uv = spnv2_project(q, e["r_Vo2To_vbs_true"], cam, points)
+        worst = max(worst, np.abs(uv - np.asarray(lab["corners_px"])).max())
+    assert worst > 0.4
+
+
+# --- BOP: the toolkit's pose and box conventions -------------------------------------------------------------------
+
+def bop_frames(folder, defect=None):
+    """(corners projected with the BOP pose and cam_K, mask_visib, gt_info, scene_camera) of every image, read
+    as the BOP toolkit reads them (cam_R_m2c row-major, mm); `defect` plants a convention error."""
+    kp_mm = load_geometry().corners_T_m * 1000.0  # the MJCF's sites, the one source of the geometry
+    got = []
+    for scene in sorted(os.listdir(os.path.join(folder, "train_pbr"))):
+        base = os.path.join(folder, "train_pbr", scene)
+        gt = json.load(open(os.path.join(base, "scene_gt.json")))
+        cams = json.load(open(os.path.join(base, "scene_camera.json")))
+        info = json.load(open(os.path.join(base, "scene_gt_info.json")))
+        for im in sorted(gt, key=int):
+            R = np.asarray(gt[im][0]["cam_R_m2c"], float).reshape(3, 3)
+            t = np.asarray(gt[im][0]["cam_t_m2c"], float)
+            K = np.asarray(cams[im]["cam_K"], float).reshape(3, 3)
+            if defect == "principal point + 0.5 px":
+                K[0, 2] += 0.5
+            elif defect == "rotation transposed":
+                R = R.T
+            elif defect == "translation in metres":
+                t = t / 1000.0
+            p = (kp_mm @ R.T + t) @ K.T
+            mask = _read_gray(os.path.join(base, "mask_visib", f"{int(im):06d}_000000.png"))
+            got.append((p[:, :2] / p[:, 2:], mask, info[im][0], cams[im]))
+    return got
+
+
+@pytest.mark.parametrize("defect", ["principal point + 0.5 px", "rotation transposed", "translation in metres"])
+def test_bop_check_fails_on_a_wrong_convention(datasets, exports, defect):
+    labels = labels_of(datasets["rand"])
+    got = bop_frames(exports["rand", "bop"], defect)
+    worst = max(np.abs(uv - np.asarray(lab["corners_px"])).max() for (uv, *_), (lab, _, _) in zip(got, labels))
+    assert worst > 0.4
+
+
+def test_bop_pose_masks_and_model(datasets, exports):
+    for case in ("rand", "seq"):
+        labels = labels_of(datasets[case])
+        got = bop_frames(exports[case, "bop"])
+        assert len(got) == len(labels)
+        for (uv, mask, inf, cam), (lab, _, fmask) in zip(got, labels):
+            assert np.abs(uv - np.asarray(lab["corners_px"])).max() < 1e-3
+            assert np.array_equal(mask > 0, fmask > 0) and set(np.unique(mask)) <= {0, 255}
+            assert inf["px_count_visib"] == np.count_nonzero(fmask)
+            ys, xs = np.nonzero(fmask)
+            assert inf["bbox_visib"] == [xs.min(), ys.min(), xs.max() - xs.min(), ys.max() - ys.min()]
+            x, y, w, h = inf["bbox_obj"]  # the whole projected model holds the visible part
+            assert x <= xs.min() + 1 and y <= ys.min() + 1 and x + w >= xs.max() - 1 and y + h >= ys.max() - 1
+            assert cam["depth_scale"] == pytest.approx(2.0)  # the factory's 0.002 m per unit, in mm
+    verts = _ply_vertices(os.path.join(exports["rand", "bop"], "models", "obj_000001.ply"))
+    info = json.load(open(os.path.join(exports["rand", "bop"], "models", "models_info.json")))["1"]
+    assert verts.max(axis=0)[0] == pytest.approx(5800.0, abs=0.01)  # the MERIS box's front, mm
+    assert verts.min(axis=0)[0] == pytest.approx(-22000.0, abs=0.01)  # the array's far edge
+    assert info["size_x"] == pytest.approx(27800.0, abs=0.01) and "symmetries_discrete" not in info
+
+
+def _read_gray(path):
+    import cv2
+
+    return cv2.imread(path, cv2.IMREAD_UNCHANGED)
+
+
+def _ply_vertices(path):
+    with open(path) as fh:
+        lines = fh.read().splitlines()
+    n = int(next(ln for ln in lines if ln.startswith("element vertex")).split()[-1])
+    start = lines.index("end_header") + 1
+    return np.array([[float(v) for v in ln.split()] for ln in lines[start:start + n]])
+
+
+# --- COCO: pycocotools -----------------------------------------------------------------------------------------
+
+def coco_codes(lab):
+    vis, frame = np.asarray(lab["visible"]), np.asarray(lab["in_frame"])
+    return np.where(frame & vis, 2, np.where(frame, 1, 0))
+
+
+@pytest.mark.parametrize("case", ["rand", "seq"])
+def test_coco_keypoints_and_oks(datasets, exports, case):
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
+
+    folder = exports[case, "coco"]
+    labels = labels_of(datasets[case])
+    seen = 0
+    for split in ("train", "val"):
+        coco = COCO(os.path.join(folder, "annotations", f"keypoints_{split}.json"))
+        cat = coco.loadCats(coco.getCatIds())[0]
+        assert cat["keypoints"] == list(CORNER_NAMES) and [1, 2] in cat["skeleton"]
+        for img in coco.loadImgs(coco.getImgIds()):
+            lab, _, mask = labels[int(os.path.splitext(os.path.basename(img["file_name"]))[0])]
+            assert os.path.exists(os.path.join(folder, "images", img["file_name"]))
+            ann = coco.loadAnns(coco.getAnnIds(imgIds=img["id"]))[0]
+            kp = np.asarray(ann["keypoints"], float).reshape(-1, 3)
+            codes = coco_codes(lab)
+            assert np.array_equal(kp[:, 2], codes)
+            inside = codes > 0
+            assert np.abs(kp[inside, :2] - np.asarray(lab["corners_px"])[inside]).max() < 0.01
+            assert np.all(kp[~inside, :2] == 0) and ann["num_keypoints"] == inside.sum()
+            ys, xs = np.nonzero(mask)
+            assert ann["bbox"] == [xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1]
+            seen += 1
+        results = [{**a, "score": 1.0} for a in coco.loadAnns(coco.getAnnIds())]
+        ev = COCOeval(coco, coco.loadRes(results), "keypoints")
+        ev.params.kpt_oks_sigmas = np.full(8, 0.025)
+        ev.evaluate()
+        ev.accumulate()
+        ev.summarize()
+        assert ev.stats[0] == pytest.approx(1.0)
+    assert seen == len(labels)
+
+
+# --- YOLO-pose: Ultralytics's rows -------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("case", ["rand", "seq"])
+def test_yolo_pose_rows(datasets, exports, case):
+    folder = exports[case, "yolo-pose"]
+    labels = labels_of(datasets[case])
+    yaml_text = open(os.path.join(folder, "data.yaml")).read()
+    assert "kpt_shape: [8, 3]" in yaml_text and "flip_idx" not in yaml_text.replace("# no flip_idx", "")
+    seen = 0
+    for split in ("train", "val"):
+        for name in sorted(os.listdir(os.path.join(folder, "labels", split))):
+            i = int(os.path.splitext(name)[0])
+            lab, _, mask = labels[i]
+            h, w = mask.shape
+            row = np.array(open(os.path.join(folder, "labels", split, name)).read().split(), float)
+            assert row.size == 5 + 8 * 3 and row[0] == 0
+            kp = row[5:].reshape(8, 3)
+            codes = coco_codes(lab)
+            assert np.array_equal(kp[:, 2], codes)
+            inside = codes > 0
+            uv = kp[:, :2] * [w, h]
+            assert np.abs(uv[inside] - np.asarray(lab["corners_px"])[inside]).max() < 0.01
+            assert np.all(kp[~inside] == 0)
+            ys, xs = np.nonzero(mask)
+            box = row[1:5] * [w, h, w, h]
+            assert box == pytest.approx([(xs.min() + xs.max() + 1) / 2, (ys.min() + ys.max() + 1) / 2,
+                                         xs.max() - xs.min() + 1, ys.max() - ys.min() + 1], abs=1e-3)
+            assert os.path.exists(os.path.join(folder, "images", split, f"{i:06d}.png"))
+            seen += 1
+    assert seen == len(labels)
+
+
+# --- safety -----------------------------------------------------------------------------------------------------
+
+def _left_behind(parent):
+    return [n for n in os.listdir(parent) if n.startswith(".tmp-export-")]
+
+
+def test_interrupted_export_leaves_nothing(datasets, tmp_path):
+    out = tmp_path / "deep" / "out"
+
+    def interrupt(_):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        export_dataset(datasets["rand"], str(out), ExportConfig("bop"), progress=False, on_shard=interrupt)
+    assert os.listdir(tmp_path) == []  # neither the folder, its staging folder, nor the parent made for it
+
+
+def test_damaged_shard_refused_then_skipped(datasets, tmp_path, capsys):
+    src = tmp_path / "src"
+    shutil.copytree(datasets["rand"], src)
+    with open(src / "shard-000001.tar", "r+b") as fh:
+        fh.seek(2000)
+        byte = fh.read(1)
+        fh.seek(2000)
+        fh.write(bytes([byte[0] ^ 0xFF]))
+    out = tmp_path / "out"
+    rc = envisat_main(["dataset", "export", str(src), "--format", "coco", "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "shard-000001.tar" in err[0] and "--skip-damaged" in err[0]
+    assert not out.exists() and _left_behind(tmp_path) == []
+    rc = envisat_main(["dataset", "export", str(src), "--format", "coco", "--out", str(out), "--quiet",
+                       "--skip-damaged", "--workers", "2"])
+    assert rc == 0 and "skipped 1 damaged shard(s): shard-000001.tar" in capsys.readouterr().out
+    record = json.load(open(out / "export.json"))
+    assert record["skipped_damaged_shards"] == ["shard-000001.tar"] and sum(record["images"].values()) == 3
+
+
+def test_existing_out_refused_and_kept(datasets, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mine.txt").write_text("keep me")
+    rc = envisat_main(["dataset", "export", datasets["seq"], "--format", "yolo-pose", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "--out" in err[0] and "not empty" in err[0]
+    assert os.listdir(out) == ["mine.txt"] and _left_behind(tmp_path) == []
+
+
+def test_bad_arguments_one_line(datasets, tmp_path):
+    with pytest.raises(InputError, match="bop needs the dataset's masks|does not exist"):
+        export_dataset(str(tmp_path / "nowhere"), str(tmp_path / "o"), ExportConfig("bop"))
+    with pytest.raises(InputError, match="SHIRT"):
+        export_dataset(datasets["seq"], str(tmp_path / "o"), ExportConfig("speedplus", val_fraction=0.2))
+    assert os.listdir(tmp_path) == []
+
+
+def test_jpg_images(datasets, tmp_path):
+    out = export_dataset(datasets["seq"], str(tmp_path / "j"), ExportConfig("speedplus", image_format="jpg"),
+                         progress=False).out_dir
+    entries = json.load(open(os.path.join(out, "seq", "seq.json")))
+    first = _read_gray(os.path.join(out, "seq", "synthetic", "images", entries[0]["filename"]))
+    assert entries[0]["filename"].endswith(".jpg") and first.shape == (512, 512)
+
+
+def test_another_target_exports_its_own_keypoints(tmp_path):
+    """A shipped non-ENVISAT target (the 3U CubeSat, 12 keypoints): every format carries its K keypoints and its
+    name, and the poses reproject its own 3-D keypoints onto the labels."""
+    from envisat_pose.geometry import model_path
+
+    cube = os.path.join(os.path.dirname(model_path()), "cubesat_3u.xml")
+    src = str(tmp_path / "cube")
+    run_generate(from_dict(GenerateConfig, {"target": cube, "num_images": 3, "shard_size": 3, "resolution_px": 256,
+                                            "seed": 3, "random": {"range_min_m": 4.0, "range_max_m": 7.0,
+                                                                  "keepout_margin_m": 1.0}}), src)
+    labels = [lab for _, lab, _ in iter_samples(src)]
+    names = labels[0]["keypoint_names"]
+    assert len(names) == 12
+    outs = {f: export_dataset(src, str(tmp_path / f), ExportConfig(f, val_fraction=0.0), progress=False).out_dir
+            for f in FORMATS}
+    camera, points, entries, _ = speedplus_errors_px(outs["speedplus"])
+    assert points.shape == (3, 12)
+    for e, lab in zip(sorted(entries, key=lambda e: e["filename"]), labels):
+        uv = spnv2_project(e["q_vbs2tango_true"], e["r_Vo2To_vbs_true"], camera, points)
+        assert np.abs(uv - np.asarray(lab["keypoints_px"])).max() < 1e-3
+    coco = json.load(open(os.path.join(outs["coco"], "annotations", "keypoints_train.json")))
+    assert coco["categories"][0]["name"] == "cubesat_3u" and coco["categories"][0]["keypoints"] == names
+    for ann, lab in zip(coco["annotations"], labels):
+        kp = np.asarray(ann["keypoints"], float).reshape(-1, 3)
+        inside = kp[:, 2] > 0
+        assert kp.shape == (12, 3) and np.abs(kp[inside, :2] - np.asarray(lab["keypoints_px"])[inside]).max() < 0.01
+    assert "kpt_shape: [12, 3]" in open(os.path.join(outs["yolo-pose"], "data.yaml")).read()
+    bop_kp = json.load(open(os.path.join(outs["bop"], "models", "keypoints_3d.json")))["1"]
+    assert bop_kp["names"] == names and np.allclose(np.asarray(bop_kp["points_mm"]).T, points * 1000.0)
+    assert json.load(open(os.path.join(outs["bop"], "export.json")))["target"] == "cubesat_3u"

@@ -1,0 +1,84 @@
+"""`envisat train --online` (issue 38): the trainer on frames rendered as training goes, end to end on the CPU: a
+stopped run resumes where it stopped and ends with the weights of an uninterrupted one, no frame is cropped
+more than K times, the record names the source; the verb refuses --data with --online."""
+
+import json
+import os
+
+import pytest
+import torch
+
+from envisat_pose.app.cli import main
+from envisat_pose.datagen.generate_config import GenerateConfig
+from envisat_pose.perception.data import DataConfig
+from envisat_pose.perception.model import ModelConfig
+from envisat_pose.perception.train import TrainConfig
+from envisat_pose.perception.weights import read_weights
+from envisat_pose.pipelines.detector.train import OnlineConfig, train_detector
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+
+def small(steps):
+    return TrainConfig(steps=steps, batch_size=2, warmup_steps=1, checkpoint_every=10 ** 6,
+                       model=ModelConfig(input_px=64, width=16, depth=2, stem_width=8),
+                       data=DataConfig(input_px=64))
+
+
+def online():
+    return OnlineConfig(GenerateConfig(mode="random", resolution_px=128, seed=5, earth_probability=0.0),
+                        workers=1, uses_per_frame=2)
+
+
+def test_an_online_run_resumes_to_the_weights_of_an_uninterrupted_one(tmp_path):
+    torch.set_num_threads(1)
+    whole, part = str(tmp_path / "whole"), str(tmp_path / "part")
+    end = train_detector(small(4), [], whole, online=online(), progress=False)
+    assert end["step"] == 4 and end["uses_per_frame"] == 2 and end["max_uses"] == 2
+    train_detector(small(2), [], part, online=online(), progress=False)
+    state = json.load(open(os.path.join(part, "state.json")))
+    assert state["online"]["step"] == 2 and state["online"]["next_frame"] == 2  # 2 frames a step, each used twice
+    train_detector(small(4), [], part, resume=True, online=online(), progress=False)
+    a, _ = read_weights(os.path.join(whole, "checkpoint.safetensors"))
+    b, _ = read_weights(os.path.join(part, "checkpoint.safetensors"))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    record = json.load(open(os.path.join(whole, "config.json")))
+    assert record["online"]["uses_per_frame"] == 2 and record["data"][0]["name"] == "online (default 100 %, K = 2)"
+
+
+def test_the_verb_takes_data_or_online_not_both(tmp_path, capsys):
+    assert main(["train", "--data", str(tmp_path), "--online", "--out", str(tmp_path / "r"), "--quiet"]) == 2
+    assert "not both" in capsys.readouterr().err
+    assert main(["train", "--out", str(tmp_path / "r"), "--quiet"]) == 2
+    assert "--online" in capsys.readouterr().err
+    with pytest.raises(Exception, match="uses_per_frame"):
+        OnlineConfig(GenerateConfig(mode="random"), uses_per_frame=9)
+
+
+@pytest.mark.slow  # renders two looks at two sizes (~10 s)
+def test_the_verb_trains_on_a_mix_of_looks_and_resumes_only_its_own(tmp_path, capsys):
+    """`envisat train --online --looks`: a mix of a random look and a scenario's sequence at two sizes trains and
+    records its looks; --resume goes on with them, and refuses a different looks file."""
+    cfg = tmp_path / "train.toml"
+    cfg.write_text("warmup_steps = 1\ncheckpoint_every = 1000000\n[model]\ninput_px = 64\nwidth = 16\ndepth = 2\n"
+                   "stem_width = 8\n[data]\ninput_px = 64\n")
+    looks = tmp_path / "looks.toml"
+    looks.write_text('seed = 3\nearth_probability = 0.0\n[appearance]\ntexture_set_size = 1\n'
+                     '[[look]]\nname = "random"\nweight = 2\nresolution_px = 128\n'
+                     '[[look]]\nname = "slow"\nmode = "sequence"\nresolution_px = 96\nnum_images = 5\n'
+                     '[look.sequence]\nscenario = "slow-tumble"\nframe_dt_s = 4.0\n')
+    run = str(tmp_path / "run")
+    common = ["--out", run, "--config", str(cfg), "--batch-size", "2", "--render-workers", "1", "--quiet"]
+    assert main(["train", "--online", "--looks", str(looks), "--uses-per-frame", "2", "--steps", "2", *common]) == 0
+    record = json.load(open(os.path.join(run, "config.json")))
+    assert [(look["name"], look["share"]) for look in record["online"]["looks"]] == [("random", 67), ("slow", 33)]
+    assert record["online"]["looks"][1]["generate"]["sequence"]["scenario"] == "slow-tumble"
+    capsys.readouterr()
+    assert main(["train", "--resume", "--steps", "3", *common]) == 0
+    assert json.load(open(os.path.join(run, "state.json")))["step"] == 3
+    other = tmp_path / "other.toml"
+    other.write_text(looks.read_text().replace("weight = 2", "weight = 5"))
+    assert main(["train", "--resume", "--steps", "4", "--looks", str(other), *common]) == 2
+    err = capsys.readouterr().err
+    assert "online (random 67 %, slow 33 %, K = 2)" in err and "random 83 %" in err and "Traceback" not in err
+    assert json.load(open(os.path.join(run, "state.json")))["step"] == 3

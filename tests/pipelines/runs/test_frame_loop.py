@@ -1,0 +1,85 @@
+"""The per-frame loop shared by `envisat run` and `envisat track` (pipelines/runs/frame_loop.py), with a fake tracker
+and recorder: what it stores per frame, the stage times by name, and that the recorder is closed on an error."""
+
+import os
+
+import numpy as np
+import pytest
+
+from envisat_pose.pipelines.runs.frame_loop import FrameInput, run_frames
+from envisat_pose.pipelines.runs.rows import STAGES, RunRows
+from envisat_pose.pipelines.tracking.tracker import TrackEstimate
+from envisat_pose.status import STATUSES
+
+
+class FakeTracker:
+    """A pose (x_hat = t_s) on frames with an image, none on frames without; detection 0.25 s where it detects."""
+
+    def __init__(self, fail_at=None):
+        self.calls, self.fail_at = [], fail_at
+
+    def step(self, t_s, image):
+        self.calls.append((t_s, image is None))
+        if t_s == self.fail_at:
+            raise RuntimeError("tracker failed")
+        seen = image is not None
+        timing = {"detection": 0.25, "filtering": 0.5} if seen else {"filtering": 0.125}
+        return TrackEstimate(t_s=t_s, status="tracking" if seen else "coasting", x_hat=np.full(12, t_s),
+                             P=np.eye(12), hypotheses=np.zeros((1, 12)), probabilities=np.ones(1), detection=None,
+                             naming=0, measured=np.zeros(8, bool), rejected=np.zeros(8, bool), nis=1.0, nis_dof=2,
+                             roi_px=None, converged=True, timing_s=timing)
+
+
+class FakeRecorder:
+    def __init__(self):
+        self.frames, self.closed = [], False
+
+    def log_frame(self, k, est, image, jpeg_quality, x_true=None, corners_true_px=None, in_frame=None):
+        self.frames.append((k, est["t_s"], image is None, jpeg_quality, x_true))
+
+    def close(self):
+        self.closed = True
+
+
+def frames(n=3, dark=(1,)):
+    image = np.zeros((4, 4), np.uint8)
+    for k in range(n):
+        yield FrameInput(k, 0.5 * k, None if k in dark else image, (0.01 * k, 0.02, 0.03), x_true=np.full(12, k))
+
+
+def test_the_loop_fills_each_row_and_its_stage_times_by_name(tmp_path):
+    """Three frames (the second without an image) over chunks of two: the rows on file hold each estimate, the
+    skipped frame, and the stage times in STAGES' columns; the reductions sum them; the recorder saw every frame."""
+    run_dir = str(tmp_path / "run")
+    tracker, recorder = FakeTracker(), FakeRecorder()
+    sums = run_frames(tracker, frames(), RunRows(run_dir, 3, chunk=2), recorder, jpeg_quality=55)
+    assert tracker.calls == [(0.0, False), (0.5, True), (1.0, False)]
+    col = {k: np.load(os.path.join(run_dir, f"{k}.npy")) for k in ("x_hat", "status", "skipped", "timing_s")}
+    assert col["x_hat"][:, 0].tolist() == [0.0, 0.5, 1.0]
+    assert [STATUSES[s] for s in col["status"]] == ["tracking", "coasting", "tracking"]
+    assert col["skipped"].tolist() == [False, True, False]
+    t = col["timing_s"]
+    assert t[:, STAGES.index("simulation")].tolist() == [0.0, 0.01, 0.02]
+    assert (t[:, STAGES.index("rendering")] == 0.02).all() and (t[:, STAGES.index("camera")] == 0.03).all()
+    assert t[:, STAGES.index("detection")].tolist() == [0.25, 0.0, 0.25]  # none timed on the skipped frame
+    assert t[:, STAGES.index("filtering")].tolist() == [0.5, 0.125, 0.5]
+    assert (t[:, STAGES.index("recording")] >= 0).all()
+    assert sums["frames"] == 3 and sums["frames_skipped_eclipse"] == 1
+    assert np.allclose(sums["timing_s"], t.sum(axis=0))
+    assert [f[:4] for f in recorder.frames] == [(0, 0.0, False, 55), (1, 0.5, True, 55), (2, 1.0, False, 55)]
+    assert recorder.frames[2][4][0] == 2.0 and recorder.closed
+
+
+def test_an_error_in_a_frame_still_closes_the_recorder(tmp_path):
+    recorder = FakeRecorder()
+    with pytest.raises(RuntimeError, match="tracker failed"):
+        run_frames(FakeTracker(fail_at=0.5), frames(), RunRows(str(tmp_path / "run"), 3), recorder)
+    assert recorder.closed and len(recorder.frames) == 1
+
+
+def test_without_a_recorder_the_rows_are_still_filled(tmp_path):
+    """Without a recorder (the runs after run 0 of `envisat run`), with a progress bar."""
+    run_dir = str(tmp_path / "run")
+    sums = run_frames(FakeTracker(), frames(dark=()), RunRows(run_dir, 3), progress="test frames")
+    assert sums["frames_skipped_eclipse"] == 0
+    assert np.load(os.path.join(run_dir, "x_hat.npy"))[:, 0].tolist() == [0.0, 0.5, 1.0]
