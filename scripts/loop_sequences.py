@@ -1,6 +1,6 @@
 """Held-out sequences in the closed loop's own regime, for the detector's error model (`envisat calibrate
 --held-out`): for each (scenario, seed), the frames `envisat run` would render for that scenario and seed with the
-seed's lit sun (the image table of bench/tracking.py's run config: pipelines.trials.scenario_sun_N, within a 90 deg
+seed's lit sun (the image table of bench/tracking.py's run config: pipelines.runs.trials.scenario_sun_N, within a 90 deg
 phase angle), cut to --frames, written by `envisat generate` as DIR/SCENARIO-SEED. Each dataset keeps its
 generate.config.toml, so `envisat generate --config DIR/SCENARIO-SEED/generate.config.toml --out ...` makes it again.
 
