@@ -25,15 +25,15 @@ import numpy as np
 from envisat_pose.config import InputError, check
 from envisat_pose.datagen import export_formats as fx
 from envisat_pose.datagen.generate_config import config_from_json
-from envisat_pose.datagen.target_mesh import ply_bytes, target_mesh
-from envisat_pose.datagen.target_model import load_target
-from envisat_pose.geometry import CORNER_NAMES, load_camera, load_geometry
+from envisat_pose.geometry import load_camera
 from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pipelines.common.dataset_inputs import skip_hint
 from envisat_pose.pipelines.datasets import export_layouts as lay
 from envisat_pose.pipelines.datasets.export_readme import readme_text
 from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
 from envisat_pose.shard_reader import checked_shards, read_shard
+from envisat_pose.target import load_target
+from envisat_pose.target_mesh import ply_bytes
 
 STAGE_PREFIX = ".tmp-export-"
 
@@ -128,14 +128,10 @@ def _layout(cfg: ExportConfig, gen, src: str, manifest: dict) -> lay.Layout:
     """What every sample shares: the target's keypoints and model outline from its MJCF, the sequence's name."""
 
     target = _dataset_target(src, gen, manifest)
-    path = target.path
-    mesh = target_mesh(path, gen.appendages_on) if cfg.fmt in ("bop", "coco", "yolo-pose") else None
+    mesh = target.mesh(gen.appendages_on) if cfg.fmt in ("bop", "coco", "yolo-pose") else None
     name = re.sub(r"[^A-Za-z0-9_.-]+", "_", os.path.basename(os.path.normpath(os.path.abspath(src)))) or "sequence"
     depth_mm = gen.depth_scale_m * 1000.0 if gen.write_depth else None
-    if target.is_envisat:
-        names, points = tuple(CORNER_NAMES), load_geometry(path).corners_T_m.tolist()
-    else:
-        names, points = target.keypoint_names, target.keypoints_T_m.tolist()
+    names, points = target.keypoint_names, target.keypoints_T_m.tolist()
     return lay.Layout(cfg.fmt, cfg.image_format, gen.mode, name, target.name, names, points,
                       mesh.vertices_T_m.tolist() if mesh is not None else [], depth_mm)
 
@@ -219,7 +215,7 @@ def _write_static(layout: lay.Layout, stage: str, gen, manifest: dict, has_val: 
 
 
 def _write_bop_model(layout: lay.Layout, stage: str, gen, K: np.ndarray) -> None:
-    mesh = target_mesh(load_target(gen.target).path, gen.appendages_on)
+    mesh = load_target(gen.target).mesh(gen.appendages_on)
     folder = os.path.join(stage, "models")
     os.makedirs(folder, exist_ok=True)
     with open(os.path.join(folder, "obj_000001.ply"), "wb") as fh:

@@ -1,6 +1,7 @@
-"""The target's surface as one triangle mesh in its body frame T, from its MJCF file (the one source of the
-target's geometry): what a 6-D pose format ships as the object model (BOP's models/obj_000001.ply) and what an
-object's projected outline is computed from.
+"""The target's surface as one triangle mesh in its body frame T, from its compiled MJCF model (the one source of
+the target's geometry, read by envisat_pose.target): what a 6-D pose format ships as the object model (BOP's
+models/obj_000001.ply), what an object's projected outline is computed from, and where the target's skeleton and
+symmetries are read.
 
 Every geom of body `target` becomes triangles in T (metres): boxes exactly (8 vertices), cylinders and capsules as
 32-sided prisms, spheres and ellipsoids as 16 x 32 latitude-longitude grids, meshes as compiled (MuJoCo stores a
@@ -9,14 +10,12 @@ mesh's vertices in the mesh's own frame; the geom's pose puts them in T). Planes
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
 
 from envisat_pose.attitude import quat_to_rotmat
 
-APPENDAGE_GROUP = 4  # geom group of the clutter `appendages` switches on (models/envisat.xml)
 _SIDES = 32  # polygon sides of a round geom's cross-section
 _RINGS = 16  # latitude rings of a sphere or an ellipsoid
 
@@ -91,28 +90,72 @@ def _geom_mesh(model, g: int) -> TriangleMesh | None:
     return None
 
 
-@functools.lru_cache(maxsize=8)
-def target_mesh(model_path: str, appendages: bool) -> TriangleMesh:
-    """The surface of body `target` of the MJCF at model_path in T, m: every geom MuJoCo renders in the
-    factory's scene (the appendages' group too when `appendages`). Cached: treat the arrays as read-only."""
-    import mujoco
+@dataclass(frozen=True)
+class BodyMesh:
+    """The triangles of every geom of a body, in T. mesh: all of them; face_geom: (F,) the index (into the body's
+    geoms, file order) of each triangle's geom."""
 
-    model = mujoco.MjModel.from_xml_path(model_path)
-    body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "target")
-    if body < 0:
-        raise ValueError(f"{model_path}: no body named 'target'")
-    verts, faces, n = [], [], 0
-    for g in np.flatnonzero(model.geom_bodyid == body):
-        if int(model.geom_group[g]) == APPENDAGE_GROUP and not appendages:
-            continue
+    mesh: TriangleMesh
+    face_geom: np.ndarray
+
+    def select(self, keep_geoms: np.ndarray) -> TriangleMesh:
+        """The triangles of the geoms where keep_geoms (G,) bool is set, and only the vertices they use."""
+        faces = self.mesh.faces[np.asarray(keep_geoms, bool)[self.face_geom]]
+        used, inverse = np.unique(faces, return_inverse=True)
+        return TriangleMesh(self.mesh.vertices_T_m[used], inverse.reshape(faces.shape))
+
+
+def body_mesh(model, body: int) -> BodyMesh:
+    """The surface of one body of a compiled MuJoCo model in the body's frame, m: every geom MuJoCo can draw
+    (planes and height fields skipped), in the body's geom order."""
+    verts, faces, owner, n = [np.zeros((0, 3))], [np.zeros((0, 3), int)], [np.zeros(0, int)], 0
+    for i, g in enumerate(np.flatnonzero(model.geom_bodyid == body)):
         part = _geom_mesh(model, int(g))
         if part is None:
             continue
         R_T_from_geom = quat_to_rotmat(model.geom_quat[g])
         verts.append(part.vertices_T_m @ R_T_from_geom.T + model.geom_pos[g])
         faces.append(part.faces + n)
+        owner.append(np.full(len(part.faces), i))
         n += len(part.vertices_T_m)
-    return TriangleMesh(np.vstack(verts), np.vstack(faces))
+    return BodyMesh(TriangleMesh(np.vstack(verts), np.vstack(faces)), np.concatenate(owner))
+
+
+def feature_edges(mesh: TriangleMesh, min_angle_deg: float = 20.0, merge_m: float = 1e-6) -> tuple[np.ndarray,
+                                                                                                   np.ndarray]:
+    """The mesh's sharp edges: (points (P, 3) m, edges (E, 2) indices into points). Vertices closer than merge_m
+    are one point; an edge is sharp where its two triangles' normals differ by more than min_angle_deg or where it
+    borders one triangle only (a polygon's sides meeting at less than the angle, a cylinder's wall, are not)."""
+    v = mesh.vertices_T_m
+    keys = np.round(v / merge_m).astype(np.int64)
+    points_key, index = np.unique(keys, axis=0, return_inverse=True)
+    index = index.reshape(-1)
+    points = np.zeros((len(points_key), 3))
+    np.add.at(points, index, v)
+    points /= np.bincount(index, minlength=len(points))[:, None]
+    tri = index[mesh.faces]
+    n = np.cross(points[tri[:, 1]] - points[tri[:, 0]], points[tri[:, 2]] - points[tri[:, 0]])
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 0
+    tri, n = tri[ok], n[ok] / norm[ok, None]
+    sides = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    owner = np.tile(np.arange(len(tri)), 3)
+    sides_sorted = np.sort(sides, axis=1)
+    order = np.lexsort((sides_sorted[:, 1], sides_sorted[:, 0]))
+    sides_sorted, owner = sides_sorted[order], owner[order]
+    start = np.r_[True, np.any(sides_sorted[1:] != sides_sorted[:-1], axis=1)]
+    group = np.cumsum(start) - 1
+    cos_min = np.cos(np.radians(min_angle_deg))
+    sharp = np.zeros(group[-1] + 1 if len(group) else 0, bool)
+    first = np.flatnonzero(start)
+    counts = np.diff(np.r_[first, len(group)])
+    sharp[counts == 1] = True
+    two = np.flatnonzero(counts == 2)
+    sharp[two] = np.einsum("ij,ij->i", n[owner[first[two]]], n[owner[first[two] + 1]]) < cos_min
+    for g in np.flatnonzero(counts > 2):  # where more than two meet: any pair bent by more than the angle
+        normals = n[owner[first[g]:first[g] + counts[g]]]
+        sharp[g] = np.min(normals @ normals.T) < cos_min
+    return points, sides_sorted[first[sharp]]
 
 
 def ply_bytes(mesh: TriangleMesh, scale: float = 1.0) -> bytes:

@@ -1,0 +1,314 @@
+"""The target: one spacecraft, read once from its MJCF file into one `Target` that every layer takes.
+
+A target file's worldbody holds one body named `target` with its <inertial> (mass, inertia about the centre of
+mass at the body's origin), its geoms and materials, and its keypoints as the body's sites `kp_<name>` in file
+order (a file with none takes its `corner_<name>` sites: models/envisat.xml's corners A-H). The body frame of the
+file is the frame T of the labels, the truth and the filter. The file is read by MuJoCo itself (MjSpec), so its own
+<compiler> (angle unit, eulerseq, meshdir, texturedir), defaults and assets give the shape MuJoCo gives it alone.
+
+ENVISAT (models/envisat.xml) is the default target. Whether a target is ENVISAT is asked here only
+(`Target.is_default`, the `require_default*` checks of the verbs whose detector or filter know ENVISAT alone):
+the architecture test refuses the question anywhere else.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from envisat_pose.attitude import quat_to_rotmat
+from envisat_pose.config import ConfigError
+from envisat_pose.geometry import model_path
+from envisat_pose.target_mesh import BodyMesh, TriangleMesh, body_mesh, feature_edges
+from envisat_pose.target_shape import Symmetry, skeleton, symmetries, triangle_distances
+
+DEFAULT_TARGET = "models/envisat.xml"  # the default `target` of every config (the package's file)
+KEYPOINT_PREFIX = "kp_"
+SCENE_KEYPOINT_PREFIX = "corner_"  # the keypoint sites of a file with no kp_ sites (models/envisat.xml)
+SCENE_CAMERA = "chaser_cam"  # a file holding this camera is the factory's whole scene (models/envisat.xml)
+MIN_KEYPOINTS = 4
+KEYPOINT_MAX_SURFACE_DISTANCE_M = 0.05  # a keypoint farther than this from the target's surface is refused
+RENDERED_GROUPS = (0, 1, 2)  # geom groups the factory always draws (MuJoCo's default visual groups)
+APPENDAGE_GROUP = 4  # geom group of the clutter the `appendages` switch draws (models/envisat.xml)
+RAY_ABS_TOL_M = 1e-4  # a surface this much nearer than a keypoint (plus 1e-6 of its range) does not hide it
+
+
+@dataclass(frozen=True)
+class TargetGeom:
+    """One geom of body `target`: name (its own, or target_geom_<i>), MuJoCo type name, group, material name
+    ('' for none) and rgb (3,) of its material (or its own rgba)."""
+
+    name: str
+    type: str
+    group: int
+    material: str
+    rgb: tuple[float, float, float]
+
+
+@dataclass(frozen=True, eq=False)
+class Target:
+    """A checked target file, read once.
+
+    name: the file's model name (<mujoco model=...>) or its stem. path: absolute. sha256: of the file's bytes.
+    keypoint_names (K,), keypoint_sites (K,) their MJCF site names; keypoints_T_m (K, 3) in T, m. mass_kg;
+    inertia_T_kg_m2 (3, 3) about the CoM in T. reach_m: the farthest point of its surface from the CoM. geoms:
+    (G,) TargetGeom, file order. surface: the triangles of every geom in T (target_mesh.BodyMesh). skeleton:
+    keypoint pairs (i, j) joined along the geometry's sharp edges. symmetries: the rotations that map the keypoint
+    set onto itself (target_shape.Symmetry: whether the shape and the materials keep each). own_scene: the file
+    holds the factory's camera, so it is rendered as it is.
+    """
+
+    name: str
+    path: str
+    sha256: str
+    keypoint_names: tuple[str, ...]
+    keypoint_sites: tuple[str, ...]
+    keypoints_T_m: np.ndarray
+    mass_kg: float
+    inertia_T_kg_m2: np.ndarray
+    reach_m: float
+    geoms: tuple[TargetGeom, ...]
+    surface: BodyMesh
+    skeleton: tuple[tuple[int, int], ...]
+    symmetries: tuple[Symmetry, ...]
+    own_scene: bool
+
+    @property
+    def is_default(self) -> bool:
+        """The package's ENVISAT (the default target)."""
+        return os.path.realpath(self.path) == os.path.realpath(model_path())
+
+    @property
+    def num_keypoints(self) -> int:
+        return len(self.keypoint_names)
+
+    def record(self, given: str) -> dict:
+        """What a dataset's manifest records of its target: the path as given, the name, sha256, keypoints."""
+        return {"file": given, "name": self.name, "sha256": self.sha256, "keypoint_names": list(self.keypoint_names)}
+
+    def drawn(self, appendages: bool = False) -> np.ndarray:
+        """(G,) bool: the geoms the factory draws (RENDERED_GROUPS, and APPENDAGE_GROUP with `appendages`)."""
+        groups = set(RENDERED_GROUPS) | ({APPENDAGE_GROUP} if appendages else set())
+        return np.array([g.group in groups for g in self.geoms], bool)
+
+    def mesh(self, appendages: bool = False) -> TriangleMesh:
+        """The drawn surface in T (drawn)."""
+        return self.surface.select(self.drawn(appendages))
+
+    def visible(self, R_K_from_T: np.ndarray, t_K_from_T_m: np.ndarray, appendages: bool = False) -> np.ndarray:
+        """Exact visibility of each keypoint from the camera at pose (R_K_from_T (3, 3), t_K_from_T_m (3,)): the
+        ray from the camera's centre to the keypoint meets no drawn geom of the target before it (MuJoCo's own
+        ray-geom intersections, less RAY_ABS_TOL_M plus 1e-6 of the range), and the keypoint lies in front of the
+        camera. Not the image bounds (labels.in_frame). (K,) bool."""
+        c_T = -np.asarray(R_K_from_T, float).T @ np.asarray(t_K_from_T_m, float)
+        z = self.keypoints_T_m @ np.asarray(R_K_from_T, float)[2] + float(t_K_from_T_m[2])
+        hits = ray_hits_m(self.path, self.sha256, c_T, self.keypoints_T_m, self.drawn(appendages))
+        rng = np.linalg.norm(self.keypoints_T_m - c_T, axis=1)
+        return (hits >= rng - (RAY_ABS_TOL_M + 1e-6 * rng)) & (z > 0)
+
+
+# ---------------------------------------------------------------- ray casts through the target alone
+
+
+@functools.lru_cache(maxsize=16)
+def _alone(path: str, sha256: str):
+    """(model, data, the target's geom ids (G,), R_W_from_T (3, 3), p_W (3,)) of the file compiled alone, its
+    kinematics done: the frame the rays are cast in."""
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_path(path)
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    body = model.body("target").id
+    return (model, data, np.flatnonzero(model.geom_bodyid == body), data.xmat[body].reshape(3, 3).copy(),
+            data.xpos[body].copy())
+
+
+def ray_hits_m(path: str, sha256: str, origin_T_m: np.ndarray, points_T_m: np.ndarray,
+               geoms_on: np.ndarray) -> np.ndarray:
+    """Distance along each ray from origin_T_m (3,) toward points_T_m (N, 3) to the first geom of the target
+    where geoms_on (G,) is set (MuJoCo's mju_rayGeom / mj_rayMesh), m; inf where the ray meets none. (N,)."""
+    import mujoco
+
+    model, data, geom_ids, R_W_T, p_W = _alone(path, sha256)
+    pnt = p_W + R_W_T @ np.asarray(origin_T_m, float)
+    out = np.full(len(points_T_m), np.inf)
+    for n, x in enumerate(np.asarray(points_T_m, float)):
+        d = R_W_T @ (x - origin_T_m)
+        vec = d / np.linalg.norm(d)
+        for g, on in zip(geom_ids, geoms_on):
+            if not on:
+                continue
+            if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH:
+                hit = mujoco.mj_rayMesh(model, data, int(g), pnt, vec)
+            else:
+                hit = mujoco.mju_rayGeom(data.geom_xpos[g], data.geom_xmat[g], model.geom_size[g], pnt, vec,
+                                         int(model.geom_type[g]))
+            if hit >= 0:
+                out[n] = min(out[n], hit)
+    return out
+
+
+# ---------------------------------------------------------------- reading the file
+
+
+def resolve_target_path(given: str) -> str:
+    """The file a `target` value names: DEFAULT_TARGET is the package's models/envisat.xml (ENVISAT_MODEL
+    overrides it); any other path is taken as it is (relative to the working folder), or, when no such file
+    exists and it starts with 'models/', the package's models folder."""
+    if given == DEFAULT_TARGET:
+        return os.path.abspath(model_path())
+    if not os.path.exists(given) and given.startswith("models/"):
+        packaged = os.path.join(os.path.dirname(model_path()), given[len("models/"):])
+        if os.path.exists(packaged):
+            return os.path.abspath(packaged)
+    return os.path.abspath(given)
+
+
+def _fail(field: str, given: str, expected: str):
+    raise ConfigError(field, given, expected)
+
+
+def check_inertia(mass_kg: float, inertia: np.ndarray) -> str | None:
+    """What is wrong with a rigid body's mass properties, or None: zero or negative mass, an inertia that is not
+    symmetric positive definite, or principal moments that violate the triangle inequality (I1 <= I2 + I3)."""
+    if not mass_kg > 0:
+        return f"a positive mass (got {mass_kg:g} kg)"
+    moments = np.linalg.eigvalsh(0.5 * (inertia + inertia.T))
+    if not np.all(moments > 0):
+        return f"a positive definite inertia (principal moments {np.round(moments, 6).tolist()} kg m^2)"
+    a, b, c = sorted(moments)
+    if c > a + b + 1e-9 * c:
+        return f"principal moments that satisfy the triangle inequality (I3 = {c:g} > I1 + I2 = {a + b:g} kg m^2)"
+    return None
+
+
+def _spec_inertia(body) -> np.ndarray:
+    """The inertia a body's <inertial> states, in its principal or full form (orientation aside: the checks read
+    only its eigenvalues)."""
+    full = np.asarray(body.fullinertia, float)
+    if not np.isnan(full[0]):
+        xx, yy, zz, xy, xz, yz = full
+        return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+    return np.diag(np.asarray(body.inertia, float))
+
+
+def _read_spec(path: str, field: str, given: str):
+    """MuJoCo's reading of the file (its own compiler settings) and its body `target`, checked for structure."""
+    import mujoco
+
+    try:
+        spec = mujoco.MjSpec.from_file(path)
+    except ValueError as err:
+        _fail(field, given, f"an MJCF file MuJoCo reads (it says: {' '.join(str(err).split())})")
+    body = spec.body("target")
+    if body is None:
+        _fail(field, given, "an MJCF file whose worldbody holds a body named 'target'")
+    own_scene = spec.camera(SCENE_CAMERA) is not None
+    joints = [j for j in body.joints]
+    if body.bodies or (joints and not own_scene):
+        _fail(field, given, "one rigid body 'target' (no child bodies, no joints: the scene adds its free joint)")
+    if not body.explicitinertial:
+        _fail(field, given, "an <inertial> element on body 'target' (mass and full inertia about the CoM)")
+    problem = check_inertia(float(body.mass), _spec_inertia(body))
+    if problem is not None:
+        _fail(field, given, f"body 'target' with {problem}")
+    return spec, own_scene
+
+
+def _keypoint_sites(model, body: int) -> tuple[tuple[str, ...], tuple[str, ...], np.ndarray]:
+    """(names, site names, (K, 3) positions in T) of the body's kp_ sites, else its corner_ sites."""
+    sites = [s for s in range(model.nsite) if model.site_bodyid[s] == body]
+    for prefix in (KEYPOINT_PREFIX, SCENE_KEYPOINT_PREFIX):
+        chosen = [s for s in sites if model.site(s).name.startswith(prefix)]
+        if chosen:
+            return (tuple(model.site(s).name[len(prefix):] for s in chosen), tuple(model.site(s).name for s in chosen),
+                    np.array([model.site_pos[s] for s in chosen], float))
+    return (), (), np.zeros((0, 3))
+
+
+def _geoms(model, body: int) -> tuple[TargetGeom, ...]:
+    import mujoco
+
+    out = []
+    for i, g in enumerate(np.flatnonzero(model.geom_bodyid == body)):
+        mat = int(model.geom_matid[g])
+        rgb = model.mat_rgba[mat][:3] if mat >= 0 else model.geom_rgba[g][:3]
+        out.append(TargetGeom(model.geom(g).name or f"target_geom_{i}",
+                              mujoco.mjtGeom(int(model.geom_type[g])).name.removeprefix("mjGEOM_").lower(),
+                              int(model.geom_group[g]), model.material(mat).name if mat >= 0 else "",
+                              tuple(float(v) for v in rgb)))
+    return tuple(out)
+
+
+def _model_name(spec, path: str) -> str:
+    """The file's <mujoco model=...>, or its file name's stem where it has none."""
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        head = fh.read(4096)
+    stated = "model=" in head.split("<mujoco", 1)[-1].split(">", 1)[0] if "<mujoco" in head else False
+    return spec.modelname if stated and spec.modelname else os.path.splitext(os.path.basename(path))[0]
+
+
+@functools.lru_cache(maxsize=16)
+def _load(path: str, mtime_ns: int, size: int, field: str, given: str) -> Target:
+    with open(path, "rb") as fh:
+        sha256 = hashlib.sha256(fh.read()).hexdigest()
+    spec, own_scene = _read_spec(path, field, given)
+    try:
+        model = spec.compile()
+    except ValueError as err:
+        _fail(field, given, f"an MJCF file MuJoCo compiles (it says: {' '.join(str(err).split())})")
+    body = model.body("target").id
+    if not np.allclose(model.body_ipos[body], 0.0, atol=1e-9):
+        _fail(field, given, f"the centre of mass at the body's origin (<inertial pos='0 0 0'>, got "
+                            f"{model.body_ipos[body].tolist()}): T's origin is the CoM")
+    names, sites, X = _keypoint_sites(model, body)
+    if len(names) < MIN_KEYPOINTS:
+        _fail(field, given, f"at least {MIN_KEYPOINTS} keypoint sites named '{KEYPOINT_PREFIX}<name>' on body "
+                            f"'target' (found {len(names)})")
+    if len(set(names)) != len(names):
+        _fail(field, given, f"keypoint sites with distinct names (got {list(names)})")
+    R = quat_to_rotmat(model.body_iquat[body])
+    inertia = R @ np.diag(model.body_inertia[body]) @ R.T
+    geoms = _geoms(model, body)
+    surface = body_mesh(model, body)
+    if len(surface.mesh.faces) == 0:
+        _fail(field, given, "geoms with a surface on body 'target' (boxes, cylinders, spheres, meshes...)")
+    dist = triangle_distances(X, surface.mesh.vertices_T_m[surface.mesh.faces]).min(axis=1)
+    k = int(np.argmax(dist))
+    if dist[k] > KEYPOINT_MAX_SURFACE_DISTANCE_M:
+        _fail(field, given, f"keypoints on the target: site {sites[k]!r} is {dist[k]:.3f} m from every geom "
+                            f"(at most {KEYPOINT_MAX_SURFACE_DISTANCE_M:g} m)")
+    reach = float(np.linalg.norm(surface.mesh.vertices_T_m, axis=1).max())
+    drawn = np.array([g.group in RENDERED_GROUPS for g in geoms], bool)
+    drawn_mesh = surface.select(drawn)
+    points, edges = feature_edges(drawn_mesh)
+    face_rgb = np.array([geoms[g].rgb for g in surface.face_geom[drawn[surface.face_geom]]], float).reshape(-1, 3)
+    return Target(
+        name=_model_name(spec, path),
+        path=path, sha256=sha256, keypoint_names=names, keypoint_sites=sites, keypoints_T_m=X,
+        mass_kg=float(model.body_mass[body]), inertia_T_kg_m2=inertia, reach_m=reach, geoms=geoms,
+        surface=surface, skeleton=skeleton(X, points, edges, reach),
+        symmetries=symmetries(X, drawn_mesh, face_rgb, reach), own_scene=own_scene)
+
+
+def load_target(given: str = DEFAULT_TARGET, field: str = "target") -> Target:
+    """The checked target of a config's `target` value (a path; DEFAULT_TARGET is the package's ENVISAT).
+    ConfigError naming `field`, the value and what was expected: no such file, a file MuJoCo cannot read or
+    compile, no body 'target', a body with children or joints, no or a bad inertial (zero mass, not positive
+    definite, the triangle inequality), the CoM off the body's origin, fewer than 4 keypoint sites, a keypoint
+    farther than KEYPOINT_MAX_SURFACE_DISTANCE_M from the surface. Cached per file, size and modification time."""
+    path = resolve_target_path(given)
+    if not os.path.isfile(path):
+        _fail(field, given, "an MJCF file (no such file)")
+    st = os.stat(path)
+    return _load(path, st.st_mtime_ns, st.st_size, field, given)
+
+
+def default_target() -> Target:
+    """ENVISAT, the default target (models/envisat.xml)."""
+    return load_target(DEFAULT_TARGET)
