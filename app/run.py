@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 
 from envisat_pose.app.common import add_common, add_recording_arguments, recording_sink
-from envisat_pose.datagen.target_model import require_envisat
+from envisat_pose.target import require_envisat
 
 
 def register(sub: argparse._SubParsersAction) -> None:

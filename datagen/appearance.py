@@ -35,6 +35,12 @@ GEOM_CLASS = {
 FACE_GEOMS = tuple(f"face_{f}" for f in FACE_COVERING)  # the main body's faces
 
 
+def takes_class_looks(geom_names) -> bool:
+    """Whether a target takes the covering classes' looks: its geoms are exactly those GEOM_CLASS names
+    (models/envisat.xml's); any other target keeps its own materials, varied (draw_own_look)."""
+    return set(geom_names) == set(GEOM_CLASS)
+
+
 @dataclass(frozen=True)
 class CoveringClass:
     """How one class looks: base RGB (its hue), a range of base brightness multipliers (the class's own, which
@@ -122,7 +128,7 @@ def draw_look(rng: np.random.Generator, set_size: int, specular: tuple[float, fl
     return out
 
 
-OWN_CLASS = "own"  # another target's looks (datagen/target_model.py): each geom's own material, varied
+OWN_CLASS = "own"  # another target's looks (envisat_pose/target.py): each geom's own material, varied
 
 
 def draw_own_look(rng: np.random.Generator, base_rgb: dict[str, tuple[float, float, float]],

@@ -15,10 +15,10 @@ import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm, quat_to_rotmat
 from envisat_pose.config import ConfigError
-from envisat_pose.datagen.labels import OCCLUSION_FLOOR_M, occlusion_floor_m
-from envisat_pose.datagen.target_model import load_target, scene_xml
+from envisat_pose.datagen.target_scene import scene_xml
 from envisat_pose.geometry import model_path
 from envisat_pose.state import MRP, POS, RATE, VEL
+from envisat_pose.target import load_target
 
 # 8 sign patterns of a box's corners, (8, 3)
 _SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
@@ -62,7 +62,7 @@ def target_boxes(model) -> TargetBoxes:
     centre = np.array([model.geom_pos[g] for g in geoms]) + np.einsum("gij,gj->gi", R_geom, aabb[:, :3])
     try:
         sites = np.array([model.site_pos[model.site(f"corner_{c}").id] for c in "ABCDEFGH"])
-    except KeyError:  # another target (datagen/target_model.py): its own geoms only
+    except KeyError:  # a target without corner_ sites: its own geoms only
         return TargetBoxes(names[:-1], centre, R_geom, aabb[:, 3:].copy())
     lo, hi = sites.min(axis=0), sites.max(axis=0)
     return TargetBoxes(names, np.vstack([centre, 0.5 * (lo + hi)]), np.concatenate([R_geom, np.eye(3)[None]]),
@@ -82,15 +82,7 @@ def target_file_boxes(given: str, field: str = "target") -> TargetBoxes:
     naming `field`."""
 
     t = load_target(given, field)
-    if t.is_envisat:
-        return project_target_boxes()
     return _file_boxes(t.path, t.sha256)
-
-
-def target_occlusion_floor_m(given: str) -> float:
-    """The floor of a target's occlusion tolerance, m: labels.occlusion_floor_m of its reach (ENVISAT: 0.25)."""
-
-    return OCCLUSION_FLOOR_M if load_target(given).is_envisat else occlusion_floor_m(target_file_boxes(given).reach_m)
 
 
 @functools.lru_cache(maxsize=16)

@@ -23,17 +23,18 @@ import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.config import check, to_dict, to_toml
-from envisat_pose.datagen.appearance import FACE_GEOMS, GEOM_CLASS, Look, draw_look, draw_own_look
-from envisat_pose.datagen.clearance import TargetBoxes, farthest_depth_m, target_file_boxes, target_occlusion_floor_m
+from envisat_pose.datagen.appearance import FACE_GEOMS, GEOM_CLASS, Look, draw_look, draw_own_look, takes_class_looks
+from envisat_pose.datagen.clearance import TargetBoxes, farthest_depth_m, target_file_boxes
 from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE, encode_depth, make_label
-from envisat_pose.datagen.target_model import load_target, target_scene
+from envisat_pose.datagen.target_scene import target_scene
 from envisat_pose.datagen.views import R_K_FROM_C, sample_random_view, sample_seed, sequence_frames, sequence_view, unit
 from envisat_pose.io import atomic_write_text, sha256_file
 from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pools import RunnerConfig, cpu_share, thread_env
 from envisat_pose.resumable import ResumableJob
 from envisat_pose.state import MRP, POS, RATE, VEL
+from envisat_pose.target import load_target
 
 MANIFEST_FORMAT = "envisat-pose shards v1"
 # generate_shard's helper threads (same bytes either way): one draws the views, one finishes sample k (the
@@ -77,7 +78,8 @@ def with_look(cfg: GenerateConfig, view, scene: dict, seed: int) -> tuple:
     a = cfg.appearance
     target = load_target(cfg.target)
     classes = dict(GEOM_CLASS)
-    if not target.is_envisat:  # another target: each geom's own material, varied (appearance.draw_own_look)
+    class_looks = takes_class_looks(g.name for g in target.geoms)
+    if not class_looks:  # another target: each geom's own material, varied (appearance.draw_own_look)
         base_rgb = target_scene(target).base_rgb
         materials = draw_own_look(rng, base_rgb, a.specular, a.shininess, a.reflectance, a.brightness) \
             if cfg.appearance_on else {}
@@ -98,7 +100,7 @@ def with_look(cfg: GenerateConfig, view, scene: dict, seed: int) -> tuple:
     scene.update({
         "appearance": cfg.appearance_on,
         "appendages": cfg.appendages_on,
-        **({"face_classes": {g: classes[g] for g in FACE_GEOMS}} if target.is_envisat else {}),
+        **({"face_classes": {g: classes[g] for g in FACE_GEOMS}} if class_looks else {}),
         "earthshine": {"intensity": earth_i, "earth_phase": round(phase, 6), "albedo": round(albedo, 6),
                        "dir_cam": None if view.earth_dir_C is None else (-R_K_FROM_C @ unit(view.earth_dir_C)).tolist()},
         "look": look.to_json(),
@@ -192,9 +194,9 @@ def sample_arrays(K: np.ndarray, boxes: TargetBoxes, cfg: GenerateConfig, out, x
     params = draw_corruption_params(cfg, out, x, K[0, 0], boxes, rng)
     image = out.gray_u8 if cfg.storage == "clean" else apply_corruption(out.gray_u8, params)
     target = load_target(cfg.target)
-    label = make_label(out.corners_K_m, out.depth_m, K, out.R_K_from_T, out.t_K_from_T_m, x,
-                       cfg.depth_scale_m, params, seed, scene,
-                       None if target.is_envisat else target.keypoint_names, target_occlusion_floor_m(cfg.target))
+    visible = target.visible(out.R_K_from_T, out.t_K_from_T_m, cfg.appendages_on)
+    label = make_label(out.corners_K_m, visible, K, out.R_K_from_T, out.t_K_from_T_m, x, cfg.depth_scale_m, params,
+                       seed, scene, target.keypoint_names if target.labels_name_keypoints else None)
     label["image_stored"] = cfg.storage
     return image, label
 
@@ -323,11 +325,11 @@ def check_sequence_depth(cfg: GenerateConfig) -> None:
 def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
     """The dataset in out_dir as the core's resumable job: one unit per shard, the config and root seed as its
     identity, a shard kept on resume only when its sha256 matches and its tar holds the recorded count."""
-    from envisat_pose.datagen.render import MASK_VALUES
+    from envisat_pose.datagen.render import target_mask_values
     from envisat_pose.datagen.shards import check_shard, shard_name
 
     target = load_target(cfg.target)
-    masks = MASK_VALUES if target.is_envisat else target_scene(target).mask_values
+    masks = target_mask_values(target)
     return ResumableJob(
         out_dir, MANIFEST_FORMAT, "dataset", {"config": to_dict(cfg), "root_seed": cfg.seed}, "shards",
         cfg.num_shards, shard_name,

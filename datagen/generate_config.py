@@ -212,7 +212,7 @@ class GenerateConfig:
     """What `envisat generate` makes.
 
     mode: 'random' (domain-randomized views, drawn by the [random] table) or 'sequence' (frames of a simulated
-    truth, the [sequence] table). target: the target's MJCF file (datagen/target_model.py: a body 'target' with its
+    truth, the [sequence] table). target: the target's MJCF file (envisat_pose/target.py: a body 'target' with its
     inertial, geoms and keypoint sites kp_<name>; default ENVISAT, models/envisat.xml). resolution_px: square
     image side.
     sun_dir: unit vector toward the sun, in C (random mode) or N (sequence mode); omitted: drawn from the seed.

@@ -1,4 +1,4 @@
-"""Labels of a rendered view: projected corners, depth-test visibility, pose, depth encoding.
+"""Labels of a rendered view: projected corners, visibility (the Target's ray casts), pose, depth encoding.
 
 Camera frame K: x right, y down, z along the boresight (OpenCV). Pixels: OpenCV convention, pixel centres at
 integer coordinates, (u, v) = (column, row). Target frame T as in geometry.py.
@@ -24,45 +24,6 @@ def in_frame(corners_px: np.ndarray, z_m: np.ndarray, resolution_px: int) -> np.
     return inside & (z_m > 0)
 
 
-OCCLUSION_FLOOR_M = 0.25  # ENVISAT's floor of the occlusion tolerance, m
-OCCLUSION_FLOOR_REACH_FRACTION = 0.02  # another target's floor: this share of its reach, at most OCCLUSION_FLOOR_M
-
-
-def occlusion_floor_m(reach_m: float) -> float:
-    """The floor of a target's occlusion tolerance, m: 2 % of its reach (farthest geom point from the CoM), at
-    most 0.25 m (ENVISAT's reach is 22 m: 0.25 m; the 3U CubeSat with wings, 0.29 m: 6 mm)."""
-    return min(OCCLUSION_FLOOR_M, OCCLUSION_FLOOR_REACH_FRACTION * reach_m)
-
-
-def occlusion_tolerance_m(z_m: np.ndarray, f_px: float, floor_m: float = OCCLUSION_FLOOR_M) -> np.ndarray:
-    """How much nearer than a keypoint a surface must be to hide it, m: floor_m (0.25 m for ENVISAT,
-    occlusion_floor_m) or three pixel footprints, the larger.
-
-    An occluder (the box's own faces, the array 3 m off the body) sits metres in front of a hidden corner;
-    the corner's own faces, seen at the pixel centre next to it, stay within a few footprints of its depth.
-    """
-    return np.maximum(floor_m, 3.0 * z_m / f_px)
-
-
-def depth_visibility(corners_px: np.ndarray, z_m: np.ndarray, depth_m: np.ndarray, f_px: float,
-                     frame: np.ndarray, floor_m: float = OCCLUSION_FLOOR_M) -> np.ndarray:
-    """True occlusion from the rendered depth: a corner is visible when the pixel it projects into shows
-    background or a surface no nearer than the corner (less the tolerance). Sub-pixel ambiguity remains for
-    a corner within half a pixel of an occluder's outline.
-
-    corners_px: (K, 2). z_m: (K,) keypoint depths along the boresight. depth_m: (H, W), 0 on background.
-    frame: (K,) bool in_frame. floor_m: the tolerance's floor (occlusion_tolerance_m). Returns (K,) bool.
-    """
-    h, w = depth_m.shape
-    visible = np.zeros(len(z_m), dtype=bool)
-    tol = occlusion_tolerance_m(np.asarray(z_m), f_px, floor_m)
-    for i in np.flatnonzero(frame):
-        u, v = np.clip(np.rint(corners_px[i]).astype(int), 0, [w - 1, h - 1])
-        d = depth_m[v, u]
-        visible[i] = bool(d == 0 or d >= z_m[i] - tol[i])
-    return visible
-
-
 def encode_depth(depth_m: np.ndarray, depth_scale_m: float) -> np.ndarray:
     """16-bit depth: round(depth / scale), 0 stays background, clipped to [1, 65535] on the target. (H, W)."""
     code = np.zeros(depth_m.shape, dtype=np.uint16)
@@ -76,24 +37,23 @@ def _round_list(a: np.ndarray, ndigits: int) -> list:
     return np.round(np.asarray(a, dtype=float), ndigits).tolist()
 
 
-def make_label(corners_K_m: np.ndarray, depth_m: np.ndarray, K: np.ndarray, R_K_from_T: np.ndarray,
+def make_label(corners_K_m: np.ndarray, unoccluded: np.ndarray, K: np.ndarray, R_K_from_T: np.ndarray,
                t_K_from_T_m: np.ndarray, x: np.ndarray, depth_scale_m: float, corruption: dict, seed: int,
-               scene: dict, keypoint_names: tuple[str, ...] | None = None,
-               occlusion_floor_m: float = OCCLUSION_FLOOR_M) -> dict:
+               scene: dict, keypoint_names: tuple[str, ...] | None = None) -> dict:
     """The shard contract's label of one image (design.md) as plain JSON data.
 
-    corners_px (8, 2) OpenCV convention; visible (8,) depth test; in_frame (8,); x (12,) the paper's state;
-    another target (keypoint_names given, K of them): keypoint_names (K,) and keypoints_px (K, 2) in place of
-    corners_px, visible and in_frame (K,), the depth test's floor occlusion_floor_m (occlusion_floor_m());
+    corners_px (8, 2) OpenCV convention; visible (8,): unoccluded (K,) (the Target's exact ray casts,
+    Target.visible) and in the image; in_frame (8,); x (12,) the paper's state; another target (keypoint_names
+    given, K of them): keypoint_names (K,) and keypoints_px (K, 2) in place of corners_px, visible and in_frame (K,);
     K (3, 3); R_cam_from_target (3, 3), t_cam_from_target_m (3,) in K (the label's names for R_K_from_T and
     t_K_from_T_m, the arguments); depth_scale_m; corruption; seed.
     `scene` (extra) records the sun, eclipse and Earth backdrop of the view.
     """
-    n = depth_m.shape[0]
+    n = int(round(2 * K[0, 2] + 1))  # the square image's size: principal point at (n - 1) / 2
     corners_px = project_px(corners_K_m, K)
     z_m = corners_K_m[:, 2]
     frame = in_frame(corners_px, z_m, n)
-    visible = depth_visibility(corners_px, z_m, depth_m, K[0, 0], frame, occlusion_floor_m)
+    visible = np.asarray(unoccluded, bool) & frame
     points = {"corners_px": _round_list(corners_px, 4)} if keypoint_names is None else \
         {"keypoint_names": list(keypoint_names), "keypoints_px": _round_list(corners_px, 4)}
     return {

@@ -35,6 +35,7 @@ from envisat_pose.datagen.appearance import (  # noqa: E402
     TEXTURE_PX,
     Look,
     class_texture,
+    takes_class_looks,
 )
 from envisat_pose.datagen.clearance import target_boxes  # noqa: E402
 from envisat_pose.datagen.earth import (  # noqa: E402
@@ -52,8 +53,9 @@ from envisat_pose.datagen.earth import (  # noqa: E402
     pixel_rays_K,
 )
 from envisat_pose.datagen.scenario import EARTH_RADIUS_M  # noqa: E402
-from envisat_pose.datagen.target_model import ENVISAT_TARGET, load_target, scene_xml, target_scene  # noqa: E402
+from envisat_pose.datagen.target_scene import scene_xml, target_scene  # noqa: E402
 from envisat_pose.geometry import model_path  # noqa: E402
+from envisat_pose.target import DEFAULT_TARGET, Target, load_target  # noqa: E402
 
 CAMERA_NAME = "chaser_cam"
 # Mask values: 0 background (and the Earth), 1-6 the faces in geometry.FACE_NAMES order, 7 the solar array
@@ -197,7 +199,7 @@ def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_se
     ET.SubElement(world, "light", name="earthshine", directional="true", castshadow="false", pos="0 0 100",
                   dir="0 0 -1", diffuse="0 0 0", specular="0 0 0", ambient="0 0 0", active="false")
     body = next(b for b in world.iter("body") if b.get("name") == "target")
-    own = body.find("geom[@name='face_px']") is None  # another target (datagen/target_model.py): its own looks
+    own = not takes_class_looks(g.get("name") for g in body.findall("geom"))  # its own materials, varied
     if texture_set_size > 0 and own:
         _own_look_materials(asset, body)
     elif texture_set_size > 0:
@@ -294,14 +296,25 @@ def intrinsics(resolution_px: int, fovy_deg: float) -> np.ndarray:
     return np.array([[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]])
 
 
+def target_mask_values(target: Target) -> dict:
+    """{geom name: mask value} of a target: MASK_VALUES for one that takes the class looks (appearance.
+    takes_class_looks), 1..G in file order for any other (target_scene)."""
+    return MASK_VALUES if takes_class_looks(g.name for g in target.geoms) else target_scene(target).mask_values
+
+
 class SceneRenderer:
     """One GL context and MuJoCo scene rendering the chaser camera at a fixed square resolution."""
 
+    @property
+    def class_looks(self) -> bool:
+        """The target takes the covering classes' looks (appearance.takes_class_looks)."""
+        return takes_class_looks(g.name for g in self.target.geoms)
+
     def __init__(self, resolution_px: int, shadows: bool = True, base_xml: str | None = None,
                  texture_set_size: int = 0, texture_seed: int = 0, earth_seed: int = 0,
-                 earth_texture_set_size: int = EARTH_TEXTURE_SET_SIZE, target: str = ENVISAT_TARGET):
+                 earth_texture_set_size: int = EARTH_TEXTURE_SET_SIZE, target: str = DEFAULT_TARGET):
         self.target = load_target(target)
-        if base_xml is None and not self.target.is_envisat:
+        if base_xml is None:
             base_xml = scene_xml(self.target)
         self.resolution_px = int(resolution_px)
         self.shadows = bool(shadows)
@@ -333,11 +346,10 @@ class SceneRenderer:
         self._sun_diffuse = m.light_diffuse[self.sun_id].copy()
         self._sun_specular = m.light_specular[self.sun_id].copy()
         # each target geom's MJCF material and, per texture k, its look material
-        if self.target.is_envisat:
-            self.mask_values = MASK_VALUES
+        self.mask_values = target_mask_values(self.target)
+        if self.class_looks:
             look_geoms, classes_of = tuple(GEOM_CLASS), look_classes
         else:
-            self.mask_values = target_scene(self.target).mask_values
             look_geoms, classes_of = tuple(self.mask_values), lambda name: (OWN_CLASS,)
         self._geom_ids = {name: m.geom(name).id for name in look_geoms}
         self._mjcf_matid = {name: int(m.geom_matid[g]) for name, g in self._geom_ids.items()}
@@ -390,7 +402,7 @@ class SceneRenderer:
         """Write the procedural textures (appearance.class_texture) into tex_data and send them to both GL
         render contexts; done once per renderer."""
         m = self.model
-        for cls in sorted(CLASSES) if self.target.is_envisat else ():  # another target keeps its own textures
+        for cls in sorted(CLASSES) if self.class_looks else ():  # another target keeps its own textures
             for k in range(self.texture_set_size):
                 t = m.texture(f"tex_{cls}_{k}").id
                 data = class_texture(self.texture_seed, cls, k)
@@ -696,7 +708,7 @@ _RENDERERS: dict[tuple, SceneRenderer] = {}
 
 
 def shared_renderer(resolution_px: int, shadows: bool = True, texture_set_size: int = 0,
-                    texture_seed: int = 0, earth_seed: int = 0, target: str = ENVISAT_TARGET) -> SceneRenderer:
+                    texture_seed: int = 0, earth_seed: int = 0, target: str = DEFAULT_TARGET) -> SceneRenderer:
     """This process's renderer for (resolution, shadows, texture set, Earth texture seed, target file and its
     sha256), created on first use and reused (one per worker)."""
     key = (int(resolution_px), bool(shadows), int(texture_set_size), int(texture_seed), int(earth_seed), target,

@@ -16,8 +16,8 @@ import numpy as np
 
 from envisat_pose.config import check, deep_update, from_dict
 from envisat_pose.datagen.orbit import chaser_orbit
-from envisat_pose.datagen.target_model import load_target
 from envisat_pose.named_scenarios import table, truth_part
+from envisat_pose.target import load_target
 
 EARTH_RADIUS_M = 6378137.0  # WGS-84 equatorial radius, used only to reject orbits inside the Earth
 MIN_PHYSICS_DT_S = 1e-4  # s: RK4 at 0.05 s is already exact to 1e-8 m over an orbit (reference sheet)
@@ -59,7 +59,7 @@ class TargetConfig:
 
     p0_mrp: initial MRP of T relative to C; omitted (None) draws a uniformly random attitude from the seed.
     gravity_gradient: whether the truth applies the gravity-gradient torque (the filter model does not).
-    file: the target's MJCF file (datagen/target_model.py; default ENVISAT): its body `target`'s inertia drives the
+    file: the target's MJCF file (envisat_pose/target.py; default ENVISAT): its body `target`'s inertia drives the
     tumble, its sites are the keypoints.
     """
 

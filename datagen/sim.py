@@ -1,5 +1,5 @@
 """The MuJoCo truth: the model built from the scenario's target file (default models/envisat.xml; another
-target is put into ENVISAT's scene, datagen/target_model.py) and a thin stateful wrapper around it.
+target is put into ENVISAT's scene, datagen/target_scene.py) and a thin stateful wrapper around it.
 
 World frame W: non-rotating (axes of N), origin at the chaser. The target body's frame is T (origin at its
 centre of mass). The chaser is a mocap body turned to LVLH (C) at every `set_state` / `sync_chaser`.
@@ -15,13 +15,12 @@ import mujoco
 import numpy as np
 
 from envisat_pose.attitude import dcm_to_mrp, mrp_to_dcm, quat_to_rotmat, rotmat_to_quat
-from envisat_pose.datagen.clearance import target_occlusion_floor_m
-from envisat_pose.datagen.labels import occlusion_tolerance_m
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.plugin import PLUGIN_NAME
 from envisat_pose.datagen.scenario import ScenarioConfig
-from envisat_pose.datagen.target_model import load_target, scene_xml
+from envisat_pose.datagen.target_scene import scene_xml
 from envisat_pose.state import MRP, POS, RATE, VEL
+from envisat_pose.target import load_target
 
 CORNER_SITES = tuple(f"corner_{c}" for c in "ABCDEFGH")
 CAMERA_NAME = "chaser_cam"
@@ -142,27 +141,6 @@ class TruthSim:
         R_W_T = d.xmat[self.target_id].reshape(3, 3)
         c_T = (chaser_W - d.xpos[self.target_id]) @ R_W_T
         return corners_C, uv, in_frame, c_T
-
-    def keypoint_visibility(self, floor_m: float | None = None) -> np.ndarray:
-        """(K,) bool: nothing of the target lies on the line of sight from the camera to each keypoint nearer than
-        the keypoint less the occlusion tolerance (labels.occlusion_tolerance_m with the target's floor): a ray
-        cast through the model (mujoco.mj_ray), the chaser's own geoms excluded. Another target's truth uses it;
-        ENVISAT's keeps the box's face rule (geometry.visible_corners)."""
-
-        m, d = self.model, self.data
-        cam = d.cam_xpos[self.cam_id]
-        pts = d.site_xpos[self.corner_site_ids]
-        dist = np.linalg.norm(pts - cam, axis=1)
-        f_px = 0.5 * m.cam_resolution[self.cam_id][1] / np.tan(np.radians(m.cam_fovy[self.cam_id]) / 2.0)
-        floor = target_occlusion_floor_m(self.target.path) if floor_m is None else floor_m
-        tol = occlusion_tolerance_m(dist, f_px, floor)
-        chaser = m.body("chaser").id
-        geomid = np.zeros(1, dtype=np.int32)
-        out = np.empty(len(pts), dtype=bool)
-        for k in range(len(pts)):
-            hit = mujoco.mj_ray(m, d, cam, (pts[k] - cam) / dist[k], None, 1, chaser, geomid)
-            out[k] = hit < 0 or hit >= dist[k] - tol[k]
-        return out
 
     def step(self, nstep: int) -> None:
         """Advance nstep RK4 steps (mj_step: mj_step1/2 would fall back to Euler)."""

@@ -11,7 +11,6 @@ from envisat_pose.datagen.clearance import check_keepout, target_boxes
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.datagen.sim import TruthSim
-from envisat_pose.geometry import visible_corners
 
 
 def initial_state(cfg: ScenarioConfig, rng: np.random.Generator) -> np.ndarray:
@@ -39,7 +38,6 @@ def simulate_truth(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajecto
     corners_px = np.empty((n, K, 2))
     in_frame = np.empty((n, K), dtype=bool)
     c_T_m = np.empty((n, 3))
-    ray_visible = None if sim.target.is_envisat else np.empty((n, K), dtype=bool)
     sim.set_state(initial_state(cfg, rng), 0.0)
     bar = None
     if progress:
@@ -54,8 +52,6 @@ def simulate_truth(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajecto
             sim.sync_chaser()
         x[k] = sim.relative_state()
         corners_C_m[k], corners_px[k], in_frame[k], c_T_m[k] = sim.corner_observation()
-        if ray_visible is not None:
-            ray_visible[k] = sim.keypoint_visibility()
         if bar is not None and (k % chunk == 0 or k == n - 1):
             bar.update(k + 1 - bar.n)
     if bar is not None:
@@ -69,7 +65,7 @@ def simulate_truth(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajecto
         chaser_theta_rad=orb.theta_rad,
         chaser_thetadot_rad_s=orb.thetadot_rad_s,
         corners_C_m=corners_C_m,
-        visible=visible_corners(c_T_m) if ray_visible is None else ray_visible,
+        visible=sim.target.truth_visible(c_T_m),
         corners_px=corners_px,
         in_frame=in_frame,
         config_json=to_json(cfg),

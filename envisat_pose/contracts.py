@@ -151,7 +151,7 @@ class TruthTrajectory(_Contract):
     (N,) the chaser's polar orbit (m, m/s, rad, rad/s).
     corners_C_m: (N, K, 3) the target's K keypoints (ENVISAT: K = 8, corners A-H) relative to the chaser, in C, m:
     MuJoCo's keypoint sites (the target file's, config_json's target.file). visible: (N, K) bool, ENVISAT: the exact
-    face test of the box from the chaser; another target: a ray cast through the model (TruthSim.keypoint_visibility).
+    face test of the box from the chaser; another target: exact ray casts through its geoms (Target.truth_visible).
     corners_px: (N, K, 2) MuJoCo's keypoint sites projected through MuJoCo's chaser camera, px (OpenCV
     convention: pixel centres at integer coordinates); in_frame: (N, K) bool, in front of the camera and
     inside the image.

@@ -83,6 +83,12 @@ class Target:
         return os.path.realpath(self.path) == os.path.realpath(model_path())
 
     @property
+    def labels_name_keypoints(self) -> bool:
+        """Whether a label names its keypoints (keypoint_names, keypoints_px): every target's but the default's,
+        whose labels keep the shard contract's corners_px with A-H implied."""
+        return not self.is_default
+
+    @property
     def num_keypoints(self) -> int:
         return len(self.keypoint_names)
 
@@ -99,16 +105,35 @@ class Target:
         """The drawn surface in T (drawn)."""
         return self.surface.select(self.drawn(appendages))
 
-    def visible(self, R_K_from_T: np.ndarray, t_K_from_T_m: np.ndarray, appendages: bool = False) -> np.ndarray:
-        """Exact visibility of each keypoint from the camera at pose (R_K_from_T (3, 3), t_K_from_T_m (3,)): the
-        ray from the camera's centre to the keypoint meets no drawn geom of the target before it (MuJoCo's own
-        ray-geom intersections, less RAY_ABS_TOL_M plus 1e-6 of the range), and the keypoint lies in front of the
-        camera. Not the image bounds (labels.in_frame). (K,) bool."""
-        c_T = -np.asarray(R_K_from_T, float).T @ np.asarray(t_K_from_T_m, float)
-        z = self.keypoints_T_m @ np.asarray(R_K_from_T, float)[2] + float(t_K_from_T_m[2])
+    def visible_from(self, c_T_m: np.ndarray, appendages: bool = False) -> np.ndarray:
+        """Exact visibility of each keypoint from the point c_T_m (3,) in T: the ray from it to the keypoint
+        meets no drawn geom of the target before it (MuJoCo's own ray-geom intersections, less RAY_ABS_TOL_M plus
+        1e-6 of the range). (K,) bool."""
+        c_T = np.asarray(c_T_m, float)
         hits = ray_hits_m(self.path, self.sha256, c_T, self.keypoints_T_m, self.drawn(appendages))
         rng = np.linalg.norm(self.keypoints_T_m - c_T, axis=1)
-        return (hits >= rng - (RAY_ABS_TOL_M + 1e-6 * rng)) & (z > 0)
+        return hits >= rng - (RAY_ABS_TOL_M + 1e-6 * rng)
+
+    def visible(self, R_K_from_T: np.ndarray, t_K_from_T_m: np.ndarray, appendages: bool = False) -> np.ndarray:
+        """Exact visibility of each keypoint from the camera at pose (R_K_from_T (3, 3), t_K_from_T_m (3,)):
+        visible_from the camera's centre, and in front of the camera. Not the image bounds (labels.in_frame).
+        (K,) bool."""
+        R = np.asarray(R_K_from_T, float)
+        t = np.asarray(t_K_from_T_m, float)
+        z = self.keypoints_T_m @ R[2] + t[2]
+        return self.visible_from(-R.T @ t, appendages) & (z > 0)
+
+    def truth_visible(self, c_T_m: np.ndarray) -> np.ndarray:
+        """The keypoints the camera at c_T_m (N, 3) in T sees, as a truth file records them, (N, K) bool:
+        visible_from each point; the default target keeps the box's face rule (geometry.visible_corners: the
+        seed paper's markers, which its Monte Carlo figures are pinned to; it ignores the array's shadow on the
+        box, which the face rule cannot see)."""
+        c = np.asarray(c_T_m, float).reshape(-1, 3)
+        if self.is_default:
+            from envisat_pose.geometry import visible_corners
+
+            return visible_corners(c)
+        return np.array([self.visible_from(p) for p in c], bool).reshape(len(c), self.num_keypoints)
 
 
 # ---------------------------------------------------------------- ray casts through the target alone
@@ -126,6 +151,12 @@ def _alone(path: str, sha256: str):
     body = model.body("target").id
     return (model, data, np.flatnonzero(model.geom_bodyid == body), data.xmat[body].reshape(3, 3).copy(),
             data.xpos[body].copy())
+
+
+def compiled_alone(target: Target):
+    """The target file compiled alone (MuJoCo's MjModel, cached; treat as read-only): its body 'target' holds
+    the target's geoms and sites in T, at full precision."""
+    return _alone(target.path, target.sha256)[0]
 
 
 def ray_hits_m(path: str, sha256: str, origin_T_m: np.ndarray, points_T_m: np.ndarray,
@@ -312,3 +343,52 @@ def load_target(given: str = DEFAULT_TARGET, field: str = "target") -> Target:
 def default_target() -> Target:
     """ENVISAT, the default target (models/envisat.xml)."""
     return load_target(DEFAULT_TARGET)
+
+
+# ---------------------------------------------------------------- the verbs that know the default target alone
+
+
+def _only_default(verb: str) -> str:
+    return (f"ENVISAT ({DEFAULT_TARGET}): `envisat {verb}` and the detector know ENVISAT's corners A-H only; "
+            "another target's images and labels come from `envisat generate --target` (docs/usage.md)")
+
+
+def require_envisat(given: str, field: str, verb: str) -> None:
+    """ConfigError unless the `target` value `given` names ENVISAT: the detector and the verbs built on it (track,
+    run, adapt, train, detect) know ENVISAT only."""
+    if given != DEFAULT_TARGET and not load_target(given, field).is_default:
+        raise ConfigError(field, given, _only_default(verb))
+
+
+def require_envisat_truth(config: dict, field: str, given: str, verb: str) -> None:
+    """ConfigError unless a truth file's config (TruthTrajectory.config, `given` its path) shows ENVISAT: the
+    filter's measurement model holds ENVISAT's corners A-H, so another target's truth would be estimated with the
+    wrong body (a confident wrong answer)."""
+    target = (config.get("target") or {}).get("file", DEFAULT_TARGET)
+    if target == DEFAULT_TARGET:
+        return
+    try:
+        if load_target(target, field).is_default:
+            return
+    except ConfigError:
+        pass
+    raise ConfigError(field, given, f"a truth of ENVISAT ({DEFAULT_TARGET}): `envisat {verb}`'s filter measures "
+                      f"ENVISAT's corners A-H only; this truth's target is {target!r}")
+
+
+def require_envisat_dataset(folder: str, field: str, verb: str) -> None:
+    """ConfigError unless the dataset in `folder` (its manifest.json) shows ENVISAT: its config's `target` is
+    ENVISAT's (a dataset written before targets had none: ENVISAT). A folder without a manifest passes (the verb
+    reports it)."""
+    import json
+
+    try:
+        with open(os.path.join(folder, "manifest.json"), encoding="utf-8") as fh:
+            manifest = json.load(fh)
+    except (OSError, ValueError):
+        return
+    record = manifest.get("target") or {}
+    given = (manifest.get("config") or {}).get("target", DEFAULT_TARGET)
+    if given != DEFAULT_TARGET and (record.get("name") != default_target().name or
+                                    record.get("keypoint_names") != list(default_target().keypoint_names)):
+        raise ConfigError(field, folder, _only_default(verb) + f"; this dataset's target is {given!r}")

@@ -25,13 +25,13 @@ from envisat_pose.datagen.scenario import (
     scenario_dict,
     scenario_eclipse,
 )
-from envisat_pose.datagen.target_model import require_envisat_truth
 from envisat_pose.filtering.estimator import FilterConfig, chaser_states, diverged_against_truth, nees, run_filter
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
 from envisat_pose.io import atomic_write_text
 from envisat_pose.out_dirs import make_out_file_dirs
 from envisat_pose.pipelines.common.job_defaults import scenario_defaults
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
+from envisat_pose.target import require_envisat_truth
 
 MAX_OUTPUT_BYTES = 8 * 2**30  # P alone is R * T * 144 * 8 bytes
 

@@ -4,8 +4,8 @@
 from __future__ import annotations
 
 from envisat_pose.config import to_dict, to_toml
-from envisat_pose.datagen.target_model import load_target
 from envisat_pose.io import atomic_write_text
+from envisat_pose.target import load_target
 
 
 def output_paths(out: str) -> tuple[str, str, str]:

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 
 from envisat_pose.config import InputError, check
 from envisat_pose.datagen.generate_config import nest_moved_keys
-from envisat_pose.datagen.target_model import require_envisat_dataset
 from envisat_pose.geometry import load_geometry
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.perception import errormodel as em
@@ -29,6 +28,7 @@ from envisat_pose.perception.calibrate import calibration_by_group, fit_cov_scal
 from envisat_pose.pipelines.detector.detect import camera_samples
 from envisat_pose.provenance import dataset_ref
 from envisat_pose.shard_reader import checked_shards
+from envisat_pose.target import require_envisat_dataset
 
 
 @dataclass(frozen=True)

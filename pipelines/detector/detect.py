@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 from envisat_pose.config import InputError, check
 from envisat_pose.contracts import Detections
-from envisat_pose.datagen.target_model import require_envisat_dataset
 from envisat_pose.io import save_npz
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.shard_reader import checked_shards
+from envisat_pose.target import require_envisat_dataset
 
 
 @dataclass(frozen=True)

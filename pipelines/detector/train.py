@@ -15,12 +15,12 @@ from dataclasses import dataclass
 
 from envisat_pose.config import InputError, check, from_dict
 from envisat_pose.datagen.generate_config import GenerateConfig
-from envisat_pose.datagen.target_model import require_envisat, require_envisat_dataset
 from envisat_pose.io import sha256_file
 from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, look_shares
 from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_identity
 from envisat_pose.shard_reader import checked_shards
+from envisat_pose.target import require_envisat, require_envisat_dataset
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ import numpy as np
 
 from envisat_pose.config import InputError
 from envisat_pose.datagen.generate_config import nest_moved_keys
-from envisat_pose.datagen.target_model import require_envisat_dataset
+from envisat_pose.target import require_envisat_dataset
 from envisat_pose.shard_reader import checked_shards
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")

@@ -122,10 +122,13 @@ def test_clutter_has_its_own_mask_value_and_can_hide_corners(renderer):
     hidden = (off.mask_u8 == 6) & (on.mask_u8 == APPENDAGE_MASK_VALUE)  # -z face behind the antenna
     assert hidden.sum() > 200
     assert np.all(on.depth_m[hidden] < off.depth_m[hidden])
-    lab_off = make_label(off.corners_K_m, off.depth_m, renderer.K, off.R_K_from_T, off.t_K_from_T_m, np.zeros(12),
-                         0.002, {}, 0, {})
-    lab_on = make_label(on.corners_K_m, on.depth_m, renderer.K, on.R_K_from_T, on.t_K_from_T_m, np.zeros(12),
-                        0.002, {}, 0, {})
+    from envisat_pose.target import load_target
+
+    target = load_target()
+    lab_off = make_label(off.corners_K_m, target.visible(off.R_K_from_T, off.t_K_from_T_m), renderer.K,
+                         off.R_K_from_T, off.t_K_from_T_m, np.zeros(12), 0.002, {}, 0, {})
+    lab_on = make_label(on.corners_K_m, target.visible(on.R_K_from_T, on.t_K_from_T_m, True), renderer.K,
+                        on.R_K_from_T, on.t_K_from_T_m, np.zeros(12), 0.002, {}, 0, {})
     assert lab_on["corners_px"] == lab_off["corners_px"]
 
 

@@ -19,6 +19,7 @@ from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.datagen.labels import make_label
 from envisat_pose.datagen.render import MASK_VALUES, SceneRenderer, View
 from envisat_pose.geometry import load_geometry, visible_corners
+from envisat_pose.target import load_target
 
 RES = 256
 
@@ -120,8 +121,7 @@ def test_corners_from_mask_within_one_pixel(renderer):
     checked, reverse_checked = 0, 0
     for view in random_views(16, seed=7):
         out = renderer.render(view)
-        lab = make_label(out.corners_K_m, out.depth_m, renderer.K, out.R_K_from_T, out.t_K_from_T_m,
-                         np.zeros(12), 0.002, {}, 0, {})
+        lab = _label(out, renderer)
         corners = np.array(lab["corners_px"])
         body = (out.mask_u8 >= 1) & (out.mask_u8 <= 6)
         regions = [out.mask_u8 == v for v in range(1, 7)] + [body]
@@ -242,12 +242,18 @@ def test_the_lit_pass_alone_gives_the_same_image_and_pose(renderer):
         np.testing.assert_array_equal(a.t_K_from_T_m, b.t_K_from_T_m)
 
 
-def test_depth_visibility_agrees_with_face_test_and_sees_the_array(renderer):
+def _label(out, renderer, appendages=False) -> dict:
+    """The factory's label of a render: visibility from the Target's ray casts."""
+    unoccluded = load_target().visible(out.R_K_from_T, out.t_K_from_T_m, appendages)
+    return make_label(out.corners_K_m, unoccluded, renderer.K, out.R_K_from_T, out.t_K_from_T_m, np.zeros(12),
+                      0.002, {}, 0, {})
+
+
+def test_ray_cast_visibility_agrees_with_face_test_and_sees_the_array(renderer):
     agree = total = 0
     for view in random_views(10, seed=11):
         out = renderer.render(view)
-        lab = make_label(out.corners_K_m, out.depth_m, renderer.K, out.R_K_from_T, out.t_K_from_T_m,
-                         np.zeros(12), 0.002, {}, 0, {})
+        lab = _label(out, renderer)
         c_T = -view.R_C_from_T.T @ view.rho_C_m
         exact = visible_corners(c_T)
         visible = np.array(lab["visible"])
@@ -268,8 +274,7 @@ def test_depth_visibility_agrees_with_face_test_and_sees_the_array(renderer):
     view = View(np.array([0.0, 40.0, 0.0]), R_C_from_T, np.array([0.0, -1.0, 0.2]))
     np.testing.assert_allclose(-R_C_from_T.T @ view.rho_C_m, 40.0 * d_T, atol=1e-9)
     out = renderer.render(view)
-    lab = make_label(out.corners_K_m, out.depth_m, renderer.K, out.R_K_from_T, out.t_K_from_T_m,
-                     np.zeros(12), 0.002, {}, 0, {})
+    lab = _label(out, renderer)
     exact = visible_corners(40.0 * d_T)
     assert exact[[4, 5, 6, 7]].all(), "the face test sees E-H from this side"
     assert lab["visible"][4:] == [False, False, True, True], "the array hides E and F, not G and H"

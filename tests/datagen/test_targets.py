@@ -72,8 +72,8 @@ def test_labels_land_on_the_rendered_site_markers(target_files):
     markers are the same numbers (the geoms do not move the keypoints)."""
     from envisat_pose.datagen.labels import make_label
     from envisat_pose.datagen.render import SceneRenderer, View
-    from envisat_pose.datagen.target_model import load_target
     from envisat_pose.datagen.views import R_K_FROM_C
+    from envisat_pose.target import load_target
 
     plain, folder = target_files
     names = load_target(plain).keypoint_names
@@ -90,8 +90,8 @@ def test_labels_land_on_the_rendered_site_markers(target_files):
         try:
             out = r_marked.render(view)
             K = r_marked.K
-            label = make_label(out.corners_K_m, out.depth_m, K, out.R_K_from_T, out.t_K_from_T_m, np.zeros(12), 0.002,
-                               {}, 0, {}, names, 0.01)
+            label = make_label(out.corners_K_m, np.ones(len(names), bool), K, out.R_K_from_T, out.t_K_from_T_m,
+                               np.zeros(12), 0.002, {}, 0, {}, names)
             px = np.array(label["keypoints_px"])
             other = r_plain.render(view).corners_K_m
             assert np.allclose(other, out.corners_K_m, atol=1e-9)
@@ -112,30 +112,32 @@ def test_labels_land_on_the_rendered_site_markers(target_files):
     assert checked >= 12
 
 
-def _ray_visible(model, label: dict, points_T_m: np.ndarray, floor_m: float) -> np.ndarray:
+RAY_TOL_M = 1e-3  # the keypoints lie on the surface: a hit within 1 mm of one is the keypoint's own surface
+
+
+def _ray_visible(model, label: dict, points_T_m: np.ndarray) -> np.ndarray:
     """(K,) bool: MuJoCo's ray from the camera to each keypoint, cast in the test's own file (body 'target' at
-    the origin: rays in T), hits nothing nearer than the keypoint less max(floor_m, 3 z / f)."""
+    the origin: rays in T), hits nothing nearer than the keypoint less RAY_TOL_M, and the keypoint is in front."""
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     R, t = np.array(label["R_cam_from_target"]), np.array(label["t_cam_from_target_m"])
     cam_T = -R.T @ t
-    f_px = label["K"][0][0]
     out = np.zeros(len(points_T_m), dtype=bool)
     geomid = np.zeros(1, dtype=np.int32)
     for k, p in enumerate(points_T_m):
         dist = np.linalg.norm(p - cam_T)
         z = (R @ p + t)[2]
         hit = mujoco.mj_ray(model, data, cam_T, (p - cam_T) / dist, None, 1, -1, geomid)
-        out[k] = hit < 0 or hit >= dist - max(floor_m, 3.0 * z / f_px)
+        out[k] = (hit < 0 or hit >= dist - RAY_TOL_M) and z > 0
     return out
 
 
 def test_visibility_agrees_with_mujocos_ray_cast(target_files, tmp_path):
-    """Random views of the test's target (the factory, 256 px): the depth-test visibility of every keypoint in
-    the frame agrees with a ray cast through the test's own file for at least 99 % of them."""
-    from envisat_pose.datagen.clearance import target_occlusion_floor_m
+    """Random views of the test's target (the factory, 256 px, 3-6 m: hidden corners, the fin's rim, the wedge):
+    the labels' visibility of every keypoint in the frame agrees with MuJoCo's ray cast through the test's own file
+    (mj_ray over the whole model, not the code's per-geom casts) for at least 99.5 % of them."""
     from envisat_pose.datagen.factory import run_generate
-    from envisat_pose.datagen.target_model import load_target
+    from envisat_pose.target import load_target
 
     plain, _ = target_files
     cfg = from_dict(GenerateConfig, {"target": plain, "num_images": 24, "shard_size": 24, "resolution_px": 256,
@@ -144,19 +146,17 @@ def test_visibility_agrees_with_mujocos_ray_cast(target_files, tmp_path):
     manifest = run_generate(cfg, str(tmp_path / "d"))
     model = mujoco.MjModel.from_xml_path(plain)
     target = load_target(plain)
-    floor_m = target_occlusion_floor_m(plain)
-    # 2 % of the reach: at least the fin's outer corner (0.89 m), at most the wedge's far box corner (1.19 m)
-    assert 0.02 * np.linalg.norm([0.4, 0.02, 0.8]) <= floor_m <= 0.02 * np.linalg.norm([0.9, 0.6, 0.5])
     points = np.array(list(KEYPOINTS_T_M.values()))
-    agree = total = 0
+    agree = total = hidden = 0
     for _, members in read_shard(str(tmp_path / "d" / manifest["shards"][0]["name"])):
         label = json.loads(members["json"])
         assert label["keypoint_names"] == list(KEYPOINTS_T_M) and "corners_px" not in label
         frame = np.array(label["in_frame"])
-        ray = _ray_visible(model, label, points, floor_m)
+        ray = _ray_visible(model, label, points)
         agree += int(np.sum(ray[frame] == np.array(label["visible"])[frame]))
         total += int(frame.sum())
-    assert total >= 200 and agree / total >= 0.99, (agree, total)
+        hidden += int(np.sum(~ray[frame]))
+    assert total >= 200 and agree / total >= 0.995 and hidden >= 20, (agree, total, hidden)
     assert manifest["target"]["sha256"] == target.sha256 and manifest["mask_values"] == {
         "background": 0, "brick": 1, "fin": 2, "wedge": 3}
 
@@ -393,7 +393,7 @@ def _upper_stage_inertia():
 def test_a_shipped_target_matches_its_note_and_generates(name, mass_kg, inertia, range_m, tmp_path, capsys):
     """Mass and inertia of the file as its note computes them (within 1e-4 relative); `envisat generate
     --target models/<name>.xml` writes labels with its 12 named keypoints."""
-    from envisat_pose.datagen.target_model import load_target
+    from envisat_pose.target import load_target
 
     target = load_target(f"models/{name}.xml")
     assert target.mass_kg == mass_kg
