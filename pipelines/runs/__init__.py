@@ -1,0 +1,1 @@
+"""Runs of the tracker over frames: the closed loop of `envisat run`, `envisat track` on a user's frames, their per-frame loop, rows, files and outputs, scoring against a truth and the benchmarks' trials."""
