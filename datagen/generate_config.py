@@ -19,6 +19,7 @@ from envisat_pose.datagen.appearance import CLASSES
 from envisat_pose.datagen.clearance import target_file_boxes
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
 from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_dict
+from envisat_pose.target import DEFAULT_TARGET
 
 Severity = Literal["none", "low", "medium", "high", "mixed"]
 Range = tuple[float, float]
@@ -228,7 +229,7 @@ class GenerateConfig:
     moved_keys = MOVED_KEYS
 
     mode: Literal["random", "sequence"] = "random"
-    target: str = "models/envisat.xml"
+    target: str = DEFAULT_TARGET
     num_images: int = 1000
     shard_size: int = 100
     resolution_px: int = 1024

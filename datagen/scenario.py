@@ -17,7 +17,7 @@ import numpy as np
 from envisat_pose.config import check, deep_update, from_dict
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.named_scenarios import table, truth_part
-from envisat_pose.target import load_target
+from envisat_pose.target import DEFAULT_TARGET, load_target
 
 EARTH_RADIUS_M = 6378137.0  # WGS-84 equatorial radius, used only to reject orbits inside the Earth
 MIN_PHYSICS_DT_S = 1e-4  # s: RK4 at 0.05 s is already exact to 1e-8 m over an orbit (reference sheet)
@@ -67,7 +67,7 @@ class TargetConfig:
     spin_axis_T: tuple[float, float, float] = (0.12, -0.20, 1.0)
     p0_mrp: tuple[float, float, float] | None = None
     gravity_gradient: bool = False
-    file: str = "models/envisat.xml"
+    file: str = DEFAULT_TARGET
 
     def validate(self, prefix: str = "target") -> None:
         check(self.spin_period_s > 0, f"{prefix}.spin_period_s", self.spin_period_s, "a positive period in seconds")

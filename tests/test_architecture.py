@@ -685,6 +685,51 @@ def test_the_cycle_checker_sees_a_cycle_hidden_in_a_function(tmp_path):
     assert import_cycles({"a": {"b"}, "b": set(), "c": {"a", "b"}}) == []
 
 
+# ---------------------------------------------------------------- one Target: only it asks whether it is ENVISAT
+
+TARGET_FILE = os.path.join("envisat_pose", "target.py")
+DEFAULT_QUESTIONS = frozenset({"is_default", "is_envisat"})  # the Target's own answer, and the old one's name
+DEFAULT_NAMES = frozenset({"DEFAULT_TARGET", "ENVISAT_TARGET"})
+DEFAULT_STRINGS = frozenset({"envisat", "models/envisat.xml", "ENVISAT"})
+
+
+def _is_default_operand(node) -> bool:
+    if isinstance(node, ast.Constant) and node.value in DEFAULT_STRINGS:
+        return True
+    if isinstance(node, ast.Name | ast.Attribute):
+        return (node.id if isinstance(node, ast.Name) else node.attr) in DEFAULT_NAMES
+    return isinstance(node, ast.Call) and _called_name(node) == "model_path"
+
+
+def default_target_questions(source: str) -> list[int]:
+    """Lines that ask whether the target is ENVISAT: `.is_default` / `.is_envisat`, or a comparison (==, !=, in,
+    is) with the default target's name, file or path (DEFAULT_TARGET, "envisat", "models/envisat.xml",
+    model_path())."""
+    lines = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Attribute) and node.attr in DEFAULT_QUESTIONS:
+            lines.append(node.lineno)
+        elif isinstance(node, ast.Compare) and any(_is_default_operand(n) for n in [node.left, *node.comparators]):
+            lines.append(node.lineno)
+    return sorted(set(lines))
+
+
+def test_only_the_target_asks_whether_it_is_envisat():
+    """Every layer takes a Target and asks it what it is made of (its keypoints, geoms, own_scene,
+    labels_name_keypoints...); whether it is ENVISAT is asked in envisat_pose/target.py alone (floor: 0 lines
+    elsewhere in the package)."""
+    found = [f"{os.path.relpath(path, ROOT)}:{line}" for path, _ in source_files()
+             if os.path.relpath(path, ROOT) != TARGET_FILE
+             for line in default_target_questions(open(path, encoding="utf-8").read())]
+    assert found == [], f"asks whether the target is ENVISAT outside {TARGET_FILE}: {found}"
+
+
+def test_the_default_question_checker_sees_each_form():
+    planted = ("def f(t, cfg, m):\n    a = t.is_default\n    b = cfg.target == DEFAULT_TARGET\n"
+               "    c = m.name != 'envisat'\n    d = path == model_path()\n    e = cfg.target\n")
+    assert default_target_questions(planted) == [2, 3, 4, 5]
+
+
 # ---------------------------------------------------------------- pipelines/ grouped by job
 
 # The sub-packages of pipelines/, one per job, and the modules allowed at its root: jobs.py resolves a named scenario

@@ -1,0 +1,179 @@
+"""The one Target read from an MJCF file: the file in its own terms (angle units, eulerseq), its skeleton and
+symmetries against what the geometry plainly has, its exact visibility against MuJoCo's own mj_ray over the whole
+file (not the code's per-geom casts), and the default target's corners.
+
+References independent of the code under test: rotations written out by hand in three notations, MuJoCo's mj_ray,
+ENVISAT's box edges typed in the core (geometry.EDGES), a box's and a cylinder's symmetries by inspection.
+"""
+
+import math
+
+import mujoco
+import numpy as np
+import pytest
+
+from envisat_pose.config import ConfigError
+from envisat_pose.geometry import EDGES, load_geometry
+from envisat_pose.target import load_target
+
+BODY = ('<inertial pos="0 0 0" mass="20" diaginertia="1 2 2.5"/>'
+        '<geom name="plate" type="box" size="0.5 0.3 0.05" {plate} rgba="0.7 0.7 0.7 1"/>'
+        '<geom name="rod" type="cylinder" fromto="0 0 0.05 0 0 0.6" size="0.05" rgba="0.2 0.2 0.8 1"/>'
+        '{sites}')
+# the plate is written turned 90 deg about z: its corners at x +-0.3, y +-0.5 (read as 90 rad, 116.6 deg mod 360,
+# they would miss the sites by 0.19 m or more and the file be refused)
+SITES = {"a": (0.3, 0.5, 0.05), "b": (-0.3, 0.5, 0.05), "c": (-0.3, -0.5, 0.05), "d": (0.3, -0.5, 0.05),
+         "top": (0.0, 0.05, 0.6)}
+
+
+def _file(tmp_path, name, compiler, plate, sites=SITES):
+    text = (f'<mujoco model="{name}">{compiler}<worldbody><body name="target">'
+            + BODY.format(plate=plate, sites="".join(f'<site name="kp_{k}" pos="{x} {y} {z}"/>'
+                                                     for k, (x, y, z) in sites.items()))
+            + "</body></worldbody></mujoco>")
+    path = tmp_path / f"{name}.xml"
+    path.write_text(text)
+    return str(path)
+
+
+def _quat_z(deg):
+    h = math.radians(deg) / 2
+    return f"{math.cos(h)!r} 0 0 {math.sin(h)!r}"
+
+
+def _three_notations(tmp_path):
+    """The plate turned 90 deg about z as MuJoCo teaches (euler in degrees, the default unit), in radians under
+    <compiler angle="radian">, and as a quaternion."""
+    return [_file(tmp_path, "deg", "", 'euler="0 0 90"'),
+            _file(tmp_path, "rad", '<compiler angle="radian"/>', f'euler="0 0 {math.radians(90)!r}"'),
+            _file(tmp_path, "quat", "", f'quat="{_quat_z(90)}"')]
+
+
+def test_the_file_is_read_in_its_own_angle_unit(tmp_path):
+    """Three notations, one shape: the plate's corner where the keypoints say (1e-9 m), the same surfaces,
+    reaches and skeletons."""
+    targets = [load_target(f) for f in _three_notations(tmp_path)]
+    ref = targets[0]
+    v = ref.mesh().vertices_T_m
+    assert np.min(np.linalg.norm(v - np.array(SITES["a"]), axis=1)) < 1e-9, "the plate is turned 90 deg"
+    for t in targets[1:]:
+        np.testing.assert_allclose(t.keypoints_T_m, ref.keypoints_T_m, atol=1e-12)
+        np.testing.assert_allclose(t.mesh().vertices_T_m, v, atol=1e-9)
+        assert abs(t.reach_m - ref.reach_m) < 1e-9 and t.skeleton == ref.skeleton
+
+
+def test_the_factory_renders_the_shape_mujoco_gives_the_file(tmp_path):
+    """The three notations rendered in the factory's scene (256 px, one view): masks equal on all but 0.1 % of the
+    pixels (the rasterizer at an edge), keypoint labels within 1e-9 px, and the plate really turned (its mask
+    spans the view's projection of the corners)."""
+    from envisat_pose.datagen.labels import make_label
+    from envisat_pose.datagen.render import SceneRenderer, View
+
+    view = View(np.array([0.1, 3.0, -0.05]), np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]),
+                np.array([0.0, -1.0, 0.0]))
+    masks, points = [], []
+    for f in _three_notations(tmp_path):
+        t = load_target(f)
+        r = SceneRenderer(256, target=f)
+        try:
+            out = r.render(view)
+            label = make_label(out.corners_K_m, t.visible(out.R_K_from_T, out.t_K_from_T_m), r.K, out.R_K_from_T,
+                               out.t_K_from_T_m, np.zeros(12), 0.002, {}, 0, {}, t.keypoint_names)
+        finally:
+            r.close()
+        masks.append(out.mask_u8 > 0)
+        points.append(np.array(label["keypoints_px"]))
+    for m, p in zip(masks[1:], points[1:]):
+        assert np.mean(m != masks[0]) <= 1e-3
+        np.testing.assert_allclose(p, points[0], atol=1e-9)
+    corners = points[0][:4]
+    span = np.ptp(np.argwhere(masks[0])[:, ::-1], axis=0)
+    assert np.all(span >= 0.9 * np.ptp(corners, axis=0)), (span, np.ptp(corners, axis=0))
+
+
+def test_the_default_target_is_envisat_with_corners_a_to_h():
+    t = load_target()
+    g = load_geometry()
+    assert t.keypoint_names == tuple("ABCDEFGH") and t.own_scene and t.name == "envisat"
+    np.testing.assert_array_equal(t.keypoints_T_m, g.corners_T_m)
+    assert not t.labels_name_keypoints
+    assert abs(t.mass_kg - 7827.867) < 1e-9 and abs(t.inertia_T_kg_m2[0, 2] + 2171.4) < 1e-6
+
+
+def test_envisats_skeleton_is_its_box_edges_and_its_half_turn_is_broken_by_the_materials():
+    t = load_target()
+    assert list(t.skeleton) == sorted(tuple(sorted(e)) for e in EDGES)
+    by_axis = {tuple(np.round(s.axis_T, 6)): s for s in t.symmetries}
+    x = by_axis[(1.0, 0.0, 0.0)]
+    assert abs(x.angle_deg - 180.0) < 1e-6 and x.broken_by == "materials"
+    assert [t.keypoint_names[k] for k in x.perm] == list("CDABGHEF")
+    # the half-turns about y and z move the solar array to the other end
+    assert {s.broken_by for s in t.symmetries if s is not x} == {"shape"}
+
+
+def test_a_plain_box_has_its_half_turns_and_a_square_one_its_quarter_turns(tmp_path):
+    corners = {f"k{i}": (sx * 0.4, sy * 0.3, sz * 0.2) for i, (sx, sy, sz) in
+               enumerate((sx, sy, sz) for sx in (1, -1) for sy in (1, -1) for sz in (1, -1))}
+    text = ('<mujoco><worldbody><body name="target"><inertial pos="0 0 0" mass="5" diaginertia="1 1.2 1.4"/>'
+            '<geom type="box" size="{} {} {}" rgba="0.5 0.5 0.5 1"/>{}</body></worldbody></mujoco>')
+    sites = "".join(f'<site name="kp_{k}" pos="{x} {y} {z}"/>' for k, (x, y, z) in corners.items())
+    path = tmp_path / "box.xml"
+    path.write_text(text.format(0.4, 0.3, 0.2, sites))
+    box = load_target(str(path))
+    assert len(box.skeleton) == 12 and len(box.symmetries) == 3
+    assert all(abs(s.angle_deg - 180) < 1e-6 and s.broken_by == "" for s in box.symmetries)
+    square = {k: (x, y * 0.4 / 0.3, z) for k, (x, y, z) in corners.items()}  # 0.4 x 0.4 cross-section about z
+    sites = "".join(f'<site name="kp_{k}" pos="{x} {y} {z}"/>' for k, (x, y, z) in square.items())
+    path.write_text(text.format(0.4, 0.4, 0.2, sites))
+    sq = load_target(str(path))
+    angles = sorted(round(s.angle_deg) for s in sq.symmetries)
+    assert angles == [90, 90, 180, 180, 180, 180, 180], angles  # 4-fold about z, 2-fold about x, y, diagonals
+
+
+def test_a_rims_skeleton_follows_the_rim(tmp_path):
+    """Four points on a cylinder's rim are joined to their neighbours along the rim, not across it."""
+    rim = {f"r{i}": (0.3 * math.cos(a), 0.3 * math.sin(a), 0.5) for i, a in
+           enumerate(np.radians([0, 90, 180, 270]))}
+    rim["base"] = (0.3, 0.0, -0.5)
+    sites = "".join(f'<site name="kp_{k}" pos="{x!r} {y!r} {z}"/>' for k, (x, y, z) in rim.items())
+    path = tmp_path / "can.xml"
+    path.write_text('<mujoco><worldbody><body name="target"><inertial pos="0 0 0" mass="5" '
+                    'diaginertia="1 1 0.5"/><geom type="cylinder" size="0.3 0.5"/>' + sites
+                    + '</body></worldbody></mujoco>')
+    can = load_target(str(path))
+    assert can.skeleton == ((0, 1), (0, 3), (1, 2), (2, 3))
+
+
+def test_visibility_is_mujocos_ray_cast(tmp_path):
+    """Exact visibility from 300 random camera positions 1.5-4 m away: the same answer as mj_ray over the whole
+    file for every keypoint (rim points at silhouettes, the rod's top behind the plate seen from below)."""
+    path = _file(tmp_path, "vis", "", 'euler="0 0 90"')
+    t = load_target(path)
+    model = mujoco.MjModel.from_xml_path(path)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    rng = np.random.default_rng(5)
+    geomid = np.zeros(1, np.int32)
+    agree = total = hidden = 0
+    for _ in range(300):
+        d = rng.standard_normal(3)
+        cam = d / np.linalg.norm(d) * rng.uniform(1.5, 4.0)
+        mine = t.visible_from(cam)
+        for k, p in enumerate(t.keypoints_T_m):
+            dist = np.linalg.norm(p - cam)
+            hit = mujoco.mj_ray(model, data, cam, (p - cam) / dist, None, 1, -1, geomid)
+            ray = hit < 0 or hit >= dist - 1e-3
+            agree += int(ray == mine[k])
+            hidden += int(not ray)
+            total += 1
+    assert hidden > 300 and agree / total >= 0.999, (agree, total, hidden)
+
+
+def test_a_keypoint_off_the_surface_and_a_file_without_one_are_refused(tmp_path):
+    far = dict(SITES, far=(0.0, 0.0, 1.0))
+    with pytest.raises(ConfigError, match="site 'kp_far' is 0.400 m from every geom"):
+        load_target(_file(tmp_path, "far", "", 'euler="0 0 90"', sites=far))
+    with pytest.raises(ConfigError, match="at least 4 keypoint sites"):
+        load_target(_file(tmp_path, "few", "", 'euler="0 0 90"', sites=dict(list(SITES.items())[:3])))
+    with pytest.raises(ConfigError, match="site 'kp_a' is 0.19"):  # 90 read as radians: the corners miss
+        load_target(_file(tmp_path, "radians", '<compiler angle="radian"/>', 'euler="0 0 90"'))
