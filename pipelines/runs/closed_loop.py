@@ -43,10 +43,10 @@ from envisat_pose.geometry import load_camera
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import make_out_dir
 from envisat_pose.pipelines.runs.frame_loop import FrameInput, run_frames
-from envisat_pose.pipelines.tracking.onboard import chaser_function, onboard_physics, orbit_config
 from envisat_pose.pipelines.runs.rows import STAGES, RunRows
 from envisat_pose.pipelines.runs.run_config import RunConfig, finish_config, run_config_from_json, sun_and_shadow
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, score_run_files, write_run_files
+from envisat_pose.pipelines.tracking.onboard import chaser_function, onboard_physics, orbit_config
 from envisat_pose.pipelines.tracking.tracker import Tracker
 from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
 from envisat_pose.realtime import real_time_factor

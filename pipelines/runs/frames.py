@@ -23,8 +23,8 @@ import numpy as np
 
 from envisat_pose.config import InputError
 from envisat_pose.datagen.generate_config import nest_moved_keys
-from envisat_pose.target import require_envisat_dataset
 from envisat_pose.shard_reader import checked_shards
+from envisat_pose.target import require_envisat_dataset
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 BIT_DEPTHS = (8, 10, 12, 14, 16)

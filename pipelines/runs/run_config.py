@@ -17,7 +17,12 @@ from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.scenario import in_earth_shadow, scenario_config, scenario_eclipse
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import load_camera
-from envisat_pose.pipelines.common.job_defaults import check_weights, fill_from_scenario, run_complete, scenario_defaults
+from envisat_pose.pipelines.common.job_defaults import (
+    check_weights,
+    fill_from_scenario,
+    run_complete,
+    scenario_defaults,
+)
 from envisat_pose.pipelines.tracking.onboard import orbit_config
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, TrackerConfig
 

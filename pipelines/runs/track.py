@@ -32,20 +32,20 @@ from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import check_out_dir, make_out_dir
-from envisat_pose.pipelines.tracking.build import tracker_camera
-from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
-from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
-from envisat_pose.pipelines.runs.frames import FrameSource, open_source, scan_source
 from envisat_pose.pipelines.common.job_defaults import (
     check_weights,
     fill_from_scenario,
     scenario_defaults,
     with_default_weights,
 )
-from envisat_pose.pipelines.tracking.onboard import chaser_function
+from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
+from envisat_pose.pipelines.runs.frames import FrameSource, open_source, scan_source
 from envisat_pose.pipelines.runs.outputs import first_tracking_s, status_counts
 from envisat_pose.pipelines.runs.rows import DET_KEYS, STAGES, RunRows
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, run_rows, score_run_files, write_run_files
+from envisat_pose.pipelines.tracking.build import tracker_camera
+from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
+from envisat_pose.pipelines.tracking.onboard import chaser_function
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, Tracker, TrackerConfig
 from envisat_pose.realtime import real_time_factor
 from envisat_pose.status import STATUSES, legend
