@@ -22,7 +22,7 @@ import numpy as np
 
 from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.config import ConfigError
-from envisat_pose.geometry import model_path
+from envisat_pose.geometry import model_path, visible_corners
 from envisat_pose.target_mesh import BodyMesh, TriangleMesh, body_mesh, feature_edges
 from envisat_pose.target_shape import Symmetry, skeleton, symmetries, triangle_distances
 
@@ -130,8 +130,6 @@ class Target:
         box, which the face rule cannot see)."""
         c = np.asarray(c_T_m, float).reshape(-1, 3)
         if self.is_default:
-            from envisat_pose.geometry import visible_corners
-
             return visible_corners(c)
         return np.array([self.visible_from(p) for p in c], bool).reshape(len(c), self.num_keypoints)
 

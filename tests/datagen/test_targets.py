@@ -442,9 +442,10 @@ def test_the_detector_verbs_refuse_another_target_in_one_line(target_files, tmp_
 
 def test_every_export_format_carries_the_targets_keypoints_and_name(target_files, tmp_path):
     """A dataset of the test's target exported as SPEED+, COCO, BOP and YOLO-pose: each names the target and its
-    K = 10 keypoints (in their file order) and writes K per image; COCO has no box skeleton."""
+    K = 10 keypoints (in their file order) and writes K per image; COCO's skeleton is the target's (1-based)."""
     from envisat_pose.datagen.factory import run_generate
     from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
+    from envisat_pose.target import load_target
 
     plain, _ = target_files
     src = str(tmp_path / "d")
@@ -458,7 +459,9 @@ def test_every_export_format_carries_the_targets_keypoints_and_name(target_files
         record = json.loads((out / "export.json").read_text())
         assert record["target"] == "test_brick" and record["keypoint_names"] == names, fmt
     coco = json.loads((tmp_path / "coco" / "annotations" / "keypoints_train.json").read_text())
-    assert coco["categories"][0]["keypoints"] == names and coco["categories"][0]["skeleton"] == []
+    skeleton = [[i + 1, j + 1] for i, j in load_target(plain).skeleton]
+    assert coco["categories"][0]["keypoints"] == names and coco["categories"][0]["skeleton"] == skeleton
+    assert len(skeleton) >= 12  # the brick's 12 edges at least
     assert all(len(a["keypoints"]) == 3 * len(names) for a in coco["annotations"])
     rows = [line.split() for p in (tmp_path / "yolo-pose" / "labels" / "train").iterdir() for line in p.read_text().splitlines()]
     assert rows and all(len(r) == 5 + 3 * len(names) for r in rows)
