@@ -35,6 +35,8 @@ KEYPOINT_MAX_SURFACE_DISTANCE_M = 0.05  # a keypoint farther than this from the 
 RENDERED_GROUPS = (0, 1, 2)  # geom groups the factory always draws (MuJoCo's default visual groups)
 APPENDAGE_GROUP = 4  # geom group of the clutter the `appendages` switch draws (models/envisat.xml)
 RAY_ABS_TOL_M = 1e-4  # a surface this much nearer than a keypoint (plus 1e-6 of its range) does not hide it
+TABLE_DIRECTIONS = 2048  # view directions of the fast visibility table (about 4.5 deg apart)
+TABLE_RANGE_REACHES = 4.0  # ... each cast from this many reaches away
 
 
 @dataclass(frozen=True)
@@ -123,6 +125,11 @@ class Target:
         z = self.keypoints_T_m @ R[2] + t[2]
         return self.visible_from(-R.T @ t, appendages) & (z > 0)
 
+    def visibility_table(self, appendages: bool = False) -> VisibilityTable:
+        """The fast form of `visible_from` for a filter: exact visibility from TABLE_DIRECTIONS directions at
+        TABLE_RANGE_REACHES x reach, looked up by the nearest direction (built once per target, ~1 s)."""
+        return _table(self.path, self.sha256, bool(appendages))
+
     def truth_visible(self, c_T_m: np.ndarray) -> np.ndarray:
         """The keypoints the camera at c_T_m (N, 3) in T sees, as a truth file records them, (N, K) bool:
         visible_from each point; the default target keeps the box's face rule (geometry.visible_corners: the
@@ -132,6 +139,45 @@ class Target:
         if self.is_default:
             return visible_corners(c)
         return np.array([self.visible_from(p) for p in c], bool).reshape(len(c), self.num_keypoints)
+
+
+# ---------------------------------------------------------------- the fast form: a table over view directions
+
+
+@dataclass(frozen=True, eq=False)
+class VisibilityTable:
+    """Keypoint visibility by view direction. dirs_T: (N, 3) unit directions from the CoM toward the camera, in T
+    (a Fibonacci sphere); visible: (N, K) bool, exact from range_m along each. Its answer at other ranges and
+    between directions differs from the exact one near silhouettes and by parallax: measured from 400 random
+    positions at 2-8 reaches (seed 3), 1.5 % of ENVISAT's keypoints, 2.5 % of the CubeSat's, 3.3 % of the upper
+    stage's (tests/envisat_pose/test_target.py holds them under 5 %)."""
+
+    dirs_T: np.ndarray
+    visible: np.ndarray
+    range_m: float
+
+    def lookup(self, c_T_m: np.ndarray) -> np.ndarray:
+        """Visibility from camera positions c_T_m (..., 3) in T: the row of the nearest direction. (..., K)."""
+        c = np.asarray(c_T_m, float)
+        return self.visible[np.argmax(c @ self.dirs_T.T, axis=-1)]
+
+
+def fibonacci_directions(n: int) -> np.ndarray:
+    """n unit vectors spread evenly over the sphere (the golden-angle spiral), (n, 3)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+@functools.lru_cache(maxsize=16)
+def _table(path: str, sha256: str, appendages: bool) -> VisibilityTable:
+    target = load_target(path)
+    dirs = fibonacci_directions(TABLE_DIRECTIONS)
+    range_m = TABLE_RANGE_REACHES * target.reach_m
+    visible = np.array([target.visible_from(d * range_m, appendages) for d in dirs], bool)
+    return VisibilityTable(dirs, visible, range_m)
 
 
 # ---------------------------------------------------------------- ray casts through the target alone
