@@ -6,7 +6,9 @@ Protocol: one dataset of BENCH_IMAGES images made once (or --data), its files in
 before the first timed row); each row runs in its own process (its peak RSS, and its workers' largest, are that
 export's alone), with --workers 2. Memory flat: every format is run on a quarter of the dataset too (its first quarter: the same
 seed), and the peak RSS of the whole dataset must stay within 1.2x of the quarter's (+ 30 MB).
-Floors: 1,000 images at 1024 px in at most 30 s on 2 cores for every format; memory flat.
+Floors: 1,000 images at 1024 px in at most 30 s on 2 cores for every format; memory flat. What each row pays beyond
+the copy: BOP decodes every image and writes it as a three-channel JPEG, with two masks (mask/, mask_visib/);
+SPEED+ decodes and writes each mask (masks/); COCO and YOLO-pose decode the mask for the box.
 
 Run: .venv/bin/python bench/export_speed.py [--data DIR] [--images N]  (writes bench/results/export_speed.json)
 """

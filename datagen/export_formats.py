@@ -15,6 +15,8 @@ from envisat_pose.attitude import rotmat_to_quat
 FORMATS = ("speedplus", "coco", "bop", "yolo-pose")
 VISIBLE, HIDDEN, OUTSIDE = 2, 1, 0  # COCO's (and YOLO-pose's) visibility codes
 JPEG_QUALITY = 95
+OKS_SIGMA = 0.025  # per-keypoint OKS sigma written for YOLO-pose and suggested for COCO (docs/formats.md)
+DIAMETER_CHUNK_PAIRS = 1 << 16  # distances model_diameter_mm computes at once (512 kB of float64: in cache)
 
 
 def keypoints_px(label: dict) -> list:
@@ -109,9 +111,9 @@ def coco_bbox(box: tuple[int, int, int, int]) -> list[float]:
     return [float(x0), float(y0), float(x1 - x0 + 1), float(y1 - y0 + 1)]
 
 
-def coco_skeleton(edges) -> list[list[int]]:
-    """The box's edges as COCO's 1-based keypoint pairs."""
-    return [[a + 1, b + 1] for a, b in edges]
+def coco_skeleton(pairs) -> list[list[int]]:
+    """Keypoint index pairs (E, 2), 0-based (Target.skeleton), as COCO's 1-based `skeleton`."""
+    return [[int(a) + 1, int(b) + 1] for a, b in pairs]
 
 
 # --- YOLO-pose ------------------------------------------------------------------------------------------------
@@ -164,9 +166,74 @@ def bop_gt_info(mask: np.ndarray, outline_px: np.ndarray) -> dict:
 
 
 def bop_model_info(vertices_mm: np.ndarray) -> dict:
-    """models_info.json's entry: extent and diameter (the largest distance between two vertices), mm."""
+    """models_info.json's entry: extent and diameter (the largest distance between two vertices), mm.
+    vertices_mm: (V, 3). Memory linear in V (model_diameter_mm)."""
     lo, hi = vertices_mm.min(axis=0), vertices_mm.max(axis=0)
-    d = vertices_mm[:, None, :] - vertices_mm[None, :, :]
-    diameter = float(np.sqrt((d * d).sum(-1).max()))
-    return {"diameter": diameter, "min_x": float(lo[0]), "min_y": float(lo[1]), "min_z": float(lo[2]),
-            "size_x": float(hi[0] - lo[0]), "size_y": float(hi[1] - lo[1]), "size_z": float(hi[2] - lo[2])}
+    return {"diameter": model_diameter_mm(vertices_mm), "min_x": float(lo[0]), "min_y": float(lo[1]),
+            "min_z": float(lo[2]), "size_x": float(hi[0] - lo[0]), "size_y": float(hi[1] - lo[1]),
+            "size_z": float(hi[2] - lo[2])}
+
+
+def model_diameter_mm(vertices_mm: np.ndarray, chunk_pairs: int = DIAMETER_CHUNK_PAIRS) -> float:
+    """The largest distance between two of the points (V, 3), exact: it joins two vertices of their convex
+    hull, so only the hull's vertices (and the points Qhull found within roundoff of a facet) are compared,
+    pairwise in blocks of at most `chunk_pairs` distances (memory linear in V whatever the hull's size). A flat or
+    degenerate point set (no 3-D hull) compares every point the same way."""
+    pts = np.asarray(vertices_mm, dtype=float)
+    if len(pts) < 2:
+        return 0.0
+    pts = pts[_hull_candidates(pts)]
+    pts = pts - 0.5 * (pts.min(axis=0) + pts.max(axis=0))  # centred: small norms, no cancellation below
+    sq = np.einsum("ij,ij->i", pts, pts)
+    minus_2t = -2.0 * pts.T  # (3, n)
+    rows = max(1, chunk_pairs // len(pts))
+    best = 0.0
+    for i in range(0, len(pts), rows):
+        d2 = pts[i:i + rows] @ minus_2t[:, i:]  # (rows, n - i): the pairs (r, j >= r), |p_r - p_j|^2 - |p_r|^2
+        d2 += sq[None, i:]
+        best = max(best, float((d2.max(axis=1) + sq[i:i + rows]).max()))
+    return math.sqrt(max(best, 0.0))
+
+
+def _hull_candidates(pts: np.ndarray) -> np.ndarray:
+    """Indices of the points that can end a diameter: the convex hull's vertices and coplanar points; all the
+    points when they span no 3-D hull."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(pts)
+    except (QhullError, ValueError):
+        return np.arange(len(pts))
+    return np.unique(np.concatenate([hull.vertices, hull.coplanar[:, 0]]).astype(int))
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) unit normals, area-weighted: each vertex sums the cross products (twice the area times the unit
+    normal) of the triangles (F, 3) that use it, counter-clockwise seen from outside. A vertex whose sum vanishes
+    (no or only degenerate triangles) takes the direction from the points' centre, or +z at the centre."""
+    v = np.asarray(vertices, dtype=float)
+    f = np.asarray(faces, dtype=int).reshape(-1, 3)
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    acc = np.zeros_like(v)
+    for corner in range(3):
+        np.add.at(acc, f[:, corner], cross)
+    norm = np.linalg.norm(acc, axis=1)
+    bad = ~(norm > 0)
+    if bad.any():
+        radial = v[bad] - v.mean(axis=0)
+        r = np.linalg.norm(radial, axis=1)
+        radial[~(r > 0)] = (0.0, 0.0, 1.0)
+        acc[bad], norm[bad] = radial, np.linalg.norm(radial, axis=1)
+    return acc / norm[:, None]
+
+
+def ply_with_normals(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray) -> bytes:
+    """An ASCII PLY (x y z nx ny nz per vertex as float; triangles as vertex lists), as the BOP toolkit's
+    inout.load_ply reads it. vertices (V, 3) in the file's unit, faces (F, 3), normals (V, 3) unit."""
+    v, n, f = np.asarray(vertices, float), np.asarray(normals, float), np.asarray(faces, int).reshape(-1, 3)
+    head = (f"ply\nformat ascii 1.0\nelement vertex {len(v)}\n"
+            + "".join(f"property float {c}\n" for c in ("x", "y", "z", "nx", "ny", "nz"))
+            + f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n")
+    rows = [f"{a:.6f} {b:.6f} {c:.6f} {d:.6f} {e:.6f} {g:.6f}" for (a, b, c), (d, e, g) in zip(v, n)]
+    rows += [f"3 {a} {b} {c}" for a, b, c in f]
+    return (head + "\n".join(rows) + "\n").encode("ascii")

@@ -3,10 +3,11 @@ format the field trains on: SPEED+, COCO keypoints, BOP or YOLO-pose (docs/forma
 
 The shards are checked against the manifest first (a damaged one stops the export in one line, or is left out
 with skip_damaged). One task per shard, on the local process pool, converts its samples: images (the PNG bytes
-of the shard unchanged, or JPEG on request), masks, depth, and a record per sample. The annotation files are
-then assembled from the records, streamed. Everything is written into a hidden staging folder beside `out_dir`,
-renamed to `out_dir` only when complete: an error or an interrupt leaves nothing behind, and an existing
-non-empty `out_dir` is refused.
+of the shard unchanged, or JPEG on request; BOP's always three-channel JPEG), masks, depth, and a record per
+sample. The annotation files are then assembled from the records, streamed. Everything is written into a hidden
+staging folder beside `out_dir`, renamed to `out_dir` only when complete: an error or an interrupt leaves nothing
+behind, and an existing non-empty `out_dir` is refused. Files that name the folder (YOLO-pose's data.yaml, the
+README's commands) name `out_dir`'s absolute path, never the staging folder's.
 """
 
 from __future__ import annotations
@@ -40,7 +41,8 @@ STAGE_PREFIX = ".tmp-export-"
 
 @dataclass(frozen=True)
 class ExportConfig:
-    """fmt: speedplus | coco | bop | yolo-pose. image_format: png (the shards' bytes) or jpg (quality 95).
+    """fmt: speedplus | coco | bop | yolo-pose. image_format: png (the shards' bytes) or jpg (quality 95); bop
+    ignores it (its train_pbr images are always JPEG, as the BOP toolkit expects).
     val_fraction: share of the images in the validation split (None: 0.2 for random views, 0 for a sequence,
     whose split is its last frames); seed: the split's seed. target: the target's MJCF file where the dataset's
     recorded one (its config's `target`) is not found from here; None: the recorded one. Either way its sha256
@@ -88,6 +90,7 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     if cfg.target is not None:
         gen = dataclasses.replace(gen, target=cfg.target)
     layout = _layout(cfg, gen, src, manifest)
+    final_dir = os.path.abspath(out_dir)  # what the staging folder becomes: the path data.yaml and README name
     if cfg.fmt == "bop" and not gen.write_mask:
         raise InputError(f"src {src!r}: bop needs the dataset's masks (it was generated with write_mask = false)")
     if cfg.fmt == "speedplus" and layout.mode == "sequence" and cfg.val_fraction:
@@ -97,14 +100,14 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     splits = _split_flags(sum(counts), cfg, layout.mode)
     stage, made = _make_stage(out_dir)
     try:
-        _write_static(layout, stage, gen, manifest, bool(splits.any()))
+        _write_static(layout, stage, gen, manifest, bool(splits.any()), final_dir)
         _run_shards(layout, stage, shards, counts, splits, workers, progress, on_shard)
         images = lay.assemble(layout, stage, ("train", "val") if splits.any() else ("train",))
         shutil.rmtree(os.path.join(stage, lay.RECORDS))
         _write_json(os.path.join(stage, "export.json"), {
             "format": cfg.fmt, "config": asdict(cfg), "source": os.path.abspath(src),
             "source_manifest_root_seed": manifest.get("root_seed"), "images": images, "skipped_damaged_shards": skipped,
-            "target": layout.target, "keypoint_names": list(layout.keypoint_names)})
+            "target": layout.target, "keypoint_names": list(layout.keypoint_names), "image_ext": layout.ext})
         if os.path.isdir(out_dir):
             os.rmdir(out_dir)  # empty (checked above): the staging folder takes its place
         os.rename(stage, out_dir)
@@ -125,15 +128,18 @@ def _generate_config(src: str, manifest: dict):
 
 
 def _layout(cfg: ExportConfig, gen, src: str, manifest: dict) -> lay.Layout:
-    """What every sample shares: the target's keypoints and model outline from its MJCF, the sequence's name."""
+    """What every sample shares: the target's keypoints, skeleton and model outline from its MJCF, the sequence's
+    name, the images' extension (BOP's train_pbr: always jpg, the toolkit's extension for PBR splits)."""
 
     target = _dataset_target(src, gen, manifest)
     mesh = target.mesh(gen.appendages_on) if cfg.fmt in ("bop", "coco", "yolo-pose") else None
     name = re.sub(r"[^A-Za-z0-9_.-]+", "_", os.path.basename(os.path.normpath(os.path.abspath(src)))) or "sequence"
     depth_mm = gen.depth_scale_m * 1000.0 if gen.write_depth else None
     names, points = target.keypoint_names, target.keypoints_T_m.tolist()
-    return lay.Layout(cfg.fmt, cfg.image_format, gen.mode, name, target.name, names, points,
-                      mesh.vertices_T_m.tolist() if mesh is not None else [], depth_mm)
+    return lay.Layout(fmt=cfg.fmt, ext="jpg" if cfg.fmt == "bop" else cfg.image_format, mode=gen.mode,
+                      sequence=name, target=target.name, keypoint_names=names, keypoints_T_m=points,
+                      outline_T_m=mesh.vertices_T_m.tolist() if mesh is not None else [], depth_scale_mm=depth_mm,
+                      skeleton=[[int(a), int(b)] for a, b in target.skeleton])
 
 
 def _dataset_target(src: str, gen, manifest: dict):
@@ -194,8 +200,9 @@ def _pixel_pitch_m(gen) -> float:
     return gen.corruption.sensor.pixel_pitch_m_1024 * 1024.0 / gen.resolution_px
 
 
-def _write_static(layout: lay.Layout, stage: str, gen, manifest: dict, has_val: bool) -> None:
-    """The files an export writes once: camera, model, keypoints, data.yaml, the folder's README."""
+def _write_static(layout: lay.Layout, stage: str, gen, manifest: dict, has_val: bool, final_dir: str) -> None:
+    """The files an export writes once: camera, model, keypoints, data.yaml, the folder's README. final_dir: the
+    absolute path the staging folder `stage` is renamed to (data.yaml's `path`, the README's commands)."""
 
     n = gen.resolution_px
     K = load_camera().scaled(n, n).K
@@ -209,18 +216,27 @@ def _write_static(layout: lay.Layout, stage: str, gen, manifest: dict, has_val: 
     elif layout.fmt == "bop":
         _write_bop_model(layout, stage, gen, K)
     elif layout.fmt == "yolo-pose":
-        _write_yolo_yaml(layout, stage, has_val)
+        with open(os.path.join(stage, "data.yaml"), "w", encoding="utf-8") as fh:
+            fh.write(yolo_yaml_text(layout, has_val, final_dir))
     with open(os.path.join(stage, "README.md"), "w", encoding="utf-8") as fh:
-        fh.write(readme_text(layout, K, n, _pixel_pitch_m(gen), manifest))
+        fh.write(readme_text(layout, K, n, _pixel_pitch_m(gen), manifest, final_dir))
 
 
 def _write_bop_model(layout: lay.Layout, stage: str, gen, K: np.ndarray) -> None:
+    """models/ (the mesh, its info, the keypoints), models_eval/ (the same mesh with area-weighted vertex normals,
+    its info) and camera.json."""
     mesh = load_target(gen.target).mesh(gen.appendages_on)
+    vertices_mm = mesh.vertices_T_m * 1000.0
+    info = {"1": fx.bop_model_info(vertices_mm)}
     folder = os.path.join(stage, "models")
     os.makedirs(folder, exist_ok=True)
     with open(os.path.join(folder, "obj_000001.ply"), "wb") as fh:
         fh.write(ply_bytes(mesh, scale=1000.0))
-    _write_json(os.path.join(folder, "models_info.json"), {"1": fx.bop_model_info(mesh.vertices_T_m * 1000.0)})
+    _write_json(os.path.join(folder, "models_info.json"), info)
+    os.makedirs(os.path.join(stage, "models_eval"), exist_ok=True)
+    with open(os.path.join(stage, "models_eval", "obj_000001.ply"), "wb") as fh:
+        fh.write(fx.ply_with_normals(vertices_mm, mesh.faces, fx.vertex_normals(vertices_mm, mesh.faces)))
+    _write_json(os.path.join(stage, "models_eval", "models_info.json"), info)
     _write_json(os.path.join(folder, "keypoints_3d.json"),
                 {"1": {"names": list(layout.keypoint_names),
                        "points_mm": (np.asarray(layout.keypoints_T_m) * 1000.0).tolist()}})
@@ -232,17 +248,30 @@ def _write_bop_model(layout: lay.Layout, stage: str, gen, K: np.ndarray) -> None
     _write_json(os.path.join(stage, "camera.json"), camera)
 
 
-def _write_yolo_yaml(layout: lay.Layout, stage: str, has_val: bool) -> None:
+def _yaml_str(text: str) -> str:
+    """A YAML scalar that reads back as exactly `text` (JSON's double-quoted string is YAML's: no name becomes
+    a boolean or a number, no path's ': ' or ' #' ends it)."""
+    return json.dumps(text, ensure_ascii=False)
+
+
+def yolo_yaml_text(layout: lay.Layout, has_val: bool, final_dir: str) -> str:
+    """Ultralytics's data.yaml: `path` the export folder's absolute path (data.yaml works from any working
+    folder), kpt_shape [K, 3], kpt_oks_sigmas (K times export_formats.OKS_SIGMA; Ultralytics otherwise scores with
+    1/K), the keypoint and class names; no flip_idx (the target is chiral: Ultralytics then turns its left-right
+    flip off)."""
     k = len(layout.keypoint_names)
     val = "images/val" if has_val else "images/train  # no validation split was asked for (--val-fraction)"
-    text = ("# Ultralytics YOLO-pose dataset (envisat-pose export; conventions in README.md)\n"
-            f"path: .\ntrain: images/train\nval: {val}\n"
+    sigmas = ", ".join(f"{fx.OKS_SIGMA:g}" for _ in range(k))
+    return ("# Ultralytics YOLO-pose dataset (envisat-pose export; conventions in README.md)\n"
+            f"path: {_yaml_str(final_dir)}  # this folder, absolute; moved? edit it (or delete it: recent "
+            "Ultralytics releases then take data.yaml's folder)\n"
+            f"train: images/train\nval: {val}\n"
             f"kpt_shape: [{k}, 3]\n"
-            "# no flip_idx: the target is chiral, a mirrored image shows another object\n"
-            f"kpt_names:\n  0: [{', '.join(layout.keypoint_names)}]\n"
-            f"names:\n  0: {layout.target}\n")
-    with open(os.path.join(stage, "data.yaml"), "w", encoding="utf-8") as fh:
-        fh.write(text)
+            f"kpt_oks_sigmas: [{sigmas}]  # OKS sigma per keypoint: {fx.OKS_SIGMA:g} each (README.md)\n"
+            "# no flip_idx: the target is chiral, a mirrored image shows another object (Ultralytics then sets "
+            "fliplr = 0)\n"
+            f"kpt_names:\n  0: [{', '.join(_yaml_str(n) for n in layout.keypoint_names)}]\n"
+            f"names:\n  0: {_yaml_str(layout.target)}\n")
 
 
 def _run_shards(layout, stage, shards, counts, splits, workers, progress, on_shard) -> None:
@@ -281,11 +310,9 @@ def export_shard(layout_dict: dict, path: str, stage: str, index: int, start: in
         if layout.ext == "png":
             image = sample_png(members, label)
         else:
-            ok, data = cv2.imencode(".jpg", sample_image(members, label, where), [cv2.IMWRITE_JPEG_QUALITY,
-                                                                                  fx.JPEG_QUALITY])
-            image = data.tobytes()
-        needs_mask = layout.fmt != "speedplus" and members.get("mask.png")
-        mask = decode_png(members["mask.png"]) if needs_mask else None
+            gray = sample_image(members, label, where)
+            image = jpeg_bytes(np.dstack([gray] * 3) if layout.fmt == "bop" and gray.ndim == 2 else gray)
+        mask = decode_png(members["mask.png"]) if members.get("mask.png") else None
         split = "val" if val_flags[k] else "train"
         lines.append(json.dumps(lay.write_sample(layout, stage, start + k, split, label, image, mask,
                                                  members.get("depth.png") if layout.depth_scale_mm else None)))
@@ -294,3 +321,13 @@ def export_shard(layout_dict: dict, path: str, stage: str, index: int, start: in
     with open(os.path.join(folder, f"{index:06d}.jsonl"), "w", encoding="utf-8") as fh:
         fh.write("".join(line + "\n" for line in lines))
     return len(lines)
+
+
+def jpeg_bytes(image: np.ndarray) -> bytes:
+    """(H, W) or (H, W, 3) uint8 as a JPEG at export_formats.JPEG_QUALITY."""
+    import cv2
+
+    ok, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, fx.JPEG_QUALITY])
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
+    return data.tobytes()

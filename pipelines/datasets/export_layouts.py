@@ -16,11 +16,9 @@ from typing import Iterator
 import numpy as np
 
 from envisat_pose.datagen import export_formats as fx
-from envisat_pose.geometry import EDGES
 
 RECORDS = ".records"
 BOP_SCENE_SIZE = 1000  # images per BOP scene in random mode (BOP's own PBR scenes hold 1000)
-OKS_SIGMA = 0.025  # suggested per-keypoint OKS sigma (docs/formats.md)
 
 
 @dataclass(frozen=True)
@@ -30,7 +28,8 @@ class Layout:
     fmt: one of export_formats.FORMATS; ext: 'png' or 'jpg'; mode: the dataset's 'random' or 'sequence';
     sequence: the sequence folder's name (speedplus, sequence mode); target: the target's name;
     keypoint_names: (K,); keypoints_T_m: (K, 3) list; outline_T_m: (V, 3) list, the model's vertices (bop);
-    depth_scale_mm: mm per depth unit, None when the dataset has no depth.
+    depth_scale_mm: mm per depth unit, None when the dataset has no depth; skeleton: (E, 2) list of 0-based
+    keypoint index pairs joined along the target's edges (Target.skeleton).
     """
 
     fmt: str
@@ -42,6 +41,7 @@ class Layout:
     keypoints_T_m: list
     outline_T_m: list
     depth_scale_mm: float | None
+    skeleton: list
 
 
 def image_name(layout: Layout, i: int, split: str) -> str:
@@ -53,6 +53,12 @@ def image_name(layout: Layout, i: int, split: str) -> str:
         scene, im_id = bop_ids(layout, i)
         return os.path.join("train_pbr", f"{scene:06d}", "rgb", f"{im_id:06d}.{layout.ext}")
     return os.path.join("images", split, f"{i:06d}.{layout.ext}")
+
+
+def speedplus_mask_name(layout: Layout, i: int) -> str:
+    """The path of sample i's mask (SPNv2's `masks/` beside `images/`, the image's stem, .png)."""
+    images = os.path.dirname(image_name(layout, i, "train"))
+    return os.path.join(os.path.dirname(images), "masks", f"img{i:06d}.png")
 
 
 def bop_ids(layout: Layout, i: int) -> tuple[int, int]:
@@ -77,6 +83,8 @@ def write_sample(layout: Layout, stage: str, i: int, split: str, label: dict, im
     if layout.fmt == "speedplus":
         record["entry"] = fx.speedplus_entry(os.path.basename(name), label)
         record["t_s"] = label.get("scene", {}).get("t_s")
+        if mask is not None:
+            _write(stage, speedplus_mask_name(layout, i), _png((mask > 0).astype(np.uint8) * 255))
     elif layout.fmt == "coco":
         record.update(_coco_record(layout, name, i, label, mask))
     elif layout.fmt == "yolo-pose":
@@ -87,8 +95,9 @@ def write_sample(layout: Layout, stage: str, i: int, split: str, label: dict, im
     else:
         scene, im_id = bop_ids(layout, i)
         folder = os.path.join("train_pbr", f"{scene:06d}")
-        _write(stage, os.path.join(folder, "mask_visib", f"{im_id:06d}_000000.png"),
-               _png((mask > 0).astype(np.uint8) * 255))
+        silhouette = _png((mask > 0).astype(np.uint8) * 255)
+        for kind in ("mask", "mask_visib"):  # one object, no occluder: its whole silhouette is the visible one
+            _write(stage, os.path.join(folder, kind, f"{im_id:06d}_000000.png"), silhouette)
         if depth_png is not None:
             _write(stage, os.path.join(folder, "depth", f"{im_id:06d}.png"), depth_png)
         outline = fx.project_points_px(np.asarray(layout.outline_T_m), label)
@@ -193,7 +202,7 @@ def _assemble_coco(layout: Layout, stage: str, split: str) -> int:
     os.makedirs(os.path.dirname(path), exist_ok=True)
 
     category = {"id": 1, "name": layout.target, "supercategory": "spacecraft",
-                "keypoints": list(layout.keypoint_names), "skeleton": fx.coco_skeleton(EDGES) if layout.target == "envisat" else [],
+                "keypoints": list(layout.keypoint_names), "skeleton": fx.coco_skeleton(layout.skeleton),
                 "keypoints_3d_m": layout.keypoints_T_m}
     n = 0
     with open(path, "w", encoding="utf-8") as fh:

@@ -3,7 +3,11 @@ the folder explains itself wherever it is copied (docs/formats.md is the project
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
+
+from envisat_pose.datagen.export_formats import OKS_SIGMA
 
 _COMMON = """\
 ## Conventions
@@ -22,12 +26,23 @@ _FORMAT = {
 ## SPEED+ layout (SPNv2 and its descendants)
 - `camera.json`: Nu, Nv (px); ppx, ppy: pixel pitch ({pitch:.4g} m); fx, fy: focal length in metres (= f_px x
   pitch); ccx, ccy: principal point (px); cameraMatrix; distCoeffs (5 zeros, OpenCV order); horizontalFOV (deg).
-- Random views: `synthetic/images/`, `synthetic/train.json`, `synthetic/validation.json` (a seeded split).
-  A sequence: `<name>/synthetic/images/`, `<name>/<name>.json` (frames in time order), `<name>/metadata.json`
-  (each frame's time t_s, s) - the SHIRT layout.
+- Random views: `synthetic/images/`, `synthetic/masks/`, `synthetic/train.json`, `synthetic/validation.json` (a
+  seeded split). A sequence: `<name>/synthetic/images/`, `<name>/synthetic/masks/`, `<name>/<name>.json` (frames
+  in time order), `<name>/metadata.json` (each frame's time t_s, s) - the SHIRT layout.
+- `masks/`: one 8-bit PNG per image, the image's name with .png (`img000001.png`, as SPNv2's preprocess.py
+  looks it up), 255 = target, 0 = background (SPNv2 thresholds at 128: 0/1 masks would read as empty). Present
+  when the dataset has masks (`write_mask`, on by default).
 - Each entry: `filename`; `q_vbs2tango_true`: unit quaternion, scalar first (w, x, y, z), Hamilton's product,
   of R with x_cam = R(q) x_body + r (w >= 0); `r_Vo2To_vbs_true`: r, metres, camera frame.
 - `models/keypoints.mat`: variable `tango3Dpoints`, 3 x K, metres, body frame (as SPNv2's loader reads it).
+
+## Run it (SPNv2, random views)
+    python3 tools/preprocess.py --cfg experiments/offline_train_full_config.yaml --jsonfile synthetic/train.json \\
+        DATASET.ROOT {parent} DATASET.DATANAME {name} DATASET.KEYPOINTS {name}/models/keypoints.mat \\
+        DATASET.NUM_KEYPOINTS {k} DATASET.IMAGE_SIZE "[{n}, {n}]"
+  (again with `--jsonfile synthetic/validation.json`), then `tools/train.py` with the same overrides. SPNv2 reads
+  the SPEED+ layout only when DATANAME contains `speedplus` (name the folder so), and its preprocess.py packs 11
+  keypoints plus the origin (24 values): for another K that line needs 2 (K + 1) (K = {k} here).
 """,
     "coco": """\
 ## COCO keypoints layout
@@ -35,43 +50,74 @@ _FORMAT = {
   width, height, and K), `annotations` (bbox [x, y, w, h] of the target's mask over whole pixels: pixel i covers
   [i, i + 1]; area: the mask's pixel count; iscrowd 0; keypoints [x, y, v] per keypoint; num_keypoints: count of
   v > 0; pose: R_cam_from_target, q_cam_from_target_wxyz, t_cam_from_target_m), `categories` (keypoint names,
-  skeleton: the box's edges, 1-based; keypoints_3d_m: the keypoints in the body frame).
+  skeleton: the target's keypoint pairs joined along its edges (its MJCF's sharp edges), 1-based;
+  keypoints_3d_m: the keypoints in the body frame).
 - v = 2 visible, 1 in the frame but hidden, 0 outside the frame (then x = y = 0). x, y: the pixel coordinates
   above (centres at integers: COCO's keypoint convention as detectron2 reads it).
 - Images with no target pixel have no annotation.
-- OKS: a sigma of 0.025 per keypoint is suggested (corners are sharp; COCO's eyes use 0.025).
+- OKS: a sigma of {sigma:g} per keypoint is suggested (corners are sharp; COCO's eyes use 0.025): a keypoint
+  scores 0.5 at an error of 0.059 sqrt(area).
+
+## Run it
+    from pycocotools.coco import COCO; from pycocotools.cocoeval import COCOeval
+    gt = COCO("{folder}/annotations/keypoints_val.json")   # images: {folder}/images/ + file_name
+    ev = COCOeval(gt, gt.loadRes("predictions.json"), "keypoints"); ev.params.kpt_oks_sigmas = np.full({k}, {sigma:g})
+  detectron2: `register_coco_instances("{name}_train", {{}}, "{folder}/annotations/keypoints_train.json",
+  "{folder}/images")`, metadata keypoint_names (above) and keypoint_flip_map [] with INPUT.RANDOM_FLIP "none"
+  (the target is chiral: a mirrored image shows another object).
 """,
     "bop": """\
 ## BOP layout (one object, obj_id 1)
 - `camera.json`: cx, cy, fx, fy (px), width, height, depth_scale (mm per depth unit).
 - `models/obj_000001.ply`: the target's geoms as triangles, millimetres, body frame; `models/models_info.json`:
   diameter and extent (mm); no symmetries (the target is not symmetric). `models/keypoints_3d.json` (an extra):
-  the keypoints in mm.
-- `train_pbr/NNNNNN/` (random views: 1000 images a scene; a sequence: one scene): `rgb/` (8-bit gray images),
-  `depth/` (16-bit, z along the boresight, x depth_scale mm; 0 = no target), `mask_visib/<im>_000000.png`
-  (255 = target), `scene_gt.json` (cam_R_m2c row-major, cam_t_m2c mm), `scene_camera.json` (cam_K
-  row-major, depth_scale), `scene_gt_info.json` (bbox_obj: the projected model, may leave the image;
-  bbox_visib: the mask; both [x, y, w, h] with w = x_max - x_min over pixel indices, as the BOP toolkit;
-  px_count_all = px_count_visib = the mask's pixels: the target is the one object; visib_fract).
+  the keypoints in mm. `models_eval/obj_000001.ply`: the same triangles with per-vertex normals (nx ny nz: each
+  vertex's triangles' normals weighted by their areas, unit length; not resampled), and its `models_info.json`.
+- `train_pbr/NNNNNN/` (random views: 1000 images a scene; a sequence: one scene): `rgb/NNNNNN.jpg` (the gray
+  image replicated into three channels, JPEG quality 95: the BOP toolkit's extension for PBR splits, whatever
+  --image-format says), `depth/` (16-bit, z along the boresight, x depth_scale mm; 0 = no target),
+  `mask/<im>_000000.png` (the object's full silhouette) and `mask_visib/<im>_000000.png` (its visible part):
+  255 = target, the same file here, one object with nothing to occlude it; `scene_gt.json` (cam_R_m2c
+  row-major, cam_t_m2c mm), `scene_camera.json` (cam_K row-major, depth_scale), `scene_gt_info.json` (bbox_obj:
+  the projected model, may leave the image; bbox_visib: the mask; both [x, y, w, h] with w = x_max - x_min over
+  pixel indices, as the BOP toolkit; px_count_all = px_count_visib = the mask's pixels; visib_fract).
+
+## Run it
+    from bop_toolkit_lib import inout
+    gt = inout.load_scene_gt("{folder}/train_pbr/000000/scene_gt.json")
+    model = inout.load_ply("{folder}/models_eval/obj_000001.ply")   # pts (mm), normals, faces
+  The toolkit's scripts (scripts/calc_gt_info.py, calc_gt_masks.py, eval_bop19_pose.py) find a dataset by name
+  in bop_toolkit_lib/dataset_params.py: add `{name}` there (obj_ids [1], no symmetric objects, im_size
+  ({n}, {n}), scene ids from train_pbr/) and set `datasets_path` in bop_toolkit_lib/config.py to {parent}.
 """,
     "yolo-pose": """\
 ## Ultralytics YOLO-pose layout
-- `images/<split>/`, `labels/<split>/` (one .txt per image; empty: no target pixel), `data.yaml` (kpt_shape
-  [K, 3]; no flip_idx: the target is chiral, a mirrored image shows another object).
+- `images/<split>/`, `labels/<split>/` (one .txt per image; empty: no target pixel), `data.yaml`: `path` this
+  folder's absolute path as exported (works from any working folder; moved: edit it), kpt_shape [{k}, 3],
+  `kpt_oks_sigmas` {sigma:g} per keypoint (Ultralytics releases that read it score OKS with it, others with 1/K:
+  a keypoint scores 0.5 at an error of 0.059 sqrt(area)); no flip_idx: the target is chiral, a mirrored image
+  shows another object, and without flip_idx Ultralytics turns its left-right flip off.
 - A row: class 0, box centre x, y and width, height (the mask's whole pixels), then x y v per keypoint, all
   divided by the image's width (x) or height (y); x = u / W with u the pixel coordinate above (centres at
   integers, as Ultralytics's own COCO converter divides); v = 2 visible, 1 hidden, a keypoint outside the
   frame `0 0 0`.
+
+## Run it
+    yolo pose train data={folder}/data.yaml model=yolov8n-pose.pt imgsz={n}
 """,
 }
 
 
-def readme_text(layout, K: np.ndarray, n: int, pitch_m: float, manifest: dict) -> str:
-    """The folder's README: where it came from, the common conventions, the format's layout."""
+def readme_text(layout, K: np.ndarray, n: int, pitch_m: float, manifest: dict, folder: str) -> str:
+    """The folder's README: where it came from, the common conventions, the format's layout and the command its
+    tool runs on it. folder: the export folder's absolute path (as exported)."""
     head = (f"# {layout.target}: {layout.fmt} export of an envisat-pose dataset\n\n"
             f"Made by `envisat dataset export` from a {layout.mode}-mode dataset (root seed "
             f"{manifest.get('root_seed')}, {manifest.get('num_images')} images, {n} px). `export.json` records "
             "the export's settings and image counts.\n\n")
     common = _COMMON.format(k=len(layout.keypoint_names), names=", ".join(layout.keypoint_names),
                             f=float(K[0, 0]), cx=float(K[0, 2]), cy=float(K[1, 2]), n=n)
-    return head + common + "\n" + _FORMAT[layout.fmt].format(pitch=pitch_m)
+    body = _FORMAT[layout.fmt].format(pitch=pitch_m, folder=folder, parent=os.path.dirname(folder),
+                                      name=os.path.basename(folder), k=len(layout.keypoint_names), n=n,
+                                      sigma=OKS_SIGMA)
+    return head + common + "\n" + body

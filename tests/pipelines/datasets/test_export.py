@@ -16,9 +16,10 @@ import pytest
 from envisat_pose.app.cli import main as envisat_main
 from envisat_pose.config import InputError, from_dict
 from envisat_pose.datagen.dataset import iter_samples
+from envisat_pose.datagen.export_formats import bop_model_info, vertex_normals
 from envisat_pose.datagen.factory import run_generate
 from envisat_pose.datagen.generate_config import GenerateConfig
-from envisat_pose.geometry import CORNER_NAMES, load_geometry
+from envisat_pose.geometry import CORNER_NAMES, EDGES, load_geometry
 from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
 
 FORMATS = ("speedplus", "coco", "bop", "yolo-pose")
@@ -113,12 +114,17 @@ def test_speedplus_reprojects_onto_labels(datasets, exports, case):
         meta = json.load(open(os.path.join(folder, seq, "metadata.json")))
         assert meta["t_s"] == [lab["scene"]["t_s"] for lab, _, _ in labels]
     worst = 0.0
-    for name, (lab, png, _) in zip(names, labels):
+    masks = os.path.join(os.path.dirname(images), "masks")  # SPNv2: <domain>/masks/<filename, jpg -> png>
+    assert len(os.listdir(masks)) == len(os.listdir(images)) == len(labels)
+    for name, (lab, png, fmask) in zip(names, labels):
         e = by_name[name]
         uv = spnv2_project(e["q_vbs2tango_true"], e["r_Vo2To_vbs_true"], camera, points)
         worst = max(worst, np.abs(uv - np.asarray(lab["corners_px"])).max())
         with open(os.path.join(images, name), "rb") as fh:  # the shard's bytes, unchanged
             assert hashlib.sha256(fh.read()).hexdigest() == hashlib.sha256(png).hexdigest()
+        mask = _read_gray(os.path.join(masks, name.replace("jpg", "png")))
+        assert mask.shape == fmask.shape and set(np.unique(mask)) <= {0, 255}
+        assert np.array_equal(mask > 128, fmask > 0)  # SPNv2's threshold
     assert worst < 1e-3
     n = labels[0][2].shape[0]
     K = np.asarray(camera["cameraMatrix"])
@@ -171,6 +177,8 @@ def bop_frames(folder, defect=None):
                 t = t / 1000.0
             p = (kp_mm @ R.T + t) @ K.T
             mask = _read_gray(os.path.join(base, "mask_visib", f"{int(im):06d}_000000.png"))
+            full = _read_gray(os.path.join(base, "mask", f"{int(im):06d}_000000.png"))
+            assert np.array_equal(full, mask)  # amodal = visible: one object, nothing occludes it
             got.append((p[:, :2] / p[:, 2:], mask, info[im][0], cams[im]))
     return got
 
@@ -188,6 +196,16 @@ def test_bop_pose_masks_and_model(datasets, exports):
         labels = labels_of(datasets[case])
         got = bop_frames(exports[case, "bop"])
         assert len(got) == len(labels)
+        rgb = sorted(os.path.join(root, f) for root, _, files in os.walk(os.path.join(exports[case, "bop"],
+                                                                                      "train_pbr"))
+                     for f in files if os.path.basename(root) == "rgb")
+        assert len(rgb) == len(labels) and all(f.endswith(".jpg") for f in rgb)  # the toolkit's train_pbr ext
+        for path, (_, png, _) in zip(rgb, labels):
+            img = _read_gray(path)
+            gray = cv2_decode(png)
+            assert img.shape == gray.shape + (3,)  # three channels, the gray replicated
+            assert np.array_equal(img[..., 0], img[..., 1]) and np.array_equal(img[..., 0], img[..., 2])
+            assert np.abs(img[..., 0].astype(float) - gray).mean() < 2.0  # JPEG quality 95
         for (uv, mask, inf, cam), (lab, _, fmask) in zip(got, labels):
             assert np.abs(uv - np.asarray(lab["corners_px"])).max() < 1e-3
             assert np.array_equal(mask > 0, fmask > 0) and set(np.unique(mask)) <= {0, 255}
@@ -202,6 +220,14 @@ def test_bop_pose_masks_and_model(datasets, exports):
     assert verts.max(axis=0)[0] == pytest.approx(5800.0, abs=0.01)  # the MERIS box's front, mm
     assert verts.min(axis=0)[0] == pytest.approx(-22000.0, abs=0.01)  # the array's far edge
     assert info["size_x"] == pytest.approx(27800.0, abs=0.01) and "symmetries_discrete" not in info
+    assert info["diameter"] == pytest.approx(_brute_diameter(verts), rel=1e-9)
+    props, ev, faces = _ply_read(os.path.join(exports["rand", "bop"], "models_eval", "obj_000001.ply"))
+    assert props == ["x", "y", "z", "nx", "ny", "nz"] and np.allclose(ev[:, :3], verts, atol=1e-6)
+    normals = ev[:, 3:]
+    assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    face_n = np.cross(ev[faces[:, 1], :3] - ev[faces[:, 0], :3], ev[faces[:, 2], :3] - ev[faces[:, 0], :3])
+    assert np.all(np.einsum("fk,fck->fc", face_n, normals[faces]) > 0)  # each leans outward with its triangles
+    assert json.load(open(os.path.join(exports["rand", "bop"], "models_eval", "models_info.json")))["1"] == info
 
 
 def _read_gray(path):
@@ -210,12 +236,75 @@ def _read_gray(path):
     return cv2.imread(path, cv2.IMREAD_UNCHANGED)
 
 
-def _ply_vertices(path):
+def cv2_decode(data):
+    import cv2
+
+    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+
+
+def _ply_read(path):
+    """(vertex property names, (V, P) vertex values, (F, 3) triangles) of an ASCII PLY, as its header says."""
     with open(path) as fh:
         lines = fh.read().splitlines()
-    n = int(next(ln for ln in lines if ln.startswith("element vertex")).split()[-1])
     start = lines.index("end_header") + 1
-    return np.array([[float(v) for v in ln.split()] for ln in lines[start:start + n]])
+    n_v = int(next(ln for ln in lines if ln.startswith("element vertex")).split()[-1])
+    n_f = int(next(ln for ln in lines if ln.startswith("element face")).split()[-1])
+    vertex_head = lines[lines.index(f"element vertex {n_v}") + 1:]
+    props = [ln.split()[-1] for ln in vertex_head[:next(i for i, ln in enumerate(vertex_head)
+                                                         if not ln.startswith("property"))]]
+    values = np.array([[float(v) for v in ln.split()] for ln in lines[start:start + n_v]])
+    faces = np.array([[int(v) for v in ln.split()[1:]] for ln in lines[start + n_v:start + n_v + n_f]])
+    return props, values, faces
+
+
+def _ply_vertices(path):
+    return _ply_read(path)[1][:, :3]
+
+
+def _brute_diameter(points):
+    from scipy.spatial.distance import pdist
+
+    return float(pdist(points).max())
+
+
+def _cube():
+    """A cube of half-size 1 as 12 triangles, counter-clockwise seen from outside (its faces' normals by hand)."""
+    v = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    return v, np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+
+
+def test_vertex_normals_point_outward_with_unit_length():
+    v, f = _cube()
+    n = vertex_normals(v, f)
+    assert np.allclose(np.linalg.norm(n, axis=1), 1.0)
+    assert np.array_equal(np.sign(n), np.sign(v))  # a corner's normal points out between its three faces
+    lone = vertex_normals(np.vstack([v, [[5.0, 0.0, 0.0]]]), f)  # a vertex no triangle uses
+    assert np.allclose(np.linalg.norm(lone, axis=1), 1.0)
+
+
+def test_bop_model_info_diameter_exact_and_linear_memory():
+    import time
+    import tracemalloc
+
+    rng = np.random.default_rng(5)
+    for pts in (rng.normal(size=(400, 3)) * [3000.0, 700.0, 90.0],  # a flat-ish cloud: most points inside the hull
+                np.c_[rng.normal(size=(300, 2)) * 1000.0, np.zeros(300)],  # flat: no 3-D hull, every point compared
+                _cube()[0] * 500.0):
+        info = bop_model_info(pts)
+        assert info["diameter"] == pytest.approx(_brute_diameter(pts), rel=1e-12)
+        assert info["size_x"] == pytest.approx(np.ptp(pts[:, 0]))
+    sphere = rng.normal(size=(20_000, 3))
+    sphere *= 10_000.0 / np.linalg.norm(sphere, axis=1)[:, None]  # every vertex on the hull: the worst case
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    d = bop_model_info(sphere)["diameter"]
+    seconds = time.perf_counter() - t0
+    peak_mb = tracemalloc.get_traced_memory()[1] / 1e6
+    tracemalloc.stop()
+    assert 19_990.0 < d <= 20_000.0 + 1e-6
+    assert peak_mb < 64  # a V x V x 3 float64 difference array would be 9,600 MB
+    assert seconds < 30
 
 
 # --- COCO: pycocotools -----------------------------------------------------------------------------------------
@@ -236,7 +325,9 @@ def test_coco_keypoints_and_oks(datasets, exports, case):
     for split in ("train", "val"):
         coco = COCO(os.path.join(folder, "annotations", f"keypoints_{split}.json"))
         cat = coco.loadCats(coco.getCatIds())[0]
-        assert cat["keypoints"] == list(CORNER_NAMES) and [1, 2] in cat["skeleton"]
+        assert cat["keypoints"] == list(CORNER_NAMES)
+        assert sorted(tuple(sorted(p)) for p in cat["skeleton"]) == sorted((min(a, b) + 1, max(a, b) + 1)
+                                                                             for a, b in EDGES)  # the box's 12
         for img in coco.loadImgs(coco.getImgIds()):
             lab, _, mask = labels[int(os.path.splitext(os.path.basename(img["file_name"]))[0])]
             assert os.path.exists(os.path.join(folder, "images", img["file_name"]))
@@ -262,12 +353,27 @@ def test_coco_keypoints_and_oks(datasets, exports, case):
 
 # --- YOLO-pose: Ultralytics's rows -------------------------------------------------------------------------------
 
+def load_data_yaml(folder, elsewhere, monkeypatch):
+    """data.yaml as Ultralytics reads it, from another working folder: (the dict, its `path`)."""
+    import yaml  # PyYAML: installed with dask (a dependency), the parser Ultralytics uses
+
+    monkeypatch.chdir(elsewhere)
+    with open(os.path.join(folder, "data.yaml"), encoding="utf-8") as fh:
+        data = yaml.safe_load(fh)
+    return data, data["path"]
+
+
 @pytest.mark.parametrize("case", ["rand", "seq"])
-def test_yolo_pose_rows(datasets, exports, case):
+def test_yolo_pose_rows(datasets, exports, case, tmp_path, monkeypatch):
     folder = exports[case, "yolo-pose"]
     labels = labels_of(datasets[case])
-    yaml_text = open(os.path.join(folder, "data.yaml")).read()
-    assert "kpt_shape: [8, 3]" in yaml_text and "flip_idx" not in yaml_text.replace("# no flip_idx", "")
+    data, root = load_data_yaml(folder, tmp_path, monkeypatch)
+    assert os.path.isabs(root) and os.path.samefile(root, folder) and ".tmp-export-" not in root  # the final folder
+    for split in ("train", "val"):
+        assert os.path.isdir(os.path.join(root, data[split])) and os.listdir(os.path.join(root, data[split]))
+    assert data["kpt_shape"] == [8, 3] and "flip_idx" not in data  # chiral: Ultralytics then does not flip
+    assert data["kpt_oks_sigmas"] == [0.025] * 8 and data["kpt_names"] == {0: list(CORNER_NAMES)}
+    assert data["names"] == {0: "envisat"}
     seen = 0
     for split in ("train", "val"):
         for name in sorted(os.listdir(os.path.join(folder, "labels", split))):
@@ -355,10 +461,11 @@ def test_jpg_images(datasets, tmp_path):
     assert entries[0]["filename"].endswith(".jpg") and first.shape == (512, 512)
 
 
-def test_another_target_exports_its_own_keypoints(tmp_path):
+def test_another_target_exports_its_own_keypoints(tmp_path, monkeypatch):
     """A shipped non-ENVISAT target (the 3U CubeSat, 12 keypoints): every format carries its K keypoints and its
     name, and the poses reproject its own 3-D keypoints onto the labels."""
     from envisat_pose.geometry import model_path
+    from envisat_pose.target import load_target
 
     cube = os.path.join(os.path.dirname(model_path()), "cubesat_3u.xml")
     src = str(tmp_path / "cube")
@@ -377,11 +484,15 @@ def test_another_target_exports_its_own_keypoints(tmp_path):
         assert np.abs(uv - np.asarray(lab["keypoints_px"])).max() < 1e-3
     coco = json.load(open(os.path.join(outs["coco"], "annotations", "keypoints_train.json")))
     assert coco["categories"][0]["name"] == "cubesat_3u" and coco["categories"][0]["keypoints"] == names
+    skeleton = coco["categories"][0]["skeleton"]
+    assert skeleton and skeleton == [[a + 1, b + 1] for a, b in load_target(cube).skeleton]
+    assert all(1 <= i <= 12 for pair in skeleton for i in pair)
     for ann, lab in zip(coco["annotations"], labels):
         kp = np.asarray(ann["keypoints"], float).reshape(-1, 3)
         inside = kp[:, 2] > 0
         assert kp.shape == (12, 3) and np.abs(kp[inside, :2] - np.asarray(lab["keypoints_px"])[inside]).max() < 0.01
-    assert "kpt_shape: [12, 3]" in open(os.path.join(outs["yolo-pose"], "data.yaml")).read()
+    data, _ = load_data_yaml(outs["yolo-pose"], tmp_path, monkeypatch)
+    assert data["kpt_shape"] == [12, 3] and data["kpt_oks_sigmas"] == [0.025] * 12 and data["kpt_names"][0] == names
     bop_kp = json.load(open(os.path.join(outs["bop"], "models", "keypoints_3d.json")))["1"]
     assert bop_kp["names"] == names and np.allclose(np.asarray(bop_kp["points_mm"]).T, points * 1000.0)
     assert json.load(open(os.path.join(outs["bop"], "export.json")))["target"] == "cubesat_3u"
