@@ -58,10 +58,8 @@ class Target:
     name: the file's model name (<mujoco model=...>) or its stem. path: absolute. sha256: of the file's bytes.
     keypoint_names (K,), keypoint_sites (K,) their MJCF site names; keypoints_T_m (K, 3) in T, m. mass_kg;
     inertia_T_kg_m2 (3, 3) about the CoM in T. reach_m: the farthest point of its surface from the CoM. geoms:
-    (G,) TargetGeom, file order. surface: the triangles of every geom in T (target_mesh.BodyMesh). skeleton:
-    keypoint pairs (i, j) joined along the geometry's sharp edges. symmetries: the rotations that map the keypoint
-    set onto itself (target_shape.Symmetry: whether the shape and the materials keep each). own_scene: the file
-    holds the factory's camera, so it is rendered as it is.
+    (G,) TargetGeom, file order. surface: the triangles of every geom in T (target_mesh.BodyMesh). own_scene: the
+    file holds the factory's camera, so it is rendered as it is. Derived on first use: skeleton, symmetries.
     """
 
     name: str
@@ -75,9 +73,23 @@ class Target:
     reach_m: float
     geoms: tuple[TargetGeom, ...]
     surface: BodyMesh
-    skeleton: tuple[tuple[int, int], ...]
-    symmetries: tuple[Symmetry, ...]
     own_scene: bool
+
+    @functools.cached_property
+    def skeleton(self) -> tuple[tuple[int, int], ...]:
+        """Keypoint pairs (i, j), i < j, joined along the drawn surface's sharp edges (target_shape.skeleton);
+        computed on first use."""
+        points, edges = feature_edges(self.mesh())
+        return skeleton(self.keypoints_T_m, points, edges, self.reach_m)
+
+    @functools.cached_property
+    def symmetries(self) -> tuple[Symmetry, ...]:
+        """The rotations about the CoM that map the keypoint set onto itself, with whether the drawn shape and its
+        materials keep each (target_shape.symmetries); computed on first use (~0.3 s for ENVISAT)."""
+        drawn = self.drawn()
+        face_rgb = np.array([self.geoms[g].rgb for g in self.surface.face_geom[drawn[self.surface.face_geom]]],
+                            float).reshape(-1, 3)
+        return symmetries(self.keypoints_T_m, self.mesh(), face_rgb, self.reach_m)
 
     @property
     def is_default(self) -> bool:
@@ -359,16 +371,11 @@ def _load(path: str, mtime_ns: int, size: int, field: str, given: str) -> Target
         _fail(field, given, f"keypoints on the target: site {sites[k]!r} is {dist[k]:.3f} m from every geom "
                             f"(at most {KEYPOINT_MAX_SURFACE_DISTANCE_M:g} m)")
     reach = float(np.linalg.norm(surface.mesh.vertices_T_m, axis=1).max())
-    drawn = np.array([g.group in RENDERED_GROUPS for g in geoms], bool)
-    drawn_mesh = surface.select(drawn)
-    points, edges = feature_edges(drawn_mesh)
-    face_rgb = np.array([geoms[g].rgb for g in surface.face_geom[drawn[surface.face_geom]]], float).reshape(-1, 3)
     return Target(
         name=_model_name(spec, path),
         path=path, sha256=sha256, keypoint_names=names, keypoint_sites=sites, keypoints_T_m=X,
         mass_kg=float(model.body_mass[body]), inertia_T_kg_m2=inertia, reach_m=reach, geoms=geoms,
-        surface=surface, skeleton=skeleton(X, points, edges, reach),
-        symmetries=symmetries(X, drawn_mesh, face_rgb, reach), own_scene=own_scene)
+        surface=surface, own_scene=own_scene)
 
 
 def load_target(given: str = DEFAULT_TARGET, field: str = "target") -> Target:
