@@ -8,25 +8,46 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Literal
 
 import numpy as np
 
 from envisat_pose.camera_response import parse_response
-from envisat_pose.config import check, from_dict, to_dict
+from envisat_pose.config import ConfigError, check, from_dict, to_dict
 from envisat_pose.datagen.appearance import CLASSES
 from envisat_pose.datagen.clearance import target_file_boxes
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
-from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_dict
-from envisat_pose.target import DEFAULT_TARGET
+from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_config
+from envisat_pose.datagen.target_scene import scene_clip_planes_m, size_ratio
+from envisat_pose.geometry import load_camera
+from envisat_pose.target import DEFAULT_TARGET, load_target
 
 Severity = Literal["none", "low", "medium", "high", "mixed"]
 Range = tuple[float, float]
 
+# Random mode's views of ENVISAT, m: the defaults every other target takes scaled by its size (sized_random_m)
+ENVISAT_RANDOM_M = {"range_min_m": 20.0, "range_max_m": 80.0, "keepout_margin_m": 2.0}
+SIZED_DIGITS = 4  # significant digits of a sized default (the number the manifest records)
+# a sequence whose first frame shows the target fewer pixels across than this (2 reach / range x f_px) is refused
+MIN_SEQUENCE_TARGET_SPAN_PX = 4.0
+
 
 def _check_range(value: tuple, field_name: str, lo: float, hi: float) -> None:
     check(lo <= value[0] <= value[1] <= hi, field_name, list(value), f"[low, high] with {lo:g} <= low <= high <= {hi:g}")
+
+
+def sized_random_m(ratio: float) -> dict[str, float]:
+    """Random mode's default range_min_m, range_max_m and keepout_margin_m (m) of a target `ratio` times ENVISAT's
+    size (target_scene.size_ratio): ENVISAT's (ENVISAT_RANDOM_M) times ratio, to SIZED_DIGITS significant digits
+    (ENVISAT's own exactly: ratio 1)."""
+    return {name: float(f"{value_m * ratio:.{SIZED_DIGITS}g}") for name, value_m in ENVISAT_RANDOM_M.items()}
+
+
+def target_span_px(reach_m: float, range_m: float, f_px: float) -> float:
+    """The target's span in the image, px: 2 reach_m / range_m x f_px (its bounding sphere's diameter at range_m,
+    m, seen with focal length f_px, px)."""
+    return 2.0 * reach_m / range_m * f_px
 
 
 @dataclass(frozen=True)
@@ -150,32 +171,37 @@ class LightingConfig:
 class RandomModeConfig:
     """Random mode's view draws (table [random]; unused in sequence mode).
 
-    range_min_m/range_max_m: target range, m. max_offset_frac: target centre within this fraction of the half
-    field of view. sun_phase_max_deg: the sun is drawn uniformly on the cap of directions within this phase angle
-    of the direction from the target to the camera (0: sun behind the camera, 90: side light, 180: any), so most
-    views are lit as an approach would plan them; backlit_probability: share of views whose sun is drawn from
-    the whole sphere instead (backlit and silhouette views stay in the set). eclipse_probability: share of images
-    in eclipse. earth_orbit_radius_m: the chaser's orbit radius range, m (the Earth disc's angular radius is
-    asin(R / r)). keepout_margin_m: least distance of the camera from any part of the target, m (views closer,
-    or whose near plane cuts the target, are drawn again from the same generator). rate_max_deg_s: the relative
+    range_min_m/range_max_m: target range, m; keepout_margin_m: least distance of the camera from any part of the
+    target, m (views closer, or whose near plane cuts the target, are drawn again from the same generator). Not
+    given (None), each is ENVISAT's default (20, 80 and 2 m) times the target's size against ENVISAT's
+    (sized_random_m of target_scene.size_ratio: the 3U CubeSat 0.7289, 2.916 and 0.07289 m, the upper stage
+    14.45, 57.79 and 1.445 m); GenerateConfig fills them in, so a config and a manifest always hold numbers.
+    max_offset_frac: target centre within this fraction of the half field of view. sun_phase_max_deg: the sun is
+    drawn uniformly on the cap of directions within this phase angle of the direction from the target to the
+    camera (0: sun behind the camera, 90: side light, 180: any), so most views are lit as an approach would plan
+    them; backlit_probability: share of views whose sun is drawn from the whole sphere instead (backlit and
+    silhouette views stay in the set). eclipse_probability: share of images in eclipse. earth_orbit_radius_m: the
+    chaser's orbit radius range, m (the Earth disc's angular radius is asin(R / r)). rate_max_deg_s: the relative
     tumble rate is drawn uniform in [0, this] about a random axis (it sets the space camera's motion blur and
     goes into the label's x).
     """
 
-    range_min_m: float = 20.0
-    range_max_m: float = 80.0
+    range_min_m: float | None = None
+    range_max_m: float | None = None
     max_offset_frac: float = 0.6
     sun_phase_max_deg: float = 100.0
     backlit_probability: float = 0.15
     eclipse_probability: float = 0.05
     earth_orbit_radius_m: Range = (6978.0e3, 7378.0e3)
-    keepout_margin_m: float = 2.0
+    keepout_margin_m: float | None = None
     rate_max_deg_s: float = 5.0
 
     def validate(self, prefix: str = "") -> None:
+        """The table's own checks; a range or margin not given (None) is checked once GenerateConfig has sized it."""
         p = f"{prefix}." if prefix else ""
-        check(self.range_max_m >= self.range_min_m, f"{p}range_max_m", self.range_max_m,
-              f"a range no shorter than range_min_m = {self.range_min_m}")
+        if self.range_min_m is not None and self.range_max_m is not None:
+            check(self.range_max_m >= self.range_min_m, f"{p}range_max_m", self.range_max_m,
+                  f"a range no shorter than range_min_m = {self.range_min_m}")
         check(0.0 <= self.max_offset_frac <= 1.0, f"{p}max_offset_frac", self.max_offset_frac, "a fraction in [0, 1]")
         check(0.0 <= self.sun_phase_max_deg <= 180.0, f"{p}sun_phase_max_deg", self.sun_phase_max_deg,
               "a phase angle in [0, 180] deg")
@@ -185,7 +211,9 @@ class RandomModeConfig:
               "a probability in [0, 1]")
 
         _check_range(self.earth_orbit_radius_m, f"{p}earth_orbit_radius_m", EARTH_RADIUS_M + 100e3, 1e8)
-        check(self.keepout_margin_m >= 0, f"{p}keepout_margin_m", self.keepout_margin_m, "a non-negative distance in m")
+        if self.keepout_margin_m is not None:
+            check(self.keepout_margin_m >= 0, f"{p}keepout_margin_m", self.keepout_margin_m,
+                  "a non-negative distance in m")
         check(0 <= self.rate_max_deg_s <= 90, f"{p}rate_max_deg_s", self.rate_max_deg_s, "a rate in [0, 90] deg/s")
 
 
@@ -214,8 +242,8 @@ class GenerateConfig:
 
     mode: 'random' (domain-randomized views, drawn by the [random] table) or 'sequence' (frames of a simulated
     truth, the [sequence] table). target: the target's MJCF file (envisat_pose/target.py: a body 'target' with its
-    inertial, geoms and keypoint sites kp_<name>; default ENVISAT, models/envisat.xml). resolution_px: square
-    image side.
+    inertial, geoms and keypoint sites kp_<name>; default ENVISAT, models/envisat.xml): random mode's ranges and
+    keep-out margin not given are sized to it (__post_init__). resolution_px: square image side.
     sun_dir: unit vector toward the sun, in C (random mode) or N (sequence mode); omitted: drawn from the seed.
     earth_probability: share of random-mode images that look toward the Earth and draw it behind the target
     (textured, lit by the view's sun; datagen/earth.py); sequence mode: above 0, the Earth is drawn at the
@@ -249,6 +277,19 @@ class GenerateConfig:
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     lighting: LightingConfig = field(default_factory=LightingConfig)
 
+    def __post_init__(self) -> None:
+        """Fill in random mode's range_min_m, range_max_m and keepout_margin_m not given with the target's sized
+        defaults (sized_random_m of target_scene.size_ratio: ENVISAT's own numbers for ENVISAT). A target that
+        cannot be read leaves them unset: validate names the target."""
+        unset = [name for name in ENVISAT_RANDOM_M if getattr(self.random, name) is None]
+        if not unset:
+            return
+        try:
+            sized = sized_random_m(size_ratio(load_target(self.target)))
+        except ConfigError:
+            return
+        object.__setattr__(self, "random", replace(self.random, **{name: sized[name] for name in unset}))
+
     @property
     def appearance_on(self) -> bool:
         e = self.appearance.enabled
@@ -265,6 +306,7 @@ class GenerateConfig:
         check(16 <= self.resolution_px <= 4096, f"{p}resolution_px", self.resolution_px, "a resolution in [16, 4096] px")
         check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed below 2^63")
         reach_m = target_file_boxes(self.target, f"{p}target").reach_m
+        self.random.validate(f"{p}random")  # again, with the sized defaults filled in
         check(self.random.range_min_m > reach_m / 2, f"{p}random.range_min_m", self.random.range_min_m,
               f"a range above {reach_m / 2:.1f} m (the camera must stay outside the target)")
         if self.sun_dir is not None:
@@ -277,8 +319,30 @@ class GenerateConfig:
             reach = self.random.range_max_m / math.cos(math.radians(30.0)) + reach_m
             check(DEPTH_MAX_CODE * self.depth_scale_m >= reach, f"{p}depth_scale_m", self.depth_scale_m,
                   f"a scale whose 16-bit range (65535 x scale) covers {reach:.1f} m, the farthest target point")
+            zfar_m = scene_clip_planes_m(load_target(self.target))[1]
+            check(reach < zfar_m, f"{p}random.range_max_m", self.random.range_max_m,
+                  f"a range whose farthest target point ({reach:.1f} m) lies before the far clipping plane "
+                  f"({zfar_m:.0f} m)")
         if self.mode == "sequence":
-            scenario_dict(self.sequence.scenario)  # unknown names raise ConfigError
+            self._check_sequence_target_size(p)
+
+    def _check_sequence_target_size(self, p: str) -> None:
+        """ConfigError naming sequence.scenario (an unknown name, too) when the scenario's first frame shows the
+        target fewer than MIN_SEQUENCE_TARGET_SPAN_PX across (target_span_px of its reach at |relative.rho0_C_m|):
+        the scenario's orbit is its own, so the fix is a larger resolution_px or a nearer scenario."""
+        range_m = float(np.linalg.norm(scenario_config(self.sequence.scenario).relative.rho0_C_m))
+        reach_m = load_target(self.target).reach_m
+        f_px = float(load_camera().scaled(self.resolution_px, self.resolution_px).K[0, 0])
+        span_px = target_span_px(reach_m, range_m, f_px)
+        if span_px >= MIN_SEQUENCE_TARGET_SPAN_PX:
+            return
+        need_px = math.ceil(self.resolution_px * MIN_SEQUENCE_TARGET_SPAN_PX / span_px)
+        near_m = range_m * span_px / MIN_SEQUENCE_TARGET_SPAN_PX
+        raise ConfigError(f"{p}sequence.scenario", self.sequence.scenario,
+                          f"a scenario whose first frame shows the target at least {MIN_SEQUENCE_TARGET_SPAN_PX:g} px "
+                          f"across: its reach {reach_m:.3g} m at {range_m:.3g} m (relative.rho0_C_m) spans "
+                          f"{span_px:.1f} px at resolution_px = {self.resolution_px}; set resolution_px to at least "
+                          f"{need_px} or pick a scenario that starts within {near_m:.3g} m")
 
     @property
     def num_shards(self) -> int:

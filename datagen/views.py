@@ -12,13 +12,15 @@ import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm, quat_to_mrp, quat_to_rotmat, rotmat_to_quat
 from envisat_pose.config import ConfigError
-from envisat_pose.datagen.clearance import TargetBoxes, clearance_m, project_target_boxes, project_znear_m
+from envisat_pose.datagen.clearance import TargetBoxes, clearance_m, target_file_boxes
 from envisat_pose.datagen.earth import EARTH_TEXTURE_SET_SIZE, draw_backdrop, earth_in_frame, earth_quat_C
 from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_config
+from envisat_pose.datagen.target_scene import scene_clip_planes_m
 from envisat_pose.geometry import load_camera
 from envisat_pose.state import MRP, POS
+from envisat_pose.target import load_target
 
 # Camera mount on the chaser, from camera chaser_cam of models/envisat.xml (boresight +y_C, image up +x_C).
 # Rows are the K axes (x right, y down, z boresight) in C.
@@ -67,14 +69,15 @@ def sample_cap(axis: np.ndarray, half_angle_deg: float, rng: np.random.Generator
 def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Generator,
                        znear_m: float | None = None, boxes: TargetBoxes | None = None) -> tuple:
     """A domain-randomized view (cfg.random's draws): uniform attitude, range uniform in [range_min_m,
-    range_max_m], target centre off the boresight within max_offset_frac of the half field of view, random or configured sun, eclipse
-    and Earth backdrop by their probabilities, a relative tumble rate uniform in [0, rate_max_deg_s] about a
-    uniform axis (in x; the translation rate is zero).
+    range_max_m] (m; not given, sized to the target: generate_config.sized_random_m), target centre off the
+    boresight within max_offset_frac of the half field of view, random or configured sun, eclipse and Earth
+    backdrop by their probabilities, a relative tumble rate uniform in [0, rate_max_deg_s] about a uniform axis
+    (in x; the translation rate is zero).
 
     A pose whose camera comes within keepout_margin_m of any target geom (body, boom, array, clutter), or whose
-    near plane (znear_m, m; default that of models/envisat.xml) cuts the target, is drawn again from the same
-    rng: deterministic, at most MAX_VIEW_DRAWS times (then ConfigError). boxes: the target (default the
-    project's).
+    near plane (znear_m, m; default that of cfg.target's scene, target_scene.scene_clip_planes_m) cuts the target,
+    is drawn again from the same rng: deterministic, at most MAX_VIEW_DRAWS times (then ConfigError). boxes: the
+    target (default cfg.target's).
 
     Returns (View, x (12,), scene dict) without a look (see with_look). In random mode C is the camera mount's
     frame; the Earth's direction is drawn independently of it, except in views with the Earth backdrop (a
@@ -84,8 +87,8 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
     """
     from envisat_pose.datagen.render import View
 
-    boxes = boxes if boxes is not None else project_target_boxes()
-    znear_m = znear_m if znear_m is not None else project_znear_m()
+    boxes = boxes if boxes is not None else target_file_boxes(cfg.target)
+    znear_m = znear_m if znear_m is not None else scene_clip_planes_m(load_target(cfg.target))[0]
     r = cfg.random
     tan_half = math.tan(math.radians(fovy_deg) / 2.0)
     for _ in range(MAX_VIEW_DRAWS):
