@@ -145,8 +145,8 @@ class RenderPasses:
 def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_set_size: int = 0,
                      earth_texture_set_size: int = EARTH_TEXTURE_SET_SIZE) -> str:
     """The project's MJCF prepared for rendering at `resolution_px`: a large enough off-screen buffer, a fixed
-    model extent (the far plane and shadow box stay those of models/envisat.xml; another target's near plane is sized to it, target_scene), an Earth backdrop
-    body (mocap, geom group 5, hidden by default: a unit UV-sphere mesh scaled to EARTH_RADIUS_M x EARTH_SCALE,
+    model extent (the far plane and shadow box stay those of models/envisat.xml; another target's near plane is
+    sized to it, target_scene), an Earth backdrop body (mocap, geom group 5, hidden by default: a unit UV-sphere mesh scaled to EARTH_RADIUS_M x EARTH_SCALE,
     `earth_texture_set_size` equirectangular textures, their pixels written by the renderer), an Earth-shine
     light (off until a look turns it on), and
     for appearance randomization `texture_set_size` textures per covering class with one material
