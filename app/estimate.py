@@ -42,7 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sigma-m", type=float, help="3D corner noise per axis, m (default 0.02)")
     p.add_argument("--sigma-px", type=float, help="pixel noise per axis, px (default 1)")
     p.add_argument("--sigma-range-m", type=float, help="range noise for pixels+range, m (default 0.05)")
-    p.add_argument("--max-markers", type=int, help="use at most N corners per step, the first visible in A..H order")
+    p.add_argument("--max-markers", type=int, help="use at most N keypoints per step, the first visible in the "
+                   "target's order (A..H for ENVISAT; default all)")
     p.add_argument("--failure-prob", type=float, help="probability that a visible corner is lost at a step")
     p.add_argument("--outage", type=float, nargs=2, action="append", metavar=("START_S", "END_S"),
                    help="a window without measurements (repeatable)")

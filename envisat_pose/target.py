@@ -142,6 +142,12 @@ class Target:
         TABLE_RANGE_REACHES x reach, looked up by the nearest direction (built once per target, ~1 s)."""
         return _table(self.path, self.sha256, bool(appendages))
 
+    @property
+    def filter_visibility(self) -> VisibilityTable | None:
+        """What a filter predicts visibility with: None for the default target (the box's face rule, exact for
+        ENVISAT's box without its array, which the fused kernels hold), the fast table for any other."""
+        return None if self.is_default else self.visibility_table()
+
     def truth_visible(self, c_T_m: np.ndarray) -> np.ndarray:
         """The keypoints the camera at c_T_m (N, 3) in T sees, as a truth file records them, (N, K) bool:
         visible_from each point; the default target keeps the box's face rule (geometry.visible_corners: the
@@ -391,6 +397,12 @@ def load_target(given: str = DEFAULT_TARGET, field: str = "target") -> Target:
     return _load(path, st.st_mtime_ns, st.st_size, field, given)
 
 
+def is_default_file(given: str) -> bool:
+    """Whether a `target` value names the default target's file (DEFAULT_TARGET or its path), read without
+    MuJoCo: a truth of ENVISAT is estimated with the filter's own default model."""
+    return given == DEFAULT_TARGET or os.path.realpath(resolve_target_path(given)) == os.path.realpath(model_path())
+
+
 def default_target() -> Target:
     """ENVISAT, the default target (models/envisat.xml)."""
     return load_target(DEFAULT_TARGET)
@@ -409,22 +421,6 @@ def require_envisat(given: str, field: str, verb: str) -> None:
     run, adapt, train, detect) know ENVISAT only."""
     if given != DEFAULT_TARGET and not load_target(given, field).is_default:
         raise ConfigError(field, given, _only_default(verb))
-
-
-def require_envisat_truth(config: dict, field: str, given: str, verb: str) -> None:
-    """ConfigError unless a truth file's config (TruthTrajectory.config, `given` its path) shows ENVISAT: the
-    filter's measurement model holds ENVISAT's corners A-H, so another target's truth would be estimated with the
-    wrong body (a confident wrong answer)."""
-    target = (config.get("target") or {}).get("file", DEFAULT_TARGET)
-    if target == DEFAULT_TARGET:
-        return
-    try:
-        if load_target(target, field).is_default:
-            return
-    except ConfigError:
-        pass
-    raise ConfigError(field, given, f"a truth of ENVISAT ({DEFAULT_TARGET}): `envisat {verb}`'s filter measures "
-                      f"ENVISAT's corners A-H only; this truth's target is {target!r}")
 
 
 def require_envisat_dataset(folder: str, field: str, verb: str) -> None:

@@ -28,8 +28,9 @@ from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
 from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
 from envisat_pose.filtering.ukf import SigmaWeights, merwe_weights, predict, shadow_switch, state_residual, update
 from envisat_pose.gates import GATE_PROB, chi2_bound, chi2_gate
-from envisat_pose.geometry import PinholeCamera, load_camera
+from envisat_pose.geometry import PinholeCamera, load_camera, load_geometry
 from envisat_pose.state import nees_window_diverged
+from envisat_pose.target import Target, VisibilityTable
 
 KERNELS = ("fast", "reference")  # FilterConfig.kernel: filtering/fast.py's kernels, filtering/ukf.py's numpy
 
@@ -47,8 +48,8 @@ class FilterConfig:
     p0_sigma: initial uncertainty of (rho m, rho' m/s, p MRP, w_r rad/s), the reference sheet's P0.
     q_sigma: process noise std per sqrt(s) of the same four groups.
     gate_prob: chi-square gate probability per corner (0 switches gating off).
-    visibility_check: drop a measured corner that the predicted state says is hidden (exact face test from
-    the prior mean): a detection of a hidden corner is a mislabel.
+    visibility_check: drop a measured corner that the predicted state says is hidden (from the prior mean: ENVISAT's
+    exact face test, another target's fast visibility table): a detection of a hidden corner is a mislabel.
     gate_lockout_steps: after this many consecutive steps in which the gate rejected every measured corner of
     a run, its next update is not gated (a filter must not lock itself out when it is wrong or R too small).
     adaptive_r / adaptive_q: innovation-based R scale, residual-based Q (see the module docstring).
@@ -146,6 +147,9 @@ class FilterSetup:
     (pixel kinds). J_T: (3, 3) target inertia in T, kg m^2. mu_m3_s2: the Earth's gravitational parameter, m^3/s^2
     (take the truth's). gravity_gradient: the model applies the gravity-gradient torque (as the truth may).
     weights: the sigma-point weights of cfg. gate_threshold: chi-square bound per corner (None: no gate).
+    keypoints_T_m: (K, 3) the target's keypoints in T, m, the measured "corners" (ENVISAT's A-H: K = 8).
+    visibility: the rule of the visibility check: None, the exact face test of ENVISAT's box
+    (geometry.visible_corners, in the fused kernel), or a target's fast table (target.VisibilityTable).
     """
 
     cfg: FilterConfig
@@ -156,31 +160,65 @@ class FilterSetup:
     gravity_gradient: bool
     weights: SigmaWeights
     gate_threshold: float | None
+    keypoints_T_m: np.ndarray
+    visibility: VisibilityTable | None = None
+
+    @property
+    def num_keypoints(self) -> int:
+        """K, the number of keypoints the filter measures."""
+        return int(self.keypoints_T_m.shape[0])
 
     def hx(self, x: np.ndarray) -> np.ndarray:
-        """The measurement model of all 8 corners, (..., 12) -> (..., 8, m)."""
-        return measure(x, self.kind, self.camera)
+        """The measurement model of all K keypoints, (..., 12) -> (..., K, m)."""
+        return measure(x, self.kind, self.camera, self.keypoints_T_m)
+
+    def predicted_visible(self, x: np.ndarray) -> np.ndarray:
+        """The visibility check's answer from states x (..., 12): (..., K) bool (filtering.measurements)."""
+        return predicted_visible(x, self.visibility)
+
+
+def filter_inertia_T_kg_m2(target: Target) -> np.ndarray:
+    """The inertia the filter takes of a target, (3, 3) kg m^2 in T: the `fullinertia` its file states, as written
+    (as the filter has always read ENVISAT's: load_inertia_T_kg_m2), where it states one that MuJoCo's compiled
+    inertia agrees with; MuJoCo's compiled inertia (Target.inertia_T_kg_m2) otherwise."""
+    compiled = np.asarray(target.inertia_T_kg_m2, dtype=float)
+    try:
+        stated = load_inertia_T_kg_m2(target.path)
+    except (ValueError, OSError):
+        return compiled
+    return stated if np.allclose(stated, compiled, rtol=1e-9, atol=0.0) else compiled
 
 
 def make_setup(cfg: FilterConfig, kind: str, camera: PinholeCamera | None = None, J_T: np.ndarray | None = None,
-               mu_m3_s2: float = MU_EARTH_M3_S2, gravity_gradient: bool = False) -> FilterSetup:
-    """A FilterSetup with the project's defaults: the MJCF's camera and inertia."""
+               mu_m3_s2: float = MU_EARTH_M3_S2, gravity_gradient: bool = False,
+               target: Target | None = None) -> FilterSetup:
+    """A FilterSetup with the project's defaults: the MJCF's camera, and the target's keypoints and inertia.
+
+    target: the target the filter measures (envisat_pose.target.Target); None: ENVISAT's corners A-H, its inertia
+    and the box face test, exactly the filter's numbers before targets existed. J_T, when given, overrides the
+    target's inertia."""
     if kind not in KINDS:
         raise ValueError(f"unknown measurement kind {kind!r}; expected one of {KINDS}")
     _check_kernel(cfg.kernel)
     gate = chi2_gate(cfg.gate_prob, dim_per_corner(kind)) if cfg.gate_prob > 0 else None
-    return FilterSetup(cfg, kind, camera or load_camera(), load_inertia_T_kg_m2() if J_T is None else J_T,
-                       float(mu_m3_s2), bool(gravity_gradient), merwe_weights(12, cfg.alpha, cfg.beta, cfg.kappa),
-                       gate)
+    if target is None:
+        keypoints, visibility = load_geometry().corners_T_m, None
+        J = load_inertia_T_kg_m2() if J_T is None else J_T
+    else:
+        keypoints = np.ascontiguousarray(target.keypoints_T_m, dtype=float)
+        visibility = target.filter_visibility
+        J = filter_inertia_T_kg_m2(target) if J_T is None else J_T
+    return FilterSetup(cfg, kind, camera or load_camera(), J, float(mu_m3_s2), bool(gravity_gradient),
+                       merwe_weights(12, cfg.alpha, cfg.beta, cfg.kappa), gate, keypoints, visibility)
 
 
 @dataclass(frozen=True)
 class Measurement:
-    """The corners measured at one time for R runs.
+    """The keypoints measured at one time for R runs (K: the setup's keypoints).
 
     t_s: time, s. chaser: (4,) the chaser's polar orbit at t_s (r_m, rdot_m_s, theta_rad, thetadot_rad_s).
-    z: (R, 8, m) measurements; mask: (R, 8) bool measured corners (a non-finite z counts as not measured);
-    R_c: per-corner noise covariance, broadcastable to (R, 8, m, m).
+    z: (R, K, m) measurements; mask: (R, K) bool measured keypoints (a non-finite z counts as not measured);
+    R_c: per-keypoint noise covariance, broadcastable to (R, K, m, m).
     """
 
     t_s: float
@@ -371,7 +409,7 @@ def _nis_bound(prob: float, d: np.ndarray) -> np.ndarray:
 
 def _update(mean, cov, z, measured, R_c, r_scale, thr, setup: FilterSetup) -> dict:
     """The measurement update of a step with setup.cfg.kernel: visibility check, gate, UKF update. Returns a
-    dict of mean, cov, nis, dof, accepted (R, 8), mask_k (R, 8) (the corners the gate saw), Ky (R, 12) = K y,
+    dict of mean, cov, nis, dof, accepted (R, K), mask_k (R, K) (the corners the gate saw), Ky (R, 12) = K y,
     yy (R,) = y.y and trPzz (R,) = tr(Pzz) over the used components (for the adaptive noise)."""
     cfg = setup.cfg
     if cfg.kernel == "fast":
@@ -382,7 +420,7 @@ def _update(mean, cov, z, measured, R_c, r_scale, thr, setup: FilterSetup) -> di
     Rk = R_c * r_scale[:, None, None, None]
     mask_k = measured
     if cfg.visibility_check:
-        mask_k = mask_k & predicted_visible(mean)
+        mask_k = mask_k & setup.predicted_visible(mean)
     mean, cov, info = update(mean, cov, z, mask_k, Rk, setup.hx, setup.weights, thr)
     return {"mean": mean, "cov": cov, "nis": info.nis, "dof": info.dof, "accepted": info.accepted, "mask_k": mask_k,
             "Ky": np.einsum("rij,rj->ri", info.K, info.y), "yy": np.einsum("ri,ri->r", info.y, info.y),
@@ -392,15 +430,18 @@ def _update(mean, cov, z, measured, R_c, r_scale, thr, setup: FilterSetup) -> di
 def run_filter(x0_hat: np.ndarray, P0: np.ndarray, t_s: np.ndarray, chaser: np.ndarray, z: np.ndarray,
                mask: np.ndarray, R_c: np.ndarray, kind: str, cfg: FilterConfig, camera: PinholeCamera | None = None,
                J_T: np.ndarray | None = None, mu_m3_s2: float = MU_EARTH_M3_S2, progress: bool = False,
-               gravity_gradient: bool = False) -> FilterResult:
+               gravity_gradient: bool = False, target: Target | None = None) -> FilterResult:
     """Filter R runs at once: `filter_step` over the T measurement times.
 
     x0_hat (R, 12) initial estimates at t_s[0]; P0 (12, 12) or (R, 12, 12); t_s (T,) s; chaser (T, 4) the
-    chaser's known orbit at t_s; z (R, T, 8, m) measurements; mask (R, T, 8) measured corners; R_c per-corner
-    noise covariance, broadcastable to (R, T, 8, m, m) (the detector's covariance when it gives one).
+    chaser's known orbit at t_s; z (R, T, K, m) measurements; mask (R, T, K) measured keypoints; R_c per-keypoint
+    noise covariance, broadcastable to (R, T, K, m, m) (the detector's covariance when it gives one).
     mu_m3_s2 and gravity_gradient: the filter's model (take the truth's, when filtering a simulated truth).
+    target: the measured target (make_setup; None: ENVISAT, K = 8).
     """
-    setup = make_setup(cfg, kind, camera, J_T, mu_m3_s2, gravity_gradient)
+    setup = make_setup(cfg, kind, camera, J_T, mu_m3_s2, gravity_gradient, target)
+    if z.shape[-2] != setup.num_keypoints:
+        raise ValueError(f"z holds {z.shape[-2]} keypoints per step; the filter's target has {setup.num_keypoints}")
     R, T, m = z.shape[0], z.shape[1], z.shape[-1]
     R_c = np.broadcast_to(R_c, z.shape + (m,))
     mask = np.broadcast_to(mask, z.shape[:-1])

@@ -21,8 +21,10 @@ round-off (the RK4 stage sums, the sigma-point mean, the symmetrization of P):
   with the gravity-gradient torque when asked) with the MRP switched to |p| <= 1 between sub-steps, MRPs
   brought to the central point's set before the weighted mean, the mean switched to |p| <= 1, residuals on
   the mean's set, P = sum Wc r r^T + Q, symmetrized;
-- update: the visibility check (exact face test from the prior mean), sigma points from the prior, the
-  measurement model of the measured corners (markers3d, pixels with the guarded pinhole, pixels+range),
+- update: the visibility check (ENVISAT's exact face test from the prior mean, in the kernel; another target's
+  fast visibility table is looked up in numpy before the kernel), sigma points from the prior, the
+  measurement model of the measured keypoints (the setup's K: markers3d, pixels with the guarded pinhole,
+  pixels+range),
   per-corner chi-square gate, innovation covariance S, gain, mean and covariance, the shadow switch with its
   Jacobian, symmetrization.
 Differences from the numpy filter are round-off only: the update works on the measured components (the numpy
@@ -45,7 +47,7 @@ from numba.core import caching as _caching
 from numba.core import config as _numba_config
 
 from envisat_pose.filtering import ukf
-from envisat_pose.filtering.measurements import MIN_DEPTH_M, predicted_visible
+from envisat_pose.filtering.measurements import MIN_DEPTH_M
 from envisat_pose.geometry import load_geometry
 from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
@@ -468,9 +470,9 @@ def _measure_cols(X, Gs, c, kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_
 
 @njit(**_JIT_PART)
 def _reaching_gate(mean, measured, r, vis_check, face_n, face_h, face_corners, G, mask_k, accepted, act):
-    """Which measured corners of run r reach the gate: measured (R, 8) and, when vis_check, visible from the prior
-    mean (R, 12) (the face test: face_n (6, 3), face_h (6,), face_corners (6, 8) bool). Writes row r of mask_k
-    (R, 8), clears accepted's (R, 8), lists the corners in act; returns their number."""
+    """Which measured corners of run r reach the gate: measured (R, K) and, when vis_check, visible from the prior
+    mean (R, 12) (the box face test: face_n (6, 3), face_h (6,), face_corners (6, K) bool). Writes row r of mask_k
+    (R, K), clears accepted's (R, K), lists the corners in act; returns their number."""
     nc = measured.shape[1]
     cT0, cT1, cT2 = 0.0, 0.0, 0.0
     if vis_check:
@@ -549,8 +551,8 @@ def _predicted_moments(X, mean, r, act, na, mdim, Wm, Wc, kind, corners_T, cam_R
 
 @njit(**_JIT_PART)
 def _innovation(z, R_c, r, sr, act, na, mdim, zp, Pzz, y, Sm):
-    """Run r's innovation y (M,) = z - z_pred of its corners act (z (R, 8, m)), and its covariance Sm (M, M) = Pzz
-    plus each corner's R_c (R, 8, m, m) x sr (block diagonal)."""
+    """Run r's innovation y (M,) = z - z_pred of its corners act (z (R, K, m)), and its covariance Sm (M, M) = Pzz
+    plus each corner's R_c (R, K, m, m) x sr (block diagonal)."""
     M = na * mdim
     for ai in range(na):
         ca = act[ai]
@@ -566,7 +568,7 @@ def _innovation(z, R_c, r, sr, act, na, mdim, zp, Pzz, y, Sm):
 @njit(**_JIT_PART)
 def _gate(Sm, y, na, mdim, thr, use_gate, comp, act, accepted, r, Sc, Lc, buf):
     """The chi-square gate per corner, y_c^T S_cc^-1 y_c <= thr (a NaN distance fails), when use_gate: the kept
-    corners' slots moved to the front of act and marked in row r of accepted (R, 8). Returns how many were kept,
+    corners' slots moved to the front of act and marked in row r of accepted (R, K). Returns how many were kept,
     -1 where a corner's S_cc has no Cholesky factor (the numpy filter redoes the run)."""
     keep = 0
     for a in range(na):
@@ -717,12 +719,13 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
     corners that reach the gate, sigma points, the measurement model's moments, the innovation, the gate, the
     accepted components, the gain and the posterior, the shadow switch (the helpers above, in this order).
 
-    mean (R, 12), cov (R, 12, 12) the prior; z (R, 8, m); measured (R, 8) bool; R_c (R, 8, m, m) per-corner
+    mean (R, 12), cov (R, 12, 12) the prior; z (R, K, m); measured (R, K) bool; R_c (R, K, m, m) per-corner
     covariance, scaled by r_scale (R,); thr (R,) chi-square bound per corner (inf: gate open), used when
-    use_gate; vis_check: drop measured corners the prior mean says are hidden. weights: (Wm, Wc, scale) of the
-    sigma points; geometry: (corners_T (8, 3), face_n (6, 3), face_h (6,), face_corners (6, 8) bool); camera:
+    use_gate; vis_check: drop measured corners the prior mean says are hidden (the box face test: K = 8 box
+    corners). weights: (Wm, Wc, scale) of the sigma points; geometry: (corners_T (K, 3), face_n (6, 3), face_h
+    (6,), face_corners (6, K) bool; the face arrays are read only with vis_check); camera:
     (R_K_from_C, pos_C_m, f, cu, cv, min_depth) for the pixel kinds and kind (0 markers3d, 1 pixels, 2
-    pixels+range) last. out: (mean_out, cov_out, nis (R,), accepted and mask_k (R, 8) (corners used; corners
+    pixels+range) last. out: (mean_out, cov_out, nis (R,), accepted and mask_k (R, K) (corners used; corners
     that reached the gate), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,) = tr(Pzz) over the used components, ok
     (R,) False where the numpy filter must redo the run), written.
     """
@@ -860,23 +863,24 @@ _CONSTANTS: dict = {}
 
 
 def _constants(setup):
-    """The kernels' fixed arrays of a FilterSetup, made once: (J, J^-1, corners, face normals, offsets, face
-    membership, camera rotation, camera position, f, cu, cv, kind code). Keyed by the setup's objects, which
+    """The kernels' fixed arrays of a FilterSetup, made once: (J, J^-1, keypoints (K, 3), face normals, offsets,
+    face membership (of ENVISAT's box: read by the kernel's face test only, which runs for a setup without a
+    visibility table), camera rotation, camera position, f, cu, cv, kind code). Keyed by the setup's objects, which
     the cache keeps alive, so an id is never reused while its entry exists."""
-    key = (id(setup.J_T), id(setup.camera), setup.kind)
+    key = (id(setup.J_T), id(setup.camera), id(setup.keypoints_T_m), setup.kind)
     hit = _CONSTANTS.get(key)
-    if hit is not None and hit[0] is setup.J_T and hit[1] is setup.camera:
-        return hit[2]
+    if hit is not None and hit[0] is setup.J_T and hit[1] is setup.camera and hit[2] is setup.keypoints_T_m:
+        return hit[3]
 
     g, cam = load_geometry(), setup.camera
     J = np.ascontiguousarray(setup.J_T, dtype=float)
     c = lambda a, t=float: np.ascontiguousarray(a, dtype=t)  # noqa: E731
-    consts = (J, np.linalg.inv(J), c(g.corners_T_m), c(g.face_normals_T), c(g.face_offsets_m),
+    consts = (J, np.linalg.inv(J), c(setup.keypoints_T_m), c(g.face_normals_T), c(g.face_offsets_m),
               c(g.face_corners, bool), c(cam.R_K_from_C), c(cam.pos_C_m), float(cam.f_px), float(cam.cu_px),
               float(cam.cv_px), KIND_CODES[setup.kind])
     if len(_CONSTANTS) > 16:
         _CONSTANTS.clear()
-    _CONSTANTS[key] = (setup.J_T, setup.camera, consts)
+    _CONSTANTS[key] = (setup.J_T, setup.camera, setup.keypoints_T_m, consts)
     return consts
 
 
@@ -911,16 +915,21 @@ def update_fused(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.
                  r_scale: np.ndarray, thr: np.ndarray | None, vis_check: bool, setup) -> dict:
     """The estimator's measurement update (visibility check, gate, filtering.ukf.update) in the fused kernel.
 
-    mean (R, 12), cov (R, 12, 12) the prior; z (R, 8, m); measured (R, 8) bool (finite); R_c (R, 8, m, m)
+    mean (R, 12), cov (R, 12, 12) the prior; z (R, K, m); measured (R, K) bool (finite); R_c (R, K, m, m)
     per-corner covariance, used as R_c * r_scale (R,); thr (R,) gate bound per run (inf: open) or None (no
-    gate); setup: the estimator's FilterSetup (kind, camera, weights). Returns a dict of mean, cov, nis, dof,
-    accepted (R, 8), mask_k (R, 8) (the corners the gate saw), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,),
+    gate); setup: the estimator's FilterSetup (kind, camera, weights, keypoints, visibility rule: ENVISAT's face
+    test runs in the kernel, a target's table is looked up here first). Returns a dict of mean, cov, nis, dof,
+    accepted (R, K), mask_k (R, K) (the corners the gate saw), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,),
     indefinite (R,) bool (the innovation covariance was not positive definite: the update failed), suspect (k,) the runs the numpy filter redid (the only ones whose results may be non-finite)."""
 
     mean = np.ascontiguousarray(mean, dtype=float)
     cov = np.ascontiguousarray(cov, dtype=float)
     R = mean.shape[0]
     measured = np.ascontiguousarray(measured, dtype=bool)
+    kernel_vis = bool(vis_check) and setup.visibility is None  # the box face test, in the kernel
+    if vis_check and not kernel_vis:  # a target's table: the corners it hides never reach the kernel
+        measured = np.ascontiguousarray(measured & setup.predicted_visible(mean), dtype=bool)
+    K = measured.shape[1]
     z = np.ascontiguousarray(z, dtype=float)  # the kernel reads measured corners only (a NaN elsewhere is fine)
     m = z.shape[-1]
     R_c = np.ascontiguousarray(np.broadcast_to(R_c, z.shape + (m,)), dtype=float)
@@ -930,12 +939,12 @@ def update_fused(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.
     J, Jinv, corners, fn, fh, fc, cR, cpos, f, cu, cv, kind = _constants(setup)
     w = setup.weights
     out = {"mean": np.empty_like(mean), "cov": np.empty_like(cov), "nis": np.empty(R), "yy": np.empty(R),
-           "trPzz": np.empty(R), "Ky": np.empty((R, N_STATE)), "accepted": np.empty((R, 8), dtype=bool),
-           "mask_k": np.empty((R, 8), dtype=bool)}
+           "trPzz": np.empty(R), "Ky": np.empty((R, N_STATE)), "accepted": np.empty((R, K), dtype=bool),
+           "mask_k": np.empty((R, K), dtype=bool)}
     ok = np.empty(R, dtype=bool)
     out["suspect"] = np.zeros(0, dtype=np.int64)  # runs the numpy filter redid (the kernel's are finite)
     out["indefinite"] = np.zeros(R, dtype=bool)  # runs whose innovation covariance was not positive definite
-    update_kernel(mean, cov, z, measured, R_c, r_scale, thr_a, use_gate, bool(vis_check),
+    update_kernel(mean, cov, z, measured, R_c, r_scale, thr_a, use_gate, kernel_vis,
                   (w.Wm, w.Wc, float(w.n + w.lam)), (corners, fn, fh, fc),
                   (cR, cpos, f, cu, cv, float(MIN_DEPTH_M), kind),
                   (out["mean"], out["cov"], out["nis"], out["accepted"], out["mask_k"], out["Ky"], out["yy"],
@@ -944,8 +953,8 @@ def update_fused(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.
         bad = np.flatnonzero(~ok)
         out["suspect"] = bad
         mk = measured[bad]
-        if vis_check:
-            mk = mk & predicted_visible(mean[bad])
+        if kernel_vis:
+            mk = mk & setup.predicted_visible(mean[bad])
         Rk = R_c[bad] * r_scale[bad, None, None, None]
         mb, cb, info = ukf.update(mean[bad], cov[bad], z[bad], mk, Rk, setup.hx, w,
                                   None if thr is None else thr_a[bad])

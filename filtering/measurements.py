@@ -1,6 +1,8 @@
-"""Measurement models of the corners A-H, visibility prediction and the selection of measured corners.
+"""Measurement models of a target's K keypoints ("corners"), visibility prediction and the selection of measured ones.
 
-Three kinds (per corner i, v_i its position in T from models/envisat.xml via envisat_pose.geometry):
+The keypoints are the target's (envisat_pose.target.Target.keypoints_T_m, (K, 3) in T); without one, ENVISAT's
+corners A-H of models/envisat.xml via envisat_pose.geometry (K = 8), the filter's default.
+Three kinds (per keypoint i, v_i its position in T):
 - "markers3d": z_i = rho + Gamma^T v_i, the corner relative to the chaser in C, m (3 per corner);
 - "pixels": (u, v) of the corner in the chaser camera, px (2 per corner);
 - "pixels+range": (u, v, range_m), range the distance from the camera to the corner, m (3 per corner).
@@ -11,8 +13,8 @@ z boresight), and the guarded pinhole `envisat_pose.geometry.project_K` maps it 
 u = f x_K / z_K + c_u, v = f y_K / z_K + c_v (pixel centres at integer coordinates); a point behind the camera is
 never mirrored into the image. The range of pixels+range is measured from the camera centre.
 
-Measurements travel as per-corner arrays: z (..., 8, m), mask (..., 8) bool (which corners were measured), and
-per-corner covariances (..., 8, m, m). A filter flattens them to (..., 8 m).
+Measurements travel as per-keypoint arrays: z (..., K, m), mask (..., K) bool (which keypoints were measured), and
+per-keypoint covariances (..., K, m, m). A filter flattens them to (..., K m).
 """
 
 from __future__ import annotations
@@ -33,17 +35,27 @@ def dim_per_corner(kind: str) -> int:
 
 
 def corners_C_m(x: np.ndarray, corners_T_m: np.ndarray | None = None) -> np.ndarray:
-    """Corner positions relative to the chaser in C: rho + Gamma^T v_i, m. (..., 12) -> (..., 8, 3)."""
+    """Keypoint positions relative to the chaser in C: rho + Gamma^T v_i, m. (..., 12) -> (..., K, 3).
+
+    corners_T_m: (K, 3) the keypoints in T, m (default: ENVISAT's corners A-H, K = 8)."""
     v_T = load_geometry().corners_T_m if corners_T_m is None else corners_T_m
     G = mrp_to_dcm(x[..., MRP])
     # (Gamma^T v)_j = sum_i G_ij v_i
     return x[..., None, POS] + v_T @ G
 
 
-def predicted_visible(x: np.ndarray) -> np.ndarray:
-    """Exact face test from the state: c_T = -Gamma rho, the chaser in T. (..., 12) -> (..., 8) bool."""
-    c_T = -np.einsum("...ij,...j->...i", mrp_to_dcm(x[..., MRP]), x[..., POS])
-    return visible_corners(c_T)
+def chaser_T_m_from_state(x: np.ndarray) -> np.ndarray:
+    """The chaser's position in T, c_T = -Gamma rho, m. (..., 12) -> (..., 3)."""
+    return -np.einsum("...ij,...j->...i", mrp_to_dcm(x[..., MRP]), x[..., POS])
+
+
+def predicted_visible(x: np.ndarray, table=None) -> np.ndarray:
+    """Which keypoints the state says the chaser sees, from c_T = -Gamma rho (chaser_T_m_from_state).
+
+    table: None for ENVISAT's box (the exact face test of geometry.visible_corners, K = 8), or a target's fast
+    visibility table (envisat_pose.target.VisibilityTable: its `lookup`). (..., 12) -> (..., K) bool."""
+    c_T = chaser_T_m_from_state(x)
+    return visible_corners(c_T) if table is None else table.lookup(c_T)
 
 
 def to_camera_K(points_C_m: np.ndarray, camera: PinholeCamera) -> np.ndarray:
@@ -60,12 +72,14 @@ def project(points_C_m: np.ndarray, camera: PinholeCamera) -> tuple[np.ndarray, 
     return project_K(p_K, camera, MIN_DEPTH_M), p_K[..., 2]
 
 
-def measure(x: np.ndarray, kind: str, camera: PinholeCamera | None = None) -> np.ndarray:
-    """Noise-free measurement of all 8 corners from the state. (..., 12) -> (..., 8, m), m = dim_per_corner(kind).
+def measure(x: np.ndarray, kind: str, camera: PinholeCamera | None = None,
+            corners_T_m: np.ndarray | None = None) -> np.ndarray:
+    """Noise-free measurement of all K keypoints from the state. (..., 12) -> (..., K, m), m = dim_per_corner(kind).
 
     camera: the chaser camera (default: load_camera(), the MJCF's chaser_cam); unused for markers3d.
+    corners_T_m: (K, 3) the keypoints in T, m (default: ENVISAT's corners A-H).
     """
-    pts = corners_C_m(x)
+    pts = corners_C_m(x, corners_T_m)
     if kind == "markers3d":
         return pts
     camera = camera or load_camera()
@@ -77,10 +91,13 @@ def measure(x: np.ndarray, kind: str, camera: PinholeCamera | None = None) -> np
     raise ValueError(f"unknown measurement kind {kind!r}; expected one of {KINDS}")
 
 
-def corners_in_frame(x: np.ndarray, camera: PinholeCamera | None = None) -> np.ndarray:
-    """Which corners project inside the image and in front of the camera. (..., 12) -> (..., 8) bool."""
+def corners_in_frame(x: np.ndarray, camera: PinholeCamera | None = None,
+                     corners_T_m: np.ndarray | None = None) -> np.ndarray:
+    """Which keypoints project inside the image and in front of the camera. (..., 12) -> (..., K) bool.
+
+    corners_T_m: (K, 3) the keypoints in T, m (default: ENVISAT's corners A-H)."""
     camera = camera or load_camera()
-    uv, z_K = project(corners_C_m(x), camera)
+    uv, z_K = project(corners_C_m(x, corners_T_m), camera)
     return (z_K > 0) & (uv[..., 0] >= -0.5) & (uv[..., 0] <= camera.width_px - 0.5) \
         & (uv[..., 1] >= -0.5) & (uv[..., 1] <= camera.height_px - 0.5)
 
@@ -95,11 +112,12 @@ def corner_cov(kind: str, sigma_m: float, sigma_px: float, sigma_range_m: float)
 
 
 def limit_markers(mask: np.ndarray, max_markers: int | None) -> np.ndarray:
-    """Keep at most `max_markers` measured corners per step: the first ones in the order A..H.
+    """Keep at most `max_markers` measured keypoints per step: the first ones in the target's keypoint order (A..H
+    for ENVISAT); None keeps all.
 
     The rule is deterministic and label-based, like a tracker that locks on named markers (the paper's
     3-marker case): any three distinct box corners are never collinear, so the pose stays observable.
-    mask: (..., 8) bool -> (..., 8) bool.
+    mask: (..., K) bool -> (..., K) bool.
     """
     if max_markers is None or max_markers >= mask.shape[-1]:
         return mask
@@ -107,7 +125,7 @@ def limit_markers(mask: np.ndarray, max_markers: int | None) -> np.ndarray:
 
 
 def random_failures(mask: np.ndarray, failure_prob: float, rng: np.random.Generator) -> np.ndarray:
-    """Drop each measured corner independently with probability failure_prob. (..., 8) bool."""
+    """Drop each measured keypoint independently with probability failure_prob. (..., K) bool."""
     if failure_prob <= 0.0:
         return mask
     return mask & (rng.random(mask.shape) >= failure_prob)
@@ -122,7 +140,7 @@ def outage_mask(t_s: np.ndarray, outages_s: tuple[tuple[float, float], ...]) -> 
 
 
 def add_noise(z: np.ndarray, cov: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """z + e with e ~ N(0, cov) per corner. z (..., 8, m), cov broadcastable to (..., 8, m, m)."""
+    """z + e with e ~ N(0, cov) per keypoint. z (..., K, m), cov broadcastable to (..., K, m, m)."""
     cov = np.asarray(cov, dtype=float)
     if cov.ndim == 2:  # one covariance for all: one factor (the same numbers as factoring every copy of it)
         L = np.linalg.cholesky(cov)
@@ -135,7 +153,7 @@ def add_noise(z: np.ndarray, cov: np.ndarray, rng: np.random.Generator) -> np.nd
 def swap_corners(z: np.ndarray, steps: np.ndarray, i: int, j: int) -> np.ndarray:
     """A mis-association fault: corners i and j exchange their measurements at the given steps.
 
-    z: (T, 8, m) or (R, T, 8, m); steps: (T,) bool. Returns a copy.
+    z: (T, K, m) or (R, T, K, m); steps: (T,) bool. Returns a copy.
     """
     z = z.copy()
     zi = z[..., steps, i, :].copy()
@@ -148,9 +166,9 @@ def from_detections(corners_px: np.ndarray, cov_px: np.ndarray, visible: np.ndar
                     confidence: np.ndarray | None = None, min_confidence: float = 0.0):
     """The detector's output (design.md, Detections) as filter input for the "pixels" kind.
 
-    corners_px (..., 8, 2) px, cov_px (..., 8, 2, 2) px^2, visible (..., 8) bool, confidence (..., 8) in [0, 1].
-    Returns z (..., 8, 2), mask (..., 8) bool (visible, confident enough, finite, with a finite covariance),
-    R_c (..., 8, 2, 2) with unit covariance where a corner is not used (never read).
+    corners_px (..., K, 2) px, cov_px (..., K, 2, 2) px^2, visible (..., K) bool, confidence (..., K) in [0, 1].
+    Returns z (..., K, 2), mask (..., K) bool (visible, confident enough, finite, with a finite covariance),
+    R_c (..., K, 2, 2) with unit covariance where a corner is not used (never read).
     """
     z = np.asarray(corners_px, dtype=float)
     cov = np.asarray(cov_px, dtype=float)

@@ -2,7 +2,8 @@
 
 Measurements come from the truth, never from the filter's own model: `truth_measurements` turns the truth's
 arrays (MuJoCo's corner sites corners_C_m, their projection corners_px through MuJoCo's camera, the visibility
-and in-frame flags) into noise-free measurements z_true (T, 8, m) and the measurable set (T, 8).
+and in-frame flags) into noise-free measurements z_true (T, K, m) and the measurable set (T, K), K the truth's
+keypoints (its target's: ENVISAT's corners A-H, K = 8, or another target file's).
 Runs share one truth trajectory and differ in their initial estimate error (drawn from P0) and in their
 measurement noise and failures. Run r draws everything from its own Generator, made from
 `numpy.random.SeedSequence(seed, spawn_key=(r,))` (the same as `SeedSequence(seed).spawn(R)[r]`), in a fixed
@@ -36,7 +37,8 @@ class MeasurementConfig:
 
     kind: markers3d (corners in C, m), pixels (px), pixels+range (px, px, m).
     sigma_m: 3D corner noise per axis, m. sigma_px: pixel noise per axis, px. sigma_range_m: range noise, m.
-    max_markers: at most this many corners per step (the first visible ones in A..H order); 8 = all visible.
+    max_markers: at most this many keypoints per step (the first visible ones in the target's keypoint order, A..H
+    for ENVISAT), from 1 to the target's K; None (the default) = all visible.
     failure_prob: each visible corner is independently lost with this probability at each step.
     outages_s: windows [start, end) in s with no measurement at all (eclipse).
     rate_hz: filter and measurement rate; the truth's sample step must divide 1 / rate_hz.
@@ -47,7 +49,7 @@ class MeasurementConfig:
     sigma_m: float = 0.02
     sigma_px: float = 1.0
     sigma_range_m: float = 0.05
-    max_markers: int = 8
+    max_markers: int | None = None
     failure_prob: float = 0.0
     outages_s: tuple[tuple[float, float], ...] = ()
     rate_hz: float = 1.0
@@ -57,11 +59,18 @@ class MeasurementConfig:
         check(self.sigma_m > 0, f"{p}sigma_m", self.sigma_m, "a positive noise sigma in metres")
         check(self.sigma_px > 0, f"{p}sigma_px", self.sigma_px, "a positive noise sigma in pixels")
         check(self.sigma_range_m > 0, f"{p}sigma_range_m", self.sigma_range_m, "a positive noise sigma in metres")
-        check(1 <= self.max_markers <= 8, f"{p}max_markers", self.max_markers, "an integer from 1 to 8")
+        check(self.max_markers is None or self.max_markers >= 1, f"{p}max_markers", self.max_markers,
+              "an integer from 1 to the target's number of keypoints (omit it for all)")
         check(0.0 <= self.failure_prob < 1.0, f"{p}failure_prob", self.failure_prob, "a probability in [0, 1)")
         for i, (a, b) in enumerate(self.outages_s):
             check(0.0 <= a < b, f"{p}outages_s[{i}]", [a, b], "a window [start, end) with 0 <= start < end, s")
         check(0.0 < self.rate_hz <= 100.0, f"{p}rate_hz", self.rate_hz, "a rate in (0, 100] Hz")
+
+    def check_keypoints(self, num_keypoints: int, prefix: str = "measurement") -> None:
+        """ConfigError unless max_markers fits a target of num_keypoints keypoints (1..K, or None)."""
+        p = f"{prefix}." if prefix else ""
+        check(self.max_markers is None or 1 <= self.max_markers <= num_keypoints, f"{p}max_markers",
+              self.max_markers, f"an integer from 1 to {num_keypoints} (the target's keypoints; omit it for all)")
 
     @property
     def corner_cov(self) -> np.ndarray:
@@ -81,7 +90,7 @@ def filter_stride(t_s: np.ndarray, rate_hz: float) -> int:
 
 @dataclass
 class RunInputs:
-    """Inputs of R runs over T filter steps: x0_hat (R, 12), z (R, T, 8, m), mask (R, T, 8), R_c (m, m)."""
+    """Inputs of R runs over T filter steps: x0_hat (R, 12), z (R, T, K, m), mask (R, T, K), R_c (m, m)."""
 
     x0_hat: np.ndarray
     z: np.ndarray
@@ -94,11 +103,11 @@ def truth_measurements(kind: str, corners_C_m: np.ndarray, visible: np.ndarray, 
                        ) -> tuple[np.ndarray, np.ndarray]:
     """Noise-free measurements of a truth and the corners that can be measured, from the truth's own arrays.
 
-    corners_C_m (T, 8, 3) m: the truth's corners in C (MuJoCo's sites); visible (T, 8) bool; corners_px (T, 8, 2)
-    px and in_frame (T, 8) bool: MuJoCo's projection through its camera (needed by the pixel kinds).
+    corners_C_m (T, K, 3) m: the truth's keypoints in C (MuJoCo's sites); visible (T, K) bool; corners_px (T, K, 2)
+    px and in_frame (T, K) bool: MuJoCo's projection through its camera (needed by the pixel kinds).
     markers3d: z = corners_C_m, measurable where visible. pixels: z = corners_px, measurable where visible and
     in frame. pixels+range: (corners_px, |corners_C_m - camera centre|), same set. camera: for the range's
-    centre (default load_camera()). Returns z_true (T, 8, m), base_mask (T, 8) bool.
+    centre (default load_camera()). Returns z_true (T, K, m), base_mask (T, K) bool.
     """
     corners_C_m = np.asarray(corners_C_m, dtype=float)
     visible = np.asarray(visible, dtype=bool)
@@ -121,13 +130,15 @@ def make_run_inputs(x0_true: np.ndarray, t_s: np.ndarray, z_true: np.ndarray, ba
                     mcfg: MeasurementConfig, P0: np.ndarray, seed: int, n_runs: int, first_run: int = 0) -> RunInputs:
     """Measurements and initial estimates of n_runs runs of one truth.
 
-    x0_true (12,): the true state at t_s[0]; t_s (T,) the filter's time grid; z_true (T, 8, m) noise-free
-    measurements and base_mask (T, 8) bool the measurable corners on that grid (truth_measurements). The
-    measured set is base_mask minus outages and random failures, then limited to max_markers. The runs are
+    x0_true (12,): the true state at t_s[0]; t_s (T,) the filter's time grid; z_true (T, K, m) noise-free
+    measurements and base_mask (T, K) bool the measurable keypoints on that grid (truth_measurements). The
+    measured set is base_mask minus outages and random failures, then limited to max_markers (at most K: a
+    ConfigError otherwise). The runs are
     first_run .. first_run + n_runs - 1; run r draws, from SeedSequence(seed, spawn_key=(r,)) (=
     SeedSequence(seed).spawn(R)[r]): its initial error (P0), its noise, its failures.
     """
     z_true = np.asarray(z_true, dtype=float)
+    mcfg.check_keypoints(z_true.shape[-2])
     base = np.asarray(base_mask, dtype=bool) & ~outage_mask(np.asarray(t_s), mcfg.outages_s)[:, None]
     cov = mcfg.corner_cov
     if z_true.shape[-1] != cov.shape[-1]:
@@ -143,7 +154,8 @@ def make_run_inputs(x0_true: np.ndarray, t_s: np.ndarray, z_true: np.ndarray, ba
 
 def inputs_from_truth(truth, mcfg: MeasurementConfig, P0: np.ndarray, seed: int, n_runs: int,
                       sel: slice = slice(None)) -> RunInputs:
-    """make_run_inputs from a truth trajectory (envisat_pose.contracts.TruthTrajectory), sampled at `sel`."""
+    """make_run_inputs from a truth trajectory (envisat_pose.contracts.TruthTrajectory) of any target (its K
+    keypoints), sampled at `sel`."""
     z_true, base = truth_measurements(mcfg.kind, truth.corners_C_m[sel], truth.visible[sel],
                                       truth.corners_px[sel], truth.in_frame[sel])
     return make_run_inputs(truth.x[sel][0], truth.t_s[sel], z_true, base, mcfg, P0, seed, n_runs)

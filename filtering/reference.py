@@ -47,7 +47,7 @@ def reference_predict(ukf: UnscentedKalmanFilter, dt_s: float, c0: np.ndarray, J
 
 def reference_update(ukf: UnscentedKalmanFilter, z: np.ndarray, mask_c: np.ndarray, R_c: np.ndarray, kind: str,
                      camera: PinholeCamera | None = None) -> None:
-    """filterpy update with the measured corners only. z (8, m), mask_c (8,) bool, R_c (8, m, m)."""
+    """filterpy update with the measured corners only. z (K, m), mask_c (K,) bool, R_c (K, m, m)."""
     mask_c = np.asarray(mask_c, dtype=bool)
     if not mask_c.any():
         ukf.update(None)

@@ -209,7 +209,7 @@ def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: n
 
 @dataclass
 class UpdateInfo:
-    """What an update saw, per run: nis (...,), dof (...,) measured components used, accepted (..., 8) corners,
+    """What an update saw, per run: nis (...,), dof (...,) measured components used, accepted (..., K) corners,
     innovation y (..., M) and gain K (..., n, M) (zero where a component was not used), Pzz_state (..., M, M);
     indefinite (...,) bool: the innovation covariance was not positive definite (the update failed: NaN)."""
 
@@ -223,7 +223,7 @@ class UpdateInfo:
 
 
 def block_diag_corners(cov_c: np.ndarray) -> np.ndarray:
-    """Per-corner covariances (..., 8, m, m) -> block-diagonal (..., 8m, 8m)."""
+    """Per-corner covariances (..., K, m, m) -> block-diagonal (..., K m, K m)."""
     nc, m = cov_c.shape[-3], cov_c.shape[-1]
     out = np.zeros(cov_c.shape[:-3] + (nc, m, nc, m))
     for c in range(nc):
@@ -234,8 +234,8 @@ def block_diag_corners(cov_c: np.ndarray) -> np.ndarray:
 def gate_corners(y: np.ndarray, S: np.ndarray, mask: np.ndarray, m: int, threshold: float) -> np.ndarray:
     """Chi-square gate per corner: keep corner c if y_c^T S_cc^-1 y_c <= threshold (m dof).
 
-    y (..., 8m) innovation, S (..., 8m, 8m) innovation covariance, mask (..., 8m) components (whole corners).
-    threshold: a number or one per run (...,). Returns the mask (..., 8m) without the rejected corners.
+    y (..., K m) innovation, S (..., K m, K m) innovation covariance, mask (..., K m) components (whole corners).
+    threshold: a number or one per run (...,). Returns the mask (..., K m) without the rejected corners.
     """
     nc = y.shape[-1] // m
     mask_c = mask.reshape(mask.shape[:-1] + (nc, m))[..., 0]
@@ -254,8 +254,8 @@ def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask_c: np.ndarray,
            gate_threshold: float | None = None) -> tuple[np.ndarray, np.ndarray, UpdateInfo]:
     """UKF measurement update of the 12-state with a varying set of measured corners.
 
-    mean (..., 12), cov (..., 12, 12); z (..., 8, m) measurements; mask_c (..., 8) bool measured corners;
-    R_c (..., 8, m, m) per-corner noise covariances; hx: (..., 12) -> (..., 8, m) the measurement model of all
+    mean (..., 12), cov (..., 12, 12); z (..., K, m) measurements; mask_c (..., K) bool measured corners;
+    R_c (..., K, m, m) per-corner noise covariances; hx: (..., 12) -> (..., K, m) the measurement model of all
     corners. gate_threshold: chi-square bound per corner, a number or (...,) per run (None: no gating). After the update the MRP switches
     to its shadow where |p| > 1 (mean and covariance together). Returns (mean, cov, info).
     """

@@ -5,12 +5,14 @@ The truth comes from a truth file (written by `envisat simulate`, read as the co
 without importing the simulator) or is simulated for a named scenario by the MuJoCo truth simulator
 (datagen.truth.simulate_truth). Measurements are synthesized from the truth's own arrays (MuJoCo's corner sites and
 their projection through MuJoCo's camera), never from the filter's model; the filter's model takes the truth's
-mu and gravity-gradient switch from its config (pipelines/tracking/onboard.py, `onboard_physics`). A named scenario with
+mu and gravity-gradient switch from its config (pipelines/tracking/onboard.py, `onboard_physics`) and its keypoints
+and inertia from the truth's target file (config target.file, `truth_target`: any target). A named scenario with
 an [eclipse] table adds the Earth's-shadow outages along its truth (`eclipse_outages`, `with_outages`; the campaigns use them too).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass, field
 
@@ -27,11 +29,12 @@ from envisat_pose.datagen.scenario import (
 )
 from envisat_pose.filtering.estimator import FilterConfig, chaser_states, diverged_against_truth, nees, run_filter
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
+from envisat_pose.geometry import load_geometry
 from envisat_pose.io import atomic_write_text
 from envisat_pose.out_dirs import make_out_file_dirs
 from envisat_pose.pipelines.common.job_defaults import scenario_defaults
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
-from envisat_pose.target import require_envisat_truth
+from envisat_pose.target import DEFAULT_TARGET, Target, is_default_file, load_target, resolve_target_path
 
 MAX_OUTPUT_BYTES = 8 * 2**30  # P alone is R * T * 144 * 8 bytes
 
@@ -65,6 +68,44 @@ class EstimateConfig:
 
 # ---------------------------------------------------------------- what a job takes from its truth
 
+def truth_target(config: dict, source: str) -> Target | None:
+    """The target a truth was simulated with, for the filter: None for ENVISAT (the filter's own default model:
+    its corners A-H, inertia and box face test, exactly its numbers before targets existed; asked of
+    envisat_pose.target, which answers it without loading MuJoCo), else its config's target.file loaded
+    (envisat_pose.target.load_target). InputError naming `source` in one line when the file cannot be loaded, or
+    when the truth records the file's sha256 (target.sha256) and the file's bytes no longer match it (an edited
+    target would be estimated with another body than the truth's)."""
+    record = config.get("target") or {}
+    given = record.get("file", DEFAULT_TARGET)
+    recorded = record.get("sha256")
+    if recorded is not None:
+        path = resolve_target_path(given)
+        try:
+            with open(path, "rb") as fh:
+                digest = hashlib.sha256(fh.read()).hexdigest()
+        except OSError as err:
+            raise InputError(f"{source}: its target file {given!r} cannot be read ({err.strerror})") from None
+        if digest != recorded:
+            raise InputError(f"{source}: its target file {given!r} changed since the truth was simulated (sha256 "
+                             f"{digest[:12]}..., the truth recorded {str(recorded)[:12]}...)")
+    if is_default_file(given):
+        return None
+    try:
+        return load_target(given, "target.file")
+    except ConfigError as err:
+        raise InputError(f"{source}: its target file cannot be used ({err})") from None
+
+
+def check_truth_keypoints(truth, target: Target | None, source: str) -> None:
+    """InputError naming `source` unless the truth's arrays hold the filter's K keypoints (the target's; None:
+    ENVISAT's corners A-H)."""
+    K = int(truth.corners_C_m.shape[1])
+    K_model = load_geometry().corners_T_m.shape[0] if target is None else target.num_keypoints
+    if K != K_model:
+        where = "ENVISAT's corners" if target is None else f"its target file {target.path!r}"
+        raise InputError(f"{source}: the truth holds {K} keypoints; {where} number {K_model}")
+
+
 def eclipse_outages(name: str, truth_cfg) -> tuple[tuple[float, float], ...]:
     """The Earth's-shadow windows [start, end) s of a named scenario's [eclipse] table along the truth of
     truth_cfg (a datagen ScenarioConfig); () for a scenario without one."""
@@ -95,8 +136,8 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
             raise InputError("duration_s applies to a `scenario` only; the truth file (`truth_path`) fixes the "
                              "duration")
         truth = TruthTrajectory.load(truth_path)
-        require_envisat_truth(truth.config, "truth_path", truth_path, "estimate")
         onboard_physics(truth, truth_path)  # its config must name the physics the filter needs
+        check_truth_keypoints(truth, truth_target(truth.config, truth_path), truth_path)  # any target: its file
         return truth, {"truth_file": truth_path}
     from envisat_pose.datagen.truth import simulate_truth
 
@@ -137,6 +178,8 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     """
 
     mu_m3_s2, gravity_gradient = onboard_physics(truth)
+    target = truth_target(truth.config, "the truth")
+    check_truth_keypoints(truth, target, "the truth")
 
     try:
         stride = filter_stride(truth.t_s, cfg.measurement.rate_hz)
@@ -157,7 +200,7 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
                                       truth.in_frame[sel])
     inp = make_run_inputs(x_true[0], t_s, z_true, base, cfg.measurement, fcfg.P0, cfg.seed, R)
     res = run_filter(inp.x0_hat, fcfg.P0, t_s, chaser, inp.z, inp.mask, inp.R_c, kind, fcfg, progress=progress,
-                     mu_m3_s2=mu_m3_s2, gravity_gradient=gravity_gradient)
+                     mu_m3_s2=mu_m3_s2, gravity_gradient=gravity_gradient, target=target)
     diverged = diverged_against_truth(res.diverged, nees(x_true[None], res.x_hat, res.P), fcfg)
     return {
         "t_s": t_s,
@@ -188,6 +231,7 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     cfg = scenario_outages(cfg, scenario, truth)
     if len(truth.t_s) < 2:
         raise InputError("the truth trajectory has fewer than 2 samples")
+    cfg.measurement.check_keypoints(int(truth.corners_C_m.shape[1]))  # max_markers <= the target's K
     make_out_file_dirs({out: "out", cfg_path: "out", **({rrd: "rrd"} if rrd else {})})
     arrays = estimate(truth, cfg, progress=progress)
     config_json = json.dumps({"estimate": to_dict(cfg), "truth_source": source, "truth_config": truth.config},

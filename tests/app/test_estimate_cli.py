@@ -212,3 +212,61 @@ def test_the_pipeline_writes_what_the_verb_writes(truth_file, tmp_path, capsys):
     assert (tmp_path / "api.npz").read_bytes() == (tmp_path / "cli.npz").read_bytes()
     assert (tmp_path / "api.config.toml").read_text() == (tmp_path / "cli.config.toml").read_text()
     assert res["arrays"]["x_hat"].shape == (2, 61, 12) and (res["arrays"]["n_meas"][:, 10:20] == 0).all()
+
+
+# ---------------------------------------------------------------- another target's truth (K keypoints)
+
+@pytest.fixture(scope="module")
+def upper_stage_truth(tmp_path_factory):
+    """A 60 s truth of the default scenario with the upper stage (models/upper_stage.xml, K = 12), seed 2, written
+    by `envisat simulate --target`."""
+    path = tmp_path_factory.mktemp("upper") / "run.npz"
+    assert main(["simulate", "--target", "models/upper_stage.xml", "--duration-s", "60", "--dt-s", "2", "--seed", "2",
+                 "--out", str(path), "--quiet"]) == 0
+    return path
+
+
+def test_truth_file_of_another_target_is_estimated_with_its_keypoints(upper_stage_truth, tmp_path, capsys):
+    """`estimate --truth` of the upper stage's truth: the filter measures its 12 keypoints (more than ENVISAT's 8
+    at a step) and converges; est.npz names the truth's target."""
+    out = tmp_path / "est.npz"
+    assert main(["estimate", "--truth", str(upper_stage_truth), "--runs", "3", "--rate-hz", "0.5", "--seed", "1",
+                 "--quiet", "--out", str(out)]) == 0
+    est = _load(out)
+    assert set(est) == KEYS
+    assert est["x_hat"].shape == (3, 31, 12) and not est["diverged"].any()
+    assert est["n_meas"].max() > 8
+    assert np.abs(est["x_hat"][:, -1, :3] - est["x_true"][:, -1, :3]).max() < 0.05
+    cfg = json.loads(str(est["config_json"]))
+    assert cfg["truth_config"]["target"]["file"] == "models/upper_stage.xml"
+    assert cfg["estimate"]["measurement"]["max_markers"] is None  # all visible keypoints
+    assert "mean NEES" in capsys.readouterr().out
+
+
+def _with_target_record(src, dst, **record):
+    from envisat_pose.contracts import TruthTrajectory
+
+    tr = TruthTrajectory.load(str(src))
+    config = json.loads(tr.config_json)
+    config["target"].update(record)
+    tr.config_json = json.dumps(config)
+    tr.save(str(dst))
+
+
+@pytest.mark.parametrize("how, extra, needle", [
+    ("sha256", [], "changed since the truth was simulated"),
+    ("max_markers", ["--rate-hz", "0.5", "--max-markers", "13"], "measurement.max_markers"),
+])
+def test_another_targets_truth_errors_are_one_line(upper_stage_truth, tmp_path, capsys, how, extra, needle):
+    """A truth that records its target file's sha256 when the file has changed since, and more markers than the
+    target's 12 keypoints: exit 2, one line, nothing written."""
+    truth = upper_stage_truth
+    if how == "sha256":
+        truth = tmp_path / "edited.npz"
+        _with_target_record(upper_stage_truth, truth, sha256="0" * 64)
+    out = tmp_path / "e" / "est.npz"
+    capsys.readouterr()
+    assert main(["estimate", "--truth", str(truth), "--quiet", "--out", str(out)] + extra) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and needle in err and "Traceback" not in err, err
+    assert not out.parent.exists()

@@ -413,15 +413,13 @@ def test_a_shipped_target_matches_its_note_and_generates(name, mass_kg, inertia,
 
 
 def test_the_detector_verbs_refuse_another_target_in_one_line(target_files, tmp_path, capsys):
-    """detect, train, track, adapt, calibrate and evaluate on a dataset of the test's target, run with it as its
-    image target, estimate on its truth file (the filter measures ENVISAT's corners): exit 2, one line naming the
-    field and ENVISAT, nothing written."""
+    """detect, train, track, adapt, calibrate and evaluate on a dataset of the test's target, and run with it as its
+    image target: exit 2, one line naming the field and ENVISAT, nothing written. (`estimate --truth` takes any
+    target's truth: tests/app/test_estimate_cli.py.)"""
     plain, _ = target_files
     data = tmp_path / "seq"
     assert main(["generate", "--target", plain, "--mode", "sequence", "--num-images", "2", "--resolution", "64",
                  "--out", str(data), "--quiet"]) == 0
-    truth = tmp_path / "truth.npz"
-    assert main(["simulate", "--target", plain, "--duration-s", "4", "--out", str(truth), "--quiet"]) == 0
     run_config = tmp_path / "run.toml"
     run_config.write_text(f'[image]\ntarget = "{plain}"\n')
     out = tmp_path / "out"
@@ -431,8 +429,7 @@ def test_the_detector_verbs_refuse_another_target_in_one_line(target_files, tmp_
                         (["adapt", "--images", str(data), "--out", str(out)], "src"),
                         (["run", "--config", str(run_config), "--duration-s", "5", "--out", str(out)], "image.target"),
                         (["calibrate", "--data", str(data), "--out", str(out / "w.safetensors")], "data"),
-                        (["evaluate", "--data", str(data), "--json", str(out / "eval.json")], "data"),
-                        (["estimate", "--truth", str(truth), "--out", str(out / "est.npz")], "truth")]:
+                        (["evaluate", "--data", str(data), "--json", str(out / "eval.json")], "data")]:
         capsys.readouterr()
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
