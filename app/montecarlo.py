@@ -26,6 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--scenario", required=True, metavar="NAME", help="named truth scenario")
     p.add_argument("--runs", type=int, help="number of Monte Carlo runs (default 100)")
+    p.add_argument("--target", metavar="FILE.xml", help="the target's MJCF file (default: the scenario's, ENVISAT): "
+                   "the truth tumbles with its inertia, the filter measures its keypoints")
     add_common(p, out="campaign folder (rerun on it to resume)", config="campaign config (tables measurement, "
                "filter; runs, seed...)", seed="root seed (default 0)")
     p.add_argument("--duration-s", type=float, help="simulated time, s (default 1800)")
@@ -52,7 +54,7 @@ def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
     """The scenario's campaign (MonteCarloConfig.from_scenario: its duration, [measurement] and [filter] tables and
     [eclipse] outages), then the file, then the flags; validated before any work."""
     flags = {
-        "runs": args.runs, "seed": args.seed, "duration_s": args.duration_s,
+        "runs": args.runs, "seed": args.seed, "duration_s": args.duration_s, "target": args.target,
         "block_runs": args.block_runs, "settle_s": args.settle_s,
         "measurement.kind": args.measurements, "measurement.sigma_m": args.sigma_m,
         "measurement.sigma_px": args.sigma_px, "measurement.max_markers": args.max_markers,

@@ -33,8 +33,10 @@ from envisat_pose.filtering.estimator import (
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
 from envisat_pose.io import save_npz, sha256_file
 from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig
+from envisat_pose.pipelines.campaigns.estimate import check_truth_keypoints, truth_target
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
 from envisat_pose.state import N_STATE
+from envisat_pose.target import Target
 
 CHUNK_STEPS = 200  # filter steps per reduction chunk: bounds the covariances held to R x 200 x 144 floats
 
@@ -45,8 +47,9 @@ def block_name(b: int) -> str:
 
 @dataclass(frozen=True)
 class CampaignTruth:
-    """The truth on the filter's grid: t_s (T,), x_true (T, 12), chaser (T, 4), z_true (T, 8, m), base (T, 8)
-    measurable corners (outages not yet removed), and the filter's model constants mu_m3_s2, gravity_gradient."""
+    """The truth on the filter's grid: t_s (T,), x_true (T, 12), chaser (T, 4), z_true (T, K, m), base (T, K)
+    measurable keypoints (outages not yet removed), and the filter's model constants mu_m3_s2, gravity_gradient
+    and target (the truth's Target; None: ENVISAT, the filter's default model: estimate.truth_target)."""
 
     t_s: np.ndarray
     x_true: np.ndarray
@@ -55,6 +58,7 @@ class CampaignTruth:
     base: np.ndarray
     mu_m3_s2: float
     gravity_gradient: bool
+    target: Target | None = None
 
 
 def load_campaign_truth(out_dir: str, mcfg: MeasurementConfig) -> CampaignTruth:
@@ -68,7 +72,9 @@ def load_campaign_truth(out_dir: str, mcfg: MeasurementConfig) -> CampaignTruth:
                            truth.chaser_thetadot_rad_s)[sel]
     z_true, base = truth_measurements(mcfg.kind, truth.corners_C_m[sel], truth.visible[sel], truth.corners_px[sel],
                                       truth.in_frame[sel])
-    return CampaignTruth(truth.t_s[sel], truth.x[sel], chaser, z_true, base, mu, gg)
+    target = truth_target(truth.config, path)
+    check_truth_keypoints(truth, target, path)
+    return CampaignTruth(truth.t_s[sel], truth.x[sel], chaser, z_true, base, mu, gg, target)
 
 
 def block_task(out_dir: str, cfg_json: str, b: int) -> dict:
@@ -93,7 +99,8 @@ def filter_block(tr: CampaignTruth, cfg: MonteCarloConfig, run_start: int, run_s
     fcfg, n = cfg.filter, run_stop - run_start
     inp = make_run_inputs(tr.x_true[0], tr.t_s, tr.z_true, tr.base, cfg.measurement, fcfg.P0, cfg.seed, n,
                           first_run=run_start)
-    setup = make_setup(fcfg, cfg.measurement.kind, mu_m3_s2=tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient)
+    setup = make_setup(fcfg, cfg.measurement.kind, mu_m3_s2=tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient,
+                       target=tr.target)
     R_c = np.broadcast_to(inp.R_c, inp.z.shape[:-1] + inp.R_c.shape[-2:])
     state = init_state(inp.x0_hat, fcfg.P0, tr.t_s[0], tr.chaser[0], fcfg)
     T, n_sample = len(tr.t_s), max(0, min(run_stop, cfg.sample_runs) - run_start)
@@ -147,7 +154,8 @@ def filter_run_history(tr: "CampaignTruth", cfg: MonteCarloConfig, run: int) -> 
     fcfg = cfg.filter
     inp = make_run_inputs(tr.x_true[0], tr.t_s, tr.z_true, tr.base, cfg.measurement, fcfg.P0, cfg.seed, 1,
                           first_run=run)
-    setup = make_setup(fcfg, cfg.measurement.kind, mu_m3_s2=tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient)
+    setup = make_setup(fcfg, cfg.measurement.kind, mu_m3_s2=tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient,
+                       target=tr.target)
     R_c = np.broadcast_to(inp.R_c, inp.z.shape[:-1] + inp.R_c.shape[-2:])
     state = init_state(inp.x0_hat, fcfg.P0, tr.t_s[0], tr.chaser[0], fcfg)
     T = len(tr.t_s)

@@ -14,13 +14,15 @@ from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride
 from envisat_pose.pipelines.campaigns.estimate import eclipse_outages, with_outages
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, scenario_defaults
+from envisat_pose.target import load_target
 
 
 @dataclass(frozen=True)
 class MonteCarloConfig:
     """One campaign. The results' bytes depend on every field (block_runs fixes the order of the sums).
 
-    scenario: named truth scenario. duration_s: simulated time, s. runs: Monte Carlo runs. seed: root seed (the
+    scenario: named truth scenario. target: the target's MJCF file (None: the scenario's; the filter measures its
+    keypoints with its inertia, the bound likewise). duration_s: simulated time, s. runs: Monte Carlo runs. seed: root seed (the
     truth's initial attitude and run r's draws, SeedSequence(seed, spawn_key=(r,))). block_runs: runs per task.
     settle_s: the statistics of summary.json use the steps at or after t0 + settle_s (None: half the duration,
     at most 600 s). sample_runs: the first runs whose errors are kept for the figures' grey curves. duration_s,
@@ -37,6 +39,7 @@ class MonteCarloConfig:
     block_runs: int = 125
     settle_s: float | None = None
     sample_runs: int = 20
+    target: str | None = None
     measurement: MeasurementConfig | None = None
     filter: FilterConfig | None = None
 
@@ -64,6 +67,8 @@ class MonteCarloConfig:
         check(self.settle_s is None or 0 <= self.settle_s < self.duration_s, "settle_s", self.settle_s,
               f"a time in [0, duration_s = {self.duration_s:g}) s")
         check(0 <= self.sample_runs <= 200, "sample_runs", self.sample_runs, "an integer from 0 to 200")
+        if self.target is not None:
+            load_target(self.target, "target")  # a bad file: one line before any work
 
     @property
     def settle_time_s(self) -> float:
@@ -95,6 +100,8 @@ def truth_scenario(cfg: MonteCarloConfig):
     """The validated ScenarioConfig of the campaign's truth (the filter's rate above 1 Hz refines its step)."""
 
     overrides: dict = {"seed": cfg.seed, "duration_s": cfg.duration_s}
+    if cfg.target is not None:
+        overrides["target"] = {"file": cfg.target}
     if cfg.measurement.rate_hz > 1.0:
         overrides["dt_s"] = 1.0 / cfg.measurement.rate_hz
     return scenario_config(cfg.scenario, **overrides)

@@ -12,7 +12,8 @@ from envisat_pose.analysis.pcrlb import block_bounds, efficiency, pcrlb_along_tr
 from envisat_pose.analysis.stats import CampaignSums, SumsFolder, campaign_summary, finalize
 from envisat_pose.config import to_dict
 from envisat_pose.contracts import TruthTrajectory
-from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2, propagate
+from envisat_pose.filtering.dynamics import propagate
+from envisat_pose.filtering.estimator import make_setup
 from envisat_pose.filtering.measurements import limit_markers, measure, outage_mask
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import atomic_write_text, json_safe, save_npz
@@ -55,7 +56,9 @@ def campaign_pcrlb(cfg: MonteCarloConfig, tr: CampaignTruth) -> np.ndarray:
     (visible, in frame for pixels, outside outages, at most max_markers; random failures are not modelled), the
     filter's P0, the measurement noise of the config and the truth's process noise (none). Statistics' units."""
 
-    mcfg, J_T, camera = cfg.measurement, load_inertia_T_kg_m2(), load_camera()
+    mcfg, camera = cfg.measurement, load_camera()
+    setup = make_setup(cfg.filter, mcfg.kind, camera, target=tr.target)  # the filter's keypoints and inertia
+    J_T, keypoints_T_m = setup.J_T, setup.keypoints_T_m
     dt_s = 1.0 / mcfg.rate_hz
     measured = limit_markers(tr.base & ~outage_mask(tr.t_s, mcfg.outages_s)[:, None], mcfg.max_markers)
 
@@ -63,7 +66,7 @@ def campaign_pcrlb(cfg: MonteCarloConfig, tr: CampaignTruth) -> np.ndarray:
         return propagate(X, tr.chaser[:-1, None, :], dt_s, J_T, tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient)
 
     def hx(X):
-        return measure(X, mcfg.kind, camera)
+        return measure(X, mcfg.kind, camera, keypoints_T_m)
 
     B = pcrlb_along_truth(fx, hx, tr.x_true, measured, mcfg.corner_cov, cfg.filter.P0, np.zeros((N_STATE, N_STATE)))
     return block_bounds(B, tr.x_true)
