@@ -402,23 +402,24 @@ def cpu_scaling_probe() -> float:
 # random mode with the default config, for ENVISAT at this tree (or at --current DIR: a `git archive` of the commit
 # measured, so edits in the working tree stay out) and at a baseline tree (DIR: a `git archive` of the commit before
 # the target work, its plugin's .so copied in), and for the shipped targets at ranges where they fill the image about as ENVISAT
-# does at 20-80 m; alternating rounds, each run in a fresh process after a warm-up dataset, medians. Floors:
+# does at 20-80 m (the random mode's default ranges follow the target's size); alternating rounds, each run in a
+# fresh process after a warm-up dataset, medians. Floors:
 # ENVISAT at most 5 % slower than the baseline, each shipped target within 1.5x of ENVISAT's time per image.
 TARGET_RUNS = {
     "envisat": {},
-    "cubesat_3u": {"target": "models/cubesat_3u.xml",
-                   "random": {"range_min_m": 1.5, "range_max_m": 5.0, "keepout_margin_m": 0.5}},
+    "cubesat_3u": {"target": "models/cubesat_3u.xml"},
     "upper_stage": {"target": "models/upper_stage.xml"},
 }
 
 
-def target_run_s(extra: dict, n: int, tree: str | None) -> float:
+def target_run_s(extra: dict, n: int, tree: str | None) -> tuple[float, float]:
     """Seconds per image of run_generate (n images, 1024 px, shards of SHARD_SIZE) in a fresh process whose
-    envisat_pose comes from `tree` (None: the installed one), after a 4-image warm-up dataset of the same config."""
+    envisat_pose comes from `tree` (None: the installed one), after a 4-image warm-up dataset of the same config:
+    (wall, CPU), CPU the process's and its children's user + system time (less sensitive to other load)."""
     import subprocess
     import sys
 
-    code = ("import json, os, sys, tempfile, shutil, time\n"
+    code = ("import json, os, resource, sys, tempfile, shutil, time\n"
             + (f"sys.path.insert(0, {tree!r})\n" if tree else "")
             + "from envisat_pose.config import from_dict\n"
             "from envisat_pose.datagen.generate_config import GenerateConfig\n"
@@ -426,15 +427,19 @@ def target_run_s(extra: dict, n: int, tree: str | None) -> float:
             f"base = dict(resolution_px=1024, shard_size={SHARD_SIZE}, seed={SEED}, **json.loads({json.dumps(extra)!r}))\n"
             "out = tempfile.mkdtemp()\n"
             "run_generate(from_dict(GenerateConfig, dict(base, num_images=4)), os.path.join(out, 'warm'))\n"
-            "t0 = time.perf_counter()\n"
+            "def cpu():\n"
+            "    a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)\n"
+            "    return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime\n"
+            "t0, c0 = time.perf_counter(), cpu()\n"
             f"run_generate(from_dict(GenerateConfig, dict(base, num_images={n})), os.path.join(out, 'ds'))\n"
-            f"print(json.dumps((time.perf_counter() - t0) / {n}))\n"
+            f"print(json.dumps([(time.perf_counter() - t0) / {n}, (cpu() - c0) / {n}]))\n"
             "shutil.rmtree(out)\n")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env=dict(os.environ), cwd=tree or os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     if res.returncode != 0:
         raise RuntimeError(f"the run of {extra} in {tree or 'this tree'} failed:\n{res.stderr[-2000:]}")
-    return float(res.stdout.strip().splitlines()[-1])
+    wall, cpu = json.loads(res.stdout.strip().splitlines()[-1])
+    return float(wall), float(cpu)
 
 
 def main_targets(baseline: str | None, current: str | None = None) -> None:
@@ -445,9 +450,9 @@ def main_targets(baseline: str | None, current: str | None = None) -> None:
     for r in range(rounds):
         row = {}
         if baseline:
-            row["envisat_baseline"] = target_run_s({}, n, baseline)
+            row["envisat_baseline"], row["envisat_baseline_cpu"] = target_run_s({}, n, baseline)
         for name, extra in TARGET_RUNS.items():
-            row[name] = target_run_s(extra, n, current)
+            row[name], row[f"{name}_cpu"] = target_run_s(extra, n, current)
         row["load_avg_1min"] = os.getloadavg()[0]
         out["rounds"].append(row)
         print(f"round {r}: " + ", ".join(f"{k} {v:.3f}" + (" s/img" if k != "load_avg_1min" else "")
@@ -456,6 +461,7 @@ def main_targets(baseline: str | None, current: str | None = None) -> None:
     out["median_s_per_image"] = med
     if baseline:
         out["envisat_vs_baseline"] = med["envisat"] / med["envisat_baseline"]
+        out["envisat_vs_baseline_cpu"] = med["envisat_cpu"] / med["envisat_baseline_cpu"]
         # the floor bounds a slowdown: a faster tree meets it (the two trees differ by every commit between them)
         out["floor_envisat_at_most_5pct_slower_met"] = out["envisat_vs_baseline"] <= 1.05
     for name in TARGET_RUNS:
@@ -470,11 +476,12 @@ def main_targets(baseline: str | None, current: str | None = None) -> None:
     if os.path.exists(path):
         with open(path, encoding="utf-8") as fh:
             everything = json.load(fh)
-    everything[f"issue48_targets_{tag}"] = out
+    key = f"{os.environ.get('BENCH_KEY', 'targets')}_{tag}"
+    everything[key] = out
     with open(path, "w", encoding="utf-8") as fh:
         json.dump(everything, fh, indent=1, sort_keys=True)
         fh.write("\n")
-    print(f"wrote {path} [issue48_targets_{tag}]")
+    print(f"wrote {path} [{key}]")
 
 
 def main() -> None:
