@@ -4,14 +4,18 @@ The one module of the project that talks to Rerun (design.md, Conventions). It t
 contracts and writes the design's layout:
 
     world                                  the chaser's LVLH frame C, centred on the chaser (m); annotation context
+                                           (the target's keypoint names and skeleton, envisat_pose.target.Target)
     world/target                           true pose of T in C (translation rho_C, rotation R_C_from_T)
-    world/target/model/{body,array,boom}   the MJCF's main body, solar array and boom (static, in T)
-    world/target_est                       run 0's estimated pose; .../model the same parts, .../position_3sigma the
-                                           3-sigma ellipsoid of the position covariance (axes in C, drawn in T_est)
-    world/corners_true                     the truth's corner sites A-H in C (green visible, red hidden)
+    world/target/model                     the target's drawn surface, one Mesh3D in its materials' colours (static,
+                                           in T)
+    world/target_est                       run 0's estimated pose; .../model the target's skeleton (line segments)
+                                           and .../model/keypoints its keypoints, .../position_3sigma the 3-sigma
+                                           ellipsoid of the position covariance (axes in C, drawn in T_est)
+    world/corners_true                     the truth's keypoint sites in C (ENVISAT: corners A-H; green visible,
+                                           red hidden)
     world/chaser/camera                    the pinhole of models/envisat.xml (camera `chaser_cam`), static
     world/chaser/camera/image              the camera image (compressed PNG/JPEG) where there is one
-    world/chaser/camera/image/corners_true the corners in the image (in frame; green visible, red hidden)
+    world/chaser/camera/image/corners_true the keypoints in the image (in frame; green visible, red hidden)
     world/chaser/camera/image/{mask,depth} a dataset sample's segmentation and depth
     metrics/error/<block>/<axis>           error of every run (one series per run), with .../filter_3sigma (+-3 sigma
                                            of the filter's P) and .../sample_3sigma (+-3 sigma of the runs' spread)
@@ -22,7 +26,9 @@ sample index). Long series go in through `send_columns`; model data is logged on
 written under a temporary name, with its footer (`rerun rrd verify` passes), and renamed when complete
 (envisat_pose.io.atomic_path).
 
-One job a file: recording_layout.py (constants, model data, series loggers, blueprints), recording_writers.py
+Every writer takes the target (`target`, None: ENVISAT) and draws its own shape and keypoints.
+
+One job a file: recording_layout.py (constants, the target's model, series loggers, blueprints), recording_writers.py
 (recordings written whole from arrays), recording_reader.py (read back), recording_stream.py (TrackRecorder: a run
 logged frame by frame). This module is their public face: the names in __all__ (what the app, the pipelines and
 users import); every other name is imported from its own module.

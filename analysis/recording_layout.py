@@ -1,12 +1,10 @@
-"""The recording's layout (analysis/recording.py lists the entities): constants, the MJCF's model data, the series
-loggers and the blueprints (what the viewer shows at load). Two conventions change at this edge: Rerun
-quaternions are (x, y, z, w), ours (w, x, y, z); Rerun's pixel (0, 0) covers [0, 1]^2 (centre 0.5), ours follow
-OpenCV (centre 0), so image points and the principal point get +0.5."""
+"""The recording's layout (analysis/recording.py lists the entities): constants, the target's model (any Target:
+its surface, skeleton and keypoints), the series loggers and the blueprints (what the viewer shows at load). Two
+conventions change at this edge: Rerun quaternions are (x, y, z, w), ours (w, x, y, z); Rerun's pixel (0, 0)
+covers [0, 1]^2 (centre 0.5), ours follow OpenCV (centre 0), so image points and the principal point get +0.5."""
 
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
-from dataclasses import dataclass
 from typing import Iterable
 
 import numpy as np
@@ -14,19 +12,20 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from envisat_pose.attitude import mrp_to_dcm, mrp_to_quat, rotmat_to_quat
-from envisat_pose.geometry import CORNER_NAMES, EDGES, PinholeCamera, load_camera, load_geometry, model_path
+from envisat_pose.geometry import PinholeCamera, load_camera
 from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
+from envisat_pose.target import Target, default_target
 
 from .stats import chi2_mean_bounds, component_errors, display_transform
 
 APPLICATION_ID = "envisat_pose"
-KEYPOINT_CLASS = 0  # class of the annotation context whose keypoints are the corners A-H
+KEYPOINT_CLASS = 0  # class of the annotation context whose keypoints are the target's (ENVISAT: corners A-H)
 BLOCKS = ("position_m", "velocity_m_s", "attitude_deg", "angular_velocity_deg_s")
 AXES = ("x", "y", "z")
 # statistics' units (m, m/s, rad, rad/s; analysis.stats) -> what the plots show (m, m/s, deg, deg/s)
 DISPLAY_SCALE = np.array([1.0] * 6 + [180.0 / np.pi] * 6)
 MASK_CLASSES = ("background", "face +x", "face -x", "face +y", "face -y", "face +z", "face -z", "array and boom",
-                "appendages")  # design.md, Shard: mask values 0-8
+                "appendages")  # design.md, Shard: mask values 0-8 (a target taking the class looks)
 
 VISIBLE_RGB = (40, 200, 60)
 HIDDEN_RGB = (220, 50, 50)
@@ -40,88 +39,80 @@ DETECTED_RGB = (255, 200, 0)
 ROI_RGB = (0, 200, 255)
 
 
-# ---------------------------------------------------------------- model data from the MJCF
-
-@dataclass(frozen=True)
-class Part:
-    """A solid of body `target` as Rerun draws it: a box (half_sizes_m) or a cylinder (radius_m, length_m
-    along its local z), centred at center_T_m, rotated by quat_xyzw (part frame -> T)."""
-
-    name: str
-    kind: str
-    center_T_m: np.ndarray
-    quat_xyzw: np.ndarray
-    half_sizes_m: np.ndarray | None = None
-    radius_m: float = 0.0
-    length_m: float = 0.0
-
-
-def _vec(text: str | None, default: str) -> np.ndarray:
-    return np.array([float(v) for v in (text or default).split()])
-
-
 def _wxyz_to_xyzw(q: np.ndarray) -> np.ndarray:
     """Our (w, x, y, z) -> Rerun's (x, y, z, w)."""
     q = np.asarray(q, dtype=float)
     return np.concatenate([q[..., 1:], q[..., :1]], axis=-1)
 
 
-def target_parts(path: str | None = None) -> list[Part]:
-    """The main body (the box spanned by the corners, load_geometry) and every other solid geom of body `target`
-    in models/envisat.xml that the plain scene shows (boxes and `fromto` cylinders; the face plates are the body,
-    geom group 4, the hidden appendages, is left out). Read with ElementTree like the core's geometry."""
-    path = path or model_path()
-    g = load_geometry(path)
-    lo, hi = g.corners_T_m.min(axis=0), g.corners_T_m.max(axis=0)
-    parts = [Part("body", "box", 0.5 * (lo + hi), np.array([0.0, 0.0, 0.0, 1.0]), half_sizes_m=0.5 * (hi - lo))]
-    target = next(b for b in ET.parse(path).getroot().iter("body") if b.get("name") == "target")
-    for geom in target.iter("geom"):
-        name = geom.get("name", "")
-        if name.startswith("face_") or geom.get("group") == "4":
-            continue
-        size = _vec(geom.get("size"), "0")
-        if geom.get("type") == "box" and len(size) == 3:
-            quat = _wxyz_to_xyzw(_vec(geom.get("quat"), "1 0 0 0"))
-            parts.append(Part(name, "box", _vec(geom.get("pos"), "0 0 0"), quat, half_sizes_m=size))
-        elif geom.get("type") == "cylinder" and geom.get("fromto"):
-            a, b = _vec(geom.get("fromto"), "").reshape(2, 3)
-            axis = (b - a) / np.linalg.norm(b - a)
-            # the rotation taking the cylinder's local z onto its axis
-            z = np.array([0.0, 0.0, 1.0])
-            c = np.cross(z, axis)
-            if np.linalg.norm(c) < 1e-12:
-                q = np.array([1.0, 0.0, 0.0, 0.0]) if axis[2] > 0 else np.array([0.0, 1.0, 0.0, 0.0])
-            else:
-                ang = np.arccos(np.clip(axis[2], -1.0, 1.0))
-                q = np.concatenate([[np.cos(ang / 2)], np.sin(ang / 2) * c / np.linalg.norm(c)])
-            parts.append(Part(name, "cylinder", 0.5 * (a + b), _wxyz_to_xyzw(q), radius_m=float(size[0]),
-                              length_m=float(np.linalg.norm(b - a))))
-    return parts
+# ---------------------------------------------------------------- the target's model (envisat_pose.target)
+
+def rgb8(rgb) -> np.ndarray:
+    """Colours (..., 3) in [0, 1] -> uint8 (..., 3), rounded."""
+    return np.clip(np.round(np.asarray(rgb, dtype=float) * 255.0), 0, 255).astype(np.uint8)
 
 
-PART_RGB = {"body": (190, 150, 70), "array": (40, 60, 150), "boom": (150, 150, 150)}
+def surface_triangles(target: Target) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The target's drawn surface (Target.mesh: its triangles, in the same order) as Rerun draws it flat-shaded,
+    each triangle with three vertices of its own (F triangles): positions (3F, 3) in T, m; normals (3F, 3), the
+    triangle's unit outward normal (zero for a degenerate one); colours (3F, 3) uint8, the material rgb of the
+    triangle's geom (TargetGeom.rgb, via the surface's face -> geom map)."""
+    surface = target.surface
+    keep = target.drawn()[surface.face_geom]
+    tri = surface.mesh.vertices_T_m[surface.mesh.faces[keep]]  # (F, 3 vertices, 3)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+    rgb = rgb8([g.rgb for g in target.geoms])[surface.face_geom[keep]]
+    return tri.reshape(-1, 3), np.repeat(n, 3, axis=0), np.repeat(rgb, 3, axis=0)
 
 
-def log_target_model(rec: rr.RecordingStream, entity: str, parts: list[Part], rgb=None, fill="solid") -> None:
-    """The target's parts under `entity`/model, static, in T."""
-    mode = rr.components.FillMode.Solid if fill == "solid" else rr.components.FillMode.MajorWireframe
-    for p in parts:
-        color = rgb or PART_RGB.get(p.name, (170, 170, 170))
-        path = f"{entity}/model/{p.name}"
-        if p.kind == "box":
-            rec.log(path, rr.Boxes3D(half_sizes=[p.half_sizes_m], centers=[p.center_T_m], quaternions=[p.quat_xyzw],
-                                     colors=[color], fill_mode=mode), static=True)
-        else:
-            rec.log(path, rr.Cylinders3D(lengths=[p.length_m], radii=[p.radius_m], centers=[p.center_T_m],
-                                         quaternions=[p.quat_xyzw], colors=[color], fill_mode=mode), static=True)
+def log_target_mesh(rec: rr.RecordingStream, entity: str, target: Target) -> None:
+    """`entity`/model, static: the target's drawn surface as one Mesh3D in T (surface_triangles: flat-shaded,
+    each triangle in its geom's material colour)."""
+    pos, normals, colors = surface_triangles(target)
+    rec.log(f"{entity}/model", rr.Mesh3D(vertex_positions=pos, triangle_indices=np.arange(len(pos)).reshape(-1, 3),
+                                         vertex_normals=normals, vertex_colors=colors), static=True)
 
 
-def corner_annotation() -> rr.AnnotationContext:
-    """Class KEYPOINT_CLASS: keypoints 0-7 named A-H, connected by the 12 edges of the main body."""
+def log_target_wireframe(rec: rr.RecordingStream, entity: str, target: Target, rgb=EST_RGB) -> None:
+    """`entity`/model, static: the target's skeleton (Target.skeleton: keypoint pairs along its sharp edges) as
+    line segments in T, and `entity`/model/keypoints its keypoints (named on hover), both in rgb: the light
+    copy of the shape that an estimate's pose carries."""
+    X = target.keypoints_T_m
+    rec.log(f"{entity}/model", rr.LineStrips3D([X[[i, j]] for i, j in target.skeleton], colors=[rgb],
+                                               radii=[rr.Radius.ui_points(1.0)]), static=True)
+    rec.log(f"{entity}/model/keypoints", rr.Points3D(X, colors=[rgb], radii=[rr.Radius.ui_points(3.0)],
+                                                     labels=list(target.keypoint_names), show_labels=False),
+            static=True)
+
+
+def corner_annotation(target: Target | None = None) -> rr.AnnotationContext:
+    """Class KEYPOINT_CLASS ("<name> keypoints"): keypoint i named target.keypoint_names[i], connected along
+    target.skeleton (ENVISAT: A-H and the 12 edges of the main body). target None: default_target()."""
+    target = target or default_target()
     return rr.AnnotationContext([rr.ClassDescription(
-        info=rr.AnnotationInfo(id=KEYPOINT_CLASS, label="ENVISAT main body"),
-        keypoint_annotations=[rr.AnnotationInfo(id=i, label=n) for i, n in enumerate(CORNER_NAMES)],
-        keypoint_connections=list(EDGES))])
+        info=rr.AnnotationInfo(id=KEYPOINT_CLASS, label=f"{target.name} keypoints"),
+        keypoint_annotations=[rr.AnnotationInfo(id=i, label=n) for i, n in enumerate(target.keypoint_names)],
+        keypoint_connections=[(int(i), int(j)) for i, j in target.skeleton])])
+
+
+def mask_classes(mask_values: dict[str, int] | None = None) -> tuple[str, ...]:
+    """The label of each mask value 0..max: mask_values None: MASK_CLASSES (the factory's classes, design.md:
+    what a target that takes the class looks writes); else {geom name: mask value} of the target's renderer
+    (datagen.render.target_mask_values): "background", then each value's geom names joined by " + " ("" for a
+    value no geom takes)."""
+    if mask_values is None:
+        return MASK_CLASSES
+    labels = ["background"] + [""] * max(mask_values.values(), default=0)
+    for name, value in mask_values.items():
+        labels[value] = f"{labels[value]} + {name}" if labels[value] else name
+    return tuple(labels)
+
+
+def mask_annotation(mask_values: dict[str, int] | None = None) -> rr.AnnotationContext:
+    """The annotation context of a segmentation mask: class i labelled mask_classes(mask_values)[i]."""
+    return rr.AnnotationContext([rr.AnnotationInfo(id=i, label=n) for i, n in enumerate(mask_classes(mask_values))])
 
 
 def log_camera(rec: rr.RecordingStream, camera: PinholeCamera, static: bool = True) -> None:
@@ -134,15 +125,17 @@ def log_camera(rec: rr.RecordingStream, camera: PinholeCamera, static: bool = Tr
         image_plane_distance=IMAGE_PLANE_M), static=static)
 
 
-def log_static_scene(rec: rr.RecordingStream, camera: PinholeCamera | None = None, estimate: bool = False) -> None:
-    """Everything that does not change: the annotation context, the frame's axes, the target's model (true and,
-    with estimate=True, estimated), the chaser's camera."""
-    rec.log("world", corner_annotation(), static=True)
+def log_static_scene(rec: rr.RecordingStream, camera: PinholeCamera | None = None, estimate: bool = False,
+                     target: Target | None = None) -> None:
+    """Everything that does not change: the target's keypoint annotation, the frame's axes, the target's model
+    (world/target/model its solid surface; with estimate=True world/target_est/model its skeleton and
+    keypoints), the chaser's camera. target None: default_target() (ENVISAT)."""
+    target = target or default_target()
+    rec.log("world", corner_annotation(target), static=True)
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_X_UP, static=True)  # C: x radial out (up)
-    parts = target_parts()
-    log_target_model(rec, "world/target", parts)
+    log_target_mesh(rec, "world/target", target)
     if estimate:
-        log_target_model(rec, "world/target_est", parts, rgb=EST_RGB, fill="wireframe")
+        log_target_wireframe(rec, "world/target_est", target)
     log_camera(rec, camera or load_camera())
 
 
@@ -168,20 +161,21 @@ def _point_colors(visible: np.ndarray) -> np.ndarray:
 def log_truth_series(rec: rr.RecordingStream, t_s: np.ndarray, x: np.ndarray, corners_C_m: np.ndarray,
                      visible: np.ndarray, corners_px: np.ndarray, in_frame: np.ndarray,
                      frames: np.ndarray | None = None) -> None:
-    """The truth over time, N samples: world/target's pose from x (N, 12); world/corners_true the corner sites
-    corners_C_m (N, 8, 3) in C, coloured by visible (N, 8); the in-frame corners_px (N, 8, 2) (OpenCV px) as
-    .../image/corners_true; metrics range_m, visible_corners, in_frame_corners."""
-    N = len(t_s)
+    """The truth over time, N samples of the target's K keypoints: world/target's pose from x (N, 12);
+    world/corners_true the keypoint sites corners_C_m (N, K, 3) in C, coloured by visible (N, K); the in-frame
+    corners_px (N, K, 2) (OpenCV px) as .../image/corners_true; metrics range_m, visible_corners,
+    in_frame_corners."""
+    N, K = corners_C_m.shape[:2]
     idx = _times(t_s, frames)
     rec.send_columns("world/target", idx, pose_columns(x))
-    ids = np.tile(np.arange(8), N)
+    ids = np.tile(np.arange(K), N)
     rec.send_columns("world/corners_true", idx, rr.Points3D.columns(
         positions=corners_C_m.reshape(-1, 3), colors=_point_colors(visible).reshape(-1, 3), keypoint_ids=ids,
-        class_ids=np.full(8 * N, KEYPOINT_CLASS)).partition([8] * N))
+        class_ids=np.full(K * N, KEYPOINT_CLASS)).partition([K] * N))
     m = in_frame
     rec.send_columns("world/chaser/camera/image/corners_true", idx, rr.Points2D.columns(
         positions=corners_px[m] + 0.5,  # OpenCV pixel centres -> Rerun's
-        colors=_point_colors(visible)[m], keypoint_ids=np.broadcast_to(np.arange(8), m.shape)[m],
+        colors=_point_colors(visible)[m], keypoint_ids=np.broadcast_to(np.arange(K), m.shape)[m],
         class_ids=np.full(int(m.sum()), KEYPOINT_CLASS)).partition(m.sum(axis=1)))
     rec.send_columns("metrics/range_m", idx, rr.Scalars.columns(scalars=np.linalg.norm(x[:, POS], axis=1)))
     rec.send_columns("metrics/visible_corners", idx, rr.Scalars.columns(scalars=visible.sum(axis=1).astype(float)))

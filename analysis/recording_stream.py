@@ -9,11 +9,12 @@ import numpy as np
 import rerun as rr
 
 from envisat_pose.attitude import mrp_to_dcm, mrp_to_quat
-from envisat_pose.geometry import PinholeCamera, load_geometry, project_K
+from envisat_pose.geometry import PinholeCamera, project_K
 from envisat_pose.io import atomic_path
 from envisat_pose.state import MRP, POS
 from envisat_pose.status import HAS_ESTIMATE, LOST, legend_json
 from envisat_pose.status import STATUSES as STATUS_NAMES  # the tracker's statuses by code
+from envisat_pose.target import Target, default_target
 
 from .recording_layout import (
     APPLICATION_ID,
@@ -35,11 +36,12 @@ from .recording_layout import (
 from .stats import component_errors, display_transform
 
 
-def project_state_px(x: np.ndarray, camera: PinholeCamera) -> np.ndarray:
-    """The corners A-H (8, 2) px (OpenCV) of a state (12,) through the camera (core geometry only)."""
-
-    corners_C = x[POS] + load_geometry().corners_T_m @ mrp_to_dcm(x[MRP])  # rho + Gamma^T v
-    return project_K((corners_C - camera.pos_C_m) @ camera.R_K_from_C.T, camera)
+def project_state_px(x: np.ndarray, camera: PinholeCamera, target: Target | None = None) -> np.ndarray:
+    """The target's keypoints (K, 2) px (OpenCV) at a state x (12,) through the camera: its keypoints_T_m carried
+    into C (rho + Gamma^T v) and projected. target None: default_target() (ENVISAT's corners A-H)."""
+    X_T = (target or default_target()).keypoints_T_m
+    points_C = x[POS] + X_T @ mrp_to_dcm(x[MRP])  # rho + Gamma^T v
+    return project_K((points_C - camera.pos_C_m) @ camera.R_K_from_C.T, camera)
 
 
 # A file sink's chunks: Rerun's batcher cuts a chunk per entity at every flush, by default every 200 ms of wall
@@ -67,10 +69,13 @@ class TrackRecorder:
     sink: 'save:PATH' (a .rrd written under a temporary name and renamed by close(); chunks of FILE_CHUNK_ROWS
     rows, so memory stays nearly flat however long the run; the footer written), 'spawn' (a local viewer) or 'connect:URL' (a
     running viewer, e.g. rerun+http://127.0.0.1:9876/proxy). with_truth: error plots (the caller passes x_true
-    per frame) instead of the estimate's own uncertainty."""
+    per frame) instead of the estimate's own uncertainty. target: the tracked target, drawn and projected
+    (None: default_target())."""
 
-    def __init__(self, sink: str, camera: PinholeCamera, with_truth: bool, title: str = ""):
+    def __init__(self, sink: str, camera: PinholeCamera, with_truth: bool, title: str = "",
+                 target: Target | None = None):
         self.camera, self.with_truth = camera, with_truth
+        self.target = target or default_target()
         kind, _, arg = sink.partition(":")
         if kind not in ("save", "spawn", "connect"):
             raise ValueError(f"recording sink {sink!r}: expected 'save:PATH', 'spawn' or 'connect:URL'")
@@ -91,7 +96,7 @@ class TrackRecorder:
             self.rec.log("description", rr.TextDocument(title), static=True)
         # what the status series' codes mean (envisat_pose.status.legend(), JSON), beside the data
         self.rec.log("status_legend", rr.TextDocument(legend_json()), static=True)
-        log_static_scene(self.rec, camera, estimate=True)
+        log_static_scene(self.rec, camera, estimate=True, target=self.target)
         self._log_series_styles()
         self.status = -1
 
@@ -124,9 +129,9 @@ class TrackRecorder:
     def log_frame(self, k: int, est: dict, image: np.ndarray | None, jpeg_quality: int = 80,
                   x_true: np.ndarray | None = None, corners_true_px: np.ndarray | None = None,
                   in_frame: np.ndarray | None = None) -> None:
-        """Frame k: est holds x_hat (12,), P (12, 12), status (int), p_best, nis, nis_dof, corners_px (8, 2),
-        visible (8,), rejected (8,), roi_px (3,) (NaN without); image (H, W) uint8 or None; with a truth, x_true
-        (12,) and the true corners corners_true_px (8, 2) where in_frame (8,)."""
+        """Frame k: est holds x_hat (12,), P (12, 12), status (int), p_best, nis, nis_dof, corners_px (K, 2),
+        visible (K,), rejected (K,), roi_px (3,) (NaN without); image (H, W) uint8 or None; with a truth, x_true
+        (12,) and the true keypoints corners_true_px (K, 2) where in_frame (K,). K: the target's keypoints."""
         import cv2
 
         rec, cam = self.rec, self.camera
@@ -152,9 +157,9 @@ class TrackRecorder:
         x, P = np.asarray(est["x_hat"], float), np.asarray(est["P"], float)
         estimate = status in HAS_ESTIMATE  # tracking, or coasting (a prediction: shown, and scored, as one)
         if estimate:
-            uv = project_state_px(x, cam)
+            uv = project_state_px(x, cam, self.target)
             rec.log("world/chaser/camera/image/corners_estimated", rr.Points2D(
-                uv + 0.5, keypoint_ids=np.arange(8), class_ids=KEYPOINT_CLASS))
+                uv + 0.5, keypoint_ids=np.arange(len(uv)), class_ids=KEYPOINT_CLASS))
             rec.log("world/target_est", rr.Transform3D(translation=x[POS],
                                                        quaternion=_wxyz_to_xyzw(mrp_to_quat(x[MRP]))))
             half, quat = position_ellipsoids(x[None], P[None])

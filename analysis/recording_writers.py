@@ -13,13 +13,12 @@ import rerun.blueprint as rrb
 
 from envisat_pose.contracts import Estimates, TruthTrajectory
 from envisat_pose.io import atomic_path
+from envisat_pose.target import Target, default_target
 
 from .recording_layout import (
     APPLICATION_ID,
-    CORNER_NAMES,
     IMAGE_PLANE_M,
     KEYPOINT_CLASS,
-    MASK_CLASSES,
     _point_colors,
     _times,
     _wxyz_to_xyzw,
@@ -30,12 +29,12 @@ from .recording_layout import (
     log_error_series,
     log_estimate_series,
     log_static_scene,
-    log_target_model,
+    log_target_mesh,
     log_truth_series,
+    mask_annotation,
     pose_columns,
     rotmat_to_quat,
     samples_blueprint,
-    target_parts,
     truth_blueprint,
 )
 
@@ -65,10 +64,11 @@ class _Recording:
         return False
 
 
-def write_truth_recording(path: str, truth: TruthTrajectory) -> str:
-    """`envisat simulate --rrd`: the truth (target pose, corners, visibility over time) as a recording."""
+def write_truth_recording(path: str, truth: TruthTrajectory, target: Target | None = None) -> str:
+    """`envisat simulate --rrd`: the truth (target pose, keypoints, visibility over time) as a recording, the
+    target drawn as `target` (the truth's own: its config's target.file; None: default_target())."""
     with _Recording(path, truth_blueprint()) as rec:
-        log_static_scene(rec)
+        log_static_scene(rec, target=target)
         log_truth_series(rec, truth.t_s, truth.x, truth.corners_C_m, truth.visible, truth.corners_px, truth.in_frame)
     return path
 
@@ -82,14 +82,14 @@ def truth_rows(truth: TruthTrajectory, t_s: np.ndarray) -> np.ndarray:
 
 
 def write_estimates_recording(path: str, est: Estimates, truth: TruthTrajectory | None = None,
-                              max_error_runs: int | None = None) -> str:
+                              max_error_runs: int | None = None, target: Target | None = None) -> str:
     """`envisat estimate --rrd`: truth and run 0's estimate with its 3-sigma ellipsoid, the error series of
     every run (the first max_error_runs if given) with the filter's and the runs' +-3 sigma bands. With the truth
-    trajectory, its corners and visibility at the filter's steps too."""
+    trajectory, its keypoints and visibility at the filter's steps too. target: the truth's (None: default)."""
     err, filt, samp = estimate_bands(est.x_true, est.x_hat, est.P)
     n = err.shape[0] if max_error_runs is None else min(err.shape[0], max_error_runs)
     with _Recording(path, estimate_blueprint()) as rec:
-        log_static_scene(rec, estimate=True)
+        log_static_scene(rec, estimate=True, target=target)
         _log_truth_on_grid(rec, est.t_s, est.x_true[0], truth)
         log_estimate_series(rec, est.t_s, est.x_hat[0], est.P[0])
         log_error_series(rec, est.t_s, err[:n], filt, samp)
@@ -106,12 +106,13 @@ def _log_truth_on_grid(rec, t_s, x_true, truth: TruthTrajectory | None) -> None:
 
 def write_campaign_recording(path: str, t_s: np.ndarray, x_true: np.ndarray, x_hat0: np.ndarray, P0: np.ndarray,
                              sample_err: np.ndarray, filter_3sigma: np.ndarray, sample_3sigma: np.ndarray | None,
-                             truth: TruthTrajectory | None = None) -> str:
+                             truth: TruthTrajectory | None = None, target: Target | None = None) -> str:
     """`envisat montecarlo --rrd`: the truth x_true (T, 12) and run 0's estimate x_hat0 (T, 12) with its
     3-sigma ellipsoid from P0 (T, 12, 12); the kept sample runs' errors sample_err (S, T, 12) with the campaign's
-    filter_3sigma and sample_3sigma (T, 12) over all runs (analysis.stats.CampaignStats)."""
+    filter_3sigma and sample_3sigma (T, 12) over all runs (analysis.stats.CampaignStats). target: the
+    campaign's (None: default_target())."""
     with _Recording(path, estimate_blueprint()) as rec:
-        log_static_scene(rec, estimate=True)
+        log_static_scene(rec, estimate=True, target=target)
         _log_truth_on_grid(rec, t_s, x_true, truth)
         log_estimate_series(rec, t_s, x_hat0, P0)
         log_error_series(rec, t_s, sample_err, filter_3sigma, sample_3sigma)
@@ -121,8 +122,9 @@ def write_campaign_recording(path: str, t_s: np.ndarray, x_true: np.ndarray, x_h
 @dataclass(frozen=True)
 class Sample:
     """A dataset sample as the recording shows it: image_png (PNG bytes of the 8-bit image as training sees it),
-    label (the label dict: corners_px, visible, in_frame, K, R_cam_from_target, t_cam_from_target_m,
-    depth_scale_m, x, scene), mask (H, W) uint8 or None, depth_png (16-bit PNG bytes) or None."""
+    label (the label dict: corners_px, or another target's keypoint_names and keypoints_px; visible, in_frame,
+    K, R_cam_from_target, t_cam_from_target_m, depth_scale_m, x, scene), mask (H, W) uint8 or None, depth_png
+    (16-bit PNG bytes) or None."""
 
     key: str
     image_png: bytes
@@ -131,46 +133,64 @@ class Sample:
     depth_png: bytes | None = None
 
 
-def write_samples_recording(path: str, samples: Iterable[Sample]) -> str:
+def label_keypoints(label: dict, target: Target) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A label's keypoints of `target`, K of them: (px (K, 2) OpenCV, visible (K,) bool, in_frame (K,) bool), read
+    from keypoints_px where the target's labels name their keypoints (Target.labels_name_keypoints), else from
+    the shard contract's corners_px. ValueError when the label's keypoints are not the target's (their names,
+    or their count)."""
+    names = label.get("keypoint_names", list(target.keypoint_names))
+    px = np.asarray(label["keypoints_px" if target.labels_name_keypoints else "corners_px"], dtype=float)
+    if list(names) != list(target.keypoint_names) or px.shape != (target.num_keypoints, 2):
+        raise ValueError(f"the label's keypoints ({list(names)}, {px.shape[0]} points) are not those of the target "
+                         f"{target.name!r} ({list(target.keypoint_names)})")
+    return px, np.asarray(label["visible"], dtype=bool), np.asarray(label["in_frame"], dtype=bool)
+
+
+def write_samples_recording(path: str, samples: Iterable[Sample], target: Target | None = None,
+                            mask_values: dict[str, int] | None = None) -> str:
     """`envisat dataset inspect --rrd`: per sample (timeline `frame` = its index; `sim_time` where the label's
-    scene has t_s), the image (its PNG as stored), the labelled corners, the mask, the depth, the camera's
-    intrinsics and the target's pose in the camera."""
+    scene has t_s), the image (its PNG as stored), the labelled keypoints (label_keypoints), the mask, the depth,
+    the camera's intrinsics and the target's pose in the camera. target: the dataset's (None: default_target());
+    mask_values: {geom name: mask value} its masks were written with (None: the factory's classes, MASK_CLASSES)."""
+    target = target or default_target()
     base = load_camera()
-    parts = target_parts()
     with _Recording(path, samples_blueprint()) as rec:
-        rec.log("world", corner_annotation(), static=True)
-        rec.log("world/chaser/camera/image/mask", rr.AnnotationContext(
-            [rr.AnnotationInfo(id=i, label=n) for i, n in enumerate(MASK_CLASSES)]), static=True)
-        log_target_model(rec, "world/target", parts)
+        rec.log("world", corner_annotation(target), static=True)
+        rec.log("world/chaser/camera/image/mask", mask_annotation(mask_values), static=True)
+        log_target_mesh(rec, "world/target", target)
         rec.log("world/chaser/camera", rr.Transform3D(translation=base.pos_C_m, mat3x3=base.R_K_from_C.T),
                 static=True)
         for i, s in enumerate(samples):
             rec.set_time("frame", sequence=i)
-            t = s.label.get("scene", {}).get("t_s")
-            if t is not None:
-                rec.set_time("sim_time", duration=float(t))
-            lab = s.label
-            K = np.asarray(lab["K"], dtype=float)
-            h, w = (s.mask.shape if s.mask is not None else (int(round(2 * K[1, 2] + 1)), int(round(2 * K[0, 2] + 1))))
-            rec.log("world/chaser/camera", rr.Pinhole(
-                focal_length=[K[0, 0], K[1, 1]], principal_point=[K[0, 2] + 0.5, K[1, 2] + 0.5],  # OpenCV -> Rerun
-                resolution=[w, h], image_plane_distance=IMAGE_PLANE_M))
-            rec.log("world/chaser/camera/image", rr.EncodedImage(contents=s.image_png, media_type="image/png"))
-            px = np.asarray(lab["corners_px"], dtype=float)
-            vis = np.asarray(lab["visible"], dtype=bool)
-            m = np.asarray(lab["in_frame"], dtype=bool)
-            rec.log("world/chaser/camera/image/corners_true", rr.Points2D(
-                positions=px[m] + 0.5, keypoint_ids=np.arange(8)[m], class_ids=np.full(int(m.sum()), KEYPOINT_CLASS),
-                colors=_point_colors(vis)[m], labels=[CORNER_NAMES[k] for k in np.flatnonzero(m)]))
-            if s.mask is not None:
-                rec.log("world/chaser/camera/image/mask", rr.SegmentationImage(s.mask, opacity=0.6))
-            if s.depth_png is not None:
-                rec.log("world/chaser/camera/image/depth", rr.EncodedDepthImage(
-                    s.depth_png, media_type="image/png", meter=1.0 / float(lab["depth_scale_m"])))
-            # the target's pose in the camera, then in C: R_C_from_T = R_K_from_C^T R_K_from_T
-            R_KT = np.asarray(lab["R_cam_from_target"], dtype=float)
-            t_K = np.asarray(lab["t_cam_from_target_m"], dtype=float)
-            rec.log("world/target", rr.Transform3D(
-                translation=base.R_K_from_C.T @ t_K + base.pos_C_m,
-                quaternion=_wxyz_to_xyzw(rotmat_to_quat(base.R_K_from_C.T @ R_KT))))
+            _log_sample(rec, s, target, base)
     return path
+
+
+def _log_sample(rec: rr.RecordingStream, s: Sample, target: Target, base) -> None:
+    """One sample at the current time: the pinhole (its label's K), image, keypoints, mask, depth, and the
+    target's pose in C (base: the chaser camera's mount)."""
+    lab = s.label
+    t = lab.get("scene", {}).get("t_s")
+    if t is not None:
+        rec.set_time("sim_time", duration=float(t))
+    K = np.asarray(lab["K"], dtype=float)
+    h, w = (s.mask.shape if s.mask is not None else (int(round(2 * K[1, 2] + 1)), int(round(2 * K[0, 2] + 1))))
+    rec.log("world/chaser/camera", rr.Pinhole(
+        focal_length=[K[0, 0], K[1, 1]], principal_point=[K[0, 2] + 0.5, K[1, 2] + 0.5],  # OpenCV -> Rerun
+        resolution=[w, h], image_plane_distance=IMAGE_PLANE_M))
+    rec.log("world/chaser/camera/image", rr.EncodedImage(contents=s.image_png, media_type="image/png"))
+    px, vis, m = label_keypoints(lab, target)
+    rec.log("world/chaser/camera/image/corners_true", rr.Points2D(
+        positions=px[m] + 0.5, keypoint_ids=np.flatnonzero(m), class_ids=np.full(int(m.sum()), KEYPOINT_CLASS),
+        colors=_point_colors(vis)[m], labels=[target.keypoint_names[k] for k in np.flatnonzero(m)]))
+    if s.mask is not None:
+        rec.log("world/chaser/camera/image/mask", rr.SegmentationImage(s.mask, opacity=0.6))
+    if s.depth_png is not None:
+        rec.log("world/chaser/camera/image/depth", rr.EncodedDepthImage(
+            s.depth_png, media_type="image/png", meter=1.0 / float(lab["depth_scale_m"])))
+    # the target's pose in the camera, then in C: R_C_from_T = R_K_from_C^T R_K_from_T
+    R_KT = np.asarray(lab["R_cam_from_target"], dtype=float)
+    t_K = np.asarray(lab["t_cam_from_target_m"], dtype=float)
+    rec.log("world/target", rr.Transform3D(
+        translation=base.R_K_from_C.T @ t_K + base.pos_C_m,
+        quaternion=_wxyz_to_xyzw(rotmat_to_quat(base.R_K_from_C.T @ R_KT))))

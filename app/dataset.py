@@ -8,10 +8,12 @@ import json
 import os
 
 from envisat_pose.app.common import add_common, check_rrd_output
+from envisat_pose.datagen.appearance import takes_class_looks
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.pipelines.common.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
 from envisat_pose.shard_reader import checked_shards
+from envisat_pose.target import DEFAULT_TARGET, load_target
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -69,7 +71,7 @@ def run_inspect_cli(args: argparse.Namespace) -> int:
     check_out_file(path, "--montage")
     if args.rrd:
         check_rrd_output(args.rrd)
-    load_manifest(args.dir)
+    manifest = load_manifest(args.dir)
     with skip_hint():
         shards, skipped = checked_shards(args.dir, args.skip_damaged, "dataset")
     stats = dataset_stats(shards)
@@ -81,16 +83,28 @@ def run_inspect_cli(args: argparse.Namespace) -> int:
     print(f"wrote {path} ({n} images)")
     if args.rrd:
         make_out_file_dir(args.rrd, "--rrd")
-        write_samples_rrd(shards, args.rrd, args.count)
+        write_samples_rrd(shards, args.rrd, args.count, *recorded_target(manifest))
         print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
     if skipped:
         print(skipped_line(skipped))
     return 0
 
 
-def write_samples_rrd(source: str | list[str], path: str, count: int) -> None:
+def recorded_target(manifest: dict) -> tuple:
+    """(the dataset's Target: the file its manifest records, ENVISAT for a dataset written before targets; the
+    {geom name: mask value} its masks hold, datagen.render.target_mask_values, or None where they are the
+    factory's classes)."""
+    from envisat_pose.datagen.render import target_mask_values
+
+    target = load_target((manifest.get("target") or {}).get("file", DEFAULT_TARGET), "target")
+    return target, None if takes_class_looks(g.name for g in target.geoms) else target_mask_values(target)
+
+
+def write_samples_rrd(source: str | list[str], path: str, count: int, target=None,
+                      mask_values: dict | None = None) -> None:
     """The first `count` samples as a Rerun recording (analysis.recording.write_samples_recording), read lazily.
-    source: a dataset folder or its checked shard files."""
+    source: a dataset folder or its checked shard files; target, mask_values: the dataset's (recorded_target;
+    None: ENVISAT's)."""
     from envisat_pose.analysis.recording import Sample, write_samples_recording
     from envisat_pose.datagen.dataset import iter_samples, sample_png
     from envisat_pose.datagen.shards import decode_png
@@ -99,7 +113,7 @@ def write_samples_rrd(source: str | list[str], path: str, count: int) -> None:
                       mask=decode_png(members["mask.png"]) if "mask.png" in members else None,
                       depth_png=members.get("depth.png"))
                for key, label, members in iter_samples(source, limit=count))
-    write_samples_recording(path, samples)
+    write_samples_recording(path, samples, target, mask_values)
 
 
 def run_export_cli(args: argparse.Namespace) -> int:

@@ -132,4 +132,4 @@ def write_recording(cfg: MonteCarloConfig, out_dir: str, path: str) -> None:
     with np.load(os.path.join(out_dir, "campaign.npz"), allow_pickle=False) as z:
         sample_err, filt, samp = z["sample_err"], z["filter_3sigma"], z["sample_3sigma"]
     write_campaign_recording(path, tr.t_s, tr.x_true, x_hat, P, sample_err, filt, samp if cfg.runs > 1 else None,
-                             truth=TruthTrajectory.load(os.path.join(out_dir, "truth.npz")))
+                             truth=TruthTrajectory.load(os.path.join(out_dir, "truth.npz")), target=tr.target)

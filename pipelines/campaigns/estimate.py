@@ -249,5 +249,5 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     if rrd:
         from envisat_pose.analysis.recording import write_estimates_recording
 
-        write_estimates_recording(rrd, est, truth)
+        write_estimates_recording(rrd, est, truth, target=truth_target(truth.config, "the truth"))
     return {"config": cfg, "arrays": arrays, "est": out, "config_toml": cfg_path, "plot": png, "rrd": rrd}

@@ -37,5 +37,5 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
     if rrd:
         from envisat_pose.analysis.recording import write_truth_recording
 
-        write_truth_recording(rrd, traj)
+        write_truth_recording(rrd, traj, load_target(cfg.target.file))
     return {"truth": traj, "truth_file": out, "config_toml": cfg_path, "plot": png if plot else None, "rrd": rrd}

@@ -1,7 +1,7 @@
 """A closed-loop recording opens in the real Rerun web viewer: `envisat view RUN_DIR --web` serves it on 127.0.0.1,
 headless Chromium (SwiftShader, see the platform notes) loads the page and saves a screenshot, and the screenshot
 shows the recording's own content rather than the loading screen: the camera image (a large black frame), the
-error plots (their red 3-sigma bands) and the 3D view (the solar array's blue cells).
+error plots (their red 3-sigma bands) and the 3D view (the estimate's blue wireframe of the target).
 
 Chromium is installed by `make test` (scripts/setup.sh with WITH_VIEWER_CHECK=1); without it the test skips.
 The screenshot is taken in real time through the DevTools protocol (not with --screenshot and a virtual-time
@@ -96,7 +96,7 @@ def shows_the_recording(png: str) -> dict:
     b, g, r = (img[..., k].astype(int) for k in range(3))
     black = (img.max(axis=-1) < 6)  # the camera frame's dark sky (the loading screen is grey 13-17)
     red = (r > 170) & (g < 90) & (b < 90)  # the x components' error series and their +-3 sigma
-    blue = (b > 100) & (b - r > 50) & (b - g > 30)  # the solar array's cells in 3D
+    blue = (b > 100) & (b - r > 50) & (b - g > 30)  # the estimate's wireframe in 3D (EST_RGB)
     return {"black": int(black.sum()), "red": int(red.sum()), "blue": int(blue.sum()),
             "colours": int(len(np.unique(img.reshape(-1, 3), axis=0))), "pixels": int(img.shape[0] * img.shape[1])}
 
@@ -131,7 +131,7 @@ def test_the_recording_opens_in_the_web_viewer(tmp_path, detector_weights, rerun
     print(counts)
     assert counts["black"] > 0.04 * counts["pixels"], "no camera image in the screenshot"
     assert counts["red"] > 300, "no error plots with their 3-sigma bands"
-    assert counts["blue"] > 100, "no 3D view of the target's solar array"
+    assert counts["blue"] > 100, "no 3D view of the estimated target (its blue wireframe)"
     assert counts["colours"] > 2000
 
 
