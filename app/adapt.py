@@ -47,15 +47,15 @@ def adapt_cli(args: argparse.Namespace) -> int:
     import sys
 
     from envisat_pose.pipelines.adaptation.adapt import AdaptConfig, adapt
-    from envisat_pose.pipelines.runs.track import TrackConfig
+    from envisat_pose.pipelines.jobs import resolve_job
 
     if args.fine_tune in (None, "none") and (args.steps is not None or args.lr is not None):
         raise InputError("--steps and --lr set the fine-tune, which is off by default: add --fine-tune norm_heads "
                          "(or all)")
     check_out_dir(args.out)
     source = open_source(args.images, args.rate_hz or 0.0, args.timestamps, args.bit_depth)
-    track = TrackConfig.from_scenario(args.scenario or source.scenario or "default", args.config,
-                                      rate_hz=args.rate_hz, weights=args.weights)
+    track = resolve_job("track", args.scenario or source.scenario or "default", args.config,
+                        rate_hz=args.rate_hz, weights=args.weights)
     fields = {"steps": args.steps, "lr": args.lr, "seed": args.seed, "params": args.fine_tune}
     cfg = AdaptConfig(track=track, rounds=args.rounds, device=args.device,
                       **{k: v for k, v in fields.items() if v is not None})

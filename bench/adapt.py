@@ -109,13 +109,14 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
     from envisat_pose.pipelines.adaptation.adapt import AdaptConfig, adapt
     from envisat_pose.pipelines.runs.frames import open_source
     from envisat_pose.pipelines.runs.track import TrackConfig
+    from envisat_pose.resumable import manifest_path
 
     case = os.path.join(work, f"{scenario}-{seed}-{res}-{n}")
     foreign, own = os.path.join(case, "foreign"), os.path.join(case, "own")
     t0 = time.perf_counter()
     if not os.path.exists(os.path.join(foreign, "truth.npz")):
         foreign_frames.make_sequence(foreign, scenario, seed, n, res, progress=False)
-    if not os.path.exists(os.path.join(own, "manifest.json")):
+    if not os.path.exists(manifest_path(own)):
         envisat("generate", "--mode", "sequence", "--scenario", scenario, "--seed", str(seed), "--num-images",
                 str(n), "--resolution", str(res), "--workers", "1", "--out", own)
     t_make = time.perf_counter() - t0
@@ -127,7 +128,7 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
     # adapt on the foreign frames (the truth is not handed to it)
     src = open_source(os.path.join(foreign, "frames"), timestamps=os.path.join(foreign, "timestamps.csv"))
     fields = {"edge_range": edge_range, "params": params} | ({} if steps is None else {"steps": steps})
-    cfg = AdaptConfig(track=TrackConfig.from_scenario(scenario), **fields)
+    cfg = AdaptConfig(track=TrackConfig(scenario=scenario), **fields)
     t1 = time.perf_counter()
     run = os.path.join(case, f"adapt-{edge_range}-{params}")
     try:
@@ -225,7 +226,7 @@ def look_case(look: str, scenario: str, seed: int, res: int, n: int, work: str) 
     run = os.path.join(folder, "adapt")
     t1 = time.perf_counter()
     try:
-        report = adapt(AdaptConfig(track=TrackConfig.from_scenario(scenario)), src, run,
+        report = adapt(AdaptConfig(track=TrackConfig(scenario=scenario)), src, run,
                        camera=os.path.join(folder, "camera.toml"), progress=False)
         out["refused"] = None
     except Exception as err:  # too few trusted frames: recorded
@@ -244,7 +245,7 @@ def look_case(look: str, scenario: str, seed: int, res: int, n: int, work: str) 
     ref_track = os.path.join(ref, "track")
     if not os.path.exists(os.path.join(ref_track, "est.npz")):
         src = open_source(os.path.join(ref, "frames"), timestamps=os.path.join(ref, "timestamps.csv"))
-        tcfg, src, cam, remap, _ = prepare_frames(TrackConfig.from_scenario(scenario), src,
+        tcfg, src, cam, remap, _ = prepare_frames(TrackConfig(scenario=scenario), src,
                                                   os.path.join(ref, "camera.toml"))
         track_frames(tcfg, src, cam, remap, ref_track, progress=False)
     out["own"] = scores(t_f, x_f, os.path.join(ref_track, "est.npz"), lit)

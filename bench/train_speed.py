@@ -22,6 +22,8 @@ alone).
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import itertools
 import json
 import os
 import platform
@@ -89,7 +91,7 @@ def time_step(device: str, batch_size: int, bf16: bool, foreach: bool, steps: in
     of one step (profiler), and on CUDA the busy share (kernel time / wall time over the profiled steps)."""
     from torch.profiler import ProfilerActivity, profile
 
-    from envisat_pose.perception.train import TrainConfig, _train_step, init_model
+    from envisat_pose.perception.train import TrainConfig, Trainer, init_model
 
     cfg = TrainConfig(batch_size=batch_size)
     dev = torch.device(device)
@@ -104,20 +106,20 @@ def time_step(device: str, batch_size: int, bf16: bool, foreach: bool, steps: in
         if dev.type == "cuda":
             torch.cuda.synchronize()
 
-    for step in range(2):  # warm-up: allocator, cuDNN's choice of kernels
-        _train_step(model, model, opt, batch, cfg, step, dev, bf16)
+    def run_steps(n):  # the trainer's loop with no hook: n steps on the batch already on the device
+        Trainer(dataclasses.replace(cfg, steps=n), model, opt, dev=dev, bf16=bf16).run(itertools.repeat((batch, {}), n))
+
+    run_steps(2)  # warm-up: allocator, cuDNN's choice of kernels
     sync()
     t0 = time.perf_counter()
-    for step in range(steps):
-        _train_step(model, model, opt, batch, cfg, step, dev, bf16)
+    run_steps(steps)
     sync()
     ms = (time.perf_counter() - t0) / steps * 1e3
     acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
     n_prof = 3
     with profile(activities=acts) as prof:
         t1 = time.perf_counter()
-        for step in range(n_prof):
-            _train_step(model, model, opt, batch, cfg, step, dev, bf16)
+        run_steps(n_prof)
         sync()
         wall = time.perf_counter() - t1
     events = prof.key_averages()

@@ -20,9 +20,11 @@ gradients are averaged, and only rank 0 writes; a budgeted run stops on rank 0's
 The run folder appears with the first step trained (a run refused or failing before it leaves nothing). SIGINT
 (Ctrl-C) or SIGTERM stops the run after the step in progress with a checkpoint and raises TrainingInterrupted (a
 KeyboardInterrupt) that says how to resume; a second Ctrl-C stops at once.
-Structure: `train` builds a `Trainer` (the model, the optimizer, the state.json dict and the step); the budget,
-the moving average, the pre-cooldown weights, the run folder, checkpoints, metrics, the progress bar, timing,
-DDP agreement and signals are hooks of perception/trainer_hooks.py, called at named points in a fixed order.
+Structure: a `Trainer` owns the model, the optimizer, the state.json dict and the step (the schedule's rate,
+_train_step), and calls the hooks registered on it (perception/trainer_hooks.py) at named points in the order
+they declare. `train` registers the run folder's (the budget, the pre-cooldown weights, the moving average, the
+run folder, the progress bar, DDP agreement, checkpoints, signals, metrics) over the batches and the start that
+perception/train_run.py gives it; adapt's fine-tune registers its own; no training loop steps outside a Trainer.
 """
 
 from __future__ import annotations
@@ -37,30 +39,38 @@ from typing import Literal
 import numpy as np
 import torch
 
-from envisat_pose.config import InputError, check, flatten
+from envisat_pose.config import Config, InputError, check
 from envisat_pose.perception.data import DataConfig, shard_paths
 from envisat_pose.perception.losses import LossConfig, corner_losses
 from envisat_pose.perception.model import CornerNet, ModelConfig
-from envisat_pose.perception.stream import close_batches, epoch_batches, loader_batches
+from envisat_pose.perception.train_run import (
+    TrainingInterrupted,
+    budget_end,
+    nothing_to_do,
+    rendered_batches,
+    shard_batches,
+    start_state,
+)
 from envisat_pose.perception.trainer_hooks import (
     Budget,
     Checkpoints,
     DdpAgreement,
     Hook,
+    LoopTiming,
     Metrics,
     MovingAverage,
     PreCooldown,
     Progress,
     RunFolder,
     StopOnSignals,
-    Timing,
+    hook_order,
     progress_bar,
 )
 from envisat_pose.perception.weights import load_state, load_tensors, read_weights
 
 
 @dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(Config):
     """steps: optimizer steps in all; batch_size: per rank; lr: AdamW peak rate (cosine decay after warmup_steps);
     seed: root seed of the weights' initialization and the data order; checkpoint_every: steps between
     checkpoints; line_jitter_px: noise on the segments' end points (the verifier sees detected, not true, corners);
@@ -108,9 +118,6 @@ class TrainConfig:
         check(self.model.input_px == self.data.input_px, f"{p}data.input_px", self.data.input_px,
               f"the model's input_px ({self.model.input_px})")
         check(self.data.stride == self.model.stride, f"{p}data.stride", self.data.stride, "the model's stride (4)")
-
-    def __post_init__(self) -> None:
-        self.validate()
 
     def to_dict(self) -> dict:
         return json.loads(json.dumps(asdict(self)))
@@ -189,57 +196,6 @@ def _dist():
     return None, 0, 1
 
 
-RESUMABLE_CHANGES = ("steps", "time_budget_s")  # a resumed run may go further or longer, nothing else
-
-
-class TrainingInterrupted(KeyboardInterrupt):
-    """A run stopped by SIGINT or SIGTERM after its checkpoint was written: step, run_dir and how to go on."""
-
-    def __init__(self, step: int, run_dir: str, signal_name: str):
-        self.step, self.run_dir, self.signal_name = step, run_dir, signal_name
-        if step > 0:
-            text = f"{signal_name} at step {step}: checkpoint written in {run_dir!r}"
-        else:
-            text = f"{signal_name} before the first step: nothing written"
-        super().__init__(text)
-
-
-def _data_name(records: list[dict]) -> str:
-    def one(r):
-        sha = (r.get("manifest_sha256") or "none")[:12]
-        if r.get("images") is None:  # frames rendered online: its configs' hash
-            return f"{r.get('name')} (configs {sha})"
-        return f"{r.get('name')} ({r.get('images')} images, manifest {sha})"
-
-    return ", ".join(one(r) for r in records)
-
-
-def _check_resume(run_dir: str, cfg: TrainConfig, data: list[dict] | None) -> tuple[dict, dict]:
-    """(state.json, the run's config.json) of a run to resume; InputError when it is not one, or when the config
-    (other than steps and the budget) or the data (by manifest hash) differ: each difference spelled out."""
-    path = os.path.join(run_dir, "config.json")
-    if not os.path.exists(path) or not os.path.exists(os.path.join(run_dir, "state.json")):
-        raise InputError(f"resume: {run_dir!r} holds no trained run (no config.json and state.json)")
-    with open(path, encoding="utf-8") as fh:
-        saved = json.load(fh)
-    old, new = flatten(saved["train"]), flatten(cfg.to_dict())
-    changed = [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(set(old) | set(new))
-               if k not in RESUMABLE_CHANGES and old.get(k) != new.get(k)]
-    if changed:
-        raise InputError(f"resume: {run_dir!r} was trained with another config: {'; '.join(changed)} (only `steps` "
-                         "and `time_budget_s` may change; start a new run with `init` = its checkpoint instead)")
-    if data is not None and "data" in saved:
-        def key(records):
-            return [r.get("manifest_sha256") or r.get("name") for r in records]
-
-        if key(saved["data"]) != key(data):
-            raise InputError(f"resume: {run_dir!r} was trained on {_data_name(saved['data'])}, not on "
-                             f"{_data_name(data)}: resume with the same data, or start a new run with "
-                             "`init` = its checkpoint")
-    with open(os.path.join(run_dir, "state.json"), encoding="utf-8") as fh:
-        return json.load(fh), saved
-
-
 def _autocast(dev: torch.device, bf16: bool):
     return torch.autocast(device_type=dev.type, dtype=torch.bfloat16, enabled=bf16)
 
@@ -284,32 +240,111 @@ def make_ema(model: CornerNet, cfg: TrainConfig):
     return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay), use_buffers=True)
 
 
-def _budget_end_s(cfg: TrainConfig, saved: dict | None, state: dict) -> float | None:
-    """The run's clock reading at which a budgeted call stops: the config's budget for a new run, or for a
-    resumed run given its own budget again (what is left of it); time_s + the new budget for a resumed run given
-    another (that many seconds more). None: by steps."""
-    if cfg.time_budget_s is None:
-        return None
-    if saved is None:
-        return cfg.time_budget_s
-    if state.get("budget_end_s") is not None and saved["train"].get("time_budget_s") == cfg.time_budget_s:
-        return float(state["budget_end_s"])
-    return float(state["time_s"]) + cfg.time_budget_s
+class Trainer:
+    """Trains `model` with `opt` on batches step by step (the schedule's rate, _train_step), calling its hooks
+    (perception/trainer_hooks.py) at named points in their declared order. Every training loop of the project
+    runs here: `train()` registers the run folder's hooks, adapt's fine-tune its own, a benchmark none.
+    Trainer(cfg, model, opt, dev=..., hooks=[...]).run(batches).
 
+    What the hooks share lives here, not in one another: cfg (TrainConfig), model, net (the model or its DDP
+    wrapper), opt, dev, bf16, dist, rank, world, run_dir (where hooks write; None: nowhere), clock, t_start (its
+    reading at the call's start), time0 (the run clock then: a resumed run's seconds), elapsed(), state (the
+    dict state.json holds: step, epoch, batch, workers, time_s, budget_end_s, pre_cooldown_step, online),
+    budget_end_s, lr (the last step's rate), now_s (the run clock of the step about to run; Budget makes it
+    rank 0's), steps_run (this call's), timing (trainer_hooks.LoopTiming), checkpoint_s (the last checkpoint's
+    seconds: Checkpoints measures them, Budget keeps them), folder_started (RunFolder made the run folder),
+    stop_flag ({'signal': name} once a signal asked to stop after the step: StopOnSignals), stop (why the loop
+    ended early: a hook's reason, a signal's name, None), error (the exception leaving run(), or None) and
+    end_line (the end line: hooks add their figures at after_train, Metrics completes and writes it)."""
 
+    def __init__(self, cfg: TrainConfig, model: CornerNet, opt: torch.optim.Optimizer, *, dev: torch.device,
+                 net: torch.nn.Module | None = None, bf16: bool = False, clock: Callable[[], float] = time.perf_counter,
+                 t_start: float | None = None, state: dict | None = None, budget_end_s: float | None = None,
+                 run_dir: str | None = None, hooks: tuple[Hook, ...] | list[Hook] = ()):
+        self.cfg, self.model, self.opt, self.dev, self.bf16 = cfg, model, opt, dev, bf16
+        self.net = model if net is None else net
+        self.dist, self.rank, self.world = _dist()
+        self.clock, self.run_dir = clock, run_dir
+        self.t_start = clock() if t_start is None else t_start
+        self.state = {"step": 0, "epoch": 0, "batch": 0} if state is None else state
+        self.time0 = float(self.state.get("time_s", 0.0))
+        self.budget_end_s = budget_end_s
+        self.lr = self.now_s = 0.0
+        self.steps_run = 0
+        self.timing = LoopTiming(clock, self.t_start)
+        self.checkpoint_s = 0.5  # until Checkpoints measures one
+        self.folder_started = False
+        self.stop_flag: dict = {}
+        self.stop: str | None = None
+        self.error: BaseException | None = None
+        self.end_line: dict = {}
+        self.hooks: list[Hook] = []
+        self.register(*hooks)
 
+    def register(self, *hooks: Hook) -> None:
+        """Add hooks; all of them are then called in their declared order (trainer_hooks.hook_order)."""
+        self.hooks = hook_order([*self.hooks, *hooks])
+        for hook in hooks:
+            hook.trainer = self
 
-@dataclass(frozen=True)
-class TrainData:
-    """Where a run's batches come from. data_dir: one dataset folder or several (their shards are read
-    together); paths: the shard files to read when the caller checked them already (None: every shard of
-    data_dir); online: instead of shards, a function start_state -> iterator of (batch on the device, state)
-    (frames rendered as training goes: pipelines/detector/online.py), each step's state kept in state.json under 'online'
-    and handed back on resume (no epochs; data_dir and paths unused)."""
+    def call(self, point: str, *args) -> None:
+        """Every hook's `point` (before_train, after_step, after_epoch, on_checkpoint, ...), in order."""
+        for hook in self.hooks:
+            getattr(hook, point)(*args)
 
-    data_dir: str | list[str] = ()
-    paths: list[str] | None = None
-    online: Callable | None = None
+    def elapsed(self) -> float:
+        """The run's clock, seconds: what it had used before this call (a resumed run's time_s) plus this call's."""
+        return self.time0 + self.clock() - self.t_start
+
+    def in_cooldown(self, now_s: float) -> bool:
+        """The next step, at run-clock now_s, is in a constant_cooldown run's cooldown."""
+        return in_cooldown(self.cfg, self.state["step"], now_s, self.budget_end_s)
+
+    def run(self, batches) -> str | None:
+        """Train on `batches`, an iterable of (batch, where the run stands after training it: a dict merged into
+        state), until cfg.steps are done, a hook stops the run before a step, a signal came (the step in progress
+        finishes) or the batches run out. The hooks' before_train first; on every way out the batches are closed,
+        then the hooks' after_train. Returns why it stopped early (a hook's reason such as 'time_budget', a
+        signal's name) or None."""
+        self.lr = lr_at(self.cfg, self.state["step"], self.time0, self.budget_end_s)
+        try:
+            self.call("before_train")
+            self.stop = self._loop(batches)
+        except BaseException as error:
+            self.error = error
+            raise
+        finally:
+            if hasattr(batches, "close"):
+                batches.close()  # the loader's or the renderers' workers shut down, on an error too
+            self.call("after_train")
+        return self.stop
+
+    def _loop(self, batches) -> str | None:
+        self.timing.ask()
+        for cpu_batch, position in batches:
+            if self.state["step"] >= self.cfg.steps or self.stop_flag.get("signal"):
+                break
+            self.timing.got()
+            self.now_s = self.elapsed()
+            reason = next((r for hook in self.hooks if (r := hook.before_step()) is not None), None)
+            if reason is not None:
+                self.call("on_stop", reason)
+                return reason
+            terms = self._step(cpu_batch)
+            self.state["step"] += 1
+            self.state.update(position)
+            self.steps_run += 1
+            self.call("after_step", terms)
+            self.timing.step_done(first=self.steps_run == 1)
+        return self.stop_flag.get("signal")
+
+    def _step(self, cpu_batch: dict) -> dict:
+        """One optimizer step at the schedule's rate for this step and run-clock now_s; the loss terms."""
+        self.lr = lr_at(self.cfg, self.state["step"], self.now_s, self.budget_end_s)
+        for g in self.opt.param_groups:
+            g["lr"] = self.lr
+        return _train_step(self.model, self.net, self.opt, to_device(cpu_batch, self.dev), self.cfg,
+                           self.state["step"], self.dev, self.bf16)
 
 
 @dataclass(frozen=True)
@@ -326,218 +361,47 @@ class TrainOptions:
     clock: Callable[[], float] = time.perf_counter
 
 
-class Trainer:
-    """One train() call: the model, its optimizer and the run's state (the dict state.json holds: step, epoch,
-    batch, workers, time_s, budget_end_s, pre_cooldown_step, online), trained step by step; every other concern
-    is a hook (perception/trainer_hooks.py) called at named points. Trainer(cfg, data, run_dir, opts).run()."""
+def _check_call(opts: TrainOptions) -> None:
+    if torch.device(opts.device).type == "cuda" and not torch.cuda.is_available():
+        raise InputError("device 'cuda': no CUDA device is available")
+    if opts.workers is not None and opts.workers < 0:
+        raise InputError(f"workers = {opts.workers}: expected 0 (in-process) or more worker processes")
 
-    def __init__(self, cfg: TrainConfig, data: TrainData, run_dir: str, opts: TrainOptions):
-        self.cfg, self.data, self.run_dir, self.opts = cfg, data, run_dir, opts
-        self.dist, self.rank, self.world = _dist()
-        self.dev = torch.device(opts.device)
-        self.clock = opts.clock
-        self.signals = StopOnSignals()
-        self.steps_run = 0  # this call's own steps
-        self.hooks: list[Hook] = []
 
-    def run(self) -> dict:
-        """Train; the last metrics line (see train())."""
-        self._check_call()
-        self.t_start = self.clock()
-        self.paths = self._shard_paths()
-        self.state, self.saved = self._start_state()
-        self.time0 = float(self.state["time_s"])
-        self.budget_end_s = _budget_end_s(self.cfg, self.saved, self.state)
-        self.state["budget_end_s"] = self.budget_end_s
-        if self.saved is not None and self._nothing_to_do():
-            why = "budget_spent" if self.state["step"] < self.cfg.steps else "steps_reached"
-            return {"kind": "end", "step": self.state["step"], "epoch": self.state["epoch"], "steps_run": 0,
-                    "stopped_by": "nothing_to_do", "why": why, "time_s": self.time0, "workers": self.state["workers"]}
-        self._build_model()
-        self._make_hooks()
-        self.lr = lr_at(self.cfg, self.state["step"], self.time0, self.budget_end_s)
-        return self._finish(self._train())
+def _build_model(cfg: TrainConfig, run_dir: str, opts: TrainOptions, dev: torch.device):
+    """(model, optimizer, moving average or None): seeded, from init_weights, or a resumed run's checkpoint and
+    optimizer."""
+    model = init_model(cfg).to(dev)
+    start = os.path.join(run_dir, "checkpoint.safetensors") if opts.resume else opts.init_weights
+    if start is not None:
+        load_state(model, read_weights(start)[0], start)
+    if dev.type == "cuda":
+        model = model.to(memory_format=torch.channels_last)
+    opt = make_optimizer(model, cfg, dev)
+    if opts.resume:
+        opt.load_state_dict(load_tensors(os.path.join(run_dir, "optimizer.pt")))
+    return model, opt, make_ema(model, cfg)
 
-    def elapsed(self) -> float:
-        """The run's clock, seconds: what it had used before this call (a resumed run's time_s) plus this call's."""
-        return self.time0 + self.clock() - self.t_start
 
-    def _now(self) -> float:
-        """The run clock for the next step (seconds): under a budget and DDP rank 0's (Budget.share_clock)."""
-        now_s = self.elapsed()
-        return now_s if self.budget is None else self.budget.share_clock(now_s)
-
-    def in_cooldown(self, now_s: float) -> bool:
-        """The next step, at run-clock now_s, is in a constant_cooldown run's cooldown."""
-        return in_cooldown(self.cfg, self.state["step"], now_s, self.budget_end_s)
-
-    def _check_call(self) -> None:
-        if self.dev.type == "cuda" and not torch.cuda.is_available():
-            raise InputError("device 'cuda': no CUDA device is available")
-        workers = self.opts.workers
-        if workers is not None and workers < 0:
-            raise InputError(f"workers = {workers}: expected 0 (in-process) or more worker processes")
-
-    def _shard_paths(self) -> list[str] | None:
-        if self.data.paths is not None or self.data.online is not None:
-            return self.data.paths
-        dirs = [self.data.data_dir] if isinstance(self.data.data_dir, str) else list(self.data.data_dir)
-        return [p for d in dirs for p in shard_paths(d)]
-
-    def _start_state(self) -> tuple[dict, dict | None]:
-        """The state to start from and, on resume, the run's config.json (None: a new run). InputError when a new
-        run's folder holds a run, or when resume's checks fail (perception/train.py _check_resume, the workers)."""
-        workers, run_dir = self.opts.workers, self.run_dir
-        state = {"step": 0, "epoch": 0, "batch": 0, "workers": 0 if workers is None else workers, "time_s": 0.0}
-        if not self.opts.resume:
-            if os.path.exists(os.path.join(run_dir, "state.json")):
-                raise InputError(f"run_dir {run_dir!r} already holds a run: resume it, or give another folder")
-            return state, None
-        saved_state, saved = _check_resume(run_dir, self.cfg, (self.opts.provenance or {}).get("data"))
-        ran_with = int(saved_state.get("workers", 0))
-        if workers is not None and workers != ran_with:
-            raise InputError(f"workers = {workers}: {run_dir!r} was trained with {ran_with} (its batches depend "
-                             f"on the count); resume it with --workers {ran_with}")
-        return {**state, **saved_state, "workers": ran_with}, saved
-
-    def _nothing_to_do(self) -> bool:
-        """A resumed run already at its steps or at its budget's end."""
-        spent = self.budget_end_s is not None and self.time0 >= self.budget_end_s
-        return self.state["step"] >= self.cfg.steps or spent
-
-    def _build_model(self) -> None:
-        """The model (seeded, from init_weights, or a resumed run's checkpoint), its optimizer (resumed too), the
-        moving average, and `net`: the model itself or its DDP wrapper."""
-        cfg, opts, dev = self.cfg, self.opts, self.dev
-        self.model = init_model(cfg).to(dev)
-        start = os.path.join(self.run_dir, "checkpoint.safetensors") if opts.resume else opts.init_weights
-        if start is not None:
-            load_state(self.model, read_weights(start)[0], start)
-        if dev.type == "cuda":
-            self.model = self.model.to(memory_format=torch.channels_last)
-        self.opt = make_optimizer(self.model, cfg, dev)
-        if opts.resume:
-            self.opt.load_state_dict(load_tensors(os.path.join(self.run_dir, "optimizer.pt")))
-        ema = make_ema(self.model, cfg)
-        self.average = None if ema is None else MovingAverage(ema, cfg.ema_decay,
-                                                              os.path.join(self.run_dir, "ema.safetensors"))
-        if self.average is not None and opts.resume:
-            self.average.resume(self.state["step"])
-        self.net = self.model
-        if self.dist is not None:
-            self.net = torch.nn.parallel.DistributedDataParallel(
-                self.model, device_ids=[dev.index] if dev.type == "cuda" else None)
-        self.model.train()
-
-    def _make_hooks(self) -> None:
-        """The hooks, in the order they are called at each point (perception/trainer_hooks.py)."""
-        cfg = self.cfg
-        self.folder = RunFolder(self.saved, self.opts.provenance, self.state["step"])
-        self.timing, self.metrics = Timing(), Metrics(self.folder)
-        self.checkpoints = Checkpoints(self.folder, cfg.checkpoint_every)
-        bar = progress_bar(cfg.steps, self.state, self.budget_end_s, self.time0, self.opts.progress and self.rank == 0)
-        self.ddp = None if self.dist is None else DdpAgreement(self.dist, self.world)
-        self.budget = None if self.budget_end_s is None else Budget(self.budget_end_s, self.timing, self.checkpoints)
-        hooks = [
-            self.budget, PreCooldown(self.folder) if cfg.schedule == "constant_cooldown" else None,
-            self.average, self.folder, self.metrics, Progress(bar, self.budget_end_s is not None), self.ddp,
-            self.checkpoints, self.timing,
-        ]
-        self.hooks = [h for h in hooks if h is not None]
-        for hook in self.hooks:
-            hook.trainer = self
-
-    def _train(self) -> str | None:
-        """The loop under the signal handlers, its batch source closed on every way out, then the hooks'
-        after_train (the last checkpoint among them). Why it stopped early: 'time_budget', a signal's name, None."""
-        with self.signals:
-            source = self._online_batches() if self.data.online is not None else self._shard_batches()
-            try:
-                stop = self._loop(source)
-            finally:
-                source.close()  # the loader's or the renderers' workers shut down, on an error too
-            for hook in self.hooks:
-                hook.after_train()
-        return stop
-
-    def _loop(self, source) -> str | None:
-        """Steps on the source's batches until the steps are done, a hook stops the run before a step or a
-        signal came (the step in progress finishes)."""
-        self.timing.ask()
-        for cpu_batch, position in source:
-            if self.state["step"] >= self.cfg.steps or self.signals.caught:
-                break
-            self.timing.got()
-            now_s = self._now()
-            for hook in self.hooks:
-                reason = hook.before_step(now_s)
-                if reason is not None:
-                    for h in self.hooks:
-                        h.on_stop(reason)
-                    return reason
-            terms = self._step(cpu_batch, now_s)
-            self.state["step"] += 1
-            self.state.update(position)
-            self.steps_run += 1
-            for hook in self.hooks:
-                hook.after_step(terms)
-        return self.signals.caught
-
-    def _step(self, cpu_batch: dict, now_s: float) -> dict:
-        """One optimizer step at the schedule's rate for this step and run-clock now_s; the loss terms."""
-        self.lr = lr_at(self.cfg, self.state["step"], now_s, self.budget_end_s)
-        for g in self.opt.param_groups:
-            g["lr"] = self.lr
-        return _train_step(self.model, self.net, self.opt, to_device(cpu_batch, self.dev), self.cfg,
-                           self.state["step"], self.dev, self.opts.bf16)
-
-    def _epoch_batches(self, epoch: int):
-        return epoch_batches(self.paths, self.cfg.data, self.cfg.seed, epoch, self.cfg.batch_size,
-                             self.state["workers"], self.rank, self.world, pin_memory=self.dev.type == "cuda")
-
-    def _shard_batches(self):
-        """(batch, where the run stands after training it) from the shards, epoch after epoch; an epoch's end
-        logged. The next epoch's workers start early (no stall at the boundary)."""
-        state, current, upcoming = self.state, None, None
-        try:
-            while True:
-                skip, n = state["batch"], 0  # a resumed epoch: its first batches were trained on before
-                current = upcoming if upcoming is not None else self._epoch_batches(state["epoch"])
-                upcoming = self._epoch_batches(state["epoch"] + 1) if state["workers"] > 0 else None
-                for i, cpu_batch in enumerate(loader_batches(current, self.signals.flag)):
-                    if i >= skip:
-                        n += 1
-                        yield cpu_batch, {"batch": i + 1}
-                if self.signals.caught:
-                    return
-                if n == 0 and skip == 0:
-                    raise InputError(f"data {self.data.data_dir!r}: fewer samples than one batch of "
-                                     f"{self.cfg.batch_size} per worker ({state['workers']} workers, "
-                                     f"{len(self.paths)} shards, {self.world} ranks): use fewer workers or a "
-                                     "smaller batch")
-                close_batches(current)
-                self.metrics.log("epoch")
-                state["epoch"] += 1
-                state["batch"] = 0
-        finally:  # the workers of both epochs stop here, on the run's end or an error alike
-            for batches in (current, upcoming):
-                close_batches(batches)
-
-    def _online_batches(self):
-        """(batch on the device, the source's state) from frames rendered as training goes."""
-        for batch, source_state in self.data.online(self.state.get("online")):
-            yield batch, {"online": source_state}
-
-    def _finish(self, stop: str | None) -> dict:
-        """The end line (the last terms, this call's speed, why it stopped, under DDP the ranks' agreement);
-        TrainingInterrupted after it when a signal stopped the run."""
-        speed = {**self.timing.figures(self.cfg.batch_size, self.world), "workers": self.state["workers"],
-                 "bf16": self.opts.bf16,
-                 "stopped_by": "steps" if stop is None else ("time_budget" if stop == "time_budget" else "signal")}
-        end = self.metrics.log("end", {**(self.ddp.figures if self.ddp else {}), **speed})
-        if stop not in (None, "time_budget"):
-            raise TrainingInterrupted(self.state["step"] if self.folder.started else 0, self.run_dir, stop)
-        return end
+def _folder_trainer(cfg: TrainConfig, run_dir: str, opts: TrainOptions, state: dict, saved: dict | None,
+                 t_start: float) -> Trainer:
+    """The Trainer of a train() call with the run folder's hooks, in their order: the budget, the pre-cooldown
+    weights, the moving average, the run folder, the progress bar, DDP agreement, checkpoints, signals, metrics."""
+    dev = torch.device(opts.device)
+    model, opt, ema = _build_model(cfg, run_dir, opts, dev)
+    dist, rank, _ = _dist()
+    net = model if dist is None else torch.nn.parallel.DistributedDataParallel(
+        model, device_ids=[dev.index] if dev.type == "cuda" else None)
+    model.train()
+    end_s, time0 = state["budget_end_s"], float(state["time_s"])
+    bar = progress_bar(cfg.steps, state, end_s, time0, opts.progress and rank == 0)
+    hooks = [Budget(end_s) if end_s is not None else None,
+             PreCooldown() if cfg.schedule == "constant_cooldown" else None,
+             None if ema is None else MovingAverage(ema, cfg.ema_decay, opts.resume),
+             RunFolder(saved, opts.provenance, state["step"]), Progress(bar, end_s is not None),
+             None if dist is None else DdpAgreement(), Checkpoints(cfg.checkpoint_every), StopOnSignals(), Metrics()]
+    return Trainer(cfg, model, opt, dev=dev, net=net, bf16=opts.bf16, clock=opts.clock, t_start=t_start,
+                   state=state, budget_end_s=end_s, run_dir=run_dir, hooks=[h for h in hooks if h is not None])
 
 
 def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: bool = False, device: str = "cpu",
@@ -555,9 +419,9 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
     `if __name__ == "__main__":` guard.
     bf16: the network's forward under bfloat16 autocast (CUDA or CPU); losses, weights and optimizer in float32.
     With a time budget the run stops before the next step would leave too little of it for the final checkpoint
-    (the budget counts from this call's start, plus what a resumed run had already used; see _budget_end_s); a
-    budget too short for one step is an InputError. A resumed run already at its steps or budget trains nothing
-    and returns an end line with stopped_by 'nothing_to_do'.
+    (the budget counts from this call's start, plus what a resumed run had already used; see
+    train_run.budget_end); a budget too short for one step is an InputError. A resumed run already at its
+    steps or budget trains nothing and returns an end line with stopped_by 'nothing_to_do'.
     clock: the seconds every time figure and the budget are read from (a test gives its own).
     online: instead of shards, a function start_state -> iterator of (batch on the device, state) (frames
     rendered as training goes: pipelines/detector/online.py); each step's state is kept in state.json under 'online' and
@@ -566,4 +430,17 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
     """
     opts = TrainOptions(resume=resume, device=device, progress=progress, provenance=provenance,
                         init_weights=init_weights, workers=workers, bf16=bf16, clock=clock)
-    return Trainer(cfg, TrainData(data_dir, paths, online), run_dir, opts).run()
+    _check_call(opts)
+    t_start = clock()
+    if paths is None and online is None:
+        paths = [p for d in ([data_dir] if isinstance(data_dir, str) else list(data_dir)) for p in shard_paths(d)]
+    state, saved = start_state(run_dir, cfg, resume, workers, (provenance or {}).get("data"))
+    state["budget_end_s"] = budget_end(cfg, saved, state)
+    if saved is not None and (end := nothing_to_do(cfg, state)) is not None:
+        return end
+    trainer = _folder_trainer(cfg, run_dir, opts, state, saved, t_start)
+    source = rendered_batches(online, state) if online is not None else shard_batches(trainer, paths, data_dir)
+    stop = trainer.run(source)
+    if stop not in (None, "time_budget"):
+        raise TrainingInterrupted(state["step"] if trainer.folder_started else 0, run_dir, stop)
+    return trainer.end_line

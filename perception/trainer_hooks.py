@@ -1,13 +1,17 @@
-"""The training loop's concerns, one small object each, called by the Trainer (perception/train.py) at named points
-(detectron2's HookBase): before_step (may ask the loop to stop before the step), after_step, on_stop (the loop
-stopped before a step), on_checkpoint (a checkpoint is being written), after_train.
+"""The training loop's concerns, one small object each, registered on the Trainer (perception/train.py) and called
+by it at named points (detectron2's HookBase): before_train, before_step (may ask the loop to stop before the
+step), after_step, on_stop (the loop stopped before a step), after_epoch (the batch source finished an epoch),
+on_checkpoint (a checkpoint is being written), after_train (on every way out of the loop: a `finally`).
 
-The Trainer calls its hooks in a fixed order, which is part of their contract: before a step the time budget,
-then the pre-cooldown weights; after a step the moving average, the run folder, the metrics, the progress bar,
-the checkpoint, then the step's timing; after training the progress bar, the DDP agreement, the last checkpoint.
-A hook reads the training state through `trainer` (step, model, optimizer, clock), set when the Trainer is built.
-Two hooks also have calls of their own at points inside the loop: Timing.ask and Timing.got around each wait for
-a batch, and Budget.share_clock, which gives every DDP rank rank 0's clock for the step (its rate and its stop).
+The order is declared, not listed: a hook names in `after` the hooks it must follow at every point, with the
+reason beside it, and the Trainer sorts the hooks it is given by those names (hook_order: stable, so hooks
+without a constraint between them keep the order they were given in), refusing a name given twice, an `after`
+that names no hook and constraints that contradict one another. Hooks never hold one another: what they share
+lives on the trainer (its docstring lists it): the run clock of the step (`now_s`, which Budget makes rank 0's
+under DDP), the steps' wall times (`timing`), the last checkpoint's seconds (`checkpoint_s`), whether the run
+folder exists (`folder_started`), the stop flag a signal sets (`stop_flag`), the exception leaving the loop
+(`error`) and the end line (`end_line`). LoopTiming is not a hook: the loop itself reads it around each wait for a
+batch.
 """
 
 from __future__ import annotations
@@ -28,12 +32,21 @@ POSTFIX_EVERY = 10  # steps between the progress bar's loss readings (each one w
 
 
 class Hook:
-    """A piece of the training loop; every method does nothing unless a hook overrides it."""
+    """A piece of the training loop; every method does nothing unless a hook overrides it. `after`: the names
+    (class names) of the hooks this one is called after at every point, when they are registered too."""
 
-    trainer = None  # the Trainer (perception/train.py), set by it
+    after: tuple[str, ...] = ()
+    trainer = None  # the Trainer (perception/train.py), set when the hook is registered
 
-    def before_step(self, now_s: float) -> str | None:
-        """Before the step at run-clock now_s (seconds): a reason to stop before it, or None."""
+    @property
+    def name(self) -> str:
+        return type(self).__name__
+
+    def before_train(self) -> None:
+        """The trainer is built and its state set; no batch asked for yet."""
+
+    def before_step(self) -> str | None:
+        """Before the step at run-clock trainer.now_s (seconds): a reason to stop before it, or None."""
         return None
 
     def after_step(self, terms: dict) -> None:
@@ -42,48 +55,58 @@ class Hook:
     def on_stop(self, reason: str) -> None:
         """The loop stopped before a step for `reason` (a before_step's answer)."""
 
+    def after_epoch(self) -> None:
+        """The batch source finished an epoch (trainer.state['epoch'] still counts it)."""
+
     def on_checkpoint(self) -> None:
         """A checkpoint is being written (rank 0, the run folder made): save this hook's own files."""
 
     def after_train(self) -> None:
-        """The loop is over (the steps, the budget or a signal), its batch source closed."""
+        """The loop is over, on every way out, its batch source closed: trainer.error is the exception leaving it
+        (None when the steps, a hook's stop, a signal or the end of the batches ended it)."""
 
 
-class StopOnSignals:
-    """While training (a context manager): SIGINT and SIGTERM set flag['signal'] (the loop stops after its step,
-    with a checkpoint); a second SIGINT raises KeyboardInterrupt at once. Only in the main thread (signals are
-    delivered there). flag is the dict perception/stream.py's loader_batches reads."""
-
-    def __init__(self):
-        self.flag: dict = {}
-        self._old: dict = {}
-
-    @property
-    def caught(self) -> str | None:
-        """The name of the signal that asked the run to stop ('SIGINT', 'SIGTERM'), or None."""
-        return self.flag.get("signal")
-
-    def _handler(self, signum, _frame) -> None:
-        if self.flag.get("signal") and signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        self.flag["signal"] = signal.Signals(signum).name
-
-    def __enter__(self) -> StopOnSignals:
-        if threading.current_thread() is threading.main_thread():
-            self._old = {sig: signal.signal(sig, self._handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-        return self
-
-    def __exit__(self, *exc) -> None:
-        for sig, h in self._old.items():
-            signal.signal(sig, h)
-        self._old = {}
+def hook_classes(base: type = Hook) -> set[str]:
+    """The names of every Hook subclass defined so far (theirs too)."""
+    found: set[str] = set()
+    for sub in base.__subclasses__():
+        found |= {sub.__name__} | hook_classes(sub)
+    return found
 
 
-class Timing(Hook):
-    """This call's own figures, from the trainer's clock: the wait for each batch, the first batch's arrival
-    (seconds after the call's start) and the last steps' wall times (data wait included), which the budget reads."""
+def hook_order(hooks: list[Hook]) -> list[Hook]:
+    """The hooks in the order the trainer calls them: as given, each moved behind the hooks its `after` names
+    (stable: a hook is called at its place in the list unless a constraint moves it). ValueError for a hook
+    given twice, an `after` naming no hook class, or constraints that loop."""
+    names = [h.name for h in hooks]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise ValueError(f"hooks registered twice: {twice}")
+    known = hook_classes()
+    for h in hooks:
+        unknown = [a for a in h.after if a not in known]
+        if unknown:
+            raise ValueError(f"{h.name}.after names no hook class: {unknown}")
+    placed: list[Hook] = []
+    left = list(hooks)
+    while left:
+        done = {p.name for p in placed}
+        ready = next((h for h in left if all(a in done or a not in names for a in h.after)), None)
+        if ready is None:
+            raise ValueError("the hooks' order loops: " + "; ".join(f"{h.name} after {', '.join(h.after)}"
+                                                                     for h in left))
+        placed.append(ready)
+        left.remove(ready)
+    return placed
 
-    def __init__(self):
+
+class LoopTiming:
+    """The loop's own figures (not a hook: the loop reads them around each wait for a batch), from the trainer's
+    clock: the wait for each batch, the first batch's arrival (seconds after t_start) and the last steps' wall
+    times (data wait included), which the budget reads."""
+
+    def __init__(self, clock, t_start: float):
+        self.clock, self.t_start = clock, t_start
         self.t_ask = self.t_got = 0.0
         self.first_batch_s: float | None = None
         self.data_wait_s = 0.0
@@ -91,29 +114,55 @@ class Timing(Hook):
 
     def ask(self) -> None:
         """The loop asks its source for the next batch."""
-        self.t_ask = self.trainer.clock()
+        self.t_ask = self.clock()
 
     def got(self) -> None:
         """The batch came."""
-        self.t_got = self.trainer.clock()
+        self.t_got = self.clock()
         self.data_wait_s += self.t_got - self.t_ask
         if self.first_batch_s is None:
-            self.first_batch_s = self.t_got - self.trainer.t_start
+            self.first_batch_s = self.t_got - self.t_start
 
-    def after_step(self, terms: dict) -> None:
-        # a step's wall time, its wait for data included, except the run's first (the loaders' start-up, seconds
-        # that no later step waits again, would hold back a budget's last steps)
-        first = self.trainer.steps_run == 1
-        self.iter_s.append(self.trainer.clock() - (self.t_got if first else self.t_ask))
+    def step_done(self, first: bool) -> None:
+        """A step and its hooks are done; the loop goes back to its source. A step's wall time counts its wait
+        for data, except the run's first (the loaders' start-up, seconds that no later step waits again, would
+        hold back a budget's last steps)."""
+        self.iter_s.append(self.clock() - (self.t_got if first else self.t_ask))
         self.ask()
 
-    def figures(self, batch_size: int, world: int) -> dict:
+    def figures(self, steps_run: int, batch_size: int, world: int) -> dict:
         """The end line's speed figures: this call's steps, samples a second after the first batch came, the
         first batch's wait and the whole data wait (seconds)."""
-        tr = self.trainer
-        loop_s = tr.clock() - tr.t_start - (self.first_batch_s or 0.0)
-        return {"steps_run": tr.steps_run, "samples_s": round(tr.steps_run * batch_size * world / max(loop_s, 1e-9), 2),
+        loop_s = self.clock() - self.t_start - (self.first_batch_s or 0.0)
+        return {"steps_run": steps_run, "samples_s": round(steps_run * batch_size * world / max(loop_s, 1e-9), 2),
                 "first_batch_s": round(self.first_batch_s or 0.0, 3), "data_wait_s": round(self.data_wait_s, 3)}
+
+
+class StopOnSignals(Hook):
+    """While training: SIGINT and SIGTERM set trainer.stop_flag['signal'] (the loop stops after its step, with a
+    checkpoint); a second SIGINT raises KeyboardInterrupt at once. Only in the main thread (signals are
+    delivered there). The old handlers come back at after_train, so the last checkpoint and the ranks' agreement
+    run under these (a first Ctrl-C there does not cut them)."""
+
+    after = ("Checkpoints", "DdpAgreement")  # their after_train still under the handlers
+
+    def __init__(self):
+        self._old: dict = {}
+
+    def _handler(self, signum, _frame) -> None:
+        flag = self.trainer.stop_flag
+        if flag.get("signal") and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        flag["signal"] = signal.Signals(signum).name
+
+    def before_train(self) -> None:
+        if threading.current_thread() is threading.main_thread():
+            self._old = {sig: signal.signal(sig, self._handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def after_train(self) -> None:
+        for sig, h in self._old.items():
+            signal.signal(sig, h)
+        self._old = {}
 
 
 def shared_clock(dist, dev: torch.device, elapsed_s: float, reserve_s: float) -> tuple[float, float]:
@@ -128,50 +177,46 @@ def shared_clock(dist, dev: torch.device, elapsed_s: float, reserve_s: float) ->
 class Budget(Hook):
     """The time budget: stop before a step that would leave too little of it (1.5 x the slowest of the last 10
     steps, the last checkpoint's seconds and SHUTDOWN_RESERVE_S) for the final checkpoint. Under DDP every rank
-    takes rank 0's clock and reserve (share_clock, before each step): the ranks stop at the same step and follow
-    the same rate. A budget too short for the first step is an InputError."""
+    takes rank 0's clock and reserve (trainer.now_s, before each step): the ranks stop at the same step and
+    follow the same rate. A budget too short for the first step is an InputError."""
 
-    def __init__(self, budget_end_s: float, timing: Timing, checkpoints: Checkpoints):
-        self.budget_end_s, self.timing, self.checkpoints = budget_end_s, timing, checkpoints
-        self.reserve = 0.0  # seconds, set by share_clock
+    def __init__(self, budget_end_s: float):
+        self.budget_end_s = budget_end_s
+        self.reserve = 0.0  # seconds, set before each step
 
     def reserve_s(self) -> float:
         """Seconds kept for one more step, the checkpoint and the shutdown (this rank's figures)."""
-        return 1.5 * max(self.timing.iter_s[-10:], default=0.0) + self.checkpoints.checkpoint_s + SHUTDOWN_RESERVE_S
-
-    def share_clock(self, now_s: float) -> float:
-        """The run clock for the next step: rank 0's under DDP (one broadcast, the reserve with it; kept)."""
-        now_s, self.reserve = shared_clock(self.trainer.dist, self.trainer.dev, now_s, self.reserve_s())
-        return now_s
-
-    def before_step(self, now_s: float) -> str | None:
-        if now_s + self.reserve < self.budget_end_s:
-            return None
         tr = self.trainer
+        return 1.5 * max(tr.timing.iter_s[-10:], default=0.0) + tr.checkpoint_s + SHUTDOWN_RESERVE_S
+
+    def before_step(self) -> str | None:
+        tr = self.trainer
+        tr.now_s, self.reserve = shared_clock(tr.dist, tr.dev, tr.now_s, self.reserve_s())
+        if tr.now_s + self.reserve < self.budget_end_s:
+            return None
         if tr.steps_run == 0:
             raise InputError(f"time_budget_s = {tr.cfg.time_budget_s:g}: too short for one step (the first batch "
-                             f"came {now_s - tr.time0:.1f} s into it; a step, the checkpoint and the shutdown need "
-                             f"~{self.reserve:.1f} s more): give a longer budget")
+                             f"came {tr.now_s - tr.time0:.1f} s into it; a step, the checkpoint and the shutdown "
+                             f"need ~{self.reserve:.1f} s more): give a longer budget")
         return "time_budget"
 
 
 class RunFolder(Hook):
     """The run folder and its config.json, made once the first step is trained (nothing half-made before); a
     resumed run's record takes its new steps or budget and keeps each resuming command under 'resumes', with the
-    step it resumed from."""
+    step it resumed from. Sets trainer.folder_started (a resumed run's folder exists from the start)."""
 
     def __init__(self, saved: dict | None, provenance: dict | None, resumed_at: int):
         self.saved, self.provenance, self.resumed_at = saved, provenance or {}, resumed_at
-        self.started = saved is not None  # a resumed run's folder exists
         self._recorded = False
 
-    def after_step(self, terms: dict) -> None:
-        self.start()
+    def before_train(self) -> None:
+        self.trainer.folder_started = self.saved is not None
 
-    def start(self) -> None:
+    def after_step(self, terms: dict) -> None:
         """Make the folder (or record the resume) unless done already; only rank 0 writes."""
         tr = self.trainer
-        if self.started:
+        if tr.folder_started:
             if self.saved is not None and not self._recorded and tr.rank == 0:
                 self._recorded = True
                 resumes = self.saved.get("resumes", []) + [{"command": self.provenance.get("command", ""),
@@ -179,7 +224,7 @@ class RunFolder(Hook):
                                                             "step": self.resumed_at}]
                 self._write({**self.saved, "train": tr.cfg.to_dict(), "resumes": resumes})
             return
-        self.started = True
+        tr.folder_started = True
         if tr.rank == 0:
             os.makedirs(tr.run_dir, exist_ok=True)
             self._write({"train": tr.cfg.to_dict(), **self.provenance})
@@ -190,54 +235,59 @@ class RunFolder(Hook):
 
 
 class Checkpoints(Hook):
-    """checkpoint.safetensors, optimizer.pt, the other hooks' files and state.json (last: where --resume goes on),
-    every checkpoint_every steps and at the end; rank 0 only, once the run folder exists. Measures its own
-    seconds for the budget's reserve."""
+    """checkpoint.safetensors, optimizer.pt, the other hooks' files (on_checkpoint) and state.json (last: where
+    --resume goes on), every `every` steps and at the end of a run the loop left without an error; rank 0 only,
+    once the run folder exists. Measures its own seconds into trainer.checkpoint_s (the budget's reserve)."""
 
-    def __init__(self, folder: RunFolder, every: int):
-        self.folder, self.every = folder, every
-        self.checkpoint_s = 0.5  # until one is measured
+    after = ("RunFolder", "MovingAverage")  # the folder exists and the average holds the step it checkpoints
+
+    def __init__(self, every: int):
+        self.every = every
 
     def after_step(self, terms: dict) -> None:
-        if self.trainer.state["step"] % self.every == 0:
-            t0 = self.trainer.clock()
+        tr = self.trainer
+        if tr.state["step"] % self.every == 0:
+            t0 = tr.clock()
             self.write()
-            self.checkpoint_s = self.trainer.clock() - t0
+            tr.checkpoint_s = tr.clock() - t0
 
     def after_train(self) -> None:
-        self.write()
+        if self.trainer.error is None:
+            self.write()
 
     def write(self) -> None:
         tr = self.trainer
-        if tr.rank != 0 or not self.folder.started:
+        if tr.rank != 0 or not tr.folder_started:
             return
         tr.state["time_s"] = round(tr.elapsed(), 3)
         save_weights(os.path.join(tr.run_dir, "checkpoint.safetensors"), tr.model, {"step": str(tr.state["step"])})
         save_tensors(os.path.join(tr.run_dir, "optimizer.pt"), tr.opt.state_dict())
-        for hook in tr.hooks:
-            hook.on_checkpoint()
+        tr.call("on_checkpoint")
         atomic_write_text(os.path.join(tr.run_dir, "state.json"), json.dumps(tr.state, sort_keys=True) + "\n")
 
 
 class MovingAverage(Hook):
     """The exponential moving average of the weights (torch's AveragedModel), updated after every step and kept
-    as ema.safetensors; a resumed run reads it back and counts its steps as averaged."""
+    as ema.safetensors; a resumed run reads it back (before_train) and counts its steps as averaged."""
 
-    def __init__(self, ema, decay: float, path: str):
-        self.ema, self.decay, self.path = ema, decay, path
+    def __init__(self, ema, decay: float, resume: bool):
+        self.ema, self.decay, self.resume = ema, decay, resume
 
-    def resume(self, step: int) -> None:
+    def path(self) -> str:
+        return os.path.join(self.trainer.run_dir, "ema.safetensors")
+
+    def before_train(self) -> None:
         """Read the average a resumed run kept (when it kept one)."""
-        if os.path.exists(self.path):
-            load_state(self.ema.module, read_weights(self.path)[0], self.path)
-            self.ema.n_averaged.fill_(max(1, int(step)))
+        if self.resume and os.path.exists(self.path()):
+            load_state(self.ema.module, read_weights(self.path())[0], self.path())
+            self.ema.n_averaged.fill_(max(1, int(self.trainer.state["step"])))
 
     def after_step(self, terms: dict) -> None:
         self.ema.update_parameters(self.trainer.model)
 
     def on_checkpoint(self) -> None:
-        save_weights(self.path, self.ema.module, {"step": str(self.trainer.state["step"]),
-                                                  "ema_decay": str(self.decay)})
+        save_weights(self.path(), self.ema.module, {"step": str(self.trainer.state["step"]),
+                                                    "ema_decay": str(self.decay)})
 
 
 class PreCooldown(Hook):
@@ -245,15 +295,13 @@ class PreCooldown(Hook):
     start: pre_cooldown.safetensors and pre_cooldown_optimizer.pt, and state['pre_cooldown_step']; a budget that
     stops the run before its cooldown keeps its last weights so."""
 
-    def __init__(self, folder: RunFolder):
-        self.folder = folder
+    after = ("Budget",)  # the step's clock is rank 0's, and a budget's refusal of the first step writes nothing
 
     def saved(self) -> bool:
         return "pre_cooldown_step" in self.trainer.state
 
-    def before_step(self, now_s: float) -> str | None:
-        if not self.saved() and self.trainer.in_cooldown(now_s):
-            self.folder.start()
+    def before_step(self) -> str | None:
+        if not self.saved() and self.trainer.in_cooldown(self.trainer.now_s):
             self.save()
         return None
 
@@ -265,17 +313,21 @@ class PreCooldown(Hook):
         tr = self.trainer
         tr.state["pre_cooldown_step"] = tr.state["step"]
         if tr.rank == 0:
+            os.makedirs(tr.run_dir, exist_ok=True)  # a cooldown from the first step: before the folder's record
             save_weights(os.path.join(tr.run_dir, "pre_cooldown.safetensors"), tr.model,
                          {"step": str(tr.state["step"]), "pre_cooldown": "true"})
             save_tensors(os.path.join(tr.run_dir, "pre_cooldown_optimizer.pt"), tr.opt.state_dict())
 
 
 class Metrics(Hook):
-    """metrics.jsonl: the loss terms summed on the device after each step and averaged into a line by log() (the
-    one place they are read back; a line right after another repeats its terms)."""
+    """metrics.jsonl: the loss terms summed on the device after each step and averaged into a line (the one place
+    they are read back; a line right after another repeats its terms): one at each epoch's end, and the end line
+    of a run the loop left without an error (the figures other hooks put in trainer.end_line, this call's speed,
+    why it stopped), kept as trainer.end_line."""
 
-    def __init__(self, folder: RunFolder):
-        self.folder = folder
+    after = ("Checkpoints", "DdpAgreement")  # the end line comes after the last checkpoint and the ranks' figures
+
+    def __init__(self):
         self.sums: dict[str, torch.Tensor] = {}
         self.count = 0
         self.terms_mean: dict[str, float] = {}
@@ -285,6 +337,19 @@ class Metrics(Hook):
             self.sums[k] = self.sums[k] + v if k in self.sums else v
         self.count += 1
 
+    def after_epoch(self) -> None:
+        self.log("epoch")
+
+    def after_train(self) -> None:
+        tr = self.trainer
+        if tr.error is not None:
+            return
+        stop = tr.stop
+        speed = {**tr.timing.figures(tr.steps_run, tr.cfg.batch_size, tr.world), "workers": tr.state["workers"],
+                 "bf16": tr.bf16,
+                 "stopped_by": "steps" if stop is None else ("time_budget" if stop == "time_budget" else "signal")}
+        tr.end_line = self.log("end", {**tr.end_line, **speed})
+
     def log(self, kind: str, extra: dict | None = None) -> dict:
         """A metrics line of `kind` ('epoch', 'end'), written by rank 0 once the run folder exists; returned."""
         tr = self.trainer
@@ -292,7 +357,7 @@ class Metrics(Hook):
             self.terms_mean = {k: float(v) / self.count for k, v in self.sums.items()}
         line = {"kind": kind, "epoch": tr.state["epoch"], "step": tr.state["step"], "lr": tr.lr,
                 "time_s": round(tr.elapsed(), 3), **self.terms_mean, **(extra or {})}
-        if tr.rank == 0 and self.folder.started:
+        if tr.rank == 0 and tr.folder_started:
             with open(os.path.join(tr.run_dir, "metrics.jsonl"), "a", encoding="utf-8") as fh:
                 fh.write(json.dumps(line, sort_keys=True) + "\n")
         self.sums, self.count = {}, 0
@@ -317,7 +382,7 @@ def advance_budget_bar(bar, seconds: float) -> None:
 
 class Progress(Hook):
     """The progress bar (rank 0, when asked): steps, or a budget's seconds; the loss every POSTFIX_EVERY steps
-    and after this call's first."""
+    and after this call's first; closed on every way out."""
 
     def __init__(self, bar, by_budget: bool):
         self.bar, self.by_budget = bar, by_budget
@@ -344,16 +409,15 @@ def ranks_identical(dist, model: torch.nn.Module, world: int) -> bool:
 
 
 class DdpAgreement(Hook):
-    """(DDP) After training: rank 0's BatchNorm statistics on every rank (those of the last forward are each rank's
-    own), then whether the ranks agree bit for bit; the end line's 'ranks_identical' and 'world'."""
-
-    def __init__(self, dist, world: int):
-        self.dist, self.world = dist, world
-        self.figures: dict = {}
+    """(DDP) After a run the loop left without an error (an error on one rank must not wait for the others):
+    rank 0's BatchNorm statistics on every rank (those of the last forward are each rank's own), then whether
+    the ranks agree bit for bit: the end line's 'ranks_identical' and 'world'."""
 
     def after_train(self) -> None:
-        model = self.trainer.model
-        for b in model.buffers():
-            self.dist.broadcast(b, src=0)
-        self.figures = {"ranks_identical": float(ranks_identical(self.dist, model, self.world)),
-                        "world": float(self.world)}
+        tr = self.trainer
+        if tr.error is not None:
+            return
+        for b in tr.model.buffers():
+            tr.dist.broadcast(b, src=0)
+        tr.end_line.update({"ranks_identical": float(ranks_identical(tr.dist, tr.model, tr.world)),
+                            "world": float(tr.world)})

@@ -56,7 +56,7 @@ def test_fine_tune_flags_without_a_fine_tune_are_one_line(tmp_path, capsys):
 def test_params_none_returns_the_original_network_untrained(detector_weights):
     """params='none' (recalibration only): the fine-tune hands back the file's own tensors, no step taken."""
     from envisat_pose.perception.weights import read_weights
-    from envisat_pose.pipelines.adaptation.adapt import fine_tune
+    from envisat_pose.pipelines.adaptation.fine_tune import fine_tune
 
     model, info = fine_tune(detector_weights, [], [], AdaptConfig(params="none"), np.random.SeedSequence(0))
     assert info["steps"] == 0 and info["trainable"] == 0
@@ -69,7 +69,7 @@ def test_params_none_returns_the_original_network_untrained(detector_weights):
 def test_frames_without_a_measurable_outline_leave_the_labels_range(mode):
     """Blank frames (no contrast): no delta in any frame, the states returned as they came, the record says so."""
     from envisat_pose.geometry import load_camera
-    from envisat_pose.pipelines.adaptation.adapt import edge_corrected
+    from envisat_pose.pipelines.adaptation.track_labels import edge_corrected
 
     cam = load_camera().scaled(256, 256)
     rng = np.random.default_rng(41)
@@ -178,8 +178,8 @@ def test_the_apparent_scale_is_measured_against_the_labels(long_seq, detector_we
     against the labels (the error model's bias_scale). Labels spread 0.3 % wider about the visible corners'
     centroid read it 1.003 times smaller (the same detections: the scale is linear in the labels' spread; within
     2e-4, as a frame's right corners may be fewer than its visible ones)."""
-    from envisat_pose.pipelines.adaptation.adapt import recalibrate
     from envisat_pose.pipelines.adaptation.pseudo_labels import label_record
+    from envisat_pose.pipelines.adaptation.recalibrate import recalibrate
     from envisat_pose.pipelines.runs.track import TrackConfig, prepare_frames
 
     _, source, camera, _, _ = prepare_frames(TrackConfig(), long_seq)
@@ -204,7 +204,12 @@ def test_the_unchanged_network_takes_the_tracks_scale_over_the_edges_delta():
     applied / (1 + delta): undoing that instead brings the range to the edges' (r ~ applied / s). A fine-tuned
     network is a new detector: its corners' scale against the corrected labels. The sd never undercuts the
     outline's own offset over its radius."""
-    from envisat_pose.pipelines.adaptation.adapt import EDGE_LOOK_SD, EDGE_LOOK_SD_WIDE, EDGE_OFFSET_PX, adapted_scale
+    from envisat_pose.pipelines.adaptation.scale_decision import (
+        EDGE_LOOK_SD,
+        EDGE_LOOK_SD_WIDE,
+        EDGE_OFFSET_PX,
+        adapted_scale,
+    )
 
     edges = {"sequence": {"delta": 0.004, "delta_se": 1e-4}, "outline_radius_px": 50.0,
              "look": {"delta_sd": 5e-4, "psf_sigma_px": 1.0}}
@@ -229,13 +234,13 @@ def test_the_smoother_takes_the_filter_model_the_tracker_builds(detector_weights
 
     from envisat_pose.geometry import load_camera
     from envisat_pose.perception.detect import load_detector
-    from envisat_pose.pipelines.adaptation.adapt import smoother_model
+    from envisat_pose.pipelines.adaptation.track_labels import smoother_model
     from envisat_pose.pipelines.runs.track import TrackConfig
     from envisat_pose.pipelines.tracking.onboard import chaser_function
     from envisat_pose.pipelines.tracking.tracker import Tracker
 
     for scenario in ("default", "close-25m"):
-        t = TrackConfig.from_scenario(scenario)
+        t = TrackConfig(scenario=scenario)
         tracker = Tracker(load_camera().scaled(256, 256), load_detector(detector_weights), chaser_function(t.orbit),
                           t.tracker, dataclasses.asdict(t.filter), mu_m3_s2=t.orbit.mu_m3_s2,
                           gravity_gradient=t.gravity_gradient)
@@ -271,7 +276,7 @@ def test_a_fine_tune_that_raises_leaves_torchs_thread_count(monkeypatch, tmp_pat
 def test_edges_and_corners_that_disagree_keep_the_original_scale():
     """The edges' scale is adopted only where the detector's own corners (against the same corrected labels) read
     it within AGREE_Z sd of their difference; beyond, the scale is kept and one line says why, naming both."""
-    from envisat_pose.pipelines.adaptation.adapt import AGREE_Z, disagreement
+    from envisat_pose.pipelines.adaptation.scale_decision import AGREE_Z, disagreement
 
     edges = {"value": 0.9980, "se": 1e-4, "sd": 4e-4, "method": "edges"}
     sd = np.hypot(4e-4, 3e-4)  # 5e-4
@@ -302,7 +307,7 @@ def test_an_srgb_sequence_is_adapted_without_making_its_range_worse(tmp_path, de
                  "9393", "--num-images", "160", "--resolution", "512", "--workers", "1", "--out", str(gen),
                  "--quiet"]) == 0
     source = open_source(str(gen))
-    report = adapt(AdaptConfig(track=TrackConfig.from_scenario("default", weights=detector_weights)), source,
+    report = adapt(AdaptConfig(track=TrackConfig(scenario="default", weights=detector_weights)), source,
                    str(tmp_path / "run"), progress=False)
     x_true = source.truth["x"]
 
@@ -322,7 +327,7 @@ def test_a_scale_within_its_own_uncertainty_of_the_tracks_is_not_adopted():
     """An edges' scale whose sd (an estimated response's look term can make it most of a per cent) covers the
     distance to the scale the track undid is no evidence to move it: kept, one line naming both; a scale moved
     by more than MOVE_Z sd is adopted."""
-    from envisat_pose.pipelines.adaptation.adapt import MOVE_Z, no_evidence
+    from envisat_pose.pipelines.adaptation.scale_decision import MOVE_Z, no_evidence
 
     scale = {"value": 0.9944, "se": 3e-4, "sd": 8.3e-3, "method": "edges"}
     line = no_evidence(scale, 1.0004)
@@ -334,17 +339,17 @@ def test_the_look_term_is_the_largest_swing_over_the_open_responses(monkeypatch)
     """look_record reads the sequence's delta under every alternative response frames_look leaves open and keeps
     the largest difference from the delta applied; an alternative under which nothing is measured makes the
     term infinite (the cue is not held); a given response (no alternatives) adds nothing."""
-    import envisat_pose.pipelines.adaptation.adapt as adapt_module
+    import envisat_pose.pipelines.adaptation.track_labels as labels_module
     from envisat_pose.camera_response import SRGB, Response
 
     readings = {"gamma 1.2": 0.001, "gamma 2.4": -0.004, "linear": None}
-    monkeypatch.setattr(adapt_module, "edge_corrected", lambda x, im, cam, mode, n, r, b: (
+    monkeypatch.setattr(labels_module, "edge_corrected", lambda x, im, cam, mode, n, r, b: (
         x, {"sequence": {"delta": readings[r.name()]}}))
     look = {"response": SRGB, "psf_sigma_px": 1.0, "given": {}, "estimate": {},
             "alternatives": [Response("gamma", 1.2), Response("gamma", 2.4)]}
     edges = {"sequence": {"delta": 0.002}}
-    assert adapt_module.look_record(look, None, [], None, edges, 5)["delta_sd"] == pytest.approx(0.006)
+    assert labels_module.look_record(look, None, [], None, edges, 5)["delta_sd"] == pytest.approx(0.006)
     from envisat_pose.camera_response import LINEAR
-    assert adapt_module.look_record({**look, "alternatives": [LINEAR]}, None, [], None, edges, 5)["delta_sd"] \
+    assert labels_module.look_record({**look, "alternatives": [LINEAR]}, None, [], None, edges, 5)["delta_sd"] \
         == float("inf")
-    assert adapt_module.look_record({**look, "alternatives": []}, None, [], None, edges, 5)["delta_sd"] == 0.0
+    assert labels_module.look_record({**look, "alternatives": []}, None, [], None, edges, 5)["delta_sd"] == 0.0

@@ -1,0 +1,145 @@
+"""What `train()` (perception/train.py) puts around its Trainer: where a run starts (a new folder, or a resumed run
+after resume's checks), the clock reading its budget ends at, its batches (the shards epoch by epoch, or frames
+rendered as training goes) and how an interrupted run ends (TrainingInterrupted)."""
+
+from __future__ import annotations
+
+import json
+import os
+
+from envisat_pose.config import InputError, flatten
+from envisat_pose.perception.stream import close_batches, epoch_batches, loader_batches
+
+RESUMABLE_CHANGES = ("steps", "time_budget_s")  # a resumed run may go further or longer, nothing else
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """A run stopped by SIGINT or SIGTERM after its checkpoint was written: step, run_dir and how to go on."""
+
+    def __init__(self, step: int, run_dir: str, signal_name: str):
+        self.step, self.run_dir, self.signal_name = step, run_dir, signal_name
+        if step > 0:
+            text = f"{signal_name} at step {step}: checkpoint written in {run_dir!r}"
+        else:
+            text = f"{signal_name} before the first step: nothing written"
+        super().__init__(text)
+
+
+def _data_name(records: list[dict]) -> str:
+    def one(r):
+        sha = (r.get("manifest_sha256") or "none")[:12]
+        if r.get("images") is None:  # frames rendered online: its configs' hash
+            return f"{r.get('name')} (configs {sha})"
+        return f"{r.get('name')} ({r.get('images')} images, manifest {sha})"
+
+    return ", ".join(one(r) for r in records)
+
+
+def check_resume(run_dir: str, cfg, data: list[dict] | None) -> tuple[dict, dict]:
+    """(state.json, the run's config.json) of a run to resume with TrainConfig cfg; InputError when it is not
+    one, or when the config (other than steps and the budget) or the data (by manifest hash) differ: each
+    difference spelled out."""
+    path = os.path.join(run_dir, "config.json")
+    if not os.path.exists(path) or not os.path.exists(os.path.join(run_dir, "state.json")):
+        raise InputError(f"resume: {run_dir!r} holds no trained run (no config.json and state.json)")
+    with open(path, encoding="utf-8") as fh:
+        saved = json.load(fh)
+    old, new = flatten(saved["train"]), flatten(cfg.to_dict())
+    changed = [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(set(old) | set(new))
+               if k not in RESUMABLE_CHANGES and old.get(k) != new.get(k)]
+    if changed:
+        raise InputError(f"resume: {run_dir!r} was trained with another config: {'; '.join(changed)} (only `steps` "
+                         "and `time_budget_s` may change; start a new run with `init` = its checkpoint instead)")
+    if data is not None and "data" in saved:
+        def key(records):
+            return [r.get("manifest_sha256") or r.get("name") for r in records]
+
+        if key(saved["data"]) != key(data):
+            raise InputError(f"resume: {run_dir!r} was trained on {_data_name(saved['data'])}, not on "
+                             f"{_data_name(data)}: resume with the same data, or start a new run with "
+                             "`init` = its checkpoint")
+    with open(os.path.join(run_dir, "state.json"), encoding="utf-8") as fh:
+        return json.load(fh), saved
+
+
+def start_state(run_dir: str, cfg, resume: bool, workers: int | None, data: list[dict] | None
+                ) -> tuple[dict, dict | None]:
+    """The state to start from (the dict state.json holds) and, on resume, the run's config.json (None: a new
+    run). InputError when a new run's folder holds a run, or when resume's checks fail (check_resume, the
+    workers: a resumed run keeps its count, which its batches depend on)."""
+    state = {"step": 0, "epoch": 0, "batch": 0, "workers": 0 if workers is None else workers, "time_s": 0.0}
+    if not resume:
+        if os.path.exists(os.path.join(run_dir, "state.json")):
+            raise InputError(f"run_dir {run_dir!r} already holds a run: resume it, or give another folder")
+        return state, None
+    saved_state, saved = check_resume(run_dir, cfg, data)
+    ran_with = int(saved_state.get("workers", 0))
+    if workers is not None and workers != ran_with:
+        raise InputError(f"workers = {workers}: {run_dir!r} was trained with {ran_with} (its batches depend "
+                         f"on the count); resume it with --workers {ran_with}")
+    return {**state, **saved_state, "workers": ran_with}, saved
+
+
+def budget_end(cfg, saved: dict | None, state: dict) -> float | None:
+    """The run's clock reading at which a budgeted call stops: the config's budget for a new run, or for a
+    resumed run given its own budget again (what is left of it); time_s + the new budget for a resumed run given
+    another (that many seconds more). None: by steps."""
+    if cfg.time_budget_s is None:
+        return None
+    if saved is None:
+        return cfg.time_budget_s
+    if state.get("budget_end_s") is not None and saved["train"].get("time_budget_s") == cfg.time_budget_s:
+        return float(state["budget_end_s"])
+    return float(state["time_s"]) + cfg.time_budget_s
+
+
+def nothing_to_do(cfg, state: dict) -> dict | None:
+    """The end line of a resumed run already at its steps or at its budget's end (it trains nothing), or None."""
+    time0, end_s = float(state["time_s"]), state["budget_end_s"]
+    spent = end_s is not None and time0 >= end_s
+    if state["step"] < cfg.steps and not spent:
+        return None
+    why = "budget_spent" if state["step"] < cfg.steps else "steps_reached"
+    return {"kind": "end", "step": state["step"], "epoch": state["epoch"], "steps_run": 0,
+            "stopped_by": "nothing_to_do", "why": why, "time_s": time0, "workers": state["workers"]}
+
+
+def _epoch_loader(tr, paths: list[str], epoch: int):
+    return epoch_batches(paths, tr.cfg.data, tr.cfg.seed, epoch, tr.cfg.batch_size, tr.state["workers"], tr.rank,
+                         tr.world, pin_memory=tr.dev.type == "cuda")
+
+
+def shard_batches(tr, paths: list[str], data_dir):
+    """(batch, where the run stands after training it) from the shards for Trainer tr, epoch after epoch; an
+    epoch's end is the hooks' after_epoch. A resumed epoch skips the batches it trained on. The next epoch's
+    workers start early (no stall at the boundary); the workers of both stop on every way out."""
+    state, current, upcoming = tr.state, None, None
+    try:
+        while True:
+            skip, n = state["batch"], 0  # a resumed epoch: its first batches were trained on before
+            current = upcoming if upcoming is not None else _epoch_loader(tr, paths, state["epoch"])
+            upcoming = _epoch_loader(tr, paths, state["epoch"] + 1) if state["workers"] > 0 else None
+            for i, cpu_batch in enumerate(loader_batches(current, tr.stop_flag)):
+                if i >= skip:
+                    n += 1
+                    yield cpu_batch, {"batch": i + 1}
+            if tr.stop_flag.get("signal"):
+                return
+            if n == 0 and skip == 0:
+                raise InputError(f"data {data_dir!r}: fewer samples than one batch of {tr.cfg.batch_size} per "
+                                 f"worker ({state['workers']} workers, {len(paths)} shards, {tr.world} ranks): use "
+                                 "fewer workers or a smaller batch")
+            close_batches(current)
+            tr.call("after_epoch")
+            state["epoch"] += 1
+            state["batch"] = 0
+    finally:
+        for batches in (current, upcoming):
+            close_batches(batches)
+
+
+def rendered_batches(online, state: dict):
+    """(batch on the device, where the run stands) from frames rendered as training goes: online(start_state)
+    yields (batch, the source's state), kept in state.json under 'online' and handed back on resume."""
+    for batch, source_state in online(state.get("online")):
+        yield batch, {"online": source_state}

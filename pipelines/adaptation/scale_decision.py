@@ -1,0 +1,114 @@
+"""Step 5's scale decision of `envisat adapt` (pipelines/adaptation/adapt.py): the detector's apparent scale on
+this look that the adapted weights' error model takes (its bias_scale, which the tracker undoes in every frame:
+`tracker.noise.correct_scale`), with its sd (the fit's, the outline's own offset, the look's), or the original
+scale kept with one line saying why: the detector's own corners read that scale beyond AGREE_Z sd of the
+edges' (`disagreement`), or it lies within MOVE_Z of its sd of the one the track undid (`no_evidence`).
+
+Only labels whose range the frames' edges corrected teach a scale: uncorrected ones carry the track's own, so
+measuring against them gives back the scale the tracker assumed. For the unchanged network (params 'none') the
+scale is the track's own over (1 + delta), every measured station of the sequence behind it; for a fine-tuned
+one its corners' scale against the corrected labels. The truth never enters here."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from envisat_pose.pipelines.runs.track import TrackConfig
+
+# How far a rendered outline's edge may sit from the true one, px: on MuJoCo Filament frames at the true pose the
+# area method reads the lit faces' edges up to 0.12 px inward, the more the brighter the face (a darker rim pixel),
+# and a sequence's scale error -0.02 to -0.16 % at 512 px (0.01-0.13 px over an outline radius of ~80 px), 0.00 to
+# -0.10 % at 1024 px (bench/edge_truth.py, default scenario, seeds 0-3): the scale the edges give is not known
+# better than this over the outline's radius.
+EDGE_OFFSET_PX = 0.08
+# The edge cue's scale bias at the true pose over the grid of looks, each read in linear light by its known
+# response and blur (bench/edge_truth.py --looks, own renders of default seed 0 at 512 px): RMS 0.045 % over the
+# 12 measurable looks with a PSF sigma of 0.3 or 1 px, 0.23 % over the 6 at 2.5 px. Carried in the adapted scale's
+# sd beside the outline's own offset (edge_look_sd).
+EDGE_LOOK_SD = 4.5e-4
+EDGE_LOOK_SD_WIDE = 2.3e-3
+WIDE_PSF_PX = 1.75      # a PSF sigma above this takes EDGE_LOOK_SD_WIDE
+AGREE_Z = 3.0           # edges and corners disagree beyond this many standard deviations of their difference
+MOVE_Z = 2.0            # a scale is moved only by more than this many of its standard deviations
+
+
+def edge_look_sd(psf_sigma_px: float | None) -> float:
+    """The edge cue's look-dependence at the true pose (EDGE_LOOK_SD; EDGE_LOOK_SD_WIDE above WIDE_PSF_PX)."""
+    return EDGE_LOOK_SD_WIDE if psf_sigma_px is not None and psf_sigma_px > WIDE_PSF_PX else EDGE_LOOK_SD
+
+
+def adapted_scale(params: str, applied: float, edges: dict, cal: dict) -> dict | None:
+    """The apparent scale the adapted weights' error model holds, or None. params 'none' (the network that made
+    the track, unchanged) with the sequence's edge fit: its range was off by (1 + delta) with the scale `applied`
+    undone (the track's bias_scale; 1 when the tracker does not correct it), so the detector's scale on this look
+    is applied / (1 + delta), from every measured station of the sequence (edge_range.sequence_scale). Otherwise
+    (a fine-tuned network, or no sequence fit) the corners' least-squares scale against the corrected labels
+    (recalibrate's apparent_scale; None below SCALE_MIN_FRAMES frames). sd: how far it may be from the truth:
+    the fit's standard error and the outline's own offset (EDGE_OFFSET_PX over the outline's median radius),
+    in quadrature, and with the look's part: the cue's dependence on what the frames leave open of their response
+    (edges' look delta_sd) and its bias at the true pose over the grid of looks (edge_look_sd). Returns
+    {value, se, sd, method}."""
+    seq = edges.get("sequence") or {}
+    radius = edges.get("outline_radius_px")
+    look = edges.get("look") or {}
+    floor = float(np.hypot(EDGE_OFFSET_PX / radius if radius else 0.0,
+                           np.hypot(look.get("delta_sd", 0.0), edge_look_sd(look.get("psf_sigma_px")))))
+    if params == "none" and seq.get("delta") is not None:
+        value, se = applied / (1.0 + seq["delta"]), applied * seq["delta_se"] / (1.0 + seq["delta"]) ** 2
+        return {"value": value, "se": se, "sd": float(np.hypot(se, floor)), "method": "edges"}
+    if cal.get("apparent_scale") is None:
+        return None
+    se = cal["apparent_scale_se"]
+    return {"value": cal["apparent_scale"], "se": se, "sd": float(np.hypot(se, floor)), "method": "corners"}
+
+
+def disagreement(scale: dict, cal: dict) -> str | None:
+    """One line saying why an edges' scale is not adopted, or None: the detector's own corners, measured against
+    the same edge-corrected labels (recalibrate's apparent_scale), are a second reading of the same scale; where
+    the two differ by more than AGREE_Z standard deviations of their difference (the edges' sd, look included,
+    and the corners' standard error), one of them is wrong and neither is evidence. No check without a corners'
+    reading (fewer than SCALE_MIN_FRAMES frames with one) or for the corners' own scale."""
+    corners, se = cal.get("apparent_scale"), cal.get("apparent_scale_se")
+    if scale["method"] != "edges" or corners is None or se is None:
+        return None
+    sd = float(np.hypot(scale["sd"], se))
+    if abs(scale["value"] - corners) <= AGREE_Z * sd:
+        return None
+    return (f"the original scale kept: the edges read the detector's scale as {scale['value']:.5f} +- "
+            f"{scale['sd']:.5f}, its own corners as {corners:.5f} +- {se:.5f} ({abs(scale['value'] - corners) / sd:.1f}"
+            f" sd apart, over {AGREE_Z:g})")
+
+
+def no_evidence(scale: dict, applied: float) -> str | None:
+    """One line saying why a scale is not adopted, or None: a scale within MOVE_Z of its own sd of the one the
+    track undid (`applied`) is no evidence that it should move (an estimated response can leave the edges' scale
+    uncertain by most of a per cent: its look term)."""
+    if abs(scale["value"] - applied) > MOVE_Z * scale["sd"]:
+        return None
+    return (f"the original scale kept: the {scale['method']}' scale {scale['value']:.5f} +- {scale['sd']:.5f} is "
+            f"within {MOVE_Z:g} sd of the one the track undid ({applied:.5f})")
+
+
+def decide_scale(params: str, tcfg: TrackConfig, weights: str, edges: dict, cal: dict) -> dict | None:
+    """The apparent scale the candidate's error model takes (adapted_scale, params: AdaptConfig.params) with that
+    error model as JSON under 'error_model' (the base weights' tcfg.weights, its bias_scale and bias_scale_sd
+    replaced); with 'kept' (one line: disagreement, no_evidence) instead where the evidence does not hold; or
+    None when no label's range was corrected by the edges (edges: track_labels.edge_corrected's record) or no
+    scale was measured. weights: the network that made the labels' track; cal: recalibrate's figures."""
+    from envisat_pose.perception.detect import weights_error_model
+
+    if not any(f != 1.0 for f in edges["range_factor"]):
+        return None
+    tracked = weights_error_model(weights)
+    applied = tracked.bias_scale if tcfg.tracker.noise.correct_scale else 1.0
+    scale = adapted_scale(params, applied, edges, cal)
+    if scale is None:
+        return None
+    reason = disagreement(scale, cal) or no_evidence(scale, applied)
+    if reason is not None:
+        return {**scale, "kept": reason}
+    em = dataclasses.replace(weights_error_model(tcfg.weights), bias_scale=scale["value"],
+                             bias_scale_sd=max(tracked.bias_scale_sd, scale["sd"]))
+    return {**scale, "error_model": em.to_json()}

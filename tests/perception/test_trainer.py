@@ -1,0 +1,104 @@
+"""The Trainer as an extension point, on a small network and the tiny dataset's batches: a Trainer with only a hook
+of its own (no run folder: adapt's fine-tune, a benchmark) trains its steps at the schedule's rates and calls
+before_train once before them; after_train runs on every way out, the batches closed before it and the
+exception named to it; a hook that stops the run before a step is told why, and so are the others."""
+
+import pytest
+import torch
+
+from envisat_pose.perception.data import DataConfig, shard_paths
+from envisat_pose.perception.model import ModelConfig
+from envisat_pose.perception.stream import epoch_batches
+from envisat_pose.perception.train import TrainConfig, Trainer, init_model, lr_at
+from envisat_pose.perception.trainer_hooks import Hook
+
+
+def config(steps):
+    return TrainConfig(steps=steps, batch_size=2, warmup_steps=2, checkpoint_every=10 ** 6,
+                       model=ModelConfig(input_px=128, width=16, depth=2, stem_width=8),
+                       data=DataConfig(input_px=128, augment=False))
+
+
+class Record(Hook):
+    """Every point it is called at, with the trainer's step and rate."""
+
+    def __init__(self, stop_at=None):
+        self.calls, self.stop_at = [], stop_at
+
+    def before_train(self):
+        self.calls.append(("before_train", self.trainer.state["step"]))
+
+    def before_step(self):
+        if self.trainer.state["step"] == self.stop_at:
+            return "enough"
+        return None
+
+    def after_step(self, terms):
+        self.calls.append(("after_step", self.trainer.state["step"], self.trainer.lr, float(terms["loss"])))
+
+    def on_stop(self, reason):
+        self.calls.append(("on_stop", reason))
+
+    def after_train(self):
+        self.calls.append(("after_train", type(self.trainer.error).__name__ if self.trainer.error else None))
+
+
+class Batches:
+    """The tiny dataset's batches of epoch 0 as (batch, {}), closable, counting what was taken."""
+
+    def __init__(self, data_dir, cfg):
+        self.it = iter(list(epoch_batches(shard_paths(data_dir), cfg.data, cfg.seed, 0, cfg.batch_size, 0)))
+        self.closed, self.taken = False, 0
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        self.taken += 1
+        return next(self.it), {}
+
+    def close(self):
+        self.closed = True
+
+
+def trainer(cfg, *hooks):
+    torch.set_num_threads(1)
+    model = init_model(cfg)
+    return Trainer(cfg, model, torch.optim.AdamW(model.parameters(), lr=cfg.lr), dev=torch.device("cpu"),
+                   hooks=list(hooks))
+
+
+def test_a_trainer_with_a_hook_of_its_own_trains_its_steps_at_the_schedules_rates(tiny_dataset):
+    cfg, record = config(3), Record()
+    tr = trainer(cfg, record)
+    batches = Batches(tiny_dataset, cfg)
+    assert tr.run(batches) is None and tr.state["step"] == 3 and tr.run_dir is None
+    assert record.calls[0] == ("before_train", 0) and record.calls[-1] == ("after_train", None)
+    steps = record.calls[1:-1]
+    assert [c[:3] for c in steps] == [("after_step", k + 1, lr_at(cfg, k)) for k in range(3)]
+    assert batches.closed and tr.end_line == {}  # no Metrics: no end line
+
+
+def test_after_train_runs_on_an_error_with_the_batches_closed_and_the_error_named(tiny_dataset):
+    class Fails(Hook):
+        def after_step(self, terms):
+            if self.trainer.state["step"] == 2:
+                raise RuntimeError("a hook failed")
+
+    cfg, record = config(5), Record()
+    tr = trainer(cfg, Fails(), record)
+    batches = Batches(tiny_dataset, cfg)
+    with pytest.raises(RuntimeError, match="a hook failed"):
+        tr.run(batches)
+    assert batches.closed and isinstance(tr.error, RuntimeError)
+    assert record.calls[-1] == ("after_train", "RuntimeError") and tr.state["step"] == 2
+
+
+def test_a_hooks_stop_before_a_step_is_told_to_every_hook(tiny_dataset):
+    cfg = config(5)
+    stopper, other = Record(stop_at=2), type("Other", (Record,), {})()
+    tr = trainer(cfg, stopper, other)
+    assert tr.run(Batches(tiny_dataset, cfg)) == "enough" and tr.state["step"] == 2
+    for hook in (stopper, other):
+        assert [c[0] for c in hook.calls] == ["before_train", "after_step", "after_step", "on_stop", "after_train"]
+        assert ("on_stop", "enough") in hook.calls
