@@ -152,8 +152,9 @@ def campaign_rows(c: dict) -> list[tuple[str, str]]:
     s, t = c["summary"], c["timing"]
     m = s.get("measurement", {})
     noise = f"{m.get('sigma_m')} m" if m.get("kind") == "markers3d" else f"{m.get('sigma_px')} px"
+    markers = "all visible" if m.get("max_markers") is None else f"at most {m['max_markers']}"
     rows = [("scenario", str(s.get("scenario"))), ("runs x steps", f"{s.get('runs')} x {s.get('steps')}"),
-            ("measurements", f"{m.get('kind')}, {noise}, {m.get('rate_hz')} Hz, max {m.get('max_markers')} corners"),
+            ("measurements", f"{m.get('kind')}, {noise}, {m.get('rate_hz')} Hz, {markers} keypoints"),
             ("seed", str(s.get("seed"))), ("statistics after", f"{_fmt(s.get('settle_s'))} s")]
     for b in BLOCKS:
         unit, k = DISPLAY[b]

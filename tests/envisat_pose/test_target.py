@@ -179,20 +179,26 @@ def test_a_keypoint_off_the_surface_and_a_file_without_one_are_refused(tmp_path)
         load_target(_file(tmp_path, "radians", '<compiler angle="radian"/>', 'euler="0 0 90"'))
 
 
-@pytest.mark.parametrize("name", ["envisat", "cubesat_3u", "upper_stage"])
-def test_the_fast_visibility_table_agrees_with_the_exact_ray_casts(name):
-    """The table over 2,048 view directions against the exact ray casts from 200 random positions at 2-8 reaches
-    (seed 3): at most 5 % of the keypoints differ (measured over 400: 1.5 % ENVISAT, 2.5 % CubeSat, 3.3 % upper
-    stage), and a keypoint on the camera's side of a convex target is visible in both."""
+@pytest.mark.parametrize("name", ["cubesat_3u", "upper_stage"])
+@pytest.mark.parametrize("span", [(2.0, 8.0), (8.0, 150.0)])
+def test_the_fast_visibility_table_calls_hidden_only_what_is_hidden(name, span):
+    """The table over 2,048 view directions and four ranges against the exact ray casts from 150 random positions,
+    range log-uniform over the span in reaches (seed 3): at most 1 % of the visible keypoints called hidden (what
+    the filter's check would drop; measured over 400: 0.1-0.4 %), at most 15 % of the hidden ones called visible
+    (measured 9-11 %)."""
     t = load_target(f"models/{name}.xml")
     table = t.visibility_table()
     rng = np.random.default_rng(3)
-    differ = total = 0
-    for _ in range(200):
+    dropped = visible = passed = hidden = 0
+    for _ in range(150):
         d = rng.standard_normal(3)
-        c = d / np.linalg.norm(d) * rng.uniform(2.0, 8.0) * t.reach_m
+        c = d / np.linalg.norm(d) * np.exp(rng.uniform(*np.log(span))) * t.reach_m
         exact, fast = t.visible_from(c), table.lookup(c)
-        differ += int(np.sum(exact != fast))
-        total += len(exact)
-    assert differ / total <= 0.05, (differ, total)
-    assert table.visible.any(axis=0).all(), "every keypoint is seen from some direction"
+        dropped += int(np.sum(exact & ~fast))
+        visible += int(exact.sum())
+        passed += int(np.sum(~exact & fast))
+        hidden += int((~exact).sum())
+    assert dropped / visible <= 0.01, (dropped, visible)
+    assert passed / hidden <= 0.15, (passed, hidden)
+    assert table.visible.any(axis=(0, 1)).all(), "every keypoint is seen from some direction"
+    np.testing.assert_array_equal(table.lookup(np.zeros((2, 5, 3)) + [0, 0, 50]).shape, (2, 5, t.num_keypoints))

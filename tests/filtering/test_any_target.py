@@ -149,6 +149,22 @@ def test_inputs_from_truth_take_all_k_keypoints_and_max_markers_up_to_k(upper_tr
         inputs_from_truth(upper_truth, MeasurementConfig(max_markers=13), P0, seed=1, n_runs=1)
 
 
+@pytest.mark.parametrize("scenario", ["default", "paper-all-0.02", "paper-all-0.2", "paper-3markers-0.02"])
+def test_the_paper_cases_measure_a_targets_keypoints_not_envisats_eight(upper_truth, scenario):
+    """The seed paper's "all visible markers" cases (and the default scenario) set no max_markers: every visible
+    keypoint of the target, up to its K = 12 (more than 8 at some steps of this truth); the sparse case keeps 3."""
+    from envisat_pose.pipelines.campaigns.estimate import EstimateConfig
+
+    mcfg = EstimateConfig(scenario=scenario).measurement
+    inp = inputs_from_truth(upper_truth, mcfg, FilterConfig().P0, seed=1, n_runs=1)
+    if scenario == "paper-3markers-0.02":
+        assert mcfg.max_markers == 3 and inp.mask.sum(-1).max() == 3
+    else:
+        assert mcfg.max_markers is None
+        np.testing.assert_array_equal(inp.mask[0], upper_truth.visible)
+        assert upper_truth.visible.sum(-1).max() > 8
+
+
 # ---------------------------------------------------------------- (c) the measurement model, independently
 
 def _passive_dcm_from_mrp(p):
