@@ -23,12 +23,12 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import add_common
+from envisat_pose.app.common import add_common, add_skip_damaged_argument, skipped_line
 from envisat_pose.app.detect import detector_inputs
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.out_dirs import check_out_file
-from envisat_pose.pipelines.common.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 from envisat_pose.pipelines.detector.calibrate import CalibrateJobConfig, fit_face_cue, run_calibration
+from envisat_pose.shard_reader import skip_hint
 
 
 def register(sub: argparse._SubParsersAction) -> None:

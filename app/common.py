@@ -1,5 +1,6 @@
 """What the verbs share: the common flags (--out, --config, --weights, --seed, --quiet; the recording's --spawn and
---connect) and the mapping of a library error's argument names onto a verb's flags.
+--connect; a dataset's --skip-damaged and the line naming what it left out) and the mapping of a library error's
+argument names onto a verb's flags.
 
 The library names its arguments and config fields in its errors ('out_dir ...', 'weights ...', '`rate_hz`'); a
 verb lists which of them are its flags (`flag_names`, set on the parser with set_defaults) and the command line
@@ -47,6 +48,19 @@ def add_recording_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--spawn", action="store_true", help="stream the recording to a new local Rerun viewer")
     g.add_argument("--connect", metavar="URL", help="stream the recording to a running viewer "
                    "(e.g. rerun+http://127.0.0.1:9876/proxy) instead of RUN_DIR/recording.rrd")
+
+
+def add_skip_damaged_argument(p: argparse.ArgumentParser) -> None:
+    """--skip-damaged, the same on every verb that reads a generated dataset (the check: shard_reader.checked_shards;
+    its error's hint, shard_reader.skip_hint, names the flag through EVERY_VERB)."""
+    p.add_argument("--skip-damaged", action="store_true",
+                   help="go on without the shards that do not match the dataset's manifest.json (size, sha256, "
+                   "samples), naming them (default: a damaged shard stops the run before any output)")
+
+
+def skipped_line(skipped: list[str]) -> str:
+    """The line a verb prints about the damaged shards --skip-damaged left out ('' when none)."""
+    return f"skipped {len(skipped)} damaged shard(s): {', '.join(skipped)}" if skipped else ""
 
 
 def recording_sink(args: argparse.Namespace) -> str | None:

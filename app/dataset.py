@@ -7,12 +7,11 @@ import argparse
 import json
 import os
 
-from envisat_pose.app.common import add_common, check_rrd_output
+from envisat_pose.app.common import add_common, add_skip_damaged_argument, check_rrd_output, skipped_line
 from envisat_pose.datagen.appearance import takes_class_looks
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
-from envisat_pose.pipelines.common.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
-from envisat_pose.shard_reader import checked_shards
+from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, skip_hint
 from envisat_pose.target import DEFAULT_TARGET, load_target
 
 
@@ -65,13 +64,13 @@ def run_verify_cli(args: argparse.Namespace) -> int:
 
 
 def run_inspect_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.datagen.dataset import dataset_stats, load_manifest, montage
+    from envisat_pose.datagen.dataset import dataset_stats, montage
 
     path = args.montage or os.path.join(args.dir, "montage.png")
     check_out_file(path, "--montage")
     if args.rrd:
         check_rrd_output(args.rrd)
-    manifest = load_manifest(args.dir)
+    manifest = load_dataset_manifest(args.dir)
     with skip_hint():
         shards, skipped = checked_shards(args.dir, args.skip_damaged, "dataset")
     stats = dataset_stats(shards)

@@ -13,6 +13,7 @@ from envisat_pose.filtering.estimator import nees
 from envisat_pose.out_dirs import check_out_file
 from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, estimate_output_paths
 from envisat_pose.pipelines.campaigns.estimate import run_estimate as run_pipeline
+from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.state import error_summary
 
 # the library's argument names -> this verb's flags (app/common.as_flags)
@@ -60,8 +61,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def resolve_config(args: argparse.Namespace) -> EstimateConfig:
-    """The named scenario's [measurement] and [filter] tables (with --scenario; EstimateConfig.from_scenario),
-    then the file, then the flags; validated before any work. Unknown scenario names fail with the known ones."""
+    """The named scenario's [measurement] and [filter] tables (with --scenario; pipelines.jobs.resolve_job), then
+    the file, then the flags; validated before any work. Unknown scenario names fail with the known ones."""
     flags = {
         "measurement.kind": args.measurements,
         "measurement.sigma_m": args.sigma_m,
@@ -77,7 +78,7 @@ def resolve_config(args: argparse.Namespace) -> EstimateConfig:
         "runs": args.runs,
         "seed": args.seed,
     }
-    return EstimateConfig.from_scenario(args.scenario, args.config, flags)
+    return resolve_job("estimate", args.scenario, args.config, flags)
 
 
 def summary(arrays: dict) -> str:

@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import add_common
+from envisat_pose.app.common import add_common, add_skip_damaged_argument, skipped_line
 from envisat_pose.app.detect import detector_inputs
 from envisat_pose.out_dirs import check_out_file
-from envisat_pose.pipelines.common.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 from envisat_pose.pipelines.detector.detect import camera_samples, read_roi
 from envisat_pose.pipelines.detector.evaluate import evaluate_detector, groups_table, read_poses
-from envisat_pose.shard_reader import checked_shards
+from envisat_pose.shard_reader import checked_shards, skip_hint
 from envisat_pose.target import require_envisat_dataset
 
 

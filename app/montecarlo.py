@@ -15,6 +15,7 @@ from envisat_pose.config import InputError, check
 from envisat_pose.out_dirs import make_out_file_dirs
 from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, run_campaign, write_recording
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE, run_sweep, sweep_for
+from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
 
 
@@ -51,7 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
-    """The scenario's campaign (MonteCarloConfig.from_scenario: its duration, [measurement] and [filter] tables and
+    """The scenario's campaign (pipelines.jobs.resolve_job: its duration, [measurement] and [filter] tables and
     [eclipse] outages), then the file, then the flags; validated before any work."""
     flags = {
         "runs": args.runs, "seed": args.seed, "duration_s": args.duration_s, "target": args.target,
@@ -59,7 +60,7 @@ def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
         "measurement.kind": args.measurements, "measurement.sigma_m": args.sigma_m,
         "measurement.sigma_px": args.sigma_px, "measurement.max_markers": args.max_markers,
         "measurement.rate_hz": args.rate_hz}
-    return MonteCarloConfig.from_scenario(args.scenario, args.config, flags)
+    return resolve_job("montecarlo", args.scenario, args.config, flags)
 
 
 def runner_config(args: argparse.Namespace):

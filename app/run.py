@@ -45,14 +45,14 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def resolve_config(args: argparse.Namespace):
-    """The scenario's job (RunConfig.from_scenario: its [filter] table, duration and rate), then --config, then
-    the flags; validated before any work."""
-    from envisat_pose.pipelines.runs.run_config import RunConfig
+    """The scenario's job (pipelines.jobs.resolve_job: its [filter] table, duration and rate), then --config,
+    then the flags; validated before any work."""
+    from envisat_pose.pipelines.jobs import resolve_job
 
     flags = {"duration_s": args.duration_s, "runs": args.runs, "seed": args.seed, "weights": args.weights,
              "workers": args.workers, "warm_start": True if args.warm_start else None,
              "tracker.roi.enabled": False if args.no_roi else None}
-    return RunConfig.from_scenario(args.scenario, args.config, flags)
+    return resolve_job("run", args.scenario, args.config, flags)
 
 
 def print_table(summary: dict) -> None:

@@ -1,6 +1,6 @@
 """`envisat scenarios`: the named scenarios with their one-line descriptions (scenarios/NAME.toml, read by
 envisat_pose.named_scenarios). What a job takes from one is the library's: pipelines/jobs.py (resolve_job),
-pipelines/common/job_defaults.py (scenario_defaults; each config's from_scenario)."""
+pipelines/common/job_defaults.py (scenario_defaults; each job config's constructor fills itself from it)."""
 
 from __future__ import annotations
 

@@ -5,12 +5,19 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import add_common, add_frame_inputs, add_recording_arguments, recording_sink
+from envisat_pose.app.common import (
+    add_common,
+    add_frame_inputs,
+    add_recording_arguments,
+    add_skip_damaged_argument,
+    recording_sink,
+    skipped_line,
+)
 from envisat_pose.app.run import print_table
 from envisat_pose.out_dirs import check_out_dir
-from envisat_pose.pipelines.common.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 from envisat_pose.pipelines.runs.frames import open_source
 from envisat_pose.pipelines.runs.outputs import status_line
+from envisat_pose.shard_reader import skip_hint
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -40,13 +47,14 @@ FLAGS = {"src": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps"
 
 
 def track_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.pipelines.runs.track import TrackConfig, track_frames
+    from envisat_pose.pipelines.jobs import resolve_job
+    from envisat_pose.pipelines.runs.track import track_frames
 
     check_out_dir(args.out)
     with skip_hint():
         source = open_source(args.images, args.rate_hz or 0.0, args.timestamps, args.bit_depth, args.skip_damaged)
-    cfg = TrackConfig.from_scenario(args.scenario or source.scenario or "default", args.config,
-                                    rate_hz=args.rate_hz, weights=args.weights)
+    cfg = resolve_job("track", args.scenario or source.scenario or "default", args.config,
+                      rate_hz=args.rate_hz, weights=args.weights)
     sink = recording_sink(args)
     summary = track_frames(cfg, source, args.camera, None, args.out, sink, progress=not args.quiet)
     w, h = summary["source"]["size_px"]

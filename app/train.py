@@ -8,10 +8,9 @@ import os
 import shlex
 import sys
 
-from envisat_pose.app.common import add_common, as_flags
+from envisat_pose.app.common import add_common, add_skip_damaged_argument, as_flags, skipped_line
 from envisat_pose.config import ConfigError, InputError, resolve_job_config
 from envisat_pose.datagen.generate_config import GenerateConfig
-from envisat_pose.pipelines.common.dataset_inputs import add_skip_damaged_argument, skip_hint, skipped_line
 from envisat_pose.pipelines.detector.look_mix import read_looks
 from envisat_pose.pipelines.detector.train import (
     OnlineConfig,
@@ -20,6 +19,7 @@ from envisat_pose.pipelines.detector.train import (
     read_run_record,
     train_detector,
 )
+from envisat_pose.shard_reader import skip_hint
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -5,7 +5,7 @@ A trial holds the chaser range_m ahead on V-bar in a named scenario's orbit (the
 226 s, default = ENVISAT's 134.74 s, stress-tumble 72 s spin period), with the target's initial attitude uniform on
 SO(3), its tumble axis uniform on the sphere (in the body frame T) and a sun uniform over those lighting every frame
 within a 90 deg phase angle out of the Earth's shadow (pipelines/runs/trials.py); the run config is resolved as `envisat
-run --scenario RATE_SCENARIO` resolves it (RunConfig.from_scenario) with the trial's seed,
+run --scenario RATE_SCENARIO` resolves it (pipelines.jobs.resolve_job) with the trial's seed,
 duration and sun; the truth is the scenario's with the trial's range, axis and attitude (trials.trial_truth_config,
 the keep-out checked when it is simulated); the loop is the closed loop's own run task (closed_loop.closed_loop_task)
 from a cold start for --duration-s of frames (all lit: time counts from the first frame). Scored with
@@ -64,7 +64,7 @@ def draw_trial(ss: np.random.SeedSequence, range_m: float, rate: str, duration_s
     (`envisat run --config`)."""
     from envisat_pose.config import to_dict
     from envisat_pose.datagen.scenario import scenario_config
-    from envisat_pose.pipelines.runs.run_config import RunConfig
+    from envisat_pose.pipelines.jobs import resolve_job
     from envisat_pose.pipelines.runs.trials import draw_lit_sun_N, random_attitude_mrp, unit_vector
 
     scenario = RATES[rate]
@@ -74,11 +74,11 @@ def draw_trial(ss: np.random.SeedSequence, range_m: float, rate: str, duration_s
     p0 = random_attitude_mrp(rng)
     axis = unit_vector(rng)
     flags = {"seed": run_seed, "runs": 1, "workers": 1, "weights": weights, "duration_s": duration_s}
-    cfg = RunConfig.from_scenario(scenario, config_path, flags)
+    cfg = resolve_job("run", scenario, config_path, flags)
     t_s = np.arange(int(np.floor(cfg.duration_s * cfg.rate_hz + 1e-9)) + 1) / cfg.rate_hz
     sun = draw_lit_sun_N(scenario_config(scenario).orbit, t_s, (0.0, range_m, 0.0), rng, phase_max_deg)
     flags["image.sun_dir"] = list(sun)
-    cfg = RunConfig.from_scenario(scenario, config_path, flags)
+    cfg = resolve_job("run", scenario, config_path, flags)
     return {"scenario": scenario, "range_m": range_m, "rate": rate, "run_seed": run_seed,
             "p0_mrp": [float(v) for v in p0], "spin_axis_T": [float(v) for v in axis], "sun_dir_N": list(sun),
             "cfg_json": json.dumps(to_dict(cfg), sort_keys=True)}

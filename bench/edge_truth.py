@@ -55,7 +55,7 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, stride: int,
     if not os.path.exists(os.path.join(foreign, "truth.npz")):
         foreign_frames.make_sequence(foreign, scenario, seed, n, res, progress=False)
     src = open_source(os.path.join(foreign, "frames"), timestamps=os.path.join(foreign, "timestamps.csv"))
-    _, source, camera, remap, _ = prepare_frames(TrackConfig.from_scenario(scenario), src,
+    _, source, camera, remap, _ = prepare_frames(TrackConfig(scenario=scenario), src,
                                                  os.path.join(foreign, "camera.toml"))
     with np.load(os.path.join(foreign, "truth.npz")) as tr:
         x = tr["x"].reshape(-1, 12)
@@ -100,7 +100,9 @@ def own_clean(scenario: str, seed: int, res: int, n: int, work: str) -> str:
     import subprocess
 
     out = os.path.join(work, f"{scenario}-{seed}-{res}-{n}", "own-clean")
-    if not os.path.exists(os.path.join(out, "manifest.json")):
+    from envisat_pose.resumable import manifest_path
+
+    if not os.path.exists(manifest_path(out)):
         os.makedirs(os.path.dirname(out), exist_ok=True)
         toml = out + ".toml"
         with open(toml, "w") as fh:

@@ -5,7 +5,7 @@ Measured per job: the process's peak resident set (getrusage's ru_maxrss of the 
 over a short baseline job of the same settings (BASE_FRAMES frames, at any rate: what the process needs whatever
 the run's length: Python, torch, MuJoCo, the detector, Rerun), the job's wall time and frames, and inside the loop the
 process's resident set every --trace-every frames (the child runs `envisat run`'s job in-process,
-RunConfig.from_scenario then run_closed_loop, with the tracker's step wrapped to read /proc/self/statm: Linux): its
+pipelines.jobs.resolve_job then run_closed_loop, with the tracker's step wrapped to read /proc/self/statm: Linux): its
 growth from the first sample to the last, per 1000 frames and per 1000 lit frames (frames with an image; in the
 Earth's shadow a frame is only the filter's prediction). That in-loop slope is what tells growth apart; fresh processes' peaks differ by tens of MiB (a
 301-frame job peaked 5 MiB below the 21-frame baseline). Beside it the peer: the bytes that holding every frame
@@ -49,7 +49,7 @@ BASE_FRAMES = 21  # the baseline job's frames (20 s at 1 Hz)
 
 
 # the child: the job of `envisat run --scenario default --duration-s D --config C --out O` (the pipeline the verb
-# calls, resolved as the verb resolves it: RunConfig.from_scenario) in this Python, Tracker.step wrapped to sample the resident set every
+# calls, resolved as the verb resolves it: pipelines.jobs.resolve_job) in this Python, Tracker.step wrapped to sample the resident set every
 # BENCH_TRACE_EVERY frames
 CHILD = """
 import json, os, sys
@@ -71,11 +71,11 @@ def traced(self, t_s, image):
 
 
 tracker.Tracker.step = traced
+from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.pipelines.runs.closed_loop import run_closed_loop
-from envisat_pose.pipelines.runs.run_config import RunConfig
 
 duration_s, config, out_dir = float(sys.argv[1]), sys.argv[2], sys.argv[3]
-run_closed_loop(RunConfig.from_scenario("default", config, duration_s=duration_s), out_dir, progress=False)
+run_closed_loop(resolve_job("run", "default", config, duration_s=duration_s), out_dir, progress=False)
 with open(os.environ["BENCH_TRACE"], "w") as fh:
     json.dump(rows, fh)
 """

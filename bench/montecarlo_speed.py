@@ -72,12 +72,13 @@ def time_campaign(runs: int, duration_s: float, workers: int, block_runs: int, o
                   kernel: str | None = None) -> dict:
     """Run the campaign once through the pipeline's run_campaign (envisat_pose.pipelines.campaigns.campaign); wall time,
     memory, summary. kernel: the filter kernel (None: the default, as `envisat montecarlo` runs it)."""
-    from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig, run_campaign
+    from envisat_pose.pipelines.campaigns.campaign import run_campaign
+    from envisat_pose.pipelines.jobs import resolve_job
     from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
 
     # as `envisat montecarlo --scenario default` builds it: the scenario's [measurement] and [filter] tables
-    cfg = MonteCarloConfig.from_scenario("default", overrides={"filter.kernel": kernel}, duration_s=duration_s,
-                                         runs=runs, seed=0, block_runs=block_runs)
+    cfg = resolve_job("montecarlo", "default", overrides={"filter.kernel": kernel}, duration_s=duration_s,
+                      runs=runs, seed=0, block_runs=block_runs)
     runner = RunnerConfig("local", workers, None, thread_env(workers, BLAS_THREADS))
     t0 = time.perf_counter()
     cpu0 = _cpu_s()

@@ -36,12 +36,12 @@ CORRECT_PX = 10.0  # a detected corner within this of the truth counts as correc
 def closed_loop(weights: str, duration_s: float, roi: bool, seed: int, out_dir: str, cores: int) -> tuple[dict, object]:
     """`envisat run --warm-start` (the tracker handed run 0's draw from P0, so the ideal-pixel filter below starts
     from the same estimate)."""
+    from envisat_pose.pipelines.jobs import resolve_job
     from envisat_pose.pipelines.runs import closed_loop as loop
-    from envisat_pose.pipelines.runs.run_config import RunConfig
 
-    cfg = RunConfig.from_scenario("default", overrides={"duration_s": duration_s, "weights": weights, "seed": seed,
-                                                        "workers": 1, "threads": cores, "warm_start": True,
-                                                        "tracker.roi.enabled": roi})
+    cfg = resolve_job("run", "default", overrides={"duration_s": duration_s, "weights": weights, "seed": seed,
+                                                   "workers": 1, "threads": cores, "warm_start": True,
+                                                   "tracker.roi.enabled": roi})
     t0 = time.perf_counter()
     summary = loop.run_closed_loop(cfg, out_dir, progress=False)
     summary["bench_wall_s"] = time.perf_counter() - t0

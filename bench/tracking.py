@@ -3,7 +3,7 @@ Tracker started with no prior) over several seeds per scenario, each seed its ow
 and random lit sun, scored against the truth so that a failure shows (pipelines/runs/scoring.py).
 
 Each (scenario, seed) is one closed loop resolved as `envisat run --scenario S --seed N` resolves it
-(RunConfig.from_scenario: the scenario's duration, rate and filter table) with the
+(pipelines.jobs.resolve_job: the scenario's duration, rate and filter table) with the
 seed's lit sun (pipelines.trials.scenario_sun_N: uniform over the suns that light the whole run within a 90 deg
 phase angle, out of the Earth's shadow; the eclipse scenario keeps its own sun, whose shadow is the case). The
 simulated tracker is handed the chaser's exact orbit and the render camera: a mission would know neither exactly.
@@ -47,15 +47,15 @@ def run_config(scenario: str, seed: int, weights: str, duration_s: float | None,
                sun_phase_max_deg: float, config_path: str | None = None):
     """The closed loop of (scenario, seed) as `envisat run --config config_path` resolves it, with the seed's lit
     sun."""
-    from envisat_pose.pipelines.runs.run_config import RunConfig
+    from envisat_pose.pipelines.jobs import resolve_job
     from envisat_pose.pipelines.runs.trials import scenario_sun_N
 
     flags = {"seed": seed, "runs": 1, "workers": 1, "weights": weights, "duration_s": duration_s,
              "tracker.noise.correlation_in": correlation_in}
-    cfg = RunConfig.from_scenario(scenario, config_path, flags)
+    cfg = resolve_job("run", scenario, config_path, flags)
     sun = scenario_sun_N(scenario, cfg.duration_s, cfg.rate_hz, seed, sun_phase_max_deg)
     if sun is not None:
-        cfg = RunConfig.from_scenario(scenario, config_path, flags | {"image.sun_dir": list(sun)})
+        cfg = resolve_job("run", scenario, config_path, flags | {"image.sun_dir": list(sun)})
     return cfg
 
 

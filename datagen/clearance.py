@@ -16,7 +16,7 @@ import numpy as np
 from envisat_pose.attitude import mrp_to_dcm, quat_to_rotmat
 from envisat_pose.config import ConfigError
 from envisat_pose.datagen.target_scene import scene_xml
-from envisat_pose.geometry import model_path
+from envisat_pose.geometry import CORNER_NAMES, model_path
 from envisat_pose.state import MRP, POS, RATE, VEL
 from envisat_pose.target import load_target
 
@@ -61,7 +61,7 @@ def target_boxes(model) -> TargetBoxes:
     aabb = np.array([model.geom_aabb[g] for g in geoms])  # centre (3) and half sizes (3), geom frame
     centre = np.array([model.geom_pos[g] for g in geoms]) + np.einsum("gij,gj->gi", R_geom, aabb[:, :3])
     try:
-        sites = np.array([model.site_pos[model.site(f"corner_{c}").id] for c in "ABCDEFGH"])
+        sites = np.array([model.site_pos[model.site(f"corner_{c}").id] for c in CORNER_NAMES])
     except KeyError:  # a target without corner_ sites: its own geoms only
         return TargetBoxes(names[:-1], centre, R_geom, aabb[:, 3:].copy())
     lo, hi = sites.min(axis=0), sites.max(axis=0)

@@ -15,10 +15,10 @@ import cv2
 import numpy as np
 
 from envisat_pose.config import ConfigError
+from envisat_pose.contracts import SEVERITIES
 from envisat_pose.datagen.image_kernels import content_box, motion_kernel, standard_normal_fast
 from envisat_pose.datagen.sensor import apply_sensor
 
-SEVERITIES = ("none", "low", "medium", "high")
 KINDS = ("exposure", "motion_blur", "gaussian_blur", "shot_noise", "gaussian_noise")
 
 # Per level 0..3. Gaussian noise: sigma in grey levels. Gaussian blur: sigma in px at 1024 px. Shot noise:
@@ -52,9 +52,10 @@ def check_severities(model: str, severities: dict[str, str], prefix: str = "corr
 
     if model != "sensor" or corruption_off(severities):
         return
+    p = f"{prefix}." if prefix else ""
     for k in KINDS:
         if severities[k] != "mixed":
-            raise ConfigError(f"{prefix}.{k}", severities[k],
+            raise ConfigError(f"{p}{k}", severities[k],
                               "'mixed' with model = 'sensor': the severities " + ", ".join(KINDS) + " are "
                               "honoured by model = 'paper'; 'sensor' takes [corruption.sensor] ranges and "
                               "honours only all five 'none' (uncorrupted frames)")

@@ -10,44 +10,31 @@ import numpy as np
 
 from envisat_pose.config import InputError
 from envisat_pose.datagen.corrupt import apply_corruption
-from envisat_pose.datagen.shards import check_shard, decode_png, encode_png, read_manifest, shard_name
+from envisat_pose.datagen.shards import decode_png, encode_png, shard_name
 from envisat_pose.geometry import CORNER_NAMES, EDGES
 from envisat_pose.io import atomic_path
-from envisat_pose.shard_reader import checked_shards, read_shard
-
-
-def load_manifest(out_dir: str) -> dict:
-    """The manifest of a dataset folder; InputError when the folder or its manifest is missing or malformed."""
-    if not os.path.isdir(out_dir):
-        raise InputError(f"dataset folder {out_dir!r} does not exist")
-    try:
-        manifest = read_manifest(out_dir)
-    except (ValueError, OSError) as err:
-        raise InputError(f"{out_dir!r}: manifest.json is unreadable ({err})") from None
-    if manifest is None:
-        raise InputError(f"{out_dir!r} has no manifest.json: not a generated dataset")
-    return manifest
+from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, read_shard, shard_problems
 
 
 def verify_dataset(out_dir: str) -> list[str]:
-    """Problems of a dataset, one line each (empty: every shard present, complete and matching its sha256)."""
-    manifest = load_manifest(out_dir)
-    problems = []
+    """Problems of a dataset, one line each (empty: every shard present and matching its manifest entry by the
+    core's one shard check, shard_reader.shard_problem: size, sha256, samples)."""
+    manifest = load_dataset_manifest(out_dir)
+    found = {}  # shard name: its problem
     listed = {e["name"]: e for e in manifest["shards"]}
-    n_shards = int(manifest.get("num_shards", len(listed)))
-    for idx in range(n_shards):
-        name = shard_name(idx)
-        entry = listed.get(name)
-        if entry is None:
+    names = [shard_name(idx) for idx in range(int(manifest.get("num_shards", len(listed))))]
+    for name in names:
+        if name not in listed:
             what = "not finished" if os.path.exists(os.path.join(out_dir, name)) else "missing"
-            problems.append(f"{name}: {what} (not in the manifest)")
-            continue
-        issue = check_shard(os.path.join(out_dir, name), entry["sha256"], entry["count"])
+            found[name] = f"{name}: {what} (not in the manifest)"
+    entries = [listed[n] for n in names if n in listed]
+    for entry, issue in zip(entries, shard_problems(out_dir, entries)):
         if issue:
-            problems.append(f"{name}: {issue}")
+            found[entry["name"]] = f"{entry['name']}: {issue}"
+    problems = [found[n] for n in names if n in found]
     for tmp in sorted(glob.glob(os.path.join(out_dir, ".tmp-*"))):
         problems.append(f"{os.path.basename(tmp)}: partial file of an interrupted run")
-    total = sum(e["count"] for e in manifest["shards"])
+    total = sum(e.get("count", 0) for e in manifest["shards"])
     if not manifest.get("complete") and not problems:
         problems.append("manifest marked incomplete")
     if manifest.get("complete") and total != manifest.get("num_images"):
@@ -59,7 +46,7 @@ def dataset_shards(source: str | list[str]) -> list[str]:
     """The shard files of source: a dataset folder (its manifest's shards, checked against it: the core's
     checked_shards; a damaged one is one InputError) or a list of shard files already checked."""
     if isinstance(source, str):
-        load_manifest(source)
+        load_dataset_manifest(source)
         return checked_shards(source, False, "dataset")[0]
     return list(source)
 

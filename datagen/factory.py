@@ -33,6 +33,7 @@ from envisat_pose.io import atomic_write_text, sha256_file
 from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pools import RunnerConfig, cpu_share, thread_env
 from envisat_pose.resumable import ResumableJob
+from envisat_pose.shard_reader import shard_problem
 from envisat_pose.state import MRP, POS, RATE, VEL
 from envisat_pose.target import load_target
 
@@ -324,9 +325,10 @@ def check_sequence_depth(cfg: GenerateConfig) -> None:
 
 def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
     """The dataset in out_dir as the core's resumable job: one unit per shard, the config and root seed as its
-    identity, a shard kept on resume only when its sha256 matches and its tar holds the recorded count."""
+    identity, a shard kept on resume only when it passes the core's one shard check against its entry
+    (shard_reader.shard_problem: size, sha256, the recorded count of complete samples)."""
     from envisat_pose.datagen.render import target_mask_values
-    from envisat_pose.datagen.shards import check_shard, shard_name
+    from envisat_pose.datagen.shards import shard_name
 
     target = load_target(cfg.target)
     masks = target_mask_values(target)
@@ -337,7 +339,7 @@ def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
                 "mask_values": {"background": 0, **masks},
                 "members": ["png", "json"] + (["mask.png"] if cfg.write_mask else [])
                 + (["depth.png"] if cfg.write_depth else [])},
-        verify_unit=lambda entry, path: check_shard(path, None, entry["count"]) is None)
+        verify_unit=lambda entry, path: shard_problem(path, entry) is None)
 
 
 def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: str = "local",

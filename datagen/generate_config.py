@@ -6,6 +6,7 @@ config_from_json)."""
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass, field, fields, replace
@@ -14,11 +15,11 @@ from typing import Literal
 import numpy as np
 
 from envisat_pose.camera_response import parse_response
-from envisat_pose.config import ConfigError, check, from_dict, to_dict
+from envisat_pose.config import Config, ConfigError, check, from_dict, to_dict
 from envisat_pose.datagen.appearance import CLASSES
 from envisat_pose.datagen.clearance import target_file_boxes
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
-from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_config
+from envisat_pose.datagen.scenario import EARTH_RADIUS_M, ScenarioConfig, scenario_dict
 from envisat_pose.datagen.target_scene import scene_clip_planes_m, size_ratio
 from envisat_pose.geometry import load_camera
 from envisat_pose.target import DEFAULT_TARGET, load_target
@@ -51,7 +52,7 @@ def target_span_px(reach_m: float, range_m: float, f_px: float) -> float:
 
 
 @dataclass(frozen=True)
-class SensorConfig:
+class SensorConfig(Config):
     """The space camera (datagen/sensor.py): ranges [low, high] drawn per image, fixed camera properties.
 
     exposure_s: exposure time, s. full_well_e: full-well capacity, electrons. white_fill: the share of the full
@@ -99,7 +100,7 @@ class SensorConfig:
 
 
 @dataclass(frozen=True)
-class CorruptionConfig:
+class CorruptionConfig(Config):
     """model 'sensor': the space camera (sensor table); 'paper': the paper's Gaussian noise and blur as
     severities per kind: none, low, medium, high, or mixed (a level drawn per image)."""
 
@@ -114,11 +115,11 @@ class CorruptionConfig:
     def validate(self, prefix: str = "") -> None:
         from envisat_pose.datagen.corrupt import KINDS, check_severities
 
-        check_severities(self.model, {k: getattr(self, k) for k in KINDS}, prefix or "corruption")
+        check_severities(self.model, {k: getattr(self, k) for k in KINDS}, prefix)
 
 
 @dataclass(frozen=True)
-class AppearanceConfig:
+class AppearanceConfig(Config):
     """Per-image materials within each face's covering class (datagen/appearance.py). enabled: None means on
     in random mode, off in sequence mode. texture_set_size: textures per class. texture_seed: the texture set.
     seed: the appearance draws' own seed (mixed with each sample's): another seed, other looks, same poses.
@@ -150,7 +151,7 @@ class AppearanceConfig:
 
 
 @dataclass(frozen=True)
-class LightingConfig:
+class LightingConfig(Config):
     """sun_intensity: range of the sun light's diffuse intensity (MuJoCo units; 1.2 is the MJCF's).
     earthshine: a light from the nadir side, intensity = sun x albedo x view_factor x the lit fraction of the
     Earth's disc seen from the target, (1 - sun . nadir) / 2; none in eclipse (the night side)."""
@@ -168,7 +169,7 @@ class LightingConfig:
 
 
 @dataclass(frozen=True)
-class RandomModeConfig:
+class RandomModeConfig(Config):
     """Random mode's view draws (table [random]; unused in sequence mode).
 
     range_min_m/range_max_m: target range, m; keepout_margin_m: least distance of the camera from any part of the
@@ -218,7 +219,7 @@ class RandomModeConfig:
 
 
 @dataclass(frozen=True)
-class SequenceModeConfig:
+class SequenceModeConfig(Config):
     """Sequence mode's truth (table [sequence]; unused in random mode): scenario, the named truth scenario whose
     simulation the frames show; frame_dt_s, the interval between frames, s."""
 
@@ -237,7 +238,7 @@ MOVED_KEYS = {**{f.name: f"random.{f.name}" for f in fields(RandomModeConfig)},
 
 
 @dataclass(frozen=True)
-class GenerateConfig:
+class GenerateConfig(Config):
     """What `envisat generate` makes.
 
     mode: 'random' (domain-randomized views, drawn by the [random] table) or 'sequence' (frames of a simulated
@@ -282,13 +283,21 @@ class GenerateConfig:
         defaults (sized_random_m of target_scene.size_ratio: ENVISAT's own numbers for ENVISAT). A target that
         cannot be read leaves them unset: validate names the target."""
         unset = [name for name in ENVISAT_RANDOM_M if getattr(self.random, name) is None]
-        if not unset:
-            return
+        sized = self._sized_random_m() if unset else None
+        if sized is not None:
+            try:
+                filled = replace(self.random, **{name: sized[name] for name in unset})
+            except ConfigError as err:  # a given range against a sized one: named in its table
+                raise ConfigError(f"random.{err.field}", err.value, err.expected) from None
+            object.__setattr__(self, "random", filled)
+        super().__post_init__()
+
+    def _sized_random_m(self) -> dict[str, float] | None:
+        """sized_random_m of the target's size; None for a target that cannot be read (validate names it)."""
         try:
-            sized = sized_random_m(size_ratio(load_target(self.target)))
+            return sized_random_m(size_ratio(load_target(self.target)))
         except ConfigError:
-            return
-        object.__setattr__(self, "random", replace(self.random, **{name: sized[name] for name in unset}))
+            return None
 
     @property
     def appearance_on(self) -> bool:
@@ -330,7 +339,7 @@ class GenerateConfig:
         """ConfigError naming sequence.scenario (an unknown name, too) when the scenario's first frame shows the
         target fewer than MIN_SEQUENCE_TARGET_SPAN_PX across (target_span_px of its reach at |relative.rho0_C_m|):
         the scenario's orbit is its own, so the fix is a larger resolution_px or a nearer scenario."""
-        range_m = float(np.linalg.norm(scenario_config(self.sequence.scenario).relative.rho0_C_m))
+        range_m = _start_range_m(json.dumps(scenario_dict(self.sequence.scenario), sort_keys=True))
         reach_m = load_target(self.target).reach_m
         f_px = float(load_camera().scaled(self.resolution_px, self.resolution_px).K[0, 0])
         span_px = target_span_px(reach_m, range_m, f_px)
@@ -351,6 +360,13 @@ class GenerateConfig:
     def shard_count(self, index: int) -> int:
         """Number of samples in shard `index` (the last one may be short)."""
         return min(self.shard_size, self.num_images - index * self.shard_size)
+
+
+@functools.lru_cache(maxsize=16)
+def _start_range_m(truth_json: str) -> float:
+    """|relative.rho0_C_m|, m, of the validated scenario whose truth part (scenario_dict) is the JSON text
+    truth_json: cached by that text, since every build of a sequence-mode config checks it (a run's, twice)."""
+    return float(np.linalg.norm(from_dict(ScenarioConfig, json.loads(truth_json)).relative.rho0_C_m))
 
 
 def nest_moved_keys(data: dict) -> dict:

@@ -54,10 +54,9 @@ from envisat_pose.datagen.earth import (  # noqa: E402
 )
 from envisat_pose.datagen.scenario import EARTH_RADIUS_M  # noqa: E402
 from envisat_pose.datagen.target_scene import scene_xml, target_scene  # noqa: E402
-from envisat_pose.geometry import model_path  # noqa: E402
+from envisat_pose.geometry import CAMERA_NAME, model_path  # noqa: E402
 from envisat_pose.target import DEFAULT_TARGET, Target, load_target  # noqa: E402
 
-CAMERA_NAME = "chaser_cam"
 # Mask values: 0 background (and the Earth), 1-6 the faces in geometry.FACE_NAMES order, 7 the solar array
 # (its boom included: the contract has one value per face and one for the array).
 MASK_VALUES = {"face_px": 1, "face_mx": 2, "face_py": 3, "face_my": 4, "face_pz": 5, "face_mz": 6, "array": 7, "boom": 7,

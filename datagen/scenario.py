@@ -1,8 +1,8 @@
 """The truth scenario: the chaser's orbit, the target's tumble, the initial relative state, the time grid.
 
 Defaults are the reference sheet's (docs/reference.md, sections 2 and 6): a 50 m V-bar hold on a
-7142 km, e = 0.001 orbit, ENVISAT spinning with a 134.74 s period. One frozen config per job, validated at
-the boundary by `envisat_pose.config.from_dict`. Named scenarios are the TOML files of scenarios/ (read by
+7142 km, e = 0.001 orbit, ENVISAT spinning with a 134.74 s period. One frozen config per job, validated when
+built (envisat_pose.config.Config). Named scenarios are the TOML files of scenarios/ (read by
 envisat_pose.named_scenarios); this module takes their truth part, and computes the Earth's shadow for
 scenarios with an [eclipse] table.
 """
@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envisat_pose.config import check, deep_update, from_dict
+from envisat_pose.config import Config, check, deep_update, from_dict
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.named_scenarios import table, truth_part
 from envisat_pose.target import DEFAULT_TARGET, load_target
@@ -25,7 +25,7 @@ MAX_PHYSICS_STEPS = 50_000_000  # RK4 steps per simulation: ~100k steps/s, so at
 
 
 @dataclass(frozen=True)
-class OrbitConfig:
+class OrbitConfig(Config):
     """The chaser's (chief's) Keplerian orbit. Angles in degrees; the true anomaly is at t = 0."""
 
     mu_m3_s2: float = 3.986004418e14
@@ -36,12 +36,13 @@ class OrbitConfig:
     argp_deg: float = 90.0
     nu0_deg: float = 30.0
 
-    def validate(self, prefix: str = "orbit") -> None:
-        check(self.mu_m3_s2 > 0, f"{prefix}.mu_m3_s2", self.mu_m3_s2, "a positive gravitational parameter in m^3/s^2")
-        check(0.0 <= self.e < 1.0, f"{prefix}.e", self.e, "an eccentricity in [0, 1) (closed orbit)")
-        check(self.a_m * (1.0 - self.e) > EARTH_RADIUS_M, f"{prefix}.a_m", self.a_m,
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(self.mu_m3_s2 > 0, f"{p}mu_m3_s2", self.mu_m3_s2, "a positive gravitational parameter in m^3/s^2")
+        check(0.0 <= self.e < 1.0, f"{p}e", self.e, "an eccentricity in [0, 1) (closed orbit)")
+        check(self.a_m * (1.0 - self.e) > EARTH_RADIUS_M, f"{p}a_m", self.a_m,
               f"a semi-major axis whose perigee a(1-e) lies above the Earth's surface ({EARTH_RADIUS_M:.0f} m)")
-        check(0.0 <= self.i_deg <= 180.0, f"{prefix}.i_deg", self.i_deg, "an inclination in [0, 180] deg")
+        check(0.0 <= self.i_deg <= 180.0, f"{p}i_deg", self.i_deg, "an inclination in [0, 180] deg")
 
     @property
     def n_rad_s(self) -> float:
@@ -54,7 +55,7 @@ class OrbitConfig:
 
 
 @dataclass(frozen=True)
-class TargetConfig:
+class TargetConfig(Config):
     """The target's tumble: inertial angular velocity w_t0 = (2 pi / spin_period_s) * unit(spin_axis_T), in T.
 
     p0_mrp: initial MRP of T relative to C; omitted (None) draws a uniformly random attitude from the seed.
@@ -69,13 +70,14 @@ class TargetConfig:
     gravity_gradient: bool = False
     file: str = DEFAULT_TARGET
 
-    def validate(self, prefix: str = "target") -> None:
-        check(self.spin_period_s > 0, f"{prefix}.spin_period_s", self.spin_period_s, "a positive period in seconds")
-        check(np.linalg.norm(self.spin_axis_T) > 0, f"{prefix}.spin_axis_T", list(self.spin_axis_T), "a non-zero vector")
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(self.spin_period_s > 0, f"{p}spin_period_s", self.spin_period_s, "a positive period in seconds")
+        check(np.linalg.norm(self.spin_axis_T) > 0, f"{p}spin_axis_T", list(self.spin_axis_T), "a non-zero vector")
 
-        load_target(self.file, f"{prefix}.file")  # a bad target file: one line before any work
+        load_target(self.file, f"{p}file")  # a bad target file: one line before any work
         if self.p0_mrp is not None:
-            check(np.linalg.norm(self.p0_mrp) <= 1.0 + 1e-12, f"{prefix}.p0_mrp", list(self.p0_mrp),
+            check(np.linalg.norm(self.p0_mrp) <= 1.0 + 1e-12, f"{p}p0_mrp", list(self.p0_mrp),
                   "an MRP with |p| <= 1 (use the shadow set -p/|p|^2)")
 
     @property
@@ -101,7 +103,7 @@ class RelativeConfig:
 
 
 @dataclass(frozen=True)
-class ScenarioConfig:
+class ScenarioConfig(Config):
     """A truth simulation: physics, initial state and output grid (t = 0, dt_s, ... <= duration_s).
 
     keepout_margin_m: the least distance, m, the chaser may come to any part of the target (body, boom,
@@ -152,14 +154,15 @@ class ScenarioConfig:
 
 
 @dataclass(frozen=True)
-class EclipseConfig:
+class EclipseConfig(Config):
     """A scenario's [eclipse] table: sun_dir_N, the direction toward the sun in the inertial frame N (any length;
     the sun is taken as infinitely far). The Earth's shadow is a cylinder of one Earth radius along it."""
 
     sun_dir_N: tuple[float, float, float] = (1.0, 0.0, 0.0)
 
-    def validate(self, prefix: str = "eclipse") -> None:
-        check(np.linalg.norm(self.sun_dir_N) > 0, f"{prefix}.sun_dir_N", list(self.sun_dir_N), "a non-zero vector")
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(np.linalg.norm(self.sun_dir_N) > 0, f"{p}sun_dir_N", list(self.sun_dir_N), "a non-zero vector")
 
 
 def scenario_dict(name: str) -> dict:

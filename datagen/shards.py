@@ -1,5 +1,5 @@
-"""WebDataset shards: deterministic tar writing, atomic publication, the manifest and verification (reading: the
-core's envisat_pose/shard_reader.py: read_shard, which verify uses here).
+"""WebDataset shards: deterministic tar writing and atomic publication (reading, the manifest's reader and the one
+shard check: the core's envisat_pose/shard_reader.py).
 
 A shard is a plain tar of samples, each sample's members `<key>.depth.png`, `<key>.json`, `<key>.mask.png`,
 `<key>.png` consecutive (design.md, Shard contract). Members carry a fixed mtime, owner and mode, so the same
@@ -16,10 +16,8 @@ import tarfile
 import cv2
 import numpy as np
 
-from envisat_pose.io import atomic_path, sha256_file
-from envisat_pose.shard_reader import read_shard  # the one reader (core)
+from envisat_pose.io import atomic_path
 
-MANIFEST = "manifest.json"
 MEMBER_SUFFIXES = ("depth.png", "json", "mask.png", "png")  # sorted: the order inside a sample
 # zlib level 1 with the PNG filter and zlib strategy that measured fastest per kind of image (1024 px, one core):
 # noisy images and masks without filtering and with run-length matching, smooth 16-bit depth with the Sub filter.
@@ -102,35 +100,3 @@ class ShardWriter:
                 os.fsync(fh.fileno())
             return self._ctx.__exit__(None, None, None)
         return self._ctx.__exit__(exc_type, exc, tb)
-
-
-def read_manifest(out_dir: str) -> dict | None:
-    """The dataset's manifest, or None when there is none. A malformed file raises ValueError."""
-    manifest_path = os.path.join(out_dir, MANIFEST)
-    if not os.path.exists(manifest_path):
-        return None
-    with open(manifest_path, encoding="utf-8") as fh:
-        data = json.load(fh)
-    if not isinstance(data, dict) or "shards" not in data:
-        raise ValueError(f"{manifest_path} is not a dataset manifest")
-    return data
-
-
-def check_shard(path: str, expected_sha256: str | None, expected_count: int | None) -> str | None:
-    """What is wrong with one shard file ('missing', 'sha256 mismatch', ...), or None when it is sound."""
-    if not os.path.exists(path):
-        return "missing"
-    if expected_sha256 is not None and sha256_file(path) != expected_sha256:
-        return "sha256 mismatch"
-    try:
-        n = 0
-        for key, members in read_shard(path):
-            need = {"png", "json"}
-            if not need <= set(members):
-                return f"sample {key} lacks {sorted(need - set(members))}"
-            n += 1
-    except (tarfile.TarError, OSError, EOFError) as err:
-        return f"unreadable tar: {err}"
-    if expected_count is not None and n != expected_count:
-        return f"{n} samples, expected {expected_count}"
-    return None

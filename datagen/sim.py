@@ -19,11 +19,11 @@ from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.plugin import PLUGIN_NAME
 from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.datagen.target_scene import scene_xml
+from envisat_pose.geometry import CAMERA_NAME, CORNER_NAMES
 from envisat_pose.state import MRP, POS, RATE, VEL
 from envisat_pose.target import load_target
 
-CORNER_SITES = tuple(f"corner_{c}" for c in "ABCDEFGH")
-CAMERA_NAME = "chaser_cam"
+CORNER_SITES = tuple(f"corner_{c}" for c in CORNER_NAMES)
 
 
 def plugin_attributes(cfg: ScenarioConfig) -> dict[str, str]:

@@ -1,8 +1,10 @@
 """One validated config per job: defaults, then a TOML file, then command-line overrides.
 
-Configs are frozen dataclasses (nested for sections). `from_dict` builds one from plain data and rejects
-unknown keys, wrong types and non-finite numbers; each dataclass may define `validate()` for its own ranges.
-Every problem raises ConfigError naming the field, the value and what was expected, before any work starts.
+Configs are frozen dataclasses (nested for sections) derived from `Config`, which validates each one when it is
+built: the constructor, `dataclasses.replace` and `from_dict` alike (a config's own `validate()` checks its ranges).
+`from_dict` builds one from plain data through its constructor and rejects unknown keys, wrong types and
+non-finite numbers. Every problem raises ConfigError naming the field, the value and what was expected, before any
+work starts.
 """
 
 from __future__ import annotations
@@ -38,6 +40,23 @@ class MovedKeyError(ConfigError):
 
 class InputError(ValueError):
     """A user error that is not about one config field (a missing or unreadable file, say)."""
+
+
+class Config:
+    """The base of every config dataclass: validated when built (the constructor, dataclasses.replace, from_dict).
+
+    A subclass's own __post_init__ does its filling first (fields left None that take a scenario's, say), then
+    calls super().__post_init__(). validate(prefix) raises ConfigError naming a field under prefix: '' when built,
+    so the names are the config's own ('p0_sigma'); from_dict puts the table's dotted name in front
+    ('filter.p0_sigma'). Kept cheap (milliseconds): what a validate() reads (the MJCF camera, a target file) is
+    cached, a weights file only looked up.
+    """
+
+    def __post_init__(self) -> None:
+        self.validate("")
+
+    def validate(self, prefix: str = "") -> None:
+        """ConfigError for a field out of its range (a config with nothing to check has nothing here)."""
 
 
 def load_toml(path: str) -> dict:
@@ -124,7 +143,9 @@ def field_value(cls: type, name: str, value: Any) -> Any:
 
 
 def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
-    """Build the dataclass `cls` from `data` over its defaults; validates types, then `validate()`."""
+    """Build the dataclass `cls` from `data` over its defaults: the types checked here, then its constructor (a
+    Config validates itself; its ConfigError named under prefix, 'filter.p0_sigma'). A dataclass that is not a
+    Config (a test's own) is validated here with `validate(prefix)`, if it has one."""
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     moved = getattr(cls, "moved_keys", {})  # {old key: "section.key"} of a config that was regrouped
@@ -139,11 +160,21 @@ def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
         where = f"{prefix}.{f.name}" if prefix else f.name
         if f.name in data:
             kwargs[f.name] = _convert(data[f.name], hints[f.name], where)
-    obj = cls(**kwargs)
+    try:
+        obj = cls(**kwargs)
+    except ConfigError as err:
+        raise _under(prefix, err) from None
     validate = getattr(obj, "validate", None)
-    if validate is not None:
+    if validate is not None and not isinstance(obj, Config):
         validate(prefix)
     return obj
+
+
+def _under(prefix: str, err: ConfigError) -> ConfigError:
+    """A constructor's ConfigError with its field named under the table's dotted prefix ('filter.p0_sigma')."""
+    if not prefix or type(err) is not ConfigError:
+        return err
+    return ConfigError(f"{prefix}.{err.field}", err.value, err.expected)
 
 
 def to_dict(obj: Any) -> dict:
@@ -205,13 +236,14 @@ def set_dotted(data: dict, dotted: str, value: Any) -> dict:
 
 def resolve_job_config(cls: type, defaults: dict, config_path: str | None, flags: dict[str, Any],
                        complete: Callable[[dict], dict] | None = None, prefix: str = "") -> Any:
-    """The one config resolution of every verb: the dataclass `cls` built from its defaults, then `defaults` (what
-    the job takes from a named scenario: its tables, its duration), then the TOML file at config_path (if any),
-    then the command-line flags {'section.key': value} (None values are flags not given), validated by
-    `from_dict` before any work.
+    """The layers of a config: the dataclass `cls` built (by `from_dict`, through its constructor) from its
+    defaults, then `defaults`, then the TOML file at config_path (if any), then the flags {'section.key': value}
+    (None values are flags not given); tables merge key by key, so a file or a flag sets part of a table. The
+    loader of the verbs without a named scenario (generate, detect, calibrate, train) and of the layers under
+    `pipelines.jobs.resolve_job`, which is what the verbs of a scenario's job run.
 
-    complete(data) -> data, if given, runs on the merged data before validation, for values that depend on
-    others (a default worker count from the number of runs, say). prefix: where the config sits in a larger one,
+    complete(data) -> data, if given, runs on the merged data before it is built (a job's named scenario set
+    over whatever the file says, say). prefix: where the config sits in a larger one,
     for the error messages ('sweep').
     """
     data = deep_update({}, defaults)

@@ -21,6 +21,10 @@ from envisat_pose.config import InputError
 from envisat_pose.io import save_npz
 from envisat_pose.status import STATUSES, has_estimate, legend_json
 
+# A shard label's corruption severities, level 0..3 (label['corruption']['levels'][kind] is one of them): the
+# factory draws them (datagen/corrupt.py), the detector's evaluation groups by them (perception/evaluate.py)
+SEVERITIES = ("none", "low", "medium", "high")
+
 # (kind, shape, rule): kind 'f' float64, 'b' bool, 'i' int64, 's' text; shape of ints (fixed) and names (shared sizes);
 # rule 'finite' (every value finite), 'finite_where_visible' (finite where the `visible` mask is true), None.
 _Spec = tuple[str, tuple, str | None]

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 CORNER_NAMES = ("A", "B", "C", "D", "E", "F", "G", "H")
+CAMERA_NAME = "chaser_cam"  # the MJCF's camera on the chaser (models/envisat.xml), the project's one camera
 # The 12 edges of the main body box, as pairs of corner indices (A=0 .. H=7).
 EDGES = ((0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7))
 FACE_NAMES = ("px", "mx", "py", "my", "pz", "mz")
@@ -174,12 +175,12 @@ def _camera_axes_rows(cam: ET.Element, path: str) -> np.ndarray:
                       [2 * (a * c - b * w), 2 * (b * c + a * w), 1 - 2 * (a * a + b * b)]])
         return R.T
     if any(cam.get(k) for k in ("axisangle", "euler", "zaxis")):
-        raise ValueError(f"{path}: camera 'chaser_cam': give its orientation as xyaxes or quat")
+        raise ValueError(f"{path}: camera {cam.get('name')!r}: give its orientation as xyaxes or quat")
     return np.eye(3)
 
 
 @functools.lru_cache(maxsize=4)
-def load_camera(path: str | None = None, name: str = "chaser_cam") -> PinholeCamera:
+def load_camera(path: str | None = None, name: str = CAMERA_NAME) -> PinholeCamera:
     """The pinhole of camera `name` in the MJCF: f = (H / 2) / tan(fovy / 2) px from `fovy` (deg) and
     `resolution`, the principal point at the image centre, and the mount from the camera's pose in its body
     (the chaser, whose frame is C). A test checks it against MuJoCo's compiled camera."""

@@ -11,6 +11,7 @@ Every problem is one ConfigError line naming the file, the key, the value and wh
 
 from __future__ import annotations
 
+import copy
 import functools
 import importlib.resources
 import tomllib
@@ -36,6 +37,13 @@ def _files() -> dict[str, str]:
     return {e.name[:-5]: e.read_text(encoding="utf-8") for e in root.iterdir() if e.name.endswith(".toml")}
 
 
+@functools.lru_cache(maxsize=64)
+def _parsed(text: str) -> dict:
+    """A scenario file's TOML text parsed (cached by the text: a config's build reads its scenario several
+    times; callers get a deep copy)."""
+    return tomllib.loads(text)
+
+
 def check_name(name: str) -> None:
     """ConfigError listing the known names unless `name` is one of them."""
     check(isinstance(name, str) and name in _files(), "scenario", name, "one of " + ", ".join(names()))
@@ -50,7 +58,7 @@ def _load(name: str, depth: int) -> dict:
     check_name(name)
     where = f"scenario {name} ({name}.toml)"
     try:
-        data = tomllib.loads(_files()[name])
+        data = copy.deepcopy(_parsed(_files()[name]))
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(where, "...", f"valid TOML ({err})") from None
     allowed = ("description", "base") + TRUTH_KEYS + JOB_TABLES

@@ -17,13 +17,13 @@ import os
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Literal, Sequence
 
-from envisat_pose.config import check
+from envisat_pose.config import Config, check
 
 Backend = Literal["inline", "local", "dask"]
 
 
 @dataclass(frozen=True)
-class RunnerConfig:
+class RunnerConfig(Config):
     """Where tasks run. backend: 'inline' (this process), 'local' (process pool; one worker runs inline) or
     'dask'. workers: processes for 'local' and for a LocalCluster. scheduler: address of an existing Dask
     scheduler (then workers is ignored). env: environment variables set in every worker before its first task

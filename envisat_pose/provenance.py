@@ -11,6 +11,7 @@ import os
 import re
 
 from envisat_pose.io import sha256_file
+from envisat_pose.resumable import manifest_path
 
 # an absolute path of a machine: a token starting with "/" and a path component (e.g. /tmp/dcal,
 # /work/main/out/leg6/hseq633, /home/me/x.json), not a ratio such as "1/2" or a unit such as "px/s"
@@ -54,7 +55,7 @@ def scrub_paths(text: str) -> str:
 
 def manifest_sha256(folder: str) -> str | None:
     """sha256 of a generated dataset's manifest.json (None when it has none)."""
-    path = os.path.join(folder, "manifest.json")
+    path = manifest_path(folder)
     return sha256_file(path) if os.path.isfile(path) else None
 
 

@@ -1,7 +1,9 @@
 """Resumable jobs (`ResumableJob`): the one protocol for outputs written unit by unit into a folder (the image
 factory's shards, a Monte Carlo campaign's blocks), run as tasks of the pools (envisat_pose/pools.py): units
 with sha256 in manifest.json, rewritten atomically after each unit; a folder of another config refused; unvouched
-unit files and partial files removed and redone.
+unit files and partial files removed and redone. The manifest's file name and its one reader (`read_manifest`)
+are here; a generated dataset's manifest is checked on top of it by envisat_pose/shard_reader.py
+(`load_dataset_manifest`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,27 @@ from envisat_pose.out_dirs import PARTIAL_PREFIX, make_out_dir
 from envisat_pose.pools import RunnerConfig, run_tasks
 
 MANIFEST = "manifest.json"
+
+
+def manifest_path(folder: str) -> str:
+    """The path of folder's manifest (what to hash or test for; read it with read_manifest)."""
+    return os.path.join(folder, MANIFEST)
+
+
+def read_manifest(folder: str, field: str) -> dict | None:
+    """The JSON object in folder's manifest.json (None: the folder has none): the one place a manifest is opened
+    for reading. InputError naming the field, the folder and the file when it is unreadable or not an object."""
+    path = manifest_path(folder)
+    if not os.path.isfile(path):
+        return None
+    try:
+        with open(path, encoding="utf-8") as fh:
+            manifest = json.load(fh)
+    except (OSError, ValueError) as err:
+        raise InputError(f"{field} {folder!r}: unreadable {MANIFEST} ({err})") from None
+    if not isinstance(manifest, dict):
+        raise InputError(f"{field} {folder!r}: {MANIFEST} holds a JSON {type(manifest).__name__}, not an object")
+    return manifest
 
 
 def remove_partial_files(folder: str) -> None:
@@ -63,16 +86,13 @@ class ResumableJob:
     def previous(self) -> dict | None:
         """The manifest of an earlier run in out_dir (None: none yet). InputError when it is unreadable, of
         another kind of job, or of another identity (the message names the first differences)."""
-        path = os.path.join(self.out_dir, MANIFEST)
-        if not os.path.isfile(path):
-            return None
         try:
-            with open(path, encoding="utf-8") as fh:
-                manifest = json.load(fh)
-        except (OSError, ValueError) as err:
-            raise InputError(f"--out {self.out_dir!r}: unreadable {MANIFEST} ({err}); remove it or use another "
-                             "folder") from None
-        if not isinstance(manifest, dict) or manifest.get("format") != self.format:
+            manifest = read_manifest(self.out_dir, "--out")
+        except InputError as err:
+            raise InputError(f"{err}; remove it or use another folder") from None
+        if manifest is None:
+            return None
+        if manifest.get("format") != self.format:
             raise InputError(f"--out {self.out_dir!r}: {MANIFEST} is not a {self.what} manifest (format "
                              f"{self.format!r} expected); use another folder")
         theirs = flatten({k: manifest.get(k) for k in self.identity})

@@ -6,15 +6,18 @@ key `000000012`, suffix `mask.png`). Members come back as bytes: nothing is deco
 datagen writer and verifier, the trainer's and the detector's readers decode what they need).
 
 Every reader of a generated dataset first takes its shards from `checked_shards`: each shard the manifest lists is
-checked against it (its size, then its sha256; once per run), and a damaged one is refused in one line naming it, or
-left out when the reader was asked to skip damaged shards. A shard that still fails while being read (changed under
-a running job, or a folder without a manifest) is the same one line (ShardReadError), never a traceback.
+checked against it (`shard_problem`, the one shard check: its size, its sha256, then its samples counted from the
+tar's headers; once per run), and a damaged one is refused in one line naming it, or left out when the reader was
+asked to skip damaged shards. A shard that still fails while being read (changed under a running job, or a folder
+without a manifest) is the same one line (ShardReadError), never a traceback. A dataset's manifest is read only
+through `load_dataset_manifest` (the parsed record, checked), on the core's manifest reader
+(resumable.read_manifest).
 """
 
 from __future__ import annotations
 
+import contextlib
 import glob
-import json
 import os
 import re
 import tarfile
@@ -23,9 +26,12 @@ from collections.abc import Iterator
 
 from envisat_pose.config import InputError
 from envisat_pose.io import sha256_file
+from envisat_pose.resumable import read_manifest
 
-MANIFEST = "manifest.json"
-
+REQUIRED_MEMBERS = frozenset({"json", "png"})  # what every sample of a shard holds: its label and its image
+_TAR_BLOCK = 512  # a tar's record: every header, and every member's data padded up to a multiple of it
+_ZERO_BLOCK = bytes(_TAR_BLOCK)
+_PLAIN_TYPES = (b"0", b"\0", b"5")  # a regular file (new and old tag) or a folder: the headers the quick walk reads
 _KEY = re.compile(r"^((?:.*/|)[^./]+)[.]([^/]*)$")  # (key, suffix): the path up to the first dot of the name
 
 
@@ -88,39 +94,126 @@ def read_shards(paths: list[str]) -> Iterator[tuple[str, str, dict[str, bytes]]]
 # The check every reader of a generated dataset makes before it reads
 
 
-def load_dataset_manifest(data_dir: str, field: str = "data_dir") -> dict | None:
-    """The manifest of a dataset folder (None: the folder has none); InputError naming the field when the folder
-    is missing or the manifest is not a dataset manifest."""
+def load_dataset_manifest(data_dir: str, field: str = "dataset", required: bool = True) -> dict | None:
+    """The manifest of a dataset folder, parsed and checked: the one reader of a dataset's manifest. None when the
+    folder has none and it is not `required`. InputError naming the field and the folder when the folder is
+    missing, the manifest is missing (required), unreadable, or not a dataset manifest (which entry and key)."""
     if not os.path.isdir(data_dir):
         raise InputError(f"{field} {data_dir!r}: no such folder")
-    path = os.path.join(data_dir, MANIFEST)
-    if not os.path.exists(path):
+    manifest = read_manifest(data_dir, field)
+    if manifest is None:
+        if required:
+            raise InputError(f"{field} {data_dir!r}: no manifest.json: not a generated dataset")
         return None
-    try:
-        with open(path, encoding="utf-8") as fh:
-            manifest = json.load(fh)
-    except (OSError, ValueError) as err:
-        raise InputError(f"{field} {data_dir!r}: unreadable {MANIFEST} ({err})") from None
-    entries = manifest.get("shards") if isinstance(manifest, dict) else None
-    if not isinstance(entries, list) or not all(isinstance(e, dict) and isinstance(e.get("name"), str)
-                                                 for e in entries):
-        raise InputError(f"{field} {data_dir!r}: {MANIFEST} is not a dataset manifest (expected a list 'shards' "
-                         "of entries with a name)")
+    why = _manifest_problem(manifest)
+    if why:
+        raise InputError(f"{field} {data_dir!r}: manifest.json is not a dataset manifest ({why})")
     return manifest
 
 
+def _manifest_problem(manifest: dict) -> str | None:
+    """What keeps a manifest from being a dataset's (None: nothing): a list 'shards' of entries, each with the
+    plain file name of a shard and its count of samples and, where given (older datasets have no size), its size
+    (non-negative integers) and its sha256 (text); a 'config' and a 'target', where given, are tables."""
+    entries = manifest.get("shards")
+    if not isinstance(entries, list):
+        return "expected a list 'shards' of entries with a name and a count"
+    for i, e in enumerate(entries):
+        if not isinstance(e, dict) or not isinstance(e.get("name"), str) or "count" not in e:
+            return f"shards[{i}]: expected an entry with a name and a count"
+        if e["name"] in ("", ".", "..") or os.path.basename(e["name"]) != e["name"] or "\\" in e["name"]:
+            return f"shards[{i}].name = {e['name']!r}: expected a file name inside the folder"
+        for key in ("count", "bytes"):
+            if key in e and not (type(e[key]) is int and e[key] >= 0):
+                return f"shards[{i}].{key} = {e[key]!r}: expected a non-negative integer"
+        if "sha256" in e and not isinstance(e["sha256"], str):
+            return f"shards[{i}].sha256 = {e['sha256']!r}: expected text"
+    for key in ("config", "target"):
+        if manifest.get(key) is not None and not isinstance(manifest[key], dict):
+            return f"{key}: expected a table, got {type(manifest[key]).__name__}"
+    return None
+
+
 def shard_problem(path: str, entry: dict) -> str | None:
-    """What makes one shard differ from its manifest entry (None: it matches): missing, its size (entry 'bytes',
-    read first: a truncated file costs a stat), then its sha256 (entry 'sha256')."""
+    """What makes one shard differ from its manifest entry (None: it matches), the one shard check: missing, its
+    size (entry 'bytes', first: a truncated file costs a stat), its sha256 (entry 'sha256'); a shard whose entry
+    has no sha256 then has its samples walked from the tar's headers (no member is read): a tar that cannot be
+    walked, a sample without its label or image (REQUIRED_MEMBERS), another number of samples than the entry's
+    'count'. A matching sha256 says the bytes are those the factory finished, samples and count included (it
+    records an entry only once its shard is whole), so the walk would add nothing but time (bench/shard_check.py's
+    floor: the check within 2 % of an epoch). An entry without a size or a count skips that step."""
     if not os.path.isfile(path):
         return "missing"
     size = os.path.getsize(path)
     if isinstance(entry.get("bytes"), int) and size != entry["bytes"]:
         return f"size {size} bytes, manifest says {entry['bytes']}"
     digest = sha256_file(path) if entry.get("sha256") else None
-    if digest is not None and digest != entry["sha256"]:
-        return f"sha256 {digest[:12]}..., manifest says {str(entry['sha256'])[:12]}..."
+    if digest is not None:
+        return None if digest == entry["sha256"] else (
+            f"sha256 {digest[:12]}..., manifest says {str(entry['sha256'])[:12]}...")
+    try:
+        samples = sample_suffixes(path)
+    except (tarfile.TarError, OSError, EOFError, zlib.error) as err:
+        return f"unreadable tar ({type(err).__name__}: {' '.join(str(err).split())})"
+    for key, suffixes in samples:
+        if not REQUIRED_MEMBERS <= suffixes:
+            return f"sample {key} lacks {', '.join(sorted(REQUIRED_MEMBERS - suffixes))}"
+    if isinstance(entry.get("count"), int) and len(samples) != entry["count"]:
+        return f"{len(samples)} samples, manifest says {entry['count']}"
     return None
+
+
+def sample_suffixes(path: str) -> list[tuple[str, set[str]]]:
+    """(key, {suffix}) of each sample of a shard, in order, from the tar's member names alone (read_shard's
+    grouping: consecutive members that share a key). tarfile.TarError when the tar cannot be walked."""
+    samples: list[tuple[str, set[str]]] = []
+    for name in tar_member_names(path):
+        split = split_member(name)
+        if split is None:
+            continue
+        if not samples or samples[-1][0] != split[0]:
+            samples.append((split[0], set()))
+        samples[-1][1].add(split[1])
+    return samples
+
+
+def tar_member_names(path: str) -> list[str]:
+    """The names of a tar's file members, in order, from its headers alone (each member's data is skipped, not
+    read: one small read per member). A plain USTAR or old-style tar (what the factory writes) is walked here; any
+    other (pax or GNU headers, compressed, or a header that does not check out) by tarfile, whose TarError then
+    says what is wrong."""
+    names = _plain_member_names(path)
+    if names is not None:
+        return names
+    with tarfile.open(path, "r:*") as tar:
+        return [info.name for info in tar if info.isfile()]
+
+
+def _plain_member_names(path: str) -> list[str] | None:
+    """tar_member_names of a plain tar; None when the file is anything else (then tarfile reads it)."""
+    end, pos, names = os.path.getsize(path), 0, []
+    with open(path, "rb") as fh:
+        while pos + _TAR_BLOCK <= end:
+            fh.seek(pos)
+            header = fh.read(_TAR_BLOCK)
+            if header == _ZERO_BLOCK:
+                return names
+            kind = header[156:157]
+            try:
+                # the header's checksum: its bytes summed, the checksum field's own 8 counted as spaces
+                plain = kind in _PLAIN_TYPES and tarfile.nti(header[148:156]) == sum(header) - sum(header[148:156]) + 256
+                size = tarfile.nti(header[124:136])
+            except tarfile.TarError:
+                return None
+            if not plain or size < 0:
+                return None
+            name = tarfile.nts(header[:100], "utf-8", "surrogateescape")
+            if header[257:263] == b"ustar\0" and header[345] != 0:  # USTAR: a long name's leading folders
+                name = tarfile.nts(header[345:500], "utf-8", "surrogateescape") + "/" + name
+            if kind != b"5":
+                names.append(name)
+            pos += _TAR_BLOCK + -(-size // _TAR_BLOCK) * _TAR_BLOCK
+    return names if pos == end else None  # a file that ends inside a member: tarfile says where
 
 
 def shard_problems(data_dir: str, entries: list[dict], threads: int | None = None) -> list[str | None]:
@@ -137,20 +230,20 @@ def shard_problems(data_dir: str, entries: list[dict], threads: int | None = Non
 
 def checked_shards(data_dir: str, skip_damaged: bool = False, field: str = "data_dir"
                    ) -> tuple[list[str], list[str]]:
-    """The shard files of a dataset folder to read, each checked against the folder's manifest.json (size, then
-    sha256), and the names of the damaged ones left out: (paths, skipped).
+    """The shard files of a dataset folder to read, each checked against the folder's manifest.json (shard_problem:
+    size, sha256, samples), and the names of the damaged ones left out: (paths, skipped).
 
     Shards the manifest lists with no samples are left out; shards it does not list (an interrupted run's) are
-    not read. A damaged shard (missing, another size, another sha256) is a DamagedShardError naming the field,
+    not read. A damaged shard (shard_problem says why) is a DamagedShardError naming the field,
     the folder and the shard, unless skip_damaged: then it is left out and named in `skipped`. A folder without
     a manifest (shards made elsewhere) has nothing to check against: every *.tar in it, in name order, is read
     as it is (read_shard still stops in one line at a damaged one). InputError when nothing is left to read."""
-    manifest = load_dataset_manifest(data_dir, field)
+    manifest = load_dataset_manifest(data_dir, field, required=False)
     if manifest is None:
         paths, skipped = sorted(glob.glob(os.path.join(glob.escape(data_dir), "*.tar"))), []
     else:
         paths, skipped = [], []
-        entries = [e for e in manifest["shards"] if e.get("count", 1)]
+        entries = [e for e in manifest["shards"] if e["count"]]
         for entry, why in zip(entries, shard_problems(data_dir, entries)):
             if why is None:
                 paths.append(os.path.join(data_dir, entry["name"]))
@@ -163,3 +256,14 @@ def checked_shards(data_dir: str, skip_damaged: bool = False, field: str = "data
         left = f" ({len(skipped)} damaged shard(s) skipped: {', '.join(skipped)})" if skipped else ""
         raise InputError(f"{field} {data_dir!r}: empty dataset (no shards with samples){left}")
     return paths, skipped
+
+
+@contextlib.contextmanager
+def skip_hint():
+    """A damaged shard found under this block (DamagedShardError: one line naming the field, the folder and the
+    shard) also says how to go on without it: `skip_damaged` (a verb shows its --skip-damaged flag)."""
+    try:
+        yield
+    except DamagedShardError as err:
+        raise InputError(f"{err}; `skip_damaged` goes on without it, `envisat dataset verify` lists every "
+                         "problem") from None

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import check
+from envisat_pose.config import Config, check
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
 from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
 from envisat_pose.filtering.ukf import SigmaWeights, merwe_weights, predict, shadow_switch, state_residual, update
@@ -42,7 +42,7 @@ def _check_kernel(kernel: str) -> None:
 
 
 @dataclass(frozen=True)
-class FilterConfig:
+class FilterConfig(Config):
     """UKF settings. Sigmas are 1-sigma per component; q_* are per second of propagation (Q = q^2 dt).
 
     p0_sigma: initial uncertainty of (rho m, rho' m/s, p MRP, w_r rad/s), the reference sheet's P0.

@@ -18,7 +18,7 @@ from typing import Literal
 
 import numpy as np
 
-from envisat_pose.config import check
+from envisat_pose.config import Config, check
 from envisat_pose.filtering.measurements import (
     KINDS,
     add_noise,
@@ -32,7 +32,7 @@ from envisat_pose.state import draw_initial_estimate
 
 
 @dataclass(frozen=True)
-class MeasurementConfig:
+class MeasurementConfig(Config):
     """What the filter measures and how badly.
 
     kind: markers3d (corners in C, m), pixels (px), pixels+range (px, px, m).

@@ -52,6 +52,8 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
+from envisat_pose.geometry import CORNER_NAMES
+
 
 @dataclass(frozen=True)
 class ErrorModel:
@@ -368,7 +370,7 @@ def measure_error_model(sequences: list[dict], cov_scale: float, max_lag: int = 
             "fitted": clean(a_th * np.exp(-theta_mean / th_c) if th_c > 0 else np.zeros(n_bins)),
             "corr_angle_deg": float(np.degrees(th_c)), "view_rate_deg_s": view_rate_deg_s},
         "autocorr_lag1_by_corner": {c: {a: clean(autocorrelation(*per[c][a])[1:2])[0] for a in "xy"} for c in per},
-        "bias_px_by_corner": {c: clean(bias_px[k]) for k, c in enumerate("ABCDEFGH")},
+        "bias_px_by_corner": {c: clean(bias_px[k]) for k, c in enumerate(CORNER_NAMES)},
         "scale": {"mean": scale_m, "se": scale_se, "frames": scale_n, "rho_lag1": rho_scale,
                   "by_sequence": scale_means, "between_sd": scale_sd,
                   "se_ar1": scale_se * np.sqrt(max(ar1_inflation(rho_scale), 0.0)) if abs(rho_scale) < 1 else None},
@@ -386,7 +388,7 @@ def _pooled_sums(sequences: list[dict], bias_px: np.ndarray, cov_scale: float, m
     view rate, deg/s. Returns (pooled_z, pooled_px, per, pooled_angle, view_rate_deg_s)."""
     pooled_z = [np.zeros(max_lag + 1), np.zeros(max_lag + 1)]
     pooled_px = [np.zeros(max_lag + 1), np.zeros(max_lag + 1)]
-    per = {c: {a: [np.zeros(max_lag + 1), np.zeros(max_lag + 1)] for a in "xy"} for c in "ABCDEFGH"}
+    per = {c: {a: [np.zeros(max_lag + 1), np.zeros(max_lag + 1)] for a in "xy"} for c in CORNER_NAMES}
     pooled_angle = [np.zeros(n_bins), np.zeros(n_bins), np.zeros(n_bins)]
     view_rate_deg_s = []
     for s in sequences:
@@ -402,7 +404,7 @@ def _pooled_sums(sequences: list[dict], bias_px: np.ndarray, cov_scale: float, m
             n, c = lag_sums(arr, max_lag)
             acc[0] += n
             acc[1] += c
-        for k, name in enumerate("ABCDEFGH"):
+        for k, name in enumerate(CORNER_NAMES):
             for a, axis in enumerate("xy"):
                 n, c = lag_sums(x[:, k, a], max_lag)
                 per[name][axis][0] += n

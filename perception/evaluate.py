@@ -15,17 +15,16 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from envisat_pose.geometry import load_geometry
+from envisat_pose.contracts import SEVERITIES
+from envisat_pose.geometry import CORNER_NAMES, load_geometry
 from envisat_pose.perception.calibrate import nees_px
 from envisat_pose.perception.errormodel import apparent_scale, mean_se, radial_errors
 from envisat_pose.perception.naming import symmetry_permutations
 
-CORNER_NAMES = "ABCDEFGH"
 # the half-turn about the long axis x: corner k shows where corner HALF_TURN_PERM[k] was, derived from the target's
 # geometry (A<->C, B<->D, E<->G, F<->H for the box of models/envisat.xml)
 HALF_TURN_PERM = symmetry_permutations(load_geometry())["x"][0]
 MATCH_PX = 5.0  # radius within which a named corner is 'correctly named' (swaps, calibration, the better naming)
-SEVERITIES = ("none", "low", "medium", "high")
 
 
 def corner_errors(pred_px: np.ndarray, true_px: np.ndarray) -> np.ndarray:

@@ -22,12 +22,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from envisat_pose.config import check
+from envisat_pose.config import Config, check
 from envisat_pose.perception.heatmaps import N_JTYPES
 
 
 @dataclass(frozen=True)
-class ModelConfig:
+class ModelConfig(Config):
     """Architecture. input_px: network input side; width: channels of the hourglass; depth: hourglass levels
     below stride 4; line_points: samples along a segment; line_pool: max-pool factor over them (L-CNN: 32 -> 8);
     line_dim: channels sampled per point; line_hidden: the classifier's hidden units."""

@@ -1,19 +1,21 @@
-"""A named scenario resolved into a complete job, in one place (as dm_control's `suite.load` turns a name into an
-environment): `resolve_job(kind, scenario, config_path, overrides)` returns the validated config that the verb of
-the same name runs, and each job's config has it as `Cfg.from_scenario(name, ...)` (RunConfig, TrackConfig,
-EstimateConfig, MonteCarloConfig; the truth of `simulate` is datagen's ScenarioConfig).
+"""A named scenario's job with a config file and flags over it, in one place (as dm_control's `suite.load` turns a
+name into an environment): `resolve_job(kind, scenario, config_path, overrides, **fields)` returns the validated
+config that `envisat KIND --scenario NAME --config FILE ...` runs.
 
-The layers, each over the last (config.resolve_job_config): the config class's defaults; what the job takes from
-the named scenario (pipelines/common/job_defaults.py's `scenario_defaults`: the tracker's filter under the scenario's [filter] table, its
+The one way to build a job's config is its constructor: `RunConfig(scenario=NAME, runs=4)` is the job of
+`envisat run --scenario NAME --runs 4` (RunConfig, TrackConfig, EstimateConfig, MonteCarloConfig: each fills
+what it takes from its scenario, completes and validates itself when built). resolve_job is what a verb runs:
+the constructor's arguments read from a file and flags, with tables merged key by key (a file or a flag sets
+part of a table, which a constructor's argument cannot).
+
+The layers, each over the last (job_defaults.layered_job, on config.resolve_job_config): what the job takes from
+the named scenario (job_defaults.scenario_defaults: the tracker's filter under the scenario's [filter] table, its
 [measurement] table, its duration and camera rate, the chaser's orbit and the gravity-gradient switch); the TOML
 file at config_path; the overrides {'section.key': value} (None: not given; a dict value is merged into its
-table). Then what the job needs before any work: the shipped detector weights where none are named (and the file
-checked), a worker per run up to the cores (run), the image factory's sequence fields and the sun (run,
-run_config.finish_config), the Earth's-shadow outages of a scenario with an [eclipse] table (montecarlo,
-campaign_config.with_eclipse; estimate adds them along its truth in run_estimate).
-
-The config classes resolve themselves from the layers of pipelines/common/job_defaults.py, below them and below this
-module, which alone knows every job by its name. Errors name the config field ('weights', 'measurement.rate_hz'); the verbs map them onto their flags.
+table); the fields (top-level keys). The job's scenario is the one named, whatever the file says. A campaign then
+gets its scenario's Earth's-shadow outages once (campaign_config.layered_montecarlo); an estimate gets them along
+its truth in run_estimate. The truth of `simulate` is datagen's ScenarioConfig. Errors name the config field
+('weights', 'measurement.rate_hz'); the verbs map them onto their flags.
 """
 
 from __future__ import annotations
@@ -22,32 +24,25 @@ from typing import Any
 
 from envisat_pose.config import resolve_job_config
 from envisat_pose.datagen.scenario import ScenarioConfig
-from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig
+from envisat_pose.pipelines.campaigns.campaign_config import layered_montecarlo
 from envisat_pose.pipelines.campaigns.estimate import EstimateConfig
-from envisat_pose.pipelines.common.job_defaults import JOBS, scenario_defaults
+from envisat_pose.pipelines.common.job_defaults import layered_job, scenario_defaults
 from envisat_pose.pipelines.runs.run_config import RunConfig
 from envisat_pose.pipelines.runs.track import TrackConfig
+
+_CONFIGS = {"run": RunConfig, "track": TrackConfig, "estimate": EstimateConfig}
 
 
 def resolve_job(kind: str, scenario: str | None = "default", config_path: str | None = None,
                 overrides: dict[str, Any] | None = None, **fields: Any):
-    """The validated config of a `kind` job ('simulate', 'estimate', 'montecarlo', 'run', 'track') for a named
-    scenario (None: none, for an estimate of a truth file), a TOML file and overrides (dotted keys, None values
-    skipped) with `fields` (top-level keys) over them: what `envisat KIND --scenario NAME --config FILE ...` runs.
-    Each job but simulate is its config class's `from_scenario`."""
-    if kind in JOBS and kind != "simulate":
-        return _config_class(kind).from_scenario(scenario, config_path, overrides, **fields)
+    """What a verb runs: the config of a `kind` job ('simulate', 'estimate', 'montecarlo', 'run', 'track'), its
+    constructor's arguments read from a file and flags. scenario: the named scenario (None: none, for an estimate
+    of a truth file); config_path: a TOML file; overrides: dotted keys (None values skipped); fields: top-level
+    keys over them. `resolve_job("run", NAME, runs=4) == RunConfig(scenario=NAME, runs=4)`."""
+    if kind == "montecarlo":
+        return layered_montecarlo(scenario, config_path, overrides, fields)
+    if kind in _CONFIGS:
+        return layered_job(_CONFIGS[kind], kind, scenario, config_path, overrides, fields)
 
     defaults = scenario_defaults(kind, scenario)  # the truth's tables; no scenario or an unknown kind raises
     return resolve_job_config(ScenarioConfig, defaults, config_path, {**(overrides or {}), **fields})
-
-
-def _config_class(kind: str) -> type:
-    if kind == "estimate":
-        return EstimateConfig
-    if kind == "montecarlo":
-        return MonteCarloConfig
-    if kind == "track":
-        return TrackConfig
-
-    return RunConfig

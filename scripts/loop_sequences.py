@@ -17,16 +17,17 @@ import sys
 
 def sequence_config(scenario: str, seed: int, frames: int, phase_max_deg: float = 90.0):
     """The GenerateConfig of the closed loop's frames of (scenario, seed) over its first `frames` frames, lit."""
+    from envisat_pose.pipelines.jobs import resolve_job
     from envisat_pose.pipelines.runs.run_config import RunConfig
     from envisat_pose.pipelines.runs.trials import scenario_sun_N
 
     flags = {"seed": seed, "runs": 1, "workers": 1}
-    rate_hz = RunConfig.from_scenario(scenario, overrides=flags).rate_hz
+    rate_hz = RunConfig(scenario=scenario, **flags).rate_hz
     flags["duration_s"] = (frames - 1) / rate_hz
     sun = scenario_sun_N(scenario, flags["duration_s"], rate_hz, seed, phase_max_deg)
     if sun is not None:
         flags["image.sun_dir"] = list(sun)
-    return RunConfig.from_scenario(scenario, overrides=flags).image
+    return resolve_job("run", scenario, overrides=flags).image
 
 
 def main(argv: list[str] | None = None) -> int:

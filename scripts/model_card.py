@@ -40,6 +40,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from envisat_pose.io import atomic_write_text, sha256_file  # noqa: E402
 from envisat_pose.perception.weights import read_metadata  # noqa: E402
 from envisat_pose.provenance import dataset_ref, find_absolute_paths, manifest_sha256, relative_name, scrub_paths  # noqa: E402
+from envisat_pose.shard_reader import load_dataset_manifest  # noqa: E402
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 HISTORY_FILE = "detector_history.json"  # beside the card: what was measured of the earlier weights
@@ -145,8 +146,9 @@ def generate_command(config: dict, name: str) -> str:
 
 
 def dataset_record(path: str) -> dict:
-    man = json.load(open(os.path.join(path, "manifest.json"), encoding="utf-8"))
     from envisat_pose.datagen.generate_config import nest_moved_keys
+
+    man = load_dataset_manifest(path)
 
     c = nest_moved_keys(man.get("config", {}))
     n = sum(int(s.get("count", 0)) for s in man.get("shards", []))

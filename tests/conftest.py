@@ -76,7 +76,7 @@ SLOW = (
     "tests/datagen/test_truth_physics.py::test_clohessy_wiltshire_limit_of_a_circular_chief",  # 7 s
     "tests/pipelines/adaptation/test_edge_range.py::test_unmeasurable_frames_give_no_delta",  # 7 s
     "tests/perception/test_schedule.py::test_a_budget_that_ends_before_the_cooldown_still_leaves_the_next_legs_start",
-    "tests/pipelines/test_jobs.py::test_the_plain_constructor_and_from_scenario_give_the_same_estimates",  # 6 s
+    "tests/pipelines/test_jobs.py::test_the_plain_constructor_and_resolve_job_give_the_same_estimates",  # 6 s
     # a clean checkout's lane took 5:08 and a warm one 5:13 (775 tests, 2026-11-29): three more (4:18 after)
     "tests/pipelines/tracking/test_tracker.py::test_the_tracker_starts_cold_and_converges",  # 24 s
     "tests/app/test_out_folders.py::test_montecarlo_makes_its_parents",  # 16 s

@@ -4,22 +4,25 @@ a scenario's Earth's-shadow outages (with_eclipse)."""
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import ConfigError, check, resolve_job_config
+from envisat_pose.config import Config, ConfigError, check
 from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride
 from envisat_pose.pipelines.campaigns.estimate import eclipse_outages, with_outages
-from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, scenario_defaults
+from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, layered_job
 from envisat_pose.target import load_target
 
 
 @dataclass(frozen=True)
-class MonteCarloConfig:
-    """One campaign. The results' bytes depend on every field (block_runs fixes the order of the sums).
+class MonteCarloConfig(Config):
+    """One campaign, complete and validated when built: `MonteCarloConfig(scenario=NAME, runs=4)` is the job of
+    `envisat montecarlo --scenario NAME --runs 4` (pipelines.jobs.resolve_job adds a config file and flags). The
+    results' bytes depend on every field (block_runs fixes the order of the sums).
 
     scenario: named truth scenario. target: the target's MJCF file (None: the scenario's; the filter measures its
     keypoints with its inertia, the bound likewise). duration_s: simulated time, s. runs: Monte Carlo runs. seed: root seed (the
@@ -28,8 +31,8 @@ class MonteCarloConfig:
     at most 600 s). sample_runs: the first runs whose errors are kept for the figures' grey curves. duration_s,
     measurement and filter left None take the scenario's when the config is made (job_defaults.fill_from_scenario:
     its duration, [measurement] and [filter] tables, else 1800 s and the classes' defaults; the measurement with
-    the scenario's Earth's-shadow outages, with_eclipse), so `MonteCarloConfig(scenario=NAME)` is the job of
-    `MonteCarloConfig.from_scenario(NAME)` and `envisat montecarlo`.
+    the scenario's Earth's-shadow outages along this truth, with_eclipse). A measurement given is kept as it is
+    (resolve_job adds the outages to the one a file and flags make: with_eclipse once).
     """
 
     scenario: str = "default"
@@ -46,18 +49,21 @@ class MonteCarloConfig:
     def __post_init__(self) -> None:
         eclipse = self.measurement is None
         fill_from_scenario(self, "montecarlo", MONTECARLO_FALLBACKS)
-        if eclipse:  # the scenario's measurement, with its outages (from_scenario: with_eclipse on the resolved one)
-            object.__setattr__(self, "measurement", with_eclipse(self).measurement)
+        super().__post_init__()
+        if eclipse:  # the scenario's measurement, with its outages along the (validated) truth
+            windows = eclipse_outages(self.scenario, truth_scenario(self))
+            object.__setattr__(self, "measurement", with_outages(self.measurement, windows))
 
     @classmethod
     def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
                       **fields) -> "MonteCarloConfig":
-        """The job `envisat montecarlo --scenario NAME` runs: this config resolved from the named scenario, the TOML
-        file at config_path, then overrides ({'section.key': value}) and fields (pipelines/common/job_defaults.py's layers),
-        with the scenario's Earth's-shadow outages (with_eclipse)."""
-        flags = {**(overrides or {}), **fields, "scenario": name}  # the named scenario is the job's, whatever the file
-        defaults = {"measurement": {}, **scenario_defaults("montecarlo", name)}  # made here: with_eclipse once
-        return with_eclipse(resolve_job_config(cls, defaults, config_path, flags))
+        """Deprecated (goes in the next release): MonteCarloConfig(scenario=NAME, ...), or
+        pipelines.jobs.resolve_job("montecarlo", NAME, config_path, overrides, ...) for a config file and dotted
+        flags; this is the latter."""
+        warnings.warn("MonteCarloConfig.from_scenario is deprecated and goes in the next release: use "
+                      "MonteCarloConfig(scenario=NAME, ...) (or pipelines.jobs.resolve_job for a config file)",
+                      DeprecationWarning, stacklevel=2)
+        return layered_montecarlo(name, config_path, overrides, fields)
 
     def validate(self, prefix: str = "") -> None:
         check(self.duration_s > 0, "duration_s", self.duration_s, "a positive duration in seconds")
@@ -85,6 +91,15 @@ class MonteCarloConfig:
 
 # what a campaign takes where its scenario sets nothing
 MONTECARLO_FALLBACKS = {"duration_s": lambda: 1800.0, "measurement": MeasurementConfig, "filter": FilterConfig}
+
+
+def layered_montecarlo(scenario: str, config_path: str | None, overrides: dict | None, fields: dict):
+    """The campaign of pipelines.jobs.resolve_job("montecarlo", ...): the layers (job_defaults.layered_job; the
+    measurement always given there, the scenario's table under the file's and the flags') and the scenario's
+    Earth's-shadow outages added to it once (with_eclipse), as the plain constructor adds them to the
+    scenario's measurement."""
+    return with_eclipse(layered_job(MonteCarloConfig, "montecarlo", scenario, config_path, overrides, fields,
+                                    base={"measurement": {}}))
 
 
 def with_eclipse(cfg: MonteCarloConfig) -> MonteCarloConfig:

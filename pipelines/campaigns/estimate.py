@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass, field
+import warnings
+from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import ConfigError, InputError, check, from_dict, resolve_job_config, to_dict, to_toml
+from envisat_pose.config import Config, ConfigError, InputError, check, from_dict, to_dict, to_toml
 from envisat_pose.contracts import Estimates, TruthTrajectory
 from envisat_pose.datagen.scenario import (
     ScenarioConfig,
@@ -32,7 +33,7 @@ from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, 
 from envisat_pose.geometry import load_geometry
 from envisat_pose.io import atomic_write_text
 from envisat_pose.out_dirs import make_out_file_dirs
-from envisat_pose.pipelines.common.job_defaults import scenario_defaults
+from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, layered_job
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
 from envisat_pose.target import DEFAULT_TARGET, Target, is_default_file, load_target, resolve_target_path
 
@@ -40,30 +41,45 @@ MAX_OUTPUT_BYTES = 8 * 2**30  # P alone is R * T * 144 * 8 bytes
 
 
 @dataclass(frozen=True)
-class EstimateConfig:
-    """One `envisat estimate` job: measurements, filter, number of runs and the root seed.
+class EstimateConfig(Config):
+    """One `envisat estimate` job, complete and validated when built: `EstimateConfig(scenario=NAME, runs=4)` is
+    the config of `envisat estimate --scenario NAME --runs 4` (pipelines.jobs.resolve_job adds a config file and
+    flags). scenario: the named scenario whose truth is simulated (None: a truth file's job; run_estimate takes
+    it as its scenario when given neither a truth file nor a scenario); measurement and filter left None take the
+    scenario's [measurement] and [filter] tables over the classes' defaults (job_defaults.fill_from_scenario; no
+    scenario: the defaults); runs and the root seed.
 
     Run r draws its initial error and noise from SeedSequence(seed).spawn(runs)[r]; with a scenario the
     truth's random initial attitude comes from the same seed.
     """
 
-    measurement: MeasurementConfig = field(default_factory=MeasurementConfig)
-    filter: FilterConfig = field(default_factory=FilterConfig)
+    scenario: str | None = None
+    measurement: MeasurementConfig | None = None
+    filter: FilterConfig | None = None
     runs: int = 1
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        fill_from_scenario(self, "estimate", ESTIMATE_FALLBACKS)
+        super().__post_init__()
 
     @classmethod
     def from_scenario(cls, name: str | None = None, config_path: str | None = None, overrides: dict | None = None,
                       **fields) -> "EstimateConfig":
-        """The job `envisat estimate --scenario NAME` runs: this config resolved from the named scenario, the TOML
-        file at config_path, then overrides ({'section.key': value}) and fields (pipelines/common/job_defaults.py's layers;
-        no name: none, for an estimate of a truth file)."""
-        flags = {**(overrides or {}), **fields}
-        return resolve_job_config(cls, scenario_defaults("estimate", name), config_path, flags)
+        """Deprecated (goes in the next release): EstimateConfig(scenario=NAME, ...), or pipelines.jobs.resolve_job
+        ("estimate", NAME, config_path, overrides, ...) for a config file and dotted flags; this is the latter."""
+        warnings.warn("EstimateConfig.from_scenario is deprecated and goes in the next release: use "
+                      "EstimateConfig(scenario=NAME, ...) (or pipelines.jobs.resolve_job for a config file)",
+                      DeprecationWarning, stacklevel=2)
+        return layered_job(cls, "estimate", name, config_path, overrides, fields)
 
     def validate(self, prefix: str = "") -> None:
         check(1 <= self.runs <= 100_000, "runs", self.runs, "a number of runs from 1 to 100000")
         check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")
+
+
+# what an estimate takes where its scenario (or a truth file's job, without one) sets nothing
+ESTIMATE_FALLBACKS = {"measurement": MeasurementConfig, "filter": FilterConfig}
 
 
 # ---------------------------------------------------------------- what a job takes from its truth
@@ -217,16 +233,19 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
 def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, scenario: str | None = None,
                  duration_s: float | None = None, plot: bool = False, rrd: str | None = None,
                  progress: bool = False) -> dict:
-    """The whole job: load or simulate the truth (load_truth), add a scenario's eclipse outages, filter
-    cfg.runs runs (estimate), write out (Estimates) and its config (output_paths), and with plot the errors'
-    PNG next to out, with rrd a Rerun recording. The output folders are made once the truth is read (a refused
-    truth writes nothing); the caller checks the paths (check_out_file) before any work.
+    """The whole job: load or simulate the truth (load_truth; given neither truth_path nor scenario,
+    cfg.scenario's), add a scenario's eclipse outages, filter cfg.runs runs (estimate), write out (Estimates)
+    and its config (output_paths), and with plot the errors' PNG next to out, with rrd a Rerun recording. The
+    output folders are made once the truth is read (a refused truth writes nothing); the caller checks the paths
+    (check_out_file) before any work.
 
     Returns {"config": the EstimateConfig run (outages added), "arrays": est.npz's arrays, "est": out,
     "config_toml": its path, "plot": the PNG's path or None, "rrd": rrd}.
     """
 
     out, cfg_path = estimate_output_paths(out)
+    if not truth_path and not scenario:
+        scenario = cfg.scenario
     truth, source = load_truth(cfg, truth_path, scenario, duration_s, progress)
     cfg = scenario_outages(cfg, scenario, truth)
     if len(truth.t_s) < 2:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import check, resolve_job_config, to_dict, to_toml
+from envisat_pose.config import Config, check, resolve_job_config, to_dict, to_toml
 from envisat_pose.io import atomic_write_text, json_safe
 from envisat_pose.named_scenarios import table
 from envisat_pose.out_dirs import make_out_dir
@@ -25,7 +25,7 @@ SWEEP_FIGURE = "rate_sweep.png"
 
 
 @dataclass(frozen=True)
-class SweepConfig:
+class SweepConfig(Config):
     """A rate sweep: one campaign per filter (and measurement) rate in rates_hz, Hz, each in its own folder.
 
     A rate converges when at most max_diverged_share of its runs were flagged diverged (the NIS monitor's false
@@ -37,14 +37,15 @@ class SweepConfig:
     max_diverged_share: float = 0.05
 
     def validate(self, prefix: str = "sweep") -> None:
-        check(1 <= len(self.rates_hz) <= 32, f"{prefix}.rates_hz", list(self.rates_hz), "1 to 32 rates in Hz")
+        p = f"{prefix}." if prefix else ""
+        check(1 <= len(self.rates_hz) <= 32, f"{p}rates_hz", list(self.rates_hz), "1 to 32 rates in Hz")
         for i, r in enumerate(self.rates_hz):
-            check(0.0 < r <= 100.0, f"{prefix}.rates_hz[{i}]", r, "a rate in (0, 100] Hz")
-        check(len(set(self.rates_hz)) == len(self.rates_hz), f"{prefix}.rates_hz", list(self.rates_hz),
+            check(0.0 < r <= 100.0, f"{p}rates_hz[{i}]", r, "a rate in (0, 100] Hz")
+        check(len(set(self.rates_hz)) == len(self.rates_hz), f"{p}rates_hz", list(self.rates_hz),
               "distinct rates")
-        check(self.max_rmse_over_pcrlb > 1.0, f"{prefix}.max_rmse_over_pcrlb", self.max_rmse_over_pcrlb,
+        check(self.max_rmse_over_pcrlb > 1.0, f"{p}max_rmse_over_pcrlb", self.max_rmse_over_pcrlb,
               "a ratio above 1")
-        check(0.0 <= self.max_diverged_share < 1.0, f"{prefix}.max_diverged_share", self.max_diverged_share,
+        check(0.0 <= self.max_diverged_share < 1.0, f"{p}max_diverged_share", self.max_diverged_share,
               "a share in [0, 1)")
 
 

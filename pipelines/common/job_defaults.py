@@ -1,11 +1,12 @@
-"""What a job's config takes from a named scenario, and what a job needs before any work: the layers under the
-config file and the flags that each job config's `from_scenario` resolves (pipelines/jobs.py's resolve_job runs
-them by the job's name).
+"""What a job's config takes from a named scenario, below the job configs (which fill themselves from it when
+built) and below pipelines/jobs.py (which layers a file and flags over it).
 
 `scenario_defaults`: the tracker's filter under the scenario's [filter] table, its [measurement] table, its
-duration and camera rate, the chaser's orbit and the gravity-gradient switch; `with_default_weights` and
-`check_weights`: the shipped detector weights where none are named, and the file checked; `run_complete`: a worker
-per run up to the cores. Errors name the config field ('weights', 'measurement.rate_hz').
+duration and camera rate, the chaser's orbit and the gravity-gradient switch; `fill_from_scenario`: a config's
+fields left None filled from it when the config is built; `layered_job`: the config built from the scenario's
+part, a TOML file and flags (what `resolve_job` runs); `default_weights_path` and `check_weights`: the shipped
+detector weights where none are named, and the file checked. Errors name the config field ('weights',
+'measurement.rate_hz').
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import os
 from typing import Any, Callable
 
 from envisat_pose import named_scenarios
-from envisat_pose.config import InputError, field_value
+from envisat_pose.config import InputError, field_value, resolve_job_config
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
 
 JOBS = ("simulate", "estimate", "montecarlo", "run", "track")
@@ -51,10 +52,10 @@ def scenario_defaults(kind: str, scenario: str) -> dict:
 
 
 def fill_from_scenario(cfg: Any, kind: str, fallbacks: dict[str, Callable[[], Any]]) -> None:
-    """The plain constructor's half of one job: each field of cfg named in fallbacks and left None takes what
-    cfg.scenario sets for a `kind` job (scenario_defaults: the layer `from_scenario` puts under the file and the
-    flags), or fallbacks[name]() where the scenario sets nothing. So `Cfg(scenario=NAME)` and
-    `Cfg.from_scenario(NAME)` are one job; a field given explicitly is kept. Called from a frozen config's
+    """What a job's constructor takes from its scenario: each field of cfg named in fallbacks and left None takes
+    what cfg.scenario sets for a `kind` job (scenario_defaults: the layer layered_job puts under the file and
+    the flags), or fallbacks[name]() where the scenario sets nothing; a field given explicitly is kept. So
+    `Cfg(scenario=NAME, ...)` is the job `resolve_job(KIND, NAME, ...)` builds. Called from a frozen config's
     __post_init__ (its stage types resolvable first)."""
     missing = [name for name in fallbacks if getattr(cfg, name) is None]
     if not missing:
@@ -65,26 +66,29 @@ def fill_from_scenario(cfg: Any, kind: str, fallbacks: dict[str, Callable[[], An
         object.__setattr__(cfg, name, value)
 
 
-def run_complete(data: dict) -> dict:
-    """A run's values that depend on others: one worker per run, at most one per core; the shipped weights."""
-    if "workers" not in data:
-        runs = data.get("runs", 1)
-        data["workers"] = max(1, min(runs if isinstance(runs, int) else 1, os.cpu_count() or 1))
-    return with_default_weights(data)
+def layered_job(cls: type, kind: str, scenario: str | None, config_path: str | None,
+                overrides: dict[str, Any] | None, fields: dict[str, Any], base: dict | None = None) -> Any:
+    """The config `cls` of a `kind` job built from layers, each over the last: `base` (tables the job always
+    gives, {} by default), what the named scenario sets (scenario_defaults), the TOML file at config_path, the
+    overrides {'section.key': value} (None: not given; a dict value merges into its table) and the fields
+    (top-level keys). The job's scenario is `scenario`, whatever the file says. Built by from_dict through the
+    constructor, which completes and validates it; the implementation of pipelines.jobs.resolve_job (and of the
+    deprecated `Cfg.from_scenario`)."""
+
+    def named(data: dict) -> dict:
+        return {**data, "scenario": scenario}
+
+    defaults = {**(base or {}), **scenario_defaults(kind, scenario)}
+    flags = {**(overrides or {}), **fields}
+    return resolve_job_config(cls, defaults, config_path, flags, named)
 
 
 def default_weights_path() -> str:
-    """The shipped detector weights (perception.weights.shipped_weights_path); an error naming the path when absent."""
+    """The shipped detector weights (perception.weights.shipped_weights_path); an error naming the path when absent.
+    The first call imports torch (the weights' module)."""
     from envisat_pose.perception.weights import shipped_weights_path
 
     return shipped_weights_path()
-
-
-def with_default_weights(data: dict) -> dict:
-    """A config dict with the shipped weights where it names none (the run and track jobs' default)."""
-    if not data.get("weights"):
-        data["weights"] = default_weights_path()
-    return data
 
 
 def check_weights(path: str) -> None:

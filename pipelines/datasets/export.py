@@ -23,16 +23,15 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from envisat_pose.config import InputError, check
+from envisat_pose.config import Config, InputError, check
 from envisat_pose.datagen import export_formats as fx
 from envisat_pose.datagen.generate_config import config_from_json
 from envisat_pose.geometry import load_camera
 from envisat_pose.out_dirs import check_out_dir
-from envisat_pose.pipelines.common.dataset_inputs import skip_hint
 from envisat_pose.pipelines.datasets import export_layouts as lay
 from envisat_pose.pipelines.datasets.export_readme import readme_text
 from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
-from envisat_pose.shard_reader import checked_shards, read_shard
+from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, read_shard, skip_hint
 from envisat_pose.target import load_target
 from envisat_pose.target_mesh import ply_bytes
 
@@ -40,7 +39,7 @@ STAGE_PREFIX = ".tmp-export-"
 
 
 @dataclass(frozen=True)
-class ExportConfig:
+class ExportConfig(Config):
     """fmt: speedplus | coco | bop | yolo-pose. image_format: png (the shards' bytes) or jpg (quality 95); bop
     ignores it (its train_pbr images are always JPEG, as the BOP toolkit expects).
     val_fraction: share of the images in the validation split (None: 0.2 for random views, 0 for a sequence,
@@ -54,11 +53,12 @@ class ExportConfig:
     seed: int = 0
     target: str | None = None
 
-    def validate(self) -> None:
-        check(self.fmt in fx.FORMATS, "format", self.fmt, " | ".join(fx.FORMATS))
-        check(self.image_format in ("png", "jpg"), "image_format", self.image_format, "png or jpg")
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(self.fmt in fx.FORMATS, f"{p}format", self.fmt, " | ".join(fx.FORMATS))
+        check(self.image_format in ("png", "jpg"), f"{p}image_format", self.image_format, "png or jpg")
         vf = self.val_fraction
-        check(vf is None or 0.0 <= vf < 1.0, "val_fraction", vf, "a fraction in [0, 1)")
+        check(vf is None or 0.0 <= vf < 1.0, f"{p}val_fraction", vf, "a fraction in [0, 1)")
 
 
 @dataclass(frozen=True)
@@ -76,14 +76,11 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     """Export the dataset folder `src` into the new folder `out_dir` in cfg's format (module docstring).
     on_shard(count): called after each shard (a progress hook). InputError for a bad argument, a missing or
     damaged dataset (naming the shard) or an `out_dir` that exists and holds anything."""
-    from envisat_pose.datagen.dataset import load_manifest
-
-    cfg.validate()
     check(workers >= 1, "workers", workers, "at least 1")
     check_out_dir(out_dir, field="out_dir")
     if os.path.isdir(out_dir) and os.listdir(out_dir):
         raise InputError(f"out_dir {out_dir!r} exists and is not empty: an export writes a new folder")
-    manifest = load_manifest(src)
+    manifest = load_dataset_manifest(src, "src")
     with skip_hint():
         shards, skipped = checked_shards(src, skip_damaged, "src")
     gen = _generate_config(src, manifest)

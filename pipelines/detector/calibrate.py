@@ -19,7 +19,7 @@ import json
 import os
 from dataclasses import dataclass
 
-from envisat_pose.config import InputError, check
+from envisat_pose.config import Config, InputError, check
 from envisat_pose.datagen.generate_config import nest_moved_keys
 from envisat_pose.geometry import load_geometry
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
@@ -27,12 +27,12 @@ from envisat_pose.perception import errormodel as em
 from envisat_pose.perception.calibrate import calibration_by_group, fit_cov_scale, fit_floor
 from envisat_pose.pipelines.detector.detect import camera_samples
 from envisat_pose.provenance import dataset_ref
-from envisat_pose.shard_reader import checked_shards
+from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
 from envisat_pose.target import require_envisat_dataset
 
 
 @dataclass(frozen=True)
-class CalibrateJobConfig:
+class CalibrateJobConfig(Config):
     """One `envisat calibrate` job. weights: the detector's weights file (the fits go into a copy of it); roi:
     "coarse" (the detector's own coarse pass) or "labels" (the labels' region of interest, as the closed loop
     gives it); keep_scale: leave the file's cov_scale and cov_calibration (write the error model only); refine:
@@ -117,19 +117,17 @@ def flat_errors(frames: dict, refined: bool | None = None):
     return frames["err_px"][hit], frames["cov_px"][hit], groups
 
 
-def is_sequence(path: str) -> bool:
-    """Whether a dataset folder was made by `envisat generate --mode sequence` (its manifest's config)."""
-    try:
-        with open(os.path.join(path, "manifest.json")) as fh:
-            return json.load(fh).get("config", {}).get("mode") == "sequence"
-    except (OSError, ValueError, AttributeError):
-        return False
+def is_sequence(path: str, field: str = "data") -> bool:
+    """Whether a dataset folder was made by `envisat generate --mode sequence` (its manifest's config; a folder
+    without a manifest is not). InputError naming the field when its manifest is not a dataset's."""
+    manifest = load_dataset_manifest(path, field, required=False)
+    return manifest is not None and (manifest.get("config") or {}).get("mode") == "sequence"
 
 
-def frame_interval_s(path: str) -> float:
+def frame_interval_s(path: str, field: str = "data") -> float:
     """A sequence dataset's frame interval, s (its manifest's config)."""
-    with open(os.path.join(path, "manifest.json")) as fh:
-        return float(nest_moved_keys(json.load(fh)["config"]).get("sequence", {}).get("frame_dt_s", 1.0))
+    config = load_dataset_manifest(path, field).get("config") or {}
+    return float(nest_moved_keys(config).get("sequence", {}).get("frame_dt_s", 1.0))
 
 
 def sequence_input(frames: dict, dt_s: float) -> dict:
@@ -154,7 +152,7 @@ def data_shards(data: list[str], skip_damaged: bool, field: str = "data") -> tup
             continue
         require_envisat_dataset(d, field, "calibrate")
         paths[d], left_out = checked_shards(d, skip_damaged, field)
-        if left_out and is_sequence(d):
+        if left_out and is_sequence(d, field):
             raise InputError(f"{field} {d!r}: a sequence with damaged shard(s) {', '.join(left_out)}: left out, its "
                              "frames would no longer follow each other; regenerate them (`envisat generate` with the "
                              "same settings on the folder redoes them)")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 
-from envisat_pose.config import InputError, check
+from envisat_pose.config import Config, InputError, check
 from envisat_pose.contracts import Detections
 from envisat_pose.io import save_npz
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
@@ -20,7 +20,7 @@ from envisat_pose.target import require_envisat_dataset
 
 
 @dataclass(frozen=True)
-class DetectJobConfig:
+class DetectJobConfig(Config):
     """One `envisat detect` job. weights: the detector's weights file; device: torch device ("cpu", "cuda");
     limit: only the first N frames (None: all); roi: an ROI file (key (M,), roi_px (M, 3)) whose frames skip the
     coarse pass (None: every frame gets it); refine: refine the named corners on the full-resolution pixels

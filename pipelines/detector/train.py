@@ -8,7 +8,6 @@ hash, the initial weights by name and hash; no path of the machine it ran on).
 
 from __future__ import annotations
 
-import hashlib
 import os
 import subprocess
 from dataclasses import dataclass
@@ -19,7 +18,8 @@ from envisat_pose.io import sha256_file
 from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, look_shares
 from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_identity
-from envisat_pose.shard_reader import checked_shards
+from envisat_pose.provenance import manifest_sha256
+from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
 from envisat_pose.target import require_envisat, require_envisat_dataset
 
 
@@ -91,20 +91,12 @@ def git_hash() -> str:
 def dataset_provenance(data_dir: str, skipped: list[str] = ()) -> dict:
     """A dataset by its folder's name, its manifest's sha256 and image count (None where it has no manifest): the
     images trained on, the shards `skipped` (damaged, --skip-damaged) left out."""
-    manifest = os.path.join(data_dir, "manifest.json")
-    record = {"name": os.path.basename(os.path.normpath(data_dir)), "manifest_sha256": None, "images": None}
-    if os.path.isfile(manifest):
-        import json
-
-        with open(manifest, "rb") as fh:
-            raw = fh.read()
-        record["manifest_sha256"] = hashlib.sha256(raw).hexdigest()
-        try:
-            manifest = json.loads(raw)
-            left_out = sum(int(sh.get("count", 0)) for sh in manifest.get("shards", []) if sh.get("name") in skipped)
-            record["images"] = manifest.get("num_images") - left_out if manifest.get("num_images") else None
-        except (ValueError, AttributeError, TypeError):
-            pass
+    manifest = load_dataset_manifest(data_dir, "data_dirs", required=False)
+    record = {"name": os.path.basename(os.path.normpath(data_dir)), "manifest_sha256": manifest_sha256(data_dir),
+              "images": None}
+    if manifest is not None and isinstance(manifest.get("num_images"), int) and manifest["num_images"]:
+        left_out = sum(sh.get("count", 0) for sh in manifest["shards"] if sh["name"] in skipped)
+        record["images"] = manifest["num_images"] - left_out
     return record
 
 

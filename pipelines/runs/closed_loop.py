@@ -44,7 +44,7 @@ from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import make_out_dir
 from envisat_pose.pipelines.runs.frame_loop import FrameInput, run_frames
 from envisat_pose.pipelines.runs.rows import STAGES, RunRows
-from envisat_pose.pipelines.runs.run_config import RunConfig, finish_config, run_config_from_json, sun_and_shadow
+from envisat_pose.pipelines.runs.run_config import RunConfig, run_config_from_json, sun_and_shadow
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, score_run_files, write_run_files
 from envisat_pose.pipelines.tracking.onboard import chaser_function, onboard_physics, orbit_config
 from envisat_pose.pipelines.tracking.tracker import Tracker
@@ -188,7 +188,6 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
     them chunk by chunk (what stays whole: the truth, and a few scalars per frame: the errors the scores need
     and the status)."""
 
-    cfg = finish_config(cfg)  # idempotent: a RunConfig a user builds runs as the app's does
     make_out_dir(out_dir, parents=True, field="out_dir")
     names = [os.path.basename(p) for p in run_output_paths(out_dir).values()]
     with staged_folder(out_dir, names) as stage:

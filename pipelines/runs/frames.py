@@ -23,7 +23,8 @@ import numpy as np
 
 from envisat_pose.config import InputError
 from envisat_pose.datagen.generate_config import nest_moved_keys
-from envisat_pose.shard_reader import checked_shards
+from envisat_pose.resumable import manifest_path
+from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
 from envisat_pose.target import require_envisat_dataset
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
@@ -257,7 +258,7 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
     if rate_hz and timestamps:
         raise InputError("rate_hz and `timestamps`: give one of them (the frame times)")
     if os.path.isdir(src):
-        if os.path.isfile(os.path.join(src, "manifest.json")):
+        if os.path.isfile(manifest_path(src)):
             for flag, value in (("rate_hz", rate_hz), ("timestamps", timestamps), ("bit_depth", bit_depth)):
                 if value:
                     raise InputError(f"{flag} does not apply to a generate folder ({src!r}: its labels give the "
@@ -317,10 +318,10 @@ def dataset_source(path: str, skip_damaged: bool = False) -> FrameSource:
     """A sequence-mode generate folder: times, truth and scenario from the labels and the manifest; its shards
     checked against the manifest (shard_reader.checked_shards: a damaged one refused, or left out with
     skip_damaged: its frames are then missing from the sequence, the times say where)."""
-    from envisat_pose.datagen.dataset import iter_samples, load_manifest
+    from envisat_pose.datagen.dataset import iter_samples
 
     require_envisat_dataset(path, "src", "track` / `envisat adapt")
-    manifest = load_manifest(path)
+    manifest = load_dataset_manifest(path, "src")
     cfg = manifest.get("config", {})
     if cfg.get("mode") != "sequence":
         raise InputError(f"src {path!r}: a generate folder of mode {cfg.get('mode')!r}; expected one written "

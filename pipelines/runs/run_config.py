@@ -1,17 +1,20 @@
-"""The config of `envisat run` (RunConfig) and what finishing it makes explicit: the image factory's sequence
-fields and the sun (finish_config), and the sun and the Earth's shadow per frame along the chaser's orbit
-(sun_and_shadow). The closed loop (pipelines/runs/closed_loop.py) runs a finished RunConfig."""
+"""The config of `envisat run` (RunConfig), complete when built: the scenario's duration, rate and filter, a
+worker per run, the shipped weights, the image factory's sequence fields and the sun (finished_image); and the
+sun and the Earth's shadow per frame along the chaser's orbit (sun_and_shadow). The closed loop
+(pipelines/runs/closed_loop.py) runs a RunConfig as it is."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import warnings
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from envisat_pose.config import check, from_dict, resolve_job_config
+from envisat_pose.config import Config, check, from_dict
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.scenario import in_earth_shadow, scenario_config, scenario_eclipse
@@ -19,9 +22,9 @@ from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import load_camera
 from envisat_pose.pipelines.common.job_defaults import (
     check_weights,
+    default_weights_path,
     fill_from_scenario,
-    run_complete,
-    scenario_defaults,
+    layered_job,
 )
 from envisat_pose.pipelines.tracking.onboard import orbit_config
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, TrackerConfig
@@ -39,23 +42,26 @@ def _image_defaults() -> "GenerateConfig":
 
 
 @dataclass(frozen=True)
-class RunConfig:
-    """One `envisat run` job. scenario: named truth; duration_s: simulated time; rate_hz: camera and filter rate;
-    filter: the UKF (the scenario's [filter] table over TRACKER_FILTER). Those three left None take the scenario's
-    when the config is made (job_defaults.fill_from_scenario; its duration and [measurement] rate, else 600 s and
-    1 Hz), so `RunConfig(scenario=NAME)` is the job of `RunConfig.from_scenario(NAME)` and `envisat run`;
-    runs: closed loops on the same truth; workers: processes for them; seed: the truth's random attitude, every
-    run's camera noise (and warm start); weights: detector weights file. warm_start: start each run's filter from
-    the truth plus a draw from filter.p0_sigma (filter studies), instead of cold from the images. threads: torch
-    CPU threads per run; jpeg_quality: run 0's images in the recording. image: the camera frames as the image
-    factory's sequence mode makes them (its sequence fields are set from the ones above). tracker:
-    pipelines.tracker.TrackerConfig."""
+class RunConfig(Config):
+    """One `envisat run` job, complete and validated when built: `RunConfig(scenario=NAME, runs=4)` is the job of
+    `envisat run --scenario NAME --runs 4` (pipelines.jobs.resolve_job adds a config file and flags).
+
+    scenario: named truth; duration_s: simulated time; rate_hz: camera and filter rate; filter: the UKF (the
+    scenario's [filter] table over TRACKER_FILTER). Those three left None take the scenario's (its duration and
+    [measurement] rate, else 600 s and 1 Hz; job_defaults.fill_from_scenario). runs: closed loops on the same
+    truth; workers: processes for them (None: one per run, at most one per core); seed: the truth's random
+    attitude, every run's camera noise (and warm start); weights: detector weights file ("": the shipped ones;
+    the file must exist). warm_start: start each run's filter from the truth plus a draw from filter.p0_sigma
+    (filter studies), instead of cold from the images. threads: torch CPU threads per run; jpeg_quality: run 0's
+    images in the recording. image: the camera frames as the image factory's sequence mode makes them (its
+    sequence fields, seed and frame count are set from the ones above, its sun made explicit: finished_image).
+    tracker: pipelines.tracker.TrackerConfig."""
 
     scenario: str = "default"
     duration_s: float | None = None
     rate_hz: float | None = None
     runs: int = 1
-    workers: int = 1
+    workers: int | None = None
     seed: int = 0
     weights: str = ""
     warm_start: bool = False
@@ -67,18 +73,24 @@ class RunConfig:
 
     def __post_init__(self) -> None:
         fill_from_scenario(self, "run", RUN_FALLBACKS)
+        if self.workers is None:  # one process per run, at most one per core
+            object.__setattr__(self, "workers", max(1, min(self.runs, os.cpu_count() or 1)))
+        if not self.weights:
+            object.__setattr__(self, "weights", default_weights_path())
+        super().__post_init__()
+        check_weights(self.weights)
+        # after validation: the frame count needs a valid duration and rate
+        object.__setattr__(self, "image", finished_image(self))
 
     @classmethod
     def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
                       **fields) -> "RunConfig":
-        """The job `envisat run --scenario NAME` runs: this config resolved from the named scenario, the TOML
-        file at config_path, then overrides ({'section.key': value}) and fields (pipelines/common/job_defaults.py's layers),
-        one worker per run up to the cores, the shipped weights where none are named; finished (finish_config)."""
-        run_stage_types()
-        flags = {**(overrides or {}), **fields, "scenario": name}  # the named scenario is the job's, whatever the file
-        cfg = resolve_job_config(cls, scenario_defaults("run", name), config_path, flags, run_complete)
-        check_weights(cfg.weights)
-        return finish_config(cfg)
+        """Deprecated (goes in the next release): RunConfig(scenario=NAME, ...), or pipelines.jobs.resolve_job
+        ("run", NAME, config_path, overrides, ...) for a config file and dotted flags; this is the latter."""
+        warnings.warn("RunConfig.from_scenario is deprecated and goes in the next release: use "
+                      "RunConfig(scenario=NAME, ...) (or pipelines.jobs.resolve_job for a config file)",
+                      DeprecationWarning, stacklevel=2)
+        return layered_job(cls, "run", name, config_path, overrides, fields)
 
     def validate(self, prefix: str = "") -> None:
         check(self.duration_s > 0, "duration_s", self.duration_s, "a positive duration in s")
@@ -107,9 +119,10 @@ def run_stage_types() -> None:
     globals()["GenerateConfig"] = GenerateConfig
 
 
-def finish_config(cfg: RunConfig) -> RunConfig:
-    """The image config's sequence fields from the run's (mode, scenario, seed, frames, frame period) and the sun
-    made explicit (the scenario's [eclipse] sun, else DEFAULT_SUN_C0 at t = 0 turned into N)."""
+def finished_image(cfg: RunConfig) -> "GenerateConfig":
+    """cfg.image with its sequence fields from the run's (mode, scenario, seed, frames, frame period) and the sun
+    made explicit (the scenario's [eclipse] sun, else DEFAULT_SUN_C0 at t = 0 turned into N); a sun already set
+    is kept, so a finished image comes back unchanged (RunConfig.__post_init__ runs it on every build)."""
 
     n = n_frames(cfg)
     sun = cfg.image.sun_dir
@@ -122,9 +135,8 @@ def finish_config(cfg: RunConfig) -> RunConfig:
             s_C = np.asarray(DEFAULT_SUN_C0) / np.linalg.norm(DEFAULT_SUN_C0)
             sun = tuple(round(float(v), 9) for v in orb.R_N_from_C[0] @ s_C)
     sequence = dataclasses.replace(cfg.image.sequence, scenario=cfg.scenario, frame_dt_s=1.0 / cfg.rate_hz)
-    image = dataclasses.replace(cfg.image, mode="sequence", sequence=sequence, seed=cfg.seed, num_images=n,
-                                shard_size=n, sun_dir=sun)
-    return dataclasses.replace(cfg, image=image)
+    return dataclasses.replace(cfg.image, mode="sequence", sequence=sequence, seed=cfg.seed, num_images=n,
+                               shard_size=n, sun_dir=sun)
 
 
 def n_frames(cfg: RunConfig) -> int:

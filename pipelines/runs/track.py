@@ -21,12 +21,13 @@ from __future__ import annotations
 import json
 import os
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from envisat_pose.config import check, resolve_job_config, to_dict, to_toml
+from envisat_pose.config import Config, check, to_dict, to_toml
 from envisat_pose.datagen.scenario import OrbitConfig
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
@@ -34,9 +35,9 @@ from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import check_out_dir, make_out_dir
 from envisat_pose.pipelines.common.job_defaults import (
     check_weights,
+    default_weights_path,
     fill_from_scenario,
-    scenario_defaults,
-    with_default_weights,
+    layered_job,
 )
 from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
 from envisat_pose.pipelines.runs.frames import FrameSource, open_source, scan_source
@@ -55,15 +56,16 @@ if TYPE_CHECKING:  # the stage's type for annotations (track_stage_types resolve
 
 
 @dataclass(frozen=True)
-class TrackConfig:
-    """One `envisat track` job. scenario: where the chaser's orbit, the target's dynamics and the filter's tuning
-    come from (a generate folder's own scenario wins in the verb); orbit: the chaser's Keplerian orbit (datagen's
+class TrackConfig(Config):
+    """One `envisat track` job, complete and validated when built: `TrackConfig(scenario=NAME, rate_hz=2.0)` is
+    the job of `envisat track --scenario NAME --rate-hz 2` (pipelines.jobs.resolve_job adds a config file and
+    flags). scenario: where the chaser's orbit, the target's dynamics and the filter's tuning come from (a
+    generate folder's own scenario wins in the verb); orbit: the chaser's Keplerian orbit (datagen's
     OrbitConfig); gravity_gradient: the target feels the gravity-gradient torque; filter: the UKF (the scenario's
-    [filter] table over TRACKER_FILTER). Those three left None take the scenario's when the config is made
-    (job_defaults.fill_from_scenario), so `TrackConfig(scenario=NAME)` is the job of
-    `TrackConfig.from_scenario(NAME)` and of `envisat track --scenario NAME`. rate_hz: frame rate of an image
-    folder or a video (0: a video's own rate); weights: detector weights ("": the shipped ones); threads: torch
-    CPU threads; jpeg_quality: the recording's images. tracker: as `envisat run`."""
+    [filter] table over TRACKER_FILTER). Those three left None take the scenario's
+    (job_defaults.fill_from_scenario). rate_hz: frame rate of an image folder or a video (0: a video's own
+    rate); weights: detector weights ("": the shipped ones; the file must exist); threads: torch CPU threads;
+    jpeg_quality: the recording's images. tracker: as `envisat run`."""
 
     scenario: str = "default"
     orbit: "OrbitConfig | None" = None
@@ -78,18 +80,21 @@ class TrackConfig:
     def __post_init__(self) -> None:
         track_stage_types()
         fill_from_scenario(self, "track", TRACK_FALLBACKS)
+        if not self.weights:
+            object.__setattr__(self, "weights", default_weights_path())
+        super().__post_init__()
+        check_weights(self.weights)
 
     @classmethod
     def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
                       **fields) -> "TrackConfig":
-        """The job `envisat track --scenario NAME` runs: this config resolved from the named scenario, the TOML
-        file at config_path, then overrides ({'section.key': value}) and fields (pipelines/common/job_defaults.py's layers),
-        the shipped weights where none are named."""
+        """Deprecated (goes in the next release): TrackConfig(scenario=NAME, ...), or pipelines.jobs.resolve_job
+        ("track", NAME, config_path, overrides, ...) for a config file and dotted flags; this is the latter."""
+        warnings.warn("TrackConfig.from_scenario is deprecated and goes in the next release: use "
+                      "TrackConfig(scenario=NAME, ...) (or pipelines.jobs.resolve_job for a config file)",
+                      DeprecationWarning, stacklevel=2)
         track_stage_types()
-        flags = {**(overrides or {}), **fields, "scenario": name}  # the named scenario is the job's, whatever the file
-        cfg = resolve_job_config(cls, scenario_defaults("track", name), config_path, flags, with_default_weights)
-        check_weights(cfg.weights)
-        return cfg
+        return layered_job(cls, "track", name, config_path, overrides, fields)
 
     def validate(self, prefix: str = "") -> None:
         check(self.rate_hz >= 0, "rate_hz", self.rate_hz, "a frame rate in Hz (0: a video's own)")
@@ -123,12 +128,8 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
                    remap=None, progress: bool = False) -> tuple:
     """A user's frames made ready for a job over them (track_frames, adapt): the source opened (a path at
     cfg.rate_hz), the camera read (a TOML file: its remap too) or the MJCF's at the frames' size, every frame
-    scanned once (frames.scan_source: one size, decodable, at least the cold start's frames), cfg's weights
-    filled with the shipped ones where it names none. Returns (cfg, source, camera, remap, pixels)."""
-    import dataclasses
-
-    from envisat_pose.perception.weights import shipped_weights_path
-
+    scanned once (frames.scan_source: one size, decodable, at least the cold start's frames). Returns (cfg,
+    source, camera, remap, pixels); cfg as given (complete when built: its weights named)."""
     if isinstance(source, str):
         source = open_source(source, cfg.rate_hz)
     if isinstance(camera, str):
@@ -137,8 +138,6 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
                          min_frames=cfg.tracker.acquire.frames, progress=progress)
     if camera is None:
         camera = tracker_camera(size_px=source.size_px)
-    if not cfg.weights:
-        cfg = dataclasses.replace(cfg, weights=shipped_weights_path())
     return cfg, source, camera, remap, pixels
 
 
@@ -148,8 +147,8 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     write est.npz, det.npz, track.config.toml, summary.json and the recording (out_dir/recording.rrd, or
     streamed to sink: 'spawn' or 'connect:URL'); with a truth also errors.png and the scores. camera: a
     PinholeCamera (remap: its cv2.remap maps, or None), a camera TOML file (camera_file.camera_from_intrinsics), or
-    None for the MJCF's chaser_cam at the frames' size; cfg.weights "": the shipped
-    ones (TrackConfig.from_scenario resolves the job `envisat track` runs). Every frame is read once before any
+    None for the MJCF's chaser_cam at the frames' size; cfg: TrackConfig(scenario=NAME, ...) (or
+    pipelines.jobs.resolve_job("track", ...), the job `envisat track` runs). Every frame is read once before any
     output (frames.scan_source: one size, decodable, at least the cold start's frames); every output is staged
     and moved into out_dir when complete (io.staged_folder). Returns the summary (its source's `pixels`: what
     the scan found of the pixels)."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 
 from envisat_pose import geometry, named_scenarios
-from envisat_pose.config import from_dict, to_dict
+from envisat_pose.config import InputError, from_dict, load_toml, to_dict
 from envisat_pose.datagen.scenario import OrbitConfig, scenario_config
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
@@ -45,12 +45,21 @@ def tracker_filter(overrides: FilterConfig | dict | None = None, scenario: str |
 
 def tracker_camera(path: str | None = None, size_px: tuple[int, int] | None = None):
     """The tracker's camera (geometry.PinholeCamera): the MJCF's chaser_cam (read out at size_px = (width,
-    height) when given: the same field of view), or a camera TOML file's ideal pinhole (fx, fy, cx, cy,
-    width, height; frames with distortion or non-square pixels need pipelines.camera_file.camera_from_intrinsics'
-    remap first)."""
+    height) when given: the same field of view), or a camera TOML file's pinhole (fx, fy, cx, cy, width, height).
+    A file whose frames are not ideal (distortion, or fx != fy) is refused in one line naming the key: the Tracker
+    takes ideal frames, and a bare pinhole would drop their undistortion (camera_file.camera_from_intrinsics
+    returns the camera with its cv2.remap maps; track_frames(camera=path) applies them to every frame)."""
 
     if path is not None:
-        return camera_from_intrinsics(path)[0]
+        cam, remap = camera_from_intrinsics(path)
+        if remap is not None:
+            data = load_toml(path)
+            why = (f"distortion = {data['distortion']!r}" if any(data.get("distortion") or ())
+                   else f"fx = {data['fx']!r}, fy = {data['fy']!r}")
+            raise InputError(f"{path}: {why}: frames of this camera need undistorting, which tracker_camera cannot "
+                             "carry; use camera_file.camera_from_intrinsics (the camera and its cv2.remap maps) or "
+                             "track_frames(camera=path)")
+        return cam
     cam = geometry.load_camera()
     if size_px is not None and tuple(size_px) != (cam.width_px, cam.height_px):
         cam = cam.scaled(int(size_px[0]), int(size_px[1]))

@@ -12,7 +12,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from envisat_pose.config import check
+from envisat_pose.config import Config, check
 from envisat_pose.gates import GATE_PROB, chi2_gate
 from envisat_pose.pipelines.tracking.noise import CORRELATION_IN, CORRELATION_MODELS
 
@@ -29,7 +29,7 @@ def _dot(prefix: str) -> str:
 
 
 @dataclass(frozen=True)
-class AcquireConfig:
+class AcquireConfig(Config):
     """The cold start (pipelines/tracking/acquisition.py).
 
     frames: lit frames with a PnP pose in the cold-start window; min_corners: named corners a frame needs for a
@@ -55,7 +55,7 @@ class AcquireConfig:
 
 
 @dataclass(frozen=True)
-class FitConfig:
+class FitConfig(Config):
     """The cold start's batch fit (acquisition.batch_fit).
 
     iterations, huber (whitened px), gate_prob (the probability a corner's 2-dof chi-square passes the fit's
@@ -79,7 +79,7 @@ class FitConfig:
 
 
 @dataclass(frozen=True)
-class BankConfig:
+class BankConfig(Config):
     """The bank of half-turn hypotheses and the evidence between them (pipelines/tracking/bank.py).
 
     decided: a half-turn hypothesis whose probability exceeds this wins and the other is dropped.
@@ -124,7 +124,7 @@ class BankConfig:
 
 
 @dataclass(frozen=True)
-class ArrayCueConfig:
+class ArrayCueConfig(Config):
     """The solar array cue (perception/arraycue.py, bank.array_log_likelihood).
 
     enabled: weigh the twins by the half-turn about y or z by where the image shows the solar array
@@ -153,7 +153,7 @@ class ArrayCueConfig:
 
 
 @dataclass(frozen=True)
-class RoiConfig:
+class RoiConfig(Config):
     """The region of interest and the priors the detector is given (tracker.predicted_roi, Tracker._look).
 
     enabled: look only in the predicted region of interest once converged; margin: its side over the predicted
@@ -191,7 +191,7 @@ class RoiConfig:
 
 
 @dataclass(frozen=True)
-class IntegrityConfig:
+class IntegrityConfig(Config):
     """Integrity and loss (pipelines/tracking/integrity.py): the tests a hypothesis' own evidence must pass every frame,
     the claim's bounds, and when a track is lost.
 
@@ -249,7 +249,7 @@ class IntegrityConfig:
 
 
 @dataclass(frozen=True)
-class NoiseConfig:
+class NoiseConfig(Config):
     """The filter's R and process noise from the detector (pipelines/tracking/noise.py).
 
     correlation_model: how R allows for the errors' frame-to-frame correlation (module doc): "filter_memory",
@@ -295,7 +295,7 @@ class NoiseConfig:
 
 
 @dataclass(frozen=True)
-class GateConfig:
+class GateConfig(Config):
     """Which covariance the tracker gates a corner against before the filter's update.
 
     raw: gate each corner against the detector's own covariance at the error model's scale (without the
@@ -339,7 +339,7 @@ MOVED_KEYS = {
 
 
 @dataclass(frozen=True)
-class TrackerConfig:
+class TrackerConfig(Config):
     """How the tracker uses the detector and the filter, one frozen section per component (each documents its
     fields and their measured justifications): acquire (the cold start's window), fit (its batch fit), bank (the
     half-turn hypotheses and the evidence between them), array_cue (the solar array cue), roi (the region of

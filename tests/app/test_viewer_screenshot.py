@@ -111,7 +111,7 @@ def looks_loaded(png: str) -> bool:
 def test_the_recording_opens_in_the_web_viewer(tmp_path, detector_weights, rerun_env):  # noqa: F811 (a fixture)
     from envisat_pose.pipelines.runs.run_config import RunConfig
 
-    cfg = RunConfig.from_scenario("default", duration_s=6.0, weights=detector_weights, workers=1, warm_start=True)
+    cfg = RunConfig(scenario="default", duration_s=6.0, weights=detector_weights, workers=1, warm_start=True)
     run_dir = tmp_path / "run"
     loop.run_closed_loop(cfg, str(run_dir), progress=False)
     port, web_port = free_ports(2)

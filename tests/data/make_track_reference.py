@@ -5,7 +5,7 @@ The two tracks:
 - closed: run_closed_loop on the default scenario, 256 px frames, 12 s at 1 Hz, seed 2, warm start (acquiring, then
   tracking: the Tracker's measure / bank / judge steps and the closed loop's run files);
 - track: track_frames over a 21-frame sequence folder (`envisat generate --mode sequence`, 256 px, seed 7) with the
-  default scenario's job (TrackConfig.from_scenario: the cold start's window and its first attempt; track.py's job
+  default scenario's job (TrackConfig(scenario="default"): the cold start's window and its first attempt; track.py's job
   and its scored run files).
 
 The arrays pass through MuJoCo's renderer, BLAS and torch, so another machine gives them to within a few parts per
@@ -43,11 +43,11 @@ def summarize(out_dir: str, prefix: str) -> dict[str, np.ndarray]:
 
 
 def closed_track(out_dir: str) -> dict[str, np.ndarray]:
+    from envisat_pose.pipelines.jobs import resolve_job
     from envisat_pose.pipelines.runs.closed_loop import run_closed_loop
-    from envisat_pose.pipelines.runs.run_config import RunConfig
 
-    cfg = RunConfig.from_scenario("default", overrides={"duration_s": 12.0, "seed": 2, "warm_start": True,
-                                                        "workers": 1, "image.resolution_px": 256})
+    cfg = resolve_job("run", "default", overrides={"duration_s": 12.0, "seed": 2, "warm_start": True,
+                                                   "workers": 1, "image.resolution_px": 256})
     run_closed_loop(cfg, out_dir, progress=False)
     return summarize(out_dir, "closed")
 
@@ -60,7 +60,7 @@ def frames_track(work: str) -> dict[str, np.ndarray]:
     assert main(["generate", "--mode", "sequence", "--scenario", "default", "--num-images", "21", "--seed", "7",
                  "--resolution", "256", "--workers", "1", "--out", gen, "--quiet"]) == 0
     out = os.path.join(work, "track")
-    track_frames(TrackConfig.from_scenario("default"), gen, out_dir=out, progress=False)
+    track_frames(TrackConfig(scenario="default"), gen, out_dir=out, progress=False)
     return summarize(out, "track")
 
 

@@ -1,10 +1,12 @@
-"""The one config resolution of every job: defaults, then the scenario's part, then the file, then the flags."""
+"""A config is validated when built (config.Config), and the layers of a config: defaults, then the scenario's
+part, then the file, then the flags."""
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import pytest
 
-from envisat_pose.config import ConfigError, InputError, check, resolve_job_config
+from envisat_pose.config import Config, ConfigError, InputError, check, from_dict, resolve_job_config
 
 
 @dataclass(frozen=True)
@@ -52,3 +54,49 @@ def test_problems_name_the_field_or_the_file(tmp_path):
         resolve_job_config(Job, {}, None, {"runs": 0}, prefix="sweep")
     with pytest.raises(InputError, match="does not exist"):
         resolve_job_config(Job, {}, str(tmp_path / "missing.toml"), {})
+
+
+@dataclass(frozen=True)
+class Rates(Config):
+    rate_hz: float = 1.0
+
+    def validate(self, prefix: str = "") -> None:
+        check(self.rate_hz > 0, f"{prefix + '.' if prefix else ''}rate_hz", self.rate_hz, "a positive rate")
+
+
+@dataclass(frozen=True)
+class Filled(Config):
+    """A config that fills a field left None before it is validated (as the job configs fill their scenario's)."""
+
+    runs: int = 1
+    workers: int | None = None
+    rates: Rates = field(default_factory=Rates)
+
+    def __post_init__(self) -> None:
+        if self.workers is None:
+            object.__setattr__(self, "workers", 2 * self.runs)
+        super().__post_init__()
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        check(self.runs >= 1, f"{p}runs", self.runs, "at least 1 run")
+        check(self.workers <= 8, f"{p}workers", self.workers, "at most 8 workers")
+
+
+def test_a_config_is_validated_when_built():
+    """The constructor, dataclasses.replace and from_dict all validate a Config, after its own filling; from_dict
+    names a nested table's field under the table, and a table nested deeper under both."""
+    assert Filled(runs=3).workers == 6
+    with pytest.raises(ConfigError, match=r"^runs = 0: expected at least 1 run"):
+        Filled(runs=0)
+    with pytest.raises(ConfigError, match=r"^workers = 10"):  # filled from runs, then validated
+        Filled(runs=5)
+    with pytest.raises(ConfigError, match=r"^rate_hz = -1"):
+        dataclasses.replace(Rates(), rate_hz=-1.0)
+    with pytest.raises(ConfigError, match=r"^rates\.rate_hz = -1"):
+        from_dict(Filled, {"rates": {"rate_hz": -1.0}})
+    with pytest.raises(ConfigError, match=r"^sweep\.workers = 10"):
+        from_dict(Filled, {"runs": 5}, prefix="sweep")
+    with pytest.raises(ConfigError, match=r"^sweep\.rates\.rate_hz = 0"):
+        from_dict(Filled, {"rates": {"rate_hz": 0}}, prefix="sweep")
+    assert from_dict(Filled, {"runs": 2, "rates": {"rate_hz": 3}}) == Filled(runs=2, rates=Rates(3.0))

@@ -94,3 +94,58 @@ def test_a_shard_failing_while_read_is_one_line_naming_it(tmp_path):
     assert isinstance(err.value, tarfile.TarError)  # what the dataset verifier lists as a problem
     with pytest.raises(ShardReadError):
         list(read_shard(str(tmp_path / "ds" / "absent.tar")))
+
+
+def test_the_one_shard_check_counts_the_samples_from_the_headers(tmp_path):
+    """shard_problem's last step, for an entry without a sha256, walks the tar's headers: a sample without its
+    image, another count than the manifest's, or a tar that cannot be walked is named; the walk agrees with
+    tarfile on a pax or GNU tar. A matching sha256 ends the check (the bytes are the factory's finished shard)."""
+    from envisat_pose.shard_reader import sample_suffixes, shard_problem, tar_member_names
+
+    paths = write_dataset(tmp_path / "ds", n_shards=1, per_shard=3)
+    entry = json.loads((tmp_path / "ds" / "manifest.json").read_text())["shards"][0]
+    assert shard_problem(paths[0], entry) is None
+    unhashed = {k: v for k, v in entry.items() if k != "sha256"}
+    assert shard_problem(paths[0], unhashed) is None
+    assert shard_problem(paths[0], {**unhashed, "count": 4}) == "3 samples, manifest says 4"
+    lacking = tmp_path / "lacking.tar"
+    with tarfile.open(lacking, "w", format=tarfile.USTAR_FORMAT) as tar:
+        for name in ("000000000.json", "000000000.png", "000000001.json"):
+            tar.addfile(tarfile.TarInfo(name), io.BytesIO(b""))
+    assert shard_problem(str(lacking), {"count": 2}) == "sample 000000001 lacks png"
+    truncate(paths[0], 3000)  # inside the second member's data; no size or sha256 to catch it first
+    assert shard_problem(paths[0], {"count": 3}).startswith("unreadable tar (ReadError: ")
+    for fmt in (tarfile.PAX_FORMAT, tarfile.GNU_FORMAT):  # long names: headers the quick walk leaves to tarfile
+        path = tmp_path / f"{fmt}.tar"
+        with tarfile.open(path, "w", format=fmt) as tar:
+            for name in ("a" * 120 + "/000000000.json", "a" * 120 + "/000000000.png", "000000001.json"):
+                tar.addfile(tarfile.TarInfo(name), io.BytesIO(b""))
+        with tarfile.open(path) as tar:
+            assert tar_member_names(str(path)) == tar.getnames()
+        assert [k for k, _ in sample_suffixes(str(path))] == ["a" * 120 + "/000000000", "000000001"]
+
+
+def test_the_dataset_manifest_reader_names_the_field_the_folder_and_the_entry(tmp_path):
+    from envisat_pose.shard_reader import load_dataset_manifest
+
+    write_dataset(tmp_path / "ds")
+    assert [e["name"] for e in load_dataset_manifest(str(tmp_path / "ds"))["shards"]] == [
+        "shard-000000.tar", "shard-000001.tar", "shard-000002.tar"]
+    (tmp_path / "none").mkdir()
+    assert load_dataset_manifest(str(tmp_path / "none"), required=False) is None
+    with pytest.raises(InputError, match=r"^--data '.*none': no manifest.json: not a generated dataset$"):
+        load_dataset_manifest(str(tmp_path / "none"), "--data")
+    manifest = tmp_path / "ds" / "manifest.json"
+    for record, why in (([], r"holds a JSON list, not an object"),
+                        ({"shards": [{"name": "../x.tar", "count": 1}]},
+                         r"not a dataset manifest \(shards\[0\].name = '../x.tar': expected a file name"),
+                        ({"shards": [{"name": "a.tar", "count": -1}]},
+                         r"shards\[0\].count = -1: expected a non-negative integer"),
+                        ({"shards": [{"name": "a.tar"}]}, r"shards\[0\]: expected an entry with a name and a count")):
+        manifest.write_text(json.dumps(record))
+        with pytest.raises(InputError, match=f"^dataset '.*ds': .*{why}") as err:
+            load_dataset_manifest(str(tmp_path / "ds"))
+        assert "\n" not in str(err.value)
+    manifest.write_text("{not json")
+    with pytest.raises(InputError, match=r"dataset '.*ds': unreadable manifest.json \("):
+        checked_shards(str(tmp_path / "ds"), field="dataset")

@@ -1,8 +1,11 @@
-"""The library runs the job the verb runs (issue 39): a named scenario resolves into the complete job in one place
-(pipelines/jobs.py; each config's from_scenario), and for every verb with a pipeline (simulate, estimate,
-montecarlo, run, track) the verb and the Python call on the same inputs and seed write the same arrays (NaN where
-NaN). Small jobs: seconds of simulated time, a few runs, small frames."""
+"""The library runs the job the verb runs (issues 39 and 54): the one way to build a job's config is its
+constructor (`RunConfig(scenario=NAME, runs=4)` is the job of `envisat run --scenario NAME --runs 4`), and
+pipelines/jobs.py's resolve_job reads the constructor's arguments from a file and flags, as the verbs do. For
+every verb with a pipeline (simulate, estimate, montecarlo, run, track) the verb and the Python call on the same
+inputs and seed write the same arrays (NaN where NaN). Small jobs: seconds of simulated time, a few runs, small
+frames."""
 
+import dataclasses
 import os
 
 import numpy as np
@@ -24,20 +27,19 @@ def test_a_scenario_resolves_into_the_job_the_verb_runs():
     """What the verbs take from a scenario: the tuned [filter] table under the tracker's, the gravity-gradient
     switch and orbit for track, the duration and rate for run, the eclipse outages for montecarlo."""
     from envisat_pose import named_scenarios
-    from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig
     from envisat_pose.pipelines.jobs import resolve_job
-    from envisat_pose.pipelines.runs.run_config import RunConfig
-    from envisat_pose.pipelines.runs.track import TrackConfig
 
     q = named_scenarios.scenario_tables("default")["filter"]
-    run = RunConfig.from_scenario("default", overrides={"tracker.roi.enabled": False}, duration_s=3.0)
+    run = resolve_job("run", "default", overrides={"tracker.roi.enabled": False}, duration_s=3.0)
     assert run.duration_s == 3.0 and not run.tracker.roi.enabled and run.weights and run.image.sun_dir is not None
     assert all(getattr(run.filter, k) == pytest.approx(v) for k, v in q.items() if not isinstance(v, dict))
-    track = TrackConfig.from_scenario("gravity-gradient", rate_hz=2.0)
+    track = resolve_job("track", "gravity-gradient", rate_hz=2.0)
     assert track.gravity_gradient and track.rate_hz == 2.0 and track.orbit is not None and track.weights
-    mc = MonteCarloConfig.from_scenario("eclipse", runs=2)
+    mc = resolve_job("montecarlo", "eclipse", runs=2)
     assert mc.measurement.outages_s and mc.runs == 2
-    assert MonteCarloConfig(scenario="eclipse") == mc.__class__.from_scenario("eclipse")  # the class resolves it too
+    est = resolve_job("estimate", "pixels-1px", overrides={"measurement.sigma_px": 2.0})
+    assert est.scenario == "pixels-1px" and est.measurement.kind == "pixels" and est.measurement.sigma_px == 2.0
+    assert resolve_job("estimate", None).scenario is None  # a truth file's job: no scenario, the classes' defaults
     assert resolve_job("simulate", "close-25m", seed=4).relative.rho0_C_m == (0.0, 25.0, 0.0)
 
 
@@ -47,31 +49,130 @@ def scenario_names():
     return named_scenarios.names()
 
 
-@pytest.mark.parametrize("name", scenario_names())
-def test_the_plain_constructor_with_a_scenario_is_the_scenarios_job(name):
-    """Cfg(scenario=NAME) and Cfg.from_scenario(NAME) are one job for every config with a scenario field: the
-    gravity-gradient switch, the orbit and the filter's tuning of track, the duration, rate and filter of run, the
-    duration, tables and eclipse outages of montecarlo (the plain constructor once took only part of them)."""
+def job_configs():
+    """{kind: the config class of a job with a scenario}."""
     from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig
-    from envisat_pose.pipelines.runs.run_config import RunConfig, finish_config
+    from envisat_pose.pipelines.campaigns.estimate import EstimateConfig
+    from envisat_pose.pipelines.runs.run_config import RunConfig
     from envisat_pose.pipelines.runs.track import TrackConfig
 
-    track = TrackConfig.from_scenario(name)
-    assert TrackConfig(scenario=name, weights=track.weights) == track
-    run = RunConfig.from_scenario(name)
-    assert finish_config(RunConfig(scenario=name, weights=run.weights, workers=run.workers)) == run
-    assert MonteCarloConfig(scenario=name) == MonteCarloConfig.from_scenario(name)
+    return {"run": RunConfig, "track": TrackConfig, "estimate": EstimateConfig, "montecarlo": MonteCarloConfig}
 
 
-def test_the_plain_constructor_and_from_scenario_give_the_same_estimates(tmp_path):
+@pytest.mark.parametrize("name", scenario_names())
+def test_the_plain_constructor_with_a_scenario_is_the_scenarios_job(name):
+    """Cfg(scenario=NAME) is exactly the job resolve_job(KIND, NAME) builds, for every job with a scenario: the
+    gravity-gradient switch, the orbit and the filter's tuning of track; the duration, rate, filter, workers,
+    shipped weights, image fields and sun of run; the tables of estimate; the duration, tables and eclipse
+    outages of montecarlo (the plain constructor once took only part of them)."""
+    from envisat_pose.config import to_dict
+    from envisat_pose.pipelines.jobs import resolve_job
+
+    for kind, cls in job_configs().items():
+        plain, resolved = cls(scenario=name), resolve_job(kind, name)
+        assert plain == resolved and to_dict(plain) == to_dict(resolved), kind
+
+
+def test_tracker_from_scenario_takes_the_track_jobs_scenario_parts():
+    """Tracker.from_scenario (a tracker, not a config: below the track job, so it cannot build a TrackConfig)
+    takes what TrackConfig(scenario=NAME) takes from each scenario: the filter, the orbit, the gravity gradient."""
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.pipelines.tracking.build import tracker_filter
+
+    for name in scenario_names():
+        job, truth = job_configs()["track"](scenario=name), scenario_config(name)
+        assert job.filter == tracker_filter(None, name), name
+        assert job.orbit == truth.orbit and job.gravity_gradient == truth.target.gravity_gradient, name
+
+
+def parsed(verb: list[str]):
+    from envisat_pose.app.cli import build_parser
+
+    return build_parser().parse_args(verb + ["--out", "unused"])
+
+
+def test_the_constructor_is_the_verbs_job_for_the_same_flags():
+    """`envisat KIND --scenario NAME --runs 4 ...` runs Cfg(scenario=NAME, runs=4, ...): the config each verb
+    resolves from its flags equals the constructor's with the same values (== and to_dict), for run, track,
+    estimate and montecarlo; the run's workers, shipped weights, image fields and sun, the campaign's eclipse
+    outages included."""
+    from envisat_pose.app import estimate, montecarlo, run
+    from envisat_pose.config import to_dict
+    from envisat_pose.pipelines.jobs import resolve_job
+
+    cfgs = job_configs()
+    pairs = [
+        (run.resolve_config(parsed(["run", "--scenario", "gravity-gradient", "--runs", "4", "--seed", "3",
+                                    "--duration-s", "5"])),
+         cfgs["run"](scenario="gravity-gradient", runs=4, seed=3, duration_s=5.0)),
+        (resolve_job("track", "slow-tumble", None, rate_hz=2.0, weights=None),  # what `envisat track` resolves
+         cfgs["track"](scenario="slow-tumble", rate_hz=2.0)),
+        (estimate.resolve_config(parsed(["estimate", "--scenario", "pixels-1px", "--runs", "4", "--seed", "3"])),
+         cfgs["estimate"](scenario="pixels-1px", runs=4, seed=3)),
+        (montecarlo.resolve_config(parsed(["montecarlo", "--scenario", "eclipse", "--runs", "4", "--seed", "3",
+                                           "--duration-s", "3000"])),
+         cfgs["montecarlo"](scenario="eclipse", runs=4, seed=3, duration_s=3000.0)),
+    ]
+    for verb, plain in pairs:
+        assert verb == plain and to_dict(verb) == to_dict(plain), type(plain).__name__
+    run_cfg = pairs[0][1]
+    assert run_cfg.workers == min(4, os.cpu_count() or 1) and os.path.isfile(run_cfg.weights)
+    assert run_cfg.image.num_images == 6 and run_cfg.image.seed == 3 and run_cfg.image.sun_dir is not None
+    assert pairs[3][1].measurement.outages_s  # the eclipse scenario's shadow, once
+
+
+def test_every_job_config_is_validated_when_built(tmp_path):
+    """A constructor (and dataclasses.replace) refuses what from_dict refuses, naming the field; a config file's
+    nested table is named under its table."""
+    from envisat_pose.config import ConfigError, InputError
+    from envisat_pose.filtering.estimator import FilterConfig
+    from envisat_pose.pipelines.jobs import resolve_job
+
+    cfgs = job_configs()
+    with pytest.raises(ConfigError, match=r"^runs = 0"):
+        cfgs["run"](runs=0)
+    with pytest.raises(ConfigError, match=r"^threads = 0"):
+        dataclasses.replace(cfgs["track"](), threads=0)
+    with pytest.raises(ConfigError, match=r"^runs = 0"):
+        cfgs["estimate"](scenario="default", runs=0)
+    with pytest.raises(ConfigError, match=r"^block_runs = 0"):
+        cfgs["montecarlo"](block_runs=0)
+    with pytest.raises(ConfigError, match=r"^p0_sigma = \[-1"):
+        FilterConfig(p0_sigma=(-1.0, 0.01, 0.044, 1.7e-3))
+    with pytest.raises(ConfigError, match=r"^filter\.p0_sigma = \[-1"):
+        resolve_job("estimate", "default", overrides={"filter.p0_sigma": [-1.0, 0.01, 0.044, 1.7e-3]})
+    with pytest.raises(ConfigError, match=r"^tracker\.acquire\.frames = 2"):
+        resolve_job("run", "default", overrides={"tracker.acquire.frames": 2})
+    with pytest.raises(ConfigError, match=r"^scenario = 'nope'"):
+        cfgs["run"](scenario="nope")
+    with pytest.raises(InputError, match=r"^weights '.*nope.safetensors': no such file"):
+        cfgs["track"](weights=str(tmp_path / "nope.safetensors"))
+
+
+@pytest.mark.parametrize("kind", ["run", "track", "estimate", "montecarlo"])
+def test_from_scenario_is_deprecated_and_still_the_same_job(kind):
+    """Cfg.from_scenario (one release): a DeprecationWarning naming the one way, and the job resolve_job builds."""
+    from envisat_pose.pipelines.jobs import resolve_job
+
+    cls = job_configs()[kind]
+    fields = {"rate_hz": 2.0} if kind == "track" else {"runs": 2}
+    with pytest.warns(DeprecationWarning, match=rf"{cls.__name__}\.from_scenario is deprecated .* use "
+                                                 rf"{cls.__name__}\(scenario=NAME, \.\.\.\)"):
+        old = cls.from_scenario("gravity-gradient", None, {"filter.adaptive_q": True}, **fields)
+    assert old == resolve_job(kind, "gravity-gradient", None, {"filter.adaptive_q": True}, **fields)
+    assert old.filter.adaptive_q and old.scenario == "gravity-gradient"
+
+
+def test_the_plain_constructor_and_resolve_job_give_the_same_estimates(tmp_path):
     """A short warm closed loop on the gravity-gradient scenario (its own [filter] tuning): the plain constructor
-    and from_scenario write the same est.npz and det.npz."""
+    and resolve_job write the same est.npz and det.npz."""
+    from envisat_pose.pipelines.jobs import resolve_job
     from envisat_pose.pipelines.runs.closed_loop import run_closed_loop
     from envisat_pose.pipelines.runs.run_config import RunConfig
 
     small = {"duration_s": 3.0, "seed": 5, "warm_start": True, "workers": 1}
-    resolved = RunConfig.from_scenario("gravity-gradient", overrides={**small, "image.resolution_px": 64})
-    plain = RunConfig(scenario="gravity-gradient", weights=resolved.weights, image=resolved.image, **small)
+    resolved = resolve_job("run", "gravity-gradient", overrides={**small, "image.resolution_px": 64})
+    plain = RunConfig(scenario="gravity-gradient", image=resolved.image, **small)
     from envisat_pose.filtering.estimator import FilterConfig
     from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
 
@@ -87,7 +188,7 @@ def test_library_errors_name_the_argument_and_the_verb_its_flag(tmp_path, capsys
     from envisat_pose.pipelines.runs.run_config import RunConfig
 
     with pytest.raises(InputError, match=r"^weights '.*nope.safetensors': no such file"):
-        RunConfig.from_scenario("default", weights=str(tmp_path / "nope.safetensors"))
+        RunConfig(weights=str(tmp_path / "nope.safetensors"))
     assert main(["run", "--weights", str(tmp_path / "nope.safetensors"), "--out", str(tmp_path / "r")]) == 2
     assert "error: --weights " in capsys.readouterr().err
     from envisat_pose.pipelines.runs.frames import open_source
@@ -115,8 +216,7 @@ def test_estimate_verb_and_library_agree(tmp_path):
     a, b = str(tmp_path / "a.npz"), str(tmp_path / "b.npz")
     assert main(["estimate", "--scenario", "pixels-1px", "--duration-s", "8", "--runs", "2", "--seed", "5",
                  "--out", a, "--quiet"]) == 0
-    run_estimate(EstimateConfig.from_scenario("pixels-1px", runs=2, seed=5), b, scenario="pixels-1px",
-                 duration_s=8.0)
+    run_estimate(EstimateConfig(scenario="pixels-1px", runs=2, seed=5), b, duration_s=8.0)  # its scenario's truth
     same_arrays(a, b)
 
 
@@ -127,24 +227,24 @@ def test_montecarlo_verb_and_library_agree(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     assert main(["montecarlo", "--scenario", "eclipse", "--runs", "2", "--duration-s", "20", "--block-runs", "1",
                  "--out", str(a), "--quiet"]) == 0
-    cfg = MonteCarloConfig.from_scenario("eclipse", runs=2, duration_s=20.0, block_runs=1)
+    cfg = MonteCarloConfig(scenario="eclipse", runs=2, duration_s=20.0, block_runs=1)
     run_campaign(cfg, str(b), RunnerConfig("local", 1))
     same_arrays(a / "campaign.npz", b / "campaign.npz")
 
 
 @pytest.mark.slow  # ~20 s: two closed loops and a third interrupted
 def test_run_verb_and_library_agree(tmp_path, monkeypatch):
-    """`envisat run` and run_closed_loop(RunConfig.from_scenario(...)): the same arrays; the library stages its
+    """`envisat run` and run_closed_loop(resolve_job("run", ...)): the same arrays; the library stages its
     outputs too (an earlier run's outputs stay when a job fails)."""
+    from envisat_pose.pipelines.jobs import resolve_job
     from envisat_pose.pipelines.runs.closed_loop import run_closed_loop
-    from envisat_pose.pipelines.runs.run_config import RunConfig
 
     toml = tmp_path / "small.toml"
     toml.write_text("[image]\nresolution_px = 96\n")
     a, b = tmp_path / "a", tmp_path / "b"
     assert main(["run", "--duration-s", "4", "--seed", "2", "--warm-start", "--config", str(toml), "--out", str(a),
                  "--quiet"]) == 0
-    cfg = RunConfig.from_scenario("default", str(toml), duration_s=4.0, seed=2, warm_start=True)
+    cfg = resolve_job("run", "default", str(toml), duration_s=4.0, seed=2, warm_start=True)
     run_closed_loop(cfg, str(b), progress=False)
     for name in ("truth.npz", "est.npz", "det.npz"):
         same_arrays(a / name, b / name)
@@ -155,7 +255,7 @@ def test_run_verb_and_library_agree(tmp_path, monkeypatch):
 
     monkeypatch.setattr("envisat_pose.analysis.plots.plot_estimate", fail)  # after est.npz is written, staged
     with pytest.raises(KeyboardInterrupt):
-        run_closed_loop(RunConfig.from_scenario("default", str(toml), duration_s=2.0, seed=3), str(b), progress=False)
+        run_closed_loop(resolve_job("run", "default", str(toml), duration_s=2.0, seed=3), str(b), progress=False)
     assert (b / "est.npz").read_bytes() == before and sorted(os.listdir(b)) == sorted(os.listdir(a))
 
 
@@ -168,6 +268,6 @@ def test_track_verb_and_library_agree(tmp_path):
                  "--resolution", "96", "--workers", "1", "--out", str(gen), "--quiet"]) == 0
     a, b = tmp_path / "a", tmp_path / "b"
     assert main(["track", "--images", str(gen), "--out", str(a), "--quiet"]) == 0
-    track_frames(TrackConfig.from_scenario("default"), str(gen), out_dir=str(b), progress=False)
+    track_frames(TrackConfig(scenario="default"), str(gen), out_dir=str(b), progress=False)
     for name in ("est.npz", "det.npz"):
         same_arrays(a / name, b / name)

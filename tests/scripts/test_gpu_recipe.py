@@ -155,8 +155,9 @@ def test_the_widest_looks_and_a_sequence_chunk_render(tmp_path):
     MJCF camera's intrinsics at that size (f = 1024-px f x 64/1024), the wide look's draws inside its ranges, the
     leg's camera seed, and the sequence's frames frame_dt_s apart on the default scenario's 50 m hold."""
     from envisat_pose.app.cli import main
-    from envisat_pose.datagen.dataset import iter_samples, load_manifest, sample_image
+    from envisat_pose.datagen.dataset import iter_samples, sample_image
     from envisat_pose.geometry import load_camera
+    from envisat_pose.shard_reader import load_dataset_manifest
 
     gt, chunks = plan(1, rounds=1)
     f_64 = load_camera().f_px * 64 / 1024
@@ -169,7 +170,7 @@ def test_the_widest_looks_and_a_sequence_chunk_render(tmp_path):
         rc = main(["generate", "--config", str(toml), "--num-images", str(n), "--resolution", "64", "--seed", "3",
                    "--out", str(tmp_path / name), "--quiet"])
         assert rc == 0
-        manifest = load_manifest(str(tmp_path / name))
+        manifest = load_dataset_manifest(str(tmp_path / name))
         recorded = leaves(manifest["config"])
         asked = leaves(chunk["config"])
         assert {k: recorded.get(k) for k in asked} == asked  # the chunk's settings reached the data set

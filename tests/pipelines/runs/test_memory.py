@@ -25,19 +25,17 @@ import numpy as np
 CHILD = textwrap.dedent("""
     import json, resource, sys, tracemalloc
     import numpy as np
-    from envisat_pose.pipelines.runs.run_config import RunConfig
+    from envisat_pose.pipelines.jobs import resolve_job
     from envisat_pose.datagen.orbit import chaser_orbit
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.pipelines.runs import closed_loop as loop
-    from envisat_pose.pipelines.runs.run_config import run_stage_types
 
     weights, out, long_s = sys.argv[1], sys.argv[2], float(sys.argv[3])
-    run_stage_types()
     # the sun behind the Earth as seen from the chaser at t = 1050 s: the shadow covers ~0..2100 s
     r_mid = chaser_orbit(scenario_config("default").orbit, np.array([1050.0])).r_N_m[0]
 
     def cfg(duration_s):
-        return RunConfig.from_scenario("default", overrides={
+        return resolve_job("run", "default", overrides={
             "duration_s": duration_s, "rate_hz": 10.0, "weights": weights, "workers": 1, "image.resolution_px": 64,
             "image.sun_dir": (-r_mid / np.linalg.norm(r_mid)).tolist()})
 

@@ -82,3 +82,26 @@ def test_estimates_rows_without_an_estimate_are_nan_and_say_so(tmp_path):
         dataclasses.replace(est, status=None).save(str(tmp_path / "bad.npz"))
     with pytest.raises(ContractError, match="status"):
         dataclasses.replace(est, status=np.array([[0, 0, 1, 7]])).save(str(tmp_path / "bad.npz"))
+
+
+def test_a_camera_file_of_frames_that_need_undistorting_is_refused_not_stripped(tmp_path):
+    """tracker_camera(path) gives the pinhole of an ideal camera file; a file with distortion or non-square pixels
+    is one line naming the key (the Tracker takes ideal frames, and the bare pinhole would drop the remap that
+    camera_from_intrinsics returns with it)."""
+    from envisat_pose.config import InputError
+    from envisat_pose.pipelines.tracking.build import tracker_camera
+    from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
+
+    base = "fx = 300.0\ncx = 63.5\ncy = 63.5\nwidth = 128\nheight = 128\n"
+    ideal = tmp_path / "ideal.toml"
+    ideal.write_text(base + "fy = 300.0\ndistortion = [0.0, 0.0, 0.0, 0.0]\n")
+    cam = tracker_camera(str(ideal))
+    assert (cam.f_px, cam.cu_px, cam.width_px, cam.height_px) == (300.0, 63.5, 128, 128)
+    for name, extra, key in (("distorted", "fy = 300.0\ndistortion = [-0.2, 0.05, 0.0, 0.0]\n", "distortion = "),
+                             ("oblong", "fy = 330.0\n", "fx = 300.0, fy = 330.0")):
+        path = tmp_path / f"{name}.toml"
+        path.write_text(base + extra)
+        assert camera_from_intrinsics(str(path))[1] is not None  # these frames need the remap
+        with pytest.raises(InputError, match=f"{name}.toml: {key}.*need undistorting") as err:
+            tracker_camera(str(path))
+        assert "\n" not in str(err.value)
