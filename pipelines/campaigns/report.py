@@ -14,12 +14,14 @@ import html
 import json
 import math
 import os
+import tomllib
 
 from envisat_pose.config import InputError, flatten
 from envisat_pose.io import atomic_write_text
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE
 from envisat_pose.state import BLOCKS
+from envisat_pose.target import DEFAULT_TARGET
 
 # display unit and scale per block (the summary's units are m, m/s, rad, rad/s)
 DISPLAY = {"position": ("cm", 100.0), "velocity": ("mm/s", 1000.0), "attitude": ("deg", 180.0 / math.pi),
@@ -133,8 +135,6 @@ def _fmt(v, scale: float = 1.0, digits: int = 4) -> str:
 
 def config_differences(campaigns: list[dict]) -> list[str]:
     """Per campaign, its config values that differ between the campaigns ('' for one campaign)."""
-    import tomllib
-
     flat = []
     for c in campaigns:
         try:
@@ -147,13 +147,23 @@ def config_differences(campaigns: list[dict]) -> list[str]:
 
 
 
+def campaign_target(config_text: str) -> str:
+    """The target file a campaign's config names (its file name; ENVISAT's default where it names none)."""
+    try:
+        given = tomllib.loads(config_text).get("target") if config_text else None
+    except tomllib.TOMLDecodeError:
+        given = None
+    return os.path.basename(str(given or DEFAULT_TARGET))
+
+
 def campaign_rows(c: dict) -> list[tuple[str, str]]:
     """(label, value) rows of one campaign's table, already formatted."""
     s, t = c["summary"], c["timing"]
     m = s.get("measurement", {})
     noise = f"{m.get('sigma_m')} m" if m.get("kind") == "markers3d" else f"{m.get('sigma_px')} px"
     markers = "all visible" if m.get("max_markers") is None else f"at most {m['max_markers']}"
-    rows = [("scenario", str(s.get("scenario"))), ("runs x steps", f"{s.get('runs')} x {s.get('steps')}"),
+    rows = [("scenario", str(s.get("scenario"))), ("target", campaign_target(c["config"])),
+            ("runs x steps", f"{s.get('runs')} x {s.get('steps')}"),
             ("measurements", f"{m.get('kind')}, {noise}, {m.get('rate_hz')} Hz, {markers} keypoints"),
             ("seed", str(s.get("seed"))), ("statistics after", f"{_fmt(s.get('settle_s'))} s")]
     for b in BLOCKS:

@@ -91,3 +91,16 @@ def test_report_on_a_folder_without_summary_is_one_error_line(two_campaigns, tmp
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "summary.json" in err[0]
     assert not (tmp_path / "r.html").exists()
+
+
+def test_report_names_each_campaigns_target(two_campaigns, tmp_path):
+    """Another spacecraft's campaign (`montecarlo --target`) side by side with ENVISAT's: the table names each
+    campaign's target file."""
+    other = tmp_path / "upper"
+    assert main(["montecarlo", "--scenario", "default", "--target", "models/upper_stage.xml", "--runs", "3",
+                 "--duration-s", "60", "--settle-s", "30", "--quiet", "--out", str(other)]) == 0
+    out = tmp_path / "report.html"
+    assert main(["report", str(two_campaigns[0]), str(other), "--out", str(out)]) == 0
+    page = Collector()
+    page.feed(out.read_text(encoding="utf-8"))
+    assert "target" in page.cells and "envisat.xml" in page.cells and "upper_stage.xml" in page.cells
