@@ -7,7 +7,8 @@ file is the frame T of the labels, the truth and the filter. The file is read by
 <compiler> (angle unit, eulerseq, meshdir, texturedir), defaults and assets give the shape MuJoCo gives it alone.
 
 ENVISAT (models/envisat.xml) is the default target. Whether a target is ENVISAT is asked here only
-(`Target.is_default`, the `require_default*` checks of the verbs whose detector or filter know ENVISAT alone):
+(`Target.is_default`, the `require_default*` checks of the verbs whose detector or filter know ENVISAT alone,
+and `require_weights_target`, whether a detector's weights were trained for the target a verb is given):
 the architecture test refuses the question anywhere else.
 """
 
@@ -21,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from envisat_pose.attitude import quat_to_rotmat
-from envisat_pose.config import ConfigError
+from envisat_pose.config import ConfigError, InputError
 from envisat_pose.geometry import CAMERA_NAME, model_path, visible_corners
 from envisat_pose.shard_reader import load_dataset_manifest
 from envisat_pose.target_mesh import BodyMesh, TriangleMesh, body_mesh, feature_edges
@@ -38,6 +39,7 @@ RAY_ABS_TOL_M = 1e-4  # a surface this much nearer than a keypoint (plus 1e-6 of
 TABLE_DIRECTIONS = 2048  # view directions of the fast visibility table (about 4.5 deg apart)
 TABLE_RANGES_REACHES = (3.0, 8.0, 30.0, 1000.0)  # ... each cast from these many reaches away (the last: parallel)
 TABLE_NEIGHBOURS = 2  # a keypoint is called hidden only where this many nearest directions hide it too
+TABLE_CELLS_POLAR = 256  # polar rows of the grid that finds a view's direction (azimuth columns: twice as many)
 
 
 @dataclass(frozen=True)
@@ -179,14 +181,37 @@ class VisibilityTable:
     dirs_T: np.ndarray
     ranges_m: np.ndarray
     visible: np.ndarray
+    cell_dir: np.ndarray
 
     def lookup(self, c_T_m: np.ndarray) -> np.ndarray:
-        """Visibility from camera positions c_T_m (..., 3) in T: the row of the nearest direction at the nearest
-        range (in log). (..., K) bool."""
+        """Visibility from camera positions c_T_m (..., 3) in T: the row of the direction at the camera's cell
+        (cell_dir, polar_azimuth_cell) at the nearest range (in log). (..., K) bool."""
         c = np.asarray(c_T_m, float)
-        log_r = np.log(np.maximum(np.linalg.norm(c, axis=-1), 1e-12))
-        b = np.argmin(np.abs(log_r[..., None] - np.log(self.ranges_m)), axis=-1)
-        return self.visible[b, np.argmax(c @ self.dirs_T.T, axis=-1)]
+        r = np.linalg.norm(c, axis=-1)
+        b = np.argmin(np.abs(np.log(np.maximum(r, 1e-12))[..., None] - np.log(self.ranges_m)), axis=-1)
+        i, j = polar_azimuth_cell(c, r, self.cell_dir.shape[0])
+        return self.visible[b, self.cell_dir[i, j]]
+
+
+def polar_azimuth_cell(c: np.ndarray, r: np.ndarray, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) of the points c (..., 3) of norm r (...,) in a grid of `rows` bands of polar angle (from +z)
+    by 2 x rows sectors of azimuth, each 180 / rows deg: a view's direction found in O(1) (filtering/fast.py's
+    kernel computes the same)."""
+    polar = np.arccos(np.clip(c[..., 2] / np.maximum(r, 1e-12), -1.0, 1.0))
+    i = np.minimum((polar * (rows / np.pi)).astype(np.intp), rows - 1)
+    j = np.minimum(((np.arctan2(c[..., 1], c[..., 0]) + np.pi) * (rows / np.pi)).astype(np.intp), 2 * rows - 1)
+    return i, j
+
+
+def direction_cells(dirs: np.ndarray, rows: int = TABLE_CELLS_POLAR) -> np.ndarray:
+    """(rows, 2 rows) int16: for each cell of polar_azimuth_cell's grid, the direction of dirs (N, 3) nearest to
+    the cell's centre (cells 0.7 deg across, a sixth of the directions' spacing)."""
+    polar = (np.arange(rows) + 0.5) * np.pi / rows
+    azimuth = (np.arange(2 * rows) + 0.5) * np.pi / rows - np.pi
+    p, a = np.meshgrid(polar, azimuth, indexing="ij")
+    centres = np.stack([np.sin(p) * np.cos(a), np.sin(p) * np.sin(a), np.cos(p)], axis=-1).reshape(-1, 3)
+    nearest = [np.argmax(chunk @ dirs.T, axis=1) for chunk in np.array_split(centres, 64)]
+    return np.concatenate(nearest).astype(np.int16).reshape(rows, 2 * rows)
 
 
 def fibonacci_directions(n: int) -> np.ndarray:
@@ -205,7 +230,7 @@ def _table(path: str, sha256: str, appendages: bool) -> VisibilityTable:
     ranges_m = np.array(TABLE_RANGES_REACHES) * target.reach_m
     exact = np.array([[target.visible_from(d * r, appendages) for d in dirs] for r in ranges_m], bool)
     nearest = np.argsort(-(dirs @ dirs.T), axis=1)[:, :TABLE_NEIGHBOURS + 1]  # each direction first
-    return VisibilityTable(dirs, ranges_m, np.ascontiguousarray(exact[:, nearest].any(axis=2)))
+    return VisibilityTable(dirs, ranges_m, np.ascontiguousarray(exact[:, nearest].any(axis=2)), direction_cells(dirs))
 
 
 # ---------------------------------------------------------------- ray casts through the target alone
@@ -413,6 +438,12 @@ def is_default_file(given: str) -> bool:
     return given == DEFAULT_TARGET or os.path.realpath(resolve_target_path(given)) == os.path.realpath(model_path())
 
 
+def other_target(given: str | None) -> str | None:
+    """A `--target` value naming another target than ENVISAT (whose detector is the corner network), or None when
+    none is given or it names ENVISAT's file: the verbs that train or run another target's keypoint detector."""
+    return None if given is None or is_default_file(given) else given
+
+
 def default_target() -> Target:
     """ENVISAT, the default target (models/envisat.xml)."""
     return load_target(DEFAULT_TARGET)
@@ -422,8 +453,9 @@ def default_target() -> Target:
 
 
 def _only_default(verb: str) -> str:
-    return (f"ENVISAT ({DEFAULT_TARGET}): `envisat {verb}` and the detector know ENVISAT's corners A-H only; "
-            "another target's images and labels come from `envisat generate --target` (docs/usage.md)")
+    other = ("; another target's keypoint detector: --target FILE.xml" if verb in ("train", "detect") else
+             "; another target's images and labels come from `envisat generate --target` (docs/usage.md)")
+    return f"ENVISAT ({DEFAULT_TARGET}): `envisat {verb}` and the detector know ENVISAT's corners A-H only" + other
 
 
 def require_envisat(given: str, field: str, verb: str) -> None:
@@ -445,3 +477,23 @@ def require_envisat_dataset(folder: str, field: str, verb: str) -> None:
     if given != DEFAULT_TARGET and (record.get("name") != default_target().name or
                                     record.get("keypoint_names") != list(default_target().keypoint_names)):
         raise ConfigError(field, folder, _only_default(verb) + f"; this dataset's target is {given!r}")
+
+
+def require_weights_target(weights: str, trained_for: dict | None, given: str, field: str = "weights") -> None:
+    """InputError, one line naming the weights, their target and the target `given` (DEFAULT_TARGET: ENVISAT),
+    unless they fit it: trained_for None (ENVISAT's corner detector) fits ENVISAT only, trained_for {'name',
+    'sha256', ...} (another target's keypoint detector, its weights' metadata) only a file with that sha256."""
+    if trained_for is None:
+        if is_default_file(given):
+            return
+        t = load_target(given)
+        raise InputError(f"{field} {weights!r}: ENVISAT's corner detector ({DEFAULT_TARGET}), not a detector of "
+                         f"target {t.name!r} ({given}, sha256 {t.sha256[:12]}): give the weights `envisat train "
+                         f"--target {given}` wrote")
+    theirs = f"target {trained_for.get('name')!r} (sha256 {str(trained_for.get('sha256'))[:12]})"
+    if is_default_file(given):
+        raise InputError(f"{field} {weights!r}: the keypoint detector of {theirs}, not ENVISAT's ({DEFAULT_TARGET})")
+    t = load_target(given)
+    if t.sha256 != trained_for.get("sha256"):
+        raise InputError(f"{field} {weights!r}: the keypoint detector of {theirs}, not of target {t.name!r} "
+                         f"({given}, sha256 {t.sha256[:12]}): give the weights trained on this file")

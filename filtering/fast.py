@@ -468,6 +468,41 @@ def _measure_cols(X, Gs, c, kind, corners_T, cam_R, cam_pos, cam_f, cam_cu, cam_
             out[2, s] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
 
 
+@njit(**_JIT)
+def table_visible_kernel(mean, cell_dir, log_ranges, visible, out):
+    """A target's visibility table (envisat_pose.target.VisibilityTable.lookup, the same grid and formulas) read
+    from the prior means (R, 12): c_T = -Gamma(p) rho, its cell of the polar x azimuth grid cell_dir (rows, 2 rows)
+    -> the direction's row of visible (B, N, K) at the range bin nearest in log (log_ranges (B,)). Writes out (R, K)
+    bool. O(1) per run: the numpy lookup's matrix product over every direction, and its Gamma matrices, were a
+    third of another target's update (bench/target_estimation.py)."""
+    G = np.empty((3, 3))
+    rows = cell_dir.shape[0]
+    for r in range(mean.shape[0]):
+        _dcm(mean[r, _P0:_P0 + 3], G)
+        c0 = -(G[0, 0] * mean[r, 0] + G[0, 1] * mean[r, 1] + G[0, 2] * mean[r, 2])
+        c1 = -(G[1, 0] * mean[r, 0] + G[1, 1] * mean[r, 1] + G[1, 2] * mean[r, 2])
+        c2 = -(G[2, 0] * mean[r, 0] + G[2, 1] * mean[r, 1] + G[2, 2] * mean[r, 2])
+        rng = max(np.sqrt(c0 * c0 + c1 * c1 + c2 * c2), 1e-12)
+        lr = np.log(rng)
+        b = 0
+        for k in range(1, log_ranges.shape[0]):
+            if abs(lr - log_ranges[k]) < abs(lr - log_ranges[b]):
+                b = k
+        i = min(int(np.arccos(min(max(c2 / rng, -1.0), 1.0)) * (rows / np.pi)), rows - 1)
+        j = min(int((np.arctan2(c1, c0) + np.pi) * (rows / np.pi)), 2 * rows - 1)
+        d = cell_dir[i, j]
+        for c in range(visible.shape[2]):
+            out[r, c] = visible[b, d, c]
+
+
+def table_visible(x: np.ndarray, table) -> np.ndarray:
+    """table_visible_kernel over states x (..., 12): (..., K) bool."""
+    flat = np.ascontiguousarray(np.asarray(x, float).reshape(-1, N_STATE))
+    out = np.empty((flat.shape[0], table.visible.shape[2]), dtype=bool)
+    table_visible_kernel(flat, table.cell_dir, np.log(table.ranges_m), table.visible, out)
+    return out.reshape(np.shape(x)[:-1] + (table.visible.shape[2],))
+
+
 @njit(**_JIT_PART)
 def _reaching_gate(mean, measured, r, vis_check, face_n, face_h, face_corners, G, mask_k, accepted, act):
     """Which measured corners of run r reach the gate: measured (R, K) and, when vis_check, visible from the prior
@@ -928,7 +963,7 @@ def update_fused(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.
     measured = np.ascontiguousarray(measured, dtype=bool)
     kernel_vis = bool(vis_check) and setup.visibility is None  # the box face test, in the kernel
     if vis_check and not kernel_vis:  # a target's table: the corners it hides never reach the kernel
-        measured = np.ascontiguousarray(measured & setup.predicted_visible(mean), dtype=bool)
+        measured = np.ascontiguousarray(measured & table_visible(mean, setup.visibility), dtype=bool)
     K = measured.shape[1]
     z = np.ascontiguousarray(z, dtype=float)  # the kernel reads measured corners only (a NaN elsewhere is fine)
     m = z.shape[-1]
