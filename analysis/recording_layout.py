@@ -100,7 +100,7 @@ def corner_annotation(target: Target | None = None) -> rr.AnnotationContext:
 def mask_classes(mask_values: dict[str, int] | None = None) -> tuple[str, ...]:
     """The label of each mask value 0..max: mask_values None: MASK_CLASSES (the factory's classes, design.md:
     what a target that takes the class looks writes); else {geom name: mask value} of the target's renderer
-    (datagen.render.target_mask_values): "background", then each value's geom names joined by " + " ("" for a
+    (datagen.render_view.target_mask_values): "background", then each value's geom names joined by " + " ("" for a
     value no geom takes)."""
     if mask_values is None:
         return MASK_CLASSES

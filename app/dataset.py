@@ -9,6 +9,7 @@ import os
 
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, check_rrd_output, skipped_line
 from envisat_pose.datagen.appearance import takes_class_looks
+from envisat_pose.datagen.render_view import target_mask_values
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, skip_hint
@@ -91,10 +92,8 @@ def run_inspect_cli(args: argparse.Namespace) -> int:
 
 def recorded_target(manifest: dict) -> tuple:
     """(the dataset's Target: the file its manifest records, ENVISAT for a dataset written before targets; the
-    {geom name: mask value} its masks hold, datagen.render.target_mask_values, or None where they are the
+    {geom name: mask value} its masks hold, datagen.render_view.target_mask_values, or None where they are the
     factory's classes)."""
-    from envisat_pose.datagen.render import target_mask_values
-
     target = load_target((manifest.get("target") or {}).get("file", DEFAULT_TARGET), "target")
     return target, None if takes_class_looks(g.name for g in target.geoms) else target_mask_values(target)
 

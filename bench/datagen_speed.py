@@ -167,7 +167,7 @@ def worker_startup_s() -> float:
     import subprocess
     import sys
 
-    code = ("from envisat_pose.datagen.render import shared_renderer\n"
+    code = ("from envisat_pose.datagen.render_cache import shared_renderer\n"
             "r = shared_renderer(1024, True, 8, 0, 0)\n"
             "[r._upload_earth_texture(kind, k) for kind in ('earth', 'earth_cap') for k in range(r.earth_texture_set_size)]\n")
     t0 = time.perf_counter()
@@ -283,7 +283,8 @@ def raw_rates(cfg) -> dict:
     from envisat_pose.datagen.corrupt import apply_corruption, draw_corruption
     from envisat_pose.datagen.factory import render_sample
     from envisat_pose.datagen.labels import encode_depth
-    from envisat_pose.datagen.render import SceneRenderer, render_model_xml
+    from envisat_pose.datagen.render import SceneRenderer
+    from envisat_pose.datagen.render_model import render_model_xml
     from envisat_pose.datagen.shards import encode_png
 
     r = SceneRenderer(cfg.resolution_px)

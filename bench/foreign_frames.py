@@ -318,12 +318,12 @@ class FilamentRenderer:
         return self._mujoco.mjv_averageCamera(self._mjv_scene.camera[0], self._mjv_scene.camera[1])
 
     def segmentation(self) -> np.ndarray:
-        """The mask (H, W) uint8 of the last rendered view in the project's values (datagen/render.MASK_VALUES:
+        """The mask (H, W) uint8 of the last rendered view in the project's values (datagen/render_view.MASK_VALUES:
         box faces 1-6, array and boom 7, background 0), from Filament's segmentation pass (red = geom id + 1)."""
         from mujoco import mjrf
         from mujoco.rendering.filament.renderer import View
 
-        from envisat_pose.datagen.render import MASK_VALUES
+        from envisat_pose.datagen.render_view import MASK_VALUES
 
         self._renderer.render([View(scene="scn", target="out", camera=self.gl_camera(), skybox=False, haze=False,
                                     headlight=False, post_processing=False,

@@ -91,7 +91,7 @@ class Detection:
     def corners(self, image: np.ndarray, x: np.ndarray, camera) -> np.ndarray:
         """(8, 2) detected corners (NaN: not found) in image (H, W) uint8 for the true state x (12,)."""
         from envisat_pose.attitude import mrp_to_dcm
-        from envisat_pose.pipelines.tracking.tracker import predicted_roi
+        from envisat_pose.pipelines.tracking.tracker_frame import predicted_roi
         from envisat_pose.state import MRP
 
         roi = predicted_roi(x, np.eye(12) * 1e-6, camera, self.roi_cfg)

@@ -54,7 +54,7 @@ def closed_loop_frames(n: int) -> list[tuple[np.ndarray, dict]]:
     from envisat_pose.config import from_dict
     from envisat_pose.datagen.factory import draw_corruption_params, with_look
     from envisat_pose.datagen.generate_config import GenerateConfig
-    from envisat_pose.datagen.render import shared_renderer
+    from envisat_pose.datagen.render_cache import shared_renderer
     from envisat_pose.datagen.views import sample_seed, sequence_view
 
     cfg = from_dict(GenerateConfig, {"mode": "sequence", "num_images": 30 * n, "resolution_px": 1024})

@@ -82,7 +82,7 @@ def bound_blocks(out: str, sigma_px: float) -> np.ndarray:
     from envisat_pose.filtering.measurements import measure
     from envisat_pose.geometry import load_camera
     from envisat_pose.pipelines.tracking.onboard import onboard_physics
-    from envisat_pose.pipelines.tracking.tracker import ACQUIRING_SIGMA
+    from envisat_pose.pipelines.tracking.tracker_config import ACQUIRING_SIGMA
 
     truth = TruthTrajectory.load(os.path.join(out, "truth.npz"))
     with np.load(os.path.join(out, "det.npz"), allow_pickle=False) as z:

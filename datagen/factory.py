@@ -27,6 +27,7 @@ from envisat_pose.datagen.appearance import FACE_GEOMS, GEOM_CLASS, Look, draw_l
 from envisat_pose.datagen.clearance import TargetBoxes, farthest_depth_m, target_file_boxes
 from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE, encode_depth, make_label
+from envisat_pose.datagen.render_view import APPENDAGE_MASK_VALUE, MASK_VALUES, View, target_mask_values
 from envisat_pose.datagen.target_scene import target_scene
 from envisat_pose.datagen.views import R_K_FROM_C, sample_random_view, sample_seed, sequence_frames, sequence_view, unit
 from envisat_pose.io import atomic_write_text, sha256_file
@@ -69,8 +70,6 @@ def with_look(cfg: GenerateConfig, view, scene: dict, seed: int) -> tuple:
     """The view with its appearance (materials if appearance is on, sun intensity, Earth-shine) and clutter,
     and the scene dict with every choice needed to render it again (view_from_scene). Returns (View, scene)."""
     import dataclasses
-
-    from envisat_pose.datagen.render import APPENDAGE_MASK_VALUE, MASK_VALUES
 
     rng = look_rng(cfg, seed)
     lit = cfg.lighting
@@ -124,8 +123,6 @@ def render_inputs(view) -> dict:
 
 def view_from_scene(scene: dict):
     """The View a label's scene records (with_look): the same render, bit for bit."""
-    from envisat_pose.datagen.render import View
-
     r = scene["render"]
     arr = lambda v: None if v is None else np.array(v, dtype=float)  # noqa: E731
     return View(arr(r["rho_C_m"]), arr(r["R_C_from_T"]), arr(r["sun_dir_C"]), arr(r["earth_dir_C"]),
@@ -244,7 +241,7 @@ def generate_shard(cfg: GenerateConfig, shard_index: int, out_dir: str, beside: 
     index, name, count, sha256, bytes. beside: use the helper threads (FINISH_BESIDE_RENDER; same bytes)."""
     import cv2
 
-    from envisat_pose.datagen.render import shared_renderer
+    from envisat_pose.datagen.render_cache import shared_renderer
     from envisat_pose.datagen.shards import ShardWriter, sample_key, shard_name
 
     cv2.setNumThreads(1)  # one core per worker; also keeps filters on one code path
@@ -327,7 +324,6 @@ def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
     """The dataset in out_dir as the core's resumable job: one unit per shard, the config and root seed as its
     identity, a shard kept on resume only when it passes the core's one shard check against its entry
     (shard_reader.shard_problem: size, sha256, the recorded count of complete samples)."""
-    from envisat_pose.datagen.render import target_mask_values
     from envisat_pose.datagen.shards import shard_name
 
     target = load_target(cfg.target)

@@ -11,294 +11,41 @@ process: creating the GL context costs 0.1-0.3 s, so it is made once and reused.
 
 from __future__ import annotations
 
-import os
+# MuJoCo picks its GL platform at import: gl_platform chooses a headless one before mujoco loads.
+from envisat_pose.datagen.gl_platform import gl_context_class
 
-# MuJoCo picks its GL platform at import: choose a headless one unless the user did (platform-notes.md).
-os.environ.setdefault("MUJOCO_GL", "osmesa")
-if os.environ["MUJOCO_GL"].lower() == "egl":
-    os.environ.setdefault("EGL_PLATFORM", "surfaceless")
+# isort: split
 
-import math  # noqa: E402
-import xml.etree.ElementTree as ET  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
+import cv2
+import mujoco
+import numpy as np
 
-import cv2  # noqa: E402
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
-
-from envisat_pose.attitude import rotmat_to_quat  # noqa: E402
-from envisat_pose.datagen.appearance import (  # noqa: E402
-    CLASSES,
-    FACE_GEOMS,
-    GEOM_CLASS,
-    OWN_CLASS,
-    TEXTURE_PX,
-    Look,
-    class_texture,
-    takes_class_looks,
-)
-from envisat_pose.datagen.clearance import target_boxes  # noqa: E402
-from envisat_pose.datagen.earth import (  # noqa: E402
+from envisat_pose.attitude import rotmat_to_quat
+from envisat_pose.datagen.appearance import CLASSES, GEOM_CLASS, OWN_CLASS, Look, class_texture, takes_class_looks
+from envisat_pose.datagen.clearance import target_boxes
+from envisat_pose.datagen.earth import (
     EARTH_MESH_STEPS_DEG,
     EARTH_SCALE,
     EARTH_TEXTURE_SET_SIZE,
-    cap_mesh_xml_attributes,
     cap_visible,
     disc_on_rays,
     earth_cap_texture,
     earth_texture,
-    earth_texture_width,
     mesh_step_for,
-    mesh_xml_attributes,
     pixel_rays_K,
 )
-from envisat_pose.datagen.scenario import EARTH_RADIUS_M  # noqa: E402
-from envisat_pose.datagen.target_scene import scene_xml, target_scene  # noqa: E402
-from envisat_pose.geometry import CAMERA_NAME, model_path  # noqa: E402
-from envisat_pose.target import DEFAULT_TARGET, Target, load_target  # noqa: E402
+from envisat_pose.datagen.render_model import EARTH_GEOM_GROUP, look_classes, render_model_xml
+from envisat_pose.datagen.render_pixels import crop_frustum, depth_from_buffer, intrinsics, projected_bbox_px
+from envisat_pose.datagen.render_view import RenderOutput, RenderPasses, View, target_mask_values
+from envisat_pose.datagen.target_scene import scene_xml
+from envisat_pose.geometry import CAMERA_NAME
+from envisat_pose.target import DEFAULT_TARGET, load_target
 
-# Mask values: 0 background (and the Earth), 1-6 the faces in geometry.FACE_NAMES order, 7 the solar array
-# (its boom included: the contract has one value per face and one for the array).
-MASK_VALUES = {"face_px": 1, "face_mx": 2, "face_py": 3, "face_my": 4, "face_pz": 5, "face_mz": 6, "array": 7, "boom": 7,
-               "asar": 8, "asar_strut_fwd": 8, "asar_strut_aft": 8, "instr_meris": 8, "instr_aatsr": 8,
-               "instr_doris": 8}
 # The clutter (ASAR antenna, instrument boxes): geom group 4 of models/envisat.xml, drawn when a view asks.
 APPENDAGE_GEOM_GROUP = 4
-APPENDAGE_MASK_VALUE = 8
-EARTH_GEOM_GROUP = 5  # hidden unless a view asks for the backdrop
-EARTH_ALPHA = 0.99  # the Earth's material alpha (see render_model_xml); its texture is scaled up to match
 # The camera frame K of the labels (x right, y down, z boresight) from MuJoCo's camera frame (x right, y up,
 # looking along -z).
 R_K_FROM_MJCAM = np.diag([1.0, -1.0, -1.0])
-
-
-@dataclass(frozen=True)
-class View:
-    """What one image shows, everything in the chaser frame C.
-
-    rho_C_m: (3,) target CoM relative to the chaser, m. R_C_from_T: (3, 3) target attitude (Gamma^T).
-    sun_dir_C: (3,) unit vector toward the sun; None means eclipse (no sunlight).
-    earth_dir_C: (3,) unit vector toward the Earth's centre (nadir); None means no Earth (no backdrop, no
-    Earth-shine). earth_backdrop: draw the Earth (textured, lit by the sun) when earth_dir_C is given.
-    earth_distance_m: distance of the Earth's centre from the chaser, m (its disc's angular radius is
-    asin(R / earth_distance_m)). earth_quat_C: (4,) attitude of the Earth's body frame (z to the north pole,
-    x to longitude 0) in C, w x y z; None: the identity. earth_texture: which of the renderer's Earth textures.
-    look: per-geom materials and light intensities (appearance.Look); None keeps the MJCF's materials, the sun
-    at its MJCF intensity and no Earth-shine. appendages: draw the clutter (ASAR antenna, instruments).
-    The Earth-shine light shines from earth_dir_C at the look's intensity.
-    """
-
-    rho_C_m: np.ndarray
-    R_C_from_T: np.ndarray
-    sun_dir_C: np.ndarray | None
-    earth_dir_C: np.ndarray | None = None
-    earth_distance_m: float = 7142.0e3
-    look: Look | None = None
-    appendages: bool = False
-    earth_backdrop: bool = True
-    earth_quat_C: np.ndarray | None = None
-    earth_texture: int = 0
-
-
-@dataclass
-class RenderOutput:
-    """One rendered view.
-
-    gray_u8: (H, W) uint8 image. depth_m: (H, W) float32 metres along the boresight, 0 on background.
-    mask_u8: (H, W) uint8, MASK_VALUES, or another target's geom order (depth_m and mask_u8 None when rendered
-    without labels). corners_K_m: (K, 3) the target's keypoints (ENVISAT: corners A-H) in the camera frame K, m.
-    R_K_from_T: (3, 3), t_K_from_T_m: (3,) the target pose in K (the label's R_cam_from_target, t_cam_from_target_m).
-    fovy_deg: the camera's vertical field of view.
-    """
-
-    gray_u8: np.ndarray
-    depth_m: np.ndarray | None
-    mask_u8: np.ndarray | None
-    corners_K_m: np.ndarray
-    R_K_from_T: np.ndarray
-    t_K_from_T_m: np.ndarray
-    fovy_deg: float
-
-
-@dataclass
-class RenderPasses:
-    """What the GL passes of one view read back, before any pixel work (SceneRenderer.decode makes the
-    RenderOutput of it; touching no GL state, that may run on another thread).
-
-    rgb_u8: (H, W, 3) the lit pass, rows bottom-up. box: (u0, v0, u1, v1) px of the segmentation and depth pass
-    (None: rendered without labels). ids_rgb_u8: (h, w, 3) its segmentation colours and depth_raw: (h, w) float32
-    its depth-buffer values, rows bottom-up. slot_value: (n,) uint8 the mask value of each segmentation colour
-    (scene slot + 1). corners_K_m, R_K_from_T, t_K_from_T_m: as in RenderOutput.
-    """
-
-    rgb_u8: np.ndarray
-    box: tuple[int, int, int, int] | None
-    ids_rgb_u8: np.ndarray | None
-    depth_raw: np.ndarray | None
-    slot_value: np.ndarray | None
-    corners_K_m: np.ndarray
-    R_K_from_T: np.ndarray
-    t_K_from_T_m: np.ndarray
-
-
-def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_set_size: int = 0,
-                     earth_texture_set_size: int = EARTH_TEXTURE_SET_SIZE) -> str:
-    """The project's MJCF prepared for rendering at `resolution_px`: a large enough off-screen buffer, a fixed
-    model extent (the far plane and shadow box stay those of models/envisat.xml; another target's near plane is
-    sized to it, target_scene), an Earth backdrop body (mocap, geom group 5, hidden by default: a unit UV-sphere mesh scaled to EARTH_RADIUS_M x EARTH_SCALE,
-    `earth_texture_set_size` equirectangular textures, their pixels written by the renderer), an Earth-shine
-    light (off until a look turns it on), and
-    for appearance randomization `texture_set_size` textures per covering class with one material
-    `look_<geom>_<k>` per target geom and texture (texture pixels are written by the renderer).
-
-    The XML tree is edited in memory; models/envisat.xml is not changed.
-    """
-    text = base_xml if base_xml is not None else open(model_path(), encoding="utf-8").read()
-    base = mujoco.MjModel.from_xml_string(text)
-    root = ET.fromstring(text)
-    visual = root.find("visual")
-    if visual is None:
-        visual = ET.SubElement(root, "visual")
-    glob = visual.find("global")
-    if glob is None:
-        glob = ET.SubElement(visual, "global")
-    glob.set("offwidth", str(max(resolution_px, int(base.vis.global_.offwidth))))
-    glob.set("offheight", str(max(resolution_px, int(base.vis.global_.offheight))))
-    stat = root.find("statistic")
-    if stat is None:
-        stat = ET.SubElement(root, "statistic")
-    stat.set("extent", repr(float(base.stat.extent)))
-    stat.set("center", " ".join(repr(float(v)) for v in base.stat.center))
-    asset = root.find("asset")
-    if asset is None:
-        asset = ET.SubElement(root, "asset")
-    ET.SubElement(asset, "material", name="earth_backdrop", rgba="0.35 0.42 0.55 1", specular="0.05",
-                  shininess="0.05", reflectance="0")
-    w = earth_texture_width(resolution_px)
-    for k in range(earth_texture_set_size):
-        # the globe (equirectangular) and the detailed cap a low orbit sees (earth.earth_cap_texture)
-        for kind, height in (("earth", w // 2), ("earth_cap", w)):
-            ET.SubElement(asset, "texture", name=f"{kind}_tex_{k}", type="2d", builtin="flat", width=str(w),
-                          height=str(height), rgb1="0.3 0.3 0.3")
-            # alpha just below 1: the Earth is drawn in mjr_render's transparent pass (once, additively over the
-            # black sky, lit by every light, receiving no shadow), not twice as opaque geoms with a shadow light
-            ET.SubElement(asset, "material", name=f"{kind}_{k}", texture=f"{kind}_tex_{k}",
-                          rgba=f"1 1 1 {EARTH_ALPHA}", specular="0.03", shininess="0.1", reflectance="0")
-    scale = repr(EARTH_RADIUS_M * EARTH_SCALE)
-    for step in EARTH_MESH_STEPS_DEG:  # levels of detail; the view picks one (earth.mesh_step_for)
-        ET.SubElement(asset, "mesh", name=f"earth_sphere_{step:g}", scale=f"{scale} {scale} {scale}",
-                      **mesh_xml_attributes(step))
-    ET.SubElement(asset, "mesh", name="earth_cap", scale=f"{scale} {scale} {scale}", **cap_mesh_xml_attributes())
-    world = root.find("worldbody")
-    earth = ET.SubElement(world, "body", name="earth_backdrop", mocap="true", pos="0 0 -1e5")
-    ET.SubElement(earth, "geom", name="earth_backdrop", type="mesh", mesh=f"earth_sphere_{EARTH_MESH_STEPS_DEG[0]:g}",
-                  material="earth_0" if earth_texture_set_size else "earth_backdrop", group=str(EARTH_GEOM_GROUP),
-                  contype="0", conaffinity="0")
-    # Earth-shine: sunlight reflected by the Earth, a directional light from the nadir side, no shadows
-    ET.SubElement(world, "light", name="earthshine", directional="true", castshadow="false", pos="0 0 100",
-                  dir="0 0 -1", diffuse="0 0 0", specular="0 0 0", ambient="0 0 0", active="false")
-    body = next(b for b in world.iter("body") if b.get("name") == "target")
-    own = not takes_class_looks(g.get("name") for g in body.findall("geom"))  # its own materials, varied
-    if texture_set_size > 0 and own:
-        _own_look_materials(asset, body)
-    elif texture_set_size > 0:
-        for cls in sorted(CLASSES):
-            for k in range(texture_set_size):
-                ET.SubElement(asset, "texture", name=f"tex_{cls}_{k}", type="2d", builtin="flat",
-                              width=str(TEXTURE_PX), height=str(TEXTURE_PX), rgb1="1 1 1")
-        for geom, cls in GEOM_CLASS.items():
-            for c in look_classes(geom):
-                rep = repr(1.0 / CLASSES[c].tile_m)
-                for k in range(texture_set_size):
-                    ET.SubElement(asset, "material", name=f"look_{geom}_{c}_{k}", texture=f"tex_{c}_{k}",
-                                  texuniform="true", texrepeat=f"{rep} {rep}")
-    return ET.tostring(root, encoding="unicode")
-
-
-def _own_look_materials(asset: ET.Element, body: ET.Element) -> None:
-    """Another target's looks: one material `look_<geom>_own_0` per geom of body `target`, a copy of the geom's
-    own material (its texture kept; a geom without one gets its rgba), whose colour and specular terms a look
-    writes (appearance.draw_own_look)."""
-    import copy
-
-    materials = {m.get("name"): m for m in asset.findall("material")}
-    for geom in body.findall("geom"):
-        src = materials.get(geom.get("material", ""))
-        mat = copy.deepcopy(src) if src is not None else ET.Element("material", rgba=geom.get("rgba", "0.5 0.5 0.5 1"))
-        mat.set("name", f"look_{geom.get('name')}_{OWN_CLASS}_0")
-        asset.append(mat)
-
-
-def look_classes(geom: str) -> tuple[str, ...]:
-    """The covering classes a geom's look may take: any for a face of the main body (AppearanceConfig's
-    one_covering), its own class for every other geom."""
-    return tuple(sorted(CLASSES)) if geom in FACE_GEOMS else (GEOM_CLASS[geom],)
-
-
-def _gl_context_class():
-    """The GL context class of the platform named by MUJOCO_GL (osmesa or egl; default osmesa)."""
-    backend = os.environ.get("MUJOCO_GL", "osmesa").lower()
-    if backend == "egl":
-        from mujoco.egl import GLContext
-    elif backend == "osmesa":
-        from mujoco.osmesa import GLContext
-    else:
-        raise RuntimeError(f"MUJOCO_GL={backend!r}: the image factory renders headless with 'osmesa' or 'egl'")
-    return GLContext
-
-
-def depth_from_buffer(raw: np.ndarray, znear_m: float, zfar_m: float) -> np.ndarray:
-    """Metric depth along the boresight from MuJoCo's reversed-Z depth buffer values in [0, 1].
-
-    Same mapping as mujoco.Renderer (float32 frustum coefficients, float64 arithmetic). (H, W) -> (H, W) m.
-    """
-    zfar, znear = np.float32(zfar_m), np.float32(znear_m)
-    c_coef = -(zfar + znear) / (zfar - znear)
-    d_coef = -(np.float32(2) * zfar * znear) / (zfar - znear)
-    c_coef = np.float32(-0.5) * c_coef - np.float32(0.5)
-    d_coef = np.float32(-0.5) * d_coef
-    return d_coef / (raw.astype(np.float64) + c_coef)
-
-
-def projected_bbox_px(points_K_m: np.ndarray, K: np.ndarray, resolution_px: int, znear_m: float,
-                      pad_px: int = 3) -> tuple[int, int, int, int] | None:
-    """Pixel box (u0, v0, u1, v1), inclusive, that holds the projections of points_K_m (N, 3), clipped to the
-    image; the whole image when a point is behind the near plane; None when the box misses the image."""
-    n = resolution_px
-    if np.any(points_K_m[:, 2] <= znear_m):
-        return 0, 0, n - 1, n - 1
-    uv = (points_K_m @ K.T)[:, :2] / points_K_m[:, 2:3]
-    u0, v0 = np.floor(uv.min(axis=0)).astype(int) - pad_px
-    u1, v1 = np.ceil(uv.max(axis=0)).astype(int) + pad_px
-    if u1 < 0 or v1 < 0 or u0 > n - 1 or v0 > n - 1:
-        return None
-    return max(u0, 0), max(v0, 0), min(u1, n - 1), min(v1, n - 1)
-
-
-def crop_frustum(box: tuple[int, int, int, int], resolution_px: int, bottom: float, top: float
-                 ) -> tuple[float, float, float, float]:
-    """Near-plane window (center, half-width, bottom, top) of the pixel box (u0, v0, u1, v1) of a square
-    image whose full window spans [bottom, top] vertically and horizontally (MuJoCo's mjvGLCamera frustum)."""
-    u0, v0, u1, v1 = box
-    s = (top - bottom) / resolution_px  # near-plane size of one pixel
-    left, right = bottom + u0 * s, bottom + (u1 + 1) * s
-    return 0.5 * (left + right), 0.5 * (right - left), top - (v1 + 1) * s, top - v0 * s
-
-
-def intrinsics(resolution_px: int, fovy_deg: float) -> np.ndarray:
-    """Pinhole K (3, 3) of a square image, OpenCV convention (pixel centres at integer coordinates).
-
-    f = (H / 2) / tan(fovy / 2) px; principal point ((W - 1) / 2, (H - 1) / 2), e.g. 511.5 at 1024 px.
-    """
-    f = 0.5 * resolution_px / math.tan(math.radians(fovy_deg) / 2.0)
-    c = 0.5 * (resolution_px - 1)
-    return np.array([[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]])
-
-
-def target_mask_values(target: Target) -> dict:
-    """{geom name: mask value} of a target: MASK_VALUES for one that takes the class looks (appearance.
-    takes_class_looks), 1..G in file order for any other (target_scene)."""
-    return MASK_VALUES if takes_class_looks(g.name for g in target.geoms) else target_scene(target).mask_values
 
 
 class SceneRenderer:
@@ -376,7 +123,7 @@ class SceneRenderer:
         """The GL context, its two render contexts, the scene, the fixed camera and the read-back buffer."""
         m = self.model
         n = self.resolution_px
-        self._gl = _gl_context_class()(n, n)
+        self._gl = gl_context_class()(n, n)
         self._gl.make_current()
         # Two render contexts in one GL context: the lit pass keeps the model's multisampling; the segmentation
         # and depth pass gets a single-sample buffer, so ids and depth are those of the pixel centre (from a
@@ -701,32 +448,3 @@ class SceneRenderer:
         mujoco.mjr_render(self._rect, self._scene, self._con)
         mujoco.mjr_readPixels(self._rgb, None, self._rect, self._con)
         return self._rgb[::-1]
-
-
-_RENDERERS: dict[tuple, SceneRenderer] = {}
-
-
-def shared_renderer(resolution_px: int, shadows: bool = True, texture_set_size: int = 0,
-                    texture_seed: int = 0, earth_seed: int = 0, target: str = DEFAULT_TARGET) -> SceneRenderer:
-    """This process's renderer for (resolution, shadows, texture set, Earth texture seed, target file and its
-    sha256), created on first use and reused (one per worker)."""
-    key = (int(resolution_px), bool(shadows), int(texture_set_size), int(texture_seed), int(earth_seed), target,
-           load_target(target).sha256)
-    if key not in _RENDERERS:
-        first = not _RENDERERS
-        _RENDERERS[key] = SceneRenderer(resolution_px, shadows, texture_set_size=texture_set_size,
-                                        texture_seed=texture_seed, earth_seed=earth_seed, target=target)
-        if first:
-            import atexit
-
-            # registered after the GL platform module's own exit hook (EGL terminates its display there):
-            # exit hooks run last-in first-out, so the renderers are freed while the display still exists
-            atexit.register(close_renderers)
-    return _RENDERERS[key]
-
-
-def close_renderers() -> None:
-    """Free every cached renderer of this process (before the GL library unloads at exit)."""
-    while _RENDERERS:
-        _, r = _RENDERERS.popitem()
-        r.close()

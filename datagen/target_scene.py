@@ -233,7 +233,7 @@ def scene_xml(target: Target) -> str:
 @dataclass(frozen=True)
 class TargetScene:
     """What the factory needs of a target's scene without GL: geom_names (G,) of body 'target' in file order;
-    mask_values {geom: 1..G} (a file that names its geoms after the factory's classes: render.MASK_VALUES);
+    mask_values {geom: 1..G} (a file that names its geoms after the factory's classes: render_view.MASK_VALUES);
     base_rgb {geom: (3,)} of each geom's material (or its own rgba), the colour another target's looks vary."""
 
     geom_names: tuple[str, ...]

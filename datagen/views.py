@@ -16,6 +16,7 @@ from envisat_pose.datagen.clearance import TargetBoxes, clearance_m, target_file
 from envisat_pose.datagen.earth import EARTH_TEXTURE_SET_SIZE, draw_backdrop, earth_in_frame, earth_quat_C
 from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
 from envisat_pose.datagen.orbit import chaser_orbit
+from envisat_pose.datagen.render_view import View
 from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_config
 from envisat_pose.datagen.target_scene import scene_clip_planes_m
 from envisat_pose.geometry import load_camera
@@ -85,8 +86,6 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
     earth.draw_backdrop with a generator spawned from rng, so poses, labels and the later draws of rng are the
     same with and without the Earth.
     """
-    from envisat_pose.datagen.render import View
-
     boxes = boxes if boxes is not None else target_file_boxes(cfg.target)
     znear_m = znear_m if znear_m is not None else scene_clip_planes_m(load_target(cfg.target))[0]
     r = cfg.random
@@ -177,8 +176,6 @@ def sequence_earth(cfg_json: str) -> tuple[np.ndarray, np.ndarray, int]:
 def sequence_view(cfg: GenerateConfig, k: int) -> tuple:
     """Frame k of a sequence-mode config: (View, x (12,), scene dict). The Earth is drawn (earth_probability
     above 0) in the frames where its disc reaches the image."""
-    from envisat_pose.datagen.render import View
-
     t_s, x, sun_C, eclipse, nadir_C = sequence_frames(config_json(cfg))
     xk = x[k]
     earth = False

@@ -19,12 +19,14 @@ import numpy as np
 import torch
 
 from envisat_pose.geometry import EDGES, load_geometry
+from envisat_pose.perception.box_symmetry import face_windings
 from envisat_pose.perception.data import IMAGE_MEAN, IMAGE_STD, DataConfig, crop_box, crop_resize, to_full_px
 from envisat_pose.perception.errormodel import ErrorModel
 from envisat_pose.perception.facecue import FaceCue, half_turn_llr, weigh_naming
 from envisat_pose.perception.heatmaps import decode_junctions
 from envisat_pose.perception.model import CornerNet
-from envisat_pose.perception.naming import Naming, NamingConfig, face_windings, name_corners
+from envisat_pose.perception.naming import Naming, name_corners
+from envisat_pose.perception.naming_config import NamingConfig
 from envisat_pose.perception.refine import RefineConfig, refine_named
 from envisat_pose.perception.weights import WeightsError, load_model, read_metadata
 

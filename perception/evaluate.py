@@ -17,9 +17,9 @@ import numpy as np
 
 from envisat_pose.contracts import SEVERITIES
 from envisat_pose.geometry import CORNER_NAMES, load_geometry
+from envisat_pose.perception.box_symmetry import symmetry_permutations
 from envisat_pose.perception.calibrate import nees_px
 from envisat_pose.perception.errormodel import apparent_scale, mean_se, radial_errors
-from envisat_pose.perception.naming import symmetry_permutations
 
 # the half-turn about the long axis x: corner k shows where corner HALF_TURN_PERM[k] was, derived from the target's
 # geometry (A<->C, B<->D, E<->G, F<->H for the box of models/envisat.xml)

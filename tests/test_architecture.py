@@ -1584,3 +1584,52 @@ def test_the_config_checkers_see_a_planted_config_outside_the_base_and_a_depreca
     calls = ("cfg = RunConfig.from_scenario('default')\nt = Tracker.from_scenario('default')\n"
              "m = campaign.MonteCarloConfig.from_scenario('eclipse', runs=2)\nj = Job.from_scenario('x')\n")
     assert config_from_scenario_calls(calls, derived) == [1, 3, 4]
+
+
+# ---------------------------------------------------------------- modules with one job (issue 54, item 6)
+
+MODULE_MAX_LINES = 500  # issue 54: a module over it holds several jobs; split it by job into modules of its folder
+# filtering/fast.py: the numba kernels, each a fused loop the compiler takes whole, and the helpers they inline
+LONG_MODULES_EXEMPT = (os.path.join("filtering", "fast.py"),)
+
+
+def module_length_problem(rel: str, source: str) -> str | None:
+    """Why a module of the package (rel: its repository-relative path) is too long ("N lines, over the limit"), or
+    None: within MODULE_MAX_LINES lines, or exempt (LONG_MODULES_EXEMPT)."""
+    n = len(source.splitlines())
+    if n <= MODULE_MAX_LINES or rel in LONG_MODULES_EXEMPT:
+        return None
+    return f"{n} lines, over {MODULE_MAX_LINES}"
+
+
+def long_modules(root: str = ROOT) -> dict[str, str]:
+    """{repository-relative path: why} of the package's modules over the limit (source_files: the core and the layer
+    folders; bench/, scripts/ and tests/ are not the package's modules)."""
+    found = {}
+    for path, _ in source_files(root):
+        rel = os.path.relpath(path, root)
+        with open(path, encoding="utf-8") as fh:
+            why = module_length_problem(rel, fh.read())
+        if why:
+            found[rel] = why
+    return found
+
+
+def test_no_module_over_the_limit():
+    """Floor of issue 54: 0 modules of the package over MODULE_MAX_LINES lines, the numba kernels apart (and the
+    exemption names a module that exists)."""
+    assert long_modules() == {}, f"split these by job into modules of their folder (<= {MODULE_MAX_LINES} lines)"
+    assert all(os.path.isfile(os.path.join(ROOT, rel)) for rel in LONG_MODULES_EXEMPT)
+
+
+def test_the_module_length_checker_sees_a_long_module(tmp_path):
+    planted = "x = 1\n" * (MODULE_MAX_LINES + 1)  # a 501-line module
+    assert module_length_problem(os.path.join("datagen", "render.py"), planted) == "501 lines, over 500"
+    assert module_length_problem(os.path.join("datagen", "render.py"), planted[: -len("x = 1\n")]) is None
+    assert module_length_problem(os.path.join("filtering", "fast.py"), planted) is None  # the kernels
+    for folder in ("datagen", "filtering", "envisat_pose", "bench", "scripts", "tests"):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "long.py").write_text(planted)
+    (tmp_path / "filtering" / "fast.py").write_text(planted)
+    assert long_modules(str(tmp_path)) == {os.path.join(folder, "long.py"): "501 lines, over 500"
+                                           for folder in ("datagen", "filtering", "envisat_pose")}

@@ -24,6 +24,7 @@ from envisat_pose.datagen.generate_config import nest_moved_keys
 from envisat_pose.geometry import load_geometry
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.perception import errormodel as em
+from envisat_pose.perception.box_symmetry import face_windings
 from envisat_pose.perception.calibrate import calibration_by_group, fit_cov_scale, fit_floor
 from envisat_pose.pipelines.detector.detect import camera_samples
 from envisat_pose.provenance import dataset_ref
@@ -238,7 +239,6 @@ def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, l
     from tqdm import tqdm
 
     from envisat_pose.perception import facecue as fc
-    from envisat_pose.perception.naming import face_windings
     from envisat_pose.perception.weights import with_metadata
 
     check_out_file(out, "out")

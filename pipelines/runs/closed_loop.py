@@ -37,6 +37,7 @@ from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.config import to_dict, to_toml
 from envisat_pose.contracts import TruthTrajectory
 from envisat_pose.datagen.factory import draw_corruption_params, with_look
+from envisat_pose.datagen.render_view import View
 from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.datagen.views import sample_seed, unit
 from envisat_pose.geometry import load_camera
@@ -95,7 +96,7 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     import torch
 
     from envisat_pose.datagen.corrupt import apply_corruption
-    from envisat_pose.datagen.render import View, shared_renderer
+    from envisat_pose.datagen.render_cache import shared_renderer
     from envisat_pose.perception.detect import load_detector
 
     cfg = run_config_from_json(cfg_json)

@@ -33,6 +33,7 @@ from envisat_pose.attitude import dcm_to_mrp, mrp_shadow, mrp_to_dcm
 from envisat_pose.filtering.dynamics import propagate
 from envisat_pose.filtering.measurements import measure
 from envisat_pose.geometry import PinholeCamera, load_geometry
+from envisat_pose.perception.box_symmetry import symmetry_permutations
 from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
 
@@ -40,11 +41,9 @@ from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 @functools.lru_cache(maxsize=1)
 def box_symmetries() -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The box's half-turns about its x, y and z axes as perception's naming derives them from the MJCF
-    (perception.naming.symmetry_permutations): name -> (perm (8,), S (3, 3), d (3,) m in T) with corner perm[k]
+    (perception.box_symmetry.symmetry_permutations): name -> (perm (8,), S (3, 3), d (3,) m in T) with corner perm[k]
     = S corner k + d. Each maps the box's corners onto themselves, so a naming may be off by any of them.
     Computed once (the tracker renames every frame under each); not to be modified."""
-    from envisat_pose.perception.naming import symmetry_permutations
-
     return {name: (np.asarray(perm), np.asarray(S, dtype=float), np.asarray(d, dtype=float))
             for name, (perm, S, d) in symmetry_permutations(load_geometry()).items()}
 

@@ -50,124 +50,37 @@ from typing import Callable
 
 import numpy as np
 
-from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.config import to_dict
 from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
-from envisat_pose.filtering.estimator import (
-    FilterConfig,
-    FilterState,
-    Measurement,
-    filter_step,
-    init_state,
-    make_setup,
-    predict_to,
-)
-from envisat_pose.filtering.measurements import measure, predicted_visible, to_camera_K
-from envisat_pose.filtering.ukf import sigma_points
+from envisat_pose.filtering.estimator import FilterConfig, FilterState, init_state, make_setup
 from envisat_pose.geometry import PinholeCamera, load_geometry
-from envisat_pose.pipelines.tracking.acquisition import (
-    NAMINGS,
-    BatchFit,
-    FramePose,
-    align_namings,
-    appearance_log_likelihood,
-    batch_fit,
-    initial_guess,
-    naming_state,
-    pnp_state,
-    renamed_window,
-)
-from envisat_pose.pipelines.tracking.bank import (
-    array_log_likelihood,
-    choose_namings,
-    frame_discriminates,
-    probabilities,
-    same_array_end,
-    select_runs,
-    update_cost,
-)
+from envisat_pose.pipelines.tracking.acquisition import FramePose
+from envisat_pose.pipelines.tracking.bank import probabilities, select_runs
 from envisat_pose.pipelines.tracking.build import chaser_from_orbit, tracker_camera, tracker_detector, tracker_filter
-from envisat_pose.pipelines.tracking.integrity import (
-    EvidenceWindow,
-    claim_holds,
-    fit_problems,
-    pose_sigmas,
-    state_problems,
-    target_radius_m,
-    window_problems,
-)
+from envisat_pose.pipelines.tracking.integrity import EvidenceWindow, target_radius_m
 from envisat_pose.pipelines.tracking.noise import (
     correlation_inflation,
-    detection_measurement,
     detector_error_model,
     evidence_weight,
-    filter_memory,
-    nis_sum_dispersion,
     range_consider,
     scale_sigma,
     sequence_cov_factor,
     window_memory,
 )
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
-from envisat_pose.pipelines.tracking.tracker_config import (
-    ACQUIRING_SIGMA,
-    TRACKER_FILTER,
-    RoiConfig,
-    TrackerConfig,
-    TrackEstimate,
-)
-from envisat_pose.state import MRP, N_STATE, POS, RATE
+from envisat_pose.pipelines.tracking.tracker_acquire import AcquiringSteps
+from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER, TrackerConfig, TrackEstimate
+from envisat_pose.pipelines.tracking.tracker_frame import TrackingSteps
 from envisat_pose.status import STATUSES
 
-__all__ = ["Tracker", "TrackerConfig", "TrackEstimate", "TRACKER_FILTER", "STATUSES", "predicted_roi",
-           "tracker_from_scenario"]
+__all__ = ["Tracker", "TrackerConfig", "TrackEstimate", "TRACKER_FILTER", "STATUSES", "tracker_from_scenario"]
 
 
-def predicted_roi(mean: np.ndarray, cov: np.ndarray, camera: PinholeCamera, cfg: RoiConfig) -> np.ndarray | None:
-    """The detector's region of interest (x0, y0, side) px from a prior (12,), (12, 12): the predicted corners'
-    extent x cfg.margin plus 6 x the prior's position sigma in pixels; None when no corner is predicted in view."""
+class Tracker(AcquiringSteps, TrackingSteps):
+    """Detector + UKF over a user's frames (module docstring). One object per image sequence. Its frames before a
+    bank runs are AcquiringSteps' (tracker_acquire.py), those of a started bank TrackingSteps' (tracker_frame.py)."""
 
-    uv = measure(mean[None], "pixels", camera)[0]
-    w, h = camera.width_px, camera.height_px
-    inside = np.isfinite(uv).all(-1) & (uv[:, 0] > -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] > -0.5) \
-        & (uv[:, 1] < h - 0.5)
-    if not inside.any():
-        return None
-    lo, hi = uv.min(axis=0), uv.max(axis=0)
-    sigma_px = camera.f_px * pose_sigmas(cov)[0] / max(float(np.linalg.norm(mean[POS])), 1.0)
-    side = max(float(np.max(hi - lo)) * cfg.margin + 6.0 * sigma_px, float(cfg.min_side_px))
-    side = int(np.ceil(min(side, 2.0 * max(w, h))))
-    x0, y0 = np.round((lo + hi) / 2 - side / 2).astype(int)
-    return np.array([x0, y0, side], dtype=np.int64)
-
-
-@dataclasses.dataclass(frozen=True)
-class FrameMeasurement:
-    """One frame measured for the bank's H hypotheses (Tracker._measure). fd: the FrameDetection (None: no
-    image); roi: the region of interest it was detected in, px (None: the whole frame); z: (H, 8, 2) px, each
-    hypothesis' naming of the corners (NaN: not measured); cov: (H, 8, 2, 2) px^2; mask: (H, 8) bool corners
-    given to the filter; pre: (H, 8) bool corners gated before it (gate.raw); seen: (H,) bool any corner
-    measured; namings: (H,) the naming each hypothesis chose (-1: none); appearance: (H,) its appearance
-    log-likelihood, nats; rejected: (8,) bool the best hypothesis' rejected corners; t_det, t_filter: s spent
-    detecting and in the rest of the measurement."""
-
-    fd: object
-    roi: np.ndarray | None
-    z: np.ndarray
-    cov: np.ndarray
-    mask: np.ndarray
-    pre: np.ndarray
-    seen: np.ndarray
-    namings: np.ndarray
-    appearance: np.ndarray
-    rejected: np.ndarray
-    t_det: float
-    t_filter: float
-
-
-class Tracker:
-    """Detector + UKF over a user's frames (module docstring). One object per image sequence."""
 
     def __init__(self, camera: PinholeCamera, detector, chaser_at: Callable[[float], np.ndarray],
                  config: TrackerConfig = TrackerConfig(), filter_config: FilterConfig | dict | None = None,
@@ -278,77 +191,7 @@ class Tracker:
         fd = self.detector.detect(image, self.camera.K, roi_px=roi, prior_R_cam_from_target=R_prior, **pose)
         return fd, time.perf_counter() - t0
 
-    # ------------------------------------------------------------------ acquiring
-
-    def _acquire(self, t_s: float, image) -> TrackEstimate:
-        events: list[str] = []
-        fd, t_det = (None, 0.0) if image is None else self._detect(image)
-        t0 = time.perf_counter()
-        measured = np.zeros(8, bool)
-        if fd is not None:
-            z, cov, p_alt = detection_measurement(fd, self.inflation, self.bias_scale)
-            measured = np.isfinite(z).all(-1)
-            x_pnp = pnp_state(z, self.corners_T_m, self.camera, self.cfg.acquire.min_corners)
-            if x_pnp is not None:
-                if self.buffer and t_s - self.buffer[-1].t_s > self.cfg.acquire.max_gap_s:
-                    self.buffer = []
-                self.buffer.append(FramePose(t_s, self.chaser_at(t_s), z, cov, p_alt, x_pnp))
-                self.last_pose = x_pnp
-        if len(self.buffer) >= self.cfg.acquire.frames:
-            events += self._cold_start()
-        t_fit = time.perf_counter() - t0
-        timing = {"detection": t_det, "filtering": t_fit}
-        if self.state is not None:
-            return self._estimate(t_s, fd=fd, naming=0, measured=measured, rejected=np.zeros(8, bool), roi=None,
-                                  converged=False, events=tuple(events), timing=timing, status="acquiring")
-        P = np.diag(np.repeat(np.square(ACQUIRING_SIGMA), 3))
-        x = self.last_pose if self.last_pose is not None else np.full(N_STATE, np.nan)
-        if self.last_pose is None:
-            P = np.full((N_STATE, N_STATE), np.nan)
-        return TrackEstimate(t_s=t_s, status="acquiring", x_hat=x.copy(), P=P, hypotheses=np.zeros((0, N_STATE)),
-                             probabilities=np.zeros(0), detection=fd, naming=0 if measured.any() else -1,
-                             measured=measured, rejected=np.zeros(8, bool), nis=0.0, nis_dof=0, roi_px=None,
-                             converged=False, events=tuple(events), timing_s=timing)
-
-    def _cold_start(self) -> list[str]:
-        """Every naming of the aligned window fitted (the detector's and its renaming by each of the box's three
-        half-turns: acquisition.NAMINGS; a window aligned to a naming off by the y or z half-turn has its truth
-        there, which a pair of long-axis twins would miss). When a fit passes its integrity tests
-        (integrity.fit_problems, state_problems), the bank starts at the window's last frame with every hypothesis
-        whose fit is valid and physical, weighted by their fit cost (chi-square plus the gate's bound per corner
-        the fit rejected, as while tracking) and appearance; those below 1 - bank.decided are dropped at once.
-        When none passes the older half of the window is dropped and acquisition goes on. Returns the frame's
-        events."""
-        frames, _ = align_namings(self.buffer)
-        guess = initial_guess(frames)
-        fits = [batch_fit(renamed_window(frames, h), naming_state(guess, h), self.chaser_at, self.camera, self.dyn,
-                          self.cfg.fit.iterations, self.cfg.fit.huber, self.cfg.fit.gate)
-                for h in range(len(NAMINGS))]
-
-        def cost(f: BatchFit) -> float:
-            return f.chi2 + self.cfg.fit.gate * f.rejected
-
-        log_dyn = np.array([-0.5 * cost(f) for f in fits])
-        log_app = appearance_log_likelihood(frames, self.cfg.bank.appearance_clip) / self.cfg.bank.appearance_frames
-        state = [state_problems(f.x, f.P, self.camera, self.radius_m, self.cfg.integrity) if f.valid else []
-                 for f in fits]  # an invalid fit's problem is fit_problems' own
-        problems = [fit_problems(f, len(frames), self.cfg.integrity, self.cfg.acquire.min_corners) or s
-                    for f, s in zip(fits, state)]
-        ok = np.array([not p for p in problems])
-        if not ok.any():
-            self.buffer = self.buffer[len(self.buffer) // 2:]
-            return [f"cold start refused: {'; '.join(problems[0])}"]
-        # Once one fit passes, every twin whose fit is valid and physical starts beside it, failed fit statistics
-        # or not: the twins fit the same window, so a chi-square or rejection count just past its bound for one
-        # and just inside it for another is the window's noise, not evidence between them (the four twins' costs
-        # can lie within 1 % of each other; one started alone was claimed 180 deg off: docs/history.md). The bank
-        # weighs them by their fit cost and appearance and drops at once those below 1 - bank.decided, so a far
-        # worse fit never starts.
-        start = np.array([f.valid and not s for f, s in zip(fits, state)])
-        self.buffer = []
-        P = np.stack([f.P for f in fits])[start] * self.cfg.acquire.start_cov_factor
-        self._start(np.stack([f.x for f in fits])[start], P, fits[0].t_s, log_dyn[start], log_app[start])
-        return ["started"]
+    # ------------------------------------------------------------------ the bank: started, pruned, reset
 
     def _reset(self) -> None:
         """Back to acquiring: the bank, its evidence, the window and the memory dropped."""
@@ -379,233 +222,6 @@ class Tracker:
         self.log_app = self.log_app[keep] - np.max(self.log_app[keep])
         self.log_array = self.log_array[keep] - np.max(self.log_array[keep])
         return True
-
-    # ------------------------------------------------------------------ tracking
-
-    def _look(self, image, prior, best: int, converged: bool):
-        """Detect in this frame with the bank's prediction: the region of interest once converged, the predicted
-        pose as the naming's start and half-turn prior when one hypothesis is left. Returns (fd, roi, t_det)."""
-        roi = predicted_roi(prior[0][best], prior[1][best], self.camera, self.cfg.roi) \
-            if self.cfg.roi.enabled and converged else None
-        R_prior = t_prior = None
-        decided = prior[0].shape[0] == 1
-        # one hypothesis: its attitude weighs the detector's half-turn and its pose seeds the naming; twins still
-        # open: the best one's pose only seeds the naming (they are one physical pose, their corners the same
-        # points under other names), the half-turn's probability comes from the image alone, never from the
-        # prior it is to test
-        rc = self.cfg.roi
-        if converged and rc.prior_attitude and (decided or (rc.prior_pose and rc.prior_pose_twins)):
-            R_K, t_K = self._pose_K(prior[0][best])
-            R_prior = R_K
-            if rc.prior_pose:
-                t_prior = t_K
-        fd, t_det = self._detect(image, roi, R_prior, t_prior, decided)
-        if roi is not None and int(np.sum(fd.visible)) < rc.min_corners:
-            fd, t2 = self._detect(image, None, R_prior, t_prior, decided)
-            t_det += t2
-            roi = None
-        return fd, roi, t_det
-
-    def _track(self, t_s: float, image) -> TrackEstimate:
-        """One frame of a started bank: every hypothesis predicted to t_s, then the frame measured under the
-        prediction (_measure), the bank updated (_update_bank) and judged (_judge: integrity, pruning, the claim)."""
-        t0 = time.perf_counter()
-        chaser = self.chaser_at(t_s)
-        prior = predict_to(self.state, t_s, self.setup)
-        best = int(np.argmax(self.log_w))
-        if not (np.isfinite(prior[0][best]).all() and np.isfinite(prior[1][best]).all()):
-            return self._lost_prediction(t_s, image)
-        pos_sig, att_sig = pose_sigmas(prior[1][best])
-        self.rate_rad_s = float(np.linalg.norm(prior[0][best, RATE]))  # the view's rotation rate, predicted
-        converged = bool(pos_sig < self.cfg.roi.converged_pos_sigma_m
-                         and att_sig < self.cfg.roi.converged_att_sigma_deg)
-        t_predict = time.perf_counter() - t0
-        m = self._measure(image, prior, best, converged)
-        t1 = time.perf_counter()
-        events: list[str] = []
-        new, b = self._update_bank(Measurement(t_s, chaser, np.nan_to_num(m.z), m.mask, m.cov), prior, best,
-                                   converged, image, m, events)
-        out = dict(fd=m.fd, naming=int(m.namings[b]), measured=m.mask[b] | m.pre[b], rejected=m.rejected, roi=m.roi,
-                   converged=converged, nis=float(new.nis[b]), nis_dof=int(new.dof[b]))
-        return self._judge(t_s, image, new, b, events, out, lambda: {
-            "detection": m.t_det, "filtering": t_predict + m.t_filter + time.perf_counter() - t1})
-
-    def _lost_prediction(self, t_s: float, image) -> TrackEstimate:
-        """A prediction gone non-finite (a long gap through a bad state): the track is lost, acquire again."""
-        fd = None if image is None else self._detect(image)[0]
-        est = TrackEstimate(t_s=t_s, status="lost", x_hat=np.full(N_STATE, np.nan),
-                            P=np.full((N_STATE, N_STATE), np.nan), hypotheses=np.zeros((0, N_STATE)),
-                            probabilities=np.zeros(0), detection=fd, naming=-1, measured=np.zeros(8, bool),
-                            rejected=np.zeros(8, bool), nis=0.0, nis_dof=0, roi_px=None, converged=False,
-                            events=("lost: the prediction is not finite",), timing_s={})
-        self._reset()
-        return est
-
-    def _measure(self, image, prior, best: int, converged: bool) -> FrameMeasurement:
-        """The frame measured for every hypothesis under the bank's prediction prior (means (H, 12), covariances
-        (H, 12, 12)): detected (_look), its corners named per hypothesis (choose_namings), gated against the
-        detector's own covariance (gate.raw) and the best hypothesis' rejected corners flagged. No image: nothing
-        measured."""
-        t0 = time.perf_counter()
-        H = self.state.mean.shape[0]
-        z = np.full((H, 8, 2), np.nan)
-        cov = np.broadcast_to(np.eye(2), (H, 8, 2, 2)).copy()
-        namings, appearance = np.full(H, -1), np.zeros(H)
-        fd, roi, t_det = None, None, 0.0
-        if image is not None:
-            fd, roi, t_det = self._look(image, prior, best, converged)
-            zd, cd, p_alt = detection_measurement(fd, self.inflation, self.bias_scale)
-            if np.isfinite(zd).all(-1).any():
-                z, cov, namings, appearance = choose_namings(zd, cd, p_alt, self.setup.hx(prior[0]),
-                                                             self.cfg.bank.appearance_clip,
-                                                             self.cfg.bank.appearance_frames)
-        mask = np.isfinite(z).all(-1)
-        seen = mask.any(-1)
-        pre = np.zeros(mask.shape, bool)  # corners gated against the detector's own covariance (cfg.gate.raw)
-        if self.cfg.gate.raw and self.setup.gate_threshold is not None and mask.any():
-            raw = cov * (self.cov_factor / self.inflation)
-            pre = np.stack([mask[h] & (self._corner_d2(prior, np.nan_to_num(z), raw, h) > self.setup.gate_threshold)
-                            for h in range(H)])
-            mask = mask & ~pre
-        rejected = self._rejected(prior, np.nan_to_num(z), mask, cov, best) | pre[best]
-        return FrameMeasurement(fd=fd, roi=roi, z=z, cov=cov, mask=mask, pre=pre, seen=seen, namings=namings,
-                                appearance=appearance, rejected=rejected, t_det=t_det,
-                                t_filter=time.perf_counter() - t0 - t_det)
-
-    def _update_bank(self, meas: Measurement, prior, best: int, converged: bool, image, m: FrameMeasurement,
-                     events: list[str]) -> tuple[FilterState, int]:
-        """The bank updated with the frame: every hypothesis' UKF step, its dynamics log-likelihood (the frame's
-        cost, where the frame discriminates), the detector's appearance and the array cue, the evidence windows
-        and the filter's memory. Returns (the updated state, this frame's best hypothesis before pruning)."""
-        H = self.state.mean.shape[0]
-        new = filter_step(self.state, meas, self.setup, prior=prior)
-        used = new.dof > 0
-        n_pre = m.pre.sum(-1)
-        if frame_discriminates(new.nis, new.dof, self.cfg.bank.evidence_prob):
-            cost = update_cost(new, self.gate_bound) + self.gate_bound * n_pre
-            self.log_dyn = self.log_dyn + np.where(m.seen, -0.5 * cost * self.evidence_weight, 0.0)
-        elif H > 1:
-            events.append("no evidence between the hypotheses: the frame's innovations contradict them all")
-        self.log_app = self.log_app + np.where(m.seen, m.appearance, 0.0)
-        if image is not None and converged:
-            self._array_cue(image, prior[0], best)
-        self.log_dyn -= np.max(self.log_dyn)
-        self.log_app -= np.max(self.log_app)
-        self.log_array -= np.max(self.log_array)
-        self.state = new
-        self.evidence = self.evidence.push(np.where(used, new.nis, 0.0), new.dof, m.mask.sum(-1) + n_pre,
-                                           new.rejected + new.dropped + n_pre)
-        b = int(np.argmax(self.log_w))  # the best hypothesis of this frame, before pruning
-        if used[b]:
-            lam = filter_memory(prior[1][b], new.cov[b])
-            self.memory = self.memory if lam is None else lam
-        return new, b
-
-    def _judge(self, t_s: float, image, new: FilterState, b: int, events: list[str], out: dict,
-               timing: Callable[[], dict]) -> TrackEstimate:
-        """Integrity: every hypothesis against its own evidence (and, one left, the array cue; the bank against
-        integrity.lost_after_frames frames without a corner used); a failed one is dropped, none left is lost;
-        a decided bank is pruned to its winner; then the frame's claim (_claim). timing() gives the frame's
-        timing_s when the outcome is known."""
-        H = new.mean.shape[0]
-        problems = self._problems(new)
-        if H == 1 and self.array_against >= self.cfg.array_cue.lost_readings:
-            problems[0].append(f"the image shows the solar array at the other end of the body ({self.array_against} "
-                               "readings in a row)")
-        if image is not None:
-            self.coasting_frames = 0 if new.dof[b] > 0 else self.coasting_frames + 1
-        if self.coasting_frames >= self.cfg.integrity.lost_after_frames:
-            # the bank's, not one hypothesis's: dropping the best alone would hand its twin the claim by
-            # elimination, with no evidence for it (a 20 m acquisition trial claimed a 180-deg twin for 55 s so)
-            for p in problems:
-                p.append(f"no corner used in {self.coasting_frames} frames with an image")
-        failed = np.array([bool(p) for p in problems])
-        if failed.all():
-            events.append(f"lost: {'; '.join(problems[b])}")
-            est = self._estimate(t_s, events=tuple(events), status="lost", timing=timing(), **out)
-            self._reset()
-            return est
-        if failed.any():
-            events += [f"hypothesis dropped: {'; '.join(p)}" for p in problems if p]
-            self.log_dyn = np.where(failed, -np.inf, self.log_dyn)
-            self._keep(~failed)
-        if self._keep(self.probabilities >= 1.0 - self.cfg.bank.decided):
-            events.append("hypothesis decided")
-        status = self._claim(events)  # may add "confirmed" to the events
-        return self._estimate(t_s, events=tuple(events), status=status, timing=timing(), **out)
-
-    def _pose_K(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The target's pose in the camera frame K of a state x (12,): R_K_from_T (3, 3) and T's origin in K (3,), m."""
-
-        return self.camera.R_K_from_C @ mrp_to_dcm(x[MRP]).T, to_camera_K(x[POS], self.camera)
-
-    def _array_cue(self, image, x_prior: np.ndarray, best: int) -> None:
-        """Read the array cue (perception/arraycue.py) under the best hypothesis' predicted pose: while the bank
-        holds hypotheses at both ends of the body, they gain its log-likelihoods (bank.array_log_likelihood); with
-        one hypothesis left, a reading against it counts into array_against (one for it resets the count, an
-        abstention leaves it). Nothing when the cue is off or the open hypotheses all put the array at one end."""
-        H = x_prior.shape[0]
-        both_ends = H > 1 and not same_array_end(x_prior, x_prior[best]).all()
-        if not self.cfg.array_cue.enabled or not (both_ends or H == 1):
-            return
-        from envisat_pose.perception.arraycue import array_end
-
-        cue, _ = array_end(image, self.camera.K, *self._pose_K(x_prior[best]), self.corners_T_m)
-        if both_ends:
-            self.log_array = self.log_array + array_log_likelihood(cue, x_prior, x_prior[best],
-                                                                   self.cfg.array_cue.per_frame)
-        elif cue:
-            self.array_against = self.array_against + 1 if cue < 0 else 0
-
-    def _problems(self, new: FilterState) -> list[list[str]]:
-        """Per hypothesis, why this frame's evidence contradicts it (integrity.py); empty where it does not."""
-        kappa = nis_sum_dispersion(self.error_model, self.dt_s, self.cfg.integrity.window, self.rate_rad_s,
-                                   self.cfg.noise.correlation_in)
-        problems = window_problems(self.evidence, self.cfg.integrity, kappa)
-        for h, p in enumerate(problems):
-            if new.indefinite[h]:
-                p.insert(0, "innovation covariance not positive definite (the update failed)")
-            elif new.diverged[h]:
-                p.insert(0, "the filter's windowed NIS beyond its bound (divergence monitor)")
-            p += state_problems(new.mean[h], new.cov[h], self.camera, self.radius_m, self.cfg.integrity)
-        return problems
-
-    def _claim(self, events: list[str]) -> str:
-        """This frame's status of a bank that survived its integrity tests: "acquiring" until it is decided and
-        confirmed (events gains "confirmed" the frame it is), then "tracking" when it used corners and its
-        covariance backs the claim, else "coasting"."""
-        mean, cov = self.state.mean[0], self.state.cov[0]
-        backed = bool(self.state.dof[0] > 0) and claim_holds(mean, cov, self.cfg.integrity)
-        if not self.confirmed:
-            if self.state.mean.shape[0] > 1 or not backed \
-                    or self.evidence.used_frames()[0] < self.cfg.integrity.confirm_frames:
-                return "acquiring"
-            self.confirmed = True
-            events.append("confirmed")
-        return "tracking" if backed else "coasting"
-
-    def _rejected(self, prior, z, mask, cov, best) -> np.ndarray:
-        """Corners of the best hypothesis the chi-square gate rejects (its own per-corner rule from the prior's
-        sigma points; the visibility check's drops count as rejected too)."""
-
-        if not mask[best].any() or self.setup.gate_threshold is None:
-            return np.zeros(8, bool)
-        d2 = self._corner_d2(prior, z, cov, best)
-        vis = predicted_visible(prior[0][best]) if self.fcfg.visibility_check else np.ones(8, bool)
-        return mask[best] & ((d2 > self.setup.gate_threshold) | ~vis)
-
-    def _corner_d2(self, prior, z, cov, h) -> np.ndarray:
-        """(8,) each corner's squared Mahalanobis distance from hypothesis h's predicted corner, under the prior's
-        spread (its sigma points through the measurement model) plus cov[h] (8, 2, 2) at the filter's R scale."""
-
-        S = sigma_points(prior[0][h], prior[1][h], self.setup.weights)  # (25, 12)
-        uv = self.setup.hx(S)  # (25, 8, 2)
-        Wm, Wc = self.setup.weights.Wm, self.setup.weights.Wc
-        mu = np.einsum("s,skj->kj", Wm, uv)
-        d = uv - mu
-        Pzz = np.einsum("s,ski,skj->kij", Wc, d, d) + cov[h] * self.state.r_scale[h]
-        y = z[h] - mu
-        return np.einsum("ki,ki->k", y, np.linalg.solve(Pzz, y[..., None])[..., 0])
 
     def _estimate(self, t_s, *, fd, naming, measured, rejected, roi, converged, events, timing, status,
                   nis=0.0, nis_dof=0) -> TrackEstimate:

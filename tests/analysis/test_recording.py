@@ -326,8 +326,8 @@ def test_a_truth_of_another_target_draws_that_target(tmp_path):
 
 def test_samples_of_another_target_carry_its_keypoint_names_and_mask_values(tmp_path):
     """A CubeSat label (keypoint_names, keypoints_px: K = 12) is drawn with its names; the mask's classes are the
-    renderer's values of its geoms (datagen.render.target_mask_values: 1..G in file order), named after them."""
-    from envisat_pose.datagen.render import target_mask_values
+    renderer's values of its geoms (datagen.render_view.target_mask_values: 1..G in file order), named after them."""
+    from envisat_pose.datagen.render_view import target_mask_values
     from envisat_pose.target import load_target
 
     target = load_target(CUBESAT)

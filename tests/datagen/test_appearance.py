@@ -15,7 +15,8 @@ from envisat_pose.config import from_dict
 from envisat_pose.datagen.appearance import GEOM_CLASS, class_texture
 from envisat_pose.datagen.factory import run_generate, view_from_scene, with_look
 from envisat_pose.datagen.generate_config import GenerateConfig
-from envisat_pose.datagen.render import APPENDAGE_MASK_VALUE, SceneRenderer, View
+from envisat_pose.datagen.render import SceneRenderer
+from envisat_pose.datagen.render_view import APPENDAGE_MASK_VALUE, View
 from envisat_pose.shard_reader import read_shard
 
 RES = 256

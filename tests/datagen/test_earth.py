@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from envisat_pose.datagen import earth
-from envisat_pose.datagen.render import SceneRenderer, View
+from envisat_pose.datagen.render import SceneRenderer
+from envisat_pose.datagen.render_view import View
 from envisat_pose.datagen.scenario import EARTH_RADIUS_M
 
 RES = 160

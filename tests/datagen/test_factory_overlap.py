@@ -33,9 +33,9 @@ def test_overlap_and_prefetch_same_bytes(tmp_path, monkeypatch, kw):
     serial = run_generate(cfg, str(tmp_path / "serial"))
     monkeypatch.setattr(factory, "FINISH_BESIDE_RENDER", True)
     monkeypatch.setattr(factory, "PREFETCH_EARTH_MIN_IMAGES", 1)
-    from envisat_pose.datagen import render
+    from envisat_pose.datagen import render_cache
 
-    render.close_renderers()  # a fresh renderer: its Earth textures come from the prefetch
+    render_cache.close_renderers()  # a fresh renderer: its Earth textures come from the prefetch
     overlapped = run_generate(cfg, str(tmp_path / "overlapped"))
     assert shas(serial) == shas(overlapped)
 

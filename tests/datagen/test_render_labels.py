@@ -17,7 +17,8 @@ def cross2(a, b):
 
 from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.datagen.labels import make_label
-from envisat_pose.datagen.render import MASK_VALUES, SceneRenderer, View
+from envisat_pose.datagen.render import SceneRenderer
+from envisat_pose.datagen.render_view import MASK_VALUES, View
 from envisat_pose.geometry import load_geometry, visible_corners
 from envisat_pose.target import load_target
 
@@ -307,7 +308,7 @@ def test_the_lit_pass_reads_back_only_the_targets_box_with_the_same_pixels(rende
 
     import mujoco
 
-    from envisat_pose.datagen.render import projected_bbox_px
+    from envisat_pose.datagen.render_pixels import projected_bbox_px
 
     R = quat_to_rotmat(np.array([0.9, 0.3, -0.2, 0.25]) / np.linalg.norm([0.9, 0.3, -0.2, 0.25]))
     views = random_views(5, seed=21) + [

@@ -71,7 +71,8 @@ def test_labels_land_on_the_rendered_site_markers(target_files):
     """A square plate facing the camera at every keypoint site, rendered by MuJoCo at 2048 px (55 px a side): the centroid of each whole marker's mask pixels (pixel centres at integers) is the label's keypoint within 0.05 px; the labels of the file without
     markers are the same numbers (the geoms do not move the keypoints)."""
     from envisat_pose.datagen.labels import make_label
-    from envisat_pose.datagen.render import SceneRenderer, View
+    from envisat_pose.datagen.render import SceneRenderer
+    from envisat_pose.datagen.render_view import View
     from envisat_pose.datagen.views import R_K_FROM_C
     from envisat_pose.target import load_target
 
@@ -327,7 +328,7 @@ def test_envisat_datasets_are_those_of_before_the_target_work(mode, tmp_path):
     """The samples are those of before (images, depth, masks and labels within the cross-machine tolerances); the
     manifest adds only the target (its record and the config's `target` field), ENVISAT's corners keep their names
     A-H and the labels their corners_px."""
-    from envisat_pose.datagen.render import MASK_VALUES
+    from envisat_pose.datagen.render_view import MASK_VALUES
 
     maker = _load_reference_module("make_shard_reference")
     manifest = maker.generate(mode, str(tmp_path / mode))

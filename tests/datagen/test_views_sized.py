@@ -120,7 +120,7 @@ def _median_mask_share(target: str, n: int, seed: int) -> float:
     """The median share of the image the target's mask covers over the first n random views of the default
     config of `target` at 256 px (root seed `seed`): the dataset's own views and looks."""
     from envisat_pose.datagen.factory import sample_view
-    from envisat_pose.datagen.render import shared_renderer
+    from envisat_pose.datagen.render_cache import shared_renderer
 
     cfg = from_dict(GenerateConfig, {"target": target, "resolution_px": 256, "num_images": n, "shard_size": n,
                                      "seed": seed})

@@ -67,7 +67,8 @@ def test_the_factory_renders_the_shape_mujoco_gives_the_file(tmp_path):
     pixels (the rasterizer at an edge), keypoint labels within 1e-9 px, and the plate really turned (its mask
     spans the view's projection of the corners)."""
     from envisat_pose.datagen.labels import make_label
-    from envisat_pose.datagen.render import SceneRenderer, View
+    from envisat_pose.datagen.render import SceneRenderer
+    from envisat_pose.datagen.render_view import View
 
     view = View(np.array([0.1, 3.0, -0.05]), np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]),
                 np.array([0.0, -1.0, 0.0]))

@@ -11,7 +11,7 @@ import pytest
 from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.geometry import load_array_outline, load_geometry, model_path
 from envisat_pose.perception.arraycue import array_end
-from envisat_pose.perception.naming import symmetry_permutations
+from envisat_pose.perception.box_symmetry import symmetry_permutations
 
 RES = 512
 
@@ -36,7 +36,8 @@ def test_the_outline_is_the_mjcf_array_as_mujoco_compiles_it():
 def renders():
     """Lit views at 30-45 m near the boresight (random attitude and sun in front of the camera's hemisphere), the
     MJCF's own materials, no Earth: (image, K, R_K_from_T, t_K_from_T_m) each."""
-    from envisat_pose.datagen.render import SceneRenderer, View
+    from envisat_pose.datagen.render import SceneRenderer
+    from envisat_pose.datagen.render_view import View
 
     rng = np.random.default_rng(11)
     r = SceneRenderer(RES)

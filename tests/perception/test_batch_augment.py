@@ -227,11 +227,11 @@ def test_training_batches_repeat_for_a_seed_and_differ_between_seeds():
 
 def render_box(renderer, view, box, out_px):
     """The lit pass of `view` by the camera whose image is the square box (x0, y0, side) of the renderer's frame,
-    at out_px: the frustum narrowed to the box (render.crop_frustum; intrinsics f' = f out/side,
+    at out_px: the frustum narrowed to the box (render_pixels.crop_frustum; intrinsics f' = f out/side,
     c' = (c - x0 + 0.5) out/side - 0.5). (out_px, out_px) float64 gray."""
     import mujoco
 
-    from envisat_pose.datagen.render import crop_frustum
+    from envisat_pose.datagen.render_pixels import crop_frustum
 
     renderer.set_view(view)
     renderer._gl.make_current()
@@ -276,7 +276,8 @@ def test_crop_moves_labels_as_the_equivalent_camera_sees_them():
     (shift and scale fitted over the image), and the label moved by to_input_px is that camera's projection."""
     from envisat_pose.attitude import quat_to_rotmat
     from envisat_pose.datagen.labels import project_px
-    from envisat_pose.datagen.render import SceneRenderer, View
+    from envisat_pose.datagen.render import SceneRenderer
+    from envisat_pose.datagen.render_view import View
 
     renderer = SceneRenderer(512)
     rng = np.random.default_rng(21)

@@ -44,7 +44,7 @@ def test_swaps_strict_rate():
 
 def test_half_turn_permutation_is_the_geometry_symmetry():
     from envisat_pose.geometry import load_geometry
-    from envisat_pose.perception.naming import symmetry_permutations
+    from envisat_pose.perception.box_symmetry import symmetry_permutations
 
     perm = symmetry_permutations(load_geometry())["x"][0]
     assert np.array_equal(perm, ev.HALF_TURN_PERM)

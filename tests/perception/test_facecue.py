@@ -11,7 +11,8 @@ import pytest
 
 from envisat_pose.geometry import FACE_COVERING, FACE_NAMES, load_geometry
 from envisat_pose.perception import facecue as fc
-from envisat_pose.perception.naming import Naming, face_windings
+from envisat_pose.perception.box_symmetry import face_windings
+from envisat_pose.perception.naming import Naming
 
 
 def test_face_polygons_are_opencvs_projection():

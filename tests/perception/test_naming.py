@@ -10,13 +10,10 @@ sys.path.insert(0, os.path.dirname(__file__))
 from naming_cases import make_case, outcome  # noqa: E402
 
 from envisat_pose.geometry import load_geometry  # noqa: E402
-from envisat_pose.perception.naming import (  # noqa: E402,E501
-    NamingConfig,
-    _poses_from_faces,
-    face_windings,
-    name_corners,
-    symmetry_permutations,
-)
+from envisat_pose.perception.box_symmetry import face_windings, symmetry_permutations  # noqa: E402
+from envisat_pose.perception.face_poses import poses_from_faces  # noqa: E402
+from envisat_pose.perception.naming import name_corners  # noqa: E402
+from envisat_pose.perception.naming_config import NamingConfig  # noqa: E402
 
 
 def test_face_poses_exact_without_noise():
@@ -28,7 +25,7 @@ def test_face_poses_exact_without_noise():
         case = make_case(rng, noise_px=0.0, n_spurious=0)
         for q in face_windings(g):
             if case["visible"][q].all():
-                R, t = _poses_from_faces(case["corners_px"][q][None], q[None], g, case["K"])
+                R, t = poses_from_faces(case["corners_px"][q][None], q[None], g, case["K"])
                 err = min(np.abs(Ri - case["R"]).max() + np.abs(ti - case["t"]).max() for Ri, ti in zip(R, t))
                 assert err < 1e-6
                 n += 1

@@ -174,7 +174,8 @@ def test_the_rendered_outline_reads_its_range():
     edge next to the array or in the box's own shadow: why one scale per sequence). Bounds: 0.1 % on the
     sequence and on the median frame."""
     from envisat_pose.attitude import mrp_to_dcm, quat_to_mrp
-    from envisat_pose.datagen.render import SceneRenderer, View
+    from envisat_pose.datagen.render import SceneRenderer
+    from envisat_pose.datagen.render_view import View
 
     res = 512
     renderer = SceneRenderer(res)

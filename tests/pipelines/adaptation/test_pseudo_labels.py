@@ -272,7 +272,8 @@ def test_pseudo_labels_land_on_the_rendered_corners():
     """Labels made from a pose (here the truth, handed to the label maker only in this test) against the corners
     the renderer draws at that pose: the intersections of lines fitted to the rendered mask's region boundaries
     (datagen's renderer, 1024 px), within 0.1 px."""
-    from envisat_pose.datagen.render import SceneRenderer, View
+    from envisat_pose.datagen.render import SceneRenderer
+    from envisat_pose.datagen.render_view import View
     from envisat_pose.geometry import load_camera, load_geometry, visible_faces
 
     res = 1024

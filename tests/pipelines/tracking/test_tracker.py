@@ -60,7 +60,7 @@ def test_the_half_turn_is_an_involution_of_the_same_pose(truth_600):
     ht = acq.half_turn_state(x)
     np.testing.assert_allclose(acq.half_turn_state(ht), x, atol=1e-12)
     assert abs(np.degrees(acq.attitude_distance_rad(ht[MRP], x[MRP])) - 180.0) < 1e-6
-    # the same box in the image: the half-turn state's corner i is the truth's corner perm[i] (perception.naming.symmetry_permutations)
+    # the same box in the image: the half-turn state's corner i is the truth's corner perm[i] (perception.box_symmetry.symmetry_permutations)
     from envisat_pose.filtering.measurements import measure
 
     cam = load_camera()
@@ -508,7 +508,7 @@ def test_frame_times_must_increase(truth_600):
 def test_a_failed_cold_start_fit_keeps_acquiring(truth_600, monkeypatch):
     """A batch fit that rejected every corner (no covariance to start a filter from) starts nothing: the tracker
     goes on acquiring from the newer half of its window and starts once a fit is valid."""
-    import envisat_pose.pipelines.tracking.tracker as trk
+    import envisat_pose.pipelines.tracking.tracker_acquire as trk
 
     real, calls = trk.batch_fit, []
 
@@ -711,7 +711,7 @@ def test_twins_failing_only_their_fit_statistics_start_beside_the_one_that_passe
     half-turn twins fail theirs (a chi-square just past its bound), the bank still starts with all four (the
     window's noise is no evidence between them; a lone survivor would be decided with none) and decides by the
     evidence that follows: the truth. A twin whose state is not physical never starts."""
-    import envisat_pose.pipelines.tracking.tracker as trk
+    import envisat_pose.pipelines.tracking.tracker_acquire as trk
 
     real_fit, real_state, calls = trk.fit_problems, trk.state_problems, []
 

@@ -1,0 +1,101 @@
+"""The Tracker's frames before a bank runs (status "acquiring", pipelines/tracking/tracker.py's docstring): each lit
+frame's named corners give a PnP pose into the window, and a full window is fitted under every naming (the cold
+start, pipelines/tracking/acquisition.py) until a fit passes its integrity tests and starts the bank. A part of the
+Tracker (AcquiringSteps, one of its bases): its methods read and set the Tracker's own state."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from envisat_pose.pipelines.tracking.acquisition import (
+    NAMINGS,
+    BatchFit,
+    FramePose,
+    align_namings,
+    appearance_log_likelihood,
+    batch_fit,
+    initial_guess,
+    naming_state,
+    pnp_state,
+    renamed_window,
+)
+from envisat_pose.pipelines.tracking.integrity import fit_problems, state_problems
+from envisat_pose.pipelines.tracking.noise import detection_measurement
+from envisat_pose.pipelines.tracking.tracker_config import ACQUIRING_SIGMA, TrackEstimate
+from envisat_pose.state import N_STATE
+
+
+class AcquiringSteps:
+    """The Tracker's acquiring frames: _acquire (one frame without a bank) and _cold_start (the window fitted)."""
+
+    def _acquire(self, t_s: float, image) -> TrackEstimate:
+        events: list[str] = []
+        fd, t_det = (None, 0.0) if image is None else self._detect(image)
+        t0 = time.perf_counter()
+        measured = np.zeros(8, bool)
+        if fd is not None:
+            z, cov, p_alt = detection_measurement(fd, self.inflation, self.bias_scale)
+            measured = np.isfinite(z).all(-1)
+            x_pnp = pnp_state(z, self.corners_T_m, self.camera, self.cfg.acquire.min_corners)
+            if x_pnp is not None:
+                if self.buffer and t_s - self.buffer[-1].t_s > self.cfg.acquire.max_gap_s:
+                    self.buffer = []
+                self.buffer.append(FramePose(t_s, self.chaser_at(t_s), z, cov, p_alt, x_pnp))
+                self.last_pose = x_pnp
+        if len(self.buffer) >= self.cfg.acquire.frames:
+            events += self._cold_start()
+        t_fit = time.perf_counter() - t0
+        timing = {"detection": t_det, "filtering": t_fit}
+        if self.state is not None:
+            return self._estimate(t_s, fd=fd, naming=0, measured=measured, rejected=np.zeros(8, bool), roi=None,
+                                  converged=False, events=tuple(events), timing=timing, status="acquiring")
+        P = np.diag(np.repeat(np.square(ACQUIRING_SIGMA), 3))
+        x = self.last_pose if self.last_pose is not None else np.full(N_STATE, np.nan)
+        if self.last_pose is None:
+            P = np.full((N_STATE, N_STATE), np.nan)
+        return TrackEstimate(t_s=t_s, status="acquiring", x_hat=x.copy(), P=P, hypotheses=np.zeros((0, N_STATE)),
+                             probabilities=np.zeros(0), detection=fd, naming=0 if measured.any() else -1,
+                             measured=measured, rejected=np.zeros(8, bool), nis=0.0, nis_dof=0, roi_px=None,
+                             converged=False, events=tuple(events), timing_s=timing)
+
+    def _cold_start(self) -> list[str]:
+        """Every naming of the aligned window fitted (the detector's and its renaming by each of the box's three
+        half-turns: acquisition.NAMINGS; a window aligned to a naming off by the y or z half-turn has its truth
+        there, which a pair of long-axis twins would miss). When a fit passes its integrity tests
+        (integrity.fit_problems, state_problems), the bank starts at the window's last frame with every hypothesis
+        whose fit is valid and physical, weighted by their fit cost (chi-square plus the gate's bound per corner
+        the fit rejected, as while tracking) and appearance; those below 1 - bank.decided are dropped at once.
+        When none passes the older half of the window is dropped and acquisition goes on. Returns the frame's
+        events."""
+        frames, _ = align_namings(self.buffer)
+        guess = initial_guess(frames)
+        fits = [batch_fit(renamed_window(frames, h), naming_state(guess, h), self.chaser_at, self.camera, self.dyn,
+                          self.cfg.fit.iterations, self.cfg.fit.huber, self.cfg.fit.gate)
+                for h in range(len(NAMINGS))]
+
+        def cost(f: BatchFit) -> float:
+            return f.chi2 + self.cfg.fit.gate * f.rejected
+
+        log_dyn = np.array([-0.5 * cost(f) for f in fits])
+        log_app = appearance_log_likelihood(frames, self.cfg.bank.appearance_clip) / self.cfg.bank.appearance_frames
+        state = [state_problems(f.x, f.P, self.camera, self.radius_m, self.cfg.integrity) if f.valid else []
+                 for f in fits]  # an invalid fit's problem is fit_problems' own
+        problems = [fit_problems(f, len(frames), self.cfg.integrity, self.cfg.acquire.min_corners) or s
+                    for f, s in zip(fits, state)]
+        ok = np.array([not p for p in problems])
+        if not ok.any():
+            self.buffer = self.buffer[len(self.buffer) // 2:]
+            return [f"cold start refused: {'; '.join(problems[0])}"]
+        # Once one fit passes, every twin whose fit is valid and physical starts beside it, failed fit statistics
+        # or not: the twins fit the same window, so a chi-square or rejection count just past its bound for one
+        # and just inside it for another is the window's noise, not evidence between them (the four twins' costs
+        # can lie within 1 % of each other; one started alone was claimed 180 deg off: docs/history.md). The bank
+        # weighs them by their fit cost and appearance and drops at once those below 1 - bank.decided, so a far
+        # worse fit never starts.
+        start = np.array([f.valid and not s for f, s in zip(fits, state)])
+        self.buffer = []
+        P = np.stack([f.P for f in fits])[start] * self.cfg.acquire.start_cov_factor
+        self._start(np.stack([f.x for f in fits])[start], P, fits[0].t_s, log_dyn[start], log_app[start])
+        return ["started"]
