@@ -1,6 +1,7 @@
 """`envisat detect`: named corners of every frame of a dataset (full frames, no label used but the intrinsics K),
-written as the core's Detections contract plus the shard keys and the half-turn alternative. The verb parses the
-flags and calls the pipeline (pipelines/detector/detect.py: run_detect)."""
+written as the core's Detections contract plus the shard keys and the half-turn alternative; with --target another
+target's keypoints by its keypoint detector (the KeypointDetections contract). The verb parses the flags and calls
+the pipeline (pipelines/detector/detect.py: run_detect; detect_target.py: run_detect_target)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ from envisat_pose.app.common import add_common, add_skip_damaged_argument, skipp
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.out_dirs import check_out_file
 from envisat_pose.pipelines.detector.detect import DetectJobConfig, run_detect
+from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig, run_detect_target
 from envisat_pose.shard_reader import skip_hint
+from envisat_pose.target import DEFAULT_TARGET, other_target
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,6 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "config_json, plus key, alt_corners_px, alt_probability and ambiguous (the half-turn alternative).",
     )
     p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped weights)")
+    p.add_argument("--target", metavar="FILE.xml", help="another spacecraft's MJCF file: its keypoints by the "
+                   "weights `envisat train --target` wrote for it (det.npz: keypoints_px, score, visible_prob...)")
     p.add_argument("--data", required=True, metavar="DIR", help="dataset folder (shards)")
     p.add_argument("--out", required=True, metavar="det.npz", help="output file")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
@@ -37,23 +42,27 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "in every corruption group on held-out data)")
     add_common(p)  # the shared --quiet
     add_skip_damaged_argument(p)
-    p.set_defaults(func=run_detect_cli, flag_names={"roi": "--roi", "out": "--out", "data": "--data"})
+    p.set_defaults(func=run_detect_cli, flag_names={"roi": "--roi", "out": "--out", "data": "--data",
+                                                    "target": "--target"})
 
 
 def detector_inputs(args: argparse.Namespace) -> None:
     """The checks the verbs that run the detector share, before any work: --limit at least 1 (where the verb has
-    it), --weights (the shipped file by default) exists, --threads at least 1 (then torch uses that many)."""
+    it), --weights (the shipped file by default) exists and fits the target (--target where the verb has it, else
+    ENVISAT: one line naming the weights, their target and the given one), --threads at least 1 (then torch uses
+    that many)."""
     import os
 
     import torch
 
-    from envisat_pose.perception.weights import shipped_weights_path
+    from envisat_pose.perception.weights import check_weights_target, shipped_weights_path
 
     if getattr(args, "limit", None) is not None and args.limit < 1:
         raise InputError(f"--limit {args.limit}: expected at least 1")
     args.weights = args.weights or shipped_weights_path()
     if not os.path.isfile(args.weights):
         raise InputError(f"--weights {args.weights!r}: no such file")
+    check_weights_target(args.weights, getattr(args, "target", None) or DEFAULT_TARGET, "--weights")
     if args.threads is not None:
         if args.threads < 1:
             raise InputError(f"--threads {args.threads}: expected at least 1")
@@ -73,6 +82,8 @@ def run_detect_cli(args: argparse.Namespace) -> int:
 
     check_out_file(args.out)
     detector_inputs(args)
+    if other_target(args.target):
+        return run_target_cli(args)
     with skip_hint():
         arrays = run_detect(resolve_config(args), args.data, args.out, progress=not args.quiet)
     n = int(arrays["visible"].sum())
@@ -81,4 +92,18 @@ def run_detect_cli(args: argparse.Namespace) -> int:
     skipped = json.loads(str(arrays["config_json"]))["skipped_damaged_shards"]
     if skipped:
         print(skipped_line(skipped))
+    return 0
+
+
+def run_target_cli(args: argparse.Namespace) -> int:
+    """`envisat detect --target FILE.xml`: another target's keypoints (--roi and --refine are the corners')."""
+    if args.roi or args.refine:
+        raise InputError(f"{'--roi' if args.roi else '--refine'}: ENVISAT's corner detector's; not with --target")
+    cfg = resolve_job_config(TargetDetectJobConfig, {}, None, {
+        "target": args.target, "weights": args.weights, "device": args.device, "limit": args.limit,
+        "skip_damaged": bool(args.skip_damaged)})
+    with skip_hint():
+        arrays = run_detect_target(cfg, args.data, args.out, progress=not args.quiet)
+    print(f"wrote {args.out}: {len(arrays['key'])} frames of target {args.target}, "
+          f"{int(arrays['visible'].sum())} keypoints called visible of {arrays['visible'].size}")
     return 0

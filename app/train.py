@@ -1,5 +1,6 @@
 """`envisat train`: the verb over the training pipeline (pipelines/detector/train.py): the corner detector
-trained on the factory's shards into a run directory. Here: the flags, the config and the printed line."""
+trained on the factory's shards into a run directory, or with --target another target's keypoint detector on
+frames of it rendered as training goes. Here: the flags, the config and the printed line."""
 
 from __future__ import annotations
 
@@ -13,13 +14,15 @@ from envisat_pose.config import ConfigError, InputError, resolve_job_config
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.pipelines.detector.look_mix import read_looks
 from envisat_pose.pipelines.detector.train import (
-    OnlineConfig,
     default_workers,
+    online_kind,
     read_run_config,
     read_run_record,
+    train_config_class,
     train_detector,
 )
 from envisat_pose.shard_reader import skip_hint
+from envisat_pose.target import other_target
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -35,16 +38,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--online", action="store_true",
                    help="instead of --data: train on frames rendered as training goes (no files; crops and "
                    "augmentation on the device), each frame cropped at most --uses-per-frame times")
-    p.add_argument("--generate-config", metavar="FILE.toml",
-                   help="--online: the look, as `envisat generate --config` takes it (random mode)")
+    p.add_argument("--target", metavar="FILE.xml", help="another spacecraft's MJCF file: train its keypoint "
+                   "detector online (--online implied, --resolution default 512; ENVISAT's file: its corners)")
+    p.add_argument("--generate-config", metavar="FILE.toml", help="--online: the look, as `envisat generate "
+                   "--config` takes it (random mode)")
     p.add_argument("--looks", metavar="FILE.toml", help="--online: a mix of looks instead, [[look]] tables of a "
                    "name, a weight and generate keys (random or sequence mode; docs/usage.md)")
     p.add_argument("--resolution", type=int, metavar="PX", help="--online: the renders' side (default 1024)")
     p.add_argument("--uses-per-frame", type=int, metavar="K", help="--online: crops per rendered frame (1-8, default 8)")
-    p.add_argument("--render-workers", type=int, metavar="N",
-                   help="--online: renderer processes (default: the cores less one, at least 1)")
-    p.add_argument("--out", required=True, metavar="RUN_DIR",
-                   help="run directory (created with its parents when the first step is trained)")
+    p.add_argument("--render-workers", type=int, metavar="N", help="--online: renderer processes (default: the "
+                   "cores less one, at least 1)")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (created with its parents when "
+                   "the first step is trained)")
     p.add_argument("--config", metavar="FILE.toml", help="training config (keys of TrainConfig, [model], [data], [loss])")
     p.add_argument("--resume", action="store_true",
                    help="go on from the run directory's last checkpoint, with its own config (--steps and "
@@ -57,9 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--time-budget-s", type=float, metavar="S",
                    help="train for S seconds (S > 0): the rate decays over them and the run stops inside them "
                    "with a checkpoint; with --resume, S seconds more (default: train by --steps)")
-    p.add_argument("--workers", type=int, metavar="N",
-                   help="DataLoader worker processes building the batches (default: the cores less one; 0: in this "
-                   "process; a resumed run keeps its own)")
+    p.add_argument("--workers", type=int, metavar="N", help="DataLoader worker processes building the batches "
+                   "(default: the cores less one; 0: in this process; a resumed run keeps its own)")
     p.add_argument("--bf16", action="store_true", help="bfloat16 autocast of the network (CUDA or CPU)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     add_common(p)  # the shared --quiet
@@ -68,25 +72,25 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def resolve_config(args: argparse.Namespace):
-    """Defaults (a resumed run's own config), then the TOML file, then the flags; validated before any work."""
-    from envisat_pose.perception.train import TrainConfig
-
+    """Defaults (a resumed run's own config), then the TOML file, then the flags; validated before any work. The
+    config class: ENVISAT's TrainConfig, or another target's KeypointTrainConfig (--target, or a resumed run's)."""
     base = read_run_config(args.out) if args.resume and os.path.isdir(args.out) else {}
     if args.steps is not None and args.time_budget_s is None:
         base.pop("time_budget_s", None)  # a resumed budgeted run given --steps trains to that step
     flags = {"steps": args.steps, "batch_size": args.batch_size, "seed": args.seed,
-             "time_budget_s": args.time_budget_s}
-    return resolve_job_config(TrainConfig, base, args.config, flags)
+             "time_budget_s": args.time_budget_s, "target": other_target(args.target)}
+    return resolve_job_config(train_config_class(args.target, base), base, args.config, flags)
 
 
-def online_config(args: argparse.Namespace):
-    """The online source of the flags (a resumed online run: its own, renderer processes from the flag), or None."""
-
+def online_config(args: argparse.Namespace, cfg):
+    """The online source of the flags (a resumed online run: its own, renderer processes from the flag), or None;
+    another target's run (cfg's) is online, its renders that target's (pipelines/detector/train.online_kind)."""
+    kind, defaults = online_kind(cfg)
     saved = read_run_record(args.out).get("online") if args.resume and os.path.isdir(args.out) else None
     looks_given = args.looks or args.generate_config or args.resolution or args.uses_per_frame
     if saved is not None and not looks_given:
-        return OnlineConfig.from_record(saved, args.render_workers)
-    if saved is not None:  # looks given to a resumed run: checked against its own as other data would be
+        return kind.from_record(saved, args.render_workers)
+    if saved is not None or "target" in defaults:  # resumed with looks (checked as other data would be); a target
         args.online = True
     if not args.online:
         if args.data is None:
@@ -99,10 +103,9 @@ def online_config(args: argparse.Namespace):
             raise InputError("--looks and --generate-config/--resolution: the looks file holds every look's config")
         gen = read_looks(args.looks)
     else:
-        gen = resolve_job_config(GenerateConfig, {"mode": "random"}, args.generate_config,
-                                 {"resolution_px": args.resolution})
+        gen = resolve_job_config(GenerateConfig, defaults, args.generate_config, {"resolution_px": args.resolution})
     uses = {} if args.uses_per_frame is None else {"uses_per_frame": args.uses_per_frame}
-    return OnlineConfig(gen, args.render_workers or max(1, default_workers()), **uses)
+    return kind(gen, args.render_workers or max(1, default_workers()), **uses)
 
 
 def resume_command(args: argparse.Namespace) -> str:
@@ -119,7 +122,7 @@ def command_line(args: argparse.Namespace) -> str:
 # the library's argument and config field names -> this verb's flags (its errors name what the user typed)
 FLAGS = {"data_dirs": "--data", "data": "--data", "run_dir": "--out", "init": "--init", "resume": "--resume",
          "workers": "--workers", "threads": "--threads", "time_budget_s": "--time-budget-s", "device": "--device",
-         "steps": "--steps", "batch_size": "--batch-size", "seed": "--seed", "online": "--online"}
+         "steps": "--steps", "batch_size": "--batch-size", "seed": "--seed", "online": "--online", "target": "--target"}
 
 
 def run_train_cli(args: argparse.Namespace) -> int:
@@ -127,7 +130,7 @@ def run_train_cli(args: argparse.Namespace) -> int:
 
     try:
         cfg = resolve_config(args)
-        online = online_config(args)
+        online = online_config(args, cfg)
         with skip_hint():
             last = train_detector(cfg, [] if online else args.data, args.out, resume=args.resume, init=args.init,
                                   device=args.device, workers=args.workers, bf16=args.bf16, threads=args.threads,

@@ -238,6 +238,48 @@ class Detections(_Contract):
 
 
 @dataclass
+class KeypointDetections(_Contract):
+    """What another target's keypoint detector found (`envisat detect --target FILE.xml`), F frames of its K
+    keypoints, named as the weights name them (keypoint_names, the target file's order).
+
+    key: (F,) the frame's sample key. t_s: (F,) frame times, s. keypoints_px: (F, K, 2) full image, px (OpenCV
+    convention; each channel's peak, found or not). score: (F, K) the heatmap's peak in [0, 1]. visible_prob:
+    (F, K) the network's probability that the keypoint is visible, in [0, 1]; visible: (F, K) bool, visible_prob at
+    least the detector's threshold. keypoint_names: (K,) str. crop_px: (F, 3) (x0, y0, side) of the pass that gave
+    the positions. config_json: the weights, their target (name, sha256), the data.
+    No covariance yet: a filter needs the detector calibrated first.
+    """
+
+    key: np.ndarray
+    t_s: np.ndarray
+    keypoints_px: np.ndarray
+    score: np.ndarray
+    visible_prob: np.ndarray
+    visible: np.ndarray
+    keypoint_names: np.ndarray
+    crop_px: np.ndarray
+    config_json: str
+
+    KIND: ClassVar[str] = "keypoint detections"
+    SPEC: ClassVar[dict[str, _Spec]] = {
+        "key": ("s", ("F",), None),
+        "t_s": ("f", ("F",), "finite"),
+        "keypoints_px": ("f", ("F", "K", 2), "finite"),
+        "score": ("f", ("F", "K"), "finite"),
+        "visible_prob": ("f", ("F", "K"), "finite"),
+        "visible": ("b", ("F", "K"), None),
+        "keypoint_names": ("s", ("K",), None),
+        "crop_px": ("f", ("F", 3), "finite"),
+    }
+
+    def check(self, path: str) -> None:
+        for name in ("score", "visible_prob"):
+            a = getattr(self, name)
+            if np.any((a < 0) | (a > 1)):
+                raise ContractError(f"{path}: '{name}' has values outside [0, 1]")
+
+
+@dataclass
 class Estimates(_Contract):
     """What the filter hands analysis (`envisat estimate --out est.npz`), R runs over T steps.
 

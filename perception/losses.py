@@ -27,17 +27,24 @@ class LossConfig:
         return asdict(self)
 
 
-def focal_loss(logit: torch.Tensor, target: torch.Tensor, alpha: float, beta: float) -> torch.Tensor:
-    """CenterNet's penalty-reduced focal loss over (B, J, H, W), normalized by the number of positives.
-
-    Positives and negatives are weights, not boolean indices: no data-dependent shapes, so no host sync (a
-    `nonzero`) on a GPU; the sums are those of the indexed form (tests/perception/test_losses.py)."""
+def focal_log_likelihood(logit: torch.Tensor, target: torch.Tensor, alpha: float, beta: float
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+    """CenterNet's penalty-reduced focal terms, element by element: (the negated loss of each element, the positives
+    (target 1) as 0/1 weights), both shaped like logit. Positives and negatives are weights, not boolean indices:
+    no data-dependent shapes, so no host sync (a `nonzero`) on a GPU."""
     p = torch.sigmoid(logit).clamp(1e-6, 1 - 1e-6)
     pos = (target >= 1.0).to(logit.dtype)
     log_p, log_1mp = F.logsigmoid(logit), F.logsigmoid(-logit)
     pos_loss = (1 - p) ** alpha * log_p
     neg_loss = ((1 - target) ** beta) * p ** alpha * log_1mp
-    return -(pos * pos_loss + (1 - pos) * neg_loss).sum() / pos.sum().clamp(min=1)
+    return pos * pos_loss + (1 - pos) * neg_loss, pos
+
+
+def focal_loss(logit: torch.Tensor, target: torch.Tensor, alpha: float, beta: float) -> torch.Tensor:
+    """CenterNet's penalty-reduced focal loss over (B, J, H, W), normalized by the number of positives
+    (focal_log_likelihood's terms summed; the sums are those of the indexed form, tests/perception/test_losses.py)."""
+    ll, pos = focal_log_likelihood(logit, target, alpha, beta)
+    return -ll.sum() / pos.sum().clamp(min=1)
 
 
 def chol_nll(err_px: torch.Tensor, jchol: torch.Tensor, dim: int = -1) -> torch.Tensor:

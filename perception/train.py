@@ -25,6 +25,8 @@ _train_step), and calls the hooks registered on it (perception/trainer_hooks.py)
 they declare. `train` registers the run folder's (the budget, the pre-cooldown weights, the moving average, the
 run folder, the progress bar, DDP agreement, checkpoints, signals, metrics) over the batches and the start that
 perception/train_run.py gives it; adapt's fine-tune registers its own; no training loop steps outside a Trainer.
+What it trains is its Task (the model's seeded build, the loss terms of a batch, the online batches): ENVISAT's
+corner network (CORNERS) by default, another target's keypoint network (perception/keypoint_train.py).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ import numpy as np
 import torch
 
 from envisat_pose.config import Config, InputError, check
+from envisat_pose.perception.batch_augment import training_batch
 from envisat_pose.perception.data import DataConfig, shard_paths
 from envisat_pose.perception.losses import LossConfig, corner_losses
 from envisat_pose.perception.model import CornerNet, ModelConfig
@@ -207,11 +210,10 @@ def make_optimizer(model: torch.nn.Module, cfg: TrainConfig, dev: torch.device) 
     return torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, **fast)
 
 
-def _train_step(model: CornerNet, net: torch.nn.Module, opt, batch: dict, cfg: TrainConfig, step: int,
-                dev: torch.device, bf16: bool) -> dict:
-    """One optimizer step on a batch already on dev: the network (bf16 autocast when asked), the losses in
-    float32, clipped gradients (multi-tensor norm). Returns the loss terms (tensors on dev: nothing here waits
-    for the device)."""
+def _corner_terms(model: CornerNet, net: torch.nn.Module, batch: dict, cfg: TrainConfig, step: int,
+                  dev: torch.device, bf16: bool) -> dict:
+    """The corner network's loss terms on a batch already on dev: the network (bf16 autocast when asked), the line
+    verifier on jittered segments, the losses in float32 (perception/losses.corner_losses)."""
     image = batch["image"]
     if dev.type == "cuda":
         image = image.contiguous(memory_format=torch.channels_last)
@@ -223,7 +225,31 @@ def _train_step(model: CornerNet, net: torch.nn.Module, opt, batch: dict, cfg: T
             segs = segs + cfg.line_jitter_px * torch.randn(segs.shape, generator=gen).to(dev, non_blocking=True)
         logits = model.line_logits(out["features"], segs)
     out = {k: v.float() for k, v in out.items()}
-    terms = corner_losses(out, batch, logits.float(), cfg.loss, cfg.model.stride)
+    return corner_losses(out, batch, logits.float(), cfg.loss, cfg.model.stride)
+
+
+@dataclass(frozen=True)
+class Task:
+    """What a Trainer trains. build(cfg) -> the model, its weights drawn from a generator seeded by cfg.seed;
+    terms(model, net, batch, cfg, step, dev, bf16) -> the loss terms of a batch on dev ('loss' their weighted total;
+    the forward under bf16 autocast when asked, the losses in float32); online_batch: the batch of frames rendered
+    as training goes (batch_augment.training_batch's arguments). CORNERS: ENVISAT's corner network; another
+    target's keypoint network: perception/keypoint_train.keypoint_task."""
+
+    build: Callable
+    terms: Callable
+    online_batch: Callable
+
+
+CORNERS = Task(init_model, _corner_terms, training_batch)
+
+
+def _train_step(model: torch.nn.Module, net: torch.nn.Module, opt, batch: dict, cfg: TrainConfig, step: int,
+                dev: torch.device, bf16: bool, terms_of: Callable = _corner_terms) -> dict:
+    """One optimizer step on a batch already on dev: the loss terms (terms_of, a Task's; the corner network's by
+    default), clipped gradients (multi-tensor norm). Returns the loss terms (tensors on dev: nothing here waits
+    for the device)."""
+    terms = terms_of(model, net, batch, cfg, step, dev, bf16)
     opt.zero_grad(set_to_none=True)
     terms["loss"].backward()
     torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0, foreach=True)
@@ -244,7 +270,8 @@ class Trainer:
     """Trains `model` with `opt` on batches step by step (the schedule's rate, _train_step), calling its hooks
     (perception/trainer_hooks.py) at named points in their declared order. Every training loop of the project
     runs here: `train()` registers the run folder's hooks, adapt's fine-tune its own, a benchmark none.
-    Trainer(cfg, model, opt, dev=..., hooks=[...]).run(batches).
+    Trainer(cfg, model, opt, dev=..., hooks=[...], task=...).run(batches); task: what each step computes (Task;
+    CORNERS by default).
 
     What the hooks share lives here, not in one another: cfg (TrainConfig), model, net (the model or its DDP
     wrapper), opt, dev, bf16, dist, rank, world, run_dir (where hooks write; None: nowhere), clock, t_start (its
@@ -257,11 +284,11 @@ class Trainer:
     ended early: a hook's reason, a signal's name, None), error (the exception leaving run(), or None) and
     end_line (the end line: hooks add their figures at after_train, Metrics completes and writes it)."""
 
-    def __init__(self, cfg: TrainConfig, model: CornerNet, opt: torch.optim.Optimizer, *, dev: torch.device,
+    def __init__(self, cfg: TrainConfig, model: torch.nn.Module, opt: torch.optim.Optimizer, *, dev: torch.device,
                  net: torch.nn.Module | None = None, bf16: bool = False, clock: Callable[[], float] = time.perf_counter,
                  t_start: float | None = None, state: dict | None = None, budget_end_s: float | None = None,
-                 run_dir: str | None = None, hooks: tuple[Hook, ...] | list[Hook] = ()):
-        self.cfg, self.model, self.opt, self.dev, self.bf16 = cfg, model, opt, dev, bf16
+                 run_dir: str | None = None, hooks: tuple[Hook, ...] | list[Hook] = (), task: Task = CORNERS):
+        self.cfg, self.model, self.opt, self.dev, self.bf16, self.task = cfg, model, opt, dev, bf16, task
         self.net = model if net is None else net
         self.dist, self.rank, self.world = _dist()
         self.clock, self.run_dir = clock, run_dir
@@ -344,7 +371,7 @@ class Trainer:
         for g in self.opt.param_groups:
             g["lr"] = self.lr
         return _train_step(self.model, self.net, self.opt, to_device(cpu_batch, self.dev), self.cfg,
-                           self.state["step"], self.dev, self.bf16)
+                           self.state["step"], self.dev, self.bf16, self.task.terms)
 
 
 @dataclass(frozen=True)
@@ -359,6 +386,7 @@ class TrainOptions:
     workers: int | None = None
     bf16: bool = False
     clock: Callable[[], float] = time.perf_counter
+    task: Task = CORNERS
 
 
 def _check_call(opts: TrainOptions) -> None:
@@ -371,7 +399,7 @@ def _check_call(opts: TrainOptions) -> None:
 def _build_model(cfg: TrainConfig, run_dir: str, opts: TrainOptions, dev: torch.device):
     """(model, optimizer, moving average or None): seeded, from init_weights, or a resumed run's checkpoint and
     optimizer."""
-    model = init_model(cfg).to(dev)
+    model = opts.task.build(cfg).to(dev)
     start = os.path.join(run_dir, "checkpoint.safetensors") if opts.resume else opts.init_weights
     if start is not None:
         load_state(model, read_weights(start)[0], start)
@@ -401,13 +429,14 @@ def _folder_trainer(cfg: TrainConfig, run_dir: str, opts: TrainOptions, state: d
              RunFolder(saved, opts.provenance, state["step"]), Progress(bar, end_s is not None),
              None if dist is None else DdpAgreement(), Checkpoints(cfg.checkpoint_every), StopOnSignals(), Metrics()]
     return Trainer(cfg, model, opt, dev=dev, net=net, bf16=opts.bf16, clock=opts.clock, t_start=t_start,
-                   state=state, budget_end_s=end_s, run_dir=run_dir, hooks=[h for h in hooks if h is not None])
+                   state=state, budget_end_s=end_s, run_dir=run_dir, hooks=[h for h in hooks if h is not None],
+                   task=opts.task)
 
 
 def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: bool = False, device: str = "cpu",
           progress: bool = True, provenance: dict | None = None, init_weights: str | None = None,
           workers: int | None = None, bf16: bool = False, clock=time.perf_counter,
-          paths: list[str] | None = None, online=None) -> dict:
+          paths: list[str] | None = None, online=None, task: Task = CORNERS) -> dict:
     """Train (or go on training, with resume) into run_dir. Returns the last metrics line.
 
     data_dir: one dataset folder or several (their shards are read together); paths: the shard files to read
@@ -426,11 +455,15 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
     online: instead of shards, a function start_state -> iterator of (batch on the device, state) (frames
     rendered as training goes: pipelines/detector/online.py); each step's state is kept in state.json under 'online' and
     handed back on resume; no epochs, data_dir and paths unused.
+    task: what is trained (Task: its model, loss terms and online batches); CORNERS, ENVISAT's corner network,
+    the only one that reads shards (another task trains online).
     Raises TrainingInterrupted after the checkpoint when SIGINT or SIGTERM stopped it.
     """
     opts = TrainOptions(resume=resume, device=device, progress=progress, provenance=provenance,
-                        init_weights=init_weights, workers=workers, bf16=bf16, clock=clock)
+                        init_weights=init_weights, workers=workers, bf16=bf16, clock=clock, task=task)
     _check_call(opts)
+    if task is not CORNERS and online is None:
+        raise InputError("data_dirs: the corner network alone trains on shards; this task trains online")
     t_start = clock()
     if paths is None and online is None:
         paths = [p for d in ([data_dir] if isinstance(data_dir, str) else list(data_dir)) for p in shard_paths(d)]

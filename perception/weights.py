@@ -1,5 +1,10 @@
 """Weights as safetensors (no pickle): the model's state plus its ModelConfig in the file's metadata.
 
+Two kinds of detector weights: ENVISAT's corner network (format FORMAT, no target recorded: corners A-H) and another
+target's keypoint network (perception/keypoint_net.py: format KEYPOINT_FORMAT, kind 'keypoints', the target's
+name, sha256 and keypoint names). check_weights_target refuses weights of another target than the one a verb is
+given, in one line, before any work (envisat_pose/target.require_weights_target).
+
 A missing, truncated or foreign file, or one whose tensors do not fit the model, is one WeightsError line
 naming the file and the problem. Optimizer state (training only) is torch.save of tensors and plain containers,
 read back with torch.load(weights_only=True), which refuses anything else.
@@ -14,7 +19,9 @@ import torch
 
 from envisat_pose.config import InputError, from_dict
 from envisat_pose.io import atomic_path
+from envisat_pose.perception.keypoint_net import KEYPOINT_FORMAT
 from envisat_pose.perception.model import CornerNet, ModelConfig
+from envisat_pose.target import DEFAULT_TARGET, require_weights_target
 
 FORMAT = "envisat-pose corner detector v1"
 
@@ -40,6 +47,8 @@ def save_weights(path: str, model: CornerNet, extra: dict | None = None) -> None
 
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     meta = {"format": FORMAT, "model_config": json.dumps(model.cfg.to_dict(), sort_keys=True)}
+    if hasattr(model, "metadata"):  # another target's keypoint network: its format, kind and target
+        meta.update(model.metadata())
     for k, v in (extra or {}).items():
         meta[k] = v if isinstance(v, str) else json.dumps(v, sort_keys=True)
     with atomic_path(path, suffix=".safetensors") as tmp:
@@ -70,6 +79,42 @@ def read_metadata(path: str) -> dict[str, str]:
     return read_weights(path)[1]
 
 
+def read_header(path: str) -> dict[str, str]:
+    """The metadata of a weights file read from its header alone (no tensor loaded); WeightsError as read_weights."""
+    from safetensors import SafetensorError
+    from safetensors.torch import safe_open
+
+    if not os.path.isfile(path):
+        raise WeightsError(f"{path}: no such weights file")
+    try:
+        with safe_open(path, framework="pt", device="cpu") as fh:
+            return dict(fh.metadata() or {})
+    except (SafetensorError, OSError, ValueError, RuntimeError) as err:
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise WeightsError(f"{path}: not a readable safetensors file ({first})") from None
+
+
+def trained_for(path: str, meta: dict[str, str]) -> dict | None:
+    """The target keypoint weights record ({'name', 'sha256', 'keypoint_names'}), or None for ENVISAT's corner
+    weights (and any other format: its loader names it). WeightsError for a keypoint file without its record."""
+    if meta.get("format") != KEYPOINT_FORMAT:
+        return None
+    try:
+        record = json.loads(meta["target"])
+        if not isinstance(record, dict) or not isinstance(record.get("sha256"), str):
+            raise ValueError("no sha256")
+    except (KeyError, ValueError) as err:
+        raise WeightsError(f"{path}: keypoint-detector weights without their target's record ({err})") from None
+    return record
+
+
+def check_weights_target(path: str, given: str, field: str = "weights") -> None:
+    """InputError (one line naming the weights, their target and `given`) unless the weights at path were trained
+    for the target `given` (a `target` value; DEFAULT_TARGET: ENVISAT): the header only, before any work."""
+    meta = read_header(path)
+    require_weights_target(path, trained_for(path, meta), given, field)
+
+
 def with_metadata(src: str, dst: str, extra: dict) -> None:
     """Copy a weights file to dst (atomically) with metadata entries added or replaced (e.g. cov_scale)."""
     from safetensors.torch import save_file
@@ -85,6 +130,8 @@ def load_model(path: str, device: str = "cpu") -> CornerNet:
     """The CornerNet stored in a weights file, in eval mode. WeightsError (one line) for a truncated or foreign
     file, a missing config, or tensors whose names or shapes do not fit."""
     tensors, meta = read_weights(path)
+    if trained_for(path, meta) is not None:  # another target's keypoint network: refused naming its target
+        require_weights_target(path, trained_for(path, meta), DEFAULT_TARGET)
     if meta.get("format") != FORMAT or "model_config" not in meta:
         raise WeightsError(f"{path}: not corner-detector weights (metadata format {meta.get('format')!r})")
     try:

@@ -17,6 +17,7 @@ from typing import Any, Callable
 from envisat_pose import named_scenarios
 from envisat_pose.config import InputError, field_value, resolve_job_config
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
+from envisat_pose.target import DEFAULT_TARGET
 
 JOBS = ("simulate", "estimate", "montecarlo", "run", "track")
 
@@ -92,6 +93,11 @@ def default_weights_path() -> str:
 
 
 def check_weights(path: str) -> None:
-    """InputError naming the field `weights` when the file does not exist (before any work)."""
+    """InputError naming the field `weights` when the file does not exist, or holds another target's detector
+    (one line naming it: perception.weights.check_weights_target against ENVISAT, the target of the jobs that
+    run the tracker; its header only, with torch imported), before any work."""
     if not os.path.isfile(path):
         raise InputError(f"weights {path!r}: no such file")
+    from envisat_pose.perception.weights import check_weights_target  # torch
+
+    check_weights_target(path, DEFAULT_TARGET)

@@ -132,10 +132,10 @@ def max_side(looks) -> int:
 
 
 def renderer_key(gen_cfg) -> tuple:
-    """What a SceneRenderer is built from: (side, shadows, texture set size, texture seed, Earth seed)."""
+    """What a SceneRenderer is built from: (side, shadows, texture set size, texture seed, Earth seed, target)."""
     return (gen_cfg.resolution_px, gen_cfg.shadows,
             gen_cfg.appearance.texture_set_size if gen_cfg.appearance_on else 0, gen_cfg.appearance.texture_seed,
-            gen_cfg.earth_seed)
+            gen_cfg.earth_seed, gen_cfg.target)
 
 
 

@@ -82,7 +82,7 @@ def check_state(state: dict, identity: dict) -> int:
 
 
 def online_batches(looks, data_cfg, seed: int, batch_size: int, workers: int, device,
-                   uses_per_frame: int = DEFAULT_USES_PER_FRAME, start_state: dict | None = None):
+                   uses_per_frame: int = DEFAULT_USES_PER_FRAME, start_state: dict | None = None, make_batch=None):
     """Training batches from frames rendered as training goes (the module doc): yields (batch, state) forever.
 
     looks: a random-mode GenerateConfig (frame f is its dataset's sample f), or a sequence of Looks (a mix of
@@ -93,7 +93,9 @@ def online_batches(looks, data_cfg, seed: int, batch_size: int, workers: int, de
     sample_id (N, 2) int64: (frame index, how many crops of that frame came before this one). state: a JSON-able
     dict, {format, seed, batch_size, uses_per_frame, config_sha256, step (the next), next_frame (the first frame
     a resumed run renders), frames_taken (frames handed to the trainer, all sessions), max_uses (the most crops
-    of any frame so far)}; start_state: such a state, to continue after it.
+    of any frame so far)}; start_state: such a state, to continue after it. make_batch: the batch of a window
+    (batch_augment.training_batch's arguments; None: that one, ENVISAT's corner network's; another target's
+    keypoint network: perception/keypoint_batch.keypoint_batch, over the looks' K keypoints).
     """
     import torch
 
@@ -111,8 +113,9 @@ def online_batches(looks, data_cfg, seed: int, batch_size: int, workers: int, de
     device = torch.device(device)
     first = window_start(step, n, k)
     uses = {f: uses_before(f, step, n, k) for f in range(first, first + n)}
-    pool = DevicePool(n, max_side(looks), device)
+    make_batch = batch_augment.training_batch if make_batch is None else make_batch
     with RenderPool(looks, workers, first, device.type) as source:
+        pool = DevicePool(n, max_side(looks), device, source.keypoints)
         loaded = first
         while True:
             f0 = window_start(step, n, k)
@@ -120,9 +123,8 @@ def online_batches(looks, data_cfg, seed: int, batch_size: int, workers: int, de
             loaded = f0 + n
             frames = torch.arange(f0, f0 + n, dtype=torch.int64)
             gen = torch.Generator().manual_seed(step_seed(seed, step))
-            batch = batch_augment.training_batch(pool.frames, pool.corners_px, pool.visible, pool.in_frame,
-                                                 data_cfg, gen, (frames % n).to(device),
-                                                 pool.hw if len(looks) > 1 else None)
+            batch = make_batch(pool.frames, pool.corners_px, pool.visible, pool.in_frame, data_cfg, gen,
+                               (frames % n).to(device), pool.hw if len(looks) > 1 else None)
             prior = torch.tensor([uses.get(int(f), 0) for f in frames], dtype=torch.int64)
             batch["sample_id"] = torch.stack([frames, prior], dim=1).to(device)
             uses = {int(f): int(u) + 1 for f, u in zip(frames, prior)}  # the frames before f0 left for good

@@ -4,7 +4,8 @@ mix (pipelines/detector/look_mix.py) into a ring of shared-memory slots, and Ren
 Workers. `workers` spawned processes, each with its own SceneRenderers (one per resolution and texture set
 among the looks; its GL from gl_environment: MUJOCO_GL osmesa on a CPU, egl where the device is CUDA, unless set),
 worker w rendering frames f = w, w + W, w + 2W, ... into its FrameRing (multiprocessing.shared_memory: image
-(H, W) uint8, corners_px (8, 2) float64, visible, in_frame (8,) bool, frame index, side). The trainer takes frames
+(H, W) uint8, corners_px (K, 2) float64, visible, in_frame (K,) bool, frame index, side; K the looks' target's
+keypoints, ENVISAT's 8 corners or another target's keypoints_px; every look shows the same target file). The trainer takes frames
 in order f = 0, 1, 2, ... (frame f from worker f mod W) and gives the slot back. A slow worker stalls the trainer
 rather than reorder anything. Frames of several sizes travel in the slots of the largest, top-left, zeros beyond,
 with their side.
@@ -28,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from envisat_pose.config import check
 from envisat_pose.datagen.factory import sample_arrays, sample_view
 from envisat_pose.pipelines.detector.look_mix import (
     WeightedLook,
@@ -40,6 +42,7 @@ from envisat_pose.pipelines.detector.look_mix import (
     renderer_key,
 )
 from envisat_pose.pools import thread_env
+from envisat_pose.target import load_target
 
 SLOTS_PER_WORKER = 4  # frames a worker may render ahead of the trainer
 WAIT_POLL_S = 1.0
@@ -64,8 +67,8 @@ def render_frame(renderer, gen_cfg, frame: int) -> tuple[np.ndarray, dict]:
 @dataclass
 class FrameRing:
     """A worker's slots in one shared-memory block: images (n, H, W) uint8 (a smaller frame top-left, zeros
-    beyond), corners_px (n, 8, 2) float64, flags (n, 2, 8) bool (visible, in_frame), frame (n,) int64, side (n,)
-    int64 (the frame's own side)."""
+    beyond), corners_px (n, K, 2) float64, flags (n, 2, K) bool (visible, in_frame), frame (n,) int64, side (n,)
+    int64 (the frame's own side); K keypoints a frame (8: ENVISAT's corners)."""
 
     shm: object
     images: np.ndarray
@@ -75,21 +78,21 @@ class FrameRing:
     side: np.ndarray
 
     @staticmethod
-    def nbytes(n: int, res: int) -> int:
-        return n * res * res + n * 16 * 8 + n * 16 + n * 8 * 2
+    def nbytes(n: int, res: int, k: int = 8) -> int:
+        return n * res * res + n * 2 * k * 8 + n * 16 + n * 2 * k
 
     @classmethod
-    def view(cls, shm, n: int, res: int) -> "FrameRing":
+    def view(cls, shm, n: int, res: int, k: int = 8) -> "FrameRing":
         buf, a = shm.buf, 0
         images = np.ndarray((n, res, res), np.uint8, buf, a)
         a += n * res * res
-        corners = np.ndarray((n, 8, 2), np.float64, buf, a)
-        a += n * 16 * 8
+        corners = np.ndarray((n, k, 2), np.float64, buf, a)
+        a += n * 2 * k * 8
         frame = np.ndarray((n,), np.int64, buf, a)
         a += n * 8
         side = np.ndarray((n,), np.int64, buf, a)
         a += n * 8
-        flags = np.ndarray((n, 2, 8), np.bool_, buf, a)
+        flags = np.ndarray((n, 2, k), np.bool_, buf, a)
         return cls(shm, images, corners, flags, frame, side)
 
     def write(self, slot: int, frame: int, image: np.ndarray, label: dict) -> None:
@@ -100,7 +103,8 @@ class FrameRing:
             self.images[slot, :h, :w] = image
             self.images[slot, h:] = 0
             self.images[slot, :h, w:] = 0
-        self.corners_px[slot] = np.asarray(label["corners_px"], dtype=np.float64)
+        points = label["keypoints_px"] if "keypoints_px" in label else label["corners_px"]  # another target's names
+        self.corners_px[slot] = np.asarray(points, dtype=np.float64)
         self.flags[slot, 0] = np.asarray(label["visible"], dtype=bool)
         self.flags[slot, 1] = np.asarray(label["in_frame"], dtype=bool)
         self.frame[slot] = frame
@@ -120,11 +124,11 @@ def gl_environment(device_type: str, workers: int) -> dict[str, str]:
 
 
 def render_worker(looks_json: str, worker: int, workers: int, first_frame: int, shm_name: str, n_slots: int,
-                  res: int, free_q, ready_q, env: dict[str, str]) -> None:
+                  res: int, free_q, ready_q, env: dict[str, str], keypoints: int = 8) -> None:
     """A renderer process: frames first_frame' = the first f >= first_frame with f mod workers == worker, then
     every workers-th, each into a slot the trainer gave back (free_q; None ends it), announced on ready_q as
     (slot, frame); an error as ('error', worker, traceback text). looks_json: the looks' records (a JSON list);
-    res: the slots' side (the largest look's)."""
+    res: the slots' side (the largest look's); keypoints: K, the looks' target's."""
     os.environ.update(env)
     from multiprocessing import shared_memory
 
@@ -138,7 +142,7 @@ def render_worker(looks_json: str, worker: int, workers: int, first_frame: int, 
         shares = look_shares(looks)
         pattern = look_pattern(shares)
         shm = shared_memory.SharedMemory(name=shm_name)
-        ring = FrameRing.view(shm, n_slots, res)
+        ring = FrameRing.view(shm, n_slots, res, keypoints)
         renderers = {}
         f = first_frame + (worker - first_frame) % workers
         while True:
@@ -150,7 +154,8 @@ def render_worker(looks_json: str, worker: int, workers: int, first_frame: int, 
             key = renderer_key(cfg)
             if key not in renderers:  # built when a look first needs it
                 renderers[key] = SceneRenderer(cfg.resolution_px, cfg.shadows, texture_set_size=key[2],
-                                               texture_seed=cfg.appearance.texture_seed, earth_seed=cfg.earth_seed)
+                                               texture_seed=cfg.appearance.texture_seed, earth_seed=cfg.earth_seed,
+                                               target=cfg.target)
             image, label = render_frame(renderers[key], cfg, k)
             ring.write(slot, f, image, label)
             ready_q.put((slot, f))
@@ -163,9 +168,20 @@ def render_worker(looks_json: str, worker: int, workers: int, first_frame: int, 
         ready_q.put(("error", worker, traceback.format_exc()))
 
 
+def looks_keypoints(looks) -> int:
+    """K, the keypoints of the looks' one target (ConfigError naming the look whose target file differs)."""
+    looks = as_looks(looks)
+    first = load_target(looks[0].generate.target)
+    for look in looks[1:]:
+        check(load_target(look.generate.target).sha256 == first.sha256, f"looks.{look.name}.generate.target",
+              look.generate.target, f"the other looks' target ({looks[0].generate.target!r}): one target a run")
+    return first.num_keypoints
+
+
 class RenderPool:
     """Renderer processes and their shared-memory rings; frames handed out in order from first_frame.
-    Use as a context manager (close() ends the processes and frees the memory)."""
+    keypoints: K of every frame (looks_keypoints). Use as a context manager (close() ends the processes and frees
+    the memory)."""
 
     def __init__(self, looks, workers: int, first_frame: int, device_type: str = "cpu",
                  slots_per_worker: int = SLOTS_PER_WORKER):
@@ -176,18 +192,20 @@ class RenderPool:
         looks = as_looks(looks)
         looks_json = json.dumps([look.record() for look in looks])
         self.workers, self.next_frame, self.res = workers, first_frame, max_side(looks)
+        self.keypoints = looks_keypoints(looks)
         self.rings, self.free_qs, self.ready_qs, self.procs = [], [], [], []
         env = gl_environment(device_type, workers)
         try:
             for w in range(workers):
-                shm = shared_memory.SharedMemory(create=True, size=FrameRing.nbytes(slots_per_worker, self.res))
-                self.rings.append(FrameRing.view(shm, slots_per_worker, self.res))
+                size = FrameRing.nbytes(slots_per_worker, self.res, self.keypoints)
+                shm = shared_memory.SharedMemory(create=True, size=size)
+                self.rings.append(FrameRing.view(shm, slots_per_worker, self.res, self.keypoints))
                 free_q, ready_q = ctx.Queue(), ctx.Queue()
                 for slot in range(slots_per_worker):
                     free_q.put(slot)
                 p = ctx.Process(target=render_worker, name=f"envisat-render-{w}", daemon=True,
                                 args=(looks_json, w, workers, first_frame, shm.name, slots_per_worker, self.res,
-                                      free_q, ready_q, env))
+                                      free_q, ready_q, env, self.keypoints))
                 p.start()
                 self.free_qs.append(free_q)
                 self.ready_qs.append(ready_q)
@@ -204,8 +222,8 @@ class RenderPool:
 
     def take(self, out_image: np.ndarray) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, int]:
         """The next frame in order, its image copied into out_image (res, res) uint8 (a smaller frame top-left,
-        zeros beyond) and its slot given back: (frame, corners_px (8, 2) float64, visible (8,) bool, in_frame
-        (8,) bool, its side)."""
+        zeros beyond) and its slot given back: (frame, corners_px (K, 2) float64, visible (K,) bool, in_frame
+        (K,) bool, its side)."""
         w = self.next_frame % self.workers
         while True:
             try:

@@ -1,4 +1,6 @@
-"""The pipeline of `envisat train`: the corner detector trained on the factory's shards into a run directory.
+"""The pipeline of `envisat train`: the corner detector trained on the factory's shards into a run directory, or
+(a perception.keypoint_train.KeypointTrainConfig, `envisat train --target FILE.xml`) another target's keypoint
+detector trained on frames of that target rendered as training goes (TargetOnlineConfig; run_task picks the Task).
 
 Around the stage's loop (perception/train.py, its batches from worker processes, perception/stream.py): the
 inputs checked before any work, torch.distributed started and ended under torchrun (gloo on CPU, nccl on CUDA),
@@ -18,9 +20,19 @@ from envisat_pose.io import sha256_file
 from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, look_shares
 from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_identity
+from envisat_pose.pipelines.detector.render_pool import looks_keypoints
 from envisat_pose.provenance import manifest_sha256
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
-from envisat_pose.target import require_envisat, require_envisat_dataset
+from envisat_pose.target import (
+    DEFAULT_TARGET,
+    is_default_file,
+    load_target,
+    other_target,
+    require_envisat,
+    require_envisat_dataset,
+)
+
+TARGET_RESOLUTION_PX = 512  # another target's renders when none is given (its keypoint network's crops)
 
 
 @dataclass(frozen=True)
@@ -37,12 +49,16 @@ class OnlineConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "looks", as_looks(self.looks))
-        for look in self.looks:
-            require_envisat(look.generate.target, f"looks.{look.name}.generate.target", "train")
+        self.check_target()
         check(isinstance(self.workers, int) and self.workers >= 1, "online.workers", self.workers,
               "at least 1 renderer process")
         check(isinstance(self.uses_per_frame, int) and 1 <= self.uses_per_frame <= MAX_USES_PER_FRAME,
               "online.uses_per_frame", self.uses_per_frame, f"an integer in [1, {MAX_USES_PER_FRAME}]")
+
+    def check_target(self) -> None:
+        """Every look shows ENVISAT (the corner network's target); ConfigError naming the look otherwise."""
+        for look in self.looks:
+            require_envisat(look.generate.target, f"looks.{look.name}.generate.target", "train")
 
     def record(self) -> dict:
         """What config.json keeps of it (a resumed run rebuilds it from this): the looks with their shares of the
@@ -61,6 +77,44 @@ class OnlineConfig:
         else:
             looks = from_dict(GenerateConfig, record["generate"], "online.generate")
         return cls(looks, workers or int(record.get("workers", 1)), int(record["uses_per_frame"]))
+
+
+class TargetOnlineConfig(OnlineConfig):
+    """The OnlineConfig of another target's keypoint network (perception/keypoint_train.py): every look shows one
+    target file, not ENVISAT's (ConfigError naming the look otherwise)."""
+
+    def check_target(self) -> None:
+        looks_keypoints(self.looks)  # one target file (by its sha256) for every look
+        for look in self.looks:
+            check(not is_default_file(look.generate.target), f"looks.{look.name}.generate.target",
+                  look.generate.target, "another target than ENVISAT (`envisat train --target FILE.xml`)")
+
+
+def target_online(target: str, resolution_px: int = TARGET_RESOLUTION_PX, workers: int = 1,
+                  uses_per_frame: int = 8, **generate) -> TargetOnlineConfig:
+    """The default source of a keypoint run: random views of `target` (its sized ranges and its own looks) at
+    resolution_px, generate's other GenerateConfig fields as given."""
+    gen = GenerateConfig(mode="random", target=target, resolution_px=resolution_px, **generate)
+    return TargetOnlineConfig(gen, workers, uses_per_frame)
+
+
+def train_config_class(given: str | None, saved: dict) -> type:
+    """The config class `envisat train` resolves: perception.keypoint_train.KeypointTrainConfig for another
+    target (given, or the resumed run's saved config holds one), else perception.train.TrainConfig."""
+    from envisat_pose.perception.keypoint_train import KeypointTrainConfig
+    from envisat_pose.perception.train import TrainConfig
+
+    return KeypointTrainConfig if other_target(given) or "target" in saved else TrainConfig
+
+
+def online_kind(cfg) -> tuple[type, dict]:
+    """(the OnlineConfig class of a training config, the GenerateConfig defaults of its renders): another
+    target's keypoint run renders that target at TARGET_RESOLUTION_PX (TargetOnlineConfig), ENVISAT's corner run
+    takes GenerateConfig's own (OnlineConfig); random mode both."""
+    target = getattr(cfg, "target", None)  # a KeypointTrainConfig's
+    if target is None:
+        return OnlineConfig, {"mode": "random"}
+    return TargetOnlineConfig, {"mode": "random", "target": target, "resolution_px": TARGET_RESOLUTION_PX}
 
 
 def default_workers() -> int:
@@ -101,8 +155,9 @@ def dataset_provenance(data_dir: str, skipped: list[str] = ()) -> dict:
 
 
 def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | None, workers: int | None,
-                 threads: int | None, online: bool = False) -> None:
-    """Every input of a training run but the shards checked before any work; InputError naming the argument."""
+                 threads: int | None, online: bool = False, target: str = DEFAULT_TARGET) -> None:
+    """Every input of a training run but the shards checked before any work; InputError naming the argument (init:
+    weights of another target than `target`, the one trained, are refused in one line)."""
 
     if not data_dirs and not online:
         raise InputError("data_dirs: no dataset folder given")
@@ -112,6 +167,10 @@ def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | N
         raise InputError("init and resume: a resumed run goes on from its own checkpoint; give one of them")
     if init is not None and not os.path.isfile(init):
         raise InputError(f"init {init!r}: no such weights file")
+    if init is not None:
+        from envisat_pose.perception.weights import check_weights_target  # torch
+
+        check_weights_target(init, target, "init")
     if resume and not os.path.isdir(run_dir):
         raise InputError(f"resume: run_dir {run_dir!r} does not exist")
     check_out_dir(run_dir, parents=True)  # a file, or a path under one, is refused here
@@ -182,12 +241,55 @@ def end_distributed() -> None:
             dist.destroy_process_group()
 
 
+def run_task(cfg, online: OnlineConfig | None) -> tuple:
+    """(perception's Task, the Target or None) of a training config: a KeypointTrainConfig's target's keypoint
+    network (perception/keypoint_train.py; InputError unless online renders that target's file), else ENVISAT's
+    corner network (perception.train.CORNERS, None)."""
+    from envisat_pose.perception.keypoint_train import KeypointTrainConfig, keypoint_task
+    from envisat_pose.perception.train import CORNERS
+
+    if not isinstance(cfg, KeypointTrainConfig):
+        return CORNERS, None
+    target = load_target(cfg.target, "target")
+    if online is None:
+        raise InputError(f"online: target {target.name!r}'s keypoint detector trains on frames of it rendered as "
+                         "training goes (TargetOnlineConfig), not on shards")
+    shown = load_target(online.looks[0].generate.target, "online.looks")
+    if shown.sha256 != target.sha256:
+        raise InputError(f"online: its looks show target {shown.name!r} ({online.looks[0].generate.target}), the "
+                         f"config trains {target.name!r} ({cfg.target}): one target file for both")
+    return keypoint_task(target), target
+
+
+def online_source(online: OnlineConfig, cfg, device: str, task, target) -> tuple[list[dict], object]:
+    """(the data record of config.json, the batch source train() takes) of an online run: the record's hash is
+    the run's identity (online.run_identity), with the target file's sha256 folded in for a keypoint run (a
+    resumed run refuses a changed target file as it refuses other data)."""
+    import hashlib
+
+    identity = run_identity(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.uses_per_frame)
+    sha = identity["config_sha256"]
+    if target is not None:
+        sha = hashlib.sha256(f"{sha} {target.sha256}".encode()).hexdigest()
+    mix = ", ".join(f"{look.name} {n} %" for look, n in zip(online.looks, look_shares(online.looks)))
+    what = "" if target is None else f"target {target.name}, "
+    data = [{"name": f"online ({what}{mix}, K = {online.uses_per_frame})", "manifest_sha256": sha, "images": None}]
+
+    def source(start_state):
+        return online_batches(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.workers, device,
+                              online.uses_per_frame, start_state, task.online_batch)
+    return data, source
+
+
 def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: bool = False,
                    init: str | None = None, device: str = "cpu", workers: int | None = None, bf16: bool = False,
                    threads: int | None = None, progress: bool = True, command: str = "",
                    skip_damaged: bool = False, online: OnlineConfig | None = None) -> dict:
     """Train the detector (cfg: a perception TrainConfig, validated when built) on the shards of data_dirs (one
-    folder or several) into run_dir (created with its parents once the first step is trained).
+    folder or several) into run_dir (created with its parents once the first step is trained). cfg a
+    perception.keypoint_train.KeypointTrainConfig: another target's keypoint detector, online only (online a
+    TargetOnlineConfig of that target file; target_online makes the default one), the target recorded in
+    config.json ('target') and in every weights file.
 
     resume: go on from run_dir's last checkpoint (exclusive with init: a safetensors file to start from); the
     config may differ from the run's in steps and time_budget_s only, the data not at all (InputError spelling
@@ -208,7 +310,9 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     data_dirs = [data_dirs] if isinstance(data_dirs, str) else list(data_dirs or [])
     if online is not None and data_dirs:
         raise InputError("data_dirs and online: train on shards or on frames rendered as training goes, not both")
-    check_inputs(data_dirs, run_dir, resume, init, workers, threads, online is not None)
+    task, target = run_task(cfg, online)
+    check_inputs(data_dirs, run_dir, resume, init, workers, threads, online is not None,
+                 DEFAULT_TARGET if target is None else cfg.target)
     if threads is not None:
         torch.set_num_threads(threads)
     if online is not None:
@@ -230,25 +334,19 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
         data.append(dataset_provenance(d, left_out))
     source = None
     if online is not None:
-        identity = run_identity(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.uses_per_frame)
-
-        mix = ", ".join(f"{look.name} {n} %" for look, n in zip(online.looks, look_shares(online.looks)))
-        data = [{"name": f"online ({mix}, K = {online.uses_per_frame})", "manifest_sha256": identity["config_sha256"],
-                 "images": None}]
-
-        def source(start_state):
-            return online_batches(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.workers,
-                                  rank_device, online.uses_per_frame, start_state)
+        data, source = online_source(online, cfg, rank_device, task, target)
     provenance = {"command": command, "git": git_hash(), "data": data, "torch": torch.__version__,
                   "device": device, "bf16": bf16, "skipped_damaged_shards": skipped}
     if online is not None:
         provenance["online"] = online.record()
+    if target is not None:
+        provenance["target"] = {k: v for k, v in target.record(cfg.target).items() if k != "file"}
     if init is not None:
         provenance["init"] = {"name": os.path.basename(init), "sha256": sha256_file(init)}
     try:
         end = train(cfg, data_dirs, run_dir, resume=resume, device=rank_device, progress=progress,
                     provenance=provenance, init_weights=init, workers=workers, bf16=bf16, paths=paths,
-                    online=source)
+                    online=source, task=task)
         if online is not None:
             end = {**end, "uses_per_frame": online.uses_per_frame, "max_uses": online_max_uses(run_dir),
                    "render_workers": online.workers}

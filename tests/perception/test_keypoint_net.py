@@ -1,0 +1,83 @@
+"""Another target's keypoint network (perception/keypoint_net.py) and its weights: K channels named by the target,
+the target's name, sha256 and keypoint names in the file, loaded back only for that target; ENVISAT's corner
+weights keep their metadata and refuse to load as another target's."""
+
+import json
+import os
+import sys
+
+import pytest
+import torch
+
+sys.path.insert(0, os.path.dirname(__file__))
+from keypoint_cases import KEYPOINTS_T_M, twin_box_xml  # noqa: E402
+
+from envisat_pose.config import ConfigError, InputError  # noqa: E402
+from envisat_pose.perception.keypoint_detect import KeypointDetector, load_keypoint_model  # noqa: E402
+from envisat_pose.perception.keypoint_net import KeypointModelConfig, init_keypoint_net  # noqa: E402
+from envisat_pose.perception.model import CornerNet, ModelConfig  # noqa: E402
+from envisat_pose.perception.weights import load_model, read_header, save_weights, shipped_weights_path  # noqa: E402
+from envisat_pose.target import load_target  # noqa: E402
+
+SMALL = KeypointModelConfig(input_px=64, width=8, depth=2, stem_width=8, num_keypoints=8)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("kp_weights")
+    (folder / "twin.xml").write_text(twin_box_xml())
+    (folder / "other.xml").write_text(twin_box_xml("twin_box"))  # same name ...
+    with open(folder / "other.xml", "a") as fh:
+        fh.write("<!-- another file -->\n")  # ... other bytes: another sha256
+    twin = load_target(str(folder / "twin.xml"))
+    record = {k: v for k, v in twin.record(twin.path).items() if k != "file"}
+    weights = str(folder / "kp.safetensors")
+    save_weights(weights, init_keypoint_net(SMALL, 3, record))
+    return str(folder / "twin.xml"), str(folder / "other.xml"), weights
+
+
+def test_the_network_has_a_channel_per_keypoint_and_its_weights_name_the_target(files):
+    twin, _, weights = files
+    model = init_keypoint_net(SMALL, 3)
+    with torch.no_grad():
+        out = model(torch.zeros((2, 1, 64, 64)))
+    assert out["kmap_logit"].shape == (2, 8, 16, 16) and out["koff"].shape == (2, 8, 2, 16, 16)
+    assert out["kvis_logit"].shape == (2, 8) and float(out["koff"].abs().max()) <= 0.5
+    meta = read_header(weights)
+    target = load_target(twin)
+    assert meta["kind"] == "keypoints" and json.loads(meta["model_config"])["num_keypoints"] == 8
+    assert json.loads(meta["target"]) == {"name": "twin_box", "sha256": target.sha256,
+                                          "keypoint_names": list(KEYPOINTS_T_M)}
+    back = load_keypoint_model(weights, twin)
+    assert all(torch.equal(a, b) for a, b in zip(back.state_dict().values(),
+                                                  init_keypoint_net(SMALL, 3).state_dict().values()))
+    assert KeypointDetector(back).keypoint_names == tuple(KEYPOINTS_T_M)
+
+
+def test_envisats_corner_weights_keep_their_metadata(tmp_path):
+    path = str(tmp_path / "c.safetensors")
+    save_weights(path, CornerNet(ModelConfig(input_px=64, width=8, depth=2, stem_width=8)), {"step": "1"})
+    assert set(read_header(path)) == {"format", "model_config", "step"}
+    load_model(path)
+
+
+def test_weights_load_only_for_their_own_target(files):
+    twin, other, weights = files
+    with pytest.raises(InputError, match="keypoint detector of target 'twin_box'.*not ENVISAT's") as err:
+        load_model(weights)
+    assert "\n" not in str(err.value)
+    with pytest.raises(InputError, match="ENVISAT's corner detector.*not a detector of target 'twin_box'"):
+        load_keypoint_model(shipped_weights_path(), twin)
+    with pytest.raises(InputError, match="not of target 'twin_box' .*other.xml, sha256"):
+        load_keypoint_model(weights, other)
+
+
+def test_the_keypoint_count_comes_from_the_target(files):
+    from envisat_pose.perception.keypoint_train import KeypointTrainConfig
+
+    twin, _, _ = files
+    assert KeypointTrainConfig(target=twin).model.num_keypoints == 8
+    with pytest.raises(ConfigError, match="num_keypoints"):
+        KeypointTrainConfig(target=twin, model=KeypointModelConfig(num_keypoints=5))
+    with pytest.raises(ConfigError, match="another target than ENVISAT"):
+        KeypointTrainConfig(target="models/envisat.xml")
