@@ -16,7 +16,8 @@ of interest the labels give (the closed loop's, with a perfect prior) instead of
 `--refine` calibrates the sub-pixel refinement's covariance instead (DetectConfig.refine, perception/refine.py):
 the variance floor f added to the line fits' covariances of the refined corners (C + f I; the fits see the
 pixel noise, not the misfit of the model), written as `refine_cov_floor_px2` (with `refine_cov_calibration`);
-the network's cov_scale and the error model are left as they are.
+the network's cov_scale and the error model are left as they are. `--target FILE.xml` fits another target's
+keypoint detector instead: a sigma per keypoint (pipelines/detector/calibrate_target.py; detect's cov_px).
 """
 
 from __future__ import annotations
@@ -28,7 +29,10 @@ from envisat_pose.app.detect import detector_inputs
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.out_dirs import check_out_file
 from envisat_pose.pipelines.detector.calibrate import CalibrateJobConfig, fit_face_cue, run_calibration
+from envisat_pose.pipelines.detector.calibrate_target import run_calibrate_target, sigma_table
+from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig
 from envisat_pose.shard_reader import skip_hint
+from envisat_pose.target import other_target
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -43,6 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "autocorrelation, AR(1) coefficient, variance inflation and residual bias, stored as 'error_model'.",
     )
     p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped weights)")
+    p.add_argument("--target", metavar="FILE.xml", help="another spacecraft's MJCF file: fit its keypoint detector's "
+                   "sigma per keypoint on held-out frames of it (keypoint_sigma_px: detect --target's cov_px)")
     p.add_argument("--data", required=True, nargs="+", metavar="DIR",
                    help="held-out labelled dataset folder(s) (shards); one sequence per folder")
     p.add_argument("--out", required=True, metavar="OUT.safetensors", help="calibrated weights (may equal --weights)")
@@ -90,6 +96,8 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     if args.max_lag < 1:
         raise InputError(f"--max-lag {args.max_lag}: expected at least 1")
     check_out_file(args.out)
+    if other_target(args.target):
+        return run_calibrate_target_cli(args)
     if args.held_out and not args.face_cue:
         raise InputError("--held-out belongs to --face-cue")
     if args.face_cue:
@@ -133,4 +141,20 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
         print("not every --data folder is a sequence (envisat generate --mode sequence): no error model")
     kept = " (kept the file's cov_scale)" if args.keep_scale else ""
     print(f"cov_scale {res['scale']:.4g} (mean e^T C^-1 e 2.00 on {res['corners']} corners){kept}; wrote {args.out}")
+    return 0
+
+
+def run_calibrate_target_cli(args: argparse.Namespace) -> int:
+    """`envisat calibrate --target FILE.xml`: another target's keypoint detector (the corners' own flags refused)."""
+    given = [f for f, on in (("--face-cue", args.face_cue), ("--held-out", args.held_out), ("--refine", args.refine),
+                             ("--keep-scale", args.keep_scale), ("--roi", args.roi != "coarse")) if on]
+    if given:
+        raise InputError(f"{given[0]}: ENVISAT's corner detector's; not with --target")
+    cfg = resolve_job_config(TargetDetectJobConfig, {}, None, {"target": args.target, "weights": args.weights,
+                                                               "limit": args.limit, "skip_damaged": args.skip_damaged})
+    with skip_hint():
+        record = run_calibrate_target(cfg, args.data, args.out, progress=not args.quiet)
+    print(sigma_table(record))
+    print(f"{record['calibrated']} of {len(record['count'])} keypoints calibrated ({record['corners']} correct "
+          f"detections in {record['frames']} frames); wrote {args.out}")
     return 0

@@ -247,7 +247,9 @@ class KeypointDetections(_Contract):
     (F, K) the network's probability that the keypoint is visible, in [0, 1]; visible: (F, K) bool, visible_prob at
     least the detector's threshold. keypoint_names: (K,) str. crop_px: (F, 3) (x0, y0, side) of the pass that gave
     the positions. config_json: the weights, their target (name, sha256), the data.
-    No covariance yet: a filter needs the detector calibrated first.
+    Optional (`envisat detect --target` writes it; None where a file lacks it): cov_px (F, K, 2, 2) px^2, the
+    calibrated pixel covariance of each keypoint (the filter's R: sigma_k^2 I from `envisat calibrate --target`),
+    NaN for a keypoint the weights carry no calibration of; a finite one is symmetric positive definite.
     """
 
     key: np.ndarray
@@ -259,6 +261,7 @@ class KeypointDetections(_Contract):
     keypoint_names: np.ndarray
     crop_px: np.ndarray
     config_json: str
+    cov_px: np.ndarray | None = None
 
     KIND: ClassVar[str] = "keypoint detections"
     SPEC: ClassVar[dict[str, _Spec]] = {
@@ -271,12 +274,23 @@ class KeypointDetections(_Contract):
         "keypoint_names": ("s", ("K",), None),
         "crop_px": ("f", ("F", 3), "finite"),
     }
+    OPTIONAL: ClassVar[dict[str, _Spec]] = {"cov_px": ("f", ("F", "K", 2, 2), None)}
 
     def check(self, path: str) -> None:
         for name in ("score", "visible_prob"):
             a = getattr(self, name)
             if np.any((a < 0) | (a > 1)):
                 raise ContractError(f"{path}: '{name}' has values outside [0, 1]")
+        if self.cov_px is not None:
+            c = self.cov_px
+            given = np.isfinite(c).all(axis=(-2, -1))
+            symmetric = np.abs(c[..., 0, 1] - c[..., 1, 0]) <= 1e-9 * np.abs(c).max(axis=(-2, -1))
+            pd = (c[..., 0, 0] > 0) & (c[..., 0, 0] * c[..., 1, 1] - c[..., 0, 1] * c[..., 1, 0] > 0)
+            bad = ~np.isnan(c).all(axis=(-2, -1)) & ~(given & symmetric & pd)
+            if bad.any():
+                first = tuple(int(i) for i in np.argwhere(bad)[0])
+                raise ContractError(f"{path}: 'cov_px' at {first} is neither all NaN nor a symmetric positive "
+                                    "definite 2x2")
 
 
 @dataclass

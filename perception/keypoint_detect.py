@@ -9,6 +9,10 @@ A frame's result (K keypoints, in the channel order of the weights' keypoint_nam
     crop_px:      (3,) int (x0, y0, side) of the crop of the second pass (the whole frame when the coarse pass
                   found fewer than MIN_CROP_KEYPOINTS)
 The names are the network's up to the target's symmetries that its materials keep: twins are not told apart here.
+
+The pixel covariance: `envisat calibrate --target` writes one sigma per keypoint into the weights' metadata
+(SIGMA_KEY, a JSON list, null where a keypoint was not calibrated; perception/keypoint_cov.py);
+`weights_keypoint_sigma` reads it (NaN where absent).
 """
 
 from __future__ import annotations
@@ -22,9 +26,18 @@ import torch
 from envisat_pose.config import from_dict
 from envisat_pose.perception.data import IMAGE_MEAN, IMAGE_STD, DataConfig, crop_box, crop_resize, to_full_px
 from envisat_pose.perception.keypoint_net import KEYPOINT_FORMAT, KeypointModelConfig, KeypointNet, decode_keypoints
-from envisat_pose.perception.weights import WeightsError, check_weights_target, load_state, read_weights, trained_for
+from envisat_pose.perception.weights import (
+    WeightsError,
+    check_weights_target,
+    load_state,
+    read_header,
+    read_weights,
+    trained_for,
+)
 
 MIN_CROP_KEYPOINTS = 2  # keypoints the coarse pass must find to crop around them
+SIGMA_KEY = "keypoint_sigma_px"  # the weights' metadata: the calibrated isotropic sigma per keypoint, px
+SIGMA_RECORD_KEY = "keypoint_cov_calibration"  # ... and the record of its fit (JSON)
 
 
 @dataclass(frozen=True)
@@ -53,6 +66,24 @@ def load_keypoint_model(path: str, target: str, device: str = "cpu", field: str 
     model = KeypointNet(cfg, trained_for(path, meta))
     load_state(model, tensors, path)
     return model.to(device).eval()
+
+
+def weights_keypoint_sigma(path: str, num_keypoints: int) -> np.ndarray:
+    """(K,) px: the isotropic sigma per keypoint the weights' metadata carries (SIGMA_KEY), NaN where a keypoint
+    was not calibrated and everywhere for weights never calibrated. WeightsError when the entry is there but not
+    a list of K positive numbers or nulls."""
+    raw = read_header(path).get(SIGMA_KEY)
+    if raw is None:
+        return np.full(num_keypoints, np.nan)
+    try:
+        values = json.loads(raw)
+        sigma = np.array([np.nan if v is None else float(v) for v in values], float)
+    except (ValueError, TypeError):
+        sigma = np.zeros(0)
+    if sigma.shape != (num_keypoints,) or np.any(~np.isnan(sigma) & ~((sigma > 0) & np.isfinite(sigma))):
+        raise WeightsError(f"{path}: metadata {SIGMA_KEY} {raw[:80]!r} is not {num_keypoints} positive numbers "
+                           "(or nulls)")
+    return sigma
 
 
 class KeypointDetector:

@@ -3,7 +3,11 @@ target (`envisat generate --target FILE.xml`), by its keypoint detector (percept
 the core's KeypointDetections contract (det.npz). The weights are checked against the target before any work
 (one line naming the weights, their target and the given one); so is the dataset's recorded target. Frames are
 read as `envisat detect` reads them (a shard stored clean gets its recorded corruption on read); no label is
-used but the frame time where it has one.
+used but the frame time where it has one. Each keypoint's pixel covariance (cov_px) is the calibrated
+sigma_k^2 I the weights carry (`envisat calibrate --target`), NaN for a keypoint they carry none of.
+
+TargetDetectJobConfig is the job config of `envisat evaluate --target` and `envisat calibrate --target` too
+(pipelines/detector/evaluate_target.py, calibrate_target.py).
 """
 
 from __future__ import annotations
@@ -20,9 +24,10 @@ from envisat_pose.target import load_target
 
 @dataclass(frozen=True)
 class TargetDetectJobConfig(Config):
-    """One `envisat detect --target` job. target: the target's MJCF file; weights: its keypoint detector (trained
-    with `envisat train --target`); device: torch device ("cpu", "cuda"); limit: only the first N frames (None:
-    all); skip_damaged: go on without the shards that do not match the dataset's manifest (named in config_json)."""
+    """One `envisat detect --target` job (and evaluate's, calibrate's: the same inputs). target: the target's MJCF
+    file; weights: its keypoint detector (trained with `envisat train --target`); device: torch device ("cpu",
+    "cuda"); limit: only the first N frames (None: all; per folder where a job reads several); skip_damaged: go on
+    without the shards that do not match the dataset's manifest (named in config_json and the records)."""
 
     target: str = ""
     weights: str = ""
@@ -70,7 +75,8 @@ def detect_target_dataset(cfg: TargetDetectJobConfig, data: str, progress: bool 
     import numpy as np
     from tqdm import tqdm
 
-    from envisat_pose.perception.keypoint_detect import KeypointDetector, load_keypoint_model
+    from envisat_pose.perception.keypoint_cov import isotropic_cov
+    from envisat_pose.perception.keypoint_detect import KeypointDetector, load_keypoint_model, weights_keypoint_sigma
 
     target = load_target(cfg.target, "target")
     model = load_keypoint_model(cfg.weights, cfg.target, cfg.device)
@@ -95,8 +101,11 @@ def detect_target_dataset(cfg: TargetDetectJobConfig, data: str, progress: bool 
     arrays["key"] = arrays["key"].astype(str)
     arrays["visible"] = arrays["visible_prob"] >= det.cfg.visible_threshold
     arrays["keypoint_names"] = np.array(det.keypoint_names, dtype=str)
+    sigma = weights_keypoint_sigma(cfg.weights, len(det.keypoint_names))
+    arrays["cov_px"] = isotropic_cov(sigma, len(arrays["key"]))  # NaN where not calibrated
     arrays["config_json"] = json.dumps({"weights": cfg.weights, "target": {"name": target.name, "sha256": target.sha256},
                                         "data": data, "model": model.cfg.to_dict(),
+                                        "calibrated": [n for n, s in zip(det.keypoint_names, sigma) if s > 0],
                                         "skipped_damaged_shards": skipped}, sort_keys=True)
     KeypointDetections.validated(arrays, "det.npz")  # the contract's checks before anything is written
     return arrays

@@ -1,0 +1,117 @@
+"""The pipeline of `envisat calibrate --target FILE.xml`: the pixel covariance of another target's keypoint
+detector, fitted on held-out labelled frames of that target, written into a copy of the weights' metadata (as
+ENVISAT's calibrate writes its cov_scale: perception/weights.with_metadata).
+
+The model (perception/keypoint_cov.py): per keypoint an isotropic sigma_k, robust (the median absolute error of
+the correct detections, both axes about zero, over 0.6745), from the correct detections: usable (visible and
+in frame), called visible, within the match radius of their own label under each frame's best twin naming (the
+tracker settles the twins, so the errors it sees are those of the right naming). A keypoint with fewer than
+MIN_CORRECT (20) correct detections gets none (null: detect --target gives it a NaN covariance); each sigma's
+standard error is recorded (18 % of it at 20 detections, 5 % at 300). Written as
+`keypoint_sigma_px` (a JSON list in the weights' keypoint order) and `keypoint_cov_calibration` (the record:
+every sigma and count, the check, the data). The check, on the same held-out frames: mean e^T C^-1 e over the
+correct detections (2 when the model holds) and the share within the chi-square's 95 % gate. Also recorded: the
+median error of the correct detections below and above their median heatmap score (a score-dependent model
+would need the two to differ).
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from envisat_pose.config import InputError
+from envisat_pose.io import json_safe
+from envisat_pose.out_dirs import check_out_file, make_out_file_dir
+from envisat_pose.perception import keypoint_metrics as km
+from envisat_pose.perception.keypoint_cov import (
+    GAUSS_ABS_MEDIAN,
+    MIN_CORRECT,
+    fit_keypoint_sigma,
+    nees_check,
+    sigma_standard_error,
+)
+from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig
+from envisat_pose.pipelines.detector.evaluate_target import detect_labelled
+from envisat_pose.provenance import dataset_ref
+
+
+def calibration_errors(arrays: dict, perms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(err (N, K, 2) px of the correct detections under each frame's best naming among perms (P, K), NaN
+    elsewhere; chosen (N,) the row of perms each frame took) from evaluate_target.collect_keypoints' arrays."""
+    chosen = km.best_relabeling(arrays["pred_px"], arrays["true_px"], arrays["usable"], perms)
+    pred = km.relabeled(arrays["pred_px"], perms, chosen)
+    called = km.relabeled(arrays["called"], perms, chosen)
+    return km.correct_errors(pred, arrays["true_px"], arrays["usable"], called), chosen
+
+
+def error_by_score(err: np.ndarray, score: np.ndarray) -> dict:
+    """The median error, px, of the correct detections (err (N, K, 2), NaN elsewhere) whose heatmap score (N, K)
+    lies below their median score, and of the others, with the median score: whether a score-dependent sigma
+    would pay (None with fewer than 2 correct detections)."""
+    ok = np.all(np.isfinite(err), axis=-1)
+    if ok.sum() < 2:
+        return {"median_score": None, "below": None, "at_or_above": None}
+    d, s = np.linalg.norm(err[ok], axis=-1), np.asarray(score, float)[ok]
+    m = float(np.median(s))
+    return {"median_score": m, "below": float(np.median(d[s < m])) if np.any(s < m) else None,
+            "at_or_above": float(np.median(d[s >= m]))}
+
+
+def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, progress: bool = False) -> dict:
+    """Fit the sigma per keypoint of the keypoint detector in cfg.weights on the held-out folders `data` of
+    cfg.target and write out (a copy of the weights with keypoint_sigma_px and keypoint_cov_calibration in its
+    metadata; may be the weights file itself). Returns the record (module doc) with 'corners' (the correct
+    detections) and 'calibrated' (the keypoints given a sigma)."""
+    from envisat_pose.perception.keypoint_detect import SIGMA_KEY, SIGMA_RECORD_KEY
+    from envisat_pose.perception.keypoint_loss import relabelings
+    from envisat_pose.perception.weights import with_metadata
+
+    check_out_file(out, "out")
+    folders = list(dict.fromkeys(data))
+    target, _, arrays, skipped = detect_labelled(cfg, folders, progress, desc="calibrate")
+    names = target.keypoint_names
+    perms = relabelings(target.symmetries, target.num_keypoints)
+    err, chosen = calibration_errors(arrays, perms)
+    sigma, count = fit_keypoint_sigma(err)
+    refs = " ".join(dataset_ref(d) for d in folders)
+    if not np.isfinite(sigma).any():
+        raise InputError(f"data {refs!r}: at most {int(count.max())} correct detections of any keypoint in "
+                         f"{len(chosen)} frames; calibration needs {MIN_CORRECT} of a keypoint (more held-out "
+                         "frames, or a detector that finds the keypoints within "
+                         f"{km.MATCH_PX:g} px)")
+    clean = [None if not np.isfinite(v) else float(v) for v in sigma]
+    se = [None if not np.isfinite(v) else float(v) for v in sigma_standard_error(sigma, count)]
+    record = {"model": f"isotropic sigma per keypoint: median(|e_x|, |e_y|) about 0 / {GAUSS_ABS_MEDIAN:.4f}",
+              "data": refs, "frames": int(len(chosen)), "match_px": km.MATCH_PX, "min_correct": MIN_CORRECT,
+              "sigma_px": dict(zip(names, clean)), "sigma_se_px": dict(zip(names, se)),
+              "count": {n: int(c) for n, c in zip(names, count)},
+              "twin_share": float(np.mean(chosen > 0)) if len(perms) > 1 else None,
+              "check": nees_check(err, sigma, names), "error_by_score": error_by_score(err, arrays["score"]),
+              "skipped_damaged_shards": skipped}
+    make_out_file_dir(out, "out")
+    with_metadata(cfg.weights, out, {SIGMA_KEY: json.dumps(clean),
+                                     SIGMA_RECORD_KEY: json.dumps(json_safe(record), sort_keys=True)})
+    return {**record, "corners": int(count.sum()), "calibrated": int(np.isfinite(sigma).sum())}
+
+
+def sigma_table(record: dict) -> str:
+    """The fit as a table: a line per keypoint (correct detections, sigma px, mean e^T C^-1 e, share within the
+    gate) and one over all."""
+    check = record["check"]
+    head = f"{'keypoint':14s} {'correct':>7s} {'sigma px':>16s} {'NEES':>6s} {'in gate':>7s}"
+    lines = [head, "-" * len(head)]
+    for name, c in check["per_keypoint"].items():
+        s, se = record["sigma_px"][name], record["sigma_se_px"][name]
+        sigma = "-" if s is None else f"{s:.3f} +- {se:.3f}"
+        lines.append(f"{name:14s} {record['count'][name]:7d} {sigma:>16s} {_num(c['mean_nees'], '6.2f')} "
+                     f"{_num(c['within_gate'], '7.1%')}")
+    a = check["all"]
+    lines.append(f"{'all':14s} {a['count']:7d} {'':>16s} {_num(a['mean_nees'], '6.2f')} "
+                 f"{_num(a['within_gate'], '7.1%')}")
+    return "\n".join(lines)
+
+
+def _num(x, spec: str) -> str:
+    return "-".rjust(int(spec.split(".")[0])) if x is None or not np.isfinite(x) else format(x, spec)

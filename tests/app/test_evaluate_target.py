@@ -1,0 +1,264 @@
+"""`envisat evaluate --target FILE.xml` and `envisat calibrate --target FILE.xml` (issue 56, item 2) on a dataset of
+the tests' own target (tests/perception/keypoint_cases.py): the verbs' plumbing with an oracle in the detector's
+place (the labels themselves, with seeded Gaussian noise of a known sigma, or named as the half-turn's twin), so
+the figures are checked against the labels and the noise put in, never against the code's own output; the
+refusals write nothing; `detect --target` carries the calibrated covariance. The slow test runs the verbs on the
+weights of a short training run."""
+
+import hashlib
+import json
+import os
+import sys
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(__file__)), "perception"))
+from keypoint_cases import HALF_TURN_PERM, KEYPOINTS_T_M, twin_box_xml  # noqa: E402
+
+from envisat_pose.app.cli import main  # noqa: E402
+from envisat_pose.contracts import ContractError, KeypointDetections  # noqa: E402
+from envisat_pose.perception.keypoint_detect import KeypointDetectConfig  # noqa: E402
+from envisat_pose.pipelines.detector import evaluate_target  # noqa: E402
+from envisat_pose.pipelines.detector.detect_target import target_frames  # noqa: E402
+from envisat_pose.shard_reader import checked_shards  # noqa: E402
+from envisat_pose.target import load_target  # noqa: E402
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+NAMES = list(KEYPOINTS_T_M)
+SMALL_TRAIN = ("warmup_steps = 2\ncheckpoint_every = 1000000\nbatch_size = 4\n[model]\ninput_px = 64\nwidth = 16\n"
+               "depth = 2\nstem_width = 8\n[data]\ninput_px = 64\nwhole_frame_prob = 0.1\n")
+
+
+@pytest.fixture(scope="module")
+def box(tmp_path_factory):
+    """(the target file, another file of the same shape, a 32-frame dataset of the target at 96 px (seed 4),
+    untrained keypoint weights recording the target, {frame bytes' sha1: (key, labelled px (K, 2), usable (K,))})."""
+    from envisat_pose.perception.keypoint_net import KeypointModelConfig, init_keypoint_net
+    from envisat_pose.perception.weights import save_weights
+
+    folder = tmp_path_factory.mktemp("evaluate_target")
+    path, other = folder / "twin.xml", folder / "other.xml"
+    path.write_text(twin_box_xml())
+    other.write_text(twin_box_xml("twin_copy"))
+    data = folder / "data"
+    assert main(["generate", "--target", str(path), "--num-images", "32", "--resolution", "96", "--seed", "4",
+                 "--out", str(data), "--quiet"]) == 0
+    target = load_target(str(path))
+    record = {k: v for k, v in target.record(str(path)).items() if k != "file"}
+    weights = str(folder / "untrained.safetensors")
+    save_weights(weights, init_keypoint_net(KeypointModelConfig(input_px=64, width=8, depth=2, stem_width=8,
+                                                                num_keypoints=8), 0, record))
+    labels = {}
+    for key, image, label in target_frames(checked_shards(str(data))[0]):
+        usable = np.array(label["visible"], bool) & np.array(label["in_frame"], bool)
+        labels[hashlib.sha1(image.tobytes()).hexdigest()] = (key, np.array(label["keypoints_px"], float), usable)
+    return str(path), str(other), str(data), weights, labels
+
+
+class Oracle:
+    """A detector that knows the labels (found by the frame's bytes): their positions plus Gaussian noise of
+    sigma px per axis (seeded by the frame's key), visible_prob 1 where the label is usable, else 0; perm: each
+    channel k reports keypoint perm[k] (the twin's naming)."""
+
+    cfg = KeypointDetectConfig()
+
+    def __init__(self, labels: dict, sigma: float = 0.0, perm=None):
+        self.labels, self.sigma, self.perm = labels, sigma, perm
+
+    def detect(self, image: np.ndarray) -> dict:
+        key, true, usable = self.labels[hashlib.sha1(image.tobytes()).hexdigest()]
+        rng = np.random.default_rng(int(key))
+        px = true + rng.normal(0.0, self.sigma, true.shape)
+        vis = usable.astype(float)
+        if self.perm is not None:
+            px, vis = px[self.perm], vis[self.perm]
+        return {"keypoints_px": px, "score": rng.uniform(0.2, 1.0, len(px)), "visible_prob": vis,
+                "crop_px": np.array([0, 0, image.shape[0]])}
+
+
+def use_oracle(monkeypatch, oracle: Oracle) -> None:
+    monkeypatch.setattr(evaluate_target, "make_keypoint_detector", lambda model, device: oracle)
+
+
+def usable_counts(labels: dict) -> np.ndarray:
+    return np.sum([u for _, _, u in labels.values()], axis=0)
+
+
+def test_evaluate_scores_the_labels_perfectly_and_the_twins_naming_only_twin_aware(box, tmp_path, monkeypatch, capsys):
+    path, _, data, weights, labels = box
+    use_oracle(monkeypatch, Oracle(labels))
+    out = tmp_path / "e.json"
+    assert main(["evaluate", "--target", path, "--weights", weights, "--data", data, "--json", str(out),
+                 "--quiet"]) == 0
+    table = capsys.readouterr().out
+    assert "twin_aware fin2" in table and "pose after PnP (as_named)" in table
+    r = json.load(open(out))
+    assert r["frames"] == 32 and r["target"]["name"] == "twin_box" and r["twins"] == [HALF_TURN_PERM]
+    a = r["as_named"]["all"]
+    assert a["usable"] == int(usable_counts(labels).sum()) and a["pck_2px"] == 1.0 and a["median_px"] == 0.0
+    assert (a["vis_precision"], a["vis_recall"], a["named_wrongly"]) == (1.0, 1.0, 0)
+    assert [r["as_named"]["per_keypoint"][n]["usable"] for n in NAMES] == usable_counts(labels).tolist()
+    # the labels' own pixels (rounded to 1e-4 px) give back the labels' pose
+    pose = r["as_named"]["pose"]
+    assert pose["rotation_deg_p95"] < 0.05 and pose["translation_pct_p95"] < 0.05
+    assert r["twin_share"] == 0.0 and r["calibration"] is None  # untrained weights carry no sigma
+
+    use_oracle(monkeypatch, Oracle(labels, perm=HALF_TURN_PERM))
+    assert main(["evaluate", "--target", path, "--weights", weights, "--data", data, "--json", str(out),
+                 "--quiet"]) == 0
+    r = json.load(open(out))
+    named, twin = r["as_named"], r["twin_aware"]
+    # as named, each channel lies on its twin's label: (almost) never on its own, its pose turned by the half-turn
+    assert named["all"]["pck_5px"] < 0.1 and named["all"]["named_wrongly_rate"] > 0.9
+    assert named["pose"]["rotation_deg_median"] == pytest.approx(180.0, abs=0.1)
+    assert twin["all"]["pck_2px"] == 1.0 and twin["all"]["named_wrongly"] == 0 and r["twin_share"] == 1.0
+    assert twin["pose"]["rotation_deg_p95"] < 0.05
+
+
+def test_calibrate_finds_the_noise_put_in_and_detect_carries_it(box, tmp_path, monkeypatch, capsys):
+    """Labels plus Gaussian noise of sigma 0.8 px: every usable keypoint is a correct detection (5 px is 6 sigma),
+    the fitted sigma is 0.8 within the robust estimate's spread (a keypoint seen fewer than 20 times gets none),
+    the check's mean e^T C^-1 e is what the noise drawn gives, near 2; detect
+    --target writes cov_px = sigma^2 I from the calibrated weights (NaN from uncalibrated ones); evaluate checks
+    the same sigma on the same frames."""
+    path, _, data, weights, labels = box
+    use_oracle(monkeypatch, Oracle(labels, sigma=0.8))
+    w2 = str(tmp_path / "cal" / "w2.safetensors")
+    assert main(["calibrate", "--target", path, "--weights", weights, "--data", data, "--out", w2, "--quiet"]) == 0
+    assert "keypoints calibrated" in capsys.readouterr().out
+    from envisat_pose.perception.weights import read_metadata
+
+    meta = read_metadata(w2)
+    record = json.loads(meta["keypoint_cov_calibration"])
+    sigma = json.loads(meta["keypoint_sigma_px"])
+    counts = usable_counts(labels)
+    assert [record["count"][n] for n in NAMES] == counts.tolist()
+    for n, s, c in zip(NAMES, sigma, counts):
+        if c < 20:
+            assert s is None
+        else:  # within 3 standard errors of the MAD over 2c Gaussian components: sqrt(1.36 / 2c) of sigma
+            assert s == pytest.approx(0.8, rel=3 * np.sqrt(1.36 / (2 * c))), n
+    assert sum(s is not None for s in sigma) >= 6
+    # the check, worked out here from the noise the oracle drew: |e|^2 / sigma_k^2 over the usable keypoints, the
+    # 95 % gate of a chi-square of 2 dof at -2 ln 0.05
+    nees = []
+    for key, _, usable in labels.values():
+        e = np.random.default_rng(int(key)).normal(0.0, 0.8, (8, 2))
+        nees += [float(e[k] @ e[k]) / sigma[k] ** 2 for k in range(8) if usable[k] and sigma[k] is not None]
+    check = record["check"]["all"]
+    assert check["count"] == len(nees) and check["mean_nees"] == pytest.approx(np.mean(nees))
+    assert check["within_gate"] == pytest.approx(np.mean(np.array(nees) <= -2 * np.log(0.05)))
+    assert 1.6 <= check["mean_nees"] <= 2.6  # ~2 (a little above: the sigmas of ~20 detections each spread)
+
+    monkeypatch.undo()  # detect runs the network itself
+    for w, calibrated in ((w2, True), (weights, False)):
+        out = str(tmp_path / f"det_{calibrated}.npz")
+        assert main(["detect", "--target", path, "--weights", w, "--data", data, "--limit", "3", "--out", out,
+                     "--quiet"]) == 0
+        det = KeypointDetections.load(out)
+        assert det.cov_px.shape == (3, 8, 2, 2)
+        want = np.array([np.nan if (s is None or not calibrated) else s * s for s in sigma])
+        assert np.array_equal(det.cov_px[:, :, 0, 0], np.broadcast_to(want, (3, 8)), equal_nan=True)
+        assert np.array_equal(det.cov_px[:, :, 0, 1], np.broadcast_to(want * 0, (3, 8)), equal_nan=True)
+
+    use_oracle(monkeypatch, Oracle(labels, sigma=0.8))
+    out = tmp_path / "e.json"
+    assert main(["evaluate", "--target", path, "--weights", w2, "--data", data, "--json", str(out), "--quiet"]) == 0
+    cal = json.load(open(out))["calibration"]
+    assert cal["all"] == pytest.approx(record["check"]["all"])  # the same frames, noise and sigma
+
+
+def refused(argv, capsys, out, *words) -> None:
+    capsys.readouterr()
+    assert main(argv) == 2, argv
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and all(w in err for w in words), err
+    assert not os.path.exists(out), out
+
+
+def test_refusals_write_nothing(box, tmp_path, capsys):
+    path, other, data, weights, labels = box
+    out = str(tmp_path / "out")
+    for verb, flag in (("evaluate", "--json"), ("calibrate", "--out")):
+        refused([verb, "--target", other, "--weights", weights, "--data", data, flag, f"{out}/x"], capsys, out,
+                weights, "target 'twin_box'", "not of target 'twin_copy'")
+        refused([verb, "--target", path, "--data", data, flag, f"{out}/x"], capsys, out, "ENVISAT's corner detector",
+                "target 'twin_box'")
+    refused(["evaluate", "--target", path, "--weights", weights, "--data", data, "--roi-labels", "--json",
+             f"{out}/e.json"], capsys, out, "--roi-labels", "not with --target")
+    refused(["calibrate", "--target", path, "--weights", weights, "--data", data, "--refine", "--out",
+             f"{out}/w.safetensors"], capsys, out, "--refine", "not with --target")
+    # untrained weights find no keypoint within 5 px often enough to calibrate one
+    refused(["calibrate", "--target", path, "--weights", weights, "--data", data, "--out", f"{out}/w.safetensors",
+             "--quiet"], capsys, out, "correct detections", "calibration needs 20")
+
+
+def test_without_a_kept_symmetry_there_is_no_twin_aware_score_and_bad_covariances_are_refused(tmp_path):
+    from envisat_pose.perception.keypoint_detect import weights_keypoint_sigma
+    from envisat_pose.perception.keypoint_net import KeypointModelConfig, init_keypoint_net
+    from envisat_pose.perception.weights import WeightsError, save_weights, with_metadata
+
+    path = tmp_path / "painted.xml"
+    path.write_text(twin_box_xml("painted", painted=True))  # the fin's colours break the half-turn
+    target = load_target(str(path))
+    perms = np.arange(8)[None]
+    rng = np.random.default_rng(1)
+    true = rng.uniform(0, 96, (3, 8, 2))
+    arrays = {"pred_px": true + 0.5, "true_px": true, "usable": np.ones((3, 8), bool), "called": np.ones((3, 8), bool),
+              "K": np.broadcast_to(np.eye(3), (3, 3, 3)), "R": np.full((3, 3, 3), np.nan), "t": np.full((3, 3), np.nan)}
+    s = evaluate_target.score_target(arrays, target, perms, np.full(8, np.nan))
+    assert s["relabelings"] == 1 and s["twin_aware"] is None and s["twin_share"] is None
+    assert s["as_named"]["all"]["median_px"] == pytest.approx(0.5 * np.sqrt(2))
+    assert s["as_named"]["pose"]["solved_share"] == 0.0  # no labelled pose: no pose error
+
+    det = {"key": np.array(["0"]), "t_s": np.zeros(1), "keypoints_px": np.zeros((1, 4, 2)), "score": np.zeros((1, 4)),
+           "visible_prob": np.zeros((1, 4)), "visible": np.zeros((1, 4), bool),
+           "keypoint_names": np.array(list("abcd")), "crop_px": np.zeros((1, 3)), "config_json": "{}"}
+    assert KeypointDetections.validated(det).cov_px is None  # a file of before: no covariance
+    cov = np.full((1, 4, 2, 2), np.nan)
+    cov[0, 0] = np.eye(2)
+    assert np.array_equal(KeypointDetections.validated({**det, "cov_px": cov}).cov_px, cov, equal_nan=True)
+    cov[0, 1] = [[1.0, 2.0], [2.0, 1.0]]  # not positive definite
+    with pytest.raises(ContractError, match="cov_px"):
+        KeypointDetections.validated({**det, "cov_px": cov})
+
+    weights = str(tmp_path / "w.safetensors")
+    save_weights(weights, init_keypoint_net(KeypointModelConfig(input_px=64, width=8, depth=2, stem_width=8,
+                                                                num_keypoints=8), 0, {"sha256": "x"}))
+    with_metadata(weights, weights, {"keypoint_sigma_px": json.dumps([1.0, None, 2.0, 1.0, 1.0, 1.0, 1.0, 1.0])})
+    assert np.isnan(weights_keypoint_sigma(weights, 8)[1]) and weights_keypoint_sigma(weights, 8)[2] == 2.0
+    for bad in ([1.0] * 7, [1.0] * 7 + [-1.0], "x"):
+        with_metadata(weights, weights, {"keypoint_sigma_px": json.dumps(bad)})
+        with pytest.raises(WeightsError, match="keypoint_sigma_px"):
+            weights_keypoint_sigma(weights, 8)
+
+
+@pytest.mark.slow  # a short online run (a renderer process) and the three verbs on its weights: 55 s loaded
+def test_the_verbs_run_on_the_weights_of_a_short_training_run(box, tmp_path, capsys):
+    """`envisat train --target` (online renders at 128 px, a 64 px network, 30 steps) then evaluate, calibrate and
+    detect --target on its weights. Accuracy is not asked of so short a run: the scores are well formed, and
+    calibrate either fits a keypoint or refuses in one line."""
+    path, _, data, _, _ = box
+    cfg = tmp_path / "small.toml"
+    cfg.write_text(SMALL_TRAIN)
+    run = str(tmp_path / "run")
+    assert main(["train", "--target", path, "--config", str(cfg), "--resolution", "128", "--uses-per-frame", "4",
+                 "--steps", "30", "--out", run, "--render-workers", "1", "--quiet"]) == 0
+    weights = os.path.join(run, "checkpoint.safetensors")
+    out = tmp_path / "e.json"
+    assert main(["evaluate", "--target", path, "--weights", weights, "--data", data, "--json", str(out),
+                 "--quiet"]) == 0
+    r = json.load(open(out))
+    for naming in ("as_named", "twin_aware"):
+        a = r[naming]["all"]
+        assert a["usable"] > 0 and 0 <= a["pck_2px"] <= a["pck_5px"] <= 1 and a["median_px"] <= a["p95_px"]
+        assert 0 <= r[naming]["pose"]["solved_share"] <= 1
+    w2 = str(tmp_path / "w2.safetensors")
+    rc = main(["calibrate", "--target", path, "--weights", weights, "--data", data, "--out", w2, "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 0 and os.path.exists(w2) or rc == 2 and "calibration needs" in err and not os.path.exists(w2)
+    det = str(tmp_path / "det.npz")
+    assert main(["detect", "--target", path, "--weights", w2 if rc == 0 else weights, "--data", data, "--out", det,
+                 "--quiet"]) == 0
+    assert KeypointDetections.load(det).cov_px.shape == (32, 8, 2, 2)
