@@ -25,7 +25,7 @@ AXES = ("x", "y", "z")
 # statistics' units (m, m/s, rad, rad/s; analysis.stats) -> what the plots show (m, m/s, deg, deg/s)
 DISPLAY_SCALE = np.array([1.0] * 6 + [180.0 / np.pi] * 6)
 MASK_CLASSES = ("background", "face +x", "face -x", "face +y", "face -y", "face +z", "face -z", "array and boom",
-                "appendages")  # design.md, Shard: mask values 0-8 (a target taking the class looks)
+                "appendages")  # design.md, Shard: mask values 0-8 (a target taking the class appearance)
 
 VISIBLE_RGB = (40, 200, 60)
 HIDDEN_RGB = (220, 50, 50)
@@ -99,7 +99,7 @@ def corner_annotation(target: Target | None = None) -> rr.AnnotationContext:
 
 def mask_classes(mask_values: dict[str, int] | None = None) -> tuple[str, ...]:
     """The label of each mask value 0..max: mask_values None: MASK_CLASSES (the factory's classes, design.md:
-    what a target that takes the class looks writes); else {geom name: mask value} of the target's renderer
+    what a target that takes the class appearance writes); else {geom name: mask value} of the target's renderer
     (datagen.render_view.target_mask_values): "background", then each value's geom names joined by " + " ("" for a
     value no geom takes)."""
     if mask_values is None:

@@ -1,4 +1,4 @@
-"""`envisat adapt`: the verb over pipelines/adaptation/adapt.py: teach the detector the look of your own frames (tracked cold,
+"""`envisat adapt`: the verb over pipelines/adaptation/adapt.py: teach the detector your own frames (tracked cold,
 pseudo-labelled at the smoothed track, recalibrated and optionally fine-tuned, tracked again), judged on a held-out
 final part."""
 

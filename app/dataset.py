@@ -8,7 +8,7 @@ import json
 import os
 
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, check_rrd_output, skipped_line
-from envisat_pose.datagen.appearance import takes_class_looks
+from envisat_pose.datagen.appearance import takes_class_appearance
 from envisat_pose.datagen.render_view import target_mask_values
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
@@ -95,7 +95,7 @@ def recorded_target(manifest: dict) -> tuple:
     {geom name: mask value} its masks hold, datagen.render_view.target_mask_values, or None where they are the
     factory's classes)."""
     target = load_target((manifest.get("target") or {}).get("file", DEFAULT_TARGET), "target")
-    return target, None if takes_class_looks(g.name for g in target.geoms) else target_mask_values(target)
+    return target, None if takes_class_appearance(g.name for g in target.geoms) else target_mask_values(target)
 
 
 def write_samples_rrd(source: str | list[str], path: str, count: int, target=None,

@@ -1,5 +1,5 @@
 """`envisat adapt` scored: before and after on foreign frames, the project's own renders of the same
-poses as the reference, and what the adapted weights cost on the project's own look.
+poses as the reference, and what the adapted weights cost on the project's own renders.
 
 Per (scenario, seed, resolution):
 - foreign frames (bench/foreign_frames.py: MuJoCo Filament, a real camera's habits) as a user's folder; `adapt`
@@ -20,13 +20,15 @@ Run:  .venv/bin/python bench/adapt.py --scenarios default --seeds 0 1 --resoluti
 (frames already under --work are reused; each --edge-range and --params adapts into its own folder
 adapt-MODE-PARAMS.)
 
-With `--looks RESPONSE:SIGMA[:bloom][:given] ...` the grid of looks (response, PSF, blooming) instead: the project's own clean
-render of the sequence (bench/edge_truth.own_clean) put through the space camera with that fixed look
-(edge_truth.look_params: response, Gaussian PSF sigma px, blooming), written as a user's PNG folder with a
-camera.toml (its response and PSF in the file only with ':given'; else adapt estimates them), adapted and scored
-as above (the frames' truth from the labels). The reference ('own') is the look 'linear:1.0' tracked with the
-shipped weights (the camera the detector was trained on, stored linearly). Example:
-      .venv/bin/python bench/adapt.py --looks srgb:1.0 srgb:1.0:given linear:1.0 --seeds 9393 --num-images 240 \
+With `--responses RESPONSE:SIGMA[:bloom][:given] ...` the grid of camera responses (response curve, PSF, blooming)
+instead: the project's own clean render of the sequence (bench/edge_truth.own_clean) put through the space camera
+with that fixed camera response (edge_truth.response_params: response, Gaussian PSF sigma px, blooming), written as
+a user's PNG folder with a camera.toml (its response and PSF in the file only with ':given'; else adapt estimates
+them), adapted and scored as above (the frames' truth from the labels). The reference ('own') is the response
+'linear:1.0' tracked with the shipped weights (the camera the detector was trained on, stored linearly). The rows
+keep their keys and folders as first written ("look": the response given, "look_read": the report's record of
+it; under --work, look-RESPONSE-SIGMA...). Example:
+      .venv/bin/python bench/adapt.py --responses srgb:1.0 srgb:1.0:given linear:1.0 --seeds 9393 --num-images 240 \
           --work /tmp/adapt-bench --out bench/results/adapt_looks.json
 """
 
@@ -168,10 +170,10 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, steps: int |
     return out
 
 
-def look_folder(clean: str, look: str, seed: int, res: int, out: str) -> str:
-    """The clean sequence `clean` through the space camera's fixed look 'RESPONSE:SIGMA[:bloom][:given]' as a
-    user's folder out/: frames/*.png, timestamps.csv, camera.toml, truth.npz (x, t_s; scoring only). Made when
-    missing; returns out."""
+def response_folder(clean: str, spec: str, seed: int, res: int, out: str) -> str:
+    """The clean sequence `clean` through the space camera's fixed camera response
+    spec='RESPONSE:SIGMA[:bloom][:given]' as a user's folder out/: frames/*.png, timestamps.csv, camera.toml,
+    truth.npz (x, t_s; scoring only). Made when missing; returns out."""
     import cv2
 
     sys.path.insert(0, os.path.join(ROOT, "bench"))
@@ -181,14 +183,14 @@ def look_folder(clean: str, look: str, seed: int, res: int, out: str) -> str:
 
     if os.path.exists(os.path.join(out, "truth.npz")):
         return out
-    parts = look.split(":")
+    parts = spec.split(":")
     response, sigma, bloom, given = parts[0].replace("gamma", "gamma "), float(parts[1]), "bloom" in parts, \
         "given" in parts
     frames = edge_truth.clean_frames(clean, 1)
     os.makedirs(os.path.join(out, "frames"), exist_ok=True)
     names, t_s, x = [], [], []
     for k, (im, lab) in enumerate(frames):
-        p = {**edge_truth.look_params(response, sigma, bloom, res, seed), "noise_seed": 7000 + k}
+        p = {**edge_truth.response_params(response, sigma, bloom, res, seed), "noise_seed": 7000 + k}
         names.append(f"frame_{k:05d}.png")
         cv2.imwrite(os.path.join(out, "frames", names[-1]), apply_sensor(im, p))
         t_s.append(float(lab["scene"]["t_s"]) if "t_s" in lab.get("scene", {}) else float(k))
@@ -205,9 +207,9 @@ def look_folder(clean: str, look: str, seed: int, res: int, out: str) -> str:
     return out
 
 
-def look_case(look: str, scenario: str, seed: int, res: int, n: int, work: str) -> dict:
-    """One look of the grid (module doc): adapt on the look's folder, before and after scored against the
-    labels' truth, beside the reference look's track."""
+def response_case(spec: str, scenario: str, seed: int, res: int, n: int, work: str) -> dict:
+    """One camera response of the grid (module doc, spec 'RESPONSE:SIGMA[:bloom][:given]'): adapt on its
+    folder, before and after scored against the labels' truth, beside the reference response's track."""
     sys.path.insert(0, os.path.join(ROOT, "bench"))
     import edge_truth
 
@@ -217,8 +219,8 @@ def look_case(look: str, scenario: str, seed: int, res: int, n: int, work: str) 
 
     clean = edge_truth.own_clean(scenario, seed, res, n, work)
     case = os.path.join(work, f"{scenario}-{seed}-{res}-{n}")
-    out = {"scenario": scenario, "seed": seed, "resolution_px": res, "frames": n, "look": look}
-    folder = look_folder(clean, look, seed, res, os.path.join(case, "look-" + look.replace(":", "-")))
+    out = {"scenario": scenario, "seed": seed, "resolution_px": res, "frames": n, "look": spec}
+    folder = response_folder(clean, spec, seed, res, os.path.join(case, "look-" + spec.replace(":", "-")))
     with np.load(os.path.join(folder, "truth.npz")) as tr:
         t_f, x_f = tr["t_s"], tr["x"]
     lit = np.ones(len(t_f), bool)
@@ -239,9 +241,9 @@ def look_case(look: str, scenario: str, seed: int, res: int, n: int, work: str) 
         for name in ("before", "after"):
             out[name]["range_error_2nd_half_m"] = range_error(t_f, x_f, os.path.join(run, name, "est.npz"))
         out.update(adopted=report["adopted"], reason=report["reason"], scale_note=report.get("scale_note"),
-                   apparent_scale=last.get("apparent_scale"), look_read=last["edge_range"].get("look"),
+                   apparent_scale=last.get("apparent_scale"), **{"look_read": last["edge_range"].get("look")},
                    edge_sequence=last["edge_range"]["sequence"])
-    ref = look_folder(clean, "linear:1.0", seed, res, os.path.join(case, "look-linear-1.0"))  # after: slower
+    ref = response_folder(clean, "linear:1.0", seed, res, os.path.join(case, "look-linear-1.0"))  # after: slower
     ref_track = os.path.join(ref, "track")
     if not os.path.exists(os.path.join(ref_track, "est.npz")):
         src = open_source(os.path.join(ref, "frames"), timestamps=os.path.join(ref, "timestamps.csv"))
@@ -300,15 +302,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--params", default="none", choices=["none", "norm_heads", "all"],
                     help="AdaptConfig.params: what the fine-tune trains ('none': recalibration only)")
     ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "adapt.json"))
-    ap.add_argument("--looks", nargs="+", help="the grid of looks on own renders (module doc): RESPONSE:SIGMA...")
+    ap.add_argument("--responses", nargs="+",
+                    help="the grid of camera responses on own renders (module doc): RESPONSE:SIGMA...")
     args = ap.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     rows = []
-    if args.looks:
+    if args.responses:
         for seed in args.seeds:
-            for look in args.looks:
-                rows.append(look_case(look, args.scenarios[0], seed, args.resolutions[0], args.num_images,
-                                      args.work))
+            for spec in args.responses:
+                rows.append(response_case(spec, args.scenarios[0], seed, args.resolutions[0], args.num_images,
+                                          args.work))
                 with open(args.out, "w") as fh:
                     json.dump({"cases": rows, "cores": os.cpu_count(), "argv": sys.argv[1:]}, fh, indent=1)
                 print(json.dumps({k: rows[-1].get(k) for k in ("look", "own", "before", "after", "adopted",

@@ -15,7 +15,7 @@ workers, appearance (materials, clutter) on and off, storage clean and corrupted
 to the two-pass render (lit + segmentation/depth) of the same views measured in the same run, with and without
 the appearance; bytes per image of every dataset.
 
-Two-pass floor: appearance on, clean storage, 1 worker >= 1.0 x the two-pass render of the same look. Measured
+Two-pass floor: appearance on, clean storage, 1 worker >= 1.0 x the two-pass render of the same views. Measured
 in alternating rounds (two-pass render, factory, factory with FINISH_BESIDE_RENDER off) so the machine's load
 drifts alike for all three; the median ratio is the floor's. The floor's factory runs BENCH_FLOOR_IMAGES (200) in
 shards of the default size (100), as a user's run does. The factory finishes sample k (the passes' pixel work,
@@ -64,10 +64,10 @@ def bench_config(resolution_px: int, n: int, **kw):
 
 def two_pass_rate(cfg, appearance: bool) -> float:
     """Images/s of SceneRenderer.render (lit + segmentation/depth passes) over the dataset's own views, with
-    the dataset's looks (appearance on) or the MJCF's plain materials (off)."""
+    the dataset's appearance draws (appearance on) or the MJCF's plain materials (off)."""
     import dataclasses
 
-    from envisat_pose.datagen.factory import with_look
+    from envisat_pose.datagen.factory import with_appearance
     from envisat_pose.datagen.render import SceneRenderer
 
     r = SceneRenderer(cfg.resolution_px, texture_set_size=cfg.appearance.texture_set_size if appearance else 0)
@@ -76,8 +76,8 @@ def two_pass_rate(cfg, appearance: bool) -> float:
         s, i = divmod(k, cfg.shard_size)
         from envisat_pose.datagen.views import sample_seed
 
-        v2, _ = with_look(cfg, v, sc, sample_seed(cfg.seed, s, i))
-        views.append(v2 if appearance else dataclasses.replace(v2, look=None, appendages=False))
+        v2, _ = with_appearance(cfg, v, sc, sample_seed(cfg.seed, s, i))
+        views.append(v2 if appearance else dataclasses.replace(v2, appearance=None, appendages=False))
     for v in views[:3]:
         r.render(v)
     t0 = time.perf_counter()
@@ -120,7 +120,7 @@ def _pin_process(cpus: set[int]) -> None:
 
 
 def floor_rounds(base, cfg, rounds: int) -> dict:
-    """The two-pass floor: alternating rounds of the two-pass render of the same look, the factory (1 worker)
+    """The two-pass floor: alternating rounds of the two-pass render of the same views, the factory (1 worker)
     and the factory finishing each sample after its render (FINISH_BESIDE_RENDER off); then one round pinned
     to one core. Rates img/s, CPU ms per image (process time: every thread), ratios to the round's render."""
     from envisat_pose.datagen import factory
@@ -240,7 +240,7 @@ def default_mode_table() -> dict:
                 e2e, steady = end_to_end(cfg, w)
                 row[f"e2e_{w}w_img_s"], row[f"steady_{w}w_img_s"] = e2e, steady
             peer = out["two_pass_appearance_on_img_s" if appearance else "two_pass_appearance_off_img_s"]
-            row["ratio_1w_to_two_pass_same_look"] = row["e2e_1w_img_s"] / peer
+            row["ratio_1w_to_two_pass_same_look"] = row["e2e_1w_img_s"] / peer  # key as in bench/results
             row["ratio_1w_to_two_pass_plain"] = row["e2e_1w_img_s"] / out["two_pass_appearance_off_img_s"]
             rows[name] = row
             fmt = lambda v: "   n/a" if v is None else f"{v:6.2f}"  # noqa: E731
@@ -251,7 +251,7 @@ def default_mode_table() -> dict:
     out["rows"] = rows
     out["floor_1_0x_same_look_met"] = floor["median_ratio"] >= 1.0
     out["load_avg_end"] = os.getloadavg()
-    print(f"two-pass floor: factory / two-pass render of the same look, 1 worker: median {floor['median_ratio']:.2f}x "
+    print(f"two-pass floor: factory / two-pass render of the same views, 1 worker: median {floor['median_ratio']:.2f}x "
           f"(finishing after each render: {floor['median_ratio_serial']:.2f}x; pinned to one core: "
           f"{floor['one_core']['ratio']:.2f}x, serial {floor['one_core']['ratio_serial']:.2f}x); floor 1.0x "
           f"{'met' if out['floor_1_0x_same_look_met'] else 'NOT met'}")

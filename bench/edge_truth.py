@@ -11,18 +11,19 @@ pinhole as the tracker sees them:
 A perfect cue reads 0 at the true pose; its reading there is the part of adapt's range correction that no
 tracker can remove. The truth is the bench's, never the library's.
 
-With `--looks` the grid of looks (response, PSF, blooming) on the project's own renders instead: one clean sequence per
-(seed, resolution) (`envisat generate --mode sequence`, storage 'clean'), every `--stride`-th frame put through
-the space camera (datagen/sensor.py) with a fixed look: response linear, sRGB, gamma 1.8 or 2.4; Gaussian PSF
-sigma 0.3 / 1.0 / 2.5 px; blooming off (white at 0.8 of the full well) or on (1.5, 4 px spill); no motion blur,
-no vignetting. Per look the sequence's delta at the labels' true corners: in the stored values (the cue as it
-was), linearized by the known response with the reach of the known PSF, and by the response and PSF the frames
-give (pipelines/adaptation/edge_look.estimate_look); and the estimate itself. The Filament rows (without --looks) record
-the same three readings, their response unknown.
+With `--responses` the grid of camera responses (response curve, PSF, blooming) on the project's own renders
+instead: one clean sequence per (seed, resolution) (`envisat generate --mode sequence`, storage 'clean'), every
+`--stride`-th frame put through the space camera (datagen/sensor.py) with a fixed camera response: response linear,
+sRGB, gamma 1.8 or 2.4; Gaussian PSF sigma 0.3 / 1.0 / 2.5 px; blooming off (white at 0.8 of the full well) or on
+(1.5, 4 px spill); no motion blur, no vignetting. Per camera response the sequence's delta at the labels' true
+corners: in the stored values (the cue as it was), linearized by the known response with the reach of the known
+PSF, and by the response and PSF the frames give (pipelines/adaptation/edge_response.estimate_response); and the
+estimate itself. The Filament rows (without --responses) record the same three readings, their response unknown.
+The results keep their keys as first written ("looks": the rows, "estimated_look": the estimate).
 
 Run:  .venv/bin/python bench/edge_truth.py --seeds 0 1 2 3 --resolutions 512 1024 --work /tmp/adapt-bench
 (writes bench/results/edge_truth.json and prints a table);
-      .venv/bin/python bench/edge_truth.py --looks --seeds 0 --resolutions 512 1024 --work /tmp/adapt-bench \
+      .venv/bin/python bench/edge_truth.py --responses --seeds 0 --resolutions 512 1024 --work /tmp/adapt-bench \
           --out bench/results/edge_truth_looks.json
 """
 
@@ -92,7 +93,7 @@ def one_case(scenario: str, seed: int, res: int, n: int, work: str, stride: int,
 
 RESPONSES = ("linear", "srgb", "gamma 1.8", "gamma 2.4")
 PSF_SIGMAS_PX = (0.3, 1.0, 2.5)
-LOOK_FRAMES = 20  # frames of a sequence the response and blur are estimated from (evenly spread)
+RESPONSE_FRAMES = 20  # frames of a sequence the response and blur are estimated from (evenly spread)
 
 
 def own_clean(scenario: str, seed: int, res: int, n: int, work: str) -> str:
@@ -127,8 +128,9 @@ def clean_frames(folder: str, stride: int) -> list[tuple[np.ndarray, dict]]:
     return out
 
 
-def look_params(response: str, sigma_px: float, bloom: bool, res: int, seed: int) -> dict:
-    """The space camera's parameters of one fixed look (datagen/sensor.draw_sensor over degenerate ranges)."""
+def response_params(response: str, sigma_px: float, bloom: bool, res: int, seed: int) -> dict:
+    """The space camera's parameters of one fixed camera response (datagen/sensor.draw_sensor over degenerate
+    ranges)."""
     from envisat_pose.config import to_dict
     from envisat_pose.datagen.generate_config import SensorConfig
     from envisat_pose.datagen.sensor import draw_sensor
@@ -154,19 +156,19 @@ def sequence_delta(images, corners, use, light=None, blur_px=None) -> dict:
 
 def three_readings(images, corners, use, known=None, blur_px=None) -> dict:
     """The cue in the stored values, by the known response and blur (when given), by the estimated ones."""
-    from envisat_pose.pipelines.adaptation.edge_look import estimate_look
+    from envisat_pose.pipelines.adaptation.edge_response import estimate_response
 
-    pick = np.unique(np.linspace(0, len(images) - 1, min(len(images), LOOK_FRAMES)).round().astype(int))
-    look = estimate_look([images[i] for i in pick], corners[pick], use[pick])
-    out = {"stored": sequence_delta(images, corners, use), "estimated_look": look.record(),
-           "estimated": sequence_delta(images, corners, use, look.response, look.psf_sigma_px)}
+    pick = np.unique(np.linspace(0, len(images) - 1, min(len(images), RESPONSE_FRAMES)).round().astype(int))
+    fit = estimate_response([images[i] for i in pick], corners[pick], use[pick])
+    out = {"stored": sequence_delta(images, corners, use), "estimated_look": fit.record(),
+           "estimated": sequence_delta(images, corners, use, fit.response, fit.psf_sigma_px)}
     if known is not None:
         out["known"] = sequence_delta(images, corners, use, known, blur_px)
     return out
 
 
-def looks_case(scenario: str, seed: int, res: int, n: int, work: str, stride: int) -> list[dict]:
-    """The grid of looks on one own-render sequence (module doc): one row per look."""
+def responses_case(scenario: str, seed: int, res: int, n: int, work: str, stride: int) -> list[dict]:
+    """The grid of camera responses on one own-render sequence (module doc): one row per response."""
     from envisat_pose.camera_response import parse_response
     from envisat_pose.datagen.sensor import apply_sensor
 
@@ -178,18 +180,18 @@ def looks_case(scenario: str, seed: int, res: int, n: int, work: str, stride: in
         for sigma in PSF_SIGMAS_PX:
             for bloom in (False, True):
                 t0 = time.perf_counter()
-                images = [apply_sensor(im, {**look_params(response, sigma, bloom, res, seed), "noise_seed": 1000 + k})
-                          for k, (im, _) in enumerate(frames)]
+                images = [apply_sensor(im, {**response_params(response, sigma, bloom, res, seed),
+                                            "noise_seed": 1000 + k}) for k, (im, _) in enumerate(frames)]
                 row = {"scenario": scenario, "seed": seed, "resolution_px": res, "frames": len(frames),
                        "response": response, "psf_sigma_px": sigma, "blooming": bloom,
                        **three_readings(images, corners, use, parse_response(response, "response"), sigma)}
                 row["seconds"] = time.perf_counter() - t0
                 rows.append(row)
-                print(looks_line(row), flush=True)
+                print(responses_line(row), flush=True)
     return rows
 
 
-def looks_line(r: dict) -> str:
+def responses_line(r: dict) -> str:
     pct = (lambda v: "-" if v is None else f"{100 * v:+.3f} %")
     lk = r["estimated_look"]
     return (f"| {r['scenario']} | {r['seed']} | {r['resolution_px']} | {r['response']} | {r['psf_sigma_px']} | "
@@ -208,11 +210,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--step", type=float, default=0.005)
     ap.add_argument("--work", default="/tmp/adapt-bench")
     ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "edge_truth.json"))
-    ap.add_argument("--looks", action="store_true", help="the grid of looks on own renders (module doc)")
+    ap.add_argument("--responses", action="store_true", help="the grid of camera responses on own renders (module doc)")
     args = ap.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
-    if args.looks:
-        return main_looks(args)
+    if args.responses:
+        return main_responses(args)
     rows = []
     print("| scenario | seed | px | delta at truth | at range x(1-step) | x(1+step) | mean offset px | stations |")
     print("|---|---|---|---|---|---|---|---|")
@@ -232,17 +234,17 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def main_looks(args) -> int:
+def main_responses(args) -> int:
     from envisat_pose.io import atomic_write_text
 
-    print("| scenario | seed | px | response | PSF sigma px | blooming | delta stored | known look | estimated look "
-          "| estimate |")
+    print("| scenario | seed | px | response | PSF sigma px | blooming | delta stored | known response "
+          "| estimated response | estimate |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     rows = []
     for scenario in args.scenarios:
         for res in args.resolutions:
             for seed in args.seeds:
-                rows += looks_case(scenario, seed, res, args.num_images, args.work, args.stride)
+                rows += responses_case(scenario, seed, res, args.num_images, args.work, args.stride)
                 atomic_write_text(args.out, json.dumps({"looks": rows, "argv": sys.argv[1:], "stride": args.stride},
                                                        indent=1))
     return 0

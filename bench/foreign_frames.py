@@ -5,7 +5,7 @@ The poses and the sun are those of `envisat generate --mode sequence --scenario 
 --resolution R` (datagen.views.sequence_frames: the same MuJoCo truth). The renderer is MuJoCo's Filament
 (physically based) renderer, headless through Vulkan on Mesa's lavapipe (Debian's mesa-vulkan-drivers;
 ../shared/platform-notes.md): metallic foil with a roughness, photometric sunlight (a directional light in lux), no
-ambient, no Earth, tone-mapped by Filament, none of datagen/appearance.py's looks. On top, a camera the space
+ambient, no Earth, tone-mapped by Filament, none of datagen/appearance.py's appearance draws. On top, a camera the space
 camera model (datagen/sensor.py) never drew:
 - a lens with radial and tangential distortion (OpenCV's k1, k2, p1, p2) and a principal point a few pixels off
   the centre (the calibration goes into camera.toml, as a user would calibrate their camera);

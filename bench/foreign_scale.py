@@ -17,8 +17,8 @@ in the truth and found: the radial scale s about the true corners' centroid c (l
 the mean offset d - t, and the errors |d - t|. s < 1: the target looks small, the range comes out long by
 about (1/s - 1) x range.
 
-Geometry apart from the look, per Filament frame: the box's silhouette in Filament's segmentation pass (draw mode
-SEGMENTATION_BY_ID) against the true corners' outline, and the lit frame's box edges against it (the area method
+Geometry apart from shading and materials, per Filament frame: the box's silhouette in Filament's segmentation pass
+(draw mode SEGMENTATION_BY_ID) against the true corners' outline, and the lit frame's box edges against it (the area method
 of bench/silhouette_bias.edge_offsets, offsets px, + outward); the same for the project's renders (its mask and
 its clean lit frame).
 

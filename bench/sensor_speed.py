@@ -1,5 +1,5 @@
 """Speed of the space camera (datagen/sensor.py's apply_sensor) on the closed loop's frames: 1024 px renders of
-the default scenario in sequence mode with the sequence mode's defaults (the factory's look and corruption draws),
+the default scenario in sequence mode with the sequence mode's defaults (the factory's appearance and corruption draws),
 the previous implementation and the current one timed in the same run on the same frames and parameters.
 
 The previous implementation is the file datagen/sensor.py at REFERENCE_COMMIT (read with `git show`, loaded as a
@@ -52,7 +52,7 @@ def closed_loop_frames(n: int) -> list[tuple[np.ndarray, dict]]:
     """n clean 1024 px frames of the default scenario (sequence mode, 30 s apart) with their space-camera
     parameters, drawn as the closed loop draws them."""
     from envisat_pose.config import from_dict
-    from envisat_pose.datagen.factory import draw_corruption_params, with_look
+    from envisat_pose.datagen.factory import draw_corruption_params, with_appearance
     from envisat_pose.datagen.generate_config import GenerateConfig
     from envisat_pose.datagen.render_cache import shared_renderer
     from envisat_pose.datagen.views import sample_seed, sequence_view
@@ -63,7 +63,7 @@ def closed_loop_frames(n: int) -> list[tuple[np.ndarray, dict]]:
     for i in range(n):
         k = 30 * i
         view, x, scene = sequence_view(cfg, k)
-        view, _ = with_look(cfg, view, scene, sample_seed(cfg.seed, 0, k))
+        view, _ = with_appearance(cfg, view, scene, sample_seed(cfg.seed, 0, k))
         out = r.render(view)
         rng = np.random.default_rng(sample_seed(cfg.seed, 0, k))
         frames.append((out.gray_u8, draw_corruption_params(cfg, out, x, r.K[0, 0], r.target_boxes, rng)))

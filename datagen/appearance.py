@@ -1,4 +1,4 @@
-"""Spacecraft appearance: procedural textures per covering class, and a per-image look drawn within each class.
+"""Spacecraft appearance: procedural textures per covering class, and a per-image appearance drawn within each class.
 
 Every geom of the target that the camera can see belongs to one covering class (multi-layer insulation foils,
 radiator tiles, end panels, solar cells, boom metal, the ASAR antenna's tiles, instrument boxes). A face's class
@@ -8,7 +8,7 @@ What varies per image, within the class: which of the class's textures, the base
 specular, shininess and reflectance of the material.
 
 Textures are made with numpy from (texture_seed, class, index), built at first use and cached in the process
-(never downloaded). The renderer declares one material per (geom, texture) pair; a look switches each geom's
+(never downloaded). The renderer declares one material per (geom, texture) pair; an appearance switches each geom's
 `geom_matid` and writes that material's colour and specular terms into MuJoCo's model arrays before the
 render, so the GL context is never rebuilt. Grey levels: the images are 8-bit grayscale, so the classes differ
 in brightness and pattern, not only in hue.
@@ -35,9 +35,9 @@ GEOM_CLASS = {
 FACE_GEOMS = tuple(f"face_{f}" for f in FACE_COVERING)  # the main body's faces
 
 
-def takes_class_looks(geom_names) -> bool:
-    """Whether a target takes the covering classes' looks: its geoms are exactly those GEOM_CLASS names
-    (models/envisat.xml's); any other target keeps its own materials, varied (draw_own_look)."""
+def takes_class_appearance(geom_names) -> bool:
+    """Whether a target takes the covering classes' appearance: its geoms are exactly those GEOM_CLASS names
+    (models/envisat.xml's); any other target keeps its own materials, varied (draw_own_materials)."""
     return set(geom_names) == set(GEOM_CLASS)
 
 
@@ -67,8 +67,8 @@ CLASSES = {
 
 
 @dataclass(frozen=True)
-class MaterialLook:
-    """One geom's look in one image: class, texture index, RGB (base colour x brightness), specular, shininess,
+class GeomAppearance:
+    """One geom's appearance in one image: class, texture index, RGB (base colour x brightness), specular, shininess,
     reflectance (MuJoCo's material terms, each in [0, 1])."""
 
     cls: str
@@ -80,11 +80,11 @@ class MaterialLook:
 
 
 @dataclass(frozen=True)
-class Look:
-    """The appearance of one image: a MaterialLook per target geom name (geoms not listed keep the MJCF's
+class Appearance:
+    """The appearance of one image: a GeomAppearance per target geom name (geoms not listed keep the MJCF's
     material), plus the lights: sun intensity and the Earth-shine light's intensity (0: none)."""
 
-    materials: dict[str, MaterialLook] = field(default_factory=dict)
+    materials: dict[str, GeomAppearance] = field(default_factory=dict)
     sun_intensity: float = 1.2
     earthshine_intensity: float = 0.0
 
@@ -98,10 +98,10 @@ class Look:
         }
 
     @staticmethod
-    def from_json(data: dict) -> "Look":
-        mats = {g: MaterialLook(m["class"], int(m["texture"]), tuple(m["rgb"]), m["specular"], m["shininess"],
-                                m["reflectance"]) for g, m in data.get("materials", {}).items()}
-        return Look(mats, data["sun_intensity"], data["earthshine_intensity"])
+    def from_json(data: dict) -> "Appearance":
+        mats = {g: GeomAppearance(m["class"], int(m["texture"]), tuple(m["rgb"]), m["specular"], m["shininess"],
+                                  m["reflectance"]) for g, m in data.get("materials", {}).items()}
+        return Appearance(mats, data["sun_intensity"], data["earthshine_intensity"])
 
 
 def _r(v: float) -> float:
@@ -109,11 +109,11 @@ def _r(v: float) -> float:
     return round(float(v), 6)
 
 
-def draw_look(rng: np.random.Generator, set_size: int, specular: tuple[float, float],
-              shininess: tuple[float, float], reflectance: tuple[float, float],
-              brightness: tuple[float, float], geoms: tuple[str, ...],
-              classes: dict[str, str] | None = None) -> dict[str, MaterialLook]:
-    """A MaterialLook per geom of `geoms`, drawn within its covering class (`classes`, GEOM_CLASS by default): a
+def draw_materials(rng: np.random.Generator, set_size: int, specular: tuple[float, float],
+                   shininess: tuple[float, float], reflectance: tuple[float, float],
+                   brightness: tuple[float, float], geoms: tuple[str, ...],
+                   classes: dict[str, str] | None = None) -> dict[str, GeomAppearance]:
+    """A GeomAppearance per geom of `geoms`, drawn within its covering class (`classes`, GEOM_CLASS by default): a
     texture of the class's set_size, brightness = class range x the configured multiplier range, specular =
     class weight x the configured range, shininess and reflectance from their ranges."""
     classes = GEOM_CLASS if classes is None else classes
@@ -123,25 +123,25 @@ def draw_look(rng: np.random.Generator, set_size: int, specular: tuple[float, fl
         tex = int(rng.integers(0, set_size))
         b = rng.uniform(*c.brightness) * rng.uniform(*brightness)
         rgb = tuple(_r(min(1.0, v * b)) for v in c.rgb)
-        out[g] = MaterialLook(classes[g], tex, rgb, _r(c.specular_weight * rng.uniform(*specular)),
-                              _r(rng.uniform(*shininess)), _r(rng.uniform(*reflectance)))
+        out[g] = GeomAppearance(classes[g], tex, rgb, _r(c.specular_weight * rng.uniform(*specular)),
+                                _r(rng.uniform(*shininess)), _r(rng.uniform(*reflectance)))
     return out
 
 
-OWN_CLASS = "own"  # another target's looks (envisat_pose/target.py): each geom's own material, varied
+OWN_CLASS = "own"  # another target's appearance (envisat_pose/target.py): each geom's own material, varied
 
 
-def draw_own_look(rng: np.random.Generator, base_rgb: dict[str, tuple[float, float, float]],
-                  specular: tuple[float, float], shininess: tuple[float, float], reflectance: tuple[float, float],
-                  brightness: tuple[float, float]) -> dict[str, MaterialLook]:
-    """A MaterialLook per geom of another target, over its own material: the material's RGB (base_rgb, its
+def draw_own_materials(rng: np.random.Generator, base_rgb: dict[str, tuple[float, float, float]],
+                       specular: tuple[float, float], shininess: tuple[float, float], reflectance: tuple[float, float],
+                       brightness: tuple[float, float]) -> dict[str, GeomAppearance]:
+    """A GeomAppearance per geom of another target, over its own material: the material's RGB (base_rgb, its
     texture kept) times a brightness drawn from `brightness`, specular, shininess and reflectance from their
     ranges. Geoms in the order of base_rgb (the file's)."""
     out = {}
     for g, rgb in base_rgb.items():
         b = rng.uniform(*brightness)
-        out[g] = MaterialLook(OWN_CLASS, 0, tuple(_r(min(1.0, v * b)) for v in rgb), _r(rng.uniform(*specular)),
-                              _r(rng.uniform(*shininess)), _r(rng.uniform(*reflectance)))
+        out[g] = GeomAppearance(OWN_CLASS, 0, tuple(_r(min(1.0, v * b)) for v in rgb), _r(rng.uniform(*specular)),
+                                _r(rng.uniform(*shininess)), _r(rng.uniform(*reflectance)))
     return out
 
 
@@ -161,7 +161,7 @@ def _smooth_noise(rng: np.random.Generator, n: int, cells: int) -> np.ndarray:
 
 def _crinkle(rng: np.random.Generator, n: int) -> np.ndarray:
     """Crinkled foil: a height field of several octaves shaded by a random in-plane light direction (a
-    normal-map look baked into the albedo), with quilting seams. (n, n) in [0, 1]."""
+    normal-map shading baked into the albedo), with quilting seams. (n, n) in [0, 1]."""
     h = sum(_smooth_noise(rng, n, c) / (k + 1) for k, c in enumerate((6, 14, 32, 64)))
     gy, gx = np.gradient(h)
     a = rng.uniform(0, 2 * np.pi)

@@ -6,8 +6,8 @@ atomically. Where it runs (this process, a process pool, a Dask cluster) changes
 `run_generate` runs the dataset as the core runner's resumable job (`dataset_job`): it skips the finished shards
 (their sha256 verified), runs the rest and keeps `manifest.json` current after each shard, so a killed run
 resumes where it stopped. Its config lives in datagen/generate_config.py, its views (seeds, random and
-sequence-mode view sampling) in datagen/views.py; here: the looks, the corruption draws, one sample, one shard and
-the job.
+sequence-mode view sampling) in datagen/views.py; here: the appearance draws, the corruption draws, one sample, one
+shard and the job.
 """
 
 from __future__ import annotations
@@ -23,7 +23,14 @@ import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.config import check, to_dict, to_toml
-from envisat_pose.datagen.appearance import FACE_GEOMS, GEOM_CLASS, Look, draw_look, draw_own_look, takes_class_looks
+from envisat_pose.datagen.appearance import (
+    FACE_GEOMS,
+    GEOM_CLASS,
+    Appearance,
+    draw_materials,
+    draw_own_materials,
+    takes_class_appearance,
+)
 from envisat_pose.datagen.clearance import TargetBoxes, farthest_depth_m, target_file_boxes
 from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE, encode_depth, make_label
@@ -57,53 +64,53 @@ PREFETCH_EARTH_MIN_IMAGES = 32
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Looks
+# Appearance
 
 
-def look_rng(cfg: GenerateConfig, seed: int) -> np.random.Generator:
+def appearance_rng(cfg: GenerateConfig, seed: int) -> np.random.Generator:
     """The generator of a sample's appearance and light intensities: seeded by (sample seed, appearance.seed),
     apart from the pose's, so appearance on/off or another appearance seed leaves poses and labels alone."""
     return np.random.default_rng(np.random.SeedSequence([seed, cfg.appearance.seed]))
 
 
-def with_look(cfg: GenerateConfig, view, scene: dict, seed: int) -> tuple:
+def with_appearance(cfg: GenerateConfig, view, scene: dict, seed: int) -> tuple:
     """The view with its appearance (materials if appearance is on, sun intensity, Earth-shine) and clutter,
     and the scene dict with every choice needed to render it again (view_from_scene). Returns (View, scene)."""
     import dataclasses
 
-    rng = look_rng(cfg, seed)
+    rng = appearance_rng(cfg, seed)
     lit = cfg.lighting
     sun_i = round(float(rng.uniform(*lit.sun_intensity)), 6)
     albedo = float(rng.uniform(*lit.earth_albedo))
     a = cfg.appearance
     target = load_target(cfg.target)
     classes = dict(GEOM_CLASS)
-    class_looks = takes_class_looks(g.name for g in target.geoms)
-    if not class_looks:  # another target: each geom's own material, varied (appearance.draw_own_look)
+    by_class = takes_class_appearance(g.name for g in target.geoms)
+    if not by_class:  # another target: each geom's own material, varied (appearance.draw_own_materials)
         base_rgb = target_scene(target).base_rgb
-        materials = draw_own_look(rng, base_rgb, a.specular, a.shininess, a.reflectance, a.brightness) \
+        materials = draw_own_materials(rng, base_rgb, a.specular, a.shininess, a.reflectance, a.brightness) \
             if cfg.appearance_on else {}
     else:
         geoms = tuple(g for g in GEOM_CLASS if cfg.appendages_on or MASK_VALUES[g] != APPENDAGE_MASK_VALUE)
         if a.one_covering is not None:
             classes.update({g: a.one_covering for g in FACE_GEOMS})
-        materials = draw_look(rng, a.texture_set_size, a.specular, a.shininess, a.reflectance, a.brightness,
-                              geoms, classes) if cfg.appearance_on else {}
+        materials = draw_materials(rng, a.texture_set_size, a.specular, a.shininess, a.reflectance, a.brightness,
+                                   geoms, classes) if cfg.appearance_on else {}
     phase = 0.0
     if view.sun_dir_C is not None and view.earth_dir_C is not None:
         # lit fraction of the Earth's disc seen from the target: 1 with the sun behind us, 0 toward it
         phase = 0.5 * (1.0 - float(unit(view.sun_dir_C) @ unit(view.earth_dir_C)))
     earth_i = round(sun_i * albedo * lit.earth_view_factor * phase, 6) if lit.earthshine else 0.0
-    look = Look(materials, sun_i, earth_i)
-    view = dataclasses.replace(view, look=look, appendages=cfg.appendages_on)
+    appearance = Appearance(materials, sun_i, earth_i)
+    view = dataclasses.replace(view, appearance=appearance, appendages=cfg.appendages_on)
     scene = dict(scene)
     scene.update({
         "appearance": cfg.appearance_on,
         "appendages": cfg.appendages_on,
-        **({"face_classes": {g: classes[g] for g in FACE_GEOMS}} if class_looks else {}),
+        **({"face_classes": {g: classes[g] for g in FACE_GEOMS}} if by_class else {}),
         "earthshine": {"intensity": earth_i, "earth_phase": round(phase, 6), "albedo": round(albedo, 6),
                        "dir_cam": None if view.earth_dir_C is None else (-R_K_FROM_C @ unit(view.earth_dir_C)).tolist()},
-        "look": look.to_json(),
+        "look": appearance.to_json(),  # the label's key, unchanged (shards written carry it)
         "render": render_inputs(view),
     })
     return view, scene
@@ -122,11 +129,11 @@ def render_inputs(view) -> dict:
 
 
 def view_from_scene(scene: dict):
-    """The View a label's scene records (with_look): the same render, bit for bit."""
+    """The View a label's scene records (with_appearance): the same render, bit for bit."""
     r = scene["render"]
     arr = lambda v: None if v is None else np.array(v, dtype=float)  # noqa: E731
     return View(arr(r["rho_C_m"]), arr(r["R_C_from_T"]), arr(r["sun_dir_C"]), arr(r["earth_dir_C"]),
-                r["earth_distance_m"], Look.from_json(scene["look"]), r["appendages"], r["earth_backdrop"],
+                r["earth_distance_m"], Appearance.from_json(scene["look"]), r["appendages"], r["earth_backdrop"],
                 arr(r.get("earth_quat_C")), int(r.get("earth_texture", 0)))
 
 
@@ -161,7 +168,7 @@ def draw_corruption_params(cfg: GenerateConfig, out, x: np.ndarray, f_px: float,
 
 def sample_view(cfg: GenerateConfig, shard_index: int, i: int, fovy_deg: float, znear_m: float,
                 boxes: TargetBoxes) -> tuple:
-    """Sample i of shard `shard_index`: its view with its look, from its own seed (sample_seed); no GL.
+    """Sample i of shard `shard_index`: its view with its appearance, from its own seed (sample_seed); no GL.
     Returns (k, seed, rng, view, x, scene): k the sample's index in the dataset, rng its Generator after the
     view's draws (the corruption draw continues it)."""
     k = shard_index * cfg.shard_size + i
@@ -171,14 +178,14 @@ def sample_view(cfg: GenerateConfig, shard_index: int, i: int, fovy_deg: float, 
         view, x, scene = sample_random_view(cfg, fovy_deg, rng, znear_m, boxes)
     else:
         view, x, scene = sequence_view(cfg, k)
-    view, scene = with_look(cfg, view, scene, seed)
+    view, scene = with_appearance(cfg, view, scene, seed)
     return k, seed, rng, view, x, scene
 
 
 def render_sample(renderer, cfg: GenerateConfig, view, x: np.ndarray, scene: dict, rng: np.random.Generator,
                   seed: int) -> dict[str, bytes]:
     """Render, label, corrupt (unless storage is 'clean') and encode one sample: {suffix: bytes} per the
-    shard contract. `view` carries its look (with_look)."""
+    shard contract. `view` carries its appearance (with_appearance)."""
     return finish_sample(renderer.K, renderer.target_boxes, cfg, renderer.render(view), x, scene, rng, seed)
 
 

@@ -1,6 +1,6 @@
 """The image factory's config (`envisat generate`): GenerateConfig, its two mode tables ([random]:
 RandomModeConfig, [sequence]: SequenceModeConfig) and its four parts, the space camera
-(SensorConfig), the corruption severities (CorruptionConfig), the target's looks (AppearanceConfig) and the
+(SensorConfig), the corruption severities (CorruptionConfig), the target's appearance (AppearanceConfig) and the
 lighting (LightingConfig); one validated config travels to the shard tasks as JSON (config_json /
 config_from_json)."""
 
@@ -122,7 +122,7 @@ class CorruptionConfig(Config):
 class AppearanceConfig(Config):
     """Per-image materials within each face's covering class (datagen/appearance.py). enabled: None means on
     in random mode, off in sequence mode. texture_set_size: textures per class. texture_seed: the texture set.
-    seed: the appearance draws' own seed (mixed with each sample's): another seed, other looks, same poses.
+    seed: the appearance draws' own seed (mixed with each sample's): another seed, other appearance draws, same poses.
     specular, shininess, reflectance: ranges of MuJoCo's material terms; brightness: multiplier range on each
     class's base brightness. one_covering: draw every face of the main body in this one covering class (a
     target whose half-turn about x does not show by its coverings); None: each face its own class."""

@@ -21,7 +21,14 @@ import mujoco
 import numpy as np
 
 from envisat_pose.attitude import rotmat_to_quat
-from envisat_pose.datagen.appearance import CLASSES, GEOM_CLASS, OWN_CLASS, Look, class_texture, takes_class_looks
+from envisat_pose.datagen.appearance import (
+    CLASSES,
+    GEOM_CLASS,
+    OWN_CLASS,
+    Appearance,
+    class_texture,
+    takes_class_appearance,
+)
 from envisat_pose.datagen.clearance import target_boxes
 from envisat_pose.datagen.earth import (
     EARTH_MESH_STEPS_DEG,
@@ -34,7 +41,7 @@ from envisat_pose.datagen.earth import (
     mesh_step_for,
     pixel_rays_K,
 )
-from envisat_pose.datagen.render_model import EARTH_GEOM_GROUP, look_classes, render_model_xml
+from envisat_pose.datagen.render_model import EARTH_GEOM_GROUP, appearance_classes, render_model_xml
 from envisat_pose.datagen.render_pixels import crop_frustum, depth_from_buffer, intrinsics, projected_bbox_px
 from envisat_pose.datagen.render_view import RenderOutput, RenderPasses, View, target_mask_values
 from envisat_pose.datagen.target_scene import scene_xml
@@ -52,9 +59,9 @@ class SceneRenderer:
     """One GL context and MuJoCo scene rendering the chaser camera at a fixed square resolution."""
 
     @property
-    def class_looks(self) -> bool:
-        """The target takes the covering classes' looks (appearance.takes_class_looks)."""
-        return takes_class_looks(g.name for g in self.target.geoms)
+    def takes_class_appearance(self) -> bool:
+        """The target takes the covering classes' appearance (appearance.takes_class_appearance)."""
+        return takes_class_appearance(g.name for g in self.target.geoms)
 
     def __init__(self, resolution_px: int, shadows: bool = True, base_xml: str | None = None,
                  texture_set_size: int = 0, texture_seed: int = 0, earth_seed: int = 0,
@@ -91,19 +98,20 @@ class SceneRenderer:
         self.earthshine_id = m.light("earthshine").id
         self._sun_diffuse = m.light_diffuse[self.sun_id].copy()
         self._sun_specular = m.light_specular[self.sun_id].copy()
-        # each target geom's MJCF material and, per texture k, its look material
+        # each target geom's MJCF material and, per texture k, its appearance material
         self.mask_values = target_mask_values(self.target)
-        if self.class_looks:
-            look_geoms, classes_of = tuple(GEOM_CLASS), look_classes
+        if self.takes_class_appearance:
+            varied_geoms, classes_of = tuple(GEOM_CLASS), appearance_classes
         else:
-            look_geoms, classes_of = tuple(self.mask_values), lambda name: (OWN_CLASS,)
-        self._geom_ids = {name: m.geom(name).id for name in look_geoms}
+            varied_geoms, classes_of = tuple(self.mask_values), lambda name: (OWN_CLASS,)
+        self._geom_ids = {name: m.geom(name).id for name in varied_geoms}
         self._mjcf_matid = {name: int(m.geom_matid[g]) for name, g in self._geom_ids.items()}
         self._mjcf_mat = {int(i): (m.mat_rgba[i].copy(), float(m.mat_specular[i]), float(m.mat_shininess[i]),
                                    float(m.mat_reflectance[i])) for i in set(self._mjcf_matid.values())}
-        self._look_matid = {(name, c, k): m.material(f"look_{name}_{c}_{k}").id for name in look_geoms
-                            for c in classes_of(name) for k in range(min(self.texture_set_size, 1)
-                                                                    if c == OWN_CLASS else self.texture_set_size)}
+        self._appearance_matid = {(name, c, k): m.material(f"appearance_{name}_{c}_{k}").id
+                                  for name in varied_geoms for c in classes_of(name)
+                                  for k in range(min(self.texture_set_size, 1) if c == OWN_CLASS
+                                                 else self.texture_set_size)}
         self.corner_sites = np.array([m.site(s).id for s in self.target.keypoint_sites])  # the K keypoints
         self.target_geoms = np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] == self.target_body])
         self._target_geom_set = {int(g) for g in self.target_geoms}
@@ -148,7 +156,7 @@ class SceneRenderer:
         """Write the procedural textures (appearance.class_texture) into tex_data and send them to both GL
         render contexts; done once per renderer."""
         m = self.model
-        for cls in sorted(CLASSES) if self.class_looks else ():  # another target keeps its own textures
+        for cls in sorted(CLASSES) if self.takes_class_appearance else ():  # another target keeps its own textures
             for k in range(self.texture_set_size):
                 t = m.texture(f"tex_{cls}_{k}").id
                 data = class_texture(self.texture_seed, cls, k)
@@ -207,29 +215,29 @@ class SceneRenderer:
 
         threading.Thread(target=run, name="earth-texture", daemon=True).start()
 
-    def set_look(self, look: Look | None) -> None:
-        """Materials and light intensities of `look` into the model arrays (None: the MJCF's own)."""
+    def set_appearance(self, appearance: Appearance | None) -> None:
+        """Materials and light intensities of `appearance` into the model arrays (None: the MJCF's own)."""
         m = self.model
-        for i, (rgba, spec, shin, refl) in self._mjcf_mat.items():  # a look may have written these
+        for i, (rgba, spec, shin, refl) in self._mjcf_mat.items():  # an appearance may have written these
             m.mat_rgba[i], m.mat_specular[i], m.mat_shininess[i], m.mat_reflectance[i] = rgba, spec, shin, refl
         for name, g in self._geom_ids.items():
             m.geom_matid[g] = self._mjcf_matid[name]
-        if look is None:
+        if appearance is None:
             m.light_diffuse[self.sun_id], m.light_specular[self.sun_id] = self._sun_diffuse, self._sun_specular
             m.light_active[self.earthshine_id] = 0
             return
-        for name, ml in look.materials.items():
-            if (name, ml.cls, ml.texture) not in self._look_matid:
-                raise ValueError(f"look for geom {name!r} class {ml.cls!r} texture {ml.texture}: this renderer "
-                                 f"has {self.texture_set_size} textures per class and no such look material")
-            i = self._look_matid[(name, ml.cls, ml.texture)]
+        for name, ml in appearance.materials.items():
+            if (name, ml.cls, ml.texture) not in self._appearance_matid:
+                raise ValueError(f"appearance for geom {name!r} class {ml.cls!r} texture {ml.texture}: this renderer "
+                                 f"has {self.texture_set_size} textures per class and no such appearance material")
+            i = self._appearance_matid[(name, ml.cls, ml.texture)]
             m.geom_matid[self._geom_ids[name]] = i
             m.mat_rgba[i] = (*ml.rgb, 1.0)
             m.mat_specular[i], m.mat_shininess[i], m.mat_reflectance[i] = ml.specular, ml.shininess, ml.reflectance
-        s = look.sun_intensity
+        s = appearance.sun_intensity
         m.light_diffuse[self.sun_id] = (s, s, s)
         m.light_specular[self.sun_id] = (0.5 * s, 0.5 * s, 0.5 * s)
-        e = look.earthshine_intensity
+        e = appearance.earthshine_intensity
         m.light_diffuse[self.earthshine_id] = (e, e, e)
 
     def close(self) -> None:
@@ -258,9 +266,9 @@ class SceneRenderer:
             m.light_dir[self.sun_id] = -s  # light travels away from the sun
             # centre the directional light's shadow box on the target
             m.light_pos[self.sun_id] = np.asarray(view.rho_C_m) + s * m.stat.extent
-        self.set_look(view.look)
+        self.set_appearance(view.appearance)
         self._opt.geomgroup[APPENDAGE_GEOM_GROUP] = int(bool(view.appendages))
-        if view.look is not None and view.look.earthshine_intensity > 0 and view.earth_dir_C is not None:
+        if view.appearance is not None and view.appearance.earthshine_intensity > 0 and view.earth_dir_C is not None:
             e = np.asarray(view.earth_dir_C, dtype=float)
             m.light_active[self.earthshine_id] = 1
             m.light_dir[self.earthshine_id] = -e / np.linalg.norm(e)  # from the Earth toward the target

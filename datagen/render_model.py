@@ -1,6 +1,6 @@
 """The project's MJCF prepared for rendering (render_model_xml): the off-screen buffer, the fixed model extent, the
-Earth backdrop body and its textures' slots, the Earth-shine light and the look materials of appearance
-randomization, edited in memory (models/envisat.xml is not changed)."""
+Earth backdrop body and its textures' slots, the Earth-shine light and the appearance materials of
+appearance randomization, edited in memory (models/envisat.xml is not changed)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,14 @@ import xml.etree.ElementTree as ET
 
 import mujoco
 
-from envisat_pose.datagen.appearance import CLASSES, FACE_GEOMS, GEOM_CLASS, OWN_CLASS, TEXTURE_PX, takes_class_looks
+from envisat_pose.datagen.appearance import (
+    CLASSES,
+    FACE_GEOMS,
+    GEOM_CLASS,
+    OWN_CLASS,
+    TEXTURE_PX,
+    takes_class_appearance,
+)
 from envisat_pose.datagen.earth import (
     EARTH_MESH_STEPS_DEG,
     EARTH_SCALE,
@@ -35,9 +42,9 @@ def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_se
     model extent (the far plane and shadow box stay those of models/envisat.xml; another target's near plane is
     sized to it, target_scene), an Earth backdrop body (mocap, geom group 5, hidden by default: a unit UV-sphere mesh scaled to EARTH_RADIUS_M x EARTH_SCALE,
     `earth_texture_set_size` equirectangular textures, their pixels written by the renderer), an Earth-shine
-    light (off until a look turns it on), and
+    light (off until an appearance turns it on), and
     for appearance randomization `texture_set_size` textures per covering class with one material
-    `look_<geom>_<k>` per target geom and texture (texture pixels are written by the renderer).
+    `appearance_<geom>_<class>_<k>` per target geom, class and texture (texture pixels are written by the renderer).
 
     The XML tree is edited in memory; models/envisat.xml is not changed.
     """
@@ -86,38 +93,38 @@ def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_se
     ET.SubElement(world, "light", name="earthshine", directional="true", castshadow="false", pos="0 0 100",
                   dir="0 0 -1", diffuse="0 0 0", specular="0 0 0", ambient="0 0 0", active="false")
     body = next(b for b in world.iter("body") if b.get("name") == "target")
-    own = not takes_class_looks(g.get("name") for g in body.findall("geom"))  # its own materials, varied
+    own = not takes_class_appearance(g.get("name") for g in body.findall("geom"))  # its own materials, varied
     if texture_set_size > 0 and own:
-        _own_look_materials(asset, body)
+        _own_appearance_materials(asset, body)
     elif texture_set_size > 0:
         for cls in sorted(CLASSES):
             for k in range(texture_set_size):
                 ET.SubElement(asset, "texture", name=f"tex_{cls}_{k}", type="2d", builtin="flat",
                               width=str(TEXTURE_PX), height=str(TEXTURE_PX), rgb1="1 1 1")
         for geom, cls in GEOM_CLASS.items():
-            for c in look_classes(geom):
+            for c in appearance_classes(geom):
                 rep = repr(1.0 / CLASSES[c].tile_m)
                 for k in range(texture_set_size):
-                    ET.SubElement(asset, "material", name=f"look_{geom}_{c}_{k}", texture=f"tex_{c}_{k}",
+                    ET.SubElement(asset, "material", name=f"appearance_{geom}_{c}_{k}", texture=f"tex_{c}_{k}",
                                   texuniform="true", texrepeat=f"{rep} {rep}")
     return ET.tostring(root, encoding="unicode")
 
 
-def _own_look_materials(asset: ET.Element, body: ET.Element) -> None:
-    """Another target's looks: one material `look_<geom>_own_0` per geom of body `target`, a copy of the geom's
-    own material (its texture kept; a geom without one gets its rgba), whose colour and specular terms a look
-    writes (appearance.draw_own_look)."""
+def _own_appearance_materials(asset: ET.Element, body: ET.Element) -> None:
+    """Another target's appearance: one material `appearance_<geom>_own_0` per geom of body `target`, a copy of
+    the geom's own material (its texture kept; a geom without one gets its rgba), whose colour and specular terms
+    an appearance writes (appearance.draw_own_materials)."""
     import copy
 
     materials = {m.get("name"): m for m in asset.findall("material")}
     for geom in body.findall("geom"):
         src = materials.get(geom.get("material", ""))
         mat = copy.deepcopy(src) if src is not None else ET.Element("material", rgba=geom.get("rgba", "0.5 0.5 0.5 1"))
-        mat.set("name", f"look_{geom.get('name')}_{OWN_CLASS}_0")
+        mat.set("name", f"appearance_{geom.get('name')}_{OWN_CLASS}_0")
         asset.append(mat)
 
 
-def look_classes(geom: str) -> tuple[str, ...]:
-    """The covering classes a geom's look may take: any for a face of the main body (AppearanceConfig's
+def appearance_classes(geom: str) -> tuple[str, ...]:
+    """The covering classes a geom's appearance may take: any for a face of the main body (AppearanceConfig's
     one_covering), its own class for every other geom."""
     return tuple(sorted(CLASSES)) if geom in FACE_GEOMS else (GEOM_CLASS[geom],)

@@ -1,5 +1,5 @@
 """What the renderer takes and returns: one view (View: the target's pose, the sun and the Earth in the chaser
-frame C, the look), the GL passes read back (RenderPasses) and the rendered images and labels (RenderOutput), with
+frame C, the appearance), the GL passes read back (RenderPasses) and the rendered images and labels (RenderOutput), with
 the mask's values (MASK_VALUES, or another target's geom order: target_mask_values)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.datagen.appearance import Look, takes_class_looks
+from envisat_pose.datagen.appearance import Appearance, takes_class_appearance
 from envisat_pose.datagen.target_scene import target_scene
 from envisat_pose.target import Target
 
@@ -32,9 +32,9 @@ class View:
     earth_distance_m: distance of the Earth's centre from the chaser, m (its disc's angular radius is
     asin(R / earth_distance_m)). earth_quat_C: (4,) attitude of the Earth's body frame (z to the north pole,
     x to longitude 0) in C, w x y z; None: the identity. earth_texture: which of the renderer's Earth textures.
-    look: per-geom materials and light intensities (appearance.Look); None keeps the MJCF's materials, the sun
-    at its MJCF intensity and no Earth-shine. appendages: draw the clutter (ASAR antenna, instruments).
-    The Earth-shine light shines from earth_dir_C at the look's intensity.
+    appearance: per-geom materials and light intensities (appearance.Appearance); None keeps the MJCF's materials,
+    the sun at its MJCF intensity and no Earth-shine. appendages: draw the clutter (ASAR antenna, instruments).
+    The Earth-shine light shines from earth_dir_C at the appearance's intensity.
     """
 
     rho_C_m: np.ndarray
@@ -42,7 +42,7 @@ class View:
     sun_dir_C: np.ndarray | None
     earth_dir_C: np.ndarray | None = None
     earth_distance_m: float = 7142.0e3
-    look: Look | None = None
+    appearance: Appearance | None = None
     appendages: bool = False
     earth_backdrop: bool = True
     earth_quat_C: np.ndarray | None = None
@@ -91,6 +91,6 @@ class RenderPasses:
 
 
 def target_mask_values(target: Target) -> dict:
-    """{geom name: mask value} of a target: MASK_VALUES for one that takes the class looks (appearance.
-    takes_class_looks), 1..G in file order for any other (target_scene)."""
-    return MASK_VALUES if takes_class_looks(g.name for g in target.geoms) else target_scene(target).mask_values
+    """{geom name: mask value} of a target: MASK_VALUES for one that takes the class appearance
+    (appearance.takes_class_appearance), 1..G in file order for any other (target_scene)."""
+    return MASK_VALUES if takes_class_appearance(g.name for g in target.geoms) else target_scene(target).mask_values

@@ -63,7 +63,7 @@ def _scene_spec(target: Target):
     body = frame.attach_body(child.body("target"), ASSET_PREFIX, "")
     body.name = "target"
     body.pos, body.quat = [0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
-    for i, geom in enumerate(body.geoms):  # looks and masks address geoms by name
+    for i, geom in enumerate(body.geoms):  # appearance draws and masks address geoms by name
         geom.name = target.geoms[i].name
     for site in body.sites:
         site.name = site.name.removeprefix(ASSET_PREFIX)
@@ -234,7 +234,8 @@ def scene_xml(target: Target) -> str:
 class TargetScene:
     """What the factory needs of a target's scene without GL: geom_names (G,) of body 'target' in file order;
     mask_values {geom: 1..G} (a file that names its geoms after the factory's classes: render_view.MASK_VALUES);
-    base_rgb {geom: (3,)} of each geom's material (or its own rgba), the colour another target's looks vary."""
+    base_rgb {geom: (3,)} of each geom's material (or its own rgba), the colour another target's appearance draws
+    vary."""
 
     geom_names: tuple[str, ...]
     mask_values: dict

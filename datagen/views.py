@@ -1,7 +1,7 @@
 """The factory's views: per-sample seeds, random-mode views (range, bearing and attitude drawn under the
 clearance and near-plane rules, sun and Earth backdrop) and sequence-mode views (the MuJoCo truth at the frame
-times, the sun and the Earth's shadow along the chaser's orbit). A view carries no look yet (factory.with_look).
-The closed loop draws its frames' seeds here too."""
+times, the sun and the Earth's shadow along the chaser's orbit). A view carries no appearance yet
+(factory.with_appearance). The closed loop draws its frames' seeds here too."""
 
 from __future__ import annotations
 
@@ -80,8 +80,8 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
     is drawn again from the same rng: deterministic, at most MAX_VIEW_DRAWS times (then ConfigError). boxes: the
     target (default cfg.target's).
 
-    Returns (View, x (12,), scene dict) without a look (see with_look). In random mode C is the camera mount's
-    frame; the Earth's direction is drawn independently of it, except in views with the Earth backdrop (a
+    Returns (View, x (12,), scene dict) without an appearance (see with_appearance). In random mode C is the camera
+    mount's frame; the Earth's direction is drawn independently of it, except in views with the Earth backdrop (a
     share earth_probability): there the Earth (distance, nadir toward the image, attitude, texture) comes from
     earth.draw_backdrop with a generator spawned from rng, so poses, labels and the later draws of rng are the
     same with and without the Earth.

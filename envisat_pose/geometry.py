@@ -19,10 +19,10 @@ CAMERA_NAME = "chaser_cam"  # the MJCF's camera on the chaser (models/envisat.xm
 # The 12 edges of the main body box, as pairs of corner indices (A=0 .. H=7).
 EDGES = ((0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7))
 FACE_NAMES = ("px", "mx", "py", "my", "pz", "mz")
-# The covering class of each face of the main body in the factory's looks (never changes: the half-turn about x
-# swaps +y gold foil with -y black foil and +z silver foil with -z radiator tiles, so it shows).
-# datagen/appearance.py draws each class's looks and perception/facecue.py tells them apart; the MJCF's own
-# materials (sequence mode, the closed loop) are one fixed look of their own.
+# The covering class of each face of the main body in the factory's appearance draws (never changes: the half-turn
+# about x swaps +y gold foil with -y black foil and +z silver foil with -z radiator tiles, so it shows).
+# datagen/appearance.py draws each class's appearance and perception/facecue.py tells them apart; the MJCF's own
+# materials (sequence mode, the closed loop) are one fixed appearance of their own.
 FACE_COVERING = {"px": "end_panel", "mx": "end_panel", "py": "mli_gold", "my": "mli_black", "pz": "mli_silver",
                  "mz": "radiator"}
 

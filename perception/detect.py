@@ -36,7 +36,7 @@ class DetectConfig:
     """top_k: junctions kept per crop; threshold: least junction score; coarse_threshold: the same in the coarse
     pass; crop_margin: crop side over the coarse junctions' extent; line_verification: False names the corners
     without the line head's edge scores (the evaluation's ablation); face_cue: weigh the half-turn namings by the
-    swapped faces' looks where the weights carry a fitted cue (perception/facecue.py; False: ablation);
+    swapped faces' appearance where the weights carry a fitted cue (perception/facecue.py; False: ablation);
     roi_input_px: the network's input side for a given region of interest (0: the model's input_px; the crop
     only has to find and name the corners when the patch pass places them); patch_px: find each named corner
     again in a patch of the full frame magnified patch_zoom times, resized to patch_px input px (0: off;

@@ -1633,3 +1633,131 @@ def test_the_module_length_checker_sees_a_long_module(tmp_path):
     (tmp_path / "filtering" / "fast.py").write_text(planted)
     assert long_modules(str(tmp_path)) == {os.path.join(folder, "long.py"): "501 lines, over 500"
                                            for folder in ("datagen", "filtering", "envisat_pose")}
+
+
+# ---------------------------------------------------------------- one meaning of "look" (issue 54, item 5)
+
+# A look is one way the factory renders images: a weighted generate config in a mix (`envisat train --looks`, its
+# [[look]] tables, pipelines/detector/look_mix.py). A sample's drawn materials and lights are its appearance
+# (datagen/appearance.py: Appearance, draw_materials), a camera's response curve and blur its camera response
+# (envisat_pose/camera_response.py, pipelines/adaptation/edge_response.py): no name calls those a look.
+LOOK_MIX_HOME = os.path.join("pipelines", "detector", "look_mix.py")
+# the mix's users, which hold looks of their own (variables, fields, the --looks flag) besides look_mix's names;
+# an entry must still spell "look" (`test_look_means_one_thing`)
+LOOK_MIX_USERS = (
+    os.path.join("pipelines", "detector", "online.py"),       # online_batches(looks, ...)
+    os.path.join("pipelines", "detector", "render_pool.py"),  # the renderer processes of a mix's looks
+    os.path.join("pipelines", "detector", "train.py"),        # OnlineConfig.looks
+    os.path.join("app", "train.py"),                          # envisat train --looks
+    os.path.join("scripts", "gpu_train.py"),                  # the GPU recipe's looks file (online_looks)
+    os.path.join("bench", "train_speed.py"),                  # online_batches over OnlineConfig.looks
+    os.path.join("bench", "silhouette_bias.py"),              # its looks: plain materials, appearance on, sequence
+)
+
+
+def says_look(name: str) -> bool:
+    """Whether an identifier (or a module's name) holds the word part "look", "lookup" and its kin apart."""
+    return "look" in name.lower().replace("lookup", "")
+
+
+def look_mix_names(root: str = ROOT) -> frozenset[str]:
+    """What any module may spell of the mix: the module's name and the names look_mix.py defines at its top level."""
+    with open(os.path.join(root, LOOK_MIX_HOME), encoding="utf-8") as fh:
+        tree = ast.parse(fh.read())
+    names = {"look_mix"}
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            names |= {n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)}
+    return frozenset(names)
+
+
+def spelled_names(source: str):
+    """(line, identifier) of every name a module spells: names, attributes, definitions, arguments, keywords, what
+    it imports (each part of a dotted module) and under which names. Strings (a flag, a JSON key) are not names."""
+    for node in ast.walk(ast.parse(source)):
+        line = getattr(node, "lineno", 0)
+        if isinstance(node, ast.Name):
+            yield line, node.id
+        elif isinstance(node, ast.Attribute):
+            yield line, node.attr
+        elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            yield line, node.name
+        elif isinstance(node, ast.arg):
+            yield line, node.arg
+        elif isinstance(node, ast.keyword) and node.arg:
+            yield line, node.arg
+        elif isinstance(node, ast.alias):
+            yield from ((line, part) for part in node.name.split(".") + [node.asname or ""] if part)
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            yield from ((line, part) for part in node.module.split("."))
+        elif isinstance(node, (ast.Global, ast.Nonlocal)):
+            yield from ((line, name) for name in node.names)
+        elif isinstance(node, ast.ExceptHandler) and node.name:
+            yield line, node.name
+
+
+def stray_look_names(rel: str, source: str, allowed: frozenset[str]) -> list[tuple[int, str]]:
+    """(line, name), sorted, of the names that say "look" in a module (rel: its repository-relative path) outside the
+    mix: none in LOOK_MIX_HOME or LOOK_MIX_USERS; elsewhere any but `allowed` (look_mix_names). The module's own
+    path (its folders and file name) counts, at line 0."""
+    if rel == LOOK_MIX_HOME or rel in LOOK_MIX_USERS:
+        return []
+    parts = [part.removesuffix(".py") for part in rel.split(os.sep)]
+    found = {(0, part) for part in parts if says_look(part) and part not in allowed}
+    found |= {(line, name) for line, name in spelled_names(source) if says_look(name) and name not in allowed}
+    return sorted(found)
+
+
+def stray_looks(root: str = ROOT) -> dict[str, list[tuple[int, str]]]:
+    """{repository-relative path: stray_look_names} over the package, the benches and the scripts (checked_files)."""
+    allowed, found = look_mix_names(root), {}
+    for rel in checked_files(root):
+        with open(os.path.join(root, rel), encoding="utf-8") as fh:
+            names = stray_look_names(rel, fh.read(), allowed)
+        if names:
+            found[rel] = names
+    return found
+
+
+def test_look_means_one_thing():
+    """Issue 54 item 5: "look" means one thing, a way the factory renders images in a mix (pipelines/detector/
+    look_mix.py). 0 names saying "look" in the package, the benches and the scripts outside the mix's home and its
+    users besides the names the mix defines (a material draw is an appearance, a camera's response and blur a
+    camera response); every user listed exists and still spells a look."""
+    assert stray_looks() == {}, "a material draw is an appearance, a response and blur a camera response"
+    for rel in LOOK_MIX_USERS:
+        with open(os.path.join(ROOT, rel), encoding="utf-8") as fh:
+            assert any(says_look(name) for _, name in spelled_names(fh.read())), f"{rel}: no look: remove it"
+
+
+def test_the_look_checker_sees_a_material_draw_and_a_response_called_a_look(tmp_path):
+    allowed = frozenset({"look_mix", "WeightedLook", "read_looks"})
+    planted = ("from envisat_pose.pipelines.detector.look_mix import WeightedLook, read_looks\n"
+               "from envisat_pose.pipelines.adaptation import edge_look\n"
+               "import envisat_pose.datagen.appearance as looks\n"
+               "def with_look(view, look=None):\n"
+               "    table.lookup(view)\n"
+               "    view.look = ProcessLookupError\n"
+               "    return draw(appearance='look', look_seed=1)\n"
+               "class LookFit:\n"
+               "    pass\n")
+    assert stray_look_names(os.path.join("datagen", "factory.py"), planted, allowed) == [
+        (2, "edge_look"), (3, "looks"), (4, "look"), (4, "with_look"), (6, "look"), (7, "look_seed"), (8, "LookFit")]
+    assert stray_look_names(LOOK_MIX_USERS[0], planted, allowed) == []  # the mix's users hold looks
+    assert stray_look_names(os.path.join("pipelines", "adaptation", "edge_look.py"), "x = 1\n", allowed) == [
+        (0, "edge_look")]
+    files = {LOOK_MIX_HOME: "LOOK_PERIOD = 100\n\ndef read_looks(path):\n    looks = path\n    return looks\n",
+             os.path.join("bench", "mix.py"): "from envisat_pose.pipelines.detector.look_mix import read_looks\n"
+                                              "looks = read_looks('x')\n",
+             os.path.join("datagen", "edge_look.py"): "x = 1\n",
+             os.path.join("app", "train.py"): "looks = 1\n",
+             os.path.join("tests", "test_x.py"): "look = 1\n"}
+    for rel, text in files.items():
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text(text)
+    assert look_mix_names(str(tmp_path)) == {"look_mix", "LOOK_PERIOD", "read_looks"}
+    assert stray_looks(str(tmp_path)) == {os.path.join("bench", "mix.py"): [(2, "looks")],
+                                          os.path.join("datagen", "edge_look.py"): [(0, "edge_look")]}

@@ -1,1 +1,1 @@
-"""`envisat adapt`: the detector taught a user's look from its own tracks (pseudo-labels, the look and range read off the silhouette edges)."""
+"""`envisat adapt`: the detector taught a user's frames from its own tracks (pseudo-labels, the camera response and range read off the silhouette edges)."""

@@ -1,4 +1,4 @@
-"""`envisat adapt`: teach the detector the look of a user's own frames from a cold start, with no labels.
+"""`envisat adapt`: teach the detector a user's own frames from a cold start, with no labels.
 
 The steps (one round; `rounds` repeats 2-5 from the last track):
 1. track the sequence cold with the given weights (pipelines/runs/track.py `track_frames`): the 'before' run;
@@ -9,9 +9,9 @@ The steps (one round; `rounds` repeats 2-5 from the last track):
 3. label them (pipelines/adaptation/track_labels.py) at the smoothed estimate
    (pipelines/adaptation/pseudo_labels.py: an unscented RTS smoother over each tracked segment, the box's corners projected with the face test's visibility), its range first corrected by the
    frames' own silhouette edges (`edge_range`, pipelines/adaptation/edge_range.py) where they can be measured, read in
-   linear light: the camera's response and PSF from its TOML file where it gives them, else estimated from the
-   labelled frames' edge profiles (pipelines/adaptation/edge_look.py; frames_look), the edges read again under the
-   responses the estimate leaves open (look_record: the scale's look term);
+   linear light: the camera response (its response curve and PSF) from its TOML file where it gives them, else
+   estimated from the labelled frames' edge profiles (pipelines/adaptation/edge_response.py; frames_response), the
+   edges read again under the responses the estimate leaves open (response_record: the scale's response term);
 4. fine-tune the detector on those (image, label) pairs in memory through the project's Trainer (its crops,
    augmentation, schedule, step and losses: pipelines/adaptation/fine_tune.py): the normalization layers and the
    heads (`params='norm_heads'`), the whole network (`params='all'`), or nothing (`params='none'`, the default:
@@ -19,9 +19,9 @@ The steps (one round; `rounds` repeats 2-5 from the last track):
 5. recalibrate on the pseudo-labels (pipelines/adaptation/recalibrate.py): the covariance scale on their
    residuals (perception/calibrate.fit_cov_scale, the network's own covariances, the labels' region of interest,
    as `envisat calibrate`) and, when the labels' range was corrected by the edges, the detector's apparent scale
-   on this look (the error model's bias_scale, which the tracker undoes in every frame:
+   on these frames (the error model's bias_scale, which the tracker undoes in every frame:
    `tracker.noise.correct_scale`; pipelines/adaptation/scale_decision.py), its sd (the fit's, the outline's own
-   offset, the look's) the error model's bias_scale_sd, so the tracker's range covariance carries it; where the detector's own corners read that scale beyond AGREE_Z sd of the edges', or the scale lies
+   offset, the camera response's) the error model's bias_scale_sd, so the tracker's range covariance carries it; where the detector's own corners read that scale beyond AGREE_Z sd of the edges', or the scale lies
    within MOVE_Z of its sd of the one the track undid, the original scale is kept and the report's scale_note
    says why in one line (`disagreement`, `no_evidence`);
 then track again with the adapted weights: the 'after' run. The held-out final part decides: if the adapted
@@ -30,11 +30,11 @@ the pose stays tracked: `worse_reason`), the original weights are kept and the r
 
 Pseudo-labels carry what the tracker believes, its biases included: a detector that sees the target a little
 smaller than it is gives a range a little long, and labels projected from that pose are a little small. Fine-tuning
-on them alone teaches the look, not the size. The image's silhouette edges do not share the detector's bias: the
-box's outline in the frames against the outline projected at the smoothed pose gives the image's scale error
+on them alone teaches the detector these frames, not the size. The image's silhouette edges do not share the
+detector's bias: the box's outline in the frames against the outline projected at the smoothed pose gives the image's scale error
 delta, and the labels' range is divided by (1 + delta) (edge_range: one delta for the whole labelled set,
 'sequence'; one per frame, 'frame'; or 'off'). A few dozen fine-tune steps hardly move a sub-pixel scale, so the
-detector's apparent scale on this look is stored as the adapted weights' error model's bias_scale, which the
+detector's apparent scale on these frames is stored as the adapted weights' error model's bias_scale, which the
 tracker undoes as it undoes the shipped weights' own: for the unchanged network (params 'none') the track's own
 scale over (1 + delta), every measured station of the sequence behind it; for a fine-tuned one its corners'
 scale against the corrected labels. The truth never enters here.
@@ -71,14 +71,14 @@ from envisat_pose.pipelines.adaptation.track_labels import (
     EDGE_RANGE_MODES,
     calibration_frames,
     edge_corrected,
-    frames_look,
-    look_record,
+    frames_response,
     read_frames,
+    response_record,
     smoother_model,
     track_run_labels,
 )
 from envisat_pose.pipelines.runs.track import TrackConfig, prepare_frames, track_frames
-from envisat_pose.pipelines.tracking.camera_file import camera_look
+from envisat_pose.pipelines.tracking.camera_file import read_camera_response
 from envisat_pose.status import TRACKING
 
 OUTPUTS = ("detector.safetensors", "detector.json", "report.json")
@@ -195,7 +195,7 @@ class AdaptRun:
     """What every step of one adapt job reads: the job (cfg) and the tracker's (tcfg, its weights the base), the
     frames (source, remap: cv2.remap maps to the pinhole, or None), the pinhole camera, the stage folder, whether
     to show progress, the first held-out frame (cut), the smoother's model (q_sigma, dyn: smoother_model) and
-    the camera's response and PSF sigma where its file gives them (look)."""
+    the camera's response and PSF sigma where its file gives them (given_response)."""
 
     cfg: AdaptConfig
     tcfg: TrackConfig
@@ -207,7 +207,7 @@ class AdaptRun:
     cut: int
     q_sigma: tuple
     dyn: dict
-    look: tuple = (None, None)  # the camera file's (response, psf_sigma_px), None where it does not say
+    given_response: tuple = (None, None)  # the camera file's (response, psf_sigma_px), None where it does not say
 
 
 @contextmanager
@@ -237,10 +237,11 @@ def label_step(run: AdaptRun, track_dir: str) -> tuple[dict, list[np.ndarray]]:
             f"{lab['trusted']} before the sigma test); adapt needs at least {cfg.min_trusted} (min_trusted)")
     frames = read_frames(run.source, run.remap, lab["frames"])
     images = [frames[int(k)] for k in lab["frames"]]
-    look = frames_look(lab["x"], images, run.camera, run.look)
+    resp = frames_response(lab["x"], images, run.camera, run.given_response)
     x_lab, lab["edges"] = edge_corrected(lab["x"], images, run.camera, cfg.edge_range, cfg.edge_min_frames,
-                                         look["response"], look["psf_sigma_px"])
-    lab["edges"]["look"] = look_record(look, lab["x"], images, run.camera, lab["edges"], cfg.edge_min_frames)
+                                         resp["response"], resp["psf_sigma_px"])
+    # the report's key 'look' (report.json's rounds[].edge_range.look), unchanged for readers of the report
+    lab["edges"]["look"] = response_record(resp, lab["x"], images, run.camera, lab["edges"], cfg.edge_min_frames)
     lab["labels"] = [label_record(v, run.camera) for v in x_lab]
     return lab, images
 
@@ -313,7 +314,7 @@ def adapt_round(run: AdaptRun, r: int, track_dir: str, weights: str, seed: np.ra
 
 
 def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: str, progress: bool,
-           command: list[str] | None, look: tuple = (None, None)) -> dict:
+           command: list[str] | None, given_response: tuple = (None, None)) -> dict:
     """The job inside its stage: track before, cfg.rounds adapt_round's (each from the last round's track and
     weights, the earlier round's files removed), the held-out verdict (worse_reason), _finish."""
     import shutil
@@ -321,7 +322,7 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
     t0 = time.perf_counter()
     T = len(source.t_s)
     run = AdaptRun(cfg, tcfg, source, camera, remap, stage, progress, int(np.floor(T * (1.0 - cfg.held_out))),
-                   *smoother_model(tcfg), look)
+                   *smoother_model(tcfg), given_response)
     before_dir = os.path.join(stage, "before")
     track_frames(tcfg, source, camera, remap, before_dir, progress=progress)
     timing = {"track_before": time.perf_counter() - t0}
@@ -363,11 +364,11 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
     holds fewer than cfg.min_trusted labelled frames; nothing is written then."""
 
     check_out_dir(out_dir, field="out_dir")
-    look = camera_look(camera) if isinstance(camera, str) else (None, None)
+    given_response = read_camera_response(camera) if isinstance(camera, str) else (None, None)
     tcfg, source, camera, remap, _ = prepare_frames(cfg.track, source, camera)
     make_out_dir(out_dir, field="out_dir")
     with staged_folder(out_dir, OUTPUTS) as stage:
-        report = _adapt(cfg, tcfg, source, camera, remap, stage, progress, command, look)
+        report = _adapt(cfg, tcfg, source, camera, remap, stage, progress, command, given_response)
         _replace_dirs(out_dir, stage)
     return report
 

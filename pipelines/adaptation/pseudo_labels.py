@@ -1,5 +1,5 @@
 """Pseudo-labels from a tracker's own output: a fixed-interval smoother over its tracked segments, and the corner
-labels of a pose (`envisat adapt` teaches the detector a user's look without labels).
+labels of a pose (`envisat adapt` teaches the detector a user's frames without labels).
 
 Pure functions over numpy arrays; no I/O, no truth.
 

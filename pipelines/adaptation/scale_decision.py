@@ -1,7 +1,7 @@
 """Step 5's scale decision of `envisat adapt` (pipelines/adaptation/adapt.py): the detector's apparent scale on
-this look that the adapted weights' error model takes (its bias_scale, which the tracker undoes in every frame:
-`tracker.noise.correct_scale`), with its sd (the fit's, the outline's own offset, the look's), or the original
-scale kept with one line saying why: the detector's own corners read that scale beyond AGREE_Z sd of the
+these frames that the adapted weights' error model takes (its bias_scale, which the tracker undoes in every frame:
+`tracker.noise.correct_scale`), with its sd (the fit's, the outline's own offset, the camera response's), or the
+original scale kept with one line saying why: the detector's own corners read that scale beyond AGREE_Z sd of the
 edges' (`disagreement`), or it lies within MOVE_Z of its sd of the one the track undid (`no_evidence`).
 
 Only labels whose range the frames' edges corrected teach a scale: uncorrected ones carry the track's own, so
@@ -23,38 +23,40 @@ from envisat_pose.pipelines.runs.track import TrackConfig
 # -0.10 % at 1024 px (bench/edge_truth.py, default scenario, seeds 0-3): the scale the edges give is not known
 # better than this over the outline's radius.
 EDGE_OFFSET_PX = 0.08
-# The edge cue's scale bias at the true pose over the grid of looks, each read in linear light by its known
-# response and blur (bench/edge_truth.py --looks, own renders of default seed 0 at 512 px): RMS 0.045 % over the
-# 12 measurable looks with a PSF sigma of 0.3 or 1 px, 0.23 % over the 6 at 2.5 px. Carried in the adapted scale's
-# sd beside the outline's own offset (edge_look_sd).
-EDGE_LOOK_SD = 4.5e-4
-EDGE_LOOK_SD_WIDE = 2.3e-3
-WIDE_PSF_PX = 1.75      # a PSF sigma above this takes EDGE_LOOK_SD_WIDE
+# The edge cue's scale bias at the true pose over the grid of camera responses, each read in linear light by its
+# known response and blur (bench/edge_truth.py --responses, own renders of default seed 0 at 512 px): RMS 0.045 %
+# over the 12 measurable responses with a PSF sigma of 0.3 or 1 px, 0.23 % over the 6 at 2.5 px. Carried in the
+# adapted scale's sd beside the outline's own offset (edge_response_sd).
+EDGE_RESPONSE_SD = 4.5e-4
+EDGE_RESPONSE_SD_WIDE = 2.3e-3
+WIDE_PSF_PX = 1.75      # a PSF sigma above this takes EDGE_RESPONSE_SD_WIDE
 AGREE_Z = 3.0           # edges and corners disagree beyond this many standard deviations of their difference
 MOVE_Z = 2.0            # a scale is moved only by more than this many of its standard deviations
 
 
-def edge_look_sd(psf_sigma_px: float | None) -> float:
-    """The edge cue's look-dependence at the true pose (EDGE_LOOK_SD; EDGE_LOOK_SD_WIDE above WIDE_PSF_PX)."""
-    return EDGE_LOOK_SD_WIDE if psf_sigma_px is not None and psf_sigma_px > WIDE_PSF_PX else EDGE_LOOK_SD
+def edge_response_sd(psf_sigma_px: float | None) -> float:
+    """The edge cue's dependence on the camera response at the true pose (EDGE_RESPONSE_SD; EDGE_RESPONSE_SD_WIDE
+    above WIDE_PSF_PX)."""
+    return EDGE_RESPONSE_SD_WIDE if psf_sigma_px is not None and psf_sigma_px > WIDE_PSF_PX else EDGE_RESPONSE_SD
 
 
 def adapted_scale(params: str, applied: float, edges: dict, cal: dict) -> dict | None:
     """The apparent scale the adapted weights' error model holds, or None. params 'none' (the network that made
     the track, unchanged) with the sequence's edge fit: its range was off by (1 + delta) with the scale `applied`
-    undone (the track's bias_scale; 1 when the tracker does not correct it), so the detector's scale on this look
+    undone (the track's bias_scale; 1 when the tracker does not correct it), so the detector's scale on these frames
     is applied / (1 + delta), from every measured station of the sequence (edge_range.sequence_scale). Otherwise
     (a fine-tuned network, or no sequence fit) the corners' least-squares scale against the corrected labels
     (recalibrate's apparent_scale; None below SCALE_MIN_FRAMES frames). sd: how far it may be from the truth:
     the fit's standard error and the outline's own offset (EDGE_OFFSET_PX over the outline's median radius),
-    in quadrature, and with the look's part: the cue's dependence on what the frames leave open of their response
-    (edges' look delta_sd) and its bias at the true pose over the grid of looks (edge_look_sd). Returns
+    in quadrature, and with the camera response's part: the cue's dependence on what the frames leave open of their
+    response (the delta_sd of the edges' response record, under the report's key 'look') and its bias at the true
+    pose over the grid of responses (edge_response_sd). Returns
     {value, se, sd, method}."""
     seq = edges.get("sequence") or {}
     radius = edges.get("outline_radius_px")
-    look = edges.get("look") or {}
+    resp = edges.get("look") or {}  # track_labels.response_record, under the report's key 'look'
     floor = float(np.hypot(EDGE_OFFSET_PX / radius if radius else 0.0,
-                           np.hypot(look.get("delta_sd", 0.0), edge_look_sd(look.get("psf_sigma_px")))))
+                           np.hypot(resp.get("delta_sd", 0.0), edge_response_sd(resp.get("psf_sigma_px")))))
     if params == "none" and seq.get("delta") is not None:
         value, se = applied / (1.0 + seq["delta"]), applied * seq["delta_se"] / (1.0 + seq["delta"]) ** 2
         return {"value": value, "se": se, "sd": float(np.hypot(se, floor)), "method": "edges"}
@@ -67,9 +69,9 @@ def adapted_scale(params: str, applied: float, edges: dict, cal: dict) -> dict |
 def disagreement(scale: dict, cal: dict) -> str | None:
     """One line saying why an edges' scale is not adopted, or None: the detector's own corners, measured against
     the same edge-corrected labels (recalibrate's apparent_scale), are a second reading of the same scale; where
-    the two differ by more than AGREE_Z standard deviations of their difference (the edges' sd, look included,
-    and the corners' standard error), one of them is wrong and neither is evidence. No check without a corners'
-    reading (fewer than SCALE_MIN_FRAMES frames with one) or for the corners' own scale."""
+    the two differ by more than AGREE_Z standard deviations of their difference (the edges' sd, camera response
+    included, and the corners' standard error), one of them is wrong and neither is evidence. No check without a
+    corners' reading (fewer than SCALE_MIN_FRAMES frames with one) or for the corners' own scale."""
     corners, se = cal.get("apparent_scale"), cal.get("apparent_scale_se")
     if scale["method"] != "edges" or corners is None or se is None:
         return None
@@ -84,7 +86,7 @@ def disagreement(scale: dict, cal: dict) -> str | None:
 def no_evidence(scale: dict, applied: float) -> str | None:
     """One line saying why a scale is not adopted, or None: a scale within MOVE_Z of its own sd of the one the
     track undid (`applied`) is no evidence that it should move (an estimated response can leave the edges' scale
-    uncertain by most of a per cent: its look term)."""
+    uncertain by most of a per cent: its response term)."""
     if abs(scale["value"] - applied) > MOVE_Z * scale["sd"]:
         return None
     return (f"the original scale kept: the {scale['method']}' scale {scale['value']:.5f} +- {scale['sd']:.5f} is "

@@ -2,8 +2,9 @@
 (pseudo_labels.trusted_frames over the smoothed segments, the smoother built from the tracker's own model:
 smoother_model) before the held-out part whose label is tight, their range corrected by the frames' own
 silhouette edges (edge_corrected; pipelines/adaptation/edge_range.py) read in linear light under the frames'
-response and blur (frames_look: the camera file's, else estimated, pipelines/adaptation/edge_look.py), and the
-look term of the edges' scale (look_record: the sequence's delta under the responses the estimate leaves open)."""
+camera response (response curve and blur; frames_response: the camera file's, else estimated,
+pipelines/adaptation/edge_response.py), and the response term of the edges' scale (response_record: the sequence's
+delta under the responses the estimate leaves open)."""
 
 from __future__ import annotations
 
@@ -14,17 +15,17 @@ import numpy as np
 
 from envisat_pose.camera_response import GAMMA_RANGE, LINEAR, SRGB, Response
 from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2
-from envisat_pose.pipelines.adaptation.edge_look import estimate_look
 from envisat_pose.pipelines.adaptation.edge_range import correct_range, frame_scale, sequence_scale
+from envisat_pose.pipelines.adaptation.edge_response import estimate_response
 from envisat_pose.pipelines.adaptation.pseudo_labels import corner_labels, label_sigma_px, smooth_track
 from envisat_pose.pipelines.runs.track import TrackConfig
 from envisat_pose.pipelines.tracking.build import tracker_filter
 from envisat_pose.pipelines.tracking.onboard import chaser_function
 
-LOOK_FRAMES = 30        # labelled frames the response and blur are estimated from (evenly spread)
-# How far an estimated power is from the rendered frames' own: RMS 0.62 over 17 looks of the project's renders
-# (the grid at 512 px with a power measured, and three adapt runs: sRGB read 1.25, gamma 2.4 read 1.49, linear
-# 1.15); the edges are read again at the estimate +- this (or its own standard error, if larger).
+RESPONSE_FRAMES = 30    # labelled frames the response and blur are estimated from (evenly spread)
+# How far an estimated power is from the rendered frames' own: RMS 0.62 over 17 camera responses of the project's
+# renders (the grid at 512 px with a power measured, and three adapt runs: sRGB read 1.25, gamma 2.4 read 1.49,
+# linear 1.15); the edges are read again at the estimate +- this (or its own standard error, if larger).
 GAMMA_EST_SD = 0.6
 EDGE_RANGE_MODES = ("sequence", "frame", "off")  # how the labels' range is corrected (edge_corrected)
 
@@ -97,18 +98,19 @@ def edge_corrected(x: np.ndarray, images: list[np.ndarray], camera, mode: str, m
     return correct_range(x, camera.pos_C_m, delta), record
 
 
-def frames_look(x: np.ndarray, images: list[np.ndarray], camera, given: tuple) -> dict:
-    """The frames' response and blur: given (the camera file's (response, psf_sigma_px), each None where not
-    given) or estimated from LOOK_FRAMES of the labelled frames, evenly spread (pipelines/adaptation/edge_look.py, along the
-    outline of each label's visible corners). Returns {response (Response), psf_sigma_px, estimate (the
-    estimate's record), given: which came from the file, alternatives: the responses the edges are read under
-    too, what the estimate leaves open (its power GAMMA_EST_SD either side, or for a response without a measured
-    power the other named curve; none when the response was given)}."""
+def frames_response(x: np.ndarray, images: list[np.ndarray], camera, given: tuple) -> dict:
+    """The frames' camera response, its response curve and blur: given (the camera file's (response,
+    psf_sigma_px), each None where not given) or estimated from RESPONSE_FRAMES of the labelled frames, evenly
+    spread (pipelines/adaptation/edge_response.py, along the outline of each label's visible corners). Returns
+    {response (Response), psf_sigma_px, estimate (the estimate's record), given: which came from the file,
+    alternatives: the responses the edges are read under too, what the estimate leaves open (its power
+    GAMMA_EST_SD either side, or for a response without a measured power the other named curve; none when the
+    response was given)}."""
 
     response, psf = given
-    pick = calibration_frames(len(images), LOOK_FRAMES)
+    pick = calibration_frames(len(images), RESPONSE_FRAMES)
     lab = corner_labels(x[pick], camera)
-    fit = estimate_look([images[i] for i in pick], lab["corners_px"], lab["visible"] & lab["in_frame"])
+    fit = estimate_response([images[i] for i in pick], lab["corners_px"], lab["visible"] & lab["in_frame"])
     alternatives = []
     if response is None:
         response = fit.response
@@ -122,22 +124,22 @@ def frames_look(x: np.ndarray, images: list[np.ndarray], camera, given: tuple) -
             "alternatives": alternatives}
 
 
-def look_record(look: dict, x: np.ndarray, images: list[np.ndarray], camera, edges: dict, min_frames: int
-                ) -> dict:
-    """The look the edges were read with (frames_look) as JSON data, and the sequence's delta under each of its
-    alternative responses: delta_sd, the largest difference from the delta applied (0 without alternatives or a
-    fit), is how much the cue depends on what the frames leave open of their response (adapted_scale's look
-    term)."""
+def response_record(resp: dict, x: np.ndarray, images: list[np.ndarray], camera, edges: dict, min_frames: int
+                    ) -> dict:
+    """The camera response the edges were read with (frames_response) as JSON data, and the sequence's delta under
+    each of its alternative responses: delta_sd, the largest difference from the delta applied (0 without
+    alternatives or a fit), is how much the cue depends on what the frames leave open of their response
+    (adapted_scale's response term)."""
     delta, alt = edges["sequence"]["delta"], []
     if delta is not None:
-        for r in look["alternatives"]:
-            _, rec = edge_corrected(x, images, camera, "off", min_frames, r, look["psf_sigma_px"])
+        for r in resp["alternatives"]:
+            _, rec = edge_corrected(x, images, camera, "off", min_frames, r, resp["psf_sigma_px"])
             alt.append(rec["sequence"]["delta"])
     spread = [abs(a - delta) for a in alt if a is not None]
     if len(spread) < len(alt):  # an alternative reading measures nothing: the cue is not held
         spread.append(float("inf"))
-    return {"response": look["response"].name(), "psf_sigma_px": look["psf_sigma_px"], "given": look["given"],
-            "estimate": look["estimate"], "alternatives": [r.name() for r in look["alternatives"]],
+    return {"response": resp["response"].name(), "psf_sigma_px": resp["psf_sigma_px"], "given": resp["given"],
+            "estimate": resp["estimate"], "alternatives": [r.name() for r in resp["alternatives"]],
             "alternative_deltas": alt, "delta_sd": max(spread, default=0.0)}
 
 

@@ -26,7 +26,7 @@ SEQUENCE_KEY = 0x5E0  # a sequence look's q-th sequence: seed SeedSequence([seed
 @dataclass(frozen=True)
 class WeightedLook:
     """One kind of frame in an online run: name, generate (a GenerateConfig, random or sequence mode: its
-    resolution, looks, camera, scenario) and weight (its share of the frames, relative to the other looks')."""
+    resolution, appearance, camera, scenario) and weight (its share of the frames, relative to the other looks')."""
 
     name: str
     generate: object

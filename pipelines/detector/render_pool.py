@@ -11,7 +11,7 @@ rather than reorder anything. Frames of several sizes travel in the slots of the
 with their side.
 
 A frame f of a random-mode look is sample f of the dataset `envisat generate` would make of it: the factory's
-view, look and corruption of seed sample_seed(gen_cfg.seed, f // shard_size, f % shard_size) (datagen/factory.py:
+view, appearance and corruption of seed sample_seed(gen_cfg.seed, f // shard_size, f % shard_size) (datagen/factory.py:
 sample_view, then the render, then sample_arrays: the space camera applied on the CPU in the renderer process
 unless storage is 'clean', the label by labels.make_label). Its pixels and label depend only on (gen_cfg, f):
 they equal that dataset's PNG and JSON where the GL rasterizer is the same (llvmpipe here; another driver, an EGL

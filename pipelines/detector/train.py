@@ -92,8 +92,8 @@ class TargetOnlineConfig(OnlineConfig):
 
 def target_online(target: str, resolution_px: int = TARGET_RESOLUTION_PX, workers: int = 1,
                   uses_per_frame: int = 8, **generate) -> TargetOnlineConfig:
-    """The default source of a keypoint run: random views of `target` (its sized ranges and its own looks) at
-    resolution_px, generate's other GenerateConfig fields as given."""
+    """The default source of a keypoint run: random views of `target` (its sized ranges and its own materials,
+    varied) at resolution_px, generate's other GenerateConfig fields as given."""
     gen = GenerateConfig(mode="random", target=target, resolution_px=resolution_px, **generate)
     return TargetOnlineConfig(gen, workers, uses_per_frame)
 

@@ -4,7 +4,7 @@ Per run and frame k (t_k = k / rate_hz):
 1. the truth at t_k is the MuJoCo truth simulation of `envisat simulate` (datagen.truth.simulate_truth, run once before
    the loops: it refuses a trajectory that breaks the keep-out margin before any image is made);
 2. in the Earth's shadow (the chaser's own orbit and the sun direction) there is no frame: the tracker predicts;
-3. MuJoCo renders the chaser camera (datagen's SceneRenderer, the factory's sequence-mode view and look), and
+3. MuJoCo renders the chaser camera (datagen's SceneRenderer, the factory's sequence-mode view and appearance), and
    datagen's space camera corrupts it with the run's own noise;
 4. the Tracker (pipelines/tracking/tracker.py) takes (t_k, image) and nothing else: it starts cold from the images unless
    `warm_start`, where it is handed the truth plus a draw from the filter's P0 (filter studies only).
@@ -36,7 +36,7 @@ import numpy as np
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.config import to_dict, to_toml
 from envisat_pose.contracts import TruthTrajectory
-from envisat_pose.datagen.factory import draw_corruption_params, with_look
+from envisat_pose.datagen.factory import draw_corruption_params, with_appearance
 from envisat_pose.datagen.render_view import View
 from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.datagen.views import sample_seed, unit
@@ -122,7 +122,7 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
         prior = (draw_initial_estimate(x_truth[0], cfg.filter.P0, rng), cfg.filter.P0, float(t_s[0]))
     tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(orbit), cfg.tracker,
                       dataclasses.asdict(cfg.filter), mu_m3_s2=mu, gravity_gradient=gg, prior=prior)  # exact
-    look_seed = sample_seed(cfg.seed, 0, 0)  # one look for the whole sequence: the same target in every run
+    appearance_seed = sample_seed(cfg.seed, 0, 0)  # one appearance for the whole sequence: the same target in every run
     rows = RunRows(run_dir, len(t_s))
     recorder = None
     if sink:
@@ -140,7 +140,7 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
                 t0 = time.perf_counter()
                 view = View(x[POS], mrp_to_dcm(x[MRP]).T, sun_C[k], unit(nadir_C[k]),
                             float(np.linalg.norm(nadir_C[k])), earth_backdrop=gcfg.earth_probability > 0)
-                view, _ = with_look(gcfg, view, {}, look_seed)
+                view, _ = with_appearance(gcfg, view, {}, appearance_seed)
                 rendered = renderer.render(view, labels=False)  # the image and the pose: no depth or mask
                 t_render = time.perf_counter() - t0
                 t0 = time.perf_counter()

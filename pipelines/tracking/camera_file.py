@@ -2,7 +2,7 @@
 OpenCV distortion), checked for sense, as the ideal pinhole the tracker uses and the remap that makes the frames
 ideal; and, where known, how the camera stores light (`response`: "linear", "srgb" or a gamma such as 2.2;
 envisat_pose/camera_response.py) and the width of its blur (`psf_sigma_px`: a Gaussian PSF's sigma, px), read by
-camera_look. The camera's mount on the chaser is the MJCF's chaser_cam's."""
+read_camera_response. The camera's mount on the chaser is the MJCF's chaser_cam's."""
 
 from __future__ import annotations
 
@@ -56,7 +56,7 @@ def camera_from_intrinsics(path: str) -> tuple[PinholeCamera, tuple | None]:
     unknown = sorted(set(data) - set(KEYS))
     if unknown:
         raise InputError(f"{path}: unknown camera keys {unknown} (expected {', '.join(KEYS)})")
-    camera_look(path, data)
+    read_camera_response(path, data)
     f = float(np.sqrt(vals["fx"] * vals["fy"]))
     mount = load_camera()
     cam = PinholeCamera(f, vals["cx"], vals["cy"], w, h, mount.R_K_from_C, mount.pos_C_m)
@@ -68,10 +68,11 @@ def camera_from_intrinsics(path: str) -> tuple[PinholeCamera, tuple | None]:
     return cam, maps
 
 
-def camera_look(path: str, data: dict | None = None) -> tuple[Response | None, float | None]:
-    """(response, psf_sigma_px) of a camera TOML file, each None where the file does not give it (adapt then
-    estimates it from the frames). data: the file's parsed table (read from path when None). InputError naming
-    the file and the key for a value that is no response or no blur width (0 to MAX_PSF_SIGMA_PX px)."""
+def read_camera_response(path: str, data: dict | None = None) -> tuple[Response | None, float | None]:
+    """The camera response of a camera TOML file, (response, psf_sigma_px), each None where the file does not give
+    it (adapt then estimates it from the frames). data: the file's parsed table (read from path when None).
+    InputError naming the file and the key for a value that is no response or no blur width (0 to
+    MAX_PSF_SIGMA_PX px)."""
     data = load_toml(path) if data is None else data
     response = None
     if "response" in data:

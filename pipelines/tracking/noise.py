@@ -133,10 +133,10 @@ def nis_sum_dispersion(em, dt_s: float, frames: int, rate_rad_s: float | None = 
 def scale_sigma(em, corrected: bool) -> float:
     """The relative range error a filter cannot average away: a corner pattern s times too large puts the target
     at range / s on every frame. The error model (held-out sequences) measured the detector's mean apparent scale
-    bias_scale and how far one sequence's scale falls from it (bias_scale_sd: each look and light its own). With
-    the mean undone (`corrected`) what is left is a new run's own scale, bias_scale_sd; without it the mean's
-    offset |s - 1| is added in quadrature. A model without a measured spread (older weights: bias_scale_sd 0)
-    takes |s - 1| for it. 0 without a measured model."""
+    bias_scale and how far one sequence's scale falls from it (bias_scale_sd: each sequence has its own views,
+    light and camera). With the mean undone (`corrected`) what is left is a new run's own scale, bias_scale_sd;
+    without it the mean's offset |s - 1| is added in quadrature. A model without a measured spread (older weights:
+    bias_scale_sd 0) takes |s - 1| for it. 0 without a measured model."""
     if not em.n_frames:
         return 0.0
     offset, sd = abs(float(em.bias_scale) - 1.0), float(em.bias_scale_sd)

@@ -38,7 +38,7 @@ as its naming's start and half-turn prior when one hypothesis is left.
 The filter's R is the detector's calibrated covariance at the error model's scale, inflated for the errors'
 frame-to-frame correlation at the filter's own memory (pipelines/tracking/noise.py). The detector's mean apparent scale
 (measured on held-out sequences) is undone in every frame's corners; what a run's own scale leaves (the spread
-between looks, x range) is added to the reported variance along the line of sight, never to the gain
+between sequences, x range) is added to the reported variance along the line of sight, never to the gain
 (noise.range_consider, TrackerConfig.noise.range_floor and correct_scale).
 """
 

@@ -154,7 +154,8 @@ class ArrayCueConfig(Config):
 
 @dataclass(frozen=True)
 class RoiConfig(Config):
-    """The region of interest and the priors the detector is given (tracker.predicted_roi, Tracker._look).
+    """The region of interest and the priors the detector is given (tracker.predicted_roi,
+    Tracker._detect_predicted).
 
     enabled: look only in the predicted region of interest once converged; margin: its side over the predicted
     corners' extent (plus 6 x the prior's pixel sigma); min_side_px; min_corners: fewer corners found there and

@@ -72,10 +72,10 @@ class FrameMeasurement:
 
 
 class TrackingSteps:
-    """The Tracker's frames of a started bank: _track (one frame) and its steps _look, _measure, _update_bank,
-    _judge."""
+    """The Tracker's frames of a started bank: _track (one frame) and its steps _detect_predicted, _measure,
+    _update_bank, _judge."""
 
-    def _look(self, image, prior, best: int, converged: bool):
+    def _detect_predicted(self, image, prior, best: int, converged: bool):
         """Detect in this frame with the bank's prediction: the region of interest once converged, the predicted
         pose as the naming's start and half-turn prior when one hypothesis is left. Returns (fd, roi, t_det)."""
         roi = predicted_roi(prior[0][best], prior[1][best], self.camera, self.cfg.roi) \
@@ -136,8 +136,8 @@ class TrackingSteps:
 
     def _measure(self, image, prior, best: int, converged: bool) -> FrameMeasurement:
         """The frame measured for every hypothesis under the bank's prediction prior (means (H, 12), covariances
-        (H, 12, 12)): detected (_look), its corners named per hypothesis (choose_namings), gated against the
-        detector's own covariance (gate.raw) and the best hypothesis' rejected corners flagged. No image: nothing
+        (H, 12, 12)): detected (_detect_predicted), its corners named per hypothesis (choose_namings), gated against
+        the detector's own covariance (gate.raw) and the best hypothesis' rejected corners flagged. No image: nothing
         measured."""
         t0 = time.perf_counter()
         H = self.state.mean.shape[0]
@@ -146,7 +146,7 @@ class TrackingSteps:
         namings, appearance = np.full(H, -1), np.zeros(H)
         fd, roi, t_det = None, None, 0.0
         if image is not None:
-            fd, roi, t_det = self._look(image, prior, best, converged)
+            fd, roi, t_det = self._detect_predicted(image, prior, best, converged)
             zd, cd, p_alt = detection_measurement(fd, self.inflation, self.bias_scale)
             if np.isfinite(zd).all(-1).any():
                 z, cov, namings, appearance = choose_namings(zd, cd, p_alt, self.setup.hx(prior[0]),

@@ -157,7 +157,7 @@ def test_adapt_then_track_with_the_adapted_weights(long_seq, tmp_path, detector_
     meta, base = read_metadata(str(out / "detector.safetensors")), read_metadata(detector_weights)
     assert float(meta["cov_scale"]) > 0 and "envisat adapt" in meta["cov_calibration"]
     last = card["rounds"][-1]
-    if last["apparent_scale_adopted"]:  # labels the edges corrected: the look's apparent scale, the rest as based
+    if last["apparent_scale_adopted"]:  # labels the edges corrected: these frames' apparent scale, the rest as based
         em, em0 = json.loads(meta["error_model"]), json.loads(base["error_model"])
         assert last["apparent_scale"]["method"] == "corners"  # a fine-tuned network: its own corners' scale
         assert em.pop("bias_scale") == last["apparent_scale"]["value"] == last["calibration"]["apparent_scale"]
@@ -205,9 +205,9 @@ def test_the_unchanged_network_takes_the_tracks_scale_over_the_edges_delta():
     network is a new detector: its corners' scale against the corrected labels. The sd never undercuts the
     outline's own offset over its radius."""
     from envisat_pose.pipelines.adaptation.scale_decision import (
-        EDGE_LOOK_SD,
-        EDGE_LOOK_SD_WIDE,
         EDGE_OFFSET_PX,
+        EDGE_RESPONSE_SD,
+        EDGE_RESPONSE_SD_WIDE,
         adapted_scale,
     )
 
@@ -216,14 +216,14 @@ def test_the_unchanged_network_takes_the_tracks_scale_over_the_edges_delta():
     cal = {"apparent_scale": 0.9970, "apparent_scale_se": 3e-4}
     s = adapted_scale("none", 1.0004, edges, cal)
     assert s["method"] == "edges" and s["value"] == pytest.approx(1.0004 / 1.004, rel=1e-12)
-    parts = [1.0004 * 1e-4 / 1.004**2, EDGE_OFFSET_PX / 50.0, 5e-4, EDGE_LOOK_SD]  # fit, outline, look, grid
+    parts = [1.0004 * 1e-4 / 1.004**2, EDGE_OFFSET_PX / 50.0, 5e-4, EDGE_RESPONSE_SD]  # fit, outline, response, grid
     assert s["sd"] == pytest.approx(np.sqrt(np.sum(np.square(parts))))
     wide = adapted_scale("none", 1.0004, {**edges, "look": {"delta_sd": 5e-4, "psf_sigma_px": 2.5}}, cal)
-    assert wide["sd"] == pytest.approx(np.sqrt(np.sum(np.square(parts[:3] + [EDGE_LOOK_SD_WIDE]))))
+    assert wide["sd"] == pytest.approx(np.sqrt(np.sum(np.square(parts[:3] + [EDGE_RESPONSE_SD_WIDE]))))
     assert adapted_scale("norm_heads", 1.0004, edges, cal)["value"] == 0.9970
     no_fit = {"sequence": {"delta": None, "delta_se": None}, "outline_radius_px": None}
     assert adapted_scale("none", 1.0, no_fit, cal) == {"value": 0.9970, "se": 3e-4, "sd": pytest.approx(
-        np.hypot(3e-4, EDGE_LOOK_SD)), "method": "corners"}
+        np.hypot(3e-4, EDGE_RESPONSE_SD)), "method": "corners"}
     assert adapted_scale("none", 1.0, no_fit, {"apparent_scale": None}) is None
 
 
@@ -318,13 +318,13 @@ def test_an_srgb_sequence_is_adapted_without_making_its_range_worse(tmp_path, de
         assert use.sum() > 20
         return abs(float(np.mean(np.linalg.norm(x_hat[use, :3], axis=1) - np.linalg.norm(x_true[use, :3], axis=1))))
 
-    look = report["rounds"][-1]["edge_range"]["look"]
-    assert look["given"]["response"] is False and look["estimate"]["stations"] > 0
-    assert range_error_m("after") <= range_error_m("before") + 0.005, (report["rounds"][-1]["apparent_scale"], look)
+    resp = report["rounds"][-1]["edge_range"]["look"]  # the camera response's record, under the report's key 'look'
+    assert resp["given"]["response"] is False and resp["estimate"]["stations"] > 0
+    assert range_error_m("after") <= range_error_m("before") + 0.005, (report["rounds"][-1]["apparent_scale"], resp)
 
 
 def test_a_scale_within_its_own_uncertainty_of_the_tracks_is_not_adopted():
-    """An edges' scale whose sd (an estimated response's look term can make it most of a per cent) covers the
+    """An edges' scale whose sd (an estimated camera response's term can make it most of a per cent) covers the
     distance to the scale the track undid is no evidence to move it: kept, one line naming both; a scale moved
     by more than MOVE_Z sd is adopted."""
     from envisat_pose.pipelines.adaptation.scale_decision import MOVE_Z, no_evidence
@@ -335,9 +335,9 @@ def test_a_scale_within_its_own_uncertainty_of_the_tracks_is_not_adopted():
     assert no_evidence({**scale, "sd": abs(0.9944 - 1.0004) / (1.1 * MOVE_Z)}, 1.0004) is None
 
 
-def test_the_look_term_is_the_largest_swing_over_the_open_responses(monkeypatch):
-    """look_record reads the sequence's delta under every alternative response frames_look leaves open and keeps
-    the largest difference from the delta applied; an alternative under which nothing is measured makes the
+def test_the_response_term_is_the_largest_swing_over_the_open_responses(monkeypatch):
+    """response_record reads the sequence's delta under every alternative response frames_response leaves open and
+    keeps the largest difference from the delta applied; an alternative under which nothing is measured makes the
     term infinite (the cue is not held); a given response (no alternatives) adds nothing."""
     import envisat_pose.pipelines.adaptation.track_labels as labels_module
     from envisat_pose.camera_response import SRGB, Response
@@ -345,11 +345,11 @@ def test_the_look_term_is_the_largest_swing_over_the_open_responses(monkeypatch)
     readings = {"gamma 1.2": 0.001, "gamma 2.4": -0.004, "linear": None}
     monkeypatch.setattr(labels_module, "edge_corrected", lambda x, im, cam, mode, n, r, b: (
         x, {"sequence": {"delta": readings[r.name()]}}))
-    look = {"response": SRGB, "psf_sigma_px": 1.0, "given": {}, "estimate": {},
+    resp = {"response": SRGB, "psf_sigma_px": 1.0, "given": {}, "estimate": {},
             "alternatives": [Response("gamma", 1.2), Response("gamma", 2.4)]}
     edges = {"sequence": {"delta": 0.002}}
-    assert labels_module.look_record(look, None, [], None, edges, 5)["delta_sd"] == pytest.approx(0.006)
+    assert labels_module.response_record(resp, None, [], None, edges, 5)["delta_sd"] == pytest.approx(0.006)
     from envisat_pose.camera_response import LINEAR
-    assert labels_module.look_record({**look, "alternatives": [LINEAR]}, None, [], None, edges, 5)["delta_sd"] \
+    assert labels_module.response_record({**resp, "alternatives": [LINEAR]}, None, [], None, edges, 5)["delta_sd"] \
         == float("inf")
-    assert labels_module.look_record({**look, "alternatives": []}, None, [], None, edges, 5)["delta_sd"] == 0.0
+    assert labels_module.response_record({**resp, "alternatives": []}, None, [], None, edges, 5)["delta_sd"] == 0.0

@@ -1,4 +1,4 @@
-"""Appearance, lighting, clutter and storage: looks change pixels only; a half-turn about the long axis stays
+"""Appearance, lighting, clutter and storage: appearance draws change pixels only; a half-turn about the long axis stays
 visible; clutter has its own mask value and hides corners; clean storage corrupted on read gives the corrupted
 storage's bytes; same seed, same bytes with appearance and clutter on."""
 
@@ -13,7 +13,7 @@ import pytest
 
 from envisat_pose.config import from_dict
 from envisat_pose.datagen.appearance import GEOM_CLASS, class_texture
-from envisat_pose.datagen.factory import run_generate, view_from_scene, with_look
+from envisat_pose.datagen.factory import run_generate, view_from_scene, with_appearance
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.datagen.render import SceneRenderer
 from envisat_pose.datagen.render_view import APPENDAGE_MASK_VALUE, View
@@ -67,14 +67,14 @@ def test_appearance_changes_pixels_not_labels_masks_or_depth(tmp_path):
         assert a["png"] != b["png"] and b["png"] != c["png"]
         assert lb["scene"]["look"]["materials"] != lc["scene"]["look"]["materials"]
         assert la["scene"]["look"]["materials"] == {}
-        # every face keeps its covering class whatever the look
+        # every face keeps its covering class whatever the appearance draw
         assert {g: m["class"] for g, m in lb["scene"]["look"]["materials"].items()} == {
             g: GEOM_CLASS[g] for g in lb["scene"]["look"]["materials"]}
         assert lb["scene"]["face_classes"]["face_py"] != lb["scene"]["face_classes"]["face_my"]
         assert lb["scene"]["face_classes"]["face_pz"] != lb["scene"]["face_classes"]["face_mz"]
 
 
-def half_turn_views(look):
+def half_turn_views(appearance):
     """A view of the body's side, and the same pose turned half a turn about the body's long axis (x_T)."""
     from scipy.spatial.transform import Rotation
 
@@ -82,18 +82,18 @@ def half_turn_views(look):
     flip = np.diag([1.0, -1.0, -1.0])  # half-turn about x_T
     rho = np.array([0.0, 30.0, 0.0])
     sun = np.array([0.2, -1.0, 0.3])
-    return (View(rho, R, sun, look=look), View(rho, R @ flip, sun, look=look))
+    return (View(rho, R, sun, appearance=appearance), View(rho, R @ flip, sun, appearance=appearance))
 
 
 def test_half_turn_about_the_long_axis_is_visible(renderer):
     """Corners A<->C, B<->D, E<->G, F<->H trade places under the half-turn; the silhouette (mask of the body) is
-    nearly the same, yet the image differs in every look because the faces' classes differ."""
+    nearly the same, yet the image differs in every appearance draw because the faces' classes differ."""
     cfg = cfg_of(appearance={"texture_set_size": 4})
     base = View(np.zeros(3), np.eye(3), np.array([0.0, -1.0, 0.0]), np.array([1.0, 0.0, 0.0]))
     n_checked = 0
     for seed in range(4):
-        view, _ = with_look(cfg, base, {}, seed)
-        a, b = (renderer.render(v) for v in half_turn_views(view.look))
+        view, _ = with_appearance(cfg, base, {}, seed)
+        a, b = (renderer.render(v) for v in half_turn_views(view.appearance))
         body_a, body_b = (a.mask_u8 >= 1) & (a.mask_u8 <= 6), (b.mask_u8 >= 1) & (b.mask_u8 <= 6)
         both = body_a & body_b
         assert both.sum() > 0.9 * body_a.sum() > 500  # the same silhouette of the box
@@ -177,14 +177,14 @@ def test_label_scene_rerenders_the_clean_image(tmp_path, renderer):
 def test_earthshine_lights_the_night_side(renderer):
     """With the sun behind the target (its near faces in shadow), Earth-shine from the camera's side brightens
     them; the mask is unchanged."""
-    from envisat_pose.datagen.appearance import Look
+    from envisat_pose.datagen.appearance import Appearance
 
     R = np.eye(3)
     rho = np.array([0.0, 30.0, 0.0])
     dark = renderer.render(View(rho, R, np.array([0.0, 1.0, 0.0]), np.array([0.0, -1.0, 0.2]),
-                                look=Look({}, 1.2, 0.0), earth_backdrop=False))
+                                appearance=Appearance({}, 1.2, 0.0), earth_backdrop=False))
     shine = renderer.render(View(rho, R, np.array([0.0, 1.0, 0.0]), np.array([0.0, -1.0, 0.2]),
-                                 look=Look({}, 1.2, 0.3), earth_backdrop=False))
+                                 appearance=Appearance({}, 1.2, 0.3), earth_backdrop=False))
     body = (dark.mask_u8 >= 1) & (dark.mask_u8 <= 6)
     assert np.array_equal(dark.mask_u8, shine.mask_u8)
     assert shine.gray_u8[body].mean() > dark.gray_u8[body].mean() + 10

@@ -118,7 +118,7 @@ def test_the_near_plane_follows_the_size_and_envisats_scene_is_untouched():
 
 def _median_mask_share(target: str, n: int, seed: int) -> float:
     """The median share of the image the target's mask covers over the first n random views of the default
-    config of `target` at 256 px (root seed `seed`): the dataset's own views and looks."""
+    config of `target` at 256 px (root seed `seed`): the dataset's own views and appearance draws."""
     from envisat_pose.datagen.factory import sample_view
     from envisat_pose.datagen.render_cache import shared_renderer
 

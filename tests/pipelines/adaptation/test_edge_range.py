@@ -166,7 +166,7 @@ def pinhole_px(corners_K_m: np.ndarray, fovy_deg: float, res: int) -> np.ndarray
 
 
 def test_the_rendered_outline_reads_its_range():
-    """Own renders (datagen's SceneRenderer, 512 px, the MJCF's plain look, no Earth) at random poses 45-55 m
+    """Own renders (datagen's SceneRenderer, 512 px, the MJCF's plain materials, no Earth) at random poses 45-55 m
     away: per frame, the true outline's delta and the outline of the same pose 0.5 % farther (every corner moved
     along the line of sight of the target's origin by 0.5 % of its range: the image scale of the far pose is
     1 / 1.005 of the true one, so delta = +0.5 %). Measured: the 12 frames' sequence_scale reads -0.02 % (true

@@ -5,7 +5,7 @@ import pytest
 
 from envisat_pose.camera_response import LINEAR, SRGB, Response
 from envisat_pose.config import InputError
-from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics, camera_look
+from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics, read_camera_response
 
 BASE = "fx = 600.0\nfy = 600.0\ncx = 255.5\ncy = 255.5\nwidth = 512\nheight = 512\n"
 
@@ -22,7 +22,7 @@ def test_the_response_and_psf_are_read(tmp_path, text, expected):
     path.write_text(BASE + text)
     cam, remap = camera_from_intrinsics(str(path))  # the intrinsics still read; the new keys are known
     assert cam.width_px == 512 and remap is None
-    assert camera_look(str(path)) == expected
+    assert read_camera_response(str(path)) == expected
 
 
 @pytest.mark.parametrize("text, key", [('response = "log"\n', "response"), ("response = 9.0\n", "response"),

@@ -621,7 +621,7 @@ def test_a_confidently_wrong_appearance_cannot_decide_the_half_turn_alone():
 
 
 def test_the_range_consider_sigma_follows_what_is_undone():
-    """noise.scale_sigma: with the mean scale undone, the spread between looks; without, the mean's offset and the
+    """noise.scale_sigma: with the mean scale undone, the spread between sequences; without, the mean's offset and the
     spread in quadrature; a model without a measured spread takes the offset for it; none without a model."""
     from envisat_pose.perception.errormodel import ErrorModel
     from envisat_pose.pipelines.tracking.noise import scale_sigma

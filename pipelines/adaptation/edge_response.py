@@ -15,9 +15,9 @@ asymmetry (a parabola through the grid's lowest three) is the frames' gamma; its
 response chosen (choose_response): 'linear' where the power is within NAMED_Z standard errors of 1, 'srgb' where its
 asymmetry is no larger than the power's, else the power. An encoding mostly shifts an edge and only a little
 bends it, so the power is held only where the blur is wide enough to show the bend: +-0.02-0.1 at 1-2.5 px
-over 12 frames of 300 stations (tests/pipelines/adaptation/test_edge_look.py); below SHARP_PX no power is reported and the
-named curve (linear or sRGB) of the smaller asymmetry is chosen, its ambiguity left to the caller (adapt reads
-the edge cue under both and carries the difference as the scale's look term).
+over 12 frames of 300 stations (tests/pipelines/adaptation/test_edge_response.py); below SHARP_PX no power is
+reported and the named curve (linear or sRGB) of the smaller asymmetry is chosen, its ambiguity left to the caller
+(adapt reads the edge cue under both and carries the difference as the scale's response term).
 
 The blur: the linearized profiles by that response, shifted onto one axis and averaged,
 fitted by the blurred step q(u) = Phi(-u / s) (least squares over s); the PSF's sigma is sqrt(s^2 - 1/12), the
@@ -25,8 +25,8 @@ pixel's own footprint (a unit box, variance 1/12 across any edge direction) take
 the groups' own fits.
 
 Stations are those of the edge cue (pipelines/adaptation/edge_range.py: the outline of the visible corners, stations every
-STEP_PX, the same guards on the stored values) with a wide profile (LOOK_REACH_PX, so a blur up to ~2.5 px sigma
-reaches its plateaus).
+STEP_PX, the same guards on the stored values) with a wide profile (PROFILE_REACH_PX, so a blur up to ~2.5 px
+sigma reaches its plateaus).
 """
 
 from __future__ import annotations
@@ -38,11 +38,11 @@ import numpy as np
 from envisat_pose.camera_response import GAMMA_RANGE, LINEAR, SRGB, Response
 from envisat_pose.pipelines.adaptation.edge_range import FLAT_SHARE, MIN_CONTRAST, STEP_PX, area_edge_px, outline_edges
 
-LOOK_REACH_PX = 9.0             # the area integral's half-width here: plateaus beyond 3.5 sigmas of a 2.5 px blur
+PROFILE_REACH_PX = 9.0          # the area integral's half-width here: plateaus beyond 3.5 sigmas of a 2.5 px blur
 GAMMA_GRID = np.round(np.arange(0.6, 3.61, 0.1), 2)
 SIGMA_GRID_PX = np.arange(0.20, 4.0, 0.01)   # blurred-step widths s tried
-U_PX = np.arange(-(LOOK_REACH_PX - 1.0), LOOK_REACH_PX - 1.0 + 1e-9, 0.25)  # the aligned profiles' axis
-MIN_LOOK_STATIONS = 40
+U_PX = np.arange(-(PROFILE_REACH_PX - 1.0), PROFILE_REACH_PX - 1.0 + 1e-9, 0.25)  # the aligned profiles' axis
+MIN_RESPONSE_STATIONS = 40
 GROUPS_IN_ONE_FRAME = 8         # interleaved blocks of stations when fewer than MIN_GROUP_FRAMES frames
 MIN_GROUP_FRAMES = 5
 LEVELS = (0.25, 0.5, 0.75)      # the profile's level crossings whose mean is compared with the area edge
@@ -52,7 +52,7 @@ NAMED_Z = 2.0                   # a named curve within this many standard errors
 
 
 @dataclass(frozen=True)
-class LookFit:
+class ResponseFit:
     """The frames' response and blur. response: the one to linearize with (LINEAR without a measurement);
     gamma, gamma_se: the fitted power (stored = light^(1/gamma)) and its standard error (None: not measured);
     psf_sigma_px, psf_sigma_se_px: the Gaussian PSF's sigma and its standard error, px (None: not measured);
@@ -74,17 +74,17 @@ class LookFit:
                 "stations": self.stations, "groups": self.groups, "asymmetry": self.asymmetry}
 
 
-def look_samples(image: np.ndarray, corners_px: np.ndarray, use: np.ndarray, min_edge_px: float = 30.0
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def profile_samples(image: np.ndarray, corners_px: np.ndarray, use: np.ndarray, min_edge_px: float = 30.0
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """The sample points (S, P, 2) px of the usable stations' profiles across the outline of corners_px (8, 2),
-    use (8,) bool, in image (H, W) (stored 8-bit values): +-(LOOK_REACH_PX + 2) px along the outward normal at
-    0.25 px, stations every STEP_PX from 2 LOOK_REACH_PX + 6 px in from each hull edge's ends; kept where the body
-    is brighter than the background by MIN_CONTRAST and both plateaus are flat (edge_range's guards). Also each
+    use (8,) bool, in image (H, W) (stored 8-bit values): +-(PROFILE_REACH_PX + 2) px along the outward normal
+    at 0.25 px, stations every STEP_PX from 2 PROFILE_REACH_PX + 6 px in from each hull edge's ends; kept where the
+    body is brighter than the background by MIN_CONTRAST and both plateaus are flat (edge_range's guards). Also each
     station's position along its hull edge, px, offset by 1e4 x the edge's index (S,): stations of one edge share
     a line (smooth_edges)."""
     from envisat_pose.perception.refine import sample_bicubic
 
-    reach, t = LOOK_REACH_PX, look_t_px()
+    reach, t = PROFILE_REACH_PX, profile_t_px()
     edges, normals = outline_edges(corners_px, use)
     h, w = image.shape
     out, along = [], []
@@ -113,7 +113,7 @@ def look_samples(image: np.ndarray, corners_px: np.ndarray, use: np.ndarray, min
 
 def smooth_edges(e: np.ndarray, along: np.ndarray) -> np.ndarray:
     """The stations' edges e (S,) replaced by a straight line along each hull edge (a least-squares fit of e
-    against the position `along`, look_samples'): the line's noise is far below a station's, and it does not
+    against the position `along`, profile_samples'): the line's noise is far below a station's, and it does not
     follow the station's own noise (an edge located from the same samples it aligns would bias their mean)."""
     out = np.array(e, dtype=float)
     for j in np.unique(np.floor(along / 1e4)):
@@ -124,16 +124,16 @@ def smooth_edges(e: np.ndarray, along: np.ndarray) -> np.ndarray:
     return out
 
 
-def look_t_px() -> np.ndarray:
+def profile_t_px() -> np.ndarray:
     """The profile's sample positions across the edge, px (+ outward)."""
-    return np.arange(-(LOOK_REACH_PX + 2.0), LOOK_REACH_PX + 2.0 + 1e-9, 0.25)
+    return np.arange(-(PROFILE_REACH_PX + 2.0), PROFILE_REACH_PX + 2.0 + 1e-9, 0.25)
 
 
 def normalized(prof: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Profiles (S, P) normalized between their plateaus (1 inside, 0 outside) and their edges by the area method
     (S,) px."""
-    inside, outside = prof[:, t <= -LOOK_REACH_PX].mean(axis=1), prof[:, t >= LOOK_REACH_PX].mean(axis=1)
-    return (prof - outside[:, None]) / (inside - outside)[:, None], area_edge_px(prof, t, LOOK_REACH_PX)
+    inside, outside = prof[:, t <= -PROFILE_REACH_PX].mean(axis=1), prof[:, t >= PROFILE_REACH_PX].mean(axis=1)
+    return (prof - outside[:, None]) / (inside - outside)[:, None], area_edge_px(prof, t, PROFILE_REACH_PX)
 
 
 def aligned_mean(q: np.ndarray, e: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -155,7 +155,7 @@ def linear_profiles(frames: list[tuple[np.ndarray, np.ndarray]], response: Respo
     from envisat_pose.perception.refine import sample_bicubic
 
     rows = [sample_bicubic(response.linearize(im), pts).astype(np.float64) for im, pts in frames if len(pts)]
-    return np.concatenate(rows) if rows else np.zeros((0, len(look_t_px())))
+    return np.concatenate(rows) if rows else np.zeros((0, len(profile_t_px())))
 
 
 def station_groups(frames: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
@@ -184,7 +184,7 @@ def fit_gamma(frames: list[tuple[np.ndarray, np.ndarray]], groups: np.ndarray, a
     """The power whose linearization makes the stations' mean profile most antisymmetric (module doc), its
     standard error (the groups' own minima's spread over sqrt(groups)), and the asymmetry (pooled, and the
     groups' mean excess over the fitted power's with its standard error) at power 1 and under the sRGB curve."""
-    t, ids = look_t_px(), np.unique(groups)
+    t, ids = profile_t_px(), np.unique(groups)
 
     def costs(response: Response) -> tuple[float, np.ndarray]:
         q, e = normalized(linear_profiles(frames, response), t)
@@ -214,7 +214,7 @@ def choose_response(gamma: float, gamma_se: float, record: dict) -> Response:
     1 (the data cannot tell them apart; the groups' own asymmetries are too noisy on real frames to compare
     curves by); else 'srgb' where the power is within NAMED_Z standard errors of its nominal 2.2 (on the
     project's renders a power fitted to sRGB frames lands anywhere in 1.8-2.8, and linearizing them by it
-    instead of the curve moved the cue by up to 0.6 %: bench/edge_truth.py --looks), or where its pooled
+    instead of the curve moved the cue by up to 0.6 %: bench/edge_truth.py --responses), or where its pooled
     asymmetry is no larger than the fitted power's (a curve that bends in the darks as no power does; the sRGB frames' best
     power drifts with their levels); else the fitted power. A power at the grid's end is no measurement: then the
     named curve of the smaller asymmetry."""
@@ -240,20 +240,20 @@ def fit_blur(q: np.ndarray, e: np.ndarray, t: np.ndarray) -> float | None:
     return float(np.sqrt(max(s * s - 1.0 / 12.0, 0.0)))
 
 
-def estimate_look(images: list[np.ndarray], corners_px: np.ndarray, use: np.ndarray) -> LookFit:
+def estimate_response(images: list[np.ndarray], corners_px: np.ndarray, use: np.ndarray) -> ResponseFit:
     """The response and blur of frames `images` (N of (H, W) stored 8-bit) from the outlines of corners_px
-    (N, 8, 2) px, use (N, 8) bool (module doc). A LookFit with nothing measured (LINEAR) below MIN_LOOK_STATIONS
-    stations."""
-    samples = [look_samples(im, c, u) for im, c, u in zip(images, corners_px, use)]
+    (N, 8, 2) px, use (N, 8) bool (module doc). A ResponseFit with nothing measured (LINEAR) below
+    MIN_RESPONSE_STATIONS stations."""
+    samples = [profile_samples(im, c, u) for im, c, u in zip(images, corners_px, use)]
     frames = [(im, pts) for im, (pts, _) in zip(images, samples)]
     along = np.concatenate([a + 1e6 * f for f, (_, a) in enumerate(samples)]) if samples else np.zeros(0)
     groups = station_groups(frames)
     n, n_groups = len(groups), int(len(np.unique(groups)))
-    if n < MIN_LOOK_STATIONS:
-        return LookFit(stations=n, groups=n_groups)
+    if n < MIN_RESPONSE_STATIONS:
+        return ResponseFit(stations=n, groups=n_groups)
     gamma, gamma_se, asym = fit_gamma(frames, groups, along)
     response = choose_response(gamma, gamma_se, asym)
-    t = look_t_px()
+    t = profile_t_px()
     q, e = normalized(linear_profiles(frames, response), t)
     e = smooth_edges(e, along)
     sigma = fit_blur(q, e, t)
@@ -262,4 +262,4 @@ def estimate_look(images: list[np.ndarray], corners_px: np.ndarray, use: np.ndar
         gamma, gamma_se = None, None
     per = np.array([fit_blur(q[groups == g], e[groups == g], t) for g in np.unique(groups)])
     sigma_se = float(np.std(per, ddof=1) / np.sqrt(len(per))) if len(per) > 1 else None
-    return LookFit(response, gamma, gamma_se, sigma, sigma_se, n, n_groups, asym)
+    return ResponseFit(response, gamma, gamma_se, sigma, sigma_se, n, n_groups, asym)

@@ -1,5 +1,5 @@
-"""The camera's response and blur from its own frames (pipelines/adaptation/edge_look.py) and the edge cue in linear light
-(pipelines/adaptation/edge_range.py with `light`).
+"""The camera response (response curve and blur) from its own frames (pipelines/adaptation/edge_response.py) and
+the edge cue in linear light (pipelines/adaptation/edge_range.py with `light`).
 
 The frames are drawn here in closed form, not by the code under test: a convex polygon's light is the product
 of each edge's Gaussian-blurred half-plane, Phi(distance / sigma) (exact for one straight edge; the stations
@@ -15,8 +15,8 @@ import pytest
 from scipy.special import ndtr
 
 from envisat_pose.camera_response import LINEAR, SRGB, Response, parse_response
-from envisat_pose.pipelines.adaptation.edge_look import estimate_look
 from envisat_pose.pipelines.adaptation.edge_range import edge_stations
+from envisat_pose.pipelines.adaptation.edge_response import estimate_response
 
 HEX = np.array([[150.3, 80.6], [330.2, 101.1], [392.5, 210.0], [316.7, 335.4], [135.9, 314.8], [92.4, 190.2]])
 RESPONSES = {"linear": None, "srgb": "srgb", "gamma 1.8": 1.8, "gamma 2.4": 2.4}
@@ -85,16 +85,16 @@ def test_the_edge_in_linear_light_sits_on_the_true_step(name):
 @pytest.mark.slow  # ~100 s on the loaded 2-core machine: 36 frames drawn, 32 linearizations of each
 @pytest.mark.parametrize("name", list(RESPONSES))
 def test_the_response_and_blur_are_read_from_the_frames(name):
-    """estimate_look recovers the response where the blur shows it (1 and 2.5 px): linear by name; sRGB by name
+    """estimate_response recovers the response where the blur shows it (1 and 2.5 px): linear by name; sRGB by name
     or as a power within 0.1 of its nominal 2.2; a gamma's power within 0.1 (the curve chosen may be sRGB where
     the power cannot be told from 2.2). Linearized by what it found, the edge is
     within 0.05 px of the true step (0.03 of error in the power moves a 2.5 px blur's edge by 0.02 px: adapt
-    carries that as the scale's look term). At 0.3 px no power is claimed and a named curve is chosen. The PSF's
+    carries that as the scale's response term). At 0.3 px no power is claimed and a named curve is chosen. The PSF's
     sigma within 0.1 px throughout."""
     kind = RESPONSES[name]
     for sigma in SIGMAS:
         ims, corners, use = case(name, sigma)
-        fit = estimate_look(ims, corners, use)
+        fit = estimate_response(ims, corners, use)
         assert fit.stations > 1000 and fit.psf_sigma_px == pytest.approx(sigma, abs=0.1), (name, sigma, fit)
         if sigma < 0.5:
             assert fit.gamma is None and fit.response in (LINEAR, SRGB), (name, sigma, fit)
