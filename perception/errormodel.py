@@ -72,7 +72,7 @@ class ErrorModel:
     bias_scale: mean apparent scale of the detected corners about their centroid (1: none).
     bias_radial_px: mean signed radial error, px (positive outward).
     bias_scale_sd: how far a new sequence's mean apparent scale falls from bias_scale (each sequence has its own
-    look and light): the standard deviation of the sequences' means about theirs, times sqrt(1 + 1 / n) for the
+    views, light and camera): the standard deviation of the sequences' means about theirs, times sqrt(1 + 1 / n) for the
     n sequences' mean itself (0: not measured, fewer than two sequences).
     n_frames: frames the model was measured on. source: what it was measured on (datasets, ROI mode).
     """
