@@ -25,7 +25,7 @@ from torch import nn
 
 from envisat_pose.config import Config, check
 from envisat_pose.perception.heatmaps import to_pixels
-from envisat_pose.perception.model import Hourglass, Residual, conv_bn
+from envisat_pose.perception.model import Hourglass, Residual, check_backbone, conv_bn
 
 KEYPOINT_FORMAT = "envisat-pose keypoint detector v1"  # the weights' metadata `format`
 MODEL_KIND = "keypoints"  # the weights' metadata `kind` (ENVISAT's corner weights have none: corners)
@@ -48,11 +48,7 @@ class KeypointModelConfig(Config):
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
-        m = self.stride * 2 ** self.depth
-        check(self.depth >= 1 and self.width >= 1 and self.stem_width >= 1, f"{p}depth", self.depth,
-              "at least one hourglass level and positive widths")
-        check(self.input_px >= m and self.input_px % m == 0, f"{p}input_px", self.input_px,
-              f"a multiple of {m} (stride {self.stride}, {self.depth} hourglass levels)")
+        check_backbone(self, p)
         check(self.num_keypoints is None or self.num_keypoints >= 1, f"{p}num_keypoints", self.num_keypoints,
               "at least 1 keypoint (or unset: the target's)")
 

@@ -46,16 +46,22 @@ class ModelConfig(Config):
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
-        m = self.stride * 2 ** self.depth
-        check(self.depth >= 1 and self.width >= 1 and self.stem_width >= 1, f"{p}depth", self.depth,
-              "at least one hourglass level and positive widths")
-        check(self.input_px >= m and self.input_px % m == 0, f"{p}input_px", self.input_px,
-              f"a multiple of {m} (stride {self.stride}, {self.depth} hourglass levels)")
+        check_backbone(self, p)
         check(self.line_points % self.line_pool == 0, f"{p}line_points", self.line_points,
               f"a multiple of line_pool ({self.line_pool})")
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def check_backbone(cfg, p: str) -> None:
+    """ConfigError unless cfg's stem and hourglass (depth, width, stem_width, input_px, stride) can be built: at
+    least one level, positive widths, an input side a multiple of stride x 2^depth. p: the field prefix ('model.')."""
+    m = cfg.stride * 2 ** cfg.depth
+    check(cfg.depth >= 1 and cfg.width >= 1 and cfg.stem_width >= 1, f"{p}depth", cfg.depth,
+          "at least one hourglass level and positive widths")
+    check(cfg.input_px >= m and cfg.input_px % m == 0, f"{p}input_px", cfg.input_px,
+          f"a multiple of {m} (stride {cfg.stride}, {cfg.depth} hourglass levels)")
 
 
 def conv_bn(cin: int, cout: int, k: int = 3, stride: int = 1) -> nn.Sequential:
