@@ -26,7 +26,7 @@ from envisat_pose.config import ConfigError, InputError
 from envisat_pose.geometry import CAMERA_NAME, model_path, visible_corners
 from envisat_pose.shard_reader import load_dataset_manifest
 from envisat_pose.target_mesh import BodyMesh, TriangleMesh, body_mesh, feature_edges
-from envisat_pose.target_shape import Symmetry, skeleton, symmetries, triangle_distances
+from envisat_pose.target_shape import Symmetry, fibonacci_directions, skeleton, symmetries, triangle_distances
 
 DEFAULT_TARGET = "models/envisat.xml"  # the default `target` of every config (the package's file)
 KEYPOINT_PREFIX = "kp_"
@@ -103,6 +103,13 @@ class Target:
     def labels_name_keypoints(self) -> bool:
         """Whether a label names its keypoints (keypoint_names, keypoints_px): every target's but the default's,
         whose labels keep the shard contract's corners_px with A-H implied."""
+        return not self.is_default
+
+    @property
+    def keypoint_detector(self) -> bool:
+        """Whether its detector is a keypoint network (`envisat train --target`) and its tracker names keypoints
+        by the target's own symmetries: every target's but the default's, whose detector is the corner network
+        that names A-H by fitting its box (pipelines/tracking/namings.py)."""
         return not self.is_default
 
     @property
@@ -212,15 +219,6 @@ def direction_cells(dirs: np.ndarray, rows: int = TABLE_CELLS_POLAR) -> np.ndarr
     centres = np.stack([np.sin(p) * np.cos(a), np.sin(p) * np.sin(a), np.cos(p)], axis=-1).reshape(-1, 3)
     nearest = [np.argmax(chunk @ dirs.T, axis=1) for chunk in np.array_split(centres, 64)]
     return np.concatenate(nearest).astype(np.int16).reshape(rows, 2 * rows)
-
-
-def fibonacci_directions(n: int) -> np.ndarray:
-    """n unit vectors spread evenly over the sphere (the golden-angle spiral), (n, 3)."""
-    k = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * k / n
-    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
-    r = np.sqrt(1.0 - z * z)
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
 @functools.lru_cache(maxsize=16)

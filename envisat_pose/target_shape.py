@@ -38,6 +38,15 @@ class Symmetry:
         return "shape" if not self.shape_keeps else "materials" if not self.materials_keep else ""
 
 
+def fibonacci_directions(n: int) -> np.ndarray:
+    """n unit vectors spread evenly over the sphere (the golden-angle spiral), (n, 3)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
 # ---------------------------------------------------------------- skeleton
 
 

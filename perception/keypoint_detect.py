@@ -23,8 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from envisat_pose.config import from_dict
+from envisat_pose.config import InputError, from_dict
 from envisat_pose.perception.data import IMAGE_MEAN, IMAGE_STD, DataConfig, crop_box, crop_resize, to_full_px
+from envisat_pose.perception.detect import FrameDetection
 from envisat_pose.perception.keypoint_net import KEYPOINT_FORMAT, KeypointModelConfig, KeypointNet, decode_keypoints
 from envisat_pose.perception.weights import (
     WeightsError,
@@ -119,3 +120,52 @@ class KeypointDetector:
             return {**coarse, "crop_px": whole}
         box = crop_box(coarse["keypoints_px"], found, (h, w), DataConfig(crop_margin=self.cfg.crop_margin), None)
         return {**self.network(image, box), "crop_px": box}
+
+
+class KeypointFrameDetector:
+    """A keypoint detector as the Tracker takes one (pipelines/tracking/tracker.py): detect(image, K, roi_px=None,
+    ...) -> perception.detect.FrameDetection with K rows, keypoint k in row k (the weights' channel order, the
+    Target's). A keypoint is reported (visible, with its position) where its visibility probability and its peak
+    score pass the detector's thresholds and its sigma is calibrated; its covariance is sigma_k^2 I
+    (`envisat calibrate --target`). In a region of interest the network looks at that window alone (one pass);
+    without one, at the whole frame then the crop around what it found. The pose priors the corner network takes
+    for its naming are accepted and not used: a keypoint's name is its channel. alt_probability is 0.5 (no
+    half-turn cue: the tracker's namings weigh a keypoint network's names by the target's symmetries)."""
+
+    def __init__(self, detector: KeypointDetector, sigma_px: np.ndarray):
+        self.detector = detector
+        self.sigma_px = np.asarray(sigma_px, float)
+        self.trained_for = dict(detector.model.target)
+        self.keypoint_names = detector.keypoint_names
+
+    @property
+    def num_keypoints(self) -> int:
+        return int(self.sigma_px.shape[0])
+
+    def detect(self, image: np.ndarray, K: np.ndarray | None = None, roi_px: np.ndarray | None = None,
+               prior_R_cam_from_target=None, prior_t_cam_from_target_m=None, prior_weighs_namings: bool = True):
+        if roi_px is None:
+            found = self.detector.detect(image)
+        else:
+            box = np.asarray(roi_px, dtype=np.int64)
+            found = {**self.detector.network(image, box), "crop_px": box}
+        cfg = self.detector.cfg
+        visible = (found["visible_prob"] >= cfg.visible_threshold) & (found["score"] >= cfg.coarse_threshold) \
+            & np.isfinite(self.sigma_px) & np.isfinite(found["keypoints_px"]).all(-1)
+        z = np.where(visible[:, None], found["keypoints_px"], np.nan)
+        var = np.where(visible, np.square(np.nan_to_num(self.sigma_px, nan=1.0)), np.nan)
+        cov = var[:, None, None] * np.eye(2)
+        return FrameDetection(z, cov, np.asarray(found["score"], float), visible, np.full_like(z, np.nan), 0.5,
+                              False, np.asarray(found["crop_px"], np.float64), np.zeros((0, 2)))
+
+
+def load_frame_detector(path: str, target: str, device: str = "cpu", field: str = "weights") -> KeypointFrameDetector:
+    """The KeypointFrameDetector of the weights at path for the target file `target` (load_keypoint_model's
+    checks). InputError when the weights carry no calibrated covariance: the tracker weighs each keypoint by it."""
+    model = load_keypoint_model(path, target, device, field)
+    sigma = weights_keypoint_sigma(path, model.cfg.num_keypoints)
+    if not np.isfinite(sigma).any():
+        raise InputError(f"{field} {path!r}: no calibrated pixel covariance (the tracker weighs each keypoint by "
+                         f"it): calibrate them first on held-out frames, `envisat calibrate --target {target} --weights {path} "
+                         "--data HELD_OUT_DIR --out CALIBRATED.safetensors`")
+    return KeypointFrameDetector(KeypointDetector(model, device=device), sigma)

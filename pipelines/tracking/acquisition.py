@@ -24,7 +24,6 @@ No prior and no truth: the tracker buffers the first lit frames with enough name
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,20 +31,17 @@ import numpy as np
 from envisat_pose.attitude import dcm_to_mrp, mrp_shadow, mrp_to_dcm
 from envisat_pose.filtering.dynamics import propagate
 from envisat_pose.filtering.measurements import measure
-from envisat_pose.geometry import PinholeCamera, load_geometry
-from envisat_pose.perception.box_symmetry import symmetry_permutations
+from envisat_pose.geometry import PinholeCamera
+from envisat_pose.pipelines.tracking.namings import Namings, box_namings, renamed_state
 from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
 
-@functools.lru_cache(maxsize=1)
-@functools.lru_cache(maxsize=1)
 def box_symmetries() -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The box's half-turns about its x, y and z axes as perception's naming derives them from the MJCF
-    (perception.box_symmetry.symmetry_permutations): name -> (perm (8,), S (3, 3), d (3,) m in T) with corner perm[k]
-    = S corner k + d. Each maps the box's corners onto themselves, so a naming may be off by any of them.
-    Computed once (the tracker renames every frame under each); not to be modified."""
-    return {name: (np.asarray(perm), np.asarray(S, dtype=float), np.asarray(d, dtype=float))
-            for name, (perm, S, d) in symmetry_permutations(load_geometry()).items()}
+    """The box's half-turns about its x, y and z axes (namings.box_namings, from the MJCF's box): name -> (perm
+    (8,), S (3, 3), d (3,) m in T) with corner perm[k] = S corner k + d. Each maps the box's corners onto
+    themselves, so a naming may be off by any of them. Read-only arrays."""
+    n = box_namings()
+    return {name: (n.perms[i], n.S[i], n.d[i]) for i, name in enumerate(n.names) if i > 0}
 
 
 def half_turn() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -108,56 +104,36 @@ def half_turn_state(x: np.ndarray) -> np.ndarray:
 
 def symmetric_state(x: np.ndarray, symmetry: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
     """The same physical pose described by the naming a box symmetry (perm, S, d) gives (half_turn_state for any
-    of box_symmetries). (..., 12)."""
-    _, S, d = symmetry
-    x = np.array(x, dtype=float)
-    G = mrp_to_dcm(x[..., MRP])
-    x[..., POS] = x[..., POS] + np.einsum("...ji,j->...i", G, d)
-    x[..., MRP] = dcm_to_mrp(np.einsum("ij,...jk->...ik", S, G))
-    x[..., RATE] = x[..., RATE] @ S.T
-    return x
+    of box_symmetries; namings.renamed_state). (..., 12)."""
+    return renamed_state(x, symmetry[1], symmetry[2])
 
 
 def half_turn_naming(z_px: np.ndarray, cov_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The half-turn renaming of corners (8, 2) and covariances (8, 2, 2): corner i takes corner perm[i]."""
-    return renamed(z_px, cov_px, 1)
+    return box_namings().renamed(z_px, cov_px, 1)
 
 
-# the namings a hypothesis may take of a detection: index 0 the detector's own, 1-3 its renaming by the box's
-# half-turn about x (the long axis, the one the detector's half-turn probability speaks of), y and z
+# ENVISAT's corner network's namings (namings.box_namings): index 0 the detector's own, 1-3 its renaming by the
+# box's half-turn about x (the long axis, the one the detector's half-turn probability speaks of), y and z
 NAMINGS = ("detector", "x", "y", "z")
 
 
-def renamed(z_px: np.ndarray, cov_px: np.ndarray, naming: int) -> tuple[np.ndarray, np.ndarray]:
-    """Corners (8, 2) and covariances (8, 2, 2) under naming (an index of NAMINGS)."""
-    if naming == 0:
-        return z_px, cov_px
-    perm = box_symmetries()[NAMINGS[naming]][0]
-    return z_px[perm], cov_px[perm]
-
-
-def naming_log_likelihood(p_alt: float, naming: int, clip: float) -> float:
-    """The detector's appearance log-likelihood of a naming: log(1 - p) for its own, log(p) for the long-axis
-    half-turn (p its half-turn probability clipped to [clip, 1 - clip]); the y and z half-turns, on which it gives
-    no probability, the least it ever concedes, log(clip): possible, but only the geometry and the dynamics can
-    make them win."""
-    p = float(np.clip(p_alt, clip, 1.0 - clip))
-    return (float(np.log1p(-p)), float(np.log(p)), float(np.log(clip)), float(np.log(clip)))[naming]
-
-
-def renamed_window(frames: list[FramePose], naming: int) -> list[FramePose]:
-    """The window's frames under naming (an index of NAMINGS): corners, covariances and PnP poses renamed, the
-    half-turn probability taken to the long-axis half-turn's (1 - p) there."""
+def renamed_window(frames: list[FramePose], naming: int, namings: Namings | None = None) -> list[FramePose]:
+    """The window's frames under naming (an index of namings, None: ENVISAT's box_namings): keypoints,
+    covariances and PnP poses renamed, the half-turn probability taken as namings.aligned_p_alt says (the
+    long-axis half-turn's 1 - p for ENVISAT's: only the renaming by the half-turn it speaks of turns it)."""
+    nm = namings or box_namings()
     if naming == 0:
         return list(frames)
-    sym = box_symmetries()[NAMINGS[naming]]
-    return [FramePose(f.t_s, f.chaser, f.z_px[sym[0]], f.cov_px[sym[0]], 1.0 - f.p_alt if naming == 1 else f.p_alt,
-                      None if f.x_pnp is None else symmetric_state(f.x_pnp, sym)) for f in frames]
+    perm = nm.perms[naming]
+    p_alt = (lambda p: 1.0 - p) if nm.half_turn_prob and naming == 1 else (lambda p: p)
+    return [FramePose(f.t_s, f.chaser, f.z_px[perm], f.cov_px[perm], p_alt(f.p_alt),
+                      None if f.x_pnp is None else nm.state(f.x_pnp, naming)) for f in frames]
 
 
-def naming_state(x: np.ndarray, naming: int) -> np.ndarray:
-    """The state x described in naming (an index of NAMINGS)."""
-    return np.array(x, dtype=float) if naming == 0 else symmetric_state(x, box_symmetries()[NAMINGS[naming]])
+def naming_state(x: np.ndarray, naming: int, namings: Namings | None = None) -> np.ndarray:
+    """The state x described in naming (an index of namings, None: ENVISAT's box_namings)."""
+    return (namings or box_namings()).state(x, naming)
 
 
 def attitude_distance_rad(p_a: np.ndarray, p_b: np.ndarray) -> float:
@@ -166,27 +142,27 @@ def attitude_distance_rad(p_a: np.ndarray, p_b: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(G) - 1.0) / 2.0, -1.0, 1.0)))
 
 
-def align_namings(frames: list[FramePose]) -> tuple[list[FramePose], np.ndarray]:
+def align_namings(frames: list[FramePose], namings: Namings | None = None) -> tuple[list[FramePose], np.ndarray]:
     """One consistent naming through the window (module docstring, 2). Each frame takes the naming (the
-    detector's, or its renaming by one of the box's half-turns, box_symmetries) whose attitude is nearest the
-    previous frame's: the detector's names may be off by any of the box's symmetries, and a physical tumble turns
-    the box by a few degrees between frames, never by 180. Returns the frames renamed (their x_pnp follows; p_alt
-    too under the long-axis half-turn, and 0.5 under the others, which the detector's half-turn probability says
-    nothing about) and renamed (N,) bool. The first frame keeps the detector's naming."""
+    detector's, or its renaming by one of the target's symmetries: namings, None: ENVISAT's box_namings) whose
+    attitude is nearest the previous frame's: the detector's names may be off by any of the symmetries, and a
+    physical tumble turns the body by a few degrees between frames, never by a symmetry's angle. Returns the frames
+    renamed (their x_pnp follows; p_alt as namings.aligned_p_alt: for ENVISAT's, 1 - p under the long-axis
+    half-turn and 0.5 under the others, which its half-turn probability says nothing about) and renamed (N,)
+    bool. The first frame keeps the detector's naming."""
+    nm = namings or box_namings()
     out, renamed, ref = [], [], None
-    syms = box_symmetries()
     for fr in frames:
         best = None
         if ref is not None and fr.x_pnp is not None:
-            dist = {name: attitude_distance_rad(symmetric_state(fr.x_pnp, sym)[MRP], ref) for name, sym in syms.items()}
-            name = min(dist, key=dist.get)
-            if dist[name] < attitude_distance_rad(fr.x_pnp[MRP], ref):
-                best = name
+            dist = [attitude_distance_rad(nm.state(fr.x_pnp, n)[MRP], ref) for n in range(nm.count)]
+            n = int(np.argmin(dist[1:])) + 1 if nm.count > 1 else 0
+            if n and dist[n] < dist[0]:
+                best = n
         if best is not None:
-            perm = syms[best][0]
-            p_alt = 1.0 - fr.p_alt if best == "x" else 0.5
-            fr = FramePose(fr.t_s, fr.chaser, fr.z_px[perm], fr.cov_px[perm], p_alt,
-                           symmetric_state(fr.x_pnp, syms[best]))
+            perm = nm.perms[best]
+            fr = FramePose(fr.t_s, fr.chaser, fr.z_px[perm], fr.cov_px[perm], nm.aligned_p_alt(fr.p_alt, best),
+                           nm.state(fr.x_pnp, best))
         if fr.x_pnp is not None:
             ref = fr.x_pnp[MRP]
         out.append(fr)
@@ -249,7 +225,7 @@ def _propagate_back(x_end: np.ndarray, t_end: float, times: np.ndarray, chaser_a
 @dataclass(frozen=True)
 class BatchFit:
     """A batch fit of one hypothesis: x (12,) at t_s, P (12, 12), chi2 (whitened residuals' sum of squares of the
-    kept corners), dof (residual components kept minus 12), used (N, 8) bool the corners kept, rejected: the
+    kept corners), dof (residual components kept minus 12), used (N, K) bool the keypoints kept, rejected: the
     measured corners the fit's gate dropped."""
 
     t_s: float
@@ -269,26 +245,28 @@ class BatchFit:
 
 
 def batch_fit(frames: list[FramePose], x_guess: np.ndarray, chaser_at, camera: PinholeCamera, dyn: dict,
-              iterations: int = 15, huber: float = 3.0, gate: float | None = None) -> BatchFit:
+              iterations: int = 15, huber: float = 3.0, gate: float | None = None,
+              keypoints_T_m: np.ndarray | None = None) -> BatchFit:
     """Gauss-Newton / Levenberg-Marquardt fit of the state at the last frame (module docstring, 3).
 
     chaser_at(t_s) -> (4,) the chaser's polar orbit; dyn: J_T, mu_m3_s2, gravity_gradient, max_step_s; huber:
     the whitened residual norm per corner beyond which a corner is down-weighted; gate: chi-square bound per
-    corner beyond which it is dropped after the first iterations (None: gates.chi2_gate(GATE_PROB, 2))."""
+    corner beyond which it is dropped after the first iterations (None: gates.chi2_gate(GATE_PROB, 2));
+    keypoints_T_m: (K, 3) the target's keypoints (None: ENVISAT's corners A-H)."""
     from envisat_pose.gates import GATE_PROB, chi2_gate
 
     gate = chi2_gate(GATE_PROB, 2) if gate is None else float(gate)
     times = np.array([f.t_s for f in frames])
     t_end = float(times[-1])
-    z = np.stack([f.z_px for f in frames])  # (N, 8, 2)
+    z = np.stack([f.z_px for f in frames])  # (N, K, 2)
     meas = np.isfinite(z).all(-1)
     L_inv = np.linalg.inv(np.linalg.cholesky(np.where(meas[..., None, None], np.stack([f.cov_px for f in frames]),
-                                                      np.eye(2))))  # whitening, (N, 8, 2, 2)
+                                                      np.eye(2))))  # whitening, (N, K, 2, 2)
     steps = np.array([1e-3] * 3 + [1e-4] * 3 + [1e-5] * 3 + [1e-6] * 3)
 
     def whitened(X: np.ndarray) -> np.ndarray:
-        """(B, 12) states at t_end -> whitened residuals (B, N, 8, 2) (0 where not measured)."""
-        uv = measure(_propagate_back(X, t_end, times, chaser_at, dyn), "pixels", camera)
+        """(B, 12) states at t_end -> whitened residuals (B, N, K, 2) (0 where not measured)."""
+        uv = measure(_propagate_back(X, t_end, times, chaser_at, dyn), "pixels", camera, keypoints_T_m)
         r = np.where(meas[..., None], z - uv, 0.0)
         return np.einsum("nkij,bnkj->bnki", L_inv, r)
 
@@ -299,7 +277,7 @@ def batch_fit(frames: list[FramePose], x_guess: np.ndarray, chaser_at, camera: P
         X = np.concatenate([x[None], x[None] + np.diag(steps)])
         W = whitened(X)
         r0 = W[0]
-        J = (W[1:] - r0[None]) / steps[:, None, None, None]  # (12, N, 8, 2)
+        J = (W[1:] - r0[None]) / steps[:, None, None, None]  # (12, N, K, 2)
         norm = np.linalg.norm(r0, axis=-1)
         if it >= 3:
             keep = meas & (norm ** 2 < gate)
@@ -338,7 +316,8 @@ def batch_fit(frames: list[FramePose], x_guess: np.ndarray, chaser_at, camera: P
     return BatchFit(t_end, x, P, chi2, dof, keep, int(meas.sum() - keep.sum()))
 
 
-def appearance_log_likelihood(frames: list[FramePose], clip: float) -> np.ndarray:
-    """(4,) log-likelihoods of the aligned window under each naming of NAMINGS (naming_log_likelihood summed
-    over the frames: one frame never decides alone)."""
-    return np.array([sum(naming_log_likelihood(f.p_alt, h, clip) for f in frames) for h in range(len(NAMINGS))])
+def appearance_log_likelihood(frames: list[FramePose], clip: float, namings: Namings | None = None) -> np.ndarray:
+    """(N,) log-likelihoods of the aligned window under each naming of namings (None: ENVISAT's box_namings;
+    Namings.log_likelihood summed over the frames: one frame never decides alone)."""
+    nm = namings or box_namings()
+    return np.array([sum(nm.log_likelihood(f.p_alt, h, clip) for f in frames) for h in range(nm.count)])

@@ -1,8 +1,8 @@
 """The tracker's bank of hypotheses: one run of the batched filter per open hypothesis (the half-turn twins of a
 cold start), their log weights, the naming each takes, and their pruning.
 
-Each frame every hypothesis takes the naming (the detector's or its renaming by one of the box's half-turns)
-nearest its predicted corners and its log weight gains -cost/2 (cost ~ -2 log likelihood: the NIS, the gate's
+Each frame every hypothesis takes the naming (the detector's or its renaming by one of the target's symmetries:
+namings.py, the box's half-turns for ENVISAT) nearest its predicted keypoints and its log weight gains -cost/2 (cost ~ -2 log likelihood: the NIS, the gate's
 bound per rejected or dropped corner and dof x log of the adaptive R scale, so a hypothesis that explains its
 misfit by a larger R pays for it) plus the appearance log-likelihood of the naming it took, counted as one look
 per `appearance_frames` frames, and what the image shows of the solar array's end (perception/arraycue.py: the
@@ -18,7 +18,7 @@ import numpy as np
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.filtering.estimator import FilterState
 from envisat_pose.gates import chi2_bound
-from envisat_pose.pipelines.tracking.acquisition import NAMINGS, naming_log_likelihood, renamed
+from envisat_pose.pipelines.tracking.namings import Namings, box_namings
 from envisat_pose.state import MRP
 
 
@@ -45,21 +45,23 @@ def probabilities(log_w: np.ndarray) -> np.ndarray:
 
 
 def choose_namings(zd: np.ndarray, cd: np.ndarray, p_alt: float, uv_pred: np.ndarray, clip: float,
-                   appearance_frames: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per hypothesis, the naming (acquisition.NAMINGS: the detector's, or its renaming by one of the box's
-    half-turns) nearest its predicted corners: zd (8, 2), cd (8, 2, 2) the detector's naming, p_alt its
-    half-turn probability, uv_pred (H, 8, 2) each hypothesis' predicted corners. Returns z (H, 8, 2), cov
-    (H, 8, 2, 2) (identity where not measured), namings (H,) (indices of NAMINGS) and the appearance
-    log-likelihoods (H,) of the namings taken (acquisition.naming_log_likelihood, over appearance_frames)."""
+                   appearance_frames: float, namings: Namings | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per hypothesis, the naming (of namings, None: ENVISAT's box_namings: the detector's, or its renaming by
+    one of the target's symmetries) nearest its predicted keypoints: zd (K, 2), cd (K, 2, 2) the detector's
+    naming, p_alt its half-turn probability, uv_pred (H, K, 2) each hypothesis' predicted keypoints. Returns z
+    (H, K, 2), cov (H, K, 2, 2) (identity where not measured), namings (H,) (indices of namings) and the
+    appearance log-likelihoods (H,) of the namings taken (Namings.log_likelihood, over appearance_frames)."""
+    nm = namings or box_namings()
     H = uv_pred.shape[0]
-    options = [renamed(zd, cd, n) for n in range(len(NAMINGS))]
+    options = [nm.renamed(zd, cd, n) for n in range(nm.count)]
     dist = np.stack([np.nanmean(np.linalg.norm(z[None] - uv_pred, axis=-1), axis=-1) for z, _ in options], axis=-1)
-    namings = np.argmin(np.where(np.isfinite(dist), dist, np.inf), axis=-1).reshape(H)  # (H,); 0 when none seen
-    z = np.stack([options[n][0] for n in namings])
-    cov = np.stack([options[n][1] for n in namings])
+    chosen = np.argmin(np.where(np.isfinite(dist), dist, np.inf), axis=-1).reshape(H)  # (H,); 0 when none seen
+    z = np.stack([options[n][0] for n in chosen])
+    cov = np.stack([options[n][1] for n in chosen])
     cov = np.where(np.isfinite(z).all(-1)[..., None, None], cov, np.eye(2))
-    appearance = np.array([naming_log_likelihood(p_alt, int(n), clip) for n in namings]) / appearance_frames
-    return z, cov, namings, appearance
+    appearance = np.array([nm.log_likelihood(p_alt, int(n), clip) for n in chosen]) / appearance_frames
+    return z, cov, chosen, appearance
 
 
 def update_cost(new: FilterState, gate_bound: float) -> np.ndarray:

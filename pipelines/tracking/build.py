@@ -18,6 +18,7 @@ from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
 from envisat_pose.pipelines.tracking.onboard import chaser_function
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
+from envisat_pose.target import other_target
 
 
 def tracker_filter(overrides: FilterConfig | dict | None = None, scenario: str | None = None) -> FilterConfig:
@@ -66,12 +67,22 @@ def tracker_camera(path: str | None = None, size_px: tuple[int, int] | None = No
     return cam
 
 
-def tracker_detector(weights: str | None = None, device: str = "cpu"):
-    """The corner detector (perception.detect.Detector) of a weights file; None: the shipped weights."""
-    from envisat_pose.perception.detect import load_detector
-    from envisat_pose.perception.weights import shipped_weights_path
+def tracker_detector(weights: str | None = None, device: str = "cpu", target: str | None = None):
+    """The tracker's detector of a weights file: ENVISAT's corner detector (perception.detect.Detector; weights
+    None: the shipped ones) when target is None or ENVISAT's file, else the keypoint detector of that target's
+    file (perception.keypoint_detect.KeypointFrameDetector: its weights required, trained for that target and
+    calibrated)."""
+    if other_target(target) is None:
+        from envisat_pose.perception.detect import load_detector
+        from envisat_pose.perception.weights import shipped_weights_path
 
-    return load_detector(weights or shipped_weights_path(), device=device)
+        return load_detector(weights or shipped_weights_path(), device=device)
+    from envisat_pose.perception.keypoint_detect import load_frame_detector
+
+    if not weights:
+        raise InputError(f"target {target!r}: give its keypoint detector's weights (`envisat train --target`, then "
+                         "`envisat calibrate --target`); the shipped weights are ENVISAT's")
+    return load_frame_detector(weights, target, device)
 
 
 def scenario_orbit(scenario: str = "default"):

@@ -35,6 +35,13 @@ Each frame every hypothesis takes the naming nearest its predicted corners and t
 Once the best prior is tight the detector looks only in the predicted region of interest, with the predicted pose
 as its naming's start and half-turn prior when one hypothesis is left.
 
+Another target than ENVISAT (`target=`, a Target; `envisat track --target`, `envisat run --target`): its keypoint
+detector (perception.keypoint_detect.KeypointFrameDetector, K keypoints named by channel), the filter over its K
+keypoints, inertia and visibility table, and the namings of its own symmetries (pipelines/tracking/namings.py:
+one hypothesis per symmetry something tells apart, for the box's half-turns above; poses that nothing tells
+apart are one pose, the target's `equivalent` rotations). The rest is as for ENVISAT, but the solar-array cue,
+which is ENVISAT's.
+
 The filter's R is the detector's calibrated covariance at the error model's scale, inflated for the errors'
 frame-to-frame correlation at the filter's own memory (pipelines/tracking/noise.py). The detector's mean apparent scale
 (measured on held-out sequences) is undone in every frame's corners; what a run's own scale leaves (the spread
@@ -50,15 +57,22 @@ from typing import Callable
 
 import numpy as np
 
-from envisat_pose.config import to_dict
+from envisat_pose.config import InputError, to_dict
 from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
-from envisat_pose.filtering.estimator import FilterConfig, FilterState, init_state, make_setup
-from envisat_pose.geometry import PinholeCamera, load_geometry
+from envisat_pose.filtering.estimator import (
+    FilterConfig,
+    FilterState,
+    filter_inertia_T_kg_m2,
+    init_state,
+    make_setup,
+)
+from envisat_pose.geometry import PinholeCamera
 from envisat_pose.pipelines.tracking.acquisition import FramePose
 from envisat_pose.pipelines.tracking.bank import probabilities, select_runs
 from envisat_pose.pipelines.tracking.build import chaser_from_orbit, tracker_camera, tracker_detector, tracker_filter
 from envisat_pose.pipelines.tracking.integrity import EvidenceWindow, target_radius_m
+from envisat_pose.pipelines.tracking.namings import box_namings, target_namings
 from envisat_pose.pipelines.tracking.noise import (
     correlation_inflation,
     detector_error_model,
@@ -73,6 +87,7 @@ from envisat_pose.pipelines.tracking.tracker_acquire import AcquiringSteps
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER, TrackerConfig, TrackEstimate
 from envisat_pose.pipelines.tracking.tracker_frame import TrackingSteps
 from envisat_pose.status import STATUSES
+from envisat_pose.target import Target, load_target, other_target
 
 __all__ = ["Tracker", "TrackerConfig", "TrackEstimate", "TRACKER_FILTER", "STATUSES", "tracker_from_scenario"]
 
@@ -85,8 +100,12 @@ class Tracker(AcquiringSteps, TrackingSteps):
     def __init__(self, camera: PinholeCamera, detector, chaser_at: Callable[[float], np.ndarray],
                  config: TrackerConfig = TrackerConfig(), filter_config: FilterConfig | dict | None = None,
                  J_T: np.ndarray | None = None, mu_m3_s2: float | None = None, gravity_gradient: bool = False,
-                 prior: tuple[np.ndarray, np.ndarray, float] | None = None):
+                 prior: tuple[np.ndarray, np.ndarray, float] | None = None, target: Target | None = None):
         config.validate()
+        if target is not None and not target.keypoint_detector:
+            target = None  # ENVISAT's: its corner network and the box's filter, as without a target
+        check_detector_target(detector, target)
+        self.target = target
         self.cfg = config
         fcfg = tracker_filter(filter_config)  # only the fields given override the tracker's
         q = fcfg.q_sigma
@@ -96,13 +115,17 @@ class Tracker(AcquiringSteps, TrackingSteps):
         self.camera = camera
         self.detector = detector
         self.chaser_at = chaser_at
-        J_T = load_inertia_T_kg_m2() if J_T is None else J_T
+        if J_T is None:
+            J_T = load_inertia_T_kg_m2() if target is None else filter_inertia_T_kg_m2(target)
         mu = MU_EARTH_M3_S2 if mu_m3_s2 is None else float(mu_m3_s2)
-        self.setup = make_setup(self.fcfg, "pixels", camera, J_T=J_T, mu_m3_s2=mu, gravity_gradient=gravity_gradient)
+        self.setup = make_setup(self.fcfg, "pixels", camera, J_T=J_T, mu_m3_s2=mu, gravity_gradient=gravity_gradient,
+                                target=target)
         self.dyn = {"J_T": J_T, "mu_m3_s2": mu, "gravity_gradient": gravity_gradient,
                     "max_step_s": self.fcfg.max_rk4_step_s}
-        self.corners_T_m = load_geometry().corners_T_m
-        self.radius_m = target_radius_m(self.corners_T_m)
+        self.keypoints_T_m = self.setup.keypoints_T_m
+        self.K = self.setup.num_keypoints
+        self.namings = box_namings() if target is None else target_namings(target, J_T)
+        self.radius_m = target_radius_m(self.keypoints_T_m)
         self.error_model = detector_error_model(detector)
         self.cov_factor = sequence_cov_factor(self.error_model, detector)
         self.bias_scale = self.error_model.bias_scale if config.noise.correct_scale else 1.0
@@ -241,17 +264,35 @@ class Tracker(AcquiringSteps, TrackingSteps):
         return tracker_from_scenario(scenario, weights, **kw)
 
 
+def check_detector_target(detector, target: Target | None) -> None:
+    """InputError in one line when a detector that records its target (`trained_for`: a keypoint detector's
+    name and sha256) was trained for another target than the tracker's (None: ENVISAT, whose detector is the
+    corner network). A detector that records none (the corner network, a user's own object) is taken as given."""
+    record = getattr(detector, "trained_for", None)
+    if not record:
+        return
+    if target is None:
+        raise InputError(f"the detector is a keypoint detector of target {record.get('name')!r}: give the tracker "
+                         "that target (target=load_target(FILE.xml), --target FILE.xml)")
+    if record.get("sha256") != target.sha256:
+        raise InputError(f"the detector was trained for target {record.get('name')!r} (sha256 "
+                         f"{str(record.get('sha256'))[:12]}), not for {target.name!r} (sha256 {target.sha256[:12]})")
+
+
 def tracker_from_scenario(scenario: str = "default", weights: str | None = None, camera=None,
-                          config=None, filter_config: FilterConfig | dict | None = None, size_px=None) -> Tracker:
+                          config=None, filter_config: FilterConfig | dict | None = None, size_px=None,
+                          target: str | None = None) -> Tracker:
     """A Tracker for frames of the named scenario's geometry: the chaser's orbit and the target's dynamics
     (gravity gradient, mu) from the scenario, the detector of `weights` (None: shipped), `camera` (None: the
     MJCF's chaser_cam, at size_px = (width, height) when given), TrackerConfig `config` (None: defaults), the
-    tracker's filter settings with `filter_config`'s fields over them (pipelines.build.tracker_filter)."""
+    tracker's filter settings with `filter_config`'s fields over them (pipelines.build.tracker_filter); target:
+    another target's MJCF file (its keypoint detector's `weights` then required; None: ENVISAT)."""
     from types import SimpleNamespace
 
     scen = scenario_config(scenario)
     physics = onboard_physics(SimpleNamespace(config=to_dict(scen)), f"scenario {scenario!r}")
-    return Tracker(camera if camera is not None else tracker_camera(size_px=size_px), tracker_detector(weights),
-                   chaser_from_orbit(scen.orbit), config or TrackerConfig(),
+    return Tracker(camera if camera is not None else tracker_camera(size_px=size_px),
+                   tracker_detector(weights, target=target), chaser_from_orbit(scen.orbit), config or TrackerConfig(),
                    dataclasses.asdict(tracker_filter(filter_config, scenario)),
-                   mu_m3_s2=physics.mu_m3_s2, gravity_gradient=physics.gravity_gradient)
+                   mu_m3_s2=physics.mu_m3_s2, gravity_gradient=physics.gravity_gradient,
+                   target=None if other_target(target) is None else load_target(target))

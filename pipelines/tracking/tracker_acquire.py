@@ -10,7 +10,6 @@ import time
 import numpy as np
 
 from envisat_pose.pipelines.tracking.acquisition import (
-    NAMINGS,
     BatchFit,
     FramePose,
     align_namings,
@@ -34,11 +33,11 @@ class AcquiringSteps:
         events: list[str] = []
         fd, t_det = (None, 0.0) if image is None else self._detect(image)
         t0 = time.perf_counter()
-        measured = np.zeros(8, bool)
+        measured = np.zeros(self.K, bool)
         if fd is not None:
             z, cov, p_alt = detection_measurement(fd, self.inflation, self.bias_scale)
             measured = np.isfinite(z).all(-1)
-            x_pnp = pnp_state(z, self.corners_T_m, self.camera, self.cfg.acquire.min_corners)
+            x_pnp = pnp_state(z, self.keypoints_T_m, self.camera, self.cfg.acquire.min_corners)
             if x_pnp is not None:
                 if self.buffer and t_s - self.buffer[-1].t_s > self.cfg.acquire.max_gap_s:
                     self.buffer = []
@@ -49,7 +48,7 @@ class AcquiringSteps:
         t_fit = time.perf_counter() - t0
         timing = {"detection": t_det, "filtering": t_fit}
         if self.state is not None:
-            return self._estimate(t_s, fd=fd, naming=0, measured=measured, rejected=np.zeros(8, bool), roi=None,
+            return self._estimate(t_s, fd=fd, naming=0, measured=measured, rejected=np.zeros(self.K, bool), roi=None,
                                   converged=False, events=tuple(events), timing=timing, status="acquiring")
         P = np.diag(np.repeat(np.square(ACQUIRING_SIGMA), 3))
         x = self.last_pose if self.last_pose is not None else np.full(N_STATE, np.nan)
@@ -57,7 +56,7 @@ class AcquiringSteps:
             P = np.full((N_STATE, N_STATE), np.nan)
         return TrackEstimate(t_s=t_s, status="acquiring", x_hat=x.copy(), P=P, hypotheses=np.zeros((0, N_STATE)),
                              probabilities=np.zeros(0), detection=fd, naming=0 if measured.any() else -1,
-                             measured=measured, rejected=np.zeros(8, bool), nis=0.0, nis_dof=0, roi_px=None,
+                             measured=measured, rejected=np.zeros(self.K, bool), nis=0.0, nis_dof=0, roi_px=None,
                              converged=False, events=tuple(events), timing_s=timing)
 
     def _cold_start(self) -> list[str]:
@@ -69,17 +68,19 @@ class AcquiringSteps:
         the fit rejected, as while tracking) and appearance; those below 1 - bank.decided are dropped at once.
         When none passes the older half of the window is dropped and acquisition goes on. Returns the frame's
         events."""
-        frames, _ = align_namings(self.buffer)
+        frames, _ = align_namings(self.buffer, self.namings)
         guess = initial_guess(frames)
-        fits = [batch_fit(renamed_window(frames, h), naming_state(guess, h), self.chaser_at, self.camera, self.dyn,
-                          self.cfg.fit.iterations, self.cfg.fit.huber, self.cfg.fit.gate)
-                for h in range(len(NAMINGS))]
+        fits = [batch_fit(renamed_window(frames, h, self.namings), naming_state(guess, h, self.namings), self.chaser_at,
+                          self.camera, self.dyn, self.cfg.fit.iterations, self.cfg.fit.huber, self.cfg.fit.gate,
+                          self.keypoints_T_m)
+                for h in range(self.namings.count)]
 
         def cost(f: BatchFit) -> float:
             return f.chi2 + self.cfg.fit.gate * f.rejected
 
         log_dyn = np.array([-0.5 * cost(f) for f in fits])
-        log_app = appearance_log_likelihood(frames, self.cfg.bank.appearance_clip) / self.cfg.bank.appearance_frames
+        log_app = appearance_log_likelihood(frames, self.cfg.bank.appearance_clip, self.namings) \
+            / self.cfg.bank.appearance_frames
         state = [state_problems(f.x, f.P, self.camera, self.radius_m, self.cfg.integrity) if f.valid else []
                  for f in fits]  # an invalid fit's problem is fit_problems' own
         problems = [fit_problems(f, len(frames), self.cfg.integrity, self.cfg.acquire.min_corners) or s

@@ -13,7 +13,7 @@ import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.filtering.estimator import FilterState, Measurement, filter_step, predict_to
-from envisat_pose.filtering.measurements import measure, predicted_visible, to_camera_K
+from envisat_pose.filtering.measurements import measure, to_camera_K
 from envisat_pose.filtering.ukf import sigma_points
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.pipelines.tracking.bank import (
@@ -29,11 +29,13 @@ from envisat_pose.pipelines.tracking.tracker_config import RoiConfig, TrackEstim
 from envisat_pose.state import MRP, N_STATE, POS, RATE
 
 
-def predicted_roi(mean: np.ndarray, cov: np.ndarray, camera: PinholeCamera, cfg: RoiConfig) -> np.ndarray | None:
-    """The detector's region of interest (x0, y0, side) px from a prior (12,), (12, 12): the predicted corners'
-    extent x cfg.margin plus 6 x the prior's position sigma in pixels; None when no corner is predicted in view."""
+def predicted_roi(mean: np.ndarray, cov: np.ndarray, camera: PinholeCamera, cfg: RoiConfig,
+                  keypoints_T_m: np.ndarray | None = None) -> np.ndarray | None:
+    """The detector's region of interest (x0, y0, side) px from a prior (12,), (12, 12): the predicted keypoints'
+    (keypoints_T_m (K, 3); None: ENVISAT's corners) extent x cfg.margin plus 6 x the prior's position sigma in
+    pixels; None when no keypoint is predicted in view."""
 
-    uv = measure(mean[None], "pixels", camera)[0]
+    uv = measure(mean[None], "pixels", camera, keypoints_T_m)[0]
     w, h = camera.width_px, camera.height_px
     inside = np.isfinite(uv).all(-1) & (uv[:, 0] > -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] > -0.5) \
         & (uv[:, 1] < h - 0.5)
@@ -78,7 +80,7 @@ class TrackingSteps:
     def _detect_predicted(self, image, prior, best: int, converged: bool):
         """Detect in this frame with the bank's prediction: the region of interest once converged, the predicted
         pose as the naming's start and half-turn prior when one hypothesis is left. Returns (fd, roi, t_det)."""
-        roi = predicted_roi(prior[0][best], prior[1][best], self.camera, self.cfg.roi) \
+        roi = predicted_roi(prior[0][best], prior[1][best], self.camera, self.cfg.roi, self.keypoints_T_m) \
             if self.cfg.roi.enabled and converged else None
         R_prior = t_prior = None
         decided = prior[0].shape[0] == 1
@@ -128,8 +130,8 @@ class TrackingSteps:
         fd = None if image is None else self._detect(image)[0]
         est = TrackEstimate(t_s=t_s, status="lost", x_hat=np.full(N_STATE, np.nan),
                             P=np.full((N_STATE, N_STATE), np.nan), hypotheses=np.zeros((0, N_STATE)),
-                            probabilities=np.zeros(0), detection=fd, naming=-1, measured=np.zeros(8, bool),
-                            rejected=np.zeros(8, bool), nis=0.0, nis_dof=0, roi_px=None, converged=False,
+                            probabilities=np.zeros(0), detection=fd, naming=-1, measured=np.zeros(self.K, bool),
+                            rejected=np.zeros(self.K, bool), nis=0.0, nis_dof=0, roi_px=None, converged=False,
                             events=("lost: the prediction is not finite",), timing_s={})
         self._reset()
         return est
@@ -141,8 +143,8 @@ class TrackingSteps:
         measured."""
         t0 = time.perf_counter()
         H = self.state.mean.shape[0]
-        z = np.full((H, 8, 2), np.nan)
-        cov = np.broadcast_to(np.eye(2), (H, 8, 2, 2)).copy()
+        z = np.full((H, self.K, 2), np.nan)
+        cov = np.broadcast_to(np.eye(2), (H, self.K, 2, 2)).copy()
         namings, appearance = np.full(H, -1), np.zeros(H)
         fd, roi, t_det = None, None, 0.0
         if image is not None:
@@ -151,7 +153,7 @@ class TrackingSteps:
             if np.isfinite(zd).all(-1).any():
                 z, cov, namings, appearance = choose_namings(zd, cd, p_alt, self.setup.hx(prior[0]),
                                                              self.cfg.bank.appearance_clip,
-                                                             self.cfg.bank.appearance_frames)
+                                                             self.cfg.bank.appearance_frames, self.namings)
         mask = np.isfinite(z).all(-1)
         seen = mask.any(-1)
         pre = np.zeros(mask.shape, bool)  # corners gated against the detector's own covariance (cfg.gate.raw)
@@ -239,11 +241,11 @@ class TrackingSteps:
         abstention leaves it). Nothing when the cue is off or the open hypotheses all put the array at one end."""
         H = x_prior.shape[0]
         both_ends = H > 1 and not same_array_end(x_prior, x_prior[best]).all()
-        if not self.cfg.array_cue.enabled or not (both_ends or H == 1):
+        if not self.cfg.array_cue.enabled or self.target is not None or not (both_ends or H == 1):
             return
         from envisat_pose.perception.arraycue import array_end
 
-        cue, _ = array_end(image, self.camera.K, *self._pose_K(x_prior[best]), self.corners_T_m)
+        cue, _ = array_end(image, self.camera.K, *self._pose_K(x_prior[best]), self.keypoints_T_m)
         if both_ends:
             self.log_array = self.log_array + array_log_likelihood(cue, x_prior, x_prior[best],
                                                                    self.cfg.array_cue.per_frame)
@@ -282,9 +284,9 @@ class TrackingSteps:
         sigma points; the visibility check's drops count as rejected too)."""
 
         if not mask[best].any() or self.setup.gate_threshold is None:
-            return np.zeros(8, bool)
+            return np.zeros(self.K, bool)
         d2 = self._corner_d2(prior, z, cov, best)
-        vis = predicted_visible(prior[0][best]) if self.fcfg.visibility_check else np.ones(8, bool)
+        vis = self.setup.predicted_visible(prior[0][best]) if self.fcfg.visibility_check else np.ones(self.K, bool)
         return mask[best] & ((d2 > self.setup.gate_threshold) | ~vis)
 
     def _corner_d2(self, prior, z, cov, h) -> np.ndarray:
