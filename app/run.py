@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 
 from envisat_pose.app.common import add_common, add_recording_arguments, recording_sink
-from envisat_pose.target import require_envisat
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -39,6 +38,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--warm-start", action="store_true",
                    help="start each run's filter from the truth plus a draw from P0 (filter studies) instead of cold")
     p.add_argument("--no-roi", action="store_true", help="always run the detector's coarse pass (no region of interest)")
+    p.add_argument("--target", metavar="FILE.xml", help="another spacecraft's MJCF file: MuJoCo renders it and the "
+                   "tracker follows it with its keypoint detector (--weights, trained and calibrated with --target)")
     add_common(p, config="run config (sections image, filter, tracker; top-level keys)", weights=True,
                seed="root seed (default 0)")
     add_recording_arguments(p)
@@ -51,7 +52,8 @@ def resolve_config(args: argparse.Namespace):
 
     flags = {"duration_s": args.duration_s, "runs": args.runs, "seed": args.seed, "weights": args.weights,
              "workers": args.workers, "warm_start": True if args.warm_start else None,
-             "tracker.roi.enabled": False if args.no_roi else None}
+             "tracker.roi.enabled": False if args.no_roi else None,
+             "image.target": args.target}
     return resolve_job("run", args.scenario, args.config, flags)
 
 
@@ -86,7 +88,6 @@ def run_cli(args: argparse.Namespace) -> int:
     from envisat_pose.pipelines.runs.closed_loop import run_closed_loop
 
     cfg = resolve_config(args)
-    require_envisat(cfg.image.target, "image.target", "run")
     sink = recording_sink(args)
     summary = run_closed_loop(cfg, args.out, progress=not args.quiet, sink=sink)  # staged: nothing half-written
     print_table(summary)

@@ -199,12 +199,14 @@ class TruthTrajectory(_Contract):
 class Detections(_Contract):
     """What perception hands the filter, F frames (design.md, Detections).
 
-    t_s: (F,) frame times, s. corners_px: (F, 8, 2) corners A-H in the full image, px (OpenCV convention).
-    cov_px: (F, 8, 2, 2) calibrated pixel covariance, px^2 (the filter's R). confidence: (F, 8) in [0, 1].
-    visible: (F, 8) bool, the corner was found. Positions and covariances must be finite where visible.
+    K keypoints: ENVISAT's corners A-H (8), or another target's keypoints in its file's order (a tracker's
+    det.npz of that target, `envisat track --target` / `envisat run --target`).
+    t_s: (F,) frame times, s. corners_px: (F, K, 2) the keypoints in the full image, px (OpenCV convention).
+    cov_px: (F, K, 2, 2) calibrated pixel covariance, px^2 (the filter's R). confidence: (F, K) in [0, 1].
+    visible: (F, K) bool, the keypoint was found. Positions and covariances must be finite where visible.
     config_json: what produced them, as JSON.
     Optional (`envisat detect` writes them; None where a file lacks them): key (F,) str, the frame's sample key;
-    alt_corners_px (F, 8, 2) px, the half-turn alternative naming (A<->C, B<->D, E<->G, F<->H; NaN where none);
+    alt_corners_px (F, K, 2) px, ENVISAT's corner network's half-turn alternative naming (A<->C, B<->D, E<->G, F<->H; NaN where none);
     alt_probability (F,) its probability; ambiguous (F,) bool, the naming could not be decided.
     """
 
@@ -221,14 +223,14 @@ class Detections(_Contract):
 
     KIND: ClassVar[str] = "detections"
     SPEC: ClassVar[dict[str, _Spec]] = {
-        "visible": ("b", ("F", 8), None),
+        "visible": ("b", ("F", "K"), None),
         "t_s": ("f", ("F",), "finite"),
-        "corners_px": ("f", ("F", 8, 2), "finite_where_visible"),
-        "cov_px": ("f", ("F", 8, 2, 2), "finite_where_visible"),
-        "confidence": ("f", ("F", 8), "finite"),
+        "corners_px": ("f", ("F", "K", 2), "finite_where_visible"),
+        "cov_px": ("f", ("F", "K", 2, 2), "finite_where_visible"),
+        "confidence": ("f", ("F", "K"), "finite"),
     }
     OPTIONAL: ClassVar[dict[str, _Spec]] = {
-        "key": ("s", ("F",), None), "alt_corners_px": ("f", ("F", 8, 2), None),
+        "key": ("s", ("F",), None), "alt_corners_px": ("f", ("F", "K", 2), None),
         "alt_probability": ("f", ("F",), None), "ambiguous": ("b", ("F",), None),
     }
 

@@ -35,6 +35,7 @@ from envisat_pose.perception.weights import (
     read_weights,
     trained_for,
 )
+from envisat_pose.target import load_target
 
 MIN_CROP_KEYPOINTS = 2  # keypoints the coarse pass must find to crop around them
 SIGMA_KEY = "keypoint_sigma_px"  # the weights' metadata: the calibrated isotropic sigma per keypoint, px
@@ -163,9 +164,16 @@ def load_frame_detector(path: str, target: str, device: str = "cpu", field: str 
     """The KeypointFrameDetector of the weights at path for the target file `target` (load_keypoint_model's
     checks). InputError when the weights carry no calibrated covariance: the tracker weighs each keypoint by it."""
     model = load_keypoint_model(path, target, device, field)
-    sigma = weights_keypoint_sigma(path, model.cfg.num_keypoints)
+    sigma = require_calibrated(path, target, field)
+    return KeypointFrameDetector(KeypointDetector(model, device=device), sigma)
+
+
+def require_calibrated(path: str, target: str, field: str = "weights") -> np.ndarray:
+    """The weights' calibrated sigma per keypoint (weights_keypoint_sigma, K of the target file `target`);
+    InputError in one line when they carry none: the tracker weighs each keypoint by it."""
+    sigma = weights_keypoint_sigma(path, load_target(target).num_keypoints)
     if not np.isfinite(sigma).any():
         raise InputError(f"{field} {path!r}: no calibrated pixel covariance (the tracker weighs each keypoint by "
-                         f"it): calibrate them first on held-out frames, `envisat calibrate --target {target} --weights {path} "
-                         "--data HELD_OUT_DIR --out CALIBRATED.safetensors`")
-    return KeypointFrameDetector(KeypointDetector(model, device=device), sigma)
+                         f"it): calibrate the weights on held-out frames first, `envisat calibrate --target {target} "
+                         f"--weights {path} --data HELD_OUT_DIR --out CALIBRATED.safetensors`")
+    return sigma

@@ -17,7 +17,7 @@ from typing import Any, Callable
 from envisat_pose import named_scenarios
 from envisat_pose.config import InputError, field_value, resolve_job_config
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
-from envisat_pose.target import DEFAULT_TARGET
+from envisat_pose.target import DEFAULT_TARGET, other_target
 
 JOBS = ("simulate", "estimate", "montecarlo", "run", "track")
 
@@ -92,12 +92,26 @@ def default_weights_path() -> str:
     return shipped_weights_path()
 
 
-def check_weights(path: str) -> None:
-    """InputError naming the field `weights` when the file does not exist, or holds another target's detector
-    (one line naming it: perception.weights.check_weights_target against ENVISAT, the target of the jobs that
-    run the tracker; its header only, with torch imported), before any work."""
+def check_weights(path: str, target: str = DEFAULT_TARGET) -> None:
+    """InputError naming the field `weights` when the file does not exist, holds the detector of another target
+    than `target` (the job's MJCF file; one line naming both: perception.weights.check_weights_target), or, for
+    another target than ENVISAT, was never calibrated (the tracker weighs each keypoint by its calibrated sigma:
+    perception.keypoint_detect.require_calibrated). The header only, with torch imported, before any work."""
     if not os.path.isfile(path):
         raise InputError(f"weights {path!r}: no such file")
     from envisat_pose.perception.weights import check_weights_target  # torch
 
-    check_weights_target(path, DEFAULT_TARGET)
+    check_weights_target(path, target)
+    if other_target(target) is not None:
+        from envisat_pose.perception.keypoint_detect import require_calibrated
+
+        require_calibrated(path, target)
+
+
+def require_target_weights(weights: str, target: str) -> None:
+    """InputError naming `weights` when a job of another target than ENVISAT (target: its MJCF file) is given no
+    weights: the shipped ones are ENVISAT's corner network, never that target's keypoint detector."""
+    if not weights and other_target(target) is not None:
+        raise InputError(f"weights '': target {target!r} needs its own keypoint detector: train it (`envisat train "
+                         f"--target {target}`), calibrate it (`envisat calibrate --target {target}`) and give it "
+                         "(--weights)")

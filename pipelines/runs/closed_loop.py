@@ -40,6 +40,7 @@ from envisat_pose.datagen.factory import draw_corruption_params, with_appearance
 from envisat_pose.datagen.render_view import View
 from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.datagen.views import sample_seed, unit
+from envisat_pose.filtering.estimator import filter_inertia_T_kg_m2
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import make_out_dir
@@ -47,11 +48,14 @@ from envisat_pose.pipelines.runs.frame_loop import FrameInput, run_frames
 from envisat_pose.pipelines.runs.rows import STAGES, RunRows
 from envisat_pose.pipelines.runs.run_config import RunConfig, run_config_from_json, sun_and_shadow
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, score_run_files, write_run_files
+from envisat_pose.pipelines.tracking.build import tracker_detector
+from envisat_pose.pipelines.tracking.namings import target_namings
 from envisat_pose.pipelines.tracking.onboard import chaser_function, onboard_physics, orbit_config
 from envisat_pose.pipelines.tracking.tracker import Tracker
 from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
 from envisat_pose.realtime import real_time_factor
 from envisat_pose.state import MRP, POS, draw_initial_estimate
+from envisat_pose.target import load_target, other_target
 
 # The config (pipelines/runs/run_config.py), the on-board physics and orbit (pipelines/tracking/onboard.py), the per-frame
 # row store (pipelines/runs/rows.py) and the runs' files read back (pipelines/runs/run_files.py) have their own modules:
@@ -66,12 +70,18 @@ def run_truth(cfg: RunConfig, progress: bool = False):
     """The MuJoCo truth of the run on the frame grid (datagen.truth.simulate_truth, as `envisat simulate`)."""
     from envisat_pose.datagen.truth import simulate_truth
 
-    scen = scenario_config(cfg.scenario, duration_s=cfg.duration_s, dt_s=1.0 / cfg.rate_hz, seed=cfg.seed)
+    scen = scenario_config(cfg.scenario, duration_s=cfg.duration_s, dt_s=1.0 / cfg.rate_hz, seed=cfg.seed,
+                           target={"file": cfg.image.target})
     return simulate_truth(scen, progress=progress)
 
 
 # ---------------------------------------------------------------------------------------------------------
 # One closed-loop run (a runner task)
+
+
+def run_target(cfg: RunConfig):
+    """The Tracker's target of a run: None for ENVISAT (its corner network), else the Target of image.target."""
+    return None if other_target(cfg.image.target) is None else load_target(cfg.image.target)
 
 
 def run_camera(resolution_px: int):
@@ -97,7 +107,6 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
 
     from envisat_pose.datagen.corrupt import apply_corruption
     from envisat_pose.datagen.render_cache import shared_renderer
-    from envisat_pose.perception.detect import load_detector
 
     cfg = run_config_from_json(cfg_json)
     gcfg = cfg.image
@@ -115,20 +124,22 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     del truth  # what the loop reads of it is above; the rest (corners in C, the chaser's orbit) is not held
     renderer = shared_renderer(gcfg.resolution_px, gcfg.shadows,
                                gcfg.appearance.texture_set_size if gcfg.appearance_on else 0,
-                               gcfg.appearance.texture_seed)
+                               gcfg.appearance.texture_seed, target=gcfg.target)
     rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(run,)))
     prior = None
     if cfg.warm_start:
         prior = (draw_initial_estimate(x_truth[0], cfg.filter.P0, rng), cfg.filter.P0, float(t_s[0]))
-    tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(orbit), cfg.tracker,
-                      dataclasses.asdict(cfg.filter), mu_m3_s2=mu, gravity_gradient=gg, prior=prior)  # exact
+    tracker = Tracker(camera, tracker_detector(cfg.weights, target=gcfg.target), chaser_function(orbit), cfg.tracker,
+                      dataclasses.asdict(cfg.filter), mu_m3_s2=mu, gravity_gradient=gg, prior=prior,
+                      target=run_target(cfg))  # exact
     appearance_seed = sample_seed(cfg.seed, 0, 0)  # one appearance for the whole sequence: the same target in every run
-    rows = RunRows(run_dir, len(t_s))
+    rows = RunRows(run_dir, len(t_s), K=tracker.K)
     recorder = None
     if sink:
         from envisat_pose.analysis.recording import TrackRecorder
 
-        recorder = TrackRecorder(sink, camera, with_truth=True, title=f"envisat run {cfg.scenario}, run {run}")
+        recorder = TrackRecorder(sink, camera, with_truth=True, title=f"envisat run {cfg.scenario}, run {run}",
+                                 target=load_target(gcfg.target))
 
     def frames():
         """Frame k rendered from the truth and corrupted by the space camera (None in the Earth's shadow)."""
@@ -232,7 +243,9 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
                               "truth_config": truth.config}, sort_keys=True)
     det_cfg = json.dumps({"weights": cfg.weights, "run": 0, "scenario": cfg.scenario, "seed": cfg.seed,
                           "roi": cfg.tracker.roi.enabled}, sort_keys=True)
-    scores = score_run_files(truth.t_s, truth.x, run_dirs, paths, config_json, det_cfg)
+    target = run_target(cfg)
+    equivalent = None if target is None else target_namings(target, filter_inertia_T_kg_m2(target)).equivalent
+    scores = score_run_files(truth.t_s, truth.x, run_dirs, paths, config_json, det_cfg, equivalent=equivalent)
     write_run_files(paths, truth.t_s, truth.x, run_dirs, lost_runs(run_dirs, T), config_json,
                     [f"frame-{k:06d}" for k in range(T)], det_cfg,
                     extra={"settled": np.array(scores["settled_runs"], bool)})
@@ -247,7 +260,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
     frames_sum = float(timing_sum.sum()) / R  # one run's wall time in the stages
     r0 = results[0]
     summary = {
-        "scenario": cfg.scenario, "runs": R, "frames": T, "duration_s": cfg.duration_s, "roi": cfg.tracker.roi.enabled,
+        "scenario": cfg.scenario, "target": load_target(cfg.image.target).record(cfg.image.target), "runs": R, "frames": T, "duration_s": cfg.duration_s, "roi": cfg.tracker.roi.enabled,
         "weights": cfg.weights, "start": "warm" if cfg.warm_start else "cold",
         "resolution_px": cfg.image.resolution_px,
         "scores": scores,

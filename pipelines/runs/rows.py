@@ -16,14 +16,14 @@ from envisat_pose.status import ACQUIRING, LOST, STATUSES
 STAGES = ("simulation", "rendering", "camera", "detection", "filtering", "recording")
 
 
-def record_arrays(T: int) -> dict:
-    """The per-frame arrays a run keeps (one row per frame)."""
+def record_arrays(T: int, K: int = 8) -> dict:
+    """The per-frame arrays a run keeps (one row per frame) of a target of K keypoints (ENVISAT's corners: 8)."""
     out = {k: np.zeros((T,), dtype=np.int64) for k in ("n_meas", "nis_dof", "naming", "status", "n_hypotheses")}
     out.update({"x_hat": np.empty((T, 12)), "P": np.empty((T, 12, 12)), "nis": np.zeros(T),
-                "p_best": np.zeros(T), "corners_px": np.full((T, 8, 2), np.nan),
-                "cov_px": np.full((T, 8, 2, 2), np.nan), "confidence": np.zeros((T, 8)),
-                "visible": np.zeros((T, 8), bool), "rejected": np.zeros((T, 8), bool),
-                "alt_corners_px": np.full((T, 8, 2), np.nan), "alt_probability": np.zeros(T),
+                "p_best": np.zeros(T), "corners_px": np.full((T, K, 2), np.nan),
+                "cov_px": np.full((T, K, 2, 2), np.nan), "confidence": np.zeros((T, K)),
+                "visible": np.zeros((T, K), bool), "rejected": np.zeros((T, K), bool),
+                "alt_corners_px": np.full((T, K, 2), np.nan), "alt_probability": np.zeros(T),
                 "ambiguous": np.zeros(T, bool), "crop_px": np.zeros((T, 3)), "roi_px": np.full((T, 3), np.nan),
                 "converged": np.zeros(T, bool), "skipped": np.zeros(T, bool), "timing_s": np.zeros((T, len(STAGES)))})
     return out
@@ -72,12 +72,13 @@ EST_KEYS = ("x_hat", "P", "n_meas", "nis", "nis_dof")
 class RunRows:
     """A run's per-frame arrays (record_arrays) streamed to run_dir/<name>.npy, `chunk` frames at a time, with
     the run's reductions (stage time sums, frame counts) taken per chunk: the run holds one chunk, never the run.
-    Frames come in order: row(k) is frame k's row in `buf` (the chunk before it written out when full)."""
+    Frames come in order: row(k) is frame k's row in `buf` (the chunk before it written out when full). K: the
+    target's keypoints (ENVISAT's corners: 8)."""
 
-    def __init__(self, run_dir: str, T: int, chunk: int = CHUNK_FRAMES):
+    def __init__(self, run_dir: str, T: int, chunk: int = CHUNK_FRAMES, K: int = 8):
         os.makedirs(run_dir, exist_ok=True)
-        self.T, self.chunk, self.start, self.n = T, min(chunk, T), 0, 0
-        self.buf = record_arrays(self.chunk)
+        self.T, self.chunk, self.start, self.n, self.K = T, min(chunk, T), 0, 0, K
+        self.buf = record_arrays(self.chunk, K)
         self.writers = {k: NpyRowWriter(os.path.join(run_dir, f"{k}.npy"), T, a.shape[1:], a.dtype)
                         for k, a in self.buf.items()}
         self.sums = {"timing_s": np.zeros(len(STAGES)), "frames_skipped_eclipse": 0, "frames_roi": 0,
@@ -103,7 +104,7 @@ class RunRows:
         s["frames_acquiring"] += int((b["status"] == ACQUIRING).sum())
         s["frames_lost"] += int((b["status"] == LOST).sum())
         self.start, self.n = self.start + self.n, 0
-        self.buf = record_arrays(self.chunk)  # fresh defaults (NaN where a frame has no detection)
+        self.buf = record_arrays(self.chunk, self.K)  # fresh defaults (NaN where a frame has no detection)
 
     def close(self) -> dict:
         """Write the last rows and check every frame was written; returns the run's reductions (plain data)."""

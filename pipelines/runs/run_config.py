@@ -25,6 +25,7 @@ from envisat_pose.pipelines.common.job_defaults import (
     default_weights_path,
     fill_from_scenario,
     layered_job,
+    require_target_weights,
 )
 from envisat_pose.pipelines.tracking.onboard import orbit_config
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, TrackerConfig
@@ -51,7 +52,7 @@ class RunConfig(Config):
     [measurement] rate, else 600 s and 1 Hz; job_defaults.fill_from_scenario). runs: closed loops on the same
     truth; workers: processes for them (None: one per run, at most one per core); seed: the truth's random
     attitude, every run's camera noise (and warm start); weights: detector weights file ("": the shipped ones;
-    the file must exist). warm_start: start each run's filter from the truth plus a draw from filter.p0_sigma
+    the file must exist; another target's (image.target) keypoint detector, required for it). warm_start: start each run's filter from the truth plus a draw from filter.p0_sigma
     (filter studies), instead of cold from the images. threads: torch CPU threads per run; jpeg_quality: run 0's
     images in the recording. image: the camera frames as the image factory's sequence mode makes them (its
     sequence fields, seed and frame count are set from the ones above, its sun made explicit: finished_image).
@@ -75,10 +76,11 @@ class RunConfig(Config):
         fill_from_scenario(self, "run", RUN_FALLBACKS)
         if self.workers is None:  # one process per run, at most one per core
             object.__setattr__(self, "workers", max(1, min(self.runs, os.cpu_count() or 1)))
+        require_target_weights(self.weights, self.image.target)
         if not self.weights:
             object.__setattr__(self, "weights", default_weights_path())
         super().__post_init__()
-        check_weights(self.weights)
+        check_weights(self.weights, self.image.target)
         # after validation: the frame count needs a valid duration and rate
         object.__setattr__(self, "image", finished_image(self))
 

@@ -58,12 +58,13 @@ def estimate_arrays(run_dirs: list[str], T: int) -> dict:
 
 
 def score_run_files(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], paths: dict, config_json: str,
-                    det_cfg: str, score: bool = True, det_names=DET_KEYS) -> dict | None:
+                    det_cfg: str, score: bool = True, det_names=DET_KEYS, equivalent=None) -> dict | None:
     """scoring.score_runs of the runs in run_dirs against x_true (T, 12), reading x_hat and P chunk by chunk;
     each chunk is also checked as est.npz's and (run 0) det.npz's contracts check them on save (score False: only
     the checks, for x_true all NaN, no truth; returns None). Keeps only per-frame scalars (the errors, status)
-    and the second half's estimates for the error summary."""
-    from envisat_pose.pipelines.runs.scoring import frame_errors, score_frames, summary_after_s
+    and the second half's estimates for the error summary. equivalent: (E, 3, 3) the target's rotations nothing
+    tells apart (scoring.nearest_truth; None: none)."""
+    from envisat_pose.pipelines.runs.scoring import frame_errors, nearest_truth, score_frames, summary_after_s
 
     T = len(t_s)
     errors, status = [], []
@@ -79,7 +80,7 @@ def score_run_files(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], pa
                                      paths["det"])
             if not score:
                 continue
-            parts.append(frame_errors(x_true[a:b], c["x_hat"], c["P"]))
+            parts.append(frame_errors(nearest_truth(x_true[a:b], c["x_hat"], equivalent), c["x_hat"], c["P"]))
             st.append(c["status"])
         if score:
             errors.append({k: np.concatenate([p[k] for p in parts]) for k in parts[0]})
@@ -90,7 +91,9 @@ def score_run_files(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], pa
     after_s = summary_after_s(t_s)
     first = int(np.argmax(t_s >= after_s))
     x_late = np.stack([run_rows(d, ["x_hat"], first, T)["x_hat"] for d in run_dirs])
-    summary = error_summary(t_s[first:], x_true[first:], x_late, after_s)
+    x_true_late = x_true[first:] if equivalent is None or not len(equivalent) else \
+        nearest_truth(x_true[first:], x_late, equivalent)
+    summary = error_summary(t_s[first:], x_true_late, x_late, after_s)
     skipped = run_rows(run_dirs[0], ["skipped"], 0, T)["skipped"]
     return score_frames(t_s, errors, np.stack(status), skipped, summary)
 

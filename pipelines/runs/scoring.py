@@ -13,6 +13,8 @@ Scores that would show a failure: nothing is scored only where it went well.
   block, mean NEES, the share of frames whose NEES exceeds its chi-square NEES_TAIL_P quantile (NEES_DOF dof),
   the SPEC2021 per-frame score (median and 95th percentile), the range bias (mean of |rho_hat| - |rho|, m), and,
   where the caller gives a bound (the PCRLB), RMSE over it per block.
+- A target whose poses are defined up to rotations nothing tells apart (pipelines/tracking/namings.py,
+  `equivalent`: the CubeSat's half-turns) is scored against the truth's twin nearest each estimate (nearest_truth).
 - Per run: the first declared tracking, whether it was correct (the acquisition's success), the time to the
   first correct track from the first lit frame, the false-lock time, and when the run *settled*: the time from
   which it claims an estimate and stays within SETTLED_POS_M and SETTLED_ATT_DEG on every lit frame to the end
@@ -24,8 +26,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
+from envisat_pose.attitude import mrp_error_angle_rad
 from envisat_pose.filtering.estimator import nees
-from envisat_pose.state import BLOCKS, POS, error_magnitudes, error_summary
+from envisat_pose.pipelines.tracking.namings import renamed_state
+from envisat_pose.state import BLOCKS, MRP, POS, error_magnitudes, error_summary
 from envisat_pose.status import HAS_ESTIMATE, STATUSES, TRACKING
 
 # a correct track (the success criterion of pose-acquisition studies): attitude within 5 deg and
@@ -46,6 +50,19 @@ SETTLED_POS_M = 0.10
 SETTLED_ATT_DEG = 1.0
 # the error blocks scored, in BLOCKS order, with their units in the key
 ERROR_KEYS = ("position_m", "velocity_m_s", "attitude_deg", "rate_deg_s")
+
+
+def nearest_truth(x_true: np.ndarray, x_hat: np.ndarray, equivalent: np.ndarray | None) -> np.ndarray:
+    """x_true (..., 12) described, frame by frame, by the twin (the identity or a rotation of `equivalent`
+    (E, 3, 3) about the centre of mass: poses no image or motion tells apart) whose attitude is nearest x_hat's
+    (..., 12); x_true itself where equivalent is None or empty."""
+    if equivalent is None or not len(equivalent):
+        return x_true
+    x_true = np.broadcast_to(x_true, np.shape(x_hat))
+    twins = np.stack([x_true] + [renamed_state(x_true, S, np.zeros(3)) for S in equivalent])
+    angle = mrp_error_angle_rad(np.broadcast_to(x_hat[..., MRP], twins[..., MRP].shape), twins[..., MRP])
+    best = np.argmin(np.nan_to_num(angle, nan=np.inf), axis=0)
+    return np.take_along_axis(twins, best[None, ..., None], axis=0)[0]
 
 
 def frame_errors(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray) -> dict[str, np.ndarray]:

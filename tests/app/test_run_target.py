@@ -1,0 +1,82 @@
+"""`envisat run --target FILE.xml` (issue 56): the closed loop of another target, MuJoCo rendering that target and
+the tracker following it with its keypoint detector; the weights refused in one line, nothing written, where they
+cannot serve (none given, ENVISAT's for another target, another target's, never calibrated). The network here is
+untrained (the plumbing: the frames, the rows of K keypoints, the files); tracking accuracy is the tracker's tests'
+(tests/pipelines/tracking/test_tracker_target.py) and the benchmarks'."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from envisat_pose.app.cli import main
+from envisat_pose.target import load_target
+
+UPPER = "envisat_pose/models/upper_stage.xml"
+
+
+def keypoint_weights(path, target_file: str, calibrated: bool = True) -> str:
+    """Untrained keypoint weights recording the target of target_file (sigma 1.5 px per keypoint when
+    calibrated)."""
+    from envisat_pose.perception.keypoint_detect import SIGMA_KEY
+    from envisat_pose.perception.keypoint_net import KeypointModelConfig, init_keypoint_net
+    from envisat_pose.perception.weights import save_weights
+
+    target = load_target(target_file)
+    record = {k: v for k, v in target.record(target_file).items() if k != "file"}
+    net = init_keypoint_net(KeypointModelConfig(input_px=64, width=8, depth=2, stem_width=8,
+                                                num_keypoints=target.num_keypoints), 0, record)
+    save_weights(str(path), net, {SIGMA_KEY: json.dumps([1.5] * target.num_keypoints)} if calibrated else None)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def weights(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("run_target")
+    return {"upper": keypoint_weights(folder / "upper.safetensors", UPPER),
+            "uncalibrated": keypoint_weights(folder / "uncal.safetensors", UPPER, calibrated=False),
+            "cubesat": keypoint_weights(folder / "cubesat.safetensors", "envisat_pose/models/cubesat_3u.xml")}
+
+
+def test_the_closed_loop_of_another_target_writes_its_keypoints(weights, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", "--target", UPPER, "--weights", weights["upper"], "--duration-s", "12", "--out", str(out),
+                 "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["target"]["name"] == "upper_stage" and summary["frames"] == 13
+    det = np.load(out / "det.npz")
+    assert det["corners_px"].shape == (13, 12, 2) and det["visible"].shape == (13, 12)
+    truth = np.load(out / "truth.npz")
+    assert truth["corners_px"].shape[1:] == (12, 2)  # MuJoCo's truth of the upper stage's 12 keypoints
+    assert os.path.getsize(out / "recording.rrd") > 0
+    assert "cold start" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--target", UPPER], "needs its own keypoint detector"),
+    (["--weights", "upper"], "not ENVISAT's"),
+    (["--target", UPPER, "--weights", "cubesat"], "of target 'cubesat_3u'"),
+    (["--target", UPPER, "--weights", "uncalibrated"], "no calibrated pixel covariance"),
+])
+def test_weights_that_cannot_serve_are_refused_in_one_line(weights, tmp_path, capsys, argv, words):
+    argv = [weights.get(a, a) for a in argv]
+    out = tmp_path / "run"
+    assert main(["run", *argv, "--duration-s", "5", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
+    assert not out.exists()
+
+
+def test_the_python_tracker_of_another_target(weights):
+    """tracker_from_scenario(target=...) is what `--target` builds: the target's K keypoints, its namings, the
+    keypoint detector of the weights; ENVISAT's weights refused for it."""
+    from envisat_pose.config import InputError
+    from envisat_pose.pipelines.tracking.tracker import tracker_from_scenario
+
+    tracker = tracker_from_scenario("default", weights["upper"], target=UPPER, size_px=(256, 256))
+    assert tracker.K == 12 and tracker.namings.count == 1 and tracker.target.name == "upper_stage"
+    est = tracker.step(0.0, np.zeros((256, 256), np.uint8))
+    assert est.status == "acquiring" and est.measured.shape == (12,)
+    with pytest.raises(InputError, match="cubesat_3u"):
+        tracker_from_scenario("default", weights["cubesat"], target=UPPER)
