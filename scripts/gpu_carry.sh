@@ -3,16 +3,20 @@
 # scripts/gpu_train.sh (README, "Training on a GPU"): wheels for CPython 3.12 (mujoco 4.0.0 is three wheels,
 # plus glfw, pyopengl, webdataset, braceexpand), Debian's EGL loader packages for amd64, the compiled gravity
 # plugin of this checkout, its commit (source_git), and the weights to start from with their leg.json.
-#   scripts/gpu_carry.sh [--init WEIGHTS] [--carry DIR]      (DIR default .gpu-carry, ignored by git)
+#   scripts/gpu_carry.sh [--init WEIGHTS] [--target-init WEIGHTS] [--carry DIR]   (DIR default .gpu-carry, ignored)
 # --init: weights to start the next leg from (e.g. the last leg's $OUT/detector.safetensors, its leg.json beside
-# it is copied too); default: models/detector.safetensors at leg 0. About 27 MB; name the folder in `carry`.
+# it is copied too); default: models/detector.safetensors at leg 0. --target-init: another target's keypoint
+# weights for a TARGET leg (init/target.safetensors; none: that leg starts fresh). About 27 MB; name the folder
+# in `carry`.
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 CARRY=$ROOT/.gpu-carry
 INIT=
+TARGET_INIT=
 while [ $# -gt 0 ]; do
   case $1 in
     --init) INIT=$2; shift 2;;
+    --target-init) TARGET_INIT=$2; shift 2;;
     --carry) CARRY=$2; shift 2;;
     *) echo "gpu_carry: unknown argument $1" >&2; exit 2;;
   esac
@@ -34,10 +38,12 @@ cp "$ROOT"/datagen/plugin/_relative_gravity*.so "$CARRY/plugin/"
 GIT=$(git -C "$ROOT" rev-parse HEAD)
 [ -n "$(git -C "$ROOT" status --porcelain --untracked-files=no)" ] && GIT="$GIT+dirty"
 echo "$GIT" > "$CARRY/source_git"
-rm -f "$CARRY/init/detector.safetensors" "$CARRY/init/leg.json"
-if [ -n "$INIT" ]; then
-  cp "$INIT" "$CARRY/init/detector.safetensors"
-  LEGF=$(dirname "$INIT")/leg.json
+rm -f "$CARRY/init/detector.safetensors" "$CARRY/init/target.safetensors" "$CARRY/init/leg.json"
+for pair in "detector:$INIT" "target:$TARGET_INIT"; do
+  W=${pair#*:}
+  [ -z "$W" ] && continue
+  cp "$W" "$CARRY/init/${pair%%:*}.safetensors"
+  LEGF=$(dirname "$W")/leg.json
   [ -f "$LEGF" ] && cp "$LEGF" "$CARRY/init/leg.json"
-fi
+done
 du -sh "$CARRY"; ls "$CARRY"/*

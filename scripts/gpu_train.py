@@ -310,7 +310,9 @@ def online_looks(work: str, leg: int, scenarios: list[str]) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--init", required=True, help="weights to start from")
+    ap.add_argument("--init", help="weights to start from (required but with --target, whose leg may start fresh)")
+    ap.add_argument("--target", help="another target's MJCF file: train its keypoint detector (envisat train "
+                    "--target: online, the target's default look; no held-out check, which is ENVISAT's)")
     ap.add_argument("--leg-file", help="leg.json of the init weights (their leg number; none: leg 0 before)")
     ap.add_argument("--out", required=True, help="folder whose files come back")
     ap.add_argument("--work", default="/tmp/gpu-leg", help="scratch folder (data, run)")
@@ -336,6 +338,10 @@ def main() -> int:
                     "the moving average come back beside the last ones")
     ap.add_argument("--uses-per-frame", type=int, default=8)
     args = ap.parse_args()
+    if args.init is None and args.target is None:
+        ap.error("--init is required (but with --target)")
+    if args.target:
+        args.online, args.validate_s = True, 0.0
     from envisat_pose import named_scenarios
     from envisat_pose.io import sha256_file
 
@@ -370,14 +376,17 @@ def main() -> int:
         fh.write(f"lr = {args.lr!r}\nwarmup_steps = 200\ncheckpoint_every = 1000\nseed = {SEED_BASE + leg}\n"
                  + ('schedule = "constant_cooldown"\nema_decay = 0.999\n' if args.online else ""))
     run_dir = os.path.join(args.work, "run")
-    if args.online:
+    if args.target:
+        source = ["--target", args.target, "--render-workers", str(max(1, args.gen_workers - 2)),
+                  "--uses-per-frame", str(args.uses_per_frame)]
+    elif args.online:
         looks = online_looks(args.work, leg, scenarios)
         source = ["--online", "--render-workers", str(render_workers(looks, args.gen_workers)), "--uses-per-frame",
                   str(args.uses_per_frame), "--looks", looks]
     else:
         source = ["--data", *[c["folder"] for c in chunks], "--workers", str(args.workers)]
     cmd = [sys.executable, "-m", "envisat_pose.app.cli", "train", *source, "--out", run_dir, "--config", toml,
-           "--init", args.init, "--device", args.device, "--batch-size", str(args.batch_size), "--steps",
+           *(["--init", args.init] if args.init else []), "--device", args.device, "--batch-size", str(args.batch_size), "--steps",
            "10000000", "--time-budget-s", f"{budget:.0f}", "--quiet"] + ([] if args.no_bf16 else ["--bf16"])
     print(f"training for {budget:.0f} s: {' '.join(cmd[3:6])} ...", flush=True)
     rc = subprocess.run(cmd).returncode
@@ -389,7 +398,8 @@ def main() -> int:
         if os.path.exists(os.path.join(run_dir, name)):  # the last three: online legs (their schedule)
             shutil.copy2(os.path.join(run_dir, name), os.path.join(args.out, name))
     with open(os.path.join(args.out, "leg.json"), "w", encoding="utf-8") as fh:
-        json.dump({"leg": leg, "previous_leg": prev, "init_sha256": sha256_file(args.init),
+        json.dump({"leg": leg, "previous_leg": prev, "target": args.target,
+                   "init_sha256": sha256_file(args.init) if args.init else None,
                    "weights_sha256": sha256_file(os.path.join(args.out, "detector.safetensors")),
                    "data_seeds": [c["seed"] for c in chunks], "images": images, "generate_s": round(gen_s, 1),
                    "train_budget_s": round(budget), "end": end}, fh, indent=1)
