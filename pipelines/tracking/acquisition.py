@@ -20,6 +20,9 @@ No prior and no truth: the tracker buffers the first lit frames with enough name
    their chi-square differ through the dynamics (a half-turn flips the sign of two products of inertia, so only
    one of them is torque-free with the MJCF's inertia tensor).
 4. `hypothesis_log_weights`: -chi^2 / 2 of each fit plus the appearance log-likelihoods.
+
+The half-turns above are ENVISAT's box namings; another target's keypoints are renamed by its own symmetries
+(pipelines/tracking/namings.py, the `namings` argument of the functions here) in the same steps.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from envisat_pose.attitude import dcm_to_mrp, mrp_shadow, mrp_to_dcm
 from envisat_pose.filtering.dynamics import propagate
 from envisat_pose.filtering.measurements import measure
 from envisat_pose.geometry import PinholeCamera
-from envisat_pose.pipelines.tracking.namings import Namings, box_namings, renamed_state
+from envisat_pose.pipelines.tracking.namings import BOX_NAMES, Namings, box_namings, renamed_state
 from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
 
@@ -113,9 +116,7 @@ def half_turn_naming(z_px: np.ndarray, cov_px: np.ndarray) -> tuple[np.ndarray, 
     return box_namings().renamed(z_px, cov_px, 1)
 
 
-# ENVISAT's corner network's namings (namings.box_namings): index 0 the detector's own, 1-3 its renaming by the
-# box's half-turn about x (the long axis, the one the detector's half-turn probability speaks of), y and z
-NAMINGS = ("detector", "x", "y", "z")
+NAMINGS = BOX_NAMES  # ENVISAT's corner network's namings (namings.box_namings), by index
 
 
 def renamed_window(frames: list[FramePose], naming: int, namings: Namings | None = None) -> list[FramePose]:

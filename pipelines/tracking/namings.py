@@ -34,6 +34,9 @@ from envisat_pose.state import MRP, POS, RATE
 
 INERTIA_RTOL = 1e-3  # a rotation keeps the inertia when S J S^T = J within this share of J's largest entry
 SAME_ROTATION_TOL = 1e-6  # two rotations are one when their matrices agree within this
+# ENVISAT's corner network's namings: the detector's own, then its renaming by the box's half-turn about x (the
+# long axis, the one the detector's half-turn probability speaks of), y and z
+BOX_NAMES = ("detector", "x", "y", "z")
 
 
 def renamed_state(x: np.ndarray, S: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -106,7 +109,7 @@ def box_namings() -> Namings:
     long axis, the one its half-turn probability speaks of), y and z (box_symmetry.symmetry_permutations of the
     MJCF's box). Computed once; not to be modified."""
     syms = symmetry_permutations(load_geometry())
-    names = ("detector", "x", "y", "z")
+    names = BOX_NAMES
     perms = np.stack([np.arange(8)] + [np.asarray(syms[n][0]) for n in names[1:]])
     S = np.stack([np.eye(3)] + [np.asarray(syms[n][1], float) for n in names[1:]])
     d = np.stack([np.zeros(3)] + [np.asarray(syms[n][2], float) for n in names[1:]])

@@ -371,10 +371,11 @@ class TrackEstimate:
     t_s: frame time, s. status: one of envisat_pose.status.STATUSES ("tracking" only when the frame's evidence
     backs it: pipelines/tracking/integrity.py). x_hat (12,): the best hypothesis' state (rho_C_m, rhodot_C_m_s,
     p_mrp, w_r_T_rad_s); P (12, 12) its covariance (ACQUIRING_SIGMA while acquiring; NaN before any pose).
-    hypotheses (H, 12) and probabilities (H,): the half-turn hypotheses still open (H = 0 while acquiring).
+    hypotheses (H, 12) and probabilities (H,): the symmetry twins still open (H = 0 while acquiring).
     detection: the detector's FrameDetection (None when no image); naming: which naming the best hypothesis took
-    (acquisition.NAMINGS: 0 the detector's, 1-3 its x, y, z half-turn; -1 none); measured (8,) bool: corners given to the filter; rejected (8,)
-    bool: of those, rejected by the gate; nis, nis_dof: the best hypothesis' update. roi_px (3,) or None.
+    (an index of the tracker's namings, pipelines/tracking/namings.py: 0 the detector's, for ENVISAT 1-3 its x, y,
+    z half-turn; -1 none); measured (K,) bool: keypoints given to the filter (ENVISAT's corners: K = 8);
+    rejected (K,) bool: of those, rejected by the gate; nis, nis_dof: the best hypothesis' update. roi_px (3,) or None.
     converged: the prior was tight enough for the region of interest. events: what happened this frame
     ("started", "hypothesis decided", "confirmed", "lost: <why>", "hypothesis dropped: <why>", ...), in words a
     user can act on. timing_s: detection and filtering, s. confirmed: the bank passed its confirmation (its
