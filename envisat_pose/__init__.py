@@ -10,6 +10,7 @@ The public API, imported on first use (so `import envisat_pose` loads nothing he
   `TrackConfig`, `open_source`, `track_frames` (envisat_pose.pipelines.runs.track);
 - campaigns: `MonteCarloConfig`, `run_campaign` (envisat_pose.pipelines.campaigns.campaign);
 - the detector: `TrainConfig` (envisat_pose.perception.train), `train_detector` (envisat_pose.pipelines.detector.train);
+- the target: `Target`, `load_target` (envisat_pose.target: one spacecraft from its MJCF file; ENVISAT's by default);
 - the state's layout: `envisat_pose.state`.
 """
 
@@ -26,6 +27,7 @@ _PUBLIC = {
     "track_frames": "envisat_pose.pipelines.runs.track",
     "MonteCarloConfig": "envisat_pose.pipelines.campaigns.campaign", "run_campaign": "envisat_pose.pipelines.campaigns.campaign",
     "TrainConfig": "envisat_pose.perception.train", "train_detector": "envisat_pose.pipelines.detector.train",
+    "Target": "envisat_pose.target", "load_target": "envisat_pose.target",
 }
 __all__ = sorted(_PUBLIC)
 
