@@ -248,73 +248,100 @@ class BatchFit:
 def batch_fit(frames: list[FramePose], x_guess: np.ndarray, chaser_at, camera: PinholeCamera, dyn: dict,
               iterations: int = 15, huber: float = 3.0, gate: float | None = None,
               keypoints_T_m: np.ndarray | None = None) -> BatchFit:
-    """Gauss-Newton / Levenberg-Marquardt fit of the state at the last frame (module docstring, 3).
+    """Gauss-Newton / Levenberg-Marquardt fit of the state at the last frame (module docstring, 3): batch_fits of
+    one window."""
+    return batch_fits([frames], np.asarray(x_guess, float)[None], chaser_at, camera, dyn, iterations, huber, gate,
+                      keypoints_T_m)[0]
+
+
+def batch_fits(windows: list[list[FramePose]], x_guess: np.ndarray, chaser_at, camera: PinholeCamera, dyn: dict,
+               iterations: int = 15, huber: float = 3.0, gate: float | None = None,
+               keypoints_T_m: np.ndarray | None = None) -> list[BatchFit]:
+    """Gauss-Newton / Levenberg-Marquardt fits of the state at the last frame (module docstring, 3) of H windows
+    of the same frame times (one window under each naming), from x_guess (H, 12): each fit as it would be alone,
+    the windows' candidate states carried back through the dynamics together (one propagation per step for all of
+    them: a cold start costs about what one fit did).
 
     chaser_at(t_s) -> (4,) the chaser's polar orbit; dyn: J_T, mu_m3_s2, gravity_gradient, max_step_s; huber:
-    the whitened residual norm per corner beyond which a corner is down-weighted; gate: chi-square bound per
-    corner beyond which it is dropped after the first iterations (None: gates.chi2_gate(GATE_PROB, 2));
+    the whitened residual norm per keypoint beyond which a keypoint is down-weighted; gate: chi-square bound per
+    keypoint beyond which it is dropped after the first iterations (None: gates.chi2_gate(GATE_PROB, 2));
     keypoints_T_m: (K, 3) the target's keypoints (None: ENVISAT's corners A-H)."""
     from envisat_pose.gates import GATE_PROB, chi2_gate
 
     gate = chi2_gate(GATE_PROB, 2) if gate is None else float(gate)
-    times = np.array([f.t_s for f in frames])
+    H = len(windows)
+    times = np.array([f.t_s for f in windows[0]])
     t_end = float(times[-1])
-    z = np.stack([f.z_px for f in frames])  # (N, K, 2)
+    z = np.stack([np.stack([f.z_px for f in w]) for w in windows])  # (H, N, K, 2)
     meas = np.isfinite(z).all(-1)
-    L_inv = np.linalg.inv(np.linalg.cholesky(np.where(meas[..., None, None], np.stack([f.cov_px for f in frames]),
-                                                      np.eye(2))))  # whitening, (N, K, 2, 2)
+    cov = np.stack([np.stack([f.cov_px for f in w]) for w in windows])
+    L_inv = np.linalg.inv(np.linalg.cholesky(np.where(meas[..., None, None], cov, np.eye(2))))  # (H, N, K, 2, 2)
     steps = np.array([1e-3] * 3 + [1e-4] * 3 + [1e-5] * 3 + [1e-6] * 3)
+    probe = np.concatenate([np.zeros((1, N_STATE)), np.diag(steps)])  # the state, then one step per component
 
-    def whitened(X: np.ndarray) -> np.ndarray:
-        """(B, 12) states at t_end -> whitened residuals (B, N, K, 2) (0 where not measured)."""
-        uv = measure(_propagate_back(X, t_end, times, chaser_at, dyn), "pixels", camera, keypoints_T_m)
-        r = np.where(meas[..., None], z - uv, 0.0)
-        return np.einsum("nkij,bnkj->bnki", L_inv, r)
+    def whitened(X: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """(h, B, 12) states at t_end of the windows idx (h,) -> whitened residuals (h, B, N, K, 2) (0 where not
+        measured)."""
+        h, B = X.shape[:2]
+        uv = measure(_propagate_back(X.reshape(h * B, N_STATE), t_end, times, chaser_at, dyn), "pixels", camera,
+                     keypoints_T_m)
+        uv = uv.reshape((h, B) + uv.shape[1:])
+        r = np.where(meas[idx][:, None, ..., None], z[idx][:, None] - uv, 0.0)
+        return np.einsum("hnkij,hbnkj->hbnki", L_inv[idx], r)
 
-    x = np.array(x_guess, dtype=float)
+    x = np.array(x_guess, dtype=float).reshape(H, N_STATE)
     keep = meas.copy()
-    lam = 1e-3
+    lam = np.full(H, 1e-3)
+    active = np.ones(H, bool)
     for it in range(iterations):
-        X = np.concatenate([x[None], x[None] + np.diag(steps)])
-        W = whitened(X)
-        r0 = W[0]
-        J = (W[1:] - r0[None]) / steps[:, None, None, None]  # (12, N, K, 2)
+        idx = np.flatnonzero(active)
+        if not idx.size:
+            break
+        W = whitened(x[idx][:, None] + probe[None], idx)
+        r0 = W[:, 0]
+        J = (W[:, 1:] - r0[:, None]) / steps[None, :, None, None, None]  # (h, 12, N, K, 2)
         norm = np.linalg.norm(r0, axis=-1)
         if it >= 3:
-            keep = meas & (norm ** 2 < gate)
-        w = np.where(keep, np.minimum(1.0, huber / np.maximum(norm, 1e-12)), 0.0)  # IRLS Huber weights
-        Jm = (J * np.sqrt(w)[None, ..., None]).reshape(12, -1).T
-        rm = (r0 * np.sqrt(w)[..., None]).reshape(-1)
-        H = Jm.T @ Jm
-        g = Jm.T @ rm
-        cost0 = float(rm @ rm)
-        while True:
-            dx = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), -g)
-            x_new = x + dx
-            x_new[MRP] = mrp_shadow(x_new[MRP])
-            r_new = whitened(x_new[None])[0]
-            cost1 = float(np.sum(w[..., None] * r_new ** 2))
-            if cost1 <= cost0 or lam > 1e8:
-                break
-            lam *= 10.0
-        if cost1 <= cost0:
-            x, lam = x_new, max(lam / 10.0, 1e-9)
-        if abs(cost0 - cost1) < 1e-6 * max(cost0, 1.0) and it >= 4:
-            break
-    X = np.concatenate([x[None], x[None] + np.diag(steps)])
-    W = whitened(X)
-    r0 = W[0]
+            keep[idx] = meas[idx] & (norm ** 2 < gate)
+        w = np.where(keep[idx], np.minimum(1.0, huber / np.maximum(norm, 1e-12)), 0.0)  # IRLS Huber weights
+        Jm = np.swapaxes((J * np.sqrt(w)[:, None, ..., None]).reshape(len(idx), N_STATE, -1), 1, 2)
+        rm = (r0 * np.sqrt(w)[..., None]).reshape(len(idx), -1)
+        Hm = np.einsum("hmi,hmj->hij", Jm, Jm)
+        g = np.einsum("hmi,hm->hi", Jm, rm)
+        cost0 = np.einsum("hm,hm->h", rm, rm)
+        D = np.zeros_like(Hm)
+        D[:, np.arange(N_STATE), np.arange(N_STATE)] = np.diagonal(Hm, axis1=1, axis2=2) + 1e-12
+        x_new, cost1 = x[idx].copy(), np.full(len(idx), np.inf)
+        pending = np.ones(len(idx), bool)
+        while pending.any():  # Levenberg-Marquardt: raise each window's damping until its step lowers its cost
+            p = np.flatnonzero(pending)
+            dx = np.linalg.solve(Hm[p] + lam[idx[p]][:, None, None] * D[p], -g[p][..., None])[..., 0]
+            xp = x[idx[p]] + dx
+            xp[:, MRP] = mrp_shadow(xp[:, MRP])
+            rp = whitened(xp[:, None], idx[p])[:, 0]
+            x_new[p], cost1[p] = xp, np.sum(w[p][..., None] * rp ** 2, axis=(1, 2, 3))
+            done = (cost1[p] <= cost0[p]) | (lam[idx[p]] > 1e8)
+            lam[idx[p[~done]]] *= 10.0
+            pending[p[done]] = False
+        better = cost1 <= cost0
+        x[idx[better]] = x_new[better]
+        lam[idx[better]] = np.maximum(lam[idx[better]] / 10.0, 1e-9)
+        if it >= 4:
+            active[idx[np.abs(cost0 - cost1) < 1e-6 * np.maximum(cost0, 1.0)]] = False
+    W = whitened(x[:, None] + probe[None], np.arange(H))
+    r0 = W[:, 0]
     norm2 = np.sum(r0 ** 2, axis=-1)
     keep = meas & (norm2 < gate)
-    J = ((W[1:] - r0[None]) / steps[:, None, None, None])[:, keep].reshape(12, -1).T
-    chi2 = float(norm2[keep].sum())
-    dof = int(2 * keep.sum() - N_STATE)
-    H = J.T @ J
-    P = np.linalg.pinv(H)
-    if dof > 0:
-        P = P * max(1.0, chi2 / dof)  # residuals larger than their covariance: the fit is less certain than H says
-    P = 0.5 * (P + P.T)
-    return BatchFit(t_end, x, P, chi2, dof, keep, int(meas.sum() - keep.sum()))
+    fits = []
+    for h in range(H):
+        J = ((W[h, 1:] - r0[h][None]) / steps[:, None, None, None])[:, keep[h]].reshape(N_STATE, -1).T
+        chi2 = float(norm2[h][keep[h]].sum())
+        dof = int(2 * keep[h].sum() - N_STATE)
+        P = np.linalg.pinv(J.T @ J)
+        if dof > 0:
+            P = P * max(1.0, chi2 / dof)  # residuals larger than their covariance: the fit is less certain than H says
+        fits.append(BatchFit(t_end, x[h], 0.5 * (P + P.T), chi2, dof, keep[h], int(meas[h].sum() - keep[h].sum())))
+    return fits
 
 
 def appearance_log_likelihood(frames: list[FramePose], clip: float, namings: Namings | None = None) -> np.ndarray:

@@ -14,7 +14,7 @@ from envisat_pose.pipelines.tracking.acquisition import (
     FramePose,
     align_namings,
     appearance_log_likelihood,
-    batch_fit,
+    batch_fits,
     initial_guess,
     naming_state,
     pnp_state,
@@ -70,10 +70,10 @@ class AcquiringSteps:
         events."""
         frames, _ = align_namings(self.buffer, self.namings)
         guess = initial_guess(frames)
-        fits = [batch_fit(renamed_window(frames, h, self.namings), naming_state(guess, h, self.namings), self.chaser_at,
-                          self.camera, self.dyn, self.cfg.fit.iterations, self.cfg.fit.huber, self.cfg.fit.gate,
-                          self.keypoints_T_m)
-                for h in range(self.namings.count)]
+        nm = self.namings
+        fits = batch_fits([renamed_window(frames, h, nm) for h in range(nm.count)],
+                          np.stack([naming_state(guess, h, nm) for h in range(nm.count)]), self.chaser_at, self.camera,
+                          self.dyn, self.cfg.fit.iterations, self.cfg.fit.huber, self.cfg.fit.gate, self.keypoints_T_m)
 
         def cost(f: BatchFit) -> float:
             return f.chi2 + self.cfg.fit.gate * f.rejected

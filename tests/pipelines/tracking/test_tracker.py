@@ -97,6 +97,36 @@ def test_the_batch_fit_recovers_the_state_and_the_dynamics_pick_the_hypothesis(t
     assert fit_alt.chi2 > fit.chi2 + 10.0, (fit.chi2, fit_alt.chi2)
 
 
+def test_windows_fitted_together_are_each_fitted_as_alone(truth_600):
+    """batch_fits carries every naming's window back through the dynamics at once: each fit is the one that window
+    gets alone (x, P, chi-square, the keypoints kept), whether its damping and convergence run ahead of the
+    others or not (the four namings of a real window converge at different iterations)."""
+    from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
+
+    cam, corners_T = load_camera(), load_geometry().corners_T_m
+    rng = np.random.default_rng(8)
+    chaser_at = chaser_lookup(truth_600)
+    frames = []
+    for k in range(200, 220):
+        vis = truth_600.visible[k] & truth_600.in_frame[k]
+        z = np.where(vis[:, None], truth_600.corners_px[k] + rng.normal(0, 0.7, (8, 2)), np.nan)
+        cov = np.where(vis[:, None, None], np.eye(2) * 0.49, np.nan)
+        frames.append(acq.FramePose(float(truth_600.t_s[k]), chaser_at(truth_600.t_s[k]), z, cov, 0.3,
+                                    acq.pnp_state(z, corners_T, cam)))
+    dyn = {"J_T": load_inertia_T_kg_m2(), "mu_m3_s2": MU_EARTH_M3_S2, "gravity_gradient": False, "max_step_s": 1.0}
+    guess = acq.initial_guess(frames)
+    windows = [acq.renamed_window(frames, h) for h in range(len(acq.NAMINGS))]
+    guesses = np.stack([acq.naming_state(guess, h) for h in range(len(acq.NAMINGS))])
+    together = acq.batch_fits(windows, guesses, chaser_at, cam, dyn)
+    for w, g, fit in zip(windows, guesses, together):
+        alone = acq.batch_fit(w, g, chaser_at, cam, dyn)
+        np.testing.assert_allclose(fit.x, alone.x, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(fit.P, alone.P, rtol=1e-7, atol=1e-14)
+        assert abs(fit.chi2 - alone.chi2) <= 1e-7 * alone.chi2 and fit.dof == alone.dof
+        np.testing.assert_array_equal(fit.used, alone.used)
+    assert len({round(f.chi2, 3) for f in together}) == len(together)  # four different problems
+
+
 def test_namings_off_by_any_box_symmetry_are_aligned_and_a_wrong_pose_does_not_set_the_start(truth_600):
     """The detector's names can be off by any of the box's half-turns (about x, y or z), not only the long axis:
     a window whose frames are renamed by y and z half-turns is aligned back to one naming (consecutive poses a
@@ -510,16 +540,16 @@ def test_a_failed_cold_start_fit_keeps_acquiring(truth_600, monkeypatch):
     goes on acquiring from the newer half of its window and starts once a fit is valid."""
     import envisat_pose.pipelines.tracking.tracker_acquire as trk
 
-    real, calls = trk.batch_fit, []
+    real, calls = trk.batch_fits, []
 
-    def failing_first(frames, *a, **kw):
-        fit = real(frames, *a, **kw)
-        calls.append(len(frames))
+    def failing_first(windows, *a, **kw):
+        fits = real(windows, *a, **kw)
+        calls.extend(len(frames) for frames in windows)
         if len(calls) <= len(acq.NAMINGS):  # every naming's hypothesis of the first window
-            return acq.BatchFit(fit.t_s, fit.x, np.zeros((12, 12)), 0.0, -12, np.zeros_like(fit.used), 160)
-        return fit
+            return [acq.BatchFit(f.t_s, f.x, np.zeros((12, 12)), 0.0, -12, np.zeros_like(f.used), 160) for f in fits]
+        return fits
 
-    monkeypatch.setattr(trk, "batch_fit", failing_first)
+    monkeypatch.setattr(trk, "batch_fits", failing_first)
     ests = run_tracker(truth_600, NoisyTruthDetector(truth_600), range(0, 60))
     status = [e.status for e in ests]
     # 20 frames, a failed fit, 10 more (the window refilled from its newer half), then the start; "tracking"
