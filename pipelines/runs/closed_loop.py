@@ -45,7 +45,7 @@ from envisat_pose.geometry import load_camera
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import make_out_dir
 from envisat_pose.pipelines.runs.frame_loop import FrameInput, run_frames
-from envisat_pose.pipelines.runs.rows import STAGES, RunRows
+from envisat_pose.pipelines.runs.rows import STAGES, RunRows, timing_by_status
 from envisat_pose.pipelines.runs.run_config import RunConfig, run_config_from_json, sun_and_shadow
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, score_run_files, write_run_files
 from envisat_pose.pipelines.tracking.build import tracker_detector
@@ -265,6 +265,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
         "resolution_px": cfg.image.resolution_px,
         "scores": scores,
         "timing_ms_per_frame": {s: float(1000 * timing_sum[i] / (R * T)) for i, s in enumerate(STAGES)},
+        "timing_ms_per_frame_by_status": timing_by_status(results),
         "real_time_factor_one_run": real_time_factor(truth.t_s, frames_sum, 1.0 / cfg.rate_hz),
         "real_time_factor_job": sim_time_s * R / max(loop_wall_s, 1e-9),
         "wall_s": {"truth_simulation": sim_s, "loops": loop_wall_s, "total": time.perf_counter() - wall0},

@@ -82,7 +82,9 @@ class RunRows:
         self.writers = {k: NpyRowWriter(os.path.join(run_dir, f"{k}.npy"), T, a.shape[1:], a.dtype)
                         for k, a in self.buf.items()}
         self.sums = {"timing_s": np.zeros(len(STAGES)), "frames_skipped_eclipse": 0, "frames_roi": 0,
-                     "frames_ambiguous": 0, "frames_acquiring": 0, "frames_lost": 0}
+                     "frames_ambiguous": 0, "frames_acquiring": 0, "frames_lost": 0,
+                     "timing_s_by_status": np.zeros((len(STATUSES), len(STAGES))),
+                     "frames_by_status": np.zeros(len(STATUSES), np.int64)}
 
     def row(self, k: int) -> int:
         if k != self.start + self.n:
@@ -103,6 +105,8 @@ class RunRows:
         s["frames_ambiguous"] += int(b["ambiguous"].sum())
         s["frames_acquiring"] += int((b["status"] == ACQUIRING).sum())
         s["frames_lost"] += int((b["status"] == LOST).sum())
+        np.add.at(s["timing_s_by_status"], b["status"], b["timing_s"])  # each frame's stages under its status
+        s["frames_by_status"] += np.bincount(b["status"], minlength=len(STATUSES))
         self.start, self.n = self.start + self.n, 0
         self.buf = record_arrays(self.chunk, self.K)  # fresh defaults (NaN where a frame has no detection)
 
@@ -112,7 +116,18 @@ class RunRows:
             self.flush()
         for w in self.writers.values():
             w.close()
-        return {**self.sums, "timing_s": self.sums["timing_s"].tolist(), "frames": self.T}
+        return {**self.sums, "timing_s": self.sums["timing_s"].tolist(), "frames": self.T,
+                "timing_s_by_status": self.sums["timing_s_by_status"].tolist(),
+                "frames_by_status": self.sums["frames_by_status"].tolist()}
+
+
+def timing_by_status(results: list[dict]) -> dict:
+    """{status: {stage: ms per frame}} over the runs' reductions (RunRows.close), for the statuses some frame had:
+    what an acquiring frame costs beside a tracked one."""
+    t = np.sum([r["timing_s_by_status"] for r in results], axis=0)
+    n = np.sum([r["frames_by_status"] for r in results], axis=0)
+    return {name: {stage: float(1000 * t[i, j] / n[i]) for j, stage in enumerate(STAGES)}
+            for i, name in enumerate(STATUSES) if n[i]}
 
 
 def est_row(out: dict, k: int, t_s: float) -> dict:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from envisat_pose.pipelines.runs.frame_loop import FrameInput, run_frames
-from envisat_pose.pipelines.runs.rows import STAGES, RunRows
+from envisat_pose.pipelines.runs.rows import STAGES, RunRows, timing_by_status
 from envisat_pose.pipelines.tracking.tracker import TrackEstimate
 from envisat_pose.status import STATUSES
 
@@ -68,6 +68,11 @@ def test_the_loop_fills_each_row_and_its_stage_times_by_name(tmp_path):
     assert np.allclose(sums["timing_s"], t.sum(axis=0))
     assert [f[:4] for f in recorder.frames] == [(0, 0.0, False, 55), (1, 0.5, True, 55), (2, 1.0, False, 55)]
     assert recorder.frames[2][4][0] == 2.0 and recorder.closed
+    # the stage times by status: the two tracked frames' mean and the coasting one's, apart (across chunks)
+    by = timing_by_status([sums])
+    assert set(by) == {"tracking", "coasting"}
+    assert by["tracking"]["detection"] == pytest.approx(250.0) and by["coasting"]["filtering"] == pytest.approx(125.0)
+    assert by["tracking"]["simulation"] == pytest.approx(10.0)  # (0 + 20 ms) / 2
 
 
 def test_an_error_in_a_frame_still_closes_the_recorder(tmp_path):
