@@ -329,19 +329,24 @@ def batch_fits(windows: list[list[FramePose]], x_guess: np.ndarray, chaser_at, c
         if it >= 4:
             active[idx[np.abs(cost0 - cost1) < 1e-6 * np.maximum(cost0, 1.0)]] = False
     W = whitened(x[:, None] + probe[None], np.arange(H))
-    r0 = W[:, 0]
+    return [fit_statistics(t_end, x[h], W[h], steps, meas[h], gate) for h in range(H)]
+
+
+def fit_statistics(t_s: float, x: np.ndarray, W: np.ndarray, steps: np.ndarray, meas: np.ndarray, gate: float
+                   ) -> BatchFit:
+    """The BatchFit of a converged state x (12,) at t_s: W (13, N, K, 2) the whitened residuals of x and of x
+    moved by each of steps (12,), meas (N, K) the keypoints measured. Keypoints beyond the gate are not kept; P is
+    (J^T J)^-1 of the kept ones, scaled up by the reduced chi-square when it exceeds 1."""
+    r0 = W[0]
     norm2 = np.sum(r0 ** 2, axis=-1)
     keep = meas & (norm2 < gate)
-    fits = []
-    for h in range(H):
-        J = ((W[h, 1:] - r0[h][None]) / steps[:, None, None, None])[:, keep[h]].reshape(N_STATE, -1).T
-        chi2 = float(norm2[h][keep[h]].sum())
-        dof = int(2 * keep[h].sum() - N_STATE)
-        P = np.linalg.pinv(J.T @ J)
-        if dof > 0:
-            P = P * max(1.0, chi2 / dof)  # residuals larger than their covariance: the fit is less certain than H says
-        fits.append(BatchFit(t_end, x[h], 0.5 * (P + P.T), chi2, dof, keep[h], int(meas[h].sum() - keep[h].sum())))
-    return fits
+    J = ((W[1:] - r0[None]) / steps[:, None, None, None])[:, keep].reshape(N_STATE, -1).T
+    chi2 = float(norm2[keep].sum())
+    dof = int(2 * keep.sum() - N_STATE)
+    P = np.linalg.pinv(J.T @ J)
+    if dof > 0:
+        P = P * max(1.0, chi2 / dof)  # residuals larger than their covariance: the fit is less certain than H says
+    return BatchFit(t_s, x, 0.5 * (P + P.T), chi2, dof, keep, int(meas.sum() - keep.sum()))
 
 
 def appearance_log_likelihood(frames: list[FramePose], clip: float, namings: Namings | None = None) -> np.ndarray:
