@@ -1,5 +1,6 @@
 """`envisat track`: the verb over pipelines/runs/track.py: the Tracker on a user's frames (a sequence-mode generate
-folder, a folder of image files, or a video), cold, with no truth; labels, where present, only score."""
+folder, a folder of image files, or a video), cold, with no truth; labels, where present, only score. ENVISAT by
+default; --target FILE.xml another spacecraft, with its keypoint detector's --weights."""
 
 from __future__ import annotations
 
@@ -25,15 +26,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         "track",
         help="track the target in your own frames (image folder, video or generate folder): pose history with "
         "covariances, no truth needed",
-        description="Run the tracker (corner detector + UKF, cold start from the images) over a sequence of "
-        "frames: a folder written by `envisat generate --mode sequence`, a folder of PNG/JPEG/TIFF files whose "
-        "names sort in time order (natural order: frame_2 before frame_10; hidden files ignored; --rate-hz or "
-        "--timestamps), or a video file. Every frame is checked before anything is written; the outputs are "
+        description="Run the tracker (detector + UKF, cold start from the images) over a sequence of frames of "
+        "ENVISAT (its corner detector) or of another spacecraft (--target: its keypoint detector, trained and "
+        "calibrated for it): a folder written by `envisat generate --mode sequence` of that target, a folder of "
+        "PNG/JPEG/TIFF files whose names sort in time order (natural order: frame_2 before frame_10; hidden files "
+        "ignored; --rate-hz or --timestamps), or a video file. Every frame is checked before anything is written; the outputs are "
         "moved into --out only when complete (an interrupt leaves an earlier run's as they were). Writes est.npz, "
         "det.npz, track.config.toml, summary.json, recording.rrd (and errors.png when the input carries the "
         "truth) into --out.",
     )
     add_frame_inputs(p)
+    p.add_argument("--target", metavar="FILE.xml", help="another spacecraft's MJCF file (default: ENVISAT, "
+                   "models/envisat.xml): its keypoint detector's --weights required (`envisat train --target`, "
+                   "then `envisat calibrate --target`)")
     add_common(p, out="output folder (created, parents too; files are replaced)", out_metavar="RUN_DIR",
                config="track config (orbit, filter, tracker; top-level keys)", weights=True, flag_names=FLAGS)
     add_skip_damaged_argument(p)
@@ -43,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 # the library's argument names -> this verb's flags (app/common.as_flags)
 FLAGS = {"src": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps", "bit_depth": "--bit-depth",
-         "camera": "--camera", "skip_damaged": "--skip-damaged"}
+         "camera": "--camera", "skip_damaged": "--skip-damaged", "target": "--target"}
 
 
 def track_cli(args: argparse.Namespace) -> int:
@@ -54,7 +59,7 @@ def track_cli(args: argparse.Namespace) -> int:
     with skip_hint():
         source = open_source(args.images, args.rate_hz or 0.0, args.timestamps, args.bit_depth, args.skip_damaged)
     cfg = resolve_job("track", args.scenario or source.scenario or "default", args.config,
-                      rate_hz=args.rate_hz, weights=args.weights)
+                      rate_hz=args.rate_hz, weights=args.weights, target=args.target)
     sink = recording_sink(args)
     summary = track_frames(cfg, source, args.camera, None, args.out, sink, progress=not args.quiet)
     w, h = summary["source"]["size_px"]

@@ -80,6 +80,7 @@ from envisat_pose.pipelines.adaptation.track_labels import (
 from envisat_pose.pipelines.runs.track import TrackConfig, prepare_frames, track_frames
 from envisat_pose.pipelines.tracking.camera_file import read_camera_response
 from envisat_pose.status import TRACKING
+from envisat_pose.target import require_envisat
 
 OUTPUTS = ("detector.safetensors", "detector.json", "report.json")
 RUN_DIRS = ("before", "after")
@@ -138,6 +139,8 @@ class AdaptConfig(Config):
         check(self.max_labels >= self.min_trusted, f"{p}max_labels", self.max_labels, "at least min_trusted")
         check(self.edge_range in EDGE_RANGE_MODES, f"{p}edge_range", self.edge_range,
               "'sequence', 'frame' or 'off'")
+        # the fine-tune and the recalibration know ENVISAT's corner network alone
+        require_envisat(self.track.target, f"{p}track.target", "adapt")
         check(self.edge_min_frames >= 1, f"{p}edge_min_frames", self.edge_min_frames, "at least 1 frame")
         check(self.max_calibration_frames >= 1, f"{p}max_calibration_frames", self.max_calibration_frames,
               "at least 1 frame")

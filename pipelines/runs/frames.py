@@ -21,11 +21,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envisat_pose.config import InputError
+from envisat_pose.config import ConfigError, InputError
 from envisat_pose.datagen.generate_config import nest_moved_keys
+from envisat_pose.pipelines.detector.detect_target import require_dataset_of
 from envisat_pose.resumable import manifest_path
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
-from envisat_pose.target import require_envisat_dataset
+from envisat_pose.target import DEFAULT_TARGET, load_target, other_target, require_envisat_dataset
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 BIT_DEPTHS = (8, 10, 12, 14, 16)
@@ -157,11 +158,13 @@ def detect_bit_depth(max_value: int) -> int:
 @dataclass
 class FrameSource:
     """The frames of one input. kind: 'dataset', 'images' or 'video'; path; t_s (N,) s; names (N,) what each frame
-    is called in messages (file, sample key, frame index); truth: None or {x (N, 12), corners_px (N, 8, 2),
-    in_frame (N, 8)} from a dataset's labels; scenario: a dataset's own scenario (None otherwise); files: an
-    image folder's files in time order (a dataset's: its checked shard files); bit_depth: the data's bits (8, or
-    10-16 in 16-bit files: scan_source sets it); size_px: (width, height) of every frame (scan_source); skipped:
-    a dataset's damaged shards left out (open_source's skip_damaged)."""
+    is called in messages (file, sample key, frame index); truth: None or {x (N, 12), corners_px (N, K, 2),
+    in_frame (N, K)} from a dataset's labels (K: its target's keypoints, ENVISAT's 8 corners); scenario: a
+    dataset's own scenario (None otherwise); files: an image folder's files in time order (a dataset's: its checked
+    shard files); bit_depth: the data's bits (8, or 10-16 in 16-bit files: scan_source sets it); size_px: (width,
+    height) of every frame (scan_source); skipped: a dataset's damaged shards left out (open_source's
+    skip_damaged); target: a dataset's target as its manifest records it ({name, sha256}; None for frames without
+    one, and for a dataset written before targets were recorded: ENVISAT's)."""
 
     kind: str
     path: str
@@ -173,6 +176,7 @@ class FrameSource:
     bit_depth: int = 8
     size_px: tuple[int, int] | None = None
     skipped: list[str] = field(default_factory=list)
+    target: dict | None = None
 
     def where(self, i: int) -> str:
         """Frame i as a message names it: the file, or the input and the frame."""
@@ -315,12 +319,13 @@ def video_source(path: str, rate_hz: float) -> FrameSource:
 
 
 def dataset_source(path: str, skip_damaged: bool = False) -> FrameSource:
-    """A sequence-mode generate folder: times, truth and scenario from the labels and the manifest; its shards
-    checked against the manifest (shard_reader.checked_shards: a damaged one refused, or left out with
-    skip_damaged: its frames are then missing from the sequence, the times say where)."""
+    """A sequence-mode generate folder of any target: times, truth and scenario from the labels and the manifest,
+    the target from the manifest's record (source.target; a job checks it against its own: require_source_target);
+    its shards checked against the manifest (shard_reader.checked_shards: a damaged one refused, or left out with
+    skip_damaged: its frames are then missing from the sequence, the times say where). The truth's pixels are the
+    labels' corners_px (ENVISAT's) or keypoints_px (another target's, K of them, named by keypoint_names)."""
     from envisat_pose.datagen.dataset import iter_samples
 
-    require_envisat_dataset(path, "src", "track` / `envisat adapt")
     manifest = load_dataset_manifest(path, "src")
     cfg = manifest.get("config", {})
     if cfg.get("mode") != "sequence":
@@ -334,11 +339,34 @@ def dataset_source(path: str, skip_damaged: bool = False) -> FrameSource:
         t.append(float(label["scene"]["t_s"]))
         names.append(key)
         x.append(label["x"])
-        uv.append(label["corners_px"])
+        uv.append(label["keypoints_px"] if "keypoint_names" in label else label["corners_px"])
         inf.append(np.asarray(label["in_frame"], bool) & np.asarray(label["visible"], bool))
     truth = {"x": np.array(x, float), "corners_px": np.array(uv, float), "in_frame": np.array(inf)}
-    return FrameSource("dataset", path, np.array(t), names, truth=truth, scenario=nest_moved_keys(cfg).get("sequence", {}).get("scenario"), files=files,
-                       skipped=skipped)
+    record = manifest.get("target")
+    target = {"name": record.get("name"), "sha256": record.get("sha256")} if isinstance(record, dict) else None
+    return FrameSource("dataset", path, np.array(t), names, truth=truth,
+                       scenario=nest_moved_keys(cfg).get("sequence", {}).get("scenario"), files=files,
+                       skipped=skipped, target=target)
+
+
+def require_source_target(source: FrameSource, target: str = DEFAULT_TARGET, field: str = "src") -> None:
+    """InputError in one line unless a generate folder's frames show the job's target (its `target` value, a
+    file): ENVISAT's datasets for ENVISAT (target.require_envisat_dataset: its name and corners, or none recorded),
+    the same file's sha256 for another (detect_target.require_dataset_of). Image folders and videos record no
+    target: they pass."""
+    if source.kind != "dataset":
+        return
+    if other_target(target) is not None:
+        require_dataset_of(source.path, load_target(target, "target"), field)
+        return
+    try:
+        require_envisat_dataset(source.path, field, "track")
+    except ConfigError:
+        name = (source.target or {}).get("name")
+        raise InputError(f"{field} {source.path!r}: a dataset of target {name!r}, not of ENVISAT ({DEFAULT_TARGET}, "
+                         "the job's target): track it with its target file and that target's keypoint detector "
+                         "(`envisat track --target FILE.xml --weights W`; `envisat adapt` knows ENVISAT only)"
+                         ) from None
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -1,8 +1,9 @@
 """`envisat track`: the Tracker over a user's own frames (no truth needed; labels, where a dataset has them, score).
 
 Inputs (pipelines/runs/frames.py: `open_source`), every frame read once before any output is written (`scan_source`):
-- a folder written by `envisat generate --mode sequence` (manifest.json and shards): frame times from the labels'
-  scene, the chaser's orbit from its scenario, the labels' truth for scoring;
+- a folder written by `envisat generate --mode sequence` (manifest.json and shards) of the job's target: frame
+  times from the labels' scene, the chaser's orbit from its scenario, the labels' truth for scoring (a dataset of
+  another target than the job's is refused: frames.require_source_target);
 - a folder of image files (PNG, JPEG or TIFF; 8-bit, or 10- to 16-bit data in 16-bit files; gray, or colour
   converted to gray; hidden files ignored) in natural name order, with rate_hz (frame k at k / rate_hz s) or a
   timestamps CSV (columns file,t_s);
@@ -10,6 +11,9 @@ Inputs (pipelines/runs/frames.py: `open_source`), every frame read once before a
 The camera (pipelines/tracking/camera_file.py): a TOML file (fx, fy, cx, cy px, width, height, optional OpenCV distortion)
 or the MJCF's chaser_cam at the frames' size. Frames with distortion or non-square pixels are remapped once per
 frame to an ideal pinhole of the same size; the camera's mount on the chaser is the MJCF's.
+The target (`target`, its MJCF file): ENVISAT by default, with its corner detector (the shipped weights unless
+others are given); another target's frames are tracked by its own keypoint detector (`envisat train --target`,
+then `envisat calibrate --target`), whose weights must be given (pipelines/tracking/build.tracker_detector).
 
 Outputs are written into a hidden folder inside out_dir and moved into place when complete (io.staged_folder):
 an error or an interrupt leaves out_dir as it was; a finished run removes an earlier run's outputs it did not
@@ -38,18 +42,20 @@ from envisat_pose.pipelines.common.job_defaults import (
     default_weights_path,
     fill_from_scenario,
     layered_job,
+    require_target_weights,
 )
 from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
-from envisat_pose.pipelines.runs.frames import FrameSource, open_source, scan_source
+from envisat_pose.pipelines.runs.frames import FrameSource, open_source, require_source_target, scan_source
 from envisat_pose.pipelines.runs.outputs import first_tracking_s, status_counts
 from envisat_pose.pipelines.runs.rows import DET_KEYS, STAGES, RunRows
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, run_rows, score_run_files, write_run_files
-from envisat_pose.pipelines.tracking.build import tracker_camera
+from envisat_pose.pipelines.tracking.build import tracker_camera, tracker_detector
 from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
 from envisat_pose.pipelines.tracking.onboard import chaser_function
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, Tracker, TrackerConfig
 from envisat_pose.realtime import real_time_factor
 from envisat_pose.status import STATUSES, legend
+from envisat_pose.target import DEFAULT_TARGET, load_target, other_target
 
 if TYPE_CHECKING:  # the stage's type for annotations (track_stage_types resolves it at run time)
     from envisat_pose.datagen.scenario import OrbitConfig
@@ -64,13 +70,16 @@ class TrackConfig(Config):
     OrbitConfig); gravity_gradient: the target feels the gravity-gradient torque; filter: the UKF (the scenario's
     [filter] table over TRACKER_FILTER). Those three left None take the scenario's
     (job_defaults.fill_from_scenario). rate_hz: frame rate of an image folder or a video (0: a video's own
-    rate); weights: detector weights ("": the shipped ones; the file must exist); threads: torch CPU threads;
-    jpeg_quality: the recording's images. tracker: as `envisat run`."""
+    rate); target: the tracked spacecraft's MJCF file (envisat_pose/target.py; ENVISAT's by default); weights:
+    detector weights ("": ENVISAT's shipped ones; the file must exist and be the target's detector: another
+    target's keypoint detector is required for it); threads: torch CPU threads; jpeg_quality: the recording's
+    images. tracker: as `envisat run`."""
 
     scenario: str = "default"
     orbit: "OrbitConfig | None" = None
     gravity_gradient: bool | None = None
     rate_hz: float = 0.0
+    target: str = DEFAULT_TARGET
     weights: str = ""
     threads: int = 1
     jpeg_quality: int = 80
@@ -80,10 +89,11 @@ class TrackConfig(Config):
     def __post_init__(self) -> None:
         track_stage_types()
         fill_from_scenario(self, "track", TRACK_FALLBACKS)
+        super().__post_init__()  # the target file first: its weights are asked of it
+        require_target_weights(self.weights, self.target)  # never ENVISAT's shipped ones for another target
         if not self.weights:
             object.__setattr__(self, "weights", default_weights_path())
-        super().__post_init__()
-        check_weights(self.weights)
+        check_weights(self.weights, self.target)
 
     @classmethod
     def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
@@ -100,6 +110,7 @@ class TrackConfig(Config):
         check(self.rate_hz >= 0, "rate_hz", self.rate_hz, "a frame rate in Hz (0: a video's own)")
         check(1 <= self.threads <= 256, "threads", self.threads, "1 to 256 threads")
         check(1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality, "a JPEG quality in [1, 100]")
+        load_target(self.target, f"{prefix}.target" if prefix else "target")  # one line for a bad file (cached)
 
 
 # what a scenario sets of a track job when it has no such table (every named scenario has an orbit)
@@ -127,11 +138,13 @@ def track_output_paths(out_dir: str) -> dict[str, str]:
 def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCamera | str | None = None,
                    remap=None, progress: bool = False) -> tuple:
     """A user's frames made ready for a job over them (track_frames, adapt): the source opened (a path at
-    cfg.rate_hz), the camera read (a TOML file: its remap too) or the MJCF's at the frames' size, every frame
-    scanned once (frames.scan_source: one size, decodable, at least the cold start's frames). Returns (cfg,
-    source, camera, remap, pixels); cfg as given (complete when built: its weights named)."""
+    cfg.rate_hz; a generate folder must be of cfg.target: frames.require_source_target), the camera read (a TOML
+    file: its remap too) or the MJCF's at the frames' size, every frame scanned once (frames.scan_source: one size,
+    decodable, at least the cold start's frames). Returns (cfg, source, camera, remap, pixels); cfg as given
+    (complete when built: its weights named)."""
     if isinstance(source, str):
         source = open_source(source, cfg.rate_hz)
+    require_source_target(source, cfg.target)
     if isinstance(camera, str):
         camera, remap = camera_from_intrinsics(camera)
     pixels = scan_source(source, None if camera is None else (camera.width_px, camera.height_px),
@@ -148,59 +161,66 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     streamed to sink: 'spawn' or 'connect:URL'); with a truth also errors.png and the scores. camera: a
     PinholeCamera (remap: its cv2.remap maps, or None), a camera TOML file (camera_file.camera_from_intrinsics), or
     None for the MJCF's chaser_cam at the frames' size; cfg: TrackConfig(scenario=NAME, ...) (or
-    pipelines.jobs.resolve_job("track", ...), the job `envisat track` runs). Every frame is read once before any
-    output (frames.scan_source: one size, decodable, at least the cold start's frames); every output is staged
-    and moved into out_dir when complete (io.staged_folder). Returns the summary (its source's `pixels`: what
-    the scan found of the pixels)."""
+    pipelines.jobs.resolve_job("track", ...), the job `envisat track` runs); the Tracker's target is cfg.target's
+    (a generate folder of another target refused), its detector cfg.weights' (build.tracker_detector: another
+    target's calibrated keypoint detector). Every frame is read once and the detector loaded before any output
+    (frames.scan_source: one size, decodable, at least the cold start's frames); every output is staged and moved
+    into out_dir when complete (io.staged_folder). Returns the summary (its source's `pixels`: what the scan found
+    of the pixels; `target`: the target's record)."""
 
     check_out_dir(out_dir, field="out_dir")
     cfg, source, camera, remap, pixels = prepare_frames(cfg, source, camera, remap, progress)
+    # the detector before any output: another target's weights without their calibration are refused here
+    detector = tracker_detector(cfg.weights, target=cfg.target)
     make_out_dir(out_dir, field="out_dir")
     with staged_folder(out_dir, OUTPUTS.values()) as stage:
-        return _track(cfg, source, camera, remap, stage, sink, progress, pixels)
+        return _track(cfg, source, camera, remap, stage, sink, progress, pixels, detector)
 
 
 def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, out_dir: str, sink: str | None,
-           progress: bool, pixels: str) -> dict:
+           progress: bool, pixels: str, detector) -> dict:
     import shutil
     from dataclasses import asdict
 
     import torch
 
     from envisat_pose.analysis.recording import TrackRecorder
-    from envisat_pose.perception.detect import load_detector
 
     torch.set_num_threads(cfg.threads)
     paths = track_output_paths(out_dir)
     sink = sink or f"save:{os.path.abspath(paths['recording'])}"
-    tracker = Tracker(camera, load_detector(cfg.weights), chaser_function(cfg.orbit), cfg.tracker,
-                      asdict(cfg.filter), mu_m3_s2=cfg.orbit.mu_m3_s2, gravity_gradient=cfg.gravity_gradient)
+    target = load_target(cfg.target)
+    tracker = Tracker(camera, detector, chaser_function(cfg.orbit), cfg.tracker, asdict(cfg.filter),
+                      mu_m3_s2=cfg.orbit.mu_m3_s2, gravity_gradient=cfg.gravity_gradient,
+                      target=None if other_target(cfg.target) is None else target)
     T = len(source.t_s)
     # the per-frame arrays go to files chunk by chunk (rows.RunRows), est.npz/det.npz are streamed from them
     runs_dir = os.path.join(out_dir, "runs")
     run_dir = os.path.abspath(os.path.join(runs_dir, "run-0000"))
-    rows = RunRows(run_dir, T)
+    rows = RunRows(run_dir, T, K=tracker.K)
     truth = source.truth
-    recorder = TrackRecorder(sink, camera, with_truth=truth is not None, title=f"envisat track {source.path}")
+    recorder = TrackRecorder(sink, camera, with_truth=truth is not None, title=f"envisat track {source.path}",
+                             target=target)
 
     wall0 = time.perf_counter()
     sums = run_frames(tracker, frame_inputs(source, remap), rows, recorder, cfg.jpeg_quality,
                       "tracking" if progress else None)
     wall_s = time.perf_counter() - wall0
     x_true = truth["x"] if truth is not None else np.full((T, 12), np.nan)
-    config_json = json.dumps({"track": to_dict(cfg), "source": {"kind": source.kind, "path": source.path,
-                                                                "bit_depth": source.bit_depth,
-                                                                "skipped_damaged_shards": source.skipped}},
-                             sort_keys=True)
-    det_cfg = json.dumps({"weights": cfg.weights, "source": source.path}, sort_keys=True)
+    record = target.record(cfg.target)  # the file as given, its name, sha256 and keypoints
+    config_json = json.dumps({"track": to_dict(cfg), "target": record,
+                              "source": {"kind": source.kind, "path": source.path, "bit_depth": source.bit_depth,
+                                         "skipped_damaged_shards": source.skipped}}, sort_keys=True)
+    det_cfg = json.dumps({"weights": cfg.weights, "source": source.path, "target": record}, sort_keys=True)
     det_names = tuple(k for k in DET_KEYS if k != "skipped")
     scores = score_run_files(source.t_s, x_true, [run_dir], paths, config_json, det_cfg, score=truth is not None,
-                             det_names=det_names)
+                             det_names=det_names, equivalent=tracker.namings.equivalent)
     col = run_rows(run_dir, ["status", "nis", "nis_dof"], 0, T)  # three scalars a frame
     write_run_files(paths, source.t_s, x_true, [run_dir], lost_runs([run_dir], T), config_json, source.names,
                     det_cfg, det_names=det_names)
     atomic_write_text(paths["config"], "# envisat track: the full validated config of this job\n" + to_toml(to_dict(cfg)))
     summary = track_summary(source, cfg.weights, pixels, col, np.asarray(sums["timing_s"]) / T, wall_s)
+    summary["target"] = record
     if truth is not None:
         from envisat_pose.analysis.plots import plot_estimate
 
