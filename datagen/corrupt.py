@@ -17,7 +17,7 @@ import numpy as np
 from envisat_pose.config import ConfigError
 from envisat_pose.contracts import SEVERITIES
 from envisat_pose.datagen.image_kernels import content_box, motion_kernel, standard_normal_fast
-from envisat_pose.datagen.sensor import apply_sensor
+from envisat_pose.datagen.sensor import apply_sensor, bloom_reach_px, optics_reach_px
 
 KINDS = ("exposure", "motion_blur", "gaussian_blur", "shot_noise", "gaussian_noise")
 
@@ -122,8 +122,7 @@ def apply_corruption(gray_u8: np.ndarray, params: dict) -> np.ndarray:
     if kern is not None or sigma > 0:
         # Blur only where the image is not black: the box of its non-zero pixels grown by the kernels' reach.
         # Outside it the blurred image is 0 as well, so the result equals blurring the whole frame.
-        reach = (kern.shape[0] // 2 if kern is not None else 0) + (int(np.ceil(4.0 * sigma)) + 1 if sigma > 0 else 0)
-        box = content_box(gray_u8, reach)
+        box = content_box(gray_u8, paper_blur_reach_px(params))
         if box is not None:
             y0, y1, x0, x1 = box
             crop = img[y0:y1, x0:x1]
@@ -149,3 +148,60 @@ def apply_corruption(gray_u8: np.ndarray, params: dict) -> np.ndarray:
     np.rint(img, out=img)
     np.clip(img, 0, 255, out=img)
     return img.astype(np.uint8)
+
+
+def paper_blur_reach_px(params: dict) -> int:
+    """How far (px) the 'paper' blurs carry light: the motion streak's half-size (motion_kernel: ceil(length / 2))
+    plus the Gaussian's (ceil(4 sigma) + 1); 0 for a kind that is off."""
+    length, sigma = params["motion_blur_length_px"], params["gaussian_blur_sigma_px"]
+    return (int(np.ceil(length / 2.0)) if length > 0 else 0) + (int(np.ceil(4.0 * sigma)) + 1 if sigma > 0 else 0)
+
+
+def corruption_margin_px(params: dict) -> int:
+    """Clean pixels a window needs on each side for apply_corruption_window: how far the corruption carries a
+    pixel's light. Space camera ('sensor'): the PSF's and the motion streak's half-sizes (sensor.optics_reach_px)
+    plus the blooming's reach along a column (sensor.bloom_reach_px: a saturated pixel spills its excess charge
+    that far); the blur is computed right on the window grown by the blooming reach, and the charge there is what
+    can spill into the window. 'paper': the blurs' reach (paper_blur_reach_px). 0 for an uncorrupted image."""
+    if params.get("model") == "sensor":
+        return optics_reach_px(params) + bloom_reach_px(params["blooming_decay_px"])
+    if all(v == "none" for v in params["levels"].values()):
+        return 0
+    return paper_blur_reach_px(params)
+
+
+def apply_corruption_window(clean_u8: np.ndarray, window_px: tuple[int, int, int], resolution_px: int,
+                            params: dict) -> np.ndarray:
+    """apply_corruption(full_clean, params)[y0:y0 + side, x0:x0 + side] in distribution, from the window
+    (x0, y0, side) px of the square frame of resolution_px alone (the closed loop's region of interest).
+
+    clean_u8: (side + 2 m, side + 2 m) uint8, m = corruption_margin_px(params): the clean render of the window
+    grown by m px on each side, 0 outside the image (SceneRenderer.render_window(view, (x0 - m, y0 - m,
+    side + 2 m)).gray_u8). params: the full frame's, from draw_corruption_params, taken whole: nothing in them
+    is computed from the image's pixels (exposure, white level, full well, noise levels and ADC are drawn from
+    the configured ranges, the motion streak from the true pose; neither camera model has an auto-gain). What
+    depends on a pixel's place is taken from the full frame at the window's offset: the vignetting (cos^n of
+    the pixel's ray in the full frame) and the PRNU gain map (the camera's, at its full-frame pixels). Blooming
+    from bright pixels outside the window reaches it from within the margin only (the spill's support is
+    sensor.bloom_reach_px), and the margin's own irradiance is blurred from clean pixels within the margin.
+    The chain runs on the grown window's part inside the image (its edges at the image's edges are the frame's
+    own, as in apply_corruption); the noise is drawn from params' noise_seed (other draws than the full frame's:
+    the same distribution, not the same pixels). Returns (side, side) uint8, 0 outside the image.
+    """
+    x0, y0, side = (int(v) for v in window_px)
+    m, n = corruption_margin_px(params), int(resolution_px)
+    if clean_u8.shape != (side + 2 * m, side + 2 * m):
+        raise ValueError(f"clean window of shape {clean_u8.shape}: expected ({side + 2 * m}, {side + 2 * m}), the "
+                         f"window side {side} px grown by corruption_margin_px = {m} px on each side")
+    out = np.zeros((side, side), dtype=np.uint8)
+    gy0, gx0, gy1, gx1 = max(y0 - m, 0), max(x0 - m, 0), min(y0 + side + m, n), min(x0 + side + m, n)
+    wy0, wx0, wy1, wx1 = max(y0, 0), max(x0, 0), min(y0 + side, n), min(x0 + side, n)
+    if wy1 <= wy0 or wx1 <= wx0:  # the window misses the image
+        return out
+    sub = np.ascontiguousarray(clean_u8[gy0 - y0 + m : gy1 - y0 + m, gx0 - x0 + m : gx1 - x0 + m])
+    if params.get("model") == "sensor":
+        img = apply_sensor(sub, params, (gy0, gx0), (n, n))
+    else:  # the paper kinds do not depend on a pixel's place
+        img = apply_corruption(sub, params)
+    out[wy0 - y0 : wy1 - y0, wx0 - x0 : wx1 - x0] = img[wy0 - gy0 : wy1 - gy0, wx0 - gx0 : wx1 - gx0]
+    return out

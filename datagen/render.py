@@ -42,7 +42,13 @@ from envisat_pose.datagen.earth import (
     pixel_rays_K,
 )
 from envisat_pose.datagen.render_model import EARTH_GEOM_GROUP, appearance_classes, render_model_xml
-from envisat_pose.datagen.render_pixels import crop_frustum, depth_from_buffer, intrinsics, projected_bbox_px
+from envisat_pose.datagen.render_pixels import (
+    crop_frustum,
+    depth_from_buffer,
+    intrinsics,
+    projected_bbox_px,
+    window_box_px,
+)
 from envisat_pose.datagen.render_view import RenderOutput, RenderPasses, View, target_mask_values
 from envisat_pose.datagen.target_scene import scene_xml
 from envisat_pose.geometry import CAMERA_NAME
@@ -346,14 +352,9 @@ class SceneRenderer:
     def render_passes(self, view: View, labels: bool = True) -> RenderPasses:
         """The GL part of render: both passes of `view`, read back into fresh arrays (a caller may decode them
         beside the next view's passes)."""
-        self.set_view(view)
-        self._gl.make_current()
         n = self.resolution_px
-        scn, flags = self._scene, self._scene.flags
-        mujoco.mjv_updateScene(self.model, self.data, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL.value, scn)
-        self._earth_out_of_side_passes(scn)
-        flags[mujoco.mjtRndFlag.mjRND_ADDITIVE] = True  # the one transparent geom (the Earth) drawn once
-        flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows
+        scn = self._lit_scene(view)
+        flags = scn.flags
         R_K_W, cam_W = self.camera_pose()
         target_box = projected_bbox_px(self._target_hull_K_m(R_K_W, cam_W), self.K, n, self.znear_m)
         box = target_box if labels else None
@@ -362,26 +363,16 @@ class SceneRenderer:
         rgb = self._read_lit(scn, target_box)
         raw = ids_rgb = slot_value = None
         if box is not None:
-            u0, v0, u1, v1 = box
             # pass 2: flat segmentation colours (one id per geom) and depth of the target's box only: the
             # frustum is narrowed to the box's pixels and the viewport shrunk to match, so each pixel keeps its
             # full-image ray. Depth and mask come from this one pass so they cover the same pixels.
             flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = True
             flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = True
             flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
-            w, h = u1 - u0 + 1, v1 - v0 + 1
-            saved = [(c.frustum_center, c.frustum_width, c.frustum_bottom, c.frustum_top) for c in scn.camera]
-            for c in scn.camera:
-                c.frustum_center, c.frustum_width, c.frustum_bottom, c.frustum_top = crop_frustum(
-                    box, n, c.frustum_bottom, c.frustum_top)
-            crop_rect = mujoco.MjrRect(0, 0, w, h)
-            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con_seg)
-            mujoco.mjr_render(crop_rect, scn, self._con_seg)
-            for c, (fc, fw, fb, ft) in zip(scn.camera, saved):
-                c.frustum_center, c.frustum_width, c.frustum_bottom, c.frustum_top = fc, fw, fb, ft
+            crop_rect = self._render_box(scn, box, self._con_seg)
             flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = False
             flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = False
-            raw = np.empty((h, w), dtype=np.float32)
+            raw = np.empty((crop_rect.height, crop_rect.width), dtype=np.float32)
             ids_rgb = np.empty(raw.shape + (3,), dtype=np.uint8)
             mujoco.mjr_readPixels(ids_rgb, raw, crop_rect, self._con_seg)
             mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._con)
@@ -391,11 +382,65 @@ class SceneRenderer:
                 g = scn.geoms[k]
                 if g.objtype == mujoco.mjtObj.mjOBJ_GEOM and g.segid >= 0:
                     slot_value[g.segid + 1] = self.mask_lut[g.objid + 1]
+        return RenderPasses(rgb, box, ids_rgb, raw, slot_value, *self._pose_K(R_K_W, cam_W))
+
+    def _pose_K(self, R_K_W: np.ndarray, cam_W: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The current state's (corners_K_m (K, 3) m, R_K_from_T (3, 3), t_K_from_T_m (3,) m) in the camera frame."""
         d = self.data
-        corners_W = d.site_xpos[self.corner_sites]
         R_W_T = d.xmat[self.target_body].reshape(3, 3)
-        return RenderPasses(rgb, box, ids_rgb, raw, slot_value, (corners_W - cam_W) @ R_K_W.T, R_K_W @ R_W_T,
-                            R_K_W @ (d.xpos[self.target_body] - cam_W))
+        return ((d.site_xpos[self.corner_sites] - cam_W) @ R_K_W.T, R_K_W @ R_W_T,
+                R_K_W @ (d.xpos[self.target_body] - cam_W))
+
+    def _lit_scene(self, view: View):
+        """Place `view` (set_view) and make its MjvScene ready for the lit pass (the Earth out of the side passes
+        and drawn once, shadows as the renderer says); the GL context current."""
+        self.set_view(view)
+        self._gl.make_current()
+        scn = self._scene
+        mujoco.mjv_updateScene(self.model, self.data, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL.value, scn)
+        self._earth_out_of_side_passes(scn)
+        scn.flags[mujoco.mjtRndFlag.mjRND_ADDITIVE] = True  # the one transparent geom (the Earth) drawn once
+        scn.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows
+        return scn
+
+    def _render_box(self, scn, box: tuple[int, int, int, int], con) -> mujoco.MjrRect:
+        """Draw scn over the pixel box (u0, v0, u1, v1) of the full image only, into con's offscreen buffer: the
+        frustum narrowed to the box's pixels (crop_frustum) and the viewport shrunk to the box, so every pixel
+        keeps its full-image ray; the frustums are restored after (a following full render is unchanged).
+        Returns the viewport (its pixels in GL row order: read them with mjr_readPixels(..., viewport, con))."""
+        u0, v0, u1, v1 = box
+        saved = [(c.frustum_center, c.frustum_width, c.frustum_bottom, c.frustum_top) for c in scn.camera]
+        for c in scn.camera:
+            c.frustum_center, c.frustum_width, c.frustum_bottom, c.frustum_top = crop_frustum(
+                box, self.resolution_px, c.frustum_bottom, c.frustum_top)
+        rect = mujoco.MjrRect(0, 0, u1 - u0 + 1, v1 - v0 + 1)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, con)
+        mujoco.mjr_render(rect, scn, con)
+        for c, (fc, fw, fb, ft) in zip(scn.camera, saved):
+            c.frustum_center, c.frustum_width, c.frustum_bottom, c.frustum_top = fc, fw, fb, ft
+        return rect
+
+    def render_window(self, view: View, window_px: tuple[int, int, int]) -> RenderOutput:
+        """The lit image of the square window (x0, y0, side) px of the full frame alone (the closed loop's region
+        of interest), drawn as pass 2 draws its box (_render_box): gray_u8 (side, side) uint8, row 0 the frame's
+        row y0, 0 where the window lies outside the image; depth_m and mask_u8 None; the pose as render gives it.
+        The pixels of render(view, labels=False).gray_u8[y0:y0 + side, x0:x0 + side] up to the rasterizer: under
+        osmesa some polygon and shadow edge pixels take another of the 4 multisamples (tests/datagen/
+        test_render_window.py: at most 160 grey levels on one pixel, 1.5 % of the pixels, 0.3 grey levels mean
+        absolute difference; measured 92, 0.73 %, 0.17). The whole frame as a window is the full render. Leaves
+        the renderer as a full render found it (frustums restored)."""
+        x0, y0, side = window_px
+        box = window_box_px(window_px, self.resolution_px)
+        scn = self._lit_scene(view)
+        gray = np.zeros((side, side), dtype=np.uint8)
+        if box is not None:
+            u0, v0, u1, v1 = box
+            rect = self._render_box(scn, box, self._con)
+            rgb = np.empty((rect.height, rect.width, 3), dtype=np.uint8)
+            mujoco.mjr_readPixels(rgb, None, rect, self._con)
+            # GL rows run bottom-up
+            gray[v0 - y0 : v1 + 1 - y0, u0 - x0 : u1 + 1 - x0] = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)[::-1]
+        return RenderOutput(gray, None, None, *self._pose_K(*self.camera_pose()), self.fovy_deg)
 
     def decode(self, p: RenderPasses) -> RenderOutput:
         """The pixel work of render: gray image, mask and depth of read-back passes (numpy and OpenCV only; no
@@ -446,13 +491,6 @@ class SceneRenderer:
 
     def render_rgb_only(self, view: View) -> np.ndarray:
         """The lit pass alone, read back as RGB (H, W, 3): the raw render the benchmark compares against."""
-        self.set_view(view)
-        self._gl.make_current()
-        mujoco.mjv_updateScene(self.model, self.data, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL.value,
-                               self._scene)
-        self._earth_out_of_side_passes(self._scene)
-        self._scene.flags[mujoco.mjtRndFlag.mjRND_ADDITIVE] = True
-        self._scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows
-        mujoco.mjr_render(self._rect, self._scene, self._con)
+        mujoco.mjr_render(self._rect, self._lit_scene(view), self._con)
         mujoco.mjr_readPixels(self._rgb, None, self._rect, self._con)
         return self._rgb[::-1]

@@ -1,5 +1,6 @@
 """The square chaser-camera image's pixel geometry: the pinhole intrinsics, metric depth from MuJoCo's depth
-buffer, the pixel box of projected points and the near-plane window cropped to a box. Plain numpy."""
+buffer, the pixel box of projected points, a window clipped to the image and the near-plane window cropped to a
+box. Plain numpy."""
 
 from __future__ import annotations
 
@@ -54,3 +55,16 @@ def intrinsics(resolution_px: int, fovy_deg: float) -> np.ndarray:
     f = 0.5 * resolution_px / math.tan(math.radians(fovy_deg) / 2.0)
     c = 0.5 * (resolution_px - 1)
     return np.array([[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]])
+
+
+def window_box_px(window_px: tuple[int, int, int], resolution_px: int) -> tuple[int, int, int, int] | None:
+    """The pixel box (u0, v0, u1, v1), inclusive, of the square window (x0, y0, side) px clipped to the square
+    image of resolution_px; None when the window misses the image. ValueError (one line) for side < 1."""
+    x0, y0, side = (int(v) for v in window_px)
+    if side < 1:
+        raise ValueError(f"window (x0, y0, side) = {tuple(window_px)} px: side must be at least 1 px")
+    u0, v0 = max(x0, 0), max(y0, 0)
+    u1, v1 = min(x0 + side, resolution_px) - 1, min(y0 + side, resolution_px) - 1
+    if u1 < u0 or v1 < v0:
+        return None
+    return u0, v0, u1, v1

@@ -166,7 +166,7 @@ def bloom(charge_e: np.ndarray, full_well_e: float, decay_px: float) -> np.ndarr
     out = np.minimum(charge_e, np.float32(full_well_e))
     if not excess.any():
         return out
-    half = max(1, int(math.ceil(6.0 * decay_px)))
+    half = bloom_reach_px(decay_px)
     d = np.arange(-half, half + 1)
     prof = np.where(d == 0, 0.0, np.exp(-np.abs(d) / decay_px))
     kern = (prof / prof.sum()).astype(np.float32).reshape(-1, 1)
@@ -177,6 +177,11 @@ def bloom(charge_e: np.ndarray, full_well_e: float, decay_px: float) -> np.ndarr
     spill = cv2.filter2D(excess[y0:y1, x0:x1], -1, kern[::-1], borderType=cv2.BORDER_CONSTANT)
     out[y0:y1, x0:x1] = np.minimum(out[y0:y1, x0:x1] + spill, np.float32(full_well_e))
     return out
+
+
+def bloom_reach_px(decay_px: float) -> int:
+    """How far (px, along a column) bloom spills a saturated pixel's excess charge: ceil(6 decay_px), at least 1."""
+    return max(1, int(math.ceil(6.0 * decay_px)))
 
 
 def adc_to_u8(charge_e: np.ndarray, full_well_e: float, adc_bits: int) -> np.ndarray:
@@ -248,23 +253,36 @@ def gaussian_psf_1d(sigma_px: float) -> np.ndarray:
     return (g / g.sum()).astype(np.float32)
 
 
-def optics_box(gray_u8: np.ndarray, p: dict) -> tuple[np.ndarray | None, tuple[int, int, int, int] | None]:
+def optics_reach_px(p: dict) -> int:
+    """How far (px) steps 2-3 carry light: the half-size of the PSF (Gaussian: ceil(4 sigma) + 1; Airy: to its
+    third dark ring, airy_psf) plus that of the motion streak (motion_kernel: ceil(length / 2), when over 0.05 px)."""
+    psf = p["psf"]
+    half = (int(math.ceil(4.0 * psf["sigma_px"])) + 1 if psf["kind"] == "gaussian"
+            else int(math.ceil(3.3 * psf["first_zero_px"])) + 1)
+    length = p["motion_blur_length_px"]
+    return half + (int(np.ceil(length / 2.0)) if length > 0.05 else 0)
+
+
+def optics_box(gray_u8: np.ndarray, p: dict, origin_px: tuple[int, int] = (0, 0),
+               frame_shape: tuple[int, int] | None = None
+               ) -> tuple[np.ndarray | None, tuple[int, int, int, int] | None]:
     """Steps 1-3 (irradiance, white = 1, after vignetting, the PSF and the motion streak) on the box around
     the non-black pixels grown by twice the filters' reach, the only place it is not 0: (crop (h, w) float32,
-    box (y0, y1, x0, x1)), or (None, None) for a black image. A Gaussian PSF is applied as its two separable
-    factors (the same kernel)."""
+    box (y0, y1, x0, x1) in gray_u8's pixels), or (None, None) for a black image. A Gaussian PSF is applied as
+    its two separable factors (the same kernel). gray_u8 may be a window of a frame of frame_shape (default: its
+    own shape) whose top-left pixel is the frame's (row, col) origin_px: the vignetting is the frame's there."""
     gauss = p["psf"]["kind"] == "gaussian"
-    half = int(math.ceil(4.0 * p["psf"]["sigma_px"])) + 1 if gauss else None
     psf = gaussian_psf_1d(p["psf"]["sigma_px"]) if gauss else airy_psf(p["psf"]["first_zero_px"])
     kern = motion_kernel(p["motion_blur_length_px"], p["motion_blur_angle_deg"]) if p["motion_blur_length_px"] > 0.05 else None
-    reach = (half if gauss else psf.shape[0] // 2) + (kern.shape[0] // 2 if kern is not None else 0)
-    box = content_box(gray_u8, reach)
+    box = content_box(gray_u8, optics_reach_px(p))
     if box is None:
         return None, None
     y0, y1, x0, x1 = box
     crop = gray_u8[y0:y1, x0:x1].astype(np.float32) * np.float32(1.0 / 255.0)
     if p["vignetting_cos_power"] > 0:
-        crop *= vignetting_factor(gray_u8.shape, p["f_px"], p["vignetting_cos_power"], box)
+        oy, ox = origin_px
+        crop *= vignetting_factor(frame_shape or gray_u8.shape, p["f_px"], p["vignetting_cos_power"],
+                                  (y0 + oy, y1 + oy, x0 + ox, x1 + ox))
     if gauss:
         crop = cv2.sepFilter2D(crop, -1, psf, psf, borderType=cv2.BORDER_REFLECT)
     else:
@@ -274,10 +292,11 @@ def optics_box(gray_u8: np.ndarray, p: dict) -> tuple[np.ndarray | None, tuple[i
     return crop, box
 
 
-def optics(gray_u8: np.ndarray, p: dict) -> np.ndarray:
-    """Steps 1-3 on the whole frame (optics_box, zeros around it). (H, W) float32."""
+def optics(gray_u8: np.ndarray, p: dict, origin_px: tuple[int, int] = (0, 0),
+           frame_shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Steps 1-3 on the whole of gray_u8 (optics_box, zeros around it; a window as optics_box says). (H, W) float32."""
     img = np.zeros(gray_u8.shape, dtype=np.float32)
-    crop, box = optics_box(gray_u8, p)
+    crop, box = optics_box(gray_u8, p, origin_px, frame_shape)
     if box is not None:
         y0, y1, x0, x1 = box
         img[y0:y1, x0:x1] = crop
@@ -364,31 +383,37 @@ def dark_pixel_pmf(p: dict) -> np.ndarray | None:
     return np.bincount(np.clip(u8, 0, 255), weights=p_dn[: len(d)], minlength=256)[:256]
 
 
-def apply_sensor(gray_u8: np.ndarray, p: dict) -> np.ndarray:
+def apply_sensor(gray_u8: np.ndarray, p: dict, origin_px: tuple[int, int] = (0, 0),
+                 frame_shape: tuple[int, int] | None = None) -> np.ndarray:
     """The whole chain (module docstring) on a clean render. (H, W) uint8 -> (H, W) uint8.
 
     Work goes where the light is: the pixels outside the optics box (grown along the columns by the blooming
     reach) receive no light, so their 8-bit values are independent draws from one exact distribution
     (dark_pixel_pmf), taken by table lookup; the box runs the chain pixel by pixel (apply_sensor_box). The
-    noise comes from noise_seed: the box's draws first, then the dark pixels'."""
+    noise comes from noise_seed: the box's draws first, then the dark pixels'. gray_u8 may be a window of a
+    frame of frame_shape (default: its own shape) at the frame's (row, col) origin_px: the vignetting and PRNU
+    maps are the frame's there, and the window's edges act as the image's (corrupt.apply_corruption_window
+    grows the window by the reach of the blur and blooming, then cuts that margin off)."""
     h, w = gray_u8.shape
+    oy, ox = origin_px
     rng = np.random.default_rng(p["noise_seed"])
-    crop, box = optics_box(gray_u8, p)
+    crop, box = optics_box(gray_u8, p, origin_px, frame_shape)
     pmf = dark_pixel_pmf(p)
     if pmf is None:  # the dark charge alone may bloom: the whole frame pixel by pixel
-        crop, box = optics(gray_u8, p), (0, h, 0, w)
+        crop, box = optics(gray_u8, p, origin_px, frame_shape), (0, h, 0, w)
     out = np.empty((h, w), dtype=np.uint8)
     if box is not None:
         y0, y1, x0, x1 = box
         if pmf is not None:  # room for the spill of saturated charge along the columns
-            grow = max(1, int(math.ceil(6.0 * p["blooming_decay_px"])))
+            grow = bloom_reach_px(p["blooming_decay_px"])
             g0, g1 = max(0, y0 - grow), min(h, y1 + grow)
             irr = np.zeros((g1 - g0, x1 - x0), dtype=np.float32)
             irr[y0 - g0 : y1 - g0] = crop
             y0, y1 = g0, g1
         else:
             irr = crop
-        out[y0:y1, x0:x1] = apply_sensor_box(irr, (y0, y1, x0, x1), (h, w), p, rng)
+        frame_box = (y0 + oy, y1 + oy, x0 + ox, x1 + ox)  # the window's box in the frame (its PRNU)
+        out[y0:y1, x0:x1] = apply_sensor_box(irr, frame_box, frame_shape or (h, w), p, rng)
     if pmf is not None:  # the unlit rest: drawn for the whole frame (cheaper than picking pixels), box kept
         keep = out[y0:y1, x0:x1].copy() if box is not None else None
         out = sample_discrete(pmf, h * w, rng).reshape(h, w)

@@ -112,6 +112,7 @@ def require_target_weights(weights: str, target: str) -> None:
     """InputError naming `weights` when a job of another target than ENVISAT (target: its MJCF file) is given no
     weights: the shipped ones are ENVISAT's corner network, never that target's keypoint detector."""
     if not weights and other_target(target) is not None:
-        raise InputError(f"weights '': target {target!r} needs its own keypoint detector: train it (`envisat train "
+        raise InputError(f"weights '': target {target!r} needs its own keypoint detector (the shipped weights are "
+                         f"ENVISAT's corner network): train it (`envisat train "
                          f"--target {target}`), calibrate it (`envisat calibrate --target {target}`) and give it "
                          "(--weights)")

@@ -416,7 +416,9 @@ def test_a_shipped_target_matches_its_note_and_generates(name, mass_kg, inertia,
 def test_the_detector_verbs_refuse_another_target_in_one_line(target_files, tmp_path, capsys):
     """detect, train, track, adapt, calibrate and evaluate on a dataset of the test's target, and run with it as its
     image target: exit 2, one line naming the field and ENVISAT, nothing written. (`estimate --truth` takes any
-    target's truth: tests/app/test_estimate_cli.py.)"""
+    target's truth: tests/app/test_estimate_cli.py; `track` and `run` take it with --target and its own keypoint
+    detector: tests/app/test_track_target.py, test_run_target.py; without those, the dataset or the missing
+    weights are named.)"""
     plain, _ = target_files
     data = tmp_path / "seq"
     assert main(["generate", "--target", plain, "--mode", "sequence", "--num-images", "2", "--resolution", "64",
@@ -426,9 +428,9 @@ def test_the_detector_verbs_refuse_another_target_in_one_line(target_files, tmp_
     out = tmp_path / "out"
     for argv, field in [(["detect", "--data", str(data), "--out", str(out / "det.npz")], "data"),
                         (["train", "--data", str(data), "--out", str(out)], "data"),
-                        (["track", "--images", str(data), "--out", str(out)], "src"),
-                        (["adapt", "--images", str(data), "--out", str(out)], "src"),
-                        (["run", "--config", str(run_config), "--duration-s", "5", "--out", str(out)], "image.target"),
+                        (["track", "--images", str(data), "--out", str(out)], "--images"),
+                        (["adapt", "--images", str(data), "--out", str(out)], "--images"),
+                        (["run", "--config", str(run_config), "--duration-s", "5", "--out", str(out)], "weights"),
                         (["calibrate", "--data", str(data), "--out", str(out / "w.safetensors")], "data"),
                         (["evaluate", "--data", str(data), "--json", str(out / "eval.json")], "data")]:
         capsys.readouterr()
