@@ -142,7 +142,8 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
                                  target=load_target(gcfg.target))
 
     def frames():
-        """Frame k rendered from the truth and corrupted by the space camera (None in the Earth's shadow)."""
+        """Frame k rendered from the truth and corrupted by the space camera (None in the Earth's shadow); the
+        tracker's planned window alone where cfg.render_window allows (windowed_frame)."""
         for k in range(len(t_s)):
             x = x_truth[k]
             image = None
@@ -152,13 +153,19 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
                 view = View(x[POS], mrp_to_dcm(x[MRP]).T, sun_C[k], unit(nadir_C[k]),
                             float(np.linalg.norm(nadir_C[k])), earth_backdrop=gcfg.earth_probability > 0)
                 view, _ = with_appearance(gcfg, view, {}, appearance_seed)
-                rendered = renderer.render(view, labels=False)  # the image and the pose: no depth or mask
-                t_render = time.perf_counter() - t0
-                t0 = time.perf_counter()
                 frame_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(run, 1, k)))
-                params = draw_corruption_params(gcfg, rendered, x, renderer.K[0, 0], renderer.target_boxes, frame_rng)
-                image = apply_corruption(rendered.gray_u8, params)
-                t_camera = time.perf_counter() - t0
+                window = tracker.planned_window(float(t_s[k])) \
+                    if cfg.render_window and k % cfg.full_frame_every else None
+                if window is not None:
+                    image, t_render, t_camera = windowed_frame(renderer, view, window, gcfg, x, frame_rng)
+                else:
+                    rendered = renderer.render(view, labels=False)  # the image and the pose: no depth or mask
+                    t_render = time.perf_counter() - t0
+                    t0 = time.perf_counter()
+                    params = draw_corruption_params(gcfg, rendered, x, renderer.K[0, 0], renderer.target_boxes,
+                                                    frame_rng)
+                    image = apply_corruption(rendered.gray_u8, params)
+                    t_camera = time.perf_counter() - t0
             if recorder is None:
                 yield FrameInput(k, float(t_s[k]), image, (sim_s_per_frame, t_render, t_camera))
             else:  # the truth only for the recording
@@ -167,6 +174,44 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
 
     return run_frames(tracker, frames(), rows, recorder, cfg.jpeg_quality,
                       f"closed loop (run {run})" if progress else None)
+
+
+WINDOW_MARGIN_GUESS_PX = 48  # the space camera's margin a window is first rendered with (enough for most frames)
+
+
+def windowed_frame(renderer, view, window: np.ndarray, gcfg, x: np.ndarray, rng: np.random.Generator
+                   ) -> tuple[np.ndarray, float, float]:
+    """A frame of which only `window` (x0, y0, side) px is made: MuJoCo renders the window grown by the space
+    camera's margin (SceneRenderer.render_window), the camera corrupts it with the frame's own parameters
+    (draw_corruption_params from rng, as a full frame draws them; datagen.corrupt.apply_corruption_window), and it
+    is pasted into a black frame of the full size at its place. Returns (image (n, n) uint8, s rendering,
+    s camera)."""
+    from envisat_pose.datagen.corrupt import apply_corruption_window, corruption_margin_px
+
+    t0 = time.perf_counter()
+    n = renderer.resolution_px
+    x0, y0, side = (int(v) for v in window)
+    grown = lambda m: (x0 - m, y0 - m, side + 2 * m)  # noqa: E731
+    m0 = WINDOW_MARGIN_GUESS_PX
+    rendered = renderer.render_window(view, grown(m0))
+    t_render = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    params = draw_corruption_params(gcfg, rendered, x, renderer.K[0, 0], renderer.target_boxes, rng)
+    m = corruption_margin_px(params)
+    t_camera = time.perf_counter() - t0
+    if m > m0:  # a longer streak or blooming than the guess: the window again with its margin
+        t0 = time.perf_counter()
+        clean = renderer.render_window(view, grown(m)).gray_u8
+        t_render += time.perf_counter() - t0
+    else:
+        clean = rendered.gray_u8[m0 - m:m0 + side + m, m0 - m:m0 + side + m]
+    t0 = time.perf_counter()
+    win = apply_corruption_window(clean, (x0, y0, side), n, params)
+    image = np.zeros((n, n), np.uint8)
+    u0, v0, u1, v1 = max(x0, 0), max(y0, 0), min(x0 + side, n), min(y0 + side, n)
+    if u1 > u0 and v1 > v0:
+        image[v0:v1, u0:u1] = win[v0 - y0:v1 - y0, u0 - x0:u1 - x0]
+    return image, t_render, t_camera + time.perf_counter() - t0
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -146,6 +146,8 @@ class Tracker(AcquiringSteps, TrackingSteps):
         self.array_against = 0  # array-cue readings in a row against the one hypothesis left
         self.last_pose: np.ndarray | None = None
         self.t_last: float | None = None
+        self._plan_cache = None  # (t_s, the bank's state, its FramePlan): TrackingSteps._plan
+        self.window_fell_short = False  # the last frame's region of interest held too few keypoints
         if prior is not None:
             x0, P0, t0 = prior
             self._start(np.asarray(x0, float)[None], np.asarray(P0, float)[None], float(t0), np.zeros(1), np.zeros(1))
@@ -155,6 +157,19 @@ class Tracker(AcquiringSteps, TrackingSteps):
         """"acquiring" until a bank is confirmed, then "tracking" (the last frame's own status is in its
         TrackEstimate)."""
         return "tracking" if self.state is not None and self.confirmed else "acquiring"
+
+    def planned_window(self, t_s: float) -> np.ndarray | None:
+        """The window (x0, y0, side) px of a frame at t_s that the tracker will look at and at nothing outside it,
+        or None when it needs the whole frame: while acquiring, with twins still open (the array cue reads beyond
+        the body), before its claim is confirmed, when not converged or the region of interest is off, and after
+        a frame whose window held too few keypoints. The frame's maker may then render and corrupt that window
+        alone (the closed loop). Pure: step(t_s, ...) uses the same prediction."""
+        if self.state is None or not self.confirmed or self.state.mean.shape[0] != 1 or self.window_fell_short:
+            return None
+        if self.t_last is not None and not t_s > self.t_last:
+            return None
+        plan = self._plan(float(t_s))
+        return None if plan.roi is None else plan.roi.copy()
 
     @property
     def log_w(self) -> np.ndarray:

@@ -73,15 +73,47 @@ class FrameMeasurement:
     t_filter: float
 
 
-class TrackingSteps:
-    """The Tracker's frames of a started bank: _track (one frame) and its steps _detect_predicted, _measure,
-    _update_bank, _judge."""
+@dataclasses.dataclass(frozen=True)
+class FramePlan:
+    """What a started bank predicts of a frame at t_s before seeing it (TrackingSteps._plan): prior (means (H, 12),
+    covariances (H, 12, 12)), best (the best hypothesis), finite (its prediction is), converged (tight enough for
+    the region of interest), roi (x0, y0, side) px the detector will look at, None for the whole frame."""
 
-    def _detect_predicted(self, image, prior, best: int, converged: bool):
-        """Detect in this frame with the bank's prediction: the region of interest once converged, the predicted
-        pose as the naming's start and half-turn prior when one hypothesis is left. Returns (fd, roi, t_det)."""
-        roi = predicted_roi(prior[0][best], prior[1][best], self.camera, self.cfg.roi, self.keypoints_T_m) \
-            if self.cfg.roi.enabled and converged else None
+    prior: tuple
+    best: int
+    finite: bool
+    converged: bool
+    roi: np.ndarray | None
+
+
+class TrackingSteps:
+    """The Tracker's frames of a started bank: _track (one frame) and its steps _plan, _detect_predicted,
+    _measure, _update_bank, _judge."""
+
+    def _plan(self, t_s: float) -> FramePlan:
+        """The bank predicted to t_s and what the frame will be looked at with (FramePlan); pure, and kept for
+        the bank as it stands, so that asking ahead (Tracker.planned_window) and the step share one prediction."""
+        cached = self._plan_cache
+        if cached is not None and cached[0] == t_s and cached[1] is self.state:
+            return cached[2]
+        prior = predict_to(self.state, t_s, self.setup)
+        best = int(np.argmax(self.log_w))
+        finite = bool(np.isfinite(prior[0][best]).all() and np.isfinite(prior[1][best]).all())
+        converged, roi = False, None
+        if finite:
+            pos_sig, att_sig = pose_sigmas(prior[1][best])
+            converged = bool(pos_sig < self.cfg.roi.converged_pos_sigma_m
+                             and att_sig < self.cfg.roi.converged_att_sigma_deg)
+            if self.cfg.roi.enabled and converged:
+                roi = predicted_roi(prior[0][best], prior[1][best], self.camera, self.cfg.roi, self.keypoints_T_m)
+        plan = FramePlan(prior, best, finite, converged, roi)
+        self._plan_cache = (t_s, self.state, plan)
+        return plan
+
+    def _detect_predicted(self, image, prior, best: int, converged: bool, roi: np.ndarray | None):
+        """Detect in this frame with the bank's prediction: the region of interest roi (the plan's: once
+        converged), the predicted pose as the naming's start and half-turn prior when one hypothesis is left.
+        Returns (fd, roi, t_det)."""
         R_prior = t_prior = None
         decided = prior[0].shape[0] == 1
         # one hypothesis: its attitude weighs the detector's half-turn and its pose seeds the naming; twins still
@@ -95,10 +127,12 @@ class TrackingSteps:
             if rc.prior_pose:
                 t_prior = t_K
         fd, t_det = self._detect(image, roi, R_prior, t_prior, decided)
+        self.window_fell_short = False
         if roi is not None and int(np.sum(fd.visible)) < rc.min_corners:
             fd, t2 = self._detect(image, None, R_prior, t_prior, decided)
             t_det += t2
             roi = None
+            self.window_fell_short = True  # the next frame is looked at whole (planned_window)
         return fd, roi, t_det
 
     def _track(self, t_s: float, image) -> TrackEstimate:
@@ -106,16 +140,13 @@ class TrackingSteps:
         prediction (_measure), the bank updated (_update_bank) and judged (_judge: integrity, pruning, the claim)."""
         t0 = time.perf_counter()
         chaser = self.chaser_at(t_s)
-        prior = predict_to(self.state, t_s, self.setup)
-        best = int(np.argmax(self.log_w))
-        if not (np.isfinite(prior[0][best]).all() and np.isfinite(prior[1][best]).all()):
+        plan = self._plan(t_s)
+        prior, best, converged = plan.prior, plan.best, plan.converged
+        if not plan.finite:
             return self._lost_prediction(t_s, image)
-        pos_sig, att_sig = pose_sigmas(prior[1][best])
         self.rate_rad_s = float(np.linalg.norm(prior[0][best, RATE]))  # the view's rotation rate, predicted
-        converged = bool(pos_sig < self.cfg.roi.converged_pos_sigma_m
-                         and att_sig < self.cfg.roi.converged_att_sigma_deg)
         t_predict = time.perf_counter() - t0
-        m = self._measure(image, prior, best, converged)
+        m = self._measure(image, prior, best, converged, plan.roi)
         t1 = time.perf_counter()
         events: list[str] = []
         new, b = self._update_bank(Measurement(t_s, chaser, np.nan_to_num(m.z), m.mask, m.cov), prior, best,
@@ -136,9 +167,9 @@ class TrackingSteps:
         self._reset()
         return est
 
-    def _measure(self, image, prior, best: int, converged: bool) -> FrameMeasurement:
+    def _measure(self, image, prior, best: int, converged: bool, roi: np.ndarray | None = None) -> FrameMeasurement:
         """The frame measured for every hypothesis under the bank's prediction prior (means (H, 12), covariances
-        (H, 12, 12)): detected (_detect_predicted), its corners named per hypothesis (choose_namings), gated against
+        (H, 12, 12)): detected (_detect_predicted, in the region of interest roi where one is planned), its corners named per hypothesis (choose_namings), gated against
         the detector's own covariance (gate.raw) and the best hypothesis' rejected corners flagged. No image: nothing
         measured."""
         t0 = time.perf_counter()
@@ -146,9 +177,9 @@ class TrackingSteps:
         z = np.full((H, self.K, 2), np.nan)
         cov = np.broadcast_to(np.eye(2), (H, self.K, 2, 2)).copy()
         namings, appearance = np.full(H, -1), np.zeros(H)
-        fd, roi, t_det = None, None, 0.0
+        fd, looked, t_det = None, None, 0.0  # looked: the region of interest the frame was detected in
         if image is not None:
-            fd, roi, t_det = self._detect_predicted(image, prior, best, converged)
+            fd, looked, t_det = self._detect_predicted(image, prior, best, converged, roi)
             zd, cd, p_alt = detection_measurement(fd, self.inflation, self.bias_scale)
             if np.isfinite(zd).all(-1).any():
                 z, cov, namings, appearance = choose_namings(zd, cd, p_alt, self.setup.hx(prior[0]),
@@ -163,7 +194,7 @@ class TrackingSteps:
                             for h in range(H)])
             mask = mask & ~pre
         rejected = self._rejected(prior, np.nan_to_num(z), mask, cov, best) | pre[best]
-        return FrameMeasurement(fd=fd, roi=roi, z=z, cov=cov, mask=mask, pre=pre, seen=seen, namings=namings,
+        return FrameMeasurement(fd=fd, roi=looked, z=z, cov=cov, mask=mask, pre=pre, seen=seen, namings=namings,
                                 appearance=appearance, rejected=rejected, t_det=t_det,
                                 t_filter=time.perf_counter() - t0 - t_det)
 

@@ -528,6 +528,30 @@ def test_the_tracker_takes_no_truth(truth_600, truth_1800):
     assert error_magnitudes(truth_1800.x[44], last.x_hat)["attitude_deg"] > 10.0  # the decoy is another pose
 
 
+def test_the_planned_window_is_the_region_the_step_then_looks_at(truth_600):
+    """Tracker.planned_window(t) asked before step(t): None while acquiring and until the claim is confirmed
+    (the frame's maker renders it whole), then the very region of interest the step detects in (est.roi_px), and
+    asking does not change the estimate (the same prediction is used)."""
+    def run(ask: bool):
+        tracker = Tracker(load_camera(), NoisyTruthDetector(truth_600, seed=3), chaser_lookup(truth_600))
+        out = []
+        for k in range(70):
+            w = tracker.planned_window(float(truth_600.t_s[k])) if ask else None
+            out.append((w, tracker.step(float(truth_600.t_s[k]), frame_image(k))))
+        return out
+
+    asked, plain = run(True), run(False)
+    windows = [w for w, _ in asked]
+    first = next(k for k, (_, e) in enumerate(asked) if "confirmed" in e.events)
+    assert all(w is None for w in windows[:first + 1])
+    planned = [k for k in range(first + 1, 70) if windows[k] is not None]
+    assert len(planned) > 30
+    for k in planned:
+        np.testing.assert_array_equal(windows[k], asked[k][1].roi_px)
+    for (_, a), (_, b) in zip(asked, plain):
+        np.testing.assert_array_equal(a.x_hat, b.x_hat)
+
+
 def test_frame_times_must_increase(truth_600):
     tracker = Tracker(load_camera(), NoisyTruthDetector(truth_600), chaser_lookup(truth_600))
     tracker.step(0.0, frame_image(0))
