@@ -177,9 +177,9 @@ class TrackingSteps:
         z = np.full((H, self.K, 2), np.nan)
         cov = np.broadcast_to(np.eye(2), (H, self.K, 2, 2)).copy()
         namings, appearance = np.full(H, -1), np.zeros(H)
-        fd, looked, t_det = None, None, 0.0  # looked: the region of interest the frame was detected in
+        fd, detected_in, t_det = None, None, 0.0  # the region of interest the frame was detected in
         if image is not None:
-            fd, looked, t_det = self._detect_predicted(image, prior, best, converged, roi)
+            fd, detected_in, t_det = self._detect_predicted(image, prior, best, converged, roi)
             zd, cd, p_alt = detection_measurement(fd, self.inflation, self.bias_scale)
             if np.isfinite(zd).all(-1).any():
                 z, cov, namings, appearance = choose_namings(zd, cd, p_alt, self.setup.hx(prior[0]),
@@ -194,7 +194,7 @@ class TrackingSteps:
                             for h in range(H)])
             mask = mask & ~pre
         rejected = self._rejected(prior, np.nan_to_num(z), mask, cov, best) | pre[best]
-        return FrameMeasurement(fd=fd, roi=looked, z=z, cov=cov, mask=mask, pre=pre, seen=seen, namings=namings,
+        return FrameMeasurement(fd=fd, roi=detected_in, z=z, cov=cov, mask=mask, pre=pre, seen=seen, namings=namings,
                                 appearance=appearance, rejected=rejected, t_det=t_det,
                                 t_filter=time.perf_counter() - t0 - t_det)
 
