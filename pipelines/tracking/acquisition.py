@@ -144,8 +144,9 @@ def attitude_distance_rad(p_a: np.ndarray, p_b: np.ndarray) -> float:
 
 
 def align_namings(frames: list[FramePose], namings: Namings | None = None) -> tuple[list[FramePose], np.ndarray]:
-    """One consistent naming through the window (module docstring, 2). Each frame takes the naming (the
-    detector's, or its renaming by one of the target's symmetries: namings, None: ENVISAT's box_namings) whose
+    """One consistent naming through the window (module docstring, 2). Each frame takes the relabeling (the
+    detector's naming, or its renaming by one of the target's symmetries, Namings.relabel_*: namings, None:
+    ENVISAT's box_namings) whose
     attitude is nearest the previous frame's: the detector's names may be off by any of the symmetries, and a
     physical tumble turns the body by a few degrees between frames, never by a symmetry's angle. Returns the frames
     renamed (their x_pnp follows; p_alt as namings.aligned_p_alt: for ENVISAT's, 1 - p under the long-axis
@@ -156,14 +157,14 @@ def align_namings(frames: list[FramePose], namings: Namings | None = None) -> tu
     for fr in frames:
         best = None
         if ref is not None and fr.x_pnp is not None:
-            dist = [attitude_distance_rad(nm.state(fr.x_pnp, n)[MRP], ref) for n in range(nm.count)]
-            n = int(np.argmin(dist[1:])) + 1 if nm.count > 1 else 0
-            if n and dist[n] < dist[0]:
-                best = n
+            dist = [attitude_distance_rad(nm.relabeled_state(fr.x_pnp, r)[MRP], ref) for r in range(nm.relabel_count)]
+            r = int(np.argmin(dist[1:])) + 1 if nm.relabel_count > 1 else 0
+            if r and dist[r] < dist[0]:
+                best = r
         if best is not None:
-            perm = nm.perms[best]
-            fr = FramePose(fr.t_s, fr.chaser, fr.z_px[perm], fr.cov_px[perm], nm.aligned_p_alt(fr.p_alt, best),
-                           nm.state(fr.x_pnp, best))
+            perm = nm.relabel_perms[best]
+            fr = FramePose(fr.t_s, fr.chaser, fr.z_px[perm], fr.cov_px[perm],
+                           nm.aligned_p_alt(fr.p_alt, int(nm.relabel_class[best])), nm.relabeled_state(fr.x_pnp, best))
         if fr.x_pnp is not None:
             ref = fr.x_pnp[MRP]
         out.append(fr)

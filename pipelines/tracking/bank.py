@@ -48,20 +48,22 @@ def choose_namings(zd: np.ndarray, cd: np.ndarray, p_alt: float, uv_pred: np.nda
                    appearance_frames: float, namings: Namings | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per hypothesis, the naming (of namings, None: ENVISAT's box_namings: the detector's, or its renaming by
-    one of the target's symmetries) nearest its predicted keypoints: zd (K, 2), cd (K, 2, 2) the detector's
+    one of the target's symmetries, or their equivalents: Namings.relabel_*) nearest its predicted keypoints: zd
+    (K, 2), cd (K, 2, 2) the detector's
     naming, p_alt its half-turn probability, uv_pred (H, K, 2) each hypothesis' predicted keypoints. Returns z
     (H, K, 2), cov (H, K, 2, 2) (identity where not measured), namings (H,) (indices of namings) and the
     appearance log-likelihoods (H,) of the namings taken (Namings.log_likelihood, over appearance_frames)."""
     nm = namings or box_namings()
     H = uv_pred.shape[0]
-    options = [nm.renamed(zd, cd, n) for n in range(nm.count)]
+    options = [nm.relabeled(zd, cd, r) for r in range(nm.relabel_count)]  # each naming and its equivalents
     dist = np.stack([np.nanmean(np.linalg.norm(z[None] - uv_pred, axis=-1), axis=-1) for z, _ in options], axis=-1)
     chosen = np.argmin(np.where(np.isfinite(dist), dist, np.inf), axis=-1).reshape(H)  # (H,); 0 when none seen
-    z = np.stack([options[n][0] for n in chosen])
-    cov = np.stack([options[n][1] for n in chosen])
+    z = np.stack([options[r][0] for r in chosen])
+    cov = np.stack([options[r][1] for r in chosen])
     cov = np.where(np.isfinite(z).all(-1)[..., None, None], cov, np.eye(2))
-    appearance = np.array([nm.log_likelihood(p_alt, int(n), clip) for n in chosen]) / appearance_frames
-    return z, cov, chosen, appearance
+    named = nm.relabel_class[chosen]
+    appearance = np.array([nm.log_likelihood(p_alt, int(n), clip) for n in named]) / appearance_frames
+    return z, cov, named, appearance
 
 
 def update_cost(new: FilterState, gate_bound: float) -> np.ndarray:

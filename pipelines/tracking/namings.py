@@ -56,7 +56,11 @@ class Namings:
     d (N, 3) m with keypoint perms[n][k] = S[n] keypoint k + d[n]; image_tells (N,) bool: the shape or the
     materials break naming n's symmetry, so the detector's own names speak against it; half_turn_prob: naming 1
     is the half-turn the detector's alt_probability speaks of (ENVISAT's corner network); equivalent (E, 3, 3):
-    the rotations about the centre of mass that nothing breaks (the pose is defined up to them; empty: none)."""
+    the rotations about the centre of mass that nothing breaks (the pose is defined up to them; empty: none).
+    relabel_perms (R, K), relabel_S (R, 3, 3), relabel_d (R, 3), relabel_class (R,): every relabeling a frame's
+    keypoints may need to agree with a hypothesis, each naming composed with each equivalent rotation (the
+    identity first), and the naming it belongs to: a network names twins that nothing breaks by chance, frame by
+    frame, and such a relabeling is no other hypothesis. Without equivalents they are the namings themselves."""
 
     names: tuple[str, ...]
     perms: np.ndarray
@@ -65,6 +69,10 @@ class Namings:
     image_tells: np.ndarray
     half_turn_prob: bool
     equivalent: np.ndarray
+    relabel_perms: np.ndarray
+    relabel_S: np.ndarray
+    relabel_d: np.ndarray
+    relabel_class: np.ndarray
 
     @property
     def count(self) -> int:
@@ -73,6 +81,18 @@ class Namings:
     @property
     def num_keypoints(self) -> int:
         return int(self.perms.shape[1])
+
+    @property
+    def relabel_count(self) -> int:
+        return int(self.relabel_perms.shape[0])
+
+    def relabeled(self, z_px: np.ndarray, cov_px: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
+        """Keypoints (K, 2) and covariances (K, 2, 2) under relabeling r (renamed's rule)."""
+        return (z_px, cov_px) if r == 0 else (z_px[self.relabel_perms[r]], cov_px[self.relabel_perms[r]])
+
+    def relabeled_state(self, x: np.ndarray, r: int) -> np.ndarray:
+        """The same physical pose described under relabeling r (renamed_state). (..., 12)."""
+        return np.array(x, dtype=float) if r == 0 else renamed_state(x, self.relabel_S[r], self.relabel_d[r])
 
     def renamed(self, z_px: np.ndarray, cov_px: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Keypoints (K, 2) and covariances (K, 2, 2) under naming n: keypoint k takes keypoint perms[n][k]."""
@@ -113,7 +133,8 @@ def box_namings() -> Namings:
     perms = np.stack([np.arange(8)] + [np.asarray(syms[n][0]) for n in names[1:]])
     S = np.stack([np.eye(3)] + [np.asarray(syms[n][1], float) for n in names[1:]])
     d = np.stack([np.zeros(3)] + [np.asarray(syms[n][2], float) for n in names[1:]])
-    return _frozen(Namings(names, perms, S, d, np.ones(4, bool), True, np.zeros((0, 3, 3))))
+    return _frozen(Namings(names, perms, S, d, np.ones(4, bool), True, np.zeros((0, 3, 3)), perms.copy(), S.copy(),
+                           d.copy(), np.arange(4)))
 
 
 def inertia_keeps(R_T: np.ndarray, J_T: np.ndarray) -> bool:
@@ -141,11 +162,28 @@ def target_namings(target, J_T: np.ndarray) -> Namings:
         perms.append(np.asarray(s.perm, int))
         S.append(R)
         tells.append(bool(s.broken_by))
+    X = np.asarray(target.keypoints_T_m, float)
+    relabel = [(c, Sn @ E) for c, Sn in enumerate(S) for E in equivalent]  # each naming, then its equivalents
     return _frozen(Namings(tuple(names), np.stack(perms), np.stack(S), np.zeros((len(S), 3)), np.array(tells),
-                           False, np.stack(equivalent[1:]) if nothing else np.zeros((0, 3, 3))))
+                           False, np.stack(equivalent[1:]) if nothing else np.zeros((0, 3, 3)),
+                           np.stack([rotation_perm(R, X, target.reach_m) for _, R in relabel]),
+                           np.stack([R for _, R in relabel]), np.zeros((len(relabel), 3)),
+                           np.array([c for c, _ in relabel])))
+
+
+def rotation_perm(R_T: np.ndarray, keypoints_T_m: np.ndarray, reach_m: float) -> np.ndarray:
+    """(K,) int: the permutation a rotation of the keypoint set's symmetry group makes, R_T keypoint k = keypoint
+    perm[k] (to 1e-3 of the reach: the group's own products, not a new symmetry)."""
+    mapped = keypoints_T_m @ R_T.T
+    dist = np.linalg.norm(mapped[:, None, :] - keypoints_T_m[None, :, :], axis=-1)
+    perm = np.argmin(dist, axis=1)
+    if sorted(perm.tolist()) != list(range(len(perm))) or dist[np.arange(len(perm)), perm].max() > 1e-3 * reach_m:
+        raise ValueError("a product of the target's symmetries does not map its keypoints onto themselves")
+    return perm
 
 
 def _frozen(n: Namings) -> Namings:
-    for a in (n.perms, n.S, n.d, n.image_tells, n.equivalent):
+    for a in (n.perms, n.S, n.d, n.image_tells, n.equivalent, n.relabel_perms, n.relabel_S, n.relabel_d,
+              n.relabel_class):
         a.setflags(write=False)
     return n

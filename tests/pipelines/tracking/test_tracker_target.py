@@ -118,9 +118,12 @@ def test_target_namings_keep_one_hypothesis_per_pose_something_tells_apart(tmp_p
         return target_namings(t, filter_inertia_T_kg_m2(t))
 
     upper = namings("models/upper_stage.xml")
-    assert upper.count == 1 and upper.equivalent.shape == (0, 3, 3)
+    assert upper.count == 1 and upper.equivalent.shape == (0, 3, 3) and upper.relabel_count == 1
     cubesat = namings("models/cubesat_3u.xml")
     assert cubesat.count == 1 and cubesat.equivalent.shape == (3, 3, 3)
+    # its relabelings are the identity and its three half-turns' permutations, as the Target found them
+    assert sorted(map(tuple, cubesat.relabel_perms)) == sorted(
+        [tuple(range(12))] + [tuple(s.perm) for s in load_target("models/cubesat_3u.xml").symmetries])
     plain, tilted = tmp_path / "plain.xml", tmp_path / "tilted.xml"
     plain.write_text(hull_xml())
     tilted.write_text(hull_xml(products=(900.0, 0.0)))
@@ -186,6 +189,28 @@ def test_an_upper_stage_closed_loop_claims_tracking_only_when_right():
     m = nees(truth.x[later], np.array([ests[k].x_hat for k in later]), np.array([ests[k].P for k in later]))
     assert 3.0 < float(np.mean(m)) < 30.0, float(np.mean(m))
     assert tracker.K == 12 and ests[-1].measured.shape == (12,)
+
+
+def test_twins_nothing_tells_apart_are_one_pose_whatever_the_detector_names(tmp_path):
+    """The CubeSat's half-turns keep its shape, materials and inertia: a network names those twins by chance,
+    frame by frame. The tracker relabels each frame to its prediction (no hypothesis is spent on them), claims
+    tracking, and its estimate is right up to the twins (scoring.nearest_truth); 3 m away, seed 4."""
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.datagen.truth import simulate_truth
+    from envisat_pose.pipelines.runs.scoring import nearest_truth
+
+    cubesat = "models/cubesat_3u.xml"
+    truth = simulate_truth(scenario_config("default", duration_s=149.0, seed=4, target={"file": cubesat},
+                                           relative={"rho0_C_m": [0.0, 3.0, 0.0]}))
+    target = load_target(cubesat)
+    half_turn_x = next(s.perm for s in target.symmetries if abs(s.axis_T[0]) > 0.99)
+    tracker, ests = run(truth, NoisyKeypointDetector(truth, seed=2, twin_perm=half_turn_x), target, range(150))
+    assert tracker.namings.count == 1 and tracker.namings.relabel_count == 4
+    x_hat = np.array([e.x_hat for e in ests])
+    err = error_magnitudes(nearest_truth(truth.x, x_hat, tracker.namings.equivalent), x_hat)
+    claimed = np.array([e.status == "tracking" for e in ests])
+    assert claimed[60:].all(), "".join(e.status[0] for e in ests)
+    assert err["attitude_deg"][claimed].max() < 1.0 and err["position_m"][claimed].max() < 0.02 * 3.0
 
 
 def test_a_detector_of_another_target_is_refused(hull):
