@@ -210,7 +210,8 @@ def weights_record(path: str) -> dict:
            "model_config": json.loads(meta["model_config"]),
            "cov_scale": float(json.loads(meta.get("cov_scale", "1.0"))),
            "cov_calibration": json.loads(meta["cov_calibration"]) if "cov_calibration" in meta else None}
-    for key in ("error_model", "error_model_record", "refine_cov_floor_px2", "refine_cov_calibration"):
+    for key in ("error_model", "error_model_record", "refine_cov_floor_px2", "refine_cov_calibration",
+                "target", "keypoint_sigma_px", "keypoint_cov_calibration"):  # the last three: a keypoint detector's
         if key in meta:
             out[key] = json.loads(meta[key])
     return out
@@ -231,6 +232,10 @@ def external_runs(path: str) -> list[dict]:
 def evaluation_record(e: dict) -> dict:
     data = e.get("data")
     name = dataset_ref(data) if data and os.path.isdir(data) else scrub(data)
+    if "as_named" in e:  # another target's keypoint detector (`envisat evaluate --target`): its own layout
+        metrics = {k: {"all": e[k]["all"], "pose": e[k]["pose"]} for k in ("as_named", "twin_aware") if e.get(k)}
+        return {"data": name, "weights": scrub(e.get("weights")), "frames": e.get("frames"), "target": e["target"],
+                "match_px": e.get("match_px"), "metrics": metrics, "per_keypoint": e["as_named"]["per_keypoint"]}
     return {"data": name, "weights": scrub(e.get("weights")), "frames": e.get("frames"), "roi": scrub(e.get("roi")),
             "detect_config": e.get("detect_config"), "metrics": headline(e)}
 
