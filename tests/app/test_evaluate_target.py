@@ -16,6 +16,9 @@ import pytest
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(__file__)), "perception"))
 from keypoint_cases import HALF_TURN_PERM, KEYPOINTS_T_M, twin_box_xml  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # the folder's own helpers
+from refusals import refused  # noqa: E402
+
 from envisat_pose.app.cli import main  # noqa: E402
 from envisat_pose.contracts import ContractError, KeypointDetections  # noqa: E402
 from envisat_pose.perception.keypoint_detect import KeypointDetectConfig  # noqa: E402
@@ -169,12 +172,6 @@ def test_calibrate_finds_the_noise_put_in_and_detect_carries_it(box, tmp_path, m
     assert cal["all"] == pytest.approx(record["check"]["all"])  # the same frames, noise and sigma
 
 
-def refused(argv, capsys, out, *words) -> None:
-    capsys.readouterr()
-    assert main(argv) == 2, argv
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and all(w in err for w in words), err
-    assert not os.path.exists(out), out
 
 
 def test_refusals_write_nothing(box, tmp_path, capsys):

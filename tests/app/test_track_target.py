@@ -7,9 +7,13 @@ ENVISAT's as the upper stage's) are one line each, with nothing written."""
 import json
 import os
 import re
+import sys
 
 import numpy as np
 import pytest
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # the folder's own helpers
+from refusals import refused  # noqa: E402
 
 from envisat_pose.app.cli import main
 from envisat_pose.target import load_target
@@ -85,12 +89,6 @@ def test_an_upper_stage_sequence_is_tracked_with_its_keypoint_detector(stage, tm
     assert re.search(r'^target = ".*upper_stage\.xml"$', (out / "track.config.toml").read_text(), re.M)
 
 
-def refused(argv, capsys, out, *words) -> None:
-    capsys.readouterr()
-    assert main(argv) == 2, argv
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and all(w in err for w in words), err
-    assert not os.path.exists(out), out
 
 
 def test_the_upper_stage_without_its_calibrated_weights_is_refused(stage, tmp_path, capsys):

@@ -14,6 +14,9 @@ import pytest
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(__file__)), "perception"))
 from keypoint_cases import KEYPOINTS_T_M, twin_box_xml  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # the folder's own helpers
+from refusals import refused  # noqa: E402
+
 from envisat_pose.app.cli import main  # noqa: E402
 from envisat_pose.contracts import KeypointDetections  # noqa: E402
 from envisat_pose.target import load_target  # noqa: E402
@@ -48,13 +51,6 @@ def box(tmp_path_factory):
     return str(path), str(other), str(data), weights, str(envisat)
 
 
-def refused(argv, capsys, out, *words) -> str:
-    capsys.readouterr()
-    assert main(argv) == 2, argv
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and all(w in err for w in words), err
-    assert not os.path.exists(out), out
-    return err
 
 
 def test_weights_are_refused_for_another_target_by_every_verb(box, tmp_path, capsys):

@@ -45,6 +45,28 @@ def chaser_lookup(truth):
     return chaser_function(orbit_config(truth.config))
 
 
+def envisat_dynamics() -> dict:
+    """The filter's dynamics of ENVISAT as the cold start takes them (acquisition.batch_fit's dyn)."""
+    from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
+
+    return {"J_T": load_inertia_T_kg_m2(), "mu_m3_s2": MU_EARTH_M3_S2, "gravity_gradient": False, "max_step_s": 1.0}
+
+
+def noisy_window(truth, ks, sigma_px: float, p_alt: float, seed: int) -> list:
+    """A cold-start window of the truth's frames ks: visible corners with Gaussian noise sigma_px, their
+    covariance, the half-turn probability p_alt and each frame's PnP pose."""
+    cam, corners_T = load_camera(), load_geometry().corners_T_m
+    rng, chaser_at = np.random.default_rng(seed), chaser_lookup(truth)
+    frames = []
+    for k in ks:
+        vis = truth.visible[k] & truth.in_frame[k]
+        z = np.where(vis[:, None], truth.corners_px[k] + rng.normal(0, sigma_px, (8, 2)), np.nan)
+        cov = np.where(vis[:, None, None], np.eye(2) * sigma_px ** 2, np.nan)
+        frames.append(acq.FramePose(float(truth.t_s[k]), chaser_at(truth.t_s[k]), z, cov, p_alt,
+                                    acq.pnp_state(z, corners_T, cam)))
+    return frames
+
+
 def test_pnp_recovers_the_pose_the_truth_projects(truth_600):
     """MuJoCo's corner pixels (its own camera) -> PnP -> rho and the attitude of the truth."""
     cam, corners_T = load_camera(), load_geometry().corners_T_m
@@ -71,19 +93,8 @@ def test_the_batch_fit_recovers_the_state_and_the_dynamics_pick_the_hypothesis(t
     """20 s of noisy truth pixels: the fit lands within its own 4 sigma of the truth at the last frame, rate
     included (the initial guess from PnP differences has the right sign), and the half-turn hypothesis fits worse
     (its products of inertia flip sign: not torque-free with the MJCF's tensor)."""
-    from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
-
-    cam, corners_T = load_camera(), load_geometry().corners_T_m
-    rng = np.random.default_rng(3)
-    chaser_at = chaser_lookup(truth_600)
-    frames = []
-    for k in range(100, 140):
-        vis = truth_600.visible[k] & truth_600.in_frame[k]
-        z = np.where(vis[:, None], truth_600.corners_px[k] + rng.normal(0, 0.5, (8, 2)), np.nan)
-        cov = np.where(vis[:, None, None], np.eye(2) * 0.25, np.nan)
-        frames.append(acq.FramePose(float(truth_600.t_s[k]), chaser_at(truth_600.t_s[k]), z, cov, 0.5,
-                                    acq.pnp_state(z, corners_T, cam)))
-    dyn = {"J_T": load_inertia_T_kg_m2(), "mu_m3_s2": MU_EARTH_M3_S2, "gravity_gradient": False, "max_step_s": 1.0}
+    cam, chaser_at, dyn = load_camera(), chaser_lookup(truth_600), envisat_dynamics()
+    frames = noisy_window(truth_600, range(100, 140), 0.5, 0.5, seed=3)
     guess = acq.initial_guess(frames)
     x_true = truth_600.x[139]
     assert np.linalg.norm(guess[RATE] - x_true[RATE]) < 0.2 * np.linalg.norm(x_true[RATE])
@@ -101,19 +112,8 @@ def test_windows_fitted_together_are_each_fitted_as_alone(truth_600):
     """batch_fits carries every naming's window back through the dynamics at once: each fit is the one that window
     gets alone (x, P, chi-square, the keypoints kept), whether its damping and convergence run ahead of the
     others or not (the four namings of a real window converge at different iterations)."""
-    from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
-
-    cam, corners_T = load_camera(), load_geometry().corners_T_m
-    rng = np.random.default_rng(8)
-    chaser_at = chaser_lookup(truth_600)
-    frames = []
-    for k in range(200, 220):
-        vis = truth_600.visible[k] & truth_600.in_frame[k]
-        z = np.where(vis[:, None], truth_600.corners_px[k] + rng.normal(0, 0.7, (8, 2)), np.nan)
-        cov = np.where(vis[:, None, None], np.eye(2) * 0.49, np.nan)
-        frames.append(acq.FramePose(float(truth_600.t_s[k]), chaser_at(truth_600.t_s[k]), z, cov, 0.3,
-                                    acq.pnp_state(z, corners_T, cam)))
-    dyn = {"J_T": load_inertia_T_kg_m2(), "mu_m3_s2": MU_EARTH_M3_S2, "gravity_gradient": False, "max_step_s": 1.0}
+    cam, chaser_at, dyn = load_camera(), chaser_lookup(truth_600), envisat_dynamics()
+    frames = noisy_window(truth_600, range(200, 220), 0.7, 0.3, seed=8)
     guess = acq.initial_guess(frames)
     windows = [acq.renamed_window(frames, h) for h in range(len(acq.NAMINGS))]
     guesses = np.stack([acq.naming_state(guess, h) for h in range(len(acq.NAMINGS))])
