@@ -49,14 +49,20 @@ def test_no_absolute_path_in_the_card_or_the_weights_metadata():
     path = shipped_weights_path()
     assert machine_paths(shipped_card()) == []
     assert machine_paths(json.load(open(os.path.join(ROOT, "models", "detector_history.json"), encoding="utf-8"))) == []
-    meta = read_metadata(path)
-    decoded = {}
-    for k, v in meta.items():  # metadata values are strings, most of them JSON
-        try:
-            decoded[k] = json.loads(v)
-        except ValueError:
-            decoded[k] = v
-    assert machine_paths(decoded) == [] and machine_paths(meta) == []
+    # every committed card and its weights (another target's legs too: models/upper_stage_detector.*)
+    cards = [os.path.join(ROOT, "models", f) for f in os.listdir(os.path.join(ROOT, "models"))
+             if f.endswith("detector.json")]
+    for card in cards:
+        assert machine_paths(json.load(open(card, encoding="utf-8"))) == [], card
+    for weights in [path] + [c[:-len(".json")] + ".safetensors" for c in cards]:
+        meta = read_metadata(weights)
+        decoded = {}
+        for k, v in meta.items():  # metadata values are strings, most of them JSON
+            try:
+                decoded[k] = json.loads(v)
+            except ValueError:
+                decoded[k] = v
+        assert machine_paths(decoded) == [] and machine_paths(meta) == [], weights
     # the checker itself sees a path where there is one
     assert "/work/main/out/leg6/hseq633" in machine_paths({"data": "roi=labels; /work/main/out/leg6/hseq633"})
     assert "/srv/x/w.safetensors" in machine_paths(["--init /srv/x/w.safetensors"])
