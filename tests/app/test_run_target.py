@@ -6,37 +6,25 @@ untrained (the plumbing: the frames, the rows of K keypoints, the files); tracki
 
 import json
 import os
+import sys
 
 import numpy as np
 import pytest
 
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "perception"))
+from keypoint_cases import untrained_weights  # noqa: E402
+
 from envisat_pose.app.cli import main
-from envisat_pose.target import load_target
 
 UPPER = "envisat_pose/models/upper_stage.xml"
-
-
-def keypoint_weights(path, target_file: str, calibrated: bool = True) -> str:
-    """Untrained keypoint weights recording the target of target_file (sigma 1.5 px per keypoint when
-    calibrated)."""
-    from envisat_pose.perception.keypoint_detect import SIGMA_KEY
-    from envisat_pose.perception.keypoint_net import KeypointModelConfig, init_keypoint_net
-    from envisat_pose.perception.weights import save_weights
-
-    target = load_target(target_file)
-    record = {k: v for k, v in target.record(target_file).items() if k != "file"}
-    net = init_keypoint_net(KeypointModelConfig(input_px=64, width=8, depth=2, stem_width=8,
-                                                num_keypoints=target.num_keypoints), 0, record)
-    save_weights(str(path), net, {SIGMA_KEY: json.dumps([1.5] * target.num_keypoints)} if calibrated else None)
-    return str(path)
 
 
 @pytest.fixture(scope="module")
 def weights(tmp_path_factory):
     folder = tmp_path_factory.mktemp("run_target")
-    return {"upper": keypoint_weights(folder / "upper.safetensors", UPPER),
-            "uncalibrated": keypoint_weights(folder / "uncal.safetensors", UPPER, calibrated=False),
-            "cubesat": keypoint_weights(folder / "cubesat.safetensors", "envisat_pose/models/cubesat_3u.xml")}
+    return {"upper": untrained_weights(folder / "upper.safetensors", UPPER, sigma_px=1.5),
+            "uncalibrated": untrained_weights(folder / "uncal.safetensors", UPPER),
+            "cubesat": untrained_weights(folder / "cubesat.safetensors", "envisat_pose/models/cubesat_3u.xml", 1.5)}
 
 
 def test_the_closed_loop_of_another_target_writes_its_keypoints(weights, tmp_path, capsys):

@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # the folder's own helpers
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "perception"))
+from keypoint_cases import untrained_weights  # noqa: E402
 from refusals import refused  # noqa: E402
 
 from envisat_pose.app.cli import main
@@ -21,23 +23,6 @@ from envisat_pose.target import load_target
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 UPPER_STAGE = os.path.join(os.path.dirname(load_target().path), "upper_stage.xml")
 FRAMES = 25
-
-
-def keypoint_weights(path: str, target_file: str, sigma_px: float | None) -> str:
-    """Untrained keypoint weights recording the target of target_file (a tiny network), with the calibration's
-    metadata (SIGMA_KEY: sigma_px for every keypoint) unless sigma_px is None."""
-    from envisat_pose.perception.keypoint_detect import SIGMA_KEY
-    from envisat_pose.perception.keypoint_net import KeypointModelConfig, init_keypoint_net
-    from envisat_pose.perception.weights import save_weights, with_metadata
-
-    target = load_target(target_file)
-    record = {k: v for k, v in target.record(target_file).items() if k != "file"}
-    raw = path if sigma_px is None else path + ".raw.safetensors"
-    save_weights(raw, init_keypoint_net(KeypointModelConfig(input_px=64, width=8, depth=2, stem_width=8,
-                                                            num_keypoints=target.num_keypoints), 0, record))
-    if sigma_px is not None:
-        with_metadata(raw, path, {SIGMA_KEY: [sigma_px] * target.num_keypoints})
-    return path
 
 
 @pytest.fixture(scope="module")
@@ -54,9 +39,9 @@ def stage(tmp_path_factory):
     envisat = str(folder / "envisat")
     assert main(["generate", "--mode", "sequence", "--num-images", "2", "--resolution", "64", "--workers", "1",
                  "--out", envisat, "--quiet"]) == 0
-    return {"seq": seq, "calibrated": keypoint_weights(str(folder / "cal.safetensors"), UPPER_STAGE, 1.5),
-            "uncalibrated": keypoint_weights(str(folder / "raw.safetensors"), UPPER_STAGE, None),
-            "other": str(other), "other_weights": keypoint_weights(str(folder / "other.safetensors"), str(other), 1.5),
+    return {"seq": seq, "calibrated": untrained_weights(str(folder / "cal.safetensors"), UPPER_STAGE, 1.5),
+            "uncalibrated": untrained_weights(str(folder / "raw.safetensors"), UPPER_STAGE, None),
+            "other": str(other), "other_weights": untrained_weights(str(folder / "other.safetensors"), str(other), 1.5),
             "envisat": envisat}
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(__file__)), "perception"))
-from keypoint_cases import KEYPOINTS_T_M, twin_box_xml  # noqa: E402
+from keypoint_cases import KEYPOINTS_T_M, SMALL_TRAIN, twin_box_xml, untrained_weights  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # the folder's own helpers
 from refusals import refused  # noqa: E402
@@ -22,17 +22,12 @@ from envisat_pose.contracts import KeypointDetections  # noqa: E402
 from envisat_pose.target import load_target  # noqa: E402
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
-SMALL_TRAIN = ("warmup_steps = 2\ncheckpoint_every = 1000000\nbatch_size = 4\n[model]\ninput_px = 64\nwidth = 16\n"
-               "depth = 2\nstem_width = 8\n[data]\ninput_px = 64\nwhole_frame_prob = 0.1\n")
 
 
 @pytest.fixture(scope="module")
 def box(tmp_path_factory):
     """(the target file, another file of the same shape, a 2-frame dataset of the target at 96 px, untrained
     keypoint weights recording the target, a 2-frame ENVISAT sequence at 64 px)."""
-    from envisat_pose.perception.keypoint_net import KeypointModelConfig, init_keypoint_net
-    from envisat_pose.perception.weights import save_weights
-
     folder = tmp_path_factory.mktemp("train_target")
     path, other = folder / "twin.xml", folder / "other.xml"
     path.write_text(twin_box_xml())
@@ -40,11 +35,7 @@ def box(tmp_path_factory):
     data = folder / "data"
     assert main(["generate", "--target", str(path), "--num-images", "2", "--resolution", "96", "--seed", "4",
                  "--out", str(data), "--quiet"]) == 0
-    target = load_target(str(path))
-    record = {k: v for k, v in target.record(str(path)).items() if k != "file"}
-    weights = str(folder / "untrained.safetensors")
-    save_weights(weights, init_keypoint_net(KeypointModelConfig(input_px=64, width=8, depth=2, stem_width=8,
-                                                                num_keypoints=8), 0, record))
+    weights = untrained_weights(folder / "untrained.safetensors", path)
     envisat = folder / "envisat"
     assert main(["generate", "--mode", "sequence", "--num-images", "2", "--resolution", "64", "--out", str(envisat),
                  "--quiet"]) == 0

@@ -18,3 +18,26 @@ def twin_box_xml(name: str = "twin_box", painted: bool = False) -> str:
             '<worldbody><body name="target"><inertial pos="0 0 0" mass="40" diaginertia="1.5 3.0 3.5"/>'
             f'<geom name="hull" type="box" size="0.6 0.3 0.2" material="grey"/>{fin}{sites}</body></worldbody>'
             '</mujoco>')
+
+
+# a training config small enough for a test (a 64 px network, a few steps)
+SMALL_TRAIN = ("warmup_steps = 2\ncheckpoint_every = 1000000\nbatch_size = 4\n[model]\ninput_px = 64\nwidth = 16\n"
+               "depth = 2\nstem_width = 8\n[data]\ninput_px = 64\nwhole_frame_prob = 0.1\n")
+
+
+def untrained_weights(path, target_file, sigma_px: float | None = None) -> str:
+    """Untrained keypoint weights (a 64 px network, seed 0) recording the target of target_file, written at path;
+    with sigma_px, the calibration's metadata (that sigma for every keypoint), else none. Returns the path."""
+    import json
+
+    from envisat_pose.perception.keypoint_detect import SIGMA_KEY
+    from envisat_pose.perception.keypoint_net import KeypointModelConfig, init_keypoint_net
+    from envisat_pose.perception.weights import save_weights
+    from envisat_pose.target import load_target
+
+    target = load_target(str(target_file))
+    record = {k: v for k, v in target.record(str(target_file)).items() if k != "file"}
+    net = init_keypoint_net(KeypointModelConfig(input_px=64, width=8, depth=2, stem_width=8,
+                                                num_keypoints=target.num_keypoints), 0, record)
+    save_weights(str(path), net, None if sigma_px is None else {SIGMA_KEY: json.dumps([sigma_px] * target.num_keypoints)})
+    return str(path)

@@ -2,21 +2,22 @@
 channel, a keypoint reported only where its visibility, its peak score and its calibrated sigma allow, its
 covariance sigma_k^2 I; in a region of interest the network looks at that window alone."""
 
-import json
+import os
+import sys
 
 import numpy as np
 import pytest
 
 from envisat_pose.config import InputError
 from envisat_pose.perception.keypoint_detect import (
-    SIGMA_KEY,
     KeypointDetector,
     KeypointFrameDetector,
     load_frame_detector,
 )
-from envisat_pose.perception.keypoint_net import KeypointModelConfig, init_keypoint_net
-from envisat_pose.perception.weights import save_weights
 from envisat_pose.target import load_target
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from keypoint_cases import untrained_weights  # noqa: E402
 
 UPPER = "envisat_pose/models/upper_stage.xml"
 
@@ -65,12 +66,8 @@ def test_a_region_of_interest_is_looked_at_alone():
 
 def test_loading_needs_calibrated_weights_of_the_target(tmp_path):
     target = load_target(UPPER)
-    record = {k: v for k, v in target.record(UPPER).items() if k != "file"}
-    net = init_keypoint_net(KeypointModelConfig(input_px=64, width=8, depth=2, stem_width=8, num_keypoints=12), 0,
-                            record)
-    raw, calibrated = str(tmp_path / "raw.safetensors"), str(tmp_path / "cal.safetensors")
-    save_weights(raw, net)
-    save_weights(calibrated, net, {SIGMA_KEY: json.dumps([2.0] * 12)})
+    raw = untrained_weights(tmp_path / "raw.safetensors", UPPER)
+    calibrated = untrained_weights(tmp_path / "cal.safetensors", UPPER, sigma_px=2.0)
     with pytest.raises(InputError, match="no calibrated pixel covariance"):
         load_frame_detector(raw, UPPER)
     det = load_frame_detector(calibrated, UPPER)
