@@ -60,6 +60,13 @@ APPENDAGE_GEOM_GROUP = 4
 # looking along -z).
 R_K_FROM_MJCAM = np.diag([1.0, -1.0, -1.0])
 
+# The sun's shadow map covers the target alone: SHADOW_MAP_PX texels across a box of SHADOW_BOX_REACHES times the
+# target's reach about its origin (where set_view centres the light). MuJoCo's default box is the model's extent
+# (+-57.5 m in ENVISAT's scene, 4096 texels of 2.8 cm); this one is +-23.2 m for ENVISAT (2.3 cm texels), the
+# same share of any target, and a quarter of the texels to draw (docs/design.md, "Rendering cost").
+SHADOW_MAP_PX = 2048
+SHADOW_BOX_REACHES = 1.05
+
 
 class SceneRenderer:
     """One GL context and MuJoCo scene rendering the chaser camera at a fixed square resolution."""
@@ -127,6 +134,8 @@ class SceneRenderer:
             self.mask_lut[m.geom(name).id + 1] = value
         self.znear_m = float(m.vis.map.znear * m.stat.extent)
         self.zfar_m = float(m.vis.map.zfar * m.stat.extent)
+        m.vis.map.shadowclip = SHADOW_BOX_REACHES * self.target.reach_m / m.stat.extent  # read by the GL context
+        m.vis.quality.shadowsize = SHADOW_MAP_PX
         self._open_gl()
         mujoco.mj_forward(m, self.data)  # the camera's mount: fixed on the chaser at the origin of C
         self._R_K_from_C = self.camera_pose()[0]

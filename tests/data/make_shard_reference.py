@@ -5,7 +5,9 @@ as JSON text, read by tests/datagen/test_targets.py (ENVISAT's datasets unchange
 History: the shards of commit 60424e2 (before any target work) were pinned by SHA-256, which the code after the
 target work reproduced on the machine that recorded them; bytes of rendered images and printed floats differ
 between machines, so the same code's output was recorded decoded on 2026-12-02 (an AMD EPYC with AVX-512) and is
-compared within the tolerances of tests/data/compare.py.
+compared within the tolerances of tests/data/compare.py. Re-recorded the same day when the sun's shadow map was
+sized to the target (datagen/render.py, SHADOW_MAP_PX): only shadow edges moved (the 128-px random views' blurred
+images up to 3.7 DN apart, against the 3 DN the comparison allows for machines).
 
 Run: .venv/bin/python tests/data/make_shard_reference.py [--out tests/data/envisat_shards_reference.npz]
 """
