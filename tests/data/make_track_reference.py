@@ -12,7 +12,9 @@ The arrays pass through MuJoCo's renderer, BLAS and torch, so another machine gi
 million (tolerances: tests/data/compare.py), not bit for bit. History: first recorded (as SHA-256 digests) on the
 code before the refactors of issue 50 and reproduced bit for bit by the code after them on the machine that recorded
 it; re-recorded whole on 2026-12-02 (an AMD EPYC with AVX-512) by the same code, whose estimates there differed from
-the first recording by at most 7.6e-6 of each state's largest value.
+the first recording by at most 7.6e-6 of each state's largest value. Re-recorded the same day for a change meant to
+move the estimates: the sun's shadow map sized to the target (datagen/render.py, SHADOW_MAP_PX) moves shadow edges
+in the closed loop's frames (its corners' alternative naming up to 7 % of a column's scale; statuses unchanged).
 
 Run: .venv/bin/python tests/data/make_track_reference.py [--out tests/data/track_reference.npz]
 """
