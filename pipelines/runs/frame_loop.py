@@ -38,37 +38,71 @@ class FrameInput:
 
 
 def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_quality: int = 80,
-               progress: str | None = None) -> dict:
+               progress: str | None = None, overlap: bool = False) -> dict:
     """Step the tracker over frames (in order, k = 0, 1, ...), storing each estimate into rows (a RunRows) with
     the frame's stage times (s, STAGES' order), logging it to recorder (a TrackRecorder, or None) with the image
     at jpeg_quality; progress: the bar's description (None: no bar). The bar and the recorder are closed
-    whatever happens; returns rows.close(), the run's reductions."""
+    whatever happens; returns rows.close(), the run's reductions, with loop_wall_s: the loop's wall time (s).
+
+    overlap: the caller's generator makes frame k+1 (rendering, the camera, reading a file: on this thread, where
+    its GL context lives) while one worker thread steps the tracker on frame k and records it (torch, OpenCV,
+    MuJoCo's renderer and numpy's large operations release the GIL, so the two share the cores). Only for frames
+    that do not depend on the tracker's state (not the closed loop's rendered window): the tracker sees the same
+    frames in the same order, so every estimate is the same as without; the stages' times then overlap and sum
+    to more than the wall time."""
     bar = None
     if progress is not None:
         from tqdm import tqdm
 
         bar = tqdm(total=rows.T, unit="frame", desc=progress, mininterval=0.5)
+
+    def step(f: FrameInput) -> None:
+        est = tracker.step(f.t_s, f.image)
+        i, out = rows.row(f.k), rows.buf
+        store_estimate(out, i, est)
+        out["skipped"][i] = f.image is None
+        t0 = time.perf_counter()
+        if recorder is not None:
+            recorder.log_frame(f.k, est_row(out, i, f.t_s), f.image, jpeg_quality, x_true=f.x_true,
+                               corners_true_px=f.corners_true_px, in_frame=f.in_frame)
+        timing = out["timing_s"][i]
+        timing[:DETECTION] = f.stage_s
+        timing[DETECTION] = est.timing_s.get("detection", 0.0)
+        timing[FILTERING] = est.timing_s.get("filtering", 0.0)
+        timing[RECORDING] = time.perf_counter() - t0
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix_str(est.status, refresh=False)
+
+    wall0 = time.perf_counter()
     try:
-        for f in frames:
-            est = tracker.step(f.t_s, f.image)
-            i, out = rows.row(f.k), rows.buf
-            store_estimate(out, i, est)
-            out["skipped"][i] = f.image is None
-            t0 = time.perf_counter()
-            if recorder is not None:
-                recorder.log_frame(f.k, est_row(out, i, f.t_s), f.image, jpeg_quality, x_true=f.x_true,
-                                   corners_true_px=f.corners_true_px, in_frame=f.in_frame)
-            timing = out["timing_s"][i]
-            timing[:DETECTION] = f.stage_s
-            timing[DETECTION] = est.timing_s.get("detection", 0.0)
-            timing[FILTERING] = est.timing_s.get("filtering", 0.0)
-            timing[RECORDING] = time.perf_counter() - t0
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix_str(est.status, refresh=False)
+        if overlap:
+            _overlapped(step, frames)
+        else:
+            for f in frames:
+                step(f)
     finally:
         if bar is not None:
             bar.close()
         if recorder is not None:
             recorder.close()
-    return rows.close()
+    loop_wall_s = time.perf_counter() - wall0
+    return {**rows.close(), "loop_wall_s": loop_wall_s}
+
+
+def _overlapped(step, frames: Iterable[FrameInput]) -> None:
+    """step(f) for every frame in order on one worker thread, at most one frame ahead: the next frame is made
+    here while the worker steps the last. An error on either side stops both (the worker's is raised here, after
+    the frame it was on)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracker") as pool:
+        pending = None
+        try:
+            for f in frames:  # making frame k here while the worker is on frame k - 1
+                if pending is not None:
+                    pending.result()
+                pending = pool.submit(step, f)
+        finally:
+            if pending is not None:
+                pending.result()

@@ -204,7 +204,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
 
     wall0 = time.perf_counter()
     sums = run_frames(tracker, frame_inputs(source, remap), rows, recorder, cfg.jpeg_quality,
-                      "tracking" if progress else None)
+                      "tracking" if progress else None, overlap=True)  # the next frame read beside the tracker
     wall_s = time.perf_counter() - wall0
     x_true = truth["x"] if truth is not None else np.full((T, 12), np.nan)
     record = target.record(cfg.target)  # the file as given, its name, sha256 and keypoints

@@ -1,7 +1,9 @@
 """The per-frame loop shared by `envisat run` and `envisat track` (pipelines/runs/frame_loop.py), with a fake tracker
-and recorder: what it stores per frame, the stage times by name, and that the recorder is closed on an error."""
+and recorder: what it stores per frame, the stage times by name, and that the recorder is closed on an error; with
+`overlap`, the same rows, the next frame made while the tracker steps the last, and errors from either side."""
 
 import os
+import threading
 
 import numpy as np
 import pytest
@@ -47,12 +49,13 @@ def frames(n=3, dark=(1,)):
         yield FrameInput(k, 0.5 * k, None if k in dark else image, (0.01 * k, 0.02, 0.03), x_true=np.full(12, k))
 
 
-def test_the_loop_fills_each_row_and_its_stage_times_by_name(tmp_path):
+@pytest.mark.parametrize("overlap", [False, True])
+def test_the_loop_fills_each_row_and_its_stage_times_by_name(tmp_path, overlap):
     """Three frames (the second without an image) over chunks of two: the rows on file hold each estimate, the
     skipped frame, and the stage times in STAGES' columns; the reductions sum them; the recorder saw every frame."""
     run_dir = str(tmp_path / "run")
     tracker, recorder = FakeTracker(), FakeRecorder()
-    sums = run_frames(tracker, frames(), RunRows(run_dir, 3, chunk=2), recorder, jpeg_quality=55)
+    sums = run_frames(tracker, frames(), RunRows(run_dir, 3, chunk=2), recorder, jpeg_quality=55, overlap=overlap)
     assert tracker.calls == [(0.0, False), (0.5, True), (1.0, False)]
     col = {k: np.load(os.path.join(run_dir, f"{k}.npy")) for k in ("x_hat", "status", "skipped", "timing_s")}
     assert col["x_hat"][:, 0].tolist() == [0.0, 0.5, 1.0]
@@ -73,13 +76,51 @@ def test_the_loop_fills_each_row_and_its_stage_times_by_name(tmp_path):
     assert set(by) == {"tracking", "coasting"}
     assert by["tracking"]["detection"] == pytest.approx(250.0) and by["coasting"]["filtering"] == pytest.approx(125.0)
     assert by["tracking"]["simulation"] == pytest.approx(10.0)  # (0 + 20 ms) / 2
+    assert sums["loop_wall_s"] > 0
 
 
-def test_an_error_in_a_frame_still_closes_the_recorder(tmp_path):
+@pytest.mark.parametrize("overlap", [False, True])
+def test_an_error_in_a_frame_still_closes_the_recorder(tmp_path, overlap):
     recorder = FakeRecorder()
     with pytest.raises(RuntimeError, match="tracker failed"):
-        run_frames(FakeTracker(fail_at=0.5), frames(), RunRows(str(tmp_path / "run"), 3), recorder)
+        run_frames(FakeTracker(fail_at=0.5), frames(), RunRows(str(tmp_path / "run"), 3), recorder, overlap=overlap)
     assert recorder.closed and len(recorder.frames) == 1
+
+
+def test_with_overlap_the_next_frame_is_made_while_the_tracker_steps(tmp_path):
+    """The tracker's step on frame k waits (at most 10 s) for the source to start making frame k + 1: with
+    overlap every wait but the last is met, and the steps ran on another thread than the source."""
+    made = [threading.Event() for _ in range(4)]
+    threads = {"source": threading.get_ident()}
+
+    def source():
+        for k in range(4):
+            made[k].set()
+            yield FrameInput(k, float(k), np.zeros((4, 4), np.uint8))
+
+    class Waiting(FakeTracker):
+        def step(self, t_s, image):
+            threads["step"] = threading.get_ident()
+            k = int(t_s)
+            self.calls.append(k + 1 < 4 and made[k + 1].wait(timeout=10.0))
+            return super().step(t_s, image)
+
+    tracker = Waiting()
+    run_frames(tracker, source(), RunRows(str(tmp_path / "run"), 4), overlap=True)
+    assert [c for c in tracker.calls if isinstance(c, bool)] == [True, True, True, False]
+    assert threads["step"] != threads["source"]
+
+
+def test_with_overlap_an_error_in_the_source_stops_the_loop_after_the_frame_in_hand(tmp_path):
+    recorder = FakeRecorder()
+
+    def failing():
+        yield from frames(2, dark=())
+        raise OSError("frame 2 unreadable")
+
+    with pytest.raises(OSError, match="unreadable"):
+        run_frames(FakeTracker(), failing(), RunRows(str(tmp_path / "run"), 3), recorder, overlap=True)
+    assert recorder.closed and [f[0] for f in recorder.frames] == [0, 1]
 
 
 def test_without_a_recorder_the_rows_are_still_filled(tmp_path):
