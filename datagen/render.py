@@ -6,7 +6,9 @@ so this is the same picture as the truth simulator's inertial world, and the lab
 
 Two GL passes per view: a lit pass (sun, shadows) read back as RGB, and a flat segmentation pass whose ids
 and depth buffer are read back over the target's projected bounding box only. One `SceneRenderer` per worker
-process: creating the GL context costs 0.1-0.3 s, so it is made once and reused.
+process (a GL context costs 0.1-0.3 s). The sun's shadow map covers the target alone: SHADOW_MAP_PX texels across
+SHADOW_BOX_REACHES x its reach about its origin (set_view centres the light there), not MuJoCo's +-extent (ENVISAT:
+2.3 cm texels, not 4096 of 2.8 cm).
 """
 
 from __future__ import annotations
@@ -59,13 +61,7 @@ APPENDAGE_GEOM_GROUP = 4
 # The camera frame K of the labels (x right, y down, z boresight) from MuJoCo's camera frame (x right, y up,
 # looking along -z).
 R_K_FROM_MJCAM = np.diag([1.0, -1.0, -1.0])
-
-# The sun's shadow map covers the target alone: SHADOW_MAP_PX texels across a box of SHADOW_BOX_REACHES times the
-# target's reach about its origin (where set_view centres the light). MuJoCo's default box is the model's extent
-# (+-57.5 m in ENVISAT's scene, 4096 texels of 2.8 cm); this one is +-23.2 m for ENVISAT (2.3 cm texels), the
-# same share of any target, and a quarter of the texels to draw (docs/design.md, "Rendering cost").
-SHADOW_MAP_PX = 2048
-SHADOW_BOX_REACHES = 1.05
+SHADOW_MAP_PX, SHADOW_BOX_REACHES = 2048, 1.05
 
 
 class SceneRenderer:
@@ -134,8 +130,7 @@ class SceneRenderer:
             self.mask_lut[m.geom(name).id + 1] = value
         self.znear_m = float(m.vis.map.znear * m.stat.extent)
         self.zfar_m = float(m.vis.map.zfar * m.stat.extent)
-        m.vis.map.shadowclip = SHADOW_BOX_REACHES * self.target.reach_m / m.stat.extent  # read by the GL context
-        m.vis.quality.shadowsize = SHADOW_MAP_PX
+        m.vis.map.shadowclip, m.vis.quality.shadowsize = SHADOW_BOX_REACHES * self.target.reach_m / m.stat.extent, SHADOW_MAP_PX
         self._open_gl()
         mujoco.mj_forward(m, self.data)  # the camera's mount: fixed on the chaser at the origin of C
         self._R_K_from_C = self.camera_pose()[0]

@@ -5,7 +5,8 @@ Per run and frame k (t_k = k / rate_hz):
    the loops: it refuses a trajectory that breaks the keep-out margin before any image is made);
 2. in the Earth's shadow (the chaser's own orbit and the sun direction) there is no frame: the tracker predicts;
 3. MuJoCo renders the chaser camera (datagen's SceneRenderer, the factory's sequence-mode view and appearance), and
-   datagen's space camera corrupts it with the run's own noise;
+   datagen's space camera corrupts it with the run's own noise (pipelines/runs/loop_frames.py; with render_window,
+   the tracker's window alone), while the tracker steps the frame before (frame_loop.run_frames' overlap);
 4. the Tracker (pipelines/tracking/tracker.py) takes (t_k, image) and nothing else: it starts cold from the images unless
    `warm_start`, where it is handed the truth plus a draw from the filter's P0 (filter studies only).
 The truth only scores (pipelines/runs/scoring.py). Run r draws its camera noise (and a warm start) from
@@ -33,18 +34,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.config import to_dict, to_toml
 from envisat_pose.contracts import TruthTrajectory
-from envisat_pose.datagen.factory import draw_corruption_params, with_appearance
-from envisat_pose.datagen.render_view import View
 from envisat_pose.datagen.scenario import scenario_config
-from envisat_pose.datagen.views import sample_seed, unit
+from envisat_pose.datagen.views import sample_seed
 from envisat_pose.filtering.estimator import filter_inertia_T_kg_m2
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import make_out_dir
-from envisat_pose.pipelines.runs.frame_loop import FrameInput, run_frames
+from envisat_pose.pipelines.runs.frame_loop import run_frames
+from envisat_pose.pipelines.runs.loop_frames import FrameMaker, PlanAhead, closed_loop_frames
 from envisat_pose.pipelines.runs.rows import STAGES, RunRows, timing_by_status
 from envisat_pose.pipelines.runs.run_config import RunConfig, run_config_from_json, sun_and_shadow
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, score_run_files, write_run_files
@@ -54,7 +53,7 @@ from envisat_pose.pipelines.tracking.onboard import chaser_function, onboard_phy
 from envisat_pose.pipelines.tracking.tracker import Tracker
 from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
 from envisat_pose.realtime import real_time_factor
-from envisat_pose.state import MRP, POS, draw_initial_estimate
+from envisat_pose.state import draw_initial_estimate
 from envisat_pose.target import load_target, other_target
 
 # The config (pipelines/runs/run_config.py), the on-board physics and orbit (pipelines/tracking/onboard.py), the per-frame
@@ -105,7 +104,6 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     import cv2
     import torch
 
-    from envisat_pose.datagen.corrupt import apply_corruption
     from envisat_pose.datagen.render_cache import shared_renderer
 
     cfg = run_config_from_json(cfg_json)
@@ -141,78 +139,14 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
         recorder = TrackRecorder(sink, camera, with_truth=True, title=f"envisat run {cfg.scenario}, run {run}",
                                  target=load_target(gcfg.target))
 
-    def frames():
-        """Frame k rendered from the truth and corrupted by the space camera (None in the Earth's shadow); the
-        tracker's planned window alone where cfg.render_window allows (windowed_frame)."""
-        for k in range(len(t_s)):
-            x = x_truth[k]
-            image = None
-            t_render = t_camera = 0.0
-            if not eclipse[k]:
-                t0 = time.perf_counter()
-                view = View(x[POS], mrp_to_dcm(x[MRP]).T, sun_C[k], unit(nadir_C[k]),
-                            float(np.linalg.norm(nadir_C[k])), earth_backdrop=gcfg.earth_probability > 0)
-                view, _ = with_appearance(gcfg, view, {}, appearance_seed)
-                frame_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(run, 1, k)))
-                window = tracker.planned_window(float(t_s[k])) \
-                    if cfg.render_window and k % cfg.full_frame_every else None
-                if window is not None:
-                    image, t_render, t_camera = windowed_frame(renderer, view, window, gcfg, x, frame_rng)
-                else:
-                    rendered = renderer.render(view, labels=False)  # the image and the pose: no depth or mask
-                    t_render = time.perf_counter() - t0
-                    t0 = time.perf_counter()
-                    params = draw_corruption_params(gcfg, rendered, x, renderer.K[0, 0], renderer.target_boxes,
-                                                    frame_rng)
-                    image = apply_corruption(rendered.gray_u8, params)
-                    t_camera = time.perf_counter() - t0
-            if recorder is None:
-                yield FrameInput(k, float(t_s[k]), image, (sim_s_per_frame, t_render, t_camera))
-            else:  # the truth only for the recording
-                yield FrameInput(k, float(t_s[k]), image, (sim_s_per_frame, t_render, t_camera), x_true=x,
-                                 corners_true_px=truth_uv[k], in_frame=truth_seen[k])
-
-    # the next frame rendered while the tracker steps this one, unless the frame is the tracker's window
-    return run_frames(tracker, frames(), rows, recorder, cfg.jpeg_quality,
-                      f"closed loop (run {run})" if progress else None, overlap=not cfg.render_window)
-
-
-WINDOW_MARGIN_GUESS_PX = 48  # the space camera's margin a window is first rendered with (enough for most frames)
-
-
-def windowed_frame(renderer, view, window: np.ndarray, gcfg, x: np.ndarray, rng: np.random.Generator
-                   ) -> tuple[np.ndarray, float, float]:
-    """A frame of which only `window` (x0, y0, side) px is made: MuJoCo renders the window grown by the space
-    camera's margin (SceneRenderer.render_window), the camera corrupts it with the frame's own parameters
-    (draw_corruption_params from rng, as a full frame draws them; datagen.corrupt.apply_corruption_window), and it
-    is pasted into a black frame of the full size at its place. Returns (image (n, n) uint8, s rendering,
-    s camera)."""
-    from envisat_pose.datagen.corrupt import apply_corruption_window, corruption_margin_px
-
-    t0 = time.perf_counter()
-    n = renderer.resolution_px
-    x0, y0, side = (int(v) for v in window)
-    grown = lambda m: (x0 - m, y0 - m, side + 2 * m)  # noqa: E731
-    m0 = WINDOW_MARGIN_GUESS_PX
-    rendered = renderer.render_window(view, grown(m0))
-    t_render = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    params = draw_corruption_params(gcfg, rendered, x, renderer.K[0, 0], renderer.target_boxes, rng)
-    m = corruption_margin_px(params)
-    t_camera = time.perf_counter() - t0
-    if m > m0:  # a longer streak or blooming than the guess: the window again with its margin
-        t0 = time.perf_counter()
-        clean = renderer.render_window(view, grown(m)).gray_u8
-        t_render += time.perf_counter() - t0
-    else:
-        clean = rendered.gray_u8[m0 - m:m0 + side + m, m0 - m:m0 + side + m]
-    t0 = time.perf_counter()
-    win = apply_corruption_window(clean, (x0, y0, side), n, params)
-    image = np.zeros((n, n), np.uint8)
-    u0, v0, u1, v1 = max(x0, 0), max(y0, 0), min(x0 + side, n), min(y0 + side, n)
-    if u1 > u0 and v1 > v0:
-        image[v0:v1, u0:u1] = win[v0 - y0:v1 - y0, u0 - x0:u1 - x0]
-    return image, t_render, t_camera + time.perf_counter() - t0
+    maker = FrameMaker(renderer, gcfg, cfg.seed, run, appearance_seed, sun_C, nadir_C)
+    plan_ahead = PlanAhead(tracker, t_s) if cfg.render_window else None
+    frames = closed_loop_frames(maker, t_s, x_truth, eclipse, sim_s_per_frame, plan_ahead, cfg.full_frame_every,
+                                truth=None if recorder is None else (truth_uv, truth_seen))  # the truth: recording
+    # the next frame made while the tracker steps this one
+    res = run_frames(tracker if plan_ahead is None else plan_ahead, frames, rows, recorder, cfg.jpeg_quality,
+                     f"closed loop (run {run})" if progress else None, overlap=True)
+    return res | maker.counts
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -318,7 +252,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
         "real_time_factor_job": sim_time_s * R / max(loop_wall_s, 1e-9),
         "wall_s": {"truth_simulation": sim_s, "loops": loop_wall_s, "total": time.perf_counter() - wall0},
         "run0": {k: r0[k] for k in ("frames_skipped_eclipse", "frames_roi", "frames_ambiguous", "frames_acquiring",
-                                    "frames_lost")},
+                                    "frames_lost", "frames_windowed", "frames_window_remade")},
         "recording_bytes": os.path.getsize(paths["recording"]) if os.path.isfile(paths["recording"]) else 0,
     }
     atomic_write_text(paths["summary"], json.dumps(summary, indent=1, sort_keys=True) + "\n")

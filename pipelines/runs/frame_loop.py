@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Iterable
+from typing import Callable, Iterable
 
 import numpy as np
 
@@ -26,7 +26,10 @@ NO_STAGE_TIMES = (0.0,) * len(BEFORE_TRACKER)  # frames read, not made (`envisat
 class FrameInput:
     """Frame k at t_s (s): image (H, W) uint8, or None where there is no frame (the tracker predicts); stage_s:
     the seconds of BEFORE_TRACKER (simulation, rendering, camera) spent on it; with a truth for the recording,
-    x_true (12,), corners_true_px (8, 2) and in_frame (8,) bool (None without)."""
+    x_true (12,), corners_true_px (8, 2) and in_frame (8,) bool (None without). ready: for a frame made ahead of
+    the tracker (run_frames' overlap), called on the maker's thread once the tracker has stepped every earlier
+    frame and before it steps this one; returns the frame to step (this one, or one remade for the tracker as it
+    stands then). None: the frame is final as made."""
 
     k: int
     t_s: float
@@ -35,6 +38,11 @@ class FrameInput:
     x_true: np.ndarray | None = None
     corners_true_px: np.ndarray | None = None
     in_frame: np.ndarray | None = None
+    ready: Callable[[], "FrameInput"] | None = None
+
+    def final(self) -> "FrameInput":
+        """The frame to step: ready()'s where there is one."""
+        return self if self.ready is None else self.ready()
 
 
 def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_quality: int = 80,
@@ -46,10 +54,10 @@ def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_
 
     overlap: the caller's generator makes frame k+1 (rendering, the camera, reading a file: on this thread, where
     its GL context lives) while one worker thread steps the tracker on frame k and records it (torch, OpenCV,
-    MuJoCo's renderer and numpy's large operations release the GIL, so the two share the cores). Only for frames
-    that do not depend on the tracker's state (not the closed loop's rendered window): the tracker sees the same
-    frames in the same order, so every estimate is the same as without; the stages' times then overlap and sum
-    to more than the wall time."""
+    MuJoCo's renderer and numpy's large operations release the GIL, so the two share the cores). A frame
+    made for the tracker's state (the closed loop's rendered window) is made for its state a step earlier and
+    checked by its FrameInput.ready; frames that depend on nothing reach the tracker as without overlap, so every
+    estimate is the same. The stages' times then overlap and sum to more than the wall time."""
     bar = None
     if progress is not None:
         from tqdm import tqdm
@@ -80,7 +88,7 @@ def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_
             _overlapped(step, frames)
         else:
             for f in frames:
-                step(f)
+                step(f.final())
     finally:
         if bar is not None:
             bar.close()
@@ -92,7 +100,7 @@ def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_
 
 def _overlapped(step, frames: Iterable[FrameInput]) -> None:
     """step(f) for every frame in order on one worker thread, at most one frame ahead: the next frame is made
-    here while the worker steps the last. An error on either side stops both (the worker's is raised here, after
+    here while the worker steps the last, and made final (FrameInput.final) here between the two steps. An error on either side stops both (the worker's is raised here, after
     the frame it was on)."""
     from concurrent.futures import ThreadPoolExecutor
 
@@ -102,7 +110,7 @@ def _overlapped(step, frames: Iterable[FrameInput]) -> None:
             for f in frames:  # making frame k here while the worker is on frame k - 1
                 if pending is not None:
                     pending.result()
-                pending = pool.submit(step, f)
+                pending = pool.submit(step, f.final())  # final() here: the tracker is idle, GL on this thread
         finally:
             if pending is not None:
                 pending.result()

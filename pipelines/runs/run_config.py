@@ -57,12 +57,13 @@ class RunConfig(Config):
     images in the recording. image: the camera frames as the image factory's sequence mode makes them (its
     sequence fields, seed and frame count are set from the ones above, its sun made explicit: finished_image).
     tracker: pipelines.tracker.TrackerConfig. render_window (`--window`): once the tracker holds one confirmed
-    hypothesis, MuJoCo renders and the space camera corrupts only the window its detector will look at
-    (Tracker.planned_window), the rest of the frame black; a full frame every full_frame_every frames and
-    whenever the tracker acquires, holds twins or its last window held too few keypoints. Off by default: the
-    window's noise is drawn apart from the full frame's (the same distribution, other pixels), so a seed's
-    figures move, and at 50 m with shadows it saved 2 ms of rendering (the shadow map is a fixed cost) and 5 ms
-    of the camera (docs/history.md)."""
+    hypothesis, MuJoCo renders and the space camera corrupts only the window its detector will look at, the rest
+    of the frame black: planned a frame early (the frames are made while the tracker steps the one before) and
+    grown, made again when it does not hold the tracker's plan (pipelines/runs/loop_frames.py); a full frame
+    every full_frame_every frames and whenever the tracker acquires, holds twins or its last window held too few
+    keypoints. Off by default: the window's noise is drawn apart from the full frame's (the same distribution,
+    other pixels), so a seed's figures move; it saves a tenth of the loop's time (docs/design.md, "The closed
+    loop")."""
 
     scenario: str = "default"
     duration_s: float | None = None

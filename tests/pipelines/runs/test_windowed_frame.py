@@ -1,4 +1,4 @@
-"""The closed loop's windowed frame (pipelines/runs/closed_loop.windowed_frame): only the tracker's window is
+"""The closed loop's windowed frame (pipelines/runs/loop_frames.windowed_frame): only the tracker's window is
 rendered and corrupted, pasted at its place into a black frame of the full size; the window's pixels are the full
 frame's there (up to the rasterizer's edge pixels, tests/datagen/test_render_window.py; the space camera's
 statistics: tests/datagen/test_sensor_window.py)."""
@@ -10,7 +10,7 @@ import pytest
 
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.datagen.render_view import View
-from envisat_pose.pipelines.runs.closed_loop import windowed_frame
+from envisat_pose.pipelines.runs.loop_frames import windowed_frame
 from envisat_pose.state import MRP, POS
 
 RES = 256
