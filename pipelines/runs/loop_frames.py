@@ -27,8 +27,8 @@ from envisat_pose.pipelines.runs.frame_loop import FrameInput
 from envisat_pose.state import MRP, POS
 
 WINDOW_MARGIN_GUESS_PX = 48  # the space camera's margin a window is first rendered with (enough for most frames)
-AHEAD_GROWTH = 0.1  # a window planned a frame early: grown by this share of its side on every side...
-AHEAD_PAD_PX = 8  # ...and these pixels
+AHEAD_GROWTH = 0.02  # a window planned a frame early: grown by this share of its side on every side...
+AHEAD_PAD_PX = 4  # ...and these pixels (the plans a frame apart: within 0.5 px, design.md)
 
 
 class PlanAhead:
