@@ -10,7 +10,7 @@ Floor of a change that must not slow anything: every figure within 5 % of the ba
 time; closed loop: at least 0.95x the real-time factor).
 
 Run: .venv/bin/python bench/tree_speed.py --baseline DIR [--current DIR] [--rounds 2] [--duration-s 300]
-     [--only ukf|loop] [--out bench/results/tree_speed.json]  (each run appended to the file's runs)
+     [--only ukf|loop] [--cores 1] [--out bench/results/tree_speed.json]  (each run appended to the file's runs)
 """
 
 from __future__ import annotations
@@ -41,14 +41,15 @@ def run_bench(tree: str, script: str, args: list[str]) -> dict:
             return json.load(fh)
 
 
-def figures(tree: str, duration_s: float, only: str | None) -> dict:
-    """{figure name: value} of one round of one tree (only: 'ukf' or 'loop', else both)."""
+def figures(tree: str, duration_s: float, only: str | None, cores: int = 1) -> dict:
+    """{figure name: value} of one round of one tree (only: 'ukf' or 'loop', else both; the loop on `cores`)."""
     out = {}
     if only in (None, "ukf"):
         ukf = run_bench(tree, "ukf_speed.py", [])["us_per_run_step"]
         out.update({f"ukf_{k}_us": ukf[k] for k in UKF_KEYS})
     if only in (None, "loop"):
-        loop = run_bench(tree, "online_speed.py", ["--duration-s", str(duration_s), "--after-s", str(duration_s / 2)])
+        loop = run_bench(tree, "online_speed.py", ["--duration-s", str(duration_s), "--after-s", str(duration_s / 2),
+                                                   "--cores", str(cores)])
         for case in sorted(loop["cases"]):
             out[f"rtf_{case}"] = loop["cases"][case]["real_time_factor"]
             out.update({f"ms_{case}_{stage}": ms for stage, ms in loop["cases"][case]["timing_ms_per_frame"].items()})
@@ -62,13 +63,14 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--duration-s", type=float, default=300.0, help="closed-loop simulated seconds per run")
     ap.add_argument("--only", choices=("ukf", "loop"), help="one of the two benches (default: both)")
+    ap.add_argument("--cores", type=int, default=1, help="the closed loop's CPUs (online_speed.py --cores; default 1)")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "tree_speed.json"))
     args = ap.parse_args()
     trees = {"baseline": os.path.abspath(args.baseline), "current": os.path.abspath(args.current)}
     rounds: dict[str, list[dict]] = {name: [] for name in trees}
     for r in range(args.rounds):
         for name in (trees if r % 2 == 0 else reversed(list(trees))):
-            rounds[name].append(figures(trees[name], args.duration_s, args.only))
+            rounds[name].append(figures(trees[name], args.duration_s, args.only, args.cores))
             print(f"round {r + 1} {name}: " + ", ".join(f"{k} {v:.2f}" for k, v in rounds[name][-1].items()),
                   flush=True)
     median = {name: {k: statistics.median(row[k] for row in rows) for k in rows[0]} for name, rows in rounds.items()}
@@ -84,7 +86,8 @@ def main() -> None:
               f"{'' if k not in met else 'met' if met[k] else 'MISSED'}")
     result = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_avg_end": os.getloadavg()},
               "protocol": f"each tree's own bench/ukf_speed.py (default) and bench/online_speed.py "
-                          f"(--duration-s {args.duration_s}; only: {args.only or 'both'}), {args.rounds} alternating rounds; "
+                          f"(--duration-s {args.duration_s} --cores {args.cores}; only: {args.only or 'both'}), {args.rounds} "
+                          f"alternating rounds; "
                           f"medians, and the ratio as the median of the rounds' paired ratios",
               "trees": {name: os.path.basename(path.rstrip("/")) for name, path in trees.items()},
               "rounds": rounds, "median": median, "ratio_current_to_baseline": ratio, "floor_met": met}

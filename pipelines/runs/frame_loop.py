@@ -100,8 +100,8 @@ def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_
 
 def _overlapped(step, frames: Iterable[FrameInput]) -> None:
     """step(f) for every frame in order on one worker thread, at most one frame ahead: the next frame is made
-    here while the worker steps the last, and made final (FrameInput.final) here between the two steps. An error on either side stops both (the worker's is raised here, after
-    the frame it was on)."""
+    here while the worker steps the last, and made final (FrameInput.final) here between the two steps. An error
+    on either side stops both (the worker's is raised here, after the frame it was on)."""
     from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracker") as pool:
