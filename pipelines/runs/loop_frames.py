@@ -67,7 +67,8 @@ def window_holds(outer: np.ndarray, inner: np.ndarray) -> bool:
 class FrameMaker:
     """Makes a run's frames: its renderer (SceneRenderer), the image config (GenerateConfig), the run's seed and
     index (frame k's noise: SeedSequence(seed, spawn_key=(run, 1, k))), the appearance's seed, and per frame the
-    sun and nadir in C and the eclipse flag. Counts the frames made as windows and those made again."""
+    sun and nadir in C (the Earth's shadow is closed_loop_frames' to skip). Counts the frames made as windows and
+    those made again."""
 
     renderer: object
     gcfg: object
