@@ -38,8 +38,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--warm-start", action="store_true",
                    help="start each run's filter from the truth plus a draw from P0 (filter studies) instead of cold")
     p.add_argument("--no-roi", action="store_true", help="always run the detector's coarse pass (no region of interest)")
-    p.add_argument("--window", action="store_true", help="once tracking, render and corrupt only the detector's "
-                   "window (a full frame every `full_frame_every` frames; default: every frame whole)")
+    p.add_argument("--full-frames", action="store_true", help="render and corrupt every frame whole (default: once "
+                   "tracking, only the detector's window, a full frame every `full_frame_every` frames)")
     p.add_argument("--target", metavar="FILE.xml", help="another spacecraft's MJCF file: MuJoCo renders it and the "
                    "tracker follows it with its keypoint detector (--weights, trained and calibrated with --target)")
     add_common(p, config="run config (sections image, filter, tracker; top-level keys)", weights=True,
@@ -55,7 +55,7 @@ def resolve_config(args: argparse.Namespace):
     flags = {"duration_s": args.duration_s, "runs": args.runs, "seed": args.seed, "weights": args.weights,
              "workers": args.workers, "warm_start": True if args.warm_start else None,
              "tracker.roi.enabled": False if args.no_roi else None,
-             "image.target": args.target, "render_window": True if args.window else None}
+             "image.target": args.target, "render_window": False if args.full_frames else None}
     return resolve_job("run", args.scenario, args.config, flags)
 
 

@@ -348,9 +348,8 @@ class SceneRenderer:
         return (np.concatenate(pts) - cam_W) @ R_K_W.T
 
     def render(self, view: View, labels: bool = True) -> RenderOutput:
-        """Render `view`: the lit grayscale image, then depth and segmentation over the target's box. labels
-        False: the lit pass alone (the same image; depth_m and mask_u8 None), for a caller that needs only the
-        image and the pose (the closed loop). render = decode(render_passes(...))."""
+        """Render `view`: the lit grayscale image, then depth and segmentation over the target's box (labels False:
+        the lit pass alone, depth_m and mask_u8 None; the closed loop). render = decode(render_passes(...))."""
         return self.decode(self.render_passes(view, labels))
 
     def render_passes(self, view: View, labels: bool = True) -> RenderPasses:
@@ -427,12 +426,9 @@ class SceneRenderer:
     def render_window(self, view: View, window_px: tuple[int, int, int]) -> RenderOutput:
         """The lit image of the square window (x0, y0, side) px of the full frame alone (the closed loop's region
         of interest), drawn as pass 2 draws its box (_render_box): gray_u8 (side, side) uint8, row 0 the frame's
-        row y0, 0 where the window lies outside the image; depth_m and mask_u8 None; the pose as render gives it.
-        The pixels of render(view, labels=False).gray_u8[y0:y0 + side, x0:x0 + side] up to the rasterizer: under
-        osmesa some polygon and shadow edge pixels take another of the 4 multisamples (measured on the tests'
-        windows: 0.73 % of the pixels, at most 92 grey levels, 0.17 mean absolute; tests/datagen/
-        test_render_window.py allows twice that share and mean, for other rasterizers). The whole frame as a window is the full render. Leaves
-        the renderer as a full render found it (frustums restored)."""
+        row y0, 0 outside the image; the pose as render gives it. render(view, False).gray_u8[y0:y0 + side, x0:x0 +
+        side] up to the rasterizer (osmesa: 0.73 % of the tests' pixels take another multisample, at most 92 levels,
+        0.17 mean; test_render_window.py allows twice that). Leaves the frustums as a full render found them."""
         x0, y0, side = window_px
         box = window_box_px(window_px, self.resolution_px)
         scn = self._lit_scene(view)
@@ -445,6 +441,11 @@ class SceneRenderer:
             # GL rows run bottom-up
             gray[v0 - y0 : v1 + 1 - y0, u0 - x0 : u1 + 1 - x0] = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)[::-1]
         return RenderOutput(gray, None, None, *self._pose_K(*self.camera_pose()), self.fovy_deg)
+
+    def view_pose(self, view: View) -> RenderOutput:
+        """`view` placed (set_view) and nothing drawn: the pose of render(view) (gray_u8, depth_m, mask_u8 None)."""
+        self.set_view(view)
+        return RenderOutput(None, None, None, *self._pose_K(*self.camera_pose()), self.fovy_deg)
 
     def decode(self, p: RenderPasses) -> RenderOutput:
         """The pixel work of render: gray image, mask and depth of read-back passes (numpy and OpenCV only; no
@@ -473,10 +474,9 @@ class SceneRenderer:
                             R_K_from_T=p.R_K_from_T, t_K_from_T_m=p.t_K_from_T_m, fovy_deg=self.fovy_deg)
 
     def _read_lit(self, scn, target_box: tuple[int, int, int, int] | None) -> np.ndarray:
-        """The lit pass read back, (n, n, 3) uint8 in GL row order. When every geom drawn is the target's, the
-        pixels outside its box are the clear colour (black, no skybox): only the box is read (the same pixels,
-        a fraction of the read-back at range; tests/datagen/test_render_labels.py compares with the full read) and the
-        rest is left 0. A scene with any other geom (the Earth) is read whole."""
+        """The lit pass read back, (n, n, 3) uint8 in GL row order. When every geom drawn is the target's, only its
+        box is read (the rest is the clear colour, left 0; tests/datagen/test_render_labels.py compares with the
+        full read); a scene with any other geom (the Earth) is read whole."""
         n = self.resolution_px
         only_target = all(scn.geoms[k].objtype == mujoco.mjtObj.mjOBJ_GEOM
                           and scn.geoms[k].objid in self._target_geom_set for k in range(scn.ngeom))

@@ -26,7 +26,6 @@ from envisat_pose.datagen.views import unit
 from envisat_pose.pipelines.runs.frame_loop import FrameInput
 from envisat_pose.state import MRP, POS
 
-WINDOW_MARGIN_GUESS_PX = 48  # the space camera's margin a window is first rendered with (enough for most frames)
 AHEAD_GROWTH = 0.02  # a window planned a frame early: grown by this share of its side on every side...
 AHEAD_PAD_PX = 4  # ...and these pixels (the plans a frame apart: within 0.5 px, design.md)
 
@@ -139,30 +138,23 @@ def closed_loop_frames(maker: FrameMaker, t_s: np.ndarray, x_truth: np.ndarray, 
 
 def windowed_frame(renderer, view, window: np.ndarray, gcfg, x: np.ndarray, rng: np.random.Generator
                    ) -> tuple[np.ndarray, float, float]:
-    """A frame of which only `window` (x0, y0, side) px is made: MuJoCo renders the window grown by the space
-    camera's margin (SceneRenderer.render_window), the camera corrupts it with the frame's own parameters
-    (draw_corruption_params from rng, as a full frame draws them; datagen.corrupt.apply_corruption_window), and it
-    is pasted into a black frame of the full size at its place. Returns (image (n, n) uint8, s rendering,
+    """A frame of which only `window` (x0, y0, side) px is made: the space camera's parameters drawn first
+    (draw_corruption_params from rng, as a full frame draws them, from the view's pose: SceneRenderer.view_pose),
+    then MuJoCo renders the window grown by the camera's margin for them (corruption_margin_px;
+    SceneRenderer.render_window), the camera corrupts it (datagen.corrupt.apply_corruption_window), and it is
+    pasted into a black frame of the full size at its place. Returns (image (n, n) uint8, s rendering,
     s camera)."""
     from envisat_pose.datagen.corrupt import apply_corruption_window, corruption_margin_px
 
     t0 = time.perf_counter()
     n = renderer.resolution_px
     x0, y0, side = (int(v) for v in window)
-    grown = lambda m: (x0 - m, y0 - m, side + 2 * m)  # noqa: E731
-    m0 = WINDOW_MARGIN_GUESS_PX
-    rendered = renderer.render_window(view, grown(m0))
-    t_render = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    params = draw_corruption_params(gcfg, rendered, x, renderer.K[0, 0], renderer.target_boxes, rng)
+    params = draw_corruption_params(gcfg, renderer.view_pose(view), x, renderer.K[0, 0], renderer.target_boxes, rng)
     m = corruption_margin_px(params)
     t_camera = time.perf_counter() - t0
-    if m > m0:  # a longer streak or blooming than the guess: the window again with its margin
-        t0 = time.perf_counter()
-        clean = renderer.render_window(view, grown(m)).gray_u8
-        t_render += time.perf_counter() - t0
-    else:
-        clean = rendered.gray_u8[m0 - m:m0 + side + m, m0 - m:m0 + side + m]
+    t0 = time.perf_counter()
+    clean = renderer.render_window(view, (x0 - m, y0 - m, side + 2 * m)).gray_u8
+    t_render = time.perf_counter() - t0
     t0 = time.perf_counter()
     win = apply_corruption_window(clean, (x0, y0, side), n, params)
     image = np.zeros((n, n), np.uint8)

@@ -56,14 +56,14 @@ class RunConfig(Config):
     (filter studies), instead of cold from the images. threads: torch CPU threads per run; jpeg_quality: run 0's
     images in the recording. image: the camera frames as the image factory's sequence mode makes them (its
     sequence fields, seed and frame count are set from the ones above, its sun made explicit: finished_image).
-    tracker: pipelines.tracker.TrackerConfig. render_window (`--window`): once the tracker holds one confirmed
+    tracker: pipelines.tracker.TrackerConfig. render_window (on; `--full-frames` off): once the tracker holds one confirmed
     hypothesis, MuJoCo renders and the space camera corrupts only the window its detector will look at, the rest
     of the frame black: planned a frame early (the frames are made while the tracker steps the one before) and
     grown, made again when it does not hold the tracker's plan (pipelines/runs/loop_frames.py); a full frame
     every full_frame_every frames and whenever the tracker acquires, holds twins or its last window held too few
-    keypoints. Off by default: the window's noise is drawn apart from the full frame's (the same distribution,
-    other pixels), so a seed's figures move; it saves a tenth of the loop's time (docs/design.md, "The closed
-    loop")."""
+    keypoints. The window's noise is drawn apart from the full frame's (the same distribution, other pixels): a
+    seed's figures differ from its full frames' within their noise; it saves a tenth of the loop's time
+    (docs/design.md, "The closed loop")."""
 
     scenario: str = "default"
     duration_s: float | None = None
@@ -78,7 +78,7 @@ class RunConfig(Config):
     image: "GenerateConfig" = field(default_factory=_image_defaults)
     filter: FilterConfig | None = None
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
-    render_window: bool = False
+    render_window: bool = True
     full_frame_every: int = 10
 
     def __post_init__(self) -> None:

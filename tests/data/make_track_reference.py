@@ -49,7 +49,8 @@ def closed_track(out_dir: str) -> dict[str, np.ndarray]:
     from envisat_pose.pipelines.runs.closed_loop import run_closed_loop
 
     cfg = resolve_job("run", "default", overrides={"duration_s": 12.0, "seed": 2, "warm_start": True,
-                                                   "workers": 1, "image.resolution_px": 256})
+                                                   "workers": 1, "image.resolution_px": 256,
+                                                   "render_window": False})  # the full-frame loop
     run_closed_loop(cfg, out_dir, progress=False)
     return summarize(out_dir, "closed")
 
