@@ -160,11 +160,13 @@ class Tracker(AcquiringSteps, TrackingSteps):
 
     def planned_window(self, t_s: float) -> np.ndarray | None:
         """The window (x0, y0, side) px of a frame at t_s that the tracker will look at and at nothing outside it,
-        or None when it needs the whole frame: while acquiring, with twins still open (the array cue reads beyond
-        the body), before its claim is confirmed, when not converged or the region of interest is off, and after
-        a frame whose window held too few keypoints. The frame's maker may then render and corrupt that window
-        alone (the closed loop). Pure: step(t_s, ...) uses the same prediction."""
-        if self.state is None or not self.confirmed or self.state.mean.shape[0] != 1 or self.window_fell_short:
+        or None when it needs the whole frame: while acquiring, with twins still open, while the array cue reads
+        (array_cue_on: beyond the body, on every frame of a confirmed track), before its claim is confirmed, when
+        not converged or the region of interest is off, and after a frame whose window held too few keypoints.
+        The frame's maker may then render and corrupt that window alone (the closed loop). Pure: step(t_s, ...)
+        uses the same prediction."""
+        if self.state is None or not self.confirmed or self.state.mean.shape[0] != 1 or self.window_fell_short \
+                or self.array_cue_on:
             return None
         if self.t_last is not None and not t_s > self.t_last:
             return None

@@ -10,7 +10,14 @@ from envisat_pose.geometry import load_camera, load_geometry
 from envisat_pose.perception.detect import FrameDetection
 from envisat_pose.pipelines.tracking import acquisition as acq
 from envisat_pose.pipelines.tracking.tracker import Tracker, TrackerConfig
-from envisat_pose.pipelines.tracking.tracker_config import AcquireConfig, BankConfig, GateConfig, NoiseConfig, RoiConfig
+from envisat_pose.pipelines.tracking.tracker_config import (
+    AcquireConfig,
+    ArrayCueConfig,
+    BankConfig,
+    GateConfig,
+    NoiseConfig,
+    RoiConfig,
+)
 from envisat_pose.state import MRP, POS, RATE, error_magnitudes
 
 
@@ -529,11 +536,13 @@ def test_the_tracker_takes_no_truth(truth_600, truth_1800):
 
 
 def test_the_planned_window_is_the_region_the_step_then_looks_at(truth_600):
-    """Tracker.planned_window(t) asked before step(t): None while acquiring and until the claim is confirmed
-    (the frame's maker renders it whole), then the very region of interest the step detects in (est.roi_px), and
-    asking does not change the estimate (the same prediction is used)."""
+    """Tracker.planned_window(t) asked before step(t), the array cue off: None while acquiring and until the claim
+    is confirmed (the frame's maker renders it whole), then the very region of interest the step detects in
+    (est.roi_px), and asking does not change the estimate (the same prediction is used)."""
+    no_cue = TrackerConfig(array_cue=ArrayCueConfig(enabled=False))
+
     def run(ask: bool):
-        tracker = Tracker(load_camera(), NoisyTruthDetector(truth_600, seed=3), chaser_lookup(truth_600))
+        tracker = Tracker(load_camera(), NoisyTruthDetector(truth_600, seed=3), chaser_lookup(truth_600), no_cue)
         out = []
         for k in range(70):
             w = tracker.planned_window(float(truth_600.t_s[k])) if ask else None
@@ -550,6 +559,21 @@ def test_the_planned_window_is_the_region_the_step_then_looks_at(truth_600):
         np.testing.assert_array_equal(windows[k], asked[k][1].roi_px)
     for (_, a), (_, b) in zip(asked, plain):
         np.testing.assert_array_equal(a.x_hat, b.x_hat)
+
+
+def test_no_window_while_the_array_cue_reads_the_whole_frame(truth_600):
+    """With the array cue on (ENVISAT's default) the confirmed track reads the array at both ends of the body and
+    the sky around it on every frame: planned_window asks for whole frames throughout, though the detector looks
+    at its region of interest."""
+    tracker = Tracker(load_camera(), NoisyTruthDetector(truth_600, seed=3), chaser_lookup(truth_600))
+    assert tracker.array_cue_on
+    windows, ests = [], []
+    for k in range(70):
+        windows.append(tracker.planned_window(float(truth_600.t_s[k])))
+        ests.append(tracker.step(float(truth_600.t_s[k]), frame_image(k)))
+    assert any("confirmed" in e.events for e in ests)
+    assert sum(e.roi_px is not None for e in ests) > 30  # the detector in its region of interest
+    assert all(w is None for w in windows)
 
 
 def test_frame_times_must_increase(truth_600):
