@@ -55,6 +55,30 @@ def _project(points_T_m: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray
     return uv[:, :2] / uv[:, 2:3]
 
 
+def _median_of_counts(values: np.ndarray, counts: np.ndarray) -> float:
+    """np.median of the sample holding counts[i] copies of values[i] (values ascending): the middle value, or the
+    mean of the two middle ones."""
+    cum = np.cumsum(counts)
+    n = int(cum[-1])
+    lo, hi = (n - 1) // 2, n // 2
+    a, b = values[np.searchsorted(cum, lo, side="right")], values[np.searchsorted(cum, hi, side="right")]
+    return 0.5 * (float(a) + float(b))
+
+
+def sky_level(hist: np.ndarray) -> tuple[float, float]:
+    """The sky's level and spread from the background's grey-level histogram (256,) of a uint8 sample bg: the
+    median of its darkest quarter dark = bg[bg <= np.percentile(bg, 25)] and the median absolute deviation of
+    dark about it, as numpy computes them on bg (exact: grey levels are integers, and np.percentile's
+    interpolation at (n - 1) / 4 never passes the next level, so dark is bg <= its level at that rank)."""
+    cum = np.cumsum(hist)
+    q = int(np.searchsorted(cum, (int(cum[-1]) - 1) // 4, side="right"))  # the grey level at rank floor((n-1)/4)
+    levels = np.arange(q + 1, dtype=float)
+    floor = _median_of_counts(levels, hist[: q + 1])
+    dev = np.abs(levels - floor)
+    order = np.argsort(dev, kind="stable")
+    return floor, _median_of_counts(dev[order], hist[: q + 1][order])
+
+
 def array_end(image: np.ndarray, K: np.ndarray, R_cam_from_target: np.ndarray, t_cam_from_target_m: np.ndarray,
               corners_T_m: np.ndarray, cfg: ArrayReadingConfig = ArrayReadingConfig()) -> tuple[int, dict]:
     """(+1, 0 or -1, details): whether the image (H, W) shows the array at the end where the pose puts it (+1), at
@@ -92,11 +116,10 @@ def array_end(image: np.ndarray, K: np.ndarray, R_cam_from_target: np.ndarray, t
     details = {"own_area_px": int(own.sum()), "other_area_px": int(other.sum())}
     if details["own_area_px"] < cfg.min_area_px or details["other_area_px"] < cfg.min_area_px or rest.sum() < 100:
         return 0, details
-    bg = small[rest].astype(np.float32)
-    dark = bg[bg <= np.percentile(bg, 25)]  # the sky's own level and noise, whatever else the frame shows
-    floor = float(np.median(dark))
-    thr = floor + max(cfg.margin * 1.4826 * float(np.median(np.abs(dark - floor))), cfg.min_margin)
-    share_rest = float(np.mean(bg > thr))
+    hist = np.bincount(small[rest], minlength=256)
+    floor, mad = sky_level(hist)
+    thr = floor + max(cfg.margin * 1.4826 * mad, cfg.min_margin)
+    share_rest = float(hist[int(np.floor(thr)) + 1:].sum() / hist.sum())
     share_own = float(np.mean(small[own] > thr))
     share_other = float(np.mean(small[other] > thr))
     details.update(own_share=share_own, other_share=share_other, background_share=share_rest, threshold=thr)

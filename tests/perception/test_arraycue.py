@@ -82,3 +82,26 @@ def test_a_lit_background_or_an_empty_frame_says_nothing(renders):
     assert array_end(np.zeros_like(img), K, R, t, corners)[0] == 0  # nothing lit: no reading
     far = t + np.array([0.0, 0.0, 400.0])  # the target a few pixels wide: regions too small to read
     assert array_end(img, K, R, far, corners)[0] == 0
+
+
+def test_the_sky_level_from_the_histogram_is_numpys_percentile_and_medians():
+    """sky_level (the cue's background statistics from a grey-level histogram) against numpy on the sample itself:
+    the median of bg[bg <= np.percentile(bg, 25)] and the median absolute deviation about it, equal on skies of
+    every kind (Poisson noise, uniform, long-tailed; odd and even counts)."""
+    from envisat_pose.perception.arraycue import sky_level
+
+    rng = np.random.default_rng(7)
+    for trial in range(600):
+        n = int(rng.integers(100, 3000))
+        kind = trial % 3
+        if kind == 0:
+            bg = rng.poisson(rng.uniform(0.0, 20.0), n)
+        elif kind == 1:
+            bg = rng.integers(0, 256, n)
+        else:
+            bg = np.minimum(rng.geometric(rng.uniform(0.05, 0.9), n) - 1, 255)
+        bg = bg.astype(np.uint8)
+        b = bg.astype(np.float32)
+        dark = b[b <= np.percentile(b, 25)]
+        floor = float(np.median(dark))
+        assert sky_level(np.bincount(bg, minlength=256)) == (floor, float(np.median(np.abs(dark - floor))))
