@@ -56,14 +56,14 @@ class RunConfig(Config):
     (filter studies), instead of cold from the images. threads: torch CPU threads per run; jpeg_quality: run 0's
     images in the recording. image: the camera frames as the image factory's sequence mode makes them (its
     sequence fields, seed and frame count are set from the ones above, its sun made explicit: finished_image).
-    tracker: pipelines.tracker.TrackerConfig. render_window (on; `--full-frames` off): once the tracker holds one confirmed
-    hypothesis, MuJoCo renders and the space camera corrupts only the window its detector will look at, the rest
-    of the frame black: planned a frame early (the frames are made while the tracker steps the one before) and
-    grown, made again when it does not hold the tracker's plan (pipelines/runs/loop_frames.py); a full frame
-    every full_frame_every frames and whenever the tracker acquires, holds twins or its last window held too few
-    keypoints. The window's noise is drawn apart from the full frame's (the same distribution, other pixels): a
-    seed's figures differ from its full frames' within their noise; it saves a tenth of the loop's time
-    (docs/design.md, "The closed loop")."""
+    tracker: pipelines.tracker.TrackerConfig. render_window (on; `--full-frames` off): once the tracker holds one
+    confirmed hypothesis, MuJoCo renders and the space camera corrupts only the window its detector will look at,
+    the rest of the frame black: planned a frame early (the frames are made while the tracker steps the one before)
+    and grown, made again when it does not hold the tracker's plan (pipelines/runs/loop_frames.py); a full frame
+    every full_frame_every frames and whenever the tracker acquires, holds twins, reads the whole frame (ENVISAT's
+    array cue: every frame, so ENVISAT's loop is all whole frames) or its last window held too few keypoints. The
+    window's noise is drawn apart from the full frame's (the same distribution, other pixels): a seed's figures
+    differ from its full frames' within their noise (docs/design.md, "The closed loop")."""
 
     scenario: str = "default"
     duration_s: float | None = None
