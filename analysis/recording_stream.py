@@ -189,9 +189,7 @@ class TrackRecorder:
                     rec.log(f"metrics/error/{b}/{a}", rr.Scalars(float(err[block][j] * s)))
                     rec.log(f"metrics/error/{b}/{a}_3sigma", rr.Scalars([float(sig3[block][j] * s),
                                                                          float(-sig3[block][j] * s)]))
-            e = component_errors(x_true, x)
-            Pd = A @ P @ A.T
-            rec.log("metrics/nees/value", rr.Scalars(float(e @ np.linalg.solve(Pd, e))))
+            rec.log("metrics/nees/value", rr.Scalars(float(err @ np.linalg.solve(A @ P @ A.T, err))))
             rec.log("metrics/nees/band", rr.Scalars(list(NEES_BAND_12)))
         elif not self.with_truth and estimate:
             for j, a in enumerate(AXES):
