@@ -82,7 +82,7 @@ def _numbers(v) -> str:
 def full_precision(text: str, target: Target) -> str:
     """The scene text with the target body's numbers as the file alone compiles them, to the last bit: MuJoCo's
     to_xml writes 6 significant digits (an inertia 1e-6 off turns a tumble 2e-5 rad away in 30 minutes; a site
-    3 um off). The inertial becomes its full tensor in T, each site its position and orientation, each primitive
+    3 um off). The inertial becomes its full tensor in T (added where the file states none), each site its position and orientation, each primitive
     geom its position, orientation and size (a fromto resolved); a mesh geom keeps what MuJoCo wrote (its
     compiled pose holds the mesh's own centring, which the scene applies again)."""
     root = ET.fromstring(text)
@@ -91,6 +91,9 @@ def full_precision(text: str, target: Target) -> str:
     own = alone.body("target").id
     J = target.inertia_T_kg_m2
     inertial = body.find("inertial")
+    if inertial is None:  # a file without one: MuJoCo's inertia from its geoms, stated (the scene's compiler aside)
+        inertial = ET.Element("inertial")
+        body.insert(0, inertial)
     inertial.attrib.clear()
     inertial.attrib.update({"pos": "0 0 0", "mass": repr(target.mass_kg), "fullinertia": _numbers(
         [J[0, 0], J[1, 1], J[2, 2], J[0, 1], J[0, 2], J[1, 2]])})

@@ -1,7 +1,7 @@
 """The target: one spacecraft, read once from its MJCF file into one `Target` that every layer takes.
 
 A target file's worldbody holds one body named `target` with its <inertial> (mass, inertia about the centre of
-mass at the body's origin), its geoms and materials, and its keypoints as the body's sites `kp_<name>` in file
+mass at the body's origin; without one, what MuJoCo computes from the geoms, their CoM at the origin), its geoms and materials, and its keypoints as the body's sites `kp_<name>` in file
 order (a file with none takes its `corner_<name>` sites: models/envisat.xml's corners A-H). The body frame of the
 file is the frame T of the labels, the truth and the filter. The file is read by MuJoCo itself (MjSpec), so its own
 <compiler> (angle unit, eulerseq, meshdir, texturedir), defaults and assets give the shape MuJoCo gives it alone.
@@ -338,11 +338,10 @@ def _read_spec(path: str, field: str, given: str):
     joints = [j for j in body.joints]
     if body.bodies or (joints and not own_scene):
         _fail(field, given, "one rigid body 'target' (no child bodies, no joints: the scene adds its free joint)")
-    if not body.explicitinertial:
-        _fail(field, given, "an <inertial> element on body 'target' (mass and full inertia about the CoM)")
-    problem = check_inertia(float(body.mass), _spec_inertia(body))
-    if problem is not None:
-        _fail(field, given, f"body 'target' with {problem}")
+    if body.explicitinertial:  # without one, MuJoCo's from the geoms (checked once compiled: _load)
+        problem = check_inertia(float(body.mass), _spec_inertia(body))
+        if problem is not None:
+            _fail(field, given, f"body 'target' with {problem}")
     return spec, own_scene
 
 
@@ -389,17 +388,26 @@ def _load(path: str, mtime_ns: int, size: int, field: str, given: str) -> Target
     except ValueError as err:
         _fail(field, given, f"an MJCF file MuJoCo compiles (it says: {' '.join(str(err).split())})")
     body = model.body("target").id
-    if not np.allclose(model.body_ipos[body], 0.0, atol=1e-9):
-        _fail(field, given, f"the centre of mass at the body's origin (<inertial pos='0 0 0'>, got "
-                            f"{model.body_ipos[body].tolist()}): T's origin is the CoM")
+    R = quat_to_rotmat(model.body_iquat[body])
+    inertia = R @ np.diag(model.body_inertia[body]) @ R.T
+    stated = spec.body("target").explicitinertial
+    if not stated:
+        problem = check_inertia(float(model.body_mass[body]), inertia)
+        if problem is not None:
+            _fail(field, given, f"body 'target' with {problem}, as MuJoCo computes them from its geoms (it has no "
+                                "<inertial>: state one, or give its geoms their mass or density)")
+    com = model.body_ipos[body]
+    if not np.allclose(com, 0.0, atol=1e-9):
+        where = (f"<inertial pos='0 0 0'>, got {com.tolist()}" if stated else
+                 f"MuJoCo puts it at {np.round(com, 9).tolist()} m from the geoms' masses, the body having no "
+                 "<inertial>: move the geoms and sites by its negative, or state an <inertial>")
+        _fail(field, given, f"the centre of mass at the body's origin ({where}): T's origin is the CoM")
     names, sites, X = _keypoint_sites(model, body)
     if len(names) < MIN_KEYPOINTS:
         _fail(field, given, f"at least {MIN_KEYPOINTS} keypoint sites named '{KEYPOINT_PREFIX}<name>' on body "
                             f"'target' (found {len(names)})")
     if len(set(names)) != len(names):
         _fail(field, given, f"keypoint sites with distinct names (got {list(names)})")
-    R = quat_to_rotmat(model.body_iquat[body])
-    inertia = R @ np.diag(model.body_inertia[body]) @ R.T
     geoms = _geoms(model, body)
     surface = body_mesh(model, body)
     if len(surface.mesh.faces) == 0:
@@ -420,8 +428,9 @@ def _load(path: str, mtime_ns: int, size: int, field: str, given: str) -> Target
 def load_target(given: str = DEFAULT_TARGET, field: str = "target") -> Target:
     """The checked target of a config's `target` value (a path; DEFAULT_TARGET is the package's ENVISAT).
     ConfigError naming `field`, the value and what was expected: no such file, a file MuJoCo cannot read or
-    compile, no body 'target', a body with children or joints, no or a bad inertial (zero mass, not positive
-    definite, the triangle inequality), the CoM off the body's origin, fewer than 4 keypoint sites, a keypoint
+    compile, no body 'target', a body with children or joints, a bad inertia (zero mass, not positive definite,
+    the triangle inequality; stated by an <inertial>, or without one MuJoCo's from the geoms), the CoM off the
+    body's origin, fewer than 4 keypoint sites, a keypoint
     farther than KEYPOINT_MAX_SURFACE_DISTANCE_M from the surface. Cached per file, size and modification time."""
     path = resolve_target_path(given)
     if not os.path.isfile(path):

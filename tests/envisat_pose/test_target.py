@@ -170,6 +170,44 @@ def test_visibility_is_mujocos_ray_cast(tmp_path):
     assert hidden > 300 and agree / total >= 0.999, (agree, total, hidden)
 
 
+def _massed_box(tmp_path, name, extra=""):
+    """A file without <inertial>: a 100 kg box (half-sizes 0.5, 0.4, 0.3 m) with a 5 kg ball (r 0.1 m) at x = +-0.6
+    m, extra geoms after them."""
+    corners = "".join(f'<site name="kp_{i}" pos="{sx * 0.5} {sy * 0.4} {sz * 0.3}"/>' for i, (sx, sy, sz) in
+                      enumerate([(1, 1, 1), (-1, 1, 1), (1, -1, 1), (1, 1, -1), (-1, -1, -1)]))
+    path = tmp_path / f"{name}.xml"
+    path.write_text('<mujoco><worldbody><body name="target"><geom type="box" size="0.5 0.4 0.3" mass="100"/>'
+                    '<geom type="sphere" pos="0.6 0 0" size="0.1" mass="5"/>'
+                    f'<geom type="sphere" pos="-0.6 0 0" size="0.1" mass="5"/>{extra}{corners}'
+                    '</body></worldbody></mujoco>')
+    return str(path)
+
+
+def test_a_file_without_an_inertial_takes_mujocos_inertia_from_its_geoms(tmp_path):
+    """As MjModel.from_xml_path reads the file: mass and inertia from the geoms' masses, here by hand (a solid box
+    m/3 (b^2 + c^2) on its half-sizes, a ball 2/5 m r^2 moved by m d^2), to 1e-9 relative; the factory's scene
+    holds the same inertia; a geom that moves the CoM off the origin is refused, naming where MuJoCo puts it."""
+    from envisat_pose.datagen.target_scene import scene_xml
+
+    t = load_target(_massed_box(tmp_path, "massed"))
+    ball = 0.4 * 5 * 0.1 ** 2
+    expected = np.diag([100 / 3 * (0.4 ** 2 + 0.3 ** 2) + 2 * ball,
+                        100 / 3 * (0.5 ** 2 + 0.3 ** 2) + 2 * (ball + 5 * 0.6 ** 2),
+                        100 / 3 * (0.5 ** 2 + 0.4 ** 2) + 2 * (ball + 5 * 0.6 ** 2)])
+    assert abs(t.mass_kg - 110.0) < 1e-9
+    np.testing.assert_allclose(t.inertia_T_kg_m2, expected, rtol=1e-9, atol=1e-9)
+    scene = mujoco.MjModel.from_xml_string(scene_xml(t))
+    b = scene.body("target").id
+    q = scene.body_iquat[b]
+    R = np.zeros(9)
+    mujoco.mju_quat2Mat(R, q)
+    R = R.reshape(3, 3)
+    np.testing.assert_allclose(R @ np.diag(scene.body_inertia[b]) @ R.T, expected, rtol=1e-9, atol=1e-9)
+    assert abs(scene.body_mass[b] - 110.0) < 1e-9
+    with pytest.raises(ConfigError, match=r"MuJoCo puts it at \[0\.0258620"):  # 6 kg more at x = 0.5: 3 / 116 m
+        load_target(_massed_box(tmp_path, "off", '<geom type="sphere" pos="0.5 0 0" size="0.05" mass="6"/>'))
+
+
 def test_a_keypoint_off_the_surface_and_a_file_without_one_are_refused(tmp_path):
     far = dict(SITES, far=(0.0, 0.0, 1.0))
     with pytest.raises(ConfigError, match="site 'kp_far' is 0.400 m from every geom"):
