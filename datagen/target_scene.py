@@ -82,9 +82,9 @@ def _numbers(v) -> str:
 def full_precision(text: str, target: Target) -> str:
     """The scene text with the target body's numbers as the file alone compiles them, to the last bit: MuJoCo's
     to_xml writes 6 significant digits (an inertia 1e-6 off turns a tumble 2e-5 rad away in 30 minutes; a site
-    3 um off). The inertial becomes its full tensor in T (added where the file states none), each site its position and orientation, each primitive
-    geom its position, orientation and size (a fromto resolved); a mesh geom keeps what MuJoCo wrote (its
-    compiled pose holds the mesh's own centring, which the scene applies again)."""
+    3 um off). The inertial becomes its full tensor in T (added where the file states none), each site its
+    position and orientation, each primitive geom its position, orientation and size (a fromto resolved); a mesh
+    geom keeps what MuJoCo wrote (its compiled pose holds the mesh's own centring, which the scene applies again)."""
     root = ET.fromstring(text)
     body = next(b for b in root.iter("body") if b.get("name") == "target")
     alone = compiled_alone(target)
