@@ -29,6 +29,7 @@ Range = tuple[float, float]
 
 # Random mode's views of ENVISAT, m: the defaults every other target takes scaled by its size (sized_random_m)
 ENVISAT_RANDOM_M = {"range_min_m": 20.0, "range_max_m": 80.0, "keepout_margin_m": 2.0}
+DEPTH_SCALE_M = 0.002  # the depth PNG's default metres per unit (ENVISAT's: 131 m of range)
 SIZED_DIGITS = 4  # significant digits of a sized default (the number the manifest records)
 # a sequence whose first frame shows the target fewer pixels across than this (2 reach / range x f_px) is refused
 MIN_SEQUENCE_TARGET_SPAN_PX = 4.0
@@ -43,6 +44,18 @@ def sized_random_m(ratio: float) -> dict[str, float]:
     size (target_scene.size_ratio): ENVISAT's (ENVISAT_RANDOM_M) times ratio, to SIZED_DIGITS significant digits
     (ENVISAT's own exactly: ratio 1)."""
     return {name: float(f"{value_m * ratio:.{SIZED_DIGITS}g}") for name, value_m in ENVISAT_RANDOM_M.items()}
+
+
+def farthest_target_point_m(range_max_m: float, reach_m: float) -> float:
+    """The farthest a target point lies from the camera in random mode, m: the view's range at the edge of the
+    field of view (range_max_m / cos 30 deg) plus the target's reach."""
+    return range_max_m / math.cos(math.radians(30.0)) + reach_m
+
+
+def sized_depth_scale_m(far_m: float) -> float:
+    """DEPTH_SCALE_M, or the least whole number of mm per unit whose 16-bit range covers far_m (a target so large
+    that its sized ranges reach beyond 131 m)."""
+    return max(DEPTH_SCALE_M, math.ceil(far_m / DEPTH_MAX_CODE * 1000.0) / 1000.0)
 
 
 def target_span_px(reach_m: float, range_m: float, f_px: float) -> float:
@@ -249,7 +262,8 @@ class GenerateConfig(Config):
     earth_probability: share of random-mode images that look toward the Earth and draw it behind the target
     (textured, lit by the view's sun; datagen/earth.py); sequence mode: above 0, the Earth is drawn at the
     orbit's nadir in the frames where it reaches the image. earth_seed: the Earth texture set.
-    depth_scale_m: metres per unit of the 16-bit depth PNG.
+    depth_scale_m: metres per unit of the 16-bit depth PNG; not given: DEPTH_SCALE_M, or in random mode for a
+    target whose farthest point lies beyond its 16-bit range the least whole mm that covers it (__post_init__).
     appendages: draw the ASAR antenna and instrument boxes (mask value 8); None: on in random mode only.
     storage: 'corrupted' stores the corrupted image; 'clean' stores the clean render, and
     dataset.sample_image applies the label's corruption on read (the same bytes).
@@ -269,7 +283,7 @@ class GenerateConfig(Config):
     shadows: bool = True
     write_mask: bool = True
     write_depth: bool = True
-    depth_scale_m: float = 0.002
+    depth_scale_m: float | None = None
     appendages: bool | None = None
     storage: Literal["clean", "corrupted"] = "corrupted"
     random: RandomModeConfig = field(default_factory=RandomModeConfig)
@@ -280,8 +294,9 @@ class GenerateConfig(Config):
 
     def __post_init__(self) -> None:
         """Fill in random mode's range_min_m, range_max_m and keepout_margin_m not given with the target's sized
-        defaults (sized_random_m of target_scene.size_ratio: ENVISAT's own numbers for ENVISAT). A target that
-        cannot be read leaves them unset: validate names the target."""
+        defaults (sized_random_m of target_scene.size_ratio: ENVISAT's own numbers for ENVISAT), then depth_scale_m
+        not given (_sized_depth_scale_m). A target that cannot be read leaves the ranges unset: validate names the
+        target."""
         unset = [name for name in ENVISAT_RANDOM_M if getattr(self.random, name) is None]
         sized = self._sized_random_m() if unset else None
         if sized is not None:
@@ -290,6 +305,8 @@ class GenerateConfig(Config):
             except ConfigError as err:  # a given range against a sized one: named in its table
                 raise ConfigError(f"random.{err.field}", err.value, err.expected) from None
             object.__setattr__(self, "random", filled)
+        if self.depth_scale_m is None:
+            object.__setattr__(self, "depth_scale_m", self._sized_depth_scale_m())
         super().__post_init__()
 
     def _sized_random_m(self) -> dict[str, float] | None:
@@ -298,6 +315,17 @@ class GenerateConfig(Config):
             return sized_random_m(size_ratio(load_target(self.target)))
         except ConfigError:
             return None
+
+    def _sized_depth_scale_m(self) -> float:
+        """sized_depth_scale_m of random mode's farthest target point; DEPTH_SCALE_M in sequence mode and for a
+        target that cannot be read (validate names it)."""
+        if self.mode != "random" or self.random.range_max_m is None:
+            return DEPTH_SCALE_M
+        try:
+            reach_m = target_file_boxes(self.target).reach_m
+        except ConfigError:
+            return DEPTH_SCALE_M
+        return sized_depth_scale_m(farthest_target_point_m(self.random.range_max_m, reach_m))
 
     @property
     def appearance_on(self) -> bool:
@@ -325,7 +353,7 @@ class GenerateConfig(Config):
         check(0 <= self.earth_seed < 2**63, f"{p}earth_seed", self.earth_seed, "a non-negative integer seed")
         check(self.depth_scale_m > 0, f"{p}depth_scale_m", self.depth_scale_m, "a positive scale in m")
         if self.mode == "random":
-            reach = self.random.range_max_m / math.cos(math.radians(30.0)) + reach_m
+            reach = farthest_target_point_m(self.random.range_max_m, reach_m)
             check(DEPTH_MAX_CODE * self.depth_scale_m >= reach, f"{p}depth_scale_m", self.depth_scale_m,
                   f"a scale whose 16-bit range (65535 x scale) covers {reach:.1f} m, the farthest target point")
             zfar_m = scene_clip_planes_m(load_target(self.target))[1]

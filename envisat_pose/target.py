@@ -412,11 +412,16 @@ def _load(path: str, mtime_ns: int, size: int, field: str, given: str) -> Target
     surface = body_mesh(model, body)
     if len(surface.mesh.faces) == 0:
         _fail(field, given, "geoms with a surface on body 'target' (boxes, cylinders, spheres, meshes...)")
-    dist = triangle_distances(X, surface.mesh.vertices_T_m[surface.mesh.faces]).min(axis=1)
+    groups = ", ".join(str(g) for g in RENDERED_GROUPS)
+    drawn = surface.select(np.array([g.group in RENDERED_GROUPS for g in geoms], bool))
+    if len(drawn.faces) == 0:  # nothing in the images, every keypoint labelled visible
+        _fail(field, given, f"geoms the factory draws on body 'target' (groups {groups}, MuJoCo's visible ones; "
+                            f"its geoms are in groups {sorted({g.group for g in geoms})})")
+    dist = triangle_distances(X, drawn.vertices_T_m[drawn.faces]).min(axis=1)
     k = int(np.argmax(dist))
     if dist[k] > KEYPOINT_MAX_SURFACE_DISTANCE_M:
         _fail(field, given, f"keypoints on the target: site {sites[k]!r} is {dist[k]:.3f} m from every geom "
-                            f"(at most {KEYPOINT_MAX_SURFACE_DISTANCE_M:g} m)")
+                            f"the factory draws (groups {groups}; at most {KEYPOINT_MAX_SURFACE_DISTANCE_M:g} m)")
     reach = float(np.linalg.norm(surface.mesh.vertices_T_m, axis=1).max())
     return Target(
         name=_model_name(spec, path),
@@ -430,8 +435,8 @@ def load_target(given: str = DEFAULT_TARGET, field: str = "target") -> Target:
     ConfigError naming `field`, the value and what was expected: no such file, a file MuJoCo cannot read or
     compile, no body 'target', a body with children or joints, a bad inertia (zero mass, not positive definite,
     the triangle inequality; stated by an <inertial>, or without one MuJoCo's from the geoms), the CoM off the
-    body's origin, fewer than 4 keypoint sites, a keypoint
-    farther than KEYPOINT_MAX_SURFACE_DISTANCE_M from the surface. Cached per file, size and modification time."""
+    body's origin, fewer than 4 keypoint sites, no geom the factory draws (RENDERED_GROUPS), a keypoint farther
+    than KEYPOINT_MAX_SURFACE_DISTANCE_M from the drawn surface. Cached per file, size and modification time."""
     path = resolve_target_path(given)
     if not os.path.isfile(path):
         _fail(field, given, "an MJCF file (no such file)")

@@ -116,6 +116,22 @@ def test_the_near_plane_follows_the_size_and_envisats_scene_is_untouched():
         assert 65535 * cfg.depth_scale_m > cfg.random.range_max_m + target.reach_m
 
 
+def test_the_depth_scale_covers_a_target_larger_than_envisat(tmp_path):
+    """Defaults only: ENVISAT's depth PNG keeps 2 mm per unit; a 120 m box's sized ranges reach beyond its 131 m,
+    so its scale is the least whole mm whose 16-bit range covers the farthest target point (computed here from the
+    sized range and the box's half-diagonal); a scale given is kept, and a given one too small still refused."""
+    assert from_dict(GenerateConfig, {}).depth_scale_m == 0.002
+    path = _target_file(tmp_path, "hangar", (60.0, 25.0, 10.0))
+    cfg = from_dict(GenerateConfig, {"target": path})
+    far_m = cfg.random.range_max_m / math.cos(math.radians(30.0)) + math.sqrt(60.0 ** 2 + 25.0 ** 2 + 10.0 ** 2)
+    assert far_m > 65535 * 0.002
+    assert cfg.depth_scale_m == math.ceil(far_m / 65535 * 1000) / 1000
+    assert 65535 * (cfg.depth_scale_m - 0.001) < far_m <= 65535 * cfg.depth_scale_m
+    assert from_dict(GenerateConfig, {"target": path, "depth_scale_m": 0.05}).depth_scale_m == 0.05
+    with pytest.raises(ConfigError, match="depth_scale_m"):
+        from_dict(GenerateConfig, {"target": path, "depth_scale_m": 0.002})
+
+
 def _median_mask_share(target: str, n: int, seed: int) -> float:
     """The median share of the image the target's mask covers over the first n random views of the default
     config of `target` at 256 px (root seed `seed`): the dataset's own views and appearance draws."""
