@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
@@ -22,6 +21,7 @@ import numpy as np
 
 from envisat_pose.geometry import model_path
 from envisat_pose.target import Target, compiled_alone, default_target, load_target
+from envisat_pose.target_file import PRIMITIVE_SIZES, full_numbers, target_spec
 
 ASSET_PREFIX = "target/"
 SCENE_TARGET_POS_M = (0.0, 50.0, 0.0)  # where the scene's target body starts (the sim sets its state)
@@ -30,15 +30,6 @@ SCENE_TARGET_POS_M = (0.0, 50.0, 0.0)  # where the scene's target body starts (t
 SILHOUETTE_DIRECTIONS = 64
 SILHOUETTE_GRID_PX = 512
 _SUBPIXEL_BITS = 4  # fixed-point fraction bits of the filled triangles' corners (cv2.fillConvexPoly's shift)
-
-
-def _absolute_files(spec, folder: str) -> None:
-    """Make the files of a spec's meshes, textures and height fields absolute (relative to the file's folder and
-    its compiler's meshdir/texturedir), so the scene compiles from anywhere."""
-    for kind, sub in (("meshes", spec.meshdir), ("hfields", spec.meshdir), ("textures", spec.texturedir)):
-        for asset in getattr(spec, kind):
-            if asset.file and not os.path.isabs(asset.file):
-                asset.file = os.path.normpath(os.path.join(folder, sub or "", asset.file))
 
 
 def _scene_spec(target: Target):
@@ -57,8 +48,7 @@ def _scene_spec(target: Target):
             scene.delete(mat)
     again = scene.add_plugin(name=plugin[0], plugin_name=plugin[1], active=True)
     again.config = plugin[2]
-    child = mujoco.MjSpec.from_file(target.path)
-    _absolute_files(child, os.path.dirname(target.path))
+    child = target_spec(target.path)  # fused where the target body has child bodies
     frame = scene.worldbody.add_frame(pos=list(SCENE_TARGET_POS_M))
     body = frame.attach_body(child.body("target"), ASSET_PREFIX, "")
     body.name = "target"
@@ -70,13 +60,6 @@ def _scene_spec(target: Target):
     body.add_freejoint(name="target_free")
     body.plugin.name, body.plugin.active = plugin[0], True
     return scene
-
-
-_SIZE_NUMBERS = {"sphere": 1, "capsule": 2, "cylinder": 2, "box": 3, "ellipsoid": 3}
-
-
-def _numbers(v) -> str:
-    return " ".join(repr(float(x)) for x in v)
 
 
 def full_precision(text: str, target: Target) -> str:
@@ -95,21 +78,21 @@ def full_precision(text: str, target: Target) -> str:
         inertial = ET.Element("inertial")
         body.insert(0, inertial)
     inertial.attrib.clear()
-    inertial.attrib.update({"pos": "0 0 0", "mass": repr(target.mass_kg), "fullinertia": _numbers(
+    inertial.attrib.update({"pos": "0 0 0", "mass": repr(target.mass_kg), "fullinertia": full_numbers(
         [J[0, 0], J[1, 1], J[2, 2], J[0, 1], J[0, 2], J[1, 2]])})
     sites = [s for s in range(alone.nsite) if alone.site_bodyid[s] == own]
     for el, s in zip(body.findall("site"), sites):
-        el.set("pos", _numbers(alone.site_pos[s]))
-        el.set("quat", _numbers(alone.site_quat[s]))
+        el.set("pos", full_numbers(alone.site_pos[s]))
+        el.set("quat", full_numbers(alone.site_quat[s]))
     geoms = [g for g in range(alone.ngeom) if alone.geom_bodyid[g] == own]
     for el, g, info in zip(body.findall("geom"), geoms, target.geoms):
-        if info.type not in _SIZE_NUMBERS:
+        if info.type not in PRIMITIVE_SIZES:
             continue
         for key in ("fromto", "euler", "axisangle", "xyaxes", "zaxis"):
             el.attrib.pop(key, None)
-        el.set("pos", _numbers(alone.geom_pos[g]))
-        el.set("quat", _numbers(alone.geom_quat[g]))
-        el.set("size", _numbers(alone.geom_size[g][:_SIZE_NUMBERS[info.type]]))
+        el.set("pos", full_numbers(alone.geom_pos[g]))
+        el.set("quat", full_numbers(alone.geom_quat[g]))
+        el.set("size", full_numbers(alone.geom_size[g][:PRIMITIVE_SIZES[info.type]]))
     return ET.tostring(root, encoding="unicode")
 
 

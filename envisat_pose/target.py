@@ -4,7 +4,8 @@ A target file's worldbody holds one body named `target` with its <inertial> (mas
 mass at the body's origin; without one, what MuJoCo computes from the geoms, their CoM at the origin), its geoms and materials, and its keypoints as the body's sites `kp_<name>` in file
 order (a file with none takes its `corner_<name>` sites: models/envisat.xml's corners A-H). The body frame of the
 file is the frame T of the labels, the truth and the filter. The file is read by MuJoCo itself (MjSpec), so its own
-<compiler> (angle unit, eulerseq, meshdir, texturedir), defaults and assets give the shape MuJoCo gives it alone.
+<compiler> (angle unit, eulerseq, meshdir, texturedir), defaults and assets give the shape MuJoCo gives it alone;
+child bodies without joints are fused into it as MuJoCo fuses static bodies (envisat_pose/target_file.py).
 
 ENVISAT (models/envisat.xml) is the default target. Whether a target is ENVISAT is asked here only
 (`Target.is_default`, the `require_default*` checks of the verbs whose detector or filter know ENVISAT alone,
@@ -23,8 +24,9 @@ import numpy as np
 
 from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.config import ConfigError, InputError
-from envisat_pose.geometry import CAMERA_NAME, model_path, visible_corners
+from envisat_pose.geometry import model_path, visible_corners
 from envisat_pose.shard_reader import load_dataset_manifest
+from envisat_pose.target_file import check_inertia, compile_alone, read_spec
 from envisat_pose.target_mesh import BodyMesh, TriangleMesh, body_mesh, feature_edges
 from envisat_pose.target_shape import Symmetry, fibonacci_directions, skeleton, symmetries, triangle_distances
 
@@ -240,7 +242,7 @@ def _alone(path: str, sha256: str):
     kinematics done: the frame the rays are cast in."""
     import mujoco
 
-    model = mujoco.MjModel.from_xml_path(path)
+    model = compile_alone(path)
     data = mujoco.MjData(model)
     mujoco.mj_kinematics(model, data)
     body = model.body("target").id
@@ -299,52 +301,6 @@ def _fail(field: str, given: str, expected: str):
     raise ConfigError(field, given, expected)
 
 
-def check_inertia(mass_kg: float, inertia: np.ndarray) -> str | None:
-    """What is wrong with a rigid body's mass properties, or None: zero or negative mass, an inertia that is not
-    symmetric positive definite, or principal moments that violate the triangle inequality (I1 <= I2 + I3)."""
-    if not mass_kg > 0:
-        return f"a positive mass (got {mass_kg:g} kg)"
-    moments = np.linalg.eigvalsh(0.5 * (inertia + inertia.T))
-    if not np.all(moments > 0):
-        return f"a positive definite inertia (principal moments {np.round(moments, 6).tolist()} kg m^2)"
-    a, b, c = sorted(moments)
-    if c > a + b + 1e-9 * c:
-        return f"principal moments that satisfy the triangle inequality (I3 = {c:g} > I1 + I2 = {a + b:g} kg m^2)"
-    return None
-
-
-def _spec_inertia(body) -> np.ndarray:
-    """The inertia a body's <inertial> states, in its principal or full form (orientation aside: the checks read
-    only its eigenvalues)."""
-    full = np.asarray(body.fullinertia, float)
-    if not np.isnan(full[0]):
-        xx, yy, zz, xy, xz, yz = full
-        return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
-    return np.diag(np.asarray(body.inertia, float))
-
-
-def _read_spec(path: str, field: str, given: str):
-    """MuJoCo's reading of the file (its own compiler settings) and its body `target`, checked for structure."""
-    import mujoco
-
-    try:
-        spec = mujoco.MjSpec.from_file(path)
-    except ValueError as err:
-        _fail(field, given, f"an MJCF file MuJoCo reads (it says: {' '.join(str(err).split())})")
-    body = spec.body("target")
-    if body is None:
-        _fail(field, given, "an MJCF file whose worldbody holds a body named 'target'")
-    own_scene = spec.camera(CAMERA_NAME) is not None  # a file holding the chaser camera is the factory's whole scene
-    joints = [j for j in body.joints]
-    if body.bodies or (joints and not own_scene):
-        _fail(field, given, "one rigid body 'target' (no child bodies, no joints: the scene adds its free joint)")
-    if body.explicitinertial:  # without one, MuJoCo's from the geoms (checked once compiled: _load)
-        problem = check_inertia(float(body.mass), _spec_inertia(body))
-        if problem is not None:
-            _fail(field, given, f"body 'target' with {problem}")
-    return spec, own_scene
-
-
 def _keypoint_sites(model, body: int) -> tuple[tuple[str, ...], tuple[str, ...], np.ndarray]:
     """(names, site names, (K, 3) positions in T) of the body's kp_ sites, else its corner_ sites."""
     sites = [s for s in range(model.nsite) if model.site_bodyid[s] == body]
@@ -382,7 +338,7 @@ def _model_name(spec, path: str) -> str:
 def _load(path: str, mtime_ns: int, size: int, field: str, given: str) -> Target:
     with open(path, "rb") as fh:
         sha256 = hashlib.sha256(fh.read()).hexdigest()
-    spec, own_scene = _read_spec(path, field, given)
+    spec, own_scene, fused = read_spec(path, field, given)
     try:
         model = spec.compile()
     except ValueError as err:
@@ -390,17 +346,18 @@ def _load(path: str, mtime_ns: int, size: int, field: str, given: str) -> Target
     body = model.body("target").id
     R = quat_to_rotmat(model.body_iquat[body])
     inertia = R @ np.diag(model.body_inertia[body]) @ R.T
-    stated = spec.body("target").explicitinertial
+    stated = spec.body("target").explicitinertial and not fused  # else MuJoCo's sums
+    whose = ("the masses of the body and its child bodies" if fused else
+             "its geoms' masses (it has no <inertial>: state one, or give its geoms their mass or density)")
     if not stated:
         problem = check_inertia(float(model.body_mass[body]), inertia)
         if problem is not None:
-            _fail(field, given, f"body 'target' with {problem}, as MuJoCo computes them from its geoms (it has no "
-                                "<inertial>: state one, or give its geoms their mass or density)")
+            _fail(field, given, f"body 'target' with {problem}, as MuJoCo computes them from {whose}")
     com = model.body_ipos[body]
     if not np.allclose(com, 0.0, atol=1e-9):
         where = (f"<inertial pos='0 0 0'>, got {com.tolist()}" if stated else
-                 f"MuJoCo puts it at {np.round(com, 9).tolist()} m from the geoms' masses, the body having no "
-                 "<inertial>: move the geoms and sites by its negative, or state an <inertial>")
+                 f"MuJoCo puts it at {np.round(com, 9).tolist()} m from {whose}: move the geoms and sites by its "
+                 "negative")
         _fail(field, given, f"the centre of mass at the body's origin ({where}): T's origin is the CoM")
     names, sites, X = _keypoint_sites(model, body)
     if len(names) < MIN_KEYPOINTS:
@@ -433,9 +390,9 @@ def _load(path: str, mtime_ns: int, size: int, field: str, given: str) -> Target
 def load_target(given: str = DEFAULT_TARGET, field: str = "target") -> Target:
     """The checked target of a config's `target` value (a path; DEFAULT_TARGET is the package's ENVISAT).
     ConfigError naming `field`, the value and what was expected: no such file, a file MuJoCo cannot read or
-    compile, no body 'target', a body with children or joints, a bad inertia (zero mass, not positive definite,
-    the triangle inequality; stated by an <inertial>, or without one MuJoCo's from the geoms), the CoM off the
-    body's origin, fewer than 4 keypoint sites, no geom the factory draws (RENDERED_GROUPS), a keypoint farther
+    compile, no body 'target', a joint in it or its child bodies (which are read fused: target_file.py), a bad
+    inertia (zero mass, not positive definite, the triangle inequality; stated by an <inertial>, or else MuJoCo's
+    from the geoms and child bodies), the CoM off the body's origin, fewer than 4 keypoint sites, no geom the factory draws (RENDERED_GROUPS), a keypoint farther
     than KEYPOINT_MAX_SURFACE_DISTANCE_M from the drawn surface. Cached per file, size and modification time."""
     path = resolve_target_path(given)
     if not os.path.isfile(path):

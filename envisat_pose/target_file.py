@@ -1,0 +1,220 @@
+"""Reading a target file as MuJoCo reads it alone (envisat_pose.target builds the `Target` from what this returns).
+
+The file is parsed by MuJoCo (MjSpec), so its own <compiler> (angle unit, eulerseq, meshdir, texturedir), defaults,
+includes and assets apply; its body `target` is checked for structure (read_spec).
+
+A spacecraft is often written as a tree: a bus with its wings, antennas and booms as child bodies. Without joints
+the tree is one rigid body, and MuJoCo says so itself: its compiler's `fusestatic` moves every geom and site of a
+static child into the parent, the child's pose composed, and sums the masses and inertias about the common centre
+of mass. That is done here once, to the file alone (the body given a free joint for the compile, so that it is
+not fused into the world), and written back as a file whose body `target` holds everything directly (fused_text):
+its inertial the composite one and its sites and primitive geoms at their compiled poses in T, to the last bit; a
+mesh geom at its written pose composed with its child bodies' frames (MuJoCo writes 6 digits; the mesh's own
+centring is applied when the text is compiled). Keypoints keep MuJoCo's order: the body's own sites, then each
+child's, depth first. A joint anywhere in the tree is refused (the target is one rigid body).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import xml.etree.ElementTree as ET
+
+import numpy as np
+
+from envisat_pose.attitude import quat_to_rotmat
+from envisat_pose.config import ConfigError
+from envisat_pose.geometry import CAMERA_NAME
+
+PRIMITIVE_SIZES = {"sphere": 1, "capsule": 2, "cylinder": 2, "box": 3, "ellipsoid": 3}  # numbers in a geom's size
+_ORIENTATIONS = ("quat", "euler", "axisangle", "xyaxes", "zaxis")
+
+
+def full_numbers(v) -> str:
+    """Numbers as MJCF text to the last bit (repr of each float)."""
+    return " ".join(repr(float(x)) for x in v)
+
+
+def absolute_asset_files(spec, folder: str) -> None:
+    """Make the files of a spec's meshes, textures and height fields absolute (relative to the file's folder and
+    its compiler's meshdir/texturedir), so the spec compiles from anywhere."""
+    for kind, sub in (("meshes", spec.meshdir), ("hfields", spec.meshdir), ("textures", spec.texturedir)):
+        for asset in getattr(spec, kind):
+            if asset.file and not os.path.isabs(asset.file):
+                asset.file = os.path.normpath(os.path.join(folder, sub or "", asset.file))
+
+
+def subtree_bodies(body) -> list:
+    """The bodies below `body` (an MjsBody, or a spec's worldbody), depth first."""
+    out = []
+    for child in body.bodies:
+        out += [child, *subtree_bodies(child)]
+    return out
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+
+
+def _pose(el: ET.Element) -> tuple[np.ndarray, np.ndarray]:
+    """The written pose (pos (3,), quat (4,)) of an element MuJoCo's to_xml wrote (quaternions only)."""
+    pos = np.array([float(v) for v in el.get("pos", "0 0 0").split()])
+    quat = np.array([float(v) for v in el.get("quat", "1 0 0 0").split()])
+    return pos, quat / np.linalg.norm(quat)
+
+
+def _dissolve_frames(parent: ET.Element, pos: np.ndarray, quat: np.ndarray, into: list[ET.Element]) -> None:
+    """Every child of parent (a frame at pose (pos, quat) in T, or the body itself at the identity) into `into`,
+    in document order, nested frames dissolved, each element's written pose composed with its frames'."""
+    R = quat_to_rotmat(quat)
+    for el in list(parent):
+        p, q = _pose(el)
+        p_T, q_T = pos + R @ p, _quat_mul(quat, q)
+        if el.tag == "frame":
+            _dissolve_frames(el, p_T, q_T, into)
+            continue
+        if parent.tag == "frame":
+            for key in _ORIENTATIONS:
+                el.attrib.pop(key, None)
+            el.set("pos", full_numbers(p_T))
+            el.set("quat", full_numbers(q_T))
+        into.append(el)
+
+
+def fused_text(path: str) -> str | None:
+    """The file at `path` as MuJoCo's fusestatic leaves it, written as a file whose body `target` holds every geom
+    and site directly (module docstring); None where that body has no child bodies (the file is read as it is).
+    The caller has checked that the tree holds no joint. ValueError where MuJoCo does not compile it."""
+    return _fused_text(path, os.stat(path).st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=16)
+def _fused_text(path: str, mtime_ns: int) -> str | None:
+    import mujoco
+
+    spec = mujoco.MjSpec.from_file(path)
+    target = spec.body("target")
+    if target is None or not target.bodies:
+        return None
+    absolute_asset_files(spec, os.path.dirname(path))
+    for b in subtree_bodies(spec.worldbody):
+        b.fuse = False  # the file's other bodies stay as they are
+    for b in [target, *subtree_bodies(target)]:
+        b.fuse = True
+    target.add_freejoint(name="__fused_free")
+    spec.compiler.fusestatic = True
+    model = spec.compile()
+    root = ET.fromstring(spec.to_xml())
+    body = next(b for b in root.iter("body") if b.get("name") == "target")
+    elements: list[ET.Element] = []
+    _dissolve_frames(body, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]), elements)
+    for el in list(body):
+        body.remove(el)
+    b = model.body("target").id
+    ET.SubElement(body, "inertial", {  # first: the body's own elements follow in MuJoCo's order
+        "pos": full_numbers(model.body_ipos[b]), "quat": full_numbers(model.body_iquat[b]),
+        "mass": repr(float(model.body_mass[b])), "diaginertia": full_numbers(model.body_inertia[b])})
+    geoms = iter(g for g in range(model.ngeom) if model.geom_bodyid[g] == b)
+    sites = iter(s for s in range(model.nsite) if model.site_bodyid[s] == b)
+    for el in elements:
+        if el.tag in ("inertial", "joint", "freejoint"):
+            continue
+        if el.tag == "geom":
+            g = next(geoms)
+            kind = mujoco.mjtGeom(int(model.geom_type[g])).name.removeprefix("mjGEOM_").lower()
+            if kind in PRIMITIVE_SIZES:  # the compiled pose and size in T, to the last bit
+                for key in (*_ORIENTATIONS, "fromto"):
+                    el.attrib.pop(key, None)
+                el.set("pos", full_numbers(model.geom_pos[g]))
+                el.set("quat", full_numbers(model.geom_quat[g]))
+                el.set("size", full_numbers(model.geom_size[g][:PRIMITIVE_SIZES[kind]]))
+        elif el.tag == "site":
+            s = next(sites)
+            for key in _ORIENTATIONS:
+                el.attrib.pop(key, None)
+            el.set("pos", full_numbers(model.site_pos[s]))
+            el.set("quat", full_numbers(model.site_quat[s]))
+        body.append(el)
+    return ET.tostring(root, encoding="unicode")
+
+
+def check_inertia(mass_kg: float, inertia: np.ndarray) -> str | None:
+    """What is wrong with a rigid body's mass properties, or None: zero or negative mass, an inertia that is not
+    symmetric positive definite, or principal moments that violate the triangle inequality (I1 <= I2 + I3)."""
+    if not mass_kg > 0:
+        return f"a positive mass (got {mass_kg:g} kg)"
+    moments = np.linalg.eigvalsh(0.5 * (inertia + inertia.T))
+    if not np.all(moments > 0):
+        return f"a positive definite inertia (principal moments {np.round(moments, 6).tolist()} kg m^2)"
+    a, b, c = sorted(moments)
+    if c > a + b + 1e-9 * c:
+        return f"principal moments that satisfy the triangle inequality (I3 = {c:g} > I1 + I2 = {a + b:g} kg m^2)"
+    return None
+
+
+def _spec_inertia(body) -> np.ndarray:
+    """The inertia a body's <inertial> states, in its principal or full form (orientation aside: the checks read
+    only its eigenvalues)."""
+    full = np.asarray(body.fullinertia, float)
+    if not np.isnan(full[0]):
+        xx, yy, zz, xy, xz, yz = full
+        return np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+    return np.diag(np.asarray(body.inertia, float))
+
+
+def read_spec(path: str, field: str, given: str):
+    """MuJoCo's reading of the file (its own compiler settings) with its body `target` checked for structure:
+    (spec, own_scene, fused). A body with child bodies is read fused (fused_text); own_scene: the file holds the
+    factory's camera (models/envisat.xml), so it is its own scene. ConfigError naming `field` and the value `given`
+    otherwise: a file MuJoCo cannot read, no body 'target', a joint in it or its child bodies, a bad <inertial>."""
+    import mujoco
+
+    def fail(expected: str):
+        raise ConfigError(field, given, expected)
+
+    try:
+        spec = mujoco.MjSpec.from_file(path)
+    except ValueError as err:
+        fail(f"an MJCF file MuJoCo reads (it says: {' '.join(str(err).split())})")
+    body = spec.body("target")
+    if body is None:
+        fail("an MJCF file whose worldbody holds a body named 'target'")
+    own_scene = spec.camera(CAMERA_NAME) is not None  # a file holding the chaser camera is the factory's whole scene
+    tree = subtree_bodies(body)
+    if own_scene and tree:
+        fail("a scene file whose body 'target' has no child bodies")
+    if not own_scene and any(len(b.joints) for b in [body, *tree]):
+        fail("one rigid body 'target' (no joints, in it or its child bodies: the scene adds its free joint)")
+    for b in [body, *tree]:
+        if b.explicitinertial:  # without one, MuJoCo's from the geoms (checked once compiled)
+            problem = check_inertia(float(b.mass), _spec_inertia(b))
+            if problem is not None:
+                fail(f"body {b.name or 'target'!r} with {problem}")
+    if tree:
+        try:
+            spec = mujoco.MjSpec.from_string(fused_text(path))
+        except ValueError as err:
+            fail(f"an MJCF file MuJoCo compiles (it says: {' '.join(str(err).split())})")
+    return spec, own_scene, bool(tree)
+
+
+def compile_alone(path: str):
+    """The target file compiled alone, as the Target reads it (fused where its body has child bodies): MjModel."""
+    import mujoco
+
+    text = fused_text(path)
+    return mujoco.MjModel.from_xml_path(path) if text is None else mujoco.MjModel.from_xml_string(text)
+
+
+def target_spec(path: str):
+    """The target file's MjSpec as the factory's scene takes it (fused where its body has child bodies), its asset
+    files absolute."""
+    import mujoco
+
+    text = fused_text(path)
+    spec = mujoco.MjSpec.from_file(path) if text is None else mujoco.MjSpec.from_string(text)
+    absolute_asset_files(spec, os.path.dirname(path))
+    return spec

@@ -1,0 +1,134 @@
+"""A target written as a tree of bodies (a bus, wings as child bodies, a tip on each wing as a grandchild, one wing
+turned half round, a default class, angles in degrees) against the same spacecraft written by hand as one body:
+the same keypoints, surface, mass and inertia, the same scene and the same pixels. The composite inertia is
+computed here from textbook formulas (solid box m/3 (b^2 + c^2) on half-sizes, solid cylinder, parallel axes),
+not by MuJoCo; MuJoCo's own fusestatic does the fusing under test.
+"""
+
+import numpy as np
+import pytest
+
+from envisat_pose.config import ConfigError
+from envisat_pose.target import load_target
+
+TREE = """<mujoco model="treesat">
+  <compiler angle="degree"/>
+  <default><default class="wing"><geom type="box" size="0.8 0.02 0.3" rgba="0.1 0.1 0.4 1" mass="5"/></default>
+  </default>
+  <worldbody>
+    <body name="target">
+      <geom name="bus" type="box" size="0.5 0.5 0.5" mass="200" rgba="0.8 0.7 0.3 1"/>
+      <site name="kp_a" pos="0.5 0.5 0.5"/>
+      <site name="kp_b" pos="-0.5 0.5 0.5"/>
+      <site name="kp_c" pos="0.5 -0.5 -0.5"/>
+      <body name="wing_l" pos="1.3 0 0" childclass="wing">
+        <geom name="wl"/>
+        <site name="kp_wl" pos="0.8 0 0.3"/>
+        <body name="tip_l" pos="0.8 0 0" euler="0 90 0">{joint}<geom name="tl" type="cylinder" size="0.05 0.1" mass="1"/>
+        </body>
+      </body>
+      <body name="wing_r" pos="-1.3 0 0" euler="0 0 180" childclass="wing">
+        <geom name="wr"/>
+        <site name="kp_wr" pos="0.8 0 -0.3"/>
+        <body name="tip_r" pos="0.8 0 0" euler="0 90 0"><geom name="tr" type="cylinder" size="0.05 0.1" mass="1"/></body>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>"""
+
+
+def _box_inertia(m, a, b, c):
+    return m / 3 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
+
+
+def _composite():
+    """The tree's inertia about its CoM (the origin, by symmetry), by hand. The tips' axes lie along x."""
+    shift = lambda m, d: m * d * d * np.array([0.0, 1.0, 1.0])  # noqa: E731  (a mass moved along x)
+    tip_axial, tip_across = 0.5 * 0.05 ** 2, (3 * 0.05 ** 2 + 4 * 0.1 ** 2) / 12
+    wing = _box_inertia(5, 0.8, 0.02, 0.3) + shift(5, 1.3)
+    tip = np.array([tip_axial, tip_across, tip_across]) + shift(1, 2.1)
+    return np.diag(_box_inertia(200, 0.5, 0.5, 0.5) + 2 * wing + 2 * tip)
+
+
+def _flat(diag):
+    """The same spacecraft written by hand as one body: poses composed, the composite inertia stated."""
+    wing = 'type="box" size="0.8 0.02 0.3" rgba="0.1 0.1 0.4 1"'
+    tip = 'rgba="0.1 0.1 0.4 1"'  # the tips inherit the wings' class
+    return f"""<mujoco model="flatsat"><worldbody><body name="target">
+      <inertial pos="0 0 0" mass="212" diaginertia="{float(diag[0])!r} {float(diag[1])!r} {float(diag[2])!r}"/>
+      <geom name="bus" type="box" size="0.5 0.5 0.5" rgba="0.8 0.7 0.3 1"/>
+      <site name="kp_a" pos="0.5 0.5 0.5"/><site name="kp_b" pos="-0.5 0.5 0.5"/><site name="kp_c" pos="0.5 -0.5 -0.5"/>
+      <geom name="wl" pos="1.3 0 0" {wing}/>
+      <site name="kp_wl" pos="2.1 0 0.3"/>
+      <geom name="tl" type="cylinder" size="0.05 0.1" pos="2.1 0 0" quat="0.7071067811865476 0 0.7071067811865476 0"
+            {tip}/>
+      <geom name="wr" pos="-1.3 0 0" quat="0 0 0 1" {wing}/>
+      <site name="kp_wr" pos="-2.1 0 -0.3"/>
+      <geom name="tr" type="cylinder" size="0.05 0.1" pos="-2.1 0 0" quat="0 -0.7071067811865476 0 0.7071067811865476"
+            {tip}/>
+    </body></worldbody></mujoco>"""
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("tree")
+    tree, flat = folder / "tree.xml", folder / "flat.xml"
+    tree.write_text(TREE.format(joint=""))
+    flat.write_text(_flat(np.diag(_composite())))
+    return load_target(str(tree)), load_target(str(flat))
+
+
+def test_a_tree_of_bodies_is_one_rigid_body_with_the_composite_inertia(pair):
+    tree, flat = pair
+    assert tree.keypoint_names == ("a", "b", "c", "wl", "wr")  # the body's own sites, then its children's
+    np.testing.assert_allclose(tree.keypoints_T_m, flat.keypoints_T_m, atol=1e-12)
+    assert abs(tree.mass_kg - 212.0) < 1e-9
+    np.testing.assert_allclose(tree.inertia_T_kg_m2, _composite(), rtol=1e-12, atol=1e-12)
+    assert [g.name for g in tree.geoms] == [g.name for g in flat.geoms]
+    assert [g.rgb for g in tree.geoms] == [g.rgb for g in flat.geoms]
+    np.testing.assert_allclose(tree.mesh().vertices_T_m, flat.mesh().vertices_T_m, atol=1e-12)
+    assert abs(tree.reach_m - flat.reach_m) < 1e-12 and tree.skeleton == flat.skeleton
+
+
+def test_the_factory_simulates_and_renders_the_tree_as_the_flat_file(pair):
+    """The scenes hold the same inertia (the sim's dynamics) and render the same pixels and labels (256 px, one
+    view: masks equal on all but 0.1 % of the pixels, the rasterizer's edges; keypoints to 1e-9 px)."""
+    import mujoco
+
+    from envisat_pose.attitude import quat_to_rotmat
+    from envisat_pose.datagen.labels import make_label
+    from envisat_pose.datagen.render import SceneRenderer
+    from envisat_pose.datagen.render_view import View
+    from envisat_pose.datagen.target_scene import scene_xml
+
+    inertia = []
+    for t in pair:
+        m = mujoco.MjModel.from_xml_string(scene_xml(t))
+        b = m.body("target").id
+        R = quat_to_rotmat(m.body_iquat[b])
+        inertia.append(R @ np.diag(m.body_inertia[b]) @ R.T)
+        assert m.body_parentid[b] == 0 and np.sum(m.geom_bodyid == b) == 5
+    np.testing.assert_allclose(inertia[0], inertia[1], rtol=1e-12, atol=1e-12)
+    view = View(np.array([0.2, 9.0, 1.5]), np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]),
+                np.array([0.3, -1.0, 0.2]))
+    masks, points = [], []
+    for t in pair:
+        r = SceneRenderer(256, target=t.path)
+        try:
+            out = r.render(view)
+        finally:
+            r.close()
+        label = make_label(out.corners_K_m, t.visible(out.R_K_from_T, out.t_K_from_T_m), r.K, out.R_K_from_T,
+                           out.t_K_from_T_m, np.zeros(12), 0.002, {}, 0, {}, t.keypoint_names)
+        masks.append(out.mask_u8)
+        points.append(np.array(label["keypoints_px"]))
+    assert np.count_nonzero(masks[0]) > 500
+    assert np.mean(masks[0] != masks[1]) <= 1e-3
+    np.testing.assert_allclose(points[0], points[1], atol=1e-9)
+
+
+def test_a_joint_in_the_tree_is_refused(tmp_path):
+    path = tmp_path / "hinged.xml"
+    path.write_text(TREE.format(joint='<joint name="hinge" type="hinge"/>'))
+    with pytest.raises(ConfigError, match="no joints, in it or its child bodies"):
+        load_target(str(path))
