@@ -21,7 +21,7 @@ import numpy as np
 
 from envisat_pose.geometry import model_path
 from envisat_pose.target import Target, compiled_alone, default_target, load_target
-from envisat_pose.target_file import PRIMITIVE_SIZES, full_numbers, target_spec
+from envisat_pose.target_file import full_numbers, set_compiled_geom, set_compiled_site, target_spec
 
 ASSET_PREFIX = "target/"
 SCENE_TARGET_POS_M = (0.0, 50.0, 0.0)  # where the scene's target body starts (the sim sets its state)
@@ -66,8 +66,8 @@ def full_precision(text: str, target: Target) -> str:
     """The scene text with the target body's numbers as the file alone compiles them, to the last bit: MuJoCo's
     to_xml writes 6 significant digits (an inertia 1e-6 off turns a tumble 2e-5 rad away in 30 minutes; a site
     3 um off). The inertial becomes its full tensor in T (added where the file states none), each site its
-    position and orientation, each primitive geom its position, orientation and size (a fromto resolved); a mesh
-    geom keeps what MuJoCo wrote (its compiled pose holds the mesh's own centring, which the scene applies again)."""
+    position and orientation, each geom its compiled numbers (target_file.set_compiled_geom: a primitive's pose
+    and size, a fromto resolved; a mesh's pose less its own centring, which the scene applies again)."""
     root = ET.fromstring(text)
     body = next(b for b in root.iter("body") if b.get("name") == "target")
     alone = compiled_alone(target)
@@ -82,17 +82,10 @@ def full_precision(text: str, target: Target) -> str:
         [J[0, 0], J[1, 1], J[2, 2], J[0, 1], J[0, 2], J[1, 2]])})
     sites = [s for s in range(alone.nsite) if alone.site_bodyid[s] == own]
     for el, s in zip(body.findall("site"), sites):
-        el.set("pos", full_numbers(alone.site_pos[s]))
-        el.set("quat", full_numbers(alone.site_quat[s]))
+        set_compiled_site(el, alone, s)
     geoms = [g for g in range(alone.ngeom) if alone.geom_bodyid[g] == own]
-    for el, g, info in zip(body.findall("geom"), geoms, target.geoms):
-        if info.type not in PRIMITIVE_SIZES:
-            continue
-        for key in ("fromto", "euler", "axisangle", "xyaxes", "zaxis"):
-            el.attrib.pop(key, None)
-        el.set("pos", full_numbers(alone.geom_pos[g]))
-        el.set("quat", full_numbers(alone.geom_quat[g]))
-        el.set("size", full_numbers(alone.geom_size[g][:PRIMITIVE_SIZES[info.type]]))
+    for el, g in zip(body.findall("geom"), geoms):
+        set_compiled_geom(el, alone, g)
     return ET.tostring(root, encoding="unicode")
 
 

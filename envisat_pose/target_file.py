@@ -8,10 +8,9 @@ the tree is one rigid body, and MuJoCo says so itself: its compiler's `fusestati
 static child into the parent, the child's pose composed, and sums the masses and inertias about the common centre
 of mass. That is done here once, to the file alone (the body given a free joint for the compile, so that it is
 not fused into the world), and written back as a file whose body `target` holds everything directly (fused_text):
-its inertial the composite one and its sites and primitive geoms at their compiled poses in T, to the last bit; a
-mesh geom at its written pose composed with its child bodies' frames (MuJoCo writes 6 digits; the mesh's own
-centring is applied when the text is compiled). Keypoints keep MuJoCo's order: the body's own sites, then each
-child's, depth first. A joint anywhere in the tree is refused (the target is one rigid body).
+its inertial the composite one and its sites and geoms at their compiled poses in T, to the last bit (a mesh
+geom's less its own centring, which compiling the text applies again). Keypoints keep MuJoCo's order: the body's
+own sites, then each child's, depth first. A joint anywhere in the tree is refused (the target is one rigid body).
 """
 
 from __future__ import annotations
@@ -57,6 +56,37 @@ def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     w2, x2, y2, z2 = b
     return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+
+
+def set_compiled_geom(el: ET.Element, model, g: int) -> None:
+    """Write geom g's compiled numbers into its MJCF element el, to the last bit: a primitive's pose and size in
+    its body (a fromto or another orientation form dropped); a mesh's pose as written, i.e. the compiled one less
+    the mesh's own centring (mesh_pos, mesh_quat), which compiling the text applies again. Other types untouched."""
+    import mujoco
+
+    kind = mujoco.mjtGeom(int(model.geom_type[g])).name.removeprefix("mjGEOM_").lower()
+    pos, quat = np.asarray(model.geom_pos[g], float), np.asarray(model.geom_quat[g], float)
+    if kind == "mesh":
+        m = int(model.geom_dataid[g])
+        off_q = np.asarray(model.mesh_quat[m], float)
+        quat = _quat_mul(quat, off_q * np.array([1.0, -1.0, -1.0, -1.0]))
+        pos = pos - quat_to_rotmat(quat) @ np.asarray(model.mesh_pos[m], float)
+    elif kind not in PRIMITIVE_SIZES:
+        return
+    for key in (*_ORIENTATIONS, "fromto"):
+        el.attrib.pop(key, None)
+    el.set("pos", full_numbers(pos))
+    el.set("quat", full_numbers(quat))
+    if kind != "mesh":
+        el.set("size", full_numbers(model.geom_size[g][:PRIMITIVE_SIZES[kind]]))
+
+
+def set_compiled_site(el: ET.Element, model, s: int) -> None:
+    """Write site s's compiled pose in its body into its MJCF element el, to the last bit."""
+    for key in _ORIENTATIONS:
+        el.attrib.pop(key, None)
+    el.set("pos", full_numbers(model.site_pos[s]))
+    el.set("quat", full_numbers(model.site_quat[s]))
 
 
 def _pose(el: ET.Element) -> tuple[np.ndarray, np.ndarray]:
@@ -123,20 +153,9 @@ def _fused_text(path: str, mtime_ns: int) -> str | None:
         if el.tag in ("inertial", "joint", "freejoint"):
             continue
         if el.tag == "geom":
-            g = next(geoms)
-            kind = mujoco.mjtGeom(int(model.geom_type[g])).name.removeprefix("mjGEOM_").lower()
-            if kind in PRIMITIVE_SIZES:  # the compiled pose and size in T, to the last bit
-                for key in (*_ORIENTATIONS, "fromto"):
-                    el.attrib.pop(key, None)
-                el.set("pos", full_numbers(model.geom_pos[g]))
-                el.set("quat", full_numbers(model.geom_quat[g]))
-                el.set("size", full_numbers(model.geom_size[g][:PRIMITIVE_SIZES[kind]]))
+            set_compiled_geom(el, model, next(geoms))
         elif el.tag == "site":
-            s = next(sites)
-            for key in _ORIENTATIONS:
-                el.attrib.pop(key, None)
-            el.set("pos", full_numbers(model.site_pos[s]))
-            el.set("quat", full_numbers(model.site_quat[s]))
+            set_compiled_site(el, model, next(sites))
         body.append(el)
     return ET.tostring(root, encoding="unicode")
 

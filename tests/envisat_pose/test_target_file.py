@@ -132,3 +132,41 @@ def test_a_joint_in_the_tree_is_refused(tmp_path):
     path.write_text(TREE.format(joint='<joint name="hinge" type="hinge"/>'))
     with pytest.raises(ConfigError, match="no joints, in it or its child bodies"):
         load_target(str(path))
+
+
+def test_a_mesh_in_a_child_body_lands_where_mujoco_puts_it(tmp_path):
+    """A wedge mesh (re-centred by MuJoCo on its own inertial frame) in a turned child body, itself turned: its
+    vertices in T as MuJoCo places them in the file alone (mj_kinematics), to 1e-9 m, in the Target's surface and
+    in the factory's scene (where the written pose, less the mesh's centring, is compiled again)."""
+    import mujoco
+
+    from envisat_pose.datagen.target_scene import scene_xml
+
+    path = tmp_path / "arm.xml"
+    path.write_text(
+        '<mujoco><asset><mesh name="wedge" vertex="-.3 -.2 -.1 .3 -.2 -.1 .3 .2 -.1 -.3 .2 -.1 -.3 -.2 .1 .3 -.2 .1"/>'
+        '</asset><worldbody><body name="target"><inertial pos="0 0 0" mass="50" diaginertia="1 2 2.5"/>'
+        '<geom type="box" size="0.4 0.4 0.4"/><site name="kp_1" pos="0.4 0.4 0.4"/><site name="kp_2" pos="-0.4 0.4 0.4"/>'
+        '<site name="kp_3" pos="0.4 -0.4 0.4"/><body name="arm" pos="0 0 1.0" euler="0 45 0">'
+        '<geom type="mesh" mesh="wedge" density="0" pos="0.1 0 0" euler="45 0 0"/><site name="kp_m" pos="0.1 -0.2 -0.1"/>'
+        '</body></body></worldbody></mujoco>')
+    m = mujoco.MjModel.from_xml_path(str(path))
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+
+    def mesh_T(model, data):
+        body = model.body("target").id
+        g = next(g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH)
+        v0, nv = model.mesh_vertadr[model.geom_dataid[g]], model.mesh_vertnum[model.geom_dataid[g]]
+        world = model.mesh_vert[v0:v0 + nv] @ data.geom_xmat[g].reshape(3, 3).T + data.geom_xpos[g]
+        return (world - data.xpos[body]) @ data.xmat[body].reshape(3, 3)
+
+    truth = mesh_T(m, d)
+    t = load_target(str(path))
+    near = np.min(np.linalg.norm(truth[:, None] - t.mesh().vertices_T_m[None], axis=2), axis=1)
+    assert near.max() < 1e-9
+    np.testing.assert_allclose(t.keypoints_T_m[-1], d.site_xpos[m.site("kp_m").id], atol=1e-12)
+    s = mujoco.MjModel.from_xml_string(scene_xml(t))
+    ds = mujoco.MjData(s)
+    mujoco.mj_kinematics(s, ds)
+    np.testing.assert_allclose(mesh_T(s, ds), truth, atol=1e-9)
