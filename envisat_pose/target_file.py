@@ -3,7 +3,8 @@
 The file is parsed by MuJoCo (MjSpec), so its own <compiler> (angle unit, eulerseq, meshdir, texturedir), defaults,
 includes and assets apply; its body `target` is checked for structure (read_spec).
 
-A spacecraft is often written as a tree: a bus with its wings, antennas and booms as child bodies. Without joints
+A spacecraft is often written as a tree: a bus with its wings, antennas and booms as child bodies (or MJCF
+<frame> elements: the same, without the masses of their own). Without joints
 the tree is one rigid body, and MuJoCo says so itself: its compiler's `fusestatic` moves every geom and site of a
 static child into the parent, the child's pose composed, and sums the masses and inertias about the common centre
 of mass. That is done here once, to the file alone (the body given a free joint for the compile, so that it is
@@ -27,6 +28,7 @@ from envisat_pose.geometry import CAMERA_NAME
 
 PRIMITIVE_SIZES = {"sphere": 1, "capsule": 2, "cylinder": 2, "box": 3, "ellipsoid": 3}  # numbers in a geom's size
 _ORIENTATIONS = ("quat", "euler", "axisangle", "xyaxes", "zaxis")
+_UNNAMED = "__fused_"  # the prefix of the names given for the fusing to the unnamed
 
 
 def full_numbers(v) -> str:
@@ -116,7 +118,8 @@ def _dissolve_frames(parent: ET.Element, pos: np.ndarray, quat: np.ndarray, into
 
 def fused_text(path: str) -> str | None:
     """The file at `path` as MuJoCo's fusestatic leaves it, written as a file whose body `target` holds every geom
-    and site directly (module docstring); None where that body has no child bodies (the file is read as it is).
+    and site directly (module docstring); None where that body has no child bodies and no frames (the file is read
+    as it is).
     The caller has checked that the tree holds no joint. ValueError where MuJoCo does not compile it."""
     return _fused_text(path, os.stat(path).st_mtime_ns)
 
@@ -127,14 +130,16 @@ def _fused_text(path: str, mtime_ns: int) -> str | None:
 
     spec = mujoco.MjSpec.from_file(path)
     target = spec.body("target")
-    if target is None or not target.bodies:
+    if target is None or not (target.bodies or target.frames):
         return None
     absolute_asset_files(spec, os.path.dirname(path))
+    tree = [target, *subtree_bodies(target)]
     for b in subtree_bodies(spec.worldbody):
-        b.fuse = False  # the file's other bodies stay as they are
-    for b in [target, *subtree_bodies(target)]:
-        b.fuse = True
-    target.add_freejoint(name="__fused_free")
+        b.fuse = b in tree  # the file's other bodies stay as they are
+    for kind in ("geoms", "sites"):  # every element named, so the written ones are found again in the compiled model
+        for k, el in enumerate(el for b in tree for el in getattr(b, kind)):
+            el.name = el.name or f"{_UNNAMED}{kind}_{k}"
+    target.add_freejoint(name=f"{_UNNAMED}free")
     spec.compiler.fusestatic = True
     model = spec.compile()
     root = ET.fromstring(spec.to_xml())
@@ -144,18 +149,19 @@ def _fused_text(path: str, mtime_ns: int) -> str | None:
     for el in list(body):
         body.remove(el)
     b = model.body("target").id
-    ET.SubElement(body, "inertial", {  # first: the body's own elements follow in MuJoCo's order
+    ET.SubElement(body, "inertial", {  # the composite one, at the compiled numbers
         "pos": full_numbers(model.body_ipos[b]), "quat": full_numbers(model.body_iquat[b]),
         "mass": repr(float(model.body_mass[b])), "diaginertia": full_numbers(model.body_inertia[b])})
-    geoms = iter(g for g in range(model.ngeom) if model.geom_bodyid[g] == b)
-    sites = iter(s for s in range(model.nsite) if model.site_bodyid[s] == b)
-    for el in elements:
-        if el.tag in ("inertial", "joint", "freejoint"):
-            continue
-        if el.tag == "geom":
-            set_compiled_geom(el, model, next(geoms))
-        elif el.tag == "site":
-            set_compiled_site(el, model, next(sites))
+    geoms = sorted((model.geom(el.get("name")).id, el) for el in elements if el.tag == "geom")
+    sites = sorted((model.site(el.get("name")).id, el) for el in elements if el.tag == "site")
+    for g, el in geoms:  # in MuJoCo's order (to_xml writes a frame's elements after the body's own)
+        set_compiled_geom(el, model, g)
+    for s_id, el in sites:
+        set_compiled_site(el, model, s_id)
+    rest = [el for el in elements if el.tag not in ("geom", "site", "inertial", "joint", "freejoint")]
+    for el in [el for _, el in geoms] + [el for _, el in sites] + rest:
+        if el.get("name", "").startswith(_UNNAMED):
+            del el.attrib["name"]
         body.append(el)
     return ET.tostring(root, encoding="unicode")
 

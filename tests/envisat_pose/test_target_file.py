@@ -170,3 +170,34 @@ def test_a_mesh_in_a_child_body_lands_where_mujoco_puts_it(tmp_path):
     ds = mujoco.MjData(s)
     mujoco.mj_kinematics(s, ds)
     np.testing.assert_allclose(mesh_T(s, ds), truth, atol=1e-9)
+
+
+def test_a_body_with_frames_is_labelled_where_mujoco_puts_its_sites(tmp_path):
+    """MJCF <frame> elements in the body, one holding two keypoints ahead of the body's own in the file: every
+    keypoint and geom of the factory's scene where MuJoCo puts them in the file alone (1e-9 m), names and order
+    kept (the scene once wrote the frame's sites' numbers into the body's own: labels 0.9 m off)."""
+    import mujoco
+
+    from envisat_pose.datagen.target_scene import scene_xml
+
+    path = tmp_path / "framed.xml"
+    path.write_text(
+        '<mujoco><worldbody><body name="target"><inertial pos="0 0 0" mass="10" diaginertia="1 1.2 1.5"/>'
+        '<geom name="core" type="box" size="0.5 0.4 0.3"/><frame pos="0 0 0.3" euler="0 0 30">'
+        '<geom name="mast" type="box" size="0.05 0.05 0.4" pos="0 0 0.4"/><site name="kp_top" pos="0 0 0.8"/>'
+        '<site name="kp_side" pos="0.05 0.05 0.8"/></frame><site name="kp_1" pos="0.5 0.4 0.3"/>'
+        '<site name="kp_2" pos="-0.5 0.4 0.3"/><site name="kp_3" pos="0.5 -0.4 -0.3"/></body></worldbody></mujoco>')
+    m = mujoco.MjModel.from_xml_path(str(path))
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    t = load_target(str(path))
+    assert t.keypoint_names == ("top", "side", "1", "2", "3") and [g.name for g in t.geoms] == ["core", "mast"]
+    s = mujoco.MjModel.from_xml_string(scene_xml(t))
+    ds = mujoco.MjData(s)
+    mujoco.mj_kinematics(s, ds)
+    b = s.body("target").id
+    to_T = lambda x: (x - ds.xpos[b]) @ ds.xmat[b].reshape(3, 3)  # noqa: E731
+    for name in t.keypoint_sites:
+        np.testing.assert_allclose(to_T(ds.site_xpos[s.site(name).id]), d.site_xpos[m.site(name).id], atol=1e-9)
+    for name in ("core", "mast"):
+        np.testing.assert_allclose(to_T(ds.geom_xpos[s.geom(name).id]), d.geom_xpos[m.geom(name).id], atol=1e-9)
