@@ -16,7 +16,6 @@ the architecture test refuses the question anywhere else.
 from __future__ import annotations
 
 import functools
-import hashlib
 import os
 from dataclasses import dataclass
 
@@ -26,7 +25,7 @@ from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.config import ConfigError, InputError
 from envisat_pose.geometry import model_path, visible_corners
 from envisat_pose.shard_reader import load_dataset_manifest
-from envisat_pose.target_file import check_inertia, compile_alone, read_spec
+from envisat_pose.target_file import check_inertia, compile_alone, named_files, read_spec, target_sha256
 from envisat_pose.target_mesh import BodyMesh, TriangleMesh, body_mesh, feature_edges
 from envisat_pose.target_shape import Symmetry, fibonacci_directions, skeleton, symmetries, triangle_distances
 
@@ -60,7 +59,8 @@ class TargetGeom:
 class Target:
     """A checked target file, read once.
 
-    name: the file's model name (<mujoco model=...>) or its stem. path: absolute. sha256: of the file's bytes.
+    name: the file's model name (<mujoco model=...>) or its stem. path: absolute. sha256: of the file's bytes and
+    of the files it names (target_file.target_sha256).
     keypoint_names (K,), keypoint_sites (K,) their MJCF site names; keypoints_T_m (K, 3) in T, m. mass_kg;
     inertia_T_kg_m2 (3, 3) about the CoM in T. reach_m: the farthest point of its surface from the CoM. geoms:
     (G,) TargetGeom, file order. surface: the triangles of every geom in T (target_mesh.BodyMesh). own_scene: the
@@ -335,9 +335,8 @@ def _model_name(spec, path: str) -> str:
 
 
 @functools.lru_cache(maxsize=16)
-def _load(path: str, mtime_ns: int, size: int, field: str, given: str) -> Target:
-    with open(path, "rb") as fh:
-        sha256 = hashlib.sha256(fh.read()).hexdigest()
+def _load(path: str, stamps: tuple, field: str, given: str) -> Target:
+    sha256 = target_sha256(path)
     spec, own_scene, fused = read_spec(path, field, given)
     try:
         model = spec.compile()
@@ -393,12 +392,13 @@ def load_target(given: str = DEFAULT_TARGET, field: str = "target") -> Target:
     compile, no body 'target', a joint in it or its child bodies (which are read fused: target_file.py), a bad
     inertia (zero mass, not positive definite, the triangle inequality; stated by an <inertial>, or else MuJoCo's
     from the geoms and child bodies), the CoM off the body's origin, fewer than 4 keypoint sites, no geom the factory draws (RENDERED_GROUPS), a keypoint farther
-    than KEYPOINT_MAX_SURFACE_DISTANCE_M from the drawn surface. Cached per file, size and modification time."""
+    than KEYPOINT_MAX_SURFACE_DISTANCE_M from the drawn surface. Cached per file, size and modification time, its
+    named files' too (target_file.named_files)."""
     path = resolve_target_path(given)
     if not os.path.isfile(path):
         _fail(field, given, "an MJCF file (no such file)")
-    st = os.stat(path)
-    return _load(path, st.st_mtime_ns, st.st_size, field, given)
+    stamps = tuple((os.stat(f).st_mtime_ns, os.stat(f).st_size) for f in (path, *named_files(path)) if os.path.isfile(f))
+    return _load(path, stamps, field, given)
 
 
 def is_default_file(given: str) -> bool:

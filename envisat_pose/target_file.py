@@ -17,6 +17,7 @@ own sites, then each child's, depth first. A joint anywhere in the tree is refus
 from __future__ import annotations
 
 import functools
+import hashlib
 import os
 import xml.etree.ElementTree as ET
 
@@ -243,3 +244,57 @@ def target_spec(path: str):
     spec = mujoco.MjSpec.from_file(path) if text is None else mujoco.MjSpec.from_string(text)
     absolute_asset_files(spec, os.path.dirname(path))
     return spec
+
+
+def _included_files(path: str, base: str) -> list[str]:
+    """The files the MJCF file at `path` includes (<include file=...>, relative to the main file's folder base),
+    and theirs, depth first; unreadable ones skipped (MuJoCo's reading reports them)."""
+    try:
+        root = ET.parse(path).getroot()
+    except (OSError, ET.ParseError):
+        return []
+    out = []
+    for el in root.iter("include"):
+        name = os.path.normpath(os.path.join(base, el.get("file", "")))
+        if os.path.isfile(name):
+            out += [name, *_included_files(name, base)]
+    return out
+
+
+def named_files(path: str) -> tuple[str, ...]:
+    """The files the target file at `path` names (includes, meshes, textures, height fields), absolute, sorted;
+    none where 'file=' is nowhere in it (the shipped targets). Cached per file and modification time."""
+    return _named_files(path, os.stat(path).st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=16)
+def _named_files(path: str, mtime_ns: int) -> tuple[str, ...]:
+    with open(path, "rb") as fh:
+        if b"file=" not in fh.read():
+            return ()
+    import mujoco
+
+    folder = os.path.dirname(path)
+    named = set(_included_files(path, folder))
+    try:
+        spec = mujoco.MjSpec.from_file(path)
+        absolute_asset_files(spec, folder)
+        named |= {a.file for kind in ("meshes", "textures", "hfields") for a in getattr(spec, kind) if a.file}
+    except ValueError:
+        pass  # MuJoCo's reading reports it
+    return tuple(sorted(named))
+
+
+def target_sha256(path: str) -> str:
+    """What identifies a target: the sha256 of its file's bytes and of each file it names (named_files: an edited
+    mesh is another target), named relative to the file's folder. A file that names none hashes as its bytes."""
+    with open(path, "rb") as fh:
+        digest = hashlib.sha256(fh.read())
+    for name in named_files(path):
+        try:
+            with open(name, "rb") as fh:
+                body = fh.read()
+        except OSError:
+            continue  # MuJoCo's reading reports it
+        digest.update(b"\0" + os.path.relpath(name, os.path.dirname(path)).encode() + b"\0" + body)
+    return digest.hexdigest()

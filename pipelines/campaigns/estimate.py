@@ -12,7 +12,6 @@ an [eclipse] table adds the Earth's-shadow outages along its truth (`eclipse_out
 
 from __future__ import annotations
 
-import hashlib
 import json
 import warnings
 from dataclasses import dataclass
@@ -36,6 +35,7 @@ from envisat_pose.out_dirs import make_out_file_dirs
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, layered_job
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
 from envisat_pose.target import DEFAULT_TARGET, Target, is_default_file, load_target, resolve_target_path
+from envisat_pose.target_file import target_sha256
 
 MAX_OUTPUT_BYTES = 8 * 2**30  # P alone is R * T * 144 * 8 bytes
 
@@ -89,16 +89,15 @@ def truth_target(config: dict, source: str) -> Target | None:
     its corners A-H, inertia and box face test, exactly its numbers before targets existed; asked of
     envisat_pose.target, which answers it without loading MuJoCo), else its config's target.file loaded
     (envisat_pose.target.load_target). InputError naming `source` in one line when the file cannot be loaded, or
-    when the truth records the file's sha256 (target.sha256) and the file's bytes no longer match it (an edited
-    target would be estimated with another body than the truth's)."""
+    when the truth records the file's sha256 (target.sha256: its bytes and those of the files it names) and the
+    file no longer matches it (an edited target would be estimated with another body than the truth's)."""
     record = config.get("target") or {}
     given = record.get("file", DEFAULT_TARGET)
     recorded = record.get("sha256")
     if recorded is not None:
         path = resolve_target_path(given)
         try:
-            with open(path, "rb") as fh:
-                digest = hashlib.sha256(fh.read()).hexdigest()
+            digest = target_sha256(path)
         except OSError as err:
             raise InputError(f"{source}: its target file {given!r} cannot be read ({err.strerror})") from None
         if digest != recorded:

@@ -5,11 +5,20 @@ computed here from textbook formulas (solid box m/3 (b^2 + c^2) on half-sizes, s
 not by MuJoCo; MuJoCo's own fusestatic does the fusing under test.
 """
 
+import hashlib
+
+import mujoco
 import numpy as np
 import pytest
 
-from envisat_pose.config import ConfigError
-from envisat_pose.target import load_target
+from envisat_pose.attitude import quat_to_rotmat
+from envisat_pose.config import ConfigError, InputError
+from envisat_pose.datagen.labels import make_label
+from envisat_pose.datagen.render import SceneRenderer
+from envisat_pose.datagen.render_view import View
+from envisat_pose.datagen.target_scene import scene_xml
+from envisat_pose.target import load_target, require_weights_target, resolve_target_path
+from envisat_pose.target_file import target_sha256
 
 TREE = """<mujoco model="treesat">
   <compiler angle="degree"/>
@@ -93,14 +102,6 @@ def test_a_tree_of_bodies_is_one_rigid_body_with_the_composite_inertia(pair):
 def test_the_factory_simulates_and_renders_the_tree_as_the_flat_file(pair):
     """The scenes hold the same inertia (the sim's dynamics) and render the same pixels and labels (256 px, one
     view: masks equal on all but 0.1 % of the pixels, the rasterizer's edges; keypoints to 1e-9 px)."""
-    import mujoco
-
-    from envisat_pose.attitude import quat_to_rotmat
-    from envisat_pose.datagen.labels import make_label
-    from envisat_pose.datagen.render import SceneRenderer
-    from envisat_pose.datagen.render_view import View
-    from envisat_pose.datagen.target_scene import scene_xml
-
     inertia = []
     for t in pair:
         m = mujoco.MjModel.from_xml_string(scene_xml(t))
@@ -138,10 +139,6 @@ def test_a_mesh_in_a_child_body_lands_where_mujoco_puts_it(tmp_path):
     """A wedge mesh (re-centred by MuJoCo on its own inertial frame) in a turned child body, itself turned: its
     vertices in T as MuJoCo places them in the file alone (mj_kinematics), to 1e-9 m, in the Target's surface and
     in the factory's scene (where the written pose, less the mesh's centring, is compiled again)."""
-    import mujoco
-
-    from envisat_pose.datagen.target_scene import scene_xml
-
     path = tmp_path / "arm.xml"
     path.write_text(
         '<mujoco><asset><mesh name="wedge" vertex="-.3 -.2 -.1 .3 -.2 -.1 .3 .2 -.1 -.3 .2 -.1 -.3 -.2 .1 .3 -.2 .1"/>'
@@ -176,10 +173,6 @@ def test_a_body_with_frames_is_labelled_where_mujoco_puts_its_sites(tmp_path):
     """MJCF <frame> elements in the body, one holding two keypoints ahead of the body's own in the file: every
     keypoint and geom of the factory's scene where MuJoCo puts them in the file alone (1e-9 m), names and order
     kept (the scene once wrote the frame's sites' numbers into the body's own: labels 0.9 m off)."""
-    import mujoco
-
-    from envisat_pose.datagen.target_scene import scene_xml
-
     path = tmp_path / "framed.xml"
     path.write_text(
         '<mujoco><worldbody><body name="target"><inertial pos="0 0 0" mass="10" diaginertia="1 1.2 1.5"/>'
@@ -201,3 +194,35 @@ def test_a_body_with_frames_is_labelled_where_mujoco_puts_its_sites(tmp_path):
         np.testing.assert_allclose(to_T(ds.site_xpos[s.site(name).id]), d.site_xpos[m.site(name).id], atol=1e-9)
     for name in ("core", "mast"):
         np.testing.assert_allclose(to_T(ds.geom_xpos[s.geom(name).id]), d.geom_xpos[m.geom(name).id], atol=1e-9)
+
+
+def test_a_targets_sha256_covers_the_files_it_names(tmp_path):
+    """The shipped targets name no other file: their sha256 is their bytes' (weights and datasets recorded before
+    still match). A target with a mesh file: editing the mesh gives another sha256, also to the Target loaded again
+    in the same process, so weights trained for the old one are refused; the edit undone gives the old one back."""
+    for name in ("models/envisat.xml", "models/upper_stage.xml", "models/cubesat_3u.xml"):
+        path = resolve_target_path(name)
+        with open(path, "rb") as fh:
+            assert target_sha256(path) == hashlib.sha256(fh.read()).hexdigest() == load_target(name).sha256
+    (tmp_path / "meshes").mkdir()
+    obj = tmp_path / "meshes" / "wedge.obj"
+    wedge = "v -.3 -.2 -.1\nv .3 -.2 -.1\nv .3 .2 -.1\nv -.3 .2 -.1\nv -.3 -.2 .1\nv .3 -.2 .1\n" \
+            "f 1 3 2\nf 1 4 3\nf 1 2 6\nf 1 6 5\nf 2 3 6\nf 4 1 5\nf 3 4 5\nf 3 5 6\n"
+    obj.write_text(wedge)
+    path = tmp_path / "wedge.xml"
+    path.write_text('<mujoco><compiler meshdir="meshes"/><asset><mesh name="w" file="wedge.obj"/></asset><worldbody>'
+                    '<body name="target"><inertial pos="0 0 0" mass="5" diaginertia="1 1 1"/><geom type="mesh" mesh="w"/>'
+                    + "".join(f'<site name="kp_{i}" pos="{x}"/>' for i, x in
+                              enumerate(["-.3 -.2 -.1", ".3 -.2 -.1", ".3 .2 -.1", "-.3 .2 -.1"]))
+                    + "</body></worldbody></mujoco>")
+    before = target_sha256(str(path))
+    with open(path, "rb") as fh:
+        assert before != hashlib.sha256(fh.read()).hexdigest()
+    trained_for = {"name": "wedge", "sha256": before}
+    require_weights_target("w.safetensors", trained_for, str(path))  # fits: nothing raised
+    obj.write_text(wedge.replace("v .3 .2 -.1", "v .31 .2 -.1"))
+    assert target_sha256(str(path)) != before and load_target(str(path)).sha256 != before
+    with pytest.raises(InputError, match="not of target"):
+        require_weights_target("w.safetensors", trained_for, str(path))
+    obj.write_text(wedge)
+    assert target_sha256(str(path)) == before == load_target(str(path)).sha256
