@@ -10,7 +10,8 @@ Floor of a change that must not slow anything: every figure within 5 % of the ba
 time; closed loop: at least 0.95x the real-time factor).
 
 Run: .venv/bin/python bench/tree_speed.py --baseline DIR [--current DIR] [--rounds 2] [--duration-s 300]
-     [--only ukf|loop] [--cores 1] [--out bench/results/tree_speed.json]  (each run appended to the file's runs)
+     [--only ukf|loop] [--cores 1] [--warm-up-s 30] [--out bench/results/tree_speed.json]  (each run appended to
+     the file's runs; an untimed warm-up of each tree first, so a fresh tree's numba compile is not timed)
 """
 
 from __future__ import annotations
@@ -64,9 +65,15 @@ def main() -> None:
     ap.add_argument("--duration-s", type=float, default=300.0, help="closed-loop simulated seconds per run")
     ap.add_argument("--only", choices=("ukf", "loop"), help="one of the two benches (default: both)")
     ap.add_argument("--cores", type=int, default=1, help="the closed loop's CPUs (online_speed.py --cores; default 1)")
+    ap.add_argument("--warm-up-s", type=float, default=30.0,
+                    help="an untimed run of each tree first, this many simulated seconds (0: none): a fresh tree "
+                         "compiles its numba kernels into its cache on its first run, which would land in round 1")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "tree_speed.json"))
     args = ap.parse_args()
     trees = {"baseline": os.path.abspath(args.baseline), "current": os.path.abspath(args.current)}
+    for name in trees if args.warm_up_s > 0 else ():
+        figures(trees[name], args.warm_up_s, args.only, args.cores)
+        print(f"warmed up {name} ({args.warm_up_s:g} s, untimed)", flush=True)
     rounds: dict[str, list[dict]] = {name: [] for name in trees}
     for r in range(args.rounds):
         for name in (trees if r % 2 == 0 else reversed(list(trees))):
@@ -86,8 +93,8 @@ def main() -> None:
               f"{'' if k not in met else 'met' if met[k] else 'MISSED'}")
     result = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_avg_end": os.getloadavg()},
               "protocol": f"each tree's own bench/ukf_speed.py (default) and bench/online_speed.py "
-                          f"(--duration-s {args.duration_s} --cores {args.cores}; only: {args.only or 'both'}), {args.rounds} "
-                          f"alternating rounds; "
+                          f"(--duration-s {args.duration_s} --cores {args.cores}; only: {args.only or 'both'}), an untimed "
+                          f"{args.warm_up_s:g} s warm-up of each tree, {args.rounds} alternating rounds; "
                           f"medians, and the ratio as the median of the rounds' paired ratios",
               "trees": {name: os.path.basename(path.rstrip("/")) for name, path in trees.items()},
               "rounds": rounds, "median": median, "ratio_current_to_baseline": ratio, "floor_met": met}
