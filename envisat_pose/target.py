@@ -1,8 +1,9 @@
 """The target: one spacecraft, read once from its MJCF file into one `Target` that every layer takes.
 
 A target file's worldbody holds one body named `target` with its <inertial> (mass, inertia about the centre of
-mass at the body's origin; without one, what MuJoCo computes from the geoms, their CoM at the origin), its geoms and materials, and its keypoints as the body's sites `kp_<name>` in file
-order (a file with none takes its `corner_<name>` sites: models/envisat.xml's corners A-H). The body frame of the
+mass at the body's origin; without one, what MuJoCo computes from the geoms, their CoM at the origin), its geoms
+and materials, and its keypoints as the body's sites `kp_<name>` in file order (a file with none takes its
+`corner_<name>` sites: models/envisat.xml's corners A-H). The body frame of the
 file is the frame T of the labels, the truth and the filter. The file is read by MuJoCo itself (MjSpec), so its own
 <compiler> (angle unit, eulerseq, meshdir, texturedir), defaults and assets give the shape MuJoCo gives it alone;
 child bodies without joints are fused into it as MuJoCo fuses static bodies (envisat_pose/target_file.py).

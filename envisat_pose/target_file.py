@@ -4,10 +4,9 @@ The file is parsed by MuJoCo (MjSpec), so its own <compiler> (angle unit, eulers
 includes and assets apply; its body `target` is checked for structure (read_spec).
 
 A spacecraft is often written as a tree: a bus with its wings, antennas and booms as child bodies (or MJCF
-<frame> elements: the same, without the masses of their own). Without joints
-the tree is one rigid body, and MuJoCo says so itself: its compiler's `fusestatic` moves every geom and site of a
-static child into the parent, the child's pose composed, and sums the masses and inertias about the common centre
-of mass. That is done here once, to the file alone (the body given a free joint for the compile, so that it is
+<frame> elements: the same, without masses of their own). Without joints the tree is one rigid body, and MuJoCo
+says so itself: its compiler's `fusestatic` moves every geom and site of a static child into the parent, the
+child's pose composed, and sums the masses and inertias about the common centre of mass. That is done here once, to the file alone (the body given a free joint for the compile, so that it is
 not fused into the world), and written back as a file whose body `target` holds everything directly (fused_text):
 its inertial the composite one and its sites and geoms at their compiled poses in T, to the last bit (a mesh
 geom's less its own centring, which compiling the text applies again). Keypoints keep MuJoCo's order: the body's
@@ -54,11 +53,18 @@ def subtree_bodies(body) -> list:
     return out
 
 
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+def _quat_mul(a: np.ndarray, b: np.ndarray, conjugate_b: bool = False) -> np.ndarray:
+    """MuJoCo's quaternion product a b (or a b* with conjugate_b), (w, x, y, z)."""
+    import mujoco
+
+    b = np.asarray(b, float)
+    if conjugate_b:
+        b_conj = np.zeros(4)
+        mujoco.mju_negQuat(b_conj, b)
+        b = b_conj
+    out = np.zeros(4)
+    mujoco.mju_mulQuat(out, np.asarray(a, float), b)
+    return out
 
 
 def set_compiled_geom(el: ET.Element, model, g: int) -> None:
@@ -71,8 +77,7 @@ def set_compiled_geom(el: ET.Element, model, g: int) -> None:
     pos, quat = np.asarray(model.geom_pos[g], float), np.asarray(model.geom_quat[g], float)
     if kind == "mesh":
         m = int(model.geom_dataid[g])
-        off_q = np.asarray(model.mesh_quat[m], float)
-        quat = _quat_mul(quat, off_q * np.array([1.0, -1.0, -1.0, -1.0]))
+        quat = _quat_mul(quat, model.mesh_quat[m], conjugate_b=True)
         pos = pos - quat_to_rotmat(quat) @ np.asarray(model.mesh_pos[m], float)
     elif kind not in PRIMITIVE_SIZES:
         return
@@ -120,8 +125,7 @@ def _dissolve_frames(parent: ET.Element, pos: np.ndarray, quat: np.ndarray, into
 def fused_text(path: str) -> str | None:
     """The file at `path` as MuJoCo's fusestatic leaves it, written as a file whose body `target` holds every geom
     and site directly (module docstring); None where that body has no child bodies and no frames (the file is read
-    as it is).
-    The caller has checked that the tree holds no joint. ValueError where MuJoCo does not compile it."""
+    as it is). The caller has checked that the tree holds no joint. ValueError where MuJoCo does not compile it."""
     return _fused_text(path, os.stat(path).st_mtime_ns)
 
 
