@@ -28,7 +28,14 @@ from envisat_pose.geometry import model_path, visible_corners
 from envisat_pose.shard_reader import load_dataset_manifest
 from envisat_pose.target_file import check_inertia, compile_alone, named_files, read_spec, target_sha256
 from envisat_pose.target_mesh import BodyMesh, TriangleMesh, body_mesh, feature_edges
-from envisat_pose.target_shape import Symmetry, fibonacci_directions, skeleton, symmetries, triangle_distances
+from envisat_pose.target_shape import (
+    Symmetry,
+    fibonacci_directions,
+    mirror_perm,
+    skeleton,
+    symmetries,
+    triangle_distances,
+)
 
 DEFAULT_TARGET = "models/envisat.xml"  # the default `target` of every config (the package's file)
 KEYPOINT_PREFIX = "kp_"
@@ -92,10 +99,21 @@ class Target:
     def symmetries(self) -> tuple[Symmetry, ...]:
         """The rotations about the CoM that map the keypoint set onto itself, with whether the drawn shape and its
         materials keep each (target_shape.symmetries); computed on first use (~0.3 s for ENVISAT)."""
+        return symmetries(self.keypoints_T_m, self.mesh(), self._drawn_face_rgb(), self.reach_m)
+
+    @functools.cached_property
+    def mirror_perm(self) -> tuple[int, ...] | None:
+        """The keypoints' permutation under a mirror symmetry that the drawn shape and its materials keep (what a
+        left-right flipped image relabels: YOLO's flip_idx), or None where the target is chiral (ENVISAT: its
+        materials break its box's mirrors); target_shape.mirror_perm, computed on first use."""
+        perm = mirror_perm(self.keypoints_T_m, self.mesh(), self._drawn_face_rgb(), self.reach_m)
+        return None if perm is None else tuple(int(k) for k in perm)
+
+    def _drawn_face_rgb(self) -> np.ndarray:
+        """(F, 3) the colour of each triangle of the drawn surface (mesh())."""
         drawn = self.drawn()
-        face_rgb = np.array([self.geoms[g].rgb for g in self.surface.face_geom[drawn[self.surface.face_geom]]],
-                            float).reshape(-1, 3)
-        return symmetries(self.keypoints_T_m, self.mesh(), face_rgb, self.reach_m)
+        return np.array([self.geoms[g].rgb for g in self.surface.face_geom[drawn[self.surface.face_geom]]],
+                        float).reshape(-1, 3)
 
     @property
     def is_default(self) -> bool:

@@ -136,10 +136,13 @@ def _axis_angle(R: np.ndarray) -> tuple[np.ndarray, float]:
     return (axis if axis[i] > 0 else -axis), angle
 
 
-def keypoint_rotations(keypoints_T_m: np.ndarray, reach_m: float) -> list[tuple[np.ndarray, np.ndarray]]:
+def keypoint_rotations(keypoints_T_m: np.ndarray, reach_m: float, inverted: bool = False
+                       ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Every rotation about the origin but the identity that maps the keypoints onto themselves within
-    SYMMETRY_REACH_FRACTION x reach_m: [(R_T (3, 3), perm (K,))]."""
+    SYMMETRY_REACH_FRACTION x reach_m: [(R_T (3, 3), perm (K,))]. inverted: onto their point reflection -X
+    instead (the identity included): -R_T is then an improper symmetry, X[perm[k]] = -R_T @ X[k]."""
     X = np.asarray(keypoints_T_m, float)
+    Y = -X if inverted else X
     tol = SYMMETRY_REACH_FRACTION * reach_m
     r = np.linalg.norm(X, axis=1)
     # a base pair far from the origin and far from parallel, so the frame it spans is well conditioned
@@ -152,11 +155,12 @@ def keypoint_rotations(keypoints_T_m: np.ndarray, reach_m: float) -> list[tuple[
         for d in np.flatnonzero(np.abs(r - r[j]) <= tol):
             if c == d or abs(np.dot(X[c], X[d]) - np.dot(X[i], X[j])) > 2 * tol * r.max():
                 continue
-            R = _rotation_from_pairs(X[i], X[j], X[c], X[d])
-            if np.allclose(R, np.eye(3), atol=1e-9) or any(np.allclose(R, Q, atol=1e-6) for Q, _ in found):
+            R = _rotation_from_pairs(X[i], X[j], Y[c], Y[d])
+            if (not inverted and np.allclose(R, np.eye(3), atol=1e-9)) or any(np.allclose(R, Q, atol=1e-6)
+                                                                               for Q, _ in found):
                 continue
             moved = X @ R.T
-            dist = np.linalg.norm(moved[:, None] - X[None], axis=-1)
+            dist = np.linalg.norm(moved[:, None] - Y[None], axis=-1)
             perm = np.argmin(dist, axis=1)
             if np.all(dist[np.arange(len(X)), perm] <= tol) and len(set(perm.tolist())) == len(X):
                 found.append((R, perm))
@@ -228,3 +232,18 @@ def symmetries(keypoints_T_m: np.ndarray, mesh: TriangleMesh, face_rgb: np.ndarr
         axis, angle = _axis_angle(R)
         out.append(Symmetry(R, perm, axis, angle, shape, materials))
     return tuple(sorted(out, key=lambda s: (s.angle_deg, tuple(-s.axis_T))))
+
+
+def mirror_perm(keypoints_T_m: np.ndarray, mesh: TriangleMesh, face_rgb: np.ndarray, reach_m: float
+                ) -> np.ndarray | None:
+    """The keypoint permutation of a mirror symmetry (a reflection through a plane about the origin, S = -R_T of
+    a half-turn R_T mapping the keypoints onto -X: keypoint_rotations(inverted=True)) that the rendered surface
+    and its colours keep too, or None (the target is chiral: its mirror image is another object). S @ X[k] =
+    X[perm[k]]; S is its own inverse, so is perm. Several: the first of keypoint_rotations' order."""
+    for R, perm in keypoint_rotations(keypoints_T_m, reach_m, inverted=True):
+        S = -R
+        if not np.allclose(S @ S, np.eye(3), atol=1e-9) or np.allclose(S, -np.eye(3), atol=1e-9):
+            continue  # a rotoreflection or the point inversion: no mirror plane
+        if all(maps_onto_itself(S, mesh, face_rgb, SHAPE_REACH_FRACTION * reach_m)):
+            return perm
+    return None

@@ -136,7 +136,8 @@ def _layout(cfg: ExportConfig, gen, src: str, manifest: dict) -> lay.Layout:
     return lay.Layout(fmt=cfg.fmt, ext="jpg" if cfg.fmt == "bop" else cfg.image_format, mode=gen.mode,
                       sequence=name, target=target.name, keypoint_names=names, keypoints_T_m=points,
                       outline_T_m=mesh.vertices_T_m.tolist() if mesh is not None else [], depth_scale_mm=depth_mm,
-                      skeleton=[[int(a), int(b)] for a, b in target.skeleton])
+                      skeleton=[[int(a), int(b)] for a, b in target.skeleton],
+                      flip_idx=None if target.mirror_perm is None else list(target.mirror_perm))
 
 
 def _dataset_target(src: str, gen, manifest: dict):
@@ -251,11 +252,19 @@ def _yaml_str(text: str) -> str:
     return json.dumps(text, ensure_ascii=False)
 
 
+def _yolo_flip_line(flip_idx: list | None) -> str:
+    if flip_idx is None:
+        return ("# no flip_idx: the target is chiral, a mirrored image shows another object (Ultralytics then sets "
+                "fliplr = 0)")
+    return (f"flip_idx: [{', '.join(str(int(k)) for k in flip_idx)}]  # a mirror symmetry's keypoints: a "
+            "left-right flipped image shows the target with these swapped (README.md)")
+
+
 def yolo_yaml_text(layout: lay.Layout, has_val: bool, final_dir: str) -> str:
     """Ultralytics's data.yaml: `path` the export folder's absolute path (data.yaml works from any working
     folder), kpt_shape [K, 3], kpt_oks_sigmas (K times export_formats.OKS_SIGMA; Ultralytics otherwise scores with
-    1/K), the keypoint and class names; no flip_idx (the target is chiral: Ultralytics then turns its left-right
-    flip off)."""
+    1/K), flip_idx where the target has a mirror symmetry (layout.flip_idx; a chiral target has none, and
+    Ultralytics then turns its left-right flip off), the keypoint and class names."""
     k = len(layout.keypoint_names)
     val = "images/val" if has_val else "images/train  # no validation split was asked for (--val-fraction)"
     sigmas = ", ".join(f"{fx.OKS_SIGMA:g}" for _ in range(k))
@@ -265,8 +274,7 @@ def yolo_yaml_text(layout: lay.Layout, has_val: bool, final_dir: str) -> str:
             f"train: images/train\nval: {val}\n"
             f"kpt_shape: [{k}, 3]\n"
             f"kpt_oks_sigmas: [{sigmas}]  # OKS sigma per keypoint: {fx.OKS_SIGMA:g} each (README.md)\n"
-            "# no flip_idx: the target is chiral, a mirrored image shows another object (Ultralytics then sets "
-            "fliplr = 0)\n"
+            f"{_yolo_flip_line(layout.flip_idx)}\n"
             f"kpt_names:\n  0: [{', '.join(_yaml_str(n) for n in layout.keypoint_names)}]\n"
             f"names:\n  0: {_yaml_str(layout.target)}\n")
 

@@ -29,7 +29,8 @@ class Layout:
     sequence: the sequence folder's name (speedplus, sequence mode); target: the target's name;
     keypoint_names: (K,); keypoints_T_m: (K, 3) list; outline_T_m: (V, 3) list, the model's vertices (bop);
     depth_scale_mm: mm per depth unit, None when the dataset has no depth; skeleton: (E, 2) list of 0-based
-    keypoint index pairs joined along the target's edges (Target.skeleton).
+    keypoint index pairs joined along the target's edges (Target.skeleton); flip_idx: (K,) the keypoints'
+    permutation under a left-right flip of the image (Target.mirror_perm), None for a chiral target.
     """
 
     fmt: str
@@ -42,6 +43,7 @@ class Layout:
     outline_T_m: list
     depth_scale_mm: float | None
     skeleton: list
+    flip_idx: list | None = None
 
 
 def image_name(layout: Layout, i: int, split: str) -> str:

@@ -63,8 +63,7 @@ _FORMAT = {
     gt = COCO("{folder}/annotations/keypoints_val.json")   # images: {folder}/images/ + file_name
     ev = COCOeval(gt, gt.loadRes("predictions.json"), "keypoints"); ev.params.kpt_oks_sigmas = np.full({k}, {sigma:g})
   detectron2: `register_coco_instances("{name}_train", {{}}, "{folder}/annotations/keypoints_train.json",
-  "{folder}/images")`, metadata keypoint_names (above) and keypoint_flip_map [] with INPUT.RANDOM_FLIP "none"
-  (the target is chiral: a mirrored image shows another object).
+  "{folder}/images")`, metadata keypoint_names (above) and {coco_flip}.
 """,
     "bop": """\
 ## BOP layout (one object, obj_id 1)
@@ -95,8 +94,7 @@ _FORMAT = {
 - `images/<split>/`, `labels/<split>/` (one .txt per image; empty: no target pixel), `data.yaml`: `path` this
   folder's absolute path as exported (works from any working folder; moved: edit it), kpt_shape [{k}, 3],
   `kpt_oks_sigmas` {sigma:g} per keypoint (Ultralytics releases that read it score OKS with it, others with 1/K:
-  a keypoint scores 0.5 at an error of 0.059 sqrt(area)); no flip_idx: the target is chiral, a mirrored image
-  shows another object, and without flip_idx Ultralytics turns its left-right flip off.
+  a keypoint scores 0.5 at an error of 0.059 sqrt(area)); {yolo_flip}.
 - A row: class 0, box centre x, y and width, height (the mask's whole pixels), then x y v per keypoint, all
   divided by the image's width (x) or height (y); x = u / W with u the pixel coordinate above (centres at
   integers, as Ultralytics's own COCO converter divides); v = 2 visible, 1 hidden, a keypoint outside the
@@ -106,6 +104,22 @@ _FORMAT = {
     yolo pose train data={folder}/data.yaml model=yolov8n-pose.pt imgsz={n}
 """,
 }
+
+
+def _flip_texts(layout) -> dict[str, str]:
+    """What YOLO's and detectron2's left-right flip are told: the mirror symmetry's keypoint pairs, or that the
+    target is chiral (a mirrored image shows another object) and the flip is off."""
+    if layout.flip_idx is None:
+        chiral = "the target is chiral, a mirrored image shows another object"
+        return {"yolo_flip": f"no flip_idx: {chiral}, and without flip_idx Ultralytics turns its left-right flip "
+                             "off",
+                "coco_flip": f'keypoint_flip_map [] with INPUT.RANDOM_FLIP "none" ({chiral})'}
+    names = layout.keypoint_names
+    pairs = ", ".join(f'("{names[k]}", "{names[j]}")' for k, j in enumerate(layout.flip_idx) if k < j)
+    return {"yolo_flip": "flip_idx: the keypoints that a mirror symmetry of the target (shape and materials) swaps, "
+                         "so a left-right flip relabels what it shows",
+            "coco_flip": f"keypoint_flip_map [{pairs}] (a mirror symmetry of the target's shape and materials; "
+                         "empty: every keypoint on its plane), INPUT.RANDOM_FLIP may stay on"}
 
 
 def readme_text(layout, K: np.ndarray, n: int, pitch_m: float, manifest: dict, folder: str) -> str:
@@ -119,5 +133,5 @@ def readme_text(layout, K: np.ndarray, n: int, pitch_m: float, manifest: dict, f
                             f=float(K[0, 0]), cx=float(K[0, 2]), cy=float(K[1, 2]), n=n)
     body = _FORMAT[layout.fmt].format(pitch=pitch_m, folder=folder, parent=os.path.dirname(folder),
                                       name=os.path.basename(folder), k=len(layout.keypoint_names), n=n,
-                                      sigma=OKS_SIGMA)
+                                      sigma=OKS_SIGMA, **_flip_texts(layout))
     return head + common + "\n" + body

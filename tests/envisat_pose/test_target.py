@@ -241,3 +241,50 @@ def test_the_fast_visibility_table_calls_hidden_only_what_is_hidden(name, span):
     assert passed / hidden <= 0.15, (passed, hidden)
     assert table.visible.any(axis=(0, 1)).all(), "every keypoint is seen from some direction"
     np.testing.assert_array_equal(table.lookup(np.zeros((2, 5, 3)) + [0, 0, 50]).shape, (2, 5, t.num_keypoints))
+
+
+def _reflection_onto(X, Y):
+    """The orthogonal S (reflections allowed) that best maps the rows of X onto those of Y (Procrustes)."""
+    U, _, Vt = np.linalg.svd(Y.T @ X)
+    return U @ Vt
+
+
+@pytest.mark.parametrize("name, mirrored", [("models/cubesat_3u.xml", True), ("models/envisat.xml", False),
+                                            ("models/upper_stage.xml", False)])
+def test_a_mirror_symmetry_relabels_a_flipped_image(name, mirrored):
+    """The CubeSat has mirror planes its materials keep; ENVISAT's box has mirrors its materials (and array)
+    break, the upper stage none. Where a mirror exists, a left-right flipped image (u -> W - u, a camera centred
+    at W / 2) with keypoint j taking flipped keypoint perm[j] (Ultralytics's flip_idx) is the image of the target
+    at the proper pose F R S, F t (F the camera's x mirror, S the reflection found here by Procrustes from the
+    keypoints alone), to 1e-9 px."""
+    t = load_target(name)
+    perm = t.mirror_perm
+    assert (perm is not None) == mirrored
+    if perm is None:
+        return
+    X = t.keypoints_T_m
+    S = _reflection_onto(X, X[list(perm)])
+    assert np.linalg.det(S) < 0 and np.allclose(S @ S, np.eye(3), atol=1e-9)
+    np.testing.assert_allclose(X @ S.T, X[list(perm)], atol=1e-9)
+    W, f = 1024.0, 900.0
+    K = np.array([[f, 0, W / 2], [0, f, W / 2], [0, 0, 1]])
+    F = np.diag([-1.0, 1.0, 1.0])
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        q = rng.standard_normal(4)
+        q /= np.linalg.norm(q)
+        w, x, y, z = q
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        tvec = np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), 3.0])
+
+        def project(R_, t_):
+            p = (X @ R_.T + t_) @ K.T
+            return p[:, :2] / p[:, 2:]
+
+        uv = project(R, tvec)
+        flipped = np.c_[W - uv[:, 0], uv[:, 1]][list(perm)]  # Ultralytics: new keypoint j <- old flip_idx[j]
+        R_m = F @ R @ S
+        assert np.linalg.det(R_m) > 0
+        np.testing.assert_allclose(flipped, project(R_m, F @ tvec), atol=1e-9)

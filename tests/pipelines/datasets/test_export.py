@@ -493,6 +493,7 @@ def test_another_target_exports_its_own_keypoints(tmp_path, monkeypatch):
         assert kp.shape == (12, 3) and np.abs(kp[inside, :2] - np.asarray(lab["keypoints_px"])[inside]).max() < 0.01
     data, _ = load_data_yaml(outs["yolo-pose"], tmp_path, monkeypatch)
     assert data["kpt_shape"] == [12, 3] and data["kpt_oks_sigmas"] == [0.025] * 12 and data["kpt_names"][0] == names
+    assert data["flip_idx"] == list(load_target(cube).mirror_perm)  # its mirrors: a flipped image relabelled
     bop_kp = json.load(open(os.path.join(outs["bop"], "models", "keypoints_3d.json")))["1"]
     assert bop_kp["names"] == names and np.allclose(np.asarray(bop_kp["points_mm"]).T, points * 1000.0)
     assert json.load(open(os.path.join(outs["bop"], "export.json")))["target"] == "cubesat_3u"
