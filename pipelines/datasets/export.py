@@ -32,7 +32,7 @@ from envisat_pose.pipelines.datasets import export_layouts as lay
 from envisat_pose.pipelines.datasets.export_readme import readme_text
 from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, read_shard, skip_hint
-from envisat_pose.target import load_target
+from envisat_pose.target import APPENDAGE_GROUP, load_target
 from envisat_pose.target_mesh import ply_bytes
 
 STAGE_PREFIX = ".tmp-export-"
@@ -137,7 +137,8 @@ def _layout(cfg: ExportConfig, gen, src: str, manifest: dict) -> lay.Layout:
                       sequence=name, target=target.name, keypoint_names=names, keypoints_T_m=points,
                       outline_T_m=mesh.vertices_T_m.tolist() if mesh is not None else [], depth_scale_mm=depth_mm,
                       skeleton=[[int(a), int(b)] for a, b in target.skeleton],
-                      flip_idx=None if target.mirror_perm is None else list(target.mirror_perm))
+                      flip_idx=None if target.mirror_perm is None else list(target.mirror_perm),
+                      symmetric=bool(_bop_symmetries(target, gen.appendages_on)))
 
 
 def _dataset_target(src: str, gen, manifest: dict):
@@ -220,12 +221,27 @@ def _write_static(layout: lay.Layout, stage: str, gen, manifest: dict, has_val: 
         fh.write(readme_text(layout, K, n, _pixel_pitch_m(gen), manifest, final_dir))
 
 
+def _bop_symmetries(target, appendages: bool) -> dict:
+    """models_info's symmetries_discrete: each rotation of the target that nothing in an image tells from the
+    identity (Target.symmetries whose shape and materials keep it: the CubeSat's half-turns; none of ENVISAT's,
+    which its array and materials break) as a row-major 4 x 4 in mm about the model's origin, the CoM. Nothing
+    where the export draws geoms the symmetries were not checked on (the appendages' group)."""
+    if appendages and any(g.group == APPENDAGE_GROUP for g in target.geoms):
+        return {}
+    kept = [s.R_T for s in target.symmetries if not s.broken_by]
+    if not kept:
+        return {}
+    return {"symmetries_discrete": [np.vstack([np.c_[R, np.zeros(3)], [0, 0, 0, 1]]).ravel().tolist()
+                                    for R in kept]}
+
+
 def _write_bop_model(layout: lay.Layout, stage: str, gen, K: np.ndarray) -> None:
     """models/ (the mesh, its info, the keypoints), models_eval/ (the same mesh with area-weighted vertex normals,
     its info) and camera.json."""
-    mesh = load_target(gen.target).mesh(gen.appendages_on)
+    target = load_target(gen.target)
+    mesh = target.mesh(gen.appendages_on)
     vertices_mm = mesh.vertices_T_m * 1000.0
-    info = {"1": fx.bop_model_info(vertices_mm)}
+    info = {"1": {**fx.bop_model_info(vertices_mm), **_bop_symmetries(target, gen.appendages_on)}}
     folder = os.path.join(stage, "models")
     os.makedirs(folder, exist_ok=True)
     with open(os.path.join(folder, "obj_000001.ply"), "wb") as fh:

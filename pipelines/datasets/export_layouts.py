@@ -30,7 +30,8 @@ class Layout:
     keypoint_names: (K,); keypoints_T_m: (K, 3) list; outline_T_m: (V, 3) list, the model's vertices (bop);
     depth_scale_mm: mm per depth unit, None when the dataset has no depth; skeleton: (E, 2) list of 0-based
     keypoint index pairs joined along the target's edges (Target.skeleton); flip_idx: (K,) the keypoints'
-    permutation under a left-right flip of the image (Target.mirror_perm), None for a chiral target.
+    permutation under a left-right flip of the image (Target.mirror_perm), None for a chiral target; symmetric:
+    rotations of the target look the same in an image (BOP's symmetries_discrete).
     """
 
     fmt: str
@@ -44,6 +45,7 @@ class Layout:
     depth_scale_mm: float | None
     skeleton: list
     flip_idx: list | None = None
+    symmetric: bool = False
 
 
 def image_name(layout: Layout, i: int, split: str) -> str:

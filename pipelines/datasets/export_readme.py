@@ -69,7 +69,7 @@ _FORMAT = {
 ## BOP layout (one object, obj_id 1)
 - `camera.json`: cx, cy, fx, fy (px), width, height, depth_scale (mm per depth unit).
 - `models/obj_000001.ply`: the target's geoms as triangles, millimetres, body frame; `models/models_info.json`:
-  diameter and extent (mm); no symmetries (the target is not symmetric). `models/keypoints_3d.json` (an extra):
+  diameter and extent (mm), and {bop_symmetries}. `models/keypoints_3d.json` (an extra):
   the keypoints in mm. `models_eval/obj_000001.ply`: the same triangles with per-vertex normals (nx ny nz: each
   vertex's triangles' normals weighted by their areas, unit length; not resampled), and its `models_info.json`.
 - `train_pbr/NNNNNN/` (random views: 1000 images a scene; a sequence: one scene): `rgb/NNNNNN.jpg` (the gray
@@ -86,7 +86,7 @@ _FORMAT = {
     gt = inout.load_scene_gt("{folder}/train_pbr/000000/scene_gt.json")
     model = inout.load_ply("{folder}/models_eval/obj_000001.ply")   # pts (mm), normals, faces
   The toolkit's scripts (scripts/calc_gt_info.py, calc_gt_masks.py, eval_bop19_pose.py) find a dataset by name
-  in bop_toolkit_lib/dataset_params.py: add `{name}` there (obj_ids [1], no symmetric objects, im_size
+  in bop_toolkit_lib/dataset_params.py: add `{name}` there (obj_ids [1], {bop_symmetric_ids}, im_size
   ({n}, {n}), scene ids from train_pbr/) and set `datasets_path` in bop_toolkit_lib/config.py to {parent}.
 """,
     "yolo-pose": """\
@@ -104,6 +104,17 @@ _FORMAT = {
     yolo pose train data={folder}/data.yaml model=yolov8n-pose.pt imgsz={n}
 """,
 }
+
+
+def _symmetry_texts(layout) -> dict[str, str]:
+    """What BOP's files and scripts are told of the target's symmetries (layout.symmetric: models_info.json holds
+    symmetries_discrete)."""
+    if not layout.symmetric:
+        return {"bop_symmetries": "no symmetries (no rotation of the target looks the same in an image)",
+                "bop_symmetric_ids": "no symmetric objects"}
+    return {"bop_symmetries": "`symmetries_discrete` (the rotations that no image tells from the identity: shape "
+                              "and materials kept, 4 x 4 row-major, mm)",
+            "bop_symmetric_ids": "symmetric_obj_ids [1]"}
 
 
 def _flip_texts(layout) -> dict[str, str]:
@@ -133,5 +144,5 @@ def readme_text(layout, K: np.ndarray, n: int, pitch_m: float, manifest: dict, f
                             f=float(K[0, 0]), cx=float(K[0, 2]), cy=float(K[1, 2]), n=n)
     body = _FORMAT[layout.fmt].format(pitch=pitch_m, folder=folder, parent=os.path.dirname(folder),
                                       name=os.path.basename(folder), k=len(layout.keypoint_names), n=n,
-                                      sigma=OKS_SIGMA, **_flip_texts(layout))
+                                      sigma=OKS_SIGMA, **_flip_texts(layout), **_symmetry_texts(layout))
     return head + common + "\n" + body

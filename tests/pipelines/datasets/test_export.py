@@ -496,4 +496,17 @@ def test_another_target_exports_its_own_keypoints(tmp_path, monkeypatch):
     assert data["flip_idx"] == list(load_target(cube).mirror_perm)  # its mirrors: a flipped image relabelled
     bop_kp = json.load(open(os.path.join(outs["bop"], "models", "keypoints_3d.json")))["1"]
     assert bop_kp["names"] == names and np.allclose(np.asarray(bop_kp["points_mm"]).T, points * 1000.0)
+    # its half-turns, as the BOP toolkit reads them (misc.get_symmetry_transformations: 4 x 4 row-major, mm): each
+    # a proper rotation that maps the exported model's vertices and keypoints onto themselves
+    sym = json.load(open(os.path.join(outs["bop"], "models", "models_info.json")))["1"]["symmetries_discrete"]
+    verts = _ply_vertices(os.path.join(outs["bop"], "models", "obj_000001.ply"))
+    kp_mm = np.asarray(bop_kp["points_mm"])
+    assert len(sym) == 3
+    for m in sym:
+        T = np.asarray(m).reshape(4, 4)
+        R, tvec = T[:3, :3], T[:3, 3]
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) > 0 and np.allclose(tvec, 0)
+        for pts in (verts, kp_mm):
+            moved = pts @ R.T
+            assert np.min(np.linalg.norm(moved[:, None] - pts[None], axis=2), axis=1).max() < 1e-3  # mm
     assert json.load(open(os.path.join(outs["bop"], "export.json")))["target"] == "cubesat_3u"
