@@ -133,11 +133,12 @@ def _layout(cfg: ExportConfig, gen, src: str, manifest: dict) -> lay.Layout:
     name = re.sub(r"[^A-Za-z0-9_.-]+", "_", os.path.basename(os.path.normpath(os.path.abspath(src)))) or "sequence"
     depth_mm = gen.depth_scale_m * 1000.0 if gen.write_depth else None
     names, points = target.keypoint_names, target.keypoints_T_m.tolist()
+    mirror = target.mirror_perm if _shape_checked(target, gen.appendages_on) else None
     return lay.Layout(fmt=cfg.fmt, ext="jpg" if cfg.fmt == "bop" else cfg.image_format, mode=gen.mode,
                       sequence=name, target=target.name, keypoint_names=names, keypoints_T_m=points,
                       outline_T_m=mesh.vertices_T_m.tolist() if mesh is not None else [], depth_scale_mm=depth_mm,
                       skeleton=[[int(a), int(b)] for a, b in target.skeleton],
-                      flip_idx=None if target.mirror_perm is None else list(target.mirror_perm),
+                      flip_idx=None if mirror is None else list(mirror),
                       symmetric=bool(_bop_symmetries(target, gen.appendages_on)))
 
 
@@ -221,12 +222,18 @@ def _write_static(layout: lay.Layout, stage: str, gen, manifest: dict, has_val: 
         fh.write(readme_text(layout, K, n, _pixel_pitch_m(gen), manifest, final_dir))
 
 
+def _shape_checked(target, appendages: bool) -> bool:
+    """Whether the images show the surface the target's symmetries and mirror were checked on (Target.mesh()):
+    not where the dataset drew geoms of the appendages' group too."""
+    return not (appendages and any(g.group == APPENDAGE_GROUP for g in target.geoms))
+
+
 def _bop_symmetries(target, appendages: bool) -> dict:
     """models_info's symmetries_discrete: each rotation of the target that nothing in an image tells from the
     identity (Target.symmetries whose shape and materials keep it: the CubeSat's half-turns; none of ENVISAT's,
     which its array and materials break) as a row-major 4 x 4 in mm about the model's origin, the CoM. Nothing
-    where the export draws geoms the symmetries were not checked on (the appendages' group)."""
-    if appendages and any(g.group == APPENDAGE_GROUP for g in target.geoms):
+    where the images show more than the symmetries were checked on (_shape_checked)."""
+    if not _shape_checked(target, appendages):
         return {}
     kept = [s.R_T for s in target.symmetries if not s.broken_by]
     if not kept:
