@@ -42,6 +42,13 @@ def add_common(p: argparse.ArgumentParser, *, out: str | None = None, out_defaul
     p.set_defaults(flag_names={**COMMON_FLAGS, **(flag_names or {})})
 
 
+def add_bf16_argument(p: argparse.ArgumentParser) -> None:
+    """--bf16: ENVISAT's corner detector runs its network in bfloat16 (DetectConfig.bf16)."""
+    p.add_argument("--bf16", action="store_true", help="run the corner detector's network in bfloat16: faster on "
+                   "CPUs with AVX512-BF16 or AMX, slower elsewhere; accuracy beside float32 in "
+                   "bench/results/detector_bf16.json (default: float32)")
+
+
 def add_recording_arguments(p: argparse.ArgumentParser) -> None:
     """--spawn / --connect URL: the recording streamed to a viewer instead of the output folder's recording.rrd."""
     g = p.add_mutually_exclusive_group()

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from envisat_pose.app.common import add_common
+from envisat_pose.app.common import add_bf16_argument, add_common
 from envisat_pose.app.run import print_table
 
 
@@ -20,6 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration-s", type=float, default=600.0, help="simulated time, s (default 600)")
     add_common(p, out="output folder (default out/demo)", out_default=os.path.join("out", "demo"),
                out_metavar="RUN_DIR", weights=True)
+    add_bf16_argument(p)
     p.set_defaults(func=run_demo)
 
 
@@ -28,7 +29,7 @@ def run_demo(args: argparse.Namespace) -> int:
     from envisat_pose.pipelines.runs.run_config import RunConfig
 
     cfg = RunConfig(scenario="default", duration_s=args.duration_s, weights=args.weights or "", runs=1, workers=1,
-                    seed=0)
+                    seed=0, bf16=args.bf16)
     print(f"envisat demo: the tracker, cold start, on scenario 'default', {cfg.duration_s:.0f} s simulated at {cfg.rate_hz:g} Hz, "
           f"weights {cfg.weights}")
     summary = run_closed_loop(cfg, args.out, progress=not args.quiet)  # staged: an interrupt leaves --out as it was

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import add_common, add_recording_arguments, recording_sink
+from envisat_pose.app.common import add_bf16_argument, add_common, add_recording_arguments, recording_sink
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -45,6 +45,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    "tracker follows it with its keypoint detector (--weights, trained and calibrated with --target)")
     add_common(p, config="run config (sections image, filter, tracker; top-level keys)", weights=True,
                seed="root seed (default 0)")
+    add_bf16_argument(p)
     add_recording_arguments(p)
 
 
@@ -56,7 +57,8 @@ def resolve_config(args: argparse.Namespace):
     flags = {"duration_s": args.duration_s, "runs": args.runs, "seed": args.seed, "weights": args.weights,
              "workers": args.workers, "warm_start": True if args.warm_start else None,
              "tracker.roi.enabled": False if args.no_roi else None,
-             "image.target": args.target, "render_window": False if args.full_frames else None}
+             "image.target": args.target, "render_window": False if args.full_frames else None,
+             "bf16": True if args.bf16 else None}
     return resolve_job("run", args.scenario, args.config, flags)
 
 

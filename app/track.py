@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 
 from envisat_pose.app.common import (
+    add_bf16_argument,
     add_common,
     add_frame_inputs,
     add_recording_arguments,
@@ -41,6 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "then `envisat calibrate --target`)")
     add_common(p, out="output folder (created, parents too; files are replaced)", out_metavar="RUN_DIR",
                config="track config (orbit, filter, tracker; top-level keys)", weights=True, flag_names=FLAGS)
+    add_bf16_argument(p)
     add_skip_damaged_argument(p)
     add_recording_arguments(p)
     p.set_defaults(func=track_cli)
@@ -59,7 +61,7 @@ def track_cli(args: argparse.Namespace) -> int:
     with skip_hint():
         source = open_source(args.images, args.rate_hz or 0.0, args.timestamps, args.bit_depth, args.skip_damaged)
     cfg = resolve_job("track", args.scenario or source.scenario or "default", args.config,
-                      rate_hz=args.rate_hz, weights=args.weights, target=args.target)
+                      rate_hz=args.rate_hz, weights=args.weights, target=args.target, bf16=True if args.bf16 else None)
     sink = recording_sink(args)
     summary = track_frames(cfg, source, args.camera, None, args.out, sink, progress=not args.quiet)
     w, h = summary["source"]["size_px"]

@@ -48,7 +48,9 @@ class DetectConfig:
     move each named corner to the intersection of its edges fitted to the full-resolution pixels
     (perception/refine.py), with that fit's covariance + refine_cov_floor_px2 x I in place of the network's (its
     own calibration, fitted by `envisat calibrate --refine` and shipped as `refine_cov_floor_px2`);
-    refine_config: its settings."""
+    refine_config: its settings; bf16: run the network in bfloat16 (torch.autocast; its maps handed on in float32),
+    native on CPUs with AVX512-BF16 or AMX (bench/detector_bf16.py: accuracy beside float32 on held-out frames),
+    emulated and slower elsewhere."""
 
     top_k: int = 12
     threshold: float = 0.2
@@ -66,6 +68,7 @@ class DetectConfig:
     refine: bool = False
     refine_cov_floor_px2: float = 0.0
     refine_config: RefineConfig = RefineConfig()
+    bf16: bool = False
 
 
 @dataclass(frozen=True)
@@ -160,14 +163,16 @@ def weights_face_cue(path: str) -> FaceCue | None:
         raise WeightsError(f"{path}: metadata face_cue is not readable ({err})") from None
 
 
-def load_detector(path: str, config: DetectConfig | None = None, device: str = "cpu") -> "Detector":
+def load_detector(path: str, config: DetectConfig | None = None, device: str = "cpu", bf16: bool = False
+                  ) -> "Detector":
     """A Detector from a weights file (perception/weights.py), with the covariance calibration stored in the
     file's metadata (`cov_scale`, `refine_cov_floor_px2`) unless `config` is given (its own then stand), the error model
-    (`error_model`, on `detector.error_model`)."""
+    (`error_model`, on `detector.error_model`); bf16: DetectConfig.bf16 on that config."""
 
     model = load_model(path, device=device)
     cfg = config or dataclasses.replace(DetectConfig(), cov_scale=weights_cov_scale(path),
                                         refine_cov_floor_px2=weights_refine_floor(path))
+    cfg = dataclasses.replace(cfg, bf16=cfg.bf16 or bf16)
     return Detector(model, cfg, device=device, error_model=weights_error_model(path), face_cue=weights_face_cue(path))
 
 
@@ -228,12 +233,17 @@ class Detector:
         self.input_px = model.cfg.input_px
         self.stride = model.cfg.stride
 
+    def _forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The network on a batch (B, 1, S, S), in bfloat16 where cfg.bf16 says, its outputs in float32."""
+        with torch.inference_mode(), torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.cfg.bf16):
+            out = self._net(x.to(self.device).contiguous(memory_format=torch.channels_last))
+        return {k: v.float() for k, v in out.items()} if self.cfg.bf16 else out
+
     def network(self, crop_u8: np.ndarray, box: np.ndarray) -> dict[str, np.ndarray | torch.Tensor]:
         """Run the network on one input-sized uint8 crop (of the frame's box (x0, y0, side)): jmap (J, H, W) scores, joff (2, H, W), jchol (3, H, W)
         as numpy, and the features (a tensor kept for line verification)."""
         x = (crop_u8.astype(np.float32) / 255.0 - IMAGE_MEAN) / IMAGE_STD
-        with torch.inference_mode():
-            out = self._net(torch.from_numpy(x)[None, None].to(self.device).contiguous(memory_format=torch.channels_last))
+        out = self._forward(torch.from_numpy(x)[None, None])
         return {"jmap": torch.sigmoid(out["jmap_logit"][0]).cpu().numpy(), "joff": out["joff"][0].cpu().numpy(),
                 "jchol": out["jchol"][0].cpu().numpy(), "features": out["features"]}
 
@@ -342,8 +352,7 @@ class Detector:
         """The network on a batch of uint8 patches (N, P, P) (of the frame's boxes (x0, y0, side)), one
         forward: per patch jmap (J, h, w) scores, joff (2, h, w), jchol (3, h, w) as numpy."""
         x = (patches_u8.astype(np.float32) / 255.0 - IMAGE_MEAN) / IMAGE_STD
-        with torch.inference_mode():
-            out = self._net(torch.from_numpy(x)[:, None].to(self.device).contiguous(memory_format=torch.channels_last))
+        out = self._forward(torch.from_numpy(x)[:, None])
         jmap = torch.sigmoid(out["jmap_logit"]).cpu().numpy()
         joff, jchol = out["joff"].cpu().numpy(), out["jchol"].cpu().numpy()
         return [{"jmap": jmap[n], "joff": joff[n], "jchol": jchol[n]} for n in range(len(x))]

@@ -52,7 +52,8 @@ class RunConfig(Config):
     [measurement] rate, else 600 s and 1 Hz; job_defaults.fill_from_scenario). runs: closed loops on the same
     truth; workers: processes for them (None: one per run, at most one per core); seed: the truth's random
     attitude, every run's camera noise (and warm start); weights: detector weights file ("": the shipped ones;
-    the file must exist; another target's (image.target) keypoint detector, required for it). warm_start: start each run's filter from the truth plus a draw from filter.p0_sigma
+    the file must exist; another target's (image.target) keypoint detector, required for it); bf16: ENVISAT's
+    corner detector runs its network in bfloat16 (perception.detect.DetectConfig.bf16; `--bf16`). warm_start: start each run's filter from the truth plus a draw from filter.p0_sigma
     (filter studies), instead of cold from the images. threads: torch CPU threads per run; jpeg_quality: run 0's
     images in the recording. image: the camera frames as the image factory's sequence mode makes them (its
     sequence fields, seed and frame count are set from the ones above, its sun made explicit: finished_image).
@@ -72,6 +73,7 @@ class RunConfig(Config):
     workers: int | None = None
     seed: int = 0
     weights: str = ""
+    bf16: bool = False
     warm_start: bool = False
     threads: int = 1
     jpeg_quality: int = 80

@@ -72,8 +72,8 @@ class TrackConfig(Config):
     (job_defaults.fill_from_scenario). rate_hz: frame rate of an image folder or a video (0: a video's own
     rate); target: the tracked spacecraft's MJCF file (envisat_pose/target.py; ENVISAT's by default); weights:
     detector weights ("": ENVISAT's shipped ones; the file must exist and be the target's detector: another
-    target's keypoint detector is required for it); threads: torch CPU threads; jpeg_quality: the recording's
-    images. tracker: as `envisat run`."""
+    target's keypoint detector is required for it); bf16: ENVISAT's corner detector in bfloat16 (as `envisat
+    run`); threads: torch CPU threads; jpeg_quality: the recording's images. tracker: as `envisat run`."""
 
     scenario: str = "default"
     orbit: "OrbitConfig | None" = None
@@ -81,6 +81,7 @@ class TrackConfig(Config):
     rate_hz: float = 0.0
     target: str = DEFAULT_TARGET
     weights: str = ""
+    bf16: bool = False
     threads: int = 1
     jpeg_quality: int = 80
     filter: FilterConfig | None = None
@@ -171,7 +172,7 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     check_out_dir(out_dir, field="out_dir")
     cfg, source, camera, remap, pixels = prepare_frames(cfg, source, camera, remap, progress)
     # the detector before any output: another target's weights without their calibration are refused here
-    detector = tracker_detector(cfg.weights, target=cfg.target)
+    detector = tracker_detector(cfg.weights, target=cfg.target, bf16=cfg.bf16)
     make_out_dir(out_dir, field="out_dir")
     with staged_folder(out_dir, OUTPUTS.values()) as stage:
         return _track(cfg, source, camera, remap, stage, sink, progress, pixels, detector)

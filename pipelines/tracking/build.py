@@ -67,16 +67,20 @@ def tracker_camera(path: str | None = None, size_px: tuple[int, int] | None = No
     return cam
 
 
-def tracker_detector(weights: str | None = None, device: str = "cpu", target: str | None = None):
+def tracker_detector(weights: str | None = None, device: str = "cpu", target: str | None = None,
+                     bf16: bool = False):
     """The tracker's detector of a weights file: ENVISAT's corner detector (perception.detect.Detector; weights
-    None: the shipped ones) when target is None or ENVISAT's file, else the keypoint detector of that target's
-    file (perception.keypoint_detect.KeypointFrameDetector: its weights required, trained for that target and
-    calibrated)."""
+    None: the shipped ones; bf16: its network in bfloat16, DetectConfig.bf16) when target is None or ENVISAT's
+    file, else the keypoint detector of that target's file (perception.keypoint_detect.KeypointFrameDetector: its
+    weights required, trained for that target and calibrated; bf16 refused)."""
     if other_target(target) is None:
         from envisat_pose.perception.detect import load_detector
         from envisat_pose.perception.weights import shipped_weights_path
 
-        return load_detector(weights or shipped_weights_path(), device=device)
+        return load_detector(weights or shipped_weights_path(), device=device, bf16=bf16)
+    if bf16:
+        raise InputError(f"--bf16: ENVISAT's corner detector only; target {target!r}'s keypoint detector runs in "
+                         "float32")
     from envisat_pose.perception.keypoint_detect import load_frame_detector
 
     if not weights:
