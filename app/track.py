@@ -61,7 +61,8 @@ def track_cli(args: argparse.Namespace) -> int:
     with skip_hint():
         source = open_source(args.images, args.rate_hz or 0.0, args.timestamps, args.bit_depth, args.skip_damaged)
     cfg = resolve_job("track", args.scenario or source.scenario or "default", args.config,
-                      rate_hz=args.rate_hz, weights=args.weights, target=args.target, bf16=True if args.bf16 else None)
+                      rate_hz=args.rate_hz, weights=args.weights, target=args.target,
+                      bf16=True if args.bf16 else None)
     sink = recording_sink(args)
     summary = track_frames(cfg, source, args.camera, None, args.out, sink, progress=not args.quiet)
     w, h = summary["source"]["size_px"]

@@ -9,7 +9,8 @@ median error, mean signed error (x, y; the bias), mean e^T C^-1 e of the errors 
 bfloat16 corners lie from the float32 ones where both name a corner. Whether the CPU has native bfloat16
 (AVX512-BF16 or AMX) is recorded: elsewhere torch emulates it, slower.
 
-    .venv/bin/python bench/detector_bf16.py --data DIR [--limit 200] [--weights W] [--out bench/results/detector_bf16.json]
+    .venv/bin/python bench/detector_bf16.py --data DIR [--limit 200] [--weights W]
+        [--out bench/results/detector_bf16.json]
 """
 
 from __future__ import annotations

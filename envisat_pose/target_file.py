@@ -3,14 +3,15 @@
 The file is parsed by MuJoCo (MjSpec), so its own <compiler> (angle unit, eulerseq, meshdir, texturedir), defaults,
 includes and assets apply; its body `target` is checked for structure (read_spec).
 
-A spacecraft is often written as a tree: a bus with its wings, antennas and booms as child bodies (or MJCF
-<frame> elements: the same, without masses of their own). Without joints the tree is one rigid body, and MuJoCo
-says so itself: its compiler's `fusestatic` moves every geom and site of a static child into the parent, the
-child's pose composed, and sums the masses and inertias about the common centre of mass. That is done here once, to the file alone (the body given a free joint for the compile, so that it is
-not fused into the world), and written back as a file whose body `target` holds everything directly (fused_text):
-its inertial the composite one and its sites and geoms at their compiled poses in T, to the last bit (a mesh
-geom's less its own centring, which compiling the text applies again). Keypoints keep MuJoCo's order: the body's
-own sites, then each child's, depth first. A joint anywhere in the tree is refused (the target is one rigid body).
+A spacecraft is often written as a tree: a bus with its wings, antennas and booms as child bodies (or MJCF <frame>
+elements: the same, without masses of their own). Without joints the tree is one rigid body, and MuJoCo says so
+itself: its compiler's `fusestatic` moves every geom and site of a static child into the parent, the child's pose
+composed, and sums the masses and inertias about the common centre of mass. That is done here once, to the file
+alone (the body given a free joint for the compile, so that it is not fused into the world), and written back as a
+file whose body `target` holds everything directly (fused_text): its inertial the composite one and its sites and
+geoms at their compiled poses in T, to the last bit (a mesh geom's less its own centring, which compiling the text
+applies again). Keypoints keep MuJoCo's order: the body's own sites, then each child's, depth first. A joint
+anywhere in the tree is refused (the target is one rigid body).
 """
 
 from __future__ import annotations

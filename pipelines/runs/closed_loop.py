@@ -127,7 +127,8 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
     prior = None
     if cfg.warm_start:
         prior = (draw_initial_estimate(x_truth[0], cfg.filter.P0, rng), cfg.filter.P0, float(t_s[0]))
-    tracker = Tracker(camera, tracker_detector(cfg.weights, target=gcfg.target, bf16=cfg.bf16), chaser_function(orbit), cfg.tracker,
+    detector = tracker_detector(cfg.weights, target=gcfg.target, bf16=cfg.bf16)
+    tracker = Tracker(camera, detector, chaser_function(orbit), cfg.tracker,
                       dataclasses.asdict(cfg.filter), mu_m3_s2=mu, gravity_gradient=gg, prior=prior,
                       target=run_target(cfg))  # exact
     appearance_seed = sample_seed(cfg.seed, 0, 0)  # one appearance for the whole sequence: the same target in every run
