@@ -410,9 +410,9 @@ def load_target(given: str = DEFAULT_TARGET, field: str = "target") -> Target:
     ConfigError naming `field`, the value and what was expected: no such file, a file MuJoCo cannot read or
     compile, no body 'target', a joint in it or its child bodies (which are read fused: target_file.py), a bad
     inertia (zero mass, not positive definite, the triangle inequality; stated by an <inertial>, or else MuJoCo's
-    from the geoms and child bodies), the CoM off the body's origin, fewer than 4 keypoint sites, no geom the factory draws
-    (RENDERED_GROUPS), a keypoint farther than KEYPOINT_MAX_SURFACE_DISTANCE_M from the drawn surface. Cached per
-    file, size and modification time, its named files' too (target_file.named_files)."""
+    from the geoms and child bodies), the CoM off the body's origin, fewer than 4 keypoint sites, no geom the
+    factory draws (RENDERED_GROUPS), a keypoint farther than KEYPOINT_MAX_SURFACE_DISTANCE_M from the drawn
+    surface. Cached per file, size and modification time, its named files' too (target_file.named_files)."""
     path = resolve_target_path(given)
     if not os.path.isfile(path):
         _fail(field, given, "an MJCF file (no such file)")
