@@ -56,8 +56,8 @@ class RunConfig(Config):
     corner detector runs its network in bfloat16 (perception.detect.DetectConfig.bf16; `--bf16`). warm_start:
     start each run's filter from the truth plus a draw from filter.p0_sigma (filter studies), instead of cold from
     the images. threads: torch CPU threads per run; jpeg_quality: run 0's images in the recording. image: the
-    camera frames as the image factory's sequence mode makes them (its sequence fields, seed and frame count are set from the ones above, its sun made explicit: finished_image).
-    tracker: pipelines.tracker.TrackerConfig. render_window (on; `--full-frames` off): once the tracker holds one
+    camera frames as the image factory's sequence mode makes them (its sequence fields, seed and frame count are
+    set from the ones above, its sun made explicit: finished_image). tracker: pipelines.tracker.TrackerConfig. render_window (on; `--full-frames` off): once the tracker holds one
     confirmed hypothesis, MuJoCo renders and the space camera corrupts only the window its detector will look at,
     the rest of the frame black: planned a frame early (the frames are made while the tracker steps the one before)
     and grown, made again when it does not hold the tracker's plan (pipelines/runs/loop_frames.py); a full frame
