@@ -135,6 +135,13 @@ def test_a_joint_in_the_tree_is_refused(tmp_path):
         load_target(str(path))
 
 
+def _placed(model):
+    """(model, data) with MuJoCo's kinematics done: every body, geom and site where MuJoCo puts it."""
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    return model, data
+
+
 def test_a_mesh_in_a_child_body_lands_where_mujoco_puts_it(tmp_path):
     """A wedge mesh (re-centred by MuJoCo on its own inertial frame) in a turned child body, itself turned: its
     vertices in T as MuJoCo places them in the file alone (mj_kinematics), to 1e-9 m, in the Target's surface and
@@ -147,9 +154,7 @@ def test_a_mesh_in_a_child_body_lands_where_mujoco_puts_it(tmp_path):
         '<site name="kp_3" pos="0.4 -0.4 0.4"/><body name="arm" pos="0 0 1.0" euler="0 45 0">'
         '<geom type="mesh" mesh="wedge" density="0" pos="0.1 0 0" euler="45 0 0"/><site name="kp_m" pos="0.1 -0.2 -0.1"/>'
         '</body></body></worldbody></mujoco>')
-    m = mujoco.MjModel.from_xml_path(str(path))
-    d = mujoco.MjData(m)
-    mujoco.mj_kinematics(m, d)
+    m, d = _placed(mujoco.MjModel.from_xml_path(str(path)))
 
     def mesh_T(model, data):
         body = model.body("target").id
@@ -163,9 +168,7 @@ def test_a_mesh_in_a_child_body_lands_where_mujoco_puts_it(tmp_path):
     near = np.min(np.linalg.norm(truth[:, None] - t.mesh().vertices_T_m[None], axis=2), axis=1)
     assert near.max() < 1e-9
     np.testing.assert_allclose(t.keypoints_T_m[-1], d.site_xpos[m.site("kp_m").id], atol=1e-12)
-    s = mujoco.MjModel.from_xml_string(scene_xml(t))
-    ds = mujoco.MjData(s)
-    mujoco.mj_kinematics(s, ds)
+    s, ds = _placed(mujoco.MjModel.from_xml_string(scene_xml(t)))
     np.testing.assert_allclose(mesh_T(s, ds), truth, atol=1e-9)
 
 
@@ -180,14 +183,10 @@ def test_a_body_with_frames_is_labelled_where_mujoco_puts_its_sites(tmp_path):
         '<geom name="mast" type="box" size="0.05 0.05 0.4" pos="0 0 0.4"/><site name="kp_top" pos="0 0 0.8"/>'
         '<site name="kp_side" pos="0.05 0.05 0.8"/></frame><site name="kp_1" pos="0.5 0.4 0.3"/>'
         '<site name="kp_2" pos="-0.5 0.4 0.3"/><site name="kp_3" pos="0.5 -0.4 -0.3"/></body></worldbody></mujoco>')
-    m = mujoco.MjModel.from_xml_path(str(path))
-    d = mujoco.MjData(m)
-    mujoco.mj_kinematics(m, d)
+    m, d = _placed(mujoco.MjModel.from_xml_path(str(path)))
     t = load_target(str(path))
     assert t.keypoint_names == ("top", "side", "1", "2", "3") and [g.name for g in t.geoms] == ["core", "mast"]
-    s = mujoco.MjModel.from_xml_string(scene_xml(t))
-    ds = mujoco.MjData(s)
-    mujoco.mj_kinematics(s, ds)
+    s, ds = _placed(mujoco.MjModel.from_xml_string(scene_xml(t)))
     b = s.body("target").id
     to_T = lambda x: (x - ds.xpos[b]) @ ds.xmat[b].reshape(3, 3)  # noqa: E731
     for name in t.keypoint_sites:
