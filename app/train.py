@@ -55,13 +55,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="go on from the run directory's last checkpoint, with its own config (--steps and "
                    "--time-budget-s may change; the data may not); Ctrl-C writes one")
     p.add_argument("--init", metavar="WEIGHTS", help="start from these weights (same architecture; fine-tuning)")
+    p.add_argument("--backbone", metavar="WEIGHTS", help="a new run's backbone from any detector's weights, heads "
+                   "fresh: another target's, or 'shipped' (ENVISAT's corner network); exclusive with --init")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="cpu (default) or cuda")
     p.add_argument("--steps", type=int, help="optimizer steps in all (default 20000; with --time-budget-s a cap)")
     p.add_argument("--batch-size", type=int, help="samples per batch and rank (default 16)")
     p.add_argument("--seed", type=int, help="root seed (default 0)")
-    p.add_argument("--time-budget-s", type=float, metavar="S",
-                   help="train for S seconds (S > 0): the rate decays over them and the run stops inside them "
-                   "with a checkpoint; with --resume, S seconds more (default: train by --steps)")
+    p.add_argument("--time-budget-s", type=float, metavar="S", help="train for S seconds (S > 0): the rate decays "
+                   "over them, the run stops inside them with a checkpoint; --resume: S s more (default: --steps)")
     p.add_argument("--workers", type=int, metavar="N", help="DataLoader worker processes building the batches "
                    "(default: the cores less one; 0: in this process; a resumed run keeps its own)")
     p.add_argument("--bf16", action="store_true", help="bfloat16 autocast of the network (CUDA or CPU)")
@@ -120,9 +121,8 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 # the library's argument and config field names -> this verb's flags (its errors name what the user typed)
-FLAGS = {"data_dirs": "--data", "data": "--data", "run_dir": "--out", "init": "--init", "resume": "--resume",
-         "workers": "--workers", "threads": "--threads", "time_budget_s": "--time-budget-s", "device": "--device",
-         "steps": "--steps", "batch_size": "--batch-size", "seed": "--seed", "online": "--online", "target": "--target"}
+FLAGS = {"data_dirs": "--data", "data": "--data", "run_dir": "--out", **{k: "--" + k.replace("_", "-") for k in
+         "init resume backbone workers threads time_budget_s device steps batch_size seed online target".split()}}
 
 
 def run_train_cli(args: argparse.Namespace) -> int:
@@ -133,8 +133,8 @@ def run_train_cli(args: argparse.Namespace) -> int:
         online = online_config(args, cfg)
         with skip_hint():
             last = train_detector(cfg, [] if online else args.data, args.out, resume=args.resume, init=args.init,
-                                  device=args.device, workers=args.workers, bf16=args.bf16, threads=args.threads,
-                                  progress=not args.quiet, command=command_line(args),
+                                  backbone=args.backbone, device=args.device, workers=args.workers, bf16=args.bf16,
+                                  threads=args.threads, progress=not args.quiet, command=command_line(args),
                                   skip_damaged=args.skip_damaged, online=online)
     except ConfigError as err:  # a value of a flag: named as the flag
         raise InputError(as_flags(str(err), FLAGS)) from None

@@ -69,7 +69,7 @@ from envisat_pose.perception.trainer_hooks import (
     hook_order,
     progress_bar,
 )
-from envisat_pose.perception.weights import load_state, load_tensors, read_weights
+from envisat_pose.perception.weights import load_backbone, load_state, load_tensors, read_weights
 
 
 @dataclass(frozen=True)
@@ -383,6 +383,7 @@ class TrainOptions:
     progress: bool = True
     provenance: dict | None = None
     init_weights: str | None = None
+    backbone_weights: str | None = None
     workers: int | None = None
     bf16: bool = False
     clock: Callable[[], float] = time.perf_counter
@@ -403,6 +404,8 @@ def _build_model(cfg: TrainConfig, run_dir: str, opts: TrainOptions, dev: torch.
     start = os.path.join(run_dir, "checkpoint.safetensors") if opts.resume else opts.init_weights
     if start is not None:
         load_state(model, read_weights(start)[0], start)
+    elif opts.backbone_weights is not None:
+        load_backbone(model, opts.backbone_weights)
     if dev.type == "cuda":
         model = model.to(memory_format=torch.channels_last)
     opt = make_optimizer(model, cfg, dev)
@@ -436,12 +439,15 @@ def _folder_trainer(cfg: TrainConfig, run_dir: str, opts: TrainOptions, state: d
 def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: bool = False, device: str = "cpu",
           progress: bool = True, provenance: dict | None = None, init_weights: str | None = None,
           workers: int | None = None, bf16: bool = False, clock=time.perf_counter,
-          paths: list[str] | None = None, online=None, task: Task = CORNERS) -> dict:
+          paths: list[str] | None = None, online=None, task: Task = CORNERS,
+          backbone_weights: str | None = None) -> dict:
     """Train (or go on training, with resume) into run_dir. Returns the last metrics line.
 
     data_dir: one dataset folder or several (their shards are read together); paths: the shard files to read
     when the caller checked them already (else every shard of data_dir). init_weights: a safetensors file of
     the same architecture to start from instead of the seeded initialization (fine-tuning; a new run only).
+    backbone_weights: any detector's weights whose backbone (stem, hourglass, neck) starts a new run's network, its
+    heads seeded (weights.load_backbone: transfer from another target's detector, ENVISAT's included).
     workers: DataLoader worker processes feeding the batches (perception/stream.py; 0: in-process); None: the
     run's own count on resume, else 0. The batches depend on the count, so a resumed run keeps it. The workers
     start from a fork server without the calling script (perception/stream.py), so a plain script needs no
@@ -460,7 +466,8 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
     Raises TrainingInterrupted after the checkpoint when SIGINT or SIGTERM stopped it.
     """
     opts = TrainOptions(resume=resume, device=device, progress=progress, provenance=provenance,
-                        init_weights=init_weights, workers=workers, bf16=bf16, clock=clock, task=task)
+                        init_weights=init_weights, backbone_weights=backbone_weights, workers=workers, bf16=bf16,
+                        clock=clock, task=task)
     _check_call(opts)
     if task is not CORNERS and online is None:
         raise InputError("data_dirs: the corner network alone trains on shards; this task trains online")

@@ -163,6 +163,27 @@ def load_state(model: torch.nn.Module, tensors: dict[str, torch.Tensor], path: s
     model.load_state_dict(tensors, strict=True)
 
 
+BACKBONE_PREFIXES = ("stem.", "hourglass.", "neck.")  # the layers CornerNet and KeypointNet share (model.py)
+
+
+def load_backbone(model: torch.nn.Module, path: str) -> int:
+    """Copy the backbone (stem, hourglass and neck) of any detector's weights at path (ENVISAT's corner network or
+    a keypoint network) into model, its heads left as they are; the number of tensors copied. WeightsError naming
+    the first backbone tensor the file lacks or holds in another shape (a backbone of another width or depth)."""
+    tensors, _ = read_weights(path)
+    want = {k: v for k, v in model.state_dict().items() if k.startswith(BACKBONE_PREFIXES)}
+    for k, v in want.items():
+        if k not in tensors:
+            raise WeightsError(f"{path}: no backbone tensor {k!r} (not detector weights of this backbone)")
+        if tuple(tensors[k].shape) != tuple(v.shape) or tensors[k].dtype != v.dtype:
+            raise WeightsError(f"{path}: backbone tensor {k!r} is {tuple(tensors[k].shape)} {tensors[k].dtype}, "
+                               f"the model's {tuple(v.shape)} {v.dtype} (another width, depth or stem)")
+        if v.is_floating_point() and not torch.isfinite(tensors[k]).all():
+            raise WeightsError(f"{path}: tensor {k!r} holds non-finite values")
+    model.load_state_dict({**model.state_dict(), **{k: tensors[k] for k in want}}, strict=True)
+    return len(want)
+
+
 def save_tensors(path: str, state: dict) -> None:
     """torch.save of a state made of tensors and plain containers (optimizer state), atomically."""
     with atomic_path(path, suffix=".pt") as tmp:

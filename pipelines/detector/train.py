@@ -155,9 +155,11 @@ def dataset_provenance(data_dir: str, skipped: list[str] = ()) -> dict:
 
 
 def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | None, workers: int | None,
-                 threads: int | None, online: bool = False, target: str = DEFAULT_TARGET) -> None:
+                 threads: int | None, online: bool = False, target: str = DEFAULT_TARGET,
+                 backbone: str | None = None) -> None:
     """Every input of a training run but the shards checked before any work; InputError naming the argument (init:
-    weights of another target than `target`, the one trained, are refused in one line)."""
+    weights of another target than `target`, the one trained, are refused in one line; backbone: any detector's
+    weights, a new run's alone)."""
 
     if not data_dirs and not online:
         raise InputError("data_dirs: no dataset folder given")
@@ -171,6 +173,16 @@ def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | N
         from envisat_pose.perception.weights import check_weights_target  # torch
 
         check_weights_target(init, target, "init")
+    if backbone is not None and (init is not None or resume):
+        raise InputError("backbone and " + ("init" if init is not None else "resume") + ": the backbone starts a new "
+                         "run's network; " + ("init gives the whole network" if init is not None else
+                                              "a resumed run goes on from its own checkpoint"))
+    if backbone is not None and not os.path.isfile(backbone):
+        raise InputError(f"backbone {backbone!r}: no such weights file")
+    if backbone is not None:
+        from envisat_pose.perception.weights import read_header  # torch
+
+        read_header(backbone)  # a file that is not safetensors: refused here; a backbone of another shape when built
     if resume and not os.path.isdir(run_dir):
         raise InputError(f"resume: run_dir {run_dir!r} does not exist")
     check_out_dir(run_dir, parents=True)  # a file, or a path under one, is refused here
@@ -284,7 +296,8 @@ def online_source(online: OnlineConfig, cfg, device: str, task, target) -> tuple
 def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: bool = False,
                    init: str | None = None, device: str = "cpu", workers: int | None = None, bf16: bool = False,
                    threads: int | None = None, progress: bool = True, command: str = "",
-                   skip_damaged: bool = False, online: OnlineConfig | None = None) -> dict:
+                   skip_damaged: bool = False, online: OnlineConfig | None = None,
+                   backbone: str | None = None) -> dict:
     """Train the detector (cfg: a perception TrainConfig, validated when built) on the shards of data_dirs (one
     folder or several) into run_dir (created with its parents once the first step is trained). cfg a
     perception.keypoint_train.KeypointTrainConfig: another target's keypoint detector, online only (online a
@@ -293,8 +306,10 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
 
     resume: go on from run_dir's last checkpoint (exclusive with init: a safetensors file to start from); the
     config may differ from the run's in steps and time_budget_s only, the data not at all (InputError spelling
-    out the difference). workers: DataLoader worker processes (None: the run's own on resume, else
-    default_workers()); bf16: bfloat16 autocast; threads: torch's CPU threads in this process; command: the
+    out the difference). backbone: any detector's weights (another target's keypoint network; 'shipped': ENVISAT's
+    shipped corner network) whose stem, hourglass and neck start a new run's network, its heads seeded (transfer;
+    exclusive with init and resume), recorded by name and sha256 in config.json. workers: DataLoader worker
+    processes (None: the run's own on resume, else default_workers()); bf16: bfloat16 autocast; threads: torch's CPU threads in this process; command: the
     command line as typed, for the record. Every shard is checked against its dataset's manifest first (size,
     then sha256: envisat_pose.shard_reader.checked_shards); a damaged one stops the run before anything is
     written (DamagedShardError naming it) unless skip_damaged, which leaves it out and records it in config.json
@@ -311,8 +326,12 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     if online is not None and data_dirs:
         raise InputError("data_dirs and online: train on shards or on frames rendered as training goes, not both")
     task, target = run_task(cfg, online)
+    if backbone == "shipped":
+        from envisat_pose.perception.weights import shipped_weights_path  # torch
+
+        backbone = shipped_weights_path()
     check_inputs(data_dirs, run_dir, resume, init, workers, threads, online is not None,
-                 DEFAULT_TARGET if target is None else cfg.target)
+                 DEFAULT_TARGET if target is None else cfg.target, backbone)
     if threads is not None:
         torch.set_num_threads(threads)
     if online is not None:
@@ -341,12 +360,13 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
         provenance["online"] = online.record()
     if target is not None:
         provenance["target"] = {k: v for k, v in target.record(cfg.target).items() if k != "file"}
-    if init is not None:
-        provenance["init"] = {"name": os.path.basename(init), "sha256": sha256_file(init)}
+    for field, path in (("init", init), ("backbone", backbone)):  # the weights a new run starts from
+        if path is not None:
+            provenance[field] = {"name": os.path.basename(path), "sha256": sha256_file(path)}
     try:
         end = train(cfg, data_dirs, run_dir, resume=resume, device=rank_device, progress=progress,
                     provenance=provenance, init_weights=init, workers=workers, bf16=bf16, paths=paths,
-                    online=source, task=task)
+                    online=source, task=task, backbone_weights=backbone)
         if online is not None:
             end = {**end, "uses_per_frame": online.uses_per_frame, "max_uses": online_max_uses(run_dir),
                    "render_workers": online.workers}

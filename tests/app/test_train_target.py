@@ -19,6 +19,7 @@ from refusals import refused  # noqa: E402
 
 from envisat_pose.app.cli import main  # noqa: E402
 from envisat_pose.contracts import KeypointDetections  # noqa: E402
+from envisat_pose.io import sha256_file  # noqa: E402
 from envisat_pose.target import load_target  # noqa: E402
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
@@ -63,6 +64,15 @@ def test_weights_are_refused_for_another_target_by_every_verb(box, tmp_path, cap
             "target 'twin_box'", "not ENVISAT's")
     refused(["train", "--target", other, "--init", weights, "--steps", "1", "--out", out], capsys, out, "--init",
             "not of target 'twin_copy'")
+    refused(["train", "--target", path, "--backbone", weights, "--init", weights, "--steps", "1", "--out", out],
+            capsys, out, "backbone and init")
+    refused(["train", "--target", path, "--backbone", f"{out}.safetensors", "--steps", "1", "--out", out], capsys,
+            out, "--backbone", "no such weights file")
+    small = tmp_path / "small.toml"  # a 16-channel network: the untrained weights' 8-channel backbone does not fit
+    small.write_text(SMALL_TRAIN)
+    refused(["train", "--target", path, "--config", str(small), "--backbone", weights, "--steps", "1", "--out", out,
+             "--resolution", "96", "--render-workers", "1", "--quiet"], capsys, out, weights, "backbone tensor",
+            "another width")
     refused(["detect", "--target", path, "--data", str(tmp_path), "--weights", weights, "--roi", "r.npz",
              "--out", f"{out}/det.npz"], capsys, out, "--roi", "not with --target")
     refused(["train", "--target", path, "--data", data, "--out", out], capsys, out, "--data", "not both")
@@ -111,3 +121,8 @@ def test_a_short_run_trains_resumes_and_its_weights_detect(box, tmp_path, capsys
                  "--quiet"]) == 0
     det = KeypointDetections.load(str(out))
     assert det.keypoints_px.shape == (2, 8, 2) and np.all((det.visible_prob >= 0) & (det.visible_prob <= 1))
+    run2 = str(tmp_path / "from_backbone")  # a new run whose backbone is the first run's: recorded by name and hash
+    assert main(["train", "--target", path, "--config", str(cfg), "--resolution", "128", "--steps", "2",
+                 "--backbone", weights, "--out", run2, "--render-workers", "1", "--quiet"]) == 0
+    assert json.load(open(os.path.join(run2, "config.json")))["backbone"] == {
+        "name": "checkpoint.safetensors", "sha256": sha256_file(weights)}

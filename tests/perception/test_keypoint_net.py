@@ -16,7 +16,14 @@ from envisat_pose.config import ConfigError, InputError  # noqa: E402
 from envisat_pose.perception.keypoint_detect import KeypointDetector, load_keypoint_model  # noqa: E402
 from envisat_pose.perception.keypoint_net import KeypointModelConfig, init_keypoint_net  # noqa: E402
 from envisat_pose.perception.model import CornerNet, ModelConfig  # noqa: E402
-from envisat_pose.perception.weights import load_model, read_header, save_weights, shipped_weights_path  # noqa: E402
+from envisat_pose.perception.weights import (  # noqa: E402
+    WeightsError,
+    load_backbone,
+    load_model,
+    read_header,
+    save_weights,
+    shipped_weights_path,
+)
 from envisat_pose.target import load_target  # noqa: E402
 
 SMALL = KeypointModelConfig(input_px=64, width=8, depth=2, stem_width=8, num_keypoints=8)
@@ -81,3 +88,26 @@ def test_the_keypoint_count_comes_from_the_target(files):
         KeypointTrainConfig(target=twin, model=KeypointModelConfig(num_keypoints=5))
     with pytest.raises(ConfigError, match="another target than ENVISAT"):
         KeypointTrainConfig(target="models/envisat.xml")
+
+
+def test_a_backbone_comes_from_any_detectors_weights_and_the_heads_stay_seeded(files):
+    """load_backbone: the stem, hourglass and neck of ENVISAT's shipped corner network (its backbone is the
+    keypoint network's default) land in a keypoint network, every head tensor as seeded; a backbone of another
+    width is refused naming the tensor."""
+    from envisat_pose.perception.weights import read_weights
+
+    model = init_keypoint_net(KeypointModelConfig(num_keypoints=12), 5)
+    seeded = {k: v.clone() for k, v in model.state_dict().items()}
+    path = shipped_weights_path()
+    copied = load_backbone(model, path)
+    corner, _ = read_weights(path)
+    state = model.state_dict()
+    backbone = [k for k in state if k.startswith(("stem.", "hourglass.", "neck."))]
+    assert copied == len(backbone) > 100
+    assert all(torch.equal(state[k], corner[k]) and not torch.equal(state[k], seeded[k])
+               for k in backbone if state[k].is_floating_point() and state[k].numel() > 1)
+    heads = [k for k in state if k not in backbone]
+    assert heads and all(torch.equal(state[k], seeded[k]) for k in heads)
+    _, _, small = files
+    with pytest.raises(WeightsError, match="backbone tensor 'stem.0.0.weight'.*another width"):
+        load_backbone(init_keypoint_net(KeypointModelConfig(num_keypoints=8), 5), small)
