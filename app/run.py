@@ -39,8 +39,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    help="start each run's filter from the truth plus a draw from P0 (filter studies) instead of cold")
     p.add_argument("--no-roi", action="store_true", help="always run the detector's coarse pass (no region of interest)")
     p.add_argument("--full-frames", action="store_true", help="render and corrupt every frame whole (default: once "
-                   "tracking, only the window the tracker reads, a full frame every `full_frame_every` frames; "
-                   "ENVISAT's array cue reads every frame whole)")
+                   "tracking, only the window the tracker reads, a full frame every `full_frame_every` frames, "
+                   "where ENVISAT's array cue reads)")
     p.add_argument("--target", metavar="FILE.xml", help="another spacecraft's MJCF file: MuJoCo renders it and the "
                    "tracker follows it with its keypoint detector (--weights, trained and calibrated with --target)")
     add_common(p, config="run config (sections image, filter, tracker; top-level keys)", weights=True,

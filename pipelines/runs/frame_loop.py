@@ -26,10 +26,11 @@ NO_STAGE_TIMES = (0.0,) * len(BEFORE_TRACKER)  # frames read, not made (`envisat
 class FrameInput:
     """Frame k at t_s (s): image (H, W) uint8, or None where there is no frame (the tracker predicts); stage_s:
     the seconds of BEFORE_TRACKER (simulation, rendering, camera) spent on it; with a truth for the recording,
-    x_true (12,), corners_true_px (8, 2) and in_frame (8,) bool (None without). ready: for a frame made ahead of
-    the tracker (run_frames' overlap), called on the maker's thread once the tracker has stepped every earlier
-    frame and before it steps this one; returns the frame to step (this one, or one remade for the tracker as it
-    stands then). None: the frame is final as made."""
+    x_true (12,), corners_true_px (8, 2) and in_frame (8,) bool (None without). window_px: (x0, y0, side) px where
+    only that window of the image was made (the rest black: Tracker.step's window_px), None for a whole frame.
+    ready: for a frame made ahead of the tracker (run_frames' overlap), called on the maker's thread once the
+    tracker has stepped every earlier frame and before it steps this one; returns the frame to step (this one, or
+    one remade for the tracker as it stands then). None: the frame is final as made."""
 
     k: int
     t_s: float
@@ -39,6 +40,7 @@ class FrameInput:
     corners_true_px: np.ndarray | None = None
     in_frame: np.ndarray | None = None
     ready: Callable[[], "FrameInput"] | None = None
+    window_px: np.ndarray | None = None
 
     def final(self) -> "FrameInput":
         """The frame to step: ready()'s where there is one."""
@@ -65,7 +67,7 @@ def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_
         bar = tqdm(total=rows.T, unit="frame", desc=progress, mininterval=0.5)
 
     def step(f: FrameInput) -> None:
-        est = tracker.step(f.t_s, f.image)
+        est = tracker.step(f.t_s, f.image, f.window_px)
         i, out = rows.row(f.k), rows.buf
         store_estimate(out, i, est)
         out["skipped"][i] = f.image is None

@@ -40,8 +40,8 @@ class PlanAhead:
         self.tracker, self.t_s = tracker, np.asarray(t_s, dtype=float)
         self.ahead: dict[int, np.ndarray | None] = {}
 
-    def step(self, t_s: float, image):
-        est = self.tracker.step(t_s, image)
+    def step(self, t_s: float, image, window_px: np.ndarray | None = None):
+        est = self.tracker.step(t_s, image, window_px)
         k = int(np.searchsorted(self.t_s, t_s))
         if k + 2 < len(self.t_s):
             self.ahead[k + 2] = self.tracker.planned_window(float(self.t_s[k + 2]))
@@ -110,7 +110,8 @@ class FrameMaker:
             self.counts["frames_window_remade"] += 1
             image, t_render, t_camera = self.image(frame.k, x, plan)
             sim, r0, c0 = frame.stage_s
-            return dataclasses.replace(frame, image=image, stage_s=(sim, r0 + t_render, c0 + t_camera), ready=None)
+            return dataclasses.replace(frame, image=image, stage_s=(sim, r0 + t_render, c0 + t_camera), ready=None,
+                                       window_px=plan)
 
         return final
 
@@ -118,8 +119,8 @@ class FrameMaker:
 def closed_loop_frames(maker: FrameMaker, t_s: np.ndarray, x_truth: np.ndarray, eclipse: np.ndarray,
                        sim_s_per_frame: float, plan_ahead: PlanAhead | None, full_frame_every: int, truth=None):
     """FrameInputs of a run: frame k rendered from x_truth[k] (None in the Earth's shadow: eclipse[k]); with a
-    plan_ahead (RunConfig.render_window), the window it planned for frame k, grown (grown_window), except every
-    full_frame_every-th frame, and checked by the frame's ready (FrameMaker.ready). truth: (corners_px (T, K, 2),
+    plan_ahead (RunConfig.render_window), the window it planned for frame k, grown (grown_window; the frame's
+    window_px), except every full_frame_every-th frame, and checked by the frame's ready (FrameMaker.ready). truth: (corners_px (T, K, 2),
     in_frame (T, K)) for the recording, or None."""
     for k in range(len(t_s)):
         x = x_truth[k]
@@ -130,7 +131,7 @@ def closed_loop_frames(maker: FrameMaker, t_s: np.ndarray, x_truth: np.ndarray, 
                 made = None if planned is None else grown_window(planned)
             image, t_render, t_camera = maker.image(k, x, made)
         kw = {} if truth is None else {"x_true": x, "corners_true_px": truth[0][k], "in_frame": truth[1][k]}
-        frame = FrameInput(k, float(t_s[k]), image, (sim_s_per_frame, t_render, t_camera), **kw)
+        frame = FrameInput(k, float(t_s[k]), image, (sim_s_per_frame, t_render, t_camera), window_px=made, **kw)
         if made is not None:
             frame = dataclasses.replace(frame, ready=maker.ready(frame, made, plan_ahead.tracker, x))
         yield frame

@@ -148,6 +148,7 @@ class Tracker(AcquiringSteps, TrackingSteps):
         self.t_last: float | None = None
         self._plan_cache = None  # (t_s, the bank's state, its FramePlan): TrackingSteps._plan
         self.window_fell_short = False  # the last frame's region of interest held too few keypoints
+        self.image_window: np.ndarray | None = None  # the frame's made pixels (x0, y0, side) px; None: whole
         if prior is not None:
             x0, P0, t0 = prior
             self._start(np.asarray(x0, float)[None], np.asarray(P0, float)[None], float(t0), np.zeros(1), np.zeros(1))
@@ -160,13 +161,12 @@ class Tracker(AcquiringSteps, TrackingSteps):
 
     def planned_window(self, t_s: float) -> np.ndarray | None:
         """The window (x0, y0, side) px of a frame at t_s that the tracker will look at and at nothing outside it,
-        or None when it needs the whole frame: while acquiring, with twins still open, while the array cue reads
-        (array_cue_on: beyond the body, on every frame of a confirmed track), before its claim is confirmed, when
-        not converged or the region of interest is off, and after a frame whose window held too few keypoints.
-        The frame's maker may then render and corrupt that window alone (the closed loop). Pure: step(t_s, ...)
-        uses the same prediction."""
-        if self.state is None or not self.confirmed or self.state.mean.shape[0] != 1 or self.window_fell_short \
-                or self.array_cue_on:
+        or None when it needs the whole frame: while acquiring, with twins still open (the array cue weighs them
+        on whole frames), before its claim is confirmed, when not converged or the region of interest is off, and
+        after a frame whose window held too few keypoints. The frame's maker may then make that window alone (the
+        closed loop) and say so (step's window_px); the array cue's integrity test then reads the whole frames it
+        makes between (RunConfig.full_frame_every). Pure: step(t_s, ...) uses the same prediction."""
+        if self.state is None or not self.confirmed or self.state.mean.shape[0] != 1 or self.window_fell_short:
             return None
         if self.t_last is not None and not t_s > self.t_last:
             return None
@@ -196,11 +196,19 @@ class Tracker(AcquiringSteps, TrackingSteps):
 
     # ------------------------------------------------------------------ the step
 
-    def step(self, t_s: float, image: np.ndarray | None) -> TrackEstimate:
-        """One frame: t_s (s, increasing), image (H, W) uint8 gray, or None (no frame: the filter predicts)."""
+    def step(self, t_s: float, image: np.ndarray | None, window_px: np.ndarray | None = None) -> TrackEstimate:
+        """One frame: t_s (s, increasing), image (H, W) uint8 gray, or None (no frame: the filter predicts).
+        window_px: (x0, y0, side) px when only that window of the image was made (the rest black: a frame made
+        for planned_window), None for a whole frame; nothing that reads beyond the window (the array cue) reads
+        such a frame."""
         t_s = float(t_s)
         if self.t_last is not None and not t_s > self.t_last:
             raise ValueError(f"frame times must increase: t = {t_s} s after t = {self.t_last} s")
+        if window_px is not None:
+            window_px = np.asarray(window_px)
+            if window_px.shape != (3,) or window_px[2] < 1:
+                raise ValueError(f"window_px: {window_px.tolist()}; expected (x0, y0, side) px with side >= 1")
+        self.image_window = window_px
         if self.t_last is not None:
             self.dt_s = t_s - self.t_last
         self.t_last = t_s

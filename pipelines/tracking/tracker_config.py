@@ -135,9 +135,12 @@ class ArrayCueConfig(Config):
     largest), so the dynamics take tens of seconds to part them on a slow tumble. The cue is read right or not at
     all: under the true pose 0 wrong readings of 1742 given (1619 of 3600 loop frames, 123 of 300 random views; it
     abstains on the rest, the Earth behind the target among them; docs/history.md). Capped below the 6.9 nats a
-    decision needs, so the dynamics and the detector's appearance must not contradict it. With one hypothesis left the cue is read every converged frame as an integrity test:
-    lost_readings readings in a row against it (abstentions between them allowed) lose the track (a decided y or
-    z twin would claim a pose 180 deg off while every corner fits).
+    decision needs, so the dynamics and the detector's appearance must not contradict it. With one hypothesis left
+    the cue is read on every whole converged frame (not on a frame made as a window alone: Tracker.step's
+    window_px; the closed loop makes every frame whole until the claim is confirmed, then one in
+    RunConfig.full_frame_every) as an integrity test: lost_readings readings in a row against it (abstentions
+    between them allowed) lose the track (a decided y or z twin would claim a pose 180 deg off while every corner
+    fits).
     """
 
     enabled: bool = True

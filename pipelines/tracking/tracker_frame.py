@@ -269,17 +269,18 @@ class TrackingSteps:
     def array_cue_on(self) -> bool:
         """Whether the tracker reads the array cue: ENVISAT's box (no other target) with the cue enabled. The cue
         reads the whole frame (the array at both ends of the body and the sky around it, beyond the region of
-        interest): planned_window then asks for whole frames."""
+        interest): frames made as a window alone (step's window_px) are not read."""
         return self.cfg.array_cue.enabled and self.target is None
 
     def _array_cue(self, image, x_prior: np.ndarray, best: int) -> None:
         """Read the array cue (perception/arraycue.py) under the best hypothesis' predicted pose: while the bank
         holds hypotheses at both ends of the body, they gain its log-likelihoods (bank.array_log_likelihood); with
         one hypothesis left, a reading against it counts into array_against (one for it resets the count, an
-        abstention leaves it). Nothing when the cue is off or the open hypotheses all put the array at one end."""
+        abstention leaves it). Nothing when the cue is off, the frame is a window alone, or the open hypotheses
+        all put the array at one end."""
         H = x_prior.shape[0]
         both_ends = H > 1 and not same_array_end(x_prior, x_prior[best]).all()
-        if not self.array_cue_on or not (both_ends or H == 1):
+        if not self.array_cue_on or self.image_window is not None or not (both_ends or H == 1):
             return
         from envisat_pose.perception.arraycue import array_end
 

@@ -20,7 +20,7 @@ class FakeTracker:
     def __init__(self, fail_at=None):
         self.calls, self.fail_at = [], fail_at
 
-    def step(self, t_s, image):
+    def step(self, t_s, image, window_px=None):
         self.calls.append((t_s, image is None))
         if t_s == self.fail_at:
             raise RuntimeError("tracker failed")
@@ -99,7 +99,7 @@ def test_with_overlap_the_next_frame_is_made_while_the_tracker_steps(tmp_path):
             yield FrameInput(k, float(k), np.zeros((4, 4), np.uint8))
 
     class Waiting(FakeTracker):
-        def step(self, t_s, image):
+        def step(self, t_s, image, window_px=None):
             threads["step"] = threading.get_ident()
             k = int(t_s)
             self.calls.append(k + 1 < 4 and made[k + 1].wait(timeout=10.0))

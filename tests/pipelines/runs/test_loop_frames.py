@@ -31,18 +31,20 @@ def test_grown_window_and_holds():
 
 
 class PlanTracker:
-    """Steps record (t_s, the image's marker: its [0, 0] pixel, or None); planned_window(t) is plans[(t, steps done)]
-    (None where missing): what the tracker would plan for frame t after that many steps."""
+    """Steps record (t_s, the image's marker: its [0, 0] pixel, or None) and the window_px given (windows);
+    planned_window(t) is plans[(t, steps done)] (None where missing): what the tracker would plan for frame t after
+    that many steps."""
 
     def __init__(self, plans):
-        self.plans, self.steps, self.K = plans, [], 8
+        self.plans, self.steps, self.windows, self.K = plans, [], [], 8
 
     def planned_window(self, t_s):
         w = self.plans.get((float(t_s), len(self.steps)))
         return None if w is None else np.array(w)
 
-    def step(self, t_s, image):
+    def step(self, t_s, image, window_px=None):
         self.steps.append((t_s, None if image is None else int(image[0, 0])))
+        self.windows.append(None if window_px is None else tuple(int(v) for v in window_px))
         return TrackEstimate(t_s=t_s, status="tracking", x_hat=np.zeros(12), P=np.eye(12),
                              hypotheses=np.zeros((1, 12)), probabilities=np.ones(1), detection=None, naming=0,
                              measured=np.zeros(8, bool), rejected=np.zeros(8, bool), nis=0.0, nis_dof=0,
@@ -91,11 +93,13 @@ def test_a_window_that_holds_the_plan_is_kept_and_one_that_does_not_is_made_agai
     tracker, maker = PlanTracker(plans), MarkerMaker()
     ahead, frames = frames_of(maker, tracker, 4)
     for f in frames:  # as run_frames without overlap: step each frame once final
-        ahead.step(f.t_s, f.final().image)
+        final = f.final()
+        ahead.step(final.t_s, final.image, final.window_px)
     g = tuple(int(v) for v in grown_window(np.array(early)))
     # frames 0 and 1 whole (nothing planned yet); 2 as the grown early window, kept; 3 made again for the plan
     assert maker.asked == [(0, None), (1, None), (2, g), (3, g), (3, now_outside)]
     assert [m for _, m in tracker.steps] == [1, 1, 2 + g[2], 2 + now_outside[2]]
+    assert tracker.windows == [None, None, g, now_outside]  # the tracker told which pixels were made
     assert maker.counts == {"frames_windowed": 3, "frames_window_remade": 1}
 
 
@@ -104,8 +108,10 @@ def test_a_window_is_made_whole_again_when_the_tracker_wants_the_whole_frame():
     tracker, maker = PlanTracker(plans), MarkerMaker()
     ahead, frames = frames_of(maker, tracker, 3)
     for f in frames:
-        ahead.step(f.t_s, f.final().image)
+        final = f.final()
+        ahead.step(final.t_s, final.image, final.window_px)
     assert maker.asked[-1] == (2, None) and tracker.steps[-1] == (2.0, 1)
+    assert tracker.windows[-1] is None
     assert maker.counts["frames_window_remade"] == 1
 
 
@@ -133,4 +139,6 @@ def test_overlapped_the_tracker_steps_each_frame_on_what_was_planned_for_it(tmp_
     ahead, frames = frames_of(maker, tracker, 12)
     run_frames(ahead, frames, RunRows(str(tmp_path / "run"), 12), overlap=True)
     assert tracker.steps == seq_tracker.steps and maker.asked == seq_maker.asked
+    made = {k: w for k, w in maker.asked}  # the last made of each frame
+    assert tracker.windows == [made[k] for k in range(12)]
     assert maker.counts["frames_windowed"] >= 10

@@ -63,9 +63,9 @@ def run(tmp_path, monkeypatch, weights, whole: bool):
     det = PixelReadingDetector(closed_loop.run_truth(cfg), RES)
     step = Tracker.step
 
-    def stepping(self, t_s, image):
+    def stepping(self, t_s, image, window_px=None):
         det.k = int(round(t_s * cfg.rate_hz))
-        return step(self, t_s, image)
+        return step(self, t_s, image, window_px)
 
     monkeypatch.setattr(Tracker, "step", stepping)
     monkeypatch.setattr(closed_loop, "tracker_detector", lambda *a, **kw: det)

@@ -561,19 +561,36 @@ def test_the_planned_window_is_the_region_the_step_then_looks_at(truth_600):
         np.testing.assert_array_equal(a.x_hat, b.x_hat)
 
 
-def test_no_window_while_the_array_cue_reads_the_whole_frame(truth_600):
-    """With the array cue on (ENVISAT's default) the confirmed track reads the array at both ends of the body and
-    the sky around it on every frame: planned_window asks for whole frames throughout, though the detector looks
-    at its region of interest."""
+def test_the_array_cue_reads_whole_frames_and_no_window(truth_600, monkeypatch):
+    """With the array cue on (ENVISAT's default) the confirmed track of one hypothesis plans windows; the cue, which
+    reads the array at both ends of the body and the sky around it (beyond the window), reads the frames made
+    whole and never one made as a window alone (step's window_px), so the black outside a window cannot read as
+    a lit sky. Before the claim is confirmed the tracker asks for whole frames."""
+    import envisat_pose.perception.arraycue as arraycue
+
+    read: list[int] = []
+
+    def counting_array_end(*a, **kw):
+        read.append(k)
+        return 0, None  # an abstention: the tracker goes on as without the cue
+
+    monkeypatch.setattr(arraycue, "array_end", counting_array_end)
     tracker = Tracker(load_camera(), NoisyTruthDetector(truth_600, seed=3), chaser_lookup(truth_600))
     assert tracker.array_cue_on
-    windows, ests = [], []
+    windows, ests, given = [], [], []
     for k in range(70):
-        windows.append(tracker.planned_window(float(truth_600.t_s[k])))
-        ests.append(tracker.step(float(truth_600.t_s[k]), frame_image(k)))
-    assert any("confirmed" in e.events for e in ests)
-    assert sum(e.roi_px is not None for e in ests) > 30  # the detector in its region of interest
-    assert all(w is None for w in windows)
+        w = tracker.planned_window(float(truth_600.t_s[k]))
+        window_px = w if w is not None and k % 10 else None  # the closed loop's whole frame every 10
+        windows.append(w)
+        given.append(window_px is not None)
+        ests.append(tracker.step(float(truth_600.t_s[k]), frame_image(k), window_px))
+    first = next(k for k, e in enumerate(ests) if "confirmed" in e.events)
+    assert all(w is None for w in windows[:first + 1])
+    assert sum(w is not None for w in windows) > 30
+    assert not any(given[k] for k in read)  # the cue read no window
+    assert [k for k in range(first + 1, 70) if not given[k]] == [k for k in read if k > first]
+    with pytest.raises(ValueError, match="window_px"):
+        tracker.step(float(truth_600.t_s[70]), frame_image(70), np.array([0, 0]))
 
 
 def test_frame_times_must_increase(truth_600):
