@@ -308,11 +308,21 @@ def online_looks(work: str, leg: int, scenarios: list[str]) -> str:
     return path
 
 
+def start_args(init: str | None, backbone: str | None) -> list[str]:
+    """`envisat train`'s arguments for where a leg's network starts: the init weights, or (a fresh --target leg)
+    another detector's backbone, or nothing (fresh)."""
+    if init:
+        return ["--init", init]
+    return ["--backbone", backbone] if backbone else []
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--init", help="weights to start from (required but with --target, whose leg may start fresh)")
     ap.add_argument("--target", help="another target's MJCF file: train its keypoint detector (envisat train "
                     "--target: online, the target's default look; no held-out check, which is ENVISAT's)")
+    ap.add_argument("--backbone", help="with --target and no --init: the network starts from this detector's "
+                    "backbone (envisat train --backbone; 'shipped': ENVISAT's)")
     ap.add_argument("--leg-file", help="leg.json of the init weights (their leg number; none: leg 0 before)")
     ap.add_argument("--out", required=True, help="folder whose files come back")
     ap.add_argument("--work", default="/tmp/gpu-leg", help="scratch folder (data, run)")
@@ -340,6 +350,8 @@ def main() -> int:
     args = ap.parse_args()
     if args.init is None and args.target is None:
         ap.error("--init is required (but with --target)")
+    if args.backbone and (args.init or not args.target):
+        ap.error("--backbone starts a fresh --target leg: not with --init, only with --target")
     if args.target:
         args.online, args.validate_s = True, 0.0
     from envisat_pose import named_scenarios
@@ -386,7 +398,7 @@ def main() -> int:
     else:
         source = ["--data", *[c["folder"] for c in chunks], "--workers", str(args.workers)]
     cmd = [sys.executable, "-m", "envisat_pose.app.cli", "train", *source, "--out", run_dir, "--config", toml,
-           *(["--init", args.init] if args.init else []), "--device", args.device, "--batch-size", str(args.batch_size), "--steps",
+           *start_args(args.init, args.backbone), "--device", args.device, "--batch-size", str(args.batch_size), "--steps",
            "10000000", "--time-budget-s", f"{budget:.0f}", "--quiet"] + ([] if args.no_bf16 else ["--bf16"])
     print(f"training for {budget:.0f} s: {' '.join(cmd[3:6])} ...", flush=True)
     rc = subprocess.run(cmd).returncode
@@ -399,7 +411,7 @@ def main() -> int:
             shutil.copy2(os.path.join(run_dir, name), os.path.join(args.out, name))
     with open(os.path.join(args.out, "leg.json"), "w", encoding="utf-8") as fh:
         json.dump({"leg": leg, "previous_leg": prev, "target": args.target,
-                   "init_sha256": sha256_file(args.init) if args.init else None,
+                   "init_sha256": sha256_file(args.init) if args.init else None, "backbone": args.backbone,
                    "weights_sha256": sha256_file(os.path.join(args.out, "detector.safetensors")),
                    "data_seeds": [c["seed"] for c in chunks], "images": images, "generate_s": round(gen_s, 1),
                    "train_budget_s": round(budget), "end": end}, fh, indent=1)

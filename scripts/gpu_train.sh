@@ -18,7 +18,8 @@
 #      MUJOCO_GL (egl), WORK (/tmp/gpu-leg), ONLINE (set: `envisat train --online --looks` from frames rendered
 #      as it trains, no shards; the schedule constant then cooled down, pre_cooldown.safetensors and
 #      ema.safetensors back), TARGET (a target file relative to the checkout, e.g. models/upper_stage.xml: its
-#      keypoint detector, `envisat train --target`, online, from the carried init/target.safetensors or fresh;
+#      keypoint detector, `envisat train --target`, online, from the carried init/target.safetensors or, with
+#      none, fresh from BACKBONE's backbone ('shipped', ENVISAT's, by default; 'none': from scratch);
 #      no held-out check, which is ENVISAT's: calibrate and evaluate --target here), SPEED_S (seconds of bench/train_speed.py's GPU rows first, inside TOTAL_S; its
 #      train_speed.json written row by row, so a row cut at the limit loses only itself), PACK (set: every output
 #      but gpu_train.log and train_speed.json in one leg.tar, since a borrowed machine returns at most 8 files)
@@ -64,19 +65,22 @@ if [ -n "$TARGET" ]; then
   INIT=${INIT:-$CARRY/init/target.safetensors}
   LEG=$CARRY/init/leg.json
   if [ ! -f "$INIT" ]; then INIT=; LEG=; fi
+  BACKBONE=${BACKBONE:-shipped}
+  if [ -n "$INIT" ] || [ "$BACKBONE" = none ]; then BACKBONE=; fi
 else
+  BACKBONE=
   INIT=${INIT:-$CARRY/init/detector.safetensors}
   LEG=$CARRY/init/leg.json
   if [ ! -f "$INIT" ]; then INIT=$ROOT/models/detector.safetensors; LEG=; fi
 fi
-echo "gpu_train: init ${INIT:+$(basename "$INIT") ($(sha256sum "$INIT" | cut -c1-12))}${INIT:-none (fresh)}${TARGET:+, target $TARGET}, setup took $(( $(date +%s) - T0 )) s"
+echo "gpu_train: init ${INIT:+$(basename "$INIT") ($(sha256sum "$INIT" | cut -c1-12))}${INIT:-none (fresh${BACKBONE:+, backbone $BACKBONE})}${TARGET:+, target $TARGET}, setup took $(( $(date +%s) - T0 )) s"
 if [ "${SPEED_S:-0}" -gt 0 ]; then
   echo "gpu_train: the speed benchmark's GPU rows for at most ${SPEED_S} s"
   timeout "$SPEED_S" $PY "$ROOT/bench/train_speed.py" --no-cpu --no-whole --gpu-batch-sizes 64 256 \
       --gpu-images 256 --gpu-shard-size 32 --gpu-step-steps 20 --out "$OUT/train_speed.json" \
       || echo "gpu_train: the speed benchmark ended with rc $? (its rows so far are in train_speed.json)"
 fi
-$PY "$ROOT/scripts/gpu_train.py" ${INIT:+--init "$INIT"} ${TARGET:+--target "$ROOT/$TARGET"} ${LEG:+--leg-file "$LEG"} --out "$OUT" --work "$WORK/leg" \
+$PY "$ROOT/scripts/gpu_train.py" ${INIT:+--init "$INIT"} ${BACKBONE:+--backbone "$BACKBONE"} ${TARGET:+--target "$ROOT/$TARGET"} ${LEG:+--leg-file "$LEG"} --out "$OUT" --work "$WORK/leg" \
     --deadline-s $(( T0 + TOTAL_S )) --gen-s "${GEN_S:-170}" ${RATE:+--rate "$RATE"} --device "${DEVICE:-cuda}" \
     ${ONLINE:+--online} \
     ${VAL_IMAGES:+--validate-images "$VAL_IMAGES"} ${VAL_S:+--validate-s "$VAL_S"} \

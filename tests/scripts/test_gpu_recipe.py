@@ -202,3 +202,17 @@ def test_the_widest_looks_and_a_sequence_chunk_render(tmp_path):
         assert np.linalg.norm(lab["t_cam_from_target_m"]) == pytest.approx(50.0, abs=1e-3)
     # the target tumbles between the frames (its attitude changed) while the hold keeps it in place
     assert not np.allclose(labels[0]["x"][6:9], labels[1]["x"][6:9], atol=1e-3)
+
+
+def test_a_fresh_target_leg_starts_from_the_backbone_it_is_given():
+    """gpu_train.sh's BACKBONE (default 'shipped') reaches `envisat train --backbone` only for a fresh --target leg;
+    a carried init wins."""
+    from envisat_pose.app.cli import build_parser
+
+    gt = script("gpu_train")
+    assert gt.start_args("w.safetensors", None) == ["--init", "w.safetensors"]
+    assert gt.start_args(None, "shipped") == ["--backbone", "shipped"]
+    assert gt.start_args(None, None) == []
+    ns = build_parser().parse_args(["train", "--target", "models/upper_stage.xml", "--out", "run",
+                                    *gt.start_args(None, "shipped")])
+    assert ns.backbone == "shipped" and ns.init is None
