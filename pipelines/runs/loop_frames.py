@@ -120,8 +120,8 @@ def closed_loop_frames(maker: FrameMaker, t_s: np.ndarray, x_truth: np.ndarray, 
                        sim_s_per_frame: float, plan_ahead: PlanAhead | None, full_frame_every: int, truth=None):
     """FrameInputs of a run: frame k rendered from x_truth[k] (None in the Earth's shadow: eclipse[k]); with a
     plan_ahead (RunConfig.render_window), the window it planned for frame k, grown (grown_window; the frame's
-    window_px), except every full_frame_every-th frame, and checked by the frame's ready (FrameMaker.ready). truth: (corners_px (T, K, 2),
-    in_frame (T, K)) for the recording, or None."""
+    window_px), except every full_frame_every-th frame, and checked by the frame's ready (FrameMaker.ready).
+    truth: (corners_px (T, K, 2), in_frame (T, K)) for the recording, or None."""
     for k in range(len(t_s)):
         x = x_truth[k]
         image, t_render, t_camera, made = None, 0.0, 0.0, None
