@@ -61,9 +61,9 @@ class RunConfig(Config):
     once the tracker holds one confirmed hypothesis, MuJoCo renders and the space camera corrupts only the window
     its detector will look at, the rest of the frame black: planned a frame early (the frames are made while the
     tracker steps the one before) and grown, made again when it does not hold the tracker's plan
-    (pipelines/runs/loop_frames.py); a full frame every full_frame_every frames and whenever the tracker acquires,
-    holds twins, reads the whole frame (ENVISAT's array cue: every frame, so ENVISAT's loop is all whole frames) or
-    its last window held too few keypoints. The window's noise is drawn apart from the full frame's (the same
+    (pipelines/runs/loop_frames.py); a full frame every full_frame_every frames (where ENVISAT's array cue reads:
+    it reads no window) and whenever the tracker acquires, holds twins, has not confirmed its claim or its last
+    window held too few keypoints. The window's noise is drawn apart from the full frame's (the same
     distribution, other pixels): a seed's figures differ from its full frames' within their noise (docs/design.md,
     "The closed loop")."""
 
