@@ -310,7 +310,7 @@ def online_looks(work: str, leg: int, scenarios: list[str]) -> str:
 
 def start_args(init: str | None, backbone: str | None) -> list[str]:
     """`envisat train`'s arguments for where a leg's network starts: the init weights, or (a fresh --target leg)
-    another detector's backbone, or nothing (fresh)."""
+    another detector's backbone ('none': from scratch), or nothing (envisat train's default)."""
     if init:
         return ["--init", init]
     return ["--backbone", backbone] if backbone else []
@@ -322,7 +322,7 @@ def main() -> int:
     ap.add_argument("--target", help="another target's MJCF file: train its keypoint detector (envisat train "
                     "--target: online, the target's default look; no held-out check, which is ENVISAT's)")
     ap.add_argument("--backbone", help="with --target and no --init: the network starts from this detector's "
-                    "backbone (envisat train --backbone; 'shipped': ENVISAT's)")
+                    "backbone (envisat train --backbone; 'shipped': ENVISAT's, 'none': from scratch)")
     ap.add_argument("--leg-file", help="leg.json of the init weights (their leg number; none: leg 0 before)")
     ap.add_argument("--out", required=True, help="folder whose files come back")
     ap.add_argument("--work", default="/tmp/gpu-leg", help="scratch folder (data, run)")

@@ -66,7 +66,7 @@ if [ -n "$TARGET" ]; then
   LEG=$CARRY/init/leg.json
   if [ ! -f "$INIT" ]; then INIT=; LEG=; fi
   BACKBONE=${BACKBONE:-shipped}
-  if [ -n "$INIT" ] || [ "$BACKBONE" = none ]; then BACKBONE=; fi
+  if [ -n "$INIT" ]; then BACKBONE=; fi  # 'none' passes on: envisat train's default for a fresh target is 'shipped'
 else
   BACKBONE=
   INIT=${INIT:-$CARRY/init/detector.safetensors}

@@ -10,6 +10,7 @@ hash, the initial weights by name and hash; no path of the machine it ran on).
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 from dataclasses import dataclass
@@ -293,6 +294,31 @@ def online_source(online: OnlineConfig, cfg, device: str, task, target) -> tuple
     return data, source
 
 
+SHARED_SHAPE = ("width", "depth", "stem_width")  # the backbone's shape (perception/model.py check_backbone)
+
+
+def resolve_backbone(backbone: str | None, cfg, new_target_run: bool) -> str | None:
+    """The weights file a run's backbone starts from. backbone: a weights file; 'shipped': ENVISAT's shipped corner
+    network; 'none': none (from scratch); None, the default: ENVISAT's shipped network for a new run of another
+    target's keypoint detector (new_target_run: no init, not resumed) whose model has its backbone's shape
+    (SHARED_SHAPE; at the same training time it starts far ahead of scratch: docs/usage.md), else none."""
+    if backbone == "none":
+        return None
+    if backbone is None and not new_target_run:
+        return None
+    from envisat_pose.perception.weights import read_header, shipped_weights_path  # torch
+
+    if backbone not in (None, "shipped"):
+        return backbone
+    shipped = shipped_weights_path()
+    if backbone is None:
+        theirs = json.loads(read_header(shipped).get("model_config", "{}"))
+        ours = cfg.model.to_dict()
+        if any(theirs.get(k) != ours.get(k) for k in SHARED_SHAPE):
+            return None
+    return shipped
+
+
 def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: bool = False,
                    init: str | None = None, device: str = "cpu", workers: int | None = None, bf16: bool = False,
                    threads: int | None = None, progress: bool = True, command: str = "",
@@ -308,7 +334,8 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     config may differ from the run's in steps and time_budget_s only, the data not at all (InputError spelling
     out the difference). backbone: any detector's weights (another target's keypoint network; 'shipped': ENVISAT's
     shipped corner network) whose stem, hourglass and neck start a new run's network, its heads seeded (transfer;
-    exclusive with init and resume), recorded by name and sha256 in config.json. workers: DataLoader worker
+    exclusive with init and resume), recorded by name and sha256 in config.json; None (the default): ENVISAT's for
+    a new run of another target of the same backbone shape, none otherwise; 'none': none (resolve_backbone). workers: DataLoader worker
     processes (None: the run's own on resume, else default_workers()); bf16: bfloat16 autocast; threads: torch's CPU threads in this process; command: the
     command line as typed, for the record. Every shard is checked against its dataset's manifest first (size,
     then sha256: envisat_pose.shard_reader.checked_shards); a damaged one stops the run before anything is
@@ -326,10 +353,7 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     if online is not None and data_dirs:
         raise InputError("data_dirs and online: train on shards or on frames rendered as training goes, not both")
     task, target = run_task(cfg, online)
-    if backbone == "shipped":
-        from envisat_pose.perception.weights import shipped_weights_path  # torch
-
-        backbone = shipped_weights_path()
+    backbone = resolve_backbone(backbone, cfg, target is not None and init is None and not resume)
     check_inputs(data_dirs, run_dir, resume, init, workers, threads, online is not None,
                  DEFAULT_TARGET if target is None else cfg.target, backbone)
     if threads is not None:

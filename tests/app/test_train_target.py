@@ -126,3 +126,25 @@ def test_a_short_run_trains_resumes_and_its_weights_detect(box, tmp_path, capsys
                  "--backbone", weights, "--out", run2, "--render-workers", "1", "--quiet"]) == 0
     assert json.load(open(os.path.join(run2, "config.json")))["backbone"] == {
         "name": "checkpoint.safetensors", "sha256": sha256_file(weights)}
+
+
+def test_a_new_target_run_starts_from_the_shipped_backbone_where_it_fits(box):
+    """train_detector's backbone (and `envisat train --backbone`): by default a new run of another target whose
+    model has the shipped network's width, depth and stem starts from ENVISAT's backbone; a narrower model, a
+    run given init or resumed, and ENVISAT's own runs start as they are; 'none' is from scratch, a file is kept."""
+    from envisat_pose.perception.keypoint_net import KeypointModelConfig
+    from envisat_pose.perception.keypoint_train import KeypointTrainConfig
+    from envisat_pose.perception.train import TrainConfig
+    from envisat_pose.perception.weights import shipped_weights_path
+    from envisat_pose.pipelines.detector.train import resolve_backbone
+
+    path = box[0]
+    wide = KeypointTrainConfig(target=path)
+    narrow = KeypointTrainConfig(target=path, model=KeypointModelConfig(width=16, stem_width=8))
+    assert resolve_backbone(None, wide, True) == shipped_weights_path()
+    assert resolve_backbone(None, narrow, True) is None  # another shape: from scratch, not an error
+    assert resolve_backbone(None, wide, False) is None  # init given or resumed: the run's own network
+    assert resolve_backbone(None, TrainConfig(), False) is None
+    assert resolve_backbone("none", wide, True) is None
+    assert resolve_backbone("shipped", narrow, True) == shipped_weights_path()  # asked for: its shape checked later
+    assert resolve_backbone(box[3], wide, True) == box[3]

@@ -213,6 +213,7 @@ def test_a_fresh_target_leg_starts_from_the_backbone_it_is_given():
     assert gt.start_args("w.safetensors", None) == ["--init", "w.safetensors"]
     assert gt.start_args(None, "shipped") == ["--backbone", "shipped"]
     assert gt.start_args(None, None) == []
+    assert gt.start_args(None, "none") == ["--backbone", "none"]  # from scratch: envisat train defaults to shipped
     ns = build_parser().parse_args(["train", "--target", "models/upper_stage.xml", "--out", "run",
                                     *gt.start_args(None, "shipped")])
     assert ns.backbone == "shipped" and ns.init is None
