@@ -55,9 +55,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="go on from the run directory's last checkpoint, with its own config (--steps and "
                    "--time-budget-s may change; the data may not); Ctrl-C writes one")
     p.add_argument("--init", metavar="WEIGHTS", help="start from these weights (same architecture; fine-tuning)")
-    p.add_argument("--backbone", metavar="WEIGHTS", help="a new run's backbone from any detector's weights, heads "
-                   "fresh: another target's, 'shipped' (ENVISAT's corner network) or 'none' (from scratch); default "
-                   "for a new --target run: 'shipped' where the model has its shape; exclusive with --init")
+    p.add_argument("--backbone", metavar="WEIGHTS", help="a new run's backbone: any detector's weights, 'shipped' "
+                   "(ENVISAT's; a new --target run's default where it fits) or 'none'; not with --init")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="cpu (default) or cuda")
     p.add_argument("--steps", type=int, help="optimizer steps in all (default 20000; with --time-budget-s a cap)")
     p.add_argument("--batch-size", type=int, help="samples per batch and rank (default 16)")
