@@ -90,8 +90,8 @@ class Target:
 
     @functools.cached_property
     def skeleton(self) -> tuple[tuple[int, int], ...]:
-        """Keypoint pairs (i, j), i < j, joined along the drawn surface's sharp edges (target_shape.skeleton);
-        computed on first use."""
+        """Keypoint pairs (i, j), i < j, joined along the drawn surface's sharp edges, a keypoint no edge joins to
+        its nearest (target_shape.skeleton); computed on first use."""
         points, edges = feature_edges(self.mesh())
         return skeleton(self.keypoints_T_m, points, edges, self.reach_m)
 

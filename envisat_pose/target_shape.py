@@ -62,8 +62,31 @@ def skeleton(keypoints_T_m: np.ndarray, points: np.ndarray, edges: np.ndarray, r
     """Keypoint pairs (i < j) joined by a path along the sharp edges (points (P, 3), edges (E, 2): target_mesh.
     feature_edges) that passes no third keypoint and bends by at most MAX_TURN_DEG where it meets another edge:
     a box's 12 edges between its 8 corners (not its faces' diagonals, which turn 90 deg at a corner), neighbouring
-    points on a rim (a 32-sided polygon turns 11.25 deg). A keypoint farther than SNAP_REACH_FRACTION x reach_m
-    from every sharp edge is joined to none."""
+    points on a rim (a 32-sided polygon turns 11.25 deg). A keypoint no such path joins to another (one farther
+    than SNAP_REACH_FRACTION x reach_m from every sharp edge, one whose paths turn sharply, as from the middle of a
+    panel's edge at its corners, one alone on its rim) is joined to its nearest keypoint instead (nearest_links), so
+    every keypoint has a link to draw and COCO's skeleton is never empty."""
+    pairs = set(edge_pairs(keypoints_T_m, points, edges, reach_m))
+    return tuple(sorted(pairs | nearest_links(keypoints_T_m, pairs)))
+
+
+def nearest_links(keypoints_T_m: np.ndarray, pairs: set[tuple[int, int]]) -> set[tuple[int, int]]:
+    """(i < j) pairs joining each keypoint in none of pairs to its nearest other keypoint (the lowest index on a
+    tie)."""
+    linked = {k for pair in pairs for k in pair}
+    out = set()
+    for k in range(len(keypoints_T_m) if len(keypoints_T_m) > 1 else 0):
+        if k not in linked:
+            d = np.linalg.norm(keypoints_T_m - keypoints_T_m[k], axis=1)
+            d[k] = np.inf
+            j = int(np.argmin(d))
+            out.add((min(k, j), max(k, j)))
+    return out
+
+
+def edge_pairs(keypoints_T_m: np.ndarray, points: np.ndarray, edges: np.ndarray, reach_m: float
+               ) -> tuple[tuple[int, int], ...]:
+    """skeleton's pairs joined along the sharp edges alone (a keypoint no path reaches: in none)."""
     K, P = len(keypoints_T_m), len(points)
     if len(edges) == 0:
         return ()

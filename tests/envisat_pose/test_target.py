@@ -133,7 +133,8 @@ def test_a_plain_box_has_its_half_turns_and_a_square_one_its_quarter_turns(tmp_p
 
 
 def test_a_rims_skeleton_follows_the_rim(tmp_path):
-    """Four points on a cylinder's rim are joined to their neighbours along the rim, not across it."""
+    """Four points on a cylinder's rim are joined to their neighbours along the rim, not across it; a point alone
+    on the other rim (its path comes back to itself) is joined to its nearest keypoint, straight up the side."""
     rim = {f"r{i}": (0.3 * math.cos(a), 0.3 * math.sin(a), 0.5) for i, a in
            enumerate(np.radians([0, 90, 180, 270]))}
     rim["base"] = (0.3, 0.0, -0.5)
@@ -143,7 +144,7 @@ def test_a_rims_skeleton_follows_the_rim(tmp_path):
                     'diaginertia="1 1 0.5"/><geom type="cylinder" size="0.3 0.5"/>' + sites
                     + '</body></worldbody></mujoco>')
     can = load_target(str(path))
-    assert can.skeleton == ((0, 1), (0, 3), (1, 2), (2, 3))
+    assert can.skeleton == ((0, 1), (0, 3), (0, 4), (1, 2), (2, 3))
 
 
 def test_visibility_is_mujocos_ray_cast(tmp_path):
@@ -283,3 +284,19 @@ def test_a_mirror_symmetry_relabels_a_flipped_image(name, mirrored):
         R_m = F @ R @ S
         assert np.linalg.det(R_m) > 0
         np.testing.assert_allclose(flipped, project(R_m, F @ tvec), atol=1e-9)
+
+
+def test_keypoints_no_edge_joins_are_joined_to_their_nearest(tmp_path):
+    """Keypoints in the middle of a panel's four edges (each path turns 90 deg at the panel's corners) and one on a
+    ball (no sharp edge): each joined to its nearest keypoint, not left out of the skeleton (COCO's, the plots')."""
+    mids = {"px": (0.5, 0.0, 0.05), "py": (0.0, 0.3, 0.05), "mx": (-0.5, 0.0, 0.05), "my": (0.0, -0.3, 0.05),
+            "ball": (0.0, 0.0, 0.45)}
+    sites = "".join(f'<site name="kp_{k}" pos="{x} {y} {z}"/>' for k, (x, y, z) in mids.items())
+    path = tmp_path / "panel.xml"
+    path.write_text('<mujoco><worldbody><body name="target"><inertial pos="0 0 0" mass="5" '
+                    'diaginertia="1 1 0.5"/><geom type="box" size="0.5 0.3 0.05"/>'
+                    '<geom type="sphere" size="0.15" pos="0 0 0.3"/>' + sites + '</body></worldbody></mujoco>')
+    panel = load_target(str(path))
+    # nearest of each: px (0) -> py (1) and my (3) tie at 0.583 m, the lower index; py (1) -> ball (4) at 0.50 m
+    # against px at 0.583; mx (2) -> py; my (3) -> ball; ball (4) -> py (0.50, before my at 0.50 by index)
+    assert panel.skeleton == ((0, 1), (1, 2), (1, 4), (3, 4)), panel.skeleton
