@@ -3,7 +3,8 @@
 Each module of the app layer named below adds its verbs with a `register(subparsers)` function; a verb's
 handler takes the parsed arguments and returns an exit code. Stage modules are imported inside the handlers,
 so a verb loads only what it uses (`estimate --truth` never loads MuJoCo). User errors (ConfigError,
-InputError) are printed as one line on stderr with exit code 2, never as a traceback.
+InputError) are printed as one line on stderr with exit code 2, never as a traceback; warnings as one line
+each ("envisat VERB: warning: ...").
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 
 from envisat_pose.app.common import EVERY_VERB, as_flags
 from envisat_pose.config import ConfigError, InputError
@@ -39,8 +41,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # the command as typed (a run's record)
+
+    def one_line(message, category, filename, lineno, file=None, line=None):
+        print(f"envisat {args.verb}: warning: {message}", file=sys.stderr)
+
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            warnings.showwarning = one_line
+            return int(args.func(args) or 0)
     except (ConfigError, InputError) as err:
         names = {**EVERY_VERB, **getattr(args, "flag_names", {})}
         text = str(err) if isinstance(err, ConfigError) else as_flags(str(err), names)

@@ -6,7 +6,7 @@ and materials, and its keypoints as the body's sites `kp_<name>` in file order (
 `corner_<name>` sites: models/envisat.xml's corners A-H). The body frame of the
 file is the frame T of the labels, the truth and the filter. The file is read by MuJoCo itself (MjSpec), so its own
 <compiler> (angle unit, eulerseq, meshdir, texturedir), defaults and assets give the shape MuJoCo gives it alone;
-child bodies without joints are fused into it as MuJoCo fuses static bodies (envisat_pose/target_file.py).
+child bodies are fused into it as MuJoCo fuses static bodies, joints latched (envisat_pose/target_file.py).
 
 ENVISAT (models/envisat.xml) is the default target. Whether a target is ENVISAT is asked here only
 (`Target.is_default`, the `require_default*` checks of the verbs whose detector or filter know ENVISAT alone,
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import os
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,7 +73,9 @@ class Target:
     keypoint_names (K,), keypoint_sites (K,) their MJCF site names; keypoints_T_m (K, 3) in T, m. mass_kg;
     inertia_T_kg_m2 (3, 3) about the CoM in T. reach_m: the farthest point of its surface from the CoM. geoms:
     (G,) TargetGeom, file order. surface: the triangles of every geom in T (target_mesh.BodyMesh). own_scene: the
-    file holds the factory's camera, so it is rendered as it is. Derived on first use: skeleton, symmetries.
+    file holds the factory's camera, so it is rendered as it is. latched_joints: the file's joints in the target's
+    tree, latched at their reference pose (target_file.py: the target is one rigid body). Derived on first use:
+    skeleton, symmetries.
     """
 
     name: str
@@ -87,6 +90,7 @@ class Target:
     geoms: tuple[TargetGeom, ...]
     surface: BodyMesh
     own_scene: bool
+    latched_joints: tuple[str, ...] = ()
 
     @functools.cached_property
     def skeleton(self) -> tuple[tuple[int, int], ...]:
@@ -356,7 +360,7 @@ def _model_name(spec, path: str) -> str:
 @functools.lru_cache(maxsize=16)
 def _load(path: str, stamps: tuple, field: str, given: str) -> Target:
     sha256 = target_sha256(path)
-    spec, own_scene, fused = read_spec(path, field, given)
+    spec, own_scene, fused, latched = read_spec(path, field, given)
     try:
         model = spec.compile()
     except ValueError as err:
@@ -398,17 +402,20 @@ def _load(path: str, stamps: tuple, field: str, given: str) -> Target:
         _fail(field, given, f"keypoints on the target: site {sites[k]!r} is {dist[k]:.3f} m from every geom "
                             f"the factory draws (groups {groups}; at most {KEYPOINT_MAX_SURFACE_DISTANCE_M:g} m)")
     reach = float(np.linalg.norm(surface.mesh.vertices_T_m, axis=1).max())
+    if latched:  # said once per file (the load is cached): the shape is the file's reference pose
+        warnings.warn(f"target {given!r}: {len(latched)} joint(s) latched at the file's reference pose, the target "
+                      f"one rigid body ({', '.join(latched)})", stacklevel=2)
     return Target(
         name=_model_name(spec, path),
         path=path, sha256=sha256, keypoint_names=names, keypoint_sites=sites, keypoints_T_m=X,
         mass_kg=float(model.body_mass[body]), inertia_T_kg_m2=inertia, reach_m=reach, geoms=geoms,
-        surface=surface, own_scene=own_scene)
+        surface=surface, own_scene=own_scene, latched_joints=latched)
 
 
 def load_target(given: str = DEFAULT_TARGET, field: str = "target") -> Target:
     """The checked target of a config's `target` value (a path; DEFAULT_TARGET is the package's ENVISAT).
     ConfigError naming `field`, the value and what was expected: no such file, a file MuJoCo cannot read or
-    compile, no body 'target', a joint in it or its child bodies (which are read fused: target_file.py), a bad
+    compile, no body 'target' (its child bodies are read fused, its joints latched: target_file.py), a bad
     inertia (zero mass, not positive definite, the triangle inequality; stated by an <inertial>, or else MuJoCo's
     from the geoms and child bodies), the CoM off the body's origin, fewer than 4 keypoint sites, no geom the
     factory draws (RENDERED_GROUPS), a keypoint farther than KEYPOINT_MAX_SURFACE_DISTANCE_M from the drawn

@@ -11,7 +11,10 @@ alone (the body given a free joint for the compile, so that it is not fused into
 file whose body `target` holds everything directly (fused_text): its inertial the composite one and its sites and
 geoms at their compiled poses in T, to the last bit (a mesh geom's less its own centring, which compiling the text
 applies again). Keypoints keep MuJoCo's order: the body's own sites, then each child's, depth first. A joint
-anywhere in the tree is refused (the target is one rigid body).
+anywhere in the tree (a <freejoint/> on the body, a hinge deploying a wing) is latched: the target is one rigid
+body at the file's reference configuration (every joint at qpos0, where MuJoCo draws the bodies as written), the
+joint taken out and with it what only a mechanism needs (actuators, tendons, equalities, sensors, contact pairs and
+exclusions, keyframes); the scene adds its own free joint.
 """
 
 from __future__ import annotations
@@ -125,9 +128,30 @@ def _dissolve_frames(parent: ET.Element, pos: np.ndarray, quat: np.ndarray, into
 
 def fused_text(path: str) -> str | None:
     """The file at `path` as MuJoCo's fusestatic leaves it, written as a file whose body `target` holds every geom
-    and site directly (module docstring); None where that body has no child bodies and no frames (the file is read
-    as it is). The caller has checked that the tree holds no joint. ValueError where MuJoCo does not compile it."""
+    and site directly, its joints latched (module docstring); None where that body has no child bodies, no frames
+    and no joints (the file is read as it is). ValueError where MuJoCo does not compile it."""
     return _fused_text(path, os.stat(path).st_mtime_ns)
+
+
+MECHANISM_KINDS = ("actuators", "tendons", "equalities", "sensors", "pairs", "excludes", "keys")  # what joints drive
+
+
+def tree_joints(body) -> list:
+    """The joints of body `target` (an MjsBody) and of its child bodies, depth first."""
+    return [j for b in [body, *subtree_bodies(body)] for j in b.joints]
+
+
+def latch_joints(spec) -> None:
+    """Take the joints of spec's body `target` and its child bodies out, and the file's mechanism with them
+    (MECHANISM_KINDS: what may name a joint), so the tree compiles as one rigid body at its reference pose."""
+    joints = tree_joints(spec.body("target"))
+    if not joints:
+        return
+    for kind in MECHANISM_KINDS:
+        for el in list(getattr(spec, kind)):
+            spec.delete(el)
+    for j in joints:
+        spec.delete(j)
 
 
 @functools.lru_cache(maxsize=16)
@@ -136,8 +160,9 @@ def _fused_text(path: str, mtime_ns: int) -> str | None:
 
     spec = mujoco.MjSpec.from_file(path)
     target = spec.body("target")
-    if target is None or not (target.bodies or target.frames):
+    if target is None or not (target.bodies or target.frames or tree_joints(target)):
         return None
+    latch_joints(spec)
     absolute_asset_files(spec, os.path.dirname(path))
     tree = [target, *subtree_bodies(target)]
     for b in subtree_bodies(spec.worldbody):
@@ -198,9 +223,11 @@ def _spec_inertia(body) -> np.ndarray:
 
 def read_spec(path: str, field: str, given: str):
     """MuJoCo's reading of the file (its own compiler settings) with its body `target` checked for structure:
-    (spec, own_scene, fused). A body with child bodies is read fused (fused_text); own_scene: the file holds the
-    factory's camera (models/envisat.xml), so it is its own scene. ConfigError naming `field` and the value `given`
-    otherwise: a file MuJoCo cannot read, no body 'target', a joint in it or its child bodies, a bad <inertial>."""
+    (spec, own_scene, fused, latched). A body with child bodies or joints is read fused (fused: True), its joints
+    latched (fused_text); latched: those joints' names (an unnamed one as '<kind> joint of body NAME'); own_scene: the file
+    holds the factory's camera (models/envisat.xml), so it is its own scene. ConfigError naming `field` and the
+    value `given` otherwise: a file MuJoCo cannot read, no body 'target', a bad <inertial>, a scene file whose
+    target has child bodies."""
     import mujoco
 
     def fail(expected: str):
@@ -217,19 +244,20 @@ def read_spec(path: str, field: str, given: str):
     tree = subtree_bodies(body)
     if own_scene and tree:
         fail("a scene file whose body 'target' has no child bodies")
-    if not own_scene and any(len(b.joints) for b in [body, *tree]):
-        fail("one rigid body 'target' (no joints, in it or its child bodies: the scene adds its free joint)")
+    joints = [] if own_scene else tree_joints(body)  # a scene file holds the scene's own free joint
+    latched = tuple(j.name or f"{str(j.type).rsplit('.', 1)[-1].removeprefix('mjJNT_').lower()} joint of body "
+                    f"{j.parent.name!r}" for j in joints)
     for b in [body, *tree]:
         if b.explicitinertial:  # without one, MuJoCo's from the geoms (checked once compiled)
             problem = check_inertia(float(b.mass), _spec_inertia(b))
             if problem is not None:
                 fail(f"body {b.name or 'target'!r} with {problem}")
-    if tree:
+    if tree or joints:
         try:
             spec = mujoco.MjSpec.from_string(fused_text(path))
         except ValueError as err:
             fail(f"an MJCF file MuJoCo compiles (it says: {' '.join(str(err).split())})")
-    return spec, own_scene, bool(tree)
+    return spec, own_scene, bool(tree or joints), latched
 
 
 def compile_alone(path: str):

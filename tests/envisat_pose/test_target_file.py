@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from envisat_pose.attitude import quat_to_rotmat
-from envisat_pose.config import ConfigError, InputError
+from envisat_pose.config import InputError
 from envisat_pose.datagen.labels import make_label
 from envisat_pose.datagen.render import SceneRenderer
 from envisat_pose.datagen.render_view import View
@@ -128,11 +128,30 @@ def test_the_factory_simulates_and_renders_the_tree_as_the_flat_file(pair):
     np.testing.assert_allclose(points[0], points[1], atol=1e-9)
 
 
-def test_a_joint_in_the_tree_is_refused(tmp_path):
+def test_joints_are_latched_at_the_files_reference_pose(tmp_path, pair):
+    """A free joint on the body and a hinge (its ref 30 deg: qpos0, where MuJoCo draws the tip as written) driven
+    by an actuator, read by a sensor, set by a keyframe: the target is the jointless tree's rigid body (the flat
+    file's keypoints, mass, inertia and surface), the joints named and said once; the scene holds one joint, its
+    own free joint."""
+    text = TREE.format(joint='<joint name="hinge" type="hinge" axis="0 0 1" ref="30"/>')
+    text = text.replace('<body name="target">', '<body name="target"><freejoint name="loose"/>')
+    text = text.replace("</worldbody>", '</worldbody><actuator><motor joint="hinge"/></actuator><sensor>'
+                        '<jointpos joint="hinge"/></sensor><keyframe><key qpos="0 0 0 1 0 0 0 1.2"/></keyframe>')
     path = tmp_path / "hinged.xml"
-    path.write_text(TREE.format(joint='<joint name="hinge" type="hinge"/>'))
-    with pytest.raises(ConfigError, match="no joints, in it or its child bodies"):
-        load_target(str(path))
+    path.write_text(text)
+    mujoco.MjModel.from_xml_path(str(path))  # a file MuJoCo loads
+    with pytest.warns(UserWarning, match=r"2 joint\(s\) latched .*loose, hinge"):
+        hinged = load_target(str(path))
+    flat = pair[1]
+    assert hinged.latched_joints == ("loose", "hinge")
+    np.testing.assert_allclose(hinged.keypoints_T_m, flat.keypoints_T_m, atol=1e-12)
+    assert abs(hinged.mass_kg - 212.0) < 1e-9
+    np.testing.assert_allclose(hinged.inertia_T_kg_m2, _composite(), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(hinged.mesh().vertices_T_m, flat.mesh().vertices_T_m, atol=1e-12)
+    m = mujoco.MjModel.from_xml_string(scene_xml(hinged))
+    b = m.body("target").id
+    assert m.body_jntnum[b] == 1 and m.jnt_type[m.body_jntadr[b]] == mujoco.mjtJoint.mjJNT_FREE
+    assert pair[0].latched_joints == ()
 
 
 def _placed(model):
