@@ -55,31 +55,37 @@ def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_
     whatever happens; returns rows.close(), the run's reductions, with loop_wall_s: the loop's wall time (s).
 
     overlap: the caller's generator makes frame k+1 (rendering, the camera, reading a file: on this thread, where
-    its GL context lives) while one worker thread steps the tracker on frame k and records it (torch, OpenCV,
-    MuJoCo's renderer and numpy's large operations release the GIL, so the two share the cores). A frame
-    made for the tracker's state (the closed loop's rendered window) is made for its state a step earlier and
-    checked by its FrameInput.ready; frames that depend on nothing reach the tracker as without overlap, so every
-    estimate is the same. The stages' times then overlap and sum to more than the wall time."""
+    its GL context lives) while one worker thread steps the tracker on frame k (torch, OpenCV, MuJoCo's renderer
+    and numpy's large operations release the GIL, so the two share the cores); frame k's estimate is stored
+    and recorded here, beside the worker's step of frame k+1. A frame made for the tracker's state (the closed
+    loop's rendered window) is made for its state a step earlier and checked by its FrameInput.ready; frames that
+    depend on nothing reach the tracker as without overlap, so every estimate is the same. The stages' times
+    then overlap and sum to more than the wall time."""
     bar = None
     if progress is not None:
         from tqdm import tqdm
 
         bar = tqdm(total=rows.T, unit="frame", desc=progress, mininterval=0.5)
 
-    def step(f: FrameInput) -> None:
-        est = tracker.step(f.t_s, f.image, f.window_px)
+    def track(f: FrameInput):
+        return tracker.step(f.t_s, f.image, f.window_px)
+
+    def store(f: FrameInput, est) -> int:
         i, out = rows.row(f.k), rows.buf
         store_estimate(out, i, est)
         out["skipped"][i] = f.image is None
-        t0 = time.perf_counter()
-        if recorder is not None:
-            recorder.log_frame(f.k, est_row(out, i, f.t_s), f.image, jpeg_quality, x_true=f.x_true,
-                               corners_true_px=f.corners_true_px, in_frame=f.in_frame)
         timing = out["timing_s"][i]
         timing[:DETECTION] = f.stage_s
         timing[DETECTION] = est.timing_s.get("detection", 0.0)
         timing[FILTERING] = est.timing_s.get("filtering", 0.0)
-        timing[RECORDING] = time.perf_counter() - t0
+        return i
+
+    def record(f: FrameInput, est, i: int) -> None:  # before the next store: row i is still in rows.buf
+        t0 = time.perf_counter()
+        if recorder is not None:
+            recorder.log_frame(f.k, est_row(rows.buf, i, f.t_s), f.image, jpeg_quality, x_true=f.x_true,
+                               corners_true_px=f.corners_true_px, in_frame=f.in_frame)
+        rows.buf["timing_s"][i][RECORDING] = time.perf_counter() - t0
         if bar is not None:
             bar.update(1)
             bar.set_postfix_str(est.status, refresh=False)
@@ -87,10 +93,12 @@ def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_
     wall0 = time.perf_counter()
     try:
         if overlap:
-            _overlapped(step, frames)
+            _overlapped(track, store, record, frames)
         else:
             for f in frames:
-                step(f.final())
+                f = f.final()
+                est = track(f)
+                record(f, est, store(f, est))
     finally:
         if bar is not None:
             bar.close()
@@ -100,19 +108,29 @@ def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_
     return {**rows.close(), "loop_wall_s": loop_wall_s}
 
 
-def _overlapped(step, frames: Iterable[FrameInput]) -> None:
-    """step(f) for every frame in order on one worker thread, at most one frame ahead: the next frame is made
-    here while the worker steps the last, and made final (FrameInput.final) here between the two steps. An error
-    on either side stops both (the worker's is raised here, after the frame it was on)."""
+def _overlapped(track, store, record, frames: Iterable[FrameInput]) -> None:
+    """track(f) for every frame in order on one worker thread, at most one frame ahead: the next frame is made
+    here while the worker tracks the last, and made final (FrameInput.final) here between the two steps; each
+    estimate is stored here as soon as it is done (store(f, est) -> its row), then recorded (record(f, est, row))
+    while the worker tracks the next frame. An error on either side stops both after the frame in hand (the
+    worker's is raised here)."""
     from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tracker") as pool:
-        pending = None
+        pending = None  # (frame, future of its estimate)
         try:
             for f in frames:  # making frame k here while the worker is on frame k - 1
+                done = None
                 if pending is not None:
-                    pending.result()
-                pending = pool.submit(step, f.final())  # final() here: the tracker is idle, GL on this thread
-        finally:
+                    (last, fut), pending = pending, None
+                    est = fut.result()
+                    done = (last, est, store(last, est))
+                f = f.final()  # here: the tracker is idle, GL on this thread
+                pending = (f, pool.submit(track, f))
+                if done is not None:
+                    record(*done)
+        finally:  # the frame in hand: stored and recorded (an error here or the worker's raised after it)
             if pending is not None:
-                pending.result()
+                (last, fut), pending = pending, None
+                est = fut.result()
+                record(last, est, store(last, est))

@@ -67,6 +67,7 @@ from envisat_pose.filtering.estimator import (
     init_state,
     make_setup,
 )
+from envisat_pose.filtering.kernel_warmup import load_in_background
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.pipelines.tracking.acquisition import FramePose
 from envisat_pose.pipelines.tracking.bank import probabilities, select_runs
@@ -122,6 +123,7 @@ class Tracker(AcquiringSteps, TrackingSteps):
                                 target=target)
         self.dyn = {"J_T": J_T, "mu_m3_s2": mu, "gravity_gradient": gravity_gradient,
                     "max_step_s": self.fcfg.max_rk4_step_s}
+        load_in_background(self.setup)  # the fused filter's code loaded while the first frames are detected
         self.keypoints_T_m = self.setup.keypoints_T_m
         self.K = self.setup.num_keypoints
         self.namings = box_namings() if target is None else target_namings(target, J_T)

@@ -89,7 +89,8 @@ def test_an_error_in_a_frame_still_closes_the_recorder(tmp_path, overlap):
 
 def test_with_overlap_the_next_frame_is_made_while_the_tracker_steps(tmp_path):
     """The tracker's step on frame k waits (at most 10 s) for the source to start making frame k + 1: with
-    overlap every wait but the last is met, and the steps ran on another thread than the source."""
+    overlap every wait but the last is met, the steps ran on another thread than the source, and the recorder
+    was called on the source's."""
     made = [threading.Event() for _ in range(4)]
     threads = {"source": threading.get_ident()}
 
@@ -105,10 +106,17 @@ def test_with_overlap_the_next_frame_is_made_while_the_tracker_steps(tmp_path):
             self.calls.append(k + 1 < 4 and made[k + 1].wait(timeout=10.0))
             return super().step(t_s, image)
 
-    tracker = Waiting()
-    run_frames(tracker, source(), RunRows(str(tmp_path / "run"), 4), overlap=True)
+    class Recorder(FakeRecorder):
+        def log_frame(self, k, *args, **kw):
+            threads.setdefault("recorded", set()).add(threading.get_ident())
+            super().log_frame(k, *args, **kw)
+
+    tracker, recorder = Waiting(), Recorder()
+    run_frames(tracker, source(), RunRows(str(tmp_path / "run"), 4), recorder, overlap=True)
     assert [c for c in tracker.calls if isinstance(c, bool)] == [True, True, True, False]
     assert threads["step"] != threads["source"]
+    # the estimates are recorded on the source's thread (beside the next step), every frame once, in order
+    assert threads["recorded"] == {threads["source"]} and [f[0] for f in recorder.frames] == [0, 1, 2, 3]
 
 
 def test_with_overlap_an_error_in_the_source_stops_the_loop_after_the_frame_in_hand(tmp_path):
