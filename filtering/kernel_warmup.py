@@ -35,8 +35,10 @@ def load_kernels(setup: FilterSetup) -> None:
 
 
 def load_in_background(setup: FilterSetup) -> threading.Thread | None:
-    """load_kernels(setup) on a daemon thread (started; returned), or None where setup's kernel compiles nothing
-    (the numpy reference). A failure there is not the caller's: the first real step loads the code as before."""
+    """load_kernels(setup) on a thread (started; returned), or None where setup's kernel compiles nothing (the
+    numpy reference). A failure there is not the caller's: the first real step loads the code as before. Not a
+    daemon: a process that ends first waits for it (on a machine without numba's cache, the compile it would
+    have waited for at its first step) rather than leave LLVM compiling while the interpreter shuts down."""
     if setup.cfg.kernel != "fast":
         return None
 
@@ -46,6 +48,6 @@ def load_in_background(setup: FilterSetup) -> threading.Thread | None:
         except Exception:  # noqa: BLE001 - the real step meets the same error, where it can be reported
             pass
 
-    thread = threading.Thread(target=run, name="filter-kernels", daemon=True)
+    thread = threading.Thread(target=run, name="filter-kernels")
     thread.start()
     return thread
