@@ -12,6 +12,9 @@ Three parts, all peers (ENVISAT, the upper stage, the CubeSat) in one run:
   runs (chi2(12 R) / R: the band of one step's mean over R runs; the time average of such means spreads less, so
   this band is the conservative one) and the campaign's own band (summary.json's: every run-step taken as an
   independent draw; tight, since the steps are correlated), and the keypoints the filter measured per run-step.
+  `pixel_case` (no floor: where the filter meets its limit): the scenario pixels-1px (the camera's pixels of the
+  visible keypoints at 1 px, no range) per target; range then comes from the target's apparent size alone, which
+  for the 3U CubeSat at 50 m is 4-13 px.
   `visibility_check_off` (a diagnosis): paper-all-0.02 on the two non-default targets with the filter's visibility
   check off. With it on, the filter drops the keypoints its target's visibility table (2048 view directions) calls
   hidden though the truth shows them, information the PCRLB (the truth's visible set) still counts.
@@ -56,6 +59,7 @@ from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env  # noqa: E
 HERE = os.path.dirname(os.path.abspath(__file__))
 TARGETS = ("models/envisat.xml", "models/upper_stage.xml", "models/cubesat_3u.xml")
 CASES = ("paper-all-0.02", "paper-all-0.2", "paper-3markers-0.02")
+PIXEL_CASE = "pixels-1px"
 FLOOR = (0.9, 1.1)
 SPEED_FLOOR_X = 1.5  # another target's per-run-step time within this factor of ENVISAT's
 SPEED_SCENARIO = "paper-all-0.02"
@@ -166,6 +170,7 @@ def main(argv=None) -> int:
     extra = {} if a.max_markers is None else {"measurement.max_markers": a.max_markers}
     rows = {_name(t): campaign_row("default", t, a, runner, extra) for t in TARGETS}
     cases = {c: {_name(t): campaign_row(c, t, a, runner) for t in TARGETS} for c in CASES}
+    pixels = {_name(t): campaign_row(PIXEL_CASE, t, a, runner) for t in TARGETS}
     # diagnosis: the filter's visibility check (another target's table) off, so it measures what the bound counts
     check_off = {_name(t): campaign_row(CASES[0], t, a, runner, {"filter.visibility_check": False})
                  for t in TARGETS[1:]}
@@ -174,7 +179,8 @@ def main(argv=None) -> int:
     head = (f"{'case':<23}{'target':<13}" + "".join(f"{b:>17}" for b in blocks)
             + f"{'mean NEES':>11}{'95 % band (R runs)':>20}{'kp/step':>9}{'diverged':>10}")
     print(head)
-    for case, tab in [("default", rows)] + list(cases.items()) + [(f"{CASES[0]} no-vis", check_off)]:
+    for case, tab in ([("default", rows)] + list(cases.items()) + [(PIXEL_CASE, pixels)]
+                      + [(f"{CASES[0]} no-vis", check_off)]):
         for name, r in tab.items():
             kp = r["keypoints_measured_per_run_step"]
             band = r["nees_band_95_mean_over_runs"]
@@ -202,6 +208,10 @@ def main(argv=None) -> int:
                                   "every keypoint the truth shows, as the PCRLB assumes (with the check on it "
                                   "drops those its target's visibility table calls hidden)",
                                   "targets": check_off}},
+              "pixel_case": {"protocol": {"scenario": PIXEL_CASE, "runs": a.runs, "duration_s": a.duration_s,
+                                          "settle_s": a.settle_s, "seed": a.seed,
+                                          "floor": "none: reported (range from the apparent size alone)"},
+                             "targets": pixels},
               "estimate_speed": speed}
     os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
     atomic_write_text(os.path.join(HERE, "results", "target_estimation.json"), json.dumps(result, indent=1) + "\n")
