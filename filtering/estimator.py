@@ -26,7 +26,8 @@ import numpy as np
 from envisat_pose.config import Config, check
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
 from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
-from envisat_pose.filtering.ukf import SigmaWeights, merwe_weights, predict, shadow_switch, state_residual, update
+from envisat_pose.filtering.step_update import measurement_update
+from envisat_pose.filtering.ukf import SigmaWeights, merwe_weights, predict, shadow_switch, state_residual
 from envisat_pose.gates import GATE_PROB, chi2_bound, chi2_gate
 from envisat_pose.geometry import PinholeCamera, load_camera, load_geometry
 from envisat_pose.state import nees_window_diverged
@@ -62,6 +63,9 @@ class FilterConfig(Config):
     (~1e-5 rad/s^2 at most) or switch on adaptive_q.
     kernel: "fast" (the fused numba kernels of filtering/fast.py, the default) or "reference" (the numpy
     filter of filtering/ukf.py, which the fast one is tested against): the same filter to round-off.
+    split_gain, split_max: a run whose prior spreads the measured components more than split_gain times wider
+    than their noise takes its measurement in partial updates (filtering/step_update.py), at most split_max
+    (1: always one update).
     """
 
     alpha: float = 1.0
@@ -84,6 +88,8 @@ class FilterConfig(Config):
     divergence_prob: float = 1e-6
     max_rk4_step_s: float = 1.0
     kernel: str = "fast"
+    split_gain: float = 10.0
+    split_max: int = 16
 
     def validate(self, prefix: str = "filter") -> None:
         p = f"{prefix}." if prefix else ""
@@ -105,6 +111,8 @@ class FilterConfig(Config):
         check(self.nees_divergence_factor > 1.0, f"{p}nees_divergence_factor", self.nees_divergence_factor, "a factor > 1")
         check(self.max_rk4_step_s > 0.0, f"{p}max_rk4_step_s", self.max_rk4_step_s, "a positive step in seconds")
         check(self.kernel in KERNELS, f"{p}kernel", self.kernel, f"one of {', '.join(KERNELS)}")
+        check(self.split_gain > 1.0, f"{p}split_gain", self.split_gain, "a factor > 1")
+        check(self.split_max >= 1, f"{p}split_max", self.split_max, "at least 1 update")
 
     @property
     def P0(self) -> np.ndarray:
@@ -332,7 +340,8 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
     measured = np.asarray(meas.mask, dtype=bool) & np.isfinite(z).all(-1)  # a non-finite detection is a missing one
     gate = setup.gate_threshold
     thr = None if gate is None else np.where(state.locked >= cfg.gate_lockout_steps, np.inf, gate)
-    up = _update(mean, cov, z, measured, R_c, state.r_scale, thr, setup)
+    _check_kernel(cfg.kernel)
+    up = measurement_update(mean, cov, z, measured, R_c, state.r_scale, thr, setup)
     mean, cov, mask_k = up["mean"], up["cov"], up["mask_k"]
     nis, dof, accepted = up["nis"], up["dof"], up["accepted"]
     # never NaN: roll a run back to its prediction (or its previous posterior) and flag it (the fast kernel
@@ -405,26 +414,6 @@ def _nis_bound(prob: float, d: np.ndarray) -> np.ndarray:
     while n < top:
         n *= 2
     return _nis_bound_table(float(prob), n)[d.astype(np.int64)]
-
-
-def _update(mean, cov, z, measured, R_c, r_scale, thr, setup: FilterSetup) -> dict:
-    """The measurement update of a step with setup.cfg.kernel: visibility check, gate, UKF update. Returns a
-    dict of mean, cov, nis, dof, accepted (R, K), mask_k (R, K) (the corners the gate saw), Ky (R, 12) = K y,
-    yy (R,) = y.y and trPzz (R,) = tr(Pzz) over the used components (for the adaptive noise)."""
-    cfg = setup.cfg
-    if cfg.kernel == "fast":
-        from envisat_pose.filtering import fast
-
-        return fast.update_fused(mean, cov, z, measured, R_c, r_scale, thr, cfg.visibility_check, setup)
-    _check_kernel(cfg.kernel)
-    Rk = R_c * r_scale[:, None, None, None]
-    mask_k = measured
-    if cfg.visibility_check:
-        mask_k = mask_k & setup.predicted_visible(mean)
-    mean, cov, info = update(mean, cov, z, mask_k, Rk, setup.hx, setup.weights, thr)
-    return {"mean": mean, "cov": cov, "nis": info.nis, "dof": info.dof, "accepted": info.accepted, "mask_k": mask_k,
-            "Ky": np.einsum("rij,rj->ri", info.K, info.y), "yy": np.einsum("ri,ri->r", info.y, info.y),
-            "trPzz": np.einsum("rii->r", info.Pzz_state), "indefinite": info.indefinite}
 
 
 def run_filter(x0_hat: np.ndarray, P0: np.ndarray, t_s: np.ndarray, chaser: np.ndarray, z: np.ndarray,

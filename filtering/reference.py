@@ -46,17 +46,35 @@ def reference_predict(ukf: UnscentedKalmanFilter, dt_s: float, c0: np.ndarray, J
 
 
 def reference_update(ukf: UnscentedKalmanFilter, z: np.ndarray, mask_c: np.ndarray, R_c: np.ndarray, kind: str,
-                     camera: PinholeCamera | None = None) -> None:
-    """filterpy update with the measured corners only. z (K, m), mask_c (K,) bool, R_c (K, m, m)."""
+                     camera: PinholeCamera | None = None, split: tuple[float, int] | None = None) -> int:
+    """filterpy update with the measured corners only. z (K, m), mask_c (K,) bool, R_c (K, m, m). split: (gain,
+    most), FilterConfig's split_gain and split_max: where filterpy's innovation covariance S says the prior is
+    ratio = tr(S - R) / tr(R) > gain times wider than the noise, the update is made again from the prior in
+    n = min(ceil(ratio / gain), most) updates with R n, each from sigma points about the last one's result.
+    Returns n (1: one update)."""
     mask_c = np.asarray(mask_c, dtype=bool)
     if not mask_c.any():
         ukf.update(None)
+        n = 1
     else:
         blocks = np.broadcast_to(R_c, z.shape + (z.shape[-1],))[mask_c]
         R = np.zeros((blocks.shape[0] * blocks.shape[1],) * 2)
         m = blocks.shape[1]
         for i, b in enumerate(blocks):
             R[i * m:(i + 1) * m, i * m:(i + 1) * m] = b
-        ukf.update(z[mask_c].ravel(), R=R, hx=lambda x: measure(x, kind, camera)[mask_c].ravel())
+        hx = lambda x: measure(x, kind, camera)[mask_c].ravel()  # noqa: E731
+        x_prior, P_prior = ukf.x.copy(), ukf.P.copy()
+        ukf.update(z[mask_c].ravel(), R=R, hx=hx)
+        n = 1
+        if split is not None:
+            ratio = np.trace(ukf.S - R) / np.trace(R)
+            n = int(min(max(np.ceil(ratio / split[0]), 1), split[1]))
+        if n > 1:
+            ukf.x, ukf.P = x_prior, P_prior
+            for _ in range(n):
+                ukf.sigmas_f = ukf.points_fn.sigma_points(ukf.x, ukf.P)
+                ukf.update(z[mask_c].ravel(), R=R * n, hx=hx)
+                ukf.x, ukf.P = shadow_switch(ukf.x, ukf.P)
     ukf.x, ukf.P = shadow_switch(ukf.x, ukf.P)
     ukf.sigmas_f = ukf.points_fn.sigma_points(ukf.x, ukf.P)
+    return n

@@ -15,6 +15,10 @@ it; re-recorded whole on 2026-12-02 (an AMD EPYC with AVX-512) by the same code,
 the first recording by at most 7.6e-6 of each state's largest value. Re-recorded the same day for a change meant to
 move the estimates: the sun's shadow map sized to the target (datagen/render.py, SHADOW_MAP_PX) moves shadow edges
 in the closed loop's frames (its corners' alternative naming up to 7 % of a column's scale; statuses unchanged).
+Re-recorded on 2026-12-03 for another: the measurement update in partial updates where the prior is far wider than
+the measurement (filtering/step_update.py) takes the warm closed loop's first update from P0 in 16 steps (its
+estimates up to 0.9 mm and its NIS up to 0.21 apart in the first frames, its detections' alternative naming up to
+2.8e-3 of a column's scale through the window the estimate places; statuses equal; the cold track within its tolerance).
 
 Run: .venv/bin/python tests/data/make_track_reference.py [--out tests/data/track_reference.npz]
 """

@@ -1,4 +1,5 @@
-"""filterpy's UKF (the reference, MRP hooks) and our batched UKF on the same inputs: equal to 1e-9."""
+"""filterpy's UKF (the reference, MRP hooks, the split update written on it) and our batched UKF on the same inputs:
+equal to 1e-9."""
 
 import numpy as np
 import pytest
@@ -19,14 +20,16 @@ def test_filterpy_and_batched_agree_over_100_steps(truth_600, chaser_of, kind):
     assert len(np.unique(n_meas)) >= 5 and (n_meas == 0).any()  # the visible set really varies, with gaps
     c = chaser_of(tr)[:T]
     res = run_filter(inp.x0_hat, cfg.P0, tr.t_s[:T], c, inp.z, inp.mask, inp.R_c, kind, cfg)
-    switches = 0
+    switches = splits = 0
     for r in range(R):
         ukf = make_reference_ukf(inp.x0_hat[r], cfg.P0, cfg.Q(1.0))
         for k in range(T):
             if k > 0:
                 reference_predict(ukf, 1.0, c[k - 1])
-            reference_update(ukf, inp.z[r, k], inp.mask[r, k], inp.R_c, kind)
+            splits += reference_update(ukf, inp.z[r, k], inp.mask[r, k], inp.R_c, kind,
+                                       split=(cfg.split_gain, cfg.split_max)) > 1
             np.testing.assert_allclose(res.x_hat[r, k], ukf.x, rtol=0, atol=1e-9, err_msg=f"run {r} step {k}")
             np.testing.assert_allclose(res.P[r, k], ukf.P, rtol=0, atol=1e-9, err_msg=f"run {r} step {k}")
         switches += int(np.sum(np.abs(np.diff(res.x_hat[r, :, 6:9], axis=0)).max(-1) > 0.5))
     assert switches >= 1  # the comparison went through MRP shadow switches
+    assert splits >= R  # and through the first step's partial updates (filtering/step_update.py)

@@ -1,0 +1,90 @@
+"""A filter step's measurement update (estimator.filter_step's): the kernel's update (visibility check, gate,
+unscented update), and, for a run whose prior is far wider than its measurement, the same measurement again in
+partial updates.
+
+The split, a recursive update in its simplest form (after Zanetti, "Recursive update filtering for nonlinear
+estimation", IEEE Trans. Automatic Control 57(6), 2012): a run whose prior spreads the measured components
+ratio = tr(Pzz) / tr(R) times wider than their noise takes n = ceil(ratio / split_gain) updates (at most
+split_max), each with the noise R n, from its prior, on the corners the single update accepted. With a linear
+model that is the single update's posterior (n updates of information R^-1 / n each); with the camera's it is
+a better one: each partial update draws its sigma points about the previous one's posterior, where the single
+update spreads them over the whole prior, whose lateral metre at 50 m moves the image by ~40 px and turns the
+line of sight by a degree, which a small target's few pixels then read as attitude and range.
+
+Where it acts: the first step of a campaign, whose P0 (1 m, 10 deg) is hundreds of times wider in the measured
+components than their noise. A tracked step's prior is narrower than its noise: one update, as before. The
+NIS, the gate's and the visibility check's decisions and the adaptive noise's statistics stay the single
+update's (the measurement against the prior).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from envisat_pose.filtering.ukf import update
+
+
+def kernel_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarray, R_c: np.ndarray,
+                  r_scale: np.ndarray, thr, vis_check: bool, setup) -> dict:
+    """One measurement update of R runs with setup.cfg.kernel ('fast': filtering/fast.py's fused kernel; else
+    the numpy filter of filtering/ukf.py): the visibility check (vis_check), the gate (thr: a bound per run, or
+    None for none), the unscented update with R_c * r_scale. Returns a dict of mean, cov, nis, dof, accepted
+    (R, K), mask_k (R, K) (the corners the gate saw), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,) = tr(Pzz) over
+    the used components, indefinite (R,) bool (and with the fast kernel suspect: the runs it redid in numpy)."""
+    if setup.cfg.kernel == "fast":
+        from envisat_pose.filtering import fast  # numba compiles (or loads its cache) on first use
+
+        return fast.update_fused(mean, cov, z, measured, R_c, r_scale, thr, vis_check, setup)
+    Rk = R_c * r_scale[:, None, None, None]
+    mask_k = measured
+    if vis_check:
+        mask_k = mask_k & setup.predicted_visible(mean)
+    mean, cov, info = update(mean, cov, z, mask_k, Rk, setup.hx, setup.weights, thr)
+    return {"mean": mean, "cov": cov, "nis": info.nis, "dof": info.dof, "accepted": info.accepted, "mask_k": mask_k,
+            "Ky": np.einsum("rij,rj->ri", info.K, info.y), "yy": np.einsum("ri,ri->r", info.y, info.y),
+            "trPzz": np.einsum("rii->r", info.Pzz_state), "indefinite": info.indefinite}
+
+
+def split_counts(tr_pzz: np.ndarray, tr_r: np.ndarray, gain: float, most: int) -> np.ndarray:
+    """(R,) int: the partial updates each run's measurement takes, ceil(ratio / gain) within [1, most], where
+    ratio = tr_pzz / tr_r: how many times the prior's spread in the measured components (tr Pzz) exceeds their
+    noise (tr R), both over the components used. No measurement, or a non-finite ratio: 1."""
+    ratio = np.where(tr_r > 0, tr_pzz / np.where(tr_r > 0, tr_r, 1.0), 0.0)
+    ratio = np.where(np.isfinite(ratio), ratio, 0.0)
+    return np.clip(np.ceil(ratio / float(gain)), 1, max(int(most), 1)).astype(np.int64)
+
+
+def measurement_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarray, R_c: np.ndarray,
+                       r_scale: np.ndarray, thr, setup) -> dict:
+    """filter_step's update of R runs from their prior (mean (R, 12), cov (R, 12, 12)): kernel_update with the
+    config's visibility check and the gate thr, then the runs that split_counts splits updated again from the
+    prior in that many partial updates (module docstring). z (R, K, m); measured (R, K); R_c (R, K, m, m);
+    r_scale (R,). Returns kernel_update's dict, its mean and cov replaced for the split runs whose partial
+    updates all succeeded (the others keep the single update's), and splits (R,) int: the updates each run took."""
+    cfg = setup.cfg
+    up = kernel_update(mean, cov, z, measured, R_c, r_scale, thr, cfg.visibility_check, setup)
+    accepted = np.asarray(up["accepted"], dtype=bool)
+    tr_r = np.einsum("rkii->r", R_c * accepted[..., None, None]) * r_scale
+    counts = split_counts(np.asarray(up["trPzz"], dtype=float), tr_r, cfg.split_gain, cfg.split_max)
+    counts = np.where(np.asarray(up["indefinite"], dtype=bool), 1, counts)
+    idx = np.flatnonzero(counts > 1)
+    up["splits"] = counts
+    if len(idx) == 0:
+        return up
+    n = counts[idx]
+    m_i, P_i = mean[idx].copy(), cov[idx].copy()
+    z_i, acc_i, R_i, r_i = z[idx], accepted[idx], R_c[idx], r_scale[idx] * n
+    failed = np.zeros(len(idx), dtype=bool)
+    for step in range(int(n.max())):
+        sub = np.flatnonzero((n > step) & ~failed)
+        if len(sub) == 0:
+            break
+        res = kernel_update(m_i[sub], P_i[sub], z_i[sub], acc_i[sub], R_i[sub], r_i[sub], None, False, setup)
+        m_i[sub], P_i[sub] = res["mean"], res["cov"]
+        failed[sub] |= np.asarray(res["indefinite"], dtype=bool)
+    failed |= ~(np.isfinite(m_i).all(-1) & np.isfinite(P_i).all((-1, -2)))
+    keep = idx[~failed]
+    up["mean"], up["cov"] = np.array(up["mean"], copy=True), np.array(up["cov"], copy=True)
+    up["mean"][keep], up["cov"][keep] = m_i[~failed], P_i[~failed]
+    up["splits"] = np.where(np.isin(np.arange(len(counts)), idx[failed]), 1, counts)
+    return up
