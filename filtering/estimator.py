@@ -7,6 +7,8 @@ returns a new state; `run_filter` is the loop of filter_step over a measurement 
 model: measurement kind, camera, inertia, mu and the gravity-gradient switch (take the truth's). Around the pure
 steps of filtering/ukf.py a step adds, per run:
 - chi-square gating of each corner (rejects a mis-associated corner);
+- the measurement in partial updates where the prior is far wider than it (a campaign's or a warm start's first
+  step: filtering/step_update.py);
 - adaptive measurement noise: the detector's per-corner covariance comes in with the data, and an
   innovation-based scale r_scale (covariance matching: E[y y^T] = H P H^T + R) multiplies it;
 - adaptive process noise, residual-based: Q_k = a Q_(k-1) + (1 - a) K y y^T K^T on top of the base Q;
