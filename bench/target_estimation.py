@@ -14,7 +14,7 @@ Three parts, all peers (ENVISAT, the upper stage, the CubeSat) in one run:
   independent draw; tight, since the steps are correlated), and the keypoints the filter measured per run-step.
   `pixel_case` (no floor: where the filter meets its limit): the scenario pixels-1px (the camera's pixels of the
   visible keypoints at 1 px, no range) per target; range then comes from the target's apparent size alone, which
-  for the 3U CubeSat at 50 m is 4-13 px.
+  for the 3U CubeSat at 50 m is 4-19 px.
   `visibility_check_off` (a diagnosis): paper-all-0.02 on the two non-default targets with the filter's visibility
   check off. With it on, the filter drops the keypoints its target's visibility table (2048 view directions) calls
   hidden though the truth shows them, information the PCRLB (the truth's visible set) still counts.
