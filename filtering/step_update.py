@@ -86,5 +86,5 @@ def measurement_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measure
     keep = idx[~failed]
     up["mean"], up["cov"] = np.array(up["mean"], copy=True), np.array(up["cov"], copy=True)
     up["mean"][keep], up["cov"][keep] = m_i[~failed], P_i[~failed]
-    up["splits"] = np.where(np.isin(np.arange(len(counts)), idx[failed]), 1, counts)
+    counts[idx[failed]] = 1
     return up
