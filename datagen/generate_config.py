@@ -33,17 +33,24 @@ DEPTH_SCALE_M = 0.002  # the depth PNG's default metres per unit (ENVISAT's: 131
 SIZED_DIGITS = 4  # significant digits of a sized default (the number the manifest records)
 # a sequence whose first frame shows the target fewer pixels across than this (2 reach / range x f_px) is refused
 MIN_SEQUENCE_TARGET_SPAN_PX = 4.0
+# sequence.range_scale's bounds: a target a thousandth of ENVISAT's size to one ten times it
+MIN_RANGE_SCALE, MAX_RANGE_SCALE = 1e-3, 10.0
 
 
 def _check_range(value: tuple, field_name: str, lo: float, hi: float) -> None:
     check(lo <= value[0] <= value[1] <= hi, field_name, list(value), f"[low, high] with {lo:g} <= low <= high <= {hi:g}")
 
 
+def sized_value(value: float) -> float:
+    """A sized default as the config records it: value to SIZED_DIGITS significant digits (1 stays 1 exactly)."""
+    return float(f"{value:.{SIZED_DIGITS}g}")
+
+
 def sized_random_m(ratio: float) -> dict[str, float]:
     """Random mode's default range_min_m, range_max_m and keepout_margin_m (m) of a target `ratio` times ENVISAT's
     size (target_scene.size_ratio): ENVISAT's (ENVISAT_RANDOM_M) times ratio, to SIZED_DIGITS significant digits
     (ENVISAT's own exactly: ratio 1)."""
-    return {name: float(f"{value_m * ratio:.{SIZED_DIGITS}g}") for name, value_m in ENVISAT_RANDOM_M.items()}
+    return {name: sized_value(value_m * ratio) for name, value_m in ENVISAT_RANDOM_M.items()}
 
 
 def farthest_target_point_m(range_max_m: float, reach_m: float) -> float:
@@ -234,14 +241,22 @@ class RandomModeConfig(Config):
 @dataclass(frozen=True)
 class SequenceModeConfig(Config):
     """Sequence mode's truth (table [sequence]; unused in random mode): scenario, the named truth scenario whose
-    simulation the frames show; frame_dt_s, the interval between frames, s."""
+    simulation the frames show; frame_dt_s, the interval between frames, s; range_scale: the scenario's start
+    (relative.rho0_C_m, rhodot0_C_m_s) and keep-out margin times this (datagen.scenario.scaled_start); not given,
+    the target's size against ENVISAT's (target_scene.size_ratio, to SIZED_DIGITS significant digits: ENVISAT 1
+    exactly, the 3U CubeSat 0.03644, a 1.8 m hold for the default scenario's 50 m), so a sequence frames another
+    target as random mode's sized views do; 1 flies the scenario's own metres."""
 
     scenario: str = "default"
     frame_dt_s: float = 1.0
+    range_scale: float | None = None
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
         check(self.frame_dt_s > 0, f"{p}frame_dt_s", self.frame_dt_s, "a positive frame interval in s")
+        if self.range_scale is not None:
+            check(MIN_RANGE_SCALE <= self.range_scale <= MAX_RANGE_SCALE, f"{p}range_scale", self.range_scale,
+                  f"a factor on the scenario's start in [{MIN_RANGE_SCALE:g}, {MAX_RANGE_SCALE:g}] (1: its metres)")
 
 
 # The keys that moved from the top level into [random] and [sequence] (datasets written before keep reading:
@@ -294,25 +309,28 @@ class GenerateConfig(Config):
 
     def __post_init__(self) -> None:
         """Fill in random mode's range_min_m, range_max_m and keepout_margin_m not given with the target's sized
-        defaults (sized_random_m of target_scene.size_ratio: ENVISAT's own numbers for ENVISAT), then depth_scale_m
-        not given (_sized_depth_scale_m). A target that cannot be read leaves the ranges unset: validate names the
-        target."""
+        defaults (sized_random_m of target_scene.size_ratio: ENVISAT's own numbers for ENVISAT) and sequence mode's
+        range_scale not given with the same ratio (sized_value), then depth_scale_m not given
+        (_sized_depth_scale_m). A target that cannot be read leaves them unset: validate names the target."""
         unset = [name for name in ENVISAT_RANDOM_M if getattr(self.random, name) is None]
-        sized = self._sized_random_m() if unset else None
-        if sized is not None:
+        ratio = self._size_ratio() if unset or self.sequence.range_scale is None else None
+        if ratio is not None and unset:
+            sized = sized_random_m(ratio)
             try:
                 filled = replace(self.random, **{name: sized[name] for name in unset})
             except ConfigError as err:  # a given range against a sized one: named in its table
                 raise ConfigError(f"random.{err.field}", err.value, err.expected) from None
             object.__setattr__(self, "random", filled)
+        if ratio is not None and self.sequence.range_scale is None:
+            object.__setattr__(self, "sequence", replace(self.sequence, range_scale=sized_value(ratio)))
         if self.depth_scale_m is None:
             object.__setattr__(self, "depth_scale_m", self._sized_depth_scale_m())
         super().__post_init__()
 
-    def _sized_random_m(self) -> dict[str, float] | None:
-        """sized_random_m of the target's size; None for a target that cannot be read (validate names it)."""
+    def _size_ratio(self) -> float | None:
+        """target_scene.size_ratio of the target; None for a target that cannot be read (validate names it)."""
         try:
-            return sized_random_m(size_ratio(load_target(self.target)))
+            return size_ratio(load_target(self.target))
         except ConfigError:
             return None
 
@@ -365,9 +383,11 @@ class GenerateConfig(Config):
 
     def _check_sequence_target_size(self, p: str) -> None:
         """ConfigError naming sequence.scenario (an unknown name, too) when the scenario's first frame shows the
-        target fewer than MIN_SEQUENCE_TARGET_SPAN_PX across (target_span_px of its reach at |relative.rho0_C_m|):
-        the scenario's orbit is its own, so the fix is a larger resolution_px or a nearer scenario."""
-        range_m = _start_range_m(json.dumps(scenario_dict(self.sequence.scenario), sort_keys=True))
+        target fewer than MIN_SEQUENCE_TARGET_SPAN_PX across (target_span_px of its reach at |relative.rho0_C_m|
+        times sequence.range_scale): the fix is a larger resolution_px, a smaller range_scale or a nearer
+        scenario."""
+        range_m = self.sequence.range_scale * _start_range_m(json.dumps(scenario_dict(self.sequence.scenario),
+                                                                        sort_keys=True))
         reach_m = load_target(self.target).reach_m
         f_px = float(load_camera().scaled(self.resolution_px, self.resolution_px).K[0, 0])
         span_px = target_span_px(reach_m, range_m, f_px)
@@ -377,9 +397,10 @@ class GenerateConfig(Config):
         near_m = range_m * span_px / MIN_SEQUENCE_TARGET_SPAN_PX
         raise ConfigError(f"{p}sequence.scenario", self.sequence.scenario,
                           f"a scenario whose first frame shows the target at least {MIN_SEQUENCE_TARGET_SPAN_PX:g} px "
-                          f"across: its reach {reach_m:.3g} m at {range_m:.3g} m (relative.rho0_C_m) spans "
-                          f"{span_px:.1f} px at resolution_px = {self.resolution_px}; set resolution_px to at least "
-                          f"{need_px} or pick a scenario that starts within {near_m:.3g} m")
+                          f"across: its reach {reach_m:.3g} m at {range_m:.3g} m (relative.rho0_C_m x sequence.range_scale "
+                          f"{self.sequence.range_scale:g}) spans {span_px:.1f} px at resolution_px = "
+                          f"{self.resolution_px}; set resolution_px to at least {need_px} or start the sequence "
+                          f"within {near_m:.3g} m (a smaller sequence.range_scale or a nearer scenario)")
 
     @property
     def num_shards(self) -> int:
@@ -399,12 +420,15 @@ def _start_range_m(truth_json: str) -> float:
 
 def nest_moved_keys(data: dict) -> dict:
     """A stored generate config (a dataset's manifest, a look's record) with the keys of the flat layout (before
-    [random] and [sequence]) moved into their tables; a config of the nested layout comes back unchanged."""
+    [random] and [sequence]) moved into their tables, and a sequence written before sequence.range_scale read at
+    range_scale 1 (its frames flew the scenario's metres); a config of today's layout comes back unchanged."""
     out = {k: v for k, v in data.items() if k not in MOVED_KEYS}
     for key, value in data.items():
         if key in MOVED_KEYS:
             table, name = MOVED_KEYS[key].split(".")
             out[table] = {**out.get(table, {}), name: value}
+    if out.get("mode") == "sequence" and "range_scale" not in out.get("sequence", {}):
+        out["sequence"] = {**out.get("sequence", {}), "range_scale": 1.0}
     return out
 
 

@@ -176,6 +176,20 @@ def scenario_config(name: str = "default", **overrides) -> ScenarioConfig:
     return from_dict(ScenarioConfig, deep_update(scenario_dict(name), overrides), prefix="")
 
 
+def scaled_start(name: str, scale: float) -> dict:
+    """Overrides of a named scenario (for scenario_config) that start its chaser `scale` times as far: the initial
+    relative position and velocity (relative.rho0_C_m, rhodot0_C_m_s) and the keep-out margin times scale. The
+    relative motion is linear in its start to first order in range over the orbit radius (the Clohessy-Wiltshire
+    model), so the whole relative trajectory scales with it: the same tumble seen from a hold sized to a smaller
+    or larger target. {} for scale 1 (the scenario as written)."""
+    if scale == 1.0:
+        return {}
+    cfg = scenario_config(name)
+    return {"relative": {"rho0_C_m": [v * scale for v in cfg.relative.rho0_C_m],
+                         "rhodot0_C_m_s": [v * scale for v in cfg.relative.rhodot0_C_m_s]},
+            "keepout_margin_m": cfg.keepout_margin_m * scale}
+
+
 def in_earth_shadow(r_N_m: np.ndarray, sun_dir_N) -> np.ndarray:
     """(N,) bool: positions r_N_m (N, 3) m inside the Earth's cylindrical shadow: behind the Earth (r . s < 0)
     and within one Earth radius (EARTH_RADIUS_M) of the sun line through the Earth's centre."""

@@ -17,7 +17,7 @@ from envisat_pose.datagen.earth import EARTH_TEXTURE_SET_SIZE, draw_backdrop, ea
 from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.render_view import View
-from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_config
+from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scaled_start, scenario_config
 from envisat_pose.datagen.target_scene import scene_clip_planes_m
 from envisat_pose.geometry import load_camera
 from envisat_pose.state import MRP, POS
@@ -136,7 +136,7 @@ def sequence_frames(cfg_json: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     n = cfg.num_images
     seq = cfg.sequence
     scen = scenario_config(seq.scenario, duration_s=max(n - 1, 1) * seq.frame_dt_s, dt_s=seq.frame_dt_s, seed=cfg.seed,
-                           target={"file": cfg.target})
+                           target={"file": cfg.target}, **scaled_start(seq.scenario, seq.range_scale))
     traj = simulate_truth(scen)
     t_s, x = traj.t_s[:n], traj.x[:n]
     orb = chaser_orbit(scen.orbit, t_s)

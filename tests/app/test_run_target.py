@@ -15,6 +15,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(
 from keypoint_cases import untrained_weights  # noqa: E402
 
 from envisat_pose.app.cli import main
+from envisat_pose.datagen.target_scene import size_ratio
+from envisat_pose.target import load_target
 
 UPPER = "envisat_pose/models/upper_stage.xml"
 
@@ -37,6 +39,9 @@ def test_the_closed_loop_of_another_target_writes_its_keypoints(weights, tmp_pat
     assert det["corners_px"].shape == (13, 12, 2) and det["visible"].shape == (13, 12)
     truth = np.load(out / "truth.npz")
     assert truth["corners_px"].shape[1:] == (12, 2)  # MuJoCo's truth of the upper stage's 12 keypoints
+    # the default scenario's 50 m hold sized to the upper stage, as its generated sequences are
+    ratio = size_ratio(load_target(UPPER))
+    assert np.linalg.norm(truth["x"][0, :3]) == pytest.approx(50.0 * ratio, rel=1e-3)
     assert os.path.getsize(out / "recording.rrd") > 0
     assert "cold start" in capsys.readouterr().out
 

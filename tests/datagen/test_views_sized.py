@@ -157,14 +157,17 @@ def test_a_cubesat_covers_about_envisats_share_of_the_image():
 
 
 def test_a_sequence_showing_the_target_as_a_dot_is_refused():
-    """The CubeSat 50 m away (the default scenario) spans 2.8 px at 128 px: one line naming sequence.scenario and
-    what to set; at 256 px (5.6 px) it runs; ENVISAT at the smallest resolution does too."""
+    """The CubeSat 50 m away (the default scenario flown in its metres: sequence.range_scale 1) spans 2.8 px at
+    128 px: one line naming sequence.scenario and what to set; at 256 px (5.6 px) it runs; sized to the target
+    (range_scale not given) it runs at 16 px; ENVISAT at the smallest resolution does too."""
+    metres = {"scenario": "default", "range_scale": 1.0}
     with pytest.raises(ConfigError) as err:
-        from_dict(GenerateConfig, {"target": CUBESAT, "mode": "sequence", "resolution_px": 128})
+        from_dict(GenerateConfig, {"target": CUBESAT, "mode": "sequence", "resolution_px": 128, "sequence": metres})
     text = str(err.value)
     assert text.startswith("sequence.scenario = 'default': expected") and "\n" not in text
-    assert "resolution_px to at least 184" in text and "2.8 px" in text
-    from_dict(GenerateConfig, {"target": CUBESAT, "mode": "sequence", "resolution_px": 256})
+    assert "resolution_px to at least 184" in text and "2.8 px" in text and "range_scale" in text
+    from_dict(GenerateConfig, {"target": CUBESAT, "mode": "sequence", "resolution_px": 256, "sequence": metres})
+    from_dict(GenerateConfig, {"target": CUBESAT, "mode": "sequence", "resolution_px": 16})
     from_dict(GenerateConfig, {"mode": "sequence", "resolution_px": 16})
     with pytest.raises(ConfigError, match="^scenario = 'nowhere'"):
         from_dict(GenerateConfig, {"mode": "sequence", "sequence": {"scenario": "nowhere"}})
