@@ -191,6 +191,16 @@ class Tracker(AcquiringSteps, TrackingSteps):
     def probabilities(self) -> np.ndarray:
         return probabilities(self.log_w)
 
+    def undecided(self) -> np.ndarray:
+        """(H,) bool the hypotheses the bank keeps open: probability at least 1 - bank.decided, or, with
+        bank.appearance_veto, favoured by the detector's appearance over the best by more than
+        bank.appearance_max_log."""
+        keep = self.probabilities >= 1.0 - self.cfg.bank.decided
+        if self.cfg.bank.appearance_veto and not keep.all():
+            best = int(np.argmax(self.log_w))
+            keep |= self.log_app - self.log_app[best] > self.cfg.bank.appearance_max_log
+        return keep
+
     @property
     def gate_bound(self) -> float:
         """The filter's chi-square gate per corner (the cost of a corner it rejects)."""
@@ -259,7 +269,7 @@ class Tracker(AcquiringSteps, TrackingSteps):
         self.evidence = EvidenceWindow.empty(len(log_dyn), self.cfg.integrity.window)
         self.confirmed = False
         self.coasting_frames = 0
-        self._keep(self.probabilities >= 1.0 - self.cfg.bank.decided)
+        self._keep(self.undecided())
 
     def _keep(self, keep: np.ndarray) -> bool:
         """Keep the hypotheses `keep` (H,) bool of the bank (at least one); True when any was dropped."""

@@ -255,7 +255,10 @@ class TrackingSteps:
             events += [f"hypothesis dropped: {'; '.join(p)}" for p in problems if p]
             self.log_dyn = np.where(failed, -np.inf, self.log_dyn)
             self._keep(~failed)
-        if self._keep(self.probabilities >= 1.0 - self.cfg.bank.decided):
+        open_ = self.undecided()
+        if (open_ & (self.probabilities < 1.0 - self.cfg.bank.decided)).any():
+            events.append("undecided: the detector's appearance favours a hypothesis the dynamics would drop")
+        if self._keep(open_):
             events.append("hypothesis decided")
         status = self._claim(events)  # may add "confirmed" to the events
         return self._estimate(t_s, events=tuple(events), status=status, timing=timing(), **out)
