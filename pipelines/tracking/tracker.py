@@ -193,12 +193,13 @@ class Tracker(AcquiringSteps, TrackingSteps):
 
     def undecided(self) -> np.ndarray:
         """(H,) bool the hypotheses the bank keeps open: probability at least 1 - bank.decided, or, with
-        bank.appearance_veto, favoured by the detector's appearance over the best by more than
-        bank.appearance_max_log."""
-        keep = self.probabilities >= 1.0 - self.cfg.bank.decided
+        bank.appearance_veto, one the detector's appearance alone would decide for against the best (ahead by
+        more than the decision's log odds)."""
+        decided = self.cfg.bank.decided
+        keep = self.probabilities >= 1.0 - decided
         if self.cfg.bank.appearance_veto and not keep.all():
             best = int(np.argmax(self.log_w))
-            keep |= self.log_app - self.log_app[best] > self.cfg.bank.appearance_max_log
+            keep |= self.log_app - self.log_app[best] > np.log(decided / (1.0 - decided))
         return keep
 
     @property

@@ -101,11 +101,12 @@ class BankConfig(Config):
     tau(lambda) / tau(1) (noise.evidence_weight). Twins whose predicted corners differ by a fraction of a pixel
     gain evidence mostly from the detector's repeated errors projected on that difference (0.25 px apart: 1.8 nats
     of separation at most over 17 frames, against NIS sums 9.6 nats apart; docs/history.md).
-    appearance_veto: a hypothesis the detector's appearance favours over the bank's best by more than
-    appearance_max_log (its summed log-likelihoods, as counted) stays open however unlikely the rest makes it: the
-    dynamics never decide a half-turn against the detector's clear look, as the look never decides one alone. On
-    default seed 3 at 512 px the twins' dynamics drew 9.6 nats apart on the detector's repeated errors while its
-    appearance favoured the truth by 6-10 nats; the truth was dropped and the twin claimed (docs/history.md).
+    appearance_veto: a hypothesis the detector's appearance alone would decide for against the bank's best (its
+    summed log-likelihoods, as counted before the cap, ahead by more than log(decided / (1 - decided)), 6.9 nats)
+    stays open however unlikely the rest makes it: the dynamics never decide a half-turn against what the
+    detector's look alone would decide, as the look never decides one alone (appearance_max_log). On default
+    seed 3 at 512 px the twins' dynamics drew 9.6 nats apart on the detector's repeated errors while its
+    appearance favoured the truth by 9-10 nats; the truth was dropped and the twin claimed (docs/history.md).
     """
 
     decided: float = 0.999
