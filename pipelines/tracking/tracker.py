@@ -191,7 +191,7 @@ class Tracker(AcquiringSteps, TrackingSteps):
     def probabilities(self) -> np.ndarray:
         return probabilities(self.log_w)
 
-    def undecided(self) -> np.ndarray:
+    def open_hypotheses(self) -> np.ndarray:
         """(H,) bool the hypotheses the bank keeps open: probability at least 1 - bank.decided, or, with
         bank.appearance_veto, one the detector's appearance alone would decide for against the best (ahead by
         more than the decision's log odds)."""
@@ -270,7 +270,7 @@ class Tracker(AcquiringSteps, TrackingSteps):
         self.evidence = EvidenceWindow.empty(len(log_dyn), self.cfg.integrity.window)
         self.confirmed = False
         self.coasting_frames = 0
-        self._keep(self.undecided())
+        self._keep(self.open_hypotheses())
 
     def _keep(self, keep: np.ndarray) -> bool:
         """Keep the hypotheses `keep` (H,) bool of the bank (at least one); True when any was dropped."""

@@ -255,7 +255,7 @@ class TrackingSteps:
             events += [f"hypothesis dropped: {'; '.join(p)}" for p in problems if p]
             self.log_dyn = np.where(failed, -np.inf, self.log_dyn)
             self._keep(~failed)
-        open_ = self.undecided()
+        open_ = self.open_hypotheses()
         if (open_ & (self.probabilities < 1.0 - self.cfg.bank.decided)).any():
             events.append("undecided: the detector's appearance favours a hypothesis the dynamics would drop")
         if self._keep(open_):
