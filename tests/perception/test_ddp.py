@@ -35,3 +35,32 @@ def test_two_ranks_hold_identical_weights(tiny_dataset, tmp_path):
     assert end["world"] == 2.0 and end["ranks_identical"] == 1.0 and end["stopped_by"] == "steps"
     assert json.load(open(run / "config.json"))["device"] == "cpu"
     load_model(str(run / "checkpoint.safetensors"))
+
+
+def test_the_process_group_ends_with_no_training_object_holding_it(tiny_dataset, tmp_path):
+    """In one process (a gloo group of one, HashStore): once train_detector returns, no DistributedDataParallel
+    is left, not even as uncollected garbage (gc.get_objects lists it until a collection), so
+    destroy_process_group freed the group while the interpreter was whole."""
+    import gc
+
+    import torch
+    import torch.distributed as dist
+
+    from envisat_pose.perception.data import DataConfig
+    from envisat_pose.perception.model import ModelConfig
+    from envisat_pose.perception.train import TrainConfig
+    from envisat_pose.pipelines.detector.train import train_detector
+
+    cfg = TrainConfig(steps=2, batch_size=2, warmup_steps=1, checkpoint_every=10 ** 6,
+                      model=ModelConfig(input_px=64, width=16, depth=2, stem_width=8), data=DataConfig(input_px=64))
+    dist.init_process_group("gloo", store=dist.HashStore(), rank=0, world_size=1)
+    try:
+        end = train_detector(cfg, [tiny_dataset], str(tmp_path / "run"), workers=0, progress=False)
+    finally:
+        standing = dist.is_initialized()
+        if standing:
+            dist.destroy_process_group()
+    assert not standing, "train_detector left the process group standing"
+    assert end["world"] == 1.0 and end["step"] == 2
+    ddp = torch.nn.parallel.DistributedDataParallel
+    assert not [o for o in gc.get_objects() if type(o) is ddp]
