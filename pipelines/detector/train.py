@@ -245,9 +245,11 @@ def init_distributed(device: str) -> str:
 def end_distributed() -> None:
     """Tear the process group down before the interpreter exits: a rank that leaves with gloo's threads still
     running can abort ('terminate called without an active exception'; about 1 run in 30 of a 2-rank run on a
-    2-core machine, and in CI). The training loop's objects form reference cycles, so its DistributedDataParallel
-    (whose reducer holds the group) outlives train() until a garbage collection; collected first, here, the group
-    is really freed by destroy_process_group rather than during the interpreter's finalization."""
+    2-core machine, and in CI). torch imports parts of itself lazily inside the first training call, and one of
+    them (torch.fx's wrap) keeps its own frame in a local: a reference cycle whose frames' f_back chain holds
+    train()'s locals, the DistributedDataParallel (whose reducer holds the group) among them, until a garbage
+    collection. Collected first, here, the group is really freed by destroy_process_group rather than during the
+    interpreter's finalization."""
     import gc
 
     import torch.distributed as dist

@@ -1,6 +1,7 @@
 """torchrun with 2 processes (gloo, 127.0.0.1 only) trains a few steps; both ranks end with identical weights. The
 run has a time budget it does not reach: every step shares rank 0's clock (the rate follows it), and the ranks
-still agree bit for bit."""
+still agree bit for bit. And the group ends with nothing of the training left to hold it (a rank that freed it only
+at exit could abort)."""
 
 import json
 import os
@@ -37,30 +38,33 @@ def test_two_ranks_hold_identical_weights(tiny_dataset, tmp_path):
     load_model(str(run / "checkpoint.safetensors"))
 
 
+PROBE = """
+import gc, json, sys
+import torch
+import torch.distributed as dist
+from envisat_pose.perception.data import DataConfig
+from envisat_pose.perception.model import ModelConfig
+from envisat_pose.perception.train import TrainConfig
+from envisat_pose.pipelines.detector.train import train_detector
+
+cfg = TrainConfig(steps=2, batch_size=2, warmup_steps=1, checkpoint_every=10 ** 6,
+                  model=ModelConfig(input_px=64, width=16, depth=2, stem_width=8), data=DataConfig(input_px=64))
+dist.init_process_group("gloo", store=dist.HashStore(), rank=0, world_size=1)
+end = train_detector(cfg, [sys.argv[1]], sys.argv[2], workers=0, progress=False)
+standing = dist.is_initialized()
+live = sum(type(o) is torch.nn.parallel.DistributedDataParallel for o in gc.get_objects())
+print(json.dumps({"world": end["world"], "step": end["step"], "standing": standing, "live_ddp": live}))
+"""
+
+
 def test_the_process_group_ends_with_no_training_object_holding_it(tiny_dataset, tmp_path):
-    """In one process (a gloo group of one, HashStore): once train_detector returns, no DistributedDataParallel
-    is left, not even as uncollected garbage (gc.get_objects lists it until a collection), so
-    destroy_process_group freed the group while the interpreter was whole."""
-    import gc
-
-    import torch
-    import torch.distributed as dist
-
-    from envisat_pose.perception.data import DataConfig
-    from envisat_pose.perception.model import ModelConfig
-    from envisat_pose.perception.train import TrainConfig
-    from envisat_pose.pipelines.detector.train import train_detector
-
-    cfg = TrainConfig(steps=2, batch_size=2, warmup_steps=1, checkpoint_every=10 ** 6,
-                      model=ModelConfig(input_px=64, width=16, depth=2, stem_width=8), data=DataConfig(input_px=64))
-    dist.init_process_group("gloo", store=dist.HashStore(), rank=0, world_size=1)
-    try:
-        end = train_detector(cfg, [tiny_dataset], str(tmp_path / "run"), workers=0, progress=False)
-    finally:
-        standing = dist.is_initialized()
-        if standing:
-            dist.destroy_process_group()
-    assert not standing, "train_detector left the process group standing"
-    assert end["world"] == 1.0 and end["step"] == 2
-    ddp = torch.nn.parallel.DistributedDataParallel
-    assert not [o for o in gc.get_objects() if type(o) is ddp]
+    """A fresh interpreter, as a torchrun rank is (torch's first lazy imports happen inside the training call),
+    with a gloo group of one: once train_detector returns, the group is gone and no DistributedDataParallel is
+    left, not even as uncollected garbage (gc.get_objects lists it until a collection), so destroy_process_group
+    freed the group while the interpreter was whole."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-c", PROBE, tiny_dataset, str(tmp_path / "run")], capture_output=True,
+                          text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert got == {"world": 1.0, "step": 2, "standing": False, "live_ddp": 0}
