@@ -8,13 +8,10 @@ the simplest honest model for it is one sigma per keypoint, fitted robustly from
 of its correct detections (usable, called visible, within the match radius of their label under the frame's
 best twin naming): sigma_k = median(|e_x|, |e_y|) / Phi^-1(0.75), both axes pooled about zero (not about their
 median: a bias is part of the error the filter sees), Phi^-1(0.75) = 0.6745 the median of |x| for x ~ N(0, 1).
-The median keeps the rare far outlier inside the match radius from setting one keypoint's sigma; the sigmas are
-then scaled together by sqrt(s), the one variance scale that brings the mean of e^T C^-1 e = |e|^2 / sigma_k^2
-over the same detections to 2 (chi-square, 2 dof), the rule ENVISAT's calibrate fits its cov_scale by: a
-detector whose errors are heavier-tailed than a Gaussian (a trained network's are: the upper stage's read a mean
-of 3.5 with the median's sigmas alone) would otherwise hand the filter an R too small for its own errors. s is
-1 for Gaussian errors (a little below: the truncation at the match radius). What the scale cannot mend shows in
-the check: the share within the chi-square's 95 % gate, 0.95 when the model holds.
+The median keeps the rare far outlier inside the match radius from inflating sigma for every frame; whether the
+errors are Gaussian enough for a filter shows in the check: e^T C^-1 e = |e|^2 / sigma_k^2 over the same
+detections, whose mean is 2 (chi-square, 2 dof) and whose share within the chi-square's 95 % gate is 0.95 when
+the model holds (heavier tails: a mean above 2; the truncation at the match radius pulls it the other way).
 
 The median's price is its spread: over m Gaussian components the estimate's standard error is
 sigma sqrt(MAD_VARIANCE / m), MAD_VARIANCE = 1 / (4 f(q)^2 q^2) = 1.3605 (q = 0.6745 the median of |x|, f its
@@ -55,15 +52,6 @@ def fit_keypoint_sigma(err_px: np.ndarray, min_count: int = MIN_CORRECT) -> tupl
     sigma = np.array([robust_sigma(err[ok[:, k], k]) if count[k] >= min_count else np.nan
                       for k in range(err.shape[1])])
     return sigma, count.astype(np.int64)
-
-
-def nees_scale(err_px: np.ndarray, sigma_px: np.ndarray) -> float:
-    """The variance scale s that brings the mean e^T (s C)^-1 e to 2 over the correct detections err_px (N, K, 2)
-    (NaN: not a correct one), C = sigma_k^2 I from sigma_px (K,): mean(|e|^2 / sigma_k^2) / 2 over every detection
-    with a finite error and sigma (ENVISAT's calibrate fits its cov_scale by the same rule); NaN without one."""
-    v = isotropic_nees(err_px, sigma_px)
-    v = v[np.isfinite(v)]
-    return float(np.mean(v) / 2.0) if len(v) else float("nan")
 
 
 def sigma_standard_error(sigma_px: np.ndarray, count: np.ndarray) -> np.ndarray:

@@ -3,17 +3,16 @@ detector, fitted on held-out labelled frames of that target, written into a copy
 ENVISAT's calibrate writes its cov_scale: perception/weights.with_metadata).
 
 The model (perception/keypoint_cov.py): per keypoint an isotropic sigma_k, robust (the median absolute error of
-its correct detections, both axes about zero, over 0.6745), then all of them scaled by the one factor sqrt(s)
-that brings the mean e^T C^-1 e over every correct detection to 2 (ENVISAT's rule for its cov_scale). The
-correct detections: usable (visible and in frame), called visible, within the match radius of their own label
-under each frame's best twin naming (the tracker settles the twins, so the errors it sees are those of the right
-naming). A keypoint with fewer than MIN_CORRECT (20) correct detections gets none (null: detect --target gives it
-a NaN covariance); each sigma's standard error is recorded (18 % of it at 20 detections, 5 % at 300). Written as
+the correct detections, both axes about zero, over 0.6745), from the correct detections: usable (visible and
+in frame), called visible, within the match radius of their own label under each frame's best twin naming (the
+tracker settles the twins, so the errors it sees are those of the right naming). A keypoint with fewer than
+MIN_CORRECT (20) correct detections gets none (null: detect --target gives it a NaN covariance); each sigma's
+standard error is recorded (18 % of it at 20 detections, 5 % at 300). Written as
 `keypoint_sigma_px` (a JSON list in the weights' keypoint order) and `keypoint_cov_calibration` (the record:
-every sigma, the median's sigmas and s, the counts, the check, the data). The check, on the same held-out frames:
-mean e^T C^-1 e per keypoint (2 over all, by the scale) and the share within the chi-square's 95 % gate (0.95
-when the errors are Gaussian). Also recorded: the median error of the correct detections below and above their
-median heatmap score (a score-dependent model would need the two to differ).
+every sigma and count, the check, the data). The check, on the same held-out frames: mean e^T C^-1 e over the
+correct detections (2 when the model holds) and the share within the chi-square's 95 % gate. Also recorded: the
+median error of the correct detections below and above their median heatmap score (a score-dependent model
+would need the two to differ).
 """
 
 from __future__ import annotations
@@ -31,7 +30,6 @@ from envisat_pose.perception.keypoint_cov import (
     MIN_CORRECT,
     fit_keypoint_sigma,
     nees_check,
-    nees_scale,
     sigma_standard_error,
 )
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig
@@ -76,20 +74,17 @@ def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, 
     names = target.keypoint_names
     perms = relabelings(target.symmetries, target.num_keypoints)
     err, chosen = calibration_errors(arrays, perms)
-    robust, count = fit_keypoint_sigma(err)
-    scale = nees_scale(err, robust)
-    sigma = robust * np.sqrt(scale)
+    sigma, count = fit_keypoint_sigma(err)
     refs = " ".join(dataset_ref(d) for d in folders)
     if not np.isfinite(sigma).any():
         raise InputError(f"data {refs!r}: at most {int(count.max())} correct detections of any keypoint in "
                          f"{len(chosen)} frames; calibration needs {MIN_CORRECT} of a keypoint (more held-out "
                          "frames, or a detector that finds the keypoints within "
                          f"{km.MATCH_PX:g} px)")
-    clean = _nulls(sigma)
-    se = _nulls(sigma_standard_error(sigma, count))
-    record = {"model": f"isotropic sigma per keypoint: median(|e_x|, |e_y|) about 0 / {GAUSS_ABS_MEDIAN:.4f}, "
-                       "all scaled by sqrt(s), s bringing the mean e^T C^-1 e to 2",
-              "nees_scale": scale, "robust_sigma_px": dict(zip(names, _nulls(robust))), "data": refs, "frames": int(len(chosen)), "match_px": km.MATCH_PX, "min_correct": MIN_CORRECT,
+    clean = [None if not np.isfinite(v) else float(v) for v in sigma]
+    se = [None if not np.isfinite(v) else float(v) for v in sigma_standard_error(sigma, count)]
+    record = {"model": f"isotropic sigma per keypoint: median(|e_x|, |e_y|) about 0 / {GAUSS_ABS_MEDIAN:.4f}",
+              "data": refs, "frames": int(len(chosen)), "match_px": km.MATCH_PX, "min_correct": MIN_CORRECT,
               "sigma_px": dict(zip(names, clean)), "sigma_se_px": dict(zip(names, se)),
               "count": {n: int(c) for n, c in zip(names, count)},
               "twin_share": float(np.mean(chosen > 0)) if len(perms) > 1 else None,
@@ -103,7 +98,7 @@ def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, 
 
 def sigma_table(record: dict) -> str:
     """The fit as a table: a line per keypoint (correct detections, sigma px, mean e^T C^-1 e, share within the
-    gate), one over all, and the scale the median's sigmas took."""
+    gate) and one over all."""
     check = record["check"]
     head = f"{'keypoint':14s} {'correct':>7s} {'sigma px':>16s} {'NEES':>6s} {'in gate':>7s}"
     lines = [head, "-" * len(head)]
@@ -115,17 +110,8 @@ def sigma_table(record: dict) -> str:
     a = check["all"]
     lines.append(f"{'all':14s} {a['count']:7d} {'':>16s} {_num(a['mean_nees'], '6.2f')} "
                  f"{_num(a['within_gate'], '7.1%')}")
-    scale = record.get("nees_scale")
-    if scale is not None:
-        lines.append(f"sigma: the median's x {np.sqrt(scale):.3f} (the variance scale {scale:.3f} bringing the mean "
-                     "e^T C^-1 e to 2)")
     return "\n".join(lines)
 
 
 def _num(x, spec: str) -> str:
     return "-".rjust(int(spec.split(".")[0])) if x is None or not np.isfinite(x) else format(x, spec)
-
-
-def _nulls(values) -> list:
-    """A JSON list of floats, None where a value is not finite (a keypoint not calibrated)."""
-    return [float(v) if np.isfinite(v) else None for v in values]
