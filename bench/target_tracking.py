@@ -18,7 +18,7 @@ frames beyond NEES's 99.9 % quantile, the second half's RMS position (m) and att
 on which the tracker claims an estimate ("-" where it claims none: a run that never tracks has no error to give)
 with the share of the second half claimed, and the real-time factor.
 
-Run: .venv/bin/python bench/target_tracking.py [--target FILE.xml] [--weights W] [--seeds 8] [--first-seed 0]
+Run: .venv/bin/python bench/target_tracking.py [--target FILE.xml] [--weights W [--config RUN.toml]] [--seeds 8] [--first-seed 0]
      [--scenarios default slow-tumble] [--duration-s 300] [--sigma-px 1.0] [--miss 0.1]
 Floors (issue 56): first track correct in at least 15 of 16 runs, 0 s claimed while wrong, mean NEES in [6, 18],
 second-half RMS position <= 10 cm at 50 m.
@@ -117,8 +117,10 @@ def claimed_second_half(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, 
             "sq_attitude_deg2": float(np.sum(err["attitude_deg"] ** 2))}
 
 
-def closed_loop_run(target_file: str, weights: str, scenario: str, seed: int, duration_s: float) -> dict:
-    """One `envisat run --target --weights` closed loop (rendered frames, the keypoint detector); its scores."""
+def closed_loop_run(target_file: str, weights: str, scenario: str, seed: int, duration_s: float,
+                    config: str | None = None) -> dict:
+    """One `envisat run --target --weights [--config FILE.toml]` closed loop (rendered frames, the keypoint
+    detector); its scores."""
     from envisat_pose.filtering.estimator import filter_inertia_T_kg_m2
     from envisat_pose.pipelines.jobs import resolve_job
     from envisat_pose.pipelines.runs.closed_loop import run_closed_loop
@@ -127,7 +129,7 @@ def closed_loop_run(target_file: str, weights: str, scenario: str, seed: int, du
     from envisat_pose.target import load_target
 
     target = load_target(target_file)
-    cfg = resolve_job("run", scenario, None, {"seed": seed, "runs": 1, "workers": 1, "weights": weights,
+    cfg = resolve_job("run", scenario, config, {"seed": seed, "runs": 1, "workers": 1, "weights": weights,
                                               "duration_s": duration_s, "image.target": target_file})
     with tempfile.TemporaryDirectory() as out:
         summary = run_closed_loop(cfg, out, progress=False)
@@ -162,6 +164,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--target", default="envisat_pose/models/upper_stage.xml")
     ap.add_argument("--weights", help="the target's calibrated keypoint detector (default: the noisy-truth stand-in)")
+    ap.add_argument("--config", help="with --weights: a run config (TOML) over each run, as `envisat run --config`")
     ap.add_argument("--scenarios", nargs="+", default=["default", "slow-tumble"])
     ap.add_argument("--seeds", type=int, default=8)
     ap.add_argument("--first-seed", type=int, default=0)
@@ -170,13 +173,15 @@ def main() -> int:
     ap.add_argument("--miss", type=float, default=0.1)
     ap.add_argument("--out", default="bench/results/target_tracking.json")
     args = ap.parse_args()
-    detector = f"weights {args.weights}" if args.weights else f"noisy-truth (sigma {args.sigma_px} px, miss {args.miss})"
+    detector = (f"weights {args.weights}" + (f", config {args.config}" if args.config else "") if args.weights
+                else f"noisy-truth (sigma {args.sigma_px} px, miss {args.miss})")
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     rows = {}
     for scenario in args.scenarios:
         runs = []
         for seed in seeds:
-            r = closed_loop_run(args.target, args.weights, scenario, seed, args.duration_s) if args.weights else \
+            r = closed_loop_run(args.target, args.weights, scenario, seed, args.duration_s, args.config) \
+                if args.weights else \
                 noisy_truth_run(args.target, scenario, seed, args.duration_s, args.sigma_px, args.miss)
             runs.append(r)
             print(f"  {scenario} seed {seed}: first track correct {r['first_track_correct']}, false lock "
