@@ -18,8 +18,8 @@ frames beyond NEES's 99.9 % quantile, the second half's RMS position (m) and att
 on which the tracker claims an estimate ("-" where it claims none: a run that never tracks has no error to give)
 with the share of the second half claimed, and the real-time factor.
 
-Run: .venv/bin/python bench/target_tracking.py [--target FILE.xml] [--weights W [--config RUN.toml]] [--seeds 8] [--first-seed 0]
-     [--scenarios default slow-tumble] [--duration-s 300] [--sigma-px 1.0] [--miss 0.1]
+Run: .venv/bin/python bench/target_tracking.py [--target FILE.xml] [--weights W [--config RUN.toml]] [--seeds 8]
+     [--first-seed 0] [--scenarios default slow-tumble] [--duration-s 300] [--sigma-px 1.0] [--miss 0.1]
 Floors (issue 56): first track correct in at least 15 of 16 runs, 0 s claimed while wrong, mean NEES in [6, 18],
 second-half RMS position <= 10 cm at 50 m.
 """
