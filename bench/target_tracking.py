@@ -173,6 +173,8 @@ def main() -> int:
     ap.add_argument("--miss", type=float, default=0.1)
     ap.add_argument("--out", default="bench/results/target_tracking.json")
     args = ap.parse_args()
+    if args.config and not args.weights:
+        ap.error("--config: a run config for the closed loop, which needs --weights (the noisy-truth stand-in takes none)")
     detector = (f"weights {args.weights}" + (f", config {args.config}" if args.config else "") if args.weights
                 else f"noisy-truth (sigma {args.sigma_px} px, miss {args.miss})")
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
