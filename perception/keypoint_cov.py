@@ -89,3 +89,30 @@ def nees_check(err_px: np.ndarray, sigma_px: np.ndarray, names, prob: float = CH
 
     return {"gate_prob": prob, "all": stats(v.ravel()),
             "per_keypoint": {str(n): stats(v[:, k]) for k, n in enumerate(names)}}
+
+
+REJECT_GRID = np.arange(0.0, 30.01, 0.5)  # whitened radii |e| / sigma_k at which reject_curve tabulates its share
+
+
+def reject_curve(err_px: np.ndarray, given: np.ndarray, usable: np.ndarray, sigma_px: np.ndarray) -> dict:
+    """What a correct track's gate can reject: over the detections the tracker is given (given (N, K) bool: called
+    visible, with a position and a calibrated sigma), the share whose whitened error |e| / sigma_k exceeds r, at
+    each r of REJECT_GRID. err_px (N, K, 2): detected - label under the frame's best twin naming, correct or not;
+    a detection of a keypoint that is not usable (hidden or out of frame) counts as beyond every radius. A
+    tracker gating a corner at a chi-square bound g against sigma_k^2 x s (s >= 1: its inflation and scale; the
+    prior's spread only widens it) rejects at most the share at r = sqrt(g s) of a correct track's corners.
+    Returns {"r_sigma": grid, "share": shares, "given": count}; shares are NaN without detections."""
+    e = np.asarray(err_px, float)
+    sigma = np.asarray(sigma_px, float)[None]
+    g = np.asarray(given, bool) & np.isfinite(sigma) & np.isfinite(e).all(-1)
+    w = np.linalg.norm(e, axis=-1) / sigma
+    w = np.where(np.asarray(usable, bool), w, np.inf)[g]
+    share = np.array([float(np.mean(w > r)) if len(w) else float("nan") for r in REJECT_GRID])
+    return {"r_sigma": [float(r) for r in REJECT_GRID], "share": [float(s) for s in share], "given": int(len(w))}
+
+
+def reject_share(curve: dict, gate: float, scale: float = 1.0) -> float:
+    """The share of a correct track's corners a chi-square gate `gate` per corner rejects at most, the detector's
+    covariance taken at `scale` (reject_curve's dict; linear between its radii, its last share beyond them)."""
+    r = np.sqrt(float(gate) * max(float(scale), 0.0))
+    return float(np.interp(r, curve["r_sigma"], curve["share"]))

@@ -12,7 +12,8 @@ The names are the network's up to the target's symmetries that its materials kee
 
 The pixel covariance: `envisat calibrate --target` writes one sigma per keypoint into the weights' metadata
 (SIGMA_KEY, a JSON list, null where a keypoint was not calibrated; perception/keypoint_cov.py);
-`weights_keypoint_sigma` reads it (NaN where absent).
+`weights_keypoint_sigma` reads it (NaN where absent). Beside it the share of a correct track's keypoints its gate
+rejects, as a function of the gate's whitened radius (REJECT_KEY; `weights_reject_curve`, None where absent).
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from envisat_pose.target import load_target
 MIN_CROP_KEYPOINTS = 2  # keypoints the coarse pass must find to crop around them
 SIGMA_KEY = "keypoint_sigma_px"  # the weights' metadata: the calibrated isotropic sigma per keypoint, px
 SIGMA_RECORD_KEY = "keypoint_cov_calibration"  # ... and the record of its fit (JSON)
+REJECT_KEY = "keypoint_reject_curve"  # ... and what a correct track's gate rejects (perception/keypoint_cov.py)
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,25 @@ def weights_keypoint_sigma(path: str, num_keypoints: int) -> np.ndarray:
     return sigma
 
 
+def weights_reject_curve(path: str) -> dict | None:
+    """The weights' reject curve (REJECT_KEY: perception/keypoint_cov.reject_curve's r_sigma and share), None for
+    weights calibrated before it was recorded. WeightsError when the entry is there but not two equally long lists
+    of increasing radii and shares in [0, 1]."""
+    raw = read_header(path).get(REJECT_KEY)
+    if raw is None:
+        return None
+    try:
+        d = json.loads(raw)
+        r, share = np.asarray(d["r_sigma"], float), np.asarray(d["share"], float)
+    except (ValueError, TypeError, KeyError):
+        r = share = np.zeros(0)
+    if len(r) < 2 or r.shape != share.shape or np.any(np.diff(r) <= 0) \
+            or not np.all((share >= 0) & (share <= 1)):
+        raise WeightsError(f"{path}: metadata {REJECT_KEY} {raw[:80]!r} is not increasing radii r_sigma and shares "
+                           "in [0, 1] of the same length")
+    return {"r_sigma": r.tolist(), "share": share.tolist(), "given": int(d.get("given", 0))}
+
+
 class KeypointDetector:
     """A trained KeypointNet (eval mode) and the two passes around it (module doc)."""
 
@@ -131,11 +152,13 @@ class KeypointFrameDetector:
     (`envisat calibrate --target`). In a region of interest the network looks at that window alone (one pass);
     without one, at the whole frame then the crop around what it found. The pose priors the corner network takes
     for its naming are accepted and not used: a keypoint's name is its channel. alt_probability is 0.5 (no
-    half-turn cue: the tracker's namings weigh a keypoint network's names by the target's symmetries)."""
+    half-turn cue: the tracker's namings weigh a keypoint network's names by the target's symmetries).
+    reject_curve: what a correct track's gate rejects (weights_reject_curve; None: the tracker's fixed share)."""
 
-    def __init__(self, detector: KeypointDetector, sigma_px: np.ndarray):
+    def __init__(self, detector: KeypointDetector, sigma_px: np.ndarray, reject_curve: dict | None = None):
         self.detector = detector
         self.sigma_px = np.asarray(sigma_px, float)
+        self.reject_curve = reject_curve
         self.trained_for = dict(detector.model.target)
         self.keypoint_names = detector.keypoint_names
 
@@ -165,7 +188,7 @@ def load_frame_detector(path: str, target: str, device: str = "cpu", field: str 
     checks). InputError when the weights carry no calibrated covariance: the tracker weighs each keypoint by it."""
     model = load_keypoint_model(path, target, device, field)
     sigma = require_calibrated(path, target, field)
-    return KeypointFrameDetector(KeypointDetector(model, device=device), sigma)
+    return KeypointFrameDetector(KeypointDetector(model, device=device), sigma, weights_reject_curve(path))
 
 
 def require_calibrated(path: str, target: str, field: str = "weights") -> np.ndarray:

@@ -12,7 +12,9 @@ standard error is recorded (18 % of it at 20 detections, 5 % at 300). Written as
 every sigma and count, the check, the data). The check, on the same held-out frames: mean e^T C^-1 e over the
 correct detections (2 when the model holds) and the share within the chi-square's 95 % gate. Also recorded: the
 median error of the correct detections below and above their median heatmap score (a score-dependent model
-would need the two to differ).
+would need the two to differ), and what a correct track's gate rejects (perception/keypoint_cov.reject_curve:
+over every detection the tracker is given, right or wrong, the share beyond each whitened radius), written as
+`keypoint_reject_curve`: the tracker's rejection test expects that share instead of a fixed one.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import json
 import numpy as np
 
 from envisat_pose.config import InputError
+from envisat_pose.gates import GATE_PROB, chi2_gate
 from envisat_pose.io import json_safe
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.perception import keypoint_metrics as km
@@ -30,6 +33,8 @@ from envisat_pose.perception.keypoint_cov import (
     MIN_CORRECT,
     fit_keypoint_sigma,
     nees_check,
+    reject_curve,
+    reject_share,
     sigma_standard_error,
 )
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig
@@ -44,6 +49,13 @@ def calibration_errors(arrays: dict, perms: np.ndarray) -> tuple[np.ndarray, np.
     pred = km.relabeled(arrays["pred_px"], perms, chosen)
     called = km.relabeled(arrays["called"], perms, chosen)
     return km.correct_errors(pred, arrays["true_px"], arrays["usable"], called), chosen
+
+
+def given_detections(arrays: dict, perms: np.ndarray, chosen: np.ndarray, sigma_px: np.ndarray, cfg) -> np.ndarray:
+    """(N, K) bool: the detections the tracker is given (perception/keypoint_detect.KeypointFrameDetector's rule:
+    visibility and peak score at cfg's thresholds, a calibrated sigma), under each frame's naming `chosen`."""
+    called = (arrays["visible_prob"] >= cfg.visible_threshold) & (arrays["score"] >= cfg.coarse_threshold)
+    return km.relabeled(called, perms, chosen) & np.isfinite(np.asarray(sigma_px, float))[None]
 
 
 def error_by_score(err: np.ndarray, score: np.ndarray) -> dict:
@@ -64,7 +76,7 @@ def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, 
     cfg.target and write out (a copy of the weights with keypoint_sigma_px and keypoint_cov_calibration in its
     metadata; may be the weights file itself). Returns the record (module doc) with 'corners' (the correct
     detections) and 'calibrated' (the keypoints given a sigma)."""
-    from envisat_pose.perception.keypoint_detect import SIGMA_KEY, SIGMA_RECORD_KEY
+    from envisat_pose.perception.keypoint_detect import REJECT_KEY, SIGMA_KEY, SIGMA_RECORD_KEY, KeypointDetectConfig
     from envisat_pose.perception.keypoint_loss import relabelings
     from envisat_pose.perception.weights import with_metadata
 
@@ -81,6 +93,9 @@ def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, 
                          f"{len(chosen)} frames; calibration needs {MIN_CORRECT} of a keypoint (more held-out "
                          "frames, or a detector that finds the keypoints within "
                          f"{km.MATCH_PX:g} px)")
+    given = given_detections(arrays, perms, chosen, sigma, KeypointDetectConfig())
+    pred = km.relabeled(arrays["pred_px"], perms, chosen)
+    curve = reject_curve(pred - arrays["true_px"], given, arrays["usable"], sigma)
     clean = [None if not np.isfinite(v) else float(v) for v in sigma]
     se = [None if not np.isfinite(v) else float(v) for v in sigma_standard_error(sigma, count)]
     record = {"model": f"isotropic sigma per keypoint: median(|e_x|, |e_y|) about 0 / {GAUSS_ABS_MEDIAN:.4f}",
@@ -89,10 +104,12 @@ def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, 
               "count": {n: int(c) for n, c in zip(names, count)},
               "twin_share": float(np.mean(chosen > 0)) if len(perms) > 1 else None,
               "check": nees_check(err, sigma, names), "error_by_score": error_by_score(err, arrays["score"]),
+              "reject_share_at_gate": reject_share(curve, chi2_gate(GATE_PROB, 2)),
               "skipped_damaged_shards": skipped}
     make_out_file_dir(out, "out")
     with_metadata(cfg.weights, out, {SIGMA_KEY: json.dumps(clean),
-                                     SIGMA_RECORD_KEY: json.dumps(json_safe(record), sort_keys=True)})
+                                     SIGMA_RECORD_KEY: json.dumps(json_safe(record), sort_keys=True),
+                                     REJECT_KEY: json.dumps(json_safe(curve))})
     return {**record, "corners": int(count.sum()), "calibrated": int(np.isfinite(sigma).sum())}
 
 
@@ -110,6 +127,9 @@ def sigma_table(record: dict) -> str:
     a = check["all"]
     lines.append(f"{'all':14s} {a['count']:7d} {'':>16s} {_num(a['mean_nees'], '6.2f')} "
                  f"{_num(a['within_gate'], '7.1%')}")
+    if record.get("reject_share_at_gate") is not None:
+        lines.append(f"a correct track's gate rejects at most {_num(record['reject_share_at_gate'], '.1%')} of the "
+                     "keypoints it is given (right or wrong, at the tracker's gate without inflation)")
     return "\n".join(lines)
 
 

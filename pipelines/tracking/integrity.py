@@ -6,15 +6,17 @@ the corners it was given, used and rejected.
 The bounds are TrackerConfig.integrity's (IntegrityConfig: `window`, `prob`, ...), passed in as `cfg`.
 
 - A cold-start fit starts a hypothesis only if it kept most of its window's corners (`fit_problems`: the fit's
-  gate rejected no more than a correct fit would at `expected_reject_share`, and the kept ones are at least
+  gate rejected no more than a correct fit would at the expected share, and the kept ones are at least
   `acquire.min_corners` per frame on average), its reduced chi-square is inside its chi-square bound and its state
   is physical (`state_problems`).
 - Each hypothesis carries a window of its last `window` frames (`EvidenceWindow`): the NIS and its
   degrees of freedom, the corners given to the filter and those rejected. Every frame, a hypothesis fails when its
   windowed NIS exceeds its bound at `prob` (nis_window_bound: the chi-square of the window's degrees of
   freedom, dispersed by the detector's frame-to-frame correlation), when the gate rejected more of the corners it
-  was given over the window than a correct track would at `expected_reject_share` (a binomial tail below
-  `prob`), or when its state is not physical. A failed hypothesis is dropped; the track is lost when none is left.
+  was given over the window than a correct track would at the frames' expected shares (a binomial tail below
+  `prob`), or when its state is not physical. The expected share of a frame is the tracker's (Tracker.reject_share:
+  `expected_reject_share` where the config sets it, else what the detector's calibration measured its gate to
+  reject on held-out frames, else DEFAULT_REJECT_SHARE). A failed hypothesis is dropped; the track is lost when none is left.
 - A state is physical when the target's centre is in front of the camera, farther than the box's own radius
   (the camera cannot be inside the target) and near enough for the image to show the box
   (`IntegrityConfig.min_target_px`), its rate and speed inside the configured bounds, its covariance positive
@@ -34,6 +36,8 @@ from envisat_pose.filtering.measurements import to_camera_K
 from envisat_pose.gates import chi2_bound
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.state import MRP, POS, RATE, VEL
+
+DEFAULT_REJECT_SHARE = 0.1  # the corners a correct track's gate rejects, for a detector that measured none
 
 
 def pose_sigmas(cov: np.ndarray) -> tuple[float, float]:
@@ -91,22 +95,21 @@ def claim_holds(x: np.ndarray, P: np.ndarray, cfg) -> bool:
     return bool(3.0 * pos_sig <= cfg.claim_pos_share * range_m and 3.0 * att_sig <= cfg.claim_att_deg)
 
 
-def rejections_improbable(rejected: int, given: int, cfg) -> float | None:
+def rejections_improbable(rejected: int, given: int, share: float, prob: float) -> float | None:
     """The probability of rejecting at least `rejected` of `given` corners when each is rejected with the
-    expected share cfg.expected_reject_share (a binomial tail), where that tail is below cfg.prob (cfg: the
-    IntegrityConfig);
-    None where the rejections are as a correct track makes them."""
+    expected `share` (a binomial tail), where that tail is below prob; None where the rejections are as a correct
+    track makes them."""
     from scipy.stats import binom
 
     if given <= 0 or rejected <= 0:
         return None
-    p = float(binom.sf(rejected - 1, given, cfg.expected_reject_share))
-    return p if p < cfg.prob else None
+    p = float(binom.sf(rejected - 1, given, min(max(float(share), 0.0), 1.0)))
+    return p if p < prob else None
 
 
-def fit_problems(fit, frames: int, cfg, min_corners: int) -> list[str]:
+def fit_problems(fit, frames: int, cfg, min_corners: int, share: float = DEFAULT_REJECT_SHARE) -> list[str]:
     """Why a cold-start BatchFit (pipelines/tracking/acquisition.py) over `frames` frames starts no hypothesis (empty when
-    it may): not valid, more corners rejected than a correct fit would (rejections_improbable), fewer than
+    it may): not valid, more corners rejected than a correct fit would at `share` (rejections_improbable), fewer than
     min_corners (AcquireConfig.min_corners) kept a frame on average, a chi-square beyond its bound at cfg.prob
     (cfg: the IntegrityConfig)."""
     if not fit.valid:
@@ -114,10 +117,10 @@ def fit_problems(fit, frames: int, cfg, min_corners: int) -> list[str]:
     kept = int(np.sum(fit.used))
     measured = kept + int(fit.rejected)
     out = []
-    p = rejections_improbable(int(fit.rejected), measured, cfg)
+    p = rejections_improbable(int(fit.rejected), measured, share, cfg.prob)
     if p is not None:
         out.append(f"the fit rejected {fit.rejected} of {measured} corners (p = {p:.1g} at the expected "
-                   f"{cfg.expected_reject_share:.0%})")
+                   f"{share:.0%})")
     if kept < min_corners * frames:
         out.append(f"the fit kept {kept / frames:.1f} corners a frame (at least {min_corners})")
     if fit.dof > 0 and fit.chi2 > chi2_bound(cfg.prob, int(fit.dof)):
@@ -131,26 +134,30 @@ class EvidenceWindow:
     """The last W frames of evidence of H hypotheses (ring buffers, slot k % W; never mutated).
 
     nis, dof (H, W): each frame's NIS and its degrees of freedom (0 where no corner was used); given, rejected
-    (H, W): corners given to the filter and, of those, rejected by the gate or the visibility check; used (H, W)
-    bool: the frame used a corner; k: frames pushed so far."""
+    (H, W): corners given to the filter and, of those, rejected by the gate or the visibility check; expected
+    (H, W): the rejections a correct track expects of those given (its share times given); used (H, W) bool: the
+    frame used a corner; k: frames pushed so far."""
 
     nis: np.ndarray
     dof: np.ndarray
     given: np.ndarray
     rejected: np.ndarray
+    expected: np.ndarray
     used: np.ndarray
     k: int = 0
 
     @staticmethod
     def empty(H: int, W: int) -> "EvidenceWindow":
         z = np.zeros((H, W))
-        return EvidenceWindow(z, z.copy(), z.copy(), z.copy(), np.zeros((H, W), bool))
+        return EvidenceWindow(z, z.copy(), z.copy(), z.copy(), z.copy(), np.zeros((H, W), bool))
 
-    def push(self, nis, dof, given, rejected) -> "EvidenceWindow":
-        """A new window with this frame's (H,) values in the oldest slot."""
+    def push(self, nis, dof, given, rejected, share=DEFAULT_REJECT_SHARE) -> "EvidenceWindow":
+        """A new window with this frame's (H,) values in the oldest slot; share (H,) or a number: the share of the
+        given corners a correct track's gate rejects this frame."""
         s = self.k % self.nis.shape[1]
         arrays = {}
-        for name, v in (("nis", nis), ("dof", dof), ("given", given), ("rejected", rejected)):
+        expected = np.asarray(given, float) * np.broadcast_to(np.asarray(share, float), np.shape(given))
+        for name, v in (("nis", nis), ("dof", dof), ("given", given), ("rejected", rejected), ("expected", expected)):
             a = getattr(self, name).copy()
             a[:, s] = np.asarray(v, dtype=float)
             arrays[name] = a
@@ -161,7 +168,7 @@ class EvidenceWindow:
     def select(self, idx: np.ndarray) -> "EvidenceWindow":
         """The windows of hypotheses idx only."""
         return dataclasses.replace(self, **{f: getattr(self, f)[idx] for f in ("nis", "dof", "given", "rejected",
-                                                                                "used")})
+                                                                                "expected", "used")})
 
     def used_frames(self) -> np.ndarray:
         """(H,) frames of the window that used a corner."""
@@ -182,7 +189,7 @@ def nis_window_bound(prob: float, dof: int, kappa: float = 1.0) -> float:
 def window_problems(win: EvidenceWindow, cfg, kappa: float = 1.0) -> list[list[str]]:
     """Per hypothesis, why its window contradicts it (empty lists where it does not): the windowed NIS beyond
     its bound at cfg.prob (nis_window_bound, kappa the frames' correlation), or more of the corners
-    given rejected than a correct track would (rejections_improbable)."""
+    given rejected than a correct track would at the window's expected share (rejections_improbable)."""
     out = []
     for h in range(win.nis.shape[0]):
         p = []
@@ -193,9 +200,10 @@ def window_problems(win: EvidenceWindow, cfg, kappa: float = 1.0) -> list[list[s
                 p.append(f"innovations inconsistent: windowed NIS {win.nis[h].sum():.0f} beyond {bound:.0f} "
                          f"({d} dof)")
         given, rejected = int(win.given[h].sum()), int(win.rejected[h].sum())
-        tail = rejections_improbable(rejected, given, cfg)
+        share = float(win.expected[h].sum() / given) if given else DEFAULT_REJECT_SHARE
+        tail = rejections_improbable(rejected, given, share, cfg.prob)
         if tail is not None:
             p.append(f"the gate rejected {rejected} of the last {given} corners (p = {tail:.1g} at the expected "
-                     f"{cfg.expected_reject_share:.0%})")
+                     f"{share:.0%})")
         out.append(p)
     return out

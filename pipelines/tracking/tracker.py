@@ -69,10 +69,11 @@ from envisat_pose.filtering.estimator import (
 )
 from envisat_pose.filtering.kernel_warmup import load_in_background
 from envisat_pose.geometry import PinholeCamera
+from envisat_pose.perception.keypoint_cov import reject_share
 from envisat_pose.pipelines.tracking.acquisition import FramePose
 from envisat_pose.pipelines.tracking.bank import probabilities, select_runs
 from envisat_pose.pipelines.tracking.build import chaser_from_orbit, tracker_camera, tracker_detector, tracker_filter
-from envisat_pose.pipelines.tracking.integrity import EvidenceWindow, target_radius_m
+from envisat_pose.pipelines.tracking.integrity import DEFAULT_REJECT_SHARE, EvidenceWindow, target_radius_m
 from envisat_pose.pipelines.tracking.namings import box_namings, target_namings
 from envisat_pose.pipelines.tracking.noise import (
     correlation_inflation,
@@ -129,6 +130,7 @@ class Tracker(AcquiringSteps, TrackingSteps):
         self.namings = box_namings() if target is None else target_namings(target, J_T)
         self.radius_m = target_radius_m(self.keypoints_T_m)
         self.error_model = detector_error_model(detector)
+        self.reject_curve = getattr(detector, "reject_curve", None)  # what its gate rejects (calibrate --target)
         self.cov_factor = sequence_cov_factor(self.error_model, detector)
         self.bias_scale = self.error_model.bias_scale if config.noise.correct_scale else 1.0
         # the range error no frame averages away (noise.scale_sigma), in the reported covariance (range_consider)
@@ -206,6 +208,19 @@ class Tracker(AcquiringSteps, TrackingSteps):
     def gate_bound(self) -> float:
         """The filter's chi-square gate per corner (the cost of a corner it rejects)."""
         return self.setup.gate_threshold if self.setup.gate_threshold is not None else self.cfg.fit.gate
+
+    def reject_share(self, gate: float, scale) -> np.ndarray:
+        """The share of a correct track's corners a chi-square gate `gate` per corner rejects, the detector's
+        covariance taken at `scale` (a number or (H,) per hypothesis: the inflation times the filter's R scale):
+        integrity.expected_reject_share where the config sets it, else the detector's calibrated reject curve at
+        that radius (perception/keypoint_cov.reject_share: a bound, the prior's spread only widens the gate),
+        else integrity.DEFAULT_REJECT_SHARE."""
+        fixed = self.cfg.integrity.expected_reject_share
+        if fixed is None and self.reject_curve is None:
+            fixed = DEFAULT_REJECT_SHARE
+        if fixed is not None:
+            return np.full(np.shape(scale), float(fixed))
+        return np.vectorize(lambda c: reject_share(self.reject_curve, gate, c), otypes=[float])(scale)
 
     # ------------------------------------------------------------------ the step
 

@@ -213,9 +213,11 @@ class IntegrityConfig(Config):
     rejects while the state stays right, does not lose a correct track, as it did with 8; a track that disagrees
     with the images for good still fails within ~5 frames); prob: the false-alarm probability of each
     test (the cold-start fit's chi-square, the windowed NIS, the rejections); expected_reject_share: the share of
-    the corners given that a correct track's gate rejects (the detector's mis-named corners: 3-13 % on random
-    views, fewer in the loop's region of interest with the predicted pose as the naming's start), against which a
-    window's rejections are tested (a binomial tail); confirm_frames frames with corners used, after the
+    the corners given that a correct track's gate rejects, against which a window's rejections are tested (a
+    binomial tail); unset (None), the detector's own, measured by its calibration where it carries one (a keypoint
+    detector calibrated by `calibrate --target`: at the frame's gate and inflation, Tracker.reject_share), else
+    integrity.DEFAULT_REJECT_SHARE (0.1: ENVISAT's corner network mis-names 3-13 % on random views, fewer in the
+    loop's region of interest with the predicted pose as the naming's start); confirm_frames frames with corners used, after the
     half-turn is decided and with the claim's covariance, before a new bank claims "tracking"; claim_pos_share
     (of the range) and claim_att_deg bound the 3-sigma position and attitude a "tracking" frame claims (beyond
     them a running track reports "coasting"); lost_pos_sigma_share and lost_att_sigma_deg bound the 1-sigma a
@@ -227,7 +229,7 @@ class IntegrityConfig(Config):
     lost_after_frames: int = 10
     window: int = 20
     prob: float = 1e-6
-    expected_reject_share: float = 0.1
+    expected_reject_share: float | None = None
     confirm_frames: int = 5
     claim_pos_share: float = 0.02
     claim_att_deg: float = 5.0
@@ -242,8 +244,8 @@ class IntegrityConfig(Config):
         check(self.lost_after_frames >= 1, f"{p}lost_after_frames", self.lost_after_frames, "at least 1 frame")
         check(self.window >= 2, f"{p}window", self.window, "at least 2 frames")
         check(0.0 < self.prob < 0.5, f"{p}prob", self.prob, "a probability in (0, 0.5)")
-        check(0.0 < self.expected_reject_share < 1.0, f"{p}expected_reject_share", self.expected_reject_share,
-              "a share in (0, 1)")
+        check(self.expected_reject_share is None or 0.0 < self.expected_reject_share < 1.0,
+              f"{p}expected_reject_share", self.expected_reject_share, "a share in (0, 1), or unset: the detector's")
         check(1 <= self.confirm_frames <= self.window, f"{p}confirm_frames", self.confirm_frames,
               f"1 to window ({self.window}) frames")
         check(0.0 < self.claim_pos_share < self.lost_pos_sigma_share * 3.0, f"{p}claim_pos_share",

@@ -218,9 +218,11 @@ class TrackingSteps:
         self.log_dyn -= np.max(self.log_dyn)
         self.log_app -= np.max(self.log_app)
         self.log_array -= np.max(self.log_array)
+        # the detector's covariance at the scale the gate read it (gate.raw: without the correlation's inflation)
+        scale = (self.cov_factor if self.cfg.gate.raw else self.inflation) * self.state.r_scale
         self.state = new
         self.evidence = self.evidence.push(np.where(used, new.nis, 0.0), new.dof, m.mask.sum(-1) + n_pre,
-                                           new.rejected + new.dropped + n_pre)
+                                           new.rejected + new.dropped + n_pre, self.reject_share(self.gate_bound, scale))
         b = int(np.argmax(self.log_w))  # the best hypothesis of this frame, before pruning
         if used[b]:
             lam = filter_memory(prior[1][b], new.cov[b])

@@ -144,6 +144,17 @@ def test_calibrate_finds_the_noise_put_in_and_detect_carries_it(box, tmp_path, m
     assert check["count"] == len(nees) and check["mean_nees"] == pytest.approx(np.mean(nees))
     assert check["within_gate"] == pytest.approx(np.mean(np.array(nees) <= -2 * np.log(0.05)))
     assert 1.6 <= check["mean_nees"] <= 2.6  # ~2 (a little above: the sigmas of ~20 detections each spread)
+    # what a correct track's gate rejects: every detection given is a usable keypoint's, so the share beyond a
+    # whitened radius r is that of sqrt(e^T C^-1 e) over the same noise
+    from envisat_pose.perception.keypoint_detect import weights_reject_curve
+
+    curve = weights_reject_curve(w2)
+    radius = np.sqrt(nees)
+    assert curve["given"] == len(nees)
+    for r in (0.5, 1.0, 2.0, 3.0):
+        assert curve["share"][curve["r_sigma"].index(r)] == pytest.approx(np.mean(radius > r))
+    assert record["reject_share_at_gate"] == pytest.approx(np.mean(radius > np.sqrt(-2 * np.log(1e-5))), abs=1e-3)
+    assert weights_reject_curve(weights) is None  # never calibrated
 
     monkeypatch.undo()  # detect runs the network itself
     for w, calibrated in ((w2, True), (weights, False)):

@@ -186,3 +186,25 @@ def test_nees_is_the_squared_error_over_sigma_squared_and_the_gate_is_chi2_2():
     assert c["all"]["count"] == 4 and c["all"]["mean_nees"] == pytest.approx((25 + 2 + 5.98 + 6.0) / 4)
     assert c["all"]["within_gate"] == pytest.approx(2 / 4)
     assert c["per_keypoint"]["q"]["count"] == 0 and math.isnan(c["per_keypoint"]["q"]["mean_nees"])
+
+
+def test_the_reject_curve_is_the_whitened_errors_survival_and_counts_unusable_ones_beyond_every_radius():
+    """Isotropic Gaussian errors of sigma_k: |e| / sigma_k is Rayleigh, P(> r) = exp(-r^2 / 2) (drawn here, the
+    law independent of the code); a detection of a hidden keypoint is beyond every radius; one not given to the
+    tracker is not counted; reject_share reads the curve at sqrt(gate x scale)."""
+    rng = np.random.default_rng(5)
+    sigma = np.array([0.5, 2.0, np.nan])
+    err = rng.normal(size=(20_000, 3, 2)) * np.nan_to_num(sigma, nan=1.0)[None, :, None]
+    usable = np.ones((20_000, 3), bool)
+    usable[:2000, 0] = False  # 2000 of 40,000 given detections of a hidden keypoint
+    given = np.ones((20_000, 3), bool)
+    given[:, 1] = np.arange(20_000) < 18_000
+    curve = kc.reject_curve(err, given, usable, sigma)
+    assert curve["given"] == 38_000  # the uncalibrated keypoint is never given
+    r = np.asarray(curve["r_sigma"])
+    hidden = 2000 / 38_000
+    want = hidden + (1 - hidden) * np.exp(-0.5 * r ** 2)
+    assert np.allclose(curve["share"], want, atol=0.006)
+    assert curve["share"][-1] == pytest.approx(hidden)
+    assert kc.reject_share(curve, 4.0, 2.25) == pytest.approx(hidden + (1 - hidden) * np.exp(-4.5), abs=0.006)
+    assert kc.reject_share(curve, 1e6) == pytest.approx(hidden)

@@ -2,6 +2,8 @@
 failure: a fit that kept a handful of corners, a target behind the camera, a kilometre-wide covariance, an
 inconsistent window of innovations."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.stats import chi2
@@ -99,7 +101,6 @@ def test_the_window_test_fires_at_its_false_alarm_rate_on_consistent_innovations
     """Windows of chi-square NIS (consistent by construction, drawn independently of the code): the share that
     fails is the test's probability, within binomial bounds; scaled by 3 (an over-confident filter) nearly all
     fail."""
-    import dataclasses
 
     cfg = dataclasses.replace(CFG, prob=0.05)
     rng = np.random.default_rng(11)
@@ -118,11 +119,12 @@ def test_rejections_are_tested_against_the_binomial_tail_of_a_correct_track():
     every corner rejected (frames of another target) fails, a window with the expected share does not."""
     from math import comb
 
-    n, p0 = 48, CFG.expected_reject_share
-    for r in (5, 15, 24):
-        tail = sum(comb(n, k) * p0**k * (1 - p0) ** (n - k) for k in range(r, n + 1))
-        got = ig.rejections_improbable(r, n, CFG)
-        assert (got is None) == (tail >= CFG.prob) and (got is None or got == pytest.approx(tail))
+    n = 48
+    for p0 in (ig.DEFAULT_REJECT_SHARE, 0.3):
+        for r in (5, 15, 24):
+            tail = sum(comb(n, k) * p0**k * (1 - p0) ** (n - k) for k in range(r, n + 1))
+            got = ig.rejections_improbable(r, n, p0, CFG.prob)
+            assert (got is None) == (tail >= CFG.prob) and (got is None or got == pytest.approx(tail))
     W = CFG.window
     win = ig.EvidenceWindow.empty(1, W)
     for k in range(W):
@@ -231,3 +233,41 @@ def test_a_frame_that_contradicts_every_hypothesis_is_no_evidence_between_them()
     # a hypothesis that used no corner has no say; none used at all: nothing to discard
     assert not frame_discriminates(np.array([40.0, 0.0]), np.array([12, 0]), 0.01)
     assert frame_discriminates(np.array([0.0, 0.0]), np.array([0, 0]), 0.01)
+
+
+def test_the_window_tests_rejections_at_the_share_each_frame_expected():
+    """A window whose frames expected 30 % rejections (a detector whose calibration measured that) passes 20 of 60
+    corners rejected; the same counts fail at 10 % (binomial tails 0.33 and 8e-7, prob 1e-3 here); the frames'
+    shares are averaged by the corners given."""
+    cfg = dataclasses.replace(CFG, prob=1e-3)
+    W = 10
+    for share, fails in ((0.3, False), (ig.DEFAULT_REJECT_SHARE, True)):
+        win = ig.EvidenceWindow.empty(1, W)
+        for k in range(W):
+            win = win.push([1.0], [4], [6], [2], share)
+        assert bool(ig.window_problems(win, cfg)[0]) == fails, share
+    mixed = ig.EvidenceWindow.empty(2, 2).push([1, 1], [2, 2], [4, 0], [0, 0], [0.5, 0.1]).push(
+        [1, 1], [2, 2], [12, 6], [0, 0], [0.1, 0.1])
+    assert mixed.expected.sum(-1) / mixed.given.sum(-1) == pytest.approx([(2 + 1.2) / 16, 0.1])
+
+
+def test_the_tracker_expects_the_share_its_detector_measured_unless_the_config_sets_one():
+    """Tracker.reject_share: the config's expected_reject_share when set; else the detector's reject curve at the
+    gate's whitened radius sqrt(gate x scale) (a curve of a Gaussian detector: exp(-r^2 / 2), tabulated); else
+    DEFAULT_REJECT_SHARE."""
+    from types import SimpleNamespace
+
+    from envisat_pose.perception.keypoint_cov import REJECT_GRID
+    from envisat_pose.pipelines.tracking.tracker import Tracker
+    from envisat_pose.pipelines.tracking.tracker_config import TrackerConfig
+
+    curve = {"r_sigma": REJECT_GRID.tolist(), "share": np.exp(-0.5 * REJECT_GRID ** 2).tolist()}
+    default, fixed = TrackerConfig(), TrackerConfig(integrity=IntegrityConfig(expected_reject_share=0.25))
+    gate, scale = 9.0, np.array([1.0, 4.0])  # radii 3 and 6 sigma
+    measured = Tracker.reject_share(SimpleNamespace(cfg=default, reject_curve=curve), gate, scale)
+    assert measured == pytest.approx(np.exp(-0.5 * np.array([9.0, 36.0])), abs=2e-3)
+    assert Tracker.reject_share(SimpleNamespace(cfg=fixed, reject_curve=curve), gate, scale).tolist() == [0.25] * 2
+    assert Tracker.reject_share(SimpleNamespace(cfg=default, reject_curve=None), gate, 2.0) \
+        == pytest.approx(ig.DEFAULT_REJECT_SHARE)
+    with pytest.raises(Exception, match="expected_reject_share"):
+        IntegrityConfig(expected_reject_share=1.5).validate()

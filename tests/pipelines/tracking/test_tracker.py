@@ -846,9 +846,10 @@ def test_twins_failing_only_their_fit_statistics_start_beside_the_one_that_passe
 
     real_fit, real_state, calls = trk.fit_problems, trk.state_problems, []
 
-    def twins_fail(fit, frames, cfg, min_corners):
+    def twins_fail(fit, frames, cfg, min_corners, share):
         calls.append(len(calls))
-        return real_fit(fit, frames, cfg, min_corners) + (["a chi-square past its bound"] if len(calls) > 1 else [])
+        return real_fit(fit, frames, cfg, min_corners, share) + (["a chi-square past its bound"] if len(calls) > 1
+                                                                 else [])
 
     monkeypatch.setattr(trk, "fit_problems", twins_fail)
     ests = run_tracker(truth_600, NoisyTruthDetector(truth_600, p_alt=0.5), range(0, 80))
