@@ -217,3 +217,15 @@ def test_a_fresh_target_leg_starts_from_the_backbone_it_is_given():
     ns = build_parser().parse_args(["train", "--target", "models/upper_stage.xml", "--out", "run",
                                     *gt.start_args(None, "shipped")])
     assert ns.backbone == "shipped" and ns.init is None
+
+
+def test_gpu_carry_refuses_a_leg_that_is_not_a_number_or_has_no_weights(tmp_path):
+    """`gpu_carry.sh --leg N` writes the leg the init weights ended; a leg that is not a count, or one without
+    weights to start from, is refused in one line before anything is downloaded or written."""
+    carry = tmp_path / "carry"
+    for args, words in ((["--target-init", "w.safetensors", "--leg", "seven"], "expected the leg number"),
+                        (["--leg", "7"], "without --init or --target-init")):
+        proc = subprocess.run(["bash", os.path.join(ROOT, "scripts", "gpu_carry.sh"), *args, "--carry", str(carry)],
+                              capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 2 and words in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+        assert not carry.exists()
