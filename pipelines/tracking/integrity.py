@@ -6,7 +6,8 @@ the corners it was given, used and rejected.
 The bounds are TrackerConfig.integrity's (IntegrityConfig: `window`, `prob`, ...), passed in as `cfg`.
 
 - A cold-start fit starts a hypothesis only if it kept most of its window's corners (`fit_problems`: the fit's
-  gate rejected no more than a correct fit would at the expected share, and the kept ones are at least
+  gate rejected no more than a correct fit would at the cold start's share, Tracker.cold_start_reject_share:
+  the config's or DEFAULT_REJECT_SHARE, never the detector's measured one; and the kept ones are at least
   `acquire.min_corners` per frame on average), its reduced chi-square is inside its chi-square bound and its state
   is physical (`state_problems`).
 - Each hypothesis carries a window of its last `window` frames (`EvidenceWindow`): the NIS and its
@@ -14,9 +15,10 @@ The bounds are TrackerConfig.integrity's (IntegrityConfig: `window`, `prob`, ...
   windowed NIS exceeds its bound at `prob` (nis_window_bound: the chi-square of the window's degrees of
   freedom, dispersed by the detector's frame-to-frame correlation), when the gate rejected more of the corners it
   was given over the window than a correct track would at the frames' expected shares (a binomial tail below
-  `prob`), or when its state is not physical. The expected share of a frame is the tracker's (Tracker.reject_share:
-  `expected_reject_share` where the config sets it, else what the detector's calibration measured its gate to
-  reject on held-out frames, else DEFAULT_REJECT_SHARE). A failed hypothesis is dropped; the track is lost when none is left.
+  `prob`), or when its state is not physical. The expected share of a tracked frame is the tracker's
+  (Tracker.reject_share: `expected_reject_share` where the config sets it, else what the detector's calibration
+  measured its gate to reject on held-out frames, else DEFAULT_REJECT_SHARE). A failed hypothesis is dropped; the
+  track is lost when none is left.
 - A state is physical when the target's centre is in front of the camera, farther than the box's own radius
   (the camera cannot be inside the target) and near enough for the image to show the box
   (`IntegrityConfig.min_target_px`), its rate and speed inside the configured bounds, its covariance positive

@@ -222,6 +222,15 @@ class Tracker(AcquiringSteps, TrackingSteps):
             return np.full(np.shape(scale), float(fixed))
         return np.vectorize(lambda c: reject_share(self.reject_curve, gate, c), otypes=[float])(scale)
 
+    def cold_start_reject_share(self) -> float:
+        """The share of a cold-start fit's corners its gate may reject: integrity.expected_reject_share where the
+        config sets it, else integrity.DEFAULT_REJECT_SHARE, never the detector's measured share (reject_share):
+        a start is where a wrong pose gets in, and a fit 13 deg off that rejected more than 10 % of its corners
+        started and was claimed for 5 s under the upper stage's measured share (slow-tumble seed 204,
+        docs/history.md); a started track's window is tested against the measured share."""
+        fixed = self.cfg.integrity.expected_reject_share
+        return float(DEFAULT_REJECT_SHARE if fixed is None else fixed)
+
     # ------------------------------------------------------------------ the step
 
     def step(self, t_s: float, image: np.ndarray | None, window_px: np.ndarray | None = None) -> TrackEstimate:

@@ -83,7 +83,7 @@ class AcquiringSteps:
             / self.cfg.bank.appearance_frames
         state = [state_problems(f.x, f.P, self.camera, self.radius_m, self.cfg.integrity) if f.valid else []
                  for f in fits]  # an invalid fit's problem is fit_problems' own
-        share = float(self.reject_share(self.cfg.fit.gate, self.inflation))
+        share = self.cold_start_reject_share()
         problems = [fit_problems(f, len(frames), self.cfg.integrity, self.cfg.acquire.min_corners, share) or s
                     for f, s in zip(fits, state)]
         ok = np.array([not p for p in problems])

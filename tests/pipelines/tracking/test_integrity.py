@@ -254,7 +254,7 @@ def test_the_window_tests_rejections_at_the_share_each_frame_expected():
 def test_the_tracker_expects_the_share_its_detector_measured_unless_the_config_sets_one():
     """Tracker.reject_share: the config's expected_reject_share when set; else the detector's reject curve at the
     gate's whitened radius sqrt(gate x scale) (a curve of a Gaussian detector: exp(-r^2 / 2), tabulated); else
-    DEFAULT_REJECT_SHARE."""
+    DEFAULT_REJECT_SHARE. The cold start's share is the config's or the default, never the measured one."""
     from types import SimpleNamespace
 
     from envisat_pose.perception.keypoint_cov import REJECT_GRID
@@ -269,5 +269,8 @@ def test_the_tracker_expects_the_share_its_detector_measured_unless_the_config_s
     assert Tracker.reject_share(SimpleNamespace(cfg=fixed, reject_curve=curve), gate, scale).tolist() == [0.25] * 2
     assert Tracker.reject_share(SimpleNamespace(cfg=default, reject_curve=None), gate, 2.0) \
         == pytest.approx(ig.DEFAULT_REJECT_SHARE)
+    # a cold start keeps the strict share whatever the detector measured: only the config moves it
+    assert Tracker.cold_start_reject_share(SimpleNamespace(cfg=default, reject_curve=curve)) == ig.DEFAULT_REJECT_SHARE
+    assert Tracker.cold_start_reject_share(SimpleNamespace(cfg=fixed, reject_curve=curve)) == 0.25
     with pytest.raises(Exception, match="expected_reject_share"):
         IntegrityConfig(expected_reject_share=1.5).validate()
