@@ -214,10 +214,11 @@ class IntegrityConfig(Config):
     with the images for good still fails within ~5 frames); prob: the false-alarm probability of each
     test (the cold-start fit's chi-square, the windowed NIS, the rejections); expected_reject_share: the share of
     the corners given that a correct track's gate rejects, against which a window's rejections are tested (a
-    binomial tail); unset (None), the detector's own, measured by its calibration where it carries one (a keypoint
-    detector calibrated by `calibrate --target`: at the frame's gate and inflation, Tracker.reject_share), else
-    integrity.DEFAULT_REJECT_SHARE (0.1: ENVISAT's corner network mis-names 3-13 % on random views, fewer in the
-    loop's region of interest with the predicted pose as the naming's start); confirm_frames frames with corners used, after the
+    binomial tail); unset (None), a started track's window expects the detector's own, measured by its calibration
+    where it carries one (a keypoint detector calibrated by `calibrate --target`: at the frame's gate and
+    inflation, Tracker.reject_share), and the cold start integrity.DEFAULT_REJECT_SHARE (0.1: ENVISAT's corner
+    network mis-names 3-13 % on random views, fewer in the loop's region of interest with the predicted pose as the
+    naming's start); set, both take it; confirm_frames frames with corners used, after the
     half-turn is decided and with the claim's covariance, before a new bank claims "tracking"; claim_pos_share
     (of the range) and claim_att_deg bound the 3-sigma position and attitude a "tracking" frame claims (beyond
     them a running track reports "coasting"); lost_pos_sigma_share and lost_att_sigma_deg bound the 1-sigma a
