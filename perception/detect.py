@@ -29,6 +29,7 @@ from envisat_pose.perception.naming import Naming, name_corners
 from envisat_pose.perception.naming_config import NamingConfig
 from envisat_pose.perception.refine import RefineConfig, refine_named
 from envisat_pose.perception.weights import WeightsError, load_model, read_metadata
+from envisat_pose.perception.weights_keys import COV_SCALE_KEY, ERROR_MODEL_KEY, FACE_CUE_KEY, REFINE_FLOOR_KEY
 
 
 @dataclass(frozen=True)
@@ -96,7 +97,7 @@ class FrameDetection:
                               False, crop.astype(np.float64), np.zeros((0, 2)))
 
 
-def weights_cov_scale(path: str, key: str = "cov_scale") -> float:
+def weights_cov_scale(path: str, key: str = COV_SCALE_KEY) -> float:
     """The covariance calibration factor stored in a weights file's metadata (`cov_scale`; 1.0 when the weights
     were never calibrated). WeightsError when it is there but not a positive number."""
     import json
@@ -116,13 +117,13 @@ def weights_refine_floor(path: str) -> float:
     when absent). WeightsError when it is there but not a non-negative number."""
     import json
 
-    raw = read_metadata(path).get("refine_cov_floor_px2", "0.0")
+    raw = read_metadata(path).get(REFINE_FLOOR_KEY, "0.0")
     try:
         floor = float(json.loads(raw))
     except (ValueError, TypeError):
         floor = float("nan")
     if not np.isfinite(floor) or floor < 0:
-        raise WeightsError(f"{path}: metadata refine_cov_floor_px2 {raw!r} is not a non-negative number")
+        raise WeightsError(f"{path}: metadata {REFINE_FLOOR_KEY} {raw!r} is not a non-negative number")
     return floor
 
 
@@ -130,11 +131,11 @@ def weights_error_model(path: str) -> ErrorModel:
     """The error model stored in a weights file's metadata (`error_model`, perception/errormodel.py; its
     defaults, inflation 1 and rho 0, when the file has none). WeightsError when it is there but unreadable."""
 
-    raw = read_metadata(path).get("error_model")
+    raw = read_metadata(path).get(ERROR_MODEL_KEY)
     try:
         model = ErrorModel.from_json(raw)
     except (ValueError, TypeError) as err:
-        raise WeightsError(f"{path}: metadata error_model is not readable ({err})") from None
+        raise WeightsError(f"{path}: metadata {ERROR_MODEL_KEY} is not readable ({err})") from None
     if not (np.isfinite(model.inflation) and model.inflation > 0 and abs(model.rho_lag1) < 1):
         raise WeightsError(f"{path}: metadata error_model has rho_lag1 {model.rho_lag1}, inflation "
                            f"{model.inflation}: expected |rho| < 1 and a positive inflation")
@@ -158,9 +159,9 @@ def weights_face_cue(path: str) -> FaceCue | None:
     None when the file has none). WeightsError when it is there but unreadable."""
 
     try:
-        return FaceCue.from_json(read_metadata(path).get("face_cue"))
+        return FaceCue.from_json(read_metadata(path).get(FACE_CUE_KEY))
     except (ValueError, TypeError, KeyError) as err:
-        raise WeightsError(f"{path}: metadata face_cue is not readable ({err})") from None
+        raise WeightsError(f"{path}: metadata {FACE_CUE_KEY} is not readable ({err})") from None
 
 
 def load_detector(path: str, config: DetectConfig | None = None, device: str = "cpu", bf16: bool = False

@@ -11,7 +11,7 @@ A frame's result (K keypoints, in the channel order of the weights' keypoint_nam
 The names are the network's up to the target's symmetries that its materials keep: twins are not told apart here.
 
 The pixel covariance: `envisat calibrate --target` writes one sigma per keypoint into the weights' metadata
-(SIGMA_KEY, a JSON list, null where a keypoint was not calibrated; perception/keypoint_cov.py);
+(perception/weights_keys.SIGMA_KEY, a JSON list, null where a keypoint was not calibrated; perception/keypoint_cov.py);
 `weights_keypoint_sigma` reads it (NaN where absent). Beside it the share of a correct track's keypoints its gate
 rejects, as a function of the gate's whitened radius (REJECT_KEY; `weights_reject_curve`, None where absent).
 """
@@ -36,12 +36,10 @@ from envisat_pose.perception.weights import (
     read_weights,
     trained_for,
 )
+from envisat_pose.perception.weights_keys import FORMAT_KEY, MODEL_CONFIG_KEY, REJECT_KEY, SIGMA_KEY
 from envisat_pose.target import load_target
 
 MIN_CROP_KEYPOINTS = 2  # keypoints the coarse pass must find to crop around them
-SIGMA_KEY = "keypoint_sigma_px"  # the weights' metadata: the calibrated isotropic sigma per keypoint, px
-SIGMA_RECORD_KEY = "keypoint_cov_calibration"  # ... and the record of its fit (JSON)
-REJECT_KEY = "keypoint_reject_curve"  # ... and what a correct track's gate rejects (perception/keypoint_cov.py)
 
 
 @dataclass(frozen=True)
@@ -61,10 +59,10 @@ def load_keypoint_model(path: str, target: str, device: str = "cpu", field: str 
     file or tensors that do not fit."""
     check_weights_target(path, target, field)
     tensors, meta = read_weights(path)
-    if meta.get("format") != KEYPOINT_FORMAT or "model_config" not in meta:
-        raise WeightsError(f"{path}: not keypoint-detector weights (metadata format {meta.get('format')!r})")
+    if meta.get(FORMAT_KEY) != KEYPOINT_FORMAT or MODEL_CONFIG_KEY not in meta:
+        raise WeightsError(f"{path}: not keypoint-detector weights (metadata {FORMAT_KEY} {meta.get(FORMAT_KEY)!r})")
     try:
-        cfg = from_dict(KeypointModelConfig, json.loads(meta["model_config"]))
+        cfg = from_dict(KeypointModelConfig, json.loads(meta[MODEL_CONFIG_KEY]))
     except (ValueError, TypeError) as err:
         raise WeightsError(f"{path}: bad model config in the metadata ({err})") from None
     model = KeypointNet(cfg, trained_for(path, meta))

@@ -26,9 +26,10 @@ from torch import nn
 from envisat_pose.config import Config, check
 from envisat_pose.perception.heatmaps import to_pixels
 from envisat_pose.perception.model import Hourglass, Residual, check_backbone, conv_bn
+from envisat_pose.perception.weights_keys import FORMAT_KEY, KIND_KEY, TARGET_KEY
 
 KEYPOINT_FORMAT = "envisat-pose keypoint detector v1"  # the weights' metadata `format`
-MODEL_KIND = "keypoints"  # the weights' metadata `kind` (ENVISAT's corner weights have none: corners)
+MODEL_KIND = "keypoints"  # the weights' metadata KIND_KEY (ENVISAT's corner weights have none: corners)
 HEATMAP_PRIOR_LOGIT = -4.6  # a keypoint's cell is rare: the heatmap starts at sigmoid ~ 0.01 (focal-loss practice)
 
 
@@ -89,7 +90,7 @@ class KeypointNet(nn.Module):
     def metadata(self) -> dict[str, str]:
         """What a weights file records beside the tensors (perception/weights.save_weights): the format, the model
         kind and the target (name, sha256, keypoint names)."""
-        return {"format": KEYPOINT_FORMAT, "kind": MODEL_KIND, "target": json.dumps(self.target, sort_keys=True)}
+        return {FORMAT_KEY: KEYPOINT_FORMAT, KIND_KEY: MODEL_KIND, TARGET_KEY: json.dumps(self.target, sort_keys=True)}
 
 
 def init_keypoint_net(cfg: KeypointModelConfig, seed: int, target: dict | None = None) -> KeypointNet:

@@ -21,6 +21,7 @@ from envisat_pose.config import InputError, from_dict
 from envisat_pose.io import atomic_path
 from envisat_pose.perception.keypoint_net import KEYPOINT_FORMAT
 from envisat_pose.perception.model import CornerNet, ModelConfig
+from envisat_pose.perception.weights_keys import FORMAT_KEY, MODEL_CONFIG_KEY, TARGET_KEY
 from envisat_pose.target import DEFAULT_TARGET, require_weights_target
 
 FORMAT = "envisat-pose corner detector v1"
@@ -46,7 +47,7 @@ def save_weights(path: str, model: CornerNet, extra: dict | None = None) -> None
     from safetensors.torch import save_file
 
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    meta = {"format": FORMAT, "model_config": json.dumps(model.cfg.to_dict(), sort_keys=True)}
+    meta = {FORMAT_KEY: FORMAT, MODEL_CONFIG_KEY: json.dumps(model.cfg.to_dict(), sort_keys=True)}
     if hasattr(model, "metadata"):  # another target's keypoint network: its format, kind and target
         meta.update(model.metadata())
     for k, v in (extra or {}).items():
@@ -97,10 +98,10 @@ def read_header(path: str) -> dict[str, str]:
 def trained_for(path: str, meta: dict[str, str]) -> dict | None:
     """The target keypoint weights record ({'name', 'sha256', 'keypoint_names'}), or None for ENVISAT's corner
     weights (and any other format: its loader names it). WeightsError for a keypoint file without its record."""
-    if meta.get("format") != KEYPOINT_FORMAT:
+    if meta.get(FORMAT_KEY) != KEYPOINT_FORMAT:
         return None
     try:
-        record = json.loads(meta["target"])
+        record = json.loads(meta[TARGET_KEY])
         if not isinstance(record, dict) or not isinstance(record.get("sha256"), str):
             raise ValueError("no sha256")
     except (KeyError, ValueError) as err:
@@ -132,10 +133,10 @@ def load_model(path: str, device: str = "cpu") -> CornerNet:
     tensors, meta = read_weights(path)
     if trained_for(path, meta) is not None:  # another target's keypoint network: refused naming its target
         require_weights_target(path, trained_for(path, meta), DEFAULT_TARGET)
-    if meta.get("format") != FORMAT or "model_config" not in meta:
-        raise WeightsError(f"{path}: not corner-detector weights (metadata format {meta.get('format')!r})")
+    if meta.get(FORMAT_KEY) != FORMAT or MODEL_CONFIG_KEY not in meta:
+        raise WeightsError(f"{path}: not corner-detector weights (metadata {FORMAT_KEY} {meta.get(FORMAT_KEY)!r})")
     try:
-        cfg = from_dict(ModelConfig, json.loads(meta["model_config"]))
+        cfg = from_dict(ModelConfig, json.loads(meta[MODEL_CONFIG_KEY]))
     except (ValueError, TypeError) as err:
         raise WeightsError(f"{path}: bad model config in the metadata ({err})") from None
     model = CornerNet(cfg)

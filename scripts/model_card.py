@@ -38,6 +38,7 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from envisat_pose.io import atomic_write_text, sha256_file  # noqa: E402
+from envisat_pose.perception import weights_keys as wk  # noqa: E402
 from envisat_pose.perception.weights import read_metadata  # noqa: E402
 from envisat_pose.provenance import dataset_ref, find_absolute_paths, manifest_sha256, relative_name, scrub_paths  # noqa: E402
 from envisat_pose.shard_reader import load_dataset_manifest  # noqa: E402
@@ -207,11 +208,11 @@ def weights_record(path: str) -> dict:
     meta = read_metadata(path)
     out = {"file": os.path.basename(path), "sha256": sha256_file(path), "tensors_sha256": tensors_sha256(path),
            "bytes": os.path.getsize(path),
-           "model_config": json.loads(meta["model_config"]),
-           "cov_scale": float(json.loads(meta.get("cov_scale", "1.0"))),
-           "cov_calibration": json.loads(meta["cov_calibration"]) if "cov_calibration" in meta else None}
-    for key in ("error_model", "error_model_record", "refine_cov_floor_px2", "refine_cov_calibration",
-                "target", "keypoint_sigma_px", "keypoint_cov_calibration"):  # the last three: a keypoint detector's
+           "model_config": json.loads(meta[wk.MODEL_CONFIG_KEY]),
+           "cov_scale": float(json.loads(meta.get(wk.COV_SCALE_KEY, "1.0"))),
+           "cov_calibration": json.loads(meta[wk.COV_CALIBRATION_KEY]) if wk.COV_CALIBRATION_KEY in meta else None}
+    for key in (wk.ERROR_MODEL_KEY, wk.ERROR_MODEL_RECORD_KEY, wk.REFINE_FLOOR_KEY, wk.REFINE_CALIBRATION_KEY,
+                wk.TARGET_KEY, wk.SIGMA_KEY, wk.SIGMA_RECORD_KEY):  # the last three: a keypoint detector's
         if key in meta:
             out[key] = json.loads(meta[key])
     return out
@@ -313,7 +314,7 @@ def refresh(a) -> int:
         name, _, path = item.partition("=")
         meta = read_metadata(path)
         card.setdefault("error_model_measurements", {})[name] = {
-            "error_model": json.loads(meta["error_model"]), "record": json.loads(meta["error_model_record"])}
+            "error_model": json.loads(meta[wk.ERROR_MODEL_KEY]), "record": json.loads(meta[wk.ERROR_MODEL_RECORD_KEY])}
     if a.commands:
         card.setdefault("commands", []).extend(
             scrub(open(a.commands, encoding="utf-8").read().strip().splitlines()))

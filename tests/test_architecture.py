@@ -13,7 +13,8 @@ written only by the core's resumable-job protocol (envisat_pose/resumable.py); s
 reading) only by envisat_pose/shard_reader.py; a verb or pipeline resolves its config only through
 config.resolve_job_config (never by merging layers itself); a chi-square gate comes from its probability
 (envisat_pose.gates), never typed as a number, and so does a band of NEES or NIS (scipy.stats.chi2, as
-analysis.stats.chi2_mean_bounds computes it). The benches and the scripts are read for every one-home rule; they
+analysis.stats.chi2_mean_bounds computes it); a weights file's metadata keys are typed only in
+perception/weights_keys.py. The benches and the scripts are read for every one-home rule; they
 import no verb (the job a verb runs is the library's). A verb file stays thin: at most VERB_MAX_LINES lines.
 Each checker runs on a source string, so the tests below show it catching a planted copy.
 """
@@ -49,6 +50,7 @@ PENDING = {
     "hand_built_runs": {},
     "typed_bands": {},
     "app_imports": {},
+    "typed_weights_keys": {},
 }
 
 
@@ -354,6 +356,9 @@ GATES_FILE = os.path.join("envisat_pose", "gates.py")
 ONBOARD_FILE = os.path.join("pipelines", "tracking", "onboard.py")
 RESUMABLE_FILE = os.path.join("envisat_pose", "resumable.py")  # the manifest protocol (ResumableJob)
 SHARD_READER_FILE = os.path.join("envisat_pose", "shard_reader.py")
+WEIGHTS_KEYS_FILE = os.path.join("perception", "weights_keys.py")  # the weights' metadata keys
+METADATA_CALLS = ("with_metadata", "save_weights", "save_adapted", "read_metadata", "read_header")
+METADATA_NAMES = ("meta", "metadata")  # the names a weights file's metadata dict goes by
 STATE_BOUNDS = {(0, 3), (3, 6), (6, 9), (9, 12)}  # the blocks of the 12-state (envisat_pose.state)
 MERGERS = ("set_dotted", "deep_update")  # the layers of a config, merged by hand
 
@@ -439,6 +444,49 @@ def tar_reads(source: str) -> list[int]:
             if mode is None or (isinstance(mode, ast.Constant) and str(mode.value).startswith("r")):
                 lines.append(n.lineno)
     return sorted(lines)
+
+
+@functools.cache
+def weights_key_values() -> frozenset[str]:
+    """The metadata keys perception/weights_keys.py names (its string constants)."""
+    tree = ast.parse(open(os.path.join(ROOT, WEIGHTS_KEYS_FILE), encoding="utf-8").read())
+    return frozenset(n.value.value for n in tree.body if isinstance(n, ast.Assign)
+                     and isinstance(n.value, ast.Constant) and isinstance(n.value.value, str))
+
+
+def _is_metadata(node) -> bool:
+    """A weights file's metadata: a read_metadata / read_header call's result or a variable named so."""
+    return (isinstance(node, ast.Call) and _called_name(node) in METADATA_CALLS) \
+        or (isinstance(node, ast.Name) and node.id in METADATA_NAMES)
+
+
+def typed_weights_keys(source: str, keys: frozenset[str] | None = None) -> list[int]:
+    """Lines that type a weights file's metadata key as a string (perception/weights_keys.py names each): a key of
+    a dict literal given to a metadata writer or merged into the metadata, or a key looked up in the metadata
+    (meta[k], meta.get(k), k in meta)."""
+    keys = weights_key_values() if keys is None else keys
+
+    def typed(node) -> bool:
+        return isinstance(node, ast.Constant) and node.value in keys
+
+    lines = []
+    for n in ast.walk(ast.parse(source)):
+        dicts = []
+        if isinstance(n, ast.Call) and (_called_name(n) in METADATA_CALLS or (
+                _called_name(n) == "update" and isinstance(n.func, ast.Attribute) and _is_metadata(n.func.value))):
+            dicts = [a for a in list(n.args) + [k.value for k in n.keywords] if isinstance(a, ast.Dict)]
+        if isinstance(n, ast.Assign) and any(_is_metadata(t) for t in n.targets) and isinstance(n.value, ast.Dict):
+            dicts = [n.value]
+        if any(typed(k) for d in dicts for k in d.keys):
+            lines.append(n.lineno)
+        elif isinstance(n, ast.Subscript) and _is_metadata(n.value) and typed(n.slice):
+            lines.append(n.lineno)
+        elif isinstance(n, ast.Call) and _called_name(n) == "get" and isinstance(n.func, ast.Attribute) \
+                and _is_metadata(n.func.value) and n.args and typed(n.args[0]):
+            lines.append(n.lineno)
+        elif isinstance(n, ast.Compare) and typed(n.left) and any(_is_metadata(c) for c in n.comparators):
+            lines.append(n.lineno)
+    return sorted(set(lines))
 
 
 def hand_resolutions(source: str) -> list[int]:
@@ -623,6 +671,8 @@ def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
             lines = tar_reads(source)
         elif kind == "typed_bands":
             lines = typed_bands(source)
+        elif kind == "typed_weights_keys" and rel != WEIGHTS_KEYS_FILE:
+            lines = typed_weights_keys(source)
         elif kind == "app_imports" and rel.split(os.sep)[0] in EXTRA_FOLDERS:
             lines = app_imports(rel, source)
         else:
@@ -891,6 +941,22 @@ def test_pending_copies_are_still_there(kind):
     found = copies(kind)
     stale = [f for f in PENDING[kind] if f not in found]
     assert stale == [], f"{kind}: {stale} no longer hold a copy; remove them from PENDING"
+
+
+def test_the_weights_key_checker_sees_each_form():
+    keys = frozenset({"cov_scale", "error_model"})
+    planted = ("meta = read_metadata(p)\n"
+               "x = meta['cov_scale']\n"
+               "y = read_metadata(p).get('error_model')\n"
+               "with_metadata(p, q, {'cov_scale': 2.0})\n"
+               "meta.update({'error_model': s})\n"
+               "z = 'cov_scale' in meta\n"
+               "meta = {'format': F, 'cov_scale': 1}\n"
+               "ok = {'cov_scale': det.cfg.cov_scale}\n"
+               "ok = res['error_model']\n"
+               "with_metadata(p, q, {COV_SCALE_KEY: 2.0})\n")
+    assert typed_weights_keys(planted, keys) == [2, 3, 4, 5, 6, 7]
+    assert {"cov_scale", "error_model", "keypoint_sigma_px"} <= weights_key_values()
 
 
 def test_the_state_slice_checker_catches_a_planted_copy():

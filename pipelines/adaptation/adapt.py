@@ -63,6 +63,7 @@ import numpy as np
 from envisat_pose.config import Config, InputError, check, to_dict
 from envisat_pose.io import STAGE_PREFIX, atomic_write_text, staged_folder
 from envisat_pose.out_dirs import check_out_dir, make_out_dir
+from envisat_pose.perception.weights_keys import COV_CALIBRATION_KEY, COV_SCALE_KEY, ERROR_MODEL_KEY
 from envisat_pose.pipelines.adaptation.fine_tune import ADAPT_PARAMS, fine_tune, save_adapted
 from envisat_pose.pipelines.adaptation.pseudo_labels import label_record
 from envisat_pose.pipelines.adaptation.recalibrate import recalibrate
@@ -263,12 +264,12 @@ def recalibration_step(run: AdaptRun, weights: str, candidate: str, model, image
         _close(bar)
     extra = {}
     if cal["scale"] is not None:
-        extra |= {"cov_scale": cal["scale"], "cov_calibration": json.dumps(
+        extra |= {COV_SCALE_KEY: cal["scale"], COV_CALIBRATION_KEY: json.dumps(
             {"scale": cal["scale"], "corners": cal["corners"], "data": "pseudo-labels of "
              f"{content_sha256(run.source)}", "roi": "labels", "by": "envisat adapt"}, sort_keys=True)}
     scale = decide_scale(cfg.params, run.tcfg, weights, edges, cal)
     if scale is not None and "error_model" in scale:
-        extra["error_model"] = scale.pop("error_model")
+        extra[ERROR_MODEL_KEY] = scale.pop("error_model")
     if extra:
         save_adapted(model, run.tcfg.weights, candidate, extra)
     return {"calibration": cal, "apparent_scale": scale,

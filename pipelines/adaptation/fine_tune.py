@@ -14,6 +14,7 @@ from envisat_pose.perception.data import DataConfig, decode_label, make_sample
 from envisat_pose.perception.train import TrainConfig, Trainer
 from envisat_pose.perception.trainer_hooks import Hook
 from envisat_pose.perception.weights import load_model, read_metadata, save_weights
+from envisat_pose.perception.weights_keys import FORMAT_KEY, MODEL_CONFIG_KEY
 
 ADAPT_PARAMS = ("norm_heads", "all", "none")  # what the fine-tune trains (AdaptConfig.params)
 
@@ -95,6 +96,6 @@ def save_adapted(model, base: str, path: str, extra: dict) -> bool:
     False (nothing written) when a tensor is not finite (a diverged fine-tune)."""
     if not all(torch.isfinite(v).all() for v in model.state_dict().values() if v.is_floating_point()):
         return False
-    meta = {k: v for k, v in read_metadata(base).items() if k not in ("format", "model_config")}
+    meta = {k: v for k, v in read_metadata(base).items() if k not in (FORMAT_KEY, MODEL_CONFIG_KEY)}
     save_weights(path, model, {**meta, **extra})
     return True

@@ -24,6 +24,7 @@ from envisat_pose.datagen.generate_config import nest_moved_keys
 from envisat_pose.geometry import load_geometry
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.perception import errormodel as em
+from envisat_pose.perception import weights_keys as wk
 from envisat_pose.perception.box_symmetry import face_windings
 from envisat_pose.perception.calibrate import calibration_by_group, fit_cov_scale, fit_floor
 from envisat_pose.pipelines.detector.detect import camera_samples
@@ -205,8 +206,8 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
                   "count_by_group": {g: v["count"] for g, v in after.items()},
                   "refined_share": float(sum(f["refined"].sum() for _, f in per_data) / max(
                       sum(np.isfinite(f["err_px"][..., 0]).sum() for _, f in per_data), 1))}
-        with_metadata(cfg.weights, out, {"refine_cov_floor_px2": floor,
-                                         "refine_cov_calibration": json.dumps(record, sort_keys=True)})
+        with_metadata(cfg.weights, out, {wk.REFINE_FLOOR_KEY: floor,
+                                         wk.REFINE_CALIBRATION_KEY: json.dumps(record, sort_keys=True)})
         return {"refine": True, "corners": int(len(err)), "before": before, "after": after, "floor": floor,
                 "record": record, "skipped": skipped}
     scale = fit_cov_scale(err, cov)
@@ -218,13 +219,14 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
                   "skipped_damaged_shards": skipped,
                   "mean_nees_by_group": {g: v["mean_nees"] for g, v in after.items()},
                   "count_by_group": {g: v["count"] for g, v in after.items()}}
-        meta.update({"cov_scale": scale, "cov_calibration": json.dumps(record, sort_keys=True)})
+        meta.update({wk.COV_SCALE_KEY: scale, wk.COV_CALIBRATION_KEY: json.dumps(record, sort_keys=True)})
     model = model_record = None
     if sequences:
         seqs = [sequence_input(f, frame_interval_s(d)) for d, f in per_data]
         model, model_record = em.measure_error_model(seqs, scale, max_lag=cfg.max_lag, source=f"roi={cfg.roi}; {data_names}")
         model_record["mean_nees_by_group"] = {g: v["mean_nees"] for g, v in after.items()}
-        meta.update({"error_model": model.to_json(), "error_model_record": json.dumps(model_record, sort_keys=True)})
+        meta.update({wk.ERROR_MODEL_KEY: model.to_json(),
+                     wk.ERROR_MODEL_RECORD_KEY: json.dumps(model_record, sort_keys=True)})
     with_metadata(cfg.weights, out, meta)
     return {"refine": False, "corners": int(len(err)), "before": before, "after": after, "scale": scale,
             "record": record, "error_model": model, "error_model_record": model_record, "skipped": skipped}
@@ -270,5 +272,5 @@ def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, l
     record["held_out"] = " ".join(dataset_ref(d) for d in held_paths) or "the odd frames of data"
     record["skipped_damaged_shards"] = skipped + held_skipped
     make_out_file_dir(out, "out")
-    with_metadata(weights, out, {"face_cue": cue.to_json(), "face_cue_record": json.dumps(record, sort_keys=True)})
+    with_metadata(weights, out, {wk.FACE_CUE_KEY: cue.to_json(), wk.FACE_CUE_RECORD_KEY: json.dumps(record, sort_keys=True)})
     return record

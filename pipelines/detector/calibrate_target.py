@@ -37,6 +37,7 @@ from envisat_pose.perception.keypoint_cov import (
     reject_share,
     sigma_standard_error,
 )
+from envisat_pose.perception.weights_keys import REJECT_KEY, SIGMA_KEY, SIGMA_RECORD_KEY
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig
 from envisat_pose.pipelines.detector.evaluate_target import detect_labelled
 from envisat_pose.provenance import dataset_ref
@@ -76,7 +77,7 @@ def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, 
     cfg.target and write out (a copy of the weights with keypoint_sigma_px and keypoint_cov_calibration in its
     metadata; may be the weights file itself). Returns the record (module doc) with 'corners' (the correct
     detections) and 'calibrated' (the keypoints given a sigma)."""
-    from envisat_pose.perception.keypoint_detect import REJECT_KEY, SIGMA_KEY, SIGMA_RECORD_KEY, KeypointDetectConfig
+    from envisat_pose.perception.keypoint_detect import KeypointDetectConfig
     from envisat_pose.perception.keypoint_loss import relabelings
     from envisat_pose.perception.weights import with_metadata
 

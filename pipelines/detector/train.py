@@ -19,6 +19,7 @@ from envisat_pose.config import InputError, check, from_dict
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.io import sha256_file
 from envisat_pose.out_dirs import check_out_dir
+from envisat_pose.perception.weights_keys import MODEL_CONFIG_KEY
 from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, look_shares
 from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_identity
 from envisat_pose.pipelines.detector.render_pool import looks_keypoints
@@ -320,7 +321,7 @@ def resolve_backbone(backbone: str | None, cfg, new_target_run: bool) -> str | N
         return backbone
     shipped = shipped_weights_path()
     if backbone is None:
-        theirs = json.loads(read_header(shipped).get("model_config", "{}"))
+        theirs = json.loads(read_header(shipped).get(MODEL_CONFIG_KEY, "{}"))
         ours = cfg.model.to_dict()
         if any(theirs.get(k) != ours.get(k) for k in SHARED_SHAPE):
             return None

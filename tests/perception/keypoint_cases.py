@@ -30,9 +30,9 @@ def untrained_weights(path, target_file, sigma_px: float | None = None) -> str:
     with sigma_px, the calibration's metadata (that sigma for every keypoint), else none. Returns the path."""
     import json
 
-    from envisat_pose.perception.keypoint_detect import SIGMA_KEY
     from envisat_pose.perception.keypoint_net import KeypointModelConfig, init_keypoint_net
     from envisat_pose.perception.weights import save_weights
+    from envisat_pose.perception.weights_keys import SIGMA_KEY
     from envisat_pose.target import load_target
 
     target = load_target(str(target_file))
