@@ -183,3 +183,19 @@ def test_gravity_gradient_in_the_model_keeps_the_filter_consistent(chaser_of):
     assert out[False][0] > 100 and out[False][1] >= 45
     lo, hi = chi2.ppf([0.001, 0.999], 12 * 50) / 50  # loose: NEES of one run is correlated in time
     assert out[True][1] == 0 and lo < out[True][0] < hi
+
+
+def test_nis_alarms_alone_are_the_flagged_runs_whose_nees_stays_within_the_window_rule():
+    from envisat_pose.filtering.estimator import nis_alarms_alone
+
+    cfg = FilterConfig(divergence_window=5, divergence_settle_steps=10, nees_divergence_factor=3.0)
+    rng = np.random.default_rng(1)
+    nees_rt = rng.chisquare(12, size=(4, 40))
+    nees_rt[0, 20:30] = 500.0  # flagged and far from the truth: a divergence
+    nees_rt[2, 20:30] = 500.0  # far from the truth, not flagged by the NIS monitor: not an alarm at all
+    flagged = np.array([True, True, False, False])  # run 1 flagged with its NEES ~12: the monitor alone
+    # by hand: the window rule (mean of 5 steps above 36 after step 10) holds for runs 0 and 2 only
+    rule = np.array([any(nees_rt[r, e - 4:e + 1].mean() > 36 for e in range(10, 40)) for r in range(4)])
+    assert rule.tolist() == [True, False, True, False]
+    np.testing.assert_array_equal(nis_alarms_alone(flagged, nees_rt, cfg), flagged & ~rule)
+    assert nis_alarms_alone(flagged, nees_rt, cfg).tolist() == [False, True, False, False]
