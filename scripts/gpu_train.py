@@ -416,7 +416,12 @@ def main() -> int:
                    "data_seeds": [c["seed"] for c in chunks], "images": images, "generate_s": round(gen_s, 1),
                    "train_budget_s": round(budget), "end": end}, fh, indent=1)
     print(f"leg {leg} done: step {end['step']}, loss {end.get('loss', float('nan')):.4f}, "
-          f"{end.get('samples_s')} samples/s, {time.time() - t0:.0f} s", flush=True)
+          f"{end.get('samples_s')} samples/s, {end.get('data_wait_s')} s waiting for frames, "
+          f"{time.time() - t0:.0f} s", flush=True)
+    state_path = os.path.join(args.out, "state.json")
+    if args.online and os.path.exists(state_path):  # where a frame's time goes in its render worker
+        print(f"a rendered frame, ms: {json.load(open(state_path, encoding='utf-8'))['online'].get('frame_ms')}",
+              flush=True)
     if val:
         table = validate(val, args.init, os.path.join(args.out, "detector.safetensors"),
                          os.path.join(args.out, "candidates.json"), args.device, args.deadline_s - 5.0)

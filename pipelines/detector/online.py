@@ -93,7 +93,8 @@ def online_batches(looks, data_cfg, seed: int, batch_size: int, workers: int, de
     sample_id (N, 2) int64: (frame index, how many crops of that frame came before this one). state: a JSON-able
     dict, {format, seed, batch_size, uses_per_frame, config_sha256, step (the next), next_frame (the first frame
     a resumed run renders), frames_taken (frames handed to the trainer, all sessions), max_uses (the most crops
-    of any frame so far)}; start_state: such a state, to continue after it. make_batch: the batch of a window
+    of any frame so far), frame_ms (this session's mean cost of a frame in its worker: RenderPool.stage_ms)};
+    start_state: such a state, to continue after it. make_batch: the batch of a window
     (batch_augment.training_batch's arguments; None: that one, ENVISAT's corner network's; another target's
     keypoint network: perception/keypoint_batch.keypoint_batch, over the looks' K keypoints).
     """
@@ -133,6 +134,6 @@ def online_batches(looks, data_cfg, seed: int, batch_size: int, workers: int, de
                 raise RuntimeError(f"a frame was cropped {max_uses} times, more than uses_per_frame = {k}")
             step += 1
             state = dict(identity, step=step, next_frame=window_start(step, n, k), frames_taken=loaded,
-                         max_uses=max_uses)
+                         max_uses=max_uses, frame_ms=source.stage_ms())
             yield batch, state
 

@@ -4,7 +4,8 @@ mix (pipelines/detector/look_mix.py) into a ring of shared-memory slots, and Ren
 Workers. `workers` spawned processes, each with its own SceneRenderers (one per resolution and texture set
 among the looks; its GL from gl_environment: MUJOCO_GL osmesa on a CPU, egl where the device is CUDA, unless set),
 worker w rendering frames f = w, w + W, w + 2W, ... into its FrameRing (multiprocessing.shared_memory: image
-(H, W) uint8, corners_px (K, 2) float64, visible, in_frame (K,) bool, frame index, side; K the looks' target's
+(H, W) uint8, corners_px (K, 2) float64, visible, in_frame (K,) bool, frame index, side, and what the frame cost
+(ms, FRAME_STAGES); K the looks' target's
 keypoints, ENVISAT's 8 corners or another target's keypoints_px; every look shows the same target file). The trainer takes frames
 in order f = 0, 1, 2, ... (frame f from worker f mod W) and gives the slot back. A slow worker stalls the trainer
 rather than reorder anything. Frames of several sizes travel in the slots of the largest, top-left, zeros beyond,
@@ -45,6 +46,8 @@ from envisat_pose.pools import thread_env
 from envisat_pose.target import load_target
 
 SLOTS_PER_WORKER = 4  # frames a worker may render ahead of the trainer
+FRAME_STAGES = ("render_ms", "camera_label_ms")  # a frame's cost in its worker: the view and the GL passes; the
+# space camera and the label (RenderPool.stage_ms: their means, beside the trainer's wait for frames)
 WAIT_POLL_S = 1.0
 
 
@@ -53,22 +56,28 @@ def frame_sample(gen_cfg, frame: int) -> tuple[int, int]:
     return frame // gen_cfg.shard_size, frame % gen_cfg.shard_size
 
 
-def render_frame(renderer, gen_cfg, frame: int) -> tuple[np.ndarray, dict]:
+def render_frame(renderer, gen_cfg, frame: int, ms: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Sample `frame` of gen_cfg's dataset, (image (H, W) uint8, label dict), nothing encoded; of a sequence-mode
-    config, that frame of its sequence."""
+    config, that frame of its sequence. ms: (2,) filled with the wall time of FRAME_STAGES, when given."""
 
+    t0 = time.perf_counter()
     shard, i = frame_sample(gen_cfg, frame)
     _, seed, rng, view, x, scene = sample_view(gen_cfg, shard, i, renderer.fovy_deg, renderer.znear_m,
                                                renderer.target_boxes)
     out = renderer.render(view)
-    return sample_arrays(renderer.K, renderer.target_boxes, gen_cfg, out, x, scene, rng, seed)
+    t1 = time.perf_counter()
+    image, label = sample_arrays(renderer.K, renderer.target_boxes, gen_cfg, out, x, scene, rng, seed)
+    if ms is not None:
+        ms[:] = (1e3 * (t1 - t0), 1e3 * (time.perf_counter() - t1))
+    return image, label
 
 
 @dataclass
 class FrameRing:
     """A worker's slots in one shared-memory block: images (n, H, W) uint8 (a smaller frame top-left, zeros
     beyond), corners_px (n, K, 2) float64, flags (n, 2, K) bool (visible, in_frame), frame (n,) int64, side (n,)
-    int64 (the frame's own side); K keypoints a frame (8: ENVISAT's corners)."""
+    int64 (the frame's own side), ms (n, len(FRAME_STAGES)) float64 (what it cost); K keypoints a frame (8:
+    ENVISAT's corners)."""
 
     shm: object
     images: np.ndarray
@@ -76,10 +85,11 @@ class FrameRing:
     flags: np.ndarray
     frame: np.ndarray
     side: np.ndarray
+    ms: np.ndarray
 
     @staticmethod
     def nbytes(n: int, res: int, k: int = 8) -> int:
-        return n * res * res + n * 2 * k * 8 + n * 16 + n * 2 * k
+        return n * res * res + n * 2 * k * 8 + n * 16 + n * len(FRAME_STAGES) * 8 + n * 2 * k
 
     @classmethod
     def view(cls, shm, n: int, res: int, k: int = 8) -> "FrameRing":
@@ -92,8 +102,10 @@ class FrameRing:
         a += n * 8
         side = np.ndarray((n,), np.int64, buf, a)
         a += n * 8
+        ms = np.ndarray((n, len(FRAME_STAGES)), np.float64, buf, a)
+        a += n * len(FRAME_STAGES) * 8
         flags = np.ndarray((n, 2, k), np.bool_, buf, a)
-        return cls(shm, images, corners, flags, frame, side)
+        return cls(shm, images, corners, flags, frame, side, ms)
 
     def write(self, slot: int, frame: int, image: np.ndarray, label: dict) -> None:
         h, w = image.shape
@@ -156,7 +168,7 @@ def render_worker(looks_json: str, worker: int, workers: int, first_frame: int, 
                 renderers[key] = SceneRenderer(cfg.resolution_px, cfg.shadows, texture_set_size=key[2],
                                                texture_seed=cfg.appearance.texture_seed, earth_seed=cfg.earth_seed,
                                                target=cfg.target)
-            image, label = render_frame(renderers[key], cfg, k)
+            image, label = render_frame(renderers[key], cfg, k, ring.ms[slot])
             ring.write(slot, f, image, label)
             ready_q.put((slot, f))
             f += workers
@@ -192,6 +204,7 @@ class RenderPool:
         looks = as_looks(looks)
         looks_json = json.dumps([look.record() for look in looks])
         self.workers, self.next_frame, self.res = workers, first_frame, max_side(looks)
+        self.ms_sum, self.taken = np.zeros(len(FRAME_STAGES)), 0
         self.keypoints = looks_keypoints(looks)
         self.rings, self.free_qs, self.ready_qs, self.procs = [], [], [], []
         env = gl_environment(device_type, workers)
@@ -242,9 +255,17 @@ class RenderPool:
         out_image[...] = ring.images[slot]
         label = (ring.corners_px[slot].copy(), ring.flags[slot, 0].copy(), ring.flags[slot, 1].copy(),
                  int(ring.side[slot]))
+        self.ms_sum += ring.ms[slot]
+        self.taken += 1
         self.free_qs[w].put(slot)
         self.next_frame += 1
         return (frame, *label)
+
+    def stage_ms(self) -> dict[str, float]:
+        """The mean cost of the frames taken so far in their workers, ms per FRAME_STAGES stage (NaN before the
+        first): with W workers they render at most W x 1000 / (the stages' sum) frames a second."""
+        mean = self.ms_sum / self.taken if self.taken else np.full(len(FRAME_STAGES), np.nan)
+        return {name: round(float(v), 2) for name, v in zip(FRAME_STAGES, mean)}
 
     def close(self) -> None:
         """End the workers (they finish the frame at hand) and free the shared memory."""

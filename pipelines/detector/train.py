@@ -216,15 +216,18 @@ def read_run_record(run_dir: str) -> dict:
         raise InputError(f"resume: {path!r} is unreadable ({err})") from None
 
 
-def online_max_uses(run_dir: str) -> int | None:
-    """The most crops any rendered frame gave in an online run so far (its state.json)."""
+def online_record(run_dir: str) -> dict:
+    """An online run's figures from its state.json: max_uses (the most crops any rendered frame gave so far) and
+    frame_ms (the last session's mean cost of a frame in its render worker, online.RenderPool.stage_ms); None
+    where the file does not say."""
     import json
 
     try:
         with open(os.path.join(run_dir, "state.json"), encoding="utf-8") as fh:
-            return int(json.load(fh)["online"]["max_uses"])
+            online = json.load(fh)["online"]
+        return {"max_uses": int(online["max_uses"]), "frame_ms": online.get("frame_ms")}
     except (OSError, ValueError, KeyError, TypeError):
-        return None
+        return {"max_uses": None, "frame_ms": None}
 
 
 def init_distributed(device: str) -> str:
@@ -351,7 +354,8 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     written (DamagedShardError naming it) unless skip_damaged, which leaves it out and records it in config.json
     (skipped_damaged_shards) and the end line. online: train on frames rendered as training goes instead
     (data_dirs then empty; OnlineConfig), recorded in config.json under 'online'; the end line then holds
-    uses_per_frame and max_uses (the most crops any frame gave). Returns the run's last metrics line (perception/train.py); raises
+    uses_per_frame, max_uses (the most crops any frame gave) and frame_ms (a frame's cost in its worker).
+    Returns the run's last metrics line (perception/train.py); raises
     perception.train.TrainingInterrupted after a checkpoint when SIGINT or SIGTERM stopped it. Callable from a
     plain script: its workers never import the script."""
     import torch
@@ -401,7 +405,7 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
                     provenance=provenance, init_weights=init, workers=workers, bf16=bf16, paths=paths,
                     online=source, task=task, backbone_weights=backbone)
         if online is not None:
-            end = {**end, "uses_per_frame": online.uses_per_frame, "max_uses": online_max_uses(run_dir),
+            end = {**end, "uses_per_frame": online.uses_per_frame, **online_record(run_dir),
                    "render_workers": online.workers}
         return {**end, "skipped_damaged_shards": skipped}
     finally:
