@@ -106,7 +106,8 @@ def summary_line(s: dict) -> str:
     return (f"after t = {s['settle_s']:.0f} s: RMSE position {100 * r['position']:.3f} cm, attitude "
             f"{math.degrees(r['attitude']):.4f} deg; RMSE/PCRLB " + ", ".join(f"{b} {v:.3f}" for b, v in e.items())
             + f"; mean NEES {s['nees_mean']:.2f} (95 % band {s['nees_bounds'][0]:.2f}..{s['nees_bounds'][1]:.2f}); "
-            f"diverged {s['n_diverged']}/{s['n_runs']}")
+            f"diverged {s['n_diverged']}/{s['n_runs']}" + (f" ({len(s['nis_alarm_alone_runs'])} on the NIS monitor "
+                                                           "alone)" if s.get("nis_alarm_alone_runs") else ""))
 
 
 # ---------------------------------------------------------------- the rate sweep

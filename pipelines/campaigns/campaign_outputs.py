@@ -18,6 +18,7 @@ from envisat_pose.filtering.measurements import limit_markers, measure, outage_m
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import atomic_write_text, json_safe, save_npz
 from envisat_pose.pipelines.campaigns.campaign_block import (
+    ALONE_KEY,
     CampaignTruth,
     block_name,
     filter_run_history,
@@ -37,14 +38,16 @@ def load_block(path: str) -> dict:
 
 
 def merge_blocks(cfg: MonteCarloConfig, out_dir: str):
-    """Fold the block files in run-index order. Returns (CampaignSums, per-run dict, sample_err, sample_norms)."""
+    """Fold the block files in run-index order. Returns (CampaignSums, per-run dict, sample_err, sample_norms);
+    the per-run dict holds RUN_KEYS and nis_alarm_alone (a block written before it: none counted)."""
 
-    folder, runs, s_err, s_norm = SumsFolder(), {k: [] for k in RUN_KEYS}, [], []
+    folder, runs, s_err, s_norm = SumsFolder(), {k: [] for k in RUN_KEYS + ("nis_alarm_alone",)}, [], []
     for b in range(cfg.n_blocks):
         d = load_block(os.path.join(out_dir, block_name(b)))
         folder.add(CampaignSums.from_arrays(d))
         for k in RUN_KEYS:
             runs[k].append(d[f"run_{k}"])
+        runs["nis_alarm_alone"].append(d.get(ALONE_KEY, np.zeros(len(d["run_diverged"]), bool)))
         s_err.append(d["sample_err"])
         s_norm.append(d["sample_norms"])
     return (folder.result(), {k: np.concatenate(v) for k, v in runs.items()}, np.concatenate(s_err),
@@ -92,6 +95,7 @@ def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
         pcrlb_rms={b: float(np.sqrt(np.mean(bound[k, i] ** 2))) for i, b in enumerate(BLOCKS)},
         rmse_over_pcrlb=dict(zip(BLOCKS, (float(v) for v in efficiency(stats.rmse_block, bound, tr.t_s, settle)))),
         diverged_runs=[int(i) for i in np.flatnonzero(runs["diverged"])],
+        nis_alarm_alone_runs=[int(i) for i in np.flatnonzero(runs["nis_alarm_alone"])],
     )
     atomic_write_text(os.path.join(out_dir, "summary.json"), json.dumps(json_safe(summary), indent=1, sort_keys=True)
                       + "\n")

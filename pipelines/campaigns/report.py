@@ -179,7 +179,9 @@ def campaign_rows(c: dict) -> list[tuple[str, str]]:
     lo, hi = s.get("nees_bounds", [None, None])
     rows += [("mean NEES (12 dof)", f"{_fmt(s.get('nees_mean'))} (95 % band {_fmt(lo)} .. {_fmt(hi)})"),
              ("NIS per dof", _fmt(s.get("nis_mean_per_dof"))),
-             ("diverged runs", f"{s.get('n_diverged')} / {s.get('n_runs')}"),
+             ("diverged runs", f"{s.get('n_diverged')} / {s.get('n_runs')}" + (
+                 f" ({len(s['nis_alarm_alone_runs'])} on the NIS monitor alone, their errors within the NEES rule)"
+                 if s.get("nis_alarm_alone_runs") else "")),
              ("wall time", f"{_fmt(t.get('block_wall_s_sum'), digits=4)} s in blocks, "
                            f"{_fmt(t.get('wall_s_this_invocation'), digits=4)} s last invocation "
                            f"({t.get('workers', '?')} {t.get('backend', '?')} workers)" if t else "n/a")]

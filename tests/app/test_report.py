@@ -104,3 +104,18 @@ def test_report_names_each_campaigns_target(two_campaigns, tmp_path):
     page = Collector()
     page.feed(out.read_text(encoding="utf-8"))
     assert "target" in page.cells and "envisat.xml" in page.cells and "upper_stage.xml" in page.cells
+
+
+def test_the_diverged_row_and_line_name_the_nis_monitors_lone_alarms(two_campaigns):
+    """A summary whose diverged runs include ones the NIS monitor flagged alone says so, in the report's row and
+    in `envisat montecarlo`'s line; without any, both read as before."""
+    from envisat_pose.app.montecarlo import summary_line
+    from envisat_pose.pipelines.campaigns.report import campaign_rows, load_campaign
+
+    c = load_campaign(str(two_campaigns[0]))
+    for alone, note in (([], None), ([3], "1 on the NIS monitor alone")):
+        s = dict(c["summary"], n_diverged=2, diverged_runs=[3, 7], nis_alarm_alone_runs=alone)
+        row = dict(campaign_rows(dict(c, summary=s)))["diverged runs"]
+        line = summary_line(s)
+        assert row.startswith("2 / ") and line.endswith(f"diverged 2/{s['n_runs']}" + (f" ({note})" if note else ""))
+        assert (note in row) if note else ("NIS" not in row)
