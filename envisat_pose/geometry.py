@@ -122,7 +122,7 @@ def visible_corners(c_T_m: np.ndarray, geometry: TargetGeometry | None = None) -
     """Corners of the convex box seen from c_T: a corner is visible when one of its faces is. (..., 8) bool.
 
     This is the exact test of the reference sheet (section 4) for the box alone; the solar array can hide
-    corners too, which only a rendered depth test sees.
+    corners too, which only the ray casts through the whole target see (Target.truth_visible).
     """
     g = geometry or load_geometry()
     faces = visible_faces(c_T_m, g)
