@@ -49,6 +49,7 @@ def _scene_spec(target: Target):
     again = scene.add_plugin(name=plugin[0], plugin_name=plugin[1], active=True)
     again.config = plugin[2]
     child = target_spec(target.path)  # fused where the target body has child bodies
+    child.option = scene.option  # the scene's physics: a file's own <option> (a template's gravity) has no say
     frame = scene.worldbody.add_frame(pos=list(SCENE_TARGET_POS_M))
     body = frame.attach_body(child.body("target"), ASSET_PREFIX, "")
     body.name = "target"

@@ -27,7 +27,7 @@ from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.config import ConfigError, InputError
 from envisat_pose.geometry import model_path, visible_corners
 from envisat_pose.shard_reader import load_dataset_manifest
-from envisat_pose.target_file import check_inertia, compile_alone, named_files, read_spec, target_sha256
+from envisat_pose.target_file import check_inertia, compile_alone, inertial_used, named_files, read_spec, target_sha256
 from envisat_pose.target_mesh import BodyMesh, TriangleMesh, body_mesh, feature_edges
 from envisat_pose.target_shape import (
     Symmetry,
@@ -368,10 +368,12 @@ def _load(path: str, stamps: tuple, field: str, given: str) -> Target:
     body = model.body("target").id
     R = quat_to_rotmat(model.body_iquat[body])
     inertia = R @ np.diag(model.body_inertia[body]) @ R.T
-    stated = spec.body("target").explicitinertial and not fused  # else MuJoCo's sums
+    stated = inertial_used(spec, spec.body("target")) and not fused  # else MuJoCo's sums
     whose = ("the masses of the body and its child bodies" if fused else
+             "its geoms' masses (the compiler's inertiafromgeom='true' sets its <inertial> aside)"
+             if spec.body("target").explicitinertial else
              "its geoms' masses (it has no <inertial>: state one, or give its geoms their mass or density)")
-    if not stated:
+    if not stated or spec.compiler.balanceinertia:
         problem = check_inertia(float(model.body_mass[body]), inertia)
         if problem is not None:
             _fail(field, given, f"body 'target' with {problem}, as MuJoCo computes them from {whose}")
@@ -385,8 +387,8 @@ def _load(path: str, stamps: tuple, field: str, given: str) -> Target:
     if len(names) < MIN_KEYPOINTS:
         _fail(field, given, f"at least {MIN_KEYPOINTS} keypoint sites named '{KEYPOINT_PREFIX}<name>' on body "
                             f"'target' (found {len(names)})")
-    if len(set(names)) != len(names):
-        _fail(field, given, f"keypoint sites with distinct names (got {list(names)})")
+    if len(set(names)) != len(names) or "" in names:
+        _fail(field, given, f"keypoint sites with distinct, non-empty names after the prefix (got {list(names)})")
     geoms = _geoms(model, body)
     surface = body_mesh(model, body)
     if len(surface.mesh.faces) == 0:

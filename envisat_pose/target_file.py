@@ -22,6 +22,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+import re
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -40,13 +41,28 @@ def full_numbers(v) -> str:
     return " ".join(repr(float(x)) for x in v)
 
 
+ASSET_FOLDERS = (("meshes", "meshdir"), ("hfields", "meshdir"), ("skins", "meshdir"), ("textures", "texturedir"))
+
+
+def _absolute(name: str, folder: str, sub: str) -> str:
+    return name if not name or os.path.isabs(name) else os.path.normpath(os.path.join(folder, sub or "", name))
+
+
 def absolute_asset_files(spec, folder: str) -> None:
-    """Make the files of a spec's meshes, textures and height fields absolute (relative to the file's folder and
-    its compiler's meshdir/texturedir), so the spec compiles from anywhere."""
-    for kind, sub in (("meshes", spec.meshdir), ("hfields", spec.meshdir), ("textures", spec.texturedir)):
+    """Make the files of a spec's meshes, height fields, skins and textures (a cube's six faces too) absolute
+    (relative to the file's folder and its compiler's meshdir/texturedir), so the spec compiles from anywhere."""
+    for kind, sub in ASSET_FOLDERS:
         for asset in getattr(spec, kind):
-            if asset.file and not os.path.isabs(asset.file):
-                asset.file = os.path.normpath(os.path.join(folder, sub or "", asset.file))
+            asset.file = _absolute(asset.file, folder, getattr(spec, sub))
+            if kind == "textures" and any(asset.cubefiles):
+                asset.cubefiles = [_absolute(f, folder, spec.texturedir) for f in asset.cubefiles]
+
+
+def asset_files(spec) -> set[str]:
+    """Every file a spec's assets name (after absolute_asset_files: absolute), a cube texture's faces included."""
+    named = {a.file for kind, _ in ASSET_FOLDERS for a in getattr(spec, kind)}
+    named |= {f for t in spec.textures for f in t.cubefiles}
+    return {f for f in named if f}
 
 
 def subtree_bodies(body) -> list:
@@ -108,21 +124,25 @@ def _pose(el: ET.Element) -> tuple[np.ndarray, np.ndarray]:
     return pos, quat / np.linalg.norm(quat)
 
 
-def _dissolve_frames(parent: ET.Element, pos: np.ndarray, quat: np.ndarray, into: list[ET.Element]) -> None:
+def _dissolve_frames(parent: ET.Element, pos: np.ndarray, quat: np.ndarray, into: list[ET.Element],
+                     childclass: str | None = None) -> None:
     """Every child of parent (a frame at pose (pos, quat) in T, or the body itself at the identity) into `into`,
-    in document order, nested frames dissolved, each element's written pose composed with its frames'."""
+    in document order, nested frames dissolved, each element's written pose composed with its frames' and its
+    default class the innermost frame's childclass where it names none itself (as MuJoCo reads a frame)."""
     R = quat_to_rotmat(quat)
     for el in list(parent):
         p, q = _pose(el)
         p_T, q_T = pos + R @ p, _quat_mul(quat, q)
         if el.tag == "frame":
-            _dissolve_frames(el, p_T, q_T, into)
+            _dissolve_frames(el, p_T, q_T, into, el.get("childclass", childclass))
             continue
         if parent.tag == "frame":
             for key in _ORIENTATIONS:
                 el.attrib.pop(key, None)
             el.set("pos", full_numbers(p_T))
             el.set("quat", full_numbers(q_T))
+            if childclass is not None and "class" not in el.attrib:
+                el.set("class", childclass)
         into.append(el)
 
 
@@ -221,6 +241,15 @@ def _spec_inertia(body) -> np.ndarray:
     return np.diag(np.asarray(body.inertia, float))
 
 
+def inertial_used(spec, body) -> bool:
+    """Whether MuJoCo takes body's mass properties from its <inertial>: one is written and the compiler's
+    inertiafromgeom is not 'true' (which computes them from the geoms whatever the file states)."""
+    import mujoco
+
+    from_geoms = spec.compiler.inertiafromgeom == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_TRUE
+    return bool(body.explicitinertial) and not from_geoms
+
+
 def read_spec(path: str, field: str, given: str):
     """MuJoCo's reading of the file (its own compiler settings) with its body `target` checked for structure:
     (spec, own_scene, fused, latched). A body with child bodies or joints is read fused (fused: True), its joints
@@ -248,7 +277,7 @@ def read_spec(path: str, field: str, given: str):
     latched = tuple(j.name or f"{str(j.type).rsplit('.', 1)[-1].removeprefix('mjJNT_').lower()} joint of body "
                     f"{j.parent.name!r}" for j in joints)
     for b in [body, *tree]:
-        if b.explicitinertial:  # without one, MuJoCo's from the geoms (checked once compiled)
+        if inertial_used(spec, b) and not spec.compiler.balanceinertia:  # else MuJoCo's (checked once compiled)
             problem = check_inertia(float(b.mass), _spec_inertia(b))
             if problem is not None:
                 fail(f"body {b.name or 'target'!r} with {problem}")
@@ -296,14 +325,14 @@ def _included_files(path: str, base: str) -> list[str]:
 
 def named_files(path: str) -> tuple[str, ...]:
     """The files the target file at `path` names (includes, meshes, textures, height fields), absolute, sorted;
-    none where 'file=' is nowhere in it (the shipped targets). Cached per file and modification time."""
+    none where no 'file...=' is in it (the shipped targets). Cached per file and modification time."""
     return _named_files(path, os.stat(path).st_mtime_ns)
 
 
 @functools.lru_cache(maxsize=16)
 def _named_files(path: str, mtime_ns: int) -> tuple[str, ...]:
     with open(path, "rb") as fh:
-        if b"file=" not in fh.read():
+        if not re.search(rb"file[a-z]*\s*=", fh.read()):  # file=, or a cube texture's fileright= ...
             return ()
     import mujoco
 
@@ -312,7 +341,7 @@ def _named_files(path: str, mtime_ns: int) -> tuple[str, ...]:
     try:
         spec = mujoco.MjSpec.from_file(path)
         absolute_asset_files(spec, folder)
-        named |= {a.file for kind in ("meshes", "textures", "hfields") for a in getattr(spec, kind) if a.file}
+        named |= asset_files(spec)
     except ValueError:
         pass  # MuJoCo's reading reports it
     return tuple(sorted(named))
