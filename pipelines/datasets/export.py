@@ -13,7 +13,6 @@ README's commands) name `out_dir`'s absolute path, never the staging folder's.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import os
 import re
@@ -83,9 +82,7 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     manifest = load_dataset_manifest(src, "src")
     with skip_hint():
         shards, skipped = checked_shards(src, skip_damaged, "src")
-    gen = _generate_config(src, manifest)
-    if cfg.target is not None:
-        gen = dataclasses.replace(gen, target=cfg.target)
+    gen = _generate_config(src, manifest, cfg.target)
     layout = _layout(cfg, gen, src, manifest)
     final_dir = os.path.abspath(out_dir)  # what the staging folder becomes: the path data.yaml and README name
     if cfg.fmt == "bop" and not gen.write_mask:
@@ -117,9 +114,14 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     return ExportSummary(out_dir, cfg.fmt, images, skipped)
 
 
-def _generate_config(src: str, manifest: dict):
+def _generate_config(src: str, manifest: dict, target: str | None = None):
+    """The dataset's generate config, its target file the one given in its place (the recorded path may no longer
+    be there: the file given is checked against the recorded sha256 when the target is read)."""
     try:
-        return config_from_json(json.dumps(manifest["config"]))
+        recorded = dict(manifest["config"])
+        if target is not None:
+            recorded["target"] = target
+        return config_from_json(json.dumps(recorded))
     except (KeyError, TypeError, ValueError) as err:
         raise InputError(f"src {src!r}: manifest.json holds no readable generate config ({err})") from None
 

@@ -510,3 +510,29 @@ def test_another_target_exports_its_own_keypoints(tmp_path, monkeypatch):
             moved = pts @ R.T
             assert np.min(np.linalg.norm(moved[:, None] - pts[None], axis=2), axis=1).max() < 1e-3  # mm
     assert json.load(open(os.path.join(outs["bop"], "export.json")))["target"] == "cubesat_3u"
+
+
+def test_a_moved_target_file_is_given_with_target(tmp_path, monkeypatch):
+    """A dataset generated from a target file named relative to the folder it ran in: read from elsewhere, the
+    recorded path is gone, and `--target` gives the file (checked against the recorded sha256); an edited file is
+    refused. The export's keypoints are the file's."""
+    from envisat_pose.geometry import model_path
+
+    home = tmp_path / "home"
+    home.mkdir()
+    shutil.copy(os.path.join(os.path.dirname(model_path()), "cubesat_3u.xml"), home / "sat.xml")
+    monkeypatch.chdir(home)
+    src = str(tmp_path / "cube")
+    run_generate(from_dict(GenerateConfig, {"target": "sat.xml", "num_images": 2, "shard_size": 2,
+                                            "resolution_px": 128, "seed": 4}), src, progress=False)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputError, match="sat.xml"):
+        export_dataset(src, str(tmp_path / "lost"), ExportConfig("coco", val_fraction=0.0), progress=False)
+    out = export_dataset(src, str(tmp_path / "found"), ExportConfig("coco", val_fraction=0.0,
+                                                                    target=str(home / "sat.xml")), progress=False)
+    coco = json.load(open(os.path.join(out.out_dir, "annotations", "keypoints_train.json")))
+    assert len(coco["categories"][0]["keypoints"]) == 12 and len(coco["annotations"]) == 2
+    (home / "sat.xml").write_text((home / "sat.xml").read_text().replace("<mujoco", "<!-- edited -->\n<mujoco", 1))
+    with pytest.raises(InputError, match="changed since the dataset was generated"):
+        export_dataset(src, str(tmp_path / "edited"), ExportConfig("coco", val_fraction=0.0,
+                                                                   target=str(home / "sat.xml")), progress=False)
