@@ -322,6 +322,10 @@ class GenerateConfig(Config):
                 raise ConfigError(f"random.{err.field}", err.value, err.expected) from None
             object.__setattr__(self, "random", filled)
         if ratio is not None and self.sequence.range_scale is None:
+            if not MIN_RANGE_SCALE <= sized_value(ratio) <= MAX_RANGE_SCALE:
+                raise ConfigError("target", self.target, f"a spacecraft {MIN_RANGE_SCALE:g} to {MAX_RANGE_SCALE:g} "
+                                  f"times ENVISAT's size, the views sized to it (this one: {ratio:.4g} times; or "
+                                  "give sequence.range_scale and random's ranges and keep-out yourself)")
             object.__setattr__(self, "sequence", replace(self.sequence, range_scale=sized_value(ratio)))
         if self.depth_scale_m is None:
             object.__setattr__(self, "depth_scale_m", self._sized_depth_scale_m())

@@ -171,3 +171,15 @@ def test_a_sequence_showing_the_target_as_a_dot_is_refused():
     from_dict(GenerateConfig, {"mode": "sequence", "resolution_px": 16})
     with pytest.raises(ConfigError, match="^scenario = 'nowhere'"):
         from_dict(GenerateConfig, {"mode": "sequence", "sequence": {"scenario": "nowhere"}})
+
+
+def test_a_target_beyond_the_sized_views_is_refused_naming_the_target(tmp_path):
+    """A 300 m box is over ten times ENVISAT's size: the refusal names the target file and its size ratio (the
+    sequence's range_scale the config derives is not the user's to fix); the ranges given by hand are taken."""
+    path = _target_file(tmp_path, "tower", (150.0, 40.0, 40.0))
+    with pytest.raises(ConfigError, match=r"target = .*tower\.xml.*times ENVISAT's size") as err:
+        from_dict(GenerateConfig, {"target": path})
+    assert "range_scale = " not in str(err.value)
+    given = {"target": path, "sequence": {"range_scale": 10.0},
+             "random": {"range_min_m": 400.0, "range_max_m": 900.0, "keepout_margin_m": 20.0}}
+    assert from_dict(GenerateConfig, given).random.range_max_m == 900.0
