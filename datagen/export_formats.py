@@ -25,7 +25,8 @@ def keypoints_px(label: dict) -> list:
 
 
 def visibility_codes(label: dict) -> np.ndarray:
-    """(K,) int: 2 visible (the label's ray-cast flag), 1 in the frame but hidden, 0 outside the frame (or behind the camera)."""
+    """(K,) int: 2 visible (the label's ray-cast flag), 1 in the frame but hidden, 0 outside the frame (or
+    behind the camera)."""
     in_frame = np.asarray(label["in_frame"], dtype=bool)
     visible = np.asarray(label["visible"], dtype=bool) & in_frame
     return np.where(visible, VISIBLE, np.where(in_frame, HIDDEN, OUTSIDE))
