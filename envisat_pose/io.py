@@ -35,17 +35,51 @@ def atomic_path(path: str, suffix: str = ""):
 STAGE_PREFIX = ".tmp-stage-"  # staged_folder's folder inside the destination (what a killed job leaves behind)
 
 
+def stage_prefix() -> str:
+    """The name's start of a staging folder this process makes: STAGE_PREFIX, its pid and '-' (so a later job
+    knows a killed job's folder: sweep_stale_stages)."""
+    return f"{STAGE_PREFIX}{os.getpid()}-"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # another user's process
+    return True
+
+
+def sweep_stale_stages(out_dir: str) -> list[str]:
+    """Remove the staging folders in out_dir that a job killed mid-write left (SIGKILL, a power cut: no clean-up
+    ran): those named by stage_prefix whose process is gone; a running job's, and any other name, stay. Returns
+    the names removed."""
+    import shutil
+
+    gone = []
+    with contextlib.suppress(FileNotFoundError, NotADirectoryError):
+        for name in os.listdir(out_dir):
+            pid = name.removeprefix(STAGE_PREFIX).split("-", 1)[0]
+            if name.startswith(STAGE_PREFIX) and pid.isdigit() and not _alive(int(pid)) and \
+                    os.path.isdir(os.path.join(out_dir, name)):
+                shutil.rmtree(os.path.join(out_dir, name), ignore_errors=True)
+                gone.append(name)
+    return gone
+
+
 @contextlib.contextmanager
 def staged_folder(out_dir: str, outputs=()):
     """Yield a fresh hidden folder inside out_dir (created, parents too) for a job's outputs. When the block
     completes, every file in it is moved into out_dir (os.replace: each file whole), the files named in
     `outputs` that this job did not write (an earlier run's, now stale) are removed from out_dir, and the
-    folder goes. On an error or an interrupt the folder and its partial files are removed and out_dir is left
+    folder goes. A killed job's staging folder found there is removed first (sweep_stale_stages). On an error or an interrupt the folder and its partial files are removed and out_dir is left
     as it was (an earlier run's outputs intact)."""
     import shutil
 
     os.makedirs(out_dir, exist_ok=True)
-    stage = tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=out_dir)
+    sweep_stale_stages(out_dir)
+    stage = tempfile.mkdtemp(prefix=stage_prefix(), dir=out_dir)
     try:
         yield stage
         written = set(os.listdir(stage))

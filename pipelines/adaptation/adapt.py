@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envisat_pose.config import Config, InputError, check, to_dict
-from envisat_pose.io import STAGE_PREFIX, atomic_write_text, staged_folder
+from envisat_pose.io import atomic_write_text, stage_prefix, staged_folder
 from envisat_pose.out_dirs import check_out_dir, make_out_dir
 from envisat_pose.perception.weights_keys import COV_CALIBRATION_KEY, COV_SCALE_KEY, ERROR_MODEL_KEY
 from envisat_pose.pipelines.adaptation.fine_tune import ADAPT_PARAMS, fine_tune, save_adapted
@@ -451,7 +451,7 @@ def _replace_dirs(out_dir: str, stage: str) -> None:
 
     old = [d for d in RUN_DIRS if os.path.isdir(os.path.join(out_dir, d))]
     if old:
-        trash = tempfile.mkdtemp(prefix=STAGE_PREFIX, dir=out_dir)
+        trash = tempfile.mkdtemp(prefix=stage_prefix(), dir=out_dir)
         for d in old:
             os.replace(os.path.join(out_dir, d), os.path.join(trash, d))
         shutil.rmtree(trash, ignore_errors=True)

@@ -1,0 +1,44 @@
+"""io.staged_folder: a job's outputs staged in a hidden folder and moved into place whole; the staging folder a
+killed job left (SIGKILL: no clean-up ran) is swept by the next job, a running job's and other names are kept."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from envisat_pose.io import STAGE_PREFIX, stage_prefix, staged_folder
+
+
+def _dead_pid() -> int:
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+def test_a_killed_jobs_stage_is_swept_and_a_running_ones_kept(tmp_path):
+    out = tmp_path / "out"
+    killed = out / f"{STAGE_PREFIX}{_dead_pid()}-abc"
+    running = out / f"{stage_prefix()}xyz"  # this process: alive
+    other = out / f"{STAGE_PREFIX}notapid"
+    for folder in (killed, running, other):
+        (folder / "runs").mkdir(parents=True)
+        (folder / "runs" / "rows.bin").write_bytes(b"half written")
+    (out / "notes.txt").write_text("the user's own file")
+    with staged_folder(str(out), ("summary.json",)) as stage:
+        assert os.path.basename(stage).startswith(stage_prefix())
+        with open(os.path.join(stage, "summary.json"), "w") as fh:
+            fh.write("{}")
+    assert sorted(os.listdir(out)) == sorted([running.name, other.name, "notes.txt", "summary.json"])
+
+
+def test_an_error_leaves_the_earlier_outputs(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "summary.json").write_text("earlier")
+    with pytest.raises(RuntimeError):
+        with staged_folder(str(out), ("summary.json",)) as stage:
+            with open(os.path.join(stage, "summary.json"), "w") as fh:
+                fh.write("half")
+            raise RuntimeError("killed")
+    assert os.listdir(out) == ["summary.json"] and (out / "summary.json").read_text() == "earlier"
