@@ -67,6 +67,9 @@ def track_cli(args: argparse.Namespace) -> int:
     summary = track_frames(cfg, source, args.camera, None, args.out, sink, progress=not args.quiet)
     w, h = summary["source"]["size_px"]
     print(f"{args.images}: {len(source.t_s)} frames of {w} x {h} px, {summary['source']['pixels']}")
+    cam = summary["camera"]
+    print(f"camera {cam['file'] or 'the MJCF chaser_cam'}: f {cam['f_px']:.2f} px, principal point "
+          f"({cam['cx_px']:.1f}, {cam['cy_px']:.1f}) px" + (", frames undistorted to it" if cam["undistorted"] else ""))
     if source.skipped:
         print(skipped_line(source.skipped))
     print(status_line(summary["source"]["frames"], summary["frames_by_status"], summary["first_tracking_s"],

@@ -16,6 +16,7 @@ import numpy as np
 
 CORNER_NAMES = ("A", "B", "C", "D", "E", "F", "G", "H")
 CAMERA_NAME = "chaser_cam"  # the MJCF's camera on the chaser (models/envisat.xml), the project's one camera
+MIN_SIDE_PX = 16  # the smallest image side, px, a camera or a frame may have
 # The 12 edges of the main body box, as pairs of corner indices (A=0 .. H=7).
 EDGES = ((0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7))
 FACE_NAMES = ("px", "mx", "py", "my", "pz", "mz")

@@ -30,7 +30,7 @@ def test_the_readme_python_example_runs_as_written(tmp_path, monkeypatch, capsys
     monkeypatch.chdir(tmp_path)
     os.mkdir("my_frames")
     for k in range(20):
-        cv2.imwrite(f"my_frames/frame_{k}.png", np.zeros((256, 256), np.uint8))
+        cv2.imwrite(f"my_frames/frame_{k}.png", np.zeros((1024, 1024), np.uint8))  # the MJCF camera's size
     exec(compile(python_example(), str(README), "exec"), {"__name__": "readme"})
     out = capsys.readouterr().out.splitlines()
     assert out[0].startswith("0.0 acquiring") and "nan" in out[0]

@@ -23,6 +23,7 @@ import numpy as np
 
 from envisat_pose.config import ConfigError, InputError
 from envisat_pose.datagen.generate_config import nest_moved_keys
+from envisat_pose.geometry import MIN_SIDE_PX
 from envisat_pose.pipelines.detector.detect_target import require_dataset_of
 from envisat_pose.resumable import manifest_path
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
@@ -30,7 +31,6 @@ from envisat_pose.target import DEFAULT_TARGET, load_target, other_target, requi
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 BIT_DEPTHS = (8, 10, 12, 14, 16)
-MIN_SIDE_PX = 16
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -49,8 +49,8 @@ from envisat_pose.pipelines.runs.frames import FrameSource, open_source, require
 from envisat_pose.pipelines.runs.outputs import first_tracking_s, status_counts
 from envisat_pose.pipelines.runs.rows import DET_KEYS, STAGES, RunRows
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, run_rows, score_run_files, write_run_files
-from envisat_pose.pipelines.tracking.build import tracker_camera, tracker_detector
-from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
+from envisat_pose.pipelines.tracking.build import tracker_detector
+from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics, camera_record, default_camera
 from envisat_pose.pipelines.tracking.onboard import chaser_function
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, Tracker, TrackerConfig
 from envisat_pose.realtime import real_time_factor
@@ -151,7 +151,7 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
     pixels = scan_source(source, None if camera is None else (camera.width_px, camera.height_px),
                          min_frames=cfg.tracker.acquire.frames, progress=progress)
     if camera is None:
-        camera = tracker_camera(size_px=source.size_px)
+        camera = default_camera(source.path, source.size_px, generated=source.kind == "dataset")
     return cfg, source, camera, remap, pixels
 
 
@@ -170,16 +170,18 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     of the pixels; `target`: the target's record)."""
 
     check_out_dir(out_dir, field="out_dir")
+    camera_file = camera if isinstance(camera, str) else None
     cfg, source, camera, remap, pixels = prepare_frames(cfg, source, camera, remap, progress)
+    used = camera_record(camera, camera_file, remap is not None)
     # the detector before any output: another target's weights without their calibration are refused here
     detector = tracker_detector(cfg.weights, target=cfg.target, bf16=cfg.bf16)
     make_out_dir(out_dir, field="out_dir")
     with staged_folder(out_dir, OUTPUTS.values()) as stage:
-        return _track(cfg, source, camera, remap, stage, sink, progress, pixels, detector)
+        return _track(cfg, source, camera, remap, stage, sink, progress, pixels, detector, used)
 
 
 def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, out_dir: str, sink: str | None,
-           progress: bool, pixels: str, detector) -> dict:
+           progress: bool, pixels: str, detector, used: dict) -> dict:
     import shutil
     from dataclasses import asdict
 
@@ -211,7 +213,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     record = target.record(cfg.target)  # the file as given, its name, sha256 and keypoints
     config_json = json.dumps({"track": to_dict(cfg), "target": record,
                               "source": {"kind": source.kind, "path": source.path, "bit_depth": source.bit_depth,
-                                         "skipped_damaged_shards": source.skipped}}, sort_keys=True)
+                                         "skipped_damaged_shards": source.skipped}, "camera": used}, sort_keys=True)
     det_cfg = json.dumps({"weights": cfg.weights, "source": source.path, "target": record}, sort_keys=True)
     det_names = tuple(k for k in DET_KEYS if k != "skipped")
     scores = score_run_files(source.t_s, x_true, [run_dir], paths, config_json, det_cfg, score=truth is not None,
@@ -221,7 +223,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
                     det_cfg, det_names=det_names)
     atomic_write_text(paths["config"], "# envisat track: the full validated config of this job\n" + to_toml(to_dict(cfg)))
     summary = track_summary(source, cfg.weights, pixels, col, np.asarray(sums["timing_s"]) / T, wall_s)
-    summary["target"] = record
+    summary["target"], summary["camera"] = record, used
     if truth is not None:
         from envisat_pose.analysis.plots import plot_estimate
 

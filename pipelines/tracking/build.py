@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
+
 from envisat_pose import geometry, named_scenarios
-from envisat_pose.config import InputError, from_dict, load_toml, to_dict
+from envisat_pose.config import InputError, check, from_dict, load_toml, to_dict
 from envisat_pose.datagen.scenario import OrbitConfig, scenario_config
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
@@ -62,9 +64,18 @@ def tracker_camera(path: str | None = None, size_px: tuple[int, int] | None = No
                              "track_frames(camera=path)")
         return cam
     cam = geometry.load_camera()
+    if size_px is not None:
+        check(_is_size(size_px), "size_px", size_px,
+              f"(width, height): two whole numbers of pixels, each at least {geometry.MIN_SIDE_PX}")
     if size_px is not None and tuple(size_px) != (cam.width_px, cam.height_px):
         cam = cam.scaled(int(size_px[0]), int(size_px[1]))
     return cam
+
+
+def _is_size(size_px) -> bool:
+    sides = tuple(size_px) if isinstance(size_px, (tuple, list)) else ()
+    return len(sides) == 2 and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+                                   and v >= geometry.MIN_SIDE_PX for v in sides)
 
 
 def tracker_detector(weights: str | None = None, device: str = "cpu", target: str | None = None,

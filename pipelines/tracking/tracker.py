@@ -239,8 +239,15 @@ class Tracker(AcquiringSteps, TrackingSteps):
         for planned_window), None for a whole frame; nothing that reads beyond the window (the array cue) reads
         such a frame."""
         t_s = float(t_s)
+        if not np.isfinite(t_s):
+            raise ValueError(f"t_s = {t_s}: expected a finite frame time, s")
         if self.t_last is not None and not t_s > self.t_last:
             raise ValueError(f"frame times must increase: t = {t_s} s after t = {self.t_last} s")
+        want = (self.camera.height_px, self.camera.width_px)
+        if image is not None and (not isinstance(image, np.ndarray) or image.shape != want or image.dtype != np.uint8):
+            got = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
+            raise ValueError(f"image: {got}; expected a uint8 gray frame of the camera's size {want} (height, width): "
+                             "a frame of another size needs its own camera (tracker_camera, camera_file)")
         if window_px is not None:
             window_px = np.asarray(window_px)
             if window_px.shape != (3,) or window_px[2] < 1:

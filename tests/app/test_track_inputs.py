@@ -43,6 +43,18 @@ def fast_cfg(tmp_path):
     return str(cfg)
 
 
+@pytest.fixture()
+def side_camera(tmp_path):
+    """The MJCF camera read out at SIDE px (its field of view kept): the camera of the noise frames, given."""
+    from envisat_pose.geometry import load_camera
+
+    cam = load_camera().scaled(SIDE, SIDE)
+    path = tmp_path / "side_camera.toml"
+    path.write_text(f"fx = {cam.f_px!r}\nfy = {cam.f_px!r}\ncx = {cam.cu_px!r}\ncy = {cam.cv_px!r}\n"
+                    f"width = {SIDE}\nheight = {SIDE}\n")
+    return str(path)
+
+
 def track(args, capsys=None):
     code = main(["track", *args, "--quiet"])
     return code, (capsys.readouterr() if capsys is not None else None)
@@ -56,7 +68,8 @@ def one_line_error(args, capsys, out):
     return err
 
 
-def test_unpadded_names_are_tracked_in_natural_order(tmp_path, fast_cfg, detector_weights, capsys, verify_rrd):
+def test_unpadded_names_are_tracked_in_natural_order(tmp_path, fast_cfg, side_camera, detector_weights, capsys,
+                                                    verify_rrd):
     """frame_0 ... frame_11 (no zero padding): frame_2 before frame_10; the ._ and dot files macOS leaves are
     ignored; det.npz's keys and est.npz's times follow the numbers."""
     names = [f"frame_{i}.png" for i in range(12)]
@@ -66,7 +79,7 @@ def test_unpadded_names_are_tracked_in_natural_order(tmp_path, fast_cfg, detecto
     (src / ".DS_Store").write_bytes(b"junk")
     out = tmp_path / "deep" / "er" / "run"  # parents created
     code, cap = track(["--images", str(src), "--rate-hz", "2", "--out", str(out), "--config", fast_cfg,
-                       "--weights", detector_weights], capsys)
+                       "--weights", detector_weights, "--camera", side_camera], capsys)
     assert code == 0, cap.err
     with np.load(out / "det.npz") as z:
         assert z["key"].tolist() == names
@@ -110,7 +123,7 @@ def test_twelve_bit_data_in_16_bit_pngs_is_detected_and_scaled(tmp_path):
     np.testing.assert_array_equal(first, np.round(raw * 255.0 / 16383).astype(np.uint8))
 
 
-def test_flags_that_do_not_apply_and_inputs_that_make_no_sense(tmp_path, fast_cfg, capsys):
+def test_flags_that_do_not_apply_and_inputs_that_make_no_sense(tmp_path, fast_cfg, side_camera, capsys):
     import cv2
 
     src = tmp_path / "few"
@@ -141,8 +154,12 @@ def test_flags_that_do_not_apply_and_inputs_that_make_no_sense(tmp_path, fast_cf
     assert "cx = 5000.0" in one_line_error(["--images", str(src), "--rate-hz", "1", "--camera", str(cam)], capsys, never)
     cam.write_text(f"fx = 240.0\nfy = 1200.0\ncx = 64.0\ncy = 64.0\nwidth = {SIDE}\nheight = {SIDE}\n")
     assert "fy = 1200.0" in one_line_error(["--images", str(src), "--rate-hz", "1", "--camera", str(cam)], capsys, never)
+    # frames of another size than the MJCF camera's and no camera: refused, the numbers for resized frames given
+    # (a crop read with the default's field of view was tracked 21 % off in range, claimed)
+    err = one_line_error(["--images", str(src), "--rate-hz", "1", "--config", fast_cfg], capsys, never)
+    assert f"frames of {SIDE} x {SIDE} px" in err and "--camera" in err and f"width = {SIDE}" in err
     # fewer frames than the cold start needs (the default tracker.acquire.frames = 20): the minimum is named
-    err = one_line_error(["--images", str(src), "--rate-hz", "1"], capsys, never)
+    err = one_line_error(["--images", str(src), "--rate-hz", "1", "--camera", side_camera], capsys, never)
     assert "4 frame(s)" in err and "at least 20" in err
     # a config of the tracker's flat layout (before its sections): the key and its new home, in one line
     flat = tmp_path / "flat.toml"
@@ -185,6 +202,7 @@ def digest(folder):
 
 
 def test_an_interrupt_leaves_the_earlier_outputs_and_a_finished_run_removes_stale_ones(tmp_path, fast_cfg,
+                                                                                       side_camera,
                                                                                        detector_weights):
     """A finished run into a folder that held an earlier scored run's errors.png removes it; SIGINT during a
     second run (a subprocess) leaves no partial file: the folder holds the first run's files, byte for byte."""
@@ -195,7 +213,7 @@ def test_an_interrupt_leaves_the_earlier_outputs_and_a_finished_run_removes_stal
     (out / "errors.png").write_bytes(b"an earlier run's plot")
     (out / "notes.txt").write_text("the user's own file")
     assert main(["track", "--images", str(src), "--rate-hz", "1", "--out", str(out), "--config", fast_cfg,
-                 "--weights", detector_weights, "--quiet"]) == 0
+                 "--weights", detector_weights, "--camera", side_camera, "--quiet"]) == 0
     before = digest(out)
     assert "errors.png" not in before and "notes.txt" in before and "recording.rrd" in before
     # the interrupted run: ten times the frames, so that it is still running when the signal comes (150 frames
@@ -203,7 +221,8 @@ def test_an_interrupt_leaves_the_earlier_outputs_and_a_finished_run_removes_stal
     long_src = tmp_path / "long"
     noise_frames(long_src, [f"f_{i}.png" for i in range(1500)], seed=2)
     p = subprocess.Popen([sys.executable, "-m", "envisat_pose.app.cli", "track", "--images", str(long_src), "--rate-hz",
-                          "1", "--out", str(out), "--config", fast_cfg, "--weights", detector_weights, "--quiet"],
+                          "1", "--out", str(out), "--config", fast_cfg, "--weights", detector_weights, "--camera",
+                          side_camera, "--quiet"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          # Ctrl-C as a terminal delivers it: a test run started in the background of a
                          # non-interactive shell inherits SIGINT ignored, and Python then keeps it ignored
@@ -221,7 +240,7 @@ def test_an_interrupt_leaves_the_earlier_outputs_and_a_finished_run_removes_stal
     assert digest(out) == before, "an interrupted run must leave the earlier outputs as they were"
 
 
-def test_a_run_with_nothing_tracked_says_so(tmp_path, fast_cfg, detector_weights, capsys):
+def test_a_run_with_nothing_tracked_says_so(tmp_path, fast_cfg, side_camera, detector_weights, capsys):
     """Noise frames: the tracker never leaves acquisition. est.npz rows are status 0 with NaN (no estimate),
     the legend is stored in est.npz, det.npz and summary.json, and the summary says nothing was tracked (no
     't = None s', no 'mean NIS 0.00')."""
@@ -232,7 +251,7 @@ def test_a_run_with_nothing_tracked_says_so(tmp_path, fast_cfg, detector_weights
     noise_frames(src, [f"f{i}.png" for i in range(5)])
     out = tmp_path / "run"
     code, cap = track(["--images", str(src), "--rate-hz", "4", "--out", str(out), "--config", fast_cfg,
-                       "--weights", detector_weights], capsys)
+                       "--weights", detector_weights, "--camera", side_camera], capsys)
     assert code == 0
     assert "nothing tracked" in cap.out and "None" not in cap.out and "NIS 0.00" not in cap.out, cap.out
     assert "8-bit frames" in cap.out
@@ -248,5 +267,11 @@ def test_a_run_with_nothing_tracked_says_so(tmp_path, fast_cfg, detector_weights
     summary = json.loads((out / "summary.json").read_text())
     assert summary["tracked"] is False and summary["first_tracking_s"] is None
     assert summary["mean_nis_per_dof"] is None and summary["status_legend"] == legend()
+    from envisat_pose.geometry import load_camera
+
+    f_px = load_camera().f_px * SIDE / load_camera().height_px  # the camera file's, from the MJCF's, here
+    cam = summary["camera"]
+    assert cam["file"] == side_camera and cam["default"] is False and cam["undistorted"] is False
+    assert cam["f_px"] == pytest.approx(f_px, rel=1e-12) and (cam["width_px"], cam["height_px"]) == (SIDE, SIDE)
     # the real-time factor: the frames span 5 / 4 Hz = 1.25 s of camera time (one period included)
     assert summary["real_time_factor"] == pytest.approx(1.25 / summary["wall_s"], rel=1e-6)

@@ -20,9 +20,12 @@ from envisat_pose.pipelines.tracking.tracker_config import (
 )
 from envisat_pose.state import MRP, POS, RATE, error_magnitudes
 
+CAM = load_camera()
+
 
 def frame_image(k: int) -> np.ndarray:
-    img = np.zeros((4, 4), np.uint8)
+    """A frame of the camera's size carrying its index in its first two pixels (the scripted detectors read it)."""
+    img = np.zeros((CAM.height_px, CAM.width_px), np.uint8)
     img[0, 0], img[0, 1] = k // 256, k % 256
     return img
 
@@ -598,6 +601,29 @@ def test_frame_times_must_increase(truth_600):
     tracker.step(0.0, frame_image(0))
     with pytest.raises(ValueError, match="increase"):
         tracker.step(0.0, frame_image(1))
+    with pytest.raises(ValueError, match="finite"):
+        tracker.step(float("nan"), frame_image(1))
+    tracker.step(1.0, frame_image(1))  # a refused step changed nothing
+
+
+def test_a_frame_not_of_the_cameras_size_is_refused(truth_600):
+    """A frame resized or cropped from the camera's (800 x 800 for a 1024 x 1024 camera) read with that camera gives
+    a pose wrong by the focal lengths' ratio and consistent (a helper's run claimed tracking 14.8 m off): refused,
+    as are frames that are not uint8 gray; a camera asked for at a size that is none is refused when built."""
+    from envisat_pose.config import ConfigError
+    from envisat_pose.pipelines.tracking.build import tracker_camera
+
+    tracker = Tracker(load_camera(), NoisyTruthDetector(truth_600), chaser_lookup(truth_600))
+    for bad in (np.zeros((800, 800), np.uint8), np.zeros((CAM.height_px, CAM.width_px, 3), np.uint8),
+                np.zeros((CAM.height_px, CAM.width_px), np.uint16), [[0]]):
+        with pytest.raises(ValueError, match="camera's size"):
+            tracker.step(0.0, bad)
+    assert tracker.t_last is None
+    small = tracker_camera(size_px=(800, 600))
+    assert (small.width_px, small.height_px) == (800, 600) and small.f_px == pytest.approx(CAM.f_px * 600 / 1024)
+    for size in ((0, 10), (800,), (800.5, 600), 800, (True, 600)):
+        with pytest.raises(ConfigError, match="size_px"):
+            tracker_camera(size_px=size)
 
 
 def test_a_failed_cold_start_fit_keeps_acquiring(truth_600, monkeypatch):

@@ -45,7 +45,9 @@ def hull(tmp_path_factory):
 
 
 def frame_image(k: int) -> np.ndarray:
-    img = np.zeros((4, 4), np.uint8)
+    """A frame of the camera's size carrying its index in its first two pixels (the scripted detector reads it)."""
+    cam = load_camera()
+    img = np.zeros((cam.height_px, cam.width_px), np.uint8)
     img[0, 0], img[0, 1] = k // 256, k % 256
     return img
 
