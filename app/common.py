@@ -104,9 +104,9 @@ def add_frame_inputs(p: argparse.ArgumentParser) -> None:
     p.add_argument("--images", required=True, metavar="SRC", help="generate folder, image folder or video file")
     p.add_argument("--rate-hz", type=float, help="frame rate of an image folder or a video: frame k at k / R s")
     p.add_argument("--timestamps", metavar="FILE.csv", help="frame times of an image folder (columns file,t_s)")
-    p.add_argument("--bit-depth", type=int, metavar="BITS", help="bits of the data in 16-bit image files: 10, 12, "
-                   "14 or 16 (default: the smallest that holds the sequence's maximum, reported)")
+    p.add_argument("--bit-depth", type=int, metavar="BITS", help="bits of the data in 16-bit image files: 8, 10, "
+                   "12, 14 or 16 (default: the smallest of 10-16 that holds the sequence's maximum, reported)")
     p.add_argument("--camera", metavar="FILE.toml", help="intrinsics fx, fy, cx, cy (px), width, height, optional "
-                   "distortion (default: the MJCF's chaser_cam at the frames' size)")
+                   "distortion (default: the MJCF's chaser_cam, 1024 x 1024 px; a generate folder's at its size)")
     p.add_argument("--scenario", help="where the chaser's orbit and the target's dynamics come from (default: a "
                    "generate folder's own, else 'default')")

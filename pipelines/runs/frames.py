@@ -259,6 +259,9 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
     its manifest: a damaged one is refused, or with skip_damaged left out (source.skipped names it)."""
     if bit_depth is not None and bit_depth not in BIT_DEPTHS:
         raise InputError(f"bit_depth {bit_depth}: expected one of {', '.join(map(str, BIT_DEPTHS))}")
+    rate_hz = 0.0 if rate_hz is None else float(rate_hz)
+    if rate_hz and not (np.isfinite(rate_hz) and rate_hz > 0):
+        raise InputError(f"rate_hz {rate_hz}: expected a positive, finite frame rate, Hz")
     if rate_hz and timestamps:
         raise InputError("rate_hz and `timestamps`: give one of them (the frame times)")
     if os.path.isdir(src):
@@ -429,7 +432,8 @@ def scan_source(source: FrameSource, size_px: tuple[int, int] | None = None, min
         else:
             source.bit_depth = detect_bit_depth(top)
             line = (f"16-bit files of {source.bit_depth}-bit data (detected from the maximum {top} over "
-                    f"{T} frames; --bit-depth to set it)")
+                    f"{T} frames; --bit-depth to set it" + ("; every value fits 8 bits: --bit-depth 8 if the files "
+                                                            "hold 8-bit data)" if top < 256 else ")"))
         line += f": scaled to 8 bits by 255/{(1 << source.bit_depth) - 1}"
     if T < min_frames:
         raise InputError(f"src {source.path!r}: {T} frame(s); the tracker's cold start needs at least "

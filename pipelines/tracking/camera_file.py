@@ -6,6 +6,8 @@ read_camera_response. The camera's mount on the chaser is the MJCF's chaser_cam'
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from envisat_pose.camera_response import Response, parse_response
@@ -25,6 +27,8 @@ def camera_from_intrinsics(path: str) -> tuple[PinholeCamera, tuple | None]:
     principal point. InputError naming the file and the key otherwise."""
     import cv2
 
+    if not os.path.isfile(path):
+        raise InputError(f"camera {path!r}: no such file (expected a camera TOML file: fx, fy, cx, cy, width, height)")
     data = load_toml(path)
     vals = {}
     for key in ("fx", "fy", "cx", "cy", "width", "height"):

@@ -104,6 +104,12 @@ def test_twelve_bit_data_in_16_bit_pngs_is_detected_and_scaled(tmp_path):
     source = open_source(str(src), rate_hz=1.0)
     line = scan_source(source)
     assert source.bit_depth == 12 and "12-bit" in line and "detected" in line and "4095" in line
+    assert "fits 8 bits" not in line
+    # 8-bit values in 16-bit files: read as 10-bit (a dim 10-bit sequence looks the same), the 8-bit reading named
+    eight = tmp_path / "eight"
+    noise_frames(eight, [f"f{i:02d}.png" for i in range(4)], dtype=np.uint16, scale=1)
+    line = scan_source(open_source(str(eight), rate_hz=1.0))
+    assert "10-bit" in line and "--bit-depth 8 if the files hold 8-bit data" in line
     for (i, img), want in zip(source.frames(), imgs):
         assert img.dtype == np.uint8 and np.abs(img.astype(int) - want).max() <= 1
     # --bit-depth given: 14-bit data of the same frames is read at 14 bits; data over the depth names the file
@@ -158,6 +164,12 @@ def test_flags_that_do_not_apply_and_inputs_that_make_no_sense(tmp_path, fast_cf
     # (a crop read with the default's field of view was tracked 21 % off in range, claimed)
     err = one_line_error(["--images", str(src), "--rate-hz", "1", "--config", fast_cfg], capsys, never)
     assert f"frames of {SIDE} x {SIDE} px" in err and "--camera" in err and f"width = {SIDE}" in err
+    # a frame rate that is none, a camera file that is not there: the flag named
+    for rate in ("-1", "nan", "inf"):
+        err = one_line_error(["--images", str(src), "--rate-hz", rate], capsys, never)
+        assert err.startswith("envisat track: error: --rate-hz") and "positive, finite" in err, err
+    err = one_line_error(["--images", str(src), "--rate-hz", "1", "--camera", str(tmp_path / "no.toml")], capsys, never)
+    assert "--camera" in err and "no such file" in err
     # fewer frames than the cold start needs (the default tracker.acquire.frames = 20): the minimum is named
     err = one_line_error(["--images", str(src), "--rate-hz", "1", "--camera", side_camera], capsys, never)
     assert "4 frame(s)" in err and "at least 20" in err
