@@ -35,10 +35,10 @@ def atomic_path(path: str, suffix: str = ""):
 STAGE_PREFIX = ".tmp-stage-"  # staged_folder's folder inside the destination (what a killed job leaves behind)
 
 
-def stage_prefix() -> str:
-    """The name's start of a staging folder this process makes: STAGE_PREFIX, its pid and '-' (so a later job
-    knows a killed job's folder: sweep_stale_stages)."""
-    return f"{STAGE_PREFIX}{os.getpid()}-"
+def stage_prefix(prefix: str = STAGE_PREFIX) -> str:
+    """The name's start of a staging folder this process makes: prefix, its pid and '-' (so a later job knows a
+    killed job's folder: sweep_stale_stages)."""
+    return f"{prefix}{os.getpid()}-"
 
 
 def _alive(pid: int) -> bool:
@@ -51,17 +51,17 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def sweep_stale_stages(out_dir: str) -> list[str]:
+def sweep_stale_stages(out_dir: str, prefix: str = STAGE_PREFIX) -> list[str]:
     """Remove the staging folders in out_dir that a job killed mid-write left (SIGKILL, a power cut: no clean-up
-    ran): those named by stage_prefix whose process is gone; a running job's, and any other name, stay. Returns
-    the names removed."""
+    ran): those named by stage_prefix(prefix) whose process is gone; a running job's, and any other name, stay.
+    Returns the names removed."""
     import shutil
 
     gone = []
     with contextlib.suppress(FileNotFoundError, NotADirectoryError):
         for name in os.listdir(out_dir):
-            pid = name.removeprefix(STAGE_PREFIX).split("-", 1)[0]
-            if name.startswith(STAGE_PREFIX) and pid.isdigit() and not _alive(int(pid)) and \
+            pid = name.removeprefix(prefix).split("-", 1)[0]
+            if name.startswith(prefix) and pid.isdigit() and not _alive(int(pid)) and \
                     os.path.isdir(os.path.join(out_dir, name)):
                 shutil.rmtree(os.path.join(out_dir, name), ignore_errors=True)
                 gone.append(name)

@@ -26,6 +26,7 @@ from envisat_pose.config import Config, InputError, check
 from envisat_pose.datagen import export_formats as fx
 from envisat_pose.datagen.generate_config import config_from_json
 from envisat_pose.geometry import load_camera
+from envisat_pose.io import stage_prefix, sweep_stale_stages
 from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pipelines.datasets import export_layouts as lay
 from envisat_pose.pipelines.datasets.export_readme import readme_text
@@ -185,7 +186,9 @@ def _make_stage(out_dir: str) -> tuple[str, list[str]]:
         here = os.path.dirname(here)
     try:
         os.makedirs(parent, exist_ok=True)
-        stage = tempfile.mkdtemp(prefix=STAGE_PREFIX + os.path.basename(os.path.abspath(out_dir)) + "-", dir=parent)
+        sweep_stale_stages(parent, STAGE_PREFIX)  # a killed export's (SIGKILL: no clean-up ran)
+        stage = tempfile.mkdtemp(prefix=stage_prefix(STAGE_PREFIX) + os.path.basename(os.path.abspath(out_dir)) + "-",
+                                 dir=parent)
     except OSError as err:
         raise InputError(f"out_dir {out_dir!r}: cannot write there ({err.strerror or err})") from None
     return stage, made

@@ -42,3 +42,18 @@ def test_an_error_leaves_the_earlier_outputs(tmp_path):
                 fh.write("half")
             raise RuntimeError("killed")
     assert os.listdir(out) == ["summary.json"] and (out / "summary.json").read_text() == "earlier"
+
+
+def test_a_killed_exports_stage_beside_its_folder_is_swept(tmp_path):
+    """dataset export stages its folder beside out_dir (.tmp-export-PID-NAME-...): a killed export's is swept by
+    the next export into that parent, a running one's kept."""
+    from envisat_pose.pipelines.datasets.export import STAGE_PREFIX as EXPORT_PREFIX
+    from envisat_pose.pipelines.datasets.export import _make_stage
+
+    killed = tmp_path / f"{EXPORT_PREFIX}{_dead_pid()}-coco-abc"
+    running = tmp_path / f"{stage_prefix(EXPORT_PREFIX)}coco-xyz"
+    for folder in (killed, running):
+        (folder / "images").mkdir(parents=True)
+    stage, made = _make_stage(str(tmp_path / "coco"))
+    assert made == [] and os.path.basename(stage).startswith(stage_prefix(EXPORT_PREFIX) + "coco-")
+    assert sorted(os.listdir(tmp_path)) == sorted([running.name, os.path.basename(stage)])
