@@ -22,6 +22,9 @@ from envisat_pose.target import DEFAULT_TARGET, load_target
 EARTH_RADIUS_M = 6378137.0  # WGS-84 equatorial radius, used only to reject orbits inside the Earth
 MIN_PHYSICS_DT_S = 1e-4  # s: RK4 at 0.05 s is already exact to 1e-8 m over an orbit (reference sheet)
 MAX_PHYSICS_STEPS = 50_000_000  # RK4 steps per simulation: ~100k steps/s, so at most ~10 minutes
+# the most a body may turn in one RK4 step of the truth: at 0.05 rad the torque-free energy and momentum hold to
+# ~1e-8 over minutes; a 1 s step of a tumble at 0.79 rad/s (8 s period) drifted the energy 0.27 % in 120 s
+MAX_TURN_PER_PHYSICS_STEP_RAD = 0.05
 
 
 @dataclass(frozen=True)
@@ -73,7 +76,10 @@ class TargetConfig(Config):
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
         check(self.spin_period_s > 0, f"{p}spin_period_s", self.spin_period_s, "a positive period in seconds")
-        check(np.linalg.norm(self.spin_axis_T) > 0, f"{p}spin_axis_T", list(self.spin_axis_T), "a non-zero vector")
+        with np.errstate(over="ignore"):
+            norm = float(np.linalg.norm(np.asarray(self.spin_axis_T, dtype=float)))
+        check(np.isfinite(norm) and norm > 0, f"{p}spin_axis_T", list(self.spin_axis_T),
+              "a non-zero vector of finite length")
 
         load_target(self.file, f"{p}file")  # a bad target file: one line before any work
         if self.p0_mrp is not None:
@@ -135,8 +141,14 @@ class ScenarioConfig(Config):
               "a non-negative distance in m")
         check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed")
 
-        keypoints = load_target(self.target.file, f"{p}target.file").keypoints_T_m
-        self.relative.check_outside(float(np.linalg.norm(keypoints, axis=1).max()), f"{p}relative")
+        target = load_target(self.target.file, f"{p}target.file")
+        self.relative.check_outside(float(np.linalg.norm(target.keypoints_T_m, axis=1).max()), f"{p}relative")
+        w_max = max_body_rate_rad_s(self.target.w0_T_rad_s, target.inertia_T_kg_m2)
+        check(self.physics_dt_s * w_max <= MAX_TURN_PER_PHYSICS_STEP_RAD, f"{p}max_physics_dt_s",
+              self.max_physics_dt_s, f"a physics step in which the tumble turns at most "
+              f"{MAX_TURN_PER_PHYSICS_STEP_RAD:g} rad (RK4 accuracy): at most "
+              f"{MAX_TURN_PER_PHYSICS_STEP_RAD / w_max:.3g} s for a body rate of up to {w_max:.3g} rad/s")
+        check_start_in_orbit(self.orbit, self.relative, f"{p}relative")
 
     @property
     def n_out(self) -> int:
@@ -151,6 +163,43 @@ class ScenarioConfig(Config):
     @property
     def substeps(self) -> int:
         return max(1, math.ceil(self.dt_s / self.max_physics_dt_s - 1e-9))
+
+
+def max_body_rate_rad_s(w0_T_rad_s: np.ndarray, J_T_kg_m2: np.ndarray) -> float:
+    """An upper bound on |w| over a torque-free tumble starting at w0, rad/s: in principal axes, x_i = w_i^2 >= 0
+    keep sum J_i x_i (twice the energy) and sum J_i^2 x_i (|H|^2), so |w|^2 = sum x_i is at most the best vertex
+    of that linear program (at most two x_i non-zero); w0's own |w| where the moments are equal."""
+    J, axes = np.linalg.eigh(0.5 * (J_T_kg_m2 + J_T_kg_m2.T))
+    x0 = np.square(axes.T @ np.asarray(w0_T_rad_s, dtype=float))
+    energy, momentum = float(J @ x0), float(np.square(J) @ x0)
+    best = float(x0.sum())
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        A = np.array([[J[i], J[j]], [J[i] ** 2, J[j] ** 2]])
+        if abs(np.linalg.det(A)) <= 1e-12 * J[j] ** 3:
+            continue
+        xi, xj = np.linalg.solve(A, [energy, momentum])
+        if xi >= -1e-12 * best and xj >= -1e-12 * best:
+            best = max(best, xi + xj)
+    return math.sqrt(best)
+
+
+def check_start_in_orbit(orbit: OrbitConfig, relative: RelativeConfig, field_prefix: str) -> None:
+    """ConfigError unless the target starts above the Earth's surface and on a closed orbit: its position r_c +
+    rho0 and inertial velocity v_c + rhodot0 + w x rho0 in C (x radial out, y along-track, z the orbit normal;
+    w = thetadot z), from the chaser's state at the true anomaly nu0."""
+    nu = math.radians(orbit.nu0_deg)
+    slr_m = orbit.a_m * (1.0 - orbit.e ** 2)
+    r_c = slr_m / (1.0 + orbit.e * math.cos(nu))
+    h = math.sqrt(orbit.mu_m3_s2 * slr_m)
+    rho, rhodot = np.asarray(relative.rho0_C_m, float), np.asarray(relative.rhodot0_C_m_s, float)
+    r_t = np.array([r_c, 0.0, 0.0]) + rho
+    v_t = np.array([orbit.mu_m3_s2 / h * orbit.e * math.sin(nu), h / r_c, 0.0]) + rhodot \
+        + np.cross([0.0, 0.0, h / r_c ** 2], rho)
+    check(np.linalg.norm(r_t) > EARTH_RADIUS_M, f"{field_prefix}.rho0_C_m", list(relative.rho0_C_m),
+          f"a start above the Earth's surface (the target {np.linalg.norm(r_t):.0f} m from its centre)")
+    energy = 0.5 * float(v_t @ v_t) - orbit.mu_m3_s2 / float(np.linalg.norm(r_t))
+    check(energy < 0.0, f"{field_prefix}.rhodot0_C_m_s", list(relative.rhodot0_C_m_s),
+          f"a start on a closed orbit (the target's inertial speed {np.linalg.norm(v_t):.0f} m/s escapes)")
 
 
 @dataclass(frozen=True)
