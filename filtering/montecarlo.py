@@ -83,7 +83,7 @@ def filter_stride(t_s: np.ndarray, rate_hz: float) -> int:
     dt_truth = float(t_s[1] - t_s[0]) if len(t_s) > 1 else 1.0 / rate_hz
     k = (1.0 / rate_hz) / dt_truth
     if abs(k - round(k)) > 1e-6 or round(k) < 1:
-        raise ValueError(f"the filter period 1/rate_hz = {1.0 / rate_hz:g} s is not a multiple of the truth's "
+        raise ValueError(f"a rate whose period 1/rate_hz = {1.0 / rate_hz:g} s is a whole multiple of the truth's "
                          f"sample step {dt_truth:g} s")
     return int(round(k))
 

@@ -196,11 +196,7 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     target = truth_target(truth.config, "the truth")
     check_truth_keypoints(truth, target, "the truth")
 
-    try:
-        stride = filter_stride(truth.t_s, cfg.measurement.rate_hz)
-    except ValueError as err:
-        raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None
-    sel = slice(0, None, stride)
+    sel = slice(0, None, truth_stride(truth, cfg))
     t_s, x_true = truth.t_s[sel], truth.x[sel]
     chaser = chaser_states(truth.chaser_r_m, truth.chaser_rdot_m_s, truth.chaser_theta_rad,
                            truth.chaser_thetadot_rad_s)[sel]
@@ -229,6 +225,15 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     }
 
 
+def truth_stride(truth, cfg: EstimateConfig) -> int:
+    """The truth samples a filter step spans (filtering.montecarlo.filter_stride); ConfigError naming
+    measurement.rate_hz where its period is not a whole number of them."""
+    try:
+        return filter_stride(truth.t_s, cfg.measurement.rate_hz)
+    except ValueError as err:
+        raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None
+
+
 def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, scenario: str | None = None,
                  duration_s: float | None = None, plot: bool = False, rrd: str | None = None,
                  progress: bool = False) -> dict:
@@ -250,8 +255,12 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     if len(truth.t_s) < 2:
         raise InputError("the truth trajectory has fewer than 2 samples")
     cfg.measurement.check_keypoints(int(truth.corners_C_m.shape[1]))  # max_markers <= the target's K
+    truth_stride(truth, cfg)  # a rate off the truth's grid: refused before any folder is made
     make_out_file_dirs({out: "out", cfg_path: "out", **({rrd: "rrd"} if rrd else {})})
     arrays = estimate(truth, cfg, progress=progress)
+    if not np.any(arrays["n_meas"]):
+        warnings.warn("no step of any run had a measurement (the target never in view, or every keypoint "
+                      "outside the measurement's rules): the errors and NEES are the prior's, propagated")
     config_json = json.dumps({"estimate": to_dict(cfg), "truth_source": source, "truth_config": truth.config},
                              sort_keys=True)
     est = Estimates(**arrays, config_json=config_json)

@@ -115,6 +115,33 @@ def truth_file(tmp_path_factory):
     return path
 
 
+def test_a_rate_off_the_truths_grid_makes_no_folder(truth_file, tmp_path, capsys):
+    """A truth file at 1 s and a 0.3 Hz filter: refused in one line before anything is made (the output's folder
+    was once created first, then left empty)."""
+    out = tmp_path / "new" / "est.npz"
+    assert main(["estimate", "--truth", str(truth_file), "--rate-hz", "0.3", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "whole multiple of the truth's sample step 1 s" in err
+    assert not (tmp_path / "new").exists()
+
+
+def test_runs_that_never_measure_are_said_to(tmp_path, capsys):
+    """An R-bar start (the target 50 m above the chaser, out of the camera's view along the V-bar) measured in
+    pixels: no step of any run has a measurement, and the verb warns that its figures are the prior's."""
+    from envisat_pose.config import from_dict
+    from envisat_pose.datagen.scenario import ScenarioConfig
+    from envisat_pose.datagen.truth import simulate_truth
+
+    truth = tmp_path / "rbar.npz"
+    simulate_truth(from_dict(ScenarioConfig, {"duration_s": 20.0, "relative": {"rho0_C_m": [50.0, 0.0, 0.0]}}
+                             )).save(str(truth))
+    out = tmp_path / "est.npz"
+    assert main(["estimate", "--truth", str(truth), "--measurements", "pixels", "--runs", "2", "--out", str(out),
+                 "--quiet"]) == 0
+    assert not _load(out)["n_meas"].any()
+    assert "warning: no step of any run had a measurement" in capsys.readouterr().err
+
+
 def test_estimate_from_a_truth_file_does_not_import_mujoco(truth_file, tmp_path):
     """`estimate --truth` reads the core's contract: neither MuJoCo nor the simulator (datagen.sim, datagen.truth)
     is imported. (The parser of `envisat simulate` imports datagen.scenario, which is plain Python.)"""
