@@ -11,7 +11,7 @@ No prior and no truth: the tracker buffers the first lit frames with enough name
    (hypothesis 1). The detector's own half-turn probability of each frame is kept as the appearance cue.
 3. `batch_fit`: Gauss-Newton with Levenberg-Marquardt damping on the state at the window's last frame: the
    filter's own dynamics (filtering.dynamics.propagate, RK4, torque-free plus the relative-orbit gravity) carry a
-   candidate state back over the window (sub-steps of at most 1 s), the pixel model (filtering.measurements)
+   candidate state back over the window (RK4 sub-steps of at most 1 s, shorter for a fast tumble), the pixel model (filtering.measurements)
    predicts every frame's corners, residuals are whitened by the detector's covariance (times the error model's
    inflation for frame-to-frame correlation), outliers are down-weighted (Huber) and gated. The fit's covariance
    is (J^T W J)^-1, scaled up by the reduced chi-square when the residuals are larger than the covariance says.
@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from envisat_pose.attitude import dcm_to_mrp, mrp_shadow, mrp_to_dcm
-from envisat_pose.filtering.dynamics import propagate
+from envisat_pose.filtering.dynamics import propagate, rk4_step_s
 from envisat_pose.filtering.measurements import measure
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.pipelines.tracking.namings import BOX_NAMES, Namings, box_namings, renamed_state
@@ -208,16 +208,17 @@ def initial_guess(frames: list[FramePose]) -> np.ndarray:
 
 def _propagate_back(x_end: np.ndarray, t_end: float, times: np.ndarray, chaser_at, dyn: dict) -> np.ndarray:
     """States at `times` (N,) (sorted, <= t_end) from x_end (B, 12) at t_end, through the filter's dynamics in
-    sub-steps of at most 1 s. Returns (B, N, 12)."""
+    RK4 sub-steps of at most max_step_s, shorter for a fast tumble (dynamics.rk4_step_s). Returns (B, N, 12)."""
 
     B = x_end.shape[0]
     out = np.empty((B, len(times), N_STATE))
     x, t = x_end.copy(), float(t_end)
+    step_s = rk4_step_s(dyn["max_step_s"], float(np.max(np.linalg.norm(x_end[:, RATE], axis=1), initial=0.0)))
     for i in range(len(times) - 1, -1, -1):
         target = float(times[i])
         while t - target > 1e-9:
-            h = max(target - t, -dyn["max_step_s"])
-            x = propagate(x, chaser_at(t), h, dyn["J_T"], dyn["mu_m3_s2"], dyn["max_step_s"], dyn["gravity_gradient"])
+            h = max(target - t, -step_s)
+            x = propagate(x, chaser_at(t), h, dyn["J_T"], dyn["mu_m3_s2"], step_s, dyn["gravity_gradient"])
             x[:, MRP] = mrp_shadow(x[:, MRP])
             t += h
         out[:, i] = x
