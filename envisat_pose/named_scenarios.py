@@ -5,7 +5,8 @@ A scenario file holds a one-line `description`, the truth's keys (tables orbit, 
 dt_s, max_physics_dt_s, keepout_margin_m: datagen.scenario.ScenarioConfig validates their contents) and optional
 tables for the jobs that use the truth: [measurement] and [filter] (the defaults of `estimate` and `montecarlo`
 under the user's --config and flags), [sweep] (the filter rates of a rate sweep) and [eclipse] (the sun direction
-from which the Earth's shadow is computed). `base = "NAME"` starts from another scenario's tables.
+from which the Earth's shadow is computed). `base = "NAME"` starts from another scenario's tables. A user's own scenario is a file of the same layout, named
+by its path (ending in .toml) wherever a scenario name is taken.
 Every problem is one ConfigError line naming the file, the key, the value and what was expected.
 """
 
@@ -14,6 +15,7 @@ from __future__ import annotations
 import copy
 import functools
 import importlib.resources
+import os
 import tomllib
 
 from envisat_pose.config import ConfigError, check, deep_update
@@ -44,9 +46,29 @@ def _parsed(text: str) -> dict:
     return tomllib.loads(text)
 
 
+def is_file(name: str) -> bool:
+    """Whether `name` is a user's scenario file (a path ending in .toml) rather than a shipped name."""
+    return isinstance(name, str) and name.endswith(".toml")
+
+
 def check_name(name: str) -> None:
-    """ConfigError listing the known names unless `name` is one of them."""
-    check(isinstance(name, str) and name in _files(), "scenario", name, "one of " + ", ".join(names()))
+    """ConfigError listing the known names unless `name` is one of them or a scenario file that exists."""
+    if is_file(name):
+        check(os.path.isfile(name), "scenario", name, "a scenario file that exists (a TOML file of the shipped "
+              "scenarios' layout: `envisat scenarios --show default`), or one of " + ", ".join(names()))
+        return
+    check(isinstance(name, str) and name in _files(), "scenario", name,
+          "one of " + ", ".join(names()) + ", or a scenario file NAME.toml")
+
+
+def _text(name: str) -> str:
+    if not is_file(name):
+        return _files()[name]
+    try:
+        with open(name, encoding="utf-8") as fh:
+            return fh.read()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError("scenario", name, f"a readable UTF-8 TOML file ({err})") from None
 
 
 def scenario_tables(name: str) -> dict:
@@ -56,9 +78,9 @@ def scenario_tables(name: str) -> dict:
 
 def _load(name: str, depth: int) -> dict:
     check_name(name)
-    where = f"scenario {name} ({name}.toml)"
+    where = f"scenario {name}" if is_file(name) else f"scenario {name} ({name}.toml)"
     try:
-        data = copy.deepcopy(_parsed(_files()[name]))
+        data = copy.deepcopy(_parsed(_text(name)))
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(where, "...", f"valid TOML ({err})") from None
     allowed = ("description", "base") + TRUTH_KEYS + JOB_TABLES

@@ -72,6 +72,31 @@ def test_unknown_names_and_malformed_files_are_one_line(monkeypatch, capsys):
         assert field in str(err.value) and f"{name}.toml" in str(err.value) and "\n" not in str(err.value)
 
 
+def test_a_users_scenario_file_runs_where_a_name_does(tmp_path, capsys):
+    """A scenario file of the shipped layout, named by its path: `base` taken from a shipped scenario, its own
+    orbit and tumble in the campaign's truth, its [measurement] table the campaign's default; a file that is not
+    there, or that misspells a table, is one line naming it."""
+    path = tmp_path / "my_hold.toml"
+    path.write_text('description = "a 60 m hold at 600 km, a 60 s tumble"\nbase = "default"\nduration_s = 60.0\n'
+                    '[orbit]\na_m = 6978137.0\n[target]\nspin_period_s = 60.0\n[relative]\nrho0_C_m = [0.0, 60.0, '
+                    '0.0]\n[measurement]\nsigma_m = 0.05\n')
+    out = tmp_path / "mc"
+    assert main(["montecarlo", "--scenario", str(path), "--runs", "3", "--out", str(out), "--quiet"]) == 0
+    assert json.loads((out / "summary.json").read_text())["scenario"] == str(path)
+    with np.load(out / "truth.npz") as z:
+        truth = json.loads(str(z["config_json"]))
+    assert truth["orbit"]["a_m"] == 6978137.0 and truth["target"]["spin_period_s"] == 60.0
+    assert truth["relative"]["rho0_C_m"] == [0.0, 60.0, 0.0] and truth["orbit"]["i_deg"] == 98.4  # from its base
+    assert "sigma_m = 0.05" in (out / "montecarlo.config.toml").read_text()
+    missing = tmp_path / "nope.toml"
+    assert main(["estimate", "--scenario", str(missing), "--quiet", "--out", str(tmp_path / "e.npz")]) == 2
+    path.write_text('description = "x"\n[measurment]\nkind = "pixels"\n')
+    assert main(["estimate", "--scenario", str(path), "--quiet", "--out", str(tmp_path / "e.npz")]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 2 and "nope.toml" in lines[0] and "exists" in lines[0]
+    assert "measurment" in lines[1] and "my_hold.toml" in lines[1]
+
+
 def test_scenarios_verb_lists_every_name_with_its_description(capsys):
     assert main(["scenarios"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
