@@ -302,8 +302,10 @@ def settled(t_s: np.ndarray, settle_s: float) -> np.ndarray:
 
 def campaign_summary(s: CampaignSums, t_s: np.ndarray, settle_s: float = 0.0) -> dict:
     """Scalars over the settled steps, per block (dicts keyed by BLOCKS): RMSE over run-steps, share of run-steps
-    inside the filter's 3-sigma (block Mahalanobis), and the mean NEES with its 95 % band (which assumes
-    independent steps: errors are correlated in time, so read it as a guide). Plain floats (JSON-ready)."""
+    inside the filter's 3-sigma (block Mahalanobis), and the mean NEES with two 95 % bands: `nees_bounds` as if
+    every run-step were independent (too narrow: errors are correlated in time) and `nees_run_bounds` as if each
+    run gave one sample, chi2(12 R) / R (the wide end: a run's steps are not one draw either); a consistent
+    campaign lies within the second. Plain floats (JSON-ready)."""
     k = settled(t_s, settle_s)
     n_rs = s.n_runs * int(k.sum())
     dof_nis = int(s.nis_dof[k].sum())
@@ -315,6 +317,7 @@ def campaign_summary(s: CampaignSums, t_s: np.ndarray, settle_s: float = 0.0) ->
         "units": dict(zip(BLOCKS, BLOCK_UNITS)),
         "inside_3sigma_share": {b: float(s.inside_block[k, i].sum() / n_rs) for i, b in enumerate(BLOCKS)},
         "nees_mean": float(s.nees[k].sum() / n_rs), "nees_bounds": [float(lo), float(hi)],
+        "nees_run_bounds": [float(b) for b in chi2_mean_bounds(N_STATE * s.n_runs, s.n_runs)],
         "nis_mean": float(s.nis[k].sum() / max(int(s.nis_runs[k].sum()), 1)),
         "nis_mean_per_dof": float(s.nis[k].sum() / dof_nis) if dof_nis else float("nan"),
         "nis_bounds": [float(nis_lo), float(nis_hi)],

@@ -177,7 +177,11 @@ def campaign_rows(c: dict) -> list[tuple[str, str]]:
     for b in BLOCKS:
         rows.append((f"inside 3-sigma {b}", f"{_fmt(s['inside_3sigma_share'].get(b), 100.0, 4)} %"))
     lo, hi = s.get("nees_bounds", [None, None])
-    rows += [("mean NEES (12 dof)", f"{_fmt(s.get('nees_mean'))} (95 % band {_fmt(lo)} .. {_fmt(hi)})"),
+    band = f"95 % band {_fmt(lo)} .. {_fmt(hi)}"
+    if "nees_run_bounds" in s:
+        band += f" with independent steps, {_fmt(s['nees_run_bounds'][0])} .. {_fmt(s['nees_run_bounds'][1])} " \
+                "with one sample a run"
+    rows += [("mean NEES (12 dof)", f"{_fmt(s.get('nees_mean'))} ({band})"),
              ("NIS per dof", _fmt(s.get("nis_mean_per_dof"))),
              ("diverged runs", f"{s.get('n_diverged')} / {s.get('n_runs')}" + (
                  f" ({len(s['nis_alarm_alone_runs'])} on the NIS monitor alone, their errors within the NEES rule)"

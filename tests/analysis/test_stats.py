@@ -242,3 +242,10 @@ def test_campaign_summary_counts_run_steps_after_the_settle_time():
     assert late["rmse"]["position"] == pytest.approx(np.linalg.norm(SCALES[:3]), rel=0.02)
     lo, hi = late["nees_bounds"]
     assert lo < late["nees_mean"] < hi
+    # the band with one sample a run: chi2(12 R) / R's 2.5 and 97.5 % points (scipy), wider than the steps' band
+    from scipy.stats import chi2
+
+    run_lo, run_hi = late["nees_run_bounds"]
+    assert run_lo == pytest.approx(chi2.ppf(0.025, 12 * R) / R, rel=1e-9)
+    assert run_hi == pytest.approx(chi2.ppf(0.975, 12 * R) / R, rel=1e-9)
+    assert run_lo < lo < hi < run_hi
