@@ -5,8 +5,8 @@ A scenario file holds a one-line `description`, the truth's keys (tables orbit, 
 dt_s, max_physics_dt_s, keepout_margin_m: datagen.scenario.ScenarioConfig validates their contents) and optional
 tables for the jobs that use the truth: [measurement] and [filter] (the defaults of `estimate` and `montecarlo`
 under the user's --config and flags), [sweep] (the filter rates of a rate sweep) and [eclipse] (the sun direction
-from which the Earth's shadow is computed). `base = "NAME"` starts from another scenario's tables. A user's own scenario is a file of the same layout, named
-by its path (ending in .toml) wherever a scenario name is taken.
+from which the Earth's shadow is computed). `base = "NAME"` starts from another scenario's tables. A user's own
+scenario is a file of the same layout, named by its path (ending in .toml) wherever a scenario name is taken.
 Every problem is one ConfigError line naming the file, the key, the value and what was expected.
 """
 

@@ -361,7 +361,7 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
           command: list[str] | None = None) -> dict:
     """Adapt the detector in cfg.track.weights ("" the shipped) to the frames of `source` (a FrameSource or a path
     open_source opens at cfg.track.rate_hz) and write out_dir (module doc). camera: a PinholeCamera, a camera TOML
-    file or None (the MJCF's chaser_cam at the frames' size), as track_frames; command: the command line, for the
+    file or None (the MJCF's chaser_cam: camera_file.default_camera), as track_frames; command: the command line, for the
     model card. Returns the report: {adopted, reason (None when adopted), scale_note (one line when the edges'
     scale was not adopted: disagreement; else None), before, after (track_figures), rounds
     (per round: labels, fine-tune, calibration), source, timing_s}. InputError (one line) when the first part

@@ -9,7 +9,7 @@ Inputs (pipelines/runs/frames.py: `open_source`), every frame read once before a
   timestamps CSV (columns file,t_s);
 - a video file (OpenCV's reader), with rate_hz or the file's own frame rate.
 The camera (pipelines/tracking/camera_file.py): a TOML file (fx, fy, cx, cy px, width, height, optional OpenCV distortion)
-or the MJCF's chaser_cam at the frames' size. Frames with distortion or non-square pixels are remapped once per
+or the MJCF's chaser_cam (a user's frames of another size than its 1024 px need a camera file). Frames with distortion or non-square pixels are remapped once per
 frame to an ideal pinhole of the same size; the camera's mount on the chaser is the MJCF's.
 The target (`target`, its MJCF file): ENVISAT by default, with its corner detector (the shipped weights unless
 others are given); another target's frames are tracked by its own keypoint detector (`envisat train --target`,
@@ -140,7 +140,7 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
                    remap=None, progress: bool = False) -> tuple:
     """A user's frames made ready for a job over them (track_frames, adapt): the source opened (a path at
     cfg.rate_hz; a generate folder must be of cfg.target: frames.require_source_target), the camera read (a TOML
-    file: its remap too) or the MJCF's at the frames' size, every frame scanned once (frames.scan_source: one size,
+    file: its remap too) or the MJCF's (camera_file.default_camera), every frame scanned once (frames.scan_source: one size,
     decodable, at least the cold start's frames). Returns (cfg, source, camera, remap, pixels); cfg as given
     (complete when built: its weights named)."""
     if isinstance(source, str):
@@ -161,7 +161,8 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     write est.npz, det.npz, track.config.toml, summary.json and the recording (out_dir/recording.rrd, or
     streamed to sink: 'spawn' or 'connect:URL'); with a truth also errors.png and the scores. camera: a
     PinholeCamera (remap: its cv2.remap maps, or None), a camera TOML file (camera_file.camera_from_intrinsics), or
-    None for the MJCF's chaser_cam at the frames' size; cfg: TrackConfig(scenario=NAME, ...) (or
+    None for the MJCF's chaser_cam (camera_file.default_camera: a generated folder's at its size, a user's frames
+    at the camera's own size only, others refused); cfg: TrackConfig(scenario=NAME, ...) (or
     pipelines.jobs.resolve_job("track", ...), the job `envisat track` runs); the Tracker's target is cfg.target's
     (a generate folder of another target refused), its detector cfg.weights' (build.tracker_detector: another
     target's calibrated keypoint detector). Every frame is read once and the detector loaded before any output
