@@ -8,9 +8,10 @@ Inputs (pipelines/runs/frames.py: `open_source`), every frame read once before a
   converted to gray; hidden files ignored) in natural name order, with rate_hz (frame k at k / rate_hz s) or a
   timestamps CSV (columns file,t_s);
 - a video file (OpenCV's reader), with rate_hz or the file's own frame rate.
-The camera (pipelines/tracking/camera_file.py): a TOML file (fx, fy, cx, cy px, width, height, optional OpenCV distortion)
-or the MJCF's chaser_cam (a user's frames of another size than its 1024 px need a camera file). Frames with distortion or non-square pixels are remapped once per
-frame to an ideal pinhole of the same size; the camera's mount on the chaser is the MJCF's.
+The camera (pipelines/tracking/camera_file.py): a TOML file (fx, fy, cx, cy px, width, height, optional OpenCV
+distortion) or the MJCF's chaser_cam (a user's frames of another size than its 1024 px need a camera file).
+Frames with distortion or non-square pixels are remapped once per frame to an ideal pinhole of the same size; the
+camera's mount on the chaser is the MJCF's.
 The target (`target`, its MJCF file): ENVISAT by default, with its corner detector (the shipped weights unless
 others are given); another target's frames are tracked by its own keypoint detector (`envisat train --target`,
 then `envisat calibrate --target`), whose weights must be given (pipelines/tracking/build.tracker_detector).
@@ -140,8 +141,8 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
                    remap=None, progress: bool = False) -> tuple:
     """A user's frames made ready for a job over them (track_frames, adapt): the source opened (a path at
     cfg.rate_hz; a generate folder must be of cfg.target: frames.require_source_target), the camera read (a TOML
-    file: its remap too) or the MJCF's (camera_file.default_camera), every frame scanned once (frames.scan_source: one size,
-    decodable, at least the cold start's frames). Returns (cfg, source, camera, remap, pixels); cfg as given
+    file: its remap too) or the MJCF's (camera_file.default_camera), every frame scanned once
+    (frames.scan_source: one size, decodable, at least the cold start's frames). Returns (cfg, source, camera, remap, pixels); cfg as given
     (complete when built: its weights named)."""
     if isinstance(source, str):
         source = open_source(source, cfg.rate_hz)
