@@ -167,6 +167,16 @@ def rk4_step_s(max_step_s: float, w_max_rad_s: float) -> float:
     return min(float(max_step_s), MAX_TURN_PER_RK4_STEP_RAD / w)
 
 
+def sigma_step_s(max_step_s: float, mean: np.ndarray, cov: np.ndarray, spread: float) -> float:
+    """rk4_step_s at the fastest rate of the sigma points of R runs (mean (R, 12), cov (R, 12, 12)), drawn
+    sqrt(spread) columns of cov's square root from the mean (spread: the UKF's n + lambda): bounded by |w_mean| +
+    sqrt(spread tr P_ww); runs that are not finite left out."""
+    rate = np.sqrt(np.sum(np.square(mean[..., RATE]), axis=-1))
+    bound = rate + np.sqrt(np.maximum(spread * np.trace(cov[..., RATE, RATE], axis1=-2, axis2=-1), 0.0))
+    bound = bound[np.isfinite(bound)]
+    return rk4_step_s(max_step_s, float(bound.max()) if bound.size else 0.0)
+
+
 def propagate(x: np.ndarray, c0: np.ndarray, dt_s: float, J_T: np.ndarray | None = None,
               mu_m3_s2: float = MU_EARTH_M3_S2, max_step_s: float = 1.0, gravity_gradient: bool = False
               ) -> np.ndarray:

@@ -26,13 +26,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from envisat_pose.config import Config, check
-from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, rk4_step_s
+from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, sigma_step_s
 from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
 from envisat_pose.filtering.step_update import measurement_update
 from envisat_pose.filtering.ukf import SigmaWeights, merwe_weights, predict, shadow_switch, state_residual
 from envisat_pose.gates import GATE_PROB, chi2_bound, chi2_gate
 from envisat_pose.geometry import PinholeCamera, load_camera, load_geometry
-from envisat_pose.state import RATE, nees_window_diverged
+from envisat_pose.state import nees_window_diverged
 from envisat_pose.target import Target, VisibilityTable
 
 KERNELS = ("fast", "reference")  # FilterConfig.kernel: filtering/fast.py's kernels, filtering/ukf.py's numpy
@@ -308,7 +308,7 @@ def _predict_step(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[n
     Q = cfg.Q(dt)[None] * np.where(state.starved, cfg.outage_q_scale, 1.0)[:, None, None]
     if cfg.adaptive_q:
         Q = Q + state.Q_adapt * dt
-    step_s = rk4_step_s(cfg.max_rk4_step_s, sigma_rate_bound(state.mean, state.cov, setup.weights))
+    step_s = sigma_step_s(cfg.max_rk4_step_s, state.mean, state.cov, setup.weights.n + setup.weights.lam)
     if cfg.kernel == "fast":
         from envisat_pose.filtering import fast  # numba compiles (or loads its cache) on first use
 
@@ -317,16 +317,6 @@ def _predict_step(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[n
     return predict(state.mean, state.cov, state.chaser, dt, Q, setup.weights, setup.J_T, setup.mu_m3_s2,
                    step_s, setup.gravity_gradient)
 
-
-def sigma_rate_bound(mean: np.ndarray, cov: np.ndarray, w: SigmaWeights) -> float:
-    """An upper bound on the body rate of any sigma point of any run, rad/s: |w_mean| + sqrt((n + lambda) tr
-    P_ww) (a sigma point lies sqrt(n + lambda) columns of P's square root from the mean); runs that are not finite
-    left out (0 where none is)."""
-    rate = np.sqrt(np.sum(np.square(mean[..., RATE]), axis=-1))
-    spread = np.sqrt(np.maximum((w.n + w.lam) * np.trace(cov[..., RATE, RATE], axis1=-2, axis2=-1), 0.0))
-    bound = rate + spread
-    bound = bound[np.isfinite(bound)]
-    return float(bound.max()) if bound.size else 0.0
 
 
 def predict_to(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[np.ndarray, np.ndarray]:
