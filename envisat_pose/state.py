@@ -66,7 +66,8 @@ def error_magnitudes(x_true: np.ndarray, x_hat: np.ndarray) -> dict[str, np.ndar
 def error_summary(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, after_s: float) -> dict:
     """Errors of R runs (R, T, 12) (x_true may broadcast) from after_s on: per block the RMS over runs and
     times after, the largest after, and the RMS over runs at the last time. Units in the keys (m, m/s, deg,
-    deg/s). When no sample lies after after_s the whole run counts."""
+    deg/s). When no sample lies after after_s the whole run counts. Samples without an estimate (x_hat NaN: a
+    tracker acquiring or lost) are left out; a figure none holds is None."""
     t_s = np.asarray(t_s, dtype=float)
     late = t_s >= after_s
     if not late.any():
@@ -74,7 +75,8 @@ def error_summary(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, after_
     out: dict = {"after_s": float(t_s[late][0])}
     for name, e in error_magnitudes(x_true, x_hat).items():
         e = np.atleast_2d(e)
-        out[name] = {"rms_after": float(np.sqrt(np.mean(e[:, late] ** 2))),
-                     "max_after": float(np.max(e[:, late])),
-                     "final": float(np.sqrt(np.mean(e[:, -1] ** 2)))}
+        after, last = e[:, late][np.isfinite(e[:, late])], e[:, -1][np.isfinite(e[:, -1])]
+        out[name] = {"rms_after": float(np.sqrt(np.mean(after ** 2))) if after.size else None,
+                     "max_after": float(np.max(after)) if after.size else None,
+                     "final": float(np.sqrt(np.mean(last ** 2))) if last.size else None}
     return out

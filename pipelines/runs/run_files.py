@@ -90,7 +90,8 @@ def score_run_files(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], pa
     errors = {k: np.stack([e[k] for e in errors]) for k in errors[0]}
     after_s = summary_after_s(t_s)
     first = int(np.argmax(t_s >= after_s))
-    x_late = np.stack([run_rows(d, ["x_hat"], first, T)["x_hat"] for d in run_dirs])
+    late_rows = [run_rows(d, ["x_hat", "status"], first, T) for d in run_dirs]  # no estimate: NaN, as in est.npz
+    x_late = np.stack([no_estimate_nan(c["x_hat"], c["status"]) for c in late_rows])
     x_true_late = x_true[first:] if equivalent is None or not len(equivalent) else \
         nearest_truth(x_true[first:], x_late, equivalent)
     summary = error_summary(t_s[first:], x_true_late, x_late, after_s)

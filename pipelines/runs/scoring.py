@@ -30,7 +30,7 @@ from envisat_pose.attitude import mrp_error_angle_rad
 from envisat_pose.filtering.estimator import nees
 from envisat_pose.pipelines.tracking.namings import renamed_state
 from envisat_pose.state import BLOCKS, MRP, POS, error_magnitudes, error_summary
-from envisat_pose.status import HAS_ESTIMATE, STATUSES, TRACKING
+from envisat_pose.status import HAS_ESTIMATE, STATUSES, TRACKING, has_estimate
 
 # a correct track (the success criterion of pose-acquisition studies): attitude within 5 deg and
 # position within 2 % of the range
@@ -204,8 +204,9 @@ def score_runs(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.nda
     envisat_pose.status), skipped (T,) or (R, T) frames without an image (eclipse), bound (R, T, 4) a PCRLB per
     block (optional). See score_frames."""
     t_s = np.asarray(t_s, dtype=float)
+    claimed = np.where(has_estimate(np.asarray(status))[..., None], x_hat, np.nan)  # what est.npz holds
     return score_frames(t_s, frame_errors(x_true, x_hat, P), status, skipped,
-                        error_summary(t_s, x_true, x_hat, summary_after_s(t_s)), bound)
+                        error_summary(t_s, x_true, claimed, summary_after_s(t_s)), bound)
 
 
 def summary_after_s(t_s: np.ndarray) -> float:

@@ -112,6 +112,12 @@ def test_a_run_that_never_tracks_is_reported_not_dropped():
     only = score_runs(t, x_true[1:], x_hat[1:], P[1:], status[1:])
     assert only["runs_tracked"] == 0 and only["scored"]["frames"] == 0
     assert only["scored"]["mean_nees"] is None and only["scored"]["rmse"]["position"] is None
+    # the second half's error summary reads what est.npz holds: nothing where no frame holds an estimate (it once
+    # scored the placeholder state of acquiring frames: metres and 131 deg for a run that never tracked)
+    assert all(only["errors"][k][f] is None for k in ("position_m", "attitude_deg") for f in ("rms_after", "final"))
+    rows = (t >= t[0] + 0.5 * (t[-1] - t[0])) & (status[0] != ACQUIRING)
+    e0 = np.linalg.norm(x_hat[0][rows][:, :3] - x_true[0][rows][:, :3], axis=1)
+    assert s["errors"]["position_m"]["rms_after"] == pytest.approx(float(np.sqrt(np.mean(e0 ** 2))), rel=1e-9)
 
 
 def test_frames_without_a_claimed_estimate_are_counted_not_scored():
