@@ -426,7 +426,8 @@ def _folder_trainer(cfg: TrainConfig, run_dir: str, opts: TrainOptions, state: d
     model.train()
     end_s, time0 = state["budget_end_s"], float(state["time_s"])
     bar = progress_bar(cfg.steps, state, end_s, time0, opts.progress and rank == 0)
-    hooks = [Budget(end_s) if end_s is not None else None,
+    continuing = saved is not None and saved["train"].get("time_budget_s") == cfg.time_budget_s  # the same budget
+    hooks = [Budget(end_s, resumed=continuing) if end_s is not None else None,
              PreCooldown() if cfg.schedule == "constant_cooldown" else None,
              None if ema is None else MovingAverage(ema, cfg.ema_decay, opts.resume),
              RunFolder(saved, opts.provenance, state["step"]), Progress(bar, end_s is not None),
@@ -483,4 +484,6 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
     stop = trainer.run(source)
     if stop not in (None, "time_budget"):
         raise TrainingInterrupted(state["step"] if trainer.folder_started else 0, run_dir, stop)
+    if stop == "time_budget" and trainer.steps_run == 0:  # resumed with less of its budget left than a step needs
+        return {**trainer.end_line, "stopped_by": "nothing_to_do", "why": "budget_spent"}
     return trainer.end_line

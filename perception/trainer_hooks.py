@@ -178,10 +178,11 @@ class Budget(Hook):
     """The time budget: stop before a step that would leave too little of it (1.5 x the slowest of the last 10
     steps, the last checkpoint's seconds and SHUTDOWN_RESERVE_S) for the final checkpoint. Under DDP every rank
     takes rank 0's clock and reserve (trainer.now_s, before each step): the ranks stop at the same step and
-    follow the same rate. A budget too short for the first step is an InputError."""
+    follow the same rate. A budget too short for the first step is an InputError, but for a run resumed under its
+    own budget (resumed), whose budget is then spent: it stops with nothing trained."""
 
-    def __init__(self, budget_end_s: float):
-        self.budget_end_s = budget_end_s
+    def __init__(self, budget_end_s: float, resumed: bool = False):
+        self.budget_end_s, self.resumed = budget_end_s, resumed
         self.reserve = 0.0  # seconds, set before each step
 
     def reserve_s(self) -> float:
@@ -194,7 +195,7 @@ class Budget(Hook):
         tr.now_s, self.reserve = shared_clock(tr.dist, tr.dev, tr.now_s, self.reserve_s())
         if tr.now_s + self.reserve < self.budget_end_s:
             return None
-        if tr.steps_run == 0:
+        if tr.steps_run == 0 and not self.resumed:
             raise InputError(f"time_budget_s = {tr.cfg.time_budget_s:g}: too short for one step (the first batch "
                              f"came {tr.now_s - tr.time0:.1f} s into it; a step, the checkpoint and the shutdown "
                              f"need ~{self.reserve:.1f} s more): give a longer budget")

@@ -78,6 +78,20 @@ def test_a_budget_too_short_for_one_step_is_refused_and_leaves_nothing(tiny_data
     assert not run.exists()
 
 
+def test_a_resumed_run_whose_budget_is_all_but_spent_has_nothing_to_do(tiny_dataset, tmp_path):
+    """A run resumed under its own budget with less of it left than a step needs: nothing to do, its budget
+    spent (it was once refused as 'time_budget_s = 90: too short for one step', a flag the user never typed); a
+    new budget too short for a step is still refused."""
+    run = tmp_path / "run"
+    first = train(small(2, time_budget_s=40.0), tiny_dataset, str(run), progress=False)
+    assert first["step"] == 2
+    end = train(small(4, time_budget_s=40.0), tiny_dataset, str(run), resume=True, progress=False,
+                clock=SlowClock())
+    assert end["stopped_by"] == "nothing_to_do" and end["why"] == "budget_spent" and end["step"] == 2
+    with pytest.raises(InputError, match="too short for one step"):
+        train(small(4, time_budget_s=41.0), tiny_dataset, str(run), resume=True, progress=False, clock=SlowClock())
+
+
 def test_resume_refuses_another_model_and_other_data_spelling_out_the_difference(tiny_dataset, tmp_path):
     from envisat_pose.pipelines.detector.train import train_detector
 

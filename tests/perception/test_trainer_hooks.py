@@ -56,6 +56,11 @@ def test_the_budget_stops_before_a_step_that_would_leave_too_little():
     budget.trainer.steps_run = 0
     with pytest.raises(InputError, match="too short for one step"):
         budget.before_step()
+    # a resumed run with less of its budget left than a step needs: spent, not a budget too short (it was the
+    # user's whole budget, 90 s, that the message once called too short)
+    resumed = th.Budget(10.0, resumed=True)
+    resumed.trainer = stand_in(steps_run=0, timing=timing, checkpoint_s=0.5, now_s=10.0 - reserve)
+    assert resumed.before_step() == "time_budget"
 
 
 def test_signals_set_the_trainers_flag_then_a_second_ctrl_c_stops_at_once_and_handlers_come_back():
