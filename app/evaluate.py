@@ -47,7 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     add_common(p)  # the shared --quiet
     add_skip_damaged_argument(p)
-    p.set_defaults(func=run_evaluate_cli, flag_names={"roi": "--roi", "out": "--out", "target": "--target"})
+    p.set_defaults(func=run_evaluate_cli, flag_names={"roi": "--roi", "out": "--out", "target": "--target",
+                                                      "data": "--data"})
 
 
 def run_evaluate_cli(args: argparse.Namespace) -> int:
