@@ -96,6 +96,11 @@ def run_cli(args: argparse.Namespace) -> int:
     sink = recording_sink(args)
     summary = run_closed_loop(cfg, args.out, progress=not args.quiet, sink=sink)  # staged: nothing half-written
     print_table(summary)
+    s = summary["scores"]
+    if not s["runs_tracked"]:  # as `envisat track` says it
+        counts = ", ".join(f"{n} {k}" for k, n in s["frames_by_status"].items() if n)
+        print(f"nothing tracked ({counts}): the tracker never got past acquisition, so est.npz holds no estimate "
+              "(x_hat NaN, status per row)")
     rec = f"recording.rrd ({summary['recording_bytes'] / 2**20:.1f} MiB; `envisat view {args.out}`)" \
         if sink is None else "the recording went to the viewer"
     print(f"wrote {args.out}: est.npz, det.npz, truth.npz, errors.png, run.config.toml, summary.json, {rec}")

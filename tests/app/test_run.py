@@ -138,6 +138,20 @@ def test_the_cli_runs_several_loops_in_parallel(tmp_path, detector_weights, caps
     assert "scenario" in capsys.readouterr().err and not (tmp_path / "x").exists()
 
 
+def test_a_run_that_never_tracks_says_so(tmp_path, detector_weights, capsys):
+    """A cold start of 4 frames (the cold start needs 20): nothing tracked, said in one line as `envisat track` says
+    it, and the summary's second-half errors are None (est.npz holds no estimate), not the placeholder state's."""
+    from envisat_pose.app.cli import main
+
+    out = tmp_path / "short"
+    assert main(["run", "--scenario", "default", "--duration-s", "3", "--weights", detector_weights, "--out", str(out),
+                 "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "nothing tracked (4 acquiring)" in printed, printed
+    errors = json.loads((out / "summary.json").read_text())["scores"]["errors"]
+    assert errors["position_m"]["rms_after"] is None and errors["attitude_deg"]["final"] is None
+
+
 def test_a_run_config_a_user_builds_is_the_verbs_job(tmp_path, detector_weights):
     """A RunConfig is complete when built (the image's sequence fields and sun, the scenario's duration, rate and
     filter): one built from a dict without the scenario's layer, the plain constructor's and the verb's
