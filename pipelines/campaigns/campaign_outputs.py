@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 
 import numpy as np
 
@@ -88,6 +89,9 @@ def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
                   **{f"run_{k}": v for k, v in runs.items()})
     save_npz(os.path.join(out_dir, "campaign.npz"), arrays)
     summary = campaign_summary(sums, tr.t_s, settle)
+    if not np.any(sums.nis_runs):
+        warnings.warn("no step of any run had a measurement (the target never in view, or every keypoint outside "
+                      "the measurement's rules): the errors and NEES are the prior's, propagated")
     k = settled_mask(tr.t_s, settle)
     summary.update(
         scenario=cfg.scenario, runs=cfg.runs, seed=cfg.seed, steps=len(tr.t_s), duration_s=cfg.duration_s,

@@ -172,3 +172,16 @@ def test_the_public_pipeline_writes_what_the_verb_writes(campaign, tmp_path):
     summary = envisat_pose.run_campaign(cfg, str(tmp_path / "api"), RunnerConfig("local", 1, None, {}))
     assert _bytes(tmp_path / "api") == _bytes(campaign)
     assert summary == json.loads((campaign / "summary.json").read_text())
+
+
+def test_a_campaign_that_never_measures_says_so(tmp_path, capsys):
+    """An R-bar start measured in pixels (the target 50 m above the chaser, outside the V-bar camera's view for 20
+    s): the campaign warns that its figures are the prior's, as `envisat estimate` does."""
+    from envisat_pose.app.cli import main
+
+    scenario = tmp_path / "rbar.toml"
+    scenario.write_text('description = "R-bar, pixels"\nbase = "default"\nduration_s = 20.0\n[relative]\n'
+                        'rho0_C_m = [50.0, 0.0, 0.0]\n[measurement]\nkind = "pixels"\n')
+    assert main(["montecarlo", "--scenario", str(scenario), "--runs", "3", "--out", str(tmp_path / "mc"),
+                 "--quiet"]) == 0
+    assert "warning: no step of any run had a measurement" in capsys.readouterr().err
