@@ -11,7 +11,7 @@ from envisat_pose.status import STATUSES, TRACKING, has_estimate
 
 
 def no_estimate_nan(a: np.ndarray, status: np.ndarray) -> np.ndarray:
-    """a (T, ...) with NaN on the rows whose status (T,) holds no estimate."""
+    """a (T, ...) (or (R, T, ...)) with NaN on the rows whose status (T,) (or (R, T)) holds no estimate."""
     a = np.array(a, dtype=float)
     a[~has_estimate(status)] = np.nan
     return a

@@ -28,9 +28,10 @@ from scipy.stats import chi2
 
 from envisat_pose.attitude import mrp_error_angle_rad
 from envisat_pose.filtering.estimator import nees
+from envisat_pose.pipelines.runs.outputs import no_estimate_nan
 from envisat_pose.pipelines.tracking.namings import renamed_state
 from envisat_pose.state import BLOCKS, MRP, POS, error_magnitudes, error_summary
-from envisat_pose.status import HAS_ESTIMATE, STATUSES, TRACKING, has_estimate
+from envisat_pose.status import HAS_ESTIMATE, STATUSES, TRACKING
 
 # a correct track (the success criterion of pose-acquisition studies): attitude within 5 deg and
 # position within 2 % of the range
@@ -204,7 +205,7 @@ def score_runs(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.nda
     envisat_pose.status), skipped (T,) or (R, T) frames without an image (eclipse), bound (R, T, 4) a PCRLB per
     block (optional). See score_frames."""
     t_s = np.asarray(t_s, dtype=float)
-    claimed = np.where(has_estimate(np.asarray(status))[..., None], x_hat, np.nan)  # what est.npz holds
+    claimed = no_estimate_nan(x_hat, np.asarray(status))  # what est.npz holds
     return score_frames(t_s, frame_errors(x_true, x_hat, P), status, skipped,
                         error_summary(t_s, x_true, claimed, summary_after_s(t_s)), bound)
 
