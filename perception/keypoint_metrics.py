@@ -18,7 +18,8 @@ the keypoints the detector calls visible (visible_prob at its threshold).
   within MATCH_PX of their labels (ties: the smaller summed distance), and the scores are given under it too.
 - Pose: cv2.solvePnPRansac (EPnP, reprojection threshold PNP_REPROJ_PX) on the keypoints called visible against
   the Target's keypoints_T_m and the label's K, refined on its inliers (SOLVEPNP_ITERATIVE); scored as the angle of
-  R R_true^T (deg) and |t - t_true| in % of the range |t_true|.
+  R R_true^T (deg) and |t - t_true| in % of the range |t_true|. "A pose" is any pose PnP returns (an untrained
+  network's too); "correct" is one within POSE_OK_DEG and POSE_OK_PCT of the label's, its share over all frames.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from envisat_pose.perception.evaluate import MATCH_PX, visibility_precision_reca
 PCK_RADII_PX = (2.0, 5.0)
 PNP_REPROJ_PX = MATCH_PX  # RANSAC's inlier threshold: a keypoint farther off is as good as named wrongly
 PNP_MIN_POINTS = 4
+POSE_OK_DEG, POSE_OK_PCT = 5.0, 5.0  # a correct pose: within 5 deg and 5 % of the range (2.5 m at 50 m)
 
 
 def keypoint_distances(pred_px: np.ndarray, true_px: np.ndarray) -> np.ndarray:
@@ -171,11 +173,14 @@ def pose_error(R: np.ndarray, t: np.ndarray, R_true: np.ndarray, t_true: np.ndar
 
 
 def pose_summary(err: np.ndarray) -> dict:
-    """err (N, 2) rotation deg and translation % of range per frame, NaN where no pose: the share of frames
-    solved, the median and p95 of each over them."""
+    """err (N, 2) rotation deg and translation % of range per frame, NaN where no pose: the share of frames with
+    a pose ('solved_share', whatever its error), the share with a correct one (within POSE_OK_DEG and POSE_OK_PCT,
+    'correct_share', over all frames), the median and p95 of each error over the frames with a pose."""
     e = np.asarray(err, float).reshape(-1, 2)
     ok = np.all(np.isfinite(e), axis=1)
-    out = {"frames": int(len(e)), "solved_share": _share(int(ok.sum()), len(e))}
+    correct = ok & (np.where(ok, e[:, 0], np.inf) <= POSE_OK_DEG) & (np.where(ok, e[:, 1], np.inf) <= POSE_OK_PCT)
+    out = {"frames": int(len(e)), "solved_share": _share(int(ok.sum()), len(e)),
+           "correct_share": _share(int(correct.sum()), len(e)), "correct_within": [POSE_OK_DEG, POSE_OK_PCT]}
     for j, name in enumerate(("rotation_deg", "translation_pct")):
         v = e[ok, j]
         out[f"{name}_median"] = float(np.median(v)) if len(v) else float("nan")

@@ -6,7 +6,8 @@ The scores (perception/keypoint_metrics.py) per keypoint name and over all: PCK 
 over the labels' usable (visible and in-frame) keypoints, visibility precision and recall, the keypoints named
 wrongly (called visible within the match radius of another usable keypoint's label, not of their own), and the pose
 after PnP (solvePnPRansac on the keypoints called visible, the Target's keypoints_T_m and the label's K): rotation
-error deg and translation error in % of the range. Each is given as the network names the keypoints
+error deg and translation error in % of the range, and the share of all frames whose pose is correct (within 5 deg
+and 5 % of the range: any pose PnP returns is not one). Each is given as the network names the keypoints
 ('as_named') and, where the Target has symmetries its materials keep, under each frame's best twin naming
 ('twin_aware', with the share of frames a twin's naming won): no image tells the twins apart, the tracker settles
 them. Weights calibrated by `envisat calibrate --target` (their sigma per keypoint) are checked on the same frames
@@ -189,8 +190,9 @@ def keypoint_table(result: dict) -> str:
                          f"{_cell(k['vis_precision'], '6.1%')} {_cell(k['vis_recall'], '6.1%')} "
                          f"{_cell(k['named_wrongly_rate'], '6.1%')}")
         p = s["pose"]
-        pose_lines.append(f"pose after PnP ({naming}): solved {_cell(p['solved_share'], '.1%')} of {p['frames']} "
-                          f"frames; rotation median {_cell(p['rotation_deg_median'], '.2f')} deg, p95 "
+        pose_lines.append(f"pose after PnP ({naming}): a pose in {_cell(p['solved_share'], '.1%')} of {p['frames']} "
+                          f"frames, correct (within {km.POSE_OK_DEG:g} deg and {km.POSE_OK_PCT:g} % of the range) in "
+                          f"{_cell(p.get('correct_share'), '.1%')}; rotation median {_cell(p['rotation_deg_median'], '.2f')} deg, p95 "
                           f"{_cell(p['rotation_deg_p95'], '.2f')}; translation median "
                           f"{_cell(p['translation_pct_median'], '.2f')} % of range, p95 "
                           f"{_cell(p['translation_pct_p95'], '.2f')}")

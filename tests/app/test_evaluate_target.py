@@ -210,6 +210,9 @@ def test_without_a_kept_symmetry_there_is_no_twin_aware_score_and_bad_covariance
     assert s["relabelings"] == 1 and s["twin_aware"] is None and s["twin_share"] is None
     assert s["as_named"]["all"]["median_px"] == pytest.approx(0.5 * np.sqrt(2))
     assert s["as_named"]["pose"]["solved_share"] == 0.0  # no labelled pose: no pose error
+    assert s["as_named"]["pose"]["correct_share"] == 0.0
+    assert "a pose in 0.0% of 3 frames, correct (within 5 deg and 5 % of the range) in 0.0%" in \
+        evaluate_target.keypoint_table(s)
 
     det = {"key": np.array(["0"]), "t_s": np.zeros(1), "keypoints_px": np.zeros((1, 4, 2)), "score": np.zeros((1, 4)),
            "visible_prob": np.zeros((1, 4)), "visible": np.zeros((1, 4), bool),

@@ -138,6 +138,15 @@ def test_pose_summary_over_the_solved_frames():
     assert s["rotation_deg_p95"] == pytest.approx(1 + 0.95 * 2) and s["translation_pct_p95"] == pytest.approx(3.9)
 
 
+def test_a_pose_far_off_is_a_pose_but_not_a_correct_one():
+    # an untrained network's PnP returns poses thousands of % of the range off: each one a pose, none correct
+    s = km.pose_summary(np.array([[1.0, 2.0], [4.9, 857688.0], [170.0, 1.0], [5.0, 5.0], [np.nan, np.nan]]))
+    assert s["solved_share"] == pytest.approx(4 / 5)
+    assert s["correct_share"] == pytest.approx(2 / 5)  # the first and the last on the bounds (inclusive)
+    assert s["correct_within"] == [km.POSE_OK_DEG, km.POSE_OK_PCT] == [5.0, 5.0]
+    assert km.pose_summary(np.full((2, 2), np.nan))["correct_share"] == 0.0
+
+
 # --- the pixel sigma per keypoint ---------------------------------------------------------------------------
 
 
