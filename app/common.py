@@ -110,3 +110,8 @@ def add_frame_inputs(p: argparse.ArgumentParser) -> None:
                    "distortion (default: the MJCF's chaser_cam, 1024 x 1024 px; a generate folder's at its size)")
     p.add_argument("--scenario", help="where the chaser's orbit and the target's dynamics come from (default: a "
                    "generate folder's own, else 'default')")
+
+
+def init_error_line(scale: float) -> str:
+    """The line `estimate` and `montecarlo` print for runs whose initial errors are not drawn from the filter's P0."""
+    return f"each run started {scale:g} x P0's sigmas off (--init-error-scale); the filter was told P0"

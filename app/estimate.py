@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import add_common, check_rrd_output
+from envisat_pose.app.common import add_common, check_rrd_output, init_error_line
 from envisat_pose.config import InputError
 from envisat_pose.filtering.estimator import FilterConfig, nees, nis_alarms_alone
 from envisat_pose.out_dirs import check_out_file
@@ -53,6 +53,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--adaptive-q", action="store_const", const=True, help="residual-based process noise")
     p.add_argument("--no-gate", action="store_const", const=True, help="switch the chi-square gate off")
     p.add_argument("--runs", type=int, help="number of Monte Carlo runs, filtered as one batch (default 1)")
+    p.add_argument("--init-error-scale", type=float, metavar="S",
+                   help="draw each run's initial error from (S x P0's sigmas)^2 while the filter is told P0: a filter "
+                   "started with the wrong uncertainty (default 1)")
     p.add_argument("--plot", action="store_true", help="also write a PNG of the errors with 3-sigma bounds next to --out")
     p.add_argument("--rrd", metavar="FILE.rrd",
                    help="also write a Rerun recording: truth, run 0's estimate with its 3-sigma ellipsoid, every run's "
@@ -77,6 +80,7 @@ def resolve_config(args: argparse.Namespace) -> EstimateConfig:
         "filter.gate_prob": 0.0 if args.no_gate else None,
         "runs": args.runs,
         "seed": args.seed,
+        "init_error_scale": args.init_error_scale,
     }
     return resolve_job("estimate", args.scenario, args.config, flags)
 
@@ -111,6 +115,8 @@ def run_estimate_cli(args: argparse.Namespace) -> int:
     cfg, arrays = res["config"], res["arrays"]
     print(f"wrote {res['est']} ({cfg.runs} runs x {len(arrays['t_s'])} steps), config {res['config_toml']}")
     print(summary(arrays, cfg.filter))
+    if cfg.init_error_scale != 1.0:
+        print(init_error_line(cfg.init_error_scale))
     if res["plot"]:
         print(f"wrote {res['plot']}")
     if res["rrd"]:

@@ -10,7 +10,7 @@ import argparse
 import math
 import time
 
-from envisat_pose.app.common import add_common, check_rrd_output
+from envisat_pose.app.common import add_common, check_rrd_output, init_error_line
 from envisat_pose.config import InputError, check
 from envisat_pose.out_dirs import make_out_file_dirs
 from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, run_campaign, write_recording
@@ -40,6 +40,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-markers", type=int, help="use at most N corners per step, the first visible in A..H order")
     p.add_argument("--rates-hz", type=float, nargs="+", metavar="HZ",
                    help="a rate sweep: one campaign per filter rate (default: the scenario's [sweep] rates_hz)")
+    p.add_argument("--init-error-scale", type=float, metavar="S",
+                   help="draw each run's initial error from (S x P0's sigmas)^2 while the filter is told P0: a filter "
+                   "started with the wrong uncertainty (default 1)")
     p.add_argument("--block-runs", type=int, help="runs per block (one task; default 125)")
     p.add_argument("--settle-s", type=float, help="statistics after this time, s (default half, at most 600 s)")
     p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
@@ -56,7 +59,7 @@ def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
     [eclipse] outages), then the file, then the flags; validated before any work."""
     flags = {
         "runs": args.runs, "seed": args.seed, "duration_s": args.duration_s, "target": args.target,
-        "block_runs": args.block_runs, "settle_s": args.settle_s,
+        "block_runs": args.block_runs, "settle_s": args.settle_s, "init_error_scale": args.init_error_scale,
         "measurement.kind": args.measurements, "measurement.sigma_m": args.sigma_m,
         "measurement.sigma_px": args.sigma_px, "measurement.max_markers": args.max_markers,
         "measurement.rate_hz": args.rate_hz}
@@ -93,6 +96,8 @@ def run_montecarlo(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {cfg.runs} runs x {summary['steps']} steps, campaign.npz, summary.json, "
           f"{len(FIGURES)} figures ({time.perf_counter() - t0:.1f} s)")
     print(summary_line(summary))
+    if cfg.init_error_scale != 1.0:
+        print(init_error_line(cfg.init_error_scale))
     if args.rrd:
         make_out_file_dirs({args.rrd: "--rrd"})
         write_recording(cfg, args.out, args.rrd)

@@ -127,7 +127,8 @@ def truth_measurements(kind: str, corners_C_m: np.ndarray, visible: np.ndarray, 
 
 
 def make_run_inputs(x0_true: np.ndarray, t_s: np.ndarray, z_true: np.ndarray, base_mask: np.ndarray,
-                    mcfg: MeasurementConfig, P0: np.ndarray, seed: int, n_runs: int, first_run: int = 0) -> RunInputs:
+                    mcfg: MeasurementConfig, P0: np.ndarray, seed: int, n_runs: int, first_run: int = 0,
+                    init_error_scale: float = 1.0) -> RunInputs:
     """Measurements and initial estimates of n_runs runs of one truth.
 
     x0_true (12,): the true state at t_s[0]; t_s (T,) the filter's time grid; z_true (T, K, m) noise-free
@@ -135,7 +136,8 @@ def make_run_inputs(x0_true: np.ndarray, t_s: np.ndarray, z_true: np.ndarray, ba
     measured set is base_mask minus outages and random failures, then limited to max_markers (at most K: a
     ConfigError otherwise). The runs are
     first_run .. first_run + n_runs - 1; run r draws, from SeedSequence(seed, spawn_key=(r,)) (=
-    SeedSequence(seed).spawn(R)[r]): its initial error (P0), its noise, its failures.
+    SeedSequence(seed).spawn(R)[r]): its initial error (from N(0, init_error_scale^2 P0): a scale other than 1
+    studies a filter told the wrong P0), its noise, its failures.
     """
     z_true = np.asarray(z_true, dtype=float)
     mcfg.check_keypoints(z_true.shape[-2])
@@ -143,10 +145,11 @@ def make_run_inputs(x0_true: np.ndarray, t_s: np.ndarray, z_true: np.ndarray, ba
     cov = mcfg.corner_cov
     if z_true.shape[-1] != cov.shape[-1]:
         raise ValueError(f"z_true has {z_true.shape[-1]} components per corner; kind {mcfg.kind!r} has {cov.shape[-1]}")
+    init_cov = float(init_error_scale) ** 2 * np.asarray(P0, dtype=float)
     x0, zs, masks = [], [], []
     for r in range(first_run, first_run + n_runs):
         rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(r,)))
-        x0.append(draw_initial_estimate(x0_true, P0, rng))
+        x0.append(draw_initial_estimate(x0_true, init_cov, rng))
         zs.append(add_noise(z_true, cov, rng))
         masks.append(limit_markers(random_failures(base, mcfg.failure_prob, rng), mcfg.max_markers))
     return RunInputs(np.stack(x0), np.stack(zs), np.stack(masks), cov)

@@ -100,7 +100,7 @@ def filter_block(tr: CampaignTruth, cfg: MonteCarloConfig, run_start: int, run_s
 
     fcfg, n = cfg.filter, run_stop - run_start
     inp = make_run_inputs(tr.x_true[0], tr.t_s, tr.z_true, tr.base, cfg.measurement, fcfg.P0, cfg.seed, n,
-                          first_run=run_start)
+                          first_run=run_start, init_error_scale=cfg.init_error_scale)
     setup = make_setup(fcfg, cfg.measurement.kind, mu_m3_s2=tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient,
                        target=tr.target)
     R_c = np.broadcast_to(inp.R_c, inp.z.shape[:-1] + inp.R_c.shape[-2:])
@@ -156,7 +156,7 @@ def filter_run_history(tr: "CampaignTruth", cfg: MonteCarloConfig, run: int) -> 
 
     fcfg = cfg.filter
     inp = make_run_inputs(tr.x_true[0], tr.t_s, tr.z_true, tr.base, cfg.measurement, fcfg.P0, cfg.seed, 1,
-                          first_run=run)
+                          first_run=run, init_error_scale=cfg.init_error_scale)
     setup = make_setup(fcfg, cfg.measurement.kind, mu_m3_s2=tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient,
                        target=tr.target)
     R_c = np.broadcast_to(inp.R_c, inp.z.shape[:-1] + inp.R_c.shape[-2:])

@@ -13,7 +13,7 @@ from envisat_pose.config import Config, ConfigError, check
 from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride
-from envisat_pose.pipelines.campaigns.estimate import eclipse_outages, with_outages
+from envisat_pose.pipelines.campaigns.estimate import check_init_error_scale, eclipse_outages, with_outages
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, layered_job
 from envisat_pose.target import load_target
 
@@ -32,7 +32,8 @@ class MonteCarloConfig(Config):
     measurement and filter left None take the scenario's when the config is made (job_defaults.fill_from_scenario:
     its duration, [measurement] and [filter] tables, else 1800 s and the classes' defaults; the measurement with
     the scenario's Earth's-shadow outages along this truth, with_eclipse). A measurement given is kept as it is
-    (resolve_job adds the outages to the one a file and flags make: with_eclipse once).
+    (resolve_job adds the outages to the one a file and flags make: with_eclipse once). init_error_scale: each
+    run's initial error is drawn from N(0, init_error_scale^2 P0) while the filter is told P0 (1: consistent).
     """
 
     scenario: str = "default"
@@ -45,6 +46,7 @@ class MonteCarloConfig(Config):
     target: str | None = None
     measurement: MeasurementConfig | None = None
     filter: FilterConfig | None = None
+    init_error_scale: float = 1.0
 
     def __post_init__(self) -> None:
         eclipse = self.measurement is None
@@ -73,6 +75,7 @@ class MonteCarloConfig(Config):
         check(self.settle_s is None or 0 <= self.settle_s < self.duration_s, "settle_s", self.settle_s,
               f"a time in [0, duration_s = {self.duration_s:g}) s")
         check(0 <= self.sample_runs <= 200, "sample_runs", self.sample_runs, "an integer from 0 to 200")
+        check_init_error_scale(self.init_error_scale)
         if self.target is not None:
             load_target(self.target, "target")  # a bad file: one line before any work
 

@@ -47,7 +47,9 @@ class EstimateConfig(Config):
     flags). scenario: the named scenario whose truth is simulated (None: a truth file's job; run_estimate takes
     it as its scenario when given neither a truth file nor a scenario); measurement and filter left None take the
     scenario's [measurement] and [filter] tables over the classes' defaults (job_defaults.fill_from_scenario; no
-    scenario: the defaults); runs and the root seed.
+    scenario: the defaults); runs and the root seed. init_error_scale: each run's initial error is drawn from
+    N(0, init_error_scale^2 P0) while the filter is told P0 (1: a consistent start; 3: a filter whose P0 is three
+    times too tight).
 
     Run r draws its initial error and noise from SeedSequence(seed).spawn(runs)[r]; with a scenario the
     truth's random initial attitude comes from the same seed.
@@ -58,6 +60,7 @@ class EstimateConfig(Config):
     filter: FilterConfig | None = None
     runs: int = 1
     seed: int = 0
+    init_error_scale: float = 1.0
 
     def __post_init__(self) -> None:
         fill_from_scenario(self, "estimate", ESTIMATE_FALLBACKS)
@@ -76,6 +79,12 @@ class EstimateConfig(Config):
     def validate(self, prefix: str = "") -> None:
         check(1 <= self.runs <= 100_000, "runs", self.runs, "a number of runs from 1 to 100000")
         check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")
+        check_init_error_scale(self.init_error_scale)
+
+
+def check_init_error_scale(scale: float) -> None:
+    """ConfigError unless the initial errors' scale (their sigma over P0's) is in (0, 100]."""
+    check(0.0 < scale <= 100.0, "init_error_scale", scale, "a scale in (0, 100] of P0's sigmas (1: the filter's own P0)")
 
 
 # what an estimate takes where its scenario (or a truth file's job, without one) sets nothing
@@ -209,7 +218,8 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     kind = cfg.measurement.kind
     z_true, base = truth_measurements(kind, truth.corners_C_m[sel], truth.visible[sel], truth.corners_px[sel],
                                       truth.in_frame[sel])
-    inp = make_run_inputs(x_true[0], t_s, z_true, base, cfg.measurement, fcfg.P0, cfg.seed, R)
+    inp = make_run_inputs(x_true[0], t_s, z_true, base, cfg.measurement, fcfg.P0, cfg.seed, R,
+                          init_error_scale=cfg.init_error_scale)
     res = run_filter(inp.x0_hat, fcfg.P0, t_s, chaser, inp.z, inp.mask, inp.R_c, kind, fcfg, progress=progress,
                      mu_m3_s2=mu_m3_s2, gravity_gradient=gravity_gradient, target=target)
     diverged = diverged_against_truth(res.diverged, nees(x_true[None], res.x_hat, res.P), fcfg)

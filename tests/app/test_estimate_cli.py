@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from envisat_pose.app.cli import main
+from envisat_pose.filtering.estimator import FilterConfig
 
 KEYS = {"t_s", "x_true", "x_hat", "P", "n_meas", "nis", "nis_dof", "diverged", "config_json"}
 
@@ -315,3 +316,28 @@ def test_another_targets_truth_errors_are_one_line(upper_stage_truth, tmp_path, 
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and needle in err and "Traceback" not in err, err
     assert not out.parent.exists()
+
+
+def test_runs_started_off_their_p0_are_estimated_with_p0_and_said_to_be(truth_file, tmp_path, capsys):
+    """--init-error-scale 5: the filter is told P0 while each run starts 5 x P0's sigmas off. The first update
+    measures positions only, so each run's velocity error at t0 is its drawn one: 5 x the consistent run's with the
+    same seed; the velocity block's NEES at t0 (mean 3 for a consistent start) is then ~25 x 3."""
+    a, b = tmp_path / "one.npz", tmp_path / "five.npz"
+    common = ["estimate", "--truth", str(truth_file), "--runs", "40", "--seed", "3", "--quiet"]
+    assert main(common + ["--out", str(a)]) == 0
+    assert "P0's sigmas off" not in capsys.readouterr().out
+    assert main(common + ["--out", str(b), "--init-error-scale", "5"]) == 0
+    assert "each run started 5 x P0's sigmas off" in capsys.readouterr().out
+    one, five = _load(a), _load(b)
+    dv1, dv5 = (e["x_hat"][:, 0, 3:6] - e["x_true"][:, 0, 3:6] for e in (one, five))
+    np.testing.assert_allclose(dv5, 5.0 * dv1, rtol=1e-6, atol=1e-12)
+    for e in (one, five):  # the filter told the same P0 (its velocity block untouched by the first update)
+        np.testing.assert_allclose(e["P"][:, 0, 3:6, 3:6], np.broadcast_to(FilterConfig().P0[3:6, 3:6], (40, 3, 3)),
+                                   rtol=1e-6, atol=1e-12)
+
+    def nees_v(e):
+        d = e["x_hat"][:, 0, 3:6] - e["x_true"][:, 0, 3:6]
+        return np.einsum("ri,rij,rj->r", d, np.linalg.inv(e["P"][:, 0, 3:6, 3:6]), d).mean()
+
+    assert 1.5 < nees_v(one) < 4.5 and nees_v(five) == pytest.approx(25 * nees_v(one), rel=1e-5)
+    assert json.loads(str(five["config_json"]))["estimate"]["init_error_scale"] == 5.0

@@ -108,7 +108,7 @@ def test_other_config_in_folder_is_refused(campaign, tmp_path, capsys):
 @pytest.mark.parametrize("flag, value, field", [
     ("--runs", "0", "runs"), ("--sigma-m", "-1", "measurement.sigma_m"), ("--block-runs", "0", "block_runs"),
     ("--settle-s", "500", "settle_s"), ("--rate-hz", "0.3", "measurement.rate_hz"), ("--workers", "0", "workers"),
-    ("--scenario", "nope", "scenario"),
+    ("--scenario", "nope", "scenario"), ("--init-error-scale", "0", "init_error_scale"),
 ])
 def test_bad_value_is_one_error_line(tmp_path, capsys, flag, value, field):
     args = [a for a in BASE]
@@ -152,6 +152,22 @@ def test_block_reduction_equals_whole_array_statistics(campaign):
                                      cfg.filter.divergence_settle_steps, cfg.filter.nees_divergence_factor)
     np.testing.assert_array_equal(got["run_nis_alarm_alone"], res.diverged & ~nees_rule)
     assert got["sample_err"].shape == (b - a, len(tr.t_s), 12)  # runs 8..13 are below sample_runs = 20
+
+
+def test_a_campaign_started_off_its_p0_draws_wider_and_tells_the_filter_p0(campaign):
+    """init_error_scale = 5 reaches the blocks and the single-run history: each kept run's velocity error at t0
+    (the first update measures positions only) is 5 x the consistent campaign's, with the same seed."""
+    from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig
+    from envisat_pose.pipelines.campaigns.campaign_block import filter_block, filter_run_history, load_campaign_truth
+
+    cfg = MonteCarloConfig(runs=6, duration_s=200.0, settle_s=100.0, block_runs=6, seed=3)
+    wide = MonteCarloConfig(runs=6, duration_s=200.0, settle_s=100.0, block_runs=6, seed=3, init_error_scale=5.0)
+    tr = load_campaign_truth(str(campaign), cfg.measurement)
+    one, five = (filter_block(tr, c, 0, 6)["sample_err"][:, 0, 3:6] for c in (cfg, wide))
+    np.testing.assert_allclose(five, 5.0 * one, rtol=1e-6, atol=1e-12)
+    x_hat, P = filter_run_history(tr, wide, 2)
+    np.testing.assert_allclose(x_hat[0, 3:6] - tr.x_true[0, 3:6], five[2], rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(P[0, 3:6, 3:6], wide.filter.P0[3:6, 3:6], rtol=1e-6, atol=1e-12)
 
 
 def test_the_public_pipeline_writes_what_the_verb_writes(campaign, tmp_path):
