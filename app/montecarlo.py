@@ -131,10 +131,12 @@ def sweep_line(r: dict) -> str:
     """One line per rate of a sweep's main numbers, and where it stops converging."""
     lines = []
     for i, rate in enumerate(r["rates_hz"]):
+        alone = r["n_nis_alarm_alone"][i]
         lines.append(f"{rate:g} Hz: RMSE position {100 * r['rmse']['position'][i]:.3f} cm, attitude "
                      f"{math.degrees(r['rmse']['attitude'][i]):.4f} deg; RMSE/PCRLB "
                      + ", ".join(f"{b} {_fmt_ratio(v[i])}" for b, v in r["rmse_over_pcrlb"].items())
-                     + f"; diverged {r['n_diverged'][i]}/{r['runs']}; "
+                     + f"; diverged {r['n_diverged'][i]}/{r['runs']}"
+                     + (f" ({alone} on the NIS monitor alone)" if alone else "") + "; "
                      + ("converged" if r["converged"][i] else "NOT converged"))
     low = r["lowest_converged_rate_hz"]
     lines.append(f"converges at every rate down to {low:g} Hz" if low is not None

@@ -77,14 +77,17 @@ def render_sweep(c: dict) -> str:
     e, s = html.escape, c["sweep"]
     head = ["rate (Hz)"] + [f"RMSE {b} ({DISPLAY[b][0]})" for b in BLOCKS] + [f"RMSE / PCRLB {b}" for b in BLOCKS]
     head += ["diverged runs", "mean NEES", "converged"]
-    rows = []
+    rows, alone = [], s.get("n_nis_alarm_alone") or [0] * len(s["rates_hz"])  # a sweep.json before they were named
     for i, rate in enumerate(s["rates_hz"]):
         cells = [f"{rate:g}"] + [_fmt(s["rmse"][b][i], DISPLAY[b][1]) for b in BLOCKS]
         cells += [_fmt(s["rmse_over_pcrlb"][b][i], digits=3) for b in BLOCKS]
-        cells += [f"{s['n_diverged'][i]} / {s['runs']}", _fmt(s["nees_mean"][i]), "yes" if s["converged"][i] else "no"]
+        cells += [f"{s['n_diverged'][i]} / {s['runs']}" + (f" ({alone[i]} on the NIS monitor alone)" if alone[i] else ""),
+                  _fmt(s["nees_mean"][i]), "yes" if s["converged"][i] else "no"]
         rows.append("<tr>" + "".join(f"<td>{e(v)}</td>" for v in cells) + "</tr>")
     low = s.get("lowest_converged_rate_hz")
-    verdict = (f"Converges (at most {_fmt(s.get('max_diverged_share'), 100.0)} % of runs flagged diverged, RMSE / "
+    rule = ("diverged against the truth, the NIS monitor's lone alarms aside" if "n_nis_alarm_alone" in s
+            else "flagged diverged")
+    verdict = (f"Converges (at most {_fmt(s.get('max_diverged_share'), 100.0)} % of runs {rule}, RMSE / "
                f"PCRLB below {s.get('max_rmse_over_pcrlb')} in every block) at "
                f"every rate down to {low:g} Hz." if low is not None else "Does not converge at the fastest rate.")
     fig = (f"<figure><img alt=\"{SWEEP_FIGURE}\" src=\"data:image/png;base64,{c['figure']}\"><figcaption>"
