@@ -35,6 +35,18 @@ def _data_name(records: list[dict]) -> str:
     return ", ".join(one(r) for r in records)
 
 
+def check_same_target(run_dir: str, saved: list[dict], data: list[dict]) -> None:
+    """InputError when a run rendering another target's frames is resumed with that target's file changed (its
+    data record's target_sha256 differs; records without one, ENVISAT's and older runs', are left to the data
+    check)."""
+    for was, now in zip(saved, data):
+        a, b = was.get("target_sha256"), now.get("target_sha256")
+        if a and b and a != b:
+            raise InputError(f"resume: {run_dir!r} was trained on a target file that has changed since (sha256 "
+                             f"{a[:12]}... then, {b[:12]}... now): restore the file, or start a new run with "
+                             "`init` = its checkpoint")
+
+
 def check_resume(run_dir: str, cfg, data: list[dict] | None) -> tuple[dict, dict]:
     """(state.json, the run's config.json) of a run to resume with TrainConfig cfg; InputError when it is not
     one, or when the config (other than steps and the budget) or the data (by manifest hash) differ: each
@@ -51,6 +63,8 @@ def check_resume(run_dir: str, cfg, data: list[dict] | None) -> tuple[dict, dict
         raise InputError(f"resume: {run_dir!r} was trained with another config: {'; '.join(changed)} (only `steps` "
                          "and `time_budget_s` may change; start a new run with `init` = its checkpoint instead)")
     if data is not None and "data" in saved:
+        check_same_target(run_dir, saved["data"], data)
+
         def key(records):
             return [r.get("manifest_sha256") or r.get("name") for r in records]
 

@@ -299,6 +299,8 @@ def online_source(online: OnlineConfig, cfg, device: str, task, target) -> tuple
     mix = ", ".join(f"{look.name} {n} %" for look, n in zip(online.looks, look_shares(online.looks)))
     what = "" if target is None else f"target {target.name}, "
     data = [{"name": f"online ({what}{mix}, K = {online.uses_per_frame})", "manifest_sha256": sha, "images": None}]
+    if target is not None:
+        data[0]["target_sha256"] = target.sha256  # named apart, so a resume can say the target file changed
 
     def source(start_state):
         return online_batches(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.workers, device,

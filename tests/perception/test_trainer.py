@@ -102,3 +102,24 @@ def test_a_hooks_stop_before_a_step_is_told_to_every_hook(tiny_dataset):
     for hook in (stopper, other):
         assert [c[0] for c in hook.calls] == ["before_train", "after_step", "after_step", "on_stop", "after_train"]
         assert ("on_stop", "enough") in hook.calls
+
+
+def test_a_resume_with_its_target_file_changed_says_so(tmp_path):
+    """An online run of another target resumed after its file was edited: refused naming the change (the data
+    hash folds the file in, and once the refusal read 'trained on online (...), not on online (...)' with the same
+    names on both sides)."""
+    import json
+
+    from envisat_pose.config import InputError
+    from envisat_pose.perception.train_run import check_resume
+
+    cfg = TrainConfig(steps=4)
+    record = {"name": "online (target box, nominal 100 %, K = 4)", "manifest_sha256": "f" * 64, "images": None}
+    (tmp_path / "config.json").write_text(json.dumps({"train": cfg.to_dict(),
+                                                      "data": [{**record, "target_sha256": "a" * 64}]}))
+    (tmp_path / "state.json").write_text(json.dumps({"step": 2}))
+    edited = [{**record, "manifest_sha256": "e" * 64, "target_sha256": "b" * 64}]
+    with pytest.raises(InputError, match=r"target file that has changed since \(sha256 aaaaaaaaaaaa\.\.\. then, "
+                                         r"bbbbbbbbbbbb\.\.\. now\)"):
+        check_resume(str(tmp_path), cfg, edited)
+    assert check_resume(str(tmp_path), cfg, [{**record, "target_sha256": "a" * 64}])[0] == {"step": 2}
