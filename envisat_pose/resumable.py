@@ -67,6 +67,8 @@ class ResumableJob:
     units_key: the manifest's list of unit entries ('shards', 'blocks'). unit_file(i): unit i's path relative
     to out_dir. header: further manifest fields (counts, a prerequisite's sha256). verify_unit(entry, path):
     checks beyond the sha256. A unit's entry (its task's result) holds at least 'index' and 'sha256'.
+    added_defaults: identity fields (flattened, 'config.x') added to the job after folders were written without
+    them, each with the value such a folder had implicitly (a field's default that reproduces the older bytes).
     """
 
     out_dir: str
@@ -78,6 +80,7 @@ class ResumableJob:
     unit_file: Callable[[int], str]
     header: dict = field(default_factory=dict)
     verify_unit: Callable[[dict, str], bool] | None = None
+    added_defaults: dict = field(default_factory=dict)
     done: dict[int, dict] = field(default_factory=dict, init=False)
 
     def unit_path(self, index: int) -> str:
@@ -95,7 +98,7 @@ class ResumableJob:
         if manifest.get("format") != self.format:
             raise InputError(f"--out {self.out_dir!r}: {MANIFEST} is not a {self.what} manifest (format "
                              f"{self.format!r} expected); use another folder")
-        theirs = flatten({k: manifest.get(k) for k in self.identity})
+        theirs = {**self.added_defaults, **flatten({k: manifest.get(k) for k in self.identity})}
         ours = flatten(self.identity)
         diff = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
         if diff:

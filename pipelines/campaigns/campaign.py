@@ -62,6 +62,8 @@ if TYPE_CHECKING:
     from envisat_pose.resumable import ResumableJob
 
 MANIFEST_FORMAT = "envisat-pose montecarlo v1"
+# config fields added since v1 folders were written, with the value such a folder used (it resumes as it was)
+ADDED_DEFAULTS = {"config.init_error_scale": 1.0}
 
 
 def campaign_job(cfg: MonteCarloConfig, out_dir: str) -> ResumableJob:
@@ -71,7 +73,8 @@ def campaign_job(cfg: MonteCarloConfig, out_dir: str) -> ResumableJob:
 
     return ResumableJob(out_dir, MANIFEST_FORMAT, "campaign", {"config": to_dict(cfg)}, "blocks", cfg.n_blocks,
                         block_name, header={"n_blocks": cfg.n_blocks},
-                        verify_unit=lambda e, path: cfg.block_range(e["index"]) == (e["run_start"], e["run_stop"]))
+                        verify_unit=lambda e, path: cfg.block_range(e["index"]) == (e["run_start"], e["run_stop"]),
+                        added_defaults=ADDED_DEFAULTS)
 
 
 def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, progress: bool) -> str:

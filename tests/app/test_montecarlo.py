@@ -97,6 +97,24 @@ def test_killed_campaign_resumes_to_the_same_bytes(campaign, tmp_path):
     assert json.loads((d / "timing.json").read_text())["blocks_run_now"] == 2
 
 
+def test_a_campaign_written_before_a_config_field_existed_resumes(campaign, tmp_path, capsys):
+    """A folder whose manifest lacks a field added since (init_error_scale: its runs used 1) resumes as it was;
+    the same folder holding another value of it is still refused."""
+    ref = _bytes(campaign)
+    d = tmp_path / "older"
+    shutil.copytree(campaign, d)
+    manifest = json.loads((d / "manifest.json").read_text())
+    del manifest["config"]["init_error_scale"]
+    (d / "manifest.json").write_text(json.dumps(manifest))
+    (d / "summary.json").unlink()
+    assert main(BASE + ["--out", str(d)]) == 0
+    assert _bytes(d) == ref
+    manifest["config"]["init_error_scale"] = 2.0
+    (d / "manifest.json").write_text(json.dumps(manifest))
+    assert main(BASE + ["--out", str(d)]) == 2
+    assert "init_error_scale = 2.0 there, 1.0 here" in capsys.readouterr().err
+
+
 def test_other_config_in_folder_is_refused(campaign, tmp_path, capsys):
     d = tmp_path / "c"
     shutil.copytree(campaign, d)
