@@ -220,6 +220,23 @@ def scenario_dict(name: str) -> dict:
     return truth_part(name)
 
 
+def truth_config_json(cfg: ScenarioConfig, target_sha256: str) -> str:
+    """A truth's config_json: the scenario config, and beside its target file the file's sha256 when simulated
+    (`target.sha256`, a record: a truth read later refuses a file that has changed since)."""
+    import dataclasses
+    import json
+
+    data = dataclasses.asdict(cfg)
+    data["target"]["sha256"] = target_sha256
+    return json.dumps(data, sort_keys=True)
+
+
+def scenario_of_truth(config: dict) -> ScenarioConfig:
+    """The validated ScenarioConfig of a truth's config (its target's sha256 record set aside)."""
+    target = {k: v for k, v in (config.get("target") or {}).items() if k != "sha256"}
+    return from_dict(ScenarioConfig, {**config, "target": target})
+
+
 def scenario_config(name: str = "default", **overrides) -> ScenarioConfig:
     """A validated named scenario with optional top-level overrides (duration_s=..., seed=...)."""
     return from_dict(ScenarioConfig, deep_update(scenario_dict(name), overrides), prefix="")

@@ -5,11 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm, quat_to_mrp
-from envisat_pose.config import to_json
 from envisat_pose.contracts import TruthTrajectory
 from envisat_pose.datagen.clearance import check_keepout, target_boxes
 from envisat_pose.datagen.orbit import chaser_orbit
-from envisat_pose.datagen.scenario import ScenarioConfig
+from envisat_pose.datagen.scenario import ScenarioConfig, truth_config_json
 from envisat_pose.datagen.sim import TruthSim
 
 
@@ -68,7 +67,7 @@ def simulate_truth(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajecto
         visible=sim.target.truth_visible(c_T_m),
         corners_px=corners_px,
         in_frame=in_frame,
-        config_json=to_json(cfg),
+        config_json=truth_config_json(cfg, sim.target.sha256),
     )
     check_clearance(cfg, traj, sim.model)
     return traj

@@ -18,14 +18,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import Config, ConfigError, InputError, check, from_dict, to_dict, to_toml
+from envisat_pose.config import Config, ConfigError, InputError, check, to_dict, to_toml
 from envisat_pose.contracts import Estimates, TruthTrajectory
 from envisat_pose.datagen.scenario import (
-    ScenarioConfig,
     eclipse_windows,
     scenario_config,
     scenario_dict,
     scenario_eclipse,
+    scenario_of_truth,
 )
 from envisat_pose.filtering.estimator import FilterConfig, chaser_states, diverged_against_truth, nees, run_filter
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
@@ -182,7 +182,7 @@ def scenario_outages(cfg: EstimateConfig, scenario: str | None, truth) -> Estima
         return cfg
     import dataclasses
 
-    windows = eclipse_outages(scenario, from_dict(ScenarioConfig, truth.config))
+    windows = eclipse_outages(scenario, scenario_of_truth(truth.config))
     return dataclasses.replace(cfg, measurement=with_outages(cfg.measurement, windows))
 
 

@@ -8,9 +8,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from envisat_pose.config import InputError, from_dict
+from envisat_pose.config import InputError
 from envisat_pose.datagen.orbit import chaser_orbit
-from envisat_pose.datagen.scenario import ScenarioConfig
+from envisat_pose.datagen.scenario import scenario_of_truth
 
 
 class OnboardPhysics(NamedTuple):
@@ -41,7 +41,7 @@ def onboard_physics(truth, source: str = "the truth") -> OnboardPhysics:
 def orbit_config(truth_config: dict):
     """The chaser's Keplerian orbit (datagen's OrbitConfig) of a truth's config."""
 
-    return from_dict(ScenarioConfig, truth_config).orbit
+    return scenario_of_truth(truth_config).orbit
 
 
 def chaser_function(orbit):

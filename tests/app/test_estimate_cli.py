@@ -341,3 +341,27 @@ def test_runs_started_off_their_p0_are_estimated_with_p0_and_said_to_be(truth_fi
 
     assert 1.5 < nees_v(one) < 4.5 and nees_v(five) == pytest.approx(25 * nees_v(one), rel=1e-5)
     assert json.loads(str(five["config_json"]))["estimate"]["init_error_scale"] == 5.0
+
+
+def test_simulate_records_the_target_files_sha256_and_an_edit_since_is_refused(tmp_path, capsys):
+    """`simulate --target` records the file's sha256 beside it (once it recorded none, so a truth of an edited
+    file, its inertia halved, was filtered with the new file and every run diverged); `estimate --truth` then
+    refuses the edited file in one line, and estimates the unedited one."""
+    import shutil
+
+    from envisat_pose.contracts import TruthTrajectory
+    from envisat_pose.target import load_target
+
+    xml = tmp_path / "us.xml"
+    shutil.copy("models/upper_stage.xml", xml)
+    truth = tmp_path / "run.npz"
+    assert main(["simulate", "--target", str(xml), "--duration-s", "20", "--out", str(truth), "--quiet"]) == 0
+    recorded = json.loads(TruthTrajectory.load(str(truth)).config_json)["target"]
+    assert recorded["file"] == str(xml) and recorded["sha256"] == load_target(str(xml)).sha256
+    assert main(["estimate", "--truth", str(truth), "--quiet", "--out", str(tmp_path / "ok.npz")]) == 0
+    xml.write_text(xml.read_text() + "\n<!-- edited -->\n")
+    out = tmp_path / "e" / "est.npz"
+    capsys.readouterr()
+    assert main(["estimate", "--truth", str(truth), "--quiet", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "changed since the truth was simulated" in err and not out.parent.exists()
