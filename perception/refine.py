@@ -49,6 +49,9 @@ class RefineConfig:
     fuse: bool = True
 
 
+REMAP_COLS = 4096
+
+
 def sample_bicubic(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Image values at points xy (..., 2) px, bicubic (OpenCV remap; border replicated): (...,) float32. Only the
     patch around the points (plus the kernel's reach) is converted, not the whole frame."""
@@ -60,10 +63,13 @@ def sample_bicubic(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
     x1 = int(np.clip(np.ceil(flat[:, 0].max()) + 4, x0 + 1, w))
     y1 = int(np.clip(np.ceil(flat[:, 1].max()) + 4, y0 + 1, h))
     patch = np.ascontiguousarray(image[y0:y1, x0:x1], dtype=np.float32)
-    mx = (flat[:, 0] - x0).astype(np.float32).reshape(1, -1)
-    my = (flat[:, 1] - y0).astype(np.float32).reshape(1, -1)
+    n = len(flat)
+    cols = min(max(n, 1), REMAP_COLS)  # remap's maps: rows of REMAP_COLS (it takes fewer than 32767 a side)
+    pad = -n % cols
+    mx = np.pad(flat[:, 0] - x0, (0, pad)).astype(np.float32).reshape(-1, cols)
+    my = np.pad(flat[:, 1] - y0, (0, pad)).astype(np.float32).reshape(-1, cols)
     out = cv2.remap(patch, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(shape)
+    return out.ravel()[:n].reshape(shape)
 
 
 def edge_offsets(image: np.ndarray, corner: np.ndarray, direction: np.ndarray, stations: np.ndarray,

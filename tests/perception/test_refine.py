@@ -100,3 +100,18 @@ def test_refine_named_uses_the_wireframe_edges_of_visible_corners():
     assert done.tolist() == [True] + [False] * 7
     assert np.linalg.norm(out[0] - corner) < 0.05 and np.all(np.isfinite(cov[0]))
     assert np.all(np.isnan(out[1]))  # a corner not found stays not found
+
+
+def test_bicubic_samples_any_number_of_points():
+    """40,000 points at once (a 1024-px frame's edge profiles: remap once took them as one row and failed from
+    32,767 on): a plane's values, which bicubic interpolation reproduces inside the frame up to remap's 1/32-px
+    table of positions (0.75 grey levels a px here: 0.047 at most), and the same values as a few points alone."""
+    from envisat_pose.perception.refine import sample_bicubic
+
+    yy, xx = np.mgrid[0:300, 0:400].astype(np.float32)
+    image = 0.25 * xx + 0.5 * yy + 3.0
+    xy = np.random.default_rng(5).uniform([4, 4], [395, 295], (200, 200, 2))
+    got = sample_bicubic(image, xy)
+    assert got.shape == (200, 200)
+    np.testing.assert_allclose(got, 0.25 * xy[..., 0] + 0.5 * xy[..., 1] + 3.0, atol=0.75 / 16)
+    np.testing.assert_allclose(sample_bicubic(image, xy[:3, :7]), got[:3, :7], rtol=0, atol=1e-4)  # float32
