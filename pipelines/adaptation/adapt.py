@@ -253,7 +253,9 @@ def label_step(run: AdaptRun, track_dir: str) -> tuple[dict, list[np.ndarray]]:
 def recalibration_step(run: AdaptRun, weights: str, candidate: str, model, images: list[np.ndarray],
                        lab: dict) -> dict:
     """Step 5: the candidate's covariance scale and apparent scale on the labels (recalibrate, decide_scale),
-    written into its file (save_adapted). weights: the network that made the labels' track. Returns
+    written into its file (save_adapted). weights: the network that made the labels' track (the base weights in
+    the first round, the last round's after it), whose metadata the candidate keeps where this round measures
+    nothing new (a scale kept is that network's). Returns
     {calibration, apparent_scale, apparent_scale_adopted}."""
     cfg, edges = run.cfg, lab["edges"]
     sub = calibration_frames(len(images), cfg.max_calibration_frames)
@@ -271,7 +273,7 @@ def recalibration_step(run: AdaptRun, weights: str, candidate: str, model, image
     if scale is not None and "error_model" in scale:
         extra[ERROR_MODEL_KEY] = scale.pop("error_model")
     if extra:
-        save_adapted(model, run.tcfg.weights, candidate, extra)
+        save_adapted(model, weights, candidate, extra)
     return {"calibration": cal, "apparent_scale": scale,
             "apparent_scale_adopted": scale is not None and "kept" not in scale}
 
@@ -303,7 +305,7 @@ def adapt_round(run: AdaptRun, r: int, track_dir: str, weights: str, seed: np.ra
         finally:
             _close(bar)
         timing[f"fine_tune_{r}"] = time.perf_counter() - t1
-        if not save_adapted(model, run.tcfg.weights, candidate, {}):
+        if not save_adapted(model, weights, candidate, {}):  # the last round's metadata: its scale, if kept
             return {**info, "diverged": True}, None
         t1 = time.perf_counter()
         info |= recalibration_step(run, weights, candidate, model, images, lab)

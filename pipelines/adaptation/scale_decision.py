@@ -95,8 +95,8 @@ def no_evidence(scale: dict, applied: float) -> str | None:
 
 def decide_scale(params: str, tcfg: TrackConfig, weights: str, edges: dict, cal: dict) -> dict | None:
     """The apparent scale the candidate's error model takes (adapted_scale, params: AdaptConfig.params) with that
-    error model as JSON under 'error_model' (the base weights' tcfg.weights, its bias_scale and bias_scale_sd
-    replaced); with 'kept' (one line: disagreement, no_evidence) instead where the evidence does not hold; or
+    error model as JSON under 'error_model' (that of `weights`, the network whose track made the labels: the base
+    weights in the first round, the last round's after it; its bias_scale and bias_scale_sd replaced); with 'kept' (one line: disagreement, no_evidence) instead where the evidence does not hold; or
     None when no label's range was corrected by the edges (edges: track_labels.edge_corrected's record) or no
     scale was measured. weights: the network that made the labels' track; cal: recalibrate's figures."""
     from envisat_pose.perception.detect import weights_error_model
@@ -111,6 +111,6 @@ def decide_scale(params: str, tcfg: TrackConfig, weights: str, edges: dict, cal:
     reason = disagreement(scale, cal) or no_evidence(scale, applied)
     if reason is not None:
         return {**scale, "kept": reason}
-    em = dataclasses.replace(weights_error_model(tcfg.weights), bias_scale=scale["value"],
+    em = dataclasses.replace(tracked, bias_scale=scale["value"],
                              bias_scale_sd=max(tracked.bias_scale_sd, scale["sd"]))
     return {**scale, "error_model": em.to_json()}

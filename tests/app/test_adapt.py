@@ -273,6 +273,38 @@ def test_a_fine_tune_that_raises_leaves_torchs_thread_count(monkeypatch, tmp_pat
         torch.set_num_threads(before)
 
 
+def test_a_later_round_keeps_the_last_rounds_metadata_where_it_measures_nothing_new(monkeypatch, tmp_path,
+                                                                                  detector_weights):
+    """Round 2 from round 1's weights: a candidate whose scale this round keeps (no new error model) carries round
+    1's metadata, its adapted scale among them, not the base weights' (once round 2 wrote the base's back, and
+    --rounds 2 undid round 1's scale: held-out range bias -3.0 cm after one round, -16.1 cm after two)."""
+    import envisat_pose.pipelines.adaptation.adapt as adapt_module
+
+    lab = {"frames": np.arange(3), "trusted": 3, "sigma_px": np.ones(3), "edges": {}, "labels": [{}] * 3}
+    import shutil
+
+    bases = []
+
+    def save_adapted(model, base, path, extra):  # a weights file where the candidate goes, and its base noted
+        bases.append(base)
+        shutil.copy(detector_weights, path)
+        return True
+
+    monkeypatch.setattr(adapt_module, "label_step", lambda run, d: (lab, [np.zeros((8, 8), np.uint8)] * 3))
+    monkeypatch.setattr(adapt_module, "fine_tune", lambda *a, **k: ("model", {}))
+    monkeypatch.setattr(adapt_module, "save_adapted", save_adapted)
+    monkeypatch.setattr(adapt_module, "recalibrate", lambda *a, **k: {"scale": None, "corners": 0})
+    monkeypatch.setattr(adapt_module, "decide_scale", lambda *a, **k: {"value": 1.0, "kept": "within 2 sd"})
+    monkeypatch.setattr(adapt_module, "track_frames", lambda *a, **k: None)
+    monkeypatch.setattr(adapt_module, "track_figures", lambda *a, **k: {})
+    run = adapt_module.AdaptRun(AdaptConfig(rounds=2), AdaptConfig().track, None, None, None, str(tmp_path),
+                                False, 10, (), {})
+    info, candidate = adapt_module.adapt_round(run, 1, str(tmp_path), "round-0.safetensors",
+                                               np.random.SeedSequence(0), {})
+    assert bases == ["round-0.safetensors"] and candidate.endswith("round-1.safetensors")
+    assert info["apparent_scale"]["kept"] == "within 2 sd" and not info["apparent_scale_adopted"]
+
+
 def test_edges_and_corners_that_disagree_keep_the_original_scale():
     """The edges' scale is adopted only where the detector's own corners (against the same corrected labels) read
     it within AGREE_Z sd of their difference; beyond, the scale is kept and one line says why, naming both."""
