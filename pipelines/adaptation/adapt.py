@@ -190,6 +190,29 @@ def worse_reason(before: dict, after: dict) -> str | None:
     return None
 
 
+def unchanged_track(before_dir: str, after_dir: str) -> str | None:
+    """One line saying that the adapted weights tracked every frame as the original ones did (the same statuses,
+    estimates and covariances within a millionth of their sigmas: floating-point rounding), or None. It happens
+    where nothing they change reaches the tracker: the network not fine-tuned (params 'none'), its apparent scale kept, and a recalibrated covariance
+    scale that the weights' sequence error model overrides (tracking/noise.sequence_cov_factor)."""
+    runs = []
+    for d in (before_dir, after_dir):
+        with np.load(os.path.join(d, "est.npz")) as est:
+            runs.append((est["status"], est["x_hat"], est["P"]))
+    (s0, x0, p0), (s1, x1, p1) = runs
+    if s0.shape != s1.shape or not np.array_equal(s0, s1) or x0.shape != x1.shape:
+        return None
+    sigma = np.sqrt(np.abs(np.diagonal(p0, axis1=-2, axis2=-1)))
+    with np.errstate(invalid="ignore"):
+        same_x = np.all((np.abs(x1 - x0) <= 1e-6 * sigma) | (np.isnan(x0) & np.isnan(x1)))
+        same_p = np.all((np.abs(p1 - p0) <= 1e-6 * sigma[..., :, None] * sigma[..., None, :])
+                        | (np.isnan(p0) & np.isnan(p1)))
+    if same_x and same_p:
+        return ("the adapted weights track every frame as the original ones do (nothing they change reaches the "
+                "tracker here): nothing to adopt")
+    return None
+
+
 # ---------------------------------------------------------------------------------------------------------
 # The job: its rounds
 
@@ -347,7 +370,7 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
             os.remove(weights)
         last_dir, weights = round_dir(run, r), candidate
     after = rounds[-1]["after"]
-    reason = worse_reason(before, after)
+    reason = worse_reason(before, after) or unchanged_track(before_dir, last_dir)
     if reason is None:
         os.replace(weights, os.path.join(stage, "detector.safetensors"))
     else:

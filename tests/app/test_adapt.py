@@ -305,6 +305,36 @@ def test_a_later_round_keeps_the_last_rounds_metadata_where_it_measures_nothing_
     assert info["apparent_scale"]["kept"] == "within 2 sd" and not info["apparent_scale_adopted"]
 
 
+def test_a_track_the_adaptation_left_unchanged_is_nothing_to_adopt(tmp_path):
+    """The after-track equal to the before-track within floating-point rounding (a millionth of each state's
+    sigma): one line saying so, the verdict's reason (the shipped weights with params 'none' and the scale kept
+    once wrote 'adopted' weights that tracked every frame alike: their recalibrated covariance scale is overridden
+    by the sequence error model). A change of a thousandth of a sigma, or another status, is a change."""
+    from envisat_pose.pipelines.adaptation.adapt import unchanged_track
+
+    rng = np.random.default_rng(3)
+    T = 6
+    P = np.broadcast_to(np.diag(np.linspace(1e-4, 1e-2, 12)), (1, T, 12, 12)).copy()
+    x = rng.normal(size=(1, T, 12))
+    status = np.full((1, T), TRACKING)
+    x[0, 0], P[0, 0], status[0, 0] = np.nan, np.nan, 0  # acquiring: no estimate
+
+    def write(name, x, P, status):
+        os.makedirs(tmp_path / name)
+        np.savez(tmp_path / name / "est.npz", x_hat=x, P=P, status=status)
+        return str(tmp_path / name)
+
+    before = write("before", x, P, status)
+    sigma = np.sqrt(np.diagonal(P, axis1=-2, axis2=-1))
+    same = write("same", x + 1e-8 * sigma, P * (1 + 1e-9), status)
+    line = unchanged_track(before, same)
+    assert line is not None and "nothing to adopt" in line and "\n" not in line
+    assert unchanged_track(before, write("moved", x + 1e-3 * sigma, P, status)) is None
+    other = status.copy()
+    other[0, 1] = LOST
+    assert unchanged_track(before, write("lost", x, P, other)) is None
+
+
 def test_edges_and_corners_that_disagree_keep_the_original_scale():
     """The edges' scale is adopted only where the detector's own corners (against the same corrected labels) read
     it within AGREE_Z sd of their difference; beyond, the scale is kept and one line says why, naming both."""
