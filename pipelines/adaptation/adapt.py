@@ -50,10 +50,12 @@ was):
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import os
+import re
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -146,6 +148,11 @@ class AdaptConfig(Config):
         check(self.max_calibration_frames >= 1, f"{p}max_calibration_frames", self.max_calibration_frames,
               "at least 1 frame")
         check(self.threads >= 0, f"{p}threads", self.threads, "threads >= 0 (0: torch's default)")
+        check(re.fullmatch(r"cpu|cuda(:\d+)?", self.device) is not None, f"{p}device", self.device, "cpu or cuda")
+        if self.device.startswith("cuda"):
+            import torch
+
+            check(torch.cuda.is_available(), f"{p}device", self.device, "a CUDA device (none is available here)")
         self.track.validate(f"{p}track")
 
 
@@ -390,15 +397,23 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
     model card. Returns the report: {adopted, reason (None when adopted), scale_note (one line when the edges'
     scale was not adopted: disagreement; else None), before, after (track_figures), rounds
     (per round: labels, fine-tune, calibration), source, timing_s}. InputError (one line) when the first part
-    holds fewer than cfg.min_trusted labelled frames; nothing is written then."""
+    holds fewer than cfg.min_trusted labelled frames; nothing is written then (an --out this job made is removed
+    again on any failure or interrupt)."""
 
     check_out_dir(out_dir, field="out_dir")
     given_response = read_camera_response(camera) if isinstance(camera, str) else (None, None)
     tcfg, source, camera, remap, _ = prepare_frames(cfg.track, source, camera)
+    new = not os.path.exists(out_dir)
     make_out_dir(out_dir, field="out_dir")
-    with staged_folder(out_dir, OUTPUTS) as stage:
-        report = _adapt(cfg, tcfg, source, camera, remap, stage, progress, command, given_response)
-        _replace_dirs(out_dir, stage)
+    try:
+        with staged_folder(out_dir, OUTPUTS) as stage:
+            report = _adapt(cfg, tcfg, source, camera, remap, stage, progress, command, given_response)
+            _replace_dirs(out_dir, stage)
+    except BaseException:
+        if new:  # the folder this job made, left empty by the failed or interrupted job
+            with contextlib.suppress(OSError):
+                os.rmdir(out_dir)
+        raise
     return report
 
 

@@ -44,6 +44,31 @@ def test_the_config_is_validated_when_built():
         AdaptConfig(edge_range="on")
     with pytest.raises(Exception, match="edge_min_frames"):
         AdaptConfig(edge_min_frames=0)
+    with pytest.raises(Exception, match="device = 'tpu'"):  # once found only after the whole first track
+        AdaptConfig(device="tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(Exception, match="none is available"):
+            AdaptConfig(device="cuda")
+
+
+@pytest.mark.parametrize("existed", [False, True])
+def test_a_failed_adapt_leaves_no_folder_it_made(monkeypatch, tmp_path, existed):
+    """An error (or an interrupt) inside the job: an --out the job made is removed again (it once stayed, empty);
+    a folder that was there before stays."""
+    import envisat_pose.pipelines.adaptation.adapt as adapt_module
+    from envisat_pose.config import InputError
+
+    def too_few(*args, **kwargs):
+        raise InputError("src 'frames': only 3 trusted frames")
+
+    monkeypatch.setattr(adapt_module, "prepare_frames", lambda tcfg, source, camera: (tcfg, source, None, None, None))
+    monkeypatch.setattr(adapt_module, "_adapt", too_few)
+    out = tmp_path / "new" / "run"
+    if existed:
+        out.mkdir(parents=True)
+    with pytest.raises(InputError, match="trusted frames"):
+        adapt_module.adapt(AdaptConfig(), "frames", str(out), progress=False)
+    assert out.exists() == existed and (not existed or os.listdir(out) == [])
 
 
 def test_fine_tune_flags_without_a_fine_tune_are_one_line(tmp_path, capsys):
