@@ -4,7 +4,9 @@ Shapes: N frames, 8 corners A-H. pred_px (N, 8, 2) px, NaN where a corner was no
 usable (N, 8) bool, the labelled corners a detector should find (visible and in frame). A corner counts as a hit
 at radius r px when it was found, named as the label names it, and lies within r of it: a missed or wrongly
 named corner is a miss. A frame declared ambiguous under the half-turn about the long axis (A<->C, B<->D,
-E<->G, F<->H) is scored with the better of its two namings (`better_naming`).
+E<->G, F<->H) is scored with the better of its two namings (`better_naming`: the labels choose between the two
+the detector offers; the tracker chooses by the dynamics); pck_*_strict and the strict swaps score the first naming
+of every frame.
 
 Also here: the classical peers (Harris and Shi-Tomasi with sub-pixel refinement and oracle association), the
 pose from named corners by solvePnP, and the corruption grouping of labels (`corruption_levels`).
@@ -284,6 +286,7 @@ def score_method(pred_px: np.ndarray, true_px: np.ndarray, usable: np.ndarray, *
     out = {"frames": int(n), "usable_corners": int(np.sum(usable)),
            "errors": error_stats(chosen, true_px, usable),
            "pck_2px": pck(chosen, true_px, usable, 2.0), "pck_5px": pck(chosen, true_px, usable, 5.0),
+           "pck_2px_strict": pck(pred, true_px, usable, 2.0), "pck_5px_strict": pck(pred, true_px, usable, 5.0),
            "swap_rate_strict": swap_rate(pred, true_px, usable),
            "swap_rate": swap_rate(chosen, true_px, usable),
            "ambiguous_share": float(amb.mean()) if n else float("nan"),

@@ -58,6 +58,7 @@ def test_half_turn_ambiguous_frame_scored_with_better_naming():
     # frame 0 declares the ambiguity (its alternative is right); frame 1 does not
     s = ev.score_method(turned, true, usable, alt_px=true, ambiguous=np.array([True, False]))
     assert s["pck_5px"] == pytest.approx(0.5) and s["ambiguous_share"] == pytest.approx(0.5)
+    assert s["pck_5px_strict"] == s["pck_2px_strict"] == 0.0  # strict: the first naming, every corner swapped
     assert s["alt_naming_used_share"] == pytest.approx(0.5)
     assert s["swap_rate_strict"] == pytest.approx(1.0)   # strict: the primary naming of both frames
     assert s["swap_rate"] == pytest.approx(0.5)          # scored naming: frame 1 still swapped
