@@ -265,10 +265,12 @@ def label_step(run: AdaptRun, track_dir: str) -> tuple[dict, list[np.ndarray]]:
     cfg = run.cfg
     lab = track_run_labels(track_dir, run.camera, run.tcfg.orbit, run.q_sigma, run.dyn, run.cut, cfg)
     if len(lab["frames"]) < cfg.min_trusted:
+        tracked = track_figures(track_dir, run.cut)["tracked_share_all"]
         raise InputError(
             f"src {run.source.path!r}: only {len(lab['frames'])} trusted frames in the first {1 - cfg.held_out:.0%} "
             f"of the sequence (tracking, half-turn decided, label sigma < {cfg.max_label_sigma_px:g} px; "
-            f"{lab['trusted']} before the sigma test); adapt needs at least {cfg.min_trusted} (min_trusted)")
+            f"{lab['trusted']} before the sigma test; the tracker tracked {tracked:.0%} of all frames, after a cold "
+            f"start of 20 or more); adapt needs at least {cfg.min_trusted} (min_trusted): a longer sequence")
     frames = read_frames(run.source, run.remap, lab["frames"])
     images = [frames[int(k)] for k in lab["frames"]]
     resp = frames_response(lab["x"], images, run.camera, run.given_response)

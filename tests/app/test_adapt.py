@@ -130,7 +130,7 @@ def test_too_few_trusted_frames_is_one_line_and_writes_nothing(short_seq, tmp_pa
     rc = main(["adapt", "--images", short_seq, "--out", str(out), "--quiet", "--weights", detector_weights])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1, err
-    assert "--images" in err and "at least 20" in err and "trusted frames" in err, err
+    assert "--images" in err and "at least 20" in err and "trusted frames" in err and "the tracker tracked" in err, err
     assert not out.exists() or not [f for f in os.listdir(out) if not f.startswith(".")]
 
 
