@@ -78,6 +78,8 @@ class MonteCarloConfig(Config):
         check_init_error_scale(self.init_error_scale)
         if self.target is not None:
             load_target(self.target, "target")  # a bad file: one line before any work
+        # max_markers within the truth's target's keypoints, before a folder is made
+        self.measurement.check_keypoints(len(load_target(truth_scenario(self).target.file).keypoint_names))
 
     @property
     def settle_time_s(self) -> float:

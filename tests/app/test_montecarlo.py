@@ -127,6 +127,7 @@ def test_other_config_in_folder_is_refused(campaign, tmp_path, capsys):
     ("--runs", "0", "runs"), ("--sigma-m", "-1", "measurement.sigma_m"), ("--block-runs", "0", "block_runs"),
     ("--settle-s", "500", "settle_s"), ("--rate-hz", "0.3", "measurement.rate_hz"), ("--workers", "0", "workers"),
     ("--scenario", "nope", "scenario"), ("--init-error-scale", "0", "init_error_scale"),
+    ("--max-markers", "9", "measurement.max_markers"),  # ENVISAT's 8 keypoints: once refused after the truth was made
 ])
 def test_bad_value_is_one_error_line(tmp_path, capsys, flag, value, field):
     args = [a for a in BASE]
@@ -137,6 +138,7 @@ def test_bad_value_is_one_error_line(tmp_path, capsys, flag, value, field):
     assert main(args + ["--out", str(tmp_path / "bad")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("envisat montecarlo: error: ") and field in err[0] and value in err[0]
+    assert not (tmp_path / "bad").exists()
 
 
 def test_block_reduction_equals_whole_array_statistics(campaign):
