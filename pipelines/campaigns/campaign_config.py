@@ -4,6 +4,7 @@ a scenario's Earth's-shadow outages (with_eclipse)."""
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 
@@ -78,6 +79,13 @@ class MonteCarloConfig(Config):
         check_init_error_scale(self.init_error_scale)
         if self.target is not None:
             load_target(self.target, "target")  # a bad file: one line before any work
+        rate = self.measurement.rate_hz  # the statistics need a filter step at or after the settle time
+        last_s = math.floor(self.duration_s * rate + 1e-9) / rate
+        if self.settle_s is not None:
+            check(self.settle_time_s <= last_s, "settle_s", self.settle_s, f"a time at or before the last filter step, "
+                  f"{last_s:g} s ({rate:g} Hz over duration_s = {self.duration_s:g})")
+        check(self.settle_time_s <= last_s, "duration_s", self.duration_s, f"a duration whose filter steps ({rate:g} "
+              f"Hz) reach past its settle time {self.settle_time_s:g} s (half of it, at most 600 s)")
         # max_markers within the truth's target's keypoints, before a folder is made
         self.measurement.check_keypoints(len(load_target(truth_scenario(self).target.file).keypoint_names))
 

@@ -141,6 +141,17 @@ def test_bad_value_is_one_error_line(tmp_path, capsys, flag, value, field):
     assert not (tmp_path / "bad").exists()
 
 
+@pytest.mark.parametrize("extra, field", [
+    (["--duration-s", "3", "--rate-hz", "0.25"], "duration_s = 3.0"),  # steps at 0 s only; statistics from 1.5 s
+    (["--duration-s", "10", "--rate-hz", "0.25", "--settle-s", "9"], "settle_s = 9.0"),  # the last step at 8 s
+])
+def test_statistics_without_a_step_after_the_settle_time_are_refused(tmp_path, capsys, extra, field):
+    """Once such a campaign ran and wrote a summary of NaNs, with numpy's warnings."""
+    assert main(["montecarlo", "--scenario", "default", "--runs", "2", *extra, "--out", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and field in err[0] and not (tmp_path / "c").exists()
+
+
 def test_block_reduction_equals_whole_array_statistics(campaign):
     """The chunked, streaming block equals run_filter over the same runs followed by the whole-array statistics."""
     from envisat_pose.analysis.stats import reduce_runs, run_summary
