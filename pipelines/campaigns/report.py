@@ -68,7 +68,20 @@ def load_sweep(out_dir: str) -> dict:
             figure = base64.b64encode(fh.read()).decode("ascii")
     cfg_path = os.path.join(out_dir, "montecarlo.config.toml")
     config = open(cfg_path, encoding="utf-8").read() if os.path.isfile(cfg_path) else ""
-    return {"dir": out_dir, "sweep": sweep, "figure": figure, "config": config}
+    c = {"dir": out_dir, "sweep": sweep, "figure": figure, "config": config}
+    _readable(path, render_sweep, c)
+    return c
+
+
+def _readable(path: str, render, c: dict) -> None:
+    """InputError naming the file when what it holds is JSON of another shape (a field missing, a list for a
+    table, a string for a number): render(c) tried before anything is written."""
+    if not isinstance(c.get("summary", c.get("sweep")), dict):
+        raise InputError(f"{path}: not a summary this report reads (a JSON object expected)")
+    try:
+        render(c)
+    except (KeyError, TypeError, AttributeError, IndexError, ValueError) as err:
+        raise InputError(f"{path}: not a summary this report reads ({type(err).__name__}: {err})") from None
 
 
 def render_sweep(c: dict) -> str:
@@ -119,7 +132,9 @@ def load_campaign(out_dir: str) -> dict:
         if os.path.isfile(fig):
             with open(fig, "rb") as fh:
                 figures[name] = base64.b64encode(fh.read()).decode("ascii")
-    return {"dir": out_dir, "summary": summary, "timing": timing, "config": config, "figures": figures}
+    c = {"dir": out_dir, "summary": summary, "timing": timing, "config": config, "figures": figures}
+    _readable(path, campaign_rows, c)
+    return c
 
 
 def _read_json(path: str) -> dict:
@@ -208,7 +223,7 @@ def render_report(campaigns: list[dict], sweeps: list[dict] = ()) -> str:
     sweeps_html = "".join(render_sweep(c) for c in sweeps)
     if not campaigns:
         return _page(sweeps_html)
-    names = [os.path.basename(os.path.normpath(c["dir"])) or c["dir"] for c in campaigns]
+    names = column_names([c["dir"] for c in campaigns])
     table = ["<table><tr><th></th>" + "".join(f"<th>{e(n)}</th>" for n in names) + "</tr>"]
     all_rows = [campaign_rows(c) for c in campaigns]
     if len(campaigns) > 1:
@@ -225,6 +240,20 @@ def render_report(campaigns: list[dict], sweeps: list[dict] = ()) -> str:
         cols.append(f"<div class=\"col\"><h2>{e(n)}</h2><p>{e(c['dir'])}</p>{figs}"
                     f"<details><summary>config</summary><pre>{e(c['config'])}</pre></details></div>")
     return _page("\n".join(table) + "<div class=\"cols\">" + "".join(cols) + "</div>" + sweeps_html)
+
+
+def column_names(dirs: list[str]) -> list[str]:
+    """Each folder's shortest trailing path that no other folder of the report shares (mc/us and mc/cs as 'us'
+    and 'cs'; tg/upper_stage/mc and tg/cubesat_3u/mc as 'upper_stage/mc' and 'cubesat_3u/mc')."""
+    parts = [os.path.normpath(os.path.abspath(d)).split(os.sep) for d in dirs]
+    names = []
+    for p in parts:
+        for k in range(1, len(p) + 1):
+            tail = p[-k:]
+            if sum(q[-k:] == tail for q in parts) == 1 or k == len(p):
+                names.append("/".join(tail).lstrip("/") or os.sep)
+                break
+    return names
 
 
 def _page(body: str) -> str:

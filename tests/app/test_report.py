@@ -93,6 +93,29 @@ def test_report_on_a_folder_without_summary_is_one_error_line(two_campaigns, tmp
     assert not (tmp_path / "r.html").exists()
 
 
+@pytest.mark.parametrize("name, text", [
+    ("summary.json", "{}"), ("summary.json", "[1, 2]"), ("summary.json", '{"rmse": "oops"}'),
+    ("sweep.json", '{"rates_hz": 5}'),
+])
+def test_a_summary_of_another_shape_is_one_error_line(two_campaigns, tmp_path, capsys, name, text):
+    """Valid JSON that is not a summary this report reads (a field missing, a list, a string for a table):
+    one line naming the file (once a 23-line traceback), nothing written."""
+    d = tmp_path / "odd"
+    shutil.copytree(two_campaigns[0], d)
+    (d / name).write_text(text)
+    assert main(["report", str(d), "--out", str(tmp_path / "r.html")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{name}: not" in err[0] and "Traceback" not in err[0], err
+    assert not (tmp_path / "r.html").exists()
+
+
+def test_columns_are_named_by_the_shortest_path_that_tells_them_apart():
+    from envisat_pose.pipelines.campaigns.report import column_names
+
+    assert column_names(["mc/ref", "tg/upper_stage/mc", "tg/cubesat_3u/mc"]) == ["ref", "upper_stage/mc",
+                                                                               "cubesat_3u/mc"]
+
+
 def test_report_names_each_campaigns_target(two_campaigns, tmp_path):
     """Another spacecraft's campaign (`montecarlo --target`) side by side with ENVISAT's: the table names each
     campaign's target file."""
