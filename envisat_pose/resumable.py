@@ -98,6 +98,10 @@ class ResumableJob:
         if manifest.get("format") != self.format:
             raise InputError(f"--out {self.out_dir!r}: {MANIFEST} is not a {self.what} manifest (format "
                              f"{self.format!r} expected); use another folder")
+        units = manifest.get(self.units_key, [])
+        if not isinstance(units, list) or not all(isinstance(e, dict) for e in units):
+            raise InputError(f"--out {self.out_dir!r}: {MANIFEST}'s {self.units_key!r} is not a list of entries; "
+                             "remove it or use another folder")
         theirs = {**self.added_defaults, **flatten({k: manifest.get(k) for k in self.identity})}
         ours = flatten(self.identity)
         diff = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))

@@ -122,7 +122,9 @@ def test_another_config_is_refused_before_anything_is_written(tmp_path):
 
 @pytest.mark.parametrize("text, message", [("{not json", "unreadable manifest.json"),
                                            ("[1, 2]", "holds a JSON list, not an object; remove it or use another"),
-                                           ('{"format": "other v1"}', "is not a test set manifest")])
+                                           ('{"format": "other v1"}', "is not a test set manifest"),
+                                           ('{"format": "test job v1", "units": "oops"}',
+                                            "manifest.json's 'units' is not a list of entries")])
 def test_a_foreign_or_broken_manifest_is_one_error(tmp_path, text, message):
     from envisat_pose.config import InputError
 
