@@ -80,6 +80,21 @@ def viewer_command(files: list[str], web: bool = False, port: int = DEFAULT_PORT
                               *files]
 
 
+def check_ports_free(port: int, web_port: int) -> None:
+    """InputError naming the port when something on this machine already listens on BIND at it (another viewer, a
+    killed one's orphan): the web viewer would fail to start there, or a page would show another recording."""
+    import socket
+
+    for name, value in (("port", port), ("web_port", web_port)):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # a closed connection's TIME_WAIT is no owner
+            try:
+                s.bind((BIND, value))
+            except OSError:
+                raise InputError(f"{name} {value}: {BIND}:{value} is in use (another viewer, or one left running?): "
+                                 "stop it or give another port") from None
+
+
 def web_url(port: int, web_port: int) -> str:
     """The address of the web viewer, pointed at the gRPC proxy that serves the recording."""
     proxy = urllib.parse.quote(f"rerun+http://{BIND}:{port}/proxy", safe="")

@@ -17,6 +17,7 @@ from envisat_pose.analysis.viewer import (
     BIND,
     DEFAULT_PORT,
     DEFAULT_WEB_PORT,
+    check_ports_free,
     check_recording,
     has_display,
     recordings,
@@ -56,6 +57,8 @@ def run_view(args: argparse.Namespace) -> int:
         raise InputError("no display to open a viewer window on (DISPLAY and WAYLAND_DISPLAY are unset): use "
                          f"`envisat view {args.path} --web` and open the address it prints in a browser")
     cmd = viewer_command(files, web=args.web, port=args.port, web_port=args.web_port)
+    if args.web:
+        check_ports_free(args.port, args.web_port)
     # Ctrl-C and SIGTERM end the viewer's group too, even where SIGINT came in ignored (a job started with `&`)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _interrupt)

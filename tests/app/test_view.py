@@ -123,6 +123,26 @@ def test_view_refuses_a_file_that_is_not_a_recording_and_a_machine_without_a_dis
     assert view.viewer_command([str(rrd)])[-3:] == ["--bind", "127.0.0.1", str(rrd)]
 
 
+def test_a_port_in_use_is_one_error_line_naming_its_flag(tmp_path, capsys):
+    """Something already listening on 127.0.0.1 at --web-port (another viewer, a killed one's orphan): one line
+    naming the flag, before a viewer starts (once the line said 'serving ... open http://...' and the exit was
+    0 while rerun failed to bind, or an orphan served its own recording at that address)."""
+    import socket
+
+    rrd = tmp_path / "run.rrd"
+    write_small_recording(rrd)
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        taken = busy.getsockname()[1]
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:  # a port nothing holds, for --port
+            probe.bind(("127.0.0.1", 0))
+            free = probe.getsockname()[1]
+        assert main(["view", str(rrd), "--web", "--port", str(free), "--web-port", str(taken)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and f"--web-port {taken}" in err and "in use" in err, err
+
+
 def write_small_recording(path):
     import numpy as np
 
