@@ -11,7 +11,7 @@ from envisat_pose.app.common import add_common, check_rrd_output, init_error_lin
 from envisat_pose.config import InputError
 from envisat_pose.filtering.estimator import FilterConfig, nees, nis_alarms_alone
 from envisat_pose.out_dirs import check_out_file
-from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, estimate_output_paths
+from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, estimate_output_paths, recorded_scenario
 from envisat_pose.pipelines.campaigns.estimate import run_estimate as run_pipeline
 from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.state import error_summary
@@ -82,7 +82,9 @@ def resolve_config(args: argparse.Namespace) -> EstimateConfig:
         "seed": args.seed,
         "init_error_scale": args.init_error_scale,
     }
-    return resolve_job("estimate", args.scenario, args.config, flags)
+    # a truth file's own scenario (where it records one) gives the tables a --scenario would
+    scenario = args.scenario or (recorded_scenario(args.truth) if args.truth else None)
+    return resolve_job("estimate", scenario, args.config, flags)
 
 
 def summary(arrays: dict, fcfg: FilterConfig) -> str:

@@ -220,21 +220,25 @@ def scenario_dict(name: str) -> dict:
     return truth_part(name)
 
 
-def truth_config_json(cfg: ScenarioConfig, target_sha256: str) -> str:
-    """A truth's config_json: the scenario config, and beside its target file the file's sha256 when simulated
-    (`target.sha256`, a record: a truth read later refuses a file that has changed since)."""
+def truth_config_json(cfg: ScenarioConfig, target_sha256: str, scenario: str | None = None) -> str:
+    """A truth's config_json: the scenario config, and two records beside it: the target file's sha256 when
+    simulated (`target.sha256`: a truth read later refuses a file that has changed since) and the named scenario
+    it was made from (`scenario`, where one was: `envisat estimate --truth` takes its filter and measurement
+    tables)."""
     import dataclasses
     import json
 
     data = dataclasses.asdict(cfg)
     data["target"]["sha256"] = target_sha256
+    if scenario is not None:
+        data["scenario"] = scenario
     return json.dumps(data, sort_keys=True)
 
 
 def scenario_of_truth(config: dict) -> ScenarioConfig:
-    """The validated ScenarioConfig of a truth's config (its target's sha256 record set aside)."""
+    """The validated ScenarioConfig of a truth's config (its records, truth_config_json's, set aside)."""
     target = {k: v for k, v in (config.get("target") or {}).items() if k != "sha256"}
-    return from_dict(ScenarioConfig, {**config, "target": target})
+    return from_dict(ScenarioConfig, {**{k: v for k, v in config.items() if k != "scenario"}, "target": target})
 
 
 def scenario_config(name: str = "default", **overrides) -> ScenarioConfig:

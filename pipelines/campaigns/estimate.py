@@ -172,7 +172,25 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
         overrides["dt_s"] = 1.0 / cfg.measurement.rate_hz
     scenario_dict(scenario)  # unknown names fail here with the list of known ones
     scfg = scenario_config(scenario, **overrides)
-    return simulate_truth(scfg, progress=progress), {"scenario": scenario}
+    return simulate_truth(scfg, progress=progress, scenario=scenario), {"scenario": scenario}
+
+
+def recorded_scenario(truth_path: str) -> str | None:
+    """The named scenario a truth file records it was simulated from (datagen.scenario.truth_config_json), None
+    where it records none, the name is no longer known, or the file does not read (load_truth says why)."""
+    from envisat_pose.config import ConfigError
+    from envisat_pose.named_scenarios import check_name
+
+    try:
+        with np.load(truth_path, allow_pickle=False) as z:
+            name = json.loads(str(z["config_json"])).get("scenario")
+    except Exception:  # noqa: BLE001 - any unreadable file: load_truth reports it in one line
+        return None
+    try:
+        check_name(name)
+    except ConfigError:
+        return None
+    return name
 
 
 def scenario_outages(cfg: EstimateConfig, scenario: str | None, truth) -> EstimateConfig:
@@ -261,7 +279,7 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     if not truth_path and not scenario:
         scenario = cfg.scenario
     truth, source = load_truth(cfg, truth_path, scenario, duration_s, progress)
-    cfg = scenario_outages(cfg, scenario, truth)
+    cfg = scenario_outages(cfg, scenario or cfg.scenario, truth)  # a truth file of cfg's scenario: its shadow too
     if len(truth.t_s) < 2:
         raise InputError("the truth trajectory has fewer than 2 samples")
     cfg.measurement.check_keypoints(int(truth.corners_C_m.shape[1]))  # max_markers <= the target's K

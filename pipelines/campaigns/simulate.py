@@ -17,8 +17,8 @@ def output_paths(out: str) -> tuple[str, str, str]:
 def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, progress: bool = False,
                  label: str = "") -> dict:
     """Simulate the truth of cfg (a validated datagen ScenarioConfig) with MuJoCo and write out (the
-    TruthTrajectory contract) and its config; with plot the states' PNG next to out (titled with label, the
-    scenario's name), with rrd a Rerun recording of the truth. The caller checks the output paths first.
+    TruthTrajectory contract) and its config; label: the named scenario cfg was made from (recorded in the truth,
+    and its plot's title); with plot the states' PNG next to out, with rrd a Rerun recording of the truth. The caller checks the output paths first.
 
     Returns {"truth": the TruthTrajectory, "truth_file": out, "config_toml": its path, "plot": the PNG or None,
     "rrd": rrd}.
@@ -26,9 +26,13 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
     from envisat_pose.datagen.truth import simulate_truth
 
     out, cfg_path, png = output_paths(out)
-    traj = simulate_truth(cfg, progress=progress)
+    traj = simulate_truth(cfg, progress=progress, scenario=label or None)
     traj.save(out)
-    atomic_write_text(cfg_path, "# envisat simulate: the full validated config of this run\n" + to_toml(to_dict(cfg)))
+    origin = (f"# made from scenario {label!r} (recorded in the truth: `envisat estimate --truth` takes its filter and "
+              f"measurement tables); `envisat simulate --scenario {label} --config THIS_FILE` remakes it\n"
+              if label else "")
+    atomic_write_text(cfg_path, "# envisat simulate: the full validated config of this run\n" + origin
+                      + to_toml(to_dict(cfg)))
     if plot:
         from envisat_pose.analysis.plots import plot_states
 

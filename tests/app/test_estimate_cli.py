@@ -365,3 +365,17 @@ def test_simulate_records_the_target_files_sha256_and_an_edit_since_is_refused(t
     assert main(["estimate", "--truth", str(truth), "--quiet", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "changed since the truth was simulated" in err and not out.parent.exists()
+
+
+def test_a_truth_file_is_estimated_with_its_scenarios_tables(tmp_path, capsys):
+    """`simulate --scenario paper-all-0.2` then `estimate --truth`: the filter takes the scenario the truth records
+    (its [measurement] sigma_m 0.2), as `estimate --scenario` would; flags still override it. Once every truth
+    file was estimated with the classes' defaults (sigma_m 0.02)."""
+    truth = tmp_path / "run.npz"
+    assert main(["simulate", "--scenario", "paper-all-0.2", "--duration-s", "20", "--out", str(truth), "--quiet"]) == 0
+    out = tmp_path / "est.npz"
+    assert main(["estimate", "--truth", str(truth), "--quiet", "--out", str(out)]) == 0
+    cfg = json.loads(str(_load(out)["config_json"]))["estimate"]
+    assert cfg["scenario"] == "paper-all-0.2" and cfg["measurement"]["sigma_m"] == 0.2
+    assert main(["estimate", "--truth", str(truth), "--sigma-m", "0.05", "--quiet", "--out", str(out)]) == 0
+    assert json.loads(str(_load(out)["config_json"]))["estimate"]["measurement"]["sigma_m"] == 0.05

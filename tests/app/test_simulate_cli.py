@@ -108,5 +108,8 @@ def test_written_config_reproduces_the_run(tmp_path):
     first = tmp_path / "first.npz"
     assert main(["simulate", "--scenario", "stress-tumble", "--duration-s", "20", "--seed", "9", "--out", str(first), "--quiet"]) == 0
     again = tmp_path / "again.npz"
-    assert main(["simulate", "--config", str(tmp_path / "first.config.toml"), "--out", str(again), "--quiet"]) == 0
-    assert sha256(first) == sha256(again)
+    written = tmp_path / "first.config.toml"
+    assert "`envisat simulate --scenario stress-tumble --config THIS_FILE` remakes it" in written.read_text()
+    assert main(["simulate", "--scenario", "stress-tumble", "--config", str(written), "--out", str(again),
+                 "--quiet"]) == 0
+    assert sha256(first) == sha256(again)  # the scenario's name is recorded in the truth too
