@@ -6,13 +6,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import warnings
 
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, check_rrd_output, skipped_line
 from envisat_pose.datagen.appearance import takes_class_appearance
 from envisat_pose.datagen.render_view import target_mask_values
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
-from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, skip_hint
+from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, skip_hint, unfinished_dataset
 from envisat_pose.target import DEFAULT_TARGET, load_target
 
 
@@ -75,6 +76,11 @@ def run_inspect_cli(args: argparse.Namespace) -> int:
     with skip_hint():
         shards, skipped = checked_shards(args.dir, args.skip_damaged, "dataset")
     stats = dataset_stats(shards)
+    unfinished = unfinished_dataset(manifest)
+    if unfinished:
+        stats["unfinished_dataset"] = f"{unfinished}: these statistics cover the shards written so far"
+        warnings.warn(f"dataset {args.dir!r}: {unfinished}: rerun its `envisat generate` command to finish it",
+                      stacklevel=1)
     if skipped:
         stats["skipped_damaged_shards"] = skipped
     print(json.dumps(stats, indent=1))

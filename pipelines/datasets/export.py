@@ -31,7 +31,13 @@ from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pipelines.datasets import export_layouts as lay
 from envisat_pose.pipelines.datasets.export_readme import readme_text
 from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
-from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, read_shard, skip_hint
+from envisat_pose.shard_reader import (
+    checked_shards,
+    load_dataset_manifest,
+    read_shard,
+    skip_hint,
+    unfinished_dataset,
+)
 from envisat_pose.target import APPENDAGE_GROUP, load_target
 from envisat_pose.target_mesh import ply_bytes
 
@@ -81,6 +87,9 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     if os.path.isdir(out_dir) and os.listdir(out_dir):
         raise InputError(f"out_dir {out_dir!r} exists and is not empty: an export writes a new folder")
     manifest = load_dataset_manifest(src, "src")
+    unfinished = unfinished_dataset(manifest)
+    if unfinished:
+        raise InputError(f"src {src!r}: {unfinished}: rerun its `envisat generate` command to finish it")
     with skip_hint():
         shards, skipped = checked_shards(src, skip_damaged, "src")
     gen = _generate_config(src, manifest, cfg.target)

@@ -1,0 +1,55 @@
+"""`envisat dataset export|inspect|verify` and `envisat generate` on the inputs a user gets wrong: an unfinished
+dataset, an existing empty --out, a bad seed or split, a target file given for another dataset, stray shards."""
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+import json
+
+import pytest
+
+from envisat_pose.app.cli import main as envisat_main
+from envisat_pose.config import from_dict
+from envisat_pose.datagen.factory import run_generate
+from envisat_pose.datagen.generate_config import GenerateConfig
+
+SMALL = {"num_images": 6, "shard_size": 2, "resolution_px": 64, "seed": 3}
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """A finished 6-image random-views dataset of 3 shards, and the same run interrupted after its first shard."""
+    root = tmp_path_factory.mktemp("inputs")
+    done, unfinished = str(root / "done"), str(root / "unfinished")
+    run_generate(from_dict(GenerateConfig, SMALL), done)
+
+    def interrupt(_):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_generate(from_dict(GenerateConfig, SMALL), unfinished, on_shard=interrupt)
+    return {"done": done, "unfinished": unfinished}
+
+
+def one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+def test_export_refuses_and_inspect_flags_a_dataset_whose_generate_was_interrupted(small, tmp_path, capsys):
+    src = small["unfinished"]
+    rc = envisat_main(["dataset", "export", src, "--format", "coco", "--out", str(tmp_path / "out"), "--quiet"])
+    line = one_error_line(capsys)
+    assert rc == 2 and "an unfinished dataset (1 of 3 shards)" in line and "envisat generate" in line
+    assert os.listdir(tmp_path) == []
+    montage = str(tmp_path / "m.png")
+    assert envisat_main(["dataset", "inspect", src, "--montage", montage, "--count", "1"]) == 0
+    out, err = capsys.readouterr()
+    assert "warning:" in err and "an unfinished dataset (1 of 3 shards)" in err
+    stats = json.loads(out[:out.rindex("}") + 1])
+    assert stats["samples"] == 2 and "1 of 3 shards" in stats["unfinished_dataset"]
+    assert envisat_main(["dataset", "inspect", small["done"], "--montage", montage, "--count", "1"]) == 0
+    out, err = capsys.readouterr()
+    assert "unfinished_dataset" not in out and "warning" not in err
