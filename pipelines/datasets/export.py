@@ -5,9 +5,10 @@ The shards are checked against the manifest first (a damaged one stops the expor
 with skip_damaged). One task per shard, on the local process pool, converts its samples: images (the PNG bytes
 of the shard unchanged, or JPEG on request; BOP's always three-channel JPEG), masks, depth, and a record per
 sample. The annotation files are then assembled from the records, streamed. Everything is written into a hidden
-staging folder beside `out_dir`, renamed to `out_dir` only when complete: an error or an interrupt leaves nothing
-behind, and an existing non-empty `out_dir` is refused. Files that name the folder (YOLO-pose's data.yaml, the
-README's commands) name `out_dir`'s absolute path, never the staging folder's.
+staging folder beside `out_dir`, renamed to `out_dir` only when complete (an existing empty `out_dir`, such as
+the working folder, gets its entries): an error or an interrupt leaves nothing behind, and an existing non-empty
+`out_dir` is refused. Files that name the folder (YOLO-pose's data.yaml, the README's commands) name `out_dir`'s
+absolute path, never the staging folder's.
 """
 
 from __future__ import annotations
@@ -103,6 +104,7 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     counts = _shard_counts(manifest, shards)
     splits = _split_flags(sum(counts), cfg, layout.mode)
     stage, made = _make_stage(out_dir)
+    moved: list[str] = []  # an existing empty out_dir: the entries moved into it so far
     try:
         _write_static(layout, stage, gen, manifest, bool(splits.any()), final_dir)
         _run_shards(layout, stage, shards, counts, splits, workers, progress, on_shard)
@@ -112,16 +114,40 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
             "format": cfg.fmt, "config": asdict(cfg), "source": os.path.abspath(src),
             "source_manifest_root_seed": manifest.get("root_seed"), "images": images, "skipped_damaged_shards": skipped,
             "target": layout.target, "keypoint_names": list(layout.keypoint_names), "image_ext": layout.ext})
-        if os.path.isdir(out_dir):
-            os.rmdir(out_dir)  # empty (checked above): the staging folder takes its place
-        os.rename(stage, out_dir)
+        _publish(stage, out_dir, moved)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
+        for name in moved:  # an existing out_dir is left empty, as it was
+            _remove(os.path.join(out_dir, name))
         for folder in made:
             with contextlib.suppress(OSError):
                 os.rmdir(folder)
         raise
     return ExportSummary(out_dir, cfg.fmt, images, skipped)
+
+
+def _publish(stage: str, out_dir: str, moved: list[str]) -> None:
+    """The staging folder becomes out_dir: renamed to it, or, where out_dir exists (empty: checked before), its
+    entries moved into it (the folder stays: the working folder `.`, a mount point), each name added to `moved`
+    before it moves (what a failure removes again). InputError when out_dir refuses them."""
+    if not os.path.isdir(out_dir):
+        os.rename(stage, out_dir)
+        return
+    try:
+        for name in sorted(os.listdir(stage)):
+            moved.append(name)
+            shutil.move(os.path.join(stage, name), os.path.join(out_dir, name))
+        os.rmdir(stage)
+    except OSError as err:
+        raise InputError(f"out_dir {out_dir!r}: cannot move the export into it ({err.strerror or err})") from None
+
+
+def _remove(path: str) -> None:
+    if os.path.isdir(path) and not os.path.islink(path):
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        with contextlib.suppress(OSError):
+            os.remove(path)
 
 
 def _generate_config(src: str, manifest: dict, target: str | None = None):

@@ -6,6 +6,7 @@ import os
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 
 import json
+import shutil
 
 import pytest
 
@@ -53,3 +54,29 @@ def test_export_refuses_and_inspect_flags_a_dataset_whose_generate_was_interrupt
     assert envisat_main(["dataset", "inspect", small["done"], "--montage", montage, "--count", "1"]) == 0
     out, err = capsys.readouterr()
     assert "unfinished_dataset" not in out and "warning" not in err
+
+
+def test_export_into_the_empty_working_folder(small, tmp_path, monkeypatch, capsys):
+    """`--out .`: an existing empty folder that cannot be removed gets the export's entries; an interrupt while
+    they move leaves it empty again, and nothing beside it."""
+    from envisat_pose.pipelines.datasets import export
+
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    real_move, calls = shutil.move, []
+
+    def move_then_interrupt(a, b):
+        calls.append(real_move(a, b))
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+
+    with monkeypatch.context() as mp:
+        mp.setattr(export.shutil, "move", move_then_interrupt)
+        assert envisat_main(["dataset", "export", small["done"], "--format", "yolo-pose", "--out", ".",
+                             "--quiet"]) == 130
+    assert len(calls) == 2 and os.listdir(here) == [] and os.listdir(tmp_path) == ["here"]
+    assert envisat_main(["dataset", "export", small["done"], "--format", "yolo-pose", "--out", ".", "--quiet"]) == 0
+    assert "wrote yolo-pose export" in capsys.readouterr().out
+    assert sorted(os.listdir(here)) == ["README.md", "data.yaml", "export.json", "images", "labels"]
+    assert f'path: "{here}"' in (here / "data.yaml").read_text() and os.listdir(tmp_path) == ["here"]
