@@ -66,6 +66,8 @@ class ExportConfig(Config):
         check(self.image_format in ("png", "jpg"), f"{p}image_format", self.image_format, "png or jpg")
         vf = self.val_fraction
         check(vf is None or 0.0 <= vf < 1.0, f"{p}val_fraction", vf, "a fraction in [0, 1)")
+        check(isinstance(self.seed, int) and 0 <= self.seed < 2**63, f"{p}seed", self.seed,
+              "a non-negative integer seed below 2^63")
 
 
 @dataclass(frozen=True)

@@ -80,3 +80,11 @@ def test_export_into_the_empty_working_folder(small, tmp_path, monkeypatch, caps
     assert "wrote yolo-pose export" in capsys.readouterr().out
     assert sorted(os.listdir(here)) == ["README.md", "data.yaml", "export.json", "images", "labels"]
     assert f'path: "{here}"' in (here / "data.yaml").read_text() and os.listdir(tmp_path) == ["here"]
+
+
+@pytest.mark.parametrize("seed", ["-1", str(2**63)])
+def test_a_split_seed_out_of_range_is_one_line(small, tmp_path, capsys, seed):
+    rc = envisat_main(["dataset", "export", small["done"], "--format", "coco", "--out", str(tmp_path / "o"),
+                       "--seed", seed, "--quiet"])
+    assert rc == 2 and f"seed = {seed}: expected a non-negative integer seed below 2^63" in one_error_line(capsys)
+    assert os.listdir(tmp_path) == []
