@@ -97,8 +97,9 @@ _FORMAT = {
   a keypoint scores 0.5 at an error of 0.059 sqrt(area)); {yolo_flip}.
 - A row: class 0, box centre x, y and width, height (the mask's whole pixels), then x y v per keypoint, all
   divided by the image's width (x) or height (y); x = u / W with u the pixel coordinate above (centres at
-  integers, as Ultralytics's own COCO converter divides); v = 2 visible, 1 hidden, a keypoint outside the
-  frame `0 0 0`.
+  integers, as Ultralytics's own COCO converter divides), clamped to [0, 1] (Ultralytics drops an image with a
+  negative value: a keypoint in the frame within half a pixel of its left or top edge, u in [-0.5, 0), is
+  written at 0, a move of at most 0.5 px); v = 2 visible, 1 hidden, a keypoint outside the frame `0 0 0`.
 
 ## Run it
     yolo pose train data={folder}/data.yaml model=yolov8n-pose.pt imgsz={n}
