@@ -47,7 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "one per core)")
     add_common(e, out="new folder (refused if it exists and is not empty)", seed="seed of the train/validation "
                "split (default 0)", flag_names={"src": "SRC", "format": "--format", "image_format": "--image-format",
-                                                "val_fraction": "--val-fraction", "workers": "--workers"})
+                                                "val_fraction": "--val-fraction", "workers": "--workers",
+                                                "target": "--target"})
     add_skip_damaged_argument(e)
     e.set_defaults(func=run_export_cli)
 

@@ -88,3 +88,29 @@ def test_a_split_seed_out_of_range_is_one_line(small, tmp_path, capsys, seed):
                        "--seed", seed, "--quiet"])
     assert rc == 2 and f"seed = {seed}: expected a non-negative integer seed below 2^63" in one_error_line(capsys)
     assert os.listdir(tmp_path) == []
+
+
+def test_the_target_file_to_give_is_named_and_another_target_file_is_refused_by_its_sha256(tmp_path, monkeypatch,
+                                                                                            capsys):
+    """A dataset of a target named by a relative path, exported from another folder: the line says to give the
+    file with --target; another target's file given there is refused by its sha256, before the dataset's generate
+    config is built on it (its sizes would follow that other target)."""
+    from envisat_pose.geometry import model_path
+
+    models = os.path.dirname(model_path())
+    (tmp_path / "home" / "mytgt").mkdir(parents=True)
+    shutil.copy(os.path.join(models, "cubesat_3u.xml"), tmp_path / "home" / "mytgt" / "cs.xml")
+    monkeypatch.chdir(tmp_path / "home")
+    src = str(tmp_path / "cs")
+    run_generate(from_dict(GenerateConfig, {**SMALL, "num_images": 2, "target": "mytgt/cs.xml"}), src)
+    monkeypatch.chdir(tmp_path)
+    export = ["dataset", "export", src, "--format", "coco", "--quiet", "--out"]
+    assert envisat_main(export + ["a"]) == 2
+    line = one_error_line(capsys)
+    assert "its target file 'mytgt/cs.xml'" in line and "give that file with --target" in line
+    assert envisat_main(export + ["b", "--target", os.path.join(models, "upper_stage.xml")]) == 2
+    line = one_error_line(capsys)
+    assert "--target" in line and "not the target file of src" in line and "'cubesat_3u'" in line
+    assert "range" not in line  # not a check of the generate config built on the upper stage
+    assert envisat_main(export + ["c", "--target", os.path.join("home", "mytgt", "cs.xml")]) == 0
+    assert sorted(os.listdir(tmp_path)) == ["c", "cs", "home"]
