@@ -35,14 +35,6 @@ _FORMAT = {
 - Each entry: `filename`; `q_vbs2tango_true`: unit quaternion, scalar first (w, x, y, z), Hamilton's product,
   of R with x_cam = R(q) x_body + r (w >= 0); `r_Vo2To_vbs_true`: r, metres, camera frame.
 - `models/keypoints.mat`: variable `tango3Dpoints`, 3 x K, metres, body frame (as SPNv2's loader reads it).
-
-## Run it (SPNv2, random views)
-    python3 tools/preprocess.py --cfg experiments/offline_train_full_config.yaml --jsonfile synthetic/train.json \\
-        DATASET.ROOT {parent} DATASET.DATANAME {name} DATASET.KEYPOINTS {name}/models/keypoints.mat \\
-        DATASET.NUM_KEYPOINTS {k} DATASET.IMAGE_SIZE "[{n}, {n}]"
-  (again with `--jsonfile synthetic/validation.json`), then `tools/train.py` with the same overrides. SPNv2 reads
-  the SPEED+ layout only when DATANAME contains `speedplus` (name the folder so), and its preprocess.py packs 11
-  keypoints plus the origin (24 values): for another K that line needs 2 (K + 1) (K = {k} here).
 """,
     "coco": """\
 ## COCO keypoints layout
@@ -107,6 +99,33 @@ _FORMAT = {
 }
 
 
+_SPNV2_RUN = {
+    "random": """
+## Run it (SPNv2, random views)
+    python3 tools/preprocess.py --cfg experiments/offline_train_full_config.yaml --jsonfile synthetic/train.json \\
+        DATASET.ROOT {parent} DATASET.DATANAME {name} DATASET.KEYPOINTS {name}/models/keypoints.mat \\
+        DATASET.NUM_KEYPOINTS {k} DATASET.IMAGE_SIZE "[{n}, {n}]"
+  (again with `--jsonfile synthetic/validation.json`), then `tools/train.py` with the same overrides. SPNv2 reads
+  the SPEED+ layout only when DATANAME contains `speedplus` (name the folder so), and its preprocess.py packs 11
+  keypoints plus the origin (24 values): for another K that line needs 2 (K + 1) (K = {k} here).
+""",
+    "sequence": """
+## Run it (SPNv2, a sequence)
+  This folder holds no `synthetic/train.json` or `synthetic/validation.json`: the labels are `{seq}/{seq}.json`,
+  the images `{seq}/synthetic/images/`, the masks `{seq}/synthetic/masks/`. SPNv2's preprocess.py reads a SHIRT
+  trajectory when DATANAME contains `shirt` (name the folder so), its labels from `--jsonfile
+  <trajectory>/<domain>/<file>` and its images from `<trajectory>/<domain>/images/`, so the labels go beside
+  the images first:
+    cp {folder}/{seq}/{seq}.json {folder}/{seq}/synthetic/
+    python3 tools/preprocess.py --cfg experiments/offline_train_full_config.yaml \\
+        --jsonfile {seq}/synthetic/{seq}.json DATASET.ROOT {parent} DATASET.DATANAME {name} \\
+        DATASET.KEYPOINTS {name}/models/keypoints.mat DATASET.NUM_KEYPOINTS {k} DATASET.IMAGE_SIZE "[{n}, {n}]"
+  Its preprocess.py packs 11 keypoints plus the origin (24 values): for another K that line needs 2 (K + 1)
+  (K = {k} here).
+""",
+}
+
+
 def _symmetry_texts(layout) -> dict[str, str]:
     """What BOP's files and scripts are told of the target's symmetries (layout.symmetric: models_info.json holds
     symmetries_discrete)."""
@@ -143,7 +162,8 @@ def readme_text(layout, K: np.ndarray, n: int, pitch_m: float, manifest: dict, f
             "the export's settings and image counts.\n\n")
     common = _COMMON.format(k=len(layout.keypoint_names), names=", ".join(layout.keypoint_names),
                             f=float(K[0, 0]), cx=float(K[0, 2]), cy=float(K[1, 2]), n=n)
-    body = _FORMAT[layout.fmt].format(pitch=pitch_m, folder=folder, parent=os.path.dirname(folder),
-                                      name=os.path.basename(folder), k=len(layout.keypoint_names), n=n,
-                                      sigma=OKS_SIGMA, **_flip_texts(layout), **_symmetry_texts(layout))
+    body = _FORMAT[layout.fmt] + (_SPNV2_RUN[layout.mode] if layout.fmt == "speedplus" else "")
+    body = body.format(pitch=pitch_m, folder=folder, parent=os.path.dirname(folder), name=os.path.basename(folder),
+                       seq=layout.sequence, k=len(layout.keypoint_names), n=n, sigma=OKS_SIGMA,
+                       **_flip_texts(layout), **_symmetry_texts(layout))
     return head + common + "\n" + body

@@ -412,6 +412,15 @@ def test_yolo_pose_row_clamps_a_keypoint_left_of_the_first_pixel_centre():
     assert "clamped to [0, 1]" in readme_of("yolo-pose")
 
 
+def test_a_sequence_speedplus_readme_names_the_files_its_export_holds():
+    """A sequence's SPEED+ export holds `<name>/<name>.json`, no synthetic/train.json: its README's SPNv2 command
+    names the files there are (random views keep theirs)."""
+    text = readme_of("speedplus", "sequence")
+    assert "--jsonfile synthetic/" not in text and "`seq/seq.json`" in text
+    assert "cp /data/out/seq/seq.json /data/out/seq/synthetic/" in text and "--jsonfile seq/synthetic/seq.json" in text
+    assert "--jsonfile synthetic/train.json" in readme_of("speedplus", "random")
+
+
 def readme_of(fmt, mode="random", **manifest):
     """The README an export of a small ENVISAT dataset writes (its text only: no dataset needed)."""
     from envisat_pose.pipelines.datasets.export_layouts import Layout
