@@ -116,7 +116,8 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
         _write_json(os.path.join(stage, "export.json"), {
             "format": cfg.fmt, "config": asdict(cfg), "source": os.path.abspath(src),
             "source_manifest_root_seed": manifest.get("root_seed"), "images": images, "skipped_damaged_shards": skipped,
-            "target": layout.target, "keypoint_names": list(layout.keypoint_names), "image_ext": layout.ext})
+            "target": layout.target, "keypoint_names": list(layout.keypoint_names), "image_ext": layout.ext,
+            "box_source": _box_source(cfg.fmt, gen.write_mask)})
         _publish(stage, out_dir, moved)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
@@ -222,6 +223,14 @@ def _dataset_target(src: str, gen, manifest: dict):
     return target
 
 
+def _box_source(fmt: str, masks: bool) -> str | None:
+    """What export.json says the boxes came from: the mask, or without masks (COCO, YOLO-pose) the projected
+    model (export_layouts._box); None where the format writes no box (SPEED+)."""
+    if fmt == "speedplus":
+        return None
+    return "mask" if masks else "projected_model"
+
+
 def _shard_counts(manifest: dict, shards: list[str]) -> list[int]:
     counts = {e["name"]: int(e["count"]) for e in manifest["shards"]}
     return [counts.get(os.path.basename(p), 0) for p in shards]
@@ -289,7 +298,7 @@ def _write_static(layout: lay.Layout, stage: str, gen, manifest: dict, has_val: 
         with open(os.path.join(stage, "data.yaml"), "w", encoding="utf-8") as fh:
             fh.write(yolo_yaml_text(layout, has_val, final_dir))
     with open(os.path.join(stage, "README.md"), "w", encoding="utf-8") as fh:
-        fh.write(readme_text(layout, K, n, _pixel_pitch_m(gen), manifest, final_dir))
+        fh.write(readme_text(layout, K, n, _pixel_pitch_m(gen), manifest, final_dir, gen.write_mask))
 
 
 def _shape_checked(target, appendages: bool) -> bool:

@@ -114,3 +114,23 @@ def test_the_target_file_to_give_is_named_and_another_target_file_is_refused_by_
     assert "range" not in line  # not a check of the generate config built on the upper stage
     assert envisat_main(export + ["c", "--target", os.path.join("home", "mytgt", "cs.xml")]) == 0
     assert sorted(os.listdir(tmp_path)) == ["c", "cs", "home"]
+
+
+def test_a_dataset_without_masks_says_its_boxes_come_from_the_projected_model(small, tmp_path):
+    """write_mask = false: COCO's and YOLO-pose's boxes are the projected model's, COCO's area the box's w x h;
+    the READMEs and export.json say so (a dataset with masks: the mask)."""
+    from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
+
+    src = str(tmp_path / "nomask")
+    run_generate(from_dict(GenerateConfig, {**SMALL, "num_images": 2, "write_mask": False}), src)
+    for fmt in ("coco", "yolo-pose"):
+        out = export_dataset(src, str(tmp_path / fmt), ExportConfig(fmt, val_fraction=0.0), progress=False).out_dir
+        readme = open(os.path.join(out, "README.md")).read()
+        assert "the projected model" in readme and "write_mask = false" in readme and "the target's mask" not in readme
+        assert json.load(open(os.path.join(out, "export.json")))["box_source"] == "projected_model"
+    coco = json.load(open(os.path.join(tmp_path, "coco", "annotations", "keypoints_train.json")))
+    assert coco["annotations"] and all(a["area"] == a["bbox"][2] * a["bbox"][3] for a in coco["annotations"])
+    assert "area: the box's w x h" in open(os.path.join(tmp_path, "coco", "README.md")).read()
+    out = export_dataset(small["done"], str(tmp_path / "masked"), ExportConfig("coco"), progress=False).out_dir
+    assert "the target's mask" in open(os.path.join(out, "README.md")).read()
+    assert json.load(open(os.path.join(out, "export.json")))["box_source"] == "mask"
