@@ -237,9 +237,15 @@ def _shard_counts(manifest: dict, shards: list[str]) -> list[int]:
 
 
 def _split_flags(n: int, cfg: ExportConfig, mode: str) -> np.ndarray:
-    """(n,) bool, True for validation: a seeded random share of random views; a sequence's last frames."""
+    """(n,) bool, True for validation: a seeded random share of random views; a sequence's last frames.
+    InputError when a val_fraction asked for (BOP's one split aside) leaves either split without an image."""
     vf = cfg.val_fraction if cfg.val_fraction is not None else (0.2 if mode == "random" else 0.0)
     n_val = int(round(vf * n))
+    if cfg.val_fraction and cfg.fmt != "bop" and not 0 < n_val < n:
+        empty = "training" if n_val else "validation"
+        raise InputError(f"val_fraction {vf:g}: {n_val} of the {n} images in the validation split leaves the "
+                         f"{empty} split empty; expected a fraction that leaves each split an image (or 0: no "
+                         "validation split)")
     flags = np.zeros(n, dtype=bool)
     if n_val == 0:
         return flags

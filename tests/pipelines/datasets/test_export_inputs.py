@@ -134,3 +134,12 @@ def test_a_dataset_without_masks_says_its_boxes_come_from_the_projected_model(sm
     out = export_dataset(small["done"], str(tmp_path / "masked"), ExportConfig("coco"), progress=False).out_dir
     assert "the target's mask" in open(os.path.join(out, "README.md")).read()
     assert json.load(open(os.path.join(out, "export.json")))["box_source"] == "mask"
+
+
+@pytest.mark.parametrize("fraction, empty", [("0.99", "training"), ("0.05", "validation")])
+def test_a_val_fraction_that_leaves_a_split_empty_is_one_line(small, tmp_path, capsys, fraction, empty):
+    rc = envisat_main(["dataset", "export", small["done"], "--format", "yolo-pose", "--out", str(tmp_path / "o"),
+                       "--val-fraction", fraction, "--quiet"])
+    line = one_error_line(capsys)
+    assert rc == 2 and f"--val-fraction {fraction}:" in line and f"leaves the {empty} split empty" in line
+    assert os.listdir(tmp_path) == []
