@@ -9,6 +9,7 @@ import os
 import warnings
 
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, check_rrd_output, skipped_line
+from envisat_pose.config import InputError
 from envisat_pose.datagen.appearance import takes_class_appearance
 from envisat_pose.datagen.render_view import target_mask_values
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
@@ -69,6 +70,8 @@ def run_verify_cli(args: argparse.Namespace) -> int:
 def run_inspect_cli(args: argparse.Namespace) -> int:
     from envisat_pose.datagen.dataset import dataset_stats, montage
 
+    if args.count < 1:
+        raise InputError(f"--count {args.count}: expected at least 1 image in the montage")
     path = args.montage or os.path.join(args.dir, "montage.png")
     check_out_file(path, "--montage")
     if args.rrd:

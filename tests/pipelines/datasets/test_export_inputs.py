@@ -143,3 +143,35 @@ def test_a_val_fraction_that_leaves_a_split_empty_is_one_line(small, tmp_path, c
     line = one_error_line(capsys)
     assert rc == 2 and f"--val-fraction {fraction}:" in line and f"leaves the {empty} split empty" in line
     assert os.listdir(tmp_path) == []
+
+
+def _label_shard(path, visible_lists):
+    """A shard of samples whose labels hold what dataset_stats reads, one per list of visible flags."""
+    import io
+    import tarfile
+
+    with tarfile.open(path, "w") as tar:
+        for i, visible in enumerate(visible_lists):
+            label = {"t_cam_from_target_m": [0.0, 0.0, 5.0], "visible": visible, "in_frame": [True] * len(visible),
+                     "scene": {}, "corruption": {"model": "none"}}
+            for suffix, data in (("json", json.dumps(label).encode()), ("png", b"not read")):
+                info = tarfile.TarInfo(f"{i:09d}.{suffix}")
+                info.size = len(data)
+                tar.addfile(info, io.BytesIO(data))
+    return str(path)
+
+
+def test_the_visible_keypoints_histogram_has_a_bin_for_each_count_of_the_targets_keypoints(tmp_path):
+    from envisat_pose.datagen.dataset import dataset_stats
+
+    twelve = _label_shard(tmp_path / "cubesat.tar", [[False] * 12, [True] * 3 + [False] * 9])
+    assert dataset_stats([twelve])["visible_corners_histogram"] == [1, 0, 0, 1] + [0] * 9  # 0 to 12 visible
+    eight = _label_shard(tmp_path / "envisat.tar", [[True] * 8])
+    assert dataset_stats([eight])["visible_corners_histogram"] == [0] * 8 + [1]
+
+
+@pytest.mark.parametrize("count", ["0", "-3"])
+def test_inspect_refuses_a_montage_of_no_images(small, tmp_path, capsys, count):
+    rc = envisat_main(["dataset", "inspect", small["done"], "--montage", str(tmp_path / "m.png"), "--count", count])
+    assert rc == 2 and f"--count {count}: expected at least 1" in one_error_line(capsys)
+    assert os.listdir(tmp_path) == []
