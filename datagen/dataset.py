@@ -18,7 +18,8 @@ from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, rea
 
 def verify_dataset(out_dir: str) -> list[str]:
     """Problems of a dataset, one line each (empty: every shard present and matching its manifest entry by the
-    core's one shard check, shard_reader.shard_problem: size, sha256, samples)."""
+    core's one shard check, shard_reader.shard_problem: size, sha256, samples; and no shard-*.tar there that the
+    manifest does not list)."""
     manifest = load_dataset_manifest(out_dir)
     found = {}  # shard name: its problem
     listed = {e["name"]: e for e in manifest["shards"]}
@@ -32,6 +33,11 @@ def verify_dataset(out_dir: str) -> list[str]:
         if issue:
             found[entry["name"]] = f"{entry['name']}: {issue}"
     problems = [found[n] for n in names if n in found]
+    for path in sorted(glob.glob(os.path.join(glob.escape(out_dir), "shard-*.tar"))):
+        name = os.path.basename(path)
+        if name not in listed and name not in names:  # beyond num_shards: another run's, or a copied-in file
+            problems.append(f"{name}: not part of the dataset (the manifest does not list it; a `shard-*.tar` "
+                            "glob would read it)")
     for tmp in sorted(glob.glob(os.path.join(out_dir, ".tmp-*"))):
         problems.append(f"{os.path.basename(tmp)}: partial file of an interrupted run")
     total = sum(e.get("count", 0) for e in manifest["shards"])

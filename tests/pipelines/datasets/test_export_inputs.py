@@ -175,3 +175,14 @@ def test_inspect_refuses_a_montage_of_no_images(small, tmp_path, capsys, count):
     rc = envisat_main(["dataset", "inspect", small["done"], "--montage", str(tmp_path / "m.png"), "--count", count])
     assert rc == 2 and f"--count {count}: expected at least 1" in one_error_line(capsys)
     assert os.listdir(tmp_path) == []
+
+
+def test_verify_reports_a_shard_the_manifest_does_not_list(small, tmp_path, capsys):
+    out = tmp_path / "ds"
+    shutil.copytree(small["done"], out)
+    assert envisat_main(["dataset", "verify", str(out)]) == 0
+    shutil.copy(out / "shard-000000.tar", out / "shard-000007.tar")  # a copied-in file: a glob would read it
+    capsys.readouterr()
+    assert envisat_main(["dataset", "verify", str(out)]) == 1
+    assert "PROBLEM shard-000007.tar: not part of the dataset" in capsys.readouterr().out
+
