@@ -186,3 +186,14 @@ def test_verify_reports_a_shard_the_manifest_does_not_list(small, tmp_path, caps
     assert envisat_main(["dataset", "verify", str(out)]) == 1
     assert "PROBLEM shard-000007.tar: not part of the dataset" in capsys.readouterr().out
 
+
+def test_generate_refuses_a_folder_of_files_without_a_manifest(small, tmp_path, capsys):
+    """Shards without a manifest are not a dataset to resume: generate there would overwrite them."""
+    out = tmp_path / "shards"
+    out.mkdir()
+    shutil.copy(os.path.join(small["done"], "shard-000000.tar"), out / "shard-000000.tar")
+    before = (out / "shard-000000.tar").read_bytes()
+    rc = envisat_main(["generate", "--out", str(out), "--num-images", "2", "--resolution", "64", "--quiet"])
+    line = one_error_line(capsys)
+    assert rc == 2 and "shard-000000.tar" in line and "no manifest.json" in line
+    assert os.listdir(out) == ["shard-000000.tar"] and (out / "shard-000000.tar").read_bytes() == before
