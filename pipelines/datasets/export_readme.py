@@ -51,6 +51,7 @@ _FORMAT = {
   scores 0.5 at an error of 0.059 sqrt(area).
 
 ## Run it
+    import numpy as np
     from pycocotools.coco import COCO; from pycocotools.cocoeval import COCOeval
     gt = COCO("{folder}/annotations/keypoints_val.json")   # images: {folder}/images/ + file_name
     ev = COCOeval(gt, gt.loadRes("predictions.json"), "keypoints"); ev.params.kpt_oks_sigmas = np.full({k}, {sigma:g})

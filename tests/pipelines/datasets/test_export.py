@@ -421,6 +421,21 @@ def test_a_sequence_speedplus_readme_names_the_files_its_export_holds():
     assert "--jsonfile synthetic/train.json" in readme_of("speedplus", "random")
 
 
+def test_the_coco_readme_snippet_imports_every_name_it_uses():
+    """The README's pycocotools lines, run as they stand, define every name before its use (np included)."""
+    import ast
+    import builtins
+
+    text = readme_of("coco")
+    lines = text[text.index("## Run it"):].splitlines()[1:]
+    code = "\n".join(ln[4:] for ln in lines[:next(i for i, ln in enumerate(lines) if not ln.startswith("    "))])
+    tree = ast.parse(code)
+    bound = {a.asname or a.name for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)) for a in n.names}
+    bound |= {n.id for n in ast.walk(tree) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store)}
+    used = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
+    assert "np" in used and used - bound - set(dir(builtins)) == set()
+
+
 def readme_of(fmt, mode="random", **manifest):
     """The README an export of a small ENVISAT dataset writes (its text only: no dataset needed)."""
     from envisat_pose.pipelines.datasets.export_layouts import Layout
