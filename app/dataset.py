@@ -6,13 +6,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import warnings
 
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, check_rrd_output, skipped_line
+from envisat_pose.config import InputError
 from envisat_pose.datagen.appearance import takes_class_appearance
 from envisat_pose.datagen.render_view import target_mask_values
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
-from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, skip_hint
+from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, skip_hint, unfinished_dataset
 from envisat_pose.target import DEFAULT_TARGET, load_target
 
 
@@ -46,7 +48,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "one per core)")
     add_common(e, out="new folder (refused if it exists and is not empty)", seed="seed of the train/validation "
                "split (default 0)", flag_names={"src": "SRC", "format": "--format", "image_format": "--image-format",
-                                                "val_fraction": "--val-fraction", "workers": "--workers"})
+                                                "val_fraction": "--val-fraction", "workers": "--workers",
+                                                "target": "--target"})
     add_skip_damaged_argument(e)
     e.set_defaults(func=run_export_cli)
 
@@ -67,6 +70,8 @@ def run_verify_cli(args: argparse.Namespace) -> int:
 def run_inspect_cli(args: argparse.Namespace) -> int:
     from envisat_pose.datagen.dataset import dataset_stats, montage
 
+    if args.count < 1:
+        raise InputError(f"--count {args.count}: expected at least 1 image in the montage")
     path = args.montage or os.path.join(args.dir, "montage.png")
     check_out_file(path, "--montage")
     if args.rrd:
@@ -75,6 +80,11 @@ def run_inspect_cli(args: argparse.Namespace) -> int:
     with skip_hint():
         shards, skipped = checked_shards(args.dir, args.skip_damaged, "dataset")
     stats = dataset_stats(shards)
+    unfinished = unfinished_dataset(manifest)
+    if unfinished:
+        stats["unfinished_dataset"] = f"{unfinished}: these statistics cover the shards written so far"
+        warnings.warn(f"dataset {args.dir!r}: {unfinished}: rerun its `envisat generate` command to finish it",
+                      stacklevel=1)
     if skipped:
         stats["skipped_damaged_shards"] = skipped
     print(json.dumps(stats, indent=1))

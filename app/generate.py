@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--backend", default="local", choices=("local", "dask"), help="local process pool or Dask")
     g.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler address (default: a LocalCluster on 127.0.0.1)")
     g.add_argument("--out", required=True, metavar="DIR", help="dataset folder (created, parents too; resumed if it "
-                   "exists)")
+                   "holds a dataset; a folder of other files is refused)")
     add_common(g, quiet=True)
     g.set_defaults(func=run_generate_cli)
 

@@ -18,7 +18,8 @@ from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, rea
 
 def verify_dataset(out_dir: str) -> list[str]:
     """Problems of a dataset, one line each (empty: every shard present and matching its manifest entry by the
-    core's one shard check, shard_reader.shard_problem: size, sha256, samples)."""
+    core's one shard check, shard_reader.shard_problem: size, sha256, samples; and no shard-*.tar there that the
+    manifest does not list)."""
     manifest = load_dataset_manifest(out_dir)
     found = {}  # shard name: its problem
     listed = {e["name"]: e for e in manifest["shards"]}
@@ -32,6 +33,11 @@ def verify_dataset(out_dir: str) -> list[str]:
         if issue:
             found[entry["name"]] = f"{entry['name']}: {issue}"
     problems = [found[n] for n in names if n in found]
+    for path in sorted(glob.glob(os.path.join(glob.escape(out_dir), "shard-*.tar"))):
+        name = os.path.basename(path)
+        if name not in listed and name not in names:  # beyond num_shards: another run's, or a copied-in file
+            problems.append(f"{name}: not part of the dataset (the manifest does not list it; a `shard-*.tar` "
+                            "glob would read it)")
     for tmp in sorted(glob.glob(os.path.join(out_dir, ".tmp-*"))):
         problems.append(f"{os.path.basename(tmp)}: partial file of an interrupted run")
     total = sum(e.get("count", 0) for e in manifest["shards"])
@@ -97,13 +103,14 @@ def sample_png(members: dict[str, bytes], label: dict | None = None) -> bytes:
 
 
 def dataset_stats(source: str | list[str]) -> dict:
-    """Statistics over every label: counts, range, visible and in-frame corners, eclipses, corruption levels.
-    source: a dataset folder or its checked shard files."""
-    ranges, n_vis, n_frame, eclipse, earth = [], [], [], 0, 0
+    """Statistics over every label: counts, range, visible and in-frame corners (the histogram: K + 1 bins, 0 to
+    the target's K keypoints), eclipses, corruption levels. source: a dataset folder or its checked shard files."""
+    ranges, n_vis, n_frame, eclipse, earth, k = [], [], [], 0, 0, 0
     levels: dict[str, dict[str, int]] = {}
     for _, lab, _ in iter_samples(source):
         ranges.append(float(np.linalg.norm(lab["t_cam_from_target_m"])))
         n_vis.append(int(np.sum(lab["visible"])))
+        k = max(k, len(lab["visible"]))
         n_frame.append(int(np.sum(lab["in_frame"])))
         scene = lab.get("scene", {})
         eclipse += bool(scene.get("eclipse"))
@@ -121,7 +128,7 @@ def dataset_stats(source: str | list[str]) -> dict:
     return {
         "samples": n,
         "range_m": {"min": float(r.min()), "mean": float(r.mean()), "max": float(r.max())},
-        "visible_corners_histogram": np.bincount(n_vis, minlength=9).tolist(),
+        "visible_corners_histogram": np.bincount(n_vis, minlength=k + 1).tolist(),
         "in_frame_corners_mean": float(np.mean(n_frame)),
         "eclipse_fraction": eclipse / n,
         "earth_backdrop_fraction": earth / n,
@@ -159,6 +166,8 @@ def montage(source: str | list[str], path: str, count: int = 16, tile_px: int = 
     dataset folder or its checked shard files."""
     import cv2
 
+    if count < 1:
+        raise InputError(f"count {count}: expected at least 1 image in the montage")
     tiles = []
     for key, lab, members in iter_samples(source, limit=count):
         tile = draw_labels(sample_image(members, lab, f"sample {key}"), lab)

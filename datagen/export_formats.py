@@ -121,14 +121,21 @@ def coco_skeleton(pairs) -> list[list[int]]:
 
 def yolo_row(label: dict, box: tuple[int, int, int, int], width: int, height: int, class_id: int = 0) -> str:
     """One object's row: class, box centre and size, then x y v per keypoint, all normalized by the image's size
-    (x = u / W, the label's pixel coordinate, as Ultralytics converts COCO); outside the frame `0 0 0`."""
+    (x = u / W, the label's pixel coordinate, as Ultralytics converts COCO) and clamped to [0, 1] (Ultralytics
+    drops an image with a negative label value; a keypoint in the frame, u in [-0.5, W - 0.5), moves at most
+    0.5 px); outside the frame `0 0 0`."""
     x0, y0, x1, y1 = box
     vals = [(x0 + x1 + 1) / 2 / width, (y0 + y1 + 1) / 2 / height, (x1 - x0 + 1) / width, (y1 - y0 + 1) / height]
     codes = visibility_codes(label)
     kps = []
     for (u, v), code in zip(keypoints_px(label), codes):
-        kps += [f"{u / width:.7f}", f"{v / height:.7f}", str(int(code))] if code else ["0", "0", "0"]
-    return " ".join([str(class_id), *(f"{x:.7f}" for x in vals), *kps])
+        kps += [_unit_text(u / width), _unit_text(v / height), str(int(code))] if code else ["0", "0", "0"]
+    return " ".join([str(class_id), *(_unit_text(x) for x in vals), *kps])
+
+
+def _unit_text(x: float) -> str:
+    """x clamped to [0, 1], 7 decimals."""
+    return f"{min(max(float(x), 0.0), 1.0):.7f}"
 
 
 # --- BOP ------------------------------------------------------------------------------------------------------

@@ -111,6 +111,15 @@ def load_dataset_manifest(data_dir: str, field: str = "dataset", required: bool 
     return manifest
 
 
+def unfinished_dataset(manifest: dict) -> str | None:
+    """'an unfinished dataset (n of N shards)' when a dataset's manifest is not marked complete (a generate run
+    interrupted and not resumed: only the shards written so far are there), else None."""
+    if manifest.get("complete"):
+        return None
+    expected = manifest.get("num_shards", "?")
+    return f"an unfinished dataset ({len(manifest['shards'])} of {expected} shards)"
+
+
 def _manifest_problem(manifest: dict) -> str | None:
     """What keeps a manifest from being a dataset's (None: nothing): a list 'shards' of entries, each with the
     plain file name of a shard and its count of samples and, where given (older datasets have no size), its size

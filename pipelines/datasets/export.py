@@ -5,9 +5,10 @@ The shards are checked against the manifest first (a damaged one stops the expor
 with skip_damaged). One task per shard, on the local process pool, converts its samples: images (the PNG bytes
 of the shard unchanged, or JPEG on request; BOP's always three-channel JPEG), masks, depth, and a record per
 sample. The annotation files are then assembled from the records, streamed. Everything is written into a hidden
-staging folder beside `out_dir`, renamed to `out_dir` only when complete: an error or an interrupt leaves nothing
-behind, and an existing non-empty `out_dir` is refused. Files that name the folder (YOLO-pose's data.yaml, the
-README's commands) name `out_dir`'s absolute path, never the staging folder's.
+staging folder beside `out_dir`, renamed to `out_dir` only when complete (an existing empty `out_dir`, such as
+the working folder, gets its entries): an error or an interrupt leaves nothing behind, and an existing non-empty
+`out_dir` is refused. Files that name the folder (YOLO-pose's data.yaml, the README's commands) name `out_dir`'s
+absolute path, never the staging folder's.
 """
 
 from __future__ import annotations
@@ -31,8 +32,15 @@ from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pipelines.datasets import export_layouts as lay
 from envisat_pose.pipelines.datasets.export_readme import readme_text
 from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
-from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, read_shard, skip_hint
-from envisat_pose.target import APPENDAGE_GROUP, load_target
+from envisat_pose.shard_reader import (
+    checked_shards,
+    load_dataset_manifest,
+    read_shard,
+    skip_hint,
+    unfinished_dataset,
+)
+from envisat_pose.target import APPENDAGE_GROUP, DEFAULT_TARGET, load_target, resolve_target_path
+from envisat_pose.target_file import target_sha256
 from envisat_pose.target_mesh import ply_bytes
 
 STAGE_PREFIX = ".tmp-export-"
@@ -59,6 +67,8 @@ class ExportConfig(Config):
         check(self.image_format in ("png", "jpg"), f"{p}image_format", self.image_format, "png or jpg")
         vf = self.val_fraction
         check(vf is None or 0.0 <= vf < 1.0, f"{p}val_fraction", vf, "a fraction in [0, 1)")
+        check(isinstance(self.seed, int) and 0 <= self.seed < 2**63, f"{p}seed", self.seed,
+              "a non-negative integer seed below 2^63")
 
 
 @dataclass(frozen=True)
@@ -81,6 +91,9 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     if os.path.isdir(out_dir) and os.listdir(out_dir):
         raise InputError(f"out_dir {out_dir!r} exists and is not empty: an export writes a new folder")
     manifest = load_dataset_manifest(src, "src")
+    unfinished = unfinished_dataset(manifest)
+    if unfinished:
+        raise InputError(f"src {src!r}: {unfinished}: rerun its `envisat generate` command to finish it")
     with skip_hint():
         shards, skipped = checked_shards(src, skip_damaged, "src")
     gen = _generate_config(src, manifest, cfg.target)
@@ -94,6 +107,7 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     counts = _shard_counts(manifest, shards)
     splits = _split_flags(sum(counts), cfg, layout.mode)
     stage, made = _make_stage(out_dir)
+    moved: list[str] = []  # an existing empty out_dir: the entries moved into it so far
     try:
         _write_static(layout, stage, gen, manifest, bool(splits.any()), final_dir)
         _run_shards(layout, stage, shards, counts, splits, workers, progress, on_shard)
@@ -102,12 +116,13 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
         _write_json(os.path.join(stage, "export.json"), {
             "format": cfg.fmt, "config": asdict(cfg), "source": os.path.abspath(src),
             "source_manifest_root_seed": manifest.get("root_seed"), "images": images, "skipped_damaged_shards": skipped,
-            "target": layout.target, "keypoint_names": list(layout.keypoint_names), "image_ext": layout.ext})
-        if os.path.isdir(out_dir):
-            os.rmdir(out_dir)  # empty (checked above): the staging folder takes its place
-        os.rename(stage, out_dir)
+            "target": layout.target, "keypoint_names": list(layout.keypoint_names), "image_ext": layout.ext,
+            "box_source": _box_source(cfg.fmt, gen.write_mask)})
+        _publish(stage, out_dir, moved)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
+        for name in moved:  # an existing out_dir is left empty, as it was
+            _remove(os.path.join(out_dir, name))
         for folder in made:
             with contextlib.suppress(OSError):
                 os.rmdir(folder)
@@ -115,9 +130,34 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     return ExportSummary(out_dir, cfg.fmt, images, skipped)
 
 
+def _publish(stage: str, out_dir: str, moved: list[str]) -> None:
+    """The staging folder becomes out_dir: renamed to it, or, where out_dir exists (empty: checked before), its
+    entries moved into it (the folder stays: the working folder `.`, a mount point), each name added to `moved`
+    before it moves (what a failure removes again). InputError when out_dir refuses them."""
+    if not os.path.isdir(out_dir):
+        os.rename(stage, out_dir)
+        return
+    try:
+        for name in sorted(os.listdir(stage)):
+            moved.append(name)
+            shutil.move(os.path.join(stage, name), os.path.join(out_dir, name))
+        os.rmdir(stage)
+    except OSError as err:
+        raise InputError(f"out_dir {out_dir!r}: cannot move the export into it ({err.strerror or err})") from None
+
+
+def _remove(path: str) -> None:
+    if os.path.isdir(path) and not os.path.islink(path):
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        with contextlib.suppress(OSError):
+            os.remove(path)
+
+
 def _generate_config(src: str, manifest: dict, target: str | None = None):
     """The dataset's generate config, its target file the one given in its place (the recorded path may no longer
-    be there: the file given is checked against the recorded sha256 when the target is read)."""
+    be there), that file checked first (_check_target_file: the config's sizes follow its target)."""
+    _check_target_file(src, manifest, target)
     try:
         recorded = dict(manifest["config"])
         if target is not None:
@@ -125,6 +165,32 @@ def _generate_config(src: str, manifest: dict, target: str | None = None):
         return config_from_json(json.dumps(recorded))
     except (KeyError, TypeError, ValueError) as err:
         raise InputError(f"src {src!r}: manifest.json holds no readable generate config ({err})") from None
+
+
+def _check_target_file(src: str, manifest: dict, target: str | None) -> None:
+    """The dataset's target file (`target`, or else the path its config records) is found from here and its
+    sha256 is the one the manifest recorded: InputError in one line saying which file to give, never an error of
+    a generate config built on another target."""
+    given = target if target is not None else (manifest.get("config") or {}).get("target", DEFAULT_TARGET)
+    if not isinstance(given, str):
+        return  # not a path: the config's own check names it
+    path = resolve_target_path(given)
+    if not os.path.isfile(path):
+        if target is None:
+            raise InputError(f"src {src!r}: its target file {given!r} (the path its manifest.json records) is not "
+                             "found from here: give that file with `target`")
+        raise InputError(f"target {target!r}: no such file; expected the dataset's target file (MJCF)")
+    record = manifest.get("target") or {}
+    recorded = record.get("sha256")
+    digest = target_sha256(path)
+    if recorded is None or digest == recorded:
+        return
+    if target is None:
+        raise InputError(f"src {src!r}: its target file {given!r} changed since the dataset was generated "
+                         f"(sha256 {digest[:12]}..., the manifest recorded {recorded[:12]}...)")
+    raise InputError(f"target {target!r}: not the target file of src {src!r} (sha256 {digest[:12]}..., its "
+                     f"manifest recorded {recorded[:12]}... for {record.get('name')!r}, file "
+                     f"{record.get('file')!r}); expected that file, unchanged since the dataset was generated")
 
 
 def _layout(cfg: ExportConfig, gen, src: str, manifest: dict) -> lay.Layout:
@@ -157,15 +223,29 @@ def _dataset_target(src: str, gen, manifest: dict):
     return target
 
 
+def _box_source(fmt: str, masks: bool) -> str | None:
+    """What export.json says the boxes came from: the mask, or without masks (COCO, YOLO-pose) the projected
+    model (export_layouts._box); None where the format writes no box (SPEED+)."""
+    if fmt == "speedplus":
+        return None
+    return "mask" if masks else "projected_model"
+
+
 def _shard_counts(manifest: dict, shards: list[str]) -> list[int]:
     counts = {e["name"]: int(e["count"]) for e in manifest["shards"]}
     return [counts.get(os.path.basename(p), 0) for p in shards]
 
 
 def _split_flags(n: int, cfg: ExportConfig, mode: str) -> np.ndarray:
-    """(n,) bool, True for validation: a seeded random share of random views; a sequence's last frames."""
+    """(n,) bool, True for validation: a seeded random share of random views; a sequence's last frames.
+    InputError when a val_fraction asked for (BOP's one split aside) leaves either split without an image."""
     vf = cfg.val_fraction if cfg.val_fraction is not None else (0.2 if mode == "random" else 0.0)
     n_val = int(round(vf * n))
+    if cfg.val_fraction and cfg.fmt != "bop" and not 0 < n_val < n:
+        empty = "training" if n_val else "validation"
+        raise InputError(f"val_fraction {vf:g}: {n_val} of the {n} images in the validation split leaves the "
+                         f"{empty} split empty; expected a fraction that leaves each split an image (or 0: no "
+                         "validation split)")
     flags = np.zeros(n, dtype=bool)
     if n_val == 0:
         return flags
@@ -224,7 +304,7 @@ def _write_static(layout: lay.Layout, stage: str, gen, manifest: dict, has_val: 
         with open(os.path.join(stage, "data.yaml"), "w", encoding="utf-8") as fh:
             fh.write(yolo_yaml_text(layout, has_val, final_dir))
     with open(os.path.join(stage, "README.md"), "w", encoding="utf-8") as fh:
-        fh.write(readme_text(layout, K, n, _pixel_pitch_m(gen), manifest, final_dir))
+        fh.write(readme_text(layout, K, n, _pixel_pitch_m(gen), manifest, final_dir, gen.write_mask))
 
 
 def _shape_checked(target, appendages: bool) -> bool:

@@ -35,30 +35,23 @@ _FORMAT = {
 - Each entry: `filename`; `q_vbs2tango_true`: unit quaternion, scalar first (w, x, y, z), Hamilton's product,
   of R with x_cam = R(q) x_body + r (w >= 0); `r_Vo2To_vbs_true`: r, metres, camera frame.
 - `models/keypoints.mat`: variable `tango3Dpoints`, 3 x K, metres, body frame (as SPNv2's loader reads it).
-
-## Run it (SPNv2, random views)
-    python3 tools/preprocess.py --cfg experiments/offline_train_full_config.yaml --jsonfile synthetic/train.json \\
-        DATASET.ROOT {parent} DATASET.DATANAME {name} DATASET.KEYPOINTS {name}/models/keypoints.mat \\
-        DATASET.NUM_KEYPOINTS {k} DATASET.IMAGE_SIZE "[{n}, {n}]"
-  (again with `--jsonfile synthetic/validation.json`), then `tools/train.py` with the same overrides. SPNv2 reads
-  the SPEED+ layout only when DATANAME contains `speedplus` (name the folder so), and its preprocess.py packs 11
-  keypoints plus the origin (24 values): for another K that line needs 2 (K + 1) (K = {k} here).
 """,
     "coco": """\
 ## COCO keypoints layout
 - `images/<split>/`, `annotations/keypoints_<split>.json` with `images` (id, file_name relative to `images/`,
-  width, height, and K), `annotations` (bbox [x, y, w, h] of the target's mask over whole pixels: pixel i covers
-  [i, i + 1]; area: the mask's pixel count; iscrowd 0; keypoints [x, y, v] per keypoint; num_keypoints: count of
-  v > 0; pose: R_cam_from_target, q_cam_from_target_wxyz, t_cam_from_target_m), `categories` (keypoint names,
+  width, height, and K), `annotations` (bbox [x, y, w, h] of {box_source} over whole pixels: pixel i covers
+  [i, i + 1]; area: {coco_area}; iscrowd 0; keypoints [x, y, v] per keypoint; num_keypoints: count of v > 0;
+  pose: R_cam_from_target, q_cam_from_target_wxyz, t_cam_from_target_m), `categories` (keypoint names,
   skeleton: the target's keypoint pairs joined along its edges (its MJCF's sharp edges), 1-based;
   keypoints_3d_m: the keypoints in the body frame).
 - v = 2 visible, 1 in the frame but hidden, 0 outside the frame (then x = y = 0). x, y: the pixel coordinates
   above (centres at integers: COCO's keypoint convention as detectron2 reads it).
-- Images with no target pixel have no annotation.
-- OKS: a sigma of {sigma:g} per keypoint is suggested (corners are sharp; COCO's eyes use 0.025): a keypoint
+- Images with {no_target} have no annotation.
+{box_note}- OKS: a sigma of {sigma:g} per keypoint is suggested (corners are sharp; COCO's eyes use 0.025): a keypoint
   scores 0.5 at an error of 0.059 sqrt(area).
 
 ## Run it
+    import numpy as np
     from pycocotools.coco import COCO; from pycocotools.cocoeval import COCOeval
     gt = COCO("{folder}/annotations/keypoints_val.json")   # images: {folder}/images/ + file_name
     ev = COCOeval(gt, gt.loadRes("predictions.json"), "keypoints"); ev.params.kpt_oks_sigmas = np.full({k}, {sigma:g})
@@ -91,19 +84,60 @@ _FORMAT = {
 """,
     "yolo-pose": """\
 ## Ultralytics YOLO-pose layout
-- `images/<split>/`, `labels/<split>/` (one .txt per image; empty: no target pixel), `data.yaml`: `path` this
+- `images/<split>/`, `labels/<split>/` (one .txt per image; empty: {no_target}), `data.yaml`: `path` this
   folder's absolute path as exported (works from any working folder; moved: edit it), kpt_shape [{k}, 3],
   `kpt_oks_sigmas` {sigma:g} per keypoint (Ultralytics releases that read it score OKS with it, others with 1/K:
   a keypoint scores 0.5 at an error of 0.059 sqrt(area)); {yolo_flip}.
-- A row: class 0, box centre x, y and width, height (the mask's whole pixels), then x y v per keypoint, all
+- A row: class 0, box centre x, y and width, height ({box_source}'s whole pixels), then x y v per keypoint, all
   divided by the image's width (x) or height (y); x = u / W with u the pixel coordinate above (centres at
-  integers, as Ultralytics's own COCO converter divides); v = 2 visible, 1 hidden, a keypoint outside the
-  frame `0 0 0`.
-
+  integers, as Ultralytics's own COCO converter divides), clamped to [0, 1] (Ultralytics drops an image with a
+  negative value: a keypoint in the frame within half a pixel of its left or top edge, u in [-0.5, 0), is
+  written at 0, a move of at most 0.5 px); v = 2 visible, 1 hidden, a keypoint outside the frame `0 0 0`.
+{box_note}
 ## Run it
     yolo pose train data={folder}/data.yaml model=yolov8n-pose.pt imgsz={n}
 """,
 }
+
+
+_SPNV2_RUN = {
+    "random": """
+## Run it (SPNv2, random views)
+    python3 tools/preprocess.py --cfg experiments/offline_train_full_config.yaml --jsonfile synthetic/train.json \\
+        DATASET.ROOT {parent} DATASET.DATANAME {name} DATASET.KEYPOINTS {name}/models/keypoints.mat \\
+        DATASET.NUM_KEYPOINTS {k} DATASET.IMAGE_SIZE "[{n}, {n}]"
+  (again with `--jsonfile synthetic/validation.json`), then `tools/train.py` with the same overrides. SPNv2 reads
+  the SPEED+ layout only when DATANAME contains `speedplus` (name the folder so), and its preprocess.py packs 11
+  keypoints plus the origin (24 values): for another K that line needs 2 (K + 1) (K = {k} here).
+""",
+    "sequence": """
+## Run it (SPNv2, a sequence)
+  This folder holds no `synthetic/train.json` or `synthetic/validation.json`: the labels are `{seq}/{seq}.json`,
+  the images `{seq}/synthetic/images/`, the masks `{seq}/synthetic/masks/`. SPNv2's preprocess.py reads a SHIRT
+  trajectory when DATANAME contains `shirt` (name the folder so), its labels from `--jsonfile
+  <trajectory>/<domain>/<file>` and its images from `<trajectory>/<domain>/images/`, so the labels go beside
+  the images first:
+    cp {folder}/{seq}/{seq}.json {folder}/{seq}/synthetic/
+    python3 tools/preprocess.py --cfg experiments/offline_train_full_config.yaml \\
+        --jsonfile {seq}/synthetic/{seq}.json DATASET.ROOT {parent} DATASET.DATANAME {name} \\
+        DATASET.KEYPOINTS {name}/models/keypoints.mat DATASET.NUM_KEYPOINTS {k} DATASET.IMAGE_SIZE "[{n}, {n}]"
+  Its preprocess.py packs 11 keypoints plus the origin (24 values): for another K that line needs 2 (K + 1)
+  (K = {k} here).
+""",
+}
+
+
+def _box_texts(masks: bool) -> dict[str, str]:
+    """Where COCO's and YOLO-pose's boxes come from: the target's mask, or, for a dataset generated without masks
+    (write_mask = false), the projected model (export_layouts._box)."""
+    if masks:
+        return {"box_source": "the target's mask", "coco_area": "the mask's pixel count",
+                "no_target": "no target pixel", "box_note": ""}
+    return {"box_source": "the projected model", "coco_area": "the box's w x h (no mask to count)",
+            "no_target": "no projected model in the frame",
+            "box_note": "- Boxes: this dataset has no masks (generated with write_mask = false), so each box is the\n"
+                        "  projected model's: the pixels whose centres the projections of its vertices span, clipped\n"
+                        "  to the image.\n"}
 
 
 def _symmetry_texts(layout) -> dict[str, str]:
@@ -133,16 +167,19 @@ def _flip_texts(layout) -> dict[str, str]:
                          "empty: every keypoint on its plane), INPUT.RANDOM_FLIP may stay on"}
 
 
-def readme_text(layout, K: np.ndarray, n: int, pitch_m: float, manifest: dict, folder: str) -> str:
+def readme_text(layout, K: np.ndarray, n: int, pitch_m: float, manifest: dict, folder: str, masks: bool = True
+                ) -> str:
     """The folder's README: where it came from, the common conventions, the format's layout and the command its
-    tool runs on it. folder: the export folder's absolute path (as exported)."""
+    tool runs on it. folder: the export folder's absolute path (as exported); masks: the dataset has masks (the
+    boxes' source)."""
     head = (f"# {layout.target}: {layout.fmt} export of an envisat-pose dataset\n\n"
             f"Made by `envisat dataset export` from a {layout.mode}-mode dataset (root seed "
             f"{manifest.get('root_seed')}, {manifest.get('num_images')} images, {n} px). `export.json` records "
             "the export's settings and image counts.\n\n")
     common = _COMMON.format(k=len(layout.keypoint_names), names=", ".join(layout.keypoint_names),
                             f=float(K[0, 0]), cx=float(K[0, 2]), cy=float(K[1, 2]), n=n)
-    body = _FORMAT[layout.fmt].format(pitch=pitch_m, folder=folder, parent=os.path.dirname(folder),
-                                      name=os.path.basename(folder), k=len(layout.keypoint_names), n=n,
-                                      sigma=OKS_SIGMA, **_flip_texts(layout), **_symmetry_texts(layout))
+    body = _FORMAT[layout.fmt] + (_SPNV2_RUN[layout.mode] if layout.fmt == "speedplus" else "")
+    body = body.format(pitch=pitch_m, folder=folder, parent=os.path.dirname(folder), name=os.path.basename(folder),
+                       seq=layout.sequence, k=len(layout.keypoint_names), n=n, sigma=OKS_SIGMA,
+                       **_flip_texts(layout), **_symmetry_texts(layout), **_box_texts(masks))
     return head + common + "\n" + body

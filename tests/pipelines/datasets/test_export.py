@@ -387,7 +387,8 @@ def test_yolo_pose_rows(datasets, exports, case, tmp_path, monkeypatch):
             assert np.array_equal(kp[:, 2], codes)
             inside = codes > 0
             uv = kp[:, :2] * [w, h]
-            assert np.abs(uv[inside] - np.asarray(lab["corners_px"])[inside]).max() < 0.01
+            expected = np.clip(np.asarray(lab["corners_px"]), 0.0, [w, h])  # clamped: no negative value
+            assert np.abs(uv[inside] - expected[inside]).max() < 0.01
             assert np.all(kp[~inside] == 0)
             ys, xs = np.nonzero(mask)
             box = row[1:5] * [w, h, w, h]
@@ -396,6 +397,54 @@ def test_yolo_pose_rows(datasets, exports, case, tmp_path, monkeypatch):
             assert os.path.exists(os.path.join(folder, "images", split, f"{i:06d}.png"))
             seen += 1
     assert seen == len(labels)
+
+
+def test_yolo_pose_row_clamps_a_keypoint_left_of_the_first_pixel_centre():
+    """A keypoint in the frame at u = -0.3 px (the frame starts at -0.5): Ultralytics drops an image whose label
+    holds a negative value, so the row writes it at 0 (a 0.3 px move); the rest stays u / W."""
+    from envisat_pose.datagen.export_formats import yolo_row
+
+    label = {"keypoints_px": [[-0.3, 10.0], [63.2, 31.5], [90.0, 5.0]], "in_frame": [True, True, False],
+             "visible": [True, False, True]}
+    row = np.array(yolo_row(label, (0, 0, 63, 31), 64, 32).split(), float)
+    assert row.min() >= 0.0 and row[1:5].max() <= 1.0
+    assert row[5:].tolist() == pytest.approx([0.0, 10.0 / 32, 2, 63.2 / 64, 31.5 / 32, 1, 0, 0, 0], abs=1e-7)
+    assert "clamped to [0, 1]" in readme_of("yolo-pose")
+
+
+def test_a_sequence_speedplus_readme_names_the_files_its_export_holds():
+    """A sequence's SPEED+ export holds `<name>/<name>.json`, no synthetic/train.json: its README's SPNv2 command
+    names the files there are (random views keep theirs)."""
+    text = readme_of("speedplus", "sequence")
+    assert "--jsonfile synthetic/" not in text and "`seq/seq.json`" in text
+    assert "cp /data/out/seq/seq.json /data/out/seq/synthetic/" in text and "--jsonfile seq/synthetic/seq.json" in text
+    assert "--jsonfile synthetic/train.json" in readme_of("speedplus", "random")
+
+
+def test_the_coco_readme_snippet_imports_every_name_it_uses():
+    """The README's pycocotools lines, run as they stand, define every name before its use (np included)."""
+    import ast
+    import builtins
+
+    text = readme_of("coco")
+    lines = text[text.index("## Run it"):].splitlines()[1:]
+    code = "\n".join(ln[4:] for ln in lines[:next(i for i, ln in enumerate(lines) if not ln.startswith("    "))])
+    tree = ast.parse(code)
+    bound = {a.asname or a.name for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom)) for a in n.names}
+    bound |= {n.id for n in ast.walk(tree) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store)}
+    used = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
+    assert "np" in used and used - bound - set(dir(builtins)) == set()
+
+
+def readme_of(fmt, mode="random", **manifest):
+    """The README an export of a small ENVISAT dataset writes (its text only: no dataset needed)."""
+    from envisat_pose.pipelines.datasets.export_layouts import Layout
+    from envisat_pose.pipelines.datasets.export_readme import readme_text
+
+    layout = Layout(fmt=fmt, ext="png", mode=mode, sequence="seq", target="envisat", keypoint_names=CORNER_NAMES,
+                    keypoints_T_m=[], outline_T_m=[], depth_scale_mm=None, skeleton=[])
+    K = np.array([[120.0, 0.0, 31.5], [0.0, 120.0, 31.5], [0.0, 0.0, 1.0]])
+    return readme_text(layout, K, 64, 1e-5, {"root_seed": 0, "num_images": 4, **manifest}, "/data/out")
 
 
 # --- safety -----------------------------------------------------------------------------------------------------
@@ -533,6 +582,6 @@ def test_a_moved_target_file_is_given_with_target(tmp_path, monkeypatch):
     coco = json.load(open(os.path.join(out.out_dir, "annotations", "keypoints_train.json")))
     assert len(coco["categories"][0]["keypoints"]) == 12 and len(coco["annotations"]) == 2
     (home / "sat.xml").write_text((home / "sat.xml").read_text().replace("<mujoco", "<!-- edited -->\n<mujoco", 1))
-    with pytest.raises(InputError, match="changed since the dataset was generated"):
+    with pytest.raises(InputError, match="not the target file of src .*unchanged since the dataset was generated"):
         export_dataset(src, str(tmp_path / "edited"), ExportConfig("coco", val_fraction=0.0,
                                                                    target=str(home / "sat.xml")), progress=False)

@@ -1,0 +1,199 @@
+"""`envisat dataset export|inspect|verify` and `envisat generate` on the inputs a user gets wrong: an unfinished
+dataset, an existing empty --out, a bad seed or split, a target file given for another dataset, stray shards."""
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+import json
+import shutil
+
+import pytest
+
+from envisat_pose.app.cli import main as envisat_main
+from envisat_pose.config import from_dict
+from envisat_pose.datagen.factory import run_generate
+from envisat_pose.datagen.generate_config import GenerateConfig
+
+SMALL = {"num_images": 6, "shard_size": 2, "resolution_px": 64, "seed": 3}
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """A finished 6-image random-views dataset of 3 shards, and the same run interrupted after its first shard."""
+    root = tmp_path_factory.mktemp("inputs")
+    done, unfinished = str(root / "done"), str(root / "unfinished")
+    run_generate(from_dict(GenerateConfig, SMALL), done)
+
+    def interrupt(_):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_generate(from_dict(GenerateConfig, SMALL), unfinished, on_shard=interrupt)
+    return {"done": done, "unfinished": unfinished}
+
+
+def one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+def test_export_refuses_and_inspect_flags_a_dataset_whose_generate_was_interrupted(small, tmp_path, capsys):
+    src = small["unfinished"]
+    rc = envisat_main(["dataset", "export", src, "--format", "coco", "--out", str(tmp_path / "out"), "--quiet"])
+    line = one_error_line(capsys)
+    assert rc == 2 and "an unfinished dataset (1 of 3 shards)" in line and "envisat generate" in line
+    assert os.listdir(tmp_path) == []
+    montage = str(tmp_path / "m.png")
+    assert envisat_main(["dataset", "inspect", src, "--montage", montage, "--count", "1"]) == 0
+    out, err = capsys.readouterr()
+    assert "warning:" in err and "an unfinished dataset (1 of 3 shards)" in err
+    stats = json.loads(out[:out.rindex("}") + 1])
+    assert stats["samples"] == 2 and "1 of 3 shards" in stats["unfinished_dataset"]
+    assert envisat_main(["dataset", "inspect", small["done"], "--montage", montage, "--count", "1"]) == 0
+    out, err = capsys.readouterr()
+    assert "unfinished_dataset" not in out and "warning" not in err
+
+
+def test_export_into_the_empty_working_folder(small, tmp_path, monkeypatch, capsys):
+    """`--out .`: an existing empty folder that cannot be removed gets the export's entries; an interrupt while
+    they move leaves it empty again, and nothing beside it."""
+    from envisat_pose.pipelines.datasets import export
+
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    real_move, calls = shutil.move, []
+
+    def move_then_interrupt(a, b):
+        calls.append(real_move(a, b))
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+
+    with monkeypatch.context() as mp:
+        mp.setattr(export.shutil, "move", move_then_interrupt)
+        assert envisat_main(["dataset", "export", small["done"], "--format", "yolo-pose", "--out", ".",
+                             "--quiet"]) == 130
+    assert len(calls) == 2 and os.listdir(here) == [] and os.listdir(tmp_path) == ["here"]
+    assert envisat_main(["dataset", "export", small["done"], "--format", "yolo-pose", "--out", ".", "--quiet"]) == 0
+    assert "wrote yolo-pose export" in capsys.readouterr().out
+    assert sorted(os.listdir(here)) == ["README.md", "data.yaml", "export.json", "images", "labels"]
+    assert f'path: "{here}"' in (here / "data.yaml").read_text() and os.listdir(tmp_path) == ["here"]
+
+
+@pytest.mark.parametrize("seed", ["-1", str(2**63)])
+def test_a_split_seed_out_of_range_is_one_line(small, tmp_path, capsys, seed):
+    rc = envisat_main(["dataset", "export", small["done"], "--format", "coco", "--out", str(tmp_path / "o"),
+                       "--seed", seed, "--quiet"])
+    assert rc == 2 and f"seed = {seed}: expected a non-negative integer seed below 2^63" in one_error_line(capsys)
+    assert os.listdir(tmp_path) == []
+
+
+def test_the_target_file_to_give_is_named_and_another_target_file_is_refused_by_its_sha256(tmp_path, monkeypatch,
+                                                                                            capsys):
+    """A dataset of a target named by a relative path, exported from another folder: the line says to give the
+    file with --target; another target's file given there is refused by its sha256, before the dataset's generate
+    config is built on it (its sizes would follow that other target)."""
+    from envisat_pose.geometry import model_path
+
+    models = os.path.dirname(model_path())
+    (tmp_path / "home" / "mytgt").mkdir(parents=True)
+    shutil.copy(os.path.join(models, "cubesat_3u.xml"), tmp_path / "home" / "mytgt" / "cs.xml")
+    monkeypatch.chdir(tmp_path / "home")
+    src = str(tmp_path / "cs")
+    run_generate(from_dict(GenerateConfig, {**SMALL, "num_images": 2, "target": "mytgt/cs.xml"}), src)
+    monkeypatch.chdir(tmp_path)
+    export = ["dataset", "export", src, "--format", "coco", "--quiet", "--out"]
+    assert envisat_main(export + ["a"]) == 2
+    line = one_error_line(capsys)
+    assert "its target file 'mytgt/cs.xml'" in line and "give that file with --target" in line
+    assert envisat_main(export + ["b", "--target", os.path.join(models, "upper_stage.xml")]) == 2
+    line = one_error_line(capsys)
+    assert "--target" in line and "not the target file of src" in line and "'cubesat_3u'" in line
+    assert "range" not in line  # not a check of the generate config built on the upper stage
+    assert envisat_main(export + ["c", "--target", os.path.join("home", "mytgt", "cs.xml")]) == 0
+    assert sorted(os.listdir(tmp_path)) == ["c", "cs", "home"]
+
+
+def test_a_dataset_without_masks_says_its_boxes_come_from_the_projected_model(small, tmp_path):
+    """write_mask = false: COCO's and YOLO-pose's boxes are the projected model's, COCO's area the box's w x h;
+    the READMEs and export.json say so (a dataset with masks: the mask)."""
+    from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
+
+    src = str(tmp_path / "nomask")
+    run_generate(from_dict(GenerateConfig, {**SMALL, "num_images": 2, "write_mask": False}), src)
+    for fmt in ("coco", "yolo-pose"):
+        out = export_dataset(src, str(tmp_path / fmt), ExportConfig(fmt, val_fraction=0.0), progress=False).out_dir
+        readme = open(os.path.join(out, "README.md")).read()
+        assert "the projected model" in readme and "write_mask = false" in readme and "the target's mask" not in readme
+        assert json.load(open(os.path.join(out, "export.json")))["box_source"] == "projected_model"
+    coco = json.load(open(os.path.join(tmp_path, "coco", "annotations", "keypoints_train.json")))
+    assert coco["annotations"] and all(a["area"] == a["bbox"][2] * a["bbox"][3] for a in coco["annotations"])
+    assert "area: the box's w x h" in open(os.path.join(tmp_path, "coco", "README.md")).read()
+    out = export_dataset(small["done"], str(tmp_path / "masked"), ExportConfig("coco"), progress=False).out_dir
+    assert "the target's mask" in open(os.path.join(out, "README.md")).read()
+    assert json.load(open(os.path.join(out, "export.json")))["box_source"] == "mask"
+
+
+@pytest.mark.parametrize("fraction, empty", [("0.99", "training"), ("0.05", "validation")])
+def test_a_val_fraction_that_leaves_a_split_empty_is_one_line(small, tmp_path, capsys, fraction, empty):
+    rc = envisat_main(["dataset", "export", small["done"], "--format", "yolo-pose", "--out", str(tmp_path / "o"),
+                       "--val-fraction", fraction, "--quiet"])
+    line = one_error_line(capsys)
+    assert rc == 2 and f"--val-fraction {fraction}:" in line and f"leaves the {empty} split empty" in line
+    assert os.listdir(tmp_path) == []
+
+
+def _label_shard(path, visible_lists):
+    """A shard of samples whose labels hold what dataset_stats reads, one per list of visible flags."""
+    import io
+    import tarfile
+
+    with tarfile.open(path, "w") as tar:
+        for i, visible in enumerate(visible_lists):
+            label = {"t_cam_from_target_m": [0.0, 0.0, 5.0], "visible": visible, "in_frame": [True] * len(visible),
+                     "scene": {}, "corruption": {"model": "none"}}
+            for suffix, data in (("json", json.dumps(label).encode()), ("png", b"not read")):
+                info = tarfile.TarInfo(f"{i:09d}.{suffix}")
+                info.size = len(data)
+                tar.addfile(info, io.BytesIO(data))
+    return str(path)
+
+
+def test_the_visible_keypoints_histogram_has_a_bin_for_each_count_of_the_targets_keypoints(tmp_path):
+    from envisat_pose.datagen.dataset import dataset_stats
+
+    twelve = _label_shard(tmp_path / "cubesat.tar", [[False] * 12, [True] * 3 + [False] * 9])
+    assert dataset_stats([twelve])["visible_corners_histogram"] == [1, 0, 0, 1] + [0] * 9  # 0 to 12 visible
+    eight = _label_shard(tmp_path / "envisat.tar", [[True] * 8])
+    assert dataset_stats([eight])["visible_corners_histogram"] == [0] * 8 + [1]
+
+
+@pytest.mark.parametrize("count", ["0", "-3"])
+def test_inspect_refuses_a_montage_of_no_images(small, tmp_path, capsys, count):
+    rc = envisat_main(["dataset", "inspect", small["done"], "--montage", str(tmp_path / "m.png"), "--count", count])
+    assert rc == 2 and f"--count {count}: expected at least 1" in one_error_line(capsys)
+    assert os.listdir(tmp_path) == []
+
+
+def test_verify_reports_a_shard_the_manifest_does_not_list(small, tmp_path, capsys):
+    out = tmp_path / "ds"
+    shutil.copytree(small["done"], out)
+    assert envisat_main(["dataset", "verify", str(out)]) == 0
+    shutil.copy(out / "shard-000000.tar", out / "shard-000007.tar")  # a copied-in file: a glob would read it
+    capsys.readouterr()
+    assert envisat_main(["dataset", "verify", str(out)]) == 1
+    assert "PROBLEM shard-000007.tar: not part of the dataset" in capsys.readouterr().out
+
+
+def test_generate_refuses_a_folder_of_files_without_a_manifest(small, tmp_path, capsys):
+    """Shards without a manifest are not a dataset to resume: generate there would overwrite them."""
+    out = tmp_path / "shards"
+    out.mkdir()
+    shutil.copy(os.path.join(small["done"], "shard-000000.tar"), out / "shard-000000.tar")
+    before = (out / "shard-000000.tar").read_bytes()
+    rc = envisat_main(["generate", "--out", str(out), "--num-images", "2", "--resolution", "64", "--quiet"])
+    line = one_error_line(capsys)
+    assert rc == 2 and "shard-000000.tar" in line and "no manifest.json" in line
+    assert os.listdir(out) == ["shard-000000.tar"] and (out / "shard-000000.tar").read_bytes() == before
