@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm
-from envisat_pose.config import InputError, check, to_dict, to_toml
+from envisat_pose.config import check, to_dict, to_toml
 from envisat_pose.datagen.appearance import (
     FACE_GEOMS,
     GEOM_CLASS,
@@ -38,9 +38,9 @@ from envisat_pose.datagen.render_view import APPENDAGE_MASK_VALUE, MASK_VALUES, 
 from envisat_pose.datagen.target_scene import target_scene
 from envisat_pose.datagen.views import R_K_FROM_C, sample_random_view, sample_seed, sequence_frames, sequence_view, unit
 from envisat_pose.io import atomic_write_text, sha256_file
-from envisat_pose.out_dirs import PARTIAL_PREFIX, check_out_dir
+from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pools import RunnerConfig, cpu_share, thread_env
-from envisat_pose.resumable import ResumableJob, manifest_path
+from envisat_pose.resumable import ResumableJob
 from envisat_pose.shard_reader import shard_problem
 from envisat_pose.state import MRP, POS, RATE, VEL
 from envisat_pose.target import load_target
@@ -345,18 +345,6 @@ def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
         verify_unit=lambda entry, path: shard_problem(path, entry) is None)
 
 
-def check_no_foreign_files(out_dir: str) -> None:
-    """InputError in one line when out_dir is a folder that holds files but no manifest.json: not a dataset to
-    resume, and its shard-*.tar would be overwritten (a killed run's partial files, PARTIAL_PREFIX, aside)."""
-    if not os.path.isdir(out_dir) or os.path.exists(manifest_path(out_dir)):
-        return
-    names = sorted(n for n in os.listdir(out_dir) if not n.startswith(PARTIAL_PREFIX))
-    if names:
-        shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
-        raise InputError(f"--out {out_dir!r} holds {len(names)} entries ({shown}) and no manifest.json: not a "
-                         "dataset to resume; expected an empty or new folder (use another one)")
-
-
 def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: str = "local",
                  scheduler: str | None = None, progress: bool = False,
                  on_shard: Callable[[dict], None] | None = None) -> dict:
@@ -370,7 +358,6 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
     runner = RunnerConfig(backend, workers, scheduler, thread_env(workers))
     runner.validate()
     check_out_dir(out_dir)
-    check_no_foreign_files(out_dir)
     if cfg.mode == "sequence":  # before anything is written: the truth's keep-out and the depth range
         check_sequence_depth(cfg)
     job = dataset_job(cfg, out_dir)

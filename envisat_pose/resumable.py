@@ -69,6 +69,8 @@ class ResumableJob:
     checks beyond the sha256. A unit's entry (its task's result) holds at least 'index' and 'sha256'.
     added_defaults: identity fields (flattened, 'config.x') added to the job after folders were written without
     them, each with the value such a folder had implicitly (a field's default that reproduces the older bytes).
+    own_entries: what the job may have written into its folder before the first manifest (its unit subfolders
+    are among them); a folder without a manifest that holds anything else is not this job's and is refused.
     """
 
     out_dir: str
@@ -81,6 +83,7 @@ class ResumableJob:
     header: dict = field(default_factory=dict)
     verify_unit: Callable[[dict, str], bool] | None = None
     added_defaults: dict = field(default_factory=dict)
+    own_entries: tuple = ()
     done: dict[int, dict] = field(default_factory=dict, init=False)
 
     def unit_path(self, index: int) -> str:
@@ -94,6 +97,7 @@ class ResumableJob:
         except InputError as err:
             raise InputError(f"{err}; remove it or use another folder") from None
         if manifest is None:
+            self._refuse_foreign_entries()
             return None
         if manifest.get("format") != self.format:
             raise InputError(f"--out {self.out_dir!r}: {MANIFEST} is not a {self.what} manifest (format "
@@ -113,6 +117,17 @@ class ResumableJob:
                              + ", ".join(shown(k) for k in diff[:3]) + (", ..." if len(diff) > 3 else "")
                              + "); rerun with the same settings or use another folder")
         return manifest
+
+    def _refuse_foreign_entries(self) -> None:
+        """InputError in one line when out_dir holds entries but no manifest beyond the job's own (own_entries, its
+        unit subfolders) and a killed writer's partial files: another job's folder, whose files this job would mix
+        in with its own or overwrite."""
+        own = set(self.own_entries) | {os.path.dirname(self.unit_file(i)) for i in range(self.n_units)}
+        names = sorted(n for n in os.listdir(self.out_dir) if not n.startswith(PARTIAL_PREFIX) and n not in own)
+        if names:
+            shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
+            raise InputError(f"--out {self.out_dir!r} holds {len(names)} entries ({shown}) and no {MANIFEST}: not a "
+                             f"{self.what} to resume; expected an empty or new folder (use another one)")
 
     def open(self) -> dict | None:
         """Refuse another job's folder, then create the folder (and the units' subfolders), prove it writable

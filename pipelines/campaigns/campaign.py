@@ -74,7 +74,7 @@ def campaign_job(cfg: MonteCarloConfig, out_dir: str) -> ResumableJob:
     return ResumableJob(out_dir, MANIFEST_FORMAT, "campaign", {"config": to_dict(cfg)}, "blocks", cfg.n_blocks,
                         block_name, header={"n_blocks": cfg.n_blocks},
                         verify_unit=lambda e, path: cfg.block_range(e["index"]) == (e["run_start"], e["run_stop"]),
-                        added_defaults=ADDED_DEFAULTS)
+                        added_defaults=ADDED_DEFAULTS, own_entries=("truth.npz",))  # written before the manifest
 
 
 def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, progress: bool) -> str:

@@ -31,6 +31,7 @@ from envisat_pose.filtering.estimator import FilterConfig, chaser_states, diverg
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
 from envisat_pose.geometry import load_geometry
 from envisat_pose.io import atomic_write_text
+from envisat_pose.named_scenarios import check_name
 from envisat_pose.out_dirs import make_out_file_dirs
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, layered_job
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
@@ -178,9 +179,6 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
 def recorded_scenario(truth_path: str) -> str | None:
     """The named scenario a truth file records it was simulated from (datagen.scenario.truth_config_json), None
     where it records none, the name is no longer known, or the file does not read (load_truth says why)."""
-    from envisat_pose.config import ConfigError
-    from envisat_pose.named_scenarios import check_name
-
     try:
         with np.load(truth_path, allow_pickle=False) as z:
             name = json.loads(str(z["config_json"])).get("scenario")

@@ -12,12 +12,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import Config, check, resolve_job_config, to_dict, to_toml
+from envisat_pose.config import Config, InputError, check, resolve_job_config, to_dict, to_toml
 from envisat_pose.io import atomic_write_text, json_safe
 from envisat_pose.named_scenarios import table
 from envisat_pose.out_dirs import make_out_dir
 from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig, check_filter_rate, run_campaign, truth_scenario
-from envisat_pose.resumable import remove_partial_files
+from envisat_pose.resumable import manifest_path, remove_partial_files
 from envisat_pose.state import BLOCKS
 
 SWEEP_FORMAT = "envisat-pose rate sweep v1"
@@ -80,12 +80,46 @@ def rate_folder(rate_hz: float) -> str:
     return f"rate-{rate_hz:g}hz"
 
 
+SWEEP_ENTRIES = ("sweep.json", "montecarlo.config.toml", SWEEP_FIGURE)
+
+
+def check_sweep_folder(out_dir: str, cfg: MonteCarloConfig, sweep: SweepConfig) -> None:
+    """InputError in one line unless out_dir is new, empty, or this sweep's: a campaign's folder (its manifest),
+    files a sweep does not write, a rate folder of a rate not swept, or a sweep.json of another scenario, runs,
+    seed, duration or rates (each rate's campaign refuses another config of its own)."""
+    if not os.path.isdir(out_dir):
+        return
+    if os.path.exists(manifest_path(out_dir)):
+        raise InputError(f"--out {out_dir!r} holds a campaign, not a rate sweep: use another folder")
+    rates = {rate_folder(r) for r in sweep.rates_hz}
+    foreign = sorted(n for n in os.listdir(out_dir) if not n.startswith(".") and n not in SWEEP_ENTRIES
+                     and n not in rates)
+    if foreign:
+        raise InputError(f"--out {out_dir!r} holds {', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}: "
+                         "not this rate sweep's (another sweep's rates, or another job's files); use another folder")
+    path = os.path.join(out_dir, "sweep.json")
+    if os.path.isfile(path):
+        try:
+            with open(path, encoding="utf-8") as fh:
+                was = json.load(fh)
+        except (OSError, ValueError):
+            return  # rewritten at the end
+        now = {"scenario": cfg.scenario, "runs": cfg.runs, "seed": cfg.seed, "duration_s": cfg.duration_s,
+               "rates_hz": sorted(sweep.rates_hz)}
+        diff = [f"{k} = {was.get(k)!r} there, {v!r} here" for k, v in now.items()
+                if isinstance(was, dict) and was.get(k) != v]
+        if diff:
+            raise InputError(f"--out {out_dir!r} holds a rate sweep of another config ({'; '.join(diff[:3])}): "
+                             "rerun with the same settings or use another folder")
+
+
 def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner, progress: bool = False) -> dict:
     """One campaign per rate in out_dir/rate-<R>hz (each resumable like any campaign), then out_dir/sweep.json
     (per rate: RMSE, PCRLB and RMSE/PCRLB per block, diverged share, mean NEES, converged) and rate_sweep.png.
     Returns sweep.json's dict."""
     from envisat_pose.analysis.campaign_figures import plot_rate_sweep
 
+    check_sweep_folder(out_dir, cfg, sweep)
     make_out_dir(out_dir)
     remove_partial_files(out_dir)
     rates = sorted(sweep.rates_hz)

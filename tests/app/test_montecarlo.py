@@ -115,6 +115,42 @@ def test_a_campaign_written_before_a_config_field_existed_resumes(campaign, tmp_
     assert "init_error_scale = 2.0 there, 1.0 here" in capsys.readouterr().err
 
 
+def test_a_folder_of_another_jobs_files_is_refused(campaign, tmp_path, capsys):
+    """A campaign into a folder that holds files but no campaign manifest (a simulate's run.npz, a rate sweep):
+    one line, nothing written (once it mixed its files in); a campaign killed before its first manifest (its
+    truth written, its blocks/ folder made) resumes."""
+    d = tmp_path / "sim"
+    d.mkdir()
+    (d / "run.npz").write_bytes(b"a truth")
+    assert main(BASE + ["--out", str(d)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "run.npz" in err[0] and "no manifest.json" in err[0]
+    assert sorted(os.listdir(d)) == ["run.npz"]
+    early = tmp_path / "early"
+    (early / "blocks").mkdir(parents=True)
+    shutil.copy(campaign / "truth.npz", early / "truth.npz")
+    assert main(BASE + ["--out", str(early)]) == 0
+    assert _bytes(early) == _bytes(campaign)
+
+
+def test_a_sweep_is_refused_where_it_does_not_belong(campaign, tmp_path, capsys):
+    """A rate sweep into a campaign's folder, and into a sweep folder of other rates: one line before any work (once
+    the first overwrote the campaign's config file and hid it from `report`, the second left the old rates'
+    folders beside a sweep.json that no longer listed them)."""
+    sweep = BASE[:3] + ["--runs", "2", "--duration-s", "20", "--settle-s", "10", "--quiet"]
+    d = tmp_path / "c"
+    shutil.copytree(campaign, d)
+    assert main(sweep + ["--rates-hz", "1", "0.5", "--out", str(d)]) == 2
+    assert "holds a campaign, not a rate sweep" in capsys.readouterr().err
+    assert (d / "montecarlo.config.toml").read_bytes() == (campaign / "montecarlo.config.toml").read_bytes()
+    s = tmp_path / "sweep"
+    assert main(sweep + ["--rates-hz", "1", "0.5", "--out", str(s)]) == 0
+    assert main(sweep + ["--rates-hz", "1", "--out", str(s)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "rate-0.5hz" in err[0], err
+    assert main(sweep + ["--rates-hz", "1", "0.5", "--out", str(s)]) == 0  # the same sweep: resumed
+
+
 def test_other_config_in_folder_is_refused(campaign, tmp_path, capsys):
     d = tmp_path / "c"
     shutil.copytree(campaign, d)
