@@ -13,7 +13,10 @@ cluster started here listens on 127.0.0.1 only; `scheduler` connects to an exist
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
+import types
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Literal, Sequence
 
@@ -40,6 +43,44 @@ class RunnerConfig(Config):
         check(self.workers >= 1, f"{p}workers", self.workers, "at least 1 worker")
         check(self.scheduler is None or self.backend == "dask", f"{p}scheduler", self.scheduler,
               "an address only with backend 'dask'")
+        if self.scheduler is not None:
+            check_scheduler(self.scheduler, f"{p}scheduler")
+
+
+def check_scheduler(address: str, field: str = "scheduler") -> None:
+    """ConfigError in one line unless `address` is a Dask scheduler's tcp://HOST:PORT (or HOST:PORT) that accepts a
+    connection within 5 s: before a job makes its folder, not after it (a 30-s timeout and a traceback)."""
+    import socket
+    import urllib.parse
+
+    parsed = urllib.parse.urlsplit(address if "://" in address else f"tcp://{address}")
+    try:
+        host, port = parsed.hostname, parsed.port
+    except ValueError:
+        host, port = None, None
+    check(parsed.scheme == "tcp" and bool(host) and port is not None, field, address,
+          "a Dask scheduler's address tcp://HOST:PORT")
+    try:
+        socket.create_connection((host, port), timeout=5.0).close()
+    except OSError as err:
+        check(False, field, address, f"a Dask scheduler that accepts a connection ({err.strerror or err})")
+
+
+@contextlib.contextmanager
+def without_main_script():
+    """While worker processes start: `__main__` seen as a module without a file, so spawned workers do not run
+    the calling script again (multiprocessing's spawn re-imports a script's top level in every child: a plain
+    script that calls a job without `if __name__ == "__main__":` would start the job again in each, and fail).
+    The workers need nothing of the script: tasks are module-level functions of this package."""
+    main = sys.modules.get("__main__")
+    if main is None or getattr(main, "__file__", None) is None:
+        yield
+        return
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        sys.modules["__main__"] = main
 
 
 def cpu_share(workers: int) -> int:
@@ -105,7 +146,8 @@ def _run_pool(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
 
     with cf.ProcessPoolExecutor(max_workers=min(cfg.workers, len(tasks)), mp_context=mp.get_context("spawn"),
                                 initializer=_worker_init, initargs=(dict(cfg.env),)) as pool:
-        futures = {pool.submit(fn, *args): i for i, args in enumerate(tasks)}
+        with without_main_script():  # the workers start as tasks are submitted
+            futures = {pool.submit(fn, *args): i for i, args in enumerate(tasks)}
         try:
             for fut in cf.as_completed(futures):
                 yield futures[fut], fut.result()
@@ -121,8 +163,9 @@ def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
     if cfg.scheduler:
         client = Client(cfg.scheduler)
     else:
-        cluster = LocalCluster(n_workers=cfg.workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                               dashboard_address=None, env=dict(cfg.env))
+        with without_main_script():
+            cluster = LocalCluster(n_workers=cfg.workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                   dashboard_address=None, env=dict(cfg.env))
         client = Client(cluster)
     try:
         futures = {client.submit(_dask_task, fn, dict(cfg.env), tuple(args), pure=False): i

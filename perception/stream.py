@@ -15,10 +15,7 @@ shard's index in `paths` and the sample's index in the shard, and reader_slot (B
 
 from __future__ import annotations
 
-import contextlib
 import signal
-import sys
-import types
 
 import numpy as np
 import torch
@@ -26,6 +23,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from envisat_pose.config import InputError
 from envisat_pose.perception.data import DataConfig, make_sample, read_samples
+from envisat_pose.pools import without_main_script
 
 ORDER_KEY = 0x5EED  # the epoch's shard order: (seed, epoch, ORDER_KEY)
 BUFFER_KEY = 0xB0F  # a slot's shuffle buffer: (seed, epoch, BUFFER_KEY, slot)
@@ -104,27 +102,10 @@ def _worker_context():
     return ctx
 
 
-@contextlib.contextmanager
-def _without_main_script():
-    """While worker processes start: `__main__` seen as a module without a file, so the fork server and the
-    workers do not import the calling script again (multiprocessing re-runs a script's top level in every
-    child it starts; a plain script that trains without `if __name__ == "__main__":` would train again in each).
-    The workers need nothing of the script: the dataset, the collate and init functions live in this module."""
-    main = sys.modules.get("__main__")
-    if main is None or getattr(main, "__file__", None) is None:
-        yield
-        return
-    sys.modules["__main__"] = types.ModuleType("__main__")
-    try:
-        yield
-    finally:
-        sys.modules["__main__"] = main
-
-
 def epoch_batches(paths: list[str], cfg: DataConfig, seed: int, epoch: int, batch_size: int, workers: int,
                   rank: int = 0, world: int = 1, pin_memory: bool = False):
     """The iterator of one epoch's batches (epoch_loader's), its workers started without the calling script."""
-    with _without_main_script():
+    with without_main_script():
         return iter(epoch_loader(paths, cfg, seed, epoch, batch_size, workers, rank, world, pin_memory))
 
 

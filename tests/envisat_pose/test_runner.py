@@ -171,3 +171,28 @@ def test_the_output_file_rule(tmp_path):
         check_out_file(str(tmp_path / "f" / "det.npz"), "--json")
     with pytest.raises(InputError, match="--out .* is a folder"):
         check_out_file(str(tmp_path / "a"))
+
+
+def test_a_plain_script_runs_a_local_pool_without_a_main_guard(tmp_path):
+    """A user's script without `if __name__ == "__main__":` whose job starts spawned workers (export_dataset,
+    run_generate with workers=2): the workers do not run the script again (once each failed in multiprocessing's
+    bootstrapping check and the job died with BrokenProcessPool)."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "plain.py"
+    script.write_text("import math\nfrom envisat_pose.pools import RunnerConfig, run_tasks\n"
+                      "print('start')\n"
+                      "print(sorted(r for _, r in run_tasks(math.sqrt, [(4.0,), (9.0,)], RunnerConfig('local', 2))))\n")
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.split() == ["start", "[2.0,", "3.0]"]  # the script's lines once: not again in a worker
+
+
+@pytest.mark.parametrize("address, needle", [("notanaddress", "tcp://HOST:PORT"), ("tcp://host", "tcp://HOST:PORT"),
+                                             ("tcp://127.0.0.1:1", "accepts a connection")])
+def test_a_dask_scheduler_that_is_not_there_is_one_line(address, needle):
+    from envisat_pose.config import ConfigError
+
+    with pytest.raises(ConfigError, match=needle):
+        RunnerConfig("dask", 1, address)
