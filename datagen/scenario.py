@@ -129,7 +129,8 @@ class ScenarioConfig(Config):
         p = f"{prefix}." if prefix else ""
         check(self.duration_s > 0, f"{p}duration_s", self.duration_s, "a positive duration in seconds")
         check(self.dt_s > 0, f"{p}dt_s", self.dt_s, "a positive output step in seconds")
-        check(self.dt_s <= self.duration_s, f"{p}dt_s", self.dt_s, f"an output step no longer than duration_s = {self.duration_s}")
+        check(self.dt_s <= self.duration_s, f"{p}duration_s", self.duration_s,
+              f"a duration of at least one output step (dt_s = {self.dt_s:g} s)")
         check(self.duration_s / self.dt_s <= 10_000_000, f"{p}dt_s", self.dt_s, "at most 1e7 output steps in duration_s")
         check(MIN_PHYSICS_DT_S <= self.max_physics_dt_s <= 1.0, f"{p}max_physics_dt_s", self.max_physics_dt_s,
               f"a physics step in [{MIN_PHYSICS_DT_S:g}, 1] s (RK4 accuracy; smaller steps only cost time)")

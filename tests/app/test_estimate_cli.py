@@ -189,7 +189,8 @@ def _contract_valid_truth_without_orbit(truth_file, path):
     tr.save(str(path))
 
 
-@pytest.mark.parametrize("how", ["truncated", "random_bytes", "estimates_file", "empty", "config_without_orbit"])
+@pytest.mark.parametrize("how", ["truncated", "random_bytes", "estimates_file", "empty", "config_without_orbit",
+                                 "text"])
 def test_a_corrupt_truth_file_is_one_error_line(truth_file, tmp_path, capsys, how):
     bad = tmp_path / "bad.npz"
     data = truth_file.read_bytes()
@@ -202,12 +203,15 @@ def test_a_corrupt_truth_file_is_one_error_line(truth_file, tmp_path, capsys, ho
         capsys.readouterr()
     elif how == "empty":
         bad.write_bytes(b"")
+    elif how == "text":  # once read as a pickle by numpy, whose line then offered to load it unsafely
+        bad.write_text("hello\n")
     else:
         _contract_valid_truth_without_orbit(truth_file, bad)
     out = tmp_path / "e.npz"
     assert main(["estimate", "--truth", str(bad), "--quiet", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err and "bad.npz" in err, err
+    assert "pickle" not in err
     assert not out.exists()
 
 

@@ -81,6 +81,7 @@ def test_bad_config_gets_a_clear_message_and_writes_nothing(tmp_path, text, fiel
 @pytest.mark.parametrize("args,message", [
     (["--duration-s", "-1"], "duration_s = -1.0"),
     (["--dt-s", "0"], "dt_s = 0.0"),
+    (["--duration-s", "0.5"], "duration_s = 0.5: expected a duration of at least one output step"),  # not dt_s
     (["--scenario", "nope"], "scenario = 'nope'"),
     (["--config", "/nonexistent/x.toml"], "does not exist"),
     (["--out", "/proc/envisat-test/run.npz"], "cannot write in its folder"),  # a missing folder is made (issue 41)
