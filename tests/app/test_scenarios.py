@@ -182,3 +182,17 @@ def test_rate_sweep_writes_one_campaign_per_rate_its_figure_and_report(tmp_path)
     assert main(args[:-1] + [str(tmp_path / "bad")] + ["--rate-hz", "1"]) == 2
     assert main(args[:4] + ["0.3"] + args[5:-1] + [str(tmp_path / "bad")]) == 2
     assert not (tmp_path / "bad").exists()
+
+
+def test_a_reader_that_goes_away_ends_the_verb_quietly():
+    """`envisat scenarios | head -0`: the pipe's reader gone before the verb writes; no traceback (once a
+    BrokenPipeError's), the exit status a closed pipe's (141, as a shell reports SIGPIPE)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", "import sys, time; time.sleep(0.5); "
+                             "from envisat_pose.app.cli import main; sys.exit(main(['scenarios']))"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # the reader is gone before anything is written
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 141 and "Traceback" not in err and "BrokenPipe" not in err, err
