@@ -10,8 +10,10 @@ work starts.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
+import os
 import tomllib
 import types
 import typing
@@ -52,11 +54,110 @@ class Config:
     cached, a weights file only looked up.
     """
 
+    def __init_subclass__(cls, **kwargs) -> None:
+        """A subclass's own __post_init__ (its filling, then super's) runs after its fields' types are checked."""
+        super().__init_subclass__(**kwargs)
+        own = cls.__dict__.get("__post_init__")
+        if own is None:
+            return
+
+        @functools.wraps(own)
+        def post_init(self) -> None:
+            _check_fields(self)
+            own(self)
+
+        cls.__post_init__ = post_init
+
     def __post_init__(self) -> None:
+        if not _checks_in_own_post_init(type(self)):
+            _check_fields(self)
         self.validate("")
 
     def validate(self, prefix: str = "") -> None:
         """ConfigError for a field out of its range (a config with nothing to check has nothing here)."""
+
+
+@functools.lru_cache(maxsize=None)
+def _checks_in_own_post_init(cls: type) -> bool:
+    """Whether a class between cls and Config has its own __post_init__ (wrapped by __init_subclass__ to check
+    the fields first: the base's then does not check them again)."""
+    return any("__post_init__" in c.__dict__ for c in cls.__mro__[:cls.__mro__.index(Config)])
+
+
+@functools.lru_cache(maxsize=None)
+def _field_hints(cls: type) -> tuple:
+    """((name, type hint), ...) of a config class's fields; () where its hints do not resolve (names imported for
+    type checking only): its fields are then left to its validate()."""
+    try:
+        hints = typing.get_type_hints(cls)
+    except Exception:  # noqa: BLE001 - an unresolvable annotation: no type checks, never a failure
+        return ()
+    return tuple((f.name, hints[f.name]) for f in dataclasses.fields(cls) if f.name in hints)
+
+
+def _check_fields(obj: Config) -> None:
+    """Every field of a config built by its constructor checked against its type hint, as from_dict checks plain
+    data (ConfigError naming the field: runs = 2.5, rate_hz = '1'), and put in its one form: a path (os.PathLike)
+    as its string, a list or array as a tuple, a table given as a dict as its config, numpy's scalars as Python's.
+    """
+    for name, hint in _field_hints(type(obj)):
+        value = getattr(obj, name)
+        converted = _built(value, hint, name)
+        if converted is not value:
+            object.__setattr__(obj, name, converted)
+
+
+def _built(value: Any, hint: Any, field: str) -> Any:
+    """One constructor argument checked against its hint (_check_fields): a built config and the types from_dict
+    makes are taken as they are; plain data goes through _convert; what no hint describes passes."""
+    if type(value) is hint or _plain(value, hint):  # the common case, at a dict lookup's cost
+        return value
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(hint)
+        if value is None and type(None) in args:
+            return None
+        if any(dataclasses.is_dataclass(a) and isinstance(value, a) for a in args):
+            return value
+    elif dataclasses.is_dataclass(hint):
+        return value if isinstance(value, hint) else _convert(value, hint, field)
+    if isinstance(value, os.PathLike):
+        value = os.fspath(value)
+    if isinstance(value, (bool, str)):
+        pass
+    elif type(value).__module__ == "numpy" and hasattr(value, "tolist"):
+        value = value.tolist()  # numpy's scalars as Python's, an array (a tuple field's) as a list
+    if hint in (int, float, bool, str) or origin in (tuple, typing.Literal, typing.Union, types.UnionType) or \
+            dataclasses.is_dataclass(hint):
+        out = _convert(value, hint, field, finite=False)
+        return value if out == value and type(out) is type(value) else out
+    return value
+
+
+@functools.lru_cache(maxsize=None)
+def _plain_types(hint: Any) -> frozenset:
+    """The Python types a value of `hint` may have as it is (float takes an int too; Optional adds None; a
+    tuple of one element type: its elements'); empty where the hint needs a closer look."""
+    if hint in (int, bool, str):
+        return frozenset({hint})
+    if hint is float:
+        return frozenset({float, int})
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType) and len(args) == 2 and type(None) in args:
+        inner = _plain_types(next(a for a in args if a is not type(None)))
+        return inner | {type(None)} if inner else frozenset()
+    return frozenset()
+
+
+def _plain(value: Any, hint: Any) -> bool:
+    """Whether value is of hint's plain types (_plain_types), a tuple field's elements included."""
+    if type(value) is tuple and typing.get_origin(hint) is tuple:
+        args = typing.get_args(hint)
+        if args and args[-1] is Ellipsis and len(args) == 2:
+            ok = _plain_types(args[0])
+            return bool(ok) and all(type(v) in ok for v in value)
+        return len(args) == len(value) and all(type(v) in _plain_types(a) for v, a in zip(value, args))
+    return type(value) in _plain_types(hint)
 
 
 def load_toml(path: str) -> dict:
@@ -78,8 +179,8 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-def _convert(value: Any, hint: Any, field: str) -> Any:
-    """Check and convert one value against its type hint."""
+def _convert(value: Any, hint: Any, field: str, finite: bool = True) -> Any:
+    """Check and convert one value against its type hint (finite: a float must be finite, as in a file)."""
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
         args = typing.get_args(hint)
@@ -93,7 +194,7 @@ def _convert(value: Any, hint: Any, field: str) -> Any:
             if arg is type(None):
                 continue
             try:
-                return _convert(value, arg, field)
+                return _convert(value, arg, field, finite)
             except ConfigError as err:
                 errors.append(err.expected)
         raise ConfigError(field, value, " or ".join(errors + (["nothing (omit it)"] if type(None) in args else [])))
@@ -112,7 +213,7 @@ def _convert(value: Any, hint: Any, field: str) -> Any:
     if hint is float:
         if not _is_number(value):
             raise ConfigError(field, value, "a number")
-        if not math.isfinite(float(value)):
+        if finite and not math.isfinite(float(value)):
             raise ConfigError(field, value, "a finite number")
         return float(value)
     if hint is str:
@@ -124,10 +225,10 @@ def _convert(value: Any, hint: Any, field: str) -> Any:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(field, value, f"a list of {len(args) if args[-1] is not Ellipsis else 'some'} numbers")
         if args and args[-1] is Ellipsis:
-            return tuple(_convert(v, args[0], f"{field}[{i}]") for i, v in enumerate(value))
+            return tuple(_convert(v, args[0], f"{field}[{i}]", finite) for i, v in enumerate(value))
         if len(value) != len(args):
             raise ConfigError(field, value, f"a list of {len(args)} values")
-        return tuple(_convert(v, a, f"{field}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+        return tuple(_convert(v, a, f"{field}[{i}]", finite) for i, (v, a) in enumerate(zip(value, args)))
     if typing.get_origin(hint) is typing.Literal:
         allowed = typing.get_args(hint)
         if value not in allowed:

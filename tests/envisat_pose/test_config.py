@@ -100,3 +100,37 @@ def test_a_config_is_validated_when_built():
     with pytest.raises(ConfigError, match=r"^sweep\.rates\.rate_hz = 0"):
         from_dict(Filled, {"rates": {"rate_hz": 0}}, prefix="sweep")
     assert from_dict(Filled, {"runs": 2, "rates": {"rate_hz": 3}}) == Filled(runs=2, rates=Rates(3.0))
+
+
+def test_a_constructor_checks_its_fields_types_as_from_dict_does():
+    """Plain Python arguments of the wrong type are one ConfigError naming the field (once a comparison's
+    TypeError, or a float of steps that trained one step more), and what from_dict makes is made here too: a
+    path as its string, a table given as a dict as its config, numpy's scalars and arrays as Python's."""
+    import pathlib
+
+    import numpy as np
+
+    from envisat_pose.config import ConfigError, from_dict, to_dict
+    from envisat_pose.filtering.montecarlo import MeasurementConfig
+    from envisat_pose.perception.train import TrainConfig
+    from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig
+    from envisat_pose.pipelines.campaigns.estimate import EstimateConfig
+    from envisat_pose.pipelines.runs.run_config import RunConfig
+    from envisat_pose.pipelines.runs.track import TrackConfig
+
+    for build, needle in ((lambda: TrackConfig(rate_hz="1"), "rate_hz = '1': expected a number"),
+                          (lambda: TrackConfig(rate_hz=None), "rate_hz = None"),
+                          (lambda: TrackConfig(bf16="yes"), "bf16 = 'yes': expected true or false"),
+                          (lambda: RunConfig(runs=2.5), "runs = 2.5: expected an integer"),
+                          (lambda: RunConfig(image=None), "image = None"),
+                          (lambda: TrainConfig(steps=2.5), "steps = 2.5: expected an integer"),
+                          (lambda: EstimateConfig(seed="x"), "seed = 'x'")):
+        with pytest.raises(ConfigError, match=needle):
+            build()
+    est = EstimateConfig(measurement={"kind": "pixels"}, runs=np.int64(3))
+    assert isinstance(est.measurement, MeasurementConfig) and est.measurement.kind == "pixels"
+    assert type(est.runs) is int and hash(est) and from_dict(EstimateConfig, to_dict(est)) == est
+    mc = MonteCarloConfig(target=pathlib.Path("models/upper_stage.xml"), duration_s=60.0, runs=2)
+    assert mc.target == "models/upper_stage.xml" and to_dict(mc)["target"] == "models/upper_stage.xml"
+    m = MeasurementConfig(outages_s=[[1.0, 2.0]], sigma_m=np.float32(0.5))
+    assert m.outages_s == ((1.0, 2.0),) and type(m.sigma_m) is float and hash(m)
