@@ -8,6 +8,7 @@ from datetime import timedelta
 import numpy as np
 import rerun as rr
 
+from envisat_pose.analysis.sink_check import check_sink
 from envisat_pose.attitude import mrp_to_dcm, mrp_to_quat
 from envisat_pose.geometry import PinholeCamera, project_K
 from envisat_pose.io import atomic_path
@@ -76,9 +77,7 @@ class TrackRecorder:
                  target: Target | None = None):
         self.camera, self.with_truth = camera, with_truth
         self.target = target or default_target()
-        kind, _, arg = sink.partition(":")
-        if kind not in ("save", "spawn", "connect"):
-            raise ValueError(f"recording sink {sink!r}: expected 'save:PATH', 'spawn' or 'connect:URL'")
+        kind, _, arg = check_sink(sink)
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=str(uuid.uuid4()), send_properties=False,
                                       batcher_config=file_batcher() if kind == "save" else None)
         self.rec.set_log_time_enabled(False)

@@ -7,11 +7,9 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import add_common, check_rrd_output, init_error_line
-from envisat_pose.config import InputError
+from envisat_pose.app.common import add_common, init_error_line
 from envisat_pose.filtering.estimator import FilterConfig, nees, nis_alarms_alone
-from envisat_pose.out_dirs import check_out_file
-from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, estimate_output_paths, recorded_scenario
+from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, recorded_scenario
 from envisat_pose.pipelines.campaigns.estimate import run_estimate as run_pipeline
 from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.state import error_summary
@@ -105,13 +103,7 @@ def summary(arrays: dict, fcfg: FilterConfig) -> str:
 
 
 def run_estimate_cli(args: argparse.Namespace) -> int:
-    if not args.out.endswith(".npz"):
-        raise InputError(f"--out {args.out!r}: expected a path ending in .npz")
     cfg = resolve_config(args)
-    if args.rrd:
-        check_rrd_output(args.rrd)
-    for path in estimate_output_paths(args.out):
-        check_out_file(path, "--out")  # the folders are made once the truth is read (run_estimate)
     res = run_pipeline(cfg, args.out, truth_path=args.truth, scenario=args.scenario, duration_s=args.duration_s,
                        plot=args.plot, rrd=args.rrd, progress=not args.quiet)
     cfg, arrays = res["config"], res["arrays"]

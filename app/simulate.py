@@ -5,11 +5,8 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import add_common, check_rrd_output
-from envisat_pose.config import InputError
+from envisat_pose.app.common import add_common
 from envisat_pose.datagen.scenario import ScenarioConfig
-from envisat_pose.out_dirs import make_out_file_dirs
-from envisat_pose.pipelines.campaigns.simulate import output_paths
 from envisat_pose.pipelines.campaigns.simulate import run_simulate as run_pipeline
 
 
@@ -31,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "kp_ sites are the keypoints; default models/envisat.xml)")
     p.add_argument("--plot", action="store_true", help="also write a PNG of the 12 states next to --out")
     p.add_argument("--rrd", metavar="FILE.rrd", help="also write a Rerun recording of the truth (`envisat view FILE`)")
-    p.set_defaults(func=run_simulate_cli)
+    p.set_defaults(func=run_simulate_cli, flag_names={"rrd": "--rrd"})
 
 
 def resolve_config(args: argparse.Namespace) -> ScenarioConfig:
@@ -44,12 +41,7 @@ def resolve_config(args: argparse.Namespace) -> ScenarioConfig:
 
 
 def run_simulate_cli(args: argparse.Namespace) -> int:
-    if not args.out.endswith(".npz"):
-        raise InputError(f"--out {args.out!r}: expected a path ending in .npz")
     cfg = resolve_config(args)
-    if args.rrd:
-        check_rrd_output(args.rrd)
-    make_out_file_dirs({**{p: "--out" for p in output_paths(args.out)}, **({args.rrd: "--rrd"} if args.rrd else {})})
     res = run_pipeline(cfg, args.out, plot=args.plot, rrd=args.rrd, progress=not args.quiet, label=args.scenario)
     traj = res["truth"]
     print(f"wrote {res['truth_file']} ({len(traj.t_s)} samples over {traj.t_s[-1]:.0f} s), config {res['config_toml']}")

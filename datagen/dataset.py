@@ -20,6 +20,7 @@ def verify_dataset(out_dir: str) -> list[str]:
     """Problems of a dataset, one line each (empty: every shard present and matching its manifest entry by the
     core's one shard check, shard_reader.shard_problem: size, sha256, samples; and no shard-*.tar there that the
     manifest does not list)."""
+    out_dir = os.fspath(out_dir)
     manifest = load_dataset_manifest(out_dir)
     found = {}  # shard name: its problem
     listed = {e["name"]: e for e in manifest["shards"]}
@@ -50,11 +51,13 @@ def verify_dataset(out_dir: str) -> list[str]:
 
 def dataset_shards(source: str | list[str]) -> list[str]:
     """The shard files of source: a dataset folder (its manifest's shards, checked against it: the core's
-    checked_shards; a damaged one is one InputError) or a list of shard files already checked."""
-    if isinstance(source, str):
+    checked_shards; a damaged one is one InputError; a str or a pathlib.Path) or a list of shard files already
+    checked."""
+    if isinstance(source, (str, os.PathLike)):
+        source = os.fspath(source)
         load_dataset_manifest(source)
         return checked_shards(source, False, "dataset")[0]
-    return list(source)
+    return [os.fspath(p) for p in source]
 
 
 def iter_samples(source: str | list[str], limit: int | None = None):
@@ -168,6 +171,7 @@ def montage(source: str | list[str], path: str, count: int = 16, tile_px: int = 
 
     if count < 1:
         raise InputError(f"count {count}: expected at least 1 image in the montage")
+    path = os.fspath(path)
     tiles = []
     for key, lab, members in iter_samples(source, limit=count):
         tile = draw_labels(sample_image(members, lab, f"sample {key}"), lab)

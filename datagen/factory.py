@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm
-from envisat_pose.config import check, to_dict, to_toml
+from envisat_pose.config import check, config_arg, path_arg, to_dict, to_toml
 from envisat_pose.datagen.appearance import (
     FACE_GEOMS,
     GEOM_CLASS,
@@ -353,7 +353,9 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
     on_shard, if given, is called with each finished shard's manifest entry once it is recorded.
     """
 
+    cfg, out_dir = config_arg(cfg, GenerateConfig), path_arg(out_dir, "out_dir")
     check(backend in ("local", "dask"), "backend", backend, "'local' or 'dask'")
+    check(type(workers) is int and workers >= 1, "workers", workers, "at least 1 worker process (an integer)")
     # one rasterizer thread count per worker: the machine's cores shared among the workers
     runner = RunnerConfig(backend, workers, scheduler, thread_env(workers))
     runner.validate()

@@ -8,8 +8,16 @@ The public API, imported on first use (so `import envisat_pose` loads nothing he
   `tracker_filter` (envisat_pose.pipelines.tracking.build);
 - the closed loop: `RunConfig`, `run_closed_loop` (envisat_pose.pipelines.runs.closed_loop); a user's frames:
   `TrackConfig`, `open_source`, `track_frames` (envisat_pose.pipelines.runs.track);
-- campaigns: `MonteCarloConfig`, `run_campaign` (envisat_pose.pipelines.campaigns.campaign);
-- the detector: `TrainConfig` (envisat_pose.perception.train), `train_detector` (envisat_pose.pipelines.detector.train);
+- a truth and its estimate: `ScenarioConfig` (envisat_pose.datagen.scenario), `run_simulate`
+  (envisat_pose.pipelines.campaigns.simulate), `EstimateConfig`, `run_estimate` (envisat_pose.pipelines.campaigns.estimate);
+- campaigns: `MonteCarloConfig`, `run_campaign` (envisat_pose.pipelines.campaigns.campaign), `RunnerConfig`
+  (envisat_pose.pools: the local pool or Dask), `write_report` (envisat_pose.pipelines.campaigns.report);
+- datasets: `GenerateConfig` (envisat_pose.datagen.generate_config), `run_generate` (envisat_pose.datagen.factory),
+  `verify_dataset`, `dataset_stats` (envisat_pose.datagen.dataset), `ExportConfig`, `export_dataset`
+  (envisat_pose.pipelines.datasets.export);
+- the detector: `TrainConfig` (envisat_pose.perception.train), `train_detector` (envisat_pose.pipelines.detector.train),
+  `DetectJobConfig`, `run_detect` (envisat_pose.pipelines.detector.detect), `CalibrateJobConfig`, `run_calibration`
+  (envisat_pose.pipelines.detector.calibrate), `AdaptConfig`, `adapt` (envisat_pose.pipelines.adaptation.adapt);
 - the target: `Target`, `load_target` (envisat_pose.target: one spacecraft from its MJCF file; ENVISAT's by default);
 - the state's layout: `envisat_pose.state`.
 """
@@ -27,6 +35,17 @@ _PUBLIC = {
     "track_frames": "envisat_pose.pipelines.runs.track",
     "MonteCarloConfig": "envisat_pose.pipelines.campaigns.campaign", "run_campaign": "envisat_pose.pipelines.campaigns.campaign",
     "TrainConfig": "envisat_pose.perception.train", "train_detector": "envisat_pose.pipelines.detector.train",
+    "ScenarioConfig": "envisat_pose.datagen.scenario", "run_simulate": "envisat_pose.pipelines.campaigns.simulate",
+    "EstimateConfig": "envisat_pose.pipelines.campaigns.estimate",
+    "run_estimate": "envisat_pose.pipelines.campaigns.estimate", "RunnerConfig": "envisat_pose.pools",
+    "write_report": "envisat_pose.pipelines.campaigns.report",
+    "GenerateConfig": "envisat_pose.datagen.generate_config", "run_generate": "envisat_pose.datagen.factory",
+    "verify_dataset": "envisat_pose.datagen.dataset", "dataset_stats": "envisat_pose.datagen.dataset",
+    "ExportConfig": "envisat_pose.pipelines.datasets.export", "export_dataset": "envisat_pose.pipelines.datasets.export",
+    "DetectJobConfig": "envisat_pose.pipelines.detector.detect", "run_detect": "envisat_pose.pipelines.detector.detect",
+    "CalibrateJobConfig": "envisat_pose.pipelines.detector.calibrate",
+    "run_calibration": "envisat_pose.pipelines.detector.calibrate",
+    "AdaptConfig": "envisat_pose.pipelines.adaptation.adapt", "adapt": "envisat_pose.pipelines.adaptation.adapt",
     "Target": "envisat_pose.target", "load_target": "envisat_pose.target",
 }
 __all__ = sorted(_PUBLIC)

@@ -129,10 +129,15 @@ def run_tasks(fn: Callable[..., Any], tasks: Sequence[tuple], cfg: RunnerConfig 
     if not tasks:
         return
     if cfg.backend == "inline" or (cfg.backend == "local" and (cfg.workers == 1 or len(tasks) == 1)):
-        for key, value in cfg.env.items():
-            os.environ.setdefault(key, value)
-        for i, args in enumerate(tasks):
-            yield i, fn(*args)
+        added = [key for key in cfg.env if key not in os.environ]  # the worker environment, for this job only
+        for key in added:
+            os.environ[key] = cfg.env[key]
+        try:
+            for i, args in enumerate(tasks):
+                yield i, fn(*args)
+        finally:
+            for key in added:
+                os.environ.pop(key, None)
         return
     if cfg.backend == "local":
         yield from _run_pool(fn, tasks, cfg)

@@ -57,12 +57,11 @@ import json
 import os
 import re
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from envisat_pose.config import Config, InputError, check, to_dict
+from envisat_pose.config import Config, InputError, as_path_or_object, check, config_arg, path_arg, to_dict
 from envisat_pose.io import atomic_write_text, stage_prefix, staged_folder
 from envisat_pose.out_dirs import check_out_dir, make_out_dir
 from envisat_pose.perception.weights_keys import COV_CALIBRATION_KEY, COV_SCALE_KEY, ERROR_MODEL_KEY
@@ -80,6 +79,7 @@ from envisat_pose.pipelines.adaptation.track_labels import (
     smoother_model,
     track_run_labels,
 )
+from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.track import TrackConfig, prepare_frames, track_frames
 from envisat_pose.pipelines.tracking.camera_file import read_camera_response
 from envisat_pose.status import TRACKING
@@ -244,19 +244,6 @@ class AdaptRun:
     given_response: tuple = (None, None)  # the camera file's (response, psf_sigma_px), None where it does not say
 
 
-@contextmanager
-def torch_threads(n: int):
-    """torch's CPU thread count set to n (0: os.cpu_count()) inside the block, restored on every way out."""
-    import torch
-
-    old = torch.get_num_threads()
-    torch.set_num_threads(n or os.cpu_count() or 1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
-
-
 def label_step(run: AdaptRun, track_dir: str) -> tuple[dict, list[np.ndarray]]:
     """Step 2-3: the labelled frames of a track run (track_run_labels), their images, their states corrected by
     the silhouette edges (edge_corrected) and labelled there. Returns (lab with 'labels' and 'edges' added,
@@ -329,7 +316,7 @@ def adapt_round(run: AdaptRun, r: int, track_dir: str, weights: str, seed: np.ra
             "label_sigma_px_median": float(np.median(lab["sigma_px"])),
             "label_frames": [int(k) for k in lab["frames"]], "edge_range": lab["edges"]}
     candidate = os.path.join(run.stage, f"round-{r}.safetensors")
-    with torch_threads(cfg.threads):
+    with compute_threads(cfg.threads or os.cpu_count() or 1):
         bar = _bar(run.progress, cfg.steps, f"fine-tune {r + 1}/{cfg.rounds}", "step")
         t1 = time.perf_counter()
         try:
@@ -402,6 +389,8 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
     holds fewer than cfg.min_trusted labelled frames; nothing is written then (an --out this job made is removed
     again on any failure or interrupt)."""
 
+    cfg, out_dir = config_arg(cfg, AdaptConfig), path_arg(out_dir, "out_dir")
+    source, camera = as_path_or_object(source), as_path_or_object(camera)
     check_out_dir(out_dir, field="out_dir")
     given_response = read_camera_response(camera) if isinstance(camera, str) else (None, None)
     tcfg, source, camera, remap, _ = prepare_frames(cfg.track, source, camera)

@@ -42,7 +42,7 @@ import os
 import time
 from typing import TYPE_CHECKING
 
-from envisat_pose.config import to_dict, to_toml
+from envisat_pose.config import config_arg, path_arg, to_dict, to_toml
 from envisat_pose.io import atomic_write_text, sha256_file
 from envisat_pose.pipelines.campaigns.campaign_block import block_name, block_task
 from envisat_pose.pipelines.campaigns.campaign_config import (
@@ -52,6 +52,7 @@ from envisat_pose.pipelines.campaigns.campaign_config import (
     with_eclipse,
 )
 from envisat_pose.pipelines.campaigns.campaign_outputs import FIGURES, finish_campaign, write_recording
+from envisat_pose.pools import RunnerConfig
 from envisat_pose.resumable import ResumableJob
 
 # the entry points, and the parts' names the verb (app/montecarlo.py) and users import from here
@@ -88,9 +89,15 @@ def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, pr
     return sha256_file(path)
 
 
-def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner, progress: bool = False) -> dict:
-    """Run (or finish) the campaign of cfg in out_dir and write its outputs. Returns summary.json's dict."""
-
+def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConfig | None = None,
+                 progress: bool = False) -> dict:
+    """Run (or finish) the campaign of cfg in out_dir (a str or pathlib.Path: rerun on it to resume) on runner
+    (a core RunnerConfig: the local pool, Dask; None: one process) and write its outputs (module docstring).
+    Returns summary.json's dict. ConfigError or InputError (one line, naming the field or argument) before any
+    work for a bad argument or a folder of another job."""
+    cfg = config_arg(cfg, MonteCarloConfig)
+    out_dir = path_arg(out_dir, "out_dir")
+    runner = config_arg(RunnerConfig() if runner is None else runner, RunnerConfig, "runner")
     t_start = time.perf_counter()
     check_filter_rate(cfg, truth_scenario(cfg))
     job = campaign_job(cfg, out_dir)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import Config, ConfigError, InputError, check, to_dict, to_toml
+from envisat_pose.config import Config, ConfigError, InputError, check, config_arg, path_arg, to_dict, to_toml
 from envisat_pose.contracts import Estimates, TruthTrajectory
 from envisat_pose.datagen.scenario import (
     eclipse_windows,
@@ -32,7 +32,7 @@ from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, 
 from envisat_pose.geometry import load_geometry
 from envisat_pose.io import atomic_write_text
 from envisat_pose.named_scenarios import check_name
-from envisat_pose.out_dirs import make_out_file_dirs
+from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, layered_job
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
 from envisat_pose.target import DEFAULT_TARGET, Target, is_default_file, load_target, resolve_target_path
@@ -266,13 +266,21 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     """The whole job: load or simulate the truth (load_truth; given neither truth_path nor scenario,
     cfg.scenario's), add a scenario's eclipse outages, filter cfg.runs runs (estimate), write out (Estimates)
     and its config (output_paths), and with plot the errors' PNG next to out, with rrd a Rerun recording. The
-    output folders are made once the truth is read (a refused truth writes nothing); the caller checks the paths
-    (check_out_file) before any work.
+    paths (str or pathlib.Path; out ending in .npz, rrd in .rrd) are checked before any work, InputError naming
+    the argument; the folders are made once the truth is read (a refused truth writes nothing).
 
     Returns {"config": the EstimateConfig run (outages added), "arrays": est.npz's arrays, "est": out,
     "config_toml": its path, "plot": the PNG's path or None, "rrd": rrd}.
     """
-
+    cfg = config_arg(cfg, EstimateConfig)
+    out, rrd = path_arg(out, "out"), path_arg(rrd, "rrd", optional=True)
+    truth_path = path_arg(truth_path, "truth_path", optional=True)
+    if not out.endswith(".npz"):
+        raise InputError(f"out {out!r}: expected a path ending in .npz")
+    if rrd is not None and not rrd.endswith(".rrd"):
+        raise InputError(f"rrd {rrd!r}: expected a path ending in .rrd")
+    for path, field in [(p, "out") for p in estimate_output_paths(out)] + ([(rrd, "rrd")] if rrd else []):
+        check_out_file(path, field)
     out, cfg_path = estimate_output_paths(out)
     if not truth_path and not scenario:
         scenario = cfg.scenario

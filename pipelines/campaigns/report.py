@@ -16,7 +16,7 @@ import math
 import os
 import tomllib
 
-from envisat_pose.config import InputError, flatten
+from envisat_pose.config import InputError, flatten, path_arg, paths_arg
 from envisat_pose.io import atomic_write_text
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE
@@ -40,6 +40,7 @@ def write_report(dirs: list[str], out: str) -> dict:
     """The report over the campaign and rate-sweep folders `dirs`, written atomically to out (.html; its folder
     made when every input reads). Returns {"campaigns": n, "sweeps": n}. InputError naming `out` or the folder."""
 
+    dirs, out = paths_arg(dirs, "dirs"), path_arg(out, "out")
     if not out.endswith((".html", ".htm")):
         raise InputError(f"out {out!r}: expected a path ending in .html")
     check_out_file(out, "out")
@@ -67,7 +68,7 @@ def load_sweep(out_dir: str) -> dict:
         with open(fig, "rb") as fh:
             figure = base64.b64encode(fh.read()).decode("ascii")
     cfg_path = os.path.join(out_dir, "montecarlo.config.toml")
-    config = open(cfg_path, encoding="utf-8").read() if os.path.isfile(cfg_path) else ""
+    config = _read_text(cfg_path)
     c = {"dir": out_dir, "sweep": sweep, "figure": figure, "config": config}
     _readable(path, render_sweep, c)
     return c
@@ -125,7 +126,7 @@ def load_campaign(out_dir: str) -> dict:
         raise InputError(f"{path}: unreadable ({err})") from None
     timing = _read_json(os.path.join(out_dir, "timing.json"))
     cfg_path = os.path.join(out_dir, "montecarlo.config.toml")
-    config = open(cfg_path, encoding="utf-8").read() if os.path.isfile(cfg_path) else ""
+    config = _read_text(cfg_path)
     figures = {}
     for name in FIGURE_CAPTIONS:
         fig = os.path.join(out_dir, name)
@@ -135,6 +136,14 @@ def load_campaign(out_dir: str) -> dict:
     c = {"dir": out_dir, "summary": summary, "timing": timing, "config": config, "figures": figures}
     _readable(path, campaign_rows, c)
     return c
+
+
+def _read_text(path: str) -> str:
+    """A folder's text file ('' where there is none)."""
+    if not os.path.isfile(path):
+        return ""
+    with open(path, encoding="utf-8") as fh:
+        return fh.read()
 
 
 def _read_json(path: str) -> dict:

@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
-from envisat_pose.config import to_dict, to_toml
+from envisat_pose.config import InputError, config_arg, path_arg, to_dict, to_toml
+from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.io import atomic_write_text
+from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.target import load_target
 
 
@@ -18,13 +20,25 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
                  label: str = "") -> dict:
     """Simulate the truth of cfg (a validated datagen ScenarioConfig) with MuJoCo and write out (the
     TruthTrajectory contract) and its config; label: the named scenario cfg was made from (recorded in the truth,
-    and its plot's title); with plot the states' PNG next to out, with rrd a Rerun recording of the truth. The caller checks the output paths first.
+    and its plot's title); with plot the states' PNG next to out, with rrd a Rerun recording of the truth. The
+    output paths (str or pathlib.Path) are checked before any work (InputError naming `out` or `rrd`), their
+    folders made then.
 
     Returns {"truth": the TruthTrajectory, "truth_file": out, "config_toml": its path, "plot": the PNG or None,
     "rrd": rrd}.
     """
     from envisat_pose.datagen.truth import simulate_truth
 
+    cfg = config_arg(cfg, ScenarioConfig)
+    out, rrd = path_arg(out, "out"), path_arg(rrd, "rrd", optional=True)
+    if not out.endswith(".npz"):
+        raise InputError(f"out {out!r}: expected a path ending in .npz")
+    if rrd is not None and not rrd.endswith(".rrd"):
+        raise InputError(f"rrd {rrd!r}: expected a path ending in .rrd")
+    paths = {**{p: "out" for p in output_paths(out)}, **({rrd: "rrd"} if rrd else {})}
+    for path, field in paths.items():
+        check_out_file(path, field)
+    make_out_file_dirs(paths)
     out, cfg_path, png = output_paths(out)
     traj = simulate_truth(cfg, progress=progress, scenario=label or None)
     traj.save(out)

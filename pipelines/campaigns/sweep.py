@@ -12,11 +12,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import Config, InputError, check, resolve_job_config, to_dict, to_toml
+from envisat_pose.config import Config, InputError, check, path_arg, resolve_job_config, to_dict, to_toml
 from envisat_pose.io import atomic_write_text, json_safe
 from envisat_pose.named_scenarios import table
 from envisat_pose.out_dirs import make_out_dir
 from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig, check_filter_rate, run_campaign, truth_scenario
+from envisat_pose.pools import RunnerConfig
 from envisat_pose.resumable import manifest_path, remove_partial_files
 from envisat_pose.state import BLOCKS
 
@@ -113,12 +114,14 @@ def check_sweep_folder(out_dir: str, cfg: MonteCarloConfig, sweep: SweepConfig) 
                              "rerun with the same settings or use another folder")
 
 
-def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner, progress: bool = False) -> dict:
+def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner: RunnerConfig | None = None,
+              progress: bool = False) -> dict:
     """One campaign per rate in out_dir/rate-<R>hz (each resumable like any campaign), then out_dir/sweep.json
     (per rate: RMSE, PCRLB and RMSE/PCRLB per block, diverged share, mean NEES, converged) and rate_sweep.png.
     Returns sweep.json's dict."""
     from envisat_pose.analysis.campaign_figures import plot_rate_sweep
 
+    out_dir = path_arg(out_dir, "out_dir")
     check_sweep_folder(out_dir, cfg, sweep)
     make_out_dir(out_dir)
     remove_partial_files(out_dir)

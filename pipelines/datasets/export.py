@@ -23,12 +23,13 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from envisat_pose.config import Config, InputError, check
+from envisat_pose.config import Config, InputError, check, config_arg, path_arg
 from envisat_pose.datagen import export_formats as fx
 from envisat_pose.datagen.generate_config import config_from_json
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import stage_prefix, sweep_stale_stages
 from envisat_pose.out_dirs import check_out_dir
+from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.datasets import export_layouts as lay
 from envisat_pose.pipelines.datasets.export_readme import readme_text
 from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
@@ -86,7 +87,8 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     """Export the dataset folder `src` into the new folder `out_dir` in cfg's format (module docstring).
     on_shard(count): called after each shard (a progress hook). InputError for a bad argument, a missing or
     damaged dataset (naming the shard) or an `out_dir` that exists and holds anything."""
-    check(workers >= 1, "workers", workers, "at least 1")
+    cfg, src, out_dir = config_arg(cfg, ExportConfig), path_arg(src, "src"), path_arg(out_dir, "out_dir")
+    check(type(workers) is int and workers >= 1, "workers", workers, "at least 1 worker process (an integer)")
     check_out_dir(out_dir, field="out_dir")
     if os.path.isdir(out_dir) and os.listdir(out_dir):
         raise InputError(f"out_dir {out_dir!r} exists and is not empty: an export writes a new folder")
@@ -406,12 +408,14 @@ def _run_shards(layout, stage, shards, counts, splits, workers, progress, on_sha
 def export_shard(layout_dict: dict, path: str, stage: str, index: int, start: int, val_flags: list) -> int:
     """A worker's task: every sample of one shard into the staging folder, its records to .records/; returns the
     samples written. Sample k of the shard is the export's sample start + k."""
-    import cv2
+    with compute_threads(cv2_n=1):  # one thread a worker; a run in the calling process gives it back
+        return _export_shard(layout_dict, path, stage, index, start, val_flags)
 
+
+def _export_shard(layout_dict: dict, path: str, stage: str, index: int, start: int, val_flags: list) -> int:
     from envisat_pose.datagen.dataset import sample_image, sample_png
     from envisat_pose.datagen.shards import decode_png
 
-    cv2.setNumThreads(1)
     layout = lay.Layout(**{**layout_dict, "keypoint_names": tuple(layout_dict["keypoint_names"])})
     lines = []
     for k, (key, members) in enumerate(read_shard(path)):

@@ -19,7 +19,7 @@ import json
 import os
 from dataclasses import dataclass
 
-from envisat_pose.config import Config, InputError, check
+from envisat_pose.config import Config, InputError, check, config_arg, path_arg, paths_arg
 from envisat_pose.datagen.generate_config import nest_moved_keys
 from envisat_pose.geometry import load_geometry
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
@@ -27,6 +27,7 @@ from envisat_pose.perception import errormodel as em
 from envisat_pose.perception import weights_keys as wk
 from envisat_pose.perception.box_symmetry import face_windings
 from envisat_pose.perception.calibrate import calibration_by_group, fit_cov_scale, fit_floor
+from envisat_pose.pipelines.common.job_defaults import check_weights, default_weights_path
 from envisat_pose.pipelines.detector.detect import camera_samples
 from envisat_pose.provenance import dataset_ref
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
@@ -35,7 +36,8 @@ from envisat_pose.target import require_envisat_dataset
 
 @dataclass(frozen=True)
 class CalibrateJobConfig(Config):
-    """One `envisat calibrate` job. weights: the detector's weights file (the fits go into a copy of it); roi:
+    """One `envisat calibrate` job. weights: the detector's weights file ("": the shipped ones; the fits go into a
+    copy of it); roi:
     "coarse" (the detector's own coarse pass) or "labels" (the labels' region of interest, as the closed loop
     gives it); keep_scale: leave the file's cov_scale and cov_calibration (write the error model only); refine:
     fit the refinement's covariance floor instead; max_lag: autocorrelation lags measured; limit: only the first N
@@ -49,6 +51,12 @@ class CalibrateJobConfig(Config):
     max_lag: int = 20
     limit: int | None = None
     skip_damaged: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.weights:  # "": the shipped weights, as the verb and TrackConfig take them
+            object.__setattr__(self, "weights", default_weights_path())
+        super().__post_init__()
+        check_weights(self.weights)  # ENVISAT's corner detector, there: before any work
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
@@ -177,6 +185,8 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
     from envisat_pose.perception.detect import DetectConfig, load_detector
     from envisat_pose.perception.weights import with_metadata
 
+    cfg, out = config_arg(cfg, CalibrateJobConfig), path_arg(out, "out")
+    data = paths_arg(data, "data")  # one folder (a str or a Path) or several
     check_out_file(out, "out")
     paths, skipped = data_shards(data, cfg.skip_damaged)
     sequences = all(is_sequence(d) for d in data)

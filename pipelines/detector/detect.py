@@ -11,17 +11,18 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 
-from envisat_pose.config import Config, InputError, check
+from envisat_pose.config import Config, InputError, check, config_arg, path_arg
 from envisat_pose.contracts import Detections
 from envisat_pose.io import save_npz
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
+from envisat_pose.pipelines.common.job_defaults import check_weights, default_weights_path
 from envisat_pose.shard_reader import checked_shards
 from envisat_pose.target import require_envisat_dataset
 
 
 @dataclass(frozen=True)
 class DetectJobConfig(Config):
-    """One `envisat detect` job. weights: the detector's weights file; device: torch device ("cpu", "cuda");
+    """One `envisat detect` job. weights: the detector's weights file ("": the shipped ones); device: torch device ("cpu", "cuda");
     limit: only the first N frames (None: all); roi: an ROI file (key (M,), roi_px (M, 3)) whose frames skip the
     coarse pass (None: every frame gets it); refine: refine the named corners on the full-resolution pixels
     (perception.detect.DetectConfig.refine); skip_damaged: go on without the shards that do not match the dataset's
@@ -33,6 +34,12 @@ class DetectJobConfig(Config):
     roi: str | None = None
     refine: bool = False
     skip_damaged: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.weights:  # "": the shipped weights, as the verb and TrackConfig take them
+            object.__setattr__(self, "weights", default_weights_path())
+        super().__post_init__()
+        check_weights(self.weights)  # ENVISAT's corner detector, there: before any work
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
@@ -119,9 +126,10 @@ def detect_dataset(cfg: DetectJobConfig, data: str, progress: bool = False) -> d
 
 def run_detect(cfg: DetectJobConfig, data: str, out: str, progress: bool = False) -> dict:
     """The whole job: detect_dataset, then det.npz written atomically at out, its folder made then (parents too):
-    a run stopped before leaves nothing. Returns det.npz's arrays."""
+    a run stopped before leaves nothing. Returns det.npz's arrays. data and out: a str or a pathlib.Path."""
     import numpy as np
 
+    cfg, data, out = config_arg(cfg, DetectJobConfig), path_arg(data, "data"), path_arg(out, "out")
     check_out_file(out, "out")
     arrays = detect_dataset(cfg, data, progress)
     Detections.validated(arrays, out)

@@ -15,7 +15,7 @@ import os
 import subprocess
 from dataclasses import dataclass
 
-from envisat_pose.config import InputError, check, from_dict
+from envisat_pose.config import InputError, check, from_dict, path_arg, paths_arg
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.io import sha256_file
 from envisat_pose.out_dirs import check_out_dir
@@ -364,15 +364,13 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
 
     from envisat_pose.perception.train import train
 
-    data_dirs = [data_dirs] if isinstance(data_dirs, str) else list(data_dirs or [])
+    data_dirs, run_dir = paths_arg(data_dirs, "data_dirs") if data_dirs else [], path_arg(run_dir, "run_dir")
     if online is not None and data_dirs:
         raise InputError("data_dirs and online: train on shards or on frames rendered as training goes, not both")
     task, target = run_task(cfg, online)
     backbone = resolve_backbone(backbone, cfg, target is not None and init is None and not resume)
     check_inputs(data_dirs, run_dir, resume, init, workers, threads, online is not None,
                  DEFAULT_TARGET if target is None else cfg.target, backbone)
-    if threads is not None:
-        torch.set_num_threads(threads)
     if online is not None:
         workers = 0  # no DataLoader: the renderer processes are online.workers
     elif workers is None and not resume:
@@ -402,6 +400,8 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     for field, path in (("init", init), ("backbone", backbone)):  # the weights a new run starts from
         if path is not None:
             provenance[field] = {"name": os.path.basename(path), "sha256": sha256_file(path)}
+    caller_threads = torch.get_num_threads()  # given back on the way out: a library call leaves torch as it was
+    torch.set_num_threads(threads or caller_threads)
     try:
         end = train(cfg, data_dirs, run_dir, resume=resume, device=rank_device, progress=progress,
                     provenance=provenance, init_weights=init, workers=workers, bf16=bf16, paths=paths,
@@ -411,4 +411,5 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
                    "render_workers": online.workers}
         return {**end, "skipped_damaged_shards": skipped}
     finally:
+        torch.set_num_threads(caller_threads)
         end_distributed()

@@ -34,7 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import to_dict, to_toml
+from envisat_pose.analysis.sink_check import check_sink
+from envisat_pose.config import config_arg, path_arg, to_dict, to_toml
 from envisat_pose.contracts import TruthTrajectory
 from envisat_pose.datagen.scenario import scaled_start, scenario_config
 from envisat_pose.datagen.views import sample_seed
@@ -42,6 +43,7 @@ from envisat_pose.filtering.estimator import filter_inertia_T_kg_m2
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import make_out_dir
+from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import run_frames
 from envisat_pose.pipelines.runs.loop_frames import FrameMaker, PlanAhead, closed_loop_frames
 from envisat_pose.pipelines.runs.rows import STAGES, RunRows, timing_by_status
@@ -102,16 +104,18 @@ def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None,
                      sim_s_per_frame: float, run_dir: str) -> dict:
     """Closed loop `run` over the truth in truth_path; writes its per-frame arrays (record_arrays) to
     run_dir/<name>.npy chunk by chunk as it goes (RunRows) and returns only the run's reductions (plain data for
-    the runner). sink: where run 0 streams its recording (analysis.recording.TrackRecorder), None for none."""
-    import cv2
-    import torch
+    the runner). sink: where run 0 streams its recording (analysis.recording.TrackRecorder), None for none. The
+    compute threads are the config's inside, the caller's again after (a run in the calling process)."""
+    cfg = run_config_from_json(cfg_json)
+    with compute_threads(cfg.threads, 1):
+        return _closed_loop(cfg, run, truth_path, sink, progress, sim_s_per_frame, run_dir)
 
+
+def _closed_loop(cfg: RunConfig, run: int, truth_path: str, sink: str | None, progress: bool,
+                 sim_s_per_frame: float, run_dir: str) -> dict:
     from envisat_pose.datagen.render_cache import shared_renderer
 
-    cfg = run_config_from_json(cfg_json)
     gcfg = cfg.image
-    torch.set_num_threads(cfg.threads)
-    cv2.setNumThreads(1)
     truth = TruthTrajectory.load(truth_path)
     mu, gg = onboard_physics(truth, truth_path)
     sun_C, eclipse, nadir_C = sun_and_shadow(cfg, truth)
@@ -183,6 +187,9 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: s
     them chunk by chunk (what stays whole: the truth, and a few scalars per frame: the errors the scores need
     and the status)."""
 
+    cfg, out_dir = config_arg(cfg, RunConfig), path_arg(out_dir, "out_dir")
+    if sink is not None:
+        check_sink(sink)  # before the folder is made
     make_out_dir(out_dir, parents=True, field="out_dir")
     names = [os.path.basename(p) for p in run_output_paths(out_dir).values()]
     with staged_folder(out_dir, names) as stage:

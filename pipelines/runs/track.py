@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from envisat_pose.config import Config, check, to_dict, to_toml
+from envisat_pose.config import Config, as_path_or_object, check, config_arg, path_arg, to_dict, to_toml
 from envisat_pose.datagen.scenario import OrbitConfig
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
@@ -45,6 +45,7 @@ from envisat_pose.pipelines.common.job_defaults import (
     layered_job,
     require_target_weights,
 )
+from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
 from envisat_pose.pipelines.runs.frames import FrameSource, open_source, require_source_target, scan_source
 from envisat_pose.pipelines.runs.outputs import first_tracking_s, status_counts
@@ -171,6 +172,8 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     into out_dir when complete (io.staged_folder). Returns the summary (its source's `pixels`: what the scan found
     of the pixels; `target`: the target's record)."""
 
+    cfg, out_dir = config_arg(cfg, TrackConfig), path_arg(out_dir, "out_dir")
+    source, camera = as_path_or_object(source), as_path_or_object(camera)
     check_out_dir(out_dir, field="out_dir")
     camera_file = camera if isinstance(camera, str) else None
     cfg, source, camera, remap, pixels = prepare_frames(cfg, source, camera, remap, progress)
@@ -178,7 +181,7 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     # the detector before any output: another target's weights without their calibration are refused here
     detector = tracker_detector(cfg.weights, target=cfg.target, bf16=cfg.bf16)
     make_out_dir(out_dir, field="out_dir")
-    with staged_folder(out_dir, OUTPUTS.values()) as stage:
+    with staged_folder(out_dir, OUTPUTS.values()) as stage, compute_threads(cfg.threads):
         return _track(cfg, source, camera, remap, stage, sink, progress, pixels, detector, used)
 
 
@@ -187,11 +190,8 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     import shutil
     from dataclasses import asdict
 
-    import torch
-
     from envisat_pose.analysis.recording import TrackRecorder
 
-    torch.set_num_threads(cfg.threads)
     paths = track_output_paths(out_dir)
     sink = sink or f"save:{os.path.abspath(paths['recording'])}"
     target = load_target(cfg.target)

@@ -52,12 +52,14 @@ between sequences, x range) is added to the reported variance along the line of 
 from __future__ import annotations
 
 import dataclasses
+import numbers
+import os
 import time
 from typing import Callable
 
 import numpy as np
 
-from envisat_pose.config import InputError, to_dict
+from envisat_pose.config import InputError, config_arg, to_dict
 from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2
 from envisat_pose.filtering.estimator import (
@@ -238,6 +240,8 @@ class Tracker(AcquiringSteps, TrackingSteps):
         window_px: (x0, y0, side) px when only that window of the image was made (the rest black: a frame made
         for planned_window), None for a whole frame; nothing that reads beyond the window (the array cue) reads
         such a frame."""
+        if isinstance(t_s, (str, bytes, bool)) or not isinstance(t_s, numbers.Real):
+            raise ValueError(f"t_s = {t_s!r}: expected the frame's time, s (a number)")
         t_s = float(t_s)
         if not np.isfinite(t_s):
             raise ValueError(f"t_s = {t_s}: expected a finite frame time, s")
@@ -353,15 +357,21 @@ def tracker_from_scenario(scenario: str = "default", weights: str | None = None,
                           target: str | None = None) -> Tracker:
     """A Tracker for frames of the named scenario's geometry: the chaser's orbit and the target's dynamics
     (gravity gradient, mu) from the scenario, the detector of `weights` (None: shipped), `camera` (None: the
-    MJCF's chaser_cam, at size_px = (width, height) when given), TrackerConfig `config` (None: defaults), the
+    MJCF's chaser_cam, at size_px = (width, height) when given; a camera TOML file of ideal frames, a str or a
+    pathlib.Path; or a PinholeCamera), TrackerConfig `config` (None: defaults), the
     tracker's filter settings with `filter_config`'s fields over them (pipelines.build.tracker_filter); target:
     another target's MJCF file (its keypoint detector's `weights` then required; None: ENVISAT)."""
     from types import SimpleNamespace
 
     scen = scenario_config(scenario)
     physics = onboard_physics(SimpleNamespace(config=to_dict(scen)), f"scenario {scenario!r}")
-    return Tracker(camera if camera is not None else tracker_camera(size_px=size_px),
-                   tracker_detector(weights, target=target), chaser_from_orbit(scen.orbit), config or TrackerConfig(),
+    if camera is None or isinstance(camera, (str, os.PathLike)):  # the MJCF's, or a camera TOML file's pinhole
+        camera = tracker_camera(None if camera is None else os.fspath(camera), size_px=size_px)
+    elif not isinstance(camera, PinholeCamera):
+        raise InputError(f"camera: expected a camera TOML file or a PinholeCamera, got {type(camera).__name__}")
+    config = config_arg(TrackerConfig() if config is None else config, TrackerConfig, "config")
+    return Tracker(camera, tracker_detector(os.fspath(weights) if weights is not None else None, target=target),
+                   chaser_from_orbit(scen.orbit), config,
                    dataclasses.asdict(tracker_filter(filter_config, scenario)),
                    mu_m3_s2=physics.mu_m3_s2, gravity_gradient=physics.gravity_gradient,
                    target=None if other_target(target) is None else load_target(target))

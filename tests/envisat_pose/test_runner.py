@@ -21,13 +21,24 @@ def test_every_backend_returns_every_result_once(cfg):
     assert got == EXPECTED
 
 
-def test_inline_yields_in_order_and_sets_the_worker_environment(monkeypatch):
+def _probe() -> str | None:
+    import os
+
+    return os.environ.get("ENVISAT_RUNNER_PROBE")
+
+
+def test_inline_yields_in_order_and_sets_the_worker_environment_for_the_job_only(monkeypatch):
+    """The tasks see the worker environment; the caller's is as it was after the job (once the library left
+    OMP_NUM_THREADS and the like set in a user's process)."""
+    import os
+
     monkeypatch.delenv("ENVISAT_RUNNER_PROBE", raising=False)
     cfg = RunnerConfig("inline", env={"ENVISAT_RUNNER_PROBE": "1"})
     assert [i for i, _ in run_tasks(math.comb, TASKS, cfg)] == list(range(len(TASKS)))
-    import os
-
-    assert os.environ["ENVISAT_RUNNER_PROBE"] == "1"
+    assert [r for _, r in run_tasks(_probe, [(), ()], cfg)] == ["1", "1"]
+    assert "ENVISAT_RUNNER_PROBE" not in os.environ
+    monkeypatch.setenv("ENVISAT_RUNNER_PROBE", "mine")  # a value the caller set is kept, in the tasks too
+    assert [r for _, r in run_tasks(_probe, [()], cfg)] == ["mine"] and os.environ["ENVISAT_RUNNER_PROBE"] == "mine"
 
 
 @pytest.mark.parametrize("cfg", [RunnerConfig("inline"), RunnerConfig("local", 2)], ids=["inline", "local-2"])
