@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import uuid
+import warnings
 from datetime import timedelta
 
 import numpy as np
 import rerun as rr
+from rerun.sinks import spawn
 
 from envisat_pose.analysis.sink_check import check_sink
+from envisat_pose.analysis.viewer import viewer_executable
 from envisat_pose.attitude import mrp_to_dcm, mrp_to_quat
 from envisat_pose.geometry import PinholeCamera, project_K
 from envisat_pose.io import atomic_path
@@ -56,6 +59,9 @@ def project_state_px(x: np.ndarray, camera: PinholeCamera, target: Target | None
 # footer is written (`rerun rrd verify` passes; Rerun warns on stderr when a file has none). A live viewer
 # (spawn, connect) keeps Rerun's default, low-latency batching.
 FILE_CHUNK_ROWS = 100
+# A live viewer's flush at the end is bounded: Rerun's default waits forever (holding the interpreter, so Ctrl-C
+# is not seen) when the viewer went away or was never reached.
+LIVE_FLUSH_TIMEOUT_S = 10.0
 FILE_FLUSH_TICK_S = 60.0
 
 
@@ -83,12 +89,13 @@ class TrackRecorder:
         self.rec.set_log_time_enabled(False)
         self.rec.set_log_tick_enabled(False)
         blueprint = track_blueprint(with_truth)
-        self._atomic = None
+        self._atomic, self.sink = None, sink
         if kind == "save":
             self._atomic = atomic_path(arg, suffix=".rrd")
             self.rec.save(self._atomic.__enter__(), default_blueprint=blueprint)
         elif kind == "spawn":
-            self.rec.spawn(default_blueprint=blueprint)
+            # this environment's viewer, whether or not its bin folder is on PATH
+            spawn(executable_path=viewer_executable(), default_blueprint=blueprint, recording=self.rec)
         else:
             self.rec.connect_grpc(arg or None, default_blueprint=blueprint)
         if title:
@@ -199,9 +206,18 @@ class TrackRecorder:
                 rec.log("metrics/nis", rr.Scalars(float(est["nis"]) / float(est["nis_dof"])))
 
     def close(self) -> None:
-        """Flush; a saved recording is renamed to its path only now (complete)."""
+        """Flush; a saved recording is renamed to its path only now (complete). A live viewer that does not take
+        what is left within LIVE_FLUSH_TIMEOUT_S (closed, gone, never reached) gets a warning, not a wait."""
         try:
-            self.rec.flush()
+            if self._atomic is not None:
+                self.rec.flush()
+            else:
+                try:
+                    self.rec.flush(timeout_sec=LIVE_FLUSH_TIMEOUT_S)
+                except RuntimeError as e:
+                    warnings.warn(f"the recording's viewer ({self.sink}) did not take all of it within "
+                                  f"{LIVE_FLUSH_TIMEOUT_S:g} s ({e}); the job's other outputs are complete",
+                                  stacklevel=2)
             self.rec.disconnect()
         finally:
             if self._atomic is not None:

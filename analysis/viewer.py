@@ -65,6 +65,13 @@ def rerun_command() -> list[str]:
     return [sys.executable, "-m", "rerun_cli"]
 
 
+def viewer_executable() -> str | None:
+    """The `rerun` executable installed beside this Python (a virtual environment's bin folder, found whether or
+    not it is on PATH); None: Rerun searches PATH."""
+    path = os.path.join(os.path.dirname(sys.executable), "rerun")
+    return path if os.access(path, os.X_OK) else None
+
+
 def viewer_command(files: list[str], web: bool = False, port: int = DEFAULT_PORT,
                    web_port: int = DEFAULT_WEB_PORT) -> list[str]:
     """The command line: `rerun --bind 127.0.0.1 FILE...`, or with web `rerun --serve-web --bind 127.0.0.1 --port P

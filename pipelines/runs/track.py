@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from envisat_pose.analysis.sink_check import check_sink
 from envisat_pose.config import Config, as_path_or_object, check, config_arg, path_arg, to_dict, to_toml
 from envisat_pose.datagen.scenario import OrbitConfig
 from envisat_pose.filtering.estimator import FilterConfig
@@ -175,6 +176,8 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     cfg, out_dir = config_arg(cfg, TrackConfig), path_arg(out_dir, "out_dir")
     source, camera = as_path_or_object(source), as_path_or_object(camera)
     check_out_dir(out_dir, field="out_dir")
+    if sink is not None:
+        check_sink(sink)  # a viewer that is not there refused before any frame is read
     camera_file = camera if isinstance(camera, str) else None
     cfg, source, camera, remap, pixels = prepare_frames(cfg, source, camera, remap, progress)
     used = camera_record(camera, camera_file, remap is not None)
