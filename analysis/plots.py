@@ -87,7 +87,9 @@ def plot_estimate(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.
         if sig_mc is not None:
             ax.plot(t_min, 3 * sig_mc[:, i] * scale[i], lw=0.9, ls="--", color="k", label="Monte Carlo 3 sigma")
             ax.plot(t_min, -3 * sig_mc[:, i] * scale[i], lw=0.9, ls="--", color="k")
-        lim = 3 * np.percentile(sig_filter[len(t_s) // 10:, i], 95) * scale[i] * 2.0
+        sig = sig_filter[len(t_s) // 10:, i]
+        sig = sig[np.isfinite(sig)]  # frames without an estimate are NaN: gaps, not the axes' scale
+        lim = 3 * np.percentile(sig, 95) * scale[i] * 2.0 if sig.size else np.nan
         if np.isfinite(lim) and lim > 0:
             ax.set_ylim(-lim, lim)
         ax.set_ylabel(f"{names[i]} {units[i]}".strip())

@@ -127,21 +127,25 @@ def write_run_files(paths: dict, t_s: np.ndarray, x_true: np.ndarray, run_dirs: 
 
 def plot_inputs(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str]) -> tuple:
     """What plots.plot_estimate draws (t_s, x_true, x_hat, P) at most PLOT_FRAMES frames (every k-th), read from
-    the runs' files: P as its mean over runs (the figure's filter sigma is that mean's diagonal) on the diagonal,
-    one run, so the figure holds one covariance series whatever the number of runs."""
+    the runs' files: P as its mean over the runs with an estimate at that frame (the figure's filter sigma is that
+    mean's diagonal) on the diagonal, one run, so the figure holds one covariance series whatever the number of
+    runs. A frame without an estimate (acquiring, lost: the filter's placeholder in the rows) is NaN, as in
+    est.npz: a gap in the figure, not a line at the placeholder that sets the axes."""
     T = len(t_s)
     step = -(-T // PLOT_FRAMES)
     idx = np.arange(0, T, step)
-    x_hat, p_sum = [], 0.0
+    x_hat, p_sum, n = [], np.zeros((len(idx), 12)), np.zeros((len(idx), 1))
     for d in run_dirs:
         xs, ps = [], []
         for a in range(0, T, CHUNK_FRAMES):
-            c = run_rows(d, ["x_hat", "P"], a, a + CHUNK_FRAMES)
+            c = run_rows(d, ["x_hat", "P", "status"], a, a + CHUNK_FRAMES)
             take = slice((-a) % step, None, step)
-            xs.append(c["x_hat"][take])
-            ps.append(np.diagonal(c["P"][take], axis1=-2, axis2=-1))
+            xs.append(no_estimate_nan(c["x_hat"][take], c["status"][take]))
+            ps.append(no_estimate_nan(np.diagonal(c["P"][take], axis1=-2, axis2=-1), c["status"][take]))
         x_hat.append(np.concatenate(xs))
-        p_sum = p_sum + np.concatenate(ps)
+        p_run = np.concatenate(ps)
+        known = np.isfinite(p_run).all(-1, keepdims=True)
+        p_sum, n = p_sum + np.where(known, p_run, 0.0), n + known
     P = np.zeros((1, len(idx), 12, 12))
-    P[0][:, np.arange(12), np.arange(12)] = p_sum / len(run_dirs)
+    P[0][:, np.arange(12), np.arange(12)] = np.where(n > 0, p_sum / np.maximum(n, 1), np.nan)
     return t_s[idx], np.repeat(x_true[idx][None], len(run_dirs), axis=0), np.stack(x_hat), P
