@@ -62,6 +62,19 @@ def estimate_errors(x_true: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
     return err
 
 
+def _shade_no_estimate(axes, t_min: np.ndarray, none: np.ndarray) -> None:
+    """The whole time axis on every plot, the frames where no run has an estimate (none (T,): acquiring, lost)
+    shaded grey: a tracker's cold start reads as such, not as a figure that begins late."""
+    if not len(t_min):
+        return
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], none.astype(np.int8), [0]])))
+    for i, ax in enumerate(a for a in axes if a.axison):
+        ax.set_xlim(t_min[0], t_min[-1])
+        for j, (a, b) in enumerate(zip(edges[::2], edges[1::2])):
+            ax.axvspan(t_min[a], t_min[min(b, len(t_min) - 1)], color="0.85", lw=0, zorder=0,
+                       label="no estimate" if i == j == 0 else None)
+
+
 def plot_estimate(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, path: str,
                   title: str = "") -> None:
     """The seed paper's figures: per-state error of run 0, the filter's +-3 sigma (from P, mean over runs)
@@ -94,7 +107,6 @@ def plot_estimate(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.
             ax.set_ylim(-lim, lim)
         ax.set_ylabel(f"{names[i]} {units[i]}".strip())
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=7, loc="upper right")
     ang_deg = magnitudes["attitude_deg"]  # (R, T)
     ax = axes[4, 0]
     ax.semilogy(t_min, np.maximum(ang_deg.T, 1e-6), lw=0.5, alpha=0.5)
@@ -106,6 +118,8 @@ def plot_estimate(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.
     ax.set_ylabel("position error [cm]")
     ax.grid(alpha=0.3, which="both")
     axes[4, 2].axis("off")
+    _shade_no_estimate(list(axes.flat), t_min, ~np.isfinite(x_hat).all(-1).any(0))
+    axes[0, 0].legend(fontsize=7, loc="upper right")
     for ax in axes[-1]:
         ax.set_xlabel("t [min]")
     fig.suptitle(title or f"UKF estimation errors, {x_hat.shape[0]} runs")
