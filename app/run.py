@@ -36,7 +36,9 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--runs", type=int, help="closed loops on the same truth (camera noise; default 1)")
     p.add_argument("--workers", type=int, help="processes for --runs (default: min(runs, CPU cores))")
     p.add_argument("--warm-start", action="store_true",
-                   help="start each run's filter from the truth plus a draw from P0 (filter studies) instead of cold")
+                   help="start each run's filter from the truth plus a draw from P0 (filter studies) instead of "
+                   "cold; the start still earns its claim: its first frames (the tracker's confirm_frames, 5) are "
+                   "acquiring, without an estimate in est.npz, until its own innovations confirm it")
     p.add_argument("--no-roi", action="store_true", help="always run the detector's coarse pass (no region of interest)")
     p.add_argument("--full-frames", action="store_true", help="render and corrupt every frame whole (default: once "
                    "tracking, only the window the tracker reads, a full frame every `full_frame_every` frames, "
@@ -77,7 +79,7 @@ def print_table(summary: dict) -> None:
           f"deg/s; mean NEES {_fmt(sc['mean_nees'], 1)} (12 expected), beyond its 99.9 % quantile "
           f"{_fmt(None if sc['nees_tail_share'] is None else 100 * sc['nees_tail_share'], 2)} % of frames; SPEC score "
           f"median {_fmt(sc['spec_score_median'], 4)}, p95 {_fmt(sc['spec_score_p95'], 4)}; range bias "
-          f"{_fmt(sc['range_bias_m'], 4)} m")
+          f"{_fmt(sc['range_bias_m'], 4)} m; mean NIS per dof {_fmt(summary['mean_nis_per_dof'], 2)} (1 expected)")
     print(f"settled (< 10 cm and < 1 deg to the end): {s['settled']}/{s['runs']}, after median "
           f"{_fmt(settle['median'])} s, max {_fmt(settle['max'])} s")
     t = summary["timing_ms_per_frame"]

@@ -46,9 +46,10 @@ from envisat_pose.out_dirs import make_out_dir
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import run_frames
 from envisat_pose.pipelines.runs.loop_frames import FrameMaker, PlanAhead, closed_loop_frames
+from envisat_pose.pipelines.runs.outputs import mean_nis_per_dof, status_counts, status_summary
 from envisat_pose.pipelines.runs.rows import STAGES, RunRows, timing_by_status
 from envisat_pose.pipelines.runs.run_config import RunConfig, run_config_from_json, sun_and_shadow
-from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, score_run_files, write_run_files
+from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, run_rows, score_run_files, write_run_files
 from envisat_pose.pipelines.tracking.build import tracker_detector
 from envisat_pose.pipelines.tracking.namings import target_namings
 from envisat_pose.pipelines.tracking.onboard import chaser_function, onboard_physics, orbit_config
@@ -244,6 +245,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
 
     plot_estimate(*plot_inputs(truth.t_s, truth.x, run_dirs), paths["plot"],
                   title=f"closed loop, scenario {cfg.scenario!r}, {R} run(s), seed {cfg.seed}")
+    cols = [run_rows(d, ["status", "nis", "nis_dof"], 0, T) for d in run_dirs]  # three scalars a frame
     shutil.rmtree(runs_dir, ignore_errors=True)
     timing_sum = np.sum([r["timing_s"] for r in results], axis=0)  # (stages,) over runs and frames
     sim_time_s = float(truth.t_s[-1] - truth.t_s[0]) + 1.0 / cfg.rate_hz
@@ -262,7 +264,11 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
         "real_time_factor_job": sim_time_s * R / max(loop_wall_s, 1e-9),
         "wall_s": {"truth_simulation": sim_s, "loops": loop_wall_s, "total": time.perf_counter() - wall0},
         "run0": {k: r0[k] for k in ("frames_skipped_eclipse", "frames_roi", "frames_ambiguous", "frames_acquiring",
-                                    "frames_lost", "frames_windowed", "frames_window_remade")},
+                                    "frames_lost", "frames_windowed", "frames_window_remade")} | status_summary(
+            truth.t_s, cols[0]),
+        # without the truth, as `envisat track` says it: every run's frames by status and their mean NIS
+        "frames_by_status": status_counts(np.concatenate([c["status"] for c in cols])),
+        "mean_nis_per_dof": mean_nis_per_dof(*(np.concatenate([c[k] for c in cols]) for k in ("nis", "nis_dof"))),
         "recording_bytes": os.path.getsize(paths["recording"]) if os.path.isfile(paths["recording"]) else 0,
     }
     atomic_write_text(paths["summary"], json.dumps(summary, indent=1, sort_keys=True) + "\n")

@@ -39,3 +39,20 @@ def first_tracking_s(t_s: np.ndarray, status: np.ndarray) -> float | None:
     """The first frame time with status tracking, s; None if never."""
     k = np.flatnonzero(np.asarray(status) == TRACKING)
     return float(t_s[k[0]]) if k.size else None
+
+
+def mean_nis_per_dof(nis: np.ndarray, nis_dof: np.ndarray) -> float | None:
+    """The NIS summed over every filter update divided by their degrees of freedom (~1 when the filter's
+    innovations match its covariance; a truth-free consistency check); None without an update with measurements."""
+    dof = int(np.sum(nis_dof))
+    return float(np.sum(nis) / dof) if dof else None
+
+
+def status_summary(t_s: np.ndarray, col: dict) -> dict:
+    """What one run's statuses say, without a truth: frames by status, whether and when it first tracked, its
+    final status and its mean NIS per dof. col: the run's status, nis and nis_dof per frame (T,)."""
+    status = col["status"]
+    counts = status_counts(status)
+    return {"frames_by_status": counts, "tracked": counts["tracking"] > 0,
+            "first_tracking_s": first_tracking_s(t_s, status), "final_status": STATUSES[int(status[-1])],
+            "mean_nis_per_dof": mean_nis_per_dof(col["nis"], col["nis_dof"])}

@@ -49,7 +49,7 @@ from envisat_pose.pipelines.common.job_defaults import (
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
 from envisat_pose.pipelines.runs.frames import FrameSource, open_source, require_source_target, scan_source
-from envisat_pose.pipelines.runs.outputs import first_tracking_s, status_counts
+from envisat_pose.pipelines.runs.outputs import status_summary
 from envisat_pose.pipelines.runs.rows import DET_KEYS, STAGES, RunRows
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, run_rows, score_run_files, write_run_files
 from envisat_pose.pipelines.tracking.build import tracker_detector
@@ -57,7 +57,7 @@ from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics, 
 from envisat_pose.pipelines.tracking.onboard import chaser_function
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, Tracker, TrackerConfig
 from envisat_pose.realtime import real_time_factor
-from envisat_pose.status import STATUSES, legend
+from envisat_pose.status import legend
 from envisat_pose.target import DEFAULT_TARGET, load_target, other_target
 
 if TYPE_CHECKING:  # the stage's type for annotations (track_stage_types resolves it at run time)
@@ -248,18 +248,11 @@ def track_summary(source: FrameSource, weights: str, pixels: str, col: dict, tim
     (T,); timing_s: (len(STAGES),) s per frame."""
 
     T = len(source.t_s)
-    status = col["status"]
-    dof = int(np.sum(col["nis_dof"]))
-    counts = status_counts(status)
     return {
         "source": {"kind": source.kind, "path": source.path, "frames": T, "bit_depth": source.bit_depth,
                    "size_px": list(source.size_px), "pixels": pixels, "skipped_damaged_shards": source.skipped},
         "weights": weights,
-        "frames_by_status": counts,
-        "tracked": counts["tracking"] > 0,
-        "first_tracking_s": first_tracking_s(source.t_s, status),
-        "final_status": STATUSES[int(status[-1])],
-        "mean_nis_per_dof": float(np.sum(col["nis"]) / dof) if dof else None,
+        **status_summary(source.t_s, col),
         # the stages timed here: the frames are read, not made (no simulation, rendering or camera)
         "timing_ms_per_frame": {s: float(1000 * timing_s[i]) for i, s in enumerate(STAGES) if s not in BEFORE_TRACKER},
         "real_time_factor": real_time_factor(source.t_s, wall_s),

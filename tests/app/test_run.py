@@ -47,6 +47,13 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, ver
     assert cfg["scenario"] == "default" and cfg["image"]["mode"] == "sequence"
     assert cfg["tracker"]["roi"]["enabled"] is True
     assert json.loads((out / "summary.json").read_text())["frames"] == T == summary["frames"]
+    # what `envisat track` says without a truth, said here too: from est.npz's own columns
+    with np.load(out / "est.npz", allow_pickle=False) as z:
+        nis, dof = z["nis"][0], z["nis_dof"][0]
+    assert summary["frames_by_status"] == summary["run0"]["frames_by_status"] == {
+        "acquiring": 4, "tracking": 1, "lost": 0, "coasting": 0}
+    assert summary["run0"]["first_tracking_s"] == float(est.t_s[4]) and summary["run0"]["final_status"] == "tracking"
+    assert dof.sum() > 0 and summary["mean_nis_per_dof"] == pytest.approx(nis.sum() / dof.sum(), rel=1e-12)
     from envisat_pose.analysis.viewer import recordings
 
     assert recordings(str(out)) == [str(out / "recording.rrd")]
