@@ -26,7 +26,7 @@ def _file_in_the_way(path: str) -> str | None:
     return here if os.path.isabs(path) else os.path.relpath(here)
 
 
-def check_out_dir(out_dir: str, parents: bool = True, field: str = "--out") -> None:
+def check_out_dir(out_dir: str, parents: bool = True, field: str = "out_dir") -> None:
     """Check, creating nothing, that out_dir is a folder or can become one: nothing on its path is a file (out_dir
     itself, or a folder above it); without parents, its parent must exist too. InputError naming the field."""
     blocker = _file_in_the_way(out_dir)
@@ -39,7 +39,7 @@ def check_out_dir(out_dir: str, parents: bool = True, field: str = "--out") -> N
         raise InputError(f"{field} {out_dir!r}: parent folder {parent!r} does not exist")
 
 
-def make_out_dir(out_dir: str, subdirs: Sequence[str] = (), parents: bool = True, field: str = "--out") -> None:
+def make_out_dir(out_dir: str, subdirs: Sequence[str] = (), parents: bool = True, field: str = "out_dir") -> None:
     """check_out_dir, then create out_dir (its parents too, and its subdirs) and prove it writable by writing
     (and removing) a probe file in it.
 
@@ -71,7 +71,7 @@ def _made_writable(folders: list[str]) -> str | None:
     return None
 
 
-def check_out_file(path: str, field: str = "--out") -> None:
+def check_out_file(path: str, field: str = "out") -> None:
     """Check, creating nothing, that an output file can be written at path: it is not a folder and nothing above
     it is a file (its missing folders are made by make_out_file_dir when the job writes). InputError."""
     if os.path.isdir(path):
@@ -82,7 +82,7 @@ def check_out_file(path: str, field: str = "--out") -> None:
                          "(or where one can be made)")
 
 
-def make_out_file_dir(path: str, field: str = "--out") -> None:
+def make_out_file_dir(path: str, field: str = "out") -> None:
     """check_out_file, then make the output file's folder (parents too) and prove it writable (make_out_dir)."""
     check_out_file(path, field)
     folder = os.path.dirname(os.path.abspath(path))

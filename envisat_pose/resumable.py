@@ -100,11 +100,11 @@ class ResumableJob:
             self._refuse_foreign_entries()
             return None
         if manifest.get("format") != self.format:
-            raise InputError(f"--out {self.out_dir!r}: {MANIFEST} is not a {self.what} manifest (format "
+            raise InputError(f"out_dir {self.out_dir!r}: {MANIFEST} is not a {self.what} manifest (format "
                              f"{self.format!r} expected); use another folder")
         units = manifest.get(self.units_key, [])
         if not isinstance(units, list) or not all(isinstance(e, dict) for e in units):
-            raise InputError(f"--out {self.out_dir!r}: {MANIFEST}'s {self.units_key!r} is not a list of entries; "
+            raise InputError(f"out_dir {self.out_dir!r}: {MANIFEST}'s {self.units_key!r} is not a list of entries; "
                              "remove it or use another folder")
         theirs = {**self.added_defaults, **flatten({k: manifest.get(k) for k in self.identity})}
         ours = flatten(self.identity)
@@ -113,7 +113,7 @@ class ResumableJob:
             def shown(k: str) -> str:
                 return f"{k.removeprefix('config.')} = {theirs.get(k)!r} there, {ours.get(k)!r} here"
 
-            raise InputError(f"--out {self.out_dir!r} holds a {self.what} of another config or seed ("
+            raise InputError(f"out_dir {self.out_dir!r} holds a {self.what} of another config or seed ("
                              + ", ".join(shown(k) for k in diff[:3]) + (", ..." if len(diff) > 3 else "")
                              + "); rerun with the same settings or use another folder")
         return manifest
@@ -126,7 +126,7 @@ class ResumableJob:
         names = sorted(n for n in os.listdir(self.out_dir) if not n.startswith(PARTIAL_PREFIX) and n not in own)
         if names:
             shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
-            raise InputError(f"--out {self.out_dir!r} holds {len(names)} entries ({shown}) and no {MANIFEST}: not a "
+            raise InputError(f"out_dir {self.out_dir!r} holds {len(names)} entries ({shown}) and no {MANIFEST}: not a "
                              f"{self.what} to resume; expected an empty or new folder (use another one)")
 
     def open(self) -> dict | None:

@@ -91,12 +91,12 @@ def check_sweep_folder(out_dir: str, cfg: MonteCarloConfig, sweep: SweepConfig) 
     if not os.path.isdir(out_dir):
         return
     if os.path.exists(manifest_path(out_dir)):
-        raise InputError(f"--out {out_dir!r} holds a campaign, not a rate sweep: use another folder")
+        raise InputError(f"out_dir {out_dir!r} holds a campaign, not a rate sweep: use another folder")
     rates = {rate_folder(r) for r in sweep.rates_hz}
     foreign = sorted(n for n in os.listdir(out_dir) if not n.startswith(".") and n not in SWEEP_ENTRIES
                      and n not in rates)
     if foreign:
-        raise InputError(f"--out {out_dir!r} holds {', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}: "
+        raise InputError(f"out_dir {out_dir!r} holds {', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}: "
                          "not this rate sweep's (another sweep's rates, or another job's files); use another folder")
     path = os.path.join(out_dir, "sweep.json")
     if os.path.isfile(path):
@@ -110,7 +110,7 @@ def check_sweep_folder(out_dir: str, cfg: MonteCarloConfig, sweep: SweepConfig) 
         diff = [f"{k} = {was.get(k)!r} there, {v!r} here" for k, v in now.items()
                 if isinstance(was, dict) and was.get(k) != v]
         if diff:
-            raise InputError(f"--out {out_dir!r} holds a rate sweep of another config ({'; '.join(diff[:3])}): "
+            raise InputError(f"out_dir {out_dir!r} holds a rate sweep of another config ({'; '.join(diff[:3])}): "
                              "rerun with the same settings or use another folder")
 
 

@@ -187,7 +187,7 @@ def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | N
         read_header(backbone)  # a file that is not safetensors: refused here; a backbone of another shape when built
     if resume and not os.path.isdir(run_dir):
         raise InputError(f"resume: run_dir {run_dir!r} does not exist")
-    check_out_dir(run_dir, parents=True)  # a file, or a path under one, is refused here
+    check_out_dir(run_dir, parents=True, field="run_dir")  # a file, or a path under one, is refused here
     if workers is not None and workers < 0:
         raise InputError(f"workers = {workers}: expected 0 (in-process) or more worker processes")
     if threads is not None and threads < 1:
