@@ -47,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="local worker processes (default: "
                    "one per core)")
     add_common(e, out="new folder (refused if it exists and is not empty)", seed="seed of the train/validation "
-               "split (default 0)", flag_names={"src": "SRC", "format": "--format", "image_format": "--image-format",
+               "split (default 0)", flag_names={"src": "SRC", "fmt": "--format", "image_format": "--image-format",
                                                 "val_fraction": "--val-fraction", "workers": "--workers",
                                                 "target": "--target"})
     add_skip_damaged_argument(e)

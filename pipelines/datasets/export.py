@@ -64,7 +64,7 @@ class ExportConfig(Config):
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
-        check(self.fmt in fx.FORMATS, f"{p}format", self.fmt, " | ".join(fx.FORMATS))
+        check(self.fmt in fx.FORMATS, f"{p}fmt", self.fmt, " | ".join(fx.FORMATS))
         check(self.image_format in ("png", "jpg"), f"{p}image_format", self.image_format, "png or jpg")
         vf = self.val_fraction
         check(vf is None or 0.0 <= vf < 1.0, f"{p}val_fraction", vf, "a fraction in [0, 1)")

@@ -100,3 +100,11 @@ def test_paths_are_taken_as_str_or_path():
     assert paths_arg([pathlib.Path("a"), "b"], "dirs") == ["a", "b"] and as_path_or_object(None) is None
     with pytest.raises(InputError, match="out = 3: expected a path"):
         path_arg(3, "out")
+
+
+def test_an_export_config_error_names_its_python_field():
+    from envisat_pose.config import ConfigError
+    from envisat_pose.pipelines.datasets.export import ExportConfig
+
+    with pytest.raises(ConfigError, match=r"^fmt = 'x': expected speedplus"):  # the field, not the verb's --format
+        ExportConfig("x")
