@@ -66,7 +66,8 @@ def resolve_config(args: argparse.Namespace):
 
 def print_table(summary: dict) -> None:
     """The scores (pipelines/runs/scoring.py: first track, false locks, statistics over every frame from the first
-    declared tracking on which the tracker claims an estimate) and the time per stage."""
+    declared tracking on which the tracker claims an estimate), the mean NIS where the summary has it (`track`
+    prints it in its status line) and the time per stage."""
     s = summary["scores"]
     ttc, settle, sc = s["time_to_first_correct_track_s"], s["time_to_settle_s"], s["scored"]
     print(f"{summary['start']} start: {s['runs_tracked']}/{s['runs']} run(s) tracked, first track correct in "
@@ -79,7 +80,8 @@ def print_table(summary: dict) -> None:
           f"deg/s; mean NEES {_fmt(sc['mean_nees'], 1)} (12 expected), beyond its 99.9 % quantile "
           f"{_fmt(None if sc['nees_tail_share'] is None else 100 * sc['nees_tail_share'], 2)} % of frames; SPEC score "
           f"median {_fmt(sc['spec_score_median'], 4)}, p95 {_fmt(sc['spec_score_p95'], 4)}; range bias "
-          f"{_fmt(sc['range_bias_m'], 4)} m; mean NIS per dof {_fmt(summary['mean_nis_per_dof'], 2)} (1 expected)")
+          f"{_fmt(sc['range_bias_m'], 4)} m" + (f"; mean NIS per dof {_fmt(summary['mean_nis_per_dof'], 2)} (1 "
+                                               "expected)" if "mean_nis_per_dof" in summary else ""))
     print(f"settled (< 10 cm and < 1 deg to the end): {s['settled']}/{s['runs']}, after median "
           f"{_fmt(settle['median'])} s, max {_fmt(settle['max'])} s")
     t = summary["timing_ms_per_frame"]

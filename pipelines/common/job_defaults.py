@@ -108,6 +108,15 @@ def check_weights(path: str, target: str = DEFAULT_TARGET) -> None:
         require_calibrated(path, target)
 
 
+def job_weights(weights: str, target: str = DEFAULT_TARGET) -> str:
+    """A job's weights file as its config holds it: "" is the shipped weights (ENVISAT's corner network; a job of
+    another target is refused: require_target_weights), and the file is checked (check_weights) before any work."""
+    require_target_weights(weights, target)
+    path = weights or default_weights_path()
+    check_weights(path, target)
+    return path
+
+
 def require_target_weights(weights: str, target: str) -> None:
     """InputError naming `weights` when a job of another target than ENVISAT (target: its MJCF file) is given no
     weights: the shipped ones are ENVISAT's corner network, never that target's keypoint detector."""

@@ -27,7 +27,7 @@ from envisat_pose.perception import errormodel as em
 from envisat_pose.perception import weights_keys as wk
 from envisat_pose.perception.box_symmetry import face_windings
 from envisat_pose.perception.calibrate import calibration_by_group, fit_cov_scale, fit_floor
-from envisat_pose.pipelines.common.job_defaults import check_weights, default_weights_path
+from envisat_pose.pipelines.common.job_defaults import job_weights
 from envisat_pose.pipelines.detector.detect import camera_samples
 from envisat_pose.provenance import dataset_ref
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
@@ -53,10 +53,8 @@ class CalibrateJobConfig(Config):
     skip_damaged: bool = False
 
     def __post_init__(self) -> None:
-        if not self.weights:  # "": the shipped weights, as the verb and TrackConfig take them
-            object.__setattr__(self, "weights", default_weights_path())
         super().__post_init__()
-        check_weights(self.weights)  # ENVISAT's corner detector, there: before any work
+        object.__setattr__(self, "weights", job_weights(self.weights))  # "": the shipped ones; checked, before work
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""

@@ -15,7 +15,7 @@ from envisat_pose.config import Config, InputError, check, config_arg, path_arg
 from envisat_pose.contracts import Detections
 from envisat_pose.io import save_npz
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
-from envisat_pose.pipelines.common.job_defaults import check_weights, default_weights_path
+from envisat_pose.pipelines.common.job_defaults import job_weights
 from envisat_pose.shard_reader import checked_shards
 from envisat_pose.target import require_envisat_dataset
 
@@ -36,10 +36,8 @@ class DetectJobConfig(Config):
     skip_damaged: bool = False
 
     def __post_init__(self) -> None:
-        if not self.weights:  # "": the shipped weights, as the verb and TrackConfig take them
-            object.__setattr__(self, "weights", default_weights_path())
         super().__post_init__()
-        check_weights(self.weights)  # ENVISAT's corner detector, there: before any work
+        object.__setattr__(self, "weights", job_weights(self.weights))  # "": the shipped ones; checked, before work
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""

@@ -20,13 +20,7 @@ from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.scenario import in_earth_shadow, scenario_config, scenario_eclipse
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import load_camera
-from envisat_pose.pipelines.common.job_defaults import (
-    check_weights,
-    default_weights_path,
-    fill_from_scenario,
-    layered_job,
-    require_target_weights,
-)
+from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job
 from envisat_pose.pipelines.tracking.onboard import orbit_config
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, TrackerConfig
 
@@ -88,11 +82,8 @@ class RunConfig(Config):
         fill_from_scenario(self, "run", RUN_FALLBACKS)
         if self.workers is None:  # one process per run, at most one per core
             object.__setattr__(self, "workers", max(1, min(self.runs, os.cpu_count() or 1)))
-        require_target_weights(self.weights, self.image.target)
-        if not self.weights:
-            object.__setattr__(self, "weights", default_weights_path())
         super().__post_init__()
-        check_weights(self.weights, self.image.target)
+        object.__setattr__(self, "weights", job_weights(self.weights, self.image.target))  # never ENVISAT's for another
         # after validation: the frame count needs a valid duration and rate
         object.__setattr__(self, "image", finished_image(self))
 

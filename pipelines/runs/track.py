@@ -39,13 +39,7 @@ from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import check_out_dir, make_out_dir
-from envisat_pose.pipelines.common.job_defaults import (
-    check_weights,
-    default_weights_path,
-    fill_from_scenario,
-    layered_job,
-    require_target_weights,
-)
+from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
 from envisat_pose.pipelines.runs.frames import FrameSource, open_source, require_source_target, scan_source
@@ -94,10 +88,7 @@ class TrackConfig(Config):
         track_stage_types()
         fill_from_scenario(self, "track", TRACK_FALLBACKS)
         super().__post_init__()  # the target file first: its weights are asked of it
-        require_target_weights(self.weights, self.target)  # never ENVISAT's shipped ones for another target
-        if not self.weights:
-            object.__setattr__(self, "weights", default_weights_path())
-        check_weights(self.weights, self.target)
+        object.__setattr__(self, "weights", job_weights(self.weights, self.target))  # never ENVISAT's for another
 
     @classmethod
     def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,
