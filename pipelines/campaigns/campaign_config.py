@@ -142,3 +142,12 @@ def check_filter_rate(cfg: MonteCarloConfig, scenario) -> None:
         filter_stride(np.array([0.0, scenario.dt_s]), cfg.measurement.rate_hz)
     except ValueError as err:
         raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None
+
+
+def campaign_title(cfg: MonteCarloConfig, runs: str) -> str:
+    """The head of a campaign's figure titles: the target's name (its MJCF model), the scenario, `runs` (e.g. '100
+    runs'), the measurement and its noise."""
+    m = cfg.measurement
+    noise = f"{m.sigma_m:g} m" if m.kind == "markers3d" else f"{m.sigma_px:g} px"
+    target = load_target(truth_scenario(cfg).target.file).name
+    return f"{target}, scenario {cfg.scenario}: {runs}, {m.kind} at {noise}"

@@ -26,7 +26,7 @@ from envisat_pose.pipelines.campaigns.campaign_block import (
     load_campaign_truth,
     settled_mask,
 )
-from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig
+from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig, campaign_title
 from envisat_pose.state import BLOCKS, N_STATE
 
 FIGURES = ("envelopes.png", "block_norms.png", "nees_nis.png", "rmse_vs_pcrlb.png")
@@ -115,9 +115,7 @@ def write_figures(cfg: MonteCarloConfig, out_dir: str, t_s, stats, bound, sample
         plot_rmse_vs_bound,
     )
 
-    m = cfg.measurement
-    noise = f"{m.sigma_m:g} m" if m.kind == "markers3d" else f"{m.sigma_px:g} px"
-    title = f"{cfg.scenario}: {cfg.runs} runs, {m.kind} at {noise}, {m.rate_hz:g} Hz, seed {cfg.seed}"
+    title = f"{campaign_title(cfg, f'{cfg.runs} runs')}, {cfg.measurement.rate_hz:g} Hz, seed {cfg.seed}"
     err = sample_err if len(sample_err) else None
     norms = sample_norms if len(sample_norms) else None
     path = os.path.join

@@ -17,6 +17,7 @@ from envisat_pose.io import atomic_write_text, json_safe
 from envisat_pose.named_scenarios import table
 from envisat_pose.out_dirs import make_out_dir
 from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig, check_filter_rate, run_campaign, truth_scenario
+from envisat_pose.pipelines.campaigns.campaign_config import campaign_title
 from envisat_pose.pools import RunnerConfig
 from envisat_pose.resumable import manifest_path, remove_partial_files
 from envisat_pose.state import BLOCKS
@@ -137,13 +138,11 @@ def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner: R
     atomic_write_text(os.path.join(out_dir, "montecarlo.config.toml"),
                       "# envisat montecarlo: the validated config of this rate sweep (measurement.rate_hz is set per "
                       "campaign)\n" + to_toml({**to_dict(cfg), "sweep": to_dict(sweep)}))
-    m = cfg.measurement
-    noise = f"{m.sigma_m:g} m" if m.kind == "markers3d" else f"{m.sigma_px:g} px"
     plot_rate_sweep(np.array(rates), np.array([[s["rmse"][b] for b in BLOCKS] for s in summaries]),
                     os.path.join(out_dir, SWEEP_FIGURE),
                     bound_block=np.array([[s["pcrlb_rms"][b] for b in BLOCKS] for s in summaries]),
                     diverged_share=np.array(result["diverged_share"]),
-                    title=f"{cfg.scenario}: {cfg.runs} runs per rate, {m.kind} at {noise}, {cfg.duration_s:g} s, "
+                    title=f"{campaign_title(cfg, f'{cfg.runs} runs per rate')}, {cfg.duration_s:g} s, "
                           f"seed {cfg.seed}, statistics after {summaries[0]['settle_s']:g} s")
     return result
 
