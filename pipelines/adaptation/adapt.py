@@ -378,7 +378,7 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
 # The job's files
 
 
-def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool = True,
+def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool = False,
           command: list[str] | None = None) -> dict:
     """Adapt the detector in cfg.track.weights ("" the shipped) to the frames of `source` (a FrameSource or a path
     open_source opens at cfg.track.rate_hz) and write out_dir (module doc). camera: a PinholeCamera, a camera TOML

@@ -83,7 +83,7 @@ class ExportSummary:
 
 
 def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 1, skip_damaged: bool = False,
-                   progress: bool = True, on_shard=None) -> ExportSummary:
+                   progress: bool = False, on_shard=None) -> ExportSummary:
     """Export the dataset folder `src` into the new folder `out_dir` in cfg's format (module docstring).
     on_shard(count): called after each shard (a progress hook). InputError for a bad argument, a missing or
     damaged dataset (naming the shard) or an `out_dir` that exists and holds anything."""

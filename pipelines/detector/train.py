@@ -335,7 +335,7 @@ def resolve_backbone(backbone: str | None, cfg, new_target_run: bool) -> str | N
 
 def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: bool = False,
                    init: str | None = None, device: str = "cpu", workers: int | None = None, bf16: bool = False,
-                   threads: int | None = None, progress: bool = True, command: str = "",
+                   threads: int | None = None, progress: bool = False, command: str = "",
                    skip_damaged: bool = False, online: OnlineConfig | None = None,
                    backbone: str | None = None) -> dict:
     """Train the detector (cfg: a perception TrainConfig, validated when built) on the shards of data_dirs (one

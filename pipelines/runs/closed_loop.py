@@ -176,7 +176,7 @@ class TruthBrief:
     config: dict
 
 
-def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = True, sink: str | None = None) -> dict:
+def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = False, sink: str | None = None) -> dict:
     """The whole job into out_dir (created, parents too); returns the summary dict (also written as
     summary.json). sink: where run 0's recording goes (None: save to out_dir/recording.rrd; 'spawn' or
     'connect:ADDR' for a live viewer).

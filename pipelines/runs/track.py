@@ -150,7 +150,7 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
 
 
 def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCamera | str | None = None, remap=None,
-                 out_dir: str = "track-out", sink: str | None = None, progress: bool = True) -> dict:
+                 out_dir: str = "track-out", sink: str | None = None, progress: bool = False) -> dict:
     """Run the Tracker over the source's frames (a FrameSource, or a path open_source opens at cfg.rate_hz);
     write est.npz, det.npz, track.config.toml, summary.json and the recording (out_dir/recording.rrd, or
     streamed to sink: 'spawn' or 'connect:URL'); with a truth also errors.png and the scores. camera: a

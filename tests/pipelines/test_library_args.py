@@ -108,3 +108,14 @@ def test_an_export_config_error_names_its_python_field():
 
     with pytest.raises(ConfigError, match=r"^fmt = 'x': expected speedplus"):  # the field, not the verb's --format
         ExportConfig("x")
+
+
+def test_every_pipeline_function_is_quiet_unless_asked():
+    import inspect
+
+    import envisat_pose
+
+    defaults = {name: inspect.signature(obj).parameters["progress"].default
+                for name, obj in ((n, getattr(envisat_pose, n)) for n in envisat_pose.__all__)
+                if inspect.isfunction(obj) and "progress" in inspect.signature(obj).parameters}
+    assert len(defaults) >= 10 and set(defaults.values()) == {False}, defaults
