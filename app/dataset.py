@@ -6,16 +6,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import warnings
 
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, check_rrd_output, skipped_line
-from envisat_pose.config import InputError
-from envisat_pose.datagen.appearance import takes_class_appearance
-from envisat_pose.datagen.render_view import target_mask_values
-from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
-from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, skip_hint, unfinished_dataset
-from envisat_pose.target import DEFAULT_TARGET, load_target
+from envisat_pose.pipelines.datasets.inspect import inspect_dataset
+
+OUTPUT_KEYS = ("montage", "montage_images", "rrd")  # what inspect_dataset adds to the statistics it prints
+from envisat_pose.shard_reader import skip_hint
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -32,7 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     i.add_argument("--rrd", metavar="FILE.rrd", help="also write the first --count samples as a Rerun recording: "
                    "images with labelled corners, masks, depth (`envisat view FILE`)")
     add_skip_damaged_argument(i)
-    i.set_defaults(func=run_inspect_cli)
+    i.set_defaults(func=run_inspect_cli, flag_names={"src": "DIR", "montage": "--montage", "count": "--count",
+                                                     "rrd": "--rrd"})
     e = dsub.add_parser("export", help="write a dataset as SPEED+, COCO keypoints, BOP or YOLO-pose",
                         description="Export a generated dataset (random or sequence mode) into a new folder of a "
                         "format the field trains on; conventions in the folder's README.md and docs/formats.md.")
@@ -68,60 +66,17 @@ def run_verify_cli(args: argparse.Namespace) -> int:
 
 
 def run_inspect_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.datagen.dataset import dataset_stats, montage
-
-    if args.count < 1:
-        raise InputError(f"--count {args.count}: expected at least 1 image in the montage")
-    path = args.montage or os.path.join(args.dir, "montage.png")
-    check_out_file(path, "--montage")
     if args.rrd:
         check_rrd_output(args.rrd)
-    manifest = load_dataset_manifest(args.dir)
     with skip_hint():
-        shards, skipped = checked_shards(args.dir, args.skip_damaged, "dataset")
-    stats = dataset_stats(shards)
-    unfinished = unfinished_dataset(manifest)
-    if unfinished:
-        stats["unfinished_dataset"] = f"{unfinished}: these statistics cover the shards written so far"
-        warnings.warn(f"dataset {args.dir!r}: {unfinished}: rerun its `envisat generate` command to finish it",
-                      stacklevel=1)
-    if skipped:
-        stats["skipped_damaged_shards"] = skipped
-    print(json.dumps(stats, indent=1))
-    make_out_file_dir(path, "--montage")
-    n = montage(shards, path, count=args.count)
-    print(f"wrote {path} ({n} images)")
+        result = inspect_dataset(args.dir, args.montage, args.count, args.rrd, args.skip_damaged)
+    print(json.dumps({k: v for k, v in result.items() if k not in OUTPUT_KEYS}, indent=1))
+    print(f"wrote {result['montage']} ({result['montage_images']} images)")
     if args.rrd:
-        make_out_file_dir(args.rrd, "--rrd")
-        write_samples_rrd(shards, args.rrd, args.count, *recorded_target(manifest))
         print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
-    if skipped:
-        print(skipped_line(skipped))
+    if result.get("skipped_damaged_shards"):
+        print(skipped_line(result["skipped_damaged_shards"]))
     return 0
-
-
-def recorded_target(manifest: dict) -> tuple:
-    """(the dataset's Target: the file its manifest records, ENVISAT for a dataset written before targets; the
-    {geom name: mask value} its masks hold, datagen.render_view.target_mask_values, or None where they are the
-    factory's classes)."""
-    target = load_target((manifest.get("target") or {}).get("file", DEFAULT_TARGET), "target")
-    return target, None if takes_class_appearance(g.name for g in target.geoms) else target_mask_values(target)
-
-
-def write_samples_rrd(source: str | list[str], path: str, count: int, target=None,
-                      mask_values: dict | None = None) -> None:
-    """The first `count` samples as a Rerun recording (analysis.recording.write_samples_recording), read lazily.
-    source: a dataset folder or its checked shard files; target, mask_values: the dataset's (recorded_target;
-    None: ENVISAT's)."""
-    from envisat_pose.analysis.recording import Sample, write_samples_recording
-    from envisat_pose.datagen.dataset import iter_samples, sample_png
-    from envisat_pose.datagen.shards import decode_png
-
-    samples = (Sample(key, sample_png(members, label), label,
-                      mask=decode_png(members["mask.png"]) if "mask.png" in members else None,
-                      depth_png=members.get("depth.png"))
-               for key, label, members in iter_samples(source, limit=count))
-    write_samples_recording(path, samples, target, mask_values)
 
 
 def run_export_cli(args: argparse.Namespace) -> int:

@@ -12,12 +12,12 @@ from envisat_pose.app.common import add_common, add_skip_damaged_argument, skipp
 from envisat_pose.app.detect import detector_inputs
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.out_dirs import check_out_file
-from envisat_pose.pipelines.detector.detect import camera_samples, read_roi
+from envisat_pose.pipelines.detector.detect import DetectJobConfig
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig
-from envisat_pose.pipelines.detector.evaluate import evaluate_detector, groups_table, read_poses
+from envisat_pose.pipelines.detector.evaluate import groups_table, run_evaluate
 from envisat_pose.pipelines.detector.evaluate_target import evaluate_target_detector, keypoint_table
-from envisat_pose.shard_reader import checked_shards, skip_hint
-from envisat_pose.target import other_target, require_envisat_dataset
+from envisat_pose.shard_reader import skip_hint
+from envisat_pose.target import other_target
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -47,7 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     add_common(p)  # the shared --quiet
     add_skip_damaged_argument(p)
-    p.set_defaults(func=run_evaluate_cli, flag_names={"roi": "--roi", "out": "--out", "target": "--target",
+    p.set_defaults(func=run_evaluate_cli, flag_names={"roi": "--roi", "roi_labels": "--roi-labels", "json_path": "--json",
+                                                      "limit": "--limit", "out": "--out", "target": "--target",
                                                       "data": "--data"})
 
 
@@ -56,13 +57,11 @@ def run_evaluate_cli(args: argparse.Namespace) -> int:
     check_out_file(args.json, "--json")
     if other_target(args.target):
         return run_evaluate_target_cli(args)
-    require_envisat_dataset(args.data, "--data", "evaluate")
+    cfg = DetectJobConfig(weights=args.weights, device=args.device, limit=args.limit, roi=args.roi,
+                          refine=args.refine, skip_damaged=bool(args.skip_damaged))
     with skip_hint():
-        paths, skipped = checked_shards(args.data, args.skip_damaged, "--data")
-    roi = read_roi(args.roi) if args.roi else ("labels" if args.roi_labels else None)
-    result = evaluate_detector(args.weights, camera_samples(paths), read_poses(paths), args.json, device=args.device,
-                               limit=args.limit, roi=roi, refine=args.refine, data_name=args.data,
-                               roi_name=args.roi, progress=not args.quiet, skipped_shards=skipped)
+        result = run_evaluate(cfg, args.data, args.json, roi_labels=args.roi_labels, progress=not args.quiet)
+    skipped = result["skipped_damaged_shards"]
     print(groups_table(result["groups"]))
     print(f"wrote {args.json}: {result['frames']} frames")
     if skipped:

@@ -13,10 +13,11 @@ The public API, imported on first use (so `import envisat_pose` loads nothing he
 - campaigns: `MonteCarloConfig`, `run_campaign` (envisat_pose.pipelines.campaigns.campaign), `RunnerConfig`
   (envisat_pose.pools: the local pool or Dask), `write_report` (envisat_pose.pipelines.campaigns.report);
 - datasets: `GenerateConfig` (envisat_pose.datagen.generate_config), `run_generate` (envisat_pose.datagen.factory),
-  `verify_dataset`, `dataset_stats` (envisat_pose.datagen.dataset), `ExportConfig`, `export_dataset`
-  (envisat_pose.pipelines.datasets.export);
+  `verify_dataset`, `dataset_stats` (envisat_pose.datagen.dataset), `inspect_dataset`
+  (envisat_pose.pipelines.datasets.inspect), `ExportConfig`, `export_dataset` (envisat_pose.pipelines.datasets.export);
 - the detector: `TrainConfig` (envisat_pose.perception.train), `train_detector` (envisat_pose.pipelines.detector.train),
-  `DetectJobConfig`, `run_detect` (envisat_pose.pipelines.detector.detect), `CalibrateJobConfig`, `run_calibration`
+  `DetectJobConfig`, `run_detect` (envisat_pose.pipelines.detector.detect), `run_evaluate`
+  (envisat_pose.pipelines.detector.evaluate), `CalibrateJobConfig`, `run_calibration`
   (envisat_pose.pipelines.detector.calibrate), `AdaptConfig`, `adapt` (envisat_pose.pipelines.adaptation.adapt);
 - the target: `Target`, `load_target` (envisat_pose.target: one spacecraft from its MJCF file; ENVISAT's by default);
 - the state's layout: `envisat_pose.state`.
@@ -41,8 +42,10 @@ _PUBLIC = {
     "write_report": "envisat_pose.pipelines.campaigns.report",
     "GenerateConfig": "envisat_pose.datagen.generate_config", "run_generate": "envisat_pose.datagen.factory",
     "verify_dataset": "envisat_pose.datagen.dataset", "dataset_stats": "envisat_pose.datagen.dataset",
+    "inspect_dataset": "envisat_pose.pipelines.datasets.inspect",
     "ExportConfig": "envisat_pose.pipelines.datasets.export", "export_dataset": "envisat_pose.pipelines.datasets.export",
     "DetectJobConfig": "envisat_pose.pipelines.detector.detect", "run_detect": "envisat_pose.pipelines.detector.detect",
+    "run_evaluate": "envisat_pose.pipelines.detector.evaluate",
     "CalibrateJobConfig": "envisat_pose.pipelines.detector.calibrate",
     "run_calibration": "envisat_pose.pipelines.detector.calibrate",
     "AdaptConfig": "envisat_pose.pipelines.adaptation.adapt", "adapt": "envisat_pose.pipelines.adaptation.adapt",

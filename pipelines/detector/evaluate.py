@@ -21,11 +21,13 @@ import json
 import math
 import re
 
-from envisat_pose.config import InputError
+from envisat_pose.config import InputError, config_arg, path_arg
 from envisat_pose.geometry import load_geometry
 from envisat_pose.io import atomic_write_text, json_safe
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
-from envisat_pose.shard_reader import read_shards
+from envisat_pose.pipelines.detector.detect import DetectJobConfig, camera_samples, read_roi
+from envisat_pose.shard_reader import checked_shards, read_shards
+from envisat_pose.target import require_envisat_dataset
 
 METHODS = ("detector", "detector_no_lines", "harris", "shi_tomasi")
 
@@ -201,3 +203,23 @@ def evaluate_detector(weights: str, samples, poses: dict, json_path: str, *, dev
     make_out_file_dir(json_path, "json_path")
     atomic_write_text(json_path, json.dumps(json_safe(result), indent=1, allow_nan=False) + "\n")
     return result
+
+
+def run_evaluate(cfg: DetectJobConfig, data: str, json_path: str, *, roi_labels: bool = False,
+                 progress: bool = False) -> dict:
+    """`envisat evaluate` as one call (ENVISAT's corner detector; another target's keypoint detector:
+    evaluate_target.evaluate_target_detector): the labelled dataset folder `data` (an ENVISAT dataset; with
+    cfg.skip_damaged its damaged shards left out and named) as the camera saw it, scored by evaluate_detector with
+    cfg's weights, device, limit and refine; cfg.roi (a regions-of-interest file) or roi_labels (the labelled
+    corners' region) adds the method detector_roi. Every number goes to json_path; returns the JSON's content."""
+    cfg, data = config_arg(cfg, DetectJobConfig), path_arg(data, "data")
+    json_path = path_arg(json_path, "json_path")
+    if cfg.roi is not None and roi_labels:
+        raise InputError(f"roi {cfg.roi!r} and roi_labels: one region of interest at most")
+    check_out_file(json_path, "json_path")
+    require_envisat_dataset(data, "data", "evaluate")
+    paths, skipped = checked_shards(data, cfg.skip_damaged, "data")
+    roi = read_roi(cfg.roi) if cfg.roi else ("labels" if roi_labels else None)
+    return evaluate_detector(cfg.weights, camera_samples(paths), read_poses(paths), json_path, device=cfg.device,
+                             limit=cfg.limit, roi=roi, refine=cfg.refine, data_name=data, roi_name=cfg.roi,
+                             progress=progress, skipped_shards=skipped)

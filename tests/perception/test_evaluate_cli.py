@@ -3,11 +3,13 @@ place of trained weights, on a small freshly generated set with the paper's corr
 
 import hashlib
 import json
+import pathlib
 
 import numpy as np
 import pytest
 
 from envisat_pose.app.cli import main
+from envisat_pose.config import InputError
 from envisat_pose.perception.data import read_samples, shard_paths, to_input_px
 from envisat_pose.perception.detect import Detector
 from envisat_pose.perception.heatmaps import CORNER_JTYPE, encode_junctions
@@ -92,6 +94,14 @@ def test_evaluate_with_oracle_writes_every_group(paper_dataset, weights, tmp_pat
     assert part == 12
     assert sum(res["groups"][f"noise={s}"]["detector"]["frames"] for s in ("none", "low", "medium", "high")) == 12
     assert "all" in table and "shi_tomasi" in table and "PCK@5" in table
+    # the verb's Python call: the same numbers from the same folder (a pathlib.Path, the config's fields)
+    from envisat_pose.pipelines.detector.detect import DetectJobConfig
+
+    again = app.run_evaluate(DetectJobConfig(weights=weights), pathlib.Path(paper_dataset), tmp_path / "again.json")
+    assert again["frames"] == 12 and json.loads((tmp_path / "again.json").read_text())["groups"] == res["groups"]
+    with pytest.raises(InputError, match="one region of interest at most"):
+        app.run_evaluate(DetectJobConfig(weights=weights, roi=str(tmp_path / "r.npz")), paper_dataset,
+                         tmp_path / "x.json", roi_labels=True)
 
 
 class ScaledLabels:

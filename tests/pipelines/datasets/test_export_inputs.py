@@ -197,3 +197,27 @@ def test_generate_refuses_a_folder_of_files_without_a_manifest(small, tmp_path, 
     line = one_error_line(capsys)
     assert rc == 2 and "shard-000000.tar" in line and "no manifest.json" in line
     assert os.listdir(out) == ["shard-000000.tar"] and (out / "shard-000000.tar").read_bytes() == before
+
+
+def test_inspect_as_a_python_call_is_the_verb(small, tmp_path, capsys):
+    import pathlib
+
+    import cv2
+
+    from envisat_pose.config import InputError
+    from envisat_pose.datagen.dataset import dataset_stats
+    from envisat_pose.pipelines.datasets.inspect import inspect_dataset
+
+    result = inspect_dataset(pathlib.Path(small["done"]), tmp_path / "m.png", count=3)
+    assert result["montage"] == str(tmp_path / "m.png") and result["montage_images"] == 3 and result["rrd"] is None
+    assert cv2.imread(result["montage"]) is not None
+    assert {k: v for k, v in result.items() if k not in ("montage", "montage_images", "rrd")} == \
+        dataset_stats(small["done"])  # recomputed here from the shards
+    assert envisat_main(["dataset", "inspect", small["done"], "--montage", str(tmp_path / "v.png"), "--count", "3"]) == 0
+    out = capsys.readouterr().out
+    assert json.loads(out[:out.rindex("}") + 1]) == dataset_stats(small["done"])
+    for kwargs, message in (({"count": 0}, "count 0: expected at least 1"),
+                            ({"rrd": str(tmp_path / "x.txt")}, r"rrd .*expected a path ending in \.rrd")):
+        with pytest.raises(InputError, match=message):
+            inspect_dataset(small["done"], tmp_path / "n.png", **kwargs)
+    assert not (tmp_path / "n.png").exists()

@@ -1,0 +1,78 @@
+"""`envisat dataset inspect` as one call: a generated dataset's statistics (datagen.dataset.dataset_stats), a
+montage of its first images with their labels drawn and, optionally, those samples as a Rerun recording."""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+from envisat_pose.config import InputError, path_arg
+from envisat_pose.datagen.appearance import takes_class_appearance
+from envisat_pose.datagen.render_view import target_mask_values
+from envisat_pose.out_dirs import check_out_file, make_out_file_dir
+from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, unfinished_dataset
+from envisat_pose.target import DEFAULT_TARGET, load_target
+
+MONTAGE_NAME = "montage.png"  # the montage's default name, in the dataset's folder
+
+
+def inspect_dataset(src: str, montage: str | None = None, count: int = 16, rrd: str | None = None,
+                    skip_damaged: bool = False) -> dict:
+    """The statistics of the dataset folder `src` (returned; with `unfinished_dataset` and a warning where its
+    generate job has shards still to write, `skipped_damaged_shards` where skip_damaged left some out), a montage
+    of its first `count` images at `montage` (None: src/montage.png) and, with `rrd`, those samples as a Rerun
+    recording (a .rrd path). Every output path is checked before any is written. The returned dict also holds
+    `montage` (its path and `montage_images`, how many it drew) and `rrd` (the path or None)."""
+    src = path_arg(src, "src")
+    montage = os.path.join(src, MONTAGE_NAME) if montage is None else path_arg(montage, "montage")
+    rrd = path_arg(rrd, "rrd") if rrd is not None else None
+    if type(count) is not int or count < 1:
+        raise InputError(f"count {count!r}: expected at least 1 image in the montage")
+    check_out_file(montage, "montage")
+    if rrd is not None:
+        if not rrd.endswith(".rrd"):
+            raise InputError(f"rrd {rrd!r}: expected a path ending in .rrd")
+        check_out_file(rrd, "rrd")
+    from envisat_pose.datagen.dataset import dataset_stats
+    from envisat_pose.datagen.dataset import montage as write_montage
+
+    manifest = load_dataset_manifest(src)
+    shards, skipped = checked_shards(src, skip_damaged, "src")
+    stats = dataset_stats(shards)
+    unfinished = unfinished_dataset(manifest)
+    if unfinished:
+        stats["unfinished_dataset"] = f"{unfinished}: these statistics cover the shards written so far"
+        warnings.warn(f"dataset {src!r}: {unfinished}: rerun its `envisat generate` command to finish it",
+                      stacklevel=2)
+    if skipped:
+        stats["skipped_damaged_shards"] = skipped
+    make_out_file_dir(montage, "montage")
+    drawn = write_montage(shards, montage, count=count)
+    if rrd is not None:
+        make_out_file_dir(rrd, "rrd")
+        write_samples_rrd(shards, rrd, count, *recorded_target(manifest))
+    return stats | {"montage": montage, "montage_images": drawn, "rrd": rrd}
+
+
+def recorded_target(manifest: dict) -> tuple:
+    """(the dataset's Target: the file its manifest records, ENVISAT for a dataset written before targets; the
+    {geom name: mask value} its masks hold, datagen.render_view.target_mask_values, or None where they are the
+    factory's classes)."""
+    target = load_target((manifest.get("target") or {}).get("file", DEFAULT_TARGET), "target")
+    return target, None if takes_class_appearance(g.name for g in target.geoms) else target_mask_values(target)
+
+
+def write_samples_rrd(source: str | list[str], path: str, count: int, target=None,
+                      mask_values: dict | None = None) -> None:
+    """The first `count` samples as a Rerun recording (analysis.recording.write_samples_recording), read lazily.
+    source: a dataset folder or its checked shard files; target, mask_values: the dataset's (recorded_target;
+    None: ENVISAT's)."""
+    from envisat_pose.analysis.recording import Sample, write_samples_recording
+    from envisat_pose.datagen.dataset import iter_samples, sample_png
+    from envisat_pose.datagen.shards import decode_png
+
+    samples = (Sample(key, sample_png(members, label), label,
+                      mask=decode_png(members["mask.png"]) if "mask.png" in members else None,
+                      depth_png=members.get("depth.png"))
+               for key, label, members in iter_samples(source, limit=count))
+    write_samples_recording(path, samples, target, mask_values)
