@@ -60,8 +60,8 @@ page_mib = os.sysconf("SC_PAGE_SIZE") / 2**20
 step = tracker.Tracker.step
 
 
-def traced(self, t_s, image):
-    out = step(self, t_s, image)
+def traced(self, t_s, image, *args, **kwargs):  # Tracker.step's own arguments, whatever they grow to
+    out = step(self, t_s, image, *args, **kwargs)
     n["frames"] += 1
     n["lit"] += image is not None
     if n["frames"] % every == 0:
