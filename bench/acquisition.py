@@ -161,7 +161,8 @@ def table_row(range_m: float, rate: str, b: dict) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--trials-per-bin", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0, help="root seed of every draw")
     ap.add_argument("--ranges-m", type=float, nargs="+", default=list(RANGES_M))

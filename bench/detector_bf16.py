@@ -87,7 +87,8 @@ def differences(a, b) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--data", required=True, help="a labelled ENVISAT dataset (envisat generate)")
     ap.add_argument("--limit", type=int, default=200)
     ap.add_argument("--weights", default=shipped_weights_path())

@@ -83,7 +83,8 @@ def score_weights(weights: str, frames: list, device: str = "cpu") -> dict[str, 
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--weights", nargs="+", required=True, help="NAME=W.safetensors, one per candidate")
     ap.add_argument("--data", nargs="+", required=True, help="NAME=DIR, labelled held-out sets")
     ap.add_argument("--limit", type=int, help="only the first N frames of each set")

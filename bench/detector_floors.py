@@ -58,7 +58,8 @@ def corruption_levels(e: dict) -> list[dict]:
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+    p = argparse.ArgumentParser(description=description(__doc__))
     p.add_argument("--random", nargs="+", default=[])
     p.add_argument("--earth", nargs="*", default=[])
     p.add_argument("--sequence", nargs="*", default=[])

@@ -108,7 +108,8 @@ def time_frames(frames: list, weights: str | None, repeats: int) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--frames", type=int, default=8, help="full 1024 px frames for part 2")

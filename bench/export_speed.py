@@ -81,7 +81,8 @@ def run_row(kind: str, src: str, work: str, fmt: str = "-", image_format: str = 
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--data", help="an existing 1024 px dataset (default: make one)")
     ap.add_argument("--images", type=int, default=BENCH_IMAGES)
     ap.add_argument("--out", default=os.path.join(HERE, "results", "export_speed.json"))

@@ -265,7 +265,8 @@ def table(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--scenario", default="default")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--num-images", type=int, default=300, help="the sequence's frames")

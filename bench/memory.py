@@ -127,7 +127,8 @@ def frame_bytes() -> int:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--orbits", type=float, nargs="+", default=[1, 3, 10])
     ap.add_argument("--rate-hz", type=float, default=1.0, help="camera and filter rate (frames per second)")
     ap.add_argument("--resolution", type=int, default=128, help="image side, px")

@@ -111,7 +111,8 @@ def time_filterpy_slice(steps: int) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--runs", type=int, default=1000)
     ap.add_argument("--duration-s", type=float, default=6000.0)
     ap.add_argument("--workers", type=int, default=2)

@@ -105,7 +105,8 @@ def rmse(t_s, x_true, x_hat, after_s: float) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--duration-s", type=float, default=600.0)
     ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
     ap.add_argument("--seed", type=int, default=0)

@@ -103,7 +103,8 @@ def class_moments(fn, frames, seeds: int) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seeds", type=int, default=40)

@@ -134,9 +134,10 @@ def table(r: dict) -> str:
 
 
 def main() -> int:
-    from envisat_pose.io import atomic_write_text
+    from _common import description  # bench/_common.py, beside this script
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from envisat_pose.io import atomic_write_text
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--data", metavar="DIR", help="an existing generated dataset (default: generate one)")
     ap.add_argument("--images", type=int, default=BENCH_IMAGES, help=f"images to generate (default {BENCH_IMAGES})")
     ap.add_argument("--input-px", type=int, default=320, help="the loader's input size (default 320)")

@@ -91,7 +91,8 @@ def measure_look(name: str, extra: dict, images: int, seed: int, tmp: str) -> di
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--images", type=int, default=40, help="frames per look")
     ap.add_argument("--seed", type=int, default=4242)
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "silhouette_bias.json"))

@@ -196,7 +196,8 @@ def run_scipy(cfg, x0, t_end, rtol):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--duration-s", type=float, default=1000.0)
     ap.add_argument("--rollouts", type=int, default=32)
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1)

@@ -152,7 +152,8 @@ def estimate_speed(a) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+    p = argparse.ArgumentParser(description=description(__doc__))
     p.add_argument("--runs", type=int, default=100)
     p.add_argument("--duration-s", type=float, default=600.0)
     p.add_argument("--settle-s", type=float, default=300.0)

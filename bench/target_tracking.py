@@ -166,7 +166,8 @@ def pooled(runs: list[dict]) -> dict:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--target", default=str(ROOT / "models" / "upper_stage.xml"))
     ap.add_argument("--weights", help="the target's calibrated keypoint detector (default: the noisy-truth stand-in)")
     ap.add_argument("--config", help="with --weights: a run config (TOML) over each run, as `envisat run --config`")

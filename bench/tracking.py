@@ -191,7 +191,8 @@ def per_run_line(s: dict, seeds: list[int]) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--seeds", type=int, default=8, help="seeds per scenario (first-seed, first-seed + 1, ...)")
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))

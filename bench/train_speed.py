@@ -240,7 +240,8 @@ def save(args, rows: list[dict], parts: list[dict]) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--steps", type=int, default=24, help="steps per CPU row")
     ap.add_argument("--batch-size", type=int, default=8, help="batch of the CPU rows")
     ap.add_argument("--images", type=int, default=40, help="images generated for the CPU rows")

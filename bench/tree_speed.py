@@ -58,7 +58,8 @@ def figures(tree: str, duration_s: float, only: str | None, cores: int = 1) -> d
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--baseline", required=True, help="the earlier tree (a git archive, its plugin .so copied in)")
     ap.add_argument("--current", default=ROOT, help="the tree measured (default: this one)")
     ap.add_argument("--rounds", type=int, default=2)

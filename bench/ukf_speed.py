@@ -146,7 +146,8 @@ def dgemm_flops_per_s(size: int = 1024) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--runs", type=int, default=1000)
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "ukf_speed.json"))
     args = ap.parse_args()

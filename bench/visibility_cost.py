@@ -65,7 +65,8 @@ def _rays_ms(target: Target, n: int, seed: int) -> float:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+    p = argparse.ArgumentParser(description=description(__doc__))
     p.add_argument("--images", type=int, default=20)
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--resolution", type=int, default=1024)
