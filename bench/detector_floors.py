@@ -58,7 +58,7 @@ def corruption_levels(e: dict) -> list[dict]:
 
 
 def main() -> int:
-    from _common import description  # bench/_common.py, beside this script
+    from _common import description, provenance  # bench/_common.py, beside this script
     p = argparse.ArgumentParser(description=description(__doc__))
     p.add_argument("--random", nargs="+", default=[])
     p.add_argument("--earth", nargs="*", default=[])
@@ -104,6 +104,7 @@ def main() -> int:
         v = "-" if value is None else f"{value:.4g}"
         f = "-" if floor is None else f"{floor:.4g}"
         print(f"{name:28s} {metric:36s} {v:>10s} {f:>8s}  {'met' if met else 'NOT met'}")
+    result["provenance"] = provenance(a)
     with open(a.out, "w", encoding="utf-8") as fh:
         json.dump(result, fh, indent=1, sort_keys=True)
         fh.write("\n")

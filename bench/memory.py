@@ -127,7 +127,7 @@ def frame_bytes() -> int:
 
 
 def main(argv=None) -> int:
-    from _common import description  # bench/_common.py, beside this script
+    from _common import description, provenance  # bench/_common.py, beside this script
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--orbits", type=float, nargs="+", default=[1, 3, 10])
     ap.add_argument("--rate-hz", type=float, default=1.0, help="camera and filter rate (frames per second)")
@@ -180,6 +180,7 @@ def main(argv=None) -> int:
               "orbit_period_s": period_s, "per_frame_bytes": per_frame, "trace_every": args.trace_every, "jobs": rows,
               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
               "date": time.strftime("%Y-%m-%d")}
+    result["provenance"] = provenance(args)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as fh:
         json.dump(result, fh, indent=1)

@@ -111,7 +111,7 @@ def time_filterpy_slice(steps: int) -> float:
 
 
 def main() -> None:
-    from _common import description  # bench/_common.py, beside this script
+    from _common import description, provenance  # bench/_common.py, beside this script
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--runs", type=int, default=1000)
     ap.add_argument("--duration-s", type=float, default=6000.0)
@@ -189,6 +189,7 @@ def main() -> None:
                                        "settle_s", "inside_3sigma_share")},
         "machine": {"python": platform.python_version(), "cpu_count": os.cpu_count(), "numpy": np.__version__},
     }
+    result["provenance"] = provenance(args)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w", encoding="utf-8") as fh:
         json.dump(result, fh, indent=2)

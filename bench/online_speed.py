@@ -105,7 +105,7 @@ def rmse(t_s, x_true, x_hat, after_s: float) -> dict:
 
 
 def main() -> None:
-    from _common import description  # bench/_common.py, beside this script
+    from _common import description, provenance  # bench/_common.py, beside this script
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--duration-s", type=float, default=600.0)
     ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
@@ -150,6 +150,7 @@ def main() -> None:
             rows.append((name, case))
     result["machine"]["load_avg_end"] = os.getloadavg()
     result["after_s"] = args.after_s
+    result["provenance"] = provenance(args)
     atomic_write_text(args.out, json.dumps(result, indent=1, sort_keys=True) + "\n")
     print(f"online closed loop, default scenario, {args.duration_s:g} s at 1 Hz (load {load_start[0]:.1f} at start)")
     head = f"{'case':8s} " + " ".join(f"{s[:9]:>9s}" for s in STAGES) + f" {'RTF':>6s} {'pos cm':>8s} {'att deg':>8s}" \

@@ -134,7 +134,7 @@ def table(r: dict) -> str:
 
 
 def main() -> int:
-    from _common import description  # bench/_common.py, beside this script
+    from _common import description, provenance  # bench/_common.py, beside this script
 
     from envisat_pose.io import atomic_write_text
     ap = argparse.ArgumentParser(description=description(__doc__))
@@ -153,6 +153,7 @@ def main() -> int:
             make_dataset(data, args.images)
         result = measure(data, args.input_px, args.batch_size, args.repeats, args.rounds)
     print(table(result))
+    result["provenance"] = provenance(args)
     atomic_write_text(args.out, json.dumps(result, indent=1, sort_keys=True) + "\n")
     print(f"wrote {args.out}")
     return 0 if result["floor_met"] else 1

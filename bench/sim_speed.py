@@ -196,7 +196,7 @@ def run_scipy(cfg, x0, t_end, rtol):
 
 
 def main() -> None:
-    from _common import description  # bench/_common.py, beside this script
+    from _common import description, provenance  # bench/_common.py, beside this script
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--duration-s", type=float, default=1000.0)
     ap.add_argument("--rollouts", type=int, default=32)
@@ -237,6 +237,7 @@ def main() -> None:
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "mujoco": mujoco.__version__},
         "plugin": PLUGIN_NAME, "rows": rows,
     }
+    result["provenance"] = provenance(args)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as fh:
         json.dump(result, fh, indent=2)

@@ -152,7 +152,7 @@ def estimate_speed(a) -> dict:
 
 
 def main(argv=None) -> int:
-    from _common import description  # bench/_common.py, beside this script
+    from _common import description, provenance  # bench/_common.py, beside this script
     p = argparse.ArgumentParser(description=description(__doc__))
     p.add_argument("--runs", type=int, default=100)
     p.add_argument("--duration-s", type=float, default=600.0)
@@ -215,6 +215,7 @@ def main(argv=None) -> int:
                                           "floor": "none: reported (range from the apparent size alone)"},
                              "targets": pixels},
               "estimate_speed": speed}
+    result["provenance"] = provenance(a)
     os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
     atomic_write_text(a.out, json.dumps(result, indent=1) + "\n")
     print(f"wrote {a.out}")

@@ -166,7 +166,7 @@ def pooled(runs: list[dict]) -> dict:
 
 
 def main() -> int:
-    from _common import description  # bench/_common.py, beside this script
+    from _common import description, provenance  # bench/_common.py, beside this script
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--target", default=str(ROOT / "models" / "upper_stage.xml"))
     ap.add_argument("--weights", help="the target's calibrated keypoint detector (default: the noisy-truth stand-in)")
@@ -211,6 +211,7 @@ def main() -> int:
               "date": time.strftime("%Y-%m-%d")}
     from envisat_pose.io import atomic_write_text
 
+    result["provenance"] = provenance(args)
     atomic_write_text(args.out, json.dumps(result, indent=1, sort_keys=True) + "\n")
     print(f"wrote {args.out}")
     return 0

@@ -65,7 +65,7 @@ def _rays_ms(target: Target, n: int, seed: int) -> float:
 
 
 def main(argv=None) -> int:
-    from _common import description  # bench/_common.py, beside this script
+    from _common import description, provenance  # bench/_common.py, beside this script
     p = argparse.ArgumentParser(description=description(__doc__))
     p.add_argument("--images", type=int, default=20)
     p.add_argument("--rounds", type=int, default=3)
@@ -102,6 +102,7 @@ def main(argv=None) -> int:
                            "seed": a.seed, "workers": 1},
               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
                           "load_avg_end": os.getloadavg()}, "targets": rows}
+    result["provenance"] = provenance(a)
     os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
     atomic_write_text(a.out, json.dumps(result, indent=1) + "\n")
     print(f"wrote {a.out}")
