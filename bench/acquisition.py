@@ -162,6 +162,7 @@ def table_row(range_m: float, rate: str, b: dict) -> str:
 
 def main() -> None:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--trials-per-bin", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0, help="root seed of every draw")

@@ -88,6 +88,7 @@ def differences(a, b) -> dict:
 
 def main() -> None:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--data", required=True, help="a labelled ENVISAT dataset (envisat generate)")
     ap.add_argument("--limit", type=int, default=200)

@@ -84,6 +84,7 @@ def score_weights(weights: str, frames: list, device: str = "cpu") -> dict[str, 
 
 def main() -> None:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--weights", nargs="+", required=True, help="NAME=W.safetensors, one per candidate")
     ap.add_argument("--data", nargs="+", required=True, help="NAME=DIR, labelled held-out sets")

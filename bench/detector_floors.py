@@ -59,6 +59,7 @@ def corruption_levels(e: dict) -> list[dict]:
 
 def main() -> int:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     p = argparse.ArgumentParser(description=description(__doc__))
     p.add_argument("--random", nargs="+", default=[])
     p.add_argument("--earth", nargs="*", default=[])

@@ -109,6 +109,7 @@ def time_frames(frames: list, weights: str | None, repeats: int) -> dict:
 
 def main() -> None:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--threads", type=int, default=2)

@@ -202,6 +202,7 @@ def responses_line(r: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--scenarios", nargs="+", default=["default"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3])

@@ -82,6 +82,7 @@ def run_row(kind: str, src: str, work: str, fmt: str = "-", image_format: str = 
 
 def main() -> int:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--data", help="an existing 1024 px dataset (default: make one)")
     ap.add_argument("--images", type=int, default=BENCH_IMAGES)

@@ -425,6 +425,7 @@ def make_sequence(out_dir: str, scenario: str, seed: int, num_images: int, resol
 
 def main(argv: list[str] | None = None) -> int:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--scenario", default="default")
     ap.add_argument("--seed", type=int, default=0)

@@ -266,6 +266,7 @@ def table(r: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--scenario", default="default")
     ap.add_argument("--seed", type=int, default=0)

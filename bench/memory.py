@@ -128,6 +128,7 @@ def frame_bytes() -> int:
 
 def main(argv=None) -> int:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--orbits", type=float, nargs="+", default=[1, 3, 10])
     ap.add_argument("--rate-hz", type=float, default=1.0, help="camera and filter rate (frames per second)")

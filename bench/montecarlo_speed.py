@@ -112,6 +112,7 @@ def time_filterpy_slice(steps: int) -> float:
 
 def main() -> None:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--runs", type=int, default=1000)
     ap.add_argument("--duration-s", type=float, default=6000.0)

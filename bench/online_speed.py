@@ -106,6 +106,7 @@ def rmse(t_s, x_true, x_hat, after_s: float) -> dict:
 
 def main() -> None:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--duration-s", type=float, default=600.0)
     ap.add_argument("--weights", help="detector weights (default: the shipped ones)")

@@ -104,6 +104,7 @@ def class_moments(fn, frames, seeds: int) -> dict:
 
 def main(argv=None) -> int:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--repeats", type=int, default=5)

@@ -137,6 +137,7 @@ def main() -> int:
     from _common import description, provenance  # bench/_common.py, beside this script
 
     from envisat_pose.io import atomic_write_text
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--data", metavar="DIR", help="an existing generated dataset (default: generate one)")
     ap.add_argument("--images", type=int, default=BENCH_IMAGES, help=f"images to generate (default {BENCH_IMAGES})")

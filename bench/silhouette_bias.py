@@ -92,6 +92,7 @@ def measure_look(name: str, extra: dict, images: int, seed: int, tmp: str) -> di
 
 def main() -> None:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--images", type=int, default=40, help="frames per look")
     ap.add_argument("--seed", type=int, default=4242)

@@ -197,6 +197,7 @@ def run_scipy(cfg, x0, t_end, rtol):
 
 def main() -> None:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--duration-s", type=float, default=1000.0)
     ap.add_argument("--rollouts", type=int, default=32)

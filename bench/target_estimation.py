@@ -153,6 +153,7 @@ def estimate_speed(a) -> dict:
 
 def main(argv=None) -> int:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     p = argparse.ArgumentParser(description=description(__doc__))
     p.add_argument("--runs", type=int, default=100)
     p.add_argument("--duration-s", type=float, default=600.0)

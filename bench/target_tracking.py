@@ -167,6 +167,7 @@ def pooled(runs: list[dict]) -> dict:
 
 def main() -> int:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--target", default=str(ROOT / "models" / "upper_stage.xml"))
     ap.add_argument("--weights", help="the target's calibrated keypoint detector (default: the noisy-truth stand-in)")

@@ -192,6 +192,7 @@ def per_run_line(s: dict, seeds: list[int]) -> str:
 
 def main() -> None:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--seeds", type=int, default=8, help="seeds per scenario (first-seed, first-seed + 1, ...)")
     ap.add_argument("--first-seed", type=int, default=0)

@@ -243,6 +243,7 @@ def save(args, rows: list[dict], parts: list[dict]) -> None:
 
 def main() -> None:
     from _common import description  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--steps", type=int, default=24, help="steps per CPU row")
     ap.add_argument("--batch-size", type=int, default=8, help="batch of the CPU rows")

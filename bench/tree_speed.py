@@ -59,6 +59,7 @@ def figures(tree: str, duration_s: float, only: str | None, cores: int = 1) -> d
 
 def main() -> None:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--baseline", required=True, help="the earlier tree (a git archive, its plugin .so copied in)")
     ap.add_argument("--current", default=ROOT, help="the tree measured (default: this one)")

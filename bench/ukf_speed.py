@@ -150,6 +150,7 @@ def dgemm_flops_per_s(size: int = 1024) -> float:
 
 def main() -> None:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--runs", type=int, default=1000)
     ap.add_argument("--truth-seed", type=int, default=0, help="the default scenario's seed (its truth)")

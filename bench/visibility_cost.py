@@ -66,6 +66,7 @@ def _rays_ms(target: Target, n: int, seed: int) -> float:
 
 def main(argv=None) -> int:
     from _common import description, provenance  # bench/_common.py, beside this script
+
     p = argparse.ArgumentParser(description=description(__doc__))
     p.add_argument("--images", type=int, default=20)
     p.add_argument("--rounds", type=int, default=3)
