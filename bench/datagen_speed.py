@@ -215,7 +215,7 @@ def default_mode_table(n: int, rounds: int, nf: int, seed: int) -> dict:
     out["floor_images"], out["floor_shard_size"] = nf, floor_shard
     base_floor = config(res, nf, shard_size=floor_shard)
     on_clean = config(res, nf, storage="clean", appearance={"enabled": True}, appendages=True,
-                            shard_size=floor_shard)
+                      shard_size=floor_shard)
     end_to_end(config(res, 16, storage="clean", appearance={"enabled": True}, appendages=True), 1)  # this
     # process's renderer, its textures and imports made once, outside the rounds
     print(f"two-pass floor (appearance on, clean, 1 worker, 1024 px, {nf} images in shards of {floor_shard}):",
@@ -240,7 +240,7 @@ def default_mode_table(n: int, rounds: int, nf: int, seed: int) -> dict:
             cfg = config(res, n, storage=storage, appearance={"enabled": appearance}, appendages=appearance)
             name = f"appearance_{'on' if appearance else 'off'}_{storage}"
             row = {"bytes": bytes_per_image(config(res, 16, storage=storage, appearance={"enabled": appearance},
-                                                         appendages=appearance, shard_size=16))}
+                                                   appendages=appearance, shard_size=16))}
             for w in (1, 2):
                 e2e, steady = end_to_end(cfg, w)
                 row[f"e2e_{w}w_img_s"], row[f"steady_{w}w_img_s"] = e2e, steady
@@ -420,9 +420,9 @@ TARGET_RUNS = {
 
 def target_run_s(extra: dict, n: int, tree: str | None, seed: int = SEED) -> tuple[float, float]:
     """Seconds per image of run_generate (n images, 1024 px, shards of SHARD_SIZE, root seed `seed`) in a fresh
-    process whose
-    envisat_pose comes from `tree` (None: the installed one), after a 4-image warm-up dataset of the same config:
-    (wall, CPU), CPU the process's and its children's user + system time (less sensitive to other load)."""
+    process whose envisat_pose comes from `tree` (None: the installed one), after a 4-image warm-up dataset of the
+    same config: (wall, CPU), CPU the process's and its children's user + system time (less sensitive to other
+    load)."""
     import subprocess
 
     code = ("import json, os, resource, sys, tempfile, shutil, time\n"
