@@ -37,7 +37,7 @@ MIN_EDGE_PX, END_PX = 60.0, 20.0  # at 1024 px (the library's defaults reach the
 LOOKS = {
     "random_plain": {"appearance": {"enabled": False}, "appendages": False},
     "random_appearance": {"appendages": False},
-    "sequence_default": {"mode": "sequence", "scenario": "default"},
+    "sequence_default": {"mode": "sequence", "sequence": {"scenario": "default"}},
 }
 
 
