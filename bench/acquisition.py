@@ -161,7 +161,9 @@ def table_row(range_m: float, rate: str, b: dict) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--trials-per-bin", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0, help="root seed of every draw")
     ap.add_argument("--ranges-m", type=float, nargs="+", default=list(RANGES_M))
@@ -226,6 +228,7 @@ def main() -> None:
           f"{allb['success']}, within 60 s "
           f"{allb['success_within_60_s']}, false locks {allb['false_locks']}, never tracked {allb['never_tracked']}; "
           f"wall {wall_s:.0f} s")
+    out["provenance"] = provenance(args)
     atomic_write_text(args.out, json.dumps(out, indent=1, sort_keys=True) + "\n")
     print(f"floors: 0 false locks in >= {FLOORS['min_acquisitions']} acquisitions, success >= "
           f"{100 * FLOORS['success_within_60_s']:g} % within {SUCCESS_WITHIN_S:g} s in every bin; wrote {args.out}")

@@ -290,7 +290,9 @@ def table(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--scenarios", nargs="+", default=["default"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
     ap.add_argument("--resolutions", nargs="+", type=int, default=[512])
@@ -305,6 +307,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--responses", nargs="+",
                     help="the grid of camera responses on own renders (module doc): RESPONSE:SIGMA...")
     args = ap.parse_args(argv)
+    prov = provenance(args)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     rows = []
     if args.responses:
@@ -313,7 +316,8 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append(response_case(spec, args.scenarios[0], seed, args.resolutions[0], args.num_images,
                                           args.work))
                 with open(args.out, "w") as fh:
-                    json.dump({"cases": rows, "cores": os.cpu_count(), "argv": sys.argv[1:]}, fh, indent=1)
+                    json.dump({"cases": rows, "cores": os.cpu_count(), "argv": sys.argv[1:], "provenance": prov}, fh,
+                              indent=1)
                 print(json.dumps({k: rows[-1].get(k) for k in ("look", "own", "before", "after", "adopted",
                                                                "reason", "scale_note", "refused")}), flush=True)
         return 0
@@ -323,7 +327,8 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append(one_case(scenario, seed, res, args.num_images, args.work, args.steps, args.edge_range,
                                      args.params))
                 with open(args.out, "w") as fh:  # after each case: a killed run keeps what it measured
-                    json.dump({"cases": rows, "cores": os.cpu_count(), "argv": sys.argv[1:]}, fh, indent=1)
+                    json.dump({"cases": rows, "cores": os.cpu_count(), "argv": sys.argv[1:], "provenance": prov}, fh,
+                              indent=1)
                 print(table(rows[-1:]), flush=True)
     print(table(rows))
     return 0

@@ -17,7 +17,7 @@ the appearance; bytes per image of every dataset.
 
 Two-pass floor: appearance on, clean storage, 1 worker >= 1.0 x the two-pass render of the same views. Measured
 in alternating rounds (two-pass render, factory, factory with FINISH_BESIDE_RENDER off) so the machine's load
-drifts alike for all three; the median ratio is the floor's. The floor's factory runs BENCH_FLOOR_IMAGES (200) in
+drifts alike for all three; the median ratio is the floor's. The floor's factory runs --floor-images (200) in
 shards of the default size (100), as a user's run does. The factory finishes sample k (the passes' pixel work,
 labels, PNG, tar) on a helper thread while the GL passes of sample k + 1 wait on llvmpipe's rasterizer thread
 (here, LP_NUM_THREADS=1 and 1 worker on a multi-core machine, factory.spare_core turns it on): it uses more CPU
@@ -30,7 +30,11 @@ factory.PREFETCH_EARTH_MIN_IMAGES images on, where a core is spare); with the st
 a 1000-image run with start-up counted and excluded.
 Targets (`--targets --baseline DIR`): ENVISAT's time per image against a baseline tree's and the shipped targets'
 against ENVISAT's, in one run (TARGET_RUNS, main_targets).
-Run: .venv/bin/python bench/datagen_speed.py  (writes bench/results/datagen_speed.json)
+Run: .venv/bin/python bench/datagen_speed.py [--scaling | --targets [--baseline DIR] [--current DIR]] [--images N]
+     [--floor-images 200] [--rounds 3] [--seed 2024] [--tag TAG] [--out bench/results/datagen_speed.json]
+Each mode merges its table into --out under its own key (default mode: issue18_TAG; --scaling: TAG; --targets:
+KEY_TAG), TAG naming the machine (default: MUJOCO_GL and the core count), so runs on different machines and
+earlier tables sit side by side.
 """
 
 from __future__ import annotations
@@ -40,18 +44,21 @@ import os
 os.environ["LP_NUM_THREADS"] = "1"  # before any GL context: one rasterizer thread per process
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 
+import argparse
+import functools
 import json
 import platform
 import shutil
 import statistics
+import sys
 import tempfile
 import time
 
 import numpy as np
 
-IMAGES = {512: 160, 1024: 96}
+IMAGES = {512: 160, 1024: 96}  # --scaling's images per resolution
 SHARD_SIZE = 16
-SEED = 2024
+SEED = 2024  # --seed's default
 
 
 def bench_config(resolution_px: int, n: int, **kw):
@@ -175,18 +182,17 @@ def worker_startup_s() -> float:
     return time.perf_counter() - t0
 
 
-def fresh_process_s(n: int, shard_size: int = SHARD_SIZE) -> float:
+def fresh_process_s(n: int, shard_size: int = SHARD_SIZE, seed: int = SEED) -> float:
     """Wall seconds of a fresh process that imports the factory and runs run_generate (1 worker, appearance
     on, clean, 1024 px, n images), from its launch to its exit: the worker's start-up counted."""
     import subprocess
-    import sys
 
     code = ("import os, sys, tempfile, shutil\n"
             f"sys.path.insert(0, {os.path.dirname(os.path.abspath(__file__))!r})\n"
             "from datagen_speed import bench_config\n"
             "from envisat_pose.datagen.factory import run_generate\n"
             f"cfg = bench_config(1024, {n}, storage='clean', appearance={{'enabled': True}}, appendages=True, "
-            f"shard_size={shard_size})\n"
+            f"shard_size={shard_size}, seed={seed})\n"
             "out = tempfile.mkdtemp()\n"
             "run_generate(cfg, os.path.join(out, 'ds'))\n"
             "shutil.rmtree(out)\n")
@@ -195,29 +201,28 @@ def fresh_process_s(n: int, shard_size: int = SHARD_SIZE) -> float:
     return time.perf_counter() - t0
 
 
-def default_mode_table() -> dict:
-    """The default mode's table at 1024 px and the two-pass floor (module docstring)."""
-    n = int(os.environ.get("BENCH_IMAGES", "64"))
-    rounds = int(os.environ.get("BENCH_ROUNDS", "3"))
+def default_mode_table(n: int, rounds: int, nf: int, seed: int) -> dict:
+    """The default mode's table at 1024 px (n images per dataset) and the two-pass floor (rounds rounds of nf
+    images), the datasets' root seed `seed` (module docstring)."""
+    config = functools.partial(bench_config, seed=seed)
     res = 1024
     out = {"images": n, "resolution_px": res, "load_avg_start": os.getloadavg()}
-    base = bench_config(res, n)
+    base = config(res, n)
     # the floor at the user's default shard size, over enough images for a steady state after the first shard
     from envisat_pose.datagen.generate_config import GenerateConfig
 
-    nf = int(os.environ.get("BENCH_FLOOR_IMAGES", "200"))
     floor_shard = GenerateConfig().shard_size
     out["floor_images"], out["floor_shard_size"] = nf, floor_shard
-    base_floor = bench_config(res, nf, shard_size=floor_shard)
-    on_clean = bench_config(res, nf, storage="clean", appearance={"enabled": True}, appendages=True,
-                            shard_size=floor_shard)
-    end_to_end(bench_config(res, 16, storage="clean", appearance={"enabled": True}, appendages=True), 1)  # this
+    base_floor = config(res, nf, shard_size=floor_shard)
+    on_clean = config(res, nf, storage="clean", appearance={"enabled": True}, appendages=True,
+                      shard_size=floor_shard)
+    end_to_end(config(res, 16, storage="clean", appearance={"enabled": True}, appendages=True), 1)  # this
     # process's renderer, its textures and imports made once, outside the rounds
     print(f"two-pass floor (appearance on, clean, 1 worker, 1024 px, {nf} images in shards of {floor_shard}):",
           flush=True)
     out["floor_issue18"] = floor = floor_rounds(base_floor, on_clean, rounds)
     out["worker_startup_serial_s"] = worker_startup_s()
-    fresh = fresh_process_s(nf, floor_shard)
+    fresh = fresh_process_s(nf, floor_shard, seed)
     steady_1w = steady = statistics.median([r["factory_steady_img_s"] for r in floor["rounds"]])
     # start-up as it costs in a run: the fresh process's wall time beyond its images at the steady rate
     out["fresh_process_e2e_img_s"] = nf / fresh
@@ -232,10 +237,10 @@ def default_mode_table() -> dict:
     rows = {}
     for appearance in (True, False):
         for storage in ("clean", "corrupted"):
-            cfg = bench_config(res, n, storage=storage, appearance={"enabled": appearance}, appendages=appearance)
+            cfg = config(res, n, storage=storage, appearance={"enabled": appearance}, appendages=appearance)
             name = f"appearance_{'on' if appearance else 'off'}_{storage}"
-            row = {"bytes": bytes_per_image(bench_config(res, 16, storage=storage, appearance={"enabled": appearance},
-                                                         appendages=appearance, shard_size=16))}
+            row = {"bytes": bytes_per_image(config(res, 16, storage=storage, appearance={"enabled": appearance},
+                                                   appendages=appearance, shard_size=16))}
             for w in (1, 2):
                 e2e, steady = end_to_end(cfg, w)
                 row[f"e2e_{w}w_img_s"], row[f"steady_{w}w_img_s"] = e2e, steady
@@ -413,19 +418,19 @@ TARGET_RUNS = {
 }
 
 
-def target_run_s(extra: dict, n: int, tree: str | None) -> tuple[float, float]:
-    """Seconds per image of run_generate (n images, 1024 px, shards of SHARD_SIZE) in a fresh process whose
-    envisat_pose comes from `tree` (None: the installed one), after a 4-image warm-up dataset of the same config:
-    (wall, CPU), CPU the process's and its children's user + system time (less sensitive to other load)."""
+def target_run_s(extra: dict, n: int, tree: str | None, seed: int = SEED) -> tuple[float, float]:
+    """Seconds per image of run_generate (n images, 1024 px, shards of SHARD_SIZE, root seed `seed`) in a fresh
+    process whose envisat_pose comes from `tree` (None: the installed one), after a 4-image warm-up dataset of the
+    same config: (wall, CPU), CPU the process's and its children's user + system time (less sensitive to other
+    load)."""
     import subprocess
-    import sys
 
     code = ("import json, os, resource, sys, tempfile, shutil, time\n"
             + (f"sys.path.insert(0, {tree!r})\n" if tree else "")
             + "from envisat_pose.config import from_dict\n"
             "from envisat_pose.datagen.generate_config import GenerateConfig\n"
             "from envisat_pose.datagen.factory import run_generate\n"
-            f"base = dict(resolution_px=1024, shard_size={SHARD_SIZE}, seed={SEED}, **json.loads({json.dumps(extra)!r}))\n"
+            f"base = dict(resolution_px=1024, shard_size={SHARD_SIZE}, seed={seed}, **json.loads({json.dumps(extra)!r}))\n"
             "out = tempfile.mkdtemp()\n"
             "run_generate(from_dict(GenerateConfig, dict(base, num_images=4)), os.path.join(out, 'warm'))\n"
             "def cpu():\n"
@@ -443,24 +448,26 @@ def target_run_s(extra: dict, n: int, tree: str | None) -> tuple[float, float]:
     return float(wall), float(cpu)
 
 
-def main_targets(baseline: str | None, current: str | None = None) -> None:
-    n = int(os.environ.get("BENCH_IMAGES", "24"))
-    rounds = int(os.environ.get("BENCH_ROUNDS", "3"))
-    out = {"images": n, "rounds": [], "resolution_px": 1024, "seed": SEED, "baseline": baseline, "current": current,
-           "load_avg_start": os.getloadavg(), "machine": {"cpus": os.cpu_count(), "platform": platform.platform()}}
-    for r in range(rounds):
+def main_targets(args: argparse.Namespace) -> dict:
+    """--targets: ENVISAT's time per image against the baseline tree's and the shipped targets' against ENVISAT's
+    (the comment above TARGET_RUNS); the results' entry."""
+    n = args.images or 24
+    out = {"images": n, "rounds": [], "resolution_px": 1024, "seed": args.seed, "baseline": args.baseline,
+           "current": args.current, "load_avg_start": os.getloadavg(),
+           "machine": {"cpus": os.cpu_count(), "platform": platform.platform()}}
+    for r in range(args.rounds):
         row = {}
-        if baseline:
-            row["envisat_baseline"], row["envisat_baseline_cpu"] = target_run_s({}, n, baseline)
+        if args.baseline:
+            row["envisat_baseline"], row["envisat_baseline_cpu"] = target_run_s({}, n, args.baseline, args.seed)
         for name, extra in TARGET_RUNS.items():
-            row[name], row[f"{name}_cpu"] = target_run_s(extra, n, current)
+            row[name], row[f"{name}_cpu"] = target_run_s(extra, n, args.current, args.seed)
         row["load_avg_1min"] = os.getloadavg()[0]
         out["rounds"].append(row)
         print(f"round {r}: " + ", ".join(f"{k} {v:.3f}" + (" s/img" if k != "load_avg_1min" else "")
                                          for k, v in row.items()), flush=True)
     med = {k: statistics.median(row[k] for row in out["rounds"]) for k in out["rounds"][0] if k != "load_avg_1min"}
     out["median_s_per_image"] = med
-    if baseline:
+    if args.baseline:
         out["envisat_vs_baseline"] = med["envisat"] / med["envisat_baseline"]
         out["envisat_vs_baseline_cpu"] = med["envisat_cpu"] / med["envisat_baseline_cpu"]
         # the floor bounds a slowdown: a faster tree meets it (the two trees differ by every commit between them)
@@ -471,30 +478,11 @@ def main_targets(baseline: str | None, current: str | None = None) -> None:
             out[f"floor_{name}_within_1_5x_met"] = out[f"{name}_vs_envisat"] <= 1.5
     out["load_avg_end"] = os.getloadavg()
     print(json.dumps({k: v for k, v in out.items() if k not in ("rounds", "machine")}, indent=1))
-    tag = os.environ.get("BENCH_TAG") or f"{os.environ['MUJOCO_GL']}_{os.cpu_count()}cpu"
-    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "datagen_speed.json")
-    everything = {}
-    if os.path.exists(path):
-        with open(path, encoding="utf-8") as fh:
-            everything = json.load(fh)
-    key = f"{os.environ.get('BENCH_KEY', 'targets')}_{tag}"
-    everything[key] = out
-    with open(path, "w", encoding="utf-8") as fh:
-        json.dump(everything, fh, indent=1, sort_keys=True)
-        fh.write("\n")
-    print(f"wrote {path} [{key}]")
+    return out
 
 
-def main() -> None:
-    import sys
-
-    if "--targets" in sys.argv:
-        def value(flag: str) -> str | None:
-            return sys.argv[sys.argv.index(flag) + 1] if flag in sys.argv else None
-
-        return main_targets(value("--baseline"), value("--current"))
-    if "--scaling" not in sys.argv and "--issue3" not in sys.argv:
-        return main_default_mode()  # the default mode's table with the two-pass floor
+def main_scaling(args: argparse.Namespace) -> dict:
+    """--scaling: the scaling floors' table at 512 and 1024 px (module docstring); the results' entry."""
     results = {
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                     "load_avg_start": os.getloadavg()},
@@ -505,14 +493,15 @@ def main() -> None:
     print(f"CPU scaling probe (zlib, 2 processes vs 1): {probe:.2f}x")
     rows = []
     for res, n in IMAGES.items():
-        cfg = bench_config(res, n)
+        n = args.images or n
+        cfg = bench_config(res, n, seed=args.seed)
         raw = raw_rates(cfg)
         e1, s1 = end_to_end(cfg, 1)
         e2, s2 = end_to_end(cfg, 2)
         entry = {**raw, "images": n, "e2e_1_worker_img_s": e1, "e2e_2_workers_img_s": e2,
                  "steady_1_worker_img_s": s1, "steady_2_workers_img_s": s2,
                  "ratio_1_worker_to_raw": e1 / raw["raw_lit_render_img_s"], "speedup_2_workers": e2 / e1,
-                 "steady_speedup_2_workers": s2 / s1}
+                 "steady_speedup_2_workers": s2 / s1 if s1 and s2 else None}  # None: too few shards
         st = raw["stages_ms"]
         entry["interleaved_ratio_sample_to_raw"] = st["interleaved_raw_lit_ms"] / st["render_sample_in_process_ms"]
         entry["floor_60pct_met"] = entry["ratio_1_worker_to_raw"] >= 0.6
@@ -523,49 +512,76 @@ def main() -> None:
     results["machine"]["load_avg_end"] = os.getloadavg()
     print(f"{'px':>5} {'raw lit':>9} {'stock 3x':>9} {'e2e 1w':>8} {'e2e 2w':>8} {'1w/raw':>7} {'2w/1w':>6}"
           f" {'steady 1w':>10} {'steady 2w':>10}  (images/s)")
+    steady = lambda v: f"{'n/a':>10}" if v is None else f"{v:>10.1f}"  # noqa: E731
     for res, raw, stock, e1, e2, ratio, speed, s1, s2 in rows:
-        print(f"{res:>5} {raw:>9.1f} {stock:>9.1f} {e1:>8.1f} {e2:>8.1f} {ratio:>7.2f} {speed:>6.2f} {s1:>10.1f} {s2:>10.1f}")
+        print(f"{res:>5} {raw:>9.1f} {stock:>9.1f} {e1:>8.1f} {e2:>8.1f} {ratio:>7.2f} {speed:>6.2f} {steady(s1)} "
+              f"{steady(s2)}")
     for res, entry in results["resolutions"].items():
         print(f"{res} px stages (ms/image, 1 core): " + ", ".join(f"{k} {v:.1f}" for k, v in entry["stages_ms"].items()))
         print(f"{res} px interleaved in-process ratio (sample rate / raw rate): "
               f"{entry['interleaved_ratio_sample_to_raw']:.2f}")
-    # one entry per platform (GL backend and core count), so runs on different machines sit side by side
-    tag = os.environ.get("BENCH_TAG") or f"{os.environ['MUJOCO_GL']}_{os.cpu_count()}cpu"
-    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "datagen_speed.json")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
+    return results
+
+
+def main_default_mode(args: argparse.Namespace) -> dict:
+    """The default mode's table with the two-pass floor; the results' entry."""
+    return {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+            "protocol": "LP_NUM_THREADS=1 per process; random mode, default config (sensor camera model), "
+                        "shard size %d; e2e = wall clock of run_generate in this process (its renderer made once before); "
+                        "worker_startup_serial_s: a fresh process's imports, renderer and Earth textures one after the other; "
+                        "worker_startup_counted_s: a fresh process's run less its images at the steady rate; "
+                        "floor_issue18: alternating rounds, median ratio" % SHARD_SIZE,
+            **default_mode_table(args.images or 64, args.rounds, args.floor_images, args.seed)}
+
+
+def write_entry(path: str, key: str, entry: dict) -> None:
+    """The results file at `path` with `entry` under `key`, its other keys kept (other machines, other modes,
+    earlier tables); an older single-platform file (a top-level "resolutions") is started afresh."""
     everything = {}
     if os.path.exists(path):
         with open(path, encoding="utf-8") as fh:
             everything = json.load(fh)
-        if "resolutions" in everything:  # an older single-platform file
+        if "resolutions" in everything:
             everything = {}
-    everything[tag] = results
-    with open(path, "w", encoding="utf-8") as fh:
-        json.dump(everything, fh, indent=1, sort_keys=True)
-        fh.write("\n")
-    print(f"wrote {path} [{tag}]")
-
-
-def main_default_mode() -> None:
-    tag = os.environ.get("BENCH_TAG") or f"{os.environ['MUJOCO_GL']}_{os.cpu_count()}cpu"
-    results = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
-               "protocol": "LP_NUM_THREADS=1 per process; random mode, default config (sensor camera model), "
-                           "shard size %d; e2e = wall clock of run_generate in this process (its renderer made once before); "
-                           "worker_startup_serial_s: a fresh process's imports, renderer and Earth textures one after the other; "
-                           "worker_startup_counted_s: a fresh process's run less its images at the steady rate; "
-                           "floor_issue18: alternating rounds, median ratio" % SHARD_SIZE,
-               **default_mode_table()}
-    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "datagen_speed.json")
-    everything = {}
-    if os.path.exists(path):
-        with open(path, encoding="utf-8") as fh:
-            everything = json.load(fh)
-    key = f"issue18_{tag}"  # the results file's key for this table (issue9_* keys: earlier runs, kept)
-    everything[key] = results
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    everything[key] = entry
     with open(path, "w", encoding="utf-8") as fh:
         json.dump(everything, fh, indent=1, sort_keys=True)
         fh.write("\n")
     print(f"wrote {path} [{key}]")
+
+
+def main(argv: list[str] | None = None) -> None:
+    from _common import description, provenance, results_path
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
+    mode = ap.add_mutually_exclusive_group()
+    mode.add_argument("--scaling", "--issue3", action="store_true",
+                      help="the scaling floors' table at 512 and 1024 px instead of the default mode's")
+    mode.add_argument("--targets", action="store_true",
+                      help="the shipped targets' time per image against ENVISAT's (and --baseline's) instead")
+    ap.add_argument("--baseline", metavar="DIR", help="with --targets: an earlier tree (a git archive, its plugin's "
+                    ".so copied in)")
+    ap.add_argument("--current", metavar="DIR", help="with --targets: the tree measured (default: the installed one)")
+    ap.add_argument("--images", type=int, help="images per dataset (default: 64; with --targets 24; with --scaling "
+                    + " and ".join(f"{n} at {res} px" for res, n in IMAGES.items()) + ")")
+    ap.add_argument("--floor-images", type=int, default=200, help="the two-pass floor's images (default mode)")
+    ap.add_argument("--rounds", type=int, default=3, help="alternating rounds (default mode and --targets)")
+    ap.add_argument("--seed", type=int, default=SEED, help="the datasets' root seed")
+    ap.add_argument("--tag", help="names this machine in the results' key (default: MUJOCO_GL_<cores>cpu)")
+    ap.add_argument("--key", default="targets", help="with --targets: the results' key before the tag")
+    ap.add_argument("--out", default=results_path("datagen_speed"), help="the results file the table is merged into")
+    args = ap.parse_args(argv)
+    if (args.baseline or args.current) and not args.targets:
+        ap.error("--baseline and --current go with --targets")
+    tag = args.tag or f"{os.environ['MUJOCO_GL']}_{os.cpu_count()}cpu"
+    if args.targets:
+        key, entry = f"{args.key}_{tag}", main_targets(args)
+    elif args.scaling:
+        key, entry = tag, main_scaling(args)  # one entry per platform (GL backend and core count)
+    else:
+        key, entry = f"issue18_{tag}", main_default_mode(args)  # issue9_* keys: earlier runs, kept
+    write_entry(args.out, key, entry | {"provenance": provenance(args)})
 
 
 if __name__ == "__main__":

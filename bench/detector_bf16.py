@@ -87,7 +87,9 @@ def differences(a, b) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--data", required=True, help="a labelled ENVISAT dataset (envisat generate)")
     ap.add_argument("--limit", type=int, default=200)
     ap.add_argument("--weights", default=shipped_weights_path())
@@ -118,7 +120,8 @@ def main() -> None:
         print(f"{path:<6} bf16 vs fp32 corners: median {dd['median_px']:.3f} px, p95 {dd['p95_px']:.3f}, max "
               f"{dd['max_px']:.3f}; named by one only: {dd['named_by_one_only']}")
         result["paths"][path] = row
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
+    result["provenance"] = provenance(args)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     tmp = args.out + ".tmp"
     with open(tmp, "w", encoding="utf-8") as fh:
         json.dump(result, fh, indent=1, sort_keys=True)

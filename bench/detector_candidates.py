@@ -83,7 +83,9 @@ def score_weights(weights: str, frames: list, device: str = "cpu") -> dict[str, 
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--weights", nargs="+", required=True, help="NAME=W.safetensors, one per candidate")
     ap.add_argument("--data", nargs="+", required=True, help="NAME=DIR, labelled held-out sets")
     ap.add_argument("--limit", type=int, help="only the first N frames of each set")
@@ -118,6 +120,7 @@ def main() -> None:
                        for n, p in sets.items()},
               "machine": platform.machine(), "device": args.device, "torch_threads": args.threads,
               "wall_s": round(time.time() - t0, 1), "rows": rows}
+    result["provenance"] = provenance(args)
     atomic_write_text(args.out, json.dumps(json_safe(result), indent=1) + "\n")
     print(f"wrote {args.out}")
 

@@ -2,13 +2,15 @@
 which do not, with the figures.
 
     .venv/bin/python bench/detector_floors.py --random EVAL.json [EVAL.json ...] [--earth EVAL.json ...]
-        [--sequence EVAL.json ...] [--speed bench/results/detector_speed.json] [--out bench/results/X.json]
+        [--sequence EVAL.json ...] [--speed bench/results/detector_speed.json]
+        [--out bench/results/detector_floors.json]
 
 --random: held-out random views (full 1024 px frames, default generate config); --earth: the same with the Earth
 behind the target in every view; --sequence: sequences whose apparent scale is checked (evaluate's bias, per
 method present: detector = coarse pass, detector_roi = the labels' region of interest). Every figure is the
 detector's over the group 'all' of each file, except 'better than Shi-Tomasi', checked per corruption level
-(the groups noise=... and blur=... with frames in both methods) on PCK@2 and PCK@5. Writes a small JSON.
+(the groups noise=... and blur=... with frames in both methods) on PCK@2 and PCK@5. Writes a small JSON (--out,
+default bench/results/detector_floors.json).
 """
 
 from __future__ import annotations
@@ -56,12 +58,15 @@ def corruption_levels(e: dict) -> list[dict]:
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    p = argparse.ArgumentParser(description=description(__doc__))
     p.add_argument("--random", nargs="+", default=[])
     p.add_argument("--earth", nargs="*", default=[])
     p.add_argument("--sequence", nargs="*", default=[])
     p.add_argument("--speed")
-    p.add_argument("--out")
+    p.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
+                                                 "detector_floors.json"))
     a = p.parse_args()
     result = {"random": [], "earth": [], "sequences": [], "speed": None, "floors": {}}
     rows = []
@@ -100,10 +105,11 @@ def main() -> int:
         v = "-" if value is None else f"{value:.4g}"
         f = "-" if floor is None else f"{floor:.4g}"
         print(f"{name:28s} {metric:36s} {v:>10s} {f:>8s}  {'met' if met else 'NOT met'}")
-    if a.out:
-        with open(a.out, "w", encoding="utf-8") as fh:
-            json.dump(result, fh, indent=1, sort_keys=True)
-            fh.write("\n")
+    result["provenance"] = provenance(a)
+    with open(a.out, "w", encoding="utf-8") as fh:
+        json.dump(result, fh, indent=1, sort_keys=True)
+        fh.write("\n")
+    print(f"wrote {a.out}")
     return 0
 
 

@@ -108,7 +108,9 @@ def time_frames(frames: list, weights: str | None, repeats: int) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--frames", type=int, default=8, help="full 1024 px frames for part 2")
@@ -154,7 +156,8 @@ def main() -> None:
                          "UNTRAINED weights (--untrained): the untrained network finds no junction above "
                          "threshold, so detector_full_frame and detector_roi stop after one network pass each: a "
                          "LOWER BOUND, without the crop pass, line verification and naming; no accuracy implied")}
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
+    result["provenance"] = provenance(args)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w", encoding="utf-8") as fh:
         json.dump(result, fh, indent=1, sort_keys=True)
         fh.write("\n")

@@ -201,7 +201,9 @@ def responses_line(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--scenarios", nargs="+", default=["default"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3])
     ap.add_argument("--resolutions", nargs="+", type=int, default=[512])
@@ -214,7 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     if args.responses:
-        return main_responses(args)
+        return main_responses(args, provenance(args))
+    prov = provenance(args)
     rows = []
     print("| scenario | seed | px | delta at truth | at range x(1-step) | x(1+step) | mean offset px | stations |")
     print("|---|---|---|---|---|---|---|---|")
@@ -230,11 +233,11 @@ def main(argv: list[str] | None = None) -> int:
                 from envisat_pose.io import atomic_write_text
 
                 atomic_write_text(args.out, json.dumps({"cases": rows, "argv": sys.argv[1:], "stride": args.stride,
-                                                        "step": args.step}, indent=1))
+                                                        "step": args.step, "provenance": prov}, indent=1))
     return 0
 
 
-def main_responses(args) -> int:
+def main_responses(args, prov: dict) -> int:
     from envisat_pose.io import atomic_write_text
 
     print("| scenario | seed | px | response | PSF sigma px | blooming | delta stored | known response "
@@ -245,8 +248,8 @@ def main_responses(args) -> int:
         for res in args.resolutions:
             for seed in args.seeds:
                 rows += responses_case(scenario, seed, res, args.num_images, args.work, args.stride)
-                atomic_write_text(args.out, json.dumps({"looks": rows, "argv": sys.argv[1:], "stride": args.stride},
-                                                       indent=1))
+                atomic_write_text(args.out, json.dumps({"looks": rows, "argv": sys.argv[1:], "stride": args.stride,
+                                                        "provenance": prov}, indent=1))
     return 0
 
 

@@ -81,7 +81,9 @@ def run_row(kind: str, src: str, work: str, fmt: str = "-", image_format: str = 
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--data", help="an existing 1024 px dataset (default: make one)")
     ap.add_argument("--images", type=int, default=BENCH_IMAGES)
     ap.add_argument("--out", default=os.path.join(HERE, "results", "export_speed.json"))
@@ -122,6 +124,7 @@ def main() -> int:
     for name, r in rows.items():
         print(f"{name:52s} {r['images']:6d} {r['s_per_1000']:7.1f} {r['rss_self_mb']:11.0f} {r['rss_worker_mb']:13.0f}")
     print(f"floors: <= {FLOOR_S_PER_1000:.0f} s per 1000: {result['floors']['time_met']}; memory flat: {flat}")
+    result["provenance"] = provenance(args)
     atomic_write_text(args.out, json.dumps(result, indent=1, sort_keys=True) + "\n")
     print(f"wrote {args.out}")
     return 0

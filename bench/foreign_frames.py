@@ -358,8 +358,10 @@ def sequence_truth(scenario: str, seed: int, num_images: int, resolution_px: int
 
 
 def make_sequence(out_dir: str, scenario: str, seed: int, num_images: int, resolution_px: int,
-                  frame_dt_s: float = 1.0, habits: Habits = Habits(), progress: bool = True) -> dict:
-    """Render and write one foreign sequence into out_dir (module docstring). Returns meta.json's content."""
+                  frame_dt_s: float = 1.0, habits: Habits = Habits(), progress: bool = True,
+                  made_by: dict | None = None) -> dict:
+    """Render and write one foreign sequence into out_dir (module docstring). Returns meta.json's content, which
+    records made_by (the command's provenance) under "provenance" when given."""
     from envisat_pose.attitude import mrp_to_dcm
     from envisat_pose.geometry import PinholeCamera, load_camera
     from envisat_pose.io import atomic_path, atomic_write_text, save_npz
@@ -416,13 +418,15 @@ def make_sequence(out_dir: str, scenario: str, seed: int, num_images: int, resol
             "habits": asdict(habits), "render_s_per_frame": render_s / len(t_s),
             "habits_s_per_frame": habit_s / len(t_s), "same_poses_as": f"envisat generate --mode sequence "
             f"--scenario {scenario} --seed {seed} --num-images {num_images} --resolution {n}, sun_dir = {sun_N} in "
-            "its --config"}
+            "its --config"} | ({} if made_by is None else {"provenance": made_by})
     atomic_write_text(os.path.join(out_dir, "meta.json"), json.dumps(meta, indent=1, sort_keys=True) + "\n")
     return meta
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--scenario", default="default")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--num-images", type=int, default=240)
@@ -436,7 +440,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"foreign_frames: {problem}", file=sys.stderr)
         return 2
     meta = make_sequence(a.out, a.scenario, a.seed, a.num_images, a.resolution, a.frame_dt_s,
-                         Habits(jpeg_quality=a.jpeg_quality))
+                         Habits(jpeg_quality=a.jpeg_quality), made_by=provenance(a))
     print(f"{meta['num_images']} frames in {a.out}: render {1000 * meta['render_s_per_frame']:.0f} ms/frame, "
           f"habits {1000 * meta['habits_s_per_frame']:.0f} ms/frame")
     return 0

@@ -265,7 +265,9 @@ def table(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--scenario", default="default")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--num-images", type=int, default=300, help="the sequence's frames")
@@ -286,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         r = run(a.scenario, a.seed, a.num_images, a.resolution, a.work or tmp, a.stride)
     r["machine"] = {"cpus": os.cpu_count(), "platform": platform.platform(), "python": sys.version.split()[0]}
+    r["provenance"] = provenance(a)
     r["argv"] = sys.argv[1:] if argv is None else argv
     os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
     with open(a.out, "w") as fh:

@@ -60,8 +60,8 @@ page_mib = os.sysconf("SC_PAGE_SIZE") / 2**20
 step = tracker.Tracker.step
 
 
-def traced(self, t_s, image):
-    out = step(self, t_s, image)
+def traced(self, t_s, image, *args, **kwargs):  # Tracker.step's own arguments, whatever they grow to
+    out = step(self, t_s, image, *args, **kwargs)
     n["frames"] += 1
     n["lit"] += image is not None
     if n["frames"] % every == 0:
@@ -127,7 +127,9 @@ def frame_bytes() -> int:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--orbits", type=float, nargs="+", default=[1, 3, 10])
     ap.add_argument("--rate-hz", type=float, default=1.0, help="camera and filter rate (frames per second)")
     ap.add_argument("--resolution", type=int, default=128, help="image side, px")
@@ -179,6 +181,7 @@ def main(argv=None) -> int:
               "orbit_period_s": period_s, "per_frame_bytes": per_frame, "trace_every": args.trace_every, "jobs": rows,
               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
               "date": time.strftime("%Y-%m-%d")}
+    result["provenance"] = provenance(args)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as fh:
         json.dump(result, fh, indent=1)

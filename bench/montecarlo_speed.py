@@ -111,7 +111,9 @@ def time_filterpy_slice(steps: int) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--runs", type=int, default=1000)
     ap.add_argument("--duration-s", type=float, default=6000.0)
     ap.add_argument("--workers", type=int, default=2)
@@ -188,6 +190,7 @@ def main() -> None:
                                        "settle_s", "inside_3sigma_share")},
         "machine": {"python": platform.python_version(), "cpu_count": os.cpu_count(), "numpy": np.__version__},
     }
+    result["provenance"] = provenance(args)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w", encoding="utf-8") as fh:
         json.dump(result, fh, indent=2)

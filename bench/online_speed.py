@@ -105,7 +105,9 @@ def rmse(t_s, x_true, x_hat, after_s: float) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--duration-s", type=float, default=600.0)
     ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
     ap.add_argument("--seed", type=int, default=0)
@@ -149,6 +151,7 @@ def main() -> None:
             rows.append((name, case))
     result["machine"]["load_avg_end"] = os.getloadavg()
     result["after_s"] = args.after_s
+    result["provenance"] = provenance(args)
     atomic_write_text(args.out, json.dumps(result, indent=1, sort_keys=True) + "\n")
     print(f"online closed loop, default scenario, {args.duration_s:g} s at 1 Hz (load {load_start[0]:.1f} at start)")
     head = f"{'case':8s} " + " ".join(f"{s[:9]:>9s}" for s in STAGES) + f" {'RTF':>6s} {'pos cm':>8s} {'att deg':>8s}" \

@@ -103,7 +103,9 @@ def class_moments(fn, frames, seeds: int) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seeds", type=int, default=40)
@@ -145,7 +147,8 @@ def main(argv=None) -> int:
               "lit_share": float(np.mean([(img > 0).mean() for img, _ in frames])),
               "machine": {"python": sys.version.split()[0], "platform": platform.platform(),
                           "cpus": os.cpu_count()}}
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
+    result["provenance"] = provenance(args)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w", encoding="utf-8") as fh:
         json.dump(result, fh, indent=2, sort_keys=True)
         fh.write("\n")

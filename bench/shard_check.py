@@ -134,9 +134,11 @@ def table(r: dict) -> str:
 
 
 def main() -> int:
+    from _common import description, provenance  # bench/_common.py, beside this script
+
     from envisat_pose.io import atomic_write_text
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--data", metavar="DIR", help="an existing generated dataset (default: generate one)")
     ap.add_argument("--images", type=int, default=BENCH_IMAGES, help=f"images to generate (default {BENCH_IMAGES})")
     ap.add_argument("--input-px", type=int, default=320, help="the loader's input size (default 320)")
@@ -152,6 +154,7 @@ def main() -> int:
             make_dataset(data, args.images)
         result = measure(data, args.input_px, args.batch_size, args.repeats, args.rounds)
     print(table(result))
+    result["provenance"] = provenance(args)
     atomic_write_text(args.out, json.dumps(result, indent=1, sort_keys=True) + "\n")
     print(f"wrote {args.out}")
     return 0 if result["floor_met"] else 1

@@ -37,7 +37,7 @@ MIN_EDGE_PX, END_PX = 60.0, 20.0  # at 1024 px (the library's defaults reach the
 LOOKS = {
     "random_plain": {"appearance": {"enabled": False}, "appendages": False},
     "random_appearance": {"appendages": False},
-    "sequence_default": {"mode": "sequence", "scenario": "default"},
+    "sequence_default": {"mode": "sequence", "sequence": {"scenario": "default"}},
 }
 
 
@@ -91,7 +91,9 @@ def measure_look(name: str, extra: dict, images: int, seed: int, tmp: str) -> di
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--images", type=int, default=40, help="frames per look")
     ap.add_argument("--seed", type=int, default=4242)
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "silhouette_bias.json"))
@@ -115,6 +117,7 @@ def main() -> None:
                 print(f"{name:18s} {kind:12s} {a['n']:8d} {f(a['mean_px'])} {f(a['median_px'])} "
                       f"{'' if a['se_px'] is None else format(a['se_px'], '6.3f'):>6s} {c['n']:9d} {f(c['mean_px'])} "
                       f"{u['n']:11d} {f(u['mean_px'])}", flush=True)
+    result["provenance"] = provenance(args)
     atomic_write_text(args.out, json.dumps(result, indent=1, sort_keys=True) + "\n")
     print(f"wrote {args.out}")
 

@@ -5,9 +5,9 @@ Each method simulates the default scenario (50 m V-bar hold, ENVISAT tumbling wi
 scored by simulated seconds per wall second, and by its relative-position error at the end against two
 independent inertial two-body propagations (so "matched accuracy" can be read off the table).
 
-    .venv/bin/python bench/sim_speed.py [--duration-s 1000] [--rollouts 32]
+    .venv/bin/python bench/sim_speed.py [--duration-s 1000] [--rollouts 32] [--threads N] [--out FILE.json]
 
-Prints a table and writes bench/results/sim_speed.json.
+Prints a table and writes --out (default bench/results/sim_speed.json).
 """
 
 from __future__ import annotations
@@ -196,10 +196,13 @@ def run_scipy(cfg, x0, t_end, rtol):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--duration-s", type=float, default=1000.0)
     ap.add_argument("--rollouts", type=int, default=32)
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--out", default=os.path.join(HERE, "results", "sim_speed.json"))
     args = ap.parse_args()
     cfg = scenario_config(duration_s=args.duration_s, dt_s=args.duration_s, max_physics_dt_s=0.05, seed=1)
     x0 = initial_state(cfg, np.random.default_rng(np.random.SeedSequence(cfg.seed)))
@@ -235,11 +238,11 @@ def main() -> None:
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "mujoco": mujoco.__version__},
         "plugin": PLUGIN_NAME, "rows": rows,
     }
-    os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
-    path = os.path.join(HERE, "results", "sim_speed.json")
-    with open(path, "w") as fh:
+    result["provenance"] = provenance(args)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as fh:
         json.dump(result, fh, indent=2)
-    print(f"\nwrote {path}")
+    print(f"\nwrote {args.out}")
 
 
 if __name__ == "__main__":

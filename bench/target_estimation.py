@@ -31,7 +31,7 @@ workers get their own share, pools.thread_env).
 
 Run: .venv/bin/python bench/target_estimation.py [--runs 100] [--duration-s 600] [--settle-s 300] [--seed 0]
   [--workers 2] [--speed-runs 20] [--speed-duration-s 600] [--speed-repeats 10]
-(writes bench/results/target_estimation.json)
+  [--out bench/results/target_estimation.json]
 """
 
 from __future__ import annotations
@@ -152,7 +152,9 @@ def estimate_speed(a) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    p = argparse.ArgumentParser(description=description(__doc__))
     p.add_argument("--runs", type=int, default=100)
     p.add_argument("--duration-s", type=float, default=600.0)
     p.add_argument("--settle-s", type=float, default=300.0)
@@ -163,6 +165,7 @@ def main(argv=None) -> int:
     p.add_argument("--speed-runs", type=int, default=20)
     p.add_argument("--speed-duration-s", type=float, default=600.0)
     p.add_argument("--speed-repeats", type=int, default=10)
+    p.add_argument("--out", default=os.path.join(HERE, "results", "target_estimation.json"))
     a = p.parse_args(argv)
     runner = RunnerConfig("local", a.workers, None, thread_env(a.workers, BLAS_THREADS))
 
@@ -213,8 +216,10 @@ def main(argv=None) -> int:
                                           "floor": "none: reported (range from the apparent size alone)"},
                              "targets": pixels},
               "estimate_speed": speed}
-    os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
-    atomic_write_text(os.path.join(HERE, "results", "target_estimation.json"), json.dumps(result, indent=1) + "\n")
+    result["provenance"] = provenance(a)
+    os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
+    atomic_write_text(a.out, json.dumps(result, indent=1) + "\n")
+    print(f"wrote {a.out}")
     return 0
 
 

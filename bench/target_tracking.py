@@ -32,9 +32,11 @@ import os
 import platform
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
+ROOT = Path(__file__).resolve().parents[1]  # the repository: the defaults hold from any working folder
 FLOORS = {"first_track_correct_share": 15 / 16, "false_lock_s": 0.0, "nees": (6.0, 18.0), "rms_position_m": 0.10}
 
 
@@ -58,8 +60,10 @@ class NoisyTruthDetector:
                               np.array([0.0, 0.0, 1024.0]), z[vis])
 
 
-def frame_image(k: int) -> np.ndarray:
-    img = np.zeros((4, 4), np.uint8)
+def frame_image(k: int, camera) -> np.ndarray:
+    """A black frame of the camera's size (the Tracker refuses any other) carrying its index k in its first two
+    pixels, which the stand-in detector reads."""
+    img = np.zeros((camera.height_px, camera.width_px), np.uint8)
     img[0, 0], img[0, 1] = k // 256, k % 256
     return img
 
@@ -80,14 +84,15 @@ def noisy_truth_run(target_file: str, scenario: str, seed: int, duration_s: floa
 
     truth = simulate_truth(scenario_config(scenario, duration_s=duration_s, seed=seed, target={"file": target_file}))
     physics = onboard_physics(truth, target_file)
-    tracker = Tracker(load_camera(), NoisyTruthDetector(truth, sigma_px, miss, seed), chaser_function(
+    camera = load_camera()
+    tracker = Tracker(camera, NoisyTruthDetector(truth, sigma_px, miss, seed), chaser_function(
         scenario_config(scenario).orbit), TrackerConfig(), tracker_filter(None, scenario).__dict__,
         mu_m3_s2=physics.mu_m3_s2, gravity_gradient=physics.gravity_gradient, target=load_target(target_file))
     T = len(truth.t_s)
     x_hat, P, status = np.zeros((T, 12)), np.tile(np.eye(12) * 1e6, (T, 1, 1)), np.zeros(T, int)
     t0 = time.perf_counter()
     for k in range(T):
-        est = tracker.step(float(truth.t_s[k]), frame_image(k))
+        est = tracker.step(float(truth.t_s[k]), frame_image(k, camera))
         status[k] = STATUSES.index(est.status)
         if np.isfinite(est.x_hat).all() and np.isfinite(est.P).all():
             x_hat[k], P[k] = est.x_hat, est.P
@@ -161,8 +166,10 @@ def pooled(runs: list[dict]) -> dict:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--target", default="envisat_pose/models/upper_stage.xml")
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap.add_argument("--target", default=str(ROOT / "models" / "upper_stage.xml"))
     ap.add_argument("--weights", help="the target's calibrated keypoint detector (default: the noisy-truth stand-in)")
     ap.add_argument("--config", help="with --weights: a run config (TOML) over each run, as `envisat run --config`")
     ap.add_argument("--scenarios", nargs="+", default=["default", "slow-tumble"])
@@ -171,7 +178,7 @@ def main() -> int:
     ap.add_argument("--duration-s", type=float, default=300.0)
     ap.add_argument("--sigma-px", type=float, default=1.0)
     ap.add_argument("--miss", type=float, default=0.1)
-    ap.add_argument("--out", default="bench/results/target_tracking.json")
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "target_tracking.json"))
     args = ap.parse_args()
     if args.config and not args.weights:
         ap.error("--config: a run config for the closed loop, which needs --weights (the noisy-truth stand-in takes none)")
@@ -205,6 +212,7 @@ def main() -> int:
               "date": time.strftime("%Y-%m-%d")}
     from envisat_pose.io import atomic_write_text
 
+    result["provenance"] = provenance(args)
     atomic_write_text(args.out, json.dumps(result, indent=1, sort_keys=True) + "\n")
     print(f"wrote {args.out}")
     return 0

@@ -191,7 +191,9 @@ def per_run_line(s: dict, seeds: list[int]) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--seeds", type=int, default=8, help="seeds per scenario (first-seed, first-seed + 1, ...)")
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
@@ -260,6 +262,7 @@ def main() -> None:
             print(per_run_line(s, seeds), flush=True)
     result["wall_s"] = time.perf_counter() - t0
     result["machine"]["load_avg_end"] = os.getloadavg()
+    result["provenance"] = provenance(args)
     atomic_write_text(args.out, json.dumps(result, indent=1, sort_keys=True) + "\n")
     print("columns: runs tracked, first tracks correct, time to the first correct track (median, max, s), false-lock "
           "time (s), NEES beyond its 99.9 % quantile (% of scored frames), SPEC2021 score median and p95, mean NEES, "

@@ -219,6 +219,8 @@ def time_online_training(run_dir: str, device: str, workers: int, bf16: bool, st
 def save(args, rows: list[dict], parts: list[dict]) -> None:
     """Write what was measured so far (after every row: a run stopped at its time limit keeps its rows),
     atomically."""
+    from _common import provenance  # bench/_common.py, beside this script
+
     from envisat_pose.io import atomic_write_text
     from envisat_pose.pipelines.detector.train import dataset_provenance
 
@@ -229,7 +231,7 @@ def save(args, rows: list[dict], parts: list[dict]) -> None:
               "data": dataset_provenance(args.data) if args.data else
               {"generate": f"--num-images {args.images} --shard-size {args.shard_size} --seed 1 (1024 px, defaults)",
                "gpu_generate": f"--num-images {args.gpu_images} --shard-size {args.gpu_shard_size} --seed 1"},
-              "rows": rows, "parts": parts,
+              "rows": rows, "parts": parts, "provenance": provenance(args),
               "note": "envisat train's loop through envisat_pose.pipelines.detector.train.train_detector, the default "
                       "network (TrainConfig defaults), a fresh run per row; samples/s from the first batch to the "
                       "final checkpoint. parts: the model step alone on a synthetic batch (its optimizer per "
@@ -240,7 +242,9 @@ def save(args, rows: list[dict], parts: list[dict]) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--steps", type=int, default=24, help="steps per CPU row")
     ap.add_argument("--batch-size", type=int, default=8, help="batch of the CPU rows")
     ap.add_argument("--images", type=int, default=40, help="images generated for the CPU rows")

@@ -58,7 +58,9 @@ def figures(tree: str, duration_s: float, only: str | None, cores: int = 1) -> d
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--baseline", required=True, help="the earlier tree (a git archive, its plugin .so copied in)")
     ap.add_argument("--current", default=ROOT, help="the tree measured (default: this one)")
     ap.add_argument("--rounds", type=int, default=2)
@@ -99,7 +101,8 @@ def main() -> None:
               "trees": {name: os.path.basename(path.rstrip("/")) for name, path in trees.items()},
               "rounds": rounds, "median": median, "ratio_current_to_baseline": ratio, "floor_met": met}
     # one file, every run appended (runs of one pair of trees side by side, each with its protocol)
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
+    result["provenance"] = provenance(args)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     runs = []
     if os.path.exists(args.out):
         with open(args.out, encoding="utf-8") as fh:

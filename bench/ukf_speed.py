@@ -9,7 +9,8 @@ below, for the measured mean number of corners) at this core's dgemm rate (a 102
 One core: BLAS and OpenMP are held to one thread (set before numpy loads), so every peer gets the same core.
 Times are the best of a few repeats of process CPU time (the machine is shared; CPU time is what a run costs).
 
-Run: .venv/bin/python bench/ukf_speed.py [--runs 1000] [--out bench/results/ukf_speed.json]
+Run: .venv/bin/python bench/ukf_speed.py [--runs 1000] [--truth-seed 0] [--noise-seed 1]
+     [--out bench/results/ukf_speed.json]
 Floors: batched over 1000 runs >= 1000x filterpy per run-step (goal: within 10x of the arithmetic
 bound); one run >= 50x.
 """
@@ -29,17 +30,20 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 REPEATS = 3
+TRUTH_SEED, NOISE_SEED = 0, 1  # --truth-seed and --noise-seed's defaults (bench/montecarlo_speed.py's slice too)
 
 
-def _setup(n_steps: int, n_runs: int):
+def _setup(n_steps: int, n_runs: int, truth_seed: int = TRUTH_SEED, noise_seed: int = NOISE_SEED):
+    """The problem every peer solves: the default scenario's truth (truth_seed) and n_runs runs of 3D-corner
+    measurements and initial errors drawn from noise_seed."""
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.datagen.truth import simulate_truth
     from envisat_pose.filtering.estimator import FilterConfig, chaser_states
     from envisat_pose.filtering.montecarlo import MeasurementConfig, inputs_from_truth
 
-    tr = simulate_truth(scenario_config("default", duration_s=float(n_steps), seed=0))
+    tr = simulate_truth(scenario_config("default", duration_s=float(n_steps), seed=truth_seed))
     cfg = FilterConfig(gate_prob=0.0)
-    inp = inputs_from_truth(tr, MeasurementConfig(), cfg.P0, seed=1, n_runs=n_runs)
+    inp = inputs_from_truth(tr, MeasurementConfig(), cfg.P0, seed=noise_seed, n_runs=n_runs)
     chaser = chaser_states(tr.chaser_r_m, tr.chaser_rdot_m_s, tr.chaser_theta_rad, tr.chaser_thetadot_rad_s)
     return tr, cfg, inp, chaser
 
@@ -146,13 +150,18 @@ def dgemm_flops_per_s(size: int = 1024) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--runs", type=int, default=1000)
+    ap.add_argument("--truth-seed", type=int, default=TRUTH_SEED, help="the default scenario's seed (its truth)")
+    ap.add_argument("--noise-seed", type=int, default=NOISE_SEED, help="the runs' measurement noise and initial errors")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "ukf_speed.json"))
     args = ap.parse_args()
     load_start = os.getloadavg()[0]
     steps_fp, steps_one, steps_batch = 20, 100, 10
-    tr, cfg, inp, chaser = _setup(max(steps_fp, steps_one, steps_batch) + 1, args.runs)
+    tr, cfg, inp, chaser = _setup(max(steps_fp, steps_one, steps_batch) + 1, args.runs, args.truth_seed,
+                                  args.noise_seed)
     R = args.runs
     us = {
         "filterpy": time_filterpy(cfg, inp, chaser, steps_fp),
@@ -206,9 +215,11 @@ def main() -> None:
                 "visibility check, monitors, storage). filterpy calls fx and hx once per sigma point.",
         "load_average_1min": {"start": load_start, "end": os.getloadavg()[0]},
         "steps": {"filterpy": steps_fp, "1_run": steps_one, "batched": steps_batch},
+        "seeds": {"truth": args.truth_seed, "noise": args.noise_seed},
         "machine": {"python": platform.python_version(), "cpu_count": os.cpu_count(), "numpy": np.__version__,
                     "numba": __import__("numba").__version__},
     }
+    result["provenance"] = provenance(args)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     from envisat_pose.io import atomic_write_text
 

@@ -7,8 +7,8 @@ worker, the same seeds in both rows), --rounds rounds alternating the two rows a
 process's renderer and scene made once); medians per row and the median paired ratio. Also the ray casts alone per image (Target.visible on the rendered views' poses).
 Floor (issue 55): ray-cast visibility adds at most 5 % per image.
 
-Run: .venv/bin/python bench/visibility_cost.py [--images N] [--rounds R] [--resolution PX]
-(writes bench/results/visibility_cost.json)
+Run: .venv/bin/python bench/visibility_cost.py [--images N] [--rounds R] [--resolution PX] [--seed 61]
+     [--out bench/results/visibility_cost.json]
 """
 
 from __future__ import annotations
@@ -65,11 +65,14 @@ def _rays_ms(target: Target, n: int, seed: int) -> float:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from _common import description, provenance  # bench/_common.py, beside this script
+
+    p = argparse.ArgumentParser(description=description(__doc__))
     p.add_argument("--images", type=int, default=20)
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--resolution", type=int, default=1024)
     p.add_argument("--seed", type=int, default=61)
+    p.add_argument("--out", default=os.path.join(HERE, "results", "visibility_cost.json"))
     a = p.parse_args(argv)
     rows = {}
     given = Target.visible
@@ -100,8 +103,10 @@ def main(argv=None) -> int:
                            "seed": a.seed, "workers": 1},
               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
                           "load_avg_end": os.getloadavg()}, "targets": rows}
-    os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
-    atomic_write_text(os.path.join(HERE, "results", "visibility_cost.json"), json.dumps(result, indent=1) + "\n")
+    result["provenance"] = provenance(a)
+    os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
+    atomic_write_text(a.out, json.dumps(result, indent=1) + "\n")
+    print(f"wrote {a.out}")
     return 0
 
 
