@@ -9,9 +9,7 @@ import os
 
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, check_rrd_output, skipped_line
 from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
-from envisat_pose.pipelines.datasets.inspect import inspect_dataset
-
-OUTPUT_KEYS = ("montage", "montage_images", "rrd")  # what inspect_dataset adds to the statistics it prints
+from envisat_pose.pipelines.datasets.inspect import OUTPUT_KEYS, inspect_dataset
 from envisat_pose.shard_reader import skip_hint
 
 

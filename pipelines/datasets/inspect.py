@@ -14,6 +14,7 @@ from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, unf
 from envisat_pose.target import DEFAULT_TARGET, load_target
 
 MONTAGE_NAME = "montage.png"  # the montage's default name, in the dataset's folder
+OUTPUT_KEYS = ("montage", "montage_images", "rrd")  # what inspect_dataset adds to the statistics
 
 
 def inspect_dataset(src: str, montage: str | None = None, count: int = 16, rrd: str | None = None,
@@ -51,7 +52,7 @@ def inspect_dataset(src: str, montage: str | None = None, count: int = 16, rrd: 
     if rrd is not None:
         make_out_file_dir(rrd, "rrd")
         write_samples_rrd(shards, rrd, count, *recorded_target(manifest))
-    return stats | {"montage": montage, "montage_images": drawn, "rrd": rrd}
+    return stats | dict(zip(OUTPUT_KEYS, (montage, drawn, rrd)))
 
 
 def recorded_target(manifest: dict) -> tuple:
