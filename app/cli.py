@@ -58,10 +58,28 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"envisat {args.verb}: interrupted", file=sys.stderr)
         return 130
+    except Exception as err:
+        if not after_interrupt(err):
+            raise
+        # Ctrl-C landed inside an import (MuJoCo's, torch's): the cleanup's own import of the half-loaded module
+        # then fails; the user asked to stop, and is told so
+        print(f"envisat {args.verb}: interrupted", file=sys.stderr)
+        return 130
     except BrokenPipeError:  # the reader went away (`envisat ... | head`): stop quietly, as `cat` does
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())  # Python's own flush of stdout at exit would raise again
         return 141
+
+
+def after_interrupt(err: BaseException) -> bool:
+    """Whether err was raised while a KeyboardInterrupt was being handled (its context or cause chain holds one)."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, KeyboardInterrupt):
+            return True
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return False
 
 
 if __name__ == "__main__":

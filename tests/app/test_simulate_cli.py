@@ -114,3 +114,28 @@ def test_written_config_reproduces_the_run(tmp_path):
     assert main(["simulate", "--scenario", "stress-tumble", "--config", str(written), "--out", str(again),
                  "--quiet"]) == 0
     assert sha256(first) == sha256(again)  # the scenario's name is recorded in the truth too
+
+
+def test_an_interrupt_inside_an_import_is_reported_as_an_interrupt(monkeypatch, tmp_path, capsys):
+    """Ctrl-C landing inside a module's import: the cleanup's own import of that half-loaded module fails with an
+    ImportError whose context is the KeyboardInterrupt; the verb says it was interrupted (exit 130), no traceback.
+    Any other error still propagates."""
+    import envisat_pose.app.simulate as verb
+    from envisat_pose.app.cli import main
+
+    def interrupted_import(args):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise ImportError("cannot import name 'x' from partially initialized module 'mujoco'") from None
+
+    monkeypatch.setattr(verb, "run_simulate_cli", interrupted_import)
+    assert main(["simulate", "--out", str(tmp_path / "r.npz")]) == 130
+    assert capsys.readouterr().err.strip() == "envisat simulate: interrupted"
+
+    def plain_bug(args):
+        raise ImportError("a real one")
+
+    monkeypatch.setattr(verb, "run_simulate_cli", plain_bug)
+    with pytest.raises(ImportError, match="a real one"):
+        main(["simulate", "--out", str(tmp_path / "r.npz")])
