@@ -93,7 +93,7 @@ class ResumableJob:
         """The manifest of an earlier run in out_dir (None: none yet). InputError when it is unreadable, of
         another kind of job, or of another identity (the message names the first differences)."""
         try:
-            manifest = read_manifest(self.out_dir, "--out")
+            manifest = read_manifest(self.out_dir, "out_dir")
         except InputError as err:
             raise InputError(f"{err}; remove it or use another folder") from None
         if manifest is None:
