@@ -574,6 +574,11 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     if (args.baseline or args.current) and not args.targets:
         ap.error("--baseline and --current go with --targets")
+    from envisat_pose.datagen.generate_config import GenerateConfig
+
+    if args.floor_images <= GenerateConfig().shard_size:  # a steady rate needs a shard after the first
+        ap.error(f"--floor-images {args.floor_images}: expected more than one shard of the default size "
+                 f"({GenerateConfig().shard_size} images)")
     tag = args.tag or f"{os.environ['MUJOCO_GL']}_{os.cpu_count()}cpu"
     if args.targets:
         key, entry = f"{args.key}_{tag}", main_targets(args)
