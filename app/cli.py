@@ -58,17 +58,17 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"envisat {args.verb}: interrupted", file=sys.stderr)
         return 130
-    except Exception as err:
+    except BrokenPipeError:  # the reader went away (`envisat ... | head`): stop quietly, as `cat` does
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # Python's own flush of stdout at exit would raise again
+        return 141
+    except Exception as err:  # after the kinds above: a closed pipe is not an interrupt
         if not after_interrupt(err):
             raise
         # Ctrl-C landed inside an import (MuJoCo's, torch's): the cleanup's own import of the half-loaded module
         # then fails; the user asked to stop, and is told so
         print(f"envisat {args.verb}: interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # the reader went away (`envisat ... | head`): stop quietly, as `cat` does
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())  # Python's own flush of stdout at exit would raise again
-        return 141
 
 
 def after_interrupt(err: BaseException) -> bool:
