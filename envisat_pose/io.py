@@ -12,15 +12,21 @@ if TYPE_CHECKING:  # annotations only: numpy is imported where it is used
     import numpy as np
 
 
+def usual_mode(folder: bool = False) -> int:
+    """The mode a new file (0o666) or folder (0o777) gets under the process's umask: what an output made through a
+    temporary (mkstemp's 0600, mkdtemp's 0700) is given before it takes its name."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return (0o777 if folder else 0o666) & ~umask
+
+
 @contextlib.contextmanager
 def atomic_path(path: str, suffix: str = ""):
     """Yield a temporary path next to `path`; on success it is renamed to `path`, on error removed."""
     folder = os.path.dirname(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix or os.path.splitext(path)[1], dir=folder)
     os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    mode = 0o666 & ~umask
+    mode = usual_mode()
     os.chmod(tmp, mode)  # mkstemp makes 0600 files; outputs get the user's usual mode
     try:
         yield tmp

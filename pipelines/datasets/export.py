@@ -27,7 +27,7 @@ from envisat_pose.config import Config, InputError, check, config_arg, path_arg
 from envisat_pose.datagen import export_formats as fx
 from envisat_pose.datagen.generate_config import config_from_json
 from envisat_pose.geometry import load_camera
-from envisat_pose.io import stage_prefix, sweep_stale_stages
+from envisat_pose.io import stage_prefix, sweep_stale_stages, usual_mode
 from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.datasets import export_layouts as lay
@@ -271,6 +271,7 @@ def _make_stage(out_dir: str) -> tuple[str, list[str]]:
         sweep_stale_stages(parent, STAGE_PREFIX)  # a killed export's (SIGKILL: no clean-up ran)
         stage = tempfile.mkdtemp(prefix=stage_prefix(STAGE_PREFIX) + os.path.basename(os.path.abspath(out_dir)) + "-",
                                  dir=parent)
+        os.chmod(stage, usual_mode(folder=True))  # mkdtemp's 0700 would become --out's: others could not read it
     except OSError as err:
         raise InputError(f"out_dir {out_dir!r}: cannot write there ({err.strerror or err})") from None
     return stage, made

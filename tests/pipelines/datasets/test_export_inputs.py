@@ -221,3 +221,20 @@ def test_inspect_as_a_python_call_is_the_verb(small, tmp_path, capsys):
         with pytest.raises(InputError, match=message):
             inspect_dataset(small["done"], tmp_path / "n.png", **kwargs)
     assert not (tmp_path / "n.png").exists()
+
+
+def test_an_export_folder_gets_the_users_usual_mode(small, tmp_path):
+    """The export is staged in a temporary folder (mkdtemp: 0700) renamed to --out: the folder gets the mode the
+    umask gives a new folder, as every other output does, so others can read what the user shares."""
+    import stat
+
+    from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
+
+    for umask, expected in ((0o022, 0o755), (0o027, 0o750)):
+        old = os.umask(umask)
+        try:
+            out = tmp_path / f"ex-{umask:o}"
+            export_dataset(small["done"], out, ExportConfig("coco", val_fraction=0.0))
+        finally:
+            os.umask(old)
+        assert stat.S_IMODE(os.stat(out).st_mode) == expected
