@@ -199,7 +199,6 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
     err, cov, groups = (np.concatenate([f[i] for f in flat]) for i in range(3))
     # named by folder and manifest sha256, not by a path of this machine (the record travels with the weights)
     data_names = " ".join(dataset_ref(d) for d in data)
-    make_out_file_dir(out, "out")
     if len(err) < 20:
         raise InputError(f"data {data_names!r}: only {len(err)} correctly named corners; calibration needs more "
                          "held-out frames (at least 20 corners)")
@@ -214,6 +213,7 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
                   "count_by_group": {g: v["count"] for g, v in after.items()},
                   "refined_share": float(sum(f["refined"].sum() for _, f in per_data) / max(
                       sum(np.isfinite(f["err_px"][..., 0]).sum() for _, f in per_data), 1))}
+        make_out_file_dir(out, "out")  # only now: a refused calibration leaves no folder behind
         with_metadata(cfg.weights, out, {wk.REFINE_FLOOR_KEY: floor,
                                          wk.REFINE_CALIBRATION_KEY: json.dumps(record, sort_keys=True)})
         return {"refine": True, "corners": int(len(err)), "before": before, "after": after, "floor": floor,
@@ -235,6 +235,7 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
         model_record["mean_nees_by_group"] = {g: v["mean_nees"] for g, v in after.items()}
         meta.update({wk.ERROR_MODEL_KEY: model.to_json(),
                      wk.ERROR_MODEL_RECORD_KEY: json.dumps(model_record, sort_keys=True)})
+    make_out_file_dir(out, "out")  # only now: a refused calibration leaves no folder behind
     with_metadata(cfg.weights, out, meta)
     return {"refine": False, "corners": int(len(err)), "before": before, "after": after, "scale": scale,
             "record": record, "error_model": model, "error_model_record": model_record, "skipped": skipped}

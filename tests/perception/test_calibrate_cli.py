@@ -65,11 +65,12 @@ def test_too_few_corners_is_one_line(tiny_dataset, tmp_path, capsys):
     torch.manual_seed(0)  # this test's untrained model: it names nothing right
     w = tmp_path / "w.safetensors"
     save_weights(str(w), CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8)))
-    assert main(["calibrate", "--weights", str(w), "--data", tiny_dataset, "--out", str(tmp_path / "c.safetensors"),
-                 "--quiet", "--threads", "1"]) == 2
+    out = tmp_path / "new" / "deep" / "c.safetensors"
+    assert main(["calibrate", "--weights", str(w), "--data", tiny_dataset, "--out", str(out), "--quiet",
+                 "--threads", "1"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "correctly named corners" in err
-    assert not (tmp_path / "c.safetensors").exists()
+    assert not (tmp_path / "new").exists()  # refused: no output, nor its folders
 
 
 class ScaledLabelDetector:
