@@ -16,6 +16,7 @@ the architecture test refuses the question anywhere else.
 
 from __future__ import annotations
 
+import filecmp
 import functools
 import os
 import warnings
@@ -309,10 +310,15 @@ def ray_hits_m(path: str, sha256: str, origin_T_m: np.ndarray, points_T_m: np.nd
 
 def resolve_target_path(given: str) -> str:
     """The file a `target` value names: DEFAULT_TARGET is the package's models/envisat.xml (ENVISAT_MODEL
-    overrides it); any other path is taken as it is (relative to the working folder), or, when no such file
+    overrides it; a different file of that relative name in the working folder gets a warning saying how to name
+    it: it is the default's text, so it cannot mean that file); any other path is taken as it is (relative to the working folder), or, when no such file
     exists and it starts with 'models/', the package's models folder."""
     if given == DEFAULT_TARGET:
-        return os.path.abspath(model_path())
+        packaged = os.path.abspath(model_path())
+        if os.path.isfile(given) and not filecmp.cmp(given, packaged, shallow=False):
+            warnings.warn(f"target {given!r} is the packaged ENVISAT; the other file of that name in this folder is "
+                          f"not used: give it as {os.path.join('.', given)!r}", stacklevel=2)
+        return packaged
     if not os.path.exists(given) and given.startswith("models/"):
         packaged = os.path.join(os.path.dirname(model_path()), given[len("models/"):])
         if os.path.exists(packaged):

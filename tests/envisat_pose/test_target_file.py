@@ -244,3 +244,23 @@ def test_a_targets_sha256_covers_the_files_it_names(tmp_path):
         require_weights_target("w.safetensors", trained_for, str(path))
     obj.write_text(wedge)
     assert target_sha256(str(path)) == before == load_target(str(path)).sha256
+
+
+def test_the_default_targets_name_with_another_file_of_that_name_here_warns(tmp_path, monkeypatch):
+    """'models/envisat.xml' is the default's text (the packaged ENVISAT): a different file of that relative name in
+    the working folder cannot be meant by it, and the user is told how to name that file; an identical copy (a
+    checkout's own models folder) is silent."""
+    import shutil
+    import warnings
+
+    packaged = resolve_target_path("models/envisat.xml")
+    (tmp_path / "models").mkdir()
+    monkeypatch.chdir(tmp_path)
+    shutil.copy(packaged, tmp_path / "models" / "envisat.xml")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert resolve_target_path("models/envisat.xml") == packaged
+    shutil.copy(resolve_target_path("models/upper_stage.xml"), tmp_path / "models" / "envisat.xml")
+    with pytest.warns(UserWarning, match=r"is the packaged ENVISAT; .* give it as '\./models/envisat\.xml'"):
+        assert resolve_target_path("models/envisat.xml") == packaged
+    assert resolve_target_path("./models/envisat.xml") == str(tmp_path / "models" / "envisat.xml")
