@@ -342,7 +342,8 @@ def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
                 "mask_values": {"background": 0, **masks},
                 "members": ["png", "json"] + (["mask.png"] if cfg.write_mask else [])
                 + (["depth.png"] if cfg.write_depth else [])},
-        verify_unit=lambda entry, path: shard_problem(path, entry) is None)
+        verify_unit=lambda entry, path: shard_problem(path, entry) is None,
+        compared_by={"config.target": "target.sha256"})  # the file, however its path is written
 
 
 def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: str = "local",

@@ -71,6 +71,9 @@ class ResumableJob:
     them, each with the value such a folder had implicitly (a field's default that reproduces the older bytes).
     own_entries: what the job may have written into its folder before the first manifest (its unit subfolders
     are among them); a folder without a manifest that holds anything else is not this job's and is refused.
+    compared_by: identity fields (flattened) compared by a header field instead ({'config.target':
+    'target.sha256'}: a target file given by another path, from another folder, is the same file), where the
+    earlier manifest records that header field.
     """
 
     out_dir: str
@@ -84,6 +87,7 @@ class ResumableJob:
     verify_unit: Callable[[dict, str], bool] | None = None
     added_defaults: dict = field(default_factory=dict)
     own_entries: tuple = ()
+    compared_by: dict = field(default_factory=dict)
     done: dict[int, dict] = field(default_factory=dict, init=False)
 
     def unit_path(self, index: int) -> str:
@@ -108,6 +112,10 @@ class ResumableJob:
                              "remove it or use another folder")
         theirs = {**self.added_defaults, **flatten({k: manifest.get(k) for k in self.identity})}
         ours = flatten(self.identity)
+        recorded = flatten({k: manifest.get(k) for k in self.header})
+        for k, by in self.compared_by.items():  # a path's text stands for its file: compared by its record
+            if recorded.get(by) is not None:
+                theirs[k], ours[k] = recorded[by], flatten(self.header).get(by)
         diff = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
         if diff:
             def shown(k: str) -> str:

@@ -209,3 +209,26 @@ def test_a_dask_scheduler_that_is_not_there_is_one_line(address, needle):
 
     with pytest.raises(ConfigError, match=needle):
         RunnerConfig("dask", 1, address)
+
+
+def test_a_field_compared_by_its_record_takes_another_spelling_of_the_same_file(tmp_path):
+    """compared_by: a path given as another text (absolute, from another folder) is the same input when the
+    header's record of the file (its sha256) is the same; another file is still another config."""
+    from envisat_pose.config import InputError
+    from envisat_pose.resumable import ResumableJob
+
+    def job(path, sha):
+        return ResumableJob(str(tmp_path), "test job v1", "test set", {"config": {"seed": 0, "file": path}}, "units",
+                            2, unit_file, header={"file": {"sha256": sha}},
+                            compared_by={"config.file": "file.sha256"})
+
+    first = job("a/t.xml", "aa")
+    first.resume(first.open())
+    again = job("/elsewhere/a/t.xml", "aa")
+    assert again.open() is not None  # the same file under another path: resumed
+    with pytest.raises(InputError, match=r"another config or seed \(file = 'aa' there, 'bb' here\)"):
+        job("a/t.xml", "bb").open()
+    plain = ResumableJob(str(tmp_path), "test job v1", "test set", {"config": {"seed": 0, "file": "x.xml"}}, "units",
+                         2, unit_file, header={"file": {"sha256": "aa"}})
+    with pytest.raises(InputError, match=r"file = 'a/t.xml' there, 'x.xml' here"):
+        plain.open()  # without compared_by the text is compared

@@ -238,3 +238,24 @@ def test_an_export_folder_gets_the_users_usual_mode(small, tmp_path):
         finally:
             os.umask(old)
         assert stat.S_IMODE(os.stat(out).st_mode) == expected
+
+
+def test_a_dataset_resumes_with_its_target_file_named_from_another_folder(tmp_path, monkeypatch):
+    """The target file is the input, not the text naming it: a rerun from another folder, or with the absolute
+    path, finds nothing to do; another file under the same name is another config."""
+    from envisat_pose.config import InputError
+    from envisat_pose.target import resolve_target_path
+
+    (tmp_path / "work" / "mine").mkdir(parents=True)
+    shutil.copy(resolve_target_path("models/upper_stage.xml"), tmp_path / "work" / "mine" / "t.xml")
+    cfg = {**SMALL, "num_images": 2, "shard_size": 1}
+    monkeypatch.chdir(tmp_path / "work")
+    run_generate(from_dict(GenerateConfig, {**cfg, "target": "mine/t.xml"}), "ds")
+    before = {f: os.stat(tmp_path / "work" / "ds" / f).st_mtime_ns for f in os.listdir(tmp_path / "work" / "ds")}
+    monkeypatch.chdir(tmp_path)
+    again = run_generate(from_dict(GenerateConfig, {**cfg, "target": "work/mine/t.xml"}), "work/ds")
+    assert again["complete"] and all(os.stat(tmp_path / "work" / "ds" / f).st_mtime_ns == t
+                                     for f, t in before.items() if f.endswith(".tar"))
+    shutil.copy(resolve_target_path("models/cubesat_3u.xml"), tmp_path / "work" / "mine" / "t.xml")
+    with pytest.raises(InputError, match="another config or seed"):
+        run_generate(from_dict(GenerateConfig, {**cfg, "target": "work/mine/t.xml"}), "work/ds")
