@@ -20,8 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from envisat_pose.geometry import model_path
-from envisat_pose.target import Target, compiled_alone, default_target, load_target
+from envisat_pose.target import Target, default_target, load_target
 from envisat_pose.target_file import full_numbers, set_compiled_geom, set_compiled_site, target_spec
+from envisat_pose.target_rays import compiled_alone
 
 ASSET_PREFIX = "target/"
 SCENE_TARGET_POS_M = (0.0, 50.0, 0.0)  # where the scene's target body starts (the sim sets its state)

@@ -28,8 +28,9 @@ from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.config import ConfigError, InputError
 from envisat_pose.geometry import model_path, visible_corners
 from envisat_pose.shard_reader import load_dataset_manifest
-from envisat_pose.target_file import check_inertia, compile_alone, inertial_used, named_files, read_spec, target_sha256
+from envisat_pose.target_file import check_inertia, inertial_used, named_files, read_spec, target_sha256
 from envisat_pose.target_mesh import BodyMesh, TriangleMesh, body_mesh, feature_edges
+from envisat_pose.target_rays import ray_hits_m
 from envisat_pose.target_shape import (
     Symmetry,
     fibonacci_directions,
@@ -257,54 +258,6 @@ def _table(path: str, sha256: str, appendages: bool) -> VisibilityTable:
     return VisibilityTable(dirs, ranges_m, np.ascontiguousarray(exact[:, nearest].any(axis=2)), direction_cells(dirs))
 
 
-# ---------------------------------------------------------------- ray casts through the target alone
-
-
-@functools.lru_cache(maxsize=16)
-def _alone(path: str, sha256: str):
-    """(model, data, the target's geom ids (G,), R_W_from_T (3, 3), p_W (3,)) of the file compiled alone, its
-    kinematics done: the frame the rays are cast in."""
-    import mujoco
-
-    model = compile_alone(path)
-    data = mujoco.MjData(model)
-    mujoco.mj_kinematics(model, data)
-    body = model.body("target").id
-    return (model, data, np.flatnonzero(model.geom_bodyid == body), data.xmat[body].reshape(3, 3).copy(),
-            data.xpos[body].copy())
-
-
-def compiled_alone(target: Target):
-    """The target file compiled alone (MuJoCo's MjModel, cached; treat as read-only): its body 'target' holds
-    the target's geoms and sites in T, at full precision."""
-    return _alone(target.path, target.sha256)[0]
-
-
-def ray_hits_m(path: str, sha256: str, origin_T_m: np.ndarray, points_T_m: np.ndarray,
-               geoms_on: np.ndarray) -> np.ndarray:
-    """Distance along each ray from origin_T_m (3,) toward points_T_m (N, 3) to the first geom of the target
-    where geoms_on (G,) is set (MuJoCo's mju_rayGeom / mj_rayMesh), m; inf where the ray meets none. (N,)."""
-    import mujoco
-
-    model, data, geom_ids, R_W_T, p_W = _alone(path, sha256)
-    pnt = p_W + R_W_T @ np.asarray(origin_T_m, float)
-    out = np.full(len(points_T_m), np.inf)
-    for n, x in enumerate(np.asarray(points_T_m, float)):
-        d = R_W_T @ (x - origin_T_m)
-        vec = d / np.linalg.norm(d)
-        for g, on in zip(geom_ids, geoms_on):
-            if not on:
-                continue
-            if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH:
-                hit = mujoco.mj_rayMesh(model, data, int(g), pnt, vec)
-            else:
-                hit = mujoco.mju_rayGeom(data.geom_xpos[g], data.geom_xmat[g], model.geom_size[g], pnt, vec,
-                                         int(model.geom_type[g]))
-            if hit >= 0:
-                out[n] = min(out[n], hit)
-    return out
-
-
 # ---------------------------------------------------------------- reading the file
 
 
@@ -456,7 +409,7 @@ def default_target() -> Target:
 # ---------------------------------------------------------------- the verbs that know the default target alone
 
 
-def _only_default(verb: str) -> str:
+def envisat_only(verb: str) -> str:
     other = ("; another target's keypoint detector: --target FILE.xml" if verb in ("train", "detect") else
              "; another target's images and labels come from `envisat generate --target` (docs/usage.md)")
     return f"ENVISAT ({DEFAULT_TARGET}): `envisat {verb}` and the detector know ENVISAT's corners A-H only" + other
@@ -466,7 +419,7 @@ def require_envisat(given: str, field: str, verb: str) -> None:
     """ConfigError unless the `target` value `given` names ENVISAT: the detector and the verbs built on it (track,
     run, adapt, train, detect) know ENVISAT only."""
     if given != DEFAULT_TARGET and not load_target(given, field).is_default:
-        raise ConfigError(field, given, _only_default(verb))
+        raise ConfigError(field, given, envisat_only(verb))
 
 
 def require_envisat_dataset(folder: str, field: str, verb: str) -> None:
@@ -480,7 +433,7 @@ def require_envisat_dataset(folder: str, field: str, verb: str) -> None:
     given = (manifest.get("config") or {}).get("target", DEFAULT_TARGET)
     if given != DEFAULT_TARGET and (record.get("name") != default_target().name or
                                     record.get("keypoint_names") != list(default_target().keypoint_names)):
-        raise ConfigError(field, folder, _only_default(verb) + f"; this dataset's target is {given!r}")
+        raise ConfigError(field, folder, envisat_only(verb) + f"; this dataset's target is {given!r}")
 
 
 def require_weights_target(weights: str, trained_for: dict | None, given: str, field: str = "weights") -> None:

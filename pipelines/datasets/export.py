@@ -26,6 +26,7 @@ import numpy as np
 from envisat_pose.config import Config, InputError, check, config_arg, path_arg
 from envisat_pose.datagen import export_formats as fx
 from envisat_pose.datagen.generate_config import config_from_json
+from envisat_pose.dataset_target import check_dataset_target_file
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import stage_prefix, sweep_stale_stages, usual_mode
 from envisat_pose.out_dirs import check_out_dir
@@ -40,8 +41,7 @@ from envisat_pose.shard_reader import (
     skip_hint,
     unfinished_dataset,
 )
-from envisat_pose.target import APPENDAGE_GROUP, DEFAULT_TARGET, load_target, resolve_target_path
-from envisat_pose.target_file import target_sha256
+from envisat_pose.target import APPENDAGE_GROUP, load_target
 from envisat_pose.target_mesh import ply_bytes
 
 STAGE_PREFIX = ".tmp-export-"
@@ -159,7 +159,7 @@ def _remove(path: str) -> None:
 def _generate_config(src: str, manifest: dict, target: str | None = None):
     """The dataset's generate config, its target file the one given in its place (the recorded path may no longer
     be there), that file checked first (_check_target_file: the config's sizes follow its target)."""
-    _check_target_file(src, manifest, target)
+    check_dataset_target_file(src, manifest, target)
     try:
         recorded = dict(manifest["config"])
         if target is not None:
@@ -167,32 +167,6 @@ def _generate_config(src: str, manifest: dict, target: str | None = None):
         return config_from_json(json.dumps(recorded))
     except (KeyError, TypeError, ValueError) as err:
         raise InputError(f"src {src!r}: manifest.json holds no readable generate config ({err})") from None
-
-
-def _check_target_file(src: str, manifest: dict, target: str | None) -> None:
-    """The dataset's target file (`target`, or else the path its config records) is found from here and its
-    sha256 is the one the manifest recorded: InputError in one line saying which file to give, never an error of
-    a generate config built on another target."""
-    given = target if target is not None else (manifest.get("config") or {}).get("target", DEFAULT_TARGET)
-    if not isinstance(given, str):
-        return  # not a path: the config's own check names it
-    path = resolve_target_path(given)
-    if not os.path.isfile(path):
-        if target is None:
-            raise InputError(f"src {src!r}: its target file {given!r} (the path its manifest.json records) is not "
-                             "found from here: give that file with `target`")
-        raise InputError(f"target {target!r}: no such file; expected the dataset's target file (MJCF)")
-    record = manifest.get("target") or {}
-    recorded = record.get("sha256")
-    digest = target_sha256(path)
-    if recorded is None or digest == recorded:
-        return
-    if target is None:
-        raise InputError(f"src {src!r}: its target file {given!r} changed since the dataset was generated "
-                         f"(sha256 {digest[:12]}..., the manifest recorded {recorded[:12]}...)")
-    raise InputError(f"target {target!r}: not the target file of src {src!r} (sha256 {digest[:12]}..., its "
-                     f"manifest recorded {recorded[:12]}... for {record.get('name')!r}, file "
-                     f"{record.get('file')!r}); expected that file, unchanged since the dataset was generated")
 
 
 def _layout(cfg: ExportConfig, gen, src: str, manifest: dict) -> lay.Layout:
