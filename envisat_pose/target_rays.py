@@ -25,8 +25,8 @@ def _alone(path: str, sha256: str):
 
 
 def compiled_alone(target):
-    """The file of `target` (an envisat_pose.target.Target) compiled alone (MuJoCo's MjModel, cached; treat as read-only): its body 'target' holds
-    the target's geoms and sites in T, at full precision."""
+    """The file of `target` (an envisat_pose.target.Target) compiled alone (MuJoCo's MjModel, cached; treat as
+    read-only): its body 'target' holds the target's geoms and sites in T, at full precision."""
     return _alone(target.path, target.sha256)[0]
 
 
