@@ -26,9 +26,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     i.add_argument("--count", type=int, default=16, help="images in the montage (default 16)")
     i.add_argument("--rrd", metavar="FILE.rrd", help="also write the first --count samples as a Rerun recording: "
                    "images with labelled corners, masks, depth (`envisat view FILE`)")
+    i.add_argument("--target", metavar="FILE.xml", help="with --rrd: the dataset's target file, where the path its "
+                   "manifest records is not found from here (its sha256 must match)")
     add_skip_damaged_argument(i)
     i.set_defaults(func=run_inspect_cli, flag_names={"src": "DIR", "montage": "--montage", "count": "--count",
-                                                     "rrd": "--rrd"})
+                                                     "rrd": "--rrd", "target": "--target"})
     e = dsub.add_parser("export", help="write a dataset as SPEED+, COCO keypoints, BOP or YOLO-pose",
                         description="Export a generated dataset (random or sequence mode) into a new folder of a "
                         "format the field trains on; conventions in the folder's README.md and docs/formats.md.")
@@ -67,7 +69,7 @@ def run_inspect_cli(args: argparse.Namespace) -> int:
     if args.rrd:
         check_rrd_output(args.rrd)
     with skip_hint():
-        result = inspect_dataset(args.dir, args.montage, args.count, args.rrd, args.skip_damaged)
+        result = inspect_dataset(args.dir, args.montage, args.count, args.rrd, args.skip_damaged, args.target)
     print(json.dumps({k: v for k, v in result.items() if k not in OUTPUT_KEYS}, indent=1))
     print(f"wrote {result['montage']} ({result['montage_images']} images)")
     if args.rrd:

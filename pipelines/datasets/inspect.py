@@ -9,6 +9,7 @@ import warnings
 from envisat_pose.config import InputError, path_arg
 from envisat_pose.datagen.appearance import takes_class_appearance
 from envisat_pose.datagen.render_view import target_mask_values
+from envisat_pose.dataset_target import check_dataset_target_file
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, unfinished_dataset
 from envisat_pose.target import DEFAULT_TARGET, load_target
@@ -18,15 +19,18 @@ OUTPUT_KEYS = ("montage", "montage_images", "rrd")  # what inspect_dataset adds 
 
 
 def inspect_dataset(src: str, montage: str | None = None, count: int = 16, rrd: str | None = None,
-                    skip_damaged: bool = False) -> dict:
+                    skip_damaged: bool = False, target: str | None = None) -> dict:
     """The statistics of the dataset folder `src` (returned; with `unfinished_dataset` and a warning where its
     generate job has shards still to write, `skipped_damaged_shards` where skip_damaged left some out), a montage
     of its first `count` images at `montage` (None: src/montage.png) and, with `rrd`, those samples as a Rerun
-    recording (a .rrd path). Every output path is checked before any is written. The returned dict also holds
-    `montage` (its path and `montage_images`, how many it drew) and `rrd` (the path or None)."""
+    recording (a .rrd path), its target drawn from the file its manifest records (or `target`, that file given
+    from here: its sha256 must be the recorded one). Every input and output path is checked before any is
+    written. The returned dict also holds `montage` (its path), `montage_images` (how many it drew) and `rrd`
+    (the path or None)."""
     src = path_arg(src, "src")
     montage = os.path.join(src, MONTAGE_NAME) if montage is None else path_arg(montage, "montage")
     rrd = path_arg(rrd, "rrd") if rrd is not None else None
+    target = path_arg(target, "target") if target is not None else None
     if type(count) is not int or count < 1:
         raise InputError(f"count {count!r}: expected at least 1 image in the montage")
     check_out_file(montage, "montage")
@@ -38,6 +42,8 @@ def inspect_dataset(src: str, montage: str | None = None, count: int = 16, rrd: 
     from envisat_pose.datagen.dataset import montage as write_montage
 
     manifest = load_dataset_manifest(src)
+    if rrd is not None:  # the recording draws the target: its file found and unchanged, before any output
+        check_dataset_target_file(src, manifest, target)
     shards, skipped = checked_shards(src, skip_damaged, "src")
     stats = dataset_stats(shards)
     unfinished = unfinished_dataset(manifest)
@@ -51,15 +57,16 @@ def inspect_dataset(src: str, montage: str | None = None, count: int = 16, rrd: 
     drawn = write_montage(shards, montage, count=count)
     if rrd is not None:
         make_out_file_dir(rrd, "rrd")
-        write_samples_rrd(shards, rrd, count, *recorded_target(manifest))
+        write_samples_rrd(shards, rrd, count, *recorded_target(manifest, target))
     return stats | dict(zip(OUTPUT_KEYS, (montage, drawn, rrd)))
 
 
-def recorded_target(manifest: dict) -> tuple:
-    """(the dataset's Target: the file its manifest records, ENVISAT for a dataset written before targets; the
+def recorded_target(manifest: dict, given: str | None = None) -> tuple:
+    """(the dataset's Target: the file its manifest records (given: that file from here), ENVISAT for a dataset
+    written before targets; the
     {geom name: mask value} its masks hold, datagen.render_view.target_mask_values, or None where they are the
     factory's classes)."""
-    target = load_target((manifest.get("target") or {}).get("file", DEFAULT_TARGET), "target")
+    target = load_target(given or (manifest.get("target") or {}).get("file", DEFAULT_TARGET), "target")
     return target, None if takes_class_appearance(g.name for g in target.geoms) else target_mask_values(target)
 
 

@@ -259,3 +259,25 @@ def test_a_dataset_resumes_with_its_target_file_named_from_another_folder(tmp_pa
     shutil.copy(resolve_target_path("models/cubesat_3u.xml"), tmp_path / "work" / "mine" / "t.xml")
     with pytest.raises(InputError, match="another config or seed"):
         run_generate(from_dict(GenerateConfig, {**cfg, "target": "work/mine/t.xml"}), "work/ds")
+
+
+def test_inspect_rrd_of_a_dataset_whose_target_path_is_not_found_from_here(tmp_path, monkeypatch):
+    """The recording draws the dataset's target: a recorded path not found from here is one error before any
+    output (the montage included), and the file given again (`target`) is taken when its sha256 is the recorded
+    one."""
+    from envisat_pose.config import InputError
+    from envisat_pose.pipelines.datasets.inspect import inspect_dataset
+    from envisat_pose.target import resolve_target_path
+
+    (tmp_path / "work" / "mine").mkdir(parents=True)
+    shutil.copy(resolve_target_path("models/upper_stage.xml"), tmp_path / "work" / "mine" / "t.xml")
+    monkeypatch.chdir(tmp_path / "work")
+    run_generate(from_dict(GenerateConfig, {**SMALL, "num_images": 2, "shard_size": 2, "target": "mine/t.xml"}), "ds")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputError, match=r"its target file 'mine/t.xml' .* is not found from here: give that file"):
+        inspect_dataset("work/ds", "m.png", count=2, rrd="s.rrd")
+    assert not (tmp_path / "m.png").exists() and not (tmp_path / "s.rrd").exists()
+    result = inspect_dataset("work/ds", "m.png", count=2, rrd="s.rrd", target="work/mine/t.xml")
+    assert result["montage_images"] == 2 and (tmp_path / "s.rrd").stat().st_size > 0
+    with pytest.raises(InputError, match="not the target file of src"):
+        inspect_dataset("work/ds", "n.png", count=2, rrd="t.rrd", target=resolve_target_path("models/cubesat_3u.xml"))
