@@ -119,6 +119,17 @@ def online_kind(cfg) -> tuple[type, dict]:
     return TargetOnlineConfig, {"mode": "random", "target": target, "resolution_px": TARGET_RESOLUTION_PX}
 
 
+def run_threads(run_dir: str) -> int | None:
+    """The torch CPU threads the run in run_dir trained with (its config.json's `threads`; None: not recorded, a
+    run from before it was, or no run): a resumed run takes them again, since its floats depend on them."""
+    try:
+        with open(os.path.join(run_dir, "config.json"), encoding="utf-8") as fh:
+            threads = json.load(fh).get("threads")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return threads if type(threads) is int and threads >= 1 else None
+
+
 def default_workers() -> int:
     """DataLoader workers when none are asked for: this process's cores (shared among the node's torchrun ranks)
     less one for the training process itself; 0 (in-process) on one core."""
@@ -379,8 +390,7 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     if device == "cuda":  # speed over the last bits: TF32 matrix products, cuDNN's autotuned convolutions
         # (not online: its crops are resampling matrix products, which TF32 would round to ~0.1 gray level)
         torch.backends.cuda.matmul.allow_tf32 = online is None
-        torch.backends.cudnn.allow_tf32 = True
-        torch.backends.cudnn.benchmark = True
+        torch.backends.cudnn.allow_tf32 = torch.backends.cudnn.benchmark = True
 
     paths, skipped, data = [], [], []
     for d in data_dirs:
@@ -391,8 +401,10 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     source = None
     if online is not None:
         data, source = online_source(online, cfg, rank_device, task, target)
+    caller_threads = torch.get_num_threads()  # given back on the way out: a library call leaves torch as it was
+    threads = threads or (run_threads(run_dir) if resume else None) or caller_threads  # resumed: the run's own
     provenance = {"command": command, "git": git_hash(), "data": data, "torch": torch.__version__,
-                  "device": device, "bf16": bf16, "skipped_damaged_shards": skipped}
+                  "device": device, "bf16": bf16, "threads": threads, "skipped_damaged_shards": skipped}
     if online is not None:
         provenance["online"] = online.record()
     if target is not None:
@@ -400,8 +412,7 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     for field, path in (("init", init), ("backbone", backbone)):  # the weights a new run starts from
         if path is not None:
             provenance[field] = {"name": os.path.basename(path), "sha256": sha256_file(path)}
-    caller_threads = torch.get_num_threads()  # given back on the way out: a library call leaves torch as it was
-    torch.set_num_threads(threads or caller_threads)
+    torch.set_num_threads(threads)  # the batches' floats depend on it: recorded, and a resumed run takes it again
     try:
         end = train(cfg, data_dirs, run_dir, resume=resume, device=rank_device, progress=progress,
                     provenance=provenance, init_weights=init, workers=workers, bf16=bf16, paths=paths,

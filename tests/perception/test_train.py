@@ -149,3 +149,21 @@ def test_init_starts_from_given_weights_and_reads_several_folders(tiny_dataset, 
 def test_cli_init_errors(tmp_path, capsys, tiny_dataset):
     code = main(["train", "--data", tiny_dataset, "--out", str(tmp_path / "r"), "--init", str(tmp_path / "no.st")])
     assert code == 2 and "--init" in capsys.readouterr().err
+
+
+def test_a_resumed_run_takes_the_threads_it_trained_with(tiny_dataset, tmp_path):
+    """The floats of a step depend on torch's CPU threads: train_detector records them in config.json and a resume
+    that names none takes them again (here from a process set to another count), so it ends as the uninterrupted
+    run did; the caller's count is given back."""
+    from envisat_pose.pipelines.detector.train import train_detector
+
+    whole, part = str(tmp_path / "whole"), str(tmp_path / "part")
+    torch.set_num_threads(2)
+    train_detector(small_config(6), [tiny_dataset], whole, workers=0, threads=1)
+    train_detector(small_config(3), [tiny_dataset], part, workers=0, threads=1)
+    assert json.load(open(os.path.join(part, "config.json")))["threads"] == 1
+    train_detector(small_config(6), [tiny_dataset], part, workers=0, resume=True)  # no threads: the run's own
+    assert torch.get_num_threads() == 2
+    a = load_model(os.path.join(whole, "checkpoint.safetensors")).state_dict()
+    b = load_model(os.path.join(part, "checkpoint.safetensors")).state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
