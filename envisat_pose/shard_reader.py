@@ -267,6 +267,21 @@ def checked_shards(data_dir: str, skip_damaged: bool = False, field: str = "data
     return paths, skipped
 
 
+def sample_total(paths: list[str], limit: int | None = None) -> int | None:
+    """How many samples the shard files hold, from their folders' manifests (a progress bar's total; at most
+    `limit`); None when a shard is not listed in one (shards made elsewhere: unknown without reading them)."""
+    counts = {}
+    for folder in {os.path.dirname(os.path.abspath(p)) for p in paths}:
+        manifest = load_dataset_manifest(folder, required=False)
+        for e in (manifest or {}).get("shards", []):
+            counts[os.path.join(folder, e["name"])] = e["count"]
+    try:
+        n = sum(counts[os.path.abspath(p)] for p in paths)
+    except KeyError:
+        return None
+    return n if limit is None else min(n, limit)
+
+
 @contextlib.contextmanager
 def skip_hint():
     """A damaged shard found under this block (DamagedShardError: one line naming the field, the folder and the

@@ -30,7 +30,7 @@ from envisat_pose.perception.calibrate import calibration_by_group, fit_cov_scal
 from envisat_pose.pipelines.common.job_defaults import job_weights
 from envisat_pose.pipelines.detector.detect import camera_samples
 from envisat_pose.provenance import dataset_ref
-from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
+from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, sample_total
 from envisat_pose.target import require_envisat_dataset
 
 
@@ -191,7 +191,8 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
     # the network's own covariances (scale 1), whatever the file carried before; the refinement's the same
     det = load_detector(cfg.weights, config=dataclasses.replace(DetectConfig(), cov_scale=1.0, refine=cfg.refine,
                                                                 refine_cov_floor_px2=0.0))
-    bar = tqdm(disable=not progress, desc="calibrate", unit="frame")
+    totals = [sample_total(paths[d], cfg.limit) for d in data]
+    bar = tqdm(disable=not progress, desc="calibrate", unit="frame", total=None if None in totals else sum(totals))
     # one entry per data folder, in order (a folder given twice counts twice)
     per_data = [(d, collect_frames(det, camera_samples(paths[d]), cfg.limit, bar, cfg.roi)) for d in data]
     bar.close()

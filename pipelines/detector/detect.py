@@ -16,7 +16,7 @@ from envisat_pose.contracts import Detections
 from envisat_pose.io import save_npz
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.pipelines.common.job_defaults import job_weights
-from envisat_pose.shard_reader import checked_shards
+from envisat_pose.shard_reader import checked_shards, sample_total
 from envisat_pose.target import require_envisat_dataset
 
 
@@ -97,7 +97,7 @@ def detect_dataset(cfg: DetectJobConfig, data: str, progress: bool = False) -> d
         det.cfg = dataclasses.replace(det.cfg, refine=True)
     rows = {k: [] for k in ("key", "t_s", "corners_px", "cov_px", "confidence", "visible", "alt_corners_px",
                             "alt_probability", "ambiguous")}
-    bar = tqdm(disable=not progress, desc="detect", unit="frame")
+    bar = tqdm(disable=not progress, desc="detect", unit="frame", total=sample_total(paths, cfg.limit))
     for i, (key, image, label) in enumerate(camera_samples(paths)):
         if cfg.limit is not None and i >= cfg.limit:
             break

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from envisat_pose.config import Config, InputError, check
 from envisat_pose.contracts import KeypointDetections
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
-from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, read_shards
+from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, read_shards, sample_total
 from envisat_pose.target import load_target
 
 
@@ -84,7 +84,7 @@ def detect_target_dataset(cfg: TargetDetectJobConfig, data: str, progress: bool 
     paths, skipped = checked_shards(data, cfg.skip_damaged, "data")
     det = KeypointDetector(model, device=cfg.device)
     rows = {k: [] for k in ("key", "t_s", "keypoints_px", "score", "visible_prob", "crop_px")}
-    bar = tqdm(disable=not progress, desc="detect", unit="frame")
+    bar = tqdm(disable=not progress, desc="detect", unit="frame", total=sample_total(paths, cfg.limit))
     for i, (key, image, label) in enumerate(target_frames(paths)):
         if cfg.limit is not None and i >= cfg.limit:
             break

@@ -26,7 +26,7 @@ from envisat_pose.geometry import load_geometry
 from envisat_pose.io import atomic_write_text, json_safe
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.pipelines.detector.detect import DetectJobConfig, camera_samples, read_roi
-from envisat_pose.shard_reader import checked_shards, read_shards
+from envisat_pose.shard_reader import checked_shards, read_shards, sample_total
 from envisat_pose.target import require_envisat_dataset
 
 METHODS = ("detector", "detector_no_lines", "harris", "shi_tomasi")
@@ -167,12 +167,14 @@ def groups_table(summary: dict) -> str:
 
 def evaluate_detector(weights: str, samples, poses: dict, json_path: str, *, device: str = "cpu",
                       limit: int | None = None, roi=None, refine: bool = False, data_name: str = "",
-                      roi_name: str | None = None, progress: bool = False, skipped_shards: list[str] = ()) -> dict:
+                      roi_name: str | None = None, progress: bool = False, skipped_shards: list[str] = (),
+                      total: int | None = None) -> dict:
     """Score the detector of `weights` on samples ((key, image, label) as the camera saw them) and write every
     number to json_path (its folder made then, parents too). poses: {key: (R, t)} (read_poses); roi: None,
     'labels', or {key: (x0, y0, side)} (adds detector_roi; roi_name: how the JSON names a dict roi, its file);
     refine: adds the refined methods; data_name: the dataset as the JSON names it; skipped_shards: the damaged
-    shards the samples left out (shard_reader.checked_shards), recorded. Returns the JSON's content (its 'groups'
+    shards the samples left out (shard_reader.checked_shards), recorded; total: the samples' count for the progress
+    bar (None: unknown). Returns the JSON's content (its 'groups'
     is the summary)."""
     import dataclasses
 
@@ -188,7 +190,8 @@ def evaluate_detector(weights: str, samples, poses: dict, json_path: str, *, dev
     detector = make_detector(model, cfg, device)
     ablation = make_detector(model, dataclasses.replace(cfg, line_verification=False), device)
     refined = make_detector(model, dataclasses.replace(cfg, refine=True), device) if refine else None
-    bar = tqdm(disable=not progress, desc="evaluate", unit="frame")
+    bar = tqdm(disable=not progress, desc="evaluate", unit="frame", total=total if limit is None or total is None
+               else min(total, limit))
     arrays, groups = evaluate_frames(detector, ablation, samples, poses, load_geometry().corners_T_m, bar=bar,
                                      limit=limit, roi=roi, refined=refined)
     bar.close()
@@ -222,4 +225,4 @@ def run_evaluate(cfg: DetectJobConfig, data: str, json_path: str, *, roi_labels:
     roi = read_roi(cfg.roi) if cfg.roi else ("labels" if roi_labels else None)
     return evaluate_detector(cfg.weights, camera_samples(paths), read_poses(paths), json_path, device=cfg.device,
                              limit=cfg.limit, roi=roi, refine=cfg.refine, data_name=data, roi_name=cfg.roi,
-                             progress=progress, skipped_shards=skipped)
+                             progress=progress, skipped_shards=skipped, total=sample_total(paths))

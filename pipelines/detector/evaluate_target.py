@@ -31,7 +31,7 @@ from envisat_pose.perception import keypoint_metrics as km
 from envisat_pose.perception.keypoint_cov import nees_check
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig, require_dataset_of, target_frames
 from envisat_pose.provenance import dataset_ref
-from envisat_pose.shard_reader import checked_shards
+from envisat_pose.shard_reader import checked_shards, sample_total
 from envisat_pose.target import load_target
 
 
@@ -101,6 +101,10 @@ def detect_labelled(cfg: TargetDetectJobConfig, folders: list[str], progress: bo
         require_dataset_of(folder, target)
         paths, left_out = checked_shards(folder, cfg.skip_damaged, "data")
         skipped += [os.path.join(os.path.basename(os.path.normpath(folder)), s) for s in left_out]
+        n = sample_total(paths, cfg.limit)
+        # the frames of the folders so far (unknown once one folder's count is)
+        bar.total = None if n is None or (bar.total is None and parts) else (bar.total or 0) + n
+        bar.refresh()
         parts.append(collect_keypoints(det, target_frames(paths), names, cfg.limit, bar))
     bar.close()
     parts = [p for p in parts if len(p["key"])]

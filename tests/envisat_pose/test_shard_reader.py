@@ -149,3 +149,18 @@ def test_the_dataset_manifest_reader_names_the_field_the_folder_and_the_entry(tm
     manifest.write_text("{not json")
     with pytest.raises(InputError, match=r"dataset '.*ds': unreadable manifest.json \("):
         checked_shards(str(tmp_path / "ds"), field="dataset")
+
+
+def test_a_progress_bars_total_is_the_manifests_count(tmp_path, monkeypatch):
+    """sample_total: the samples the shard files hold by their manifest (counted here from the tars), at most
+    `limit`, across folders and working folders; unknown (None) for shards no manifest lists."""
+    from envisat_pose.shard_reader import sample_total
+
+    a = write_dataset(tmp_path / "a", n_shards=3, per_shard=2)
+    b = write_dataset(tmp_path / "b", n_shards=1, per_shard=5)
+    held = sum(len([m for m in tarfile.open(p).getnames() if m.endswith(".json")]) for p in a + b)
+    assert sample_total(a + b) == held == 11
+    assert sample_total(a, limit=4) == 4 and sample_total(a[:1], limit=10) == 2
+    monkeypatch.chdir(tmp_path)
+    assert sample_total([os.path.join("a", os.path.basename(p)) for p in a]) == 6  # relative paths
+    assert sample_total(write_dataset(tmp_path / "c", manifest=False)) is None
