@@ -94,6 +94,10 @@ def online_config(args: argparse.Namespace, cfg):
     if saved is not None or "target" in defaults:  # resumed with looks (checked as other data would be); a target
         args.online = True
     if not args.online:
+        if args.data is None and args.resume and os.path.isdir(args.out):
+            names = ", ".join(d.get("name", "?") for d in read_run_record(args.out).get("data") or [])
+            raise InputError(f"--resume: {args.out!r} trained on shards ({names or 'its --data'}): give them again "
+                             "with --data DIR (the run records each folder by name and manifest hash, not by path)")
         if args.data is None:
             raise InputError("give --data DIR (shards) or --online (frames rendered as training goes)")
         return None

@@ -121,11 +121,11 @@ def online_kind(cfg) -> tuple[type, dict]:
 
 def run_threads(run_dir: str) -> int | None:
     """The torch CPU threads the run in run_dir trained with (its config.json's `threads`; None: not recorded, a
-    run from before it was, or no run): a resumed run takes them again, since its floats depend on them."""
+    run from before it was, or no run: resume's own checks say so): a resumed run takes them again, since its
+    floats depend on them."""
     try:
-        with open(os.path.join(run_dir, "config.json"), encoding="utf-8") as fh:
-            threads = json.load(fh).get("threads")
-    except (OSError, ValueError, AttributeError):
+        threads = read_run_record(run_dir).get("threads")
+    except InputError:
         return None
     return threads if type(threads) is int and threads >= 1 else None
 
@@ -197,7 +197,7 @@ def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | N
 
         read_header(backbone)  # a file that is not safetensors: refused here; a backbone of another shape when built
     if resume and not os.path.isdir(run_dir):
-        raise InputError(f"resume: run_dir {run_dir!r} does not exist")
+        raise InputError(f"run_dir {run_dir!r} does not exist: nothing to resume")
     check_out_dir(run_dir, parents=True, field="run_dir")  # a file, or a path under one, is refused here
     if workers is not None and workers < 0:
         raise InputError(f"workers = {workers}: expected 0 (in-process) or more worker processes")

@@ -102,7 +102,7 @@ def test_cli_errors_are_one_line(tmp_path, capsys, tiny_dataset):
     err = capsys.readouterr().err.strip()
     assert "empty dataset" in err and "\n" not in err
     assert main(["train", "--data", tiny_dataset, "--out", str(tmp_path / "nope"), "--resume"]) == 2
-    assert "does not exist" in capsys.readouterr().err
+    assert f"--out '{tmp_path / 'nope'}' does not exist: nothing to resume" in capsys.readouterr().err
 
 
 def test_cli_trains_and_refuses_to_overwrite(tiny_dataset, tmp_path, capsys):
@@ -119,6 +119,9 @@ def test_cli_trains_and_refuses_to_overwrite(tiny_dataset, tmp_path, capsys):
     assert main(args) == 2
     assert "already holds a run" in capsys.readouterr().err
     assert main(args[:-1] + ["--quiet", "--resume"]) == 0
+    assert main(["train", "--resume", "--out", run, "--steps", "3"]) == 2  # a run on shards: its --data again
+    err = capsys.readouterr().err
+    assert "trained on shards" in err and "give them again with --data DIR" in err and "\n" not in err.strip()
 
 
 @pytest.mark.parametrize("bad", ["steps = 0\n", "[model]\ninput_px = 100\n", "[data]\ninput_px = 256\n"])
