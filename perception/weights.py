@@ -42,18 +42,36 @@ def shipped_weights_path() -> str:
     return path
 
 
+def write_safetensors(path: str, tensors: dict, metadata: dict[str, str]) -> None:
+    """tensors and metadata as a safetensors file at path, atomically and byte-reproducibly: safetensors writes its
+    metadata map in a random order (a Rust HashMap's: the same weights gave other bytes, so other sha256 records),
+    so the header is written again with the metadata's keys sorted (the tensors and their offsets unchanged; the
+    header padded with spaces to 8 bytes, as safetensors pads it)."""
+    from safetensors.torch import save
+
+    data = save(tensors, metadata=metadata)
+    n = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8:8 + n])
+    if "__metadata__" in header:
+        header["__metadata__"] = dict(sorted(header["__metadata__"].items()))
+    text = json.dumps(header, separators=(",", ":"), ensure_ascii=False).encode()
+    text += b" " * (-len(text) % 8)
+    with atomic_path(path, suffix=".safetensors") as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(len(text).to_bytes(8, "little"))
+            fh.write(text)
+            fh.write(memoryview(data)[8 + n:])
+
+
 def save_weights(path: str, model: CornerNet, extra: dict | None = None) -> None:
     """Write the model's state (parameters and buffers) and its config atomically as safetensors."""
-    from safetensors.torch import save_file
-
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     meta = {FORMAT_KEY: FORMAT, MODEL_CONFIG_KEY: json.dumps(model.cfg.to_dict(), sort_keys=True)}
     if hasattr(model, "metadata"):  # another target's keypoint network: its format, kind and target
         meta.update(model.metadata())
     for k, v in (extra or {}).items():
         meta[k] = v if isinstance(v, str) else json.dumps(v, sort_keys=True)
-    with atomic_path(path, suffix=".safetensors") as tmp:
-        save_file(state, tmp, metadata=meta)
+    write_safetensors(path, state, meta)
 
 
 def read_weights(path: str) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
@@ -118,13 +136,10 @@ def check_weights_target(path: str, given: str, field: str = "weights") -> None:
 
 def with_metadata(src: str, dst: str, extra: dict) -> None:
     """Copy a weights file to dst (atomically) with metadata entries added or replaced (e.g. cov_scale)."""
-    from safetensors.torch import save_file
-
     tensors, meta = read_weights(src)
     for k, v in extra.items():
         meta[k] = v if isinstance(v, str) else json.dumps(v, sort_keys=True)
-    with atomic_path(dst, suffix=".safetensors") as tmp:
-        save_file(tensors, tmp, metadata=meta)
+    write_safetensors(dst, tensors, meta)
 
 
 def load_model(path: str, device: str = "cpu") -> CornerNet:

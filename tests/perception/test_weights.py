@@ -115,3 +115,30 @@ def test_weights_files_get_the_usual_mode(tmp_path):
         os.umask(old)
     assert stat.S_IMODE(os.stat(path).st_mode) == 0o644
     assert stat.S_IMODE(os.stat(copy).st_mode) == 0o644
+
+
+def test_the_same_weights_are_the_same_bytes(weights, tmp_path):
+    """safetensors writes its metadata map in a random order; the files here do not depend on it: the same model
+    saved again, and the same file given the same metadata (with_metadata), are the same bytes, and read back
+    (safetensors' own reader) to the same tensors and metadata."""
+    import hashlib
+
+    from safetensors.torch import safe_open
+
+    from envisat_pose.perception.weights import with_metadata
+
+    model, path = weights
+    digests = set()
+    for i in range(4):
+        save_weights(str(tmp_path / f"w{i}.safetensors"), model, extra={"cov_scale": 2.0, "b": "x", "a": [1, 2]})
+        digests.add(hashlib.sha256((tmp_path / f"w{i}.safetensors").read_bytes()).hexdigest())
+        with_metadata(str(path), str(tmp_path / f"m{i}.safetensors"), {"z": "1", "y": "2", "x": "3"})
+        digests.add(hashlib.sha256((tmp_path / f"m{i}.safetensors").read_bytes()).hexdigest())
+    assert len(digests) == 2
+    with safe_open(str(tmp_path / "w0.safetensors"), framework="pt") as f:
+        meta = f.metadata()
+        assert meta["b"] == "x" and meta["a"] == "[1, 2]" and meta["cov_scale"] == "2.0"
+        state = model.state_dict()
+        assert set(f.keys()) == set(state) and all(torch.equal(f.get_tensor(k), state[k]) for k in state)
+    header_len = int.from_bytes((tmp_path / "w0.safetensors").read_bytes()[:8], "little")
+    assert header_len % 8 == 0
