@@ -15,6 +15,7 @@ from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.pipelines.detector.look_mix import read_looks
 from envisat_pose.pipelines.detector.train import (
     default_workers,
+    missing_data,
     online_kind,
     read_run_config,
     read_run_record,
@@ -94,12 +95,8 @@ def online_config(args: argparse.Namespace, cfg):
     if saved is not None or "target" in defaults:  # resumed with looks (checked as other data would be); a target
         args.online = True
     if not args.online:
-        if args.data is None and args.resume and os.path.isdir(args.out):
-            names = ", ".join(d.get("name", "?") for d in read_run_record(args.out).get("data") or [])
-            raise InputError(f"--resume: {args.out!r} trained on shards ({names or 'its --data'}): give them again "
-                             "with --data DIR (the run records each folder by name and manifest hash, not by path)")
         if args.data is None:
-            raise InputError("give --data DIR (shards) or --online (frames rendered as training goes)")
+            raise missing_data(args.out, args.resume)
         return None
     if args.data:
         raise InputError("--data and --online: train on shards or on rendered frames, not both")
@@ -154,10 +151,9 @@ def run_train_cli(args: argparse.Namespace) -> int:
         print(f"nothing to do: {args.out} is at step {last.get('step')}, its "
               f"{'budget spent' if last.get('why') == 'budget_spent' else 'steps reached'}; give {more}")
         return 0
-    workers = (f"{last['render_workers']} render workers" if "render_workers" in last
-               else f"{last.get('workers')} workers")
+    workers = f"{last['render_workers']} render" if "render_workers" in last else f"{last.get('workers')}"
     print(f"trained to step {last.get('step')} ({last.get('steps_run')} this run): "
-          f"loss {last.get('loss', float('nan')):.4f}, {last.get('samples_s', 0):.0f} samples/s with {workers} "
+          f"loss {last.get('loss', float('nan')):.4f}, {last.get('samples_s', 0):.0f} samples/s with {workers} workers "
           f"({last.get('stopped_by')}); run in {args.out}"
           + (f"; each rendered frame cropped at most {last.get('max_uses')} times "
              f"(K = {last.get('uses_per_frame')})" if last.get("uses_per_frame") else ""))

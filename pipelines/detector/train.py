@@ -119,6 +119,16 @@ def online_kind(cfg) -> tuple[type, dict]:
     return TargetOnlineConfig, {"mode": "random", "target": target, "resolution_px": TARGET_RESOLUTION_PX}
 
 
+def missing_data(run_dir: str, resume: bool) -> InputError:
+    """The error of a run given neither shards nor online frames; a resumed run on shards is told to give its data
+    again (the run records each folder by name and manifest hash, not by path)."""
+    if resume and os.path.isdir(run_dir):
+        names = ", ".join(d.get("name", "?") for d in read_run_record(run_dir).get("data") or [])
+        return InputError(f"run_dir {run_dir!r} trained on shards ({names or 'its data'}): give them again with "
+                          "`data_dirs` (the run records each folder by name and manifest hash, not by path)")
+    return InputError("give `data_dirs` (shards) or `online` (frames rendered as training goes)")
+
+
 def run_threads(run_dir: str) -> int | None:
     """The torch CPU threads the run in run_dir trained with (its config.json's `threads`; None: not recorded, a
     run from before it was, or no run: resume's own checks say so): a resumed run takes them again, since its
