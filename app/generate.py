@@ -43,7 +43,11 @@ def resolve_config(args: argparse.Namespace):
     flags = {"mode": args.mode, "num_images": args.num_images, "shard_size": args.shard_size,
              "resolution_px": args.resolution, "seed": args.seed, "sequence.scenario": args.scenario,
              "target": args.target}
-    return resolve_job_config(GenerateConfig, {}, args.config, flags)
+    cfg = resolve_job_config(GenerateConfig, {}, args.config, flags)
+    if args.scenario is not None and cfg.mode != "sequence":
+        raise InputError(f"--scenario {args.scenario}: applies to --mode sequence (random views draw their own "
+                         f"poses; this run's mode is {cfg.mode})")
+    return cfg
 
 
 def run_generate_cli(args: argparse.Namespace) -> int:

@@ -367,11 +367,11 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
     done = job.resume(job.open())
     atomic_write_text(os.path.join(out_dir, "generate.config.toml"),
                       "# envisat generate: the full validated config of this dataset\n" + to_toml(to_dict(cfg)))
-    bar = None
-    if progress:
+    bar, n_done = None, sum(e["count"] for e in done.values())
+    if progress and n_done < cfg.num_images:  # nothing to do draws no bar (the verb says so in its line)
         from tqdm import tqdm
 
-        bar = tqdm(total=cfg.num_images, initial=sum(e["count"] for e in done.values()), unit="img",
+        bar = tqdm(total=cfg.num_images, initial=n_done, unit="img",
                    desc="generate", mininterval=0.5)
 
     def on_unit(entry: dict) -> None:
