@@ -386,16 +386,18 @@ class Progress(Hook):
     and after this call's first; closed on every way out."""
 
     def __init__(self, bar, by_budget: bool):
-        self.bar, self.by_budget = bar, by_budget
+        self.bar, self.by_budget, self.loss_text = bar, by_budget, "?"
 
     def after_step(self, terms: dict) -> None:
         tr = self.trainer
+        if tr.state["step"] % POSTFIX_EVERY == 0 or tr.steps_run == 1:  # the loss read back (a device sync)
+            self.loss_text = f"{float(terms['loss']):.3f}"
+        # the step every step (a budget's bar counts seconds), set before the update that may draw it
+        self.bar.set_postfix_str(f"step={tr.state['step']}, loss={self.loss_text}", refresh=False)
         if self.by_budget:
             advance_budget_bar(self.bar, tr.elapsed() - tr.time0)
         else:
             self.bar.update(1)
-        if tr.state["step"] % POSTFIX_EVERY == 0 or tr.steps_run == 1:
-            self.bar.set_postfix(step=tr.state["step"], loss=f"{float(terms['loss']):.3f}")
 
     def after_train(self) -> None:
         self.bar.close()

@@ -193,3 +193,22 @@ def test_an_order_that_cannot_hold_is_refused_when_the_hooks_are_registered():
     with pytest.raises(ValueError, match="loops"):
         th.hook_order([Early(), Late()])
     assert [h.name for h in th.hook_order([Early()])] == ["Early"]  # alone, its constraint binds nothing
+
+
+def test_the_budget_bar_shows_every_step_and_the_loss_it_last_read():
+    """Under a time budget the bar counts seconds, so its postfix carries the step: the current one at every
+    draw, not the last loss reading's (it showed step=1 until the tenth)."""
+    import io
+
+    out = io.StringIO()
+    bar = th.progress_bar(100, {"step": 0}, budget_end_s=100.0, time0=0.0, enabled=True)
+    bar.fp, bar.mininterval = out, 0.0
+    hook = th.Progress(bar, by_budget=True)
+    hook.trainer = stand_in(elapsed=lambda: 0.0)
+    for step in range(1, th.POSTFIX_EVERY + 4):
+        hook.trainer.state["step"], hook.trainer.steps_run = step, step
+        hook.trainer.elapsed = lambda s=step: float(s)
+        hook.after_step({"loss": torch.tensor(1.0 / step)})
+        assert f"step={step}," in str(bar), (step, str(bar))
+    assert f"loss={1.0 / th.POSTFIX_EVERY:.3f}" in str(bar)  # the last reading, at step POSTFIX_EVERY
+    hook.after_train()
