@@ -71,9 +71,14 @@ def read_roi(path: str) -> dict[str, "object"]:
             keys, roi = z["key"].astype(str), np.asarray(z["roi_px"], dtype=np.float64)
     except (KeyError, ValueError, OSError) as err:
         raise InputError(f"roi {path!r}: expected an npz with key (M,) and roi_px (M, 3) ({err})") from None
-    if roi.shape != (len(keys), 3) or not np.all(np.isfinite(roi)) or np.any(roi[:, 2] <= 0):
-        raise InputError(f"roi {path!r}: roi_px has shape {roi.shape}, expected ({len(keys)}, 3) finite with "
-                         "side > 0")
+    if roi.shape != (len(keys), 3):
+        raise InputError(f"roi {path!r}: roi_px has shape {roi.shape}, expected ({len(keys)}, 3): one row "
+                         "(x, y, side) per key")
+    bad = np.flatnonzero(~np.all(np.isfinite(roi), axis=1) | ~(roi[:, 2] > 0))
+    if bad.size:
+        i = int(bad[0])
+        raise InputError(f"roi {path!r}: roi_px row {i} (key {str(keys[i])!r}) is {roi[i].tolist()}, expected finite "
+                         f"(x, y, side) with side > 0 ({bad.size} such rows)")
     return {k: np.round(r).astype(np.int64) for k, r in zip(keys.tolist(), roi)}
 
 

@@ -1,9 +1,11 @@
 """`envisat detect` writes the Detections contract plus keys and the half-turn alternative; bad weights: one line."""
 
 import numpy as np
+import pytest
 import torch
 
 from envisat_pose.app.cli import main
+from envisat_pose.config import InputError
 from envisat_pose.contracts import Detections
 from envisat_pose.perception.model import CornerNet, ModelConfig
 from envisat_pose.perception.weights import save_weights
@@ -73,3 +75,16 @@ def test_bad_roi_file_one_line(tiny_dataset, tmp_path, capsys):
                      "--roi", str(path)]) == 2
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and "--roi" in err
+
+
+def test_a_bad_roi_row_is_named(tmp_path):
+    """A non-positive side or a NaN names the first bad row and its key; a wrong shape names the shape."""
+    from envisat_pose.pipelines.detector.detect import read_roi
+
+    path = tmp_path / "roi.npz"
+    np.savez(path, key=np.array(["a", "b", "c"]), roi_px=np.array([[1.0, 2.0, 50], [3, 4, 0], [np.nan, 0, 9]]))
+    with pytest.raises(InputError, match=r"row 1 \(key 'b'\) is \[3.0, 4.0, 0.0\].*side > 0 \(2 such rows\)"):
+        read_roi(str(path))
+    np.savez(path, key=np.array(["a", "b"]), roi_px=np.zeros((2, 2)))
+    with pytest.raises(InputError, match=r"shape \(2, 2\), expected \(2, 3\)"):
+        read_roi(str(path))
