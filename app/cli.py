@@ -15,7 +15,7 @@ import os
 import sys
 import warnings
 
-from envisat_pose.app.common import EVERY_VERB, as_flags
+from envisat_pose.app.common import EVERY_VERB, as_flags, config_error_text
 from envisat_pose.config import ConfigError, InputError
 
 # The app modules that define register(subparsers), in the order their verbs are listed.
@@ -52,7 +52,8 @@ def main(argv: list[str] | None = None) -> int:
             return int(args.func(args) or 0)
     except (ConfigError, InputError) as err:
         names = {**EVERY_VERB, **getattr(args, "flag_names", {})}
-        text = str(err) if isinstance(err, ConfigError) else as_flags(str(err), names)
+        from_flags = getattr(args, "config", None) is None and not getattr(args, "resume", None)
+        text = config_error_text(err, names, from_flags) if isinstance(err, ConfigError) else as_flags(str(err), names)
         print(f"envisat {args.verb}: error: {text}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

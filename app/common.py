@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import re
 
-from envisat_pose.config import InputError
+from envisat_pose.config import ConfigError, InputError
 from envisat_pose.out_dirs import check_out_file
 
 # library argument / field names -> flags, for every verb that adds the flag with add_common
@@ -88,6 +88,15 @@ def as_flags(message: str, names: dict[str, str]) -> str:
     and every `name` in backquotes that is one of `names` (others lose only their quotes)."""
     message = _LEADING_NAME.sub(lambda m: names.get(m.group(1), m.group(1)), message, count=1)
     return _QUOTED_NAME.sub(lambda m: names.get(m.group(1), m.group(1)), message)
+
+
+def config_error_text(err: ConfigError, names: dict[str, str], from_flags: bool) -> str:
+    """A ConfigError's line: 'field = value: expected ...', or where its value can only have come from a flag
+    (`from_flags`: no config file or recorded run behind the verb) and the field is one of the verb's flags,
+    '--flag value: expected ...'."""
+    if type(err) is ConfigError and from_flags and err.field in names:
+        return f"{names[err.field]} {err.value!r}: expected {err.expected}"
+    return str(err)
 
 
 def check_rrd_output(path: str) -> None:

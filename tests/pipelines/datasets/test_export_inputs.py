@@ -82,11 +82,15 @@ def test_export_into_the_empty_working_folder(small, tmp_path, monkeypatch, caps
     assert f'path: "{here}"' in (here / "data.yaml").read_text() and os.listdir(tmp_path) == ["here"]
 
 
-@pytest.mark.parametrize("seed", ["-1", str(2**63)])
-def test_a_split_seed_out_of_range_is_one_line(small, tmp_path, capsys, seed):
+@pytest.mark.parametrize("flag, value, expected", [("--seed", "-1", "a non-negative integer seed below 2^63"),
+                                                     ("--seed", str(2**63), "a non-negative integer seed"),
+                                                     ("--val-fraction", "1.5", "a fraction in [0, 1)"),
+                                                     ("--workers", "0", "at least 1 worker process")])
+def test_a_bad_flag_is_one_line_naming_the_flag(small, tmp_path, capsys, flag, value, expected):
+    """The export's config is built from flags alone: its errors name the flag typed, not the config field."""
     rc = envisat_main(["dataset", "export", small["done"], "--format", "coco", "--out", str(tmp_path / "o"),
-                       "--seed", seed, "--quiet"])
-    assert rc == 2 and f"seed = {seed}: expected a non-negative integer seed below 2^63" in one_error_line(capsys)
+                       flag, value, "--quiet"])
+    assert rc == 2 and f"{flag} {value}: expected {expected}" in one_error_line(capsys)
     assert os.listdir(tmp_path) == []
 
 
