@@ -41,7 +41,7 @@ def inspect_dataset(src: str, montage: str | None = None, count: int = 16, rrd: 
     from envisat_pose.datagen.dataset import dataset_stats
     from envisat_pose.datagen.dataset import montage as write_montage
 
-    manifest = load_dataset_manifest(src)
+    manifest = load_dataset_manifest(src, "src")
     if rrd is not None:  # the recording draws the target: its file found and unchanged, before any output
         check_dataset_target_file(src, manifest, target)
     shards, skipped = checked_shards(src, skip_damaged, "src")

@@ -224,6 +224,8 @@ def test_inspect_as_a_python_call_is_the_verb(small, tmp_path, capsys):
                             ({"rrd": str(tmp_path / "x.txt")}, r"rrd .*expected a path ending in \.rrd")):
         with pytest.raises(InputError, match=message):
             inspect_dataset(small["done"], tmp_path / "n.png", **kwargs)
+    with pytest.raises(InputError, match="^src .*: no such folder"):  # the argument's own name
+        inspect_dataset(str(tmp_path / "missing"), tmp_path / "n.png")
     assert not (tmp_path / "n.png").exists()
 
 
