@@ -20,11 +20,46 @@ def usual_mode(folder: bool = False) -> int:
     return (0o777 if folder else 0o666) & ~umask
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # another user's process
+    return True
+
+
+def _partial_prefix(path: str, pid: int | str) -> str:
+    """The name's start of atomic_path's temporary file for `path` in process `pid`: '.tmp-PID-NAME-'."""
+    return f".tmp-{pid}-{os.path.basename(path)[:100]}-"
+
+
+def sweep_stale_partials(path: str) -> list[str]:
+    """Remove the temporary files of `path` that a writer killed mid-write left beside it (SIGKILL: no clean-up
+    ran): those named by _partial_prefix whose process is gone; a running writer's, and any other name, stay.
+    Returns the names removed."""
+    folder, gone = os.path.dirname(os.path.abspath(path)), []
+    tail = _partial_prefix(path, "")[len(".tmp-"):]  # '-NAME-'
+    with contextlib.suppress(FileNotFoundError, NotADirectoryError):
+        for name in os.listdir(folder):
+            pid, sep, rest = name.removeprefix(".tmp-").partition("-")
+            if name.startswith(".tmp-") and pid.isdigit() and ("-" + rest).startswith(tail) and sep \
+                    and not _alive(int(pid)) and os.path.isfile(os.path.join(folder, name)):
+                with contextlib.suppress(FileNotFoundError):
+                    os.remove(os.path.join(folder, name))
+                gone.append(name)
+    return gone
+
+
 @contextlib.contextmanager
 def atomic_path(path: str, suffix: str = ""):
-    """Yield a temporary path next to `path`; on success it is renamed to `path`, on error removed."""
+    """Yield a temporary path next to `path`; on success it is renamed to `path`, on error removed. A killed
+    earlier writer's temporary file of the same path goes first (sweep_stale_partials)."""
     folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix or os.path.splitext(path)[1], dir=folder)
+    sweep_stale_partials(path)
+    fd, tmp = tempfile.mkstemp(prefix=_partial_prefix(path, os.getpid()), suffix=suffix or os.path.splitext(path)[1],
+                               dir=folder)
     os.close(fd)
     mode = usual_mode()
     os.chmod(tmp, mode)  # mkstemp makes 0600 files; outputs get the user's usual mode
@@ -45,16 +80,6 @@ def stage_prefix(prefix: str = STAGE_PREFIX) -> str:
     """The name's start of a staging folder this process makes: prefix, its pid and '-' (so a later job knows a
     killed job's folder: sweep_stale_stages)."""
     return f"{prefix}{os.getpid()}-"
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True  # another user's process
-    return True
 
 
 def sweep_stale_stages(out_dir: str, prefix: str = STAGE_PREFIX) -> list[str]:
