@@ -52,8 +52,7 @@ def main(argv: list[str] | None = None) -> int:
             return int(args.func(args) or 0)
     except (ConfigError, InputError) as err:
         names = {**EVERY_VERB, **getattr(args, "flag_names", {})}
-        from_flags = getattr(args, "config", None) is None and not getattr(args, "resume", None)
-        text = config_error_text(err, names, from_flags) if isinstance(err, ConfigError) else as_flags(str(err), names)
+        text = config_error_text(err, names, args.argv) if isinstance(err, ConfigError) else as_flags(str(err), names)
         print(f"envisat {args.verb}: error: {text}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

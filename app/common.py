@@ -18,6 +18,11 @@ from envisat_pose.out_dirs import check_out_file
 # library argument / field names -> flags, for every verb that adds the flag with add_common
 COMMON_FLAGS = {"out": "--out", "out_dir": "--out", "config_path": "--config", "weights": "--weights",
                 "seed": "--seed"}
+# the measurement flags of estimate and montecarlo, by the config fields they set
+MEASUREMENT_FLAGS = {"measurement.kind": "--measurements", "measurement.sigma_m": "--sigma-m",
+                     "measurement.sigma_px": "--sigma-px", "measurement.sigma_range_m": "--sigma-range-m",
+                     "measurement.max_markers": "--max-markers", "measurement.failure_prob": "--failure-prob",
+                     "measurement.outages_s": "--outage", "measurement.rate_hz": "--rate-hz"}
 # ... and for every verb (a damaged shard's hint names --skip-damaged on every verb that reads a dataset)
 EVERY_VERB = {"skip_damaged": "--skip-damaged"}
 
@@ -90,12 +95,13 @@ def as_flags(message: str, names: dict[str, str]) -> str:
     return _QUOTED_NAME.sub(lambda m: names.get(m.group(1), m.group(1)), message)
 
 
-def config_error_text(err: ConfigError, names: dict[str, str], from_flags: bool) -> str:
-    """A ConfigError's line: 'field = value: expected ...', or where its value can only have come from a flag
-    (`from_flags`: no config file or recorded run behind the verb) and the field is one of the verb's flags,
-    '--flag value: expected ...'."""
-    if type(err) is ConfigError and from_flags and err.field in names:
-        return f"{names[err.field]} {err.value!r}: expected {err.expected}"
+def config_error_text(err: ConfigError, names: dict[str, str], argv: list[str]) -> str:
+    """A ConfigError's line: 'field = value: expected ...', or where the field is one of the verb's flags and the
+    user typed that flag (so the value is the flag's: flags override files and scenarios), '--flag value:
+    expected ...'."""
+    flag = names.get(err.field) if type(err) is ConfigError else None
+    if flag and flag.startswith("--") and any(a == flag or a.startswith(flag + "=") for a in argv):
+        return f"{flag} {err.value!r}: expected {err.expected}"
     return str(err)
 
 

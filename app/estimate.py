@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import add_common, init_error_line
+from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, init_error_line
 from envisat_pose.filtering.estimator import FilterConfig, nees, nis_alarms_alone
 from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, recorded_scenario
 from envisat_pose.pipelines.campaigns.estimate import run_estimate as run_pipeline
@@ -16,7 +16,7 @@ from envisat_pose.state import error_summary
 
 # the library's argument names -> this verb's flags (app/common.as_flags)
 FLAGS = {"truth_path": "--truth", "scenario": "--scenario", "duration_s": "--duration-s", "rrd": "--rrd",
-         "plot": "--plot"}
+         "plot": "--plot", "runs": "--runs", **MEASUREMENT_FLAGS}
 
 
 def register(sub: argparse._SubParsersAction) -> None:

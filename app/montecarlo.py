@@ -10,13 +10,16 @@ import argparse
 import math
 import time
 
-from envisat_pose.app.common import add_common, check_rrd_output, init_error_line
+from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_rrd_output, init_error_line
 from envisat_pose.config import InputError, check
 from envisat_pose.out_dirs import make_out_file_dirs
 from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, run_campaign, write_recording
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE, run_sweep, sweep_for
 from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
+
+FLAGS = {**{k: "--" + k.replace("_", "-") for k in "scenario runs target duration_s block_runs settle_s "
+                                                   "init_error_scale workers".split()}, **MEASUREMENT_FLAGS}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -30,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--target", metavar="FILE.xml", help="the target's MJCF file (default: the scenario's, ENVISAT): "
                    "the truth tumbles with its inertia, the filter measures its keypoints")
     add_common(p, out="campaign folder (rerun on it to resume)", config="campaign config (tables measurement, "
-               "filter; runs, seed...)", seed="root seed (default 0)")
+               "filter; runs, seed...)", seed="root seed (default 0)", flag_names=FLAGS)
     p.add_argument("--duration-s", type=float, help="simulated time, s (default 1800)")
     p.add_argument("--rate-hz", type=float, help="filter/measurement rate, Hz (default 1)")
     p.add_argument("--measurements", choices=["markers3d", "pixels", "pixels+range"],

@@ -60,7 +60,7 @@ def test_truth_file_and_rate(tmp_path):
 
 
 @pytest.mark.parametrize("extra, needle", [
-    (["--scenario", "default", "--sigma-m", "-1"], "measurement.sigma_m"),
+    (["--scenario", "default", "--sigma-m", "-1"], "--sigma-m -1.0: expected a positive noise sigma"),
     (["--scenario", "default", "--rate-hz", "0.3", "--duration-s", "10"], "rate_hz"),
     (["--scenario", "no_such"], "scenario"),
     (["--truth", "/nonexistent/run.npz"], "no such file"),
@@ -95,6 +95,18 @@ def test_config_file_then_flags(tmp_path):
     assert main(["estimate", "--scenario", "default", "--duration-s", "60", "--config",
                  str(tmp_path / "est.config.toml"), "--quiet", "--out", str(out2)]) == 0
     assert out2.read_bytes() == out.read_bytes()
+
+
+def test_a_bad_value_is_named_where_the_user_wrote_it(tmp_path, capsys):
+    """The flag typed, or the config file's field (the same error, the same field: the value's own source)."""
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[measurement]\nsigma_m = -2.0\n")
+    for extra, line in ((["--config", str(cfg)], "measurement.sigma_m = -2.0: expected a positive noise sigma"),
+                        (["--config", str(cfg), "--sigma-m=-3"], "--sigma-m -3.0: expected a positive noise sigma")):
+        assert main(["estimate", "--scenario", "default", "--out", str(tmp_path / "e.npz"), "--quiet"] + extra) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"envisat estimate: error: {line}") and "\n" not in err, (extra, err)
+    assert not (tmp_path / "e.npz").exists()
 
 
 def test_config_file_unknown_key_is_a_one_line_error(tmp_path, capsys):
@@ -305,7 +317,7 @@ def _with_target_record(src, dst, **record):
 
 @pytest.mark.parametrize("how, extra, needle", [
     ("sha256", [], "changed since the truth was simulated"),
-    ("max_markers", ["--rate-hz", "0.5", "--max-markers", "13"], "measurement.max_markers"),
+    ("max_markers", ["--rate-hz", "0.5", "--max-markers", "13"], "--max-markers 13: expected an integer from 1 to 12"),
 ])
 def test_another_targets_truth_errors_are_one_line(upper_stage_truth, tmp_path, capsys, how, extra, needle):
     """A truth that records its target file's sha256 when the file has changed since, and more markers than the

@@ -61,7 +61,7 @@ def test_unknown_names_and_malformed_files_are_one_line(monkeypatch, capsys):
     assert main(["montecarlo", "--scenario", "nope", "--out", "x", "--quiet"]) == 2
     assert main(["estimate", "--scenario", "nope", "--quiet"]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 2 and all("scenario = 'nope'" in ln and "rate-sweep" in ln for ln in lines)
+    assert len(lines) == 2 and all("--scenario 'nope': expected one of" in ln and "rate-sweep" in ln for ln in lines)
 
     files = {"a": 'description = "x"\n[measurment]\nkind = "pixels"\n', "b": '[orbit]\ne = 0.1\n',
              "c": 'description = "loop"\nbase = "d"\n', "d": 'description = "loop"\nbase = "c"\n'}

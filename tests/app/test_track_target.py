@@ -88,7 +88,7 @@ def test_the_upper_stage_without_its_calibrated_weights_is_refused(stage, tmp_pa
     refused(track + ["--weights", stage["uncalibrated"]], capsys, out, "--weights", stage["uncalibrated"],
             "no calibrated pixel covariance", "envisat calibrate --target")
     refused(["track", "--images", stage["seq"], "--target", str(tmp_path / "none.xml"), "--out", out], capsys, out,
-            "target = ", "none.xml", "no such file")  # a config error names the config's field
+            "--target '", "none.xml", "no such file")  # a config error of a flag typed names the flag
 
 
 def test_a_dataset_of_another_target_than_the_jobs_is_refused(stage, tmp_path, capsys):
