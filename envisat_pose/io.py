@@ -40,12 +40,14 @@ def sweep_stale_partials(path: str) -> list[str]:
     ran): those named by _partial_prefix whose process is gone; a running writer's, and any other name, stay.
     Returns the names removed."""
     folder, gone = os.path.dirname(os.path.abspath(path)), []
-    tail = _partial_prefix(path, "")[len(".tmp-"):]  # '-NAME-'
+    name_start = _partial_prefix(path, "").removeprefix(".tmp--")  # 'NAME-'
     with contextlib.suppress(FileNotFoundError, NotADirectoryError):
         for name in os.listdir(folder):
-            pid, sep, rest = name.removeprefix(".tmp-").partition("-")
-            if name.startswith(".tmp-") and pid.isdigit() and ("-" + rest).startswith(tail) and sep \
-                    and not _alive(int(pid)) and os.path.isfile(os.path.join(folder, name)):
+            if not name.startswith(".tmp-"):
+                continue
+            pid, _, rest = name.removeprefix(".tmp-").partition("-")
+            if pid.isdigit() and rest.startswith(name_start) and not _alive(int(pid)) and \
+                    os.path.isfile(os.path.join(folder, name)):
                 with contextlib.suppress(FileNotFoundError):
                     os.remove(os.path.join(folder, name))
                 gone.append(name)
