@@ -29,7 +29,8 @@ _VERB_MODULES = ("envisat_pose.app.simulate", "envisat_pose.app.generate", "envi
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="envisat",
-        description="Relative pose of a tumbling ENVISAT: simulate, generate images, detect corners, estimate.",
+        description="Relative pose of a tumbling spacecraft (ENVISAT, or any target given as an MJCF file): simulate, "
+        "generate labelled images, train and run a detector, estimate, track your own frames.",
     )
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
     sub.required = True

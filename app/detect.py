@@ -19,7 +19,7 @@ from envisat_pose.target import DEFAULT_TARGET, other_target
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "detect",
-        help="detect and name the corners A-H in full frames (det.npz: the Detections contract)",
+        help="detect and name the corners A-H (or another --target's keypoints) in full frames (det.npz)",
         description="Run the corner detector on every frame of a dataset: coarse pass, crop, network, line "
         "verification, naming by fitting the box. Writes det.npz: t_s, corners_px, cov_px, confidence, visible, "
         "config_json, plus key, alt_corners_px, alt_probability and ambiguous (the half-turn alternative).",

@@ -23,7 +23,8 @@ from envisat_pose.target import other_target
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "evaluate",
-        help="score the corner detector against labels, next to Harris and Shi-Tomasi (table + JSON)",
+        help="score a detector against labels (ENVISAT's next to Harris and Shi-Tomasi; --target: per "
+        "keypoint) (table + JSON)",
         description="Detect and name the corners of every frame of a labelled dataset and score them: per-corner "
         "error (median, p95), PCK at 2 and 5 px, visibility precision/recall, identity swaps, the half-turn "
         "ambiguity, covariance calibration (mean e^T C^-1 e), pose error after solvePnP, by corruption group; "

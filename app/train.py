@@ -29,10 +29,10 @@ from envisat_pose.target import other_target
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "train",
-        help="train the corner detector on WebDataset shards (run directory with config, metrics, checkpoints)",
-        description="Train the L-CNN-style corner network on a dataset written by `envisat generate`: crops "
-        "around the target, style augmentation, checkpoints as safetensors, batches built by worker processes "
-        "(each reading its own shards). Under torchrun it trains with DDP.",
+        help="train the corner detector, or with --target FILE.xml a keypoint detector (run dir: config, metrics)",
+        description="Train the L-CNN-style corner network on a dataset written by `envisat generate` (or with "
+        "--online on frames rendered as it goes; --target: another target's keypoint network, online): crops "
+        "around the target, style augmentation, checkpoints as safetensors. Under torchrun it trains with DDP.",
     )
     p.add_argument("--data", nargs="+", metavar="DIR",
                    help="dataset folder(s) (shards + manifest.json); several are read together")
