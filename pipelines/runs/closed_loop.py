@@ -51,6 +51,7 @@ from envisat_pose.pipelines.runs.rows import STAGES, RunRows, timing_by_status
 from envisat_pose.pipelines.runs.run_config import RunConfig, run_config_from_json, sun_and_shadow
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, run_rows, score_run_files, write_run_files
 from envisat_pose.pipelines.tracking.build import tracker_detector
+from envisat_pose.pipelines.tracking.camera_file import camera_record
 from envisat_pose.pipelines.tracking.namings import target_namings
 from envisat_pose.pipelines.tracking.onboard import chaser_function, onboard_physics, orbit_config
 from envisat_pose.pipelines.tracking.tracker import Tracker
@@ -230,10 +231,12 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
         bar.close()
     loop_wall_s = time.perf_counter() - t0
     R = cfg.runs
+    # the frames' camera: det.npz's pixels are its; truth.npz's corners_px are the MJCF chaser_cam's (its contract)
+    used = camera_record(run_camera(cfg.image.resolution_px), None, False)
     config_json = json.dumps({"run": to_dict(cfg), "truth_source": {"scenario": cfg.scenario},
-                              "truth_config": truth.config}, sort_keys=True)
+                              "truth_config": truth.config, "camera": used}, sort_keys=True)
     det_cfg = json.dumps({"weights": cfg.weights, "run": 0, "scenario": cfg.scenario, "seed": cfg.seed,
-                          "roi": cfg.tracker.roi.enabled}, sort_keys=True)
+                          "roi": cfg.tracker.roi.enabled, "camera": used}, sort_keys=True)
     target = run_target(cfg)
     equivalent = None if target is None else target_namings(target, filter_inertia_T_kg_m2(target)).equivalent
     scores = score_run_files(truth.t_s, truth.x, run_dirs, paths, config_json, det_cfg, equivalent=equivalent)

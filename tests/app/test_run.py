@@ -196,3 +196,26 @@ def test_diverged_means_the_runs_own_monitor_flagged_it(tmp_path, detector_weigh
         # dropped: no estimate from the lost frame on until a new bank is confirmed (not within 3 s)
         assert np.isnan(z["x_hat"][0, k:]).all() and (z["status"][0, k + 1:] == 0).all(), z["status"]
         assert z["settled"].tolist() == [False]
+
+
+def test_a_run_at_another_size_says_which_pixels_are_whose(tmp_path, detector_weights):
+    """At [image] resolution_px 128, det.npz's pixels are the 128-px frames' (its config_json's camera, est.npz's
+    too) and truth.npz's corners_px the MJCF chaser_cam's 1024 px (the truth's contract): the documented scaling
+    (u + 0.5) s - 0.5 takes the truth's onto the frames', checked against the keypoints in C projected here through
+    the recorded camera."""
+    from envisat_pose.contracts import TruthTrajectory
+    from envisat_pose.geometry import load_camera
+
+    out = tmp_path / "run"
+    loop.run_closed_loop(run_cfg(detector_weights, duration_s=1.0, **{"image.resolution_px": 128}), str(out))
+    with np.load(out / "det.npz", allow_pickle=False) as z:
+        cam = json.loads(str(z["config_json"]))["camera"]
+    with np.load(out / "est.npz", allow_pickle=False) as z:
+        assert json.loads(str(z["config_json"]))["camera"] == cam
+    assert (cam["width_px"], cam["height_px"]) == (128, 128) and cam["cx_px"] == cam["cy_px"] == 63.5
+    truth = TruthTrajectory.load(str(out / "truth.npz"))
+    R = load_camera().R_K_from_C
+    p = truth.corners_C_m @ R.T  # (T, K, 3) in the camera frame
+    uv = cam["f_px"] * p[..., :2] / p[..., 2:] + [cam["cx_px"], cam["cy_px"]]
+    s = cam["width_px"] / load_camera().width_px
+    np.testing.assert_allclose((truth.corners_px + 0.5) * s - 0.5, uv, rtol=0, atol=1e-6)
