@@ -27,6 +27,7 @@ import torch
 from envisat_pose.config import InputError, from_dict
 from envisat_pose.perception.data import IMAGE_MEAN, IMAGE_STD, DataConfig, crop_box, crop_resize, to_full_px
 from envisat_pose.perception.detect import FrameDetection
+from envisat_pose.perception.keypoint_metrics import PNP_MIN_POINTS
 from envisat_pose.perception.keypoint_net import KEYPOINT_FORMAT, KeypointModelConfig, KeypointNet, decode_keypoints
 from envisat_pose.perception.weights import (
     WeightsError,
@@ -197,4 +198,8 @@ def require_calibrated(path: str, target: str, field: str = "weights") -> np.nda
         raise InputError(f"{field} {path!r}: no calibrated pixel covariance (the tracker weighs each keypoint by "
                          f"it): calibrate the weights on held-out frames first, `envisat calibrate --target {target} "
                          f"--weights {path} --data HELD_OUT_DIR --out CALIBRATED.safetensors`")
+    n = int(np.isfinite(sigma).sum())
+    if n < PNP_MIN_POINTS:
+        raise InputError(f"{field} {path!r}: only {n} of {len(sigma)} keypoints calibrated; the tracker's cold start "
+                         f"needs {PNP_MIN_POINTS} for PnP (calibrate on more held-out frames, or train longer)")
     return sigma

@@ -20,6 +20,7 @@ over every detection the tracker is given, right or wrong, the share beyond each
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 
@@ -111,7 +112,12 @@ def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, 
     with_metadata(cfg.weights, out, {SIGMA_KEY: json.dumps(clean),
                                      SIGMA_RECORD_KEY: json.dumps(json_safe(record), sort_keys=True),
                                      REJECT_KEY: json.dumps(json_safe(curve))})
-    return {**record, "corners": int(count.sum()), "calibrated": int(np.isfinite(sigma).sum())}
+    calibrated = int(np.isfinite(sigma).sum())
+    if calibrated < km.PNP_MIN_POINTS:
+        warnings.warn(f"only {calibrated} of {len(sigma)} keypoints calibrated (each needs {MIN_CORRECT} correct "
+                      f"detections): the tracker's cold start needs {km.PNP_MIN_POINTS} for PnP, so `track` and "
+                      "`run` refuse these weights; calibrate on more held-out frames, or train longer", stacklevel=2)
+    return {**record, "corners": int(count.sum()), "calibrated": calibrated}
 
 
 def sigma_table(record: dict) -> str:
@@ -126,7 +132,7 @@ def sigma_table(record: dict) -> str:
         lines.append(f"{name:14s} {record['count'][name]:7d} {sigma:>16s} {_num(c['mean_nees'], '6.2f')} "
                      f"{_num(c['within_gate'], '7.1%')}")
     a = check["all"]
-    lines.append(f"{'all':14s} {a['count']:7d} {'':>16s} {_num(a['mean_nees'], '6.2f')} "
+    lines.append(f"{'all calibrated':14s} {a['count']:7d} {'':>16s} {_num(a['mean_nees'], '6.2f')} "
                  f"{_num(a['within_gate'], '7.1%')}")
     if record.get("reject_share_at_gate") is not None:
         lines.append(f"a correct track's gate rejects at most {_num(record['reject_share_at_gate'], '.1%')} of the "

@@ -79,6 +79,32 @@ def usable_counts(labels: dict) -> np.ndarray:
     return np.sum([u for _, _, u in labels.values()], axis=0)
 
 
+class FewSeen(Oracle):
+    """The oracle seeing only the keypoints `seen` (the others never visible)."""
+
+    def __init__(self, labels: dict, seen: np.ndarray):
+        super().__init__(labels, sigma=0.5)
+        self.seen = seen
+
+    def detect(self, image: np.ndarray) -> dict:
+        found = super().detect(image)
+        return {**found, "visible_prob": np.where(self.seen, found["visible_prob"], 0.0)}
+
+
+def test_calibrating_fewer_keypoints_than_pnp_needs_warns(box, tmp_path, monkeypatch, capsys):
+    """Three keypoints calibrated: the weights are written (a record of the fit) with a warning that the tracker
+    cannot start on them (its PnP needs 4), which `track` and `run` then refuse."""
+    path, _, data, weights, labels = box
+    seen = np.zeros(len(NAMES), bool)
+    seen[np.argsort(-usable_counts(labels))[:3]] = True  # the three seen most: each over 20 times here
+    use_oracle(monkeypatch, FewSeen(labels, seen))
+    w2 = str(tmp_path / "w2.safetensors")
+    assert main(["calibrate", "--target", path, "--weights", weights, "--data", data, "--out", w2, "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "3 of 8 keypoints calibrated" in captured.out and os.path.exists(w2)
+    assert "warning: only 3 of 8 keypoints calibrated" in captured.err and "needs 4 for PnP" in captured.err
+
+
 def test_evaluate_scores_the_labels_perfectly_and_the_twins_naming_only_twin_aware(box, tmp_path, monkeypatch, capsys):
     path, _, data, weights, labels = box
     use_oracle(monkeypatch, Oracle(labels))

@@ -70,6 +70,16 @@ def test_loading_needs_calibrated_weights_of_the_target(tmp_path):
     calibrated = untrained_weights(tmp_path / "cal.safetensors", UPPER, sigma_px=2.0)
     with pytest.raises(InputError, match="no calibrated pixel covariance"):
         load_frame_detector(raw, UPPER)
+    # three keypoints with a sigma: the cold start's PnP (4 points) could never run; refused in one line
+    import json
+
+    from envisat_pose.perception.weights import with_metadata
+    from envisat_pose.perception.weights_keys import SIGMA_KEY
+
+    few = str(tmp_path / "few.safetensors")
+    with_metadata(raw, few, {SIGMA_KEY: json.dumps([1.0, 1.0, 1.0] + [None] * (target.num_keypoints - 3))})
+    with pytest.raises(InputError, match=r"only 3 of 12 keypoints calibrated; .* needs 4 for PnP"):
+        load_frame_detector(few, UPPER)
     det = load_frame_detector(calibrated, UPPER)
     assert det.trained_for["sha256"] == target.sha256 and det.num_keypoints == 12
     fd = det.detect(np.zeros((128, 128), np.uint8), np.eye(3))
