@@ -105,6 +105,13 @@ def config_error_text(err: ConfigError, names: dict[str, str], argv: list[str]) 
     return str(err)
 
 
+def not_applying(args: argparse.Namespace, dests: tuple[str, ...], why: str) -> None:
+    """InputError naming the first flag of `dests` (argparse dest names) given, where none applies: `why`."""
+    given = [d for d in dests if getattr(args, d, None) not in (None, False)]
+    if given:
+        raise InputError(f"--{given[0].replace('_', '-')}: {why}")
+
+
 def check_rrd_output(path: str) -> None:
     """--rrd must name a .rrd file that can be written (out_dirs.check_out_file): InputError before any work."""
 

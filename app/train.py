@@ -9,7 +9,7 @@ import os
 import shlex
 import sys
 
-from envisat_pose.app.common import add_common, add_skip_damaged_argument, as_flags, skipped_line
+from envisat_pose.app.common import add_common, add_skip_damaged_argument, as_flags, not_applying, skipped_line
 from envisat_pose.config import ConfigError, InputError, resolve_job_config
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.pipelines.detector.look_mix import read_looks
@@ -97,9 +97,12 @@ def online_config(args: argparse.Namespace, cfg):
     if not args.online:
         if args.data is None:
             raise missing_data(args.out, args.resume)
+        not_applying(args, ("looks", "generate_config", "resolution", "uses_per_frame", "render_workers"),
+                     "a flag of --online training (rendered frames), not of training on --data's shards")
         return None
-    if args.data:
-        raise InputError("--data and --online: train on shards or on rendered frames, not both")
+    if args.data:  # named as typed: --target and a resumed online run are online too
+        src = "--online" if "--online" in getattr(args, "argv", ()) else "--target" if args.target else "--resume"
+        raise InputError(f"--data and {src}: train on shards or on rendered frames, not both")
     if args.looks:
         if args.generate_config or args.resolution:
             raise InputError("--looks and --generate-config/--resolution: the looks file holds every look's config")
@@ -116,11 +119,6 @@ def resume_command(args: argparse.Namespace) -> str:
     return shlex.join(["envisat", "train", "--resume", *data, "--out", args.out])
 
 
-def command_line(args: argparse.Namespace) -> str:
-    """The command exactly as typed (its words quoted for a shell; relative paths kept as they were)."""
-    return shlex.join(["envisat", *getattr(args, "argv", [])])
-
-
 # the library's argument and config field names -> this verb's flags (its errors name what the user typed)
 FLAGS = {"data_dirs": "--data", "data": "--data", "run_dir": "--out", **{k: "--" + k.replace("_", "-") for k in
          "init resume backbone workers threads time_budget_s device steps batch_size seed online target".split()}}
@@ -135,7 +133,8 @@ def run_train_cli(args: argparse.Namespace) -> int:
         with skip_hint():
             last = train_detector(cfg, [] if online else args.data, args.out, resume=args.resume, init=args.init,
                                   backbone=args.backbone, device=args.device, workers=args.workers, bf16=args.bf16,
-                                  threads=args.threads, progress=not args.quiet, command=command_line(args),
+                                  threads=args.threads, progress=not args.quiet,
+                                  command=shlex.join(["envisat", *getattr(args, "argv", [])]),  # as typed
                                   skip_damaged=args.skip_damaged, online=online)
     except ConfigError as err:  # a value of a flag: named as the flag
         raise InputError(as_flags(str(err), FLAGS)) from None

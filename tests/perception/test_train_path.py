@@ -123,6 +123,24 @@ def test_out_on_or_under_a_file_is_one_line(tiny_dataset, tmp_path, capsys, unde
     assert blocker.read_text() == "x"
 
 
+@pytest.mark.parametrize("flag, value", [("--resolution", "256"), ("--uses-per-frame", "2"), ("--render-workers", "1"),
+                                         ("--generate-config", "x.toml"), ("--looks", "y.toml")])
+def test_online_flags_with_shards_are_refused(tiny_dataset, tmp_path, capsys, flag, value):
+    """Flags of online training given to a run on shards were ignored without a word (the run trained as if
+    they were not there): one line naming the flag, nothing written."""
+    out = tmp_path / "run"
+    err = one_line_error(capsys, main(["train", "--data", tiny_dataset, "--out", str(out), "--steps", "1", flag,
+                                       value, "--quiet"]))
+    assert err.startswith(f"envisat train: error: {flag}: a flag of --online training") and not out.exists(), err
+
+
+def test_shards_for_another_target_name_the_flag_typed(tiny_dataset, tmp_path, capsys):
+    out = tmp_path / "run"
+    err = one_line_error(capsys, main(["train", "--target", "models/upper_stage.xml", "--data", tiny_dataset,
+                                       "--out", str(out), "--steps", "1", "--quiet"]))
+    assert "--data and --target: train on shards or on rendered frames" in err and not out.exists(), err
+
+
 def test_the_record_holds_the_command_as_typed_and_reproduces_the_config(tiny_dataset, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     os.symlink(tiny_dataset, "data")
