@@ -327,6 +327,19 @@ def check_sequence_depth(cfg: GenerateConfig) -> None:
           f"{far_m[k]:.1f} m, the farthest target point of scenario {cfg.sequence.scenario!r} (frame {k})")
 
 
+def warn_if_dark(cfg: GenerateConfig) -> None:
+    """Sequence mode: a warning when half the frames or more are in the Earth's shadow (black but for the Earth's
+    own light), with the sun drawn from the seed where the config gives none (`envisat run` lights its first
+    frame instead): a sequence meant for tracking may show nothing."""
+    dark = sequence_frames(config_json(cfg))[3]
+    if dark.size and dark.mean() >= 0.5:
+        import warnings
+
+        sun = "drawn from the seed; set sun_dir to choose it" if cfg.sun_dir is None else f"sun_dir {cfg.sun_dir}"
+        warnings.warn(f"{int(dark.sum())} of {dark.size} frames are in the Earth's shadow, the target unlit ({sun})",
+                      stacklevel=3)
+
+
 def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
     """The dataset in out_dir as the core's resumable job: one unit per shard, the config and root seed as its
     identity, a shard kept on resume only when it passes the core's one shard check against its entry
@@ -363,6 +376,7 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
     check_out_dir(out_dir)
     if cfg.mode == "sequence":  # before anything is written: the truth's keep-out and the depth range
         check_sequence_depth(cfg)
+        warn_if_dark(cfg)
     job = dataset_job(cfg, out_dir)
     done = job.resume(job.open())
     atomic_write_text(os.path.join(out_dir, "generate.config.toml"),

@@ -159,7 +159,7 @@ def detect_bit_depth(max_value: int) -> int:
 class FrameSource:
     """The frames of one input. kind: 'dataset', 'images' or 'video'; path; t_s (N,) s; names (N,) what each frame
     is called in messages (file, sample key, frame index); truth: None or {x (N, 12), corners_px (N, K, 2),
-    in_frame (N, K)} from a dataset's labels (K: its target's keypoints, ENVISAT's 8 corners); scenario: a
+    in_frame (N, K), eclipse (N,) the target unlit in the Earth's shadow} from a dataset's labels (K: its target's keypoints, ENVISAT's 8 corners); scenario: a
     dataset's own scenario (None otherwise); files: an image folder's files in time order (a dataset's: its checked
     shard files); bit_depth: the data's bits (8, or 10-16 in 16-bit files: scan_source sets it); size_px: (width,
     height) of every frame (scan_source); skipped: a dataset's damaged shards left out (open_source's
@@ -337,14 +337,16 @@ def dataset_source(path: str, skip_damaged: bool = False) -> FrameSource:
     if not manifest.get("complete"):
         raise InputError(f"src {path!r}: an unfinished dataset (run `envisat generate` on it again to finish it)")
     files, skipped = checked_shards(path, skip_damaged, "src")
-    t, names, x, uv, inf = [], [], [], [], []
+    t, names, x, uv, inf, dark = [], [], [], [], [], []
     for key, label, _ in iter_samples(files):
         t.append(float(label["scene"]["t_s"]))
         names.append(key)
         x.append(label["x"])
         uv.append(label["keypoints_px"] if "keypoint_names" in label else label["corners_px"])
         inf.append(np.asarray(label["in_frame"], bool) & np.asarray(label["visible"], bool))
-    truth = {"x": np.array(x, float), "corners_px": np.array(uv, float), "in_frame": np.array(inf)}
+        dark.append(bool(label["scene"].get("eclipse")))
+    truth = {"x": np.array(x, float), "corners_px": np.array(uv, float), "in_frame": np.array(inf),
+             "eclipse": np.array(dark, bool)}
     record = manifest.get("target")
     target = {"name": record.get("name"), "sha256": record.get("sha256")} if isinstance(record, dict) else None
     return FrameSource("dataset", path, np.array(t), names, truth=truth,

@@ -58,12 +58,14 @@ def estimate_arrays(run_dirs: list[str], T: int) -> dict:
 
 
 def score_run_files(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], paths: dict, config_json: str,
-                    det_cfg: str, score: bool = True, det_names=DET_KEYS, equivalent=None) -> dict | None:
+                    det_cfg: str, score: bool = True, det_names=DET_KEYS, equivalent=None,
+                    dark: np.ndarray | None = None) -> dict | None:
     """scoring.score_runs of the runs in run_dirs against x_true (T, 12), reading x_hat and P chunk by chunk;
     each chunk is also checked as est.npz's and (run 0) det.npz's contracts check them on save (score False: only
     the checks, for x_true all NaN, no truth; returns None). Keeps only per-frame scalars (the errors, status)
     and the second half's estimates for the error summary. equivalent: (E, 3, 3) the target's rotations nothing
-    tells apart (scoring.nearest_truth; None: none)."""
+    tells apart (scoring.nearest_truth; None: none). dark: (T,) frames the truth says are unlit (a dataset's
+    eclipse), scored as frames without an image (skipped) are: times 'to' something count from the first lit one."""
     from envisat_pose.pipelines.runs.scoring import frame_errors, nearest_truth, score_frames, summary_after_s
 
     T = len(t_s)
@@ -96,6 +98,8 @@ def score_run_files(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], pa
         nearest_truth(x_true[first:], x_late, equivalent)
     summary = error_summary(t_s[first:], x_true_late, x_late, after_s)
     skipped = run_rows(run_dirs[0], ["skipped"], 0, T)["skipped"]
+    if dark is not None:
+        skipped = skipped | np.asarray(dark, bool)
     return score_frames(t_s, errors, np.stack(status), skipped, summary)
 
 

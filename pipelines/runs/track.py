@@ -213,7 +213,8 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     det_cfg = json.dumps({"weights": cfg.weights, "source": source.path, "target": record}, sort_keys=True)
     det_names = tuple(k for k in DET_KEYS if k != "skipped")
     scores = score_run_files(source.t_s, x_true, [run_dir], paths, config_json, det_cfg, score=truth is not None,
-                             det_names=det_names, equivalent=tracker.namings.equivalent)
+                             det_names=det_names, equivalent=tracker.namings.equivalent,
+                             dark=None if truth is None else truth.get("eclipse"))
     col = run_rows(run_dir, ["status", "nis", "nis_dof"], 0, T)  # three scalars a frame
     write_run_files(paths, source.t_s, x_true, [run_dir], lost_runs([run_dir], T), config_json, source.names,
                     det_cfg, det_names=det_names)

@@ -24,3 +24,23 @@ def test_a_rerun_with_nothing_to_do_draws_no_bar(tmp_path, capsys):
     captured = capsys.readouterr()
     assert captured.err == "" and captured.out.startswith("nothing to do: 2 images already there"), captured
     assert os.path.isfile(tmp_path / "ds" / "manifest.json")
+
+
+def test_a_sequence_in_the_earths_shadow_is_said_to_be(tmp_path, capsys):
+    """The upper stage's slow tumble at seed 101 starts in the shadow with the seed's sun: every frame black but
+    for the noise. The warning's count is the labels' own (scene.eclipse); the same sequence lit by a given sun
+    warns nothing."""
+    from envisat_pose.datagen.dataset import iter_samples
+    from envisat_pose.shard_reader import checked_shards
+
+    args = ["generate", "--mode", "sequence", "--target", "models/upper_stage.xml", "--scenario", "slow-tumble",
+            "--seed", "101", "--num-images", "3", "--resolution", "48", "--quiet"]
+    assert main(args + ["--out", str(tmp_path / "dark")]) == 0
+    err = capsys.readouterr().err
+    dark = sum(bool(label["scene"]["eclipse"]) for _, label, _ in
+               iter_samples(checked_shards(str(tmp_path / "dark"))[0]))
+    assert dark == 3 and "warning: 3 of 3 frames are in the Earth's shadow" in err and "set sun_dir" in err, err
+    lit = tmp_path / "lit.toml"
+    lit.write_text("sun_dir = [0.0, 0.0, 1.0]\n")  # along the orbit normal: never behind the Earth
+    assert main(args + ["--config", str(lit), "--out", str(tmp_path / "lit")]) == 0
+    assert "shadow" not in capsys.readouterr().err

@@ -224,3 +224,16 @@ def test_bad_inputs_are_one_line_and_write_nothing(three_pngs, tmp_path, capsys)
     fake = tmp_path / "clip.mp4"
     fake.write_bytes(b"not a video at all")
     assert "clip.mp4" in bad(["--images", str(fake), "--rate-hz", "1"], capsys, tmp_path)
+
+
+def test_a_sequence_in_the_earths_shadow_has_no_lit_frame(tmp_path, capsys):
+    """ENVISAT's slow tumble at seed 3 starts in the shadow with the seed's sun (generate warns): scored with its
+    truth, its first lit frame is none (it was said to be 0 s, the first frame, as every frame has an image) and
+    nothing is claimed."""
+    data, out = str(tmp_path / "dark"), tmp_path / "track"
+    assert main(["generate", "--mode", "sequence", "--scenario", "slow-tumble", "--seed", "3", "--num-images", "20",
+                 "--resolution", "64", "--out", data, "--quiet"]) == 0
+    assert "20 of 20 frames are in the Earth's shadow" in capsys.readouterr().err
+    assert main(["track", "--images", data, "--out", str(out), "--quiet"]) == 0
+    run = json.loads((out / "summary.json").read_text())["scores"]["per_run"][0]
+    assert run["first_lit_s"] is None and run["first_tracking_s"] is None and run["false_lock_frames"] == 0
