@@ -49,6 +49,7 @@ RENDERED_GROUPS = (0, 1, 2)  # geom groups the factory always draws (MuJoCo's de
 APPENDAGE_GROUP = 4  # geom group of the clutter the `appendages` switch draws (models/envisat.xml)
 RAY_ABS_TOL_M = 1e-4  # a surface this much nearer than a keypoint (plus 1e-6 of its range) does not hide it
 TABLE_DIRECTIONS = 2048  # view directions of the fast visibility table (about 4.5 deg apart)
+COM_TOLERANCE = 1e-6  # the centre of mass's distance from the body's origin allowed, a share of MuJoCo's extent
 TABLE_RANGES_REACHES = (3.0, 8.0, 30.0, 1000.0)  # ... each cast from these many reaches away (the last: parallel)
 TABLE_NEIGHBOURS = 2  # a keypoint is called hidden only where this many nearest directions hide it too
 TABLE_CELLS_POLAR = 256  # polar rows of the grid that finds a view's direction (azimuth columns: twice as many)
@@ -336,8 +337,8 @@ def _load(path: str, stamps: tuple, field: str, given: str) -> Target:
         problem = check_inertia(float(model.body_mass[body]), inertia)
         if problem is not None:
             _fail(field, given, f"body 'target' with {problem}, as MuJoCo computes them from {whose}")
-    com = model.body_ipos[body]
-    if not np.allclose(com, 0.0, atol=1e-9):
+    com = model.body_ipos[body]  # at the origin to a millionth of the model's size (rounded positions, a feather)
+    if np.linalg.norm(com) > COM_TOLERANCE * max(float(model.stat.extent), 1e-3):
         where = (f"<inertial pos='0 0 0'>, got {com.tolist()}" if stated else
                  f"MuJoCo puts it at {np.round(com, 9).tolist()} m from {whose}: move the geoms and sites by its "
                  "negative")

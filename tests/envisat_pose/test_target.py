@@ -208,6 +208,11 @@ def test_a_file_without_an_inertial_takes_mujocos_inertia_from_its_geoms(tmp_pat
     assert abs(scene.body_mass[b] - 110.0) < 1e-9
     with pytest.raises(ConfigError, match=r"MuJoCo puts it at \[0\.0258620"):  # 6 kg more at x = 0.5: 3 / 116 m
         load_target(_massed_box(tmp_path, "off", '<geom type="sphere" pos="0.5 0 0" size="0.05" mass="6"/>'))
+    # a feather (1e-5 kg at 0.5 m: the CoM 4.3e-8 m off on a 1.3 m body) or positions rounded to 7 decimals are
+    # what users write: within COM_TOLERANCE of the model's size, taken (it was refused beyond 1e-9 m)
+    feather = load_target(_massed_box(tmp_path, "feather", '<geom type="sphere" pos="0.5 0 0" size="0.05" '
+                                                           'mass="1e-5"/>'))
+    assert abs(feather.mass_kg - 110.00001) < 1e-9
 
 
 def test_a_keypoint_off_the_surface_and_a_file_without_one_are_refused(tmp_path):
