@@ -67,21 +67,23 @@ def _scene_spec(target: Target):
 def full_precision(text: str, target: Target) -> str:
     """The scene text with the target body's numbers as the file alone compiles them, to the last bit: MuJoCo's
     to_xml writes 6 significant digits (an inertia 1e-6 off turns a tumble 2e-5 rad away in 30 minutes; a site
-    3 um off). The inertial becomes its full tensor in T (added where the file states none), each site its
-    position and orientation, each geom its compiled numbers (target_file.set_compiled_geom: a primitive's pose
+    3 um off). The inertial becomes MuJoCo's principal moments and axes in T (added where the file states none),
+    each site its position and orientation, each geom its compiled numbers (target_file.set_compiled_geom: a primitive's pose
     and size, a fromto resolved; a mesh's pose less its own centring, which the scene applies again)."""
     root = ET.fromstring(text)
     body = next(b for b in root.iter("body") if b.get("name") == "target")
     alone = compiled_alone(target)
     own = alone.body("target").id
-    J = target.inertia_T_kg_m2
     inertial = body.find("inertial")
     if inertial is None:  # a file without one: MuJoCo's inertia from its geoms, stated (the scene's compiler aside)
         inertial = ET.Element("inertial")
         body.insert(0, inertial)
     inertial.attrib.clear()
-    inertial.attrib.update({"pos": "0 0 0", "mass": repr(target.mass_kg), "fullinertia": full_numbers(
-        [J[0, 0], J[1, 1], J[2, 2], J[0, 1], J[0, 2], J[1, 2]])})
+    # MuJoCo's own principal moments and axes (target.inertia_T_kg_m2 is R diag R^T of these): a tensor rebuilt
+    # from them carries round-off that fails MuJoCo's A + B >= C where the file meets it with equality (a plate)
+    inertial.attrib.update({"pos": "0 0 0", "mass": repr(target.mass_kg),
+                            "diaginertia": full_numbers(alone.body_inertia[own]),
+                            "quat": full_numbers(alone.body_iquat[own])})
     sites = [s for s in range(alone.nsite) if alone.site_bodyid[s] == own]
     for el, s in zip(body.findall("site"), sites):
         set_compiled_site(el, alone, s)

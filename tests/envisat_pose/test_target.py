@@ -305,3 +305,32 @@ def test_keypoints_no_edge_joins_are_joined_to_their_nearest(tmp_path):
     # nearest of each: px (0) -> py (1) and my (3) tie at 0.583 m, the lower index; py (1) -> ball (4) at 0.50 m
     # against px at 0.583; mx (2) -> py; my (3) -> ball; ball (4) -> py (0.50, before my at 0.50 by index)
     assert panel.skeleton == ((0, 1), (1, 2), (1, 4), (3, 4)), panel.skeleton
+
+
+@pytest.mark.parametrize("inertial", ['fullinertia="10 20 30 0 0 0"',  # a lamina: A + B = C exactly
+                                      'diaginertia="10 20 30" quat="0.9238795325112867 0 0 0.3826834323650898"',
+                                      'fullinertia="15 15 30 5 0 0"'])  # the same plate turned 45 deg about z
+def test_a_plates_inertia_goes_into_the_scene_as_mujoco_reads_the_file(tmp_path, inertial):
+    """A + B = C holds with equality for a flat plate. The scene once held the tensor rebuilt from MuJoCo's
+    principal moments, whose round-off (8.9e-15 off the diagonal) failed MuJoCo's A + B >= C: `simulate` ended in
+    a traceback on a file MjModel.from_xml_path compiles. The scene's inertia equals the file's to 1e-12."""
+    from envisat_pose.datagen.target_scene import scene_xml
+
+    path = tmp_path / "plate.xml"
+    path.write_text(f'<mujoco><worldbody><body name="target"><inertial pos="0 0 0" mass="50" {inertial}/>'
+                    '<geom type="box" size="1 0.6 0.02"/>'
+                    + "".join(f'<site name="kp_{i}" pos="{sx} {sy * 0.6} 0.02"/>'
+                              for i, (sx, sy) in enumerate([(1, 1), (-1, 1), (-1, -1), (1, -1)]))
+                    + "</body></worldbody></mujoco>")
+    alone = mujoco.MjModel.from_xml_path(str(path))  # what the user checked
+    b = alone.body("target").id
+    R = np.zeros(9)
+    mujoco.mju_quat2Mat(R, alone.body_iquat[b])
+    J = R.reshape(3, 3) @ np.diag(alone.body_inertia[b]) @ R.reshape(3, 3).T
+    t = load_target(str(path))
+    np.testing.assert_allclose(t.inertia_T_kg_m2, J, rtol=0, atol=1e-12)
+    scene = mujoco.MjModel.from_xml_string(scene_xml(t))
+    s = scene.body("target").id
+    mujoco.mju_quat2Mat(R, scene.body_iquat[s])
+    np.testing.assert_allclose(R.reshape(3, 3) @ np.diag(scene.body_inertia[s]) @ R.reshape(3, 3).T, J, rtol=0,
+                               atol=1e-12)
