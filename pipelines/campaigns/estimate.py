@@ -45,8 +45,9 @@ MAX_OUTPUT_BYTES = 8 * 2**30  # P alone is R * T * 144 * 8 bytes
 class EstimateConfig(Config):
     """One `envisat estimate` job, complete and validated when built: `EstimateConfig(scenario=NAME, runs=4)` is
     the config of `envisat estimate --scenario NAME --runs 4` (pipelines.jobs.resolve_job adds a config file and
-    flags). scenario: the named scenario whose truth is simulated (None: a truth file's job; run_estimate takes
-    it as its scenario when given neither a truth file nor a scenario); measurement and filter left None take the
+    flags). scenario: the named scenario whose truth is simulated (None: a truth file's job, which takes the
+    scenario the truth records where measurement and filter are the plain defaults, as the verb does:
+    with_recorded_scenario; run_estimate takes it as its scenario when given neither a truth file nor a scenario); measurement and filter left None take the
     scenario's [measurement] and [filter] tables over the classes' defaults (job_defaults.fill_from_scenario; no
     scenario: the defaults); runs and the root seed. init_error_scale: each run's initial error is drawn from
     N(0, init_error_scale^2 P0) while the filter is told P0 (1: a consistent start; 3: a filter whose P0 is three
@@ -191,6 +192,19 @@ def recorded_scenario(truth_path: str) -> str | None:
     return name
 
 
+def with_recorded_scenario(cfg: EstimateConfig, truth_path: str) -> EstimateConfig:
+    """cfg as `envisat estimate --truth` builds it: a config of no scenario whose tables are the plain defaults
+    takes the scenario the truth records (recorded_scenario: its [measurement] and [filter] tables, its name);
+    cfg itself where it names a scenario, sets a table, or the truth records none."""
+    recorded = recorded_scenario(truth_path)
+    if cfg.scenario is not None or recorded is None:
+        return cfg
+    plain = EstimateConfig()
+    if (cfg.measurement, cfg.filter) != (plain.measurement, plain.filter):
+        return cfg
+    return EstimateConfig(scenario=recorded, runs=cfg.runs, seed=cfg.seed, init_error_scale=cfg.init_error_scale)
+
+
 def scenario_outages(cfg: EstimateConfig, scenario: str | None, truth) -> EstimateConfig:
     """With a named scenario whose file has an [eclipse] table: cfg with the Earth's-shadow windows along the
     simulated truth appended to its outages (eclipse_outages); cfg otherwise (no scenario: a truth file)."""
@@ -284,6 +298,8 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     out, cfg_path = estimate_output_paths(out)
     if not truth_path and not scenario:
         scenario = cfg.scenario
+    if truth_path and not scenario:
+        cfg = with_recorded_scenario(cfg, truth_path)
     truth, source = load_truth(cfg, truth_path, scenario, duration_s, progress)
     cfg = scenario_outages(cfg, scenario or cfg.scenario, truth)  # a truth file of cfg's scenario: its shadow too
     if len(truth.t_s) < 2:

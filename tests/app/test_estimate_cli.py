@@ -276,6 +276,27 @@ def test_the_pipeline_writes_what_the_verb_writes(truth_file, tmp_path, capsys):
     assert res["arrays"]["x_hat"].shape == (2, 61, 12) and (res["arrays"]["n_meas"][:, 10:20] == 0).all()
 
 
+def test_a_plain_config_on_a_truth_takes_the_scenario_it_records_as_the_verb_does(tmp_path, capsys):
+    """A truth of the paper's 3-marker case: `envisat estimate --truth` measures 3 markers (the scenario's
+    [measurement] table, which the truth records); so does run_estimate(EstimateConfig(runs=2), ...), once the
+    all-markers default (max 8 a step, another Q). A config that sets its own table keeps it."""
+    from envisat_pose.filtering.montecarlo import MeasurementConfig
+    from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, run_estimate
+
+    truth = tmp_path / "t3.npz"
+    assert main(["simulate", "--scenario", "paper-3markers-0.02", "--duration-s", "30", "--out", str(truth),
+                 "--quiet"]) == 0
+    assert main(["estimate", "--truth", str(truth), "--runs", "2", "--out", str(tmp_path / "cli.npz"),
+                 "--quiet"]) == 0
+    capsys.readouterr()
+    res = run_estimate(EstimateConfig(runs=2), str(tmp_path / "api.npz"), truth_path=str(truth))
+    assert res["config"].scenario == "paper-3markers-0.02" and res["arrays"]["n_meas"].max() == 3
+    assert (tmp_path / "api.npz").read_bytes() == (tmp_path / "cli.npz").read_bytes()
+    own = run_estimate(EstimateConfig(runs=2, measurement=MeasurementConfig(sigma_m=0.05)), str(tmp_path / "own.npz"),
+                       truth_path=str(truth))
+    assert own["config"].scenario is None and own["arrays"]["n_meas"].max() > 3
+
+
 # ---------------------------------------------------------------- another target's truth (K keypoints)
 
 @pytest.fixture(scope="module")
