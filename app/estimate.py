@@ -16,7 +16,7 @@ from envisat_pose.state import error_summary
 
 # the library's argument names -> this verb's flags (app/common.as_flags)
 FLAGS = {"truth_path": "--truth", "scenario": "--scenario", "duration_s": "--duration-s", "rrd": "--rrd",
-         "plot": "--plot", "runs": "--runs", **MEASUREMENT_FLAGS}
+         "plot": "--plot", "runs": "--runs", "target": "--target", **MEASUREMENT_FLAGS}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -29,6 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--truth", metavar="RUN.npz", help="truth trajectory written by `envisat simulate`")
+    p.add_argument("--target", metavar="FILE.xml", help="with --truth: its target file where the path the truth "
+                   "records is not found from here (its sha256 must match)")
     src.add_argument("--scenario", metavar="NAME",
                      help="simulate this named scenario (`envisat scenarios` lists them) with the MuJoCo truth first; "
                      "its [measurement] and [filter] tables are the defaults under --config and the flags")
@@ -105,7 +107,7 @@ def summary(arrays: dict, fcfg: FilterConfig) -> str:
 def run_estimate_cli(args: argparse.Namespace) -> int:
     cfg = resolve_config(args)
     res = run_pipeline(cfg, args.out, truth_path=args.truth, scenario=args.scenario, duration_s=args.duration_s,
-                       plot=args.plot, rrd=args.rrd, progress=not args.quiet)
+                       plot=args.plot, rrd=args.rrd, progress=not args.quiet, target=args.target)
     cfg, arrays = res["config"], res["arrays"]
     print(f"wrote {res['est']} ({cfg.runs} runs x {len(arrays['t_s'])} steps), config {res['config_toml']}")
     print(summary(arrays, cfg.filter))

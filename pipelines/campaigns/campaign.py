@@ -54,6 +54,7 @@ from envisat_pose.pipelines.campaigns.campaign_config import (
 from envisat_pose.pipelines.campaigns.campaign_outputs import FIGURES, finish_campaign, write_recording
 from envisat_pose.pools import RunnerConfig
 from envisat_pose.resumable import ResumableJob
+from envisat_pose.target import load_target
 
 # the entry points, and the parts' names the verb (app/montecarlo.py) and users import from here
 __all__ = ["run_campaign", "campaign_job", "prepare_truth", "MANIFEST_FORMAT", "MonteCarloConfig", "with_eclipse",
@@ -72,10 +73,14 @@ def campaign_job(cfg: MonteCarloConfig, out_dir: str) -> ResumableJob:
     block kept on resume only when its sha256 matches and it covers the runs the config gives it (the truth's
     sha256 goes in the header once the truth is known)."""
 
+    header = {"n_blocks": cfg.n_blocks}
+    if cfg.target is not None:  # the file, however its path is written (compared by its sha256)
+        header["target_sha256"] = load_target(cfg.target, "target").sha256
     return ResumableJob(out_dir, MANIFEST_FORMAT, "campaign", {"config": to_dict(cfg)}, "blocks", cfg.n_blocks,
-                        block_name, header={"n_blocks": cfg.n_blocks},
+                        block_name, header=header,
                         verify_unit=lambda e, path: cfg.block_range(e["index"]) == (e["run_start"], e["run_stop"]),
-                        added_defaults=ADDED_DEFAULTS, own_entries=("truth.npz",))  # written before the manifest
+                        added_defaults=ADDED_DEFAULTS, own_entries=("truth.npz",),  # written before the manifest
+                        compared_by={"config.target": "target_sha256"})
 
 
 def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, progress: bool) -> str:

@@ -34,7 +34,7 @@ from envisat_pose.filtering.estimator import (
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
 from envisat_pose.io import save_npz, sha256_file
 from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig
-from envisat_pose.pipelines.campaigns.estimate import check_truth_keypoints, truth_target
+from envisat_pose.pipelines.campaigns.estimate import check_truth_keypoints, truth_target, with_target_file
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
 from envisat_pose.state import N_STATE
 from envisat_pose.target import Target
@@ -63,11 +63,15 @@ class CampaignTruth:
     target: Target | None = None
 
 
-def load_campaign_truth(out_dir: str, mcfg: MeasurementConfig) -> CampaignTruth:
-    """DIR/truth.npz sampled at the filter's rate, with its noise-free measurements."""
+def load_campaign_truth(out_dir: str, mcfg: MeasurementConfig, target: str | None = None) -> CampaignTruth:
+    """DIR/truth.npz sampled at the filter's rate, with its noise-free measurements. target: the campaign's target
+    file as this run gives it (the campaign's identity holds its sha256: estimate.with_target_file), which a
+    resume from another folder finds where the truth's recorded path is not found."""
 
     path = os.path.join(out_dir, "truth.npz")
     truth = TruthTrajectory.load(path)
+    if target is not None:
+        truth = with_target_file(truth, target, path)
     mu, gg = onboard_physics(truth, path)
     sel = slice(0, None, filter_stride(truth.t_s, mcfg.rate_hz))
     chaser = chaser_states(truth.chaser_r_m, truth.chaser_rdot_m_s, truth.chaser_theta_rad,
@@ -86,7 +90,7 @@ def block_task(out_dir: str, cfg_json: str, b: int) -> dict:
     t0 = time.perf_counter()
     cfg = from_dict(MonteCarloConfig, json.loads(cfg_json))
     a, z = cfg.block_range(b)
-    arrays = filter_block(load_campaign_truth(out_dir, cfg.measurement), cfg, a, z)
+    arrays = filter_block(load_campaign_truth(out_dir, cfg.measurement, cfg.target), cfg, a, z)
     path = os.path.join(out_dir, block_name(b))
     save_npz(path, arrays)
     return {"index": b, "run_start": a, "run_stop": z, "file": block_name(b), "sha256": sha256_file(path),

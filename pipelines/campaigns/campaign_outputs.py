@@ -80,7 +80,7 @@ def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
     """Merge the blocks, compute the PCRLB, write campaign.npz, summary.json and the figures."""
 
     sums, runs, sample_err, sample_norms = merge_blocks(cfg, out_dir)
-    tr = load_campaign_truth(out_dir, cfg.measurement)
+    tr = load_campaign_truth(out_dir, cfg.measurement, cfg.target)
     stats = finalize(sums)
     bound = campaign_pcrlb(cfg, tr)
     settle = cfg.settle_time_s
@@ -133,7 +133,7 @@ def write_recording(cfg: MonteCarloConfig, out_dir: str, path: str) -> None:
     campaign's bands from campaign.npz."""
     from envisat_pose.analysis.recording import write_campaign_recording
 
-    tr = load_campaign_truth(out_dir, cfg.measurement)
+    tr = load_campaign_truth(out_dir, cfg.measurement, cfg.target)
     x_hat, P = filter_run_history(tr, cfg, 0)
     with np.load(os.path.join(out_dir, "campaign.npz"), allow_pickle=False) as z:
         sample_err, filt, samp = z["sample_err"], z["filter_3sigma"], z["sample_3sigma"]

@@ -13,6 +13,7 @@ an [eclipse] table adds the Earth's-shadow outages along its truth (`eclipse_out
 from __future__ import annotations
 
 import json
+import os
 import warnings
 from dataclasses import dataclass
 
@@ -110,7 +111,8 @@ def truth_target(config: dict, source: str) -> Target | None:
         try:
             digest = target_sha256(path)
         except OSError as err:
-            raise InputError(f"{source}: its target file {given!r} cannot be read ({err.strerror})") from None
+            raise InputError(f"{source}: its target file {given!r} cannot be read ({err.strerror}; the path is "
+                             "as simulate was given it: give the file with `target`)") from None
         if digest != recorded:
             raise InputError(f"{source}: its target file {given!r} changed since the truth was simulated (sha256 "
                              f"{digest[:12]}..., the truth recorded {str(recorded)[:12]}...)")
@@ -150,18 +152,24 @@ def with_outages(mcfg, windows: tuple[tuple[float, float], ...]):
 
 
 def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str | None = None,
-               duration_s: float | None = None, progress: bool = False):
+               duration_s: float | None = None, progress: bool = False, target: str | None = None):
     """The truth trajectory: read from truth_path, or simulated by MuJoCo for the named scenario (exactly one of
     them). Returns (truth, source) with source {"truth_file": path} or {"scenario": name}.
 
     A file that is not a truth trajectory (truncated, foreign, another contract) is one InputError line.
-    With a scenario its duration applies unless duration_s is given; a truth file fixes the duration.
+    With a scenario its duration applies unless duration_s is given; a truth file fixes the duration. target: a
+    truth file's target file where the path it records is not found from here (relative to where simulate ran):
+    its sha256 must be the one the truth recorded; the truth's config then names it.
     """
+    if target is not None and not truth_path:
+        raise InputError("target applies to a truth file (`truth_path`): a scenario's names its own target")
     if truth_path:
         if duration_s is not None:
             raise InputError("duration_s applies to a `scenario` only; the truth file (`truth_path`) fixes the "
                              "duration")
         truth = TruthTrajectory.load(truth_path)
+        if target is not None:
+            truth = with_target_file(truth, target, truth_path)
         onboard_physics(truth, truth_path)  # its config must name the physics the filter needs
         check_truth_keypoints(truth, truth_target(truth.config, truth_path), truth_path)  # any target: its file
         return truth, {"truth_file": truth_path}
@@ -175,6 +183,24 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
     scenario_dict(scenario)  # unknown names fail here with the list of known ones
     scfg = scenario_config(scenario, **overrides)
     return simulate_truth(scfg, progress=progress, scenario=scenario), {"scenario": scenario}
+
+
+def with_target_file(truth, target: str, source: str):
+    """truth with its config's target.file set to `target`, the same file the truth recorded (its sha256);
+    InputError naming `target` otherwise."""
+    import dataclasses
+
+    config = truth.config
+    record = config.get("target") or {}
+    path = resolve_target_path(target)
+    if not os.path.isfile(path):
+        raise InputError(f"target {target!r}: no such file; expected the target file of {source}")
+    digest = target_sha256(path)
+    if record.get("sha256") not in (None, digest):
+        raise InputError(f"target {target!r}: not the target file of {source} (sha256 {digest[:12]}..., the truth "
+                         f"recorded {str(record['sha256'])[:12]}... for {record.get('file')!r})")
+    config["target"] = {**record, "file": target}
+    return dataclasses.replace(truth, config_json=json.dumps(config, sort_keys=True))
 
 
 def recorded_scenario(truth_path: str) -> str | None:
@@ -276,10 +302,11 @@ def truth_stride(truth, cfg: EstimateConfig) -> int:
 
 def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, scenario: str | None = None,
                  duration_s: float | None = None, plot: bool = False, rrd: str | None = None,
-                 progress: bool = False) -> dict:
+                 progress: bool = False, target: str | None = None) -> dict:
     """The whole job: load or simulate the truth (load_truth; given neither truth_path nor scenario,
     cfg.scenario's), add a scenario's eclipse outages, filter cfg.runs runs (estimate), write out (Estimates)
-    and its config (output_paths), and with plot the errors' PNG next to out, with rrd a Rerun recording. The
+    and its config (output_paths), and with plot the errors' PNG next to out, with rrd a Rerun recording
+    (target: a truth file's target file where the path it records is not found from here: load_truth). The
     paths (str or pathlib.Path; out ending in .npz, rrd in .rrd) are checked before any work, InputError naming
     the argument; the folders are made once the truth is read (a refused truth writes nothing).
 
@@ -300,7 +327,8 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
         scenario = cfg.scenario
     if truth_path and not scenario:
         cfg = with_recorded_scenario(cfg, truth_path)
-    truth, source = load_truth(cfg, truth_path, scenario, duration_s, progress)
+    truth, source = load_truth(cfg, truth_path, scenario, duration_s, progress, path_arg(target, "target",
+                                                                                          optional=True))
     cfg = scenario_outages(cfg, scenario or cfg.scenario, truth)  # a truth file of cfg's scenario: its shadow too
     if len(truth.t_s) < 2:
         raise InputError("the truth trajectory has fewer than 2 samples")

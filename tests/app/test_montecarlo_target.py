@@ -203,3 +203,37 @@ def test_estimate_on_a_target_the_test_builds_is_consistent_and_at_its_bound(tmp
     print(f"built target: mean NEES {anees:.2f} (99 % band {lo:.2f}..{hi:.2f}); RMSE/PCRLB {np.round(ratio, 3)}")
     assert lo <= anees <= hi, (anees, lo, hi)
     assert np.all(np.abs(ratio - 1.0) <= 0.10), ratio
+
+
+def test_a_target_file_named_from_elsewhere_is_the_same_file(tmp_path, monkeypatch, capsys):
+    """A truth and a campaign keep the target's path as given (relative to where they ran). From another folder:
+    `estimate --truth` says to give the file, takes it with --target when its sha256 is the truth's and refuses
+    another; a campaign resumes with the same file named another way (compared by its sha256; it was "another
+    config" and could resume only from its first folder), and an edited file is another campaign."""
+    import shutil
+
+    work, other = tmp_path / "work", tmp_path / "other"
+    work.mkdir(), other.mkdir()
+    shutil.copy("models/cubesat_3u.xml", work / "sat.xml")
+    monkeypatch.chdir(work)
+    assert main(["simulate", "--target", "sat.xml", "--duration-s", "20", "--out", "run.npz", "--quiet"]) == 0
+    mc = ["montecarlo", "--scenario", "default", "--runs", "4", "--block-runs", "2", "--duration-s", "20",
+          "--settle-s", "10", "--quiet"]
+    assert main(mc + ["--target", "sat.xml", "--out", "mc"]) == 0
+    monkeypatch.chdir(other)
+    capsys.readouterr()
+    assert main(["estimate", "--truth", "../work/run.npz", "--out", "e.npz", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "its target file 'sat.xml' cannot be read" in err and "give the file with --target" in err, err
+    assert main(["estimate", "--truth", "../work/run.npz", "--target", "../work/sat.xml", "--out", "e.npz",
+                 "--quiet"]) == 0
+    (other / "edited.xml").write_text((work / "sat.xml").read_text().replace("</mujoco>", "<!-- x --></mujoco>"))
+    capsys.readouterr()
+    assert main(["estimate", "--truth", "../work/run.npz", "--target", "edited.xml", "--out", "f.npz",
+                 "--quiet"]) == 2
+    assert "--target 'edited.xml': not the target file of ../work/run.npz" in capsys.readouterr().err
+    before = (work / "mc" / "summary.json").read_bytes()
+    assert main(mc + ["--target", "../work/sat.xml", "--out", "../work/mc"]) == 0  # resumed: nothing to redo
+    assert (work / "mc" / "summary.json").read_bytes() == before
+    assert main(mc + ["--target", "edited.xml", "--out", "../work/mc"]) == 2
+    assert "holds a campaign of another config" in capsys.readouterr().err
