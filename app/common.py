@@ -112,6 +112,17 @@ def not_applying(args: argparse.Namespace, dests: tuple[str, ...], why: str) -> 
         raise InputError(f"--{given[0].replace('_', '-')}: {why}")
 
 
+NOISE_FLAGS = {"sigma_m": ("markers3d",), "sigma_px": ("pixels", "pixels+range"), "sigma_range_m": ("pixels+range",)}
+
+
+def check_noise_flags(args: argparse.Namespace, kind: str) -> None:
+    """A noise flag of another kind of measurement than the job's `kind` (it would change nothing): InputError."""
+    for dest, kinds in NOISE_FLAGS.items():
+        if getattr(args, dest, None) is not None and kind not in kinds:
+            raise InputError(f"--{dest.replace('_', '-')}: the noise of {' or '.join(kinds)} measurements; this "
+                             f"job measures {kind} (--measurements)")
+
+
 def check_rrd_output(path: str) -> None:
     """--rrd must name a .rrd file that can be written (out_dirs.check_out_file): InputError before any work."""
 

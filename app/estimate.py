@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, init_error_line
+from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_noise_flags, init_error_line
 from envisat_pose.filtering.estimator import FilterConfig, nees, nis_alarms_alone
 from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, recorded_scenario
 from envisat_pose.pipelines.campaigns.estimate import run_estimate as run_pipeline
@@ -106,6 +106,7 @@ def summary(arrays: dict, fcfg: FilterConfig) -> str:
 
 def run_estimate_cli(args: argparse.Namespace) -> int:
     cfg = resolve_config(args)
+    check_noise_flags(args, cfg.measurement.kind)
     res = run_pipeline(cfg, args.out, truth_path=args.truth, scenario=args.scenario, duration_s=args.duration_s,
                        plot=args.plot, rrd=args.rrd, progress=not args.quiet, target=args.target)
     cfg, arrays = res["config"], res["arrays"]

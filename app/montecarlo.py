@@ -10,7 +10,7 @@ import argparse
 import math
 import time
 
-from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_rrd_output, init_error_line
+from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_noise_flags, check_rrd_output, init_error_line
 from envisat_pose.config import InputError, check
 from envisat_pose.out_dirs import make_out_file_dirs
 from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, run_campaign, write_recording
@@ -40,7 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="what is measured of each visible corner (default markers3d)")
     p.add_argument("--sigma-m", type=float, help="3D corner noise per axis, m (default 0.02)")
     p.add_argument("--sigma-px", type=float, help="pixel noise per axis, px (default 1)")
-    p.add_argument("--max-markers", type=int, help="use at most N corners per step, the first visible in A..H order")
+    p.add_argument("--max-markers", type=int, help="use at most N keypoints per step, the first visible in the "
+                   "target's order (A..H for ENVISAT; default all)")
     p.add_argument("--rates-hz", type=float, nargs="+", metavar="HZ",
                    help="a rate sweep: one campaign per filter rate (default: the scenario's [sweep] rates_hz)")
     p.add_argument("--init-error-scale", type=float, metavar="S",
@@ -82,6 +83,7 @@ def runner_config(args: argparse.Namespace):
 
 def run_montecarlo(args: argparse.Namespace) -> int:
     cfg = resolve_config(args)
+    check_noise_flags(args, cfg.measurement.kind)
     runner = runner_config(args)
     sweep = sweep_for(cfg, args.rates_hz, rate_given=args.rate_hz is not None)
     if args.rrd:

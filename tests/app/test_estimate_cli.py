@@ -1,6 +1,7 @@
 """`envisat estimate`: the est.npz contract, determinism, --truth and --scenario, and one-line user errors."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -75,6 +76,22 @@ def test_user_errors_are_one_line(tmp_path, capsys, extra, needle):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and needle in err and "Traceback" not in err
     assert not (tmp_path / "e.npz").exists()
+
+
+@pytest.mark.parametrize("verb", ["estimate", "montecarlo"])
+def test_a_noise_flag_of_another_measurement_is_refused(tmp_path, capsys, verb):
+    """--sigma-px on 3D markers changed nothing (the same bytes out): refused in one line, nothing written; the
+    pixel noise of the pixels scenario is taken."""
+    out = str(tmp_path / ("e.npz" if verb == "estimate" else "mc"))
+    base = [verb, "--duration-s", "10", "--runs", "2", "--out", out, "--quiet"]
+    assert main(base + ["--scenario", "default", "--sigma-px", "5"]) == 2
+    err = capsys.readouterr().err
+    assert "--sigma-px: the noise of pixels or pixels+range measurements; this job measures markers3d" in err, err
+    assert main(base + ["--scenario", "default", "--measurements", "pixels", "--sigma-m", "0.1"]) == 2
+    assert "--sigma-m: the noise of markers3d measurements; this job measures pixels" in capsys.readouterr().err
+    assert not os.path.exists(out)
+    if verb == "estimate":
+        assert main(base + ["--scenario", "pixels-1px", "--sigma-px", "2"]) == 0
 
 
 def test_config_file_then_flags(tmp_path):
