@@ -144,6 +144,13 @@ def check_filter_rate(cfg: MonteCarloConfig, scenario) -> None:
         raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None
 
 
+def campaign_target_record(cfg: MonteCarloConfig) -> dict:
+    """The campaign's target as its summaries record it: its name (the MJCF model's), sha256 and keypoint names
+    (not the path as given: a resume may name the same file from another folder)."""
+    given = truth_scenario(cfg).target.file
+    return {k: v for k, v in load_target(given).record(given).items() if k != "file"}
+
+
 def campaign_title(cfg: MonteCarloConfig, runs: str) -> str:
     """The head of a campaign's figure titles: the target's name (its MJCF model), the scenario, `runs` (e.g. '100
     runs'), the measurement and its noise."""

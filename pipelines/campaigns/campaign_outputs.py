@@ -26,7 +26,7 @@ from envisat_pose.pipelines.campaigns.campaign_block import (
     load_campaign_truth,
     settled_mask,
 )
-from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig, campaign_title
+from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig, campaign_target_record, campaign_title
 from envisat_pose.state import BLOCKS, N_STATE
 
 FIGURES = ("envelopes.png", "block_norms.png", "nees_nis.png", "rmse_vs_pcrlb.png")
@@ -94,7 +94,8 @@ def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
                       "the measurement's rules): the errors and NEES are the prior's, propagated")
     k = settled_mask(tr.t_s, settle)
     summary.update(
-        scenario=cfg.scenario, runs=cfg.runs, seed=cfg.seed, steps=len(tr.t_s), duration_s=cfg.duration_s,
+        scenario=cfg.scenario, target=campaign_target_record(cfg), runs=cfg.runs, seed=cfg.seed, steps=len(tr.t_s),
+        duration_s=cfg.duration_s,
         measurement=to_dict(cfg.measurement),
         pcrlb_rms={b: float(np.sqrt(np.mean(bound[k, i] ** 2))) for i, b in enumerate(BLOCKS)},
         rmse_over_pcrlb=dict(zip(BLOCKS, (float(v) for v in efficiency(stats.rmse_block, bound, tr.t_s, settle)))),

@@ -107,7 +107,9 @@ def render_sweep(c: dict) -> str:
     fig = (f"<figure><img alt=\"{SWEEP_FIGURE}\" src=\"data:image/png;base64,{c['figure']}\"><figcaption>"
            f"{e(SWEEP_CAPTION)}</figcaption></figure>" if c["figure"] else "")
     name = os.path.basename(os.path.normpath(c["dir"])) or c["dir"]
-    return (f"<h2>Rate sweep {e(name)}</h2><p>{e(c['dir'])}: scenario {e(str(s.get('scenario')))}, "
+    target = (s.get("target") or {}).get("name") or campaign_target(c["config"])
+    return (f"<h2>Rate sweep {e(name)}</h2><p>{e(c['dir'])}: target {e(str(target))}, scenario "
+            f"{e(str(s.get('scenario')))}, "
             f"{s.get('runs')} runs per rate over {_fmt(s.get('duration_s'))} s, seed {s.get('seed')}, statistics "
             f"after {_fmt(s.get('settle_s'))} s. {e(verdict)}</p><table><tr>"
             + "".join(f"<th>{e(h)}</th>" for h in head) + "</tr>" + "".join(rows) + "</table>" + fig

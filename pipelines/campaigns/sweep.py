@@ -17,7 +17,7 @@ from envisat_pose.io import atomic_write_text, json_safe
 from envisat_pose.named_scenarios import table
 from envisat_pose.out_dirs import make_out_dir
 from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig, check_filter_rate, run_campaign, truth_scenario
-from envisat_pose.pipelines.campaigns.campaign_config import campaign_title
+from envisat_pose.pipelines.campaigns.campaign_config import campaign_target_record, campaign_title
 from envisat_pose.pools import RunnerConfig
 from envisat_pose.resumable import manifest_path, remove_partial_files
 from envisat_pose.state import BLOCKS
@@ -170,7 +170,8 @@ def sweep_result(cfg: MonteCarloConfig, sweep: SweepConfig, rates: list, summari
         if not ok:
             break
         lowest = rate
-    return {"format": SWEEP_FORMAT, "scenario": cfg.scenario, "runs": cfg.runs, "seed": cfg.seed,
+    return {"format": SWEEP_FORMAT, "scenario": cfg.scenario, "target": campaign_target_record(cfg),
+            "runs": cfg.runs, "seed": cfg.seed,
             "duration_s": cfg.duration_s, "settle_s": summaries[0]["settle_s"], "rates_hz": list(rates),
             "campaigns": [rate_folder(r) for r in rates], "steps": [s["steps"] for s in summaries],
             "rmse": per_block("rmse"), "pcrlb_rms": per_block("pcrlb_rms"), "rmse_over_pcrlb": ratio,

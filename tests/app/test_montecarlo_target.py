@@ -233,6 +233,9 @@ def test_a_target_file_named_from_elsewhere_is_the_same_file(tmp_path, monkeypat
                  "--quiet"]) == 2
     assert "--target 'edited.xml': not the target file of ../work/run.npz" in capsys.readouterr().err
     before = (work / "mc" / "summary.json").read_bytes()
+    record = json.loads(before)["target"]  # the summary names its target (the model's name, the file's sha256)
+    sat = load_target(str(work / "sat.xml"))
+    assert record["name"] == sat.name and record["sha256"] == sat.sha256 and "file" not in record
     assert main(mc + ["--target", "../work/sat.xml", "--out", "../work/mc"]) == 0  # resumed: nothing to redo
     assert (work / "mc" / "summary.json").read_bytes() == before
     assert main(mc + ["--target", "edited.xml", "--out", "../work/mc"]) == 2
