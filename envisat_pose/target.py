@@ -317,8 +317,23 @@ def _model_name(spec, path: str) -> str:
     return spec.modelname if stated and spec.modelname else os.path.splitext(os.path.basename(path))[0]
 
 
+class _Naming:
+    """How a caller names the file (`field`, `given`: its errors' and warnings' words), left out of _load's cache
+    key: the same file named two ways is one load, its warnings said once."""
+
+    def __init__(self, field: str, given: str):
+        self.field, self.given = field, given
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, _Naming)
+
+    def __hash__(self) -> int:
+        return 0
+
+
 @functools.lru_cache(maxsize=16)
-def _load(path: str, stamps: tuple, field: str, given: str) -> Target:
+def _load(path: str, stamps: tuple, naming: _Naming) -> Target:
+    field, given = naming.field, naming.given
     sha256 = target_sha256(path)
     spec, own_scene, fused, latched = read_spec(path, field, given)
     try:
@@ -387,7 +402,7 @@ def load_target(given: str = DEFAULT_TARGET, field: str = "target") -> Target:
         _fail(field, given, "an MJCF file (no such file)")
     files = [f for f in (path, *named_files(path)) if os.path.isfile(f)]
     stamps = tuple((os.stat(f).st_mtime_ns, os.stat(f).st_size) for f in files)
-    return _load(path, stamps, field, given)
+    return _load(path, stamps, _Naming(field, given))
 
 
 def is_default_file(given: str) -> bool:

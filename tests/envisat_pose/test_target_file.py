@@ -6,6 +6,8 @@ not by MuJoCo; MuJoCo's own fusestatic does the fusing under test.
 """
 
 import hashlib
+import os
+import warnings
 
 import mujoco
 import numpy as np
@@ -142,6 +144,9 @@ def test_joints_are_latched_at_the_files_reference_pose(tmp_path, pair):
     mujoco.MjModel.from_xml_path(str(path))  # a file MuJoCo loads
     with pytest.warns(UserWarning, match=r"2 joint\(s\) latched .*loose, hinge"):
         hinged = load_target(str(path))
+    with warnings.catch_warnings():  # the same file named another way: the same load, said once (it was twice)
+        warnings.simplefilter("error")
+        assert load_target(os.path.relpath(path)) is hinged
     flat = pair[1]
     assert hinged.latched_joints == ("loose", "hinge")
     np.testing.assert_allclose(hinged.keypoints_T_m, flat.keypoints_T_m, atol=1e-12)
