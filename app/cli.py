@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"envisat {args.verb}: error: {text}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"envisat {args.verb}: interrupted", file=sys.stderr)
+        print(f"envisat {args.verb}: interrupted{interrupt_hint(args)}", file=sys.stderr)
         return 130
     except BrokenPipeError:  # the reader went away (`envisat ... | head`): stop quietly, as `cat` does
         devnull = os.open(os.devnull, os.O_WRONLY)
@@ -68,8 +68,15 @@ def main(argv: list[str] | None = None) -> int:
             raise
         # Ctrl-C landed inside an import (MuJoCo's, torch's): the cleanup's own import of the half-loaded module
         # then fails; the user asked to stop, and is told so
-        print(f"envisat {args.verb}: interrupted", file=sys.stderr)
+        print(f"envisat {args.verb}: interrupted{interrupt_hint(args)}", file=sys.stderr)
         return 130
+
+
+def interrupt_hint(args: argparse.Namespace) -> str:
+    """What an interrupted verb's line adds: a resumable job's way on (its `resumable` default: the same command
+    again finishes what it wrote), nothing for the others (their outputs are staged: nothing was written)."""
+    return "; run the same command again to finish it (what is written is kept)" if getattr(
+        args, "resumable", False) else ""
 
 
 def after_interrupt(err: BaseException) -> bool:

@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--out", required=True, metavar="DIR", help="dataset folder (created, parents too; resumed if it "
                    "holds a dataset; a folder of other files is refused)")
     add_common(g, quiet=True)
-    g.set_defaults(func=run_generate_cli)
+    g.set_defaults(func=run_generate_cli, resumable=True)
 
 
 def resolve_config(args: argparse.Namespace):

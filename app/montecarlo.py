@@ -55,7 +55,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rrd", metavar="FILE.rrd",
                    help="also write a Rerun recording: truth, run 0's estimate with its 3-sigma ellipsoid, the kept "
                    "sample runs' errors with the campaign's +-3 sigma bands (`envisat view FILE`)")
-    p.set_defaults(func=run_montecarlo)
+    p.set_defaults(func=run_montecarlo, resumable=True)
 
 
 def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:

@@ -44,3 +44,25 @@ def test_a_sequence_in_the_earths_shadow_is_said_to_be(tmp_path, capsys):
     lit.write_text("sun_dir = [0.0, 0.0, 1.0]\n")  # along the orbit normal: never behind the Earth
     assert main(args + ["--config", str(lit), "--out", str(tmp_path / "lit")]) == 0
     assert "shadow" not in capsys.readouterr().err
+
+
+def test_an_interrupted_resumable_job_says_how_to_go_on(tmp_path, monkeypatch, capsys):
+    """Ctrl-C in generate or montecarlo (resumable: the same command finishes what they wrote) says so; a verb
+    whose outputs are staged says only that it was interrupted."""
+    import envisat_pose.app.generate as generate
+    import envisat_pose.app.montecarlo as montecarlo
+    import envisat_pose.app.simulate as simulate
+
+    def stop(args):
+        raise KeyboardInterrupt
+
+    for module, name in ((generate, "run_generate_cli"), (montecarlo, "run_montecarlo"),
+                         (simulate, "run_simulate_cli")):
+        monkeypatch.setattr(module, name, stop)
+    hint = "run the same command again to finish it"
+    assert main(["generate", "--out", str(tmp_path / "g")]) == 130
+    assert capsys.readouterr().err.startswith(f"envisat generate: interrupted; {hint}")
+    assert main(["montecarlo", "--scenario", "default", "--out", str(tmp_path / "m")]) == 130
+    assert capsys.readouterr().err.startswith(f"envisat montecarlo: interrupted; {hint}")
+    assert main(["simulate", "--out", str(tmp_path / "r.npz")]) == 130
+    assert capsys.readouterr().err.strip() == "envisat simulate: interrupted"
