@@ -5,6 +5,7 @@ folder). A file on the path is one InputError naming the field and the path.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from typing import Sequence
 
@@ -50,6 +51,24 @@ def make_out_dir(out_dir: str, subdirs: Sequence[str] = (), parents: bool = True
     reason = _made_writable([out_dir, *(os.path.join(out_dir, s) for s in subdirs)])
     if reason:
         raise InputError(f"{field} {out_dir!r}: cannot write there ({reason})")
+
+
+@contextlib.contextmanager
+def made_out_dir(out_dir: str, parents: bool = True, field: str = "out_dir"):
+    """make_out_dir for a job's block: a folder this call made is removed again, with the parents it made, when
+    the block fails or is interrupted and leaves them empty (a folder that was there stays, whatever it holds)."""
+    made, folder = [], os.path.abspath(out_dir)
+    while not os.path.exists(folder):
+        made.append(folder)
+        folder = os.path.dirname(folder)
+    make_out_dir(out_dir, parents=parents, field=field)
+    try:
+        yield
+    except BaseException:
+        for folder in made:  # deepest first
+            with contextlib.suppress(OSError):
+                os.rmdir(folder)  # only an empty one
+        raise
 
 
 def _made_writable(folders: list[str]) -> str | None:

@@ -42,7 +42,7 @@ from envisat_pose.datagen.views import sample_seed
 from envisat_pose.filtering.estimator import filter_inertia_T_kg_m2
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import atomic_write_text, staged_folder
-from envisat_pose.out_dirs import make_out_dir
+from envisat_pose.out_dirs import made_out_dir
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import run_frames
 from envisat_pose.pipelines.runs.loop_frames import FrameMaker, PlanAhead, closed_loop_frames
@@ -192,9 +192,8 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = False, sink: 
     cfg, out_dir = config_arg(cfg, RunConfig), path_arg(out_dir, "out_dir")
     if sink is not None:
         check_sink(sink)  # before the folder is made
-    make_out_dir(out_dir, parents=True, field="out_dir")
     names = [os.path.basename(p) for p in run_output_paths(out_dir).values()]
-    with staged_folder(out_dir, names) as stage:
+    with made_out_dir(out_dir), staged_folder(out_dir, names) as stage:
         return _run_closed_loop(cfg, stage, progress, sink)
 
 

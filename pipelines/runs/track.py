@@ -38,7 +38,7 @@ from envisat_pose.datagen.scenario import OrbitConfig
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.io import atomic_write_text, staged_folder
-from envisat_pose.out_dirs import check_out_dir, make_out_dir
+from envisat_pose.out_dirs import check_out_dir, made_out_dir
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
@@ -174,8 +174,7 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     used = camera_record(camera, camera_file, remap is not None)
     # the detector before any output: another target's weights without their calibration are refused here
     detector = tracker_detector(cfg.weights, target=cfg.target, bf16=cfg.bf16)
-    make_out_dir(out_dir, field="out_dir")
-    with staged_folder(out_dir, OUTPUTS.values()) as stage, compute_threads(cfg.threads):
+    with made_out_dir(out_dir), staged_folder(out_dir, OUTPUTS.values()) as stage, compute_threads(cfg.threads):
         return _track(cfg, source, camera, remap, stage, sink, progress, pixels, detector, used)
 
 

@@ -219,3 +219,20 @@ def test_a_run_at_another_size_says_which_pixels_are_whose(tmp_path, detector_we
     uv = cam["f_px"] * p[..., :2] / p[..., 2:] + [cam["cx_px"], cam["cy_px"]]
     s = cam["width_px"] / load_camera().width_px
     np.testing.assert_allclose((truth.corners_px + 0.5) * s - 0.5, uv, rtol=0, atol=1e-6)
+
+
+def test_an_interrupted_run_leaves_no_folder_it_made(tmp_path, detector_weights, monkeypatch):
+    """Ctrl-C in a run into a new folder (parents too) removes what it made, when empty; a folder that was there
+    stays, with what it held (an earlier run's outputs)."""
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(loop, "_run_closed_loop", stop)
+    with pytest.raises(KeyboardInterrupt):
+        loop.run_closed_loop(run_cfg(detector_weights), str(tmp_path / "new" / "run"))
+    assert os.listdir(tmp_path) == []
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "summary.json").write_text("{}")
+    with pytest.raises(KeyboardInterrupt):
+        loop.run_closed_loop(run_cfg(detector_weights), str(tmp_path / "old"))
+    assert os.listdir(tmp_path / "old") == ["summary.json"]
