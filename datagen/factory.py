@@ -43,7 +43,7 @@ from envisat_pose.pools import RunnerConfig, cpu_share, thread_env
 from envisat_pose.resumable import ResumableJob
 from envisat_pose.shard_reader import shard_problem
 from envisat_pose.state import MRP, POS, RATE, VEL
-from envisat_pose.target import load_target
+from envisat_pose.target import APPENDAGE_GROUP, load_target
 
 MANIFEST_FORMAT = "envisat-pose shards v1"
 # generate_shard's helper threads (same bytes either way): one draws the views, one finishes sample k (the
@@ -106,7 +106,8 @@ def with_appearance(cfg: GenerateConfig, view, scene: dict, seed: int) -> tuple:
     scene = dict(scene)
     scene.update({
         "appearance": cfg.appearance_on,
-        "appendages": cfg.appendages_on,
+        # drawn where the switch is on and the target has such geoms (APPENDAGE_GROUP: ENVISAT's ASAR and boxes)
+        "appendages": cfg.appendages_on and any(g.group == APPENDAGE_GROUP for g in target.geoms),
         **({"face_classes": {g: classes[g] for g in FACE_GEOMS}} if by_class else {}),
         "earthshine": {"intensity": earth_i, "earth_phase": round(phase, 6), "albedo": round(albedo, 6),
                        "dir_cam": None if view.earth_dir_C is None else (-R_K_FROM_C @ unit(view.earth_dir_C)).tolist()},

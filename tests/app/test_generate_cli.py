@@ -66,3 +66,17 @@ def test_an_interrupted_resumable_job_says_how_to_go_on(tmp_path, monkeypatch, c
     assert capsys.readouterr().err.startswith(f"envisat montecarlo: interrupted; {hint}")
     assert main(["simulate", "--out", str(tmp_path / "r.npz")]) == 130
     assert capsys.readouterr().err.strip() == "envisat simulate: interrupted"
+
+
+def test_appendages_are_recorded_only_where_the_target_has_them(tmp_path):
+    """Random views switch ENVISAT's appendages (geom group 4) on; the CubeSat has none, so its labels say none
+    were drawn (they said 'on', and `dataset inspect` counted them)."""
+    from envisat_pose.datagen.dataset import dataset_stats, iter_samples
+    from envisat_pose.shard_reader import checked_shards
+
+    for target, drawn in (("models/envisat.xml", True), ("models/cubesat_3u.xml", False)):
+        out = str(tmp_path / target.split("/")[-1])
+        assert main(["generate", "--target", target, "--num-images", "2", "--resolution", "48", "--out", out,
+                     "--quiet"]) == 0
+        assert [label["scene"]["appendages"] for _, label, _ in iter_samples(checked_shards(out)[0])] == [drawn] * 2
+        assert ("appendages" in dataset_stats(out)["corruption_levels"]) == drawn
