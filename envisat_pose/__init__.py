@@ -19,6 +19,8 @@ The public API, imported on first use (so `import envisat_pose` loads nothing he
   `DetectJobConfig`, `run_detect` (envisat_pose.pipelines.detector.detect), `run_evaluate`
   (envisat_pose.pipelines.detector.evaluate), `CalibrateJobConfig`, `run_calibration`
   (envisat_pose.pipelines.detector.calibrate), `AdaptConfig`, `adapt` (envisat_pose.pipelines.adaptation.adapt);
+  another target's keypoint detector (`--target`): `TargetDetectJobConfig`, `run_detect_target`,
+  `evaluate_target_detector`, `run_calibrate_target` (envisat_pose.pipelines.detector.*_target);
 - the target: `Target`, `load_target` (envisat_pose.target: one spacecraft from its MJCF file; ENVISAT's by default);
 - the state's layout: `envisat_pose.state`.
 """
@@ -48,6 +50,10 @@ _PUBLIC = {
     "run_evaluate": "envisat_pose.pipelines.detector.evaluate",
     "CalibrateJobConfig": "envisat_pose.pipelines.detector.calibrate",
     "run_calibration": "envisat_pose.pipelines.detector.calibrate",
+    "TargetDetectJobConfig": "envisat_pose.pipelines.detector.detect_target",
+    "run_detect_target": "envisat_pose.pipelines.detector.detect_target",
+    "evaluate_target_detector": "envisat_pose.pipelines.detector.evaluate_target",
+    "run_calibrate_target": "envisat_pose.pipelines.detector.calibrate_target",
     "AdaptConfig": "envisat_pose.pipelines.adaptation.adapt", "adapt": "envisat_pose.pipelines.adaptation.adapt",
     "Target": "envisat_pose.target", "load_target": "envisat_pose.target",
 }

@@ -465,7 +465,8 @@ def require_weights_target(weights: str, trained_for: dict | None, given: str, f
                          f"--target {given}` wrote")
     theirs = f"target {trained_for.get('name')!r} (sha256 {str(trained_for.get('sha256'))[:12]})"
     if is_default_file(given):
-        raise InputError(f"{field} {weights!r}: the keypoint detector of {theirs}, not ENVISAT's ({DEFAULT_TARGET})")
+        raise InputError(f"{field} {weights!r}: the keypoint detector of {theirs}, not ENVISAT's ({DEFAULT_TARGET}): "
+                         "give their target file (`target`; in Python the *_target calls, e.g. run_detect_target)")
     t = load_target(given)
     if t.sha256 != trained_for.get("sha256"):
         raise InputError(f"{field} {weights!r}: the keypoint detector of {theirs}, not of target {t.name!r} "

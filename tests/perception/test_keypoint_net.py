@@ -72,7 +72,11 @@ def test_weights_load_only_for_their_own_target(files):
     twin, other, weights = files
     with pytest.raises(InputError, match="keypoint detector of target 'twin_box'.*not ENVISAT's") as err:
         load_model(weights)
-    assert "\n" not in str(err.value)
+    assert "\n" not in str(err.value) and "run_detect_target" in str(err.value)  # where a Python caller goes
+    import envisat_pose
+
+    assert {"TargetDetectJobConfig", "run_detect_target", "evaluate_target_detector",
+            "run_calibrate_target"} <= set(envisat_pose.__all__)
     with pytest.raises(InputError, match="ENVISAT's corner detector.*not a detector of target 'twin_box'"):
         load_keypoint_model(shipped_weights_path(), twin)
     with pytest.raises(InputError, match="not of target 'twin_box' .*other.xml, sha256"):
