@@ -35,6 +35,17 @@ def _data_name(records: list[dict]) -> str:
     return ", ".join(one(r) for r in records)
 
 
+def _config_changes(saved: list[dict], data: list[dict]) -> str:
+    """' (generate.resolution_px 512 -> 256; ...)': the differences of online runs' recorded configs (the
+    records' 'configs'; runs written before they were recorded: '')."""
+    changed = []
+    for was, now in zip(saved, data):
+        a, b = flatten(was.get("configs") or {}), flatten(now.get("configs") or {})
+        if a and b:
+            changed += [f"{k} {a.get(k)!r} -> {b.get(k)!r}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+    return f" ({'; '.join(changed[:4])}{'; ...' if len(changed) > 4 else ''})" if changed else ""
+
+
 def check_same_target(run_dir: str, saved: list[dict], data: list[dict]) -> None:
     """InputError when a run rendering another target's frames is resumed with that target's file changed (its
     data record's target_sha256 differs; records without one, ENVISAT's and older runs', are left to the data
@@ -70,8 +81,8 @@ def check_resume(run_dir: str, cfg, data: list[dict] | None) -> tuple[dict, dict
 
         if key(saved["data"]) != key(data):
             raise InputError(f"resume: {run_dir!r} was trained on {_data_name(saved['data'])}, not on "
-                             f"{_data_name(data)}: resume with the same data, or start a new run with "
-                             "`init` = its checkpoint")
+                             f"{_data_name(data)}{_config_changes(saved['data'], data)}: resume with the same data, "
+                             "or start a new run with `init` = its checkpoint")
     with open(os.path.join(run_dir, "state.json"), encoding="utf-8") as fh:
         return json.load(fh), saved
 

@@ -56,15 +56,21 @@ def step_seed(seed: int, step: int) -> int:
     return int(np.random.SeedSequence([seed, STEP_KEY, step]).generate_state(1, dtype=np.uint64)[0] >> 1)
 
 
-def run_identity(looks, data_cfg, seed: int, batch_size: int, uses_per_frame: int) -> dict:
-    """What a state must match to resume a run: seed, N, K and the sha256 of the configs (a GenerateConfig, or
-    the looks with their shares of the period)."""
+def run_configs(looks, data_cfg) -> dict:
+    """The configs an online run renders and crops by: its GenerateConfig (or the looks with their shares of the
+    period) and the data config, as plain data (what run_identity hashes; a resume's refusal names their
+    differences)."""
     looks = as_looks(looks)
     if len(looks) == 1:  # one look: its config alone (the record of runs made before mixes)
         source = {"generate": to_dict(looks[0].generate)}
     else:
         source = {"looks": [dict(look.record(), share=int(n)) for look, n in zip(looks, look_shares(looks))]}
-    text = json.dumps(dict(source, data=data_cfg.to_dict()), sort_keys=True)
+    return dict(source, data=data_cfg.to_dict())
+
+
+def run_identity(looks, data_cfg, seed: int, batch_size: int, uses_per_frame: int) -> dict:
+    """What a state must match to resume a run: seed, N, K and the sha256 of the configs (run_configs)."""
+    text = json.dumps(run_configs(looks, data_cfg), sort_keys=True)
     return {"format": ONLINE_FORMAT, "seed": int(seed), "batch_size": int(batch_size),
             "uses_per_frame": int(uses_per_frame), "config_sha256": hashlib.sha256(text.encode()).hexdigest()}
 

@@ -21,7 +21,7 @@ from envisat_pose.io import sha256_file
 from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.perception.weights_keys import MODEL_CONFIG_KEY
 from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, look_shares
-from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_identity
+from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_configs, run_identity
 from envisat_pose.pipelines.detector.render_pool import looks_keypoints
 from envisat_pose.provenance import manifest_sha256
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
@@ -319,7 +319,8 @@ def online_source(online: OnlineConfig, cfg, device: str, task, target) -> tuple
         sha = hashlib.sha256(f"{sha} {target.sha256}".encode()).hexdigest()
     mix = ", ".join(f"{look.name} {n} %" for look, n in zip(online.looks, look_shares(online.looks)))
     what = "" if target is None else f"target {target.name}, "
-    data = [{"name": f"online ({what}{mix}, K = {online.uses_per_frame})", "manifest_sha256": sha, "images": None}]
+    data = [{"name": f"online ({what}{mix}, K = {online.uses_per_frame})", "manifest_sha256": sha, "images": None,
+             "configs": json.loads(json.dumps(run_configs(online.looks, cfg.data), sort_keys=True))}]
     if target is not None:
         data[0]["target_sha256"] = target.sha256  # named apart, so a resume can say the target file changed
 

@@ -212,3 +212,22 @@ def test_the_budget_bar_shows_every_step_and_the_loss_it_last_read():
         assert f"step={step}," in str(bar), (step, str(bar))
     assert f"loss={1.0 / th.POSTFIX_EVERY:.3f}" in str(bar)  # the last reading, at step POSTFIX_EVERY
     hook.after_train()
+
+
+def test_a_resume_on_other_online_frames_names_what_changed(tmp_path):
+    """Two online runs' records read alike ('online (target t, default 100 %, K = 8)') when a render setting
+    differs: the refusal spells out the recorded configs' differences (it named two hashes only)."""
+    from envisat_pose.perception.train import TrainConfig
+    from envisat_pose.perception.train_run import check_resume
+
+    cfg = TrainConfig()
+    name = "online (target t, default 100 %, K = 8)"
+    was = {"name": name, "manifest_sha256": "a" * 64, "images": None,
+           "configs": {"generate": {"resolution_px": 512, "seed": 0}, "data": {"crop_px": 256}}}
+    (tmp_path / "config.json").write_text(json.dumps({"train": cfg.to_dict(), "data": [was]}))
+    (tmp_path / "state.json").write_text(json.dumps({"step": 3}))
+    now = dict(was, manifest_sha256="b" * 64, configs={"generate": {"resolution_px": 256, "seed": 0},
+                                                        "data": {"crop_px": 256}})
+    with pytest.raises(InputError, match=r"\(generate\.resolution_px 512 -> 256\): resume with the same data"):
+        check_resume(str(tmp_path), cfg, [now])
+    assert check_resume(str(tmp_path), cfg, [was])[0] == {"step": 3}

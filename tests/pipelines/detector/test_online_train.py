@@ -44,6 +44,8 @@ def test_an_online_run_resumes_to_the_weights_of_an_uninterrupted_one(tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)
     record = json.load(open(os.path.join(whole, "config.json")))
     assert record["online"]["uses_per_frame"] == 2 and record["data"][0]["name"] == "online (default 100 %, K = 2)"
+    configs = record["data"][0]["configs"]  # what a resume's refusal compares, the run's own numbers
+    assert configs["generate"]["resolution_px"] == online().looks[0].generate.resolution_px and "data" in configs
 
 
 def test_the_verb_takes_data_or_online_not_both(tmp_path, capsys):
