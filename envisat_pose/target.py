@@ -469,5 +469,7 @@ def require_weights_target(weights: str, trained_for: dict | None, given: str, f
                          "give their target file (`target`; in Python the *_target calls, e.g. run_detect_target)")
     t = load_target(given)
     if t.sha256 != trained_for.get("sha256"):
+        same = " (the same name: the file's bytes, or a file it names, changed since training; any edit, a comment "\
+            "too, makes another target)" if t.name == trained_for.get("name") else ""
         raise InputError(f"{field} {weights!r}: the keypoint detector of {theirs}, not of target {t.name!r} "
-                         f"({given}, sha256 {t.sha256[:12]}): give the weights trained on this file")
+                         f"({given}, sha256 {t.sha256[:12]}){same}: give the weights trained on this file")
