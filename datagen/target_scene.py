@@ -68,8 +68,9 @@ def full_precision(text: str, target: Target) -> str:
     """The scene text with the target body's numbers as the file alone compiles them, to the last bit: MuJoCo's
     to_xml writes 6 significant digits (an inertia 1e-6 off turns a tumble 2e-5 rad away in 30 minutes; a site
     3 um off). The inertial becomes MuJoCo's principal moments and axes in T (added where the file states none),
-    each site its position and orientation, each geom its compiled numbers (target_file.set_compiled_geom: a primitive's pose
-    and size, a fromto resolved; a mesh's pose less its own centring, which the scene applies again)."""
+    each site its position and orientation, each geom its compiled numbers (target_file.set_compiled_geom: a
+    primitive's pose and size, a fromto resolved; a mesh's pose less its own centring, which the scene applies
+    again)."""
     root = ET.fromstring(text)
     body = next(b for b in root.iter("body") if b.get("name") == "target")
     alone = compiled_alone(target)

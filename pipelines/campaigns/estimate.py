@@ -48,11 +48,11 @@ class EstimateConfig(Config):
     the config of `envisat estimate --scenario NAME --runs 4` (pipelines.jobs.resolve_job adds a config file and
     flags). scenario: the named scenario whose truth is simulated (None: a truth file's job, which takes the
     scenario the truth records where measurement and filter are the plain defaults, as the verb does:
-    with_recorded_scenario; run_estimate takes it as its scenario when given neither a truth file nor a scenario); measurement and filter left None take the
-    scenario's [measurement] and [filter] tables over the classes' defaults (job_defaults.fill_from_scenario; no
-    scenario: the defaults); runs and the root seed. init_error_scale: each run's initial error is drawn from
-    N(0, init_error_scale^2 P0) while the filter is told P0 (1: a consistent start; 3: a filter whose P0 is three
-    times too tight).
+    with_recorded_scenario; run_estimate takes it as its scenario when given neither a truth file nor a scenario);
+    measurement and filter left None take the scenario's [measurement] and [filter] tables over the classes'
+    defaults (job_defaults.fill_from_scenario; no scenario: the defaults); runs and the root seed. init_error_scale:
+    each run's initial error is drawn from N(0, init_error_scale^2 P0) while the filter is told P0 (1: a consistent
+    start; 3: a filter whose P0 is three times too tight).
 
     Run r draws its initial error and noise from SeedSequence(seed).spawn(runs)[r]; with a scenario the
     truth's random initial attitude comes from the same seed.
