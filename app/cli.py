@@ -40,7 +40,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    try:  # the verbs' modules load numpy, scipy and the rest: Ctrl-C there is an interrupt, not a traceback
+        parser = build_parser()
+    except KeyboardInterrupt:
+        print("envisat: interrupted", file=sys.stderr)
+        return 130
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # the command as typed (a run's record)
 

@@ -80,3 +80,15 @@ def test_appendages_are_recorded_only_where_the_target_has_them(tmp_path):
                      "--quiet"]) == 0
         assert [label["scene"]["appendages"] for _, label, _ in iter_samples(checked_shards(out)[0])] == [drawn] * 2
         assert ("appendages" in dataset_stats(out)["corruption_levels"]) == drawn
+
+
+def test_ctrl_c_while_the_verbs_load_is_one_line(monkeypatch, capsys):
+    """The verbs' modules are imported before a verb runs (numpy, scipy): Ctrl-C there printed a traceback."""
+    import envisat_pose.app.cli as cli
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", interrupted)
+    assert main(["generate", "--out", "x"]) == 130
+    assert capsys.readouterr().err == "envisat: interrupted\n"
