@@ -112,6 +112,20 @@ def not_applying(args: argparse.Namespace, dests: tuple[str, ...], why: str) -> 
         raise InputError(f"--{given[0].replace('_', '-')}: {why}")
 
 
+def job_scenario(flag: str | None, config_path: str | None, fallback: str | None = "default") -> str | None:
+    """A job's scenario: the --scenario typed, else its config file's top-level `scenario` (what a run's written
+    config records: it reproduces the run), else `fallback`."""
+    if flag is not None:
+        return flag
+    if config_path is not None:
+        from envisat_pose.config import load_toml
+
+        named = load_toml(config_path).get("scenario")
+        if named is not None:
+            return named  # the job's config checks it is a known name
+    return fallback
+
+
 NOISE_FLAGS = {"sigma_m": ("markers3d",), "sigma_px": ("pixels", "pixels+range"), "sigma_range_m": ("pixels+range",)}
 
 

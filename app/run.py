@@ -11,7 +11,13 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import add_bf16_argument, add_common, add_recording_arguments, recording_sink
+from envisat_pose.app.common import (
+    add_bf16_argument,
+    add_common,
+    add_recording_arguments,
+    job_scenario,
+    recording_sink,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,7 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scenario", default="default", help="named scenario (`envisat scenarios` lists them)")
+    p.add_argument("--scenario", help="named scenario (`envisat scenarios` lists them; default: the --config "
+                   "file's, else default)")
     p.add_argument("--duration-s", type=float, help="simulated time, s (default: the scenario's)")
     p.add_argument("--runs", type=int, help="closed loops on the same truth (camera noise; default 1)")
     p.add_argument("--workers", type=int, help="processes for --runs (default: min(runs, CPU cores))")
@@ -61,7 +68,7 @@ def resolve_config(args: argparse.Namespace):
              "tracker.roi.enabled": False if args.no_roi else None,
              "image.target": args.target, "render_window": False if args.full_frames else None,
              "bf16": True if args.bf16 else None}
-    return resolve_job("run", args.scenario, args.config, flags)
+    return resolve_job("run", job_scenario(args.scenario, args.config), args.config, flags)
 
 
 def print_table(summary: dict) -> None:

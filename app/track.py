@@ -12,6 +12,7 @@ from envisat_pose.app.common import (
     add_frame_inputs,
     add_recording_arguments,
     add_skip_damaged_argument,
+    job_scenario,
     recording_sink,
     skipped_line,
 )
@@ -60,7 +61,7 @@ def track_cli(args: argparse.Namespace) -> int:
     check_out_dir(args.out)
     with skip_hint():
         source = open_source(args.images, args.rate_hz or 0.0, args.timestamps, args.bit_depth, args.skip_damaged)
-    cfg = resolve_job("track", args.scenario or source.scenario or "default", args.config,
+    cfg = resolve_job("track", job_scenario(args.scenario, args.config, None) or source.scenario or "default", args.config,
                       rate_hz=args.rate_hz, weights=args.weights, target=args.target,
                       bf16=True if args.bf16 else None)
     sink = recording_sink(args)

@@ -236,3 +236,22 @@ def test_an_interrupted_run_leaves_no_folder_it_made(tmp_path, detector_weights,
     with pytest.raises(KeyboardInterrupt):
         loop.run_closed_loop(run_cfg(detector_weights), str(tmp_path / "old"))
     assert os.listdir(tmp_path / "old") == ["summary.json"]
+
+
+def test_a_config_files_scenario_is_the_runs_unless_the_flag_says_another(tmp_path):
+    """run.config.toml records the scenario: given back with --config it is the run's (the flag's default,
+    'default', once overrode it without a word, so the written config did not reproduce a stress-tumble run);
+    --scenario typed still wins."""
+    from envisat_pose.app.cli import build_parser
+    from envisat_pose.app.run import resolve_config
+    from envisat_pose.config import to_dict, to_toml
+    from envisat_pose.pipelines.jobs import resolve_job
+
+    written = tmp_path / "run.config.toml"
+    written.write_text(to_toml(to_dict(resolve_job("run", "stress-tumble", duration_s=5.0))))
+    parse = build_parser().parse_args
+    cfg = resolve_config(parse(["run", "--config", str(written), "--out", "x"]))
+    assert cfg.scenario == "stress-tumble" and cfg == resolve_job("run", "stress-tumble", duration_s=5.0)
+    assert resolve_config(parse(["run", "--config", str(written), "--scenario", "slow-tumble", "--out", "x"])
+                          ).scenario == "slow-tumble"
+    assert resolve_config(parse(["run", "--out", "x"])).scenario == "default"
