@@ -50,7 +50,6 @@ was):
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import hashlib
 import json
@@ -63,7 +62,7 @@ import numpy as np
 
 from envisat_pose.config import Config, InputError, as_path_or_object, check, config_arg, path_arg, to_dict
 from envisat_pose.io import atomic_write_text, stage_prefix, staged_folder
-from envisat_pose.out_dirs import check_out_dir, make_out_dir
+from envisat_pose.out_dirs import check_out_dir, made_out_dir
 from envisat_pose.perception.weights_keys import COV_CALIBRATION_KEY, COV_SCALE_KEY, ERROR_MODEL_KEY
 from envisat_pose.pipelines.adaptation.fine_tune import ADAPT_PARAMS, fine_tune, save_adapted
 from envisat_pose.pipelines.adaptation.pseudo_labels import label_record
@@ -242,6 +241,11 @@ class AdaptRun:
     q_sigma: tuple
     dyn: dict
     given_response: tuple = (None, None)  # the camera file's (response, psf_sigma_px), None where it does not say
+    camera_file: str | None = None  # the camera TOML given: the tracks read it again and record it by name
+
+    def track_camera(self) -> tuple:
+        """(camera, remap) as track_frames takes them: the file given, else the pinhole and its remap."""
+        return (self.camera_file, None) if self.camera_file else (self.camera, self.remap)
 
 
 def label_step(run: AdaptRun, track_dir: str) -> tuple[dict, list[np.ndarray]]:
@@ -331,7 +335,7 @@ def adapt_round(run: AdaptRun, r: int, track_dir: str, weights: str, seed: np.ra
         timing[f"recalibrate_{r}"] = time.perf_counter() - t1
     after_dir = round_dir(run, r)
     t1 = time.perf_counter()
-    track_frames(dataclasses.replace(run.tcfg, weights=candidate), run.source, run.camera, run.remap, after_dir,
+    track_frames(dataclasses.replace(run.tcfg, weights=candidate), run.source, *run.track_camera(), after_dir,
                  progress=run.progress)
     timing[f"track_after_{r}"] = time.perf_counter() - t1
     info["after"] = track_figures(after_dir, run.cut)
@@ -339,7 +343,7 @@ def adapt_round(run: AdaptRun, r: int, track_dir: str, weights: str, seed: np.ra
 
 
 def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: str, progress: bool,
-           command: list[str] | None, given_response: tuple = (None, None)) -> dict:
+           command: list[str] | None, given_response: tuple = (None, None), camera_file: str | None = None) -> dict:
     """The job inside its stage: track before, cfg.rounds adapt_round's (each from the last round's track and
     weights, the earlier round's files removed), the held-out verdict (worse_reason), _finish."""
     import shutil
@@ -347,9 +351,9 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
     t0 = time.perf_counter()
     T = len(source.t_s)
     run = AdaptRun(cfg, tcfg, source, camera, remap, stage, progress, int(np.floor(T * (1.0 - cfg.held_out))),
-                   *smoother_model(tcfg), given_response)
+                   *smoother_model(tcfg), given_response, camera_file)
     before_dir = os.path.join(stage, "before")
-    track_frames(tcfg, source, camera, remap, before_dir, progress=progress)
+    track_frames(tcfg, source, *run.track_camera(), before_dir, progress=progress)
     timing = {"track_before": time.perf_counter() - t0}
     before = track_figures(before_dir, run.cut)
     seeds = np.random.SeedSequence(cfg.seed).spawn(cfg.rounds)
@@ -392,19 +396,12 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
     cfg, out_dir = config_arg(cfg, AdaptConfig), path_arg(out_dir, "out_dir")
     source, camera = as_path_or_object(source), as_path_or_object(camera)
     check_out_dir(out_dir, field="out_dir")
-    given_response = read_camera_response(camera) if isinstance(camera, str) else (None, None)
+    camera_file = camera if isinstance(camera, str) else None
+    given_response = read_camera_response(camera) if camera_file else (None, None)
     tcfg, source, camera, remap, _ = prepare_frames(cfg.track, source, camera)
-    new = not os.path.exists(out_dir)
-    make_out_dir(out_dir, field="out_dir")
-    try:
-        with staged_folder(out_dir, OUTPUTS) as stage:
-            report = _adapt(cfg, tcfg, source, camera, remap, stage, progress, command, given_response)
-            _replace_dirs(out_dir, stage)
-    except BaseException:
-        if new:  # the folder this job made, left empty by the failed or interrupted job
-            with contextlib.suppress(OSError):
-                os.rmdir(out_dir)
-        raise
+    with made_out_dir(out_dir), staged_folder(out_dir, OUTPUTS) as stage:  # a failed job's new folders go
+        report = _adapt(cfg, tcfg, source, camera, remap, stage, progress, command, given_response, camera_file)
+        _replace_dirs(out_dir, stage)
     return report
 
 

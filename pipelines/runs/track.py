@@ -169,9 +169,9 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     check_out_dir(out_dir, field="out_dir")
     if sink is not None:
         check_sink(sink)  # a viewer that is not there refused before any frame is read
-    camera_file = camera if isinstance(camera, str) else None
+    camera_file, default = (camera if isinstance(camera, str) else None), camera is None
     cfg, source, camera, remap, pixels = prepare_frames(cfg, source, camera, remap, progress)
-    used = camera_record(camera, camera_file, remap is not None)
+    used = camera_record(camera, camera_file, remap is not None, default)  # a PinholeCamera given: not the default
     # the detector before any output: another target's weights without their calibration are refused here
     detector = tracker_detector(cfg.weights, target=cfg.target, bf16=cfg.bf16)
     with made_out_dir(out_dir), staged_folder(out_dir, OUTPUTS.values()) as stage, compute_threads(cfg.threads):

@@ -91,10 +91,12 @@ def default_camera(path: str, size_px: tuple[int, int], generated: bool) -> Pinh
                      f"cx = {s.cu_px:g}, cy = {s.cv_px:g}, width = {size[0]}, height = {size[1]})")
 
 
-def camera_record(camera: PinholeCamera, given: str | None, undistorted: bool) -> dict:
+def camera_record(camera: PinholeCamera, given: str | None, undistorted: bool, default: bool | None = None) -> dict:
     """What a job's summary says of the camera it used: its pinhole (px), where it came from (the camera file
-    given, or the MJCF's chaser_cam at the frames' size) and whether the frames were undistorted to it."""
-    return {"file": given, "default": given is None, "f_px": float(camera.f_px), "cx_px": float(camera.cu_px),
+    given; `default`: the MJCF's chaser_cam at the frames' size, by default where no file was given) and whether
+    the frames were undistorted to it."""
+    default = given is None if default is None else default
+    return {"file": given, "default": default, "f_px": float(camera.f_px), "cx_px": float(camera.cu_px),
             "cy_px": float(camera.cv_px), "width_px": int(camera.width_px), "height_px": int(camera.height_px),
             "undistorted": bool(undistorted)}
 

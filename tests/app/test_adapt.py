@@ -69,6 +69,18 @@ def test_a_failed_adapt_leaves_no_folder_it_made(monkeypatch, tmp_path, existed)
     with pytest.raises(InputError, match="trusted frames"):
         adapt_module.adapt(AdaptConfig(), "frames", str(out), progress=False)
     assert out.exists() == existed and (not existed or os.listdir(out) == [])
+    assert (tmp_path / "new").exists() == existed  # the parent it made too
+
+
+def test_the_tracks_read_the_camera_file_given():
+    """adapt's before/ and after/ tracks take the camera file itself (their summaries name it); they were given
+    the pinhole read from it and recorded the MJCF's default camera."""
+    from envisat_pose.pipelines.adaptation.adapt import AdaptRun
+
+    run = AdaptRun(AdaptConfig(), None, None, "pinhole", "remap", "stage", False, 0, (), {}, (None, None), "cam.toml")
+    assert run.track_camera() == ("cam.toml", None)
+    assert AdaptRun(AdaptConfig(), None, None, "pinhole", "remap", "stage", False, 0, (), {}).track_camera() == \
+        ("pinhole", "remap")
 
 
 def test_fine_tune_flags_without_a_fine_tune_are_one_line(tmp_path, capsys):

@@ -235,5 +235,13 @@ def test_a_sequence_in_the_earths_shadow_has_no_lit_frame(tmp_path, capsys):
                  "--resolution", "64", "--out", data, "--quiet"]) == 0
     assert "20 of 20 frames are in the Earth's shadow" in capsys.readouterr().err
     assert main(["track", "--images", data, "--out", str(out), "--quiet"]) == 0
-    run = json.loads((out / "summary.json").read_text())["scores"]["per_run"][0]
+    summary = json.loads((out / "summary.json").read_text())
+    run = summary["scores"]["per_run"][0]
     assert run["first_lit_s"] is None and run["first_tracking_s"] is None and run["false_lock_frames"] == 0
+    assert summary["camera"]["default"] is True and summary["camera"]["file"] is None
+    # a PinholeCamera a caller gives is not the default one (it was recorded as such)
+    from envisat_pose.geometry import load_camera
+    from envisat_pose.pipelines.runs.track import TrackConfig, track_frames
+
+    own = track_frames(TrackConfig(), data, camera=load_camera().scaled(64, 64), out_dir=str(tmp_path / "own"))
+    assert own["camera"]["default"] is False and own["camera"]["file"] is None and own["camera"]["width_px"] == 64
