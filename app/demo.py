@@ -7,7 +7,7 @@ import argparse
 import os
 
 from envisat_pose.app.common import add_bf16_argument, add_common
-from envisat_pose.app.run import print_table
+from envisat_pose.app.run import nothing_tracked_line, print_table
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -34,6 +34,8 @@ def run_demo(args: argparse.Namespace) -> int:
           f"weights {cfg.weights}")
     summary = run_closed_loop(cfg, args.out, progress=not args.quiet)  # staged: an interrupt leaves --out as it was
     print_table(summary)
+    if not summary["scores"]["runs_tracked"]:
+        print(nothing_tracked_line(summary))
     paths = run_output_paths(args.out)
     print(f"recording: {paths['recording']} ({summary['recording_bytes'] / 2**20:.1f} MiB); open it with "
           f"`envisat view {args.out}`")

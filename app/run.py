@@ -96,6 +96,13 @@ def print_table(summary: dict) -> None:
           + f"; real-time factor {summary['real_time_factor_one_run']:.1f}x (one run)")
 
 
+def nothing_tracked_line(summary: dict) -> str:
+    """What a loop that never tracked says (as `envisat track` says it)."""
+    counts = ", ".join(f"{n} {k}" for k, n in summary["scores"]["frames_by_status"].items() if n)
+    return (f"nothing tracked ({counts}): the tracker never got past acquisition, so est.npz holds no estimate "
+            "(x_hat NaN, status per row)")
+
+
 def _fmt(v, digits: int = 0) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
 
@@ -107,11 +114,8 @@ def run_cli(args: argparse.Namespace) -> int:
     sink = recording_sink(args)
     summary = run_closed_loop(cfg, args.out, progress=not args.quiet, sink=sink)  # staged: nothing half-written
     print_table(summary)
-    s = summary["scores"]
-    if not s["runs_tracked"]:  # as `envisat track` says it
-        counts = ", ".join(f"{n} {k}" for k, n in s["frames_by_status"].items() if n)
-        print(f"nothing tracked ({counts}): the tracker never got past acquisition, so est.npz holds no estimate "
-              "(x_hat NaN, status per row)")
+    if not summary["scores"]["runs_tracked"]:
+        print(nothing_tracked_line(summary))
     rec = f"recording.rrd ({summary['recording_bytes'] / 2**20:.1f} MiB; `envisat view {args.out}`)" \
         if sink is None else "the recording went to the viewer"
     print(f"wrote {args.out}: est.npz, det.npz, truth.npz, errors.png, run.config.toml, summary.json, {rec}")

@@ -157,6 +157,8 @@ def test_a_run_that_never_tracks_says_so(tmp_path, detector_weights, capsys):
     assert "nothing tracked (4 acquiring)" in printed, printed
     errors = json.loads((out / "summary.json").read_text())["scores"]["errors"]
     assert errors["position_m"]["rms_after"] is None and errors["attitude_deg"]["final"] is None
+    assert main(["demo", "--duration-s", "3", "--out", str(tmp_path / "demo"), "--quiet"]) == 0  # demo says so too
+    assert "nothing tracked (4 acquiring)" in capsys.readouterr().out
 
 
 def test_a_run_config_a_user_builds_is_the_verbs_job(tmp_path, detector_weights):
