@@ -32,7 +32,10 @@ def recordings(path: str) -> list[str]:
             return [main]
         found = sorted(glob.glob(os.path.join(glob.escape(path), "*.rrd")))
         if not found:
-            raise InputError(f"{path!r}: no {RUN_DIR_RECORDING} and no .rrd file in this folder")
+            below = sorted(glob.glob(os.path.join(glob.escape(path), "*", "*.rrd")))  # an adapt folder's rounds
+            hint = f": give one of its subfolders' ({', '.join(below[:4])}{', ...' if len(below) > 4 else ''})" \
+                if below else ""
+            raise InputError(f"{path!r}: no {RUN_DIR_RECORDING} and no .rrd file in this folder{hint}")
         return found
     if not os.path.isfile(path):
         raise InputError(f"{path!r}: no such file or folder")

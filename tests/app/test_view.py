@@ -79,6 +79,12 @@ def test_recordings_of_a_file_or_a_run_folder(tmp_path):
             bad.write_bytes(b"x")
         with pytest.raises(InputError):
             view.recordings(str(bad))
+    adapted = tmp_path / "adapted"  # an adapt folder: its tracks' recordings one level down, named
+    for sub in ("before", "after"):
+        (adapted / sub).mkdir(parents=True)
+        (adapted / sub / "recording.rrd").write_bytes(b"x")
+    with pytest.raises(InputError, match=r"give one of its subfolders' \(.*after/recording.rrd, .*before/"):
+        view.recordings(str(adapted))
 
 
 def test_command_lines():
