@@ -15,7 +15,8 @@ import os
 import sys
 import warnings
 
-from envisat_pose.app.common import EVERY_VERB, as_flags, config_error_text
+from envisat_pose.app.common import EVERY_VERB, as_flags
+from envisat_pose.app.flag_rules import config_error_text
 from envisat_pose.config import ConfigError, InputError
 
 # The app modules that define register(subparsers), in the order their verbs are listed.

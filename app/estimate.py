@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_noise_flags, init_error_line
+from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, init_error_line
+from envisat_pose.app.flag_rules import check_noise_flags
 from envisat_pose.filtering.estimator import FilterConfig, nees, nis_alarms_alone
 from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, recorded_scenario
 from envisat_pose.pipelines.campaigns.estimate import run_estimate as run_pipeline

@@ -10,7 +10,8 @@ import argparse
 import math
 import time
 
-from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_noise_flags, check_rrd_output, init_error_line
+from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_rrd_output, init_error_line
+from envisat_pose.app.flag_rules import check_noise_flags
 from envisat_pose.config import InputError, check
 from envisat_pose.out_dirs import make_out_file_dirs
 from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, run_campaign, write_recording

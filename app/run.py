@@ -11,13 +11,8 @@ from __future__ import annotations
 
 import argparse
 
-from envisat_pose.app.common import (
-    add_bf16_argument,
-    add_common,
-    add_recording_arguments,
-    job_scenario,
-    recording_sink,
-)
+from envisat_pose.app.common import add_bf16_argument, add_common, add_recording_arguments, recording_sink
+from envisat_pose.app.flag_rules import job_scenario
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -12,10 +12,10 @@ from envisat_pose.app.common import (
     add_frame_inputs,
     add_recording_arguments,
     add_skip_damaged_argument,
-    job_scenario,
     recording_sink,
     skipped_line,
 )
+from envisat_pose.app.flag_rules import job_scenario
 from envisat_pose.app.run import print_table
 from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pipelines.runs.frames import open_source

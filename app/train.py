@@ -9,7 +9,8 @@ import os
 import shlex
 import sys
 
-from envisat_pose.app.common import add_common, add_skip_damaged_argument, as_flags, not_applying, skipped_line
+from envisat_pose.app.common import add_common, add_skip_damaged_argument, as_flags, skipped_line
+from envisat_pose.app.flag_rules import not_applying
 from envisat_pose.config import ConfigError, InputError, resolve_job_config
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.pipelines.detector.look_mix import read_looks

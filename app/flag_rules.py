@@ -1,0 +1,49 @@
+"""What a verb's flags may say together, checked before any work: a config error named as the user wrote it
+(the flag typed, else the config file's field), flags that do not apply to the job (online training's with
+shards, a noise of another measurement), and the scenario a config file names."""
+
+from __future__ import annotations
+
+import argparse
+
+from envisat_pose.config import ConfigError, InputError, load_toml
+
+
+def config_error_text(err: ConfigError, names: dict[str, str], argv: list[str]) -> str:
+    """A ConfigError's line: 'field = value: expected ...', or where the field is one of the verb's flags and the
+    user typed that flag (so the value is the flag's: flags override files and scenarios), '--flag value:
+    expected ...'."""
+    flag = names.get(err.field) if type(err) is ConfigError else None
+    if flag and flag.startswith("--") and any(a == flag or a.startswith(flag + "=") for a in argv):
+        return f"{flag} {err.value!r}: expected {err.expected}"
+    return str(err)
+
+
+def not_applying(args: argparse.Namespace, dests: tuple[str, ...], why: str) -> None:
+    """InputError naming the first flag of `dests` (argparse dest names) given, where none applies: `why`."""
+    given = [d for d in dests if getattr(args, d, None) not in (None, False)]
+    if given:
+        raise InputError(f"--{given[0].replace('_', '-')}: {why}")
+
+
+def job_scenario(flag: str | None, config_path: str | None, fallback: str | None = "default") -> str | None:
+    """A job's scenario: the --scenario typed, else its config file's top-level `scenario` (what a run's written
+    config records: it reproduces the run), else `fallback`."""
+    if flag is not None:
+        return flag
+    if config_path is not None:
+        named = load_toml(config_path).get("scenario")
+        if named is not None:
+            return named  # the job's config checks it is a known name
+    return fallback
+
+
+NOISE_FLAGS = {"sigma_m": ("markers3d",), "sigma_px": ("pixels", "pixels+range"), "sigma_range_m": ("pixels+range",)}
+
+
+def check_noise_flags(args: argparse.Namespace, kind: str) -> None:
+    """A noise flag of another kind of measurement than the job's `kind` (it would change nothing): InputError."""
+    for dest, kinds in NOISE_FLAGS.items():
+        if getattr(args, dest, None) is not None and kind not in kinds:
+            raise InputError(f"--{dest.replace('_', '-')}: the noise of {' or '.join(kinds)} measurements; this "
+                             f"job measures {kind} (--measurements)")
