@@ -197,6 +197,13 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = False, sink: 
         return _run_closed_loop(cfg, stage, progress, sink)
 
 
+def saved_bytes(sink: str) -> int:
+    """The size of the file a 'save:PATH' sink wrote (the run folder's recording.rrd or the caller's PATH); 0 for a
+    live viewer's sink, which writes none."""
+    kind, _, path = sink.partition(":")
+    return os.path.getsize(path) if kind == "save" and os.path.isfile(path) else 0
+
+
 def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | None) -> dict:
     import shutil
 
@@ -208,7 +215,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
     truth = TruthBrief(truth.t_s, truth.x, truth.config)  # the rest of the truth is in truth.npz, not held
     T = len(truth.t_s)
     cfg_json = json.dumps(to_dict(cfg), sort_keys=True)
-    workers = min(cfg.workers, cfg.runs)
+    workers = cfg.workers  # at most one per run (RunConfig)
     runner = RunnerConfig("local", workers, env=thread_env(workers))  # one worker: run_tasks sets it here
     sink = sink or f"save:{os.path.abspath(paths['recording'])}"
     runs_dir = os.path.join(out_dir, "runs")
@@ -271,7 +278,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
         # without the truth, as `envisat track` says it: every run's frames by status and their mean NIS
         "frames_by_status": status_counts(np.concatenate([c["status"] for c in cols])),
         "mean_nis_per_dof": mean_nis_per_dof(*(np.concatenate([c[k] for c in cols]) for k in ("nis", "nis_dof"))),
-        "recording_bytes": os.path.getsize(paths["recording"]) if os.path.isfile(paths["recording"]) else 0,
+        "recording_bytes": saved_bytes(sink),
     }
     atomic_write_text(paths["summary"], json.dumps(summary, indent=1, sort_keys=True) + "\n")
     return summary

@@ -83,6 +83,7 @@ class RunConfig(Config):
         if self.workers is None:  # one process per run, at most one per core
             object.__setattr__(self, "workers", max(1, min(self.runs, os.cpu_count() or 1)))
         super().__post_init__()
+        object.__setattr__(self, "workers", min(self.workers, self.runs))  # the processes that run: one per run at most
         object.__setattr__(self, "weights", job_weights(self.weights, self.image.target))  # never ENVISAT's for another
         # after validation: the frame count needs a valid duration and rate
         object.__setattr__(self, "image", finished_image(self))

@@ -257,3 +257,17 @@ def test_a_config_files_scenario_is_the_runs_unless_the_flag_says_another(tmp_pa
     assert resolve_config(parse(["run", "--config", str(written), "--scenario", "slow-tumble", "--out", "x"])
                           ).scenario == "slow-tumble"
     assert resolve_config(parse(["run", "--out", "x"])).scenario == "default"
+
+
+def test_the_run_records_the_processes_it_used_and_the_recordings_size(tmp_path):
+    """`--runs 1 --workers 4` runs one process and its run.config.toml says 1 (it said 4); the summary's
+    recording_bytes is the size of the file a 'save:PATH' sink wrote wherever PATH is (it counted the run folder's
+    recording.rrd only: 0 for a recording saved elsewhere), and 0 for a live viewer's sink."""
+    from envisat_pose.pipelines.runs.run_config import RunConfig
+
+    assert RunConfig(runs=1, workers=4).workers == 1 and RunConfig(runs=3, workers=2).workers == 2
+    rrd = tmp_path / "elsewhere" / "mine.rrd"
+    rrd.parent.mkdir()
+    rrd.write_bytes(b"x" * 1234)
+    assert loop.saved_bytes(f"save:{rrd}") == 1234
+    assert loop.saved_bytes("spawn") == 0 and loop.saved_bytes(f"save:{tmp_path / 'none.rrd'}") == 0
