@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING
 
 from envisat_pose.config import config_arg, path_arg, to_dict, to_toml
 from envisat_pose.io import atomic_write_text, sha256_file
-from envisat_pose.pipelines.campaigns.campaign_block import block_name, block_task
+from envisat_pose.pipelines.campaigns.campaign_block import block_name, block_task, load_campaign_truth
 from envisat_pose.pipelines.campaigns.campaign_config import (
     MonteCarloConfig,
     check_filter_rate,
@@ -52,6 +52,8 @@ from envisat_pose.pipelines.campaigns.campaign_config import (
     with_eclipse,
 )
 from envisat_pose.pipelines.campaigns.campaign_outputs import FIGURES, finish_campaign, write_recording
+from envisat_pose.pipelines.campaigns.estimate import filter_keypoints_T_m
+from envisat_pose.pipelines.campaigns.observability import warn_if_unfixed_start
 from envisat_pose.pools import RunnerConfig
 from envisat_pose.resumable import ResumableJob
 from envisat_pose.target import load_target
@@ -109,6 +111,8 @@ def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConfig | Non
     previous = job.open()
     truth_sha = prepare_truth(cfg, out_dir, previous, progress)
     job.header["truth_sha256"] = truth_sha
+    tr = load_campaign_truth(out_dir, cfg.measurement, cfg.target)
+    warn_if_unfixed_start(tr.t_s, filter_keypoints_T_m(tr.target), tr.base, cfg.measurement)
     # blocks filtered on another truth are redone
     done = job.resume(previous if previous and previous.get("truth_sha256") == truth_sha else None)
     atomic_write_text(os.path.join(out_dir, "montecarlo.config.toml"),

@@ -34,6 +34,7 @@ from envisat_pose.geometry import load_geometry
 from envisat_pose.io import atomic_write_text
 from envisat_pose.named_scenarios import check_name
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
+from envisat_pose.pipelines.campaigns.observability import warn_if_unfixed_start
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, layered_job
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
 from envisat_pose.target import DEFAULT_TARGET, Target, is_default_file, load_target, resolve_target_path
@@ -124,11 +125,16 @@ def truth_target(config: dict, source: str) -> Target | None:
         raise InputError(f"{source}: its target file cannot be used ({err})") from None
 
 
+def filter_keypoints_T_m(target: Target | None) -> np.ndarray:
+    """(K, 3) m: the keypoints in T the filter measures (truth_target's None: ENVISAT's corners A-H)."""
+    return load_geometry().corners_T_m if target is None else target.keypoints_T_m
+
+
 def check_truth_keypoints(truth, target: Target | None, source: str) -> None:
     """InputError naming `source` unless the truth's arrays hold the filter's K keypoints (the target's; None:
     ENVISAT's corners A-H)."""
     K = int(truth.corners_C_m.shape[1])
-    K_model = load_geometry().corners_T_m.shape[0] if target is None else target.num_keypoints
+    K_model = filter_keypoints_T_m(target).shape[0]
     if K != K_model:
         where = "ENVISAT's corners" if target is None else f"its target file {target.path!r}"
         raise InputError(f"{source}: the truth holds {K} keypoints; {where} number {K_model}")
@@ -274,6 +280,7 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     kind = cfg.measurement.kind
     z_true, base = truth_measurements(kind, truth.corners_C_m[sel], truth.visible[sel], truth.corners_px[sel],
                                       truth.in_frame[sel])
+    warn_if_unfixed_start(t_s, filter_keypoints_T_m(target), base, cfg.measurement)
     inp = make_run_inputs(x_true[0], t_s, z_true, base, cfg.measurement, fcfg.P0, cfg.seed, R,
                           init_error_scale=cfg.init_error_scale)
     res = run_filter(inp.x0_hat, fcfg.P0, t_s, chaser, inp.z, inp.mask, inp.R_c, kind, fcfg, progress=progress,

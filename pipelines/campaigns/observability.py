@@ -1,0 +1,47 @@
+"""Whether a campaign's measurements fix the target's pose from the start, said before its runs are trusted.
+
+An unscented update from a wide prior (P0) is taken along every direction the measured keypoints move; where one
+or two keypoints, or keypoints on one line, are measured, the rotation about that line is not measured at all,
+yet the sigma points' curvature leaks information into it: the covariance turns overconfident and the run can
+diverge later, when more keypoints come into view (a 30 m rod whose first 80 s show two keypoints near its axis:
+mean NEES 478, 13 of 20 runs diverged; the same rod from a start with 3-4 keypoints in view: median NEES 15;
+docs/history.md, 2026-12-05, fourth session). This is the target's and the scenario's matter, not the filter's tuning, so the
+campaign says it in one warning."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from envisat_pose.filtering.measurements import limit_markers, outage_mask, pose_fixed
+from envisat_pose.filtering.montecarlo import MeasurementConfig
+
+
+def unfixed_start(t_s: np.ndarray, keypoints_T_m: np.ndarray, base_mask: np.ndarray,
+                  mcfg: MeasurementConfig) -> tuple[int, float | None]:
+    """The measured steps before the first one whose keypoints fix the pose (filtering.measurements.pose_fixed),
+    and that step's time (None: no step fixes it). The measured set is the truth's measurable keypoints (t_s (T,)
+    s, base_mask (T, K)) less the outages, at most max_markers: what every run measures before its random
+    failures."""
+    mask = limit_markers(np.asarray(base_mask, bool) & ~outage_mask(np.asarray(t_s), mcfg.outages_s)[:, None],
+                         mcfg.max_markers)
+    fixed = pose_fixed(keypoints_T_m, mask)
+    first = int(np.argmax(fixed)) if fixed.any() else len(t_s)
+    return int(mask[:first].any(axis=-1).sum()), (float(t_s[first]) if first < len(t_s) else None)
+
+
+def warn_if_unfixed_start(t_s: np.ndarray, keypoints_T_m: np.ndarray, base_mask: np.ndarray,
+                          mcfg: MeasurementConfig) -> None:
+    """A UserWarning when steps with measurements come before the first whose keypoints fix the pose
+    (unfixed_start): the filter's covariance over the runs that follow may not be trusted."""
+    n, first_s = unfixed_start(t_s, keypoints_T_m, base_mask, mcfg)
+    if n == 0:
+        return
+    when = "at no step" if first_s is None else f"only from t = {first_s:g} s"
+    warnings.warn(f"the measured keypoints fix the target's pose {when}: {n} step(s) before measure fewer than "
+                  "3 keypoints off one line, so the filter updates its wide prior along a rotation it cannot "
+                  "measure and its covariance can turn overconfident (NEES far above its band, runs that "
+                  "diverge later); keypoints placed so that 3 or more off one line are seen from every view, "
+                  "or a start where they are, avoid it (docs/usage.md, 'Where to put the keypoints')",
+                  stacklevel=2)
