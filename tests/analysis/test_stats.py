@@ -249,3 +249,26 @@ def test_campaign_summary_counts_run_steps_after_the_settle_time():
     assert run_lo == pytest.approx(chi2.ppf(0.025, 12 * R) / R, rel=1e-9)
     assert run_hi == pytest.approx(chi2.ppf(0.975, 12 * R) / R, rel=1e-9)
     assert run_lo < lo < hi < run_hi
+
+
+@pytest.mark.parametrize("p_norm", [0.1, 0.8, 0.99])
+def test_attitude_errors_are_the_rotation_vector_in_T_not_only_its_length(p_norm):
+    """A small rotation e (in T, rad) of the estimated frame: Gamma_hat = exp(-[e x]) Gamma_true (Gamma takes C's
+    components to T's), built with scipy's rotation vectors at |p| far from 0, where B(p) is far from a multiple
+    of the identity: component_errors' attitude block is e itself, direction included (within the small
+    angle's second order)."""
+    from scipy.spatial.transform import Rotation
+
+    from envisat_pose.attitude import dcm_to_mrp, mrp_to_dcm
+
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        p = rng.normal(size=3)
+        p *= p_norm / np.linalg.norm(p)
+        e = rng.normal(size=3) * 1e-5
+        x_true = np.zeros(12)
+        x_true[6:9] = p
+        x_hat = x_true.copy()
+        x_hat[6:9] = dcm_to_mrp(Rotation.from_rotvec(-e).as_matrix() @ mrp_to_dcm(p))
+        got = component_errors(x_true, x_hat)[6:9]
+        assert np.allclose(got, e, rtol=0.0, atol=1e-3 * np.linalg.norm(e)), (got, e)

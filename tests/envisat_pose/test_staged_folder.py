@@ -32,6 +32,20 @@ def test_a_killed_jobs_stage_is_swept_and_a_running_ones_kept(tmp_path):
     assert sorted(os.listdir(out)) == sorted([running.name, other.name, "notes.txt", "summary.json"])
 
 
+def test_a_finished_job_removes_its_earlier_outputs_it_did_not_write_again(tmp_path):
+    """An earlier run's det.npz (this run writes none: another mode) would describe other frames beside the new
+    summary: a finished job removes the outputs it names and did not write, and keeps every other file."""
+    out = tmp_path / "out"
+    out.mkdir()
+    for name, text in (("summary.json", "earlier"), ("det.npz", "earlier"), ("notes.txt", "the user's own")):
+        (out / name).write_text(text)
+    with staged_folder(str(out), ("summary.json", "det.npz")) as stage:
+        with open(os.path.join(stage, "summary.json"), "w") as fh:
+            fh.write("new")
+    assert sorted(os.listdir(out)) == ["notes.txt", "summary.json"]
+    assert (out / "summary.json").read_text() == "new" and (out / "notes.txt").read_text() == "the user's own"
+
+
 def test_an_error_leaves_the_earlier_outputs(tmp_path):
     out = tmp_path / "out"
     out.mkdir()

@@ -172,6 +172,25 @@ def test_visibility_is_mujocos_ray_cast(tmp_path):
     assert hidden > 300 and agree / total >= 0.999, (agree, total, hidden)
 
 
+def test_a_keypoint_behind_the_camera_is_not_visible(tmp_path):
+    """The camera 3 m out along +x, looking along +x (away from the target): every keypoint has a clear line to
+    the camera's centre from the outer side, so visible_from says so for some, yet each lies behind the image
+    plane (z_K = R v + t < 0, computed here) and `visible` says none is seen; turned to face the target, the
+    camera sees what visible_from says."""
+    t = load_target(_file(tmp_path, "behind", "", 'euler="0 0 90"'))
+    c_T = np.array([3.0, 0.0, 0.0])
+    # K: x right, y down, z the boresight; looking along +x of T: z_K = +x_T, x_K = -y_T, y_K = -z_T
+    R_away = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    R_facing = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])
+    clear = t.visible_from(c_T)
+    assert clear.any()
+    for R, in_front in ((R_away, False), (R_facing, True)):
+        tvec = -R @ c_T
+        z_K = t.keypoints_T_m @ R[2] + tvec[2]
+        assert (z_K > 0).all() == in_front and (z_K < 0).all() == (not in_front)
+        assert t.visible(R, tvec).tolist() == (clear & in_front).tolist()
+
+
 def _massed_box(tmp_path, name, extra=""):
     """A file without <inertial>: a 100 kg box (half-sizes 0.5, 0.4, 0.3 m) with a 5 kg ball (r 0.1 m) at x = +-0.6
     m, extra geoms after them."""

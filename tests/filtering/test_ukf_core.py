@@ -113,3 +113,30 @@ def test_shadow_switch_maps_the_covariance_to_first_order():
     emp = np.cov(samples.T)
     np.testing.assert_allclose(emp, P2, atol=3e-2 * np.abs(P2).max())
     np.testing.assert_array_equal(P2[:6, :6], P[:6, :6])
+
+
+def test_the_gate_keeps_a_corner_just_inside_its_bound_and_drops_one_just_outside():
+    """Three corners of 2 components with a correlated block S_cc each (and cross terms between corners, which
+    the per-corner test ignores): innovations scaled so that y^T S_cc^-1 y is 0.99, 1.01 and 0.5 times the 2-dof
+    chi-square bound at 1 - 1e-5 (computed here by Cholesky, not by the gate's solve); the second corner is
+    dropped, a corner not measured stays out, NaN fails."""
+    from scipy.stats import chi2
+
+    from envisat_pose.filtering.ukf import gate_corners
+
+    thr = chi2.ppf(1 - 1e-5, 2)
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(6, 6))
+    S = A @ A.T + 6 * np.eye(6)
+    y = np.empty(6)
+    for c, share in enumerate((0.99, 1.01, 0.5)):
+        Scc = S[2 * c:2 * c + 2, 2 * c:2 * c + 2]
+        u = rng.normal(size=2)
+        v = np.linalg.cholesky(Scc) @ u  # v^T Scc^-1 v = u.u
+        y[2 * c:2 * c + 2] = v * np.sqrt(share * thr / (u @ u))
+    mask = np.ones(6, bool)
+    assert gate_corners(y, S, mask, 2, thr).tolist() == [True, True, False, False, True, True]
+    mask[4:] = False
+    assert gate_corners(y, S, mask, 2, thr).tolist() == [True, True, False, False, False, False]
+    y[0] = np.nan
+    assert gate_corners(y, S, np.ones(6, bool), 2, thr)[:2].tolist() == [False, False]

@@ -167,3 +167,51 @@ def test_each_run_has_its_own_figures_beside_the_pooled_ones():
     assert 9.0 < per[0]["mean_nees"] < 15.0 and 9.0 < per[2]["mean_nees"] < 15.0
     assert 80.0 < per[1]["mean_nees"] < 135.0  # 9 x 12 expected
     assert out["scored"]["mean_nees"] == pytest.approx(np.mean([p["mean_nees"] for p in per]))
+
+
+@pytest.mark.parametrize("off, lock_s", [("attitude", 10.0), ("position", 10.0), ("neither", 0.0)])
+def test_either_half_of_the_correct_rule_alone_makes_a_false_lock(off, lock_s):
+    """A claimed frame is correct only when both its attitude (within 5 deg) and its position (within 2 % of the
+    range) are: 10 deg off about z with the position exact, or 3 % of the range off with the attitude exact, is
+    a false lock; 4.9 deg and 1.9 % is not."""
+    t, x_true, x_hat, P, status = synthetic_runs()
+    bad = slice(50, 60)
+    x_off = x_hat.copy()
+    x_off[0, bad, :6] = x_true[0, bad, :6]
+    x_off[0, bad, 6:9] = 0.0  # the truth's attitude is the identity (MRP 0)
+    if off == "attitude":
+        x_off[0, bad, 8] = np.tan(np.radians(10.0) / 4)  # 10 deg about z (MRP tan(phi / 4) along the axis)
+    elif off == "position":
+        x_off[0, bad, 0] += 0.03 * RANGE_M
+    else:
+        x_off[0, bad, 8] = np.tan(np.radians(4.9) / 4)
+        x_off[0, bad, 0] += 0.019 * RANGE_M
+    assert score_runs(t, x_true, x_off, P, status)["false_lock_s"] == lock_s
+
+
+def test_a_twin_nothing_tells_apart_is_scored_as_the_truth():
+    """With the pose defined up to a half-turn about z (a symmetric target's `equivalent`), an estimate turned by
+    that half-turn plus 2 deg more about z is 2 deg off; without it, 178. The turned attitude is built here with
+    scipy from the twin's definition (Gamma' = S Gamma)."""
+    from scipy.spatial.transform import Rotation
+
+    from envisat_pose.attitude import mrp_to_dcm
+    from envisat_pose.pipelines.runs.scoring import frame_errors, nearest_truth
+
+    rng = np.random.default_rng(2)
+    x_true = np.zeros((5, 12))
+    x_true[:, 1] = RANGE_M
+    x_true[:, 6:9] = rng.normal(0.0, 0.2, (5, 3))
+    S = np.diag([-1.0, -1.0, 1.0])
+    x_hat = x_true.copy()
+    for k in range(5):
+        M = Rotation.from_rotvec([0, 0, np.radians(2.0)]).as_matrix() @ S @ mrp_to_dcm(x_true[k, 6:9])
+        p = Rotation.from_matrix(M).as_mrp()
+        if not np.allclose(mrp_to_dcm(p), M, atol=1e-9):  # the other convention: the transposed matrix
+            p = Rotation.from_matrix(M.T).as_mrp()
+        assert np.allclose(mrp_to_dcm(p), M, atol=1e-9)
+        x_hat[k, 6:9] = p
+    P = np.broadcast_to(np.eye(12) * SIGMA**2, (5, 12, 12))
+    twin = frame_errors(nearest_truth(x_true, x_hat, S[None]), x_hat, P)["attitude_deg"]
+    plain = frame_errors(nearest_truth(x_true, x_hat, None), x_hat, P)["attitude_deg"]
+    assert np.allclose(twin, 2.0, atol=1e-6) and np.allclose(plain, 178.0, atol=1e-6)

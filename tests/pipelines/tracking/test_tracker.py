@@ -210,6 +210,25 @@ def test_the_tracker_starts_cold_and_converges(truth_600):
     assert len(ests[-1].probabilities) == 1
     m = nees(truth_600.x[100:200], x_hat, P).mean()
     assert 3.0 < m < 30.0, m
+    # every "tracking" frame's own covariance backs its claim: 3-sigma within 2 % of the range and 5 deg (the
+    # MRP block's largest sigma times 4 is its rotation angle), computed here from the blocks' eigenvalues
+    cfg = TrackerConfig().integrity
+    for e in ests:
+        if e.status == "tracking":
+            pos_3sig = 3.0 * np.sqrt(np.linalg.eigvalsh(e.P[POS, POS]).max())
+            att_3sig_deg = np.degrees(3.0 * 4.0 * np.sqrt(np.linalg.eigvalsh(e.P[MRP, MRP]).max()))
+            assert pos_3sig <= cfg.claim_pos_share * np.linalg.norm(e.x_hat[POS]) and att_3sig_deg <= cfg.claim_att_deg
+
+
+def test_a_covariance_too_wide_for_the_claim_never_says_tracking(truth_600):
+    """The same frames under a claim tighter than the covariance ever gets (3-sigma attitude within 0.01 deg):
+    the tracker estimates but never says "tracking" (a claim its covariance does not back is none)."""
+    from envisat_pose.pipelines.tracking.tracker_config import IntegrityConfig
+
+    cfg = TrackerConfig(integrity=IntegrityConfig(claim_att_deg=0.01))
+    ests = run_tracker(truth_600, NoisyTruthDetector(truth_600), range(0, 60), cfg)
+    assert "tracking" not in {e.status for e in ests}
+    assert np.isfinite(ests[-1].x_hat).all()  # it has an estimate: only the claim is withheld
 
 
 class PriorRecordingDetector(NoisyTruthDetector):
