@@ -30,7 +30,7 @@ elif ! ldconfig -p 2>/dev/null | grep -q libOSMesa; then
   echo "setup: warning: no dpkg here and libOSMesa was not found; install OSMesa (or EGL) for rendering" >&2
 fi
 
-# 1b. `make test` (WITH_VIEWER_CHECK=1) also wants Chromium: a test opens a recording in the Rerun web viewer,
+# 1b. `make test-slow` and `make test-all` (WITH_VIEWER_CHECK=1) also want Chromium: a test opens a recording in the Rerun web viewer,
 # headless with software GL. Optional: without it (and not root) that one test skips.
 if [ "${WITH_VIEWER_CHECK:-0}" = "1" ] && command -v dpkg-query >/dev/null 2>&1 \
     && ! command -v chromium >/dev/null 2>&1; then
@@ -41,6 +41,20 @@ if [ "${WITH_VIEWER_CHECK:-0}" = "1" ] && command -v dpkg-query >/dev/null 2>&1 
       || echo "setup: warning: could not install chromium; the web-viewer test will skip" >&2
   else
     echo "setup: note: chromium is not installed; the web-viewer test will skip (sudo apt-get install chromium)" >&2
+  fi
+fi
+
+# 1c. With them, Mesa's Vulkan drivers (lavapipe, on the CPU): two tests render foreign frames with MuJoCo's
+# Filament renderer (tests/bench/test_foreign_frames.py), which needs a Vulkan driver. Optional: without it they skip.
+if [ "${WITH_VIEWER_CHECK:-0}" = "1" ] && command -v dpkg-query >/dev/null 2>&1 \
+    && ! dpkg-query -W -f='${Status}' mesa-vulkan-drivers 2>/dev/null | grep -q "install ok installed"; then
+  if [ "$(id -u)" = "0" ]; then
+    echo "setup: installing mesa-vulkan-drivers (the Filament tests)"
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq && apt-get install -y -qq --no-install-recommends mesa-vulkan-drivers >/dev/null \
+      || echo "setup: warning: could not install mesa-vulkan-drivers; the Filament tests will skip" >&2
+  else
+    echo "setup: note: mesa-vulkan-drivers is not installed; the Filament tests will skip" >&2
   fi
 fi
 
