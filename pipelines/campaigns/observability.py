@@ -5,8 +5,10 @@ or two keypoints, or keypoints on one line, are measured, the rotation about tha
 yet the sigma points' curvature leaks information into it: the covariance turns overconfident and the run can
 diverge later, when more keypoints come into view (a 30 m rod whose first 80 s show two keypoints near its axis:
 mean NEES 478, 13 of 20 runs diverged; the same rod from a start with 3-4 keypoints in view: median NEES 15;
-docs/history.md, 2026-12-05, fourth session). This is the target's and the scenario's matter, not the filter's tuning, so the
-campaign says it in one warning."""
+docs/history.md, 2026-12-05, fourth session). No tuning of P0's width for one target is made for it; holding
+every update until the first step that fixes the pose was measured there (mean NEES 28, median 12, 1 of 20
+diverged) and not adopted: a study that measures two markers on purpose would get no update at all. The campaign
+says it in one warning."""
 
 from __future__ import annotations
 
