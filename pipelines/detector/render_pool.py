@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import signal
 import time
 import traceback
 from dataclasses import dataclass
@@ -42,7 +43,7 @@ from envisat_pose.pipelines.detector.look_mix import (
     max_side,
     renderer_key,
 )
-from envisat_pose.pools import thread_env
+from envisat_pose.pools import thread_env, without_main_script
 from envisat_pose.target import load_target
 
 SLOTS_PER_WORKER = 4  # frames a worker may render ahead of the trainer
@@ -141,6 +142,10 @@ def render_worker(looks_json: str, worker: int, workers: int, first_frame: int, 
     every workers-th, each into a slot the trainer gave back (free_q; None ends it), announced on ready_q as
     (slot, frame); an error as ('error', worker, traceback text). looks_json: the looks' records (a JSON list);
     res: the slots' side (the largest look's); keypoints: K, the looks' target's."""
+    # SIGINT and SIGTERM are the trainer's to handle (it stops after its step with a checkpoint, then ends the
+    # workers): a terminal's Ctrl-C reaches the whole process group and must not kill a renderer first
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     os.environ.update(env)
     from multiprocessing import shared_memory
 
@@ -219,7 +224,8 @@ class RenderPool:
                 p = ctx.Process(target=render_worker, name=f"envisat-render-{w}", daemon=True,
                                 args=(looks_json, w, workers, first_frame, shm.name, slots_per_worker, self.res,
                                       free_q, ready_q, env, self.keypoints))
-                p.start()
+                with without_main_script():  # a plain script's top level is not run again in the worker
+                    p.start()
                 self.free_qs.append(free_q)
                 self.ready_qs.append(ready_q)
                 self.procs.append(p)
@@ -275,7 +281,7 @@ class RenderPool:
         for p in self.procs:
             p.join(max(0.0, deadline - time.monotonic()))
             if p.is_alive():
-                p.terminate()
+                p.kill()  # it ignores SIGTERM (render_worker)
                 p.join(2.0)
         for q in self.free_qs + self.ready_qs:
             q.close()

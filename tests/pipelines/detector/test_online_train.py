@@ -84,3 +84,72 @@ def test_the_verb_trains_on_a_mix_of_looks_and_resumes_only_its_own(tmp_path, ca
     err = capsys.readouterr().err
     assert "online (random 67 %, slow 33 %, K = 2)" in err and "random 83 %" in err and "Traceback" not in err
     assert json.load(open(os.path.join(run, "state.json")))["step"] == 3
+
+
+ONLINE_TOML = """steps = 100000
+batch_size = 2
+warmup_steps = 1
+checkpoint_every = 1
+[model]
+input_px = 64
+width = 16
+depth = 2
+stem_width = 8
+[data]
+input_px = 64
+"""
+
+
+@pytest.mark.slow
+def test_ctrl_c_to_the_process_group_stops_an_online_run_with_a_checkpoint(tmp_path):
+    """A terminal's Ctrl-C reaches the trainer and its renderer processes: the renderers leave it to the trainer,
+    which stops after its step with a checkpoint and the resume hint (rc 130; a renderer's KeyboardInterrupt was
+    a traceback and no checkpoint)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    (tmp_path / "small.toml").write_text(ONLINE_TOML)
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "envisat_pose.app.cli", "train", "--online", "--out", str(run), "--config",
+           str(tmp_path / "small.toml"), "--resolution", "128", "--render-workers", "1", "--threads", "1"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env=dict(os.environ, OMP_NUM_THREADS="1"))
+    deadline = time.monotonic() + 180
+    while proc.poll() is None and time.monotonic() < deadline and not (run / "state.json").exists():
+        time.sleep(0.2)  # a checkpoint every step: the run has trained once state.json is there
+    os.killpg(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=180)
+    assert proc.returncode == 130, err[-2000:]
+    assert "Traceback" not in err and err.count("go on with") == 1, err[-2000:]
+    state = json.load(open(run / "state.json"))
+    assert state["step"] >= 1 and (run / "checkpoint.safetensors").exists()
+
+
+@pytest.mark.slow
+def test_a_plain_script_without_a_main_guard_trains_online(tmp_path):
+    """The renderer processes are spawned without re-running the caller's script (it would start the job again in
+    each and fail), as the shard workers are."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = tmp_path / "plain.py"
+    script.write_text(textwrap.dedent(f"""
+        from envisat_pose.datagen.generate_config import GenerateConfig
+        from envisat_pose.perception.data import DataConfig
+        from envisat_pose.perception.model import ModelConfig
+        from envisat_pose.perception.train import TrainConfig
+        from envisat_pose.pipelines.detector.train import OnlineConfig, train_detector
+
+        cfg = TrainConfig(steps=2, batch_size=2, warmup_steps=1, model=ModelConfig(input_px=64, width=16, depth=2,
+                          stem_width=8), data=DataConfig(input_px=64))
+        online = OnlineConfig(GenerateConfig(mode="random", resolution_px=128, seed=5, earth_probability=0.0),
+                              workers=1, uses_per_frame=2)
+        end = train_detector(cfg, [], {str(tmp_path / "run")!r}, online=online, progress=False)
+        print("TRAINED", end["step"])
+    """))
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.count("TRAINED") == 1 and "TRAINED 2" in done.stdout
