@@ -84,7 +84,7 @@ def recording_sink(args: argparse.Namespace) -> str | None:
     return None
 
 
-_LEADING_NAME = re.compile(r"^(\w+)\b")
+_LEADING_NAME = re.compile(r"^(\w+)(?=[ :=]|$)")  # a name, not a path's first folder (data/x.pt) or a field (data.x)
 _QUOTED_NAME = re.compile(r"`(\w+)`")
 
 
