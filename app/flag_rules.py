@@ -47,3 +47,17 @@ def check_noise_flags(args: argparse.Namespace, kind: str) -> None:
         if getattr(args, dest, None) is not None and kind not in kinds:
             raise InputError(f"--{dest.replace('_', '-')}: the noise of {' or '.join(kinds)} measurements; this "
                              f"job measures {kind} (--measurements)")
+
+
+def training_source(args: argparse.Namespace) -> None:
+    """`train`'s flags of one source of frames, args.online set for any online run (--online, --target, a resumed
+    online run): --data with it refused (named as the user made it online), --workers (the shard readers) too,
+    and --render-workers below 1."""
+    if args.online and args.data:
+        src = "--online" if "--online" in getattr(args, "argv", ()) else "--target" if args.target else "--resume"
+        raise InputError(f"--data and {src}: train on shards or on rendered frames, not both")
+    if args.online:
+        not_applying(args, ("workers",), "a flag of training on --data's shards (their reader processes): "
+                     "rendered frames come from --render-workers")
+    if args.render_workers is not None and args.render_workers < 1:
+        raise InputError(f"--render-workers {args.render_workers}: expected at least 1 renderer process")

@@ -10,7 +10,7 @@ import shlex
 import sys
 
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, as_flags, skipped_line
-from envisat_pose.app.flag_rules import not_applying
+from envisat_pose.app.flag_rules import not_applying, training_source
 from envisat_pose.config import ConfigError, InputError, resolve_job_config
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.pipelines.detector.look_mix import read_looks
@@ -90,20 +90,16 @@ def online_config(args: argparse.Namespace, cfg):
     another target's run (cfg's) is online, its renders that target's (pipelines/detector/train.online_kind)."""
     kind, defaults = online_kind(cfg)
     saved = read_run_record(args.out).get("online") if args.resume and os.path.isdir(args.out) else None
-    looks_given = args.looks or args.generate_config or args.resolution or args.uses_per_frame
-    if saved is not None and not looks_given:
-        return kind.from_record(saved, args.render_workers)
-    if saved is not None or "target" in defaults:  # resumed with looks (checked as other data would be); a target
-        args.online = True
+    args.online = args.online or saved is not None or "target" in defaults  # a resumed online run; a target's
+    training_source(args)
+    if saved is not None and not (args.looks or args.generate_config or args.resolution or args.uses_per_frame):
+        return kind.from_record(saved, args.render_workers)  # resumed with looks: checked as other data would be
     if not args.online:
         if args.data is None:
             raise missing_data(args.out, args.resume)
         not_applying(args, ("looks", "generate_config", "resolution", "uses_per_frame", "render_workers"),
                      "a flag of --online training (rendered frames), not of training on --data's shards")
         return None
-    if args.data:  # named as typed: --target and a resumed online run are online too
-        src = "--online" if "--online" in getattr(args, "argv", ()) else "--target" if args.target else "--resume"
-        raise InputError(f"--data and {src}: train on shards or on rendered frames, not both")
     if args.looks:
         if args.generate_config or args.resolution:
             raise InputError("--looks and --generate-config/--resolution: the looks file holds every look's config")

@@ -122,7 +122,9 @@ def online_kind(cfg) -> tuple[type, dict]:
 def missing_data(run_dir: str, resume: bool) -> InputError:
     """The error of a run given neither shards nor online frames; a resumed run on shards is told to give its data
     again (the run records each folder by name and manifest hash, not by path)."""
-    if resume and os.path.isdir(run_dir):
+    if resume and not os.path.isdir(run_dir):
+        return InputError(f"run_dir {run_dir!r}: nothing to resume (no such folder)")
+    if resume:
         names = ", ".join(d.get("name", "?") for d in read_run_record(run_dir).get("data") or [])
         return InputError(f"run_dir {run_dir!r} trained on shards ({names or 'its data'}): give them again with "
                           "`data_dirs` (the run records each folder by name and manifest hash, not by path)")

@@ -55,6 +55,23 @@ def test_the_verb_takes_data_or_online_not_both(tmp_path, capsys):
     assert "--online" in capsys.readouterr().err
     with pytest.raises(Exception, match="uses_per_frame"):
         OnlineConfig(GenerateConfig(mode="random"), uses_per_frame=9)
+    assert main(["train", "--online", "--workers", "3", "--out", str(tmp_path / "r"), "--quiet"]) == 2
+    assert "--workers: a flag of training on --data's shards" in capsys.readouterr().err  # it was ignored
+    assert main(["train", "--online", "--render-workers", "0", "--out", str(tmp_path / "r"), "--quiet"]) == 2
+    assert "--render-workers 0: expected at least 1" in capsys.readouterr().err  # it was the default count
+    assert main(["train", "--resume", "--out", str(tmp_path / "none"), "--quiet"]) == 2
+    assert "nothing to resume (no such folder)" in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / "r") and not os.path.exists(tmp_path / "none")
+
+
+def test_a_resumed_online_run_refuses_shards(tmp_path, capsys):
+    """--data on the resume of an online run was ignored (it went on online): refused, named as --resume."""
+    torch.set_num_threads(1)
+    run = str(tmp_path / "run")
+    train_detector(small(1), [], run, online=online(), progress=False)
+    assert main(["train", "--resume", "--data", str(tmp_path), "--out", run, "--steps", "3", "--quiet"]) == 2
+    assert "--data and --resume: train on shards or on rendered frames, not both" in capsys.readouterr().err
+    assert json.load(open(os.path.join(run, "state.json")))["step"] == 1
 
 
 @pytest.mark.slow  # renders two looks at two sizes (~10 s)
