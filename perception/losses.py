@@ -10,11 +10,14 @@ from dataclasses import asdict, dataclass
 import torch
 import torch.nn.functional as F
 
+from envisat_pose.config import Config, check
+
 
 @dataclass(frozen=True)
-class LossConfig:
+class LossConfig(Config):
     """Weights of the terms; focal_alpha, focal_beta: CenterNet's exponents (positives at the 1s of jmap,
-    negatives down-weighted by (1 - jmap)^beta near them)."""
+    negatives down-weighted by (1 - jmap)^beta near them). Each at least 0 (a negative weight trains the term
+    the wrong way)."""
 
     heatmap: float = 1.0
     offset: float = 1.0
@@ -22,6 +25,11 @@ class LossConfig:
     line: float = 0.5
     focal_alpha: float = 2.0
     focal_beta: float = 4.0
+
+    def validate(self, prefix: str = "") -> None:
+        p = f"{prefix}." if prefix else ""
+        for name in ("heatmap", "offset", "nll", "line", "focal_alpha", "focal_beta"):
+            check(getattr(self, name) >= 0, f"{p}{name}", getattr(self, name), "a weight >= 0")
 
     def to_dict(self) -> dict:
         return asdict(self)

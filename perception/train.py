@@ -11,10 +11,9 @@ Run directory (one per run, as L-CNN's):
                         cooldown's first step (or at a budget's stop that came before it): the next leg's start
     ema.safetensors     (ema_decay > 0) the moving average of the weights
     state.json          step, epoch, batch within the epoch, workers, time_s: where --resume goes on
-Determinism: the model is initialized from a torch.Generator seeded by cfg.seed (no global seeding), each
-sample's crop and augmentation from (seed, epoch, shard, index), the batches of an epoch from (seed, epoch,
-worker count); a resumed run skips the batches its epoch already did. With a time budget the learning rate
-follows the clock, so such a run is not bitwise repeatable (its data order still is).
+Determinism: the model is initialized from a torch.Generator seeded by cfg.seed (no global seeding), each sample's
+crop and augmentation from (seed, epoch, shard, index), an epoch's batches from (seed, epoch, worker count); a
+resumed run skips its epoch's batches done. A budgeted run's rate follows the clock: not bitwise repeatable.
 DDP: when torch.distributed is initialized (torchrun), each rank reads its own shards (perception/stream.py),
 gradients are averaged, and only rank 0 writes; a budgeted run stops on rank 0's clock.
 The run folder appears with the first step trained (a run refused or failing before it leaves nothing). SIGINT
@@ -343,8 +342,20 @@ class Trainer:
         finally:
             if hasattr(batches, "close"):
                 batches.close()  # the loader's or the renderers' workers shut down, on an error too
-            self.call("after_train")
+            self._after_train()
         return self.stop
+
+    def _after_train(self) -> None:
+        """Every hook's after_train, those after one that raised too; that error is the run's, raised after them."""
+        first = None
+        for hook in self.hooks:
+            try:
+                hook.after_train()
+            except BaseException as error:
+                first = first or error
+                self.error = self.error or error
+        if first is not None:
+            raise first
 
     def _loop(self, batches) -> str | None:
         self.timing.ask()

@@ -9,6 +9,7 @@ import os
 
 from envisat_pose.config import InputError, flatten
 from envisat_pose.perception.stream import close_batches, epoch_batches, loader_batches
+from envisat_pose.perception.weights import WeightsError, read_header
 
 RESUMABLE_CHANGES = ("steps", "time_budget_s")  # a resumed run may go further or longer, nothing else
 
@@ -83,8 +84,32 @@ def check_resume(run_dir: str, cfg, data: list[dict] | None) -> tuple[dict, dict
             raise InputError(f"resume: {run_dir!r} was trained on {_data_name(saved['data'])}, not on "
                              f"{_data_name(data)}{_config_changes(saved['data'], data)}: resume with the same data, "
                              "or start a new run with `init` = its checkpoint")
-    with open(os.path.join(run_dir, "state.json"), encoding="utf-8") as fh:
-        return json.load(fh), saved
+    try:
+        with open(os.path.join(run_dir, "state.json"), encoding="utf-8") as fh:
+            state = json.load(fh)
+    except (ValueError, OSError) as err:
+        raise InputError(f"resume: {run_dir!r}: its state.json cannot be read ({err})") from None
+    check_checkpoint_set(run_dir, state)
+    return state, saved
+
+
+def check_checkpoint_set(run_dir: str, state: dict) -> None:
+    """InputError unless the run's weights files hold the step its state.json says (the checkpoint's and the
+    moving average's `step` record): a run stopped while it wrote a checkpoint leaves files of two steps (state.json
+    is written last), which a resume would mix."""
+    for name in ("checkpoint.safetensors", "ema.safetensors"):
+        path = os.path.join(run_dir, name)
+        if not os.path.exists(path):
+            continue  # none to mix (a missing checkpoint is named where it is loaded)
+        try:
+            step = read_header(path).get("step")
+        except WeightsError as err:
+            raise InputError(f"resume: {err}") from None
+        if step is None or str(step) != str(state.get("step")):
+            raise InputError(f"resume: {run_dir!r}: its {name} holds step {step}, its state.json step "
+                             f"{state.get('step')}: the run was stopped while it wrote a checkpoint, so its files "
+                             "do not belong together; start a new run from the weights with `init` = "
+                             f"{os.path.join(run_dir, 'checkpoint.safetensors')}")
 
 
 def start_state(run_dir: str, cfg, resume: bool, workers: int | None, data: list[dict] | None

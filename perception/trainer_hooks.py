@@ -260,11 +260,27 @@ class Checkpoints(Hook):
         tr = self.trainer
         if tr.rank != 0 or not tr.folder_started:
             return
+        check_finite(tr.model, tr.state["step"], tr.lr)
         tr.state["time_s"] = round(tr.elapsed(), 3)
         save_weights(os.path.join(tr.run_dir, "checkpoint.safetensors"), tr.model, {"step": str(tr.state["step"])})
         save_tensors(os.path.join(tr.run_dir, "optimizer.pt"), tr.opt.state_dict())
         tr.call("on_checkpoint")
         atomic_write_text(os.path.join(tr.run_dir, "state.json"), json.dumps(tr.state, sort_keys=True) + "\n")
+
+
+class TrainingDiverged(InputError):
+    """The weights went non-finite: the run stops before it would write them over the last checkpoint."""
+
+
+def check_finite(model: torch.nn.Module, step: int, lr: float) -> None:
+    """TrainingDiverged naming the step, the learning rate and how many weight tensors are not finite, where any
+    is not (one check at each checkpoint: no host sync in the steps between)."""
+    tensors = [t for t in model.state_dict().values() if t.is_floating_point()]
+    bad = sum(not bool(torch.isfinite(t).all()) for t in tensors)
+    if bad:
+        raise TrainingDiverged(f"training diverged by step {step}: {bad} of {len(tensors)} weight tensors are not "
+                               f"finite (learning rate {lr:g}: try a lower `lr`); the last checkpoint and state.json "
+                               "are kept as they were")
 
 
 class MovingAverage(Hook):

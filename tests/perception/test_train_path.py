@@ -14,7 +14,7 @@ import time
 import pytest
 
 from envisat_pose.app.cli import main
-from envisat_pose.config import ConfigError, InputError
+from envisat_pose.config import ConfigError, InputError, from_dict
 from envisat_pose.perception.data import DataConfig
 from envisat_pose.perception.model import ModelConfig
 from envisat_pose.perception.train import TrainConfig, train
@@ -222,3 +222,52 @@ def test_a_plain_script_without_a_main_guard_trains_with_workers(tiny_dataset, t
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=180, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.count("TRAINED") == 1 and "TRAINED 2" in done.stdout
+
+
+def test_negative_loss_weights_are_refused():
+    from envisat_pose.perception.losses import LossConfig
+
+    with pytest.raises(ConfigError, match="heatmap = -1"):
+        LossConfig(heatmap=-1.0)  # it trained, to loss -3.5
+    with pytest.raises(ConfigError, match="loss.line"):
+        from_dict(TrainConfig, {"loss": {"line": -0.5}})
+
+
+def test_a_diverged_run_stops_and_keeps_its_last_good_checkpoint(tiny_dataset, tmp_path):
+    """At lr 1e9 the weights go non-finite within a few steps: the run stops with one line naming the step and
+    the rate (it ended "loss nan" with exit 0 and wrote the NaN weights over the checkpoint); what the folder
+    holds is a consistent, finite checkpoint of an earlier step."""
+    import torch
+
+    from envisat_pose.perception.trainer_hooks import TrainingDiverged
+    from envisat_pose.perception.weights import read_weights
+
+    run = str(tmp_path / "run")
+    cfg = from_dict(TrainConfig, {**small(40).to_dict(), "lr": 1e9, "checkpoint_every": 1})
+    with pytest.raises(TrainingDiverged, match=r"training diverged by step \d+: .* not finite \(learning rate 1e\+09"):
+        train(cfg, tiny_dataset, run, workers=0, progress=False)
+    state = json.load(open(os.path.join(run, "state.json")))  # seed 0: finite for a step or more, then not
+    weights, meta = read_weights(os.path.join(run, "checkpoint.safetensors"))
+    assert meta["step"] == str(state["step"]) and 1 <= state["step"] < 40
+    assert all(torch.isfinite(t).all() for t in weights.values() if t.is_floating_point())
+
+
+def test_a_resume_refuses_checkpoint_files_of_two_steps(tiny_dataset, tmp_path, capsys):
+    """A kill while the checkpoint was written leaves checkpoint.safetensors of step n + 1 beside state.json of
+    step n (written last): the resume says so in one line (it went on, mixing them: every weight differed from the
+    uninterrupted run's); a state.json that is not JSON is one line too."""
+    from safetensors.torch import save_file
+
+    from envisat_pose.perception.weights import read_weights
+
+    (tmp_path / "small.toml").write_text(SMALL_TOML.replace("steps = 100000", "steps = 2"))
+    run = tmp_path / "run"
+    assert main(["train", "--data", tiny_dataset, "--out", str(run), "--config", str(tmp_path / "small.toml"),
+                 "--workers", "0", "--quiet"]) == 0
+    weights, meta = read_weights(str(run / "checkpoint.safetensors"))
+    resume = ["train", "--resume", "--data", tiny_dataset, "--out", str(run), "--steps", "4", "--quiet"]
+    save_file(weights, str(run / "checkpoint.safetensors"), metadata={**meta, "step": "3"})  # the next step's
+    err = one_line_error(capsys, main(resume))
+    assert "checkpoint.safetensors holds step 3, its state.json step 2" in err and "init" in err
+    (run / "state.json").write_text("{half")
+    assert "state.json cannot be read" in one_line_error(capsys, main(resume))
