@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from dataclasses import replace
 
 import numpy as np
 
@@ -30,7 +31,8 @@ from envisat_pose.pipelines.detector.render_pool import RenderPool
 ONLINE_FORMAT = "envisat-pose online v1"
 DEFAULT_USES_PER_FRAME = 8
 MAX_USES_PER_FRAME = 8  # the issue's cap: no frame cropped more than 8 times
-STEP_KEY = 0x0A1E  # a step's generator: SeedSequence([seed, STEP_KEY, step])
+STEP_KEY = 0x0A1E  # a step's generator: SeedSequence([seed, STEP_KEY, step]) (DDP rank r > 0: [..., step, r])
+STREAM_KEY = 0x5A2B  # DDP rank r > 0's look seeds: SeedSequence([look seed, STREAM_KEY, r])
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -51,9 +53,22 @@ def uses_before(frame: int, step: int, batch_size: int, uses_per_frame: int) -> 
     return n
 
 
-def step_seed(seed: int, step: int) -> int:
-    """The seed of step `step`'s torch.Generator (crops, augmentation, segments)."""
-    return int(np.random.SeedSequence([seed, STEP_KEY, step]).generate_state(1, dtype=np.uint64)[0] >> 1)
+def step_seed(seed: int, step: int, stream: int = 0) -> int:
+    """The seed of step `step`'s torch.Generator (crops, augmentation, segments); stream: the DDP rank."""
+    key = [seed, STEP_KEY, step] + ([stream] if stream else [])
+    return int(np.random.SeedSequence(key).generate_state(1, dtype=np.uint64)[0] >> 1)
+
+
+def stream_looks(looks: tuple, stream: int) -> tuple:
+    """The looks DDP rank `stream` renders: rank 0's (a single process's) as given, another rank's with each look's
+    seed drawn from (its seed, stream), so the ranks train on different frames (the same frames on every rank
+    added nothing but the count)."""
+    def seed(look) -> int:
+        key = [look.generate.seed, STREAM_KEY, stream]
+        return int(np.random.SeedSequence(key).generate_state(1, dtype=np.uint64)[0] >> 1)
+
+    return looks if stream == 0 else tuple(replace(look, generate=replace(look.generate, seed=seed(look)))
+                                           for look in looks)
 
 
 def run_configs(looks, data_cfg) -> dict:
@@ -88,7 +103,8 @@ def check_state(state: dict, identity: dict) -> int:
 
 
 def online_batches(looks, data_cfg, seed: int, batch_size: int, workers: int, device,
-                   uses_per_frame: int = DEFAULT_USES_PER_FRAME, start_state: dict | None = None, make_batch=None):
+                   uses_per_frame: int = DEFAULT_USES_PER_FRAME, start_state: dict | None = None, make_batch=None,
+                   stream: int = 0):
     """Training batches from frames rendered as training goes (the module doc): yields (batch, state) forever.
 
     looks: a random-mode GenerateConfig (frame f is its dataset's sample f), or a sequence of Looks (a mix of
@@ -102,7 +118,8 @@ def online_batches(looks, data_cfg, seed: int, batch_size: int, workers: int, de
     of any frame so far), frame_ms (this session's mean cost of a frame in its worker: RenderPool.stage_ms)};
     start_state: such a state, to continue after it. make_batch: the batch of a window
     (batch_augment.training_batch's arguments; None: that one, ENVISAT's corner network's; another target's
-    keypoint network: perception/keypoint_batch.keypoint_batch, over the looks' K keypoints).
+    keypoint network: perception/keypoint_batch.keypoint_batch, over the looks' K keypoints). stream: the DDP
+    rank (stream_looks, step_seed: each rank its own frames and crops; the state, rank 0's, holds for every rank).
     """
     import torch
 
@@ -121,7 +138,7 @@ def online_batches(looks, data_cfg, seed: int, batch_size: int, workers: int, de
     first = window_start(step, n, k)
     uses = {f: uses_before(f, step, n, k) for f in range(first, first + n)}
     make_batch = batch_augment.training_batch if make_batch is None else make_batch
-    with RenderPool(looks, workers, first, device.type) as source:
+    with RenderPool(stream_looks(looks, stream), workers, first, device.type) as source:
         pool = DevicePool(n, max_side(looks), device, source.keypoints)
         loaded = first
         while True:
@@ -129,7 +146,7 @@ def online_batches(looks, data_cfg, seed: int, batch_size: int, workers: int, de
             pool.load(source, f0 + n - loaded)
             loaded = f0 + n
             frames = torch.arange(f0, f0 + n, dtype=torch.int64)
-            gen = torch.Generator().manual_seed(step_seed(seed, step))
+            gen = torch.Generator().manual_seed(step_seed(seed, step, stream))
             batch = make_batch(pool.frames, pool.corners_px, pool.visible, pool.in_frame, data_cfg, gen,
                                (frames % n).to(device), pool.hw if len(looks) > 1 else None)
             prior = torch.tensor([uses.get(int(f), 0) for f in frames], dtype=torch.int64)

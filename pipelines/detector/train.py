@@ -253,6 +253,11 @@ def online_record(run_dir: str) -> dict:
         return {"max_uses": None, "frame_ms": None}
 
 
+def ddp_rank() -> int:
+    """This process's rank under torchrun (its RANK where WORLD_SIZE > 1), else 0."""
+    return int(os.environ.get("RANK", "0")) if int(os.environ.get("WORLD_SIZE", "1")) > 1 else 0
+
+
 def init_distributed(device: str) -> str:
     """torchrun sets WORLD_SIZE/RANK/MASTER_ADDR: start the process group (gloo on CPU, nccl on CUDA). Returns
     this rank's device."""
@@ -328,7 +333,7 @@ def online_source(online: OnlineConfig, cfg, device: str, task, target) -> tuple
 
     def source(start_state):
         return online_batches(online.looks, cfg.data, cfg.seed, cfg.batch_size, online.workers, device,
-                              online.uses_per_frame, start_state, task.online_batch)
+                              online.uses_per_frame, start_state, task.online_batch, stream=ddp_rank())
     return data, source
 
 

@@ -239,3 +239,17 @@ def test_a_mix_of_sizes_and_scenarios_renders_each_looks_own_frames(tmp_path):
     finally:
         it.close()
     assert not multiprocessing.active_children()
+
+
+def test_each_ddp_rank_renders_its_own_frames_under_one_state():
+    """Rank 0 (stream 0) is a single process's run, bit for bit; rank 1's frames and crops differ from it (every
+    rank rendered the same frames, so a second rank added only its count), and its state is the same one, which
+    rank 0 writes and every rank resumes from."""
+    kw = dict(seed=3, batch_size=2, workers=1, device="cpu", uses_per_frame=2)
+    plain, rank0, rank1 = take(2, **kw), take(2, **kw, stream=0), take(2, **kw, stream=1)
+    def state(s):
+        return {k: v for k, v in s.items() if k != "frame_ms"}  # frame_ms: this session's timing
+
+    for (a, sa), (b, sb), (c, sc) in zip(plain, rank0, rank1):
+        assert all(torch.equal(a[key], b[key]) for key in a) and state(sa) == state(sb) == state(sc)
+        assert not torch.equal(a["image"], c["image"])
