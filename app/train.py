@@ -15,6 +15,7 @@ from envisat_pose.config import ConfigError, InputError, resolve_job_config
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.pipelines.detector.look_mix import read_looks
 from envisat_pose.pipelines.detector.train import (
+    ddp_rank,
     default_workers,
     missing_data,
     online_kind,
@@ -35,8 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--online on frames rendered as it goes; --target: another target's keypoint network, online): crops "
         "around the target, style augmentation, checkpoints as safetensors. Under torchrun it trains with DDP.",
     )
-    p.add_argument("--data", nargs="+", metavar="DIR",
-                   help="dataset folder(s) (shards + manifest.json); several are read together")
+    p.add_argument("--data", nargs="+", metavar="DIR", help="dataset folder(s) (shards + manifest.json), read together")
     p.add_argument("--online", action="store_true",
                    help="instead of --data: train on frames rendered as training goes (no files; crops and "
                    "augmentation on the device), each frame cropped at most --uses-per-frame times")
@@ -53,9 +53,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (created with its parents when "
                    "the first step is trained)")
     p.add_argument("--config", metavar="FILE.toml", help="training config (keys of TrainConfig, [model], [data], [loss])")
-    p.add_argument("--resume", action="store_true",
-                   help="go on from the run directory's last checkpoint, with its own config (--steps and "
-                   "--time-budget-s may change; the data may not); Ctrl-C writes one")
+    p.add_argument("--resume", action="store_true", help="go on from the run directory's last checkpoint, with its "
+                   "own config (--steps and --time-budget-s may change; the data may not); Ctrl-C writes one")
     p.add_argument("--init", metavar="WEIGHTS", help="start from these weights (same architecture; fine-tuning)")
     p.add_argument("--backbone", metavar="WEIGHTS", help="a new run's backbone: any detector's weights, 'shipped' "
                    "(ENVISAT's; a new --target run's default where it fits) or 'none'; not with --init")
@@ -112,8 +111,10 @@ def online_config(args: argparse.Namespace, cfg):
 
 def resume_command(args: argparse.Namespace) -> str:
     """The command that goes on with an interrupted run: its data (a resumed run rereads its shards) and folder."""
-    data = ["--data", *args.data] if args.data else []
-    return shlex.join(["envisat", "train", "--resume", *data, "--out", args.out])
+    data, world = ["--data", *args.data] if args.data else [], os.environ.get("WORLD_SIZE", "1")
+    launch = ["envisat"] if world == "1" else ["torchrun", "--nproc-per-node", world, "--master-addr", "127.0.0.1",
+                                               "-m", "envisat_pose.app.cli"]  # a DDP run resumes as it ran
+    return shlex.join([*launch, "train", "--resume", *data, "--out", args.out])
 
 
 # the library's argument and config field names -> this verb's flags (its errors name what the user typed)
@@ -137,8 +138,11 @@ def run_train_cli(args: argparse.Namespace) -> int:
         raise InputError(as_flags(str(err), FLAGS)) from None
     except TrainingInterrupted as stop:
         hint = f"; go on with: {resume_command(args)}" if stop.step else ""
-        print(f"envisat train: {stop}{hint}", file=sys.stderr)
+        if ddp_rank() == 0:  # said once, not by every DDP rank
+            print(f"envisat train: {stop}{hint}", file=sys.stderr)
         return 130
+    if ddp_rank() != 0:
+        return 0  # rank 0 says how the run ended
     if skipped_line(last.get("skipped_damaged_shards", [])):
         print(skipped_line(last["skipped_damaged_shards"]))
     if last.get("stopped_by") == "nothing_to_do":

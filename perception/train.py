@@ -486,7 +486,7 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
     t_start = clock()
     if paths is None and online is None:
         paths = [p for d in ([data_dir] if isinstance(data_dir, str) else list(data_dir)) for p in shard_paths(d)]
-    state, saved = start_state(run_dir, cfg, resume, workers, (provenance or {}).get("data"))
+    state, saved = start_state(run_dir, cfg, resume, workers, (provenance or {}).get("data"), _dist()[2])
     state["budget_end_s"] = budget_end(cfg, saved, state)
     if saved is not None and (end := nothing_to_do(cfg, state)) is not None:
         return end

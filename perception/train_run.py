@@ -112,12 +112,13 @@ def check_checkpoint_set(run_dir: str, state: dict) -> None:
                              f"{os.path.join(run_dir, 'checkpoint.safetensors')}")
 
 
-def start_state(run_dir: str, cfg, resume: bool, workers: int | None, data: list[dict] | None
+def start_state(run_dir: str, cfg, resume: bool, workers: int | None, data: list[dict] | None, world: int = 1
                 ) -> tuple[dict, dict | None]:
     """The state to start from (the dict state.json holds) and, on resume, the run's config.json (None: a new
     run). InputError when a new run's folder holds a run, or when resume's checks fail (check_resume, the
-    workers: a resumed run keeps its count, which its batches depend on)."""
-    state = {"step": 0, "epoch": 0, "batch": 0, "workers": 0 if workers is None else workers, "time_s": 0.0}
+    workers and the DDP world: a resumed run keeps their counts, which its batches and steps depend on)."""
+    state = {"step": 0, "epoch": 0, "batch": 0, "workers": 0 if workers is None else workers, "time_s": 0.0,
+             "world": world}
     if not resume:
         if os.path.exists(os.path.join(run_dir, "state.json")):
             raise InputError(f"run_dir {run_dir!r} already holds a run: resume it, or give another folder")
@@ -127,7 +128,12 @@ def start_state(run_dir: str, cfg, resume: bool, workers: int | None, data: list
     if workers is not None and workers != ran_with:
         raise InputError(f"workers = {workers}: {run_dir!r} was trained with {ran_with} (its batches depend "
                          f"on the count); resume it with --workers {ran_with}")
-    return {**state, **saved_state, "workers": ran_with}, saved
+    ran_by = int(saved_state.get("world", 1))  # a run from before the world was recorded: one process
+    if world != ran_by:
+        how = f"under torchrun --nproc-per-node {ran_by}" if ran_by > 1 else "in one process (without torchrun)"
+        raise InputError(f"resume: {run_dir!r} was trained by {ran_by} DDP process(es), this is {world} (its data "
+                         f"split and batches depend on the count); resume it {how}")
+    return {**state, **saved_state, "workers": ran_with, "world": ran_by}, saved
 
 
 def budget_end(cfg, saved: dict | None, state: dict) -> float | None:

@@ -271,3 +271,24 @@ def test_a_resume_refuses_checkpoint_files_of_two_steps(tiny_dataset, tmp_path, 
     assert "checkpoint.safetensors holds step 3, its state.json step 2" in err and "init" in err
     (run / "state.json").write_text("{half")
     assert "state.json cannot be read" in one_line_error(capsys, main(resume))
+
+
+def test_a_run_resumes_with_the_ddp_world_it_ran_with(tiny_dataset, tmp_path, monkeypatch):
+    """state.json records the DDP world; a resume under another count is refused, naming how to resume (a 2-rank
+    run went on as one process, its data split and batches changed); a DDP run's resume hint is a torchrun
+    command with its count."""
+    import argparse
+
+    from envisat_pose.app.train import resume_command
+    from envisat_pose.perception.train_run import start_state
+
+    run = str(tmp_path / "run")
+    train(small(1), tiny_dataset, run, workers=0, progress=False)
+    assert json.load(open(os.path.join(run, "state.json")))["world"] == 1
+    with pytest.raises(InputError, match=r"trained by 1 DDP process\(es\), this is 2 .* in one process"):
+        start_state(run, small(2), True, None, None, world=2)
+    args = argparse.Namespace(data=[tiny_dataset], out=run)
+    assert resume_command(args).startswith("envisat train --resume --data")
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    assert resume_command(args).startswith("torchrun --nproc-per-node 2 --master-addr 127.0.0.1 -m "
+                                           "envisat_pose.app.cli train --resume --data")
