@@ -40,6 +40,23 @@ def check_out_dir(out_dir: str, parents: bool = True, field: str = "out_dir") ->
         raise InputError(f"{field} {out_dir!r}: parent folder {parent!r} does not exist")
 
 
+def check_makeable(out_dir: str, field: str = "out_dir") -> None:
+    """check_out_dir, then prove that out_dir can be made, leaving nothing: a probe folder made and removed in the
+    nearest folder on its path that exists (out_dir itself where it does). For a job whose folder appears later
+    (a training run's with its first step): /proc or a read-only disk refused before any work. InputError."""
+    import tempfile
+
+    check_out_dir(out_dir, True, field)
+    place = os.path.abspath(out_dir)
+    while not os.path.isdir(place):
+        place = os.path.dirname(place)
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=PARTIAL_PREFIX + "probe-", dir=place))
+    except OSError as err:
+        raise InputError(f"{field} {out_dir!r}: cannot be made or written ({err.strerror or err} in {place!r})") \
+            from None
+
+
 def make_out_dir(out_dir: str, subdirs: Sequence[str] = (), parents: bool = True, field: str = "out_dir") -> None:
     """check_out_dir, then create out_dir (its parents too, and its subdirs) and prove it writable by writing
     (and removing) a probe file in it.

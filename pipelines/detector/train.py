@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from envisat_pose.config import InputError, check, from_dict, path_arg, paths_arg
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.io import sha256_file
-from envisat_pose.out_dirs import check_out_dir
+from envisat_pose.out_dirs import check_makeable
 from envisat_pose.perception.weights_keys import MODEL_CONFIG_KEY
 from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, look_shares
 from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_configs, run_identity
@@ -210,7 +210,7 @@ def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | N
         read_header(backbone)  # a file that is not safetensors: refused here; a backbone of another shape when built
     if resume and not os.path.isdir(run_dir):
         raise InputError(f"run_dir {run_dir!r} does not exist: nothing to resume")
-    check_out_dir(run_dir, parents=True, field="run_dir")  # a file, or a path under one, is refused here
+    check_makeable(run_dir, field="run_dir")  # a file, a path under one, or a place that takes no folder
     if workers is not None and workers < 0:
         raise InputError(f"workers = {workers}: expected 0 (in-process) or more worker processes")
     if threads is not None and threads < 1:

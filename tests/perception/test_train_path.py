@@ -292,3 +292,14 @@ def test_a_run_resumes_with_the_ddp_world_it_ran_with(tiny_dataset, tmp_path, mo
     monkeypatch.setenv("WORLD_SIZE", "2")
     assert resume_command(args).startswith("torchrun --nproc-per-node 2 --master-addr 127.0.0.1 -m "
                                            "envisat_pose.app.cli train --resume --data")
+
+
+def test_an_out_that_cannot_be_made_is_refused_before_training(tmp_path, capsys):
+    """`--out /proc/run` was a FileNotFoundError traceback after the first step (the run folder is made then):
+    now one line before any work; a makeable --out leaves nothing behind the check."""
+    from envisat_pose.out_dirs import check_makeable
+
+    err = one_line_error(capsys, main(["train", "--online", "--out", "/proc/envisat_run", "--steps", "2", "--quiet"]))
+    assert "--out '/proc/envisat_run': cannot be made or written" in err
+    check_makeable(str(tmp_path / "a" / "b"))
+    assert os.listdir(tmp_path) == []
