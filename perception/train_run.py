@@ -112,6 +112,10 @@ def check_checkpoint_set(run_dir: str, state: dict) -> None:
                              f"{os.path.join(run_dir, 'checkpoint.safetensors')}")
 
 
+RUN_FILES = ("config.json", "metrics.jsonl", "state.json", "checkpoint.safetensors", "optimizer.pt", "ema.safetensors",
+             "pre_cooldown.safetensors", "pre_cooldown_optimizer.pt")  # what a run folder holds (perception/train.py)
+
+
 def start_state(run_dir: str, cfg, resume: bool, workers: int | None, data: list[dict] | None, world: int = 1
                 ) -> tuple[dict, dict | None]:
     """The state to start from (the dict state.json holds) and, on resume, the run's config.json (None: a new
@@ -122,6 +126,11 @@ def start_state(run_dir: str, cfg, resume: bool, workers: int | None, data: list
     if not resume:
         if os.path.exists(os.path.join(run_dir, "state.json")):
             raise InputError(f"run_dir {run_dir!r} already holds a run: resume it, or give another folder")
+        others = sorted(n for n in (os.listdir(run_dir) if os.path.isdir(run_dir) else ()) if n not in RUN_FILES
+                        and not n.startswith("."))
+        if others:
+            raise InputError(f"run_dir {run_dir!r} holds files that are not a training run's ({', '.join(others[:3])}"
+                             f"{', ...' if len(others) > 3 else ''}): give a new or empty folder")
         return state, None
     saved_state, saved = check_resume(run_dir, cfg, data)
     ran_with = int(saved_state.get("workers", 0))

@@ -303,3 +303,24 @@ def test_an_out_that_cannot_be_made_is_refused_before_training(tmp_path, capsys)
     assert "--out '/proc/envisat_run': cannot be made or written" in err
     check_makeable(str(tmp_path / "a" / "b"))
     assert os.listdir(tmp_path) == []
+
+
+def test_a_new_run_into_a_folder_of_other_files_is_refused(tiny_dataset, tmp_path, capsys):
+    """A copy of a dataset given as --out took the run's files beside its shards and manifest: refused in one line
+    naming them; a run folder's own files (a run killed before its first checkpoint) and hidden files are not in
+    the way."""
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_dataset, copy)
+    err = one_line_error(capsys, main(["train", "--data", tiny_dataset, "--out", str(copy), "--steps", "1",
+                                       "--quiet"]))
+    assert "holds files that are not a training run's (generate.config.toml, manifest.json" in err
+    assert not (copy / "config.json").exists()
+    own = tmp_path / "own"
+    own.mkdir()
+    (own / "config.json").write_text("{}")
+    (own / ".notes").write_text("mine")
+    (tmp_path / "small.toml").write_text(SMALL_TOML.replace("steps = 100000", "steps = 1"))
+    assert main(["train", "--data", tiny_dataset, "--out", str(own), "--config", str(tmp_path / "small.toml"),
+                 "--workers", "0", "--quiet"]) == 0
