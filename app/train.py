@@ -91,8 +91,8 @@ def online_config(args: argparse.Namespace, cfg):
     saved = read_run_record(args.out).get("online") if args.resume and os.path.isdir(args.out) else None
     args.online = args.online or saved is not None or "target" in defaults  # a resumed online run; a target's
     training_source(args)
-    if saved is not None and not (args.looks or args.generate_config or args.resolution or args.uses_per_frame):
-        return kind.from_record(saved, args.render_workers)  # resumed with looks: checked as other data would be
+    if saved is not None and not (args.looks or args.generate_config or args.resolution):  # its looks, else
+        return kind.from_record(saved, args.render_workers, args.uses_per_frame)  # checked as other data would be
     if not args.online:
         if args.data is None:
             raise missing_data(args.out, args.resume)

@@ -23,7 +23,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from envisat_pose.config import check, to_dict
+from envisat_pose.config import InputError, check, to_dict
 from envisat_pose.pipelines.detector.device_pool import DevicePool
 from envisat_pose.pipelines.detector.look_mix import as_looks, look_shares, max_side
 from envisat_pose.pipelines.detector.render_pool import RenderPool
@@ -95,8 +95,10 @@ def check_state(state: dict, identity: dict) -> int:
     uses per frame or configs differ)."""
     check(isinstance(state, dict) and "step" in state, "start_state", state, "a state yielded by online_batches")
     for key, value in identity.items():
-        check(state.get(key) == value, f"start_state.{key}", state.get(key),
-              f"{value!r}, this run's (a state resumes only the run that wrote it)")
+        if state.get(key) != value:  # a ValueError: the verb prints it as one line
+            raise InputError(f"resume: the run was trained with {key} = {state.get(key)!r}, this call gives "
+                             f"{value!r}: a run resumes only with its own (start a new run with its checkpoint as "
+                             "`init` for another)")
     step = state["step"]
     check(isinstance(step, int) and step >= 0, "start_state.step", step, "a non-negative step")
     return step

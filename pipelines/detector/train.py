@@ -70,15 +70,17 @@ class OnlineConfig:
         return {"looks": looks, "workers": self.workers, "uses_per_frame": self.uses_per_frame}
 
     @classmethod
-    def from_record(cls, record: dict, workers: int | None = None) -> "OnlineConfig":
-        """From record()'s dict, or an earlier run's with one 'generate' config."""
+    def from_record(cls, record: dict, workers: int | None = None, uses_per_frame: int | None = None
+                    ) -> "OnlineConfig":
+        """From record()'s dict, or an earlier run's with one 'generate' config; workers, uses_per_frame: the
+        record's unless given (a resume given another K is refused by its run's identity, naming K)."""
 
         if "looks" in record:
             looks = tuple(WeightedLook.from_record({k: v for k, v in r.items() if k != "share"}, "online.looks")
                           for r in record["looks"])
         else:
             looks = from_dict(GenerateConfig, record["generate"], "online.generate")
-        return cls(looks, workers or int(record.get("workers", 1)), int(record["uses_per_frame"]))
+        return cls(looks, workers or int(record.get("workers", 1)), int(uses_per_frame or record["uses_per_frame"]))
 
 
 class TargetOnlineConfig(OnlineConfig):

@@ -64,13 +64,18 @@ def test_the_verb_takes_data_or_online_not_both(tmp_path, capsys):
     assert not os.path.exists(tmp_path / "r") and not os.path.exists(tmp_path / "none")
 
 
-def test_a_resumed_online_run_refuses_shards(tmp_path, capsys):
-    """--data on the resume of an online run was ignored (it went on online): refused, named as --resume."""
+def test_a_resumed_online_run_refuses_shards_and_another_k(tmp_path, capsys):
+    """--data on the resume of an online run was ignored (it went on online): refused, named as --resume; another
+    --uses-per-frame is refused naming it."""
     torch.set_num_threads(1)
     run = str(tmp_path / "run")
     train_detector(small(1), [], run, online=online(), progress=False)
     assert main(["train", "--resume", "--data", str(tmp_path), "--out", run, "--steps", "3", "--quiet"]) == 2
     assert "--data and --resume: train on shards or on rendered frames, not both" in capsys.readouterr().err
+    # another K on resume is named as K (it said resolution_px 128 -> 512: the looks rebuilt from defaults)
+    assert main(["train", "--resume", "--uses-per-frame", "3", "--out", run, "--steps", "3", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "trained with uses_per_frame = 2, this call gives 3" in err and "resolution" not in err, err
     assert json.load(open(os.path.join(run, "state.json")))["step"] == 1
 
 
