@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 
 import torch
 
@@ -212,6 +213,9 @@ def load_tensors(path: str) -> dict:
         return torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
         raise WeightsError(f"{path}: no such file") from None
+    except pickle.UnpicklingError:  # torch's text offers to load it unsafely: not ours to offer
+        raise WeightsError(f"{path}: holds Python objects besides tensors; refused (such a file is never "
+                           "unpickled here)") from None
     except Exception as err:  # torch raises many types for foreign or truncated files
         first = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise WeightsError(f"{path}: not a readable tensor state ({type(err).__name__}: {first})") from None

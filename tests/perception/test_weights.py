@@ -90,9 +90,13 @@ def test_optimizer_state_refuses_pickled_objects(tmp_path):
     assert load_tensors(str(good))["param_groups"][0]["lr"] == opt.param_groups[0]["lr"]
     evil = tmp_path / "evil.pt"
     torch.save({"x": _Evil()}, str(evil))
-    with pytest.raises(WeightsError, match="not a readable tensor state") as err:
+    with pytest.raises(WeightsError, match="holds Python objects besides tensors; refused") as err:
         load_tensors(str(evil))
     _one_line(err)
+    assert "weights_only" not in str(err.value) and "trust" not in str(err.value)  # torch's offer to unpickle it
+    (tmp_path / "cut.pt").write_bytes(good.read_bytes()[:50])
+    with pytest.raises(WeightsError, match="not a readable tensor state"):
+        load_tensors(str(tmp_path / "cut.pt"))
 
 
 class _Evil:
