@@ -64,8 +64,10 @@ def check_resume(run_dir: str, cfg, data: list[dict] | None) -> tuple[dict, dict
     one, or when the config (other than steps and the budget) or the data (by manifest hash) differ: each
     difference spelled out."""
     path = os.path.join(run_dir, "config.json")
-    if not os.path.exists(path) or not os.path.exists(os.path.join(run_dir, "state.json")):
-        raise InputError(f"resume: {run_dir!r} holds no trained run (no config.json and state.json)")
+    missing = [n for n in ("config.json", "state.json") if not os.path.exists(os.path.join(run_dir, n))]
+    if missing:
+        why = " (it stopped before its first checkpoint: start it again)" if missing == ["state.json"] else ""
+        raise InputError(f"resume: {run_dir!r} holds no trained run (no {' and no '.join(missing)}){why}")
     with open(path, encoding="utf-8") as fh:
         saved = json.load(fh)
     old, new = flatten(saved["train"]), flatten(cfg.to_dict())

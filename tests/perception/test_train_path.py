@@ -324,3 +324,13 @@ def test_a_new_run_into_a_folder_of_other_files_is_refused(tiny_dataset, tmp_pat
     (tmp_path / "small.toml").write_text(SMALL_TOML.replace("steps = 100000", "steps = 1"))
     assert main(["train", "--data", tiny_dataset, "--out", str(own), "--config", str(tmp_path / "small.toml"),
                  "--workers", "0", "--quiet"]) == 0
+
+
+def test_a_run_stopped_before_its_first_checkpoint_is_said_to_be_so(tmp_path):
+    from envisat_pose.perception.train_run import check_resume
+
+    (tmp_path / "config.json").write_text("{}")
+    with pytest.raises(InputError, match=r"no state.json\) \(it stopped before its first checkpoint: start it again"):
+        check_resume(str(tmp_path), small(), None)  # it said "no config.json and state.json"
+    with pytest.raises(InputError, match=r"no config.json and no state.json\)$"):
+        check_resume(str(tmp_path / "empty"), small(), None)
