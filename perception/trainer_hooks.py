@@ -204,8 +204,8 @@ class Budget(Hook):
 
 class RunFolder(Hook):
     """The run folder and its config.json, made once the first step is trained (nothing half-made before); a
-    resumed run's record takes its new steps or budget and keeps each resuming command under 'resumes', with the
-    step it resumed from. Sets trainer.folder_started (a resumed run's folder exists from the start)."""
+    resumed run's record takes its new steps or budget and its threads (what a later resume takes) and keeps each
+    resuming command under 'resumes', with the step it resumed from and its threads. Sets trainer.folder_started (a resumed run's folder exists from the start)."""
 
     def __init__(self, saved: dict | None, provenance: dict | None, resumed_at: int):
         self.saved, self.provenance, self.resumed_at = saved, provenance or {}, resumed_at
@@ -220,10 +220,11 @@ class RunFolder(Hook):
         if tr.folder_started:
             if self.saved is not None and not self._recorded and tr.rank == 0:
                 self._recorded = True
+                threads = self.provenance.get("threads", self.saved.get("threads"))  # this leg's: the next's
                 resumes = self.saved.get("resumes", []) + [{"command": self.provenance.get("command", ""),
                                                             "git": self.provenance.get("git"),
-                                                            "step": self.resumed_at}]
-                self._write({**self.saved, "train": tr.cfg.to_dict(), "resumes": resumes})
+                                                            "step": self.resumed_at, "threads": threads}]
+                self._write({**self.saved, "train": tr.cfg.to_dict(), "threads": threads, "resumes": resumes})
             return
         tr.folder_started = True
         if tr.rank == 0:

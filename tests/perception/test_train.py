@@ -171,3 +171,7 @@ def test_a_resumed_run_takes_the_threads_it_trained_with(tiny_dataset, tmp_path)
     a = load_model(os.path.join(whole, "checkpoint.safetensors")).state_dict()
     b = load_model(os.path.join(part, "checkpoint.safetensors")).state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
+    # a leg resumed at other threads records them (config.json kept the first leg's): the next resume takes them
+    train_detector(small_config(7), [tiny_dataset], part, workers=0, resume=True, threads=2)
+    record = json.load(open(os.path.join(part, "config.json")))
+    assert record["threads"] == 2 and [r["threads"] for r in record["resumes"]] == [1, 2]
