@@ -154,7 +154,7 @@ def run_train_cli(args: argparse.Namespace) -> int:
     workers = f"{last['render_workers']} render" if "render_workers" in last else f"{last.get('workers')}"
     print(f"trained to step {last.get('step')} ({last.get('steps_run')} this run): "
           f"loss {last.get('loss', float('nan')):.4f}, {last.get('samples_s', 0):.0f} samples/s with {workers} workers "
-          f"({last.get('stopped_by')}); run in {args.out}"
+          f"({last.get('stopped_by')}); weights {os.path.join(args.out, 'checkpoint.safetensors')}"
           + (f"; each rendered frame cropped at most {last.get('max_uses')} times "
              f"(K = {last.get('uses_per_frame')})" if last.get("uses_per_frame") else ""))
     return 0

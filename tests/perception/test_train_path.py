@@ -324,6 +324,7 @@ def test_a_new_run_into_a_folder_of_other_files_is_refused(tiny_dataset, tmp_pat
     (tmp_path / "small.toml").write_text(SMALL_TOML.replace("steps = 100000", "steps = 1"))
     assert main(["train", "--data", tiny_dataset, "--out", str(own), "--config", str(tmp_path / "small.toml"),
                  "--workers", "0", "--quiet"]) == 0
+    assert f"weights {own / 'checkpoint.safetensors'}" in capsys.readouterr().out  # the end line names the file
 
 
 def test_a_run_stopped_before_its_first_checkpoint_is_said_to_be_so(tmp_path):
