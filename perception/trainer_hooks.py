@@ -205,7 +205,8 @@ class Budget(Hook):
 class RunFolder(Hook):
     """The run folder and its config.json, made once the first step is trained (nothing half-made before); a
     resumed run's record takes its new steps or budget and its threads (what a later resume takes) and keeps each
-    resuming command under 'resumes', with the step it resumed from and its threads. Sets trainer.folder_started (a resumed run's folder exists from the start)."""
+    resuming command under 'resumes', with the step it resumed from and its threads. Sets trainer.folder_started
+    (a resumed run's folder exists from the start)."""
 
     def __init__(self, saved: dict | None, provenance: dict | None, resumed_at: int):
         self.saved, self.provenance, self.resumed_at = saved, provenance or {}, resumed_at
