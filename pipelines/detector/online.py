@@ -91,8 +91,8 @@ def run_identity(looks, data_cfg, seed: int, batch_size: int, uses_per_frame: in
 
 
 def check_state(state: dict, identity: dict) -> int:
-    """The step a saved state resumes at; ConfigError where it belongs to another run (format, seed, batch size,
-    uses per frame or configs differ)."""
+    """The step a saved state resumes at; InputError naming the field where it belongs to another run (format,
+    seed, batch size, uses per frame or configs differ)."""
     check(isinstance(state, dict) and "step" in state, "start_state", state, "a state yielded by online_batches")
     for key, value in identity.items():
         if state.get(key) != value:  # a ValueError: the verb prints it as one line
