@@ -260,9 +260,11 @@ class Checkpoints(Hook):
 
     def write(self) -> None:
         tr = self.trainer
-        if tr.rank != 0 or not tr.folder_started:
+        if not tr.folder_started:
             return
-        check_finite(tr.model, tr.state["step"], tr.lr)
+        check_finite(tr.model, tr.state["step"], tr.lr)  # on every rank: DDP's replicas are equal, all stop at once
+        if tr.rank != 0:
+            return
         tr.state["time_s"] = round(tr.elapsed(), 3)
         save_weights(os.path.join(tr.run_dir, "checkpoint.safetensors"), tr.model, {"step": str(tr.state["step"])})
         save_tensors(os.path.join(tr.run_dir, "optimizer.pt"), tr.opt.state_dict())
