@@ -84,6 +84,7 @@ def test_a_prediction_equal_to_the_twins_labels_costs_nothing(targets, pose):
     perms = torch.as_tensor(relabelings(twin.symmetries, 8))
     both = keypoint_losses(guess, truth, perms, cfg)
     assert float(both["loss"]) < 1e-6 and float(both["twin"]) == 1.0
+    assert all(float(both[term]) < 1e-6 for term in ("heatmap", "offset", "visibility"))  # the chosen labeling's
     assert float(keypoint_losses(prediction_of(truth), truth, perms, cfg)["loss"]) < 1e-6
     alone = keypoint_losses(guess, truth, perms[:1], cfg)
     assert float(alone["loss"]) > 1.0 and float(alone["twin"]) == 0.0
