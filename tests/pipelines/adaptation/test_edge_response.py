@@ -128,3 +128,25 @@ def test_an_edge_shorter_than_its_margins_gives_no_station_and_no_error():
     img = store(polygon_light(tri, 3.0, size=200, ss=2), None)
     st = edge_stations(img, corners, np.ones(8, bool), light=LINEAR, blur_px=3.0)
     assert len(st.offset_px) == 0
+
+
+@pytest.mark.parametrize("true_gamma", [1.03, 1.47, 1.83, 2.61])
+def test_the_grid_minimum_is_refined_to_the_parabolas_vertex(true_gamma):
+    """A cost that is a parabola in the power has its minimum found exactly between grid points (a half-step error
+    passed the end-to-end tolerance of 0.1, the grid's step)."""
+    from envisat_pose.pipelines.adaptation.edge_response import GAMMA_GRID, grid_minimum
+
+    assert grid_minimum(3.0 * (GAMMA_GRID - true_gamma) ** 2 + 0.7) == pytest.approx(true_gamma, abs=1e-9)
+
+
+def test_the_response_chosen_at_the_edges_of_its_rule():
+    """Linear within NAMED_Z = 2 standard errors of power 1, sRGB within 2 of 2.2 or where its asymmetry is no
+    larger, else the fitted power: each rule on both sides of its edge."""
+    from envisat_pose.pipelines.adaptation.edge_response import choose_response
+
+    worse_srgb = {"srgb": {"pooled": 0.5}, "linear": {"pooled": 0.4}, "at_gamma": 0.1}
+    assert choose_response(1.079, 0.04, worse_srgb) == LINEAR
+    assert choose_response(1.081, 0.04, worse_srgb) == Response("gamma", 1.081)
+    assert choose_response(2.279, 0.04, worse_srgb) == SRGB
+    assert choose_response(2.281, 0.04, worse_srgb) == Response("gamma", 2.281)
+    assert choose_response(2.281, 0.04, {**worse_srgb, "at_gamma": 0.5}) == SRGB  # sRGB's asymmetry as small
