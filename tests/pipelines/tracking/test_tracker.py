@@ -945,3 +945,31 @@ def test_evidence_counted_at_the_errors_whole_correlation_weighs_less_a_frame(tr
     assert long_[0] == pytest.approx(plain[0])
     assert all(long_[k] < plain[k] for k in range(1, 9)), (plain[:9], long_[:9])
     assert long_[8] < 0.5 * plain[8], (plain[:9], long_[:9])
+
+
+def test_the_batch_fits_statistics_are_those_of_least_squares():
+    """fit_statistics on whitened residuals linear in the state (r = r0 + J dx): P = (J^T J)^-1 computed here,
+    dof = 2 kept corners - 12, chi2 their sum of squares, a corner beyond the gate dropped; residuals twice their
+    claimed size (chi2 / dof ~ 4) scale P up by chi2 / dof, honest ones (~1) leave it."""
+    rng = np.random.default_rng(8)
+    N, K = 6, 8
+    A = rng.normal(size=(12, N, K, 2))  # d r / d x_j
+    steps = np.full(12, 1e-3)
+    meas = np.ones((N, K), bool)
+    meas[0, :3] = False
+    gate = 100.0
+    for size in (1.0, 2.0):
+        r0 = size * rng.normal(size=(N, K, 2))
+        r0[5, 7] = [15.0, 0.0]  # 225 > the gate: dropped
+        W = np.concatenate([r0[None], r0[None] + steps[:, None, None, None] * A])
+        fit = acq.fit_statistics(3.0, np.zeros(12), W, steps, meas, gate)
+        keep = meas.copy()
+        keep[5, 7] = False
+        J = A[:, keep].reshape(12, -1).T
+        chi2 = float(np.sum(r0[keep] ** 2))
+        dof = 2 * int(keep.sum()) - 12
+        P = np.linalg.inv(J.T @ J) * max(1.0, chi2 / dof)
+        assert fit.dof == dof and fit.rejected == 1 and np.array_equal(fit.used, keep)
+        assert fit.chi2 == pytest.approx(chi2) and np.allclose(fit.P, P, rtol=1e-6)
+        if size == 2.0:
+            assert chi2 / dof > 3.0  # the scaling was exercised
