@@ -585,3 +585,21 @@ def test_a_moved_target_file_is_given_with_target(tmp_path, monkeypatch):
     with pytest.raises(InputError, match="not the target file of src .*unchanged since the dataset was generated"):
         export_dataset(src, str(tmp_path / "edited"), ExportConfig("coco", val_fraction=0.0,
                                                                    target=str(home / "sat.xml")), progress=False)
+
+
+def test_the_outline_box_spans_the_pixel_centres_and_bops_object_box_is_not_clipped():
+    """The projected outline (-10.3, 5.2)-(20.7, 30.9) on a 16 x 16 image covers the pixel centres x -10..20,
+    y 6..30 (ceil of the least, floor of the largest), clipped to x 0..15, y 6..15; BOP's bbox_obj keeps the part
+    outside the image ([x, y, w, h] with w = x_max - x_min, as the BOP toolkit's calc_2d_bbox), bbox_visib is the
+    mask's."""
+    from envisat_pose.datagen.export_formats import bop_gt_info, outline_box
+
+    outline = np.array([[-10.3, 5.2], [20.7, 30.9], [3.0, 12.5]])
+    assert outline_box(outline, 16, 16, clip=False) == (-10, 6, 20, 30)
+    assert outline_box(outline, 16, 16, clip=True) == (0, 6, 15, 15)
+    assert outline_box(outline + 100.0, 16, 16, clip=True) is None  # wholly outside
+    mask = np.zeros((16, 16), np.uint8)
+    mask[6:16, 0:16] = 1
+    info = bop_gt_info(mask, outline)
+    assert info["bbox_obj"] == [-10, 6, 30, 24] and info["bbox_visib"] == [0, 6, 15, 9]
+    assert info["px_count_visib"] == 160
