@@ -168,3 +168,37 @@ def test_refine_floor_fitted_on_the_refined_corners(tiny_dataset, tmp_path, monk
     assert abs(floor - 0.08) < 0.015
     det = load_detector(str(out))
     assert det.cfg.refine_cov_floor_px2 == floor and det.cfg.cov_scale == 1.5
+
+
+class RenamingDetector(NoisyLabelDetector):
+    """The label's corners with a covariance of its own for each (corner k: diag(k + 1, 2 k + 1) / 10 px^2); every
+    frame half-turn ambiguous, its first naming the half-turn's (each corner with its candidate's covariance) and
+    the right one the alternative."""
+
+    def detect(self, image, K):
+        label = self.labels[self.n]
+        self.n += 1
+        use = label["visible"] & label["in_frame"]
+        pts = np.where(use[:, None], label["corners_px"], np.nan)
+        cov = np.where(use[:, None, None], own_covariances(), np.nan)
+        perm = np.array([2, 3, 0, 1, 6, 7, 4, 5])
+        return FrameDetection(pts[perm], cov[perm], use[perm] * 1.0, use[perm], pts, 0.5, True, np.zeros(3), pts)
+
+
+def own_covariances() -> np.ndarray:
+    return np.stack([np.diag([(k + 1) / 10, (2 * k + 1) / 10]) for k in range(8)])
+
+
+def test_a_frame_scored_under_its_alternative_naming_takes_its_corners_covariances_along(tiny_dataset):
+    """The frames are scored under the right naming (the alternative): each corner's covariance must be that
+    corner's own, as the candidate carries it, not the covariance of the corner its first naming gave that name."""
+    from envisat_pose.pipelines.detector.calibrate import collect_frames
+
+    det = RenamingDetector(0)
+    samples = list(camera_samples(shard_paths(tiny_dataset)))
+    det.labels = {i: s[2] for i, s in enumerate(samples)}
+    rows = collect_frames(det, samples)
+    hit = np.isfinite(rows["err_px"][..., 0])
+    assert hit.sum() > 20
+    want = np.broadcast_to(own_covariances(), rows["cov_px"].shape)
+    assert np.array_equal(rows["cov_px"][hit], want[hit])
