@@ -221,11 +221,12 @@ class RunFolder(Hook):
         if tr.folder_started:
             if self.saved is not None and not self._recorded and tr.rank == 0:
                 self._recorded = True
-                threads = self.provenance.get("threads", self.saved.get("threads"))  # this leg's: the next's
+                threads = self.provenance.get("threads")  # this leg's, where known: what the next resume takes
+                leg = {} if threads is None else {"threads": threads}
                 resumes = self.saved.get("resumes", []) + [{"command": self.provenance.get("command", ""),
                                                             "git": self.provenance.get("git"),
-                                                            "step": self.resumed_at, "threads": threads}]
-                self._write({**self.saved, "train": tr.cfg.to_dict(), "threads": threads, "resumes": resumes})
+                                                            "step": self.resumed_at, **leg}]
+                self._write({**self.saved, "train": tr.cfg.to_dict(), **leg, "resumes": resumes})
             return
         tr.folder_started = True
         if tr.rank == 0:
