@@ -267,6 +267,27 @@ def test_the_unchanged_network_takes_the_tracks_scale_over_the_edges_delta():
     assert adapted_scale("none", 1.0, no_fit, {"apparent_scale": None}) is None
 
 
+def test_a_scale_is_decided_when_any_labels_range_was_corrected(detector_weights):
+    """One label whose range the edges corrected (a factor other than 1) is evidence enough to measure a scale;
+    none corrected, there is nothing to measure (None). The edges' scale here: applied / (1 + 0.004), its sd
+    hypot(1e-5 fit, hypot(0.08 / 80 outline, 4.5e-4 grid)) ~ 1.1e-3, so a 0.4 % move is beyond MOVE_Z = 2 sd
+    and the error model takes it."""
+    from envisat_pose.perception.detect import weights_error_model
+    from envisat_pose.pipelines.adaptation.scale_decision import decide_scale
+
+    tcfg = AdaptConfig().track
+    tracked = weights_error_model(detector_weights)
+    applied = tracked.bias_scale if tcfg.tracker.noise.correct_scale else 1.0
+    edges = {"range_factor": [1.0, 1.0, 1.004, 1.0], "sequence": {"delta": 0.004, "delta_se": 1e-5},
+             "outline_radius_px": 80.0, "look": {}}
+    cal = {"apparent_scale": None, "apparent_scale_se": None}
+    got = decide_scale("none", tcfg, detector_weights, edges, cal)
+    assert got is not None and "kept" not in got
+    assert got["value"] == pytest.approx(applied / 1.004, rel=1e-12)
+    assert json.loads(got["error_model"])["bias_scale"] == pytest.approx(applied / 1.004, rel=1e-12)
+    assert decide_scale("none", tcfg, detector_weights, {**edges, "range_factor": [1.0] * 4}, cal) is None
+
+
 def test_the_smoother_takes_the_filter_model_the_tracker_builds(detector_weights):
     """smoother_model (no detector, no Tracker) gives the q_sigma and dynamics a Tracker builds for the same job,
     in a scenario with its own filter tuning and gravity gradient too."""

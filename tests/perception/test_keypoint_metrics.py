@@ -122,6 +122,24 @@ def test_pnp_recovers_the_pose_it_was_given_and_drops_an_outlier():
     assert km.pnp_pose(px, np.array([1, 1, 1, 0, 0, 0, 0, 0], bool), CAMERA, BOX) is None  # 3 points
 
 
+def test_pnp_refuses_a_pose_with_an_inlier_behind_the_camera(monkeypatch):
+    """The guard after the solver: a pose that puts any inlier at depth <= 0 is no pose. The refinement is made
+    to return the identity attitude at t = (0, 0, tz): the box's keypoints then lie at depths z + tz for its z of
+    -0.2, 0.2 and 0.5 m, so tz 0.2 puts four at depth exactly 0 (refused), tz 0.25 all in front (kept)."""
+    R, t = rodrigues([0.3, -0.2, 0.5]), np.array([0.2, -0.1, 8.0])
+    px = project(R, t)
+    real = cv2.solvePnP
+    for tz, kept in ((0.2, False), (0.25, True), (-8.0, False)):
+        def fake(*args, _tz=tz, **kw):  # the solver's own answer, replaced by the planted pose
+            real(*args, **kw)
+            return True, np.zeros((3, 1)), np.array([[0.0], [0.0], [_tz]])
+        monkeypatch.setattr(km.cv2, "solvePnP", fake)
+        got = km.pnp_pose(px, np.ones(8, bool), CAMERA, BOX)
+        assert (got is not None) == kept, tz
+        if kept:
+            assert np.allclose(got[0], np.eye(3)) and np.allclose(got[1], [0.0, 0.0, tz])
+
+
 def test_pose_error_in_degrees_and_percent_of_range():
     Rz30 = rodrigues([0, 0, math.radians(30)])
     rot, trans = km.pose_error(Rz30, [0, 0.5, 10.0], np.eye(3), [0, 0, 10.0])

@@ -88,6 +88,26 @@ def test_prior_pose_start_names_as_the_search_does():
     assert right >= 27
 
 
+def test_a_prior_behind_the_camera_is_not_a_start():
+    """The box's corners are point-symmetric about its origin (checked here), so the pose (R, -t) puts every
+    corner at minus a true one's camera point: each projects exactly onto a true corner's pixel, all behind the
+    camera. Such a prior is no pose: the fit falls back to the search, in front (the prior's own depth test and
+    the scoring's front test each lead there; the test fails with both removed)."""
+    g = load_geometry()
+    X = g.corners_T_m
+    assert np.allclose(np.sort(-X, axis=0), np.sort(X, axis=0)) and all(
+        np.min(np.linalg.norm(X + x, axis=1)) < 1e-9 for x in X)
+    rng = np.random.default_rng(6)
+    for _ in range(5):
+        case = make_case(rng)
+        kw = dict(type_prob=case["type_prob"], image_size=case["image_size"], prior_R_cam_from_target=case["R"])
+        searched = name_corners(case["points_px"], case["K"], **kw)
+        behind = name_corners(case["points_px"], case["K"], prior_t_cam_from_target_m=-case["t"], **kw)
+        assert behind.t_cam_from_target_m[2] > 0
+        assert np.array_equal(behind.candidate, searched.candidate)
+        assert np.allclose(behind.R_cam_from_target, searched.R_cam_from_target, atol=1e-6)
+
+
 def test_a_seeding_prior_leaves_the_half_turn_to_the_image():
     """A prior that only seeds the fit (prior_weighs_namings=False), here the true pose's half-turn twin (a
     tracker's bank before it has decided): the same names and half-turn probabilities as the search without any
