@@ -488,7 +488,7 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
         paths = [p for d in ([data_dir] if isinstance(data_dir, str) else list(data_dir)) for p in shard_paths(d)]
     state, saved = start_state(run_dir, cfg, resume, workers, (provenance or {}).get("data"), _dist()[2])
     state["budget_end_s"] = budget_end(cfg, saved, state)
-    if saved is not None and (end := nothing_to_do(cfg, state)) is not None:
+    if saved is not None and (end := nothing_to_do(cfg, state, saved)) is not None:
         return end
     trainer = _folder_trainer(cfg, run_dir, opts, state, saved, t_start)
     source = rendered_batches(online, state) if online is not None else shard_batches(trainer, paths, data_dir)

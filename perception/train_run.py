@@ -160,12 +160,18 @@ def budget_end(cfg, saved: dict | None, state: dict) -> float | None:
     return float(state["time_s"]) + cfg.time_budget_s
 
 
-def nothing_to_do(cfg, state: dict) -> dict | None:
-    """The end line of a resumed run already at its steps or at its budget's end (it trains nothing), or None."""
-    time0, end_s = float(state["time_s"]), state["budget_end_s"]
-    spent = end_s is not None and time0 >= end_s
+def nothing_to_do(cfg, state: dict, saved: dict) -> dict | None:
+    """The end line of a resumed run already at its steps or at its budget's end (it trains nothing), or None.
+    The budget counts as spent when less of it is left than the run's last leg needed before a step (state.json's
+    min_leg_s, trainer_hooks.Budget), so no batch source is started for nothing; a new budget (another
+    time_budget_s than the run's) shorter than that is refused as too short for one step (InputError)."""
+    time0, end_s, need_s = float(state["time_s"]), state["budget_end_s"], float(state.get("min_leg_s", 0.0))
+    spent = end_s is not None and time0 + need_s >= end_s
     if state["step"] < cfg.steps and not spent:
         return None
+    if state["step"] < cfg.steps and saved["train"].get("time_budget_s") != cfg.time_budget_s:
+        raise InputError(f"time_budget_s = {cfg.time_budget_s:g}: too short for one step (this run's last leg needed "
+                         f"{need_s:.1f} s for its first batch and a step's reserve): give a longer budget")
     why = "budget_spent" if state["step"] < cfg.steps else "steps_reached"
     return {"kind": "end", "step": state["step"], "epoch": state["epoch"], "steps_run": 0,
             "stopped_by": "nothing_to_do", "why": why, "time_s": time0, "workers": state["workers"]}

@@ -201,6 +201,13 @@ class Budget(Hook):
                              f"need ~{self.reserve:.1f} s more): give a longer budget")
         return "time_budget"
 
+    def on_checkpoint(self) -> None:
+        """state.json's min_leg_s: the least of the budget in which a resume of this run trains a step (this
+        call's wait for its first batch, the batch sources' start-up, and the reserve before a step), which
+        train_run.nothing_to_do reads before it starts anything."""
+        tr = self.trainer
+        tr.state["min_leg_s"] = round((tr.timing.first_batch_s or 0.0) + self.reserve_s(), 3)
+
 
 class RunFolder(Hook):
     """The run folder and its config.json, made once the first step is trained (nothing half-made before); a

@@ -92,6 +92,33 @@ def test_a_resumed_run_whose_budget_is_all_but_spent_has_nothing_to_do(tiny_data
         train(small(4, time_budget_s=41.0), tiny_dataset, str(run), resume=True, progress=False, clock=SlowClock())
 
 
+def test_a_budget_left_below_the_last_legs_start_up_starts_nothing(tiny_dataset, tmp_path, monkeypatch):
+    """state.json records the least of the budget a resume trains a step in (min_leg_s: the leg's wait for its
+    first batch and the reserve before a step). A resume with less left than that says nothing to do before it
+    starts any batch source (the renderers of an online run once started for ~3 s to train nothing); with more
+    left it trains."""
+    from envisat_pose.perception import train as train_module
+
+    run = tmp_path / "run"
+    train(small(2, time_budget_s=40.0), tiny_dataset, str(run), progress=False)
+    state = json.loads((run / "state.json").read_text())
+    assert state["min_leg_s"] >= 1.5  # at least the checkpoint's first guess (0.5 s) and the shutdown's 1 s
+    state["time_s"] = state["budget_end_s"] - 0.9 * state["min_leg_s"]
+    (run / "state.json").write_text(json.dumps(state))
+    started = []
+    real = train_module.shard_batches
+    monkeypatch.setattr(train_module, "shard_batches", lambda *a: started.append(1) or real(*a))
+    end = train(small(4, time_budget_s=40.0), tiny_dataset, str(run), resume=True, progress=False)
+    assert (end["stopped_by"], end["why"], end["step"], started) == ("nothing_to_do", "budget_spent", 2, [])
+    with pytest.raises(InputError, match="too short for one step"):  # a new budget shorter than that: refused
+        train(small(4, time_budget_s=0.5 * state["min_leg_s"]), tiny_dataset, str(run), resume=True, progress=False)
+    assert started == []
+    state["time_s"] = 0.0  # the whole budget left: the same resume trains on
+    (run / "state.json").write_text(json.dumps(state))
+    end = train(small(4, time_budget_s=40.0), tiny_dataset, str(run), resume=True, progress=False)
+    assert end["step"] == 4 and started == [1]
+
+
 def test_resume_refuses_another_model_and_other_data_spelling_out_the_difference(tiny_dataset, tmp_path):
     from envisat_pose.pipelines.detector.train import train_detector
 
