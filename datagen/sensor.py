@@ -289,6 +289,7 @@ def optics_box(gray_u8: np.ndarray, p: dict, origin_px: tuple[int, int] = (0, 0)
         crop = cv2.filter2D(crop, -1, psf, borderType=cv2.BORDER_REFLECT)
     if kern is not None:
         crop = cv2.filter2D(crop, -1, kern, borderType=cv2.BORDER_REFLECT)
+    np.maximum(crop, 0.0, out=crop)  # filter2D's DFT path (kernels of 11 px and more) leaves -1e-16 where it is dark
     return crop, box
 
 
