@@ -357,7 +357,8 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
 
         png = out[:-4] + ".png"
         plot_estimate(arrays["t_s"], arrays["x_true"], arrays["x_hat"], arrays["P"], png,
-                      title=f"UKF errors, {cfg.measurement.kind}, {cfg.runs} runs, seed {cfg.seed}")
+                      title=f"{(truth_target(truth.config, 'the truth') or load_target(DEFAULT_TARGET)).name}: UKF "
+                            f"errors, {cfg.measurement.kind}, {cfg.runs} runs, seed {cfg.seed}")
     if rrd:
         from envisat_pose.analysis.recording import write_estimates_recording
 

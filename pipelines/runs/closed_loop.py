@@ -145,8 +145,9 @@ def _closed_loop(cfg: RunConfig, run: int, truth_path: str, sink: str | None, pr
     if sink:
         from envisat_pose.analysis.recording import TrackRecorder
 
-        recorder = TrackRecorder(sink, camera, with_truth=True, title=f"envisat run {cfg.scenario}, run {run}",
-                                 target=load_target(gcfg.target))
+        target = load_target(gcfg.target)
+        recorder = TrackRecorder(sink, camera, with_truth=True, title=f"envisat run {target.name}, {cfg.scenario}, "
+                                 f"run {run}", target=target)
 
     maker = FrameMaker(renderer, gcfg, cfg.seed, run, appearance_seed, sun_C, nadir_C)
     plan_ahead = PlanAhead(tracker, t_s) if cfg.render_window else None
@@ -253,7 +254,8 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
     from envisat_pose.analysis.plots import plot_estimate
 
     plot_estimate(*plot_inputs(truth.t_s, truth.x, run_dirs), paths["plot"],
-                  title=f"closed loop, scenario {cfg.scenario!r}, {R} run(s), seed {cfg.seed}")
+                  title=f"closed loop of {load_target(cfg.image.target).name}, scenario {cfg.scenario!r}, {R} run(s), "
+                        f"seed {cfg.seed}")
     cols = [run_rows(d, ["status", "nis", "nis_dof"], 0, T) for d in run_dirs]  # three scalars a frame
     shutil.rmtree(runs_dir, ignore_errors=True)
     timing_sum = np.sum([r["timing_s"] for r in results], axis=0)  # (stages,) over runs and frames

@@ -197,7 +197,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     run_dir = os.path.abspath(os.path.join(runs_dir, "run-0000"))
     rows = RunRows(run_dir, T, K=tracker.K)
     truth = source.truth
-    recorder = TrackRecorder(sink, camera, with_truth=truth is not None, title=f"envisat track {source.path}",
+    recorder = TrackRecorder(sink, camera, with_truth=truth is not None, title=f"envisat track {target.name}: {source.path}",
                              target=target)
 
     wall0 = time.perf_counter()
@@ -225,7 +225,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
 
         summary["scores"] = scores
         plot_estimate(*plot_inputs(source.t_s, x_true, [run_dir]), paths["plot"],
-                      title=f"envisat track {os.path.basename(os.path.abspath(source.path))}")
+                      title=f"envisat track {target.name}: {os.path.basename(os.path.abspath(source.path))}")
     shutil.rmtree(runs_dir, ignore_errors=True)
     atomic_write_text(paths["summary"], json.dumps(summary, indent=1, sort_keys=True) + "\n")
     return summary
