@@ -391,7 +391,7 @@ class TrainOptions:
 
     resume: bool = False
     device: str = "cpu"
-    progress: bool = True
+    progress: bool = False
     provenance: dict | None = None
     init_weights: str | None = None
     backbone_weights: str | None = None
@@ -449,7 +449,7 @@ def _folder_trainer(cfg: TrainConfig, run_dir: str, opts: TrainOptions, state: d
 
 
 def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: bool = False, device: str = "cpu",
-          progress: bool = True, provenance: dict | None = None, init_weights: str | None = None,
+          progress: bool = False, provenance: dict | None = None, init_weights: str | None = None,
           workers: int | None = None, bf16: bool = False, clock=time.perf_counter,
           paths: list[str] | None = None, online=None, task: Task = CORNERS,
           backbone_weights: str | None = None) -> dict:
