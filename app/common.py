@@ -24,7 +24,7 @@ MEASUREMENT_FLAGS = {"measurement.kind": "--measurements", "measurement.sigma_m"
                      "measurement.max_markers": "--max-markers", "measurement.failure_prob": "--failure-prob",
                      "measurement.outages_s": "--outage", "measurement.rate_hz": "--rate-hz"}
 # ... and for every verb (a damaged shard's hint names --skip-damaged on every verb that reads a dataset)
-EVERY_VERB = {"skip_damaged": "--skip-damaged"}
+EVERY_VERB = {"skip_damaged": "--skip-damaged", "bf16": "--bf16"}
 
 
 def add_common(p: argparse.ArgumentParser, *, out: str | None = None, out_default: str | None = None,

@@ -138,7 +138,7 @@ def start_state(run_dir: str, cfg, resume: bool, workers: int | None, data: list
     ran_with = int(saved_state.get("workers", 0))
     if workers is not None and workers != ran_with:
         raise InputError(f"workers = {workers}: {run_dir!r} was trained with {ran_with} (its batches depend "
-                         f"on the count); resume it with --workers {ran_with}")
+                         f"on the count); resume it with `workers` {ran_with}")
     ran_by = int(saved_state.get("world", 1))  # a run from before the world was recorded: one process
     if world != ran_by:
         how = f"under torchrun --nproc-per-node {ran_by}" if ran_by > 1 else "in one process (without torchrun)"

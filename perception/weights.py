@@ -39,7 +39,7 @@ def shipped_weights_path() -> str:
 
     path = str(importlib.resources.files("envisat_pose.models").joinpath("detector.safetensors"))
     if not os.path.isfile(path):
-        raise WeightsError(f"{path}: the shipped detector weights are missing (give --weights)")
+        raise WeightsError(f"{path}: the shipped detector weights are missing (give `weights`)")
     return path
 
 

@@ -90,7 +90,7 @@ def tracker_detector(weights: str | None = None, device: str = "cpu", target: st
 
         return load_detector(weights or shipped_weights_path(), device=device, bf16=bf16)
     if bf16:
-        raise InputError(f"--bf16: ENVISAT's corner detector only; target {target!r}'s keypoint detector runs in "
+        raise InputError(f"bf16: ENVISAT's corner detector only; target {target!r}'s keypoint detector runs in "
                          "float32")
     from envisat_pose.perception.keypoint_detect import load_frame_detector
 

@@ -24,3 +24,20 @@ def test_a_weights_path_under_data_is_named_as_typed(tmp_path, monkeypatch, caps
     assert main(["detect", "--weights", "data/x.safetensors", "--data", "frames", "--out", "det"]) == 2
     err = capsys.readouterr().err
     assert "data/x.safetensors" in err and "--data/x.safetensors" not in err, err
+
+
+def test_bf16_for_another_target_is_named_as_the_flag_the_user_typed(tmp_path, capsys):
+    """The library says `bf16` (a Python argument), the command line `--bf16`."""
+    from envisat_pose.config import InputError
+    from envisat_pose.pipelines.tracking.build import tracker_detector
+
+    try:
+        tracker_detector("any.safetensors", target="models/cubesat_3u.xml", bf16=True)
+    except InputError as err:
+        assert str(err).startswith("bf16: ")
+    else:
+        raise AssertionError("bf16 with another target's detector was not refused")
+    assert main(["run", "--target", "models/upper_stage.xml", "--weights", "models/upper_stage_detector.safetensors",
+                 "--bf16", "--duration-s", "5", "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert "--bf16: ENVISAT's corner detector only" in err and not (tmp_path / "r").exists(), err

@@ -59,5 +59,5 @@ def test_the_flag_reaches_the_detector(tmp_path):
     args = build_parser().parse_args(["run", "--scenario", "default", "--out", str(tmp_path / "r")])
     assert not resolve_config(args).bf16
     assert tracker_detector(None, bf16=True).cfg.bf16
-    with pytest.raises(InputError, match="--bf16: ENVISAT's corner detector only"):
+    with pytest.raises(InputError, match="^bf16: ENVISAT.s corner detector only"):
         tracker_detector("any.safetensors", target="models/cubesat_3u.xml", bf16=True)

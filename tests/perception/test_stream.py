@@ -113,7 +113,7 @@ def test_resumed_run_trains_on_what_it_had_not(many_shards, tmp_path, monkeypatc
     whole_ids, seen[:] = list(seen), []
     train(small_config(2), many_shards, part, progress=False, workers=2)
     assert json.load(open(os.path.join(part, "state.json")))["workers"] == 2
-    with pytest.raises(InputError, match="resume it with --workers 2"):
+    with pytest.raises(InputError, match="resume it with `workers` 2"):
         train(small_config(6), many_shards, part, resume=True, progress=False, workers=3)
     seen[:] = []
     train(small_config(6), many_shards, part, resume=True, progress=False)  # None: the run's own count
