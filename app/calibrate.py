@@ -68,7 +68,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "record (default: the odd frames of --data, the even ones fitting the cue)")
     p.add_argument("--max-lag", type=int, default=20, help="autocorrelation lags measured (default 20)")
     p.add_argument("--limit", type=int, help="only the first N frames of each dataset")
-    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's, at most the usable cores)")
     add_common(p)  # the shared --quiet
     add_skip_damaged_argument(p)
     p.set_defaults(func=run_calibrate_cli, flag_names={"data": "--data", "held_out": "--held-out", "out": "--out"})

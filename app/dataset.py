@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, check_rrd_output, skipped_line
 from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
 from envisat_pose.pipelines.datasets.inspect import OUTPUT_KEYS, inspect_dataset
+from envisat_pose.pools import usable_cores
 from envisat_pose.shard_reader import skip_hint
 
 
@@ -42,8 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="png: the shards' bytes unchanged (default); jpg: re-encoded at quality 95")
     e.add_argument("--val-fraction", type=float, metavar="F", help="share of images in the validation split "
                    "(default 0.2 for random views; a sequence: 0, else its last frames)")
-    e.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="local worker processes (default: "
-                   "one per core)")
+    e.add_argument("--workers", type=int, default=usable_cores(), help="local worker processes (default: one per "
+                   "usable core)")
     add_common(e, out="new folder (refused if it exists and is not empty)", seed="seed of the train/validation "
                "split (default 0)", flag_names={"src": "SRC", "fmt": "--format", "image_format": "--image-format",
                                                 "val_fraction": "--val-fraction", "workers": "--workers",

@@ -10,6 +10,7 @@ import argparse
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, skipped_line
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.out_dirs import check_out_file
+from envisat_pose.pipelines.common.threads import default_torch_threads
 from envisat_pose.pipelines.detector.detect import DetectJobConfig, run_detect
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig, run_detect_target
 from envisat_pose.shard_reader import skip_hint
@@ -30,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True, metavar="DIR", help="dataset folder (shards)")
     p.add_argument("--out", required=True, metavar="det.npz", help="output file")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
-    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's, at most the usable cores)")
     p.add_argument("--limit", type=int, help="only the first N frames")
     p.add_argument("--roi", metavar="ROI.npz",
                    help="regions of interest that skip the coarse pass: arrays key (M,) and roi_px (M, 3) "
@@ -50,7 +51,7 @@ def detector_inputs(args: argparse.Namespace) -> None:
     """The checks the verbs that run the detector share, before any work: --limit at least 1 (where the verb has
     it), --weights (the shipped file by default) exists and fits the target (--target where the verb has it, else
     ENVISAT: one line naming the weights, their target and the given one), --threads at least 1 (then torch uses
-    that many)."""
+    that many; else its default, no more than the usable cores)."""
     import os
 
     import torch
@@ -63,10 +64,9 @@ def detector_inputs(args: argparse.Namespace) -> None:
     if not os.path.isfile(args.weights):
         raise InputError(f"--weights {args.weights!r}: no such file")
     check_weights_target(args.weights, getattr(args, "target", None) or DEFAULT_TARGET, "--weights")
-    if args.threads is not None:
-        if args.threads < 1:
-            raise InputError(f"--threads {args.threads}: expected at least 1")
-        torch.set_num_threads(args.threads)
+    if args.threads is not None and args.threads < 1:
+        raise InputError(f"--threads {args.threads}: expected at least 1")
+    torch.set_num_threads(args.threads or default_torch_threads())
 
 
 def resolve_config(args: argparse.Namespace):

@@ -45,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--refine", action="store_true", help="adds detector_refined (and detector_roi_refined): the "
                    "named corners refined on the full-resolution pixels (DetectConfig.refine)")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
-    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's, at most the usable cores)")
     add_common(p)  # the shared --quiet
     add_skip_damaged_argument(p)
     p.set_defaults(func=run_evaluate_cli, flag_names={"roi": "--roi", "roi_labels": "--roi-labels", "json_path": "--json",

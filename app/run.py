@@ -36,7 +36,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    "file's, else default)")
     p.add_argument("--duration-s", type=float, help="simulated time, s (default: the scenario's)")
     p.add_argument("--runs", type=int, help="closed loops on the same truth (camera noise; default 1)")
-    p.add_argument("--workers", type=int, help="processes for --runs (default: min(runs, CPU cores))")
+    p.add_argument("--workers", type=int, help="processes for --runs (default: min(runs, usable cores, what "
+                   "the memory holds))")
     p.add_argument("--warm-start", action="store_true",
                    help="start each run's filter from the truth plus a draw from P0 (filter studies) instead of "
                    "cold; the start still earns its claim: its first frames (the tracker's confirm_frames, 5) are "

@@ -16,7 +16,7 @@ from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.pipelines.detector.look_mix import read_looks
 from envisat_pose.pipelines.detector.train import (
     ddp_rank,
-    default_workers,
+    default_render_workers,
     missing_data,
     online_kind,
     read_run_config,
@@ -49,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resolution", type=int, metavar="PX", help="--online: the renders' side (default 1024)")
     p.add_argument("--uses-per-frame", type=int, metavar="K", help="--online: crops per rendered frame (1-8, default 8)")
     p.add_argument("--render-workers", type=int, metavar="N", help="--online: renderer processes (default: the "
-                   "cores less one, at least 1)")
+                   "usable cores less one, at least 1, at most what the memory holds)")
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (created with its parents when "
                    "the first step is trained)")
     p.add_argument("--config", metavar="FILE.toml", help="training config (keys of TrainConfig, [model], [data], [loss])")
@@ -64,8 +64,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, help="root seed (default 0)")
     p.add_argument("--time-budget-s", type=float, metavar="S", help="train for S seconds (S > 0): the rate decays "
                    "over them, the run stops inside them with a checkpoint; --resume: S s more (default: --steps)")
-    p.add_argument("--workers", type=int, metavar="N", help="DataLoader worker processes building the batches "
-                   "(default: the cores less one; 0: in this process; a resumed run keeps its own)")
+    p.add_argument("--workers", type=int, metavar="N", help="DataLoader processes building the batches (default: "
+                   "the usable cores less one, at most a shard each; 0: in this process; a resumed run keeps its own)")
     p.add_argument("--bf16", action="store_true", help="bfloat16 autocast of the network (CUDA or CPU)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     add_common(p)  # the shared --quiet
@@ -106,7 +106,7 @@ def online_config(args: argparse.Namespace, cfg):
     else:
         gen = resolve_job_config(GenerateConfig, defaults, args.generate_config, {"resolution_px": args.resolution})
     uses = {} if args.uses_per_frame is None else {"uses_per_frame": args.uses_per_frame}
-    return kind(gen, args.render_workers or max(1, default_workers()), **uses)
+    return kind(gen, args.render_workers or default_render_workers(), **uses)
 
 
 def resume_command(args: argparse.Namespace) -> str:

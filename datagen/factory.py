@@ -236,7 +236,7 @@ def gil_switch_interval(interval_s: float):
 
 def spare_core(workers: int, backend: str = "local", scheduler: str | None = None) -> bool:
     """Whether each of `workers` workers has a core its renderer leaves idle: LP_NUM_THREADS (llvmpipe's
-    rasterizer threads, set before the run) below the worker's share of this machine's cores. Unset, the run
+    rasterizer threads, set before the run) below the worker's share of the usable cores. Unset, the run
     sets it to that share (no core spare); an existing Dask scheduler's machines are unknown (False)."""
     lp = os.environ.get("LP_NUM_THREADS", "")
     if scheduler or not lp.isdigit():
@@ -371,8 +371,8 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
     cfg, out_dir = config_arg(cfg, GenerateConfig), path_arg(out_dir, "out_dir")
     check(backend in ("local", "dask"), "backend", backend, "'local' or 'dask'")
     check(type(workers) is int and workers >= 1, "workers", workers, "at least 1 worker process (an integer)")
-    # one rasterizer thread count per worker: the machine's cores shared among the workers
-    runner = RunnerConfig(backend, workers, scheduler, thread_env(workers))
+    # one rasterizer thread count per worker: the usable cores shared among the workers that start (one a shard)
+    runner = RunnerConfig(backend, workers, scheduler, thread_env(workers, units=cfg.num_shards))
     runner.validate()
     check_out_dir(out_dir)
     if cfg.mode == "sequence":  # before anything is written: the truth's keep-out and the depth range
@@ -397,7 +397,7 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
 
     try:
         cfg_text, where = config_json(cfg), os.path.abspath(out_dir)
-        beside = spare_core(workers, backend, scheduler)
+        beside = spare_core(min(workers, cfg.num_shards), backend, scheduler)
         return job.run(shard_task, lambda idx: (cfg_text, idx, where, beside), runner, on_unit)
     finally:
         if bar is not None:

@@ -1,6 +1,7 @@
 """One runner for every parallel job (design.md, Scale): a task function over a list of argument tuples, run
 in this process, on a local process pool, or on a Dask cluster, with results yielded as they finish
-(`run_tasks(fn, tasks, RunnerConfig)`); `thread_env` the workers' thread shares.
+(`run_tasks(fn, tasks, RunnerConfig)`); `thread_env` the workers' thread shares; `usable_cores`,
+`usable_memory_bytes` and `default_processes` what a default pool may take of this machine.
 
 A task is a module-level function (importable by name in a worker) whose arguments and result are plain data:
 numbers, strings, lists, dicts, numpy arrays. Each task draws its randomness from its own arguments (a seed),
@@ -83,19 +84,87 @@ def without_main_script():
         sys.modules["__main__"] = main
 
 
+CGROUP_ROOT = "/sys/fs/cgroup"  # the cgroup file system as a container sees it: its own group at the root
+MEMINFO = "/proc/meminfo"
+
+
+def _read_int(path: str) -> int | None:
+    """The integer a one-value kernel file holds; None where it is missing, unreadable or not a number ('max')."""
+    try:
+        with open(path, encoding="ascii") as fh:
+            return int(fh.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def cgroup_cpu_limit() -> int | None:
+    """The cores a cgroup CPU quota allows (a container's --cpus: its quota over its period, rounded up), None
+    without one: cgroup v2's cpu.max ('QUOTA PERIOD'; 'max PERIOD' is none), else v1's cpu/cpu.cfs_quota_us over
+    cpu/cpu.cfs_period_us (-1 is none)."""
+    root = CGROUP_ROOT
+    try:
+        with open(os.path.join(root, "cpu.max"), encoding="ascii") as fh:
+            quota_text, period_text = fh.read().split()[:2]
+        quota, period = (int(quota_text) if quota_text.isdigit() else None), int(period_text)
+    except (OSError, ValueError):
+        quota, period = _read_int(os.path.join(root, "cpu", "cpu.cfs_quota_us")), \
+            _read_int(os.path.join(root, "cpu", "cpu.cfs_period_us"))
+    if quota is None or period is None or quota <= 0 or period <= 0:
+        return None
+    return max(1, -(-quota // period))
+
+
+def usable_cores() -> int:
+    """The cores this process may use, the one count every default that scales with the machine starts from: the
+    machine's (os.cpu_count), fewer where the CPU affinity (taskset, a container's cpuset) or a cgroup CPU quota
+    (cgroup_cpu_limit) allows fewer; at least 1."""
+    cores = os.cpu_count() or 1
+    if hasattr(os, "sched_getaffinity"):
+        cores = min(cores, len(os.sched_getaffinity(0)) or cores)
+    return max(1, min(cores, cgroup_cpu_limit() or cores))
+
+
+def usable_memory_bytes() -> int | None:
+    """The memory this process's new workers may still take: /proc/meminfo's MemAvailable, less where a cgroup
+    memory limit leaves less (v2 memory.max less memory.current, v1 memory.limit_in_bytes less
+    memory.usage_in_bytes); None where neither is known."""
+    found, root = [], CGROUP_ROOT
+    try:
+        with open(MEMINFO, encoding="ascii") as fh:
+            found += [int(line.split()[1]) * 1024 for line in fh if line.startswith("MemAvailable:")]
+    except (OSError, ValueError, IndexError):
+        pass
+    for limit, usage in (("memory.max", "memory.current"),
+                         ("memory/memory.limit_in_bytes", "memory/memory.usage_in_bytes")):
+        cap, used = _read_int(os.path.join(root, limit)), _read_int(os.path.join(root, usage))
+        if cap is not None and used is not None and cap < 1 << 60:  # v1 writes 'no limit' as about 2^63
+            found.append(max(0, cap - used))
+    return min(found) if found else None
+
+
+def default_processes(limit: int, bytes_each: int) -> int:
+    """How many worker processes a job starts when none are asked for: no more than `limit` (its units of work),
+    the usable cores, and the usable memory at `bytes_each` a process (its measured peak); at least 1."""
+    memory = usable_memory_bytes()
+    by_memory = limit if memory is None else memory // max(1, bytes_each)
+    return max(1, min(limit, usable_cores(), by_memory))
+
+
 def cpu_share(workers: int) -> int:
-    """The machine's cores shared among `workers` processes (at least 1 each)."""
-    return max(1, (os.cpu_count() or 1) // max(1, workers))
+    """The usable cores shared among `workers` processes (at least 1 each)."""
+    return max(1, usable_cores() // max(1, workers))
 
 
 RASTERIZER_THREADS = ("LP_NUM_THREADS",)  # llvmpipe's threads: MuJoCo's software renderer (OSMesa, EGL on a CPU)
 BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")  # numpy's and scipy's linear algebra
 
 
-def thread_env(workers: int, variables: tuple[str, ...] = RASTERIZER_THREADS) -> dict[str, str]:
-    """The one home of the worker thread environment: each of `variables` set to the machine's cores shared among
-    `workers` processes (cpu_share), for RunnerConfig.env (a worker keeps a value its parent already set)."""
-    n = str(cpu_share(workers))
+def thread_env(workers: int, variables: tuple[str, ...] = RASTERIZER_THREADS, units: int | None = None
+               ) -> dict[str, str]:
+    """The one home of the worker thread environment: each of `variables` set to the usable cores shared among
+    the processes that start, `workers` or fewer where the job has fewer `units` of work (a pool starts no more
+    than its tasks), for RunnerConfig.env (a worker keeps a value its parent already set)."""
+    n = str(cpu_share(workers if units is None else min(workers, units)))
     return {name: n for name in variables}
 
 
@@ -169,8 +238,8 @@ def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
         client = Client(cfg.scheduler)
     else:
         with without_main_script():
-            cluster = LocalCluster(n_workers=cfg.workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                   dashboard_address=None, env=dict(cfg.env))
+            cluster = LocalCluster(n_workers=min(cfg.workers, len(tasks)), threads_per_worker=1, processes=True,
+                                   host="127.0.0.1", dashboard_address=None, env=dict(cfg.env))
         client = Client(cluster)
     try:
         futures = {client.submit(_dask_task, fn, dict(cfg.env), tuple(args), pure=False): i

@@ -26,6 +26,7 @@ from collections.abc import Iterator
 
 from envisat_pose.config import InputError
 from envisat_pose.io import sha256_file
+from envisat_pose.pools import usable_cores
 from envisat_pose.resumable import read_manifest
 
 REQUIRED_MEMBERS = frozenset({"json", "png"})  # what every sample of a shard holds: its label and its image
@@ -227,10 +228,10 @@ def _plain_member_names(path: str) -> list[str] | None:
 
 def shard_problems(data_dir: str, entries: list[dict], threads: int | None = None) -> list[str | None]:
     """shard_problem of every manifest entry, in order, the shards hashed on `threads` threads at once (default:
-    one per core; hashlib and file reads release the GIL, so the check takes the wall time of the cores)."""
+    one per usable core; hashlib and file reads release the GIL, so the check takes the wall time of the cores)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    threads = max(1, min(len(entries), threads or os.cpu_count() or 1))
+    threads = max(1, min(len(entries), threads or usable_cores()))
     if threads == 1:
         return [shard_problem(os.path.join(data_dir, e["name"]), e) for e in entries]
     with ThreadPoolExecutor(threads, thread_name_prefix="shard-check") as pool:

@@ -118,3 +118,26 @@ def chaser_of():
     from envisat_pose.filtering.estimator import chaser_states
 
     return lambda tr: chaser_states(tr.chaser_r_m, tr.chaser_rdot_m_s, tr.chaser_theta_rad, tr.chaser_thetadot_rad_s)
+
+
+@pytest.fixture
+def machine(monkeypatch, tmp_path):
+    """Pretend a machine's size: machine(cores, affinity=None, quota=None, memory_gb=None) sets os.cpu_count to
+    cores, the CPU affinity to its first `affinity` cores (default all), a cgroup v2 CPU quota of `quota` cores
+    (default none) and MemAvailable to memory_gb (default 1000), all that envisat_pose.pools.usable_cores and
+    usable_memory_bytes read."""
+    import os
+
+    from envisat_pose import pools
+
+    def pretend(cores: int, affinity: int | None = None, quota: int | None = None, memory_gb: float = 1000.0):
+        root = tmp_path / "machine"
+        root.mkdir(exist_ok=True)
+        (root / "cpu.max").write_text(f"{quota * 100000} 100000\n" if quota else "max 100000\n")
+        (root / "meminfo").write_text(f"MemTotal: 1 kB\nMemAvailable: {int(memory_gb * 1e9 / 1024)} kB\n")
+        monkeypatch.setattr(os, "cpu_count", lambda: cores)
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(affinity or cores)))
+        monkeypatch.setattr(pools, "CGROUP_ROOT", str(root))
+        monkeypatch.setattr(pools, "MEMINFO", str(root / "meminfo"))
+
+    return pretend

@@ -14,7 +14,9 @@ reading) only by envisat_pose/shard_reader.py; a verb or pipeline resolves its c
 config.resolve_job_config (never by merging layers itself); a chi-square gate comes from its probability
 (envisat_pose.gates), never typed as a number, and so does a band of NEES or NIS (scipy.stats.chi2, as
 analysis.stats.chi2_mean_bounds computes it); a weights file's metadata keys are typed only in
-perception/weights_keys.py. The benches and the scripts are read for every one-home rule; they
+perception/weights_keys.py; the package counts the machine's cores only in envisat_pose/pools.py (usable_cores:
+the affinity and a cgroup quota too; a default on os.cpu_count() alone oversubscribed a container). The benches
+and the scripts are read for every one-home rule but that last (they record the machine); they
 import no verb (the job a verb runs is the library's). A verb file stays thin: at most VERB_MAX_LINES lines.
 Each checker runs on a source string, so the tests below show it catching a planted copy.
 """
@@ -51,6 +53,7 @@ PENDING = {
     "typed_bands": {},
     "app_imports": {},
     "typed_weights_keys": {},
+    "machine_counts": {},
 }
 
 
@@ -357,6 +360,8 @@ ONBOARD_FILE = os.path.join("pipelines", "tracking", "onboard.py")
 RESUMABLE_FILE = os.path.join("envisat_pose", "resumable.py")  # the manifest protocol (ResumableJob)
 SHARD_READER_FILE = os.path.join("envisat_pose", "shard_reader.py")
 WEIGHTS_KEYS_FILE = os.path.join("perception", "weights_keys.py")  # the weights' metadata keys
+POOLS_FILE = os.path.join("envisat_pose", "pools.py")  # the machine's usable cores (usable_cores)
+CORE_COUNTERS = ("cpu_count", "sched_getaffinity", "process_cpu_count")  # os's and multiprocessing's
 METADATA_CALLS = ("with_metadata", "save_weights", "save_adapted", "read_metadata", "read_header")
 METADATA_NAMES = ("meta", "metadata")  # the names a weights file's metadata dict goes by
 STATE_BOUNDS = {(0, 3), (3, 6), (6, 9), (9, 12)}  # the blocks of the 12-state (envisat_pose.state)
@@ -537,6 +542,13 @@ def _speaks_of_gate(text: str) -> bool:
                for n in re.findall(r"[A-Za-z_][A-Za-z0-9_]*", text))
 
 
+def core_counts(source: str) -> list[int]:
+    """Lines that count the machine's cores by hand (os.cpu_count(), os.sched_getaffinity(), a bare cpu_count()):
+    the package's defaults take envisat_pose.pools.usable_cores."""
+    return sorted({node.lineno for node in ast.walk(ast.parse(source)) if isinstance(node, ast.Call)
+                   and (getattr(node.func, "attr", None) or getattr(node.func, "id", None)) in CORE_COUNTERS})
+
+
 def typed_gates(source: str) -> list[int]:
     """Lines where a chi-square gate is typed as a number (within 0.5 % of a chi-square bound of 1-4 dof at a
     usual tail probability) in a statement that speaks of a gate: a parameter or field named *gate*, or any
@@ -673,6 +685,8 @@ def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
             lines = typed_bands(source)
         elif kind == "typed_weights_keys" and rel != WEIGHTS_KEYS_FILE:
             lines = typed_weights_keys(source)
+        elif kind == "machine_counts" and rel != POOLS_FILE and rel.split(os.sep)[0] not in EXTRA_FOLDERS:
+            lines = core_counts(source)
         elif kind == "app_imports" and rel.split(os.sep)[0] in EXTRA_FOLDERS:
             lines = app_imports(rel, source)
         else:
@@ -957,6 +971,17 @@ def test_the_weights_key_checker_sees_each_form():
                "with_metadata(p, q, {COV_SCALE_KEY: 2.0})\n")
     assert typed_weights_keys(planted, keys) == [2, 3, 4, 5, 6, 7]
     assert {"cov_scale", "error_model", "keypoint_sigma_px"} <= weights_key_values()
+
+
+def test_the_core_count_checker_sees_each_way_to_count():
+    planted = ("import os, multiprocessing\nfrom os import cpu_count\n"
+               "a = os.cpu_count() or 1\n"
+               "b = len(os.sched_getaffinity(0))\n"
+               "c = multiprocessing.cpu_count()\n"
+               "d = cpu_count()\n"
+               "from envisat_pose.pools import usable_cores\ne = usable_cores()\n")
+    assert core_counts(planted) == [3, 4, 5, 6]
+    assert core_counts(open(os.path.join(ROOT, POOLS_FILE), encoding="utf-8").read())  # the home
 
 
 def test_the_state_slice_checker_catches_a_planted_copy():

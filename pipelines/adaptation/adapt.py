@@ -78,7 +78,7 @@ from envisat_pose.pipelines.adaptation.track_labels import (
     smoother_model,
     track_run_labels,
 )
-from envisat_pose.pipelines.common.threads import compute_threads
+from envisat_pose.pipelines.common.threads import compute_threads, default_torch_threads
 from envisat_pose.pipelines.runs.track import TrackConfig, prepare_frames, track_frames
 from envisat_pose.pipelines.tracking.camera_file import read_camera_response
 from envisat_pose.status import TRACKING
@@ -109,7 +109,7 @@ class AdaptConfig(Config):
     correction); max_calibration_frames: the
     recalibration's frames (evenly spread over the labelled ones); seed: the fine-tune's crops,
     augmentation and batches; device: torch device of the fine-tune ('cpu', 'cuda'); threads: torch CPU threads of
-    the fine-tune (0: torch's default). Validated when built."""
+    the fine-tune (0: torch's default, no more than the usable cores). Validated when built."""
 
     track: TrackConfig = field(default_factory=TrackConfig)
     held_out: float = 0.25
@@ -324,7 +324,7 @@ def adapt_round(run: AdaptRun, r: int, track_dir: str, weights: str, seed: np.ra
             "label_sigma_px_median": float(np.median(lab["sigma_px"])),
             "label_frames": [int(k) for k in lab["frames"]], "edge_range": lab["edges"]}
     candidate = os.path.join(run.stage, f"round-{r}.safetensors")
-    with compute_threads(cfg.threads or os.cpu_count() or 1):
+    with compute_threads(cfg.threads or default_torch_threads()):
         bar = _bar(run.progress, cfg.steps, f"fine-tune {r + 1}/{cfg.rounds}", "step")
         t1 = time.perf_counter()
         try:

@@ -372,7 +372,7 @@ def _run_shards(layout, stage, shards, counts, splits, workers, progress, on_sha
     tasks = [(asdict(layout), path, stage, k, int(starts[k]), splits[starts[k]:starts[k + 1]].tolist())
              for k, path in enumerate(shards)]
     runner = RunnerConfig(backend="local", workers=min(workers, len(tasks)),
-                          env=thread_env(workers, ("OMP_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")))
+                          env=thread_env(workers, ("OMP_NUM_THREADS", "OPENCV_FOR_THREADS_NUM"), len(tasks)))
     with tqdm(total=int(starts[-1]), unit="img", desc="export", disable=not progress) as bar:
         for _, n in run_tasks(export_shard, tasks, runner):
             bar.update(n)

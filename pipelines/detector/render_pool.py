@@ -47,6 +47,9 @@ from envisat_pose.pools import thread_env, without_main_script
 from envisat_pose.target import load_target
 
 SLOTS_PER_WORKER = 4  # frames a worker may render ahead of the trainer
+# a renderer process's memory for a default count (pools.default_processes): measured 1.06 GB PSS, 1.13 GB RSS at
+# 1024 px (2026-12, `envisat train --online --render-workers 2`), with a margin
+RENDERER_BYTES = 1_200_000_000
 FRAME_STAGES = ("render_ms", "camera_label_ms")  # a frame's cost in its worker: the view and the GL passes; the
 # space camera and the label (RenderPool.stage_ms: their means, beside the trainer's wait for frames)
 WAIT_POLL_S = 1.0

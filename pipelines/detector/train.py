@@ -20,9 +20,11 @@ from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.io import sha256_file
 from envisat_pose.out_dirs import check_makeable
 from envisat_pose.perception.weights_keys import MODEL_CONFIG_KEY
+from envisat_pose.pipelines.common.threads import default_torch_threads
 from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, look_shares
 from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_configs, run_identity
-from envisat_pose.pipelines.detector.render_pool import looks_keypoints
+from envisat_pose.pipelines.detector.render_pool import RENDERER_BYTES, looks_keypoints
+from envisat_pose.pools import default_processes, usable_cores
 from envisat_pose.provenance import manifest_sha256
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
 from envisat_pose.target import (
@@ -144,12 +146,29 @@ def run_threads(run_dir: str) -> int | None:
     return threads if type(threads) is int and threads >= 1 else None
 
 
-def default_workers() -> int:
-    """DataLoader workers when none are asked for: this process's cores (shared among the node's torchrun ranks)
-    less one for the training process itself; 0 (in-process) on one core."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    local_ranks = max(1, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
-    return max(0, cores // local_ranks - 1)
+def _ranks(variable: str) -> int:
+    return max(1, int(os.environ.get(variable, "1")))
+
+
+def default_workers(shards: int | None = None, images: int | None = None, batch_size: int = 1) -> int:
+    """DataLoader workers when none are asked for: the usable cores (shared among the node's torchrun ranks) less
+    one for the training process itself; 0 (in-process) on one core; and no more workers than a rank's `shards`
+    (each worker reads its own) or its `images` make batches of batch_size (each worker batches its own, its
+    partial last batch dropped: more workers than that left an epoch without a batch on a machine with more
+    cores, where a smaller one trained); where given."""
+    n = max(0, usable_cores() // _ranks("LOCAL_WORLD_SIZE") - 1)
+    world = _ranks("WORLD_SIZE")
+    for units in (shards, None if images is None else images // max(1, batch_size)):
+        if units is not None:
+            n = min(n, max(1, units // world))
+    return n
+
+
+def default_render_workers() -> int:
+    """Renderer processes of an online run when none are asked for: default_workers() (at least 1), no more than
+    the usable memory holds at RENDERER_BYTES each for the node's ranks (63 renderers, a 64-core machine's default
+    count, take ~67 GB)."""
+    return default_processes(max(1, default_workers()), RENDERER_BYTES * _ranks("LOCAL_WORLD_SIZE"))
 
 
 def git_hash() -> str:
@@ -179,6 +198,12 @@ def dataset_provenance(data_dir: str, skipped: list[str] = ()) -> dict:
         left_out = sum(sh.get("count", 0) for sh in manifest["shards"] if sh["name"] in skipped)
         record["images"] = manifest["num_images"] - left_out
     return record
+
+
+def dataset_images(data: list[dict]) -> int | None:
+    """The images of the datasets' records (dataset_provenance's), None where one has no manifest to count them."""
+    images = [d["images"] for d in data]
+    return None if None in images else sum(images)
 
 
 def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | None, workers: int | None,
@@ -404,8 +429,6 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
                  DEFAULT_TARGET if target is None else cfg.target, backbone)
     if online is not None:
         workers = 0  # no DataLoader: the renderer processes are online.workers
-    elif workers is None and not resume:
-        workers = default_workers()
     rank_device = init_distributed(device)
     if device == "cuda":  # speed over the last bits: TF32 matrix products, cuDNN's autotuned convolutions
         # (not online: its crops are resampling matrix products, which TF32 would round to ~0.1 gray level)
@@ -418,11 +441,13 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
         paths += mine
         skipped += [f"{os.path.basename(os.path.normpath(d))}/{name}" for name in left_out]
         data.append(dataset_provenance(d, left_out))
+    if workers is None and not resume:  # as many as the shards and their batches keep busy
+        workers = default_workers(len(paths), dataset_images(data), cfg.batch_size)
     source = None
     if online is not None:
         data, source = online_source(online, cfg, rank_device, task, target)
     caller_threads = torch.get_num_threads()  # given back on the way out: a library call leaves torch as it was
-    threads = threads or (run_threads(run_dir) if resume else None) or caller_threads  # resumed: the run's own
+    threads = threads or (run_threads(run_dir) if resume else None) or default_torch_threads()  # resumed: its own
     provenance = {"command": command, "git": git_hash(), "data": data, "torch": torch.__version__,
                   "device": device, "bf16": bf16, "threads": threads, "skipped_damaged_shards": skipped}
     if online is not None:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import warnings
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -23,6 +22,7 @@ from envisat_pose.geometry import load_camera
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job
 from envisat_pose.pipelines.tracking.onboard import orbit_config
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, TrackerConfig
+from envisat_pose.pools import default_processes
 
 if TYPE_CHECKING:  # the stage's type for annotations; imported where a config is made
     from envisat_pose.datagen.generate_config import GenerateConfig
@@ -30,6 +30,10 @@ if TYPE_CHECKING:  # the stage's type for annotations; imported where a config i
 # a lit default: the sun 45 deg off the line of sight, behind the camera, from above the orbit plane at t = 0 (in
 # C: radial, along-track, normal); in the default orbit the chaser enters the Earth's shadow at t = 1203 s
 DEFAULT_SUN_C0 = (0.7, -0.7, 0.15)
+# a closed loop's process (renderer, detector, tracker) for the default worker count (pools.default_processes):
+# peak RSS 1.17-1.32 GB at 1024 px (2026-12, `envisat run --runs 8`), with a margin
+RUN_PROCESS_BYTES = 1_400_000_000
+MAX_WORKERS = 256  # processes a run may start (the default's cap too: a 512-core machine's count was refused)
 
 
 def _image_defaults() -> "GenerateConfig":
@@ -44,7 +48,7 @@ class RunConfig(Config):
     scenario: named truth; duration_s: simulated time; rate_hz: camera and filter rate; filter: the UKF (the
     scenario's [filter] table over TRACKER_FILTER). Those three left None take the scenario's (its duration and
     [measurement] rate, else 600 s and 1 Hz; job_defaults.fill_from_scenario). runs: closed loops on the same truth;
-    workers: processes for them (None: one per run, at most one per core); seed: the truth's random attitude, every
+    workers: processes for them (None: one per run, within cores and memory); seed: the truth's random attitude, every
     run's camera noise (and warm start); weights: detector weights file ("": the shipped ones; the file must exist;
     another target's (image.target) keypoint detector, required for it); bf16: ENVISAT's corner detector runs its
     network in bfloat16 (perception.detect.DetectConfig.bf16; `--bf16`). warm_start: start each run's filter from
@@ -80,8 +84,8 @@ class RunConfig(Config):
 
     def __post_init__(self) -> None:
         fill_from_scenario(self, "run", RUN_FALLBACKS)
-        if self.workers is None:  # one process per run, at most one per core
-            object.__setattr__(self, "workers", max(1, min(self.runs, os.cpu_count() or 1)))
+        if self.workers is None:  # one process per run, no more than the usable cores and memory hold
+            object.__setattr__(self, "workers", default_processes(min(self.runs, MAX_WORKERS), RUN_PROCESS_BYTES))
         super().__post_init__()
         object.__setattr__(self, "workers", min(self.workers, self.runs))  # the processes that run: one per run at most
         object.__setattr__(self, "weights", job_weights(self.weights, self.image.target))  # never ENVISAT's for another
@@ -104,7 +108,7 @@ class RunConfig(Config):
         check(self.duration_s * self.rate_hz <= 200_000, "duration_s", self.duration_s,
               "at most 200000 frames (duration_s x rate_hz)")
         check(1 <= self.runs <= 1000, "runs", self.runs, "1 to 1000 runs")
-        check(1 <= self.workers <= 256, "workers", self.workers, "1 to 256 processes")
+        check(1 <= self.workers <= MAX_WORKERS, "workers", self.workers, f"1 to {MAX_WORKERS} processes")
         check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")
         check(1 <= self.threads <= 256, "threads", self.threads, "1 to 256 threads")
         check(1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality, "a JPEG quality in [1, 100]")

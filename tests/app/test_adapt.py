@@ -334,6 +334,28 @@ def test_a_fine_tune_that_raises_leaves_torchs_thread_count(monkeypatch, tmp_pat
         torch.set_num_threads(before)
 
 
+def test_the_fine_tunes_default_threads_are_the_usable_cores(monkeypatch, tmp_path, machine):
+    """threads 0 on a 64-core host whose affinity allows 2 (taskset, a container's cpuset): torch's default, not
+    os.cpu_count()'s 64 (64 threads on 2 cores made a training step 11x slower than 2)."""
+    import envisat_pose.pipelines.adaptation.adapt as adapt_module
+
+    seen = []
+
+    def stop(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        raise RuntimeError("stop")
+
+    lab = {"frames": np.arange(3), "trusted": 3, "sigma_px": np.ones(3), "edges": {}, "labels": [{}] * 3}
+    monkeypatch.setattr(adapt_module, "label_step", lambda run, d: (lab, [np.zeros((8, 8), np.uint8)] * 3))
+    monkeypatch.setattr(adapt_module, "fine_tune", stop)
+    machine(64, affinity=2)
+    run = adapt_module.AdaptRun(AdaptConfig(threads=0), AdaptConfig().track, None, None, None, str(tmp_path),
+                                False, 10, (), {})
+    with pytest.raises(RuntimeError, match="stop"):
+        adapt_module.adapt_round(run, 0, str(tmp_path), "w.safetensors", np.random.SeedSequence(0), {})
+    assert 1 <= seen[0] <= 2
+
+
 def test_a_later_round_keeps_the_last_rounds_metadata_where_it_measures_nothing_new(monkeypatch, tmp_path,
                                                                                   detector_weights):
     """Round 2 from round 1's weights: a candidate whose scale this round keeps (no new error model) carries round

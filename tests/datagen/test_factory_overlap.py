@@ -74,8 +74,8 @@ def test_prefetched_texture_equals_first_use():
         r.close()
 
 
-def test_helpers_only_where_a_core_is_spare(monkeypatch):
-    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+def test_helpers_only_where_a_core_is_spare(monkeypatch, machine):
+    machine(2)
     monkeypatch.setenv("LP_NUM_THREADS", "1")
     assert factory.spare_core(1) and not factory.spare_core(2)
     assert not factory.spare_core(1, "dask", "tcp://127.0.0.1:8786")
@@ -83,6 +83,35 @@ def test_helpers_only_where_a_core_is_spare(monkeypatch):
     assert not factory.spare_core(1)
     monkeypatch.delenv("LP_NUM_THREADS")
     assert not factory.spare_core(1)  # the run sets it to the worker's share
+
+
+def test_the_rasterizer_threads_are_the_cores_shared_by_the_workers_that_start(monkeypatch, tmp_path, machine):
+    """8 workers asked for a dataset of 2 shards on 8 cores: 2 processes start, 4 llvmpipe threads each (not 1);
+    64 by os.cpu_count but 2 by affinity: 2, not 64."""
+    runners = []
+
+    class Job:
+        def __init__(self, out_dir):
+            self.out_dir = out_dir
+
+        def open(self):
+            os.makedirs(self.out_dir)
+
+        def resume(self, opened):
+            return {}
+
+        def run(self, task, args, runner, on_unit):
+            runners.append(runner)
+            return {}
+
+    monkeypatch.setattr(factory, "dataset_job", lambda cfg, out_dir: Job(out_dir))
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
+    cfg = GenerateConfig(num_images=8, shard_size=4, resolution_px=64)
+    machine(8)
+    factory.run_generate(cfg, str(tmp_path / "a"), workers=8)
+    machine(64, affinity=2)
+    factory.run_generate(cfg, str(tmp_path / "b"), workers=1)
+    assert [r.env for r in runners] == [{"LP_NUM_THREADS": "4"}, {"LP_NUM_THREADS": "2"}]
 
 
 def test_gil_switch_interval_restored(tmp_path, monkeypatch):

@@ -99,6 +99,8 @@ def test_the_constructor_is_the_verbs_job_for_the_same_flags():
     from envisat_pose.app import estimate, montecarlo, run
     from envisat_pose.config import to_dict
     from envisat_pose.pipelines.jobs import resolve_job
+    from envisat_pose.pipelines.runs.run_config import RUN_PROCESS_BYTES
+    from envisat_pose.pools import default_processes
 
     cfgs = job_configs()
     pairs = [
@@ -116,7 +118,7 @@ def test_the_constructor_is_the_verbs_job_for_the_same_flags():
     for verb, plain in pairs:
         assert verb == plain and to_dict(verb) == to_dict(plain), type(plain).__name__
     run_cfg = pairs[0][1]
-    assert run_cfg.workers == min(4, os.cpu_count() or 1) and os.path.isfile(run_cfg.weights)
+    assert run_cfg.workers == default_processes(4, RUN_PROCESS_BYTES) and os.path.isfile(run_cfg.weights)
     assert run_cfg.image.num_images == 6 and run_cfg.image.seed == 3 and run_cfg.image.sun_dir is not None
     assert pairs[3][1].measurement.outages_s  # the eclipse scenario's shadow, once
 

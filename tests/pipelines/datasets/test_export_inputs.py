@@ -287,3 +287,21 @@ def test_inspect_rrd_of_a_dataset_whose_target_path_is_not_found_from_here(tmp_p
     assert result["montage_images"] == 2 and (tmp_path / "s.rrd").stat().st_size > 0
     with pytest.raises(InputError, match="not the target file of src"):
         inspect_dataset("work/ds", "n.png", count=2, rrd="t.rrd", target=resolve_target_path("models/cubesat_3u.xml"))
+
+
+def test_the_export_workers_share_the_cores_among_the_processes_that_start(small, tmp_path, monkeypatch, machine):
+    """8 workers over 3 shards on 8 cores: 3 processes start, 2 threads each (8 // 3), not 8 // 8."""
+    from envisat_pose.pipelines.datasets import export
+    from envisat_pose.pools import RunnerConfig, run_tasks
+
+    runners = []
+
+    def inline(fn, tasks, runner):
+        runners.append(runner)
+        return run_tasks(fn, tasks, RunnerConfig("inline"))
+
+    monkeypatch.setattr(export, "run_tasks", inline)
+    machine(8)
+    export.export_dataset(small["done"], str(tmp_path / "coco"), export.ExportConfig(fmt="coco"), workers=8)
+    assert runners[0].workers == 3
+    assert runners[0].env == {"OMP_NUM_THREADS": "2", "OPENCV_FOR_THREADS_NUM": "2"}
