@@ -96,7 +96,7 @@ def summary(arrays: dict, fcfg: FilterConfig) -> str:
     T = t_s.shape[0]
     late = slice(T // 2, None)
     e = error_summary(t_s, arrays["x_true"], arrays["x_hat"], after_s=float(t_s[T // 2]) if T else 0.0)
-    nees_rt = nees(arrays["x_true"], arrays["x_hat"], arrays["P"])
+    nees_rt = nees(arrays["x_true"], arrays["x_hat"], arrays["P"], fcfg.sigma_chart)
     alone = int(nis_alarms_alone(arrays["diverged"], nees_rt, fcfg).sum())
     return (f"after t = {e['after_s']:.0f} s: RMS position error {100 * e['position_m']['rms_after']:.3f} cm, RMS "
             f"attitude error {e['attitude_deg']['rms_after']:.4f} deg, mean NEES {nees_rt[:, late].mean():.2f} (12 "

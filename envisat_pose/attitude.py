@@ -72,6 +72,25 @@ def align_mrp(p_mrp: np.ndarray, p_ref: np.ndarray) -> np.ndarray:
     return np.where((closer & (pp[..., 0] > 0.0))[..., None], shadow, p_mrp)
 
 
+def mrp_compose(a_mrp: np.ndarray, p_mrp: np.ndarray) -> np.ndarray:
+    """The MRP c of Gamma(c) = Gamma(a) Gamma(p): p's rotation followed by a's (a expressed in the frame p leads
+    to). c = ((1 - p.p) a + (1 - a.a) p - 2 a x p) / (1 + (p.p)(a.a) - 2 a.p), the continuous branch from p
+    where a is small (not switched to |c| <= 1); where the denominator vanishes (a turn of 360 deg) a's shadow,
+    the same rotation, is composed instead. (..., 3), broadcast."""
+    a = np.asarray(a_mrp, dtype=float)
+    p = np.asarray(p_mrp, dtype=float)
+    a, p = np.broadcast_arrays(a, p)
+    aa, pp = _dot(a, a), _dot(p, p)
+    den = 1.0 + pp * aa - 2.0 * _dot(a, p)
+    near = np.abs(den) < 1e-6
+    if np.any(near):
+        a = np.where(near[..., None], -a / np.where(aa > 0.0, aa, 1.0)[..., None], a)
+        aa = _dot(a, a)
+        den = 1.0 + pp * aa - 2.0 * _dot(a, p)
+    num = (1.0 - pp)[..., None] * a + (1.0 - aa)[..., None] * p - 2.0 * np.cross(a, p)
+    return num / den[..., None]
+
+
 def mrp_shadow_jacobian(p_mrp: np.ndarray) -> np.ndarray:
     """Jacobian of p -> -p / (p.p): S = (2 p p^T - (p.p) I) / (p.p)^2. Covariance maps as S P S^T."""
     p = np.asarray(p_mrp, dtype=float)

@@ -29,13 +29,14 @@ from envisat_pose.config import Config, check
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, sigma_step_s
 from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
 from envisat_pose.filtering.step_update import measurement_update
-from envisat_pose.filtering.ukf import SigmaWeights, merwe_weights, predict, shadow_switch, state_residual
+from envisat_pose.filtering.ukf import SigmaWeights, chart_local, merwe_weights, predict, shadow_switch, state_residual
 from envisat_pose.gates import GATE_PROB, chi2_bound, chi2_gate
 from envisat_pose.geometry import PinholeCamera, load_camera, load_geometry
 from envisat_pose.state import nees_window_diverged
 from envisat_pose.target import Target, VisibilityTable
 
 KERNELS = ("fast", "reference")  # FilterConfig.kernel: filtering/fast.py's kernels, filtering/ukf.py's numpy
+SIGMA_CHARTS = ("additive", "rotation")  # FilterConfig.sigma_chart (filtering/ukf.py: chart_retract)
 
 
 def _check_kernel(kernel: str) -> None:
@@ -68,6 +69,7 @@ class FilterConfig(Config):
     split_gain, split_max: a run whose prior spreads the measured components more than split_gain times wider
     than their noise takes its measurement in partial updates (filtering/step_update.py), at most split_max
     (1: always one update).
+    sigma_chart: "additive" (mean + column) or "rotation" (filtering.ukf.chart_retract; the numpy filter runs it).
     """
 
     alpha: float = 1.0
@@ -92,6 +94,7 @@ class FilterConfig(Config):
     kernel: str = "fast"
     split_gain: float = 10.0
     split_max: int = 16
+    sigma_chart: str = "additive"
 
     def validate(self, prefix: str = "filter") -> None:
         p = f"{prefix}." if prefix else ""
@@ -115,6 +118,7 @@ class FilterConfig(Config):
         check(self.kernel in KERNELS, f"{p}kernel", self.kernel, f"one of {', '.join(KERNELS)}")
         check(self.split_gain > 1.0, f"{p}split_gain", self.split_gain, "a factor > 1")
         check(self.split_max >= 1, f"{p}split_max", self.split_max, "at least 1 update")
+        check(self.sigma_chart in SIGMA_CHARTS, f"{p}sigma_chart", self.sigma_chart, " or ".join(SIGMA_CHARTS))
 
     @property
     def P0(self) -> np.ndarray:
@@ -309,13 +313,13 @@ def _predict_step(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[n
     if cfg.adaptive_q:
         Q = Q + state.Q_adapt * dt
     step_s = sigma_step_s(cfg.max_rk4_step_s, state.mean, state.cov, setup.weights.n + setup.weights.lam)
-    if cfg.kernel == "fast":
+    if cfg.kernel == "fast" and cfg.sigma_chart == "additive":
         from envisat_pose.filtering import fast  # numba compiles (or loads its cache) on first use
 
         return fast.predict_fused(state.mean, state.cov, state.chaser, dt, Q, setup, step_s)
     _check_kernel(cfg.kernel)
     return predict(state.mean, state.cov, state.chaser, dt, Q, setup.weights, setup.J_T, setup.mu_m3_s2,
-                   step_s, setup.gravity_gradient)
+                   step_s, setup.gravity_gradient, cfg.sigma_chart)
 
 
 
@@ -463,12 +467,13 @@ def run_filter(x0_hat: np.ndarray, P0: np.ndarray, t_s: np.ndarray, chaser: np.n
     return FilterResult(x_hat, P, n_meas, nis, dof, rejected, state.diverged, state.repaired, state.r_scale, dropped)
 
 
-def nees(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray) -> np.ndarray:
+def nees(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, chart: str = "additive") -> np.ndarray:
     """Normalized estimation error squared e^T P^-1 e, with the MRP error taken on the estimate's set.
 
-    x_true broadcastable to x_hat (..., 12); P (..., 12, 12). Returns (...,).
+    x_true broadcastable to x_hat (..., 12); P (..., 12, 12) in the filter's chart (FilterConfig.sigma_chart;
+    "rotation": the error of filtering.ukf.chart_local). Returns (...,).
     """
-    e = state_residual(np.broadcast_to(x_true, x_hat.shape).copy(), x_hat)
+    e = (chart_local if chart == "rotation" else state_residual)(np.broadcast_to(x_true, x_hat.shape).copy(), x_hat)
     return np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
 
 

@@ -31,7 +31,7 @@ def kernel_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np
     None for none), the unscented update with R_c * r_scale. Returns a dict of mean, cov, nis, dof, accepted
     (R, K), mask_k (R, K) (the corners the gate saw), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,) = tr(Pzz) over
     the used components, indefinite (R,) bool (and with the fast kernel suspect: the runs it redid in numpy)."""
-    if setup.cfg.kernel == "fast":
+    if setup.cfg.kernel == "fast" and setup.cfg.sigma_chart == "additive":
         from envisat_pose.filtering import fast  # numba compiles (or loads its cache) on first use
 
         return fast.update_fused(mean, cov, z, measured, R_c, r_scale, thr, vis_check, setup)
@@ -39,7 +39,7 @@ def kernel_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np
     mask_k = measured
     if vis_check:
         mask_k = mask_k & setup.predicted_visible(mean)
-    mean, cov, info = update(mean, cov, z, mask_k, Rk, setup.hx, setup.weights, thr)
+    mean, cov, info = update(mean, cov, z, mask_k, Rk, setup.hx, setup.weights, thr, setup.cfg.sigma_chart)
     return {"mean": mean, "cov": cov, "nis": info.nis, "dof": info.dof, "accepted": info.accepted, "mask_k": mask_k,
             "Ky": np.einsum("rij,rj->ri", info.K, info.y), "yy": np.einsum("ri,ri->r", info.y, info.y),
             "trPzz": np.einsum("rii->r", info.Pzz_state), "indefinite": info.indefinite}

@@ -19,9 +19,9 @@ from typing import Callable
 
 import numpy as np
 
-from envisat_pose.attitude import align_mrp, mrp_shadow, mrp_shadow_jacobian
+from envisat_pose.attitude import align_mrp, mrp_compose, mrp_shadow, mrp_shadow_jacobian, mrp_to_dcm
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, propagate
-from envisat_pose.state import MRP  # the 12-state's layout has one home
+from envisat_pose.state import MRP, RATE  # the 12-state's layout has one home
 
 
 @dataclass(frozen=True)
@@ -113,6 +113,110 @@ def sigma_points(mean: np.ndarray, cov: np.ndarray, w: SigmaWeights) -> np.ndarr
     return np.concatenate([m, m + D, m - D], axis=-2)
 
 
+# ---------------------------------------------------------------- the rotation chart of the sigma points
+
+def _mrp_B(p: np.ndarray) -> np.ndarray:
+    """4 B(p): (1 - p.p) I + 2 [p x] + 2 p p^T, so that dp = _mrp_B(p) a for a small error MRP a (..., 3, 3)."""
+    pp = np.einsum("...i,...i->...", p, p)[..., None, None]
+    S = np.zeros(p.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -p[..., 2], p[..., 1], -p[..., 0]
+    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = p[..., 2], -p[..., 1], p[..., 0]
+    return (1.0 - pp) * np.eye(3) + 2.0 * S + 2.0 * p[..., :, None] * p[..., None, :]
+
+
+def chart_retract(mean: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """The states at deviations D from mean in the rotation chart: (..., 12) mean, D (..., 12) or (..., S, 12).
+
+    The additive chart puts a sigma point at mean + D. This one reads D's MRP part as the rotation it is to first
+    order, the error MRP a = B(p)^T D_p / (1 + p.p)^2 (B = 4 x the kinematics matrix: D_p = B a), and turns the
+    body by it: Gamma = Gamma(a) Gamma(p), composed, not added; the angular velocity turns with the body, w =
+    Gamma(a) (w_mean + D_w - 4 w_mean x a) (its components in C are those of mean plus D_w's to first order).
+    Rotating a body about an axis of symmetry, with its rate, is then a straight line in D at any angle (a rod's
+    unmeasured rotation about its own axis: tests/filtering/test_sigma_chart.py). To first order in D it is the
+    additive chart. Translation: mean + D."""
+    mean = np.asarray(mean, dtype=float)
+    D = np.asarray(D, dtype=float)
+    m = mean[..., None, :] if D.ndim == mean.ndim + 1 else mean
+    X = m + D
+    p, w = np.broadcast_to(m[..., MRP], D[..., MRP].shape), np.broadcast_to(m[..., RATE], D[..., RATE].shape)
+    pp = np.einsum("...i,...i->...", p, p)
+    a = np.einsum("...ji,...j->...i", _mrp_B(p), D[..., MRP]) / np.square(1.0 + pp)[..., None]
+    X[..., MRP] = mrp_compose(a, p)
+    X[..., RATE] = np.einsum("...ij,...j->...i", mrp_to_dcm(a), w + D[..., RATE] - 4.0 * np.cross(w, a))
+    return X
+
+
+def chart_local(X: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """chart_retract's inverse: D with chart_retract(mean, D) = X (the smaller of the two error rotations).
+    X (..., S, 12) or (..., 12), mean (..., 12)."""
+    X = np.asarray(X, dtype=float)
+    mean = np.asarray(mean, dtype=float)
+    m = mean[..., None, :] if X.ndim == mean.ndim + 1 else mean
+    D = X - m
+    p, w = np.broadcast_to(m[..., MRP], X[..., MRP].shape), np.broadcast_to(m[..., RATE], X[..., RATE].shape)
+    a = mrp_shadow(mrp_compose(X[..., MRP], -p))                  # Gamma(a) = Gamma(p_X) Gamma(p)^T
+    D[..., MRP] = np.einsum("...ij,...j->...i", _mrp_B(p), a)
+    D[..., RATE] = np.einsum("...ji,...j->...i", mrp_to_dcm(a), X[..., RATE]) - w + 4.0 * np.cross(w, a)
+    return D
+
+
+def _chart_M(mean: np.ndarray) -> np.ndarray:
+    """The rotation chart's (D_p, D_w) at mean as a linear map of (a, b): the error MRP and the angular-velocity
+    error in C, which do not depend on the mean: D_p = B(p) a, D_w = Gamma(p) b + 4 w x a. (..., 6, 6)."""
+    p, w = mean[..., MRP], mean[..., RATE]
+    M = np.zeros(mean.shape[:-1] + (6, 6))
+    M[..., :3, :3] = _mrp_B(p)
+    W = np.zeros(mean.shape[:-1] + (3, 3))
+    W[..., 0, 1], W[..., 0, 2], W[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    W[..., 1, 0], W[..., 2, 0], W[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    M[..., 3:, :3] = 4.0 * W
+    M[..., 3:, 3:] = mrp_to_dcm(p)
+    return M
+
+
+def chart_transport(cov: np.ndarray, mean_from: np.ndarray, mean_to: np.ndarray) -> np.ndarray:
+    """A covariance in the rotation chart at mean_from, carried to the chart at mean_to (an update moved the
+    mean, or switched its MRP to the shadow set): T P T^T with T = M(to) G M(from)^-1 on the attitude and rate
+    rows and columns (_chart_M), G the error MRP's reset to the new mean, d a' / d a = B(d)^T / (1 + d.d)^2 for
+    the turn d from one mean to the other (exact at the new mean), the rate error in C unchanged. Without it the
+    rate's covariance stays in the old attitude's axes, and a rate known well in magnitude and poorly in
+    direction leaks information into the unmeasured rotation. (..., 12, 12)."""
+    d = mrp_shadow(mrp_compose(mean_to[..., MRP], -mean_from[..., MRP]))
+    G = np.broadcast_to(np.eye(6), mean_to.shape[:-1] + (6, 6)).copy()
+    G[..., :3, :3] = np.swapaxes(_mrp_B(d), -1, -2) / np.square(1.0 + np.einsum("...i,...i->...", d, d))[..., None, None]
+    T6 = _chart_M(mean_to) @ G @ np.linalg.inv(_chart_M(mean_from))
+    T = np.broadcast_to(np.eye(cov.shape[-1]), cov.shape).copy()
+    T[..., MRP.start:RATE.stop, MRP.start:RATE.stop] = T6
+    out = T @ cov @ np.swapaxes(T, -1, -2)
+    return 0.5 * (out + np.swapaxes(out, -1, -2))
+
+
+def sigma_deviations(cov: np.ndarray, w: SigmaWeights) -> np.ndarray:
+    """The scaled symmetric set's deviations from the mean: 0, +[L]_k, -[L]_k with L L^T = (n + lambda) P, as
+    sigma_points draws them. cov (..., n, n) -> (..., 2n + 1, n)."""
+    A = (w.n + w.lam) * cov
+    try:
+        L = np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:
+        L = np.linalg.cholesky(repair_cov(A)[0])
+    D = np.swapaxes(L, -1, -2)
+    return np.concatenate([np.zeros_like(D[..., :1, :]), D, -D], axis=-2)
+
+
+def ut_predict_rotation(mean: np.ndarray, cov: np.ndarray, fx: Callable[[np.ndarray], np.ndarray], Q: np.ndarray,
+                        w: SigmaWeights) -> tuple[np.ndarray, np.ndarray]:
+    """The unscented time update in the rotation chart (chart_retract): sigma points along rotations,
+    propagated by fx, their mean taken in the chart of the central propagated point, their residuals in the
+    chart of that mean (on |p| <= 1). Returns (mean, cov)."""
+    sig_f = fx(chart_retract(mean, sigma_deviations(cov, w)))
+    ref = sig_f[..., 0, :]
+    m = chart_retract(ref, np.einsum("s,...si->...i", w.Wm, chart_local(sig_f, ref)))
+    m[..., MRP] = mrp_shadow(m[..., MRP])
+    res = chart_local(sig_f, m)
+    P = _wsum_outer(res, res, w.Wc) + Q
+    return m, repair_cov(P)[0]
+
+
 # ---------------------------------------------------------------- the two steps
 
 def _wsum_outer(a: np.ndarray, b: np.ndarray, W: np.ndarray) -> np.ndarray:
@@ -159,7 +263,7 @@ def _safe_inv(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray, Rm: np.ndarray,
               hx: Callable[[np.ndarray], np.ndarray], w: SigmaWeights, residual_fn=_plain_residual,
-              gate=None):
+              gate=None, chart: str = "additive"):
     """Generic unscented measurement update with a mask of used components.
 
     z (..., M), mask (..., M) bool, Rm (..., M, M) noise covariance; hx maps sigma points (..., S, n) ->
@@ -169,11 +273,16 @@ def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray
     (...,) bool: the innovation covariance was positive definite (elsewhere mean, cov and nis are NaN).
     """
     M = z.shape[-1]
-    sig = sigma_points(mean, cov, w)
+    if chart == "rotation":  # sigma points along rotations (chart_retract); their deviations are the residuals
+        dx = sigma_deviations(cov, w)
+        sig = chart_retract(mean, dx)
+    else:
+        sig = sigma_points(mean, cov, w)
     zs = hx(sig)
     zp = w.Wm @ zs                                                 # predicted measurement
     dz = zs - zp[..., None, :]
-    dx = residual_fn(sig, mean[..., None, :])
+    if chart != "rotation":
+        dx = residual_fn(sig, mean[..., None, :])
     Pzz = _wsum_outer(dz, dz, w.Wc)
     Pxz = _wsum_outer(dx, dz, w.Wc)                                # cross covariance
     y_all = z - zp                                                 # innovation
@@ -185,7 +294,8 @@ def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray
     Pxz = Pxz * mask[..., None, :]
     y = np.where(mask, y_all, 0.0)
     K = Pxz @ SI                                                   # Kalman gain
-    mean = mean + (K @ y[..., None])[..., 0]
+    step = (K @ y[..., None])[..., 0]
+    mean = chart_retract(mean, step) if chart == "rotation" else mean + step
     cov = cov - K @ S @ np.swapaxes(K, -1, -2)
     nis = (y[..., None, :] @ SI @ y[..., :, None])[..., 0, 0]  # >= 0 where pd; NaN (a failed update) elsewhere
     return mean, cov, nis, mask, y, K, np.where(m2, Pzz, 0.0), pd
@@ -193,8 +303,10 @@ def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray
 
 def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: np.ndarray, w: SigmaWeights,
             J_T: np.ndarray | None = None, mu_m3_s2: float = MU_EARTH_M3_S2,
-            max_step_s: float = 1.0, gravity_gradient: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """UKF time update of the 12-state over dt_s with the filter's RK4 model and the MRP hooks.
+            max_step_s: float = 1.0, gravity_gradient: bool = False, chart: str = "additive"
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """UKF time update of the 12-state over dt_s with the filter's RK4 model and the MRP hooks (chart
+    "rotation": ut_predict_rotation's sigma points along rotations).
 
     mean (..., 12), cov (..., 12, 12), c0 chaser state (r_m, rdot_m_s, theta_rad, thetadot_rad_s) at the start,
     (4,) or (..., 4); Q (12, 12) or (..., 12, 12) process noise of the step; mu_m3_s2 the Earth's gravitational
@@ -204,6 +316,8 @@ def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: n
     c = np.asarray(c0, dtype=float)
     c = c[..., None, :] if c.ndim > 1 else c
     fx = lambda sig: propagate(sig, c, dt_s, J_T, mu_m3_s2, max_step_s, gravity_gradient)  # noqa: E731
+    if chart == "rotation":
+        return ut_predict_rotation(mean, cov, fx, Q, w)
     return ut_predict(mean, cov, fx, Q, w, state_mean, state_residual)
 
 
@@ -251,7 +365,7 @@ def gate_corners(y: np.ndarray, S: np.ndarray, mask: np.ndarray, m: int, thresho
 
 def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask_c: np.ndarray, R_c: np.ndarray,
            hx: Callable[[np.ndarray], np.ndarray], w: SigmaWeights,
-           gate_threshold: float | None = None) -> tuple[np.ndarray, np.ndarray, UpdateInfo]:
+           gate_threshold: float | None = None, chart: str = "additive") -> tuple[np.ndarray, np.ndarray, UpdateInfo]:
     """UKF measurement update of the 12-state with a varying set of measured corners.
 
     mean (..., 12), cov (..., 12, 12); z (..., K, m) measurements; mask_c (..., K) bool measured corners;
@@ -267,8 +381,16 @@ def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask_c: np.ndarray,
     if gate_threshold is not None:
         gate = lambda y, S, mask: gate_corners(y, S, mask, m, gate_threshold)  # noqa: E731
     mask = np.repeat(np.asarray(mask_c, dtype=bool), m, axis=-1)
+    prior_mean = np.asarray(mean, dtype=float)
     mean, cov, nis, mask, y, K, Pzz, pd = ut_update(mean, cov, z.reshape(z.shape[:-2] + (M,)), mask, Rm, hx_flat,
-                                                   w, state_residual, gate)
+                                                   w, state_residual, gate, chart)
+    if chart == "rotation":  # the posterior's covariance in the chart of the posterior's mean, on |p| <= 1
+        moved = mean.copy()
+        moved[..., MRP] = mrp_shadow(moved[..., MRP])
+        ok = np.isfinite(moved).all(-1)
+        to = np.where(ok[..., None], moved, prior_mean)
+        cov = np.where(ok[..., None, None], chart_transport(cov, prior_mean, to), cov)
+        mean = moved
     mean, cov = shadow_switch(mean, cov)
     cov = repair_cov(cov)[0]
     accepted = mask.reshape(mask.shape[:-1] + (nc, m))[..., 0]

@@ -285,7 +285,7 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
                           init_error_scale=cfg.init_error_scale)
     res = run_filter(inp.x0_hat, fcfg.P0, t_s, chaser, inp.z, inp.mask, inp.R_c, kind, fcfg, progress=progress,
                      mu_m3_s2=mu_m3_s2, gravity_gradient=gravity_gradient, target=target)
-    diverged = diverged_against_truth(res.diverged, nees(x_true[None], res.x_hat, res.P), fcfg)
+    diverged = diverged_against_truth(res.diverged, nees(x_true[None], res.x_hat, res.P, fcfg.sigma_chart), fcfg)
     return {
         "t_s": t_s,
         "x_true": np.broadcast_to(x_true, (R, T, 12)).copy(),

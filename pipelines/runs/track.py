@@ -39,7 +39,7 @@ from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import check_out_dir, made_out_dir
-from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job
+from envisat_pose.pipelines.common.job_defaults import check_sigma_chart, fill_from_scenario, job_weights, layered_job
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
 from envisat_pose.pipelines.runs.frames import FrameSource, open_source, require_source_target, scan_source
@@ -103,6 +103,7 @@ class TrackConfig(Config):
 
     def validate(self, prefix: str = "") -> None:
         check(self.rate_hz >= 0, "rate_hz", self.rate_hz, "a frame rate in Hz (0: a video's own)")
+        check_sigma_chart(self.filter, "the tracker")
         check(1 <= self.threads <= 256, "threads", self.threads, "1 to 256 threads")
         check(1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality, "a JPEG quality in [1, 100]")
         load_target(self.target, f"{prefix}.target" if prefix else "target")  # one line for a bad file (cached)
