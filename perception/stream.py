@@ -15,6 +15,7 @@ shard's index in `paths` and the sample's index in the shard, and reader_slot (B
 
 from __future__ import annotations
 
+import os
 import signal
 
 import numpy as np
@@ -25,6 +26,14 @@ from envisat_pose.config import InputError
 from envisat_pose.perception.data import DataConfig, make_sample, read_samples
 from envisat_pose.pools import without_main_script
 
+# The batches the workers hand over live in shared memory (/dev/shm) until trained on: PREFETCH ready per worker
+# and loader, two loaders at an epoch's end (train_run.shard_batches starts the next early). A container's default
+# /dev/shm is 64 MB, which 2 workers' batches of 16 at 320 px (~9.4 MB each) overran ("unable to allocate shared
+# memory ... No space left on device" after 3 steps): the prefetch is sized to what is free (prefetch_factor).
+SHM_DIR = "/dev/shm"
+PREFETCH = 4
+LIVE_LOADERS = 2
+SHM_SHARE = 0.8  # of the free shared memory the batches in flight may take
 ORDER_KEY = 0x5EED  # the epoch's shard order: (seed, epoch, ORDER_KEY)
 BUFFER_KEY = 0xB0F  # a slot's shuffle buffer: (seed, epoch, BUFFER_KEY, slot)
 
@@ -103,10 +112,10 @@ def _worker_context():
 
 
 def epoch_batches(paths: list[str], cfg: DataConfig, seed: int, epoch: int, batch_size: int, workers: int,
-                  rank: int = 0, world: int = 1, pin_memory: bool = False):
+                  rank: int = 0, world: int = 1, pin_memory: bool = False, prefetch: int = PREFETCH):
     """The iterator of one epoch's batches (epoch_loader's), its workers started without the calling script."""
     with without_main_script():
-        return iter(epoch_loader(paths, cfg, seed, epoch, batch_size, workers, rank, world, pin_memory))
+        return iter(epoch_loader(paths, cfg, seed, epoch, batch_size, workers, rank, world, pin_memory, prefetch))
 
 
 def worker_error_line(err: Exception) -> str:
@@ -143,12 +152,53 @@ def loader_batches(batches, flag: dict | None = None):
         raise
 
 
+def shm_free_bytes() -> int | None:
+    """The shared memory free for the workers' batches (SHM_DIR's file system), None where it cannot be read."""
+    try:
+        st = os.statvfs(SHM_DIR)
+    except OSError:
+        return None
+    return st.f_bavail * st.f_frsize
+
+
+def sample_bytes(paths: list[str], cfg: DataConfig, seed: int) -> int:
+    """The bytes of one training sample as a worker sends it (the first of the first shard, made here)."""
+    sample = next(shard_samples(paths[0], 0, cfg, seed, 0), None)
+    return 0 if sample is None else sum(np.asarray(v).nbytes for v in sample.values()) + 8  # and its reader_slot
+
+
+def prefetch_factor(workers: int, batch_bytes: int, free_bytes: int | None) -> int:
+    """Batches each worker keeps ready: PREFETCH, fewer where the batches in flight (LIVE_LOADERS x workers x
+    prefetch, and the one in training) would take more than SHM_SHARE of the free shared memory; InputError (one
+    line, before any step) where one each does not fit."""
+    if free_bytes is None or batch_bytes <= 0:
+        return PREFETCH
+    fit = int((SHM_SHARE * free_bytes / batch_bytes - 1) // (LIVE_LOADERS * workers))
+    if fit < 1:
+        need_mb = (LIVE_LOADERS * workers + 1) * batch_bytes / 1e6
+        raise InputError(f"workers = {workers}: their batches in flight need ~{need_mb:.0f} MB of shared memory and "
+                         f"{SHM_DIR} has {free_bytes / 1e6:.0f} MB free: give `workers` 0 (in-process) or fewer, or "
+                         "the machine more (a container: docker run --shm-size=1g)")
+    return min(PREFETCH, fit)
+
+
+def run_prefetch(paths: list[str], cfg: DataConfig, seed: int, batch_size: int, workers: int) -> int:
+    """The prefetch of a run's loaders, sized once before its first epoch to the shared memory then free (its
+    share of it under torchrun; prefetch_factor): while a run trains, its own batches take some of it."""
+    free = shm_free_bytes()
+    if workers <= 0 or not paths or free is None:
+        return PREFETCH
+    ranks = max(1, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))  # torchrun's ranks on this node share it
+    return prefetch_factor(workers, batch_size * sample_bytes(paths, cfg, seed), free // ranks)
+
+
 def epoch_loader(paths: list[str], cfg: DataConfig, seed: int, epoch: int, batch_size: int, workers: int,
-                 rank: int = 0, world: int = 1, pin_memory: bool = False) -> DataLoader:
+                 rank: int = 0, world: int = 1, pin_memory: bool = False, prefetch: int = PREFETCH) -> DataLoader:
     """The DataLoader of one epoch: `workers` processes (0: in-process), full batches only, pinned when asked
-    (CUDA). Its own torch.Generator (from seed): the global one is neither read nor moved."""
-    extra = {"prefetch_factor": 4, "worker_init_fn": _worker_init, "multiprocessing_context": _worker_context()} \
-        if workers > 0 else {}
+    (CUDA), each worker `prefetch` batches ahead (run_prefetch; the batches are the same whatever it is). Its own
+    torch.Generator (from seed): the global one is neither read nor moved."""
+    extra = {"prefetch_factor": prefetch, "worker_init_fn": _worker_init,
+             "multiprocessing_context": _worker_context()} if workers > 0 else {}
     return DataLoader(ShardStream(paths, cfg, seed, epoch, rank, world), batch_size=batch_size, drop_last=True,
                       num_workers=workers, collate_fn=collate_batch, pin_memory=pin_memory,
                       generator=torch.Generator().manual_seed(seed), **extra)

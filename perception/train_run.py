@@ -8,7 +8,7 @@ import json
 import os
 
 from envisat_pose.config import InputError, flatten
-from envisat_pose.perception.stream import close_batches, epoch_batches, loader_batches
+from envisat_pose.perception.stream import close_batches, epoch_batches, loader_batches, run_prefetch
 from envisat_pose.perception.weights import WeightsError, read_header
 
 RESUMABLE_CHANGES = ("steps", "time_budget_s")  # a resumed run may go further or longer, nothing else
@@ -177,9 +177,9 @@ def nothing_to_do(cfg, state: dict, saved: dict) -> dict | None:
             "stopped_by": "nothing_to_do", "why": why, "time_s": time0, "workers": state["workers"]}
 
 
-def _epoch_loader(tr, paths: list[str], epoch: int):
+def _epoch_loader(tr, paths: list[str], epoch: int, prefetch: int):
     return epoch_batches(paths, tr.cfg.data, tr.cfg.seed, epoch, tr.cfg.batch_size, tr.state["workers"], tr.rank,
-                         tr.world, pin_memory=tr.dev.type == "cuda")
+                         tr.world, pin_memory=tr.dev.type == "cuda", prefetch=prefetch)
 
 
 def shard_batches(tr, paths: list[str], data_dir):
@@ -187,11 +187,12 @@ def shard_batches(tr, paths: list[str], data_dir):
     epoch's end is the hooks' after_epoch. A resumed epoch skips the batches it trained on. The next epoch's
     workers start early (no stall at the boundary); the workers of both stop on every way out."""
     state, current, upcoming = tr.state, None, None
+    prefetch = run_prefetch(paths, tr.cfg.data, tr.cfg.seed, tr.cfg.batch_size, state["workers"])  # to the /dev/shm
     try:
         while True:
             skip, n = state["batch"], 0  # a resumed epoch: its first batches were trained on before
-            current = upcoming if upcoming is not None else _epoch_loader(tr, paths, state["epoch"])
-            upcoming = _epoch_loader(tr, paths, state["epoch"] + 1) if state["workers"] > 0 else None
+            current = upcoming if upcoming is not None else _epoch_loader(tr, paths, state["epoch"], prefetch)
+            upcoming = _epoch_loader(tr, paths, state["epoch"] + 1, prefetch) if state["workers"] > 0 else None
             for i, cpu_batch in enumerate(loader_batches(current, tr.stop_flag)):
                 if i >= skip:
                     n += 1

@@ -185,3 +185,40 @@ def test_bf16_autocast_trains_on_the_cpu(many_shards, tmp_path):
     assert end["bf16"] is True and end["step"] == 3 and plain["bf16"] is False
     assert dtypes == {True: {torch.bfloat16}, False: {torch.float32}}, dtypes
     assert np.isfinite(end["loss"]) and end["loss"] > 0
+
+
+def test_the_prefetch_fits_the_shared_memory():
+    """Batches in flight: 2 loaders x workers x prefetch, and the one in training, within 0.8 of the free shared
+    memory. 10 MB batches, 2 workers: 100 MB free holds (80 / 10 - 1) // 4 = 1 each; 1 GB 4 (the most); 40 MB not
+    one: refused in one line naming `workers` and what to do."""
+    from envisat_pose.perception.stream import PREFETCH, prefetch_factor
+
+    mb = 1_000_000
+    assert prefetch_factor(2, 10 * mb, 100 * mb) == 1
+    assert prefetch_factor(2, 10 * mb, 130 * mb) == 2  # (104 / 10 - 1) // 4 = 2
+    assert prefetch_factor(2, 10 * mb, 1000 * mb) == PREFETCH == 4
+    assert prefetch_factor(2, 10 * mb, None) == PREFETCH  # no /dev/shm to read: torch's way
+    with pytest.raises(InputError, match=r"^workers = 2: .* ~50 MB of shared memory .* 40 MB free") as err:
+        prefetch_factor(2, 10 * mb, 40 * mb)
+    assert "\n" not in str(err.value) and "--shm-size" in str(err.value)
+
+
+def test_a_run_sizes_its_prefetch_to_the_free_shared_memory(many_shards, tmp_path, monkeypatch):
+    """Measured once before the first epoch from a sample made in-process: with little shared memory free the
+    workers prefetch less and train the same batches; with none to spare the run is refused before any step."""
+    from envisat_pose.perception import stream
+
+    seen = []
+    real = stream.epoch_loader
+    monkeypatch.setattr(stream, "epoch_loader", lambda *a, **k: seen.append(a[-1]) or real(*a, **k))
+    one = sum(np.asarray(v).nbytes for v in next(stream.shard_samples(
+        shard_paths(many_shards)[0], 0, small_config(1).data, 0, 0)).values()) + 8
+    assert stream.sample_bytes(shard_paths(many_shards), small_config(1).data, 0) == one
+    batch = 2 * one  # batch_size 2
+    monkeypatch.setattr(stream, "shm_free_bytes", lambda: int((2 * 1 * 2 + 1) * batch / 0.8) + 1)  # 2 each for 1 worker
+    train(small_config(2), many_shards, str(tmp_path / "a"), progress=False, workers=1)
+    assert seen and set(seen) == {2}
+    monkeypatch.setattr(stream, "shm_free_bytes", lambda: batch)
+    with pytest.raises(InputError, match="shared memory"):
+        train(small_config(2), many_shards, str(tmp_path / "b"), progress=False, workers=1)
+    assert not (tmp_path / "b").exists()
