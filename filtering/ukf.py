@@ -19,7 +19,15 @@ from typing import Callable
 
 import numpy as np
 
-from envisat_pose.attitude import align_mrp, mrp_compose, mrp_shadow, mrp_shadow_jacobian, mrp_to_dcm
+from envisat_pose.attitude import (
+    align_mrp,
+    mrp_compose,
+    mrp_kinematics_matrix,
+    mrp_shadow,
+    mrp_shadow_jacobian,
+    mrp_to_dcm,
+    skew,
+)
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, propagate
 from envisat_pose.state import MRP, RATE  # the 12-state's layout has one home
 
@@ -116,12 +124,8 @@ def sigma_points(mean: np.ndarray, cov: np.ndarray, w: SigmaWeights) -> np.ndarr
 # ---------------------------------------------------------------- the rotation chart of the sigma points
 
 def _mrp_B(p: np.ndarray) -> np.ndarray:
-    """4 B(p): (1 - p.p) I + 2 [p x] + 2 p p^T, so that dp = _mrp_B(p) a for a small error MRP a (..., 3, 3)."""
-    pp = np.einsum("...i,...i->...", p, p)[..., None, None]
-    S = np.zeros(p.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -p[..., 2], p[..., 1], -p[..., 0]
-    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = p[..., 2], -p[..., 1], p[..., 0]
-    return (1.0 - pp) * np.eye(3) + 2.0 * S + 2.0 * p[..., :, None] * p[..., None, :]
+    """4 B(p) (attitude.mrp_kinematics_matrix): dp = _mrp_B(p) a for a small error MRP a. (..., 3, 3)."""
+    return 4.0 * mrp_kinematics_matrix(p)
 
 
 def chart_retract(mean: np.ndarray, D: np.ndarray) -> np.ndarray:
@@ -166,10 +170,7 @@ def _chart_M(mean: np.ndarray) -> np.ndarray:
     p, w = mean[..., MRP], mean[..., RATE]
     M = np.zeros(mean.shape[:-1] + (6, 6))
     M[..., :3, :3] = _mrp_B(p)
-    W = np.zeros(mean.shape[:-1] + (3, 3))
-    W[..., 0, 1], W[..., 0, 2], W[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    W[..., 1, 0], W[..., 2, 0], W[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
-    M[..., 3:, :3] = 4.0 * W
+    M[..., 3:, :3] = 4.0 * skew(w)
     M[..., 3:, 3:] = mrp_to_dcm(p)
     return M
 
