@@ -98,16 +98,18 @@ def test_the_shard_check_hashes_on_the_usable_cores(machine, monkeypatch, tmp_pa
 
 
 def test_a_local_dask_cluster_starts_no_more_workers_than_tasks(monkeypatch):
-    """--backend dask --workers 64 over 2 tasks: a LocalCluster of 2 worker processes, not 64."""
+    """--backend dask --workers 64 over 2 tasks: a LocalCluster of 2 worker processes, not 64, with no per-worker
+    memory cap (Dask's default share, memory over workers, would pause and restart factory workers the machine
+    holds)."""
     import dask.distributed
 
     started = []
 
     def recording(**kwargs):
-        started.append(kwargs["n_workers"])
+        started.append((kwargs["n_workers"], kwargs.get("memory_limit", "auto")))
         raise RuntimeError("no cluster in this test")
 
     monkeypatch.setattr(dask.distributed, "LocalCluster", recording)
     with pytest.raises(RuntimeError, match="no cluster"):
         list(pools.run_tasks(divmod, [(7, 2), (9, 4)], pools.RunnerConfig("dask", 64)))
-    assert started == [2]
+    assert started == [(2, 0)]
