@@ -167,14 +167,16 @@ class CampaignSums:
 
 
 def reduce_runs(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, nis: np.ndarray, nis_dof: np.ndarray,
-                diverged: np.ndarray, run_start: int = 0) -> CampaignSums:
+                diverged: np.ndarray, run_start: int = 0, e_state: np.ndarray | None = None) -> CampaignSums:
     """Reduce a block of runs to sums over its runs (the heavy part: solves with P happen here, once).
 
     x_true, x_hat (R, T, 12); P (R, T, 12, 12); nis (R, T); nis_dof (R, T) measured components per step
-    (0: no update); diverged (R,) bool. The runs are campaign runs [run_start, run_start + R).
+    (0: no update); diverged (R,) bool. The runs are campaign runs [run_start, run_start + R). e_state (R, T, 12):
+    the errors in P's chart, for NEES and the blocks' Mahalanobis distances (a filter's other chart of the sigma
+    points: filtering.ukf.chart_error); None: state_errors, the additive chart.
     """
     R = x_hat.shape[0]
-    e_state = state_errors(x_true, x_hat)
+    e_state = state_errors(x_true, x_hat) if e_state is None else e_state
     e = component_errors(x_true, x_hat)
     var = np.diagonal(component_cov(P, x_hat), axis1=-2, axis2=-1)
     norms = block_error_norms(x_true, x_hat)
@@ -361,10 +363,11 @@ class RunAccumulator:
         self.dof = np.zeros(R, dtype=np.int64)
         self.steps = 0
 
-    def add(self, ks: range, x_true, x_hat, P, nis, nis_dof) -> np.ndarray:
-        """Fold the steps ks of the runs: x_true, x_hat (R, K, 12), P (R, K, 12, 12), nis and nis_dof (R, K).
-        Returns the NEES of every step of the chunk (R, K) (a divergence monitor reads it)."""
-        e_state = state_errors(x_true, x_hat)
+    def add(self, ks: range, x_true, x_hat, P, nis, nis_dof, e_state=None) -> np.ndarray:
+        """Fold the steps ks of the runs: x_true, x_hat (R, K, 12), P (R, K, 12, 12), nis and nis_dof (R, K);
+        e_state (R, K, 12) the errors in P's chart (None: state_errors, as reduce_runs). Returns the NEES of every
+        step of the chunk (R, K) (a divergence monitor reads it)."""
+        e_state = state_errors(x_true, x_hat) if e_state is None else e_state
         nees_rk = nees_of_errors(e_state, P)
         k = self.settled[ks.start:ks.stop]
         if k.any():

@@ -29,7 +29,7 @@ from envisat_pose.config import Config, check
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, sigma_step_s
 from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
 from envisat_pose.filtering.step_update import measurement_update
-from envisat_pose.filtering.ukf import SigmaWeights, chart_local, merwe_weights, predict, shadow_switch, state_residual
+from envisat_pose.filtering.ukf import SigmaWeights, chart_error, merwe_weights, predict, shadow_switch
 from envisat_pose.gates import GATE_PROB, chi2_bound, chi2_gate
 from envisat_pose.geometry import PinholeCamera, load_camera, load_geometry
 from envisat_pose.state import nees_window_diverged
@@ -473,7 +473,7 @@ def nees(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, chart: str = "add
     x_true broadcastable to x_hat (..., 12); P (..., 12, 12) in the filter's chart (FilterConfig.sigma_chart;
     "rotation": the error of filtering.ukf.chart_local). Returns (...,).
     """
-    e = (chart_local if chart == "rotation" else state_residual)(np.broadcast_to(x_true, x_hat.shape).copy(), x_hat)
+    e = chart_error(x_true, x_hat, chart)
     return np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])
 
 

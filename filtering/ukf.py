@@ -164,6 +164,14 @@ def chart_local(X: np.ndarray, mean: np.ndarray) -> np.ndarray:
     return D
 
 
+def chart_error(x_true: np.ndarray, x_hat: np.ndarray, chart: str = "additive") -> np.ndarray:
+    """The estimate's error x_hat - x_true in the chart of its covariance (FilterConfig.sigma_chart), for NEES and
+    Mahalanobis distances: "additive", the difference with the truth's MRP on the estimate's set (state_residual);
+    "rotation", minus chart_local(x_true, x_hat). x_true broadcastable to x_hat (..., 12). Returns (..., 12)."""
+    x_true = np.broadcast_to(x_true, np.shape(x_hat)).copy()
+    return -(chart_local if chart == "rotation" else state_residual)(x_true, np.asarray(x_hat, dtype=float))
+
+
 def _chart_M(mean: np.ndarray) -> np.ndarray:
     """The rotation chart's (D_p, D_w) at mean as a linear map of (a, b): the error MRP and the angular-velocity
     error in C, which do not depend on the mean: D_p = B(p) a, D_w = Gamma(p) b + 4 w x a. (..., 6, 6)."""

@@ -32,6 +32,7 @@ from envisat_pose.filtering.estimator import (
     nis_alarms_alone,
 )
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
+from envisat_pose.filtering.ukf import chart_error
 from envisat_pose.io import save_npz, sha256_file
 from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig
 from envisat_pose.pipelines.campaigns.estimate import check_truth_keypoints, truth_target, with_target_file
@@ -122,8 +123,9 @@ def filter_block(tr: CampaignTruth, cfg: MonteCarloConfig, run_start: int, run_s
                                 setup)
             x_hat[:, j], P[:, j], nis[:, j], dof[:, j] = state.mean, state.cov, state.nis, state.dof
         x_true = np.broadcast_to(tr.x_true[k0:k0 + len(ks)], x_hat.shape)
-        sums.append(_reduce_chunk(x_true, x_hat, P, nis, dof))
-        nees_rt[:, ks.start:ks.stop] = acc.add(ks, x_true, x_hat, P, nis, dof)
+        e_state = chart_error(x_true, x_hat, fcfg.sigma_chart)  # in the chart of P
+        sums.append(reduce_runs(x_true, x_hat, P, nis, dof, np.zeros(n, dtype=bool), e_state=e_state))
+        nees_rt[:, ks.start:ks.stop] = acc.add(ks, x_true, x_hat, P, nis, dof, e_state)
         if n_sample:
             sample_err[:, ks.start:ks.stop] = component_errors(x_true[:n_sample], x_hat[:n_sample])
             sample_norms[:, ks.start:ks.stop] = block_error_norms(x_true[:n_sample], x_hat[:n_sample])
@@ -133,10 +135,6 @@ def filter_block(tr: CampaignTruth, cfg: MonteCarloConfig, run_start: int, run_s
     out[ALONE_KEY] = nis_alarms_alone(diverged, nees_rt, fcfg)  # diverged on the NIS monitor alone
     out.update(sample_err=sample_err, sample_norms=sample_norms)
     return out
-
-
-def _reduce_chunk(x_true, x_hat, P, nis, dof):
-    return reduce_runs(x_true, x_hat, P, nis, dof, np.zeros(x_hat.shape[0], dtype=bool))
 
 
 def _join_chunks(sums: list, run_start: int, run_stop: int, diverged: np.ndarray) -> dict:

@@ -15,7 +15,7 @@ from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride
 from envisat_pose.pipelines.campaigns.estimate import check_init_error_scale, eclipse_outages, with_outages
-from envisat_pose.pipelines.common.job_defaults import check_sigma_chart, fill_from_scenario, layered_job
+from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, layered_job
 from envisat_pose.target import load_target
 
 
@@ -77,7 +77,6 @@ class MonteCarloConfig(Config):
               f"a time in [0, duration_s = {self.duration_s:g}) s")
         check(0 <= self.sample_runs <= 200, "sample_runs", self.sample_runs, "an integer from 0 to 200")
         check_init_error_scale(self.init_error_scale)
-        check_sigma_chart(self.filter, "a Monte Carlo campaign")
         if self.target is not None:
             load_target(self.target, "target")  # a bad file: one line before any work
         rate = self.measurement.rate_hz  # the statistics need a filter step at or after the settle time

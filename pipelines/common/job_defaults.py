@@ -128,9 +128,10 @@ def require_target_weights(weights: str, target: str) -> None:
 
 
 def check_sigma_chart(filter_cfg: Any, job: str) -> None:
-    """A job other than `envisat estimate` runs the additive chart of the sigma points (FilterConfig.sigma_chart):
-    a campaign's statistics, the closed loop's and the tracker's scores measure NEES in it, and the fast kernels
-    are its; 'rotation' (for targets whose rotation about an axis goes unmeasured) is refused in one line."""
+    """The closed loop and the tracker run the additive chart of the sigma points (FilterConfig.sigma_chart): their
+    scores measure NEES in it, and the fast kernels they need are its; 'rotation' (for targets whose rotation
+    about an axis goes unmeasured) is refused in one line."""
     chart = getattr(filter_cfg, "sigma_chart", "additive")
     check(chart == "additive", "filter.sigma_chart", chart,
-          f"'additive' for {job} ('rotation' runs in `envisat estimate` only: its NEES is measured in that chart)")
+          f"'additive' for {job} ('rotation' runs in `envisat estimate` and `envisat montecarlo` only, with the "
+          "numpy filter: their NEES is measured in that chart)")

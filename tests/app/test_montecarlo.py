@@ -220,6 +220,40 @@ def test_block_reduction_equals_whole_array_statistics(campaign):
     assert got["sample_err"].shape == (b - a, len(tr.t_s), 12)  # runs 8..13 are below sample_runs = 20
 
 
+def test_a_campaign_in_the_rotation_chart_measures_its_statistics_in_that_chart(campaign):
+    """FilterConfig.sigma_chart = 'rotation' (the numpy filter runs it): the block's NEES, Mahalanobis counts and
+    divergence rule read the errors in the filter's chart (filtering.ukf.chart_local), as `envisat estimate`
+    does: the block equals run_filter over the same runs with NEES recomputed in that chart. The additive
+    chart's NEES of the same estimates differs (second order in the errors), so the test tells them apart."""
+    import dataclasses
+
+    from envisat_pose.analysis.stats import reduce_runs, run_summary
+    from envisat_pose.filtering.estimator import diverged_against_truth, nees, run_filter
+    from envisat_pose.filtering.montecarlo import make_run_inputs
+    from envisat_pose.filtering.ukf import chart_local
+    from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig
+    from envisat_pose.pipelines.campaigns.campaign_block import filter_block, load_campaign_truth
+
+    base = MonteCarloConfig(runs=4, duration_s=200.0, settle_s=100.0, block_runs=4, seed=3)
+    cfg = dataclasses.replace(base, filter=dataclasses.replace(base.filter, sigma_chart="rotation"))
+    tr = load_campaign_truth(str(campaign), cfg.measurement)
+    got = filter_block(tr, cfg, 0, 4)
+    inp = make_run_inputs(tr.x_true[0], tr.t_s, tr.z_true, tr.base, cfg.measurement, cfg.filter.P0, cfg.seed, 4)
+    res = run_filter(inp.x0_hat, cfg.filter.P0, tr.t_s, tr.chaser, inp.z, inp.mask, inp.R_c, "markers3d",
+                     cfg.filter, mu_m3_s2=tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient)
+    x_true = np.broadcast_to(tr.x_true, res.x_hat.shape)
+    nees_rt = nees(x_true, res.x_hat, res.P, "rotation")
+    e_chart = -chart_local(x_true.copy(), res.x_hat)
+    diverged = diverged_against_truth(res.diverged, nees_rt, cfg.filter)
+    want = reduce_runs(x_true, res.x_hat, res.P, res.nis, res.dof, diverged, e_state=e_chart).to_arrays()
+    for k, v in want.items():
+        np.testing.assert_allclose(got[k], v, rtol=1e-9, atol=1e-15, err_msg=k)
+    rs = run_summary(tr.t_s, x_true, res.x_hat, res.P, res.nis, res.dof, diverged, settle_s=100.0)
+    assert not np.allclose(got["run_nees_mean"], rs.nees_mean, rtol=1e-6)  # run_summary: the additive chart
+    settled = tr.t_s >= tr.t_s[0] + 100.0
+    np.testing.assert_allclose(got["run_nees_mean"], nees_rt[:, settled].mean(1), rtol=1e-9)
+
+
 def test_a_campaign_started_off_its_p0_draws_wider_and_tells_the_filter_p0(campaign):
     """init_error_scale = 5 reaches the blocks and the single-run history: each kept run's velocity error at t0
     (the first update measures positions only) is 5 x the consistent campaign's, with the same seed."""

@@ -156,8 +156,8 @@ def test_rod_on_its_tips_keeps_the_rotation_about_its_axis_unknown(rod):
     assert nees_tips.mean() < 30.0  # 12 expected
 
 
-def test_only_estimate_takes_the_rotation_chart():
-    """`envisat estimate` measures NEES in the filter's chart; a campaign's statistics, the closed loop's and the
+def test_only_estimate_and_montecarlo_take_the_rotation_chart():
+    """`envisat estimate` and a campaign's statistics measure NEES in the filter's chart; the closed loop's and the
     tracker's scores measure it in the additive one: those jobs refuse 'rotation' in one line, naming the field."""
     from envisat_pose.config import ConfigError, InputError
     from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig
@@ -167,7 +167,8 @@ def test_only_estimate_takes_the_rotation_chart():
 
     rotation = FilterConfig(sigma_chart="rotation")
     assert EstimateConfig(filter=rotation).filter.sigma_chart == "rotation"
-    for job in (MonteCarloConfig, RunConfig, TrackConfig):
+    assert MonteCarloConfig(scenario="default", filter=rotation).filter.sigma_chart == "rotation"
+    for job in (RunConfig, TrackConfig):
         with pytest.raises((ConfigError, InputError), match="sigma_chart") as err:
             job(scenario="default", filter=rotation)
         assert "\n" not in str(err.value) and "estimate" in str(err.value)
