@@ -242,7 +242,7 @@ class SceneRenderer:
                                  f"has {self.texture_set_size} textures per class and no such appearance material")
             i = self._appearance_matid[(name, ml.cls, ml.texture)]
             m.geom_matid[self._geom_ids[name]] = i
-            m.mat_rgba[i] = (*ml.rgb, 1.0)
+            m.mat_rgba[i] = (*ml.rgb, m.mat_rgba[i][3])  # the material's alpha kept: an invisible geom stays so
             m.mat_specular[i], m.mat_shininess[i], m.mat_reflectance[i] = ml.specular, ml.shininess, ml.reflectance
         s = appearance.sun_intensity
         m.light_diffuse[self.sun_id] = (s, s, s)

@@ -34,6 +34,7 @@ from envisat_pose.geometry import model_path
 
 EARTH_GEOM_GROUP = 5  # hidden unless a view asks for the backdrop
 EARTH_ALPHA = 0.99  # the Earth's material alpha (see render_model_xml); its texture is scaled up to match
+HIDDEN_SITE_GROUP = 5  # every site's group here: sites are labels, never drawn (MuJoCo draws site groups 0-2)
 
 
 def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_set_size: int = 0,
@@ -42,7 +43,7 @@ def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_se
     model extent (the far plane and shadow box stay those of models/envisat.xml; another target's near plane is
     sized to it, target_scene), an Earth backdrop body (mocap, geom group 5, hidden by default: a unit UV-sphere mesh scaled to EARTH_RADIUS_M x EARTH_SCALE,
     `earth_texture_set_size` equirectangular textures, their pixels written by the renderer), an Earth-shine
-    light (off until an appearance turns it on), and
+    light (off until an appearance turns it on), every site out of the drawn groups (HIDDEN_SITE_GROUP), and
     for appearance randomization `texture_set_size` textures per covering class with one material
     `appearance_<geom>_<class>_<k>` per target geom, class and texture (texture pixels are written by the renderer).
 
@@ -92,6 +93,8 @@ def render_model_xml(resolution_px: int, base_xml: str | None = None, texture_se
     # Earth-shine: sunlight reflected by the Earth, a directional light from the nadir side, no shadows
     ET.SubElement(world, "light", name="earthshine", directional="true", castshadow="false", pos="0 0 100",
                   dir="0 0 -1", diffuse="0 0 0", specular="0 0 0", ambient="0 0 0", active="false")
+    for site in world.iter("site"):  # a kp_ site of group 0 would show as MuJoCo's 5 mm ball on the keypoint
+        site.set("group", str(HIDDEN_SITE_GROUP))
     body = next(b for b in world.iter("body") if b.get("name") == "target")
     own = not takes_class_appearance(g.get("name") for g in body.findall("geom"))  # its own materials, varied
     if texture_set_size > 0 and own:

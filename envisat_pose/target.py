@@ -58,13 +58,15 @@ TABLE_CELLS_POLAR = 256  # polar rows of the grid that finds a view's direction 
 @dataclass(frozen=True)
 class TargetGeom:
     """One geom of body `target`: name (its own, or target_geom_<i>), MuJoCo type name, group, material name
-    ('' for none) and rgb (3,) of its material (or its own rgba)."""
+    ('' for none) and rgb (3,) of its material (or its own rgba); shown: MuJoCo draws it (neither its rgba's nor
+    its material's alpha 0: an invisible geom, which MuJoCo's renderer and mj_ray leave out)."""
 
     name: str
     type: str
     group: int
     material: str
     rgb: tuple[float, float, float]
+    shown: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -149,9 +151,9 @@ class Target:
         return {"file": given, "name": self.name, "sha256": self.sha256, "keypoint_names": list(self.keypoint_names)}
 
     def drawn(self, appendages: bool = False) -> np.ndarray:
-        """(G,) bool: the geoms the factory draws (RENDERED_GROUPS, and APPENDAGE_GROUP with `appendages`)."""
+        """(G,) bool: the geoms the factory draws (RENDERED_GROUPS, and APPENDAGE_GROUP with `appendages`; shown)."""
         groups = set(RENDERED_GROUPS) | ({APPENDAGE_GROUP} if appendages else set())
-        return np.array([g.group in groups for g in self.geoms], bool)
+        return np.array([g.group in groups and g.shown for g in self.geoms], bool)
 
     def mesh(self, appendages: bool = False) -> TriangleMesh:
         """The drawn surface in T (drawn)."""
@@ -305,7 +307,8 @@ def _geoms(model, body: int) -> tuple[TargetGeom, ...]:
         out.append(TargetGeom(model.geom(g).name or f"target_geom_{i}",
                               mujoco.mjtGeom(int(model.geom_type[g])).name.removeprefix("mjGEOM_").lower(),
                               int(model.geom_group[g]), model.material(mat).name if mat >= 0 else "",
-                              tuple(float(v) for v in rgb)))
+                              tuple(float(v) for v in rgb),
+                              bool(model.geom_rgba[g][3] > 0 and (mat < 0 or model.mat_rgba[mat][3] > 0))))
     return tuple(out)
 
 
@@ -369,10 +372,11 @@ def _load(path: str, stamps: tuple, naming: _Naming) -> Target:
     if len(surface.mesh.faces) == 0:
         _fail(field, given, "geoms with a surface on body 'target' (boxes, cylinders, spheres, meshes...)")
     groups = ", ".join(str(g) for g in RENDERED_GROUPS)
-    drawn = surface.select(np.array([g.group in RENDERED_GROUPS for g in geoms], bool))
+    drawn = surface.select(np.array([g.group in RENDERED_GROUPS and g.shown for g in geoms], bool))
     if len(drawn.faces) == 0:  # nothing in the images, every keypoint labelled visible
-        _fail(field, given, f"geoms the factory draws on body 'target' (groups {groups}, MuJoCo's visible ones; "
-                            f"its geoms are in groups {sorted({g.group for g in geoms})})")
+        _fail(field, given, f"geoms the factory draws on body 'target' (groups {groups}, MuJoCo's visible ones, "
+                            f"alpha above 0; its geoms are in groups {sorted({g.group for g in geoms})}, "
+                            f"{sum(not g.shown for g in geoms)} of alpha 0)")
     dist = triangle_distances(X, drawn.vertices_T_m[drawn.faces]).min(axis=1)
     k = int(np.argmax(dist))
     if dist[k] > KEYPOINT_MAX_SURFACE_DISTANCE_M:

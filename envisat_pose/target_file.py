@@ -14,7 +14,8 @@ applies again). Keypoints keep MuJoCo's order: the body's own sites, then each c
 anywhere in the tree (a <freejoint/> on the body, a hinge deploying a wing) is latched: the target is one rigid
 body at the file's reference configuration (every joint at qpos0, where MuJoCo draws the bodies as written), the
 joint taken out and with it what only a mechanism needs (actuators, tendons, equalities, sensors, contact pairs and
-exclusions, keyframes); the scene adds its own free joint.
+exclusions, keyframes); the scene adds its own free joint. Lights on the target are taken out (drop_lights): the
+factory's scene lights it.
 """
 
 from __future__ import annotations
@@ -174,6 +175,14 @@ def latch_joints(spec) -> None:
         spec.delete(j)
 
 
+def drop_lights(spec) -> None:
+    """Take the lights of spec's body `target` and its child bodies (a <frame>'s too) out: the factory's scene
+    lights the target (its sun, the Earth-shine), not the file, and a light's `dir` has no place in a fused file."""
+    for b in [spec.body("target"), *subtree_bodies(spec.body("target"))]:
+        for light in list(b.lights):
+            spec.delete(light)
+
+
 @functools.lru_cache(maxsize=16)
 def _fused_text(path: str, mtime_ns: int) -> str | None:
     import mujoco
@@ -183,6 +192,7 @@ def _fused_text(path: str, mtime_ns: int) -> str | None:
     if target is None or not (target.bodies or target.frames or tree_joints(target)):
         return None
     latch_joints(spec)
+    drop_lights(spec)
     absolute_asset_files(spec, os.path.dirname(path))
     tree = [target, *subtree_bodies(target)]
     for b in subtree_bodies(spec.worldbody):
@@ -299,11 +309,12 @@ def compile_alone(path: str):
 
 def target_spec(path: str):
     """The target file's MjSpec as the factory's scene takes it (fused where its body has child bodies), its asset
-    files absolute."""
+    files absolute, its lights out (drop_lights)."""
     import mujoco
 
     text = fused_text(path)
     spec = mujoco.MjSpec.from_file(path) if text is None else mujoco.MjSpec.from_string(text)
+    drop_lights(spec)
     absolute_asset_files(spec, os.path.dirname(path))
     return spec
 
