@@ -49,8 +49,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # the command as typed (a run's record)
 
-    def one_line(message, category, filename, lineno, file=None, line=None):
-        print(f"envisat {args.verb}: warning: {message}", file=sys.stderr)
+    def one_line(message, category, filename, lineno, file=None, line=None):  # the library's names as flags
+        text = as_flags(str(message), {**EVERY_VERB, **getattr(args, "flag_names", {})})
+        print(f"envisat {args.verb}: warning: {text}", file=sys.stderr)
 
     try:
         with warnings.catch_warnings():

@@ -15,7 +15,7 @@ camera model (datagen/sensor.py) never drew:
 
 Output folder (one per scenario, seed and resolution):
     frames/frame_00000.jpg ...   the images (gray JPEG)
-    timestamps.csv               file,t_s (pipelines/runs/frames.py read_timestamps)
+    timestamps.csv               file,t_s (pipelines/runs/frame_names.py read_timestamps)
     camera.toml                  fx, fy, cx, cy, width, height, distortion (pipelines/tracking/camera_file.py)
     truth.npz                    for scoring only, never read by the tracker: t_s (N,), x (N, 12), corners_px
                                  (N, 8, 2) in the distorted frames, corners_ideal_px (N, 8, 2) through the ideal

@@ -191,19 +191,20 @@ def config_arg(value: Any, cls: type, field: str = "cfg"):
     return value
 
 
-def load_toml(path: str) -> dict:
-    """Read a TOML file; a missing or malformed file is an InputError naming the file and the problem."""
+def load_toml(path: str, what: str = "config file") -> dict:
+    """Read a TOML file; a missing or malformed file is an InputError naming the file (as `what`: "config file",
+    or the argument that gave it, such as "camera") and the problem."""
     try:
         with open(path, "rb") as fh:
             return tomllib.load(fh)
     except FileNotFoundError:
-        raise InputError(f"config file {path!r} does not exist") from None
+        raise InputError(f"{what} {path!r} does not exist") from None
     except IsADirectoryError:
-        raise InputError(f"config file {path!r} is a directory, expected a TOML file") from None
+        raise InputError(f"{what} {path!r} is a directory, expected a TOML file") from None
     except tomllib.TOMLDecodeError as err:
-        raise InputError(f"config file {path!r} is not valid TOML: {err}") from None
+        raise InputError(f"{what} {path!r} is not valid TOML: {err}") from None
     except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"config file {path!r} cannot be read: {err}") from None
+        raise InputError(f"{what} {path!r} cannot be read: {err}") from None
 
 
 def _is_number(v: Any) -> bool:

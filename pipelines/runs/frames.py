@@ -2,8 +2,9 @@
 video (`open_source`), every frame read once before any output (`scan_source`).
 
 - Image folders: PNG, JPEG or TIFF files; hidden and dot files (macOS `._*`) are ignored; names are sorted
-  naturally (runs of digits compared as numbers: frame_2 before frame_10); two names whose digits compare equal
-  (frame_01 and frame_1) are refused, their order being unknown.
+  naturally and their times read or warned of as pipelines/runs/frame_names.py says (two files of one frame
+  number refused; numbered names that skip numbers under a frame rate warned of). One image file is refused (its
+  folder is the sequence); a video whose header counts more frames than can be read is warned of.
 - Pixels: 8-bit files as they are; 16-bit files hold `bit_depth`-bit data (10, 12, 14 or 16; default: the
   smallest depth that holds the sequence's maximum), scaled to 8 bits by 255 / (2^bit_depth - 1).
 - Messages the image and video libraries print (OpenCV, libpng, libtiff, FFmpeg) are kept off the terminal
@@ -13,10 +14,9 @@ video (`open_source`), every frame read once before any output (`scan_source`).
 from __future__ import annotations
 
 import contextlib
-import csv
 import os
-import re
 import sys
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,11 +25,16 @@ from envisat_pose.config import ConfigError, InputError
 from envisat_pose.datagen.generate_config import nest_moved_keys
 from envisat_pose.geometry import MIN_SIDE_PX
 from envisat_pose.pipelines.detector.detect_target import require_dataset_of
+from envisat_pose.pipelines.runs.frame_names import (
+    IMAGE_EXTENSIONS,
+    numbering_gap_caution,
+    read_timestamps,
+    sorted_frames,
+)
 from envisat_pose.resumable import manifest_path
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
 from envisat_pose.target import DEFAULT_TARGET, load_target, other_target, require_envisat_dataset
 
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 BIT_DEPTHS = (8, 10, 12, 14, 16)
 
 
@@ -73,29 +78,6 @@ def quiet_opencv() -> None:
 
     with contextlib.suppress(Exception):
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-
-
-# ---------------------------------------------------------------------------------------------------------
-# Names
-
-
-def natural_key(name: str) -> tuple:
-    """Sort key of a file name with its runs of digits compared as numbers (frame_2 < frame_10)."""
-    parts = re.split(r"(\d+)", name)
-    return tuple(int(p) if i % 2 else p for i, p in enumerate(parts))
-
-
-def sorted_frames(folder: str, names: list[str]) -> list[str]:
-    """The image files among names (hidden and dot files skipped), naturally sorted; InputError when two names
-    compare equal (their order cannot be told)."""
-    files = [n for n in names if not n.startswith(".") and n.lower().endswith(IMAGE_EXTENSIONS)
-             and os.path.isfile(os.path.join(folder, n))]
-    files.sort(key=lambda n: (natural_key(n), n))
-    for a, b in zip(files, files[1:]):
-        if natural_key(a) == natural_key(b):
-            raise InputError(f"src {folder!r}: {a!r} and {b!r} have the same frame number: their order is "
-                             "ambiguous (rename them, e.g. with zero-padded numbers)")
-    return files
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -164,7 +146,8 @@ class FrameSource:
     shard files); bit_depth: the data's bits (8, or 10-16 in 16-bit files: scan_source sets it); size_px: (width,
     height) of every frame (scan_source); skipped: a dataset's damaged shards left out (open_source's
     skip_damaged); target: a dataset's target as its manifest records it ({name, sha256}; None for frames without
-    one, and for a dataset written before targets were recorded: ENVISAT's)."""
+    one, and for a dataset written before targets were recorded: ENVISAT's); cautions: what scan_source warns of
+    once the frames pass (numbered names that skip under a frame rate, a video cut short), not before a refusal."""
 
     kind: str
     path: str
@@ -177,6 +160,7 @@ class FrameSource:
     size_px: tuple[int, int] | None = None
     skipped: list[str] = field(default_factory=list)
     target: dict | None = None
+    cautions: list[str] = field(default_factory=list)
 
     def where(self, i: int) -> str:
         """Frame i as a message names it: the file, or the input and the frame."""
@@ -221,36 +205,6 @@ class FrameSource:
             yield i, to_u8(img, self.bit_depth)
 
 
-def read_timestamps(path: str, files: list[str]) -> np.ndarray:
-    """Frame times (N,) s from a CSV with columns file,t_s for the given image files (matched by file name);
-    InputError naming the CSV when a file is missing from it or the times do not increase."""
-    try:
-        with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-    except OSError as err:
-        raise InputError(f"timestamps {path!r}: cannot be read ({err.strerror or err})") from None
-    if not rows or not {"file", "t_s"} <= set(rows[0]):
-        raise InputError(f"{path}: expected a CSV with a header line and columns file,t_s")
-    times = {}
-    for n, row in enumerate(rows, start=2):
-        try:
-            times[os.path.basename(row["file"].strip())] = float(row["t_s"])
-        except (TypeError, ValueError):
-            raise InputError(f"{path}: line {n}: t_s = {row.get('t_s')!r}: expected a time in s") from None
-    t = []
-    for f in files:
-        name = os.path.basename(f)
-        if name not in times:
-            raise InputError(f"{path}: no time for image {name!r} (expected a row file,t_s for every image)")
-        t.append(times[name])
-    t = np.array(t)
-    if not np.isfinite(t).all() or np.any(np.diff(t) <= 0):
-        k = int(np.argmax(~(np.diff(t) > 0))) + 1 if len(t) > 1 else 0
-        raise InputError(f"{path}: times must increase in the images' name order: {os.path.basename(files[k])} at "
-                         f"t = {t[k]} s does not follow t = {t[k - 1] if k else float('nan')} s")
-    return t
-
-
 def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
                 bit_depth: int | None = None, skip_damaged: bool = False) -> FrameSource:
     """The frames of src (a generate folder, an image folder or a video file) with their times; InputError with
@@ -283,7 +237,12 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
             raise InputError(f"src {src!r}: a folder of images needs a frame rate (`rate_hz`) or "
                              "a timestamps file (`timestamps`)")
         source = FrameSource("images", src, t, [os.path.basename(f) for f in files], files=files)
+        gap = numbering_gap_caution(src, source.names) if not timestamps else None
+        source.cautions += [gap] if gap else []
     elif os.path.isfile(src):
+        if src.lower().endswith(IMAGE_EXTENSIONS):
+            raise InputError(f"src {src!r}: one image file; expected the folder of the sequence's frames "
+                             f"({os.path.dirname(src) or '.'!r}), a video or a generate folder")
         if timestamps:
             raise InputError(f"timestamps does not apply to a video ({src!r}): its frames are at `rate_hz` or the "
                              "file's own frame rate")
@@ -304,6 +263,7 @@ def video_source(path: str, rate_hz: float) -> FrameSource:
         cap = cv2.VideoCapture(path)
         try:
             opened = cap.isOpened()
+            header = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0) if opened else 0
             n = 0
             while opened and cap.grab():
                 n += 1
@@ -318,7 +278,11 @@ def video_source(path: str, rate_hz: float) -> FrameSource:
     rate = rate_hz if rate_hz > 0 else fps
     if not rate > 0:
         raise InputError(f"src {path!r}: the video has no frame rate: give `rate_hz`")
-    return FrameSource("video", path, np.arange(n) / rate, [f"frame {i}" for i in range(n)])
+    source = FrameSource("video", path, np.arange(n) / rate, [f"frame {i}" for i in range(n)])
+    if n < header:  # a file cut short (a copy or a recording that stopped) still opens: its tail is gone
+        source.cautions.append(f"src {path!r}: {n} of the {header} frames the video's header counts can be read: "
+                               f"tracking those {n} (a truncated file?)" + library_said(said))
+    return source
 
 
 def dataset_source(path: str, skip_damaged: bool = False) -> FrameSource:
@@ -382,7 +346,8 @@ def scan_source(source: FrameSource, size_px: tuple[int, int] | None = None, min
                 progress: bool = False) -> str:
     """Read every frame once before any output: each must decode, be at least MIN_SIDE_PX a side and have one
     size (size_px (width, height): the camera's; None: the size most frames have, so the odd frame is the one
-    named); 16-bit data must fit the bit depth (detected when 0). Sets source.size_px and source.bit_depth;
+    named); 16-bit data must fit the bit depth (detected when 0); then source.cautions are warned of (once).
+    Sets source.size_px and source.bit_depth;
     returns a line saying what the pixels are. InputError naming the frame at fault, or the frame count when
     there are fewer than min_frames (the tracker's cold start needs that many)."""
     it = source.raw_frames()
@@ -440,4 +405,7 @@ def scan_source(source: FrameSource, size_px: tuple[int, int] | None = None, min
     if T < min_frames:
         raise InputError(f"src {source.path!r}: {T} frame(s); the tracker's cold start needs at least "
                          f"{min_frames} (tracker.acquire.frames)")
+    for text in source.cautions:  # once, and only for frames that pass: a refusal stays one line
+        warnings.warn(text, stacklevel=2)
+    source.cautions = []
     return line

@@ -29,11 +29,14 @@ def camera_from_intrinsics(path: str) -> tuple[PinholeCamera, tuple | None]:
 
     if not os.path.isfile(path):
         raise InputError(f"camera {path!r}: no such file (expected a camera TOML file: fx, fy, cx, cy, width, height)")
-    data = load_toml(path)
+    data = load_toml(path, "camera")
     vals = {}
     for key in ("fx", "fy", "cx", "cy", "width", "height"):
         if key not in data:
-            raise InputError(f"{path}: camera file has no {key!r} (expected fx, fy, cx, cy in px, width, height)")
+            table = next((k for k, v in data.items() if isinstance(v, dict) and key in v), None)
+            under = f"; it is under [{table}]: expected at the file's top level" if table else ""
+            raise InputError(f"{path}: camera file has no {key!r} (expected fx, fy, cx, cy in px, width, height"
+                             f"{under})")
         v = data[key]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
             raise InputError(f"{path}: {key} = {v!r}: expected a number")
@@ -56,7 +59,7 @@ def camera_from_intrinsics(path: str) -> tuple[PinholeCamera, tuple | None]:
     dist = data.get("distortion")
     if dist is not None:
         if not isinstance(dist, list) or len(dist) not in (4, 5, 8, 12, 14) \
-                or not all(isinstance(d, (int, float)) and np.isfinite(d) for d in dist):
+                or not all(isinstance(d, (int, float)) and not isinstance(d, bool) and np.isfinite(d) for d in dist):
             raise InputError(f"{path}: distortion = {dist!r}: expected OpenCV's 4, 5, 8, 12 or 14 coefficients")
     unknown = sorted(set(data) - set(KEYS))
     if unknown:
@@ -106,7 +109,7 @@ def read_camera_response(path: str, data: dict | None = None) -> tuple[Response 
     it (adapt then estimates it from the frames). data: the file's parsed table (read from path when None).
     InputError naming the file and the key for a value that is no response or no blur width (0 to
     MAX_PSF_SIGMA_PX px)."""
-    data = load_toml(path) if data is None else data
+    data = load_toml(path, "camera") if data is None else data
     response = None
     if "response" in data:
         try:

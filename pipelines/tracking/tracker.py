@@ -249,9 +249,7 @@ class Tracker(AcquiringSteps, TrackingSteps):
             raise ValueError(f"frame times must increase: t = {t_s} s after t = {self.t_last} s")
         want = (self.camera.height_px, self.camera.width_px)
         if image is not None and (not isinstance(image, np.ndarray) or image.shape != want or image.dtype != np.uint8):
-            got = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
-            raise ValueError(f"image: {got}; expected a uint8 gray frame of the camera's size {want} (height, width): "
-                             "a frame of another size needs its own camera (tracker_camera, camera_file)")
+            raise ValueError(frame_refusal(image, want))
         if window_px is not None:
             window_px = np.asarray(window_px)
             if window_px.shape != (3,) or window_px[2] < 1:
@@ -335,6 +333,24 @@ class Tracker(AcquiringSteps, TrackingSteps):
         """A Tracker for the named scenario's geometry (tracker_from_scenario: its orbit and dynamics, the shipped
         detector unless weights, the MJCF camera unless camera=)."""
         return tracker_from_scenario(scenario, weights, **kw)
+
+
+def frame_refusal(image, want: tuple[int, int]) -> str:
+    """Why Tracker.step refuses image (want: the camera's (height, width)), with the way to the frame it takes: gray
+    from colour, 8 bits from 16, or a camera of the frame's size."""
+    if not isinstance(image, np.ndarray):
+        got, how = type(image).__name__, "a numpy array"
+    else:
+        got = f"{image.dtype} {image.shape}"
+        if image.ndim == 3 and image.shape[:2] == want:
+            how = "gray from colour: cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) (BGRA2GRAY with alpha)"
+        elif image.shape[:2] != want:
+            how = "a frame of another size needs its own camera (tracker_camera, camera_file)"
+        elif image.dtype == np.uint16:
+            how = "8 bits from 16-bit data: envisat_pose.pipelines.runs.frames.to_u8(image, bit_depth)"
+        else:
+            how = "8-bit pixels: image.astype(np.uint8) after scaling to 0-255"
+    return f"image: {got}; expected a uint8 gray frame of the camera's size {want} (height, width): {how}"
 
 
 def check_detector_target(detector, target: Target | None) -> None:

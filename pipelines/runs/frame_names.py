@@ -1,0 +1,129 @@
+"""The names and times of an image folder's frames (`envisat track`, `envisat adapt`; pipelines/runs/frames.py
+opens the folder):
+
+- names sorted naturally (runs of digits compared as numbers: frame_2 before frame_10); two files of one frame
+  number (frame_01.png and frame_1.png, or img_7.png and img_7.jpg: the same frame saved twice) are refused,
+  their order being unknown;
+- numbered names that skip numbers under a frame rate cautioned against (`rate_hz` times frame k at k / rate_hz s
+  by its position: the frames after a gap would be early by the missing frames' time; frames.scan_source warns);
+- a timestamps CSV (columns file,t_s; a spreadsheet's byte-order mark and spaces around the header's names
+  allowed) read, one time per image, increasing in name order.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import re
+
+import numpy as np
+
+from envisat_pose.config import InputError
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+GAP_FACTOR = 1.5  # a step in the frame numbers this much over the usual one is a gap (not jitter in a clock's name)
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key of a file name with its runs of digits compared as numbers (frame_2 < frame_10)."""
+    parts = re.split(r"(\d+)", name)
+    return tuple(int(p) if i % 2 else p for i, p in enumerate(parts))
+
+
+def sorted_frames(folder: str, names: list[str]) -> list[str]:
+    """The image files among names (hidden and dot files skipped), naturally sorted; InputError when two files
+    have one frame number (their names without the extension compare equal: their order cannot be told)."""
+    files = [n for n in names if not n.startswith(".") and n.lower().endswith(IMAGE_EXTENSIONS)
+             and os.path.isfile(os.path.join(folder, n))]
+    files.sort(key=lambda n: (natural_key(n), n))
+    seen: dict[tuple, str] = {}
+    for n in files:
+        key = natural_key(os.path.splitext(n)[0])
+        if key in seen:
+            raise InputError(f"src {folder!r}: {seen[key]!r} and {n!r} have the same frame number: their order is "
+                             "ambiguous (expected one file per frame: remove a copy in another format, or rename them with "
+                             "zero-padded numbers)")
+        seen[key] = n
+    return files
+
+
+def numbering_gap(names: list[str]) -> tuple[str, str, int, int] | None:
+    """(name, next name, their step, the usual step) for the first pair of names whose frame numbers step more than
+    GAP_FACTOR times the usual (median) step, when the names are one pattern with one number that changes
+    (img_0001.png, img_0002.png, ...); None otherwise."""
+    parts = [re.fullmatch(r"(.*?)(\d+)(\D*)", os.path.splitext(n)[0]) for n in names]
+    if len(names) < 3 or not all(parts) or len({(m.group(1), m.group(3)) for m in parts}) != 1:
+        return None
+    steps = np.diff([int(m.group(2)) for m in parts])
+    usual = float(np.median(steps))
+    big = np.flatnonzero(steps > GAP_FACTOR * usual)
+    if usual <= 0 or not big.size:
+        return None
+    i = int(big[0])
+    return names[i], names[i + 1], int(steps[i]), int(round(usual))
+
+
+def numbering_gap_caution(src: str, names: list[str]) -> str | None:
+    """What to warn of when the frames' numbers skip (numbering_gap) while their times come from a frame rate: by
+    position, the frames after the gap would be early by the missing frames' time; None when they do not skip."""
+    gap = numbering_gap(names)
+    if gap is None:
+        return None
+    a, b, step, usual = gap
+    return (f"src {src!r}: the frame numbers skip from {a!r} to {b!r} (a step of {step}; the others {usual}): "
+            "`rate_hz` times frame k at k / rate_hz s by its position, so the frames after the gap are early by "
+            "the missing frames' time; give `timestamps` (columns file,t_s) if frames are missing")
+
+
+def read_timestamps(path: str, files: list[str]) -> np.ndarray:
+    """Frame times (N,) s from a CSV with columns file,t_s for the given image files (matched by file name);
+    InputError naming the CSV (and the line) when it has no such columns, a row misses a value, a file has two
+    different times or none, or the times do not increase in the files' order."""
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # utf-8-sig: a spreadsheet's byte-order mark
+            reader = csv.reader(fh)
+            header = [h.strip() for h in next(reader, [])]
+            rows = list(reader)
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"timestamps {path!r}: cannot be read ({getattr(err, 'strerror', None) or err})") from None
+    if not {"file", "t_s"} <= set(header):
+        raise InputError(f"{path}: header {','.join(header)!r}: expected a CSV with a header line and columns "
+                         "file,t_s (comma-separated)")
+    col_f, col_t = header.index("file"), header.index("t_s")
+    times: dict[str, float] = {}
+    for n, row in enumerate(rows, start=2):
+        if not any(v.strip() for v in row):
+            continue  # a blank line
+        if len(row) <= max(col_f, col_t):
+            raise InputError(f"{path}: line {n}: {','.join(row)!r}: expected a file and a time t_s (s)")
+        name, t = os.path.basename(row[col_f].strip()), row[col_t].strip()
+        try:
+            value = float(t)
+        except ValueError:
+            raise InputError(f"{path}: line {n}: t_s = {t!r}: expected a time in s") from None
+        if name in times and times[name] != value:
+            raise InputError(f"{path}: line {n}: {name!r} at t = {value} s, but t = {times[name]} s on an earlier "
+                             "line: expected one time per image")
+        times[name] = value
+    t = []
+    for f in files:
+        name = os.path.basename(f)
+        if name not in times:
+            raise InputError(f"{path}: no time for image {name!r} (expected a row file,t_s for every image)")
+        t.append(times[name])
+    return increasing_times(path, np.array(t), files)
+
+
+def increasing_times(path: str, t: np.ndarray, files: list[str]) -> np.ndarray:
+    """t when its times are finite and increase in the files' order; else InputError naming the first file at
+    fault and its time."""
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:
+        k = int(bad[0])
+        raise InputError(f"{path}: {os.path.basename(files[k])} at t = {t[k]} s: expected a finite time in s")
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if back.size:
+        k = int(back[0]) + 1
+        raise InputError(f"{path}: times must increase in the images' name order: {os.path.basename(files[k])} at "
+                         f"t = {t[k]} s does not follow t = {t[k - 1]} s")
+    return t

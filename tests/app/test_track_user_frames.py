@@ -1,0 +1,162 @@
+"""A user's own frames as they come (issue: frames brought to `envisat track`): a timestamps CSV from a
+spreadsheet (byte-order mark, spaces in the header), a short row, one file given two times, a time that is not
+finite named at its file; one frame saved in two formats; numbered names that skip numbers under --rate-hz
+warned of once the frames pass, the warning's names as flags; one image file given for the folder; a video cut short; a camera file
+with its keys under a table, a TOML error named as the camera; what Tracker.step says of a colour or 16-bit
+frame. Small synthetic frames: nothing here tracks."""
+
+import os
+
+import numpy as np
+import pytest
+
+from envisat_pose.app.cli import main
+from envisat_pose.config import InputError
+from envisat_pose.pipelines.runs.frame_names import numbering_gap, read_timestamps, sorted_frames
+from envisat_pose.pipelines.runs.frames import open_source, scan_source
+
+SIDE = 32
+
+
+def frames(folder, names):
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    for n in names:
+        assert cv2.imwrite(str(folder / n), rng.integers(0, 256, (SIDE, SIDE), dtype=np.uint8))
+    return folder
+
+
+NAMES = [f"img_{i:04d}.png" for i in range(4)]
+
+
+def csv_times(tmp_path, text):
+    path = tmp_path / "times.csv"
+    path.write_bytes(text.encode("utf-8"))
+    return str(path)
+
+
+def test_a_spreadsheets_csv_is_read(tmp_path):
+    """Excel's "CSV UTF-8" starts with a byte-order mark; a header typed as 'file, t_s' has a space: both read."""
+    rows = "".join(f"{n}, {i * 0.5}\n" for i, n in enumerate(NAMES))
+    for head in ("\ufefffile,t_s\n", "file, t_s\n", "\ufeff t_s , file\n"):
+        body = rows if "file," in head else "".join(f"{i * 0.5},{n}\n" for i, n in enumerate(NAMES))
+        np.testing.assert_allclose(read_timestamps(csv_times(tmp_path, head + body), NAMES), [0, 0.5, 1, 1.5])
+
+
+def test_bad_rows_are_one_line_naming_the_line_or_the_file(tmp_path):
+    rows = "".join(f"{i},{n}\n" for i, n in enumerate(NAMES))
+    with pytest.raises(InputError, match=r"line 6: '99': expected a file and a time"):  # was an AttributeError
+        read_timestamps(csv_times(tmp_path, "t_s,file\n" + rows + "99\n"), NAMES)
+    rows = "".join(f"{n},{i}\n" for i, n in enumerate(NAMES))
+    with pytest.raises(InputError, match=r"line 6: 'img_0002.png' at t = 2.5 s, but t = 2.0 s"):  # was taken
+        read_timestamps(csv_times(tmp_path, "file,t_s\n" + rows + "img_0002.png,2.5\n"), NAMES)
+    last_inf = "".join(f"{n},{i if i < 3 else 'inf'}\n" for i, n in enumerate(NAMES))
+    with pytest.raises(InputError, match=r"img_0003.png at t = inf s: expected a finite time"):  # named img_0001
+        read_timestamps(csv_times(tmp_path, "file,t_s\n" + last_inf), NAMES)
+    with pytest.raises(InputError, match=r"header 'file;t_s'"):
+        read_timestamps(csv_times(tmp_path, "file;t_s\n"), NAMES)
+
+
+def test_one_frame_saved_in_two_formats_is_refused(tmp_path):
+    """img_0001.png and img_0001.jpg are the same frame twice: tracked both, the sequence was twice as long."""
+    src = frames(tmp_path / "both", NAMES + [n.replace(".png", ".jpg") for n in NAMES])
+    with pytest.raises(InputError, match=r"'img_0000.jpg' and 'img_0000.png' have the same frame number"):
+        sorted_frames(str(src), os.listdir(src))
+    with pytest.raises(InputError, match="same frame number"):
+        open_source(str(src), 1.0)
+
+
+def test_numbered_names_that_skip_are_warned_of_under_a_rate(tmp_path):
+    gappy = [f"frame_{i}.png" for i in (0, 1, 2, 3, 9, 10, 11)]
+    assert numbering_gap(gappy) == ("frame_3.png", "frame_9.png", 6, 1)
+    assert numbering_gap([f"f_{i}.png" for i in range(0, 50, 10)]) is None  # every 10th frame: one step
+    assert numbering_gap(["a_1.png", "b_2.png", "c_9.png"]) is None  # no one pattern
+    src = frames(tmp_path / "gappy", gappy)
+    source = open_source(str(src), 1.0)
+    with pytest.warns(UserWarning, match=r"skip from 'frame_3.png' to 'frame_9.png'.*`timestamps`"):
+        scan_source(source)  # once the frames pass: a refusal stays one line
+    np.testing.assert_allclose(source.t_s, np.arange(7.0))  # by position, as documented
+    times = csv_times(tmp_path, "file,t_s\n" + "".join(f"{n},{n[6:-4]}\n" for n in gappy))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        source = open_source(str(src), timestamps=times)
+        scan_source(source)
+        np.testing.assert_allclose(source.t_s, [0, 1, 2, 3, 9, 10, 11])
+
+
+def test_the_verb_warns_with_its_flags(tmp_path, capsys):
+    """The warning reaches the terminal as one line naming --images and --timestamps (the library's `names` as the
+    verb's flags, as its errors are); then the frames are too few for the cold start."""
+    src = frames(tmp_path / "gappy", [f"frame_{i}.png" for i in (0, 1, 2, 3, 9, 10, 11)])
+    cfg = tmp_path / "fast.toml"
+    cfg.write_text("[tracker.acquire]\nframes = 3\n")
+    code = main(["track", "--images", str(src), "--rate-hz", "1", "--config", str(cfg), "--out",
+                 str(tmp_path / "never"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 2, err
+    assert err[0].startswith("envisat track: warning: --images") and "--timestamps" in err[0] and "`" not in err[0]
+    assert f"frames of {SIDE} x {SIDE} px, not the default camera's" in err[1]
+    # a refused input is one line: too few frames for the cold start, no warning before it
+    code = main(["track", "--images", str(src), "--rate-hz", "1", "--out", str(tmp_path / "never"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "7 frame(s)" in err[0], err
+
+
+def test_one_image_file_is_refused_with_its_folder(tmp_path):
+    """Given for the folder, one PNG was opened as a one-frame video."""
+    src = frames(tmp_path / "seq", NAMES)
+    with pytest.raises(InputError, match=r"one image file; expected the folder of the sequence's frames"):
+        open_source(str(src / "img_0001.png"), 1.0)
+
+
+def test_a_video_cut_short_is_warned_of(tmp_path):
+    import cv2
+
+    video = tmp_path / "clip.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 1.0, (64, 64), isColor=True)
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        w.write(rng.integers(0, 256, (64, 64, 3), dtype=np.uint8))
+    w.release()
+    data = video.read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[: len(data) // 2])
+    source = open_source(str(cut), 0.0)
+    with pytest.warns(UserWarning, match=r"of the 20 frames the video's header counts can be read"):
+        scan_source(source)
+    assert 0 < len(source.t_s) < 20
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        source = open_source(str(video), 0.0)
+        scan_source(source)
+        assert len(source.t_s) == 20
+
+
+def test_camera_files_as_people_write_them(tmp_path):
+    from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
+
+    keys = "fx = 100.0\nfy = 100.0\ncx = 16.0\ncy = 16.0\nwidth = 32\nheight = 32\n"
+    cam = tmp_path / "cam.toml"
+    cam.write_text("[camera]\n" + keys)
+    with pytest.raises(InputError, match=r"no 'fx' .*under \[camera\]: expected at the file's top level"):
+        camera_from_intrinsics(str(cam))
+    cam.write_text(keys + "distortion = [true, false, false, false]\n")
+    with pytest.raises(InputError, match="distortion"):
+        camera_from_intrinsics(str(cam))
+    cam.write_text(keys + "fx = \n")
+    with pytest.raises(InputError, match=r"^camera '.*cam.toml' is not valid TOML"):  # not "config file"
+        camera_from_intrinsics(str(cam))
+
+
+def test_tracker_step_says_how_to_make_the_frame_it_takes():
+    from envisat_pose.pipelines.tracking.tracker import frame_refusal
+
+    assert "cv2.COLOR_BGR2GRAY" in frame_refusal(np.zeros((32, 32, 3), np.uint8), (32, 32))
+    assert "to_u8" in frame_refusal(np.zeros((32, 32), np.uint16), (32, 32))
+    assert "its own camera" in frame_refusal(np.zeros((16, 32), np.uint8), (32, 32))
