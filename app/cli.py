@@ -18,6 +18,7 @@ import warnings
 from envisat_pose.app.common import EVERY_VERB, as_flags
 from envisat_pose.app.flag_rules import config_error_text
 from envisat_pose.config import ConfigError, InputError
+from envisat_pose.datagen.gl_check import check_gl_platform
 
 # The app modules that define register(subparsers), in the order their verbs are listed.
 _VERB_MODULES = ("envisat_pose.app.simulate", "envisat_pose.app.generate", "envisat_pose.app.dataset",
@@ -70,6 +71,9 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())  # Python's own flush of stdout at exit would raise again
         return 141
     except Exception as err:  # after the kinds above: a closed pipe is not an interrupt
+        if gl_refused(err):  # MuJoCo's own import refuses a MUJOCO_GL it does not know: one line, as ours
+            print(f"envisat {args.verb}: error: {gl_refused(err)}", file=sys.stderr)
+            return 2
         if not after_interrupt(err):
             raise
         # Ctrl-C landed inside an import (MuJoCo's, torch's): the cleanup's own import of the half-loaded module
@@ -83,6 +87,18 @@ def interrupt_hint(args: argparse.Namespace) -> str:
     again finishes what it wrote), nothing for the others (their outputs are staged: nothing was written)."""
     return "; run the same command again to finish it (what is written is kept)" if getattr(
         args, "resumable", False) else ""
+
+
+def gl_refused(err: BaseException) -> str:
+    """The line for MuJoCo's import refusing the MUJOCO_GL set (a RuntimeError naming the variable): the value and
+    the platforms that render here (datagen/gl_check.py); '' for any other error."""
+    if not (isinstance(err, RuntimeError) and "environment variable MUJOCO_GL" in str(err)):
+        return ""
+    try:
+        check_gl_platform()
+    except InputError as refused:
+        return str(refused)
+    return str(err)
 
 
 def after_interrupt(err: BaseException) -> bool:

@@ -33,6 +33,7 @@ from envisat_pose.datagen.appearance import (
 )
 from envisat_pose.datagen.clearance import TargetBoxes, farthest_depth_m, target_file_boxes
 from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
+from envisat_pose.datagen.gl_check import check_gl_platform
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE, encode_depth, make_label
 from envisat_pose.datagen.render_view import APPENDAGE_MASK_VALUE, MASK_VALUES, View, target_mask_values
 from envisat_pose.datagen.target_scene import target_scene
@@ -374,6 +375,8 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
     # one rasterizer thread count per worker: the usable cores shared among the workers that start (one a shard)
     runner = RunnerConfig(backend, workers, scheduler, thread_env(workers, units=cfg.num_shards))
     runner.validate()
+    if scheduler is None:  # this machine's renderer (a cluster's workers have their own)
+        check_gl_platform()
     check_out_dir(out_dir)
     if cfg.mode == "sequence":  # before anything is written: the truth's keep-out and the depth range
         check_sequence_depth(cfg)

@@ -1,25 +1,27 @@
-"""The renderer's headless GL platform: MUJOCO_GL chosen before MuJoCo loads (osmesa unless the user set one; with
-egl, EGL_PLATFORM surfaceless), and the GL context class of that platform. MuJoCo picks its GL platform when it is
-imported: a module that renders with MuJoCo imports this one before it imports mujoco (datagen/render.py,
-datagen/render_model.py)."""
+"""The renderer's headless GL platform: MUJOCO_GL chosen before MuJoCo loads (osmesa unless the user set one; set
+but blank counts as unset; with egl, EGL_PLATFORM surfaceless), and the GL context class of that platform. MuJoCo
+picks its GL platform when it is imported: a module that renders with MuJoCo imports this one before it imports
+mujoco (datagen/render.py, datagen/render_model.py). Any other platform is refused in one line (datagen/gl_check.py;
+the jobs that render check it before any work)."""
 
 from __future__ import annotations
 
 import os
 
+from envisat_pose.datagen.gl_check import check_gl_platform
+
 # MuJoCo picks its GL platform at import: choose a headless one unless the user did (platform-notes.md).
-os.environ.setdefault("MUJOCO_GL", "osmesa")
-if os.environ["MUJOCO_GL"].lower() == "egl":
+if not os.environ.get("MUJOCO_GL", "").strip():
+    os.environ["MUJOCO_GL"] = "osmesa"
+if os.environ["MUJOCO_GL"].strip().lower() == "egl":
     os.environ.setdefault("EGL_PLATFORM", "surfaceless")
 
 
 def gl_context_class():
-    """The GL context class of the platform named by MUJOCO_GL (osmesa or egl; default osmesa)."""
-    backend = os.environ.get("MUJOCO_GL", "osmesa").lower()
-    if backend == "egl":
+    """The GL context class of the platform named by MUJOCO_GL (osmesa or egl; default osmesa); any other: the
+    InputError of check_gl_platform."""
+    if check_gl_platform() == "egl":
         from mujoco.egl import GLContext
-    elif backend == "osmesa":
-        from mujoco.osmesa import GLContext
     else:
-        raise RuntimeError(f"MUJOCO_GL={backend!r}: the image factory renders headless with 'osmesa' or 'egl'")
+        from mujoco.osmesa import GLContext
     return GLContext

@@ -137,9 +137,10 @@ class AdaptConfig(Config):
         check(self.batch_size >= 1, f"{p}batch_size", self.batch_size, "at least 1 sample per batch")
         check(self.params in ADAPT_PARAMS, f"{p}params", self.params, "'norm_heads', 'all' or 'none'")
         unset = {f.name: f.default for f in dataclasses.fields(self) if f.name in ("steps", "lr")}
-        check(self.params != "none" or {"steps": self.steps, "lr": self.lr} == unset, f"{p}steps", self.steps,
-              "the defaults of steps and lr with params 'none' (they set the fine-tune, which is off: params "
-              "'norm_heads' or 'all')")
+        given = [name for name in ("steps", "lr") if getattr(self, name) != unset[name]] or ["steps"]  # the one set
+        check(self.params != "none" or {"steps": self.steps, "lr": self.lr} == unset, f"{p}{given[0]}",
+              getattr(self, given[0]), "the defaults of steps and lr with params 'none' (they set the fine-tune, "
+              "which is off: params 'norm_heads' or 'all')")
         check(self.min_trusted >= 1, f"{p}min_trusted", self.min_trusted, "at least 1 frame")
         check(self.max_label_sigma_px > 0, f"{p}max_label_sigma_px", self.max_label_sigma_px, "pixels > 0")
         check(self.max_labels >= self.min_trusted, f"{p}max_labels", self.max_labels, "at least min_trusted")

@@ -42,8 +42,9 @@ import os
 import time
 from typing import TYPE_CHECKING
 
-from envisat_pose.config import config_arg, path_arg, to_dict, to_toml
+from envisat_pose.config import check, config_arg, path_arg, to_dict, to_toml
 from envisat_pose.io import atomic_write_text, sha256_file
+from envisat_pose.named_scenarios import table
 from envisat_pose.pipelines.campaigns.campaign_block import block_name, block_task, load_campaign_truth
 from envisat_pose.pipelines.campaigns.campaign_config import (
     MonteCarloConfig,
@@ -101,7 +102,18 @@ def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConfig | Non
     """Run (or finish) the campaign of cfg in out_dir (a str or pathlib.Path: rerun on it to resume) on runner
     (a core RunnerConfig: the local pool, Dask; None: one process) and write its outputs (module docstring).
     Returns summary.json's dict. ConfigError or InputError (one line, naming the field or argument) before any
-    work for a bad argument or a folder of another job."""
+    work for a bad argument or a folder of another job. A scenario with a [sweep] table (rate-sweep) is one
+    campaign per rate, as the verb runs it: pipelines.campaigns.sweep.run_sweep (ConfigError naming scenario)."""
+    cfg = config_arg(cfg, MonteCarloConfig)
+    check(not table(cfg.scenario, "sweep"), "scenario", cfg.scenario, "a scenario of one rate: this one is a rate "
+          "sweep ([sweep] table), one campaign per rate: envisat_pose.pipelines.campaigns.sweep.run_sweep(cfg, "
+          "sweep_for(cfg), out_dir, runner), as `envisat montecarlo` runs it")
+    return campaign_at_one_rate(cfg, out_dir, runner, progress)
+
+
+def campaign_at_one_rate(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConfig | None = None,
+                         progress: bool = False) -> dict:
+    """run_campaign's work, at cfg's one rate (a rate sweep's campaigns: pipelines.campaigns.sweep.run_sweep)."""
     cfg = config_arg(cfg, MonteCarloConfig)
     out_dir = path_arg(out_dir, "out_dir")
     runner = config_arg(RunnerConfig() if runner is None else runner, RunnerConfig, "runner")

@@ -323,6 +323,8 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     cfg = config_arg(cfg, EstimateConfig)
     out, rrd = path_arg(out, "out"), path_arg(rrd, "rrd", optional=True)
     truth_path = path_arg(truth_path, "truth_path", optional=True)
+    if truth_path and scenario:  # the verb's --truth and --scenario exclude each other as well
+        raise InputError("truth_path and scenario: give one of them (a truth file, or a named scenario to simulate)")
     if not out.endswith(".npz"):
         raise InputError(f"out {out!r}: expected a path ending in .npz")
     if rrd is not None and not rrd.endswith(".rrd"):

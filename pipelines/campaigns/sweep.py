@@ -16,7 +16,12 @@ from envisat_pose.config import Config, InputError, check, path_arg, resolve_job
 from envisat_pose.io import atomic_write_text, json_safe
 from envisat_pose.named_scenarios import table
 from envisat_pose.out_dirs import make_out_dir
-from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig, check_filter_rate, run_campaign, truth_scenario
+from envisat_pose.pipelines.campaigns.campaign import (
+    MonteCarloConfig,
+    campaign_at_one_rate,
+    check_filter_rate,
+    truth_scenario,
+)
 from envisat_pose.pipelines.campaigns.campaign_config import campaign_target_record, campaign_title
 from envisat_pose.pools import RunnerConfig
 from envisat_pose.resumable import manifest_path, remove_partial_files
@@ -131,7 +136,8 @@ def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner: R
     for rate in rates:
         if progress:
             print(f"rate sweep: {rate:g} Hz -> {os.path.join(out_dir, rate_folder(rate))}")
-        summaries.append(run_campaign(at_rate(cfg, rate), os.path.join(out_dir, rate_folder(rate)), runner, progress))
+        summaries.append(campaign_at_one_rate(at_rate(cfg, rate), os.path.join(out_dir, rate_folder(rate)), runner,
+                                             progress))
     result = sweep_result(cfg, sweep, rates, summaries)
     atomic_write_text(os.path.join(out_dir, "sweep.json"), json.dumps(json_safe(result), indent=1, sort_keys=True)
                       + "\n")

@@ -132,7 +132,7 @@ def gl_environment(device_type: str, workers: int) -> dict[str, str]:
     otherwise), EGL_PLATFORM surfaceless with egl, LP_NUM_THREADS (llvmpipe's threads) the machine's cores shared
     among the workers unless set."""
 
-    env = {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl" if device_type == "cuda" else "osmesa")}
+    env = {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "").strip() or ("egl" if device_type == "cuda" else "osmesa")}
     if env["MUJOCO_GL"].lower() == "egl":
         env["EGL_PLATFORM"] = os.environ.get("EGL_PLATFORM", "surfaceless")
     env.update({name: os.environ.get(name, n) for name, n in thread_env(workers).items()})

@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 from dataclasses import dataclass
 
 from envisat_pose.config import InputError, check, from_dict, path_arg, paths_arg
 from envisat_pose.datagen.generate_config import GenerateConfig
+from envisat_pose.datagen.gl_check import check_gl_platform
 from envisat_pose.io import sha256_file
 from envisat_pose.out_dirs import check_makeable
 from envisat_pose.perception.weights_keys import MODEL_CONFIG_KEY
@@ -208,13 +210,17 @@ def dataset_images(data: list[dict]) -> int | None:
 
 def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | None, workers: int | None,
                  threads: int | None, online: bool = False, target: str = DEFAULT_TARGET,
-                 backbone: str | None = None) -> None:
+                 backbone: str | None = None, device: str = "cpu") -> None:
     """Every input of a training run but the shards checked before any work; InputError naming the argument (init:
     weights of another target than `target`, the one trained, are refused in one line; backbone: any detector's
-    weights, a new run's alone)."""
+    weights, a new run's alone; device: 'cpu', 'cuda' or 'cuda:N', as the verb's --device)."""
+    if not (isinstance(device, str) and re.fullmatch(r"cpu|cuda(:\d+)?", device)):
+        raise InputError(f"device {device!r}: expected 'cpu' or 'cuda' (or 'cuda:N')")
 
     if not data_dirs and not online:
         raise InputError("data_dirs: no dataset folder given")
+    if online:
+        check_gl_platform()  # its renderer processes' platform, refused here rather than in each of them
     for folder in data_dirs:
         require_envisat_dataset(folder, "data_dirs", "train")
     if init is not None and resume:
@@ -426,7 +432,7 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     task, target = run_task(cfg, online)
     backbone = resolve_backbone(backbone, cfg, target is not None and init is None and not resume)
     check_inputs(data_dirs, run_dir, resume, init, workers, threads, online is not None,
-                 DEFAULT_TARGET if target is None else cfg.target, backbone)
+                 DEFAULT_TARGET if target is None else cfg.target, backbone, device)
     if online is not None:
         workers = 0  # no DataLoader: the renderer processes are online.workers
     rank_device = init_distributed(device)

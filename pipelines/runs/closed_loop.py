@@ -37,6 +37,7 @@ import numpy as np
 from envisat_pose.analysis.sink_check import check_sink
 from envisat_pose.config import config_arg, path_arg, to_dict, to_toml
 from envisat_pose.contracts import TruthTrajectory
+from envisat_pose.datagen.gl_check import check_gl_platform
 from envisat_pose.datagen.scenario import scaled_start, scenario_config
 from envisat_pose.datagen.views import sample_seed
 from envisat_pose.filtering.estimator import filter_inertia_T_kg_m2
@@ -191,6 +192,7 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = False, sink: 
     and the status)."""
 
     cfg, out_dir = config_arg(cfg, RunConfig), path_arg(out_dir, "out_dir")
+    check_gl_platform()  # MuJoCo renders every frame: a platform that cannot is one line, before the folder is made
     if sink is not None:
         check_sink(sink)  # before the folder is made
     names = [os.path.basename(p) for p in run_output_paths(out_dir).values()]

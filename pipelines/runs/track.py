@@ -141,6 +141,10 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
     if isinstance(source, str):
         source = open_source(source, cfg.rate_hz)
     require_source_target(source, cfg.target)
+    if source.scenario and source.scenario != cfg.scenario:  # the verb takes the folder's unless --scenario is typed
+        warnings.warn(f"{source.path}: frames of scenario {source.scenario!r}, tracked with the orbit, dynamics and "
+                      f"filter of scenario {cfg.scenario!r} (TrackConfig(scenario={source.scenario!r}) takes the "
+                      "frames' own, as `envisat track` does without --scenario)")
     if isinstance(camera, str):
         camera, remap = camera_from_intrinsics(camera)
     pixels = scan_source(source, None if camera is None else (camera.width_px, camera.height_px),

@@ -1,0 +1,77 @@
+"""What a verb refuses or does, its Python function refuses or does too, in a line naming the Python argument: an
+estimate of a truth file and a scenario at once, a training device torch does not know, adapt's learning rate
+without its fine-tune, a rate-sweep scenario given to run_campaign (the verb runs one campaign per rate), and a
+generated folder tracked under another scenario than its own (the verb takes the folder's)."""
+
+import os
+import warnings
+
+import pytest
+
+from envisat_pose.config import ConfigError, InputError
+
+
+def test_run_estimate_refuses_a_truth_file_and_a_scenario_at_once(tmp_path):
+    """`envisat estimate` takes --truth or --scenario (argparse's exclusive group); the call read the file and added
+    the scenario's eclipse outages along it."""
+    from envisat_pose import EstimateConfig, ScenarioConfig, run_estimate, run_simulate
+
+    truth = str(tmp_path / "t.npz")
+    run_simulate(ScenarioConfig(duration_s=5.0), truth)
+    with pytest.raises(InputError, match="^truth_path and scenario: give one of them"):
+        run_estimate(EstimateConfig(), str(tmp_path / "e.npz"), truth_path=truth, scenario="eclipse")
+    assert not os.path.exists(tmp_path / "e.npz")
+
+
+@pytest.mark.parametrize("device", ["gpu", "cuda0", 1])
+def test_train_detector_names_a_device_it_cannot_use(device, tmp_path):
+    """The verb's --device is cpu or cuda; the call gave torch's own RuntimeError listing every device type."""
+    from envisat_pose import TrainConfig, train_detector
+
+    with pytest.raises(InputError, match=f"^device {device!r}: expected 'cpu' or 'cuda'"):
+        train_detector(TrainConfig(steps=1), str(tmp_path / "data"), str(tmp_path / "run"), device=device)
+
+
+def test_train_detector_takes_a_numbered_cuda_device_past_the_check(tmp_path):
+    from envisat_pose import TrainConfig, train_detector
+
+    with pytest.raises(InputError) as err:  # the next check: the folder given is not a dataset
+        train_detector(TrainConfig(steps=1), str(tmp_path / "data"), str(tmp_path / "run"), device="cuda:0")
+    assert not str(err.value).startswith("device")
+
+
+def test_adapt_names_the_fine_tune_setting_given_without_the_fine_tune():
+    from envisat_pose.pipelines.adaptation.adapt import AdaptConfig
+
+    with pytest.raises(ConfigError) as err:
+        AdaptConfig(lr=1e-3)
+    assert err.value.field == "lr" and str(err.value).startswith("lr = 0.001: expected the defaults")
+
+
+def test_run_campaign_refuses_a_rate_sweep_and_run_sweep_runs_it(tmp_path):
+    """`envisat montecarlo --scenario rate-sweep` runs one campaign per rate; run_campaign ran one at 1 Hz."""
+    from envisat_pose import MonteCarloConfig, run_campaign
+    from envisat_pose.pipelines.campaigns.sweep import run_sweep, sweep_for
+
+    cfg = MonteCarloConfig(scenario="rate-sweep", runs=2, duration_s=20.0)
+    with pytest.raises(ConfigError, match="^scenario = 'rate-sweep': expected a scenario of one rate.*run_sweep"):
+        run_campaign(cfg, tmp_path / "one")
+    assert not os.path.exists(tmp_path / "one")
+    result = run_sweep(cfg, sweep_for(cfg, [1.0]), str(tmp_path / "sweep"))  # what the message names
+    assert result["rates_hz"] == [1.0] and os.path.isfile(tmp_path / "sweep" / "rate-1hz" / "summary.json")
+
+
+def test_a_generated_sequence_tracked_under_another_scenario_is_warned_of(tmp_path):
+    """`envisat track --images SEQ` takes SEQ's own scenario; TrackConfig() is the default scenario's: said."""
+    from envisat_pose import GenerateConfig, TrackConfig, run_generate
+    from envisat_pose.pipelines.runs.track import prepare_frames
+
+    seq = str(tmp_path / "seq")
+    run_generate(GenerateConfig(mode="sequence", num_images=20, shard_size=20, resolution_px=64, seed=1,
+                                sequence={"scenario": "slow-tumble"}), seq)
+    with pytest.warns(UserWarning, match="frames of scenario 'slow-tumble', tracked with the orbit, dynamics and "
+                      r"filter of scenario 'default' \(TrackConfig\(scenario='slow-tumble'\)"):
+        prepare_frames(TrackConfig(), seq)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        prepare_frames(TrackConfig(scenario="slow-tumble"), seq)  # the frames' own, as the verb takes it
