@@ -334,6 +334,9 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     out, cfg_path = estimate_output_paths(out)
     if not truth_path and not scenario:
         scenario = cfg.scenario
+        if scenario is None:
+            raise InputError("truth_path or scenario: give one (a truth file, or a named scenario to simulate, "
+                             "as `scenario` or EstimateConfig(scenario=NAME))")
     if truth_path and not scenario:
         cfg = with_recorded_scenario(cfg, truth_path)
     truth, source = load_truth(cfg, truth_path, scenario, duration_s, progress, path_arg(target, "target",

@@ -75,3 +75,12 @@ def test_a_generated_sequence_tracked_under_another_scenario_is_warned_of(tmp_pa
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         prepare_frames(TrackConfig(scenario="slow-tumble"), seq)  # the frames' own, as the verb takes it
+
+
+def test_run_estimate_without_a_truth_or_a_scenario_says_to_give_one(tmp_path):
+    """It said `scenario = None: expected one of ...`, naming neither argument."""
+    from envisat_pose import EstimateConfig, run_estimate
+
+    with pytest.raises(InputError, match="^truth_path or scenario: give one"):
+        run_estimate(EstimateConfig(runs=1), str(tmp_path / "e.npz"))
+    assert not os.listdir(tmp_path)
