@@ -31,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Run the tracker (detector + UKF, cold start from the images) over a sequence of frames of "
         "ENVISAT (its corner detector) or of another spacecraft (--target: its keypoint detector, trained and "
         "calibrated for it): a folder written by `envisat generate --mode sequence` of that target, a folder of "
-        "PNG/JPEG/TIFF files whose names sort in time order (natural order: frame_2 before frame_10; hidden files "
+        "PNG/JPEG/TIFF/BMP/PGM/WebP files whose names sort in time order (natural order: frame_2 before frame_10; hidden files "
         "ignored; --rate-hz or --timestamps), or a video file. Every frame is checked before anything is written; the outputs are "
         "moved into --out only when complete (an interrupt leaves an earlier run's as they were). Writes est.npz, "
         "det.npz, track.config.toml, summary.json, recording.rrd (and errors.png when the input carries the "

@@ -20,7 +20,7 @@ import numpy as np
 
 from envisat_pose.config import InputError
 
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".pnm", ".webp")  # OpenCV reads them
 GAP_FACTOR = 1.5  # a step in the frame numbers this much over the usual one is a gap (not jitter in a clock's name)
 
 

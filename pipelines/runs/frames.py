@@ -1,7 +1,7 @@
 """The frames of `envisat track` as users have them: a sequence-mode generate folder, a folder of image files or a
 video (`open_source`), every frame read once before any output (`scan_source`).
 
-- Image folders: PNG, JPEG or TIFF files; hidden and dot files (macOS `._*`) are ignored; names are sorted
+- Image folders: PNG, JPEG, TIFF, BMP, PGM/PPM or WebP files; hidden and dot files (macOS `._*`) are ignored; names are sorted
   naturally and their times read or warned of as pipelines/runs/frame_names.py says (two files of one frame
   number refused; numbered names that skip numbers under a frame rate warned of). One image file is refused (its
   folder is the sequence); a video whose header counts more frames than can be read is warned of.
@@ -89,7 +89,7 @@ def to_gray(img: np.ndarray | None, name: str, said: list[str] | None = None) ->
     import cv2
 
     if img is None or img.size == 0:
-        raise InputError(f"{name}: cannot be read as an image (expected PNG, JPEG or TIFF)"
+        raise InputError(f"{name}: cannot be read as an image (expected PNG, JPEG, TIFF, BMP, PGM/PPM or WebP)"
                          + library_said(said or []))
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
@@ -227,7 +227,7 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
             return dataset_source(src, skip_damaged)
         files = [os.path.join(src, f) for f in sorted_frames(src, os.listdir(src))]
         if not files:
-            raise InputError(f"src {src!r}: no image files (expected PNG, JPEG or TIFF files, a generate "
+            raise InputError(f"src {src!r}: no image files (expected PNG, JPEG, TIFF, BMP, PGM/PPM or WebP files, a generate "
                              "folder or a video)")
         if timestamps:
             t = read_timestamps(timestamps, files)

@@ -4,7 +4,7 @@ Inputs (pipelines/runs/frames.py: `open_source`), every frame read once before a
 - a folder written by `envisat generate --mode sequence` (manifest.json and shards) of the job's target: frame
   times from the labels' scene, the chaser's orbit from its scenario, the labels' truth for scoring (a dataset of
   another target than the job's is refused: frames.require_source_target);
-- a folder of image files (PNG, JPEG or TIFF; 8-bit, or 10- to 16-bit data in 16-bit files; gray, or colour
+- a folder of image files (PNG, JPEG, TIFF, BMP, PGM/PPM or WebP; 8-bit, or 10- to 16-bit data in 16-bit files; gray, or colour
   converted to gray; hidden files ignored) in natural name order, with rate_hz (frame k at k / rate_hz s) or a
   timestamps CSV (columns file,t_s);
 - a video file (OpenCV's reader), with rate_hz or the file's own frame rate.

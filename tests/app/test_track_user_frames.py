@@ -160,3 +160,23 @@ def test_tracker_step_says_how_to_make_the_frame_it_takes():
     assert "cv2.COLOR_BGR2GRAY" in frame_refusal(np.zeros((32, 32, 3), np.uint8), (32, 32))
     assert "to_u8" in frame_refusal(np.zeros((32, 32), np.uint16), (32, 32))
     assert "its own camera" in frame_refusal(np.zeros((16, 32), np.uint8), (32, 32))
+
+
+@pytest.mark.parametrize("ext", [".bmp", ".pgm", ".webp"])
+def test_other_image_files_opencv_reads_are_frames(tmp_path, ext):
+    """BMP, PGM/PPM and WebP frames (a lab camera's or a converter's output) were skipped without a word: a folder
+    of them had 'no image files'. Read as PNGs are (lossless WebP: the same pixels)."""
+    import cv2
+
+    src = tmp_path / "seq"
+    src.mkdir()
+    rng = np.random.default_rng(3)
+    want = [rng.integers(0, 256, (SIDE, SIDE), dtype=np.uint8) for _ in range(3)]
+    for i, img in enumerate(want):
+        ok, buf = cv2.imencode(ext, img, [cv2.IMWRITE_WEBP_QUALITY, 101] if ext == ".webp" else [])
+        (src / f"f_{i}{ext}").write_bytes(buf.tobytes())
+    source = open_source(str(src), 1.0)
+    scan_source(source)
+    assert source.names == [f"f_{i}{ext}" for i in range(3)]
+    for (i, got), img in zip(source.frames(), want):
+        np.testing.assert_array_equal(got, img)
