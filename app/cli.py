@@ -71,6 +71,10 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())  # Python's own flush of stdout at exit would raise again
         return 141
     except Exception as err:  # after the kinds above: a closed pipe is not an interrupt
+        if disk_full(err):  # a full disk or a file-size limit: one line, not a traceback (outputs stay whole)
+            print(f"envisat {args.verb}: error: {disk_full(err)}; free some space and run the same command again"
+                  f"{interrupt_hint(args).removeprefix('; run the same command again to finish it')}", file=sys.stderr)
+            return 1
         if gl_refused(err):  # MuJoCo's own import refuses a MUJOCO_GL it does not know: one line, as ours
             print(f"envisat {args.verb}: error: {gl_refused(err)}", file=sys.stderr)
             return 2
@@ -87,6 +91,18 @@ def interrupt_hint(args: argparse.Namespace) -> str:
     again finishes what it wrote), nothing for the others (their outputs are staged: nothing was written)."""
     return "; run the same command again to finish it (what is written is kept)" if getattr(
         args, "resumable", False) else ""
+
+
+def disk_full(err: BaseException) -> str:
+    """The line for a write refused for want of room (ENOSPC, EDQUOT, EFBIG: a full disk, a quota, `ulimit -f`),
+    naming the file where the error does; '' for any other error. Every output is written atomically, so what
+    such a stop leaves is the earlier files, whole."""
+    import errno
+
+    if not (isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)):
+        return ""
+    where = f" writing {err.filename!r}" if err.filename else ""
+    return f"{err.strerror or err}{where}"
 
 
 def gl_refused(err: BaseException) -> str:

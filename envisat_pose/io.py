@@ -30,6 +30,15 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def partial_owner_alive(name: str) -> bool:
+    """Whether a partial file or folder named `name` (.tmp-PID-..., .tmp-WORD-PID-...: atomic_path's,
+    staged_folder's, an export's stage) belongs to a process still running: another job writing the same folder
+    now, whose files are not to be removed under it."""
+    parts = name.removeprefix(".tmp-").split("-", 2)
+    pid = parts[0] if parts[0].isdigit() else parts[1] if len(parts) > 1 else ""
+    return pid.isdigit() and int(pid) != os.getpid() and _alive(int(pid))
+
+
 def _partial_prefix(path: str, pid: int | str) -> str:
     """The name's start of atomic_path's temporary file for `path` in process `pid`: '.tmp-PID-NAME-'."""
     return f".tmp-{pid}-{os.path.basename(path)[:100]}-"

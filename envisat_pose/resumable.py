@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from envisat_pose.config import InputError, flatten
-from envisat_pose.io import atomic_write_text, sha256_file
+from envisat_pose.io import atomic_write_text, partial_owner_alive, sha256_file
 from envisat_pose.out_dirs import PARTIAL_PREFIX, make_out_dir
 from envisat_pose.pools import RunnerConfig, run_tasks
 
@@ -43,11 +43,12 @@ def read_manifest(folder: str, field: str) -> dict | None:
 
 
 def remove_partial_files(folder: str) -> None:
-    """Remove the temporary files (and io.staged_folder's folders) a killed writer left in folder."""
+    """Remove the temporary files (and io.staged_folder's folders) a killed writer left in folder; a running
+    process's stay (a second run of the job on the same folder must not pull the first's files from under it)."""
     import shutil
 
     for name in os.listdir(folder):
-        if name.startswith(PARTIAL_PREFIX):
+        if name.startswith(PARTIAL_PREFIX) and not partial_owner_alive(name):
             path = os.path.join(folder, name)
             shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
 

@@ -31,7 +31,7 @@ from envisat_pose.datagen.scenario import (
 from envisat_pose.filtering.estimator import FilterConfig, chaser_states, diverged_against_truth, nees, run_filter
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
 from envisat_pose.geometry import load_geometry
-from envisat_pose.io import atomic_write_text
+from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.named_scenarios import check_name
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.pipelines.campaigns.observability import warn_if_unfixed_start
@@ -354,18 +354,23 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     config_json = json.dumps({"estimate": to_dict(cfg), "truth_source": source, "truth_config": truth.config},
                              sort_keys=True)
     est = Estimates(**arrays, config_json=config_json)
-    est.save(out)
-    atomic_write_text(cfg_path, "# envisat estimate: the full validated config of this job\n" + to_toml(to_dict(cfg)))
-    png = None
-    if plot:
-        from envisat_pose.analysis.plots import plot_estimate
+    png = out[:-4] + ".png" if plot else None
+    # written into a staging folder beside out and moved into place together: an interrupt leaves an earlier
+    # run's est.npz, est.config.toml and est.png as they were, never a new est.npz beside an old est.png (a
+    # rerun without plot removes the earlier PNG: it shows other estimates)
+    with staged_folder(os.path.dirname(os.path.abspath(out)), [os.path.basename(out[:-4] + ".png")]) as stage:
+        est.save(os.path.join(stage, os.path.basename(out)))
+        atomic_write_text(os.path.join(stage, os.path.basename(cfg_path)),
+                          "# envisat estimate: the full validated config of this job\n" + to_toml(to_dict(cfg)))
+        if plot:
+            from envisat_pose.analysis.plots import plot_estimate
 
-        png = out[:-4] + ".png"
-        plot_estimate(arrays["t_s"], arrays["x_true"], arrays["x_hat"], arrays["P"], png,
-                      title=f"{(truth_target(truth.config, 'the truth') or load_target(DEFAULT_TARGET)).name}: UKF "
-                            f"errors, {cfg.measurement.kind}, {cfg.runs} runs, seed {cfg.seed}")
-    if rrd:
-        from envisat_pose.analysis.recording import write_estimates_recording
+            plot_estimate(arrays["t_s"], arrays["x_true"], arrays["x_hat"], arrays["P"],
+                          os.path.join(stage, os.path.basename(png)),
+                          title=f"{(truth_target(truth.config, 'the truth') or load_target(DEFAULT_TARGET)).name}: "
+                                f"UKF errors, {cfg.measurement.kind}, {cfg.runs} runs, seed {cfg.seed}")
+        if rrd:
+            from envisat_pose.analysis.recording import write_estimates_recording
 
-        write_estimates_recording(rrd, est, truth, target=truth_target(truth.config, "the truth"))
+            write_estimates_recording(rrd, est, truth, target=truth_target(truth.config, "the truth"))
     return {"config": cfg, "arrays": arrays, "est": out, "config_toml": cfg_path, "plot": png, "rrd": rrd}

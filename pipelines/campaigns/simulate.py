@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import os
+
 from envisat_pose.config import InputError, config_arg, path_arg, to_dict, to_toml
 from envisat_pose.datagen.scenario import ScenarioConfig
-from envisat_pose.io import atomic_write_text
+from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.target import load_target
 
@@ -41,19 +43,23 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
     make_out_file_dirs(paths)
     out, cfg_path, png = output_paths(out)
     traj = simulate_truth(cfg, progress=progress, scenario=label or None)
-    traj.save(out)
     origin = (f"# made from scenario {label!r} (recorded in the truth: `envisat estimate --truth` takes its filter and "
               f"measurement tables); `envisat simulate --scenario {label} --config THIS_FILE` remakes it\n"
               if label else "")
-    atomic_write_text(cfg_path, "# envisat simulate: the full validated config of this run\n" + origin
-                      + to_toml(to_dict(cfg)))
-    if plot:
-        from envisat_pose.analysis.plots import plot_states
+    # all written into a staging folder beside out, then moved into place together: an interrupt (Ctrl-C during
+    # the plot) leaves an earlier run's files as they were, not a new run.npz beside the old run.png
+    # a rerun without plot removes an earlier run's PNG (it shows another truth)
+    with staged_folder(os.path.dirname(os.path.abspath(out)), [os.path.basename(png)]) as stage:
+        traj.save(os.path.join(stage, os.path.basename(out)))
+        atomic_write_text(os.path.join(stage, os.path.basename(cfg_path)),
+                          "# envisat simulate: the full validated config of this run\n" + origin + to_toml(to_dict(cfg)))
+        if plot:
+            from envisat_pose.analysis.plots import plot_states
 
-        plot_states(traj.t_s, traj.x, png, title=f"{load_target(cfg.target.file).name} truth, scenario {label!r}, seed {cfg.seed}",
-                    visible=traj.visible)
-    if rrd:
-        from envisat_pose.analysis.recording import write_truth_recording
+            plot_states(traj.t_s, traj.x, os.path.join(stage, os.path.basename(png)), visible=traj.visible,
+                        title=f"{load_target(cfg.target.file).name} truth, scenario {label!r}, seed {cfg.seed}")
+        if rrd:
+            from envisat_pose.analysis.recording import write_truth_recording
 
-        write_truth_recording(rrd, traj, load_target(cfg.target.file))
+            write_truth_recording(rrd, traj, load_target(cfg.target.file))
     return {"truth": traj, "truth_file": out, "config_toml": cfg_path, "plot": png if plot else None, "rrd": rrd}

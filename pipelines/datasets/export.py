@@ -135,16 +135,25 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
 def _publish(stage: str, out_dir: str, moved: list[str]) -> None:
     """The staging folder becomes out_dir: renamed to it, or, where out_dir exists (empty: checked before), its
     entries moved into it (the folder stays: the working folder `.`, a mount point), each name added to `moved`
-    before it moves (what a failure removes again). InputError when out_dir refuses them."""
-    if not os.path.isdir(out_dir):
-        os.rename(stage, out_dir)
-        return
+    before it moves (what a failure removes again). InputError when out_dir refuses them, or when another job
+    (a second export to the same --out) has filled out_dir meanwhile: nothing of it is touched or merged."""
+    busy = f"out_dir {out_dir!r} was filled by another job while this export ran; nothing was written (use another " \
+        "folder)"
     try:
+        if not os.path.isdir(out_dir):
+            os.rename(stage, out_dir)  # fails (not empty) where another job's folder took the name meanwhile
+            return
+        if os.listdir(out_dir):
+            raise InputError(busy)
         for name in sorted(os.listdir(stage)):
+            if os.path.lexists(os.path.join(out_dir, name)):
+                raise InputError(busy)
             moved.append(name)
             shutil.move(os.path.join(stage, name), os.path.join(out_dir, name))
         os.rmdir(stage)
     except OSError as err:
+        if os.path.isdir(out_dir) and sorted(os.listdir(out_dir)) != sorted(moved):
+            raise InputError(busy) from None
         raise InputError(f"out_dir {out_dir!r}: cannot move the export into it ({err.strerror or err})") from None
 
 
