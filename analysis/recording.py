@@ -10,7 +10,9 @@ contracts and writes the design's layout:
                                            in T)
     world/target_est                       run 0's estimated pose; .../model the target's skeleton (line segments)
                                            and .../model/keypoints its keypoints, .../position_3sigma the 3-sigma
-                                           ellipsoid of the position covariance (axes in C, drawn in T_est)
+                                           ellipsoid of the position covariance (axes in C, drawn in T_est); a
+                                           tracker's run: only at frames with an estimate, and world/target only
+                                           with a truth
     world/corners_true                     the truth's keypoint sites in C (ENVISAT: corners A-H; green visible,
                                            red hidden)
     world/chaser/camera                    the pinhole of models/envisat.xml (camera `chaser_cam`), static

@@ -75,16 +75,18 @@ def log_target_mesh(rec: rr.RecordingStream, entity: str, target: Target) -> Non
                                          vertex_normals=normals, vertex_colors=colors), static=True)
 
 
-def log_target_wireframe(rec: rr.RecordingStream, entity: str, target: Target, rgb=EST_RGB) -> None:
-    """`entity`/model, static: the target's skeleton (Target.skeleton: keypoint pairs along its sharp edges) as
-    line segments in T, and `entity`/model/keypoints its keypoints (named on hover), both in rgb: the light
-    copy of the shape that an estimate's pose carries."""
+def log_target_wireframe(rec: rr.RecordingStream, entity: str, target: Target, rgb=EST_RGB,
+                         static: bool = True) -> None:
+    """`entity`/model: the target's skeleton (Target.skeleton: keypoint pairs along its sharp edges) as line
+    segments in T, and `entity`/model/keypoints its keypoints (named on hover), both in rgb: the light copy of
+    the shape that an estimate's pose carries. static False: at the current time (a Clear can hide it again;
+    Rerun never clears static data)."""
     X = target.keypoints_T_m
     rec.log(f"{entity}/model", rr.LineStrips3D([X[[i, j]] for i, j in target.skeleton], colors=[rgb],
-                                               radii=[rr.Radius.ui_points(1.0)]), static=True)
+                                               radii=[rr.Radius.ui_points(1.0)]), static=static)
     rec.log(f"{entity}/model/keypoints", rr.Points3D(X, colors=[rgb], radii=[rr.Radius.ui_points(3.0)],
                                                      labels=list(target.keypoint_names), show_labels=False),
-            static=True)
+            static=static)
 
 
 def corner_annotation(target: Target | None = None) -> rr.AnnotationContext:
@@ -126,14 +128,16 @@ def log_camera(rec: rr.RecordingStream, camera: PinholeCamera, static: bool = Tr
 
 
 def log_static_scene(rec: rr.RecordingStream, camera: PinholeCamera | None = None, estimate: bool = False,
-                     target: Target | None = None) -> None:
+                     target: Target | None = None, truth: bool = True) -> None:
     """Everything that does not change: the target's keypoint annotation, the frame's axes, the target's model
-    (world/target/model its solid surface; with estimate=True world/target_est/model its skeleton and
-    keypoints), the chaser's camera. target None: default_target() (ENVISAT)."""
+    (with truth=True world/target/model its solid surface, drawn at the true pose; with estimate=True
+    world/target_est/model its skeleton and keypoints), the chaser's camera. target None: default_target()
+    (ENVISAT). A run without a truth has no true pose: its surface would be drawn at C's origin, the chaser."""
     target = target or default_target()
     rec.log("world", corner_annotation(target), static=True)
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_X_UP, static=True)  # C: x radial out (up)
-    log_target_mesh(rec, "world/target", target)
+    if truth:
+        log_target_mesh(rec, "world/target", target)
     if estimate:
         log_target_wireframe(rec, "world/target_est", target)
     log_camera(rec, camera or load_camera())

@@ -34,6 +34,7 @@ from .recording_layout import (
     VISIBLE_RGB,
     _wxyz_to_xyzw,
     log_static_scene,
+    log_target_wireframe,
     position_ellipsoids,
     track_blueprint,
 )
@@ -102,9 +103,13 @@ class TrackRecorder:
             self.rec.log("description", rr.TextDocument(title), static=True)
         # what the status series' codes mean (envisat_pose.status.legend(), JSON), beside the data
         self.rec.log("status_legend", rr.TextDocument(legend_json()), static=True)
-        log_static_scene(self.rec, camera, estimate=True, target=self.target)
+        # the true surface only where a truth gives its pose; the estimate's skeleton is logged at the frames that
+        # have an estimate (_log_estimate_3d), not static: a static shape cannot be cleared and stood at C's
+        # origin (the chaser) before the first estimate, and at the last estimate while lost
+        log_static_scene(self.rec, camera, target=self.target, truth=with_truth)
         self._log_series_styles()
         self.status = -1
+        self._est_shown = self._image_shown = False  # world/target_est, the image drawn (since the last clear)
 
     def _log_series_styles(self) -> None:
         rec = self.rec
@@ -144,10 +149,14 @@ class TrackRecorder:
         rec.set_time("frame", sequence=int(k))
         t_s = float(est["t_s"]) if "t_s" in est else float(k)
         rec.set_time("sim_time", duration=t_s)
+        ok = False
         if image is not None:
             ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
             if ok:
                 rec.log("world/chaser/camera/image", rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
+        if not ok and self._image_shown:  # no frame (the Earth's shadow): not the last frame's image held over
+            rec.log("world/chaser/camera/image", rr.Clear(recursive=False))
+        self._image_shown = ok
         status = int(est["status"])
         if status != self.status:
             rec.log("events", rr.TextLog(f"t = {t_s:.1f} s: {STATUS_NAMES[status]}",
@@ -166,13 +175,9 @@ class TrackRecorder:
             uv = project_state_px(x, cam, self.target)
             rec.log("world/chaser/camera/image/corners_estimated", rr.Points2D(
                 uv + 0.5, keypoint_ids=np.arange(len(uv)), class_ids=KEYPOINT_CLASS))
-            rec.log("world/target_est", rr.Transform3D(translation=x[POS],
-                                                       quaternion=_wxyz_to_xyzw(mrp_to_quat(x[MRP]))))
-            half, quat = position_ellipsoids(x[None], P[None])
-            rec.log("world/target_est/position_3sigma", rr.Ellipsoids3D(centers=[[0.0, 0.0, 0.0]], half_sizes=half,
-                                                                         quaternions=quat))
         else:
             rec.log("world/chaser/camera/image/corners_estimated", rr.Clear(recursive=False))
+        self._log_estimate_3d(x, P, estimate)
         roi = np.asarray(est["roi_px"], float)
         if np.isfinite(roi).all():
             rec.log("world/chaser/camera/image/roi", rr.Boxes2D(centers=[roi[0:2] + 0.5 * roi[2]],
@@ -204,6 +209,24 @@ class TrackRecorder:
             rec.log("metrics/range_est_m", rr.Scalars(float(np.linalg.norm(x[POS]))))
             if est["nis_dof"]:
                 rec.log("metrics/nis", rr.Scalars(float(est["nis"]) / float(est["nis_dof"])))
+
+    def _log_estimate_3d(self, x: np.ndarray, P: np.ndarray, estimate: bool) -> None:
+        """world/target_est at the current frame: the estimated pose with the target's skeleton and the 3-sigma
+        position ellipsoid where there is an estimate; cleared (the pose, skeleton and ellipsoid) from a frame
+        without one (acquiring, lost) until the next estimate."""
+        rec = self.rec
+        if not estimate:
+            if self._est_shown:
+                rec.log("world/target_est", rr.Clear(recursive=True))
+                self._est_shown = False
+            return
+        if not self._est_shown:
+            log_target_wireframe(rec, "world/target_est", self.target, static=False)
+            self._est_shown = True
+        rec.log("world/target_est", rr.Transform3D(translation=x[POS], quaternion=_wxyz_to_xyzw(mrp_to_quat(x[MRP]))))
+        half, quat = position_ellipsoids(x[None], P[None])
+        rec.log("world/target_est/position_3sigma", rr.Ellipsoids3D(centers=[[0.0, 0.0, 0.0]], half_sizes=half,
+                                                                     quaternions=quat))
 
     def close(self) -> None:
         """Flush; a saved recording is renamed to its path only now (complete). A live viewer that does not take

@@ -2,7 +2,8 @@
 installed rerun-sdk (`python -m rerun_cli`, the release that wrote the file), and starting and stopping it in its
 own process group (the command is a wrapper around a child binary, so the whole group is ended). Every server it
 starts listens on 127.0.0.1 only: the native viewer's own gRPC server and, with web, the web viewer and its gRPC
-proxy. A file that is not a Rerun recording (its first bytes are not an RRD stream header) is refused in one line.
+proxy. A file that is not a Rerun recording (its first bytes are not an RRD stream header), or that this
+rerun-sdk cannot read (another Rerun release's incompatible encoding, a file cut short), is refused in one line.
 """
 
 from __future__ import annotations
@@ -54,6 +55,29 @@ def check_recording(path: str) -> None:
     if not head.startswith(RRD_MAGIC):
         raise InputError(f"{path!r}: not a Rerun recording (no RRD header; expected a .rrd written by envisat "
                          "--rrd, run, track or demo)")
+    check_decodable(path)
+
+
+def check_decodable(path: str) -> None:
+    """InputError (one line) when this environment's rerun-sdk, the viewer's release, cannot read the file: one
+    written by an incompatible Rerun release, or cut short (its last message incomplete). The viewer itself
+    would log the error among its own lines and serve an empty or partial recording. Rerun's reader reads the
+    footer's index, or for a file without one (an older TrackRecorder's) steps over the messages' headers (0.2 s
+    for 200 MiB), and decodes the first chunk."""
+    import warnings
+
+    import rerun as rr
+
+    with warnings.catch_warnings():  # a file without a footer is read whole, as the viewer does: not an error
+        warnings.simplefilter("ignore")
+        try:
+            reader = rr.chunk.RrdReader(str(path))
+            reader.recordings()  # the index: a file cut short fails here
+            next(iter(reader.stream()), None)  # the first chunk decoded: another release's encoding fails here
+        except (RuntimeError, OSError, ValueError) as err:
+            why = " ".join(str(err).split())
+            raise InputError(f"{path!r}: cannot be read by rerun-sdk {rr.__version__} (the viewer `envisat view` "
+                             f"starts): {why}") from None
 
 
 def has_display() -> bool:

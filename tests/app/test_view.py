@@ -129,6 +129,30 @@ def test_view_refuses_a_file_that_is_not_a_recording_and_a_machine_without_a_dis
     assert view.viewer_command([str(rrd)])[-3:] == ["--bind", "127.0.0.1", str(rrd)]
 
 
+def test_view_refuses_a_recording_this_rerun_cannot_read_in_one_line(tmp_path, capsys):
+    """A recording of another Rerun release whose encoding this one cannot read (its header's version set to
+    0.22.0), or one cut short: one error line naming the rerun-sdk, exit 2, before any viewer starts (the old
+    code served it: the viewer logged the error among its own lines and showed an empty recording). The file as
+    written opens (Rerun's reader reads it: its chunks, the header's version this rerun-sdk's)."""
+    import rerun as rr
+
+    rrd = tmp_path / "run.rrd"
+    write_small_recording(rrd)
+    data = rrd.read_bytes()
+    assert data[:4] == b"RRF2" and tuple(data[4:7]) == tuple(int(v) for v in rr.__version__.split(".")[:3])
+    assert sum(1 for _ in rr.chunk.RrdReader(str(rrd)).stream()) > 0
+    view.check_recording(str(rrd))  # no error
+    older, cut = tmp_path / "older.rrd", tmp_path / "cut.rrd"
+    older.write_bytes(data[:4] + bytes([0, 22, 0, 0]) + data[8:])
+    cut.write_bytes(data[: len(data) // 2])
+    for bad, words in ((older, "0.22.0"), (cut, "exceeds file size")):
+        for extra in ([], ["--web"]):
+            assert main(["view", str(bad), *extra]) == 2
+            err = capsys.readouterr().err.strip()
+            assert len(err.splitlines()) == 1, err
+            assert f"cannot be read by rerun-sdk {rr.__version__}" in err and words in err, err
+
+
 def test_a_port_in_use_is_one_error_line_naming_its_flag(tmp_path, capsys):
     """Something already listening on 127.0.0.1 at --web-port (another viewer, a killed one's orphan): one line
     naming the flag, before a viewer starts (once the line said 'serving ... open http://...' and the exit was
