@@ -5,7 +5,8 @@ opens the folder):
   number (frame_01.png and frame_1.png, or img_7.png and img_7.jpg: the same frame saved twice) are refused,
   their order being unknown;
 - numbered names that skip numbers under a frame rate cautioned against (`rate_hz` times frame k at k / rate_hz s
-  by its position: the frames after a gap would be early by the missing frames' time; frames.scan_source warns);
+  by its position: the frames after a gap would be early by the missing frames' time; frames.scan_source warns),
+  and names ending in decimals of unequal length (t_12.5, t_12.25: natural order is not their time order);
 - a timestamps CSV (columns file,t_s; a spreadsheet's byte-order mark and spaces around the header's names
   allowed) read, one time per image, increasing in name order.
 """
@@ -73,6 +74,19 @@ def numbering_gap_caution(src: str, names: list[str]) -> str | None:
     return (f"src {src!r}: the frame numbers skip from {a!r} to {b!r} (a step of {step}; the others {usual}): "
             "`rate_hz` times frame k at k / rate_hz s by its position, so the frames after the gap are early by "
             "the missing frames' time; give `timestamps` (columns file,t_s) if frames are missing")
+
+
+def decimal_names_caution(src: str, names: list[str]) -> str | None:
+    """What to warn of when the names end in decimal numbers of unequal decimals (t_12.5.png, t_12.25.png: times in
+    s, most likely): natural order compares 5 and 25 as whole numbers and puts 12.5 first, so the frames are out of
+    time order under a frame rate; None otherwise."""
+    parts = [re.fullmatch(r".*?\d+\.(\d+)", os.path.splitext(n)[0]) for n in names]
+    if len(names) < 2 or not all(parts) or len({len(m.group(1)) for m in parts}) < 2:
+        return None
+    short, long_ = (min(names, key=lambda n: len(n)), max(names, key=lambda n: len(n)))
+    return (f"src {src!r}: the names end in decimal numbers of unequal decimals ({short!r}, {long_!r}): name order "
+            "compares their decimals as whole numbers (12.5 before 12.25), so the frames may be out of time order; "
+            "give `timestamps` (columns file,t_s), or names with as many decimals each")
 
 
 def read_timestamps(path: str, files: list[str]) -> np.ndarray:

@@ -27,6 +27,7 @@ from envisat_pose.geometry import MIN_SIDE_PX
 from envisat_pose.pipelines.detector.detect_target import require_dataset_of
 from envisat_pose.pipelines.runs.frame_names import (
     IMAGE_EXTENSIONS,
+    decimal_names_caution,
     numbering_gap_caution,
     read_timestamps,
     sorted_frames,
@@ -237,8 +238,9 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
             raise InputError(f"src {src!r}: a folder of images needs a frame rate (`rate_hz`) or "
                              "a timestamps file (`timestamps`)")
         source = FrameSource("images", src, t, [os.path.basename(f) for f in files], files=files)
-        gap = numbering_gap_caution(src, source.names) if not timestamps else None
-        source.cautions += [gap] if gap else []
+        if not timestamps:  # names that may not be in time order, or may miss frames, under a frame rate
+            caution = decimal_names_caution(src, source.names) or numbering_gap_caution(src, source.names)
+            source.cautions += [caution] if caution else []
     elif os.path.isfile(src):
         if src.lower().endswith(IMAGE_EXTENSIONS):
             raise InputError(f"src {src!r}: one image file; expected the folder of the sequence's frames "

@@ -180,3 +180,17 @@ def test_other_image_files_opencv_reads_are_frames(tmp_path, ext):
     assert source.names == [f"f_{i}{ext}" for i in range(3)]
     for (i, got), img in zip(source.frames(), want):
         np.testing.assert_array_equal(got, img)
+
+
+def test_names_that_are_decimal_times_are_warned_of_under_a_rate(tmp_path):
+    """t_12.5.png and t_12.25.png: natural order put 12.5 before 12.25 and tracked the frames out of time order under
+    --rate-hz without a word. Names of as many decimals each sort in time order: nothing to say."""
+    from envisat_pose.pipelines.runs.frame_names import decimal_names_caution
+
+    src = frames(tmp_path / "dec", [f"t_{t}.png" for t in ("12.0", "12.25", "12.5", "12.75", "13.0")])
+    source = open_source(str(src), 4.0)
+    assert source.names[:3] == ["t_12.0.png", "t_12.5.png", "t_12.25.png"]  # the order a user did not mean
+    with pytest.warns(UserWarning, match=r"decimal numbers of unequal decimals.*12\.5 before 12\.25.*`timestamps`"):
+        scan_source(source)
+    assert decimal_names_caution("x", [f"t_{t}.png" for t in ("12.00", "12.25", "12.50")]) is None
+    assert decimal_names_caution("x", [f"img_{i:04d}.png" for i in range(3)]) is None
