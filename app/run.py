@@ -95,7 +95,7 @@ def print_table(summary: dict) -> None:
 def nothing_tracked_line(summary: dict) -> str:
     """What a loop that never tracked says (as `envisat track` says it)."""
     counts = ", ".join(f"{n} {k}" for k, n in summary["scores"]["frames_by_status"].items() if n)
-    return (f"nothing tracked ({counts}): the tracker never got past acquisition, so est.npz holds no estimate "
+    return (f"nothing tracked ({counts}): the tracker never claimed tracking, so est.npz holds no estimate "
             "(x_hat NaN, status per row)")
 
 

@@ -28,8 +28,9 @@ def status_line(frames: int, counts: dict[str, int], first_tracking_s: float | N
     """The printed summary of a run's statuses; says plainly when nothing was tracked."""
     rest = ", ".join(f"{counts[s]} {s}" for s in STATUSES if s != "tracking" and counts.get(s))
     if not counts.get("tracking"):
-        return (f"{frames} frames: nothing tracked ({rest}): the tracker never got past acquisition, so est.npz "
-                "holds no estimate (x_hat NaN, status per row)")
+        return (f"{frames} frames: nothing tracked ({rest}): the tracker never claimed tracking, so est.npz "
+                + ("holds estimates only in its coasting rows" if counts.get("coasting") else
+                   "holds no estimate (x_hat NaN, status per row)"))
     nis = "no filter update with measurements" if mean_nis is None else f"mean NIS per dof {mean_nis:.2f}"
     return (f"{frames} frames: {counts['tracking']} tracking" + (f", {rest}" if rest else "")
             + f"; first tracking at t = {first_tracking_s:g} s; final status {final}; {nis}")

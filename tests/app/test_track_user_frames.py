@@ -194,3 +194,15 @@ def test_names_that_are_decimal_times_are_warned_of_under_a_rate(tmp_path):
         scan_source(source)
     assert decimal_names_caution("x", [f"t_{t}.png" for t in ("12.00", "12.25", "12.50")]) is None
     assert decimal_names_caution("x", [f"img_{i:04d}.png" for i in range(3)]) is None
+
+
+def test_a_run_that_never_tracked_says_so_without_claiming_more():
+    """'nothing tracked (39 acquiring, 1 lost): the tracker never got past acquisition' read wrong beside a lost
+    frame; the line says what is known, and where coasting rows hold estimates, that they do."""
+    from envisat_pose.pipelines.runs.outputs import status_line
+
+    line = status_line(40, {"acquiring": 39, "lost": 1}, None, "lost", None)
+    assert "nothing tracked (39 acquiring, 1 lost): the tracker never claimed tracking" in line
+    assert "holds no estimate" in line
+    line = status_line(40, {"acquiring": 37, "coasting": 2, "lost": 1}, None, "lost", None)
+    assert "only in its coasting rows" in line
