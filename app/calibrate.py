@@ -38,8 +38,7 @@ from envisat_pose.target import other_target
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "calibrate",
-        help="fit the detector's pixel-covariance scale (and, on sequences, its error model); write weights that "
-        "carry it",
+        help="fit the detector's pixel-covariance scale (and, on sequences, its error model); write weights with it",
         description="Detect the corners of every frame of held-out labelled datasets (not used in training), "
         "take the correctly named visible corners, fit the scale s that brings the mean e^T (s C)^-1 e to 2, and "
         "write a copy of the weights with s in their metadata. Prints the calibration per corruption group. When "
@@ -71,7 +70,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's, at most the usable cores)")
     add_common(p)  # the shared --quiet
     add_skip_damaged_argument(p)
-    p.set_defaults(func=run_calibrate_cli, flag_names={"data": "--data", "held_out": "--held-out", "out": "--out"})
+    p.set_defaults(func=run_calibrate_cli, flag_names={k: "--" + k.replace("_", "-") for k in
+                                                       "data held_out out target".split()})
 
 
 def _print_groups(before: dict, after: dict) -> None:

@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_run_arguments(p)
     add_common(p, out="output folder (created, parents too; files are replaced when the run completes)",
-               out_metavar="RUN_DIR", quiet=False)
+               out_metavar="RUN_DIR", quiet=False, flag_names={"target": "--target"})
     p.set_defaults(func=run_cli)
 
 

@@ -92,20 +92,25 @@ def card_text(card: dict) -> str:
 
 
 def run_record(run_dir: str, idle_s: float = 0.0) -> dict:
-    """One training run from its folder; idle_s: seconds it stood stopped before a --resume, left out of its
-    wall time (and recorded)."""
+    """One training run from its folder: its command and each --resume's; its training time, the run's own clock
+    over every leg (state.json's time_s; a run from before it was kept: config.json's time to the last checkpoint,
+    less idle_s, the seconds it stood stopped before a --resume)."""
     cfg = json.load(open(os.path.join(run_dir, "config.json"), encoding="utf-8"))
     rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"), encoding="utf-8")]
     last = rows[-1] if rows else {}
     state = json.load(open(os.path.join(run_dir, "state.json"), encoding="utf-8"))
     stopped = state["step"] < cfg["train"]["steps"]
+    if isinstance(state.get("time_s"), (int, float)):  # the run's own clock, over every leg (idle not counted)
+        wall_s = float(state["time_s"])
+    else:  # an older run: from config.json (rewritten by each resume) to its last checkpoint
+        wall_s = (os.path.getmtime(os.path.join(run_dir, "checkpoint.safetensors"))
+                  - os.path.getmtime(os.path.join(run_dir, "config.json")) - idle_s)
     return {"command": scrub(cfg.get("command")), "git": cfg.get("git"), "torch": cfg.get("torch"),
+            "resumes": [{"command": scrub(r.get("command")), "git": r.get("git"), "step": r.get("step")}
+                        for r in cfg.get("resumes", [])],
             "device": cfg.get("device"), "init": scrub(cfg.get("init")), "steps_done": state["step"],
             "stopped_early": stopped, "weights_used": "checkpoint.safetensors at step %d" % state["step"],
-            # from the run folder's creation (config.json) to its last checkpoint
-            "wall_time_s": round(os.path.getmtime(os.path.join(run_dir, "checkpoint.safetensors"))
-                                 - os.path.getmtime(os.path.join(run_dir, "config.json")) - idle_s, 1),
-            "idle_s_excluded": idle_s,
+            "wall_time_s": round(wall_s, 1), "idle_s_excluded": idle_s,
             "last_epoch_losses": {k: last[k] for k in ("loss", "heatmap", "offset", "line", "nll") if k in last},
             "train_config": scrub(cfg.get("train"))}
 
@@ -235,7 +240,8 @@ def evaluation_record(e: dict) -> dict:
     name = dataset_ref(data) if data and os.path.isdir(data) else scrub(data)
     if "as_named" in e:  # another target's keypoint detector (`envisat evaluate --target`): its own layout
         metrics = {k: {"all": e[k]["all"], "pose": e[k]["pose"]} for k in ("as_named", "twin_aware") if e.get(k)}
-        return {"data": name, "weights": scrub(e.get("weights")), "frames": e.get("frames"), "target": e["target"],
+        return {"data": name, "weights": scrub(e.get("weights")), "frames": e.get("frames"),
+                "target": scrub(e["target"]),
                 "match_px": e.get("match_px"), "metrics": metrics, "per_keypoint": e["as_named"]["per_keypoint"]}
     return {"data": name, "weights": scrub(e.get("weights")), "frames": e.get("frames"), "roi": scrub(e.get("roi")),
             "detect_config": e.get("detect_config"), "metrics": headline(e)}

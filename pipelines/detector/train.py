@@ -36,6 +36,7 @@ from envisat_pose.target import (
     other_target,
     require_envisat,
     require_envisat_dataset,
+    resolve_target_path,
 )
 
 TARGET_RESOLUTION_PX = 512  # another target's renders when none is given (its keypoint network's crops)
@@ -251,8 +252,14 @@ def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | N
 
 
 def read_run_config(run_dir: str) -> dict:
-    """The TrainConfig (as a dict) a run folder was trained with: the base a resumed run starts from."""
-    return read_run_record(run_dir)["train"]
+    """The TrainConfig (as a dict) a run folder was trained with: the base a resumed run starts from. InputError
+    when its target file, kept as typed (relative to the folder the run started in), is not found from here."""
+    train = read_run_record(run_dir)["train"]
+    target = train.get("target")
+    if isinstance(target, str) and not os.path.isfile(resolve_target_path(target)):
+        raise InputError(f"resume: {run_dir!r} renders the target file {target!r}, kept as it was typed when the "
+                         "run started, and it is not found from here: resume from the folder the run started in")
+    return train
 
 
 def read_run_record(run_dir: str) -> dict:
