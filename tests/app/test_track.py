@@ -243,5 +243,6 @@ def test_a_sequence_in_the_earths_shadow_has_no_lit_frame(tmp_path, capsys):
     from envisat_pose.geometry import load_camera
     from envisat_pose.pipelines.runs.track import TrackConfig, track_frames
 
-    own = track_frames(TrackConfig(), data, camera=load_camera().scaled(64, 64), out_dir=str(tmp_path / "own"))
+    own = track_frames(TrackConfig(scenario="slow-tumble"), data, camera=load_camera().scaled(64, 64),
+                       out_dir=str(tmp_path / "own"))
     assert own["camera"]["default"] is False and own["camera"]["file"] is None and own["camera"]["width_px"] == 64
