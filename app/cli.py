@@ -72,8 +72,9 @@ def main(argv: list[str] | None = None) -> int:
         return 141
     except Exception as err:  # after the kinds above: a closed pipe is not an interrupt
         if disk_full(err):  # a full disk or a file-size limit: one line, not a traceback (outputs stay whole)
-            print(f"envisat {args.verb}: error: {disk_full(err)}; free some space and run the same command again"
-                  f"{interrupt_hint(args).removeprefix('; run the same command again to finish it')}", file=sys.stderr)
+            kept = " (what is written is kept)" if getattr(args, "resumable", False) else ""
+            print(f"envisat {args.verb}: error: {disk_full(err)}; free some space and run the same command "
+                  f"again{kept}", file=sys.stderr)
             return 1
         if gl_refused(err):  # MuJoCo's own import refuses a MUJOCO_GL it does not know: one line, as ours
             print(f"envisat {args.verb}: error: {gl_refused(err)}", file=sys.stderr)
