@@ -15,18 +15,22 @@ Nothing here calls datagen.orbit, the plugin or filtering.dynamics to build a re
 """
 
 import math
+import os
+import sys
 
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from orbit_elements import MU, elements_to_rv  # noqa: E402  (the tests' shared two-body reference)
+
 from envisat_pose.attitude import mrp_error_angle_rad, mrp_shadow, mrp_to_dcm
 from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.datagen.truth import simulate_truth
 from envisat_pose.filtering.dynamics import propagate
 
-MU = 3.986004418e14
 J_T = np.array([[17023.3, 397.1, -2171.4], [397.1, 124825.7, 344.2], [-2171.4, 344.2, 129112.2]])
 
 # name: (orbit overrides, duration s, rho0', m/s). The Molniya-like orbit reaches its perigee (7980 km) ~1064 s in;
@@ -38,14 +42,6 @@ ORBITS = {
 }
 
 
-def elements_to_rv(a, e, i_deg, raan_deg, argp_deg, nu_deg):
-    """Textbook perifocal -> inertial conversion (3-1-3 rotation by RAAN, inclination, argument of perigee)."""
-    nu = math.radians(nu_deg)
-    p = a * (1 - e**2)
-    r_pf = p / (1 + e * math.cos(nu)) * np.array([math.cos(nu), math.sin(nu), 0.0])
-    v_pf = math.sqrt(MU / p) * np.array([-math.sin(nu), e + math.cos(nu), 0.0])
-    R = Rotation.from_euler("ZXZ", [raan_deg, i_deg, argp_deg], degrees=True).as_matrix()
-    return R @ r_pf, R @ v_pf
 
 
 def two_body(t, y):

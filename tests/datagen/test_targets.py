@@ -20,13 +20,15 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from orbit_elements import MU, elements_to_rv  # noqa: E402  (the tests' shared two-body reference)
+
 from envisat_pose.app.cli import main
 from envisat_pose.config import from_dict
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.shard_reader import read_shard
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-MU = 3.986004418e14
 # the test's own target: a brick with a fin and a mesh wedge; full inertia with products (not principal axes)
 J_TEST = np.array([[2.0, 0.15, -0.1], [0.15, 3.1, 0.05], [-0.1, 0.05, 3.9]])
 KEYPOINTS_T_M = {f"c{i}": (sx * 0.6, sy * 0.3, sz * 0.2) for i, (sx, sy, sz) in enumerate(
@@ -164,13 +166,6 @@ def test_visibility_agrees_with_mujocos_ray_cast(target_files, tmp_path):
 
 # --- truth against Euler's equations and two-body orbits -----------------------------------------------------
 
-def _elements_to_rv(a, e, i_deg, raan_deg, argp_deg, nu_deg):
-    nu = math.radians(nu_deg)
-    p = a * (1 - e**2)
-    r_pf = p / (1 + e * math.cos(nu)) * np.array([math.cos(nu), math.sin(nu), 0.0])
-    v_pf = math.sqrt(MU / p) * np.array([-math.sin(nu), e + math.cos(nu), 0.0])
-    R = Rotation.from_euler("ZXZ", [raan_deg, i_deg, argp_deg], degrees=True).as_matrix()
-    return R @ r_pf, R @ v_pf
 
 
 def _two_body(r0, v0, t):
@@ -215,7 +210,7 @@ def test_truth_of_the_tests_target_follows_eulers_equations_and_the_orbits(targe
     traj = simulate_truth(cfg)
     o = cfg.orbit
     t = traj.t_s
-    r_c0, v_c0 = _elements_to_rv(o.a_m, o.e, o.i_deg, o.raan_deg, o.argp_deg, o.nu0_deg)
+    r_c0, v_c0 = elements_to_rv(o.a_m, o.e, o.i_deg, o.raan_deg, o.argp_deg, o.nu0_deg)
     r_c, v_c = _two_body(r_c0, v_c0, t)
     R_N_C, w_c_N = _lvlh(r_c, v_c)
     x0 = traj.x[0]

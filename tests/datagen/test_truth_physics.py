@@ -6,27 +6,23 @@ the Clohessy-Wiltshire closed form for a circular chief. None of them uses the s
 """
 
 import math
+import os
+import sys
 
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from orbit_elements import MU, elements_to_rv  # noqa: E402  (the tests' shared two-body reference)
+
 from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.datagen.truth import simulate_truth
 
-MU = 3.986004418e14
 J_T = np.array([[17023.3, 397.1, -2171.4], [397.1, 124825.7, 344.2], [-2171.4, 344.2, 129112.2]])
 
 
-def elements_to_rv(a, e, i_deg, raan_deg, argp_deg, nu_deg, mu=MU):
-    """Textbook perifocal -> inertial conversion (3-1-3 rotation by RAAN, inclination, argument of perigee)."""
-    nu = math.radians(nu_deg)
-    p = a * (1 - e**2)
-    r_pf = p / (1 + e * math.cos(nu)) * np.array([math.cos(nu), math.sin(nu), 0.0])
-    v_pf = math.sqrt(mu / p) * np.array([-math.sin(nu), e + math.cos(nu), 0.0])
-    R = Rotation.from_euler("ZXZ", [raan_deg, i_deg, argp_deg], degrees=True).as_matrix()
-    return R @ r_pf, R @ v_pf
 
 
 def two_body(t, y):
