@@ -142,3 +142,21 @@ def test_the_diverged_row_and_line_name_the_nis_monitors_lone_alarms(two_campaig
         line = summary_line(s)
         assert row.startswith("2 / ") and line.endswith(f"diverged 2/{s['n_runs']}" + (f" ({note})" if note else ""))
         assert (note in row) if note else ("NIS" not in row)
+
+
+def test_the_nees_band_a_consistent_campaign_lies_within_comes_first(two_campaigns):
+    """The line and the report give the band with one sample a run first (a consistent campaign's mean NEES lies
+    within it) and the narrower band of independent steps second, named as such; a summary written before the
+    run band existed gives its one band."""
+    from envisat_pose.app.montecarlo import summary_line
+    from envisat_pose.pipelines.campaigns.report import campaign_rows, load_campaign
+
+    c = load_campaign(str(two_campaigns[0]))
+    s = dict(c["summary"], nees_mean=10.38, nees_bounds=[11.06, 12.98], nees_run_bounds=[10.21, 13.92])
+    line = summary_line(s)
+    assert "mean NEES 10.38 (95 % band 10.21..13.92 with one sample a run; 11.06..12.98 if every step were " \
+           "independent)" in line
+    row = dict(campaign_rows(dict(c, summary=s)))["mean NEES (12 dof)"]
+    assert row.index("10.21") < row.index("11.06") and "one sample a run" in row
+    older = {k: v for k, v in s.items() if k != "nees_run_bounds"}
+    assert "(95 % band 11.06..12.98)" in summary_line(older)

@@ -30,6 +30,7 @@ def test_lone_nis_alarms_do_not_stop_a_rate_converging():
     assert "diverged 10/100 (8 on the NIS monitor alone); converged" in lines[0]
     assert "diverged 10/100 (4 on the NIS monitor alone); NOT converged" in lines[1]
     assert "diverged 10/100; NOT converged" in lines[2]
+    assert all("mean NEES 12.00; diverged" in line for line in lines[:3])
     html = render_sweep({"sweep": r, "dir": "sweep", "figure": "", "config": ""})
     assert "10 / 100 (8 on the NIS monitor alone)" in html and "diverged against the truth" in html
     older = {k: v for k, v in r.items() if k != "n_nis_alarm_alone"}  # a sweep.json written before
