@@ -46,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "--config` takes it (random mode)")
     p.add_argument("--looks", metavar="FILE.toml", help="--online: a mix of looks instead, [[look]] tables of a "
                    "name, a weight and generate keys (random or sequence mode; docs/usage.md)")
-    p.add_argument("--resolution", type=int, metavar="PX", help="--online: the renders' side (default 1024)")
+    p.add_argument("--resolution", type=int, metavar="PX", help="--online: the renders' side (1024; --target 512)")
     p.add_argument("--uses-per-frame", type=int, metavar="K", help="--online: crops per rendered frame (1-8, default 8)")
     p.add_argument("--render-workers", type=int, metavar="N", help="--online: renderer processes (default: the "
                    "usable cores less one, at least 1, at most what the memory holds)")
@@ -76,7 +76,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def resolve_config(args: argparse.Namespace):
     """Defaults (a resumed run's own config), then the TOML file, then the flags; validated before any work. The
     config class: ENVISAT's TrainConfig, or another target's KeypointTrainConfig (--target, or a resumed run's)."""
-    base = read_run_config(args.out) if args.resume and os.path.isdir(args.out) else {}
+    base = read_run_config(args.out, args.target) if args.resume and os.path.isdir(args.out) else {}
     if args.steps is not None and args.time_budget_s is None:
         base.pop("time_budget_s", None)  # a resumed budgeted run given --steps trains to that step
     flags = {"steps": args.steps, "batch_size": args.batch_size, "seed": args.seed,

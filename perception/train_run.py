@@ -10,6 +10,7 @@ import os
 from envisat_pose.config import InputError, flatten
 from envisat_pose.perception.stream import close_batches, epoch_batches, loader_batches, run_prefetch
 from envisat_pose.perception.weights import WeightsError, read_header
+from envisat_pose.target import resolve_target_path
 
 RESUMABLE_CHANGES = ("steps", "time_budget_s")  # a resumed run may go further or longer, nothing else
 
@@ -59,6 +60,16 @@ def check_same_target(run_dir: str, saved: list[dict], data: list[dict]) -> None
                              "`init` = its checkpoint")
 
 
+def same_target_file(was, now) -> bool:
+    """Whether a resume's `target` names the run's own file in another spelling (an absolute path for the relative
+    one it started with, say): `now` found, and `was` the same file or not found from here (then the data
+    record's sha256, check_same_target, refuses a file that differs)."""
+    if not (isinstance(was, str) and isinstance(now, str)):
+        return False
+    a, b = resolve_target_path(was), resolve_target_path(now)
+    return os.path.isfile(b) and (not os.path.isfile(a) or os.path.samefile(a, b))
+
+
 def check_resume(run_dir: str, cfg, data: list[dict] | None) -> tuple[dict, dict]:
     """(state.json, the run's config.json) of a run to resume with TrainConfig cfg; InputError when it is not
     one, or when the config (other than steps and the budget) or the data (by manifest hash) differ: each
@@ -72,7 +83,8 @@ def check_resume(run_dir: str, cfg, data: list[dict] | None) -> tuple[dict, dict
         saved = json.load(fh)
     old, new = flatten(saved["train"]), flatten(cfg.to_dict())
     changed = [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(set(old) | set(new))
-               if k not in RESUMABLE_CHANGES and old.get(k) != new.get(k)]
+               if k not in RESUMABLE_CHANGES and old.get(k) != new.get(k)
+               and not (k == "target" and same_target_file(old.get(k), new.get(k)))]
     if changed:
         raise InputError(f"resume: {run_dir!r} was trained with another config: {'; '.join(changed)} (only `steps` "
                          "and `time_budget_s` may change; start a new run with `init` = its checkpoint instead)")

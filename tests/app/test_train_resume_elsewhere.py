@@ -5,6 +5,8 @@ go on; it blamed `--target = 'sat.xml'`, a flag the user had not typed."""
 import json
 import os
 
+import pytest
+
 from envisat_pose.app.cli import main
 from envisat_pose.pipelines.detector.train import read_run_config
 
@@ -25,3 +27,43 @@ def test_a_resume_from_another_folder_says_where_to_resume_from(tmp_path, monkey
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "'sat.xml'" in err[0] and "the folder the run started in" in err[0], err
     assert sorted(os.listdir(run)) == ["config.json", "state.json"]
+
+
+def _run_folder(tmp_path, target: str):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"train": {"target": target, "steps": 10}}))
+    (run / "state.json").write_text(json.dumps({"step": 5}))
+    return run
+
+
+class _Cfg:
+    def __init__(self, target):
+        self.target = target
+
+    def to_dict(self):
+        return {"target": self.target, "steps": 12}
+
+
+def test_a_resume_naming_the_runs_own_file_by_another_path_goes_on(tmp_path, monkeypatch):
+    """The run started with `--target sat.xml`; a resume typed with the same file's absolute path (or from another
+    folder, with its path from there) is the same target, not 'another config'; another file still is."""
+    from envisat_pose.config import InputError
+    from envisat_pose.perception.train_run import check_resume, check_same_target
+
+    start, elsewhere = tmp_path / "start", tmp_path / "elsewhere"
+    start.mkdir()
+    elsewhere.mkdir()
+    (start / "sat.xml").write_text("<mujoco/>")
+    (start / "other.xml").write_text("<mujoco/>")
+    run = _run_folder(start, "sat.xml")
+    monkeypatch.chdir(start)
+    check_resume(str(run), _Cfg(str(start / "sat.xml")), None)  # the same file, its absolute path
+    with pytest.raises(InputError, match="another config: target 'sat.xml' -> 'other.xml'"):
+        check_resume(str(run), _Cfg("other.xml"), None)
+    monkeypatch.chdir(elsewhere)
+    given = os.path.join("..", "start", "sat.xml")
+    assert read_run_config(str(run), given)["target"] == "sat.xml"  # not refused: a path from here is given
+    check_resume(str(run), _Cfg(given), None)  # not found from here as kept: the data record's sha256 decides
+    with pytest.raises(InputError, match="has changed since"):
+        check_same_target(str(run), [{"target_sha256": "a" * 64}], [{"target_sha256": "b" * 64}])
