@@ -16,7 +16,7 @@ import numpy as np
 
 from envisat_pose.config import Config, check, deep_update, from_dict
 from envisat_pose.datagen.orbit import chaser_orbit
-from envisat_pose.named_scenarios import table, truth_part
+from envisat_pose.named_scenarios import known, names, table, truth_part
 from envisat_pose.target import DEFAULT_TARGET, load_target
 
 EARTH_RADIUS_M = 6378137.0  # WGS-84 equatorial radius, used only to reject orbits inside the Earth
@@ -114,6 +114,8 @@ class ScenarioConfig(Config):
 
     keepout_margin_m: the least distance, m, the chaser may come to any part of the target (body, boom,
     solar array) along the simulated trajectory; a scenario that comes closer is refused after simulation.
+    scenario: the named scenario the config was made from ('' for none; scenario_config and resolve_job set it),
+    recorded in its truth: `envisat estimate --truth` takes that scenario's filter and measurement tables.
     """
 
     orbit: OrbitConfig = field(default_factory=OrbitConfig)
@@ -124,9 +126,12 @@ class ScenarioConfig(Config):
     max_physics_dt_s: float = 0.05
     keepout_margin_m: float = 2.0
     seed: int = 0
+    scenario: str = ""
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
+        check(self.scenario == "" or known(self.scenario), f"{p}scenario", self.scenario,
+              "'' or a named scenario (" + ", ".join(names()) + ") or a scenario file that exists")
         check(self.duration_s > 0, f"{p}duration_s", self.duration_s, "a positive duration in seconds")
         check(self.dt_s > 0, f"{p}dt_s", self.dt_s, "a positive output step in seconds")
         check(self.dt_s <= self.duration_s, f"{p}duration_s", self.duration_s,
@@ -221,30 +226,35 @@ def scenario_dict(name: str) -> dict:
     return truth_part(name)
 
 
-def truth_config_json(cfg: ScenarioConfig, target_sha256: str, scenario: str | None = None) -> str:
-    """A truth's config_json: the scenario config, and two records beside it: the target file's sha256 when
-    simulated (`target.sha256`: a truth read later refuses a file that has changed since) and the named scenario
-    it was made from (`scenario`, where one was: `envisat estimate --truth` takes its filter and measurement
-    tables)."""
+def truth_config_json(cfg: ScenarioConfig, target_sha256: str) -> str:
+    """A truth's config_json: the scenario config (its `scenario`, the named scenario it was made from, where one
+    was: `envisat estimate --truth` takes its filter and measurement tables) and the target file's sha256 when
+    simulated (`target.sha256`: a truth read later refuses a file that has changed since). A config of no named
+    scenario records no `scenario` key, as truths did before the field."""
     import dataclasses
     import json
 
     data = dataclasses.asdict(cfg)
     data["target"]["sha256"] = target_sha256
-    if scenario is not None:
-        data["scenario"] = scenario
+    if not cfg.scenario:
+        del data["scenario"]
     return json.dumps(data, sort_keys=True)
 
 
 def scenario_of_truth(config: dict) -> ScenarioConfig:
-    """The validated ScenarioConfig of a truth's config (its records, truth_config_json's, set aside)."""
+    """The validated ScenarioConfig of a truth's config (the target's sha256 record set aside; a scenario name no
+    longer known read as none)."""
     target = {k: v for k, v in (config.get("target") or {}).items() if k != "sha256"}
-    return from_dict(ScenarioConfig, {**{k: v for k, v in config.items() if k != "scenario"}, "target": target})
+    data = {**config, "target": target}
+    if not known(data.get("scenario")):
+        data.pop("scenario", None)
+    return from_dict(ScenarioConfig, data)
 
 
 def scenario_config(name: str = "default", **overrides) -> ScenarioConfig:
-    """A validated named scenario with optional top-level overrides (duration_s=..., seed=...)."""
-    return from_dict(ScenarioConfig, deep_update(scenario_dict(name), overrides), prefix="")
+    """A validated named scenario with optional top-level overrides (duration_s=..., seed=...); its `scenario`
+    field is name."""
+    return from_dict(ScenarioConfig, deep_update({**scenario_dict(name), "scenario": name}, overrides), prefix="")
 
 
 def scaled_start(name: str, scale: float) -> dict:

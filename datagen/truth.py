@@ -26,9 +26,9 @@ def initial_state(cfg: ScenarioConfig, rng: np.random.Generator) -> np.ndarray:
     return np.concatenate([cfg.relative.rho0_C_m, cfg.relative.rhodot0_C_m_s, p0, w_r0_T])
 
 
-def simulate_truth(cfg: ScenarioConfig, progress: bool = False, scenario: str | None = None) -> TruthTrajectory:
-    """Simulate the scenario with MuJoCo (RK4, relative gravity in the C plugin) and sample it every dt_s.
-    scenario: the named scenario cfg was made from, recorded in the truth's config (None: none)."""
+def simulate_truth(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajectory:
+    """Simulate the scenario with MuJoCo (RK4, relative gravity in the C plugin) and sample it every dt_s; the
+    named scenario cfg was made from (cfg.scenario, where one) is recorded in the truth's config."""
     rng = np.random.default_rng(np.random.SeedSequence(cfg.seed))
     sim = TruthSim(cfg)
     n, K = cfg.n_out, len(sim.target.keypoint_names)
@@ -68,7 +68,7 @@ def simulate_truth(cfg: ScenarioConfig, progress: bool = False, scenario: str | 
         visible=sim.target.truth_visible(c_T_m),
         corners_px=corners_px,
         in_frame=in_frame,
-        config_json=truth_config_json(cfg, sim.target.sha256, scenario),
+        config_json=truth_config_json(cfg, sim.target.sha256),
     )
     check_clearance(cfg, traj, sim.model)
     return traj

@@ -51,6 +51,11 @@ def is_file(name: str) -> bool:
     return isinstance(name, str) and name.endswith(".toml")
 
 
+def known(name: str) -> bool:
+    """Whether `name` is a shipped scenario or a scenario file that exists (check_name's rule, as a test)."""
+    return isinstance(name, str) and (os.path.isfile(name) if is_file(name) else name in _files())
+
+
 def check_name(name: str) -> None:
     """ConfigError listing the known names unless `name` is one of them or a scenario file that exists."""
     if is_file(name):

@@ -22,11 +22,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from envisat_pose.config import resolve_job_config
 from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.pipelines.campaigns.campaign_config import layered_montecarlo
 from envisat_pose.pipelines.campaigns.estimate import EstimateConfig
-from envisat_pose.pipelines.common.job_defaults import layered_job, scenario_defaults
+from envisat_pose.pipelines.common.job_defaults import layered_job
 from envisat_pose.pipelines.runs.run_config import RunConfig
 from envisat_pose.pipelines.runs.track import TrackConfig
 
@@ -43,6 +42,5 @@ def resolve_job(kind: str, scenario: str | None = "default", config_path: str | 
         return layered_montecarlo(scenario, config_path, overrides, fields)
     if kind in _CONFIGS:
         return layered_job(_CONFIGS[kind], kind, scenario, config_path, overrides, fields)
-
-    defaults = scenario_defaults(kind, scenario)  # the truth's tables; no scenario or an unknown kind raises
-    return resolve_job_config(ScenarioConfig, defaults, config_path, {**(overrides or {}), **fields})
+    # simulate: the truth's tables and the scenario's name (ScenarioConfig.scenario); an unknown kind raises
+    return layered_job(ScenarioConfig, kind, scenario, config_path, overrides, fields)

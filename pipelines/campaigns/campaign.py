@@ -93,7 +93,7 @@ def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, pr
         return manifest["truth_sha256"]
     from envisat_pose.datagen.truth import simulate_truth
 
-    simulate_truth(truth_scenario(cfg), progress=progress, scenario=cfg.scenario).save(path)
+    simulate_truth(truth_scenario(cfg), progress=progress).save(path)
     return sha256_file(path)
 
 

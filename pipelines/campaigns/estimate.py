@@ -188,7 +188,7 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
         overrides["dt_s"] = 1.0 / cfg.measurement.rate_hz
     scenario_dict(scenario)  # unknown names fail here with the list of known ones
     scfg = scenario_config(scenario, **overrides)
-    return simulate_truth(scfg, progress=progress, scenario=scenario), {"scenario": scenario}
+    return simulate_truth(scfg, progress=progress), {"scenario": scenario}
 
 
 def with_target_file(truth, target: str, source: str):
@@ -240,8 +240,8 @@ def with_recorded_scenario(cfg: EstimateConfig, truth_path: str) -> EstimateConf
 def scenario_outages(cfg: EstimateConfig, scenario: str | None, truth) -> EstimateConfig:
     """With a named scenario whose file has an [eclipse] table: cfg with the Earth's-shadow windows along the
     simulated truth appended to its outages (eclipse_outages); cfg otherwise (no scenario: a truth file)."""
-    if not scenario:
-        return cfg
+    if not scenario or scenario_eclipse(scenario) is None:  # the truth's config is read (MuJoCo: its target) only
+        return cfg                                           # for a shadow to place
     import dataclasses
 
     windows = eclipse_outages(scenario, scenario_of_truth(truth.config))

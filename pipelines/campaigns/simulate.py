@@ -3,11 +3,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 from envisat_pose.config import InputError, config_arg, path_arg, to_dict, to_toml
 from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.io import atomic_write_text, staged_folder
+from envisat_pose.named_scenarios import known, names
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.target import load_target
 
@@ -21,8 +23,8 @@ def output_paths(out: str) -> tuple[str, str, str]:
 def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, progress: bool = False,
                  label: str = "") -> dict:
     """Simulate the truth of cfg (a validated datagen ScenarioConfig) with MuJoCo and write out (the
-    TruthTrajectory contract) and its config; label: the named scenario cfg was made from (recorded in the truth,
-    and its plot's title); with plot the states' PNG next to out, with rrd a Rerun recording of the truth. The
+    TruthTrajectory contract) and its config; label: the named scenario cfg was made from where cfg does not say
+    (cfg.scenario: scenario_config and resolve_job set it; recorded in the truth, and its plot's title); with plot the states' PNG next to out, with rrd a Rerun recording of the truth. The
     output paths (str or pathlib.Path) are checked before any work (InputError naming `out` or `rrd`), their
     folders made then.
 
@@ -32,6 +34,12 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
     from envisat_pose.datagen.truth import simulate_truth
 
     cfg = config_arg(cfg, ScenarioConfig)
+    if label and label != cfg.scenario:
+        if not known(label):
+            raise InputError(f"label {label!r}: expected a named scenario ({', '.join(names())}) or a scenario "
+                             "file that exists")
+        cfg = dataclasses.replace(cfg, scenario=label)
+    label = cfg.scenario
     out, rrd = path_arg(out, "out"), path_arg(rrd, "rrd", optional=True)
     if not out.endswith(".npz"):
         raise InputError(f"out {out!r}: expected a path ending in .npz")
@@ -42,7 +50,7 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
         check_out_file(path, field)
     make_out_file_dirs(paths)
     out, cfg_path, png = output_paths(out)
-    traj = simulate_truth(cfg, progress=progress, scenario=label or None)
+    traj = simulate_truth(cfg, progress=progress)
     origin = (f"# made from scenario {label!r} (recorded in the truth: `envisat estimate --truth` takes its filter and "
               f"measurement tables); `envisat simulate --scenario {label} --config THIS_FILE` remakes it\n"
               if label else "")

@@ -78,7 +78,7 @@ def run_truth(cfg: RunConfig, progress: bool = False):
     scale = cfg.image.sequence.range_scale
     scen = scenario_config(cfg.scenario, duration_s=cfg.duration_s, dt_s=1.0 / cfg.rate_hz, seed=cfg.seed,
                            target={"file": cfg.image.target}, **scaled_start(cfg.scenario, scale))
-    return simulate_truth(scen, progress=progress, scenario=cfg.scenario)
+    return simulate_truth(scen, progress=progress)
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -23,8 +23,8 @@ def test_the_shipped_scenarios_are_the_issues_and_every_one_validates():
     from envisat_pose.pipelines.common.job_defaults import scenario_defaults
 
     assert named_scenarios.names() == ISSUE_NAMES
-    # the core's list of truth keys is ScenarioConfig's fields but the job's seed
-    assert set(named_scenarios.TRUTH_KEYS) == {f.name for f in dataclasses.fields(ScenarioConfig)} - {"seed"}
+    # the core's list of truth keys is ScenarioConfig's fields but the job's seed and the scenario's own name
+    assert set(named_scenarios.TRUTH_KEYS) == {f.name for f in dataclasses.fields(ScenarioConfig)} - {"seed", "scenario"}
     for name in ISSUE_NAMES:
         scenario_config(name)  # the truth part is a valid ScenarioConfig
         from_dict(MonteCarloConfig, {"scenario": name, **scenario_defaults("montecarlo", name)})  # and its job tables
