@@ -318,9 +318,9 @@ def whole_run(view_kind, **kw):
 
 
 def track_blueprint(with_truth: bool) -> rrb.Blueprint:
-    """The camera image (detections, projected estimate, region of interest) and the 3D scene on the left; six
-    plots on the right: with a truth the four error blocks with +-3 sigma, NEES, the hypotheses and status;
-    without, the position and attitude 3 sigma, the range, NIS, the hypotheses and status."""
+    """The camera image (detections, projected estimate, region of interest) and the 3D scene on the left; plots
+    on the right: with a truth the four error blocks with +-3 sigma, NEES, and the hypotheses, status and NIS in
+    one; without, the position and attitude 3 sigma, the range, NIS, the hypotheses and status."""
     cam = rrb.Spatial2DView(origin="world/chaser/camera", name="camera: detected (yellow, rejected red), estimate (blue)",
                             contents=["$origin/**"])
     left = rrb.Vertical(cam, rrb.Spatial3DView(origin="world", name="3D: chaser LVLH frame C (m)"), row_shares=[1, 1])
@@ -333,8 +333,10 @@ def track_blueprint(with_truth: bool) -> rrb.Blueprint:
                  whole_run(rrb.TimeSeriesView, origin="metrics/sigma3/attitude_deg", name="attitude 3 sigma (deg)"),
                  whole_run(rrb.TimeSeriesView, origin="metrics/range_est_m", name="estimated range (m)"),
                  whole_run(rrb.TimeSeriesView, origin="metrics/nis", name="NIS / dof")]
-    plots.append(whole_run(rrb.TimeSeriesView, origin="metrics/tracker",
+    # with a truth, the tracker's own evidence (NIS / dof) shares the tracker's panel (six panels at most)
+    nis = (["$origin/nis"], ", NIS / dof") if with_truth else ([], "")
+    plots.append(whole_run(rrb.TimeSeriesView, origin="metrics", contents=["$origin/tracker/**", *nis[0]],
                            name="tracker: best hypothesis probability, status (0 acquiring, 1 tracking, 2 lost, "
-                           "3 coasting)"))
+                           f"3 coasting){nis[1]}"))
     return rrb.Blueprint(rrb.Horizontal(left, rrb.Grid(*plots, grid_columns=2), column_shares=[2, 3]),
                          collapse_panels=True)

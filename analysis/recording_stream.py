@@ -207,8 +207,8 @@ class TrackRecorder:
                 rec.log(f"metrics/sigma3/position_m/{a}", rr.Scalars(float(sig3[POS][j])))
                 rec.log(f"metrics/sigma3/attitude_deg/{a}", rr.Scalars(float(np.degrees(sig3[MRP][j]))))
             rec.log("metrics/range_est_m", rr.Scalars(float(np.linalg.norm(x[POS]))))
-            if est["nis_dof"]:
-                rec.log("metrics/nis", rr.Scalars(float(est["nis"]) / float(est["nis_dof"])))
+        if estimate and est["nis_dof"]:  # the tracker's own consistency, with or without a truth
+            rec.log("metrics/nis", rr.Scalars(float(est["nis"]) / float(est["nis_dof"])))
 
     def _log_estimate_3d(self, x: np.ndarray, P: np.ndarray, estimate: bool) -> None:
         """world/target_est at the current frame: the estimated pose with the target's skeleton and the 3-sigma

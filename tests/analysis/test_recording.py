@@ -278,6 +278,8 @@ def test_the_tracker_recording_shows_the_whole_run_in_six_plots():
         walk(root)
         plots = [v for v in views if isinstance(v, rrb.TimeSeriesView)]
         assert 1 <= len(plots) <= 6
+        # NIS / dof shown with or without a truth (with one, in the tracker's panel)
+        assert sum("$origin/nis" in v.contents or v.origin == "metrics/nis" for v in plots) == 1
         assert any(isinstance(v, rrb.Spatial2DView) for v in views) and any(isinstance(v, rrb.Spatial3DView) for v in views)
         for v in plots:
             ranges = v.properties["VisibleTimeRanges"].ranges.as_arrow_array().to_pylist()

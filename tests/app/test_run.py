@@ -63,7 +63,7 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, ver
                    "/world/chaser/camera/image", "/world/chaser/camera/image/corners_true",
                    "/world/chaser/camera/image/corners_detected", "/world/chaser/camera/image/corners_estimated",
                    "/metrics/error/position_m/x", "/metrics/error/attitude_deg/z", "/metrics/nees/value",
-                   "/metrics/tracker/status", "/metrics/tracker/p_best"):
+                   "/metrics/nis", "/metrics/tracker/status", "/metrics/tracker/p_best"):
         assert entity in temporal, entity
     assert "/world/chaser/camera" in static and "/world" in static
     img = temporal["/world/chaser/camera/image"]
@@ -74,6 +74,9 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, ver
     np.testing.assert_allclose(xyz, est.x_hat[0, shown, 0:3], rtol=0, atol=1e-4)  # float32 in the recording
     ex = np.array([v[0] for v in temporal["/metrics/error/position_m/x"]["Scalars:scalars"]])
     np.testing.assert_allclose(ex, est.x_hat[0, shown, 0] - est.x_true[0, shown, 0], atol=1e-9)
+    nis_rows = shown & (dof > 0)  # the tracker's NIS per dof beside the truth's NEES, on the frames with both
+    logged = np.array([v[0] for v in temporal["/metrics/nis"]["Scalars:scalars"]])
+    np.testing.assert_allclose(logged, nis[nis_rows] / dof[nis_rows], rtol=1e-6)
     d = temporal["/world/chaser/camera/image/corners_detected"]
     n_det = [len(p) if p is not None else 0 for p in d["Points2D:positions"]]
     assert n_det == det.visible.sum(axis=1).tolist()
