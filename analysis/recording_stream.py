@@ -78,11 +78,13 @@ class TrackRecorder:
     rows, so memory stays nearly flat however long the run; the footer written), 'spawn' (a local viewer) or 'connect:URL' (a
     running viewer, e.g. rerun+http://127.0.0.1:9876/proxy). with_truth: error plots (the caller passes x_true
     per frame) instead of the estimate's own uncertainty. target: the tracked target, drawn and projected
-    (None: default_target())."""
+    (None: default_target()). error_in_chart: (x_true, x_hat) -> the estimate's error (12,) in the chart of its
+    covariance, for NEES and the error plots (filtering.ukf.chart_error of the filter's FilterConfig.sigma_chart;
+    None: the additive chart's, analysis.stats.state_errors)."""
 
     def __init__(self, sink: str, camera: PinholeCamera, with_truth: bool, title: str = "",
-                 target: Target | None = None):
-        self.camera, self.with_truth = camera, with_truth
+                 target: Target | None = None, error_in_chart=None):
+        self.camera, self.with_truth, self.error_in_chart = camera, with_truth, error_in_chart
         self.target = target or default_target()
         kind, _, arg = check_sink(sink)
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=str(uuid.uuid4()), send_properties=False,
@@ -184,8 +186,10 @@ class TrackRecorder:
                                                                 half_sizes=[[0.5 * roi[2]] * 2]))
         else:
             rec.log("world/chaser/camera/image/roi", rr.Clear(recursive=False))
+        # statistics' units (attitude rad): A maps either chart's MRP block to the attitude error's rotation vector
+        # (the rotation chart's B(p) a to 4 a, a the error MRP), so the bands hold for both charts
         A = display_transform(x[MRP])
-        sig3 = 3.0 * np.sqrt(np.maximum(np.diagonal(A @ P @ A.T), 0.0))  # statistics' units (attitude rad)
+        sig3 = 3.0 * np.sqrt(np.maximum(np.diagonal(A @ P @ A.T), 0.0))
         if x_true is not None:
             rec.log("world/target", rr.Transform3D(translation=x_true[POS],
                                                    quaternion=_wxyz_to_xyzw(mrp_to_quat(x_true[MRP]))))
@@ -194,13 +198,18 @@ class TrackRecorder:
                 rec.log("world/chaser/camera/image/corners_true", rr.Points2D(
                     np.asarray(corners_true_px)[f] + 0.5, colors=[VISIBLE_RGB], radii=[1.5]))
         if self.with_truth and x_true is not None and estimate:
-            err = component_errors(x_true, x)
+            if self.error_in_chart is None:
+                err = component_errors(x_true, x)
+                nees = float(err @ np.linalg.solve(A @ P @ A.T, err))
+            else:  # the error in P's chart, shown in the bands' units
+                e = np.asarray(self.error_in_chart(x_true, x), float)
+                err, nees = A @ e, float(e @ np.linalg.solve(P, e))
             for b, _, block, s in PLOT_BLOCKS:
                 for j, a in enumerate(AXES):
                     rec.log(f"metrics/error/{b}/{a}", rr.Scalars(float(err[block][j] * s)))
                     rec.log(f"metrics/error/{b}/{a}_3sigma", rr.Scalars([float(sig3[block][j] * s),
                                                                          float(-sig3[block][j] * s)]))
-            rec.log("metrics/nees/value", rr.Scalars(float(err @ np.linalg.solve(A @ P @ A.T, err))))
+            rec.log("metrics/nees/value", rr.Scalars(nees))
             rec.log("metrics/nees/band", rr.Scalars(list(NEES_BAND_12)))
         elif not self.with_truth and estimate:
             for j, a in enumerate(AXES):

@@ -20,6 +20,7 @@ with the share of the second half claimed, and the real-time factor.
 
 Run: .venv/bin/python bench/target_tracking.py [--target FILE.xml] [--weights W [--config RUN.toml]] [--seeds 8]
      [--first-seed 0] [--scenarios default slow-tumble] [--duration-s 300] [--sigma-px 1.0] [--miss 0.1]
+     [--sigma-chart additive|rotation]
 Floors (issue 56): first track correct in at least 15 of 16 runs, 0 s claimed while wrong, mean NEES in [6, 18],
 second-half RMS position <= 10 cm at 50 m.
 """
@@ -69,8 +70,9 @@ def frame_image(k: int, camera) -> np.ndarray:
 
 
 def noisy_truth_run(target_file: str, scenario: str, seed: int, duration_s: float, sigma_px: float,
-                    miss: float) -> dict:
-    """One cold-start run of the Tracker on the stand-in detector; its scores (scoring.score_frames)."""
+                    miss: float, sigma_chart: str = "additive") -> dict:
+    """One cold-start run of the Tracker on the stand-in detector with the filter's sigma_chart; its scores
+    (scoring.score_frames, NEES in that chart)."""
     from envisat_pose.datagen.scenario import scenario_config
     from envisat_pose.datagen.truth import simulate_truth
     from envisat_pose.geometry import load_camera
@@ -86,7 +88,7 @@ def noisy_truth_run(target_file: str, scenario: str, seed: int, duration_s: floa
     physics = onboard_physics(truth, target_file)
     camera = load_camera()
     tracker = Tracker(camera, NoisyTruthDetector(truth, sigma_px, miss, seed), chaser_function(
-        scenario_config(scenario).orbit), TrackerConfig(), tracker_filter(None, scenario).__dict__,
+        scenario_config(scenario).orbit), TrackerConfig(), tracker_filter(None, scenario).__dict__ | {"sigma_chart": sigma_chart},
         mu_m3_s2=physics.mu_m3_s2, gravity_gradient=physics.gravity_gradient, target=load_target(target_file))
     T = len(truth.t_s)
     x_hat, P, status = np.zeros((T, 12)), np.tile(np.eye(12) * 1e6, (T, 1, 1)), np.zeros(T, int)
@@ -99,7 +101,7 @@ def noisy_truth_run(target_file: str, scenario: str, seed: int, duration_s: floa
     wall_s = time.perf_counter() - t0
     x_true = nearest_truth(truth.x, x_hat, tracker.namings.equivalent)
     t_s = truth.t_s
-    errors = {k: v[None] for k, v in frame_errors(x_true, x_hat, P).items()}
+    errors = {k: v[None] for k, v in frame_errors(x_true, x_hat, P, sigma_chart).items()}
     summary = error_summary(t_s, x_true, x_hat[None], summary_after_s(t_s))
     scores = score_frames(t_s, errors, status[None], None, summary)
     return scores | {"real_time_factor": float((t_s[-1] - t_s[0] + 1.0) / wall_s),
@@ -178,12 +180,14 @@ def main() -> int:
     ap.add_argument("--duration-s", type=float, default=300.0)
     ap.add_argument("--sigma-px", type=float, default=1.0)
     ap.add_argument("--miss", type=float, default=0.1)
+    ap.add_argument("--sigma-chart", default="additive", choices=["additive", "rotation"],
+                    help="the noisy-truth runs' filter chart (FilterConfig.sigma_chart; with --weights: --config)")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "target_tracking.json"))
     args = ap.parse_args()
     if args.config and not args.weights:
         ap.error("--config: a run config for the closed loop, which needs --weights (the noisy-truth stand-in takes none)")
     detector = (f"weights {args.weights}" + (f", config {args.config}" if args.config else "") if args.weights
-                else f"noisy-truth (sigma {args.sigma_px} px, miss {args.miss})")
+                else f"noisy-truth (sigma {args.sigma_px} px, miss {args.miss}, sigma_chart {args.sigma_chart})")
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     rows = {}
     for scenario in args.scenarios:
@@ -191,7 +195,7 @@ def main() -> int:
         for seed in seeds:
             r = closed_loop_run(args.target, args.weights, scenario, seed, args.duration_s, args.config) \
                 if args.weights else \
-                noisy_truth_run(args.target, scenario, seed, args.duration_s, args.sigma_px, args.miss)
+                noisy_truth_run(args.target, scenario, seed, args.duration_s, args.sigma_px, args.miss, args.sigma_chart)
             runs.append(r)
             print(f"  {scenario} seed {seed}: first track correct {r['first_track_correct']}, false lock "
                   f"{r['false_lock_s']:.0f} s, NEES {r['scored']['mean_nees']}", flush=True)

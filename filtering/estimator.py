@@ -28,7 +28,7 @@ import numpy as np
 from envisat_pose.config import Config, check
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, sigma_step_s
 from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
-from envisat_pose.filtering.step_update import measurement_update
+from envisat_pose.filtering.step_update import measurement_update, uses_fused_kernel
 from envisat_pose.filtering.ukf import SigmaWeights, chart_error, merwe_weights, predict, shadow_switch
 from envisat_pose.gates import GATE_PROB, chi2_bound, chi2_gate
 from envisat_pose.geometry import PinholeCamera, load_camera, load_geometry
@@ -313,7 +313,7 @@ def _predict_step(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[n
     if cfg.adaptive_q:
         Q = Q + state.Q_adapt * dt
     step_s = sigma_step_s(cfg.max_rk4_step_s, state.mean, state.cov, setup.weights.n + setup.weights.lam)
-    if cfg.kernel == "fast" and cfg.sigma_chart == "additive":
+    if uses_fused_kernel(cfg):
         from envisat_pose.filtering import fast  # numba compiles (or loads its cache) on first use
 
         return fast.predict_fused(state.mean, state.cov, state.chaser, dt, Q, setup, step_s)

@@ -17,6 +17,7 @@ import numpy as np
 
 from envisat_pose.filtering.estimator import FilterSetup, Measurement, filter_step, init_state, predict_to
 from envisat_pose.filtering.measurements import dim_per_corner
+from envisat_pose.filtering.step_update import uses_fused_kernel
 
 DUMMY_RANGE_M = 50.0  # the dummy runs' target distance (any finite state would do: numba dispatches on types)
 
@@ -35,11 +36,12 @@ def load_kernels(setup: FilterSetup) -> None:
 
 
 def load_in_background(setup: FilterSetup) -> threading.Thread | None:
-    """load_kernels(setup) on a thread (started; returned), or None where setup's kernel compiles nothing (the
-    numpy reference). A failure there is not the caller's: the first real step loads the code as before. Not a
-    daemon: a process that ends first waits for it (on a machine without numba's cache, the compile it would
-    have waited for at its first step) rather than leave LLVM compiling while the interpreter shuts down."""
-    if setup.cfg.kernel != "fast":
+    """load_kernels(setup) on a thread (started; returned), or None where setup's filter runs no fused kernel (the
+    numpy reference, or sigma_chart 'rotation', which the numpy filter runs: step_update.uses_fused_kernel). A
+    failure there is not the caller's: the first real step loads the code as before. Not a daemon: a process that
+    ends first waits for it (on a machine without numba's cache, the compile it would have waited for at its first
+    step) rather than leave LLVM compiling while the interpreter shuts down."""
+    if not uses_fused_kernel(setup.cfg):
         return None
 
     def run() -> None:

@@ -24,14 +24,20 @@ import numpy as np
 from envisat_pose.filtering.ukf import update
 
 
+def uses_fused_kernel(cfg) -> bool:
+    """Whether a filter of FilterConfig cfg runs filtering/fast.py's fused numba kernels: kernel 'fast' with the
+    additive chart (they run no other: sigma_chart 'rotation' runs the numpy filter, predict and update alike)."""
+    return cfg.kernel == "fast" and cfg.sigma_chart == "additive"
+
+
 def kernel_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarray, R_c: np.ndarray,
                   r_scale: np.ndarray, thr, vis_check: bool, setup) -> dict:
-    """One measurement update of R runs with setup.cfg.kernel ('fast': filtering/fast.py's fused kernel; else
-    the numpy filter of filtering/ukf.py): the visibility check (vis_check), the gate (thr: a bound per run, or
-    None for none), the unscented update with R_c * r_scale. Returns a dict of mean, cov, nis, dof, accepted
+    """One measurement update of R runs: filtering/fast.py's fused kernel where uses_fused_kernel(setup.cfg), else
+    the numpy filter of filtering/ukf.py in the config's chart: the visibility check (vis_check), the gate (thr: a
+    bound per run, or None for none), the unscented update with R_c * r_scale. Returns a dict of mean, cov, nis, dof, accepted
     (R, K), mask_k (R, K) (the corners the gate saw), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,) = tr(Pzz) over
     the used components, indefinite (R,) bool (and with the fast kernel suspect: the runs it redid in numpy)."""
-    if setup.cfg.kernel == "fast" and setup.cfg.sigma_chart == "additive":
+    if uses_fused_kernel(setup.cfg):
         from envisat_pose.filtering import fast  # numba compiles (or loads its cache) on first use
 
         return fast.update_fused(mean, cov, z, measured, R_c, r_scale, thr, vis_check, setup)

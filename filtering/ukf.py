@@ -212,6 +212,15 @@ def sigma_deviations(cov: np.ndarray, w: SigmaWeights) -> np.ndarray:
     return np.concatenate([np.zeros_like(D[..., :1, :]), D, -D], axis=-2)
 
 
+def chart_sigma_points(mean: np.ndarray, cov: np.ndarray, w: SigmaWeights, chart: str = "additive") -> np.ndarray:
+    """The sigma points a filter of that chart (FilterConfig.sigma_chart) draws about mean: sigma_points (mean plus
+    the columns), or for "rotation" chart_retract of sigma_deviations (those of ut_update and ut_predict_rotation).
+    mean (..., n), cov (..., n, n) -> (..., 2n + 1, n)."""
+    if chart == "rotation":
+        return chart_retract(mean, sigma_deviations(cov, w))
+    return sigma_points(mean, cov, w)
+
+
 def ut_predict_rotation(mean: np.ndarray, cov: np.ndarray, fx: Callable[[np.ndarray], np.ndarray], Q: np.ndarray,
                         w: SigmaWeights) -> tuple[np.ndarray, np.ndarray]:
     """The unscented time update in the rotation chart (chart_retract): sigma points along rotations,

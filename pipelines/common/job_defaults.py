@@ -15,7 +15,7 @@ import os
 from typing import Any, Callable
 
 from envisat_pose import named_scenarios
-from envisat_pose.config import InputError, check, field_value, resolve_job_config
+from envisat_pose.config import InputError, field_value, resolve_job_config
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
 from envisat_pose.target import DEFAULT_TARGET, other_target
 
@@ -125,13 +125,3 @@ def require_target_weights(weights: str, target: str) -> None:
                          f"ENVISAT's corner network): train it (`envisat train "
                          f"--target {target}`), calibrate it (`envisat calibrate --target {target}`) and give it "
                          "(--weights)")
-
-
-def check_sigma_chart(filter_cfg: Any, job: str) -> None:
-    """The closed loop and the tracker run the additive chart of the sigma points (FilterConfig.sigma_chart): their
-    scores measure NEES in it, and the fast kernels they need are its; 'rotation' (for targets whose rotation
-    about an axis goes unmeasured) is refused in one line."""
-    chart = getattr(filter_cfg, "sigma_chart", "additive")
-    check(chart == "additive", "filter.sigma_chart", chart,
-          f"'additive' for {job} ('rotation' runs in `envisat estimate` and `envisat montecarlo` only, with the "
-          "numpy filter: their NEES is measured in that chart)")

@@ -51,6 +51,7 @@ from envisat_pose.pipelines.runs.outputs import mean_nis_per_dof, status_counts,
 from envisat_pose.pipelines.runs.rows import STAGES, RunRows, timing_by_status
 from envisat_pose.pipelines.runs.run_config import RunConfig, run_config_from_json, sun_and_shadow
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, run_rows, score_run_files, write_run_files
+from envisat_pose.pipelines.runs.scoring import recording_errors
 from envisat_pose.pipelines.tracking.build import tracker_detector
 from envisat_pose.pipelines.tracking.camera_file import camera_record
 from envisat_pose.pipelines.tracking.namings import target_namings
@@ -148,7 +149,7 @@ def _closed_loop(cfg: RunConfig, run: int, truth_path: str, sink: str | None, pr
 
         target = load_target(gcfg.target)
         recorder = TrackRecorder(sink, camera, with_truth=True, title=f"envisat run {target.name}, {cfg.scenario}, "
-                                 f"run {run}", target=target)
+                                 f"run {run}", target=target, error_in_chart=recording_errors(tracker.fcfg.sigma_chart))
 
     maker = FrameMaker(renderer, gcfg, cfg.seed, run, appearance_seed, sun_C, nadir_C)
     plan_ahead = PlanAhead(tracker, t_s) if cfg.render_window else None
@@ -248,7 +249,8 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
                           "roi": cfg.tracker.roi.enabled, "camera": used}, sort_keys=True)
     target = run_target(cfg)
     equivalent = None if target is None else target_namings(target, filter_inertia_T_kg_m2(target)).equivalent
-    scores = score_run_files(truth.t_s, truth.x, run_dirs, paths, config_json, det_cfg, equivalent=equivalent)
+    scores = score_run_files(truth.t_s, truth.x, run_dirs, paths, config_json, det_cfg, equivalent=equivalent,
+                             chart=cfg.filter.sigma_chart)  # the runs' trackers' chart (tracker_filter keeps it)
     write_run_files(paths, truth.t_s, truth.x, run_dirs, lost_runs(run_dirs, T), config_json,
                     [f"frame-{k:06d}" for k in range(T)], det_cfg,
                     extra={"settled": np.array(scores["settled_runs"], bool)})

@@ -19,7 +19,7 @@ from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.scenario import in_earth_shadow, scenario_config, scenario_eclipse
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import load_camera
-from envisat_pose.pipelines.common.job_defaults import check_sigma_chart, fill_from_scenario, job_weights, layered_job
+from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job
 from envisat_pose.pipelines.tracking.onboard import orbit_config
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, TrackerConfig
 from envisat_pose.pools import default_processes
@@ -108,7 +108,6 @@ class RunConfig(Config):
         check(self.duration_s * self.rate_hz <= 200_000, "duration_s", self.duration_s,
               "at most 200000 frames (duration_s x rate_hz)")
         check(1 <= self.runs <= 1000, "runs", self.runs, "1 to 1000 runs")
-        check_sigma_chart(self.filter, "the closed loop")
         check(1 <= self.workers <= MAX_WORKERS, "workers", self.workers, f"1 to {MAX_WORKERS} processes")
         check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")
         check(1 <= self.threads <= 256, "threads", self.threads, "1 to 256 threads")

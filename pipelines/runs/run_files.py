@@ -59,13 +59,14 @@ def estimate_arrays(run_dirs: list[str], T: int) -> dict:
 
 def score_run_files(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], paths: dict, config_json: str,
                     det_cfg: str, score: bool = True, det_names=DET_KEYS, equivalent=None,
-                    dark: np.ndarray | None = None) -> dict | None:
+                    dark: np.ndarray | None = None, chart: str = "additive") -> dict | None:
     """scoring.score_runs of the runs in run_dirs against x_true (T, 12), reading x_hat and P chunk by chunk;
     each chunk is also checked as est.npz's and (run 0) det.npz's contracts check them on save (score False: only
     the checks, for x_true all NaN, no truth; returns None). Keeps only per-frame scalars (the errors, status)
     and the second half's estimates for the error summary. equivalent: (E, 3, 3) the target's rotations nothing
     tells apart (scoring.nearest_truth; None: none). dark: (T,) frames the truth says are unlit (a dataset's
-    eclipse), scored as frames without an image (skipped) are: times 'to' something count from the first lit one."""
+    eclipse), scored as frames without an image (skipped) are: times 'to' something count from the first lit one.
+    chart: the runs' filter's sigma_chart, P's (scoring.frame_errors)."""
     from envisat_pose.pipelines.runs.scoring import frame_errors, nearest_truth, score_frames, summary_after_s
 
     T = len(t_s)
@@ -82,7 +83,7 @@ def score_run_files(t_s: np.ndarray, x_true: np.ndarray, run_dirs: list[str], pa
                                      paths["det"])
             if not score:
                 continue
-            parts.append(frame_errors(nearest_truth(x_true[a:b], c["x_hat"], equivalent), c["x_hat"], c["P"]))
+            parts.append(frame_errors(nearest_truth(x_true[a:b], c["x_hat"], equivalent), c["x_hat"], c["P"], chart))
             st.append(c["status"])
         if score:
             errors.append({k: np.concatenate([p[k] for p in parts]) for k in parts[0]})

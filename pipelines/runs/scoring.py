@@ -23,11 +23,14 @@ Scores that would show a failure: nothing is scored only where it went well.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy.stats import chi2
 
 from envisat_pose.attitude import mrp_error_angle_rad
 from envisat_pose.filtering.estimator import nees
+from envisat_pose.filtering.ukf import chart_error
 from envisat_pose.pipelines.runs.outputs import no_estimate_nan
 from envisat_pose.pipelines.tracking.namings import renamed_state
 from envisat_pose.state import BLOCKS, MRP, POS, error_magnitudes, error_summary
@@ -66,18 +69,27 @@ def nearest_truth(x_true: np.ndarray, x_hat: np.ndarray, equivalent: np.ndarray 
     return np.take_along_axis(twins, best[None, ..., None], axis=0)[0]
 
 
-def frame_errors(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray) -> dict[str, np.ndarray]:
+def frame_errors(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, chart: str = "additive"
+                 ) -> dict[str, np.ndarray]:
     """Per frame (...): the error magnitudes (state.error_magnitudes), 'nees', 'range_error_m' (|rho_hat| - |rho|,
-    m) and 'range_true_m' (|rho|, m) of x_true, x_hat (..., 12), P (..., 12, 12). Each frame's values depend on
-    that frame alone, so a long run is scored chunk by chunk (concatenated along time) with the same numbers."""
+    m) and 'range_true_m' (|rho|, m) of x_true, x_hat (..., 12), P (..., 12, 12). chart: the sigma points' chart
+    of the filter that made P (FilterConfig.sigma_chart), NEES's error is taken in it (filtering.estimator.nees).
+    Each frame's values depend on that frame alone, so a long run is scored chunk by chunk (concatenated along
+    time) with the same numbers."""
 
     x_true = np.broadcast_to(x_true, np.shape(x_hat))
     out = error_magnitudes(x_true, x_hat)
-    out["nees"] = nees(x_true, x_hat, P)
+    out["nees"] = nees(x_true, x_hat, P, chart)
     true_range = np.linalg.norm(x_true[..., POS], axis=-1)
     out["range_error_m"] = np.linalg.norm(x_hat[..., POS], axis=-1) - true_range
     out["range_true_m"] = true_range
     return out
+
+
+def recording_errors(chart: str):
+    """analysis.recording.TrackRecorder's error_in_chart for a filter of sigma_chart `chart`: None for the additive
+    chart (the recorder's own), else filtering.ukf.chart_error in that chart."""
+    return None if chart == "additive" else functools.partial(chart_error, chart=chart)
 
 
 def correct_frames(errors: dict[str, np.ndarray]) -> np.ndarray:
@@ -200,13 +212,13 @@ def pooled_figures(errors: dict[str, np.ndarray], mask: np.ndarray, bound: np.nd
 
 
 def score_runs(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, status: np.ndarray,
-               skipped: np.ndarray | None = None, bound: np.ndarray | None = None) -> dict:
+               skipped: np.ndarray | None = None, bound: np.ndarray | None = None, chart: str = "additive") -> dict:
     """Scores of R runs: x_true (T, 12) or (R, T, 12), x_hat (R, T, 12), P (R, T, 12, 12), status (R, T) (codes of
     envisat_pose.status), skipped (T,) or (R, T) frames without an image (eclipse), bound (R, T, 4) a PCRLB per
-    block (optional). See score_frames."""
+    block (optional), chart: P's (frame_errors). See score_frames."""
     t_s = np.asarray(t_s, dtype=float)
     claimed = no_estimate_nan(x_hat, np.asarray(status))  # what est.npz holds
-    return score_frames(t_s, frame_errors(x_true, x_hat, P), status, skipped,
+    return score_frames(t_s, frame_errors(x_true, x_hat, P, chart), status, skipped,
                         error_summary(t_s, x_true, claimed, summary_after_s(t_s)), bound)
 
 

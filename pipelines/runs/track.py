@@ -39,13 +39,14 @@ from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import check_out_dir, made_out_dir
-from envisat_pose.pipelines.common.job_defaults import check_sigma_chart, fill_from_scenario, job_weights, layered_job
+from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
 from envisat_pose.pipelines.runs.frames import FrameSource, open_source, require_source_target, scan_source
 from envisat_pose.pipelines.runs.outputs import status_summary
 from envisat_pose.pipelines.runs.rows import DET_KEYS, STAGES, RunRows
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, run_rows, score_run_files, write_run_files
+from envisat_pose.pipelines.runs.scoring import recording_errors
 from envisat_pose.pipelines.tracking.build import tracker_detector
 from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics, camera_record, default_camera
 from envisat_pose.pipelines.tracking.onboard import chaser_function
@@ -103,7 +104,6 @@ class TrackConfig(Config):
 
     def validate(self, prefix: str = "") -> None:
         check(self.rate_hz >= 0, "rate_hz", self.rate_hz, "a frame rate in Hz (0: a video's own)")
-        check_sigma_chart(self.filter, "the tracker")
         check(1 <= self.threads <= 256, "threads", self.threads, "1 to 256 threads")
         check(1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality, "a JPEG quality in [1, 100]")
         load_target(self.target, f"{prefix}.target" if prefix else "target")  # one line for a bad file (cached)
@@ -203,7 +203,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     rows = RunRows(run_dir, T, K=tracker.K)
     truth = source.truth
     recorder = TrackRecorder(sink, camera, with_truth=truth is not None, title=f"envisat track {target.name}: {source.path}",
-                             target=target)
+                             target=target, error_in_chart=recording_errors(tracker.fcfg.sigma_chart))
 
     wall0 = time.perf_counter()
     sums = run_frames(tracker, frame_inputs(source, remap), rows, recorder, cfg.jpeg_quality,
@@ -218,7 +218,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     det_names = tuple(k for k in DET_KEYS if k != "skipped")
     scores = score_run_files(source.t_s, x_true, [run_dir], paths, config_json, det_cfg, score=truth is not None,
                              det_names=det_names, equivalent=tracker.namings.equivalent,
-                             dark=None if truth is None else truth.get("eclipse"))
+                             dark=None if truth is None else truth.get("eclipse"), chart=tracker.fcfg.sigma_chart)
     col = run_rows(run_dir, ["status", "nis", "nis_dof"], 0, T)  # three scalars a frame
     write_run_files(paths, source.t_s, x_true, [run_dir], lost_runs([run_dir], T), config_json, source.names,
                     det_cfg, det_names=det_names)

@@ -44,7 +44,9 @@ DEFAULT_REJECT_SHARE = 0.1  # the corners a correct track's gate rejects, for a 
 
 def pose_sigmas(cov: np.ndarray) -> tuple[float, float]:
     """(largest position sigma, m; largest attitude sigma, deg) of a covariance (12, 12); the MRP sigma is a
-    rotation angle of 4 sigma_p rad (small angles). NaN where the blocks are not finite."""
+    rotation angle of 4 sigma_p rad (small angles). NaN where the blocks are not finite. Either chart of the sigma
+    points (FilterConfig.sigma_chart): the position block is the same, and the rotation chart's MRP block (of
+    B(p) a, a the error MRP) is the additive one's to first order at the mean."""
     if not np.isfinite(cov).all():
         return float("nan"), float("nan")
     pos = float(np.sqrt(max(np.max(np.linalg.eigvalsh(cov[POS, POS])), 0.0)))

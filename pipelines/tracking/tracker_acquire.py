@@ -98,6 +98,8 @@ class AcquiringSteps:
         # worse fit never starts.
         start = np.array([f.valid and not s for f, s in zip(fits, state)])
         self.buffer = []
+        # the fits' P (on additive differences at their states) starts a bank of either chart: at the mean the
+        # rotation chart's coordinates are the additive ones to first order (ukf.chart_local's derivative is I)
         P = np.stack([f.P for f in fits])[start] * self.cfg.acquire.start_cov_factor
         self._start(np.stack([f.x for f in fits])[start], P, fits[0].t_s, log_dyn[start], log_app[start])
         return ["started"]

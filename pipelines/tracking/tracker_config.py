@@ -383,7 +383,8 @@ class TrackEstimate:
 
     t_s: frame time, s. status: one of envisat_pose.status.STATUSES ("tracking" only when the frame's evidence
     backs it: pipelines/tracking/integrity.py). x_hat (12,): the best hypothesis' state (rho_C_m, rhodot_C_m_s,
-    p_mrp, w_r_T_rad_s); P (12, 12) its covariance (ACQUIRING_SIGMA while acquiring; NaN before any pose).
+    p_mrp, w_r_T_rad_s); P (12, 12) its covariance, in the filter's sigma_chart (NEES: filtering.estimator.nees
+    with that chart; ACQUIRING_SIGMA while acquiring; NaN before any pose).
     hypotheses (H, 12) and probabilities (H,): the symmetry twins still open (H = 0 while acquiring).
     detection: the detector's FrameDetection (None when no image); naming: which naming the best hypothesis took
     (an index of the tracker's namings, pipelines/tracking/namings.py: 0 the detector's, for ENVISAT 1-3 its x, y,

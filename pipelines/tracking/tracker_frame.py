@@ -14,7 +14,7 @@ import numpy as np
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.filtering.estimator import FilterState, Measurement, filter_step, predict_to
 from envisat_pose.filtering.measurements import measure, to_camera_K
-from envisat_pose.filtering.ukf import sigma_points
+from envisat_pose.filtering.ukf import chart_sigma_points
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.pipelines.tracking.bank import (
     array_log_likelihood,
@@ -337,7 +337,8 @@ class TrackingSteps:
         """(8,) each corner's squared Mahalanobis distance from hypothesis h's predicted corner, under the prior's
         spread (its sigma points through the measurement model) plus cov[h] (8, 2, 2) at the filter's R scale."""
 
-        S = sigma_points(prior[0][h], prior[1][h], self.setup.weights)  # (25, 12)
+        # the filter's own sigma points (its chart's: in 'rotation' the gate's Pzz is that of chart_retract's)
+        S = chart_sigma_points(prior[0][h], prior[1][h], self.setup.weights, self.setup.cfg.sigma_chart)  # (25, 12)
         uv = self.setup.hx(S)  # (25, 8, 2)
         Wm, Wc = self.setup.weights.Wm, self.setup.weights.Wc
         mu = np.einsum("s,skj->kj", Wm, uv)

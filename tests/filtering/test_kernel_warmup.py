@@ -1,6 +1,7 @@
 """Loading the fused filter's code before the first frame (filtering/kernel_warmup.py): the dummy step compiles or
 loads exactly the overloads a real step of the same setup calls (a real step after it adds none), for ENVISAT's
-box and for a target with a visibility table, and the background form runs only for the fused kernel."""
+box and for a target with a visibility table, and the background form runs only for the fused kernel (kernel 'fast'
+in the additive chart)."""
 
 import dataclasses
 
@@ -56,3 +57,6 @@ def test_the_background_load_runs_for_the_fused_kernel_only():
     assert not thread.is_alive() and signatures()["update_kernel"]
     reference = make_setup(dataclasses.replace(FilterConfig(), kernel="reference"), "pixels")
     assert load_in_background(reference) is None
+    # the rotation chart runs the numpy filter (the fused kernels are the additive chart's): nothing to load
+    rotation = make_setup(dataclasses.replace(FilterConfig(), sigma_chart="rotation"), "pixels")
+    assert load_in_background(rotation) is None

@@ -973,3 +973,57 @@ def test_the_batch_fits_statistics_are_those_of_least_squares():
         assert fit.chi2 == pytest.approx(chi2) and np.allclose(fit.P, P, rtol=1e-6)
         if size == 2.0:
             assert chi2 / dof > 3.0  # the scaling was exercised
+
+
+# ---------------------------------------------------------------- the rotation chart of the sigma points
+
+def test_the_tracker_in_the_rotation_chart_claims_no_frame_while_wrong(truth_600):
+    """[filter] sigma_chart = "rotation" as `envisat track` takes it (TrackConfig, the scenario's filter under it):
+    truth-plus-noise corners, cold start: tracking from frame 30 on, no frame claimed (tracking, coasting) while
+    wrong (5 deg, 2 % of the range), and NEES in the filter's chart that of a consistent filter (12 expected)."""
+    import dataclasses
+
+    from envisat_pose.filtering.estimator import nees
+    from envisat_pose.pipelines.jobs import resolve_job
+
+    tcfg = resolve_job("track", "default", None, {"filter.sigma_chart": "rotation"})
+    tracker = Tracker(load_camera(), NoisyTruthDetector(truth_600), chaser_lookup(truth_600), TrackerConfig(),
+                      dataclasses.asdict(tcfg.filter))
+    assert tracker.setup.cfg.sigma_chart == "rotation"
+    ests = [tracker.step(float(truth_600.t_s[k]), frame_image(k)) for k in range(0, 150)]
+    status = [e.status for e in ests]
+    assert set(status[30:]) == {"tracking"}, status
+    for k, e in enumerate(ests):
+        if e.status in ("tracking", "coasting"):
+            att, pos = claim_errors(e, truth_600.x[k])
+            assert att < 5.0 and pos < 0.02, (k, e.status, att, pos)
+    x_hat, P = np.array([e.x_hat for e in ests[60:]]), np.array([e.P for e in ests[60:]])
+    m = nees(truth_600.x[60:150], x_hat, P, "rotation").mean()
+    assert 3.0 < m < 30.0, m
+
+
+def test_the_trackers_corner_gate_reads_the_filters_chart(truth_600):
+    """Tracker._corner_d2 (the rejected corners it reports, gate.raw's gate) under a wide prior (P0: 10 deg) is the
+    filter's own gate distance, from the innovation covariance of the sigma points of its chart (ukf.update with
+    sigma_chart 'rotation'): the additive chart's points, ~35 deg out along the MRPs, give another one."""
+    from envisat_pose.filtering.estimator import FilterConfig, init_state
+    from envisat_pose.filtering.ukf import update
+
+    tracker = Tracker(load_camera(), NoisyTruthDetector(truth_600), chaser_lookup(truth_600), TrackerConfig(),
+                      {"sigma_chart": "rotation"})
+    k, setup = 20, tracker.setup
+    x, P = truth_600.x[k][None], FilterConfig().P0[None]
+    tracker.state = init_state(x, P[0], float(truth_600.t_s[k]), chaser_lookup(truth_600)(truth_600.t_s[k]),
+                               tracker.fcfg)
+    z = setup.hx(x) + np.random.default_rng(1).normal(0.0, 0.7, (1, 8, 2))
+    cov = np.broadcast_to(np.eye(2) * 0.49, (1, 8, 2, 2))
+    d2 = tracker._corner_d2((x, P), z, cov, 0)
+
+    def gate_d2(chart: str) -> np.ndarray:
+        _, _, info = update(x, P, z, np.ones((1, 8), bool), cov, setup.hx, setup.weights, None, chart)
+        y = info.y[0].reshape(8, 2)
+        S = np.stack([info.Pzz_state[0, 2 * c:2 * c + 2, 2 * c:2 * c + 2] for c in range(8)]) + cov[0]
+        return np.einsum("ki,ki->k", y, np.linalg.solve(S, y[..., None])[..., 0])
+
+    np.testing.assert_allclose(d2, gate_d2("rotation"), rtol=1e-9)
+    assert np.abs(gate_d2("additive") / gate_d2("rotation") - 1.0).max() > 0.01
