@@ -21,7 +21,6 @@ from typing import Callable
 
 import numpy as np
 
-from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.config import check, config_arg, path_arg, to_dict, to_toml
 from envisat_pose.datagen.appearance import (
     FACE_GEOMS,
@@ -31,8 +30,8 @@ from envisat_pose.datagen.appearance import (
     draw_own_materials,
     takes_class_appearance,
 )
-from envisat_pose.datagen.clearance import TargetBoxes, farthest_depth_m, target_file_boxes
-from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
+from envisat_pose.datagen.clearance import TargetBoxes
+from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json, sequence_depth_m
 from envisat_pose.datagen.gl_check import check_gl_platform
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE, encode_depth, make_label
 from envisat_pose.datagen.render_view import APPENDAGE_MASK_VALUE, MASK_VALUES, View, target_mask_values
@@ -43,7 +42,7 @@ from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.pools import RunnerConfig, cpu_share, thread_env
 from envisat_pose.resumable import ResumableJob
 from envisat_pose.shard_reader import shard_problem
-from envisat_pose.state import MRP, POS, RATE, VEL
+from envisat_pose.state import RATE, VEL
 from envisat_pose.target import APPENDAGE_GROUP, load_target
 
 MANIFEST_FORMAT = "envisat-pose shards v1"
@@ -318,11 +317,13 @@ def shard_task(cfg_json: str, shard_index: int, out_dir: str, beside: bool = Fal
 
 
 def check_sequence_depth(cfg: GenerateConfig) -> None:
-    """Sequence mode: ConfigError on depth_scale_m unless 65535 x depth_scale_m covers the farthest target
-    point of every frame (from the simulated truth, which also runs the scenario's keep-out check)."""
-    _, x, _, _, _ = sequence_frames(config_json(cfg))
-    R_K_from_T = R_K_FROM_C @ np.swapaxes(mrp_to_dcm(x[:, MRP]), 1, 2)
-    far_m = farthest_depth_m(x[:, POS] @ R_K_FROM_C.T, R_K_from_T, target_file_boxes(cfg.target))
+    """Sequence mode: the simulated truth's keep-out check, then with write_depth a ConfigError on depth_scale_m
+    unless 65535 x depth_scale_m covers the farthest target point of every frame (a scale given too small: one
+    not given is sized to them, generate_config.sequence_depth_m)."""
+    sequence_frames(config_json(cfg))
+    if not cfg.write_depth:
+        return
+    far_m = sequence_depth_m(cfg)
     k = int(np.argmax(far_m))
     check(DEPTH_MAX_CODE * cfg.depth_scale_m >= far_m[k], "depth_scale_m", cfg.depth_scale_m,
           f"a scale whose 16-bit range (65535 x scale = {DEPTH_MAX_CODE * cfg.depth_scale_m:.1f} m) covers "

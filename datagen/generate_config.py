@@ -14,14 +14,17 @@ from typing import Literal
 
 import numpy as np
 
+from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.camera_response import parse_response
 from envisat_pose.config import Config, ConfigError, check, from_dict, to_dict
 from envisat_pose.datagen.appearance import CLASSES
-from envisat_pose.datagen.clearance import target_file_boxes
+from envisat_pose.datagen.clearance import farthest_depth_m, target_file_boxes
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
 from envisat_pose.datagen.scenario import EARTH_RADIUS_M, ScenarioConfig, scenario_dict
 from envisat_pose.datagen.target_scene import scene_clip_planes_m, size_ratio
+from envisat_pose.datagen.truth import sequence_truth
 from envisat_pose.geometry import load_camera
+from envisat_pose.state import MRP, POS
 from envisat_pose.target import DEFAULT_TARGET, load_target
 
 Severity = Literal["none", "low", "medium", "high", "mixed"]
@@ -63,6 +66,16 @@ def sized_depth_scale_m(far_m: float) -> float:
     """DEPTH_SCALE_M, or the least whole number of mm per unit whose 16-bit range covers far_m (a target so large
     that its sized ranges reach beyond 131 m)."""
     return max(DEPTH_SCALE_M, math.ceil(far_m / DEPTH_MAX_CODE * 1000.0) / 1000.0)
+
+
+def sequence_depth_m(cfg: "GenerateConfig") -> np.ndarray:
+    """(N,) m: the farthest depth (along the boresight) of any target point, its geoms' boxes, in each frame of
+    the sequence-mode config cfg, from its simulated truth (truth.sequence_truth, which runs its keep-out check)."""
+    seq = cfg.sequence
+    x = sequence_truth(seq.scenario, seq.range_scale, cfg.num_images, seq.frame_dt_s, cfg.seed, cfg.target)[2]
+    R_K_from_C = load_camera().R_K_from_C
+    R_K_from_T = R_K_from_C @ np.swapaxes(mrp_to_dcm(x[:, MRP]), 1, 2)
+    return farthest_depth_m(x[:, POS] @ R_K_from_C.T, R_K_from_T, target_file_boxes(cfg.target))
 
 
 def target_span_px(reach_m: float, range_m: float, f_px: float) -> float:
@@ -277,8 +290,10 @@ class GenerateConfig(Config):
     earth_probability: share of random-mode images that look toward the Earth and draw it behind the target
     (textured, lit by the view's sun; datagen/earth.py); sequence mode: above 0, the Earth is drawn at the
     orbit's nadir in the frames where it reaches the image. earth_seed: the Earth texture set.
-    depth_scale_m: metres per unit of the 16-bit depth PNG; not given: DEPTH_SCALE_M, or in random mode for a
-    target whose farthest point lies beyond its 16-bit range the least whole mm that covers it (__post_init__).
+    depth_scale_m: metres per unit of the 16-bit depth PNG; not given: DEPTH_SCALE_M, or for a target whose
+    farthest point lies beyond its 16-bit range the least whole mm that covers it (__post_init__): in random mode
+    the farthest of its ranges (farthest_target_point_m), in sequence mode with write_depth the farthest of its
+    frames (sequence_depth_m: the truth simulated once, cached for the frames).
     appendages: draw the ASAR antenna and instrument boxes (mask value 8); None: on in random mode only.
     storage: 'corrupted' stores the corrupted image; 'clean' stores the clean render, and
     dataset.sample_image applies the label's corruption on read (the same bytes).
@@ -327,9 +342,12 @@ class GenerateConfig(Config):
                                   f"times ENVISAT's size, the views sized to it (this one: {ratio:.4g} times; or "
                                   "give sequence.range_scale and random's ranges and keep-out yourself)")
             object.__setattr__(self, "sequence", replace(self.sequence, range_scale=sized_value(ratio)))
+        from_truth = self.depth_scale_m is None and self.mode == "sequence" and self.write_depth
         if self.depth_scale_m is None:
             object.__setattr__(self, "depth_scale_m", self._sized_depth_scale_m())
         super().__post_init__()
+        if from_truth:  # the validated sequence's truth simulated (cached for its frames), its depths covered
+            object.__setattr__(self, "depth_scale_m", sized_depth_scale_m(float(sequence_depth_m(self).max())))
 
     def _size_ratio(self) -> float | None:
         """target_scene.size_ratio of the target; None for a target that cannot be read (validate names it)."""
@@ -339,8 +357,8 @@ class GenerateConfig(Config):
             return None
 
     def _sized_depth_scale_m(self) -> float:
-        """sized_depth_scale_m of random mode's farthest target point; DEPTH_SCALE_M in sequence mode and for a
-        target that cannot be read (validate names it)."""
+        """sized_depth_scale_m of random mode's farthest target point; DEPTH_SCALE_M in sequence mode (sized from
+        its truth once validated: __post_init__) and for a target that cannot be read (validate names it)."""
         if self.mode != "random" or self.random.range_max_m is None:
             return DEPTH_SCALE_M
         try:

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm, quat_to_mrp
 from envisat_pose.contracts import TruthTrajectory
 from envisat_pose.datagen.clearance import check_keepout, target_boxes
 from envisat_pose.datagen.orbit import chaser_orbit
-from envisat_pose.datagen.scenario import ScenarioConfig, truth_config_json
+from envisat_pose.datagen.scenario import ScenarioConfig, scaled_start, scenario_config, truth_config_json
 from envisat_pose.datagen.sim import TruthSim
 
 
@@ -72,6 +74,21 @@ def simulate_truth(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajecto
     )
     check_clearance(cfg, traj, sim.model)
     return traj
+
+
+@functools.lru_cache(maxsize=16)
+def sequence_truth(scenario: str, range_scale: float, num_images: int, frame_dt_s: float, seed: int,
+                   target: str) -> tuple[ScenarioConfig, np.ndarray, np.ndarray]:
+    """The truth an image-factory sequence shows: the named scenario of `target` (its file) started range_scale
+    times as far (scenario.scaled_start), simulated from `seed` over num_images frames frame_dt_s apart: (its
+    ScenarioConfig, t_s (N,), x (N, 12)). Cached: a sequence's config sizes its depth scale from it
+    (generate_config.sequence_depth_m), then its frames read it (views.sequence_frames)."""
+    scen = scenario_config(scenario, duration_s=max(num_images - 1, 1) * frame_dt_s, dt_s=frame_dt_s, seed=seed,
+                           target={"file": target}, **scaled_start(scenario, range_scale))
+    traj = simulate_truth(scen)
+    t_s, x = traj.t_s[:num_images].copy(), traj.x[:num_images].copy()
+    t_s.flags.writeable = x.flags.writeable = False  # shared by every caller of the cache
+    return scen, t_s, x
 
 
 def check_clearance(cfg: ScenarioConfig, traj: TruthTrajectory, model) -> None:

@@ -17,8 +17,9 @@ from envisat_pose.datagen.earth import EARTH_TEXTURE_SET_SIZE, draw_backdrop, ea
 from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json, config_json
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.render_view import View
-from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scaled_start, scenario_config
+from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_config
 from envisat_pose.datagen.target_scene import scene_clip_planes_m
+from envisat_pose.datagen.truth import sequence_truth
 from envisat_pose.geometry import load_camera
 from envisat_pose.state import MRP, POS
 from envisat_pose.target import load_target
@@ -130,15 +131,9 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
 def sequence_frames(cfg_json: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The truth of a sequence-mode config at its frame times: (t_s (N,), x (N, 12), sun_dir_C (N, 3),
     eclipse (N,) bool, nadir_C (N, 3) with chaser_r_m folded in as its norm)."""
-    from envisat_pose.datagen.truth import simulate_truth
-
     cfg = config_from_json(cfg_json)
-    n = cfg.num_images
     seq = cfg.sequence
-    scen = scenario_config(seq.scenario, duration_s=max(n - 1, 1) * seq.frame_dt_s, dt_s=seq.frame_dt_s, seed=cfg.seed,
-                           target={"file": cfg.target}, **scaled_start(seq.scenario, seq.range_scale))
-    traj = simulate_truth(scen)
-    t_s, x = traj.t_s[:n], traj.x[:n]
+    scen, t_s, x = sequence_truth(seq.scenario, seq.range_scale, cfg.num_images, seq.frame_dt_s, cfg.seed, cfg.target)
     orb = chaser_orbit(scen.orbit, t_s)
     rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(2**32 - 1,)))
     sun_N = unit(cfg.sun_dir) if cfg.sun_dir is not None else unit(rng.standard_normal(3))

@@ -28,7 +28,7 @@ from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.config import ConfigError, InputError
 from envisat_pose.geometry import model_path, visible_corners
 from envisat_pose.shard_reader import load_dataset_manifest
-from envisat_pose.target_file import check_inertia, inertial_used, named_files, read_spec, target_sha256
+from envisat_pose.target_file import check_inertia, drawn_alpha, inertial_used, named_files, read_spec, target_sha256
 from envisat_pose.target_mesh import BodyMesh, TriangleMesh, body_mesh, feature_edges
 from envisat_pose.target_rays import ray_hits_m
 from envisat_pose.target_shape import (
@@ -58,15 +58,24 @@ TABLE_CELLS_POLAR = 256  # polar rows of the grid that finds a view's direction 
 @dataclass(frozen=True)
 class TargetGeom:
     """One geom of body `target`: name (its own, or target_geom_<i>), MuJoCo type name, group, material name
-    ('' for none) and rgb (3,) of its material (or its own rgba); shown: MuJoCo draws it (neither its rgba's nor
-    its material's alpha 0: an invisible geom, which MuJoCo's renderer and mj_ray leave out)."""
+    ('' for none) and rgb (3,) of its material (or its own rgba); alpha: the alpha MuJoCo's renderer draws it with
+    (drawn_alpha). shown: MuJoCo draws it (alpha above 0; an invisible geom is left out of the images and the
+    visibility). opaque: alpha 1, the geoms that hide keypoints (Target.occluding)."""
 
     name: str
     type: str
     group: int
     material: str
     rgb: tuple[float, float, float]
-    shown: bool = True
+    alpha: float = 1.0
+
+    @property
+    def shown(self) -> bool:
+        return self.alpha > 0.0
+
+    @property
+    def opaque(self) -> bool:
+        return self.alpha >= 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,16 +164,24 @@ class Target:
         groups = set(RENDERED_GROUPS) | ({APPENDAGE_GROUP} if appendages else set())
         return np.array([g.group in groups and g.shown for g in self.geoms], bool)
 
+    def occluding(self, appendages: bool = False) -> np.ndarray:
+        """(G,) bool: the drawn geoms that hide keypoints, the opaque ones (TargetGeom.opaque). MuJoCo draws a geom
+        of alpha below 1 in its transparent pass, which the factory makes additive (for the Earth): its light is
+        added over what lies behind, which the image keeps whole (a keypoint behind a veil of any alpha below 1
+        shows at its full contrast), so such a geom hides none."""
+        return self.drawn(appendages) & np.array([g.opaque for g in self.geoms], bool)
+
     def mesh(self, appendages: bool = False) -> TriangleMesh:
         """The drawn surface in T (drawn)."""
         return self.surface.select(self.drawn(appendages))
 
     def visible_from(self, c_T_m: np.ndarray, appendages: bool = False) -> np.ndarray:
         """Exact visibility of each keypoint from the point c_T_m (3,) in T: the ray from it to the keypoint
-        meets no drawn geom of the target before it (MuJoCo's own ray-geom intersections, less RAY_ABS_TOL_M plus
-        1e-6 of the range). (K,) bool."""
+        meets no opaque drawn geom of the target before it (occluding; MuJoCo's own ray-geom intersections, less
+        RAY_ABS_TOL_M plus 1e-6 of the range). The one rule of the labels, the truth and the filters' table.
+        (K,) bool."""
         c_T = np.asarray(c_T_m, float)
-        hits = ray_hits_m(self.path, self.sha256, c_T, self.keypoints_T_m, self.drawn(appendages))
+        hits = ray_hits_m(self.path, self.sha256, c_T, self.keypoints_T_m, self.occluding(appendages))
         rng = np.linalg.norm(self.keypoints_T_m - c_T, axis=1)
         return hits >= rng - (RAY_ABS_TOL_M + 1e-6 * rng)
 
@@ -307,8 +324,7 @@ def _geoms(model, body: int) -> tuple[TargetGeom, ...]:
         out.append(TargetGeom(model.geom(g).name or f"target_geom_{i}",
                               mujoco.mjtGeom(int(model.geom_type[g])).name.removeprefix("mjGEOM_").lower(),
                               int(model.geom_group[g]), model.material(mat).name if mat >= 0 else "",
-                              tuple(float(v) for v in rgb),
-                              bool(model.geom_rgba[g][3] > 0 and (mat < 0 or model.mat_rgba[mat][3] > 0))))
+                              tuple(float(v) for v in rgb), drawn_alpha(model, g)))
     return tuple(out)
 
 

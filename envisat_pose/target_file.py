@@ -227,6 +227,15 @@ def _fused_text(path: str, mtime_ns: int) -> str | None:
     return ET.tostring(root, encoding="unicode")
 
 
+def drawn_alpha(model, g: int) -> float:
+    """The alpha MuJoCo's renderer draws geom g of `model` with: its own rgba's where that rgba is not MuJoCo's
+    default (0.5 0.5 0.5 1: then it overrides the material's), else its material's, else its own."""
+    mat = int(model.geom_matid[g])
+    own = model.geom_rgba[g]
+    overrides = mat < 0 or not np.array_equal(own, np.array([0.5, 0.5, 0.5, 1.0], np.float32))
+    return float(own[3] if overrides else model.mat_rgba[mat][3])
+
+
 def check_inertia(mass_kg: float, inertia: np.ndarray) -> str | None:
     """What is wrong with a rigid body's mass properties, or None: zero or negative mass, an inertia that is not
     symmetric positive definite, or principal moments that violate the triangle inequality (I1 <= I2 + I3)."""

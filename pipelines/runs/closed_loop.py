@@ -39,6 +39,7 @@ from envisat_pose.config import config_arg, path_arg, to_dict, to_toml
 from envisat_pose.contracts import TruthTrajectory
 from envisat_pose.datagen.gl_check import check_gl_platform
 from envisat_pose.datagen.scenario import scaled_start, scenario_config
+from envisat_pose.datagen.truth import simulate_truth
 from envisat_pose.datagen.views import sample_seed
 from envisat_pose.filtering.estimator import filter_inertia_T_kg_m2
 from envisat_pose.geometry import load_camera
@@ -74,8 +75,6 @@ from envisat_pose.target import load_target, other_target
 def run_truth(cfg: RunConfig, progress: bool = False):
     """The MuJoCo truth of the run on the frame grid (datagen.truth.simulate_truth, as `envisat simulate`), its
     start sized to the target as a generated sequence's (image.sequence.range_scale: 1 for ENVISAT)."""
-    from envisat_pose.datagen.truth import simulate_truth
-
     scale = cfg.image.sequence.range_scale
     scen = scenario_config(cfg.scenario, duration_s=cfg.duration_s, dt_s=1.0 / cfg.rate_hz, seed=cfg.seed,
                            target={"file": cfg.image.target}, **scaled_start(cfg.scenario, scale))

@@ -8,6 +8,9 @@ the nonlinear terms are (range / orbit radius)^2 ~ 1e-10 at 50 m), checked on Mu
 starts, and the masks MuJoCo renders for the image share.
 """
 
+import json
+import math
+
 import numpy as np
 import pytest
 
@@ -99,3 +102,70 @@ def test_a_sequence_stored_before_range_scale_reads_at_its_metres():
     assert "range_scale" not in nest_moved_keys({"mode": "random"}).get("sequence", {})
     cfg = sequence(CUBESAT)
     assert config_from_json(config_json(cfg)) == cfg
+
+
+def _rod_file(folder) -> str:
+    """A 100 m x 6 m x 4 m box (2.8 times ENVISAT's size) with keypoints at its 8 corners."""
+    half = (50.0, 3.0, 2.0)
+    sites = "".join(f'<site name="kp_{i}" pos="{sx * half[0]} {sy * half[1]} {sz * half[2]}"/>'
+                    for i, (sx, sy, sz) in enumerate((x, y, z) for x in (1, -1) for y in (1, -1) for z in (1, -1)))
+    path = folder / "rod.xml"
+    path.write_text('<mujoco model="rod"><worldbody><body name="target">'
+                    '<inertial pos="0 0 0" mass="20000" diaginertia="1.2e5 1.7e7 1.7e7"/>'
+                    f'<geom name="rod" type="box" size="{half[0]} {half[1]} {half[2]}"/>{sites}</body></worldbody>'
+                    '</mujoco>')
+    return str(path)
+
+
+def _farthest_depth_m(x: np.ndarray, corners_T_m: np.ndarray) -> float:
+    """The farthest depth along the boresight (+y of C) of the box's corners over the frames x (N, 12): the
+    corners turned into C by the MRP's rotation (Rodrigues' form, written here) and put at the relative position."""
+    far = 0.0
+    for xk in x:
+        p = xk[6:9]
+        s = float(p @ p)
+        px = np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
+        R_T_from_C = np.eye(3) + (8 * px @ px - 4 * (1 - s) * px) / (1 + s) ** 2  # dcm(p): C -> T
+        far = max(far, float((xk[0:3] + corners_T_m @ R_T_from_C)[:, 1].max()))
+    return far
+
+
+def test_a_100m_targets_sequence_sizes_its_depth_scale_from_its_truth(tmp_path):
+    """A 100 m box held 140 m off (range_scale 2.807): its far end lies ~160 m deep, beyond the 131 m of 2 mm
+    per unit, so a sequence not given depth_scale_m takes the least whole mm whose 16-bit range covers the
+    farthest corner of its frames (computed here from the truth and the box), where it was refused before; the
+    frames' depth PNGs then hold the box unclipped (no code at 65535, the depths within the box's reach of the
+    range). A scale given is kept, one too small still refused; ENVISAT's stays 2 mm."""
+    import cv2
+
+    from envisat_pose.app.cli import main
+    from envisat_pose.shard_reader import read_shard
+
+    rod = _rod_file(tmp_path)
+    cfg = sequence(rod)
+    _, x, *_ = sequence_frames(config_json(cfg))
+    corners = np.array([(sx * 50.0, sy * 3.0, sz * 2.0) for sx in (1, -1) for sy in (1, -1) for sz in (1, -1)])
+    far_m = _farthest_depth_m(x, corners)
+    assert far_m > 65535 * 0.002
+    assert cfg.depth_scale_m == math.ceil(far_m / 65535 * 1000) / 1000 == 0.003
+    assert sequence("models/envisat.xml").depth_scale_m == 0.002
+    far = sequence(rod, range_scale=6.0)  # a 300 m hold: ~350 m deep
+    far_m = _farthest_depth_m(sequence_frames(config_json(far))[1], corners)
+    assert far.depth_scale_m == math.ceil(far_m / 65535 * 1000) / 1000 == 0.006
+    out = tmp_path / "seq"
+    assert main(["generate", "--target", rod, "--mode", "sequence", "--num-images", "2", "--resolution", "64",
+                 "--workers", "1", "--out", str(out), "--quiet"]) == 0
+    for _, sample in read_shard(str(out / "shard-000000.tar")):
+        label = json.loads(sample["json"])
+        depth = cv2.imdecode(np.frombuffer(sample["depth.png"], np.uint8), cv2.IMREAD_UNCHANGED)
+        fg = depth[depth > 0] * label["depth_scale_m"]
+        range_m = float(np.linalg.norm(label["t_cam_from_target_m"]))
+        assert label["depth_scale_m"] == 0.003 and depth.max() < 65535 and fg.size > 0
+        assert range_m - 50.2 < fg.min() and fg.max() < range_m + 50.2
+    given = from_dict(GenerateConfig, {"target": rod, "mode": "sequence", "num_images": 2, "depth_scale_m": 0.01})
+    assert given.depth_scale_m == 0.01
+    cfg_path = tmp_path / "small.toml"
+    cfg_path.write_text('mode = "sequence"\ndepth_scale_m = 0.002\n')
+    assert main(["generate", "--config", str(cfg_path), "--target", rod, "--num-images", "2", "--resolution", "64",
+                 "--out", str(tmp_path / "refused"), "--quiet"]) == 2
+    assert not (tmp_path / "refused").exists()
