@@ -99,13 +99,21 @@ class RelativeConfig:
     rho0_C_m: tuple[float, float, float] = (0.0, 50.0, 0.0)
     rhodot0_C_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
-    def check_outside(self, radius_m: float, prefix: str = "relative") -> None:
+    def check_outside(self, radius_m: float, prefix: str = "relative", size_ratio: float | None = None) -> None:
         """ConfigError unless |rho0| exceeds radius_m, the target's keypoints' circumscribed radius (ENVISAT: its
-        main body's corners, 5.29 m)."""
+        main body's corners, 5.29 m); size_ratio, where given, the target's size against ENVISAT's
+        (target_scene.size_ratio), for the way on: the start `envisat run` and `generate --mode sequence` fly."""
         rng = float(np.linalg.norm(self.rho0_C_m))
+        def scaled(v) -> str:
+            return "[" + ", ".join(f"{size_ratio * x:.4g}" for x in v) + "]"
+
+        way_on = "" if size_ratio is None else (
+            f": start it farther, as `envisat run` and `generate --mode sequence` do (the start scaled by the "
+            f"target's size, {size_ratio:.3g} times): a config file's [relative] rho0_C_m = {scaled(self.rho0_C_m)}, "
+            f"rhodot0_C_m_s = {scaled(self.rhodot0_C_m_s)}")
         check(rng > radius_m, f"{prefix}.rho0_C_m", list(self.rho0_C_m),
               f"a range above {radius_m:.2f} m (the main body's circumscribed radius); "
-              f"|rho0| = {rng:.2f} m puts the chaser inside the target")
+              f"|rho0| = {rng:.2f} m puts the chaser inside the target{way_on}")
 
 
 @dataclass(frozen=True)
@@ -148,7 +156,11 @@ class ScenarioConfig(Config):
         check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed")
 
         target = load_target(self.target.file, f"{p}target.file")
-        self.relative.check_outside(float(np.linalg.norm(target.keypoints_T_m, axis=1).max()), f"{p}relative")
+        radius_m = float(np.linalg.norm(target.keypoints_T_m, axis=1).max())
+        if np.linalg.norm(self.relative.rho0_C_m) <= radius_m:  # refused: say how far the sized start would be
+            from envisat_pose.datagen.target_scene import size_ratio
+
+            self.relative.check_outside(radius_m, f"{p}relative", size_ratio(target))
         w_max = max_body_rate_rad_s(self.target.w0_T_rad_s, target.inertia_T_kg_m2)
         check(self.physics_dt_s * w_max <= MAX_TURN_PER_PHYSICS_STEP_RAD, f"{p}max_physics_dt_s",
               self.max_physics_dt_s, f"a physics step in which the tumble turns at most "

@@ -139,3 +139,31 @@ def test_an_interrupt_inside_an_import_is_reported_as_an_interrupt(monkeypatch, 
     monkeypatch.setattr(verb, "run_simulate_cli", plain_bug)
     with pytest.raises(ImportError, match="a real one"):
         main(["simulate", "--out", str(tmp_path / "r.npz")])
+
+
+BIG_BOX = """<mujoco model="bigbox"><worldbody><body name="target">
+<geom type="box" size="50 3 2" mass="20000"/>
+<site name="kp_a" pos="50 3 2"/><site name="kp_b" pos="-50 3 2"/><site name="kp_c" pos="50 -3 -2"/>
+<site name="kp_d" pos="-50 -3 -2"/><site name="kp_e" pos="0 3 -2"/>
+</body></worldbody></mujoco>
+"""
+
+
+def test_a_target_larger_than_the_hold_is_told_the_start_that_clears_it(tmp_path, capsys):
+    """A 100 m box at the default scenario's 50 m hold: one line that gives the scaled start (as `run` and
+    `generate --mode sequence` fly it), and that start, written into a config file as the line says, simulates."""
+    import json
+    import re
+
+    target = tmp_path / "big.xml"
+    target.write_text(BIG_BOX)
+    out = tmp_path / "run.npz"
+    args = ["simulate", "--target", str(target), "--duration-s", "10", "--out", str(out), "--quiet"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "inside the target" in err[0] and not out.exists(), err
+    rho0, rhodot0 = re.search(r"rho0_C_m = (\[[^\]]*\]), rhodot0_C_m_s = (\[[^\]]*\])", err[0]).groups()
+    assert np.linalg.norm(json.loads(rho0)) > np.linalg.norm([50, 3, 2])  # outside the box's corners
+    cfg = tmp_path / "far.toml"
+    cfg.write_text(f"[relative]\nrho0_C_m = {rho0}\nrhodot0_C_m_s = {rhodot0}\n")
+    assert main([*args, "--config", str(cfg)]) == 0 and out.exists()
