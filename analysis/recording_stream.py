@@ -132,6 +132,7 @@ class TrackRecorder:
                                                          names=["best hypothesis"]), static=True)
         rec.log("metrics/tracker/status", rr.SeriesLines(colors=[(20, 20, 20)], widths=[1.5], names=["status"]),
                 static=True)
+        rec.log("metrics/nis", rr.SeriesLines(colors=[(200, 60, 120)], widths=[1.0], names=["NIS / dof"]), static=True)
         rec.log("world/chaser/camera/image/corners_detected", rr.Points2D.from_fields(radii=[3.0]), static=True)
         rec.log("world/chaser/camera/image/corners_estimated", rr.Points2D.from_fields(colors=[EST_RGB], radii=[2.0]),
                 static=True)
