@@ -16,6 +16,7 @@ import numpy as np
 
 from envisat_pose.config import Config, check, deep_update, from_dict
 from envisat_pose.datagen.orbit import chaser_orbit
+from envisat_pose.datagen.target_scene import size_ratio
 from envisat_pose.named_scenarios import known, names, table, truth_part
 from envisat_pose.target import DEFAULT_TARGET, load_target
 
@@ -158,8 +159,6 @@ class ScenarioConfig(Config):
         target = load_target(self.target.file, f"{p}target.file")
         radius_m = float(np.linalg.norm(target.keypoints_T_m, axis=1).max())
         if np.linalg.norm(self.relative.rho0_C_m) <= radius_m:  # refused: say how far the sized start would be
-            from envisat_pose.datagen.target_scene import size_ratio
-
             self.relative.check_outside(radius_m, f"{p}relative", size_ratio(target))
         w_max = max_body_rate_rad_s(self.target.w0_T_rad_s, target.inertia_T_kg_m2)
         check(self.physics_dt_s * w_max <= MAX_TURN_PER_PHYSICS_STEP_RAD, f"{p}max_physics_dt_s",
