@@ -22,7 +22,6 @@ from envisat_pose.datagen.clearance import farthest_depth_m, target_file_boxes
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
 from envisat_pose.datagen.scenario import EARTH_RADIUS_M, ScenarioConfig, scenario_dict
 from envisat_pose.datagen.target_scene import scene_clip_planes_m, size_ratio
-from envisat_pose.datagen.truth import sequence_truth
 from envisat_pose.geometry import load_camera
 from envisat_pose.state import MRP, POS
 from envisat_pose.target import DEFAULT_TARGET, load_target
@@ -71,6 +70,8 @@ def sized_depth_scale_m(far_m: float) -> float:
 def sequence_depth_m(cfg: "GenerateConfig") -> np.ndarray:
     """(N,) m: the farthest depth (along the boresight) of any target point, its geoms' boxes, in each frame of
     the sequence-mode config cfg, from its simulated truth (truth.sequence_truth, which runs its keep-out check)."""
+    from envisat_pose.datagen.truth import sequence_truth  # MuJoCo: not for a verb's parser, which reads this module
+
     seq = cfg.sequence
     x = sequence_truth(seq.scenario, seq.range_scale, cfg.num_images, seq.frame_dt_s, cfg.seed, cfg.target)[2]
     R_K_from_C = load_camera().R_K_from_C

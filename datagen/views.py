@@ -19,7 +19,6 @@ from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.render_view import View
 from envisat_pose.datagen.scenario import EARTH_RADIUS_M, scenario_config
 from envisat_pose.datagen.target_scene import scene_clip_planes_m
-from envisat_pose.datagen.truth import sequence_truth
 from envisat_pose.geometry import load_camera
 from envisat_pose.state import MRP, POS
 from envisat_pose.target import load_target
@@ -131,6 +130,8 @@ def sample_random_view(cfg: GenerateConfig, fovy_deg: float, rng: np.random.Gene
 def sequence_frames(cfg_json: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The truth of a sequence-mode config at its frame times: (t_s (N,), x (N, 12), sun_dir_C (N, 3),
     eclipse (N,) bool, nadir_C (N, 3) with chaser_r_m folded in as its norm)."""
+    from envisat_pose.datagen.truth import sequence_truth  # MuJoCo: not for a verb's parser (factory reads this)
+
     cfg = config_from_json(cfg_json)
     seq = cfg.sequence
     scen, t_s, x = sequence_truth(seq.scenario, seq.range_scale, cfg.num_images, seq.frame_dt_s, cfg.seed, cfg.target)
