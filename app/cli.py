@@ -2,7 +2,8 @@
 
 Each module of the app layer named below adds its verbs with a `register(subparsers)` function; a verb's
 handler takes the parsed arguments and returns an exit code. Stage modules are imported inside the handlers,
-so a verb loads only what it uses (`estimate --truth` never loads MuJoCo). User errors (ConfigError,
+so a verb loads only what it uses (`estimate --truth` never loads MuJoCo). SIGTERM stops a verb as Ctrl-C does
+(the same line; exit 143, Ctrl-C's 130: app/interrupts.py). User errors (ConfigError,
 InputError) are printed as one line on stderr with exit code 2, never as a traceback; warnings as one line
 each ("envisat VERB: warning: ...").
 """
@@ -17,6 +18,7 @@ import warnings
 
 from envisat_pose.app.common import EVERY_VERB, as_flags
 from envisat_pose.app.flag_rules import config_error_text
+from envisat_pose.app.interrupts import interrupt_code, sigterm_as_interrupt
 from envisat_pose.config import ConfigError, InputError
 from envisat_pose.datagen.gl_check import check_gl_platform
 
@@ -42,11 +44,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    with sigterm_as_interrupt():  # SIGTERM stops a verb as Ctrl-C does (app/interrupts.py)
+        return run_verb(argv)
+
+
+def run_verb(argv: list[str] | None) -> int:
     try:  # the verbs' modules load numpy, scipy and the rest: Ctrl-C there is an interrupt, not a traceback
         parser = build_parser()
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as stop:
         print("envisat: interrupted", file=sys.stderr)
-        return 130
+        return interrupt_code(stop)
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # the command as typed (a run's record)
 
@@ -63,9 +70,9 @@ def main(argv: list[str] | None = None) -> int:
         text = config_error_text(err, names, args.argv) if isinstance(err, ConfigError) else as_flags(str(err), names)
         print(f"envisat {args.verb}: error: {text}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as stop:
         print(f"envisat {args.verb}: interrupted{interrupt_hint(args)}", file=sys.stderr)
-        return 130
+        return interrupt_code(stop)
     except BrokenPipeError:  # the reader went away (`envisat ... | head`): stop quietly, as `cat` does
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())  # Python's own flush of stdout at exit would raise again
@@ -84,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         # Ctrl-C landed inside an import (MuJoCo's, torch's): the cleanup's own import of the half-loaded module
         # then fails; the user asked to stop, and is told so
         print(f"envisat {args.verb}: interrupted{interrupt_hint(args)}", file=sys.stderr)
-        return 130
+        return interrupt_code(after_interrupt(err))
 
 
 def interrupt_hint(args: argparse.Namespace) -> str:
@@ -118,15 +125,15 @@ def gl_refused(err: BaseException) -> str:
     return str(err)
 
 
-def after_interrupt(err: BaseException) -> bool:
-    """Whether err was raised while a KeyboardInterrupt was being handled (its context or cause chain holds one)."""
+def after_interrupt(err: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt being handled when err was raised (in its context or cause chain), or None."""
     seen = set()
     while err is not None and id(err) not in seen:
         if isinstance(err, KeyboardInterrupt):
-            return True
+            return err
         seen.add(id(err))
         err = err.__cause__ or err.__context__
-    return False
+    return None
 
 
 if __name__ == "__main__":

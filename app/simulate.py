@@ -19,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_common(p, out="output .npz (default run.npz)", out_default="run.npz", out_metavar="RUN.npz",
                config="scenario config (sections orbit, target, relative)",
-               seed="root seed of the random initial attitude (default 0)")
+               seed="root seed of the random initial attitude (default 0)", flag_names={"rrd": "--rrd"})
     p.add_argument("--scenario", default="default",
                    help="named scenario the config starts from (default: default; `envisat scenarios` lists them)")
     p.add_argument("--duration-s", type=float, help="simulated time, s (default: the scenario's, 1800)")
@@ -28,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "kp_ sites are the keypoints; default models/envisat.xml)")
     p.add_argument("--plot", action="store_true", help="also write a PNG of the 12 states next to --out")
     p.add_argument("--rrd", metavar="FILE.rrd", help="also write a Rerun recording of the truth (`envisat view FILE`)")
-    p.set_defaults(func=run_simulate_cli, flag_names={"rrd": "--rrd"})
+    p.set_defaults(func=run_simulate_cli)
 
 
 def resolve_config(args: argparse.Namespace) -> ScenarioConfig:

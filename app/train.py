@@ -11,6 +11,7 @@ import sys
 
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, as_flags, skipped_line
 from envisat_pose.app.flag_rules import not_applying, training_source
+from envisat_pose.app.interrupts import interrupt_code
 from envisat_pose.config import ConfigError, InputError, resolve_job_config
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.pipelines.detector.look_mix import read_looks
@@ -50,8 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--uses-per-frame", type=int, metavar="K", help="--online: crops per rendered frame (1-8, default 8)")
     p.add_argument("--render-workers", type=int, metavar="N", help="--online: renderer processes (default: the "
                    "usable cores less one, at least 1, at most what the memory holds)")
-    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (created with its parents when "
-                   "the first step is trained)")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (created with its parents)")
     p.add_argument("--config", metavar="FILE.toml", help="training config (keys of TrainConfig, [model], [data], [loss])")
     p.add_argument("--resume", action="store_true", help="go on from the run directory's last checkpoint, with its "
                    "own config (--steps and --time-budget-s may change; the data may not); Ctrl-C writes one")
@@ -140,7 +140,7 @@ def run_train_cli(args: argparse.Namespace) -> int:
         hint = f"; go on with: {resume_command(args)}" if stop.step else ""
         if ddp_rank() == 0:  # said once, not by every DDP rank
             print(f"envisat train: {stop}{hint}", file=sys.stderr)
-        return 130
+        return interrupt_code(stop)  # 143 after SIGTERM, as every verb
     if ddp_rank() != 0:
         return 0  # rank 0 says how the run ended
     if skipped_line(last.get("skipped_damaged_shards", [])):

@@ -39,6 +39,7 @@ from envisat_pose.datagen.target_scene import target_scene
 from envisat_pose.datagen.views import R_K_FROM_C, sample_random_view, sample_seed, sequence_frames, sequence_view, unit
 from envisat_pose.io import atomic_write_text, sha256_file
 from envisat_pose.out_dirs import check_out_dir
+from envisat_pose.out_lock import locks_output
 from envisat_pose.pools import RunnerConfig, cpu_share, thread_env
 from envisat_pose.resumable import ResumableJob
 from envisat_pose.shard_reader import shard_problem
@@ -362,6 +363,7 @@ def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
         compared_by={"config.target": "target.sha256"})  # the file, however its path is written
 
 
+@locks_output("out_dir", "generate")
 def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: str = "local",
                  scheduler: str | None = None, progress: bool = False,
                  on_shard: Callable[[dict], None] | None = None) -> dict:

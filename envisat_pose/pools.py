@@ -225,9 +225,21 @@ def _run_pool(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
         try:
             for fut in cf.as_completed(futures):
                 yield futures[fut], fut.result()
+        except BaseException:  # a task's error, Ctrl-C, SIGTERM, the caller gone: no unit in progress is waited for
+            _stop_workers(pool)
+            raise
         finally:
             for fut in futures:
                 fut.cancel()
+
+
+def _stop_workers(pool) -> None:
+    """End a process pool's workers now (what they were writing is partial files, removed on a resume) and wait
+    until the pool has marked its tasks failed: cancelling one before that broke Python 3.11's pool thread (an
+    InvalidStateError traceback where SIGTERM had reached the workers too)."""
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        process.terminate()
+    pool.shutdown(wait=True)
 
 
 def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterator[tuple[int, Any]]:

@@ -16,6 +16,7 @@ from typing import Callable
 from envisat_pose.config import InputError, flatten
 from envisat_pose.io import atomic_write_text, partial_owner_alive, sha256_file
 from envisat_pose.out_dirs import PARTIAL_PREFIX, make_out_dir
+from envisat_pose.out_lock import is_lock_file
 from envisat_pose.pools import RunnerConfig, run_tasks
 
 MANIFEST = "manifest.json"
@@ -129,10 +130,11 @@ class ResumableJob:
 
     def _refuse_foreign_entries(self) -> None:
         """InputError in one line when out_dir holds entries but no manifest beyond the job's own (own_entries, its
-        unit subfolders) and a killed writer's partial files: another job's folder, whose files this job would mix
-        in with its own or overwrite."""
+        unit subfolders), a killed writer's partial files and a lock file (out_lock): another job's folder, whose
+        files this job would mix in with its own or overwrite."""
         own = set(self.own_entries) | {os.path.dirname(self.unit_file(i)) for i in range(self.n_units)}
-        names = sorted(n for n in os.listdir(self.out_dir) if not n.startswith(PARTIAL_PREFIX) and n not in own)
+        names = sorted(n for n in os.listdir(self.out_dir) if not n.startswith(PARTIAL_PREFIX) and n not in own
+                       and not is_lock_file(n))
         if names:
             shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
             raise InputError(f"out_dir {self.out_dir!r} holds {len(names)} entries ({shown}) and no {MANIFEST}: not a "

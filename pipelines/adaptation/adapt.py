@@ -63,6 +63,7 @@ import numpy as np
 from envisat_pose.config import Config, InputError, as_path_or_object, check, config_arg, path_arg, to_dict
 from envisat_pose.io import atomic_write_text, stage_prefix, staged_folder
 from envisat_pose.out_dirs import check_out_dir, made_out_dir
+from envisat_pose.out_lock import locks_output
 from envisat_pose.perception.weights_keys import COV_CALIBRATION_KEY, COV_SCALE_KEY, ERROR_MODEL_KEY
 from envisat_pose.pipelines.adaptation.fine_tune import ADAPT_PARAMS, fine_tune, save_adapted
 from envisat_pose.pipelines.adaptation.pseudo_labels import label_record
@@ -387,6 +388,7 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
 # The job's files
 
 
+@locks_output("out_dir", "adapt")
 def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool = False,
           command: list[str] | None = None) -> dict:
     """Adapt the detector in cfg.track.weights ("" the shipped) to the frames of `source` (a FrameSource or a path

@@ -45,6 +45,7 @@ from typing import TYPE_CHECKING
 from envisat_pose.config import check, config_arg, path_arg, to_dict, to_toml
 from envisat_pose.io import atomic_write_text, sha256_file
 from envisat_pose.named_scenarios import table
+from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.campaigns.campaign_block import block_name, block_task, load_campaign_truth
 from envisat_pose.pipelines.campaigns.campaign_config import (
     MonteCarloConfig,
@@ -97,6 +98,7 @@ def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, pr
     return sha256_file(path)
 
 
+@locks_output("out_dir", "montecarlo")
 def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConfig | None = None,
                  progress: bool = False) -> dict:
     """Run (or finish) the campaign of cfg in out_dir (a str or pathlib.Path: rerun on it to resume) on runner

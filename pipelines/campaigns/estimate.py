@@ -34,6 +34,7 @@ from envisat_pose.geometry import load_geometry
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.named_scenarios import check_name
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
+from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.campaigns.observability import warn_if_unfixed_start
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, layered_job
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
@@ -307,6 +308,7 @@ def truth_stride(truth, cfg: EstimateConfig) -> int:
         raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None
 
 
+@locks_output("out", "estimate", folder=False)
 def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, scenario: str | None = None,
                  duration_s: float | None = None, plot: bool = False, rrd: str | None = None,
                  progress: bool = False, target: str | None = None) -> dict:

@@ -19,6 +19,7 @@ import tomllib
 from envisat_pose.config import InputError, flatten, path_arg, paths_arg
 from envisat_pose.io import atomic_write_text
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
+from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE
 from envisat_pose.state import BLOCKS
 from envisat_pose.target import DEFAULT_TARGET
@@ -36,6 +37,7 @@ SWEEP_CAPTION = ("Rate sweep: settled RMSE per block (blue) and the PCRLB (black
                  "and the share of diverged runs (red)")
 
 
+@locks_output("out", "report", folder=False)
 def write_report(dirs: list[str], out: str) -> dict:
     """The report over the campaign and rate-sweep folders `dirs`, written atomically to out (.html; its folder
     made when every input reads). Returns {"campaigns": n, "sweeps": n}. InputError naming `out` or the folder."""

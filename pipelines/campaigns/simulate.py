@@ -11,6 +11,7 @@ from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.named_scenarios import known, names
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
+from envisat_pose.out_lock import locks_output
 from envisat_pose.target import load_target
 
 
@@ -20,6 +21,7 @@ def output_paths(out: str) -> tuple[str, str, str]:
     return out, stem + ".config.toml", stem + ".png"
 
 
+@locks_output("out", "simulate", folder=False)
 def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, progress: bool = False,
                  label: str = "") -> dict:
     """Simulate the truth of cfg (a validated datagen ScenarioConfig) with MuJoCo and write out (the

@@ -16,6 +16,7 @@ from envisat_pose.config import Config, InputError, check, path_arg, resolve_job
 from envisat_pose.io import atomic_write_text, json_safe
 from envisat_pose.named_scenarios import table
 from envisat_pose.out_dirs import make_out_dir
+from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.campaigns.campaign import (
     MonteCarloConfig,
     campaign_at_one_rate,
@@ -120,6 +121,7 @@ def check_sweep_folder(out_dir: str, cfg: MonteCarloConfig, sweep: SweepConfig) 
                              "rerun with the same settings or use another folder")
 
 
+@locks_output("out_dir", "montecarlo")
 def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner: RunnerConfig | None = None,
               progress: bool = False) -> dict:
     """One campaign per rate in out_dir/rate-<R>hz (each resumable like any campaign), then out_dir/sweep.json

@@ -30,6 +30,7 @@ from envisat_pose.dataset_target import check_dataset_target_file
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import stage_prefix, sweep_stale_stages, usual_mode
 from envisat_pose.out_dirs import check_out_dir
+from envisat_pose.out_lock import is_lock_file, locks_output
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.datasets import export_layouts as lay
 from envisat_pose.pipelines.datasets.export_readme import readme_text
@@ -82,6 +83,7 @@ class ExportSummary:
     skipped: list
 
 
+@locks_output("out_dir", "dataset export")
 def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 1, skip_damaged: bool = False,
                    progress: bool = False, on_shard=None) -> ExportSummary:
     """Export the dataset folder `src` into the new folder `out_dir` in cfg's format (module docstring).
@@ -90,7 +92,7 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     cfg, src, out_dir = config_arg(cfg, ExportConfig), path_arg(src, "src"), path_arg(out_dir, "out_dir")
     check(type(workers) is int and workers >= 1, "workers", workers, "at least 1 worker process (an integer)")
     check_out_dir(out_dir, field="out_dir")
-    if os.path.isdir(out_dir) and os.listdir(out_dir):
+    if os.path.isdir(out_dir) and _entries(out_dir):
         raise InputError(f"out_dir {out_dir!r} exists and is not empty: an export writes a new folder")
     manifest = load_dataset_manifest(src, "src")
     unfinished = unfinished_dataset(manifest)
@@ -143,7 +145,7 @@ def _publish(stage: str, out_dir: str, moved: list[str]) -> None:
         if not os.path.isdir(out_dir):
             os.rename(stage, out_dir)  # fails (not empty) where another job's folder took the name meanwhile
             return
-        if os.listdir(out_dir):
+        if _entries(out_dir):
             raise InputError(busy)
         for name in sorted(os.listdir(stage)):
             if os.path.lexists(os.path.join(out_dir, name)):
@@ -152,9 +154,14 @@ def _publish(stage: str, out_dir: str, moved: list[str]) -> None:
             shutil.move(os.path.join(stage, name), os.path.join(out_dir, name))
         os.rmdir(stage)
     except OSError as err:
-        if os.path.isdir(out_dir) and sorted(os.listdir(out_dir)) != sorted(moved):
+        if os.path.isdir(out_dir) and sorted(_entries(out_dir)) != sorted(moved):
             raise InputError(busy) from None
         raise InputError(f"out_dir {out_dir!r}: cannot move the export into it ({err.strerror or err})") from None
+
+
+def _entries(folder: str) -> list[str]:
+    """What folder holds besides the lock file (out_lock: this export's own, or a killed job's)."""
+    return [name for name in os.listdir(folder) if not is_lock_file(name)]
 
 
 def _remove(path: str) -> None:

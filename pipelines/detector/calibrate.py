@@ -23,6 +23,7 @@ from envisat_pose.config import Config, InputError, check, config_arg, path_arg,
 from envisat_pose.datagen.generate_config import nest_moved_keys
 from envisat_pose.geometry import load_geometry
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
+from envisat_pose.out_lock import locks_output
 from envisat_pose.perception import errormodel as em
 from envisat_pose.perception import weights_keys as wk
 from envisat_pose.perception.box_symmetry import face_windings
@@ -168,6 +169,7 @@ def data_shards(data: list[str], skip_damaged: bool, field: str = "data") -> tup
     return paths, skipped
 
 
+@locks_output("out", "calibrate", folder=False)
 def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress: bool = False) -> dict:
     """The covariance calibration of the detector in cfg.weights on the held-out folders `data` (one sequence per
     folder when they are sequences), written into out (a copy of the weights with the fits in its metadata; may
@@ -242,6 +244,7 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
             "record": record, "error_model": model, "error_model_record": model_record, "skipped": skipped}
 
 
+@locks_output("out", "calibrate", folder=False)
 def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, limit: int | None = None,
                  progress: bool = False, skip_damaged: bool = False) -> dict:
     """The half-turn's appearance cue: its regions under each frame's labelled pose; `data` fits it and

@@ -28,6 +28,7 @@ from envisat_pose.config import InputError
 from envisat_pose.gates import GATE_PROB, chi2_gate
 from envisat_pose.io import json_safe
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
+from envisat_pose.out_lock import locks_output
 from envisat_pose.perception import keypoint_metrics as km
 from envisat_pose.perception.keypoint_cov import (
     GAUSS_ABS_MEDIAN,
@@ -73,6 +74,7 @@ def error_by_score(err: np.ndarray, score: np.ndarray) -> dict:
             "at_or_above": float(np.median(d[s >= m]))}
 
 
+@locks_output("out", "calibrate", folder=False)
 def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, progress: bool = False) -> dict:
     """Fit the sigma per keypoint of the keypoint detector in cfg.weights on the held-out folders `data` of
     cfg.target and write out (a copy of the weights with keypoint_sigma_px and keypoint_cov_calibration in its

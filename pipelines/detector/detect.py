@@ -15,6 +15,7 @@ from envisat_pose.config import Config, InputError, check, config_arg, path_arg
 from envisat_pose.contracts import Detections
 from envisat_pose.io import save_npz
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
+from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.common.job_defaults import job_weights
 from envisat_pose.shard_reader import checked_shards, sample_total
 from envisat_pose.target import require_envisat_dataset
@@ -127,6 +128,7 @@ def detect_dataset(cfg: DetectJobConfig, data: str, progress: bool = False) -> d
     return arrays
 
 
+@locks_output("out", "detect", folder=False)
 def run_detect(cfg: DetectJobConfig, data: str, out: str, progress: bool = False) -> dict:
     """The whole job: detect_dataset, then det.npz written atomically at out, its folder made then (parents too):
     a run stopped before leaves nothing. Returns det.npz's arrays. data and out: a str or a pathlib.Path."""

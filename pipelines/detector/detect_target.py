@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from envisat_pose.config import Config, InputError, check
 from envisat_pose.contracts import KeypointDetections
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
+from envisat_pose.out_lock import locks_output
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, read_shards, sample_total
 from envisat_pose.target import load_target
 
@@ -111,6 +112,7 @@ def detect_target_dataset(cfg: TargetDetectJobConfig, data: str, progress: bool 
     return arrays
 
 
+@locks_output("out", "detect", folder=False)
 def run_detect_target(cfg: TargetDetectJobConfig, data: str, out: str, progress: bool = False) -> dict:
     """The whole job: detect_target_dataset, then det.npz written atomically at out (its folder made then): a run
     refused or stopped before leaves nothing. Returns det.npz's arrays."""

@@ -25,6 +25,7 @@ from envisat_pose.config import InputError, config_arg, path_arg
 from envisat_pose.geometry import load_geometry
 from envisat_pose.io import atomic_write_text, json_safe
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
+from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.detector.detect import DetectJobConfig, camera_samples, read_roi
 from envisat_pose.shard_reader import checked_shards, read_shards, sample_total
 from envisat_pose.target import require_envisat_dataset
@@ -208,6 +209,7 @@ def evaluate_detector(weights: str, samples, poses: dict, json_path: str, *, dev
     return result
 
 
+@locks_output("json_path", "evaluate", folder=False)
 def run_evaluate(cfg: DetectJobConfig, data: str, json_path: str, *, roi_labels: bool = False,
                  progress: bool = False) -> dict:
     """`envisat evaluate` as one call (ENVISAT's corner detector; another target's keypoint detector:

@@ -27,6 +27,7 @@ import numpy as np
 from envisat_pose.config import InputError
 from envisat_pose.io import atomic_write_text, json_safe
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
+from envisat_pose.out_lock import locks_output
 from envisat_pose.perception import keypoint_metrics as km
 from envisat_pose.perception.keypoint_cov import nees_check
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig, require_dataset_of, target_frames
@@ -151,6 +152,7 @@ def score_target(arrays: dict, target, perms: np.ndarray, sigma_px: np.ndarray) 
     return out
 
 
+@locks_output("json_path", "evaluate", folder=False)
 def evaluate_target_detector(cfg: TargetDetectJobConfig, data: str, json_path: str, progress: bool = False) -> dict:
     """Score the keypoint detector of cfg.weights on the labelled dataset folder `data` of cfg.target and write
     every number to json_path (its folder made then). Returns the JSON's content."""

@@ -21,6 +21,7 @@ from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.datagen.gl_check import check_gl_platform
 from envisat_pose.io import sha256_file
 from envisat_pose.out_dirs import check_makeable
+from envisat_pose.out_lock import output_lock
 from envisat_pose.perception.weights_keys import MODEL_CONFIG_KEY
 from envisat_pose.pipelines.common.threads import default_torch_threads
 from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, look_shares
@@ -410,7 +411,7 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
                    skip_damaged: bool = False, online: OnlineConfig | None = None,
                    backbone: str | None = None) -> dict:
     """Train the detector (cfg: a perception TrainConfig, validated when built) on the shards of data_dirs (one
-    folder or several) into run_dir (created with its parents once the first step is trained). cfg a
+    folder or several) into run_dir (locked: out_lock; its files written once the first step is trained). cfg a
     perception.keypoint_train.KeypointTrainConfig: another target's keypoint detector, online only (online a
     TargetOnlineConfig of that target file; target_online makes the default one), the target recorded in
     config.json ('target') and in every weights file.
@@ -430,11 +431,8 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     uses_per_frame, max_uses (the most crops any frame gave) and frame_ms (a frame's cost in its worker).
     Returns the run's last metrics line (perception/train.py); raises
     perception.train.TrainingInterrupted after a checkpoint when SIGINT or SIGTERM stopped it. Callable from a
-    plain script: its workers never import the script."""
-    import torch
-
-    from envisat_pose.perception.train import train
-
+    plain script: its workers never import the script. run_dir is locked while it trains (out_lock: a second job
+    on it is refused), after the checks of the arguments."""
     data_dirs, run_dir = paths_arg(data_dirs, "data_dirs") if data_dirs else [], path_arg(run_dir, "run_dir")
     if online is not None and data_dirs:
         raise InputError("data_dirs and online: train on shards or on frames rendered as training goes, not both")
@@ -442,6 +440,19 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     backbone = resolve_backbone(backbone, cfg, target is not None and init is None and not resume)
     check_inputs(data_dirs, run_dir, resume, init, workers, threads, online is not None,
                  DEFAULT_TARGET if target is None else cfg.target, backbone, device)
+    with output_lock(run_dir, "train", field="run_dir"):
+        return _train_locked(cfg, data_dirs, run_dir, resume, init, device, workers, bf16, threads, progress,
+                             command, skip_damaged, online, backbone, task, target)
+
+
+def _train_locked(cfg, data_dirs: list[str], run_dir: str, resume: bool, init: str | None, device: str,
+                  workers: int | None, bf16: bool, threads: int | None, progress: bool, command: str,
+                  skip_damaged: bool, online, backbone: str | None, task, target) -> dict:
+    """train_detector's run, its arguments checked and run_dir locked."""
+    import torch
+
+    from envisat_pose.perception.train import train
+
     if online is not None:
         workers = 0  # no DataLoader: the renderer processes are online.workers
     rank_device = init_distributed(device)

@@ -45,6 +45,7 @@ from envisat_pose.filtering.estimator import filter_inertia_T_kg_m2
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import made_out_dir
+from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import run_frames
 from envisat_pose.pipelines.runs.loop_frames import FrameMaker, PlanAhead, closed_loop_frames
@@ -179,6 +180,7 @@ class TruthBrief:
     config: dict
 
 
+@locks_output("out_dir", "run")
 def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = False, sink: str | None = None) -> dict:
     """The whole job into out_dir (created, parents too); returns the summary dict (also written as
     summary.json). sink: where run 0's recording goes (None: save to out_dir/recording.rrd; 'spawn' or

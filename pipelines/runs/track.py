@@ -39,6 +39,7 @@ from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import check_out_dir, made_out_dir
+from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
@@ -154,6 +155,7 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
     return cfg, source, camera, remap, pixels
 
 
+@locks_output("out_dir", "track")
 def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCamera | str | None = None, remap=None,
                  out_dir: str = "track-out", sink: str | None = None, progress: bool = False) -> dict:
     """Run the Tracker over the source's frames (a FrameSource, or a path open_source opens at cfg.rate_hz);

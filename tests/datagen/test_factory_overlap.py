@@ -95,7 +95,7 @@ def test_the_rasterizer_threads_are_the_cores_shared_by_the_workers_that_start(m
             self.out_dir = out_dir
 
         def open(self):
-            os.makedirs(self.out_dir)
+            os.makedirs(self.out_dir, exist_ok=True)  # the output lock (out_lock) made it already
 
         def resume(self, opened):
             return {}

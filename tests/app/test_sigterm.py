@@ -1,0 +1,125 @@
+"""SIGTERM stops every verb as Ctrl-C does (app/interrupts.py): the same one line, exit 143, staged outputs
+removed and a resumable job's units kept; it ended verbs other than train without a word (exit -15). A pool's
+workers are not waited for, and SIGTERM to the whole process group (a service manager's stop) prints no
+traceback from them or from the pool."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+import pytest
+
+CLI = [sys.executable, "-m", "envisat_pose.app.cli"]
+
+
+def wait_for(path, proc, timeout=60.0):
+    """Until path exists (the job has started writing there) or the process ended."""
+    deadline = time.monotonic() + timeout
+    while not os.path.exists(path) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+
+
+def test_sigterm_stops_a_verb_with_its_ctrl_c_line_and_leaves_no_half_written_file(tmp_path):
+    out = tmp_path / "truth"
+    out.mkdir()
+    proc = subprocess.Popen(CLI + ["simulate", "--duration-s", "200000", "--plot", "--quiet", "--out",
+                                   str(out / "run.npz")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(out / ".run.npz.envisat.lock", proc)
+        time.sleep(1.0)  # simulating
+        assert proc.poll() is None, proc.communicate()
+        proc.send_signal(signal.SIGTERM)
+        stdout, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 143, err
+    assert err == "envisat simulate: interrupted\n" and stdout == ""
+    assert os.listdir(out) == []  # no run.npz, staging folder, partial file or lock file
+
+
+def test_sigterm_is_restored_after_an_in_process_main(monkeypatch):
+    import envisat_pose.app.simulate as simulate
+    from envisat_pose.app.cli import main
+
+    seen = []
+    monkeypatch.setattr(simulate, "run_simulate_cli", lambda args: seen.append(signal.getsignal(signal.SIGTERM)))
+    before = signal.getsignal(signal.SIGTERM)
+    assert main(["simulate", "--out", "x.npz"]) == 0
+    assert seen[0] is not before and signal.getsignal(signal.SIGTERM) is before
+
+
+def test_an_interrupted_pool_does_not_wait_for_its_units_in_progress():
+    """Ctrl-C or SIGTERM while a process pool runs: the workers are ended at once (their units, partial files,
+    are redone on a resume); the pool waited for every unit in progress (and the queued ones it had sent)."""
+    from envisat_pose.pools import RunnerConfig, run_tasks
+
+    tasks = run_tasks(time.sleep, [(0.1,), (30.0,), (30.0,)], RunnerConfig("local", 2))
+    start = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        try:
+            for _ in tasks:
+                raise KeyboardInterrupt  # at the first unit done, as a signal would
+        finally:
+            tasks.close()  # as the job's frame going away would
+    assert time.monotonic() - start < 15.0
+
+
+def running_in_group(pgid: int) -> list[int]:
+    """The processes of group pgid still running (zombies apart: a container without an init reaps none)."""
+    found = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{pid}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            found.append(int(pid))
+    return found
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("group", [False, True], ids=["to-envisat", "to-its-group"])
+def test_sigterm_stops_a_generate_with_workers_quietly_and_a_rerun_finishes_it(tmp_path, group):
+    """generate with 2 worker processes: SIGTERM to envisat (`kill PID`) or to its whole group (a service
+    manager): the resumable job's line, exit 143, no traceback (Python 3.11's pool thread raised InvalidStateError
+    when the workers died too), no worker left; the same command finishes the dataset."""
+    out = tmp_path / "data"
+    cmd = CLI + ["generate", "--num-images", "200", "--shard-size", "2", "--resolution", "48", "--workers", "2",
+                 "--quiet", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        wait_for(out / "shard-000000.tar", proc, timeout=120)
+        assert proc.poll() is None, proc.communicate()
+        (os.killpg if group else os.kill)(proc.pid, signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL) if proc.poll() is None else None
+    assert proc.returncode == 143, err
+    assert err == ("envisat generate: interrupted; run the same command again to finish it (what is written is "
+                   "kept)\n")
+    time.sleep(0.5)
+    assert running_in_group(proc.pid) == []  # no worker left
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0 and "images already there" in done.stdout, done.stderr
+
+
+@pytest.mark.parametrize("name,code", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_train_stopped_by_a_signal_exits_as_every_verb(name, code, tmp_path, monkeypatch, capsys):
+    """train stops itself after its step with a checkpoint on SIGINT or SIGTERM (perception's StopOnSignals); it
+    exited 130 for both, now 143 after SIGTERM as every other verb."""
+    import envisat_pose.app.train as app_train
+    from envisat_pose.app.cli import main
+    from envisat_pose.perception.train_run import TrainingInterrupted
+
+    def stopped(*args, **kwargs):
+        raise TrainingInterrupted(3, str(tmp_path / "run"), name)
+
+    monkeypatch.setattr(app_train, "train_detector", stopped)
+    assert main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--quiet"]) == code
+    err = capsys.readouterr().err
+    assert err.startswith(f"envisat train: {name} at step 3: checkpoint written") and "go on with" in err, err

@@ -1,0 +1,223 @@
+"""One job at a time on an output (envisat_pose/out_lock.py): two jobs on one --out were "safe, not exclusive";
+now the second is refused at once in one line naming the folder, the first job's verb and pid, having written
+nothing; the lock goes with its job (a second run after it works, a SIGKILLed holder blocks nothing) and leaves
+no file behind; a folder's listing (resume, export's empty check) does not count a killed job's lock file."""
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+import pytest
+
+from envisat_pose.app.cli import main
+from envisat_pose.config import InputError
+from envisat_pose.out_lock import LOCK_NAME, lock_file, output_lock
+
+HOLD = ("import sys, time; from envisat_pose.out_lock import output_lock\n"
+        "with output_lock(sys.argv[1], sys.argv[2], folder=sys.argv[3] == 'folder'):\n"
+        "    print('held', flush=True); time.sleep(120)\n")
+
+
+@pytest.fixture()
+def holder():
+    """hold(path, job, folder=True): another process holding the lock of path as job `job` (killed after)."""
+    procs = []
+
+    def hold(path, job="generate", folder=True):
+        proc = subprocess.Popen([sys.executable, "-c", HOLD, str(path), job, "folder" if folder else "file"],
+                                stdout=subprocess.PIPE, text=True)
+        procs.append(proc)
+        assert proc.stdout.readline().strip() == "held"
+        return proc
+
+    yield hold
+    for proc in procs:
+        proc.kill()
+        proc.wait()
+
+
+def refused(err: str, path, pid: int, verb: str) -> bool:
+    return (len(err.strip().splitlines()) == 1 and repr(str(path)) in err and f"pid {pid}" in err
+            and f"envisat {verb}," in err and "in use by another job" in err)
+
+
+def test_a_second_job_on_a_held_folder_is_refused_in_one_line_having_written_nothing(tmp_path, holder, capsys):
+    """The pipeline function and the verb: refused at once, the folder as the first job left it."""
+    from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig, run_campaign
+
+    out = tmp_path / "mc"
+    first = holder(out, "montecarlo")
+    before = sorted(os.listdir(out))
+    assert before == [LOCK_NAME]
+    with pytest.raises(InputError) as err:
+        run_campaign(MonteCarloConfig(scenario="default", runs=2, duration_s=10.0), str(out))
+    assert refused(str(err.value), out, first.pid, "montecarlo"), err.value
+    assert str(err.value).startswith("out_dir ")
+    argv = ["montecarlo", "--scenario", "default", "--runs", "2", "--duration-s", "10", "--out", str(out), "--quiet"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"envisat montecarlo: error: --out {str(out)!r} is in use") and refused(
+        err, out, first.pid, "montecarlo"), err
+    assert sorted(os.listdir(out)) == before and first.poll() is None  # nothing written; the first runs on
+
+
+# every writing verb with its output held by another job; the inputs need not exist: the lock comes first
+FOLDER_VERBS = {
+    "generate": ["generate", "--num-images", "2", "--resolution", "64", "--quiet", "--out"],
+    "run": ["run", "--scenario", "default", "--duration-s", "10", "--quiet", "--out"],
+    "train": ["train", "--online", "--quiet", "--out"],  # its inputs are checked first (a resume's folder)
+    "dataset export": ["dataset", "export", "ds", "--format", "coco", "--quiet", "--out"],
+}
+FILE_VERBS = {
+    "simulate": ["simulate", "--duration-s", "10", "--quiet", "--out"],
+    "estimate": ["estimate", "--scenario", "default", "--duration-s", "10", "--quiet", "--out"],
+    "detect": ["detect", "--data", "ds", "--quiet", "--out"],
+    "calibrate": ["calibrate", "--data", "ds", "--quiet", "--out"],
+    "evaluate": ["evaluate", "--data", "ds", "--quiet", "--json"],
+}
+
+
+@pytest.mark.parametrize("verb", sorted(FOLDER_VERBS) + sorted(FILE_VERBS))
+def test_every_writing_verb_is_refused_on_a_held_output(verb, tmp_path, holder, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    folder = verb in FOLDER_VERBS
+    out = tmp_path / ("out" if folder else "out.npz" if verb in ("simulate", "estimate", "detect") else
+                      "out.json" if verb == "evaluate" else "out.safetensors")
+    first = holder(out, "someverb", folder)
+    before = sorted(os.listdir(tmp_path))
+    assert main((FOLDER_VERBS if folder else FILE_VERBS)[verb] + [str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"envisat {verb.split()[0]}: error: --") and refused(err, out, first.pid, "someverb"), err
+    assert sorted(os.listdir(tmp_path)) == before  # nothing written
+    assert not folder or os.listdir(out) == [LOCK_NAME]
+
+
+# every job's function (the verbs' and the Python API's): (module, function, its output argument, a folder?)
+FUNCTIONS = [
+    ("datagen.factory", "run_generate", "out_dir", True),
+    ("pipelines.campaigns.simulate", "run_simulate", "out", False),
+    ("pipelines.campaigns.estimate", "run_estimate", "out", False),
+    ("pipelines.campaigns.campaign", "run_campaign", "out_dir", True),
+    ("pipelines.campaigns.sweep", "run_sweep", "out_dir", True),
+    ("pipelines.campaigns.report", "write_report", "out", False),
+    ("pipelines.detector.train", "train_detector", "run_dir", True),
+    ("pipelines.detector.detect", "run_detect", "out", False),
+    ("pipelines.detector.detect_target", "run_detect_target", "out", False),
+    ("pipelines.detector.evaluate", "run_evaluate", "json_path", False),
+    ("pipelines.detector.evaluate_target", "evaluate_target_detector", "json_path", False),
+    ("pipelines.detector.calibrate", "run_calibration", "out", False),
+    ("pipelines.detector.calibrate", "fit_face_cue", "out", False),
+    ("pipelines.detector.calibrate_target", "run_calibrate_target", "out", False),
+    ("pipelines.runs.closed_loop", "run_closed_loop", "out_dir", True),
+    ("pipelines.runs.track", "track_frames", "out_dir", True),
+    ("pipelines.adaptation.adapt", "adapt", "out_dir", True),
+    ("pipelines.datasets.export", "export_dataset", "out_dir", True),
+]
+
+
+@pytest.mark.parametrize("module,name,arg,folder", FUNCTIONS, ids=[f[1] for f in FUNCTIONS])
+def test_every_jobs_function_is_refused_on_a_held_output(module, name, arg, folder, tmp_path, holder):
+    """What a verb does its function does: the lock is taken first, so no other argument needs to be valid."""
+    import importlib
+    import inspect
+
+    fn = getattr(importlib.import_module(f"envisat_pose.{module}"), name)
+    out = tmp_path / ("out" if folder else "out.file")
+    first = holder(out, "someverb", folder)
+    before = sorted(os.listdir(tmp_path))
+    required = [p for p in inspect.signature(fn).parameters.values() if p.default is inspect.Parameter.empty
+                and p.kind is p.POSITIONAL_OR_KEYWORD]
+    given = {p.name: None for p in required if p.name != arg}
+    if name == "train_detector":  # locked after its arguments' checks (a resume needs its folder): valid ones
+        from envisat_pose.datagen.generate_config import GenerateConfig
+        from envisat_pose.perception.train import TrainConfig
+        from envisat_pose.pipelines.detector.train import OnlineConfig
+
+        given = {"cfg": TrainConfig(), "data_dirs": [], "online": OnlineConfig(GenerateConfig(resolution_px=64), 1)}
+    with pytest.raises(InputError) as err:
+        fn(**given, **{arg: str(out)})
+    assert str(err.value).startswith(f"{arg} ") and refused(str(err.value), out, first.pid, "someverb"), err.value
+    assert sorted(os.listdir(tmp_path)) == before
+
+
+def test_the_lock_goes_with_its_job_and_leaves_no_file(tmp_path):
+    """A run, then a second on the same output: both write (the first's lock is gone), and the folder holds only
+    the job's files; another process takes the lock after them. A job stopped leaves no folder it made."""
+    from envisat_pose.datagen.scenario import ScenarioConfig
+    from envisat_pose.pipelines.campaigns.simulate import run_simulate
+
+    for seed in (1, 2):
+        run_simulate(ScenarioConfig(duration_s=5.0, seed=seed), str(tmp_path / "run.npz"))
+    assert sorted(os.listdir(tmp_path)) == ["run.config.toml", "run.npz"]
+    took = subprocess.run([sys.executable, "-c", HOLD.replace("time.sleep(120)", "pass"), str(tmp_path / "run.npz"),
+                           "simulate", "file"], capture_output=True, text=True)
+    assert took.stdout == "held\n", took.stderr  # another process takes it after them
+    with pytest.raises(KeyboardInterrupt):
+        with output_lock(tmp_path / "new" / "deeper", "run"):
+            assert os.listdir(tmp_path / "new" / "deeper") == [LOCK_NAME]
+            raise KeyboardInterrupt
+    assert sorted(os.listdir(tmp_path)) == ["run.config.toml", "run.npz"]  # the folders it made are gone
+
+
+def test_a_sigkilled_holder_blocks_nothing(tmp_path, holder):
+    """The kernel's lock dies with its process: the lock file a SIGKILLed job leaves (its text naming a pid that
+    may be anyone's now) does not block the next job, which takes it over and removes it."""
+    from envisat_pose.datagen.scenario import ScenarioConfig
+    from envisat_pose.pipelines.campaigns.simulate import run_simulate
+
+    for out, folder in ((tmp_path / "mc", True), (tmp_path / "run.npz", False)):
+        first = holder(out, "montecarlo", folder)
+        first.send_signal(signal.SIGKILL)
+        first.wait()
+        assert os.path.exists(lock_file(str(out), folder))  # left behind, with the dead job's text
+        if folder:
+            with output_lock(out, "montecarlo"):
+                pass
+        else:
+            run_simulate(ScenarioConfig(duration_s=5.0, seed=1), str(out))
+        assert not os.path.exists(lock_file(str(out), folder))
+
+
+def test_a_killed_jobs_lock_file_is_not_another_jobs_entry(tmp_path, holder):
+    """generate on a folder holding only a killed job's lock file writes its dataset (a resumable job's foreign
+    entries skip it); an export to such a folder writes into it (its "empty folder" skips it)."""
+    from envisat_pose.config import from_dict
+    from envisat_pose.datagen.factory import run_generate
+    from envisat_pose.datagen.generate_config import GenerateConfig
+    from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
+
+    data, coco = tmp_path / "data", tmp_path / "coco"
+    for out in (data, coco):
+        proc = holder(out)
+        proc.kill()
+        proc.wait()
+    run_generate(from_dict(GenerateConfig, {"num_images": 2, "shard_size": 2, "resolution_px": 64}), str(data))
+    assert sorted(os.listdir(data)) == ["generate.config.toml", "manifest.json", "shard-000000.tar"]
+    export_dataset(str(data), str(coco), ExportConfig(fmt="coco"))
+    assert LOCK_NAME not in os.listdir(coco) and "export.json" in os.listdir(coco)
+
+
+def test_a_job_calling_another_on_its_own_output_goes_on_and_another_thread_is_refused(tmp_path):
+    out = tmp_path / "run"
+    with output_lock(out, "run"):
+        with output_lock(out, "run"):  # the same thread's job: under the same lock
+            pass
+        assert os.path.exists(out / LOCK_NAME)
+        errors = []
+
+        def second():
+            try:
+                with output_lock(out, "track"):
+                    pass
+            except InputError as err:
+                errors.append(str(err))
+
+        t = threading.Thread(target=second)
+        t.start()
+        t.join()
+        assert len(errors) == 1 and f"envisat run, pid {os.getpid()}" in errors[0], errors
+    assert not os.path.exists(out / LOCK_NAME)
