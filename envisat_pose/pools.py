@@ -68,13 +68,15 @@ def check_scheduler(address: str, field: str = "scheduler") -> None:
 
 
 @contextlib.contextmanager
-def without_main_script():
+def without_main_script(fn: Callable | None = None):
     """While worker processes start: `__main__` seen as a module without a file, so spawned workers do not run
     the calling script again (multiprocessing's spawn re-imports a script's top level in every child: a plain
     script that calls a job without `if __name__ == "__main__":` would start the job again in each, and fail).
-    The workers need nothing of the script: tasks are module-level functions of this package."""
+    The workers need nothing of the script where the task fn is a function of this package; a task the script
+    defines itself (a bench script's, under its main guard) is found in the script by the workers, which then
+    import it as spawn does (the script kept)."""
     main = sys.modules.get("__main__")
-    if main is None or getattr(main, "__file__", None) is None:
+    if main is None or getattr(main, "__file__", None) is None or getattr(fn, "__module__", None) == "__main__":
         yield
         return
     sys.modules["__main__"] = types.ModuleType("__main__")
@@ -220,7 +222,7 @@ def _run_pool(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
 
     with cf.ProcessPoolExecutor(max_workers=min(cfg.workers, len(tasks)), mp_context=mp.get_context("spawn"),
                                 initializer=_worker_init, initargs=(dict(cfg.env),)) as pool:
-        with without_main_script():  # the workers start as tasks are submitted
+        with without_main_script(fn):  # the workers start as tasks are submitted
             futures = {pool.submit(fn, *args): i for i, args in enumerate(tasks)}
         try:
             for fut in cf.as_completed(futures):

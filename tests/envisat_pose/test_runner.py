@@ -232,3 +232,19 @@ def test_a_field_compared_by_its_record_takes_another_spelling_of_the_same_file(
                          2, unit_file, header={"file": {"sha256": "aa"}})
     with pytest.raises(InputError, match=r"file = 'a/t.xml' there, 'x.xml' here"):
         plain.open()  # without compared_by the text is compared
+
+
+def test_a_script_whose_own_function_is_the_task_runs_a_local_pool(tmp_path):
+    """A script (bench/tracking.py, bench/acquisition.py) that hands the pool a function it defines itself, under
+    its main guard: the workers find it in the script (the pickled task names `__main__.square`). Hiding the
+    script from the workers for a plain script (above) failed these with "Can't pickle <function ...>"."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "own_task.py"
+    script.write_text("from envisat_pose.pools import RunnerConfig, run_tasks\n\n\ndef square(x):\n    return x * x\n\n\n"
+                      "if __name__ == '__main__':\n"
+                      "    print(sorted(r for _, r in run_tasks(square, [(2,), (3,)], RunnerConfig('local', 2))))\n")
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.split() == ["[4,", "9]"]
