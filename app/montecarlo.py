@@ -114,10 +114,10 @@ def run_montecarlo(args: argparse.Namespace) -> int:
 def nees_band(s: dict) -> str:
     """The mean NEES's 95 % bands: each run one sample first (a consistent campaign lies within it), then every
     run-step independent (too narrow: a run's errors are correlated in time). A summary written before the
-    first: the second alone."""
+    first: the second alone, named as such."""
     lo, hi = s["nees_bounds"]
     if "nees_run_bounds" not in s:
-        return f"{lo:.2f}..{hi:.2f}"
+        return f"{lo:.2f}..{hi:.2f} if every step were independent"
     run_lo, run_hi = s["nees_run_bounds"]
     return f"{run_lo:.2f}..{run_hi:.2f} with one sample a run; {lo:.2f}..{hi:.2f} if every step were independent"
 

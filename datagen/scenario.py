@@ -103,12 +103,14 @@ class RelativeConfig:
     def check_outside(self, radius_m: float, prefix: str = "relative", size_ratio: float | None = None) -> None:
         """ConfigError unless |rho0| exceeds radius_m, the target's keypoints' circumscribed radius (ENVISAT: its
         main body's corners, 5.29 m); size_ratio, where given, the target's size against ENVISAT's
-        (target_scene.size_ratio), for the way on: the start `envisat run` and `generate --mode sequence` fly."""
+        (target_scene.size_ratio), for the way on: the start `envisat run` and `generate --mode sequence` fly,
+        said only where it clears the radius (a smaller target's scaled start comes nearer, not farther)."""
         rng = float(np.linalg.norm(self.rho0_C_m))
+
         def scaled(v) -> str:
             return "[" + ", ".join(f"{size_ratio * x:.4g}" for x in v) + "]"
 
-        way_on = "" if size_ratio is None else (
+        way_on = "" if size_ratio is None or size_ratio * rng <= radius_m else (
             f": start it farther, as `envisat run` and `generate --mode sequence` do (the start scaled by the "
             f"target's size, {size_ratio:.3g} times): a config file's [relative] rho0_C_m = {scaled(self.rho0_C_m)}, "
             f"rhodot0_C_m_s = {scaled(self.rhodot0_C_m_s)}")

@@ -68,8 +68,11 @@ def _open_locked(lock: str, field: str, path: str, what: str) -> int:
     for _ in range(100):  # another holder may remove the file between our open and our lock: open it again
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
-        except PermissionError:  # another user's lock file in a shared folder: a read-only descriptor locks too
-            fd = os.open(lock, os.O_RDONLY | os.O_CLOEXEC)
+        except PermissionError as denied:  # another user's lock file in a shared folder: a read-only one locks too
+            try:
+                fd = os.open(lock, os.O_RDONLY | os.O_CLOEXEC)
+            except FileNotFoundError:
+                raise denied from None  # no lock file to share: the folder refuses a new file (its reason, not ENOENT)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as err:

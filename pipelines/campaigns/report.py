@@ -208,7 +208,7 @@ def campaign_rows(c: dict) -> list[tuple[str, str]]:
     for b in BLOCKS:
         rows.append((f"inside 3-sigma {b}", f"{_fmt(s['inside_3sigma_share'].get(b), 100.0, 4)} %"))
     lo, hi = s.get("nees_bounds", [None, None])
-    band = f"95 % band {_fmt(lo)} .. {_fmt(hi)}"
+    band = f"95 % band {_fmt(lo)} .. {_fmt(hi)} if every step were independent"  # an older summary's one band
     if "nees_run_bounds" in s:  # the band a consistent campaign lies within first
         band = f"95 % band {_fmt(s['nees_run_bounds'][0])} .. {_fmt(s['nees_run_bounds'][1])} with one sample a " \
                f"run; {_fmt(lo)} .. {_fmt(hi)} if every step were independent"

@@ -26,7 +26,8 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
                  label: str = "") -> dict:
     """Simulate the truth of cfg (a validated datagen ScenarioConfig) with MuJoCo and write out (the
     TruthTrajectory contract) and its config; label: the named scenario cfg was made from where cfg does not say
-    (cfg.scenario: scenario_config and resolve_job set it; recorded in the truth, and its plot's title); with plot the states' PNG next to out, with rrd a Rerun recording of the truth. The
+    (cfg.scenario: scenario_config and resolve_job set it; another name there is refused; recorded in the truth,
+    and its plot's title); with plot the states' PNG next to out, with rrd a Rerun recording of the truth. The
     output paths (str or pathlib.Path) are checked before any work (InputError naming `out` or `rrd`), their
     folders made then.
 
@@ -37,6 +38,9 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
 
     cfg = config_arg(cfg, ScenarioConfig)
     if label and label != cfg.scenario:
+        if cfg.scenario:  # the truth records one scenario: estimate takes its tables
+            raise InputError(f"label {label!r}: cfg was made from scenario {cfg.scenario!r} (cfg.scenario, which "
+                             "its truth records); give no label, or that one")
         if not known(label):
             raise InputError(f"label {label!r}: expected a named scenario ({', '.join(names())}) or a scenario "
                              "file that exists")

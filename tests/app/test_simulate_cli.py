@@ -167,3 +167,17 @@ def test_a_target_larger_than_the_hold_is_told_the_start_that_clears_it(tmp_path
     cfg = tmp_path / "far.toml"
     cfg.write_text(f"[relative]\nrho0_C_m = {rho0}\nrhodot0_C_m_s = {rhodot0}\n")
     assert main([*args, "--config", str(cfg)]) == 0 and out.exists()
+
+
+def test_a_start_inside_a_small_target_is_not_told_a_scaled_start_that_comes_nearer(tmp_path, capsys):
+    """A 3U CubeSat (0.036 times ENVISAT's size) with a start inside it: the scaled start would be nearer still (and
+    inside), so the line gives the radius and no 'start it farther' start (it gave [0, 0.005467, 0] m)."""
+    cfg = tmp_path / "near.toml"
+    cfg.write_text("[relative]\nrho0_C_m = [0.0, 0.15, 0.0]\n")
+    out = tmp_path / "run.npz"
+    args = ["simulate", "--target", "models/cubesat_3u.xml", "--config", str(cfg), "--duration-s", "10",
+            "--out", str(out), "--quiet"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "inside the target" in err[0] and not out.exists(), err
+    assert "farther" not in err[0] and "0.005467" not in err[0], err

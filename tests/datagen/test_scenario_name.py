@@ -43,3 +43,16 @@ def test_a_truth_of_no_named_scenario_records_none_as_before(tmp_path):
     run_simulate(ScenarioConfig(duration_s=5.0), out)
     assert "scenario" not in _config_json(out) and recorded_scenario(str(out)) is None
     assert with_recorded_scenario(EstimateConfig(), str(out)) == EstimateConfig()
+
+
+def test_a_label_that_contradicts_the_configs_scenario_is_refused_having_written_nothing(tmp_path):
+    """cfg made from 'eclipse' with label 'default': the truth recorded 'default', and estimate --truth then took
+    default's tables for an eclipse truth. Refused, naming `label`; the same name, or none, goes on."""
+    from envisat_pose.config import InputError
+
+    out = tmp_path / "run.npz"
+    with pytest.raises(InputError, match=r"^label 'default': cfg was made from scenario 'eclipse'"):
+        run_simulate(scenario_config("eclipse", duration_s=5.0), out, label="default")
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == []
+    run_simulate(scenario_config("eclipse", duration_s=5.0), out, label="eclipse")
+    assert recorded_scenario(str(out)) == "eclipse"

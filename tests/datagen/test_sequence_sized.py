@@ -169,3 +169,26 @@ def test_a_100m_targets_sequence_sizes_its_depth_scale_from_its_truth(tmp_path):
     assert main(["generate", "--config", str(cfg_path), "--target", rod, "--num-images", "2", "--resolution", "64",
                  "--out", str(tmp_path / "refused"), "--quiet"]) == 2
     assert not (tmp_path / "refused").exists()
+
+
+def test_an_edited_target_file_is_simulated_again_not_read_from_the_cache(tmp_path):
+    """sequence_truth is cached for a sequence's frames; the file edited in between (its inertia: another tumble)
+    gives the new file's truth, as a fresh process would (the target's other caches key on the file's content)."""
+    import os
+
+    from envisat_pose.datagen.truth import sequence_truth
+
+    path = tmp_path / "cs.xml"
+    text = open(CUBESAT, encoding="utf-8").read()
+    old, new = 'fullinertia="0.051115 0.040782 0.016333 0 0 0"', 'fullinertia="0.051115 0.020782 0.036333 0 0 0"'
+    assert old in text
+    path.write_text(text)
+    args = ("default", 0.05, 3, 20.0, 1, str(path))
+    before = sequence_truth(*args)[2]
+    path.write_text(text.replace(old, new))
+    os.utime(path, ns=(os.stat(path).st_atime_ns, os.stat(path).st_mtime_ns + 10**9))  # a later modification
+    after = sequence_truth(*args)[2]
+    want = simulate_truth(scenario_config("default", duration_s=40.0, dt_s=20.0, seed=1, target={"file": str(path)},
+                                          **scaled_start("default", 0.05))).x[:3]
+    assert not np.array_equal(before, want)  # the edit changes the truth: the test can tell
+    np.testing.assert_array_equal(after, want)

@@ -221,3 +221,28 @@ def test_a_job_calling_another_on_its_own_output_goes_on_and_another_thread_is_r
         t.join()
         assert len(errors) == 1 and f"envisat run, pid {os.getpid()}" in errors[0], errors
     assert not os.path.exists(out / LOCK_NAME)
+
+
+def test_a_folder_that_refuses_a_new_file_is_named_with_its_own_reason(tmp_path, monkeypatch):
+    """A folder where the user may not create files (another user's, read-only), and no lock file there to share:
+    the line says 'Permission denied', the creation's reason, not the read-only retry's 'No such file'."""
+    import errno
+
+    from envisat_pose import out_lock
+
+    real_open = os.open
+
+    def no_new_lock_file(path, flags, *args):
+        if str(path).endswith(LOCK_NAME) and flags & os.O_CREAT:
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), path)
+        return real_open(path, flags, *args)
+
+    out = tmp_path / "theirs"
+    out.mkdir()
+    monkeypatch.setattr(out_lock.os, "open", no_new_lock_file)
+    with pytest.raises(InputError) as err:
+        with output_lock(out, "run"):
+            pass
+    monkeypatch.undo()
+    assert str(err.value) == f"out_dir {str(out)!r}: cannot write there ({os.strerror(errno.EACCES)})", err.value
+    assert os.listdir(out) == []
