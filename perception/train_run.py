@@ -62,12 +62,11 @@ def check_same_target(run_dir: str, saved: list[dict], data: list[dict]) -> None
 
 def same_target_file(was, now) -> bool:
     """Whether a resume's `target` names the run's own file in another spelling (an absolute path for the relative
-    one it started with, say): `now` found, and `was` the same file or not found from here (then the data
-    record's sha256, check_same_target, refuses a file that differs)."""
+    one it started with, say): both found from here, one file."""
     if not (isinstance(was, str) and isinstance(now, str)):
         return False
     a, b = resolve_target_path(was), resolve_target_path(now)
-    return os.path.isfile(b) and (not os.path.isfile(a) or os.path.samefile(a, b))
+    return os.path.isfile(a) and os.path.isfile(b) and os.path.samefile(a, b)
 
 
 def check_resume(run_dir: str, cfg, data: list[dict] | None) -> tuple[dict, dict]:

@@ -252,16 +252,15 @@ def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | N
         raise InputError(f"threads = {threads}: expected at least 1")
 
 
-def read_run_config(run_dir: str, target: str | None = None) -> dict:
+def read_run_config(run_dir: str) -> dict:
     """The TrainConfig (as a dict) a run folder was trained with: the base a resumed run starts from. InputError
-    when its target file, kept as typed (relative to the folder the run started in), is not found from here and
-    no target (the file's path from here) is given; the resume checks a given one against the run's record."""
+    when its target file, kept as typed (relative to the folder the run started in), is not found from here (its
+    renders' record holds the same path: the run goes on only where it names the file)."""
     train = read_run_record(run_dir)["train"]
     kept = train.get("target")
-    if isinstance(kept, str) and not os.path.isfile(resolve_target_path(kept)) and not target:
+    if isinstance(kept, str) and not os.path.isfile(resolve_target_path(kept)):
         raise InputError(f"resume: {run_dir!r} renders the target file {kept!r}, kept as it was typed when the "
-                         "run started, and it is not found from here: resume from the folder the run started in, "
-                         "or give the file's path from here (`target`)")
+                         "run started, and it is not found from here: resume from the folder the run started in")
     return train
 
 
