@@ -108,7 +108,8 @@ def output_lock(path, job: str, *, field: str = "out_dir", folder: bool = True):
     folders made here are removed again when the block fails and leaves them empty. InputError in one line,
     having written nothing, when another job holds it (see the module doc)."""
     path = os.fspath(path)
-    if os.environ.get("RANK", "0") != "0":  # a torchrun rank besides 0: the job's lock is rank 0's
+    # a torchrun rank besides 0: the job's lock is rank 0's (RANK alone, which other tools set, locks as usual)
+    if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1 and os.environ.get("RANK", "0") != "0":
         yield
         return
     (check_out_dir if folder else check_out_file)(path, field=field)

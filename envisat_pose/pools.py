@@ -76,7 +76,7 @@ def without_main_script(fn: Callable | None = None):
     defines itself (a bench script's, under its main guard) is found in the script by the workers, which then
     import it as spawn does (the script kept)."""
     main = sys.modules.get("__main__")
-    if main is None or getattr(main, "__file__", None) is None or getattr(fn, "__module__", None) == "__main__":
+    if main is None or getattr(main, "__file__", None) is None or getattr(getattr(fn, "func", fn), "__module__", None) == "__main__":
         yield
         return
     sys.modules["__main__"] = types.ModuleType("__main__")

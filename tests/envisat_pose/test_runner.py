@@ -248,3 +248,18 @@ def test_a_script_whose_own_function_is_the_task_runs_a_local_pool(tmp_path):
     run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-2000:]
     assert run.stdout.split() == ["[4,", "9]"]
+
+
+def test_a_partial_of_the_scripts_own_function_runs_a_local_pool(tmp_path):
+    """functools.partial over a function the script defines: the workers find it in the script as above."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "own_partial.py"
+    script.write_text("import functools\n\nfrom envisat_pose.pools import RunnerConfig, run_tasks\n\n\n"
+                      "def power(x, n):\n    return x ** n\n\n\n"
+                      "if __name__ == '__main__':\n    cube = functools.partial(power, n=3)\n"
+                      "    print(sorted(r for _, r in run_tasks(cube, [(2,), (3,)], RunnerConfig('local', 2))))\n")
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.split() == ["[8,", "27]"]

@@ -246,3 +246,28 @@ def test_a_folder_that_refuses_a_new_file_is_named_with_its_own_reason(tmp_path,
     monkeypatch.undo()
     assert str(err.value) == f"out_dir {str(out)!r}: cannot write there ({os.strerror(errno.EACCES)})", err.value
     assert os.listdir(out) == []
+
+
+def test_a_rank_set_outside_torchrun_still_locks(tmp_path, monkeypatch):
+    """RANK 1 with WORLD_SIZE 2 (a torchrun rank besides 0): no lock of its own (rank 0 holds the job's); RANK set
+    alone (another tool's variable) locks as usual."""
+    out = tmp_path / "run"
+    with output_lock(out, "run"):
+        monkeypatch.setenv("RANK", "1")
+        monkeypatch.setenv("WORLD_SIZE", "2")
+        with output_lock(out, "train"):  # rank 1 of 2: rank 0's lock is the job's
+            pass
+        monkeypatch.delenv("WORLD_SIZE")
+        errors = []
+
+        def second():
+            try:
+                with output_lock(out, "track"):
+                    pass
+            except InputError as err:
+                errors.append(str(err))
+
+        t = threading.Thread(target=second)
+        t.start()
+        t.join()
+        assert len(errors) == 1 and "in use by another job" in errors[0], errors
