@@ -29,7 +29,22 @@ from envisat_pose.config import InputError
 from envisat_pose.out_dirs import check_out_dir, check_out_file
 
 LOCK_NAME = ".envisat.lock"  # a locked output folder's lock file; an output file's: '.NAME' + LOCK_NAME beside it
-_held: dict[str, list] = {}  # this process's locks: lock file's real path -> [thread id, depth, pid]
+_held: dict[str, list] = {}  # this process's locks: lock file's real path -> [thread id, depth, pid, descriptor]
+
+
+def _close_inherited() -> None:
+    """In a child forked while a lock is held (a DataLoader worker): its copy of each lock's descriptor closed, so
+    the lock goes with the job's own process (a SIGKILLed job's forked workers would hold it until they end); the
+    parent's descriptor keeps the lock (flock's lock is the open file's, released when its last descriptor goes)."""
+    for entry in list(_held.values()):
+        try:
+            os.close(entry[3])
+        except OSError:
+            pass
+    _held.clear()
+
+
+os.register_at_fork(after_in_child=_close_inherited)
 
 
 def lock_file(path: str, folder: bool = True) -> str:
@@ -139,7 +154,7 @@ def output_lock(path, job: str, *, field: str = "out_dir", folder: bool = True):
         os.ftruncate(fd, 0)
         os.pwrite(fd, json.dumps({"pid": os.getpid(), "job": job, "started": time.strftime(
             "%Y-%m-%d %H:%M:%S")}).encode("utf-8"), 0)
-    _held[key] = [threading.get_ident(), 1, os.getpid()]
+    _held[key] = [threading.get_ident(), 1, os.getpid(), fd]
     try:
         yield
     except BaseException:

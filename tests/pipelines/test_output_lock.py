@@ -271,3 +271,22 @@ def test_a_rank_set_outside_torchrun_still_locks(tmp_path, monkeypatch):
         t.start()
         t.join()
         assert len(errors) == 1 and "in use by another job" in errors[0], errors
+
+
+def test_a_child_forked_under_the_lock_does_not_keep_it_after_its_job_is_killed(tmp_path):
+    """A job holding the lock forks a child (a DataLoader worker) and is SIGKILLed: the child, still alive, holds
+    no copy of the lock, so the next job takes it at once."""
+    out = tmp_path / "run"
+    code = ("import os, sys, time\nfrom envisat_pose.out_lock import output_lock\n"
+            "with output_lock(sys.argv[1], 'train'):\n    pid = os.fork()\n    if pid == 0:\n"
+            "        time.sleep(60)\n        os._exit(0)\n    print(pid, flush=True)\n    time.sleep(60)\n")
+    job = subprocess.Popen([sys.executable, "-c", code, str(out)], stdout=subprocess.PIPE, text=True)
+    child = int(job.stdout.readline())
+    try:
+        job.send_signal(signal.SIGKILL)
+        job.wait()
+        os.kill(child, 0)  # the forked child lives on
+        with output_lock(out, "run"):
+            pass
+    finally:
+        os.kill(child, signal.SIGKILL)
