@@ -201,24 +201,30 @@ def test_a_killed_jobs_lock_file_is_not_another_jobs_entry(tmp_path, holder):
     assert LOCK_NAME not in os.listdir(coco) and "export.json" in os.listdir(coco)
 
 
+def locked_from_another_thread(out) -> list[str]:
+    """The errors of output_lock(out) taken on another thread of this process ([] where it was taken)."""
+    errors = []
+
+    def second():
+        try:
+            with output_lock(out, "track"):
+                pass
+        except InputError as err:
+            errors.append(str(err))
+
+    t = threading.Thread(target=second)
+    t.start()
+    t.join()
+    return errors
+
+
 def test_a_job_calling_another_on_its_own_output_goes_on_and_another_thread_is_refused(tmp_path):
     out = tmp_path / "run"
     with output_lock(out, "run"):
         with output_lock(out, "run"):  # the same thread's job: under the same lock
             pass
         assert os.path.exists(out / LOCK_NAME)
-        errors = []
-
-        def second():
-            try:
-                with output_lock(out, "track"):
-                    pass
-            except InputError as err:
-                errors.append(str(err))
-
-        t = threading.Thread(target=second)
-        t.start()
-        t.join()
+        errors = locked_from_another_thread(out)
         assert len(errors) == 1 and f"envisat run, pid {os.getpid()}" in errors[0], errors
     assert not os.path.exists(out / LOCK_NAME)
 
@@ -258,18 +264,7 @@ def test_a_rank_set_outside_torchrun_still_locks(tmp_path, monkeypatch):
         with output_lock(out, "train"):  # rank 1 of 2: rank 0's lock is the job's
             pass
         monkeypatch.delenv("WORLD_SIZE")
-        errors = []
-
-        def second():
-            try:
-                with output_lock(out, "track"):
-                    pass
-            except InputError as err:
-                errors.append(str(err))
-
-        t = threading.Thread(target=second)
-        t.start()
-        t.join()
+        errors = locked_from_another_thread(out)
         assert len(errors) == 1 and "in use by another job" in errors[0], errors
 
 
