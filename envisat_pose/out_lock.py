@@ -116,10 +116,12 @@ def _release(lock: str, fd: int) -> None:
 
 
 @contextlib.contextmanager
-def output_lock(path, job: str, *, field: str = "out_dir", folder: bool = True):
+def output_lock(path, job: str, *, field: str = "out_dir", folder: bool = True, beside: bool = False):
     """Hold the lock of the output `path` (a folder; folder=False: one output file) for job `job` (the verb's
-    name, for the refusal's text) while the block runs. The path is checked first (out_dirs.check_out_dir /
-    check_out_file: InputError naming `field`), then the folder the lock file goes in is made (parents too);
+    name, for the refusal's text) while the block runs. beside: a folder's lock file beside it, as a file's (a job
+    that publishes its folder whole by a rename, `dataset export`: the folder is not made before it is complete).
+    The path is checked first (out_dirs.check_out_dir / check_out_file: InputError naming `field`), then the
+    folder the lock file goes in is made (parents too);
     folders made here are removed again when the block fails and leaves them empty. InputError in one line,
     having written nothing, when another job holds it (see the module doc)."""
     path = os.fspath(path)
@@ -128,7 +130,7 @@ def output_lock(path, job: str, *, field: str = "out_dir", folder: bool = True):
         yield
         return
     (check_out_dir if folder else check_out_file)(path, field=field)
-    lock = lock_file(path, folder)
+    lock = lock_file(path, folder and not beside)
     where = os.path.dirname(lock)
     key = os.path.join(os.path.realpath(where), os.path.basename(lock))
     mine = _held.get(key)
@@ -145,7 +147,7 @@ def output_lock(path, job: str, *, field: str = "out_dir", folder: bool = True):
         fd = _open_locked(lock, field, path, "folder" if folder else "file")
     except OSError as err:
         _remove_made(made)
-        place = "there" if folder else f"in its folder {where!r}"  # out_dirs.make_out_dir's, make_out_file_dir's
+        place = "there" if folder and not beside else f"in its folder {where!r}"  # make_out_dir's, make_out_file_dir's
         raise InputError(f"{field} {path!r}: cannot write {place} ({err.strerror or err})") from None
     except BaseException:
         _remove_made(made)
@@ -172,7 +174,7 @@ def _remove_made(made: list[str]) -> None:
             os.rmdir(folder)
 
 
-def locks_output(arg: str, job: str, *, folder: bool = True, field: str | None = None):
+def locks_output(arg: str, job: str, *, folder: bool = True, field: str | None = None, beside: bool = False):
     """Decorator: the job's function runs under output_lock of its argument `arg` (by name or position; its
     default where not given), for job `job`, named `field` (default: arg) in errors. An argument that is None or
     not a path is left to the function's own checks (no lock)."""
@@ -189,7 +191,7 @@ def locks_output(arg: str, job: str, *, folder: bool = True, field: str | None =
             path = bound.arguments.get(arg)
             if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
                 return fn(*args, **kwargs)
-            with output_lock(path, job, field=field or arg, folder=folder):
+            with output_lock(path, job, field=field or arg, folder=folder, beside=beside):
                 return fn(*args, **kwargs)
 
         return locked

@@ -83,7 +83,7 @@ class ExportSummary:
     skipped: list
 
 
-@locks_output("out_dir", "dataset export")
+@locks_output("out_dir", "dataset export", beside=True)  # the folder appears whole, by a rename (_publish)
 def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 1, skip_damaged: bool = False,
                    progress: bool = False, on_shard=None) -> ExportSummary:
     """Export the dataset folder `src` into the new folder `out_dir` in cfg's format (module docstring).

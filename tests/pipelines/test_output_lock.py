@@ -18,8 +18,9 @@ from envisat_pose.config import InputError
 from envisat_pose.out_lock import LOCK_NAME, lock_file, output_lock
 
 HOLD = ("import sys, time; from envisat_pose.out_lock import output_lock\n"
-        "with output_lock(sys.argv[1], sys.argv[2], folder=sys.argv[3] == 'folder'):\n"
+        "with output_lock(sys.argv[1], sys.argv[2], folder=sys.argv[3] != 'file', beside=sys.argv[3] == 'beside'):\n"
         "    print('held', flush=True); time.sleep(120)\n")
+BESIDE = ("dataset export", "export_dataset")  # a folder published whole by a rename: its lock file beside it
 
 
 @pytest.fixture()
@@ -27,8 +28,9 @@ def holder():
     """hold(path, job, folder=True): another process holding the lock of path as job `job` (killed after)."""
     procs = []
 
-    def hold(path, job="generate", folder=True):
-        proc = subprocess.Popen([sys.executable, "-c", HOLD, str(path), job, "folder" if folder else "file"],
+    def hold(path, job="generate", folder=True):  # folder: True, False or "beside"
+        mode = "beside" if folder == "beside" else "folder" if folder else "file"
+        proc = subprocess.Popen([sys.executable, "-c", HOLD, str(path), job, mode],
                                 stdout=subprocess.PIPE, text=True)
         procs.append(proc)
         assert proc.stdout.readline().strip() == "held"
@@ -87,13 +89,13 @@ def test_every_writing_verb_is_refused_on_a_held_output(verb, tmp_path, holder, 
     folder = verb in FOLDER_VERBS
     out = tmp_path / ("out" if folder else "out.npz" if verb in ("simulate", "estimate", "detect") else
                       "out.json" if verb == "evaluate" else "out.safetensors")
-    first = holder(out, "someverb", folder)
+    first = holder(out, "someverb", "beside" if verb in BESIDE else folder)
     before = sorted(os.listdir(tmp_path))
     assert main((FOLDER_VERBS if folder else FILE_VERBS)[verb] + [str(out)]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"envisat {verb.split()[0]}: error: --") and refused(err, out, first.pid, "someverb"), err
     assert sorted(os.listdir(tmp_path)) == before  # nothing written
-    assert not folder or os.listdir(out) == [LOCK_NAME]
+    assert not folder or verb in BESIDE or os.listdir(out) == [LOCK_NAME]
 
 
 # every job's function (the verbs' and the Python API's): (module, function, its output argument, a folder?)
@@ -127,7 +129,7 @@ def test_every_jobs_function_is_refused_on_a_held_output(module, name, arg, fold
 
     fn = getattr(importlib.import_module(f"envisat_pose.{module}"), name)
     out = tmp_path / ("out" if folder else "out.file")
-    first = holder(out, "someverb", folder)
+    first = holder(out, "someverb", "beside" if name in BESIDE else folder)
     before = sorted(os.listdir(tmp_path))
     required = [p for p in inspect.signature(fn).parameters.values() if p.default is inspect.Parameter.empty
                 and p.kind is p.POSITIONAL_OR_KEYWORD]
@@ -184,15 +186,15 @@ def test_a_sigkilled_holder_blocks_nothing(tmp_path, holder):
 
 def test_a_killed_jobs_lock_file_is_not_another_jobs_entry(tmp_path, holder):
     """generate on a folder holding only a killed job's lock file writes its dataset (a resumable job's foreign
-    entries skip it); an export to such a folder writes into it (its "empty folder" skips it)."""
+    entries skip it); an export beside a killed export's lock file writes its folder."""
     from envisat_pose.config import from_dict
     from envisat_pose.datagen.factory import run_generate
     from envisat_pose.datagen.generate_config import GenerateConfig
     from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
 
     data, coco = tmp_path / "data", tmp_path / "coco"
-    for out in (data, coco):
-        proc = holder(out)
+    for out, mode in ((data, True), (coco, "beside")):
+        proc = holder(out, folder=mode)
         proc.kill()
         proc.wait()
     run_generate(from_dict(GenerateConfig, {"num_images": 2, "shard_size": 2, "resolution_px": 64}), str(data))
@@ -285,3 +287,29 @@ def test_a_child_forked_under_the_lock_does_not_keep_it_after_its_job_is_killed(
             pass
     finally:
         os.kill(child, signal.SIGKILL)
+
+
+def test_an_export_appears_whole_by_one_rename(tmp_path, monkeypatch):
+    """The export's folder appears whole, by one rename of its staging folder: its lock file lies beside it. A lock
+    inside would make the folder first, and the export's entries would then be moved in one at a time, so a kill
+    between two moves left half an export under the final name."""
+    import shutil
+
+    from envisat_pose.config import from_dict
+    from envisat_pose.datagen.factory import run_generate
+    from envisat_pose.datagen.generate_config import GenerateConfig
+    from envisat_pose.pipelines.datasets import export as export_module
+    from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
+
+    data, coco = tmp_path / "data", tmp_path / "coco"
+    run_generate(from_dict(GenerateConfig, {"num_images": 2, "shard_size": 2, "resolution_px": 64}), str(data))
+    moves = []
+
+    def move(src, dst):
+        moves.append(dst)
+        return shutil.move(src, dst)
+
+    monkeypatch.setattr(export_module.shutil, "move", move)
+    export_dataset(str(data), str(coco), ExportConfig(fmt="coco"))
+    assert moves == [] and "export.json" in os.listdir(coco)
+    assert not any(n.endswith(LOCK_NAME) for n in os.listdir(tmp_path) + os.listdir(coco))
