@@ -25,6 +25,8 @@ The bounds are TrackerConfig.integrity's (IntegrityConfig: `window`, `prob`, ...
   definite and its position and attitude sigmas inside `lost_pos_sigma_share` x range and `lost_att_sigma_deg`.
 - A claim at the tracking accuracy (`claim_holds`): the 3-sigma position within `claim_pos_share` of the range and
   the 3-sigma attitude within `claim_att_deg` (the same tolerances a benchmark scores a false lock by).
+- A re-acquired claim against the lost track's memory (`recall_says_twin`): the last confirmed state, propagated
+  to now, that puts the candidate at one of its twins (a naming's symmetry, not an equivalent) withholds it.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.filtering.measurements import to_camera_K
 from envisat_pose.gates import chi2_bound
 from envisat_pose.geometry import PinholeCamera
@@ -97,6 +100,25 @@ def claim_holds(x: np.ndarray, P: np.ndarray, cfg) -> bool:
     pos_sig, att_sig = pose_sigmas(P)
     range_m = float(np.linalg.norm(x[POS]))
     return bool(3.0 * pos_sig <= cfg.claim_pos_share * range_m and 3.0 * att_sig <= cfg.claim_att_deg)
+
+
+def recall_says_twin(x: np.ndarray, x_recall: np.ndarray, recall_att_sigma_deg: float, namings) -> tuple | None:
+    """(angle to the recalled pose, angle to its nearest twin), deg, when the recalled state x_recall (12,) (the lost
+    track's last confirmed state propagated to x's time, its attitude sigma recall_att_sigma_deg) says the candidate
+    x (12,) is a twin of it: x nearer one of its twins (namings.relabel_S of a naming other than the detector's own)
+    than to it (the identity or an equivalent rotation), and farther from it than 3 sigma. None otherwise (it
+    agrees, cannot tell, or the target has no twins)."""
+    twin = np.asarray(namings.relabel_class) > 0
+    if not twin.any():
+        return None
+    G = mrp_to_dcm(np.asarray(x, float)[MRP])
+    G_recall = np.einsum("rij,jk->rik", namings.relabel_S, mrp_to_dcm(np.asarray(x_recall, float)[MRP]))
+    cos = (np.einsum("ij,rij->r", G, G_recall) - 1.0) / 2.0  # trace(G G_r^T): the rotation between them
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    d_self, d_twin = float(np.min(angle[~twin])), float(np.min(angle[twin]))
+    if d_twin < d_self and d_self > 3.0 * recall_att_sigma_deg:
+        return d_self, d_twin
+    return None
 
 
 def rejections_improbable(rejected: int, given: int, share: float, prob: float) -> float | None:

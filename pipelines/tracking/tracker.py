@@ -21,7 +21,8 @@ Statuses (envisat_pose/status.py), per frame:
   it (a twin just past a bound the passing one is just inside is the window's noise, not evidence); when none
   passes the older half of the window is dropped and acquisition goes on. Or a bank runs but has not yet
   earned a claim: its half-turn is still open, or it has not yet passed `integrity.confirm_frames` frames with
-  corners used and a covariance inside the claim.
+  corners used and a covariance inside the claim, or the last confirmed track (lost within `integrity.recall_s`),
+  propagated to now, puts it at its own twin (TrackingSteps._recall_veto).
 - "tracking": the bank is decided (one hypothesis) and confirmed, this frame used corners, and the covariance backs
   the claim (3-sigma within `integrity.claim_pos_share` of the range and `integrity.claim_att_deg`).
 - "coasting": the confirmed bank predicts without a usable measurement (no image, nothing found, every corner
@@ -147,6 +148,8 @@ class Tracker(AcquiringSteps, TrackingSteps):
         self.log_array = np.zeros(0)  # per hypothesis: the array cue's log-likelihood, summed
         self.evidence: EvidenceWindow | None = None
         self.confirmed = False
+        # the last confirmed track (predicted on while it vetoes) and its time, kept through a loss (_recall_veto)
+        self.recall: tuple[FilterState, float] | None = None
         self.buffer: list[FramePose] = []
         self.coasting_frames = 0
         self.array_against = 0  # array-cue readings in a row against the one hypothesis left

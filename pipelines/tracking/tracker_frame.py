@@ -23,7 +23,13 @@ from envisat_pose.pipelines.tracking.bank import (
     same_array_end,
     update_cost,
 )
-from envisat_pose.pipelines.tracking.integrity import claim_holds, pose_sigmas, state_problems, window_problems
+from envisat_pose.pipelines.tracking.integrity import (
+    claim_holds,
+    pose_sigmas,
+    recall_says_twin,
+    state_problems,
+    window_problems,
+)
 from envisat_pose.pipelines.tracking.noise import detection_measurement, filter_memory, nis_sum_dispersion
 from envisat_pose.pipelines.tracking.tracker_config import RoiConfig, TrackEstimate
 from envisat_pose.state import MRP, N_STATE, POS, RATE
@@ -319,9 +325,39 @@ class TrackingSteps:
             if self.state.mean.shape[0] > 1 or not backed \
                     or self.evidence.used_frames()[0] < self.cfg.integrity.confirm_frames:
                 return "acquiring"
+            withheld = self._recall_veto(mean)
+            if withheld:
+                events.append(withheld)
+                return "acquiring"
             self.confirmed = True
             events.append("confirmed")
+        self.recall = (self.state, float(self.state.t_s))  # the confirmed track and its time, kept through a loss
         return "tracking" if backed else "coasting"
+
+    def _recall_veto(self, mean: np.ndarray) -> str | None:
+        """Why a bank about to be confirmed with the state mean (12,) is not, or None: the last confirmed track
+        (lost within integrity.recall_s), propagated to now with the filter's dynamics (its covariance times
+        recall_cov_factor, its attitude sigma still within recall_att_sigma_deg), puts the claim at its twin
+        (integrity.recall_says_twin). A memory too old or too wide is forgotten; none (a cold start) vetoes nothing."""
+        if self.recall is None:
+            return None
+        ic, (rec, t_confirmed) = self.cfg.integrity, self.recall
+        t_s = float(self.state.t_s)
+        age = t_s - t_confirmed
+        if age > ic.recall_s:
+            self.recall = None
+            return None
+        m, P = predict_to(rec, t_s, self.setup) if age > 0 else (rec.mean, rec.cov)
+        sigma = pose_sigmas(P[0] * ic.recall_cov_factor)[1]
+        if not (np.isfinite(m[0]).all() and sigma <= ic.recall_att_sigma_deg):
+            self.recall = None
+            return None
+        self.recall = (dataclasses.replace(rec, t_s=t_s, chaser=self.state.chaser, mean=m, cov=P), t_confirmed)
+        said = recall_says_twin(mean, m[0], sigma, self.namings)
+        if said is None:
+            return None
+        return (f"claim withheld: the track lost {age:.0f} s ago, propagated, puts this pose at its twin "
+                f"({said[1]:.0f} deg from the twin, {said[0]:.0f} deg from itself)")
 
     def _rejected(self, prior, z, mask, cov, best) -> np.ndarray:
         """Corners of the best hypothesis the chi-square gate rejects (its own per-corner rule from the prior's

@@ -1027,3 +1027,31 @@ def test_the_trackers_corner_gate_reads_the_filters_chart(truth_600):
 
     np.testing.assert_allclose(d2, gate_d2("rotation"), rtol=1e-9)
     assert np.abs(gate_d2("additive") / gate_d2("rotation") - 1.0).max() > 0.01
+
+
+def test_a_reacquired_twin_of_the_lost_track_is_not_claimed(truth_600):
+    """A correct track lost (nothing found for lost_after_frames frames), then a bank started on its half-turn twin
+    (what the detector's twin namings made on slow-tumble seed 7: claimed 180 deg off for 119 s): the last
+    confirmed track, propagated, says "that is the twin", and the claim is withheld (status "acquiring", the reason
+    in the events) while the same bank on the true pose is claimed. A cold start (no memory) is unchanged."""
+    from envisat_pose.pipelines.tracking.namings import box_namings
+
+    def run(start_state, recall=True):
+        tracker = Tracker(load_camera(), Blind(truth_600, range(60, 71)), chaser_lookup(truth_600), TrackerConfig())
+        ests = [tracker.step(float(truth_600.t_s[k]), frame_image(k)) for k in range(0, 71)]
+        assert ests[59].status == "tracking" and "lost" in [e.status for e in ests[60:71]]
+        if not recall:
+            tracker.recall = None
+        x0 = start_state(truth_600.x[71])
+        P0 = np.diag(np.square([0.02] * 3 + [0.002] * 3 + [0.002] * 3 + [2e-4] * 3))
+        tracker._start(x0[None], P0[None], float(truth_600.t_s[71]), np.zeros(1), np.zeros(1))
+        ests = [tracker.step(float(truth_600.t_s[k]), frame_image(k)) for k in range(72, 95)]
+        return [(e.status, claim_errors(e, truth_600.x[k])[0], e.events) for k, e in zip(range(72, 95), ests)]
+
+    twin = run(lambda x: box_namings().state(x, 1))
+    assert not [a for s, a, _ in twin if s == "tracking"], [(s, round(a)) for s, a, _ in twin]
+    assert any(ev.startswith("claim withheld") for *_, events in twin for ev in events)
+    truth = run(lambda x: x)
+    assert [s for s, *_ in truth][-5:] == ["tracking"] * 5 and max(a for s, a, _ in truth if s == "tracking") < 5.0
+    cold = run(lambda x: box_namings().state(x, 1), recall=False)
+    assert [s for s, *_ in cold][-5:] == ["tracking"] * 5  # without the memory the twin is claimed, as before
