@@ -276,9 +276,12 @@ def test_a_child_forked_under_the_lock_does_not_keep_it_after_its_job_is_killed(
     out = tmp_path / "run"
     code = ("import os, sys, time\nfrom envisat_pose.out_lock import output_lock\n"
             "with output_lock(sys.argv[1], 'train'):\n    pid = os.fork()\n    if pid == 0:\n"
-            "        time.sleep(60)\n        os._exit(0)\n    print(pid, flush=True)\n    time.sleep(60)\n")
+            "        print('child', os.getpid(), flush=True)\n        time.sleep(60)\n        os._exit(0)\n"
+            "    time.sleep(60)\n")
     job = subprocess.Popen([sys.executable, "-c", code, str(out)], stdout=subprocess.PIPE, text=True)
-    child = int(job.stdout.readline())
+    # the child's line comes after its fork hooks ran (they run before os.fork returns in it): a loaded machine
+    # may schedule the child late, and until then its copy of the descriptor holds the lock
+    child = int(job.stdout.readline().split()[1])
     try:
         job.send_signal(signal.SIGKILL)
         job.wait()
