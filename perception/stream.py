@@ -108,7 +108,30 @@ def _worker_context():
 
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(["envisat_pose.perception.stream"])  # once the server runs, later calls are moot
+    _start_forkserver_deaf()
     return ctx
+
+
+def _start_forkserver_deaf() -> None:
+    """Start the fork server (if not running) with SIGINT and SIGTERM ignored, a disposition it and every worker
+    it forks inherit from birth: a Ctrl-C to the process group while a worker bootstraps (between the fork and
+    _worker_init) otherwise printed a KeyboardInterrupt traceback from the worker. The caller's handlers are
+    ignored only for the server's fork and exec (milliseconds); from another thread the server starts as is."""
+    import threading
+    from multiprocessing import forkserver
+
+    if threading.current_thread() is not threading.main_thread():
+        forkserver.ensure_running()
+        return
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    old = {sig: h for sig, h in old.items() if h is not None}  # None: a handler not set from Python, left alone
+    try:
+        for sig in old:
+            signal.signal(sig, signal.SIG_IGN)
+        forkserver.ensure_running()
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
 
 
 def epoch_batches(paths: list[str], cfg: DataConfig, seed: int, epoch: int, batch_size: int, workers: int,

@@ -222,3 +222,21 @@ def test_a_run_sizes_its_prefetch_to_the_free_shared_memory(many_shards, tmp_pat
     with pytest.raises(InputError, match="shared memory"):
         train(small_config(2), many_shards, str(tmp_path / "b"), progress=False, workers=1)
     assert not (tmp_path / "b").exists()
+
+
+def test_workers_ignore_ctrl_c_from_their_first_instruction():
+    """A worker forked while Ctrl-C reaches the process group must not print a traceback from its bootstrap
+    (seen in CI: KeyboardInterrupt in multiprocessing's _after_fork, before _worker_init ran): the fork server
+    hands SIGINT and SIGTERM ignored to every process it forks; the caller's own handlers are kept."""
+    import signal
+
+    from envisat_pose.perception.stream import _worker_context
+
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    ctx = _worker_context()
+    assert {sig: signal.getsignal(sig) for sig in before} == before
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        child = ctx.Process(target=signal.raise_signal, args=(sig,))  # at once: no worker_init, no handler set
+        child.start()
+        child.join(60)
+        assert child.exitcode == 0, (sig, child.exitcode)  # 1: KeyboardInterrupt; -15: killed by SIGTERM
