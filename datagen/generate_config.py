@@ -16,7 +16,7 @@ import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.camera_response import parse_response
-from envisat_pose.config import Config, ConfigError, check, from_dict, to_dict
+from envisat_pose.config import Config, ConfigError, Derived, check, derived, from_dict, to_dict
 from envisat_pose.datagen.appearance import CLASSES
 from envisat_pose.datagen.clearance import farthest_depth_m, target_file_boxes
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
@@ -45,7 +45,7 @@ def _check_range(value: tuple, field_name: str, lo: float, hi: float) -> None:
 
 def sized_value(value: float) -> float:
     """A sized default as the config records it: value to SIZED_DIGITS significant digits (1 stays 1 exactly)."""
-    return float(f"{value:.{SIZED_DIGITS}g}")
+    return Derived(f"{value:.{SIZED_DIGITS}g}")
 
 
 def sized_random_m(ratio: float) -> dict[str, float]:
@@ -64,7 +64,7 @@ def farthest_target_point_m(range_max_m: float, reach_m: float) -> float:
 def sized_depth_scale_m(far_m: float) -> float:
     """DEPTH_SCALE_M, or the least whole number of mm per unit whose 16-bit range covers far_m (a target so large
     that its sized ranges reach beyond 131 m)."""
-    return max(DEPTH_SCALE_M, math.ceil(far_m / DEPTH_MAX_CODE * 1000.0) / 1000.0)
+    return Derived(max(DEPTH_SCALE_M, math.ceil(far_m / DEPTH_MAX_CODE * 1000.0) / 1000.0))
 
 
 def sequence_depth_m(cfg: "GenerateConfig") -> np.ndarray:
@@ -210,7 +210,8 @@ class RandomModeConfig(Config):
     target, m (views closer, or whose near plane cuts the target, are drawn again from the same generator). Not
     given (None), each is ENVISAT's default (20, 80 and 2 m) times the target's size against ENVISAT's
     (sized_random_m of target_scene.size_ratio: the 3U CubeSat 0.7289, 2.916 and 0.07289 m, the upper stage
-    14.45, 57.79 and 1.445 m); GenerateConfig fills them in, so a config and a manifest always hold numbers.
+    14.45, 57.79 and 1.445 m); GenerateConfig fills them in, so a config and a manifest always hold numbers
+    (config.Derived: dataclasses.replace with another target sizes them again; read back from a file, given).
     max_offset_frac: target centre within this fraction of the half field of view. sun_phase_max_deg: the sun is
     drawn uniformly on the cap of directions within this phase angle of the direction from the target to the
     camera (0: sun behind the camera, 90: side light, 180: any), so most views are lit as an approach would plan
@@ -328,8 +329,8 @@ class GenerateConfig(Config):
         defaults (sized_random_m of target_scene.size_ratio: ENVISAT's own numbers for ENVISAT) and sequence mode's
         range_scale not given with the same ratio (sized_value), then depth_scale_m not given
         (_sized_depth_scale_m). A target that cannot be read leaves them unset: validate names the target."""
-        unset = [name for name in ENVISAT_RANDOM_M if getattr(self.random, name) is None]
-        ratio = self._size_ratio() if unset or self.sequence.range_scale is None else None
+        unset = [name for name in ENVISAT_RANDOM_M if derived(getattr(self.random, name))]
+        ratio = self._size_ratio() if unset or derived(self.sequence.range_scale) else None
         if ratio is not None and unset:
             sized = sized_random_m(ratio)
             try:
@@ -337,14 +338,14 @@ class GenerateConfig(Config):
             except ConfigError as err:  # a given range against a sized one: named in its table
                 raise ConfigError(f"random.{err.field}", err.value, err.expected) from None
             object.__setattr__(self, "random", filled)
-        if ratio is not None and self.sequence.range_scale is None:
+        if ratio is not None and derived(self.sequence.range_scale):
             if not MIN_RANGE_SCALE <= sized_value(ratio) <= MAX_RANGE_SCALE:
                 raise ConfigError("target", self.target, f"a spacecraft {MIN_RANGE_SCALE:g} to {MAX_RANGE_SCALE:g} "
                                   f"times ENVISAT's size, the views sized to it (this one: {ratio:.4g} times; or "
                                   "give sequence.range_scale and random's ranges and keep-out yourself)")
             object.__setattr__(self, "sequence", replace(self.sequence, range_scale=sized_value(ratio)))
-        from_truth = self.depth_scale_m is None and self.mode == "sequence" and self.write_depth
-        if self.depth_scale_m is None:
+        from_truth = derived(self.depth_scale_m) and self.mode == "sequence" and self.write_depth
+        if derived(self.depth_scale_m):
             object.__setattr__(self, "depth_scale_m", self._sized_depth_scale_m())
         super().__post_init__()
         if from_truth:  # the validated sequence's truth simulated (cached for its frames), its depths covered
@@ -361,11 +362,11 @@ class GenerateConfig(Config):
         """sized_depth_scale_m of random mode's farthest target point; DEPTH_SCALE_M in sequence mode (sized from
         its truth once validated: __post_init__) and for a target that cannot be read (validate names it)."""
         if self.mode != "random" or self.random.range_max_m is None:
-            return DEPTH_SCALE_M
+            return Derived(DEPTH_SCALE_M)
         try:
             reach_m = target_file_boxes(self.target).reach_m
         except ConfigError:
-            return DEPTH_SCALE_M
+            return Derived(DEPTH_SCALE_M)
         return sized_depth_scale_m(farthest_target_point_m(self.random.range_max_m, reach_m))
 
     @property

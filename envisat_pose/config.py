@@ -44,6 +44,20 @@ class InputError(ValueError):
     """A user error that is not about one config field (a missing or unreadable file, say)."""
 
 
+class Derived(float):
+    """A number a config filled in from its other fields (a default sized to its target, say), not one a user
+    gave: a float that `dataclasses.replace` leaves for the new config's __post_init__ to derive again, where a
+    plain float stays as given. Written to a file or a manifest it is a plain number (read back: given)."""
+
+    def __repr__(self) -> str:
+        return float.__repr__(self)
+
+
+def derived(value) -> bool:
+    """Whether a field is the config's to fill in: not given (None), or filled in before (Derived)."""
+    return value is None or isinstance(value, Derived)
+
+
 class Config:
     """The base of every config dataclass: validated when built (the constructor, dataclasses.replace, from_dict).
 
@@ -157,7 +171,7 @@ def _plain(value: Any, hint: Any) -> bool:
             ok = _plain_types(args[0])
             return bool(ok) and all(type(v) in ok for v in value)
         return len(args) == len(value) and all(type(v) in _plain_types(a) for v, a in zip(value, args))
-    return type(value) in _plain_types(hint)
+    return type(value) in _plain_types(hint) or (type(value) is Derived and float in _plain_types(hint))
 
 
 def path_arg(value: Any, field: str, optional: bool = False) -> str | None:

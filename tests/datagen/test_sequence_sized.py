@@ -8,6 +8,7 @@ the nonlinear terms are (range / orbit radius)^2 ~ 1e-10 at 50 m), checked on Mu
 starts, and the masks MuJoCo renders for the image share.
 """
 
+import dataclasses
 import json
 import math
 
@@ -152,6 +153,8 @@ def test_a_100m_targets_sequence_sizes_its_depth_scale_from_its_truth(tmp_path):
     far = sequence(rod, range_scale=6.0)  # a 300 m hold: ~350 m deep
     far_m = _farthest_depth_m(sequence_frames(config_json(far))[1], corners)
     assert far.depth_scale_m == math.ceil(far_m / 65535 * 1000) / 1000 == 0.006
+    # the scale filled in is sized again for a config replaced (it kept 0.003: refused later)
+    assert dataclasses.replace(cfg, sequence=far.sequence).depth_scale_m == 0.006
     out = tmp_path / "seq"
     assert main(["generate", "--target", rod, "--mode", "sequence", "--num-images", "2", "--resolution", "64",
                  "--workers", "1", "--out", str(out), "--quiet"]) == 0

@@ -66,6 +66,30 @@ def test_another_target_takes_envisats_defaults_times_its_size(target):
                                 "keepout_margin_m": sized_random_m(ratio)["keepout_margin_m"]}
 
 
+def test_a_config_replaced_with_another_target_is_sized_to_it(tmp_path):
+    """dataclasses.replace(cfg, target=...) on a config whose ranges, keep-out, range scale and depth scale were
+    filled in sizes them again for the new target, equal to a config built for it (they stayed ENVISAT's: a
+    CubeSat drawn at 20-80 m, a dot); what a user gave stays given; a config written out and read back holds
+    plain numbers, given from then on."""
+    import dataclasses
+
+    big = _target_file(tmp_path, "hangar", (60.0, 25.0, 10.0))
+    for target in (CUBESAT, UPPER_STAGE, big):
+        built = GenerateConfig(target=target)
+        assert dataclasses.replace(GenerateConfig(), target=target) == built
+        assert dataclasses.replace(built, target="models/envisat.xml") == GenerateConfig()
+    ratio = size_ratio(load_target(UPPER_STAGE))
+    given = from_dict(GenerateConfig, {"random": {"range_min_m": 30.0, "range_max_m": 60.0}, "depth_scale_m": 0.004})
+    moved = dataclasses.replace(given, target=UPPER_STAGE)
+    assert _random_m(moved) == {"range_min_m": 30.0, "range_max_m": 60.0,
+                                "keepout_margin_m": sized_random_m(ratio)["keepout_margin_m"]}
+    assert moved.depth_scale_m == 0.004
+    read_back = config_from_json(config_json(GenerateConfig(target=CUBESAT)))
+    assert all(type(getattr(read_back.random, k)) is float for k in SIZED)
+    with pytest.raises(ConfigError, match=r"^random\.range_min_m = 0\.7289: expected a range above"):
+        dataclasses.replace(read_back, target=UPPER_STAGE)  # the CubeSat's range, given now, inside the stage
+
+
 def test_ranges_given_are_validated_as_before():
     """A range the camera would sit inside the target at, a maximum below the minimum (given, or below the sized
     minimum): one ConfigError naming the field."""
