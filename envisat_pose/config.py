@@ -45,12 +45,21 @@ class InputError(ValueError):
 
 
 class Derived(float):
-    """A number a config filled in from its other fields (a default sized to its target, say), not one a user
-    gave: a float that `dataclasses.replace` leaves for the new config's __post_init__ to derive again, where a
-    plain float stays as given. Written to a file or a manifest it is a plain number (read back: given)."""
+    """A number a config filled in, not one a user gave: from its own other fields (filled_for None: a default
+    sized to its target, say) or from a named scenario (filled_for its name: mark_filled). A float that
+    `dataclasses.replace` leaves for the new config to fill in again where the inputs changed, where a plain float
+    stays as given. Written to a file or a manifest it is a plain number (read back: given)."""
+
+    def __new__(cls, value: float, filled_for: str | None = None) -> "Derived":
+        out = super().__new__(cls, value)
+        out._filled_for = filled_for
+        return out
 
     def __repr__(self) -> str:
         return float.__repr__(self)
+
+    def __reduce__(self):
+        return Derived, (float(self), self._filled_for)
 
 
 def derived(value) -> bool:
@@ -58,11 +67,31 @@ def derived(value) -> bool:
     return value is None or isinstance(value, Derived)
 
 
+UNMARKED = object()  # filled_for's answer for a value no config filled in from a scenario
+
+
+def mark_filled(value: Any, scenario: str | None) -> Any:
+    """value, marked as filled in from `scenario` (filled_for): a float as a Derived, a config in place (a fresh
+    one: the mark stays with that object); a bool cannot be marked and is returned as it is."""
+    if isinstance(value, float) and not isinstance(value, bool):
+        return Derived(value, scenario)
+    if isinstance(value, Config):
+        object.__setattr__(value, "_filled_for", scenario)
+    return value
+
+
+def filled_for(value: Any) -> Any:
+    """The scenario a config filled `value` in from (mark_filled), or UNMARKED for a value given or derived
+    from a config's own fields."""
+    return getattr(value, "_filled_for", UNMARKED) if isinstance(value, (Derived, Config)) else UNMARKED
+
+
 class Config:
     """The base of every config dataclass: validated when built (the constructor, dataclasses.replace, from_dict).
 
     A subclass's own __post_init__ does its filling first (fields left None that take a scenario's, say), then
-    calls super().__post_init__(). validate(prefix) raises ConfigError naming a field under prefix: '' when built,
+    calls super().__post_init__(); what it fills in is marked (Derived, mark_filled), so a config replaced with
+    new inputs (another scenario or target) fills it in again. validate(prefix) raises ConfigError naming a field under prefix: '' when built,
     so the names are the config's own ('p0_sigma'); from_dict puts the table's dotted name in front
     ('filter.p0_sigma'). Kept cheap (milliseconds): what a validate() reads (the MJCF camera, a target file) is
     cached, a weights file only looked up.

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import Config, ConfigError, check
+from envisat_pose.config import Config, ConfigError, check, mark_filled
 from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride
@@ -50,12 +50,11 @@ class MonteCarloConfig(Config):
     init_error_scale: float = 1.0
 
     def __post_init__(self) -> None:
-        eclipse = self.measurement is None
-        fill_from_scenario(self, "montecarlo", MONTECARLO_FALLBACKS)
+        eclipse = "measurement" in fill_from_scenario(self, "montecarlo", MONTECARLO_FALLBACKS)
         super().__post_init__()
         if eclipse:  # the scenario's measurement, with its outages along the (validated) truth
             windows = eclipse_outages(self.scenario, truth_scenario(self))
-            object.__setattr__(self, "measurement", with_outages(self.measurement, windows))
+            object.__setattr__(self, "measurement", mark_filled(with_outages(self.measurement, windows), self.scenario))
 
     @classmethod
     def from_scenario(cls, name: str = "default", config_path: str | None = None, overrides: dict | None = None,

@@ -15,7 +15,7 @@ import os
 from typing import Any, Callable
 
 from envisat_pose import named_scenarios
-from envisat_pose.config import InputError, field_value, resolve_job_config
+from envisat_pose.config import UNMARKED, InputError, field_value, filled_for, mark_filled, resolve_job_config
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
 from envisat_pose.target import DEFAULT_TARGET, other_target
 
@@ -52,19 +52,39 @@ def scenario_defaults(kind: str, scenario: str) -> dict:
     return out
 
 
-def fill_from_scenario(cfg: Any, kind: str, fallbacks: dict[str, Callable[[], Any]]) -> None:
+def fill_from_scenario(cfg: Any, kind: str, fallbacks: dict[str, Callable[[], Any]]) -> list[str]:
     """What a job's constructor takes from its scenario: each field of cfg named in fallbacks and left None takes
     what cfg.scenario sets for a `kind` job (scenario_defaults: the layer layered_job puts under the file and
     the flags), or fallbacks[name]() where the scenario sets nothing; a field given explicitly is kept. So
-    `Cfg(scenario=NAME, ...)` is the job `resolve_job(KIND, NAME, ...)` builds. Called from a frozen config's
-    __post_init__ (its stage types resolvable first)."""
-    missing = [name for name in fallbacks if getattr(cfg, name) is None]
+    `Cfg(scenario=NAME, ...)` is the job `resolve_job(KIND, NAME, ...)` builds. The values filled in are marked
+    (config.mark_filled), so a config built from one of another scenario (`dataclasses.replace(cfg,
+    scenario=...)`) fills them in again (_filled_for_another). Called from a frozen config's __post_init__ (its
+    stage types resolvable first); returns the names it filled."""
+    missing = [name for name in fallbacks if getattr(cfg, name) is None] + _filled_for_another(cfg, kind, fallbacks)
     if not missing:
-        return
+        return []
     values = scenario_defaults(kind, cfg.scenario)
     for name in missing:
         value = field_value(type(cfg), name, values[name]) if name in values else fallbacks[name]()
-        object.__setattr__(cfg, name, value)
+        object.__setattr__(cfg, name, mark_filled(value, cfg.scenario))
+    return missing
+
+
+def _filled_for_another(cfg: Any, kind: str, fallbacks: dict[str, Callable[[], Any]]) -> list[str]:
+    """The fields of cfg that a config of another scenario filled in: each value marked as filled from another
+    scenario, and where there is one, a switch (a bool cannot be marked) equal to what that scenario sets. A
+    table taken from another scenario's config into this one is such a value too: pass a copy
+    (`dataclasses.replace(other.filter)`) to give it."""
+    marks = {name: filled_for(getattr(cfg, name)) for name in fallbacks}
+    stale = [name for name, mark in marks.items() if mark is not UNMARKED and mark != cfg.scenario]
+    if not stale:
+        return []
+    before = scenario_defaults(kind, marks[stale[0]])
+    for name in fallbacks:
+        value = getattr(cfg, name)
+        if isinstance(value, bool) and value == (before[name] if name in before else fallbacks[name]()):
+            stale.append(name)
+    return stale
 
 
 def layered_job(cls: type, kind: str, scenario: str | None, config_path: str | None,

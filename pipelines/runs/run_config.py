@@ -132,22 +132,27 @@ def run_stage_types() -> None:
 
 def finished_image(cfg: RunConfig) -> "GenerateConfig":
     """cfg.image with its sequence fields from the run's (mode, scenario, seed, frames, frame period) and the sun
-    made explicit (the scenario's [eclipse] sun, else DEFAULT_SUN_C0 at t = 0 turned into N); a sun already set
-    is kept, so a finished image comes back unchanged (RunConfig.__post_init__ runs it on every build)."""
-
+    made explicit (scenario_sun); a sun already set is kept, so a finished image comes back unchanged
+    (RunConfig.__post_init__ runs it on every build), but for the sun another scenario's run put there (the image
+    finished for it: `dataclasses.replace(run, scenario=...)`), which is this scenario's again."""
     n = n_frames(cfg)
-    sun = cfg.image.sun_dir
-    if sun is None:
-        ecl = scenario_eclipse(cfg.scenario)
-        if ecl is not None:
-            sun = tuple(float(v) for v in ecl.sun_dir_N)
-        else:
-            orb = chaser_orbit(scenario_config(cfg.scenario).orbit, np.array([0.0]))
-            s_C = np.asarray(DEFAULT_SUN_C0) / np.linalg.norm(DEFAULT_SUN_C0)
-            sun = tuple(round(float(v), 9) for v in orb.R_N_from_C[0] @ s_C)
+    sun, before = cfg.image.sun_dir, cfg.image.sequence.scenario
+    if sun is None or (cfg.image.mode == "sequence" and before != cfg.scenario and sun == scenario_sun(before)):
+        sun = scenario_sun(cfg.scenario)
     sequence = dataclasses.replace(cfg.image.sequence, scenario=cfg.scenario, frame_dt_s=1.0 / cfg.rate_hz)
     return dataclasses.replace(cfg.image, mode="sequence", sequence=sequence, seed=cfg.seed, num_images=n,
                                shard_size=n, sun_dir=sun)
+
+
+def scenario_sun(scenario: str) -> tuple[float, float, float]:
+    """The sun (unit, N) a run of `scenario` takes where none is set: its [eclipse] sun, else DEFAULT_SUN_C0 at
+    t = 0 turned into N."""
+    ecl = scenario_eclipse(scenario)
+    if ecl is not None:
+        return tuple(float(v) for v in ecl.sun_dir_N)
+    orb = chaser_orbit(scenario_config(scenario).orbit, np.array([0.0]))
+    s_C = np.asarray(DEFAULT_SUN_C0) / np.linalg.norm(DEFAULT_SUN_C0)
+    return tuple(round(float(v), 9) for v in orb.R_N_from_C[0] @ s_C)
 
 
 def n_frames(cfg: RunConfig) -> int:

@@ -73,6 +73,26 @@ def test_the_plain_constructor_with_a_scenario_is_the_scenarios_job(name):
         assert plain == resolved and to_dict(plain) == to_dict(resolved), kind
 
 
+@pytest.mark.parametrize("name", scenario_names())
+def test_a_job_replaced_with_another_scenario_is_that_scenarios_job(name):
+    """dataclasses.replace(Cfg(scenario=A), scenario=B) is Cfg(scenario=B): what A filled in (duration, rate,
+    tables, orbit, the gravity-gradient switch, the sun, the eclipse outages) is filled in again from B (it stayed
+    A's: an eclipse campaign without its eclipse, a gravity-gradient track without the torque); what a user gave
+    stays, and a config replaced without a new scenario keeps what it holds."""
+    for kind, cls in job_configs().items():
+        for a in ("default", "gravity-gradient", "eclipse"):
+            replaced = dataclasses.replace(cls(scenario=a), scenario=name)
+            assert replaced == cls(scenario=name), (kind, a)
+        assert dataclasses.replace(cls(scenario=name), scenario=name) == cls(scenario=name), kind
+    given = dataclasses.replace(job_configs()["montecarlo"](scenario="default", duration_s=60.0), scenario=name)
+    assert given.duration_s == 60.0
+    track = dataclasses.replace(job_configs()["track"](scenario="default", gravity_gradient=True), scenario=name)
+    assert track.gravity_gradient
+    three = job_configs()["montecarlo"](scenario="paper-3markers-0.02").measurement  # a table taken over:
+    assert three.max_markers == 3  # a copy of it gives it
+    assert job_configs()["montecarlo"](scenario=name, measurement=dataclasses.replace(three)).measurement == three
+
+
 def test_tracker_from_scenario_takes_the_track_jobs_scenario_parts():
     """Tracker.from_scenario (a tracker, not a config: below the track job, so it cannot build a TrackConfig)
     takes what TrackConfig(scenario=NAME) takes from each scenario: the filter, the orbit, the gravity gradient."""
