@@ -13,14 +13,13 @@ import time
 from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_rrd_output, init_error_line
 from envisat_pose.app.flag_rules import check_noise_flags
 from envisat_pose.config import InputError, check
-from envisat_pose.out_dirs import make_out_file_dirs
-from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, run_campaign, write_recording
+from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, run_campaign
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE, run_sweep, sweep_for
 from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
 
 FLAGS = {**{k: "--" + k.replace("_", "-") for k in "scenario runs target duration_s block_runs settle_s "
-                                                   "init_error_scale workers".split()}, **MEASUREMENT_FLAGS}
+                                                   "init_error_scale workers".split()}, **MEASUREMENT_FLAGS, "rrd": "--rrd"}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -98,15 +97,13 @@ def run_montecarlo(args: argparse.Namespace) -> int:
               f"({time.perf_counter() - t0:.1f} s)")
         print(sweep_line(result))
         return 0
-    summary = run_campaign(cfg, args.out, runner, progress=not args.quiet)
+    summary = run_campaign(cfg, args.out, runner, progress=not args.quiet, rrd=args.rrd)
     print(f"wrote {args.out}: {cfg.runs} runs x {summary['steps']} steps, campaign.npz, summary.json, "
           f"{len(FIGURES)} figures ({time.perf_counter() - t0:.1f} s)")
     print(summary_line(summary))
     if cfg.init_error_scale != 1.0:
         print(init_error_line(cfg.init_error_scale))
     if args.rrd:
-        make_out_file_dirs({args.rrd: "--rrd"})
-        write_recording(cfg, args.out, args.rrd)
         print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
     return 0
 

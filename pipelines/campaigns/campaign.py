@@ -45,6 +45,7 @@ from typing import TYPE_CHECKING
 from envisat_pose.config import check, config_arg, path_arg, to_dict, to_toml
 from envisat_pose.io import atomic_write_text, sha256_file
 from envisat_pose.named_scenarios import table
+from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.campaigns.campaign_block import block_name, block_task, load_campaign_truth
 from envisat_pose.pipelines.campaigns.campaign_config import (
@@ -98,19 +99,29 @@ def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, pr
     return sha256_file(path)
 
 
+@locks_output("rrd", "montecarlo", folder=False)
 @locks_output("out_dir", "montecarlo")
 def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConfig | None = None,
-                 progress: bool = False) -> dict:
+                 progress: bool = False, rrd: str | None = None) -> dict:
     """Run (or finish) the campaign of cfg in out_dir (a str or pathlib.Path: rerun on it to resume) on runner
-    (a core RunnerConfig: the local pool, Dask; None: one process) and write its outputs (module docstring).
-    Returns summary.json's dict. ConfigError or InputError (one line, naming the field or argument) before any
-    work for a bad argument or a folder of another job. A scenario with a [sweep] table (rate-sweep) is one
-    campaign per rate, as the verb runs it: pipelines.campaigns.sweep.run_sweep (ConfigError naming scenario)."""
+    (a core RunnerConfig: the local pool, Dask; None: one process) and write its outputs (module docstring); with
+    rrd (a .rrd path) a Rerun recording of it there too (write_recording). Returns summary.json's dict.
+    ConfigError or InputError (one line, naming the field or argument) before any work for a bad argument or a
+    folder of another job. A scenario with a [sweep] table (rate-sweep) is one campaign per rate, as the verb runs
+    it: pipelines.campaigns.sweep.run_sweep (ConfigError naming scenario)."""
     cfg = config_arg(cfg, MonteCarloConfig)
     check(not table(cfg.scenario, "sweep"), "scenario", cfg.scenario, "a scenario of one rate: this one is a rate "
           "sweep ([sweep] table), one campaign per rate: envisat_pose.pipelines.campaigns.sweep.run_sweep(cfg, "
           "sweep_for(cfg), out_dir, runner), as `envisat montecarlo` runs it")
-    return campaign_at_one_rate(cfg, out_dir, runner, progress)
+    rrd = path_arg(rrd, "rrd", optional=True)
+    if rrd is not None:
+        check(rrd.endswith(".rrd"), "rrd", rrd, "a path ending in .rrd")
+        check_out_file(rrd, "rrd")
+    summary = campaign_at_one_rate(cfg, out_dir, runner, progress)
+    if rrd is not None:
+        make_out_file_dir(rrd, "rrd")
+        write_recording(cfg, out_dir, rrd)
+    return summary
 
 
 def campaign_at_one_rate(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConfig | None = None,

@@ -308,6 +308,7 @@ def truth_stride(truth, cfg: EstimateConfig) -> int:
         raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None
 
 
+@locks_output("rrd", "estimate", folder=False)
 @locks_output("out", "estimate", folder=False)
 def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, scenario: str | None = None,
                  duration_s: float | None = None, plot: bool = False, rrd: str | None = None,

@@ -21,6 +21,7 @@ def output_paths(out: str) -> tuple[str, str, str]:
     return out, stem + ".config.toml", stem + ".png"
 
 
+@locks_output("rrd", "simulate", folder=False)
 @locks_output("out", "simulate", folder=False)
 def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, progress: bool = False,
                  label: str = "") -> dict:

@@ -3,6 +3,7 @@ montage of its first images with their labels drawn and, optionally, those sampl
 
 from __future__ import annotations
 
+import contextlib
 import os
 import warnings
 
@@ -11,6 +12,7 @@ from envisat_pose.datagen.appearance import takes_class_appearance
 from envisat_pose.datagen.render_view import target_mask_values
 from envisat_pose.dataset_target import check_dataset_target_file
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
+from envisat_pose.out_lock import output_lock
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, unfinished_dataset
 from envisat_pose.target import DEFAULT_TARGET, load_target
 
@@ -53,11 +55,15 @@ def inspect_dataset(src: str, montage: str | None = None, count: int = 16, rrd: 
                       stacklevel=2)
     if skipped:
         stats["skipped_damaged_shards"] = skipped
-    make_out_file_dir(montage, "montage")
-    drawn = write_montage(shards, montage, count=count)
-    if rrd is not None:
-        make_out_file_dir(rrd, "rrd")
-        write_samples_rrd(shards, rrd, count, *recorded_target(manifest, target))
+    with contextlib.ExitStack() as locks:  # one job at a time on each output file (out_lock)
+        for path, field in ((montage, "montage"), (rrd, "rrd")):
+            if path is not None:
+                locks.enter_context(output_lock(path, "dataset inspect", field=field, folder=False))
+        make_out_file_dir(montage, "montage")
+        drawn = write_montage(shards, montage, count=count)
+        if rrd is not None:
+            make_out_file_dir(rrd, "rrd")
+            write_samples_rrd(shards, rrd, count, *recorded_target(manifest, target))
     return stats | dict(zip(OUTPUT_KEYS, (montage, drawn, rrd)))
 
 

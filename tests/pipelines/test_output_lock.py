@@ -146,6 +146,42 @@ def test_every_jobs_function_is_refused_on_a_held_output(module, name, arg, fold
     assert sorted(os.listdir(tmp_path)) == before
 
 
+# the outputs beside a job's main one: (module, function, the side output's argument, the other arguments)
+SIDE_OUTPUTS = [
+    ("pipelines.campaigns.simulate", "run_simulate", "rrd", {"cfg": None, "out": "sim.npz"}),
+    ("pipelines.campaigns.estimate", "run_estimate", "rrd", {"cfg": None, "out": "est.npz"}),
+    ("pipelines.campaigns.campaign", "run_campaign", "rrd", {"cfg": None, "out_dir": "mc"}),
+    ("pipelines.datasets.inspect", "inspect_dataset", "rrd", {"src": "ds", "montage": "m.png"}),
+    ("pipelines.datasets.inspect", "inspect_dataset", "montage", {"src": "ds"}),
+]
+
+
+@pytest.mark.parametrize("module,name,arg,others", SIDE_OUTPUTS, ids=[f"{f[1]}-{f[2]}" for f in SIDE_OUTPUTS])
+def test_an_output_beside_the_main_one_held_by_another_job_is_refused(module, name, arg, others, tmp_path, holder,
+                                                                        monkeypatch):
+    """A recording (--rrd) or a montage another job is writing: refused in one line naming it, nothing written
+    (they were written over by whichever job ended last). The dataset a montage reads must exist: it is made."""
+    import importlib
+
+    monkeypatch.chdir(tmp_path)
+    if name == "inspect_dataset":
+        assert main(["generate", "--num-images", "2", "--shard-size", "2", "--resolution", "64", "--workers", "1",
+                     "--out", "ds", "--quiet"]) == 0
+    fn = getattr(importlib.import_module(f"envisat_pose.{module}"), name)
+    if "cfg" in others:
+        from envisat_pose.pipelines.jobs import resolve_job
+
+        kind = {"run_simulate": "simulate", "run_estimate": "estimate", "run_campaign": "montecarlo"}[name]
+        others = {**others, "cfg": resolve_job(kind, "default")}  # refused before any work: no duration needed
+    side = tmp_path / ("side.rrd" if arg == "rrd" else "side.png")
+    first = holder(side, "someverb", False)
+    before = sorted(os.listdir(tmp_path))
+    with pytest.raises(InputError) as err:
+        fn(**others, **{arg: str(side)})
+    assert str(err.value).startswith(f"{arg} ") and refused(str(err.value), side, first.pid, "someverb"), err.value
+    assert sorted(os.listdir(tmp_path)) == before
+
+
 def test_the_lock_goes_with_its_job_and_leaves_no_file(tmp_path):
     """A run, then a second on the same output: both write (the first's lock is gone), and the folder holds only
     the job's files; another process takes the lock after them. A job stopped leaves no folder it made."""
