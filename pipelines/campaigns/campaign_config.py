@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import Config, ConfigError, check, mark_filled
+from envisat_pose.config import Config, ConfigError, check, filled_for, mark_filled
 from envisat_pose.datagen.scenario import scenario_config
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride
@@ -50,6 +50,8 @@ class MonteCarloConfig(Config):
     init_error_scale: float = 1.0
 
     def __post_init__(self) -> None:
+        if filled_for(self.measurement) == self.scenario:  # its outages follow this truth (duration, seed, target)
+            object.__setattr__(self, "measurement", None)
         eclipse = "measurement" in fill_from_scenario(self, "montecarlo", MONTECARLO_FALLBACKS)
         super().__post_init__()
         if eclipse:  # the scenario's measurement, with its outages along the (validated) truth
@@ -110,8 +112,13 @@ def layered_montecarlo(scenario: str, config_path: str | None, overrides: dict |
     measurement always given there, the scenario's table under the file's and the flags') and the scenario's
     Earth's-shadow outages added to it once (with_eclipse), as the plain constructor adds them to the
     scenario's measurement."""
-    return with_eclipse(layered_job(MonteCarloConfig, "montecarlo", scenario, config_path, overrides, fields,
-                                    base={"measurement": {}}))
+    import dataclasses
+
+    cfg = layered_job(MonteCarloConfig, "montecarlo", scenario, config_path, overrides, fields,
+                      base={"measurement": {}})
+    if filled_for(cfg.measurement) == cfg.scenario:  # the scenario's table alone: filled in, outages and all
+        return dataclasses.replace(cfg)
+    return with_eclipse(cfg)
 
 
 def with_eclipse(cfg: MonteCarloConfig) -> MonteCarloConfig:

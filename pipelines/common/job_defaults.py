@@ -15,7 +15,15 @@ import os
 from typing import Any, Callable
 
 from envisat_pose import named_scenarios
-from envisat_pose.config import UNMARKED, InputError, field_value, filled_for, mark_filled, resolve_job_config
+from envisat_pose.config import (
+    UNMARKED,
+    InputError,
+    field_value,
+    filled_for,
+    load_toml,
+    mark_filled,
+    resolve_job_config,
+)
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
 from envisat_pose.target import DEFAULT_TARGET, other_target
 
@@ -94,14 +102,22 @@ def layered_job(cls: type, kind: str, scenario: str | None, config_path: str | N
     overrides {'section.key': value} (None: not given; a dict value merges into its table) and the fields
     (top-level keys). The job's scenario is `scenario`, whatever the file says. Built by from_dict through the
     constructor, which completes and validates it; the implementation of pipelines.jobs.resolve_job (and of the
-    deprecated `Cfg.from_scenario`)."""
+    deprecated `Cfg.from_scenario`). The fields the scenario alone set (no file key or flag under them) are
+    marked as filled from it (config.mark_filled), as the constructor marks what it fills in: a replace with
+    another scenario fills them in again, whichever way the config was built."""
 
     def named(data: dict) -> dict:
         return {**data, "scenario": scenario}
 
     defaults = {**(base or {}), **scenario_defaults(kind, scenario)}
     flags = {**(overrides or {}), **fields}
-    return resolve_job_config(cls, defaults, config_path, flags, named)
+    cfg = resolve_job_config(cls, defaults, config_path, flags, named)
+    touched = {key.split(".")[0] for key, value in flags.items() if value is not None}
+    if config_path:
+        touched |= set(load_toml(config_path))
+    for name in set(defaults) - touched - {"scenario"}:
+        object.__setattr__(cfg, name, mark_filled(getattr(cfg, name), scenario))
+    return cfg
 
 
 def default_weights_path() -> str:

@@ -93,6 +93,19 @@ def test_a_job_replaced_with_another_scenario_is_that_scenarios_job(name):
     assert job_configs()["montecarlo"](scenario=name, measurement=dataclasses.replace(three)).measurement == three
 
 
+def test_a_campaign_replaced_with_a_longer_duration_has_that_truths_eclipse_outages():
+    """The eclipse outages a campaign filled in follow its truth: dataclasses.replace with another duration (or
+    seed) takes them along the new truth (they stayed the first 3600 s's: the second shadow was measured through),
+    as the constructor does; a measurement given stays as it is."""
+    mc = job_configs()["montecarlo"]
+    longer = dataclasses.replace(mc(scenario="eclipse"), duration_s=9000.0)
+    assert longer.measurement == mc(scenario="eclipse", duration_s=9000.0).measurement
+    assert len(longer.measurement.outages_s) == 2
+    assert dataclasses.replace(longer, seed=3) == mc(scenario="eclipse", duration_s=9000.0, seed=3)
+    given = dataclasses.replace(mc(scenario="eclipse").measurement)  # a copy: given
+    assert dataclasses.replace(mc(scenario="eclipse", measurement=given), duration_s=9000.0).measurement == given
+
+
 def test_tracker_from_scenario_takes_the_track_jobs_scenario_parts():
     """Tracker.from_scenario (a tracker, not a config: below the track job, so it cannot build a TrackConfig)
     takes what TrackConfig(scenario=NAME) takes from each scenario: the filter, the orbit, the gravity gradient."""
@@ -293,3 +306,16 @@ def test_track_verb_and_library_agree(tmp_path):
     track_frames(TrackConfig(scenario="default"), str(gen), out_dir=str(b), progress=False)
     for name in ("est.npz", "det.npz"):
         same_arrays(a / name, b / name)
+
+
+@pytest.mark.parametrize("kind", ["run", "track", "estimate", "montecarlo"])
+def test_a_resolved_job_replaced_with_another_scenario_is_that_scenarios_job(kind):
+    """resolve_job marks what the scenario alone set, as the constructor marks what it fills in: replaced with
+    another scenario it is that scenario's job; what a file or a flag set stays."""
+    from envisat_pose.pipelines.jobs import resolve_job
+
+    cls = job_configs()[kind]
+    for a, b in (("default", "eclipse"), ("eclipse", "gravity-gradient"), ("gravity-gradient", "paper-all-0.2")):
+        assert dataclasses.replace(resolve_job(kind, a), scenario=b) == cls(scenario=b), (kind, a, b)
+    flagged = resolve_job(kind, "default", overrides={"filter.kappa": 0.5})
+    assert dataclasses.replace(flagged, scenario="eclipse").filter.kappa == 0.5
