@@ -70,7 +70,7 @@ class MonteCarloConfig(Config):
         return layered_montecarlo(name, config_path, overrides, fields)
 
     def validate(self, prefix: str = "") -> None:
-        check(self.duration_s > 0, "duration_s", self.duration_s, "a positive duration in seconds")
+        check(0 < self.duration_s < math.inf, "duration_s", self.duration_s, "a positive, finite duration in seconds")
         check(1 <= self.runs <= 1_000_000, "runs", self.runs, "a number of runs from 1 to 1000000")
         check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")
         check(1 <= self.block_runs <= 10_000, "block_runs", self.block_runs, "an integer from 1 to 10000")

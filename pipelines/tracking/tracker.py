@@ -91,6 +91,7 @@ from envisat_pose.pipelines.tracking.onboard import onboard_physics
 from envisat_pose.pipelines.tracking.tracker_acquire import AcquiringSteps
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER, TrackerConfig, TrackEstimate
 from envisat_pose.pipelines.tracking.tracker_frame import TrackingSteps
+from envisat_pose.state import N_STATE
 from envisat_pose.status import STATUSES
 from envisat_pose.target import Target, load_target, other_target
 
@@ -106,6 +107,7 @@ class Tracker(AcquiringSteps, TrackingSteps):
                  config: TrackerConfig = TrackerConfig(), filter_config: FilterConfig | dict | None = None,
                  J_T: np.ndarray | None = None, mu_m3_s2: float | None = None, gravity_gradient: bool = False,
                  prior: tuple[np.ndarray, np.ndarray, float] | None = None, target: Target | None = None):
+        config = config_arg(config, TrackerConfig, "config")
         config.validate()
         if target is not None and not target.keypoint_detector:
             target = None  # ENVISAT's: its corner network and the box's filter, as without a target
@@ -159,8 +161,8 @@ class Tracker(AcquiringSteps, TrackingSteps):
         self.window_fell_short = False  # the last frame's region of interest held too few keypoints
         self.image_window: np.ndarray | None = None  # the frame's made pixels (x0, y0, side) px; None: whole
         if prior is not None:
-            x0, P0, t0 = prior
-            self._start(np.asarray(x0, float)[None], np.asarray(P0, float)[None], float(t0), np.zeros(1), np.zeros(1))
+            x0, P0, t0 = prior_arg(prior)
+            self._start(x0[None], P0[None], t0, np.zeros(1), np.zeros(1))
 
     @property
     def status(self) -> str:
@@ -345,8 +347,11 @@ def frame_refusal(image, want: tuple[int, int]) -> str:
         got, how = type(image).__name__, "a numpy array"
     else:
         got = f"{image.dtype} {image.shape}"
-        if image.ndim == 3 and image.shape[:2] == want:
-            how = "gray from colour: cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) (BGRA2GRAY with alpha)"
+        if image.ndim == 3 and image.shape[:2] == want and image.shape[2] in (1, 2):  # cvtColor takes 3 or 4
+            how = "the gray channel alone: image[..., 0]"
+        elif image.ndim == 3 and image.shape[:2] == want:
+            how = ("gray from colour: cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) (OpenCV's order; cv2.COLOR_RGB2GRAY "
+                   "for an RGB array; BGRA2GRAY or RGBA2GRAY with alpha)")
         elif image.shape[:2] != want:
             how = "a frame of another size needs its own camera (tracker_camera, camera_file)"
         elif image.dtype == np.uint16:
@@ -354,6 +359,26 @@ def frame_refusal(image, want: tuple[int, int]) -> str:
         else:
             how = "8-bit pixels: image.astype(np.uint8) after scaling to 0-255"
     return f"image: {got}; expected a uint8 gray frame of the camera's size {want} (height, width): {how}"
+
+
+def prior_arg(prior) -> tuple[np.ndarray, np.ndarray, float]:
+    """A Tracker's `prior` (x0 (12,), P0 (12, 12), t0 s) as arrays and a float; InputError naming it otherwise
+    (a prior that is not finite, or a P0 not symmetric positive definite, would be lost at the first frame)."""
+    if not isinstance(prior, (tuple, list)) or len(prior) != 3:
+        raise InputError(f"prior: {prior!r:.80}; expected (x0, P0, t0): the state (12,), its covariance (12, 12) "
+                         "and its time, s")
+    try:
+        x0, P0, t0 = np.asarray(prior[0], float), np.asarray(prior[1], float), float(prior[2])
+    except (TypeError, ValueError) as err:
+        raise InputError(f"prior: expected (x0, P0, t0) of numbers ({err})") from None
+    if x0.shape != (N_STATE,) or P0.shape != (N_STATE, N_STATE):
+        raise InputError(f"prior: x0 {x0.shape}, P0 {P0.shape}; expected x0 ({N_STATE},) and P0 ({N_STATE}, "
+                         f"{N_STATE}) (envisat_pose.state's layout)")
+    if not (np.isfinite(x0).all() and np.isfinite(P0).all() and np.isfinite(t0)):
+        raise InputError("prior: expected finite x0, P0 and t0 (a NaN or inf in one of them)")
+    if not np.allclose(P0, P0.T) or np.linalg.eigvalsh(0.5 * (P0 + P0.T)).min() <= 0:
+        raise InputError("prior: P0 is not symmetric positive definite; expected a covariance")
+    return x0, P0, t0
 
 
 def check_detector_target(detector, target: Target | None) -> None:

@@ -162,6 +162,21 @@ def test_tracker_step_says_how_to_make_the_frame_it_takes():
     assert "its own camera" in frame_refusal(np.zeros((16, 32), np.uint8), (32, 32))
 
 
+def test_tracker_step_refusal_of_a_frame_with_one_channel_says_a_way_that_works():
+    """An (H, W, 1) frame (a gray image kept with its channel axis, as from image[..., None] or some readers) was
+    told to use cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), which OpenCV refuses for one channel; the way given
+    makes the frame the tracker takes."""
+    from envisat_pose.pipelines.tracking.tracker import frame_refusal
+
+    for channels in (1, 2):
+        image = np.arange(32 * 32 * channels, dtype=np.uint8).reshape(32, 32, channels)
+        said = frame_refusal(image, (32, 32))
+        assert "cvtColor" not in said and "image[..., 0]" in said
+        assert image[..., 0].shape == (32, 32)
+    said = frame_refusal(np.zeros((32, 32, 3), np.uint8), (32, 32))
+    assert "cv2.COLOR_BGR2GRAY" in said and "cv2.COLOR_RGB2GRAY" in said  # OpenCV's order, and most arrays'
+
+
 @pytest.mark.parametrize("ext", [".bmp", ".pgm", ".webp"])
 def test_other_image_files_opencv_reads_are_frames(tmp_path, ext):
     """BMP, PGM/PPM and WebP frames (a lab camera's or a converter's output) were skipped without a word: a folder

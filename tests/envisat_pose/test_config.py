@@ -134,3 +134,15 @@ def test_a_constructor_checks_its_fields_types_as_from_dict_does():
     assert mc.target == "models/upper_stage.xml" and to_dict(mc)["target"] == "models/upper_stage.xml"
     m = MeasurementConfig(outages_s=[[1.0, 2.0]], sigma_m=np.float32(0.5))
     assert m.outages_s == ((1.0, 2.0),) and type(m.sigma_m) is float and hash(m)
+
+
+def test_an_infinite_campaign_duration_is_one_config_error_naming_it():
+    """MonteCarloConfig(duration_s=math.inf) (a constructor takes inf where a file's from_dict does not) was a raw
+    OverflowError from its filter-step count, not the ConfigError naming duration_s that every other bad value is."""
+    import math
+
+    from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig
+
+    for bad in (math.inf, -math.inf, math.nan):
+        with pytest.raises(ConfigError, match=r"^duration_s = .*: expected a positive, finite duration in seconds"):
+            MonteCarloConfig(duration_s=bad, runs=2)

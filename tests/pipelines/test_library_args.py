@@ -93,6 +93,50 @@ def test_compute_threads_are_given_back():
     assert (torch.get_num_threads(), cv2.getNumThreads()) == (t0, c0)
 
 
+def test_compute_threads_of_two_jobs_that_overlap_in_threads_are_given_back():
+    """Two library calls running at once in a thread pool (A starts, B starts, A ends, B ends): the process ends
+    with the counts it had before A; a block nested in one thread gives back its outer block's counts."""
+    import threading
+
+    import cv2
+    import torch
+
+    from envisat_pose.pipelines.common.threads import compute_threads
+
+    t0, c0 = torch.get_num_threads(), cv2.getNumThreads()
+    torch.set_num_threads(2)
+    cv2.setNumThreads(2)
+    try:
+        a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
+
+        def job_a():
+            with compute_threads(1, 1):
+                a_in.set()
+                b_in.wait(10)
+            a_out.set()
+
+        def job_b():
+            a_in.wait(10)
+            with compute_threads(1, 1):
+                b_in.set()
+                a_out.wait(10)
+
+        threads = [threading.Thread(target=job_a), threading.Thread(target=job_b)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(20)
+        assert a_out.is_set() and (torch.get_num_threads(), cv2.getNumThreads()) == (2, 2)
+        with compute_threads(3, 3):
+            with compute_threads(1, 1):
+                pass
+            assert (torch.get_num_threads(), cv2.getNumThreads()) == (3, 3)
+        assert (torch.get_num_threads(), cv2.getNumThreads()) == (2, 2)
+    finally:
+        torch.set_num_threads(t0)
+        cv2.setNumThreads(c0)
+
+
 def test_paths_are_taken_as_str_or_path():
     from envisat_pose.config import as_path_or_object, path_arg, paths_arg
 

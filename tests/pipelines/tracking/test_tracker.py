@@ -625,6 +625,31 @@ def test_frame_times_must_increase(truth_600):
     tracker.step(1.0, frame_image(1))  # a refused step changed nothing
 
 
+def test_a_config_or_prior_a_tracker_cannot_take_is_refused_naming_it():
+    """Tracker(camera, detector, chaser_at, config, prior=...) as a user's script builds it: a config given as a
+    dict (the tables' form in a file) was a raw AttributeError ('dict' object has no attribute 'validate'), a prior
+    of 6 states a numpy broadcast error, a NaN prior time 'cannot convert float NaN to integer', and a NaN or
+    indefinite prior was taken and lost at the first frame: each is one error naming the argument."""
+    from envisat_pose.config import InputError
+    from envisat_pose.datagen.scenario import ScenarioConfig
+    from envisat_pose.pipelines.tracking.build import chaser_from_orbit
+
+    chaser_at = chaser_from_orbit(ScenarioConfig().orbit)
+
+    def build(**kw):
+        return Tracker(load_camera(), NoisyTruthDetector(None), chaser_at, **kw)
+
+    with pytest.raises(InputError, match=r"^config: expected a TrackerConfig, got dict"):
+        build(config={"acquire": {"frames": 12}})
+    x0, P0 = np.r_[0.0, 50.0, 0.0, np.zeros(9)], np.eye(12) * 1e-2
+    for prior, needle in (((x0[:6], np.eye(6), 0.0), r"x0 \(12,\)"), ((x0, np.eye(6), 0.0), r"P0 \(12, 12\)"),
+                          ((np.full(12, np.nan), P0, 0.0), "finite"), ((x0, P0, float("nan")), "t0"),
+                          ((x0, -P0, 0.0), "positive definite"), ((x0, P0), r"\(x0, P0, t0\)")):
+        with pytest.raises(InputError, match=r"^prior: .*" + needle):
+            build(prior=prior)
+    assert build(prior=(x0.tolist(), P0, 0)).state.mean.shape == (1, 12)
+
+
 def test_a_frame_not_of_the_cameras_size_is_refused(truth_600):
     """A frame resized or cropped from the camera's (800 x 800 for a 1024 x 1024 camera) read with that camera gives
     a pose wrong by the focal lengths' ratio and consistent (a helper's run claimed tracking 14.8 m off): refused,
