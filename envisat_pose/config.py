@@ -154,6 +154,8 @@ def _built(value: Any, hint: Any, field: str) -> Any:
     """One constructor argument checked against its hint (_check_fields): a built config and the types from_dict
     makes are taken as they are; plain data goes through _convert; what no hint describes passes."""
     if type(value) is hint or _plain(value, hint):  # the common case, at a dict lookup's cost
+        if value != value or (type(value) is tuple and any(v != v for v in value)):  # NaN: no field means it
+            raise ConfigError(field, value, "a number (not NaN)")  # (inf may: validate() decides)
         return value
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):

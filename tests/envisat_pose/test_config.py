@@ -143,6 +143,26 @@ def test_an_infinite_campaign_duration_is_one_config_error_naming_it():
 
     from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig
 
-    for bad in (math.inf, -math.inf, math.nan):
+    for bad in (math.inf, -math.inf):
         with pytest.raises(ConfigError, match=r"^duration_s = .*: expected a positive, finite duration in seconds"):
             MonteCarloConfig(duration_s=bad, runs=2)
+    with pytest.raises(ConfigError, match=r"^duration_s = nan: expected a number \(not NaN\)"):
+        MonteCarloConfig(duration_s=math.nan, runs=2)
+
+
+def test_nan_in_any_configs_number_is_one_config_error_naming_it():
+    """A constructor took NaN where a file's from_dict refuses it (an orbit's RAAN, a track's rate, a sigma): the
+    field's checks (x > 0, lo <= x <= hi) are all False for NaN only where written so, and several were not."""
+    import math
+
+    from envisat_pose.datagen.generate_config import GenerateConfig
+    from envisat_pose.datagen.scenario import OrbitConfig
+    from envisat_pose.filtering.montecarlo import MeasurementConfig
+    from envisat_pose.pipelines.runs.track import TrackConfig
+
+    for build, name in ((lambda: OrbitConfig(raan_deg=math.nan), "raan_deg"),
+                         (lambda: MeasurementConfig(sigma_m=math.nan), "sigma_m"),
+                         (lambda: TrackConfig(scenario="default", rate_hz=math.nan), "rate_hz"),
+                         (lambda: GenerateConfig(sun_dir=(math.nan, 0.0, 1.0)), "sun_dir")):  # (refused before)
+        with pytest.raises(ConfigError, match=rf"^{name} = .*nan.*: expected a (number|non-zero)"):
+            build()
