@@ -27,8 +27,10 @@ def interrupt_code(err: BaseException | None) -> int:
 @contextlib.contextmanager
 def sigterm_as_interrupt():
     """SIGTERM raises Terminated in this process's main thread while the block runs; the old handler comes back
-    after. Outside the main thread (no signal handlers there) the block runs as it is."""
-    if threading.current_thread() is not threading.main_thread():
+    after. Outside the main thread (no signal handlers there), where SIGTERM came in ignored (as Python leaves
+    SIGINT ignored for a job started so) or under a handler not set from Python, the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) in (
+            signal.SIG_IGN, None):
         yield
         return
     pid = os.getpid()

@@ -52,6 +52,22 @@ def test_sigterm_is_restored_after_an_in_process_main(monkeypatch):
     assert seen[0] is not before and signal.getsignal(signal.SIGTERM) is before
 
 
+def test_a_sigterm_that_came_in_ignored_stays_ignored(monkeypatch):
+    """A job started with SIGTERM ignored (a supervisor's choice, as a shell's `&` leaves SIGINT ignored, which
+    Python keeps) is not stopped by it: the verb leaves the disposition as it found it."""
+    import envisat_pose.app.simulate as simulate
+    from envisat_pose.app.cli import main
+
+    seen = []
+    monkeypatch.setattr(simulate, "run_simulate_cli", lambda args: seen.append(signal.getsignal(signal.SIGTERM)))
+    before = signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        assert main(["simulate", "--out", "x.npz"]) == 0
+        assert seen == [signal.SIG_IGN] and signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
 def test_an_interrupted_pool_does_not_wait_for_its_units_in_progress():
     """Ctrl-C or SIGTERM while a process pool runs: the workers are ended at once (their units, partial files,
     are redone on a resume); the pool waited for every unit in progress (and the queued ones it had sent)."""
