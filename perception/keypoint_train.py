@@ -10,7 +10,7 @@ from dataclasses import dataclass, field, replace
 
 import torch
 
-from envisat_pose.config import check
+from envisat_pose.config import UNMARKED, check, filled_for, mark_filled
 from envisat_pose.perception.keypoint_batch import keypoint_batch
 from envisat_pose.perception.keypoint_loss import KeypointLossConfig, keypoint_losses, relabelings
 from envisat_pose.perception.keypoint_net import KeypointModelConfig, init_keypoint_net
@@ -22,7 +22,7 @@ from envisat_pose.target import is_default_file, load_target
 class KeypointTrainConfig(TrainConfig):
     """TrainConfig of another target's keypoint network. target: its MJCF file (envisat_pose/target.py; not
     ENVISAT's, whose detector is the corner network); model: KeypointModelConfig, num_keypoints filled in with the
-    target's K when not given (and checked against it); loss: KeypointLossConfig. line_jitter_px is unused.
+    target's K when not given (and checked against it; filled in again for a config replaced with another target); loss: KeypointLossConfig. line_jitter_px is unused.
     Validated when built."""
 
     target: str = ""
@@ -36,8 +36,9 @@ class KeypointTrainConfig(TrainConfig):
               "another target than ENVISAT (ENVISAT's detector is the corner network: `envisat train` without "
               "--target)")
         k = load_target(self.target).num_keypoints
-        if self.model.num_keypoints is None:
-            object.__setattr__(self, "model", replace(self.model, num_keypoints=k))
+        if self.model.num_keypoints is None or filled_for(self.model) not in (UNMARKED, self.target):
+            # filled in here (marked: a config replaced with another target counts that target's keypoints)
+            object.__setattr__(self, "model", mark_filled(replace(self.model, num_keypoints=k), self.target))
         check(self.model.num_keypoints == k, "model.num_keypoints", self.model.num_keypoints,
               f"the target's {k} keypoints")
         super().__post_init__()

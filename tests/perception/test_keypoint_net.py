@@ -2,6 +2,7 @@
 the target's name, sha256 and keypoint names in the file, loaded back only for that target; ENVISAT's corner
 weights keep their metadata and refuse to load as another target's."""
 
+import dataclasses
 import json
 import os
 import sys
@@ -93,6 +94,13 @@ def test_the_keypoint_count_comes_from_the_target(files):
         KeypointTrainConfig(target=twin, model=KeypointModelConfig(num_keypoints=5))
     with pytest.raises(ConfigError, match="another target than ENVISAT"):
         KeypointTrainConfig(target="models/envisat.xml")
+    # replaced with another target: its count filled in again (it was refused, naming a count never given)
+    narrow = KeypointTrainConfig(target=twin, model=KeypointModelConfig(width=16, stem_width=8))
+    stage = dataclasses.replace(narrow, target="models/upper_stage.xml")
+    built = KeypointTrainConfig(target="models/upper_stage.xml", model=KeypointModelConfig(width=16, stem_width=8))
+    assert stage.model == built.model and stage.model.num_keypoints == 12
+    with pytest.raises(ConfigError, match="num_keypoints"):  # a count given stays given
+        dataclasses.replace(narrow, model=KeypointModelConfig(num_keypoints=8), target="models/upper_stage.xml")
 
 
 def test_a_backbone_comes_from_any_detectors_weights_and_the_heads_stay_seeded(files):
