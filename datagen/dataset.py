@@ -39,7 +39,7 @@ def verify_dataset(out_dir: str) -> list[str]:
         if name not in listed and name not in names:  # beyond num_shards: another run's, or a copied-in file
             problems.append(f"{name}: not part of the dataset (the manifest does not list it; a `shard-*.tar` "
                             "glob would read it)")
-    for tmp in sorted(glob.glob(os.path.join(out_dir, ".tmp-*"))):
+    for tmp in sorted(glob.glob(os.path.join(glob.escape(out_dir), ".tmp-*"))):
         problems.append(f"{os.path.basename(tmp)}: partial file of an interrupted run")
     total = sum(e.get("count", 0) for e in manifest["shards"])
     if not manifest.get("complete") and not problems:

@@ -18,6 +18,7 @@ import pytest
 from envisat_pose.app.cli import main as envisat_main
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.config import from_dict
+from envisat_pose.datagen.dataset import verify_dataset
 from envisat_pose.datagen.factory import run_generate
 from envisat_pose.datagen.generate_config import GenerateConfig, config_from_json
 from envisat_pose.datagen.shards import decode_png
@@ -170,6 +171,14 @@ def test_verify_reports_a_missing_shard(reference, tmp_path, capsys):
     os.remove(os.path.join(out, manifest["shards"][0]["name"]))
     assert envisat_main(["dataset", "verify", out]) == 1
     assert "shard-000000.tar: missing" in capsys.readouterr().out
+
+
+def test_verify_reports_a_partial_file_in_a_folder_named_with_glob_characters(tmp_path):
+    out = tmp_path / "set [v1]"  # '[v1]' is a glob character class: the folder's name must be taken literally
+    out.mkdir()
+    (out / "manifest.json").write_text(json.dumps({"complete": True, "num_images": 0, "num_shards": 0, "shards": []}))
+    (out / ".tmp-123-shard-000000.tar-x").write_bytes(b"half a shard")
+    assert verify_dataset(str(out)) == [".tmp-123-shard-000000.tar-x: partial file of an interrupted run"]
 
 
 @pytest.mark.parametrize("flags, message", [
