@@ -367,7 +367,7 @@ def yolo_yaml_text(layout: lay.Layout, has_val: bool, final_dir: str) -> str:
     1/K), flip_idx where the target has a mirror symmetry (layout.flip_idx; a chiral target has none, and
     Ultralytics then turns its left-right flip off), the keypoint and class names."""
     k = len(layout.keypoint_names)
-    val = "images/val" if has_val else "images/train  # no validation split was asked for (--val-fraction)"
+    val = "images/val" if has_val else "images/train  # no validation images (--val-fraction 0, or too few images)"
     sigmas = ", ".join(f"{fx.OKS_SIGMA:g}" for _ in range(k))
     return ("# Ultralytics YOLO-pose dataset (envisat-pose export; conventions in README.md)\n"
             f"path: {_yaml_str(final_dir)}  # this folder, absolute; moved? edit it (or delete it: recent "
