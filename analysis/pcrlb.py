@@ -86,7 +86,8 @@ def measurement_jacobians(hx: Callable[[np.ndarray], np.ndarray], x_true: np.nda
 def measurement_information(H: np.ndarray, measured: np.ndarray, R_corner: np.ndarray) -> np.ndarray:
     """I = sum over measured corners of H_i^T R_i^-1 H_i.
 
-    H: (..., c, m, n); measured: (..., c) bool (the truth's visible set, in frame, not dropped); R_corner: per
+    H: (..., c, m, n); measured: (..., c) bool (the truth's visible set, in frame, not dropped), or float: each
+    corner's probability of being measured (its expected information, for random failures); R_corner: per
     corner noise covariance, broadcastable to (..., c, m, m). Returns (..., n, n), symmetric PSD.
     """
     R_corner = np.broadcast_to(R_corner, H.shape[:-1] + (H.shape[-2],))
@@ -150,7 +151,7 @@ def pcrlb_along_truth(fx: Callable, hx: Callable, x_true: np.ndarray, measured: 
     """The bound for one truth trajectory: Jacobians by central differences, then `pcrlb_recursion`.
 
     fx, hx: as in `transition_jacobians` / `measurement_jacobians`; x_true (T, n); measured (T, c) bool, the
-    corners measured at each step; R_corner broadcastable to (T, c, m, m); P0 (n, n); Q (n, n) or (T-1, n, n).
+    corners measured at each step (or float: each one's probability of being measured); R_corner broadcastable to (T, c, m, m); P0 (n, n); Q (n, n) or (T-1, n, n).
     Returns (T, n, n).
     """
     F = transition_jacobians(fx, x_true, step, align)

@@ -19,6 +19,8 @@ per-keypoint covariances (..., K, m, m). A filter flattens them to (..., K m).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm
@@ -129,6 +131,22 @@ def random_failures(mask: np.ndarray, failure_prob: float, rng: np.random.Genera
     if failure_prob <= 0.0:
         return mask
     return mask & (rng.random(mask.shape) >= failure_prob)
+
+
+def measured_probability(mask: np.ndarray, failure_prob: float, max_markers: int | None) -> np.ndarray:
+    """The probability that each keypoint of `mask` is measured after `random_failures` then `limit_markers`:
+    keypoint j survives with 1 - failure_prob and is kept when fewer than max_markers of the m_j measurable
+    keypoints before it survived (a binomial tail). failure_prob 0 gives limit_markers(mask) as 0/1.
+    mask: (..., K) bool -> (..., K) float, the weights of the PCRLB's expected measurement information."""
+    mask = np.asarray(mask, dtype=bool)
+    keep = 1.0 - float(failure_prob)
+    before = np.cumsum(mask, axis=-1) - mask  # m_j: measurable keypoints ahead of keypoint j
+    if max_markers is None or max_markers >= mask.shape[-1]:
+        return mask * keep
+    m = np.arange(mask.shape[-1] + 1)
+    tail = np.array([sum(math.comb(int(n), i) * keep ** i * (1.0 - keep) ** (n - i)
+                         for i in range(min(n, max_markers - 1) + 1)) for n in m])  # P(< max_markers of n survive)
+    return mask * keep * tail[before]
 
 
 def outage_mask(t_s: np.ndarray, outages_s: tuple[tuple[float, float], ...]) -> np.ndarray:

@@ -15,7 +15,7 @@ from envisat_pose.config import to_dict
 from envisat_pose.contracts import TruthTrajectory
 from envisat_pose.filtering.dynamics import propagate
 from envisat_pose.filtering.estimator import make_setup
-from envisat_pose.filtering.measurements import limit_markers, measure, outage_mask
+from envisat_pose.filtering.measurements import measure, measured_probability, outage_mask
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import atomic_write_text, json_safe, save_npz
 from envisat_pose.pipelines.campaigns.campaign_block import (
@@ -57,14 +57,16 @@ def merge_blocks(cfg: MonteCarloConfig, out_dir: str):
 
 def campaign_pcrlb(cfg: MonteCarloConfig, tr: CampaignTruth) -> np.ndarray:
     """PCRLB per block (T, 4) along the truth, with the corners the truth lets the filter measure at each step
-    (visible, in frame for pixels, outside outages, at most max_markers; random failures are not modelled), the
+    (visible, in frame for pixels, outside outages, at most max_markers), each weighted by its probability of
+    surviving the random failures (the expected information: the bound of a model whose failures are random), the
     filter's P0, the measurement noise of the config and the truth's process noise (none). Statistics' units."""
 
     mcfg, camera = cfg.measurement, load_camera()
     setup = make_setup(cfg.filter, mcfg.kind, camera, target=tr.target)  # the filter's keypoints and inertia
     J_T, keypoints_T_m = setup.J_T, setup.keypoints_T_m
     dt_s = 1.0 / mcfg.rate_hz
-    measured = limit_markers(tr.base & ~outage_mask(tr.t_s, mcfg.outages_s)[:, None], mcfg.max_markers)
+    measured = measured_probability(tr.base & ~outage_mask(tr.t_s, mcfg.outages_s)[:, None], mcfg.failure_prob,
+                                    mcfg.max_markers)
 
     def fx(X):
         return propagate(X, tr.chaser[:-1, None, :], dt_s, J_T, tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient)
