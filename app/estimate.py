@@ -17,7 +17,8 @@ from envisat_pose.state import error_summary
 
 # the library's argument names -> this verb's flags (app/common.as_flags)
 FLAGS = {"truth_path": "--truth", "scenario": "--scenario", "duration_s": "--duration-s", "rrd": "--rrd",
-         "plot": "--plot", "runs": "--runs", "target": "--target", **MEASUREMENT_FLAGS}
+         "plot": "--plot", "runs": "--runs", "target": "--target", "init_error_scale": "--init-error-scale",
+         **MEASUREMENT_FLAGS}
 
 
 def register(sub: argparse._SubParsersAction) -> None:

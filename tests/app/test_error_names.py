@@ -41,3 +41,11 @@ def test_bf16_for_another_target_is_named_as_the_flag_the_user_typed(tmp_path, c
                  "--bf16", "--duration-s", "5", "--out", str(tmp_path / "r")]) == 2
     err = capsys.readouterr().err
     assert "--bf16: ENVISAT's corner detector only" in err and not (tmp_path / "r").exists(), err
+
+
+def test_a_bad_init_error_scale_is_named_as_its_flag_by_estimate_as_by_montecarlo(capsys, tmp_path):
+    """estimate named the config field (`init_error_scale = 0.0`), montecarlo the flag."""
+    for argv in (["estimate", "--out", str(tmp_path / "e.npz")], ["montecarlo", "--out", str(tmp_path / "mc")]):
+        assert main([*argv, "--scenario", "default", "--init-error-scale", "0", "--duration-s", "5"]) == 2
+        err = capsys.readouterr().err
+        assert ": error: --init-error-scale 0.0: expected a scale" in err, err
