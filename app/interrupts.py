@@ -2,7 +2,8 @@
 KeyboardInterrupt, in the main thread, so the verb stops as on Ctrl-C (its staged outputs removed, a resumable
 job's units kept) and says the same line; it exits 128 + the signal's number (130 for SIGINT, 143 for SIGTERM).
 `envisat train` and `envisat view` put their own handlers over it while they run (a checkpoint first; the
-viewer's group ended). A process forked from the verb's (a DataLoader worker) dies of SIGTERM as without it.
+viewer's group ended). A process forked from the verb's dies of SIGTERM as without it (a DataLoader worker,
+which comes from a fork server, ignores it: the trainer stops it).
 """
 
 from __future__ import annotations

@@ -175,6 +175,8 @@ def _built(value: Any, hint: Any, field: str) -> Any:
     if hint in (int, float, bool, str) or origin in (tuple, typing.Literal, typing.Union, types.UnionType) or \
             dataclasses.is_dataclass(hint):
         out = _convert(value, hint, field, finite=False)
+        if (type(out) is float and out != out) or (type(out) is tuple and any(v != v for v in out)):
+            raise ConfigError(field, value, "a number (not NaN)")  # numpy's NaN, converted: as Python's above
         return value if out == value and type(out) is type(value) else out
     return value
 

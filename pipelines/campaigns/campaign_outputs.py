@@ -57,8 +57,9 @@ def merge_blocks(cfg: MonteCarloConfig, out_dir: str):
 
 def campaign_pcrlb(cfg: MonteCarloConfig, tr: CampaignTruth) -> np.ndarray:
     """PCRLB per block (T, 4) along the truth, with the corners the truth lets the filter measure at each step
-    (visible, in frame for pixels, outside outages, at most max_markers), each weighted by its probability of
-    surviving the random failures (the expected information: the bound of a model whose failures are random), the
+    (visible, in frame for pixels, outside outages), each weighted by its probability of being measured: of
+    surviving the random failures, then of being among the first max_markers survivors (measured_probability; the
+    expected information: the bound of a model whose failures are random), the
     filter's P0, the measurement noise of the config and the truth's process noise (none). Statistics' units."""
 
     mcfg, camera = cfg.measurement, load_camera()

@@ -81,8 +81,8 @@ def fill_from_scenario(cfg: Any, kind: str, fallbacks: dict[str, Callable[[], An
 def _filled_for_another(cfg: Any, kind: str, fallbacks: dict[str, Callable[[], Any]]) -> list[str]:
     """The fields of cfg that a config of another scenario filled in: each value marked as filled from another
     scenario, and where there is one, a switch (a bool cannot be marked) equal to what that scenario sets. A
-    table taken from another scenario's config into this one is such a value too: pass a copy
-    (`dataclasses.replace(other.filter)`) to give it."""
+    value taken from another scenario's config into this one is such a value too: pass a copy of a table
+    (`dataclasses.replace(other.filter)`) or `float(other.duration_s)` to give it."""
     marks = {name: filled_for(getattr(cfg, name)) for name in fallbacks}
     stale = [name for name, mark in marks.items() if mark is not UNMARKED and mark != cfg.scenario]
     if not stale:

@@ -39,16 +39,19 @@ def compute_threads(torch_n: int | None = None, cv2_n: int | None = None):
         import cv2
 
         knobs.append(("cv2", cv2.getNumThreads, cv2.setNumThreads, [cv2_n]))
-    with _IN_FORCE_LOCK:
-        for name, get_threads, set_threads, block in knobs:
-            before, blocks = _IN_FORCE[name] if name in _IN_FORCE else (get_threads(), [])
-            _IN_FORCE[name] = (before, blocks + [block])
-            set_threads(block[0])
+    entered = []  # the knobs in force: a count refused (torch's 0) leaves no block behind, the others given back
     try:
+        with _IN_FORCE_LOCK:
+            for knob in knobs:
+                name, get_threads, set_threads, block = knob
+                before, blocks = _IN_FORCE[name] if name in _IN_FORCE else (get_threads(), [])
+                _IN_FORCE[name] = (before, blocks + [block])
+                entered.append(knob)
+                set_threads(block[0])
         yield
     finally:
         with _IN_FORCE_LOCK:
-            for name, _, set_threads, block in knobs:
+            for name, _, set_threads, block in entered:
                 before, blocks = _IN_FORCE[name]
                 blocks = [b for b in blocks if b is not block]
                 if blocks:

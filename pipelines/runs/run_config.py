@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from envisat_pose.config import Config, check, from_dict
+from envisat_pose.config import UNMARKED, Config, check, filled_for, from_dict, mark_filled
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.scenario import in_earth_shadow, scenario_config, scenario_eclipse
@@ -136,12 +136,12 @@ def finished_image(cfg: RunConfig) -> "GenerateConfig":
     (RunConfig.__post_init__ runs it on every build), but for the sun another scenario's run put there (the image
     finished for it: `dataclasses.replace(run, scenario=...)`), which is this scenario's again."""
     n = n_frames(cfg)
-    sun, before = cfg.image.sun_dir, cfg.image.sequence.scenario
-    if sun is None or (cfg.image.mode == "sequence" and before != cfg.scenario and sun == scenario_sun(before)):
+    sun, before = cfg.image.sun_dir, filled_for(cfg.image)  # the scenario a run finished this image for
+    if sun is None or (before not in (UNMARKED, cfg.scenario) and sun == scenario_sun(before)):
         sun = scenario_sun(cfg.scenario)
     sequence = dataclasses.replace(cfg.image.sequence, scenario=cfg.scenario, frame_dt_s=1.0 / cfg.rate_hz)
-    return dataclasses.replace(cfg.image, mode="sequence", sequence=sequence, seed=cfg.seed, num_images=n,
-                               shard_size=n, sun_dir=sun)
+    return mark_filled(dataclasses.replace(cfg.image, mode="sequence", sequence=sequence, seed=cfg.seed,
+                                           num_images=n, shard_size=n, sun_dir=sun), cfg.scenario)
 
 
 def scenario_sun(scenario: str) -> tuple[float, float, float]:

@@ -166,3 +166,21 @@ def test_nan_in_any_configs_number_is_one_config_error_naming_it():
                          (lambda: GenerateConfig(sun_dir=(math.nan, 0.0, 1.0)), "sun_dir")):  # (refused before)
         with pytest.raises(ConfigError, match=rf"^{name} = .*nan.*: expected a (number|non-zero)"):
             build()
+
+
+def test_numpy_nan_in_a_configs_number_is_one_config_error_naming_it():
+    """NaN as numpy gives it (np.float64, an array for a tuple field) is refused as Python's float NaN is (the
+    constructor converted it to a float and took it: an orbit's RAAN of nan)."""
+    import math
+
+    import numpy as np
+
+    from envisat_pose.datagen.scenario import OrbitConfig
+    from envisat_pose.pipelines.runs.track import TrackConfig
+
+    for build, name in ((lambda: OrbitConfig(raan_deg=np.float64(math.nan)), "raan_deg"),
+                        (lambda: OrbitConfig(i_deg=np.float32(math.nan)), "i_deg"),
+                        (lambda: TrackConfig(scenario="default", rate_hz=np.float64(math.nan)), "rate_hz")):
+        with pytest.raises(ConfigError, match=rf"^{name} = .*nan.*: expected a number \(not NaN\)"):
+            build()
+    assert OrbitConfig(raan_deg=np.float64(10.0)).raan_deg == 10.0

@@ -93,6 +93,21 @@ def test_a_job_replaced_with_another_scenario_is_that_scenarios_job(name):
     assert job_configs()["montecarlo"](scenario=name, measurement=dataclasses.replace(three)).measurement == three
 
 
+def test_a_runs_sun_given_equal_to_another_scenarios_stays_given():
+    """An image given with its sun (the default scenario's, copied from a run's config) to a run of another
+    scenario keeps it (it was taken for the default scenario's sun a run had put there, and replaced by the
+    eclipse's); the sun a run finished its image with is the new scenario's after a replace."""
+    from envisat_pose.datagen.generate_config import GenerateConfig
+    from envisat_pose.pipelines.runs.run_config import RunConfig, scenario_sun
+
+    sun = scenario_sun("default")
+    image = GenerateConfig(mode="sequence", num_images=1, shard_size=1, write_mask=False, write_depth=False,
+                           sun_dir=sun)
+    assert RunConfig(scenario="eclipse", duration_s=20.0, image=image).image.sun_dir == sun
+    replaced = dataclasses.replace(RunConfig(scenario="default", duration_s=20.0), scenario="eclipse")
+    assert replaced.image.sun_dir == scenario_sun("eclipse") != sun
+
+
 def test_a_campaign_replaced_with_a_longer_duration_has_that_truths_eclipse_outages():
     """The eclipse outages a campaign filled in follow its truth: dataclasses.replace with another duration (or
     seed) takes them along the new truth (they stayed the first 3600 s's: the second shadow was measured through),

@@ -93,6 +93,23 @@ def test_compute_threads_are_given_back():
     assert (torch.get_num_threads(), cv2.getNumThreads()) == (t0, c0)
 
 
+def test_compute_threads_refused_leaves_no_block_in_force():
+    """A count torch refuses (0) raises on the way in and leaves nothing behind: the next block gives back the
+    caller's count (it raised setting the refused count again on its way out, and every later block did too)."""
+    import torch
+
+    from envisat_pose.pipelines.common.threads import compute_threads
+
+    t0 = torch.get_num_threads()
+    with pytest.raises(RuntimeError):
+        with compute_threads(0):
+            pass
+    assert torch.get_num_threads() == t0
+    with compute_threads(1):
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == t0
+
+
 def test_compute_threads_of_two_jobs_that_overlap_in_threads_are_given_back():
     """Two library calls running at once in a thread pool (A starts, B starts, A ends, B ends): the process ends
     with the counts it had before A; a block nested in one thread gives back its outer block's counts."""
