@@ -56,7 +56,7 @@ from envisat_pose.pipelines.campaigns.campaign_config import (
 )
 from envisat_pose.pipelines.campaigns.campaign_outputs import FIGURES, finish_campaign, write_recording
 from envisat_pose.pipelines.campaigns.estimate import filter_keypoints_T_m
-from envisat_pose.pipelines.campaigns.observability import warn_if_unfixed_start
+from envisat_pose.pipelines.campaigns.observability import warn_if_unfixed_start, warn_outages_outside
 from envisat_pose.pools import RunnerConfig
 from envisat_pose.resumable import ResumableJob
 from envisat_pose.target import load_target
@@ -138,6 +138,7 @@ def campaign_at_one_rate(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConf
     job.header["truth_sha256"] = truth_sha
     tr = load_campaign_truth(out_dir, cfg.measurement, cfg.target)
     warn_if_unfixed_start(tr.t_s, filter_keypoints_T_m(tr.target), tr.base, cfg.measurement)
+    warn_outages_outside(tr.t_s, cfg.measurement)
     # blocks filtered on another truth are redone
     done = job.resume(previous if previous and previous.get("truth_sha256") == truth_sha else None)
     atomic_write_text(os.path.join(out_dir, "montecarlo.config.toml"),

@@ -35,7 +35,7 @@ from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.named_scenarios import check_name
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.out_lock import locks_output
-from envisat_pose.pipelines.campaigns.observability import warn_if_unfixed_start
+from envisat_pose.pipelines.campaigns.observability import warn_if_unfixed_start, warn_outages_outside
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, layered_job
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
 from envisat_pose.target import DEFAULT_TARGET, Target, is_default_file, load_target, resolve_target_path
@@ -282,6 +282,7 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     z_true, base = truth_measurements(kind, truth.corners_C_m[sel], truth.visible[sel], truth.corners_px[sel],
                                       truth.in_frame[sel])
     warn_if_unfixed_start(t_s, filter_keypoints_T_m(target), base, cfg.measurement)
+    warn_outages_outside(t_s, cfg.measurement)
     inp = make_run_inputs(x_true[0], t_s, z_true, base, cfg.measurement, fcfg.P0, cfg.seed, R,
                           init_error_scale=cfg.init_error_scale)
     res = run_filter(inp.x0_hat, fcfg.P0, t_s, chaser, inp.z, inp.mask, inp.R_c, kind, fcfg, progress=progress,

@@ -47,3 +47,13 @@ def warn_if_unfixed_start(t_s: np.ndarray, keypoints_T_m: np.ndarray, base_mask:
                   "diverge later); keypoints placed so that 3 or more off one line are seen from every view, "
                   "or a start where they are, avoid it (docs/usage.md, 'Where to put the keypoints')",
                   stacklevel=2)
+
+
+def warn_outages_outside(t_s: np.ndarray, mcfg: MeasurementConfig) -> None:
+    """A UserWarning for each outage window that holds no step of the truth (it begins after the truth's last
+    step): it removes no measurement, which a window typed for a longer truth (or in minutes) would not tell."""
+    end_s = float(np.asarray(t_s)[-1]) if np.size(t_s) else 0.0
+    for i, (a, b) in enumerate(mcfg.outages_s):
+        if not np.any((np.asarray(t_s) >= a) & (np.asarray(t_s) < b)):
+            warnings.warn(f"measurement.outages_s[{i}] [{a:g}, {b:g}) s holds no step of the truth (0 to {end_s:g} "
+                          "s): it removes no measurement", stacklevel=2)
