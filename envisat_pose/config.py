@@ -62,9 +62,19 @@ class Derived(float):
         return Derived, (float(self), self._filled_for)
 
 
+class DerivedInt(int):
+    """Derived's whole number (a count a config filled in from its other fields: a run's worker processes)."""
+
+    def __repr__(self) -> str:
+        return int.__repr__(self)
+
+    def __reduce__(self):
+        return DerivedInt, (int(self),)
+
+
 def derived(value) -> bool:
-    """Whether a field is the config's to fill in: not given (None), or filled in before (Derived)."""
-    return value is None or isinstance(value, Derived)
+    """Whether a field is the config's to fill in: not given (None), or filled in before (Derived, DerivedInt)."""
+    return value is None or isinstance(value, (Derived, DerivedInt))
 
 
 UNMARKED = object()  # filled_for's answer for a value no config filled in from a scenario
@@ -204,7 +214,8 @@ def _plain(value: Any, hint: Any) -> bool:
             ok = _plain_types(args[0])
             return bool(ok) and all(type(v) in ok for v in value)
         return len(args) == len(value) and all(type(v) in _plain_types(a) for v, a in zip(value, args))
-    return type(value) in _plain_types(hint) or (type(value) is Derived and float in _plain_types(hint))
+    return type(value) in _plain_types(hint) or (type(value) is Derived and float in _plain_types(hint)) or (
+        type(value) is DerivedInt and int in _plain_types(hint))
 
 
 def path_arg(value: Any, field: str, optional: bool = False) -> str | None:

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from envisat_pose.config import UNMARKED, Config, check, filled_for, from_dict, mark_filled
+from envisat_pose.config import UNMARKED, Config, DerivedInt, check, derived, filled_for, from_dict, mark_filled
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.scenario import in_earth_shadow, scenario_config, scenario_eclipse
@@ -84,10 +84,12 @@ class RunConfig(Config):
 
     def __post_init__(self) -> None:
         fill_from_scenario(self, "run", RUN_FALLBACKS)
-        if self.workers is None:  # one process per run, no more than the usable cores and memory hold
-            object.__setattr__(self, "workers", default_processes(min(self.runs, MAX_WORKERS), RUN_PROCESS_BYTES))
+        if derived(self.workers):  # one process per run, no more than the usable cores and memory hold (marked:
+            n = default_processes(min(self.runs, MAX_WORKERS), RUN_PROCESS_BYTES)  # a replace's runs count again)
+            object.__setattr__(self, "workers", DerivedInt(n))
         super().__post_init__()
-        object.__setattr__(self, "workers", min(self.workers, self.runs))  # the processes that run: one per run at most
+        if self.workers > self.runs:  # the processes that run: one per run at most
+            object.__setattr__(self, "workers", type(self.workers)(self.runs))
         object.__setattr__(self, "weights", job_weights(self.weights, self.image.target))  # never ENVISAT's for another
         # after validation: the frame count needs a valid duration and rate
         object.__setattr__(self, "image", finished_image(self))

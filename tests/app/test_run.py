@@ -2,6 +2,7 @@
 filter (outputs, the recording read back with Rerun's reader, eclipse, --warm-start, --runs 2) and a cold start on
 the default scenario that converges."""
 
+import dataclasses
 import json
 import os
 import tomllib
@@ -269,6 +270,9 @@ def test_the_run_records_the_processes_it_used_and_the_recordings_size(tmp_path)
     from envisat_pose.pipelines.runs.run_config import RunConfig
 
     assert RunConfig(runs=1, workers=4).workers == 1 and RunConfig(runs=3, workers=2).workers == 2
+    # the processes not given follow a replace's runs (one process stayed for 8 runs)
+    assert dataclasses.replace(RunConfig(runs=1), runs=8).workers == RunConfig(runs=8).workers
+    assert dataclasses.replace(RunConfig(runs=8, workers=2), runs=4).workers == 2
     rrd = tmp_path / "elsewhere" / "mine.rrd"
     rrd.parent.mkdir()
     rrd.write_bytes(b"x" * 1234)
