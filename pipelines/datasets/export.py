@@ -108,6 +108,9 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     if cfg.fmt == "speedplus" and layout.mode == "sequence" and cfg.val_fraction:
         raise InputError(f"val_fraction {cfg.val_fraction}: a sequence exports as one SHIRT-style sequence "
                          "folder, not split")
+    if cfg.fmt == "bop" and cfg.val_fraction:  # it wrote every image to train_pbr without a word
+        raise InputError(f"val_fraction {cfg.val_fraction}: bop exports one split, train_pbr (BOP's synthetic "
+                         "training images); leave it out, or export another format for a validation split")
     counts = _shard_counts(manifest, shards)
     splits = _split_flags(sum(counts), cfg, layout.mode)
     stage, made = _make_stage(out_dir)

@@ -149,6 +149,15 @@ def test_a_val_fraction_that_leaves_a_split_empty_is_one_line(small, tmp_path, c
     assert os.listdir(tmp_path) == []
 
 
+def test_a_val_fraction_for_bop_is_one_line(small, tmp_path, capsys):
+    """BOP has one split (train_pbr): a fraction asked for wrote every image there without a word."""
+    rc = envisat_main(["dataset", "export", small["done"], "--format", "bop", "--out", str(tmp_path / "o"),
+                       "--val-fraction", "0.5", "--quiet"])
+    line = one_error_line(capsys)
+    assert rc == 2 and "--val-fraction 0.5: bop exports one split, train_pbr" in line, line
+    assert os.listdir(tmp_path) == []
+
+
 def _label_shard(path, visible_lists):
     """A shard of samples whose labels hold what dataset_stats reads, one per list of visible flags."""
     import io
