@@ -151,7 +151,8 @@ def pcrlb_along_truth(fx: Callable, hx: Callable, x_true: np.ndarray, measured: 
     """The bound for one truth trajectory: Jacobians by central differences, then `pcrlb_recursion`.
 
     fx, hx: as in `transition_jacobians` / `measurement_jacobians`; x_true (T, n); measured (T, c) bool, the
-    corners measured at each step (or float: each one's probability of being measured); R_corner broadcastable to (T, c, m, m); P0 (n, n); Q (n, n) or (T-1, n, n).
+    corners measured at each step (or float: each one's probability of being measured); R_corner broadcastable
+    to (T, c, m, m); P0 (n, n); Q (n, n) or (T-1, n, n).
     Returns (T, n, n).
     """
     F = transition_jacobians(fx, x_true, step, align)

@@ -19,7 +19,8 @@ from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
 
 FLAGS = {**{k: "--" + k.replace("_", "-") for k in "scenario runs target duration_s block_runs settle_s "
-                                                   "init_error_scale workers".split()}, **MEASUREMENT_FLAGS, "rrd": "--rrd"}
+                                                   "init_error_scale workers".split()}, **MEASUREMENT_FLAGS,
+         "rrd": "--rrd"}
 
 
 def register(sub: argparse._SubParsersAction) -> None:

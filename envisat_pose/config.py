@@ -100,8 +100,9 @@ class Config:
     """The base of every config dataclass: validated when built (the constructor, dataclasses.replace, from_dict).
 
     A subclass's own __post_init__ does its filling first (fields left None that take a scenario's, say), then
-    calls super().__post_init__(); what it fills in is marked (Derived, mark_filled), so a config replaced with
-    new inputs (another scenario or target) fills it in again. validate(prefix) raises ConfigError naming a field under prefix: '' when built,
+    calls super().__post_init__(); what it fills in is marked (Derived, DerivedInt, mark_filled), so a config
+    replaced with new inputs (another scenario or target) fills it in again. validate(prefix) raises ConfigError
+    naming a field under prefix: '' when built,
     so the names are the config's own ('p0_sigma'); from_dict puts the table's dotted name in front
     ('filter.p0_sigma'). Kept cheap (milliseconds): what a validate() reads (the MJCF camera, a target file) is
     cached, a weights file only looked up.

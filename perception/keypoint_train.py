@@ -22,7 +22,8 @@ from envisat_pose.target import is_default_file, load_target
 class KeypointTrainConfig(TrainConfig):
     """TrainConfig of another target's keypoint network. target: its MJCF file (envisat_pose/target.py; not
     ENVISAT's, whose detector is the corner network); model: KeypointModelConfig, num_keypoints filled in with the
-    target's K when not given (and checked against it; filled in again for a config replaced with another target); loss: KeypointLossConfig. line_jitter_px is unused.
+    target's K when not given (and checked against it; filled in again for a config replaced with another
+    target); loss: KeypointLossConfig. line_jitter_px is unused.
     Validated when built."""
 
     target: str = ""
