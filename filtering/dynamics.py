@@ -156,6 +156,11 @@ def _rk4_block(f, y0: np.ndarray, stages, dt_s: float) -> np.ndarray:
 # the most a body may turn in one of the filter's RK4 sub-steps: RK4's error grows as (w h)^5, and 1 s steps of a
 # tumble at 0.57 rad/s (an 11 s period) left the filter over-confident (mean NEES 26) where 0.1 s steps did not
 MAX_TURN_PER_RK4_STEP_RAD = 0.2
+# the most RK4 sub-steps one filter step takes: a batch shares its sub-step, so one run whose rate estimate ran
+# away (a diverged run: |w| of 1e5 rad/s) would otherwise stall every run of the batch in millions of sub-steps and
+# allocate their chaser stages (n_sub x 4 x 4); 100 sub-steps still resolve sigma points turning at up to 20 rad/s
+# over a 1 s step and 1 rad/s over the rate sweep's slowest 20 s step (ENVISAT's: 0.05-0.06 rad/s)
+MAX_RK4_SUBSTEPS = 100
 
 
 def rk4_step_s(max_step_s: float, w_max_rad_s: float) -> float:
@@ -167,14 +172,17 @@ def rk4_step_s(max_step_s: float, w_max_rad_s: float) -> float:
     return min(float(max_step_s), MAX_TURN_PER_RK4_STEP_RAD / w)
 
 
-def sigma_step_s(max_step_s: float, mean: np.ndarray, cov: np.ndarray, spread: float) -> float:
+def sigma_step_s(max_step_s: float, mean: np.ndarray, cov: np.ndarray, spread: float,
+                 dt_s: float | None = None) -> float:
     """rk4_step_s at the fastest rate of the sigma points of R runs (mean (R, 12), cov (R, 12, 12)), drawn
     sqrt(spread) columns of cov's square root from the mean (spread: the UKF's n + lambda): bounded by |w_mean| +
-    sqrt(spread tr P_ww); runs that are not finite left out."""
+    sqrt(spread tr P_ww); runs that are not finite left out. dt_s: the step to propagate; the rate then shortens
+    the sub-step to no less than dt_s / MAX_RK4_SUBSTEPS (max_step_s, if shorter, still holds)."""
     rate = np.sqrt(np.sum(np.square(mean[..., RATE]), axis=-1))
     bound = rate + np.sqrt(np.maximum(spread * np.trace(cov[..., RATE, RATE], axis1=-2, axis2=-1), 0.0))
     bound = bound[np.isfinite(bound)]
-    return rk4_step_s(max_step_s, float(bound.max()) if bound.size else 0.0)
+    step_s = rk4_step_s(max_step_s, float(bound.max()) if bound.size else 0.0)
+    return step_s if dt_s is None else max(step_s, min(float(max_step_s), float(dt_s) / MAX_RK4_SUBSTEPS))
 
 
 def propagate(x: np.ndarray, c0: np.ndarray, dt_s: float, J_T: np.ndarray | None = None,

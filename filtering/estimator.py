@@ -312,7 +312,7 @@ def _predict_step(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[n
     Q = cfg.Q(dt)[None] * np.where(state.starved, cfg.outage_q_scale, 1.0)[:, None, None]
     if cfg.adaptive_q:
         Q = Q + state.Q_adapt * dt
-    step_s = sigma_step_s(cfg.max_rk4_step_s, state.mean, state.cov, setup.weights.n + setup.weights.lam)
+    step_s = sigma_step_s(cfg.max_rk4_step_s, state.mean, state.cov, setup.weights.n + setup.weights.lam, dt)
     if uses_fused_kernel(cfg):
         from envisat_pose.filtering import fast  # numba compiles (or loads its cache) on first use
 
