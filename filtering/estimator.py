@@ -25,109 +25,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import Config, check
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, sigma_step_s
+from envisat_pose.filtering.filter_config import FilterConfig, check_kernel
 from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
 from envisat_pose.filtering.step_update import measurement_update, uses_fused_kernel
-from envisat_pose.filtering.ukf import SigmaWeights, chart_error, merwe_weights, predict, shadow_switch
-from envisat_pose.gates import GATE_PROB, chi2_bound, chi2_gate
+from envisat_pose.filtering.ukf import (
+    SigmaWeights,
+    chart_error,
+    chart_sigma_points,
+    merwe_weights,
+    predict,
+    shadow_switch,
+)
+from envisat_pose.gates import chi2_bound, chi2_gate
 from envisat_pose.geometry import PinholeCamera, load_camera, load_geometry
 from envisat_pose.state import nees_window_diverged
 from envisat_pose.target import Target, VisibilityTable
-
-KERNELS = ("fast", "reference")  # FilterConfig.kernel: filtering/fast.py's kernels, filtering/ukf.py's numpy
-SIGMA_CHARTS = ("additive", "rotation")  # FilterConfig.sigma_chart (filtering/ukf.py: chart_retract)
-
-
-def _check_kernel(kernel: str) -> None:
-    if kernel not in KERNELS:
-        raise ValueError(f"unknown filter kernel {kernel!r}; expected one of {KERNELS} (fast: the fused numba "
-                         "kernels, reference: the numpy filter)")
-
-
-@dataclass(frozen=True)
-class FilterConfig(Config):
-    """UKF settings. Sigmas are 1-sigma per component; q_* are per second of propagation (Q = q^2 dt).
-
-    p0_sigma: initial uncertainty of (rho m, rho' m/s, p MRP, w_r rad/s), the reference sheet's P0.
-    q_sigma: process noise std per sqrt(s) of the same four groups.
-    gate_prob: chi-square gate probability per corner (0 switches gating off).
-    visibility_check: drop a measured corner that the predicted state says is hidden (from the prior mean: ENVISAT's
-    exact face test, another target's fast visibility table): a detection of a hidden corner is a mislabel.
-    gate_lockout_steps: after this many consecutive steps in which the gate rejected every measured corner of
-    a run, its next update is not gated (a filter must not lock itself out when it is wrong or R too small).
-    adaptive_r / adaptive_q: innovation-based R scale, residual-based Q (see the module docstring).
-    outage_q_scale: Q multiplier while a run gets no measurement.
-    divergence_window: steps in the NIS window; divergence_prob: false-alarm probability of one window;
-    nees_divergence_factor: with a known truth, a window mean NEES above this x 12 also flags divergence.
-    divergence_settle_steps: the monitors are armed after this many steps (the initial transient, where P0's
-    10 deg attitude uncertainty makes the unscented transform optimistic, is not a divergence).
-    The default q_sigma suits a torque-free truth; with the gravity-gradient torque raise the w_r term
-    (~1e-5 rad/s^2 at most) or switch on adaptive_q.
-    kernel: "fast" (the fused numba kernels of filtering/fast.py, the default) or "reference" (the numpy
-    filter of filtering/ukf.py, which the fast one is tested against): the same filter to round-off.
-    split_gain, split_max: a run whose prior spreads the measured components more than split_gain times wider
-    than their noise takes its measurement in partial updates (filtering/step_update.py), at most split_max
-    (1: always one update).
-    sigma_chart: "additive" (mean + column) or "rotation" (filtering.ukf.chart_retract; the numpy filter runs it).
-    """
-
-    alpha: float = 1.0
-    beta: float = 2.0
-    kappa: float = 0.0
-    p0_sigma: tuple[float, float, float, float] = (1.0, 0.01, 0.044, 1.7e-3)
-    q_sigma: tuple[float, float, float, float] = (1e-7, 1e-7, 1e-8, 1e-9)
-    gate_prob: float = GATE_PROB
-    gate_lockout_steps: int = 5
-    visibility_check: bool = True
-    adaptive_r: bool = False
-    adaptive_r_rate: float = 0.05
-    adaptive_r_bounds: tuple[float, float] = (0.2, 100.0)
-    adaptive_q: bool = False
-    adaptive_q_memory: float = 0.95
-    outage_q_scale: float = 10.0
-    divergence_window: int = 30
-    divergence_settle_steps: int = 60
-    nees_divergence_factor: float = 10.0
-    divergence_prob: float = 1e-6
-    max_rk4_step_s: float = 1.0
-    kernel: str = "fast"
-    split_gain: float = 10.0
-    split_max: int = 16
-    sigma_chart: str = "additive"
-
-    def validate(self, prefix: str = "filter") -> None:
-        p = f"{prefix}." if prefix else ""
-        check(0.0 < self.alpha <= 1.0, f"{p}alpha", self.alpha, "a sigma-point spread in (0, 1]")
-        check(self.beta >= 0.0, f"{p}beta", self.beta, "a non-negative number")
-        check(12 + self.kappa > 0, f"{p}kappa", self.kappa, "a number with 12 + kappa > 0")
-        check(all(s > 0 for s in self.p0_sigma), f"{p}p0_sigma", list(self.p0_sigma), "four positive sigmas")
-        check(all(s >= 0 for s in self.q_sigma), f"{p}q_sigma", list(self.q_sigma), "four non-negative sigmas")
-        check(0.0 <= self.gate_prob < 1.0, f"{p}gate_prob", self.gate_prob, "a probability in [0, 1) (0: no gate)")
-        check(self.gate_lockout_steps >= 1, f"{p}gate_lockout_steps", self.gate_lockout_steps, "at least 1 step")
-        check(0.0 < self.adaptive_r_rate <= 1.0, f"{p}adaptive_r_rate", self.adaptive_r_rate, "a rate in (0, 1]")
-        lo, hi = self.adaptive_r_bounds
-        check(0.0 < lo <= 1.0 <= hi, f"{p}adaptive_r_bounds", list(self.adaptive_r_bounds), "[lo, hi] with 0 < lo <= 1 <= hi")
-        check(0.0 <= self.adaptive_q_memory < 1.0, f"{p}adaptive_q_memory", self.adaptive_q_memory, "a number in [0, 1)")
-        check(self.outage_q_scale >= 1.0, f"{p}outage_q_scale", self.outage_q_scale, "a factor >= 1")
-        check(self.divergence_settle_steps >= 0, f"{p}divergence_settle_steps", self.divergence_settle_steps, "a non-negative number of steps")
-        check(self.divergence_window >= 1, f"{p}divergence_window", self.divergence_window, "at least 1 step")
-        check(0.0 < self.divergence_prob < 1.0, f"{p}divergence_prob", self.divergence_prob, "a probability in (0, 1)")
-        check(self.nees_divergence_factor > 1.0, f"{p}nees_divergence_factor", self.nees_divergence_factor, "a factor > 1")
-        check(self.max_rk4_step_s > 0.0, f"{p}max_rk4_step_s", self.max_rk4_step_s, "a positive step in seconds")
-        check(self.kernel in KERNELS, f"{p}kernel", self.kernel, f"one of {', '.join(KERNELS)}")
-        check(self.split_gain > 1.0, f"{p}split_gain", self.split_gain, "a factor > 1")
-        check(self.split_max >= 1, f"{p}split_max", self.split_max, "at least 1 update")
-        check(self.sigma_chart in SIGMA_CHARTS, f"{p}sigma_chart", self.sigma_chart, " or ".join(SIGMA_CHARTS))
-
-    @property
-    def P0(self) -> np.ndarray:
-        """Initial covariance (12, 12)."""
-        return np.diag(np.repeat(np.square(self.p0_sigma), 3))
-
-    def Q(self, dt_s: float) -> np.ndarray:
-        """Process noise of a step of dt_s seconds (12, 12)."""
-        return np.diag(np.repeat(np.square(self.q_sigma), 3)) * dt_s
 
 
 @dataclass
@@ -187,8 +100,16 @@ class FilterSetup:
         return measure(x, self.kind, self.camera, self.keypoints_T_m)
 
     def predicted_visible(self, x: np.ndarray) -> np.ndarray:
-        """The visibility check's answer from states x (..., 12): (..., K) bool (filtering.measurements)."""
+        """Which keypoints states x (..., 12) show the chaser: (..., K) bool (filtering.measurements)."""
         return predicted_visible(x, self.visibility)
+
+    def visible_by_prior(self, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
+        """The visibility check's answer from a prior (mean (..., 12), cov (..., 12, 12)): (..., K) bool, the
+        keypoints shown at its mean, or with cfg.visibility_from "spread" at its mean or any of its sigma points
+        (the config's chart's, those the update draws)."""
+        if self.cfg.visibility_from == "mean":
+            return self.predicted_visible(mean)
+        return self.predicted_visible(chart_sigma_points(mean, cov, self.weights, self.cfg.sigma_chart)).any(axis=-2)
 
 
 def filter_inertia_T_kg_m2(target: Target) -> np.ndarray:
@@ -213,7 +134,7 @@ def make_setup(cfg: FilterConfig, kind: str, camera: PinholeCamera | None = None
     target's inertia."""
     if kind not in KINDS:
         raise ValueError(f"unknown measurement kind {kind!r}; expected one of {KINDS}")
-    _check_kernel(cfg.kernel)
+    check_kernel(cfg.kernel)
     gate = chi2_gate(cfg.gate_prob, dim_per_corner(kind)) if cfg.gate_prob > 0 else None
     if target is None:
         keypoints, visibility = load_geometry().corners_T_m, None
@@ -317,7 +238,7 @@ def _predict_step(state: FilterState, t_s: float, setup: FilterSetup) -> tuple[n
         from envisat_pose.filtering import fast  # numba compiles (or loads its cache) on first use
 
         return fast.predict_fused(state.mean, state.cov, state.chaser, dt, Q, setup, step_s)
-    _check_kernel(cfg.kernel)
+    check_kernel(cfg.kernel)
     return predict(state.mean, state.cov, state.chaser, dt, Q, setup.weights, setup.J_T, setup.mu_m3_s2,
                    step_s, setup.gravity_gradient, cfg.sigma_chart)
 
@@ -348,7 +269,7 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
     measured = np.asarray(meas.mask, dtype=bool) & np.isfinite(z).all(-1)  # a non-finite detection is a missing one
     gate = setup.gate_threshold
     thr = None if gate is None else np.where(state.locked >= cfg.gate_lockout_steps, np.inf, gate)
-    _check_kernel(cfg.kernel)
+    check_kernel(cfg.kernel)
     up = measurement_update(mean, cov, z, measured, R_c, state.r_scale, thr, setup)
     mean, cov, mask_k = up["mean"], up["cov"], up["mask_k"]
     nis, dof, accepted = up["nis"], up["dof"], up["accepted"]

@@ -21,8 +21,9 @@ round-off (the RK4 stage sums, the sigma-point mean, the symmetrization of P):
   with the gravity-gradient torque when asked) with the MRP switched to |p| <= 1 between sub-steps, MRPs
   brought to the central point's set before the weighted mean, the mean switched to |p| <= 1, residuals on
   the mean's set, P = sum Wc r r^T + Q, symmetrized;
-- update: the visibility check (ENVISAT's exact face test from the prior mean, in the kernel; another target's
-  fast visibility table is looked up in numpy before the kernel), sigma points from the prior, the
+- update: sigma points from the prior, the visibility check (FilterConfig.visibility_from: a measured corner is
+  dropped where the prior mean, or the mean and every sigma point, hide it; ENVISAT's exact face test in the
+  kernel, another target's fast visibility table looked up in numpy before the kernel), the
   measurement model of the measured keypoints (the setup's K: markers3d, pixels with the guarded pinhole,
   pixels+range),
   per-corner chi-square gate, innovation covariance S, gain, mean and covariance, the shadow switch with its
@@ -504,32 +505,48 @@ def table_visible(x: np.ndarray, table) -> np.ndarray:
 
 
 @njit(**_JIT_PART)
-def _reaching_gate(mean, measured, r, vis_check, face_n, face_h, face_corners, G, mask_k, accepted, act):
-    """Which measured corners of run r reach the gate: measured (R, K) and, when vis_check, visible from the prior
-    mean (R, 12) (the box face test: face_n (6, 3), face_h (6,), face_corners (6, K) bool). Writes row r of mask_k
-    (R, K), clears accepted's (R, K), lists the corners in act; returns their number."""
-    nc = measured.shape[1]
-    cT0, cT1, cT2 = 0.0, 0.0, 0.0
-    if vis_check:
-        _dcm(mean[r, _P0:_P0 + 3], G)
-        cT0 = -(G[0, 0] * mean[r, 0] + G[0, 1] * mean[r, 1] + G[0, 2] * mean[r, 2])
-        cT1 = -(G[1, 0] * mean[r, 0] + G[1, 1] * mean[r, 1] + G[1, 2] * mean[r, 2])
-        cT2 = -(G[2, 0] * mean[r, 0] + G[2, 1] * mean[r, 1] + G[2, 2] * mean[r, 2])
+def _measured_corners(measured, r, mask_k, accepted, act):
+    """The measured corners of run r (measured (R, K)): writes row r of mask_k (R, K), clears accepted's (R, K),
+    lists the corners in act; returns their number."""
     na = 0
-    for c in range(nc):
-        vis = True
-        if vis_check:
-            vis = False
-            for f in range(face_n.shape[0]):
-                if face_corners[f, c] and (face_n[f, 0] * cT0 + face_n[f, 1] * cT1 + face_n[f, 2] * cT2
-                                           > face_h[f]):
-                    vis = True
-        mask_k[r, c] = measured[r, c] and vis
+    for c in range(measured.shape[1]):
+        mask_k[r, c] = measured[r, c]
         accepted[r, c] = False
-        if mask_k[r, c]:
+        if measured[r, c]:
             act[na] = c
             na += 1
     return na
+
+
+@njit(**_JIT_PART)
+def _shown_by_prior(sig, n_pts, act, na, face_n, face_h, face_corners, G, seen, mask_k, r):
+    """The visibility check: keeps in act those of its na corners that the box face test (face_n (6, 3), face_h
+    (6,), face_corners (6, K) bool) shows from the chaser of any of the first n_pts sigma points (sig (S, 12),
+    the mean first: n_pts 1 the mean alone); clears row r of mask_k for the others; returns the number kept."""
+    for a in range(na):
+        seen[a] = False
+    for s in range(n_pts):
+        _dcm(sig[s, _P0:_P0 + 3], G)
+        cT0 = -(G[0, 0] * sig[s, 0] + G[0, 1] * sig[s, 1] + G[0, 2] * sig[s, 2])
+        cT1 = -(G[1, 0] * sig[s, 0] + G[1, 1] * sig[s, 1] + G[1, 2] * sig[s, 2])
+        cT2 = -(G[2, 0] * sig[s, 0] + G[2, 1] * sig[s, 1] + G[2, 2] * sig[s, 2])
+        for a in range(na):
+            if seen[a]:
+                continue
+            c = act[a]
+            for f in range(face_n.shape[0]):
+                if face_corners[f, c] and (face_n[f, 0] * cT0 + face_n[f, 1] * cT1 + face_n[f, 2] * cT2
+                                           > face_h[f]):
+                    seen[a] = True
+                    break
+    kept = 0
+    for a in range(na):
+        if seen[a]:
+            act[kept] = act[a]
+            kept += 1
+        else:
+            mask_k[r, act[a]] = False
+    return kept
 
 
 @njit(**_JIT_PART)
@@ -749,14 +766,15 @@ def _symmetrized_ok(P, cov_out, mean_out, r, ny, L):
 
 
 @njit(**_JIT)
-def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check, weights, geometry, camera, out):
+def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_points, weights, geometry, camera, out):
     """UKF measurement update of R runs (estimator's step around filtering/ukf.update), one run at a time: the
     corners that reach the gate, sigma points, the measurement model's moments, the innovation, the gate, the
     accepted components, the gain and the posterior, the shadow switch (the helpers above, in this order).
 
     mean (R, 12), cov (R, 12, 12) the prior; z (R, K, m); measured (R, K) bool; R_c (R, K, m, m) per-corner
     covariance, scaled by r_scale (R,); thr (R,) chi-square bound per corner (inf: gate open), used when
-    use_gate; vis_check: drop measured corners the prior mean says are hidden (the box face test: K = 8 box
+    use_gate; vis_points: the visibility check, drop measured corners that the first vis_points sigma points hide
+    (0: no check; 1: the mean alone; 2n + 1: the mean and every sigma point; the box face test: K = 8 box
     corners). weights: (Wm, Wc, scale) of the sigma points; geometry: (corners_T (K, 3), face_n (6, 3), face_h
     (6,), face_corners (6, K) bool; the face arrays are read only with vis_check); camera:
     (R_K_from_C, pos_C_m, f, cu, cv, min_depth) for the pixel kinds and kind (0 markers3d, 1 pixels, 2
@@ -792,6 +810,7 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
     y = np.empty(Mx)
     comp = np.empty(Mx, dtype=np.int64)   # compact component -> (corner, axis) index into the 8m vector
     act = np.empty(nc, dtype=np.int64)
+    seen = np.empty(nc, dtype=np.bool_)
     buf = np.empty(3)
     Sc = np.empty((3, 3))
     Lc = np.empty((3, 3))
@@ -799,16 +818,19 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_check
     Sj = np.empty((3, 3))
     for r in range(R):
         ok[r] = True
-        na = _reaching_gate(mean, measured, r, vis_check, face_n, face_h, face_corners, G, mask_k, accepted, act)
+        na = _measured_corners(measured, r, mask_k, accepted, act)
         _keep_prior(mean, cov, r, mean_out, cov_out, Ky)
         nis[r], yy[r], trPzz[r] = 0.0, 0.0, 0.0
+        if na > 0:
+            if not _sigma_points(mean[r], cov[r], scale, A, L, sig):
+                ok[r] = False
+                continue
+            if vis_points > 0:
+                na = _shown_by_prior(sig, vis_points, act, na, face_n, face_h, face_corners, G, seen, mask_k, r)
         if na == 0:
             # no update: the numpy filter's update with an empty mask leaves a mean on |p| <= 1 and a
             # positive-definite covariance as they are (otherwise it switches or repairs them: its job)
             ok[r] = _unchanged_ok(mean[r], cov[r], L, P, n)
-            continue
-        if not _sigma_points(mean[r], cov[r], scale, A, L, sig):
-            ok[r] = False
             continue
         M = na * mdim
         C = Cbuf[:(M + n) * M].reshape((M + n, M))
@@ -962,8 +984,11 @@ def update_fused(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.
     R = mean.shape[0]
     measured = np.ascontiguousarray(measured, dtype=bool)
     kernel_vis = bool(vis_check) and setup.visibility is None  # the box face test, in the kernel
-    if vis_check and not kernel_vis:  # a target's table: the corners it hides never reach the kernel
-        measured = np.ascontiguousarray(measured & table_visible(mean, setup.visibility), dtype=bool)
+    if vis_check and not kernel_vis:  # a target's table: the corners the prior hides never reach the kernel
+        pts = mean if setup.cfg.visibility_from == "mean" else ukf.sigma_points(mean, cov, setup.weights)
+        shown = table_visible(pts, setup.visibility)
+        measured = np.ascontiguousarray(measured & (shown if pts is mean else shown.any(axis=-2)), dtype=bool)
+    vis_points = (1 if setup.cfg.visibility_from == "mean" else 2 * N_STATE + 1) if kernel_vis else 0
     K = measured.shape[1]
     z = np.ascontiguousarray(z, dtype=float)  # the kernel reads measured corners only (a NaN elsewhere is fine)
     m = z.shape[-1]
@@ -979,7 +1004,7 @@ def update_fused(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.
     ok = np.empty(R, dtype=bool)
     out["suspect"] = np.zeros(0, dtype=np.int64)  # runs the numpy filter redid (the kernel's are finite)
     out["indefinite"] = np.zeros(R, dtype=bool)  # runs whose innovation covariance was not positive definite
-    update_kernel(mean, cov, z, measured, R_c, r_scale, thr_a, use_gate, kernel_vis,
+    update_kernel(mean, cov, z, measured, R_c, r_scale, thr_a, use_gate, vis_points,
                   (w.Wm, w.Wc, float(w.n + w.lam)), (corners, fn, fh, fc),
                   (cR, cpos, f, cu, cv, float(MIN_DEPTH_M), kind),
                   (out["mean"], out["cov"], out["nis"], out["accepted"], out["mask_k"], out["Ky"], out["yy"],
@@ -989,7 +1014,7 @@ def update_fused(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.
         out["suspect"] = bad
         mk = measured[bad]
         if kernel_vis:
-            mk = mk & setup.predicted_visible(mean[bad])
+            mk = mk & setup.visible_by_prior(mean[bad], cov[bad])
         Rk = R_c[bad] * r_scale[bad, None, None, None]
         mb, cb, info = ukf.update(mean[bad], cov[bad], z[bad], mk, Rk, setup.hx, w,
                                   None if thr is None else thr_a[bad])

@@ -33,7 +33,8 @@ def uses_fused_kernel(cfg) -> bool:
 def kernel_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarray, R_c: np.ndarray,
                   r_scale: np.ndarray, thr, vis_check: bool, setup) -> dict:
     """One measurement update of R runs: filtering/fast.py's fused kernel where uses_fused_kernel(setup.cfg), else
-    the numpy filter of filtering/ukf.py in the config's chart: the visibility check (vis_check), the gate (thr: a
+    the numpy filter of filtering/ukf.py in the config's chart: the visibility check (vis_check: the corners
+    setup.visible_by_prior hides dropped), the gate (thr: a
     bound per run, or None for none), the unscented update with R_c * r_scale. Returns a dict of mean, cov, nis, dof, accepted
     (R, K), mask_k (R, K) (the corners the gate saw), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,) = tr(Pzz) over
     the used components, indefinite (R,) bool (and with the fast kernel suspect: the runs it redid in numpy)."""
@@ -44,7 +45,7 @@ def kernel_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np
     Rk = R_c * r_scale[:, None, None, None]
     mask_k = measured
     if vis_check:
-        mask_k = mask_k & setup.predicted_visible(mean)
+        mask_k = mask_k & setup.visible_by_prior(mean, cov)
     mean, cov, info = update(mean, cov, z, mask_k, Rk, setup.hx, setup.weights, thr, setup.cfg.sigma_chart)
     return {"mean": mean, "cov": cov, "nis": info.nis, "dof": info.dof, "accepted": info.accepted, "mask_k": mask_k,
             "Ky": np.einsum("rij,rj->ri", info.K, info.y), "yy": np.einsum("ri,ri->r", info.y, info.y),

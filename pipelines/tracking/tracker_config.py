@@ -21,7 +21,10 @@ ACQUIRING_SIGMA = (5.0, 1.0, 0.5, 0.1)
 # the filter settings the tracker starts from (under a scenario's [filter] table and the user's): adaptive R that
 # only ever raises R above the detector's modelled covariance, and no gate lockout (a lost track is re-acquired
 # from the images instead of taking one frame ungated)
-TRACKER_FILTER = {"adaptive_r": True, "adaptive_r_bounds": (1.0, 100.0), "gate_lockout_steps": 1_000_000}
+# visibility_from "mean": the detector's names of keypoints the prior mean hides are mislabels (a twin's names),
+# which the spread of a wide acquisition prior lets through (FilterConfig.visibility_from)
+TRACKER_FILTER = {"adaptive_r": True, "adaptive_r_bounds": (1.0, 100.0), "gate_lockout_steps": 1_000_000,
+                  "visibility_from": "mean"}
 
 
 def _dot(prefix: str) -> str:

@@ -366,7 +366,8 @@ class TrackingSteps:
         if not mask[best].any() or self.setup.gate_threshold is None:
             return np.zeros(self.K, bool)
         d2 = self._corner_d2(prior, z, cov, best)
-        vis = self.setup.predicted_visible(prior[0][best]) if self.fcfg.visibility_check else np.ones(self.K, bool)
+        vis = (self.setup.visible_by_prior(prior[0][best], prior[1][best]) if self.fcfg.visibility_check
+               else np.ones(self.K, bool))
         return mask[best] & ((d2 > self.setup.gate_threshold) | ~vis)
 
     def _corner_d2(self, prior, z, cov, h) -> np.ndarray:

@@ -20,6 +20,7 @@ from envisat_pose.filtering.estimator import (
 )
 from envisat_pose.filtering.measurements import chaser_T_m_from_state
 from envisat_pose.filtering.montecarlo import MeasurementConfig, inputs_from_truth
+from envisat_pose.filtering.ukf import sigma_points
 from envisat_pose.geometry import load_camera
 from envisat_pose.target import default_target, load_target
 
@@ -114,19 +115,23 @@ def test_upper_stage_fast_kernel_matches_the_numpy_filter(upper_truth):
 
 
 def test_visibility_check_uses_the_targets_table_and_counts_dropped_keypoints(upper_truth):
-    """A setup of the upper stage looks visibility up in its table from c_T = -Gamma rho of the prior mean; every
-    keypoint measured while the table says hidden is dropped (FilterState.dropped), by both kernels alike."""
+    """A setup of the upper stage looks visibility up in its table from c_T = -Gamma rho; every keypoint measured
+    while the table says hidden at the prior mean and at each of its sigma points is dropped (FilterState.dropped),
+    by both kernels alike."""
     target = load_target(UPPER_STAGE)
     table = target.visibility_table()
     x = upper_truth.x[::10]
     for kernel in ("fast", "reference"):
         setup = make_setup(FilterConfig(kernel=kernel), "markers3d", target=target)
         assert setup.visibility is not None and setup.num_keypoints == 12
-        hidden = ~table.lookup(chaser_T_m_from_state(x))
-        np.testing.assert_array_equal(setup.predicted_visible(x), ~hidden)
+        np.testing.assert_array_equal(setup.predicted_visible(x), table.lookup(chaser_T_m_from_state(x)))
+        P = np.broadcast_to(setup.cfg.P0 * 1e-4, (len(x), 12, 12))
+        spread = sigma_points(x, P, setup.weights)  # (R, 25, 12), the mean first
+        hidden = ~table.lookup(chaser_T_m_from_state(spread)).any(axis=-2)
+        np.testing.assert_array_equal(setup.visible_by_prior(x, P), ~hidden)
         assert hidden.any(axis=1).all()  # some keypoint is hidden at every sample: the check has work
         R = len(x)
-        state = init_state(x, setup.cfg.P0 * 1e-4, 0.0, np.array([7.142e6, 0.0, 0.0, 1e-3]), setup.cfg)
+        state = init_state(x, P[0], 0.0, np.array([7.142e6, 0.0, 0.0, 1e-3]), setup.cfg)
         z = setup.hx(x)
         meas = Measurement(0.0, state.chaser, z, np.ones((R, 12), bool), np.broadcast_to(0.02**2 * np.eye(3), (R, 12, 3, 3)))
         out = filter_step(state, meas, setup)

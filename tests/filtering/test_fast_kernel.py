@@ -162,11 +162,12 @@ def test_one_predict_equals_the_reference(truth_600, chaser_of, dt_s, gravity_gr
     assert (np.linalg.norm(m_fast[:, MRP], axis=-1) <= 1.0).all()
 
 
-@pytest.mark.parametrize("kind", ["markers3d", "pixels", "pixels+range"])
-def test_one_update_equals_the_reference(truth_600, chaser_of, kind):
+@pytest.mark.parametrize("kind,visibility_from", [("markers3d", "spread"), ("pixels", "spread"),
+                                                  ("pixels+range", "spread"), ("pixels", "mean")])
+def test_one_update_equals_the_reference(truth_600, chaser_of, kind, visibility_from):
     tr = truth_600
     inp, mean, cov = _prior(tr, chaser_of, kind)
-    cfg = FilterConfig(adaptive_r=True)
+    cfg = FilterConfig(adaptive_r=True, visibility_from=visibility_from)
     setup = make_setup(cfg, kind)
     k = 61
     z = inp.z[:, k].copy()
@@ -176,9 +177,7 @@ def test_one_update_equals_the_reference(truth_600, chaser_of, kind):
     r_scale = np.array([1.0, 2.0, 0.5, 1.0])
     thr = np.array([setup.gate_threshold, setup.gate_threshold, setup.gate_threshold, np.inf])
     o = fast.update_fused(mean, cov, z, inp.mask[:, k], R_c, r_scale, thr, True, setup)
-    from envisat_pose.filtering.measurements import predicted_visible
-
-    mk = inp.mask[:, k] & predicted_visible(mean)
+    mk = inp.mask[:, k] & setup.visible_by_prior(mean, cov)
     m_ref, P_ref, info = ukf.update(mean, cov, z, mk, R_c * r_scale[:, None, None, None], setup.hx,
                                     setup.weights, thr)
     np.testing.assert_array_equal(o["mask_k"], mk)
