@@ -16,6 +16,7 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, propagate
 from envisat_pose.filtering.measurements import measure
+from envisat_pose.filtering.step_update import split_factors
 from envisat_pose.filtering.ukf import shadow_switch, state_mean, state_residual
 from envisat_pose.geometry import PinholeCamera
 
@@ -50,8 +51,8 @@ def reference_update(ukf: UnscentedKalmanFilter, z: np.ndarray, mask_c: np.ndarr
     """filterpy update with the measured corners only. z (K, m), mask_c (K,) bool, R_c (K, m, m). split: (gain,
     most), FilterConfig's split_gain and split_max: where filterpy's innovation covariance S says the prior is
     ratio = tr(S - R) / tr(R) > gain times wider than the noise, the update is made again from the prior in
-    n = min(ceil(ratio / gain), most) updates with R n, each from sigma points about the last one's result.
-    Returns n (1: one update)."""
+    n = min(ceil(ratio / gain), most) updates with R times step_update.split_factors' (n each where ceil(ratio / gain) <= most),
+    each from sigma points about the last one's result. Returns n (1: one update)."""
     mask_c = np.asarray(mask_c, dtype=bool)
     if not mask_c.any():
         ukf.update(None)
@@ -71,9 +72,9 @@ def reference_update(ukf: UnscentedKalmanFilter, z: np.ndarray, mask_c: np.ndarr
             n = int(min(max(np.ceil(ratio / split[0]), 1), split[1]))
         if n > 1:
             ukf.x, ukf.P = x_prior, P_prior
-            for _ in range(n):
+            for factor in split_factors(np.array([ratio]), split[0], split[1])[0, :n]:
                 ukf.sigmas_f = ukf.points_fn.sigma_points(ukf.x, ukf.P)
-                ukf.update(z[mask_c].ravel(), R=R * n, hx=hx)
+                ukf.update(z[mask_c].ravel(), R=R * factor, hx=hx)
                 ukf.x, ukf.P = shadow_switch(ukf.x, ukf.P)
     ukf.x, ukf.P = shadow_switch(ukf.x, ukf.P)
     ukf.sigmas_f = ukf.points_fn.sigma_points(ukf.x, ukf.P)

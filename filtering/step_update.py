@@ -4,9 +4,11 @@ partial updates.
 
 The split, a recursive update in its simplest form (after Zanetti, "Recursive update filtering for nonlinear
 estimation", IEEE Trans. Automatic Control 57(6), 2012): a run whose prior spreads the measured components
-ratio = tr(Pzz) / tr(R) times wider than their noise takes n = ceil(ratio / split_gain) updates (at most
-split_max), each with the noise R n, from its prior, on the corners the single update accepted. With a linear
-model that is the single update's posterior (n updates of information R^-1 / n each); with the camera's it is
+ratio = tr(Pzz) / tr(R) times wider than their noise takes n = ceil(ratio / split_gain) updates, each with the
+noise R n, from its prior, on the corners the single update accepted; past split_max updates, split_max ones
+whose shares of the information grow geometrically from the first, which the gain bounds (split_factors: equal
+shares left 0.1 mm markers' 16 updates each ~1e7 times wider than their noise, the campaign overconfident). With a
+linear model that is the single update's posterior (the shares of R^-1 add up to it); with the camera's it is
 a better one: each partial update draws its sigma points about the previous one's posterior, where the single
 update spreads them over the whole prior, whose lateral metre at 50 m moves the image by ~40 px and turns the
 line of sight by a degree, which a small target's few pixels then read as attitude and range.
@@ -61,6 +63,35 @@ def split_counts(tr_pzz: np.ndarray, tr_r: np.ndarray, gain: float, most: int) -
     return np.clip(np.ceil(ratio / float(gain)), 1, max(int(most), 1)).astype(np.int64)
 
 
+def split_factors(ratio: np.ndarray, gain: float, most: int) -> np.ndarray:
+    """(R, most) the noise multiplier of each run's partial updates (update k takes R x factor, the information
+    fraction 1 / factor; the fractions sum to 1), 0 past a run's last; ratio (R,) as split_counts reads it.
+
+    A run of n = ceil(ratio / gain) <= most updates takes n equal ones (factor n). A run past most takes most
+    updates whose fractions grow geometrically, f_k = f_1 q^(k-1): the first no wider than the gain allows (f_1 =
+    gain / ratio), q solving f_1 (q^most - 1) / (q - 1) = 1. Each later update then adds about q - 1 times the
+    information gathered before it, so no update's prior is more than ~gain times wider than its noise; most equal
+    updates would each have been ratio / most times wider (2 cm markers from P0: 250 against the gain's 10;
+    0.1 mm markers: 10 million)."""
+    ratio = np.asarray(ratio, dtype=float)
+    most = max(int(most), 1)
+    n = split_counts(ratio, np.ones_like(ratio), gain, most)
+    out = np.where(np.arange(most) < n[:, None], n[:, None].astype(float), 0.0)
+    capped = np.flatnonzero(np.ceil(np.where(np.isfinite(ratio), ratio, 0.0) / float(gain)) > most)
+    if len(capped) == 0 or most == 1:
+        return out
+    f1 = float(gain) / ratio[capped]                               # < 1 / most
+    lo, hi = np.zeros_like(f1), np.log(f1) / -(most - 1)           # log q: the sum below 1 at lo, above at hi
+    k = np.arange(most)
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        above = (f1[:, None] * np.exp(mid[:, None] * k)).sum(-1) > 1.0
+        lo, hi = np.where(above, lo, mid), np.where(above, mid, hi)
+    f = f1[:, None] * np.exp(0.5 * (lo + hi)[:, None] * k)
+    out[capped] = f.sum(-1, keepdims=True) / f
+    return out
+
+
 def measurement_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measured: np.ndarray, R_c: np.ndarray,
                        r_scale: np.ndarray, thr, setup) -> dict:
     """filter_step's update of R runs from their prior (mean (R, 12), cov (R, 12, 12)): kernel_update with the
@@ -72,21 +103,24 @@ def measurement_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, measure
     up = kernel_update(mean, cov, z, measured, R_c, r_scale, thr, cfg.visibility_check, setup)
     accepted = np.asarray(up["accepted"], dtype=bool)
     tr_r = np.einsum("rkii->r", R_c * accepted[..., None, None]) * r_scale
-    counts = split_counts(np.asarray(up["trPzz"], dtype=float), tr_r, cfg.split_gain, cfg.split_max)
+    tr_pzz = np.asarray(up["trPzz"], dtype=float)
+    counts = split_counts(tr_pzz, tr_r, cfg.split_gain, cfg.split_max)
     counts = np.where(np.asarray(up["indefinite"], dtype=bool), 1, counts)
     idx = np.flatnonzero(counts > 1)
     up["splits"] = counts
     if len(idx) == 0:
         return up
     n = counts[idx]
+    factors = split_factors(tr_pzz[idx] / tr_r[idx], cfg.split_gain, cfg.split_max)
     m_i, P_i = mean[idx].copy(), cov[idx].copy()
-    z_i, acc_i, R_i, r_i = z[idx], accepted[idx], R_c[idx], r_scale[idx] * n
+    z_i, acc_i, R_i = z[idx], accepted[idx], R_c[idx]
     failed = np.zeros(len(idx), dtype=bool)
     for step in range(int(n.max())):
         sub = np.flatnonzero((n > step) & ~failed)
         if len(sub) == 0:
             break
-        res = kernel_update(m_i[sub], P_i[sub], z_i[sub], acc_i[sub], R_i[sub], r_i[sub], None, False, setup)
+        r_i = r_scale[idx][sub] * factors[sub, step]
+        res = kernel_update(m_i[sub], P_i[sub], z_i[sub], acc_i[sub], R_i[sub], r_i, None, False, setup)
         m_i[sub], P_i[sub] = res["mean"], res["cov"]
         failed[sub] |= np.asarray(res["indefinite"], dtype=bool)
     failed |= ~(np.isfinite(m_i).all(-1) & np.isfinite(P_i).all((-1, -2)))
