@@ -27,6 +27,7 @@ import time
 
 from envisat_pose.config import InputError
 from envisat_pose.out_dirs import check_out_dir, check_out_file
+from envisat_pose.pools import torchrun_int
 
 LOCK_NAME = ".envisat.lock"  # a locked output folder's lock file; an output file's: '.NAME' + LOCK_NAME beside it
 _held: dict[str, list] = {}  # this process's locks: lock file's real path -> [thread id, depth, pid, descriptor]
@@ -126,7 +127,7 @@ def output_lock(path, job: str, *, field: str = "out_dir", folder: bool = True, 
     having written nothing, when another job holds it (see the module doc)."""
     path = os.fspath(path)
     # a torchrun rank besides 0: the job's lock is rank 0's (RANK alone, which other tools set, locks as usual)
-    if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1 and os.environ.get("RANK", "0") != "0":
+    if torchrun_int("WORLD_SIZE", 1) > 1 and torchrun_int("RANK", 0) != 0:
         yield
         return
     (check_out_dir if folder else check_out_file)(path, field=field)

@@ -21,7 +21,7 @@ import types
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Literal, Sequence
 
-from envisat_pose.config import Config, check
+from envisat_pose.config import Config, InputError, check
 
 Backend = Literal["inline", "local", "dask"]
 
@@ -114,6 +114,23 @@ def cgroup_cpu_limit() -> int | None:
     if quota is None or period is None or quota <= 0 or period <= 0:
         return None
     return max(1, -(-quota // period))
+
+
+def torchrun_int(name: str, default: int) -> int:
+    """torchrun's environment variable `name` (WORLD_SIZE, RANK, LOCAL_RANK, LOCAL_WORLD_SIZE) as a whole number,
+    default where it is unset or empty; InputError in one line naming it for anything else (a launcher or a shell
+    that set it wrong), never a bare int() traceback."""
+    text = os.environ.get(name, "").strip()
+    if not text:
+        return default
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise InputError(f"environment variable {name}={text!r}: expected a whole number >= 0 (torchrun sets it; "
+                         f"unset it to run in one process)")
+    return value
 
 
 def usable_cores() -> int:

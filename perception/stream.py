@@ -24,7 +24,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from envisat_pose.config import InputError
 from envisat_pose.perception.data import DataConfig, make_sample, read_samples
-from envisat_pose.pools import without_main_script
+from envisat_pose.pools import torchrun_int, without_main_script
 
 # The batches the workers hand over live in shared memory (/dev/shm) until trained on: PREFETCH ready per worker
 # and loader, two loaders at an epoch's end (train_run.shard_batches starts the next early). A container's default
@@ -211,7 +211,7 @@ def run_prefetch(paths: list[str], cfg: DataConfig, seed: int, batch_size: int, 
     free = shm_free_bytes()
     if workers <= 0 or not paths or free is None:
         return PREFETCH
-    ranks = max(1, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))  # torchrun's ranks on this node share it
+    ranks = max(1, torchrun_int("LOCAL_WORLD_SIZE", 1))  # torchrun's ranks on this node share it
     return prefetch_factor(workers, batch_size * sample_bytes(paths, cfg, seed), free // ranks)
 
 

@@ -27,7 +27,7 @@ from envisat_pose.pipelines.common.threads import default_torch_threads
 from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, look_shares
 from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_configs, run_identity
 from envisat_pose.pipelines.detector.render_pool import RENDERER_BYTES, looks_keypoints
-from envisat_pose.pools import default_processes, usable_cores
+from envisat_pose.pools import default_processes, torchrun_int, usable_cores
 from envisat_pose.provenance import manifest_sha256
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
 from envisat_pose.target import (
@@ -151,7 +151,7 @@ def run_threads(run_dir: str) -> int | None:
 
 
 def _ranks(variable: str) -> int:
-    return max(1, int(os.environ.get(variable, "1")))
+    return max(1, torchrun_int(variable, 1))
 
 
 def default_workers(shards: int | None = None, images: int | None = None, batch_size: int = 1) -> int:
@@ -297,7 +297,7 @@ def online_record(run_dir: str) -> dict:
 
 def ddp_rank() -> int:
     """This process's rank under torchrun (its RANK where WORLD_SIZE > 1), else 0."""
-    return int(os.environ.get("RANK", "0")) if int(os.environ.get("WORLD_SIZE", "1")) > 1 else 0
+    return torchrun_int("RANK", 0) if torchrun_int("WORLD_SIZE", 1) > 1 else 0
 
 
 def init_distributed(device: str) -> str:
@@ -306,11 +306,11 @@ def init_distributed(device: str) -> str:
     import torch
     import torch.distributed as dist
 
-    if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or dist.is_initialized():
+    if torchrun_int("WORLD_SIZE", 1) <= 1 or dist.is_initialized():
         return device
     dist.init_process_group("nccl" if device == "cuda" else "gloo")
     if device == "cuda":
-        local = int(os.environ.get("LOCAL_RANK", "0"))
+        local = torchrun_int("LOCAL_RANK", 0)
         torch.cuda.set_device(local)
         return f"cuda:{local}"
     return device

@@ -113,3 +113,32 @@ def test_a_local_dask_cluster_starts_no_more_workers_than_tasks(monkeypatch):
     with pytest.raises(RuntimeError, match="no cluster"):
         list(pools.run_tasks(divmod, [(7, 2), (9, 4)], pools.RunnerConfig("dask", 64)))
     assert started == [(2, 0)]
+
+
+@pytest.mark.parametrize("name", ["WORLD_SIZE", "RANK", "LOCAL_RANK", "LOCAL_WORLD_SIZE"])
+def test_a_torchrun_variable_that_is_not_a_count_is_refused_naming_it(monkeypatch, name):
+    """A launcher or shell that set torchrun's variables wrong: one line naming the variable (it was a bare
+    int() ValueError in the training, the loaders and every job's output lock)."""
+    from envisat_pose.config import InputError
+
+    monkeypatch.setenv(name, "two")
+    with pytest.raises(InputError, match=f"environment variable {name}='two': expected a whole number"):
+        pools.torchrun_int(name, 1)
+    monkeypatch.setenv(name, "-1")
+    with pytest.raises(InputError, match=name):
+        pools.torchrun_int(name, 1)
+    monkeypatch.setenv(name, " ")
+    assert pools.torchrun_int(name, 7) == 7
+    monkeypatch.setenv(name, "3")
+    assert pools.torchrun_int(name, 7) == 3
+
+
+def test_a_job_under_a_broken_world_size_says_so_in_one_line(monkeypatch, tmp_path):
+    from envisat_pose.config import InputError
+    from envisat_pose.out_lock import output_lock
+
+    monkeypatch.setenv("WORLD_SIZE", "abc")
+    with pytest.raises(InputError, match="WORLD_SIZE='abc'"):
+        with output_lock(str(tmp_path / "out"), "generate"):
+            pass
+    assert not (tmp_path / "out").exists()
