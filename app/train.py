@@ -111,7 +111,7 @@ def online_config(args: argparse.Namespace, cfg):
 
 def resume_command(args: argparse.Namespace) -> str:
     """The command that goes on with an interrupted run: its data (a resumed run rereads its shards) and folder."""
-    data, world = ["--data", *args.data] if args.data else [], os.environ.get("WORLD_SIZE", "1")
+    data, world = ["--data", *args.data] if args.data else [], os.environ.get("WORLD_SIZE", "").strip() or "1"
     launch = ["envisat"] if world == "1" else ["torchrun", "--nproc-per-node", world, "--master-addr", "127.0.0.1",
                                                "-m", "envisat_pose.app.cli"]  # a DDP run resumes as it ran
     return shlex.join([*launch, "train", "--resume", *data, "--out", args.out])

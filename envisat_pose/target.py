@@ -239,12 +239,15 @@ class VisibilityTable:
 
     def lookup(self, c_T_m: np.ndarray) -> np.ndarray:
         """Visibility from camera positions c_T_m (..., 3) in T: the row of the direction at the camera's cell
-        (cell_dir, polar_azimuth_cell) at the nearest range (in log). (..., K) bool."""
+        (cell_dir, polar_azimuth_cell) at the nearest range (in log). (..., K) bool; a position that is not finite
+        (a broken filter run's) sees every keypoint: nothing known hides one."""
         c = np.asarray(c_T_m, float)
+        finite = np.isfinite(c).all(axis=-1)
+        c = np.where(finite[..., None], c, 1.0)
         r = np.linalg.norm(c, axis=-1)
         b = np.argmin(np.abs(np.log(np.maximum(r, 1e-12))[..., None] - np.log(self.ranges_m)), axis=-1)
         i, j = polar_azimuth_cell(c, r, self.cell_dir.shape[0])
-        return self.visible[b, self.cell_dir[i, j]]
+        return self.visible[b, self.cell_dir[i, j]] | ~finite[..., None]
 
 
 def polar_azimuth_cell(c: np.ndarray, r: np.ndarray, rows: int) -> tuple[np.ndarray, np.ndarray]:

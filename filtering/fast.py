@@ -474,8 +474,8 @@ def table_visible_kernel(mean, cell_dir, log_ranges, visible, out):
     """A target's visibility table (envisat_pose.target.VisibilityTable.lookup, the same grid and formulas) read
     from the prior means (R, 12): c_T = -Gamma(p) rho, its cell of the polar x azimuth grid cell_dir (rows, 2 rows)
     -> the direction's row of visible (B, N, K) at the range bin nearest in log (log_ranges (B,)). Writes out (R, K)
-    bool. O(1) per run: the numpy lookup's matrix product over every direction, and its Gamma matrices, were a
-    third of another target's update (bench/target_estimation.py)."""
+    bool (all True where c_T is not finite, as the lookup). O(1) per run: the numpy lookup's matrix product over
+    every direction, and its Gamma matrices, were a third of another target's update (bench/target_estimation.py)."""
     G = np.empty((3, 3))
     rows = cell_dir.shape[0]
     for r in range(mean.shape[0]):
@@ -483,6 +483,10 @@ def table_visible_kernel(mean, cell_dir, log_ranges, visible, out):
         c0 = -(G[0, 0] * mean[r, 0] + G[0, 1] * mean[r, 1] + G[0, 2] * mean[r, 2])
         c1 = -(G[1, 0] * mean[r, 0] + G[1, 1] * mean[r, 1] + G[1, 2] * mean[r, 2])
         c2 = -(G[2, 0] * mean[r, 0] + G[2, 1] * mean[r, 1] + G[2, 2] * mean[r, 2])
+        if not (np.isfinite(c0) and np.isfinite(c1) and np.isfinite(c2)):
+            for c in range(visible.shape[2]):
+                out[r, c] = True
+            continue
         rng = max(np.sqrt(c0 * c0 + c1 * c1 + c2 * c2), 1e-12)
         lr = np.log(rng)
         b = 0
@@ -776,7 +780,7 @@ def update_kernel(mean, cov, z, measured, R_c, r_scale, thr, use_gate, vis_point
     use_gate; vis_points: the visibility check, drop measured corners that the first vis_points sigma points hide
     (0: no check; 1: the mean alone; 2n + 1: the mean and every sigma point; the box face test: K = 8 box
     corners). weights: (Wm, Wc, scale) of the sigma points; geometry: (corners_T (K, 3), face_n (6, 3), face_h
-    (6,), face_corners (6, K) bool; the face arrays are read only with vis_check); camera:
+    (6,), face_corners (6, K) bool; the face arrays are read only with vis_points > 0); camera:
     (R_K_from_C, pos_C_m, f, cu, cv, min_depth) for the pixel kinds and kind (0 markers3d, 1 pixels, 2
     pixels+range) last. out: (mean_out, cov_out, nis (R,), accepted and mask_k (R, K) (corners used; corners
     that reached the gate), Ky (R, 12) = K y, yy (R,) = y.y, trPzz (R,) = tr(Pzz) over the used components, ok

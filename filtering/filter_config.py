@@ -51,7 +51,7 @@ class FilterConfig(Config):
     split_gain, split_max: a run whose prior spreads the measured components more than split_gain times wider
     than their noise takes its measurement in partial updates (filtering/step_update.py), at most split_max
     (1: always one update), their shares of the information growing geometrically where split_max is too few
-    for equal ones.
+    for equal ones (step_update.split_factors).
     sigma_chart: "additive" (mean + column) or "rotation" (filtering.ukf.chart_retract; the numpy filter runs it).
     """
 

@@ -6,12 +6,13 @@ The split, a recursive update in its simplest form (after Zanetti, "Recursive up
 estimation", IEEE Trans. Automatic Control 57(6), 2012): a run whose prior spreads the measured components
 ratio = tr(Pzz) / tr(R) times wider than their noise takes n = ceil(ratio / split_gain) updates, each with the
 noise R n, from its prior, on the corners the single update accepted; past split_max updates, split_max ones
-whose shares of the information grow geometrically from the first, which the gain bounds (split_factors: equal
-shares left 0.1 mm markers' 16 updates each ~1e7 times wider than their noise, the campaign overconfident). With a
-linear model that is the single update's posterior (the shares of R^-1 add up to it); with the camera's it is
-a better one: each partial update draws its sigma points about the previous one's posterior, where the single
-update spreads them over the whole prior, whose lateral metre at 50 m moves the image by ~40 px and turns the
-line of sight by a degree, which a small target's few pixels then read as attitude and range.
+whose shares of the information grow geometrically, each update's prior the same few times wider than its noise
+(split_factors; equal shares made the first of 0.1 mm markers' 16 updates 1.25e7 times wider than its noise, the
+campaign overconfident). With a linear model that is the single update's posterior (the shares of R^-1 add up
+to it); with the camera's it is a better one: each partial update draws its sigma points about the previous
+one's posterior, where the single update spreads them over the whole prior, whose lateral metre at 50 m moves
+the image by ~40 px and turns the line of sight by a degree, which a small target's few pixels then read as
+attitude and range.
 
 Where it acts: the first step of a campaign, whose P0 (1 m, 10 deg) is hundreds of times wider in the measured
 components than their noise. A tracked step's prior is narrower than its noise: one update, as before. The
@@ -67,12 +68,13 @@ def split_factors(ratio: np.ndarray, gain: float, most: int) -> np.ndarray:
     """(R, most) the noise multiplier of each run's partial updates (update k takes R x factor, the information
     fraction 1 / factor; the fractions sum to 1), 0 past a run's last; ratio (R,) as split_counts reads it.
 
-    A run of n = ceil(ratio / gain) <= most updates takes n equal ones (factor n). A run past most takes most
-    updates whose fractions grow geometrically, f_k = f_1 q^(k-1): the first no wider than the gain allows (f_1 =
-    gain / ratio), q solving f_1 (q^most - 1) / (q - 1) = 1. Each later update then adds about q - 1 times the
-    information gathered before it, so no update's prior is more than ~gain times wider than its noise; most equal
-    updates would each have been ratio / most times wider (2 cm markers from P0: 250 against the gain's 10;
-    0.1 mm markers: 10 million)."""
+    A run of n = ceil(ratio / gain) <= most updates takes n equal ones (factor n): the first one's prior at most
+    gain times wider than its noise, the later ones' less. A run past most takes most updates whose fractions grow
+    geometrically, f_k = (q - 1) q^(k-1) / ratio with q = (1 + ratio)^(1 / most): each adds q - 1 times the
+    information gathered before it, so every update's prior is q - 1 times wider than its noise (a linear model's:
+    the least that most updates can make their widest). That is within the gain while ratio <= (1 + gain)^most - 1
+    (4.6e16 for the defaults); most equal shares made the first update ratio / most times wider (2 cm markers from
+    P0: 250 against the gain's 10; 0.1 mm markers: 1.25e7)."""
     ratio = np.asarray(ratio, dtype=float)
     most = max(int(most), 1)
     n = split_counts(ratio, np.ones_like(ratio), gain, most)
@@ -80,14 +82,9 @@ def split_factors(ratio: np.ndarray, gain: float, most: int) -> np.ndarray:
     capped = np.flatnonzero(np.ceil(np.where(np.isfinite(ratio), ratio, 0.0) / float(gain)) > most)
     if len(capped) == 0 or most == 1:
         return out
-    f1 = float(gain) / ratio[capped]                               # < 1 / most
-    lo, hi = np.zeros_like(f1), np.log(f1) / -(most - 1)           # log q: the sum below 1 at lo, above at hi
-    k = np.arange(most)
-    for _ in range(100):
-        mid = 0.5 * (lo + hi)
-        above = (f1[:, None] * np.exp(mid[:, None] * k)).sum(-1) > 1.0
-        lo, hi = np.where(above, lo, mid), np.where(above, mid, hi)
-    f = f1[:, None] * np.exp(0.5 * (lo + hi)[:, None] * k)
+    log_q = np.log1p(ratio[capped]) / most
+    log_f = np.log(np.expm1(log_q))[:, None] + log_q[:, None] * np.arange(most) - np.log(ratio[capped])[:, None]
+    f = np.exp(log_f)
     out[capped] = f.sum(-1, keepdims=True) / f
     return out
 

@@ -21,8 +21,8 @@ estimates up to 0.9 mm and its NIS up to 0.21 apart in the first frames, its det
 2.8e-3 of a column's scale through the window the estimate places; statuses equal; the cold track within its tolerance).
 Re-recorded on 2026-12-06 for another: past split_max the partial updates' shares of the information grow
 geometrically (step_update.split_factors), which the warm closed loop's first update from P0 takes (its covariance
-up to 1.8e-3, NIS 5.3e-4 and estimates 3.7e-4 of a column's scale apart; statuses and detections equal; the cold
-track within its tolerance).
+up to 9.5e-3, NIS 2.9e-3 and estimates 3.4e-3 of a column's scale apart, its detections' alternative naming
+1.9e-4; statuses equal; the cold track within its tolerance).
 
 Run: .venv/bin/python tests/data/make_track_reference.py [--out tests/data/track_reference.npz]
 """

@@ -103,3 +103,37 @@ def test_three_markers_on_a_target_that_does_not_tumble_stay_consistent(tmp_path
     assert run_nees.max() < 40.0, run_nees
     assert np.mean(run_nees) < bounds[1], (np.mean(run_nees), bounds)
     assert summary["n_diverged"] == 0
+
+
+@pytest.mark.parametrize("target_file", [None, "models/upper_stage.xml"])
+def test_the_fused_kernel_and_the_numpy_filter_drop_the_same_keypoints_under_the_spread(target_file):
+    """Priors as wide as P0 (1 m, 10 deg) about 30 random attitudes, where the spread and the mean disagree on many
+    keypoints: both kernels keep the same ones (ENVISAT's face test in the kernel; the upper stage's table in numpy)
+    and give the same posterior; a run without a measured keypoint and one whose covariance is NaN (the table's
+    lookup of its NaN sigma points was an IndexError) included."""
+    from envisat_pose.target import load_target
+
+    target = None if target_file is None else load_target(target_file)
+    rng = np.random.default_rng(4)
+    R = 30
+    x = np.zeros((R, 12))
+    x[:, 1] = 50.0
+    x[:, 6:9] = rng.normal(0.0, 0.3, (R, 3))
+    cov = np.broadcast_to(FilterConfig().P0, (R, 12, 12)).copy()
+    cov[-1] = np.nan
+    ups, masks = {}, {}
+    for kernel in ("fast", "reference"):
+        setup = make_setup(FilterConfig(kernel=kernel, gate_prob=0.0), "markers3d", target=target)
+        K = setup.num_keypoints
+        measured = np.ones((R, K), bool)
+        measured[0] = False
+        z = setup.hx(x)
+        masks[kernel] = setup.visible_by_prior(x, cov)
+        ups[kernel] = kernel_update(x, cov, z, measured, np.eye(3) * 4e-4, np.ones(R), None, True, setup)
+        at_mean = setup.predicted_visible(x)
+        assert (masks[kernel][1:-1] & ~at_mean[1:-1]).sum() >= 10  # the rules differ: the test can tell them apart
+        np.testing.assert_array_equal(ups[kernel]["mask_k"][1:-1], masks[kernel][1:-1])
+        assert not ups[kernel]["mask_k"][0].any()
+    np.testing.assert_array_equal(ups["fast"]["mask_k"], ups["reference"]["mask_k"])
+    ok = slice(0, R - 1)
+    np.testing.assert_allclose(ups["fast"]["mean"][ok], ups["reference"]["mean"][ok], rtol=0, atol=1e-9)
