@@ -170,8 +170,9 @@ class FilterState:
     t_s: time of the estimate, s; chaser: (4,) the chaser's orbit at t_s; k: steps taken so far.
     mean (R, 12), cov (R, 12, 12): the posterior at t_s. r_scale (R,): adaptive measurement-noise scale.
     Q_adapt (R, 12, 12): adaptive process noise per second. starved (R,) bool: no measurement used at the last
-    step. locked (R,) int: consecutive steps in which the gate rejected every corner it was given (corners
-    dropped by the visibility check never reach the gate: they neither count as rejections nor lock it).
+    step. locked (R,) int: consecutive steps in which the gate rejected most of the corners it was given (more
+    than it accepted; corners dropped by the visibility check never reach the gate: they neither count as
+    rejections nor lock it).
     win_nis, win_dof (W, R): the NIS divergence window (ring buffer, slot k % W). diverged (R,) bool;
     repaired (R,) int: non-finite steps rolled back. The last step's outputs: n_meas (R,) corners used,
     nis (R,) (never negative: an update whose innovation covariance is not positive definite fails instead),
@@ -312,8 +313,8 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
         a = cfg.adaptive_q_memory
         Q_adapt = np.where(used[:, None, None], a * Q_adapt + (1 - a) * Ky[:, :, None] * Ky[:, None, :], Q_adapt)
     # the gate saw mask_k only: corners the visibility check dropped are neither rejections nor a lockout step
-    locked = np.where(mask_k.any(-1) & ~accepted.any(-1), state.locked + 1, 0)
     rejected = (mask_k & ~accepted).sum(-1)
+    locked = np.where(rejected > accepted.sum(-1), state.locked + 1, 0)
     # divergence monitor: windowed NIS against its chi-square bound
     W, k = cfg.divergence_window, state.k
     win_nis, win_dof = state.win_nis.copy(), state.win_dof.copy()

@@ -119,3 +119,39 @@ def test_corners_dropped_by_the_visibility_check_are_not_gate_rejections_and_do_
     state = filter_step(state, Measurement(tr.t_s[k], ch[k], z[None], only[None], R_c), setup)
     assert state.rejected[0] == 1 and state.n_meas[0] == 0 and state.dropped[0] == 0
     assert state.locked[0] == 1
+
+
+def test_a_gate_that_rejects_most_corners_step_after_step_opens(truth_600, chaser_of):
+    """Steps whose gate lets one corner through and rejects the rest (as for a filter locked on a wrong pose that
+    fits a corner near its error's axis: 3x P0's initial error, no tumble, seed 0, run 2 of 20 sat 0.77 m off for
+    900 s): the lockout counts steps in which the gate rejected most of the corners it saw, not only all of them,
+    and opens after gate_lockout_steps. Two corners moved metres off and two true: a tie, no lockout step."""
+    tr = truth_600
+    ch = chaser_of(tr)
+    cfg = FilterConfig(gate_lockout_steps=3)
+    setup = make_setup(cfg, "markers3d")
+    R_c = 0.02**2 * np.eye(3)
+    k0 = 10
+    state = init_state(tr.x[k0][None], cfg.P0 / 1e4, tr.t_s[k0], ch[k0], cfg)
+    for step, k in enumerate(range(k0 + 1, k0 + 4)):
+        seen = np.flatnonzero(tr.visible[k])
+        assert len(seen) >= 4
+        z = tr.corners_C_m[k].copy()
+        z[seen[1:]] += 3.0                     # all but one corner metres off: the gate keeps the true one
+        state = filter_step(state, Measurement(tr.t_s[k], ch[k], z[None], tr.visible[k][None], R_c), setup)
+        assert state.n_meas[0] == 1 and state.rejected[0] == len(seen) - 1
+        assert state.locked[0] == step + 1    # counted: most rejected (it was 0 while one corner got through)
+    k = k0 + 4
+    z = tr.corners_C_m[k].copy()
+    z[np.flatnonzero(tr.visible[k])[1:]] += 3.0
+    state = filter_step(state, Measurement(tr.t_s[k], ch[k], z[None], tr.visible[k][None], R_c), setup)
+    assert state.rejected[0] == 0               # the gate opened: every measured corner used
+    state = init_state(tr.x[k0][None], cfg.P0 / 1e4, tr.t_s[k0], ch[k0], cfg)
+    k = k0 + 1
+    seen = np.flatnonzero(tr.visible[k])[:4]
+    only = np.zeros(8, dtype=bool)
+    only[seen] = True
+    z = tr.corners_C_m[k].copy()
+    z[seen[:2]] += 3.0
+    state = filter_step(state, Measurement(tr.t_s[k], ch[k], z[None], only[None], R_c), setup)
+    assert state.rejected[0] == 2 and state.n_meas[0] == 2 and state.locked[0] == 0
