@@ -27,7 +27,7 @@ import numpy as np
 
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, sigma_step_s
 from envisat_pose.filtering.filter_config import FilterConfig, check_kernel
-from envisat_pose.filtering.measurements import KINDS, dim_per_corner, measure, predicted_visible
+from envisat_pose.filtering.measurements import KINDS, POSE_CORNERS, dim_per_corner, measure, predicted_visible
 from envisat_pose.filtering.step_update import measurement_update, uses_fused_kernel
 from envisat_pose.filtering.ukf import (
     SigmaWeights,
@@ -170,9 +170,11 @@ class FilterState:
     t_s: time of the estimate, s; chaser: (4,) the chaser's orbit at t_s; k: steps taken so far.
     mean (R, 12), cov (R, 12, 12): the posterior at t_s. r_scale (R,): adaptive measurement-noise scale.
     Q_adapt (R, 12, 12): adaptive process noise per second. starved (R,) bool: no measurement used at the last
-    step. locked (R,) int: consecutive steps in which the gate rejected most of the corners it was given (more
-    than it accepted; corners dropped by the visibility check never reach the gate: they neither count as
-    rejections nor lock it).
+    step. locked (R,) int: consecutive lockout steps: the gate rejected every corner it was given, or, in a run not
+    yet confirmed, more corners than it accepted and enough for a pose of their own (POSE_CORNERS; corners
+    dropped by the visibility check never reach the gate: they neither count as rejections nor lock it).
+    confirmed (R,) bool: the gate has accepted more corners than it rejected, and a pose's worth, at some step (the
+    run agreed with its measurements once: later rejections of most corners are taken for faulty corners).
     win_nis, win_dof (W, R): the NIS divergence window (ring buffer, slot k % W). diverged (R,) bool;
     repaired (R,) int: non-finite steps rolled back. The last step's outputs: n_meas (R,) corners used,
     nis (R,) (never negative: an update whose innovation covariance is not positive definite fails instead),
@@ -190,6 +192,7 @@ class FilterState:
     Q_adapt: np.ndarray
     starved: np.ndarray
     locked: np.ndarray
+    confirmed: np.ndarray
     win_nis: np.ndarray
     win_dof: np.ndarray
     diverged: np.ndarray
@@ -218,7 +221,8 @@ def init_state(x0_hat: np.ndarray, P0: np.ndarray, t_s: float, chaser: np.ndarra
     zeros_i = np.zeros(R, dtype=np.int64)
     return FilterState(t_s=float(t_s), chaser=np.array(chaser, dtype=float), k=0, mean=mean, cov=cov,
                        r_scale=np.ones(R), Q_adapt=np.zeros((R, 12, 12)), starved=np.zeros(R, dtype=bool),
-                       locked=zeros_i, win_nis=np.zeros((W, R)), win_dof=np.zeros((W, R)),
+                       locked=zeros_i, confirmed=np.zeros(R, dtype=bool), win_nis=np.zeros((W, R)),
+                       win_dof=np.zeros((W, R)),
                        diverged=np.zeros(R, dtype=bool), repaired=zeros_i, n_meas=zeros_i, nis=np.zeros(R),
                        dof=zeros_i, rejected=zeros_i, dropped=zeros_i, indefinite=np.zeros(R, dtype=bool))
 
@@ -313,8 +317,12 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
         a = cfg.adaptive_q_memory
         Q_adapt = np.where(used[:, None, None], a * Q_adapt + (1 - a) * Ky[:, :, None] * Ky[:, None, :], Q_adapt)
     # the gate saw mask_k only: corners the visibility check dropped are neither rejections nor a lockout step
-    rejected = (mask_k & ~accepted).sum(-1)
-    locked = np.where(rejected > accepted.sum(-1), state.locked + 1, 0)
+    rejected, n_acc = (mask_k & ~accepted).sum(-1), accepted.sum(-1)
+    # a run that never agreed with its measurements and whose gate rejects a pose's worth of corners, most of
+    # them, is wrong itself (one wrong pose fits a corner or two: "every corner" never came); once confirmed,
+    # rejecting most corners is taken for faulty corners (a majority of outliers must not open the gate)
+    wrong_start = ~state.confirmed & (rejected >= POSE_CORNERS[setup.kind]) & (rejected > n_acc)
+    locked = np.where((mask_k.any(-1) & (n_acc == 0)) | wrong_start, state.locked + 1, 0)
     # divergence monitor: windowed NIS against its chi-square bound
     W, k = cfg.divergence_window, state.k
     win_nis, win_dof = state.win_nis.copy(), state.win_dof.copy()
@@ -325,7 +333,9 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
         bound = np.where(d > 0, _nis_bound(cfg.divergence_prob, np.maximum(d, 1)), np.inf)
         diverged = diverged | (win_nis.sum(0) > bound)
     return FilterState(t_s=float(meas.t_s), chaser=np.array(meas.chaser, dtype=float), k=k + 1, mean=mean, cov=cov,
-                       r_scale=r_scale, Q_adapt=Q_adapt, starved=~used, locked=locked, win_nis=win_nis,
+                       r_scale=r_scale, Q_adapt=Q_adapt, starved=~used, locked=locked,
+                       confirmed=state.confirmed | ((n_acc > rejected) & (n_acc >= POSE_CORNERS[setup.kind])),
+                       win_nis=win_nis,
                        win_dof=win_dof, diverged=diverged, repaired=repaired, n_meas=accepted.sum(-1),
                        nis=nis, dof=dof, rejected=rejected, dropped=(measured & ~mask_k).sum(-1),
                        indefinite=indefinite)

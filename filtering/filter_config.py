@@ -36,9 +36,10 @@ class FilterConfig(Config):
     view where the mean is off, their measurements then never correcting it (3 markers on a target that does not
     tumble: one run of 20 sat 12 cm off claiming 0.8 cm). The tracker keeps "mean" (TRACKER_FILTER): its detector's
     names of hidden keypoints are mislabels, which a wide acquisition prior's spread would let through.
-    gate_lockout_steps: after this many consecutive steps in which the gate rejected most of a run's measured
-    corners (more than it accepted), its next update is not gated (a filter must not lock itself out when it is
-    wrong or R too small; one wrong pose that fits a corner or two locked it out while "every" was the rule).
+    gate_lockout_steps: after this many consecutive steps in which the gate rejected every measured corner of a
+    run (or, before the run's gate ever accepted most of its corners, most of them and a pose's worth:
+    FilterState.locked), its next update is not gated (a filter must not lock itself out when it is wrong or R
+    too small).
     adaptive_r / adaptive_q: innovation-based R scale, residual-based Q (see the module docstring).
     outage_q_scale: Q multiplier while a run gets no measurement.
     divergence_window: steps in the NIS window; divergence_prob: false-alarm probability of one window;

@@ -28,6 +28,9 @@ from envisat_pose.geometry import PinholeCamera, load_camera, load_geometry, pro
 from envisat_pose.state import MRP, POS
 
 KINDS = ("markers3d", "pixels", "pixels+range")
+# corners that fix a pose by themselves: three 3D points not on a line; four pixels (three leave P3P's up to four
+# poses); a pixel with its range fixes its point in 3D, as a marker
+POSE_CORNERS = {"markers3d": 3, "pixels": 4, "pixels+range": 3}
 MIN_DEPTH_M = 1e-3  # project_K's guard: a corner closer than this along the boresight (or behind) stays outside
 
 
