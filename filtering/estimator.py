@@ -273,7 +273,11 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
     R_c = np.broadcast_to(meas.R_c, z.shape + (m,))
     measured = np.asarray(meas.mask, dtype=bool) & np.isfinite(z).all(-1)  # a non-finite detection is a missing one
     gate = setup.gate_threshold
-    thr = None if gate is None else np.where(state.locked >= cfg.gate_lockout_steps, np.inf, gate)
+    release = state.locked >= cfg.gate_lockout_steps
+    thr = None if gate is None else np.where(release, np.inf, gate)
+    restart = release & ~state.confirmed  # released, never confirmed: wrong from its start, P0 on its covariance
+    if gate is not None and restart.any():
+        cov = np.where(restart[:, None, None], cov + cfg.P0, cov)
     check_kernel(cfg.kernel)
     up = measurement_update(mean, cov, z, measured, R_c, state.r_scale, thr, setup)
     mean, cov, mask_k = up["mean"], up["cov"], up["mask_k"]

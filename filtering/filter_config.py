@@ -39,7 +39,9 @@ class FilterConfig(Config):
     gate_lockout_steps: after this many consecutive steps in which the gate rejected every measured corner of a
     run (or, before the run's gate ever accepted most of its corners, most of them and a pose's worth:
     FilterState.locked), its next update is not gated (a filter must not lock itself out when it is wrong or R
-    too small).
+    too small); a run released before it was ever confirmed also starts that update from its prior covariance
+    plus P0 (wrong from its start, its covariance was too small for its error: the update from it alone
+    overshot; a confirmed run is not inflated, where R told too small would make every release a new start).
     adaptive_r / adaptive_q: innovation-based R scale, residual-based Q (see the module docstring).
     outage_q_scale: Q multiplier while a run gets no measurement.
     divergence_window: steps in the NIS window; divergence_prob: false-alarm probability of one window;
