@@ -320,13 +320,8 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
         Ky = up["Ky"]
         a = cfg.adaptive_q_memory
         Q_adapt = np.where(used[:, None, None], a * Q_adapt + (1 - a) * Ky[:, :, None] * Ky[:, None, :], Q_adapt)
-    # the gate saw mask_k only: corners the visibility check dropped are neither rejections nor a lockout step
-    rejected, n_acc = (mask_k & ~accepted).sum(-1), accepted.sum(-1)
-    # a run that never agreed with its measurements and whose gate rejects a pose's worth of corners, most of
-    # them, is wrong itself (one wrong pose fits a corner or two: "every corner" never came); once confirmed,
-    # rejecting most corners is taken for faulty corners (a majority of outliers must not open the gate)
-    wrong_start = ~state.confirmed & (rejected >= POSE_CORNERS[setup.kind]) & (rejected > n_acc)
-    locked = np.where((mask_k.any(-1) & (n_acc == 0)) | wrong_start, state.locked + 1, 0)
+    locked, confirmed, rejected = lockout_step(state.locked, state.confirmed, mask_k, accepted,
+                                               POSE_CORNERS[setup.kind])
     # divergence monitor: windowed NIS against its chi-square bound
     W, k = cfg.divergence_window, state.k
     win_nis, win_dof = state.win_nis.copy(), state.win_dof.copy()
@@ -337,12 +332,25 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
         bound = np.where(d > 0, _nis_bound(cfg.divergence_prob, np.maximum(d, 1)), np.inf)
         diverged = diverged | (win_nis.sum(0) > bound)
     return FilterState(t_s=float(meas.t_s), chaser=np.array(meas.chaser, dtype=float), k=k + 1, mean=mean, cov=cov,
-                       r_scale=r_scale, Q_adapt=Q_adapt, starved=~used, locked=locked,
-                       confirmed=state.confirmed | ((n_acc > rejected) & (n_acc >= POSE_CORNERS[setup.kind])),
-                       win_nis=win_nis,
-                       win_dof=win_dof, diverged=diverged, repaired=repaired, n_meas=accepted.sum(-1),
+                       r_scale=r_scale, Q_adapt=Q_adapt, starved=~used, locked=locked, confirmed=confirmed,
+                       win_nis=win_nis, win_dof=win_dof, diverged=diverged, repaired=repaired, n_meas=accepted.sum(-1),
                        nis=nis, dof=dof, rejected=rejected, dropped=(measured & ~mask_k).sum(-1),
                        indefinite=indefinite)
+
+
+def lockout_step(locked: np.ndarray, confirmed: np.ndarray, mask_k: np.ndarray, accepted: np.ndarray,
+                 pose_corners: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The gate's lockout bookkeeping after a step (FilterState.locked, .confirmed): (locked, confirmed, rejected)
+    of R runs from the last ones and the corners that reached the gate, mask_k (R, K), and those it accepted.
+
+    A lockout step: the gate rejected every corner it saw, or, in a run never confirmed, most of them and at least
+    pose_corners (one wrong pose fits a corner or two, so "every corner" never came). Once confirmed (a step that
+    accepted most corners and a pose's worth), rejecting most corners is taken for faulty corners: a majority of
+    outliers must not open the gate. Corners the visibility check dropped never reach the gate."""
+    rejected, n_acc = (mask_k & ~accepted).sum(-1), accepted.sum(-1)
+    wrong_start = ~confirmed & (rejected >= pose_corners) & (rejected > n_acc)
+    locked = np.where((mask_k.any(-1) & (n_acc == 0)) | wrong_start, locked + 1, 0)
+    return locked, confirmed | ((n_acc > rejected) & (n_acc >= pose_corners)), rejected
 
 
 @functools.lru_cache(maxsize=8)
