@@ -173,8 +173,9 @@ class FilterState:
     step. locked (R,) int: consecutive lockout steps: the gate rejected every corner it was given, or, in a run not
     yet confirmed, more corners than it accepted and enough for a pose of their own (POSE_CORNERS; corners
     dropped by the visibility check never reach the gate: they neither count as rejections nor lock it).
-    confirmed (R,) bool: the gate has accepted more corners than it rejected, and a pose's worth, at some step (the
-    run agreed with its measurements once: later rejections of most corners are taken for faulty corners).
+    confirmed (R,) bool: the gate has accepted more corners than it rejected, and a pose's worth, at some step
+    after the first (the run agreed with its measurements once: later rejections of most corners are taken for
+    faulty corners; the first step's gate spans the initial covariance).
     win_nis, win_dof (W, R): the NIS divergence window (ring buffer, slot k % W). diverged (R,) bool;
     repaired (R,) int: non-finite steps rolled back. The last step's outputs: n_meas (R,) corners used,
     nis (R,) (never negative: an update whose innovation covariance is not positive definite fails instead),
@@ -321,7 +322,7 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
         a = cfg.adaptive_q_memory
         Q_adapt = np.where(used[:, None, None], a * Q_adapt + (1 - a) * Ky[:, :, None] * Ky[:, None, :], Q_adapt)
     locked, confirmed, rejected = lockout_step(state.locked, state.confirmed, mask_k, accepted,
-                                               POSE_CORNERS[setup.kind])
+                                               POSE_CORNERS[setup.kind], state.k > 0)
     # divergence monitor: windowed NIS against its chi-square bound
     W, k = cfg.divergence_window, state.k
     win_nis, win_dof = state.win_nis.copy(), state.win_dof.copy()
@@ -339,18 +340,19 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
 
 
 def lockout_step(locked: np.ndarray, confirmed: np.ndarray, mask_k: np.ndarray, accepted: np.ndarray,
-                 pose_corners: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 pose_corners: int, can_confirm: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The gate's lockout bookkeeping after a step (FilterState.locked, .confirmed): (locked, confirmed, rejected)
     of R runs from the last ones and the corners that reached the gate, mask_k (R, K), and those it accepted.
 
     A lockout step: the gate rejected every corner it saw, or, in a run never confirmed, most of them and at least
     pose_corners (one wrong pose fits a corner or two, so "every corner" never came). Once confirmed (a step that
-    accepted most corners and a pose's worth), rejecting most corners is taken for faulty corners: a majority of
-    outliers must not open the gate. Corners the visibility check dropped never reach the gate."""
+    accepted most corners and a pose's worth, can_confirm: not a run's first step, whose gate spans its initial
+    covariance and accepts a wrong start's corners too), rejecting most corners is taken for faulty corners: a
+    majority of outliers must not open the gate. Corners the visibility check dropped never reach the gate."""
     rejected, n_acc = (mask_k & ~accepted).sum(-1), accepted.sum(-1)
     wrong_start = ~confirmed & (rejected >= pose_corners) & (rejected > n_acc)
     locked = np.where((mask_k.any(-1) & (n_acc == 0)) | wrong_start, locked + 1, 0)
-    return locked, confirmed | ((n_acc > rejected) & (n_acc >= pose_corners)), rejected
+    return locked, confirmed | ((n_acc > rejected) & (n_acc >= pose_corners) & can_confirm), rejected
 
 
 @functools.lru_cache(maxsize=8)

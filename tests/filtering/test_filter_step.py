@@ -155,8 +155,10 @@ def test_a_gate_that_rejects_most_corners_from_the_start_opens_but_not_once_conf
     assert state.rejected[0] == 0 and state.n_meas[0] == n   # the gate opened: every measured corner used
     state = init_state(tr.x[k0][None], cfg.P0 / 1e4, tr.t_s[k0], ch[k0], cfg)
     state, n = step(state, k0 + 1, n_off=0)
+    assert not state.confirmed[0]             # a run's first step (its gate as wide as P0) confirms nothing
+    state, n = step(state, k0 + 2, n_off=0)
     assert state.confirmed[0]
-    for k in range(k0 + 2, k0 + 10):
+    for k in range(k0 + 3, k0 + 10):
         state, _ = step(state, k, n_off=3, n_seen=4)
         assert state.n_meas[0] == 1 and state.rejected[0] == 3 and state.locked[0] == 0
     state = init_state(tr.x[k0][None], cfg.P0 / 1e4, tr.t_s[k0], ch[k0], cfg)
