@@ -54,8 +54,8 @@ class FilterConfig(Config):
     filter of filtering/ukf.py, which the fast one is tested against): the same filter to round-off.
     split_gain, split_max: a run whose prior spreads the measured components more than split_gain times wider
     than their noise takes its measurement in partial updates (filtering/step_update.py), at most split_max
-    (1: always one update), their shares of the information growing geometrically where split_max is too few
-    for equal ones (step_update.split_factors).
+    (1: always one update), their shares of the information growing geometrically, so that every partial
+    update's prior is the same few times wider than its noise (step_update.split_factors).
     sigma_chart: "additive" (mean + column) or "rotation" (filtering.ukf.chart_retract; the numpy filter runs it).
     """
 

@@ -51,8 +51,8 @@ def reference_update(ukf: UnscentedKalmanFilter, z: np.ndarray, mask_c: np.ndarr
     """filterpy update with the measured corners only. z (K, m), mask_c (K,) bool, R_c (K, m, m). split: (gain,
     most), FilterConfig's split_gain and split_max: where filterpy's innovation covariance S says the prior is
     ratio = tr(S - R) / tr(R) > gain times wider than the noise, the update is made again from the prior in
-    n = min(ceil(ratio / gain), most) updates with R times step_update.split_factors' (n each where ceil(ratio / gain) <= most),
-    each from sigma points about the last one's result. Returns n (1: one update)."""
+    n = min(ceil(ratio / gain), most) updates with R times step_update.split_factors', each from sigma points about
+    the last one's result. Returns n (1: one update)."""
     mask_c = np.asarray(mask_c, dtype=bool)
     if not mask_c.any():
         ukf.update(None)

@@ -4,11 +4,10 @@ partial updates.
 
 The split, a recursive update in its simplest form (after Zanetti, "Recursive update filtering for nonlinear
 estimation", IEEE Trans. Automatic Control 57(6), 2012): a run whose prior spreads the measured components
-ratio = tr(Pzz) / tr(R) times wider than their noise takes n = ceil(ratio / split_gain) updates, each with the
-noise R n, from its prior, on the corners the single update accepted; past split_max updates, split_max ones
-whose shares of the information grow geometrically, each update's prior the same few times wider than its noise
-(split_factors; equal shares made the first of 0.1 mm markers' 16 updates 1.25e7 times wider than its noise, the
-campaign overconfident). With a linear model that is the single update's posterior (the shares of R^-1 add up
+ratio = tr(Pzz) / tr(R) times wider than their noise takes n = ceil(ratio / split_gain) updates (at most
+split_max) from its prior, on the corners the single update accepted, whose shares of the information grow
+geometrically, each update's prior the same few times wider than its noise (split_factors; equal shares made the
+first of 0.1 mm markers' 16 updates 1.25e7 times wider than its noise, the campaign overconfident). With a linear model that is the single update's posterior (the shares of R^-1 add up
 to it); with the camera's it is a better one: each partial update draws its sigma points about the previous
 one's posterior, where the single update spreads them over the whole prior, whose lateral metre at 50 m moves
 the image by ~40 px and turns the line of sight by a degree, which a small target's few pixels then read as
@@ -68,24 +67,26 @@ def split_factors(ratio: np.ndarray, gain: float, most: int) -> np.ndarray:
     """(R, most) the noise multiplier of each run's partial updates (update k takes R x factor, the information
     fraction 1 / factor; the fractions sum to 1), 0 past a run's last; ratio (R,) as split_counts reads it.
 
-    A run of n = ceil(ratio / gain) <= most updates takes n equal ones (factor n): the first one's prior at most
-    gain times wider than its noise, the later ones' less. A run past most takes most updates whose fractions grow
-    geometrically, f_k = (q - 1) q^(k-1) / ratio with q = (1 + ratio)^(1 / most): each adds q - 1 times the
+    A run of n = split_counts' updates (ceil(ratio / gain) within [1, most]) takes them with fractions that grow
+    geometrically, f_k = (q - 1) q^(k-1) / ratio with q = (1 + ratio)^(1 / n): each adds q - 1 times the
     information gathered before it, so every update's prior is q - 1 times wider than its noise (a linear model's:
-    the least that most updates can make their widest). That is within the gain while ratio <= (1 + gain)^most - 1
-    (4.6e16 for the defaults); most equal shares made the first update ratio / most times wider (2 cm markers from
-    P0: 250 against the gain's 10; 0.1 mm markers: 1.25e7)."""
+    the least that n updates can make their widest; below the gain, since (1 + gain)^n - 1 >= n gain >= ratio,
+    up to a ratio of (1 + gain)^most - 1 past most, 4.6e16 for the defaults). n equal shares made the first
+    update ratio / n times wider and the later ones narrower (2 cm markers from P0 past most: 250 against the
+    gain's 10; 0.1 mm markers: 1.25e7), and their widest jumped from the gain to (1 + ratio)^(1 / most) - 1 where
+    ratio / gain crossed most."""
     ratio = np.asarray(ratio, dtype=float)
     most = max(int(most), 1)
     n = split_counts(ratio, np.ones_like(ratio), gain, most)
-    out = np.where(np.arange(most) < n[:, None], n[:, None].astype(float), 0.0)
-    capped = np.flatnonzero(np.ceil(np.where(np.isfinite(ratio), ratio, 0.0) / float(gain)) > most)
-    if len(capped) == 0 or most == 1:
+    out = np.where(np.arange(most) < n[:, None], 1.0, 0.0)
+    split = np.flatnonzero(n > 1)
+    if len(split) == 0:
         return out
-    log_q = np.log1p(ratio[capped]) / most
-    log_f = np.log(np.expm1(log_q))[:, None] + log_q[:, None] * np.arange(most) - np.log(ratio[capped])[:, None]
-    f = np.exp(log_f)
-    out[capped] = f.sum(-1, keepdims=True) / f
+    k = np.arange(most)
+    log_q = np.log1p(ratio[split]) / n[split]
+    log_f = np.log(np.expm1(log_q))[:, None] + log_q[:, None] * k - np.log(ratio[split])[:, None]
+    f = np.where(k < n[split][:, None], np.exp(log_f), 0.0)
+    out[split] = np.where(f > 0, f.sum(-1, keepdims=True) / np.where(f > 0, f, 1.0), 0.0)
     return out
 
 

@@ -48,27 +48,29 @@ def test_split_counts():
 
 def test_split_factors_share_the_information_and_keep_each_update_within_the_gain():
     """Checked on a scalar Kalman update written here (prior variance p, noise r, ratio p / r): the partial updates'
-    information fractions sum to 1 (the posterior is the single update's), equal ones below split_max; past it
-    every partial update's prior the same (1 + ratio)^(1 / most) - 1 times wider than its noise (the least widest
-    that most updates allow), within the gain up to (1 + gain)^most - 1 (equal shares' first was ratio / 16)."""
+    information fractions sum to 1 (the posterior is the single update's), and every one of a run's n updates has
+    its prior the same (1 + ratio)^(1 / n) - 1 times wider than its noise (the least widest that n updates allow),
+    within the gain up to (1 + gain)^most - 1 (equal shares' first was ratio / n). The widest does not jump where
+    ceil(ratio / gain) crosses most (equal shares' went from the gain to (1 + ratio)^(1 / most) - 1 there)."""
     gain = 10.0
-    for most, ratios in ((16, [5.0, 35.0, 160.0, 161.0, 4000.0, 1.7e8, 1e15]), (2, [15.0, 1e3]), (4, [1e5])):
+    cases = ((16, [5.0, 10.5, 35.0, 159.0, 160.0, 161.0, 4000.0, 1.7e8, 1e15]), (2, [15.0, 1e3]), (4, [1e5]))
+    for most, ratios in cases:
         ratios = np.array(ratios)
         f = split_factors(ratios, gain, most)
         n = split_counts(ratios, np.ones_like(ratios), gain, most)
         for ratio, row, k in zip(ratios, f, n):
             assert (row[:k] > 0).all() and (row[k:] == 0).all()
             np.testing.assert_allclose((1.0 / row[:k]).sum(), 1.0, rtol=1e-12)
-            if np.ceil(ratio / gain) <= most:
-                assert (row[:k] == k).all()
-                continue
             p, r, widths = ratio, 1.0, []
             for factor in row[:k]:
                 widths.append(p / (r * factor))
                 p = p * r * factor / (p + r * factor)
             np.testing.assert_allclose(p, 1.0 / (1.0 / ratio + 1.0 / r), rtol=1e-9)
-            np.testing.assert_allclose(widths, (1.0 + ratio) ** (1.0 / most) - 1.0, rtol=1e-9)
-            assert max(widths) <= gain or ratio > (1.0 + gain) ** most - 1.0
+            np.testing.assert_allclose(widths, (1.0 + ratio) ** (1.0 / k) - 1.0 if k > 1 else ratio, rtol=1e-9)
+            assert k == 1 or max(widths) <= gain or ratio > (1.0 + gain) ** most - 1.0
+    near_most = np.array([159.0, 160.0, 161.0])  # n = 16 for all three: ceil(ratio / gain) = 16, 16, 17
+    widest = near_most / split_factors(near_most, gain, 16)[:, 0]  # the first update's prior width over its noise
+    assert np.ptp(widest) < 0.01 and widest.max() < 0.4
     assert split_factors(ratios, gain, 1).shape == (len(ratios), 1) and (split_factors(ratios, gain, 1) == 1.0).all()
 
 
