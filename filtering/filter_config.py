@@ -11,7 +11,7 @@ from envisat_pose.config import Config, check
 from envisat_pose.gates import GATE_PROB
 
 KERNELS = ("fast", "reference")  # FilterConfig.kernel: filtering/fast.py's kernels, filtering/ukf.py's numpy
-SIGMA_CHARTS = ("additive", "rotation")  # FilterConfig.sigma_chart (filtering/ukf.py: chart_retract)
+SIGMA_CHARTS = ("additive", "rotation", "screw")  # FilterConfig.sigma_chart (filtering/ukf.py: CHART_MAPS)
 VISIBILITY_FROM = ("spread", "mean")  # FilterConfig.visibility_from
 
 
@@ -56,7 +56,10 @@ class FilterConfig(Config):
     than their noise takes its measurement in partial updates (filtering/step_update.py), at most split_max
     (1: always one update), their shares of the information growing geometrically, so that every partial
     update's prior is the same few times wider than its noise (step_update.split_factors).
-    sigma_chart: "additive" (mean + column) or "rotation" (filtering.ukf.chart_retract; the numpy filter runs it).
+    sigma_chart: "additive" (mean + column), "rotation" (filtering.ukf.chart_retract: the attitude composed, the
+    rate turned with it) or "screw" (filtering.screw_chart.screw_retract: besides, the position and velocity errors
+    a twist in the body, so a turn about any body line is straight, not only about one through the centre of mass:
+    two markers on a line that misses it); the numpy filter runs the last two.
     """
 
     alpha: float = 1.0

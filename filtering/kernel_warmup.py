@@ -37,10 +37,11 @@ def load_kernels(setup: FilterSetup) -> None:
 
 def load_in_background(setup: FilterSetup) -> threading.Thread | None:
     """load_kernels(setup) on a thread (started; returned), or None where setup's filter runs no fused kernel (the
-    numpy reference, or sigma_chart 'rotation', which the numpy filter runs: step_update.uses_fused_kernel). A
-    failure there is not the caller's: the first real step loads the code as before. Not a daemon: a process that
-    ends first waits for it (on a machine without numba's cache, the compile it would have waited for at its first
-    step) rather than leave LLVM compiling while the interpreter shuts down."""
+    numpy reference, or sigma_chart 'rotation' or 'screw', which the numpy filter runs:
+    step_update.uses_fused_kernel). A failure there is not the caller's: the first real step loads the code as
+    before. Not a daemon: a process that ends first waits for it (on a machine without numba's cache, the compile
+    it would have waited for at its first step) rather than leave LLVM compiling while the interpreter shuts
+    down."""
     if not uses_fused_kernel(setup.cfg):
         return None
 

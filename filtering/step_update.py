@@ -28,7 +28,8 @@ from envisat_pose.filtering.ukf import update
 
 def uses_fused_kernel(cfg) -> bool:
     """Whether a filter of FilterConfig cfg runs filtering/fast.py's fused numba kernels: kernel 'fast' with the
-    additive chart (they run no other: sigma_chart 'rotation' runs the numpy filter, predict and update alike)."""
+    additive chart (they run no other: sigma_chart 'rotation' or 'screw' runs the numpy filter, predict and
+    update alike)."""
     return cfg.kernel == "fast" and cfg.sigma_chart == "additive"
 
 

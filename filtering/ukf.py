@@ -29,6 +29,7 @@ from envisat_pose.attitude import (
     skew,
 )
 from envisat_pose.filtering.dynamics import MU_EARTH_M3_S2, load_inertia_T_kg_m2, propagate
+from envisat_pose.filtering.screw_chart import screw_local, screw_retract, screw_transport
 from envisat_pose.state import MRP, RATE  # the 12-state's layout has one home
 
 
@@ -167,9 +168,11 @@ def chart_local(X: np.ndarray, mean: np.ndarray) -> np.ndarray:
 def chart_error(x_true: np.ndarray, x_hat: np.ndarray, chart: str = "additive") -> np.ndarray:
     """The estimate's error x_hat - x_true in the chart of its covariance (FilterConfig.sigma_chart), for NEES and
     Mahalanobis distances: "additive", the difference with the truth's MRP on the estimate's set (state_residual);
-    "rotation", minus chart_local(x_true, x_hat). x_true broadcastable to x_hat (..., 12). Returns (..., 12)."""
+    "rotation" ("screw"), minus chart_local(x_true, x_hat) (screw_local). x_true broadcastable to x_hat (..., 12).
+    Returns (..., 12)."""
     x_true = np.broadcast_to(x_true, np.shape(x_hat)).copy()
-    return -(chart_local if chart == "rotation" else state_residual)(x_true, np.asarray(x_hat, dtype=float))
+    local = CHART_MAPS[chart][1] if chart != "additive" else state_residual
+    return -local(x_true, np.asarray(x_hat, dtype=float))
 
 
 def _chart_M(mean: np.ndarray) -> np.ndarray:
@@ -200,6 +203,11 @@ def chart_transport(cov: np.ndarray, mean_from: np.ndarray, mean_to: np.ndarray)
     return 0.5 * (out + np.swapaxes(out, -1, -2))
 
 
+# FilterConfig.sigma_chart -> (retract, local, transport) of the charts other than the additive one
+CHART_MAPS = {"rotation": (chart_retract, chart_local, chart_transport),
+              "screw": (screw_retract, screw_local, screw_transport)}
+
+
 def sigma_deviations(cov: np.ndarray, w: SigmaWeights) -> np.ndarray:
     """The scaled symmetric set's deviations from the mean: 0, +[L]_k, -[L]_k with L L^T = (n + lambda) P, as
     sigma_points draws them. cov (..., n, n) -> (..., 2n + 1, n)."""
@@ -214,23 +222,24 @@ def sigma_deviations(cov: np.ndarray, w: SigmaWeights) -> np.ndarray:
 
 def chart_sigma_points(mean: np.ndarray, cov: np.ndarray, w: SigmaWeights, chart: str = "additive") -> np.ndarray:
     """The sigma points a filter of that chart (FilterConfig.sigma_chart) draws about mean: sigma_points (mean plus
-    the columns), or for "rotation" chart_retract of sigma_deviations (those of ut_update and ut_predict_rotation).
-    mean (..., n), cov (..., n, n) -> (..., 2n + 1, n)."""
-    if chart == "rotation":
-        return chart_retract(mean, sigma_deviations(cov, w))
+    the columns), or for "rotation" ("screw") chart_retract (screw_retract) of sigma_deviations (those of
+    ut_update and ut_predict_rotation). mean (..., n), cov (..., n, n) -> (..., 2n + 1, n)."""
+    if chart != "additive":
+        return CHART_MAPS[chart][0](mean, sigma_deviations(cov, w))
     return sigma_points(mean, cov, w)
 
 
 def ut_predict_rotation(mean: np.ndarray, cov: np.ndarray, fx: Callable[[np.ndarray], np.ndarray], Q: np.ndarray,
-                        w: SigmaWeights) -> tuple[np.ndarray, np.ndarray]:
-    """The unscented time update in the rotation chart (chart_retract): sigma points along rotations,
-    propagated by fx, their mean taken in the chart of the central propagated point, their residuals in the
-    chart of that mean (on |p| <= 1). Returns (mean, cov)."""
-    sig_f = fx(chart_retract(mean, sigma_deviations(cov, w)))
+                        w: SigmaWeights, chart: str = "rotation") -> tuple[np.ndarray, np.ndarray]:
+    """The unscented time update in the rotation chart (chart_retract; chart "screw": screw_retract): sigma
+    points along rotations, propagated by fx, their mean taken in the chart of the central propagated point,
+    their residuals in the chart of that mean (on |p| <= 1). Returns (mean, cov)."""
+    retract, local, _ = CHART_MAPS[chart]
+    sig_f = fx(retract(mean, sigma_deviations(cov, w)))
     ref = sig_f[..., 0, :]
-    m = chart_retract(ref, np.einsum("s,...si->...i", w.Wm, chart_local(sig_f, ref)))
+    m = retract(ref, np.einsum("s,...si->...i", w.Wm, local(sig_f, ref)))
     m[..., MRP] = mrp_shadow(m[..., MRP])
-    res = chart_local(sig_f, m)
+    res = local(sig_f, m)
     P = _wsum_outer(res, res, w.Wc) + Q
     return m, repair_cov(P)[0]
 
@@ -291,15 +300,15 @@ def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray
     (...,) bool: the innovation covariance was positive definite (elsewhere mean, cov and nis are NaN).
     """
     M = z.shape[-1]
-    if chart == "rotation":  # sigma points along rotations (chart_retract); their deviations are the residuals
+    if chart != "additive":  # sigma points along rotations (chart_retract); their deviations are the residuals
         dx = sigma_deviations(cov, w)
-        sig = chart_retract(mean, dx)
+        sig = CHART_MAPS[chart][0](mean, dx)
     else:
         sig = sigma_points(mean, cov, w)
     zs = hx(sig)
     zp = w.Wm @ zs                                                 # predicted measurement
     dz = zs - zp[..., None, :]
-    if chart != "rotation":
+    if chart == "additive":
         dx = residual_fn(sig, mean[..., None, :])
     Pzz = _wsum_outer(dz, dz, w.Wc)
     Pxz = _wsum_outer(dx, dz, w.Wc)                                # cross covariance
@@ -313,7 +322,7 @@ def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray
     y = np.where(mask, y_all, 0.0)
     K = Pxz @ SI                                                   # Kalman gain
     step = (K @ y[..., None])[..., 0]
-    mean = chart_retract(mean, step) if chart == "rotation" else mean + step
+    mean = CHART_MAPS[chart][0](mean, step) if chart != "additive" else mean + step
     cov = cov - K @ S @ np.swapaxes(K, -1, -2)
     nis = (y[..., None, :] @ SI @ y[..., :, None])[..., 0, 0]  # >= 0 where pd; NaN (a failed update) elsewhere
     return mean, cov, nis, mask, y, K, np.where(m2, Pzz, 0.0), pd
@@ -324,7 +333,7 @@ def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: n
             max_step_s: float = 1.0, gravity_gradient: bool = False, chart: str = "additive"
             ) -> tuple[np.ndarray, np.ndarray]:
     """UKF time update of the 12-state over dt_s with the filter's RK4 model and the MRP hooks (chart
-    "rotation": ut_predict_rotation's sigma points along rotations).
+    "rotation" or "screw": ut_predict_rotation's sigma points along rotations).
 
     mean (..., 12), cov (..., 12, 12), c0 chaser state (r_m, rdot_m_s, theta_rad, thetadot_rad_s) at the start,
     (4,) or (..., 4); Q (12, 12) or (..., 12, 12) process noise of the step; mu_m3_s2 the Earth's gravitational
@@ -334,8 +343,8 @@ def predict(mean: np.ndarray, cov: np.ndarray, c0: np.ndarray, dt_s: float, Q: n
     c = np.asarray(c0, dtype=float)
     c = c[..., None, :] if c.ndim > 1 else c
     fx = lambda sig: propagate(sig, c, dt_s, J_T, mu_m3_s2, max_step_s, gravity_gradient)  # noqa: E731
-    if chart == "rotation":
-        return ut_predict_rotation(mean, cov, fx, Q, w)
+    if chart != "additive":
+        return ut_predict_rotation(mean, cov, fx, Q, w, chart)
     return ut_predict(mean, cov, fx, Q, w, state_mean, state_residual)
 
 
@@ -402,12 +411,13 @@ def update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask_c: np.ndarray,
     prior_mean = np.asarray(mean, dtype=float)
     mean, cov, nis, mask, y, K, Pzz, pd = ut_update(mean, cov, z.reshape(z.shape[:-2] + (M,)), mask, Rm, hx_flat,
                                                    w, state_residual, gate, chart)
-    if chart == "rotation":  # the posterior's covariance in the chart of the posterior's mean, on |p| <= 1
+    if chart != "additive":  # the posterior's covariance in the chart of the posterior's mean, on |p| <= 1
         moved = mean.copy()
         moved[..., MRP] = mrp_shadow(moved[..., MRP])
         ok = np.isfinite(moved).all(-1)
         to = np.where(ok[..., None], moved, prior_mean)
-        cov = np.where(ok[..., None, None], chart_transport(cov, prior_mean, to), cov)
+        transported = CHART_MAPS[chart][2](np.where(ok[..., None, None], cov, np.eye(cov.shape[-1])), prior_mean, to)
+        cov = np.where(ok[..., None, None], transported, cov)
         mean = moved
     mean, cov = shadow_switch(mean, cov)
     cov = repair_cov(cov)[0]
