@@ -187,3 +187,76 @@ def test_a_released_run_starts_again_from_a_covariance_that_fits_its_error(tmp_p
     assert summary["n_diverged"] == 0
     assert summary["nees_mean"] < summary["nees_run_bounds"][1], summary["nees_mean"]
     assert max(summary["rmse_over_pcrlb"].values()) < 1.3, summary["rmse_over_pcrlb"]
+
+
+def _gate_saw(n_acc, n_rej, K=8):
+    """mask_k, accepted (1, K) of a step whose gate accepted n_acc corners and rejected n_rej."""
+    mask_k, accepted = np.zeros((1, K), bool), np.zeros((1, K), bool)
+    mask_k[0, :n_acc + n_rej] = True
+    accepted[0, :n_acc] = True
+    return mask_k, accepted
+
+
+def test_the_lockout_rule_case_by_case():
+    """lockout_step against the rule as stated (FilterState.locked, .confirmed), at its boundaries: a never
+    confirmed run counts a step that rejected more corners than it accepted and at least a pose's worth (3 of
+    3D markers), a tie or fewer than a pose not; a confirmed one counts only a step that rejected every corner;
+    a step that confirms accepts more than it rejected and a pose's worth, never on a run's first step; the count
+    is of consecutive steps (any other step resets it); a step whose gate saw nothing neither counts nor
+    confirms. Pixels need 4 for a pose of their own (3 leave P3P's up to four), a pixel with its range 3."""
+    from envisat_pose.filtering.estimator import lockout_step
+    from envisat_pose.filtering.measurements import POSE_CORNERS
+
+    def after(n_acc, n_rej, locked=2, confirmed=False, kind="markers3d", can_confirm=True):
+        mask_k, accepted = _gate_saw(n_acc, n_rej)
+        lk, cf, rj = lockout_step(np.array([locked]), np.array([confirmed]), mask_k, accepted, POSE_CORNERS[kind],
+                                  can_confirm)
+        assert rj[0] == n_rej
+        return int(lk[0]), bool(cf[0])
+
+    # (accepted, rejected, confirmed before) -> (locked after from 2, confirmed after)
+    cases = {(1, 3, False): (3, False), (0, 3, False): (3, False), (1, 2, False): (0, False),   # 2: not a pose
+             (3, 3, False): (0, False), (2, 3, False): (3, False), (4, 3, False): (0, True),    # a tie: neither
+             (2, 0, False): (0, False), (3, 0, False): (0, True), (3, 2, False): (0, True),    # 2: not a pose
+             (1, 3, True): (0, True), (1, 7, True): (0, True), (0, 2, True): (3, True),        # faulty corners
+             (0, 0, False): (0, False), (0, 0, True): (0, True)}                              # nothing seen
+    for (n_acc, n_rej, confirmed), expected in cases.items():
+        assert after(n_acc, n_rej, confirmed=confirmed) == expected, (n_acc, n_rej, confirmed)
+    assert after(3, 0, can_confirm=False) == (0, False)   # a run's first step confirms nothing
+    assert after(8, 0, locked=0, can_confirm=False) == (0, False)
+    assert after(0, 4, locked=0) == (1, False)
+    assert after(3, 0, kind="pixels") == (0, False) and after(4, 0, kind="pixels") == (0, True)
+    assert after(1, 3, kind="pixels") == (0, False) and after(1, 4, kind="pixels") == (3, False)
+    assert after(3, 0, kind="pixels+range") == (0, True) and after(1, 3, kind="pixels+range") == (3, False)
+
+
+def test_a_released_run_never_confirmed_is_updated_from_its_prior_plus_p0(truth_600, chaser_of):
+    """filter_step's release from the lockout: an ungated update; for a run never confirmed from its prior
+    covariance plus P0, for a confirmed one from its prior alone; a run not released is gated from its prior.
+    Checked against measurement_update given those priors (3D markers 0.3 m off the predicted corners)."""
+    from envisat_pose.filtering.step_update import measurement_update
+
+    tr = truth_600
+    ch = chaser_of(tr)
+    cfg = FilterConfig(gate_lockout_steps=4)
+    setup = make_setup(cfg, "markers3d")
+    k = 20
+    mean = np.repeat(tr.x[k][None], 4, axis=0)
+    cov = np.broadcast_to(cfg.P0 / 1e4, (4, 12, 12)).copy()
+    z = np.repeat(tr.corners_C_m[k][None], 4, axis=0) + 0.3
+    mask = np.repeat(tr.visible[k][None], 4, axis=0)
+    R_c = np.broadcast_to(0.02**2 * np.eye(3), (4, 8, 3, 3))
+    state = init_state(mean, cov, tr.t_s[k - 1], ch[k - 1], cfg)
+    # runs: released never confirmed, released confirmed, one step short of release, never confirmed
+    state = dataclasses.replace(state, k=5, locked=np.array([4, 4, 3, 3]),
+                                confirmed=np.array([False, True, False, True]))
+    out = filter_step(state, Measurement(tr.t_s[k], ch[k], z, mask, R_c), setup, prior=(mean, cov))
+    inflated = cov + cfg.P0
+    for r, (P, thr) in enumerate([(inflated, np.inf), (cov, np.inf), (cov, setup.gate_threshold),
+                                  (cov, setup.gate_threshold)]):
+        ref = measurement_update(mean[r:r + 1], P[r:r + 1], z[r:r + 1], mask[r:r + 1], R_c[r:r + 1], np.ones(1),
+                                 np.array([thr]), setup)
+        np.testing.assert_allclose(out.mean[r], ref["mean"][0], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(out.cov[r], ref["cov"][0], rtol=1e-6, atol=1e-15)
+        assert out.n_meas[r] == ref["accepted"][0].sum()
+    assert out.n_meas[0] == out.n_meas[1] == mask[0].sum() and out.n_meas[2] == out.n_meas[3] == 0

@@ -23,9 +23,10 @@ def _truth() -> np.ndarray:
     return x
 
 
-def _first_update(cfg: FilterConfig, kind: str, runs: int, seed: int, sigma: float, P0: np.ndarray | None = None):
+def _first_update(cfg: FilterConfig, kind: str, runs: int, seed: int, sigma: float, P0: np.ndarray | None = None,
+                  r_scale: float = 1.0):
     """Every run's prior drawn from P0 about the truth, its measurement the truth's plus noise of sigma (px or m),
-    one measurement_update. Returns (truth, prior mean, result)."""
+    one measurement_update (its noise R_c times r_scale). Returns (truth, prior mean, result)."""
     setup = dataclasses.replace(make_setup(cfg, kind), keypoints_T_m=SMALL_BOX_T_m)
     P0 = cfg.P0 if P0 is None else P0
     x_true, rng = _truth(), np.random.default_rng(seed)
@@ -35,7 +36,7 @@ def _first_update(cfg: FilterConfig, kind: str, runs: int, seed: int, sigma: flo
     z = z[None] + sigma * rng.standard_normal((runs,) + z.shape)
     R_c = np.broadcast_to(sigma**2 * np.eye(m), (runs, len(SMALL_BOX_T_m), m, m)).copy()
     up = measurement_update(x0, np.broadcast_to(P0, (runs, 12, 12)).copy(), z, np.ones(z.shape[:2], bool), R_c,
-                            np.ones(runs), None, setup)
+                            np.full(runs, r_scale), None, setup)
     return x_true, x0, up, (setup, z, R_c)
 
 
@@ -86,6 +87,19 @@ def test_the_split_is_the_single_update_where_the_model_is_linear():
     assert (single["splits"] == 1).all()
     np.testing.assert_allclose(split["mean"][:, :6], single["mean"][:, :6], rtol=0, atol=1e-9)
     np.testing.assert_allclose(split["cov"][:, :6, :6], single["cov"][:, :6, :6], rtol=1e-6, atol=1e-15)
+
+
+def test_the_split_takes_the_adaptive_noise_scale_in_every_partial_update():
+    """The same linear case with the adaptive R scale at 3 (a tracker's after noisy frames): the 16 partial
+    updates are one update with 3 R, whose position covariance is written out here: the prior's 1 m^2 per axis
+    and 8 markers of 3 x 0.02^2 m^2 each, (1 + 8 / (3 x 4e-4))^-1 per axis, uncorrelated."""
+    cfg = FilterConfig(visibility_check=False, gate_prob=0.0)
+    P0 = np.diag(np.repeat(np.square([1.0, 0.01, 1e-9, 1e-9]), 3))
+    _, _, split, _ = _first_update(cfg, "markers3d", 5, seed=3, sigma=0.02, P0=P0, r_scale=3.0)
+    assert (split["splits"] == 16).all()
+    expected = np.eye(3) / (1.0 + 8.0 / (3.0 * 0.02**2))
+    np.testing.assert_allclose(split["cov"][:, :3, :3], np.broadcast_to(expected, (5, 3, 3)), rtol=1e-6,
+                               atol=1e-12)
 
 
 @pytest.mark.parametrize("kernel", ["fast", "reference"])

@@ -137,3 +137,56 @@ def test_the_fused_kernel_and_the_numpy_filter_drop_the_same_keypoints_under_the
     np.testing.assert_array_equal(ups["fast"]["mask_k"], ups["reference"]["mask_k"])
     ok = slice(0, R - 1)
     np.testing.assert_allclose(ups["fast"]["mean"][ok], ups["reference"]["mean"][ok], rtol=0, atol=1e-9)
+
+
+def test_a_misspelt_visibility_rule_is_refused_naming_the_field():
+    """visibility_from takes "spread" or "mean" only: a misspelt rule ("Mean") is not silently the spread."""
+    from envisat_pose.config import ConfigError
+
+    for value in ("Mean", "sigma", ""):
+        with pytest.raises(ConfigError, match="visibility_from"):
+            FilterConfig(visibility_from=value).validate()
+    for value in ("spread", "mean"):
+        FilterConfig(visibility_from=value).validate()
+
+
+def test_a_prior_the_fused_kernel_cannot_factor_keeps_the_spreads_corners():
+    """The grazing prior with a covariance a hair from positive definite (its last rate variance -1e-16): the fused
+    kernel's Cholesky fails and the numpy filter redoes the run; that redo drops only what the whole spread hides,
+    as the kernel does and as the numpy filter does (a rate changes no sigma point's view)."""
+    g, x, P = _grazing_prior(sigma_deg=2.0)
+    P = P.copy()
+    P[11, 11] = -1e-16
+    Ppd = P.copy()
+    Ppd[11, 11] = 1e-16
+    shown = _independent_shown(x, Ppd)
+    masks = {}
+    for kernel in ("fast", "reference"):
+        setup = make_setup(FilterConfig(kernel=kernel, gate_prob=0.0), "markers3d")
+        assert (shown & ~setup.predicted_visible(x)).sum() >= 2      # the rules differ here
+        up = kernel_update(x[None], P[None], setup.hx(x)[None], np.ones((1, 8), bool), np.eye(3) * 4e-4,
+                           np.ones(1), None, True, setup)
+        if kernel == "fast":
+            assert up["suspect"].tolist() == [0]                      # the numpy filter's redo
+        masks[kernel] = up["mask_k"][0]
+        np.testing.assert_array_equal(masks[kernel], shown)
+
+
+def test_a_position_that_is_not_finite_sees_every_keypoint():
+    """A broken run's chaser position (NaN, inf): the upper stage's table, in numpy and in the fused kernel, hides
+    no keypoint there (nothing known hides one), and answers the finite positions beside it as alone."""
+    from envisat_pose.filtering import fast
+    from envisat_pose.filtering.measurements import chaser_T_m_from_state
+    from envisat_pose.target import load_target
+
+    table = load_target("models/upper_stage.xml").visibility_table()
+    c = np.array([[np.nan, 0.0, 50.0], [np.inf, 0.0, 0.0], [0.0, -np.inf, 1.0], [0.0, 0.0, 50.0], [30.0, 0.0, 0.0]])
+    seen = table.lookup(c)
+    assert seen[:3].all()
+    np.testing.assert_array_equal(seen[3:], np.stack([table.lookup(c[3]), table.lookup(c[4])]))
+    assert not seen[3:].all(axis=-1).all()                # the finite ones hide some: the test can tell
+    x = np.zeros((3, 12))
+    x[:, 0:3] = [[np.nan, 0.0, 0.0], [0.0, 50.0, 0.0], [0.0, 0.0, -30.0]]
+    kernel = fast.table_visible(x, table)
+    assert kernel[0].all()
+    np.testing.assert_array_equal(kernel[1:], table.lookup(chaser_T_m_from_state(x[1:])))
