@@ -47,3 +47,18 @@ def test_a_small_dataset_trains_on_a_big_machine_as_on_a_small_one(machine, monk
     finally:
         torch.set_num_threads(before)
 
+
+
+def test_a_rank_outside_torchrun_is_rank_0(monkeypatch):
+    """RANK set alone (a scheduler's or another tool's variable, WORLD_SIZE unset or 1) is not a DDP rank: the run
+    is rank 0 (it writes its checkpoints and record); under torchrun (WORLD_SIZE 2) RANK is the rank."""
+    from envisat_pose.pipelines.detector.train import ddp_rank
+
+    monkeypatch.setenv("RANK", "3")
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    assert ddp_rank() == 0
+    monkeypatch.setenv("WORLD_SIZE", "1")
+    assert ddp_rank() == 0
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    assert ddp_rank() == 1

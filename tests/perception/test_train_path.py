@@ -318,6 +318,8 @@ def test_a_run_resumes_with_the_ddp_world_it_ran_with(tiny_dataset, tmp_path, mo
     assert resume_command(args).startswith("envisat train --resume --data")
     monkeypatch.setenv("WORLD_SIZE", "")  # empty: unset, as pools.torchrun_int reads it (was `--nproc-per-node ''`)
     assert resume_command(args).startswith("envisat train --resume --data")
+    monkeypatch.setenv("WORLD_SIZE", "  ")  # blank: unset too
+    assert resume_command(args).startswith("envisat train --resume --data")
     monkeypatch.setenv("WORLD_SIZE", "2")
     assert resume_command(args).startswith("torchrun --nproc-per-node 2 --master-addr 127.0.0.1 -m "
                                            "envisat_pose.app.cli train --resume --data")

@@ -306,6 +306,20 @@ def test_a_rank_set_outside_torchrun_still_locks(tmp_path, monkeypatch):
         assert len(errors) == 1 and "in use by another job" in errors[0], errors
 
 
+def test_under_torchrun_rank_0_holds_the_jobs_lock_and_the_other_ranks_none(tmp_path, monkeypatch):
+    """WORLD_SIZE 2: rank 0 takes the job's lock (another job is refused while it runs); rank 1 takes none (another
+    job takes the folder while rank 1 is inside)."""
+    for rank, refused in (("0", True), ("1", False)):
+        out = tmp_path / f"rank{rank}"
+        monkeypatch.setenv("WORLD_SIZE", "2")
+        monkeypatch.setenv("RANK", rank)
+        with output_lock(out, "train"):
+            monkeypatch.delenv("WORLD_SIZE")
+            monkeypatch.delenv("RANK")
+            errors = locked_from_another_thread(out)
+        assert (len(errors) == 1 and "in use by another job" in errors[0]) if refused else errors == [], (rank, errors)
+
+
 def test_a_child_forked_under_the_lock_does_not_keep_it_after_its_job_is_killed(tmp_path):
     """A job holding the lock forks a child (a DataLoader worker) and is SIGKILLed: the child, still alive, holds
     no copy of the lock, so the next job takes it at once."""
