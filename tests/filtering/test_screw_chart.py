@@ -116,3 +116,35 @@ def test_the_filter_configs_take_the_screw_chart():
 
     cfg = FilterConfig(sigma_chart="screw")
     assert cfg.sigma_chart == "screw" and not uses_fused_kernel(cfg)
+
+
+def test_screw_transport_of_a_tight_covariance_far_from_the_chaser():
+    """A converged covariance (0.1 mm, 1 urad, ...) of a target 50 m away: the transport's information is the
+    reference's to 1e-5 (here ~1e-7). The reference is built on its own: the map is affine in each position,
+    velocity and rate coordinate alone (checked here by its second differences over a metre), so those columns are
+    differences over 100 sd; the attitude columns Richardson-extrapolated differences of 1e-3 and 5e-4. A step of
+    1e-5 sd on every column read round-off of the 50 m as 1 % of the information."""
+    rng = np.random.default_rng(4)
+    sds = np.r_[[1e-4] * 3, [1e-6] * 3, [1e-6] * 3, [1e-7] * 3]
+    A = rng.normal(size=(12, 12))
+    C = A @ A.T
+    P = C / np.sqrt(np.outer(np.diag(C), np.diag(C))) * np.outer(sds, sds)
+    worst = 0.0
+    for _ in range(4):
+        m0 = _states(rng, 1)[0] + np.r_[0.0, 0.0, 50.0, [0.0] * 9]
+        m1 = screw_retract(m0, rng.normal(size=12) * sds * 3)
+        D0 = screw_local(m1, m0)
+        f = lambda D: screw_local(screw_retract(m0, D), m1)  # noqa: E731
+        cols = []
+        for j, e in enumerate(np.eye(12)):
+            cd = lambda h: (f(D0 + h * e) - f(D0 - h * e)) / (2 * h)  # noqa: E731
+            if j in range(MRP.start, MRP.stop):
+                cols.append((4 * cd(5e-4) - cd(1e-3)) / 3)
+            else:
+                np.testing.assert_allclose(f(D0 + e) - 2 * f(D0) + f(D0 - e), 0.0, atol=1e-12)  # affine
+                cols.append(cd(100 * sds[j]))
+        J = np.stack(cols, axis=-1)
+        want = J @ P @ J.T
+        Li = np.linalg.inv(np.linalg.cholesky(want))
+        worst = max(worst, np.abs(np.linalg.eigvalsh(Li @ screw_transport(P, m0, m1) @ Li.T) - 1.0).max())
+    assert worst < 1e-5, worst
