@@ -28,11 +28,12 @@ def rotvec_from_chart_mrp(p: np.ndarray, D_p: np.ndarray) -> np.ndarray:
 
 def error_mrp_from_rotvec(phi_T_rad: np.ndarray) -> np.ndarray:
     """The MRP of the turn by |phi| about phi's axis, the smaller of its two sets: tan(|phi| / 4) phi / |phi|, as
-    sin(t / 2) / (1 + cos(t / 2)) (or its shadow -sin / (1 - cos) past |phi| = 2 pi: finite at any angle). (..., 3)."""
+    sin(t / 2) / (1 + cos(t / 2)) (or its shadow -sin / (1 - cos) past |phi| = pi, where |tan(t / 4)| > 1: finite at
+    any angle). (..., 3)."""
     th = np.linalg.norm(phi_T_rad, axis=-1, keepdims=True)
     u = phi_T_rad / np.where(th > 0.0, th, 1.0)
     s, c = np.sin(th / 2.0), np.cos(th / 2.0)
-    return np.where(c >= 0.0, s / (1.0 + c), -s / np.maximum(1.0 - c, 1e-300)) * u
+    return np.where(c >= 0.0, s / np.maximum(1.0 + c, 1e-300), -s / np.maximum(1.0 - c, 1e-300)) * u
 
 
 def rotvec_from_error_mrp(a_mrp: np.ndarray) -> np.ndarray:

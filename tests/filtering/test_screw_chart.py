@@ -148,3 +148,22 @@ def test_screw_transport_of_a_tight_covariance_far_from_the_chaser():
         Li = np.linalg.inv(np.linalg.cholesky(want))
         worst = max(worst, np.abs(np.linalg.eigvalsh(Li @ screw_transport(P, m0, m1) @ Li.T) - 1.0).max())
     assert worst < 1e-5, worst
+
+
+def test_the_error_mrp_of_a_rotation_vector_is_the_smaller_set_and_quiet_at_any_angle():
+    """error_mrp_from_rotvec: |a| <= 1 (the shadow past 180 deg, not past 360), Gamma(a) the turn by phi (a
+    passive DCM, exp(-[phi x])), and no floating-point warning at 360 deg, where the unused branch divided by 0."""
+    import warnings
+
+    from scipy.linalg import expm
+
+    from envisat_pose.attitude import skew
+    from envisat_pose.filtering.screw_chart import error_mrp_from_rotvec
+
+    u = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    for t in (0.0, 1e-9, 1.0, np.pi - 1e-9, np.pi + 1e-6, 4.0, 2 * np.pi - 1e-6, 2 * np.pi, 7.0):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            a = error_mrp_from_rotvec(t * u)
+        assert np.linalg.norm(a) <= 1.0 + 1e-12
+        np.testing.assert_allclose(mrp_to_dcm(a), expm(-skew(t * u)), atol=1e-12)
