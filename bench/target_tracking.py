@@ -20,7 +20,7 @@ with the share of the second half claimed, and the real-time factor.
 
 Run: .venv/bin/python bench/target_tracking.py [--target FILE.xml] [--weights W [--config RUN.toml]] [--seeds 8]
      [--first-seed 0] [--scenarios default slow-tumble] [--duration-s 300] [--sigma-px 1.0] [--miss 0.1]
-     [--sigma-chart additive|rotation]
+     [--sigma-chart additive|rotation|screw]
 Floors (issue 56): first track correct in at least 15 of 16 runs, 0 s claimed while wrong, mean NEES in [6, 18],
 second-half RMS position <= 10 cm at 50 m.
 """
@@ -180,7 +180,7 @@ def main() -> int:
     ap.add_argument("--duration-s", type=float, default=300.0)
     ap.add_argument("--sigma-px", type=float, default=1.0)
     ap.add_argument("--miss", type=float, default=0.1)
-    ap.add_argument("--sigma-chart", default="additive", choices=["additive", "rotation"],
+    ap.add_argument("--sigma-chart", default="additive", choices=["additive", "rotation", "screw"],
                     help="the noisy-truth runs' filter chart (FilterConfig.sigma_chart; with --weights: --config)")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "target_tracking.json"))
     args = ap.parse_args()

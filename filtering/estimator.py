@@ -417,7 +417,7 @@ def nees(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, chart: str = "add
     """Normalized estimation error squared e^T P^-1 e, with the MRP error taken on the estimate's set.
 
     x_true broadcastable to x_hat (..., 12); P (..., 12, 12) in the filter's chart (FilterConfig.sigma_chart;
-    "rotation": the error of filtering.ukf.chart_local). Returns (...,).
+    "rotation" or "screw": the error of its local chart, filtering.ukf.CHART_MAPS). Returns (...,).
     """
     e = chart_error(x_true, x_hat, chart)
     return np.einsum("...i,...i->...", e, np.linalg.solve(P, e[..., None])[..., 0])

@@ -300,7 +300,7 @@ def ut_update(mean: np.ndarray, cov: np.ndarray, z: np.ndarray, mask: np.ndarray
     (...,) bool: the innovation covariance was positive definite (elsewhere mean, cov and nis are NaN).
     """
     M = z.shape[-1]
-    if chart != "additive":  # sigma points along rotations (chart_retract); their deviations are the residuals
+    if chart != "additive":  # sigma points along the chart (CHART_MAPS); their deviations are the residuals
         dx = sigma_deviations(cov, w)
         sig = CHART_MAPS[chart][0](mean, dx)
     else:
