@@ -187,13 +187,21 @@ def campaign_target(config_text: str) -> str:
     return os.path.basename(str(given or DEFAULT_TARGET))
 
 
+def summary_target(summary: dict, config_text: str) -> str:
+    """The campaign's target as its summary.json records it (the MJCF model's name: a scenario file's
+    `[target] file` too, which the campaign's config does not name), else the file its config names."""
+    recorded = summary.get("target")
+    name = recorded.get("name") if isinstance(recorded, dict) else None
+    return str(name) if name else campaign_target(config_text)
+
+
 def campaign_rows(c: dict) -> list[tuple[str, str]]:
     """(label, value) rows of one campaign's table, already formatted."""
     s, t = c["summary"], c["timing"]
     m = s.get("measurement", {})
     noise = f"{m.get('sigma_m')} m" if m.get("kind") == "markers3d" else f"{m.get('sigma_px')} px"
     markers = "all visible" if m.get("max_markers") is None else f"at most {m['max_markers']}"
-    rows = [("scenario", str(s.get("scenario"))), ("target", campaign_target(c["config"])),
+    rows = [("scenario", str(s.get("scenario"))), ("target", summary_target(s, c["config"])),
             ("runs x steps", f"{s.get('runs')} x {s.get('steps')}"),
             ("measurements", f"{m.get('kind')}, {noise}, {m.get('rate_hz')} Hz, {markers} keypoints"),
             ("seed", str(s.get("seed"))), ("statistics after", f"{_fmt(s.get('settle_s'))} s")]

@@ -118,7 +118,7 @@ def test_columns_are_named_by_the_shortest_path_that_tells_them_apart():
 
 def test_report_names_each_campaigns_target(two_campaigns, tmp_path):
     """Another spacecraft's campaign (`montecarlo --target`) side by side with ENVISAT's: the table names each
-    campaign's target file."""
+    campaign's target (the name its summary.json records)."""
     other = tmp_path / "upper"
     assert main(["montecarlo", "--scenario", "default", "--target", "models/upper_stage.xml", "--runs", "3",
                  "--duration-s", "60", "--settle-s", "30", "--quiet", "--out", str(other)]) == 0
@@ -126,7 +126,25 @@ def test_report_names_each_campaigns_target(two_campaigns, tmp_path):
     assert main(["report", str(two_campaigns[0]), str(other), "--out", str(out)]) == 0
     page = Collector()
     page.feed(out.read_text(encoding="utf-8"))
-    assert "target" in page.cells and "envisat.xml" in page.cells and "upper_stage.xml" in page.cells
+    assert "target" in page.cells and "envisat" in page.cells and "upper_stage" in page.cells
+
+
+def test_report_names_the_target_a_scenario_file_gives(tmp_path):
+    """A campaign of the user's own scenario file whose [target] names the upper stage (no `target` in the
+    campaign's config): the table names the upper stage, as its summary.json and figures do (it once read
+    "envisat.xml", the default file, from the config's unset target)."""
+    scenario = tmp_path / "my_stage.toml"
+    scenario.write_text('description = "upper stage hold"\nbase = "default"\n\n[target]\nfile = "models/upper_stage.xml"\n')
+    d = tmp_path / "mystage"
+    assert main(["montecarlo", "--scenario", str(scenario), "--runs", "2", "--duration-s", "60", "--settle-s", "30",
+                 "--quiet", "--out", str(d)]) == 0
+    assert json.loads((d / "summary.json").read_text())["target"]["name"] == "upper_stage"
+    out = tmp_path / "report.html"
+    assert main(["report", str(d), "--out", str(out)]) == 0
+    page = Collector()
+    page.feed(out.read_text(encoding="utf-8"))
+    row = page.cells[page.cells.index("target") + 1]
+    assert row == "upper_stage", row
 
 
 def test_the_diverged_row_and_line_name_the_nis_monitors_lone_alarms(two_campaigns):
