@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import warnings
 
 import numpy as np
 
@@ -27,6 +26,7 @@ from envisat_pose.pipelines.campaigns.campaign_block import (
     settled_mask,
 )
 from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig, campaign_target_record, campaign_title
+from envisat_pose.pipelines.campaigns.observability import warn_if_never_updated
 from envisat_pose.state import BLOCKS, N_STATE
 
 FIGURES = ("envelopes.png", "block_norms.png", "nees_nis.png", "rmse_vs_pcrlb.png")
@@ -92,9 +92,8 @@ def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
                   **{f"run_{k}": v for k, v in runs.items()})
     save_npz(os.path.join(out_dir, "campaign.npz"), arrays)
     summary = campaign_summary(sums, tr.t_s, settle)
-    if not np.any(sums.nis_runs):
-        warnings.warn("no step of any run had a measurement (the target never in view, or every keypoint outside "
-                      "the measurement's rules): the errors and NEES are the prior's, propagated")
+    if not np.any(sums.nis_runs):  # offered: the keypoints the truth let the filter measure at some step
+        warn_if_never_updated(bool(np.any(tr.base & ~outage_mask(tr.t_s, cfg.measurement.outages_s)[:, None])))
     k = settled_mask(tr.t_s, settle)
     summary.update(
         scenario=cfg.scenario, target=campaign_target_record(cfg), runs=cfg.runs, seed=cfg.seed, steps=len(tr.t_s),

@@ -35,7 +35,11 @@ from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.named_scenarios import check_name
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.out_lock import locks_output
-from envisat_pose.pipelines.campaigns.observability import warn_if_unfixed_start, warn_outages_outside
+from envisat_pose.pipelines.campaigns.observability import (
+    warn_if_never_updated,
+    warn_if_unfixed_start,
+    warn_outages_outside,
+)
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, layered_job
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
 from envisat_pose.target import DEFAULT_TARGET, Target, is_default_file, load_target, resolve_target_path
@@ -288,6 +292,8 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     res = run_filter(inp.x0_hat, fcfg.P0, t_s, chaser, inp.z, inp.mask, inp.R_c, kind, fcfg, progress=progress,
                      mu_m3_s2=mu_m3_s2, gravity_gradient=gravity_gradient, target=target)
     diverged = diverged_against_truth(res.diverged, nees(x_true[None], res.x_hat, res.P, fcfg.sigma_chart), fcfg)
+    if not np.any(res.n_meas):
+        warn_if_never_updated(bool(np.any(inp.mask)))
     return {
         "t_s": t_s,
         "x_true": np.broadcast_to(x_true, (R, T, 12)).copy(),
@@ -352,9 +358,6 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     truth_stride(truth, cfg)  # a rate off the truth's grid: refused before any folder is made
     make_out_file_dirs({out: "out", cfg_path: "out", **({rrd: "rrd"} if rrd else {})})
     arrays = estimate(truth, cfg, progress=progress)
-    if not np.any(arrays["n_meas"]):
-        warnings.warn("no step of any run had a measurement (the target never in view, or every keypoint "
-                      "outside the measurement's rules): the errors and NEES are the prior's, propagated")
     config_json = json.dumps({"estimate": to_dict(cfg), "truth_source": source, "truth_config": truth.config},
                              sort_keys=True)
     est = Estimates(**arrays, config_json=config_json)

@@ -57,3 +57,19 @@ def warn_outages_outside(t_s: np.ndarray, mcfg: MeasurementConfig) -> None:
         if not np.any((np.asarray(t_s) >= a) & (np.asarray(t_s) < b)):
             warnings.warn(f"measurement.outages_s[{i}] [{a:g}, {b:g}) s holds no step of the truth (0 to {end_s:g} "
                           "s): it removes no measurement", stacklevel=2)
+
+
+def warn_if_never_updated(offered: bool) -> None:
+    """The warning of a job in which no step of any run took a measurement (its errors and NEES the prior's,
+    propagated), naming why: offered, whether the truth gave any run a keypoint to measure (visible, in frame
+    for pixels, outside outages, not lost). Where it did, every update failed or was refused (an innovation
+    covariance not positive definite: a noise sigma far below the prior's spread, 1e-9 m against P0's 1 m), not
+    a target out of view."""
+    if offered:
+        warnings.warn("no step of any run took a measurement although the truth offered keypoints to measure: "
+                      "every update failed (its innovation covariance not positive definite: a measurement noise "
+                      "sigma too small against P0?) or was gated out; the errors and NEES are the prior's, "
+                      "propagated, and the runs are flagged diverged")
+    else:
+        warnings.warn("no step of any run had a measurement (the target never in view, or every keypoint outside "
+                      "the measurement's rules): the errors and NEES are the prior's, propagated")
