@@ -29,13 +29,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Simulate the scenario's truth once, filter N Monte Carlo runs in blocks (parallel, resumable) "
         "and write DIR/campaign.npz, summary.json, timing.json, the figures and montecarlo.config.toml.",
     )
-    p.add_argument("--scenario", required=True, metavar="NAME", help="named truth scenario")
+    p.add_argument("--scenario", required=True, metavar="NAME",
+                   help="named truth scenario (`envisat scenarios` lists them) or a scenario file NAME.toml; its "
+                   "duration, [measurement] and [filter] tables are the defaults under --config and the flags")
     p.add_argument("--runs", type=int, help="number of Monte Carlo runs (default 100)")
     p.add_argument("--target", metavar="FILE.xml", help="the target's MJCF file (default: the scenario's, ENVISAT): "
                    "the truth tumbles with its inertia, the filter measures its keypoints")
     add_common(p, out="campaign folder (rerun on it to resume)", config="campaign config (tables measurement, "
                "filter; runs, seed...)", seed="root seed (default 0)", flag_names=FLAGS)
-    p.add_argument("--duration-s", type=float, help="simulated time, s (default 1800)")
+    p.add_argument("--duration-s", type=float, help="simulated time, s (default: the scenario's, 1800 for "
+                   "default, 3600 for eclipse)")
     p.add_argument("--rate-hz", type=float, help="filter/measurement rate, Hz (default 1)")
     p.add_argument("--measurements", choices=["markers3d", "pixels", "pixels+range"],
                    help="what is measured of each visible corner (default markers3d)")

@@ -301,3 +301,20 @@ def test_a_campaign_that_never_measures_says_so(tmp_path, capsys):
     assert main(["montecarlo", "--scenario", str(scenario), "--runs", "3", "--out", str(tmp_path / "mc"),
                  "--quiet"]) == 0
     assert "warning: no step of any run had a measurement" in capsys.readouterr().err
+
+
+def test_the_help_gives_the_scenarios_duration_as_the_default():
+    """`montecarlo --help` once said --duration-s defaults to 1800 s, while the eclipse scenario's campaign runs
+    3600 s without it: the help names the scenario's duration as the default, as `estimate --help` does."""
+    import contextlib
+    import io
+
+    from envisat_pose.app.cli import build_parser
+    from envisat_pose.pipelines.jobs import resolve_job
+
+    assert resolve_job("montecarlo", "eclipse", None, {}).duration_s == 3600.0
+    text = io.StringIO()
+    with contextlib.redirect_stdout(text), pytest.raises(SystemExit):
+        build_parser().parse_args(["montecarlo", "--help"])
+    help_text = " ".join(text.getvalue().split())
+    assert "(default 1800)" not in help_text and "the scenario's, 1800 for default, 3600 for eclipse" in help_text
