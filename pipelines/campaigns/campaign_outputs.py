@@ -80,7 +80,7 @@ def campaign_pcrlb(cfg: MonteCarloConfig, tr: CampaignTruth) -> np.ndarray:
 
 
 def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
-    """Merge the blocks, compute the PCRLB, write campaign.npz, summary.json and the figures."""
+    """Merge the blocks, compute the PCRLB, write campaign.npz, the figures and summary.json (last)."""
 
     sums, runs, sample_err, sample_norms = merge_blocks(cfg, out_dir)
     tr = load_campaign_truth(out_dir, cfg.measurement, cfg.target)
@@ -104,9 +104,10 @@ def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
         diverged_runs=[int(i) for i in np.flatnonzero(runs["diverged"])],
         nis_alarm_alone_runs=[int(i) for i in np.flatnonzero(runs["nis_alarm_alone"])],
     )
+    write_figures(cfg, out_dir, tr.t_s, stats, bound, sample_err, sample_norms)
+    # summary.json last: a folder that has it is a finished campaign (report.load_campaign), its figures written
     atomic_write_text(os.path.join(out_dir, "summary.json"), json.dumps(json_safe(summary), indent=1, sort_keys=True)
                       + "\n")
-    write_figures(cfg, out_dir, tr.t_s, stats, bound, sample_err, sample_norms)
     return summary
 
 

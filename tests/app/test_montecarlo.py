@@ -97,6 +97,34 @@ def test_killed_campaign_resumes_to_the_same_bytes(campaign, tmp_path):
     assert json.loads((d / "timing.json").read_text())["blocks_run_now"] == 2
 
 
+def test_a_campaign_stopped_while_its_figures_are_written_is_not_taken_as_finished(campaign, tmp_path,
+                                                                                    monkeypatch):
+    """Ctrl-C (or a kill) while the figures are drawn: the folder has no summary.json yet, so `report` refuses it
+    as unfinished (it once had summary.json and half its figures, which the report took silently); rerunning
+    the command finishes it to the same bytes."""
+    from envisat_pose.analysis import campaign_figures
+    from envisat_pose.config import InputError
+    from envisat_pose.pipelines.campaigns.report import load_campaign
+
+    d = tmp_path / "stopped"
+    shutil.copytree(campaign, d)
+    for name in ("campaign.npz", "summary.json", "timing.json", "nees_nis.png", "rmse_vs_pcrlb.png"):
+        (d / name).unlink()
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(campaign_figures, "plot_nees_nis", interrupted)
+    assert main(BASE + ["--out", str(d)]) == 130  # the verb's Ctrl-C
+    assert not (d / "summary.json").exists() and (d / "campaign.npz").exists()
+    with pytest.raises(InputError, match="not a finished"):
+        load_campaign(str(d))
+    monkeypatch.undo()
+    assert main(BASE + ["--out", str(d)]) == 0
+    assert _bytes(d) == _bytes(campaign)
+    assert all((d / name).exists() for name in OUTPUTS)
+
+
 def test_a_campaign_written_before_a_config_field_existed_resumes(campaign, tmp_path, capsys):
     """A folder whose manifest lacks a field added since (init_error_scale: its runs used 1) resumes as it was;
     the same folder holding another value of it is still refused."""
