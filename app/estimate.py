@@ -92,7 +92,7 @@ def resolve_config(args: argparse.Namespace) -> EstimateConfig:
 
 def summary(arrays: dict, fcfg: FilterConfig) -> str:
     """Errors over the second half of the run: RMS position (cm) and attitude angle (deg), ANEES; the diverged
-    runs, and how many of them the filter's NIS monitor flagged alone (nis_alarms_alone)."""
+    runs, and how many of them the filter flagged alone (its NIS monitor or a failed update: nis_alarms_alone)."""
 
     t_s = arrays["t_s"]
     T = t_s.shape[0]
@@ -103,8 +103,8 @@ def summary(arrays: dict, fcfg: FilterConfig) -> str:
     return (f"after t = {e['after_s']:.0f} s: RMS position error {100 * e['position_m']['rms_after']:.3f} cm, RMS "
             f"attitude error {e['attitude_deg']['rms_after']:.4f} deg, mean NEES {nees_rt[:, late].mean():.2f} (12 "
             f"expected); diverged runs {int(arrays['diverged'].sum())}/{len(arrays['diverged'])}"
-            + (f" ({alone} flagged by the filter's NIS monitor alone, their errors within the NEES rule)" if alone
-               else ""))
+            + (f" ({alone} flagged by the filter alone (its NIS monitor or a failed update), their "
+               "errors within the NEES rule)" if alone else ""))
 
 
 def run_estimate_cli(args: argparse.Namespace) -> int:

@@ -130,8 +130,8 @@ def summary_line(s: dict) -> str:
     return (f"after t = {s['settle_s']:.0f} s: RMSE position {100 * r['position']:.3f} cm, attitude "
             f"{math.degrees(r['attitude']):.4f} deg; RMSE/PCRLB " + ", ".join(f"{b} {v:.3f}" for b, v in e.items())
             + f"; mean NEES {s['nees_mean']:.2f} (95 % band {nees_band(s)}); "
-            f"diverged {s['n_diverged']}/{s['n_runs']}" + (f" ({len(s['nis_alarm_alone_runs'])} on the NIS monitor "
-                                                           "alone)" if s.get("nis_alarm_alone_runs") else ""))
+            f"diverged {s['n_diverged']}/{s['n_runs']}" + (f" ({len(s['nis_alarm_alone_runs'])} flagged by the "
+                                                           "filter alone)" if s.get("nis_alarm_alone_runs") else ""))
 
 
 # ---------------------------------------------------------------- the rate sweep
@@ -145,7 +145,7 @@ def sweep_line(r: dict) -> str:
                      f"{math.degrees(r['rmse']['attitude'][i]):.4f} deg; RMSE/PCRLB "
                      + ", ".join(f"{b} {_fmt_ratio(v[i])}" for b, v in r["rmse_over_pcrlb"].items())
                      + f"; mean NEES {_fmt_ratio(r['nees_mean'][i], 2)}; diverged {r['n_diverged'][i]}/{r['runs']}"
-                     + (f" ({alone} on the NIS monitor alone)" if alone else "") + "; "
+                     + (f" ({alone} flagged by the filter alone)" if alone else "") + "; "
                      + ("converged" if r["converged"][i] else "NOT converged"))
     low = r["lowest_converged_rate_hz"]
     lines.append(f"converges at every rate down to {low:g} Hz" if low is not None

@@ -438,9 +438,10 @@ def diverged_against_truth(nis_diverged: np.ndarray, nees_rt: np.ndarray, cfg: F
 
 
 def nis_alarms_alone(diverged: np.ndarray, nees_rt: np.ndarray, cfg: FilterConfig) -> np.ndarray:
-    """(R,) bool: the runs diverged_against_truth flagged (diverged) on the filter's NIS monitor alone, their NEES
-    within the window rule: false alarms as far as the truth can tell. The monitor's window bound has a false-alarm
-    probability of cfg.divergence_prob each, so a run of many windows is flagged now and then with nothing wrong
-    (docs/design.md, "Divergence"). nees_rt (R, T) (`nees`)."""
+    """(R,) bool: the runs diverged_against_truth flagged (diverged) by the filter alone (its NIS
+    monitor, or an update that failed and was rolled back), their NEES within the window rule: false alarms as
+    far as the truth can tell. The monitor's window bound has a false-alarm probability of cfg.divergence_prob
+    each, so a run of many windows is flagged now and then with nothing wrong (docs/design.md, "Divergence").
+    nees_rt (R, T) (`nees`)."""
     return np.asarray(diverged, bool) & ~nees_window_diverged(nees_rt, cfg.divergence_window,
                                                               cfg.divergence_settle_steps, cfg.nees_divergence_factor)

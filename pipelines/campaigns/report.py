@@ -97,7 +97,8 @@ def render_sweep(c: dict) -> str:
     for i, rate in enumerate(s["rates_hz"]):
         cells = [f"{rate:g}"] + [_fmt(s["rmse"][b][i], DISPLAY[b][1]) for b in BLOCKS]
         cells += [_fmt(s["rmse_over_pcrlb"][b][i], digits=3) for b in BLOCKS]
-        cells += [f"{s['n_diverged'][i]} / {s['runs']}" + (f" ({alone[i]} on the NIS monitor alone)" if alone[i] else ""),
+        cells += [f"{s['n_diverged'][i]} / {s['runs']}"
+                  + (f" ({alone[i]} flagged by the filter alone)" if alone[i] else ""),
                   _fmt(s["nees_mean"][i]), "yes" if s["converged"][i] else "no"]
         rows.append("<tr>" + "".join(f"<td>{e(v)}</td>" for v in cells) + "</tr>")
     low = s.get("lowest_converged_rate_hz")
@@ -223,7 +224,8 @@ def campaign_rows(c: dict) -> list[tuple[str, str]]:
     rows += [("mean NEES (12 dof)", f"{_fmt(s.get('nees_mean'))} ({band})"),
              ("NIS per dof", _fmt(s.get("nis_mean_per_dof"))),
              ("diverged runs", f"{s.get('n_diverged')} / {s.get('n_runs')}" + (
-                 f" ({len(s['nis_alarm_alone_runs'])} on the NIS monitor alone, their errors within the NEES rule)"
+                 f" ({len(s['nis_alarm_alone_runs'])} flagged by the filter alone, their errors within the "
+                 "NEES rule)"
                  if s.get("nis_alarm_alone_runs") else "")),
              ("wall time", f"{_fmt(t.get('block_wall_s_sum'), digits=4)} s in blocks, "
                            f"{_fmt(t.get('wall_s_this_invocation'), digits=4)} s last invocation "

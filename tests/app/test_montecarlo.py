@@ -239,7 +239,7 @@ def test_block_reduction_equals_whole_array_statistics(campaign):
     rs = run_summary(tr.t_s, x_true, res.x_hat, res.P, res.nis, res.dof, diverged, settle_s=100.0)
     for k in ("rms_block", "final_block", "max_block", "inside_share", "nees_mean", "nis_per_dof", "diverged"):
         np.testing.assert_allclose(got[f"run_{k}"], getattr(rs, k), rtol=1e-9, err_msg=k)
-    # diverged on the NIS monitor alone: flagged, yet the NEES window rule (recomputed here) holds
+    # flagged diverged by the filter alone, yet the NEES window rule (recomputed here) holds
     from envisat_pose.state import nees_window_diverged
 
     nees_rule = nees_window_diverged(nees(x_true, res.x_hat, res.P), cfg.filter.divergence_window,

@@ -134,7 +134,8 @@ def test_report_names_the_target_a_scenario_file_gives(tmp_path):
     campaign's config): the table names the upper stage, as its summary.json and figures do (it once read
     "envisat.xml", the default file, from the config's unset target)."""
     scenario = tmp_path / "my_stage.toml"
-    scenario.write_text('description = "upper stage hold"\nbase = "default"\n\n[target]\nfile = "models/upper_stage.xml"\n')
+    scenario.write_text('description = "upper stage hold"\nbase = "default"\n\n'
+                        '[target]\nfile = "models/upper_stage.xml"\n')
     d = tmp_path / "mystage"
     assert main(["montecarlo", "--scenario", str(scenario), "--runs", "2", "--duration-s", "60", "--settle-s", "30",
                  "--quiet", "--out", str(d)]) == 0
@@ -154,7 +155,7 @@ def test_the_diverged_row_and_line_name_the_nis_monitors_lone_alarms(two_campaig
     from envisat_pose.pipelines.campaigns.report import campaign_rows, load_campaign
 
     c = load_campaign(str(two_campaigns[0]))
-    for alone, note in (([], None), ([3], "1 on the NIS monitor alone")):
+    for alone, note in (([], None), ([3], "1 flagged by the filter alone")):
         s = dict(c["summary"], n_diverged=2, diverged_runs=[3, 7], nis_alarm_alone_runs=alone)
         row = dict(campaign_rows(dict(c, summary=s)))["diverged runs"]
         line = summary_line(s)

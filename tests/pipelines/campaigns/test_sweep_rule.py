@@ -22,17 +22,18 @@ def _summary(n_diverged: int, alone: int | None) -> dict:
 def test_lone_nis_alarms_do_not_stop_a_rate_converging():
     cfg = MonteCarloConfig(runs=100, duration_s=60.0)
     sweep = SweepConfig(rates_hz=(2.0, 1.0, 0.5), max_diverged_share=0.05)
-    # 10 flagged of 100 at each rate: 8 / 4 / (not named) of them on the NIS monitor alone -> 2 / 6 / 10 diverged
+    # 10 flagged of 100 at each rate: 8 / 4 / (not named) of them flagged by the filter alone
+    # -> 2 / 6 / 10 diverged
     r = sweep_result(cfg, sweep, [2.0, 1.0, 0.5], [_summary(10, 8), _summary(10, 4), _summary(10, None)])
     assert r["converged"] == [True, False, False] and r["lowest_converged_rate_hz"] == 2.0
     assert r["n_diverged"] == [10, 10, 10] and r["n_nis_alarm_alone"] == [8, 4, 0]
     lines = sweep_line(r).splitlines()
-    assert "diverged 10/100 (8 on the NIS monitor alone); converged" in lines[0]
-    assert "diverged 10/100 (4 on the NIS monitor alone); NOT converged" in lines[1]
+    assert "diverged 10/100 (8 flagged by the filter alone); converged" in lines[0]
+    assert "diverged 10/100 (4 flagged by the filter alone); NOT converged" in lines[1]
     assert "diverged 10/100; NOT converged" in lines[2]
     assert all("mean NEES 12.00; diverged" in line for line in lines[:3])
     html = render_sweep({"sweep": r, "dir": "sweep", "figure": "", "config": ""})
-    assert "10 / 100 (8 on the NIS monitor alone)" in html and "diverged against the truth" in html
+    assert "10 / 100 (8 flagged by the filter alone)" in html and "diverged against the truth" in html
     older = {k: v for k, v in r.items() if k != "n_nis_alarm_alone"}  # a sweep.json written before
     assert "flagged diverged" in render_sweep({"sweep": older, "dir": "sweep", "figure": "", "config": ""})
     assert np.isclose(r["diverged_share"][0], 0.10)
