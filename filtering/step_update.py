@@ -7,11 +7,11 @@ estimation", IEEE Trans. Automatic Control 57(6), 2012): a run whose prior sprea
 ratio = tr(Pzz) / tr(R) times wider than their noise takes n = ceil(ratio / split_gain) updates (at most
 split_max) from its prior, on the corners the single update accepted, whose shares of the information grow
 geometrically, each update's prior the same few times wider than its noise (split_factors; equal shares made the
-first of 0.1 mm markers' 16 updates 1.25e7 times wider than its noise, the campaign overconfident). With a linear model that is the single update's posterior (the shares of R^-1 add up
-to it); with the camera's it is a better one: each partial update draws its sigma points about the previous
-one's posterior, where the single update spreads them over the whole prior, whose lateral metre at 50 m moves
-the image by ~40 px and turns the line of sight by a degree, which a small target's few pixels then read as
-attitude and range.
+first of 0.1 mm markers' 16 updates 1.25e7 times wider than its noise, the campaign overconfident). With a
+linear model that is the single update's posterior (the shares of R^-1 add up to it); with the camera's it is a
+better one: each partial update draws its sigma points about the previous one's posterior, where the single
+update spreads them over the whole prior, whose lateral metre at 50 m moves the image by ~40 px and turns the
+line of sight by a degree, which a small target's few pixels then read as attitude and range.
 
 Where it acts: the first step of a campaign, whose P0 (1 m, 10 deg) is hundreds of times wider in the measured
 components than their noise. A tracked step's prior is narrower than its noise: one update, as before. The
