@@ -114,10 +114,23 @@ def layered_job(cls: type, kind: str, scenario: str | None, config_path: str | N
     cfg = resolve_job_config(cls, defaults, config_path, flags, named)
     touched = {key.split(".")[0] for key, value in flags.items() if value is not None}
     if config_path:
-        touched |= set(load_toml(config_path))
+        data = load_toml(config_path)
+        warn_other_scenario(data.get("scenario"), scenario, config_path)
+        touched |= set(data)
     for name in set(defaults) - touched - {"scenario"}:
         object.__setattr__(cfg, name, mark_filled(getattr(cfg, name), scenario))
     return cfg
+
+
+def warn_other_scenario(in_file: Any, scenario: str | None, config_path: str) -> None:
+    """A warning where a config file names another scenario than the job's (a --scenario over a run's written
+    config, say): the file's other tables apply, its scenario does not."""
+    if in_file is not None and in_file != scenario:
+        import warnings
+
+        job = f"runs scenario {scenario!r}" if scenario is not None else "takes no named scenario"
+        warnings.warn(f"{config_path}: its scenario = {in_file!r} is not this job's; the job {job} with the file's "
+                      "other settings", stacklevel=3)
 
 
 def default_weights_path() -> str:

@@ -190,3 +190,49 @@ def test_a_position_that_is_not_finite_sees_every_keypoint():
     kernel = fast.table_visible(x, table)
     assert kernel[0].all()
     np.testing.assert_array_equal(kernel[1:], table.lookup(chaser_T_m_from_state(x[1:])))
+
+
+def _chart_shown(x, P, chart):
+    """Visible at the mean or any sigma point of the chart's (alpha 1, kappa 0: D = +-columns of chol(12 P)),
+    written out here: the additive chart's MRP p + D_p; the rotation chart's Gamma(a) Gamma(p) with the error MRP
+    a = B(p)^T D_p / (1 + p.p)^2, B(p) = (1 - p.p) I + 2 [p x] + 2 p p^T; the screw chart's a from the rotation
+    vector phi = 4 B(p)^T D_p / (1 + p.p)^2, a = tan(|phi| / 4) phi / |phi|. The prior is diagonal, so a column
+    moves the position or the attitude, never both (the screw's twist is then the additive position)."""
+    def gamma(q):  # C -> T, the reference sheet's DCM of an MRP
+        qq = q @ q
+        qx = np.array([[0, -q[2], q[1]], [q[2], 0, -q[0]], [-q[1], q[0], 0]])
+        return np.eye(3) + (8 * qx @ qx - 4 * (1 - qq) * qx) / (1 + qq) ** 2
+
+    p = x[6:9]
+    pp = p @ p
+    B = (1 - pp) * np.eye(3) + 2 * np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]]) \
+        + 2 * np.outer(p, p)
+    L = np.linalg.cholesky(12.0 * P)
+    shown = visible_corners(-gamma(p) @ x[0:3])
+    for D in [L[:, k] for k in range(12)] + [-L[:, k] for k in range(12)]:
+        a = B.T @ D[6:9] / (1 + pp) ** 2
+        if chart == "screw":
+            t = np.linalg.norm(4.0 * a)
+            a = np.tan(t / 4.0) * a / np.linalg.norm(a) if t > 0 else a
+        G = gamma(p + D[6:9]) if chart == "additive" else gamma(a) @ gamma(p)
+        shown |= visible_corners(-G @ (x[0:3] + D[0:3]))
+    return shown
+
+
+@pytest.mark.parametrize("chart", ["rotation", "screw"])
+def test_the_spread_check_draws_the_sigma_points_of_the_filters_chart(chart):
+    """In the rotation and screw charts the visibility check asks the sigma points that chart's update draws, not
+    the additive chart's: 300 priors at 50 m (attitude sd 10 deg, random mean attitudes), ENVISAT's face test, the
+    charts' points written out independently (_chart_shown); several priors where the two charts disagree."""
+    rng = np.random.default_rng(1)
+    R = 300
+    x = np.zeros((R, 12))
+    x[:, 1] = 50.0
+    x[:, 6:9] = rng.normal(0.0, 0.5, (R, 3))
+    P = np.diag(np.square([0.05] * 3 + [1e-3] * 3 + [np.radians(10.0) / 4.0] * 3 + [1e-4] * 3))
+    setup = make_setup(FilterConfig(kernel="reference", sigma_chart=chart, gate_prob=0.0), "markers3d")
+    shown = setup.visible_by_prior(x, np.broadcast_to(P, (R, 12, 12)))
+    mine = np.array([_chart_shown(x[r], P, chart) for r in range(R)])
+    additive = np.array([_chart_shown(x[r], P, "additive") for r in range(R)])
+    assert (mine != additive).any(axis=1).sum() >= 3  # the charts' spreads differ: the test can tell them apart
+    np.testing.assert_array_equal(shown, mine)

@@ -334,3 +334,30 @@ def test_a_resolved_job_replaced_with_another_scenario_is_that_scenarios_job(kin
         assert dataclasses.replace(resolve_job(kind, a), scenario=b) == cls(scenario=b), (kind, a, b)
     flagged = resolve_job(kind, "default", overrides={"filter.kappa": 0.5})
     assert dataclasses.replace(flagged, scenario="eclipse").filter.kappa == 0.5
+
+
+def test_a_config_file_naming_another_scenario_is_said(tmp_path):
+    """A file's `scenario` key that the job does not run (a --scenario over a run's written config) is warned of
+    in one line naming both; the file's other keys apply. A file naming the job's own scenario, or none, is not."""
+    import warnings
+
+    from envisat_pose.pipelines.jobs import resolve_job
+
+    other = tmp_path / "other.toml"
+    other.write_text('scenario = "slow-tumble"\nduration_s = 7.0\n')
+    said = r"other.toml: its scenario = 'slow-tumble' is not this job's; the job runs scenario 'default'"
+    with pytest.warns(UserWarning, match=said):
+        cfg = resolve_job("run", "default", str(other))
+    assert cfg.scenario == "default" and cfg.duration_s == 7.0
+    named = tmp_path / "named.toml"
+    named.write_text('scenario = "slow-tumble"\n')
+    with pytest.warns(UserWarning, match="takes no named scenario"):  # a truth file's estimate
+        assert resolve_job("estimate", None, str(named)).scenario is None
+    same = tmp_path / "same.toml"
+    same.write_text('scenario = "slow-tumble"\nduration_s = 7.0\n')
+    none = tmp_path / "none.toml"
+    none.write_text("duration_s = 7.0\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert resolve_job("run", "slow-tumble", str(same)).duration_s == 7.0
+        assert resolve_job("montecarlo", "default", str(none), runs=2).duration_s == 7.0
