@@ -21,6 +21,25 @@ def test_default_workers_follow_the_cores_the_shards_and_the_batches(machine):
     assert default_workers(6, 60, 16) == 3  # 60 images make 3 batches of 16: 3 workers fill one each
 
 
+def test_the_ranks_on_a_node_share_its_cores_and_memory(machine, monkeypatch):
+    """torchrun's LOCAL_WORLD_SIZE ranks share the node's cores (each rank's workers, less one for itself) and its
+    memory (each rank's renderers); WORLD_SIZE ranks share the shards; a LOCAL_WORLD_SIZE of 0 (no launcher sets
+    it) counts as one process, never a division by zero."""
+    from envisat_pose.pipelines.detector.train import RENDERER_BYTES, default_render_workers
+
+    machine(64, memory_gb=1000.0)
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "4")
+    assert default_workers() == 64 // 4 - 1
+    monkeypatch.setenv("WORLD_SIZE", "8")
+    assert default_workers(16) == 2  # 16 shards over 8 ranks
+    monkeypatch.delenv("WORLD_SIZE")
+    machine(64, memory_gb=20 * RENDERER_BYTES / 1e9)  # room for 20 renderers on the node, 5 a rank
+    assert default_render_workers() == 5
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "0")
+    machine(64)
+    assert default_workers() == 63 and default_render_workers() == 63
+
+
 def test_a_small_dataset_trains_on_a_big_machine_as_on_a_small_one(machine, monkeypatch, tiny_dataset, tmp_path):
     """8 images in 2 shards of 4, batches of 8: one worker makes a batch an epoch; the 7 workers an 8-core
     machine's cores gave each made none, and the run stopped ("fewer samples than one batch ... per worker")
