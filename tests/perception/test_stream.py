@@ -203,6 +203,20 @@ def test_the_prefetch_fits_the_shared_memory():
     assert "\n" not in str(err.value) and "--shm-size" in str(err.value)
 
 
+def test_the_ranks_on_a_node_share_its_shared_memory(monkeypatch):
+    """Under torchrun each of the node's LOCAL_WORLD_SIZE ranks sizes its loaders' prefetch to its share of the
+    free shared memory: 10 MB batches, 2 workers, 520 MB free: one rank prefetches 4 (the most), each of 4 ranks
+    (130 MB: (104 / 10 - 1) // 4 = 2) 2; a LOCAL_WORLD_SIZE of 0 counts as one."""
+    from envisat_pose.perception import stream
+
+    mb = 1_000_000
+    monkeypatch.setattr(stream, "shm_free_bytes", lambda: 520 * mb)
+    monkeypatch.setattr(stream, "sample_bytes", lambda paths, cfg, seed: 10 * mb)
+    for ranks, prefetch in (("", 4), ("4", 2), ("0", 4)):
+        monkeypatch.setenv("LOCAL_WORLD_SIZE", ranks)
+        assert stream.run_prefetch(["shard"], None, 0, 1, 2) == prefetch, ranks
+
+
 def test_a_run_sizes_its_prefetch_to_the_free_shared_memory(many_shards, tmp_path, monkeypatch):
     """Measured once before the first epoch from a sample made in-process: with little shared memory free the
     workers prefetch less and train the same batches; with none to spare the run is refused before any step."""
