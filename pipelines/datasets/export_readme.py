@@ -16,8 +16,9 @@ _COMMON = """\
 - Pose: x_cam = R x_body + t. R is R_cam_from_target; t is the target's origin in the camera frame.
 - Pixels: pixel centres at integer coordinates (OpenCV's convention); the principal point of an N-px image is
   ((N - 1) / 2, (N - 1) / 2). Keypoint coordinates are the projections of the keypoints' 3-D positions.
-- Keypoints ({k}, in this order): {names}. Visible = no nearer surface covers it in the rendered depth;
-  in-frame = its projection falls within [-0.5, N - 0.5) on both axes, in front of the camera.
+- Keypoints ({k}, in this order): {names}. Visible = the ray from the camera to it meets no opaque drawn
+  geom of the target first, and it is in-frame; in-frame = its projection falls within [-0.5, N - 0.5) on both
+  axes, in front of the camera.
 - Intrinsics: fx = fy = {f:.6f} px, cx = {cx:.1f}, cy = {cy:.1f}, {n} x {n} px, no distortion.
 """
 

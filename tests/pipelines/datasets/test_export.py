@@ -421,6 +421,14 @@ def test_a_sequence_speedplus_readme_names_the_files_its_export_holds():
     assert "--jsonfile synthetic/train.json" in readme_of("speedplus", "random")
 
 
+def test_every_readme_says_visible_is_the_labels_ray_cast():
+    """The labels' `visible` comes from ray casts through the target's drawn geoms (Target.visible), not from the
+    rendered depth: each format's README says so."""
+    for fmt in ("speedplus", "coco", "bop", "yolo-pose"):
+        text = readme_of(fmt)
+        assert "rendered depth;" not in text and "meets no opaque drawn" in text
+
+
 def test_the_coco_readme_snippet_imports_every_name_it_uses():
     """The README's pycocotools lines, run as they stand, define every name before its use (np included)."""
     import ast
