@@ -38,3 +38,79 @@ def provenance(args: argparse.Namespace | None = None) -> dict:
             "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
             "argv": sys.argv[1:],
             "args": None if args is None else json.loads(json.dumps(vars(args), default=str))}
+
+
+def count(least: int = 1):
+    """An argparse type: a whole number of at least `least` (runs, images, rounds, workers); anything else is
+    argparse's one line of usage error, not a traceback later."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if value < least:
+            raise argparse.ArgumentTypeError(f"{value} is below {least}")
+        return value
+    return parse
+
+
+def positive(text: str) -> float:
+    """An argparse type: a number above 0 (a duration, a rate)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not value > 0:  # NaN too
+        raise argparse.ArgumentTypeError(f"{value:g} is not above 0")
+    return value
+
+
+def existing_file(text: str) -> str:
+    """An argparse type: a path to a file that is there."""
+    if not os.path.isfile(text):
+        raise argparse.ArgumentTypeError(f"{text}: no such file")
+    return text
+
+
+def existing_dir(text: str) -> str:
+    """An argparse type: a path to a folder that is there."""
+    if not os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"{text}: no such folder")
+    return text
+
+
+def out_file(text: str) -> str:
+    """An argparse type for --out: a file path whose folder is a folder (made when absent), refused before the
+    benchmark runs rather than when it writes."""
+    folder = os.path.dirname(os.path.abspath(text))
+    while not os.path.exists(folder):
+        folder = os.path.dirname(folder)
+    if os.path.isdir(text) or not os.path.isdir(folder) or not os.access(folder, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{text}: not a file that can be written")
+    return text
+
+
+def write_json(path: str, data: dict, **dump) -> None:
+    """`data` as JSON at `path` atomically (a temporary file beside it, then a rename: an interrupted run leaves
+    the earlier file or none, never half of one), its folder made first."""
+    from envisat_pose.io import atomic_write_text
+
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    atomic_write_text(path, json.dumps(data, **dump) + "\n")
+
+
+def run(main) -> None:
+    """Exit with main()'s code; a user error (the project's ConfigError, InputError: a bad scenario name, a wrong
+    target file) is one line, as the envisat CLI prints it, and Ctrl-C is one line too."""
+    from envisat_pose.config import ConfigError, InputError
+
+    name = os.path.basename(sys.argv[0])
+    try:
+        code = main()
+    except (ConfigError, InputError) as err:
+        print(f"{name}: error: {err}", file=sys.stderr)
+        code = 2
+    except KeyboardInterrupt:
+        print(f"{name}: interrupted", file=sys.stderr)
+        code = 130
+    sys.exit(code or 0)
