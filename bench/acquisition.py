@@ -235,4 +235,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from _common import run  # bench/_common.py, beside this script
+
+    run(main)

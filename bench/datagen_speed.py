@@ -590,4 +590,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from _common import run  # bench/_common.py, beside this script
+
+    run(main)

@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 
 RANDOM = {  # metric: (floor, direction)
     "median_px": (0.45, "<="), "pck_2px": (0.85, ">="), "pck_5px": (0.95, ">="), "swap_rate_strict": (0.015, "<="),
@@ -114,4 +113,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from _common import run  # bench/_common.py, beside this script
+
+    run(main)

@@ -254,4 +254,6 @@ def main_responses(args, prov: dict) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from _common import run  # bench/_common.py, beside this script
+
+    run(main)

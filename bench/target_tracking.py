@@ -223,4 +223,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from _common import run  # bench/_common.py, beside this script
+
+    run(main)
