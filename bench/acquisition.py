@@ -161,20 +161,29 @@ def table_row(range_m: float, rate: str, b: dict) -> str:
 
 
 def main() -> None:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import (  # bench/_common.py
+        count,
+        description,
+        existing_file,
+        out_file,
+        positive,
+        provenance,
+        results_path,
+    )
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--trials-per-bin", type=int, default=10)
-    ap.add_argument("--seed", type=int, default=0, help="root seed of every draw")
-    ap.add_argument("--ranges-m", type=float, nargs="+", default=list(RANGES_M))
+    ap.add_argument("--trials-per-bin", type=count(), default=10)
+    ap.add_argument("--seed", type=count(0), default=0, help="root seed of every draw")
+    ap.add_argument("--ranges-m", type=positive, nargs="+", default=list(RANGES_M))
     ap.add_argument("--rates", nargs="+", choices=list(RATES), default=list(RATES))
-    ap.add_argument("--duration-s", type=float, default=DURATION_S, help="frames per trial from the cold start, s")
-    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
-    ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
-    ap.add_argument("--sun-phase-max-deg", type=float, help="a lit sun's largest phase angle (default: trials')")
-    ap.add_argument("--config", help="a run-config TOML applied to every trial, as `envisat run --config` takes it "
-                                     "(an ablation: [tracker.acquire] frames = 12, say); its text goes into the result")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "acquisition.json"))
+    ap.add_argument("--duration-s", type=positive, default=DURATION_S, help="frames per trial from the cold start, s")
+    ap.add_argument("--workers", type=count(), default=os.cpu_count() or 1)
+    ap.add_argument("--weights", type=existing_file, help="detector weights (default: the shipped ones)")
+    ap.add_argument("--sun-phase-max-deg", type=positive, help="a lit sun's largest phase angle (default: trials')")
+    ap.add_argument("--config", type=existing_file,
+                    help="a run-config TOML applied to every trial, as `envisat run --config` takes it "
+                         "(an ablation: [tracker.acquire] frames = 12, say); its text goes into the result")
+    ap.add_argument("--out", type=out_file, default=results_path("acquisition"))
     args = ap.parse_args()
     from envisat_pose.io import atomic_write_text
     from envisat_pose.pipelines.common.job_defaults import default_weights_path

@@ -111,16 +111,16 @@ def time_filterpy_slice(steps: int) -> float:
 
 
 def main() -> None:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, out_file, positive, provenance, results_path, write_json  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--runs", type=int, default=1000)
-    ap.add_argument("--duration-s", type=float, default=6000.0)
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--block-runs", type=int, default=125)
+    ap.add_argument("--runs", type=count(), default=1000)
+    ap.add_argument("--duration-s", type=positive, default=6000.0)
+    ap.add_argument("--workers", type=count(), default=2)
+    ap.add_argument("--block-runs", type=count(), default=125)
     ap.add_argument("--reference-duration-s", type=float, default=600.0,
                     help="orbit slice of the numpy-filter peer campaign (0: skip it)")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "montecarlo_speed.json"))
+    ap.add_argument("--out", type=out_file, default=results_path("montecarlo_speed"))
     args = ap.parse_args()
     work = tempfile.mkdtemp(prefix="mc-bench-")
     try:
@@ -191,10 +191,7 @@ def main() -> None:
         "machine": {"python": platform.python_version(), "cpu_count": os.cpu_count(), "numpy": np.__version__},
     }
     result["provenance"] = provenance(args)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w", encoding="utf-8") as fh:
-        json.dump(result, fh, indent=2)
-        fh.write("\n")
+    write_json(args.out, result, indent=2)
     print(f"wrote {args.out}; meets floors: {result['meets_floors']}")
 
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import os
 import platform
 import subprocess
@@ -103,14 +102,14 @@ def class_moments(fn, frames, seeds: int) -> dict:
 
 
 def main(argv=None) -> int:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, out_file, provenance, write_json  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--frames", type=int, default=6)
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--seeds", type=int, default=40)
+    ap.add_argument("--frames", type=count(), default=6)
+    ap.add_argument("--repeats", type=count(), default=5)
+    ap.add_argument("--seeds", type=count(), default=40)
     ap.add_argument("--reference", default=REFERENCE_COMMIT)
-    ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "sensor_speed.json"))
+    ap.add_argument("--out", type=out_file, default=os.path.join(ROOT, "bench", "results", "sensor_speed.json"))
     args = ap.parse_args(argv)
 
     import cv2
@@ -121,7 +120,10 @@ def main(argv=None) -> int:
     frames = closed_loop_frames(args.frames)
     impls = {"current": sensor.apply_sensor}
     ref = reference_module(args.reference)
-    if ref is not None:
+    if ref is None:
+        print(f"sensor_speed: --reference {args.reference}: git cannot show its datagen/sensor.py here; the current "
+              "implementation alone", file=sys.stderr)
+    else:
         impls = {f"previous ({args.reference})": ref.apply_sensor, **impls}
     rows = {}
     for name, fn in impls.items():
@@ -148,10 +150,7 @@ def main(argv=None) -> int:
               "machine": {"python": sys.version.split()[0], "platform": platform.platform(),
                           "cpus": os.cpu_count()}}
     result["provenance"] = provenance(args)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w", encoding="utf-8") as fh:
-        json.dump(result, fh, indent=2, sort_keys=True)
-        fh.write("\n")
+    write_json(args.out, result, indent=2, sort_keys=True)
     print(f"wrote {args.out}")
     return 0
 

@@ -91,12 +91,12 @@ def measure_look(name: str, extra: dict, images: int, seed: int, tmp: str) -> di
 
 
 def main() -> None:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, out_file, provenance, results_path  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--images", type=int, default=40, help="frames per look")
-    ap.add_argument("--seed", type=int, default=4242)
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "silhouette_bias.json"))
+    ap.add_argument("--images", type=count(), default=40, help="frames per look")
+    ap.add_argument("--seed", type=count(0), default=4242)
+    ap.add_argument("--out", type=out_file, default=results_path("silhouette_bias"))
     args = ap.parse_args()
     from envisat_pose.io import atomic_write_text
 

@@ -13,7 +13,6 @@ Prints a table and writes --out (default bench/results/sim_speed.json).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
@@ -196,13 +195,13 @@ def run_scipy(cfg, x0, t_end, rtol):
 
 
 def main() -> None:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, out_file, positive, provenance, write_json  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--duration-s", type=float, default=1000.0)
-    ap.add_argument("--rollouts", type=int, default=32)
-    ap.add_argument("--threads", type=int, default=os.cpu_count() or 1)
-    ap.add_argument("--out", default=os.path.join(HERE, "results", "sim_speed.json"))
+    ap.add_argument("--duration-s", type=positive, default=1000.0)
+    ap.add_argument("--rollouts", type=count(), default=32)
+    ap.add_argument("--threads", type=count(), default=os.cpu_count() or 1)
+    ap.add_argument("--out", type=out_file, default=os.path.join(HERE, "results", "sim_speed.json"))
     args = ap.parse_args()
     cfg = scenario_config(duration_s=args.duration_s, dt_s=args.duration_s, max_physics_dt_s=0.05, seed=1)
     x0 = initial_state(cfg, np.random.default_rng(np.random.SeedSequence(cfg.seed)))
@@ -239,9 +238,7 @@ def main() -> None:
         "plugin": PLUGIN_NAME, "rows": rows,
     }
     result["provenance"] = provenance(args)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as fh:
-        json.dump(result, fh, indent=2)
+    write_json(args.out, result, indent=2)
     print(f"\nwrote {args.out}")
 
 

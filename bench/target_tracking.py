@@ -168,21 +168,23 @@ def pooled(runs: list[dict]) -> dict:
 
 
 def main() -> int:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, existing_file, out_file, positive, provenance  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--target", default=str(ROOT / "models" / "upper_stage.xml"))
-    ap.add_argument("--weights", help="the target's calibrated keypoint detector (default: the noisy-truth stand-in)")
-    ap.add_argument("--config", help="with --weights: a run config (TOML) over each run, as `envisat run --config`")
+    ap.add_argument("--weights", type=existing_file,
+                    help="the target's calibrated keypoint detector (default: the noisy-truth stand-in)")
+    ap.add_argument("--config", type=existing_file,
+                    help="with --weights: a run config (TOML) over each run, as `envisat run --config`")
     ap.add_argument("--scenarios", nargs="+", default=["default", "slow-tumble"])
-    ap.add_argument("--seeds", type=int, default=8)
-    ap.add_argument("--first-seed", type=int, default=0)
-    ap.add_argument("--duration-s", type=float, default=300.0)
-    ap.add_argument("--sigma-px", type=float, default=1.0)
+    ap.add_argument("--seeds", type=count(), default=8)
+    ap.add_argument("--first-seed", type=count(0), default=0)
+    ap.add_argument("--duration-s", type=positive, default=300.0)
+    ap.add_argument("--sigma-px", type=positive, default=1.0)
     ap.add_argument("--miss", type=float, default=0.1)
     ap.add_argument("--sigma-chart", default="additive", choices=["additive", "rotation", "screw"],
                     help="the noisy-truth runs' filter chart (FilterConfig.sigma_chart; with --weights: --config)")
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "target_tracking.json"))
+    ap.add_argument("--out", type=out_file, default=str(ROOT / "bench" / "results" / "target_tracking.json"))
     args = ap.parse_args()
     if args.config and not args.weights:
         ap.error("--config: a run config for the closed loop, which needs --weights (the noisy-truth stand-in takes none)")

@@ -191,21 +191,22 @@ def per_run_line(s: dict, seeds: list[int]) -> str:
 
 
 def main() -> None:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, existing_file, out_file, positive, provenance  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--seeds", type=int, default=8, help="seeds per scenario (first-seed, first-seed + 1, ...)")
-    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--seeds", type=count(), default=8, help="seeds per scenario (first-seed, first-seed + 1, ...)")
+    ap.add_argument("--first-seed", type=count(0), default=0)
     ap.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
-    ap.add_argument("--duration-s", type=float, help="simulated time per run (default: each scenario's own)")
-    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
-    ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
-    ap.add_argument("--sun-phase-max-deg", type=float, help="a lit sun's largest phase angle (default: trials')")
+    ap.add_argument("--duration-s", type=positive, help="simulated time per run (default: each scenario's own)")
+    ap.add_argument("--workers", type=count(), default=os.cpu_count() or 1)
+    ap.add_argument("--weights", type=existing_file, help="detector weights (default: the shipped ones)")
+    ap.add_argument("--sun-phase-max-deg", type=positive, help="a lit sun's largest phase angle (default: trials')")
     ap.add_argument("--correlation-in", choices=("slower", "rotation", "time"),
                     help="the tracker's noise.correlation_in (default: NoiseConfig's, pipelines/tracking/tracker_config.py)")
-    ap.add_argument("--config", help="a run-config TOML applied to every run, as `envisat run --config` takes it "
-                                     "(an ablation: [tracker.acquire] frames = 12, say); its text goes into the result")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "tracking.json"))
+    ap.add_argument("--config", type=existing_file,
+                    help="a run-config TOML applied to every run, as `envisat run --config` takes it "
+                         "(an ablation: [tracker.acquire] frames = 12, say); its text goes into the result")
+    ap.add_argument("--out", type=out_file, default=os.path.join(os.path.dirname(__file__), "results", "tracking.json"))
     args = ap.parse_args()
     from envisat_pose.config import to_dict
     from envisat_pose.datagen.scenario import scenario_config

@@ -150,13 +150,14 @@ def dgemm_flops_per_s(size: int = 1024) -> float:
 
 
 def main() -> None:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, out_file, provenance, results_path  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--runs", type=int, default=1000)
-    ap.add_argument("--truth-seed", type=int, default=TRUTH_SEED, help="the default scenario's seed (its truth)")
-    ap.add_argument("--noise-seed", type=int, default=NOISE_SEED, help="the runs' measurement noise and initial errors")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "ukf_speed.json"))
+    ap.add_argument("--runs", type=count(), default=1000)
+    ap.add_argument("--truth-seed", type=count(0), default=TRUTH_SEED, help="the default scenario's seed (its truth)")
+    ap.add_argument("--noise-seed", type=count(0), default=NOISE_SEED,
+                    help="the runs' measurement noise and initial errors")
+    ap.add_argument("--out", type=out_file, default=results_path("ukf_speed"))
     args = ap.parse_args()
     load_start = os.getloadavg()[0]
     steps_fp, steps_one, steps_batch = 20, 100, 10

@@ -65,14 +65,14 @@ def _rays_ms(target: Target, n: int, seed: int) -> float:
 
 
 def main(argv=None) -> int:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, out_file, provenance  # bench/_common.py
 
     p = argparse.ArgumentParser(description=description(__doc__))
-    p.add_argument("--images", type=int, default=20)
-    p.add_argument("--rounds", type=int, default=3)
-    p.add_argument("--resolution", type=int, default=1024)
-    p.add_argument("--seed", type=int, default=61)
-    p.add_argument("--out", default=os.path.join(HERE, "results", "visibility_cost.json"))
+    p.add_argument("--images", type=count(), default=20)
+    p.add_argument("--rounds", type=count(), default=3)
+    p.add_argument("--resolution", type=count(), default=1024)
+    p.add_argument("--seed", type=count(0), default=61)
+    p.add_argument("--out", type=out_file, default=os.path.join(HERE, "results", "visibility_cost.json"))
     a = p.parse_args(argv)
     rows = {}
     given = Target.visible
