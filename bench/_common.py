@@ -79,6 +79,13 @@ def existing_dir(text: str) -> str:
     return text
 
 
+def dataset(text: str) -> str:
+    """An argparse type: a generated dataset's folder (`envisat generate`: its manifest.json there)."""
+    if not os.path.isfile(os.path.join(existing_dir(text), "manifest.json")):
+        raise argparse.ArgumentTypeError(f"{text}: no manifest.json, not a generated dataset")
+    return text
+
+
 def out_file(text: str) -> str:
     """An argparse type for --out: a file path whose folder is a folder (made when absent), refused before the
     benchmark runs rather than when it writes."""
@@ -99,7 +106,25 @@ def write_json(path: str, data: dict, **dump) -> None:
     atomic_write_text(path, json.dumps(data, **dump) + "\n")
 
 
-def run(main) -> None:
+def existing_results(path: str, check) -> dict:
+    """The JSON object already at `path` that a run adds its entry to ({} when there is none), to be read before
+    the benchmark runs: InputError (one line under run) when it is not JSON or `check(data)` is false (another
+    bench's results, which the merge would garble)."""
+    from envisat_pose.config import InputError
+
+    if not os.path.exists(path):
+        return {}
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise InputError(f"--out {path}: not a JSON file this bench can add to ({err})") from None
+    if not isinstance(data, dict) or not check(data):
+        raise InputError(f"--out {path}: not this bench's results file (a run is added to the file's own)")
+    return data
+
+
+def run_main(main) -> None:
     """Exit with main()'s code; a user error (the project's ConfigError, InputError: a bad scenario name, a wrong
     target file) is one line, as the envisat CLI prints it, and Ctrl-C is one line too."""
     from envisat_pose.config import ConfigError, InputError

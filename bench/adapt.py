@@ -290,20 +290,20 @@ def table(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, out_file, provenance, write_json  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--scenarios", nargs="+", default=["default"])
-    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
-    ap.add_argument("--resolutions", nargs="+", type=int, default=[512])
-    ap.add_argument("--num-images", type=int, default=300)
-    ap.add_argument("--steps", type=int, help="fine-tune steps (default: AdaptConfig's)")
+    ap.add_argument("--seeds", nargs="+", type=count(0), default=[0, 1])
+    ap.add_argument("--resolutions", nargs="+", type=count(), default=[512])
+    ap.add_argument("--num-images", type=count(), default=300)
+    ap.add_argument("--steps", type=count(), help="fine-tune steps (default: AdaptConfig's)")
     ap.add_argument("--work", default="/tmp/adapt-bench")
     ap.add_argument("--edge-range", default="sequence", choices=["sequence", "frame", "off"],
                     help="AdaptConfig.edge_range: how the labels' range is corrected by the silhouette edges")
     ap.add_argument("--params", default="none", choices=["none", "norm_heads", "all"],
                     help="AdaptConfig.params: what the fine-tune trains ('none': recalibration only)")
-    ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "adapt.json"))
+    ap.add_argument("--out", type=out_file, default=os.path.join(ROOT, "bench", "results", "adapt.json"))
     ap.add_argument("--responses", nargs="+",
                     help="the grid of camera responses on own renders (module doc): RESPONSE:SIGMA...")
     args = ap.parse_args(argv)
@@ -315,9 +315,8 @@ def main(argv: list[str] | None = None) -> int:
             for spec in args.responses:
                 rows.append(response_case(spec, args.scenarios[0], seed, args.resolutions[0], args.num_images,
                                           args.work))
-                with open(args.out, "w") as fh:
-                    json.dump({"cases": rows, "cores": os.cpu_count(), "argv": sys.argv[1:], "provenance": prov}, fh,
-                              indent=1)
+                write_json(args.out, {"cases": rows, "cores": os.cpu_count(), "argv": sys.argv[1:], "provenance": prov},
+                           indent=1)
                 print(json.dumps({k: rows[-1].get(k) for k in ("look", "own", "before", "after", "adopted",
                                                                "reason", "scale_note", "refused")}), flush=True)
         return 0
@@ -326,15 +325,15 @@ def main(argv: list[str] | None = None) -> int:
             for seed in args.seeds:
                 rows.append(one_case(scenario, seed, res, args.num_images, args.work, args.steps, args.edge_range,
                                      args.params))
-                with open(args.out, "w") as fh:  # after each case: a killed run keeps what it measured
-                    json.dump({"cases": rows, "cores": os.cpu_count(), "argv": sys.argv[1:], "provenance": prov}, fh,
-                              indent=1)
+                # after each case: a killed run keeps what it measured
+                write_json(args.out, {"cases": rows, "cores": os.cpu_count(), "argv": sys.argv[1:], "provenance": prov},
+                           indent=1)
                 print(table(rows[-1:]), flush=True)
     print(table(rows))
     return 0
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

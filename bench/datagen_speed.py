@@ -534,25 +534,24 @@ def main_default_mode(args: argparse.Namespace) -> dict:
             **default_mode_table(args.images or 64, args.rounds, args.floor_images, args.seed)}
 
 
+def is_results(data: dict) -> bool:
+    """Whether a JSON object is this bench's results: tables each with its machine (or the older "resolutions")."""
+    return "resolutions" in data or all(isinstance(v, dict) and "machine" in v for v in data.values())
+
+
 def write_entry(path: str, key: str, entry: dict) -> None:
     """The results file at `path` with `entry` under `key`, its other keys kept (other machines, other modes,
-    earlier tables); an older single-platform file (a top-level "resolutions") is started afresh."""
-    everything = {}
-    if os.path.exists(path):
-        with open(path, encoding="utf-8") as fh:
-            everything = json.load(fh)
-        if "resolutions" in everything:
-            everything = {}
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    everything[key] = entry
-    with open(path, "w", encoding="utf-8") as fh:
-        json.dump(everything, fh, indent=1, sort_keys=True)
-        fh.write("\n")
+    earlier tables), atomically; an older single-platform file (a top-level "resolutions") is started afresh."""
+    from _common import existing_results, write_json
+
+    everything = existing_results(path, is_results)
+    everything = {} if "resolutions" in everything else everything
+    write_json(path, everything | {key: entry}, indent=1, sort_keys=True)
     print(f"wrote {path} [{key}]")
 
 
 def main(argv: list[str] | None = None) -> None:
-    from _common import description, provenance, results_path
+    from _common import count, description, existing_dir, existing_results, out_file, provenance, results_path
 
     ap = argparse.ArgumentParser(description=description(__doc__))
     mode = ap.add_mutually_exclusive_group()
@@ -560,17 +559,19 @@ def main(argv: list[str] | None = None) -> None:
                       help="the scaling floors' table at 512 and 1024 px instead of the default mode's")
     mode.add_argument("--targets", action="store_true",
                       help="the shipped targets' time per image against ENVISAT's (and --baseline's) instead")
-    ap.add_argument("--baseline", metavar="DIR", help="with --targets: an earlier tree (a git archive, its plugin's "
-                    ".so copied in)")
-    ap.add_argument("--current", metavar="DIR", help="with --targets: the tree measured (default: the installed one)")
-    ap.add_argument("--images", type=int, help="images per dataset (default: 64; with --targets 24; with --scaling "
+    ap.add_argument("--baseline", metavar="DIR", type=existing_dir,
+                    help="with --targets: an earlier tree (a git archive, its plugin's .so copied in)")
+    ap.add_argument("--current", metavar="DIR", type=existing_dir,
+                    help="with --targets: the tree measured (default: the installed one)")
+    ap.add_argument("--images", type=count(), help="images per dataset (default: 64; with --targets 24; with --scaling "
                     + " and ".join(f"{n} at {res} px" for res, n in IMAGES.items()) + ")")
-    ap.add_argument("--floor-images", type=int, default=200, help="the two-pass floor's images (default mode)")
-    ap.add_argument("--rounds", type=int, default=3, help="alternating rounds (default mode and --targets)")
-    ap.add_argument("--seed", type=int, default=SEED, help="the datasets' root seed")
+    ap.add_argument("--floor-images", type=count(), default=200, help="the two-pass floor's images (default mode)")
+    ap.add_argument("--rounds", type=count(), default=3, help="alternating rounds (default mode and --targets)")
+    ap.add_argument("--seed", type=count(0), default=SEED, help="the datasets' root seed")
     ap.add_argument("--tag", help="names this machine in the results' key (default: MUJOCO_GL_<cores>cpu)")
     ap.add_argument("--key", default="targets", help="with --targets: the results' key before the tag")
-    ap.add_argument("--out", default=results_path("datagen_speed"), help="the results file the table is merged into")
+    ap.add_argument("--out", type=out_file, default=results_path("datagen_speed"),
+                    help="the results file the table is merged into")
     args = ap.parse_args(argv)
     if (args.baseline or args.current) and not args.targets:
         ap.error("--baseline and --current go with --targets")
@@ -579,6 +580,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.floor_images <= GenerateConfig().shard_size:  # a steady rate needs a shard after the first
         ap.error(f"--floor-images {args.floor_images}: expected more than one shard of the default size "
                  f"({GenerateConfig().shard_size} images)")
+    existing_results(args.out, is_results)  # a wrong --out refused before the benchmark runs
     tag = args.tag or f"{os.environ['MUJOCO_GL']}_{os.cpu_count()}cpu"
     if args.targets:
         key, entry = f"{args.key}_{tag}", main_targets(args)
@@ -590,6 +592,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

@@ -16,7 +16,6 @@ bfloat16 corners lie from the float32 ones where both name a corner. Whether the
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -87,13 +86,14 @@ def differences(a, b) -> dict:
 
 
 def main() -> None:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    # bench/_common.py, beside this script
+    from _common import count, dataset, description, existing_file, out_file, provenance, write_json
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--data", required=True, help="a labelled ENVISAT dataset (envisat generate)")
-    ap.add_argument("--limit", type=int, default=200)
-    ap.add_argument("--weights", default=shipped_weights_path())
-    ap.add_argument("--out", default=os.path.join(HERE, "results", "detector_bf16.json"))
+    ap.add_argument("--data", required=True, type=dataset, help="a labelled ENVISAT dataset (envisat generate)")
+    ap.add_argument("--limit", type=count(), default=200)
+    ap.add_argument("--weights", type=existing_file, default=shipped_weights_path())
+    ap.add_argument("--out", type=out_file, default=os.path.join(HERE, "results", "detector_bf16.json"))
     args = ap.parse_args()
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -121,16 +121,11 @@ def main() -> None:
               f"{dd['max_px']:.3f}; named by one only: {dd['named_by_one_only']}")
         result["paths"][path] = row
     result["provenance"] = provenance(args)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    tmp = args.out + ".tmp"
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(result, fh, indent=1, sort_keys=True)
-        fh.write("\n")
-    os.replace(tmp, args.out)
+    write_json(args.out, result, indent=1, sort_keys=True)
     print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

@@ -83,15 +83,15 @@ def score_weights(weights: str, frames: list, device: str = "cpu") -> dict[str, 
 
 
 def main() -> None:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, out_file, provenance  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--weights", nargs="+", required=True, help="NAME=W.safetensors, one per candidate")
     ap.add_argument("--data", nargs="+", required=True, help="NAME=DIR, labelled held-out sets")
-    ap.add_argument("--limit", type=int, help="only the first N frames of each set")
-    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--limit", type=count(), help="only the first N frames of each set")
+    ap.add_argument("--threads", type=count(), default=1, help="torch CPU threads")
     ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
-    ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "detector_candidates.json"))
+    ap.add_argument("--out", type=out_file, default=os.path.join(ROOT, "bench", "results", "detector_candidates.json"))
     args = ap.parse_args()
     import torch
     from tqdm import tqdm
@@ -126,6 +126,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

@@ -40,6 +40,22 @@ def detector_figures(s: dict) -> dict:
             "mean_nees": s.get("calibration", {}).get("mean_nees"), "bias": s.get("bias")}
 
 
+def read(path: str, flag: str, *keys: str) -> dict:
+    """The JSON file given to `flag`, checked to hold the nested keys its figures come from: InputError (one line)
+    for another file."""
+    from envisat_pose.config import InputError
+
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+        inner = data
+        for key in keys:
+            inner = inner[key]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise InputError(f"{flag} {path}: no {'.'.join(keys)} ({type(err).__name__}: {err})") from None
+    return data
+
+
 def corruption_levels(e: dict) -> list[dict]:
     """Detector against Shi-Tomasi (oracle names) per corruption level, PCK@2 and PCK@5."""
     out = []
@@ -57,20 +73,20 @@ def corruption_levels(e: dict) -> list[dict]:
 
 
 def main() -> int:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import description, existing_file, out_file, provenance, write_json  # bench/_common.py
 
     p = argparse.ArgumentParser(description=description(__doc__))
-    p.add_argument("--random", nargs="+", default=[])
-    p.add_argument("--earth", nargs="*", default=[])
-    p.add_argument("--sequence", nargs="*", default=[])
-    p.add_argument("--speed")
-    p.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
+    p.add_argument("--random", nargs="+", type=existing_file, default=[])
+    p.add_argument("--earth", nargs="*", type=existing_file, default=[])
+    p.add_argument("--sequence", nargs="*", type=existing_file, default=[])
+    p.add_argument("--speed", type=existing_file)
+    p.add_argument("--out", type=out_file, default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
                                                  "detector_floors.json"))
     a = p.parse_args()
     result = {"random": [], "earth": [], "sequences": [], "speed": None, "floors": {}}
     rows = []
     for path in a.random:
-        e = json.load(open(path, encoding="utf-8"))
+        e = read(path, "--random", "groups", "all", "detector")
         fig = detector_figures(e["groups"]["all"]["detector"])
         levels = corruption_levels(e)
         checks = {k: {"value": fig[k], "floor": f, "op": op, "met": meets(fig[k], f, op)} for k, (f, op) in RANDOM.items()}
@@ -79,14 +95,14 @@ def main() -> int:
         result["random"].append({"file": os.path.basename(path), "data": e.get("data"), **fig, "checks": checks})
         rows += [(os.path.basename(path), k, c.get("value"), c.get("floor"), c["met"]) for k, c in checks.items()]
     for path in a.earth:
-        e = json.load(open(path, encoding="utf-8"))
+        e = read(path, "--earth", "groups", "all", "detector")
         fig = detector_figures(e["groups"]["all"]["detector"])
         met = fig["pck_5px"] >= EARTH_PCK5
         result["earth"].append({"file": os.path.basename(path), "data": e.get("data"), **fig,
                                 "checks": {"pck_5px": {"value": fig["pck_5px"], "floor": EARTH_PCK5, "met": met}}})
         rows.append((os.path.basename(path), "earth pck_5px", fig["pck_5px"], EARTH_PCK5, met))
     for path in a.sequence:
-        e = json.load(open(path, encoding="utf-8"))
+        e = read(path, "--sequence", "groups", "all")
         for method, s in e["groups"]["all"].items():
             if not method.startswith("detector") or not s.get("frames") or "bias" not in s:
                 continue
@@ -96,7 +112,7 @@ def main() -> int:
                                         **b, "met": met})
             rows.append((os.path.basename(path), f"{method} |scale-1|", b["scale_mean"] - 1.0, SCALE_TOL, met))
     if a.speed:
-        sp = json.load(open(a.speed, encoding="utf-8"))["full_frame"]["ms_per_frame"]
+        sp = read(a.speed, "--speed", "full_frame", "ms_per_frame")["full_frame"]["ms_per_frame"]
         result["speed"] = {k: {"median_ms": sp[k]["median"], "floor_ms": v, "met": sp[k]["median"] <= v}
                            for k, v in SPEED_MS.items()}
         rows += [("speed", k, c["median_ms"], c["floor_ms"], c["met"]) for k, c in result["speed"].items()]
@@ -105,14 +121,12 @@ def main() -> int:
         f = "-" if floor is None else f"{floor:.4g}"
         print(f"{name:28s} {metric:36s} {v:>10s} {f:>8s}  {'met' if met else 'NOT met'}")
     result["provenance"] = provenance(a)
-    with open(a.out, "w", encoding="utf-8") as fh:
-        json.dump(result, fh, indent=1, sort_keys=True)
-        fh.write("\n")
+    write_json(a.out, result, indent=1, sort_keys=True)
     print(f"wrote {a.out}")
     return 0
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

@@ -17,7 +17,6 @@ threshold and stops after one network pass: a lower bound). Writes bench/results
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import resource
@@ -108,16 +107,17 @@ def time_frames(frames: list, weights: str | None, repeats: int) -> dict:
 
 
 def main() -> None:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, existing_file, out_file, provenance, write_json  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--repeats", type=int, default=20)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--frames", type=int, default=8, help="full 1024 px frames for part 2")
-    ap.add_argument("--frame-repeats", type=int, default=5, help="timed runs per frame in part 2")
-    ap.add_argument("--weights", help="trained weights (default: the shipped ones)")
+    ap.add_argument("--repeats", type=count(), default=20)
+    ap.add_argument("--threads", type=count(), default=2)
+    ap.add_argument("--frames", type=count(), default=8, help="full 1024 px frames for part 2")
+    ap.add_argument("--frame-repeats", type=count(), default=5, help="timed runs per frame in part 2")
+    ap.add_argument("--weights", type=existing_file, help="trained weights (default: the shipped ones)")
     ap.add_argument("--untrained", action="store_true", help="time an untrained default-size network instead")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "detector_speed.json"))
+    ap.add_argument("--out", type=out_file,
+                    default=os.path.join(os.path.dirname(__file__), "results", "detector_speed.json"))
     args = ap.parse_args()
     if not args.untrained and not args.weights:
         from envisat_pose.perception.weights import shipped_weights_path
@@ -157,13 +157,10 @@ def main() -> None:
                          "threshold, so detector_full_frame and detector_roi stop after one network pass each: a "
                          "LOWER BOUND, without the crop pass, line verification and naming; no accuracy implied")}
     result["provenance"] = provenance(args)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w", encoding="utf-8") as fh:
-        json.dump(result, fh, indent=1, sort_keys=True)
-        fh.write("\n")
+    write_json(args.out, result, indent=1, sort_keys=True)
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

@@ -201,20 +201,24 @@ def responses_line(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, out_file, positive, provenance  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--scenarios", nargs="+", default=["default"])
-    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3])
-    ap.add_argument("--resolutions", nargs="+", type=int, default=[512])
-    ap.add_argument("--num-images", type=int, default=300)
-    ap.add_argument("--stride", type=int, default=3)
-    ap.add_argument("--step", type=float, default=0.005)
+    ap.add_argument("--seeds", nargs="+", type=count(0), default=[0, 1, 2, 3])
+    ap.add_argument("--resolutions", nargs="+", type=count(), default=[512])
+    ap.add_argument("--num-images", type=count(), default=300)
+    ap.add_argument("--stride", type=count(), default=3)
+    ap.add_argument("--step", type=positive, default=0.005)
     ap.add_argument("--work", default="/tmp/adapt-bench")
-    ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "edge_truth.json"))
+    ap.add_argument("--out", type=out_file, default=os.path.join(ROOT, "bench", "results", "edge_truth.json"))
     ap.add_argument("--responses", action="store_true", help="the grid of camera responses on own renders (module doc)")
     args = ap.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
+    from envisat_pose.datagen.scenario import scenario_dict
+
+    for name in args.scenarios:  # a wrong name is one line here, not a child's failure later
+        scenario_dict(name)
     if args.responses:
         return main_responses(args, provenance(args))
     prov = provenance(args)
@@ -254,6 +258,6 @@ def main_responses(args, prov: dict) -> int:
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

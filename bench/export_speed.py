@@ -81,12 +81,12 @@ def run_row(kind: str, src: str, work: str, fmt: str = "-", image_format: str = 
 
 
 def main() -> int:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, dataset, description, out_file, provenance  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--data", help="an existing 1024 px dataset (default: make one)")
-    ap.add_argument("--images", type=int, default=BENCH_IMAGES)
-    ap.add_argument("--out", default=os.path.join(HERE, "results", "export_speed.json"))
+    ap.add_argument("--data", type=dataset, help="an existing 1024 px dataset (default: make one)")
+    ap.add_argument("--images", type=count(), default=BENCH_IMAGES)
+    ap.add_argument("--out", type=out_file, default=os.path.join(HERE, "results", "export_speed.json"))
     args = ap.parse_args()
     from envisat_pose.io import atomic_write_text
 
@@ -131,6 +131,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

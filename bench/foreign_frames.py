@@ -424,14 +424,14 @@ def make_sequence(out_dir: str, scenario: str, seed: int, num_images: int, resol
 
 
 def main(argv: list[str] | None = None) -> int:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, positive, provenance  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--scenario", default="default")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--num-images", type=int, default=240)
-    ap.add_argument("--resolution", type=int, default=512)
-    ap.add_argument("--frame-dt-s", type=float, default=1.0)
+    ap.add_argument("--seed", type=count(0), default=0)
+    ap.add_argument("--num-images", type=count(), default=240)
+    ap.add_argument("--resolution", type=count(), default=512)
+    ap.add_argument("--frame-dt-s", type=positive, default=1.0)
     ap.add_argument("--jpeg-quality", type=int, default=JPEG_QUALITY)
     ap.add_argument("--out", required=True)
     a = ap.parse_args(argv)
@@ -447,6 +447,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

@@ -265,17 +265,17 @@ def table(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, out_file, provenance, write_json  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--scenario", default="default")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--num-images", type=int, default=300, help="the sequence's frames")
-    ap.add_argument("--stride", type=int, default=6, help="score every stride-th frame")
-    ap.add_argument("--resolution", type=int, default=512)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--seed", type=count(0), default=0)
+    ap.add_argument("--num-images", type=count(), default=300, help="the sequence's frames")
+    ap.add_argument("--stride", type=count(), default=6, help="score every stride-th frame")
+    ap.add_argument("--resolution", type=count(), default=512)
+    ap.add_argument("--threads", type=count(), default=2)
     ap.add_argument("--work", help="folder for the project's renders (default: a temporary one)")
-    ap.add_argument("--out", default=os.path.join(HERE, "results", "foreign_scale.json"))
+    ap.add_argument("--out", type=out_file, default=os.path.join(HERE, "results", "foreign_scale.json"))
     a = ap.parse_args(argv)
     import foreign_frames as ff
     import torch
@@ -290,14 +290,12 @@ def main(argv: list[str] | None = None) -> int:
     r["machine"] = {"cpus": os.cpu_count(), "platform": platform.platform(), "python": sys.version.split()[0]}
     r["provenance"] = provenance(a)
     r["argv"] = sys.argv[1:] if argv is None else argv
-    os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
-    with open(a.out, "w") as fh:
-        json.dump(r, fh, indent=1)
+    write_json(a.out, r, indent=1)
     print(table(r))
     return 0
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

@@ -127,14 +127,14 @@ def frame_bytes() -> int:
 
 
 def main(argv=None) -> int:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, out_file, positive, provenance, write_json  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--orbits", type=float, nargs="+", default=[1, 3, 10])
-    ap.add_argument("--rate-hz", type=float, default=1.0, help="camera and filter rate (frames per second)")
-    ap.add_argument("--resolution", type=int, default=128, help="image side, px")
-    ap.add_argument("--trace-every", type=int, default=200, help="frames between the loop's RSS samples")
-    ap.add_argument("--out", default=os.path.join(ROOT, "bench", "results", "memory.json"))
+    ap.add_argument("--orbits", type=positive, nargs="+", default=[1, 3, 10])
+    ap.add_argument("--rate-hz", type=positive, default=1.0, help="camera and filter rate (frames per second)")
+    ap.add_argument("--resolution", type=count(), default=128, help="image side, px")
+    ap.add_argument("--trace-every", type=count(), default=200, help="frames between the loop's RSS samples")
+    ap.add_argument("--out", type=out_file, default=os.path.join(ROOT, "bench", "results", "memory.json"))
     args = ap.parse_args(argv)
     from envisat_pose.datagen.scenario import scenario_config
 
@@ -182,15 +182,12 @@ def main(argv=None) -> int:
               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
               "date": time.strftime("%Y-%m-%d")}
     result["provenance"] = provenance(args)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w") as fh:
-        json.dump(result, fh, indent=1)
-        fh.write("\n")
+    write_json(args.out, result, indent=1)
     print(f"wrote {args.out}")
     return 0
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

@@ -105,15 +105,24 @@ def rmse(t_s, x_true, x_hat, after_s: float) -> dict:
 
 
 def main() -> None:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import (  # bench/_common.py
+        count,
+        description,
+        existing_file,
+        out_file,
+        positive,
+        provenance,
+        results_path,
+    )
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--duration-s", type=float, default=600.0)
-    ap.add_argument("--weights", help="detector weights (default: the shipped ones)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--cores", type=int, default=1, help="CPUs the loop may use (affinity, torch and llvmpipe threads)")
+    ap.add_argument("--duration-s", type=positive, default=600.0)
+    ap.add_argument("--weights", type=existing_file, help="detector weights (default: the shipped ones)")
+    ap.add_argument("--seed", type=count(0), default=0)
+    ap.add_argument("--cores", type=count(), default=1,
+                    help="CPUs the loop may use (affinity, torch and llvmpipe threads)")
     ap.add_argument("--after-s", type=float, default=300.0, help="RMSE from this time on, s")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "online_speed.json"))
+    ap.add_argument("--out", type=out_file, default=results_path("online_speed"))
     args = ap.parse_args()
     os.sched_setaffinity(0, set(sorted(os.sched_getaffinity(0))[:args.cores]))
     os.environ["LP_NUM_THREADS"] = str(args.cores)
@@ -171,6 +180,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

@@ -134,18 +134,19 @@ def table(r: dict) -> str:
 
 
 def main() -> int:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, dataset, description, out_file, provenance  # bench/_common.py
 
     from envisat_pose.io import atomic_write_text
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--data", metavar="DIR", help="an existing generated dataset (default: generate one)")
-    ap.add_argument("--images", type=int, default=BENCH_IMAGES, help=f"images to generate (default {BENCH_IMAGES})")
-    ap.add_argument("--input-px", type=int, default=320, help="the loader's input size (default 320)")
-    ap.add_argument("--batch-size", type=int, default=8)
-    ap.add_argument("--repeats", type=int, default=REPEATS, help="check calls timed per round")
-    ap.add_argument("--rounds", type=int, default=ROUNDS, help="interleaved rounds of check and loader")
-    ap.add_argument("--out", default=os.path.join(HERE, "results", "shard_check.json"))
+    ap.add_argument("--data", metavar="DIR", type=dataset,
+                    help="an existing generated dataset (default: generate one)")
+    ap.add_argument("--images", type=count(), default=BENCH_IMAGES, help=f"images to generate (default {BENCH_IMAGES})")
+    ap.add_argument("--input-px", type=count(), default=320, help="the loader's input size (default 320)")
+    ap.add_argument("--batch-size", type=count(), default=8)
+    ap.add_argument("--repeats", type=count(), default=REPEATS, help="check calls timed per round")
+    ap.add_argument("--rounds", type=count(), default=ROUNDS, help="interleaved rounds of check and loader")
+    ap.add_argument("--out", type=out_file, default=os.path.join(HERE, "results", "shard_check.json"))
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         data = args.data
@@ -161,6 +162,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

@@ -152,20 +152,20 @@ def estimate_speed(a) -> dict:
 
 
 def main(argv=None) -> int:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    from _common import count, description, out_file, positive, provenance  # bench/_common.py
 
     p = argparse.ArgumentParser(description=description(__doc__))
-    p.add_argument("--runs", type=int, default=100)
-    p.add_argument("--duration-s", type=float, default=600.0)
+    p.add_argument("--runs", type=count(), default=100)
+    p.add_argument("--duration-s", type=positive, default=600.0)
     p.add_argument("--settle-s", type=float, default=300.0)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--max-markers", type=int, default=None,
+    p.add_argument("--seed", type=count(0), default=0)
+    p.add_argument("--workers", type=count(), default=2)
+    p.add_argument("--max-markers", type=count(), default=None,
                    help="for the `targets` part only (default: the scenario's: every visible keypoint)")
-    p.add_argument("--speed-runs", type=int, default=20)
-    p.add_argument("--speed-duration-s", type=float, default=600.0)
-    p.add_argument("--speed-repeats", type=int, default=10)
-    p.add_argument("--out", default=os.path.join(HERE, "results", "target_estimation.json"))
+    p.add_argument("--speed-runs", type=count(), default=20)
+    p.add_argument("--speed-duration-s", type=positive, default=600.0)
+    p.add_argument("--speed-repeats", type=count(), default=10)
+    p.add_argument("--out", type=out_file, default=os.path.join(HERE, "results", "target_estimation.json"))
     a = p.parse_args(argv)
     runner = RunnerConfig("local", a.workers, None, thread_env(a.workers, BLAS_THREADS))
 
@@ -224,6 +224,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

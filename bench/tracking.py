@@ -275,6 +275,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

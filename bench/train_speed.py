@@ -242,28 +242,28 @@ def save(args, rows: list[dict], parts: list[dict]) -> None:
 
 
 def main() -> None:
-    from _common import description  # bench/_common.py, beside this script
+    from _common import count, dataset, description, out_file, results_path  # bench/_common.py
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--steps", type=int, default=24, help="steps per CPU row")
-    ap.add_argument("--batch-size", type=int, default=8, help="batch of the CPU rows")
-    ap.add_argument("--images", type=int, default=40, help="images generated for the CPU rows")
-    ap.add_argument("--shard-size", type=int, default=10)
-    ap.add_argument("--gpu-steps", type=int, default=300, help="steps per GPU row")
-    ap.add_argument("--gpu-batch-sizes", type=int, nargs="+", default=[64],
+    ap.add_argument("--steps", type=count(), default=24, help="steps per CPU row")
+    ap.add_argument("--batch-size", type=count(), default=8, help="batch of the CPU rows")
+    ap.add_argument("--images", type=count(), default=40, help="images generated for the CPU rows")
+    ap.add_argument("--shard-size", type=count(), default=10)
+    ap.add_argument("--gpu-steps", type=count(), default=300, help="steps per GPU row")
+    ap.add_argument("--gpu-batch-sizes", type=count(), nargs="+", default=[64],
                     help="batches of the GPU rows, each in both precisions (e.g. 64 128 256)")
-    ap.add_argument("--gpu-images", type=int, default=1920, help="images generated for the GPU rows")
-    ap.add_argument("--gpu-shard-size", type=int, default=64)
-    ap.add_argument("--data", help="an existing dataset for every row instead of generating")
+    ap.add_argument("--gpu-images", type=count(), default=1920, help="images generated for the GPU rows")
+    ap.add_argument("--gpu-shard-size", type=count(), default=64)
+    ap.add_argument("--data", type=dataset, help="an existing dataset for every row instead of generating")
     ap.add_argument("--no-cpu", action="store_true", help="GPU rows only")
-    ap.add_argument("--step-steps", type=int, default=4, help="timed steps per model-step row (CPU)")
-    ap.add_argument("--gpu-step-steps", type=int, default=50, help="timed steps per model-step row (GPU)")
+    ap.add_argument("--step-steps", type=count(), default=4, help="timed steps per model-step row (CPU)")
+    ap.add_argument("--gpu-step-steps", type=count(), default=50, help="timed steps per model-step row (GPU)")
     ap.add_argument("--no-whole", action="store_true", help="the step and data parts only")
     ap.add_argument("--no-online", action="store_true", help="no online rows (frames rendered as training goes)")
-    ap.add_argument("--online-resolution", type=int, default=512,
+    ap.add_argument("--online-resolution", type=count(), default=512,
                     help="renders' side of the CPU's online rows (the GPU's: 1024, the recipe's)")
-    ap.add_argument("--online-steps", type=int, default=12, help="steps per CPU online row")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "train_speed.json"))
+    ap.add_argument("--online-steps", type=count(), default=12, help="steps per CPU online row")
+    ap.add_argument("--out", type=out_file, default=results_path("train_speed"))
     args = ap.parse_args()
     cores = len(os.sched_getaffinity(0))
     parts, rows = [], []
@@ -335,6 +335,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)

@@ -58,20 +58,28 @@ def figures(tree: str, duration_s: float, only: str | None, cores: int = 1) -> d
 
 
 def main() -> None:
-    from _common import description, provenance  # bench/_common.py, beside this script
+    # bench/_common.py, beside this script
+    from _common import count, description, existing_dir, existing_results, out_file, positive, provenance, write_json
 
     ap = argparse.ArgumentParser(description=description(__doc__))
-    ap.add_argument("--baseline", required=True, help="the earlier tree (a git archive, its plugin .so copied in)")
-    ap.add_argument("--current", default=ROOT, help="the tree measured (default: this one)")
-    ap.add_argument("--rounds", type=int, default=2)
-    ap.add_argument("--duration-s", type=float, default=300.0, help="closed-loop simulated seconds per run")
+    ap.add_argument("--baseline", required=True, type=existing_dir,
+                    help="the earlier tree (a git archive, its plugin .so copied in)")
+    ap.add_argument("--current", default=ROOT, type=existing_dir, help="the tree measured (default: this one)")
+    ap.add_argument("--rounds", type=count(), default=2)
+    ap.add_argument("--duration-s", type=positive, default=300.0, help="closed-loop simulated seconds per run")
     ap.add_argument("--only", choices=("ukf", "loop"), help="one of the two benches (default: both)")
-    ap.add_argument("--cores", type=int, default=1, help="the closed loop's CPUs (online_speed.py --cores; default 1)")
+    ap.add_argument("--cores", type=count(), default=1,
+                    help="the closed loop's CPUs (online_speed.py --cores; default 1)")
     ap.add_argument("--warm-up-s", type=float, default=30.0,
                     help="an untimed run of each tree first, this many simulated seconds (0: none): a fresh tree "
                          "compiles its numba kernels into its cache on its first run, which would land in round 1")
-    ap.add_argument("--out", default=os.path.join(HERE, "results", "tree_speed.json"))
+    ap.add_argument("--out", type=out_file, default=os.path.join(HERE, "results", "tree_speed.json"))
     args = ap.parse_args()
+    has_runs = lambda data: isinstance(data.get("runs"), list)  # noqa: E731
+    existing_results(args.out, has_runs)  # a wrong --out refused before the benchmark runs
+    for tree in (args.baseline, args.current):
+        if not os.path.isfile(os.path.join(tree, "bench", "online_speed.py")):
+            ap.error(f"{tree}: not a tree of this project (no bench/online_speed.py)")
     trees = {"baseline": os.path.abspath(args.baseline), "current": os.path.abspath(args.current)}
     for name in trees if args.warm_up_s > 0 else ():
         figures(trees[name], args.warm_up_s, args.only, args.cores)
@@ -102,20 +110,12 @@ def main() -> None:
               "rounds": rounds, "median": median, "ratio_current_to_baseline": ratio, "floor_met": met}
     # one file, every run appended (runs of one pair of trees side by side, each with its protocol)
     result["provenance"] = provenance(args)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    runs = []
-    if os.path.exists(args.out):
-        with open(args.out, encoding="utf-8") as fh:
-            runs = json.load(fh)["runs"]
-    tmp = args.out + ".tmp"
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump({"runs": runs + [result]}, fh, indent=1, sort_keys=True)
-        fh.write("\n")
-    os.replace(tmp, args.out)
+    runs = existing_results(args.out, has_runs).get("runs", [])
+    write_json(args.out, {"runs": runs + [result]}, indent=1, sort_keys=True)
     print(f"wrote {args.out} (run {len(runs) + 1})")
 
 
 if __name__ == "__main__":
-    from _common import run  # bench/_common.py, beside this script
+    from _common import run_main  # bench/_common.py, beside this script
 
-    run(main)
+    run_main(main)
