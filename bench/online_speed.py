@@ -12,7 +12,7 @@ the same run), from the same initial estimate.
 One core by default (the floor's protocol): the process pinned to --cores CPUs (sched_setaffinity), torch with
 that many threads and llvmpipe with LP_NUM_THREADS = that many.
 
-Run: .venv/bin/python bench/online_speed.py [--duration-s 600] [--cores 1] [--weights W]
+Run: .venv/bin/python bench/online_speed.py [--duration-s 600] [--cores 1] [--weights W] [--seed 0] [--after-s 300]
      [--out bench/results/online_speed.json]
 Floor: 10x real time with the region of interest on one core (goal 20x); RMSE unchanged within noise.
 """

@@ -16,7 +16,7 @@ reaches the 8-bit ceiling (>= 250: clipped, bloomed). The segmentation mask's ow
 (the render's geometry against the labels). The station and area-method math is the library's
 (pipelines/adaptation/edge_range.py, which `envisat adapt` uses without a mask); this bench passes the render's mask.
 
-Run: .venv/bin/python bench/silhouette_bias.py [--images 40]  (writes bench/results/silhouette_bias.json)
+Run: .venv/bin/python bench/silhouette_bias.py [--images 40] [--seed 4242]  (writes bench/results/silhouette_bias.json)
 """
 
 from __future__ import annotations
