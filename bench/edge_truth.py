@@ -220,6 +220,13 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.scenarios:  # a wrong name is one line here, not a child's failure later
         scenario_dict(name)
     if args.responses:
+        from envisat_pose.config import ConfigError
+
+        for res in args.resolutions:  # a size the grid's widest blur does not fit: one line before any render
+            try:
+                response_params(RESPONSES[0], max(PSF_SIGMAS_PX), False, res, 0)
+            except ConfigError as err:
+                ap.error(f"--resolutions {res}: too small for the grid's {max(PSF_SIGMAS_PX)} px blur ({err})")
         return main_responses(args, provenance(args))
     prov = provenance(args)
     rows = []
