@@ -250,9 +250,11 @@ class FilamentRenderer:
     render(rho_C_m, R_C_from_T, sun_dir_C) -> (H, W) uint8 gray. One read request per render call."""
 
     def __init__(self, resolution_px: int, sun_lux: float = SUN_LUX):
+        from envisat_pose.config import InputError
+
         problem = filament_problem()
-        if problem:
-            raise RuntimeError(problem)
+        if problem:  # a user's machine to set up: one line under bench/_common.run_main (adapt, edge_truth)
+            raise InputError(problem)
         if os.path.exists(LVP_ICD):
             os.environ.setdefault("VK_ICD_FILENAMES", LVP_ICD)
         import mujoco
