@@ -161,15 +161,8 @@ def table_row(range_m: float, rate: str, b: dict) -> str:
 
 
 def main() -> None:
-    from _common import (  # bench/_common.py
-        count,
-        description,
-        existing_file,
-        out_file,
-        positive,
-        provenance,
-        results_path,
-    )
+    # bench/_common.py, beside this script
+    from _common import count, description, existing_file, out_file, positive, provenance, results_path
 
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--trials-per-bin", type=count(), default=10)

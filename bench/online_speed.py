@@ -105,15 +105,8 @@ def rmse(t_s, x_true, x_hat, after_s: float) -> dict:
 
 
 def main() -> None:
-    from _common import (  # bench/_common.py
-        count,
-        description,
-        existing_file,
-        out_file,
-        positive,
-        provenance,
-        results_path,
-    )
+    # bench/_common.py, beside this script
+    from _common import count, description, existing_file, out_file, positive, provenance, results_path
 
     ap = argparse.ArgumentParser(description=description(__doc__))
     ap.add_argument("--duration-s", type=positive, default=600.0)
