@@ -80,9 +80,14 @@ def existing_dir(text: str) -> str:
 
 
 def dataset(text: str) -> str:
-    """An argparse type: a generated dataset's folder (`envisat generate`: its manifest.json there)."""
-    if not os.path.isfile(os.path.join(existing_dir(text), "manifest.json")):
-        raise argparse.ArgumentTypeError(f"{text}: no manifest.json, not a generated dataset")
+    """An argparse type: a generated dataset's folder (`envisat generate`), its manifest read by the one reader."""
+    from envisat_pose.config import InputError
+    from envisat_pose.shard_reader import load_dataset_manifest
+
+    try:
+        load_dataset_manifest(text)
+    except InputError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
     return text
 
 
