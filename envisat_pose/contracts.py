@@ -129,11 +129,12 @@ class _Contract:
     def load(cls, path: str):
         """Read and check a file; ContractError (one line, naming the file) when it is not this contract."""
         try:
-            with open(path, "rb") as fh:
+            with open(path, "rb") as fh:  # numpy's own open stays open where the zip is damaged: this one closes
                 if fh.read(4) != b"PK\x03\x04":  # an .npz is a zip archive (numpy would try a pickle next)
                     raise ContractError(f"{path}: not a {cls.KIND} .npz file (not a zip archive)")
-            with np.load(path, allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
+                fh.seek(0)
+                with np.load(fh, allow_pickle=False) as z:
+                    data = {k: z[k] for k in z.files}
         except FileNotFoundError:
             raise ContractError(f"{path}: no such file") from None
         except IsADirectoryError:

@@ -218,7 +218,7 @@ def recorded_scenario(truth_path: str) -> str | None:
     """The named scenario a truth file records it was simulated from (datagen.scenario.truth_config_json), None
     where it records none, the name is no longer known, or the file does not read (load_truth says why)."""
     try:
-        with np.load(truth_path, allow_pickle=False) as z:
+        with open(truth_path, "rb") as fh, np.load(fh, allow_pickle=False) as z:  # closed however it ends
             name = json.loads(str(z["config_json"])).get("scenario")
     except Exception:  # noqa: BLE001 - any unreadable file: load_truth reports it in one line
         return None

@@ -62,15 +62,20 @@ def read_roi(path: str) -> dict[str, "object"]:
     """{key: roi_px (3,) int} from an ROI file (npz of key (M,) str and roi_px (M, 3) finite, side > 0);
     InputError naming the file and the problem otherwise. Loaded without pickle."""
     import os
+    import zipfile
 
     import numpy as np
 
     if not os.path.isfile(path):
         raise InputError(f"roi {path!r}: no such file")
     try:
-        with np.load(path, allow_pickle=False) as z:
-            keys, roi = z["key"].astype(str), np.asarray(z["roi_px"], dtype=np.float64)
-    except (KeyError, ValueError, OSError) as err:
+        with open(path, "rb") as fh:  # closed however the read ends
+            if fh.read(4) != b"PK\x03\x04":  # an .npz is a zip archive (an .npy or a text file is not)
+                raise InputError(f"roi {path!r}: not an .npz file (a zip archive of the arrays key and roi_px)")
+            fh.seek(0)
+            with np.load(fh, allow_pickle=False) as z:
+                keys, roi = z["key"].astype(str), np.asarray(z["roi_px"], dtype=np.float64)
+    except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile) as err:  # damaged or truncated too
         raise InputError(f"roi {path!r}: expected an npz with key (M,) and roi_px (M, 3) ({err})") from None
     if roi.shape != (len(keys), 3):
         raise InputError(f"roi {path!r}: roi_px has shape {roi.shape}, expected ({len(keys)}, 3): one row "

@@ -88,3 +88,27 @@ def test_a_bad_roi_row_is_named(tmp_path):
     np.savez(path, key=np.array(["a", "b"]), roi_px=np.zeros((2, 2)))
     with pytest.raises(InputError, match=r"shape \(2, 2\), expected \(2, 3\)"):
         read_roi(str(path))
+
+
+def test_a_damaged_roi_file_is_one_error_and_leaves_no_file_open(tmp_path):
+    """A truncated .npz, an .npy and a text file given as --roi: one InputError naming the file each (a truncated
+    zip was zipfile's BadZipFile, an .npy a TypeError), and no file left open (numpy's np.load keeps its own file
+    open where the zip is damaged: a ResourceWarning once collected)."""
+    import gc
+    import warnings
+
+    from envisat_pose.pipelines.detector.detect import read_roi
+
+    good = tmp_path / "roi.npz"
+    np.savez(good, key=np.array(["a", "b"]), roi_px=np.array([[1.0, 2.0, 50], [3, 4, 60]]))
+    data = good.read_bytes()
+    (tmp_path / "cut.npz").write_bytes(data[: len(data) // 2])
+    np.save(tmp_path / "rows.npy", np.zeros((2, 3)))
+    (tmp_path / "text.npz").write_text("a,1,2,50\n")
+    for name in ("cut.npz", "rows.npy", "text.npz"):
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            with pytest.raises(InputError, match=f"roi '.*{name}'"):
+                read_roi(str(tmp_path / name))
+            gc.collect()
+        assert not [w for w in seen if issubclass(w.category, ResourceWarning)], name
