@@ -142,3 +142,39 @@ def test_overlapped_the_tracker_steps_each_frame_on_what_was_planned_for_it(tmp_
     made = {k: w for k, w in maker.asked}  # the last made of each frame
     assert tracker.windows == [made[k] for k in range(12)]
     assert maker.counts["frames_windowed"] >= 10
+
+
+def test_overlapped_a_window_planned_early_that_misses_the_plan_is_made_again(tmp_path):
+    """Through run_frames' overlap (as `envisat run` always steps): the plans move 40 px a step, so the window
+    planned two frames on never holds the plan the tracker has when it steps the frame; each windowed frame is
+    made again and the tracker steps the window it planned then (plans[(k, k)]), never the early one."""
+    plans = {(float(k), n): (20 + 40 * n, 20, 10) for k in range(2, 8) for n in (k - 2, k - 1, k)}
+    tracker, maker = PlanTracker(plans), MarkerMaker()
+    ahead, frames = frames_of(maker, tracker, 8)
+    run_frames(ahead, frames, RunRows(str(tmp_path / "run"), 8), overlap=True)
+    assert tracker.windows == [None, None] + [plans[(float(k), k)] for k in range(2, 8)]
+    assert [m for _, m in tracker.steps] == [1, 1] + [2 + 10] * 6  # the plan's side, not the grown window's
+    assert maker.counts["frames_window_remade"] == 6
+
+
+class TimedMaker(MarkerMaker):
+    """MarkerMaker whose every make takes 0.25 s of rendering and 0.125 s of camera (as stage times)."""
+
+    def image(self, k, x, window):
+        return super().image(k, x, window)[0], 0.25, 0.125
+
+
+def test_a_frame_made_again_counts_both_makes_in_its_stage_times():
+    """The stage times of a frame made twice (a window, then again for the tracker's plan) are the two makes'
+    sums: the time spent on that frame, which summary.json's ms per frame reports."""
+    plans = {(2.0, 1): (20, 20, 10), (2.0, 2): (0, 0, 10)}
+    tracker, maker = PlanTracker(plans), TimedMaker()
+    ahead, frames = frames_of(maker, tracker, 3)
+    stage = []
+    for f in frames:
+        final = f.final()
+        stage.append(final.stage_s)
+        ahead.step(final.t_s, final.image, final.window_px)
+    assert maker.counts["frames_window_remade"] == 1 and tracker.windows[2] == (0, 0, 10)
+    assert stage[1] == (0.0, 0.25, 0.125)  # made once
+    assert stage[2] == (0.0, 0.5, 0.25)  # made twice
