@@ -137,3 +137,14 @@ def test_without_a_recorder_the_rows_are_still_filled(tmp_path):
     sums = run_frames(FakeTracker(), frames(dark=()), RunRows(run_dir, 3), progress="test frames")
     assert sums["frames_skipped_eclipse"] == 0
     assert np.load(os.path.join(run_dir, "x_hat.npy"))[:, 0].tolist() == [0.0, 0.5, 1.0]
+
+
+def test_the_stage_times_by_status_count_every_frame_of_a_chunk(tmp_path):
+    """Four tracked frames in one chunk, rendering 10, 20, 30 and 60 ms: summary.json's rendering ms per tracked
+    frame is their mean, 30 ms (each frame added under its status, repeats within a chunk too)."""
+    image = np.zeros((4, 4), np.uint8)
+    frames = (FrameInput(k, float(k), image, (0.0, r, 0.0)) for k, r in enumerate((0.01, 0.02, 0.03, 0.06)))
+    sums = run_frames(FakeTracker(), frames, RunRows(str(tmp_path / "run"), 4, chunk=4))
+    by = timing_by_status([sums])
+    assert set(by) == {"tracking"}
+    assert by["tracking"]["rendering"] == pytest.approx(30.0) and by["tracking"]["detection"] == pytest.approx(250.0)
