@@ -123,3 +123,65 @@ def test_a_resume_with_its_target_file_changed_says_so(tmp_path):
                                          r"bbbbbbbbbbbb\.\.\. now\)"):
         check_resume(str(tmp_path), cfg, edited)
     assert check_resume(str(tmp_path), cfg, [{**record, "target_sha256": "a" * 64}])[0] == {"step": 2}
+
+
+class Raises(Hook):
+    """after_train raises `error` (a hook failing on the way out)."""
+
+    def __init__(self, error):
+        self.error = error
+
+    def after_train(self):
+        raise self.error
+
+
+class RaisesToo(Raises):
+    after = ("Raises",)
+
+
+class Last(Record):
+    after = ("RaisesToo",)
+
+
+def test_every_after_train_runs_when_one_raises_and_the_first_error_is_raised(tiny_dataset):
+    """Two hooks fail in after_train: the hooks after them still run theirs (a progress bar closed, signal
+    handlers given back) and see the run as failed (trainer.error: the first failure, so no end line or last
+    checkpoint is written after it); that first failure is what run() raises."""
+    cfg, last = config(1), Last()
+    tr = trainer(cfg, last, RaisesToo(ValueError("second")), Raises(RuntimeError("first")))
+    assert [h.name for h in tr.hooks] == ["Raises", "RaisesToo", "Last"]
+    with pytest.raises(RuntimeError, match="first"):
+        tr.run(Batches(tiny_dataset, cfg))
+    assert last.calls[-1] == ("after_train", "RuntimeError") and isinstance(tr.error, RuntimeError)
+
+
+def test_the_trainer_calls_its_hooks_in_their_declared_order_and_refuses_one_that_cannot_hold():
+    """Trainer(hooks=...) and register() sort the hooks by their `after` (the Checkpoints' last write before the
+    Metrics' end line, given either way) and refuse a loop or a misspelt name, as hook_order does."""
+    from envisat_pose.perception import trainer_hooks as th
+
+    cfg = config(1)
+    assert [h.name for h in trainer(cfg, th.Metrics(), th.Checkpoints(1)).hooks] == ["Checkpoints", "Metrics"]
+    tr = trainer(cfg, th.Metrics())
+    tr.register(th.Checkpoints(1))
+    assert [h.name for h in tr.hooks] == ["Checkpoints", "Metrics"]
+    with pytest.raises(ValueError, match="twice"):
+        tr.register(th.Metrics())
+    with pytest.raises(ValueError, match="loops"):
+        trainer(cfg, type("Early", (Hook,), {"after": ("Late",)})(), type("Late", (Hook,), {"after": ("Early",)})())
+
+
+class Signal(Hook):
+    """Sets the stop flag as StopOnSignals' handler does, during step 2."""
+
+    def after_step(self, terms):
+        if self.trainer.state["step"] == 2:
+            self.trainer.stop_flag["signal"] = "SIGTERM"
+
+
+def test_a_signal_stops_the_run_after_its_step_and_is_why_it_stopped(tiny_dataset):
+    """A signal during step 2 of 5: the loop finishes that step and stops; run() returns the signal's name (the
+    end line's stopped_by, the CLI's message), not None (the steps all done)."""
+    cfg = config(5)
+    tr = trainer(cfg, Signal())
+    assert tr.run(Batches(tiny_dataset, cfg)) == "SIGTERM" and tr.state["step"] == 2 and tr.stop == "SIGTERM"
