@@ -231,3 +231,64 @@ def test_a_resume_on_other_online_frames_names_what_changed(tmp_path):
     with pytest.raises(InputError, match=r"\(generate\.resolution_px 512 -> 256\): resume with the same data"):
         check_resume(str(tmp_path), cfg, [now])
     assert check_resume(str(tmp_path), cfg, [was])[0] == {"step": 3}
+
+
+def test_metrics_write_the_end_line_of_a_run_that_ended_well_only(tmp_path):
+    """A run the loop left with an error writes no 'end' line (a reader would take it for a finished run) and
+    keeps no end_line; the same hook on a run that ended writes one, stopped by its steps."""
+    for error in (RuntimeError("a step failed"), None):
+        metrics = th.Metrics()
+        metrics.trainer = stand_in(run_dir=str(tmp_path), folder_started=True, error=error, stop=None, world=1,
+                                   timing=th.LoopTiming(lambda: 1.0, 0.0), bf16=False, elapsed=lambda: 1.0,
+                                   cfg=SimpleNamespace(batch_size=2), state={"step": 3, "epoch": 0, "workers": 0})
+        metrics.after_step({"loss": torch.tensor(1.0)})
+        metrics.after_train()
+        ended = (tmp_path / "metrics.jsonl").exists()
+        assert ended == (error is None) and bool(metrics.trainer.end_line) == (error is None)
+    assert json.loads(open(tmp_path / "metrics.jsonl").read())["stopped_by"] == "steps"
+
+
+def test_a_resumed_moving_average_goes_on_from_the_one_it_kept(tmp_path):
+    """A resumed run reads ema.safetensors back and its next step averages into it: decay x the kept average +
+    (1 - decay) x the weights (torch's EMA rule, computed here), not the weights alone (an average counted as
+    empty restarts from the model)."""
+    from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+    decay = 0.9
+
+    def ema_of():  # two calls: two random initialisations
+        model = CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8))
+        return model, AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(decay), use_buffers=True)
+
+    kept_model, kept = ema_of()
+    saver = th.MovingAverage(kept, decay, resume=False)
+    saver.trainer = stand_in(run_dir=str(tmp_path), state={"step": 5})
+    saver.on_checkpoint()
+    model, ema = ema_of()
+    hook = th.MovingAverage(ema, decay, resume=True)
+    hook.trainer = stand_in(run_dir=str(tmp_path), state={"step": 5}, model=model)
+    hook.before_train()
+    hook.after_step({})
+    for name, value in ema.module.state_dict().items():
+        if value.is_floating_point():
+            want = decay * kept_model.state_dict()[name] + (1 - decay) * model.state_dict()[name]
+            torch.testing.assert_close(value, want, rtol=1e-5, atol=1e-6, msg=name)
+
+
+# the order the hooks must keep at every point (design: trainer_hooks' docstrings), stated here apart from the
+# hooks' own `after`: (called first, called after)
+REQUIRED_BEFORE = [("RunFolder", "Checkpoints"), ("MovingAverage", "Checkpoints"), ("Checkpoints", "Metrics"),
+                   ("DdpAgreement", "Metrics"), ("Checkpoints", "StopOnSignals"), ("DdpAgreement", "StopOnSignals"),
+                   ("Budget", "PreCooldown")]
+
+
+def test_the_hooks_keep_the_required_order_whatever_order_they_are_given_in():
+    """The last checkpoint and the ranks' agreement run under the signal handlers (a Ctrl-C there does not cut
+    the final write); the pre-cooldown weights are saved on rank 0's clock after the budget's refusal; the end
+    line after the last checkpoint. Given in either order, forwards and backwards."""
+    given = [th.Checkpoints(1), th.Metrics(), th.RunFolder(None, None, 0), th.MovingAverage(None, 0.9, False),
+             th.DdpAgreement(), th.Budget(1.0), th.PreCooldown(), th.StopOnSignals()]
+    for hooks in (given, given[::-1]):
+        place = {h.name: i for i, h in enumerate(th.hook_order(hooks))}
+        for first, then in REQUIRED_BEFORE:
+            assert place[first] < place[then], (first, then)
