@@ -361,3 +361,38 @@ def test_a_config_file_naming_another_scenario_is_said(tmp_path):
         warnings.simplefilter("error")
         assert resolve_job("run", "slow-tumble", str(same)).duration_s == 7.0
         assert resolve_job("montecarlo", "default", str(none), runs=2).duration_s == 7.0
+
+
+def test_the_layers_merge_key_by_key_and_mark_only_what_the_scenario_alone_set(tmp_path):
+    """resolve_job's layers against the scenario files read here: a file's partial [filter] table keeps the
+    scenario's other keys; a file's `scenario` key does not replace the one named; a campaign keeps its scenario's
+    [measurement] table; a duration from a file stays through a replace with another scenario, and flags not given
+    (None, as the verbs pass them) leave the scenario's duration marked as its own, so the replace takes the new
+    scenario's."""
+    from envisat_pose import named_scenarios
+    from envisat_pose.pipelines.jobs import resolve_job
+
+    default, eclipse = (named_scenarios.scenario_tables(n) for n in ("default", "eclipse"))
+    path = tmp_path / "job.toml"
+    path.write_text('scenario = "eclipse"\nduration_s = 7.0\n\n[filter]\np0_sigma = [2.0, 0.02, 0.05, 2e-3]\n')
+    with pytest.warns(UserWarning, match="'eclipse' is not this job's"):
+        run = resolve_job("run", "default", str(path))
+    assert run.scenario == "default" and run.duration_s == 7.0
+    assert list(run.filter.p0_sigma) == [2.0, 0.02, 0.05, 2e-3]
+    assert list(run.filter.q_sigma) == pytest.approx(default["filter"]["q_sigma"])  # the scenario's, kept
+    assert dataclasses.replace(run, scenario="eclipse").duration_s == 7.0  # the file's
+    unflagged = resolve_job("run", "default", overrides={"duration_s": None, "runs": None}, seed=None)
+    assert dataclasses.replace(unflagged, scenario="eclipse").duration_s == eclipse["duration_s"] != 7.0
+    pixels = named_scenarios.scenario_tables("pixels-1px")["measurement"]
+    mc = resolve_job("montecarlo", "pixels-1px")
+    assert (mc.measurement.kind, mc.measurement.sigma_px) == (pixels["kind"], pixels["sigma_px"]) == ("pixels", 1.0)
+
+
+def test_a_runs_full_frame_interval_is_validated_when_built():
+    """full_frame_every = 0 would divide by zero at the loop's first windowed frame, after the truth is
+    simulated: refused when the config is built, naming the field."""
+    from envisat_pose.config import ConfigError
+    from envisat_pose.pipelines.runs.run_config import RunConfig
+
+    with pytest.raises(ConfigError, match=r"^full_frame_every = 0"):
+        RunConfig(scenario="default", full_frame_every=0)
