@@ -86,8 +86,8 @@ RENDER_S, CAMERA_S = 0.2, 0.05  # s of wall time the stand-ins take
 def test_a_windows_stage_times_are_the_renders_and_the_cameras(monkeypatch):
     """windowed_frame's (s rendering, s camera): the rendering is the renderer's time, the camera the space
     camera's (drawing its parameters and corrupting), each measured around stand-ins that sleep a known time;
-    summary.json's ms per frame by stage adds these up. Bounds: each at least what it slept, the camera well
-    under the rendering (sleeps overrun, never undershoot)."""
+    summary.json's ms per frame by stage adds these up. Bounds: each at least what it slept (sleeps overrun,
+    never undershoot; no upper bound, which a loaded machine could break)."""
     from envisat_pose.datagen import corrupt
     from envisat_pose.pipelines.runs import loop_frames
 
@@ -101,7 +101,7 @@ def test_a_windows_stage_times_are_the_renders_and_the_cameras(monkeypatch):
     image, t_render, t_camera = windowed_frame(SlowWindowRenderer(), None, np.array([10, 12, 20]), None,
                                                np.zeros(12), np.random.default_rng(0))
     assert (image[12:32, 10:30] == 7).all() and image.sum() == 7 * 400
-    assert t_render >= RENDER_S and CAMERA_S <= t_camera < RENDER_S
+    assert t_render >= RENDER_S and t_camera >= CAMERA_S  # swapped, the rendering would read the camera's 0.05 s
 
 
 def test_the_frame_maker_reports_a_windows_times_and_counts_it(monkeypatch):
