@@ -18,7 +18,7 @@ from typing import ClassVar
 import numpy as np
 
 from envisat_pose.config import InputError
-from envisat_pose.io import save_npz
+from envisat_pose.io import NotAnNpz, open_npz, save_npz
 from envisat_pose.status import STATUSES, has_estimate, legend_json
 
 # A shard label's corruption severities, level 0..3 (label['corruption']['levels'][kind] is one of them): the
@@ -129,12 +129,10 @@ class _Contract:
     def load(cls, path: str):
         """Read and check a file; ContractError (one line, naming the file) when it is not this contract."""
         try:
-            with open(path, "rb") as fh:  # numpy's own open stays open where the zip is damaged: this one closes
-                if fh.read(4) != b"PK\x03\x04":  # an .npz is a zip archive (numpy would try a pickle next)
-                    raise ContractError(f"{path}: not a {cls.KIND} .npz file (not a zip archive)")
-                fh.seek(0)
-                with np.load(fh, allow_pickle=False) as z:
-                    data = {k: z[k] for k in z.files}
+            with open_npz(path) as z:
+                data = {k: z[k] for k in z.files}
+        except NotAnNpz:
+            raise ContractError(f"{path}: not a {cls.KIND} .npz file (not a zip archive)") from None
         except FileNotFoundError:
             raise ContractError(f"{path}: no such file") from None
         except IsADirectoryError:

@@ -163,6 +163,26 @@ def save_npz(path: str, arrays: dict) -> None:
                         np.lib.format.write_array(fh, np.asanyarray(arrays[key]), allow_pickle=False)
 
 
+class NotAnNpz(ValueError):
+    """A file given as an .npz that is not a zip archive (an .npy, a text file, anything else)."""
+
+
+@contextlib.contextmanager
+def open_npz(path: str):
+    """The .npz at path, its arrays read without pickles (numpy's NpzFile), through a file closed on every way
+    out: numpy's np.load keeps its own file open where the zip is damaged. NotAnNpz where the file does not start
+    as a zip archive (numpy would read an .npy as one array, or try a pickle); numpy's and zipfile's errors as
+    they raise them otherwise."""
+    import numpy as np
+
+    with open(path, "rb") as fh:
+        if fh.read(4) != b"PK\x03\x04":
+            raise NotAnNpz(f"{path}: not an .npz file (not a zip archive)")
+        fh.seek(0)
+        with np.load(fh, allow_pickle=False) as z:
+            yield z
+
+
 class StreamedArray:
     """An array given as its shape, dtype and chunks (a callable returning an iterable of arrays whose rows,
     concatenated in C order, make the array), for save_npz."""

@@ -31,7 +31,7 @@ from envisat_pose.datagen.scenario import (
 from envisat_pose.filtering.estimator import FilterConfig, chaser_states, diverged_against_truth, nees, run_filter
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
 from envisat_pose.geometry import load_geometry
-from envisat_pose.io import atomic_write_text, staged_folder
+from envisat_pose.io import atomic_write_text, open_npz, staged_folder
 from envisat_pose.named_scenarios import check_name
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.out_lock import locks_output
@@ -218,7 +218,7 @@ def recorded_scenario(truth_path: str) -> str | None:
     """The named scenario a truth file records it was simulated from (datagen.scenario.truth_config_json), None
     where it records none, the name is no longer known, or the file does not read (load_truth says why)."""
     try:
-        with open(truth_path, "rb") as fh, np.load(fh, allow_pickle=False) as z:  # closed however it ends
+        with open_npz(truth_path) as z:
             name = json.loads(str(z["config_json"])).get("scenario")
     except Exception:  # noqa: BLE001 - any unreadable file: load_truth reports it in one line
         return None

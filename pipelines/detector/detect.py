@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from envisat_pose.config import Config, InputError, check, config_arg, path_arg
 from envisat_pose.contracts import Detections
-from envisat_pose.io import save_npz
+from envisat_pose.io import NotAnNpz, open_npz, save_npz
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.common.job_defaults import job_weights
@@ -69,12 +69,10 @@ def read_roi(path: str) -> dict[str, "object"]:
     if not os.path.isfile(path):
         raise InputError(f"roi {path!r}: no such file")
     try:
-        with open(path, "rb") as fh:  # closed however the read ends
-            if fh.read(4) != b"PK\x03\x04":  # an .npz is a zip archive (an .npy or a text file is not)
-                raise InputError(f"roi {path!r}: not an .npz file (a zip archive of the arrays key and roi_px)")
-            fh.seek(0)
-            with np.load(fh, allow_pickle=False) as z:
-                keys, roi = z["key"].astype(str), np.asarray(z["roi_px"], dtype=np.float64)
+        with open_npz(path) as z:
+            keys, roi = z["key"].astype(str), np.asarray(z["roi_px"], dtype=np.float64)
+    except NotAnNpz:
+        raise InputError(f"roi {path!r}: not an .npz file (a zip archive of the arrays key and roi_px)") from None
     except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile) as err:  # damaged or truncated too
         raise InputError(f"roi {path!r}: expected an npz with key (M,) and roi_px (M, 3) ({err})") from None
     if roi.shape != (len(keys), 3):
