@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import os
 
-from envisat_pose.datagen.gl_check import check_gl_platform
+from envisat_pose.datagen.gl_check import check_gl_platform, load_triton_before_mesa
 
+load_triton_before_mesa()  # before MuJoCo loads Mesa's LLVM (gl_check.py says why)
 # MuJoCo picks its GL platform at import: choose a headless one unless the user did (platform-notes.md).
 if not os.environ.get("MUJOCO_GL", "").strip():
     os.environ["MUJOCO_GL"] = "osmesa"

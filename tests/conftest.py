@@ -4,6 +4,12 @@ in minutes and `make test-slow` / `make test-all` (CI) run them too."""
 
 import pytest
 
+from envisat_pose.datagen.gl_check import load_triton_before_mesa
+
+# before any test module imports mujoco under MUJOCO_GL=osmesa (pytest imports them all when it collects): with
+# the CUDA build of torch, triton loaded after Mesa's LLVM segfaults the first optimizer (gl_check.py)
+load_triton_before_mesa()
+
 # The slow end-to-end tests, by node id (a parametrized test without its [...] marks every case). Chosen from one
 # `pytest --durations=60` run of the whole suite on the shared 2-core machine (2026-11-26, heavily loaded: 2650 s
 # in all, ~4.4x the 10 minutes of a quiet machine): these took 1770 s of it (call time, plus the module fixtures
