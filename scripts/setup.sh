@@ -6,6 +6,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 PYTHON=${PYTHON:-python3.11}
+TORCH_CPU_INDEX=${TORCH_CPU_INDEX:-https://download.pytorch.org/whl/cpu}
 GL_PACKAGES=(libosmesa6 libegl1 libegl-mesa0 libgl1-mesa-dri)
 
 # 1. Debian packages for off-screen rendering (OSMesa on the CPU, EGL where a GPU is).
@@ -73,8 +74,14 @@ stamp=$(cat pyproject.toml setup.py datagen/plugin/relative_gravity.c | sha256su
 if [ "$(cat .venv/.setup-stamp 2>/dev/null)" != "$stamp" ] || ! ls datagen/plugin/_relative_gravity*.so >/dev/null 2>&1; then
   echo "setup: installing envisat-pose and its dependencies into .venv (first time: a few minutes)"
   .venv/bin/python -m pip install -q --upgrade pip
-  # torch first, exactly the pinned CPU build; a range would fetch a multi-GB CUDA build.
-  .venv/bin/python -m pip install -q "torch==2.13.0"
+  # torch first, exactly the pinned CPU build: PyPI's torch==2.13.0 for Linux is the CUDA build (a few GB more, and
+  # triton), so the +cpu one from PyTorch's CPU index (or a local wheel pip is pointed at). Where neither is
+  # reachable, the pin from the usual index, with a note.
+  if ! .venv/bin/python -m pip install -q --retries 1 --extra-index-url "$TORCH_CPU_INDEX" "torch==2.13.0+cpu" \
+      2>/dev/null; then
+    echo "setup: note: no torch==2.13.0+cpu ($TORCH_CPU_INDEX unreachable); installing torch==2.13.0 (CUDA build)" >&2
+    .venv/bin/python -m pip install -q "torch==2.13.0"
+  fi
   # dev: pytest and ruff; test and bench: what only the tests and the benchmarks import (filterpy, webdataset)
   .venv/bin/python -m pip install -q -e ".[dev,test,bench]"
   echo "$stamp" > .venv/.setup-stamp
