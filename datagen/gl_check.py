@@ -32,10 +32,20 @@ def load_triton_before_mesa() -> None:
     """Import triton now where it is installed (PyPI's torch==2.13.0 is the CUDA build and brings it; the CPU build
     does not), before Mesa's libLLVM loads (`import mujoco` under MUJOCO_GL=osmesa, or the first GL context): its own
     LLVM loaded after Mesa's segfaults the process (Debian 12's Mesa 22.3, LLVM 15; triton 3.7), and torch imports
-    it when the first optimizer is built. Loaded first, both work. A broken triton is left for torch to report."""
-    if "triton" in sys.modules or importlib.util.find_spec("triton") is None:
+    it when the first optimizer is built. Loaded first, both work. Where Mesa's is already loaded (mujoco imported
+    under osmesa first) nothing is done: importing triton then would crash here. A broken triton is left to torch."""
+    if "triton" in sys.modules or importlib.util.find_spec("triton") is None or _mesa_llvm_loaded():
         return
     try:
         importlib.import_module("triton")
     except Exception:
         pass
+
+
+def _mesa_llvm_loaded() -> bool:
+    """Whether a libLLVM is mapped into this process (Linux: /proc/self/maps; elsewhere: whether mujoco is)."""
+    try:
+        with open("/proc/self/maps") as maps:
+            return any("libLLVM" in line for line in maps)
+    except OSError:
+        return "mujoco" in sys.modules

@@ -28,6 +28,18 @@ def test_gl_platform_loads_an_installed_triton_before_mujoco(tmp_path):
     assert p.returncode == 0, p.stderr
 
 
+def test_not_after_mesas_llvm_where_mujoco_loaded_it_first(tmp_path):
+    """A spawned worker imports mujoco (MUJOCO_GL=osmesa inherited) before gl_platform: triton is not imported
+    then, which would crash the worker."""
+    fake = tmp_path / "triton"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("")
+    p = python("import sys\nimport mujoco\nimport envisat_pose.datagen.gl_platform\n"
+               "mesa = any('libLLVM' in line for line in open('/proc/self/maps'))\n"
+               "assert not (mesa and 'triton' in sys.modules)\n", extra_path=str(tmp_path))
+    assert p.returncode == 0, p.stderr
+
+
 def test_the_test_session_loaded_an_installed_triton_first():
     assert not HAS_TRITON or "triton" in sys.modules
 
