@@ -64,7 +64,9 @@ def run_verb(argv: list[str] | None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.showwarning = one_line
-            return int(args.func(args) or 0)
+            code = int(args.func(args) or 0)
+            sys.stdout.flush()  # a buffered stdout (a pipe, no PYTHONUNBUFFERED) meets a gone reader here, not at exit
+            return code
     except (ConfigError, InputError) as err:
         names = {**EVERY_VERB, **getattr(args, "flag_names", {})}
         text = config_error_text(err, names, args.argv) if isinstance(err, ConfigError) else as_flags(str(err), names)

@@ -184,15 +184,20 @@ def test_rate_sweep_writes_one_campaign_per_rate_its_figure_and_report(tmp_path)
     assert not (tmp_path / "bad").exists()
 
 
-def test_a_reader_that_goes_away_ends_the_verb_quietly():
+@pytest.mark.parametrize("unbuffered", ["1", None])
+def test_a_reader_that_goes_away_ends_the_verb_quietly(unbuffered):
     """`envisat scenarios | head -0`: the pipe's reader gone before the verb writes; no traceback (once a
-    BrokenPipeError's), the exit status a closed pipe's (141, as a shell reports SIGPIPE)."""
+    BrokenPipeError's), the exit status a closed pipe's (141, as a shell reports SIGPIPE). With stdout buffered
+    (a user's shell sets no PYTHONUNBUFFERED) the write meets the closed pipe only when the buffer is flushed."""
+    import os
     import subprocess
     import sys
 
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
     proc = subprocess.Popen([sys.executable, "-c", "import sys, time; time.sleep(0.5); "
                              "from envisat_pose.app.cli import main; sys.exit(main(['scenarios']))"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env=env if unbuffered is None else {**env, "PYTHONUNBUFFERED": unbuffered})
     proc.stdout.close()  # the reader is gone before anything is written
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=60) == 141 and "Traceback" not in err and "BrokenPipe" not in err, err
