@@ -54,6 +54,7 @@ PENDING = {
     "app_imports": {},
     "typed_weights_keys": {},
     "machine_counts": {},
+    "npz_readers": {},
 }
 
 
@@ -361,6 +362,7 @@ RESUMABLE_FILE = os.path.join("envisat_pose", "resumable.py")  # the manifest pr
 SHARD_READER_FILE = os.path.join("envisat_pose", "shard_reader.py")
 WEIGHTS_KEYS_FILE = os.path.join("perception", "weights_keys.py")  # the weights' metadata keys
 POOLS_FILE = os.path.join("envisat_pose", "pools.py")  # the machine's usable cores (usable_cores)
+IO_FILE = os.path.join("envisat_pose", "io.py")  # the one .npz reader (open_npz)
 CORE_COUNTERS = ("cpu_count", "sched_getaffinity", "process_cpu_count")  # os's and multiprocessing's
 METADATA_CALLS = ("with_metadata", "save_weights", "save_adapted", "read_metadata", "read_header")
 METADATA_NAMES = ("meta", "metadata")  # the names a weights file's metadata dict goes by
@@ -549,6 +551,21 @@ def core_counts(source: str) -> list[int]:
                    and (getattr(node.func, "attr", None) or getattr(node.func, "id", None)) in CORE_COUNTERS})
 
 
+def npz_loads(source: str) -> list[int]:
+    """Lines that open an .npz with numpy's load (np.load, numpy.load, a bare load imported from numpy): the
+    package reads every .npz through envisat_pose.io.open_npz, which closes its file on every way out and names a
+    file that is not an .npz (np.load keeps its file open where a zip is damaged, reads an .npy as one array)."""
+    numpy_names = {"np", "numpy"}
+    bare = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.ImportFrom) and node.module == "numpy":
+            bare |= {a.asname or a.name for a in node.names if a.name == "load"}
+    return sorted({node.lineno for node in ast.walk(ast.parse(source)) if isinstance(node, ast.Call) and (
+        (isinstance(node.func, ast.Attribute) and node.func.attr == "load"
+         and isinstance(node.func.value, ast.Name) and node.func.value.id in numpy_names)
+        or (isinstance(node.func, ast.Name) and node.func.id in bare))})
+
+
 def typed_gates(source: str) -> list[int]:
     """Lines where a chi-square gate is typed as a number (within 0.5 % of a chi-square bound of 1-4 dof at a
     usual tail probability) in a statement that speaks of a gate: a parameter or field named *gate*, or any
@@ -687,6 +704,8 @@ def copies(kind: str, root: str = ROOT) -> dict[str, list[int]]:
             lines = typed_weights_keys(source)
         elif kind == "machine_counts" and rel != POOLS_FILE and rel.split(os.sep)[0] not in EXTRA_FOLDERS:
             lines = core_counts(source)
+        elif kind == "npz_readers" and rel != IO_FILE and rel.split(os.sep)[0] not in EXTRA_FOLDERS:
+            lines = npz_loads(source)
         elif kind == "app_imports" and rel.split(os.sep)[0] in EXTRA_FOLDERS:
             lines = app_imports(rel, source)
         else:
@@ -982,6 +1001,16 @@ def test_the_core_count_checker_sees_each_way_to_count():
                "from envisat_pose.pools import usable_cores\ne = usable_cores()\n")
     assert core_counts(planted) == [3, 4, 5, 6]
     assert core_counts(open(os.path.join(ROOT, POOLS_FILE), encoding="utf-8").read())  # the home
+
+
+def test_the_npz_reader_checker_sees_each_way_to_load():
+    planted = ("import numpy as np\nimport numpy\nfrom numpy import load as npload\n"
+               "a = np.load(p)\n"
+               "with numpy.load(p, allow_pickle=False) as z:\n    pass\n"
+               "c = npload(p)\n"
+               "d = torch.load(p)\ne = json.load(fh)\nf = open_npz(p)\n")
+    assert npz_loads(planted) == [4, 5, 7]
+    assert npz_loads(open(os.path.join(ROOT, IO_FILE), encoding="utf-8").read())  # the home
 
 
 def test_the_state_slice_checker_catches_a_planted_copy():

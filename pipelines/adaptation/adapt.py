@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envisat_pose.config import Config, InputError, as_path_or_object, check, config_arg, path_arg, to_dict
-from envisat_pose.io import atomic_write_text, stage_prefix, staged_folder
+from envisat_pose.io import atomic_write_text, open_npz, stage_prefix, staged_folder
 from envisat_pose.out_dirs import check_out_dir, made_out_dir
 from envisat_pose.out_lock import locks_output
 from envisat_pose.perception.weights_keys import COV_CALIBRATION_KEY, COV_SCALE_KEY, ERROR_MODEL_KEY
@@ -170,7 +170,7 @@ def track_figures(run_dir: str, held_from: int) -> dict:
     mean_nis_per_dof (sum NIS / sum dof over them; None without a measurement), stays_tracked_from (the first
     frame from which the status stays tracking to the end of the sequence; None when the last frame is not
     tracking), and the same over the whole sequence (tracked_share_all, frames)."""
-    with np.load(os.path.join(run_dir, "est.npz")) as est:
+    with open_npz(os.path.join(run_dir, "est.npz")) as est:
         status, nis, dof = est["status"][0], est["nis"][0], est["nis_dof"][0]
     T = len(status)
     tracking = status == TRACKING
@@ -209,7 +209,7 @@ def unchanged_track(before_dir: str, after_dir: str) -> str | None:
     scale that the weights' sequence error model overrides (tracking/noise.sequence_cov_factor)."""
     runs = []
     for d in (before_dir, after_dir):
-        with np.load(os.path.join(d, "est.npz")) as est:
+        with open_npz(os.path.join(d, "est.npz")) as est:
             runs.append((est["status"], est["x_hat"], est["P"]))
     (s0, x0, p0), (s1, x1, p1) = runs
     if s0.shape != s1.shape or not np.array_equal(s0, s1) or x0.shape != x1.shape:

@@ -15,6 +15,7 @@ import numpy as np
 
 from envisat_pose.camera_response import GAMMA_RANGE, LINEAR, SRGB, Response
 from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2
+from envisat_pose.io import open_npz
 from envisat_pose.pipelines.adaptation.edge_range import correct_range, frame_scale, sequence_scale
 from envisat_pose.pipelines.adaptation.edge_response import estimate_response
 from envisat_pose.pipelines.adaptation.pseudo_labels import corner_labels, label_sigma_px, smooth_track
@@ -47,7 +48,7 @@ def track_run_labels(run_dir: str, camera, orbit, q_sigma, dyn: dict, cut: int, 
     spread (cfg: the AdaptConfig). Returns {frames (N,) int, x (N, 12) their smoothed states, sigma_px (N,) the largest corner sigma,
     trusted: all trusted frames before cut}; label_record(x[i], camera) labels frame i."""
 
-    with np.load(os.path.join(run_dir, "est.npz")) as est, np.load(os.path.join(run_dir, "det.npz")) as det:
+    with open_npz(os.path.join(run_dir, "est.npz")) as est, open_npz(os.path.join(run_dir, "det.npz")) as det:
         t_s, x_hat, P, status = est["t_s"], est["x_hat"][0], est["P"][0], est["status"][0]
         n_hyp = det["n_hypotheses"]
     chaser_at = chaser_function(orbit)

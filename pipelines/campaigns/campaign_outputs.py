@@ -16,7 +16,7 @@ from envisat_pose.filtering.dynamics import propagate
 from envisat_pose.filtering.estimator import make_setup
 from envisat_pose.filtering.measurements import measure, measured_probability, outage_mask
 from envisat_pose.geometry import load_camera
-from envisat_pose.io import atomic_write_text, json_safe, save_npz
+from envisat_pose.io import atomic_write_text, json_safe, open_npz, save_npz
 from envisat_pose.pipelines.campaigns.campaign_block import (
     ALONE_KEY,
     CampaignTruth,
@@ -34,7 +34,7 @@ RUN_KEYS = ("rms_block", "final_block", "max_block", "inside_share", "nees_mean"
 
 
 def load_block(path: str) -> dict:
-    with np.load(path, allow_pickle=False) as z:
+    with open_npz(path) as z:
         return {k: z[k] for k in z.files}
 
 
@@ -139,7 +139,7 @@ def write_recording(cfg: MonteCarloConfig, out_dir: str, path: str) -> None:
 
     tr = load_campaign_truth(out_dir, cfg.measurement, cfg.target)
     x_hat, P = filter_run_history(tr, cfg, 0)
-    with np.load(os.path.join(out_dir, "campaign.npz"), allow_pickle=False) as z:
+    with open_npz(os.path.join(out_dir, "campaign.npz")) as z:
         sample_err, filt, samp = z["sample_err"], z["filter_3sigma"], z["sample_3sigma"]
     write_campaign_recording(path, tr.t_s, tr.x_true, x_hat, P, sample_err, filt, samp if cfg.runs > 1 else None,
                              truth=TruthTrajectory.load(os.path.join(out_dir, "truth.npz")), target=tr.target)
