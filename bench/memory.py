@@ -134,6 +134,7 @@ def main(argv=None) -> int:
     ap.add_argument("--rate-hz", type=positive, default=1.0, help="camera and filter rate (frames per second)")
     ap.add_argument("--resolution", type=count(), default=128, help="image side, px")
     ap.add_argument("--trace-every", type=count(), default=200, help="frames between the loop's RSS samples")
+    ap.add_argument("--seed", type=count(0), default=0, help="the run's seed (as `envisat run --seed`)")
     ap.add_argument("--out", type=out_file, default=os.path.join(ROOT, "bench", "results", "memory.json"))
     args = ap.parse_args(argv)
     from envisat_pose.datagen.scenario import scenario_config
@@ -144,7 +145,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench-memory-") as tmp:
         config = os.path.join(tmp, "run.toml")
         with open(config, "w") as fh:
-            fh.write(f"rate_hz = {args.rate_hz}\n[image]\nresolution_px = {args.resolution}\n")
+            fh.write(f"rate_hz = {args.rate_hz}\nseed = {args.seed}\n[image]\nresolution_px = {args.resolution}\n")
         jobs = [("baseline", (BASE_FRAMES - 1) / args.rate_hz)]
         jobs += [(f"{o:g} orbit(s)", o * period_s) for o in args.orbits]
         for name, duration_s in jobs:

@@ -69,16 +69,17 @@ class PeakRSS:
 
 
 def time_campaign(runs: int, duration_s: float, workers: int, block_runs: int, out_dir: str,
-                  kernel: str | None = None) -> dict:
+                  kernel: str | None = None, seed: int = 0) -> dict:
     """Run the campaign once through the pipeline's run_campaign (envisat_pose.pipelines.campaigns.campaign); wall time,
-    memory, summary. kernel: the filter kernel (None: the default, as `envisat montecarlo` runs it)."""
+    memory, summary. kernel: the filter kernel (None: the default, as `envisat montecarlo` runs it); seed: the
+    campaign's (`envisat montecarlo --seed`)."""
     from envisat_pose.pipelines.campaigns.campaign import run_campaign
     from envisat_pose.pipelines.jobs import resolve_job
     from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
 
     # as `envisat montecarlo --scenario default` builds it: the scenario's [measurement] and [filter] tables
     cfg = resolve_job("montecarlo", "default", overrides={"filter.kernel": kernel}, duration_s=duration_s,
-                      runs=runs, seed=0, block_runs=block_runs)
+                      runs=runs, seed=seed, block_runs=block_runs)
     runner = RunnerConfig("local", workers, None, thread_env(workers, BLAS_THREADS))
     t0 = time.perf_counter()
     cpu0 = _cpu_s()
@@ -120,15 +121,17 @@ def main() -> None:
     ap.add_argument("--block-runs", type=count(), default=125)
     ap.add_argument("--reference-duration-s", type=float, default=600.0,
                     help="orbit slice of the numpy-filter peer campaign (0: skip it)")
+    ap.add_argument("--seed", type=count(0), default=0, help="the campaign's seed (as `envisat montecarlo --seed`)")
     ap.add_argument("--out", type=out_file, default=results_path("montecarlo_speed"))
     args = ap.parse_args()
     work = tempfile.mkdtemp(prefix="mc-bench-")
     try:
-        res = time_campaign(args.runs, args.duration_s, args.workers, args.block_runs, os.path.join(work, "mc"))
+        res = time_campaign(args.runs, args.duration_s, args.workers, args.block_runs, os.path.join(work, "mc"),
+                            seed=args.seed)
         ref = None
         if args.reference_duration_s > 0:
             ref = time_campaign(args.runs, args.reference_duration_s, args.workers, args.block_runs,
-                                os.path.join(work, "mc-ref"), kernel="reference")
+                                os.path.join(work, "mc-ref"), kernel="reference", seed=args.seed)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     run_steps = args.runs * res["steps"]

@@ -201,9 +201,10 @@ def main() -> None:
     ap.add_argument("--duration-s", type=positive, default=1000.0)
     ap.add_argument("--rollouts", type=count(), default=32)
     ap.add_argument("--threads", type=count(), default=os.cpu_count() or 1)
+    ap.add_argument("--seed", type=count(0), default=1, help="the scenario's seed (the truth's random attitude)")
     ap.add_argument("--out", type=out_file, default=os.path.join(HERE, "results", "sim_speed.json"))
     args = ap.parse_args()
-    cfg = scenario_config(duration_s=args.duration_s, dt_s=args.duration_s, max_physics_dt_s=0.05, seed=1)
+    cfg = scenario_config(duration_s=args.duration_s, dt_s=args.duration_s, max_physics_dt_s=0.05, seed=args.seed)
     x0 = initial_state(cfg, np.random.default_rng(np.random.SeedSequence(cfg.seed)))
     dt = cfg.physics_dt_s
     nstep = int(round(args.duration_s / dt))
