@@ -49,14 +49,60 @@ def _absolute(name: str, folder: str, sub: str) -> str:
     return name if not name or os.path.isabs(name) else os.path.normpath(os.path.join(folder, sub or "", name))
 
 
-def absolute_asset_files(spec, folder: str) -> None:
+def absolute_asset_files(spec, path: str) -> None:
     """Make the files of a spec's meshes, height fields, skins and textures (a cube's six faces too) absolute
-    (relative to the file's folder and its compiler's meshdir/texturedir), so the spec compiles from anywhere."""
+    (relative to the folder of the file at `path` and its compiler's meshdir/texturedir; an asset of a model the
+    file attaches (<attach model=...>) relative to that model's file and its compiler: attached_assets), so the
+    spec compiles from anywhere."""
+    folder = os.path.dirname(path)
+    attached = attached_assets(path)
     for kind, sub in ASSET_FOLDERS:
         for asset in getattr(spec, kind):
+            if (kind, asset.name) in attached:
+                asset.file, cubefiles = attached[(kind, asset.name)]
+                if any(cubefiles):
+                    asset.cubefiles = list(cubefiles)
+                continue
             asset.file = _absolute(asset.file, folder, getattr(spec, sub))
             if kind == "textures" and any(asset.cubefiles):
                 asset.cubefiles = [_absolute(f, folder, spec.texturedir) for f in asset.cubefiles]
+
+
+def attached_models(path: str) -> list[tuple[str, str]]:
+    """(absolute file, prefix) of each model the MJCF file at `path` attaches (<attach model=... prefix=...>, its
+    <model name=... file=...> relative to the file's folder; either may be in a file it includes), in file order;
+    unreadable files skipped (MuJoCo's reading reports them)."""
+    folder = os.path.dirname(path)
+    models, attaches = {}, []
+    for name in [path, *_included_files(path, folder)]:
+        try:
+            root = ET.parse(name).getroot()
+        except (OSError, ET.ParseError):
+            continue
+        models.update({el.get("name"): os.path.normpath(os.path.join(folder, el.get("file", "")))
+                       for el in root.iter("model") if el.get("file")})
+        attaches += [(el.get("model"), el.get("prefix", "")) for el in root.iter("attach")]
+    return [(models[m], prefix) for m, prefix in attaches if m in models and os.path.isfile(models[m])]
+
+
+def attached_assets(path: str) -> dict[tuple[str, str], tuple[str, tuple[str, ...]]]:
+    """{(kind, name in the attaching spec): (absolute file, absolute cube files)} of the assets of the models the
+    file at `path` attaches (attached_models), theirs too: MuJoCo reads an attached model's asset files relative to
+    that model's own file and compiler (meshdir, texturedir), which its spec keeps from no one (to_xml writes the
+    bare names). Names carry the attach's prefix, as MuJoCo gives them."""
+    import mujoco
+
+    out: dict[tuple[str, str], tuple[str, tuple[str, ...]]] = {}
+    for file, prefix in attached_models(path):
+        try:
+            child = mujoco.MjSpec.from_file(file)
+        except ValueError:
+            continue  # MuJoCo's reading of the attaching file reports it
+        absolute_asset_files(child, file)
+        for kind, _ in ASSET_FOLDERS:
+            for asset in getattr(child, kind):
+                out[(kind, prefix + asset.name)] = (asset.file, tuple(getattr(asset, "cubefiles", ())))
+    return out
 
 
 def asset_files(spec) -> set[str]:
@@ -193,7 +239,7 @@ def _fused_text(path: str, mtime_ns: int) -> str | None:
         return None
     latch_joints(spec)
     drop_lights(spec)
-    absolute_asset_files(spec, os.path.dirname(path))
+    absolute_asset_files(spec, path)
     tree = [target, *subtree_bodies(target)]
     for b in subtree_bodies(spec.worldbody):
         b.fuse = b in tree  # the file's other bodies stay as they are
@@ -324,7 +370,7 @@ def target_spec(path: str):
     text = fused_text(path)
     spec = mujoco.MjSpec.from_file(path) if text is None else mujoco.MjSpec.from_string(text)
     drop_lights(spec)
-    absolute_asset_files(spec, os.path.dirname(path))
+    absolute_asset_files(spec, path)
     return spec
 
 
@@ -360,7 +406,7 @@ def _named_files(path: str, mtime_ns: int) -> tuple[str, ...]:
     named = set(_included_files(path, folder))
     try:
         spec = mujoco.MjSpec.from_file(path)
-        absolute_asset_files(spec, folder)
+        absolute_asset_files(spec, path)
         named |= asset_files(spec)
     except ValueError:
         pass  # MuJoCo's reading reports it
