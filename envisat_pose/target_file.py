@@ -390,8 +390,9 @@ def _included_files(path: str, base: str) -> list[str]:
 
 
 def named_files(path: str) -> tuple[str, ...]:
-    """The files the target file at `path` names (includes, meshes, textures, height fields), absolute, sorted;
-    none where no 'file...=' is in it (the shipped targets). Cached per file and modification time."""
+    """The files the target file at `path` names (includes, attached models, meshes, textures, height fields),
+    absolute, sorted; none where no 'file...=' is in it (the shipped targets). Cached per file and modification
+    time."""
     return _named_files(path, os.stat(path).st_mtime_ns)
 
 
@@ -404,6 +405,8 @@ def _named_files(path: str, mtime_ns: int) -> tuple[str, ...]:
 
     folder = os.path.dirname(path)
     named = set(_included_files(path, folder))
+    for model, _ in attached_models(path):  # an attached model's file and those it names (its includes, models)
+        named |= {model, *named_files(model)}
     try:
         spec = mujoco.MjSpec.from_file(path)
         absolute_asset_files(spec, path)

@@ -10,6 +10,7 @@ import numpy as np
 
 from envisat_pose.datagen.target_scene import scene_xml
 from envisat_pose.target import load_target
+from envisat_pose.target_file import named_files, target_sha256
 
 PYRAMID = np.array([[0.2, 0.2, 0.0], [-0.2, 0.2, 0.0], [-0.2, -0.2, 0.0], [0.2, -0.2, 0.0], [0.0, 0.0, 0.3]])
 PYRAMID_FACES = [(0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4), (0, 2, 1), (0, 3, 2)]
@@ -90,3 +91,18 @@ def test_an_attached_models_mesh_is_read_from_that_models_folder(tmp_path):
         in_T = sd.xmat[b].reshape(3, 3).T @ (sd.geom_xpos[g_scene] - sd.xpos[b])
         np.testing.assert_allclose(in_T, data.geom_xpos[g_alone], atol=1e-6)
         assert scene.mesh_vertnum[scene.geom_dataid[g_scene]] == alone.mesh_vertnum[alone.mesh(name).id]
+
+
+def test_an_attached_models_files_are_part_of_the_target(tmp_path):
+    """The attached wing's file and its mesh are files the target names: an edit to either is another target
+    (another sha256; weights trained before are refused). The wing's file was left out, its mesh sought in the
+    main file's folder: a wing edited kept the sha256."""
+    path = _attaching_file(tmp_path)
+    wing, horn = tmp_path / "parts" / "wing.xml", tmp_path / "parts" / "shapes" / "horn.stl"
+    assert {str(wing), str(horn)} <= set(named_files(path))
+    before = target_sha256(path)
+    wing.write_text(wing.read_text().replace('size="0.6 0.02 0.3"', 'size="0.6 0.03 0.3"'))
+    edited = target_sha256(path)
+    assert edited != before
+    _write_stl(horn, scale=1.5)
+    assert target_sha256(path) != edited
