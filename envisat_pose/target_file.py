@@ -319,7 +319,8 @@ def read_spec(path: str, field: str, given: str):
     """MuJoCo's reading of the file (its own compiler settings) with its body `target` checked for structure:
     (spec, own_scene, fused, latched). A body with child bodies or joints is read fused (fused: True), its joints
     latched (fused_text); latched: those joints' names (an unnamed one as '<kind> joint of body NAME'); own_scene: the file
-    holds the factory's camera (models/envisat.xml), so it is its own scene. ConfigError naming `field` and the
+    holds the factory's camera (models/envisat.xml), so it is its own scene; the file's <statistic> set aside (the
+    spec compiles MuJoCo's own extent and centre). ConfigError naming `field` and the
     value `given` otherwise: a file MuJoCo cannot read, no body 'target', a bad <inertial>, a scene file whose
     target has child bodies."""
     import mujoco
@@ -351,6 +352,8 @@ def read_spec(path: str, field: str, given: str):
             spec = mujoco.MjSpec.from_string(fused_text(path))
         except ValueError as err:
             fail(f"an MJCF file MuJoCo compiles (it says: {' '.join(str(err).split())})")
+    spec.stat.extent, spec.stat.center = float("nan"), [float("nan"), 0.0, 0.0]  # MuJoCo's own, from the geometry:
+    # a file's <statistic extent> (a viewer's setting) would set the centre of mass's tolerance (a share of it)
     return spec, own_scene, bool(tree or joints), latched
 
 

@@ -7,7 +7,9 @@ import struct
 
 import mujoco
 import numpy as np
+import pytest
 
+from envisat_pose.config import ConfigError
 from envisat_pose.datagen.target_scene import scene_xml
 from envisat_pose.target import load_target
 from envisat_pose.target_file import named_files, target_sha256
@@ -106,3 +108,19 @@ def test_an_attached_models_files_are_part_of_the_target(tmp_path):
     assert edited != before
     _write_stl(horn, scale=1.5)
     assert target_sha256(path) != edited
+
+
+def test_a_files_statistic_does_not_loosen_the_centre_of_mass_check(tmp_path):
+    """A file's <statistic extent> (a viewer's setting) leaves the centre of mass's tolerance at a share of the size
+    MuJoCo computes from the geometry: a bus 1 mm off its origin is refused as it is without one (with extent 1e5
+    it was taken, its CoM moved to the origin in the truth, the labels 1 mm off the dynamics)."""
+    body = ('<worldbody><body name="target"><geom type="box" size="0.5 0.4 0.3" pos="0.001 0 0" density="100"/>'
+            + "".join(f'<site name="kp_{i}" pos="{x}"/>' for i, x in
+                      enumerate(["0.5 0.4 0.3", "-0.5 0.4 0.3", "0.5 -0.4 0.3", "0.5 0.4 -0.3"]))
+            + "</body></worldbody>")
+    for name, stated in (("plain", ""), ("stated", '<statistic extent="100000" center="0 0 0"/>')):
+        path = tmp_path / f"{name}.xml"
+        path.write_text(f"<mujoco>{stated}{body}</mujoco>")
+        assert mujoco.MjModel.from_xml_path(str(path)).body_ipos[1][0] == pytest.approx(0.001, abs=1e-12)
+        with pytest.raises(ConfigError, match="centre of mass at the body's origin"):
+            load_target(str(path))
