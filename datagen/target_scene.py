@@ -51,6 +51,7 @@ def _scene_spec(target: Target):
     again.config = plugin[2]
     child = target_spec(target.path)  # fused where the target body has child bodies
     child.option = scene.option  # the scene's physics: a file's own <option> (a template's gravity) has no say
+    child.visual = scene.visual  # and its rendering: a file's own <visual> (clip planes, a viewer's) neither
     frame = scene.worldbody.add_frame(pos=list(SCENE_TARGET_POS_M))
     body = frame.attach_body(child.body("target"), ASSET_PREFIX, "")
     body.name = "target"
