@@ -28,7 +28,16 @@ from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.config import ConfigError, InputError
 from envisat_pose.geometry import model_path, visible_corners
 from envisat_pose.shard_reader import load_dataset_manifest
-from envisat_pose.target_file import check_inertia, drawn_alpha, inertial_used, named_files, read_spec, target_sha256
+from envisat_pose.target_file import (
+    check_inertia,
+    drawn_alpha,
+    inertial_used,
+    keypoint_sites,
+    misprefixed_keypoints,
+    named_files,
+    read_spec,
+    target_sha256,
+)
 from envisat_pose.target_mesh import BodyMesh, TriangleMesh, body_mesh, feature_edges
 from envisat_pose.target_rays import ray_hits_m
 from envisat_pose.target_shape import (
@@ -306,17 +315,6 @@ def _fail(field: str, given: str, expected: str):
     raise ConfigError(field, given, expected)
 
 
-def _keypoint_sites(model, body: int) -> tuple[tuple[str, ...], tuple[str, ...], np.ndarray]:
-    """(names, site names, (K, 3) positions in T) of the body's kp_ sites, else its corner_ sites."""
-    sites = [s for s in range(model.nsite) if model.site_bodyid[s] == body]
-    for prefix in (KEYPOINT_PREFIX, SCENE_KEYPOINT_PREFIX):
-        chosen = [s for s in sites if model.site(s).name.startswith(prefix)]
-        if chosen:
-            return (tuple(model.site(s).name[len(prefix):] for s in chosen), tuple(model.site(s).name for s in chosen),
-                    np.array([model.site_pos[s] for s in chosen], float))
-    return (), (), np.zeros((0, 3))
-
-
 def _geoms(model, body: int) -> tuple[TargetGeom, ...]:
     import mujoco
 
@@ -380,10 +378,10 @@ def _load(path: str, stamps: tuple, naming: _Naming) -> Target:
                  f"MuJoCo puts it at {np.round(com, 9).tolist()} m from {whose}: move the geoms and sites by its "
                  "negative")
         _fail(field, given, f"the centre of mass at the body's origin ({where}): T's origin is the CoM")
-    names, sites, X = _keypoint_sites(model, body)
+    names, sites, X = keypoint_sites(model, body, (KEYPOINT_PREFIX, SCENE_KEYPOINT_PREFIX))
     if len(names) < MIN_KEYPOINTS:
-        _fail(field, given, f"at least {MIN_KEYPOINTS} keypoint sites named '{KEYPOINT_PREFIX}<name>' on body "
-                            f"'target' (found {len(names)})")
+        _fail(field, given, f"at least {MIN_KEYPOINTS} keypoint sites named '{KEYPOINT_PREFIX}<name>' on body 'target' (found "
+                            f"{len(names)}{misprefixed_keypoints(model, body, KEYPOINT_PREFIX)})")
     if len(set(names)) != len(names) or "" in names:
         _fail(field, given, f"keypoint sites with distinct, non-empty names after the prefix (got {list(names)})")
     geoms = _geoms(model, body)

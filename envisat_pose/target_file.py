@@ -273,6 +273,31 @@ def _fused_text(path: str, mtime_ns: int) -> str | None:
     return ET.tostring(root, encoding="unicode")
 
 
+def keypoint_sites(model, body: int, prefixes: tuple[str, ...]) -> tuple[tuple[str, ...], tuple[str, ...], np.ndarray]:
+    """(names, site names, (K, 3) positions in T) of the sites of body id `body` of a compiled model named with the
+    first of `prefixes` any of them has (a target's kp_ sites, else its corner_ sites); names: after the prefix."""
+    sites = [s for s in range(model.nsite) if model.site_bodyid[s] == body]
+    for prefix in prefixes:
+        chosen = [s for s in sites if model.site(s).name.startswith(prefix)]
+        if chosen:
+            return (tuple(model.site(s).name[len(prefix):] for s in chosen), tuple(model.site(s).name for s in chosen),
+                    np.array([model.site_pos[s] for s in chosen], float))
+    return (), (), np.zeros((0, 3))
+
+
+def misprefixed_keypoints(model, body: int, prefix: str) -> str:
+    """A hint for a refusal that found too few keypoints on body id `body` of a compiled model: the sites whose
+    names hold the keypoint prefix further in (an <attach prefix=...> put before a model's kp_ sites, which then
+    are not keypoints), or '' where none does."""
+    named = [model.site(s).name for s in range(model.nsite) if model.site_bodyid[s] == body]
+    named = [n for n in named if prefix in n and not n.startswith(prefix)]
+    if not named:
+        return ""
+    shown = ", ".join(repr(n) for n in named[:3]) + (", ..." if len(named) > 3 else "")
+    return (f"; {len(named)} site(s) hold {prefix!r} after another prefix ({shown}): a keypoint's site name starts "
+            f"with it, so an <attach prefix> before keypoint sites should itself start with {prefix!r}")
+
+
 def drawn_alpha(model, g: int) -> float:
     """The alpha MuJoCo's renderer draws geom g of `model` with: its own rgba's where that rgba is not MuJoCo's
     default (0.5 0.5 0.5 1: then it overrides the material's), else its material's, else its own."""

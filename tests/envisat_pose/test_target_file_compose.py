@@ -148,3 +148,23 @@ def test_a_files_visual_does_not_clash_with_the_scene(tmp_path, monkeypatch):
     envisat = mujoco.MjModel.from_xml_path(model_path())
     assert scene.vis.global_.fovy == envisat.vis.global_.fovy and scene.vis.map.zfar == envisat.vis.map.zfar
     assert os.listdir(run_dir) == []
+
+
+def test_keypoints_behind_an_attach_prefix_are_named_in_the_refusal(tmp_path):
+    """The wing attached under prefixes that do not start with kp_ (h_r_, h_l_): its sites are h_r_kp_tip and the
+    like, not keypoints, and the refusal for too few keypoints names them and says what to change (it said 'found
+    2' alone)."""
+    path = _attaching_file(tmp_path)
+    text = open(path).read().replace('prefix="kp_r_"', 'prefix="h_r_"').replace('prefix="kp_l_"', 'prefix="h_l_"')
+    open(path, "w").write(text)
+    with pytest.raises(ConfigError) as err:
+        load_target(path)
+    message = str(err.value)
+    assert "(found 2; 4 site(s) hold 'kp_' after another prefix ('h_r_kp_tip'" in message
+    assert "<attach prefix> before keypoint sites should itself start with 'kp_'" in message
+    few = tmp_path / "few.xml"  # too few keypoints and no such site: the count alone
+    few.write_text('<mujoco><worldbody><body name="target"><geom type="box" size="0.3 0.3 0.3" density="100"/>'
+                   '<site name="kp_a" pos="0.3 0.3 0.3"/><site name="kp_b" pos="-0.3 0.3 0.3"/><site name="tip"/>'
+                   '</body></worldbody></mujoco>')
+    with pytest.raises(ConfigError, match=r"\(found 2\)$"):
+        load_target(str(few))
