@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import sys
+import threading
 import types
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Literal, Sequence
@@ -203,7 +205,43 @@ def _worker_init(env: dict[str, str]) -> None:
 def _dask_task(fn: Callable, env: dict[str, str], args: tuple) -> Any:
     for key, value in env.items():
         os.environ.setdefault(key, value)
+    _quiet_cancelled_tasks()
     return fn(*args)
+
+
+def _quiet_cancelled_tasks() -> None:
+    """In a Dask worker: its state machine's warning that a running task's instruction ended cancelled, left out
+    (the client closed by an interrupted job: the job's own line says what happened); its other records kept."""
+    import logging
+
+    log = logging.getLogger("distributed.worker.state_machine")
+    if not any(isinstance(f, _Without) for f in log.filters):
+        log.addFilter(_Without("CancelledError"))
+
+
+@dataclass(frozen=True)
+class _Without:
+    """A logging filter: the records whose message does not hold `phrase`."""
+
+    phrase: str
+
+    def filter(self, record) -> bool:
+        return self.phrase not in record.getMessage()
+
+
+@contextlib.contextmanager
+def _closing_quietly(interrupted: bool):
+    """While an interrupted job closes its LocalCluster: the nanny's warning that it killed a worker still busy
+    after its 4 s (a worker in a render cannot stop sooner; the job's own line says what happened) left out."""
+    import logging
+
+    log, quiet = logging.getLogger("distributed.nanny"), _Without("still alive after")
+    if interrupted:
+        log.addFilter(quiet)
+    try:
+        yield
+    finally:
+        log.removeFilter(quiet)
 
 
 def run_tasks(fn: Callable[..., Any], tasks: Sequence[tuple], cfg: RunnerConfig = RunnerConfig()
@@ -261,6 +299,22 @@ def _stop_workers(pool) -> None:
     pool.shutdown(wait=True)
 
 
+@contextlib.contextmanager
+def ctrl_c_left_to_this_process():
+    """While a LocalCluster starts its worker processes: SIGINT ignored, so they start with it ignored (an ignored
+    signal stays ignored across exec, and Python then installs no KeyboardInterrupt). Ctrl-C reaches a terminal's
+    whole process group: the workers each printed a KeyboardInterrupt traceback while this process was already
+    stopping them (closing the cluster). Nothing changes off the main thread (signals are the main thread's)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterator[tuple[int, Any]]:
     from dask.distributed import Client, LocalCluster, as_completed
 
@@ -272,15 +326,21 @@ def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
             # memory_limit 0: no per-worker cap, as the local pool. Dask's "auto" (the machine's memory over the
             # workers) pauses a worker at 80 % of its share and restarts it at 95 %, while a factory worker's peak
             # (650-1175 MB) varies: 24 workers on 24 GB fit, yet a 1-GB share stalled them.
-            cluster = LocalCluster(n_workers=min(cfg.workers, len(tasks)), threads_per_worker=1, processes=True,
-                                   host="127.0.0.1", dashboard_address=None, env=dict(cfg.env), memory_limit=0)
+            with ctrl_c_left_to_this_process():
+                cluster = LocalCluster(n_workers=min(cfg.workers, len(tasks)), threads_per_worker=1, processes=True,
+                                       host="127.0.0.1", dashboard_address=None, env=dict(cfg.env), memory_limit=0)
         client = Client(cluster)
+    interrupted = False
     try:
         futures = {client.submit(_dask_task, fn, dict(cfg.env), tuple(args), pure=False): i
                    for i, args in enumerate(tasks)}
         for fut in as_completed(futures):
             yield futures[fut], fut.result()
+    except BaseException:
+        interrupted = True
+        raise
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        with _closing_quietly(interrupted):
+            client.close()
+            if cluster is not None:
+                cluster.close()

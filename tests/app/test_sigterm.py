@@ -154,3 +154,87 @@ def test_train_stopped_by_a_signal_exits_as_every_verb(name, code, tmp_path, mon
     assert main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--quiet"]) == code
     err = capsys.readouterr().err
     assert err.startswith(f"envisat train: {name} at step 3: checkpoint written") and "go on with" in err, err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name,code", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_ctrl_c_to_a_dask_generate_prints_its_one_line(name, code, tmp_path):
+    """generate on a LocalCluster of 2 workers, Ctrl-C (SIGINT to the terminal's whole process group) or a service
+    manager's SIGTERM to the group: the resumable job's line alone, no worker left. With Ctrl-C each worker
+    printed a KeyboardInterrupt traceback, then a worker's 'Async instruction ... CancelledError' warning and the
+    nanny's 'Worker process still alive after 4.0 seconds, killing' came after or before the line."""
+    out = tmp_path / "data"
+    cmd = CLI + ["generate", "--num-images", "400", "--shard-size", "2", "--resolution", "96", "--workers", "2",
+                 "--backend", "dask", "--quiet", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as a terminal's job
+    try:
+        recorded_shard(out, proc, timeout=120)  # the cluster is up and its workers are rendering
+        assert proc.poll() is None, proc.communicate()
+        os.killpg(proc.pid, getattr(signal, name))
+        _, err = proc.communicate(timeout=90)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL) if proc.poll() is None else None
+    assert proc.returncode == code, err
+    assert err == ("envisat generate: interrupted; run the same command again to finish it (what is written is "
+                   "kept)\n")
+    time.sleep(0.5)
+    assert running_in_group(proc.pid) == []
+
+
+def test_a_local_clusters_workers_start_with_ctrl_c_left_to_the_job():
+    """Processes started while a LocalCluster starts its workers inherit SIGINT ignored (Python then installs no
+    KeyboardInterrupt in them); the caller's own handler comes back after, and off the main thread nothing
+    changes (signals are the main thread's)."""
+    import threading
+
+    from envisat_pose.pools import ctrl_c_left_to_this_process
+
+    probe = [sys.executable, "-c", "import signal; print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN)"]
+    outer = signal.signal(signal.SIGINT, signal.default_int_handler)  # as a terminal's job has it (a shell's `&`
+    try:  # starts its jobs with SIGINT ignored: then every child would inherit that anyway)
+        with ctrl_c_left_to_this_process():
+            inside = subprocess.run(probe, capture_output=True, text=True, check=True).stdout.strip()
+        assert inside == "True"
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        assert subprocess.run(probe, capture_output=True, text=True, check=True).stdout.strip() == "False"
+        seen = []
+
+        def off_main():
+            with ctrl_c_left_to_this_process():
+                seen.append(signal.getsignal(signal.SIGINT))
+
+        t = threading.Thread(target=off_main)
+        t.start()
+        t.join()
+        assert seen == [signal.default_int_handler]
+    finally:
+        signal.signal(signal.SIGINT, outer)
+
+
+def test_an_interrupted_clusters_close_leaves_out_the_nannys_kill_warning_alone():
+    """While an interrupted job closes its cluster, the nanny's 'still alive after' warning is left out and its
+    other records kept; a job that was not interrupted, and what comes after the close, keep every record."""
+    import logging
+
+    from envisat_pose.pools import _closing_quietly
+
+    log = logging.getLogger("distributed.nanny")
+    kept = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            kept.append(record.getMessage())
+
+    handler = Keep()
+    log.addHandler(handler)
+    try:
+        for interrupted in (True, False):
+            with _closing_quietly(interrupted):
+                log.warning("Worker process still alive after 4.0 seconds, killing")
+                log.warning("Restarting worker")
+        log.warning("Worker process still alive after 4.0 seconds, killing")
+    finally:
+        log.removeHandler(handler)
+    assert kept == ["Restarting worker", "Worker process still alive after 4.0 seconds, killing",
+                    "Restarting worker", "Worker process still alive after 4.0 seconds, killing"]
