@@ -304,7 +304,8 @@ def ctrl_c_left_to_this_process():
     """While a LocalCluster starts its worker processes: SIGINT ignored, so they start with it ignored (an ignored
     signal stays ignored across exec, and Python then installs no KeyboardInterrupt). Ctrl-C reaches a terminal's
     whole process group: the workers each printed a KeyboardInterrupt traceback while this process was already
-    stopping them (closing the cluster). Nothing changes off the main thread (signals are the main thread's)."""
+    stopping them (closing the cluster). A Ctrl-C in those seconds (the cluster starting, ~1-3 s) is not seen: a
+    second one stops the job. Nothing changes off the main thread (signals are the main thread's)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
