@@ -4,7 +4,6 @@ alone, never against the code's output."""
 
 import os
 import struct
-import warnings
 
 import mujoco
 import numpy as np
@@ -12,7 +11,6 @@ import pytest
 
 from envisat_pose.config import ConfigError
 from envisat_pose.datagen.target_scene import scene_xml
-from envisat_pose.geometry import model_path
 from envisat_pose.target import load_target
 from envisat_pose.target_file import named_files, target_sha256
 
@@ -126,28 +124,6 @@ def test_a_files_statistic_does_not_loosen_the_centre_of_mass_check(tmp_path):
         assert mujoco.MjModel.from_xml_path(str(path)).body_ipos[1][0] == pytest.approx(0.001, abs=1e-12)
         with pytest.raises(ConfigError, match="centre of mass at the body's origin"):
             load_target(str(path))
-
-
-def test_a_files_visual_does_not_clash_with_the_scene(tmp_path, monkeypatch):
-    """A file with its own <visual> (a viewer's clip planes and field of view): the scene keeps ENVISAT's, with no
-    warning and no MUJOCO_LOG.TXT written into the folder the run started in (MuJoCo's attach warned of an
-    'Attach conflict' over znear and zfar and wrote its log there)."""
-    path = tmp_path / "viewed.xml"
-    path.write_text('<mujoco><visual><global fovy="10"/><map znear="0.5" zfar="2"/></visual><worldbody>'
-                    '<body name="target"><inertial pos="0 0 0" mass="10" diaginertia="1 1.2 1.5"/>'
-                    '<geom type="box" size="0.3 0.3 0.3" rgba="0.7 0.7 0.7 1"/>'
-                    + "".join(f'<site name="kp_{i}" pos="{x}"/>' for i, x in
-                              enumerate(["0.3 0.3 0.3", "-0.3 0.3 0.3", "0.3 -0.3 -0.3", "-0.3 -0.3 0.3"]))
-                    + '</body></worldbody></mujoco>')
-    run_dir = tmp_path / "run"
-    run_dir.mkdir()
-    monkeypatch.chdir(run_dir)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        scene = mujoco.MjModel.from_xml_string(scene_xml(load_target(str(path))))
-    envisat = mujoco.MjModel.from_xml_path(model_path())
-    assert scene.vis.global_.fovy == envisat.vis.global_.fovy and scene.vis.map.zfar == envisat.vis.map.zfar
-    assert os.listdir(run_dir) == []
 
 
 def test_keypoints_behind_an_attach_prefix_are_named_in_the_refusal(tmp_path):

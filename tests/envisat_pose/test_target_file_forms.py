@@ -125,11 +125,20 @@ def test_mass_properties_are_the_ones_mujoco_compiles(tmp_path, compiler):
         assert c <= a + b + 1e-9  # balanced by MuJoCo (stated 1, 2, 9)
 
 
-def test_a_templates_option_does_not_clash_with_the_scene(tmp_path, monkeypatch):
-    """A file from a MuJoCo template holds an <option> (a timestep, Earth's gravity): the scene keeps its own
-    physics, with no warning printed and no MUJOCO_LOG.TXT written into the folder the run started in."""
-    path = tmp_path / "templated.xml"
-    path.write_text('<mujoco><option timestep="0.002" gravity="0 0 -9.81"/><worldbody><body name="target">'
+@pytest.mark.parametrize("own,same", [
+    ('<option timestep="0.002" gravity="0 0 -9.81"/>',  # a MuJoCo template's physics
+     lambda scene, envisat: scene.opt.timestep == envisat.opt.timestep
+     and np.array_equal(scene.opt.gravity, envisat.opt.gravity)),
+    ('<visual><global fovy="10"/><map znear="0.5" zfar="2"/></visual>',  # a viewer's clip planes and field of view
+     lambda scene, envisat: scene.vis.global_.fovy == envisat.vis.global_.fovy
+     and scene.vis.map.zfar == envisat.vis.map.zfar),
+], ids=["option", "visual"])
+def test_a_files_own_option_or_visual_does_not_clash_with_the_scene(own, same, tmp_path, monkeypatch):
+    """A file holding its own <option> (from a MuJoCo template) or <visual>: the scene keeps ENVISAT's, with no
+    warning printed and no MUJOCO_LOG.TXT written into the folder the run started in (MuJoCo's attach warned of an
+    'Attach conflict' and wrote its log there)."""
+    path = tmp_path / "own.xml"
+    path.write_text(f'<mujoco>{own}<worldbody><body name="target">'
                     '<inertial pos="0 0 0" mass="10" diaginertia="1 1.2 1.5"/>' + BUS + SITES +
                     '</body></worldbody></mujoco>')
     run_dir = tmp_path / "run"
@@ -138,8 +147,7 @@ def test_a_templates_option_does_not_clash_with_the_scene(tmp_path, monkeypatch)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         scene = mujoco.MjModel.from_xml_string(scene_xml(load_target(str(path))))
-    envisat = mujoco.MjModel.from_xml_path(model_path())
-    assert scene.opt.timestep == envisat.opt.timestep and np.array_equal(scene.opt.gravity, envisat.opt.gravity)
+    assert same(scene, mujoco.MjModel.from_xml_path(model_path()))
     assert os.listdir(run_dir) == []
 
 
