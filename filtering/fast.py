@@ -13,7 +13,8 @@ factorization, lets LLVM reassociate its sums so they vectorize: still the same 
 a machine). Compiled code is cached in the user's cache folder (numba's cache=True, located by
 `cache_dir()`: NUMBA_CACHE_DIR when set, else $XDG_CACHE_HOME/envisat-pose/numba or ~/.cache/envisat-pose/numba;
 never inside the installed package): the first use on a machine compiles for ~10 s, later processes load it in
-~0.3 s.
+~0.3 s. Where that folder cannot be written (a read-only home, an unwritable NUMBA_CACHE_DIR) the cache goes to a
+private temporary folder of the process, removed when it ends: each process compiles again, none fails.
 
 The kernels do exactly the reference's steps, in the reference's order where the order matters for
 round-off (the RK4 stage sums, the sigma-point mean, the symmetrization of P):
@@ -40,7 +41,10 @@ numpy filter (filtering/ukf.py), so repairs and roll-backs are the reference's o
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
+import tempfile
 
 import numpy as np
 from numba import njit
@@ -68,24 +72,45 @@ def cache_dir() -> str:
     return os.path.join(base, "envisat-pose", "numba")
 
 
-class _UserCacheLocator(_caching._SourceFileBackedLocatorMixin, _caching._CacheLocator):
-    """numba's cache locator for this file's kernels only: the user cache folder of cache_dir(), under a
-    sub-folder named for this file's path (two installs never share entries). Other files, and a set
-    NUMBA_CACHE_DIR, are left to numba's own locators."""
+_PRIVATE_CACHE: list[str] = []  # the process's temporary cache folder, made on first need
 
-    def __init__(self, py_func, py_file):
+
+def _private_cache_dir() -> str:
+    """A temporary folder of this process's own (mkdtemp: mode 0700, a fresh name), removed when it exits: the
+    cache where cache_dir() cannot be written, so that numba never falls back to the package's folder, nor fails
+    to import the kernels for want of any writable folder (its own chain ends in an error)."""
+    if not _PRIVATE_CACHE:
+        _PRIVATE_CACHE.append(tempfile.mkdtemp(prefix="envisat-pose-numba-"))
+        atexit.register(shutil.rmtree, _PRIVATE_CACHE[0], True)
+    return _PRIVATE_CACHE[0]
+
+
+class _UserCacheLocator(_caching._SourceFileBackedLocatorMixin, _caching._CacheLocator):
+    """numba's cache locator for this file's kernels only: cache_dir() (the user cache folder, or numba's own
+    NUMBA_CACHE_DIR when set), under a sub-folder named for this file's path (two installs never share entries),
+    else a temporary folder of the process where that one cannot be written. Other files are left to numba's
+    own locators."""
+
+    def __init__(self, py_func, py_file, folder: str):
         self._py_file = py_file
         self._lineno = py_func.__code__.co_firstlineno
-        self._cache_path = os.path.join(cache_dir(), self.get_suitable_cache_subpath(py_file))
+        self._cache_path = os.path.join(folder, self.get_suitable_cache_subpath(py_file))
 
     def get_cache_path(self):
         return self._cache_path
 
     @classmethod
     def from_function(cls, py_func, py_file):
-        if _numba_config.CACHE_DIR or os.path.abspath(py_file) != os.path.abspath(__file__):
+        if os.path.abspath(py_file) != os.path.abspath(__file__):
             return None
-        return super().from_function(py_func, py_file)
+        for folder in (cache_dir, _private_cache_dir):
+            try:
+                self = cls(py_func, py_file, folder())
+                self.ensure_cache_path()
+                return self
+            except OSError:  # not writable (or no temporary folder at all): the next, then numba's own
+                continue
+        return None
 
 
 _CACHE_IMPL = getattr(_caching, "CacheImpl", None) or _caching._CacheImpl  # _CacheImpl in older numba

@@ -255,3 +255,23 @@ def test_the_compiled_cache_goes_to_the_user_cache_folder(tmp_path, numba_cache_
     written = [f for f in _files_under(str(want)) if f.endswith((".nbi", ".nbc"))]
     assert any(os.path.basename(f).startswith("fast._sq-") for f in written), written
     assert _files_under(package) == before
+
+
+@pytest.mark.parametrize("numba_cache_dir", [False, True])
+def test_an_unwritable_cache_folder_goes_to_a_private_one_never_the_package(tmp_path, monkeypatch, numba_cache_dir):
+    """Where cache_dir() cannot be written (a read-only home without XDG_CACHE_HOME, an unwritable
+    NUMBA_CACHE_DIR), the kernels' cache goes to a temporary folder of the process: not the package's own folder
+    (numba's next locator), and no import error where that one is read-only too (numba's chain ends in one)."""
+    from numba.core import config as numba_config
+
+    blocked = tmp_path / "a_file"
+    blocked.write_text("")  # a folder under a file cannot be made, not even by root
+    monkeypatch.setenv("XDG_CACHE_HOME", str(blocked / "xdg"))
+    monkeypatch.setattr(numba_config, "CACHE_DIR", str(blocked / "numba") if numba_cache_dir else "")
+    package = os.path.dirname(os.path.abspath(fast.__file__))
+    locator = fast._UserCacheLocator.from_function(fast._sq.py_func, fast.__file__)
+    assert locator is not None
+    path = locator.get_cache_path()
+    assert not path.startswith(package) and not path.startswith(str(blocked))
+    assert os.path.dirname(path) == fast._private_cache_dir() and os.path.isdir(path)
+    assert (os.stat(fast._private_cache_dir()).st_mode & 0o077) == 0  # the process's own
