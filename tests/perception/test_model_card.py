@@ -7,6 +7,7 @@ import importlib.util
 import json
 import os
 import re
+import shutil
 import subprocess
 
 import pytest
@@ -135,8 +136,13 @@ def load_script():
     return mod
 
 
-def test_a_card_is_refused_from_a_dirty_tree(tmp_path):
+@pytest.mark.skipif(shutil.which("git") is None, reason="no git on PATH")
+def test_a_card_is_refused_from_a_dirty_tree(tmp_path, monkeypatch):
     mc = load_script()
+    # the machine's own git settings (a global hooksPath whose hook refuses the commit, a signing key, templates)
+    # are not this test's: a git of no global or system configuration
+    monkeypatch.setenv("GIT_CONFIG_GLOBAL", os.devnull)
+    monkeypatch.setenv("GIT_CONFIG_NOSYSTEM", "1")
     git = ["git", "-c", "user.name=t", "-c", "user.email=t@t", "-c", "commit.gpgsign=false"]
     subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
     (tmp_path / "a.txt").write_text("one\n")
