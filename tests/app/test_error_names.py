@@ -2,8 +2,13 @@
 a path whose first folder is named like an argument (`data/x.safetensors`) and a config field (`data.input_px`)
 are printed as they are (they read `--data/x.safetensors` and `--data.input_px`)."""
 
+import os
+
 from envisat_pose.app.cli import main
 from envisat_pose.app.common import as_flags
+
+# the repository's models folder, by this file's place: the tests run from any working folder
+MODELS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "models")
 
 
 def test_only_a_leading_name_becomes_a_flag():
@@ -37,7 +42,8 @@ def test_bf16_for_another_target_is_named_as_the_flag_the_user_typed(tmp_path, c
         assert str(err).startswith("bf16: ")
     else:
         raise AssertionError("bf16 with another target's detector was not refused")
-    assert main(["run", "--target", "models/upper_stage.xml", "--weights", "models/upper_stage_detector.safetensors",
+    assert main(["run", "--target", "models/upper_stage.xml", "--weights",
+                 os.path.join(MODELS, "upper_stage_detector.safetensors"),
                  "--bf16", "--duration-s", "5", "--out", str(tmp_path / "r")]) == 2
     err = capsys.readouterr().err
     assert "--bf16: ENVISAT's corner detector only" in err and not (tmp_path / "r").exists(), err

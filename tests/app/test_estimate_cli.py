@@ -432,10 +432,10 @@ def test_simulate_records_the_target_files_sha256_and_an_edit_since_is_refused(t
     import shutil
 
     from envisat_pose.contracts import TruthTrajectory
-    from envisat_pose.target import load_target
+    from envisat_pose.target import load_target, resolve_target_path
 
     xml = tmp_path / "us.xml"
-    shutil.copy("models/upper_stage.xml", xml)
+    shutil.copy(resolve_target_path("models/upper_stage.xml"), xml)  # the packaged file, from any folder
     truth = tmp_path / "run.npz"
     assert main(["simulate", "--target", str(xml), "--duration-s", "20", "--out", str(truth), "--quiet"]) == 0
     recorded = json.loads(TruthTrajectory.load(str(truth)).config_json)["target"]

@@ -19,7 +19,7 @@ from envisat_pose.filtering.dynamics import propagate
 from envisat_pose.filtering.estimator import chaser_states, nees
 from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
-from envisat_pose.target import load_target
+from envisat_pose.target import load_target, resolve_target_path
 
 BASE = ["montecarlo", "--scenario", "default", "--runs", "30", "--duration-s", "300", "--settle-s", "150",
         "--measurements", "markers3d", "--seed", "5", "--quiet"]
@@ -214,7 +214,7 @@ def test_a_target_file_named_from_elsewhere_is_the_same_file(tmp_path, monkeypat
 
     work, other = tmp_path / "work", tmp_path / "other"
     work.mkdir(), other.mkdir()
-    shutil.copy("models/cubesat_3u.xml", work / "sat.xml")
+    shutil.copy(resolve_target_path("models/cubesat_3u.xml"), work / "sat.xml")  # the packaged file, from any folder
     monkeypatch.chdir(work)
     assert main(["simulate", "--target", "sat.xml", "--duration-s", "20", "--out", "run.npz", "--quiet"]) == 0
     mc = ["montecarlo", "--scenario", "default", "--runs", "4", "--block-runs", "2", "--duration-s", "20",

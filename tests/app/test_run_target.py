@@ -18,7 +18,9 @@ from envisat_pose.app.cli import main
 from envisat_pose.datagen.target_scene import size_ratio
 from envisat_pose.target import load_target
 
-UPPER = "envisat_pose/models/upper_stage.xml"
+# the repository's models folder, by this file's place: the tests run from any working folder
+MODELS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "models")
+UPPER = os.path.join(MODELS, "upper_stage.xml")
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +28,7 @@ def weights(tmp_path_factory):
     folder = tmp_path_factory.mktemp("run_target")
     return {"upper": untrained_weights(folder / "upper.safetensors", UPPER, sigma_px=1.5),
             "uncalibrated": untrained_weights(folder / "uncal.safetensors", UPPER),
-            "cubesat": untrained_weights(folder / "cubesat.safetensors", "envisat_pose/models/cubesat_3u.xml", 1.5)}
+            "cubesat": untrained_weights(folder / "cubesat.safetensors", os.path.join(MODELS, "cubesat_3u.xml"), 1.5)}
 
 
 def test_the_closed_loop_of_another_target_writes_its_keypoints(weights, tmp_path, capsys):

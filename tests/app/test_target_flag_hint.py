@@ -11,7 +11,9 @@ from keypoint_cases import untrained_weights  # noqa: E402
 
 from envisat_pose.app.cli import main  # noqa: E402
 
-UPPER = "envisat_pose/models/upper_stage.xml"
+# the repository's models folder, by this file's place: the tests run from any working folder
+MODELS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "models")
+UPPER = os.path.join(MODELS, "upper_stage.xml")
 
 
 @pytest.fixture(scope="module")

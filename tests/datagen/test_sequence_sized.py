@@ -22,7 +22,7 @@ from envisat_pose.datagen.target_scene import size_ratio
 from envisat_pose.datagen.truth import simulate_truth
 from envisat_pose.datagen.views import sequence_frames
 from envisat_pose.state import POS, VEL
-from envisat_pose.target import load_target
+from envisat_pose.target import load_target, resolve_target_path
 
 CUBESAT = "models/cubesat_3u.xml"
 UPPER_STAGE = "models/upper_stage.xml"
@@ -182,7 +182,7 @@ def test_an_edited_target_file_is_simulated_again_not_read_from_the_cache(tmp_pa
     from envisat_pose.datagen.truth import sequence_truth
 
     path = tmp_path / "cs.xml"
-    text = open(CUBESAT, encoding="utf-8").read()
+    text = open(resolve_target_path(CUBESAT), encoding="utf-8").read()  # the packaged file, from any folder
     old, new = 'fullinertia="0.051115 0.040782 0.016333 0 0 0"', 'fullinertia="0.051115 0.020782 0.036333 0 0 0"'
     assert old in text
     path.write_text(text)

@@ -19,7 +19,9 @@ from envisat_pose.target import load_target
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from keypoint_cases import untrained_weights  # noqa: E402
 
-UPPER = "envisat_pose/models/upper_stage.xml"
+# the repository's models folder, by this file's place: the tests run from any working folder
+MODELS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "models")
+UPPER = os.path.join(MODELS, "upper_stage.xml")
 
 
 class Scripted(KeypointDetector):

@@ -24,7 +24,10 @@ from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.pipelines.runs import closed_loop
 from envisat_pose.pipelines.tracking.tracker import Tracker
 
-UPPER = "envisat_pose/models/upper_stage.xml"
+# the repository's models folder, by this file's place: the tests run from any working folder
+MODELS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))),
+                      "models")
+UPPER = os.path.join(MODELS, "upper_stage.xml")
 SIGMA_PX = 0.5
 RES = 512  # px, square frames
 LIGHT_DN = 8  # a keypoint is shown where some pixel within 3 px is at least this bright
