@@ -70,7 +70,8 @@ def test_truth_file_and_rate(tmp_path):
     (["--scenario", "default", "--runs", "0"], "runs"),
     (["--scenario", "default", "--out", "est.txt"], ".npz"),
 ])
-def test_user_errors_are_one_line(tmp_path, capsys, extra, needle):
+def test_user_errors_are_one_line(tmp_path, capsys, monkeypatch, extra, needle):
+    monkeypatch.chdir(tmp_path)  # a relative --out lands here, not in the working folder (maybe read-only)
     args = ["estimate", "--quiet"] + extra
     if "--out" not in extra:
         args += ["--out", str(tmp_path / "e.npz")]

@@ -87,7 +87,8 @@ def test_bad_config_gets_a_clear_message_and_writes_nothing(tmp_path, text, fiel
     (["--out", "/proc/envisat-test/run.npz"], "cannot write in its folder"),  # a missing folder is made (issue 41)
     (["--out", "run.csv"], "ending in .npz"),
 ])
-def test_bad_arguments(tmp_path, capsys, args, message):
+def test_bad_arguments(tmp_path, capsys, monkeypatch, args, message):
+    monkeypatch.chdir(tmp_path)  # a relative --out lands here, not in the working folder (maybe read-only)
     argv = ["simulate", "--quiet"] + args
     if "--out" not in args:
         argv += ["--out", str(tmp_path / "run.npz")]
