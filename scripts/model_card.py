@@ -55,9 +55,16 @@ class Refused(Exception):
 
 
 def git_state(repo: str = REPO) -> tuple[str, list[str]]:
-    """(HEAD hash, the lines of `git status --porcelain`: empty for a clean tree)."""
-    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, check=True)
-    st = subprocess.run(["git", "status", "--porcelain"], cwd=repo, capture_output=True, text=True, check=True)
+    """(HEAD hash, the lines of `git status --porcelain`: empty for a clean tree). Refused where git is not
+    installed or the folder is not a git checkout: a card names the commit that made it."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, check=True)
+        st = subprocess.run(["git", "status", "--porcelain"], cwd=repo, capture_output=True, text=True, check=True)
+    except FileNotFoundError:
+        raise Refused("refused: no git on PATH; a card names the commit that made it (install git)") from None
+    except subprocess.CalledProcessError as err:
+        raise Refused(f"refused: {repo} is not a git checkout with a commit (git says: "
+                      f"{' '.join(err.stderr.split())}); a card names the commit that made it") from None
     return head.stdout.strip(), [line for line in st.stdout.splitlines() if line.strip()]
 
 

@@ -156,6 +156,21 @@ def test_a_card_is_refused_from_a_dirty_tree(tmp_path, monkeypatch):
     assert "\n" not in str(err.value) and "uncommitted" in str(err.value) and "a.txt" in str(err.value)
 
 
+def test_a_card_without_git_or_outside_a_checkout_is_refused_in_one_line(tmp_path, monkeypatch):
+    """No git on PATH, or a folder that is not a git checkout: Refused in one line (a FileNotFoundError or
+    CalledProcessError traceback before), nothing written."""
+    mc = load_script()
+    monkeypatch.setenv("GIT_CEILING_DIRECTORIES", str(tmp_path.parent))  # no checkout above tmp_path is found
+    if shutil.which("git") is not None:
+        with pytest.raises(mc.Refused, match="not a git checkout") as err:
+            mc.require_clean_tree(str(tmp_path))
+        assert "\n" not in str(err.value)
+    monkeypatch.setenv("PATH", str(tmp_path))  # nothing named git there
+    with pytest.raises(mc.Refused, match="no git on PATH"):
+        mc.require_clean_tree(str(tmp_path))
+    assert os.listdir(tmp_path) == []
+
+
 def test_a_card_with_a_path_is_refused():
     mc = load_script()
     with pytest.raises(mc.Refused):
