@@ -148,3 +148,12 @@ def machine(monkeypatch, tmp_path):
         monkeypatch.setattr(pools, "MEMINFO", str(root / "meminfo"))
 
     return pretend
+
+
+@pytest.fixture(autouse=True)
+def _from_a_folder_of_its_own(tmp_path_factory, monkeypatch):
+    """Every test runs from an empty folder of its own, not the checkout: a test that names a repository file by
+    the working folder fails here, as it would for a user who runs pytest from elsewhere, and nothing a test
+    writes by a relative path lands in the checkout (read-only for some users). A test's module fixtures are
+    built before it, where pytest started."""
+    monkeypatch.chdir(tmp_path_factory.mktemp("cwd"))
