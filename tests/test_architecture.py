@@ -1008,7 +1008,7 @@ def test_the_npz_reader_checker_sees_each_way_to_load():
                "a = np.load(p)\n"
                "with numpy.load(p, allow_pickle=False) as z:\n    pass\n"
                "c = npload(p)\n"
-               "d = torch.load(p)\ne = json.load(fh)\nf = open_npz(p)\n")
+               "d = torch.load(p, weights_only=True)\ne = json.load(fh)\nf = open_npz(p)\n")
     assert npz_loads(planted) == [4, 5, 7]
     assert npz_loads(open(os.path.join(ROOT, IO_FILE), encoding="utf-8").read())  # the home
 
