@@ -13,6 +13,7 @@ import argparse
 
 from envisat_pose.app.common import add_bf16_argument, add_common, add_recording_arguments, recording_sink
 from envisat_pose.app.flag_rules import job_scenario
+from envisat_pose.pipelines.runs.outputs import refused_clause
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -96,7 +97,7 @@ def nothing_tracked_line(summary: dict) -> str:
     """What a loop that never tracked says (as `envisat track` says it)."""
     counts = ", ".join(f"{n} {k}" for k, n in summary["scores"]["frames_by_status"].items() if n)
     return (f"nothing tracked ({counts}): the tracker never claimed tracking, so est.npz holds no estimate "
-            "(x_hat NaN, status per row)")
+            "(x_hat NaN, status per row)" + refused_clause(summary["run0"].get("last_cold_start_refusal")))
 
 
 def _fmt(v, digits: int = 0) -> str:

@@ -74,7 +74,7 @@ def track_cli(args: argparse.Namespace) -> int:
     if source.skipped:
         print(skipped_line(source.skipped))
     print(status_line(summary["source"]["frames"], summary["frames_by_status"], summary["first_tracking_s"],
-                      summary["final_status"], summary["mean_nis_per_dof"]))
+                      summary["final_status"], summary["mean_nis_per_dof"], summary["last_cold_start_refusal"]))
     if "scores" in summary:
         print_table({"scores": summary["scores"], "start": "cold", "timing_ms_per_frame": summary["timing_ms_per_frame"],
                      "real_time_factor_one_run": summary["real_time_factor"]})

@@ -158,7 +158,7 @@ def _closed_loop(cfg: RunConfig, run: int, truth_path: str, sink: str | None, pr
     # the next frame made while the tracker steps this one
     res = run_frames(tracker if plan_ahead is None else plan_ahead, frames, rows, recorder, cfg.jpeg_quality,
                      f"closed loop (run {run})" if progress else None, overlap=True)
-    return res | maker.counts
+    return res | maker.counts | {"last_cold_start_refusal": tracker.last_refusal}
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -280,7 +280,8 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
         "real_time_factor_job": sim_time_s * R / max(loop_wall_s, 1e-9),
         "wall_s": {"truth_simulation": sim_s, "loops": loop_wall_s, "total": time.perf_counter() - wall0},
         "run0": {k: r0[k] for k in ("frames_skipped_eclipse", "frames_roi", "frames_ambiguous", "frames_acquiring",
-                                    "frames_lost", "frames_windowed", "frames_window_remade")} | status_summary(
+                                    "frames_lost", "frames_windowed", "frames_window_remade",
+                                    "last_cold_start_refusal")} | status_summary(
             truth.t_s, cols[0]),
         # without the truth, as `envisat track` says it: every run's frames by status and their mean NIS
         "frames_by_status": status_counts(np.concatenate([c["status"] for c in cols])),

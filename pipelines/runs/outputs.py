@@ -24,16 +24,22 @@ def status_counts(status: np.ndarray) -> dict[str, int]:
 
 
 def status_line(frames: int, counts: dict[str, int], first_tracking_s: float | None, final: str,
-                mean_nis: float | None) -> str:
-    """The printed summary of a run's statuses; says plainly when nothing was tracked."""
+                mean_nis: float | None, refusal: str | None = None) -> str:
+    """The printed summary of a run's statuses; says plainly when nothing was tracked, and why its last cold start
+    was refused where one was (refusal: the Tracker's last_refusal)."""
     rest = ", ".join(f"{counts[s]} {s}" for s in STATUSES if s != "tracking" and counts.get(s))
     if not counts.get("tracking"):
         return (f"{frames} frames: nothing tracked ({rest}): the tracker never claimed tracking, so est.npz "
                 + ("holds estimates only in its coasting rows" if counts.get("coasting") else
-                   "holds no estimate (x_hat NaN, status per row)"))
+                   "holds no estimate (x_hat NaN, status per row)") + refused_clause(refusal))
     nis = "no filter update with measurements" if mean_nis is None else f"mean NIS per dof {mean_nis:.2f}"
     return (f"{frames} frames: {counts['tracking']} tracking" + (f", {rest}" if rest else "")
             + f"; first tracking at t = {first_tracking_s:g} s; final status {final}; {nis}")
+
+
+def refused_clause(refusal: str | None) -> str:
+    """"; its last cold start was refused: ..." for a tracker that refused one (Tracker.last_refusal), else ""."""
+    return f"; its last cold start was refused: {refusal}" if refusal else ""
 
 
 def first_tracking_s(t_s: np.ndarray, status: np.ndarray) -> float | None:

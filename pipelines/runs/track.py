@@ -227,6 +227,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     atomic_write_text(paths["config"], "# envisat track: the full validated config of this job\n" + to_toml(to_dict(cfg)))
     summary = track_summary(source, cfg.weights, pixels, col, np.asarray(sums["timing_s"]) / T, wall_s)
     summary["target"], summary["camera"] = record, used
+    summary["last_cold_start_refusal"] = tracker.last_refusal  # why a frame's cold start started nothing (None)
     if truth is not None:
         from envisat_pose.analysis.plots import plot_estimate
 

@@ -153,6 +153,7 @@ class Tracker(AcquiringSteps, TrackingSteps):
         # the last confirmed track (predicted on while it vetoes) and its time, kept through a loss (_recall_veto)
         self.recall: tuple[FilterState, float] | None = None
         self.buffer: list[FramePose] = []
+        self.last_refusal: str | None = None  # why the last cold start started no bank (its problems), None: none
         self.coasting_frames = 0
         self.array_against = 0  # array-cue readings in a row against the one hypothesis left
         self.last_pose: np.ndarray | None = None

@@ -20,6 +20,7 @@ from envisat_pose.pipelines.tracking.acquisition import (
     pnp_state,
     renamed_window,
 )
+from envisat_pose.pipelines.tracking.focal_check import focal_problems, focal_reading
 from envisat_pose.pipelines.tracking.integrity import fit_problems, state_problems
 from envisat_pose.pipelines.tracking.noise import detection_measurement
 from envisat_pose.pipelines.tracking.tracker_config import ACQUIRING_SIGMA, TrackEstimate
@@ -87,9 +88,15 @@ class AcquiringSteps:
         problems = [fit_problems(f, len(frames), self.cfg.integrity, self.cfg.acquire.min_corners, share) or s
                     for f, s in zip(fits, state)]
         ok = np.array([not p for p in problems])
+        if ok.any() and self.cfg.integrity.focal_check:  # the frames' own focal length against the camera's
+            best = int(np.argmin([cost(f) if good else np.inf for f, good in zip(fits, ok)]))
+            focal = self._focal_problems(renamed_window(frames, best, nm), fits[best].used)
+            if focal:  # every naming reads the same focal length: the window starts none
+                ok[:], problems[0] = False, focal
         if not ok.any():
             self.buffer = self.buffer[len(self.buffer) // 2:]
-            return [f"cold start refused: {'; '.join(problems[0])}"]
+            self.last_refusal = '; '.join(problems[0])
+            return [f"cold start refused: {self.last_refusal}"]
         # Once one fit passes, every twin whose fit is valid and physical starts beside it, failed fit statistics
         # or not: the twins fit the same window, so a chi-square or rejection count just past its bound for one
         # and just inside it for another is the window's noise, not evidence between them (the four twins' costs
@@ -103,3 +110,11 @@ class AcquiringSteps:
         P = np.stack([f.P for f in fits])[start] * self.cfg.acquire.start_cov_factor
         self._start(np.stack([f.x for f in fits])[start], P, fits[0].t_s, log_dyn[start], log_app[start])
         return ["started"]
+
+    def _focal_problems(self, window: list[FramePose], used: np.ndarray) -> list[str]:
+        """Why the window's frames refuse the camera's focal length (focal_check.focal_problems; empty where they
+        agree or cannot say), read from the keypoints the fit kept (used (N, K))."""
+        cam = self.camera
+        reading = focal_reading(np.stack([f.z_px for f in window]), np.stack([f.cov_px for f in window]), used,
+                                self.keypoints_T_m, cam.f_px, cam.cu_px, cam.cv_px)
+        return focal_problems(reading, self.cfg.integrity)

@@ -231,6 +231,9 @@ class IntegrityConfig(Config):
     re-acquired bank whose claim the memory, propagated with the filter's dynamics and its covariance times
     recall_cov_factor, puts at the memory's twin is not confirmed while that attitude sigma is within
     recall_att_sigma_deg (slow-tumble seed 7 claimed the half-turn twin 25 s after losing a correct track, 119 s).
+    focal_check: a cold start is refused when its window's frames read another focal length than the camera's (by
+    more than claim_pos_share, the range error it makes, at the false-alarm probability prob:
+    pipelines/tracking/focal_check.py); off, a wrong focal length is tracked at a range as far off.
     """
 
     lost_after_frames: int = 10
@@ -248,6 +251,7 @@ class IntegrityConfig(Config):
     recall_s: float = 300.0
     recall_att_sigma_deg: float = 30.0
     recall_cov_factor: float = 4.0
+    focal_check: bool = True
 
     def validate(self, prefix: str = "tracker.integrity") -> None:
         p = _dot(prefix)

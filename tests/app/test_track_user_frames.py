@@ -221,3 +221,10 @@ def test_a_run_that_never_tracked_says_so_without_claiming_more():
     assert "holds no estimate" in line
     line = status_line(40, {"acquiring": 37, "coasting": 2, "lost": 1}, None, "lost", None)
     assert "only in its coasting rows" in line
+    assert "refused" not in line
+    # the tracker's own reason, where its last cold start was refused (Tracker.last_refusal)
+    why = "the frames read a focal length 0.80 x the camera's (likelihood ratio 90 > 24 over 20 frames)"
+    line = status_line(40, {"acquiring": 40}, None, "acquiring", None, why)
+    assert line.endswith("holds no estimate (x_hat NaN, status per row); its last cold start was refused: " + why)
+    tracked = status_line(40, {"acquiring": 20, "tracking": 20}, 20.0, "tracking", 0.2, why)
+    assert "refused" not in tracked  # a run that tracked says how it tracked

@@ -1080,3 +1080,34 @@ def test_a_reacquired_twin_of_the_lost_track_is_not_claimed(truth_600):
     assert [s for s, *_ in truth][-5:] == ["tracking"] * 5 and max(a for s, a, _ in truth if s == "tracking") < 5.0
     cold = run(lambda x: box_namings().state(x, 1), recall=False)
     assert [s for s, *_ in cold][-5:] == ["tracking"] * 5  # without the memory the twin is claimed, as before
+
+
+def test_the_tracker_claims_no_pose_through_a_camera_its_frames_contradict(truth_600):
+    """The stand-in detector names the truth's corners as the MJCF camera sees them; a tracker told the focal
+    length is 20 % longer refuses every cold start, naming the focal length the frames read (0.83, the fit's
+    gate having dropped some of the corners that tell), and never claims tracking. With the check off the same
+    tracker claims a range 20 % off (the cold start's fit chi-square does not see it): the refusal is what keeps
+    that claim back. The right camera starts as before."""
+    import dataclasses
+    import re
+
+    def run(camera, cfg=TrackerConfig(), frames=60):
+        tracker = Tracker(camera, NoisyTruthDetector(truth_600), chaser_lookup(truth_600), cfg)
+        return tracker, [tracker.step(float(truth_600.t_s[k]), frame_image(k)) for k in range(frames)]
+
+    long_f = dataclasses.replace(CAM, f_px=CAM.f_px * 1.2)
+    tracker, ests = run(long_f)
+    assert {e.status for e in ests} == {"acquiring"}
+    assert re.search(r"focal length 0\.8\d x the camera's", tracker.last_refusal), tracker.last_refusal
+    assert any(ev.startswith("cold start refused: the frames read a focal length") for e in ests for ev in e.events)
+
+    off = TrackerConfig(integrity=dataclasses.replace(TrackerConfig().integrity, focal_check=False))
+    _, ests = run(long_f, off)
+    claimed = [k for k, e in enumerate(ests) if e.status == "tracking"]
+    assert claimed, "without the check the wrong camera is claimed"
+    k = claimed[-1]
+    range_ratio = np.linalg.norm(ests[k].x_hat[POS]) / np.linalg.norm(truth_600.x[k][POS])
+    assert range_ratio == pytest.approx(1.2, abs=0.03)
+
+    tracker, ests = run(CAM, frames=40)
+    assert "tracking" in {e.status for e in ests[:30]} and tracker.last_refusal is None
