@@ -10,8 +10,8 @@ so: the NIS stays near its usual level (docs/history.md, 2026-12-06, eighth sess
 found again by PnP at each s, the window's keypoints and covariances as the cold start's fit kept them) and reads
 s_hat at its minimum and the likelihood ratio chi2(1) - chi2(s_hat), which is chi-square with one degree of freedom
 where the camera is right and the covariances hold. `focal_problems` turns a reading into the cold start's
-refusal: s_hat off by more than the claim's share of the range (IntegrityConfig.claim_pos_share: the range error it
-makes) with the ratio beyond its 1-dof bound at the integrity tests' false-alarm probability.
+refusal: s_hat off by more than IntegrityConfig.focal_tolerance with the ratio beyond its 1-dof bound at the
+integrity tests' false-alarm probability (IntegrityConfig.prob).
 """
 
 from __future__ import annotations
@@ -117,12 +117,12 @@ def _minimize(fun, lo: float, hi: float) -> tuple[float, float]:
 
 def focal_problems(reading: FocalReading | None, cfg) -> list[str]:
     """Why a window's frames refuse the camera's focal length (empty where they do not, or cannot say: no
-    reading): the scale they read is off by more than cfg.claim_pos_share (IntegrityConfig: the range error it
-    makes) and the likelihood ratio is beyond its 1-dof chi-square bound at cfg.prob."""
+    reading): the scale they read is off by more than cfg.focal_tolerance (IntegrityConfig) and the likelihood
+    ratio is beyond its 1-dof chi-square bound at cfg.prob."""
     if reading is None:
         return []
     bound = chi2_bound(cfg.prob, 1)
-    if abs(reading.scale - 1.0) <= cfg.claim_pos_share or reading.lr <= bound:
+    if abs(reading.scale - 1.0) <= cfg.focal_tolerance or reading.lr <= bound:
         return []
     at = "at least " if not SCALE_BOUNDS[0] < reading.scale < SCALE_BOUNDS[1] else ""
     return [f"the frames read a focal length {at}{reading.scale:.2f} x the camera's (likelihood ratio "

@@ -17,9 +17,10 @@ Statuses (envisat_pose/status.py), per frame:
   `acquire.max_gap_s` restarts the buffer), the window is aligned to one naming and a hypothesis per naming (that one and its
   renaming by each of the box's three half-turns) is batch-fitted with the filter's dynamics; the bank starts
   once a fit passes its integrity tests (it kept most of its window's corners, its chi-square is inside its
-  bound, its state is physical: pipelines/tracking/integrity.py), with every twin whose fit is valid and physical beside
+  bound, its state is physical: pipelines/tracking/integrity.py) and its frames read the camera's focal length
+  (pipelines/tracking/focal_check.py), with every twin whose fit is valid and physical beside
   it (a twin just past a bound the passing one is just inside is the window's noise, not evidence); when none
-  passes the older half of the window is dropped and acquisition goes on. Or a bank runs but has not yet
+  passes the older half of the window is dropped and acquisition goes on (the reason: `last_refusal`). Or a bank runs but has not yet
   earned a claim: its half-turn is still open, or it has not yet passed `integrity.confirm_frames` frames with
   corners used and a covariance inside the claim, or the last confirmed track (lost within `integrity.recall_s`),
   propagated to now, puts it at its own twin (TrackingSteps._recall_veto).

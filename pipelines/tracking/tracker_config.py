@@ -231,9 +231,11 @@ class IntegrityConfig(Config):
     re-acquired bank whose claim the memory, propagated with the filter's dynamics and its covariance times
     recall_cov_factor, puts at the memory's twin is not confirmed while that attitude sigma is within
     recall_att_sigma_deg (slow-tumble seed 7 claimed the half-turn twin 25 s after losing a correct track, 119 s).
-    focal_check: a cold start is refused when its window's frames read another focal length than the camera's (by
-    more than claim_pos_share, the range error it makes, at the false-alarm probability prob:
-    pipelines/tracking/focal_check.py); off, a wrong focal length is tracked at a range as far off.
+    focal_check: a cold start is refused when its window's frames read another focal length than the camera's, off
+    by more than focal_tolerance (a share) with the evidence beyond its bound at prob
+    (pipelines/tracking/focal_check.py); off, a wrong focal length is tracked at a range as far off. 0.1: a
+    camera's calibration is good to a few per cent, and correct windows at close range read up to 1.08 (the
+    stress-tumble's 20 m, the detector's own biases: docs/design.md).
     """
 
     lost_after_frames: int = 10
@@ -252,6 +254,7 @@ class IntegrityConfig(Config):
     recall_att_sigma_deg: float = 30.0
     recall_cov_factor: float = 4.0
     focal_check: bool = True
+    focal_tolerance: float = 0.1
 
     def validate(self, prefix: str = "tracker.integrity") -> None:
         p = _dot(prefix)
@@ -277,6 +280,7 @@ class IntegrityConfig(Config):
         check(0.0 < self.recall_att_sigma_deg <= 60.0, f"{p}recall_att_sigma_deg", self.recall_att_sigma_deg,
               "an angle in (0, 60] deg")
         check(self.recall_cov_factor >= 1.0, f"{p}recall_cov_factor", self.recall_cov_factor, "at least 1")
+        check(0.0 < self.focal_tolerance < 1.0, f"{p}focal_tolerance", self.focal_tolerance, "a share in (0, 1)")
 
 
 @dataclass(frozen=True)
