@@ -165,6 +165,11 @@ def _closed_loop(cfg: RunConfig, run: int, truth_path: str, sink: str | None, pr
 # The job: truth, runs, outputs
 
 
+# what summary.json's run0 keeps of run 0's reductions (beside its status_summary)
+RUN0_KEYS = ("frames_skipped_eclipse", "frames_roi", "frames_ambiguous", "frames_acquiring", "frames_lost",
+             "frames_windowed", "frames_window_remade", "last_cold_start_refusal")
+
+
 def run_output_paths(out_dir: str) -> dict[str, str]:
     names = {"truth": "truth.npz", "est": "est.npz", "det": "det.npz", "plot": "errors.png",
              "config": "run.config.toml", "summary": "summary.json", "recording": "recording.rrd"}
@@ -279,10 +284,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
         "real_time_factor_one_run": real_time_factor(truth.t_s, run_wall_s, 1.0 / cfg.rate_hz),
         "real_time_factor_job": sim_time_s * R / max(loop_wall_s, 1e-9),
         "wall_s": {"truth_simulation": sim_s, "loops": loop_wall_s, "total": time.perf_counter() - wall0},
-        "run0": {k: r0[k] for k in ("frames_skipped_eclipse", "frames_roi", "frames_ambiguous", "frames_acquiring",
-                                    "frames_lost", "frames_windowed", "frames_window_remade",
-                                    "last_cold_start_refusal")} | status_summary(
-            truth.t_s, cols[0]),
+        "run0": {k: r0[k] for k in RUN0_KEYS} | status_summary(truth.t_s, cols[0]),
         # without the truth, as `envisat track` says it: every run's frames by status and their mean NIS
         "frames_by_status": status_counts(np.concatenate([c["status"] for c in cols])),
         "mean_nis_per_dof": mean_nis_per_dof(*(np.concatenate([c[k] for c in cols]) for k in ("nis", "nis_dof"))),
