@@ -229,6 +229,31 @@ class _Without:
         return self.phrase not in record.getMessage()
 
 
+class _HeldRestarts:
+    """A logging filter for the nanny of a job's own LocalCluster: its 'Restarting worker' warnings held while the
+    job runs, then said (release: at the next result, or the job's end) or left out (a job interrupted: Ctrl-C or
+    SIGTERM to the terminal's process group ends the workers too, and the nanny, in this process, may see a worker
+    gone before this process's own signal handler has run; the job's one line says what happened). A worker that
+    died for itself is still reported, a result later."""
+
+    PHRASE = "Restarting worker"
+
+    def __init__(self):
+        self.held: list = []
+
+    def filter(self, record) -> bool:
+        if self.PHRASE in record.getMessage():
+            self.held.append(record)
+            return False
+        return True
+
+    def release(self, log) -> None:
+        """The held records handed to log's handlers (its own and its parents', past this filter)."""
+        held, self.held = self.held, []
+        for record in held:
+            log.callHandlers(record)
+
+
 @contextlib.contextmanager
 def _closing_quietly(interrupted: bool):
     """While an interrupted job closes its LocalCluster: the nanny's warning that it killed a worker still busy
@@ -331,17 +356,26 @@ def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
                 cluster = LocalCluster(n_workers=min(cfg.workers, len(tasks)), threads_per_worker=1, processes=True,
                                        host="127.0.0.1", dashboard_address=None, env=dict(cfg.env), memory_limit=0)
         client = Client(cluster)
-    interrupted = False
+    import logging
+
+    interrupted, nanny, restarts = False, logging.getLogger("distributed.nanny"), _HeldRestarts()
+    if cluster is not None:
+        nanny.addFilter(restarts)
     try:
         futures = {client.submit(_dask_task, fn, dict(cfg.env), tuple(args), pure=False): i
                    for i, args in enumerate(tasks)}
         for fut in as_completed(futures):
-            yield futures[fut], fut.result()
+            result = fut.result()
+            restarts.release(nanny)
+            yield futures[fut], result
     except BaseException:
         interrupted = True
         raise
     finally:
+        if not interrupted:
+            restarts.release(nanny)
         with _closing_quietly(interrupted):
             client.close()
             if cluster is not None:
                 cluster.close()
+        nanny.removeFilter(restarts)
