@@ -125,7 +125,8 @@ def focal_problems(reading: FocalReading | None, cfg) -> list[str]:
     bound = chi2_bound(cfg.prob, 1)
     if abs(reading.scale - 1.0) <= cfg.focal_tolerance or reading.lr <= bound:
         return []
-    at = "at least " if not SCALE_BOUNDS[0] < reading.scale < SCALE_BOUNDS[1] else ""
+    lo, hi = SCALE_BOUNDS
+    at = "at least " if reading.scale >= hi * (1.0 - 1e-6) else "at most " if reading.scale <= lo * (1.0 + 1e-6) else ""
     return [f"the frames read a focal length {at}{reading.scale:.2f} x the camera's (likelihood ratio "
             f"{reading.lr:.0f} > {bound:.0f} over {reading.frames} frames; the range would be as far off): check the "
             "camera's focal length (fx, fy) against the frames'"]

@@ -59,7 +59,7 @@ def test_a_reading_needs_six_keypoints_a_frame_and_three_frames():
 
 def test_a_refusal_needs_both_a_focal_length_off_beyond_the_tolerance_and_the_evidence():
     """Off by no more than focal_tolerance (15 %), or a ratio inside its bound: no refusal; a scale at the search's
-    bound says "at least"."""
+    bounds says "at least" or "at most"."""
     cfg = IntegrityConfig()
     bound = chi2_bound(cfg.prob, 1)
     assert focal_problems(FocalReading(1.14, 10.0 * bound, 20), cfg) == []
@@ -67,4 +67,6 @@ def test_a_refusal_needs_both_a_focal_length_off_beyond_the_tolerance_and_the_ev
     assert focal_problems(FocalReading(1.14, 10.0 * bound, 20), IntegrityConfig(focal_tolerance=0.05)) != []
     assert focal_problems(FocalReading(1.3, 0.9 * bound, 20), cfg) == []
     assert focal_problems(FocalReading(0.7, 1.1 * bound, 20), cfg) != []
-    assert "at least 2.00 x" in focal_problems(FocalReading(2.0, 1e4, 20), cfg)[0]
+    assert "at least 2.00 x" in focal_problems(FocalReading(2.0 * (1 - 1e-9), 1e4, 20), cfg)[0]
+    assert "at most 0.50 x" in focal_problems(FocalReading(0.5, 1e4, 20), cfg)[0]
+    assert "a focal length 0.60 x" in focal_problems(FocalReading(0.6, 1e4, 20), cfg)[0]
