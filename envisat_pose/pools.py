@@ -326,19 +326,32 @@ def _stop_workers(pool) -> None:
 
 @contextlib.contextmanager
 def ctrl_c_left_to_this_process():
-    """While a LocalCluster starts its worker processes: SIGINT ignored, so they start with it ignored (an ignored
-    signal stays ignored across exec, and Python then installs no KeyboardInterrupt). Ctrl-C reaches a terminal's
-    whole process group: the workers each printed a KeyboardInterrupt traceback while this process was already
-    stopping them (closing the cluster). A Ctrl-C in those seconds (the cluster starting, ~1-3 s) is not seen: a
-    second one stops the job. Nothing changes off the main thread (signals are the main thread's)."""
+    """While a LocalCluster starts its worker processes: SIGINT blocked on this thread and the ones it starts (the
+    cluster's loop thread, which starts the workers), so the workers start with it blocked too (a signal mask
+    stays across fork and exec, and Python never unblocks it): Ctrl-C reaches a terminal's whole process group,
+    and each worker printed a KeyboardInterrupt traceback while this process was already stopping them (closing
+    the cluster). A Ctrl-C in those seconds (the cluster starting, ~1-3 s) is held, not lost: recorded (a thread
+    started before may take it, and this process's handler then runs on the main thread), and once the block
+    ends this process's own handler gets it (KeyboardInterrupt as the block exits). Nothing changes off the main
+    thread (signals are the main thread's)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()  # started inside, it unblocks SIGINT on the thread that starts it
+    held = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a Ctrl-C pending on this thread reaches `held` now
         signal.signal(signal.SIGINT, previous)
+        if held and callable(previous):
+            previous(signal.SIGINT, None)  # Python's default handler: KeyboardInterrupt
+        elif held and previous == signal.SIG_DFL:
+            signal.raise_signal(signal.SIGINT)
 
 
 def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterator[tuple[int, Any]]:
@@ -348,13 +361,18 @@ def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
     if cfg.scheduler:
         client = Client(cfg.scheduler)
     else:
-        with without_main_script():
-            # memory_limit 0: no per-worker cap, as the local pool. Dask's "auto" (the machine's memory over the
-            # workers) pauses a worker at 80 % of its share and restarts it at 95 %, while a factory worker's peak
-            # (650-1175 MB) varies: 24 workers on 24 GB fit, yet a 1-GB share stalled them.
-            with ctrl_c_left_to_this_process():
+        try:
+            with without_main_script(), ctrl_c_left_to_this_process():
+                # memory_limit 0: no per-worker cap, as the local pool. Dask's "auto" (the machine's memory over
+                # the workers) pauses a worker at 80 % of its share and restarts it at 95 %, while a factory
+                # worker's peak (650-1175 MB) varies: 24 workers on 24 GB fit, yet a 1-GB share stalled them.
                 cluster = LocalCluster(n_workers=min(cfg.workers, len(tasks)), threads_per_worker=1, processes=True,
                                        host="127.0.0.1", dashboard_address=None, env=dict(cfg.env), memory_limit=0)
+        except BaseException:  # a Ctrl-C held while it started: the cluster closed before the job's line
+            if cluster is not None:
+                with _closing_quietly(True):
+                    cluster.close()
+            raise
         client = Client(cluster)
     import logging
 

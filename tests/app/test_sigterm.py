@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
@@ -183,21 +184,21 @@ def test_ctrl_c_to_a_dask_generate_prints_its_one_line(name, code, tmp_path):
 
 
 def test_a_local_clusters_workers_start_with_ctrl_c_left_to_the_job():
-    """Processes started while a LocalCluster starts its workers inherit SIGINT ignored (Python then installs no
-    KeyboardInterrupt in them); the caller's own handler comes back after, and off the main thread nothing
-    changes (signals are the main thread's)."""
-    import threading
-
+    """Processes started while a LocalCluster starts its workers inherit SIGINT blocked (Python never unblocks
+    it: a Ctrl-C to the group stays pending in them, no KeyboardInterrupt); the caller's own handler and mask come
+    back after, and off the main thread nothing changes (signals are the main thread's)."""
     from envisat_pose.pools import ctrl_c_left_to_this_process
 
-    probe = [sys.executable, "-c", "import signal; print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN)"]
+    probe = [sys.executable, "-c", "import signal; print(signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, "
+                                   "[]), signal.getsignal(signal.SIGINT) is signal.default_int_handler)"]
     outer = signal.signal(signal.SIGINT, signal.default_int_handler)  # as a terminal's job has it (a shell's `&`
     try:  # starts its jobs with SIGINT ignored: then every child would inherit that anyway)
         with ctrl_c_left_to_this_process():
-            inside = subprocess.run(probe, capture_output=True, text=True, check=True).stdout.strip()
-        assert inside == "True"
+            inside = subprocess.run(probe, capture_output=True, text=True, check=True).stdout.split()
+        assert inside == ["True", "True"]
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
-        assert subprocess.run(probe, capture_output=True, text=True, check=True).stdout.strip() == "False"
+        assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+        assert subprocess.run(probe, capture_output=True, text=True, check=True).stdout.split() == ["False", "True"]
         seen = []
 
         def off_main():
@@ -208,6 +209,32 @@ def test_a_local_clusters_workers_start_with_ctrl_c_left_to_the_job():
         t.start()
         t.join()
         assert seen == [signal.default_int_handler]
+    finally:
+        signal.signal(signal.SIGINT, outer)
+
+
+@pytest.mark.parametrize("to", ["process", "thread"])
+def test_a_ctrl_c_while_the_cluster_starts_is_held_then_stops_the_job(to):
+    """A Ctrl-C in the seconds a LocalCluster starts (to the process: any of its threads may take it; or to the
+    main thread alone) is not lost: nothing is raised inside, KeyboardInterrupt as the block ends. Ignoring
+    SIGINT there (as before) dropped it: the job ran on, and a second Ctrl-C was needed."""
+    from envisat_pose.pools import ctrl_c_left_to_this_process
+
+    outer = signal.signal(signal.SIGINT, signal.default_int_handler)
+    reached = []
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with ctrl_c_left_to_this_process():
+                if to == "process":
+                    os.kill(os.getpid(), signal.SIGINT)
+                else:
+                    signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+                time.sleep(0.2)  # Python runs a caught signal's handler between bytecodes: several chances here
+                reached.append(True)
+        assert reached == [True]
+        with ctrl_c_left_to_this_process():  # no Ctrl-C: nothing raised, nothing left pending
+            time.sleep(0.05)
+        assert signal.SIGINT not in signal.sigpending()
     finally:
         signal.signal(signal.SIGINT, outer)
 
