@@ -37,7 +37,7 @@ Each frame every hypothesis takes the naming nearest its predicted corners and t
 Once the best prior is tight the detector looks only in the predicted region of interest, with the predicted pose
 as its naming's start and half-turn prior when one hypothesis is left.
 
-Another target than ENVISAT (`target=`, a Target; `envisat track --target`, `envisat run --target`): its keypoint
+Another target than ENVISAT (`target=`, a Target or its MJCF file; `envisat track --target`, `envisat run --target`): its keypoint
 detector (perception.keypoint_detect.KeypointFrameDetector, K keypoints named by channel), the filter over its K
 keypoints, inertia and visibility table, and the namings of its own symmetries (pipelines/tracking/namings.py:
 one hypothesis per symmetry something tells apart, for the box's half-turns above; poses that nothing tells
@@ -107,9 +107,10 @@ class Tracker(AcquiringSteps, TrackingSteps):
     def __init__(self, camera: PinholeCamera, detector, chaser_at: Callable[[float], np.ndarray],
                  config: TrackerConfig = TrackerConfig(), filter_config: FilterConfig | dict | None = None,
                  J_T: np.ndarray | None = None, mu_m3_s2: float | None = None, gravity_gradient: bool = False,
-                 prior: tuple[np.ndarray, np.ndarray, float] | None = None, target: Target | None = None):
+                 prior: tuple[np.ndarray, np.ndarray, float] | None = None, target: Target | str | None = None):
         config = config_arg(config, TrackerConfig, "config")
         config.validate()
+        target = target_arg(target)
         if target is not None and not target.keypoint_detector:
             target = None  # ENVISAT's: its corner network and the box's filter, as without a target
         check_detector_target(detector, target)
@@ -383,12 +384,31 @@ def prior_arg(prior) -> tuple[np.ndarray, np.ndarray, float]:
     return x0, P0, t0
 
 
+def target_arg(target) -> Target | None:
+    """A Tracker's `target`: a Target, its MJCF file (a str or pathlib.Path, load_target), or None (ENVISAT);
+    InputError naming it otherwise."""
+    if target is None or isinstance(target, Target):
+        return target
+    if isinstance(target, (str, os.PathLike)):
+        return load_target(os.fspath(target))
+    raise InputError(f"target: {target!r:.60}; expected a Target (load_target(FILE.xml)), its MJCF file's path or "
+                     "None (ENVISAT)")
+
+
 def check_detector_target(detector, target: Target | None) -> None:
     """InputError in one line when a detector that records its target (`trained_for`: a keypoint detector's
     name and sha256) was trained for another target than the tracker's (None: ENVISAT, whose detector is the
-    corner network). A detector that records none (the corner network, a user's own object) is taken as given."""
+    corner network), or when ENVISAT's corner network is given for another target (it names the box's 8 corners,
+    not the target's keypoints). A detector that records none (a user's own object) is taken as given."""
     record = getattr(detector, "trained_for", None)
     if not record:
+        if target is not None:
+            from envisat_pose.perception.detect import Detector
+
+            if isinstance(detector, Detector):
+                raise InputError(f"detector: ENVISAT's corner detector (the box's 8 corners A-H), not one of target "
+                                 f"{target.name!r}'s {len(target.keypoint_names)} keypoints: give its keypoint "
+                                 "detector (tracker_detector(weights, target=FILE.xml))")
         return
     if target is None:
         raise InputError(f"the detector is a keypoint detector of target {record.get('name')!r}: give the tracker "
@@ -400,15 +420,17 @@ def check_detector_target(detector, target: Target | None) -> None:
 
 def tracker_from_scenario(scenario: str = "default", weights: str | None = None, camera=None,
                           config=None, filter_config: FilterConfig | dict | None = None, size_px=None,
-                          target: str | None = None) -> Tracker:
+                          target: str | Target | None = None) -> Tracker:
     """A Tracker for frames of the named scenario's geometry: the chaser's orbit and the target's dynamics
     (gravity gradient, mu) from the scenario, the detector of `weights` (None: shipped), `camera` (None: the
     MJCF's chaser_cam, at size_px = (width, height) when given; a camera TOML file of ideal frames, a str or a
     pathlib.Path; or a PinholeCamera), TrackerConfig `config` (None: defaults), the
     tracker's filter settings with `filter_config`'s fields over them (pipelines.build.tracker_filter); target:
-    another target's MJCF file (its keypoint detector's `weights` then required; None: ENVISAT)."""
+    another target's MJCF file or its Target (its keypoint detector's `weights` then required; None: ENVISAT)."""
     from types import SimpleNamespace
 
+    if target is not None:
+        target = target_arg(target).path  # a file given is read (and refused) here
     scen = scenario_config(scenario)
     physics = onboard_physics(SimpleNamespace(config=to_dict(scen)), f"scenario {scenario!r}")
     if camera is None or isinstance(camera, (str, os.PathLike)):  # the MJCF's, or a camera TOML file's pinhole

@@ -1,0 +1,38 @@
+"""The Tracker as a user scripts it: its `target` argument (a Target or the file's path, whichever the two
+constructors are given), a detector that cannot name the target's keypoints refused before any frame, and the
+frame checks of Tracker.step as InputError naming the argument."""
+
+import os
+
+import numpy as np
+import pytest
+
+from envisat_pose import Tracker, chaser_from_orbit, load_target, tracker_camera, tracker_detector
+from envisat_pose.config import InputError
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+UPPER_STAGE = os.path.join(ROOT, "models", "upper_stage.xml")
+UPPER_STAGE_WEIGHTS = os.path.join(ROOT, "models", "upper_stage_detector.safetensors")
+
+
+@pytest.fixture(scope="module")
+def parts():
+    return tracker_camera(None, size_px=(64, 64)), chaser_from_orbit(None)
+
+
+def test_the_target_is_taken_as_a_target_or_its_file_by_both_constructors(parts):
+    cam, chaser = parts
+    det = tracker_detector(UPPER_STAGE_WEIGHTS, target=UPPER_STAGE)
+    for given in (load_target(UPPER_STAGE), UPPER_STAGE):
+        assert Tracker(cam, det, chaser, target=given).K == 12
+        assert Tracker.from_scenario("default", UPPER_STAGE_WEIGHTS, size_px=(64, 64), target=given).K == 12
+    with pytest.raises(InputError, match=r"target: .*expected a Target"):
+        Tracker(cam, det, chaser, target=12)
+
+
+def test_envisats_corner_network_is_refused_for_another_target_before_any_frame(parts):
+    """It names ENVISAT's 8 corners, not the target's keypoints: taken, its first lit frame's PnP failed with an
+    IndexError (12 keypoints against 8 corners)."""
+    cam, chaser = parts
+    with pytest.raises(InputError, match="ENVISAT's corner detector.*upper_stage"):
+        Tracker(cam, tracker_detector(None), chaser, target=load_target(UPPER_STAGE))
