@@ -244,24 +244,26 @@ class Tracker(AcquiringSteps, TrackingSteps):
     # ------------------------------------------------------------------ the step
 
     def step(self, t_s: float, image: np.ndarray | None, window_px: np.ndarray | None = None) -> TrackEstimate:
-        """One frame: t_s (s, increasing), image (H, W) uint8 gray, or None (no frame: the filter predicts).
+        """One frame: t_s (s, increasing), image (H, W) uint8 gray, or None (no frame: the filter predicts); a
+        time or frame refused is an InputError (a ValueError) naming it, and changes nothing.
         window_px: (x0, y0, side) px when only that window of the image was made (the rest black: a frame made
         for planned_window), None for a whole frame; nothing that reads beyond the window (the array cue) reads
         such a frame."""
         if isinstance(t_s, (str, bytes, bool)) or not isinstance(t_s, numbers.Real):
-            raise ValueError(f"t_s = {t_s!r}: expected the frame's time, s (a number)")
+            raise InputError(f"t_s = {t_s!r}: expected the frame's time, s (a number)")
         t_s = float(t_s)
         if not np.isfinite(t_s):
-            raise ValueError(f"t_s = {t_s}: expected a finite frame time, s")
+            raise InputError(f"t_s = {t_s}: expected a finite frame time, s")
         if self.t_last is not None and not t_s > self.t_last:
-            raise ValueError(f"frame times must increase: t = {t_s} s after t = {self.t_last} s")
+            raise InputError(f"t_s = {t_s}: expected a time after the last frame's, {self.t_last} s (frame times "
+                             "must increase)")
         want = (self.camera.height_px, self.camera.width_px)
         if image is not None and (not isinstance(image, np.ndarray) or image.shape != want or image.dtype != np.uint8):
-            raise ValueError(frame_refusal(image, want))
+            raise InputError(frame_refusal(image, want))
         if window_px is not None:
             window_px = np.asarray(window_px)
             if window_px.shape != (3,) or window_px[2] < 1:
-                raise ValueError(f"window_px: {window_px.tolist()}; expected (x0, y0, side) px with side >= 1")
+                raise InputError(f"window_px: {window_px.tolist()}; expected (x0, y0, side) px with side >= 1")
         self.image_window = window_px
         if self.t_last is not None:
             self.dt_s = t_s - self.t_last

@@ -36,3 +36,16 @@ def test_envisats_corner_network_is_refused_for_another_target_before_any_frame(
     cam, chaser = parts
     with pytest.raises(InputError, match="ENVISAT's corner detector.*upper_stage"):
         Tracker(cam, tracker_detector(None), chaser, target=load_target(UPPER_STAGE))
+
+
+@pytest.mark.parametrize("t_s, match", [(float("nan"), "t_s = nan"), ("1", "t_s = '1'"), (0.0, "t_s = 0.0"),
+                                        (-1.0, "t_s = -1.0")])
+def test_a_frame_time_refused_is_an_input_error_naming_t_s(parts, t_s, match):
+    cam, chaser = parts
+    tracker = Tracker(cam, tracker_detector(None), chaser)
+    tracker.step(0.0, None)
+    with pytest.raises(InputError, match=match):
+        tracker.step(t_s, None)
+    with pytest.raises(InputError, match=r"image: float64 \(64, 64\)"):
+        tracker.step(1.0, np.zeros((64, 64)))
+    assert tracker.step(1.0, np.zeros((64, 64), np.uint8)).t_s == 1.0  # a refused frame changed nothing
