@@ -257,6 +257,9 @@ class Tracker(AcquiringSteps, TrackingSteps):
         if self.t_last is not None and not t_s > self.t_last:
             raise InputError(f"t_s = {t_s}: expected a time after the last frame's, {self.t_last} s (frame times "
                              "must increase)")
+        if self.t_last is None and self.state is not None and t_s < self.state.t_s:
+            raise InputError(f"t_s = {t_s}: expected a time at or after the prior's t0 = {self.state.t_s} s (the "
+                             "first frame of a tracker given a prior)")
         want = (self.camera.height_px, self.camera.width_px)
         if image is not None and (not isinstance(image, np.ndarray) or image.shape != want or image.dtype != np.uint8):
             raise InputError(frame_refusal(image, want))

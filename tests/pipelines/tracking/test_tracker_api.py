@@ -49,3 +49,17 @@ def test_a_frame_time_refused_is_an_input_error_naming_t_s(parts, t_s, match):
     with pytest.raises(InputError, match=r"image: float64 \(64, 64\)"):
         tracker.step(1.0, np.zeros((64, 64)))
     assert tracker.step(1.0, np.zeros((64, 64), np.uint8)).t_s == 1.0  # a refused frame changed nothing
+
+
+def test_a_first_frame_before_the_priors_time_is_refused_and_changes_nothing(parts):
+    """Taken, it failed deep in the filter ("older than the filter state") after the tracker had kept its time, so
+    every later frame before t0 failed too and the first frame interval was measured from it."""
+    cam, chaser = parts
+    x0 = np.r_[0.0, 50.0, 0.0, 0.0, 0.0, 0.0, 0.1, 0.2, 0.3, 0.0, 0.0, 0.04]
+    P0 = np.diag(np.r_[[0.1] * 3, [0.01] * 3, [0.01] * 3, [0.001] * 3] ** 2)
+    tracker = Tracker(cam, tracker_detector(None), chaser, prior=(x0, P0, 10.0))
+    with pytest.raises(InputError, match=r"t_s = 5.0: expected a time at or after the prior's t0 = 10.0 s"):
+        tracker.step(5.0, None)
+    assert tracker.t_last is None
+    est = tracker.step(10.0, None)
+    assert est.t_s == 10.0 and np.allclose(est.x_hat[:3], x0[:3], atol=1e-6)
