@@ -117,6 +117,7 @@ class Config:
 
         @functools.wraps(own)
         def post_init(self) -> None:
+            _tables_over_bases(self)
             _check_fields(self)
             own(self)
 
@@ -129,6 +130,16 @@ class Config:
 
     def validate(self, prefix: str = "") -> None:
         """ConfigError for a field out of its range (a config with nothing to check has nothing here)."""
+
+
+def _tables_over_bases(obj: Config) -> None:
+    """A table given as a dict where the config names what it lies over (its class's `table_bases`: {field:
+    base(config) -> dict}, a job's scenario's table, say): its keys over that base, as a config file's table lies
+    over the layers under it (pipelines/common/job_defaults.layered_job), not over its class's defaults."""
+    for name, base in getattr(type(obj), "table_bases", {}).items():
+        value = getattr(obj, name)
+        if isinstance(value, dict):
+            object.__setattr__(obj, name, {**base(obj), **value})
 
 
 @functools.lru_cache(maxsize=None)

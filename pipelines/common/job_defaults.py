@@ -60,6 +60,12 @@ def scenario_defaults(kind: str, scenario: str) -> dict:
     return out
 
 
+def scenario_table(kind: str, name: str) -> Callable[[Any], dict]:
+    """A config's `table_bases` entry (config._tables_over_bases): table `name` as cfg.scenario sets it for a
+    `kind` job (scenario_defaults), under the keys a dict given for it sets."""
+    return lambda cfg: dict(scenario_defaults(kind, cfg.scenario).get(name, {}))
+
+
 def fill_from_scenario(cfg: Any, kind: str, fallbacks: dict[str, Callable[[], Any]]) -> list[str]:
     """What a job's constructor takes from its scenario: each field of cfg named in fallbacks and left None takes
     what cfg.scenario sets for a `kind` job (scenario_defaults: the layer layered_job puts under the file and

@@ -9,7 +9,7 @@ import dataclasses
 import json
 import warnings
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
@@ -19,7 +19,7 @@ from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.scenario import in_earth_shadow, scenario_config, scenario_eclipse
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import load_camera
-from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job
+from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job, scenario_table
 from envisat_pose.pipelines.tracking.onboard import orbit_config
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, TrackerConfig
 from envisat_pose.pools import default_processes
@@ -47,7 +47,9 @@ class RunConfig(Config):
 
     scenario: named truth; duration_s: simulated time; rate_hz: camera and filter rate; filter: the UKF (the
     scenario's [filter] table over TRACKER_FILTER). Those three left None take the scenario's (its duration and
-    [measurement] rate, else 600 s and 1 Hz; job_defaults.fill_from_scenario). runs: closed loops on the same truth;
+    [measurement] rate, else 600 s and 1 Hz; job_defaults.fill_from_scenario; a filter given as a dict sets its
+    keys over the scenario's, as a config file's [filter] table does; a FilterConfig is taken whole).
+    runs: closed loops on the same truth;
     workers: processes for them (None: one per run, within cores and memory); seed: the truth's random attitude, every
     run's camera noise (and warm start); weights: detector weights file ("": the shipped ones; the file must exist;
     another target's (image.target) keypoint detector, required for it); bf16: ENVISAT's corner detector runs its
@@ -81,6 +83,8 @@ class RunConfig(Config):
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     render_window: bool = True
     full_frame_every: int = 10
+
+    table_bases: ClassVar[dict] = {"filter": scenario_table("run", "filter")}
 
     def __post_init__(self) -> None:
         fill_from_scenario(self, "run", RUN_FALLBACKS)

@@ -28,7 +28,7 @@ import os
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
@@ -40,7 +40,7 @@ from envisat_pose.geometry import PinholeCamera
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.out_dirs import check_out_dir, made_out_dir
 from envisat_pose.out_lock import locks_output
-from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job
+from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job, scenario_table
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
 from envisat_pose.pipelines.runs.frames import FrameSource, open_source, require_source_target, scan_source
@@ -68,7 +68,9 @@ class TrackConfig(Config):
     generate folder's own scenario wins in the verb); orbit: the chaser's Keplerian orbit (datagen's
     OrbitConfig); gravity_gradient: the target feels the gravity-gradient torque; filter: the UKF (the scenario's
     [filter] table over TRACKER_FILTER). Those three left None take the scenario's
-    (job_defaults.fill_from_scenario). rate_hz: frame rate of an image folder or a video (0: a video's own
+    (job_defaults.fill_from_scenario); orbit or filter given as a dict sets its keys over the scenario's, as a
+    config file's table does (a config given is taken whole).
+    rate_hz: frame rate of an image folder or a video (0: a video's own
     rate); target: the tracked spacecraft's MJCF file (envisat_pose/target.py; ENVISAT's by default); weights:
     detector weights ("": ENVISAT's shipped ones; the file must exist and be the target's detector: another
     target's keypoint detector is required for it); bf16: ENVISAT's corner detector in bfloat16 (as `envisat
@@ -85,6 +87,9 @@ class TrackConfig(Config):
     jpeg_quality: int = 80
     filter: FilterConfig | None = None
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
+
+    table_bases: ClassVar[dict] = {"orbit": scenario_table("track", "orbit"),
+                                   "filter": scenario_table("track", "filter")}
 
     def __post_init__(self) -> None:
         track_stage_types()
