@@ -47,23 +47,22 @@ class RunConfig(Config):
 
     scenario: named truth; duration_s: simulated time; rate_hz: camera and filter rate; filter: the UKF (the
     scenario's [filter] table over TRACKER_FILTER). Those three left None take the scenario's (its duration and
-    [measurement] rate, else 600 s and 1 Hz; job_defaults.fill_from_scenario; a filter given as a dict sets its
-    keys over the scenario's, as a config file's [filter] table does; a FilterConfig is taken whole).
-    runs: closed loops on the same truth;
-    workers: processes for them (None: one per run, within cores and memory); seed: the truth's random attitude, every
-    run's camera noise (and warm start); weights: detector weights file ("": the shipped ones; the file must exist;
-    another target's (image.target) keypoint detector, required for it); bf16: ENVISAT's corner detector runs its
-    network in bfloat16 (perception.detect.DetectConfig.bf16; `--bf16`). warm_start: start each run's filter from
-    the truth plus a draw from filter.p0_sigma (filter studies), instead of cold from the images. threads: torch CPU
-    threads per run; jpeg_quality: run 0's images in the recording. image: the camera frames as the image factory's
-    sequence mode makes them (its sequence fields, seed and frame count are set from the ones above, its sun made
-    explicit: finished_image). tracker: pipelines.tracker.TrackerConfig. render_window (on; `--full-frames` off):
-    once the tracker holds one confirmed hypothesis, MuJoCo renders and the space camera corrupts only the window
-    its detector will look at, the rest of the frame black: planned a frame early (the frames are made while the
-    tracker steps the one before) and grown, made again when it does not hold the tracker's plan
-    (pipelines/runs/loop_frames.py); a full frame every full_frame_every frames (where ENVISAT's array cue reads:
-    it reads no window) and whenever the tracker acquires, holds twins, has not confirmed its claim or its last
-    window held too few keypoints. The window's noise is drawn apart from the full frame's (the same
+    [measurement] rate, else 600 s and 1 Hz; job_defaults.fill_from_scenario; a filter given as a dict sets its keys
+    over the scenario's, as a config file's [filter] table does; a FilterConfig is taken whole). runs: closed loops
+    on the same truth; workers: processes for them (None: one per run, within cores and memory); seed: the truth's
+    random attitude, every run's camera noise (and warm start); weights: detector weights file ("": the shipped
+    ones; the file must exist; another target's (image.target) keypoint detector, required for it); bf16: ENVISAT's
+    corner detector runs its network in bfloat16 (perception.detect.DetectConfig.bf16; `--bf16`). warm_start: start
+    each run's filter from the truth plus a draw from filter.p0_sigma (filter studies), instead of cold from the
+    images. threads: torch CPU threads per run; jpeg_quality: run 0's images in the recording. image: the camera
+    frames as the image factory's sequence mode makes them (its sequence fields, seed and frame count are set from
+    the ones above, its sun made explicit: finished_image). tracker: pipelines.tracker.TrackerConfig. render_window
+    (on; `--full-frames` off): once the tracker holds one confirmed hypothesis, MuJoCo renders and the space camera
+    corrupts only the window its detector will look at, the rest of the frame black: planned a frame early (the
+    frames are made while the tracker steps the one before) and grown, made again when it does not hold the
+    tracker's plan (pipelines/runs/loop_frames.py); a full frame every full_frame_every frames (where ENVISAT's
+    array cue reads: it reads no window) and whenever the tracker acquires, holds twins, has not confirmed its claim
+    or its last window held too few keypoints. The window's noise is drawn apart from the full frame's (the same
     distribution, other pixels): a seed's figures differ from its full frames' within their noise (docs/design.md,
     "The closed loop")."""
 

@@ -37,12 +37,12 @@ Each frame every hypothesis takes the naming nearest its predicted corners and t
 Once the best prior is tight the detector looks only in the predicted region of interest, with the predicted pose
 as its naming's start and half-turn prior when one hypothesis is left.
 
-Another target than ENVISAT (`target=`, a Target or its MJCF file; `envisat track --target`, `envisat run --target`): its keypoint
-detector (perception.keypoint_detect.KeypointFrameDetector, K keypoints named by channel), the filter over its K
-keypoints, inertia and visibility table, and the namings of its own symmetries (pipelines/tracking/namings.py:
-one hypothesis per symmetry something tells apart, for the box's half-turns above; poses that nothing tells
-apart are one pose, the target's `equivalent` rotations). The rest is as for ENVISAT, but the solar-array cue,
-which is ENVISAT's.
+Another target than ENVISAT (`target=`, a Target or its MJCF file; `envisat track --target`, `envisat run
+--target`): its keypoint detector (perception.keypoint_detect.KeypointFrameDetector, K keypoints named by channel),
+the filter over its K keypoints, inertia and visibility table, and the namings of its own symmetries
+(pipelines/tracking/namings.py: one hypothesis per symmetry something tells apart, for the box's half-turns above;
+poses that nothing tells apart are one pose, the target's `equivalent` rotations). The rest is as for ENVISAT, but
+the solar-array cue, which is ENVISAT's.
 
 The filter's R is the detector's calibrated covariance at the error model's scale, inflated for the errors'
 frame-to-frame correlation at the filter's own memory (pipelines/tracking/noise.py). The detector's mean apparent scale
