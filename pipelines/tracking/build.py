@@ -41,7 +41,7 @@ def tracker_filter(overrides: FilterConfig | dict | None = None, scenario: str |
         given = {f.name: getattr(overrides, f.name) for f in dataclasses.fields(FilterConfig)
                  if getattr(overrides, f.name) != getattr(default, f.name)}
     else:
-        raise TypeError(f"filter settings {overrides!r}: expected a FilterConfig, a dict of its fields or None")
+        raise InputError(f"filter_config: {overrides!r:.60}; expected a FilterConfig, a dict of its fields or None")
     merged = {**base, **{k: (to_dict(v) if dataclasses.is_dataclass(v) else v) for k, v in given.items()}}
     return from_dict(FilterConfig, merged, prefix="filter")
 

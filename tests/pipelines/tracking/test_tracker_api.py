@@ -30,6 +30,16 @@ def test_the_target_is_taken_as_a_target_or_its_file_by_both_constructors(parts)
         Tracker(cam, det, chaser, target=12)
 
 
+def test_filter_settings_of_another_type_are_an_input_error_naming_filter_config(parts):
+    """Both constructors take a FilterConfig, a dict of its fields or None; a list was a bare TypeError that named
+    no argument."""
+    cam, chaser = parts
+    with pytest.raises(InputError, match=r"filter_config: \[0.1\]; expected a FilterConfig"):
+        Tracker(cam, tracker_detector(None), chaser, filter_config=[0.1])
+    with pytest.raises(InputError, match=r"filter_config: 'adaptive_r'; expected a FilterConfig"):
+        Tracker.from_scenario("default", None, size_px=(64, 64), filter_config="adaptive_r")
+
+
 def test_envisats_corner_network_is_refused_for_another_target_before_any_frame(parts):
     """It names ENVISAT's 8 corners, not the target's keypoints: taken, its first lit frame's PnP failed with an
     IndexError (12 keypoints against 8 corners)."""
