@@ -330,10 +330,12 @@ def ctrl_c_left_to_this_process():
     cluster's loop thread, which starts the workers), so the workers start with it blocked too (a signal mask
     stays across fork and exec, and Python never unblocks it): Ctrl-C reaches a terminal's whole process group,
     and each worker printed a KeyboardInterrupt traceback while this process was already stopping them (closing
-    the cluster). A Ctrl-C in those seconds (the cluster starting, ~1-3 s) is held, not lost: recorded (a thread
-    started before may take it, and this process's handler then runs on the main thread), and once the block
-    ends this process's own handler gets it (KeyboardInterrupt as the block exits). Nothing changes off the main
-    thread (signals are the main thread's)."""
+    the cluster). A Ctrl-C or SIGTERM in those seconds (the cluster starting, ~1-3 s) is held, not lost: recorded
+    (a thread started before may take a Ctrl-C: this process's handler then runs on the main thread), then given
+    to this process's own handler once the block ends (KeyboardInterrupt, or the verb's Terminated, as the block
+    exits), so the job closes a whole cluster (raised while it started, Dask's own close at exit failed with a
+    traceback). SIGTERM is not blocked: a worker it reaches stops, as Dask's own close of a worker needs.
+    Nothing changes off the main thread (signals are the main thread's)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -341,17 +343,19 @@ def ctrl_c_left_to_this_process():
 
     resource_tracker.ensure_running()  # started inside, it unblocks SIGINT on the thread that starts it
     held = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    previous = {s: signal.signal(s, lambda signum, frame: held.append(signum)) for s in (signal.SIGINT, signal.SIGTERM)}
     mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a Ctrl-C pending on this thread reaches `held` now
-        signal.signal(signal.SIGINT, previous)
-        if held and callable(previous):
-            previous(signal.SIGINT, None)  # Python's default handler: KeyboardInterrupt
-        elif held and previous == signal.SIG_DFL:
-            signal.raise_signal(signal.SIGINT)
+        for s, h in previous.items():
+            signal.signal(s, h)
+        for s in dict.fromkeys(held):
+            if callable(previous[s]):
+                previous[s](s, None)  # Python's default handler: KeyboardInterrupt
+            elif previous[s] == signal.SIG_DFL:
+                signal.raise_signal(s)
 
 
 def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterator[tuple[int, Any]]:
