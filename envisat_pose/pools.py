@@ -343,7 +343,10 @@ def ctrl_c_left_to_this_process():
 
     resource_tracker.ensure_running()  # started inside, it unblocks SIGINT on the thread that starts it
     held = []
-    previous = {s: signal.signal(s, lambda signum, frame: held.append(signum)) for s in (signal.SIGINT, signal.SIGTERM)}
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    previous = {s: h for s, h in previous.items() if h is not None}  # one set outside Python is left as it is
+    for s in previous:
+        signal.signal(s, lambda signum, frame: held.append(signum))
     mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
