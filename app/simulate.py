@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 
 from envisat_pose.app.common import add_common
+from envisat_pose.app.flag_rules import job_scenario
 from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.pipelines.campaigns.simulate import run_simulate as run_pipeline
 
@@ -20,8 +21,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_common(p, out="output .npz (default run.npz)", out_default="run.npz", out_metavar="RUN.npz",
                config="scenario config (sections orbit, target, relative)",
                seed="root seed of the random initial attitude (default 0)", flag_names={"rrd": "--rrd"})
-    p.add_argument("--scenario", default="default",
-                   help="named scenario the config starts from (default: default; `envisat scenarios` lists them)")
+    p.add_argument("--scenario",
+                   help="named scenario the config starts from (`envisat scenarios` lists them; default: the --config "
+                   "file's `scenario`, as a written run.config.toml records it, else default)")
     p.add_argument("--duration-s", type=float, help="simulated time, s (default: the scenario's, 1800)")
     p.add_argument("--dt-s", type=float, help="output step, s (default 1)")
     p.add_argument("--target", metavar="FILE.xml", help="the target's MJCF file (its inertia drives the tumble, its "
@@ -37,12 +39,12 @@ def resolve_config(args: argparse.Namespace) -> ScenarioConfig:
     from envisat_pose.pipelines.jobs import resolve_job
 
     flags = {"duration_s": args.duration_s, "dt_s": args.dt_s, "seed": args.seed, "target.file": args.target}
-    return resolve_job("simulate", args.scenario, args.config, flags)
+    return resolve_job("simulate", job_scenario(args.scenario, args.config), args.config, flags)
 
 
 def run_simulate_cli(args: argparse.Namespace) -> int:
     cfg = resolve_config(args)
-    res = run_pipeline(cfg, args.out, plot=args.plot, rrd=args.rrd, progress=not args.quiet, label=args.scenario)
+    res = run_pipeline(cfg, args.out, plot=args.plot, rrd=args.rrd, progress=not args.quiet, label=cfg.scenario)
     traj = res["truth"]
     print(f"wrote {res['truth_file']} ({len(traj.t_s)} samples over {traj.t_s[-1]:.0f} s), config {res['config_toml']}")
     if res["plot"]:

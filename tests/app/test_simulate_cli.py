@@ -117,6 +117,28 @@ def test_written_config_reproduces_the_run(tmp_path):
     assert sha256(first) == sha256(again)  # the scenario's name is recorded in the truth too
 
 
+def test_the_written_config_alone_reproduces_the_run_and_its_scenario(tmp_path):
+    """run.config.toml records the scenario: given back with --config and no --scenario it is the truth's (the
+    flag's default, 'default', once overrode it with a warning: the same arrays, but a truth that recorded
+    'default', so `estimate --truth` took default's [measurement] table, all markers where the scenario has 3).
+    --scenario typed still wins."""
+    from envisat_pose.app.cli import build_parser
+    from envisat_pose.app.simulate import resolve_config
+
+    first = tmp_path / "first.npz"
+    assert main(["simulate", "--scenario", "paper-3markers-0.02", "--duration-s", "5", "--seed", "9", "--out",
+                 str(first), "--quiet"]) == 0
+    again = tmp_path / "again.npz"
+    assert main(["simulate", "--config", str(tmp_path / "first.config.toml"), "--out", str(again), "--quiet"]) == 0
+    assert sha256(first) == sha256(again)
+    parse = build_parser().parse_args
+    written = str(tmp_path / "first.config.toml")
+    with pytest.warns(UserWarning, match="is not this job's"):
+        assert resolve_config(parse(["simulate", "--config", written, "--scenario", "slow-tumble"])
+                              ).scenario == "slow-tumble"
+    assert resolve_config(parse(["simulate"])).scenario == "default"
+
+
 def test_an_interrupt_inside_an_import_is_reported_as_an_interrupt(monkeypatch, tmp_path, capsys):
     """Ctrl-C landing inside a module's import: the cleanup's own import of that half-loaded module fails with an
     ImportError whose context is the KeyboardInterrupt; the verb says it was interrupted (exit 130), no traceback.
