@@ -11,7 +11,7 @@ import math
 import time
 
 from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_rrd_output, init_error_line
-from envisat_pose.app.flag_rules import check_noise_flags
+from envisat_pose.app.flag_rules import check_noise_flags, job_scenario
 from envisat_pose.config import InputError, check
 from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, run_campaign
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE, run_sweep, sweep_for
@@ -29,9 +29,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Simulate the scenario's truth once, filter N Monte Carlo runs in blocks (parallel, resumable) "
         "and write DIR/campaign.npz, summary.json, timing.json, the figures and montecarlo.config.toml.",
     )
-    p.add_argument("--scenario", required=True, metavar="NAME",
+    p.add_argument("--scenario", metavar="NAME",
                    help="named truth scenario (`envisat scenarios` lists them) or a scenario file NAME.toml; its "
-                   "duration, [measurement] and [filter] tables are the defaults under --config and the flags")
+                   "duration, [measurement] and [filter] tables are the defaults under --config and the flags "
+                   "(required unless the --config file names its `scenario`, as a written montecarlo.config.toml "
+                   "does)")
     p.add_argument("--runs", type=int, help="number of Monte Carlo runs (default 100)")
     p.add_argument("--target", metavar="FILE.xml", help="the target's MJCF file (default: the scenario's, ENVISAT): "
                    "the truth tumbles with its inertia, the filter measures its keypoints")
@@ -72,7 +74,11 @@ def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
         "measurement.kind": args.measurements, "measurement.sigma_m": args.sigma_m,
         "measurement.sigma_px": args.sigma_px, "measurement.max_markers": args.max_markers,
         "measurement.rate_hz": args.rate_hz}
-    return resolve_job("montecarlo", args.scenario, args.config, flags)
+    scenario = job_scenario(args.scenario, args.config, None)
+    if scenario is None:
+        raise InputError("--scenario: required: a named scenario or a scenario file (or a --config file that names "
+                         "one, as a written montecarlo.config.toml does)")
+    return resolve_job("montecarlo", scenario, args.config, flags)
 
 
 def runner_config(args: argparse.Namespace):

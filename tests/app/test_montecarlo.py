@@ -346,3 +346,22 @@ def test_the_help_gives_the_scenarios_duration_as_the_default():
         build_parser().parse_args(["montecarlo", "--help"])
     help_text = " ".join(text.getvalue().split())
     assert "(default 1800)" not in help_text and "the scenario's, 1800 for default, 3600 for eclipse" in help_text
+
+
+def test_the_written_config_alone_reruns_the_campaign(campaign, tmp_path, capsys):
+    """montecarlo.config.toml records the scenario: given back alone with --config it reruns the campaign to the
+    byte (--scenario was required, though the file names it); a file that names none and no flag is one line."""
+    from envisat_pose.app.cli import build_parser
+    from envisat_pose.app.montecarlo import resolve_config
+
+    written = str(campaign / "montecarlo.config.toml")
+    parse = build_parser().parse_args
+    assert resolve_config(parse(["montecarlo", "--config", written, "--out", "x"])) == resolve_config(
+        parse(BASE + ["--out", "x"]))
+    with pytest.warns(UserWarning, match="is not this job's"):
+        assert resolve_config(parse(["montecarlo", "--config", written, "--scenario", "slow-tumble", "--out", "x"])
+                              ).scenario == "slow-tumble"
+    bare = tmp_path / "bare.toml"
+    bare.write_text("runs = 2\n")
+    assert main(["montecarlo", "--config", str(bare), "--out", str(tmp_path / "b"), "--quiet"]) == 2
+    assert "--scenario: required" in capsys.readouterr().err and not (tmp_path / "b").exists()
