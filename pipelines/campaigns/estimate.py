@@ -31,7 +31,7 @@ from envisat_pose.datagen.scenario import (
 from envisat_pose.filtering.estimator import FilterConfig, chaser_states, diverged_against_truth, nees, run_filter
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
 from envisat_pose.geometry import load_geometry
-from envisat_pose.io import atomic_write_text, open_npz, staged_folder
+from envisat_pose.io import atomic_write_text, open_npz, sha256_file, staged_folder
 from envisat_pose.named_scenarios import check_name
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.out_lock import locks_output
@@ -194,6 +194,19 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
     scenario_dict(scenario)  # unknown names fail here with the list of known ones
     scfg = scenario_config(scenario, **overrides)
     return simulate_truth(scfg, progress=progress), {"scenario": scenario}
+
+
+def truth_origin(source: dict, truth) -> str:
+    """The written config's comment naming the truth it filtered, which the config's fields do not hold: the truth
+    file and its sha256, or the scenario simulated and for how long (the scenario's own duration otherwise), with
+    the command that remakes the job."""
+    if "truth_file" in source:
+        path = source["truth_file"]
+        return (f"# truth: {path} (sha256 {sha256_file(path)}); `envisat estimate --truth {path} --config "
+                "THIS_FILE` remakes it\n")
+    name, duration = source["scenario"], float(truth.config["duration_s"])
+    return (f"# truth: scenario {name!r} simulated for {duration:g} s from this seed; `envisat estimate --scenario "
+            f"{name} --duration-s {duration:g} --config THIS_FILE` remakes it\n")
 
 
 def with_target_file(truth, target: str, source: str):
@@ -368,7 +381,8 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     with staged_folder(os.path.dirname(os.path.abspath(out)), [os.path.basename(out[:-4] + ".png")]) as stage:
         est.save(os.path.join(stage, os.path.basename(out)))
         atomic_write_text(os.path.join(stage, os.path.basename(cfg_path)),
-                          "# envisat estimate: the full validated config of this job\n" + to_toml(to_dict(cfg)))
+                          "# envisat estimate: the full validated config of this job\n" + truth_origin(source, truth)
+                          + to_toml(to_dict(cfg)))
         if plot:
             from envisat_pose.analysis.plots import plot_estimate
 

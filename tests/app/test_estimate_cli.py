@@ -117,6 +117,30 @@ def test_config_file_then_flags(tmp_path):
     assert out2.read_bytes() == out.read_bytes()
 
 
+def test_the_written_config_names_the_truth_it_filtered(tmp_path):
+    """est.config.toml's fields hold no truth: its header names the scenario simulated and for how long (a 30 s
+    job given back with only --scenario and --config simulated the scenario's 1800 s), or the truth file and its
+    sha256, each with the command that remakes the job; that command remakes it to the byte."""
+    import hashlib
+    import shlex
+
+    out = tmp_path / "est.npz"
+    assert main(["estimate", "--scenario", "slow-tumble", "--duration-s", "30", "--runs", "2", "--seed", "4",
+                 "--quiet", "--out", str(out)]) == 0
+    header = (tmp_path / "est.config.toml").read_text().splitlines()[1]
+    assert header.startswith("# truth: scenario 'slow-tumble' simulated for 30 s"), header
+    command = shlex.split(header.split("`")[1].replace("THIS_FILE", str(tmp_path / "est.config.toml")))
+    again = tmp_path / "again.npz"
+    assert main(command[1:] + ["--quiet", "--out", str(again)]) == 0
+    assert again.read_bytes() == out.read_bytes()
+    truth = tmp_path / "run.npz"
+    assert main(["simulate", "--duration-s", "10", "--out", str(truth), "--quiet"]) == 0
+    assert main(["estimate", "--truth", str(truth), "--quiet", "--out", str(tmp_path / "t" / "est.npz")]) == 0
+    sha = hashlib.sha256(truth.read_bytes()).hexdigest()
+    assert f"# truth: {truth} (sha256 {sha}); `envisat estimate --truth {truth} --config THIS_FILE`" in (
+        tmp_path / "t" / "est.config.toml").read_text()
+
+
 def test_a_bad_value_is_named_where_the_user_wrote_it(tmp_path, capsys):
     """The flag typed, or the config file's field (the same error, the same field: the value's own source)."""
     cfg = tmp_path / "bad.toml"
