@@ -17,8 +17,10 @@ from dataclasses import dataclass
 
 from envisat_pose.config import Config, InputError, check
 from envisat_pose.contracts import KeypointDetections
+from envisat_pose.io import sha256_file
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.out_lock import locks_output
+from envisat_pose.provenance import manifest_sha256
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, read_shards, sample_total
 from envisat_pose.target import load_target
 
@@ -104,8 +106,9 @@ def detect_target_dataset(cfg: TargetDetectJobConfig, data: str, progress: bool 
     arrays["keypoint_names"] = np.array(det.keypoint_names, dtype=str)
     sigma = weights_keypoint_sigma(cfg.weights, len(det.keypoint_names))
     arrays["cov_px"] = isotropic_cov(sigma, len(arrays["key"]))  # NaN where not calibrated
-    arrays["config_json"] = json.dumps({"weights": cfg.weights, "target": {"name": target.name, "sha256": target.sha256},
-                                        "data": data, "model": model.cfg.to_dict(),
+    arrays["config_json"] = json.dumps({"weights": cfg.weights, "weights_sha256": sha256_file(cfg.weights),
+                                        "target": {"name": target.name, "sha256": target.sha256},
+                                        "data": data, "data_manifest_sha256": manifest_sha256(data), "model": model.cfg.to_dict(),
                                         "calibrated": [n for n, s in zip(det.keypoint_names, sigma) if s > 0],
                                         "skipped_damaged_shards": skipped}, sort_keys=True)
     KeypointDetections.validated(arrays, "det.npz")  # the contract's checks before anything is written

@@ -23,7 +23,7 @@ import re
 
 from envisat_pose.config import InputError, config_arg, path_arg
 from envisat_pose.geometry import load_geometry
-from envisat_pose.io import atomic_write_text, json_safe
+from envisat_pose.io import atomic_write_text, json_safe, sha256_file
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.detector.detect import DetectJobConfig, camera_samples, read_roi
@@ -199,7 +199,7 @@ def evaluate_detector(weights: str, samples, poses: dict, json_path: str, *, dev
     if not groups:
         raise InputError(f"data {data_name!r}: no frames")
     summary = summarize(arrays, groups)
-    result = {"weights": weights, "data": data_name, "frames": len(groups), "model": model.cfg.to_dict(),
+    result = {"weights": weights, "weights_sha256": sha256_file(weights), "data": data_name, "frames": len(groups), "model": model.cfg.to_dict(),
               "detect_config": dataclasses.asdict(cfg), "match_px": 5.0,
               "roi": roi if isinstance(roi, str) or roi is None else (roi_name or "given"),
               "grouping": corruption_groups.__doc__ + " Levels: perception.evaluate.corruption_levels.",

@@ -25,7 +25,7 @@ import json
 import numpy as np
 
 from envisat_pose.config import InputError
-from envisat_pose.io import atomic_write_text, json_safe
+from envisat_pose.io import atomic_write_text, json_safe, sha256_file
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.out_lock import locks_output
 from envisat_pose.perception import keypoint_metrics as km
@@ -163,7 +163,7 @@ def evaluate_target_detector(cfg: TargetDetectJobConfig, data: str, json_path: s
     target, model, arrays, skipped = detect_labelled(cfg, [data], progress)
     perms = relabelings(target.symmetries, target.num_keypoints)
     sigma = weights_keypoint_sigma(cfg.weights, target.num_keypoints)
-    result = {"weights": cfg.weights, "target": {"file": cfg.target, "name": target.name, "sha256": target.sha256},
+    result = {"weights": cfg.weights, "weights_sha256": sha256_file(cfg.weights), "target": {"file": cfg.target, "name": target.name, "sha256": target.sha256},
               "data": dataset_ref(data), "frames": int(len(arrays["key"])), "model": model.cfg.to_dict(),
               "match_px": km.MATCH_PX, "pnp_reprojection_px": km.PNP_REPROJ_PX,
               "twins": [list(map(int, p)) for p in perms[1:]], "skipped_damaged_shards": skipped,

@@ -25,6 +25,26 @@ def test_detect_writes_detections(tiny_dataset, tmp_path):
         assert z["alt_corners_px"].shape == (8, 8, 2) and z["ambiguous"].dtype == bool
 
 
+def test_detections_name_the_weights_and_the_data_by_sha256(tiny_dataset, tmp_path):
+    """det.npz's config_json names the weights and the dataset by their sha256 beside their paths: the path alone
+    (calibrate may write over its --weights) did not say which weights made the detections."""
+    import hashlib
+    import json
+    import os
+
+    torch.manual_seed(0)  # this test's untrained model
+    w = tmp_path / "w.safetensors"
+    save_weights(str(w), CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8)))
+    out = tmp_path / "det.npz"
+    assert main(["detect", "--weights", str(w), "--data", tiny_dataset, "--out", str(out), "--quiet",
+                 "--threads", "1", "--limit", "1"]) == 0
+    with np.load(out, allow_pickle=False) as z:
+        cfg = json.loads(str(z["config_json"]))
+    assert cfg["weights_sha256"] == hashlib.sha256(w.read_bytes()).hexdigest()
+    manifest = os.path.join(tiny_dataset, "manifest.json")
+    assert cfg["data_manifest_sha256"] == hashlib.sha256(open(manifest, "rb").read()).hexdigest()
+
+
 def test_detect_bad_weights_one_line(tiny_dataset, tmp_path, capsys):
     bad = tmp_path / "w.safetensors"
     bad.write_bytes(b"\x00" * 10)

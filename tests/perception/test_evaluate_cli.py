@@ -78,6 +78,7 @@ def test_evaluate_with_oracle_writes_every_group(paper_dataset, weights, tmp_pat
     from envisat_pose.perception.evaluate import GROUP_ORDER, RANGE_GROUPS
 
     assert list(res["groups"]) == list(GROUP_ORDER) + list(RANGE_GROUPS) and res["frames"] == 12
+    assert res["weights_sha256"] == hashlib.sha256(open(weights, "rb").read()).hexdigest()  # the path alone did not
     assert sum(res["groups"][g]["detector"]["frames"] for g in RANGE_GROUPS) == 12
     allg = res["groups"]["all"]
     assert set(allg) == {"detector", "detector_no_lines", "harris", "shi_tomasi"}
