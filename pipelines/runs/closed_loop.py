@@ -43,7 +43,7 @@ from envisat_pose.datagen.truth import simulate_truth
 from envisat_pose.datagen.views import sample_seed
 from envisat_pose.filtering.estimator import filter_inertia_T_kg_m2
 from envisat_pose.geometry import load_camera
-from envisat_pose.io import atomic_write_text, staged_folder
+from envisat_pose.io import atomic_write_text, sha256_file, staged_folder
 from envisat_pose.out_dirs import made_out_dir
 from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.common.threads import compute_threads
@@ -276,7 +276,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
     r0 = results[0]
     summary = {
         "scenario": cfg.scenario, "target": load_target(cfg.image.target).record(cfg.image.target), "runs": R, "frames": T, "duration_s": cfg.duration_s, "roi": cfg.tracker.roi.enabled,
-        "weights": cfg.weights, "start": "warm" if cfg.warm_start else "cold",
+        "weights": cfg.weights, "weights_sha256": sha256_file(cfg.weights), "start": "warm" if cfg.warm_start else "cold",
         "resolution_px": cfg.image.resolution_px,
         "scores": scores,
         "timing_ms_per_frame": {s: float(1000 * timing_sum[i] / (R * T)) for i, s in enumerate(STAGES)},

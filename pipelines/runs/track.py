@@ -37,7 +37,7 @@ from envisat_pose.config import Config, as_path_or_object, check, config_arg, pa
 from envisat_pose.datagen.scenario import OrbitConfig
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
-from envisat_pose.io import atomic_write_text, staged_folder
+from envisat_pose.io import atomic_write_text, sha256_file, staged_folder
 from envisat_pose.out_dirs import check_out_dir, made_out_dir
 from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job, scenario_table
@@ -255,7 +255,7 @@ def track_summary(source: FrameSource, weights: str, pixels: str, col: dict, tim
     return {
         "source": {"kind": source.kind, "path": source.path, "frames": T, "bit_depth": source.bit_depth,
                    "size_px": list(source.size_px), "pixels": pixels, "skipped_damaged_shards": source.skipped},
-        "weights": weights,
+        "weights": weights, "weights_sha256": sha256_file(weights),
         **status_summary(source.t_s, col),
         # the stages timed here: the frames are read, not made (no simulation, rendering or camera)
         "timing_ms_per_frame": {s: float(1000 * timing_s[i]) for i, s in enumerate(STAGES) if s not in BEFORE_TRACKER},

@@ -88,6 +88,9 @@ def test_a_generate_folder_is_tracked_and_scored(seq_dir, tmp_path, detector_wei
     np.testing.assert_array_equal(est.x_true[0], truth_of(seq_dir))
     summary = json.loads((out / "summary.json").read_text())
     assert "scores" in summary and (out / "errors.png").exists()
+    import hashlib  # the weights by sha256 beside their path (the path alone did not say which weights tracked)
+
+    assert summary["weights_sha256"] == hashlib.sha256(open(detector_weights, "rb").read()).hexdigest()
     printed = capsys.readouterr().out
     assert "false-lock time" in printed and "first track correct" in printed
 
