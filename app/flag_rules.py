@@ -26,15 +26,19 @@ def not_applying(args: argparse.Namespace, dests: tuple[str, ...], why: str) -> 
         raise InputError(f"--{given[0].replace('_', '-')}: {why}")
 
 
-def job_scenario(flag: str | None, config_path: str | None, fallback: str | None = "default") -> str | None:
+def job_scenario(flag: str | None, config_path: str | None, fallback: str | None = "default",
+                 required: bool = False) -> str | None:
     """A job's scenario: the --scenario typed, else its config file's top-level `scenario` (what a run's written
-    config records: it reproduces the run), else `fallback`."""
+    config records: it reproduces the run), else `fallback` (required: an InputError instead)."""
     if flag is not None:
         return flag
     if config_path is not None:
         named = load_toml(config_path).get("scenario")
         if named is not None:
             return named  # the job's config checks it is a known name
+    if required:
+        raise InputError("--scenario: required: a named scenario or a scenario file (or a --config file that names "
+                         "one, as a written config does)")
     return fallback
 
 

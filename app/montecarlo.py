@@ -32,8 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scenario", metavar="NAME",
                    help="named truth scenario (`envisat scenarios` lists them) or a scenario file NAME.toml; its "
                    "duration, [measurement] and [filter] tables are the defaults under --config and the flags "
-                   "(required unless the --config file names its `scenario`, as a written montecarlo.config.toml "
-                   "does)")
+                   "(default: the --config file's `scenario`, as montecarlo.config.toml records it)")
     p.add_argument("--runs", type=int, help="number of Monte Carlo runs (default 100)")
     p.add_argument("--target", metavar="FILE.xml", help="the target's MJCF file (default: the scenario's, ENVISAT): "
                    "the truth tumbles with its inertia, the filter measures its keypoints")
@@ -74,11 +73,7 @@ def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
         "measurement.kind": args.measurements, "measurement.sigma_m": args.sigma_m,
         "measurement.sigma_px": args.sigma_px, "measurement.max_markers": args.max_markers,
         "measurement.rate_hz": args.rate_hz}
-    scenario = job_scenario(args.scenario, args.config, None)
-    if scenario is None:
-        raise InputError("--scenario: required: a named scenario or a scenario file (or a --config file that names "
-                         "one, as a written montecarlo.config.toml does)")
-    return resolve_job("montecarlo", scenario, args.config, flags)
+    return resolve_job("montecarlo", job_scenario(args.scenario, args.config, required=True), args.config, flags)
 
 
 def runner_config(args: argparse.Namespace):
