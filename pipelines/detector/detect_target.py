@@ -108,7 +108,8 @@ def detect_target_dataset(cfg: TargetDetectJobConfig, data: str, progress: bool 
     arrays["cov_px"] = isotropic_cov(sigma, len(arrays["key"]))  # NaN where not calibrated
     arrays["config_json"] = json.dumps({"weights": cfg.weights, "weights_sha256": sha256_file(cfg.weights),
                                         "target": {"name": target.name, "sha256": target.sha256},
-                                        "data": data, "data_manifest_sha256": manifest_sha256(data), "model": model.cfg.to_dict(),
+                                        "data": data, "data_manifest_sha256": manifest_sha256(data),
+                                        "model": model.cfg.to_dict(),
                                         "calibrated": [n for n, s in zip(det.keypoint_names, sigma) if s > 0],
                                         "skipped_damaged_shards": skipped}, sort_keys=True)
     KeypointDetections.validated(arrays, "det.npz")  # the contract's checks before anything is written

@@ -199,7 +199,8 @@ def evaluate_detector(weights: str, samples, poses: dict, json_path: str, *, dev
     if not groups:
         raise InputError(f"data {data_name!r}: no frames")
     summary = summarize(arrays, groups)
-    result = {"weights": weights, "weights_sha256": sha256_file(weights), "data": data_name, "frames": len(groups), "model": model.cfg.to_dict(),
+    result = {"weights": weights, "weights_sha256": sha256_file(weights), "data": data_name, "frames": len(groups),
+              "model": model.cfg.to_dict(),
               "detect_config": dataclasses.asdict(cfg), "match_px": 5.0,
               "roi": roi if isinstance(roi, str) or roi is None else (roi_name or "given"),
               "grouping": corruption_groups.__doc__ + " Levels: perception.evaluate.corruption_levels.",

@@ -276,7 +276,8 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
     r0 = results[0]
     summary = {
         "scenario": cfg.scenario, "target": load_target(cfg.image.target).record(cfg.image.target), "runs": R, "frames": T, "duration_s": cfg.duration_s, "roi": cfg.tracker.roi.enabled,
-        "weights": cfg.weights, "weights_sha256": sha256_file(cfg.weights), "start": "warm" if cfg.warm_start else "cold",
+        "weights": cfg.weights, "weights_sha256": sha256_file(cfg.weights),
+        "start": "warm" if cfg.warm_start else "cold",
         "resolution_px": cfg.image.resolution_px,
         "scores": scores,
         "timing_ms_per_frame": {s: float(1000 * timing_sum[i] / (R * T)) for i, s in enumerate(STAGES)},
