@@ -13,7 +13,7 @@ import json
 import os
 import sys
 
-from envisat_pose.pipelines.detector.train import git_hash
+from envisat_pose.provenance import git_hash
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -30,7 +30,7 @@ def results_path(name: str) -> str:
 
 
 def provenance(args: argparse.Namespace | None = None) -> dict:
-    """Where a result comes from, for its JSON: the source's commit (pipelines.detector.train.git_hash: '+dirty'
+    """Where a result comes from, for its JSON: the source's commit (envisat_pose.provenance.git_hash: '+dirty'
     when the tree has uncommitted changes; null where no commit is known), the UTC date and time, the command
     line's arguments as typed (argv) and every parsed argument with its default (args: seeds included)."""
     commit = git_hash()

@@ -41,6 +41,7 @@ from envisat_pose.io import atomic_write_text, sha256_file
 from envisat_pose.out_dirs import check_out_dir
 from envisat_pose.out_lock import locks_output
 from envisat_pose.pools import RunnerConfig, cpu_share, thread_env
+from envisat_pose.provenance import source_line
 from envisat_pose.resumable import ResumableJob
 from envisat_pose.shard_reader import shard_problem
 from envisat_pose.state import RATE, VEL
@@ -387,7 +388,8 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
     job = dataset_job(cfg, out_dir)
     done = job.resume(job.open())
     atomic_write_text(os.path.join(out_dir, "generate.config.toml"),
-                      "# envisat generate: the full validated config of this dataset\n" + to_toml(to_dict(cfg)))
+                      "# envisat generate: the full validated config of this dataset\n" + source_line()
+                      + to_toml(to_dict(cfg)))
     bar, n_done = None, sum(e["count"] for e in done.values())
     if progress and n_done < cfg.num_images:  # nothing to do draws no bar (the verb says so in its line)
         from tqdm import tqdm

@@ -1,4 +1,5 @@
-"""Names of datasets and files that travel: no path of the machine they were made on.
+"""Names of datasets and files that travel: no path of the machine they were made on; the source a result was
+made with (git_hash, source_line).
 
 A model card and the weights' metadata name a dataset by its folder's name and the sha256 of its manifest.json
 (the manifest holds the full generate config and every shard's size), so the same data regenerated anywhere by
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import os
 import re
+import subprocess
 
 from envisat_pose.io import sha256_file
 from envisat_pose.resumable import manifest_path
@@ -69,3 +71,36 @@ def dataset_ref(folder: str) -> str:
 def weights_ref(path: str) -> dict:
     """A weights file named by its file name and sha256 (no path of this machine in a result file)."""
     return {"name": os.path.basename(path), "sha256": sha256_file(path)}
+
+
+def git_hash() -> str:
+    """The source's commit (with '+dirty' when the tree has changes); outside a checkout of this source (a copy
+    laid out without .git, as on a borrowed GPU machine; an installed copy, even in a folder another repository
+    tracks) the commit the copy was made from, given as ENVISAT_SOURCE_GIT; else 'unknown'."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    given = os.environ.get("ENVISAT_SOURCE_GIT", "").strip() or "unknown"
+    try:
+        ours = subprocess.run(["git", "ls-files", "--error-unmatch", os.path.basename(__file__)], cwd=here,
+                              capture_output=True, text=True, timeout=10)
+        if ours.returncode != 0:  # not a checkout, or another project's (a venv inside a user's repository)
+            return given
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
+        if head.returncode != 0:
+            return given
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                               capture_output=True, text=True, timeout=10)
+        return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.SubprocessError):
+        return given
+
+
+def source_line() -> str:
+    """The comment a job's written config carries under its first line: the package's version and the source's
+    commit (git_hash), what a rerun months later needs beside the config's values to make the same outputs."""
+    from importlib import metadata
+
+    try:
+        version = metadata.version("envisat-pose")
+    except metadata.PackageNotFoundError:
+        version = "not installed"
+    return f"# source: envisat-pose {version}, commit {git_hash()}\n"

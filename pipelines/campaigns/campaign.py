@@ -58,6 +58,7 @@ from envisat_pose.pipelines.campaigns.campaign_outputs import FIGURES, finish_ca
 from envisat_pose.pipelines.campaigns.estimate import filter_keypoints_T_m
 from envisat_pose.pipelines.campaigns.observability import warn_if_unfixed_start, warn_outages_outside
 from envisat_pose.pools import RunnerConfig
+from envisat_pose.provenance import source_line
 from envisat_pose.resumable import ResumableJob
 from envisat_pose.target import load_target
 
@@ -142,7 +143,8 @@ def campaign_at_one_rate(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConf
     # blocks filtered on another truth are redone
     done = job.resume(previous if previous and previous.get("truth_sha256") == truth_sha else None)
     atomic_write_text(os.path.join(out_dir, "montecarlo.config.toml"),
-                      "# envisat montecarlo: the full validated config of this campaign\n" + to_toml(to_dict(cfg)))
+                      "# envisat montecarlo: the full validated config of this campaign\n" + source_line()
+                      + to_toml(to_dict(cfg)))
     cfg_json, where = json.dumps(to_dict(cfg), sort_keys=True), os.path.abspath(out_dir)
     n_run_now = len(job.todo())
     bar = _bar(cfg, done, progress)

@@ -42,6 +42,7 @@ from envisat_pose.pipelines.campaigns.observability import (
 )
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, layered_job
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
+from envisat_pose.provenance import source_line
 from envisat_pose.target import DEFAULT_TARGET, Target, is_default_file, load_target, resolve_target_path
 from envisat_pose.target_file import target_sha256
 
@@ -381,7 +382,8 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     with staged_folder(os.path.dirname(os.path.abspath(out)), [os.path.basename(out[:-4] + ".png")]) as stage:
         est.save(os.path.join(stage, os.path.basename(out)))
         atomic_write_text(os.path.join(stage, os.path.basename(cfg_path)),
-                          "# envisat estimate: the full validated config of this job\n" + truth_origin(source, truth)
+                          "# envisat estimate: the full validated config of this job\n" + source_line()
+                          + truth_origin(source, truth)
                           + to_toml(to_dict(cfg)))
         if plot:
             from envisat_pose.analysis.plots import plot_estimate

@@ -12,6 +12,7 @@ from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.named_scenarios import known, names
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.out_lock import locks_output
+from envisat_pose.provenance import source_line
 from envisat_pose.target import load_target
 
 
@@ -67,7 +68,8 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
     with staged_folder(os.path.dirname(os.path.abspath(out)), [os.path.basename(png)]) as stage:
         traj.save(os.path.join(stage, os.path.basename(out)))
         atomic_write_text(os.path.join(stage, os.path.basename(cfg_path)),
-                          "# envisat simulate: the full validated config of this run\n" + origin + to_toml(to_dict(cfg)))
+                          "# envisat simulate: the full validated config of this run\n" + source_line() + origin
+                          + to_toml(to_dict(cfg)))
         if plot:
             from envisat_pose.analysis.plots import plot_states
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import subprocess
 from dataclasses import dataclass
 
 from envisat_pose.config import InputError, check, from_dict, path_arg, paths_arg
@@ -28,7 +27,7 @@ from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, loo
 from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_configs, run_identity
 from envisat_pose.pipelines.detector.render_pool import RENDERER_BYTES, looks_keypoints
 from envisat_pose.pools import default_processes, torchrun_int, usable_cores
-from envisat_pose.provenance import manifest_sha256
+from envisat_pose.provenance import git_hash, manifest_sha256
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
 from envisat_pose.target import (
     DEFAULT_TARGET,
@@ -173,23 +172,6 @@ def default_render_workers() -> int:
     the usable memory holds at RENDERER_BYTES each for the node's ranks (63 renderers, a 64-core machine's default
     count, take ~67 GB)."""
     return default_processes(max(1, default_workers()), RENDERER_BYTES * _ranks("LOCAL_WORLD_SIZE"))
-
-
-def git_hash() -> str:
-    """The source's commit (with '+dirty' when the tree has changes); outside a checkout (a copy laid out without
-    .git, as on a borrowed GPU machine) the commit the copy was made from, given as ENVISAT_SOURCE_GIT; else
-    'unknown'."""
-    here = os.path.dirname(os.path.abspath(__file__))
-    given = os.environ.get("ENVISAT_SOURCE_GIT", "").strip() or "unknown"
-    try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
-        if head.returncode != 0:
-            return given
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
-                               capture_output=True, text=True, timeout=10)
-        return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
-    except (OSError, subprocess.SubprocessError):
-        return given
 
 
 def dataset_provenance(data_dir: str, skipped: list[str] = ()) -> dict:

@@ -60,6 +60,7 @@ from envisat_pose.pipelines.tracking.namings import target_namings
 from envisat_pose.pipelines.tracking.onboard import chaser_function, onboard_physics, orbit_config
 from envisat_pose.pipelines.tracking.tracker import Tracker
 from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
+from envisat_pose.provenance import source_line
 from envisat_pose.realtime import real_time_factor
 from envisat_pose.state import draw_initial_estimate
 from envisat_pose.target import load_target, other_target
@@ -260,7 +261,8 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
     write_run_files(paths, truth.t_s, truth.x, run_dirs, lost_runs(run_dirs, T), config_json,
                     [f"frame-{k:06d}" for k in range(T)], det_cfg,
                     extra={"settled": np.array(scores["settled_runs"], bool)})
-    atomic_write_text(paths["config"], "# envisat run: the full validated config of this run\n" + to_toml(to_dict(cfg)))
+    atomic_write_text(paths["config"], "# envisat run: the full validated config of this run\n" + source_line()
+                      + to_toml(to_dict(cfg)))
     from envisat_pose.analysis.plots import plot_estimate
 
     plot_estimate(*plot_inputs(truth.t_s, truth.x, run_dirs), paths["plot"],

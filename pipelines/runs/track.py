@@ -52,6 +52,7 @@ from envisat_pose.pipelines.tracking.build import tracker_detector
 from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics, camera_record, default_camera
 from envisat_pose.pipelines.tracking.onboard import chaser_function
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, Tracker, TrackerConfig
+from envisat_pose.provenance import source_line
 from envisat_pose.realtime import real_time_factor
 from envisat_pose.status import legend
 from envisat_pose.target import DEFAULT_TARGET, load_target, other_target
@@ -229,7 +230,8 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     col = run_rows(run_dir, ["status", "nis", "nis_dof"], 0, T)  # three scalars a frame
     write_run_files(paths, source.t_s, x_true, [run_dir], lost_runs([run_dir], T), config_json, source.names,
                     det_cfg, det_names=det_names)
-    atomic_write_text(paths["config"], "# envisat track: the full validated config of this job\n" + to_toml(to_dict(cfg)))
+    atomic_write_text(paths["config"], "# envisat track: the full validated config of this job\n" + source_line()
+                      + to_toml(to_dict(cfg)))
     summary = track_summary(source, cfg.weights, pixels, col, np.asarray(sums["timing_s"]) / T, wall_s)
     summary["target"], summary["camera"] = record, used
     summary["last_cold_start_refusal"] = tracker.last_refusal  # why a frame's cold start started nothing (None)

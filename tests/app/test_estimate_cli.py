@@ -127,7 +127,8 @@ def test_the_written_config_names_the_truth_it_filtered(tmp_path):
     out = tmp_path / "est.npz"
     assert main(["estimate", "--scenario", "slow-tumble", "--duration-s", "30", "--runs", "2", "--seed", "4",
                  "--quiet", "--out", str(out)]) == 0
-    header = (tmp_path / "est.config.toml").read_text().splitlines()[1]
+    header = next(line for line in (tmp_path / "est.config.toml").read_text().splitlines()
+                  if line.startswith("# truth:"))
     assert header.startswith("# truth: scenario 'slow-tumble' simulated for 30 s"), header
     command = shlex.split(header.split("`")[1].replace("THIS_FILE", str(tmp_path / "est.config.toml")))
     again = tmp_path / "again.npz"

@@ -34,7 +34,7 @@ def test_laid_out_package_imports_from_its_folder_and_loads_the_plugin(tmp_path)
              "from importlib import metadata, resources\n"
              "from envisat_pose.datagen import plugin\n"
              "from envisat_pose import named_scenarios\n"
-             "from envisat_pose.pipelines.detector.train import git_hash\n"
+             "from envisat_pose.provenance import git_hash\n"
              "eps = [e for e in metadata.entry_points(group='mujoco.plugins') if e.name == 'envisat_relative_gravity']\n"
              "print(json.dumps({'pkg': envisat_pose.__file__, 'lib': plugin._HANDLES[0]._name if plugin._HANDLES else None,"
              " 'mjcf': str(resources.files('envisat_pose.models')), 'scenarios': named_scenarios.names(),"

@@ -1,0 +1,70 @@
+"""Every job's written config names the source that made it under its first line: the package's version and the
+commit (what a rerun months later needs beside the config's values). The expected commit is read here from git
+itself, not from the code under test."""
+
+import os
+import subprocess
+from importlib import metadata
+
+import pytest
+
+from envisat_pose.app.cli import main
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def _expected_commit() -> str:
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
+                               capture_output=True, text=True, timeout=10)
+    except OSError:  # no git here: the copy's commit as its maker gave it, else unknown
+        return os.environ.get("ENVISAT_SOURCE_GIT", "").strip() or "unknown"
+    if head.returncode != 0:
+        return os.environ.get("ENVISAT_SOURCE_GIT", "").strip() or "unknown"
+    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+
+
+JOBS = {
+    "simulate": (["simulate", "--duration-s", "10", "--out", "{d}/run.npz"], "run.config.toml"),
+    "estimate": (["estimate", "--scenario", "default", "--duration-s", "10", "--runs", "1", "--out", "{d}/est.npz"],
+                 "est.config.toml"),
+    "montecarlo": (["montecarlo", "--scenario", "default", "--duration-s", "20", "--runs", "2", "--out", "{d}/mc"],
+                   "mc/montecarlo.config.toml"),
+    "generate": (["generate", "--num-images", "2", "--resolution", "64", "--out", "{d}/data"],
+                 "data/generate.config.toml"),
+}
+
+
+@pytest.mark.parametrize("verb", sorted(JOBS))
+def test_a_written_config_names_the_version_and_commit_that_made_it(verb, tmp_path):
+    argv, written = JOBS[verb]
+    assert main([a.format(d=tmp_path) for a in argv] + ["--quiet"]) == 0
+    lines = (tmp_path / written).read_text().splitlines()
+    assert lines[0].startswith(f"# envisat {verb}: the full validated config")
+    assert lines[1] == f"# source: envisat-pose {metadata.version('envisat-pose')}, commit {_expected_commit()}"
+
+
+def test_a_copy_in_another_projects_repository_names_no_commit_of_that_project(tmp_path, monkeypatch):
+    """An installed copy in a folder another repository tracks (a virtual environment inside a user's project)
+    read that project's commit as ours."""
+    import importlib.util
+    import shutil
+
+    monkeypatch.delenv("ENVISAT_SOURCE_GIT", raising=False)
+    repo = tmp_path / "their_project"
+    (repo / "venv" / "envisat_pose").mkdir(parents=True)
+    copy = repo / "venv" / "envisat_pose" / "provenance.py"
+    shutil.copy(os.path.join(ROOT, "envisat_pose", "provenance.py"), copy)
+    (repo / "README").write_text("theirs\n")
+    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t",
+           "GIT_COMMITTER_EMAIL": "t@t"}
+    try:
+        for cmd in (["git", "init", "-q"], ["git", "add", "README"], ["git", "commit", "-q", "-m", "theirs"]):
+            subprocess.run(cmd, cwd=repo, check=True, env=env, capture_output=True)
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip("no git here to make another project's repository")
+    spec = importlib.util.spec_from_file_location("copied_provenance", copy)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.git_hash() == "unknown"
