@@ -325,7 +325,7 @@ def _convert(value: Any, hint: Any, field: str, finite: bool = True) -> Any:
     if origin is tuple:
         args = typing.get_args(hint)
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(field, value, f"a list of {len(args) if args[-1] is not Ellipsis else 'some'} numbers")
+            raise ConfigError(field, value, _list_expected(args))
         if args and args[-1] is Ellipsis:
             return tuple(_convert(v, args[0], f"{field}[{i}]", finite) for i, v in enumerate(value))
         if len(value) != len(args):
@@ -337,6 +337,17 @@ def _convert(value: Any, hint: Any, field: str, finite: bool = True) -> Any:
             raise ConfigError(field, value, "one of " + ", ".join(repr(a) for a in allowed))
         return value
     return value
+
+
+_ITEM_WORDS = {int: "integers", float: "numbers", str: "strings", bool: "true/false values"}
+
+
+def _list_expected(args: tuple) -> str:
+    """What a tuple field takes, in a config error's words: 'a list of integers' (tuple[int, ...]), 'a list of 3
+    numbers' (tuple[float, float, float]), 'a list of 2 values' (mixed items)."""
+    items = set(args[:-1] if args and args[-1] is Ellipsis else args)
+    word = _ITEM_WORDS.get(next(iter(items)), "values") if len(items) == 1 else "values"
+    return f"a list of {word}" if args and args[-1] is Ellipsis else f"a list of {len(args)} {word}"
 
 
 def field_value(cls: type, name: str, value: Any) -> Any:

@@ -102,6 +102,26 @@ def test_a_config_is_validated_when_built():
     assert from_dict(Filled, {"runs": 2, "rates": {"rate_hz": 3}}) == Filled(runs=2, rates=Rates(3.0))
 
 
+def test_a_list_field_given_a_scalar_says_what_its_items_are():
+    """A tuple field given one value names the items it takes (adc_bits = "twelve" said 'a list of some
+    numbers' of a field of integers)."""
+    @dataclass(frozen=True)
+    class Lists:
+        bits: tuple[int, ...] = (8,)
+        scales: tuple[float, ...] = (1.0,)
+        axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+        names: tuple[str, ...] = ("a",)
+        mixed: tuple[str, float] = ("a", 1.0)
+
+    for name, value, words in (("bits", "twelve", "a list of integers"), ("scales", 2.0, "a list of numbers"),
+                               ("axis", 1.0, "a list of 3 numbers"), ("names", "a", "a list of strings"),
+                               ("mixed", 1, "a list of 2 values")):
+        with pytest.raises(ConfigError, match=f"^{name} = .*: expected {words}$"):
+            from_dict(Lists, {name: value})
+    with pytest.raises(ConfigError, match=r"^axis = \[1, 2\]: expected a list of 3 values$"):
+        from_dict(Lists, {"axis": [1, 2]})  # a list of another length: as before
+
+
 def test_a_constructor_checks_its_fields_types_as_from_dict_does():
     """Plain Python arguments of the wrong type are one ConfigError naming the field (once a comparison's
     TypeError, or a float of steps that trained one step more), and what from_dict makes is made here too: a
