@@ -38,6 +38,7 @@ from .recording_layout import (
     position_ellipsoids,
     track_blueprint,
 )
+from .recording_writers import flush_file
 from .stats import component_errors, display_transform
 
 
@@ -95,7 +96,8 @@ class TrackRecorder:
         self._atomic, self.sink = None, sink
         if kind == "save":
             self._atomic = atomic_path(arg, suffix=".rrd")
-            self.rec.save(self._atomic.__enter__(), default_blueprint=blueprint)
+            self._tmp = self._atomic.__enter__()
+            self.rec.save(self._tmp, default_blueprint=blueprint)
         elif kind == "spawn":
             # this environment's viewer, whether or not its bin folder is on PATH
             spawn(executable_path=viewer_executable(), default_blueprint=blueprint, recording=self.rec)
@@ -240,10 +242,12 @@ class TrackRecorder:
 
     def close(self) -> None:
         """Flush; a saved recording is renamed to its path only now (complete). A live viewer that does not take
-        what is left within LIVE_FLUSH_TIMEOUT_S (closed, gone, never reached) gets a warning, not a wait."""
+        what is left within LIVE_FLUSH_TIMEOUT_S (closed, gone, never reached) gets a warning, not a wait. A saved
+        recording that could not be written whole (flush_file: a full disk) is removed, not renamed."""
+        failed = None
         try:
             if self._atomic is not None:
-                self.rec.flush()
+                flush_file(self.rec, self._tmp)
             else:
                 try:
                     self.rec.flush(timeout_sec=LIVE_FLUSH_TIMEOUT_S)
@@ -252,7 +256,10 @@ class TrackRecorder:
                                   f"{LIVE_FLUSH_TIMEOUT_S:g} s ({e}); the job's other outputs are complete",
                                   stacklevel=2)
             self.rec.disconnect()
+        except BaseException as err:
+            failed = err
+            raise
         finally:
             if self._atomic is not None:
-                self._atomic.__exit__(None, None, None)
-                self._atomic = None
+                atomic, self._atomic = self._atomic, None
+                atomic.__exit__(*((None, None, None) if failed is None else (type(failed), failed, None)))

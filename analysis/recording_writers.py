@@ -3,6 +3,7 @@ written under a temporary name, with its footer, and renamed when complete (envi
 
 from __future__ import annotations
 
+import os
 import uuid
 from dataclasses import dataclass
 from typing import Iterable
@@ -12,7 +13,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from envisat_pose.contracts import Estimates, TruthTrajectory
-from envisat_pose.io import atomic_path
+from envisat_pose.io import atomic_path, no_room_error
 from envisat_pose.target import Target, default_target
 
 from .recording_layout import (
@@ -40,6 +41,35 @@ from .recording_layout import (
 
 # ---------------------------------------------------------------- files
 
+FLUSH_POLL_S = 2.0  # flush_file waits this long at a time, checking between waits that the file still grows
+FLUSH_STALL_POLLS = 30  # waits in a row without a byte written, room left, before flush_file gives up (a minute)
+
+
+def flush_file(rec: rr.RecordingStream, tmp: str) -> None:
+    """Flush a recording saved to the file tmp. Rerun's file writer runs on its own thread: a write the OS refuses
+    there (a full disk) is only logged, and Rerun's flush then either raises a RuntimeError without the reason or
+    waits forever. Here it waits FLUSH_POLL_S at a time while the file grows; once the writer is gone, or wrote
+    nothing over a wait and the folder takes no more bytes, it raises the OSError (ENOSPC, EDQUOT, EFBIG) naming
+    tmp that the verbs say in one line (io.no_room_error); a writer gone with room left, or stalled over
+    FLUSH_STALL_POLLS waits, is Rerun's RuntimeError."""
+    size, stalled = -1, 0
+    while True:
+        try:
+            rec.flush(timeout_sec=FLUSH_POLL_S)
+            return
+        except RuntimeError as err:
+            if "timed out" not in str(err):  # the writer thread is gone
+                raise no_room_error(tmp, err) from err
+            now = os.path.getsize(tmp) if os.path.exists(tmp) else -1
+            if now != size:  # still writing: wait on
+                size, stalled = now, 0
+                continue
+            refused = no_room_error(tmp, err)
+            stalled += 1
+            if refused is not err or stalled >= FLUSH_STALL_POLLS:
+                raise refused from err
+
+
 class _Recording:
     """A recording saved to `path` atomically: `with _Recording(path, blueprint) as rec: ...`."""
 
@@ -48,16 +78,16 @@ class _Recording:
 
     def __enter__(self) -> rr.RecordingStream:
         self._atomic = atomic_path(self.path, suffix=".rrd")
-        tmp = self._atomic.__enter__()
+        self.tmp = self._atomic.__enter__()
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=str(uuid.uuid4()), send_properties=False)
         self.rec.set_log_time_enabled(False)  # only the two timelines of the design, sim_time and frame
         self.rec.set_log_tick_enabled(False)
-        self.rec.save(tmp, default_blueprint=self.blueprint)
+        self.rec.save(self.tmp, default_blueprint=self.blueprint)
         return self.rec
 
     def __exit__(self, *exc) -> bool:
         try:
-            self.rec.flush()
+            flush_file(self.rec, self.tmp)
             self.rec.disconnect()  # closes the file before it is renamed
         finally:
             self._atomic.__exit__(*exc)

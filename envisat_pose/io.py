@@ -84,6 +84,30 @@ def atomic_path(path: str, suffix: str = ""):
         raise
 
 
+NO_ROOM_PROBE_BYTES = 16 << 20  # what no_room_error writes to learn why a writer thread stopped
+
+
+def no_room_error(path: str, err: BaseException) -> BaseException:
+    """The error to raise for a writer that failed outside Python (Rerun's file-writer thread: a RuntimeError
+    'File-writer thread shut down prematurely', the OS's reason only logged) while writing `path`: an OSError
+    naming path where the folder takes no more bytes (a write of NO_ROOM_PROBE_BYTES beside it is refused with
+    ENOSPC, EDQUOT or EFBIG: a full disk, a quota, `ulimit -f`), else err itself. The probe's file is removed."""
+    import errno
+
+    fd, probe = tempfile.mkstemp(prefix=_partial_prefix(path, os.getpid()), dir=os.path.dirname(os.path.abspath(path)))
+    try:
+        block = bytes(1 << 20)
+        for _ in range(NO_ROOM_PROBE_BYTES // len(block)):
+            os.write(fd, block)
+    except OSError as refused:
+        if refused.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+            return OSError(refused.errno, os.strerror(refused.errno), path)
+    finally:
+        os.close(fd)
+        os.remove(probe)
+    return err
+
+
 STAGE_PREFIX = ".tmp-stage-"  # staged_folder's folder inside the destination (what a killed job leaves behind)
 
 
