@@ -75,13 +75,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def resolve_config(args: argparse.Namespace):
     """Defaults (a resumed run's own config), then the TOML file, then the flags; validated before any work. The
-    config class: ENVISAT's TrainConfig, or another target's KeypointTrainConfig (--target, or a resumed run's)."""
+    config class: ENVISAT's TrainConfig, or another target's KeypointTrainConfig (--target, a run's, a file's)."""
     base = read_run_config(args.out) if args.resume and os.path.isdir(args.out) else {}
     if args.steps is not None and args.time_budget_s is None:
         base.pop("time_budget_s", None)  # a resumed budgeted run given --steps trains to that step
     flags = {"steps": args.steps, "batch_size": args.batch_size, "seed": args.seed,
              "time_budget_s": args.time_budget_s, "target": other_target(args.target)}
-    return resolve_job_config(train_config_class(args.target, base), base, args.config, flags)
+    return resolve_job_config(train_config_class(args.target, base, args.config), base, args.config, flags)
 
 
 def online_config(args: argparse.Namespace, cfg):

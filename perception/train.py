@@ -2,7 +2,7 @@
 a run directory.
 
 Run directory (one per run, as L-CNN's):
-    config.json         the frozen TrainConfig (model, data, loss, schedule), the command and the git hash
+    config.json         the frozen TrainConfig, the command and the git hash (train.config.toml: the TrainConfig alone)
     metrics.jsonl       one JSON line per epoch (a pass over the data) and one at the end: step, loss terms, time;
                         the end line also this call's speed (samples_s, first_batch_s, data_wait_s, workers)
     checkpoint.safetensors   the model (perception/weights.py: safetensors, the ModelConfig in its metadata)

@@ -9,6 +9,7 @@ import os
 
 from envisat_pose.config import InputError, flatten
 from envisat_pose.perception.stream import close_batches, epoch_batches, loader_batches, run_prefetch
+from envisat_pose.perception.trainer_hooks import CONFIG_TOML
 from envisat_pose.perception.weights import WeightsError, read_header
 from envisat_pose.target import resolve_target_path
 
@@ -125,8 +126,9 @@ def check_checkpoint_set(run_dir: str, state: dict) -> None:
                              f"{os.path.join(run_dir, 'checkpoint.safetensors')}")
 
 
-RUN_FILES = ("config.json", "metrics.jsonl", "state.json", "checkpoint.safetensors", "optimizer.pt", "ema.safetensors",
-             "pre_cooldown.safetensors", "pre_cooldown_optimizer.pt")  # what a run folder holds (perception/train.py)
+# what a run folder holds (perception/train.py)
+RUN_FILES = ("config.json", CONFIG_TOML, "metrics.jsonl", "state.json", "checkpoint.safetensors", "optimizer.pt",
+             "ema.safetensors", "pre_cooldown.safetensors", "pre_cooldown_optimizer.pt")
 
 
 def start_state(run_dir: str, cfg, resume: bool, workers: int | None, data: list[dict] | None, world: int = 1

@@ -23,10 +23,12 @@ import threading
 
 import torch
 
-from envisat_pose.config import InputError
+from envisat_pose.config import InputError, to_toml
 from envisat_pose.io import atomic_write_text
 from envisat_pose.perception.weights import load_state, read_weights, save_tensors, save_weights
+from envisat_pose.provenance import source_line
 
+CONFIG_TOML = "train.config.toml"  # the run's TrainConfig as `envisat train --config` reads it (beside config.json)
 SHUTDOWN_RESERVE_S = 1.0  # a budgeted run keeps this for the final log, checkpoint and the workers' shutdown
 POSTFIX_EVERY = 10  # steps between the progress bar's loss readings (each one waits for the device)
 
@@ -210,10 +212,10 @@ class Budget(Hook):
 
 
 class RunFolder(Hook):
-    """The run folder and its config.json, made once the first step is trained (nothing half-made before); a
-    resumed run's record takes its new steps or budget and its threads (what a later resume takes) and keeps each
-    resuming command under 'resumes', with the step it resumed from and its threads. Sets trainer.folder_started
-    (a resumed run's folder exists from the start)."""
+    """The run folder, its config.json and its TrainConfig as train.config.toml (CONFIG_TOML), made once the first
+    step is trained (nothing half-made before); a resumed run's record takes its new steps or budget and its
+    threads (what a later resume takes) and keeps each resuming command under 'resumes', with the step it resumed
+    from and its threads. Sets trainer.folder_started (a resumed run's folder exists from the start)."""
 
     def __init__(self, saved: dict | None, provenance: dict | None, resumed_at: int):
         self.saved, self.provenance, self.resumed_at = saved, provenance or {}, resumed_at
@@ -241,8 +243,14 @@ class RunFolder(Hook):
             self._write({"train": tr.cfg.to_dict(), **self.provenance})
 
     def _write(self, record: dict) -> None:
+        """config.json (what a resume reads), then its TrainConfig as CONFIG_TOML (what `--config` reads back)."""
         atomic_write_text(os.path.join(self.trainer.run_dir, "config.json"),
                           json.dumps(record, indent=1, sort_keys=True) + "\n")
+        atomic_write_text(os.path.join(self.trainer.run_dir, CONFIG_TOML),
+                          "# envisat train: the full validated config of this run\n" + source_line()
+                          + "# `envisat train --config THIS_FILE` on the same data trains it again (its shards by "
+                          "name and manifest sha256, or its online looks: config.json beside it)\n"
+                          + to_toml(record["train"]))
 
 
 class Checkpoints(Hook):

@@ -15,7 +15,7 @@ import os
 import re
 from dataclasses import dataclass
 
-from envisat_pose.config import InputError, check, from_dict, path_arg, paths_arg
+from envisat_pose.config import InputError, check, from_dict, load_toml, path_arg, paths_arg
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.datagen.gl_check import check_gl_platform
 from envisat_pose.io import sha256_file
@@ -107,13 +107,15 @@ def target_online(target: str, resolution_px: int = TARGET_RESOLUTION_PX, worker
     return TargetOnlineConfig(gen, workers, uses_per_frame)
 
 
-def train_config_class(given: str | None, saved: dict) -> type:
+def train_config_class(given: str | None, saved: dict, config_path: str | None = None) -> type:
     """The config class `envisat train` resolves: perception.keypoint_train.KeypointTrainConfig for another
-    target (given, or the resumed run's saved config holds one), else perception.train.TrainConfig."""
+    target (given, the resumed run's saved config holds one, or the TOML file at config_path names one, as a run's
+    train.config.toml does), else perception.train.TrainConfig."""
     from envisat_pose.perception.keypoint_train import KeypointTrainConfig
     from envisat_pose.perception.train import TrainConfig
 
-    return KeypointTrainConfig if other_target(given) or "target" in saved else TrainConfig
+    in_file = load_toml(config_path) if config_path else {}
+    return KeypointTrainConfig if other_target(given) or "target" in saved or "target" in in_file else TrainConfig
 
 
 def online_kind(cfg) -> tuple[type, dict]:
