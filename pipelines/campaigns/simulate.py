@@ -65,11 +65,15 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
     # all written into a staging folder beside out, then moved into place together: an interrupt (Ctrl-C during
     # the plot) leaves an earlier run's files as they were, not a new run.npz beside the old run.png
     # a rerun without plot removes an earlier run's PNG (it shows another truth)
+    # the config records the target file's sha256 as the truth does (target.sha256): a rerun from it refuses a
+    # file that changed since (datagen.scenario.recorded_target_checked)
+    written = to_dict(cfg)
+    written["target"]["sha256"] = traj.config["target"]["sha256"]
     with staged_folder(os.path.dirname(os.path.abspath(out)), [os.path.basename(png)]) as stage:
         traj.save(os.path.join(stage, os.path.basename(out)))
         atomic_write_text(os.path.join(stage, os.path.basename(cfg_path)),
                           "# envisat simulate: the full validated config of this run\n" + source_line() + origin
-                          + to_toml(to_dict(cfg)))
+                          + to_toml(written))
         if plot:
             from envisat_pose.analysis.plots import plot_states
 

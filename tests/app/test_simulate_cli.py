@@ -204,3 +204,33 @@ def test_a_start_inside_a_small_target_is_not_told_a_scaled_start_that_comes_nea
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "inside the target" in err[0] and not out.exists(), err
     assert "farther" not in err[0] and "0.005467" not in err[0], err
+
+
+def test_the_written_config_records_the_target_files_sha256_and_a_rerun_refuses_the_file_changed(tmp_path, capsys):
+    """run.config.toml records its target file's sha256 as run.npz does ([target] sha256): a rerun from it while
+    the file is as it was makes the same truth; once the file changed it is refused in one line naming it and both
+    sha256 (nothing written), as `estimate --truth` refuses such a truth; another file given over it simulates."""
+    import json
+    import shutil
+    import tomllib
+
+    from envisat_pose.target import resolve_target_path
+
+    target = tmp_path / "stage.xml"
+    shutil.copy(resolve_target_path("models/upper_stage.xml"), target)
+    first, again, edited = tmp_path / "first.npz", tmp_path / "again.npz", tmp_path / "edited.npz"
+    assert main(["simulate", "--target", str(target), "--duration-s", "5", "--out", str(first), "--quiet"]) == 0
+    written = tmp_path / "first.config.toml"
+    with np.load(first) as z:
+        recorded = json.loads(str(z["config_json"]))["target"]["sha256"]
+    assert tomllib.loads(written.read_text())["target"]["sha256"] == recorded
+    assert main(["simulate", "--config", str(written), "--out", str(again), "--quiet"]) == 0
+    assert sha256(first) == sha256(again)
+    target.write_text(target.read_text() + "<!-- edited since -->\n")
+    capsys.readouterr()
+    assert main(["simulate", "--config", str(written), "--out", str(edited), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "changed since the config was written" in err[0] and str(target) in err[0], err
+    assert recorded[:12] in err[0] and not edited.exists(), err
+    assert main(["simulate", "--config", str(written), "--target", "models/upper_stage.xml", "--out", str(edited),
+                 "--quiet"]) == 0
