@@ -10,6 +10,7 @@ import argparse
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, skipped_line
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.out_dirs import check_out_file
+from envisat_pose.pipelines.common.job_defaults import weights_file
 from envisat_pose.pipelines.common.threads import default_torch_threads
 from envisat_pose.pipelines.detector.detect import DetectJobConfig, run_detect
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig, run_detect_target
@@ -56,11 +57,11 @@ def detector_inputs(args: argparse.Namespace) -> None:
 
     import torch
 
-    from envisat_pose.perception.weights import check_weights_target, shipped_weights_path
+    from envisat_pose.perception.weights import check_weights_target
 
     if getattr(args, "limit", None) is not None and args.limit < 1:
         raise InputError(f"--limit {args.limit}: expected at least 1")
-    args.weights = args.weights or shipped_weights_path()
+    args.weights = weights_file(args.weights or "")
     if not os.path.isfile(args.weights):
         raise InputError(f"--weights {args.weights!r}: no such file")
     check_weights_target(args.weights, getattr(args, "target", None) or DEFAULT_TARGET, "--weights")

@@ -79,6 +79,7 @@ from envisat_pose.pipelines.adaptation.track_labels import (
     smoother_model,
     track_run_labels,
 )
+from envisat_pose.pipelines.common.job_defaults import job_record, weights_name
 from envisat_pose.pipelines.common.threads import compute_threads, default_torch_threads
 from envisat_pose.pipelines.runs.track import TrackConfig, prepare_frames, track_frames
 from envisat_pose.pipelines.tracking.camera_file import read_camera_response
@@ -431,9 +432,9 @@ def _finish(cfg, tcfg, source, stage, command, before, after, rounds, timing, t0
         "reason": reason,
         "source": {"path": source.path, "kind": source.kind, "frames": len(source.t_s),
                    "size_px": list(source.size_px), "content_sha256": content_sha256(source)},
-        "base_weights": tcfg.weights,
+        "base_weights": weights_name(tcfg.weights),
         "command": command,
-        "config": to_dict(dataclasses.replace(cfg, track=tcfg)),
+        "config": {**to_dict(cfg), "track": job_record(tcfg)},
         "held_out_from_frame": int(np.floor(len(source.t_s) * (1.0 - cfg.held_out))),
         "before": before,
         "after": after,

@@ -4,14 +4,17 @@ built) and below pipelines/jobs.py (which layers a file and flags over it).
 `scenario_defaults`: the tracker's filter under the scenario's [filter] table, its [measurement] table, its
 duration and camera rate, the chaser's orbit and the gravity-gradient switch; `fill_from_scenario`: a config's
 fields left None filled from it when the config is built; `layered_job`: the config built from the scenario's
-part, a TOML file and flags (what `resolve_job` runs); `default_weights_path` and `check_weights`: the shipped
-detector weights where none are named, and the file checked. Errors name the config field ('weights',
-'measurement.rate_hz').
+part, a TOML file and flags (what `resolve_job` runs); `default_weights_path`, `weights_file` and `check_weights`:
+the shipped detector weights where none are named, the file a name gives, and the file checked; `weights_name`
+and `job_record`: the weights and a job's config as outputs record them (no path of this machine). Errors name
+the config field ('weights', 'measurement.rate_hz').
 """
 
 from __future__ import annotations
 
+import filecmp
 import os
+import warnings
 from typing import Any, Callable
 
 from envisat_pose import named_scenarios
@@ -23,11 +26,13 @@ from envisat_pose.config import (
     load_toml,
     mark_filled,
     resolve_job_config,
+    to_dict,
 )
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
 from envisat_pose.target import DEFAULT_TARGET, other_target
 
 JOBS = ("simulate", "estimate", "montecarlo", "run", "track")
+SHIPPED_WEIGHTS = "models/detector.safetensors"  # the shipped weights as outputs name them (weights_name)
 
 
 def scenario_defaults(kind: str, scenario: str) -> dict:
@@ -150,6 +155,41 @@ def default_weights_path() -> str:
     return shipped_weights_path()
 
 
+def models_folder() -> str:
+    """The package's models folder (package data envisat_pose.models: the shipped weights and target files)."""
+    import importlib.resources
+
+    return str(importlib.resources.files("envisat_pose.models"))
+
+
+def weights_file(given: str) -> str:
+    """The file a `weights` value names, as a target file is found (envisat_pose.target.resolve_target_path): "" and
+    SHIPPED_WEIGHTS are the shipped weights (default_weights_path; a different file of that relative name in the
+    working folder gets a warning saying how to name it); any other path is taken as it is (relative to the working
+    folder), or, when no such file exists and it starts with 'models/', the package's models folder's."""
+    if not given or given == SHIPPED_WEIGHTS:
+        path = default_weights_path()
+        if given and os.path.isfile(given) and not filecmp.cmp(given, path, shallow=False):
+            warnings.warn(f"weights {given!r} are the shipped weights; the other file of that name in this folder is "
+                          f"not used: give it as {os.path.join('.', given)!r}", stacklevel=2)
+        return path
+    if not os.path.exists(given) and given.startswith("models/"):
+        packaged = os.path.join(models_folder(), given[len("models/"):])
+        if os.path.exists(packaged):
+            return packaged
+    return given
+
+
+def weights_name(path: str) -> str:
+    """A weights file as an output records it: a file of the package's models folder (the shipped weights:
+    SHIPPED_WEIGHTS) as 'models/FILE', which weights_file finds on any machine (no path of this one); any other by
+    its path as given."""
+    real = os.path.realpath(path)
+    if os.path.dirname(real) == os.path.realpath(models_folder()):
+        return "models/" + os.path.basename(real)
+    return path
+
+
 def check_weights(path: str, target: str = DEFAULT_TARGET) -> None:
     """InputError naming the field `weights` when the file does not exist, holds the detector of another target
     than `target` (the job's MJCF file; one line naming both: perception.weights.check_weights_target), or, for
@@ -167,12 +207,21 @@ def check_weights(path: str, target: str = DEFAULT_TARGET) -> None:
 
 
 def job_weights(weights: str, target: str = DEFAULT_TARGET) -> str:
-    """A job's weights file as its config holds it: "" is the shipped weights (ENVISAT's corner network; a job of
-    another target is refused: require_target_weights), and the file is checked (check_weights) before any work."""
+    """A job's weights file as its config holds it (weights_file): "" and SHIPPED_WEIGHTS are the shipped weights
+    (ENVISAT's corner network; a job of another target is refused: require_target_weights), and the file is
+    checked (check_weights) before any work."""
     require_target_weights(weights, target)
-    path = weights or default_weights_path()
+    path = weights_file(weights)
     check_weights(path, target)
     return path
+
+
+def job_record(cfg: Any) -> dict:
+    """A job's config as its outputs record it (to_dict): its weights named by weights_name (the shipped ones as
+    SHIPPED_WEIGHTS, no path of this machine), which the job's config takes back."""
+    data = to_dict(cfg)
+    data["weights"] = weights_name(data["weights"])
+    return data
 
 
 def require_target_weights(weights: str, target: str) -> None:

@@ -16,7 +16,7 @@ from envisat_pose.contracts import Detections
 from envisat_pose.io import NotAnNpz, open_npz, save_npz, sha256_file
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.out_lock import locks_output
-from envisat_pose.pipelines.common.job_defaults import job_weights
+from envisat_pose.pipelines.common.job_defaults import job_weights, weights_name
 from envisat_pose.provenance import manifest_sha256
 from envisat_pose.shard_reader import checked_shards, sample_total
 from envisat_pose.target import require_envisat_dataset
@@ -122,7 +122,7 @@ def detect_dataset(cfg: DetectJobConfig, data: str, progress: bool = False) -> d
     bar.close()
     if not rows["key"]:
         raise InputError(f"data {data!r}: no frames")
-    config = {"weights": cfg.weights, "weights_sha256": sha256_file(cfg.weights), "data": data,
+    config = {"weights": weights_name(cfg.weights), "weights_sha256": sha256_file(cfg.weights), "data": data,
               "data_manifest_sha256": manifest_sha256(data), "model": det.model.cfg.to_dict(),
               "cov_scale": det.cfg.cov_scale, "roi": cfg.roi, "refine": bool(cfg.refine),
               "skipped_damaged_shards": skipped}

@@ -80,6 +80,7 @@ def detect_target_dataset(cfg: TargetDetectJobConfig, data: str, progress: bool 
 
     from envisat_pose.perception.keypoint_cov import isotropic_cov
     from envisat_pose.perception.keypoint_detect import KeypointDetector, load_keypoint_model, weights_keypoint_sigma
+    from envisat_pose.pipelines.common.job_defaults import weights_name
 
     target = load_target(cfg.target, "target")
     model = load_keypoint_model(cfg.weights, cfg.target, cfg.device)
@@ -106,7 +107,8 @@ def detect_target_dataset(cfg: TargetDetectJobConfig, data: str, progress: bool 
     arrays["keypoint_names"] = np.array(det.keypoint_names, dtype=str)
     sigma = weights_keypoint_sigma(cfg.weights, len(det.keypoint_names))
     arrays["cov_px"] = isotropic_cov(sigma, len(arrays["key"]))  # NaN where not calibrated
-    arrays["config_json"] = json.dumps({"weights": cfg.weights, "weights_sha256": sha256_file(cfg.weights),
+    arrays["config_json"] = json.dumps({"weights": weights_name(cfg.weights),
+                                        "weights_sha256": sha256_file(cfg.weights),
                                         "target": {"name": target.name, "sha256": target.sha256},
                                         "data": data, "data_manifest_sha256": manifest_sha256(data),
                                         "model": model.cfg.to_dict(),

@@ -26,6 +26,7 @@ from envisat_pose.geometry import load_geometry
 from envisat_pose.io import atomic_write_text, json_safe, sha256_file
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.out_lock import locks_output
+from envisat_pose.pipelines.common.job_defaults import weights_name
 from envisat_pose.pipelines.detector.detect import DetectJobConfig, camera_samples, read_roi
 from envisat_pose.shard_reader import checked_shards, read_shards, sample_total
 from envisat_pose.target import require_envisat_dataset
@@ -199,8 +200,8 @@ def evaluate_detector(weights: str, samples, poses: dict, json_path: str, *, dev
     if not groups:
         raise InputError(f"data {data_name!r}: no frames")
     summary = summarize(arrays, groups)
-    result = {"weights": weights, "weights_sha256": sha256_file(weights), "data": data_name, "frames": len(groups),
-              "model": model.cfg.to_dict(),
+    result = {"weights": weights_name(weights), "weights_sha256": sha256_file(weights), "data": data_name,
+              "frames": len(groups), "model": model.cfg.to_dict(),
               "detect_config": dataclasses.asdict(cfg), "match_px": 5.0,
               "roi": roi if isinstance(roi, str) or roi is None else (roi_name or "given"),
               "grouping": corruption_groups.__doc__ + " Levels: perception.evaluate.corruption_levels.",

@@ -30,6 +30,7 @@ from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.out_lock import locks_output
 from envisat_pose.perception import keypoint_metrics as km
 from envisat_pose.perception.keypoint_cov import nees_check
+from envisat_pose.pipelines.common.job_defaults import weights_name
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig, require_dataset_of, target_frames
 from envisat_pose.provenance import dataset_ref
 from envisat_pose.shard_reader import checked_shards, sample_total
@@ -163,7 +164,7 @@ def evaluate_target_detector(cfg: TargetDetectJobConfig, data: str, json_path: s
     target, model, arrays, skipped = detect_labelled(cfg, [data], progress)
     perms = relabelings(target.symmetries, target.num_keypoints)
     sigma = weights_keypoint_sigma(cfg.weights, target.num_keypoints)
-    result = {"weights": cfg.weights, "weights_sha256": sha256_file(cfg.weights),
+    result = {"weights": weights_name(cfg.weights), "weights_sha256": sha256_file(cfg.weights),
               "target": {"file": cfg.target, "name": target.name, "sha256": target.sha256},
               "data": dataset_ref(data), "frames": int(len(arrays["key"])), "model": model.cfg.to_dict(),
               "match_px": km.MATCH_PX, "pnp_reprojection_px": km.PNP_REPROJ_PX,

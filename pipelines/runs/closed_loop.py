@@ -46,6 +46,7 @@ from envisat_pose.geometry import load_camera
 from envisat_pose.io import atomic_write_text, sha256_file, staged_folder
 from envisat_pose.out_dirs import made_out_dir
 from envisat_pose.out_lock import locks_output
+from envisat_pose.pipelines.common.job_defaults import job_record, weights_name
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import run_frames
 from envisat_pose.pipelines.runs.loop_frames import FrameMaker, PlanAhead, closed_loop_frames
@@ -250,9 +251,9 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
     R = cfg.runs
     # the frames' camera: det.npz's pixels are its; truth.npz's corners_px are the MJCF chaser_cam's (its contract)
     used = camera_record(run_camera(cfg.image.resolution_px), None, False)
-    config_json = json.dumps({"run": to_dict(cfg), "truth_source": {"scenario": cfg.scenario},
+    config_json = json.dumps({"run": job_record(cfg), "truth_source": {"scenario": cfg.scenario},
                               "truth_config": truth.config, "camera": used}, sort_keys=True)
-    det_cfg = json.dumps({"weights": cfg.weights, "run": 0, "scenario": cfg.scenario, "seed": cfg.seed,
+    det_cfg = json.dumps({"weights": weights_name(cfg.weights), "run": 0, "scenario": cfg.scenario, "seed": cfg.seed,
                           "roi": cfg.tracker.roi.enabled, "camera": used}, sort_keys=True)
     target = run_target(cfg)
     equivalent = None if target is None else target_namings(target, filter_inertia_T_kg_m2(target)).equivalent
@@ -262,7 +263,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
                     [f"frame-{k:06d}" for k in range(T)], det_cfg,
                     extra={"settled": np.array(scores["settled_runs"], bool)})
     atomic_write_text(paths["config"], "# envisat run: the full validated config of this run\n" + source_line()
-                      + to_toml(to_dict(cfg)))
+                      + to_toml(job_record(cfg)))
     from envisat_pose.analysis.plots import plot_estimate
 
     plot_estimate(*plot_inputs(truth.t_s, truth.x, run_dirs), paths["plot"],
@@ -278,7 +279,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
     r0 = results[0]
     summary = {
         "scenario": cfg.scenario, "target": load_target(cfg.image.target).record(cfg.image.target), "runs": R, "frames": T, "duration_s": cfg.duration_s, "roi": cfg.tracker.roi.enabled,
-        "weights": cfg.weights, "weights_sha256": sha256_file(cfg.weights),
+        "weights": weights_name(cfg.weights), "weights_sha256": sha256_file(cfg.weights),
         "start": "warm" if cfg.warm_start else "cold",
         "resolution_px": cfg.image.resolution_px,
         "scores": scores,

@@ -33,14 +33,21 @@ from typing import TYPE_CHECKING, ClassVar
 import numpy as np
 
 from envisat_pose.analysis.sink_check import check_sink
-from envisat_pose.config import Config, as_path_or_object, check, config_arg, path_arg, to_dict, to_toml
+from envisat_pose.config import Config, as_path_or_object, check, config_arg, path_arg, to_toml
 from envisat_pose.datagen.scenario import OrbitConfig
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.io import atomic_write_text, sha256_file, staged_folder
 from envisat_pose.out_dirs import check_out_dir, made_out_dir
 from envisat_pose.out_lock import locks_output
-from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job, scenario_table
+from envisat_pose.pipelines.common.job_defaults import (
+    fill_from_scenario,
+    job_record,
+    job_weights,
+    layered_job,
+    scenario_table,
+    weights_name,
+)
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
 from envisat_pose.pipelines.runs.frames import FrameSource, open_source, require_source_target, scan_source
@@ -219,10 +226,11 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     wall_s = time.perf_counter() - wall0
     x_true = truth["x"] if truth is not None else np.full((T, 12), np.nan)
     record = target.record(cfg.target)  # the file as given, its name, sha256 and keypoints
-    config_json = json.dumps({"track": to_dict(cfg), "target": record,
+    config_json = json.dumps({"track": job_record(cfg), "target": record,
                               "source": {"kind": source.kind, "path": source.path, "bit_depth": source.bit_depth,
                                          "skipped_damaged_shards": source.skipped}, "camera": used}, sort_keys=True)
-    det_cfg = json.dumps({"weights": cfg.weights, "source": source.path, "target": record}, sort_keys=True)
+    det_cfg = json.dumps({"weights": weights_name(cfg.weights), "source": source.path, "target": record},
+                         sort_keys=True)
     det_names = tuple(k for k in DET_KEYS if k != "skipped")
     scores = score_run_files(source.t_s, x_true, [run_dir], paths, config_json, det_cfg, score=truth is not None,
                              det_names=det_names, equivalent=tracker.namings.equivalent,
@@ -231,7 +239,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     write_run_files(paths, source.t_s, x_true, [run_dir], lost_runs([run_dir], T), config_json, source.names,
                     det_cfg, det_names=det_names)
     atomic_write_text(paths["config"], "# envisat track: the full validated config of this job\n" + source_line()
-                      + to_toml(to_dict(cfg)))
+                      + to_toml(job_record(cfg)))
     summary = track_summary(source, cfg.weights, pixels, col, np.asarray(sums["timing_s"]) / T, wall_s)
     summary["target"], summary["camera"] = record, used
     summary["last_cold_start_refusal"] = tracker.last_refusal  # why a frame's cold start started nothing (None)
@@ -257,7 +265,7 @@ def track_summary(source: FrameSource, weights: str, pixels: str, col: dict, tim
     return {
         "source": {"kind": source.kind, "path": source.path, "frames": T, "bit_depth": source.bit_depth,
                    "size_px": list(source.size_px), "pixels": pixels, "skipped_damaged_shards": source.skipped},
-        "weights": weights, "weights_sha256": sha256_file(weights),
+        "weights": weights_name(weights), "weights_sha256": sha256_file(weights),
         **status_summary(source.t_s, col),
         # the stages timed here: the frames are read, not made (no simulation, rendering or camera)
         "timing_ms_per_frame": {s: float(1000 * timing_s[i]) for i, s in enumerate(STAGES) if s not in BEFORE_TRACKER},
