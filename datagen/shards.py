@@ -8,6 +8,7 @@ samples give the same bytes in any process, on any backend.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
@@ -70,9 +71,10 @@ def _tar_member(name: str, size: int) -> tarfile.TarInfo:
 
 
 class ShardWriter:
-    """Writes one shard to a temporary file next to its final path; `close()` renames it into place.
+    """Writes one shard to a temporary file next to its final path; the `with` block's end renames it into place.
 
-    Use as a context manager: an exception (or a kill) leaves no file under the final name.
+    Use as a context manager: an exception leaves no file (the temporary removed), a kill none under the final
+    name (the job removes a stopped worker's temporary: resumable.ResumableJob.run).
     """
 
     def __init__(self, path: str):
@@ -94,9 +96,18 @@ class ShardWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb):
-        self._tar.close()
-        if exc_type is None:
-            with open(self._tmp, "rb+") as fh:
-                os.fsync(fh.fileno())
-            return self._ctx.__exit__(None, None, None)
-        return self._ctx.__exit__(exc_type, exc, tb)
+        try:
+            if exc_type is None:
+                self._tar.close()
+                with open(self._tmp, "rb+") as fh:
+                    os.fsync(fh.fileno())
+            else:  # TarFile's own exit: no end-of-archive written after a failed write (a full disk: a 2nd error)
+                with contextlib.suppress(OSError):
+                    self._tar.__exit__(exc_type, exc, tb)
+                raise exc
+        except BaseException as err:  # the temporary file goes, whatever stopped the shard
+            self._ctx.__exit__(type(err), err, err.__traceback__)
+            if isinstance(err, OSError) and err.filename is None:  # tarfile's writes name no file: the shard's
+                raise OSError(err.errno, err.strerror, self.path) from err
+            raise
+        return self._ctx.__exit__(None, None, None)

@@ -8,6 +8,7 @@ are here; a generated dataset's manifest is checked on top of it by envisat_pose
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from dataclasses import dataclass, field
@@ -144,11 +145,18 @@ class ResumableJob:
         """Refuse another job's folder, then create the folder (and the units' subfolders), prove it writable
         and remove partial files. Returns the earlier run's manifest (None: none)."""
         previous = self.previous() if os.path.isdir(self.out_dir) else None
-        subdirs = sorted({os.path.dirname(self.unit_file(i)) for i in range(self.n_units)} - {""})
-        make_out_dir(self.out_dir, subdirs)
-        for folder in [self.out_dir, *(os.path.join(self.out_dir, s) for s in subdirs)]:
+        make_out_dir(self.out_dir, self.subdirs())
+        for folder in self.folders():
             remove_partial_files(folder)
         return previous
+
+    def subdirs(self) -> list[str]:
+        """The units' subfolders of out_dir (relative; none where every unit is in out_dir itself)."""
+        return sorted({os.path.dirname(self.unit_file(i)) for i in range(self.n_units)} - {""})
+
+    def folders(self) -> list[str]:
+        """out_dir and the units' subfolders: where the units' partial files are."""
+        return [self.out_dir, *(os.path.join(self.out_dir, s) for s in self.subdirs())]
 
     def resume(self, previous: dict | None) -> dict[int, dict]:
         """Keep the units `previous` vouches for, remove every other unit file, write the manifest. Pass None
@@ -189,10 +197,20 @@ class ResumableJob:
     def run(self, fn: Callable[..., dict], args_of: Callable[[int], tuple], cfg: RunnerConfig,
             on_unit: Callable[[dict], None] | None = None) -> dict:
         """Run fn(*args_of(i)) for every unit not done (tasks of `run_tasks`; each returns its unit's entry),
-        recording each as it finishes and then calling on_unit(entry). Returns the final manifest."""
-        todo = self.todo()
-        for _, entry in run_tasks(fn, [args_of(i) for i in todo], cfg):
-            self.record(entry)
-            if on_unit is not None:
-                on_unit(entry)
+        recording each as it finishes and then calling on_unit(entry). Returns the final manifest. A unit's error, a
+        Ctrl-C or SIGTERM stops the workers, then removes the partial files they were writing (this machine's:
+        another scheduler's workers may still write theirs, removed on a resume); the finished units stay."""
+        tasks = run_tasks(fn, [args_of(i) for i in self.todo()], cfg)
+        try:
+            for _, entry in tasks:
+                self.record(entry)
+                if on_unit is not None:
+                    on_unit(entry)
+        except BaseException:
+            tasks.close()  # the pool's workers ended (run_tasks), their files no longer written
+            if cfg.scheduler is None:
+                with contextlib.suppress(OSError):  # the job's own error is the one to say
+                    for folder in self.folders():
+                        remove_partial_files(folder)
+            raise
         return self.manifest()

@@ -140,6 +140,35 @@ def test_sigterm_stops_a_generate_with_workers_quietly_and_a_rerun_finishes_it(t
     assert done.returncode == 0 and "images already there" in done.stdout, done.stderr
 
 
+def partial_shards(out) -> list[str]:
+    return [n for n in os.listdir(out) if n.startswith(".tmp-") and "shard-" in n] if os.path.isdir(out) else []
+
+
+@pytest.mark.parametrize("backend", ["local", pytest.param("dask", marks=pytest.mark.slow)])  # dask: 14 s
+def test_ctrl_c_to_a_generate_with_workers_leaves_no_partial_shard(tmp_path, backend):
+    """Ctrl-C (SIGINT to the terminal's process group) while 2 worker processes (a pool's, a LocalCluster's) write
+    their shards: the job's line, exit 130, and no partial shard left (the stopped workers' temporary files stayed
+    until a rerun)."""
+    out = tmp_path / "data"
+    cmd = CLI + ["generate", "--num-images", "400", "--shard-size", "200", "--resolution", "128", "--workers", "2",
+                 "--backend", backend, "--quiet", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as a terminal's job
+    try:
+        deadline = time.monotonic() + 120
+        while len(partial_shards(out)) < 2 and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)  # until both workers are writing (a shard of 200 images takes them many seconds)
+        assert proc.poll() is None and partial_shards(out), proc.communicate()
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=90)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL) if proc.poll() is None else None
+    assert proc.returncode == 130, err
+    assert err == ("envisat generate: interrupted; run the same command again to finish it (what is written is "
+                   "kept)\n")
+    assert sorted(os.listdir(out)) == ["generate.config.toml", "manifest.json"]
+
+
 @pytest.mark.parametrize("name,code", [("SIGINT", 130), ("SIGTERM", 143)])
 def test_train_stopped_by_a_signal_exits_as_every_verb(name, code, tmp_path, monkeypatch, capsys):
     """train stops itself after its step with a checkpoint on SIGINT or SIGTERM (perception's StopOnSignals); it
