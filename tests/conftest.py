@@ -15,9 +15,9 @@ load_triton_before_mesa()
 # in all, ~4.4x the 10 minutes of a quiet machine): these took 1770 s of it (call time, plus the module fixtures
 # only they use), leaving ~880 s, ~3.5 min on a quiet machine, to `make test`. Each module keeps at least one test
 # in the fast lane. `make test` runs that lane in two processes (pytest-xdist, --dist loadfile: 6:05 in one, 3:37 in
-# two on a quiet 2-core machine, 2026-11-27). Besides these, four tests carry @pytest.mark.slow in their files (test_run's cold-start
-# convergence, test_track's cold start from unlabelled frames, the web viewer's screenshot, a generate with workers
-# stopped by SIGTERM).
+# two on a quiet 2-core machine, 2026-11-27). Besides these, tests mark themselves @pytest.mark.slow in their
+# files (`grep -rn mark.slow tests`: cold starts from unlabelled frames, the web viewer's screenshot, training runs,
+# jobs with workers stopped by a signal).
 # tests/test_architecture.py checks that every id names a test that exists.
 SLOW = (
     "tests/pipelines/runs/test_memory.py::test_a_long_closed_loop_keeps_its_memory_flat",  # 401 s
