@@ -219,6 +219,16 @@ def _quiet_cancelled_tasks() -> None:
         log.addFilter(_Without("CancelledError"))
 
 
+def _quiet_failed_tasks() -> None:
+    """In each worker of a job's own LocalCluster (its setup, registered with the cluster): the worker's 'Compute
+    Failed' error, a block with the task's traceback, left out: the task's error reaches the job, whose one line
+    says it (a user's own scheduler's workers keep theirs: their logs are the user's). The worker's other records
+    kept (a worker that dies for itself, memory warnings)."""
+    import logging
+
+    logging.getLogger("distributed.worker").addFilter(_Without("Compute Failed"))  # equal filters are added once
+
+
 @dataclass(frozen=True)
 class _Without:
     """A logging filter: the records whose message does not hold `phrase`."""
@@ -387,6 +397,8 @@ def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
     if cluster is not None:
         nanny.addFilter(restarts)
     try:
+        if cluster is not None:
+            client.register_worker_callbacks(setup=_quiet_failed_tasks)  # workers restarted later run it too
         futures = {client.submit(_dask_task, fn, dict(cfg.env), tuple(args), pure=False): i
                    for i, args in enumerate(tasks)}
         for fut in as_completed(futures):

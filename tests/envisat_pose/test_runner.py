@@ -263,3 +263,25 @@ def test_a_partial_of_the_scripts_own_function_runs_a_local_pool(tmp_path):
     run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-2000:]
     assert run.stdout.split() == ["[8,", "27]"]
+
+
+def test_a_task_that_raises_on_a_jobs_own_cluster_is_the_jobs_one_line(tmp_path):
+    """A task that raises on a job's own LocalCluster (generate on a full disk): its error reaches the job, whose
+    one line says it. The worker's 'Compute Failed' block (the task's traceback, logged by the worker process on
+    the terminal's stderr before the job's line) is left out; the worker's other error records are kept."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "raising.py"
+    script.write_text("import logging\nimport sys\n\nfrom envisat_pose.pools import RunnerConfig, run_tasks\n\n\n"
+                      "def task(k):\n    if k == 0:\n"
+                      "        logging.getLogger('distributed.worker').error('an error of its own')\n"
+                      "        return k\n    return 1 / 0\n\n\n"
+                      "if __name__ == '__main__':\n    try:\n"
+                      "        list(run_tasks(task, [(0,), (1,)], RunnerConfig('dask', 1)))\n"
+                      "    except ZeroDivisionError as err:\n        sys.exit(f'job: error: {err}')\n")
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    err = run.stderr.splitlines()
+    assert run.returncode == 1 and len(err) == 2, run.stderr[-3000:]
+    assert err[0].endswith("distributed.worker - ERROR - an error of its own"), err
+    assert err[1] == "job: error: division by zero", err
