@@ -79,16 +79,21 @@ def git_hash() -> str:
     tracks) the commit the copy was made from, given as ENVISAT_SOURCE_GIT; else 'unknown'."""
     here = os.path.dirname(os.path.abspath(__file__))
     given = os.environ.get("ENVISAT_SOURCE_GIT", "").strip() or "unknown"
+
+    def git(*args: str) -> subprocess.CompletedProcess:
+        # --no-optional-locks: `status` reads the index without refreshing it, so git writes nothing in the
+        # checkout (a job under `ulimit -f` killed git mid-write, leaving an index.lock that blocks every git
+        # command there; a user's own git command beside a job would meet the lock too)
+        return subprocess.run(["git", "--no-optional-locks", *args], cwd=here, capture_output=True, text=True,
+                              timeout=10)
+
     try:
-        ours = subprocess.run(["git", "ls-files", "--error-unmatch", os.path.basename(__file__)], cwd=here,
-                              capture_output=True, text=True, timeout=10)
-        if ours.returncode != 0:  # not a checkout, or another project's (a venv inside a user's repository)
-            return given
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
+        if git("ls-files", "--error-unmatch", os.path.basename(__file__)).returncode != 0:
+            return given  # not a checkout, or another project's (a venv inside a user's repository)
+        head = git("rev-parse", "HEAD")
         if head.returncode != 0:
             return given
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
-                               capture_output=True, text=True, timeout=10)
+        dirty = git("status", "--porcelain", "--untracked-files=no")
         return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
     except (OSError, subprocess.SubprocessError):
         return given

@@ -68,3 +68,36 @@ def test_a_copy_in_another_projects_repository_names_no_commit_of_that_project(t
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     assert module.git_hash() == "unknown"
+
+
+def test_reading_the_commit_writes_nothing_in_the_checkout(tmp_path):
+    """git_hash ran `git status`, which rewrites a stale index; a job under `ulimit -f` had git killed mid-write
+    (SIGXFSZ), leaving an index.lock that blocked every later git command in the checkout."""
+    import shutil
+    import sys
+
+    repo = tmp_path / "checkout"
+    (repo / "envisat_pose").mkdir(parents=True)
+    copy = repo / "envisat_pose" / "provenance.py"
+    shutil.copy(os.path.join(ROOT, "envisat_pose", "provenance.py"), copy)
+    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t",
+           "GIT_COMMITTER_EMAIL": "t@t"}
+    try:
+        for cmd in (["git", "init", "-q"], ["git", "add", "."], ["git", "commit", "-q", "-m", "ours"]):
+            subprocess.run(cmd, cwd=repo, check=True, env=env, capture_output=True)
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip("no git here to make a checkout")
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True).stdout.strip()
+    os.utime(copy, (1e9, 1e9))  # the index's stat data stale: a plain `git status` would rewrite the index
+    script = ("import importlib.util, resource, sys\n"
+              "resource.setrlimit(resource.RLIMIT_FSIZE, (16, 16))\n"
+              f"spec = importlib.util.spec_from_file_location('copied_provenance', {str(copy)!r})\n"
+              "module = importlib.util.module_from_spec(spec)\n"
+              "spec.loader.exec_module(module)\n"
+              "print(module.git_hash())\n")
+    env = {k: v for k, v in os.environ.items() if k != "ENVISAT_SOURCE_GIT"}
+    out = subprocess.run([sys.executable, "-B", "-c", script], capture_output=True, text=True, env=env, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == head  # the file's content unchanged: not dirty
+    assert not (repo / ".git" / "index.lock").exists()
+    assert subprocess.run(["git", "status", "--porcelain"], cwd=repo, capture_output=True).returncode == 0
