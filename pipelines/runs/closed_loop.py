@@ -54,6 +54,7 @@ from envisat_pose.pipelines.runs.outputs import mean_nis_per_dof, status_counts,
 from envisat_pose.pipelines.runs.rows import STAGES, RunRows, timing_by_status
 from envisat_pose.pipelines.runs.run_config import RunConfig, run_config_from_json, sun_and_shadow
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, run_rows, score_run_files, write_run_files
+from envisat_pose.pipelines.runs.run_progress import FrameTally, runs_bar, tally_path
 from envisat_pose.pipelines.runs.scoring import recording_errors
 from envisat_pose.pipelines.tracking.build import tracker_detector
 from envisat_pose.pipelines.tracking.camera_file import camera_record
@@ -107,18 +108,20 @@ def rescale_px(uv: np.ndarray, src, dst) -> np.ndarray:
 
 
 def closed_loop_task(cfg_json: str, run: int, truth_path: str, sink: str | None, progress: bool,
-                     sim_s_per_frame: float, run_dir: str) -> dict:
+                     sim_s_per_frame: float, run_dir: str, tally: str | None = None) -> dict:
     """Closed loop `run` over the truth in truth_path; writes its per-frame arrays (record_arrays) to
     run_dir/<name>.npy chunk by chunk as it goes (RunRows) and returns only the run's reductions (plain data for
-    the runner). sink: where run 0 streams its recording (analysis.recording.TrackRecorder), None for none. The
-    compute threads are the config's inside, the caller's again after (a run in the calling process)."""
+    the runner). sink: where run 0 streams its recording (analysis.recording.TrackRecorder), None for none.
+    progress: this run's own per-frame bar; tally: a file where it counts its frames for the job's bar over
+    every run (run_progress.FrameTally), None for none. The compute threads are the config's inside, the
+    caller's again after (a run in the calling process)."""
     cfg = run_config_from_json(cfg_json)
     with compute_threads(cfg.threads, 1):
-        return _closed_loop(cfg, run, truth_path, sink, progress, sim_s_per_frame, run_dir)
+        return _closed_loop(cfg, run, truth_path, sink, progress, sim_s_per_frame, run_dir, tally)
 
 
 def _closed_loop(cfg: RunConfig, run: int, truth_path: str, sink: str | None, progress: bool,
-                 sim_s_per_frame: float, run_dir: str) -> dict:
+                 sim_s_per_frame: float, run_dir: str, tally: str | None) -> dict:
     from envisat_pose.datagen.render_cache import shared_renderer
 
     gcfg = cfg.image
@@ -159,7 +162,8 @@ def _closed_loop(cfg: RunConfig, run: int, truth_path: str, sink: str | None, pr
                                 truth=None if recorder is None else (truth_uv, truth_seen))  # the truth: recording
     # the next frame made while the tracker steps this one
     res = run_frames(tracker if plan_ahead is None else plan_ahead, frames, rows, recorder, cfg.jpeg_quality,
-                     f"closed loop (run {run})" if progress else None, overlap=True)
+                     f"closed loop (run {run})" if progress else None, overlap=True,
+                     tally=None if tally is None else FrameTally(tally))
     return res | maker.counts | {"last_cold_start_refusal": tracker.last_refusal}
 
 
@@ -232,21 +236,16 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
     sink = sink or f"save:{os.path.abspath(paths['recording'])}"
     runs_dir = os.path.join(out_dir, "runs")
     run_dirs = [os.path.abspath(os.path.join(runs_dir, f"run-{r:04d}")) for r in range(cfg.runs)]
+    # several runs: one bar over every run's frames, each run counting its own into a file the job reads
+    tallies = [tally_path(d) for d in run_dirs] if progress and cfg.runs > 1 else None
     tasks = [(cfg_json, r, os.path.abspath(paths["truth"]), sink if r == 0 else None, progress and cfg.runs == 1,
-              sim_s / T, run_dirs[r]) for r in range(cfg.runs)]
+              sim_s / T, run_dirs[r], None if tallies is None else tallies[r]) for r in range(cfg.runs)]
     results: list[dict | None] = [None] * cfg.runs
-    bar = None
-    if progress and cfg.runs > 1:
-        from tqdm import tqdm
-
-        bar = tqdm(total=cfg.runs, unit="run", desc=f"closed loop ({workers} workers)")
     t0 = time.perf_counter()
-    for i, res in run_tasks(closed_loop_task, tasks, runner):
-        results[i] = res
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
+    with runs_bar(tallies, T, f"closed loop ({workers} workers)") as finished:
+        for i, res in run_tasks(closed_loop_task, tasks, runner):
+            results[i] = res
+            finished(i)
     loop_wall_s = time.perf_counter() - t0
     R = cfg.runs
     # the frames' camera: det.npz's pixels are its; truth.npz's corners_px are the MJCF chaser_cam's (its contract)

@@ -48,11 +48,13 @@ class FrameInput:
 
 
 def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_quality: int = 80,
-               progress: str | None = None, overlap: bool = False) -> dict:
+               progress: str | None = None, overlap: bool = False, tally=None) -> dict:
     """Step the tracker over frames (in order, k = 0, 1, ...), storing each estimate into rows (a RunRows) with
     the frame's stage times (s, STAGES' order), logging it to recorder (a TrackRecorder, or None) with the image
-    at jpeg_quality; progress: the bar's description (None: no bar). The bar and the recorder are closed
-    whatever happens; returns rows.close(), the run's reductions, with loop_wall_s: the loop's wall time (s).
+    at jpeg_quality; progress: the bar's description (None: no bar). tally: where the frames done are counted
+    for a bar elsewhere (a run_progress.FrameTally: advance() per frame), or None. The bar, the tally and the
+    recorder are closed whatever happens; returns rows.close(), the run's reductions, with loop_wall_s: the
+    loop's wall time (s).
 
     overlap: the caller's generator makes frame k+1 (rendering, the camera, reading a file: on this thread, where
     its GL context lives) while one worker thread steps the tracker on frame k (torch, OpenCV, MuJoCo's renderer
@@ -89,6 +91,8 @@ def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_
         if bar is not None:
             bar.update(1)
             bar.set_postfix_str(est.status, refresh=False)
+        if tally is not None:
+            tally.advance()
 
     wall0 = time.perf_counter()
     try:
@@ -102,6 +106,8 @@ def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_
     finally:
         if bar is not None:
             bar.close()
+        if tally is not None:
+            tally.close()
         if recorder is not None:
             recorder.close()
     loop_wall_s = time.perf_counter() - wall0

@@ -129,15 +129,18 @@ def test_the_closed_loop_starts_cold_and_converges_on_the_default_scenario(tmp_p
 
 def test_the_cli_runs_several_loops_in_parallel(tmp_path, detector_weights, capsys):
     """`envisat run --runs 2 --warm-start`: two closed loops on one truth through the core's runner (two
-    processes), each from its own initial estimate; the score table is printed."""
+    processes), each from its own initial estimate; the score table is printed, and the bar counted the two runs'
+    frames to its end (it counted whole runs)."""
     from envisat_pose.app.cli import main
     from envisat_pose.contracts import Estimates
 
     out = tmp_path / "two"
     assert main(["run", "--scenario", "default", "--duration-s", "5", "--runs", "2", "--workers", "2", "--weights",
-                 detector_weights, "--seed", "5", "--warm-start", "--out", str(out), "--quiet"]) == 0
-    printed = capsys.readouterr().out
+                 detector_weights, "--seed", "5", "--warm-start", "--out", str(out)]) == 0
+    printed, err = capsys.readouterr()
     assert "false-lock time" in printed and "NEES" in printed and "real-time factor" in printed
+    last = [line for line in err.replace("\r", "\n").splitlines() if line.startswith("closed loop")][-1]
+    assert "100%" in last and "12/12" in last and "frame" in last, err
     est = Estimates.load(str(out / "est.npz"))
     # each warm start earns its claim over confirm_frames (5) frames, then tracks
     assert est.x_hat.shape == (2, 6, 12) and (est.status[:, -1] == 1).all() and np.isfinite(est.x_hat[:, -1]).all()
