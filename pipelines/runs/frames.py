@@ -250,11 +250,23 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
                              "file's own frame rate")
         if bit_depth:
             raise InputError(f"bit_depth does not apply to a video ({src!r}): its frames are 8-bit")
+        if not is_utf8(src):  # OpenCV's video reader crashed the process (a segfault) on such a path
+            raise InputError(f"src {src!r}: a file name that is not UTF-8; expected a video whose path is UTF-8 "
+                             "(OpenCV's video reader takes no other): rename it")
         source = video_source(src, rate_hz)
     else:
         raise InputError(f"src {src!r}: no such file or folder")
     source.bit_depth = bit_depth or 0  # 0: detect (scan_source)
     return source
+
+
+def is_utf8(path: str) -> bool:
+    """Whether a path's name is UTF-8 (os.listdir and the shell hand on other bytes as surrogates)."""
+    try:
+        path.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
 
 
 def video_source(path: str, rate_hz: float) -> FrameSource:

@@ -1,0 +1,59 @@
+"""A user's own frames brought to `envisat track` (a stress round): a video or an output folder whose name is not
+UTF-8, multi-page TIFFs and animations, a dangling link among the frames, a manifest.json of another tool beside
+the images, a timestamps CSV written on Windows, frames too far apart for the cold start, times since an epoch.
+Small synthetic frames: what is checked is the input handling, not the tracking."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+SIDE = 64
+
+
+def frames(folder, names, seed=0):
+    """Gray noise frames, one per name; returns the images written."""
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    imgs = [rng.integers(0, 256, (SIDE, SIDE), dtype=np.uint8) for _ in names]
+    for n, img in zip(names, imgs):
+        assert cv2.imwrite(str(folder / n), img)
+    return imgs
+
+
+def bytes_name(folder, raw: bytes) -> str:
+    """A path in folder whose last name is the raw bytes (a Latin-1 name, as an old archive leaves it), as Python
+    gives it (surrogates); skipped where the file system takes UTF-8 names only."""
+    path = os.path.join(os.fsencode(str(folder)), raw)
+    try:
+        open(path, "wb").close()
+        os.remove(path)
+    except OSError:
+        pytest.skip("this file system takes UTF-8 names only")
+    return os.fsdecode(path)
+
+
+def test_a_video_whose_name_is_not_utf8_is_refused_in_one_line(tmp_path):
+    """clip_\\xe9.avi (Latin-1): OpenCV's video reader crashed the process (a segfault, exit 139, no message). Run
+    in a child process, so that the crash is this test's failure, not the test session's end."""
+    import cv2
+
+    video = bytes_name(tmp_path, b"clip_\xe9.avi")
+    w = cv2.VideoWriter(os.path.join(str(tmp_path), "clip.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 1.0,
+                        (SIDE, SIDE), isColor=True)
+    for img in frames(tmp_path / "f", ["a.png", "b.png"]):
+        w.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+    w.release()
+    os.rename(os.path.join(str(tmp_path), "clip.avi"), os.fsencode(video))
+    code = ("import os, sys\nfrom envisat_pose.config import InputError\n"
+            "from envisat_pose.pipelines.runs.frames import open_source\n"
+            "try:\n    open_source(os.fsdecode(bytes.fromhex(sys.argv[1])), 1.0)\n"
+            "except InputError as err:\n    print(err)\n")
+    p = subprocess.run([sys.executable, "-c", code, os.fsencode(video).hex()], capture_output=True, text=True,
+                       timeout=300)
+    assert p.returncode == 0, (p.returncode, p.stderr[-2000:])
+    assert "clip_\\udce9.avi" in p.stdout and "not UTF-8" in p.stdout and "rename it" in p.stdout, p.stdout
