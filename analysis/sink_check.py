@@ -5,6 +5,7 @@ waited for one forever, deaf to Ctrl-C (Rerun's flush holds the interpreter)."""
 
 from __future__ import annotations
 
+import os
 import socket
 import urllib.parse
 
@@ -22,6 +23,8 @@ def check_sink(sink: str) -> tuple[str, str, str]:
     kind, sep, arg = sink.partition(":") if isinstance(sink, str) else ("", "", "")
     if kind not in ("save", "spawn", "connect") or (kind == "save" and not arg):
         raise InputError(f"sink {sink!r}: expected 'save:PATH', 'spawn' or 'connect:URL'")
+    if kind == "save":
+        check_recording_path(arg, "sink")
     if kind == "spawn" and not has_display():
         raise InputError("sink 'spawn': no display to open a viewer window on (DISPLAY and WAYLAND_DISPLAY are "
                          "unset): record to the job's file instead (its recording.rrd) and serve it with "
@@ -32,6 +35,17 @@ def check_sink(sink: str) -> tuple[str, str, str]:
             raise InputError(f"sink {sink!r}: no Rerun viewer is listening at {host}:{port}: start the viewer "
                              "first, or record to the job's file instead (its recording.rrd)")
     return kind, sep, arg
+
+
+def check_recording_path(path: str, field: str) -> None:
+    """InputError naming field unless the recording's path (a file, or the folder it goes in) is UTF-8, as a full
+    path: Rerun's writer takes no other (a Latin-1 folder name was a UnicodeEncodeError traceback from inside it,
+    after the job's work)."""
+    try:
+        os.path.abspath(path).encode("utf-8")
+    except UnicodeEncodeError:
+        raise InputError(f"{field} {path!r}: a path that is not UTF-8; expected a UTF-8 path (Rerun writes the "
+                         "recording to no other): rename it") from None
 
 
 def viewer_address(url: str) -> tuple[str, int]:

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.analysis.sink_check import check_sink
+from envisat_pose.analysis.sink_check import check_recording_path, check_sink
 from envisat_pose.config import config_arg, path_arg, to_dict, to_toml
 from envisat_pose.contracts import TruthTrajectory
 from envisat_pose.datagen.gl_check import check_gl_platform
@@ -208,6 +208,8 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = False, sink: 
     check_gl_platform()  # MuJoCo renders every frame: a platform that cannot is one line, before the folder is made
     if sink is not None:
         check_sink(sink)  # before the folder is made
+    else:
+        check_recording_path(out_dir, "out_dir")  # the recording goes there
     names = [os.path.basename(p) for p in run_output_paths(out_dir).values()]
     with made_out_dir(out_dir), staged_folder(out_dir, names) as stage:
         return _run_closed_loop(cfg, stage, progress, sink)

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from envisat_pose.analysis.sink_check import check_sink
+from envisat_pose.analysis.sink_check import check_recording_path, check_sink
 from envisat_pose.config import Config, as_path_or_object, check, config_arg, path_arg, to_toml
 from envisat_pose.datagen.scenario import OrbitConfig
 from envisat_pose.filtering.estimator import FilterConfig
@@ -189,6 +189,8 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     check_out_dir(out_dir, field="out_dir")
     if sink is not None:
         check_sink(sink)  # a viewer that is not there refused before any frame is read
+    else:
+        check_recording_path(out_dir, "out_dir")  # the recording goes there
     camera_file, default = (camera if isinstance(camera, str) else None), camera is None
     cfg, source, camera, remap, pixels = prepare_frames(cfg, source, camera, remap, progress)
     used = camera_record(camera, camera_file, remap is not None, default)  # a PinholeCamera given: not the default

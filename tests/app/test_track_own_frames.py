@@ -10,6 +10,8 @@ import sys
 import numpy as np
 import pytest
 
+from envisat_pose.config import InputError
+
 SIDE = 64
 
 
@@ -57,3 +59,36 @@ def test_a_video_whose_name_is_not_utf8_is_refused_in_one_line(tmp_path):
                        timeout=300)
     assert p.returncode == 0, (p.returncode, p.stderr[-2000:])
     assert "clip_\\udce9.avi" in p.stdout and "not UTF-8" in p.stdout and "rename it" in p.stdout, p.stdout
+
+
+def side_camera(tmp_path):
+    """The MJCF camera read out at SIDE px: the camera of the noise frames."""
+    from envisat_pose.geometry import load_camera
+
+    cam = load_camera().scaled(SIDE, SIDE)
+    path = tmp_path / "side_camera.toml"
+    path.write_text(f"fx = {cam.f_px!r}\nfy = {cam.f_px!r}\ncx = {cam.cu_px!r}\ncy = {cam.cv_px!r}\n"
+                    f"width = {SIDE}\nheight = {SIDE}\n")
+    return str(path)
+
+
+def test_an_output_folder_whose_name_is_not_utf8_is_refused_before_any_work(tmp_path, capsys):
+    """--out run_\\xe9: every frame was read and tracked, then Rerun's writer raised a UnicodeEncodeError traceback.
+    Now one line naming --out, before anything is read or made."""
+    from envisat_pose.app.cli import main
+
+    src = tmp_path / "seq"
+    frames(src, [f"img_{i:04d}.png" for i in range(4)])
+    cfg = tmp_path / "fast.toml"
+    cfg.write_text("[tracker.acquire]\nframes = 3\n")
+    out = bytes_name(tmp_path, b"run_\xe9")
+    code = main(["track", "--images", str(src), "--rate-hz", "1", "--camera", side_camera(tmp_path), "--config",
+                 str(cfg), "--out", out, "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert err.startswith("envisat track: error: --out ") and "not UTF-8" in err and "rename it" in err, err
+    assert not os.path.exists(os.fsencode(out))
+    from envisat_pose.analysis.sink_check import check_sink
+
+    with pytest.raises(InputError, match=r"^sink .*not UTF-8"):  # a library caller's sink, and `envisat run`'s
+        check_sink(f"save:{out}/recording.rrd")
