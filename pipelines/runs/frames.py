@@ -4,7 +4,8 @@ video (`open_source`), every frame read once before any output (`scan_source`).
 - Image folders: PNG, JPEG, TIFF, BMP, PGM/PPM or WebP files; hidden and dot files (macOS `._*`) are ignored; names are sorted
   naturally and their times read or warned of as pipelines/runs/frame_names.py says (two files of one frame
   number refused; numbered names that skip numbers under a frame rate warned of). One image file is refused (its
-  folder is the sequence); a video whose header counts more frames than can be read is warned of.
+  folder is the sequence), and so is a file of several frames (a TIFF stack, an animation); a video whose header
+  counts more frames than can be read is warned of.
 - Pixels: 8-bit files as they are; 16-bit files hold `bit_depth`-bit data (10, 12, 14 or 16; default: the
   smallest depth that holds the sequence's maximum), scaled to 8 bits by 255 / (2^bit_depth - 1).
 - Messages the image and video libraries print (OpenCV, libpng, libtiff, FFmpeg) are kept off the terminal
@@ -120,10 +121,28 @@ def read_gray(path: str) -> np.ndarray:
         raise InputError(f"{path}: cannot be read ({err.strerror or err})") from None
     with native_stderr() as said:
         img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+        pages = frame_count(path) if img is not None else 1
     if img is not None and path.lower().endswith((".jpg", ".jpeg")) and not data[-2:].tobytes() == b"\xff\xd9":
         img = None  # OpenCV decodes a truncated JPEG with a grey tail and a warning; it is not a whole frame
         said.append("the JPEG data ends before its end marker")
+    if pages > 1:  # imdecode gives the first page alone: the rest of the stack was lost without a word
+        raise InputError(f"{path}: {pages} frames in one file (a multi-page TIFF or an animation); expected one "
+                         "frame per file: save each page as its own file")
     return to_gray(img, path, said)
+
+
+def frame_count(path: str) -> int:
+    """The frames an image file holds (the pages of a TIFF stack, an animated PNG's or WebP's frames; 1 for most
+    files), from its header; 1 when OpenCV cannot say, or for a name that is not UTF-8 (OpenCV's readers by path
+    crash on one)."""
+    import cv2
+
+    if not is_utf8(path):
+        return 1
+    try:
+        return max(int(cv2.imcount(path)), 1)
+    except cv2.error:
+        return 1
 
 
 def detect_bit_depth(max_value: int) -> int:
@@ -242,6 +261,10 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
             caution = decimal_names_caution(src, source.names) or numbering_gap_caution(src, source.names)
             source.cautions += [caution] if caution else []
     elif os.path.isfile(src):
+        if src.lower().endswith(IMAGE_EXTENSIONS) and frame_count(src) > 1:
+            raise InputError(f"src {src!r}: {frame_count(src)} frames in one image file (a multi-page TIFF or an "
+                             "animation); expected a folder of one frame per file (save each page as its own "
+                             "file), a video or a generate folder")
         if src.lower().endswith(IMAGE_EXTENSIONS):
             raise InputError(f"src {src!r}: one image file; expected the folder of the sequence's frames "
                              f"({os.path.dirname(src) or '.'!r}), a video or a generate folder")

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from envisat_pose.config import InputError
+from envisat_pose.pipelines.runs.frames import open_source, scan_source
 
 SIDE = 64
 
@@ -92,3 +93,23 @@ def test_an_output_folder_whose_name_is_not_utf8_is_refused_before_any_work(tmp_
 
     with pytest.raises(InputError, match=r"^sink .*not UTF-8"):  # a library caller's sink, and `envisat run`'s
         check_sink(f"save:{out}/recording.rrd")
+
+
+def test_a_tiff_stack_is_refused_not_read_as_its_first_page(tmp_path):
+    """A folder of TIFF stacks (a lab camera's output, 5 frames a file) was tracked as one frame a file, the rest
+    of each stack lost without a word; the stack given alone was told to give its folder, which did the same."""
+    import cv2
+
+    src = tmp_path / "stacks"
+    src.mkdir()
+    imgs = frames(tmp_path / "pngs", [f"f{i}.png" for i in range(10)])
+    for s in range(2):
+        assert cv2.imwritemulti(str(src / f"stack_{s}.tif"), imgs[5 * s:5 * s + 5])
+    source = open_source(str(src), 1.0)
+    with pytest.raises(InputError, match=r"stack_0.tif: 5 frames in one file \(a multi-page TIFF or an animation\)"):
+        scan_source(source)
+    with pytest.raises(InputError, match=r"stack_0.tif': 5 frames in one image file.*one frame per file"):
+        open_source(str(src / "stack_0.tif"), 1.0)
+    source = open_source(str(tmp_path / "pngs"), 1.0)  # one frame a file: as before
+    scan_source(source)
+    assert len(source.t_s) == 10
