@@ -33,10 +33,16 @@ def natural_key(name: str) -> tuple:
 
 def sorted_frames(folder: str, names: list[str]) -> list[str]:
     """The image files among names (hidden and dot files skipped), naturally sorted; InputError when two files
-    have one frame number (their names without the extension compare equal: their order cannot be told)."""
-    files = [n for n in names if not n.startswith(".") and n.lower().endswith(IMAGE_EXTENSIONS)
-             and os.path.isfile(os.path.join(folder, n))]
-    files.sort(key=lambda n: (natural_key(n), n))
+    have one frame number (their names without the extension compare equal: their order cannot be told), or when
+    one is a link to nothing."""
+    images = sorted((n for n in names if not n.startswith(".") and n.lower().endswith(IMAGE_EXTENSIONS)),
+                    key=lambda n: (natural_key(n), n))
+    for n in images:  # a link to a frame that is gone: skipped, the sequence silently lost that frame
+        path = os.path.join(folder, n)
+        if os.path.islink(path) and not os.path.exists(path):
+            raise InputError(f"src {folder!r}: {n!r} is a link to {os.readlink(path)!r}, which does not exist; "
+                             "expected an image file (restore the frame, or remove the link)")
+    files = [n for n in images if os.path.isfile(os.path.join(folder, n))]
     seen: dict[tuple, str] = {}
     for n in files:
         key = natural_key(os.path.splitext(n)[0])

@@ -113,3 +113,24 @@ def test_a_tiff_stack_is_refused_not_read_as_its_first_page(tmp_path):
     source = open_source(str(tmp_path / "pngs"), 1.0)  # one frame a file: as before
     scan_source(source)
     assert len(source.t_s) == 10
+
+
+def test_a_link_to_a_frame_that_is_gone_is_refused_not_skipped(tmp_path):
+    """A folder of links into an archive, one of whose frames was purged: the dangling link was skipped, and with
+    a timestamps CSV (its row for that frame ignored) the sequence lost the frame without a word."""
+    names = [f"img_{i:04d}.png" for i in range(4)]
+    store = tmp_path / "store"
+    frames(store, names)
+    src = tmp_path / "links"
+    src.mkdir()
+    for n in names:
+        os.symlink(store / n, src / n)
+    times = tmp_path / "times.csv"
+    times.write_text("file,t_s\n" + "".join(f"{n},{i * 0.5}\n" for i, n in enumerate(names)))
+    source = open_source(str(src), timestamps=str(times))  # links to frames: read as the frames
+    scan_source(source)
+    assert source.names == names
+    os.remove(store / names[2])
+    with pytest.raises(InputError, match=r"'img_0002.png' is a link to '.*store/img_0002.png', which does not "
+                                         r"exist; expected an image file"):
+        open_source(str(src), timestamps=str(times))
