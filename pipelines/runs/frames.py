@@ -239,7 +239,7 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
     if rate_hz and timestamps:
         raise InputError("rate_hz and `timestamps`: give one of them (the frame times)")
     if os.path.isdir(src):
-        if os.path.isfile(manifest_path(src)):
+        if os.path.isfile(manifest_path(src)) and generate_folder(src):
             for flag, value in (("rate_hz", rate_hz), ("timestamps", timestamps), ("bit_depth", bit_depth)):
                 if value:
                     raise InputError(f"{flag} does not apply to a generate folder ({src!r}: its labels give the "
@@ -281,6 +281,17 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
         raise InputError(f"src {src!r}: no such file or folder")
     source.bit_depth = bit_depth or 0  # 0: detect (scan_source)
     return source
+
+
+def generate_folder(src: str) -> bool:
+    """Whether a folder with a manifest.json is a generate folder: its manifest a dataset's, or no image files beside
+    it (dataset_source then says what is wrong with it). Another tool's manifest.json beside a user's images (a
+    labelling tool's, an exporter's) leaves the folder an image folder: it was refused as a damaged dataset."""
+    try:
+        load_dataset_manifest(src, "src")
+    except InputError:
+        return not any(n.lower().endswith(IMAGE_EXTENSIONS) for n in os.listdir(src))
+    return True
 
 
 def is_utf8(path: str) -> bool:

@@ -134,3 +134,19 @@ def test_a_link_to_a_frame_that_is_gone_is_refused_not_skipped(tmp_path):
     with pytest.raises(InputError, match=r"'img_0002.png' is a link to '.*store/img_0002.png', which does not "
                                          r"exist; expected an image file"):
         open_source(str(src), timestamps=str(times))
+
+
+def test_another_tools_manifest_beside_the_images_leaves_an_image_folder(tmp_path):
+    """A labelling tool's manifest.json beside the PNGs made the folder a generate folder: '--rate-hz does not
+    apply to a generate folder', or without it 'manifest.json holds a JSON list'."""
+    src = tmp_path / "seq"
+    frames(src, [f"img_{i:04d}.png" for i in range(3)])
+    for text in ('{"images": ["img_0000.png"], "camera": "nav"}', "[1, 2]", "not json"):
+        (src / "manifest.json").write_text(text)
+        source = open_source(str(src), 1.0)
+        assert source.kind == "images" and source.names == [f"img_{i:04d}.png" for i in range(3)]
+    os.remove(src / "img_0000.png")  # no images beside it: a generate folder's manifest, refused as one
+    for n in ("img_0001.png", "img_0002.png"):
+        os.remove(src / n)
+    with pytest.raises(InputError, match=r"unreadable manifest.json"):
+        open_source(str(src))
