@@ -91,7 +91,7 @@ from envisat_pose.pipelines.tracking.noise import (
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
 from envisat_pose.pipelines.tracking.tracker_acquire import AcquiringSteps
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER, TrackerConfig, TrackEstimate
-from envisat_pose.pipelines.tracking.tracker_frame import TrackingSteps
+from envisat_pose.pipelines.tracking.tracker_frame import MAX_PREDICTION_S, TrackingSteps
 from envisat_pose.state import N_STATE
 from envisat_pose.status import STATUSES
 from envisat_pose.target import Target, load_target, other_target
@@ -183,6 +183,8 @@ class Tracker(AcquiringSteps, TrackingSteps):
         if self.state is None or not self.confirmed or self.state.mean.shape[0] != 1 or self.window_fell_short:
             return None
         if self.t_last is not None and not t_s > self.t_last:
+            return None
+        if t_s - self.state.t_s > MAX_PREDICTION_S:  # step loses the track without a prediction
             return None
         plan = self._plan(float(t_s))
         return None if plan.roi is None else plan.roi.copy()

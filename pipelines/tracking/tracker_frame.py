@@ -55,6 +55,12 @@ def predicted_roi(mean: np.ndarray, cov: np.ndarray, camera: PinholeCamera, cfg:
     return np.array([x0, y0, side], dtype=np.int64)
 
 
+# The longest gap a started track is predicted over, s (11.6 days): the propagation's steps, time and memory grow
+# with it (a frame 1e300 s on was a numpy error from the filter, 1e8 s minutes of work for one frame), for a
+# prior long since lost (a day's gap left a track's position sigma at hundreds of m: lost by its integrity tests).
+MAX_PREDICTION_S = 1e6
+
+
 @dataclasses.dataclass(frozen=True)
 class FrameMeasurement:
     """One frame measured for the bank's H hypotheses (Tracker._measure). fd: the FrameDetection (None: no
@@ -145,6 +151,10 @@ class TrackingSteps:
         """One frame of a started bank: every hypothesis predicted to t_s, then the frame measured under the
         prediction (_measure), the bank updated (_update_bank) and judged (_judge: integrity, pruning, the claim)."""
         t0 = time.perf_counter()
+        gap_s = t_s - float(self.state.t_s)
+        if gap_s > MAX_PREDICTION_S:
+            return self._lost_prediction(t_s, image, f"{gap_s:.3g} s since the track's last frame, beyond the "
+                                         f"{MAX_PREDICTION_S:.0f} s a track is predicted over")
         chaser = self.chaser_at(t_s)
         plan = self._plan(t_s)
         prior, best, converged = plan.prior, plan.best, plan.converged
@@ -162,14 +172,15 @@ class TrackingSteps:
         return self._judge(t_s, image, new, b, events, out, lambda: {
             "detection": m.t_det, "filtering": t_predict + m.t_filter + time.perf_counter() - t1})
 
-    def _lost_prediction(self, t_s: float, image) -> TrackEstimate:
-        """A prediction gone non-finite (a long gap through a bad state): the track is lost, acquire again."""
+    def _lost_prediction(self, t_s: float, image, why: str = "the prediction is not finite") -> TrackEstimate:
+        """A prediction gone non-finite (a long gap through a bad state), or none made (a gap beyond
+        MAX_PREDICTION_S): the track is lost, acquire again."""
         fd = None if image is None else self._detect(image)[0]
         est = TrackEstimate(t_s=t_s, status="lost", x_hat=np.full(N_STATE, np.nan),
                             P=np.full((N_STATE, N_STATE), np.nan), hypotheses=np.zeros((0, N_STATE)),
                             probabilities=np.zeros(0), detection=fd, naming=-1, measured=np.zeros(self.K, bool),
                             rejected=np.zeros(self.K, bool), nis=0.0, nis_dof=0, roi_px=None, converged=False,
-                            events=("lost: the prediction is not finite",), timing_s={})
+                            events=(f"lost: {why}",), timing_s={})
         self._reset()
         return est
 

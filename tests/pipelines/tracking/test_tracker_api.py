@@ -73,3 +73,21 @@ def test_a_first_frame_before_the_priors_time_is_refused_and_changes_nothing(par
     assert tracker.t_last is None
     est = tracker.step(10.0, None)
     assert est.t_s == 10.0 and np.allclose(est.x_hat[:3], x0[:3], atol=1e-6)
+
+
+def test_a_frame_too_long_after_the_track_loses_it_without_predicting_across(parts):
+    """A frame 1e300 s after the prior (a typo in a timestamps file, a clock's wrap): the filter's propagation
+    asked numpy for an array of that many steps (ValueError: Maximum allowed dimension exceeded), and a gap of
+    1e8 s took minutes for the one frame. The track is lost instead, saying why, and the tracker goes on."""
+    cam, chaser = parts
+    x0 = np.r_[0.0, 50.0, 0.0, 0.0, 0.0, 0.0, 0.1, 0.2, 0.3, 0.0, 0.0, 0.04]
+    P0 = np.diag(np.r_[[0.1] * 3, [0.01] * 3, [0.01] * 3, [0.001] * 3] ** 2)
+    tracker = Tracker(cam, tracker_detector(None), chaser, prior=(x0, P0, 10.0))
+    assert tracker.planned_window(1e300) is None
+    est = tracker.step(1e300, None)
+    assert est.status == "lost" and est.events == ("lost: 1e+300 s since the track's last frame, beyond the 1000000 s "
+                                                   "a track is predicted over",)
+    assert tracker.state is None and tracker.step(2e300, np.zeros((64, 64), np.uint8)).status == "acquiring"
+    tracker = Tracker(cam, tracker_detector(None), chaser, prior=(x0, P0, 10.0))
+    est = tracker.step(10.0 + 3600.0, None)  # an hour's gap: predicted across, as before (and judged)
+    assert np.isfinite(est.x_hat).all() and not any("predicted over" in e for e in est.events), est.events
