@@ -8,7 +8,7 @@ opens the folder):
   by its position: the frames after a gap would be early by the missing frames' time; frames.scan_source warns),
   and names ending in decimals of unequal length (t_12.5, t_12.25: natural order is not their time order);
 - a timestamps CSV (columns file,t_s; a spreadsheet's byte-order mark and spaces around the header's names
-  allowed) read, one time per image, increasing in name order.
+  allowed) read, one time per image, increasing in name order, none beyond the recording's clock (MAX_TIME_S).
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import numpy as np
 from envisat_pose.config import InputError
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".pnm", ".webp")  # OpenCV reads them
+MAX_TIME_S = (2 ** 63 - 1) / 1e9  # the largest frame time a recording's clock holds (Rerun's int64 ns), s
 GAP_FACTOR = 1.5  # a step in the frame numbers this much over the usual one is a gap (not jitter in a clock's name)
 
 
@@ -141,6 +142,12 @@ def increasing_times(path: str, t: np.ndarray, files: list[str]) -> np.ndarray:
     if bad.size:
         k = int(bad[0])
         raise InputError(f"{path}: {os.path.basename(files[k])} at t = {t[k]} s: expected a finite time in s")
+    bad = np.flatnonzero(np.abs(t) > MAX_TIME_S)
+    if bad.size:  # ms since 1970 read as s: tracked, then the recording's clock overflowed (a traceback)
+        k = int(bad[0])
+        raise InputError(f"{path}: {os.path.basename(files[k])} at t = {t[k]:.6g} s: expected a time in s of at most "
+                         f"{MAX_TIME_S:.3g} s in size (292 years: the recording's clock, int64 ns); times in ms or "
+                         "us since an epoch? (t_s is in s)")
     back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
         k = int(back[0]) + 1

@@ -150,3 +150,19 @@ def test_another_tools_manifest_beside_the_images_leaves_an_image_folder(tmp_pat
         os.remove(src / n)
     with pytest.raises(InputError, match=r"unreadable manifest.json"):
         open_source(str(src))
+
+
+def test_times_since_an_epoch_are_read_and_ms_in_the_s_column_refused(tmp_path):
+    """Times since 1970 in s are frame times as any (the tracker and the recording take them); the same times in
+    ms in the t_s column were tracked, then the recording's clock (int64 ns) overflowed: a traceback after the
+    work. Now one line naming the file and the time, before any frame is read."""
+    from envisat_pose.pipelines.runs.frame_names import read_timestamps
+
+    names = [f"img_{i:04d}.png" for i in range(3)]
+    times = tmp_path / "times.csv"
+    times.write_text("file,t_s\n" + "".join(f"{n},{1.7e9 + i}\n" for i, n in enumerate(names)))
+    np.testing.assert_allclose(read_timestamps(str(times), names), 1.7e9 + np.arange(3))
+    times.write_text("file,t_s\n" + "".join(f"{n},{1.7e12 + 1000 * i}\n" for i, n in enumerate(names)))
+    with pytest.raises(InputError, match=r"times.csv: img_0000.png at t = 1.7e\+12 s: expected a time in s of at "
+                                         r"most 9.22e\+09 s .*ms or us since an epoch"):
+        read_timestamps(str(times), names)
