@@ -14,6 +14,7 @@ opens the folder):
 from __future__ import annotations
 
 import csv
+import ntpath
 import os
 import re
 
@@ -97,9 +98,10 @@ def decimal_names_caution(src: str, names: list[str]) -> str | None:
 
 
 def read_timestamps(path: str, files: list[str]) -> np.ndarray:
-    """Frame times (N,) s from a CSV with columns file,t_s for the given image files (matched by file name);
-    InputError naming the CSV (and the line) when it has no such columns, a row misses a value, a file has two
-    different times or none, or the times do not increase in the files' order."""
+    """Frame times (N,) s from a CSV with columns file,t_s for the given image files (matched by file name: a
+    path's last name, / or \\ its separator); InputError naming the CSV (and the line) when it has no such columns,
+    a row misses a value, a file has two different times or none, or the times do not increase in the files'
+    order."""
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:  # utf-8-sig: a spreadsheet's byte-order mark
             reader = csv.reader(fh)
@@ -117,7 +119,7 @@ def read_timestamps(path: str, files: list[str]) -> np.ndarray:
             continue  # a blank line
         if len(row) <= max(col_f, col_t):
             raise InputError(f"{path}: line {n}: {','.join(row)!r}: expected a file and a time t_s (s)")
-        name, t = os.path.basename(row[col_f].strip()), row[col_t].strip()
+        name, t = ntpath.basename(row[col_f].strip()), row[col_t].strip()  # a Windows path's name too (C:\\...)
         try:
             value = float(t)
         except ValueError:

@@ -166,3 +166,15 @@ def test_times_since_an_epoch_are_read_and_ms_in_the_s_column_refused(tmp_path):
     with pytest.raises(InputError, match=r"times.csv: img_0000.png at t = 1.7e\+12 s: expected a time in s of at "
                                          r"most 9.22e\+09 s .*ms or us since an epoch"):
         read_timestamps(str(times), names)
+
+
+def test_a_timestamps_csv_written_on_windows_is_read(tmp_path):
+    """A CSV from a Windows tool: CRLF line ends and full Windows paths in the file column. 'no time for image
+    img_0000.png' was said of a file whose row was there (its name read as the whole path)."""
+    from envisat_pose.pipelines.runs.frame_names import read_timestamps
+
+    names = [f"img_{i:04d}.png" for i in range(3)]
+    times = tmp_path / "times.csv"
+    times.write_bytes(("file,t_s\r\n" + "".join(f"C:\\Users\\me\\frames\\{n},{i * 0.5}\r\n"
+                                                 for i, n in enumerate(names))).encode())
+    np.testing.assert_allclose(read_timestamps(str(times), names), [0.0, 0.5, 1.0])
