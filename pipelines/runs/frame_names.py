@@ -8,7 +8,8 @@ opens the folder):
   by its position: the frames after a gap would be early by the missing frames' time; frames.scan_source warns),
   and names ending in decimals of unequal length (t_12.5, t_12.25: natural order is not their time order);
 - a timestamps CSV (columns file,t_s; a spreadsheet's byte-order mark and spaces around the header's names
-  allowed) read, one time per image, increasing in name order, none beyond the recording's clock (MAX_TIME_S).
+  allowed) read, one time per image, increasing in name order, none beyond the recording's clock (MAX_TIME_S);
+- frames too far apart for the tracker's cold start to gather its window warned of (spacing_caution).
 """
 
 from __future__ import annotations
@@ -95,6 +96,21 @@ def decimal_names_caution(src: str, names: list[str]) -> str | None:
     return (f"src {src!r}: the names end in decimal numbers of unequal decimals ({short!r}, {long_!r}): name order "
             "compares their decimals as whole numbers (12.5 before 12.25), so the frames may be out of time order; "
             "give `timestamps` (columns file,t_s), or names with as many decimals each")
+
+
+def spacing_caution(src: str, t_s: np.ndarray, frames: int, max_gap_s: float) -> str | None:
+    """What to warn of when no `frames` frames in a row are within max_gap_s of the one before (the cold start's
+    window, [tracker.acquire] frames and max_gap_s): the tracker cannot start on them, so nothing is tracked (it
+    was said without a reason); None when some are."""
+    run = longest = 0
+    for close in np.diff(t_s) <= max_gap_s:
+        run = run + 1 if close else 0
+        longest = max(longest, run)
+    if longest + 1 >= frames:
+        return None
+    return (f"src {src!r}: no {frames} frames in a row are within {max_gap_s:g} s of the one before (the frames are "
+            f"a median {np.median(np.diff(t_s)):.3g} s apart; [tracker.acquire] frames and max_gap_s): the cold "
+            "start cannot gather its window, so nothing will be tracked; times in ms? (t_s is in s)")
 
 
 def read_timestamps(path: str, files: list[str]) -> np.ndarray:

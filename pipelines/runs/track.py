@@ -50,6 +50,7 @@ from envisat_pose.pipelines.common.job_defaults import (
 )
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.runs.frame_loop import BEFORE_TRACKER, FrameInput, run_frames
+from envisat_pose.pipelines.runs.frame_names import spacing_caution
 from envisat_pose.pipelines.runs.frames import FrameSource, open_source, require_source_target, scan_source
 from envisat_pose.pipelines.runs.outputs import status_summary
 from envisat_pose.pipelines.runs.rows import DET_KEYS, STAGES, RunRows
@@ -150,8 +151,9 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
     """A user's frames made ready for a job over them (track_frames, adapt): the source opened (a path at
     cfg.rate_hz; a generate folder must be of cfg.target: frames.require_source_target), the camera read (a TOML
     file: its remap too) or the MJCF's (camera_file.default_camera), every frame scanned once
-    (frames.scan_source: one size, decodable, at least the cold start's frames). Returns (cfg, source, camera, remap, pixels); cfg as given
-    (complete when built: its weights named)."""
+    (frames.scan_source: one size, decodable, at least the cold start's frames; frames too far apart for it warned
+    of: frame_names.spacing_caution). Returns (cfg, source, camera, remap, pixels); cfg as given (complete when
+    built: its weights named)."""
     if isinstance(source, str):
         source = open_source(source, cfg.rate_hz)
     require_source_target(source, cfg.target)
@@ -165,6 +167,9 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
                          min_frames=cfg.tracker.acquire.frames, progress=progress)
     if camera is None:
         camera = default_camera(source.path, source.size_px, generated=source.kind == "dataset")
+    caution = spacing_caution(source.path, source.t_s, cfg.tracker.acquire.frames, cfg.tracker.acquire.max_gap_s)
+    if caution:  # once the frames and the camera pass: a refusal stays one line
+        warnings.warn(caution, stacklevel=2)
     return cfg, source, camera, remap, pixels
 
 

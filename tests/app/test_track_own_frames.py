@@ -178,3 +178,28 @@ def test_a_timestamps_csv_written_on_windows_is_read(tmp_path):
     times.write_bytes(("file,t_s\r\n" + "".join(f"C:\\Users\\me\\frames\\{n},{i * 0.5}\r\n"
                                                  for i, n in enumerate(names))).encode())
     np.testing.assert_allclose(read_timestamps(str(times), names), [0.0, 0.5, 1.0])
+
+
+def test_frames_too_far_apart_for_the_cold_start_are_warned_of(tmp_path, capsys):
+    """Times in ms in the t_s column (frames 1000 s apart): every frame restarted the cold start's window
+    (max_gap_s 30 s), and the run said 'nothing tracked' without a reason. Now a warning says why, once the
+    frames pass; frames 1 s apart say nothing."""
+    from envisat_pose.app.cli import main
+    from envisat_pose.pipelines.runs.frame_names import spacing_caution
+
+    assert spacing_caution("s", np.arange(5) * 1000.0, 3, 30.0).startswith("src 's': no 3 frames in a row")
+    assert spacing_caution("s", np.r_[0.0, 1000.0, 1001.0, 1002.0, 5000.0], 3, 30.0) is None  # three close
+    names = [f"img_{i:04d}.png" for i in range(4)]
+    src = tmp_path / "seq"
+    frames(src, names)
+    cfg = tmp_path / "fast.toml"
+    cfg.write_text("[tracker.acquire]\nframes = 3\n")
+    for step, warned in ((1000, True), (1, False)):
+        times = tmp_path / "times.csv"
+        times.write_text("file,t_s\n" + "".join(f"{n},{i * step}\n" for i, n in enumerate(names)))
+        code = main(["track", "--images", str(src), "--timestamps", str(times), "--camera", side_camera(tmp_path),
+                     "--config", str(cfg), "--out", str(tmp_path / "out"), "--quiet"])
+        err = capsys.readouterr().err.strip()
+        assert code == 0
+        assert ("warning: --images" in err and "no 3 frames in a row are within 30 s" in err
+                and "a median 1e+03 s apart" in err and "times in ms?" in err) == warned, err
