@@ -34,7 +34,12 @@ def status_line(frames: int, counts: dict[str, int], first_tracking_s: float | N
                    "holds no estimate (x_hat NaN, status per row)") + refused_clause(refusal))
     nis = "no filter update with measurements" if mean_nis is None else f"mean NIS per dof {mean_nis:.2f}"
     return (f"{frames} frames: {counts['tracking']} tracking" + (f", {rest}" if rest else "")
-            + f"; first tracking at t = {first_tracking_s:g} s; final status {final}; {nis}")
+            + f"; first tracking at t = {seconds(first_tracking_s)} s; final status {final}; {nis}")
+
+
+def seconds(t_s: float) -> str:
+    """A frame time to the ms, whole however large (times since an epoch: :g printed 1.7e+09)."""
+    return f"{t_s:.3f}".rstrip("0").rstrip(".")
 
 
 def refused_clause(refusal: str | None) -> str:

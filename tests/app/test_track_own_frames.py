@@ -203,3 +203,13 @@ def test_frames_too_far_apart_for_the_cold_start_are_warned_of(tmp_path, capsys)
         assert code == 0
         assert ("warning: --images" in err and "no 3 frames in a row are within 30 s" in err
                 and "a median 1e+03 s apart" in err and "times in ms?" in err) == warned, err
+
+
+def test_the_first_tracking_time_is_printed_whole_for_times_since_an_epoch():
+    """'first tracking at t = 1.7e+09 s' said nothing of when, for frames timed since 1970."""
+    from envisat_pose.pipelines.runs.outputs import status_line
+
+    line = status_line(40, {"acquiring": 20, "tracking": 20}, 1700000033.5, "tracking", 0.2)
+    assert "first tracking at t = 1700000033.5 s;" in line, line
+    for t, said in ((20.0, "20"), (11 + 1 / 3, "11.333")):
+        assert f"first tracking at t = {said} s;" in status_line(40, {"tracking": 20}, t, "tracking", 0.2)
