@@ -239,13 +239,17 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
     if rate_hz and timestamps:
         raise InputError("rate_hz and `timestamps`: give one of them (the frame times)")
     if os.path.isdir(src):
-        if os.path.isfile(manifest_path(src)) and generate_folder(src):
+        try:
+            names = os.listdir(src)
+        except OSError as err:  # a folder of another user's without read permission: a traceback
+            raise InputError(f"src {src!r}: the folder cannot be listed ({err.strerror or err})") from None
+        if os.path.isfile(manifest_path(src)) and generate_folder(src, names):
             for flag, value in (("rate_hz", rate_hz), ("timestamps", timestamps), ("bit_depth", bit_depth)):
                 if value:
                     raise InputError(f"{flag} does not apply to a generate folder ({src!r}: its labels give the "
                                      "frame times and its frames are 8-bit)")
             return dataset_source(src, skip_damaged)
-        files = [os.path.join(src, f) for f in sorted_frames(src, os.listdir(src))]
+        files = [os.path.join(src, f) for f in sorted_frames(src, names)]
         if not files:
             raise InputError(f"src {src!r}: no image files (expected PNG, JPEG, TIFF, BMP, PGM/PPM or WebP files, a generate "
                              "folder or a video)")
@@ -283,14 +287,15 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
     return source
 
 
-def generate_folder(src: str) -> bool:
-    """Whether a folder with a manifest.json is a generate folder: its manifest a dataset's, or no image files beside
-    it (dataset_source then says what is wrong with it). Another tool's manifest.json beside a user's images (a
-    labelling tool's, an exporter's) leaves the folder an image folder: it was refused as a damaged dataset."""
+def generate_folder(src: str, names: list[str]) -> bool:
+    """Whether a folder with a manifest.json (names: its files) is a generate folder: its manifest a dataset's, or
+    no image files beside it (dataset_source then says what is wrong with it). Another tool's manifest.json beside a
+    user's images (a labelling tool's, an exporter's) leaves the folder an image folder: it was refused as a damaged
+    dataset."""
     try:
         load_dataset_manifest(src, "src")
     except InputError:
-        return not any(n.lower().endswith(IMAGE_EXTENSIONS) for n in os.listdir(src))
+        return not any(n.lower().endswith(IMAGE_EXTENSIONS) for n in names)
     return True
 
 

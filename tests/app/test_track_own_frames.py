@@ -213,3 +213,20 @@ def test_the_first_tracking_time_is_printed_whole_for_times_since_an_epoch():
     assert "first tracking at t = 1700000033.5 s;" in line, line
     for t, said in ((20.0, "20"), (11 + 1 / 3, "11.333")):
         assert f"first tracking at t = {said} s;" in status_line(40, {"tracking": 20}, t, "tracking", 0.2)
+
+
+def test_a_folder_that_cannot_be_listed_is_one_line(tmp_path, monkeypatch):
+    """A folder of another user's without read permission (os.listdir's PermissionError, simulated: the tests may
+    run as root, who reads any folder) was a traceback."""
+    src = tmp_path / "theirs"
+    frames(src, ["img_0000.png"])
+    listdir = os.listdir
+
+    def refused(path="."):
+        if os.fspath(path) == str(src):
+            raise PermissionError(13, "Permission denied", os.fspath(path))
+        return listdir(path)
+
+    monkeypatch.setattr(os, "listdir", refused)
+    with pytest.raises(InputError, match=r"src '.*theirs': the folder cannot be listed \(Permission denied\)"):
+        open_source(str(src), 1.0)
