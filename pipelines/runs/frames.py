@@ -96,7 +96,8 @@ def to_gray(img: np.ndarray | None, name: str, said: list[str] | None = None) ->
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
     if img.dtype not in (np.uint8, np.uint16):
-        raise InputError(f"{name}: pixels of type {img.dtype}: expected 8- or 16-bit")
+        raise InputError(f"{name}: pixels of type {img.dtype}: expected unsigned 8- or 16-bit integers (uint8, "
+                         "uint16)")  # a signed 16-bit TIFF was told it was not 16-bit
     return np.ascontiguousarray(img)
 
 

@@ -230,3 +230,15 @@ def test_a_folder_that_cannot_be_listed_is_one_line(tmp_path, monkeypatch):
     monkeypatch.setattr(os, "listdir", refused)
     with pytest.raises(InputError, match=r"src '.*theirs': the folder cannot be listed \(Permission denied\)"):
         open_source(str(src), 1.0)
+
+
+def test_signed_16_bit_frames_are_told_what_is_wrong_with_them(tmp_path):
+    """A signed 16-bit TIFF (int16) was refused as 'pixels of type int16: expected 8- or 16-bit': it is 16-bit."""
+    import cv2
+
+    src = tmp_path / "signed"
+    src.mkdir()
+    for i in range(2):
+        assert cv2.imwrite(str(src / f"f{i}.tif"), np.full((SIDE, SIDE), 1000 * i, np.int16))
+    with pytest.raises(InputError, match=r"f0.tif: pixels of type int16: expected unsigned 8- or 16-bit integers"):
+        scan_source(open_source(str(src), 1.0))
