@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 
 from envisat_pose.app.common import add_common
-from envisat_pose.config import InputError, resolve_job_config
+from envisat_pose.config import InputError
 from envisat_pose.datagen.factory import run_generate
-from envisat_pose.datagen.generate_config import GenerateConfig
+from envisat_pose.datagen.generate_config import layered_generate
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -43,7 +43,7 @@ def resolve_config(args: argparse.Namespace):
     flags = {"mode": args.mode, "num_images": args.num_images, "shard_size": args.shard_size,
              "resolution_px": args.resolution, "seed": args.seed, "sequence.scenario": args.scenario,
              "target": args.target}
-    cfg = resolve_job_config(GenerateConfig, {}, args.config, flags)
+    cfg = layered_generate({}, args.config, flags)
     if args.scenario is not None and cfg.mode != "sequence":
         raise InputError(f"--scenario {args.scenario}: applies to --mode sequence (random views draw their own "
                          f"poses; this run's mode is {cfg.mode})")

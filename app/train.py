@@ -13,7 +13,7 @@ from envisat_pose.app.common import add_common, add_skip_damaged_argument, as_fl
 from envisat_pose.app.flag_rules import not_applying, training_source
 from envisat_pose.app.interrupts import interrupt_code
 from envisat_pose.config import ConfigError, InputError, resolve_job_config
-from envisat_pose.datagen.generate_config import GenerateConfig
+from envisat_pose.datagen.generate_config import layered_generate
 from envisat_pose.pipelines.detector.look_mix import read_looks
 from envisat_pose.pipelines.detector.train import (
     ddp_rank,
@@ -104,7 +104,7 @@ def online_config(args: argparse.Namespace, cfg):
             raise InputError("--looks and --generate-config/--resolution: the looks file holds every look's config")
         gen = read_looks(args.looks)
     else:
-        gen = resolve_job_config(GenerateConfig, defaults, args.generate_config, {"resolution_px": args.resolution})
+        gen = layered_generate(defaults, args.generate_config, {"resolution_px": args.resolution})
     uses = {} if args.uses_per_frame is None else {"uses_per_frame": args.uses_per_frame}
     return kind(gen, args.render_workers or default_render_workers(), **uses)
 

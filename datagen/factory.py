@@ -46,6 +46,7 @@ from envisat_pose.resumable import ResumableJob
 from envisat_pose.shard_reader import shard_problem
 from envisat_pose.state import RATE, VEL
 from envisat_pose.target import APPENDAGE_GROUP, load_target
+from envisat_pose.written_target import with_target_sha256
 
 MANIFEST_FORMAT = "envisat-pose shards v1"
 # generate_shard's helper threads (same bytes either way): one draws the views, one finishes sample k (the
@@ -389,7 +390,7 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
     done = job.resume(job.open())
     atomic_write_text(os.path.join(out_dir, "generate.config.toml"),
                       "# envisat generate: the full validated config of this dataset\n" + source_line()
-                      + to_toml(to_dict(cfg)))
+                      + to_toml(with_target_sha256(to_dict(cfg), "generate", job.header["target"]["sha256"])))
     bar, n_done = None, sum(e["count"] for e in done.values())
     if progress and n_done < cfg.num_images:  # nothing to do draws no bar (the verb says so in its line)
         from tqdm import tqdm

@@ -16,7 +16,7 @@ import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm
 from envisat_pose.camera_response import parse_response
-from envisat_pose.config import Config, ConfigError, Derived, check, derived, from_dict, to_dict
+from envisat_pose.config import Config, ConfigError, Derived, check, derived, from_dict, resolve_job_config, to_dict
 from envisat_pose.datagen.appearance import CLASSES
 from envisat_pose.datagen.clearance import farthest_depth_m, target_file_boxes
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
@@ -25,6 +25,7 @@ from envisat_pose.datagen.target_scene import scene_clip_planes_m, size_ratio
 from envisat_pose.geometry import load_camera
 from envisat_pose.state import MRP, POS
 from envisat_pose.target import DEFAULT_TARGET, load_target
+from envisat_pose.written_target import recorded_target_checked
 
 Severity = Literal["none", "low", "medium", "high", "mixed"]
 Range = tuple[float, float]
@@ -463,3 +464,12 @@ def config_from_json(text: str) -> GenerateConfig:
 
 def config_json(cfg: GenerateConfig) -> str:
     return json.dumps(to_dict(cfg), sort_keys=True)
+
+
+def layered_generate(defaults: dict, config_path: str | None, flags: dict) -> GenerateConfig:
+    """The GenerateConfig of `envisat generate --config FILE` (and of train's --generate-config): `defaults`, the
+    TOML file at config_path and the flags, each over the last (config.resolve_job_config); a written
+    generate.config.toml's record of its target file set aside, the file checked against it
+    (written_target.recorded_target_checked: a rerun refuses the file once it changed)."""
+    return resolve_job_config(GenerateConfig, defaults, config_path, flags,
+                              recorded_target_checked(config_path, "generate"))

@@ -10,18 +10,15 @@ scenarios with an [eclipse] table.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
-from envisat_pose.config import Config, InputError, check, deep_update, from_dict, load_toml
+from envisat_pose.config import Config, check, deep_update, from_dict
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.target_scene import size_ratio
 from envisat_pose.named_scenarios import known, names, table, truth_part
-from envisat_pose.target import DEFAULT_TARGET, load_target, resolve_target_path
-from envisat_pose.target_file import target_sha256
+from envisat_pose.target import DEFAULT_TARGET, load_target
 
 EARTH_RADIUS_M = 6378137.0  # WGS-84 equatorial radius, used only to reject orbits inside the Earth
 MIN_PHYSICS_DT_S = 1e-4  # s: RK4 at 0.05 s is already exact to 1e-8 m over an orbit (reference sheet)
@@ -255,29 +252,6 @@ def truth_config_json(cfg: ScenarioConfig, target_sha256: str) -> str:
     if not cfg.scenario:
         del data["scenario"]
     return json.dumps(data, sort_keys=True)
-
-
-def recorded_target_checked(config_path: str | None) -> Callable[[dict], dict]:
-    """The last layer of a simulate job from a config file (job_defaults.layered_job's complete): the target file's
-    sha256 that simulate's written config records (`target.sha256`, as its truth does) set aside, and, where the job
-    simulates the file the record names (no other `target.file` given over it), the file checked against it:
-    InputError in one line when it changed since (another body than the one simulated then), as a truth's is."""
-
-    def complete(data: dict) -> dict:
-        target = data.get("target")
-        if not isinstance(target, dict) or "sha256" not in target:
-            return data
-        target = dict(target)
-        recorded, given = target.pop("sha256"), target.get("file", DEFAULT_TARGET)
-        in_file = (load_toml(config_path).get("target") or {}).get("file", DEFAULT_TARGET) if config_path else None
-        path = resolve_target_path(given) if isinstance(given, str) else ""
-        if given == in_file and os.path.isfile(path) and target_sha256(path) != recorded:
-            raise InputError(f"{config_path}: its target file {given!r} changed since the config was written (sha256 "
-                             f"{target_sha256(path)[:12]}..., the config recorded {str(recorded)[:12]}...); to "
-                             "simulate the file as it is now, delete the sha256 line of its [target] table")
-        return {**data, "target": target}
-
-    return complete
 
 
 def scenario_of_truth(config: dict) -> ScenarioConfig:

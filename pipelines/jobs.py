@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from envisat_pose.datagen.scenario import ScenarioConfig, recorded_target_checked
+from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.pipelines.campaigns.campaign_config import layered_montecarlo
 from envisat_pose.pipelines.campaigns.estimate import EstimateConfig
 from envisat_pose.pipelines.common.job_defaults import layered_job
@@ -42,7 +42,5 @@ def resolve_job(kind: str, scenario: str | None = "default", config_path: str | 
         return layered_montecarlo(scenario, config_path, overrides, fields)
     if kind in _CONFIGS:
         return layered_job(_CONFIGS[kind], kind, scenario, config_path, overrides, fields)
-    # simulate: the truth's tables and the scenario's name (ScenarioConfig.scenario), a written config's record of
-    # its target file checked; an unknown kind raises
-    return layered_job(ScenarioConfig, kind, scenario, config_path, overrides, fields,
-                       complete=recorded_target_checked(config_path))
+    # simulate: the truth's tables and the scenario's name (ScenarioConfig.scenario); an unknown kind raises
+    return layered_job(ScenarioConfig, kind, scenario, config_path, overrides, fields)

@@ -61,6 +61,7 @@ from envisat_pose.pools import RunnerConfig
 from envisat_pose.provenance import source_line
 from envisat_pose.resumable import ResumableJob
 from envisat_pose.target import load_target
+from envisat_pose.written_target import with_target_sha256
 
 # the entry points, and the parts' names the verb (app/montecarlo.py) and users import from here
 __all__ = ["run_campaign", "campaign_job", "prepare_truth", "MANIFEST_FORMAT", "MonteCarloConfig", "with_eclipse",
@@ -144,7 +145,7 @@ def campaign_at_one_rate(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConf
     done = job.resume(previous if previous and previous.get("truth_sha256") == truth_sha else None)
     atomic_write_text(os.path.join(out_dir, "montecarlo.config.toml"),
                       "# envisat montecarlo: the full validated config of this campaign\n" + source_line()
-                      + to_toml(to_dict(cfg)))
+                      + to_toml(with_target_sha256(to_dict(cfg), "montecarlo", job.header.get("target_sha256"))))
     cfg_json, where = json.dumps(to_dict(cfg), sort_keys=True), os.path.abspath(out_dir)
     n_run_now = len(job.todo())
     bar = _bar(cfg, done, progress)

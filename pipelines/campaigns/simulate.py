@@ -14,6 +14,7 @@ from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.out_lock import locks_output
 from envisat_pose.provenance import source_line
 from envisat_pose.target import load_target
+from envisat_pose.written_target import with_target_sha256
 
 
 def output_paths(out: str) -> tuple[str, str, str]:
@@ -66,9 +67,8 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
     # the plot) leaves an earlier run's files as they were, not a new run.npz beside the old run.png
     # a rerun without plot removes an earlier run's PNG (it shows another truth)
     # the config records the target file's sha256 as the truth does (target.sha256): a rerun from it refuses a
-    # file that changed since (datagen.scenario.recorded_target_checked)
-    written = to_dict(cfg)
-    written["target"]["sha256"] = traj.config["target"]["sha256"]
+    # file that changed since (written_target.recorded_target_checked)
+    written = with_target_sha256(to_dict(cfg), "simulate", traj.config["target"]["sha256"])
     with staged_folder(os.path.dirname(os.path.abspath(out)), [os.path.basename(png)]) as stage:
         traj.save(os.path.join(stage, os.path.basename(out)))
         atomic_write_text(os.path.join(stage, os.path.basename(cfg_path)),

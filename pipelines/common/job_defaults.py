@@ -30,6 +30,7 @@ from envisat_pose.config import (
 )
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
 from envisat_pose.target import DEFAULT_TARGET, other_target
+from envisat_pose.written_target import recorded_target_checked
 
 JOBS = ("simulate", "estimate", "montecarlo", "run", "track")
 SHIPPED_WEIGHTS = "models/detector.safetensors"  # the shipped weights as outputs name them (weights_name)
@@ -107,21 +108,20 @@ def _filled_for_another(cfg: Any, kind: str, fallbacks: dict[str, Callable[[], A
 
 
 def layered_job(cls: type, kind: str, scenario: str | None, config_path: str | None,
-                overrides: dict[str, Any] | None, fields: dict[str, Any], base: dict | None = None,
-                complete: Callable[[dict], dict] | None = None) -> Any:
+                overrides: dict[str, Any] | None, fields: dict[str, Any], base: dict | None = None) -> Any:
     """The config `cls` of a `kind` job built from layers, each over the last: `base` (tables the job always
     gives, {} by default), what the named scenario sets (scenario_defaults), the TOML file at config_path, the
     overrides {'section.key': value} (None: not given; a dict value merges into its table) and the fields
-    (top-level keys). The job's scenario is `scenario`, whatever the file says; complete(data) -> data, if given,
-    runs on the merged data last (a written config's records set aside). Built by from_dict through the
+    (top-level keys). The job's scenario is `scenario`, whatever the file says; the target file's sha256 that a
+    written config records is set aside, the file checked against it (written_target.recorded_target_checked: a
+    rerun from the config refuses the file once it changed). Built by from_dict through the
     constructor, which completes and validates it; the implementation of pipelines.jobs.resolve_job (and of the
     deprecated `Cfg.from_scenario`). The fields the scenario alone set (no file key or flag under them) are
     marked as filled from it (config.mark_filled), as the constructor marks what it fills in: a replace with
     another scenario fills them in again, whichever way the config was built."""
 
     def named(data: dict) -> dict:
-        data = {**data, "scenario": scenario}
-        return data if complete is None else complete(data)
+        return recorded_target_checked(config_path, kind)({**data, "scenario": scenario})
 
     defaults = {**(base or {}), **scenario_defaults(kind, scenario)}
     flags = {**(overrides or {}), **fields}

@@ -66,6 +66,7 @@ from envisat_pose.provenance import source_line
 from envisat_pose.realtime import real_time_factor
 from envisat_pose.state import draw_initial_estimate
 from envisat_pose.target import load_target, other_target
+from envisat_pose.written_target import with_target_sha256
 
 # The config (pipelines/runs/run_config.py), the on-board physics and orbit (pipelines/tracking/onboard.py), the per-frame
 # row store (pipelines/runs/rows.py) and the runs' files read back (pipelines/runs/run_files.py) have their own modules:
@@ -264,7 +265,7 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
                     [f"frame-{k:06d}" for k in range(T)], det_cfg,
                     extra={"settled": np.array(scores["settled_runs"], bool)})
     atomic_write_text(paths["config"], "# envisat run: the full validated config of this run\n" + source_line()
-                      + to_toml(job_record(cfg)))
+                      + to_toml(with_target_sha256(job_record(cfg), "run", truth.config["target"]["sha256"])))
     from envisat_pose.analysis.plots import plot_estimate
 
     plot_estimate(*plot_inputs(truth.t_s, truth.x, run_dirs), paths["plot"],

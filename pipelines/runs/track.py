@@ -64,6 +64,7 @@ from envisat_pose.provenance import source_line
 from envisat_pose.realtime import real_time_factor
 from envisat_pose.status import legend
 from envisat_pose.target import DEFAULT_TARGET, load_target, other_target
+from envisat_pose.written_target import with_target_sha256
 
 if TYPE_CHECKING:  # the stage's type for annotations (track_stage_types resolves it at run time)
     from envisat_pose.datagen.scenario import OrbitConfig
@@ -246,7 +247,7 @@ def _track(cfg: TrackConfig, source: FrameSource, camera: PinholeCamera, remap, 
     write_run_files(paths, source.t_s, x_true, [run_dir], lost_runs([run_dir], T), config_json, source.names,
                     det_cfg, det_names=det_names)
     atomic_write_text(paths["config"], "# envisat track: the full validated config of this job\n" + source_line()
-                      + to_toml(job_record(cfg)))
+                      + to_toml(with_target_sha256(job_record(cfg), "track", record["sha256"])))
     summary = track_summary(source, cfg.weights, pixels, col, np.asarray(sums["timing_s"]) / T, wall_s)
     summary["target"], summary["camera"] = record, used
     summary["last_cold_start_refusal"] = tracker.last_refusal  # why a frame's cold start started nothing (None)

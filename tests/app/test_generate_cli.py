@@ -92,3 +92,28 @@ def test_ctrl_c_while_the_verbs_load_is_one_line(monkeypatch, capsys):
     monkeypatch.setattr(cli, "build_parser", interrupted)
     assert main(["generate", "--out", "x"]) == 130
     assert capsys.readouterr().err == "envisat: interrupted\n"
+
+
+def test_the_written_config_records_the_target_files_sha256_and_a_rerun_refuses_the_file_changed(tmp_path, capsys):
+    """generate.config.toml records its target file's sha256 beside it (target_sha256), as the manifest does: a
+    rerun from it refuses the file once it changed, in one line naming it and the recorded sha256, with nothing
+    written; another --target given over the config's is taken as it is."""
+    import shutil
+    import tomllib
+
+    from envisat_pose.target import resolve_target_path
+    from envisat_pose.target_file import target_sha256
+
+    target = tmp_path / "stage.xml"
+    shutil.copy(resolve_target_path("models/upper_stage.xml"), target)
+    first, edited, other = (str(tmp_path / name) for name in ("first", "edited", "other"))
+    small = ["--num-images", "2", "--resolution", "48", "--quiet"]
+    assert main(["generate", "--target", str(target), *small, "--out", first]) == 0
+    written = os.path.join(first, "generate.config.toml")
+    recorded = tomllib.loads(open(written).read())["target_sha256"]
+    assert recorded == target_sha256(str(target))
+    target.write_text(target.read_text() + "<!-- edited since -->\n")
+    refused(["generate", "--config", written, "--out", edited], capsys, edited,
+            "changed since the config was written", str(target), recorded[:12])
+    assert main(["generate", "--config", written, "--target", "models/upper_stage.xml", "--out", other,
+                 "--quiet"]) == 0

@@ -4,11 +4,15 @@ and backends, resuming, the streaming block reduction against the whole-array st
 import json
 import os
 import shutil
+import sys
 
 import numpy as np
 import pytest
 
-from envisat_pose.app.cli import main
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # the folder's own helpers
+from refusals import refused  # noqa: E402
+
+from envisat_pose.app.cli import main  # noqa: E402
 
 BASE = ["montecarlo", "--scenario", "default", "--runs", "20", "--duration-s", "200", "--settle-s", "100",
         "--block-runs", "8", "--seed", "3", "--quiet"]
@@ -365,3 +369,30 @@ def test_the_written_config_alone_reruns_the_campaign(campaign, tmp_path, capsys
     bare.write_text("runs = 2\n")
     assert main(["montecarlo", "--config", str(bare), "--out", str(tmp_path / "b"), "--quiet"]) == 2
     assert "--scenario: required" in capsys.readouterr().err and not (tmp_path / "b").exists()
+
+
+def test_the_written_config_records_the_target_files_sha256_and_a_rerun_refuses_the_file_changed(tmp_path, capsys):
+    """A campaign of a target file: montecarlo.config.toml records the file's sha256 beside it (target_sha256), as
+    the manifest does; a rerun from it refuses the file once it changed, in one line naming it and the recorded
+    sha256, with nothing written; another --target given over the config's is taken as it is."""
+    import tomllib
+
+    from envisat_pose.app.cli import build_parser
+    from envisat_pose.app.montecarlo import resolve_config
+    from envisat_pose.target import resolve_target_path
+    from envisat_pose.target_file import target_sha256
+
+    target = tmp_path / "cube.xml"  # the smallest shipped target: the quickest visibility table
+    shutil.copy(resolve_target_path("models/cubesat_3u.xml"), target)
+    first, edited = tmp_path / "first", tmp_path / "edited"
+    assert main(BASE[:3] + ["--target", str(target), "--runs", "2", "--duration-s", "20", "--settle-s", "10",
+                            "--quiet", "--out", str(first)]) == 0
+    written = first / "montecarlo.config.toml"
+    recorded = tomllib.loads(written.read_text())["target_sha256"]
+    assert recorded == target_sha256(str(target))
+    target.write_text(target.read_text() + "<!-- edited since -->\n")
+    refused(["montecarlo", "--config", str(written), "--out", str(edited), "--quiet"], capsys, edited,
+            "changed since the config was written", str(target), recorded[:12])
+    parse = build_parser().parse_args
+    assert resolve_config(parse(["montecarlo", "--config", str(written), "--target", "models/cubesat_3u.xml",
+                                 "--out", "x"])).target == "models/cubesat_3u.xml"

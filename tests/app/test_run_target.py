@@ -11,8 +11,10 @@ import sys
 import numpy as np
 import pytest
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # the folder's own helpers
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "perception"))
 from keypoint_cases import untrained_weights  # noqa: E402
+from refusals import refused  # noqa: E402
 
 from envisat_pose.app.cli import main
 from envisat_pose.datagen.target_scene import size_ratio
@@ -75,3 +77,32 @@ def test_the_python_tracker_of_another_target(weights):
     assert est.status == "acquiring" and est.measured.shape == (12,)
     with pytest.raises(InputError, match="cubesat_3u"):
         tracker_from_scenario("default", weights["cubesat"], target=UPPER)
+
+
+def test_the_written_config_records_the_target_files_sha256_and_a_rerun_refuses_the_file_changed(weights, tmp_path,
+                                                                                                   capsys):
+    """run.config.toml records its target file's sha256 beside it ([image] target_sha256), as truth.npz does: a
+    rerun from it refuses the file once it changed, in one line naming it and the recorded sha256, with nothing
+    written; another --target given over the config's is taken as it is."""
+    import shutil
+    import tomllib
+
+    from envisat_pose.app.cli import build_parser
+    from envisat_pose.app.run import resolve_config
+    from envisat_pose.target_file import target_sha256
+
+    target, small = tmp_path / "stage.xml", tmp_path / "small.toml"
+    shutil.copy(UPPER, target)  # the same file elsewhere: the weights' target
+    small.write_text("[image]\nresolution_px = 128\n")
+    first, edited = tmp_path / "first", tmp_path / "edited"
+    assert main(["run", "--target", str(target), "--weights", weights["upper"], "--config", str(small),
+                 "--duration-s", "1", "--out", str(first), "--quiet"]) == 0
+    written = first / "run.config.toml"
+    recorded = tomllib.loads(written.read_text())["image"]["target_sha256"]
+    assert recorded == target_sha256(str(target))
+    target.write_text(target.read_text() + "<!-- edited since -->\n")
+    refused(["run", "--config", str(written), "--out", str(edited), "--quiet"], capsys, edited,
+            "changed since the config was written", str(target), recorded[:12])
+    parse = build_parser().parse_args
+    assert resolve_config(parse(["run", "--config", str(written), "--target", UPPER, "--out", "x"])
+                          ).image.target == UPPER

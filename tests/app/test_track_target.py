@@ -102,3 +102,28 @@ def test_a_dataset_of_another_target_than_the_jobs_is_refused(stage, tmp_path, c
     # `envisat adapt` knows ENVISAT only: the upper stage's frames are refused as before
     refused(["adapt", "--images", stage["seq"], "--out", out, "--quiet"], capsys, out, "--images",
             "target 'upper_stage'", "not of ENVISAT")
+
+
+def test_the_written_config_records_the_target_files_sha256_and_a_rerun_refuses_the_file_changed(stage, tmp_path,
+                                                                                                   capsys):
+    """track.config.toml records its target file's sha256 beside it (target_sha256), as summary.json does: a
+    rerun from it refuses the file once it changed, in one line naming it and the recorded sha256, with nothing
+    written; another --target given over the config's is taken as it is."""
+    import shutil
+    import tomllib
+
+    from envisat_pose.pipelines.jobs import resolve_job
+    from envisat_pose.target_file import target_sha256
+
+    target = tmp_path / "stage.xml"
+    shutil.copy(UPPER_STAGE, target)  # the same file elsewhere: the frames' and the weights' target
+    first, edited = tmp_path / "first", str(tmp_path / "edited")
+    assert main(["track", "--images", stage["seq"], "--target", str(target), "--weights", stage["calibrated"],
+                 "--out", str(first), "--quiet"]) == 0
+    written = first / "track.config.toml"
+    recorded = tomllib.loads(written.read_text())["target_sha256"]
+    assert recorded == target_sha256(str(target))
+    target.write_text(target.read_text() + "<!-- edited since -->\n")
+    refused(["track", "--images", stage["seq"], "--config", str(written), "--out", edited], capsys, edited,
+            "changed since the config was written", str(target), recorded[:12])
+    assert resolve_job("track", "default", str(written), target=UPPER_STAGE).target == UPPER_STAGE
