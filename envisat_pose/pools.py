@@ -205,28 +205,21 @@ def _worker_init(env: dict[str, str]) -> None:
 def _dask_task(fn: Callable, env: dict[str, str], args: tuple) -> Any:
     for key, value in env.items():
         os.environ.setdefault(key, value)
-    _quiet_cancelled_tasks()
     return fn(*args)
 
 
-def _quiet_cancelled_tasks() -> None:
-    """In a Dask worker: its state machine's warning that a running task's instruction ended cancelled, left out
-    (the client closed by an interrupted job: the job's own line says what happened); its other records kept."""
+def _quiet_job_workers() -> None:
+    """In each worker of a job's own LocalCluster (its setup, registered with the cluster): what the job's own line
+    says already left out of the worker's log, its other records kept (a worker that dies for itself, memory
+    warnings). Left out: the 'Compute Failed' error, a block with the task's traceback (the task's error reaches
+    the job, whose one line says it), and the state machine's warning that a running task's instruction ended
+    cancelled (the client closed by an interrupted job). A user's own scheduler's workers keep theirs: their logs
+    are the user's."""
     import logging
 
-    log = logging.getLogger("distributed.worker.state_machine")
-    if not any(isinstance(f, _Without) for f in log.filters):
-        log.addFilter(_Without("CancelledError"))
-
-
-def _quiet_failed_tasks() -> None:
-    """In each worker of a job's own LocalCluster (its setup, registered with the cluster): the worker's 'Compute
-    Failed' error, a block with the task's traceback, left out: the task's error reaches the job, whose one line
-    says it (a user's own scheduler's workers keep theirs: their logs are the user's). The worker's other records
-    kept (a worker that dies for itself, memory warnings)."""
-    import logging
-
-    logging.getLogger("distributed.worker").addFilter(_Without("Compute Failed"))  # equal filters are added once
+    # equal filters are added once (a frozen dataclass)
+    logging.getLogger("distributed.worker").addFilter(_Without("Compute Failed"))
+    logging.getLogger("distributed.worker.state_machine").addFilter(_Without("CancelledError"))
 
 
 @dataclass(frozen=True)
@@ -398,7 +391,7 @@ def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
         nanny.addFilter(restarts)
     try:
         if cluster is not None:
-            client.register_worker_callbacks(setup=_quiet_failed_tasks)  # workers restarted later run it too
+            client.register_worker_callbacks(setup=_quiet_job_workers)  # workers restarted later run it too
         futures = {client.submit(_dask_task, fn, dict(cfg.env), tuple(args), pure=False): i
                    for i, args in enumerate(tasks)}
         for fut in as_completed(futures):
