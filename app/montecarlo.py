@@ -49,7 +49,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-markers", type=int, help="use at most N keypoints per step, the first visible in the "
                    "target's order (A..H for ENVISAT; default all)")
     p.add_argument("--rates-hz", type=float, nargs="+", metavar="HZ",
-                   help="a rate sweep: one campaign per filter rate (default: the scenario's [sweep] rates_hz)")
+                   help="a rate sweep: one campaign per filter rate (default: the --config file's [sweep] "
+                   "rates_hz, as a sweep's montecarlo.config.toml records it, else the scenario's)")
     p.add_argument("--init-error-scale", type=float, metavar="S",
                    help="draw each run's initial error from (S x P0's sigmas)^2 while the filter is told P0: a filter "
                    "started with the wrong uncertainty (default 1)")
@@ -91,7 +92,7 @@ def run_montecarlo(args: argparse.Namespace) -> int:
     cfg = resolve_config(args)
     check_noise_flags(args, cfg.measurement.kind)
     runner = runner_config(args)
-    sweep = sweep_for(cfg, args.rates_hz, rate_given=args.rate_hz is not None)
+    sweep = sweep_for(cfg, args.rates_hz, rate_given=args.rate_hz is not None, config_path=args.config)
     if args.rrd:
         if sweep is not None:
             raise InputError("--rrd records one campaign, not a rate sweep")

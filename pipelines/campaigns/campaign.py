@@ -18,7 +18,8 @@ Files in DIR:
                               mean NEES with its 95 % band, NIS, PCRLB and RMSE/PCRLB per block, diverged runs
     timing.json               wall times (never part of anything byte-reproducible)
     envelopes.png, block_norms.png, nees_nis.png, rmse_vs_pcrlb.png
-    montecarlo.config.toml    the full validated config
+    montecarlo.config.toml    the full validated config (`--config` reruns the campaign); a rate sweep's campaign
+                              writes it as rate.config.toml (SWEEP_RATE_CONFIG: the sweep's own reruns it)
 
 The same config and seed give the same bytes of blocks, campaign.npz and summary.json whatever the backend
 (local pool, Dask) and worker count: blocks are merged in run-index order (`stats.SumsFolder`). Rerunning the
@@ -71,6 +72,8 @@ if TYPE_CHECKING:
     from envisat_pose.resumable import ResumableJob
 
 MANIFEST_FORMAT = "envisat-pose montecarlo v1"
+CONFIG_NAME = "montecarlo.config.toml"  # what `envisat montecarlo --config` reruns
+SWEEP_RATE_CONFIG = "rate.config.toml"  # a rate sweep's campaign's config: the sweep's montecarlo.config.toml reruns it
 # config fields added since v1 folders were written, with the value such a folder used (it resumes as it was)
 ADDED_DEFAULTS = {"config.init_error_scale": 1.0}
 
@@ -127,8 +130,9 @@ def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConfig | Non
 
 
 def campaign_at_one_rate(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConfig | None = None,
-                         progress: bool = False) -> dict:
-    """run_campaign's work, at cfg's one rate (a rate sweep's campaigns: pipelines.campaigns.sweep.run_sweep)."""
+                         progress: bool = False, in_sweep: bool = False) -> dict:
+    """run_campaign's work, at cfg's one rate (a rate sweep's campaigns: pipelines.campaigns.sweep.run_sweep;
+    in_sweep: one of them, its config written as SWEEP_RATE_CONFIG, which `--config` does not rerun alone)."""
     cfg = config_arg(cfg, MonteCarloConfig)
     out_dir = path_arg(out_dir, "out_dir")
     runner = config_arg(RunnerConfig() if runner is None else runner, RunnerConfig, "runner")
@@ -143,8 +147,10 @@ def campaign_at_one_rate(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConf
     warn_outages_outside(tr.t_s, cfg.measurement)
     # blocks filtered on another truth are redone
     done = job.resume(previous if previous and previous.get("truth_sha256") == truth_sha else None)
-    atomic_write_text(os.path.join(out_dir, "montecarlo.config.toml"),
-                      "# envisat montecarlo: the full validated config of this campaign\n" + source_line()
+    head = (f"# envisat montecarlo: the validated config of this campaign at {cfg.measurement.rate_hz:g} Hz of a rate "
+            f"sweep; `--config ../{CONFIG_NAME}` reruns the sweep\n" if in_sweep
+            else "# envisat montecarlo: the full validated config of this campaign\n")
+    atomic_write_text(os.path.join(out_dir, SWEEP_RATE_CONFIG if in_sweep else CONFIG_NAME), head + source_line()
                       + to_toml(with_target_sha256(to_dict(cfg), "montecarlo", job.header.get("target_sha256"))))
     cfg_json, where = json.dumps(to_dict(cfg), sort_keys=True), os.path.abspath(out_dir)
     n_run_now = len(job.todo())

@@ -111,11 +111,12 @@ def layered_montecarlo(scenario: str, config_path: str | None, overrides: dict |
     """The campaign of pipelines.jobs.resolve_job("montecarlo", ...): the layers (job_defaults.layered_job; the
     measurement always given there, the scenario's table under the file's and the flags') and the scenario's
     Earth's-shadow outages added to it once (with_eclipse), as the plain constructor adds them to the
-    scenario's measurement."""
+    scenario's measurement. The file's [sweep] table (a rate sweep's written config) is the sweep's
+    (pipelines.campaigns.sweep.sweep_for), not the campaign's."""
     import dataclasses
 
     cfg = layered_job(MonteCarloConfig, "montecarlo", scenario, config_path, overrides, fields,
-                      base={"measurement": {}})
+                      base={"measurement": {}}, apart=("sweep",))
     if filled_for(cfg.measurement) == cfg.scenario:  # the scenario's table alone: filled in, outages and all
         return dataclasses.replace(cfg)
     return with_eclipse(cfg)

@@ -20,6 +20,7 @@ from envisat_pose.config import InputError, flatten, path_arg, paths_arg
 from envisat_pose.io import atomic_write_text
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.out_lock import locks_output
+from envisat_pose.pipelines.campaigns.campaign import CONFIG_NAME, SWEEP_RATE_CONFIG
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE
 from envisat_pose.state import BLOCKS
 from envisat_pose.target import DEFAULT_TARGET
@@ -69,8 +70,7 @@ def load_sweep(out_dir: str) -> dict:
     if os.path.isfile(fig):
         with open(fig, "rb") as fh:
             figure = base64.b64encode(fh.read()).decode("ascii")
-    cfg_path = os.path.join(out_dir, "montecarlo.config.toml")
-    config = _read_text(cfg_path)
+    config = _read_text(os.path.join(out_dir, CONFIG_NAME))
     c = {"dir": out_dir, "sweep": sweep, "figure": figure, "config": config}
     _readable(path, render_sweep, c)
     return c
@@ -130,8 +130,7 @@ def load_campaign(out_dir: str) -> dict:
     except (OSError, ValueError) as err:
         raise InputError(f"{path}: unreadable ({err})") from None
     timing = _read_json(os.path.join(out_dir, "timing.json"))
-    cfg_path = os.path.join(out_dir, "montecarlo.config.toml")
-    config = _read_text(cfg_path)
+    config = _read_text(os.path.join(out_dir, CONFIG_NAME)) or _read_text(os.path.join(out_dir, SWEEP_RATE_CONFIG))
     figures = {}
     for name in FIGURE_CAPTIONS:
         fig = os.path.join(out_dir, name)

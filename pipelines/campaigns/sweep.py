@@ -1,7 +1,9 @@
-"""The rate sweep of `envisat montecarlo --rates`: one campaign (pipelines/campaigns/campaign.py) per filter (and
-measurement) rate in DIR/rate-<R>hz, each resumable like any campaign, then DIR/sweep.json (per rate: RMSE, PCRLB
-and RMSE/PCRLB per block, diverged share, mean NEES, converged; the lowest rate from which every rate up
-converges) and rate_sweep.png."""
+"""The rate sweep of `envisat montecarlo --rates-hz`: one campaign (pipelines/campaigns/campaign.py) per filter
+(and measurement) rate in DIR/rate-<R>hz, each resumable like any campaign (its config as rate.config.toml, not
+one `--config` reruns alone), then DIR/sweep.json (per rate: RMSE, PCRLB and RMSE/PCRLB per block, diverged share,
+mean NEES, converged; the lowest rate from which every rate up converges), rate_sweep.png and
+montecarlo.config.toml: the campaign's config with the sweep's [sweep] table, which `envisat montecarlo --config`
+reads back to the same sweep (sweep_for)."""
 
 from __future__ import annotations
 
@@ -12,12 +14,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import Config, InputError, check, path_arg, resolve_job_config, to_dict, to_toml
+from envisat_pose.config import (
+    Config,
+    InputError,
+    check,
+    load_toml,
+    path_arg,
+    resolve_job_config,
+    to_dict,
+    to_toml,
+)
 from envisat_pose.io import atomic_write_text, json_safe
 from envisat_pose.named_scenarios import table
 from envisat_pose.out_dirs import make_out_dir
 from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.campaigns.campaign import (
+    CONFIG_NAME,
     MonteCarloConfig,
     campaign_at_one_rate,
     check_filter_rate,
@@ -25,8 +37,10 @@ from envisat_pose.pipelines.campaigns.campaign import (
 )
 from envisat_pose.pipelines.campaigns.campaign_config import campaign_target_record, campaign_title
 from envisat_pose.pools import RunnerConfig
+from envisat_pose.provenance import source_line
 from envisat_pose.resumable import manifest_path, remove_partial_files
 from envisat_pose.state import BLOCKS
+from envisat_pose.written_target import with_target_sha256
 
 SWEEP_FORMAT = "envisat-pose rate sweep v1"
 SWEEP_FIGURE = "rate_sweep.png"
@@ -58,18 +72,24 @@ class SweepConfig(Config):
               "a share in [0, 1)")
 
 
-def sweep_for(cfg: MonteCarloConfig, rates_hz=None, rate_given: bool = False) -> SweepConfig | None:
-    """The rate sweep of a campaign: its scenario's [sweep] table under rates_hz (None: the table's), validated,
-    every rate's step checked against the truth's before any work; None when neither asks for one. rate_given:
-    the caller set the campaign's single rate too (refused with a sweep: the sweep sets the rates)."""
+def sweep_for(cfg: MonteCarloConfig, rates_hz=None, rate_given: bool = False,
+              config_path: str | None = None) -> SweepConfig | None:
+    """The rate sweep of a campaign: its scenario's [sweep] table, the [sweep] table of the config file at
+    config_path (a sweep's written montecarlo.config.toml) over it, rates_hz over both (None: theirs), validated,
+    every rate's step checked against the truth's before any work; None when none asks for one. rate_given: the
+    caller set the campaign's single rate too (refused with a sweep: the sweep sets the rates)."""
 
     defaults = table(cfg.scenario, "sweep")
-    if not defaults and not rates_hz:
+    in_file = load_toml(config_path).get("sweep") if config_path else None
+    if not defaults and in_file is None and not rates_hz:
         return None
+    check(in_file is None or isinstance(in_file, dict), "sweep", in_file, "a table (rates_hz, max_rmse_over_pcrlb, "
+          "max_diverged_share)")
     check(not rate_given, "measurement.rate_hz", cfg.measurement.rate_hz, "no single rate with a rate sweep (the "
           "sweep's rates_hz sets the rates)")
-    sweep = resolve_job_config(SweepConfig, defaults, None, {"rates_hz": list(rates_hz) if rates_hz else None},
-                               prefix="sweep")
+    sweep = resolve_job_config(SweepConfig, {"sweep": defaults}, config_path,
+                               {"sweep.rates_hz": list(rates_hz) if rates_hz else None},
+                               lambda data: data["sweep"], prefix="sweep")
     for rate in sweep.rates_hz:
         sub = at_rate(cfg, rate)
         check_filter_rate(sub, truth_scenario(sub))
@@ -88,7 +108,7 @@ def rate_folder(rate_hz: float) -> str:
     return f"rate-{rate_hz:g}hz"
 
 
-SWEEP_ENTRIES = ("sweep.json", "montecarlo.config.toml", SWEEP_FIGURE)
+SWEEP_ENTRIES = ("sweep.json", CONFIG_NAME, SWEEP_FIGURE)
 
 
 def check_sweep_folder(out_dir: str, cfg: MonteCarloConfig, sweep: SweepConfig) -> None:
@@ -139,13 +159,14 @@ def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner: R
         if progress:
             print(f"rate sweep: {rate:g} Hz -> {os.path.join(out_dir, rate_folder(rate))}")
         summaries.append(campaign_at_one_rate(at_rate(cfg, rate), os.path.join(out_dir, rate_folder(rate)), runner,
-                                             progress))
+                                             progress, in_sweep=True))
     result = sweep_result(cfg, sweep, rates, summaries)
     atomic_write_text(os.path.join(out_dir, "sweep.json"), json.dumps(json_safe(result), indent=1, sort_keys=True)
                       + "\n")
-    atomic_write_text(os.path.join(out_dir, "montecarlo.config.toml"),
-                      "# envisat montecarlo: the validated config of this rate sweep (measurement.rate_hz is set per "
-                      "campaign)\n" + to_toml({**to_dict(cfg), "sweep": to_dict(sweep)}))
+    written = with_target_sha256({**to_dict(cfg), "sweep": to_dict(sweep)}, "montecarlo", result["target"]["sha256"])
+    atomic_write_text(os.path.join(out_dir, CONFIG_NAME),
+                      "# envisat montecarlo: the full validated config of this rate sweep (its [sweep] rates_hz set "
+                      "each campaign's measurement.rate_hz)\n" + source_line() + to_toml(written))
     plot_rate_sweep(np.array(rates), np.array([[s["rmse"][b] for b in BLOCKS] for s in summaries]),
                     os.path.join(out_dir, SWEEP_FIGURE),
                     bound_block=np.array([[s["pcrlb_rms"][b] for b in BLOCKS] for s in summaries]),

@@ -108,7 +108,8 @@ def _filled_for_another(cfg: Any, kind: str, fallbacks: dict[str, Callable[[], A
 
 
 def layered_job(cls: type, kind: str, scenario: str | None, config_path: str | None,
-                overrides: dict[str, Any] | None, fields: dict[str, Any], base: dict | None = None) -> Any:
+                overrides: dict[str, Any] | None, fields: dict[str, Any], base: dict | None = None,
+                apart: tuple[str, ...] = ()) -> Any:
     """The config `cls` of a `kind` job built from layers, each over the last: `base` (tables the job always
     gives, {} by default), what the named scenario sets (scenario_defaults), the TOML file at config_path, the
     overrides {'section.key': value} (None: not given; a dict value merges into its table) and the fields
@@ -118,9 +119,11 @@ def layered_job(cls: type, kind: str, scenario: str | None, config_path: str | N
     constructor, which completes and validates it; the implementation of pipelines.jobs.resolve_job (and of the
     deprecated `Cfg.from_scenario`). The fields the scenario alone set (no file key or flag under them) are
     marked as filled from it (config.mark_filled), as the constructor marks what it fills in: a replace with
-    another scenario fills them in again, whichever way the config was built."""
+    another scenario fills them in again, whichever way the config was built. apart: the file's tables that
+    another part of the job reads, not `cls` (a montecarlo file's [sweep]: pipelines.campaigns.sweep.sweep_for)."""
 
     def named(data: dict) -> dict:
+        data = {key: value for key, value in data.items() if key not in apart}
         return recorded_target_checked(config_path, kind)({**data, "scenario": scenario})
 
     defaults = {**(base or {}), **scenario_defaults(kind, scenario)}

@@ -33,6 +33,9 @@ JOBS = {
                    "mc/montecarlo.config.toml"),
     "generate": (["generate", "--num-images", "2", "--resolution", "64", "--out", "{d}/data"],
                  "data/generate.config.toml"),
+    # a rate sweep (`envisat montecarlo --rates-hz`): its folder's config, which `--config` reruns
+    "sweep": (["montecarlo", "--scenario", "default", "--duration-s", "20", "--runs", "2", "--rates-hz", "1",
+               "--out", "{d}/sweep"], "sweep/montecarlo.config.toml"),
 }
 
 
@@ -41,7 +44,7 @@ def test_a_written_config_names_the_version_and_commit_that_made_it(verb, tmp_pa
     argv, written = JOBS[verb]
     assert main([a.format(d=tmp_path) for a in argv] + ["--quiet"]) == 0
     lines = (tmp_path / written).read_text().splitlines()
-    assert lines[0].startswith(f"# envisat {verb}: the full validated config")
+    assert lines[0].startswith(f"# envisat {argv[0]}: the full validated config")
     assert lines[1] == f"# source: envisat-pose {metadata.version('envisat-pose')}, commit {_expected_commit()}"
 
 
