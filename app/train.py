@@ -12,17 +12,17 @@ import sys
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, as_flags, skipped_line
 from envisat_pose.app.flag_rules import not_applying, training_source
 from envisat_pose.app.interrupts import interrupt_code
-from envisat_pose.config import ConfigError, InputError, resolve_job_config
+from envisat_pose.config import ConfigError, InputError
 from envisat_pose.datagen.generate_config import layered_generate
 from envisat_pose.pipelines.detector.look_mix import read_looks
 from envisat_pose.pipelines.detector.train import (
     ddp_rank,
     default_render_workers,
+    layered_train,
     missing_data,
     online_kind,
     read_run_config,
     read_run_record,
-    train_config_class,
     train_detector,
 )
 from envisat_pose.shard_reader import skip_hint
@@ -81,7 +81,7 @@ def resolve_config(args: argparse.Namespace):
         base.pop("time_budget_s", None)  # a resumed budgeted run given --steps trains to that step
     flags = {"steps": args.steps, "batch_size": args.batch_size, "seed": args.seed,
              "time_budget_s": args.time_budget_s, "target": other_target(args.target)}
-    return resolve_job_config(train_config_class(args.target, base, args.config), base, args.config, flags)
+    return layered_train(args.target, base, args.config, flags)
 
 
 def online_config(args: argparse.Namespace, cfg):

@@ -14,10 +14,11 @@ from envisat_pose.target import resolve_target_path
 from envisat_pose.target_file import target_sha256
 
 # where each verb's config names its target file, and the key beside it that records the file's sha256 (a
-# campaign's `target` None names none: the scenario's own; estimate's config names none at all)
+# campaign's `target` None names none: the scenario's own; train's: another target's keypoint run alone;
+# estimate's config names none at all)
 TARGET_KEYS = {"simulate": ("target.file", "target.sha256"), "run": ("image.target", "image.target_sha256"),
                "track": ("target", "target_sha256"), "montecarlo": ("target", "target_sha256"),
-               "generate": ("target", "target_sha256")}
+               "generate": ("target", "target_sha256"), "train": ("target", "target_sha256")}
 
 
 def _value(data: dict, dotted: str) -> Any:

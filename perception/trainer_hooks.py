@@ -27,6 +27,8 @@ from envisat_pose.config import InputError, to_toml
 from envisat_pose.io import atomic_write_text
 from envisat_pose.perception.weights import load_state, read_weights, save_tensors, save_weights
 from envisat_pose.provenance import source_line
+from envisat_pose.target import load_target
+from envisat_pose.written_target import with_target_sha256
 
 CONFIG_TOML = "train.config.toml"  # the run's TrainConfig as `envisat train --config` reads it (beside config.json)
 SHUTDOWN_RESERVE_S = 1.0  # a budgeted run keeps this for the final log, checkpoint and the workers' shutdown
@@ -243,14 +245,18 @@ class RunFolder(Hook):
             self._write({"train": tr.cfg.to_dict(), **self.provenance})
 
     def _write(self, record: dict) -> None:
-        """config.json (what a resume reads), then its TrainConfig as CONFIG_TOML (what `--config` reads back)."""
+        """config.json (what a resume reads), then its TrainConfig as CONFIG_TOML (what `--config` reads back),
+        with the sha256 of the target file it names (another target's run; written_target.with_target_sha256),
+        which `envisat train --config` checks the file against."""
         atomic_write_text(os.path.join(self.trainer.run_dir, "config.json"),
                           json.dumps(record, indent=1, sort_keys=True) + "\n")
+        target = record["train"].get("target")
+        sha256 = load_target(target).sha256 if isinstance(target, str) else None
         atomic_write_text(os.path.join(self.trainer.run_dir, CONFIG_TOML),
                           "# envisat train: the full validated config of this run\n" + source_line()
                           + "# `envisat train --config THIS_FILE` on the same data trains it again (its shards by "
                           "name and manifest sha256, or its online looks: config.json beside it)\n"
-                          + to_toml(record["train"]))
+                          + to_toml(with_target_sha256(record["train"], "train", sha256)))
 
 
 class Checkpoints(Hook):

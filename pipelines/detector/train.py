@@ -15,7 +15,7 @@ import os
 import re
 from dataclasses import dataclass
 
-from envisat_pose.config import InputError, check, from_dict, load_toml, path_arg, paths_arg
+from envisat_pose.config import InputError, check, from_dict, load_toml, path_arg, paths_arg, resolve_job_config
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.datagen.gl_check import check_gl_platform
 from envisat_pose.io import sha256_file
@@ -38,6 +38,7 @@ from envisat_pose.target import (
     require_envisat_dataset,
     resolve_target_path,
 )
+from envisat_pose.written_target import recorded_target_checked
 
 TARGET_RESOLUTION_PX = 512  # another target's renders when none is given (its keypoint network's crops)
 
@@ -116,6 +117,15 @@ def train_config_class(given: str | None, saved: dict, config_path: str | None =
 
     in_file = load_toml(config_path) if config_path else {}
     return KeypointTrainConfig if other_target(given) or "target" in saved or "target" in in_file else TrainConfig
+
+
+def layered_train(given: str | None, base: dict, config_path: str | None, flags: dict):
+    """The config `envisat train` resolves (of train_config_class's class; given: --target as typed): `base` (a
+    resumed run's own config), the TOML file at config_path and the flags, each over the last
+    (config.resolve_job_config); a written train.config.toml's record of its target file set aside, the file
+    checked against it (written_target.recorded_target_checked: a rerun refuses the file once it changed)."""
+    return resolve_job_config(train_config_class(given, base, config_path), base, config_path, flags,
+                              recorded_target_checked(config_path, "train"))
 
 
 def online_kind(cfg) -> tuple[type, dict]:

@@ -67,3 +67,30 @@ def test_a_folder_a_run_left_before_its_first_checkpoint_takes_a_new_run(tmp_pat
     write_run_folder(CONFIGS["envisat"], tmp_path / "run")
     state, saved = start_state(str(tmp_path / "run"), CONFIGS["envisat"], False, None, None)
     assert state["step"] == 0 and saved is None
+
+
+def test_a_target_runs_config_records_the_files_sha256_and_a_rerun_refuses_the_file_changed(tmp_path):
+    """Another target's run: train.config.toml records the target file's sha256 beside it (target_sha256), as every
+    written config that names a target file does; `envisat train --config` refuses the file once it changed, in
+    one line naming it; another --target given over the file's is taken as it is."""
+    import shutil
+    import tomllib
+
+    from envisat_pose.config import InputError
+    from envisat_pose.target import resolve_target_path
+    from envisat_pose.target_file import target_sha256
+
+    target = tmp_path / "upper_stage.xml"
+    shutil.copy(resolve_target_path("models/upper_stage.xml"), target)
+    cfg = KeypointTrainConfig(target=str(target), steps=3, seed=2)
+    path = write_run_folder(cfg, tmp_path / "run")
+    recorded = tomllib.loads(path.read_text())["target_sha256"]
+    assert recorded == target_sha256(str(target))
+    assert read_back(path, tmp_path) == cfg
+    target.write_text(target.read_text() + "<!-- edited since -->\n")
+    with pytest.raises(InputError, match=f"changed since the config was written.*{recorded[:12]}") as err:
+        read_back(path, tmp_path)
+    assert str(target) in str(err.value) and "\n" not in str(err.value)
+    other = resolve_config(build_parser().parse_args(["train", "--config", str(path), "--target",
+                                                      "models/upper_stage.xml", "--out", str(tmp_path / "x")]))
+    assert other.target == "models/upper_stage.xml"
