@@ -124,7 +124,8 @@ def layered_montecarlo(scenario: str, config_path: str | None, overrides: dict |
 
 def with_eclipse(cfg: MonteCarloConfig) -> MonteCarloConfig:
     """cfg with its scenario's Earth's-shadow windows (if it has an [eclipse] table) appended to the outages
-    (pipelines.estimate.eclipse_outages)."""
+    (pipelines.estimate.eclipse_outages), but for those already among them (with_outages: a rerun of a written
+    montecarlo.config.toml, which holds them, gets them once)."""
     import dataclasses
 
     windows = eclipse_outages(cfg.scenario, truth_scenario(cfg))

@@ -155,12 +155,15 @@ def eclipse_outages(name: str, truth_cfg) -> tuple[tuple[float, float], ...]:
 
 
 def with_outages(mcfg, windows: tuple[tuple[float, float], ...]):
-    """A MeasurementConfig with `windows` appended to its outages (unchanged when there are none)."""
+    """A MeasurementConfig with `windows` appended to its outages, but for those inside an outage it already has
+    (unchanged when none is left). So a scenario's Earth's-shadow windows are added once: a job's written config
+    holds them among its outages, and its rerun (`--config`) adds them no second time."""
     import dataclasses
 
-    if not windows:
+    new = tuple((a, b) for a, b in windows if not any(s <= a and b <= e for s, e in mcfg.outages_s))
+    if not new:
         return mcfg
-    return dataclasses.replace(mcfg, outages_s=tuple(mcfg.outages_s) + tuple(windows))
+    return dataclasses.replace(mcfg, outages_s=tuple(mcfg.outages_s) + new)
 
 
 def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str | None = None,
@@ -258,7 +261,9 @@ def with_recorded_scenario(cfg: EstimateConfig, truth_path: str) -> EstimateConf
 
 def scenario_outages(cfg: EstimateConfig, scenario: str | None, truth) -> EstimateConfig:
     """With a named scenario whose file has an [eclipse] table: cfg with the Earth's-shadow windows along the
-    simulated truth appended to its outages (eclipse_outages); cfg otherwise (no scenario: a truth file)."""
+    simulated truth appended to its outages (eclipse_outages), but for those already among them (with_outages: a
+    rerun of a written est.config.toml, which holds them, gets them once); cfg otherwise (no scenario: a truth
+    file)."""
     if not scenario or scenario_eclipse(scenario) is None:  # the truth's config is read (MuJoCo: its target) only
         return cfg                                           # for a shadow to place
     import dataclasses
