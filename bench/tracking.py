@@ -77,7 +77,7 @@ def bound_blocks(out: str, sigma_px: float) -> np.ndarray:
     frames at sigma_px, from an uninformative prior (the tracker starts cold)."""
     from envisat_pose.analysis.pcrlb import block_bounds, pcrlb_along_truth
     from envisat_pose.contracts import TruthTrajectory
-    from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2, propagate
+    from envisat_pose.filtering.dynamics import load_inertia_T_kg_m2, propagate, trajectory_step_s
     from envisat_pose.filtering.estimator import chaser_states
     from envisat_pose.filtering.measurements import measure
     from envisat_pose.geometry import load_camera
@@ -92,8 +92,10 @@ def bound_blocks(out: str, sigma_px: float) -> np.ndarray:
     ch = chaser_states(truth.chaser_r_m, truth.chaser_rdot_m_s, truth.chaser_theta_rad, truth.chaser_thetadot_rad_s)
     dt = float(truth.t_s[1] - truth.t_s[0])
 
+    step_s = trajectory_step_s(truth.x)
+
     def fx(X):
-        return propagate(X, ch[:-1, None, :], dt, J, mu, gravity_gradient=gg)
+        return propagate(X, ch[:-1, None, :], dt, J, mu, step_s, gg)
 
     measured = truth.visible & truth.in_frame & lit[:, None]
     P0 = np.diag(np.repeat(np.square(ACQUIRING_SIGMA), 3)) * 100.0

@@ -12,7 +12,7 @@ from envisat_pose.analysis.pcrlb import block_bounds, efficiency, pcrlb_along_tr
 from envisat_pose.analysis.stats import CampaignSums, SumsFolder, campaign_summary, finalize
 from envisat_pose.config import to_dict
 from envisat_pose.contracts import TruthTrajectory
-from envisat_pose.filtering.dynamics import propagate
+from envisat_pose.filtering.dynamics import propagate, trajectory_step_s
 from envisat_pose.filtering.estimator import make_setup
 from envisat_pose.filtering.measurements import measure, measured_probability, outage_mask
 from envisat_pose.geometry import load_camera
@@ -60,7 +60,8 @@ def campaign_pcrlb(cfg: MonteCarloConfig, tr: CampaignTruth) -> np.ndarray:
     (visible, in frame for pixels, outside outages), each weighted by its probability of being measured: of
     surviving the random failures, then of being among the first max_markers survivors (measured_probability; the
     expected information: the bound of a model whose failures are random), the
-    filter's P0, the measurement noise of the config and the truth's process noise (none). Statistics' units."""
+    filter's P0, the measurement noise of the config and the truth's process noise (none), the Jacobians by RK4
+    sub-steps fine for the truth's fastest tumble (dynamics.trajectory_step_s). Statistics' units."""
 
     mcfg, camera = cfg.measurement, load_camera()
     setup = make_setup(cfg.filter, mcfg.kind, camera, target=tr.target)  # the filter's keypoints and inertia
@@ -69,8 +70,10 @@ def campaign_pcrlb(cfg: MonteCarloConfig, tr: CampaignTruth) -> np.ndarray:
     measured = measured_probability(tr.base & ~outage_mask(tr.t_s, mcfg.outages_s)[:, None], mcfg.failure_prob,
                                     mcfg.max_markers)
 
+    step_s = trajectory_step_s(tr.x_true)  # sub-steps as fine as the filter's at the truth's tumble
+
     def fx(X):
-        return propagate(X, tr.chaser[:-1, None, :], dt_s, J_T, tr.mu_m3_s2, gravity_gradient=tr.gravity_gradient)
+        return propagate(X, tr.chaser[:-1, None, :], dt_s, J_T, tr.mu_m3_s2, step_s, tr.gravity_gradient)
 
     def hx(X):
         return measure(X, mcfg.kind, camera, keypoints_T_m)
