@@ -327,11 +327,18 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
 
 def truth_stride(truth, cfg: EstimateConfig) -> int:
     """The truth samples a filter step spans (filtering.montecarlo.filter_stride); ConfigError naming
-    measurement.rate_hz where its period is not a whole number of them."""
+    measurement.rate_hz where its period is not a whole number of them, or is longer than the truth (one filter
+    step: the first update alone, which a summary "after t = 0 s" did not tell)."""
+    rate = cfg.measurement.rate_hz
     try:
-        return filter_stride(truth.t_s, cfg.measurement.rate_hz)
+        stride = filter_stride(truth.t_s, rate)
     except ValueError as err:
-        raise ConfigError("measurement.rate_hz", cfg.measurement.rate_hz, str(err)) from None
+        raise ConfigError("measurement.rate_hz", rate, str(err)) from None
+    span_s = float(truth.t_s[-1] - truth.t_s[0])
+    check(len(truth.t_s) > stride, "measurement.rate_hz", rate,
+          f"a rate whose period 1/rate_hz = {1.0 / rate:g} s fits in the truth's {span_s:g} s (2 filter steps at "
+          "least)")
+    return stride
 
 
 @locks_output("rrd", "estimate", folder=False)
