@@ -203,15 +203,16 @@ def from_detections(corners_px: np.ndarray, cov_px: np.ndarray, visible: np.ndar
 OFF_LINE_SHARE = 1e-3  # keypoints "on one line": their second singular value within this share of their first
 
 
-def pose_fixed(keypoints_T_m: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Whether the measured keypoints fix the target's whole pose, step by step: three or more of them not on one
-    line (one or two keypoints, or any number on a line, leave the rotation about that line unmeasured).
-    keypoints_T_m (K, 3) in T (a rigid body's keypoints span the same in any frame); mask (T, K) bool the measured
-    ones. Returns (T,) bool: the spread of the measured keypoints about their mean has a second singular value
-    above OFF_LINE_SHARE times its first."""
+def pose_fixed(keypoints_T_m: np.ndarray, mask: np.ndarray, min_points: int = 3) -> np.ndarray:
+    """Whether the measured keypoints fix the target's whole pose, step by step: min_points or more of them
+    (POSE_CORNERS of the measurement kind: 3 markers, 4 pixels) not on one line (one or two keypoints, or any
+    number on a line, leave the rotation about that line unmeasured). keypoints_T_m (K, 3) in T (a rigid body's
+    keypoints span the same in any frame); mask (T, K) bool the measured ones. Returns (T,) bool: at least
+    min_points measured, whose spread about their mean has a second singular value above OFF_LINE_SHARE times its
+    first."""
     mask = np.asarray(mask, dtype=bool)
     w = mask[..., None].astype(float)
     n = np.maximum(w.sum(axis=-2, keepdims=True), 1.0)
     mean = (w * keypoints_T_m).sum(axis=-2, keepdims=True) / n
     s = np.linalg.svd(w * (keypoints_T_m - mean), compute_uv=False)  # (T, 3), descending
-    return (mask.sum(axis=-1) >= 3) & (s[..., 1] > OFF_LINE_SHARE * s[..., 0])
+    return (mask.sum(axis=-1) >= max(int(min_points), 3)) & (s[..., 1] > OFF_LINE_SHARE * s[..., 0])

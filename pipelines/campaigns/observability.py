@@ -16,19 +16,19 @@ import warnings
 
 import numpy as np
 
-from envisat_pose.filtering.measurements import limit_markers, outage_mask, pose_fixed
+from envisat_pose.filtering.measurements import POSE_CORNERS, limit_markers, outage_mask, pose_fixed
 from envisat_pose.filtering.montecarlo import MeasurementConfig
 
 
 def unfixed_start(t_s: np.ndarray, keypoints_T_m: np.ndarray, base_mask: np.ndarray,
                   mcfg: MeasurementConfig) -> tuple[int, float | None]:
-    """The measured steps before the first one whose keypoints fix the pose (filtering.measurements.pose_fixed),
-    and that step's time (None: no step fixes it). The measured set is the truth's measurable keypoints (t_s (T,)
-    s, base_mask (T, K)) less the outages, at most max_markers: what every run measures before its random
-    failures."""
+    """The measured steps before the first one whose keypoints fix the pose (filtering.measurements.pose_fixed: as
+    many as the filter's own rule for mcfg.kind, POSE_CORNERS: 3 markers, 4 pixels), and that step's time (None:
+    no step fixes it). The measured set is the truth's measurable keypoints (t_s (T,) s, base_mask (T, K)) less
+    the outages, at most max_markers: what every run measures before its random failures."""
     mask = limit_markers(np.asarray(base_mask, bool) & ~outage_mask(np.asarray(t_s), mcfg.outages_s)[:, None],
                          mcfg.max_markers)
-    fixed = pose_fixed(keypoints_T_m, mask)
+    fixed = pose_fixed(keypoints_T_m, mask, POSE_CORNERS[mcfg.kind])
     first = int(np.argmax(fixed)) if fixed.any() else len(t_s)
     return int(mask[:first].any(axis=-1).sum()), (float(t_s[first]) if first < len(t_s) else None)
 
@@ -40,12 +40,13 @@ def warn_if_unfixed_start(t_s: np.ndarray, keypoints_T_m: np.ndarray, base_mask:
     n, first_s = unfixed_start(t_s, keypoints_T_m, base_mask, mcfg)
     if n == 0:
         return
+    fewest = POSE_CORNERS[mcfg.kind]
     when = "at no step" if first_s is None else f"only from t = {first_s:g} s"
     warnings.warn(f"the measured keypoints fix the target's pose {when}: {n} step(s) before measure fewer than "
-                  "3 keypoints off one line, so the filter updates its wide prior along a rotation it cannot "
+                  f"{fewest} keypoints off one line, so the filter updates its wide prior along a rotation it cannot "
                   "measure and its covariance can turn overconfident (NEES far above its band, runs that "
-                  "diverge later); keypoints placed so that 3 or more off one line are seen from every view, "
-                  "or a start where they are, avoid it (docs/usage.md, 'Where to put the keypoints')",
+                  f"diverge later); keypoints placed so that {fewest} or more off one line are seen from every "
+                  "view, or a start where they are, avoid it (docs/usage.md, 'Where to put the keypoints')",
                   stacklevel=2)
 
 

@@ -67,6 +67,21 @@ def test_the_steps_before_the_first_fixed_one_are_counted_and_warned():
         warn_if_unfixed_start(t_s[:5], kp, base[5:], mcfg)  # all four from the first measured step: none
 
 
+def test_pixels_need_four_keypoints_as_the_filter_does_markers_three():
+    """Three pixels leave P3P's up to four poses; the filter's rule (POSE_CORNERS) waits for four, and the warning
+    counted three for any kind (its first fixed step one frame early)."""
+    kp = np.array([[0, 0, 0], [10, 0, 0], [5, 3, 0], [5, 0, 2]], float)
+    t_s = np.arange(10.0)
+    base = np.zeros((10, 4), bool)
+    base[1:5, :3] = True  # t = 1-4 s: three keypoints off one line
+    base[5:, :] = True  # t = 5 s on: all four
+    assert unfixed_start(t_s, kp, base, MeasurementConfig(kind="markers3d")) == (0, 1.0)
+    assert unfixed_start(t_s, kp, base, MeasurementConfig(kind="pixels+range")) == (0, 1.0)
+    assert unfixed_start(t_s, kp, base, MeasurementConfig(kind="pixels")) == (4, 5.0)
+    with pytest.warns(UserWarning, match=r"only from t = 5 s: 4 step\(s\) before measure fewer than 4 keypoints"):
+        warn_if_unfixed_start(t_s, kp, base, MeasurementConfig(kind="pixels"))
+
+
 def _said(record) -> list[str]:
     return [str(w.message) for w in record if "fix the target's pose" in str(w.message)]
 
