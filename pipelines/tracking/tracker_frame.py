@@ -265,6 +265,15 @@ class TrackingSteps:
             for p in problems:
                 p.append(f"no corner used in {self.coasting_frames} frames with an image")
         failed = np.array([bool(p) for p in problems])
+        held = float(self.probabilities[failed].sum())
+        if failed.any() and not failed.all() and held > 1.0 - self.cfg.bank.decided:
+            # the bank's too: twins predict a frame's corners within a fraction of a pixel, so a bound one crosses
+            # and another does not is the bound's noise, not evidence between them; dropping what held more than
+            # 1 - bank.decided would decide the rest by elimination (a 180-deg twin, its truth dropped at p 0.995 on
+            # motion-blurred frames, was claimed at once)
+            worst = int(np.argmax(np.where(failed, self.probabilities, -1.0)))
+            why = problems[worst] + [f"its twins not decided by its fall (it held {100 * held:.1f} %)"]
+            problems, failed = [why] * H, np.ones(H, bool)
         if failed.all():
             events.append(f"lost: {'; '.join(problems[b])}")
             est = self._estimate(t_s, events=tuple(events), status="lost", timing=timing(), **out)
