@@ -34,7 +34,8 @@ Statuses (envisat_pose/status.py), per frame:
   frames in a row with an image used no corner. The bank is dropped and the tracker acquires again from the images.
 Each frame every hypothesis takes the naming nearest its predicted corners and the bank is updated at once
 (pipelines/tracking/bank.py); a hypothesis below 1 - `bank.decided` is dropped, and so is one that fails its integrity tests
-(those failing while holding more than 1 - `bank.decided` lose the whole bank: no twin is decided by their fall).
+(never promoting one: where the best fails, or those failing held more than 1 - `bank.decided` and leave one, the
+whole bank is lost).
 Once the best prior is tight the detector looks only in the predicted region of interest, with the predicted pose
 as its naming's start and half-turn prior when one hypothesis is left.
 

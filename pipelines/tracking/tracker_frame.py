@@ -265,14 +265,17 @@ class TrackingSteps:
             for p in problems:
                 p.append(f"no corner used in {self.coasting_frames} frames with an image")
         failed = np.array([bool(p) for p in problems])
-        held = float(self.probabilities[failed].sum())
-        if failed.any() and not failed.all() and held > 1.0 - self.cfg.bank.decided:
-            # the bank's too: twins predict a frame's corners within a fraction of a pixel, so a bound one crosses
-            # and another does not is the bound's noise, not evidence between them; dropping what held more than
-            # 1 - bank.decided would decide the rest by elimination (a 180-deg twin, its truth dropped at p 0.995 on
-            # motion-blurred frames, was claimed at once)
-            worst = int(np.argmax(np.where(failed, self.probabilities, -1.0)))
-            why = problems[worst] + [f"its twins not decided by its fall (it held {100 * held:.1f} %)"]
+        prob = self.probabilities
+        held, best = float(prob[failed].sum()), int(np.argmax(prob))
+        if failed.any() and not failed.all() and (failed[best] or ((~failed).sum() == 1
+                                                                   and held > 1.0 - self.cfg.bank.decided)):
+            # the integrity tests remove a hypothesis, never promote one: twins predict a frame's corners within a
+            # fraction of a pixel, so a bound one crosses and another does not is the bound's noise, not evidence
+            # between them. Where the bank's best fails, or those failing held more than 1 - bank.decided and leave
+            # one, the whole bank is lost rather than a twin decided by their fall (on motion-blurred frames the
+            # truth, at p 0.995, crossed its windowed-NIS bound and its twin left alone was claimed at once)
+            worst = int(np.argmax(np.where(failed, prob, -1.0)))
+            why = problems[worst] + [f"its twins not decided by its fall (it held {100 * prob[worst]:.1f} %)"]
             problems, failed = [why] * H, np.ones(H, bool)
         if failed.all():
             events.append(f"lost: {'; '.join(problems[b])}")
