@@ -164,7 +164,7 @@ def score(out_dir: str) -> dict:
     """The track's claimed frames ("tracking") and coasting frames scored against the truth in est.npz."""
     from envisat_pose.io import open_npz
     from envisat_pose.pipelines.runs.scoring import correct_frames, frame_errors
-    from envisat_pose.status import COASTING, TRACKING
+    from envisat_pose.status import COASTING, LOST, TRACKING
 
     with open_npz(os.path.join(out_dir, "est.npz")) as z:
         t, x_hat, x_true, P = z["t_s"], z["x_hat"][0], z["x_true"][0], z["P"][0]
@@ -181,8 +181,8 @@ def score(out_dir: str) -> dict:
             "max_att_deg_claimed": float(err["attitude_deg"][claimed].max()) if claimed.any() else None,
             "max_pos_pct_claimed": float(pos_pct[claimed].max()) if claimed.any() else None,
             "nis_per_dof_median": float(np.nanmedian(per_dof)) if np.isfinite(per_dof).any() else None,
-            "coasting": int(coasting.sum()), "coasting_wrong": int((coasting & wrong).sum()),
-            "lost": int((status == 2).sum())}
+            "frames_coasting": int(coasting.sum()), "coasting_wrong": int((coasting & wrong).sum()),
+            "frames_lost": int((status == LOST).sum())}
 
 
 def track_one(source, frames: list[np.ndarray], name: str, args, work: str) -> dict:

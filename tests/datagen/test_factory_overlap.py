@@ -93,6 +93,7 @@ def test_the_rasterizer_threads_are_the_cores_shared_by_the_workers_that_start(m
     class Job:
         def __init__(self, out_dir):
             self.out_dir = out_dir
+            self.header = {"target": {"sha256": "0" * 64}}  # what the written config records (a real job's header)
 
         def open(self):
             os.makedirs(self.out_dir, exist_ok=True)  # the output lock (out_lock) made it already
