@@ -48,25 +48,33 @@ def test_a_written_config_names_the_version_and_commit_that_made_it(verb, tmp_pa
     assert lines[1] == f"# source: envisat-pose {metadata.version('envisat-pose')}, commit {_expected_commit()}"
 
 
+def _committed_copy(repo, folder: str, add: str) -> str:
+    """provenance.py copied to repo/folder/provenance.py in a new git repository whose first commit adds `add`;
+    the copy's path (the test skipped where no git is here to make it)."""
+    import shutil
+
+    (repo / folder).mkdir(parents=True)
+    copy = repo / folder / "provenance.py"
+    shutil.copy(os.path.join(ROOT, "envisat_pose", "provenance.py"), copy)
+    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t",
+           "GIT_COMMITTER_EMAIL": "t@t"}
+    try:
+        for cmd in (["git", "init", "-q"], ["git", "add", add], ["git", "commit", "-q", "-m", "first"]):
+            subprocess.run(cmd, cwd=repo, check=True, env=env, capture_output=True)
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip("no git here to make a repository")
+    return str(copy)
+
+
 def test_a_copy_in_another_projects_repository_names_no_commit_of_that_project(tmp_path, monkeypatch):
     """An installed copy in a folder another repository tracks (a virtual environment inside a user's project)
     read that project's commit as ours."""
     import importlib.util
-    import shutil
-
     monkeypatch.delenv("ENVISAT_SOURCE_GIT", raising=False)
     repo = tmp_path / "their_project"
-    (repo / "venv" / "envisat_pose").mkdir(parents=True)
-    copy = repo / "venv" / "envisat_pose" / "provenance.py"
-    shutil.copy(os.path.join(ROOT, "envisat_pose", "provenance.py"), copy)
+    repo.mkdir()
     (repo / "README").write_text("theirs\n")
-    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t",
-           "GIT_COMMITTER_EMAIL": "t@t"}
-    try:
-        for cmd in (["git", "init", "-q"], ["git", "add", "README"], ["git", "commit", "-q", "-m", "theirs"]):
-            subprocess.run(cmd, cwd=repo, check=True, env=env, capture_output=True)
-    except (OSError, subprocess.CalledProcessError):
-        pytest.skip("no git here to make another project's repository")
+    copy = _committed_copy(repo, "venv/envisat_pose", "README")  # their file committed, ours not
     spec = importlib.util.spec_from_file_location("copied_provenance", copy)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -76,20 +84,10 @@ def test_a_copy_in_another_projects_repository_names_no_commit_of_that_project(t
 def test_reading_the_commit_writes_nothing_in_the_checkout(tmp_path):
     """git_hash ran `git status`, which rewrites a stale index; a job under `ulimit -f` had git killed mid-write
     (SIGXFSZ), leaving an index.lock that blocked every later git command in the checkout."""
-    import shutil
     import sys
 
     repo = tmp_path / "checkout"
-    (repo / "envisat_pose").mkdir(parents=True)
-    copy = repo / "envisat_pose" / "provenance.py"
-    shutil.copy(os.path.join(ROOT, "envisat_pose", "provenance.py"), copy)
-    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t",
-           "GIT_COMMITTER_EMAIL": "t@t"}
-    try:
-        for cmd in (["git", "init", "-q"], ["git", "add", "."], ["git", "commit", "-q", "-m", "ours"]):
-            subprocess.run(cmd, cwd=repo, check=True, env=env, capture_output=True)
-    except (OSError, subprocess.CalledProcessError):
-        pytest.skip("no git here to make a checkout")
+    copy = _committed_copy(repo, "envisat_pose", ".")
     head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True).stdout.strip()
     os.utime(copy, (1e9, 1e9))  # the index's stat data stale: a plain `git status` would rewrite the index
     script = ("import importlib.util, resource, sys\n"
