@@ -24,6 +24,10 @@ import numpy as np
 from envisat_pose.config import InputError
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".pnm", ".webp")  # OpenCV reads them
+# image types a camera or a converter writes that the tracker does not read (OpenCV's wheel lacks them or needs a
+# switch): their files among the frames are named, not passed over without a word
+UNREAD_IMAGE_EXTENSIONS = (".gif", ".jp2", ".j2k", ".exr", ".hdr", ".pfm", ".heic", ".heif", ".avif", ".fits", ".fit",
+                           ".fts", ".dng", ".cr2", ".nef", ".arw", ".raw", ".jxl")
 MAX_TIME_S = (2 ** 63 - 1) / 1e9  # the largest frame time a recording's clock holds (Rerun's int64 ns), s
 GAP_FACTOR = 1.5  # a step in the frame numbers this much over the usual one is a gap (not jitter in a clock's name)
 
@@ -55,6 +59,25 @@ def sorted_frames(folder: str, names: list[str]) -> list[str]:
                              "zero-padded numbers)")
         seen[key] = n
     return files
+
+
+def unread_images(names: list[str]) -> list[str]:
+    """The names among names (hidden files skipped) of image types the tracker does not read, naturally sorted."""
+    return sorted((n for n in names if not n.startswith(".") and n.lower().endswith(UNREAD_IMAGE_EXTENSIONS)),
+                  key=natural_key)
+
+
+def unread_images_caution(src: str, names: list[str]) -> str | None:
+    """What to say of the files in the folder of image types the tracker does not read (unread_images): frames
+    of the sequence saved as GIF, JPEG 2000, EXR, FITS or camera raw would otherwise be left out without a word;
+    None when there are none."""
+    unread = unread_images(names)
+    if not unread:
+        return None
+    kinds = ", ".join(sorted({os.path.splitext(n)[1].lower() for n in unread}))
+    shown = ", ".join(repr(n) for n in unread[:3]) + (f" and {len(unread) - 3} more" if len(unread) > 3 else "")
+    return (f"src {src!r}: {len(unread)} file(s) of an image type the tracker does not read ({kinds}: {shown}) are "
+            "left out; if they are frames of the sequence, convert them to PNG, TIFF or JPEG")
 
 
 def numbering_gap(names: list[str]) -> tuple[str, str, int, int] | None:

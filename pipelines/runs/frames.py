@@ -32,6 +32,7 @@ from envisat_pose.pipelines.runs.frame_names import (
     numbering_gap_caution,
     read_timestamps,
     sorted_frames,
+    unread_images_caution,
 )
 from envisat_pose.resumable import manifest_path
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
@@ -252,8 +253,9 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
             return dataset_source(src, skip_damaged)
         files = [os.path.join(src, f) for f in sorted_frames(src, names)]
         if not files:
+            unread = unread_images_caution(src, names)
             raise InputError(f"src {src!r}: no image files (expected PNG, JPEG, TIFF, BMP, PGM/PPM or WebP files, a generate "
-                             "folder or a video)")
+                             "folder or a video)" + (f"; {unread.split(': ', 1)[1]}" if unread else ""))
         if timestamps:
             t = read_timestamps(timestamps, files)
         elif rate_hz > 0:
@@ -262,6 +264,8 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
             raise InputError(f"src {src!r}: a folder of images needs a frame rate (`rate_hz`) or "
                              "a timestamps file (`timestamps`)")
         source = FrameSource("images", src, t, [os.path.basename(f) for f in files], files=files)
+        unread = unread_images_caution(src, names)
+        source.cautions += [unread] if unread else []
         if not timestamps:  # names that may not be in time order, or may miss frames, under a frame rate
             caution = decimal_names_caution(src, source.names) or numbering_gap_caution(src, source.names)
             source.cautions += [caution] if caution else []

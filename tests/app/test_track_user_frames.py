@@ -228,3 +228,22 @@ def test_a_run_that_never_tracked_says_so_without_claiming_more():
     assert line.endswith("holds no estimate (x_hat NaN, status per row); its last cold start was refused: " + why)
     tracked = status_line(40, {"acquiring": 20, "tracking": 20}, 20.0, "tracking", 0.2, why)
     assert "refused" not in tracked  # a run that tracked says how it tracked
+
+
+def test_frames_of_an_image_type_not_read_are_named(tmp_path):
+    """GIF, JPEG 2000, EXR, FITS or camera-raw files among the frames were left out without a word (the sequence
+    lost those frames silently); a folder of nothing else said 'no image files' without naming them."""
+    src = frames(tmp_path / "mixed", NAMES)
+    for name in ("img_0004.gif", "img_0005.exr", "img_0006.fits", "img_0007.jp2"):
+        (src / name).write_bytes(b"\0" * 16)
+    (src / ".hidden.gif").write_bytes(b"\0")
+    source = open_source(str(src), 1.0)
+    with pytest.warns(UserWarning, match=r"4 file\(s\) of an image type .*\(\.exr, \.fits, \.gif, \.jp2: "
+                                         r"'img_0004.gif', 'img_0005.exr', 'img_0006.fits' and 1 more\) are left out"):
+        scan_source(source)
+    assert source.names == NAMES
+    only = tmp_path / "only"
+    only.mkdir()
+    (only / "a.gif").write_bytes(b"\0")
+    with pytest.raises(InputError, match=r"no image files .*1 file\(s\) of an image type .*'a.gif'"):
+        open_source(str(only), 1.0)
