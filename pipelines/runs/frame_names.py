@@ -136,6 +136,15 @@ def spacing_caution(src: str, t_s: np.ndarray, frames: int, max_gap_s: float) ->
             "start cannot gather its window, so nothing will be tracked; times in ms? (t_s is in s)")
 
 
+def rate_times(src: str, n: int, rate_hz: float) -> np.ndarray:
+    """Times (n,) s of n frames at rate_hz (frame k at k / rate_hz); InputError when the last is beyond the
+    recording's clock (MAX_TIME_S: a rate in Hz given in mHz or less, the clock overflowed after tracking)."""
+    if (n - 1) / rate_hz > MAX_TIME_S:
+        raise InputError(f"rate_hz {rate_hz:g}: frame {n - 1} of {src!r} would be at {(n - 1) / rate_hz:.3g} s, "
+                         f"beyond the recording's clock ({MAX_TIME_S:.3g} s, int64 ns); expected a frame rate in Hz")
+    return np.arange(n) / rate_hz
+
+
 def read_timestamps(path: str, files: list[str]) -> np.ndarray:
     """Frame times (N,) s from a CSV with columns file,t_s for the given image files (matched by file name: a
     path's last name, / or \\ its separator); InputError naming the CSV (and the line) when it has no such columns,

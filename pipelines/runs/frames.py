@@ -30,6 +30,7 @@ from envisat_pose.pipelines.runs.frame_names import (
     IMAGE_EXTENSIONS,
     decimal_names_caution,
     numbering_gap_caution,
+    rate_times,
     read_timestamps,
     sorted_frames,
     unread_images_caution,
@@ -259,7 +260,7 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
         if timestamps:
             t = read_timestamps(timestamps, files)
         elif rate_hz > 0:
-            t = np.arange(len(files)) / rate_hz
+            t = rate_times(src, len(files), rate_hz)
         else:
             raise InputError(f"src {src!r}: a folder of images needs a frame rate (`rate_hz`) or "
                              "a timestamps file (`timestamps`)")
@@ -336,7 +337,7 @@ def video_source(path: str, rate_hz: float) -> FrameSource:
     rate = rate_hz if rate_hz > 0 else fps
     if not rate > 0:
         raise InputError(f"src {path!r}: the video has no frame rate: give `rate_hz`")
-    source = FrameSource("video", path, np.arange(n) / rate, [f"frame {i}" for i in range(n)])
+    source = FrameSource("video", path, rate_times(path, n, rate), [f"frame {i}" for i in range(n)])
     if n < header:  # a file cut short (a copy or a recording that stopped) still opens: its tail is gone
         source.cautions.append(f"src {path!r}: {n} of the {header} frames the video's header counts can be read: "
                                f"tracking those {n} (a truncated file?)" + library_said(said))

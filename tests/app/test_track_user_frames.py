@@ -247,3 +247,12 @@ def test_frames_of_an_image_type_not_read_are_named(tmp_path):
     (only / "a.gif").write_bytes(b"\0")
     with pytest.raises(InputError, match=r"no image files .*1 file\(s\) of an image type .*'a.gif'"):
         open_source(str(only), 1.0)
+
+
+def test_a_rate_that_puts_frames_beyond_the_recordings_clock_is_refused(tmp_path):
+    """--rate-hz 1e-12 (a rate in the wrong unit) tracked every frame, then the recording's int64-ns clock
+    overflowed (a traceback after the work); refused before any frame is read, naming the rate."""
+    src = frames(tmp_path / "seq", NAMES)
+    with pytest.raises(InputError, match=r"rate_hz 1e-12: frame 3 .* beyond the recording's clock"):
+        open_source(str(src), 1e-12)
+    assert open_source(str(src), 1e-6).t_s[-1] == pytest.approx(3e6)  # slow, but on the clock
