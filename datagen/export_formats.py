@@ -163,14 +163,79 @@ def bop_box(box: tuple[int, int, int, int] | None) -> list[int]:
     return [x0, y0, x1 - x0, y1 - y0]
 
 
-def bop_gt_info(mask: np.ndarray, outline_px: np.ndarray) -> dict:
-    """scene_gt_info.json's entry from the factory's mask: the target is the scene's one object, so its whole
-    silhouette in the image is its visible one (px_count_all = px_count_visib); bbox_obj spans the projected
-    model, also where it leaves the image, bbox_visib the mask."""
+def bop_gt_info(mask: np.ndarray, outline_px: np.ndarray, truncated_px: int = 0) -> dict:
+    """scene_gt_info.json's entry from the factory's mask: the target is the scene's one object, so its silhouette
+    in the image is its visible one (px_count_visib = px_count_valid = the mask's pixels); px_count_all adds
+    truncated_px, the silhouette's pixels beyond the image (truncated_px_count: the toolkit's calc_gt_info counts
+    them), so visib_fract < 1 for a target the image cuts; bbox_obj spans the projected model, also where it leaves
+    the image, bbox_visib the mask."""
     h, w = mask.shape
     n = int(np.count_nonzero(mask))
+    total = n + int(truncated_px)
     return {"bbox_obj": bop_box(outline_box(outline_px, w, h, clip=False)), "bbox_visib": bop_box(mask_box(mask)),
-            "px_count_all": n, "px_count_valid": n, "px_count_visib": n, "visib_fract": 1.0 if n else 0.0}
+            "px_count_all": total, "px_count_valid": n, "px_count_visib": n,
+            "visib_fract": n / total if total else 0.0}
+
+
+NEAR_M = 1e-3  # the near plane the silhouette's triangles are clipped at
+
+
+def truncated_px_count(points_T_m: np.ndarray, faces: np.ndarray, label: dict, width: int, height: int) -> int:
+    """The model's silhouette pixels outside the width x height image but on the BOP toolkit's canvas (its
+    calc_gt_info renders 3 W x 3 H, the image in the middle, and counts the whole silhouette there in
+    px_count_all): pixel centres (integers) that a projected triangle covers, the triangles clipped at the near
+    plane z = NEAR_M. points_T_m (V, 3), faces (F, 3) vertex indices. Memory: the triangles' rows, no canvas."""
+    R, t = pose_cam_from_target(label)
+    K = np.asarray(label["K"], dtype=float)
+    tris = (np.asarray(points_T_m, dtype=float) @ R.T + t)[np.asarray(faces, dtype=int).reshape(-1, 3)]
+    front = (tris[:, :, 2] >= NEAR_M).all(axis=1)
+    cut = [piece for tri in tris[~front] for piece in _clip_near(tri)]
+    tris = np.concatenate([tris[front], np.reshape(cut, (-1, 3, 3))])
+    uv = tris[:, :, :2] / tris[:, :, 2:3] * np.diag(K)[:2] + K[:2, 2]  # (M, 3, 2)
+    rows, left, right = _row_runs(uv, width, height)
+    in_rows = (rows >= 0) & (rows < height)  # the image's rows: only what lies left or right of it counts
+    rows = np.concatenate([rows, rows[in_rows]])
+    left = np.concatenate([left, np.maximum(left[in_rows], width)])
+    right = np.concatenate([np.where(in_rows, np.minimum(right, -1), right), right[in_rows]])
+    keep = left <= right
+    stride = 3 * width + 2  # a row's runs as one number line, rows apart: the union in one sorted pass
+    lo = (rows[keep] + height) * stride + left[keep] + width
+    hi = (rows[keep] + height) * stride + right[keep] + width
+    order = np.argsort(lo, kind="stable")
+    lo, hi = lo[order], hi[order]
+    reach = np.concatenate([[-1], np.maximum.accumulate(hi)[:-1]])  # the union so far ends there
+    return int(np.maximum(hi - np.maximum(lo - 1, reach), 0).sum())
+
+
+def _clip_near(tri: np.ndarray) -> list[np.ndarray]:
+    """The part of the triangle (3, 3) at z >= NEAR_M as triangles (none, one, or a quadrilateral's two)."""
+    poly = []
+    for a, b in zip(tri, np.roll(tri, -1, axis=0)):
+        if a[2] >= NEAR_M:
+            poly.append(a)
+        if (a[2] >= NEAR_M) != (b[2] >= NEAR_M):
+            poly.append(a + (NEAR_M - a[2]) / (b[2] - a[2]) * (b - a))
+    return [np.array([poly[0], poly[k], poly[k + 1]]) for k in range(1, len(poly) - 1)]
+
+
+def _row_runs(uv: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per triangle uv (M, 3, 2), px, and canvas row y: the pixel centres ceil(x_left)..floor(x_right) it covers,
+    clipped to the canvas (x in [-W, 2 W), y in [-H, 2 H)). (rows, left, right), int arrays of the rows met."""
+    top = np.maximum(np.ceil(uv[:, :, 1].min(axis=1)), -height).astype(int)
+    bottom = np.minimum(np.floor(uv[:, :, 1].max(axis=1)), 2 * height - 1).astype(int)
+    count = np.maximum(bottom - top + 1, 0)
+    which = np.repeat(np.arange(len(uv)), count)
+    rows = top[which] + np.arange(len(which)) - np.repeat(np.cumsum(count) - count, count)
+    a = uv[which]
+    b = np.roll(a, -1, axis=1)
+    y = rows[:, None].astype(float)
+    spans = (np.minimum(a[..., 1], b[..., 1]) <= y) & (y <= np.maximum(a[..., 1], b[..., 1])) & (a[..., 1] != b[..., 1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = a[..., 0] + (y - a[..., 1]) / (b[..., 1] - a[..., 1]) * (b[..., 0] - a[..., 0])
+    left = np.maximum(np.ceil(np.where(spans, x, np.inf).min(axis=1, initial=np.inf)), -width)
+    right = np.minimum(np.floor(np.where(spans, x, -np.inf).max(axis=1, initial=-np.inf)), 2 * width - 1)
+    ok = left <= right
+    return rows[ok], left[ok].astype(int), right[ok].astype(int)
 
 
 def bop_model_info(vertices_mm: np.ndarray) -> dict:

@@ -203,7 +203,8 @@ def _layout(cfg: ExportConfig, gen, src: str, manifest: dict) -> lay.Layout:
                       outline_T_m=mesh.vertices_T_m.tolist() if mesh is not None else [], depth_scale_mm=depth_mm,
                       skeleton=[[int(a), int(b)] for a, b in target.skeleton],
                       flip_idx=None if mirror is None else list(mirror),
-                      symmetric=bool(_bop_symmetries(target, gen.appendages_on)))
+                      symmetric=bool(_bop_symmetries(target, gen.appendages_on)),
+                      outline_faces=mesh.faces.tolist() if cfg.fmt == "bop" else [])
 
 
 def _dataset_target(src: str, gen, manifest: dict):

@@ -27,7 +27,8 @@ class Layout:
 
     fmt: one of export_formats.FORMATS; ext: 'png' or 'jpg'; mode: the dataset's 'random' or 'sequence';
     sequence: the sequence folder's name (speedplus, sequence mode); target: the target's name;
-    keypoint_names: (K,); keypoints_T_m: (K, 3) list; outline_T_m: (V, 3) list, the model's vertices (bop);
+    keypoint_names: (K,); keypoints_T_m: (K, 3) list; outline_T_m: (V, 3) list, the model's vertices (bop, coco,
+    yolo-pose); outline_faces: (F, 3) list, its triangles (bop: the silhouette beyond the image);
     depth_scale_mm: mm per depth unit, None when the dataset has no depth; skeleton: (E, 2) list of 0-based
     keypoint index pairs joined along the target's edges (Target.skeleton); flip_idx: (K,) the keypoints'
     permutation under a left-right flip of the image (Target.mirror_perm), None for a chiral target; symmetric:
@@ -46,6 +47,7 @@ class Layout:
     skeleton: list
     flip_idx: list | None = None
     symmetric: bool = False
+    outline_faces: list = ()
 
 
 def image_name(layout: Layout, i: int, split: str) -> str:
@@ -104,10 +106,20 @@ def write_sample(layout: Layout, stage: str, i: int, split: str, label: dict, im
             _write(stage, os.path.join(folder, kind, f"{im_id:06d}_000000.png"), silhouette)
         if depth_png is not None:
             _write(stage, os.path.join(folder, "depth", f"{im_id:06d}.png"), depth_png)
-        outline = fx.project_points_px(np.asarray(layout.outline_T_m), label)
         record.update(scene=scene, im_id=im_id, gt=fx.bop_gt(label), camera=fx.bop_camera(label, layout.depth_scale_mm),
-                      info=fx.bop_gt_info(mask, outline))
+                      info=_bop_info(layout, label, mask))
     return record
+
+
+def _bop_info(layout: Layout, label: dict, mask: np.ndarray) -> dict:
+    """scene_gt_info's entry; the silhouette beyond the image is counted only where the model leaves it."""
+    h, w = mask.shape
+    outline = fx.project_points_px(np.asarray(layout.outline_T_m), label)
+    box = fx.outline_box(outline, w, h, clip=False)
+    inside = box is not None and box[0] >= 0 and box[1] >= 0 and box[2] < w and box[3] < h
+    truncated = 0 if inside else fx.truncated_px_count(np.asarray(layout.outline_T_m), np.asarray(layout.outline_faces),
+                                                        label, w, h)
+    return fx.bop_gt_info(mask, outline, truncated)
 
 
 def _png(image: np.ndarray) -> bytes:

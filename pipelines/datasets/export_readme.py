@@ -73,7 +73,8 @@ _FORMAT = {
   255 = target, the same file here, one object with nothing to occlude it; `scene_gt.json` (cam_R_m2c
   row-major, cam_t_m2c mm), `scene_camera.json` (cam_K row-major, depth_scale), `scene_gt_info.json` (bbox_obj:
   the projected model, may leave the image; bbox_visib: the mask; both [x, y, w, h] with w = x_max - x_min over
-  pixel indices, as the BOP toolkit; px_count_all = px_count_visib = the mask's pixels; visib_fract).
+  pixel indices, as the BOP toolkit; px_count_visib = px_count_valid = the mask's pixels; px_count_all adds the
+  silhouette beyond the image on the toolkit's 3 W x 3 H canvas, so visib_fract < 1 where the image cuts it).
 
 ## Run it
     from bop_toolkit_lib import inout

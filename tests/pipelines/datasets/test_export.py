@@ -206,6 +206,7 @@ def test_bop_pose_masks_and_model(datasets, exports):
             assert img.shape == gray.shape + (3,)  # three channels, the gray replicated
             assert np.array_equal(img[..., 0], img[..., 1]) and np.array_equal(img[..., 0], img[..., 2])
             assert np.abs(img[..., 0].astype(float) - gray).mean() < 2.0  # JPEG quality 95
+        truncated = 0
         for (uv, mask, inf, cam), (lab, _, fmask) in zip(got, labels):
             assert np.abs(uv - np.asarray(lab["corners_px"])).max() < 1e-3
             assert np.array_equal(mask > 0, fmask > 0) and set(np.unique(mask)) <= {0, 255}
@@ -214,7 +215,12 @@ def test_bop_pose_masks_and_model(datasets, exports):
             assert inf["bbox_visib"] == [xs.min(), ys.min(), xs.max() - xs.min(), ys.max() - ys.min()]
             x, y, w, h = inf["bbox_obj"]  # the whole projected model holds the visible part
             assert x <= xs.min() + 1 and y <= ys.min() + 1 and x + w >= xs.max() - 1 and y + h >= ys.max() - 1
+            cut = x < 0 or y < 0 or x + w >= fmask.shape[1] or y + h >= fmask.shape[0]  # the image cuts the model
+            assert inf["px_count_all"] >= inf["px_count_visib"] and (cut or inf["visib_fract"] == 1.0)
+            truncated += inf["px_count_all"] > inf["px_count_visib"]  # the toolkit counts the part beyond it
+            assert inf["visib_fract"] == pytest.approx(inf["px_count_visib"] / inf["px_count_all"])
             assert cam["depth_scale"] == pytest.approx(2.0)  # the factory's 0.002 m per unit, in mm
+        assert case == "seq" or truncated  # 1024 px random views of ENVISAT: the image cuts some (seed 21)
     verts = _ply_vertices(os.path.join(exports["rand", "bop"], "models", "obj_000001.ply"))
     info = json.load(open(os.path.join(exports["rand", "bop"], "models", "models_info.json")))["1"]
     assert verts.max(axis=0)[0] == pytest.approx(5800.0, abs=0.01)  # the MERIS box's front, mm
@@ -611,3 +617,51 @@ def test_the_outline_box_spans_the_pixel_centres_and_bops_object_box_is_not_clip
     info = bop_gt_info(mask, outline)
     assert info["bbox_obj"] == [-10, 6, 30, 24] and info["bbox_visib"] == [0, 6, 15, 9]
     assert info["px_count_visib"] == 160
+
+
+def _label(points_px_z=1.0):
+    """A label whose camera sees T's x, y as pixel coordinates at depth 1 m: R = I, t = (0, 0, 1), K = I."""
+    return {"R_cam_from_target": np.eye(3).tolist(), "t_cam_from_target_m": [0.0, 0.0, points_px_z],
+            "K": np.eye(3).tolist()}
+
+
+def test_bops_visib_fract_counts_the_silhouette_the_image_cuts_off():
+    """The BOP toolkit's calc_gt_info counts the whole silhouette on a 3 W x 3 H canvas in px_count_all, so a
+    target the image cuts has visib_fract < 1 (loaders drop views below 0.1). A rectangle (-4.6, 2.2)-(9.8, 6.9) on
+    a 16 x 16 image covers the centres x -4..9, y 3..6: 56 pixels, 40 in the image, 16 beyond it."""
+    from envisat_pose.datagen.export_formats import bop_gt_info, truncated_px_count
+
+    rect = np.array([[-4.6, 2.2, 0.0], [9.8, 2.2, 0.0], [9.8, 6.9, 0.0], [-4.6, 6.9, 0.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    assert truncated_px_count(rect, faces, _label(), 16, 16) == 16
+    mask = np.zeros((16, 16), np.uint8)
+    mask[3:7, 0:10] = 1
+    info = bop_gt_info(mask, rect[:, :2], truncated_px_count(rect, faces, _label(), 16, 16))
+    assert info["px_count_all"] == 56 and info["px_count_visib"] == info["px_count_valid"] == 40
+    assert info["visib_fract"] == pytest.approx(40 / 56)
+    inside = rect + [6.0, 0.0, 0.0]  # x 1.4..15.8: the centres 2..15, all in the image
+    assert truncated_px_count(inside, faces, _label(), 16, 16) == 0
+    assert truncated_px_count(rect + [100.0, 0.0, 0.0], faces, _label(), 16, 16) == 0  # beyond the canvas too
+
+
+def test_the_truncated_count_matches_a_pixel_centre_test_and_clips_behind_the_camera():
+    """Random triangles over the canvas against matplotlib's point-in-polygon test of every pixel centre; a
+    triangle reaching behind the camera counts what lies in front of it (no wrap-around), at most the canvas."""
+    from matplotlib.path import Path
+
+    from envisat_pose.datagen.export_formats import truncated_px_count
+
+    rng = np.random.default_rng(5)
+    w, h = 12, 10
+    pts = np.c_[rng.uniform(-1.4 * w, 2.4 * w, (9, 1)), rng.uniform(-1.4 * h, 2.4 * h, (9, 1)), np.zeros((9, 1))]
+    faces = np.arange(9).reshape(3, 3)
+    ys, xs = np.mgrid[-h:2 * h, -w:2 * w]
+    centres = np.c_[xs.ravel(), ys.ravel()]
+    covered = np.zeros(len(centres), bool)
+    for f in faces:
+        covered |= Path(pts[f, :2]).contains_points(centres)
+    covered &= ~((centres[:, 0] >= 0) & (centres[:, 0] < w) & (centres[:, 1] >= 0) & (centres[:, 1] < h))
+    assert truncated_px_count(pts, faces, _label(), w, h) == int(covered.sum())
+    behind = np.array([[-3.0, -3.0, 0.5], [3.0, -3.0, 0.5], [0.0, 3.0, -2.0]])  # the camera's plane cuts it
+    n = truncated_px_count(behind, np.array([[0, 1, 2]]), _label(0.0), w, h)
+    assert 0 < n <= 8 * w * h
