@@ -301,7 +301,7 @@ def _write_static(layout: lay.Layout, stage: str, gen, manifest: dict, has_val: 
         with open(os.path.join(stage, "data.yaml"), "w", encoding="utf-8") as fh:
             fh.write(yolo_yaml_text(layout, has_val, final_dir))
     with open(os.path.join(stage, "README.md"), "w", encoding="utf-8") as fh:
-        fh.write(readme_text(layout, K, n, _pixel_pitch_m(gen), manifest, final_dir, gen.write_mask))
+        fh.write(readme_text(layout, K, n, _pixel_pitch_m(gen), manifest, final_dir, gen.write_mask, has_val))
 
 
 def _shape_checked(target, appendages: bool) -> bool:

@@ -4,6 +4,7 @@ the folder explains itself wherever it is copied (docs/formats.md is the project
 from __future__ import annotations
 
 import os
+import shlex
 
 import numpy as np
 
@@ -54,10 +55,10 @@ _FORMAT = {
 ## Run it
     import numpy as np
     from pycocotools.coco import COCO; from pycocotools.cocoeval import COCOeval
-    gt = COCO("{folder}/annotations/keypoints_val.json")   # images: {folder}/images/ + file_name
+    gt = COCO({coco_gt_py})   # images: {folder}/images/ + file_name
     ev = COCOeval(gt, gt.loadRes("predictions.json"), "keypoints"); ev.params.kpt_oks_sigmas = np.full({k}, {sigma:g})
-  detectron2: `register_coco_instances("{name}_train", {{}}, "{folder}/annotations/keypoints_train.json",
-  "{folder}/images")`, metadata keypoint_names (above) and {coco_flip}.
+  detectron2: `register_coco_instances({coco_name_py}, {{}}, {coco_train_py},
+  {coco_images_py})`, metadata keypoint_names (above) and {coco_flip}.
 """,
     "bop": """\
 ## BOP layout (one object, obj_id 1)
@@ -78,8 +79,8 @@ _FORMAT = {
 
 ## Run it
     from bop_toolkit_lib import inout
-    gt = inout.load_scene_gt("{folder}/train_pbr/000000/scene_gt.json")
-    model = inout.load_ply("{folder}/models_eval/obj_000001.ply")   # pts (mm), normals, faces
+    gt = inout.load_scene_gt({bop_gt_py})
+    model = inout.load_ply({bop_ply_py})   # pts (mm), normals, faces
   The toolkit's scripts (scripts/calc_gt_info.py, calc_gt_masks.py, eval_bop19_pose.py) find a dataset by name
   in bop_toolkit_lib/dataset_params.py: add `{name}` there (obj_ids [1], {bop_symmetric_ids}, im_size
   ({n}, {n}), scene ids from train_pbr/) and set `datasets_path` in bop_toolkit_lib/config.py to {parent}.
@@ -97,7 +98,7 @@ _FORMAT = {
   written at 0, a move of at most 0.5 px); v = 2 visible, 1 hidden, a keypoint outside the frame `0 0 0`.
 {box_note}
 ## Run it
-    yolo pose train data={folder}/data.yaml model=yolov8n-pose.pt imgsz={n}
+    yolo pose train {yolo_data_sh} model=yolov8n-pose.pt imgsz={n}
 """,
 }
 
@@ -106,7 +107,7 @@ _SPNV2_RUN = {
     "random": """
 ## Run it (SPNv2, random views)
     python3 tools/preprocess.py --cfg experiments/offline_train_full_config.yaml --jsonfile synthetic/train.json \\
-        DATASET.ROOT {parent} DATASET.DATANAME {name} DATASET.KEYPOINTS {name}/models/keypoints.mat \\
+        DATASET.ROOT {parent_sh} DATASET.DATANAME {name_sh} DATASET.KEYPOINTS {keypoints_sh} \\
         DATASET.NUM_KEYPOINTS {k} DATASET.IMAGE_SIZE "[{n}, {n}]"
   (again with `--jsonfile synthetic/validation.json`), then `tools/train.py` with the same overrides. SPNv2 reads
   the SPEED+ layout only when DATANAME contains `speedplus` (name the folder so), and its preprocess.py packs 11
@@ -119,10 +120,10 @@ _SPNV2_RUN = {
   trajectory when DATANAME contains `shirt` (name the folder so), its labels from `--jsonfile
   <trajectory>/<domain>/<file>` and its images from `<trajectory>/<domain>/images/`, so the labels go beside
   the images first:
-    cp {folder}/{seq}/{seq}.json {folder}/{seq}/synthetic/
+    cp {seq_json_sh} {seq_synthetic_sh}
     python3 tools/preprocess.py --cfg experiments/offline_train_full_config.yaml \\
-        --jsonfile {seq}/synthetic/{seq}.json DATASET.ROOT {parent} DATASET.DATANAME {name} \\
-        DATASET.KEYPOINTS {name}/models/keypoints.mat DATASET.NUM_KEYPOINTS {k} DATASET.IMAGE_SIZE "[{n}, {n}]"
+        --jsonfile {seq}/synthetic/{seq}.json DATASET.ROOT {parent_sh} DATASET.DATANAME {name_sh} \\
+        DATASET.KEYPOINTS {keypoints_sh} DATASET.NUM_KEYPOINTS {k} DATASET.IMAGE_SIZE "[{n}, {n}]"
   Its preprocess.py packs 11 keypoints plus the origin (24 values): for another K that line needs 2 (K + 1)
   (K = {k} here).
 """,
@@ -169,11 +170,29 @@ def _flip_texts(layout) -> dict[str, str]:
                          "empty: every keypoint on its plane), INPUT.RANDOM_FLIP may stay on"}
 
 
-def readme_text(layout, K: np.ndarray, n: int, pitch_m: float, manifest: dict, folder: str, masks: bool = True
-                ) -> str:
+def _command_texts(layout, folder: str, has_val: bool) -> dict[str, str]:
+    """The paths the README's commands name, quoted as each command reads them (a shell word: shlex; a Python
+    string: repr), so a folder with a space or a quote still pastes and runs; the COCO snippet opens the
+    validation file only where the export wrote one."""
+    name, seq = os.path.basename(folder), layout.sequence
+    coco = os.path.join(folder, "annotations", f"keypoints_{'val' if has_val else 'train'}.json")
+    return {"parent_sh": shlex.quote(os.path.dirname(folder)), "name_sh": shlex.quote(name),
+            "keypoints_sh": shlex.quote(f"{name}/models/keypoints.mat"),
+            "seq_json_sh": shlex.quote(os.path.join(folder, seq, f"{seq}.json")),
+            "seq_synthetic_sh": shlex.quote(os.path.join(folder, seq, "synthetic") + "/"),
+            "yolo_data_sh": shlex.quote(f"data={os.path.join(folder, 'data.yaml')}"),
+            "coco_gt_py": repr(coco), "coco_name_py": repr(f"{name}_train"),
+            "coco_train_py": repr(os.path.join(folder, "annotations", "keypoints_train.json")),
+            "coco_images_py": repr(os.path.join(folder, "images")),
+            "bop_gt_py": repr(os.path.join(folder, "train_pbr", "000000", "scene_gt.json")),
+            "bop_ply_py": repr(os.path.join(folder, "models_eval", "obj_000001.ply"))}
+
+
+def readme_text(layout, K: np.ndarray, n: int, pitch_m: float, manifest: dict, folder: str, masks: bool = True,
+                has_val: bool = True) -> str:
     """The folder's README: where it came from, the common conventions, the format's layout and the command its
     tool runs on it. folder: the export folder's absolute path (as exported); masks: the dataset has masks (the
-    boxes' source)."""
+    boxes' source); has_val: the export has a validation split (COCO's keypoints_val.json)."""
     head = (f"# {layout.target}: {layout.fmt} export of an envisat-pose dataset\n\n"
             f"Made by `envisat dataset export` from a {layout.mode}-mode dataset (root seed "
             f"{manifest.get('root_seed')}, {manifest.get('num_images')} images, {n} px). `export.json` records "
@@ -183,5 +202,6 @@ def readme_text(layout, K: np.ndarray, n: int, pitch_m: float, manifest: dict, f
     body = _FORMAT[layout.fmt] + (_SPNV2_RUN[layout.mode] if layout.fmt == "speedplus" else "")
     body = body.format(pitch=pitch_m, folder=folder, parent=os.path.dirname(folder), name=os.path.basename(folder),
                        seq=layout.sequence, k=len(layout.keypoint_names), n=n, sigma=OKS_SIGMA,
-                       **_flip_texts(layout), **_symmetry_texts(layout), **_box_texts(masks))
+                       **_flip_texts(layout), **_symmetry_texts(layout), **_box_texts(masks),
+                       **_command_texts(layout, folder, has_val))
     return head + common + "\n" + body

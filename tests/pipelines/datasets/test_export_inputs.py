@@ -314,3 +314,31 @@ def test_the_export_workers_share_the_cores_among_the_processes_that_start(small
     export.export_dataset(small["done"], str(tmp_path / "coco"), export.ExportConfig(fmt="coco"), workers=8)
     assert runners[0].workers == 3
     assert runners[0].env == {"OMP_NUM_THREADS": "2", "OPENCV_FOR_THREADS_NUM": "2"}
+
+
+def _indented_block(text: str, heading: str) -> list[str]:
+    """The README's indented command lines after `heading`, their indent removed."""
+    lines = text[text.index(heading):].splitlines()[1:]
+    return [ln[4:] for ln in lines[:next((i for i, ln in enumerate(lines) if not ln.startswith("    ")), len(lines))]]
+
+
+def test_the_readme_commands_run_on_a_folder_with_a_space_and_a_quote_and_no_validation_split(small, tmp_path):
+    """The README's commands name the export's files as their tools read them: the pycocotools lines, run as they
+    stand, open a file the export holds (keypoints_train.json where --val-fraction 0 wrote no keypoints_val.json),
+    and the yolo command, split as a shell splits it, passes data.yaml's path whole."""
+    import shlex
+
+    from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
+
+    parent = tmp_path / "my data's exports"
+    coco = export_dataset(small["done"], str(parent / "coco set"), ExportConfig("coco", val_fraction=0.0),
+                          progress=False).out_dir
+    text = open(os.path.join(coco, "README.md"), encoding="utf-8").read()
+    code = "\n".join(_indented_block(text, "## Run it")[:3])  # the imports and gt = COCO(...)
+    scope: dict = {}
+    exec(compile(code, "README.md", "exec"), scope)
+    assert len(scope["gt"].dataset["images"]) == 6
+    yolo = export_dataset(small["done"], str(parent / "yolo set"), ExportConfig("yolo-pose"), progress=False).out_dir
+    text = open(os.path.join(yolo, "README.md"), encoding="utf-8").read()
+    words = shlex.split(_indented_block(text, "## Run it")[0])
+    assert words[:3] == ["yolo", "pose", "train"] and words[3] == f"data={os.path.join(yolo, 'data.yaml')}"
