@@ -340,11 +340,15 @@ class GenerateConfig(Config):
                 raise ConfigError(f"random.{err.field}", err.value, err.expected) from None
             object.__setattr__(self, "random", filled)
         if ratio is not None and derived(self.sequence.range_scale):
-            if not MIN_RANGE_SCALE <= sized_value(ratio) <= MAX_RANGE_SCALE:
+            sized = MIN_RANGE_SCALE <= sized_value(ratio) <= MAX_RANGE_SCALE
+            if not sized and (self.mode == "sequence" or unset):  # random mode's own ranges need no range_scale
+                yours = ("sequence.range_scale" if self.mode == "sequence" else
+                         "random.range_min_m, range_max_m and keepout_margin_m")
                 raise ConfigError("target", self.target, f"a spacecraft {MIN_RANGE_SCALE:g} to {MAX_RANGE_SCALE:g} "
                                   f"times ENVISAT's size, the views sized to it (this one: {ratio:.4g} times; or "
-                                  "give sequence.range_scale and random's ranges and keep-out yourself)")
-            object.__setattr__(self, "sequence", replace(self.sequence, range_scale=sized_value(ratio)))
+                                  f"give {yours} yourself)")
+            if sized:
+                object.__setattr__(self, "sequence", replace(self.sequence, range_scale=sized_value(ratio)))
         from_truth = derived(self.depth_scale_m) and self.mode == "sequence" and self.write_depth
         if derived(self.depth_scale_m):
             object.__setattr__(self, "depth_scale_m", self._sized_depth_scale_m())

@@ -207,3 +207,16 @@ def test_a_target_beyond_the_sized_views_is_refused_naming_the_target(tmp_path):
     given = {"target": path, "sequence": {"range_scale": 10.0},
              "random": {"range_min_m": 400.0, "range_max_m": 900.0, "keepout_margin_m": 20.0}}
     assert from_dict(GenerateConfig, given).random.range_max_m == 900.0
+
+
+def test_random_mode_beyond_the_sized_views_takes_its_own_ranges_without_a_range_scale(tmp_path):
+    """Random mode never reads sequence.range_scale: a 300 m box with random's ranges and keep-out given is taken
+    as it is (range_scale left unset), and each mode's refusal names the fields that mode itself reads."""
+    path = _target_file(tmp_path, "tower", (150.0, 40.0, 40.0))
+    ranges = {"range_min_m": 400.0, "range_max_m": 900.0, "keepout_margin_m": 20.0}
+    cfg = from_dict(GenerateConfig, {"target": path, "random": ranges})
+    assert cfg.random.range_min_m == 400.0 and cfg.sequence.range_scale is None
+    with pytest.raises(ConfigError, match=r"give random\.range_min_m, range_max_m and keepout_margin_m yourself"):
+        from_dict(GenerateConfig, {"target": path, "random": {"range_min_m": 400.0}})
+    with pytest.raises(ConfigError, match=r"give sequence\.range_scale yourself\)$"):
+        from_dict(GenerateConfig, {"target": path, "mode": "sequence", "random": ranges})
