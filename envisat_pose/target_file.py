@@ -221,6 +221,13 @@ def latch_joints(spec) -> None:
         spec.delete(j)
 
 
+def unpin(spec) -> None:
+    """Clear the mocap flag of spec's body `target`: a body a viewer moves by hand (mocap="true") is, alone, drawn
+    where it is written, and the target is one free rigid body (the fusing and the scene give it a free joint,
+    which MuJoCo refuses a mocap body)."""
+    spec.body("target").mocap = False
+
+
 def drop_lights(spec) -> None:
     """Take the lights of spec's body `target` and its child bodies (a <frame>'s too) out: the factory's scene
     lights the target (its sun, the Earth-shine), not the file, and a light's `dir` has no place in a fused file."""
@@ -239,6 +246,7 @@ def _fused_text(path: str, mtime_ns: int) -> str | None:
         return None
     latch_joints(spec)
     drop_lights(spec)
+    unpin(spec)
     absolute_asset_files(spec, path)
     tree = [target, *subtree_bodies(target)]
     for b in subtree_bodies(spec.worldbody):
@@ -368,6 +376,11 @@ def read_spec(path: str, field: str, given: str):
     latched = tuple(j.name or f"{str(j.type).rsplit('.', 1)[-1].removeprefix('mjJNT_').lower()} joint of body "
                     f"{j.parent.name!r}" for j in joints)
     for b in [body, *tree]:
+        planes = [repr(g.name) if g.name else f"number {k + 1}" for k, g in enumerate(b.geoms)
+                  if g.type == mujoco.mjtGeom.mjGEOM_PLANE]
+        if planes:
+            fail(f"geoms of finite size on body {b.name!r} (its geom {planes[0]} is a plane, which MuJoCo allows "
+                 "only in the world's static bodies: a panel is a thin box)")
         if inertial_used(spec, b) and not spec.compiler.balanceinertia:  # else MuJoCo's (checked once compiled)
             problem = check_inertia(float(b.mass), _spec_inertia(b))
             if problem is not None:
@@ -398,6 +411,7 @@ def target_spec(path: str):
     text = fused_text(path)
     spec = mujoco.MjSpec.from_file(path) if text is None else mujoco.MjSpec.from_string(text)
     drop_lights(spec)
+    unpin(spec)
     absolute_asset_files(spec, path)
     return spec
 

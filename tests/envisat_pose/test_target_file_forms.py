@@ -157,3 +157,36 @@ def test_an_empty_keypoint_name_is_refused(tmp_path):
                     + BUS + SITES + '<site name="kp_" pos="0.3 0.3 -0.3"/></body></worldbody></mujoco>')
     with pytest.raises((ConfigError, InputError), match="non-empty names"):
         load_target(str(path))
+
+
+@pytest.mark.parametrize("tree", [False, True], ids=["alone", "with-children"])
+def test_a_mocap_body_is_a_free_target_drawn_where_mujoco_draws_it(tmp_path, tree):
+    """A body a viewer moves by hand (mocap="true") is, alone, drawn where it is written: the scene takes it as
+    the free target (MuJoCo refused the scene's free joint on it, a traceback), its geoms where MuJoCo puts them."""
+    arms = ('<body pos="0 0 0.4"><geom name="up" type="sphere" size="0.1"/></body>'
+            '<body pos="0 0 -0.4"><geom name="down" type="sphere" size="0.1"/></body>') if tree else ""
+    path = tmp_path / "mocap.xml"
+    path.write_text('<mujoco><worldbody><body name="target" mocap="true" pos="1 2 3">' + BUS + SITES + arms +
+                    '</body></worldbody></mujoco>')
+    names = ("bus", "up", "down") if tree else ("bus",)
+    alone = _geoms_in_T(mujoco.MjModel.from_xml_path(str(path)), names)
+    scene_model = mujoco.MjModel.from_xml_string(scene_xml(load_target(str(path))))
+    scene = _geoms_in_T(scene_model, names)
+    assert scene_model.body("target").mocapid[0] == -1 and scene_model.body("target").jntnum[0] == 1
+    for n in names:
+        np.testing.assert_allclose(scene[n][3], alone[n][3], atol=1e-9)
+
+
+@pytest.mark.parametrize("where", ["target", "child"])
+def test_a_plane_on_the_target_is_refused_in_one_line(tmp_path, where):
+    """A plane geom (infinite; MuJoCo refuses it in a moving body) on the target or a child: one line naming the
+    body, the geom and what to write instead (it was the scene's MuJoCo traceback)."""
+    plane = '<geom name="sail" type="plane" size="1 1 0.1"/>'
+    body = plane if where == "target" else f'<body name="arm" pos="0 0 0.4">{plane}</body>'
+    path = tmp_path / "plane.xml"
+    path.write_text('<mujoco><worldbody><body name="target">' + BUS + SITES + body + '</body></worldbody></mujoco>')
+    with pytest.raises(ConfigError) as err:
+        load_target(str(path))
+    text = str(err.value)
+    named = "'target'" if where == "target" else "'arm'"
+    assert f"body {named}" in text and "'sail' is a plane" in text and "thin box" in text and "\n" not in text
