@@ -339,6 +339,23 @@ def _spec_inertia(body) -> np.ndarray:
     return np.diag(np.asarray(body.inertia, float))
 
 
+UNREAD_GEOMS = {"plane": "a plane, which MuJoCo allows only in the world's static bodies: a panel is a thin box",
+                "hfield": "a height field, whose surface the labels' visibility cannot read: write it as a mesh",
+                "sdf": "a signed distance field, whose surface the labels' visibility cannot read: write it as a mesh"}
+
+
+def unread_geom(body) -> str | None:
+    """What a target refuses of the geoms of `body` (an MjsBody of its tree), or None: a plane, a height field or
+    an SDF (UNREAD_GEOMS), named by its name or its number in the body's file order."""
+    for k, g in enumerate(body.geoms):
+        kind = str(g.type).rsplit(".", 1)[-1].removeprefix("mjGEOM_").lower()
+        if kind in UNREAD_GEOMS:
+            named = repr(g.name) if g.name else f"number {k + 1}"
+            return (f"geoms of box, sphere, capsule, cylinder, ellipsoid or mesh type on body {body.name!r} "
+                    f"(its geom {named} is {UNREAD_GEOMS[kind]})")
+    return None
+
+
 def inertial_used(spec, body) -> bool:
     """Whether MuJoCo takes body's mass properties from its <inertial>: one is written and the compiler's
     inertiafromgeom is not 'true' (which computes them from the geoms whatever the file states)."""
@@ -376,11 +393,9 @@ def read_spec(path: str, field: str, given: str):
     latched = tuple(j.name or f"{str(j.type).rsplit('.', 1)[-1].removeprefix('mjJNT_').lower()} joint of body "
                     f"{j.parent.name!r}" for j in joints)
     for b in [body, *tree]:
-        planes = [repr(g.name) if g.name else f"number {k + 1}" for k, g in enumerate(b.geoms)
-                  if g.type == mujoco.mjtGeom.mjGEOM_PLANE]
-        if planes:
-            fail(f"geoms of finite size on body {b.name!r} (its geom {planes[0]} is a plane, which MuJoCo allows "
-                 "only in the world's static bodies: a panel is a thin box)")
+        problem = unread_geom(b)
+        if problem is not None:
+            fail(problem)
         if inertial_used(spec, b) and not spec.compiler.balanceinertia:  # else MuJoCo's (checked once compiled)
             problem = check_inertia(float(b.mass), _spec_inertia(b))
             if problem is not None:

@@ -177,16 +177,20 @@ def test_a_mocap_body_is_a_free_target_drawn_where_mujoco_draws_it(tmp_path, tre
         np.testing.assert_allclose(scene[n][3], alone[n][3], atol=1e-9)
 
 
-@pytest.mark.parametrize("where", ["target", "child"])
-def test_a_plane_on_the_target_is_refused_in_one_line(tmp_path, where):
-    """A plane geom (infinite; MuJoCo refuses it in a moving body) on the target or a child: one line naming the
-    body, the geom and what to write instead (it was the scene's MuJoCo traceback)."""
-    plane = '<geom name="sail" type="plane" size="1 1 0.1"/>'
-    body = plane if where == "target" else f'<body name="arm" pos="0 0 0.4">{plane}</body>'
+@pytest.mark.parametrize("where, kind, words", [
+    ("target", "plane", "is a plane"), ("child", "plane", "is a plane"), ("target", "hfield", "is a height field")])
+def test_a_geom_the_target_cannot_read_is_refused_in_one_line(tmp_path, where, kind, words):
+    """A plane geom (infinite; MuJoCo refuses it in a moving body) on the target or a child, or a height field (drawn,
+    but no part of the surface the labels' visibility reads: a keypoint on it was refused as 1 m from every drawn
+    geom): one line naming the body, the geom and what to write instead (the plane was the scene's traceback)."""
+    sail = ('<geom name="sail" type="plane" size="1 1 0.1"/>' if kind == "plane" else
+            '<geom name="sail" type="hfield" hfield="h" mass="0"/>')
+    body = sail if where == "target" else f'<body name="arm" pos="0 0 0.4">{sail}</body>'
     path = tmp_path / "plane.xml"
-    path.write_text('<mujoco><worldbody><body name="target">' + BUS + SITES + body + '</body></worldbody></mujoco>')
+    path.write_text('<mujoco><asset><hfield name="h" nrow="2" ncol="2" size="1 1 0.1 0.05" elevation="1 1 1 1"/>'
+                    '</asset><worldbody><body name="target">' + BUS + SITES + body + '</body></worldbody></mujoco>')
     with pytest.raises(ConfigError) as err:
         load_target(str(path))
     text = str(err.value)
     named = "'target'" if where == "target" else "'arm'"
-    assert f"body {named}" in text and "'sail' is a plane" in text and "thin box" in text and "\n" not in text
+    assert f"body {named}" in text and f"'sail' {words}" in text and "\n" not in text
