@@ -365,12 +365,18 @@ def inertial_used(spec, body) -> bool:
     return bool(body.explicitinertial) and not from_geoms
 
 
+# what the factory addresses by name in the scene models/envisat.xml holds (datagen/render.py and sim.py; render_model
+# adds the Earth): a file holding all of them is its own scene
+SCENE_NAMES = (("camera", CAMERA_NAME), ("body", "chaser"), ("joint", "target_free"), ("light", "sun"))
+
+
 def read_spec(path: str, field: str, given: str):
     """MuJoCo's reading of the file (its own compiler settings) with its body `target` checked for structure:
     (spec, own_scene, fused, latched). A body with child bodies or joints is read fused (fused: True), its joints
-    latched (fused_text); latched: those joints' names (an unnamed one as '<kind> joint of body NAME'); own_scene: the file
-    holds the factory's camera (models/envisat.xml), so it is its own scene; the file's <statistic> set aside (the
-    spec compiles MuJoCo's own extent and centre). ConfigError naming `field` and the
+    latched (fused_text); latched: those joints' names (an unnamed one as '<kind> joint of body NAME'); own_scene: the
+    file holds every name the factory's scene is addressed by (SCENE_NAMES: models/envisat.xml, a copy of it), so it
+    is its own scene; the file's <statistic> set aside (the spec compiles MuJoCo's own extent and centre).
+    ConfigError naming `field` and the
     value `given` otherwise: a file MuJoCo cannot read, no body 'target', a bad <inertial>, a scene file whose
     target has child bodies."""
     import mujoco
@@ -385,7 +391,7 @@ def read_spec(path: str, field: str, given: str):
     body = spec.body("target")
     if body is None:
         fail("an MJCF file whose worldbody holds a body named 'target'")
-    own_scene = spec.camera(CAMERA_NAME) is not None  # a file holding the chaser camera is the factory's whole scene
+    own_scene = all(getattr(spec, kind)(name) is not None for kind, name in SCENE_NAMES)  # models/envisat.xml, a copy
     tree = subtree_bodies(body)
     if own_scene and tree:
         fail("a scene file whose body 'target' has no child bodies")

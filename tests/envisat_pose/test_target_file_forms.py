@@ -194,3 +194,24 @@ def test_a_geom_the_target_cannot_read_is_refused_in_one_line(tmp_path, where, k
     text = str(err.value)
     named = "'target'" if where == "target" else "'arm'"
     assert f"body {named}" in text and f"'sail' {words}" in text and "\n" not in text
+
+
+@pytest.mark.parametrize("where", ["world", "target"])
+def test_a_camera_named_as_the_factorys_does_not_make_the_file_a_scene(tmp_path, where):
+    """A file with a camera of its own named chaser_cam (the factory's camera's name), in the world or on the
+    target, is a target file like any other: the scene holds the factory's chaser, Earth and free joint, and the
+    target where MuJoCo puts it (it was taken as its own whole scene: a KeyError traceback in the renderer)."""
+    cam = '<camera name="chaser_cam" pos="3 3 3" xyaxes="-1 1 0 -1 -1 2"/>'
+    path = tmp_path / "cam.xml"
+    path.write_text('<mujoco><worldbody>' + (cam if where == "world" else "") + '<body name="target" pos="0 0 1">'
+                    '<freejoint name="float"/>' + (cam if where == "target" else "") + BUS + SITES +
+                    '</body></worldbody></mujoco>')
+    with pytest.warns(UserWarning, match="latched"):  # its free joint
+        target = load_target(str(path))
+    assert not target.own_scene
+    scene = mujoco.MjModel.from_xml_string(scene_xml(target))
+    for kind, name in (("joint", "target_free"), ("body", "chaser"), ("light", "sun")):
+        getattr(scene, kind)(name)  # KeyError where the scene lacks it
+    np.testing.assert_allclose(_geoms_in_T(scene, ("bus",))["bus"][3],
+                               _geoms_in_T(mujoco.MjModel.from_xml_path(str(path)), ("bus",))["bus"][3], atol=1e-12)
+    assert load_target(model_path()).own_scene
