@@ -96,9 +96,9 @@ class Target:
     keypoint_names (K,), keypoint_sites (K,) their MJCF site names; keypoints_T_m (K, 3) in T, m. mass_kg;
     inertia_T_kg_m2 (3, 3) about the CoM in T. reach_m: the farthest point of its surface from the CoM. geoms:
     (G,) TargetGeom, file order. surface: the triangles of every geom in T (target_mesh.BodyMesh). own_scene: the
-    file holds the factory's scene (target_file.SCENE_NAMES), so it is rendered as it is. latched_joints: the file's joints in the target's
-    tree, latched at their reference pose (target_file.py: the target is one rigid body). Derived on first use:
-    skeleton, symmetries.
+    file holds the factory's scene (target_file.SCENE_NAMES), so it is rendered as it is. latched_joints: the
+    file's joints in the target's tree, latched at their reference pose (target_file.py: the target is one rigid
+    body). Derived on first use: skeleton, symmetries.
     """
 
     name: str
