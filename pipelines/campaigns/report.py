@@ -47,11 +47,27 @@ def write_report(dirs: list[str], out: str) -> dict:
     if not out.endswith((".html", ".htm")):
         raise InputError(f"out {out!r}: expected a path ending in .html")
     check_out_file(out, "out")
+    check_campaign_dirs(dirs)
     sweeps = [load_sweep(d) for d in dirs if is_sweep(d)]
     campaigns = [load_campaign(d) for d in dirs if not is_sweep(d)]
     make_out_file_dirs({out: "out"})
     atomic_write_text(out, render_report(campaigns, sweeps))
     return {"campaigns": len(campaigns), "sweeps": len(sweeps)}
+
+
+def check_campaign_dirs(dirs: list[str]) -> None:
+    """Each folder exists, is a folder and is given once (two columns of one campaign compare nothing): else
+    InputError naming the folder, before anything is read."""
+    seen: dict[str, str] = {}
+    for d in dirs:
+        if not os.path.exists(d):
+            raise InputError(f"{d!r}: no such folder; expected a campaign folder of `envisat montecarlo --out`")
+        if not os.path.isdir(d):
+            raise InputError(f"{d!r} is a file; expected a campaign folder of `envisat montecarlo --out`")
+        real = os.path.realpath(d)
+        if real in seen:
+            raise InputError(f"{d!r} is the folder {seen[real]!r} again (one column per campaign); give it once")
+        seen[real] = d
 
 
 def is_sweep(out_dir: str) -> bool:
@@ -96,7 +112,7 @@ def render_sweep(c: dict) -> str:
     rows, alone = [], s.get("n_nis_alarm_alone") or [0] * len(s["rates_hz"])  # a sweep.json before they were named
     for i, rate in enumerate(s["rates_hz"]):
         cells = [f"{rate:g}"] + [_fmt(s["rmse"][b][i], DISPLAY[b][1]) for b in BLOCKS]
-        cells += [_fmt(s["rmse_over_pcrlb"][b][i], digits=3) for b in BLOCKS]
+        cells += [_ratio(s["rmse_over_pcrlb"][b][i]) for b in BLOCKS]
         cells += [f"{s['n_diverged'][i]} / {s['runs']}"
                   + (f" ({alone[i]} flagged by the filter alone)" if alone[i] else ""),
                   _fmt(s["nees_mean"][i]), "yes" if s["converged"][i] else "no"]
@@ -164,6 +180,11 @@ def _fmt(v, scale: float = 1.0, digits: int = 4) -> str:
     return f"{v * scale:.{digits}g}"
 
 
+def _ratio(v) -> str:
+    """RMSE / PCRLB to three decimals, as `envisat montecarlo` prints it (1.103, not 1.1: ratios sit near 1)."""
+    return "n/a" if _fmt(v) == "n/a" else f"{v:.3f}"
+
+
 def config_differences(campaigns: list[dict]) -> list[str]:
     """Per campaign, its config values that differ between the campaigns ('' for one campaign)."""
     flat = []
@@ -212,7 +233,7 @@ def campaign_rows(c: dict) -> list[tuple[str, str]]:
         unit, k = DISPLAY[b]
         rows.append((f"PCRLB {b} ({unit})", _fmt(s.get("pcrlb_rms", {}).get(b), k)))
     for b in BLOCKS:
-        rows.append((f"RMSE / PCRLB {b}", _fmt(s.get("rmse_over_pcrlb", {}).get(b), digits=3)))
+        rows.append((f"RMSE / PCRLB {b}", _ratio(s.get("rmse_over_pcrlb", {}).get(b))))
     for b in BLOCKS:
         rows.append((f"inside 3-sigma {b}", f"{_fmt(s['inside_3sigma_share'].get(b), 100.0, 4)} %"))
     lo, hi = s.get("nees_bounds", [None, None])

@@ -1,0 +1,83 @@
+"""`envisat report` on the folders a user gives: RMSE / PCRLB shown as `envisat montecarlo` prints it (three
+decimals, not three significant digits: 1.103 once read "1.1"), and a folder that is missing, a file or given
+twice refused in one line naming it, nothing written. Campaign folders here are written by hand (summary.json
+alone): no campaign is run."""
+
+import json
+from html.parser import HTMLParser
+
+import pytest
+
+from envisat_pose.app.cli import main
+
+BLOCKS = ("position", "velocity", "attitude", "angular_velocity")
+RATIOS = {"position": 1.0166041196, "velocity": 1.0049306224, "attitude": 0.8712204255, "angular_velocity": 1.1034383389}
+
+
+class Cells(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.cells, self._cell = [], None
+
+    def handle_starttag(self, tag, attrs):
+        if tag in ("td", "th"):
+            self._cell = ""
+
+    def handle_data(self, data):
+        if self._cell is not None:
+            self._cell += data
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th") and self._cell is not None:
+            self.cells.append(self._cell)
+            self._cell = None
+
+
+def _campaign(folder):
+    folder.mkdir(parents=True)
+    summary = {"scenario": "default", "runs": 4, "n_runs": 4, "steps": 61, "seed": 0, "settle_s": 30.0,
+               "n_diverged": 0, "nees_mean": 11.5, "nees_bounds": [11.0, 13.0], "nees_run_bounds": [9.0, 15.0],
+               "nis_mean_per_dof": 1.0, "measurement": {"kind": "markers3d", "sigma_m": 0.02, "rate_hz": 1.0},
+               "rmse": dict.fromkeys(BLOCKS, 1e-3), "pcrlb_rms": dict.fromkeys(BLOCKS, 1e-3),
+               "inside_3sigma_share": dict.fromkeys(BLOCKS, 0.99), "rmse_over_pcrlb": RATIOS}
+    (folder / "summary.json").write_text(json.dumps(summary))
+    return folder
+
+
+def _sweep(folder):
+    folder.mkdir(parents=True)
+    sweep = {"rates_hz": [0.5, 1.0], "rmse": {b: [1e-3, 1e-3] for b in BLOCKS}, "n_diverged": [0, 0],
+             "rmse_over_pcrlb": {b: [RATIOS[b], RATIOS[b]] for b in BLOCKS}, "runs": 4, "nees_mean": [11.0, 12.0],
+             "converged": [True, True], "lowest_converged_rate_hz": 0.5, "n_nis_alarm_alone": [0, 0]}
+    (folder / "sweep.json").write_text(json.dumps(sweep))
+    return folder
+
+
+def _cells(path):
+    page = Cells()
+    page.feed(path.read_text(encoding="utf-8"))
+    return page.cells
+
+
+def test_ratios_read_as_the_montecarlo_line_prints_them(tmp_path):
+    out = tmp_path / "r.html"
+    assert main(["report", str(_campaign(tmp_path / "a")), str(_sweep(tmp_path / "sw")), "--out", str(out)]) == 0
+    cells = _cells(out)
+    for b, v in RATIOS.items():
+        i = cells.index(f"RMSE / PCRLB {b}")
+        assert cells[i + 1] == f"{v:.3f}", (b, cells[i + 1])
+    # the sweep's rows: the same three decimals, one per block after the four RMSE cells
+    row = cells[cells.index("0.5"):][:9]
+    assert row[5:9] == [f"{RATIOS[b]:.3f}" for b in BLOCKS], row
+
+
+@pytest.mark.parametrize("case", ["missing", "file", "twice"])
+def test_a_folder_missing_a_file_or_given_twice_is_one_line_naming_it(tmp_path, capsys, case):
+    a = _campaign(tmp_path / "a")
+    other = {"missing": str(tmp_path / "nope"), "file": str(a / "summary.json"), "twice": str(a) + "/"}[case]
+    out = tmp_path / "r.html"
+    assert main(["report", str(a), other, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and repr(other) in err[0], err
+    assert {"missing": "no such folder", "file": "is a file", "twice": "give it once"}[case] in err[0], err
+    assert not out.exists()
