@@ -126,7 +126,8 @@ def write_figures(cfg: MonteCarloConfig, out_dir: str, t_s, stats, bound, sample
     err = sample_err if len(sample_err) else None
     norms = sample_norms if len(sample_norms) else None
     path = os.path.join
-    plot_error_envelopes(t_s, err, stats.filter_3sigma, stats.sample_3sigma, path(out_dir, FIGURES[0]), title=title)
+    sample_3sigma = stats.sample_3sigma if cfg.runs > 1 else None  # one run has no sample spread (NaN)
+    plot_error_envelopes(t_s, err, stats.filter_3sigma, sample_3sigma, path(out_dir, FIGURES[0]), title=title)
     plot_block_norms(t_s, norms, stats.rmse_block, stats.filter_3sigma_block, path(out_dir, FIGURES[1]), title=title)
     plot_nees_nis(t_s, stats.nees_mean, stats.nees_bounds, stats.nis_mean, stats.nis_bounds,
                   path(out_dir, FIGURES[2]), title=title)
