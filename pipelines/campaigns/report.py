@@ -139,7 +139,8 @@ def load_campaign(out_dir: str) -> dict:
     """What the report shows of one folder: summary.json, timing.json (optional), the config text, the PNGs."""
     path = os.path.join(out_dir, "summary.json")
     if not os.path.isfile(path):
-        raise InputError(f"{out_dir!r} has no summary.json: not a finished `envisat montecarlo` folder")
+        raise InputError(f"{out_dir!r} has no summary.json (nor a rate sweep's sweep.json): not a finished "
+                         "`envisat montecarlo` folder (rerun its command to finish it)")
     try:
         with open(path, encoding="utf-8") as fh:
             summary = json.load(fh)

@@ -81,3 +81,13 @@ def test_a_folder_missing_a_file_or_given_twice_is_one_line_naming_it(tmp_path, 
     assert len(err) == 1 and repr(other) in err[0], err
     assert {"missing": "no such folder", "file": "is a file", "twice": "give it once"}[case] in err[0], err
     assert not out.exists()
+
+
+def test_an_unfinished_rate_sweep_is_named_as_one_that_has_no_sweep_json(tmp_path, capsys):
+    """A rate sweep stopped before its sweep.json: the line says what the folder lacks for either kind of
+    folder (it once spoke of summary.json alone, a campaign's) and how to finish it."""
+    sweep = tmp_path / "sw"
+    _campaign(sweep / "rate-1hz")  # one rate finished, the sweep not
+    assert main(["report", str(sweep), "--out", str(tmp_path / "r.html")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sweep.json" in err[0] and "rerun its command" in err[0], err
