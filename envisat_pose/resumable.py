@@ -138,7 +138,8 @@ class ResumableJob:
                        and not is_lock_file(n))
         if names:
             shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
-            raise InputError(f"out_dir {self.out_dir!r} holds {len(names)} entries ({shown}) and no {MANIFEST}: not a "
+            count = "1 entry" if len(names) == 1 else f"{len(names)} entries"
+            raise InputError(f"out_dir {self.out_dir!r} holds {count} ({shown}) and no {MANIFEST}: not a "
                              f"{self.what} to resume; expected an empty or new folder (use another one)")
 
     def open(self) -> dict | None:
