@@ -397,8 +397,9 @@ def _load(path: str, stamps: tuple, naming: _Naming) -> Target:
     dist = triangle_distances(X, drawn.vertices_T_m[drawn.faces]).min(axis=1)
     k = int(np.argmax(dist))
     if dist[k] > KEYPOINT_MAX_SURFACE_DISTANCE_M:
-        _fail(field, given, f"keypoints on the target: site {sites[k]!r} is {dist[k]:.3f} m from every geom "
-                            f"the factory draws (groups {groups}; at most {KEYPOINT_MAX_SURFACE_DISTANCE_M:g} m)")
+        _fail(field, given, f"keypoints on the target: site {sites[k]!r} is {dist[k]:.3f} m from the nearest "
+                            f"surface of the geoms the factory draws (inside a solid or off it; groups {groups}; at "
+                            f"most {KEYPOINT_MAX_SURFACE_DISTANCE_M:g} m)")
     reach = float(np.linalg.norm(surface.mesh.vertices_T_m, axis=1).max())
     if latched:  # said once per file (the load is cached): the shape is the file's reference pose
         warnings.warn(f"target {given!r}: {len(latched)} joint(s) latched at the file's reference pose, the target "

@@ -247,7 +247,7 @@ BAD = {
                             "triangle inequality"),
     "zero mass": (target_xml(inertial='<inertial pos="0 0 0" mass="0" diaginertia="1 1 1"/>'), "a positive mass"),
     "mesh that does not load": (target_xml(extra='<mesh name="hull" file="no_such_hull.stl"/>'), "MuJoCo compiles"),
-    "keypoint off the target": (target_xml(keypoints=FAR), "site 'kp_far' is 0.344 m from every geom"),
+    "keypoint off the target": (target_xml(keypoints=FAR), "site 'kp_far' is 0.344 m from the nearest surface of the geoms"),
     "no geom drawn": (target_xml().replace('<geom name=', '<geom group="3" name='), "groups [3]"),
 }
 

@@ -236,7 +236,7 @@ def test_a_file_without_an_inertial_takes_mujocos_inertia_from_its_geoms(tmp_pat
 
 def test_a_keypoint_off_the_surface_and_a_file_without_one_are_refused(tmp_path):
     far = dict(SITES, far=(0.0, 0.0, 1.0))
-    with pytest.raises(ConfigError, match="site 'kp_far' is 0.400 m from every geom"):
+    with pytest.raises(ConfigError, match="site 'kp_far' is 0.400 m from the nearest surface of the geoms"):
         load_target(_file(tmp_path, "far", "", 'euler="0 0 90"', sites=far))
     with pytest.raises(ConfigError, match="at least 4 keypoint sites"):
         load_target(_file(tmp_path, "few", "", 'euler="0 0 90"', sites=dict(list(SITES.items())[:3])))
