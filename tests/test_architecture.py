@@ -36,6 +36,21 @@ LAYOUT = {"envisat_pose": "envisat_pose", **{s: f"envisat_pose.{s}" for s in STA
 # scanned for every one-home rule besides the package (the benches and the scripts are code people copy from)
 EXTRA_FOLDERS = ("bench", "scripts")
 
+
+# Each file's tree is parsed once and walked once per process: the checks below read the same ~250 files many times
+# over (parse and ast.walk were two thirds of this file's time). Trees are read, never changed.
+@functools.lru_cache(maxsize=None)
+def parse(source: str, filename: str = "<unknown>") -> ast.Module:
+    """ast.parse, memoized on the source text."""
+    return ast.parse(source, filename)
+
+
+@functools.lru_cache(maxsize=None)
+def walk(node: ast.AST) -> tuple[ast.AST, ...]:
+    """ast.walk's nodes as a tuple, memoized on the node (AST nodes hash by identity)."""
+    return tuple(ast.walk(node))
+
+
 # the kinds whose checker reads the tests' helpers too (a test must not build its own physics for the filter)
 WITH_TESTS = ("physics_builders", "hand_built_runs")
 THIS_FILE = os.path.join("tests", "test_architecture.py")
@@ -86,10 +101,10 @@ def checked_files(root: str = ROOT, extra=EXTRA_FOLDERS):
 
 def imported_modules(path: str, module: str, source: str | None = None) -> list[tuple[int, str]]:
     """Every module an import statement in the file names, relative imports resolved."""
-    tree = ast.parse(source if source is not None else open(path, encoding="utf-8").read(), path)
+    tree = parse(source if source is not None else open(path, encoding="utf-8").read(), path)
     is_pkg = path.endswith("__init__.py")
     out = []
-    for node in ast.walk(tree):
+    for node in walk(tree):
         if isinstance(node, ast.Import):
             out += [(node.lineno, a.name) for a in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -213,7 +228,7 @@ HEAVY = frozenset({"torch", "mujoco", "cv2", "rerun", "dask", "distributed", "Op
 def split_imports(path: str, module: str, source: str | None = None):
     """([(line, name)] of the module-level imports, [(line, [names])] of each import inside a function), names
     resolved as `imported_modules` does (a `from` import also names `module.name`)."""
-    tree = ast.parse(source if source is not None else open(path, encoding="utf-8").read(), path)
+    tree = parse(source if source is not None else open(path, encoding="utf-8").read(), path)
     is_pkg = path.endswith("__init__.py")
     top, inner = [], []
 
@@ -315,7 +330,7 @@ def public_names(root: str = ROOT) -> dict[str, list[str]]:
     modules = {}
     for path, module in source_files(root):
         modules.setdefault(module.rsplit(".", 1)[-1], []).append(module)
-        for node in ast.parse(open(path, encoding="utf-8").read(), path).body:
+        for node in parse(open(path, encoding="utf-8").read(), path).body:
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and not node.name.startswith("_"):
                 found.setdefault(node.name, []).append(module)
     for name, where in list(found.items()):
@@ -382,10 +397,10 @@ def _int_const(node) -> int | None:
 def state_slice_definitions(source: str) -> list[int]:
     """Lines that build one of the state's block slices: slice(6, 9) and friends, or np.s_[6:9]. A comparison
     with the core's slices (a guard that code written for the layout still matches it) is no definition."""
-    tree = ast.parse(source)
-    compared = {id(n) for c in ast.walk(tree) if isinstance(c, ast.Compare) for n in ast.walk(c)}
+    tree = parse(source)
+    compared = {id(n) for c in walk(tree) if isinstance(c, ast.Compare) for n in walk(c)}
     lines = []
-    for node in ast.walk(tree):
+    for node in walk(tree):
         if id(node) in compared:
             continue
         bounds = None
@@ -402,23 +417,23 @@ def state_slice_definitions(source: str) -> list[int]:
 
 def _mentions(node: ast.AST, names: set[str]) -> bool:
     return any((isinstance(n, ast.Constant) and n.value == "manifest.json") or (isinstance(n, ast.Name) and n.id in names)
-               for n in ast.walk(node))
+               for n in walk(node))
 
 
 def manifest_writes(source: str) -> list[int]:
     """Lines that write a file named manifest.json (directly, or through names bound to it): a manifest
     protocol of its own. Reading one (a dataset's, to check it) is fine."""
-    tree = ast.parse(source)
+    tree = parse(source)
     tainted: set[str] = set()  # names bound to the manifest's name or path
     while True:
-        more = {t.id for n in ast.walk(tree) if isinstance(n, (ast.Assign, ast.AnnAssign)) and n.value is not None
+        more = {t.id for n in walk(tree) if isinstance(n, (ast.Assign, ast.AnnAssign)) and n.value is not None
                 and _mentions(n.value, tainted)
                 for t in (n.targets if isinstance(n, ast.Assign) else [n.target]) if isinstance(t, ast.Name)}
         if more <= tainted:
             break
         tainted |= more
     lines = []
-    for n in ast.walk(tree):
+    for n in walk(tree):
         if not isinstance(n, ast.Call):
             continue
         name, target = _called_name(n), None
@@ -439,7 +454,7 @@ def tar_reads(source: str) -> list[int]:
     """Lines that open a tar for reading (tarfile.open without a mode, or with one starting 'r'; a WebDataset
     or TarFile built directly): a shard reader of its own. Writing a tar is fine."""
     lines = []
-    for n in ast.walk(ast.parse(source)):
+    for n in walk(parse(source)):
         if not isinstance(n, ast.Call):
             continue
         name = _called_name(n)
@@ -456,7 +471,7 @@ def tar_reads(source: str) -> list[int]:
 @functools.cache
 def weights_key_values() -> frozenset[str]:
     """The metadata keys perception/weights_keys.py names (its string constants)."""
-    tree = ast.parse(open(os.path.join(ROOT, WEIGHTS_KEYS_FILE), encoding="utf-8").read())
+    tree = parse(open(os.path.join(ROOT, WEIGHTS_KEYS_FILE), encoding="utf-8").read())
     return frozenset(n.value.value for n in tree.body if isinstance(n, ast.Assign)
                      and isinstance(n.value, ast.Constant) and isinstance(n.value.value, str))
 
@@ -477,7 +492,7 @@ def typed_weights_keys(source: str, keys: frozenset[str] | None = None) -> list[
         return isinstance(node, ast.Constant) and node.value in keys
 
     lines = []
-    for n in ast.walk(ast.parse(source)):
+    for n in walk(parse(source)):
         dicts = []
         if isinstance(n, ast.Call) and (_called_name(n) in METADATA_CALLS or (
                 _called_name(n) == "update" and isinstance(n.func, ast.Attribute) and _is_metadata(n.func.value))):
@@ -500,10 +515,10 @@ def hand_resolutions(source: str) -> list[int]:
     """Lines of functions that resolve a config by hand: merging layers (set_dotted, deep_update), or reading a
     TOML file and building a config from it (load_toml with from_dict) in one function."""
     lines = []
-    for fn in ast.walk(ast.parse(source)):
+    for fn in walk(parse(source)):
         if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
             continue
-        calls = [n for n in ast.walk(fn) if isinstance(n, ast.Call)]
+        calls = [n for n in walk(fn) if isinstance(n, ast.Call)]
         names = {_called_name(c) for c in calls}
         if names & set(MERGERS) or {"load_toml", "from_dict"} <= names:
             lines.append(fn.lineno)
@@ -515,7 +530,7 @@ def run_configs_built(source: str) -> list[int]:
     config.resolve_job_config (app.run.run_config for a scenario's run): the tests' and benchmarks' copies of the
     app's resolution that issue 29 found."""
     lines = []
-    for node in ast.walk(ast.parse(source)):
+    for node in walk(parse(source)):
         if isinstance(node, ast.Call) and _called_name(node) == "from_dict" and node.args:
             a = node.args[0]
             name = a.attr if isinstance(a, ast.Attribute) else getattr(a, "id", "")
@@ -547,7 +562,7 @@ def _speaks_of_gate(text: str) -> bool:
 def core_counts(source: str) -> list[int]:
     """Lines that count the machine's cores by hand (os.cpu_count(), os.sched_getaffinity(), a bare cpu_count()):
     the package's defaults take envisat_pose.pools.usable_cores."""
-    return sorted({node.lineno for node in ast.walk(ast.parse(source)) if isinstance(node, ast.Call)
+    return sorted({node.lineno for node in walk(parse(source)) if isinstance(node, ast.Call)
                    and (getattr(node.func, "attr", None) or getattr(node.func, "id", None)) in CORE_COUNTERS})
 
 
@@ -557,10 +572,10 @@ def npz_loads(source: str) -> list[int]:
     file that is not an .npz (np.load keeps its file open where a zip is damaged, reads an .npy as one array)."""
     numpy_names = {"np", "numpy"}
     bare = set()
-    for node in ast.walk(ast.parse(source)):
+    for node in walk(parse(source)):
         if isinstance(node, ast.ImportFrom) and node.module == "numpy":
             bare |= {a.asname or a.name for a in node.names if a.name == "load"}
-    return sorted({node.lineno for node in ast.walk(ast.parse(source)) if isinstance(node, ast.Call) and (
+    return sorted({node.lineno for node in walk(parse(source)) if isinstance(node, ast.Call) and (
         (isinstance(node.func, ast.Attribute) and node.func.attr == "load"
          and isinstance(node.func.value, ast.Name) and node.func.value.id in numpy_names)
         or (isinstance(node.func, ast.Name) and node.func.id in bare))})
@@ -574,7 +589,7 @@ def typed_gates(source: str) -> list[int]:
     (envisat_pose.gates.chi2_gate)."""
     table = _chi2_values()
     lines = []
-    for node in ast.walk(ast.parse(source)):
+    for node in walk(parse(source)):
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
             a = node.args
             pos = a.posonlyargs + a.args
@@ -589,7 +604,7 @@ def typed_gates(source: str) -> list[int]:
         else:
             continue
         if _speaks_of_gate(ast.unparse(part)):
-            lines += [c.lineno for c in ast.walk(part) if _near_chi2(c, table)]
+            lines += [c.lineno for c in walk(part) if _near_chi2(c, table)]
     return sorted(set(lines))
 
 
@@ -618,7 +633,7 @@ def typed_bands(source: str) -> list[int]:
     chi2_mean_bounds, envisat_pose.gates)."""
     table = _chi2_band_values()
     lines = []
-    for node in ast.walk(ast.parse(source)):
+    for node in walk(parse(source)):
         if isinstance(node, (ast.If, ast.While)):
             part = node.test
         elif isinstance(node, ast.stmt) and not hasattr(node, "body"):
@@ -626,7 +641,7 @@ def typed_bands(source: str) -> list[int]:
         else:
             continue
         if re.search(r"band|nees|nis|chi", ast.unparse(part), re.IGNORECASE):
-            lines += [c.lineno for c in ast.walk(part) if _typed_quantile(c, table)]
+            lines += [c.lineno for c in walk(part) if _typed_quantile(c, table)]
     return sorted(set(lines))
 
 
@@ -651,11 +666,11 @@ def physics_builders(source: str) -> list[int]:
     target.gravity_gradient (as attributes or keys) of one config. One builder: pipelines/tracking/onboard.py's
     onboard_physics."""
     lines = []
-    for fn in ast.walk(ast.parse(source)):
+    for fn in walk(parse(source)):
         if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
             continue
         seen = set()
-        for n in ast.walk(fn):
+        for n in walk(fn):
             a = _access(n)
             if a is not None and a[0] in ("mu_m3_s2", "gravity_gradient"):
                 inner = _access(a[1])
@@ -789,7 +804,7 @@ def default_target_questions(source: str) -> list[int]:
     is) with the default target's name, file or path (DEFAULT_TARGET, "envisat", "models/envisat.xml",
     model_path())."""
     lines = []
-    for node in ast.walk(ast.parse(source)):
+    for node in walk(parse(source)):
         if isinstance(node, ast.Attribute) and node.attr in DEFAULT_QUESTIONS:
             lines.append(node.lineno)
         elif isinstance(node, ast.Compare) and any(_is_default_operand(n) for n in [node.left, *node.comparators]):
@@ -962,16 +977,22 @@ def test_each_layer_is_a_folder_at_the_root_installed_inside_envisat_pose():
             assert os.path.isfile(os.path.join(ROOT, folder, "__init__.py")), folder
 
 
+@functools.lru_cache(maxsize=None)
+def repository_copies(kind: str) -> dict[str, list[int]]:
+    """copies(kind) of this repository, found once for the two tests that read them (not to be changed)."""
+    return copies(kind)
+
+
 @pytest.mark.parametrize("kind", sorted(PENDING))
 def test_one_home_for_each_concept(kind):
-    found = {f: lines for f, lines in copies(kind).items() if f not in PENDING[kind]}
+    found = {f: lines for f, lines in repository_copies(kind).items() if f not in PENDING[kind]}
     assert found == {}, f"{kind}: second copies at {found} (one home: see this file's docstring)"
 
 
 @pytest.mark.parametrize("kind", sorted(PENDING))
 def test_pending_copies_are_still_there(kind):
     """A pending entry whose copy is gone is stale: delete it from PENDING."""
-    found = copies(kind)
+    found = repository_copies(kind)
     stale = [f for f in PENDING[kind] if f not in found]
     assert stale == [], f"{kind}: {stale} no longer hold a copy; remove them from PENDING"
 
@@ -1216,7 +1237,7 @@ def function_lengths(source: str, path: str = "<source>") -> dict[str, int]:
             else:
                 walk(child, prefix)
 
-    walk(ast.parse(source, path), "")
+    walk(parse(source, path), "")
     return out
 
 
@@ -1259,7 +1280,7 @@ def test_the_function_length_checker_sees_a_long_function_and_exempts_a_kernel()
 
 def slow_ids(root: str = ROOT) -> tuple[str, ...]:
     """The SLOW tuple of tests/conftest.py, read without importing it."""
-    tree = ast.parse(open(os.path.join(root, "tests", "conftest.py"), encoding="utf-8").read())
+    tree = parse(open(os.path.join(root, "tests", "conftest.py"), encoding="utf-8").read())
     for node in tree.body:
         if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "SLOW" for t in node.targets):
             return tuple(ast.literal_eval(node.value))
@@ -1274,7 +1295,7 @@ def missing_test(nodeid: str, root: str = ROOT) -> str | None:
     if not os.path.isfile(full):
         return f"{nodeid}: no file {path}"
     names = rest.split("[", 1)[0].split("::")
-    scope = ast.parse(open(full, encoding="utf-8").read()).body
+    scope = parse(open(full, encoding="utf-8").read()).body
     node = None
     for name in names:
         node = next((n for n in scope if isinstance(n, (ast.FunctionDef, ast.ClassDef)) and n.name == name), None)
@@ -1317,7 +1338,7 @@ def test_every_test_module_keeps_a_fast_test():
                 continue
             path = os.path.join(dirpath, f)
             rel = os.path.relpath(path, ROOT).replace(os.sep, "/")
-            tests = [n for n in ast.parse(open(path, encoding="utf-8").read()).body
+            tests = [n for n in parse(open(path, encoding="utf-8").read()).body
                      if isinstance(n, ast.FunctionDef) and n.name.startswith("test_")]
             fast = [n for n in tests if f"{rel}::{n.name}" not in slow
                     and not any("mark.slow" in ast.unparse(d) for d in n.decorator_list)]
@@ -1364,7 +1385,7 @@ def _literal_key(node: ast.AST):
 def literal_constants(source: str) -> list[tuple[int, str, str]]:
     """(line, NAME, value key) of each module-level constant bound to a plain literal (CONSTANT_NAME = literal)."""
     out = []
-    for node in ast.parse(source).body:
+    for node in parse(source).body:
         if isinstance(node, ast.Assign):
             targets = node.targets
         elif isinstance(node, ast.AnnAssign) and node.value is not None:
@@ -1419,27 +1440,27 @@ def manifest_reads(source: str) -> list[int]:
     as a path, the home's constant MANIFEST, or a path from resumable.manifest_path (directly or through names
     bound to it) opened, read or written. Testing whether a manifest exists, or hashing it, through manifest_path
     is fine."""
-    tree = ast.parse(source)
-    lines = [n.lineno for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)
+    tree = parse(source)
+    lines = [n.lineno for n in walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)
              and MANIFEST_FILE.fullmatch(n.value)]
-    lines += [n.lineno for n in ast.walk(tree) if (isinstance(n, ast.Name) and n.id == "MANIFEST")
+    lines += [n.lineno for n in walk(tree) if (isinstance(n, ast.Name) and n.id == "MANIFEST")
               or (isinstance(n, ast.Attribute) and n.attr == "MANIFEST")]
-    lines += [n.lineno for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))
+    lines += [n.lineno for n in walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))
               and any(a.name == "MANIFEST" for a in n.names)]
 
     def via_path(node, names):
         return any((isinstance(n, ast.Call) and _called_name(n) == "manifest_path")
-                   or (isinstance(n, ast.Name) and n.id in names) for n in ast.walk(node))
+                   or (isinstance(n, ast.Name) and n.id in names) for n in walk(node))
 
     tainted: set[str] = set()  # names bound to a manifest's path
     while True:
-        more = {t.id for n in ast.walk(tree) if isinstance(n, (ast.Assign, ast.AnnAssign)) and n.value is not None
+        more = {t.id for n in walk(tree) if isinstance(n, (ast.Assign, ast.AnnAssign)) and n.value is not None
                 and via_path(n.value, tainted)
                 for t in (n.targets if isinstance(n, ast.Assign) else [n.target]) if isinstance(t, ast.Name)}
         if more <= tainted:
             break
         tainted |= more
-    for n in ast.walk(tree):
+    for n in walk(tree):
         if isinstance(n, ast.Call) and _called_name(n) in MANIFEST_ACCESS:
             operands = list(n.args) + [k.value for k in n.keywords]
             if isinstance(n.func, ast.Attribute):
@@ -1540,14 +1561,14 @@ def private_trainer_imports(path: str, module: str, source: str) -> list[int]:
         return []
     lines = {line for line, name in imported_modules(path, module, source)
              if name.rpartition(".")[0] in TRAINER_MODULES and _private(name.rpartition(".")[2])}
-    tree, bound = ast.parse(source, path), set(TRAINER_MODULES)  # the names a trainer module is read through
-    for node in ast.walk(tree):
+    tree, bound = parse(source, path), set(TRAINER_MODULES)  # the names a trainer module is read through
+    for node in walk(tree):
         if isinstance(node, ast.Import):
             bound |= {a.asname for a in node.names if a.asname and a.name in TRAINER_MODULES}
         elif isinstance(node, ast.ImportFrom):
             full = [name for _, name in imported_modules(path, module, ast.unparse(node))][1:]
             bound |= {a.asname or a.name for a, name in zip(node.names, full) if name in TRAINER_MODULES}
-    lines |= {node.lineno for node in ast.walk(tree)
+    lines |= {node.lineno for node in walk(tree)
               if isinstance(node, ast.Attribute) and _private(node.attr) and ast.unparse(node.value) in bound}
     return sorted(lines)
 
@@ -1601,14 +1622,14 @@ def _class_bases(node: ast.ClassDef) -> set[str]:
 def _calls_super_post_init(fn: ast.AST) -> bool:
     return any(isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "__post_init__"
                and isinstance(n.func.value, ast.Call) and getattr(n.func.value.func, "id", "") == "super"
-               for n in ast.walk(fn))
+               for n in walk(fn))
 
 
 def config_base_problems(sources: dict[str, str]) -> tuple[dict[str, dict[str, str]], set[str]]:
     """({file: {class: why}}, the names of the classes that derive from config.Config, through any chain of
     bases): a class that defines validate() but does not derive from Config (nothing validates it when built),
     and a Config whose own __post_init__ never calls super().__post_init__() (which validates)."""
-    classes = [(rel, node) for rel, source in sources.items() for node in ast.walk(ast.parse(source))
+    classes = [(rel, node) for rel, source in sources.items() for node in walk(parse(source))
                if isinstance(node, ast.ClassDef)]
     derived, grown = {"Config"}, True
     while grown:
@@ -1633,7 +1654,7 @@ def config_from_scenario_calls(source: str, config_names: set[str]) -> list[int]
     """Lines calling the deprecated `Cfg.from_scenario(...)` of a config class (a name in config_names or ending
     in Config; Tracker.from_scenario builds a tracker, not a config)."""
     lines = []
-    for node in ast.walk(ast.parse(source)):
+    for node in walk(parse(source)):
         if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "from_scenario":
             owner = node.func.value
             name = owner.attr if isinstance(owner, ast.Attribute) else getattr(owner, "id", "")
@@ -1783,21 +1804,21 @@ def says_look(name: str) -> bool:
 def look_mix_names(root: str = ROOT) -> frozenset[str]:
     """What any module may spell of the mix: the module's name and the names look_mix.py defines at its top level."""
     with open(os.path.join(root, LOOK_MIX_HOME), encoding="utf-8") as fh:
-        tree = ast.parse(fh.read())
+        tree = parse(fh.read())
     names = {"look_mix"}
     for node in tree.body:
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
             names.add(node.name)
         elif isinstance(node, (ast.Assign, ast.AnnAssign)):
             targets = node.targets if isinstance(node, ast.Assign) else [node.target]
-            names |= {n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)}
+            names |= {n.id for t in targets for n in walk(t) if isinstance(n, ast.Name)}
     return frozenset(names)
 
 
 def spelled_names(source: str):
     """(line, identifier) of every name a module spells: names, attributes, definitions, arguments, keywords, what
     it imports (each part of a dotted module) and under which names. Strings (a flag, a JSON key) are not names."""
-    for node in ast.walk(ast.parse(source)):
+    for node in walk(parse(source)):
         line = getattr(node, "lineno", 0)
         if isinstance(node, ast.Name):
             yield line, node.id
