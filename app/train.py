@@ -22,7 +22,7 @@ from envisat_pose.pipelines.detector.train import (
     missing_data,
     online_kind,
     read_run_config,
-    read_run_record,
+    saved_online,
     train_detector,
 )
 from envisat_pose.shard_reader import skip_hint
@@ -88,7 +88,7 @@ def online_config(args: argparse.Namespace, cfg):
     """The online source of the flags (a resumed online run: its own, renderer processes from the flag), or None;
     another target's run (cfg's) is online, its renders that target's (pipelines/detector/train.online_kind)."""
     kind, defaults = online_kind(cfg)
-    saved = read_run_record(args.out).get("online") if args.resume and os.path.isdir(args.out) else None
+    saved = saved_online(args.out, args.resume, args.config, cfg, args.data)  # a resumed or rerun online run's
     args.online = args.online or saved is not None or "target" in defaults  # a resumed online run; a target's
     training_source(args)
     if saved is not None and not (args.looks or args.generate_config or args.resolution):  # its looks, else

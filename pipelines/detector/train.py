@@ -26,6 +26,12 @@ from envisat_pose.pipelines.common.threads import default_torch_threads
 from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, look_shares
 from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_configs, run_identity
 from envisat_pose.pipelines.detector.render_pool import RENDERER_BYTES, looks_keypoints
+from envisat_pose.pipelines.detector.run_record import (  # noqa: F401 (read_run_config, saved_online: the verb's)
+    online_record,
+    read_run_config,
+    read_run_record,
+    saved_online,
+)
 from envisat_pose.pools import default_processes, torchrun_int, usable_cores
 from envisat_pose.provenance import git_hash, manifest_sha256
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
@@ -36,7 +42,6 @@ from envisat_pose.target import (
     other_target,
     require_envisat,
     require_envisat_dataset,
-    resolve_target_path,
 )
 from envisat_pose.written_target import recorded_target_checked
 
@@ -244,49 +249,6 @@ def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | N
         raise InputError(f"workers = {workers}: expected 0 (in-process) or more worker processes")
     if threads is not None and threads < 1:
         raise InputError(f"threads = {threads}: expected at least 1")
-
-
-def read_run_config(run_dir: str) -> dict:
-    """The TrainConfig (as a dict) a run folder was trained with: the base a resumed run starts from. InputError
-    when its target file, kept as typed (relative to the folder the run started in), is not found from here (its
-    renders' record holds the same path: the run goes on only where it names the file)."""
-    train = read_run_record(run_dir)["train"]
-    kept = train.get("target")
-    if isinstance(kept, str) and not os.path.isfile(resolve_target_path(kept)):
-        raise InputError(f"resume: {run_dir!r} renders the target file {kept!r}, kept as it was typed when the "
-                         "run started, and it is not found from here: resume from the folder the run started in")
-    return train
-
-
-def read_run_record(run_dir: str) -> dict:
-    """A run folder's config.json: the TrainConfig ('train'), the command, the data, 'online' where it has it."""
-    import json
-
-    path = os.path.join(run_dir, "config.json")
-    try:
-        with open(path, encoding="utf-8") as fh:
-            record = json.load(fh)
-        if not isinstance(record, dict) or not isinstance(record.get("train"), dict):
-            raise KeyError("train")
-        return record
-    except FileNotFoundError:
-        raise InputError(f"resume: {run_dir!r} holds no config.json (not a run folder)") from None
-    except (OSError, ValueError, KeyError, TypeError) as err:
-        raise InputError(f"resume: {path!r} is unreadable ({err})") from None
-
-
-def online_record(run_dir: str) -> dict:
-    """An online run's figures from its state.json: max_uses (the most crops any rendered frame gave so far) and
-    frame_ms (the last session's mean cost of a frame in its render worker, online.RenderPool.stage_ms); None
-    where the file does not say."""
-    import json
-
-    try:
-        with open(os.path.join(run_dir, "state.json"), encoding="utf-8") as fh:
-            online = json.load(fh)["online"]
-        return {"max_uses": int(online["max_uses"]), "frame_ms": online.get("frame_ms")}
-    except (OSError, ValueError, KeyError, TypeError):
-        return {"max_uses": None, "frame_ms": None}
 
 
 def ddp_rank() -> int:

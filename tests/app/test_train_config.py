@@ -94,3 +94,25 @@ def test_a_target_runs_config_records_the_files_sha256_and_a_rerun_refuses_the_f
     other = resolve_config(build_parser().parse_args(["train", "--config", str(path), "--target",
                                                       "models/upper_stage.xml", "--out", str(tmp_path / "x")]))
     assert other.target == "models/upper_stage.xml"
+
+
+def test_a_rerun_from_an_online_runs_train_config_toml_renders_its_looks_again(tmp_path):
+    """The file's header says `envisat train --config THIS_FILE` trains the run again, its online looks from
+    config.json beside it: a --target run at --resolution 128 (K 3) rerun from it rendered at 512 (K 8), the
+    default; another --target typed over the config's renders that target's defaults, --data its shards."""
+    from envisat_pose.app.train import online_config
+    from envisat_pose.pipelines.detector.train import target_online
+
+    cfg = CONFIGS["upper_stage"]
+    online = target_online(cfg.target, resolution_px=128, uses_per_frame=3)
+    folder = th.RunFolder(None, {"command": "envisat train", "online": online.record()}, resumed_at=0)
+    folder.trainer = SimpleNamespace(run_dir=str(tmp_path / "run"), rank=0, cfg=cfg, folder_started=False)
+    folder.before_train()
+    folder.after_step({})
+    argv = ["train", "--config", str(tmp_path / "run" / "train.config.toml"), "--out", str(tmp_path / "x")]
+    args = build_parser().parse_args(argv)
+    again = online_config(args, resolve_config(args))
+    assert again.looks == online.looks and again.uses_per_frame == 3
+    other = build_parser().parse_args([*argv, "--target", "models/cubesat_3u.xml"])
+    fresh = online_config(other, resolve_config(other))
+    assert fresh.looks[0].generate.resolution_px == 512 and fresh.looks[0].generate.target == "models/cubesat_3u.xml"

@@ -1,0 +1,73 @@
+"""A training run folder's records as the verb reads them back: config.json (its TrainConfig, command, data and online
+looks) for a resume and for a rerun from its train.config.toml, state.json's online figures."""
+
+from __future__ import annotations
+
+import os
+
+from envisat_pose.config import InputError
+from envisat_pose.target import resolve_target_path
+
+
+def resolved(target: str) -> str:
+    """A target file as typed, as the one file it names from here."""
+    return os.path.realpath(resolve_target_path(target))
+
+
+def read_run_config(run_dir: str) -> dict:
+    """The TrainConfig (as a dict) a run folder was trained with: the base a resumed run starts from. InputError
+    when its target file, kept as typed (relative to the folder the run started in), is not found from here (its
+    renders' record holds the same path: the run goes on only where it names the file)."""
+    train = read_run_record(run_dir)["train"]
+    kept = train.get("target")
+    if isinstance(kept, str) and not os.path.isfile(resolve_target_path(kept)):
+        raise InputError(f"resume: {run_dir!r} renders the target file {kept!r}, kept as it was typed when the "
+                         "run started, and it is not found from here: resume from the folder the run started in")
+    return train
+
+
+def read_run_record(run_dir: str) -> dict:
+    """A run folder's config.json: the TrainConfig ('train'), the command, the data, 'online' where it has it."""
+    import json
+
+    path = os.path.join(run_dir, "config.json")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            record = json.load(fh)
+        if not isinstance(record, dict) or not isinstance(record.get("train"), dict):
+            raise KeyError("train")
+        return record
+    except FileNotFoundError:
+        raise InputError(f"resume: {run_dir!r} holds no config.json (not a run folder)") from None
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise InputError(f"resume: {path!r} is unreadable ({err})") from None
+
+
+def saved_online(run_dir: str, resume: bool, config_path: str | None, cfg, data) -> dict | None:
+    """The online record (config.json's 'online') a run renders again: a resumed run's own, or that of the run whose
+    train.config.toml `config_path` is (its header names config.json beside it for the looks: resolution, looks,
+    K) where the config trains that run's target and no --data is given; None otherwise (the flags' looks)."""
+    if resume and os.path.isdir(run_dir):
+        return read_run_record(run_dir).get("online")
+    beside = os.path.dirname(os.path.abspath(config_path or ""))
+    if data or not config_path or os.path.basename(config_path) != "train.config.toml" or \
+            not os.path.isfile(os.path.join(beside, "config.json")):
+        return None
+    record = read_run_record(beside)
+    kept, given = record["train"].get("target"), getattr(cfg, "target", None)
+    same = kept == given or (kept and given and resolved(kept) == resolved(given))
+    return record.get("online") if same else None  # another --target typed over the config's: its own renders
+
+
+def online_record(run_dir: str) -> dict:
+    """An online run's figures from its state.json: max_uses (the most crops any rendered frame gave so far) and
+    frame_ms (the last session's mean cost of a frame in its render worker, online.RenderPool.stage_ms); None
+    where the file does not say."""
+    import json
+
+    try:
+        with open(os.path.join(run_dir, "state.json"), encoding="utf-8") as fh:
+            online = json.load(fh)["online"]
+        return {"max_uses": int(online["max_uses"]), "frame_ms": online.get("frame_ms")}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {"max_uses": None, "frame_ms": None}
