@@ -24,7 +24,7 @@ import warnings
 
 import numpy as np
 
-from envisat_pose.config import InputError
+from envisat_pose.config import InputError, config_arg, path_arg, paths_arg
 from envisat_pose.gates import GATE_PROB, chi2_gate
 from envisat_pose.io import json_safe
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
@@ -84,8 +84,9 @@ def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, 
     from envisat_pose.perception.keypoint_loss import relabelings
     from envisat_pose.perception.weights import with_metadata
 
+    cfg, out = config_arg(cfg, TargetDetectJobConfig), path_arg(out, "out")
     check_out_file(out, "out")
-    folders = list(dict.fromkeys(data))
+    folders = list(dict.fromkeys(paths_arg(data, "data")))  # one folder (a str or a Path) or several
     target, _, arrays, skipped = detect_labelled(cfg, folders, progress, desc="calibrate")
     names = target.keypoint_names
     perms = relabelings(target.symmetries, target.num_keypoints)

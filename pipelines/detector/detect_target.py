@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 
-from envisat_pose.config import Config, InputError, check
+from envisat_pose.config import Config, InputError, check, config_arg, path_arg
 from envisat_pose.contracts import KeypointDetections
 from envisat_pose.io import sha256_file
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
@@ -121,7 +121,8 @@ def detect_target_dataset(cfg: TargetDetectJobConfig, data: str, progress: bool 
 @locks_output("out", "detect", folder=False)
 def run_detect_target(cfg: TargetDetectJobConfig, data: str, out: str, progress: bool = False) -> dict:
     """The whole job: detect_target_dataset, then det.npz written atomically at out (its folder made then): a run
-    refused or stopped before leaves nothing. Returns det.npz's arrays."""
+    refused or stopped before leaves nothing. data, out: a str or a pathlib.Path. Returns det.npz's arrays."""
+    cfg, data, out = config_arg(cfg, TargetDetectJobConfig), path_arg(data, "data"), path_arg(out, "out")
     check_out_file(out, "out")
     arrays = detect_target_dataset(cfg, data, progress)
     det = KeypointDetections.validated(arrays, out)

@@ -24,7 +24,7 @@ import json
 
 import numpy as np
 
-from envisat_pose.config import InputError
+from envisat_pose.config import InputError, config_arg, path_arg
 from envisat_pose.io import atomic_write_text, json_safe, sha256_file
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.out_lock import locks_output
@@ -156,10 +156,13 @@ def score_target(arrays: dict, target, perms: np.ndarray, sigma_px: np.ndarray) 
 @locks_output("json_path", "evaluate", folder=False)
 def evaluate_target_detector(cfg: TargetDetectJobConfig, data: str, json_path: str, progress: bool = False) -> dict:
     """Score the keypoint detector of cfg.weights on the labelled dataset folder `data` of cfg.target and write
-    every number to json_path (its folder made then). Returns the JSON's content."""
+    every number to json_path (its folder made then; data, json_path: a str or a pathlib.Path). Returns the JSON's
+    content."""
     from envisat_pose.perception.keypoint_detect import weights_keypoint_sigma
     from envisat_pose.perception.keypoint_loss import relabelings
 
+    cfg, data = config_arg(cfg, TargetDetectJobConfig), path_arg(data, "data")
+    json_path = path_arg(json_path, "json_path")
     check_out_file(json_path, "json_path")
     target, model, arrays, skipped = detect_labelled(cfg, [data], progress)
     perms = relabelings(target.symmetries, target.num_keypoints)

@@ -148,3 +148,24 @@ def test_a_new_target_run_starts_from_the_shipped_backbone_where_it_fits(box):
     assert resolve_backbone("none", wide, True) is None
     assert resolve_backbone("shipped", narrow, True) == shipped_weights_path()  # asked for: its shape checked later
     assert resolve_backbone(box[3], wide, True) == box[3]
+
+
+def test_the_target_calls_take_a_folder_as_a_str_or_a_path(box, tmp_path):
+    """The Python calls of detect, evaluate and calibrate --target take paths as a str or a pathlib.Path, one folder
+    for a list of one, as every verb's call does: run_detect_target given a Path detected every frame, then stopped
+    on writing its record (TypeError); run_calibrate_target read a str folder as its characters ("data 'd': no
+    such folder") and a Path not at all (TypeError)."""
+    from pathlib import Path
+
+    from envisat_pose import TargetDetectJobConfig, evaluate_target_detector, run_calibrate_target, run_detect_target
+    from envisat_pose.config import InputError
+
+    path, other, data, weights, envisat = box
+    cfg = TargetDetectJobConfig(target=path, weights=weights)
+    run_detect_target(cfg, Path(data), tmp_path / "det.npz")
+    assert json.loads(KeypointDetections.load(str(tmp_path / "det.npz")).config_json)["data"] == data
+    assert evaluate_target_detector(cfg, Path(data), tmp_path / "e.json")["frames"] == 2
+    for folder in (data, Path(data), [Path(data)]):  # 2 frames of 8 keypoints: never the 20 correct a fit needs
+        with pytest.raises(InputError, match="correct detections of any keypoint in 2 frames"):
+            run_calibrate_target(cfg, folder, tmp_path / "w.safetensors")
+    assert sorted(os.listdir(tmp_path)) == ["det.npz", "e.json"]
