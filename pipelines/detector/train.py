@@ -292,6 +292,17 @@ def end_distributed() -> None:
             dist.destroy_process_group()
 
 
+def default_online(cfg, run_dir: str, resume: bool) -> OnlineConfig | None:
+    """The online source `envisat train` takes where none is given and no shards: a resumed online run's own (its
+    config.json), else another target's default renders (online_kind: at TARGET_RESOLUTION_PX), else None."""
+    kind, defaults = online_kind(cfg)
+    saved = saved_online(run_dir, resume, None, cfg, None) if os.path.isfile(os.path.join(run_dir, "config.json")) \
+        else None
+    if saved is not None:
+        return kind.from_record(saved)
+    return kind(GenerateConfig(**defaults), default_render_workers()) if "target" in defaults else None
+
+
 def run_task(cfg, online: OnlineConfig | None) -> tuple:
     """(perception's Task, the Target or None) of a training config: a KeypointTrainConfig's target's keypoint
     network (perception/keypoint_train.py; InputError unless online renders that target's file), else ENVISAT's
@@ -368,7 +379,8 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     """Train the detector (cfg: a perception TrainConfig, validated when built) on the shards of data_dirs (one
     folder or several) into run_dir (locked: out_lock; its files written once the first step is trained). cfg a
     perception.keypoint_train.KeypointTrainConfig: another target's keypoint detector, online only (online a
-    TargetOnlineConfig of that target file; target_online makes the default one), the target recorded in
+    TargetOnlineConfig of that target file; none given: target_online's at TARGET_RESOLUTION_PX, or on resume the
+    run's own, as the verb), the target recorded in
     config.json ('target') and in every weights file.
 
     resume: go on from run_dir's last checkpoint (exclusive with init: a safetensors file to start from); the
@@ -391,6 +403,8 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     data_dirs, run_dir = paths_arg(data_dirs, "data_dirs") if data_dirs else [], path_arg(run_dir, "run_dir")
     if online is not None and data_dirs:
         raise InputError("data_dirs and online: train on shards or on frames rendered as training goes, not both")
+    if online is None and not data_dirs:  # as the verb: a resumed online run's own looks, a target's default renders
+        online = default_online(cfg, run_dir, resume)
     task, target = run_task(cfg, online)
     backbone = resolve_backbone(backbone, cfg, target is not None and init is None and not resume)
     check_inputs(data_dirs, run_dir, resume, init, workers, threads, online is not None,

@@ -169,3 +169,20 @@ def test_the_target_calls_take_a_folder_as_a_str_or_a_path(box, tmp_path):
         with pytest.raises(InputError, match="correct detections of any keypoint in 2 frames"):
             run_calibrate_target(cfg, folder, tmp_path / "w.safetensors")
     assert sorted(os.listdir(tmp_path)) == ["det.npz", "e.json"]
+
+
+def test_train_detector_renders_a_target_online_by_default_as_the_verb(box, tmp_path, monkeypatch):
+    """`envisat train --target FILE` implies --online (the target's views at 512 px); train_detector given the same
+    KeypointTrainConfig and no online source refused it ("trains on frames of it rendered ..., not on shards").
+    The training itself is stood in for: what it is handed is the point."""
+    from envisat_pose.perception.keypoint_train import KeypointTrainConfig
+    from envisat_pose.pipelines.detector import train as pipeline
+
+    path = box[0]
+    handed = {}
+    monkeypatch.setattr(pipeline, "_train_locked", lambda *args: handed.update(online=args[12]) or {})
+    pipeline.train_detector(KeypointTrainConfig(target=path, steps=1), [], tmp_path / "run", backbone="none")
+    online = handed["online"]
+    assert isinstance(online, pipeline.TargetOnlineConfig) and len(online.looks) == 1
+    look = online.looks[0].generate
+    assert look.target == path and look.mode == "random" and look.resolution_px == pipeline.TARGET_RESOLUTION_PX
