@@ -21,10 +21,9 @@ from envisat_pose.pipelines.detector.train import (
     layered_train,
     missing_data,
     online_kind,
-    read_run_config,
-    saved_online,
     train_detector,
 )
+from envisat_pose.pipelines.detector.train_records import read_run_config, saved_online
 from envisat_pose.shard_reader import skip_hint
 from envisat_pose.target import other_target
 

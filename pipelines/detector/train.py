@@ -26,12 +26,7 @@ from envisat_pose.pipelines.common.threads import default_torch_threads
 from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, look_shares
 from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_configs, run_identity
 from envisat_pose.pipelines.detector.render_pool import RENDERER_BYTES, looks_keypoints
-from envisat_pose.pipelines.detector.train_records import (  # noqa: F401 (read_run_config, saved_online: the verb's)
-    online_record,
-    read_run_config,
-    read_run_record,
-    saved_online,
-)
+from envisat_pose.pipelines.detector.train_records import online_record, read_run_record, saved_online
 from envisat_pose.pools import default_processes, torchrun_int, usable_cores
 from envisat_pose.provenance import git_hash, manifest_sha256
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest

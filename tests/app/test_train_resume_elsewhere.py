@@ -8,7 +8,7 @@ import os
 import pytest
 
 from envisat_pose.app.cli import main
-from envisat_pose.pipelines.detector.train import read_run_config
+from envisat_pose.pipelines.detector.train_records import read_run_config
 
 
 def test_a_resume_from_another_folder_says_where_to_resume_from(tmp_path, monkeypatch, capsys):
