@@ -91,10 +91,11 @@ class FrameDetection:
     refined: np.ndarray | None = None
 
     @staticmethod
-    def missing(crop: np.ndarray) -> "FrameDetection":
-        nan = np.full((8, 2), np.nan)
-        return FrameDetection(nan, np.full((8, 2, 2), np.nan), np.zeros(8), np.zeros(8, bool), nan.copy(), 0.0,
-                              False, crop.astype(np.float64), np.zeros((0, 2)))
+    def missing(crop: np.ndarray, K: int = 8) -> "FrameDetection":
+        """Nothing found in the crop (x0, y0, side) px: K keypoints (ENVISAT's 8 corners by default), none visible."""
+        nan = np.full((K, 2), np.nan)
+        return FrameDetection(nan, np.full((K, 2, 2), np.nan), np.zeros(K), np.zeros(K, bool), nan.copy(), 0.0,
+                              False, np.asarray(crop, np.float64), np.zeros((0, 2)))
 
 
 def weights_cov_scale(path: str, key: str = COV_SCALE_KEY) -> float:

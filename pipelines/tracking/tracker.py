@@ -79,6 +79,7 @@ from envisat_pose.perception.keypoint_cov import reject_share
 from envisat_pose.pipelines.tracking.acquisition import FramePose
 from envisat_pose.pipelines.tracking.bank import probabilities, select_runs
 from envisat_pose.pipelines.tracking.build import chaser_from_orbit, tracker_camera, tracker_detector, tracker_filter
+from envisat_pose.pipelines.tracking.detection_arg import DetectionRefused, detection_arg
 from envisat_pose.pipelines.tracking.integrity import DEFAULT_REJECT_SHARE, EvidenceWindow, target_radius_m
 from envisat_pose.pipelines.tracking.namings import box_namings, target_namings
 from envisat_pose.pipelines.tracking.noise import (
@@ -249,7 +250,8 @@ class Tracker(AcquiringSteps, TrackingSteps):
 
     def step(self, t_s: float, image: np.ndarray | None, window_px: np.ndarray | None = None) -> TrackEstimate:
         """One frame: t_s (s, increasing), image (H, W) uint8 gray, or None (no frame: the filter predicts); a
-        time or frame refused is an InputError (a ValueError) naming it, and changes nothing.
+        time or frame refused is an InputError (a ValueError) naming it, and changes nothing; so is a detector's
+        answer that is not a FrameDetection of the tracker's K keypoints (detection_arg.py).
         window_px: (x0, y0, side) px when only that window of the image was made (the rest black: a frame made
         for planned_window), None for a whole frame; nothing that reads beyond the window (the array cue) reads
         such a frame."""
@@ -271,13 +273,16 @@ class Tracker(AcquiringSteps, TrackingSteps):
             window_px = np.asarray(window_px)
             if window_px.shape != (3,) or window_px[2] < 1:
                 raise InputError(f"window_px: {window_px.tolist()}; expected (x0, y0, side) px with side >= 1")
+        before = (self.image_window, self.dt_s, self.t_last)
         self.image_window = window_px
         if self.t_last is not None:
             self.dt_s = t_s - self.t_last
         self.t_last = t_s
-        if self.state is None:
-            return self._acquire(t_s, image)
-        return self._track(t_s, image)
+        try:
+            return self._acquire(t_s, image) if self.state is None else self._track(t_s, image)
+        except DetectionRefused:  # the detector's answer refused before anything read it: the frame never was
+            self.image_window, self.dt_s, self.t_last = before
+            raise
 
     @property
     def inflation(self) -> float:
@@ -300,7 +305,7 @@ class Tracker(AcquiringSteps, TrackingSteps):
         if R_prior is not None and not weigh_namings:
             pose["prior_weighs_namings"] = False
         fd = self.detector.detect(image, self.camera.K, roi_px=roi, prior_R_cam_from_target=R_prior, **pose)
-        return fd, time.perf_counter() - t0
+        return detection_arg(fd, self.K), time.perf_counter() - t0
 
     # ------------------------------------------------------------------ the bank: started, pruned, reset
 

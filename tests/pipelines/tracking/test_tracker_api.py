@@ -91,3 +91,66 @@ def test_a_frame_too_long_after_the_track_loses_it_without_predicting_across(par
     tracker = Tracker(cam, tracker_detector(None), chaser, prior=(x0, P0, 10.0))
     est = tracker.step(10.0 + 3600.0, None)  # an hour's gap: predicted across, as before (and judged)
     assert np.isfinite(est.x_hat).all() and not any("predicted over" in e for e in est.events), est.events
+
+
+BOX_XML = ('<mujoco model="box5"><worldbody><body name="target"><inertial pos="0 0 0" mass="100" '
+           'diaginertia="30 40 50"/><geom name="hull" type="box" size="1 0.7 0.5" rgba="0.7 0.7 0.7 1"/>'
+           + "".join(f'<site name="kp_{i}" pos="{x} {y} {z}"/>' for i, (x, y, z) in
+                     enumerate([(1, 0.7, 0.5), (1, -0.7, 0.5), (-1, -0.7, 0.5), (-1, 0.7, -0.5), (0.3, 0.2, 0.5)]))
+           + "</body></worldbody></mujoco>")
+
+
+@pytest.fixture(scope="module")
+def box5(tmp_path_factory):
+    path = tmp_path_factory.mktemp("box5") / "box5.xml"
+    path.write_text(BOX_XML)
+    return load_target(str(path))
+
+
+class Scripted:
+    """Answers every frame with what `answer(K)` makes (a detector of the user's own, recording no target)."""
+
+    def __init__(self, answer):
+        self.answer = answer
+
+    def detect(self, image, K, roi_px=None, **priors):
+        return self.answer()
+
+
+def found(K=5, **fields):
+    from envisat_pose.perception.detect import FrameDetection
+
+    z = np.tile([[30.0, 32.0]], (K, 1)) + np.arange(K)[:, None]
+    base = dict(corners_px=z, cov_px=np.tile(np.eye(2), (K, 1, 1)), confidence=np.ones(K), visible=np.ones(K, bool),
+                alt_corners_px=np.full((K, 2), np.nan), alt_probability=0.5, ambiguous=False,
+                crop_px=np.array([0.0, 0.0, 64.0]), candidates_px=np.zeros((0, 2)))
+    return FrameDetection(**{**base, **fields})
+
+
+@pytest.mark.parametrize("answer, match", [
+    (lambda: found(K=8), r"corners_px: shape \(8, 2\); expected \(5, 2\).*ENVISAT's 8 corners"),
+    (lambda: found(corners_px=np.zeros((5, 3))), r"corners_px: shape \(5, 3\); expected \(5, 2\)"),
+    (lambda: found(cov_px=np.ones((5, 2))), r"cov_px: shape \(5, 2\); expected \(5, 2, 2\)"),
+    (lambda: found(visible=np.ones(4, bool)), r"visible: shape \(4,\); expected \(5,\)"),
+    (lambda: found(cov_px=np.zeros((5, 2, 2))), r"cov_px\[0\]: .*expected a symmetric positive-definite"),
+    (lambda: found(cov_px=-np.tile(np.eye(2), (5, 1, 1))), r"cov_px\[0\]: .*positive-definite .*5 keypoint"),
+    (lambda: None, r"detector.detect returned NoneType; expected .*FrameDetection.missing\(crop, 5\)"),
+])
+def test_a_detectors_answer_the_tracker_cannot_read_is_refused_naming_the_field(box5, parts, answer, match):
+    """A detector of the user's own that answers with another keypoint count (ENVISAT's 8 corners for a
+    5-keypoint target), arrays of the wrong shape or a found keypoint with a zero or negative covariance is refused
+    at the frame, naming the field and what was expected, and the frame is not taken (the same time is taken
+    again). Before: an IndexError in the cold start's PnP, a broadcast ValueError, a LinAlgError in the filter,
+    or corners (K, 3) and None never used, acquiring forever without a word."""
+    cam, chaser = parts
+    tracker = Tracker(cam, Scripted(answer), chaser, target=box5)
+    assert tracker.K == 5
+    image = np.zeros((64, 64), np.uint8)
+    with pytest.raises(InputError, match=match):
+        tracker.step(0.0, image)
+    tracker.detector = Scripted(lambda: found(visible=np.array([1, 1, 0, 1, 1], bool)))
+    assert tracker.step(0.0, image).status == "acquiring"  # the refused frame was not taken: its time is free
+    # a keypoint not found may carry any covariance, NaN or none
+    tracker.detector = Scripted(lambda: found(visible=np.array([1, 1, 0, 1, 1], bool),
+                                              cov_px=np.where(np.arange(5)[:, None, None] == 2, 0.0, np.eye(2))))
+    assert tracker.step(1.0, image).measured.tolist() == [True, True, False, True, True]
