@@ -149,14 +149,18 @@ def _rotation_from_pairs(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndar
 
 
 def _axis_angle(R: np.ndarray) -> tuple[np.ndarray, float]:
+    """R's unit axis, its largest component positive (+0.0 for a zero one), and the right-handed angle about it in
+    (0, 360) deg: the pair gives R back (a quarter-turn the other way is 270 deg about the same axis; before, the
+    axis was flipped and the angle kept, so both quarter-turns of a square read 90 deg about +z)."""
     angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
     w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     if np.linalg.norm(w) < 1e-9:  # a half-turn: the axis is the eigenvector of eigenvalue 1
         vals, vecs = np.linalg.eigh(0.5 * (R + R.T))
         w = vecs[:, int(np.argmax(vals))]
     axis = w / np.linalg.norm(w)
-    i = int(np.argmax(np.abs(axis)))
-    return (axis if axis[i] > 0 else -axis), angle
+    if axis[int(np.argmax(np.abs(axis)))] < 0:
+        axis, angle = -axis, 360.0 - angle
+    return axis + 0.0, angle
 
 
 def keypoint_rotations(keypoints_T_m: np.ndarray, reach_m: float, inverted: bool = False

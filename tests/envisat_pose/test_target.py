@@ -129,7 +129,11 @@ def test_a_plain_box_has_its_half_turns_and_a_square_one_its_quarter_turns(tmp_p
     path.write_text(text.format(0.4, 0.4, 0.2, sites))
     sq = load_target(str(path))
     angles = sorted(round(s.angle_deg) for s in sq.symmetries)
-    assert angles == [90, 90, 180, 180, 180, 180, 180], angles  # 4-fold about z, 2-fold about x, y, diagonals
+    assert angles == [90, 180, 180, 180, 180, 180, 270], angles  # 4-fold about z, 2-fold about x, y, diagonals
+    # each symmetry's axis and angle are its rotation (the quarter-turn the other way read 90 deg about +z too)
+    for s in sq.symmetries + box.symmetries:
+        np.testing.assert_allclose(Rotation.from_rotvec(np.radians(s.angle_deg) * s.axis_T).as_matrix(), s.R_T,
+                                   atol=1e-6)
 
 
 def test_a_rims_skeleton_follows_the_rim(tmp_path):
