@@ -23,14 +23,14 @@ def detection_arg(fd, K: int):
     has a symmetric positive-definite covariance; InputError naming the field otherwise."""
     if not all(hasattr(fd, f) for f in ("corners_px", "cov_px", "visible", "alt_probability")):
         raise DetectionRefused(f"detector.detect returned {type(fd).__name__}; expected a perception.detect."
-                         f"FrameDetection of the tracker's {K} keypoints (FrameDetection.missing(crop, {K}) where "
-                         "nothing is found)")
+                               f"FrameDetection of the tracker's {K} keypoints (FrameDetection.missing(crop, {K}) where "
+                               "nothing is found)")
     z = np.asarray(fd.corners_px)
     if z.shape != (K, 2):
         more = " (ENVISAT's 8 corners: its corner detector, not the target's keypoint detector?)" \
             if z.shape == (8, 2) else ""
         raise DetectionRefused(f"detection corners_px: shape {z.shape}; expected ({K}, 2), the tracker's {K} keypoints "
-                         f"in the target's order{more}")
+                               f"in the target's order{more}")
     cov = np.asarray(fd.cov_px)
     if cov.shape != (K, 2, 2):
         raise DetectionRefused(f"detection cov_px: shape {cov.shape}; expected ({K}, 2, 2), px^2")
@@ -47,6 +47,6 @@ def detection_arg(fd, K: int):
     if bad.size:
         k = int(bad[0])
         raise DetectionRefused(f"detection cov_px[{k}]: {cov[k].tolist()} for a keypoint given as found; expected a "
-                         f"symmetric positive-definite covariance, px^2 ({bad.size} keypoint(s) so; a keypoint not "
-                         "found: visible False or NaN)")
+                               f"symmetric positive-definite covariance, px^2 ({bad.size} keypoint(s) so; a keypoint not "
+                               "found: visible False or NaN)")
     return fd
