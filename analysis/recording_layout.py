@@ -257,6 +257,19 @@ def estimate_bands(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray):
 
 # ---------------------------------------------------------------- blueprints
 
+def whole_run(view_kind, legend: bool = False, **kw):
+    """A time-series view that shows the whole run on both timelines (not a trailing window), its legend hidden
+    unless legend (a tracker's series are named in the view's title and coloured x red, y green, z blue); every
+    plot of every recording is one (an estimate's 1800 s opened on its last ~50 s before). Two settings make
+    it: the data queried (time_ranges: every time, not the default window at the time cursor) and the plot's
+    own x axis (axis_x: view_range infinite, each view on its own; without it the viewer opens a plot on the
+    ~50 s before the cursor, which a file opens at its end: a 600 s run showed +9m30s..+10m20s)."""
+    inf = rrb.TimeRangeBoundary.infinite()
+    ranges = [rrb.VisibleTimeRange(tl, start=inf, end=inf) for tl in ("sim_time", "frame")]
+    axis = rrb.TimeAxis(link="Independent", view_range=rrb.TimeRange(start=inf, end=inf))
+    return view_kind(time_ranges=ranges, axis_x=axis, plot_legend=rrb.PlotLegend(visible=legend), **kw)
+
+
 def _scene_views(image: bool) -> rrb.Vertical:
     cam = rrb.Spatial2DView(origin="world/chaser/camera", name="camera image" if image else "camera (corners)",
                             contents=["$origin/**", "- $origin/image/mask/**", "- $origin/image/depth/**"])
@@ -265,16 +278,17 @@ def _scene_views(image: bool) -> rrb.Vertical:
 
 
 def error_plots() -> rrb.Grid:
-    """The 12 error plots, one per state component, each with its runs and +-3 sigma bands."""
-    return rrb.Grid(*[rrb.TimeSeriesView(origin=error_entity(i), name=f"{BLOCKS[i // 3]} {AXES[i % 3]} error")
-                      for i in range(12)], grid_columns=3)
+    """The 12 error plots, one per state component, each with its runs and +-3 sigma bands, over the whole run
+    (whole_run; legends shown: the runs and the two bands by name)."""
+    return rrb.Grid(*[whole_run(rrb.TimeSeriesView, legend=True, origin=error_entity(i),
+                                name=f"{BLOCKS[i // 3]} {AXES[i % 3]} error") for i in range(12)], grid_columns=3)
 
 
 def truth_blueprint() -> rrb.Blueprint:
-    plots = rrb.Vertical(rrb.TimeSeriesView(origin="metrics/range_m", name="range (m)"),
-                         rrb.TimeSeriesView(origin="metrics", contents=["metrics/visible_corners",
-                                                                         "metrics/in_frame_corners"],
-                                            name="visible / in-frame corners"))
+    plots = rrb.Vertical(whole_run(rrb.TimeSeriesView, legend=True, origin="metrics/range_m", name="range (m)"),
+                         whole_run(rrb.TimeSeriesView, legend=True, origin="metrics",
+                                   contents=["metrics/visible_corners", "metrics/in_frame_corners"],
+                                   name="visible / in-frame corners"))
     return rrb.Blueprint(rrb.Horizontal(_scene_views(False), plots, column_shares=[3, 2]), collapse_panels=True)
 
 
@@ -303,18 +317,6 @@ PLOT_BLOCKS = (("position_m", "position error (m)", POS, 1.0), ("velocity_m_s", 
                ("angular_velocity_deg_s", "angular velocity error (deg/s)", RATE, 180.0 / np.pi))
 # one run's NEES: chi-square of the state's 12 dof, the two-sided 95 % band (stats.P_BAND: 4.40 and 23.34)
 NEES_BAND_12 = tuple(float(b) for b in chi2_mean_bounds(N_STATE, 1))
-
-
-def whole_run(view_kind, **kw):
-    """A time-series view that shows the whole run on both timelines (not a trailing window) with its legend
-    hidden (the series are named in the view's title and coloured x red, y green, z blue). Two settings make
-    it: the data queried (time_ranges: every time, not the default window at the time cursor) and the plot's
-    own x axis (axis_x: view_range infinite, each view on its own; without it the viewer opens a plot on the
-    ~50 s before the cursor, which a file opens at its end: a 600 s run showed +9m30s..+10m20s)."""
-    inf = rrb.TimeRangeBoundary.infinite()
-    ranges = [rrb.VisibleTimeRange(tl, start=inf, end=inf) for tl in ("sim_time", "frame")]
-    axis = rrb.TimeAxis(link="Independent", view_range=rrb.TimeRange(start=inf, end=inf))
-    return view_kind(time_ranges=ranges, axis_x=axis, plot_legend=rrb.PlotLegend(visible=False), **kw)
 
 
 def track_blueprint(with_truth: bool) -> rrb.Blueprint:
