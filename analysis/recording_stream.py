@@ -197,9 +197,10 @@ class TrackRecorder:
             rec.log("world/target", rr.Transform3D(translation=x_true[POS],
                                                    quaternion=_wxyz_to_xyzw(mrp_to_quat(x_true[MRP]))))
             if corners_true_px is not None:
-                f = np.asarray(in_frame, bool)
+                f = np.asarray(in_frame, bool)  # named on hover, as the detections are
                 rec.log("world/chaser/camera/image/corners_true", rr.Points2D(
-                    np.asarray(corners_true_px)[f] + 0.5, colors=[VISIBLE_RGB], radii=[1.5]))
+                    np.asarray(corners_true_px)[f] + 0.5, colors=[VISIBLE_RGB], radii=[1.5],
+                    keypoint_ids=np.flatnonzero(f), class_ids=KEYPOINT_CLASS))
         if self.with_truth and x_true is not None and estimate:
             if self.error_in_chart is None:
                 err = component_errors(x_true, x)

@@ -108,3 +108,22 @@ def test_a_frame_without_an_image_shows_none_and_the_truth_draws_its_own_target(
     positions = np.array(latest(rows, "/world/target/model", "Mesh3D:vertex_positions", 0))
     assert len(positions) == 3 * len(target.mesh().faces)
     np.testing.assert_allclose(positions.min(axis=0), target.mesh().vertices_T_m.min(axis=0), atol=1e-4)
+
+
+def test_the_true_keypoints_in_the_image_are_named_as_the_detected_ones(tmp_path):
+    """A tracker's .../image/corners_true carry their keypoint ids in the target's annotation class (named on hover,
+    as the detections and a simulate recording's true keypoints are), only those seen (in_frame), at +0.5 px."""
+    target = load_target(UPPER_STAGE)
+    K = target.num_keypoints
+    rec = TrackRecorder(f"save:{tmp_path / 'run.rrd'}", load_camera().scaled(64, 64), with_truth=True, target=target)
+    px = np.arange(2 * K, dtype=float).reshape(K, 2)
+    seen = np.arange(K) % 3 != 1
+    x = np.zeros(12)
+    x[1] = 50.0
+    rec.log_frame(0, estimate(target, ACQUIRING, x), None, x_true=x, corners_true_px=px, in_frame=seen)
+    rec.close()
+    rows = read_rows(tmp_path / "run.rrd")
+    entity = "/world/chaser/camera/image/corners_true"
+    assert latest(rows, entity, "Points2D:keypoint_ids", 0) == np.flatnonzero(seen).tolist()
+    assert latest(rows, entity, "Points2D:class_ids", 0) == [0]  # recording_layout.KEYPOINT_CLASS
+    np.testing.assert_allclose(latest(rows, entity, "Points2D:positions", 0), px[seen] + 0.5)
