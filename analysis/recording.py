@@ -23,6 +23,20 @@ contracts and writes the design's layout:
                                            of the filter's P) and .../sample_3sigma (+-3 sigma of the runs' spread)
     metrics/{range_m,visible_corners,in_frame_corners}
 
+A tracker's run (TrackRecorder: `envisat run`, `track`, `demo`) logs frame by frame, beside world/target,
+world/target_est and world/chaser/camera/image{,/corners_true} above (the true keypoints seen, with a truth):
+
+    world/chaser/camera/image/corners_detected   the detector's keypoints (yellow; red: rejected by the gate)
+    world/chaser/camera/image/corners_estimated  the target's keypoints projected from the estimate (blue)
+    world/chaser/camera/image/roi                the region of interest the detector read (a box; cleared without)
+    metrics/error/<block>/<axis>{,_3sigma}       with a truth: the estimate's error and its +-3 sigma (from P)
+    metrics/nees/{value,band}                    with a truth: NEES (12 dof) and its two-sided 95 % band
+    metrics/sigma3/{position_m,attitude_deg}/<axis>, metrics/range_est_m   without a truth: 3 sigma, range
+    metrics/nis                                  the tracker's NIS / dof
+    metrics/tracker/{status,p_best}              status code (status_legend) and best hypothesis' probability
+    events                                       a line at every change of status
+    description, status_legend                   the run's title; the status codes' names (JSON)
+
 Timelines: `sim_time` (duration, s) and `frame` (sequence: the truth's sample, the filter's step or the dataset's
 sample index). Long series go in through `send_columns`; model data is logged once as static. Each file is
 written under a temporary name, with its footer (`rerun rrd verify` passes), and renamed when complete
