@@ -72,6 +72,17 @@ def update_cost(new: FilterState, gate_bound: float) -> np.ndarray:
     return new.nis + gate_bound * (new.rejected + new.dropped) + new.dof * np.log(new.r_scale)
 
 
+def bounded_frame_evidence(log_l: np.ndarray, seen: np.ndarray, max_log: float) -> np.ndarray:
+    """(H,) one frame's log-likelihoods log_l (H,) of the hypotheses that saw it (seen), each at most max_log nats
+    below the frame's best (a frame the model does not hold, a keypoint misnamed as its twin, bounds the ratio it
+    gives; BankConfig.frame_max_log), 0 where not seen; max_log 0: unbounded."""
+    log_l = np.where(seen, log_l, 0.0)
+    if max_log <= 0.0 or not np.any(seen):
+        return log_l
+    best = np.max(log_l[seen])
+    return np.where(seen, np.maximum(log_l, best - max_log), 0.0)
+
+
 def frame_discriminates(nis: np.ndarray, dof: np.ndarray, prob: float) -> bool:
     """Whether one frame's innovations can tell the hypotheses apart: False when every hypothesis that used
     corners (dof > 0) finds them beyond the chi-square bound at tail probability prob for its dof. Such a frame

@@ -104,6 +104,12 @@ class BankConfig(Config):
     tau(lambda) / tau(1) (noise.evidence_weight). Twins whose predicted corners differ by a fraction of a pixel
     gain evidence mostly from the detector's repeated errors projected on that difference (0.25 px apart: 1.8 nats
     of separation at most over 17 frames, against NIS sums 9.6 nats apart; docs/history.md).
+    frame_max_log: the most (nats) one frame's dynamics evidence (its cost: NIS, rejected and dropped keypoints)
+    moves a hypothesis against that frame's best: a frame is taken as one the model does not hold (a keypoint
+    named as its twin, an outlier the gate rejects) with a few per cent probability, so its likelihood ratio is
+    bounded (3.0: a ratio of 20) and a decision at 0.999 (6.9 nats) needs three frames that agree. Without it one
+    misnamed keypoint of a target whose twins only the inertia tells apart gave the wrong twin 8.4 nats in one
+    frame, decided at once and claimed 39 frames 180 deg off (docs/history.md). 0: no bound.
     appearance_veto: a hypothesis the detector's appearance alone would decide for against the bank's best (its
     summed log-likelihoods, as counted before the cap, ahead by more than log(decided / (1 - decided)), 6.9 nats)
     stays open however unlikely the rest makes it: the dynamics never decide a half-turn against what the
@@ -118,6 +124,7 @@ class BankConfig(Config):
     appearance_frames: float = 10.0
     appearance_max_log: float = 3.0
     evidence_memory: str = "filter"
+    frame_max_log: float = 3.0
     appearance_veto: bool = True
 
     def validate(self, prefix: str = "tracker.bank") -> None:
@@ -128,6 +135,8 @@ class BankConfig(Config):
               "a probability in (0, 0.5)")
         check(self.appearance_max_log >= 0.0, f"{p}appearance_max_log", self.appearance_max_log,
               "a non-negative log-likelihood (nats)")
+        check(self.frame_max_log >= 0.0, f"{p}frame_max_log", self.frame_max_log,
+              "a non-negative log-likelihood (nats; 0: no bound)")
         check(self.appearance_frames >= 1.0, f"{p}appearance_frames", self.appearance_frames, "at least 1 frame")
         check(self.evidence_memory in ("filter", "long"), f"{p}evidence_memory", self.evidence_memory,
               "'filter' or 'long'")

@@ -18,6 +18,7 @@ from envisat_pose.filtering.ukf import chart_sigma_points
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.pipelines.tracking.bank import (
     array_log_likelihood,
+    bounded_frame_evidence,
     choose_namings,
     frame_discriminates,
     same_array_end,
@@ -226,7 +227,8 @@ class TrackingSteps:
         n_pre = m.pre.sum(-1)
         if frame_discriminates(new.nis, new.dof, self.cfg.bank.evidence_prob):
             cost = update_cost(new, self.gate_bound) + self.gate_bound * n_pre
-            self.log_dyn = self.log_dyn + np.where(m.seen, -0.5 * cost * self.evidence_weight, 0.0)
+            self.log_dyn = self.log_dyn + bounded_frame_evidence(-0.5 * cost * self.evidence_weight, m.seen,
+                                                                 self.cfg.bank.frame_max_log)
         elif H > 1:
             events.append("no evidence between the hypotheses: the frame's innovations contradict them all")
         self.log_app = self.log_app + np.where(m.seen, m.appearance, 0.0)

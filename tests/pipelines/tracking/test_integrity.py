@@ -235,6 +235,19 @@ def test_a_frame_that_contradicts_every_hypothesis_is_no_evidence_between_them()
     assert frame_discriminates(np.array([0.0, 0.0]), np.array([0, 0]), 0.01)
 
 
+def test_one_frames_evidence_is_bounded_against_its_best():
+    """bank.frame_max_log: a hypothesis loses at most max_log nats to the frame's best (one misnamed keypoint gave
+    8.4 at once); one not seen gains nothing; 0 leaves the frame's log-likelihoods as they are."""
+    from envisat_pose.pipelines.tracking.bank import bounded_frame_evidence
+
+    log_l = np.array([-2.0, -10.4, -3.5, -50.0])
+    seen = np.array([True, True, True, False])
+    np.testing.assert_allclose(bounded_frame_evidence(log_l, seen, 3.0), [-2.0, -5.0, -3.5, 0.0])
+    np.testing.assert_allclose(bounded_frame_evidence(log_l, seen, 0.0), [-2.0, -10.4, -3.5, 0.0])
+    np.testing.assert_allclose(bounded_frame_evidence(log_l, ~seen, 3.0), [0.0, 0.0, 0.0, -50.0])
+    assert bounded_frame_evidence(log_l, np.zeros(4, bool), 3.0).tolist() == [0.0] * 4
+
+
 def test_the_window_tests_rejections_at_the_share_each_frame_expected():
     """A window whose frames expected 30 % rejections (a detector whose calibration measured that) passes 20 of 60
     corners rejected; the same counts fail at 10 % (binomial tails 0.33 and 8e-7, prob 1e-3 here); the frames'
