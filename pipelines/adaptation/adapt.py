@@ -7,7 +7,7 @@ The steps (one round; `rounds` repeats 2-5 from the last track):
    is tight (the largest corner 1-sigma of the smoothed covariance, label_sigma_px, below `max_label_sigma_px`);
    a lost, coasting or never-decided frame contributes nothing;
 3. label them (pipelines/adaptation/track_labels.py) at the smoothed estimate
-   (pipelines/adaptation/pseudo_labels.py: an unscented RTS smoother over each tracked segment, the box's corners projected with the face test's visibility), its range first corrected by the
+   (pipelines/adaptation/pseudo_labels.py: an unscented RTS smoother over each tracked segment, cut at the held-out part, the box's corners projected with the face test's visibility), its range first corrected by the
    frames' own silhouette edges (`edge_range`, pipelines/adaptation/edge_range.py) where they can be measured, read in
    linear light: the camera response (its response curve and PSF) from its TOML file where it gives them, else
    estimated from the labelled frames' edge profiles (pipelines/adaptation/edge_response.py; frames_response), the

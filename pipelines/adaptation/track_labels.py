@@ -43,18 +43,20 @@ def smoother_model(tcfg: TrackConfig) -> tuple[tuple, dict]:
 
 
 def track_run_labels(run_dir: str, camera, orbit, q_sigma, dyn: dict, cut: int, cfg) -> dict:
-    """The labels of a track run: the smoothed segments (pseudo_labels.smooth_track), the trusted frames before
-    `cut` whose largest corner sigma is below cfg.max_label_sigma_px, at most cfg.max_labels of them evenly
-    spread (cfg: the AdaptConfig). Returns {frames (N,) int, x (N, 12) their smoothed states, sigma_px (N,) the largest corner sigma,
-    trusted: all trusted frames before cut}; label_record(x[i], camera) labels frame i."""
+    """The labels of a track run: the smoothed segments (pseudo_labels.smooth_track) of the frames before `cut`
+    alone (a segment running on into the held-out part is smoothed up to the cut: no held-out frame's detection
+    moves a label), the trusted frames whose largest corner sigma is below cfg.max_label_sigma_px, at most
+    cfg.max_labels of them evenly spread (cfg: the AdaptConfig). Returns {frames (N,) int, x (N, 12) their
+    smoothed states, sigma_px (N,) the largest corner sigma, trusted: all trusted frames before cut};
+    label_record(x[i], camera) labels frame i."""
 
     with open_npz(os.path.join(run_dir, "est.npz")) as est, open_npz(os.path.join(run_dir, "det.npz")) as det:
-        t_s, x_hat, P, status = est["t_s"], est["x_hat"][0], est["P"][0], est["status"][0]
-        n_hyp = det["n_hypotheses"]
+        t_s, x_hat, P, status = est["t_s"][:cut], est["x_hat"][0, :cut], est["P"][0, :cut], est["status"][0, :cut]
+        n_hyp = det["n_hypotheses"][:cut]
     chaser_at = chaser_function(orbit)
     chaser = np.array([chaser_at(t) for t in t_s])
     sm = smooth_track(t_s, x_hat, P, status, chaser, q_sigma, n_hyp, **dyn)
-    trusted = np.flatnonzero(sm.trusted[:cut])
+    trusted = np.flatnonzero(sm.trusted)
     sigma = label_sigma_px(sm.x[trusted], sm.P[trusted], camera).max(axis=1) if len(trusted) else np.zeros(0)
     keep = trusted[sigma < cfg.max_label_sigma_px]
     sigma = sigma[sigma < cfg.max_label_sigma_px]

@@ -310,3 +310,33 @@ def test_pseudo_labels_land_on_the_rendered_corners():
     assert len(errs) >= 15
     assert errs.max() < 0.1
     assert np.median(errs_off) > 0.2  # the located corners tell a pose 5 mm off (~0.35 px) apart
+
+
+def test_no_held_out_frame_moves_a_label(filtered_runs, tmp_path):
+    """adapt's labels come from the frames before the cut alone: a tracked segment running on into the held-out
+    part is smoothed only up to the cut, so what the track does there (here 5 m off) leaves every label as it
+    was (the RTS pass once started from the segment's end inside the held-out part: held-out detections moved the
+    labels the held-out verdict is then judged against)."""
+    from envisat_pose.geometry import load_camera
+    from envisat_pose.pipelines.adaptation.adapt import AdaptConfig
+    from envisat_pose.pipelines.adaptation.track_labels import track_run_labels
+
+    tr, chaser, cfg, res, status = filtered_runs
+    cut, camera = 300, load_camera()
+    dyn = {"mu_m3_s2": AdaptConfig().track.orbit.mu_m3_s2}
+    acfg = AdaptConfig(max_label_sigma_px=1e6, max_labels=1000)
+
+    def labels(x_hat, name):
+        d = tmp_path / name
+        d.mkdir()
+        np.savez(d / "est.npz", t_s=tr.t_s, x_hat=x_hat[None], P=res.P[:1], status=status[None])
+        np.savez(d / "det.npz", n_hypotheses=np.ones(len(tr.t_s), dtype=int))
+        return track_run_labels(str(d), camera, AdaptConfig().track.orbit, cfg.q_sigma, dyn, cut, acfg)
+
+    base = labels(res.x_hat[0], "base")
+    x = res.x_hat[0].copy()
+    x[cut:, :3] += 5.0  # the held-out part's track moved
+    moved = labels(x, "moved")
+    assert base["frames"].max() < cut and len(base["frames"]) > 200
+    np.testing.assert_array_equal(moved["frames"], base["frames"])
+    np.testing.assert_array_equal(moved["x"], base["x"])
