@@ -68,6 +68,7 @@ from envisat_pose.perception.weights_keys import COV_CALIBRATION_KEY, COV_SCALE_
 from envisat_pose.pipelines.adaptation.fine_tune import ADAPT_PARAMS, fine_tune, save_adapted
 from envisat_pose.pipelines.adaptation.pseudo_labels import label_record
 from envisat_pose.pipelines.adaptation.recalibrate import recalibrate
+from envisat_pose.pipelines.adaptation.run_records import NOT_KEPT, name_run_weights
 from envisat_pose.pipelines.adaptation.scale_decision import decide_scale
 from envisat_pose.pipelines.adaptation.track_labels import (
     EDGE_RANGE_MODES,
@@ -378,6 +379,8 @@ def _adapt(cfg: AdaptConfig, tcfg: TrackConfig, source, camera, remap, stage: st
         last_dir, weights = round_dir(run, r), candidate
     after = rounds[-1]["after"]
     reason = worse_reason(before, after) or unchanged_track(before_dir, last_dir)
+    final = os.path.join(os.path.dirname(stage), "detector.safetensors")  # after/ names what is left, not the stage
+    name_run_weights(last_dir, weights, final if reason is None else NOT_KEPT)
     if reason is None:
         os.replace(weights, os.path.join(stage, "detector.safetensors"))
     else:

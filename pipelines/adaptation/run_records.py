@@ -1,0 +1,46 @@
+"""`envisat adapt`'s after/ track run named by the weights it leaves (pipelines/adaptation/adapt.py): the run tracked
+with the candidate inside the job's stage folder, a file that is gone once the job ends; its records (summary.json,
+track.config.toml, est.npz's and det.npz's config_json) name instead RUN_DIR/detector.safetensors where the weights
+were adopted, else NOT_KEPT (the candidate's sha256 stays in summary.json's weights_sha256)."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+from envisat_pose.io import atomic_write_text, open_npz, save_npz
+from envisat_pose.pipelines.common.job_defaults import weights_name
+
+NOT_KEPT = "adapted weights, not kept (report.json says why)"
+
+
+def name_run_weights(run_dir: str, candidate: str, name: str) -> None:
+    """Write `name` where the track run in run_dir records the weights file `candidate` it was tracked with
+    (weights_name(candidate): summary.json's weights, track.config.toml's weights, est.npz's config_json
+    track.weights, det.npz's config_json weights). A record naming other weights is left as it is."""
+    old = weights_name(candidate)
+    path = os.path.join(run_dir, "summary.json")
+    summary = json.loads(open(path, encoding="utf-8").read())
+    if summary.get("weights") == old:
+        summary["weights"] = name
+        atomic_write_text(path, json.dumps(summary, indent=1, sort_keys=True) + "\n")
+    path = os.path.join(run_dir, "track.config.toml")
+    lines = open(path, encoding="utf-8").read().split("\n")
+    line = f"weights = {json.dumps(old)}"
+    if line in lines:
+        lines[lines.index(line)] = f"weights = {json.dumps(name)}"
+        atomic_write_text(path, "\n".join(lines))
+    for file, keys in (("est.npz", ("track", "weights")), ("det.npz", ("weights",))):
+        path = os.path.join(run_dir, file)
+        with open_npz(path) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+        config = json.loads(str(arrays["config_json"]))
+        inner = config
+        for k in keys[:-1]:
+            inner = inner[k]
+        if inner.get(keys[-1]) == old:
+            inner[keys[-1]] = name
+            arrays["config_json"] = np.array(json.dumps(config, sort_keys=True))
+            save_npz(path, arrays)
