@@ -11,6 +11,7 @@ COV_SCALE_KEY = "cov_scale"  # the corner network's covariance scale (`envisat c
 COV_CALIBRATION_KEY = "cov_calibration"  # ... and the record of its fit
 ERROR_MODEL_KEY = "error_model"  # perception/errormodel.ErrorModel (calibrate on sequences, adapt's scale)
 ERROR_MODEL_RECORD_KEY = "error_model_record"  # ... and the record of its measurement
+ADAPTATION_KEY = "adaptation"  # what `envisat adapt` adapted the weights on (JSON: the frames, the base weights)
 REFINE_FLOOR_KEY = "refine_cov_floor_px2"  # the refinement's covariance floor, px^2 (`calibrate --refine`)
 REFINE_CALIBRATION_KEY = "refine_cov_calibration"  # ... and the record of its fit
 FACE_CUE_KEY = "face_cue"  # the half-turn's appearance cue (perception/facecue.FaceCue)

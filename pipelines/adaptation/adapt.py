@@ -42,7 +42,8 @@ scale against the corrected labels. The truth never enters here.
 This module runs the job (the rounds, the held-out verdict) and writes its files.
 Outputs (staged inside out_dir and moved into place at the end, io.staged_folder; an error leaves out_dir as it
 was):
-    detector.safetensors   the adapted weights, only when adopted (their cov_scale and apparent scale recalibrated)
+    detector.safetensors   the adapted weights, only when adopted (their cov_scale and apparent scale recalibrated;
+                           their metadata `adaptation`: the frames and base weights they were adapted on)
     detector.json          the model card: the source frames by content hash, the command, the figures
     report.json            the same figures and, when not adopted, the reason
     before/, after/        the two track runs (est.npz, det.npz, summary.json, recording.rrd, ...)
@@ -51,7 +52,6 @@ was):
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import os
 import re
@@ -64,11 +64,16 @@ from envisat_pose.config import Config, InputError, as_path_or_object, check, co
 from envisat_pose.io import atomic_write_text, open_npz, stage_prefix, staged_folder
 from envisat_pose.out_dirs import check_out_dir, made_out_dir
 from envisat_pose.out_lock import locks_output
-from envisat_pose.perception.weights_keys import COV_CALIBRATION_KEY, COV_SCALE_KEY, ERROR_MODEL_KEY
+from envisat_pose.perception.weights_keys import ADAPTATION_KEY, COV_CALIBRATION_KEY, COV_SCALE_KEY, ERROR_MODEL_KEY
 from envisat_pose.pipelines.adaptation.fine_tune import ADAPT_PARAMS, fine_tune, save_adapted
 from envisat_pose.pipelines.adaptation.pseudo_labels import label_record
 from envisat_pose.pipelines.adaptation.recalibrate import recalibrate
-from envisat_pose.pipelines.adaptation.run_records import NOT_KEPT, name_run_weights
+from envisat_pose.pipelines.adaptation.run_records import (
+    NOT_KEPT,
+    adaptation_record,
+    content_sha256,
+    name_run_weights,
+)
 from envisat_pose.pipelines.adaptation.scale_decision import decide_scale
 from envisat_pose.pipelines.adaptation.track_labels import (
     EDGE_RANGE_MODES,
@@ -284,7 +289,8 @@ def label_step(run: AdaptRun, track_dir: str) -> tuple[dict, list[np.ndarray]]:
 def recalibration_step(run: AdaptRun, weights: str, candidate: str, model, images: list[np.ndarray],
                        lab: dict) -> dict:
     """Step 5: the candidate's covariance scale and apparent scale on the labels (recalibrate, decide_scale),
-    written into its file (save_adapted). weights: the network that made the labels' track (the base weights in
+    written into its file (save_adapted) with
+    the record of what it was adapted on (run_records.adaptation_record). weights: the network that made the labels' track (the base weights in
     the first round, the last round's after it), whose metadata the candidate keeps where this round measures
     nothing new (a scale kept is that network's). Returns
     {calibration, apparent_scale, apparent_scale_adopted}."""
@@ -295,16 +301,16 @@ def recalibration_step(run: AdaptRun, weights: str, candidate: str, model, image
         cal = recalibrate(candidate, [images[i] for i in sub], [lab["labels"][i] for i in sub], bar)
     finally:
         _close(bar)
-    extra = {}
+    sha = content_sha256(run.source)
+    extra = {ADAPTATION_KEY: adaptation_record(cfg, run.tcfg, run.source, sha, run.cut)}  # what it was adapted on
     if cal["scale"] is not None:
         extra |= {COV_SCALE_KEY: cal["scale"], COV_CALIBRATION_KEY: json.dumps(
-            {"scale": cal["scale"], "corners": cal["corners"], "data": "pseudo-labels of "
-             f"{content_sha256(run.source)}", "roi": "labels", "by": "envisat adapt"}, sort_keys=True)}
+            {"scale": cal["scale"], "corners": cal["corners"], "data": f"pseudo-labels of {sha}", "roi": "labels",
+             "by": "envisat adapt"}, sort_keys=True)}
     scale = decide_scale(cfg.params, run.tcfg, weights, edges, cal)
     if scale is not None and "error_model" in scale:
         extra[ERROR_MODEL_KEY] = scale.pop("error_model")
-    if extra:
-        save_adapted(model, weights, candidate, extra)
+    save_adapted(model, weights, candidate, extra)
     return {"calibration": cal, "apparent_scale": scale,
             "apparent_scale_adopted": scale is not None and "kept" not in scale}
 
@@ -454,20 +460,6 @@ def _finish(cfg, tcfg, source, stage, command, before, after, rounds, timing, t0
         atomic_write_text(os.path.join(stage, "detector.json"),
                           json.dumps(card, indent=1, sort_keys=True, default=str) + "\n")
     return report
-
-
-def content_sha256(source) -> str:
-    """The source frames by content: sha256 of the sorted list of its files' sha256 (an image folder's frames, a
-    dataset's shards, a video file)."""
-    files = list(source.files) or [source.path]
-    hashes = []
-    for f in files:
-        h = hashlib.sha256()
-        with open(f, "rb") as fh:
-            for chunk in iter(lambda: fh.read(1 << 20), b""):
-                h.update(chunk)
-        hashes.append(h.hexdigest())
-    return hashlib.sha256("\n".join(sorted(hashes)).encode()).hexdigest()
 
 
 def _bar(progress: bool, total: int, desc: str, unit: str):

@@ -1,16 +1,18 @@
 """`envisat adapt`'s after/ track run named by the weights it leaves (pipelines/adaptation/adapt.py): the run tracked
 with the candidate inside the job's stage folder, a file that is gone once the job ends; its records (summary.json,
 track.config.toml, est.npz's and det.npz's config_json) name instead RUN_DIR/detector.safetensors where the weights
-were adopted, else NOT_KEPT (the candidate's sha256 stays in summary.json's weights_sha256)."""
+were adopted, else NOT_KEPT (the candidate's sha256 stays in summary.json's weights_sha256). And the adapted weights'
+own record of what they were adapted on (adaptation_record), the frames by content (content_sha256)."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 
 import numpy as np
 
-from envisat_pose.io import atomic_write_text, open_npz, save_npz
+from envisat_pose.io import atomic_write_text, open_npz, save_npz, sha256_file
 from envisat_pose.pipelines.common.job_defaults import weights_name
 
 NOT_KEPT = "adapted weights, not kept (report.json says why)"
@@ -44,3 +46,30 @@ def name_run_weights(run_dir: str, candidate: str, name: str) -> None:
             inner[keys[-1]] = name
             arrays["config_json"] = np.array(json.dumps(config, sort_keys=True))
             save_npz(path, arrays)
+
+
+def adaptation_record(cfg, tcfg, source, sha: str, held_out_from: int) -> str:
+    """The adapted weights' own record of what they were adapted on (their metadata's ADAPTATION_KEY, JSON): the
+    frames (path, kind, count, size, content_sha256), the base weights (weights_name and sha256), the first
+    held-out frame and the job's fine-tune settings; detector.json beside them holds the figures."""
+    fine_tune = {"params": cfg.params, "rounds": cfg.rounds, "seed": cfg.seed}
+    if cfg.params != "none":
+        fine_tune |= {"steps": cfg.steps, "lr": cfg.lr, "batch_size": cfg.batch_size}
+    return json.dumps({"by": "envisat adapt", "source": {
+        "path": source.path, "kind": source.kind, "frames": len(source.t_s), "size_px": list(source.size_px),
+        "content_sha256": sha}, "base_weights": weights_name(tcfg.weights), "base_sha256": sha256_file(tcfg.weights),
+        "held_out_from_frame": int(held_out_from), **fine_tune}, sort_keys=True)
+
+
+def content_sha256(source) -> str:
+    """The source frames by content: sha256 of the sorted list of its files' sha256 (an image folder's frames, a
+    dataset's shards, a video file)."""
+    files = list(source.files) or [source.path]
+    hashes = []
+    for f in files:
+        h = hashlib.sha256()
+        with open(f, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+        hashes.append(h.hexdigest())
+    return hashlib.sha256("\n".join(sorted(hashes)).encode()).hexdigest()

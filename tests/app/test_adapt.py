@@ -380,11 +380,14 @@ def test_a_later_round_keeps_the_last_rounds_metadata_where_it_measures_nothing_
     monkeypatch.setattr(adapt_module, "decide_scale", lambda *a, **k: {"value": 1.0, "kept": "within 2 sd"})
     monkeypatch.setattr(adapt_module, "track_frames", lambda *a, **k: None)
     monkeypatch.setattr(adapt_module, "track_figures", lambda *a, **k: {})
-    run = adapt_module.AdaptRun(AdaptConfig(rounds=2), AdaptConfig().track, None, None, None, str(tmp_path),
+    import types
+
+    source = types.SimpleNamespace(t_s=np.arange(40.0), path=detector_weights, kind="images", size_px=(8, 8), files=[])
+    run = adapt_module.AdaptRun(AdaptConfig(rounds=2), AdaptConfig().track, source, None, None, str(tmp_path),
                                 False, 10, (), {})
     info, candidate = adapt_module.adapt_round(run, 1, str(tmp_path), "round-0.safetensors",
                                                np.random.SeedSequence(0), {})
-    assert bases == ["round-0.safetensors"] and candidate.endswith("round-1.safetensors")
+    assert set(bases) == {"round-0.safetensors"} and candidate.endswith("round-1.safetensors")
     assert info["apparent_scale"]["kept"] == "within 2 sd" and not info["apparent_scale_adopted"]
 
 

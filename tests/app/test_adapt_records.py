@@ -69,3 +69,32 @@ def test_the_after_track_names_the_weights_the_job_leaves(monkeypatch, tmp_path,
         assert det["n_hypotheses"].shape == (T,)  # the other arrays as they were
     assert json.loads((stage / "before" / "summary.json").read_text())["weights"] == weights_name(detector_weights)
     assert (stage / "detector.safetensors").exists() is moves
+
+
+def test_the_adapted_weights_say_what_they_were_adapted_on(monkeypatch, tmp_path, detector_weights):
+    """The candidate's metadata records the frames (by content), the base weights and the job's settings, even
+    where the recalibration measured nothing to write (once the file then carried only the base's metadata:
+    nothing in detector.safetensors said it was adapted, or on what)."""
+    import envisat_pose.pipelines.adaptation.adapt as adapt_module
+    from envisat_pose.perception.weights import load_model, read_metadata
+    from envisat_pose.perception.weights_keys import ADAPTATION_KEY
+
+    monkeypatch.setattr(adapt_module, "recalibrate", lambda *a, **k: {"scale": None, "corners": 0})
+    monkeypatch.setattr(adapt_module, "decide_scale", lambda *a, **k: None)
+    frame = tmp_path / "frame.png"
+    frame.write_bytes(b"frame")
+    source = types.SimpleNamespace(t_s=np.arange(T, dtype=float), path="frames", kind="images", size_px=(8, 8),
+                                   files=[str(frame)])
+    cfg = AdaptConfig(params="norm_heads", steps=3)
+    run = adapt_module.AdaptRun(cfg, adapt_module.TrackConfig(weights=detector_weights), source, None, None,
+                                str(tmp_path), False, 30, (), {})
+    candidate = str(tmp_path / "round-0.safetensors")
+    shutil.copy(detector_weights, candidate)
+    lab = {"edges": {}, "labels": [{}] * 3}
+    adapt_module.recalibration_step(run, detector_weights, candidate, load_model(detector_weights),
+                                    [np.zeros((8, 8), np.uint8)] * 3, lab)
+    record = json.loads(read_metadata(candidate)[ADAPTATION_KEY])
+    assert record["source"]["content_sha256"] == adapt_module.content_sha256(source)
+    assert record["source"]["path"] == "frames" and record["source"]["frames"] == T
+    assert record["base_weights"] == weights_name(detector_weights) and len(record["base_sha256"]) == 64
+    assert record["held_out_from_frame"] == 30 and record["params"] == "norm_heads" and record["steps"] == 3
