@@ -439,8 +439,8 @@ def _finish(cfg, tcfg, source, stage, command, before, after, rounds, timing, t0
     report = {
         "adopted": adopted,
         "reason": reason,
-        "source": {"path": source.path, "kind": source.kind, "frames": len(source.t_s),
-                   "size_px": list(source.size_px), "content_sha256": content_sha256(source)},
+        "source": {"path": source.path, "kind": source.kind, "frames": len(source.t_s), "size_px": list(source.size_px),
+                   "bit_depth": source.bit_depth, "content_sha256": content_sha256(source)},
         "base_weights": weights_name(tcfg.weights),
         "command": command,
         "config": {**to_dict(cfg), "track": job_record(tcfg)},

@@ -382,7 +382,8 @@ def test_a_later_round_keeps_the_last_rounds_metadata_where_it_measures_nothing_
     monkeypatch.setattr(adapt_module, "track_figures", lambda *a, **k: {})
     import types
 
-    source = types.SimpleNamespace(t_s=np.arange(40.0), path=detector_weights, kind="images", size_px=(8, 8), files=[])
+    source = types.SimpleNamespace(t_s=np.arange(40.0), path=detector_weights, kind="images", size_px=(8, 8), files=[],
+                                   bit_depth=8)
     run = adapt_module.AdaptRun(AdaptConfig(rounds=2), AdaptConfig().track, source, None, None, str(tmp_path),
                                 False, 10, (), {})
     info, candidate = adapt_module.adapt_round(run, 1, str(tmp_path), "round-0.safetensors",

@@ -51,7 +51,7 @@ def test_the_after_track_names_the_weights_the_job_leaves(monkeypatch, tmp_path,
     frame = tmp_path / "frame.png"
     frame.write_bytes(b"frame")
     source = types.SimpleNamespace(t_s=np.arange(T, dtype=float), path="frames", kind="images", size_px=(8, 8),
-                                   files=[str(frame)])
+                                   files=[str(frame)], bit_depth=12)
     cfg = AdaptConfig()
     tcfg = adapt_module.TrackConfig(weights=detector_weights)
     out = tmp_path / "run"
@@ -69,6 +69,7 @@ def test_the_after_track_names_the_weights_the_job_leaves(monkeypatch, tmp_path,
         assert det["n_hypotheses"].shape == (T,)  # the other arrays as they were
     assert json.loads((stage / "before" / "summary.json").read_text())["weights"] == weights_name(detector_weights)
     assert (stage / "detector.safetensors").exists() is moves
+    assert report["source"]["bit_depth"] == 12  # 16-bit files of 12-bit data: how the frames were read
 
 
 def test_the_adapted_weights_say_what_they_were_adapted_on(monkeypatch, tmp_path, detector_weights):
@@ -84,7 +85,7 @@ def test_the_adapted_weights_say_what_they_were_adapted_on(monkeypatch, tmp_path
     frame = tmp_path / "frame.png"
     frame.write_bytes(b"frame")
     source = types.SimpleNamespace(t_s=np.arange(T, dtype=float), path="frames", kind="images", size_px=(8, 8),
-                                   files=[str(frame)])
+                                   files=[str(frame)], bit_depth=12)
     cfg = AdaptConfig(params="norm_heads", steps=3)
     run = adapt_module.AdaptRun(cfg, adapt_module.TrackConfig(weights=detector_weights), source, None, None,
                                 str(tmp_path), False, 30, (), {})
@@ -96,5 +97,6 @@ def test_the_adapted_weights_say_what_they_were_adapted_on(monkeypatch, tmp_path
     record = json.loads(read_metadata(candidate)[ADAPTATION_KEY])
     assert record["source"]["content_sha256"] == adapt_module.content_sha256(source)
     assert record["source"]["path"] == "frames" and record["source"]["frames"] == T
+    assert record["source"]["bit_depth"] == 12
     assert record["base_weights"] == weights_name(detector_weights) and len(record["base_sha256"]) == 64
     assert record["held_out_from_frame"] == 30 and record["params"] == "norm_heads" and record["steps"] == 3
