@@ -289,8 +289,8 @@ def label_step(run: AdaptRun, track_dir: str) -> tuple[dict, list[np.ndarray]]:
 def recalibration_step(run: AdaptRun, weights: str, candidate: str, model, images: list[np.ndarray],
                        lab: dict) -> dict:
     """Step 5: the candidate's covariance scale and apparent scale on the labels (recalibrate, decide_scale),
-    written into its file (save_adapted) with
-    the record of what it was adapted on (run_records.adaptation_record). weights: the network that made the labels' track (the base weights in
+    written into its file (save_adapted) with the record of what it was adapted on (run_records.adaptation_record).
+    weights: the network that made the labels' track (the base weights in
     the first round, the last round's after it), whose metadata the candidate keeps where this round measures
     nothing new (a scale kept is that network's). Returns
     {calibration, apparent_scale, apparent_scale_adopted}."""

@@ -57,8 +57,9 @@ def adaptation_record(cfg, tcfg, source, sha: str, held_out_from: int) -> str:
         fine_tune |= {"steps": cfg.steps, "lr": cfg.lr, "batch_size": cfg.batch_size}
     return json.dumps({"by": "envisat adapt", "source": {
         "path": source.path, "kind": source.kind, "frames": len(source.t_s), "size_px": list(source.size_px),
-        "bit_depth": source.bit_depth, "content_sha256": sha}, "base_weights": weights_name(tcfg.weights), "base_sha256": sha256_file(tcfg.weights),
-        "held_out_from_frame": int(held_out_from), **fine_tune}, sort_keys=True)
+        "bit_depth": source.bit_depth, "content_sha256": sha}, "base_weights": weights_name(tcfg.weights),
+        "base_sha256": sha256_file(tcfg.weights), "held_out_from_frame": int(held_out_from), **fine_tune},
+        sort_keys=True)
 
 
 def content_sha256(source) -> str:
