@@ -108,6 +108,9 @@ SLOW = (
     "tests/datagen/test_scenario_sense.py::test_the_body_rate_bound_is_what_eulers_equations_reach",  # 10 s, 2 cases
     "tests/app/test_run_target.py::test_the_closed_loop_of_another_target_writes_its_keypoints",  # 6 s
     "tests/app/test_estimate_cli.py::test_truth_file_of_another_target_is_estimated_with_its_keypoints",  # 6 s
+    # then 4:58 (1660 tests): two written-config reruns of whole loops and tracks (estimate's and montecarlo's stay)
+    "tests/app/test_run_target.py::test_the_written_config_records_the_target_files_sha256_and_a_rerun_refuses_the_file_changed",
+    "tests/app/test_track_target.py::test_the_written_config_records_the_target_files_sha256_and_a_rerun_refuses_the_file_changed",
 )
 
 
