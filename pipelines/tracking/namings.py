@@ -40,13 +40,16 @@ BOX_NAMES = ("detector", "x", "y", "z")
 
 
 def renamed_state(x: np.ndarray, S: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """The same physical pose described in the naming of the symmetry (S (3, 3), d (3,) m): T' has
-    Gamma' = S Gamma, its origin moved by d (rho' = rho + Gamma^T d) and w' = S w. (..., 12) -> a new array."""
+    """The same physical pose described in the naming of the symmetry (S (3, 3), d (3,) m; keypoint perm[k] = S
+    keypoint k + d, Namings): keypoint k of T' sits where keypoint perm[k] of T does, so Gamma'^T X_k = Gamma^T
+    (S X_k + d): T' has Gamma' = S^T Gamma, its origin moved by d (rho' = rho + Gamma^T d) and w' = S^T w. (A
+    half-turn is its own inverse; a quarter-turn was applied the other way round before, S Gamma, so its
+    hypothesis met its renamed keypoints 90 deg off and never fitted.) (..., 12) -> a new array."""
     x = np.array(x, dtype=float)
     G = mrp_to_dcm(x[..., MRP])
     x[..., POS] = x[..., POS] + np.einsum("...ji,j->...i", G, d)
-    x[..., MRP] = dcm_to_mrp(np.einsum("ij,...jk->...ik", S, G))
-    x[..., RATE] = x[..., RATE] @ S.T
+    x[..., MRP] = dcm_to_mrp(np.einsum("ji,...jk->...ik", S, G))
+    x[..., RATE] = x[..., RATE] @ S
     return x
 
 
