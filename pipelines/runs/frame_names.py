@@ -67,17 +67,23 @@ def unread_images(names: list[str]) -> list[str]:
                   key=natural_key)
 
 
-def unread_images_caution(src: str, names: list[str]) -> str | None:
-    """What to say of the files in the folder of image types the tracker does not read (unread_images): frames
-    of the sequence saved as GIF, JPEG 2000, EXR, FITS or camera raw would otherwise be left out without a word;
-    None when there are none."""
+def unread_images_said(names: list[str]) -> str | None:
+    """What to say of the files among names of image types the tracker does not read (unread_images): frames of
+    the sequence saved as GIF, JPEG 2000, EXR, FITS or camera raw would otherwise be left out without a word; None
+    when there are none."""
     unread = unread_images(names)
     if not unread:
         return None
     kinds = ", ".join(sorted({os.path.splitext(n)[1].lower() for n in unread}))
     shown = ", ".join(repr(n) for n in unread[:3]) + (f" and {len(unread) - 3} more" if len(unread) > 3 else "")
-    return (f"src {src!r}: {len(unread)} file(s) of an image type the tracker does not read ({kinds}: {shown}) are "
-            "left out; if they are frames of the sequence, convert them to PNG, TIFF or JPEG")
+    return (f"{len(unread)} file(s) of an image type the tracker does not read ({kinds}: {shown}) are left out; if "
+            "they are frames of the sequence, convert them to PNG, TIFF or JPEG")
+
+
+def unread_images_caution(src: str, names: list[str]) -> str | None:
+    """unread_images_said as a warning naming the folder src; None when there is nothing to say."""
+    said = unread_images_said(names)
+    return None if said is None else f"src {src!r}: {said}"
 
 
 def numbering_gap(names: list[str]) -> tuple[str, str, int, int] | None:

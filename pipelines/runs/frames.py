@@ -34,6 +34,7 @@ from envisat_pose.pipelines.runs.frame_names import (
     read_timestamps,
     sorted_frames,
     unread_images_caution,
+    unread_images_said,
 )
 from envisat_pose.resumable import manifest_path
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
@@ -254,9 +255,9 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
             return dataset_source(src, skip_damaged)
         files = [os.path.join(src, f) for f in sorted_frames(src, names)]
         if not files:
-            unread = unread_images_caution(src, names)
+            unread = unread_images_said(names)
             raise InputError(f"src {src!r}: no image files (expected PNG, JPEG, TIFF, BMP, PGM/PPM or WebP files, a generate "
-                             "folder or a video)" + (f"; {unread.split(': ', 1)[1]}" if unread else ""))
+                             "folder or a video)" + (f"; {unread}" if unread else ""))
         if timestamps:
             t = read_timestamps(timestamps, files)
         elif rate_hz > 0:
