@@ -29,7 +29,7 @@ world/target_est and world/chaser/camera/image{,/corners_true} above (the true k
     world/chaser/camera/image/corners_detected   the detector's keypoints (yellow; red: rejected by the gate)
     world/chaser/camera/image/corners_estimated  the target's keypoints projected from the estimate (blue)
     world/chaser/camera/image/roi                the region of interest the detector read (a box; cleared without)
-    metrics/error/<block>/<axis>{,_3sigma}       with a truth: the estimate's error and its +-3 sigma (from P)
+    metrics/error/<block>/<axis>{,/filter_3sigma} with a truth: the estimate's error and its +-3 sigma (from P)
     metrics/nees/{value,band}                    with a truth: NEES (12 dof) and its two-sided 95 % band
     metrics/sigma3/{position_m,attitude_deg}/<axis>, metrics/range_est_m   without a truth: 3 sigma, range
     metrics/nis                                  the tracker's NIS / dof

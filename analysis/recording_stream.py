@@ -121,7 +121,7 @@ class TrackRecorder:
             for b, _, _, _ in PLOT_BLOCKS:
                 for a, rgb in zip(AXES, AXIS_RGB):
                     rec.log(f"metrics/error/{b}/{a}", rr.SeriesLines(colors=[rgb], widths=[1.5], names=[a]), static=True)
-                    rec.log(f"metrics/error/{b}/{a}_3sigma", rr.SeriesLines(
+                    rec.log(f"metrics/error/{b}/{a}/filter_3sigma", rr.SeriesLines(
                         colors=[rgb, rgb], widths=[0.5, 0.5], names=[f"+3s {a}", f"-3s {a}"]), static=True)
             rec.log("metrics/nees/value", rr.SeriesLines(colors=[(20, 20, 20)], widths=[1.5], names=["NEES"]), static=True)
             rec.log("metrics/nees/band", rr.SeriesLines(colors=[(150, 150, 150)] * 2, widths=[1.0, 1.0],
@@ -211,8 +211,8 @@ class TrackRecorder:
             for b, _, block, s in PLOT_BLOCKS:
                 for j, a in enumerate(AXES):
                     rec.log(f"metrics/error/{b}/{a}", rr.Scalars(float(err[block][j] * s)))
-                    rec.log(f"metrics/error/{b}/{a}_3sigma", rr.Scalars([float(sig3[block][j] * s),
-                                                                         float(-sig3[block][j] * s)]))
+                    rec.log(f"metrics/error/{b}/{a}/filter_3sigma", rr.Scalars([float(sig3[block][j] * s),
+                                                                                float(-sig3[block][j] * s)]))
             rec.log("metrics/nees/value", rr.Scalars(nees))
             rec.log("metrics/nees/band", rr.Scalars(list(NEES_BAND_12)))
         elif not self.with_truth and estimate:

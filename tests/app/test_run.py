@@ -75,6 +75,9 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, ver
     np.testing.assert_allclose(xyz, est.x_hat[0, shown, 0:3], rtol=0, atol=1e-4)  # float32 in the recording
     ex = np.array([v[0] for v in temporal["/metrics/error/position_m/x"]["Scalars:scalars"]])
     np.testing.assert_allclose(ex, est.x_hat[0, shown, 0] - est.x_true[0, shown, 0], atol=1e-9)
+    # the band named as an estimate's (.../<axis>/filter_3sigma): +-3 sqrt(P_xx) of the rows shown
+    band = np.array(temporal["/metrics/error/position_m/x/filter_3sigma"]["Scalars:scalars"])
+    np.testing.assert_allclose(band, 3 * np.sqrt(est.P[0, shown, 0, 0])[:, None] * [1, -1], rtol=1e-6)
     nis_rows = shown & (dof > 0)  # the tracker's NIS per dof beside the truth's NEES, on the frames with both
     logged = np.array([v[0] for v in temporal["/metrics/nis"]["Scalars:scalars"]])
     np.testing.assert_allclose(logged, nis[nis_rows] / dof[nis_rows], rtol=1e-6)
