@@ -82,12 +82,12 @@ def plot_error_envelopes(t_s: np.ndarray, err: np.ndarray | None, filter_3sigma:
         ax.set_ylabel(f"{COMPONENT_NAMES[i]} [{BLOCK_DISPLAY[i // 3][0]}]")
         if i % 3 == 1:
             ax.set_title(f"{BLOCK_TITLES[i // 3]} error", fontsize=10)
-    axes[0, 0].legend(fontsize=7, loc="upper right")
     for ax in axes[-1]:
         ax.set_xlabel("t [min]")
     n = 0 if err is None else min(err.shape[0], max_runs)
-    fig.suptitle(title or f"Estimation errors, {n} Monte Carlo runs (grey)")
-    fig.tight_layout()
+    fig.suptitle(title or f"Estimation errors, {n} Monte Carlo runs (grey)", x=0.02, ha="left")
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
+    fig.legend(*axes[0, 0].get_legend_handles_labels(), fontsize=8, loc="upper right", ncol=2)  # above the panels
     _save(fig, path)
 
 

@@ -119,7 +119,8 @@ def plot_estimate(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.
     ax.grid(alpha=0.3, which="both")
     axes[4, 2].axis("off")
     _shade_no_estimate(list(axes.flat), t_min, ~np.isfinite(x_hat).all(-1).any(0))
-    axes[0, 0].legend(fontsize=7, loc="upper right")
+    # the legend in the free panel, where it hides no data
+    axes[4, 2].legend(*axes[0, 0].get_legend_handles_labels(), fontsize=9, loc="center")
     for ax in axes[-1]:
         ax.set_xlabel("t [min]")
     fig.suptitle(title or f"UKF estimation errors, {x_hat.shape[0]} runs")

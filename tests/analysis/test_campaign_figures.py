@@ -107,6 +107,17 @@ def test_error_envelopes_show_grey_runs_red_filter_and_green_sample_3sigma(tmp_p
         assert_curves(ax0, cf.RED_FILTER, t_min, [f3, -f3], ls="--")
         assert not lines(ax0, cf.GREEN_SAMPLE) and not ax0.collections
     assert [ax.get_xlabel() for ax in fig.axes[9:12]] == ["t [min]"] * 3
+    assert not legend_over_data(fig) and not legend_over_data(ctl)
+
+
+def legend_over_data(fig) -> list[int]:
+    """The panels (indices) whose plotting area a legend of the figure covers, as drawn: a legend must name the
+    curves without hiding any of them."""
+    fig.canvas.draw()
+    legends = [*fig.legends, *(ax.get_legend() for ax in fig.axes if ax.get_legend())]
+    assert legends, "no legend"
+    boxes = [lg.get_window_extent() for lg in legends]
+    return [i for i, ax in enumerate(fig.axes) if ax.axison and any(b.overlaps(ax.bbox) for b in boxes)]
 
 
 def test_block_norms_nees_nis_and_rmse_vs_bound_figures(tmp_path, campaign, drawn):

@@ -66,3 +66,28 @@ def test_a_plot_without_data_fails_the_check(tmp_path):
     plot_states(t_s, np.full((20, 12), np.nan), str(tmp_path / "empty.png"))
     img = cv2.imread(str(tmp_path / "empty.png"))
     assert colour_pixels(img, C0).sum() < 50
+
+
+def test_the_estimate_figures_legend_hides_no_panel(tmp_path, monkeypatch):
+    """The legend (run 0's error, the filter's and the sample's 3 sigma, the frames without an estimate) sits
+    where it covers no panel's plotting area: a short run's first seconds are not hidden under it."""
+    import matplotlib.pyplot as plt
+
+    figs, close = [], plt.close
+    monkeypatch.setattr(plt, "close", lambda fig=None: (figs.append(fig), close(fig)))
+    T, R = 40, 3
+    t_s = np.arange(T, dtype=float)
+    x_true = np.zeros((R, T, 12))
+    x_true[..., 1] = 50.0
+    x_hat = x_true + np.random.default_rng(1).normal(0, 0.01, x_true.shape)
+    x_hat[:, :5] = np.nan  # a cold start: no estimate in the first frames
+    P = np.broadcast_to(np.eye(12) * 1e-4, (R, T, 12, 12))
+    plot_estimate(t_s, x_true, x_hat, P, str(tmp_path / "est.png"))
+    (fig,) = figs
+    fig.canvas.draw()
+    legends = [ax.get_legend() for ax in fig.axes if ax.get_legend()] + list(fig.legends)
+    assert len(legends) == 1
+    labels = [t.get_text() for t in legends[0].get_texts()]
+    assert labels == ["error, run 0", "filter 3 sigma (P)", "Monte Carlo 3 sigma", "no estimate"]
+    box = legends[0].get_window_extent()
+    assert not [i for i, ax in enumerate(fig.axes) if ax.axison and box.overlaps(ax.bbox)]
