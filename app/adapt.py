@@ -21,7 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "recalibrate the detector on them (its covariance and apparent scale; --fine-tune to train it too) "
         "and track again. The final quarter is held out: if the adapted weights do worse there, the original ones "
         "are kept and the verb exits 1 saying why. Writes detector.safetensors and detector.json (only when "
-        "adopted), report.json, before/ and after/ (the two track runs) into --out.",
+        "adopted: a rejected rerun leaves an earlier adopted pair in --out as it was), report.json, before/ and "
+        "after/ (the two track runs) into --out.",
     )
     add_frame_inputs(p)
     p.add_argument("--rounds", type=int, default=1, help="track-label-fine-tune-track rounds (default 1)")
@@ -31,7 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="what the fine-tune trains: none (default: the detector recalibrated on the labels only, "
                    "its covariance and apparent scale), norm_heads (the normalization layers and the heads), all")
     p.add_argument("--device", default="cpu", help="torch device of the fine-tune: cpu (default), cuda")
-    add_common(p, out="output folder (created; an earlier run's outputs are replaced)", out_metavar="RUN_DIR",
+    add_common(p, out="output folder (created; an earlier run's outputs are replaced, its adopted weights only by "
+               "adopted ones)", out_metavar="RUN_DIR",
                config="track config (orbit, filter, tracker; top-level keys)", weights=True,
                seed="seed of the fine-tune's crops, augmentation and batches (default 0)", flag_names=FLAGS)
     p.set_defaults(func=adapt_cli)
@@ -44,6 +46,7 @@ FLAGS = {"src": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps"
 
 
 def adapt_cli(args: argparse.Namespace) -> int:
+    import os
     import sys
 
     from envisat_pose.pipelines.adaptation.adapt import AdaptConfig, adapt
@@ -74,7 +77,9 @@ def adapt_cli(args: argparse.Namespace) -> int:
     if report.get("scale_note"):
         print(f"apparent scale: {report['scale_note']}")
     if not report["adopted"]:
-        print(f"envisat adapt: kept the original weights: {report['reason']}", file=sys.stderr)
+        kept = (f"; the earlier adopted {os.path.join(args.out, 'detector.safetensors')} stays as it was"
+                if report.get("earlier_weights_kept") else "")
+        print(f"envisat adapt: kept the original weights: {report['reason']}{kept}", file=sys.stderr)
         return 1
     print(f"wrote {args.out}: detector.safetensors, detector.json, report.json, before/, after/")
     return 0

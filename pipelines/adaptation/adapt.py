@@ -43,9 +43,11 @@ This module runs the job (the rounds, the held-out verdict) and writes its files
 Outputs (staged inside out_dir and moved into place at the end, io.staged_folder; an error leaves out_dir as it
 was):
     detector.safetensors   the adapted weights, only when adopted (their cov_scale and apparent scale recalibrated;
-                           their metadata `adaptation`: the frames and base weights they were adapted on)
+                           their metadata `adaptation`: the frames and base weights they were adapted on); a
+                           rejected run leaves an earlier adopted pair (with detector.json) in out_dir as it was
     detector.json          the model card: the source frames by content hash, the command, the figures
-    report.json            the same figures and, when not adopted, the reason
+    report.json            the same figures and, when not adopted, the reason (earlier_weights_kept: an earlier
+                           run's detector.safetensors stays in out_dir)
     before/, after/        the two track runs (est.npz, det.npz, summary.json, recording.rrd, ...)
 """
 
@@ -93,6 +95,9 @@ from envisat_pose.status import TRACKING
 from envisat_pose.target import require_envisat
 
 OUTPUTS = ("detector.safetensors", "detector.json", "report.json")
+# the outputs a run's own replace (every run writes report.json); an earlier adopted detector.safetensors and its
+# card are replaced only by adopted ones: a rejected rerun in the same folder loses no adopted result
+STALE_OUTPUTS = ("report.json",)
 RUN_DIRS = ("before", "after")
 # what "worse on the held-out part" means (worse_reason): margins below which a change is noise
 SHARE_MARGIN = 0.02          # tracked share may drop by at most 2 points
@@ -404,7 +409,8 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
     """Adapt the detector in cfg.track.weights ("" the shipped) to the frames of `source` (a FrameSource or a path
     open_source opens at cfg.track.rate_hz) and write out_dir (module doc). camera: a PinholeCamera, a camera TOML
     file or None (the MJCF's chaser_cam: camera_file.default_camera), as track_frames; command: the command line, for the
-    model card. Returns the report: {adopted, reason (None when adopted), scale_note (one line when the edges'
+    model card. Returns the report: {adopted, reason (None when adopted), earlier_weights_kept (not adopted and an
+    earlier run's detector.safetensors in out_dir, left as it was with its detector.json), scale_note (one line when the edges'
     scale was not adopted: disagreement; else None), before, after (track_figures), rounds
     (per round: labels, fine-tune, calibration), source, timing_s}. InputError (one line) when the first part
     holds fewer than cfg.min_trusted labelled frames; nothing is written then (an --out this job made is removed
@@ -416,7 +422,7 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
     camera_file = camera if isinstance(camera, str) else None
     given_response = read_camera_response(camera) if camera_file else (None, None)
     tcfg, source, camera, remap, _ = prepare_frames(cfg.track, source, camera)
-    with made_out_dir(out_dir), staged_folder(out_dir, OUTPUTS) as stage:  # a failed job's new folders go
+    with made_out_dir(out_dir), staged_folder(out_dir, STALE_OUTPUTS) as stage:  # a failed job's new folders go
         report = _adapt(cfg, tcfg, source, camera, remap, stage, progress, command, given_response, camera_file)
         _replace_dirs(out_dir, stage)
     return report
@@ -436,9 +442,11 @@ def _finish(cfg, tcfg, source, stage, command, before, after, rounds, timing, t0
                 os.remove(p)
     timing["total"] = time.perf_counter() - t0
     adopted = reason is None
+    earlier = os.path.join(os.path.dirname(stage), "detector.safetensors")  # an earlier run's, left where it is
     report = {
         "adopted": adopted,
         "reason": reason,
+        "earlier_weights_kept": not adopted and os.path.isfile(earlier),
         "source": {"path": source.path, "kind": source.kind, "frames": len(source.t_s), "size_px": list(source.size_px),
                    "bit_depth": source.bit_depth, "content_sha256": content_sha256(source)},
         "base_weights": weights_name(tcfg.weights),
