@@ -15,6 +15,7 @@ import json
 import math
 import os
 import tomllib
+import warnings
 
 from envisat_pose.config import InputError, flatten, path_arg, paths_arg
 from envisat_pose.io import atomic_write_text
@@ -41,7 +42,9 @@ SWEEP_CAPTION = ("Rate sweep: settled RMSE per block (blue) and the PCRLB (black
 @locks_output("out", "report", folder=False)
 def write_report(dirs: list[str], out: str) -> dict:
     """The report over the campaign and rate-sweep folders `dirs`, written atomically to out (.html; its folder
-    made when every input reads). Returns {"campaigns": n, "sweeps": n}. InputError naming `out` or the folder."""
+    made when every input reads). Returns {"campaigns": n, "sweeps": n, "notes": the fields a campaign's table
+    shows as n/a, each named with its file and why (campaign_gaps), also warned}. InputError naming `out` or the
+    folder."""
 
     dirs, out = paths_arg(dirs, "dirs"), path_arg(out, "out")
     if not out.endswith((".html", ".htm")):
@@ -52,7 +55,10 @@ def write_report(dirs: list[str], out: str) -> dict:
     campaigns = [load_campaign(d) for d in dirs if not is_sweep(d)]
     make_out_file_dirs({out: "out"})
     atomic_write_text(out, render_report(campaigns, sweeps))
-    return {"campaigns": len(campaigns), "sweeps": len(sweeps)}
+    notes = [note for c in campaigns for note in campaign_gaps(c)]
+    for note in notes:  # the page's notes, said where the command runs too (the verb: one warning line each)
+        warnings.warn(note, stacklevel=2)
+    return {"campaigns": len(campaigns), "sweeps": len(sweeps), "notes": notes}
 
 
 def check_campaign_dirs(dirs: list[str]) -> None:
@@ -217,6 +223,44 @@ def summary_target(summary: dict, config_text: str) -> str:
     return str(name) if name else campaign_target(config_text)
 
 
+BLOCK_TABLES = ("rmse", "pcrlb_rms", "rmse_over_pcrlb", "inside_3sigma_share")  # summary.json's per-block tables
+SCALARS = ("nees_mean", "nis_mean_per_dof")
+
+
+def why_missing(table, key: str) -> str | None:
+    """Why the summary's table[key] shows as n/a: 'missing' (no such key, or no table), 'null', 'nan' or 'inf'
+    (a non-finite number); None where it holds a number (or another value the table refuses)."""
+    if not isinstance(table, dict) or key not in table:
+        return "missing"
+    v = table[key]
+    if v is None:
+        return "null"
+    return str(v) if isinstance(v, float) and not math.isfinite(v) else None
+
+
+def _cell(table, key: str, text: str) -> str:
+    """A table's cell: its text, and where it reads n/a for a field the summary lacks, why (campaign_gaps names
+    the field and the file)."""
+    why = why_missing(table, key)
+    return f"{text} ({why})" if why and text.startswith("n/a") else text
+
+
+def campaign_gaps(c: dict) -> list[str]:
+    """One line per field of the campaign's summary.json (or its timing.json) that its table shows as n/a: the
+    file, the field (table.block) and why (why_missing). A whole table missing is one line."""
+    s, path, gaps = c["summary"], os.path.join(c["dir"], "summary.json"), []
+    for name in BLOCK_TABLES:
+        table = s.get(name)
+        if not isinstance(table, dict):
+            gaps.append(f"{path}: no {name} (its rows show n/a)")
+            continue
+        gaps += [f"{path}: {name}.{b} {why} (shown as n/a)" for b in BLOCKS if (why := why_missing(table, b))]
+    gaps += [f"{path}: {k} {why} (shown as n/a)" for k in SCALARS if (why := why_missing(s, k))]
+    if not c["timing"]:
+        gaps.append(f"{os.path.join(c['dir'], 'timing.json')}: missing or unreadable (wall time shown as n/a)")
+    return gaps
+
+
 def campaign_rows(c: dict) -> list[tuple[str, str]]:
     """(label, value) rows of one campaign's table, already formatted."""
     s, t = c["summary"], c["timing"]
@@ -229,28 +273,31 @@ def campaign_rows(c: dict) -> list[tuple[str, str]]:
             ("seed", str(s.get("seed"))), ("statistics after", f"{_fmt(s.get('settle_s'))} s")]
     for b in BLOCKS:
         unit, k = DISPLAY[b]
-        rows.append((f"RMSE {b} ({unit})", _fmt(s["rmse"].get(b), k)))
+        rows.append((f"RMSE {b} ({unit})", _cell(s["rmse"], b, _fmt(s["rmse"].get(b), k))))
     for b in BLOCKS:
         unit, k = DISPLAY[b]
-        rows.append((f"PCRLB {b} ({unit})", _fmt(s.get("pcrlb_rms", {}).get(b), k)))
+        rows.append((f"PCRLB {b} ({unit})", _cell(s.get("pcrlb_rms"), b, _fmt(s.get("pcrlb_rms", {}).get(b), k))))
     for b in BLOCKS:
-        rows.append((f"RMSE / PCRLB {b}", _ratio(s.get("rmse_over_pcrlb", {}).get(b))))
+        ratio = s.get("rmse_over_pcrlb")
+        rows.append((f"RMSE / PCRLB {b}", _cell(ratio, b, _ratio((ratio or {}).get(b)))))
     for b in BLOCKS:
-        rows.append((f"inside 3-sigma {b}", f"{_fmt(s['inside_3sigma_share'].get(b), 100.0, 4)} %"))
+        share = s["inside_3sigma_share"]
+        rows.append((f"inside 3-sigma {b}", _cell(share, b, f"{_fmt(share.get(b), 100.0, 4)} %")))
     lo, hi = s.get("nees_bounds", [None, None])
     band = f"95 % band {_fmt(lo)} .. {_fmt(hi)} if every step were independent"  # an older summary's one band
     if "nees_run_bounds" in s:  # the band a consistent campaign lies within first
         band = f"95 % band {_fmt(s['nees_run_bounds'][0])} .. {_fmt(s['nees_run_bounds'][1])} with one sample a " \
                f"run; {_fmt(lo)} .. {_fmt(hi)} if every step were independent"
-    rows += [("mean NEES (12 dof)", f"{_fmt(s.get('nees_mean'))} ({band})"),
-             ("NIS per dof", _fmt(s.get("nis_mean_per_dof"))),
+    rows += [("mean NEES (12 dof)", f"{_cell(s, 'nees_mean', _fmt(s.get('nees_mean')))} ({band})"),
+             ("NIS per dof", _cell(s, "nis_mean_per_dof", _fmt(s.get("nis_mean_per_dof")))),
              ("diverged runs", f"{s.get('n_diverged')} / {s.get('n_runs')}" + (
                  f" ({len(s['nis_alarm_alone_runs'])} flagged by the filter alone, their errors within the "
                  "NEES rule)"
                  if s.get("nis_alarm_alone_runs") else "")),
              ("wall time", f"{_fmt(t.get('block_wall_s_sum'), digits=4)} s in blocks, "
                            f"{_fmt(t.get('wall_s_this_invocation'), digits=4)} s last invocation "
-                           f"({t.get('workers', '?')} {t.get('backend', '?')} workers)" if t else "n/a")]
+                           f"({t.get('workers', '?')} {t.get('backend', '?')} workers)" if t
+                           else "n/a (no timing.json)")]
     return rows
 
 
@@ -276,6 +323,10 @@ def render_report(campaigns: list[dict], sweeps: list[dict] = ()) -> str:
         cells = "".join(f"<td>{e(rows[i][1])}</td>" for rows in all_rows)
         table.append(f"<tr><td class=\"l\">{e(label)}</td>{cells}</tr>")
     table.append("</table>")
+    gaps = [(n, g) for n, c in zip(names, campaigns) for g in campaign_gaps(c)]
+    if gaps:  # the n/a cells' fields, by campaign and file
+        table.append("<p>Shown as n/a:</p><ul class=\"notes\">"
+                     + "".join(f"<li>{e(n)}: {e(g)}</li>" for n, g in gaps) + "</ul>")
     cols = []
     for n, c in zip(names, campaigns):
         figs = "".join(f"<figure><img alt=\"{e(name)}\" src=\"data:image/png;base64,{data}\">"

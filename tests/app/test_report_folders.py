@@ -91,3 +91,31 @@ def test_an_unfinished_rate_sweep_is_named_as_one_that_has_no_sweep_json(tmp_pat
     assert main(["report", str(sweep), "--out", str(tmp_path / "r.html")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "sweep.json" in err[0] and "rerun its command" in err[0], err
+
+
+def test_a_field_shown_as_n_a_is_named_with_its_file_and_why(tmp_path, capsys):
+    """A summary without one block's RMSE (and a null ratio, no timing.json): the cells read n/a with why, the page
+    lists each field under the table with its file, and stderr warns once per field (the cells once read a bare
+    "n/a"); a complete folder gets neither."""
+    a = _campaign(tmp_path / "a")
+    summary = json.loads((a / "summary.json").read_text())
+    del summary["rmse"]["attitude"]
+    summary["rmse_over_pcrlb"] = dict(RATIOS, velocity=None)
+    (a / "summary.json").write_text(json.dumps(summary))
+    full = _campaign(tmp_path / "full")
+    (full / "timing.json").write_text(json.dumps({"block_wall_s_sum": 3.0, "wall_s_this_invocation": 3.0}))
+    out = tmp_path / "r.html"
+    assert main(["report", str(a), str(full), "--out", str(out)]) == 0
+    cells = _cells(out)
+    i = cells.index("RMSE attitude (deg)")
+    assert cells[i + 1:i + 3] == ["n/a (missing)", f"{1e-3 * 180 / 3.141592653589793:.4g}"], cells[i:i + 3]
+    assert cells[cells.index("RMSE / PCRLB velocity") + 1] == "n/a (null)"
+    text = out.read_text(encoding="utf-8")
+    path = a / "summary.json"
+    expected = [f"{path}: rmse.attitude missing (shown as n/a)", f"{path}: rmse_over_pcrlb.velocity null (shown as n/a)",
+                f"{a / 'timing.json'}: missing or unreadable (wall time shown as n/a)"]
+    for line in expected:
+        assert f"<li>a: {line}</li>" in text, line
+    assert str(full) not in text.split("Shown as n/a:")[1].split("</ul>")[0]
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"envisat report: warning: {line}" for line in expected], err
