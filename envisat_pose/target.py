@@ -338,11 +338,12 @@ def _model_name(spec, path: str) -> str:
 
 
 class _Naming:
-    """How a caller names the file (`field`, `given`: its errors' and warnings' words), left out of _load's cache
-    key: the same file named two ways is one load, its warnings said once."""
+    """How a caller names the file (`field`, `given`: its errors' words; `named`: its warnings', by default
+    "target 'FILE'"), left out of _load's cache key: the same file named two ways is one load, its warnings said
+    once."""
 
-    def __init__(self, field: str, given: str):
-        self.field, self.given = field, given
+    def __init__(self, field: str, given: str, named: str | None = None):
+        self.field, self.given, self.named = field, given, named or f"target {given!r}"
 
     def __eq__(self, other) -> bool:
         return isinstance(other, _Naming)
@@ -402,7 +403,7 @@ def _load(path: str, stamps: tuple, naming: _Naming) -> Target:
                             f"most {KEYPOINT_MAX_SURFACE_DISTANCE_M:g} m)")
     reach = float(np.linalg.norm(surface.mesh.vertices_T_m, axis=1).max())
     if latched:  # said once per file (the load is cached): the shape is the file's reference pose
-        warnings.warn(f"target {given!r}: {len(latched)} joint(s) latched at the file's reference pose, the target "
+        warnings.warn(f"{naming.named}: {len(latched)} joint(s) latched at the file's reference pose, the target "
                       f"one rigid body ({', '.join(latched)})", stacklevel=2)
     return Target(
         name=_model_name(spec, path),
@@ -411,8 +412,9 @@ def _load(path: str, stamps: tuple, naming: _Naming) -> Target:
         surface=surface, own_scene=own_scene, latched_joints=latched)
 
 
-def load_target(given: str = DEFAULT_TARGET, field: str = "target") -> Target:
-    """The checked target of a config's `target` value (a path; DEFAULT_TARGET is the package's ENVISAT).
+def load_target(given: str = DEFAULT_TARGET, field: str = "target", named: str | None = None) -> Target:
+    """The checked target of a config's `target` value (a path; DEFAULT_TARGET is the package's ENVISAT; named:
+    how its warnings name the file where it comes from elsewhere than `field`, a truth file's record).
     ConfigError naming `field`, the value and what was expected: no such file, a file MuJoCo cannot read or
     compile, no body 'target' (its child bodies are read fused, its joints latched: target_file.py), a bad
     inertia (zero mass, not positive definite, the triangle inequality; stated by an <inertial>, or else MuJoCo's
@@ -424,7 +426,7 @@ def load_target(given: str = DEFAULT_TARGET, field: str = "target") -> Target:
         _fail(field, given, "an MJCF file (no such file)")
     files = [f for f in (path, *named_files(path)) if os.path.isfile(f)]
     stamps = tuple((os.stat(f).st_mtime_ns, os.stat(f).st_size) for f in files)
-    return _load(path, stamps, _Naming(field, given))
+    return _load(path, stamps, _Naming(field, given, named))
 
 
 def is_default_file(given: str) -> bool:

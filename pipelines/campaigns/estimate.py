@@ -126,7 +126,8 @@ def truth_target(config: dict, source: str) -> Target | None:
     if is_default_file(given):
         return None
     try:
-        return load_target(given, "target.file")
+        # its warnings name the truth that records the file (not the flag `target`, which the user did not give)
+        return load_target(given, "target.file", named=f"the target file {given!r} of {source}")
     except ConfigError as err:
         raise InputError(f"{source}: its target file cannot be used ({err})") from None
 
