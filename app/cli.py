@@ -30,8 +30,18 @@ _VERB_MODULES = ("envisat_pose.app.simulate", "envisat_pose.app.generate", "envi
                  "envisat_pose.app.adapt", "envisat_pose.app.demo")
 
 
+class WholeFlagParser(argparse.ArgumentParser):
+    """argparse's parser that takes each flag only as spelled whole (allow_abbrev=False): `--duration` is refused,
+    not read as `--duration-s`, and a flag added later cannot change what an abbreviation meant. Its subparsers
+    (add_subparsers' parser_class: the parser's own class) are of this class too, so every verb refuses them."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = WholeFlagParser(
         prog="envisat",
         description="Relative pose of a tumbling spacecraft (ENVISAT, or any target given as an MJCF file): simulate, "
         "generate labelled images, train and run a detector, estimate, track your own frames.",

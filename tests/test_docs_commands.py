@@ -155,8 +155,9 @@ def test_the_checker_catches_planted_mistakes(parser):
     assert [m.split(": ", 1)[1] for m in flags] == [
         "simulate has no flag --duration", "no verb 'simulat' (verbs: " + ", ".join(subparsers(parser)) + ")",
         "track has no flag --image", "train has no flag --budget-s"]
-    parsed = parse_mistakes(blocks, parser)  # argparse takes --duration for --duration-s: only the check above sees it
-    assert len(parsed) == 3 and "'thirty'" in parsed[0] and "'simulat'" in parsed[1] and "'cocoa'" in parsed[2]
+    parsed = parse_mistakes(blocks, parser)  # the parser refuses --duration too (it once read it as --duration-s)
+    assert len(parsed) == 4 and "--duration 600" in parsed[0] and "'thirty'" in parsed[1]
+    assert "'simulat'" in parsed[2] and "'cocoa'" in parsed[3]
     assert python_names("`envisat_pose.status.legend()`, from envisat_pose import Tracker, Nope") == [
         "envisat_pose.status.legend", "envisat_pose.Tracker", "envisat_pose.Nope"]
     assert resolves("envisat_pose.status.legend") and not resolves("envisat_pose.Nope")
