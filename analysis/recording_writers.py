@@ -89,8 +89,11 @@ class _Recording:
         try:
             flush_file(self.rec, self.tmp)
             self.rec.disconnect()  # closes the file before it is renamed
+        except BaseException as err:  # a Ctrl-C or a full disk in the flush: the file is not put in place
+            exc = (type(err), err, err.__traceback__)
+            raise
         finally:
-            self._atomic.__exit__(*exc)
+            self._atomic.__exit__(*exc)  # renamed only when the body and the flush both completed
         return False
 
 
