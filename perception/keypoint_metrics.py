@@ -18,8 +18,10 @@ the keypoints the detector calls visible (visible_prob at its threshold).
   within MATCH_PX of their labels (ties: the smaller summed distance), and the scores are given under it too.
 - Pose: cv2.solvePnPRansac (EPnP, reprojection threshold PNP_REPROJ_PX) on the keypoints called visible against
   the Target's keypoints_T_m and the label's K, refined on its inliers (SOLVEPNP_ITERATIVE); scored as the angle of
-  R R_true^T (deg) and |t - t_true| in % of the range |t_true|. "A pose" is any pose PnP returns (an untrained
-  network's too); "correct" is one within POSE_OK_DEG and POSE_OK_PCT of the label's, its share over all frames.
+  R R_true^T (deg) and |t - t_true| in % of the range |t_true|. "Solved" is any pose PnP returns (an untrained
+  network's too, thousands of times the range off); "found" is a plausible one (pose_found: at least 6 RANSAC inliers, their
+  reprojection RMS within 5 px, the range within a factor 2 of the label's), the errors' medians and p95 are over
+  those; "correct" is a found one within POSE_OK_DEG and POSE_OK_PCT of the label's. Each share is over all frames.
 """
 
 from __future__ import annotations
@@ -33,6 +35,11 @@ PCK_RADII_PX = (2.0, 5.0)
 PNP_REPROJ_PX = MATCH_PX  # RANSAC's inlier threshold: a keypoint farther off is as good as named wrongly
 PNP_MIN_POINTS = 4
 POSE_OK_DEG, POSE_OK_PCT = 5.0, 5.0  # a correct pose: within 5 deg and 5 % of the range (2.5 m at 50 m)
+# a pose found (pose_found): a consensus beyond EPnP RANSAC's 5-point sample, fitting its inliers as RANSAC
+# accepted them, at a range a factor 2 of the label's at most (a barely trained network's PnP puts the target
+# up to 1e7 times its range off: those are no poses, and their errors are kept out of the medians)
+FOUND_MIN_INLIERS, FOUND_RMS_PX, FOUND_RANGE_FACTOR = 6, PNP_REPROJ_PX, 2.0
+FOUND_RULE = {"min_inliers": FOUND_MIN_INLIERS, "max_rms_px": FOUND_RMS_PX, "range_factor": FOUND_RANGE_FACTOR}
 
 
 def keypoint_distances(pred_px: np.ndarray, true_px: np.ndarray) -> np.ndarray:
@@ -134,12 +141,13 @@ def score_keypoints(pred_px: np.ndarray, true_px: np.ndarray, usable: np.ndarray
 # --- pose after PnP -----------------------------------------------------------------------------------------
 
 
-def pnp_pose(points_px: np.ndarray, use: np.ndarray, K: np.ndarray, keypoints_T_m: np.ndarray,
-             reproj_px: float = PNP_REPROJ_PX) -> tuple[np.ndarray, np.ndarray] | None:
-    """(R_cam_from_target (3, 3), t_cam_from_target_m (3,)) from the keypoints points_px (K, 2) where use (K,)
-    of the Target's keypoints_T_m (K, 3): solvePnPRansac (EPnP), refined on its inliers by SOLVEPNP_ITERATIVE.
-    None with fewer than PNP_MIN_POINTS used or inliers, when the solver fails, or for a pose that puts an inlier
-    behind the camera."""
+def pnp_solve(points_px: np.ndarray, use: np.ndarray, K: np.ndarray, keypoints_T_m: np.ndarray,
+              reproj_px: float = PNP_REPROJ_PX) -> dict | None:
+    """PnP from the keypoints points_px (K, 2) where use (K,) of the Target's keypoints_T_m (K, 3):
+    solvePnPRansac (EPnP), refined on its inliers by SOLVEPNP_ITERATIVE. {'R': R_cam_from_target (3, 3), 't':
+    t_cam_from_target_m (3,), 'inliers': RANSAC's inlier count, 'rms_px': the refined pose's reprojection RMS over
+    those inliers}; None with fewer than PNP_MIN_POINTS used or inliers, when the solver fails, or for a pose that
+    puts an inlier behind the camera. Whether the pose is plausible is pose_found's question."""
     use = np.asarray(use, bool) & np.all(np.isfinite(points_px), axis=-1)
     if use.sum() < PNP_MIN_POINTS:
         return None
@@ -159,9 +167,33 @@ def pnp_pose(points_px: np.ndarray, use: np.ndarray, K: np.ndarray, keypoints_T_
     if not good or not np.all(np.isfinite(tvec)) or not np.all(np.isfinite(rvec)):
         return None
     R, t = cv2.Rodrigues(rvec)[0], tvec.reshape(3)
-    if np.any(obj[i].reshape(-1, 3) @ R[2] + t[2] <= 0):  # a pose with its keypoints behind the camera
+    cam = obj[i].reshape(-1, 3) @ R.T + t
+    if np.any(cam[:, 2] <= 0):  # a pose with its keypoints behind the camera
         return None
-    return R, t
+    px = cam @ K.T
+    rms = float(np.sqrt(np.mean(np.sum((px[:, :2] / px[:, 2:] - img[i].reshape(-1, 2)) ** 2, axis=1))))
+    return {"R": R, "t": t, "inliers": int(len(i)), "rms_px": rms}
+
+
+def pnp_pose(points_px: np.ndarray, use: np.ndarray, K: np.ndarray, keypoints_T_m: np.ndarray,
+             reproj_px: float = PNP_REPROJ_PX) -> tuple[np.ndarray, np.ndarray] | None:
+    """(R_cam_from_target (3, 3), t_cam_from_target_m (3,)) of pnp_solve, None where it gives none."""
+    got = pnp_solve(points_px, use, K, keypoints_T_m, reproj_px)
+    return None if got is None else (got["R"], got["t"])
+
+
+def pose_found(solution: dict | None, t_true_m: np.ndarray) -> bool:
+    """Whether pnp_solve's solution is a pose found, i.e. a plausible one (FOUND_RULE): at least
+    FOUND_MIN_INLIERS RANSAC inliers (EPnP's RANSAC fits its 5-point sample exactly, so 5 "inliers" of any 5
+    points is no consensus), its inliers' reprojection RMS at most FOUND_RMS_PX, and its range within a factor
+    FOUND_RANGE_FACTOR of the label's |t_true_m| (the inliers in front of the camera: pnp_solve's own guard).
+    False without a solution or a finite labelled range."""
+    range_true_m = float(np.linalg.norm(np.asarray(t_true_m, float)))
+    if solution is None or not np.isfinite(range_true_m) or range_true_m <= 0:
+        return False
+    ratio = float(np.linalg.norm(solution["t"])) / range_true_m
+    return bool(solution["inliers"] >= FOUND_MIN_INLIERS and solution["rms_px"] <= FOUND_RMS_PX
+                and 1.0 / FOUND_RANGE_FACTOR <= ratio <= FOUND_RANGE_FACTOR)
 
 
 def pose_error(R: np.ndarray, t: np.ndarray, R_true: np.ndarray, t_true: np.ndarray) -> tuple[float, float]:
@@ -172,14 +204,18 @@ def pose_error(R: np.ndarray, t: np.ndarray, R_true: np.ndarray, t_true: np.ndar
     return float(np.degrees(np.linalg.norm(turn))), float(100.0 * np.linalg.norm(t - t_true) / np.linalg.norm(t_true))
 
 
-def pose_summary(err: np.ndarray) -> dict:
-    """err (N, 2) rotation deg and translation % of range per frame, NaN where no pose: the share of frames with
-    a pose ('solved_share', whatever its error), the share with a correct one (within POSE_OK_DEG and POSE_OK_PCT,
-    'correct_share', over all frames), the median and p95 of each error over the frames with a pose."""
+def pose_summary(err: np.ndarray, found: np.ndarray | None = None) -> dict:
+    """err (N, 2) rotation deg and translation % of range per frame, NaN where PnP gave no pose; found (N,) bool
+    the frames whose pose is a pose found (pose_found; None: every pose PnP gave). The share of frames PnP gave a
+    pose ('solved_share', however far off), of frames with a pose found ('found_share'), with a correct one (found
+    and within POSE_OK_DEG and POSE_OK_PCT, 'correct_share'), each over all frames; the median and p95 of each
+    error over the frames with a pose found; the rule of each ('found_rule', 'correct_within')."""
     e = np.asarray(err, float).reshape(-1, 2)
-    ok = np.all(np.isfinite(e), axis=1)
+    solved = np.all(np.isfinite(e), axis=1)
+    ok = solved if found is None else solved & np.asarray(found, bool).reshape(-1)
     correct = ok & (np.where(ok, e[:, 0], np.inf) <= POSE_OK_DEG) & (np.where(ok, e[:, 1], np.inf) <= POSE_OK_PCT)
-    out = {"frames": int(len(e)), "solved_share": _share(int(ok.sum()), len(e)),
+    out = {"frames": int(len(e)), "solved_share": _share(int(solved.sum()), len(e)),
+           "found_share": _share(int(ok.sum()), len(e)), "found_rule": dict(FOUND_RULE),
            "correct_share": _share(int(correct.sum()), len(e)), "correct_within": [POSE_OK_DEG, POSE_OK_PCT]}
     for j, name in enumerate(("rotation_deg", "translation_pct")):
         v = e[ok, j]

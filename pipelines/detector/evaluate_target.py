@@ -6,12 +6,13 @@ The scores (perception/keypoint_metrics.py) per keypoint name and over all: PCK 
 over the labels' usable (visible and in-frame) keypoints, visibility precision and recall, the keypoints named
 wrongly (called visible within the match radius of another usable keypoint's label, not of their own), and the pose
 after PnP (solvePnPRansac on the keypoints called visible, the Target's keypoints_T_m and the label's K): rotation
-error deg and translation error in % of the range, and the share of all frames whose pose is correct (within 5 deg
-and 5 % of the range: any pose PnP returns is not one). Each is given as the network names the keypoints
-('as_named') and, where the Target has symmetries its materials keep, under each frame's best twin naming
-('twin_aware', with the share of frames a twin's naming won): no image tells the twins apart, the tracker settles
-them. Weights calibrated by `envisat calibrate --target` (their sigma per keypoint) are checked on the same frames
-('calibration': mean e^T C^-1 e over the correct detections, 2 when honest).
+error deg and translation error in % of the range over the poses found (plausible ones: km.pose_found), and the
+shares of all frames PnP solved, with a pose found and with a correct one (found, within 5 deg and 5 % of the
+range). Each is given as the network names the keypoints ('as_named') and, where the Target has symmetries its
+materials keep, under each frame's best twin naming ('twin_aware', with the share of frames a twin's naming won):
+no image tells the twins apart, the tracker settles them. Weights calibrated by `envisat calibrate --target` (their
+sigma per keypoint) are checked on the same frames ('calibration': mean e^T C^-1 e over the correct detections, 2
+when honest).
 
 The weights and the dataset are checked against the target before any work; frames are read as `envisat detect
 --target` reads them (pipelines/detector/detect_target.py). The detection over labelled folders (detect_labelled)
@@ -116,21 +117,24 @@ def detect_labelled(cfg: TargetDetectJobConfig, folders: list[str], progress: bo
     return target, model, arrays, skipped
 
 
-def pnp_pose_errors(pred_px: np.ndarray, called: np.ndarray, arrays: dict, keypoints_T_m: np.ndarray) -> np.ndarray:
-    """(N, 2): per frame the pose error (rotation deg, translation % of range) of the pose PnP gives from the
-    keypoints called visible; NaN where no pose (too few keypoints, the solver failed, no labelled pose)."""
-    out = np.full((len(pred_px), 2), np.nan)
+def pnp_pose_errors(pred_px: np.ndarray, called: np.ndarray, arrays: dict,
+                    keypoints_T_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame the pose PnP gives from the keypoints called visible: its error (N, 2) (rotation deg, translation
+    % of range; NaN where no pose: too few keypoints, the solver failed, no labelled pose) and whether it is a pose
+    found (N,) bool (km.pose_found: a plausible one)."""
+    err, found = np.full((len(pred_px), 2), np.nan), np.zeros(len(pred_px), bool)
     for n in range(len(pred_px)):
-        pose = km.pnp_pose(pred_px[n], called[n], arrays["K"][n], keypoints_T_m)
-        if pose is not None and np.all(np.isfinite(arrays["R"][n])) and np.all(np.isfinite(arrays["t"][n])):
-            out[n] = km.pose_error(*pose, arrays["R"][n], arrays["t"][n])
-    return out
+        got = km.pnp_solve(pred_px[n], called[n], arrays["K"][n], keypoints_T_m)
+        if got is not None and np.all(np.isfinite(arrays["R"][n])) and np.all(np.isfinite(arrays["t"][n])):
+            err[n] = km.pose_error(got["R"], got["t"], arrays["R"][n], arrays["t"][n])
+            found[n] = km.pose_found(got, arrays["t"][n])
+    return err, found
 
 
 def score_naming(pred_px: np.ndarray, called: np.ndarray, arrays: dict, target) -> dict:
     """score_keypoints of one naming of every frame, with its pose after PnP ('pose': pose_summary)."""
     out = km.score_keypoints(pred_px, arrays["true_px"], arrays["usable"], called, target.keypoint_names)
-    out["pose"] = km.pose_summary(pnp_pose_errors(pred_px, called, arrays, target.keypoints_T_m))
+    out["pose"] = km.pose_summary(*pnp_pose_errors(pred_px, called, arrays, target.keypoints_T_m))
     return out
 
 
@@ -184,6 +188,19 @@ def _cell(x, spec: str) -> str:
     return "-".rjust(int(width or 1)) if x is None or not np.isfinite(x) else format(x, spec)
 
 
+def pose_line(naming: str, p: dict) -> str:
+    """The pose after PnP of one naming (pose_summary's p): the shares of frames with a pose found (its rule) and
+    with a correct one, then the errors over the poses found."""
+    rule = p["found_rule"]
+    return (f"pose after PnP ({naming}): a pose found in {_cell(p['found_share'], '.1%')} of {p['frames']} frames "
+            f"(PnP solved {_cell(p['solved_share'], '.1%')}; found: >= {rule['min_inliers']} inliers, RMS <= "
+            f"{rule['max_rms_px']:g} px, range within x{rule['range_factor']:g} of the label's), correct (within "
+            f"{km.POSE_OK_DEG:g} deg and {km.POSE_OK_PCT:g} % of the range) in {_cell(p['correct_share'], '.1%')}; "
+            f"over the poses found: rotation median {_cell(p['rotation_deg_median'], '.2f')} deg, p95 "
+            f"{_cell(p['rotation_deg_p95'], '.2f')}; translation median {_cell(p['translation_pct_median'], '.2f')} "
+            f"% of range, p95 {_cell(p['translation_pct_p95'], '.2f')}")
+
+
 def keypoint_table(result: dict) -> str:
     """The evaluation as a table: a line per keypoint and one over all, for each naming scored; then the pose
     after PnP and the calibration check."""
@@ -200,13 +217,7 @@ def keypoint_table(result: dict) -> str:
                          f"{_cell(k['pck_5px'], '6.1%')} {_cell(k['median_px'], '7.2f')} {_cell(k['p95_px'], '7.2f')} "
                          f"{_cell(k['vis_precision'], '6.1%')} {_cell(k['vis_recall'], '6.1%')} "
                          f"{_cell(k['named_wrongly_rate'], '6.1%')}")
-        p = s["pose"]
-        pose_lines.append(f"pose after PnP ({naming}): a pose in {_cell(p['solved_share'], '.1%')} of {p['frames']} "
-                          f"frames, correct (within {km.POSE_OK_DEG:g} deg and {km.POSE_OK_PCT:g} % of the range) in "
-                          f"{_cell(p.get('correct_share'), '.1%')}; rotation median {_cell(p['rotation_deg_median'], '.2f')} deg, p95 "
-                          f"{_cell(p['rotation_deg_p95'], '.2f')}; translation median "
-                          f"{_cell(p['translation_pct_median'], '.2f')} % of range, p95 "
-                          f"{_cell(p['translation_pct_p95'], '.2f')}")
+        pose_lines.append(pose_line(naming, s["pose"]))
     if result.get("twin_share") is not None:
         pose_lines.append(f"a twin's naming won in {result['twin_share']:.1%} of the frames")
     cal = result.get("calibration")

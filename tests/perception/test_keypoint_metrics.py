@@ -165,6 +165,54 @@ def test_a_pose_far_off_is_a_pose_but_not_a_correct_one():
     assert km.pose_summary(np.full((2, 2), np.nan))["correct_share"] == 0.0
 
 
+
+def test_pnp_solve_reports_its_inliers_and_their_reprojection_rms():
+    R, t = rodrigues([0.3, -0.2, 0.5]), np.array([0.2, -0.1, 8.0])
+    bad = project(R, t)
+    bad[3] += [40.0, -30.0]  # RANSAC's outlier: 7 inliers, fitted exactly
+    got = km.pnp_solve(bad, np.ones(8, bool), CAMERA, BOX)
+    assert got["inliers"] == 7 and got["rms_px"] < 1e-3 and np.allclose(got["t"], t, atol=1e-4)
+
+
+def solution(inliers=8, rms_px=0.5, range_m=10.0):
+    return {"R": np.eye(3), "t": np.array([0.0, 0.0, range_m]), "inliers": inliers, "rms_px": rms_px}
+
+
+def test_a_pose_found_is_a_consensus_that_fits_at_a_plausible_range():
+    # the rule: >= 6 inliers, their RMS <= 5 px, the range within a factor 2 of the label's 10 m (bounds inclusive)
+    t_true = np.array([0.0, 6.0, 8.0])  # 10 m
+    assert km.FOUND_RULE == {"min_inliers": 6, "max_rms_px": 5.0, "range_factor": 2.0}
+    assert km.pose_found(solution(), t_true)
+    assert km.pose_found(solution(inliers=6, rms_px=5.0, range_m=20.0), t_true)
+    assert km.pose_found(solution(range_m=5.0), t_true)
+    assert not km.pose_found(solution(inliers=5), t_true)  # EPnP RANSAC's own sample: no point checks it
+    assert not km.pose_found(solution(rms_px=5.01), t_true)
+    assert not km.pose_found(solution(range_m=20.01), t_true) and not km.pose_found(solution(range_m=4.99), t_true)
+    assert not km.pose_found(solution(range_m=6.2e8), t_true)  # the 61,945 %-of-range kind
+    assert not km.pose_found(None, t_true) and not km.pose_found(solution(), np.full(3, np.nan))
+
+
+def test_any_five_points_are_five_inliers_so_five_are_no_pose_found():
+    # 5 pixels drawn at random (seed 3) anywhere in the frame: EPnP's RANSAC fits its 5-point sample and calls all
+    # 5 inliers, unchecked (they lie tens of px off the refined pose); 8 such pixels give no consensus at all
+    px = np.random.default_rng(3).uniform(0, 640, (8, 2))
+    got = km.pnp_solve(px, np.arange(8) < 5, CAMERA, BOX)
+    assert got["inliers"] == 5 and got["rms_px"] > 10 * km.PNP_REPROJ_PX
+    assert not km.pose_found(got, got["t"])  # even at the range it gives itself
+    assert km.pnp_solve(px, np.ones(8, bool), CAMERA, BOX) is None
+
+
+def test_far_off_poses_are_solved_but_not_found_and_leave_the_medians_alone():
+    # 4 frames: errors (deg, % of range) 1/2, 3/4 found; 120/61945 solved but not found; one not solved
+    err = np.array([[1.0, 2.0], [3.0, 4.0], [120.0, 61945.0], [np.nan, np.nan]])
+    s = km.pose_summary(err, np.array([True, True, False, False]))
+    assert s["solved_share"] == pytest.approx(3 / 4) and s["found_share"] == pytest.approx(2 / 4)
+    assert (s["rotation_deg_median"], s["translation_pct_median"]) == (2.0, 3.0)
+    assert s["translation_pct_p95"] == pytest.approx(2 + 0.95 * 2)
+    assert s["correct_share"] == pytest.approx(2 / 4) and s["found_rule"] == km.FOUND_RULE
+    # a pose within the bounds but not found is not correct either
+    assert km.pose_summary(np.array([[1.0, 1.0]]), np.array([False]))["correct_share"] == 0.0
+
 # --- the pixel sigma per keypoint ---------------------------------------------------------------------------
 
 
