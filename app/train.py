@@ -23,7 +23,7 @@ from envisat_pose.pipelines.detector.train import (
     online_kind,
     train_detector,
 )
-from envisat_pose.pipelines.detector.train_records import read_run_config, saved_online
+from envisat_pose.pipelines.detector.train_records import nothing_to_do_line, read_run_config, saved_online
 from envisat_pose.shard_reader import skip_hint
 from envisat_pose.target import other_target
 
@@ -145,10 +145,7 @@ def run_train_cli(args: argparse.Namespace) -> int:
     if skipped_line(last.get("skipped_damaged_shards", [])):
         print(skipped_line(last["skipped_damaged_shards"]))
     if last.get("stopped_by") == "nothing_to_do":
-        more = "--time-budget-s S to train S seconds more" if last.get("why") == "budget_spent" else \
-            f"--steps above {last.get('step')} to go further"
-        print(f"nothing to do: {args.out} is at step {last.get('step')}, its "
-              f"{'budget spent' if last.get('why') == 'budget_spent' else 'steps reached'}; give {more}")
+        print(nothing_to_do_line(args.out, last, cfg.time_budget_s))
         return 0
     workers = f"{last['render_workers']} render" if "render_workers" in last else f"{last.get('workers')}"
     print(f"trained to step {last.get('step')} ({last.get('steps_run')} this run): "

@@ -48,6 +48,7 @@ from envisat_pose.perception.model import CornerNet, ModelConfig
 from envisat_pose.perception.train_run import (
     TrainingInterrupted,
     budget_end,
+    end_line,
     nothing_to_do,
     rendered_batches,
     shard_batches,
@@ -495,6 +496,4 @@ def train(cfg: TrainConfig, data_dir: str | list[str], run_dir: str, resume: boo
     stop = trainer.run(source)
     if stop not in (None, "time_budget"):
         raise TrainingInterrupted(state["step"] if trainer.folder_started else 0, run_dir, stop)
-    if stop == "time_budget" and trainer.steps_run == 0:  # resumed with less of its budget left than a step needs
-        return {**trainer.end_line, "stopped_by": "nothing_to_do", "why": "budget_spent"}
-    return trainer.end_line
+    return end_line(trainer, stop)

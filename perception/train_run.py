@@ -14,6 +14,10 @@ from envisat_pose.perception.weights import WeightsError, read_header
 from envisat_pose.target import resolve_target_path
 
 RESUMABLE_CHANGES = ("steps", "time_budget_s")  # a resumed run may go further or longer, nothing else
+# a resume is given a step only with this many times its last leg's min_leg_s left: a leg's start-up (renderers,
+# loaders) varies from leg to leg (the one leg after it may start slower), and a leg that starts its batch sources
+# for nothing costs their start-up and says nothing to do after it
+LEG_START_MARGIN = 2.0
 
 
 class TrainingInterrupted(KeyboardInterrupt):
@@ -173,21 +177,40 @@ def budget_end(cfg, saved: dict | None, state: dict) -> float | None:
     return float(state["time_s"]) + cfg.time_budget_s
 
 
+def leg_need_s(state: dict) -> float:
+    """The least of its budget a resume of this run is given a step in: LEG_START_MARGIN x state.json's min_leg_s
+    (the last leg's wait for its first batch and the reserve before a step, trainer_hooks.Budget)."""
+    return LEG_START_MARGIN * float(state.get("min_leg_s", 0.0))
+
+
 def nothing_to_do(cfg, state: dict, saved: dict) -> dict | None:
     """The end line of a resumed run already at its steps or at its budget's end (it trains nothing), or None.
-    The budget counts as spent when less of it is left than the run's last leg needed before a step (state.json's
-    min_leg_s, trainer_hooks.Budget), so no batch source is started for nothing; a new budget (another
-    time_budget_s than the run's) shorter than that is refused as too short for one step (InputError)."""
-    time0, end_s, need_s = float(state["time_s"]), state["budget_end_s"], float(state.get("min_leg_s", 0.0))
+    The budget counts as spent when less of it is left than leg_need_s, so no batch source is started for nothing;
+    a new budget (another time_budget_s than the run's) shorter than that is refused as too short for one step
+    (InputError). The end line of a spent budget holds left_s (what was left) and need_s (leg_need_s)."""
+    time0, end_s, need_s = float(state["time_s"]), state["budget_end_s"], leg_need_s(state)
     spent = end_s is not None and time0 + need_s >= end_s
     if state["step"] < cfg.steps and not spent:
         return None
     if state["step"] < cfg.steps and saved["train"].get("time_budget_s") != cfg.time_budget_s:
-        raise InputError(f"time_budget_s = {cfg.time_budget_s:g}: too short for one step (this run's last leg needed "
-                         f"{need_s:.1f} s for its first batch and a step's reserve): give a longer budget")
-    why = "budget_spent" if state["step"] < cfg.steps else "steps_reached"
-    return {"kind": "end", "step": state["step"], "epoch": state["epoch"], "steps_run": 0,
-            "stopped_by": "nothing_to_do", "why": why, "time_s": time0, "workers": state["workers"]}
+        raise InputError(f"time_budget_s = {cfg.time_budget_s:g}: too short for one step (a resume of this run needs "
+                         f"{need_s:.1f} s: {LEG_START_MARGIN:g} x its last leg's {state.get('min_leg_s', 0.0):.1f} s "
+                         "for its first batch and a step's reserve): give a longer budget")
+    end = {"kind": "end", "step": state["step"], "epoch": state["epoch"], "steps_run": 0,
+           "stopped_by": "nothing_to_do", "why": "steps_reached", "time_s": time0, "workers": state["workers"]}
+    if state["step"] < cfg.steps:
+        end.update(why="budget_spent", left_s=round(end_s - time0, 3), need_s=round(need_s, 3))
+    return end
+
+
+def end_line(tr, stop: str | None) -> dict:
+    """Trainer tr's end line; for a resume whose batch sources started but whose budget ran out before a step (its
+    start-up slower than leg_need_s allowed for) nothing_to_do's, budget_spent, with left_s (what was left when
+    it started) and need_s (leg_need_s after this leg: its checkpoint recorded its own start-up in min_leg_s)."""
+    if stop != "time_budget" or tr.steps_run > 0:
+        return tr.end_line
+    return {**tr.end_line, "stopped_by": "nothing_to_do", "why": "budget_spent",
+            "left_s": round(tr.budget_end_s - tr.time0, 3), "need_s": round(leg_need_s(tr.state), 3)}
 
 
 def _epoch_loader(tr, paths: list[str], epoch: int, prefetch: int):

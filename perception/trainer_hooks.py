@@ -208,7 +208,7 @@ class Budget(Hook):
     def on_checkpoint(self) -> None:
         """state.json's min_leg_s: the least of the budget in which a resume of this run trains a step (this
         call's wait for its first batch, the batch sources' start-up, and the reserve before a step), which
-        train_run.nothing_to_do reads before it starts anything."""
+        train_run.nothing_to_do reads (with its margin: leg_need_s) before it starts anything."""
         tr = self.trainer
         tr.state["min_leg_s"] = round((tr.timing.first_batch_s or 0.0) + self.reserve_s(), 3)
 

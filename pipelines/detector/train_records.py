@@ -71,3 +71,17 @@ def online_record(run_dir: str) -> dict:
         return {"max_uses": int(online["max_uses"]), "frame_ms": online.get("frame_ms")}
     except (OSError, ValueError, KeyError, TypeError):
         return {"max_uses": None, "frame_ms": None}
+
+
+def nothing_to_do_line(run_dir: str, end: dict, time_budget_s: float | None) -> str:
+    """The verb's one line for a run that trained nothing (end: train()'s end line, stopped_by 'nothing_to_do';
+    time_budget_s: the budget the run was resumed under): at its steps, or with less of its budget left than a
+    step needs (what was left, what is needed, the flag that gives more)."""
+    step = end.get("step")
+    if end.get("why") != "budget_spent":
+        return f"nothing to do: {run_dir} is at step {step}, its steps reached; give --steps above {step} to go further"
+    left, need = end.get("left_s", 0.0), end.get("need_s", 0.0)
+    other = "" if time_budget_s is None else f", other than its {time_budget_s:g}"
+    return (f"nothing to do: {run_dir} is at step {step}, its budget spent ({left:.1f} s of it left, a resume needs "
+            f"{need:.1f} s: its last leg's start-up and a step's reserve, with a margin); give --time-budget-s S "
+            f"(S above {need:.1f}{other}) to train S seconds more")

@@ -119,6 +119,54 @@ def test_a_budget_left_below_the_last_legs_start_up_starts_nothing(tiny_dataset,
     assert end["step"] == 4 and started == [1]
 
 
+def test_a_resume_whose_start_up_may_outlast_what_is_left_starts_nothing_and_says_why(tiny_dataset, tmp_path,
+                                                                                     monkeypatch):
+    """A resume with 1.5 x the last leg's min_leg_s left: once enough by the record, but a leg's start-up varies
+    (an online run's renderers once started slower than the leg before, used what was left and trained no step).
+    A resume is now given a step only with LEG_START_MARGIN (2) x min_leg_s left: this one starts no batch
+    source, and its end line says what was left and what a resume needs, as the verb's one line does."""
+    from envisat_pose.perception import train as train_module
+
+    run = tmp_path / "run"
+    train(small(2, time_budget_s=40.0), tiny_dataset, str(run), progress=False)
+    state = json.loads((run / "state.json").read_text())
+    state["time_s"] = state["budget_end_s"] - 1.5 * state["min_leg_s"]
+    (run / "state.json").write_text(json.dumps(state))
+    started = []
+    real = train_module.shard_batches
+    monkeypatch.setattr(train_module, "shard_batches", lambda *a: started.append(1) or real(*a))
+    end = train(small(4, time_budget_s=40.0), tiny_dataset, str(run), resume=True, progress=False)
+    assert (end["stopped_by"], end["why"], end["step"], started) == ("nothing_to_do", "budget_spent", 2, [])
+    from envisat_pose.perception.train_run import LEG_START_MARGIN
+    from envisat_pose.pipelines.detector.train_records import nothing_to_do_line
+
+    assert LEG_START_MARGIN == 2.0
+    assert end["left_s"] == pytest.approx(1.5 * state["min_leg_s"], abs=2e-3)
+    assert end["need_s"] == pytest.approx(2.0 * state["min_leg_s"], abs=2e-3)
+    line = nothing_to_do_line("out/run", {**end, "left_s": 3.04, "need_s": 4.0}, 40.0)
+    assert line == ("nothing to do: out/run is at step 2, its budget spent (3.0 s of it left, a resume needs 4.0 s: "
+                    "its last leg's start-up and a step's reserve, with a margin); give --time-budget-s S (S above "
+                    "4.0, other than its 40) to train S seconds more")
+    assert nothing_to_do_line("r", {"step": 7, "why": "steps_reached"}, None) == \
+        "nothing to do: r is at step 7, its steps reached; give --steps above 7 to go further"
+
+
+def test_a_resume_whose_start_up_outlasted_its_budget_says_what_was_left_and_records_what_it_took(
+        tiny_dataset, tmp_path):
+    """The margin missed (a clock 30 s a reading: the first batch came long after the budget): no step, nothing
+    to do with left_s and need_s; the leg's checkpoint records its own start-up in min_leg_s, so the next resume
+    says nothing to do before it starts anything."""
+    run = tmp_path / "run"
+    train(small(2, time_budget_s=40.0), tiny_dataset, str(run), progress=False)
+    time0 = json.loads((run / "state.json").read_text())["time_s"]
+    end = train(small(4, time_budget_s=40.0), tiny_dataset, str(run), resume=True, progress=False,
+                clock=SlowClock())
+    assert (end["stopped_by"], end["why"], end["steps_run"]) == ("nothing_to_do", "budget_spent", 0)
+    state = json.loads((run / "state.json").read_text())
+    assert end["left_s"] == pytest.approx(40.0 - time0, abs=2e-3)
+    assert state["min_leg_s"] >= 30.0 and end["need_s"] == pytest.approx(2 * state["min_leg_s"], abs=2e-3)
+
+
 def test_resume_refuses_another_model_and_other_data_spelling_out_the_difference(tiny_dataset, tmp_path):
     from envisat_pose.pipelines.detector.train import train_detector
 
