@@ -4,8 +4,8 @@ A shard is the unit of work: `generate_shard(cfg, index, out_dir)` renders sampl
 seeds (`SeedSequence(root, spawn_key=(shard,))`, then `(shard, i)` per sample) and publishes one tar
 atomically. Where it runs (this process, a process pool, a Dask cluster) changes nothing in its bytes.
 `run_generate` runs the dataset as the core runner's resumable job (`dataset_job`): it skips the finished shards
-(their sha256 verified), runs the rest and keeps `manifest.json` current after each shard, so a killed run
-resumes where it stopped. Its config lives in datagen/generate_config.py, its views (seeds, random and
+(their sha256 verified), runs the rest and keeps `manifest.json` current after each shard (or a few:
+resumable.MANIFEST_REWRITE_WAIT), so a killed run resumes where it stopped. Its config lives in datagen/generate_config.py, its views (seeds, random and
 sequence-mode view sampling) in datagen/views.py; here: the appearance draws, the corruption draws, one sample, one
 shard and the job.
 """

@@ -1,7 +1,7 @@
 """Resumable jobs (`ResumableJob`): the one protocol for outputs written unit by unit into a folder (the image
 factory's shards, a Monte Carlo campaign's blocks), run as tasks of the pools (envisat_pose/pools.py): units
-with sha256 in manifest.json, rewritten atomically after each unit; a folder of another config refused; unvouched
-unit files and partial files removed and redone. The manifest's file name and its one reader (`read_manifest`)
+with sha256 in manifest.json, rewritten atomically after each unit (or a few, where a rewrite costs much); a
+folder of another config refused; unvouched unit files and partial files removed and redone. The manifest's file name and its one reader (`read_manifest`)
 are here; a generated dataset's manifest is checked on top of it by envisat_pose/shard_reader.py
 (`load_dataset_manifest`).
 """
@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import time
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -21,6 +22,12 @@ from envisat_pose.out_lock import is_lock_file
 from envisat_pose.pools import RunnerConfig, run_tasks
 
 MANIFEST = "manifest.json"
+# A finished unit's manifest rewrite waits while the time since the last rewrite is under this many times what that
+# rewrite took: a manifest of a few hundred units (ms to write) is rewritten after every unit, one of 100 000 (17 MB,
+# ~1 s) every ~20 s, so rewriting it costs at most ~1/20 of the job's time instead of growing with the square of
+# its units (a job of 100 000 one-image shards spent hours writing its manifest). A kill loses at most the units
+# of that wait (redone on the resume); an error, Ctrl-C or SIGTERM and the job's end write every one.
+MANIFEST_REWRITE_WAIT = 20.0
 
 
 def manifest_path(folder: str) -> str:
@@ -91,7 +98,10 @@ class ResumableJob:
     added_defaults: dict = field(default_factory=dict)
     own_entries: tuple = ()
     compared_by: dict = field(default_factory=dict)
+    clock: Callable[[], float] = time.monotonic
     done: dict[int, dict] = field(default_factory=dict, init=False)
+    _unwritten: int = field(default=0, init=False)  # units recorded since the manifest's last rewrite
+    _next_write: float = field(default=float("-inf"), init=False)  # the clock's time of the next rewrite
 
     def unit_path(self, index: int) -> str:
         return os.path.join(self.out_dir, self.unit_file(index))
@@ -183,14 +193,25 @@ class ResumableJob:
                 "complete": len(self.done) == self.n_units}
 
     def write(self) -> None:
-        """Rewrite manifest.json atomically (key-sorted, indented)."""
+        """Rewrite manifest.json atomically (key-sorted, indented) with every unit recorded."""
+        start = self.clock()
         atomic_write_text(os.path.join(self.out_dir, MANIFEST),
                           json.dumps(self.manifest(), sort_keys=True, indent=1) + "\n")
+        end = self.clock()
+        self._unwritten, self._next_write = 0, end + MANIFEST_REWRITE_WAIT * (end - start)
 
     def record(self, entry: dict) -> None:
-        """A finished unit: add its entry and rewrite the manifest."""
+        """A finished unit: add its entry and rewrite the manifest, unless the last rewrite was too recent for
+        what it cost (MANIFEST_REWRITE_WAIT; `flush` writes what waits)."""
         self.done[int(entry["index"])] = entry
-        self.write()
+        self._unwritten += 1
+        if self.clock() >= self._next_write:
+            self.write()
+
+    def flush(self) -> None:
+        """Rewrite the manifest if units were recorded since its last rewrite."""
+        if self._unwritten:
+            self.write()
 
     def todo(self) -> list[int]:
         return [i for i in range(self.n_units) if i not in self.done]
@@ -207,8 +228,11 @@ class ResumableJob:
                 self.record(entry)
                 if on_unit is not None:
                     on_unit(entry)
+            self.flush()
         except BaseException:
             tasks.close()  # the pool's workers ended (run_tasks), their files no longer written
+            with contextlib.suppress(OSError):  # the finished units vouched for (a full disk: the job's error says)
+                self.flush()
             if cfg.scheduler is None:
                 with contextlib.suppress(OSError):  # the job's own error is the one to say
                     for folder in self.folders():

@@ -113,6 +113,42 @@ def test_a_killed_job_resumes_to_the_same_manifest_redoing_only_what_is_unvouche
     assert os.stat(d / unit_file(0)).st_mtime_ns == kept  # a vouched unit is not redone
 
 
+@pytest.mark.parametrize("write_s, most_writes", [(0.0, 41), (1.0, 2)], ids=["cheap", "costly"])
+def test_a_manifest_costly_to_rewrite_waits_for_several_units_and_a_stop_still_records_every_finished_one(
+        tmp_path, monkeypatch, write_s, most_writes):
+    """The manifest was rewritten after every unit: a job of 100 000 one-image shards (a 17 MB manifest, ~1 s to
+    write) spent hours rewriting it. A rewrite that costs much (the job's clock moves only while it writes) waits;
+    a cheap one is made after every unit; the job's end and its interruption write every finished unit."""
+    import json
+
+    import envisat_pose.resumable as resumable
+
+    now, writes = [0.0], []
+    real_write = resumable.atomic_write_text
+
+    def timed_write(path, text):
+        writes.append(path)
+        now[0] += write_s
+        real_write(path, text)
+
+    monkeypatch.setattr(resumable, "atomic_write_text", timed_write)
+    for fail_at, out in ((-1, tmp_path / "whole"), (30, tmp_path / "stopped")):
+        writes.clear()
+        job = make_job(out, n=40)
+        job.clock = lambda: now[0]
+        job.resume(job.open())
+        if fail_at < 0:
+            manifest = job.run(write_unit, lambda i: (str(out), i, fail_at), RunnerConfig("inline"))
+            assert manifest["complete"] and len(manifest["units"]) == 40
+        else:
+            with pytest.raises(KeyboardInterrupt):
+                job.run(write_unit, lambda i: (str(out), i, fail_at), RunnerConfig("inline"))
+        on_disk = json.loads((out / "manifest.json").read_text())
+        assert [e["index"] for e in on_disk["units"]] == list(range(40 if fail_at < 0 else fail_at))
+        if fail_at < 0:
+            assert len(writes) == most_writes  # the resume's write, then one per unit or one at the end
+
+
 def test_a_unit_that_fails_its_own_check_is_redone(tmp_path):
     run_job(tmp_path)
     job = make_job(tmp_path, verify=lambda entry, path: entry["index"] != 2)
