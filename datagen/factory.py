@@ -5,9 +5,9 @@ seeds (`SeedSequence(root, spawn_key=(shard,))`, then `(shard, i)` per sample) a
 atomically. Where it runs (this process, a process pool, a Dask cluster) changes nothing in its bytes.
 `run_generate` runs the dataset as the core runner's resumable job (`dataset_job`): it skips the finished shards
 (their sha256 verified), runs the rest and keeps `manifest.json` current after each shard (or a few:
-resumable.MANIFEST_REWRITE_WAIT), so a killed run resumes where it stopped. Its config lives in datagen/generate_config.py, its views (seeds, random and
-sequence-mode view sampling) in datagen/views.py; here: the appearance draws, the corruption draws, one sample, one
-shard and the job.
+resumable.MANIFEST_REWRITE_WAIT), so a killed run resumes where it stopped. Its config lives in
+datagen/generate_config.py, its views (seeds, random and sequence-mode view sampling) in datagen/views.py; here:
+the appearance draws, the corruption draws, one sample, one shard and the job.
 """
 
 from __future__ import annotations
@@ -348,8 +348,9 @@ def warn_if_dark(cfg: GenerateConfig) -> None:
 
 def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
     """The dataset in out_dir as the core's resumable job: one unit per shard, the config and root seed as its
-    identity, a shard kept on resume only when it passes the core's one shard check against its entry
-    (shard_reader.shard_problem: size, sha256, the recorded count of complete samples)."""
+    identity, a shard kept on resume only when its sha256 matches (the job's own check) and it passes the core's
+    one shard check against the rest of its entry (shard_reader.shard_problem: size, the recorded count of
+    complete samples from the tar's headers; not the sha256 again: a rerun read every shard twice)."""
     from envisat_pose.datagen.shards import shard_name
 
     target = load_target(cfg.target)
@@ -361,7 +362,7 @@ def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
                 "mask_values": {"background": 0, **masks},
                 "members": ["png", "json"] + (["mask.png"] if cfg.write_mask else [])
                 + (["depth.png"] if cfg.write_depth else [])},
-        verify_unit=lambda entry, path: shard_problem(path, entry) is None,
+        verify_unit=lambda entry, path: shard_problem(path, {k: v for k, v in entry.items() if k != "sha256"}) is None,
         compared_by={"config.target": "target.sha256"})  # the file, however its path is written
 
 
