@@ -141,7 +141,11 @@ def test_the_dataset_manifest_reader_names_the_field_the_folder_and_the_entry(tm
                          r"not a dataset manifest \(shards\[0\].name = '../x.tar': expected a file name"),
                         ({"shards": [{"name": "a.tar", "count": -1}]},
                          r"shards\[0\].count = -1: expected a non-negative integer"),
-                        ({"shards": [{"name": "a.tar"}]}, r"shards\[0\]: expected an entry with a name and a count")):
+                        ({"shards": [{"name": "a.tar"}]}, r"shards\[0\]: expected an entry with a name and a count"),
+                        # a shard listed twice: inspect counted its samples twice, train and export read them twice
+                        ({"shards": [{"name": "a.tar", "count": 1}, {"name": "b.tar", "count": 1},
+                                     {"name": "a.tar", "count": 1}]},
+                         r"shards\[2\].name = 'a.tar': listed twice \(also shards\[0\]\); expected each once")):
         manifest.write_text(json.dumps(record))
         with pytest.raises(InputError, match=f"^dataset '.*ds': .*{why}") as err:
             load_dataset_manifest(str(tmp_path / "ds"))
