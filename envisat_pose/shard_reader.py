@@ -123,8 +123,9 @@ def unfinished_dataset(manifest: dict) -> str | None:
 
 def _manifest_problem(manifest: dict) -> str | None:
     """What keeps a manifest from being a dataset's (None: nothing): a list 'shards' of entries, each with the
-    plain file name of a shard (each name once) and its count of samples and, where given (older datasets have no size), its size
-    (non-negative integers) and its sha256 (text); a 'config' and a 'target', where given, are tables."""
+    plain file name of a shard (each name once) and its count of samples and, where given (older datasets have no
+    size), its size (non-negative integers) and its sha256 (text); a 'config' and a 'target', where given, are
+    tables."""
     entries = manifest.get("shards")
     if not isinstance(entries, list):
         return "expected a list 'shards' of entries with a name and a count"
@@ -135,7 +136,8 @@ def _manifest_problem(manifest: dict) -> str | None:
         if e["name"] in ("", ".", "..") or os.path.basename(e["name"]) != e["name"] or "\\" in e["name"]:
             return f"shards[{i}].name = {e['name']!r}: expected a file name inside the folder"
         if first.setdefault(e["name"], i) != i:  # every reader would read its samples twice
-            return f"shards[{i}].name = {e['name']!r}: listed twice (also shards[{first[e['name']]}]); expected each once"
+            return (f"shards[{i}].name = {e['name']!r}: listed twice (also shards[{first[e['name']]}]); "
+                    "expected each once")
         for key in ("count", "bytes"):
             if key in e and not (type(e[key]) is int and e[key] >= 0):
                 return f"shards[{i}].{key} = {e[key]!r}: expected a non-negative integer"
