@@ -1,8 +1,8 @@
 """Resumable jobs (`ResumableJob`): the one protocol for outputs written unit by unit into a folder (the image
 factory's shards, a Monte Carlo campaign's blocks), run as tasks of the pools (envisat_pose/pools.py): units
 with sha256 in manifest.json, rewritten atomically after each unit (or a few, where a rewrite costs much); a
-folder of another config refused; unvouched unit files and partial files removed and redone. The manifest's file name and its one reader (`read_manifest`)
-are here; a generated dataset's manifest is checked on top of it by envisat_pose/shard_reader.py
+folder of another config refused; unvouched unit files and partial files removed and redone. The manifest's file
+name and its one reader (`read_manifest`) are here; a generated dataset's manifest is checked on top of it by envisat_pose/shard_reader.py
 (`load_dataset_manifest`).
 """
 
