@@ -4,6 +4,8 @@ No prior and no truth: the tracker buffers the first lit frames with enough name
 
 1. `pnp_state`: each frame's named corners (A-H, OpenCV px) give a pose by PnP (SQPnP, then Levenberg-Marquardt
    on the reprojection error): rho (target CoM relative to the chaser, in C, m) and the MRP p of T relative to C.
+   The tracker takes it through robust_pnp.robust_pnp: kept bit for bit where every corner passes the fit's gate,
+   else solved again by RANSAC over minimal sets, the frame's outlying corners dropped (NaN) from the window.
 2. `align_namings`: a detector's naming may flip under the half-turn about the long axis (A<->C, B<->D, E<->G,
    F<->H) from one frame to the next. The poses of one physical hypothesis turn by a few degrees per frame; a
    flip turns them by 180 deg. Each frame takes the naming (the detector's or its half-turn) whose attitude is
@@ -36,6 +38,7 @@ from envisat_pose.filtering.dynamics import propagate, rk4_step_s
 from envisat_pose.filtering.measurements import measure
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.pipelines.tracking.namings import BOX_NAMES, Namings, box_namings, renamed_state
+from envisat_pose.pipelines.tracking.robust_pnp import keypoint_pose, pose_state
 from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 
 
@@ -74,29 +77,11 @@ def pnp_state(z_px: np.ndarray, corners_T_m: np.ndarray, camera: PinholeCamera, 
               ) -> np.ndarray | None:
     """The pose of the named corners z_px (8, 2) (NaN where missing) as a 12-state (rho_C_m, 0, p_mrp, 0), or None
     with fewer than min_corners corners or when PnP fails. corners_T_m (8, 3): A-H in T."""
-    import cv2
-
     ok = np.isfinite(z_px).all(-1)
     if ok.sum() < max(min_corners, 4):
         return None
-    obj = np.ascontiguousarray(corners_T_m[ok], dtype=np.float64)
-    img = np.ascontiguousarray(z_px[ok], dtype=np.float64)
-    try:
-        good, rvec, tvec = cv2.solvePnP(obj, img, camera.K, None, flags=cv2.SOLVEPNP_SQPNP)
-        if not good:
-            return None
-        rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera.K, None, rvec, tvec)
-    except cv2.error:
-        return None
-    R_K_from_T = cv2.Rodrigues(rvec)[0]
-    t_K = tvec.reshape(3)
-    if not (np.isfinite(t_K).all() and t_K[2] > 0):
-        return None
-    x = np.zeros(N_STATE)
-    x[POS] = camera.R_K_from_C.T @ t_K + camera.pos_C_m  # rho = R_C_from_K t_K + camera position in C
-    gamma = R_K_from_T.T @ camera.R_K_from_C  # Gamma = T_from_C = (R_K_from_T)^T R_K_from_C
-    x[MRP] = dcm_to_mrp(gamma)
-    return x
+    pose = keypoint_pose(corners_T_m[ok], z_px[ok], camera.K)
+    return None if pose is None else pose_state(*pose, camera)
 
 
 def half_turn_state(x: np.ndarray) -> np.ndarray:

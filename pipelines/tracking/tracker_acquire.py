@@ -1,5 +1,6 @@
 """The Tracker's frames before a bank runs (status "acquiring", pipelines/tracking/tracker.py's docstring): each lit
-frame's named corners give a PnP pose into the window, and a full window is fitted under every naming (the cold
+frame's named corners give a PnP pose into the window (robust_pnp: the keypoints a gross outlier's frame's pose
+refuses are dropped from it and reported rejected), and a full window is fitted under every naming (the cold
 start, pipelines/tracking/acquisition.py) until a fit passes its integrity tests and starts the bank. A part of the
 Tracker (AcquiringSteps, one of its bases): its methods read and set the Tracker's own state."""
 
@@ -17,12 +18,12 @@ from envisat_pose.pipelines.tracking.acquisition import (
     batch_fits,
     initial_guess,
     naming_state,
-    pnp_state,
     renamed_window,
 )
 from envisat_pose.pipelines.tracking.focal_check import focal_problems, focal_reading
 from envisat_pose.pipelines.tracking.integrity import fit_problems, state_problems
 from envisat_pose.pipelines.tracking.noise import detection_measurement
+from envisat_pose.pipelines.tracking.robust_pnp import robust_pnp
 from envisat_pose.pipelines.tracking.tracker_config import ACQUIRING_SIGMA, TrackEstimate
 from envisat_pose.state import N_STATE
 
@@ -34,16 +35,18 @@ class AcquiringSteps:
         events: list[str] = []
         fd, t_det = (None, 0.0) if image is None else self._detect(image)
         t0 = time.perf_counter()
-        measured = np.zeros(self.K, bool)
+        measured = rejected = np.zeros(self.K, bool)
         if fd is not None:
             z, cov, p_alt = detection_measurement(fd, self.inflation, self.bias_scale)
             measured = np.isfinite(z).all(-1)
-            x_pnp = pnp_state(z, self.keypoints_T_m, self.camera, self.cfg.acquire.min_corners)
-            if x_pnp is not None:
+            pose = robust_pnp(z, cov, self.keypoints_T_m, self.camera, self.cfg.fit.gate, self.cfg.acquire.min_corners)
+            if pose is not None:  # the keypoints the frame's pose refuses never reach the window's fit
+                rejected = measured & ~pose.inliers
+                z, cov = np.where(rejected[:, None], np.nan, z), np.where(rejected[:, None, None], np.nan, cov)
                 if self.buffer and t_s - self.buffer[-1].t_s > self.cfg.acquire.max_gap_s:
                     self.buffer = []
-                self.buffer.append(FramePose(t_s, self.chaser_at(t_s), z, cov, p_alt, x_pnp))
-                self.last_pose = x_pnp
+                self.buffer.append(FramePose(t_s, self.chaser_at(t_s), z, cov, p_alt, pose.x))
+                self.last_pose = pose.x
         if len(self.buffer) >= self.cfg.acquire.frames:
             events += self._cold_start()
         t_fit = time.perf_counter() - t0
@@ -57,7 +60,7 @@ class AcquiringSteps:
             P = np.full((N_STATE, N_STATE), np.nan)
         return TrackEstimate(t_s=t_s, status="acquiring", x_hat=x.copy(), P=P, hypotheses=np.zeros((0, N_STATE)),
                              probabilities=np.zeros(0), detection=fd, naming=0 if measured.any() else -1,
-                             measured=measured, rejected=np.zeros(self.K, bool), nis=0.0, nis_dof=0, roi_px=None,
+                             measured=measured, rejected=rejected, nis=0.0, nis_dof=0, roi_px=None,
                              converged=False, events=tuple(events), timing_s=timing)
 
     def _cold_start(self) -> list[str]:
