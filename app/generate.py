@@ -68,7 +68,13 @@ def generate_line(manifest: dict, written: list[dict], out: str) -> str:
     n_all = sum(e["count"] for e in manifest["shards"])
     n_now = sum(e["count"] for e in written)
     if not written:
-        return f"nothing to do: {n_all} images already there in {len(manifest['shards'])} shards in {out}"
-    before = f"; {n_all - n_now} images already there" if n_all > n_now else ""
-    return (f"wrote {n_now} images in {len(written)} shards to {out}{before} (manifest.json, "
+        return (f"nothing to do: {counted(n_all, 'image')} already there in {counted(len(manifest['shards']), 'shard')}"
+                f" in {out}")
+    before = f"; {counted(n_all - n_now, 'image')} already there" if n_all > n_now else ""
+    return (f"wrote {counted(n_now, 'image')} in {counted(len(written), 'shard')} to {out}{before} (manifest.json, "
             "generate.config.toml)")
+
+
+def counted(n: int, noun: str) -> str:
+    """'1 image', '2 images'."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
