@@ -10,18 +10,25 @@ import numpy as np
 
 from envisat_pose.config import InputError
 from envisat_pose.datagen.corrupt import apply_corruption
-from envisat_pose.datagen.shards import decode_png, encode_png, shard_name
+from envisat_pose.datagen.shards import SHARD_GLOB, decode_png, encode_png, shard_name
 from envisat_pose.geometry import CORNER_NAMES, EDGES
 from envisat_pose.io import atomic_path
+from envisat_pose.resumable import manifest_path
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, read_shard, shard_problems
 
 
 def verify_dataset(out_dir: str) -> list[str]:
     """Problems of a dataset, one line each (empty: every shard present and matching its manifest entry by the
     core's one shard check, shard_reader.shard_problem: size, sha256, samples; and no shard-*.tar there that the
-    manifest does not list)."""
+    manifest does not list). A manifest there that is unreadable or not a dataset's is its one problem: a damaged
+    dataset. InputError when out_dir is no folder or holds no manifest: not a dataset."""
     out_dir = os.fspath(out_dir)
-    manifest = load_dataset_manifest(out_dir)
+    try:
+        manifest = load_dataset_manifest(out_dir)
+    except InputError as err:
+        if not os.path.isfile(manifest_path(out_dir)):
+            raise
+        return [str(err).removeprefix(f"dataset {out_dir!r}: ")]
     found = {}  # shard name: its problem
     listed = {e["name"]: e for e in manifest["shards"]}
     names = [shard_name(idx) for idx in range(int(manifest.get("num_shards", len(listed))))]
@@ -34,7 +41,7 @@ def verify_dataset(out_dir: str) -> list[str]:
         if issue:
             found[entry["name"]] = f"{entry['name']}: {issue}"
     problems = [found[n] for n in names if n in found]
-    for path in sorted(glob.glob(os.path.join(glob.escape(out_dir), "shard-*.tar"))):
+    for path in sorted(glob.glob(os.path.join(glob.escape(out_dir), SHARD_GLOB))):
         name = os.path.basename(path)
         if name not in listed and name not in names:  # beyond num_shards: another run's, or a copied-in file
             problems.append(f"{name}: not part of the dataset (the manifest does not list it; a `shard-*.tar` "

@@ -125,7 +125,7 @@ def _manifest_problem(manifest: dict) -> str | None:
     """What keeps a manifest from being a dataset's (None: nothing): a list 'shards' of entries, each with the
     plain file name of a shard (each name once) and its count of samples and, where given (older datasets have no
     size), its size (non-negative integers) and its sha256 (text); a 'config' and a 'target', where given, are
-    tables."""
+    tables; 'num_shards' and 'num_images', where given, non-negative integers."""
     entries = manifest.get("shards")
     if not isinstance(entries, list):
         return "expected a list 'shards' of entries with a name and a count"
@@ -146,6 +146,9 @@ def _manifest_problem(manifest: dict) -> str | None:
     for key in ("config", "target"):
         if manifest.get(key) is not None and not isinstance(manifest[key], dict):
             return f"{key}: expected a table, got {type(manifest[key]).__name__}"
+    for key in ("num_shards", "num_images"):
+        if key in manifest and not (type(manifest[key]) is int and manifest[key] >= 0):
+            return f"{key} = {manifest[key]!r}: expected a non-negative integer"
     return None
 
 

@@ -4,10 +4,34 @@ nothing written; a damaged manifest is a problem verify finds (exit 1), not a us
 '1 image in 1 shard'."""
 
 
+import pytest
 
+from envisat_pose.app.cli import main
 from envisat_pose.app.generate import generate_line
 
 FLAGS = ["--num-images", "2", "--shard-size", "1", "--resolution", "64", "--seed", "3", "--quiet"]
+
+
+@pytest.mark.parametrize("text, problem", [
+    ("{", "unreadable manifest.json"),
+    ("[1]", "manifest.json holds a JSON list"),
+    ('{"shards": 3}', "expected a list 'shards'"),
+    ('{"shards": [], "num_shards": "x"}', "num_shards = 'x': expected a non-negative integer"),
+    ('{"shards": [], "num_shards": null}', "num_shards = None: expected a non-negative integer"),
+])
+def test_verify_finds_a_damaged_manifest_a_problem_exit_1(tmp_path, capsys, text, problem):
+    (tmp_path / "manifest.json").write_text(text)
+    (tmp_path / "shard-000000.tar").write_bytes(b"")
+    assert main(["dataset", "verify", str(tmp_path)]) == 1
+    out = capsys.readouterr().out
+    assert out.startswith("PROBLEM ") and problem in out and f"{tmp_path}: 1 problem" in out, out
+
+
+def test_verify_of_a_folder_that_is_no_dataset_is_still_a_usage_error(tmp_path, capsys):
+    assert main(["dataset", "verify", str(tmp_path / "nowhere")]) == 2
+    assert "no such folder" in capsys.readouterr().err
+    assert main(["dataset", "verify", str(tmp_path)]) == 2  # no manifest: not a dataset
+    assert "no manifest.json" in capsys.readouterr().err
 
 
 def test_the_end_line_counts_one_image_in_one_shard():
