@@ -351,7 +351,7 @@ def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
     identity, a shard kept on resume only when its sha256 matches (the job's own check) and it passes the core's
     one shard check against the rest of its entry (shard_reader.shard_problem: size, the recorded count of
     complete samples from the tar's headers; not the sha256 again: a rerun read every shard twice)."""
-    from envisat_pose.datagen.shards import shard_name
+    from envisat_pose.datagen.shards import SHARD_GLOB, shard_name
 
     target = load_target(cfg.target)
     masks = target_mask_values(target)
@@ -363,7 +363,8 @@ def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
                 "members": ["png", "json"] + (["mask.png"] if cfg.write_mask else [])
                 + (["depth.png"] if cfg.write_depth else [])},
         verify_unit=lambda entry, path: shard_problem(path, {k: v for k, v in entry.items() if k != "sha256"}) is None,
-        compared_by={"config.target": "target.sha256"})  # the file, however its path is written
+        compared_by={"config.target": "target.sha256"},  # the file, however its path is written
+        unit_glob=SHARD_GLOB)  # dataset verify's stray shards: refused, never removed (not the job's)
 
 
 @locks_output("out_dir", "generate")

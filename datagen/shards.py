@@ -31,6 +31,9 @@ PNG_PARAMS = {
 }
 
 
+SHARD_GLOB = "shard-*.tar"  # every shard's name matches it (a file matching it that the manifest lacks is a stray)
+
+
 def shard_name(index: int) -> str:
     """File name of shard `index`: shard-000000.tar."""
     return f"shard-{index:06d}.tar"

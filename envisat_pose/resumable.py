@@ -1,7 +1,8 @@
 """Resumable jobs (`ResumableJob`): the one protocol for outputs written unit by unit into a folder (the image
 factory's shards, a Monte Carlo campaign's blocks), run as tasks of the pools (envisat_pose/pools.py): units
 with sha256 in manifest.json, rewritten atomically after each unit (or a few, where a rewrite costs much); a
-folder of another config refused; unvouched unit files and partial files removed and redone. The manifest's file
+folder of another config refused; unvouched unit files and partial files removed and redone, a file named as a unit
+but beyond the job's units refused. The manifest's file
 name and its one reader (`read_manifest`) are here; a generated dataset's manifest is checked on top of it by envisat_pose/shard_reader.py
 (`load_dataset_manifest`).
 """
@@ -9,6 +10,7 @@ name and its one reader (`read_manifest`) are here; a generated dataset's manife
 from __future__ import annotations
 
 import contextlib
+import glob
 import json
 import os
 import time
@@ -71,7 +73,8 @@ class ResumableJob:
     The protocol: a folder holds one job (`identity`: the full config, the root seed); a rerun with another is
     refused before anything is written. A rerun keeps a unit the manifest lists only when its file still has the
     recorded sha256 (and passes `verify_unit`); every other unit file, and every partial file of a killed
-    writer, is removed and redone.
+    writer, is removed and redone. A file named as a unit (`unit_glob`) that is none of the job's units (a shard
+    beyond the dataset's last, copied in) is not the job's to remove: the run is refused naming it.
 
     format: the manifest's format string. what: the job's output in messages ('dataset', 'campaign').
     units_key: the manifest's list of unit entries ('shards', 'blocks'). unit_file(i): unit i's path relative
@@ -83,7 +86,9 @@ class ResumableJob:
     are among them); a folder without a manifest that holds anything else is not this job's and is refused.
     compared_by: identity fields (flattened) compared by a header field instead ({'config.target':
     'target.sha256'}: a target file given by another path, from another folder, is the same file), where the
-    earlier manifest records that header field.
+    earlier manifest records that header field. unit_glob: the glob of a unit file's path relative to out_dir
+    ('shard-*.tar'; None: not checked), whose matches must all be units of the job (a reader that globs the folder
+    would take a stray one in).
     """
 
     out_dir: str
@@ -98,6 +103,7 @@ class ResumableJob:
     added_defaults: dict = field(default_factory=dict)
     own_entries: tuple = ()
     compared_by: dict = field(default_factory=dict)
+    unit_glob: str | None = None
     clock: Callable[[], float] = time.monotonic
     done: dict[int, dict] = field(default_factory=dict, init=False)
     _unwritten: int = field(default=0, init=False)  # units recorded since the manifest's last rewrite
@@ -137,6 +143,7 @@ class ResumableJob:
             raise InputError(f"out_dir {self.out_dir!r} holds a {self.what} of another config or seed ("
                              + ", ".join(shown(k) for k in diff[:3]) + (", ..." if len(diff) > 3 else "")
                              + "); rerun with the same settings or use another folder")
+        self._refuse_stray_units()
         return manifest
 
     def _refuse_foreign_entries(self) -> None:
@@ -151,6 +158,20 @@ class ResumableJob:
             count = "1 entry" if len(names) == 1 else f"{len(names)} entries"
             raise InputError(f"out_dir {self.out_dir!r} holds {count} ({shown}) and no {MANIFEST}: not a "
                              f"{self.what} to resume; expected an empty or new folder (use another one)")
+
+    def _refuse_stray_units(self) -> None:
+        """InputError in one line when out_dir holds files matching unit_glob that are none of the job's units."""
+        if self.unit_glob is None:
+            return
+        ours = {os.path.normpath(self.unit_file(i)) for i in range(self.n_units)}
+        found = sorted(os.path.relpath(p, self.out_dir) for p in glob.glob(os.path.join(glob.escape(self.out_dir),
+                                                                                         self.unit_glob)))
+        strays = [name for name in found if name not in ours]
+        if strays:
+            shown = ", ".join(strays[:3]) + (", ..." if len(strays) > 3 else "")
+            raise InputError(f"out_dir {self.out_dir!r} holds {shown}: named like the {self.what}'s {self.units_key} "
+                             f"but none of its {self.n_units} (copied in, or another {self.what}'s; a reader globbing "
+                             f"{self.unit_glob!r} would take it in); move it out or use another folder")
 
     def open(self) -> dict | None:
         """Refuse another job's folder, then create the folder (and the units' subfolders), prove it writable

@@ -3,6 +3,8 @@ refused by generate (not left behind under exit 0); a finished dataset on read-o
 nothing written; a damaged manifest is a problem verify finds (exit 1), not a usage error; the end line counts
 '1 image in 1 shard'."""
 
+import os
+import shutil
 
 import pytest
 
@@ -10,6 +12,35 @@ from envisat_pose.app.cli import main
 from envisat_pose.app.generate import generate_line
 
 FLAGS = ["--num-images", "2", "--shard-size", "1", "--resolution", "64", "--seed", "3", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """A finished two-shard dataset (one 64 px image a shard), copied by each test that changes it."""
+    out = str(tmp_path_factory.mktemp("gen") / "ds")
+    assert main(["generate", *FLAGS, "--out", out]) == 0
+    return out
+
+
+def state(folder):
+    """Each entry's (name, inode, mtime): what a run that writes nothing leaves as it was."""
+    return sorted((e.name, e.inode(), e.stat().st_mtime_ns) for e in os.scandir(folder))
+
+
+def test_a_stray_shard_verify_reports_is_refused_by_generate_not_kept_under_exit_0(finished, tmp_path, capsys):
+    out = str(tmp_path / "ds")
+    shutil.copytree(finished, out)
+    shutil.copy(os.path.join(out, "shard-000001.tar"), os.path.join(out, "shard-000004.tar"))  # beyond num_shards 2
+    assert main(["dataset", "verify", out]) == 1
+    assert "shard-000004.tar: not part of the dataset" in capsys.readouterr().out
+    before = state(out)
+    assert main(["generate", *FLAGS, "--out", out]) == 2
+    err = capsys.readouterr().err
+    assert "shard-000004.tar" in err and "none of its 2" in err and len(err.strip().splitlines()) == 1, err
+    assert state(out) == before  # refused before anything was written; the user's file is theirs to move
+    os.remove(os.path.join(out, "shard-000004.tar"))
+    assert main(["generate", *FLAGS, "--out", out]) == 0
+    assert main(["dataset", "verify", out]) == 0
 
 
 @pytest.mark.parametrize("text, problem", [
