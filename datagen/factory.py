@@ -367,18 +367,46 @@ def dataset_job(cfg: GenerateConfig, out_dir: str) -> ResumableJob:
         unit_glob=SHARD_GLOB)  # dataset verify's stray shards: refused, never removed (not the job's)
 
 
-@locks_output("out_dir", "generate")
 def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: str = "local",
                  scheduler: str | None = None, progress: bool = False,
                  on_shard: Callable[[dict], None] | None = None) -> dict:
     """Generate (or finish) the dataset of `cfg` in out_dir; returns the final manifest.
 
-    on_shard, if given, is called with each finished shard's manifest entry once it is recorded.
+    on_shard, if given, is called with each finished shard's manifest entry once it is recorded. A finished
+    dataset in a folder this process cannot write (read-only media) is returned as it is, nothing written
+    (`finished_unwritable`); anywhere else the run holds the folder's lock (out_lock) while it works.
     """
 
     cfg, out_dir = config_arg(cfg, GenerateConfig), path_arg(out_dir, "out_dir")
     check(backend in ("local", "dask"), "backend", backend, "'local' or 'dask'")
     check(type(workers) is int and workers >= 1, "workers", workers, "at least 1 worker process (an integer)")
+    finished = finished_unwritable(cfg, out_dir)
+    if finished is not None:
+        return finished
+    return _generate(cfg, out_dir, workers, backend, scheduler, progress, on_shard)
+
+
+def finished_unwritable(cfg: GenerateConfig, out_dir: str) -> dict | None:
+    """The manifest of cfg's finished dataset in out_dir when this process cannot write the folder (a read-only
+    copy, another user's) and the dataset verifies whole (datagen.dataset.verify_dataset: every shard's sha256,
+    no stray or partial file): a rerun has nothing to do there, and a run's writes (its lock file, the manifest
+    and config rewritten with what they hold) would only refuse it. None otherwise: the run goes on, refused where
+    it must write. InputError as a rerun's: a folder of another config or seed, a stray shard."""
+    if not os.path.isdir(out_dir) or os.access(out_dir, os.W_OK):  # root: False on a read-only mount only
+        return None
+    from envisat_pose.datagen.dataset import verify_dataset
+
+    job = dataset_job(cfg, out_dir)
+    previous = job.previous()
+    if previous is None or not previous.get("complete") or verify_dataset(out_dir):
+        return None
+    return previous
+
+
+@locks_output("out_dir", "generate")
+def _generate(cfg: GenerateConfig, out_dir: str, workers: int, backend: str, scheduler: str | None,
+              progress: bool, on_shard: Callable[[dict], None] | None) -> dict:
+    """run_generate's work under the folder's lock."""
     # one rasterizer thread count per worker: the usable cores shared among the workers that start (one a shard)
     runner = RunnerConfig(backend, workers, scheduler, thread_env(workers, units=cfg.num_shards))
     runner.validate()

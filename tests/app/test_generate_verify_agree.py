@@ -43,6 +43,33 @@ def test_a_stray_shard_verify_reports_is_refused_by_generate_not_kept_under_exit
     assert main(["dataset", "verify", out]) == 0
 
 
+def test_a_finished_dataset_on_read_only_media_is_nothing_to_do_and_nothing_is_written(finished, tmp_path,
+                                                                                          monkeypatch, capsys):
+    """Read-only media: the folder refuses every write (os.access says so, root included on a read-only mount);
+    root passes a chmod, so the test makes os.access say what a read-only mount would."""
+    out = str(tmp_path / "ds")
+    shutil.copytree(finished, out)
+    real_access = os.access
+
+    def read_only(path, mode, *args, **kwargs):
+        if mode & os.W_OK and os.path.realpath(path).startswith(os.path.realpath(out)):
+            return False
+        return real_access(path, mode, *args, **kwargs)
+
+    monkeypatch.setattr(os, "access", read_only)
+    before = state(out)
+    os.chmod(out, 0o555)
+    try:
+        rc = main(["generate", *FLAGS, "--out", out])
+    finally:
+        os.chmod(out, 0o755)
+    captured = capsys.readouterr()
+    assert rc == 0 and captured.out.startswith("nothing to do: 2 images already there in 2 shards"), captured
+    assert state(out) == before  # no lock file, no manifest or config rewritten
+    assert main(["generate", "--num-images", "3", *FLAGS[2:], "--out", out]) == 2  # another config: still refused
+    assert "another config or seed" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("text, problem", [
     ("{", "unreadable manifest.json"),
     ("[1]", "manifest.json holds a JSON list"),

@@ -140,6 +140,10 @@ def test_every_jobs_function_is_refused_on_a_held_output(module, name, arg, fold
         from envisat_pose.pipelines.detector.train import OnlineConfig
 
         given = {"cfg": TrainConfig(), "data_dirs": [], "online": OnlineConfig(GenerateConfig(resolution_px=64), 1)}
+    if name == "run_generate":  # locked after its arguments' checks (a finished dataset read-only takes no lock)
+        from envisat_pose.datagen.generate_config import GenerateConfig
+
+        given = {"cfg": GenerateConfig(resolution_px=64)}
     with pytest.raises(InputError) as err:
         fn(**given, **{arg: str(out)})
     assert str(err.value).startswith(f"{arg} ") and refused(str(err.value), out, first.pid, "someverb"), err.value
