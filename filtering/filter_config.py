@@ -13,6 +13,12 @@ from envisat_pose.gates import GATE_PROB
 KERNELS = ("fast", "reference")  # FilterConfig.kernel: filtering/fast.py's kernels, filtering/ukf.py's numpy
 SIGMA_CHARTS = ("additive", "rotation", "screw")  # FilterConfig.sigma_chart (filtering/ukf.py: CHART_MAPS)
 VISIBILITY_FROM = ("spread", "mean")  # FilterConfig.visibility_from
+# The sigmas a filter or its measurements take (FilterConfig's p0_sigma and q_sigma, MeasurementConfig's noise, the
+# tracker's detector_q_sigma): far beyond any physical noise either way, inside where their squares and the
+# filter's matrices stay finite and positive (a noise of 1e200 m overflowed its square, one of 1e-300 m made R
+# singular, a P0 of 1e100 made the prior singular: each a traceback after the truth was simulated).
+SIGMA_MAX = 1e12
+SIGMA_MIN = 1e-12  # a positive sigma's least (q_sigma may also be 0: no process noise)
 
 
 def check_kernel(kernel: str) -> None:
@@ -92,8 +98,10 @@ class FilterConfig(Config):
         check(0.0 < self.alpha <= 1.0, f"{p}alpha", self.alpha, "a sigma-point spread in (0, 1]")
         check(self.beta >= 0.0, f"{p}beta", self.beta, "a non-negative number")
         check(12 + self.kappa > 0, f"{p}kappa", self.kappa, "a number with 12 + kappa > 0")
-        check(all(s > 0 for s in self.p0_sigma), f"{p}p0_sigma", list(self.p0_sigma), "four positive sigmas")
-        check(all(s >= 0 for s in self.q_sigma), f"{p}q_sigma", list(self.q_sigma), "four non-negative sigmas")
+        check(all(SIGMA_MIN <= s <= SIGMA_MAX for s in self.p0_sigma), f"{p}p0_sigma", list(self.p0_sigma),
+              f"four positive sigmas in [{SIGMA_MIN:g}, {SIGMA_MAX:g}]")
+        check(all(s == 0 or SIGMA_MIN <= s <= SIGMA_MAX for s in self.q_sigma), f"{p}q_sigma", list(self.q_sigma),
+              f"four sigmas, each 0 or in [{SIGMA_MIN:g}, {SIGMA_MAX:g}]")
         check(0.0 <= self.gate_prob < 1.0, f"{p}gate_prob", self.gate_prob, "a probability in [0, 1) (0: no gate)")
         check(self.gate_lockout_steps >= 1, f"{p}gate_lockout_steps", self.gate_lockout_steps, "at least 1 step")
         check(0.0 < self.adaptive_r_rate <= 1.0, f"{p}adaptive_r_rate", self.adaptive_r_rate, "a rate in (0, 1]")

@@ -19,6 +19,7 @@ from typing import Literal
 import numpy as np
 
 from envisat_pose.config import Config, check
+from envisat_pose.filtering.filter_config import SIGMA_MAX, SIGMA_MIN
 from envisat_pose.filtering.measurements import (
     KINDS,
     add_noise,
@@ -56,9 +57,9 @@ class MeasurementConfig(Config):
 
     def validate(self, prefix: str = "measurement") -> None:
         p = f"{prefix}." if prefix else ""
-        check(self.sigma_m > 0, f"{p}sigma_m", self.sigma_m, "a positive noise sigma in metres")
-        check(self.sigma_px > 0, f"{p}sigma_px", self.sigma_px, "a positive noise sigma in pixels")
-        check(self.sigma_range_m > 0, f"{p}sigma_range_m", self.sigma_range_m, "a positive noise sigma in metres")
+        for name, unit in (("sigma_m", "metres"), ("sigma_px", "pixels"), ("sigma_range_m", "metres")):
+            check(SIGMA_MIN <= getattr(self, name) <= SIGMA_MAX, f"{p}{name}", getattr(self, name),
+                  f"a positive noise sigma in {unit}, in [{SIGMA_MIN:g}, {SIGMA_MAX:g}]")
         check(self.max_markers is None or self.max_markers >= 1, f"{p}max_markers", self.max_markers,
               "an integer from 1 to the target's number of keypoints (omit it for all)")
         check(0.0 <= self.failure_prob < 1.0, f"{p}failure_prob", self.failure_prob, "a probability in [0, 1)")

@@ -13,6 +13,7 @@ from typing import ClassVar
 import numpy as np
 
 from envisat_pose.config import Config, check
+from envisat_pose.filtering.filter_config import SIGMA_MAX, SIGMA_MIN
 from envisat_pose.gates import GATE_PROB, chi2_gate
 from envisat_pose.pipelines.tracking.noise import CORRELATION_IN, CORRELATION_MODELS
 
@@ -334,9 +335,10 @@ class NoiseConfig(Config):
               f"one of {', '.join(CORRELATION_MODELS)}")
         check(self.correlation_in in CORRELATION_IN, f"{p}correlation_in", self.correlation_in,
               f"one of {', '.join(CORRELATION_IN)}")
-        check(len(self.detector_q_sigma) == 4 and all(q >= 0 for q in self.detector_q_sigma),
-              f"{p}detector_q_sigma", list(self.detector_q_sigma),
-              "four non-negative sigmas per sqrt(s), as filter.q_sigma (m, m/s, MRP, rad/s)")
+        check(len(self.detector_q_sigma) == 4 and all(q == 0 or SIGMA_MIN <= q <= SIGMA_MAX
+                                                      for q in self.detector_q_sigma),
+              f"{p}detector_q_sigma", list(self.detector_q_sigma), f"four sigmas per sqrt(s), each 0 or in "
+              f"[{SIGMA_MIN:g}, {SIGMA_MAX:g}], as filter.q_sigma (m, m/s, MRP, rad/s)")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,41 @@
+"""A user's config at the edges: values that built a config and then broke the job (a traceback after the truth
+was simulated, a message naming a field the user never set) refused when the config is built, naming the field
+the user gave, its value and what is expected."""
+
+from __future__ import annotations
+
+import pytest
+
+from envisat_pose.config import ConfigError
+from envisat_pose.pipelines.campaigns.estimate import EstimateConfig
+from envisat_pose.pipelines.jobs import resolve_job
+from envisat_pose.pipelines.tracking.tracker_config import NoiseConfig
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    ({"measurement": {"sigma_m": 1e200}}, "measurement.sigma_m"),  # its square overflowed: OverflowError
+    ({"measurement": {"sigma_m": 1e-300}}, "measurement.sigma_m"),  # R singular: LinAlgError
+    ({"measurement": {"sigma_px": 1e160}}, "measurement.sigma_px"),
+    ({"measurement": {"sigma_range_m": 1e-200}}, "measurement.sigma_range_m"),
+    ({"filter": {"p0_sigma": [1e100, 1.0, 1.0, 1.0]}}, "filter.p0_sigma"),  # the prior singular
+    ({"filter": {"p0_sigma": [1.0, 1.0, 1.0, 1e-200]}}, "filter.p0_sigma"),
+    ({"filter": {"q_sigma": [0.0, 0.0, 0.0, 1e200]}}, "filter.q_sigma"),
+])
+def test_a_sigma_the_filter_cannot_square_is_refused_when_built(kwargs, field):
+    with pytest.raises(ConfigError) as err:
+        EstimateConfig(**kwargs)
+    assert err.value.field == field and "[1e-12, 1e+12]" in err.value.expected
+
+
+def test_a_sigma_out_of_bounds_in_a_file_is_refused_naming_it(tmp_path):
+    cfg = tmp_path / "huge.toml"
+    cfg.write_text("[measurement]\nsigma_m = 1e308\n")
+    with pytest.raises(ConfigError, match=r"^measurement\.sigma_m = 1e\+308: expected a positive noise sigma"):
+        resolve_job("montecarlo", "default", str(cfg))
+
+
+def test_sigmas_within_bounds_and_a_zero_process_noise_stay_accepted():
+    cfg = EstimateConfig(measurement={"sigma_m": 1e-9}, filter={"q_sigma": [0.0, 0.0, 1e-12, 1e12]})
+    assert cfg.measurement.sigma_m == 1e-9 and cfg.filter.q_sigma == (0.0, 0.0, 1e-12, 1e12)
+    with pytest.raises(ConfigError, match="detector_q_sigma"):
+        NoiseConfig(detector_q_sigma=(0.0, 1e200, 0.0, 0.0))
