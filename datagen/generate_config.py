@@ -20,7 +20,7 @@ from envisat_pose.config import Config, ConfigError, Derived, check, derived, fr
 from envisat_pose.datagen.appearance import CLASSES
 from envisat_pose.datagen.clearance import farthest_depth_m, target_file_boxes
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
-from envisat_pose.datagen.scenario import EARTH_RADIUS_M, ScenarioConfig, scenario_dict
+from envisat_pose.datagen.scenario import EARTH_RADIUS_M, ScenarioConfig, scenario_dict, sequence_scenario
 from envisat_pose.datagen.target_scene import scene_clip_planes_m, size_ratio
 from envisat_pose.geometry import load_camera
 from envisat_pose.state import MRP, POS
@@ -409,6 +409,8 @@ class GenerateConfig(Config):
                   f"({zfar_m:.0f} m)")
         if self.mode == "sequence":
             self._check_sequence_target_size(p)
+            seq = self.sequence  # the truth it simulates: a sequence too long for it named by num_images
+            sequence_scenario(seq.scenario, seq.range_scale, self.num_images, seq.frame_dt_s, self.seed, self.target, prefix)
 
     def _check_sequence_target_size(self, p: str) -> None:
         """ConfigError naming sequence.scenario (an unknown name, too) when the scenario's first frame shows the

@@ -22,6 +22,7 @@ from envisat_pose.target import DEFAULT_TARGET, load_target
 
 EARTH_RADIUS_M = 6378137.0  # WGS-84 equatorial radius, used only to reject orbits inside the Earth
 MIN_PHYSICS_DT_S = 1e-4  # s: RK4 at 0.05 s is already exact to 1e-8 m over an orbit (reference sheet)
+MAX_OUTPUT_STEPS = 10_000_000  # samples of a truth's output grid
 MAX_PHYSICS_STEPS = 50_000_000  # RK4 steps per simulation: ~100k steps/s, so at most ~10 minutes
 # the most a body may turn in one RK4 step of the truth: at 0.05 rad the torque-free energy and momentum hold to
 # ~1e-8 over minutes; a 1 s step of a tumble at 0.79 rad/s (8 s period) drifted the energy 0.27 % in 120 s
@@ -147,7 +148,9 @@ class ScenarioConfig(Config):
         check(self.dt_s > 0, f"{p}dt_s", self.dt_s, "a positive output step in seconds")
         check(self.dt_s <= self.duration_s, f"{p}duration_s", self.duration_s,
               f"a duration of at least one output step (dt_s = {self.dt_s:g} s)")
-        check(self.duration_s / self.dt_s <= 10_000_000, f"{p}dt_s", self.dt_s, "at most 1e7 output steps in duration_s")
+        check(self.duration_s / self.dt_s <= MAX_OUTPUT_STEPS, f"{p}duration_s", self.duration_s,
+              f"at most {MAX_OUTPUT_STEPS:.0e} output steps of dt_s = {self.dt_s:g} s (a shorter duration_s or a "
+              "longer dt_s)")
         check(MIN_PHYSICS_DT_S <= self.max_physics_dt_s <= 1.0, f"{p}max_physics_dt_s", self.max_physics_dt_s,
               f"a physics step in [{MIN_PHYSICS_DT_S:g}, 1] s (RK4 accuracy; smaller steps only cost time)")
         steps = (self.n_out - 1) * self.substeps
@@ -268,6 +271,22 @@ def scenario_config(name: str = "default", **overrides) -> ScenarioConfig:
     """A validated named scenario with optional top-level overrides (duration_s=..., seed=...); its `scenario`
     field is name."""
     return from_dict(ScenarioConfig, deep_update({**scenario_dict(name), "scenario": name}, overrides), prefix="")
+
+
+def sequence_scenario(name: str, range_scale: float, num_images: int, frame_dt_s: float, seed: int, target: str,
+                      prefix: str = "") -> ScenarioConfig:
+    """The truth an image-factory sequence of num_images frames frame_dt_s apart simulates: the named scenario of
+    `target` (its file) started range_scale times as far (scaled_start), from `seed`. A sequence longer than a
+    simulation takes (MAX_OUTPUT_STEPS frames, MAX_PHYSICS_STEPS RK4 steps at the scenario's physics step) is a
+    ConfigError naming num_images under prefix, not the duration_s or dt_s it sets (no key of a generate config)."""
+    start = {"seed": seed, "target": {"file": target}, **scaled_start(name, range_scale)}
+    one = scenario_config(name, duration_s=frame_dt_s, dt_s=frame_dt_s, **start)  # its physics step
+    most = min(MAX_OUTPUT_STEPS, MAX_PHYSICS_STEPS // one.substeps) + 1
+    check(num_images <= most, f"{prefix}.num_images" if prefix else "num_images", num_images,
+          f"at most {most} frames in sequence mode: scenario {name!r} simulates at most {MAX_OUTPUT_STEPS:.0e} "
+          f"steps and {MAX_PHYSICS_STEPS:.0e} RK4 steps, {one.substeps} per frame at sequence.frame_dt_s = "
+          f"{frame_dt_s:g} s")
+    return scenario_config(name, duration_s=max(num_images - 1, 1) * frame_dt_s, dt_s=frame_dt_s, **start)
 
 
 def scaled_start(name: str, scale: float) -> dict:

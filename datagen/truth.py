@@ -13,9 +13,8 @@ from envisat_pose.datagen.clearance import check_keepout, target_boxes
 from envisat_pose.datagen.orbit import chaser_orbit
 from envisat_pose.datagen.scenario import (
     ScenarioConfig,
-    scaled_start,
-    scenario_config,
     scenario_dict,
+    sequence_scenario,
     truth_config_json,
 )
 from envisat_pose.datagen.sim import TruthSim
@@ -87,7 +86,7 @@ def simulate_truth(cfg: ScenarioConfig, progress: bool = False) -> TruthTrajecto
 def sequence_truth(scenario: str, range_scale: float, num_images: int, frame_dt_s: float, seed: int,
                    target: str) -> tuple[ScenarioConfig, np.ndarray, np.ndarray]:
     """The truth an image-factory sequence shows: the named scenario of `target` (its file) started range_scale
-    times as far (scenario.scaled_start), simulated from `seed` over num_images frames frame_dt_s apart: (its
+    times as far (scenario.sequence_scenario), simulated from `seed` over num_images frames frame_dt_s apart: (its
     ScenarioConfig, t_s (N,), x (N, 12)). Cached: a sequence's config sizes its depth scale from it
     (generate_config.sequence_depth_m), then its frames read it (views.sequence_frames); cached by the target
     file's sha256 and the scenario's tables too, so an edited file (its inertia, a scenario file's start) is
@@ -100,8 +99,7 @@ def sequence_truth(scenario: str, range_scale: float, num_images: int, frame_dt_
 def _sequence_truth(scenario: str, range_scale: float, num_images: int, frame_dt_s: float, seed: int, target: str,
                     target_sha256: str, scenario_json: str) -> tuple[ScenarioConfig, np.ndarray, np.ndarray]:
     """sequence_truth, simulated; the last two arguments are the cache's key only (the files' contents)."""
-    scen = scenario_config(scenario, duration_s=max(num_images - 1, 1) * frame_dt_s, dt_s=frame_dt_s, seed=seed,
-                           target={"file": target}, **scaled_start(scenario, range_scale))
+    scen = sequence_scenario(scenario, range_scale, num_images, frame_dt_s, seed, target)
     traj = simulate_truth(scen)
     t_s, x = traj.t_s[:num_images].copy(), traj.x[:num_images].copy()
     t_s.flags.writeable = x.flags.writeable = False  # shared by every caller of the cache

@@ -39,3 +39,26 @@ def test_sigmas_within_bounds_and_a_zero_process_noise_stay_accepted():
     assert cfg.measurement.sigma_m == 1e-9 and cfg.filter.q_sigma == (0.0, 0.0, 1e-12, 1e12)
     with pytest.raises(ConfigError, match="detector_q_sigma"):
         NoiseConfig(detector_q_sigma=(0.0, 1e200, 0.0, 0.0))
+
+
+@pytest.mark.parametrize("kind", ["simulate", "montecarlo"])
+def test_a_duration_of_too_many_steps_is_named_with_its_value(kind, tmp_path):
+    """duration_s = 1e308 was refused as 'dt_s = 1.0: expected at most 1e7 output steps in duration_s': the field
+    and value the user gave were not in the line."""
+    cfg = tmp_path / "long.toml"
+    cfg.write_text("duration_s = 1e308\n")
+    with pytest.raises(ConfigError) as err:
+        resolve_job(kind, "default", str(cfg))
+    assert (err.value.field, err.value.value) == ("duration_s", 1e308) and "dt_s = 1 s" in err.value.expected
+
+
+@pytest.mark.parametrize("num_images", [5_000_000, 100_000_000])
+def test_a_sequence_too_long_to_simulate_names_num_images(num_images):
+    """A sequence's truth takes its duration from num_images: a sequence too long was refused naming dt_s or
+    max_physics_dt_s, keys a generate config does not have."""
+    from envisat_pose.datagen.generate_config import GenerateConfig
+
+    with pytest.raises(ConfigError) as err:
+        GenerateConfig(mode="sequence", num_images=num_images)
+    assert (err.value.field, err.value.value) == ("num_images", num_images)
+    assert "sequence.frame_dt_s = 1 s" in err.value.expected
