@@ -3,8 +3,8 @@
 Configs are frozen dataclasses (nested for sections) derived from `Config`, which validates each one when it is
 built: the constructor, `dataclasses.replace` and `from_dict` alike (a config's own `validate()` checks its ranges).
 `from_dict` builds one from plain data through its constructor and rejects unknown keys, wrong types and
-non-finite numbers. Every problem raises ConfigError naming the field, the value and what was expected, before any
-work starts.
+non-finite numbers (the constructor refuses NaN and inf too). Every problem raises ConfigError naming the field,
+the value and what was expected, before any work starts.
 """
 
 from __future__ import annotations
@@ -177,7 +177,9 @@ def _built(value: Any, hint: Any, field: str) -> Any:
     makes are taken as they are; plain data goes through _convert; what no hint describes passes."""
     if type(value) is hint or _plain(value, hint):  # the common case, at a dict lookup's cost
         if value != value or (type(value) is tuple and any(v != v for v in value)):  # NaN: no field means it
-            raise ConfigError(field, value, "a number (not NaN)")  # (inf may: validate() decides)
+            raise ConfigError(field, value, "a number (not NaN)")
+        if _infinite(value):  # nor inf, as a file's from_dict refuses it (a written config could not hold it)
+            raise ConfigError(field, value, "a finite number")
         return value
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
@@ -199,8 +201,17 @@ def _built(value: Any, hint: Any, field: str) -> Any:
         out = _convert(value, hint, field, finite=False)
         if (type(out) is float and out != out) or (type(out) is tuple and any(v != v for v in out)):
             raise ConfigError(field, value, "a number (not NaN)")  # numpy's NaN, converted: as Python's above
+        if _infinite(out):
+            raise ConfigError(field, value, "a finite number")
         return value if out == value and type(out) is type(value) else out
     return value
+
+
+def _infinite(value: Any) -> bool:
+    """Whether value is an infinite float or a tuple holding one (a list field's items, a window's ends)."""
+    if type(value) is tuple:
+        return any(_infinite(v) for v in value)
+    return isinstance(value, float) and math.isinf(value)
 
 
 @functools.lru_cache(maxsize=None)

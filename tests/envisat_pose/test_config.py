@@ -164,7 +164,7 @@ def test_an_infinite_campaign_duration_is_one_config_error_naming_it():
     from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig
 
     for bad in (math.inf, -math.inf):
-        with pytest.raises(ConfigError, match=r"^duration_s = .*: expected a positive, finite duration in seconds"):
+        with pytest.raises(ConfigError, match=r"^duration_s = -?inf: expected a finite number"):
             MonteCarloConfig(duration_s=bad, runs=2)
     with pytest.raises(ConfigError, match=r"^duration_s = nan: expected a number \(not NaN\)"):
         MonteCarloConfig(duration_s=math.nan, runs=2)

@@ -62,3 +62,31 @@ def test_a_sequence_too_long_to_simulate_names_num_images(num_images):
         GenerateConfig(mode="sequence", num_images=num_images)
     assert (err.value.field, err.value.value) == ("num_images", num_images)
     assert "sequence.frame_dt_s = 1 s" in err.value.expected
+
+
+def _infinite_builds():
+    import math
+
+    from envisat_pose.datagen.scenario import EclipseConfig, ScenarioConfig
+    from envisat_pose.filtering.filter_config import FilterConfig
+    from envisat_pose.filtering.montecarlo import MeasurementConfig
+    from envisat_pose.pipelines.runs.track import TrackConfig
+    from envisat_pose.pipelines.tracking.tracker_config import AcquireConfig
+
+    inf = math.inf
+    return [(lambda: TrackConfig(rate_hz=inf), "rate_hz"),  # every frame at t = 0 s
+            (lambda: FilterConfig(outage_q_scale=inf), "outage_q_scale"),
+            (lambda: ScenarioConfig(keepout_margin_m=inf), "keepout_margin_m"),
+            (lambda: AcquireConfig(max_gap_s=-inf), "max_gap_s"),
+            (lambda: EclipseConfig(sun_dir_N=(inf, 0.0, 0.0)), "sun_dir_N"),
+            (lambda: MeasurementConfig(outages_s=((0.0, inf),)), "outages_s")]
+
+
+@pytest.mark.parametrize("case", range(6))
+def test_inf_given_to_a_constructor_is_refused_as_a_file_refuses_it(case):
+    """A constructor took inf where from_dict (a config file, a flag) refuses it: a config the file could not
+    give, whose written config (inf as JSON's Infinity) no TOML reader takes back."""
+    build, field = _infinite_builds()[case]
+    with pytest.raises(ConfigError) as err:
+        build()
+    assert err.value.field == field and err.value.expected == "a finite number"
