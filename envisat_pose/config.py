@@ -14,6 +14,7 @@ import functools
 import json
 import math
 import os
+import re
 import tomllib
 import types
 import typing
@@ -283,9 +284,20 @@ def load_toml(path: str, what: str = "config file") -> dict:
     except IsADirectoryError:
         raise InputError(f"{what} {path!r} is a directory, expected a TOML file") from None
     except tomllib.TOMLDecodeError as err:
-        raise InputError(f"{what} {path!r} is not valid TOML: {err}") from None
+        raise InputError(f"{what} {path!r} is not valid TOML: {err}{_toml_line(path, str(err))}") from None
     except (OSError, UnicodeDecodeError) as err:
         raise InputError(f"{what} {path!r} cannot be read: {err}") from None
+
+
+def _toml_line(path: str, message: str) -> str:
+    """'; line N reads ...' for tomllib's message naming line N (a key given twice: 'Cannot overwrite a value')."""
+    at = re.search(r"\(at line (\d+), column \d+\)", message)
+    try:
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read().splitlines()[int(at.group(1)) - 1].strip() if at else ""
+    except (OSError, UnicodeDecodeError, IndexError):
+        return ""
+    return f"; line {at.group(1)} reads {text[:80]!r}" if text else ""
 
 
 def _is_number(v: Any) -> bool:

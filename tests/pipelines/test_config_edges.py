@@ -4,6 +4,8 @@ the user gave, its value and what is expected."""
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from envisat_pose.config import ConfigError
@@ -90,3 +92,15 @@ def test_inf_given_to_a_constructor_is_refused_as_a_file_refuses_it(case):
     with pytest.raises(ConfigError) as err:
         build()
     assert err.value.field == field and err.value.expected == "a finite number"
+
+
+@pytest.mark.parametrize("text, line", [("runs = 2\nduration_s = 1\nduration_s = 2\n", "line 3 reads 'duration_s = 2'"),
+                                        ("[filter]\nalpha = 1\n[filter]\nbeta = 2\n", "line 3 reads '[filter]'")])
+def test_a_key_given_twice_names_the_line_that_gives_it_again(tmp_path, text, line):
+    """tomllib's own words ('Cannot overwrite a value (at line 3, column 15)') did not name the key."""
+    from envisat_pose.config import InputError
+
+    cfg = tmp_path / "twice.toml"
+    cfg.write_text(text)
+    with pytest.raises(InputError, match=r"^config file '.*twice.toml' is not valid TOML: .*; " + re.escape(line)):
+        resolve_job("run", "default", str(cfg))
