@@ -410,7 +410,8 @@ class GenerateConfig(Config):
         if self.mode == "sequence":
             self._check_sequence_target_size(p)
             seq = self.sequence  # the truth it simulates: a sequence too long for it named by num_images
-            sequence_scenario(seq.scenario, seq.range_scale, self.num_images, seq.frame_dt_s, self.seed, self.target, prefix)
+            sequence_scenario(seq.scenario, seq.range_scale, self.num_images, seq.frame_dt_s, self.seed, self.target,
+                              prefix)
 
     def _check_sequence_target_size(self, p: str) -> None:
         """ConfigError naming sequence.scenario (an unknown name, too) when the scenario's first frame shows the
