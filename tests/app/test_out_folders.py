@@ -69,7 +69,7 @@ def test_generate_makes_its_parents_and_a_rerun_says_it_had_nothing_to_do(tmp_pa
     assert shard.stat().st_mtime_ns == before
     os.remove(shard)  # a shard lost: the rerun redoes it and says so
     assert main(args) == 0
-    assert "wrote 1 images in 1 shards to data/train; 2 images already there" in capsys.readouterr().out
+    assert "wrote 1 image in 1 shard to data/train; 2 images already there" in capsys.readouterr().out
 
 
 def test_file_outputs_make_their_parents(tmp_path, monkeypatch):
