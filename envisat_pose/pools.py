@@ -232,29 +232,51 @@ class _Without:
         return self.phrase not in record.getMessage()
 
 
-class _HeldRestarts:
-    """A logging filter for the nanny of a job's own LocalCluster: its 'Restarting worker' warnings held while the
-    job runs, then said (release: at the next result, or the job's end) or left out (a job interrupted: Ctrl-C or
-    SIGTERM to the terminal's process group ends the workers too, and the nanny, in this process, may see a worker
-    gone before this process's own signal handler has run; the job's one line says what happened). A worker that
-    died for itself is still reported, a result later."""
+# What a job's own LocalCluster logs in this process that the job's one line says already, held while it runs:
+# the nanny's 'Restarting worker' (a Ctrl-C or SIGTERM to the terminal's group ends the workers too, and the nanny
+# may see one gone before this process's own handler has run), and what an interrupted result leaves behind under
+# load: distributed's sync() cancelling its wait (a NameError logged by tornado from its `cancel` callback, a
+# library bug), then the scheduler's and the client's "Couldn't gather" of that result's key.
+HELD = {"distributed.nanny": ("Restarting worker",),
+        "tornado.application": ("sync.<locals>.cancel",),
+        "distributed.scheduler": ("Couldn't gather keys",),
+        "distributed.client": ("Couldn't gather",)}
 
-    PHRASE = "Restarting worker"
 
-    def __init__(self):
-        self.held: list = []
+class _HeldRecords:
+    """A logging filter for the loggers of HELD while a job's own LocalCluster runs: their records that hold one of
+    the phrases held, then said (release: at the next result, or the job's end) or left out (a job interrupted: the
+    job's one line says what happened). A worker that died for itself is still reported, a result later; every
+    other record passes at once."""
+
+    def __init__(self, phrases: dict[str, tuple[str, ...]] = HELD):
+        self.phrases, self.held = phrases, []
 
     def filter(self, record) -> bool:
-        if self.PHRASE in record.getMessage():
+        if any(p in record.getMessage() for p in self.phrases.get(record.name, ())):
             self.held.append(record)
             return False
         return True
 
-    def release(self, log) -> None:
-        """The held records handed to log's handlers (its own and its parents', past this filter)."""
+    def attach(self) -> None:
+        import logging
+
+        for name in self.phrases:
+            logging.getLogger(name).addFilter(self)
+
+    def detach(self) -> None:
+        import logging
+
+        for name in self.phrases:
+            logging.getLogger(name).removeFilter(self)
+
+    def release(self) -> None:
+        """The held records handed to their loggers' handlers (their own and their parents', past this filter)."""
+        import logging
+
         held, self.held = self.held, []
         for record in held:
-            log.callHandlers(record)
+            logging.getLogger(record.name).callHandlers(record)
 
 
 @contextlib.contextmanager
@@ -384,11 +406,9 @@ def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
                     cluster.close()
             raise
         client = Client(cluster)
-    import logging
-
-    interrupted, nanny, restarts = False, logging.getLogger("distributed.nanny"), _HeldRestarts()
+    interrupted, held = False, _HeldRecords()
     if cluster is not None:
-        nanny.addFilter(restarts)
+        held.attach()
     try:
         if cluster is not None:
             client.register_worker_callbacks(setup=_quiet_job_workers)  # workers restarted later run it too
@@ -396,16 +416,16 @@ def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
                    for i, args in enumerate(tasks)}
         for fut in as_completed(futures):
             result = fut.result()
-            restarts.release(nanny)
+            held.release()
             yield futures[fut], result
     except BaseException:
         interrupted = True
         raise
     finally:
         if not interrupted:
-            restarts.release(nanny)
+            held.release()
         with _closing_quietly(interrupted):
             client.close()
             if cluster is not None:
                 cluster.close()
-        nanny.removeFilter(restarts)
+        held.detach()

@@ -302,33 +302,52 @@ def test_an_interrupted_clusters_close_leaves_out_the_nannys_kill_warning_alone(
 def test_a_restart_the_nanny_reports_is_held_until_the_next_result_and_dropped_for_an_interrupted_job():
     """The nanny's 'Restarting worker' of a job's own cluster: a Ctrl-C or SIGTERM to the group ends the workers
     too, and the nanny (this process) could see one gone before this process's handler ran: under load that warning
-    came before the job's one line (the slow test above, on a machine with two benchmarks beside it). Held while the
-    job runs, it is said at release (the next result, or the job's end), and never for an interrupted job; every
+    came before the job's one line (the slow test above, on a machine with two benchmarks beside it). So did, under
+    load, what an interrupted result leaves: tornado's error from distributed's sync() cancelling its wait (a
+    NameError in its `cancel` callback), the scheduler's and the client's "Couldn't gather". Held while the job
+    runs, each is said at release (the next result, or the job's end), and never for an interrupted job; every
     other record passes at once."""
+    import functools
     import logging
 
-    from envisat_pose.pools import _HeldRestarts
+    from envisat_pose.pools import _HeldRecords
 
-    log = logging.getLogger("distributed.nanny")
-    kept = []
+    def sync():
+        def cancel():
+            pass
+        return cancel
+
+    names = ("distributed.nanny", "tornado.application", "distributed.scheduler", "distributed.client")
+    logs, kept = [logging.getLogger(n) for n in names], []
 
     class Keep(logging.Handler):
         def emit(self, record):
-            kept.append(record.getMessage())
+            kept.append((record.name, record.getMessage()))
 
-    handler, held = Keep(), _HeldRestarts()
-    log.addHandler(handler)
-    log.addFilter(held)
+    def noise():
+        logs[0].warning("Restarting worker (status=Status.running)")
+        logs[1].error("Exception in callback %r", functools.partial(sync()))
+        logs[2].error("Couldn't gather keys: {'_dask_task-ff44': 'forgotten'}")
+        logs[3].warning("Couldn't gather 1 keys, rescheduling ('_dask_task-ff44',)")
+
+    handler, held = Keep(), _HeldRecords()
+    for log in logs:
+        log.addHandler(handler)
+    held.attach()
     try:
-        log.warning("Restarting worker (status=Status.running)")
-        log.warning("Worker process still alive after 4.0 seconds, killing")
-        assert kept == ["Worker process still alive after 4.0 seconds, killing"]
-        held.release(log)  # the next result: said, once
-        held.release(log)
-        assert kept[1:] == ["Restarting worker (status=Status.running)"]
-        log.warning("Restarting worker (status=Status.running)")  # then the job is interrupted: never released
+        noise()
+        logs[0].warning("Worker process still alive after 4.0 seconds, killing")
+        logs[1].error("Exception in callback %r", print)  # another callback's error: said at once
+        assert kept == [("distributed.nanny", "Worker process still alive after 4.0 seconds, killing"),
+                        ("tornado.application", f"Exception in callback {print!r}")]
+        held.release()  # the next result: said, once each
+        held.release()
+        assert [k[0] for k in kept[2:]] == list(names)
+        assert "sync.<locals>.cancel" in kept[3][1]
+        noise()  # then the job is interrupted: never released
     finally:
-        log.removeFilter(held)
-        log.removeHandler(handler)
-    assert len(kept) == 2
+        held.detach()
+        for log in logs:
+            log.removeHandler(handler)
+    assert len(kept) == 6
 
