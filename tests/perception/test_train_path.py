@@ -92,23 +92,30 @@ def test_a_resumed_run_whose_budget_is_all_but_spent_has_nothing_to_do(tiny_data
         train(small(4, time_budget_s=41.0), tiny_dataset, str(run), resume=True, progress=False, clock=SlowClock())
 
 
+def resumed_with_left(run, data, monkeypatch, left: float):
+    """A 2-step run trained into run, its state.json set to left x its min_leg_s of budget left, then resumed for 4
+    steps with the batch sources' starts counted: (the state written, the resume's end line, the starts)."""
+    from envisat_pose.perception import train as train_module
+
+    train(small(2, time_budget_s=40.0), data, str(run), progress=False)
+    state = json.loads((run / "state.json").read_text())
+    state["time_s"] = state["budget_end_s"] - left * state["min_leg_s"]
+    (run / "state.json").write_text(json.dumps(state))
+    started = []
+    real = train_module.shard_batches
+    monkeypatch.setattr(train_module, "shard_batches", lambda *a: started.append(1) or real(*a))
+    end = train(small(4, time_budget_s=40.0), data, str(run), resume=True, progress=False)
+    return state, end, started
+
+
 def test_a_budget_left_below_the_last_legs_start_up_starts_nothing(tiny_dataset, tmp_path, monkeypatch):
     """state.json records the least of the budget a resume trains a step in (min_leg_s: the leg's wait for its
     first batch and the reserve before a step). A resume with less left than that says nothing to do before it
     starts any batch source (the renderers of an online run once started for ~3 s to train nothing); with more
     left it trains."""
-    from envisat_pose.perception import train as train_module
-
     run = tmp_path / "run"
-    train(small(2, time_budget_s=40.0), tiny_dataset, str(run), progress=False)
-    state = json.loads((run / "state.json").read_text())
+    state, end, started = resumed_with_left(run, tiny_dataset, monkeypatch, 0.9)
     assert state["min_leg_s"] >= 1.5  # at least the checkpoint's first guess (0.5 s) and the shutdown's 1 s
-    state["time_s"] = state["budget_end_s"] - 0.9 * state["min_leg_s"]
-    (run / "state.json").write_text(json.dumps(state))
-    started = []
-    real = train_module.shard_batches
-    monkeypatch.setattr(train_module, "shard_batches", lambda *a: started.append(1) or real(*a))
-    end = train(small(4, time_budget_s=40.0), tiny_dataset, str(run), resume=True, progress=False)
     assert (end["stopped_by"], end["why"], end["step"], started) == ("nothing_to_do", "budget_spent", 2, [])
     with pytest.raises(InputError, match="too short for one step"):  # a new budget shorter than that: refused
         train(small(4, time_budget_s=0.5 * state["min_leg_s"]), tiny_dataset, str(run), resume=True, progress=False)
@@ -125,17 +132,7 @@ def test_a_resume_whose_start_up_may_outlast_what_is_left_starts_nothing_and_say
     (an online run's renderers once started slower than the leg before, used what was left and trained no step).
     A resume is now given a step only with LEG_START_MARGIN (2) x min_leg_s left: this one starts no batch
     source, and its end line says what was left and what a resume needs, as the verb's one line does."""
-    from envisat_pose.perception import train as train_module
-
-    run = tmp_path / "run"
-    train(small(2, time_budget_s=40.0), tiny_dataset, str(run), progress=False)
-    state = json.loads((run / "state.json").read_text())
-    state["time_s"] = state["budget_end_s"] - 1.5 * state["min_leg_s"]
-    (run / "state.json").write_text(json.dumps(state))
-    started = []
-    real = train_module.shard_batches
-    monkeypatch.setattr(train_module, "shard_batches", lambda *a: started.append(1) or real(*a))
-    end = train(small(4, time_budget_s=40.0), tiny_dataset, str(run), resume=True, progress=False)
+    state, end, started = resumed_with_left(tmp_path / "run", tiny_dataset, monkeypatch, 1.5)
     assert (end["stopped_by"], end["why"], end["step"], started) == ("nothing_to_do", "budget_spent", 2, [])
     from envisat_pose.perception.train_run import LEG_START_MARGIN
     from envisat_pose.pipelines.detector.train_records import nothing_to_do_line
