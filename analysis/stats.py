@@ -29,10 +29,9 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from envisat_pose.attitude import align_mrp, mrp_error_angle_rad, mrp_kinematics_matrix
-from envisat_pose.gates import chi2_gate
+from envisat_pose.gates import chi2_gate, chi2_quantile
 from envisat_pose.state import BLOCK_SLICES, BLOCK_UNITS, BLOCKS, MRP, N_STATE, POS, RATE, VEL, block_sums
 
 P_3SIGMA = 0.9973002039367398  # P(|N(0,1)| <= 3)
@@ -117,8 +116,8 @@ def chi2_mean_bounds(dof_total: np.ndarray | float, n: np.ndarray | float, p: tu
     """
     dof_total, n = np.asarray(dof_total, dtype=float), np.asarray(n, dtype=float)
     ok = (dof_total > 0) & (n > 0)
-    lo = chi2.ppf(p[0], np.where(ok, dof_total, 1.0)) / np.where(ok, n, 1.0)
-    hi = chi2.ppf(p[1], np.where(ok, dof_total, 1.0)) / np.where(ok, n, 1.0)
+    lo = chi2_quantile(p[0], np.where(ok, dof_total, 1.0)) / np.where(ok, n, 1.0)
+    hi = chi2_quantile(p[1], np.where(ok, dof_total, 1.0)) / np.where(ok, n, 1.0)
     return np.where(ok[..., None], np.stack([lo, hi], axis=-1), np.nan)
 
 

@@ -26,11 +26,11 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from scipy.stats import chi2
 
 from envisat_pose.attitude import mrp_error_angle_rad
 from envisat_pose.filtering.estimator import nees
 from envisat_pose.filtering.ukf import chart_error
+from envisat_pose.gates import chi2_quantile
 from envisat_pose.pipelines.runs.outputs import no_estimate_nan
 from envisat_pose.pipelines.tracking.namings import renamed_state
 from envisat_pose.state import BLOCKS, MRP, POS, error_magnitudes, error_summary
@@ -44,7 +44,7 @@ CORRECT_POS_FRAC = 0.02
 # hold 0.1 % of the frames
 NEES_DOF = 12
 NEES_TAIL_P = 0.999
-NEES_TAIL = float(chi2.ppf(NEES_TAIL_P, NEES_DOF))
+NEES_TAIL = chi2_quantile(NEES_TAIL_P, NEES_DOF)
 # SPEC2021 (Park et al., ESA/Stanford pose estimation competition 2021): per frame, position error over range plus
 # attitude error in rad, each set to 0 below the ground truth's own precision (2.173 mm per m, 0.169 deg)
 SPEC_POS_FLOOR = 2.173e-3
