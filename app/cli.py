@@ -21,6 +21,7 @@ from envisat_pose.app.flag_rules import config_error_text
 from envisat_pose.app.interrupts import interrupt_code, sigterm_as_interrupt
 from envisat_pose.config import ConfigError, InputError
 from envisat_pose.datagen.gl_check import check_gl_platform
+from envisat_pose.whole_flags import WholeFlagParser
 
 # The app modules that define register(subparsers), in the order their verbs are listed.
 _VERB_MODULES = ("envisat_pose.app.simulate", "envisat_pose.app.generate", "envisat_pose.app.dataset",
@@ -28,16 +29,6 @@ _VERB_MODULES = ("envisat_pose.app.simulate", "envisat_pose.app.generate", "envi
                  "envisat_pose.app.train", "envisat_pose.app.detect", "envisat_pose.app.calibrate",
                  "envisat_pose.app.evaluate", "envisat_pose.app.view", "envisat_pose.app.run", "envisat_pose.app.track",
                  "envisat_pose.app.adapt", "envisat_pose.app.demo")
-
-
-class WholeFlagParser(argparse.ArgumentParser):
-    """argparse's parser that takes each flag only as spelled whole (allow_abbrev=False): `--duration` is refused,
-    not read as `--duration-s`, and a flag added later cannot change what an abbreviation meant. Its subparsers
-    (add_subparsers' parser_class: the parser's own class) are of this class too, so every verb refuses them."""
-
-    def __init__(self, *args, **kwargs):
-        kwargs.setdefault("allow_abbrev", False)
-        super().__init__(*args, **kwargs)
 
 
 def build_parser() -> argparse.ArgumentParser:

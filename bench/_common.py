@@ -1,5 +1,5 @@
-"""What every bench script shares: its --help description, the default file of its results and the provenance its
-JSON records.
+"""What every bench script shares: its parser (envisat_pose.whole_flags.WholeFlagParser: whole flags only), its
+--help description, the default file of its results and the provenance its JSON records.
 
 A script imports it inside its main (`from _common import ...`): run as `python bench/NAME.py`, bench/ is the first
 folder on sys.path, and a test that loads a bench module from its file path does not need it.
@@ -14,6 +14,7 @@ import os
 import sys
 
 from envisat_pose.provenance import git_hash
+from envisat_pose.whole_flags import WholeFlagParser  # noqa: F401  (every script's parser: whole flags only)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -32,7 +32,6 @@ in every range bin and tumble rate.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -162,9 +161,9 @@ def table_row(range_m: float, rate: str, b: dict) -> str:
 
 def main() -> None:
     # bench/_common.py, beside this script
-    from _common import count, description, existing_file, out_file, positive, provenance, results_path
+    from _common import WholeFlagParser, count, description, existing_file, out_file, positive, provenance, results_path
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--trials-per-bin", type=count(), default=10)
     ap.add_argument("--seed", type=count(0), default=0, help="root seed of every draw")
     ap.add_argument("--ranges-m", type=positive, nargs="+", default=list(RANGES_M))

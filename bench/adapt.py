@@ -34,7 +34,6 @@ it; under --work, look-RESPONSE-SIGMA...). Example:
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -290,9 +289,9 @@ def table(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from _common import count, description, out_file, provenance, write_json  # bench/_common.py
+    from _common import WholeFlagParser, count, description, out_file, provenance, write_json  # bench/_common.py
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--scenarios", nargs="+", default=["default"])
     ap.add_argument("--seeds", nargs="+", type=count(0), default=[0, 1])
     ap.add_argument("--resolutions", nargs="+", type=count(), default=[512])

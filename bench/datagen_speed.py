@@ -551,9 +551,18 @@ def write_entry(path: str, key: str, entry: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from _common import count, description, existing_dir, existing_results, out_file, provenance, results_path
+    from _common import (
+        WholeFlagParser,
+        count,
+        description,
+        existing_dir,
+        existing_results,
+        out_file,
+        provenance,
+        results_path,
+    )
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     mode = ap.add_mutually_exclusive_group()
     mode.add_argument("--scaling", "--issue3", action="store_true",
                       help="the scaling floors' table at 512 and 1024 px instead of the default mode's")

@@ -223,14 +223,14 @@ def setting(text: str) -> tuple[str, object]:
 
 
 def main() -> int:
-    from _common import count, description, out_file, provenance, results_path, write_json
+    from _common import WholeFlagParser, count, description, out_file, provenance, results_path, write_json
 
     from envisat_pose.config import resolve_job_config
     from envisat_pose.datagen.factory import run_generate
     from envisat_pose.datagen.generate_config import GenerateConfig
     from envisat_pose.pipelines.runs.frames import open_source
 
-    p = argparse.ArgumentParser(description=description(__doc__))
+    p = WholeFlagParser(description=description(__doc__))
     p.add_argument("--scenario", default="default")
     p.add_argument("--seed", type=int, default=21)
     p.add_argument("--num-images", type=count(20), default=200)

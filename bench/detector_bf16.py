@@ -15,7 +15,6 @@ bfloat16 corners lie from the float32 ones where both name a corner. Whether the
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import time
@@ -87,9 +86,9 @@ def differences(a, b) -> dict:
 
 def main() -> None:
     # bench/_common.py, beside this script
-    from _common import count, dataset, description, existing_file, out_file, provenance, write_json
+    from _common import WholeFlagParser, count, dataset, description, existing_file, out_file, provenance, write_json
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--data", required=True, type=dataset, help="a labelled ENVISAT dataset (envisat generate)")
     ap.add_argument("--limit", type=count(), default=200)
     ap.add_argument("--weights", type=existing_file, default=shipped_weights_path())

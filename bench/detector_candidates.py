@@ -13,7 +13,6 @@ bench/results/detector_candidates.json) with each set's manifest sha256 and each
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -83,9 +82,9 @@ def score_weights(weights: str, frames: list, device: str = "cpu") -> dict[str, 
 
 
 def main() -> None:
-    from _common import count, description, out_file, provenance  # bench/_common.py
+    from _common import WholeFlagParser, count, description, out_file, provenance  # bench/_common.py
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--weights", nargs="+", required=True, help="NAME=W.safetensors, one per candidate")
     ap.add_argument("--data", nargs="+", required=True, help="NAME=DIR, labelled held-out sets")
     ap.add_argument("--limit", type=count(), help="only the first N frames of each set")

@@ -15,7 +15,6 @@ default bench/results/detector_floors.json).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 
@@ -73,9 +72,16 @@ def corruption_levels(e: dict) -> list[dict]:
 
 
 def main() -> int:
-    from _common import description, existing_file, out_file, provenance, write_json  # bench/_common.py
+    from _common import (  # bench/_common.py
+        WholeFlagParser,
+        description,
+        existing_file,
+        out_file,
+        provenance,
+        write_json,
+    )
 
-    p = argparse.ArgumentParser(description=description(__doc__))
+    p = WholeFlagParser(description=description(__doc__))
     p.add_argument("--random", nargs="+", type=existing_file, default=[])
     p.add_argument("--earth", nargs="*", type=existing_file, default=[])
     p.add_argument("--sequence", nargs="*", type=existing_file, default=[])

@@ -16,7 +16,6 @@ threshold and stops after one network pass: a lower bound). Writes bench/results
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import resource
@@ -107,9 +106,17 @@ def time_frames(frames: list, weights: str | None, repeats: int) -> dict:
 
 
 def main() -> None:
-    from _common import count, description, existing_file, out_file, provenance, write_json  # bench/_common.py
+    from _common import (  # bench/_common.py
+        WholeFlagParser,
+        count,
+        description,
+        existing_file,
+        out_file,
+        provenance,
+        write_json,
+    )
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--repeats", type=count(), default=20)
     ap.add_argument("--threads", type=count(), default=2)
     ap.add_argument("--frames", type=count(), default=8, help="full 1024 px frames for part 2")

@@ -29,7 +29,6 @@ Run:  .venv/bin/python bench/edge_truth.py --seeds 0 1 2 3 --resolutions 512 102
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -201,9 +200,9 @@ def responses_line(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from _common import count, description, out_file, positive, provenance  # bench/_common.py
+    from _common import WholeFlagParser, count, description, out_file, positive, provenance  # bench/_common.py
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--scenarios", nargs="+", default=["default"])
     ap.add_argument("--seeds", nargs="+", type=count(0), default=[0, 1, 2, 3])
     ap.add_argument("--resolutions", nargs="+", type=count(), default=[512])

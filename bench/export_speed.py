@@ -19,7 +19,6 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 
-import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import shutil  # noqa: E402
@@ -81,9 +80,9 @@ def run_row(kind: str, src: str, work: str, fmt: str = "-", image_format: str = 
 
 
 def main() -> int:
-    from _common import count, dataset, description, out_file, provenance  # bench/_common.py
+    from _common import WholeFlagParser, count, dataset, description, out_file, provenance  # bench/_common.py
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--data", type=dataset, help="an existing 1024 px dataset (default: make one)")
     ap.add_argument("--images", type=count(), default=BENCH_IMAGES)
     ap.add_argument("--out", type=out_file, default=os.path.join(HERE, "results", "export_speed.json"))

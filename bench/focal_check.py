@@ -17,7 +17,6 @@ Run:  .venv/bin/python bench/focal_check.py --seed 21 --num-images 200
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import sys
@@ -60,13 +59,13 @@ def track_once(folder: str, scenario: str, factor: float, check: bool, out_dir: 
 
 
 def main() -> int:
-    from _common import count, description, out_file, positive, provenance, results_path, write_json
+    from _common import WholeFlagParser, count, description, out_file, positive, provenance, results_path, write_json
 
     from envisat_pose.config import resolve_job_config
     from envisat_pose.datagen.factory import run_generate
     from envisat_pose.datagen.generate_config import GenerateConfig
 
-    p = argparse.ArgumentParser(description=description(__doc__))
+    p = WholeFlagParser(description=description(__doc__))
     p.add_argument("--scenario", default="default")
     p.add_argument("--seed", type=int, default=21)
     p.add_argument("--num-images", type=count(20), default=200)

@@ -32,7 +32,6 @@ Filament is absent.
 
 from __future__ import annotations
 
-import argparse
 import collections.abc
 import json
 import os
@@ -426,9 +425,9 @@ def make_sequence(out_dir: str, scenario: str, seed: int, num_images: int, resol
 
 
 def main(argv: list[str] | None = None) -> int:
-    from _common import count, description, positive, provenance  # bench/_common.py
+    from _common import WholeFlagParser, count, description, positive, provenance  # bench/_common.py
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--scenario", default="default")
     ap.add_argument("--seed", type=count(0), default=0)
     ap.add_argument("--num-images", type=count(), default=240)

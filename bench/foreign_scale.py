@@ -30,7 +30,6 @@ Run:  .venv/bin/python bench/foreign_scale.py --seed 0 --num-images 300 --stride
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -265,9 +264,9 @@ def table(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from _common import count, description, out_file, provenance, write_json  # bench/_common.py
+    from _common import WholeFlagParser, count, description, out_file, provenance, write_json  # bench/_common.py
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--scenario", default="default")
     ap.add_argument("--seed", type=count(0), default=0)
     ap.add_argument("--num-images", type=count(), default=300, help="the sequence's frames")

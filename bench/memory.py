@@ -33,7 +33,6 @@ Run: .venv/bin/python bench/memory.py [--orbits 1 3 10] [--rate-hz 1] [--resolut
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -127,9 +126,17 @@ def frame_bytes() -> int:
 
 
 def main(argv=None) -> int:
-    from _common import count, description, out_file, positive, provenance, write_json  # bench/_common.py
+    from _common import (  # bench/_common.py
+        WholeFlagParser,
+        count,
+        description,
+        out_file,
+        positive,
+        provenance,
+        write_json,
+    )
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--orbits", type=positive, nargs="+", default=[1, 3, 10])
     ap.add_argument("--rate-hz", type=positive, default=1.0, help="camera and filter rate (frames per second)")
     ap.add_argument("--resolution", type=count(), default=128, help="image side, px")

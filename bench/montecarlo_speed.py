@@ -15,7 +15,6 @@ Floors: at most 90 s and 2 GiB (earlier: 10 minutes and 4 GB).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -112,9 +111,18 @@ def time_filterpy_slice(steps: int) -> float:
 
 
 def main() -> None:
-    from _common import count, description, out_file, positive, provenance, results_path, write_json  # bench/_common.py
+    from _common import (  # bench/_common.py
+        WholeFlagParser,
+        count,
+        description,
+        out_file,
+        positive,
+        provenance,
+        results_path,
+        write_json,
+    )
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--runs", type=count(), default=1000)
     ap.add_argument("--duration-s", type=positive, default=6000.0)
     ap.add_argument("--workers", type=count(), default=2)

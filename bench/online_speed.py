@@ -19,7 +19,6 @@ Floor: 10x real time with the region of interest on one core (goal 20x); RMSE un
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -106,9 +105,9 @@ def rmse(t_s, x_true, x_hat, after_s: float) -> dict:
 
 def main() -> None:
     # bench/_common.py, beside this script
-    from _common import count, description, existing_file, out_file, positive, provenance, results_path
+    from _common import WholeFlagParser, count, description, existing_file, out_file, positive, provenance, results_path
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--duration-s", type=positive, default=600.0)
     ap.add_argument("--weights", type=existing_file, help="detector weights (default: the shipped ones)")
     ap.add_argument("--seed", type=count(0), default=0)

@@ -14,7 +14,6 @@ Run: .venv/bin/python bench/sensor_speed.py [--frames 6] [--repeats 5] [--seeds 
 
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import os
 import platform
@@ -102,9 +101,9 @@ def class_moments(fn, frames, seeds: int) -> dict:
 
 
 def main(argv=None) -> int:
-    from _common import count, description, out_file, provenance, write_json  # bench/_common.py
+    from _common import WholeFlagParser, count, description, out_file, provenance, write_json  # bench/_common.py
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--frames", type=count(), default=6)
     ap.add_argument("--repeats", type=count(), default=5)
     ap.add_argument("--seeds", type=count(), default=40)

@@ -22,7 +22,6 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 
-import argparse  # noqa: E402
 import json  # noqa: E402
 import statistics  # noqa: E402
 import tempfile  # noqa: E402
@@ -134,11 +133,11 @@ def table(r: dict) -> str:
 
 
 def main() -> int:
-    from _common import count, dataset, description, out_file, provenance  # bench/_common.py
+    from _common import WholeFlagParser, count, dataset, description, out_file, provenance  # bench/_common.py
 
     from envisat_pose.io import atomic_write_text
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--data", metavar="DIR", type=dataset,
                     help="an existing generated dataset (default: generate one)")
     ap.add_argument("--images", type=count(), default=BENCH_IMAGES, help=f"images to generate (default {BENCH_IMAGES})")

@@ -21,7 +21,6 @@ Run: .venv/bin/python bench/silhouette_bias.py [--images 40] [--seed 4242]  (wri
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -91,9 +90,9 @@ def measure_look(name: str, extra: dict, images: int, seed: int, tmp: str) -> di
 
 
 def main() -> None:
-    from _common import count, description, out_file, provenance, results_path  # bench/_common.py
+    from _common import WholeFlagParser, count, description, out_file, provenance, results_path  # bench/_common.py
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--images", type=count(), default=40, help="frames per look")
     ap.add_argument("--seed", type=count(0), default=4242)
     ap.add_argument("--out", type=out_file, default=results_path("silhouette_bias"))

@@ -12,7 +12,6 @@ Prints a table and writes --out (default bench/results/sim_speed.json).
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import platform
@@ -195,9 +194,17 @@ def run_scipy(cfg, x0, t_end, rtol):
 
 
 def main() -> None:
-    from _common import count, description, out_file, positive, provenance, write_json  # bench/_common.py
+    from _common import (  # bench/_common.py
+        WholeFlagParser,
+        count,
+        description,
+        out_file,
+        positive,
+        provenance,
+        write_json,
+    )
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--duration-s", type=positive, default=1000.0)
     ap.add_argument("--rollouts", type=count(), default=32)
     ap.add_argument("--threads", type=count(), default=os.cpu_count() or 1)

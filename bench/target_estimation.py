@@ -41,7 +41,6 @@ import os
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
-import argparse  # noqa: E402
 import glob  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
@@ -152,9 +151,9 @@ def estimate_speed(a) -> dict:
 
 
 def main(argv=None) -> int:
-    from _common import count, description, out_file, positive, provenance  # bench/_common.py
+    from _common import WholeFlagParser, count, description, out_file, positive, provenance  # bench/_common.py
 
-    p = argparse.ArgumentParser(description=description(__doc__))
+    p = WholeFlagParser(description=description(__doc__))
     p.add_argument("--runs", type=count(), default=100)
     p.add_argument("--duration-s", type=positive, default=600.0)
     p.add_argument("--settle-s", type=float, default=300.0)

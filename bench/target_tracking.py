@@ -27,7 +27,6 @@ second-half RMS position <= 10 cm at 50 m.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -168,9 +167,17 @@ def pooled(runs: list[dict]) -> dict:
 
 
 def main() -> int:
-    from _common import count, description, existing_file, out_file, positive, provenance  # bench/_common.py
+    from _common import (  # bench/_common.py
+        WholeFlagParser,
+        count,
+        description,
+        existing_file,
+        out_file,
+        positive,
+        provenance,
+    )
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--target", default=str(ROOT / "models" / "upper_stage.xml"))
     ap.add_argument("--weights", type=existing_file,
                     help="the target's calibrated keypoint detector (default: the noisy-truth stand-in)")

@@ -26,7 +26,6 @@ with the range: 0.5 cm at 25 m).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -193,9 +192,17 @@ def per_run_line(s: dict, seeds: list[int]) -> str:
 
 
 def main() -> None:
-    from _common import count, description, existing_file, out_file, positive, provenance  # bench/_common.py
+    from _common import (  # bench/_common.py
+        WholeFlagParser,
+        count,
+        description,
+        existing_file,
+        out_file,
+        positive,
+        provenance,
+    )
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--seeds", type=count(), default=8, help="seeds per scenario (first-seed, first-seed + 1, ...)")
     ap.add_argument("--first-seed", type=count(0), default=0)
     ap.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))

@@ -21,7 +21,6 @@ alone).
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import itertools
 import json
@@ -242,9 +241,9 @@ def save(args, rows: list[dict], parts: list[dict]) -> None:
 
 
 def main() -> None:
-    from _common import count, dataset, description, out_file, results_path  # bench/_common.py
+    from _common import WholeFlagParser, count, dataset, description, out_file, results_path  # bench/_common.py
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--steps", type=count(), default=24, help="steps per CPU row")
     ap.add_argument("--batch-size", type=count(), default=8, help="batch of the CPU rows")
     ap.add_argument("--images", type=count(), default=40, help="images generated for the CPU rows")

@@ -16,7 +16,6 @@ Run: .venv/bin/python bench/tree_speed.py --baseline DIR [--current DIR] [--roun
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -59,9 +58,19 @@ def figures(tree: str, duration_s: float, only: str | None, cores: int = 1) -> d
 
 def main() -> None:
     # bench/_common.py, beside this script
-    from _common import count, description, existing_dir, existing_results, out_file, positive, provenance, write_json
+    from _common import (
+        WholeFlagParser,
+        count,
+        description,
+        existing_dir,
+        existing_results,
+        out_file,
+        positive,
+        provenance,
+        write_json,
+    )
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--baseline", required=True, type=existing_dir,
                     help="the earlier tree (a git archive, its plugin .so copied in)")
     ap.add_argument("--current", default=ROOT, type=existing_dir, help="the tree measured (default: this one)")

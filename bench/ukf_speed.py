@@ -22,7 +22,6 @@ import os
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
-import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import time  # noqa: E402
@@ -150,9 +149,9 @@ def dgemm_flops_per_s(size: int = 1024) -> float:
 
 
 def main() -> None:
-    from _common import count, description, out_file, provenance, results_path  # bench/_common.py
+    from _common import WholeFlagParser, count, description, out_file, provenance, results_path  # bench/_common.py
 
-    ap = argparse.ArgumentParser(description=description(__doc__))
+    ap = WholeFlagParser(description=description(__doc__))
     ap.add_argument("--runs", type=count(), default=1000)
     ap.add_argument("--truth-seed", type=count(0), default=TRUTH_SEED, help="the default scenario's seed (its truth)")
     ap.add_argument("--noise-seed", type=count(0), default=NOISE_SEED,

@@ -17,7 +17,6 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 
-import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import statistics  # noqa: E402
@@ -65,9 +64,9 @@ def _rays_ms(target: Target, n: int, seed: int) -> float:
 
 
 def main(argv=None) -> int:
-    from _common import count, description, out_file, provenance  # bench/_common.py
+    from _common import WholeFlagParser, count, description, out_file, provenance  # bench/_common.py
 
-    p = argparse.ArgumentParser(description=description(__doc__))
+    p = WholeFlagParser(description=description(__doc__))
     p.add_argument("--images", type=count(), default=20)
     p.add_argument("--rounds", type=count(), default=3)
     p.add_argument("--resolution", type=count(), default=1024)

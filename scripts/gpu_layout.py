@@ -89,7 +89,7 @@ def lay_out(dest: str, plugin_from: str | None = None, root: str = ROOT) -> dict
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)  # stdlib only
     ap.add_argument("dest", help="folder to lay the package out in (replaced); then PYTHONPATH=dest")
     ap.add_argument("--plugin-from", metavar="DIR", help="folder holding the compiled plugin (default: the checkout's)")
     args = ap.parse_args()

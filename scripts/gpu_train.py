@@ -25,13 +25,14 @@ against the leg's weights, so that a leg that made things worse is seen before i
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
 import subprocess
 import sys
 import time
+
+from envisat_pose.whole_flags import WholeFlagParser
 
 SEED_BASE = 1_000_000  # training data seeds: evaluation sets use seeds far below
 SEED_LEG = 1_000
@@ -317,7 +318,7 @@ def start_args(init: str | None, backbone: str | None) -> list[str]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = WholeFlagParser(description=__doc__.splitlines()[0])
     ap.add_argument("--init", help="weights to start from (required but with --target, whose leg may start fresh)")
     ap.add_argument("--target", help="another target's MJCF file: train its keypoint detector (envisat train "
                     "--target: online, the target's default look; no held-out check, which is ENVISAT's)")

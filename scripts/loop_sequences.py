@@ -10,9 +10,10 @@ generate.config.toml, so `envisat generate --config DIR/SCENARIO-SEED/generate.c
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
+
+from envisat_pose.whole_flags import WholeFlagParser
 
 
 def sequence_config(scenario: str, seed: int, frames: int, phase_max_deg: float = 90.0):
@@ -31,7 +32,7 @@ def sequence_config(scenario: str, seed: int, frames: int, phase_max_deg: float 
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = WholeFlagParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scenarios", nargs="+", default=["default", "slow-tumble", "stress-tumble", "close-25m"])
     p.add_argument("--seeds", nargs="+", type=int, required=True)
     p.add_argument("--frames", type=int, default=150)

@@ -28,7 +28,6 @@ the code). `--scrub CARD.json` rewrites an older card's history without paths.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import re
@@ -42,6 +41,7 @@ from envisat_pose.perception import weights_keys as wk  # noqa: E402
 from envisat_pose.perception.weights import read_metadata  # noqa: E402
 from envisat_pose.provenance import dataset_ref, find_absolute_paths, manifest_sha256, relative_name, scrub_paths  # noqa: E402
 from envisat_pose.shard_reader import load_dataset_manifest  # noqa: E402
+from envisat_pose.whole_flags import WholeFlagParser  # noqa: E402
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 HISTORY_FILE = "detector_history.json"  # beside the card: what was measured of the earlier weights
@@ -393,7 +393,7 @@ def scrub_card(a) -> int:
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = WholeFlagParser(description=__doc__.splitlines()[0])
     p.add_argument("--weights")
     p.add_argument("--refresh", metavar="CARD.json", help="update this card instead of writing one from the runs")
     p.add_argument("--scrub", metavar="CARD.json", help="rewrite this older card without machine paths")

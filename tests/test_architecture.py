@@ -18,6 +18,7 @@ perception/weights_keys.py; the package counts the machine's cores only in envis
 the affinity and a cgroup quota too; a default on os.cpu_count() alone oversubscribed a container). The benches
 and the scripts are read for every one-home rule but that last (they record the machine); they
 import no verb (the job a verb runs is the library's). A verb file stays thin: at most VERB_MAX_LINES lines.
+Every command line takes whole flags only (envisat_pose/whole_flags.py: no argparse parser that abbreviates).
 Each checker runs on a source string, so the tests below show it catching a planted copy.
 """
 
@@ -1902,3 +1903,66 @@ def test_the_look_checker_sees_a_material_draw_and_a_response_called_a_look(tmp_
     assert look_mix_names(str(tmp_path)) == {"look_mix", "LOOK_PERIOD", "read_looks"}
     assert stray_looks(str(tmp_path)) == {os.path.join("bench", "mix.py"): [(2, "looks")],
                                           os.path.join("datagen", "edge_look.py"): [(0, "edge_look")]}
+
+
+# ---------------------------------------------------------------- whole flags only (no abbreviations)
+
+# Every command line of the repository (the verbs, the benches, the scripts, the tests' data makers) takes each flag
+# only as spelled whole: argparse's default reads `--seed` as `--seeds` and `--dur` as `--duration-s`, so a typo
+# silently means another flag. The one parser that refuses them: envisat_pose.whole_flags.WholeFlagParser (a
+# subclass, so its calls are not argparse.ArgumentParser's); a file that cannot import the package (the standard-
+# library-only scripts/gpu_layout.py) passes allow_abbrev=False itself.
+WHOLE_FLAGS_FILE = os.path.join("envisat_pose", "whole_flags.py")
+
+
+def abbreviating_parsers(source: str) -> list[int]:
+    """Lines of argparse.ArgumentParser(...) calls (or a bare ArgumentParser imported from argparse) that do not pass
+    allow_abbrev=False as a literal (a **kwargs that might hold it does not count)."""
+    lines = []
+    for node in walk(parse(source)):
+        if isinstance(node, ast.Call) and _called_name(node) == "ArgumentParser":
+            whole = any(k.arg == "allow_abbrev" and isinstance(k.value, ast.Constant) and k.value.value is False
+                        for k in node.keywords)
+            if not whole:
+                lines.append(node.lineno)
+    return sorted(lines)
+
+
+def abbreviating_parser_files(root: str = ROOT) -> dict[str, list[int]]:
+    """{file: lines} of abbreviating_parsers over the package, the benches, the scripts and the tests."""
+    found = {}
+    for rel in checked_files(root, EXTRA_FOLDERS + ("tests",)):
+        with open(os.path.join(root, rel), encoding="utf-8") as fh:
+            lines = abbreviating_parsers(fh.read())
+        if lines:
+            found[rel] = lines
+    return found
+
+
+def test_every_parser_takes_whole_flags_only():
+    """0 argparse parsers that take abbreviated flags, anywhere in the repository: each is WholeFlagParser or
+    passes allow_abbrev=False; WholeFlagParser itself refuses them."""
+    assert abbreviating_parser_files() == {}, f"use {WHOLE_FLAGS_FILE}'s WholeFlagParser (or allow_abbrev=False)"
+    from envisat_pose.whole_flags import WholeFlagParser
+
+    assert WholeFlagParser().allow_abbrev is False
+
+
+def test_the_parser_checker_sees_an_abbreviating_parser(tmp_path):
+    planted = ("import argparse\nfrom argparse import ArgumentParser\n"
+               "a = argparse.ArgumentParser(description='x')\n"
+               "b = ArgumentParser()\n"
+               "c = argparse.ArgumentParser(allow_abbrev=True)\n"
+               "d = argparse.ArgumentParser(**opts)\n"
+               "e = argparse.ArgumentParser(description='x', allow_abbrev=False)\n"
+               "f = WholeFlagParser(description='x')\n"
+               "def g(p: argparse.ArgumentParser) -> argparse.ArgumentParser:\n    return p\n")
+    assert abbreviating_parsers(planted) == [3, 4, 5, 6]
+    (tmp_path / "bench").mkdir()
+    (tmp_path / "bench" / "x.py").write_text(planted)
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "tests" / "make_x.py").write_text("import argparse\np = argparse.ArgumentParser()\n")
+    (tmp_path / "app").mkdir()
+    (tmp_path / "app" / "cli.py").write_text("p = WholeFlagParser(prog='envisat')\n")
+    assert abbreviating_parser_files(str(tmp_path)) == {os.path.join("bench", "x.py"): [3, 4, 5, 6],
+                                                        os.path.join("tests", "make_x.py"): [2]}

@@ -46,8 +46,8 @@ def test_each_script_describes_itself_takes_out_and_records_its_provenance(scrip
         tree = ast.parse(fh.read())
     desc = load("_common").description(ast.get_docstring(tree, clean=False))
     assert desc[-1] in ".?" and "\n\n" not in desc, f"{script}: --help's description {desc[-60:]!r}"
-    parsers = calls(tree, "ArgumentParser")
-    assert len(parsers) == 1
+    parsers = calls(tree, "WholeFlagParser")  # bench/_common.py's: whole flags only
+    assert len(parsers) == 1 and not calls(tree, "ArgumentParser")
     assert [ast.unparse(k.value) for k in parsers[0].keywords if k.arg == "description"] == ["description(__doc__)"]
     outs = [c for c in calls(tree, "add_argument") if c.args and getattr(c.args[0], "value", None) == "--out"]
     assert len(outs) == 1, f"{script}: no --out"
@@ -56,6 +56,15 @@ def test_each_script_describes_itself_takes_out_and_records_its_provenance(scrip
         name = script[:-3]
         assert default and (f"'{name}.json'" in default[0] or f"results_path('{name}')" in default[0]), default
     assert calls(tree, "provenance"), f"{script}: its JSON records no provenance"
+
+
+def test_a_bench_refuses_an_abbreviated_flag(tmp_path):
+    """`--seed 0` was read as edge_truth.py's `--seeds 0` and `--dur` as online_speed.py's `--duration-s`: each is
+    argparse's usage error now (exit 2, before any work)."""
+    for script, typed in (("edge_truth.py", ["--seed", "0"]), ("online_speed.py", ["--dur", "1"])):
+        out = subprocess.run([sys.executable, os.path.join(BENCH, script), *typed, "--out", str(tmp_path / "x.json")],
+                             capture_output=True, text=True, timeout=120, cwd=tmp_path)
+        assert out.returncode == 2 and f"unrecognized arguments: {' '.join(typed)}" in out.stderr, out.stderr[-2000:]
 
 
 def test_provenance_names_the_commit_the_date_and_every_argument(monkeypatch):

@@ -14,13 +14,14 @@ Run: .venv/bin/python tests/data/make_shard_reference.py [--out tests/data/envis
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import tempfile
 
 import cv2
 import numpy as np
+
+from envisat_pose.whole_flags import WholeFlagParser
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "envisat_shards_reference.npz")
@@ -66,7 +67,7 @@ def reference(work: str) -> dict[str, np.ndarray]:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = WholeFlagParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default=OUT)
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as work:

@@ -29,12 +29,13 @@ Run: .venv/bin/python tests/data/make_track_reference.py [--out tests/data/track
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import tempfile
 
 import numpy as np
+
+from envisat_pose.whole_flags import WholeFlagParser
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "track_reference.npz")
@@ -81,7 +82,7 @@ def reference(work: str) -> dict[str, np.ndarray]:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = WholeFlagParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default=OUT)
     args = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as work:

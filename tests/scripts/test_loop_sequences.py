@@ -7,6 +7,7 @@ import importlib.util
 import os
 
 import numpy as np
+import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -30,3 +31,13 @@ def test_a_held_out_sequence_is_the_closed_loops_image_config():
         assert dataclasses.asdict(cfg) == dataclasses.asdict(dataclasses.replace(run, shard_size=40))
     other = seqs.sequence_config("default", 9002, 40)
     assert other.sun_dir != seqs.sequence_config("default", 9001, 40).sun_dir  # each seed its own sun
+
+
+def test_an_abbreviated_flag_is_refused_not_read_as_another(tmp_path, capsys):
+    """`--frame 2` was read as `--frames 2` (argparse's abbreviations; so was `--seed` as `--seeds`): it is a usage
+    error now, before any frame is rendered."""
+    seqs = load(os.path.join(ROOT, "scripts", "loop_sequences.py"))
+    with pytest.raises(SystemExit) as stop:
+        seqs.main(["--scenarios", "default", "--seeds", "9001", "--frame", "2", "--out", str(tmp_path / "held_out")])
+    assert stop.value.code == 2 and "unrecognized arguments: --frame 2" in capsys.readouterr().err
+    assert not (tmp_path / "held_out").exists()
