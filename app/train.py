@@ -23,7 +23,12 @@ from envisat_pose.pipelines.detector.train import (
     online_kind,
     train_detector,
 )
-from envisat_pose.pipelines.detector.train_records import nothing_to_do_line, read_run_config, saved_online
+from envisat_pose.pipelines.detector.train_records import (
+    nothing_to_do_line,
+    read_run_config,
+    saved_online,
+    trained_line,
+)
 from envisat_pose.shard_reader import skip_hint
 from envisat_pose.target import other_target
 
@@ -147,10 +152,5 @@ def run_train_cli(args: argparse.Namespace) -> int:
     if last.get("stopped_by") == "nothing_to_do":
         print(nothing_to_do_line(args.out, last, cfg.time_budget_s))
         return 0
-    workers = f"{last['render_workers']} render" if "render_workers" in last else f"{last.get('workers')}"
-    print(f"trained to step {last.get('step')} ({last.get('steps_run')} this run): "
-          f"loss {last.get('loss', float('nan')):.4f}, {last.get('samples_s', 0):.0f} samples/s with {workers} workers "
-          f"({last.get('stopped_by')}); weights {os.path.join(args.out, 'checkpoint.safetensors')}"
-          + (f"; each rendered frame cropped at most {last.get('max_uses')} times "
-             f"(K = {last.get('uses_per_frame')})" if last.get("uses_per_frame") else ""))
+    print(trained_line(args.out, last))
     return 0

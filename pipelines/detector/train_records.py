@@ -85,3 +85,28 @@ def nothing_to_do_line(run_dir: str, end: dict, time_budget_s: float | None) -> 
     return (f"nothing to do: {run_dir} is at step {step}, its budget spent ({left:.1f} s of it left, a resume needs "
             f"{need:.1f} s: its last leg's start-up and a step's reserve, with a margin); give --time-budget-s S "
             f"(S above {need:.1f}{other}) to train S seconds more")
+
+
+def rate_text(end: dict) -> str:
+    """The end line's training speed as the verb says it: samples a second over this call's steps (end:
+    train()'s end line, samples_s and steps_run), whole above 10, two significant digits below (a slow leg of one
+    step trained 0.49 samples/s, once printed as '0 samples/s'); '' when this call trained no step."""
+    rate = end.get("samples_s")
+    if not end.get("steps_run") or rate is None:
+        return ""
+    if rate < 0.01:  # samples_s is kept to 2 decimals: a step trained, slower than that
+        return "under 0.01 samples/s"
+    return f"{rate:.0f} samples/s" if rate >= 10 else f"{rate:.2g} samples/s"
+
+
+def trained_line(run_dir: str, end: dict) -> str:
+    """The verb's one line for a run that trained (end: train_detector's end line): the step reached and this
+    call's steps, the loss, the speed (rate_text), the workers, why it stopped, the weights, and an online run's
+    reuse of its frames."""
+    workers = f"{end['render_workers']} render" if "render_workers" in end else f"{end.get('workers')}"
+    rate = rate_text(end)
+    return (f"trained to step {end.get('step')} ({end.get('steps_run')} this run): "
+            f"loss {end.get('loss', float('nan')):.4f}, {rate + ' ' if rate else ''}with {workers} workers "
+            f"({end.get('stopped_by')}); weights {os.path.join(run_dir, 'checkpoint.safetensors')}"
+            + (f"; each rendered frame cropped at most {end.get('max_uses')} times "
+               f"(K = {end.get('uses_per_frame')})" if end.get("uses_per_frame") else ""))

@@ -148,6 +148,24 @@ def test_a_resume_whose_start_up_may_outlast_what_is_left_starts_nothing_and_say
         "nothing to do: r is at step 7, its steps reached; give --steps above 7 to go further"
 
 
+def test_the_end_line_says_a_slow_legs_rate_and_no_rate_for_no_step(tiny_dataset, tmp_path, monkeypatch, capsys):
+    """A resumed leg of one step at 0.49 samples/s (its first step pays torch's start-up: measured on a loaded
+    2-core machine, `train --resume --steps 3` after 2 steps) was printed as '0 samples/s'; the line says 0.49, a
+    fast run's whole number, and no rate at all for a call that trained no step."""
+    from envisat_pose.app import train as train_verb
+
+    end = {"kind": "end", "step": 3, "steps_run": 1, "loss": 5.6284, "samples_s": 0.49, "workers": 0,
+           "stopped_by": "steps"}
+    for given, said in ((end, "0.49 samples/s with 0 workers"), ({**end, "samples_s": 0.004}, "under 0.01 samples/s"),
+                        ({**end, "samples_s": 1234.4, "steps_run": 900}, "1234 samples/s"),
+                        ({**end, "steps_run": 0, "samples_s": 0.0}, "loss 5.6284, with 0 workers")):
+        monkeypatch.setattr(train_verb, "train_detector", lambda *a, given=given, **k: given)
+        assert main(["train", "--data", tiny_dataset, "--out", str(tmp_path / "run"), "--quiet"]) == 0
+        out = capsys.readouterr().out
+        assert said in out and " 0 samples/s" not in out and out.startswith("trained to step 3"), out
+    assert "samples/s" not in out  # the last: no step this call
+
+
 def test_a_resume_whose_start_up_outlasted_its_budget_says_what_was_left_and_records_what_it_took(
         tiny_dataset, tmp_path):
     """The margin missed (a clock 30 s a reading: the first batch came long after the budget): no step, nothing
