@@ -43,8 +43,8 @@ SWEEP_CAPTION = ("Rate sweep: settled RMSE per block (blue) and the PCRLB (black
 def write_report(dirs: list[str], out: str) -> dict:
     """The report over the campaign and rate-sweep folders `dirs`, written atomically to out (.html; its folder
     made when every input reads). Returns {"campaigns": n, "sweeps": n, "notes": the fields a campaign's table
-    shows as n/a, each named with its file and why (campaign_gaps), also warned}. InputError naming `out` or the
-    folder."""
+    or a sweep's shows as n/a, each named with its file and why (campaign_gaps, sweep_gaps), also warned}.
+    InputError naming `out` or the folder."""
 
     dirs, out = paths_arg(dirs, "dirs"), path_arg(out, "out")
     if not out.endswith((".html", ".htm")):
@@ -55,7 +55,7 @@ def write_report(dirs: list[str], out: str) -> dict:
     campaigns = [load_campaign(d) for d in dirs if not is_sweep(d)]
     make_out_file_dirs({out: "out"})
     atomic_write_text(out, render_report(campaigns, sweeps))
-    notes = [note for c in campaigns for note in campaign_gaps(c)]
+    notes = [note for c in campaigns for note in campaign_gaps(c)] + [note for c in sweeps for note in sweep_gaps(c)]
     for note in notes:  # the page's notes, said where the command runs too (the verb: one warning line each)
         warnings.warn(note, stacklevel=2)
     return {"campaigns": len(campaigns), "sweeps": len(sweeps), "notes": notes}
@@ -117,11 +117,11 @@ def render_sweep(c: dict) -> str:
     head += ["diverged runs", "mean NEES", "converged"]
     rows, alone = [], s.get("n_nis_alarm_alone") or [0] * len(s["rates_hz"])  # a sweep.json before they were named
     for i, rate in enumerate(s["rates_hz"]):
-        cells = [f"{rate:g}"] + [_fmt(s["rmse"][b][i], DISPLAY[b][1]) for b in BLOCKS]
-        cells += [_ratio(s["rmse_over_pcrlb"][b][i]) for b in BLOCKS]
+        cells = [f"{rate:g}"] + [_said(s["rmse"][b][i], _fmt(s["rmse"][b][i], DISPLAY[b][1])) for b in BLOCKS]
+        cells += [_said(s["rmse_over_pcrlb"][b][i], _ratio(s["rmse_over_pcrlb"][b][i])) for b in BLOCKS]
         cells += [f"{s['n_diverged'][i]} / {s['runs']}"
                   + (f" ({alone[i]} flagged by the filter alone)" if alone[i] else ""),
-                  _fmt(s["nees_mean"][i]), "yes" if s["converged"][i] else "no"]
+                  _said(s["nees_mean"][i], _fmt(s["nees_mean"][i])), "yes" if s["converged"][i] else "no"]
         rows.append("<tr>" + "".join(f"<td>{e(v)}</td>" for v in cells) + "</tr>")
     low = s.get("lowest_converged_rate_hz")
     rule = ("diverged against the truth, the NIS monitor's lone alarms aside" if "n_nis_alarm_alone" in s
@@ -137,7 +137,8 @@ def render_sweep(c: dict) -> str:
             f"{e(str(s.get('scenario')))}, "
             f"{s.get('runs')} runs per rate over {_fmt(s.get('duration_s'))} s, seed {s.get('seed')}, statistics "
             f"after {_fmt(s.get('settle_s'))} s. {e(verdict)}</p><table><tr>"
-            + "".join(f"<th>{e(h)}</th>" for h in head) + "</tr>" + "".join(rows) + "</table>" + fig
+            + "".join(f"<th>{e(h)}</th>" for h in head) + "</tr>" + "".join(rows) + "</table>"
+            + _gap_notes(sweep_gaps(c)) + fig
             + f"<details><summary>config</summary><pre>{e(c['config'])}</pre></details>")
 
 
@@ -232,10 +233,42 @@ def why_missing(table, key: str) -> str | None:
     (a non-finite number); None where it holds a number (or another value the table refuses)."""
     if not isinstance(table, dict) or key not in table:
         return "missing"
-    v = table[key]
+    return why_not_a_number(table[key])
+
+
+def why_not_a_number(v) -> str | None:
+    """Why a value shows as n/a: 'null', 'nan' or 'inf' (a non-finite number); None for any other value."""
     if v is None:
         return "null"
     return str(v) if isinstance(v, float) and not math.isfinite(v) else None
+
+
+def _said(v, text: str) -> str:
+    """A sweep table's cell: its text, and where it reads n/a, why (sweep_gaps names the field, rate and file)."""
+    why = why_not_a_number(v)
+    return f"{text} ({why})" if why and text.startswith("n/a") else text
+
+
+def sweep_gaps(c: dict) -> list[str]:
+    """One line per cell of a rate sweep's table that shows as n/a: sweep.json's field (table.block), the rate, why
+    (why_not_a_number) and the rate's campaign whose summary.json it was copied from (the sweep writes a value that
+    was not finite there, NaN or infinite, as null; that campaign's own report row names it too)."""
+    s, path, gaps = c["sweep"], os.path.join(c["dir"], "sweep.json"), []
+    folders = s.get("campaigns") or [None] * len(s["rates_hz"])
+    for i, rate in enumerate(s["rates_hz"]):
+        fields = [(f"{name}.{b}", s[name][b][i]) for name in ("rmse", "rmse_over_pcrlb") for b in BLOCKS]
+        whys = [(field, why) for field, v in fields + [("nees_mean", s["nees_mean"][i])]
+                if (why := why_not_a_number(v))]
+        source = f"not finite in {os.path.join(c['dir'], folders[i], 'summary.json')}" if folders[i] else ""
+        gaps += [f"{path}: {field} at {rate:g} Hz {why} (shown as n/a{'; ' + source if source else ''})"
+                 for field, why in whys]
+    return gaps
+
+
+def _gap_notes(gaps: list[str]) -> str:
+    """The page's list of the fields shown as n/a (empty without any)."""
+    return ("<p>Shown as n/a:</p><ul class=\"notes\">" + "".join(f"<li>{html.escape(g)}</li>" for g in gaps)
+            + "</ul>") if gaps else ""
 
 
 def _cell(table, key: str, text: str) -> str:

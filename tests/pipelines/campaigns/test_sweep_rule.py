@@ -1,11 +1,16 @@
 """The rate sweep's converged rule counts the runs that diverged against the truth, not the NIS monitor's lone
 alarms (runs it flagged whose errors stayed within the NEES rule)."""
 
+import json
+import os
+import re
+
 import numpy as np
 
 from envisat_pose.app.montecarlo import sweep_line
+from envisat_pose.io import json_safe
 from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig
-from envisat_pose.pipelines.campaigns.report import render_sweep
+from envisat_pose.pipelines.campaigns.report import render_sweep, sweep_gaps
 from envisat_pose.pipelines.campaigns.sweep import SweepConfig, sweep_result
 from envisat_pose.state import BLOCKS
 
@@ -37,3 +42,26 @@ def test_lone_nis_alarms_do_not_stop_a_rate_converging():
     older = {k: v for k, v in r.items() if k != "n_nis_alarm_alone"}  # a sweep.json written before
     assert "flagged diverged" in render_sweep({"sweep": older, "dir": "sweep", "figure": "", "config": ""})
     assert np.isclose(r["diverged_share"][0], 0.10)
+
+
+def test_a_sweeps_n_a_cell_says_why_and_the_page_names_the_field_the_rate_and_its_campaign():
+    """A rate whose campaign's summary held no finite NEES nor velocity ratio (NaN, written as null in sweep.json):
+    the table's cells read 'n/a (null)', not a bare n/a, and the page lists each with the rate and that rate's
+    campaign file, as the campaign table's notes do; a rate with every number gets none."""
+    cfg = MonteCarloConfig(runs=100, duration_s=60.0)
+    sweep = SweepConfig(rates_hz=(1.0, 0.5))
+    bad = _summary(0, 0)
+    bad["nees_mean"], bad["rmse_over_pcrlb"]["velocity"] = float("nan"), float("nan")
+    r = json.loads(json.dumps(json_safe(sweep_result(cfg, sweep, [1.0, 0.5], [_summary(0, 0), bad]))))
+    c = {"sweep": r, "dir": "sw", "figure": "", "config": ""}
+    cells = re.findall(r"<td>(.*?)</td>", render_sweep(c))
+    assert cells.count("n/a (null)") == 2 and "n/a" not in [x for x in cells if x != "n/a (null)"]
+    assert sweep_gaps(c) == [
+        f"{os.path.join('sw', 'sweep.json')}: rmse_over_pcrlb.velocity at 0.5 Hz null (shown as n/a; not finite in "
+        f"{os.path.join('sw', 'rate-0.5hz', 'summary.json')})",
+        f"{os.path.join('sw', 'sweep.json')}: nees_mean at 0.5 Hz null (shown as n/a; not finite in "
+        f"{os.path.join('sw', 'rate-0.5hz', 'summary.json')})"]
+    assert "Shown as n/a:" in render_sweep(c) and "rmse_over_pcrlb.velocity at 0.5 Hz" in render_sweep(c)
+    every = sweep_result(cfg, sweep, [1.0, 0.5], [_summary(0, 0)] * 2)
+    whole = {**c, "sweep": json.loads(json.dumps(json_safe(every)))}
+    assert sweep_gaps(whole) == [] and "Shown as n/a" not in render_sweep(whole)
