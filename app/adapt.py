@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 # the library's argument names -> this verb's flags (app/common.as_flags)
-FLAGS = {"src": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps", "bit_depth": "--bit-depth",
+FLAGS = {"source": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps", "bit_depth": "--bit-depth",
          "camera": "--camera", "rounds": "--rounds", "steps": "--steps", "lr": "--lr", "device": "--device",
          "params": "--fine-tune"}
 

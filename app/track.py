@@ -50,7 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 # the library's argument names -> this verb's flags (app/common.as_flags)
-FLAGS = {"src": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps", "bit_depth": "--bit-depth",
+FLAGS = {"source": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestamps", "bit_depth": "--bit-depth",
          "camera": "--camera", "skip_damaged": "--skip-damaged", "target": "--target"}
 
 

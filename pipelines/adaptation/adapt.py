@@ -276,7 +276,7 @@ def label_step(run: AdaptRun, track_dir: str) -> tuple[dict, list[np.ndarray]]:
     if len(lab["frames"]) < cfg.min_trusted:
         tracked = track_figures(track_dir, run.cut)["tracked_share_all"]
         raise InputError(
-            f"src {run.source.path!r}: only {len(lab['frames'])} trusted frames in the first {1 - cfg.held_out:.0%} "
+            f"source {run.source.path!r}: only {len(lab['frames'])} trusted frames in the first {1 - cfg.held_out:.0%} "
             f"of the sequence (tracking, half-turn decided, label sigma < {cfg.max_label_sigma_px:g} px; "
             f"{lab['trusted']} before the sigma test; the tracker tracked {tracked:.0%} of all frames, after a cold "
             f"start of 20 or more); adapt needs at least {cfg.min_trusted} (min_trusted): a longer sequence")

@@ -47,14 +47,14 @@ def sorted_frames(folder: str, names: list[str]) -> list[str]:
     for n in images:  # a link to a frame that is gone: skipped, the sequence silently lost that frame
         path = os.path.join(folder, n)
         if os.path.islink(path) and not os.path.exists(path):
-            raise InputError(f"src {folder!r}: {n!r} is a link to {os.readlink(path)!r}, which does not exist; "
+            raise InputError(f"source {folder!r}: {n!r} is a link to {os.readlink(path)!r}, which does not exist; "
                              "expected an image file (restore the frame, or remove the link)")
     files = [n for n in images if os.path.isfile(os.path.join(folder, n))]
     seen: dict[tuple, str] = {}
     for n in files:
         key = natural_key(os.path.splitext(n)[0])
         if key in seen:
-            raise InputError(f"src {folder!r}: {seen[key]!r} and {n!r} have the same frame number: their order is "
+            raise InputError(f"source {folder!r}: {seen[key]!r} and {n!r} have the same frame number: their order is "
                              "ambiguous (expected one file per frame: remove a copy in another format, or rename them with "
                              "zero-padded numbers)")
         seen[key] = n
@@ -83,7 +83,7 @@ def unread_images_said(names: list[str]) -> str | None:
 def unread_images_caution(src: str, names: list[str]) -> str | None:
     """unread_images_said as a warning naming the folder src; None when there is nothing to say."""
     said = unread_images_said(names)
-    return None if said is None else f"src {src!r}: {said}"
+    return None if said is None else f"source {src!r}: {said}"
 
 
 def numbering_gap(names: list[str]) -> tuple[str, str, int, int] | None:
@@ -109,7 +109,7 @@ def numbering_gap_caution(src: str, names: list[str]) -> str | None:
     if gap is None:
         return None
     a, b, step, usual = gap
-    return (f"src {src!r}: the frame numbers skip from {a!r} to {b!r} (a step of {step}; the others {usual}): "
+    return (f"source {src!r}: the frame numbers skip from {a!r} to {b!r} (a step of {step}; the others {usual}): "
             "`rate_hz` times frame k at k / rate_hz s by its position, so the frames after the gap are early by "
             "the missing frames' time; give `timestamps` (columns file,t_s) if frames are missing")
 
@@ -122,7 +122,7 @@ def decimal_names_caution(src: str, names: list[str]) -> str | None:
     if len(names) < 2 or not all(parts) or len({len(m.group(1)) for m in parts}) < 2:
         return None
     short, long_ = (min(names, key=lambda n: len(n)), max(names, key=lambda n: len(n)))
-    return (f"src {src!r}: the names end in decimal numbers of unequal decimals ({short!r}, {long_!r}): name order "
+    return (f"source {src!r}: the names end in decimal numbers of unequal decimals ({short!r}, {long_!r}): name order "
             "compares their decimals as whole numbers (12.5 before 12.25), so the frames may be out of time order; "
             "give `timestamps` (columns file,t_s), or names with as many decimals each")
 
@@ -137,7 +137,7 @@ def spacing_caution(src: str, t_s: np.ndarray, frames: int, max_gap_s: float) ->
         longest = max(longest, run)
     if longest + 1 >= frames:
         return None
-    return (f"src {src!r}: no {frames} frames in a row are within {max_gap_s:g} s of the one before (the frames are "
+    return (f"source {src!r}: no {frames} frames in a row are within {max_gap_s:g} s of the one before (the frames are "
             f"a median {np.median(np.diff(t_s)):.3g} s apart; [tracker.acquire] frames and max_gap_s): the cold "
             "start cannot gather its window, so nothing will be tracked; times in ms? (t_s is in s)")
 

@@ -229,12 +229,12 @@ class FrameSource:
             yield i, to_u8(img, self.bit_depth)
 
 
-def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
+def open_source(source: str, rate_hz: float = 0.0, timestamps: str | None = None,
                 bit_depth: int | None = None, skip_damaged: bool = False) -> FrameSource:
-    """The frames of src (a generate folder, an image folder or a video file) with their times; InputError with
+    """The frames of `source` (a generate folder, an image folder or a video file) with their times; InputError with
     one line naming the input and what was expected, or the flag that does not apply to it. bit_depth: of the
     data in 16-bit image files (None: detected by scan_source). A generate folder's shards are checked against
-    its manifest: a damaged one is refused, or with skip_damaged left out (source.skipped names it)."""
+    its manifest: a damaged one is refused, or with skip_damaged left out (the FrameSource's skipped names it)."""
     if bit_depth is not None and bit_depth not in BIT_DEPTHS:
         raise InputError(f"bit_depth {bit_depth}: expected one of {', '.join(map(str, BIT_DEPTHS))}")
     rate_hz = 0.0 if rate_hz is None else float(rate_hz)
@@ -242,56 +242,56 @@ def open_source(src: str, rate_hz: float = 0.0, timestamps: str | None = None,
         raise InputError(f"rate_hz {rate_hz}: expected a positive, finite frame rate, Hz")
     if rate_hz and timestamps:
         raise InputError("rate_hz and `timestamps`: give one of them (the frame times)")
-    if os.path.isdir(src):
+    if os.path.isdir(source):
         try:
-            names = os.listdir(src)
+            names = os.listdir(source)
         except OSError as err:  # a folder of another user's without read permission: a traceback
-            raise InputError(f"src {src!r}: the folder cannot be listed ({err.strerror or err})") from None
-        if os.path.isfile(manifest_path(src)) and generate_folder(src, names):
+            raise InputError(f"source {source!r}: the folder cannot be listed ({err.strerror or err})") from None
+        if os.path.isfile(manifest_path(source)) and generate_folder(source, names):
             for flag, value in (("rate_hz", rate_hz), ("timestamps", timestamps), ("bit_depth", bit_depth)):
                 if value:
-                    raise InputError(f"{flag} does not apply to a generate folder ({src!r}: its labels give the "
+                    raise InputError(f"{flag} does not apply to a generate folder ({source!r}: its labels give the "
                                      "frame times and its frames are 8-bit)")
-            return dataset_source(src, skip_damaged)
-        files = [os.path.join(src, f) for f in sorted_frames(src, names)]
+            return dataset_source(source, skip_damaged)
+        files = [os.path.join(source, f) for f in sorted_frames(source, names)]
         if not files:
             unread = unread_images_said(names)
-            raise InputError(f"src {src!r}: no image files (expected PNG, JPEG, TIFF, BMP, PGM/PPM or WebP files, a generate "
-                             "folder or a video)" + (f"; {unread}" if unread else ""))
+            raise InputError(f"source {source!r}: no image files (expected PNG, JPEG, TIFF, BMP, PGM/PPM or WebP "
+                             "files, a generate folder or a video)" + (f"; {unread}" if unread else ""))
         if timestamps:
             t = read_timestamps(timestamps, files)
         elif rate_hz > 0:
-            t = rate_times(src, len(files), rate_hz)
+            t = rate_times(source, len(files), rate_hz)
         else:
-            raise InputError(f"src {src!r}: a folder of images needs a frame rate (`rate_hz`) or "
+            raise InputError(f"source {source!r}: a folder of images needs a frame rate (`rate_hz`) or "
                              "a timestamps file (`timestamps`)")
-        source = FrameSource("images", src, t, [os.path.basename(f) for f in files], files=files)
-        unread = unread_images_caution(src, names)
-        source.cautions += [unread] if unread else []
+        frames = FrameSource("images", source, t, [os.path.basename(f) for f in files], files=files)
+        unread = unread_images_caution(source, names)
+        frames.cautions += [unread] if unread else []
         if not timestamps:  # names that may not be in time order, or may miss frames, under a frame rate
-            caution = decimal_names_caution(src, source.names) or numbering_gap_caution(src, source.names)
-            source.cautions += [caution] if caution else []
-    elif os.path.isfile(src):
-        if src.lower().endswith(IMAGE_EXTENSIONS) and frame_count(src) > 1:
-            raise InputError(f"src {src!r}: {frame_count(src)} frames in one image file (a multi-page TIFF or an "
-                             "animation); expected a folder of one frame per file (save each page as its own "
+            caution = decimal_names_caution(source, frames.names) or numbering_gap_caution(source, frames.names)
+            frames.cautions += [caution] if caution else []
+    elif os.path.isfile(source):
+        if source.lower().endswith(IMAGE_EXTENSIONS) and frame_count(source) > 1:
+            raise InputError(f"source {source!r}: {frame_count(source)} frames in one image file (a multi-page TIFF "
+                             "or an animation); expected a folder of one frame per file (save each page as its own "
                              "file), a video or a generate folder")
-        if src.lower().endswith(IMAGE_EXTENSIONS):
-            raise InputError(f"src {src!r}: one image file; expected the folder of the sequence's frames "
-                             f"({os.path.dirname(src) or '.'!r}), a video or a generate folder")
+        if source.lower().endswith(IMAGE_EXTENSIONS):
+            raise InputError(f"source {source!r}: one image file; expected the folder of the sequence's frames "
+                             f"({os.path.dirname(source) or '.'!r}), a video or a generate folder")
         if timestamps:
-            raise InputError(f"timestamps does not apply to a video ({src!r}): its frames are at `rate_hz` or the "
+            raise InputError(f"timestamps does not apply to a video ({source!r}): its frames are at `rate_hz` or the "
                              "file's own frame rate")
         if bit_depth:
-            raise InputError(f"bit_depth does not apply to a video ({src!r}): its frames are 8-bit")
-        if not is_utf8(src):  # OpenCV's video reader crashed the process (a segfault) on such a path
-            raise InputError(f"src {src!r}: a file name that is not UTF-8; expected a video whose path is UTF-8 "
+            raise InputError(f"bit_depth does not apply to a video ({source!r}): its frames are 8-bit")
+        if not is_utf8(source):  # OpenCV's video reader crashed the process (a segfault) on such a path
+            raise InputError(f"source {source!r}: a file name that is not UTF-8; expected a video whose path is UTF-8 "
                              "(OpenCV's video reader takes no other): rename it")
-        source = video_source(src, rate_hz)
+        frames = video_source(source, rate_hz)
     else:
-        raise InputError(f"src {src!r}: no such file or folder")
-    source.bit_depth = bit_depth or 0  # 0: detect (scan_source)
-    return source
+        raise InputError(f"source {source!r}: no such file or folder")
+    frames.bit_depth = bit_depth or 0  # 0: detect (scan_source)
+    return frames
 
 
 def generate_folder(src: str, names: list[str]) -> bool:
@@ -300,7 +300,7 @@ def generate_folder(src: str, names: list[str]) -> bool:
     user's images (a labelling tool's, an exporter's) leaves the folder an image folder: it was refused as a damaged
     dataset."""
     try:
-        load_dataset_manifest(src, "src")
+        load_dataset_manifest(src, "source")
     except InputError:
         return not any(n.lower().endswith(IMAGE_EXTENSIONS) for n in names)
     return True
@@ -331,16 +331,16 @@ def video_source(path: str, rate_hz: float) -> FrameSource:
         finally:
             cap.release()
     if not opened:
-        raise InputError(f"src {path!r}: cannot be opened as a video (expected a video file OpenCV reads, "
+        raise InputError(f"source {path!r}: cannot be opened as a video (expected a video file OpenCV reads, "
                          "an image folder or a generate folder)" + library_said(said))
     if n == 0:
-        raise InputError(f"src {path!r}: the video has no readable frames" + library_said(said))
+        raise InputError(f"source {path!r}: the video has no readable frames" + library_said(said))
     rate = rate_hz if rate_hz > 0 else fps
     if not rate > 0:
-        raise InputError(f"src {path!r}: the video has no frame rate: give `rate_hz`")
+        raise InputError(f"source {path!r}: the video has no frame rate: give `rate_hz`")
     source = FrameSource("video", path, rate_times(path, n, rate), [f"frame {i}" for i in range(n)])
     if n < header:  # a file cut short (a copy or a recording that stopped) still opens: its tail is gone
-        source.cautions.append(f"src {path!r}: {n} of the {header} frames the video's header counts can be read: "
+        source.cautions.append(f"source {path!r}: {n} of the {header} frames the video's header counts can be read: "
                                f"tracking those {n} (a truncated file?)" + library_said(said))
     return source
 
@@ -353,14 +353,14 @@ def dataset_source(path: str, skip_damaged: bool = False) -> FrameSource:
     labels' corners_px (ENVISAT's) or keypoints_px (another target's, K of them, named by keypoint_names)."""
     from envisat_pose.datagen.dataset import iter_samples
 
-    manifest = load_dataset_manifest(path, "src")
+    manifest = load_dataset_manifest(path, "source")
     cfg = manifest.get("config", {})
     if cfg.get("mode") != "sequence":
-        raise InputError(f"src {path!r}: a generate folder of mode {cfg.get('mode')!r}; expected one written "
+        raise InputError(f"source {path!r}: a generate folder of mode {cfg.get('mode')!r}; expected one written "
                          "in sequence mode (`envisat generate --mode sequence`: frames in time order)")
     if not manifest.get("complete"):
-        raise InputError(f"src {path!r}: an unfinished dataset (run `envisat generate` on it again to finish it)")
-    files, skipped = checked_shards(path, skip_damaged, "src")
+        raise InputError(f"source {path!r}: an unfinished dataset (run `envisat generate` on it again to finish it)")
+    files, skipped = checked_shards(path, skip_damaged, "source")
     t, names, x, uv, inf, dark = [], [], [], [], [], []
     for key, label, _ in iter_samples(files):
         t.append(float(label["scene"]["t_s"]))
@@ -378,7 +378,7 @@ def dataset_source(path: str, skip_damaged: bool = False) -> FrameSource:
                        skipped=skipped, target=target)
 
 
-def require_source_target(source: FrameSource, target: str = DEFAULT_TARGET, field: str = "src") -> None:
+def require_source_target(source: FrameSource, target: str = DEFAULT_TARGET, field: str = "source") -> None:
     """InputError in one line unless a generate folder's frames show the job's target (its `target` value, a
     file): ENVISAT's datasets for ENVISAT (target.require_envisat_dataset: its name and corners, or none recorded),
     the same file's sha256 for another (detect_target.require_dataset_of). Image folders and videos record no
@@ -463,7 +463,7 @@ def scan_source(source: FrameSource, size_px: tuple[int, int] | None = None, min
                                                             "hold 8-bit data)" if top < 256 else ")"))
         line += f": scaled to 8 bits by 255/{(1 << source.bit_depth) - 1}"
     if T < min_frames:
-        raise InputError(f"src {source.path!r}: {T} frame(s); the tracker's cold start needs at least "
+        raise InputError(f"source {source.path!r}: {T} frame(s); the tracker's cold start needs at least "
                          f"{min_frames} (tracker.acquire.frames)")
     for text in source.cautions:  # once, and only for frames that pass: a refusal stays one line
         warnings.warn(text, stacklevel=2)

@@ -62,7 +62,7 @@ def test_a_failed_adapt_leaves_no_folder_it_made(monkeypatch, tmp_path, existed)
     from envisat_pose.config import InputError
 
     def too_few(*args, **kwargs):
-        raise InputError("src 'frames': only 3 trusted frames")
+        raise InputError("source 'frames': only 3 trusted frames")
 
     monkeypatch.setattr(adapt_module, "prepare_frames", lambda tcfg, source, camera: (tcfg, source, None, None, None))
     monkeypatch.setattr(adapt_module, "_adapt", too_few)

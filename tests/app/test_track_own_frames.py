@@ -187,7 +187,7 @@ def test_frames_too_far_apart_for_the_cold_start_are_warned_of(tmp_path, capsys)
     from envisat_pose.app.cli import main
     from envisat_pose.pipelines.runs.frame_names import spacing_caution
 
-    assert spacing_caution("s", np.arange(5) * 1000.0, 3, 30.0).startswith("src 's': no 3 frames in a row")
+    assert spacing_caution("s", np.arange(5) * 1000.0, 3, 30.0).startswith("source 's': no 3 frames in a row")
     assert spacing_caution("s", np.r_[0.0, 1000.0, 1001.0, 1002.0, 5000.0], 3, 30.0) is None  # three close
     names = [f"img_{i:04d}.png" for i in range(4)]
     src = tmp_path / "seq"
@@ -228,7 +228,7 @@ def test_a_folder_that_cannot_be_listed_is_one_line(tmp_path, monkeypatch):
         return listdir(path)
 
     monkeypatch.setattr(os, "listdir", refused)
-    with pytest.raises(InputError, match=r"src '.*theirs': the folder cannot be listed \(Permission denied\)"):
+    with pytest.raises(InputError, match=r"source '.*theirs': the folder cannot be listed \(Permission denied\)"):
         open_source(str(src), 1.0)
 
 

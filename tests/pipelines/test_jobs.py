@@ -243,10 +243,27 @@ def test_library_errors_name_the_argument_and_the_verb_its_flag(tmp_path, capsys
     assert "error: --weights " in capsys.readouterr().err
     from envisat_pose.pipelines.runs.frames import open_source
 
-    with pytest.raises(InputError, match=r"^src '.*nothing': no such file or folder"):
+    with pytest.raises(InputError, match=r"^source '.*nothing': no such file or folder"):
         open_source(str(tmp_path / "nothing"), 1.0)
     assert main(["track", "--images", str(tmp_path / "nothing"), "--rate-hz", "1", "--out", str(tmp_path / "t")]) == 2
     assert "error: --images " in capsys.readouterr().err
+    # track_frames and adapt take the frames as `source` (once named `src` in their errors, open_source's old name)
+    import cv2
+    import numpy as np
+
+    from envisat_pose.pipelines.adaptation.adapt import AdaptConfig, adapt
+    from envisat_pose.pipelines.runs.track import TrackConfig, track_frames
+
+    cfg = TrackConfig(scenario="default", rate_hz=1.0)
+    with pytest.raises(InputError, match=r"^source '.*nothing': no such file or folder"):
+        track_frames(cfg, str(tmp_path / "nothing"), out_dir=str(tmp_path / "t"))
+    with pytest.raises(InputError, match=r"^source '.*nothing': no such file or folder"):
+        adapt(AdaptConfig(), str(tmp_path / "nothing"), str(tmp_path / "a"))
+    (tmp_path / "two").mkdir()
+    for i in range(2):
+        cv2.imwrite(str(tmp_path / "two" / f"img_{i:04d}.png"), np.zeros((64, 64), np.uint8))
+    with pytest.raises(InputError, match=r"^source '.*two': 2 frame\(s\); the tracker's cold start needs"):
+        track_frames(cfg, str(tmp_path / "two"), out_dir=str(tmp_path / "t"))
 
 
 def test_simulate_verb_and_library_agree(tmp_path):
