@@ -67,7 +67,7 @@ def scenario_defaults(kind: str, scenario: str) -> dict:
 
 
 def scenario_table(kind: str, name: str) -> Callable[[Any], dict]:
-    """A config's `table_bases` entry (config._tables_over_bases): table `name` as cfg.scenario sets it for a
+    """A config's `table_bases` entry (config_fields._tables_over_bases): table `name` as cfg.scenario sets it for a
     `kind` job (scenario_defaults), under the keys a dict given for it sets."""
     return lambda cfg: dict(scenario_defaults(kind, cfg.scenario).get(name, {}))
 
