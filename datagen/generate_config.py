@@ -20,7 +20,13 @@ from envisat_pose.config import Config, ConfigError, Derived, check, derived, fr
 from envisat_pose.datagen.appearance import CLASSES
 from envisat_pose.datagen.clearance import farthest_depth_m, target_file_boxes
 from envisat_pose.datagen.labels import DEPTH_MAX_CODE
-from envisat_pose.datagen.scenario import EARTH_RADIUS_M, ScenarioConfig, scenario_dict, sequence_scenario
+from envisat_pose.datagen.scenario import (
+    EARTH_RADIUS_M,
+    MIN_PHYSICS_DT_S,
+    ScenarioConfig,
+    scenario_dict,
+    sequence_scenario,
+)
 from envisat_pose.datagen.target_scene import scene_clip_planes_m, size_ratio
 from envisat_pose.geometry import load_camera
 from envisat_pose.state import MRP, POS
@@ -269,7 +275,8 @@ class SequenceModeConfig(Config):
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
-        check(self.frame_dt_s > 0, f"{p}frame_dt_s", self.frame_dt_s, "a positive frame interval in s")
+        check(self.frame_dt_s >= MIN_PHYSICS_DT_S, f"{p}frame_dt_s", self.frame_dt_s, f"a frame interval of at "
+              f"least {MIN_PHYSICS_DT_S:g} s (the truth's least physics step: each frame's step holds one or more)")
         if self.range_scale is not None:
             check(MIN_RANGE_SCALE <= self.range_scale <= MAX_RANGE_SCALE, f"{p}range_scale", self.range_scale,
                   f"a factor on the scenario's start in [{MIN_RANGE_SCALE:g}, {MAX_RANGE_SCALE:g}] (1: its metres)")
@@ -394,7 +401,9 @@ class GenerateConfig(Config):
         check(self.random.range_min_m > reach_m / 2, f"{p}random.range_min_m", self.random.range_min_m,
               f"a range above {reach_m / 2:.1f} m (the camera must stay outside the target)")
         if self.sun_dir is not None:
-            check(np.linalg.norm(self.sun_dir) > 0, f"{p}sun_dir", list(self.sun_dir), "a non-zero vector")
+            with np.errstate(over="ignore"):  # its length overflowed to inf at 1e300: NaN images, no word
+                norm = float(np.linalg.norm(np.asarray(self.sun_dir, dtype=float)))
+            check(np.isfinite(norm) and norm > 0, f"{p}sun_dir", list(self.sun_dir), "a non-zero vector of finite length")
         check(0.0 <= self.earth_probability <= 1.0, f"{p}earth_probability", self.earth_probability,
               "a probability in [0, 1]")
         check(0 <= self.earth_seed < 2**63, f"{p}earth_seed", self.earth_seed, "a non-negative integer seed")

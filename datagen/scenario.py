@@ -10,6 +10,7 @@ scenarios with an [eclipse] table.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,6 +28,14 @@ MAX_PHYSICS_STEPS = 50_000_000  # RK4 steps per simulation: ~100k steps/s, so at
 # the most a body may turn in one RK4 step of the truth: at 0.05 rad the torque-free energy and momentum hold to
 # ~1e-8 over minutes; a 1 s step of a tumble at 0.79 rad/s (8 s period) drifted the energy 0.27 % in 120 s
 MAX_TURN_PER_PHYSICS_STEP_RAD = 0.05
+# the Earth's Hill sphere, m: a_E (m_E / 3 M_S)^(1/3) = 1.496e11 m x 0.01; beyond it the Sun's pull dominates, so
+# a Keplerian orbit about the Earth (the chaser's, the shadow's) describes nothing
+EARTH_HILL_RADIUS_M = 1.5e9
+# an orbit angle beyond one turn either way names an angle within it (and at 1e17 deg a double's step is 16 deg)
+MAX_ORBIT_ANGLE_DEG = 360.0
+# the slowest spin the truth's tumble bound can take: max_body_rate_rad_s squares the body rate, and below
+# sqrt(2.2e-308) rad/s (the least normal double's root) the square is 0 (a still target: no bound to divide by)
+MIN_SPIN_RATE_RAD_S = math.sqrt(sys.float_info.min)
 
 
 @dataclass(frozen=True)
@@ -48,6 +57,18 @@ class OrbitConfig(Config):
         check(self.a_m * (1.0 - self.e) > EARTH_RADIUS_M, f"{p}a_m", self.a_m,
               f"a semi-major axis whose perigee a(1-e) lies above the Earth's surface ({EARTH_RADIUS_M:.0f} m)")
         check(0.0 <= self.i_deg <= 180.0, f"{p}i_deg", self.i_deg, "an inclination in [0, 180] deg")
+        check(self.a_m * (1.0 + self.e) <= EARTH_HILL_RADIUS_M, f"{p}a_m", self.a_m,
+              f"a semi-major axis whose apogee a(1+e) lies within the Earth's Hill sphere ({EARTH_HILL_RADIUS_M:.1e} "
+              "m; beyond it the Sun, not the Earth, holds the orbit)")
+        for name in ("raan_deg", "argp_deg", "nu0_deg"):
+            value = getattr(self, name)
+            check(abs(value) <= MAX_ORBIT_ANGLE_DEG, f"{p}{name}", value,
+                  f"an angle in [-{MAX_ORBIT_ANGLE_DEG:g}, {MAX_ORBIT_ANGLE_DEG:g}] deg (one turn either way)")
+
+    @property
+    def perigee_rate_rad_s(self) -> float:
+        """The orbit's fastest turn, rad/s: its true anomaly's rate at perigee, h / r_p^2 (h = sqrt(mu a (1-e^2)))."""
+        return math.sqrt(self.mu_m3_s2 * self.a_m * (1.0 - self.e ** 2)) / (self.a_m * (1.0 - self.e)) ** 2
 
     @property
     def n_rad_s(self) -> float:
@@ -77,7 +98,9 @@ class TargetConfig(Config):
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
-        check(self.spin_period_s > 0, f"{p}spin_period_s", self.spin_period_s, "a positive period in seconds")
+        check(0 < self.spin_period_s <= 2.0 * math.pi / MIN_SPIN_RATE_RAD_S, f"{p}spin_period_s", self.spin_period_s,
+              f"a positive period in seconds, at most {2.0 * math.pi / MIN_SPIN_RATE_RAD_S:.3g} s (a slower body rate "
+              "squares to 0 in the tumble's bound)")
         with np.errstate(over="ignore"):
             norm = float(np.linalg.norm(np.asarray(self.spin_axis_T, dtype=float)))
         check(np.isfinite(norm) and norm > 0, f"{p}spin_axis_T", list(self.spin_axis_T),
@@ -145,7 +168,8 @@ class ScenarioConfig(Config):
         check(self.scenario == "" or known(self.scenario), f"{p}scenario", self.scenario,
               "'' or a named scenario (" + ", ".join(names()) + ") or a scenario file that exists")
         check(self.duration_s > 0, f"{p}duration_s", self.duration_s, "a positive duration in seconds")
-        check(self.dt_s > 0, f"{p}dt_s", self.dt_s, "a positive output step in seconds")
+        check(self.dt_s >= MIN_PHYSICS_DT_S, f"{p}dt_s", self.dt_s, f"an output step of at least {MIN_PHYSICS_DT_S:g} "
+              "s (the least physics step: each output step holds one or more)")
         check(self.dt_s <= self.duration_s, f"{p}duration_s", self.duration_s,
               f"a duration of at least one output step (dt_s = {self.dt_s:g} s)")
         check(self.duration_s / self.dt_s <= MAX_OUTPUT_STEPS, f"{p}duration_s", self.duration_s,
@@ -166,6 +190,14 @@ class ScenarioConfig(Config):
         if np.linalg.norm(self.relative.rho0_C_m) <= radius_m:  # refused: say how far the sized start would be
             self.relative.check_outside(radius_m, f"{p}relative", size_ratio(target))
         w_max = max_body_rate_rad_s(self.target.w0_T_rad_s, target.inertia_T_kg_m2)
+        check(w_max * MIN_PHYSICS_DT_S <= MAX_TURN_PER_PHYSICS_STEP_RAD, f"{p}target.spin_period_s",
+              self.target.spin_period_s, f"a tumble the truth's RK4 can follow: at most {MAX_TURN_PER_PHYSICS_STEP_RAD:g} "
+              f"rad per step of at least {MIN_PHYSICS_DT_S:g} s, a body rate of at most "
+              f"{MAX_TURN_PER_PHYSICS_STEP_RAD / MIN_PHYSICS_DT_S:g} rad/s (this tumble reaches {w_max:.3g} rad/s)")
+        orbit_rate = self.orbit.perigee_rate_rad_s
+        check(self.physics_dt_s * orbit_rate <= MAX_TURN_PER_PHYSICS_STEP_RAD, f"{p}orbit.mu_m3_s2",
+              self.orbit.mu_m3_s2, f"an orbit that turns at most {MAX_TURN_PER_PHYSICS_STEP_RAD:g} rad per physics "
+              f"step of {self.physics_dt_s:g} s (RK4 accuracy): it turns {orbit_rate:.3g} rad/s at perigee")
         check(self.physics_dt_s * w_max <= MAX_TURN_PER_PHYSICS_STEP_RAD, f"{p}max_physics_dt_s",
               self.max_physics_dt_s, f"a physics step in which the tumble turns at most "
               f"{MAX_TURN_PER_PHYSICS_STEP_RAD:g} rad (RK4 accuracy): at most "
@@ -280,6 +312,10 @@ def sequence_scenario(name: str, range_scale: float, num_images: int, frame_dt_s
     simulation takes (MAX_OUTPUT_STEPS frames, MAX_PHYSICS_STEPS RK4 steps at the scenario's physics step) is a
     ConfigError naming num_images under prefix, not the duration_s or dt_s it sets (no key of a generate config)."""
     start = {"seed": seed, "target": {"file": target}, **scaled_start(name, range_scale)}
+    longest_s = MAX_PHYSICS_STEPS * scenario_config(name).max_physics_dt_s  # one frame's RK4 steps, at most
+    check(frame_dt_s <= longest_s, f"{prefix}.sequence.frame_dt_s" if prefix else "sequence.frame_dt_s", frame_dt_s,
+          f"a frame interval of at most {longest_s:g} s ({MAX_PHYSICS_STEPS:.0e} RK4 steps of scenario {name!r}'s "
+          "max_physics_dt_s)")
     one = scenario_config(name, duration_s=frame_dt_s, dt_s=frame_dt_s, **start)  # its physics step
     most = min(MAX_OUTPUT_STEPS, MAX_PHYSICS_STEPS // one.substeps) + 1
     check(num_images <= most, f"{prefix}.num_images" if prefix else "num_images", num_images,

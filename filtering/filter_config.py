@@ -3,6 +3,7 @@ they set."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +20,20 @@ VISIBILITY_FROM = ("spread", "mean")  # FilterConfig.visibility_from
 # singular, a P0 of 1e100 made the prior singular: each a traceback after the truth was simulated).
 SIGMA_MAX = 1e12
 SIGMA_MIN = 1e-12  # a positive sigma's least (q_sigma may also be 0: no process noise)
+# The unscented transform's centre weights W0 = 1 - 12 / (alpha^2 (12 + kappa)) (mean) and W0 + 1 - alpha^2 + beta
+# (covariance): the weighted sums cancel terms |W0| times their result, so |W0| <= 1e8 keeps half of a double's 16
+# digits (alpha = 1e-300 divided by 0; beta = 1e300 made the update's matrix singular: tracebacks).
+MAX_CENTRE_WEIGHT = 1e8
+# Q's factor while a run gets no measurement: at most the ratio of the widest process-noise variance the filter takes
+# to the least, (SIGMA_MAX / SIGMA_MIN)^2, so that q_sigma's largest (1e12) inflated is a variance of 1e72 per s
+# whose square stays finite (1e300 made the covariance inf: NaN estimates, a warning at most).
+MAX_OUTAGE_Q_SCALE = (SIGMA_MAX / SIGMA_MIN) ** 2
+# The sigma points lie alpha sqrt(12 + kappa) standard deviations out (3.5 at the defaults): at 100 (kappa = 1e4)
+# an estimate on the default truth claimed a mean NEES of 1916 for 12, at 1e150 (kappa = 1e300) its sums were NaN.
+MAX_SIGMA_SPREAD = 100.0
+# The least RK4 sub-step of the filter's model, s (the truth's least physics step, datagen.scenario's: RK4 at 0.05 s
+# is already exact to 1e-8 m over an orbit); a step of 1e-300 s asked for an array past numpy's largest.
+MIN_RK4_STEP_S = 1e-4
 
 
 def check_kernel(kernel: str) -> None:
@@ -98,6 +113,7 @@ class FilterConfig(Config):
         check(0.0 < self.alpha <= 1.0, f"{p}alpha", self.alpha, "a sigma-point spread in (0, 1]")
         check(self.beta >= 0.0, f"{p}beta", self.beta, "a non-negative number")
         check(12 + self.kappa > 0, f"{p}kappa", self.kappa, "a number with 12 + kappa > 0")
+        self._check_unscented(p)
         check(all(SIGMA_MIN <= s <= SIGMA_MAX for s in self.p0_sigma), f"{p}p0_sigma", list(self.p0_sigma),
               f"four positive sigmas in [{SIGMA_MIN:g}, {SIGMA_MAX:g}]")
         check(all(s == 0 or SIGMA_MIN <= s <= SIGMA_MAX for s in self.q_sigma), f"{p}q_sigma", list(self.q_sigma),
@@ -108,18 +124,34 @@ class FilterConfig(Config):
         lo, hi = self.adaptive_r_bounds
         check(0.0 < lo <= 1.0 <= hi, f"{p}adaptive_r_bounds", list(self.adaptive_r_bounds), "[lo, hi] with 0 < lo <= 1 <= hi")
         check(0.0 <= self.adaptive_q_memory < 1.0, f"{p}adaptive_q_memory", self.adaptive_q_memory, "a number in [0, 1)")
-        check(self.outage_q_scale >= 1.0, f"{p}outage_q_scale", self.outage_q_scale, "a factor >= 1")
+        check(1.0 <= self.outage_q_scale <= MAX_OUTAGE_Q_SCALE, f"{p}outage_q_scale", self.outage_q_scale,
+              f"a factor in [1, {MAX_OUTAGE_Q_SCALE:g}] (the widest ratio of the process noises the filter takes)")
         check(self.divergence_settle_steps >= 0, f"{p}divergence_settle_steps", self.divergence_settle_steps, "a non-negative number of steps")
         check(self.divergence_window >= 1, f"{p}divergence_window", self.divergence_window, "at least 1 step")
         check(0.0 < self.divergence_prob < 1.0, f"{p}divergence_prob", self.divergence_prob, "a probability in (0, 1)")
         check(self.nees_divergence_factor > 1.0, f"{p}nees_divergence_factor", self.nees_divergence_factor, "a factor > 1")
-        check(self.max_rk4_step_s > 0.0, f"{p}max_rk4_step_s", self.max_rk4_step_s, "a positive step in seconds")
+        check(self.max_rk4_step_s >= MIN_RK4_STEP_S, f"{p}max_rk4_step_s", self.max_rk4_step_s,
+              f"a step of at least {MIN_RK4_STEP_S:g} s (RK4 is exact at 0.05 s; smaller steps only cost time)")
         check(self.kernel in KERNELS, f"{p}kernel", self.kernel, f"one of {', '.join(KERNELS)}")
         check(self.split_gain > 1.0, f"{p}split_gain", self.split_gain, "a factor > 1")
         check(self.split_max >= 1, f"{p}split_max", self.split_max, "at least 1 update")
         check(self.visibility_from in VISIBILITY_FROM, f"{p}visibility_from", self.visibility_from,
               " or ".join(VISIBILITY_FROM))
         check(self.sigma_chart in SIGMA_CHARTS, f"{p}sigma_chart", self.sigma_chart, " or ".join(SIGMA_CHARTS))
+
+    def _check_unscented(self, p: str) -> None:
+        """ConfigError unless the sigma points' weights and spread stay where the unscented transform's sums are
+        sound (MAX_CENTRE_WEIGHT, MAX_SIGMA_SPREAD)."""
+        scaled = self.alpha ** 2 * (12 + self.kappa)  # n + lambda
+        spread = scaled ** 0.5
+        check(spread <= MAX_SIGMA_SPREAD, f"{p}kappa", self.kappa, f"sigma points at most {MAX_SIGMA_SPREAD:g} "
+              f"standard deviations out: alpha sqrt(12 + kappa) = {spread:.3g}")
+        w0 = 1.0 - 12.0 / scaled if scaled > 0 else -math.inf
+        check(abs(w0) <= MAX_CENTRE_WEIGHT, f"{p}alpha", self.alpha, f"a centre weight 1 - 12 / (alpha^2 (12 + "
+              f"kappa)) within +-{MAX_CENTRE_WEIGHT:g} (kappa = {self.kappa:g}): a larger one cancels the sums' digits")
+        w0_cov = w0 + 1.0 - self.alpha ** 2 + self.beta
+        check(abs(w0_cov) <= MAX_CENTRE_WEIGHT, f"{p}beta", self.beta, f"a covariance centre weight W0 + 1 - alpha^2 "
+              f"+ beta within +-{MAX_CENTRE_WEIGHT:g} (it is {w0_cov:.3g}): a larger one cancels the sums' digits")
 
     @property
     def P0(self) -> np.ndarray:

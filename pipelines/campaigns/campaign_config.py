@@ -77,7 +77,7 @@ class MonteCarloConfig(Config):
         check(self.settle_s is None or 0 <= self.settle_s < self.duration_s, "settle_s", self.settle_s,
               f"a time in [0, duration_s = {self.duration_s:g}) s")
         check(0 <= self.sample_runs <= 200, "sample_runs", self.sample_runs, "an integer from 0 to 200")
-        check_init_error_scale(self.init_error_scale)
+        check_init_error_scale(self.init_error_scale, self.filter.p0_sigma)
         if self.target is not None:
             load_target(self.target, "target")  # a bad file: one line before any work
         rate = self.measurement.rate_hz  # the statistics need a filter step at or after the settle time

@@ -29,6 +29,7 @@ from envisat_pose.datagen.scenario import (
     scenario_of_truth,
 )
 from envisat_pose.filtering.estimator import FilterConfig, chaser_states, diverged_against_truth, nees, run_filter
+from envisat_pose.filtering.filter_config import SIGMA_MIN
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
 from envisat_pose.geometry import load_geometry
 from envisat_pose.io import atomic_write_text, open_npz, sha256_file, staged_folder
@@ -89,12 +90,16 @@ class EstimateConfig(Config):
     def validate(self, prefix: str = "") -> None:
         check(1 <= self.runs <= 100_000, "runs", self.runs, "a number of runs from 1 to 100000")
         check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")
-        check_init_error_scale(self.init_error_scale)
+        check_init_error_scale(self.init_error_scale, self.filter.p0_sigma)
 
 
-def check_init_error_scale(scale: float) -> None:
-    """ConfigError unless the initial errors' scale (their sigma over P0's) is in (0, 100]."""
-    check(0.0 < scale <= 100.0, "init_error_scale", scale, "a scale in (0, 100] of P0's sigmas (1: the filter's own P0)")
+def check_init_error_scale(scale: float, p0_sigma=(1.0,)) -> None:
+    """ConfigError unless the initial errors' scale (their sigma over P0's) is in (0, 100] and keeps P0's least
+    sigma at or above SIGMA_MIN, the least the filter takes (the draw factors scale^2 P0: at 1e-300 it was 0, and
+    its Cholesky factor a traceback)."""
+    least = SIGMA_MIN / min(p0_sigma)
+    check(least <= scale <= 100.0, "init_error_scale", scale, f"a scale in [{least:.3g}, 100] of P0's sigmas (1: "
+          f"the filter's own P0; the least keeps its smallest sigma, {min(p0_sigma):g}, at {SIGMA_MIN:g} or more)")
 
 
 # what an estimate takes where its scenario (or a truth file's job, without one) sets nothing
