@@ -80,13 +80,17 @@ def sweep_for(cfg: MonteCarloConfig, rates_hz=None, rate_given: bool = False,
     caller set the campaign's single rate too (refused with a sweep: the sweep sets the rates)."""
 
     defaults = table(cfg.scenario, "sweep")
-    in_file = load_toml(config_path).get("sweep") if config_path else None
+    written = load_toml(config_path) if config_path else {}
+    in_file = written.get("sweep")
     if not defaults and in_file is None and not rates_hz:
         return None
     check(in_file is None or isinstance(in_file, dict), "sweep", in_file, "a table (rates_hz, max_rmse_over_pcrlb, "
           "max_diverged_share)")
     check(not rate_given, "measurement.rate_hz", cfg.measurement.rate_hz, "no single rate with a rate sweep (the "
           "sweep's rates_hz sets the rates)")
+    file_rate = (written.get("measurement") or {}).get("rate_hz")  # a file's rate the sweep would replace unsaid
+    check(file_rate is None, "measurement.rate_hz", file_rate, "no single rate beside a rate sweep: sweep.rates_hz "
+          "sets each campaign's rate (remove measurement.rate_hz from the config file, or the sweep)")
     sweep = resolve_job_config(SweepConfig, {"sweep": defaults}, config_path,
                                {"sweep.rates_hz": list(rates_hz) if rates_hz else None},
                                lambda data: data["sweep"], prefix="sweep")
@@ -163,7 +167,9 @@ def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner: R
     result = sweep_result(cfg, sweep, rates, summaries)
     atomic_write_text(os.path.join(out_dir, "sweep.json"), json.dumps(json_safe(result), indent=1, sort_keys=True)
                       + "\n")
-    written = with_target_sha256({**to_dict(cfg), "sweep": to_dict(sweep)}, "montecarlo", result["target"]["sha256"])
+    campaign = to_dict(cfg)
+    campaign["measurement"]["rate_hz"] = None  # each campaign's is the sweep's: read back, a rate beside it is refused
+    written = with_target_sha256({**campaign, "sweep": to_dict(sweep)}, "montecarlo", result["target"]["sha256"])
     atomic_write_text(os.path.join(out_dir, CONFIG_NAME),
                       "# envisat montecarlo: the full validated config of this rate sweep (its [sweep] rates_hz set "
                       "each campaign's measurement.rate_hz)\n" + source_line() + to_toml(written))
