@@ -7,7 +7,9 @@ video (`open_source`), every frame read once before any output (`scan_source`).
   folder is the sequence), and so is a file of several frames (a TIFF stack, an animation); a video whose header
   counts more frames than can be read is warned of.
 - Pixels: 8-bit files as they are; 16-bit files hold `bit_depth`-bit data (10, 12, 14 or 16; default: the
-  smallest depth that holds the sequence's maximum), scaled to 8 bits by 255 / (2^bit_depth - 1).
+  smallest depth that holds the sequence's maximum), scaled to 8 bits by 255 / (2^bit_depth - 1). Colour with
+  alpha is composited over black (space is black); an EXIF Orientation is not applied: the pixels are as stored,
+  which the intrinsics describe, and frames that carry one are warned of (pipelines/runs/frame_pixels.py).
 - Messages the image and video libraries print (OpenCV, libpng, libtiff, FFmpeg) are kept off the terminal
   (`native_stderr`); what they said goes into the one-line InputError when a frame cannot be read.
 """
@@ -36,6 +38,7 @@ from envisat_pose.pipelines.runs.frame_names import (
     unread_images_caution,
     unread_images_said,
 )
+from envisat_pose.pipelines.runs.frame_pixels import as_stored, orientation_caution, over_black, premultiplied
 from envisat_pose.resumable import manifest_path
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
 from envisat_pose.target import DEFAULT_TARGET, load_target, other_target, require_envisat_dataset
@@ -89,18 +92,23 @@ def quiet_opencv() -> None:
 # Pixels
 
 
-def to_gray(img: np.ndarray | None, name: str, said: list[str] | None = None) -> np.ndarray:
-    """8- or 16-bit gray or colour (BGR/BGRA, OpenCV's order) -> (H, W) gray of the same depth."""
+def to_gray(img: np.ndarray | None, name: str, said: list[str] | None = None,
+            is_premultiplied: bool = False) -> np.ndarray:
+    """8- or 16-bit gray or colour (BGR/BGRA, OpenCV's order; gray+alpha) -> (H, W) gray of the same depth; colour
+    with alpha composited over black first (frame_pixels.over_black: space is black, not the colour a transparent
+    pixel stores; is_premultiplied: the colour is so already)."""
     import cv2
 
     if img is None or img.size == 0:
         raise InputError(f"{name}: cannot be read as an image (expected PNG, JPEG, TIFF, BMP, PGM/PPM or WebP)"
                          + library_said(said or []))
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
     if img.dtype not in (np.uint8, np.uint16):
         raise InputError(f"{name}: pixels of type {img.dtype}: expected unsigned 8- or 16-bit integers (uint8, "
                          "uint16)")  # a signed 16-bit TIFF was told it was not 16-bit
+    if img.ndim == 3 and img.shape[2] in (2, 4):
+        img = over_black(img, is_premultiplied)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     return np.ascontiguousarray(img)
 
 
@@ -113,16 +121,18 @@ def to_u8(img: np.ndarray, bit_depth: int) -> np.ndarray:
     return ((v * 255 + full // 2) // full).astype(np.uint8)
 
 
-def read_gray(path: str) -> np.ndarray:
-    """An image file as (H, W) gray, uint8 or uint16 as stored; InputError naming the file when it is unreadable
-    or truncated (with what the image library said)."""
+def read_gray(path: str, turned: list[tuple[str, int]] | None = None) -> np.ndarray:
+    """An image file as (H, W) gray, uint8 or uint16 as stored (not turned by an EXIF Orientation: turned, when
+    given, gets (path, its Orientation) for one other than 1); InputError naming the file when it is unreadable or
+    truncated (with what the image library said)."""
     import cv2
 
     try:
         with open(path, "rb") as fh:
-            data = np.frombuffer(fh.read(), np.uint8)
+            raw, orientation, extra = as_stored(fh.read())
     except OSError as err:
         raise InputError(f"{path}: cannot be read ({err.strerror or err})") from None
+    data = np.frombuffer(raw, np.uint8)
     with native_stderr() as said:
         img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
         pages = frame_count(path) if img is not None else 1
@@ -132,7 +142,10 @@ def read_gray(path: str) -> np.ndarray:
     if pages > 1:  # imdecode gives the first page alone: the rest of the stack was lost without a word
         raise InputError(f"{path}: {pages} frames in one file (a multi-page TIFF or an animation); expected one "
                          "frame per file: save each page as its own file")
-    return to_gray(img, path, said)
+    gray = to_gray(img, path, said, img is not None and premultiplied(extra, img.dtype))
+    if orientation != 1 and turned is not None:
+        turned.append((path, orientation))
+    return gray
 
 
 def frame_count(path: str) -> int:
@@ -190,12 +203,12 @@ class FrameSource:
         """Frame i as a message names it: the file, or the input and the frame."""
         return self.files[i] if self.kind == "images" else f"{self.path}: {self.names[i]}"
 
-    def raw_frames(self):
+    def raw_frames(self, turned: list[tuple[str, int]] | None = None):
         """(index, gray image as stored: uint8 or uint16) in time order; InputError naming the frame when one cannot
-        be read."""
+        be read. turned, when given, gets (file, its EXIF Orientation) for each image file of one other than 1."""
         if self.kind == "images":
             for i, f in enumerate(self.files):
-                yield i, read_gray(f)
+                yield i, read_gray(f, turned)
         elif self.kind == "video":
             import cv2
 
@@ -406,11 +419,13 @@ def scan_source(source: FrameSource, size_px: tuple[int, int] | None = None, min
                 progress: bool = False) -> str:
     """Read every frame once before any output: each must decode, be at least MIN_SIDE_PX a side and have one
     size (size_px (width, height): the camera's; None: the size most frames have, so the odd frame is the one
-    named); 16-bit data must fit the bit depth (detected when 0); then source.cautions are warned of (once).
+    named); 16-bit data must fit the bit depth (detected when 0); then source.cautions are warned of (once), with
+    image files of an EXIF Orientation other than 1 (frame_pixels.orientation_caution).
     Sets source.size_px and source.bit_depth;
     returns a line saying what the pixels are. InputError naming the frame at fault, or the frame count when
     there are fewer than min_frames (the tracker's cold start needs that many)."""
-    it = source.raw_frames()
+    turned: list[tuple[str, int]] = []
+    it = source.raw_frames(turned)
     if progress:
         from tqdm import tqdm
 
@@ -465,6 +480,7 @@ def scan_source(source: FrameSource, size_px: tuple[int, int] | None = None, min
     if T < min_frames:
         raise InputError(f"source {source.path!r}: {T} frame(s); the tracker's cold start needs at least "
                          f"{min_frames} (tracker.acquire.frames)")
+    source.cautions += orientation_caution(source.path, turned, T, source.size_px)
     for text in source.cautions:  # once, and only for frames that pass: a refusal stays one line
         warnings.warn(text, stacklevel=2)
     source.cautions = []

@@ -1,0 +1,132 @@
+"""What a user's image file says of its pixels beyond what OpenCV's decode returns (pipelines/runs/frames.py reads
+the frames with it):
+
+- The EXIF Orientation (tag 274, in a JPEG's APP1 Exif segment, a TIFF's first directory, a PNG's eXIf chunk or a
+  WebP's EXIF chunk): how a viewer turns the stored pixels for display. Pose needs the pixels as stored (the
+  camera's intrinsics describe the sensor's pixels): `as_stored` sets the tag to 1 in the bytes given to the
+  decoder (OpenCV's TIFF reader turns the pixels by it, some versions only partly; its JPEG reader does not),
+  and `orientation_caution` tells the user once per source.
+- Alpha: space is black, so colour with alpha (BGRA, gray+alpha) is composited over black (`over_black`). A TIFF's
+  ExtraSamples (tag 338) says whether its colour is premultiplied already: associated alpha (1) is, and so is
+  unassociated alpha (2) in an 8-bit TIFF, which OpenCV reads through libtiff's RGBA reader that premultiplies.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+ORIENTATION_TAG = 274
+EXTRA_SAMPLES_TAG = 338
+# how a viewer shows the stored pixels, by Orientation (1: as stored)
+SHOWN = {2: "mirrored left-right", 3: "turned 180 deg", 4: "mirrored top-bottom",
+         5: "mirrored and turned 90 deg (transposed)", 6: "turned 90 deg clockwise",
+         7: "mirrored and turned 90 deg (transversed)", 8: "turned 90 deg counter-clockwise"}
+JPEG_EXIF = b"Exif\0\0"
+
+
+def tiff_header_at(data: bytes) -> int | None:
+    """Where the TIFF header that holds a file's tags starts in data: 0 for a TIFF file, after 'Exif\\0\\0' in a
+    JPEG's APP1 segment (before its scan), a PNG's eXIf chunk, a WebP's EXIF chunk; None when there is none."""
+    if data[:4] in (b"II*\0", b"MM\0*"):
+        return 0
+    if data[:2] == b"\xff\xd8":  # JPEG: marker segments up to the start of scan
+        i = 2
+        while i + 4 <= len(data) and data[i] == 0xFF:
+            marker = data[i + 1]
+            if marker in (0xD9, 0xDA):
+                return None
+            if marker == 0xFF or 0xD0 <= marker <= 0xD7 or marker == 0x01:  # fill byte, markers without a length
+                i += 1 if marker == 0xFF else 2
+                continue
+            if marker == 0xE1 and data[i + 4:i + 10] == JPEG_EXIF:
+                return i + 10
+            i += 2 + int.from_bytes(data[i + 2:i + 4], "big")
+        return None
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        i = 8
+        while i + 8 <= len(data) and data[i + 4:i + 8] != b"IEND":
+            if data[i + 4:i + 8] == b"eXIf":
+                return i + 8
+            i += 12 + int.from_bytes(data[i:i + 4], "big")
+        return None
+    if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
+        i = 12
+        while i + 8 <= len(data):
+            size = int.from_bytes(data[i + 4:i + 8], "little")
+            if data[i:i + 4] == b"EXIF":  # some writers keep JPEG's prefix
+                return i + 8 + (6 if data[i + 8:i + 14] == JPEG_EXIF else 0)
+            i += 8 + size + (size & 1)
+    return None
+
+
+def header_shorts(data: bytes, tags: tuple[int, ...] = (ORIENTATION_TAG, EXTRA_SAMPLES_TAG)) -> dict:
+    """The first value of each of `tags` that the first directory of data's TIFF header (tiff_header_at) holds as
+    SHORTs: {tag: (value, its offset in data, byte order 'little' or 'big')}; {} without one, or where the header
+    is damaged (a header that cannot be read tells of no tag: the decoder has the last word on the pixels)."""
+    base = tiff_header_at(data)
+    order = None if base is None else {b"II": "little", b"MM": "big"}.get(bytes(data[base:base + 2]))
+    if order is None:
+        return {}
+
+    def u(at: int, n: int) -> int:
+        return int.from_bytes(data[at:at + n], order)
+
+    if u(base + 2, 2) != 42:  # a BigTIFF (43) or no TIFF header
+        return {}
+    ifd = base + u(base + 4, 4)
+    found = {}
+    for k in range(u(ifd, 2) if ifd + 2 <= len(data) else 0):
+        at = ifd + 2 + 12 * k
+        if at + 12 > len(data):
+            break
+        tag, kind, count = u(at, 2), u(at + 2, 2), u(at + 4, 4)
+        if tag in tags and kind == 3 and count >= 1:  # SHORTs: up to two in the entry, more at an offset
+            where = at + 8 if count <= 2 else base + u(at + 8, 4)
+            if where + 2 <= len(data):
+                found[tag] = (u(where, 2), where, order)
+    return found
+
+
+def as_stored(data: bytes) -> tuple[bytes, int, int]:
+    """(data with its EXIF Orientation set to 1, so that no decoder turns the pixels; the Orientation it had, 1
+    when none or not one of 2-8; a TIFF file's ExtraSamples, 0 when none or not a TIFF)."""
+    tags = header_shorts(data)
+    orientation, at, order = tags.get(ORIENTATION_TAG, (1, 0, "little"))
+    if orientation in SHOWN:
+        data = data[:at] + (1).to_bytes(2, order) + data[at + 2:]
+    else:
+        orientation = 1
+    extra = tags.get(EXTRA_SAMPLES_TAG, (0,))[0] if data[:4] in (b"II*\0", b"MM\0*") else 0
+    return data, orientation, extra
+
+
+def premultiplied(extra_samples: int, dtype) -> bool:
+    """Whether OpenCV gives a TIFF's colour premultiplied by its alpha: associated alpha (ExtraSamples 1) is stored
+    so; unassociated alpha (2) is premultiplied by libtiff's RGBA reader, which OpenCV uses for 8-bit TIFFs."""
+    return extra_samples == 1 or (extra_samples == 2 and np.dtype(dtype) == np.uint8)
+
+
+def over_black(img: np.ndarray, is_premultiplied: bool = False) -> np.ndarray:
+    """Colour or gray with alpha as its last channel (BGRA; gray+alpha), uint8 or uint16, composited over black:
+    each colour value x alpha / full scale, rounded (as it is when premultiplied already); alpha dropped. A fully
+    opaque alpha leaves the colour's values as they are. Returns (H, W, 3) or (H, W)."""
+    colour, alpha = img[..., :-1], img[..., -1:]
+    if not is_premultiplied:
+        top = np.iinfo(img.dtype).max
+        colour = ((colour.astype(np.uint32) * alpha + top // 2) // top).astype(img.dtype)
+    return colour[..., 0] if colour.shape[2] == 1 else colour
+
+
+def orientation_caution(source: str, turned: list[tuple[str, int]], frames: int,
+                        size_px: tuple[int, int]) -> list[str]:
+    """What to warn of, once per source, when frames carry an EXIF Orientation other than 1 (turned: (file, its
+    Orientation) each): their pixels are used as stored, so the intrinsics must describe those; [] when none."""
+    if not turned:
+        return []
+    path, value = turned[0]
+    others = sorted({v for _, v in turned} - {value})
+    also = f"; others {', '.join(map(str, others))}" if others else ""
+    return [f"source {source!r}: {len(turned)} of the {frames} frames carry an EXIF Orientation other than 1 "
+            f"({path!r}: Orientation {value}, which viewers show {SHOWN[value]}{also}): their pixels are used as "
+            f"stored ({size_px[0]} x {size_px[1]} px), not turned as a viewer shows them, so the camera's "
+            "intrinsics (`camera`: fx, fy, cx, cy, width, height) must describe the stored pixels"]

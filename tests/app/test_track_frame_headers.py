@@ -1,0 +1,231 @@
+"""A user's frames whose files say more than their pixels (pipelines/runs/frame_pixels.py): an EXIF Orientation
+(a phone's JPEG, a TIFF) is not applied, the pixels are used as stored and the source is warned of once, naming
+the file and the value (OpenCV's JPEG reader ignored the tag without a word; its TIFF reader turned the pixels by
+it); colour with alpha is composited over black (a transparent background read as the white its pixels stored),
+for 8- and 16-bit files, gray+alpha too, and a fully opaque alpha gives the bytes it gave before. Every file is
+written here, its EXIF by hand; nothing here tracks."""
+
+import struct
+import warnings
+import zlib
+
+import numpy as np
+import pytest
+
+from envisat_pose.app.cli import main
+from envisat_pose.pipelines.runs.frame_pixels import as_stored
+from envisat_pose.pipelines.runs.frames import open_source, read_gray, scan_source, to_gray
+
+H, W = 24, 40  # stored: wider than high, so a turn by 90 deg shows in the shape
+
+
+def stored_frame(seed=0):
+    """A gray frame whose left quarter is white: any turn or mirror moves it."""
+    img = np.random.default_rng(seed).integers(0, 100, (H, W), dtype=np.uint8)
+    img[:, : W // 4] = 255
+    return img
+
+
+def tiff_ifd(order, entries, data_end):
+    """A TIFF header whose first directory holds SHORT/LONG entries (tag, type, value), after data_end bytes of
+    data."""
+    out = (b"II" if order == "<" else b"MM") + struct.pack(order + "HI", 42, 8 + data_end)
+    ifd = struct.pack(order + "H", len(entries))
+    for tag, kind, value in sorted(entries):
+        packed = struct.pack(order + "HH", value, 0) if kind == 3 else struct.pack(order + "I", value)
+        ifd += struct.pack(order + "HHI", tag, kind, 1) + packed
+    return out, ifd + struct.pack(order + "I", 0)
+
+
+def exif_jpeg(img, orientation, order="<"):
+    """img as a JPEG whose APP1 Exif segment (written here, after OpenCV's APP0) holds the Orientation."""
+    import cv2
+
+    ok, jpg = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 100])
+    jpg = jpg.tobytes()
+    head, ifd = tiff_ifd(order, [(274, 3, orientation)], 0)
+    body = b"Exif\0\0" + head + ifd
+    app0_end = 4 + int.from_bytes(jpg[4:6], "big")  # SOI, APP0 (JFIF)
+    return jpg[:app0_end] + b"\xff\xe1" + struct.pack(">H", len(body) + 2) + body + jpg[app0_end:]
+
+
+def tiff_file(pixels, orientation=None, extra_samples=None, order="<"):
+    """An uncompressed one-strip TIFF of pixels ((H, W) gray, (H, W, 3|4) RGB(A), 8 or 16 bits), written here."""
+    h, w = pixels.shape[:2]
+    spp = 1 if pixels.ndim == 2 else pixels.shape[2]
+    data = pixels.astype(pixels.dtype.newbyteorder(order)).tobytes()
+    entries = [(256, 3, w), (257, 3, h), (258, 3, pixels.dtype.itemsize * 8), (259, 3, 1), (262, 3, 1 if spp < 3 else 2),
+               (273, 4, 8), (277, 3, spp), (278, 3, h), (279, 4, len(data))]
+    entries += [(274, 3, orientation)] if orientation else []
+    entries += [(338, 3, extra_samples)] if extra_samples is not None else []
+    head, ifd = tiff_ifd(order, entries, len(data))
+    return head + data + ifd
+
+
+def gray_alpha_png(gray, alpha):
+    """A PNG of colour type 4 (gray + alpha, 8-bit), written here: OpenCV writes none."""
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    rows = b"".join(b"\0" + row.tobytes() for row in np.dstack([gray, alpha]))
+    ihdr = struct.pack(">IIBBBBB", gray.shape[1], gray.shape[0], 8, 4, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b"")
+
+
+def orientation_warnings(source):
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        scan_source(source)
+    return [str(w.message) for w in seen if "Orientation" in str(w.message)]
+
+
+# ---------------------------------------------------------------------------------------------------------
+# EXIF Orientation
+
+
+def test_the_orientation_is_read_from_a_jpeg_a_tiff_a_png_and_a_webp():
+    img = stored_frame()
+    for order in "<>":
+        for value in (1, 3, 6, 8):
+            data, found, _ = as_stored(exif_jpeg(img, value, order))
+            assert found == value and as_stored(data)[1] == 1  # set to 1 in what the decoder gets
+    assert as_stored(tiff_file(img, 6, order=">"))[1] == 6
+    head, ifd = tiff_ifd("<", [(274, 3, 5)], 0)
+    png = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", len(head + ifd)) + b"eXIf" + head + ifd + b"\0" * 4
+    assert as_stored(png)[1] == 5
+    webp = b"RIFF\0\0\0\0WEBP" + b"EXIF" + struct.pack("<I", len(head + ifd) + 6) + b"Exif\0\0" + head + ifd
+    assert as_stored(webp)[1] == 5
+    jpg = exif_jpeg(img, 6)
+    for damaged in (jpg[:30], jpg[:24] + b"\xff" * 8 + jpg[32:], b"II*\0\xff\xff\xff\xff"):  # no crash: no turn
+        assert as_stored(damaged)[1] in (1, 6)
+    assert as_stored(exif_jpeg(img, 0))[1] == 1 and as_stored(exif_jpeg(img, 9))[1] == 1  # not a turn: ignored
+
+
+def test_a_turned_jpeg_is_used_as_stored_and_warned_of_once(tmp_path):
+    """Orientation 6 (a phone held upright): the pixels as stored, 40 x 24 px, and one warning for the source
+    naming the first file, its value and how viewers show it; none for Orientation 1 or no EXIF."""
+    img = stored_frame()
+    src = tmp_path / "phone"
+    src.mkdir()
+    for i in range(3):
+        (src / f"img_{i:04d}.jpg").write_bytes(exif_jpeg(img, 6, "<>"[i % 2]))
+    frame = read_gray(str(src / "img_0000.jpg"))
+    assert frame.shape == (H, W) and frame[:, : W // 4].min() > 200 and frame[:, W // 2:].max() < 150
+    source = open_source(str(src), 1.0)
+    said = orientation_warnings(source)
+    assert len(said) == 1, said
+    assert f"{str(src / 'img_0000.jpg')!r}: Orientation 6, which viewers show turned 90 deg clockwise" in said[0]
+    assert "3 of the 3 frames" in said[0] and f"used as stored ({W} x {H} px)" in said[0]
+    assert source.size_px == (W, H)
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    import cv2
+
+    (plain / "a_0.jpg").write_bytes(exif_jpeg(img, 1))
+    assert cv2.imwrite(str(plain / "a_1.jpg"), img)  # no EXIF
+    assert orientation_warnings(open_source(str(plain), 1.0)) == []
+
+
+def test_a_turned_tiff_is_used_as_stored(tmp_path):
+    """OpenCV's TIFF reader turned the pixels by the tag (40 x 24 px read as 24 x 40); now they are as stored,
+    8- and 16-bit, and the source is warned of."""
+    img = stored_frame()
+    src = tmp_path / "tiffs"
+    src.mkdir()
+    for i, (value, pixels) in enumerate([(6, img), (3, img), (8, img.astype(np.uint16) * 64)]):
+        path = src / f"f_{i}.tif" if pixels.dtype == np.uint8 else tmp_path / "wide.tif"
+        path.write_bytes(tiff_file(pixels, value, order="<>"[i % 2]))
+        frame = read_gray(str(path))
+        assert frame.shape == (H, W) and frame.dtype == pixels.dtype
+        np.testing.assert_array_equal(frame, pixels)
+    said = orientation_warnings(open_source(str(src), 1.0))
+    assert len(said) == 1 and "2 of the 2 frames" in said[0] and "Orientation 6" in said[0], said
+    assert "others 3" in said[0]
+
+
+def test_the_verb_names_its_flags_in_the_warning(tmp_path, capsys):
+    src = tmp_path / "phone"
+    src.mkdir()
+    for i in range(3):
+        (src / f"img_{i}.jpg").write_bytes(exif_jpeg(stored_frame(i), 8))
+    cfg = tmp_path / "fast.toml"
+    cfg.write_text("[tracker.acquire]\nframes = 3\n")
+    code = main(["track", "--images", str(src), "--rate-hz", "1", "--config", str(cfg), "--out",
+                 str(tmp_path / "never"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 2, err  # the warning, then the frames are not the default camera's size
+    assert err[0].startswith("envisat track: warning: --images") and "Orientation 8" in err[0]
+    assert "--camera" in err[0] and "`" not in err[0]
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Alpha
+
+
+def rgba_frame(dtype):
+    """BGRA: a white background of alpha 0, an opaque square, a half-transparent stripe."""
+    top = np.iinfo(dtype).max
+    img = np.zeros((H, W, 4), dtype)
+    img[...] = top
+    img[..., 3] = 0
+    img[4:12, 4:12] = np.array([50, 100, 150, 255], np.float64) * top / 255
+    img[16:20, :] = [top, top, top, top // 2 + 1]
+    return img
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_a_transparent_background_is_black(tmp_path, dtype):
+    import cv2
+
+    img = rgba_frame(dtype)
+    top = np.iinfo(dtype).max
+    path = str(tmp_path / "rgba.png")
+    assert cv2.imwrite(path, img)
+    gray = read_gray(path)
+    assert gray.dtype == dtype
+    assert gray[0, 0] == 0 and gray[22, 30] == 0  # was the white the transparent pixels store
+    square = cv2.cvtColor(np.ascontiguousarray(img[4:12, 4:12, :3]), cv2.COLOR_BGR2GRAY)
+    np.testing.assert_array_equal(gray[4:12, 4:12], square)  # opaque: as it was
+    half = round(top * (top // 2 + 1) / top)
+    assert np.all(gray[16:20] == half)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_a_fully_opaque_alpha_gives_the_bytes_it_gave(tmp_path, dtype):
+    import cv2
+
+    top = np.iinfo(dtype).max
+    img = np.random.default_rng(3).integers(0, top, (H, W, 4), dtype=dtype, endpoint=True)
+    img[..., 3] = top
+    path = str(tmp_path / "opaque.png")
+    assert cv2.imwrite(path, img)
+    before = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)  # what to_gray gave before alpha was composited
+    assert read_gray(path).tobytes() == before.tobytes()
+
+
+def test_gray_and_alpha_are_composited_over_black(tmp_path):
+    """A gray+alpha PNG (OpenCV gives it as BGRA) and a gray+alpha array (two channels, which cvtColor refused
+    with an OpenCV error)."""
+    gray = np.full((H, W), 200, np.uint8)
+    alpha = np.zeros((H, W), np.uint8)
+    alpha[:, : W // 2] = 255
+    alpha[:, W // 2: W // 2 + 4] = 64
+    path = tmp_path / "ga.png"
+    path.write_bytes(gray_alpha_png(gray, alpha))
+    for out in (read_gray(str(path)), to_gray(np.dstack([gray, alpha]), "ga")):
+        assert out.shape == (H, W) and out.dtype == np.uint8
+        assert out[0, 0] == 200 and out[0, W // 2] == round(200 * 64 / 255) and out[0, -1] == 0
+
+
+def test_a_tiffs_premultiplied_colour_is_not_multiplied_twice(tmp_path):
+    """An 8-bit TIFF's unassociated alpha (ExtraSamples 2) comes premultiplied from OpenCV's reader (libtiff's
+    RGBA), associated alpha (1) is stored so; a 16-bit TIFF's unassociated alpha comes as stored."""
+    for dtype, extra, want in ((np.uint8, 2, 100), (np.uint8, 1, 200), (np.uint16, 2, 100 * 257),
+                               (np.uint16, 1, 200 * 257)):
+        scale = 1 if dtype == np.uint8 else 257
+        rgba = np.zeros((H, W, 4), dtype)
+        rgba[...] = [200 * scale, 200 * scale, 200 * scale, 128 * scale]
+        path = tmp_path / f"{np.dtype(dtype).name}_{extra}.tif"
+        path.write_bytes(tiff_file(rgba, extra_samples=extra))
+        gray = read_gray(str(path))
+        assert abs(int(gray[0, 0]) - want) <= scale, (dtype, extra, gray[0, 0])
