@@ -31,6 +31,6 @@ def check_dataset_target_file(src: str, manifest: dict, target: str | None) -> N
     if target is None:
         raise InputError(f"src {src!r}: its target file {given!r} changed since the dataset was generated "
                          f"(sha256 {digest[:12]}..., the manifest recorded {recorded[:12]}...)")
-    raise InputError(f"target {target!r}: not the target file of src {src!r} (sha256 {digest[:12]}..., its "
+    raise InputError(f"target {target!r}: not the target file of the dataset {src!r} (sha256 {digest[:12]}..., its "
                      f"manifest recorded {recorded[:12]}... for {record.get('name')!r}, file "
                      f"{record.get('file')!r}); expected that file, unchanged since the dataset was generated")

@@ -596,7 +596,7 @@ def test_a_moved_target_file_is_given_with_target(tmp_path, monkeypatch):
     coco = json.load(open(os.path.join(out.out_dir, "annotations", "keypoints_train.json")))
     assert len(coco["categories"][0]["keypoints"]) == 12 and len(coco["annotations"]) == 2
     (home / "sat.xml").write_text((home / "sat.xml").read_text().replace("<mujoco", "<!-- edited -->\n<mujoco", 1))
-    with pytest.raises(InputError, match="not the target file of src .*unchanged since the dataset was generated"):
+    with pytest.raises(InputError, match="not the target file of the dataset .*unchanged since the dataset was generated"):
         export_dataset(src, str(tmp_path / "edited"), ExportConfig("coco", val_fraction=0.0,
                                                                    target=str(home / "sat.xml")), progress=False)
 

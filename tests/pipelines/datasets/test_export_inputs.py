@@ -114,7 +114,7 @@ def test_the_target_file_to_give_is_named_and_another_target_file_is_refused_by_
     assert "its target file 'mytgt/cs.xml'" in line and "give that file with --target" in line
     assert envisat_main(export + ["b", "--target", os.path.join(models, "upper_stage.xml")]) == 2
     line = one_error_line(capsys)
-    assert "--target" in line and "not the target file of src" in line and "'cubesat_3u'" in line
+    assert "--target" in line and f"not the target file of the dataset {src!r}" in line and "'cubesat_3u'" in line
     assert "range" not in line  # not a check of the generate config built on the upper stage
     assert envisat_main(export + ["c", "--target", os.path.join("home", "mytgt", "cs.xml")]) == 0
     assert sorted(os.listdir(tmp_path)) == ["c", "cs", "home"]
@@ -294,7 +294,7 @@ def test_inspect_rrd_of_a_dataset_whose_target_path_is_not_found_from_here(tmp_p
     assert not (tmp_path / "m.png").exists() and not (tmp_path / "s.rrd").exists()
     result = inspect_dataset("work/ds", "m.png", count=2, rrd="s.rrd", target="work/mine/t.xml")
     assert result["montage_images"] == 2 and (tmp_path / "s.rrd").stat().st_size > 0
-    with pytest.raises(InputError, match="not the target file of src"):
+    with pytest.raises(InputError, match="not the target file of the dataset 'work/ds'"):
         inspect_dataset("work/ds", "n.png", count=2, rrd="t.rrd", target=resolve_target_path("models/cubesat_3u.xml"))
 
 
