@@ -14,6 +14,7 @@ from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_rrd_out
 from envisat_pose.app.flag_rules import check_noise_flags, job_scenario
 from envisat_pose.config import InputError, check
 from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, run_campaign
+from envisat_pose.pipelines.campaigns.report import why_not_a_number
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE, run_sweep, sweep_for
 from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
@@ -155,5 +156,5 @@ def sweep_line(r: dict) -> str:
     return "\n".join(lines)
 
 
-def _fmt_ratio(v, digits: int = 3) -> str:
-    return "n/a" if v is None or not math.isfinite(v) else f"{v:.{digits}f}"
+def _fmt_ratio(v, digits: int = 3) -> str:  # n/a says why, as the report's cells do: null, nan, inf
+    return f"{v:.{digits}f}" if v is not None and math.isfinite(v) else f"n/a ({why_not_a_number(v) or v})"

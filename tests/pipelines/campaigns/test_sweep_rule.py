@@ -65,3 +65,20 @@ def test_a_sweeps_n_a_cell_says_why_and_the_page_names_the_field_the_rate_and_it
     every = sweep_result(cfg, sweep, [1.0, 0.5], [_summary(0, 0)] * 2)
     whole = {**c, "sweep": json.loads(json.dumps(json_safe(every)))}
     assert sweep_gaps(whole) == [] and "Shown as n/a" not in render_sweep(whole)
+
+
+def test_the_terminal_lines_say_why_a_number_is_n_a():
+    """`envisat montecarlo --rates-hz`'s lines printed a bare n/a where the report says why: the sweep's value in
+    memory (NaN, infinite) or read back from sweep.json (null)."""
+    cfg = MonteCarloConfig(runs=100, duration_s=60.0)
+    sweep = SweepConfig(rates_hz=(1.0, 0.5))
+    bad = _summary(0, 0)
+    bad["nees_mean"], bad["rmse_over_pcrlb"]["velocity"] = float("nan"), float("inf")
+    r = sweep_result(cfg, sweep, [1.0, 0.5], [_summary(0, 0), bad])
+    lines = sweep_line(r).splitlines()
+    assert "n/a" not in lines[0]
+    assert "velocity n/a (inf)" in lines[1] and "mean NEES n/a (nan)" in lines[1]
+    read_back = json.loads(json.dumps(json_safe(r)))
+    line = sweep_line(read_back).splitlines()[1]
+    assert "velocity n/a (null)" in line and "mean NEES n/a (null)" in line
+    assert not re.search(r"n/a(?! \()", sweep_line(r) + sweep_line(read_back))  # never a bare n/a
