@@ -164,7 +164,8 @@ class AdaptConfig(Config):
         check(self.edge_min_frames >= 1, f"{p}edge_min_frames", self.edge_min_frames, "at least 1 frame")
         check(self.max_calibration_frames >= 1, f"{p}max_calibration_frames", self.max_calibration_frames,
               "at least 1 frame")
-        check(self.threads >= 0, f"{p}threads", self.threads, "threads >= 0 (0: torch's default)")
+        check(0 <= self.threads <= 256, f"{p}threads", self.threads, "0 to 256 threads (0: torch's default; 256, "
+              "as track's and run's)")
         check(re.fullmatch(r"cpu|cuda(:\d+)?", self.device) is not None, f"{p}device", self.device, "cpu or cuda")
         if self.device.startswith("cuda"):
             import torch

@@ -22,6 +22,7 @@ from envisat_pose.geometry import load_camera
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job, scenario_table
 from envisat_pose.pipelines.tracking.onboard import orbit_config
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, TrackerConfig
+from envisat_pose.pipelines.tracking.tracker_bounds import MAX_PREDICTION_S, MAX_RUN_FRAMES
 from envisat_pose.pools import default_processes
 
 if TYPE_CHECKING:  # the stage's type for annotations; imported where a config is made
@@ -108,10 +109,15 @@ class RunConfig(Config):
         return layered_job(cls, "run", name, config_path, overrides, fields)
 
     def validate(self, prefix: str = "") -> None:
-        check(self.duration_s > 0, "duration_s", self.duration_s, "a positive duration in s")
-        check(0.0 < self.rate_hz <= 10.0, "rate_hz", self.rate_hz, "a rate in (0, 10] Hz")
-        check(self.duration_s * self.rate_hz <= 200_000, "duration_s", self.duration_s,
-              "at most 200000 frames (duration_s x rate_hz)")
+        # frames at most MAX_PREDICTION_S apart (1e-300 Hz was refused naming sequence.frame_dt_s, no key of a run)
+        check(1.0 / MAX_PREDICTION_S <= self.rate_hz <= 10.0, "rate_hz", self.rate_hz, f"a rate in "
+              f"[{1.0 / MAX_PREDICTION_S:g}, 10] Hz (frames at most {MAX_PREDICTION_S:g} s apart, the longest gap a "
+              "track is predicted over)")
+        # the truth steps at the frame interval: a shorter run (1e-300 s) was refused after the run began, naming dt_s
+        check(self.duration_s >= 1.0 / self.rate_hz, "duration_s", self.duration_s,
+              f"a duration of at least one frame interval (1 / rate_hz = {1.0 / self.rate_hz:g} s)")
+        check(self.duration_s * self.rate_hz <= MAX_RUN_FRAMES, "duration_s", self.duration_s,
+              f"at most {MAX_RUN_FRAMES} frames (duration_s x rate_hz)")
         check(1 <= self.runs <= 1000, "runs", self.runs, "1 to 1000 runs")
         check(1 <= self.workers <= MAX_WORKERS, "workers", self.workers, f"1 to {MAX_WORKERS} processes")
         check(0 <= self.seed < 2**63, "seed", self.seed, "a non-negative integer seed")

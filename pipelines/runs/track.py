@@ -60,6 +60,7 @@ from envisat_pose.pipelines.tracking.build import tracker_detector
 from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics, camera_record, default_camera
 from envisat_pose.pipelines.tracking.onboard import chaser_function
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, Tracker, TrackerConfig
+from envisat_pose.pipelines.tracking.tracker_bounds import MAX_PREDICTION_S, MIN_FRAME_DT_S
 from envisat_pose.provenance import source_line
 from envisat_pose.realtime import real_time_factor
 from envisat_pose.status import legend
@@ -119,7 +120,10 @@ class TrackConfig(Config):
         return layered_job(cls, "track", name, config_path, overrides, fields)
 
     def validate(self, prefix: str = "") -> None:
-        check(self.rate_hz >= 0, "rate_hz", self.rate_hz, "a frame rate in Hz (0: a video's own)")
+        lo, hi = 1.0 / MAX_PREDICTION_S, 1.0 / MIN_FRAME_DT_S  # frames 1e6 s apart at most, 1e-4 s at least
+        check(self.rate_hz == 0 or lo <= self.rate_hz <= hi, "rate_hz", self.rate_hz, f"a frame rate in [{lo:g}, "
+              f"{hi:g}] Hz (frames at most as far apart as a track is predicted over, at least the filter's least "
+              "step), or 0: a video's own")
         check(1 <= self.threads <= 256, "threads", self.threads, "1 to 256 threads")
         check(1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality, "a JPEG quality in [1, 100]")
         load_target(self.target, f"{prefix}.target" if prefix else "target")  # one line for a bad file (cached)

@@ -15,6 +15,7 @@ import numpy as np
 from envisat_pose.config import Config, check
 from envisat_pose.filtering.filter_config import SIGMA_MAX, SIGMA_MIN
 from envisat_pose.gates import GATE_PROB, chi2_gate
+from envisat_pose.pipelines.tracking import tracker_bounds as B
 from envisat_pose.pipelines.tracking.noise import CORRELATION_IN, CORRELATION_MODELS
 
 # the covariance reported while acquiring (no filter yet): position m, velocity m/s, MRP, rate rad/s (1-sigma)
@@ -54,8 +55,11 @@ class AcquireConfig(Config):
         p = _dot(prefix)
         check(self.frames >= 3, f"{p}frames", self.frames, "at least 3 frames")
         check(4 <= self.min_corners <= 8, f"{p}min_corners", self.min_corners, "4 to 8 corners")
-        check(self.max_gap_s > 0, f"{p}max_gap_s", self.max_gap_s, "a positive gap in s")
-        check(self.start_cov_factor >= 1.0, f"{p}start_cov_factor", self.start_cov_factor, "a factor >= 1")
+        check(B.MIN_FRAME_DT_S <= self.max_gap_s <= B.MAX_PREDICTION_S, f"{p}max_gap_s", self.max_gap_s,
+              f"a gap in [{B.MIN_FRAME_DT_S:g}, {B.MAX_PREDICTION_S:g}] s (the least frame interval; the longest a "
+              "track is predicted over, as the cold start's fit is across its gaps)")
+        check(1.0 <= self.start_cov_factor <= B.MAX_COV_FACTOR, f"{p}start_cov_factor", self.start_cov_factor,
+              f"a factor in [1, {B.MAX_COV_FACTOR:g}] (the widest ratio of the variances the filter takes)")
 
 
 @dataclass(frozen=True)
@@ -78,7 +82,9 @@ class FitConfig(Config):
     def validate(self, prefix: str = "tracker.fit") -> None:
         p = _dot(prefix)
         check(self.iterations >= 1, f"{p}iterations", self.iterations, "at least 1")
-        check(self.huber > 0, f"{p}huber", self.huber, "a positive whitened residual")
+        check(B.MIN_HUBER <= self.huber <= B.MAX_HUBER, f"{p}huber", self.huber, f"a whitened residual in "
+              f"[{B.MIN_HUBER:g}, {B.MAX_HUBER:g}] (below, the fit never leaves its guess; at {B.MAX_HUBER:g} "
+              "every corner counts fully: least squares)")
         check(0.5 < self.gate_prob < 1.0, f"{p}gate_prob", self.gate_prob, "a probability in (0.5, 1)")
 
 
@@ -134,10 +140,10 @@ class BankConfig(Config):
         check(0.0 < self.evidence_prob < 0.5, f"{p}evidence_prob", self.evidence_prob, "a probability in (0, 0.5)")
         check(0.0 < self.appearance_clip < 0.5, f"{p}appearance_clip", self.appearance_clip,
               "a probability in (0, 0.5)")
-        check(self.appearance_max_log >= 0.0, f"{p}appearance_max_log", self.appearance_max_log,
-              "a non-negative log-likelihood (nats)")
-        check(self.frame_max_log >= 0.0, f"{p}frame_max_log", self.frame_max_log,
-              "a non-negative log-likelihood (nats; 0: no bound)")
+        check(0.0 <= self.appearance_max_log <= B.MAX_LOG_NATS, f"{p}appearance_max_log", self.appearance_max_log,
+              f"a log-likelihood in [0, {B.MAX_LOG_NATS:.1f}] nats (beyond, its likelihood ratio overflows)")
+        check(0.0 <= self.frame_max_log <= B.MAX_LOG_NATS, f"{p}frame_max_log", self.frame_max_log,
+              f"a log-likelihood in [0, {B.MAX_LOG_NATS:.1f}] nats (0: no bound; beyond, its ratio overflows)")
         check(self.appearance_frames >= 1.0, f"{p}appearance_frames", self.appearance_frames, "at least 1 frame")
         check(self.evidence_memory in ("filter", "long"), f"{p}evidence_memory", self.evidence_memory,
               "'filter' or 'long'")
@@ -170,8 +176,9 @@ class ArrayCueConfig(Config):
 
     def validate(self, prefix: str = "tracker.array_cue") -> None:
         p = _dot(prefix)
-        check(self.per_frame >= 0.0, f"{p}per_frame", self.per_frame, "a non-negative log-likelihood (nats)")
-        check(self.max_log >= 0.0, f"{p}max_log", self.max_log, "a non-negative log-likelihood (nats)")
+        for name in ("per_frame", "max_log"):
+            check(0.0 <= getattr(self, name) <= B.MAX_LOG_NATS, f"{p}{name}", getattr(self, name),
+                  f"a log-likelihood in [0, {B.MAX_LOG_NATS:.1f}] nats (beyond, its likelihood ratio overflows)")
         check(self.lost_readings >= 1, f"{p}lost_readings", self.lost_readings, "at least 1 reading")
 
 
@@ -208,10 +215,10 @@ class RoiConfig(Config):
         check(self.margin >= 1.0, f"{p}margin", self.margin, "a factor >= 1")
         check(16 <= self.min_side_px <= 4096, f"{p}min_side_px", self.min_side_px, "a side in [16, 4096] px")
         check(1 <= self.min_corners <= 8, f"{p}min_corners", self.min_corners, "1 to 8 corners")
-        check(self.converged_pos_sigma_m > 0, f"{p}converged_pos_sigma_m", self.converged_pos_sigma_m,
-              "a positive sigma in m")
-        check(self.converged_att_sigma_deg > 0, f"{p}converged_att_sigma_deg", self.converged_att_sigma_deg,
-              "a positive sigma in deg")
+        check(0 < self.converged_pos_sigma_m <= SIGMA_MAX, f"{p}converged_pos_sigma_m", self.converged_pos_sigma_m,
+              f"a positive sigma in m, at most {SIGMA_MAX:g} (the widest the filter takes)")
+        check(0 < self.converged_att_sigma_deg <= 180.0, f"{p}converged_att_sigma_deg", self.converged_att_sigma_deg,
+              "a positive sigma in deg, at most 180 (a wider one knows nothing of the attitude)")
 
 
 @dataclass(frozen=True)
@@ -270,7 +277,8 @@ class IntegrityConfig(Config):
     def validate(self, prefix: str = "tracker.integrity") -> None:
         p = _dot(prefix)
         check(self.lost_after_frames >= 1, f"{p}lost_after_frames", self.lost_after_frames, "at least 1 frame")
-        check(self.window >= 2, f"{p}window", self.window, "at least 2 frames")
+        check(2 <= self.window <= B.MAX_RUN_FRAMES, f"{p}window", self.window,
+              f"2 to {B.MAX_RUN_FRAMES} frames (the longest run's; a longer window never fills)")
         check(0.0 < self.prob < 0.5, f"{p}prob", self.prob, "a probability in (0, 0.5)")
         check(self.expected_reject_share is None or 0.0 < self.expected_reject_share < 1.0,
               f"{p}expected_reject_share", self.expected_reject_share, "a share in (0, 1), or unset: the detector's")
@@ -284,13 +292,19 @@ class IntegrityConfig(Config):
               "a share of the range in (0, 1]")
         check(0.0 < self.lost_att_sigma_deg <= 90.0, f"{p}lost_att_sigma_deg", self.lost_att_sigma_deg,
               "an angle in (0, 90] deg")
-        check(self.min_target_px > 0, f"{p}min_target_px", self.min_target_px, "a positive size in px")
-        check(self.max_rate_deg_s > 0, f"{p}max_rate_deg_s", self.max_rate_deg_s, "a positive rate in deg/s")
-        check(self.max_speed_m_s > 0, f"{p}max_speed_m_s", self.max_speed_m_s, "a positive speed in m/s")
-        check(self.recall_s >= 0, f"{p}recall_s", self.recall_s, "a time in s, at least 0 (0: no memory)")
+        check(B.MIN_TARGET_PX <= self.min_target_px <= B.MAX_TARGET_PX, f"{p}min_target_px", self.min_target_px,
+              f"a size in [{B.MIN_TARGET_PX:g}, {B.MAX_TARGET_PX:g}] px (a pixel; the largest image side)")
+        check(0 < self.max_rate_deg_s <= B.MAX_RATE_DEG_S, f"{p}max_rate_deg_s", self.max_rate_deg_s,
+              f"a positive rate of at most {B.MAX_RATE_DEG_S:.0f} deg/s (the fastest tumble the truth's RK4 follows)")
+        check(0 < self.max_speed_m_s <= B.MAX_SPEED_M_S, f"{p}max_speed_m_s", self.max_speed_m_s,
+              f"a positive speed of at most {B.MAX_SPEED_M_S:.0f} m/s (twice the escape speed: no two orbits meet "
+              "faster)")
+        check(0 <= self.recall_s <= B.MAX_PREDICTION_S, f"{p}recall_s", self.recall_s, f"a time in [0, "
+              f"{B.MAX_PREDICTION_S:g}] s (0: no memory; the memory is predicted as a track is, at most that far)")
         check(0.0 < self.recall_att_sigma_deg <= 60.0, f"{p}recall_att_sigma_deg", self.recall_att_sigma_deg,
               "an angle in (0, 60] deg")
-        check(self.recall_cov_factor >= 1.0, f"{p}recall_cov_factor", self.recall_cov_factor, "at least 1")
+        check(1.0 <= self.recall_cov_factor <= B.MAX_COV_FACTOR, f"{p}recall_cov_factor", self.recall_cov_factor,
+              f"a factor in [1, {B.MAX_COV_FACTOR:g}] (the widest ratio of the variances the filter takes)")
         check(0.0 < self.focal_tolerance < 1.0, f"{p}focal_tolerance", self.focal_tolerance, "a share in (0, 1)")
 
 

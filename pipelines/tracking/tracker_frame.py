@@ -32,6 +32,7 @@ from envisat_pose.pipelines.tracking.integrity import (
     window_problems,
 )
 from envisat_pose.pipelines.tracking.noise import detection_measurement, filter_memory, nis_sum_dispersion
+from envisat_pose.pipelines.tracking.tracker_bounds import MAX_PREDICTION_S  # the longest gap predicted over
 from envisat_pose.pipelines.tracking.tracker_config import RoiConfig, TrackEstimate
 from envisat_pose.state import MRP, N_STATE, POS, RATE
 
@@ -54,12 +55,6 @@ def predicted_roi(mean: np.ndarray, cov: np.ndarray, camera: PinholeCamera, cfg:
     side = int(np.ceil(min(side, 2.0 * max(w, h))))
     x0, y0 = np.round((lo + hi) / 2 - side / 2).astype(int)
     return np.array([x0, y0, side], dtype=np.int64)
-
-
-# The longest gap a started track is predicted over, s (11.6 days): the propagation's steps, time and memory grow
-# with it (a frame 1e300 s on was a numpy error from the filter, 1e8 s minutes of work for one frame), for a
-# prior long since lost (a day's gap left a track's position sigma at hundreds of m: lost by its integrity tests).
-MAX_PREDICTION_S = 1e6
 
 
 @dataclasses.dataclass(frozen=True)
