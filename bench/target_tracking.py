@@ -13,7 +13,8 @@ Two detectors, named in every row:
 
 Per scenario it prints and writes to bench/results/target_tracking.json: runs, first tracks correct (attitude
 within 5 deg and position within 2 % of range), false-lock time (claimed tracking or coasting while wrong, s),
-median time to the first correct track, mean NEES over the scored frames (12 expected), the share of scored
+median time to the first correct track over the runs that had one (with their count; None only when none did),
+mean NEES over the scored frames (12 expected), the share of scored
 frames beyond NEES's 99.9 % quantile, the second half's RMS position (m) and attitude (deg) errors over the frames
 on which the tracker claims an estimate ("-" where it claims none: a run that never tracks has no error to give)
 with the share of the second half claimed, and the real-time factor.
@@ -147,9 +148,17 @@ def closed_loop_run(target_file: str, weights: str, scenario: str, seed: int, du
                                 "second_half": claimed_second_half(t_s, x_true, x_hat, status)}
 
 
+def first_correct_median(runs: list[dict]) -> tuple[float | None, int]:
+    """The median time to the first correct track over the runs that had one, s, and their count (None, 0 when
+    none did: a run without one is counted out, never taken for the whole scenario's None)."""
+    firsts = [r["time_to_first_correct_track_s"]["median"] for r in runs]
+    done = [float(t) for t in firsts if t is not None]
+    return (float(np.median(done)) if done else None), len(done)
+
+
 def pooled(runs: list[dict]) -> dict:
     """A scenario's figures over its runs (module docstring)."""
-    firsts = [r["time_to_first_correct_track_s"]["median"] for r in runs]
+    first_median, first_runs = first_correct_median(runs)
     scored = [r["scored"] for r in runs if r["scored"]["frames"]]
     frames = sum(s["frames"] for s in scored)
     nees = sum(s["mean_nees"] * s["frames"] for s in scored) / frames if frames else None
@@ -159,7 +168,7 @@ def pooled(runs: list[dict]) -> dict:
     rms = lambda key: float(np.sqrt(sum(h[key] for h in half) / claimed)) if claimed else None  # noqa: E731
     return {"runs": len(runs), "first_track_correct": sum(r["first_track_correct"] for r in runs),
             "false_lock_s": float(sum(r["false_lock_s"] for r in runs)),
-            "time_to_first_correct_track_s_median": None if None in firsts else float(np.median(firsts)),
+            "time_to_first_correct_track_s_median": first_median, "time_to_first_correct_track_runs": first_runs,
             "mean_nees": nees, "nees_tail_share": tail, "scored_frames": frames,
             "rms_position_m_second_half": rms("sq_position_m2"), "rms_attitude_deg_second_half": rms("sq_attitude_deg2"),
             "second_half_claimed_share": claimed / max(sum(h["frames"] for h in half), 1),
@@ -210,12 +219,14 @@ def main() -> int:
                   f"{r['false_lock_s']:.0f} s, NEES {r['scored']['mean_nees']}", flush=True)
         rows[scenario] = pooled(runs)
     fmt = lambda v, d=2: "-" if v is None else f"{v:.{d}f}"  # noqa: E731
+    first_cell = lambda t, n: f"{fmt(t, 0)} ({n})"  # noqa: E731
     print(f"\ntarget {args.target}, detector {detector}, seeds {seeds[0]}-{seeds[-1]}, {args.duration_s:.0f} s, cold")
-    print(f"{'scenario':<14}{'first ok':>9}{'false s':>9}{'t first':>9}{'NEES':>8}{'tail %':>8}{'RMS pos m':>11}"
+    print(f"{'scenario':<14}{'first ok':>9}{'false s':>9}{'t first (n)':>13}{'NEES':>8}{'tail %':>8}{'RMS pos m':>11}"
           f"{'RMS att deg':>12}{'claimed':>9}{'RT x':>7}")
     for scenario, p in rows.items():
         print(f"{scenario:<14}{p['first_track_correct']:>5}/{p['runs']:<3}{p['false_lock_s']:>9.0f}"
-              f"{fmt(p['time_to_first_correct_track_s_median'], 0):>9}{fmt(p['mean_nees'], 1):>8}"
+              f"{first_cell(p['time_to_first_correct_track_s_median'], p['time_to_first_correct_track_runs']):>13}"
+              f"{fmt(p['mean_nees'], 1):>8}"
               f"{fmt(None if p['nees_tail_share'] is None else 100 * p['nees_tail_share']):>8}"
               f"{fmt(p['rms_position_m_second_half'], 4):>11}{fmt(p['rms_attitude_deg_second_half'], 3):>12}"
               f"{100 * p['second_half_claimed_share']:>8.0f}%{p['real_time_factor_median']:>7.1f}")

@@ -118,3 +118,22 @@ def test_target_trackings_stand_in_tracks_on_frames_of_the_cameras_size():
     target = bench.ROOT / "models" / "upper_stage.xml"
     scores = bench.noisy_truth_run(str(target), "default", 0, 10.0, 1.0, 0.1)
     assert scores["second_half"]["frames"] > 0
+
+
+def test_target_trackings_first_correct_median_is_over_the_runs_that_had_one():
+    """pooled's median time to the first correct track: over the runs that had one, with their count (one run
+    without a correct track made the scenario's median None, hiding seven that had one); None only when none did."""
+    bench = load("target_tracking")
+
+    def row(first_s):
+        return {"time_to_first_correct_track_s": {"median": first_s}, "first_track_correct": first_s is not None,
+                "false_lock_s": 0.0, "scored": {"frames": 0}, "real_time_factor": 9.0,
+                "second_half": {"frames": 151, "claimed": 0, "sq_position_m2": 0.0, "sq_attitude_deg2": 0.0}}
+
+    p = bench.pooled([row(t) for t in (104.0, None, 30.0, 60.0)])
+    assert p["time_to_first_correct_track_s_median"] == 60.0 and p["time_to_first_correct_track_runs"] == 3
+    assert p["first_track_correct"] == 3
+    p = bench.pooled([row(t) for t in (20.0, 40.0)])
+    assert p["time_to_first_correct_track_s_median"] == 30.0 and p["time_to_first_correct_track_runs"] == 2
+    p = bench.pooled([row(None), row(None)])
+    assert p["time_to_first_correct_track_s_median"] is None and p["time_to_first_correct_track_runs"] == 0
