@@ -83,7 +83,8 @@ class ResumableJob:
     added_defaults: identity fields (flattened, 'config.x') added to the job after folders were written without
     them, each with the value such a folder had implicitly (a field's default that reproduces the older bytes).
     own_entries: what the job may have written into its folder before the first manifest (its unit subfolders
-    are among them); a folder without a manifest that holds anything else is not this job's and is refused.
+    are among them, empty: no unit is written before it); a folder without a manifest that holds anything else
+    is not this job's and is refused.
     compared_by: identity fields (flattened) compared by a header field instead ({'config.target':
     'target.sha256'}: a target file given by another path, from another folder, is the same file), where the
     earlier manifest records that header field. unit_glob: the glob of a unit file's path relative to out_dir
@@ -148,11 +149,16 @@ class ResumableJob:
 
     def _refuse_foreign_entries(self) -> None:
         """InputError in one line when out_dir holds entries but no manifest beyond the job's own (own_entries, its
-        unit subfolders), a killed writer's partial files and a lock file (out_lock): another job's folder, whose
-        files this job would mix in with its own or overwrite."""
-        own = set(self.own_entries) | {os.path.dirname(self.unit_file(i)) for i in range(self.n_units)}
+        unit subfolders, empty: the job writes no unit before its first manifest), a killed writer's partial files
+        and a lock file (out_lock): another job's folder, whose files this job would mix in with its own or
+        overwrite (a unit file there was written by none of this job's runs: removing it would lose it)."""
+        own = set(self.own_entries) | set(self.subdirs())
         names = sorted(n for n in os.listdir(self.out_dir) if not n.startswith(PARTIAL_PREFIX) and n not in own
                        and not is_lock_file(n))
+        for sub in self.subdirs():  # a unit subfolder's entries: files this job never wrote (blocks/ of a copy)
+            if os.path.isdir(os.path.join(self.out_dir, sub)):
+                names += sorted(os.path.join(sub, n) for n in os.listdir(os.path.join(self.out_dir, sub))
+                                if not n.startswith(PARTIAL_PREFIX))
         if names:
             shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
             count = "1 entry" if len(names) == 1 else f"{len(names)} entries"
@@ -160,18 +166,28 @@ class ResumableJob:
                              f"{self.what} to resume; expected an empty or new folder (use another one)")
 
     def _refuse_stray_units(self) -> None:
-        """InputError in one line when out_dir holds files matching unit_glob that are none of the job's units."""
+        """InputError in one line when out_dir holds files matching unit_glob that are none of the job's units,
+        or a folder (or a link to none) where a unit's file goes: not the job's to remove or to read."""
         if self.unit_glob is None:
             return
         ours = {os.path.normpath(self.unit_file(i)) for i in range(self.n_units)}
         found = sorted(os.path.relpath(p, self.out_dir) for p in glob.glob(os.path.join(glob.escape(self.out_dir),
                                                                                          self.unit_glob)))
+        unit = self.units_key.removesuffix("s")
+        odd = [name for name in found if name in ours and not os.path.isfile(os.path.join(self.out_dir, name))]
+        if odd:
+            kind = "a folder" if os.path.isdir(os.path.join(self.out_dir, odd[0])) else "a link to no file"
+            raise InputError(f"out_dir {self.out_dir!r} holds {odd[0]} as {kind}, where the {self.what}'s {unit} "
+                             f"file goes (expected a file it wrote, or nothing); move it out or use another folder")
         strays = [name for name in found if name not in ours]
         if strays:
             shown = ", ".join(strays[:3]) + (", ..." if len(strays) > 3 else "")
+            first, last = self.unit_file(0), self.unit_file(self.n_units - 1)
+            expected = first if self.n_units == 1 else f"{first} to {last}"
             raise InputError(f"out_dir {self.out_dir!r} holds {shown}: named like the {self.what}'s {self.units_key} "
-                             f"but none of its {self.n_units} (copied in, or another {self.what}'s; a reader globbing "
-                             f"{self.unit_glob!r} would take it in); move it out or use another folder")
+                             f"but none of its {self.n_units} (expected {expected}; copied in, or another "
+                             f"{self.what}'s, which a glob of {self.unit_glob!r} would take in); move it out or use "
+                             "another folder")
 
     def open(self) -> dict | None:
         """Refuse another job's folder, then create the folder (and the units' subfolders), prove it writable

@@ -48,7 +48,7 @@ from envisat_pose.io import atomic_write_text, sha256_file
 from envisat_pose.named_scenarios import table
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.out_lock import locks_output
-from envisat_pose.pipelines.campaigns.campaign_block import block_name, block_task, load_campaign_truth
+from envisat_pose.pipelines.campaigns.campaign_block import BLOCK_GLOB, block_name, block_task, load_campaign_truth
 from envisat_pose.pipelines.campaigns.campaign_config import (
     MonteCarloConfig,
     check_filter_rate,
@@ -81,7 +81,8 @@ ADDED_DEFAULTS = {"config.init_error_scale": 1.0}
 def campaign_job(cfg: MonteCarloConfig, out_dir: str) -> ResumableJob:
     """The campaign in out_dir as the core's resumable job: one unit per block, the config as its identity, a
     block kept on resume only when its sha256 matches and it covers the runs the config gives it (the truth's
-    sha256 goes in the header once the truth is known)."""
+    sha256 goes in the header once the truth is known). A file named like a block that is none of the campaign's
+    (beyond its last, copied in), or a block file in a folder without a manifest, is refused, not removed."""
 
     header = {"n_blocks": cfg.n_blocks}
     if cfg.target is not None:  # the file, however its path is written (compared by its sha256)
@@ -90,7 +91,8 @@ def campaign_job(cfg: MonteCarloConfig, out_dir: str) -> ResumableJob:
                         block_name, header=header,
                         verify_unit=lambda e, path: cfg.block_range(e["index"]) == (e["run_start"], e["run_stop"]),
                         added_defaults=ADDED_DEFAULTS, own_entries=("truth.npz",),  # written before the manifest
-                        compared_by={"config.target": "target_sha256"})
+                        compared_by={"config.target": "target_sha256"},
+                        unit_glob=BLOCK_GLOB)  # a block beyond the last, or misnamed: refused, never removed
 
 
 def prepare_truth(cfg: MonteCarloConfig, out_dir: str, manifest: dict | None, progress: bool) -> str:

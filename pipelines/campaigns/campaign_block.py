@@ -45,6 +45,9 @@ ALONE_KEY = "run_nis_alarm_alone"  # a block's (R,) bool: flagged diverged by th
 # (nis_alarms_alone: its NIS monitor or a failed update, the NEES rule holding)
 
 
+BLOCK_GLOB = os.path.join("blocks", "block-*.npz")  # every block's name matches it (one the campaign lacks: a stray)
+
+
 def block_name(b: int) -> str:
     return os.path.join("blocks", f"block-{b:04d}.npz")
 
