@@ -21,7 +21,7 @@ from typing import Callable
 
 import numpy as np
 
-from envisat_pose.config import check, config_arg, path_arg, to_dict, to_toml
+from envisat_pose.config import InputError, check, config_arg, path_arg, to_dict, to_toml
 from envisat_pose.datagen.appearance import (
     FACE_GEOMS,
     GEOM_CLASS,
@@ -38,7 +38,7 @@ from envisat_pose.datagen.render_view import APPENDAGE_MASK_VALUE, MASK_VALUES, 
 from envisat_pose.datagen.target_scene import target_scene
 from envisat_pose.datagen.views import R_K_FROM_C, sample_random_view, sample_seed, sequence_frames, sequence_view, unit
 from envisat_pose.io import atomic_write_text, sha256_file
-from envisat_pose.out_dirs import check_out_dir
+from envisat_pose.out_dirs import PARTIAL_PREFIX, check_out_dir
 from envisat_pose.out_lock import locks_output
 from envisat_pose.pools import RunnerConfig, cpu_share, thread_env
 from envisat_pose.provenance import source_line
@@ -373,7 +373,8 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
     """Generate (or finish) the dataset of `cfg` in out_dir; returns the final manifest.
 
     on_shard, if given, is called with each finished shard's manifest entry once it is recorded. A finished
-    dataset in a folder this process cannot write (read-only media) is returned as it is, nothing written
+    dataset in a folder this process cannot write (read-only media) is returned as it is, nothing written, and
+    such a folder holding an unfinished one (or a partial file) is refused saying what is there
     (`finished_unwritable`); anywhere else the run holds the folder's lock (out_lock) while it works.
     """
 
@@ -390,17 +391,45 @@ def finished_unwritable(cfg: GenerateConfig, out_dir: str) -> dict | None:
     """The manifest of cfg's finished dataset in out_dir when this process cannot write the folder (a read-only
     copy, another user's) and the dataset verifies whole (datagen.dataset.verify_dataset: every shard's sha256,
     no stray or partial file): a rerun has nothing to do there, and a run's writes (its lock file, the manifest
-    and config rewritten with what they hold) would only refuse it. None otherwise: the run goes on, refused where
-    it must write. InputError as a rerun's: a folder of another config or seed, a stray shard."""
+    and config rewritten with what they hold) would only refuse it. InputError in one line when the read-only
+    folder holds anything else of cfg's dataset (its finished shards of an unfinished run, a partial file an
+    interrupted run left, a damaged shard): what is there, and that a rerun cannot finish or tidy it there. None
+    otherwise (a writable folder, an empty one): the run goes on, refused where it must write. InputError as a
+    rerun's: a folder of another config or seed, a stray shard."""
     if not os.path.isdir(out_dir) or os.access(out_dir, os.W_OK):  # root: False on a read-only mount only
         return None
     from envisat_pose.datagen.dataset import verify_dataset
 
     job = dataset_job(cfg, out_dir)
     previous = job.previous()
-    if previous is None or not previous.get("complete") or verify_dataset(out_dir):
+    problems = [] if previous is None else verify_dataset(out_dir)
+    if previous is not None and previous.get("complete") and not problems:
+        return previous
+    partials = sorted(n for n in os.listdir(out_dir) if n.startswith(PARTIAL_PREFIX))
+    if previous is None and not partials:
         return None
-    return previous
+    raise InputError(unwritable_line(out_dir, previous, partials, problems))
+
+
+def unwritable_line(out_dir: str, previous: dict | None, partials: list[str], problems: list[str]) -> str:
+    """finished_unwritable's refusal: the read-only folder's finished shards, the partial files an interrupted run
+    left (a rerun removes them), a finished dataset's first other problem (dataset verify's line), what to do."""
+    shards = [] if previous is None else previous.get("shards", [])
+    n_shards = int(previous.get("num_shards", len(shards))) if previous is not None else 0
+    complete = previous is not None and bool(previous.get("complete"))
+    held = ("no finished shard" if not shards else f"the dataset's {len(shards)} shard{'s' * (len(shards) > 1)}, all "
+            "finished" if complete else f"{len(shards)} of the dataset's {n_shards} shards finished")
+    if partials:
+        more = f" and {len(partials) - 1} more" if len(partials) > 1 else ""
+        held += (f", and {partials[0]}{more} ({'partial files' if more else 'a partial file'} an interrupted run "
+                 "left, which a rerun removes)")
+    others = [p for p in problems if not p.startswith(PARTIAL_PREFIX) and p != "manifest marked incomplete"]
+    if complete and others:
+        held += f"; dataset verify: {others[0]}"
+    todo = ("remove it there (the finished shards read as they are); rerun on a writable copy of the folder to tidy "
+            "it" if complete and not others else
+            f"{'redo' if complete else 'finish'} it there; rerun on a writable copy of the folder, or use another one")
+    return f"out_dir {out_dir!r} is read-only (this process cannot write there) and holds {held}: generate cannot {todo}"
 
 
 @locks_output("out_dir", "generate")

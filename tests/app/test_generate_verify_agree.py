@@ -1,7 +1,7 @@
 """`envisat generate` and `envisat dataset verify` agree on a dataset folder: a stray shard that verify reports is
 refused by generate (not left behind under exit 0); a finished dataset on read-only media is 'nothing to do' with
-nothing written; a damaged manifest is a problem verify finds (exit 1), not a usage error; the end line counts
-'1 image in 1 shard'."""
+nothing written, and a read-only folder holding a partial file says so; a damaged manifest is a problem verify finds
+(exit 1), not a usage error; the end line counts '1 image in 1 shard'."""
 
 import os
 import shutil
@@ -68,6 +68,49 @@ def test_a_finished_dataset_on_read_only_media_is_nothing_to_do_and_nothing_is_w
     assert state(out) == before  # no lock file, no manifest or config rewritten
     assert main(["generate", "--num-images", "3", *FLAGS[2:], "--out", out]) == 2  # another config: still refused
     assert "another config or seed" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("unfinished", [True, False])
+def test_a_read_only_folder_with_a_partial_file_says_what_is_there_in_one_line(finished, tmp_path, monkeypatch,
+                                                                                capsys, unfinished):
+    """An interrupted run's partial file in a read-only dataset folder (beside 1 of 2 shards, or beside all): once
+    the general 'cannot write there'; now the finished shards, the partial file and the folder's being read-only,
+    nothing written. The writable folder's rerun removes the partial file (and finishes the dataset)."""
+    import json
+
+    out = str(tmp_path / "ds")
+    shutil.copytree(finished, out)
+    partial = ".tmp-999999999-shard-000001.tar-x1y2"  # a writer long gone (no such pid)
+    if unfinished:
+        with open(os.path.join(out, "manifest.json")) as fh:
+            manifest = json.load(fh)
+        manifest.update(shards=manifest["shards"][:1], complete=False)
+        with open(os.path.join(out, "manifest.json"), "w") as fh:
+            json.dump(manifest, fh)
+        os.rename(os.path.join(out, "shard-000001.tar"), os.path.join(out, partial))
+    else:
+        with open(os.path.join(out, partial), "wb") as fh:
+            fh.write(b"half a shard")
+    real_access = os.access
+
+    def read_only(path, mode, *args, **kwargs):  # a read-only mount (module's test above: root passes a chmod)
+        if mode & os.W_OK and os.path.realpath(path).startswith(os.path.realpath(out)):
+            return False
+        return real_access(path, mode, *args, **kwargs)
+
+    monkeypatch.setattr(os, "access", read_only)
+    before = state(out)
+    capsys.readouterr()
+    assert main(["generate", *FLAGS, "--out", out]) == 2
+    err = capsys.readouterr().err
+    held = "1 of the dataset's 2 shards finished" if unfinished else "the dataset's 2 shards, all finished"
+    assert len(err.strip().splitlines()) == 1 and "is read-only" in err and held in err, err
+    assert f"{partial} (a partial file an interrupted run left" in err, err
+    assert ("cannot finish it there" if unfinished else "cannot remove it there") in err, err
+    assert state(out) == before  # no lock file, nothing removed or rewritten
+    monkeypatch.undo()
+    assert main(["generate", *FLAGS, "--out", out]) == 0
+    assert main(["dataset", "verify", out]) == 0 and not os.path.exists(os.path.join(out, partial))
 
 
 @pytest.mark.parametrize("text, problem", [
