@@ -17,7 +17,7 @@ import types
 import typing
 from typing import Any
 
-from envisat_pose.config_errors import ConfigError, MovedKeyError
+from envisat_pose.config_errors import ConfigError, MovedKeyError, check
 
 
 class Derived(float):
@@ -252,6 +252,10 @@ def _convert(value: Any, hint: Any, field: str, finite: bool = True) -> Any:
     if hint is int:
         if isinstance(value, bool) or not (isinstance(value, int) or (isinstance(value, float) and value.is_integer())):
             raise ConfigError(field, value, "an integer")
+        # a whole float beyond TOML's 64-bit integers (1e300 for a count) is no count a job can hold: as an int it
+        # had 301 digits, and a bound computed from it (2 ** depth) ran out of memory before any check answered
+        check(not isinstance(value, float) or abs(value) < 2.0**63, field, value,
+              "an integer within TOML's 64 bits (|n| < 2^63)")
         return int(value)
     if hint is float:
         if not _is_number(value):
