@@ -17,12 +17,13 @@ A sample (numpy, what the DataLoader collates), for an input of S px and heatmap
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
 
-from envisat_pose.config import InputError
+from envisat_pose.config import Config, InputError, check
 from envisat_pose.geometry import EDGES
 from envisat_pose.perception.heatmaps import CORNER_JTYPE, encode_junctions
 from envisat_pose.shard_reader import (
@@ -31,11 +32,12 @@ from envisat_pose.shard_reader import (
 )
 
 N_SEGMENTS = 32
+MAX_IMAGE_PX = 4096  # the largest image side the jobs take (generate's resolution_px)
 IMAGE_MEAN, IMAGE_STD = 0.5, 0.25
 
 
 @dataclass(frozen=True)
-class DataConfig:
+class DataConfig(Config):
     """input_px: network input side; crop_margin: the crop's side over the corners' extent; crop_scale_jitter,
     crop_shift_jitter: relative jitter of side and centre (training); augment: style augmentation on;
     sigma_cells: heatmap Gaussian; shuffle_buffer: samples shuffled in memory; whole_frame_prob: share of
@@ -50,6 +52,31 @@ class DataConfig:
     sigma_cells: float = 1.0
     shuffle_buffer: int = 64
     whole_frame_prob: float = 0.2
+
+    def validate(self, prefix: str = "") -> None:
+        """ConfigError naming a field no training can mean (validated when built)."""
+        p = f"{prefix}." if prefix else ""
+        cells = self.input_px / max(1, self.stride)
+        # the crop's side is margin x the corners' extent: under 1 it cuts the corners it frames; at 1e300 its
+        # integer box overflowed (a traceback at the first sample); a side of MAX_IMAGE_PX per px of extent is
+        # larger than every frame the jobs make
+        check(1.0 <= self.crop_margin <= MAX_IMAGE_PX, f"{p}crop_margin", self.crop_margin,
+              f"a factor in [1, {MAX_IMAGE_PX}] on the corners' extent")
+        # the side is scaled by exp(u x jitter), u in [-1, 1]: a jitter beyond ln(MAX_IMAGE_PX) = 8.3 takes it past
+        # every frame or under a pixel (1e300: an inf side, a traceback); below 0 it is the same draw
+        check(0.0 <= self.crop_scale_jitter <= math.log(MAX_IMAGE_PX), f"{p}crop_scale_jitter",
+              self.crop_scale_jitter, f"a jitter in [0, {math.log(MAX_IMAGE_PX):.2f}] (ln {MAX_IMAGE_PX})")
+        # the centre moves by u x jitter x side: beyond 1 the crop can miss the corners entirely (at 1e300 every
+        # crop did: a loss of 0.002, nothing learnt)
+        check(0.0 <= self.crop_shift_jitter <= 1.0, f"{p}crop_shift_jitter", self.crop_shift_jitter,
+              "a share of the crop's side in [0, 1]")
+        # 0: a single 1 at the corner's cell (by design); a Gaussian wider than the map marks every cell a corner
+        # (1e300: an overflow at the first sample); below 0 it is the same as 0
+        check(0.0 <= self.sigma_cells <= cells, f"{p}sigma_cells", self.sigma_cells,
+              f"a heatmap sigma in [0, {cells:g}] cells (the map's side; 0: one cell)")
+        check(self.shuffle_buffer >= 0, f"{p}shuffle_buffer", self.shuffle_buffer, "0 (no shuffle) or more samples")
+        check(0.0 <= self.whole_frame_prob <= 1.0, f"{p}whole_frame_prob", self.whole_frame_prob,
+              "a probability in [0, 1]")
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -27,8 +27,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from envisat_pose.config import Config, check
-from envisat_pose.perception.losses import focal_log_likelihood
+from envisat_pose.config import Config
+from envisat_pose.perception.losses import check_loss_weights, focal_log_likelihood
 
 
 @dataclass(frozen=True)
@@ -43,8 +43,7 @@ class KeypointLossConfig(Config):
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
-        for name in ("heatmap", "offset", "visibility", "focal_alpha", "focal_beta"):
-            check(getattr(self, name) >= 0, f"{p}{name}", getattr(self, name), "a weight >= 0")
+        check_loss_weights(self, ("heatmap", "offset", "visibility"), p)  # losses.py's bounds
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -12,6 +12,27 @@ import torch.nn.functional as F
 
 from envisat_pose.config import Config, check
 
+# A term's weight counts in its ratio to the others' (AdamW normalises the gradient's scale); float32 keeps about 7
+# digits, so a term weighted over 1e6 times another drowns it in their sum, and at 1e300 the float32 loss was inf
+# and every weight NaN by the second step (TrainingDiverged blaming the learning rate).
+MAX_LOSS_WEIGHT = 1e6
+# focal_alpha: the negatives' factor p^alpha at the heatmap's starting prior (p = sigmoid(-4.6) = 0.01, model.py)
+# falls below float32's least number (1.4e-45) beyond alpha = 22.4: the negatives weigh nothing; at 1e300 every
+# weight was NaN by the second step. focal_beta has no such bound: at any size it only leaves out the negatives
+# near a corner's peak (the loss stayed finite at 1e300).
+MAX_FOCAL_ALPHA = 22.0
+
+
+def check_loss_weights(cfg, names: tuple[str, ...], p: str) -> None:
+    """ConfigError naming the first of cfg's loss weights `names` outside [0, MAX_LOSS_WEIGHT], or focal_alpha
+    beyond MAX_FOCAL_ALPHA (LossConfig's and keypoint_loss.KeypointLossConfig's)."""
+    for name in names:
+        check(0 <= getattr(cfg, name) <= MAX_LOSS_WEIGHT, f"{p}{name}", getattr(cfg, name),
+              f"a weight in [0, {MAX_LOSS_WEIGHT:g}] (0: the term off; the ratios count, float32 keeps 7 digits)")
+    check(0 <= cfg.focal_alpha <= MAX_FOCAL_ALPHA, f"{p}focal_alpha", cfg.focal_alpha, f"an exponent in [0, "
+          f"{MAX_FOCAL_ALPHA:g}] (beyond, p^alpha at the heatmap's starting p = 0.01 underflows float32)")
+    check(cfg.focal_beta >= 0, f"{p}focal_beta", cfg.focal_beta, "an exponent >= 0")
+
 
 @dataclass(frozen=True)
 class LossConfig(Config):
@@ -28,8 +49,7 @@ class LossConfig(Config):
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
-        for name in ("heatmap", "offset", "nll", "line", "focal_alpha", "focal_beta"):
-            check(getattr(self, name) >= 0, f"{p}{name}", getattr(self, name), "a weight >= 0")
+        check_loss_weights(self, ("heatmap", "offset", "nll", "line"), p)
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -25,6 +25,17 @@ from torch import nn
 from envisat_pose.config import Config, check
 from envisat_pose.perception.heatmaps import N_JTYPES
 
+# The largest network input side, px: the largest image side the jobs take (generate's resolution_px); a crop is
+# resized up to it, never past the frame's own pixels. The hourglass halves it depth times down from stride 4, so
+# depth is at most log2(MAX_INPUT_PX / 4) = 10 (at 2^63 - 1 levels the multiple it asks for, 4 x 2^depth, was
+# computed until the memory ran out).
+MAX_INPUT_PX = 4096
+MAX_DEPTH = 10
+# The most channels of any layer (width, stem_width, line_dim, line_hidden): a 3x3 convolution of C channels holds
+# 9 C^2 weights, 9.4M at 1024 (38 MB, three times that with AdamW's moments), and the hourglass has tens of them;
+# width = 100000 asked the allocator for 360 GB at the first convolution (a RuntimeError before any step).
+MAX_CHANNELS = 1024
+
 
 @dataclass(frozen=True)
 class ModelConfig(Config):
@@ -47,6 +58,16 @@ class ModelConfig(Config):
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
         check_backbone(self, p)
+        check(self.n_jtypes == N_JTYPES, f"{p}n_jtypes", self.n_jtypes,  # the heatmaps' channels (tensor mismatch)
+              f"{N_JTYPES}, the junction types the labels are encoded in (perception/heatmaps.py)")
+        for name in ("line_dim", "line_hidden"):  # 0 or less: a layer of no units (a traceback at the build)
+            check(1 <= getattr(self, name) <= MAX_CHANNELS, f"{p}{name}", getattr(self, name),
+                  f"1 to {MAX_CHANNELS} channels")
+        # a segment sampled at no point (a division by zero at the build), or more points than the input has pixels
+        check(1 <= self.line_points <= self.input_px, f"{p}line_points", self.line_points,
+              f"1 to input_px ({self.input_px}) samples along a segment")
+        check(1 <= self.line_pool <= self.line_points, f"{p}line_pool", self.line_pool,
+              f"a pooling factor of 1 to line_points ({self.line_points})")  # 0: a division by zero
         check(self.line_points % self.line_pool == 0, f"{p}line_points", self.line_points,
               f"a multiple of line_pool ({self.line_pool})")
 
@@ -57,9 +78,13 @@ class ModelConfig(Config):
 def check_backbone(cfg, p: str) -> None:
     """ConfigError unless cfg's stem and hourglass (depth, width, stem_width, input_px, stride) can be built: at
     least one level, positive widths, an input side a multiple of stride x 2^depth. p: the field prefix ('model.')."""
+    check(1 <= cfg.depth <= MAX_DEPTH, f"{p}depth", cfg.depth, f"1 to {MAX_DEPTH} hourglass levels (an input of "
+          f"at most {MAX_INPUT_PX} px halved down from stride {cfg.stride})")  # before 2 ** depth is computed
+    for name in ("width", "stem_width"):
+        check(1 <= getattr(cfg, name) <= MAX_CHANNELS, f"{p}{name}", getattr(cfg, name), f"1 to {MAX_CHANNELS} channels")
     m = cfg.stride * 2 ** cfg.depth
-    check(cfg.depth >= 1 and cfg.width >= 1 and cfg.stem_width >= 1, f"{p}depth", cfg.depth,
-          "at least one hourglass level and positive widths")
+    check(cfg.input_px <= MAX_INPUT_PX, f"{p}input_px", cfg.input_px,
+          f"at most {MAX_INPUT_PX} px (the largest image side the jobs take)")
     check(cfg.input_px >= m and cfg.input_px % m == 0, f"{p}input_px", cfg.input_px,
           f"a multiple of {m} (stride {cfg.stride}, {cfg.depth} hourglass levels)")
 

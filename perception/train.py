@@ -45,6 +45,7 @@ from envisat_pose.perception.batch_augment import training_batch
 from envisat_pose.perception.data import DataConfig, shard_paths
 from envisat_pose.perception.losses import LossConfig, corner_losses
 from envisat_pose.perception.model import CornerNet, ModelConfig
+from envisat_pose.perception.train_bounds import check_train_config
 from envisat_pose.perception.train_run import (
     TrainingInterrupted,
     budget_end,
@@ -105,19 +106,7 @@ class TrainConfig(Config):
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
-        check(self.steps >= 1, f"{p}steps", self.steps, "at least 1 step")
-        check(self.batch_size >= 1, f"{p}batch_size", self.batch_size, "at least 1 sample per batch")
-        check(self.lr > 0, f"{p}lr", self.lr, "a positive learning rate")
-        check(self.warmup_steps >= 1, f"{p}warmup_steps", self.warmup_steps, "at least 1 step")
-        check(self.time_budget_s is None or self.time_budget_s > 0, f"{p}time_budget_s", self.time_budget_s,
-              "seconds > 0 (leave it out to train by steps)")
-        check(self.schedule in ("cosine", "constant_cooldown"), f"{p}schedule", self.schedule,
-              "'cosine' or 'constant_cooldown'")
-        check(0 < self.cooldown_frac <= 1, f"{p}cooldown_frac", self.cooldown_frac, "a share of the run in (0, 1]")
-        check(0 <= self.ema_decay < 1, f"{p}ema_decay", self.ema_decay, "a decay in [0, 1) (0: no average)")
-        check(self.weight_decay >= 0, f"{p}weight_decay", self.weight_decay, "a decay >= 0")
-        check(self.checkpoint_every >= 1, f"{p}checkpoint_every", self.checkpoint_every, "at least 1 step")
-        check(self.line_jitter_px >= 0, f"{p}line_jitter_px", self.line_jitter_px, "pixels >= 0")
+        check_train_config(self, p)  # train_bounds.py: each bound beside its reason
         check(self.model.input_px == self.data.input_px, f"{p}data.input_px", self.data.input_px,
               f"the model's input_px ({self.model.input_px})")
         check(self.data.stride == self.model.stride, f"{p}data.stride", self.data.stride, "the model's stride (4)")
@@ -221,7 +210,7 @@ def _corner_terms(model: CornerNet, net: torch.nn.Module, batch: dict, cfg: Trai
         out = net(image)
         segs = batch["segments_px"]
         if cfg.line_jitter_px > 0:
-            gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)  # resumable: per step
+            gen = torch.Generator().manual_seed((cfg.seed * 1_000_003 + step) % 2**63)  # resumable: per step
             segs = segs + cfg.line_jitter_px * torch.randn(segs.shape, generator=gen).to(dev, non_blocking=True)
         logits = model.line_logits(out["features"], segs)
     out = {k: v.float() for k, v in out.items()}
