@@ -28,7 +28,7 @@ from envisat_pose.app.common import add_common, add_skip_damaged_argument, skipp
 from envisat_pose.app.detect import detector_inputs
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.out_dirs import check_out_file
-from envisat_pose.pipelines.detector.calibrate import CalibrateJobConfig, fit_face_cue, run_calibration
+from envisat_pose.pipelines.detector.calibrate import MAX_LAG, CalibrateJobConfig, fit_face_cue, run_calibration
 from envisat_pose.pipelines.detector.calibrate_target import run_calibrate_target, sigma_table
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig
 from envisat_pose.shard_reader import skip_hint
@@ -93,8 +93,8 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     import numpy as np
 
     detector_inputs(args)
-    if args.max_lag < 1:
-        raise InputError(f"--max-lag {args.max_lag}: expected at least 1")
+    if not 1 <= args.max_lag <= MAX_LAG:
+        raise InputError(f"--max-lag {args.max_lag}: expected 1 to {MAX_LAG} lags (pipelines/detector/calibrate.py)")
     check_out_file(args.out)
     if other_target(args.target):
         return run_calibrate_target_cli(args)

@@ -14,6 +14,7 @@ from envisat_pose.pipelines.common.job_defaults import weights_file
 from envisat_pose.pipelines.common.threads import default_torch_threads
 from envisat_pose.pipelines.detector.detect import DetectJobConfig, run_detect
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig, run_detect_target
+from envisat_pose.pools import MAX_WORKERS
 from envisat_pose.shard_reader import skip_hint
 from envisat_pose.target import DEFAULT_TARGET, other_target
 
@@ -65,8 +66,8 @@ def detector_inputs(args: argparse.Namespace) -> None:
     if not os.path.isfile(args.weights):
         raise InputError(f"--weights {args.weights!r}: no such file")
     check_weights_target(args.weights, getattr(args, "target", None) or DEFAULT_TARGET, "--weights")
-    if args.threads is not None and args.threads < 1:
-        raise InputError(f"--threads {args.threads}: expected at least 1")
+    if args.threads is not None and not 1 <= args.threads <= MAX_WORKERS:  # 2^31 or more: a ValueError from torch
+        raise InputError(f"--threads {args.threads}: expected 1 to {MAX_WORKERS} threads (as train's, run's)")
     torch.set_num_threads(args.threads or default_torch_threads())
 
 

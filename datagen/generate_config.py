@@ -407,7 +407,9 @@ class GenerateConfig(Config):
         check(0.0 <= self.earth_probability <= 1.0, f"{p}earth_probability", self.earth_probability,
               "a probability in [0, 1]")
         check(0 <= self.earth_seed < 2**63, f"{p}earth_seed", self.earth_seed, "a non-negative integer seed")
-        check(self.depth_scale_m > 0, f"{p}depth_scale_m", self.depth_scale_m, "a positive scale in m")
+        # a unit longer than the target's reach gives its whole relief a code or two: a flat depth image (1e300: all 0)
+        check(0 < self.depth_scale_m <= reach_m, f"{p}depth_scale_m", self.depth_scale_m,
+              f"a positive scale of at most the target's reach ({reach_m:.3g} m: its relief in 2 codes or more)")
         if self.mode == "random":
             reach = farthest_target_point_m(self.random.range_max_m, reach_m)
             check(DEPTH_MAX_CODE * self.depth_scale_m >= reach, f"{p}depth_scale_m", self.depth_scale_m,

@@ -163,6 +163,11 @@ def usable_memory_bytes() -> int | None:
     return min(found) if found else None
 
 
+# The most processes (or torch threads) a job may start: a 512-core machine's default count was refused; torch
+# refuses 2^31 threads or more (a ValueError), and 2^63 - 1 processes is a fork without end
+MAX_WORKERS = 256
+
+
 def default_processes(limit: int, bytes_each: int) -> int:
     """How many worker processes a job starts when none are asked for: no more than `limit` (its units of work),
     the usable cores, and the usable memory at `bytes_each` a process (its measured peak); at least 1."""

@@ -34,6 +34,11 @@ from envisat_pose.provenance import dataset_ref
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, sample_total
 from envisat_pose.target import require_envisat_dataset
 
+# The most autocorrelation lags measured: the sums are arrays of max_lag + 1, allocated after every frame was
+# detected (2^63 - 1: a traceback then, the detection's minutes lost); a lag beyond the frames holds no pair, and
+# the longest run the jobs make is MAX_RUN_FRAMES = 200000 frames (pipelines/tracking/tracker_bounds.py)
+MAX_LAG = 200_000
+
 
 @dataclass(frozen=True)
 class CalibrateJobConfig(Config):
@@ -60,7 +65,7 @@ class CalibrateJobConfig(Config):
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
         check(self.roi in ("coarse", "labels"), f"{p}roi", self.roi, "'coarse' or 'labels'")
-        check(self.max_lag >= 1, f"{p}max_lag", self.max_lag, "at least 1 lag")
+        check(1 <= self.max_lag <= MAX_LAG, f"{p}max_lag", self.max_lag, f"1 to {MAX_LAG} lags")
         check(self.limit is None or self.limit >= 1, f"{p}limit", self.limit, "at least 1 frame (or unset: all)")
 
 

@@ -27,7 +27,7 @@ from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, loo
 from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_configs, run_identity
 from envisat_pose.pipelines.detector.render_pool import RENDERER_BYTES, looks_keypoints
 from envisat_pose.pipelines.detector.train_records import online_record, read_run_record, saved_online
-from envisat_pose.pools import default_processes, torchrun_int, usable_cores
+from envisat_pose.pools import MAX_WORKERS, default_processes, torchrun_int, usable_cores
 from envisat_pose.provenance import git_hash, manifest_sha256
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
 from envisat_pose.target import (
@@ -58,8 +58,8 @@ class OnlineConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "looks", as_looks(self.looks))
         self.check_target()
-        check(isinstance(self.workers, int) and self.workers >= 1, "online.workers", self.workers,
-              "at least 1 renderer process")
+        check(isinstance(self.workers, int) and 1 <= self.workers <= MAX_WORKERS, "online.workers", self.workers,
+              f"1 to {MAX_WORKERS} renderer processes")  # each holds a renderer (RENDERER_BYTES)
         check(isinstance(self.uses_per_frame, int) and 1 <= self.uses_per_frame <= MAX_USES_PER_FRAME,
               "online.uses_per_frame", self.uses_per_frame, f"an integer in [1, {MAX_USES_PER_FRAME}]")
 
@@ -240,10 +240,10 @@ def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | N
     if resume and not os.path.isdir(run_dir):
         raise InputError(f"run_dir {run_dir!r} does not exist: nothing to resume")
     check_makeable(run_dir, field="run_dir")  # a file, a path under one, or a place that takes no folder
-    if workers is not None and workers < 0:
-        raise InputError(f"workers = {workers}: expected 0 (in-process) or more worker processes")
-    if threads is not None and threads < 1:
-        raise InputError(f"threads = {threads}: expected at least 1")
+    if workers is not None and not 0 <= workers <= MAX_WORKERS:  # 2^63 - 1: a DataLoader forking without end
+        raise InputError(f"workers = {workers}: expected 0 (in-process) to {MAX_WORKERS} worker processes")
+    if threads is not None and not 1 <= threads <= MAX_WORKERS:  # 2^31 or more: a ValueError from torch
+        raise InputError(f"threads = {threads}: expected 1 to {MAX_WORKERS} threads")
 
 
 def ddp_rank() -> int:

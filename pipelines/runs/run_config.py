@@ -23,7 +23,7 @@ from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_w
 from envisat_pose.pipelines.tracking.onboard import orbit_config
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, TrackerConfig
 from envisat_pose.pipelines.tracking.tracker_bounds import MAX_PREDICTION_S, MAX_RUN_FRAMES
-from envisat_pose.pools import default_processes
+from envisat_pose.pools import MAX_WORKERS, default_processes
 
 if TYPE_CHECKING:  # the stage's type for annotations; imported where a config is made
     from envisat_pose.datagen.generate_config import GenerateConfig
@@ -34,7 +34,6 @@ DEFAULT_SUN_C0 = (0.7, -0.7, 0.15)
 # a closed loop's process (renderer, detector, tracker) for the default worker count (pools.default_processes):
 # peak RSS 1.17-1.32 GB at 1024 px (2026-12, `envisat run --runs 8`), with a margin
 RUN_PROCESS_BYTES = 1_400_000_000
-MAX_WORKERS = 256  # processes a run may start (the default's cap too: a 512-core machine's count was refused)
 
 
 def _image_defaults() -> "GenerateConfig":
