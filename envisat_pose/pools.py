@@ -217,14 +217,16 @@ def _quiet_job_workers() -> None:
     """In each worker of a job's own LocalCluster (its setup, registered with the cluster): what the job's own line
     says already left out of the worker's log, its other records kept (a worker that dies for itself, memory
     warnings). Left out: the 'Compute Failed' error, a block with the task's traceback (the task's error reaches
-    the job, whose one line says it), and the state machine's warning that a running task's instruction ended
-    cancelled (the client closed by an interrupted job). A user's own scheduler's workers keep theirs: their logs
+    the job, whose one line says it), the state machine's warning that a running task's instruction ended
+    cancelled (the client closed by an interrupted job), and 'Batched Comm Closed' to a scheduler that a signal
+    to the group ended first. A user's own scheduler's workers keep theirs: their logs
     are the user's."""
     import logging
 
     # equal filters are added once (a frozen dataclass)
     logging.getLogger("distributed.worker").addFilter(_Without("Compute Failed"))
     logging.getLogger("distributed.worker.state_machine").addFilter(_Without("CancelledError"))
+    logging.getLogger("distributed.batched").addFilter(_Without("Batched Comm Closed"))  # its scheduler gone first
 
 
 @dataclass(frozen=True)
@@ -241,11 +243,13 @@ class _Without:
 # the nanny's 'Restarting worker' (a Ctrl-C or SIGTERM to the terminal's group ends the workers too, and the nanny
 # may see one gone before this process's own handler has run), and what an interrupted result leaves behind under
 # load: distributed's sync() cancelling its wait (a NameError logged by tornado from its `cancel` callback, a
-# library bug), then the scheduler's and the client's "Couldn't gather" of that result's key.
+# library bug), then the scheduler's and the client's "Couldn't gather" of that result's key; and the scheduler's
+# "Batched Comm Closed" (with its CommClosedError traceback) to a worker the signal ended first.
 HELD = {"distributed.nanny": ("Restarting worker",),
         "tornado.application": ("sync.<locals>.cancel",),
         "distributed.scheduler": ("Couldn't gather keys",),
-        "distributed.client": ("Couldn't gather",)}
+        "distributed.client": ("Couldn't gather",),
+        "distributed.batched": ("Batched Comm Closed",)}
 
 
 class _HeldRecords:
