@@ -205,11 +205,9 @@ def nis_window_bound(prob: float, dof: int, kappa: float = 1.0) -> float:
     """The bound a window's NIS sum over dof degrees of freedom exceeds with probability prob, the frames'
     correlation taken as a sum dispersed kappa times the chi-square's (kappa x chi2(dof / kappa): the same mean,
     kappa times the variance; noise.nis_sum_dispersion)."""
-    from scipy.stats import chi2
-
     if kappa <= 1.0:
         return chi2_bound(prob, dof)
-    return float(kappa * chi2.isf(prob, dof / kappa))
+    return float(kappa * chi2_bound(prob, dof / kappa))
 
 
 def window_problems(win: EvidenceWindow, cfg, kappa: float = 1.0) -> list[list[str]]:
