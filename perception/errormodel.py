@@ -1,8 +1,9 @@
 """The detector's error model for a filter: covariance scale, frame-to-frame correlation and
 residual bias of the errors of correctly named corners, measured on held-out sequences. Plain numpy.
 
-Shapes: T frames of one sequence, 8 corners A-H. err_px (T, 8, 2) = detected - label, px, NaN where the corner
-was not found and named right; sigma_px (T, 8, 2) the detector's predicted standard deviation per image axis
+Shapes: T frames of one sequence, K keypoints (ENVISAT's 8 corners A-H, or another target's keypoints in its
+weights' order). err_px (T, K, 2) = detected - label, px, NaN where the keypoint
+was not found and named right; sigma_px (T, K, 2) the detector's predicted standard deviation per image axis
 (sqrt of the covariance's diagonal), px.
 
 Frame-to-frame correlation. The lag-k autocorrelation of a series x_t with gaps is estimated from the pairs
@@ -267,7 +268,7 @@ def correlation_time(rho: float, dt_s: float) -> float:
 
 def apparent_scale(pred_px: np.ndarray, true_px: np.ndarray, right: np.ndarray, wrong: np.ndarray) -> np.ndarray:
     """Per frame the least-squares scale of the right corners about their centroid against the labels (module
-    doc): pred_px, true_px (N, 8, 2); right (N, 8) bool corners named right; wrong (N, 8) bool found usable
+    doc): pred_px, true_px (N, K, 2); right (N, K) bool corners named right; wrong (N, K) bool found usable
     corners named wrong. (N,), NaN for frames with fewer than 3 right corners or any wrong one."""
     p, q = np.asarray(pred_px, float), np.asarray(true_px, float)
     right = np.asarray(right, bool)
@@ -283,7 +284,7 @@ def apparent_scale(pred_px: np.ndarray, true_px: np.ndarray, right: np.ndarray, 
 
 
 def radial_errors(pred_px: np.ndarray, true_px: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """Signed radial error (N, 8) px of the right corners about the centroid of the frame's right detected
+    """Signed radial error (N, K) px of the right corners about the centroid of the frame's right detected
     corners, positive outward; NaN elsewhere and in frames with fewer than 2 right corners."""
     p, q = np.asarray(pred_px, float), np.asarray(true_px, float)
     right = np.asarray(right, bool)
@@ -323,20 +324,25 @@ ANGLE_MAX_RAD = np.radians(90.0)
 ANGLE_MAX_LAG = 40  # frames: under half a spin period of the fastest named tumble (72 s at 1 Hz)
 
 
-def measure_error_model(sequences: list[dict], cov_scale: float, max_lag: int = 20, source: str = "") -> tuple[ErrorModel, dict]:
-    """The error model of held-out sequences. Each sequence: err_px (T, 8, 2) (NaN where not named right),
-    sigma_px (T, 8, 2) the detector's predicted per-axis sigma at cov_scale 1, scale (T,) apparent scale per
-    frame, radial_px (T, 8), dt_s the frame interval, and optionally R_cam_from_target (T, 3, 3) (the labels'
+def measure_error_model(sequences: list[dict], cov_scale: float, max_lag: int = 20, source: str = "",
+                        names: tuple[str, ...] = CORNER_NAMES) -> tuple[ErrorModel, dict]:
+    """The error model of held-out sequences. Each sequence: err_px (T, K, 2) (NaN where not named right),
+    sigma_px (T, K, 2) the detector's predicted per-axis sigma at cov_scale 1, scale (T,) apparent scale per
+    frame, radial_px (T, K), dt_s the frame interval, and optionally R_cam_from_target (T, 3, 3) (the labels'
     view: when every sequence has it, the correlation in the view's rotation is fitted too). cov_scale: the
-    fitted scale (the NEES mean 2 on the same corners). Returns the ErrorModel and a record of every number
-    (plain JSON data)."""
-    e_all = np.concatenate([s["err_px"].reshape(-1, 8, 2) for s in sequences])
+    fitted scale (the NEES mean 2 on the same corners). names: the K keypoints' names (ENVISAT's corners A-H by
+    default; another target's keypoints in the weights' order). Returns the ErrorModel and a record of every
+    number (plain JSON data)."""
+    if any(s["err_px"].shape[1:] != (len(names), 2) for s in sequences):
+        raise ValueError(f"err_px of {len(names)} keypoints {names} expected, got shapes "
+                         f"{sorted({s['err_px'].shape[1:] for s in sequences})}")
+    e_all = np.concatenate([s["err_px"] for s in sequences])
     ok = np.isfinite(e_all)
-    bias_px = np.where(ok, e_all, 0.0).sum(axis=0) / np.maximum(ok.sum(axis=0), 1)  # (8, 2), 0 where none
+    bias_px = np.where(ok, e_all, 0.0).sum(axis=0) / np.maximum(ok.sum(axis=0), 1)  # (K, 2), 0 where none
     by_angle = all("R_cam_from_target" in s for s in sequences)
     n_bins = int(np.ceil(ANGLE_MAX_RAD / ANGLE_BIN_RAD))
     pooled_z, pooled_px, per, pooled_angle, view_rate_deg_s = _pooled_sums(sequences, bias_px, cov_scale, max_lag,
-                                                                           by_angle, n_bins)
+                                                                           by_angle, n_bins, names)
     r_z = autocorrelation(*pooled_z)
     r_px = autocorrelation(*pooled_px)
     rho = float(r_z[1]) if len(r_z) > 1 and np.isfinite(r_z[1]) else 0.0
@@ -370,7 +376,7 @@ def measure_error_model(sequences: list[dict], cov_scale: float, max_lag: int = 
             "fitted": clean(a_th * np.exp(-theta_mean / th_c) if th_c > 0 else np.zeros(n_bins)),
             "corr_angle_deg": float(np.degrees(th_c)), "view_rate_deg_s": view_rate_deg_s},
         "autocorr_lag1_by_corner": {c: {a: clean(autocorrelation(*per[c][a])[1:2])[0] for a in "xy"} for c in per},
-        "bias_px_by_corner": {c: clean(bias_px[k]) for k, c in enumerate(CORNER_NAMES)},
+        "bias_px_by_corner": {c: clean(bias_px[k]) for k, c in enumerate(names)},
         "scale": {"mean": scale_m, "se": scale_se, "frames": scale_n, "rho_lag1": rho_scale,
                   "by_sequence": scale_means, "between_sd": scale_sd,
                   "se_ar1": scale_se * np.sqrt(max(ar1_inflation(rho_scale), 0.0)) if abs(rho_scale) < 1 else None},
@@ -381,14 +387,14 @@ def measure_error_model(sequences: list[dict], cov_scale: float, max_lag: int = 
 
 
 def _pooled_sums(sequences: list[dict], bias_px: np.ndarray, cov_scale: float, max_lag: int, by_angle: bool,
-                 n_bins: int) -> tuple:
+                 n_bins: int, names: tuple[str, ...]) -> tuple:
     """The lag sums (lag_sums: counts, products) of the sequences' errors less the bias, pooled over them:
     normalized by the predicted sigma at cov_scale (pooled_z) and in px (pooled_px), per corner and axis in px
     (per), and, by_angle, by the view's rotation angle (angle_sums: n_bins bins) with each sequence's median
     view rate, deg/s. Returns (pooled_z, pooled_px, per, pooled_angle, view_rate_deg_s)."""
     pooled_z = [np.zeros(max_lag + 1), np.zeros(max_lag + 1)]
     pooled_px = [np.zeros(max_lag + 1), np.zeros(max_lag + 1)]
-    per = {c: {a: [np.zeros(max_lag + 1), np.zeros(max_lag + 1)] for a in "xy"} for c in CORNER_NAMES}
+    per = {c: {a: [np.zeros(max_lag + 1), np.zeros(max_lag + 1)] for a in "xy"} for c in names}
     pooled_angle = [np.zeros(n_bins), np.zeros(n_bins), np.zeros(n_bins)]
     view_rate_deg_s = []
     for s in sequences:
@@ -404,7 +410,7 @@ def _pooled_sums(sequences: list[dict], bias_px: np.ndarray, cov_scale: float, m
             n, c = lag_sums(arr, max_lag)
             acc[0] += n
             acc[1] += c
-        for k, name in enumerate(CORNER_NAMES):
+        for k, name in enumerate(names):
             for a, axis in enumerate("xy"):
                 n, c = lag_sums(x[:, k, a], max_lag)
                 per[name][axis][0] += n

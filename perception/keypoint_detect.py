@@ -13,7 +13,8 @@ The names are the network's up to the target's symmetries that its materials kee
 The pixel covariance: `envisat calibrate --target` writes one sigma per keypoint into the weights' metadata
 (perception/weights_keys.SIGMA_KEY, a JSON list, null where a keypoint was not calibrated; perception/keypoint_cov.py);
 `weights_keypoint_sigma` reads it (NaN where absent). Beside it the share of a correct track's keypoints its gate
-rejects, as a function of the gate's whitened radius (REJECT_KEY; `weights_reject_curve`, None where absent).
+rejects, as a function of the gate's whitened radius (REJECT_KEY; `weights_reject_curve`, None where absent),
+and, calibrated on sequences, the errors' frame-to-frame model (perception/detect.weights_error_model).
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ import torch
 
 from envisat_pose.config import InputError, from_dict
 from envisat_pose.perception.data import IMAGE_MEAN, IMAGE_STD, DataConfig, crop_box, crop_resize, to_full_px
-from envisat_pose.perception.detect import FrameDetection
+from envisat_pose.perception.detect import FrameDetection, weights_error_model
+from envisat_pose.perception.errormodel import ErrorModel
 from envisat_pose.perception.keypoint_metrics import PNP_MIN_POINTS
 from envisat_pose.perception.keypoint_net import KEYPOINT_FORMAT, KeypointModelConfig, KeypointNet, decode_keypoints
 from envisat_pose.perception.weights import (
@@ -152,12 +154,16 @@ class KeypointFrameDetector:
     without one, at the whole frame then the crop around what it found. The pose priors the corner network takes
     for its naming are accepted and not used: a keypoint's name is its channel. alt_probability is 0.5 (no
     half-turn cue: the tracker's namings weigh a keypoint network's names by the target's symmetries).
-    reject_curve: what a correct track's gate rejects (weights_reject_curve; None: the tracker's fixed share)."""
+    reject_curve: what a correct track's gate rejects (weights_reject_curve; None: the tracker's fixed share).
+    error_model: the errors' frame-to-frame correlation and bias (perception/errormodel.ErrorModel, `calibrate
+    --target` on sequences; the white default without one)."""
 
-    def __init__(self, detector: KeypointDetector, sigma_px: np.ndarray, reject_curve: dict | None = None):
+    def __init__(self, detector: KeypointDetector, sigma_px: np.ndarray, reject_curve: dict | None = None,
+                 error_model: ErrorModel | None = None):
         self.detector = detector
         self.sigma_px = np.asarray(sigma_px, float)
         self.reject_curve = reject_curve
+        self.error_model = ErrorModel() if error_model is None else error_model
         self.trained_for = dict(detector.model.target)
         self.keypoint_names = detector.keypoint_names
 
@@ -187,7 +193,8 @@ def load_frame_detector(path: str, target: str, device: str = "cpu", field: str 
     checks). InputError when the weights carry no calibrated covariance: the tracker weighs each keypoint by it."""
     model = load_keypoint_model(path, target, device, field)
     sigma = require_calibrated(path, target, field)
-    return KeypointFrameDetector(KeypointDetector(model, device=device), sigma, weights_reject_curve(path))
+    return KeypointFrameDetector(KeypointDetector(model, device=device), sigma, weights_reject_curve(path),
+                                 weights_error_model(path))
 
 
 def require_calibrated(path: str, target: str, field: str = "weights") -> np.ndarray:

@@ -15,6 +15,12 @@ median error of the correct detections below and above their median heatmap scor
 would need the two to differ), and what a correct track's gate rejects (perception/keypoint_cov.reject_curve:
 over every detection the tracker is given, right or wrong, the share beyond each whitened radius), written as
 `keypoint_reject_curve`: the tracker's rejection test expects that share instead of a fixed one.
+
+When every folder is a sequence (`envisat generate --mode sequence --target`), the frame-to-frame error model
+too, as ENVISAT's calibrate measures it (perception/errormodel.py): the correct detections' errors over the
+sigma per keypoint, their correlation from frame to frame and in the view's rotation, the apparent scale and the
+radial bias; written as `error_model` and `error_model_record`, which the tracker reads as for ENVISAT (R
+inflated for the correlation at the filter's memory, the windowed NIS's dispersion, the scale undone).
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from envisat_pose.gates import GATE_PROB, chi2_gate
 from envisat_pose.io import json_safe
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.out_lock import locks_output
+from envisat_pose.perception import errormodel as em
 from envisat_pose.perception import keypoint_metrics as km
 from envisat_pose.perception.keypoint_cov import (
     GAUSS_ABS_MEDIAN,
@@ -39,7 +46,14 @@ from envisat_pose.perception.keypoint_cov import (
     reject_share,
     sigma_standard_error,
 )
-from envisat_pose.perception.weights_keys import REJECT_KEY, SIGMA_KEY, SIGMA_RECORD_KEY
+from envisat_pose.perception.weights_keys import (
+    ERROR_MODEL_KEY,
+    ERROR_MODEL_RECORD_KEY,
+    REJECT_KEY,
+    SIGMA_KEY,
+    SIGMA_RECORD_KEY,
+)
+from envisat_pose.pipelines.detector.calibrate import frame_interval_s, is_sequence
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig
 from envisat_pose.pipelines.detector.evaluate_target import detect_labelled
 from envisat_pose.provenance import dataset_ref
@@ -72,6 +86,41 @@ def error_by_score(err: np.ndarray, score: np.ndarray) -> dict:
     m = float(np.median(s))
     return {"median_score": m, "below": float(np.median(d[s < m])) if np.any(s < m) else None,
             "at_or_above": float(np.median(d[s >= m]))}
+
+
+def sequence_inputs(arrays: dict, pred_px: np.ndarray, err: np.ndarray, given: np.ndarray, sigma_px: np.ndarray,
+                    dt_s: list[float]) -> list[dict]:
+    """One perception.errormodel.measure_error_model sequence per folder (dt_s its frame interval, s), its frames
+    in key order, from collect_keypoints' arrays (with detect_labelled's folder index), the frames' named
+    predictions pred_px (N, K, 2), the correct detections' errors err (N, K, 2) (NaN elsewhere), the detections
+    the tracker is given (N, K) and the sigma per keypoint (K,) px. A frame's apparent scale counts where at least
+    3 keypoints are right and none it is given is wrong."""
+    right = np.all(np.isfinite(err), axis=-1)
+    scale = em.apparent_scale(pred_px, arrays["true_px"], right, given & arrays["usable"] & ~right)
+    radial = em.radial_errors(pred_px, arrays["true_px"], right)
+    sigma = np.broadcast_to(np.asarray(sigma_px, float)[None, :, None], err.shape)
+    out = []
+    for i, dt in enumerate(dt_s):
+        idx = np.flatnonzero(arrays["folder"] == i)
+        idx = idx[np.argsort(arrays["key"][idx].astype(str), kind="stable")]
+        out.append({"err_px": err[idx], "sigma_px": sigma[idx], "scale": scale[idx], "radial_px": radial[idx],
+                    "dt_s": float(dt), "R_cam_from_target": arrays["R"][idx]})
+    return out
+
+
+def sequence_error_model(folders: list[str], skipped: list[str], arrays: dict, pred_px: np.ndarray, err: np.ndarray,
+                         given: np.ndarray, sigma_px: np.ndarray, names: tuple[str, ...], refs: str) -> dict:
+    """The metadata of the error model (module doc) when every folder is a sequence, else {}. InputError when a
+    damaged shard was left out of one: its frames would no longer follow each other."""
+    if not all(is_sequence(d) for d in folders):
+        return {}
+    if skipped:
+        raise InputError(f"data: sequence shard(s) {', '.join(skipped)} damaged and left out, their frames would no "
+                         "longer follow each other; regenerate them (`envisat generate` with the same settings on "
+                         "the folder redoes them)")
+    seqs = sequence_inputs(arrays, pred_px, err, given, sigma_px, [frame_interval_s(d) for d in folders])
+    model, record = em.measure_error_model(seqs, 1.0, source=refs, names=names)
+    return {ERROR_MODEL_KEY: model.to_json(), ERROR_MODEL_RECORD_KEY: json.dumps(json_safe(record), sort_keys=True)}
 
 
 @locks_output("out", "calibrate", folder=False)
@@ -111,16 +160,18 @@ def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, 
               "check": nees_check(err, sigma, names), "error_by_score": error_by_score(err, arrays["score"]),
               "reject_share_at_gate": reject_share(curve, chi2_gate(GATE_PROB, 2)),
               "skipped_damaged_shards": skipped}
+    model = sequence_error_model(folders, skipped, arrays, pred, err, given, sigma, names, refs)
     make_out_file_dir(out, "out")
     with_metadata(cfg.weights, out, {SIGMA_KEY: json.dumps(clean),
                                      SIGMA_RECORD_KEY: json.dumps(json_safe(record), sort_keys=True),
-                                     REJECT_KEY: json.dumps(json_safe(curve))})
+                                     REJECT_KEY: json.dumps(json_safe(curve)), **model})
     calibrated = int(np.isfinite(sigma).sum())
     if calibrated < km.PNP_MIN_POINTS:
         warnings.warn(f"only {calibrated} of {len(sigma)} keypoints calibrated (each needs {MIN_CORRECT} correct "
                       f"detections): the tracker's cold start needs {km.PNP_MIN_POINTS} for PnP, so `track` and "
                       "`run` refuse these weights; calibrate on more held-out frames, or train longer", stacklevel=2)
-    return {**record, "corners": int(count.sum()), "calibrated": calibrated}
+    error_model = json.loads(model[ERROR_MODEL_RECORD_KEY]) if model else None
+    return {**record, "corners": int(count.sum()), "calibrated": calibrated, "error_model": error_model}
 
 
 def sigma_table(record: dict) -> str:

@@ -87,7 +87,8 @@ def collect_keypoints(det, frames, names: tuple[str, ...], limit: int | None = N
 def detect_labelled(cfg: TargetDetectJobConfig, folders: list[str], progress: bool = False, desc: str = "evaluate"):
     """The target's keypoint detector (cfg.weights, checked against cfg.target) over the labelled frames of each
     dataset folder (each checked to be of the target; the first cfg.limit frames of each): (target, model,
-    collect_keypoints' arrays over every folder, the damaged shards left out as 'folder/shard')."""
+    collect_keypoints' arrays over every folder with folder (N,) each frame's index into folders, the damaged
+    shards left out as 'folder/shard')."""
     import os
 
     from tqdm import tqdm
@@ -110,6 +111,8 @@ def detect_labelled(cfg: TargetDetectJobConfig, folders: list[str], progress: bo
         bar.refresh()
         parts.append(collect_keypoints(det, target_frames(paths), names, cfg.limit, bar))
     bar.close()
+    for i, p in enumerate(parts):  # which folder each frame came from (an index into folders)
+        p["folder"] = np.full(len(p["key"]), i)
     parts = [p for p in parts if len(p["key"])]
     if not parts:
         raise InputError(f"data {' '.join(folders)!r}: no frames")
