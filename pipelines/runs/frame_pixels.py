@@ -8,12 +8,19 @@ the frames with it):
   and `orientation_caution` tells the user once per source.
 - Alpha: space is black, so colour with alpha (BGRA, gray+alpha) is composited over black (`over_black`). A TIFF's
   ExtraSamples (tag 338) says whether its colour is premultiplied already: associated alpha (1) is, and so is
-  unassociated alpha (2) in an 8-bit TIFF, which OpenCV reads through libtiff's RGBA reader that premultiplies.
+  unassociated alpha (2) in an 8-bit colour TIFF, which OpenCV reads through libtiff's RGBA reader that
+  premultiplies. A gray+alpha TIFF OpenCV gives as one 8-bit channel without its alpha: told it is one sample of
+  twice the width, it gives both at the file's depth (`gray_alpha_tiff`, `gray_alpha_pixels`; its gray is as stored,
+  premultiplied for associated alpha only).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+
+from envisat_pose.config_errors import InputError
 
 ORIENTATION_TAG = 274
 EXTRA_SAMPLES_TAG = 338
@@ -59,32 +66,52 @@ def tiff_header_at(data: bytes) -> int | None:
     return None
 
 
-def header_shorts(data: bytes, tags: tuple[int, ...] = (ORIENTATION_TAG, EXTRA_SAMPLES_TAG)) -> dict:
-    """The first value of each of `tags` that the first directory of data's TIFF header (tiff_header_at) holds as
-    SHORTs: {tag: (value, its offset in data, byte order 'little' or 'big')}; {} without one, or where the header
-    is damaged (a header that cannot be read tells of no tag: the decoder has the last word on the pixels)."""
+def tiff_directory(data: bytes) -> tuple[str, dict[int, tuple[int, int, int, int]]] | None:
+    """The first directory of data's TIFF header (tiff_header_at): (byte order 'little' or 'big', {tag: (type,
+    count, where its values lie in data, where its entry lies)}); None without one, or where the header is damaged
+    (a header that cannot be read tells of no tag: the decoder has the last word on the pixels)."""
     base = tiff_header_at(data)
     order = None if base is None else {b"II": "little", b"MM": "big"}.get(bytes(data[base:base + 2]))
     if order is None:
-        return {}
+        return None
 
     def u(at: int, n: int) -> int:
         return int.from_bytes(data[at:at + n], order)
 
     if u(base + 2, 2) != 42:  # a BigTIFF (43) or no TIFF header
-        return {}
+        return None
     ifd = base + u(base + 4, 4)
-    found = {}
+    entries: dict[int, tuple[int, int, int, int]] = {}
     for k in range(u(ifd, 2) if ifd + 2 <= len(data) else 0):
         at = ifd + 2 + 12 * k
         if at + 12 > len(data):
             break
         tag, kind, count = u(at, 2), u(at + 2, 2), u(at + 4, 4)
-        if tag in tags and kind == 3 and count >= 1:  # SHORTs: up to two in the entry, more at an offset
-            where = at + 8 if count <= 2 else base + u(at + 8, 4)
-            if where + 2 <= len(data):
-                found[tag] = (u(where, 2), where, order)
-    return found
+        inline = {3: 2, 4: 4}.get(kind, 8) * count <= 4  # SHORTs, LONGs: up to 4 bytes in the entry, more at an offset
+        entries.setdefault(tag, (kind, count, at + 8 if inline else base + u(at + 8, 4), at))
+    return order, entries
+
+
+def tiff_value(data: bytes, directory: tuple[str, dict], tag: int, default: int | None = None) -> int | None:
+    """The first value of a SHORT or LONG tag of a tiff_directory; default when it is absent or of another type."""
+    order, entries = directory
+    kind, count, where, _ = entries.get(tag, (0, 0, 0, 0))
+    n = {3: 2, 4: 4}.get(kind, 0)
+    if not n or count < 1 or where + n > len(data):
+        return default
+    return int.from_bytes(data[where:where + n], order)
+
+
+def header_shorts(data: bytes, tags: tuple[int, ...] = (ORIENTATION_TAG, EXTRA_SAMPLES_TAG)) -> dict:
+    """The first value of each of `tags` that the first directory of data's TIFF header (tiff_header_at) holds as
+    SHORTs: {tag: (value, its offset in data, byte order 'little' or 'big')}; {} without one, or where the header
+    is damaged."""
+    directory = tiff_directory(data)
+    if directory is None:
+        return {}
+    order, entries = directory
+    return {tag: (tiff_value(data, directory, tag), entries[tag][2], order) for tag in tags
+            if tag in entries and entries[tag][0] == 3 and tiff_value(data, directory, tag) is not None}
 
 
 def as_stored(data: bytes) -> tuple[bytes, int, int]:
@@ -104,6 +131,85 @@ def premultiplied(extra_samples: int, dtype) -> bool:
     """Whether OpenCV gives a TIFF's colour premultiplied by its alpha: associated alpha (ExtraSamples 1) is stored
     so; unassociated alpha (2) is premultiplied by libtiff's RGBA reader, which OpenCV uses for 8-bit TIFFs."""
     return extra_samples == 1 or (extra_samples == 2 and np.dtype(dtype) == np.uint8)
+
+
+# a gray+alpha TIFF (SamplesPerPixel 2): OpenCV reads it through libtiff's RGBA reader, as one 8-bit channel
+# without its alpha (a 16-bit one at 8 bits too); told it is one sample of twice the width, it gives both samples
+# at their depth (gray_alpha_tiff, then gray_alpha_pixels)
+TIFF_WIDTH, TIFF_PHOTOMETRIC, TIFF_BITS, TIFF_COMPRESSION = 256, 262, 258, 259
+TIFF_SAMPLES, TIFF_PREDICTOR, TIFF_PLANAR, TIFF_TILE_WIDTH, TIFF_SAMPLE_FORMAT = 277, 317, 284, 322, 339
+PREDICTOR_CODECS = (5, 8, 32946, 34925, 50000)  # LZW, Deflate (2 codes), LZMA, ZSTD: libtiff applies a Predictor
+SHORT, LONG = 3, 4
+
+
+@dataclass(frozen=True)
+class GrayAlpha:
+    """A gray+alpha TIFF as OpenCV reads it whole: data (its bytes, told one sample of twice the width), width_px
+    (the image's), run_px (the width over which its horizontal differencing restarts: 0 when there is none to
+    undo), white_is_zero (Photometric 0: the gray inverted), premultiplied (associated alpha, ExtraSamples 1)."""
+
+    data: bytes
+    width_px: int
+    run_px: int
+    white_is_zero: bool
+    premultiplied: bool
+
+
+def gray_alpha_tiff(data: bytes, name: str) -> GrayAlpha | None:
+    """GrayAlpha for a TIFF file of gray and one extra sample (SamplesPerPixel 2, Photometric 0 or 1, unsigned 8 or
+    16 bits, samples interleaved); None for any other file. InputError naming the file for one whose samples lie in
+    separate planes (PlanarConfiguration 2: OpenCV gives its gray alone)."""
+    directory = tiff_directory(data) if data[:4] in (b"II*\0", b"MM\0*") else None
+    if directory is None:
+        return None
+    order, entries = directory
+
+    def value(tag: int, default: int | None = None) -> int | None:
+        return tiff_value(data, directory, tag, default)
+
+    if (value(TIFF_SAMPLES) != 2 or value(TIFF_PHOTOMETRIC) not in (0, 1) or value(TIFF_BITS) not in (8, 16)
+            or value(TIFF_SAMPLE_FORMAT, 1) != 1 or value(TIFF_WIDTH) is None):
+        return None
+    if value(TIFF_PLANAR, 1) != 1:
+        raise InputError(f"{name}: a gray+alpha TIFF whose gray and alpha lie in separate planes (PlanarConfiguration "
+                         f"{value(TIFF_PLANAR)}); expected them interleaved (1, what most tools write): save it so")
+    out = bytearray(data)
+
+    def put(tag: int, kind: int, v: int) -> None:
+        at = entries[tag][3]
+        out[at + 2:at + 12] = (kind.to_bytes(2, order) + (1).to_bytes(4, order)
+                               + v.to_bytes(2 if kind == SHORT else 4, order).ljust(4, b"\0"))
+
+    width = value(TIFF_WIDTH)
+    put(TIFF_WIDTH, LONG, 2 * width)
+    tile = value(TIFF_TILE_WIDTH)
+    if tile:
+        put(TIFF_TILE_WIDTH, LONG, 2 * tile)
+    put(TIFF_SAMPLES, SHORT, 1)
+    put(TIFF_PHOTOMETRIC, SHORT, 1)  # libtiff's RGBA reader would invert the alpha too: gray_alpha_pixels inverts
+    put(TIFF_BITS, SHORT, value(TIFF_BITS))
+    if EXTRA_SAMPLES_TAG in entries:
+        at = entries[EXTRA_SAMPLES_TAG][3]
+        out[at + 4:at + 8] = (0).to_bytes(4, order)  # no extra sample in one sample a pixel
+    run = 0
+    if value(TIFF_PREDICTOR, 1) == 2 and value(TIFF_COMPRESSION, 1) in PREDICTOR_CODECS:
+        put(TIFF_PREDICTOR, SHORT, 1)  # libtiff would undo it over single samples: gray_alpha_pixels does, by pixel
+        run = tile or width
+    return GrayAlpha(bytes(out), width, run, value(TIFF_PHOTOMETRIC) == 0, value(EXTRA_SAMPLES_TAG, 0) == 1)
+
+
+def gray_alpha_pixels(img: np.ndarray | None, how: GrayAlpha) -> np.ndarray | None:
+    """OpenCV's decode of gray_alpha_tiff's data ((H, 2 W) gray) as (H, W, 2) gray+alpha of the file's depth, its
+    horizontal differencing undone (sums that wrap, as libtiff's); None when it is not that (to_gray says so)."""
+    if img is None or img.ndim != 2 or img.shape[1] != 2 * how.width_px:
+        return None
+    pixels = img.reshape(img.shape[0], how.width_px, 2)
+    for x0 in range(0, how.width_px, how.run_px) if how.run_px else ():
+        run = pixels[:, x0:x0 + how.run_px]
+        np.cumsum(run, axis=1, dtype=pixels.dtype, out=run)
+    if how.white_is_zero:
+        pixels[..., 0] = np.iinfo(pixels.dtype).max - pixels[..., 0]
+    return pixels
 
 
 def over_black(img: np.ndarray, is_premultiplied: bool = False) -> np.ndarray:

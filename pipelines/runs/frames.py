@@ -38,7 +38,14 @@ from envisat_pose.pipelines.runs.frame_names import (
     unread_images_caution,
     unread_images_said,
 )
-from envisat_pose.pipelines.runs.frame_pixels import as_stored, orientation_caution, over_black, premultiplied
+from envisat_pose.pipelines.runs.frame_pixels import (
+    as_stored,
+    gray_alpha_pixels,
+    gray_alpha_tiff,
+    orientation_caution,
+    over_black,
+    premultiplied,
+)
 from envisat_pose.resumable import manifest_path
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
 from envisat_pose.target import DEFAULT_TARGET, load_target, other_target, require_envisat_dataset
@@ -132,17 +139,20 @@ def read_gray(path: str, turned: list[tuple[str, int]] | None = None) -> np.ndar
             raw, orientation, extra = as_stored(fh.read())
     except OSError as err:
         raise InputError(f"{path}: cannot be read ({err.strerror or err})") from None
-    data = np.frombuffer(raw, np.uint8)
+    gray_alpha = gray_alpha_tiff(raw, path)
+    data = np.frombuffer(gray_alpha.data if gray_alpha else raw, np.uint8)
     with native_stderr() as said:
         img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
         pages = frame_count(path) if img is not None else 1
+    img = gray_alpha_pixels(img, gray_alpha) if gray_alpha else img
     if img is not None and path.lower().endswith((".jpg", ".jpeg")) and not data[-2:].tobytes() == b"\xff\xd9":
         img = None  # OpenCV decodes a truncated JPEG with a grey tail and a warning; it is not a whole frame
         said.append("the JPEG data ends before its end marker")
     if pages > 1:  # imdecode gives the first page alone: the rest of the stack was lost without a word
         raise InputError(f"{path}: {pages} frames in one file (a multi-page TIFF or an animation); expected one "
                          "frame per file: save each page as its own file")
-    gray = to_gray(img, path, said, img is not None and premultiplied(extra, img.dtype))
+    gray = to_gray(img, path, said, img is not None and (gray_alpha.premultiplied if gray_alpha else
+                                                        premultiplied(extra, img.dtype)))
     if orientation != 1 and turned is not None:
         turned.append((path, orientation))
     return gray

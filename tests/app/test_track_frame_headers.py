@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from envisat_pose.app.cli import main
+from envisat_pose.config_errors import InputError
 from envisat_pose.pipelines.runs.frame_pixels import as_stored
 from envisat_pose.pipelines.runs.frames import open_source, read_gray, scan_source, to_gray
 
@@ -229,3 +230,113 @@ def test_a_tiffs_premultiplied_colour_is_not_multiplied_twice(tmp_path):
         path.write_bytes(tiff_file(rgba, extra_samples=extra))
         gray = read_gray(str(path))
         assert abs(int(gray[0, 0]) - want) <= scale, (dtype, extra, gray[0, 0])
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Gray+alpha TIFFs: OpenCV gave them as one 8-bit channel, the alpha dropped (a 16-bit one at 8 bits too)
+
+
+def tiff_bytes(order, entries, chunks, tiled=False):
+    """A TIFF of one directory: entries (tag, type 3|4, [values]), the strips' or tiles' bytes (chunks) first, their
+    offsets and byte counts filled in; values over 4 bytes after them."""
+    offsets, at = [], 8
+    for c in chunks:
+        offsets.append(at)
+        at += len(c)
+    body = b"".join(chunks) + b"\0" * (at & 1)
+    at += at & 1
+    entries = sorted(entries + [(324 if tiled else 273, 4, offsets), (325 if tiled else 279, 4, [len(c) for c in chunks])])
+    values, ifd = b"", b""
+    for tag, kind, vals in entries:
+        packed = struct.pack(order + ("H" if kind == 3 else "I") * len(vals), *vals)
+        if len(packed) > 4:
+            packed, values = struct.pack(order + "I", at + len(values)), values + packed
+        ifd += struct.pack(order + "HHI", tag, kind, len(vals)) + packed.ljust(4, b"\0")
+    head = (b"II" if order == "<" else b"MM") + struct.pack(order + "HI", 42, at + len(values))
+    return head + body + values + struct.pack(order + "H", len(entries)) + ifd + struct.pack(order + "I", 0)
+
+
+def gray_alpha_tiff_file(ga, extra=2, order="<", white_is_zero=False, tile=None, deflate=False, planar=1):
+    """ga (H, W, 2) gray+alpha, 8 or 16 bits, as libtiff writes it: BitsPerSample twice, ExtraSamples `extra`
+    (None: none), strips of 16 rows or tiles of `tile` px; deflate: Deflate with horizontal differencing by pixel
+    (Predictor 2, as libtiff and most tools write it)."""
+    h, w, _ = ga.shape
+    stored = ga.astype(ga.dtype.newbyteorder(order))
+
+    def encode(block):
+        if not deflate:
+            return block.tobytes()
+        diff = block.copy()
+        diff[:, 1:] = block[:, 1:] - block[:, :-1]  # wraps, as the predictor's sums do
+        return zlib.compress(diff.tobytes())
+
+    if planar == 2:
+        chunks = [stored[..., k].tobytes() for k in range(2)]
+    elif tile:
+        padded = np.zeros((-(-h // tile) * tile, -(-w // tile) * tile, 2), stored.dtype)
+        padded[:h, :w] = stored
+        chunks = [encode(padded[y:y + tile, x:x + tile]) for y in range(0, h, tile) for x in range(0, w, tile)]
+    else:
+        chunks = [encode(stored[y:y + 16]) for y in range(0, h, 16)]
+    bits = ga.dtype.itemsize * 8
+    entries = [(256, 3, [w]), (257, 3, [h]), (258, 3, [bits, bits]), (259, 3, [8 if deflate else 1]),
+               (262, 3, [0 if white_is_zero else 1]), (277, 3, [2]), (284, 3, [planar])]
+    entries += [(338, 3, [extra])] if extra is not None else []
+    entries += [(317, 3, [2])] if deflate else []
+    entries += [(322, 3, [tile]), (323, 3, [tile])] if tile else [(278, 3, [h if planar == 2 else 16])]
+    return tiff_bytes(order, entries, chunks, tiled=bool(tile) and planar == 1)
+
+
+def composited(gray, alpha, dtype):
+    """gray over black by alpha, rounded: what every alpha path gives."""
+    top = np.iinfo(dtype).max
+    return ((gray.astype(np.uint64) * alpha + top // 2) // top).astype(dtype)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_a_gray_alpha_tiff_is_composited_over_black_at_its_depth(tmp_path, dtype):
+    """Gray 200 (x 257 at 16 bits): opaque on the left, alpha 64 in a stripe, transparent on the right; its
+    unassociated (2), unspecified (0) or missing ExtraSamples taken as alpha, as for BGRA; associated alpha (1)
+    stored premultiplied; both byte orders. OpenCV gave 200 everywhere, at 8 bits."""
+    top = np.iinfo(dtype).max
+    scale = top // 255
+    alpha = np.zeros((H, W), dtype)
+    alpha[:, : W // 2] = top
+    alpha[:, W // 2: W // 2 + 4] = 64 * scale
+    gray = np.full((H, W), 200 * scale, dtype)
+    want = composited(gray, alpha, dtype)
+    for extra, order in ((2, "<"), (2, ">"), (0, "<"), (None, ">"), (1, "<"), (1, ">")):
+        stored = want if extra == 1 else gray
+        path = tmp_path / f"ga_{extra}_{order == '<'}.tif"
+        path.write_bytes(gray_alpha_tiff_file(np.dstack([stored, alpha]), extra, order))
+        out = read_gray(str(path))
+        assert out.dtype == dtype and out.shape == (H, W), (extra, order, out.dtype)
+        np.testing.assert_array_equal(out, want, err_msg=f"ExtraSamples {extra}, {order}")
+        assert out[0, 0] == 200 * scale and out[0, -1] == 0
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_a_compressed_gray_alpha_tiff_in_strips_or_tiles(tmp_path, dtype):
+    """Deflate with horizontal differencing (undone by pixel, not by sample), in strips and in 16-px tiles that
+    overhang the image; a MinIsWhite one's gray inverted; random pixels (seed 5)."""
+    top = np.iinfo(dtype).max
+    rng = np.random.default_rng(5)
+    ga = rng.integers(0, top, (H, W, 2), dtype=dtype, endpoint=True)
+    ga[:, :4, 1] = top
+    ga[:, -4:, 1] = 0
+    for tile, white_is_zero, order in ((None, False, "<"), (16, False, ">"), (16, True, "<"), (None, True, ">")):
+        path = tmp_path / f"c_{tile}_{white_is_zero}_{order == '<'}.tif"
+        path.write_bytes(gray_alpha_tiff_file(ga, 2, order, white_is_zero, tile, deflate=True))
+        gray = top - ga[..., 0] if white_is_zero else ga[..., 0]
+        out = read_gray(str(path))
+        assert out.dtype == dtype
+        np.testing.assert_array_equal(out, composited(gray, ga[..., 1], dtype), err_msg=f"{tile} {white_is_zero}")
+
+
+def test_a_gray_alpha_tiff_in_separate_planes_is_refused(tmp_path):
+    """OpenCV gives such a file's gray alone: one line naming the file and the tag, not a frame without its alpha."""
+    ga = np.dstack([np.full((H, W), 200, np.uint8), np.zeros((H, W), np.uint8)])
+    path = tmp_path / "planes.tif"
+    path.write_bytes(gray_alpha_tiff_file(ga, planar=2))
+    with pytest.raises(InputError, match=r"planes\.tif: a gray\+alpha TIFF .*PlanarConfiguration 2"):
+        read_gray(str(path))
