@@ -12,6 +12,8 @@ the frames with it):
   premultiplies. A gray+alpha TIFF OpenCV gives as one 8-bit channel without its alpha: told it is one sample of
   twice the width, it gives both at the file's depth (`gray_alpha_tiff`, `gray_alpha_pixels`; its gray is as stored,
   premultiplied for associated alpha only).
+- Transparency without alpha: a gray PNG's tRNS value is composited over black like an alpha of 0 (`png_gray_key`,
+  `keyed_over_black`: OpenCV drops it); a palette's or an RGB PNG's tRNS OpenCV gives as an alpha channel.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ SHOWN = {2: "mirrored left-right", 3: "turned 180 deg", 4: "mirrored top-bottom"
          5: "mirrored and turned 90 deg (transposed)", 6: "turned 90 deg clockwise",
          7: "mirrored and turned 90 deg (transversed)", 8: "turned 90 deg counter-clockwise"}
 JPEG_EXIF = b"Exif\0\0"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def tiff_header_at(data: bytes) -> int | None:
@@ -49,7 +52,7 @@ def tiff_header_at(data: bytes) -> int | None:
                 return i + 10
             i += 2 + int.from_bytes(data[i + 2:i + 4], "big")
         return None
-    if data[:8] == b"\x89PNG\r\n\x1a\n":
+    if data[:8] == PNG_SIGNATURE:
         i = 8
         while i + 8 <= len(data) and data[i + 4:i + 8] != b"IEND":
             if data[i + 4:i + 8] == b"eXIf":
@@ -221,6 +224,31 @@ def over_black(img: np.ndarray, is_premultiplied: bool = False) -> np.ndarray:
         top = np.iinfo(img.dtype).max
         colour = ((colour.astype(np.uint32) * alpha + top // 2) // top).astype(img.dtype)
     return colour[..., 0] if colour.shape[2] == 1 else colour
+
+
+def png_gray_key(data: bytes) -> int | None:
+    """A gray PNG's transparent value (colour type 0 with a tRNS chunk) at the depth OpenCV gives its pixels (1-, 2-
+    and 4-bit gray scaled to 8 bits); None for any other file. OpenCV gives such a PNG as one channel and drops the
+    key; a palette's or an RGB PNG's tRNS it gives as an alpha channel (composited by over_black)."""
+    if data[:8] != PNG_SIGNATURE or data[12:16] != b"IHDR" or len(data) < 26 or data[25] != 0:
+        return None
+    top = (1 << data[24]) - 1
+    i = 8
+    while i + 8 <= len(data) and data[i + 4:i + 8] not in (b"IDAT", b"IEND"):
+        size = int.from_bytes(data[i:i + 4], "big")
+        if data[i + 4:i + 8] == b"tRNS" and size >= 2 and i + 10 <= len(data):
+            key = int.from_bytes(data[i + 8:i + 10], "big") & top  # as libpng masks it
+            return key if top >= 255 else key * (255 // top)
+        i += 12 + size
+    return None
+
+
+def keyed_over_black(img: np.ndarray | None, key: int | None) -> np.ndarray | None:
+    """A gray frame whose pixels of value key (png_gray_key) are transparent, composited over black like an alpha
+    of 0: those 0, the rest as they are; img as it is without a key."""
+    if key is None or img is None or img.ndim != 2:
+        return img
+    return np.where(img == key, np.zeros((), img.dtype), img)
 
 
 def orientation_caution(source: str, turned: list[tuple[str, int]], frames: int,

@@ -340,3 +340,66 @@ def test_a_gray_alpha_tiff_in_separate_planes_is_refused(tmp_path):
     path.write_bytes(gray_alpha_tiff_file(ga, planar=2))
     with pytest.raises(InputError, match=r"planes\.tif: a gray\+alpha TIFF .*PlanarConfiguration 2"):
         read_gray(str(path))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# PNG transparency (tRNS): a gray PNG's transparent value was dropped by OpenCV; a palette's or an RGB PNG's
+# comes from OpenCV as an alpha channel (pinned here)
+
+
+def png_file(width, height, bits, colour, rows, *chunks):
+    """A PNG of colour type `colour` whose rows are given as bytes, with `chunks` ((kind, data)) before its IDAT."""
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, bits, colour, 0, 0, 0)
+    idat = zlib.compress(b"".join(b"\0" + r for r in rows))
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + b"".join(chunk(k, d) for k, d in chunks)
+            + chunk(b"IDAT", idat) + chunk(b"IEND", b""))
+
+
+def test_a_gray_pngs_transparent_value_is_black(tmp_path):
+    """A white background keyed transparent (tRNS), 8- and 16-bit, and 4- and 1-bit gray (scaled to 8 bits by the
+    decoder): those pixels 0, the others as they were; OpenCV gave the white."""
+    img = stored_frame()  # its left quarter white (255): the key
+    cases = [(8, img, 255, img), (16, img.astype(">u2") * 257, 65535, img.astype(np.uint16) * 257)]
+    four = (img // 17).astype(np.uint8)  # 0-15, the white 15
+    cases.append((4, (four[:, 0::2] << 4) | four[:, 1::2], 15, four * 17))
+    one = (img == 255).astype(np.uint8)
+    cases.append((1, np.packbits(one, axis=1), 1, one * 255))
+    for bits, rows, key, decoded in cases:
+        path = tmp_path / f"key_{bits}.png"
+        path.write_bytes(png_file(W, H, bits, 0, [r.tobytes() for r in rows], (b"tRNS", struct.pack(">H", key))))
+        out = read_gray(str(path))
+        assert out.dtype == decoded.dtype, bits
+        want = np.where(img == 255, 0, decoded)
+        np.testing.assert_array_equal(out, want, err_msg=f"{bits}-bit")
+    path = tmp_path / "plain.png"  # no tRNS: as it was
+    path.write_bytes(png_file(W, H, 8, 0, [r.tobytes() for r in img]))
+    np.testing.assert_array_equal(read_gray(str(path)), img)
+
+
+def test_a_palette_or_rgb_pngs_transparency_is_composited_as_alpha(tmp_path):
+    """OpenCV gives these four channels (IMREAD_UNCHANGED): a palette's tRNS alphas (0 and 128 here) and an RGB
+    PNG's transparent colour (white), 8- and 16-bit; over black like any alpha."""
+    import cv2
+
+    index = np.zeros((H, W), np.uint8)  # 0: white, transparent; 1: gray 200, alpha 128; 2: opaque colour
+    index[:, W // 2:] = 1
+    index[:4] = 2
+    plte = bytes([255, 255, 255, 200, 200, 200, 50, 100, 150])
+    path = tmp_path / "palette.png"
+    path.write_bytes(png_file(W, H, 8, 3, [r.tobytes() for r in index], (b"PLTE", plte), (b"tRNS", bytes([0, 128]))))
+    out = read_gray(str(path))
+    colour = int(cv2.cvtColor(np.array([[[150, 100, 50]]], np.uint8), cv2.COLOR_BGR2GRAY)[0, 0])
+    assert out[10, 0] == 0 and out[10, -1] == round(200 * 128 / 255) and out[0, 0] == colour
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[...] = 255
+    rgb[:, W // 2:] = [50, 100, 150]
+    for bits, rows, key in ((8, rgb, 255), (16, rgb.astype(">u2") * 257, 65535)):
+        path = tmp_path / f"rgb_{bits}.png"
+        path.write_bytes(png_file(W, H, bits, 2, [r.tobytes() for r in rows], (b"tRNS", struct.pack(">3H", *[key] * 3))))
+        out = read_gray(str(path))
+        bgr = np.array([[[150, 100, 50]]], out.dtype) * (1 if bits == 8 else 257)
+        assert out.dtype == (np.uint8 if bits == 8 else np.uint16)
+        assert out[0, 0] == 0 and out[0, -1] == cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)[0, 0]
