@@ -7,9 +7,10 @@ video (`open_source`), every frame read once before any output (`scan_source`).
   folder is the sequence), and so is a file of several frames (a TIFF stack, an animation); a video whose header
   counts more frames than can be read is warned of.
 - Pixels: 8-bit files as they are; 16-bit files hold `bit_depth`-bit data (10, 12, 14 or 16; default: the
-  smallest depth that holds the sequence's maximum), scaled to 8 bits by 255 / (2^bit_depth - 1). Colour with
-  alpha is composited over black (space is black); an EXIF Orientation is not applied: the pixels are as stored,
-  which the intrinsics describe, and frames that carry one are warned of (pipelines/runs/frame_pixels.py).
+  smallest depth that holds the sequence's maximum), scaled to 8 bits by 255 / (2^bit_depth - 1). Colour or gray
+  with alpha, and a PNG's transparent colour, are composited over black (space is black); an EXIF Orientation is
+  not applied: the pixels are as stored, which the intrinsics describe, and frames that carry one are warned of
+  (pipelines/runs/frame_pixels.py); so is a video's rotation metadata (pipelines/runs/frame_video.py).
 - Messages the image and video libraries print (OpenCV, libpng, libtiff, FFmpeg) are kept off the terminal
   (`native_stderr`); what they said goes into the one-line InputError when a frame cannot be read.
 """
@@ -48,6 +49,7 @@ from envisat_pose.pipelines.runs.frame_pixels import (
     png_gray_key,
     premultiplied,
 )
+from envisat_pose.pipelines.runs.frame_video import open_video
 from envisat_pose.resumable import manifest_path
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
 from envisat_pose.target import DEFAULT_TARGET, load_target, other_target, require_envisat_dataset
@@ -87,14 +89,6 @@ def library_said(said: list[str]) -> str:
         return ""
     last = lines[-1]
     return f" ({last[:160]})"
-
-
-def quiet_opencv() -> None:
-    """OpenCV's own logger off (its warnings would otherwise reach the terminal)."""
-    import cv2
-
-    with contextlib.suppress(Exception):
-        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -222,11 +216,8 @@ class FrameSource:
             for i, f in enumerate(self.files):
                 yield i, read_gray(f, turned)
         elif self.kind == "video":
-            import cv2
-
-            quiet_opencv()
             with native_stderr() as said:
-                cap = cv2.VideoCapture(self.path)
+                cap, _ = open_video(self.path)
             try:
                 for i in range(len(self.t_s)):
                     with native_stderr() as said:
@@ -341,11 +332,12 @@ def is_utf8(path: str) -> bool:
 
 
 def video_source(path: str, rate_hz: float) -> FrameSource:
+    """A video's frames, counted; its times at rate_hz or its own rate; its rotation metadata not applied (the frames
+    as stored, warned of: frame_video.open_video); InputError naming the video when it has no frames to track."""
     import cv2
 
-    quiet_opencv()
     with native_stderr() as said:
-        cap = cv2.VideoCapture(path)
+        cap, turned = open_video(path)
         try:
             opened = cap.isOpened()
             header = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0) if opened else 0
@@ -363,7 +355,7 @@ def video_source(path: str, rate_hz: float) -> FrameSource:
     rate = rate_hz if rate_hz > 0 else fps
     if not rate > 0:
         raise InputError(f"source {path!r}: the video has no frame rate: give `rate_hz`")
-    source = FrameSource("video", path, rate_times(path, n, rate), [f"frame {i}" for i in range(n)])
+    source = FrameSource("video", path, rate_times(path, n, rate), [f"frame {i}" for i in range(n)], cautions=turned)
     if n < header:  # a file cut short (a copy or a recording that stopped) still opens: its tail is gone
         source.cautions.append(f"source {path!r}: {n} of the {header} frames the video's header counts can be read: "
                                f"tracking those {n} (a truncated file?)" + library_said(said))
