@@ -202,6 +202,62 @@ def test_calibrate_finds_the_noise_put_in_and_detect_carries_it(box, tmp_path, m
 
 
 
+class CorrelatedOracle(Oracle):
+    """The oracle whose noise follows the frames: per keypoint and axis, white noise of variance share 1 - a plus
+    an AR(1) of share a and coefficient phi from frame to frame (frame t: the key's number), sigma px in all
+    (seeded by `seed`)."""
+
+    def __init__(self, labels: dict, sigma: float, a: float, phi: float, frames: int, seed: int):
+        super().__init__(labels, sigma)
+        rng = np.random.default_rng(seed)
+        ar = np.empty((frames, 8, 2))
+        ar[0] = rng.standard_normal((8, 2))
+        for t in range(1, frames):
+            ar[t] = phi * ar[t - 1] + np.sqrt(1 - phi ** 2) * rng.standard_normal((8, 2))
+        self.noise = sigma * (np.sqrt(a) * ar + np.sqrt(1 - a) * rng.standard_normal((frames, 8, 2)))
+
+    def detect(self, image: np.ndarray) -> dict:
+        found = super().detect(image)
+        key, true, _ = self.labels[hashlib.sha1(image.tobytes()).hexdigest()]
+        return {**found, "keypoints_px": true + self.noise[int(key)]}
+
+
+def test_calibrate_on_a_sequence_measures_the_correlation_put_in_and_the_tracker_reads_it(box, tmp_path, monkeypatch):
+    """A sequence of the target (300 frames) and an oracle whose noise is white plus AR(1) of share 0.6 and
+    coefficient 0.8 from frame to frame: calibrate --target writes the error model (as ENVISAT's calibrate on
+    sequences), its share, coefficient and inflation 1 + 2 a phi / (1 - phi) = 5.8 near those put in, and
+    load_frame_detector hands it to the tracker; on random views (the module's dataset) none is written."""
+    from envisat_pose.perception.keypoint_detect import load_frame_detector
+    from envisat_pose.perception.weights import read_metadata
+
+    path, _, _, weights, _ = box
+    seq = str(tmp_path / "seq")
+    assert main(["generate", "--mode", "sequence", "--target", path, "--num-images", "300", "--resolution", "96",
+                 "--seed", "5", "--out", seq, "--quiet"]) == 0
+    labels = {}
+    for key, image, label in target_frames(checked_shards(seq)[0]):
+        usable = np.array(label["visible"], bool) & np.array(label["in_frame"], bool)
+        labels[hashlib.sha1(image.tobytes()).hexdigest()] = (key, np.array(label["keypoints_px"], float), usable)
+    a, phi = 0.6, 0.8
+    use_oracle(monkeypatch, CorrelatedOracle(labels, 0.8, a, phi, 300, seed=11))
+    w2 = str(tmp_path / "w2.safetensors")
+    assert main(["calibrate", "--target", path, "--weights", weights, "--data", seq, "--out", w2, "--quiet"]) == 0
+    model = load_frame_detector(w2, path).error_model
+    assert model.n_frames == 300
+    # one sequence of 300 frames: the share and the coefficient trade against each other in the fit (over oracle
+    # seeds 1-6: a 0.51-0.93, phi 0.69-0.79), the lag-1 correlation a phi and the inflation hold (4.6-5.6 of 5.8)
+    assert model.rho_lag1 == pytest.approx(a * phi, abs=0.08)
+    assert model.inflation == pytest.approx(1 + 2 * a * phi / (1 - phi), rel=0.25)
+    record = json.loads(read_metadata(w2)["error_model_record"])
+    assert set(record["bias_px_by_corner"]) == set(NAMES)  # the target's keypoints, not ENVISAT's corners
+
+    _, _, data, _, random_labels = box
+    use_oracle(monkeypatch, Oracle(random_labels, sigma=0.8))
+    w3 = str(tmp_path / "w3.safetensors")
+    assert main(["calibrate", "--target", path, "--weights", weights, "--data", data, "--out", w3, "--quiet"]) == 0
+    assert "error_model" not in read_metadata(w3)
+    assert load_frame_detector(w3, path).error_model.n_frames == 0  # the white default
+
 
 def test_refusals_write_nothing(box, tmp_path, capsys):
     path, other, data, weights, labels = box

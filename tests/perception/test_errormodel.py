@@ -72,6 +72,19 @@ def test_white_errors_need_no_inflation():
     assert abs(model.inflation - 1.0) < 0.1
 
 
+def test_another_targets_keypoints_are_named_and_their_count_checked():
+    """Five keypoints of another target: measured under their names (ENVISAT's eight corners are only the
+    default), the correlation as for the corners; err_px of another count is refused naming both."""
+    rng = np.random.default_rng(4)
+    names = ("nose", "tail", "fin", "pod", "dish")
+    seqs = [{**sequence(ar1(rng, 0.5, (5, 2), 400)), "radial_px": np.full((400, 5), np.nan)} for _ in range(3)]
+    model, record = em.measure_error_model(seqs, cov_scale=1.0, max_lag=6, names=names)
+    assert abs(model.rho_lag1 - 0.5) < 0.05
+    assert list(record["bias_px_by_corner"]) == list(names) and list(record["autocorr_lag1_by_corner"]) == list(names)
+    with pytest.raises(ValueError, match=r"8 keypoints .* got shapes \[\(5, 2\)\]"):
+        em.measure_error_model(seqs, cov_scale=1.0)  # ENVISAT's 8 corners by default
+
+
 def test_apparent_scale_and_radial_error_of_a_scaled_box():
     rng = np.random.default_rng(2)
     true = rng.uniform(100, 300, (5, 8, 2))
