@@ -8,7 +8,8 @@ opens the folder):
   by its position: the frames after a gap would be early by the missing frames' time; frames.scan_source warns),
   and names ending in decimals of unequal length (t_12.5, t_12.25: natural order is not their time order);
 - a timestamps CSV (columns file,t_s; a spreadsheet's byte-order mark and spaces around the header's names
-  allowed) read, one time per image, increasing in name order, none beyond the recording's clock (MAX_TIME_S);
+  allowed) read, one time per image, increasing in name order by at least the physics' least step (MIN_FRAME_DT_S,
+  1e-4 s), none beyond the recording's clock (MAX_TIME_S);
 - frames too far apart for the tracker's cold start to gather its window warned of (spacing_caution).
 """
 
@@ -22,6 +23,7 @@ import re
 import numpy as np
 
 from envisat_pose.config import InputError
+from envisat_pose.pipelines.tracking.tracker_bounds import MIN_FRAME_DT_S
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".pnm", ".webp")  # OpenCV reads them
 # image types a camera or a converter writes that the tracker does not read (OpenCV's wheel lacks them or needs a
@@ -155,7 +157,7 @@ def read_timestamps(path: str, files: list[str]) -> np.ndarray:
     """Frame times (N,) s from a CSV with columns file,t_s for the given image files (matched by file name: a
     path's last name, / or \\ its separator); InputError naming the CSV (and the line) when it has no such columns,
     a row misses a value, a file has two different times or none, or the times do not increase in the files'
-    order."""
+    order by at least MIN_FRAME_DT_S (spaced_times)."""
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:  # utf-8-sig: a spreadsheet's byte-order mark
             reader = csv.reader(fh)
@@ -168,6 +170,7 @@ def read_timestamps(path: str, files: list[str]) -> np.ndarray:
                          "file,t_s (comma-separated)")
     col_f, col_t = header.index("file"), header.index("t_s")
     times: dict[str, float] = {}
+    lines: dict[str, int] = {}
     for n, row in enumerate(rows, start=2):
         if not any(v.strip() for v in row):
             continue  # a blank line
@@ -182,18 +185,19 @@ def read_timestamps(path: str, files: list[str]) -> np.ndarray:
             raise InputError(f"{path}: line {n}: {name!r} at t = {value} s, but t = {times[name]} s on an earlier "
                              "line: expected one time per image")
         times[name] = value
+        lines.setdefault(name, n)
     t = []
     for f in files:
         name = os.path.basename(f)
         if name not in times:
             raise InputError(f"{path}: no time for image {name!r} (expected a row file,t_s for every image)")
         t.append(times[name])
-    return increasing_times(path, np.array(t), files)
+    return increasing_times(path, np.array(t), files, [lines[os.path.basename(f)] for f in files])
 
 
-def increasing_times(path: str, t: np.ndarray, files: list[str]) -> np.ndarray:
-    """t when its times are finite and increase in the files' order; else InputError naming the first file at
-    fault and its time."""
+def increasing_times(path: str, t: np.ndarray, files: list[str], lines: list[int] | None = None) -> np.ndarray:
+    """t when its times are finite and increase in the files' order (spaced_times); else InputError naming the first
+    file at fault and its time (and its line of the CSV, lines (N,) where given)."""
     bad = np.flatnonzero(~np.isfinite(t))
     if bad.size:
         k = int(bad[0])
@@ -204,9 +208,28 @@ def increasing_times(path: str, t: np.ndarray, files: list[str]) -> np.ndarray:
         raise InputError(f"{path}: {os.path.basename(files[k])} at t = {t[k]:.6g} s: expected a time in s of at most "
                          f"{MAX_TIME_S:.3g} s in size (292 years: the recording's clock, int64 ns); times in ms or "
                          "us since an epoch? (t_s is in s)")
-    back = np.flatnonzero(np.diff(t) <= 0)
-    if back.size:
-        k = int(back[0]) + 1
-        raise InputError(f"{path}: times must increase in the images' name order: {os.path.basename(files[k])} at "
-                         f"t = {t[k]} s does not follow t = {t[k - 1]} s")
-    return t
+    return spaced_times(path, t, files, lines)
+
+
+def spaced_times(path: str, t: np.ndarray, files: list[str], lines: list[int] | None = None) -> np.ndarray:
+    """t when each time follows the one before (in the files' order) by at least MIN_FRAME_DT_S, the least step of
+    the truth's physics and of the filter's RK4 (the floor `rate_hz` keeps too: 10 kHz); else InputError naming the
+    first pair: the later file (its CSV line, lines (N,) where given), both times and the floor. Two frames 1e-6 s
+    apart were tracked as frames 1e-6 s apart. The floor is met within the times' rounding (1e-4 s steps since an
+    epoch differ by a few ulps from 1e-4)."""
+    dt = np.diff(t)
+    slack = 4.0 * np.spacing(np.maximum(np.abs(t[1:]), np.abs(t[:-1]))) + 1e-9 * MIN_FRAME_DT_S
+    close = np.flatnonzero(dt < MIN_FRAME_DT_S - slack)
+    if not close.size:
+        return t
+    k = int(close[0]) + 1
+    a, b = os.path.basename(files[k - 1]), os.path.basename(files[k])
+    where = f"line {lines[k]}: " if lines else ""
+    earlier = f" (line {lines[k - 1]})" if lines else ""
+    if dt[k - 1] <= 0:
+        said = "does not follow"
+    else:
+        said = f"is {dt[k - 1]:.3g} s after"
+    raise InputError(f"{path}: {where}{b} at t = {t[k]} s {said} {a} at t = {t[k - 1]} s{earlier}: expected times "
+                     f"that increase in the images' name order by at least {MIN_FRAME_DT_S:g} s (the least step of "
+                     "the physics and the filter: a camera of at most 10 kHz)")

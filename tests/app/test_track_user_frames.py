@@ -256,3 +256,27 @@ def test_a_rate_that_puts_frames_beyond_the_recordings_clock_is_refused(tmp_path
     with pytest.raises(InputError, match=r"rate_hz 1e-12: frame 3 .* beyond the recording's clock"):
         open_source(str(src), 1e-12)
     assert open_source(str(src), 1e-6).t_s[-1] == pytest.approx(3e6)  # slow, but on the clock
+
+
+def test_timestamps_closer_than_the_physics_least_step_are_refused_naming_the_row(tmp_path, capsys):
+    """Two frames 1e-6 s apart were tracked as such (the truth's physics and the filter step at least 1e-4 s, the
+    floor `rate_hz` keeps at 10 kHz); now one line naming the CSV, the later image's line, both times and the
+    floor, nothing written. Equal and decreasing times (refused before) name their lines too; frames 1e-4 s apart,
+    also since an epoch (a step off 1e-4 by rounding), are read."""
+    src = frames(tmp_path / "seq", NAMES)
+    rows = ("img_0000.png,0\n", "img_0002.png,0.500001\n", "img_0001.png,0.5\n", "img_0003.png,1.5\n")
+    times = csv_times(tmp_path, "file,t_s\n" + "".join(rows))  # rows out of name order: img_0002 on line 3
+    code = main(["track", "--images", str(src), "--timestamps", times, "--out", str(tmp_path / "never"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert "times.csv: line 3: img_0002.png at t = 0.500001 s is 1e-06 s after img_0001.png at t = 0.5 s " \
+           "(line 4): expected times that increase in the images' name order by at least 0.0001 s" in err[0], err
+    assert not (tmp_path / "never").exists()
+    for t2, said in (("0.5", "does not follow"), ("0.25", "does not follow"), ("0.50009", "is 9e-05 s after")):
+        bad = csv_times(tmp_path, f"file,t_s\nimg_0000.png,0\nimg_0001.png,0.5\nimg_0002.png,{t2}\nimg_0003.png,1.5\n")
+        with pytest.raises(InputError, match=rf"line 4: img_0002.png at t = {t2} s {said} img_0001.png at t = 0.5 s "
+                                             r"\(line 3\): .*at least 0.0001 s"):
+            read_timestamps(bad, NAMES)
+    for t0 in (0.0, 1.7e9, 0.1):
+        fast = csv_times(tmp_path, "file,t_s\n" + "".join(f"{n},{t0 + i * 1e-4!r}\n" for i, n in enumerate(NAMES)))
+        assert len(read_timestamps(fast, NAMES)) == 4
