@@ -20,6 +20,7 @@ from envisat_pose.datagen.scenario import in_earth_shadow, scenario_config, scen
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import load_camera
 from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, job_weights, layered_job, scenario_table
+from envisat_pose.pipelines.tracking.integrity import check_min_target_px
 from envisat_pose.pipelines.tracking.onboard import orbit_config
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, TrackerConfig
 from envisat_pose.pipelines.tracking.tracker_bounds import MAX_PREDICTION_S, MAX_RUN_FRAMES
@@ -127,6 +128,8 @@ class RunConfig(Config):
         check(cam.width_px == cam.height_px and 16 <= self.image.resolution_px <= 4096, "image.resolution_px",
               self.image.resolution_px, "a square image side in [16, 4096] px (the MJCF's chaser_cam, "
               f"{cam.width_px} px, read out at that size: the same field of view)")
+        n = self.image.resolution_px  # the camera the run's tracker sees through
+        check_min_target_px(self.tracker.integrity.min_target_px, cam.scaled(n, n).f_px, "tracker.integrity.min_target_px")
 
 
 # what a run takes where its scenario sets nothing (no duration_s, no [measurement] rate_hz)

@@ -58,6 +58,7 @@ from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, run_ro
 from envisat_pose.pipelines.runs.scoring import recording_errors
 from envisat_pose.pipelines.tracking.build import tracker_detector
 from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics, camera_record, default_camera
+from envisat_pose.pipelines.tracking.integrity import check_min_target_px
 from envisat_pose.pipelines.tracking.onboard import chaser_function
 from envisat_pose.pipelines.tracking.tracker import TRACKER_FILTER, Tracker, TrackerConfig
 from envisat_pose.pipelines.tracking.tracker_bounds import MAX_PREDICTION_S, MIN_FRAME_DT_S
@@ -157,7 +158,8 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
     cfg.rate_hz; a generate folder must be of cfg.target: frames.require_source_target), the camera read (a TOML
     file: its remap too) or the MJCF's (camera_file.default_camera), every frame scanned once
     (frames.scan_source: one size, decodable, at least the cold start's frames; frames too far apart for it warned
-    of: frame_names.spacing_caution). Returns (cfg, source, camera, remap, pixels); cfg as given (complete when
+    of: frame_names.spacing_caution); a min_target_px the camera's focal length never lets a box span refused
+    (integrity.check_min_target_px). Returns (cfg, source, camera, remap, pixels); cfg as given (complete when
     built: its weights named)."""
     if isinstance(source, str):
         source = open_source(source, cfg.rate_hz)
@@ -168,10 +170,13 @@ def prepare_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeC
                       "frames' own, as `envisat track` does without --scenario)")
     if isinstance(camera, str):
         camera, remap = camera_from_intrinsics(camera)
+    if camera is not None:  # before the frames are read
+        check_min_target_px(cfg.tracker.integrity.min_target_px, camera.f_px, "tracker.integrity.min_target_px")
     pixels = scan_source(source, None if camera is None else (camera.width_px, camera.height_px),
                          min_frames=cfg.tracker.acquire.frames, progress=progress)
     if camera is None:
         camera = default_camera(source.path, source.size_px, generated=source.kind == "dataset")
+        check_min_target_px(cfg.tracker.integrity.min_target_px, camera.f_px, "tracker.integrity.min_target_px")
     caution = spacing_caution(source.path, source.t_s, cfg.tracker.acquire.frames, cfg.tracker.acquire.max_gap_s)
     if caution:  # once the frames and the camera pass: a refusal stays one line
         warnings.warn(caution, stacklevel=2)

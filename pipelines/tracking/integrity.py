@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from envisat_pose.attitude import mrp_to_dcm
+from envisat_pose.config import check
 from envisat_pose.filtering.measurements import to_camera_K
 from envisat_pose.gates import chi2_bound
 from envisat_pose.geometry import PinholeCamera
@@ -60,6 +61,20 @@ def pose_sigmas(cov: np.ndarray) -> tuple[float, float]:
 def target_radius_m(corners_T_m: np.ndarray) -> float:
     """The box's radius about the centre of mass, m: no camera can be nearer than this to the centre."""
     return float(np.max(np.linalg.norm(corners_T_m, axis=-1)))
+
+
+def check_min_target_px(min_target_px: float, f_px: float, field: str, radius_m: float | None = None) -> None:
+    """ConfigError unless IntegrityConfig.min_target_px (given as `field`) is below what the box (twice its radius)
+    spans at its closest range, its own radius (state_problems: nearer, the camera is inside it): 2 f_px whatever
+    the radius. At or above it the range bound f_px 2 radius / min_target_px lies inside the box, every state fails
+    it, and nothing is ever tracked (no word said: each cold start's fit refused as out of range). radius_m, where
+    known, is named in the message."""
+    bound_px = 2.0 * f_px
+    radius = f" ({radius_m:.3g} m)" if radius_m is not None else ""
+    check(min_target_px < bound_px, field, min_target_px,
+          f"a size below {bound_px:.4g} px: the box's apparent size at its closest range, its own radius{radius}, is "
+          f"2 f = {bound_px:.4g} px under the camera's focal length f = {f_px:.4g} px (a larger one bounds the range "
+          "inside the box: nothing is ever tracked)")
 
 
 def state_problems(x: np.ndarray, P: np.ndarray, camera: PinholeCamera, radius_m: float, cfg) -> list[str]:

@@ -80,7 +80,12 @@ from envisat_pose.pipelines.tracking.acquisition import FramePose
 from envisat_pose.pipelines.tracking.bank import probabilities, select_runs
 from envisat_pose.pipelines.tracking.build import chaser_from_orbit, tracker_camera, tracker_detector, tracker_filter
 from envisat_pose.pipelines.tracking.detection_arg import DetectionRefused, detection_arg
-from envisat_pose.pipelines.tracking.integrity import DEFAULT_REJECT_SHARE, EvidenceWindow, target_radius_m
+from envisat_pose.pipelines.tracking.integrity import (
+    DEFAULT_REJECT_SHARE,
+    EvidenceWindow,
+    check_min_target_px,
+    target_radius_m,
+)
 from envisat_pose.pipelines.tracking.namings import box_namings, target_namings
 from envisat_pose.pipelines.tracking.noise import (
     correlation_inflation,
@@ -139,6 +144,7 @@ class Tracker(AcquiringSteps, TrackingSteps):
         self.K = self.setup.num_keypoints
         self.namings = box_namings() if target is None else target_namings(target, J_T)
         self.radius_m = target_radius_m(self.keypoints_T_m)
+        check_min_target_px(config.integrity.min_target_px, camera.f_px, "integrity.min_target_px", self.radius_m)
         self.error_model = detector_error_model(detector)
         self.reject_curve = getattr(detector, "reject_curve", None)  # what its gate rejects (calibrate --target)
         self.cov_factor = sequence_cov_factor(self.error_model, detector)
