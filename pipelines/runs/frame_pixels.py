@@ -12,12 +12,17 @@ the frames with it):
   premultiplies. A gray+alpha TIFF OpenCV gives as one 8-bit channel without its alpha: told it is one sample of
   twice the width, it gives both at the file's depth (`gray_alpha_tiff`, `gray_alpha_pixels`; its gray is as stored,
   premultiplied for associated alpha only).
+- White is zero: a gray TIFF stored white-is-zero (Photometric 0) OpenCV gives inverted (0 black) at 8 bits (libtiff's
+  RGBA reader) but as stored at 16 (read sample by sample): `black_is_zero` inverts a 16-bit one where this OpenCV
+  does not (asked once of a 1 px file, `decoder_inverts_16_bit_white_is_zero`), so both depths come as one picture.
 - Transparency without alpha: a gray PNG's tRNS value is composited over black like an alpha of 0 (`png_gray_key`,
   `keyed_over_black`: OpenCV drops it); a palette's or an RGB PNG's tRNS OpenCV gives as an alpha channel.
 """
 
 from __future__ import annotations
 
+import functools
+import struct
 from dataclasses import dataclass
 
 import numpy as np
@@ -213,6 +218,40 @@ def gray_alpha_pixels(img: np.ndarray | None, how: GrayAlpha) -> np.ndarray | No
     if how.white_is_zero:
         pixels[..., 0] = np.iinfo(pixels.dtype).max - pixels[..., 0]
     return pixels
+
+
+def white_is_zero_16_bit(data: bytes) -> bool:
+    """Whether data is a TIFF file of one 16-bit gray sample a pixel stored white-is-zero (Photometric 0)."""
+    directory = tiff_directory(data) if data[:4] in (b"II*\0", b"MM\0*") else None
+    if directory is None:
+        return False
+    return (tiff_value(data, directory, TIFF_PHOTOMETRIC) == 0 and tiff_value(data, directory, TIFF_SAMPLES, 1) == 1
+            and tiff_value(data, directory, TIFF_BITS) == 16)
+
+
+@functools.lru_cache(maxsize=1)
+def decoder_inverts_16_bit_white_is_zero() -> bool:
+    """Whether this OpenCV gives a 16-bit white-is-zero gray TIFF inverted (0 black), as it does an 8-bit one: a
+    1 px file of stored 0 (white) decoded (OpenCV 5.1 gives it as stored, 0)."""
+    import cv2
+
+    entries = [(256, SHORT, 1), (257, SHORT, 1), (258, SHORT, 16), (259, SHORT, 1), (262, SHORT, 0), (273, LONG, 8),
+               (277, SHORT, 1), (278, SHORT, 1), (279, LONG, 2)]
+    ifd = struct.pack("<H", len(entries)) + b"".join(
+        struct.pack("<HHIHH", tag, kind, 1, v, 0) if kind == SHORT else struct.pack("<HHII", tag, kind, 1, v)
+        for tag, kind, v in entries) + struct.pack("<I", 0)
+    img = cv2.imdecode(np.frombuffer(b"II*\0" + struct.pack("<I", 10) + b"\0\0" + ifd, np.uint8), cv2.IMREAD_UNCHANGED)
+    return img is not None and int(img.reshape(-1)[0]) != 0
+
+
+def black_is_zero(img: np.ndarray | None, data: bytes) -> np.ndarray | None:
+    """OpenCV's decode img of the file data with 0 black: a 16-bit white-is-zero gray TIFF (white_is_zero_16_bit)
+    inverted (65535 - v, the TIFF's full scale) where this OpenCV gives it as stored (an 8-bit one it inverts
+    itself); img as it is otherwise."""
+    if (img is None or img.ndim != 2 or img.dtype != np.uint16 or not white_is_zero_16_bit(data)
+            or decoder_inverts_16_bit_white_is_zero()):
+        return img
+    return np.iinfo(np.uint16).max - img
 
 
 def over_black(img: np.ndarray, is_premultiplied: bool = False) -> np.ndarray:

@@ -41,6 +41,7 @@ from envisat_pose.pipelines.runs.frame_names import (
 )
 from envisat_pose.pipelines.runs.frame_pixels import (
     as_stored,
+    black_is_zero,
     gray_alpha_pixels,
     gray_alpha_tiff,
     keyed_over_black,
@@ -140,7 +141,8 @@ def read_gray(path: str, turned: list[tuple[str, int]] | None = None) -> np.ndar
     with native_stderr() as said:
         img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
         pages = frame_count(path) if img is not None else 1
-    img = gray_alpha_pixels(img, gray_alpha) if gray_alpha else keyed_over_black(img, png_gray_key(raw))
+    img = gray_alpha_pixels(img, gray_alpha) if gray_alpha else keyed_over_black(black_is_zero(img, raw),
+                                                                                 png_gray_key(raw))
     if img is not None and path.lower().endswith((".jpg", ".jpeg")) and not data[-2:].tobytes() == b"\xff\xd9":
         img = None  # OpenCV decodes a truncated JPEG with a grey tail and a warning; it is not a whole frame
         said.append("the JPEG data ends before its end marker")

@@ -50,12 +50,14 @@ def exif_jpeg(img, orientation, order="<"):
     return jpg[:app0_end] + b"\xff\xe1" + struct.pack(">H", len(body) + 2) + body + jpg[app0_end:]
 
 
-def tiff_file(pixels, orientation=None, extra_samples=None, order="<"):
-    """An uncompressed one-strip TIFF of pixels ((H, W) gray, (H, W, 3|4) RGB(A), 8 or 16 bits), written here."""
+def tiff_file(pixels, orientation=None, extra_samples=None, order="<", photometric=None):
+    """An uncompressed one-strip TIFF of pixels ((H, W) gray, (H, W, 3|4) RGB(A), 8 or 16 bits), written here;
+    photometric: its Photometric (default 1, black is zero, for gray; 2 for colour)."""
     h, w = pixels.shape[:2]
     spp = 1 if pixels.ndim == 2 else pixels.shape[2]
     data = pixels.astype(pixels.dtype.newbyteorder(order)).tobytes()
-    entries = [(256, 3, w), (257, 3, h), (258, 3, pixels.dtype.itemsize * 8), (259, 3, 1), (262, 3, 1 if spp < 3 else 2),
+    photometric = photometric if photometric is not None else 1 if spp < 3 else 2
+    entries = [(256, 3, w), (257, 3, h), (258, 3, pixels.dtype.itemsize * 8), (259, 3, 1), (262, 3, photometric),
                (273, 4, 8), (277, 3, spp), (278, 3, h), (279, 4, len(data))]
     entries += [(274, 3, orientation)] if orientation else []
     entries += [(338, 3, extra_samples)] if extra_samples is not None else []
@@ -403,3 +405,27 @@ def test_a_palette_or_rgb_pngs_transparency_is_composited_as_alpha(tmp_path):
         bgr = np.array([[[150, 100, 50]]], out.dtype) * (1 if bits == 8 else 257)
         assert out.dtype == (np.uint8 if bits == 8 else np.uint16)
         assert out[0, 0] == 0 and out[0, -1] == cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)[0, 0]
+
+
+def test_a_white_is_zero_gray_tiff_is_one_picture_at_8_and_16_bits(tmp_path, monkeypatch):
+    """A gray TIFF stored white-is-zero (Photometric 0): OpenCV gave an 8-bit one inverted (0 black) and a 16-bit
+    one as stored (0 white: the target black on white, a negative of the scene); now both come with 0 black, the
+    16-bit one at its full scale, either byte order; black-is-zero files as they were. An OpenCV that inverted
+    16-bit ones itself is not inverted twice."""
+    from envisat_pose.pipelines.runs import frame_pixels
+    from envisat_pose.pipelines.runs.frames import to_u8
+
+    stored8 = stored_frame()  # as stored: 255 is black in a white-is-zero file
+    stored16 = stored8.astype(np.uint16) * 257
+    scene8 = 255 - stored8
+    for i, order in enumerate("<>"):
+        (tmp_path / f"w8{order}.tif").write_bytes(tiff_file(stored8, order=order, photometric=0))
+        (tmp_path / f"w16{order}.tif").write_bytes(tiff_file(stored16, order=order, photometric=0))
+        (tmp_path / f"b16{order}.tif").write_bytes(tiff_file(stored16, order=order))
+        assert np.array_equal(read_gray(str(tmp_path / f"w8{order}.tif")), scene8)
+        wiz16 = read_gray(str(tmp_path / f"w16{order}.tif"))
+        assert wiz16.dtype == np.uint16 and np.array_equal(wiz16, 65535 - stored16), order
+        assert np.array_equal(to_u8(wiz16, 16), scene8)
+        assert np.array_equal(read_gray(str(tmp_path / f"b16{order}.tif")), stored16)
+    monkeypatch.setattr(frame_pixels, "decoder_inverts_16_bit_white_is_zero", lambda: True)
+    assert np.array_equal(read_gray(str(tmp_path / "w16<.tif")), stored16)  # left as the decoder gave it
