@@ -23,7 +23,6 @@ import re
 import numpy as np
 
 from envisat_pose.config import InputError
-from envisat_pose.pipelines.tracking.tracker_bounds import MIN_FRAME_DT_S
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".pnm", ".webp")  # OpenCV reads them
 # image types a camera or a converter writes that the tracker does not read (OpenCV's wheel lacks them or needs a
@@ -31,6 +30,10 @@ IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".
 UNREAD_IMAGE_EXTENSIONS = (".gif", ".jp2", ".j2k", ".exr", ".hdr", ".pfm", ".heic", ".heif", ".avif", ".fits", ".fit",
                            ".fts", ".dng", ".cr2", ".nef", ".arw", ".raw", ".jxl")
 MAX_TIME_S = (2 ** 63 - 1) / 1e9  # the largest frame time a recording's clock holds (Rerun's int64 ns), s
+# the least interval between frames, s: tracker_bounds.MIN_FRAME_DT_S (the physics' and the filter's least step, the
+# floor `rate_hz` keeps), held here as a number so that reading a folder's names imports no physics (a test keeps
+# the two equal)
+MIN_FRAME_DT_S = 1e-4
 GAP_FACTOR = 1.5  # a step in the frame numbers this much over the usual one is a gap (not jitter in a clock's name)
 
 

@@ -280,3 +280,10 @@ def test_timestamps_closer_than_the_physics_least_step_are_refused_naming_the_ro
     for t0 in (0.0, 1.7e9, 0.1):
         fast = csv_times(tmp_path, "file,t_s\n" + "".join(f"{n},{t0 + i * 1e-4!r}\n" for i, n in enumerate(NAMES)))
         assert len(read_timestamps(fast, NAMES)) == 4
+
+
+def test_the_frame_names_floor_is_the_trackers():
+    from envisat_pose.pipelines.runs import frame_names
+    from envisat_pose.pipelines.tracking.tracker_bounds import MIN_FRAME_DT_S
+
+    assert frame_names.MIN_FRAME_DT_S == MIN_FRAME_DT_S
