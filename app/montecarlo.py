@@ -1,20 +1,19 @@
 """`envisat montecarlo`: the verb over the campaign pipeline (pipelines/campaigns/campaign.py): a Monte Carlo
 campaign of the batched UKF over one MuJoCo truth in resumable blocks, or a rate sweep of such campaigns. Here:
-the flags, the config's resolution (the campaign's, the sweep's, the runner's) and the printed lines; what the
-campaign writes into DIR is described in the pipeline.
+the flags, the config's resolution (the campaign's, the sweep's, the runner's) and the printed lines (their text:
+pipelines/campaigns/lines.py); what the campaign writes into DIR is described in the pipeline.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 import time
 
 from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_rrd_output, init_error_line
 from envisat_pose.app.flag_rules import check_noise_flags, job_scenario
 from envisat_pose.config import InputError, check
 from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, run_campaign
-from envisat_pose.pipelines.campaigns.report import why_not_a_number
+from envisat_pose.pipelines.campaigns.lines import summary_line, sweep_line
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE, run_sweep, sweep_for
 from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
@@ -114,47 +113,3 @@ def run_montecarlo(args: argparse.Namespace) -> int:
     if args.rrd:
         print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
     return 0
-
-
-def nees_band(s: dict) -> str:
-    """The mean NEES's 95 % bands: each run one sample first (a consistent campaign lies within it), then every
-    run-step independent (too narrow: a run's errors are correlated in time). A summary written before the
-    first: the second alone, named as such."""
-    lo, hi = s["nees_bounds"]
-    if "nees_run_bounds" not in s:
-        return f"{lo:.2f}..{hi:.2f} if every step were independent"
-    run_lo, run_hi = s["nees_run_bounds"]
-    return f"{run_lo:.2f}..{run_hi:.2f} with one sample a run; {lo:.2f}..{hi:.2f} if every step were independent"
-
-
-def summary_line(s: dict) -> str:
-    """One line of the campaign's main numbers."""
-    r, e = s["rmse"], s["rmse_over_pcrlb"]
-    return (f"after t = {s['settle_s']:.0f} s: RMSE position {100 * r['position']:.3f} cm, attitude "
-            f"{math.degrees(r['attitude']):.4f} deg; RMSE/PCRLB " + ", ".join(f"{b} {v:.3f}" for b, v in e.items())
-            + f"; mean NEES {s['nees_mean']:.2f} (95 % band {nees_band(s)}); "
-            f"diverged {s['n_diverged']}/{s['n_runs']}" + (f" ({len(s['nis_alarm_alone_runs'])} flagged by the "
-                                                           "filter alone)" if s.get("nis_alarm_alone_runs") else ""))
-
-
-# ---------------------------------------------------------------- the rate sweep
-
-def sweep_line(r: dict) -> str:
-    """One line per rate of a sweep's main numbers, and where it stops converging."""
-    lines = []
-    for i, rate in enumerate(r["rates_hz"]):
-        alone = r["n_nis_alarm_alone"][i]
-        lines.append(f"{rate:g} Hz: RMSE position {100 * r['rmse']['position'][i]:.3f} cm, attitude "
-                     f"{math.degrees(r['rmse']['attitude'][i]):.4f} deg; RMSE/PCRLB "
-                     + ", ".join(f"{b} {_fmt_ratio(v[i])}" for b, v in r["rmse_over_pcrlb"].items())
-                     + f"; mean NEES {_fmt_ratio(r['nees_mean'][i], 2)}; diverged {r['n_diverged'][i]}/{r['runs']}"
-                     + (f" ({alone} flagged by the filter alone)" if alone else "") + "; "
-                     + ("converged" if r["converged"][i] else "NOT converged"))
-    low = r["lowest_converged_rate_hz"]
-    lines.append(f"converges at every rate down to {low:g} Hz" if low is not None
-                 else "does not converge at the fastest rate")
-    return "\n".join(lines)
-
-
-def _fmt_ratio(v, digits: int = 3) -> str:  # n/a says why, as the report's cells do: null, nan, inf
-    return f"{v:.{digits}f}" if v is not None and math.isfinite(v) else f"n/a ({why_not_a_number(v) or v})"

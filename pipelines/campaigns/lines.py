@@ -1,0 +1,89 @@
+"""The terminal lines of `envisat montecarlo` (app/montecarlo.py prints them): one campaign's summary line and a rate
+sweep's lines. A figure that is not finite reads n/a with why: the rate sweep's the value as stored (nan, inf, null:
+report.why_not_a_number, as the report's cells); one campaign's what made it so, read from the summary's other
+figures (summary_why) — RMSE / PCRLB is sqrt(mean RMSE^2 / mean PCRLB^2) over the settled steps, so it is not finite
+exactly when the PCRLB over those steps is 0 (pcrlb.block_bounds clamps a block whose trace rounded below 0) or not
+finite, or the RMSE is not finite; the RMSE only when a run's error is (the filter rolls a non-finite state back, so
+that is an overflow); the mean NEES when a run-step's NEES is (a covariance singular to working precision, or an
+error that overflowed).
+"""
+
+from __future__ import annotations
+
+import math
+
+from envisat_pose.pipelines.campaigns.report import why_not_a_number
+
+
+def finite(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def summary_why(s: dict, field: str, block: str | None = None) -> str:
+    """Why one campaign's summary figure (field 'rmse', 'rmse_over_pcrlb' with its block, or 'nees_mean') is not
+    finite, in words (module docstring), with the value as stored (nan, inf, null)."""
+    v = s[field][block] if block else s[field]
+    stored = why_not_a_number(v) or str(v)
+    if field == "rmse_over_pcrlb":
+        bound, rmse = (s.get("pcrlb_rms") or {}).get(block), (s.get("rmse") or {}).get(block)
+        if bound == 0:
+            return f"{stored}: the PCRLB is 0 over the settled steps"
+        if bound is not None and not finite(bound):
+            return f"{stored}: the PCRLB is not finite ({why_not_a_number(bound)})"
+        if rmse is not None and not finite(rmse):
+            return f"{stored}: the RMSE is not finite ({why_not_a_number(rmse)})"
+        return stored
+    if field == "rmse":
+        return f"{stored}: a run's error is not finite"
+    if field == "nees_mean":
+        return f"{stored}: a run-step's NEES is not finite (a covariance singular to working precision, or an " \
+               "error that overflowed)"
+    return stored
+
+
+def _figure(s: dict, field: str, block: str | None, text) -> str:
+    v = s[field][block] if block else s[field]
+    return text(v) if finite(v) else f"n/a ({summary_why(s, field, block)})"
+
+
+def nees_band(s: dict) -> str:
+    """The mean NEES's 95 % bands: each run one sample first (a consistent campaign lies within it), then every
+    run-step independent (too narrow: a run's errors are correlated in time). A summary written before the
+    first: the second alone, named as such."""
+    lo, hi = s["nees_bounds"]
+    if "nees_run_bounds" not in s:
+        return f"{lo:.2f}..{hi:.2f} if every step were independent"
+    run_lo, run_hi = s["nees_run_bounds"]
+    return f"{run_lo:.2f}..{run_hi:.2f} with one sample a run; {lo:.2f}..{hi:.2f} if every step were independent"
+
+
+def summary_line(s: dict) -> str:
+    """One line of the campaign's main numbers; a figure that is not finite as n/a with why (summary_why)."""
+    ratios = ", ".join(f"{b} " + _figure(s, "rmse_over_pcrlb", b, lambda v: f"{v:.3f}") for b in s["rmse_over_pcrlb"])
+    return (f"after t = {s['settle_s']:.0f} s: RMSE position "
+            + _figure(s, "rmse", "position", lambda v: f"{100 * v:.3f} cm") + ", attitude "
+            + _figure(s, "rmse", "attitude", lambda v: f"{math.degrees(v):.4f} deg") + f"; RMSE/PCRLB {ratios}"
+            + "; mean NEES " + _figure(s, "nees_mean", None, lambda v: f"{v:.2f}") + f" (95 % band {nees_band(s)}); "
+            f"diverged {s['n_diverged']}/{s['n_runs']}" + (f" ({len(s['nis_alarm_alone_runs'])} flagged by the "
+                                                           "filter alone)" if s.get("nis_alarm_alone_runs") else ""))
+
+
+def sweep_line(r: dict) -> str:
+    """One line per rate of a sweep's main numbers, and where it stops converging."""
+    lines = []
+    for i, rate in enumerate(r["rates_hz"]):
+        alone = r["n_nis_alarm_alone"][i]
+        lines.append(f"{rate:g} Hz: RMSE position {100 * r['rmse']['position'][i]:.3f} cm, attitude "
+                     f"{math.degrees(r['rmse']['attitude'][i]):.4f} deg; RMSE/PCRLB "
+                     + ", ".join(f"{b} {_fmt_ratio(v[i])}" for b, v in r["rmse_over_pcrlb"].items())
+                     + f"; mean NEES {_fmt_ratio(r['nees_mean'][i], 2)}; diverged {r['n_diverged'][i]}/{r['runs']}"
+                     + (f" ({alone} flagged by the filter alone)" if alone else "") + "; "
+                     + ("converged" if r["converged"][i] else "NOT converged"))
+    low = r["lowest_converged_rate_hz"]
+    lines.append(f"converges at every rate down to {low:g} Hz" if low is not None
+                 else "does not converge at the fastest rate")
+    return "\n".join(lines)
+
+
+def _fmt_ratio(v, digits: int = 3) -> str:  # n/a says why, as the report's cells do: null, nan, inf
+    return f"{v:.{digits}f}" if v is not None and math.isfinite(v) else f"n/a ({why_not_a_number(v) or v})"
