@@ -6,7 +6,8 @@ One home for the state's layout (docs/reference.md, section 3), used by every st
 
 Slices: POS, VEL, MRP, RATE; BLOCK_SLICES in that order with BLOCKS (names) and BLOCK_UNITS (the units the
 statistics report a block in: the attitude block as a rotation angle); block_sums folds a per-component
-vector into the four blocks. nees_window_diverged is the divergence monitor on a run's NEES.
+vector into the four blocks. nees_window_diverged is the divergence monitor on a run's NEES; nees_window_judged
+says whether a run is long enough for it to judge.
 """
 
 from __future__ import annotations
@@ -32,15 +33,41 @@ def block_sums(v: np.ndarray) -> np.ndarray:
     return np.stack([v[..., s].sum(-1) for s in BLOCK_SLICES], axis=-1)
 
 
+def nees_window_judged(n_steps: int, settle_steps: int) -> bool:
+    """Whether nees_window_diverged can judge a run of n_steps: it holds a step at or after settle_steps (0-based),
+    where the divergence monitors are armed. A run that ends before cannot be judged, and its False from
+    nees_window_diverged means "not judged", never "not diverged": the callers count such runs apart. Apart, not
+    refused: a short campaign or estimate (a smoke run, a look at the first seconds) still gives its errors, NEES
+    and bound; only its divergence count is unknown, and its line says so (docs/design.md, "Divergence")."""
+    return int(n_steps) > int(settle_steps)
+
+
+def unjudged_why(n_steps: int, settle_steps: int, window: int) -> str:
+    """Why runs of n_steps are not judged (nees_window_judged False) at settle_steps and window (FilterConfig's
+    divergence_settle_steps, divergence_window), in words for a summary line."""
+    return (f"their {n_steps} steps end before step {settle_steps}, where the divergence monitors are armed: "
+            f"filter.divergence_settle_steps = {settle_steps}, divergence_window = {window}; a longer run or a lower "
+            "divergence_settle_steps judges them")
+
+
 def nees_window_diverged(nees_rt: np.ndarray, window: int, settle_steps: int, factor: float) -> np.ndarray:
     """The NEES divergence monitor on precomputed NEES (R, T): a mean over `window` steps above factor x 12
     (the state's dimension) in a window ending at or after step settle_steps, or a non-finite NEES there.
-    Returns (R,) bool. Errors are correlated in time, so this is a factor on the mean, not a chi-square bound."""
-    e = np.asarray(nees_rt, dtype=float)[:, max(settle_steps - window + 1, 0):]
-    if e.shape[1] < window:
-        return np.zeros(e.shape[0], dtype=bool)
+    A run too short for a whole window from step max(settle_steps - window + 1, 0) (then settle_steps < window - 1
+    and T < window) is judged on the one window it holds, shortened to the run: the mean of those steps against
+    the same factor x 12, when its last step is at or after settle_steps. A run with no step at or after
+    settle_steps is not judged (False; nees_window_judged tells it apart). Returns (R,) bool. Errors are
+    correlated in time, so this is a factor on the mean, not a chi-square bound."""
+    nees_rt = np.asarray(nees_rt, dtype=float)
+    e = nees_rt[:, max(settle_steps - window + 1, 0):]
+    if e.shape[1] < window:  # a short run: its one window, shortened (docs/design.md, "Divergence")
+        if not nees_window_judged(nees_rt.shape[1], settle_steps):
+            return np.zeros(e.shape[0], dtype=bool)
+        finite = np.isfinite(e).all(axis=1)
+        return ~finite | (np.where(finite[:, None], e, 0.0).sum(axis=1) > factor * N_STATE * e.shape[1])
     c = np.cumsum(np.concatenate([np.zeros((e.shape[0], 1)), e], axis=1), axis=1)
-    window_sums = c[:, window:] - c[:, :-window]
+    with np.errstate(invalid="ignore"):  # inf - inf past an infinite NEES: that run is flagged below anyway
+        window_sums = c[:, window:] - c[:, :-window]
     return (window_sums > factor * N_STATE * window).any(axis=1) | ~np.isfinite(e).all(axis=1)
 
 

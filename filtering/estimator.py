@@ -39,7 +39,7 @@ from envisat_pose.filtering.ukf import (
 )
 from envisat_pose.gates import chi2_bound, chi2_gate
 from envisat_pose.geometry import PinholeCamera, load_camera, load_geometry
-from envisat_pose.state import nees_window_diverged
+from envisat_pose.state import nees_window_diverged, nees_window_judged
 from envisat_pose.target import Target, VisibilityTable
 
 
@@ -431,10 +431,23 @@ def diverged_against_truth(nis_diverged: np.ndarray, nees_rt: np.ndarray, cfg: F
     Estimation errors are strongly correlated in time, so a chi-square bound on a window of NEES values (which
     assumes independent steps) would raise false alarms; the NIS monitor (white innovations) uses one.
 
+    A run too short for a whole window is judged on the window it holds, shortened to the run; one that ends
+    before step cfg.divergence_settle_steps is not judged by the NEES (its NIS monitor, armed from step
+    max(window, settle_steps) - 1, at most at its last step): False here unless flagged, and `unjudged_runs` counts
+    it apart, never as "not diverged".
+
     nis_diverged (R,) bool (FilterResult.diverged, FilterState.diverged); nees_rt (R, T) (`nees`). Returns (R,) bool.
     """
     return nis_diverged | nees_window_diverged(nees_rt, cfg.divergence_window, cfg.divergence_settle_steps,
                                                cfg.nees_divergence_factor)
+
+
+def unjudged_runs(diverged: np.ndarray, n_steps: int, cfg: FilterConfig) -> np.ndarray:
+    """(R,) bool: the runs diverged_against_truth (diverged) left unflagged without judging them: all of them
+    when a run of n_steps ends before step cfg.divergence_settle_steps, where the monitors are armed (a failed
+    update flags a run at any step), else none. The callers report them apart from the runs not diverged."""
+    diverged = np.asarray(diverged, bool)
+    return ~diverged & (not nees_window_judged(n_steps, cfg.divergence_settle_steps))
 
 
 def nis_alarms_alone(diverged: np.ndarray, nees_rt: np.ndarray, cfg: FilterConfig) -> np.ndarray:

@@ -13,7 +13,7 @@ from envisat_pose.analysis.stats import CampaignSums, SumsFolder, campaign_summa
 from envisat_pose.config import to_dict
 from envisat_pose.contracts import TruthTrajectory
 from envisat_pose.filtering.dynamics import propagate, trajectory_step_s
-from envisat_pose.filtering.estimator import make_setup
+from envisat_pose.filtering.estimator import make_setup, unjudged_runs
 from envisat_pose.filtering.measurements import measure, measured_probability, outage_mask
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import atomic_write_text, json_safe, open_npz, save_npz
@@ -106,6 +106,9 @@ def finish_campaign(cfg: MonteCarloConfig, out_dir: str) -> dict:
         rmse_over_pcrlb=dict(zip(BLOCKS, (float(v) for v in efficiency(stats.rmse_block, bound, tr.t_s, settle)))),
         diverged_runs=[int(i) for i in np.flatnonzero(runs["diverged"])],
         nis_alarm_alone_runs=[int(i) for i in np.flatnonzero(runs["nis_alarm_alone"])],
+        # runs too short for the divergence rule: counted apart, never as not diverged (docs/design.md, Divergence)
+        n_unjudged=int(np.count_nonzero(unjudged_runs(runs["diverged"], len(tr.t_s), cfg.filter))),
+        divergence_settle_steps=cfg.filter.divergence_settle_steps, divergence_window=cfg.filter.divergence_window,
     )
     write_figures(cfg, out_dir, tr.t_s, stats, bound, sample_err, sample_norms)
     # summary.json last: a folder that has it is a finished campaign (report.load_campaign), its figures written

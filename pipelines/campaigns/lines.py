@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import math
 
-from envisat_pose.pipelines.campaigns.report import why_not_a_number
+from envisat_pose.pipelines.campaigns.report import unjudged_note, why_not_a_number
+from envisat_pose.state import unjudged_why
 
 
 def finite(v) -> bool:
@@ -65,24 +66,30 @@ def summary_line(s: dict) -> str:
             + _figure(s, "rmse", "attitude", lambda v: f"{math.degrees(v):.4f} deg") + f"; RMSE/PCRLB {ratios}"
             + "; mean NEES " + _figure(s, "nees_mean", None, lambda v: f"{v:.2f}") + f" (95 % band {nees_band(s)}); "
             f"diverged {s['n_diverged']}/{s['n_runs']}" + (f" ({len(s['nis_alarm_alone_runs'])} flagged by the "
-                                                           "filter alone)" if s.get("nis_alarm_alone_runs") else ""))
+                                                           "filter alone)" if s.get("nis_alarm_alone_runs") else "")
+            + unjudged_note(s))
 
 
 def sweep_line(r: dict) -> str:
     """One line per rate of a sweep's main numbers, and where it stops converging."""
-    lines = []
+    lines, unjudged = [], r.get("n_unjudged") or [0] * len(r["rates_hz"])  # a sweep.json before it: none
     for i, rate in enumerate(r["rates_hz"]):
         alone = r["n_nis_alarm_alone"][i]
         lines.append(f"{rate:g} Hz: RMSE position {100 * r['rmse']['position'][i]:.3f} cm, attitude "
                      f"{math.degrees(r['rmse']['attitude'][i]):.4f} deg; RMSE/PCRLB "
                      + ", ".join(f"{b} {_fmt_ratio(v[i])}" for b, v in r["rmse_over_pcrlb"].items())
                      + f"; mean NEES {_fmt_ratio(r['nees_mean'][i], 2)}; diverged {r['n_diverged'][i]}/{r['runs']}"
-                     + (f" ({alone} flagged by the filter alone)" if alone else "") + "; "
+                     + (f" ({alone} flagged by the filter alone)" if alone else "")
+                     + (f", {unjudged[i]} not judged ({_sweep_why(r, i)})" if unjudged[i] else "") + "; "
                      + ("converged" if r["converged"][i] else "NOT converged"))
     low = r["lowest_converged_rate_hz"]
     lines.append(f"converges at every rate down to {low:g} Hz" if low is not None
                  else "does not converge at the fastest rate")
     return "\n".join(lines)
+
+
+def _sweep_why(r: dict, i: int) -> str:  # why rate i's runs were not judged (unjudged_why)
+    return unjudged_why(r["steps"][i], r["divergence_settle_steps"], r["divergence_window"])
 
 
 def _fmt_ratio(v, digits: int = 3) -> str:  # n/a says why, as the report's cells do: null, nan, inf

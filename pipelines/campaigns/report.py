@@ -23,7 +23,7 @@ from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.campaigns.campaign import CONFIG_NAME, SWEEP_RATE_CONFIG
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE
-from envisat_pose.state import BLOCKS
+from envisat_pose.state import BLOCKS, unjudged_why
 from envisat_pose.target import DEFAULT_TARGET
 
 # display unit and scale per block (the summary's units are m, m/s, rad, rad/s)
@@ -109,6 +109,16 @@ def _readable(path: str, render, c: dict) -> None:
         raise InputError(f"{path}: not a summary this report reads ({type(err).__name__}: {err})") from None
 
 
+def unjudged_note(s: dict) -> str:
+    """', N not judged (why)' for a campaign summary whose runs were too short for the divergence rule
+    (n_unjudged: state.nees_window_judged), else '' (and for a summary written before the field)."""
+    n = s.get("n_unjudged") or 0
+    if not n:
+        return ""
+    why = unjudged_why(s.get("steps"), s.get("divergence_settle_steps"), s.get("divergence_window"))
+    return f", {n} not judged ({why})"
+
+
 def render_sweep(c: dict) -> str:
     """One rate sweep: a table with a row per rate (RMSE and RMSE/PCRLB per block, diverged runs, NEES,
     converged) and its figure."""
@@ -116,11 +126,13 @@ def render_sweep(c: dict) -> str:
     head = ["rate (Hz)"] + [f"RMSE {b} ({DISPLAY[b][0]})" for b in BLOCKS] + [f"RMSE / PCRLB {b}" for b in BLOCKS]
     head += ["diverged runs", "mean NEES", "converged"]
     rows, alone = [], s.get("n_nis_alarm_alone") or [0] * len(s["rates_hz"])  # a sweep.json before they were named
+    unjudged = s.get("n_unjudged") or [0] * len(s["rates_hz"])
     for i, rate in enumerate(s["rates_hz"]):
         cells = [f"{rate:g}"] + [_said(s["rmse"][b][i], _fmt(s["rmse"][b][i], DISPLAY[b][1])) for b in BLOCKS]
         cells += [_said(s["rmse_over_pcrlb"][b][i], _ratio(s["rmse_over_pcrlb"][b][i])) for b in BLOCKS]
         cells += [f"{s['n_diverged'][i]} / {s['runs']}"
-                  + (f" ({alone[i]} flagged by the filter alone)" if alone[i] else ""),
+                  + (f" ({alone[i]} flagged by the filter alone)" if alone[i] else "")
+                  + (f", {unjudged[i]} not judged (runs too short)" if unjudged[i] else ""),
                   _said(s["nees_mean"][i], _fmt(s["nees_mean"][i])), "yes" if s["converged"][i] else "no"]
         rows.append("<tr>" + "".join(f"<td>{e(v)}</td>" for v in cells) + "</tr>")
     low = s.get("lowest_converged_rate_hz")
@@ -326,7 +338,7 @@ def campaign_rows(c: dict) -> list[tuple[str, str]]:
              ("diverged runs", f"{s.get('n_diverged')} / {s.get('n_runs')}" + (
                  f" ({len(s['nis_alarm_alone_runs'])} flagged by the filter alone, their errors within the "
                  "NEES rule)"
-                 if s.get("nis_alarm_alone_runs") else "")),
+                 if s.get("nis_alarm_alone_runs") else "") + unjudged_note(s)),
              ("wall time", f"{_fmt(t.get('block_wall_s_sum'), digits=4)} s in blocks, "
                            f"{_fmt(t.get('wall_s_this_invocation'), digits=4)} s last invocation "
                            f"({t.get('workers', '?')} {t.get('backend', '?')} workers)" if t

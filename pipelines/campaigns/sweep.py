@@ -52,8 +52,9 @@ class SweepConfig(Config):
 
     A rate converges when at most max_diverged_share of its runs diverged against the truth (flagged diverged, less
     those the NIS monitor flagged alone with their errors within the NEES rule: its false alarms, 1e-6 per window,
-    add up over ~1e5 windows per run at 10 Hz; `truth_diverged`) and every block's RMSE/PCRLB is below
-    max_rmse_over_pcrlb."""
+    add up over ~1e5 windows per run at 10 Hz; `truth_diverged`), every block's RMSE/PCRLB is below
+    max_rmse_over_pcrlb, and the divergence rule judged its runs (a rate whose runs end before the monitors are
+    armed, filter.divergence_settle_steps, is not called converged: its summary's n_unjudged)."""
 
     rates_hz: tuple[float, ...] = ()
     max_rmse_over_pcrlb: float = 2.0
@@ -196,7 +197,7 @@ def sweep_result(cfg: MonteCarloConfig, sweep: SweepConfig, rates: list, summari
         return {b: [s[key][b] for s in summaries] for b in BLOCKS}
 
     ratio = per_block("rmse_over_pcrlb")
-    converged = [truth_diverged(s) <= sweep.max_diverged_share * s["n_runs"]
+    converged = [truth_diverged(s) <= sweep.max_diverged_share * s["n_runs"] and not s.get("n_unjudged")
                  and all(v is not None and math.isfinite(v) and v < sweep.max_rmse_over_pcrlb
                          for v in (ratio[b][i] for b in BLOCKS))
                  for i, s in enumerate(summaries)]
@@ -212,6 +213,9 @@ def sweep_result(cfg: MonteCarloConfig, sweep: SweepConfig, rates: list, summari
             "rmse": per_block("rmse"), "pcrlb_rms": per_block("pcrlb_rms"), "rmse_over_pcrlb": ratio,
             "n_diverged": [s["n_diverged"] for s in summaries],
             "n_nis_alarm_alone": [len(s.get("nis_alarm_alone_runs", ())) for s in summaries],
+            "n_unjudged": [s.get("n_unjudged", 0) for s in summaries],
+            "divergence_settle_steps": cfg.filter.divergence_settle_steps,
+            "divergence_window": cfg.filter.divergence_window,
             "diverged_share": [s["n_diverged"] / s["n_runs"] for s in summaries],
             "nees_mean": [s["nees_mean"] for s in summaries], "converged": converged,
             "max_rmse_over_pcrlb": sweep.max_rmse_over_pcrlb, "max_diverged_share": sweep.max_diverged_share,
