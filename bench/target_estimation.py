@@ -96,7 +96,8 @@ def campaign_row(scenario: str, target: str, a, runner, extra: dict | None = Non
     return {"rmse_over_pcrlb": ratios, "rmse": s["rmse"], "pcrlb_rms": s["pcrlb_rms"], "units": s["units"],
             "nees_mean": s["nees_mean"], "nees_band_95_mean_over_runs": [lo, hi],
             "nees_in_band": bool(lo <= s["nees_mean"] <= hi), "nees_bounds": s["nees_bounds"],
-            "n_diverged": s["n_diverged"], "n_unjudged": s.get("n_unjudged", 0), "settle_s": s["settle_s"], "steps": s["steps"],
+            "n_diverged": s["n_diverged"], "n_unjudged": s.get("n_unjudged", 0), "settle_s": s["settle_s"],
+            "steps": s["steps"],
             "max_markers": cfg.measurement.max_markers, "sigma_m": cfg.measurement.sigma_m,
             "keypoints_measured_per_run_step": used, "wall_s": wall,
             "floor_rmse_over_pcrlb_met": all(FLOOR[0] <= v <= FLOOR[1] for v in ratios.values())}

@@ -129,7 +129,8 @@ class RunConfig(Config):
               self.image.resolution_px, "a square image side in [16, 4096] px (the MJCF's chaser_cam, "
               f"{cam.width_px} px, read out at that size: the same field of view)")
         n = self.image.resolution_px  # the camera the run's tracker sees through
-        check_min_target_px(self.tracker.integrity.min_target_px, cam.scaled(n, n).f_px, "tracker.integrity.min_target_px")
+        check_min_target_px(self.tracker.integrity.min_target_px, cam.scaled(n, n).f_px,
+                            "tracker.integrity.min_target_px")
 
 
 # what a run takes where its scenario sets nothing (no duration_s, no [measurement] rate_hz)

@@ -247,7 +247,8 @@ def tiff_bytes(order, entries, chunks, tiled=False):
         at += len(c)
     body = b"".join(chunks) + b"\0" * (at & 1)
     at += at & 1
-    entries = sorted(entries + [(324 if tiled else 273, 4, offsets), (325 if tiled else 279, 4, [len(c) for c in chunks])])
+    entries = sorted(entries + [(324 if tiled else 273, 4, offsets),
+                                (325 if tiled else 279, 4, [len(c) for c in chunks])])
     values, ifd = b"", b""
     for tag, kind, vals in entries:
         packed = struct.pack(order + ("H" if kind == 3 else "I") * len(vals), *vals)
@@ -400,7 +401,8 @@ def test_a_palette_or_rgb_pngs_transparency_is_composited_as_alpha(tmp_path):
     rgb[:, W // 2:] = [50, 100, 150]
     for bits, rows, key in ((8, rgb, 255), (16, rgb.astype(">u2") * 257, 65535)):
         path = tmp_path / f"rgb_{bits}.png"
-        path.write_bytes(png_file(W, H, bits, 2, [r.tobytes() for r in rows], (b"tRNS", struct.pack(">3H", *[key] * 3))))
+        path.write_bytes(png_file(W, H, bits, 2, [r.tobytes() for r in rows],
+                                  (b"tRNS", struct.pack(">3H", *[key] * 3))))
         out = read_gray(str(path))
         bgr = np.array([[[150, 100, 50]]], out.dtype) * (1 if bits == 8 else 257)
         assert out.dtype == (np.uint8 if bits == 8 else np.uint16)
