@@ -99,17 +99,15 @@ def detect_labelled(cfg: TargetDetectJobConfig, folders: list[str], progress: bo
     model = load_keypoint_model(cfg.weights, cfg.target, cfg.device)
     det = make_keypoint_detector(model, cfg.device)
     names = tuple(model.target.get("keypoint_names", ()))
-    parts, skipped = [], []
-    bar = tqdm(disable=not progress, desc=desc, unit="frame")
-    for folder in folders:
+    shards, skipped = [], []
+    for folder in folders:  # every folder checked before any is detected: a refusal costs no detection
         require_dataset_of(folder, target)
         paths, left_out = checked_shards(folder, cfg.skip_damaged, "data")
+        shards.append(paths)
         skipped += [os.path.join(os.path.basename(os.path.normpath(folder)), s) for s in left_out]
-        n = sample_total(paths, cfg.limit)
-        # the frames of the folders so far (unknown once one folder's count is)
-        bar.total = None if n is None or (bar.total is None and parts) else (bar.total or 0) + n
-        bar.refresh()
-        parts.append(collect_keypoints(det, target_frames(paths), names, cfg.limit, bar))
+    totals = [sample_total(paths, cfg.limit) for paths in shards]  # None: a folder whose count is unknown
+    bar = tqdm(disable=not progress, desc=desc, unit="frame", total=None if None in totals else sum(totals))
+    parts = [collect_keypoints(det, target_frames(paths), names, cfg.limit, bar) for paths in shards]
     bar.close()
     for i, p in enumerate(parts):  # which folder each frame came from (an index into folders)
         p["folder"] = np.full(len(p["key"]), i)

@@ -259,6 +259,33 @@ def test_calibrate_on_a_sequence_measures_the_correlation_put_in_and_the_tracker
     assert load_frame_detector(w3, path).error_model.n_frames == 0  # the white default
 
 
+class Counting(Oracle):
+    """The oracle, counting the frames it is asked about."""
+
+    calls = 0
+
+    def detect(self, image: np.ndarray) -> dict:
+        self.calls += 1
+        return super().detect(image)
+
+
+def test_every_folder_is_checked_before_any_is_detected(box, tmp_path, monkeypatch, capsys):
+    """A second folder that is not a dataset is refused before the first folder's frames are detected (they were
+    detected first, then refused), and one progress bar counts all the folders' frames from the start."""
+    path, _, data, weights, labels = box
+    oracle = Counting(labels)
+    use_oracle(monkeypatch, oracle)
+    missing = str(tmp_path / "missing")
+    assert main(["calibrate", "--target", path, "--weights", weights, "--data", data, missing, "--out",
+                 str(tmp_path / "w.safetensors"), "--quiet"]) != 0
+    assert "missing" in capsys.readouterr().err and oracle.calls == 0
+    totals = []
+    monkeypatch.setattr("tqdm.tqdm.close", lambda bar: totals.append((bar.total, bar.n)))
+    evaluate_target.detect_labelled(evaluate_target.TargetDetectJobConfig(target=path, weights=weights), [data, data],
+                                    progress=True)
+    assert totals[0] == (64, 64)  # (tqdm closes again when collected)
+
+
 def test_refusals_write_nothing(box, tmp_path, capsys):
     path, other, data, weights, labels = box
     out = str(tmp_path / "out")
