@@ -28,7 +28,13 @@ from envisat_pose.app.common import add_common, add_skip_damaged_argument, skipp
 from envisat_pose.app.detect import detector_inputs
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.out_dirs import check_out_file
-from envisat_pose.pipelines.detector.calibrate import MAX_LAG, CalibrateJobConfig, fit_face_cue, run_calibration
+from envisat_pose.pipelines.detector.calibrate import (
+    MAX_LAG,
+    CalibrateJobConfig,
+    error_model_lines,
+    fit_face_cue,
+    run_calibration,
+)
 from envisat_pose.pipelines.detector.calibrate_target import run_calibrate_target, sigma_table
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig
 from envisat_pose.shard_reader import skip_hint
@@ -90,8 +96,6 @@ def resolve_config(args: argparse.Namespace):
 
 
 def run_calibrate_cli(args: argparse.Namespace) -> int:
-    import numpy as np
-
     detector_inputs(args)
     if not 1 <= args.max_lag <= MAX_LAG:
         raise InputError(f"--max-lag {args.max_lag}: expected 1 to {MAX_LAG} lags (pipelines/detector/calibrate.py)")
@@ -124,19 +128,7 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
         return 0
     model, record = res["error_model"], res["error_model_record"]
     if model is not None:
-        r = record["autocorr_normalized"]
-        print("autocorrelation of the normalized errors, lags 0..: " +
-              " ".join("-" if v is None else f"{v:.3f}" for v in r))
-        print(f"rho_lag1 {model.rho_lag1:.3f}; fitted rho_k = {model.ar1_share:.3f} x {model.ar1_phi:.3f}^k: "
-              f"inflation {model.inflation:.3f} (pure AR(1) from lag 1: {record['pure_ar1']['inflation']:.3f}; "
-              f"measured r_k summed: {record['acf_inflation']:.3f}), correlation time {model.corr_time_s:.2f} s")
-        if model.corr_angle_rad > 0:
-            rates = ", ".join(f"{v:.2f}" for v in record["autocorr_by_angle"]["view_rate_deg_s"])
-            print(f"in the view's rotation: rho(theta) = {model.angle_share:.3f} x exp(-theta / "
-                  f"{np.degrees(model.corr_angle_rad):.1f} deg) (sequences turning at {rates} deg/s)")
-        print(f"apparent scale {record['scale']['mean']:.5f} +- {record['scale']['se']:.5f} "
-              f"({record['scale']['frames']} frames), radial error {record['radial_px']['mean']:+.3f} +- "
-              f"{record['radial_px']['se']:.3f} px ({record['radial_px']['corners']} corners)")
+        print("\n".join(error_model_lines(model, record)))
     else:
         print("not every --data folder is a sequence (envisat generate --mode sequence): no error model")
     kept = " (kept the file's cov_scale)" if args.keep_scale else ""
@@ -155,6 +147,8 @@ def run_calibrate_target_cli(args: argparse.Namespace) -> int:
     with skip_hint():
         record = run_calibrate_target(cfg, args.data, args.out, progress=not args.quiet)
     print(sigma_table(record))
+    if record["error_model"] is not None:  # every --data folder a sequence: the errors' frame-to-frame model
+        print("\n".join(error_model_lines(record["error_model"], record["error_model_record"])))
     print(f"{record['calibrated']} of {len(record['count'])} keypoints calibrated ({record['corners']} correct "
           f"detections in {record['frames']} frames); wrote {args.out}")
     return 0

@@ -292,3 +292,25 @@ def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, l
     make_out_file_dir(out, "out")
     with_metadata(weights, out, {wk.FACE_CUE_KEY: cue.to_json(), wk.FACE_CUE_RECORD_KEY: json.dumps(record, sort_keys=True)})
     return record
+
+
+def error_model_lines(model, record: dict) -> list[str]:
+    """The error model measured on sequences (perception/errormodel.ErrorModel and its record) as the calibrate
+    verb prints it: the autocorrelation, the fitted white + AR(1) and its inflation, the correlation in the view's
+    rotation where fitted, the apparent scale and the radial error."""
+    import numpy as np
+
+    r = record["autocorr_normalized"]
+    lines = ["autocorrelation of the normalized errors, lags 0..: " + " ".join("-" if v is None else f"{v:.3f}"
+                                                                            for v in r),
+             f"rho_lag1 {model.rho_lag1:.3f}; fitted rho_k = {model.ar1_share:.3f} x {model.ar1_phi:.3f}^k: "
+             f"inflation {model.inflation:.3f} (pure AR(1) from lag 1: {record['pure_ar1']['inflation']:.3f}; "
+             f"measured r_k summed: {record['acf_inflation']:.3f}), correlation time {model.corr_time_s:.2f} s"]
+    if model.corr_angle_rad > 0:
+        rates = ", ".join(f"{v:.2f}" for v in record["autocorr_by_angle"]["view_rate_deg_s"])
+        lines.append(f"in the view's rotation: rho(theta) = {model.angle_share:.3f} x exp(-theta / "
+                     f"{np.degrees(model.corr_angle_rad):.1f} deg) (sequences turning at {rates} deg/s)")
+    lines.append(f"apparent scale {record['scale']['mean']:.5f} +- {record['scale']['se']:.5f} "
+                 f"({record['scale']['frames']} frames), radial error {record['radial_px']['mean']:+.3f} +- "
+                 f"{record['radial_px']['se']:.3f} px ({record['radial_px']['corners']} corners)")
+    return lines

@@ -109,18 +109,17 @@ def sequence_inputs(arrays: dict, pred_px: np.ndarray, err: np.ndarray, given: n
 
 
 def sequence_error_model(folders: list[str], skipped: list[str], arrays: dict, pred_px: np.ndarray, err: np.ndarray,
-                         given: np.ndarray, sigma_px: np.ndarray, names: tuple[str, ...], refs: str) -> dict:
-    """The metadata of the error model (module doc) when every folder is a sequence, else {}. InputError when a
-    damaged shard was left out of one: its frames would no longer follow each other."""
+                         given: np.ndarray, sigma_px: np.ndarray, names: tuple[str, ...], refs: str):
+    """(the ErrorModel, its record) of the error model (module doc) when every folder is a sequence, else (None,
+    None). InputError when a damaged shard was left out of one: its frames would no longer follow each other."""
     if not all(is_sequence(d) for d in folders):
-        return {}
+        return None, None
     if skipped:
         raise InputError(f"data: sequence shard(s) {', '.join(skipped)} damaged and left out, their frames would no "
                          "longer follow each other; regenerate them (`envisat generate` with the same settings on "
                          "the folder redoes them)")
     seqs = sequence_inputs(arrays, pred_px, err, given, sigma_px, [frame_interval_s(d) for d in folders])
-    model, record = em.measure_error_model(seqs, 1.0, source=refs, names=names)
-    return {ERROR_MODEL_KEY: model.to_json(), ERROR_MODEL_RECORD_KEY: json.dumps(json_safe(record), sort_keys=True)}
+    return em.measure_error_model(seqs, 1.0, source=refs, names=names)
 
 
 @locks_output("out", "calibrate", folder=False)
@@ -160,18 +159,20 @@ def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, 
               "check": nees_check(err, sigma, names), "error_by_score": error_by_score(err, arrays["score"]),
               "reject_share_at_gate": reject_share(curve, chi2_gate(GATE_PROB, 2)),
               "skipped_damaged_shards": skipped}
-    model = sequence_error_model(folders, skipped, arrays, pred, err, given, sigma, names, refs)
+    model, model_record = sequence_error_model(folders, skipped, arrays, pred, err, given, sigma, names, refs)
+    meta = {} if model is None else {ERROR_MODEL_KEY: model.to_json(),
+                                     ERROR_MODEL_RECORD_KEY: json.dumps(json_safe(model_record), sort_keys=True)}
     make_out_file_dir(out, "out")
     with_metadata(cfg.weights, out, {SIGMA_KEY: json.dumps(clean),
                                      SIGMA_RECORD_KEY: json.dumps(json_safe(record), sort_keys=True),
-                                     REJECT_KEY: json.dumps(json_safe(curve)), **model})
+                                     REJECT_KEY: json.dumps(json_safe(curve)), **meta})
     calibrated = int(np.isfinite(sigma).sum())
     if calibrated < km.PNP_MIN_POINTS:
         warnings.warn(f"only {calibrated} of {len(sigma)} keypoints calibrated (each needs {MIN_CORRECT} correct "
                       f"detections): the tracker's cold start needs {km.PNP_MIN_POINTS} for PnP, so `track` and "
                       "`run` refuse these weights; calibrate on more held-out frames, or train longer", stacklevel=2)
-    error_model = json.loads(model[ERROR_MODEL_RECORD_KEY]) if model else None
-    return {**record, "corners": int(count.sum()), "calibrated": calibrated, "error_model": error_model}
+    return {**record, "corners": int(count.sum()), "calibrated": calibrated, "error_model": model,
+            "error_model_record": model_record}
 
 
 def sigma_table(record: dict) -> str:

@@ -222,7 +222,8 @@ class CorrelatedOracle(Oracle):
         return {**found, "keypoints_px": true + self.noise[int(key)]}
 
 
-def test_calibrate_on_a_sequence_measures_the_correlation_put_in_and_the_tracker_reads_it(box, tmp_path, monkeypatch):
+def test_calibrate_on_a_sequence_measures_the_correlation_put_in_and_the_tracker_reads_it(box, tmp_path, monkeypatch,
+                                                                                          capsys):
     """A sequence of the target (300 frames) and an oracle whose noise is white plus AR(1) of share 0.6 and
     coefficient 0.8 from frame to frame: calibrate --target writes the error model (as ENVISAT's calibrate on
     sequences), its share, coefficient and inflation 1 + 2 a phi / (1 - phi) = 5.8 near those put in, and
@@ -243,6 +244,8 @@ def test_calibrate_on_a_sequence_measures_the_correlation_put_in_and_the_tracker
     w2 = str(tmp_path / "w2.safetensors")
     assert main(["calibrate", "--target", path, "--weights", weights, "--data", seq, "--out", w2, "--quiet"]) == 0
     model = load_frame_detector(w2, path).error_model
+    said = capsys.readouterr().out
+    assert f"inflation {model.inflation:.3f}" in said and "autocorrelation of the normalized errors" in said
     assert model.n_frames == 300
     # one sequence of 300 frames: the share and the coefficient trade against each other in the fit (over oracle
     # seeds 1-6: a 0.51-0.93, phi 0.69-0.79), the lag-1 correlation a phi and the inflation hold (4.6-5.6 of 5.8)
@@ -255,7 +258,7 @@ def test_calibrate_on_a_sequence_measures_the_correlation_put_in_and_the_tracker
     use_oracle(monkeypatch, Oracle(random_labels, sigma=0.8))
     w3 = str(tmp_path / "w3.safetensors")
     assert main(["calibrate", "--target", path, "--weights", weights, "--data", data, "--out", w3, "--quiet"]) == 0
-    assert "error_model" not in read_metadata(w3)
+    assert "error_model" not in read_metadata(w3) and "autocorrelation" not in capsys.readouterr().out
     assert load_frame_detector(w3, path).error_model.n_frames == 0  # the white default
 
 
