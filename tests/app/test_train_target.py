@@ -166,8 +166,9 @@ def test_the_target_calls_take_a_folder_as_a_str_or_a_path(box, tmp_path):
     assert json.loads(KeypointDetections.load(str(tmp_path / "det.npz")).config_json)["data"] == data
     assert evaluate_target_detector(cfg, Path(data), tmp_path / "e.json")["frames"] == 2
     for folder in (data, Path(data), [Path(data)]):  # 2 frames of 8 keypoints: never the 20 correct a fit needs
-        with pytest.raises(InputError, match="correct detections of any keypoint in 2 frames"):
+        with pytest.raises(InputError, match="correct detections of any keypoint in 2 frames") as err:
             run_calibrate_target(cfg, folder, tmp_path / "w.safetensors")
+        assert str(err.value).startswith(f"data {str(data)!r}: at most")  # the folder as given, not its card's name
     assert sorted(os.listdir(tmp_path)) == ["det.npz", "e.json"]
 
 
