@@ -38,6 +38,7 @@ from envisat_pose.target_file import (
     read_spec,
     target_sha256,
 )
+from envisat_pose.target_masses import com_hint
 from envisat_pose.target_mesh import BodyMesh, TriangleMesh, body_mesh, feature_edges
 from envisat_pose.target_rays import ray_hits_m
 from envisat_pose.target_shape import (
@@ -375,9 +376,7 @@ def _load(path: str, stamps: tuple, naming: _Naming) -> Target:
             _fail(field, given, f"body 'target' with {problem}, as MuJoCo computes them from {whose}")
     com = model.body_ipos[body]  # at the origin to a millionth of the model's size (rounded positions, a feather)
     if np.linalg.norm(com) > COM_TOLERANCE * max(float(model.stat.extent), 1e-3):
-        where = (f"<inertial pos='0 0 0'>, got {com.tolist()}" if stated else
-                 f"MuJoCo puts it at {np.round(com, 9).tolist()} m from {whose}: move the geoms and sites by its "
-                 "negative")
+        where = com_hint(path, fused, stated, whose, com)
         _fail(field, given, f"the centre of mass at the body's origin ({where}): T's origin is the CoM")
     names, sites, X = keypoint_sites(model, body, (KEYPOINT_PREFIX, SCENE_KEYPOINT_PREFIX))
     if len(names) < MIN_KEYPOINTS:

@@ -296,11 +296,13 @@ def keypoint_sites(model, body: int, prefixes: tuple[str, ...]) -> tuple[tuple[s
 def misprefixed_keypoints(model, body: int, prefix: str) -> str:
     """A hint for a refusal that found too few keypoints on body id `body` of a compiled model: the sites whose
     names hold the keypoint prefix further in (an <attach prefix=...> put before a model's kp_ sites, which then
-    are not keypoints), or '' where none does."""
-    named = [model.site(s).name for s in range(model.nsite) if model.site_bodyid[s] == body]
-    named = [n for n in named if prefix in n and not n.startswith(prefix)]
-    if not named:
-        return ""
+    are not keypoints), else its other sites (a prefix misspelt), or '' where it has none."""
+    sites = [model.site(s).name for s in range(model.nsite) if model.site_bodyid[s] == body]
+    named = [n for n in sites if prefix in n and not n.startswith(prefix)]
+    if not named:  # the body's other sites, by name (KP_A, kp-a, a): a keypoint's name starts with the prefix
+        other = [repr(n) if n else "an unnamed one" for n in sites if not n.startswith(prefix)]
+        return (f"; not keypoints: its site(s) {', '.join(other[:6])}{', ...' if len(other) > 6 else ''}, whose "
+                f"names do not start with {prefix!r} (case matters)" if other else "")
     shown = ", ".join(repr(n) for n in named[:3]) + (", ..." if len(named) > 3 else "")
     return (f"; {len(named)} site(s) hold {prefix!r} after another prefix ({shown}): a keypoint's site name starts "
             f"with it, so an <attach prefix> before keypoint sites should itself start with {prefix!r}")

@@ -138,9 +138,12 @@ def test_keypoints_behind_an_attach_prefix_are_named_in_the_refusal(tmp_path):
     message = str(err.value)
     assert "(found 2; 4 site(s) hold 'kp_' after another prefix ('h_r_kp_tip'" in message
     assert "<attach prefix> before keypoint sites should itself start with 'kp_'" in message
-    few = tmp_path / "few.xml"  # too few keypoints and no such site: the count alone
-    few.write_text('<mujoco><worldbody><body name="target"><geom type="box" size="0.3 0.3 0.3" density="100"/>'
-                   '<site name="kp_a" pos="0.3 0.3 0.3"/><site name="kp_b" pos="-0.3 0.3 0.3"/><site name="tip"/>'
-                   '</body></worldbody></mujoco>')
-    with pytest.raises(ConfigError, match=r"\(found 2\)$"):
-        load_target(str(few))
+    few = tmp_path / "few.xml"  # too few keypoints and no such site: the other sites named (a prefix forgotten)
+    for other, said in (('<site name="tip"/>', "; not keypoints: its site(s) 'tip', whose names do not start with "
+                                               "'kp_' (case matters)"), ("", "")):  # no other site: the count alone
+        few.write_text('<mujoco><worldbody><body name="target"><geom type="box" size="0.3 0.3 0.3" density="100"/>'
+                       f'<site name="kp_a" pos="0.3 0.3 0.3"/><site name="kp_b" pos="-0.3 0.3 0.3"/>{other}'
+                       '</body></worldbody></mujoco>')
+        with pytest.raises(ConfigError) as err:
+            load_target(str(few))
+        assert str(err.value).endswith(f"(found 2{said})")

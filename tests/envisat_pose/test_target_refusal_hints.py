@@ -1,0 +1,59 @@
+"""The refusals a first target file meets say what to change, and what they say works.
+
+A box with a dish and a panel as a child body, the whole craft's mass stated on body `target`: the panel's box,
+with no mass of its own, weighs its volume at MuJoCo's default density (12 kg) and pulls the centre of mass off
+the origin. The refusal said 'move the geoms and sites by its negative', which, done, left it 0.125 m off (the
+stated <inertial> stays put). Keypoint sites misspelt (KP_A, kp-B) were refused with 'found 3' alone.
+"""
+
+import pytest
+
+from envisat_pose.config import ConfigError
+from envisat_pose.target import load_target
+
+SAT = """<mujoco model="my_sat">
+  <worldbody>
+    <body name="target">
+      <inertial pos="{inertial}" mass="50" fullinertia="2.0 3.0 2.5 0 0 0"/>
+      <geom name="bus" type="box" pos="{bus}" size="0.3 0.3 0.4"/>
+      <body name="panel" pos="{panel}">
+        <geom name="panel" type="box" pos="0 0.5 0" size="0.01 0.5 0.3"{mass}/>
+        <site name="kp_tip_top" pos="0 1.0 0.3"/>
+        <site name="kp_tip_bottom" pos="0 1.0 -0.3"/>
+      </body>
+      <site name="{a}" pos="{kp_a}"/>
+      <site name="{b}" pos="{kp_b}"/>
+    </body>
+  </worldbody>
+</mujoco>"""
+COM_Y_M = 12 * 0.8 / 62  # the panel's 0.02 x 1 x 0.6 m box at 1000 kg/m^3, 0.8 m out, beside the bus's stated 50 kg
+
+
+def _sat(tmp_path, name: str, shift_y_m: float = 0.0, mass: str = "", a: str = "kp_A", b: str = "kp_B") -> str:
+    """The craft with its bus, its <inertial>, its bus keypoints and its panel moved by shift_y_m along y."""
+    at = lambda x, y, z: f"{x} {y + shift_y_m!r} {z}"  # noqa: E731
+    path = tmp_path / f"{name}.xml"
+    path.write_text(SAT.format(inertial=at(0, 0, 0), bus=at(0, 0, 0), panel=at(0, 0.3, 0), mass=mass, a=a, b=b,
+                               kp_a=at(0.3, 0.3, 0.4), kp_b=at(0.3, -0.3, 0.4)))
+    return str(path)
+
+
+def test_the_centre_of_mass_refusal_names_each_bodys_mass_and_both_remedies_load(tmp_path):
+    with pytest.raises(ConfigError) as err:
+        load_target(_sat(tmp_path, "plain"))
+    message = str(err.value)
+    assert "'target' 50 kg at [0, 0, 0]; 'panel' 12 kg at [0, 0.8, 0] from its geoms" in message
+    assert "give the child bodies' geoms mass='0'" in message
+    assert "move its geoms, sites, <inertial> and child bodies by its negative" in message
+    # each remedy, done as written, loads: the panel weightless, or everything on body 'target' moved
+    assert load_target(_sat(tmp_path, "weightless", mass=' mass="0"')).mass_kg == pytest.approx(50.0)
+    moved = load_target(_sat(tmp_path, "moved", shift_y_m=-COM_Y_M))
+    assert moved.mass_kg == pytest.approx(62.0)
+    assert moved.keypoints_T_m[0] == pytest.approx([0.3, 0.3 - COM_Y_M, 0.4])
+
+
+def test_too_few_keypoints_names_the_sites_whose_names_missed_the_prefix(tmp_path):
+    with pytest.raises(ConfigError) as err:
+        load_target(_sat(tmp_path, "misspelt", mass=' mass="0"', a="KP_A", b="kp-B"))
+    message = str(err.value)
+    assert "(found 2; not keypoints: its site(s) 'KP_A', 'kp-B', whose names do not start with 'kp_'" in message
