@@ -143,8 +143,8 @@ def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, 
     refs = " ".join(dataset_ref(d) for d in folders)
     if not np.isfinite(sigma).any():
         raise InputError(f"data {' '.join(folders)!r}: at most {int(count.max())} correct detections of any "
-                         f"keypoint in {len(chosen)} frames; calibration needs {MIN_CORRECT} of a keypoint (more held-out "
-                         "frames, or a detector that finds the keypoints within "
+                         f"keypoint in {len(chosen)} frames; calibration needs {MIN_CORRECT} of a keypoint "
+                         "(more held-out frames, or a detector that finds the keypoints within "
                          f"{km.MATCH_PX:g} px)")
     given = given_detections(arrays, perms, chosen, sigma, KeypointDetectConfig())
     pred = km.relabeled(arrays["pred_px"], perms, chosen)
