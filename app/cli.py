@@ -41,6 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     for name in _VERB_MODULES:
         importlib.import_module(name).register(sub)
+    parser.verb_parsers = sub.choices  # each verb's own parser: its usage for a flag it does not take
     return parser
 
 
@@ -55,7 +56,9 @@ def run_verb(argv: list[str] | None) -> int:
     except KeyboardInterrupt as stop:
         print("envisat: interrupted", file=sys.stderr)
         return interrupt_code(stop)
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # in the verb's own usage, not the top level's (`envisat demo --target X` said `envisat [-h] VERB`)
+        parser.verb_parsers[args.verb].error(f"unrecognized arguments: {' '.join(unknown)}")
     args.argv = list(sys.argv[1:] if argv is None else argv)  # the command as typed (a run's record)
 
     def one_line(message, category, filename, lineno, file=None, line=None):  # the library's names as flags

@@ -27,6 +27,15 @@ def test_an_abbreviated_flag_is_refused_by_argparse(capsys):
         build_parser().parse_args(["dataset", "inspect", "d", "--mont", "m.png"])
 
 
+def test_a_flag_a_verb_does_not_take_is_refused_in_that_verbs_usage(capsys):
+    """`envisat demo --target X` (demo is ENVISAT's): refused with demo's own usage, not the top level's."""
+    with pytest.raises(SystemExit) as stop:
+        main(["demo", "--target", "models/cubesat_3u.xml"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and err.startswith("usage: envisat demo ")
+    assert "envisat demo: error: unrecognized arguments: --target models/cubesat_3u.xml" in err
+
+
 def test_every_verb_refuses_abbreviations():
     names = [name for name, p in _parsers(build_parser()) if p.allow_abbrev]
     assert names == []
