@@ -99,6 +99,15 @@ def rate_text(end: dict) -> str:
     return f"{rate:.0f} samples/s" if rate >= 10 else f"{rate:.2g} samples/s"
 
 
+def loss_text(loss) -> str:
+    """The end line's loss as what it is: the mean over the steps since the last epoch's line (metrics.jsonl),
+    where the progress bar shows one step's loss every few steps (a 2-minute run's bar ended at 2.643 beside an
+    end line's 3.8464, read as a contradiction)."""
+    if loss is None:
+        return "no loss recorded"
+    return f"mean loss {loss:.4f} over the last epoch's steps"
+
+
 def trained_line(run_dir: str, end: dict) -> str:
     """The verb's one line for a run that trained (end: train_detector's end line): the step reached and this
     call's steps, the loss, the speed (rate_text), the workers, why it stopped, the weights, and an online run's
@@ -106,7 +115,7 @@ def trained_line(run_dir: str, end: dict) -> str:
     workers = f"{end['render_workers']} render" if "render_workers" in end else f"{end.get('workers')}"
     rate = rate_text(end)
     return (f"trained to step {end.get('step')} ({end.get('steps_run')} this run): "
-            f"loss {end.get('loss', float('nan')):.4f}, {rate + ' ' if rate else ''}with {workers} workers "
+            f"{loss_text(end.get('loss'))}, {rate + ' ' if rate else ''}with {workers} workers "
             f"({end.get('stopped_by')}); weights {os.path.join(run_dir, 'checkpoint.safetensors')}"
             + (f"; each rendered frame cropped at most {end.get('max_uses')} times "
                f"(K = {end.get('uses_per_frame')})" if end.get("uses_per_frame") else ""))

@@ -158,7 +158,8 @@ def test_the_end_line_says_a_slow_legs_rate_and_no_rate_for_no_step(tiny_dataset
            "stopped_by": "steps"}
     for given, said in ((end, "0.49 samples/s with 0 workers"), ({**end, "samples_s": 0.004}, "under 0.01 samples/s"),
                         ({**end, "samples_s": 1234.4, "steps_run": 900}, "1234 samples/s"),
-                        ({**end, "steps_run": 0, "samples_s": 0.0}, "loss 5.6284, with 0 workers")):
+                        ({**end, "steps_run": 0, "samples_s": 0.0},
+                         "mean loss 5.6284 over the last epoch's steps, with 0 workers")):
         monkeypatch.setattr(train_verb, "train_detector", lambda *a, given=given, **k: given)
         assert main(["train", "--data", tiny_dataset, "--out", str(tmp_path / "run"), "--quiet"]) == 0
         out = capsys.readouterr().out
