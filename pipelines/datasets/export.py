@@ -35,6 +35,7 @@ from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.datasets import export_layouts as lay
 from envisat_pose.pipelines.datasets.export_readme import readme_text
 from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
+from envisat_pose.provenance import dataset_ref
 from envisat_pose.shard_reader import (
     checked_shards,
     load_dataset_manifest,
@@ -121,9 +122,10 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
         images = lay.assemble(layout, stage, ("train", "val") if splits.any() else ("train",))
         shutil.rmtree(os.path.join(stage, lay.RECORDS))
         _write_json(os.path.join(stage, "export.json"), {
-            "format": cfg.fmt, "config": asdict(cfg), "source": os.path.abspath(src),
+            "format": cfg.fmt, "config": asdict(cfg), "source": dataset_ref(src),
             "source_manifest_root_seed": manifest.get("root_seed"), "images": images, "skipped_damaged_shards": skipped,
-            "target": layout.target, "keypoint_names": list(layout.keypoint_names), "image_ext": layout.ext,
+            "target": load_target(gen.target).record(gen.target), "keypoint_names": list(layout.keypoint_names),
+            "image_ext": layout.ext,
             "box_source": _box_source(cfg.fmt, gen.write_mask)})
         _publish(stage, out_dir, moved)
     except BaseException:

@@ -21,6 +21,7 @@ from envisat_pose.datagen.factory import run_generate
 from envisat_pose.datagen.generate_config import GenerateConfig
 from envisat_pose.geometry import CORNER_NAMES, EDGES, load_geometry
 from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
+from envisat_pose.provenance import dataset_ref, find_absolute_paths
 
 FORMATS = ("speedplus", "coco", "bop", "yolo-pose")
 
@@ -572,7 +573,7 @@ def test_another_target_exports_its_own_keypoints(tmp_path, monkeypatch):
         for pts in (verts, kp_mm):
             moved = pts @ R.T
             assert np.min(np.linalg.norm(moved[:, None] - pts[None], axis=2), axis=1).max() < 1e-3  # mm
-    assert json.load(open(os.path.join(outs["bop"], "export.json")))["target"] == "cubesat_3u"
+    assert json.load(open(os.path.join(outs["bop"], "export.json")))["target"]["name"] == "cubesat_3u"
 
 
 def test_a_moved_target_file_is_given_with_target(tmp_path, monkeypatch):
@@ -595,6 +596,16 @@ def test_a_moved_target_file_is_given_with_target(tmp_path, monkeypatch):
                                                                     target=str(home / "sat.xml")), progress=False)
     coco = json.load(open(os.path.join(out.out_dir, "annotations", "keypoints_train.json")))
     assert len(coco["categories"][0]["keypoints"]) == 12 and len(coco["annotations"]) == 2
+    # export.json names the target as the manifest does (the file as given, here the one given in its place; its
+    # name, sha256 and keypoints) and the source as a record that travels names a dataset (no path of this machine)
+    manifest = json.load(open(os.path.join(src, "manifest.json")))
+    record = json.load(open(os.path.join(out.out_dir, "export.json")))
+    assert record["target"] == {**manifest["target"], "file": str(home / "sat.xml")}
+    assert record["source"] == dataset_ref(src) and record["source"].startswith("cube (manifest sha256 ")
+    monkeypatch.chdir(home)  # the recorded path found: the record is the manifest's, and the file holds no path here
+    out = export_dataset(src, str(tmp_path / "here"), ExportConfig("coco", val_fraction=0.0), progress=False)
+    text = open(os.path.join(out.out_dir, "export.json")).read()
+    assert json.loads(text)["target"] == manifest["target"] and find_absolute_paths(text) == []
     (home / "sat.xml").write_text((home / "sat.xml").read_text().replace("<mujoco", "<!-- edited -->\n<mujoco", 1))
     with pytest.raises(InputError, match="not the target file of the dataset .*unchanged since the dataset was generated"):
         export_dataset(src, str(tmp_path / "edited"), ExportConfig("coco", val_fraction=0.0,
