@@ -6,6 +6,7 @@ the pipeline (pipelines/detector/detect.py: run_detect; detect_target.py: run_de
 from __future__ import annotations
 
 import argparse
+import json
 
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, skipped_line
 from envisat_pose.config import InputError, resolve_job_config
@@ -80,8 +81,6 @@ def resolve_config(args: argparse.Namespace):
 
 
 def run_detect_cli(args: argparse.Namespace) -> int:
-    import json
-
     check_out_file(args.out)
     detector_inputs(args)
     if other_target(args.target):
@@ -106,6 +105,7 @@ def run_target_cli(args: argparse.Namespace) -> int:
         "skip_damaged": bool(args.skip_damaged)})
     with skip_hint():
         arrays = run_detect_target(cfg, args.data, args.out, progress=not args.quiet)
-    print(f"wrote {args.out}: {len(arrays['key'])} frames of target {args.target}, "
+    name = json.loads(str(arrays["config_json"]))["target"]["name"]  # as evaluate's line names it
+    print(f"wrote {args.out}: {len(arrays['key'])} frames of target {name}, "
           f"{int(arrays['visible'].sum())} keypoints called visible of {arrays['visible'].size}")
     return 0

@@ -109,7 +109,7 @@ def detect_target_dataset(cfg: TargetDetectJobConfig, data: str, progress: bool 
     arrays["cov_px"] = isotropic_cov(sigma, len(arrays["key"]))  # NaN where not calibrated
     arrays["config_json"] = json.dumps({"weights": weights_name(cfg.weights),
                                         "weights_sha256": sha256_file(cfg.weights),
-                                        "target": {"name": target.name, "sha256": target.sha256},
+                                        "target": target.record(cfg.target),  # as the manifest names it
                                         "data": data, "data_manifest_sha256": manifest_sha256(data),
                                         "model": model.cfg.to_dict(),
                                         "calibrated": [n for n, s in zip(det.keypoint_names, sigma) if s > 0],

@@ -173,7 +173,7 @@ def evaluate_target_detector(cfg: TargetDetectJobConfig, data: str, json_path: s
     perms = relabelings(target.symmetries, target.num_keypoints)
     sigma = weights_keypoint_sigma(cfg.weights, target.num_keypoints)
     result = {"weights": weights_name(cfg.weights), "weights_sha256": sha256_file(cfg.weights),
-              "target": {"file": cfg.target, "name": target.name, "sha256": target.sha256},
+              "target": target.record(cfg.target),
               "data": dataset_ref(data), "frames": int(len(arrays["key"])), "model": model.cfg.to_dict(),
               "match_px": km.MATCH_PX, "pnp_reprojection_px": km.PNP_REPROJ_PX,
               "twins": [list(map(int, p)) for p in perms[1:]], "skipped_damaged_shards": skipped,

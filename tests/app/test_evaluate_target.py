@@ -202,6 +202,24 @@ def test_calibrate_finds_the_noise_put_in_and_detect_carries_it(box, tmp_path, m
 
 
 
+def test_detect_and_evaluate_name_the_target_as_the_datasets_manifest_does(box, tmp_path, monkeypatch, capsys):
+    """det.npz's config_json and evaluate's JSON name the target as the dataset's manifest.json (and track's
+    det.npz) do: the file as given, its name, sha256 and keypoint names; both printed lines by its name."""
+    path, _, data, weights, labels = box
+    recorded = json.load(open(os.path.join(data, "manifest.json")))["target"]
+    out = str(tmp_path / "det.npz")
+    assert main(["detect", "--target", path, "--weights", weights, "--data", data, "--limit", "1", "--out", out,
+                 "--quiet"]) == 0
+    assert capsys.readouterr().out.startswith(f"wrote {out}: 1 frames of target twin_box, ")
+    assert json.loads(KeypointDetections.load(out).config_json)["target"] == recorded
+    use_oracle(monkeypatch, Oracle(labels))
+    ev = tmp_path / "e.json"
+    assert main(["evaluate", "--target", path, "--weights", weights, "--data", data, "--limit", "1", "--json",
+                 str(ev), "--quiet"]) == 0
+    assert f"wrote {ev}: 1 frames of target twin_box" in capsys.readouterr().out
+    assert json.load(open(ev))["target"] == recorded
+
+
 class CorrelatedOracle(Oracle):
     """The oracle whose noise follows the frames: per keypoint and axis, white noise of variance share 1 - a plus
     an AR(1) of share a and coefficient phi from frame to frame (frame t: the key's number), sigma px in all
