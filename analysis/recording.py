@@ -21,6 +21,8 @@ contracts and writes the design's layout:
     world/chaser/camera/image/{mask,depth} a dataset sample's segmentation and depth
     metrics/error/<block>/<axis>           error of every run (one series per run), with .../filter_3sigma (+-3 sigma
                                            of the filter's P) and .../sample_3sigma (+-3 sigma of the runs' spread)
+    metrics/nees/{value,band}              estimate, montecarlo: the NEES (12 dof) averaged over the runs, with the
+                                           two-sided 95 % band of that mean (montecarlo: the campaign's, all runs)
     metrics/{range_m,visible_corners,in_frame_corners}
 
 A tracker's run (TrackRecorder: `envisat run`, `track`, `demo`) logs frame by frame, beside world/target,
@@ -30,7 +32,7 @@ world/target_est and world/chaser/camera/image{,/corners_true} above (the true k
     world/chaser/camera/image/corners_estimated  the target's keypoints projected from the estimate (blue)
     world/chaser/camera/image/roi                the region of interest the detector read (a box; cleared without)
     metrics/error/<block>/<axis>{,/filter_3sigma} with a truth: the estimate's error and its +-3 sigma (from P)
-    metrics/nees/{value,band}                    with a truth: NEES (12 dof) and its two-sided 95 % band
+    metrics/nees/{value,band}                    with a truth: the run's NEES (12 dof) and its 95 % band
     metrics/sigma3/{position_m,attitude_deg}/<axis>, metrics/range_est_m   without a truth: 3 sigma, range
     metrics/nis                                  the tracker's NIS / dof
     metrics/tracker/{status,p_best}              status code (status_legend) and best hypothesis' probability

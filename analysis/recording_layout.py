@@ -16,7 +16,7 @@ from envisat_pose.geometry import PinholeCamera, load_camera
 from envisat_pose.state import MRP, N_STATE, POS, RATE, VEL
 from envisat_pose.target import Target, default_target
 
-from .stats import chi2_mean_bounds, component_errors, display_transform
+from .stats import chi2_mean_bounds, component_errors, display_transform, nees_of_errors, state_errors
 
 APPLICATION_ID = "envisat_pose"
 KEYPOINT_CLASS = 0  # class of the annotation context whose keypoints are the target's (ENVISAT: corners A-H)
@@ -240,6 +240,40 @@ def log_error_series(rec: rr.RecordingStream, t_s: np.ndarray, err: np.ndarray, 
             rec.send_columns(f"{path}/{name}", idx, rr.Scalars.columns(scalars=band.reshape(-1)).partition([2] * T))
 
 
+NEES_RGB = (20, 20, 20)
+BAND_RGB = (150, 150, 150)
+
+
+def log_nees_styles(rec: rr.RecordingStream, runs: int = 1) -> None:
+    """metrics/nees/{value,band}'s lines (static): the NEES of one run ("NEES"), or its mean over runs ("mean NEES
+    over R runs"), and the two ends of its 95 % band. A tracker's run and the estimate's and campaign's
+    recordings draw it alike."""
+    name = "NEES" if runs == 1 else f"mean NEES over {runs} runs"
+    rec.log("metrics/nees/value", rr.SeriesLines(colors=[NEES_RGB], widths=[1.5], names=[name]), static=True)
+    rec.log("metrics/nees/band", rr.SeriesLines(colors=[BAND_RGB] * 2, widths=[1.0, 1.0], names=["2.5 %", "97.5 %"]),
+            static=True)
+
+
+def log_nees_series(rec: rr.RecordingStream, t_s: np.ndarray, nees_mean: np.ndarray, runs: int,
+                    bounds: np.ndarray | None = None, frames: np.ndarray | None = None) -> None:
+    """metrics/nees/value: the NEES (12 dof) averaged over `runs` runs at each of T steps, nees_mean (T,);
+    metrics/nees/band: its two-sided 95 % band, bounds (2,) (None: chi2_mean_bounds(12 runs, runs), each run one
+    sample at a step)."""
+    T = len(t_s)
+    bounds = chi2_mean_bounds(N_STATE * runs, runs) if bounds is None else np.asarray(bounds, dtype=float)
+    idx = _times(t_s, frames)
+    log_nees_styles(rec, runs)
+    rec.send_columns("metrics/nees/value", idx, rr.Scalars.columns(scalars=np.asarray(nees_mean, dtype=float)))
+    rec.send_columns("metrics/nees/band", idx,
+                     rr.Scalars.columns(scalars=np.tile(bounds.reshape(2), T)).partition([2] * T))
+
+
+def runs_nees(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """The NEES (R, T) of R runs in the additive chart (analysis.stats.state_errors): what a recording shows where
+    its caller gives none in the filter's own chart."""
+    return nees_of_errors(state_errors(x_true, x_hat), P)
+
+
 def estimate_bands(x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray):
     """Errors and bands of R runs in the statistics' units: err (R, T, 12); the filter's 3 sigma (T, 12) =
     3 sqrt(mean over runs of the variance of A P A^T) (A: analysis.stats.display_transform, the MRP block as a
@@ -292,9 +326,15 @@ def truth_blueprint() -> rrb.Blueprint:
     return rrb.Blueprint(rrb.Horizontal(_scene_views(False), plots, column_shares=[3, 2]), collapse_panels=True)
 
 
+def nees_plot(name: str = "NEES (12 dof; 95 % band grey)", legend: bool = False) -> rrb.TimeSeriesView:
+    """metrics/nees over the whole run: the NEES, or its mean over runs, with its 95 % band."""
+    return whole_run(rrb.TimeSeriesView, legend=legend, origin="metrics/nees", name=name)
+
+
 def estimate_blueprint() -> rrb.Blueprint:
-    return rrb.Blueprint(rrb.Horizontal(_scene_views(False), error_plots(), column_shares=[2, 3]),
-                         collapse_panels=True)
+    """The scene on the left; the 12 error plots and, below them, the NEES with its band on the right."""
+    right = rrb.Vertical(error_plots(), nees_plot("NEES (12 dof): mean over runs, 95 % band", legend=True), row_shares=[4, 1])
+    return rrb.Blueprint(rrb.Horizontal(_scene_views(False), right, column_shares=[2, 3]), collapse_panels=True)
 
 
 def samples_blueprint() -> rrb.Blueprint:
@@ -329,7 +369,7 @@ def track_blueprint(with_truth: bool) -> rrb.Blueprint:
     if with_truth:
         plots = [whole_run(rrb.TimeSeriesView, origin=f"metrics/error/{b}",
                            name=f"{title}: x red, y green, z blue, +-3 sigma thin") for b, title, _, _ in PLOT_BLOCKS]
-        plots.append(whole_run(rrb.TimeSeriesView, origin="metrics/nees", name="NEES (12 dof; 95 % band grey)"))
+        plots.append(nees_plot())
     else:
         plots = [whole_run(rrb.TimeSeriesView, origin="metrics/sigma3/position_m", name="position 3 sigma (m): x, y, z"),
                  whole_run(rrb.TimeSeriesView, origin="metrics/sigma3/attitude_deg", name="attitude 3 sigma (deg)"),

@@ -33,6 +33,7 @@ from .recording_layout import (
     ROI_RGB,
     VISIBLE_RGB,
     _wxyz_to_xyzw,
+    log_nees_styles,
     log_static_scene,
     log_target_wireframe,
     position_ellipsoids,
@@ -123,9 +124,7 @@ class TrackRecorder:
                     rec.log(f"metrics/error/{b}/{a}", rr.SeriesLines(colors=[rgb], widths=[1.5], names=[a]), static=True)
                     rec.log(f"metrics/error/{b}/{a}/filter_3sigma", rr.SeriesLines(
                         colors=[rgb, rgb], widths=[0.5, 0.5], names=[f"+3s {a}", f"-3s {a}"]), static=True)
-            rec.log("metrics/nees/value", rr.SeriesLines(colors=[(20, 20, 20)], widths=[1.5], names=["NEES"]), static=True)
-            rec.log("metrics/nees/band", rr.SeriesLines(colors=[(150, 150, 150)] * 2, widths=[1.0, 1.0],
-                                                        names=["2.5 %", "97.5 %"]), static=True)
+            log_nees_styles(rec)
         else:
             for a, rgb in zip(AXES, AXIS_RGB):
                 rec.log(f"metrics/sigma3/position_m/{a}", rr.SeriesLines(colors=[rgb], names=[a]), static=True)

@@ -29,12 +29,14 @@ from .recording_layout import (
     load_camera,
     log_error_series,
     log_estimate_series,
+    log_nees_series,
     log_static_scene,
     log_target_mesh,
     log_truth_series,
     mask_annotation,
     pose_columns,
     rotmat_to_quat,
+    runs_nees,
     samples_blueprint,
     truth_blueprint,
 )
@@ -115,17 +117,22 @@ def truth_rows(truth: TruthTrajectory, t_s: np.ndarray) -> np.ndarray:
 
 
 def write_estimates_recording(path: str, est: Estimates, truth: TruthTrajectory | None = None,
-                              max_error_runs: int | None = None, target: Target | None = None) -> str:
+                              max_error_runs: int | None = None, target: Target | None = None,
+                              nees_rt: np.ndarray | None = None) -> str:
     """`envisat estimate --rrd`: truth and run 0's estimate with its 3-sigma ellipsoid, the error series of
-    every run (the first max_error_runs if given) with the filter's and the runs' +-3 sigma bands. With the truth
-    trajectory, its keypoints and visibility at the filter's steps too. target: the truth's (None: default)."""
+    every run (the first max_error_runs if given) with the filter's and the runs' +-3 sigma bands, and the NEES
+    averaged over all runs with its 95 % band. With the truth trajectory, its keypoints and visibility at the
+    filter's steps too. target: the truth's (None: default). nees_rt (R, T): the runs' NEES in the filter's chart
+    (filtering.estimator.nees; None: the additive chart's, runs_nees)."""
     err, filt, samp = estimate_bands(est.x_true, est.x_hat, est.P)
     n = err.shape[0] if max_error_runs is None else min(err.shape[0], max_error_runs)
+    nees_rt = runs_nees(est.x_true, est.x_hat, est.P) if nees_rt is None else np.asarray(nees_rt, dtype=float)
     with _Recording(path, estimate_blueprint()) as rec:
         log_static_scene(rec, estimate=True, target=target)
         _log_truth_on_grid(rec, est.t_s, est.x_true[0], truth)
         log_estimate_series(rec, est.t_s, est.x_hat[0], est.P[0])
         log_error_series(rec, est.t_s, err[:n], filt, samp)
+        log_nees_series(rec, est.t_s, nees_rt.mean(axis=0), runs=nees_rt.shape[0])
     return path
 
 
@@ -139,16 +146,22 @@ def _log_truth_on_grid(rec, t_s, x_true, truth: TruthTrajectory | None) -> None:
 
 def write_campaign_recording(path: str, t_s: np.ndarray, x_true: np.ndarray, x_hat0: np.ndarray, P0: np.ndarray,
                              sample_err: np.ndarray, filter_3sigma: np.ndarray, sample_3sigma: np.ndarray | None,
-                             truth: TruthTrajectory | None = None, target: Target | None = None) -> str:
+                             truth: TruthTrajectory | None = None, target: Target | None = None,
+                             nees_mean: np.ndarray | None = None, nees_bounds: np.ndarray | None = None,
+                             runs: int = 1) -> str:
     """`envisat montecarlo --rrd`: the truth x_true (T, 12) and run 0's estimate x_hat0 (T, 12) with its
     3-sigma ellipsoid from P0 (T, 12, 12); the kept sample runs' errors sample_err (S, T, 12) with the campaign's
-    filter_3sigma and sample_3sigma (T, 12) over all runs (analysis.stats.CampaignStats). target: the
-    campaign's (None: default_target())."""
+    filter_3sigma and sample_3sigma (T, 12) over all runs (analysis.stats.CampaignStats); the campaign's NEES,
+    nees_mean (T,) over its `runs` runs with its band nees_bounds (2,) (CampaignStats; None: run 0's own NEES in
+    the additive chart and the band of one run). target: the campaign's (None: default_target())."""
+    if nees_mean is None:
+        nees_mean, nees_bounds, runs = runs_nees(x_true, x_hat0, P0), None, 1
     with _Recording(path, estimate_blueprint()) as rec:
         log_static_scene(rec, estimate=True, target=target)
         _log_truth_on_grid(rec, t_s, x_true, truth)
         log_estimate_series(rec, t_s, x_hat0, P0)
         log_error_series(rec, t_s, sample_err, filter_3sigma, sample_3sigma)
+        log_nees_series(rec, t_s, nees_mean, runs=runs, bounds=nees_bounds)
     return path
 
 

@@ -141,12 +141,14 @@ def write_figures(cfg: MonteCarloConfig, out_dir: str, t_s, stats, bound, sample
 def write_recording(cfg: MonteCarloConfig, out_dir: str, path: str) -> None:
     """A Rerun recording at path (--rrd): the truth, run 0's estimate and 3-sigma ellipsoid (run 0 filtered
     again, keeping its means and covariances: it draws what the campaign drew), the sample runs' errors and the
-    campaign's bands from campaign.npz."""
+    campaign's bands and mean NEES from campaign.npz."""
     from envisat_pose.analysis.recording import write_campaign_recording
 
     tr = load_campaign_truth(out_dir, cfg.measurement, cfg.target)
     x_hat, P = filter_run_history(tr, cfg, 0)
     with open_npz(os.path.join(out_dir, "campaign.npz")) as z:
         sample_err, filt, samp = z["sample_err"], z["filter_3sigma"], z["sample_3sigma"]
+        nees_mean, nees_bounds, runs = z["nees_mean"], z["nees_bounds"], int(z["n_runs"])
     write_campaign_recording(path, tr.t_s, tr.x_true, x_hat, P, sample_err, filt, samp if cfg.runs > 1 else None,
-                             truth=TruthTrajectory.load(os.path.join(out_dir, "truth.npz")), target=tr.target)
+                             truth=TruthTrajectory.load(os.path.join(out_dir, "truth.npz")), target=tr.target,
+                             nees_mean=nees_mean, nees_bounds=nees_bounds, runs=runs)

@@ -413,5 +413,6 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
         if rrd:
             from envisat_pose.analysis.recording import write_estimates_recording
 
-            write_estimates_recording(rrd, est, truth, target=truth_target(truth.config, "the truth"))
+            write_estimates_recording(rrd, est, truth, target=truth_target(truth.config, "the truth"),
+                                      nees_rt=nees(est.x_true, est.x_hat, est.P, cfg.filter.sigma_chart))
     return {"config": cfg, "arrays": arrays, "est": out, "config_toml": cfg_path, "plot": png, "rrd": rrd}

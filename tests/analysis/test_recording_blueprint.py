@@ -57,7 +57,7 @@ def test_every_recordings_time_plots_span_the_whole_run(tmp_path):
     est = estimates()
     recording.write_estimates_recording(str(tmp_path / "est.rrd"), est)
     views = time_series_views(tmp_path / "est.rrd")
-    assert len(views) == 12 and "position_m x error" in views
+    assert len(views) == 13 and "position_m x error" in views and "NEES (12 dof): mean over runs, 95 % band" in views
     assert_whole_run(views)
 
     recording.write_campaign_recording(str(tmp_path / "mc.rrd"), est.t_s, est.x_true[0], est.x_hat[0], est.P[0],

@@ -90,6 +90,7 @@ def test_montecarlo_rrd(tmp_path, verify_rrd):
                  "--seed", "3", "--out", str(out), "--rrd", str(rrd), "--quiet"]) == 0
     with np.load(out / "campaign.npz") as z:
         sample_err, filt, t_s = z["sample_err"], z["filter_3sigma"], z["t_s"]
+        nees_mean, nees_bounds = z["nees_mean"], z["nees_bounds"]
     verify_rrd(rrd)
     static, temporal = read_rrd(rrd)
     check_model(static)
@@ -104,6 +105,29 @@ def test_montecarlo_rrd(tmp_path, verify_rrd):
     est_x = np.array([v[0] for v in temporal["/world/target_est"]["Transform3D:translation"]])
     assert len(est_x) == T
     np.testing.assert_allclose(est_x - truth_x, sample_err[0, :, 0:3], atol=1e-5)  # float32 positions at 50 m
+    # the campaign's mean NEES over its 5 runs and its band, as nees_nis.png draws them (not run 0's alone)
+    assert static["/metrics/nees/value"]["SeriesLines:names"] == ["mean NEES over 5 runs"]
+    np.testing.assert_allclose([v[0] for v in temporal["/metrics/nees/value"]["Scalars:scalars"]], nees_mean,
+                               rtol=1e-12)
+    np.testing.assert_allclose(temporal["/metrics/nees/band"]["Scalars:scalars"], np.tile(nees_bounds, (T, 1)))
+
+
+def test_estimate_rrd_nees_is_the_filters_own_charts(simulated, tmp_path):
+    """The recording's NEES is the one the summary line gives: in the filter's chart of the sigma points (here
+    'rotation'), not the additive chart's."""
+    from envisat_pose.filtering.estimator import nees
+
+    truth, _ = simulated
+    out, rrd, cfg = tmp_path / "est.npz", tmp_path / "est.rrd", tmp_path / "est.toml"
+    cfg.write_text('[filter]\nsigma_chart = "rotation"\n')
+    assert main(["estimate", "--truth", str(truth), "--config", str(cfg), "--runs", "2", "--rate-hz", "0.5",
+                 "--out", str(out), "--rrd", str(rrd), "--quiet"]) == 0
+    est = Estimates.load(str(out))
+    _, temporal = read_rrd(rrd)
+    logged = np.array([v[0] for v in temporal["/metrics/nees/value"]["Scalars:scalars"]])
+    np.testing.assert_allclose(logged, nees(est.x_true, est.x_hat, est.P, "rotation").mean(axis=0), rtol=1e-9)
+    additive = nees(est.x_true, est.x_hat, est.P, "additive").mean(axis=0)
+    assert np.abs(logged - additive).max() > 1e-6 * np.abs(additive).max()
 
 
 def test_montecarlo_rrd_refuses_a_sweep_before_work(tmp_path, capsys):
