@@ -24,6 +24,9 @@ contracts and writes the design's layout:
     metrics/nees/{value,band}              estimate, montecarlo: the NEES (12 dof) averaged over the runs, with the
                                            two-sided 95 % band of that mean (montecarlo: the campaign's, all runs)
     metrics/{range_m,visible_corners,in_frame_corners}
+    __properties                           every recording's name (RecordingInfo), as the viewer lists it: its
+                                           file's name and what it holds ("est.rrd: cubesat_3u estimates, 3
+                                           runs"; a tracker's run: its title)
 
 A tracker's run (TrackRecorder: `envisat run`, `track`, `demo`) logs frame by frame, beside world/target,
 world/target_est and world/chaser/camera/image{,/corners_true} above (the true keypoints seen, with a truth):

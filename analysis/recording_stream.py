@@ -39,7 +39,7 @@ from .recording_layout import (
     position_ellipsoids,
     track_blueprint,
 )
-from .recording_writers import flush_file
+from .recording_writers import flush_file, recording_name
 from .stats import component_errors, display_transform
 
 
@@ -104,6 +104,8 @@ class TrackRecorder:
             spawn(executable_path=viewer_executable(), default_blueprint=blueprint, recording=self.rec)
         else:
             self.rec.connect_grpc(arg or None, default_blueprint=blueprint)
+        what = title or f"{self.target.name} tracker run"  # the name the viewer lists it by
+        self.rec.send_recording_name(recording_name(arg, what) if kind == "save" else what)
         if title:
             self.rec.log("description", rr.TextDocument(title), static=True)
         # what the status series' codes mean (envisat_pose.status.legend(), JSON), beside the data

@@ -72,11 +72,19 @@ def flush_file(rec: rr.RecordingStream, tmp: str) -> None:
                 raise refused from err
 
 
-class _Recording:
-    """A recording saved to `path` atomically: `with _Recording(path, blueprint) as rec: ...`."""
+def recording_name(path: str, what: str) -> str:
+    """The name the viewer lists a recording by: its file's name and what it holds ("est.rrd: cubesat_3u
+    estimates, 3 runs"). Without one (no properties are sent) every recording of a folder that `envisat view`
+    opens was listed alike, as envisat_pose."""
+    return f"{os.path.basename(path)}: {what}" if what else os.path.basename(path)
 
-    def __init__(self, path: str, blueprint: rrb.Blueprint):
-        self.path, self.blueprint = path, blueprint
+
+class _Recording:
+    """A recording saved to `path` atomically, named `what` in the viewer (recording_name):
+    `with _Recording(path, blueprint, what) as rec: ...`."""
+
+    def __init__(self, path: str, blueprint: rrb.Blueprint, what: str = ""):
+        self.path, self.blueprint, self.what = path, blueprint, what
 
     def __enter__(self) -> rr.RecordingStream:
         self._atomic = atomic_path(self.path, suffix=".rrd")
@@ -85,6 +93,7 @@ class _Recording:
         self.rec.set_log_time_enabled(False)  # only the two timelines of the design, sim_time and frame
         self.rec.set_log_tick_enabled(False)
         self.rec.save(self.tmp, default_blueprint=self.blueprint)
+        self.rec.send_recording_name(recording_name(self.path, self.what))
         return self.rec
 
     def __exit__(self, *exc) -> bool:
@@ -102,7 +111,7 @@ class _Recording:
 def write_truth_recording(path: str, truth: TruthTrajectory, target: Target | None = None) -> str:
     """`envisat simulate --rrd`: the truth (target pose, keypoints, visibility over time) as a recording, the
     target drawn as `target` (the truth's own: its config's target.file; None: default_target())."""
-    with _Recording(path, truth_blueprint()) as rec:
+    with _Recording(path, truth_blueprint(), f"{(target or default_target()).name} truth") as rec:
         log_static_scene(rec, target=target)
         log_truth_series(rec, truth.t_s, truth.x, truth.corners_C_m, truth.visible, truth.corners_px, truth.in_frame)
     return path
@@ -127,7 +136,8 @@ def write_estimates_recording(path: str, est: Estimates, truth: TruthTrajectory 
     err, filt, samp = estimate_bands(est.x_true, est.x_hat, est.P)
     n = err.shape[0] if max_error_runs is None else min(err.shape[0], max_error_runs)
     nees_rt = runs_nees(est.x_true, est.x_hat, est.P) if nees_rt is None else np.asarray(nees_rt, dtype=float)
-    with _Recording(path, estimate_blueprint()) as rec:
+    what = f"{(target or default_target()).name} estimates, {len(est.x_hat)} run{'s' * (len(est.x_hat) != 1)}"
+    with _Recording(path, estimate_blueprint(), what) as rec:
         log_static_scene(rec, estimate=True, target=target)
         _log_truth_on_grid(rec, est.t_s, est.x_true[0], truth)
         log_estimate_series(rec, est.t_s, est.x_hat[0], est.P[0])
@@ -154,9 +164,10 @@ def write_campaign_recording(path: str, t_s: np.ndarray, x_true: np.ndarray, x_h
     filter_3sigma and sample_3sigma (T, 12) over all runs (analysis.stats.CampaignStats); the campaign's NEES,
     nees_mean (T,) over its `runs` runs with its band nees_bounds (2,) (CampaignStats; None: run 0's own NEES in
     the additive chart and the band of one run). target: the campaign's (None: default_target())."""
+    what = f"{(target or default_target()).name} Monte Carlo" + (f", {runs} runs" if nees_mean is not None else "")
     if nees_mean is None:
         nees_mean, nees_bounds, runs = runs_nees(x_true, x_hat0, P0), None, 1
-    with _Recording(path, estimate_blueprint()) as rec:
+    with _Recording(path, estimate_blueprint(), what) as rec:
         log_static_scene(rec, estimate=True, target=target)
         _log_truth_on_grid(rec, t_s, x_true, truth)
         log_estimate_series(rec, t_s, x_hat0, P0)
@@ -200,7 +211,7 @@ def write_samples_recording(path: str, samples: Iterable[Sample], target: Target
     mask_values: {geom name: mask value} its masks were written with (None: the factory's classes, MASK_CLASSES)."""
     target = target or default_target()
     base = load_camera()
-    with _Recording(path, samples_blueprint()) as rec:
+    with _Recording(path, samples_blueprint(), f"{target.name} dataset samples") as rec:
         rec.log("world", corner_annotation(target), static=True)
         rec.log("world/chaser/camera/image/mask", mask_annotation(mask_values), static=True)
         log_target_mesh(rec, "world/target", target)
