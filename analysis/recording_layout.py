@@ -333,7 +333,8 @@ def nees_plot(name: str = "NEES (12 dof; 95 % band grey)", legend: bool = False)
 
 def estimate_blueprint() -> rrb.Blueprint:
     """The scene on the left; the 12 error plots and, below them, the NEES with its band on the right."""
-    right = rrb.Vertical(error_plots(), nees_plot("NEES (12 dof): mean over runs, 95 % band", legend=True), row_shares=[4, 1])
+    right = rrb.Vertical(error_plots(), nees_plot("NEES (12 dof): mean over runs, 95 % band", legend=True),
+                         row_shares=[4, 1])
     return rrb.Blueprint(rrb.Horizontal(_scene_views(False), right, column_shares=[2, 3]), collapse_panels=True)
 
 
