@@ -22,8 +22,10 @@ STATE_TITLES = ("relative position rho, in C", "relative velocity rho', in C",
                 "MRP p of T relative to C", "relative angular velocity w_r, in T")
 
 
-def plot_states(t_s: np.ndarray, x: np.ndarray, path: str, title: str = "", visible: np.ndarray | None = None) -> None:
-    """A 4 x 3 grid of the 12 states over time (minutes), plus the number of visible corners if given."""
+def plot_states(t_s: np.ndarray, x: np.ndarray, path: str, title: str = "", visible: np.ndarray | None = None,
+                points: str = "corners") -> None:
+    """A 4 x 3 grid of the 12 states over time (minutes), plus the number of visible keypoints if given: visible
+    (T, K), its axis 0..K, labelled `points` (ENVISAT's "corners"; another target's "keypoints")."""
     rows = 5 if visible is not None else 4
     fig, axes = plt.subplots(rows, 3, figsize=(13, 2.3 * rows + 0.6), sharex=True, squeeze=False)
     t_min = t_s / 60.0
@@ -39,8 +41,8 @@ def plot_states(t_s: np.ndarray, x: np.ndarray, path: str, title: str = "", visi
     if visible is not None:
         ax = axes[4, 0]
         ax.step(t_min, visible.sum(axis=1), where="post", lw=0.9)
-        ax.set_ylabel("visible corners")
-        ax.set_ylim(-0.5, 8.5)
+        ax.set_ylabel(f"visible {points} (of {visible.shape[1]})")
+        ax.set_ylim(-0.5, visible.shape[1] + 0.5)
         ax.grid(alpha=0.3)
         axes[4, 1].axis("off")
         axes[4, 2].axis("off")
@@ -105,7 +107,7 @@ def plot_estimate(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.
         lim = 3 * np.percentile(sig, 95) * scale[i] * 2.0 if sig.size else np.nan
         if np.isfinite(lim) and lim > 0:
             ax.set_ylim(-lim, lim)
-        ax.set_ylabel(f"{names[i]} {units[i]}".strip())
+        ax.set_ylabel(f"{names[i]} [{units[i]}]" if units[i] else names[i])
         ax.grid(alpha=0.3)
     ang_deg = magnitudes["attitude_deg"]  # (R, T)
     ax = axes[4, 0]

@@ -77,8 +77,10 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
         if plot:
             from envisat_pose.analysis.plots import plot_states
 
+            target = load_target(cfg.target.file)
             plot_states(traj.t_s, traj.x, os.path.join(stage, os.path.basename(png)), visible=traj.visible,
-                        title=f"{load_target(cfg.target.file).name} truth, scenario {label!r}, seed {cfg.seed}")
+                        title=f"{target.name} truth, scenario {label!r}, seed {cfg.seed}",
+                        points="corners" if target.is_default else "keypoints")
         if rrd:
             from envisat_pose.analysis.recording import write_truth_recording
 

@@ -91,3 +91,43 @@ def test_the_estimate_figures_legend_hides_no_panel(tmp_path, monkeypatch):
     assert labels == ["error, run 0", "filter 3 sigma (P)", "Monte Carlo 3 sigma", "no estimate"]
     box = legends[0].get_window_extent()
     assert not [i for i, ax in enumerate(fig.axes) if ax.axison and box.overlaps(ax.bbox)]
+
+
+def drawn_figures(monkeypatch) -> list:
+    """The figures the plots close (each plot closes its figure once saved): read their labels, not pixels."""
+    import matplotlib.pyplot as plt
+
+    figs, close = [], plt.close
+    monkeypatch.setattr(plt, "close", lambda fig=None: (figs.append(fig), close(fig)))
+    return figs
+
+
+def test_the_truth_plot_counts_any_targets_keypoints_on_an_axis_that_holds_them(tmp_path, monkeypatch):
+    """A 12-keypoint target's visible count (9 to 12) was drawn on ENVISAT's axis (-0.5..8.5, "visible corners"):
+    above the panel, an empty plot. Its axis holds 0..K and says what is counted; ENVISAT's keeps "corners"."""
+    figs = drawn_figures(monkeypatch)
+    T = 30
+    t_s = np.arange(T, dtype=float)
+    visible = np.zeros((T, 12), bool)
+    visible[:, :10] = True
+    plot_states(t_s, np.zeros((T, 12)), str(tmp_path / "k.png"), visible=visible, points="keypoints")
+    plot_states(t_s, np.zeros((T, 12)), str(tmp_path / "e.png"), visible=np.ones((T, 8), bool))
+    (kp, env) = [f.axes[12] for f in figs]
+    assert kp.get_ylabel() == "visible keypoints (of 12)" and env.get_ylabel() == "visible corners (of 8)"
+    assert kp.get_ylim()[0] < 0 and 12 < kp.get_ylim()[1] < 13 and 8 < env.get_ylim()[1] < 9
+
+
+def test_the_estimate_figures_state_labels_give_their_units_in_brackets(tmp_path, monkeypatch):
+    """Every axis of the estimate's figure names its unit as the others do ("rho_x [cm]", "t [min]"), not
+    "rho_x cm"; the MRP, without a unit, has none."""
+    figs = drawn_figures(monkeypatch)
+    T, R = 20, 2
+    x_true = np.zeros((R, T, 12))
+    x_true[..., 1] = 50.0
+    x_hat = x_true + np.random.default_rng(2).normal(0, 0.01, x_true.shape)
+    plot_estimate(np.arange(T, dtype=float), x_true, x_hat, np.broadcast_to(np.eye(12) * 1e-4, (R, T, 12, 12)),
+                  str(tmp_path / "est.png"))
+    (fig,) = figs
+    labels = [ax.get_ylabel() for ax in fig.axes[:12]]
+    assert labels[:6] == ["rho_x [cm]", "rho_y [cm]", "rho_z [cm]", "rho'_x [mm/s]", "rho'_y [mm/s]", "rho'_z [mm/s]"]
+    assert labels[6:9] == ["p_1", "p_2", "p_3"] and labels[9] == "w_r1 [deg/s]"
