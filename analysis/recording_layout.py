@@ -164,11 +164,11 @@ def _point_colors(visible: np.ndarray) -> np.ndarray:
 
 def log_truth_series(rec: rr.RecordingStream, t_s: np.ndarray, x: np.ndarray, corners_C_m: np.ndarray,
                      visible: np.ndarray, corners_px: np.ndarray, in_frame: np.ndarray,
-                     frames: np.ndarray | None = None) -> None:
+                     frames: np.ndarray | None = None, noun: str = "corners") -> None:
     """The truth over time, N samples of the target's K keypoints: world/target's pose from x (N, 12);
     world/corners_true the keypoint sites corners_C_m (N, K, 3) in C, coloured by visible (N, K); the in-frame
     corners_px (N, K, 2) (OpenCV px) as .../image/corners_true; metrics range_m, visible_corners,
-    in_frame_corners."""
+    in_frame_corners (their legends "visible <noun>", "in-frame <noun>": keypoints_noun)."""
     N, K = corners_C_m.shape[:2]
     idx = _times(t_s, frames)
     rec.send_columns("world/target", idx, pose_columns(x))
@@ -182,6 +182,8 @@ def log_truth_series(rec: rr.RecordingStream, t_s: np.ndarray, x: np.ndarray, co
         colors=_point_colors(visible)[m], keypoint_ids=np.broadcast_to(np.arange(K), m.shape)[m],
         class_ids=np.full(int(m.sum()), KEYPOINT_CLASS)).partition(m.sum(axis=1)))
     rec.send_columns("metrics/range_m", idx, rr.Scalars.columns(scalars=np.linalg.norm(x[:, POS], axis=1)))
+    for entity, what in (("visible_corners", "visible"), ("in_frame_corners", "in-frame")):
+        rec.log(f"metrics/{entity}", rr.SeriesLines(names=[f"{what} {noun}"]), static=True)
     rec.send_columns("metrics/visible_corners", idx, rr.Scalars.columns(scalars=visible.sum(axis=1).astype(float)))
     rec.send_columns("metrics/in_frame_corners", idx, rr.Scalars.columns(scalars=in_frame.sum(axis=1).astype(float)))
 
@@ -304,8 +306,15 @@ def whole_run(view_kind, legend: bool = False, **kw):
     return view_kind(time_ranges=ranges, axis_x=axis, plot_legend=rrb.PlotLegend(visible=legend), **kw)
 
 
-def _scene_views(image: bool) -> rrb.Vertical:
-    cam = rrb.Spatial2DView(origin="world/chaser/camera", name="camera image" if image else "camera (corners)",
+def keypoints_noun(target: Target | None = None) -> str:
+    """What a view's title calls the target's keypoints: ENVISAT's "corners" (A-H; target None: the default),
+    another target's "keypoints"."""
+    return "corners" if target is None or target.is_default else "keypoints"
+
+
+def _scene_views(image: bool, target: Target | None = None) -> rrb.Vertical:
+    cam = rrb.Spatial2DView(origin="world/chaser/camera",
+                            name="camera image" if image else f"camera ({keypoints_noun(target)})",
                             contents=["$origin/**", "- $origin/image/mask/**", "- $origin/image/depth/**"])
     return rrb.Vertical(rrb.Spatial3DView(origin="world", name="3D: chaser LVLH frame C (m)"), cam,
                         row_shares=[3, 2])
@@ -318,12 +327,16 @@ def error_plots() -> rrb.Grid:
                                 name=f"{BLOCKS[i // 3]} {AXES[i % 3]} error") for i in range(12)], grid_columns=3)
 
 
-def truth_blueprint() -> rrb.Blueprint:
+def truth_blueprint(target: Target | None = None) -> rrb.Blueprint:
+    """The scene on the left; the range and the count of visible and in-frame keypoints on the right (ENVISAT's
+    "corners"; another target's "keypoints", out of its K). target None: default_target()."""
+    count = ("visible / in-frame corners" if target is None or target.is_default
+             else f"visible / in-frame keypoints (of {target.num_keypoints})")
     plots = rrb.Vertical(whole_run(rrb.TimeSeriesView, legend=True, origin="metrics/range_m", name="range (m)"),
                          whole_run(rrb.TimeSeriesView, legend=True, origin="metrics",
-                                   contents=["metrics/visible_corners", "metrics/in_frame_corners"],
-                                   name="visible / in-frame corners"))
-    return rrb.Blueprint(rrb.Horizontal(_scene_views(False), plots, column_shares=[3, 2]), collapse_panels=True)
+                                   contents=["metrics/visible_corners", "metrics/in_frame_corners"], name=count))
+    return rrb.Blueprint(rrb.Horizontal(_scene_views(False, target), plots, column_shares=[3, 2]),
+                         collapse_panels=True)
 
 
 def nees_plot(name: str = "NEES (12 dof; 95 % band grey)", legend: bool = False) -> rrb.TimeSeriesView:
@@ -331,17 +344,21 @@ def nees_plot(name: str = "NEES (12 dof; 95 % band grey)", legend: bool = False)
     return whole_run(rrb.TimeSeriesView, legend=legend, origin="metrics/nees", name=name)
 
 
-def estimate_blueprint() -> rrb.Blueprint:
-    """The scene on the left; the 12 error plots and, below them, the NEES with its band on the right."""
+def estimate_blueprint(target: Target | None = None) -> rrb.Blueprint:
+    """The scene on the left (its camera view titled with target's keypoints_noun); the 12 error plots and, below
+    them, the NEES with its band on the right."""
     right = rrb.Vertical(error_plots(), nees_plot("NEES (12 dof): mean over runs, 95 % band", legend=True),
                          row_shares=[4, 1])
-    return rrb.Blueprint(rrb.Horizontal(_scene_views(False), right, column_shares=[2, 3]), collapse_panels=True)
+    return rrb.Blueprint(rrb.Horizontal(_scene_views(False, target), right, column_shares=[2, 3]),
+                         collapse_panels=True)
 
 
-def samples_blueprint() -> rrb.Blueprint:
+def samples_blueprint(target: Target | None = None) -> rrb.Blueprint:
+    """A dataset's samples: the image with its labelled keypoints (titled with target's keypoints_noun), the
+    mask, the depth and the 3D scene."""
     cam = "world/chaser/camera"
     return rrb.Blueprint(rrb.Horizontal(
-        rrb.Spatial2DView(origin=cam, name="image and corners",
+        rrb.Spatial2DView(origin=cam, name=f"image and {keypoints_noun(target)}",
                           contents=["$origin/**", "- $origin/image/mask/**", "- $origin/image/depth/**"]),
         rrb.Vertical(rrb.Spatial2DView(origin=cam, name="mask", contents=["$origin/image/mask/**",
                                                                            "$origin/image/corners_true/**"]),

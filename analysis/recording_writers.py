@@ -26,6 +26,7 @@ from .recording_layout import (
     corner_annotation,
     estimate_bands,
     estimate_blueprint,
+    keypoints_noun,
     load_camera,
     log_error_series,
     log_estimate_series,
@@ -111,9 +112,10 @@ class _Recording:
 def write_truth_recording(path: str, truth: TruthTrajectory, target: Target | None = None) -> str:
     """`envisat simulate --rrd`: the truth (target pose, keypoints, visibility over time) as a recording, the
     target drawn as `target` (the truth's own: its config's target.file; None: default_target())."""
-    with _Recording(path, truth_blueprint(), f"{(target or default_target()).name} truth") as rec:
+    with _Recording(path, truth_blueprint(target), f"{(target or default_target()).name} truth") as rec:
         log_static_scene(rec, target=target)
-        log_truth_series(rec, truth.t_s, truth.x, truth.corners_C_m, truth.visible, truth.corners_px, truth.in_frame)
+        log_truth_series(rec, truth.t_s, truth.x, truth.corners_C_m, truth.visible, truth.corners_px, truth.in_frame,
+                         noun=keypoints_noun(target))
     return path
 
 
@@ -137,21 +139,22 @@ def write_estimates_recording(path: str, est: Estimates, truth: TruthTrajectory 
     n = err.shape[0] if max_error_runs is None else min(err.shape[0], max_error_runs)
     nees_rt = runs_nees(est.x_true, est.x_hat, est.P) if nees_rt is None else np.asarray(nees_rt, dtype=float)
     what = f"{(target or default_target()).name} estimates, {len(est.x_hat)} run{'s' * (len(est.x_hat) != 1)}"
-    with _Recording(path, estimate_blueprint(), what) as rec:
+    with _Recording(path, estimate_blueprint(target), what) as rec:
         log_static_scene(rec, estimate=True, target=target)
-        _log_truth_on_grid(rec, est.t_s, est.x_true[0], truth)
+        _log_truth_on_grid(rec, est.t_s, est.x_true[0], truth, target)
         log_estimate_series(rec, est.t_s, est.x_hat[0], est.P[0])
         log_error_series(rec, est.t_s, err[:n], filt, samp)
         log_nees_series(rec, est.t_s, nees_rt.mean(axis=0), runs=nees_rt.shape[0])
     return path
 
 
-def _log_truth_on_grid(rec, t_s, x_true, truth: TruthTrajectory | None) -> None:
+def _log_truth_on_grid(rec, t_s, x_true, truth: TruthTrajectory | None, target: Target | None = None) -> None:
     if truth is None:
         rec.send_columns("world/target", _times(t_s), pose_columns(x_true))
         return
     k = truth_rows(truth, t_s)
-    log_truth_series(rec, t_s, x_true, truth.corners_C_m[k], truth.visible[k], truth.corners_px[k], truth.in_frame[k])
+    log_truth_series(rec, t_s, x_true, truth.corners_C_m[k], truth.visible[k], truth.corners_px[k], truth.in_frame[k],
+                     noun=keypoints_noun(target))
 
 
 def write_campaign_recording(path: str, t_s: np.ndarray, x_true: np.ndarray, x_hat0: np.ndarray, P0: np.ndarray,
@@ -167,9 +170,9 @@ def write_campaign_recording(path: str, t_s: np.ndarray, x_true: np.ndarray, x_h
     what = f"{(target or default_target()).name} Monte Carlo" + (f", {runs} runs" if nees_mean is not None else "")
     if nees_mean is None:
         nees_mean, nees_bounds, runs = runs_nees(x_true, x_hat0, P0), None, 1
-    with _Recording(path, estimate_blueprint(), what) as rec:
+    with _Recording(path, estimate_blueprint(target), what) as rec:
         log_static_scene(rec, estimate=True, target=target)
-        _log_truth_on_grid(rec, t_s, x_true, truth)
+        _log_truth_on_grid(rec, t_s, x_true, truth, target)
         log_estimate_series(rec, t_s, x_hat0, P0)
         log_error_series(rec, t_s, sample_err, filter_3sigma, sample_3sigma)
         log_nees_series(rec, t_s, nees_mean, runs=runs, bounds=nees_bounds)
@@ -211,7 +214,7 @@ def write_samples_recording(path: str, samples: Iterable[Sample], target: Target
     mask_values: {geom name: mask value} its masks were written with (None: the factory's classes, MASK_CLASSES)."""
     target = target or default_target()
     base = load_camera()
-    with _Recording(path, samples_blueprint(), f"{target.name} dataset samples") as rec:
+    with _Recording(path, samples_blueprint(target), f"{target.name} dataset samples") as rec:
         rec.log("world", corner_annotation(target), static=True)
         rec.log("world/chaser/camera/image/mask", mask_annotation(mask_values), static=True)
         log_target_mesh(rec, "world/target", target)
