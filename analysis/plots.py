@@ -7,6 +7,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from envisat_pose.attitude import align_mrp, mrp_shadow
 from envisat_pose.io import atomic_path  # noqa: E402
@@ -43,6 +44,7 @@ def plot_states(t_s: np.ndarray, x: np.ndarray, path: str, title: str = "", visi
         ax.step(t_min, visible.sum(axis=1), where="post", lw=0.9)
         ax.set_ylabel(f"visible {points} (of {visible.shape[1]})")
         ax.set_ylim(-0.5, visible.shape[1] + 0.5)
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))  # a count: no 7.5 keypoints
         ax.grid(alpha=0.3)
         axes[4, 1].axis("off")
         axes[4, 2].axis("off")

@@ -115,6 +115,8 @@ def test_the_truth_plot_counts_any_targets_keypoints_on_an_axis_that_holds_them(
     (kp, env) = [f.axes[12] for f in figs]
     assert kp.get_ylabel() == "visible keypoints (of 12)" and env.get_ylabel() == "visible corners (of 8)"
     assert kp.get_ylim()[0] < 0 and 12 < kp.get_ylim()[1] < 13 and 8 < env.get_ylim()[1] < 9
+    figs[0].canvas.draw()
+    assert all(float(t).is_integer() for t in kp.get_yticks()), kp.get_yticks()  # a count's ticks: no 7.5
 
 
 def test_the_estimate_figures_state_labels_give_their_units_in_brackets(tmp_path, monkeypatch):
