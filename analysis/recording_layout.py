@@ -307,9 +307,9 @@ def whole_run(view_kind, legend: bool = False, **kw):
 
 
 def keypoints_noun(target: Target | None = None) -> str:
-    """What a view's title calls the target's keypoints: ENVISAT's "corners" (A-H; target None: the default),
-    another target's "keypoints"."""
-    return "corners" if target is None or target.is_default else "keypoints"
+    """What a view's title calls the target's keypoints: those its labels name (Target.labels_name_keypoints)
+    "keypoints", ENVISAT's "corners" (A-H implied; target None: the default)."""
+    return "keypoints" if target is not None and target.labels_name_keypoints else "corners"
 
 
 def _scene_views(image: bool, target: Target | None = None) -> rrb.Vertical:
@@ -330,8 +330,8 @@ def error_plots() -> rrb.Grid:
 def truth_blueprint(target: Target | None = None) -> rrb.Blueprint:
     """The scene on the left; the range and the count of visible and in-frame keypoints on the right (ENVISAT's
     "corners"; another target's "keypoints", out of its K). target None: default_target()."""
-    count = ("visible / in-frame corners" if target is None or target.is_default
-             else f"visible / in-frame keypoints (of {target.num_keypoints})")
+    count = (f"visible / in-frame keypoints (of {target.num_keypoints})" if keypoints_noun(target) == "keypoints"
+             else "visible / in-frame corners")
     plots = rrb.Vertical(whole_run(rrb.TimeSeriesView, legend=True, origin="metrics/range_m", name="range (m)"),
                          whole_run(rrb.TimeSeriesView, legend=True, origin="metrics",
                                    contents=["metrics/visible_corners", "metrics/in_frame_corners"], name=count))

@@ -80,7 +80,7 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
             target = load_target(cfg.target.file)
             plot_states(traj.t_s, traj.x, os.path.join(stage, os.path.basename(png)), visible=traj.visible,
                         title=f"{target.name} truth, scenario {label!r}, seed {cfg.seed}",
-                        points="corners" if target.is_default else "keypoints")
+                        points="keypoints" if target.labels_name_keypoints else "corners")
         if rrd:
             from envisat_pose.analysis.recording import write_truth_recording
 
