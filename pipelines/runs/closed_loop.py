@@ -253,10 +253,12 @@ def _run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool, sink: str | N
     R = cfg.runs
     # the frames' camera: det.npz's pixels are its; truth.npz's corners_px are the MJCF chaser_cam's (its contract)
     used = camera_record(run_camera(cfg.image.resolution_px), None, False)
+    # the target as `envisat track` records it in both files (ENVISAT's too): the file as given, name, sha256, keypoints
+    record = load_target(cfg.image.target).record(cfg.image.target)
     config_json = json.dumps({"run": job_record(cfg), "truth_source": {"scenario": cfg.scenario},
-                              "truth_config": truth.config, "camera": used}, sort_keys=True)
+                              "truth_config": truth.config, "camera": used, "target": record}, sort_keys=True)
     det_cfg = json.dumps({"weights": weights_name(cfg.weights), "run": 0, "scenario": cfg.scenario, "seed": cfg.seed,
-                          "roi": cfg.tracker.roi.enabled, "camera": used}, sort_keys=True)
+                          "roi": cfg.tracker.roi.enabled, "camera": used, "target": record}, sort_keys=True)
     target = run_target(cfg)
     equivalent = None if target is None else target_namings(target, filter_inertia_T_kg_m2(target)).equivalent
     scores = score_run_files(truth.t_s, truth.x, run_dirs, paths, config_json, det_cfg, equivalent=equivalent,

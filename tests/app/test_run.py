@@ -44,6 +44,9 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, ver
         for key in ("key", "alt_corners_px", "alt_probability", "ambiguous", "roi_px", "naming", "status", "skipped"):
             assert key in z.files and len(z[key]) == T
         assert z["status"].tolist() == [0, 0, 0, 0, 1]
+        # which target det.npz holds, as `envisat track` records it: ENVISAT's too
+        assert json.loads(str(z["config_json"]))["target"]["name"] == "envisat"
+    assert json.loads(est.config_json)["target"]["keypoint_names"] == list("ABCDEFGH")
     cfg = tomllib.loads((out / "run.config.toml").read_text())
     assert cfg["scenario"] == "default" and cfg["image"]["mode"] == "sequence"
     assert cfg["tracker"]["roi"]["enabled"] is True

@@ -41,6 +41,13 @@ def test_the_closed_loop_of_another_target_writes_its_keypoints(weights, tmp_pat
     assert summary["target"]["name"] == "upper_stage" and summary["frames"] == 13
     det = np.load(out / "det.npz")
     assert det["corners_px"].shape == (13, 12, 2) and det["visible"].shape == (13, 12)
+    # det.npz and est.npz say which target they hold, as `envisat track`'s do: the file as typed, its name, sha256
+    # and keypoint names (Target.record)
+    target = load_target(UPPER)
+    record = {"file": UPPER, "name": "upper_stage", "sha256": target.sha256,
+              "keypoint_names": list(target.keypoint_names)}
+    assert json.loads(str(det["config_json"]))["target"] == record
+    assert json.loads(str(np.load(out / "est.npz")["config_json"]))["target"] == record
     truth = np.load(out / "truth.npz")
     assert truth["corners_px"].shape[1:] == (12, 2)  # MuJoCo's truth of the upper stage's 12 keypoints
     # the default scenario's 50 m hold sized to the upper stage, as its generated sequences are
