@@ -39,7 +39,7 @@ world/target_est and world/chaser/camera/image{,/corners_true} above (the true k
     metrics/sigma3/{position_m,attitude_deg}/<axis>, metrics/range_est_m   without a truth: 3 sigma, range
     metrics/nis                                  the tracker's NIS / dof
     metrics/tracker/{status,p_best}              status code (status_legend) and best hypothesis' probability
-    events                                       a line at every change of status
+    events                                       a line at every change of status (lost: the tracker's why)
     description, status_legend                   the run's title; the status codes' names (JSON)
 
 Timelines: `sim_time` (duration, s) and `frame` (sequence: the truth's sample, the filter's step or the dataset's

@@ -73,6 +73,13 @@ def file_batcher() -> rr.ChunkBatcherConfig:
     return rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=FILE_FLUSH_TICK_S), flush_num_rows=FILE_CHUNK_ROWS)
 
 
+def status_event(t_s: float, status: int, events=()) -> str:
+    """The events line of a change to status (code) at t_s: "t = 12.0 s: tracking"; a loss with the tracker's own
+    reason where its events (TrackEstimate.events) give one ("t = 0.0 s: lost: innovations inconsistent: ...")."""
+    why = next((e for e in events if e.startswith("lost: ")), None) if status == LOST else None
+    return f"t = {t_s:.1f} s: {why or STATUS_NAMES[status]}"
+
+
 class TrackRecorder:
     """A tracker's run logged to Rerun as it goes, frame by frame (nothing kept in memory).
 
@@ -147,8 +154,8 @@ class TrackRecorder:
                   x_true: np.ndarray | None = None, corners_true_px: np.ndarray | None = None,
                   in_frame: np.ndarray | None = None) -> None:
         """Frame k: est holds x_hat (12,), P (12, 12), status (int), p_best, nis, nis_dof, corners_px (K, 2),
-        visible (K,), rejected (K,), roi_px (3,) (NaN without); image (H, W) uint8 or None; with a truth, x_true
-        (12,) and the true keypoints corners_true_px (K, 2) where in_frame (K,). K: the target's keypoints."""
+        visible (K,), rejected (K,), roi_px (3,) (NaN without), optionally events (status_event); image (H, W)
+        uint8 or None; with a truth, x_true (12,), true keypoints corners_true_px (K, 2) where in_frame (K,)."""
         import cv2
 
         rec, cam = self.rec, self.camera
@@ -165,7 +172,7 @@ class TrackRecorder:
         self._image_shown = ok
         status = int(est["status"])
         if status != self.status:
-            rec.log("events", rr.TextLog(f"t = {t_s:.1f} s: {STATUS_NAMES[status]}",
+            rec.log("events", rr.TextLog(status_event(t_s, status, est.get("events", ())),
                                          level="WARN" if status == LOST else "INFO"))
             self.status = status
         rec.log("metrics/tracker/status", rr.Scalars(float(status)))

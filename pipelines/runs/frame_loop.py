@@ -85,8 +85,9 @@ def run_frames(tracker, frames: Iterable[FrameInput], rows, recorder=None, jpeg_
     def record(f: FrameInput, est, i: int) -> None:  # before the next store: row i is still in rows.buf
         t0 = time.perf_counter()
         if recorder is not None:
-            recorder.log_frame(f.k, est_row(rows.buf, i, f.t_s), f.image, jpeg_quality, x_true=f.x_true,
-                               corners_true_px=f.corners_true_px, in_frame=f.in_frame)
+            # the tracker's events beside the row: the recording's line at a change of status says why (lost: ...)
+            recorder.log_frame(f.k, est_row(rows.buf, i, f.t_s) | {"events": est.events}, f.image, jpeg_quality,
+                               x_true=f.x_true, corners_true_px=f.corners_true_px, in_frame=f.in_frame)
         rows.buf["timing_s"][i][RECORDING] = time.perf_counter() - t0
         if bar is not None:
             bar.update(1)

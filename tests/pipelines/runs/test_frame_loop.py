@@ -2,6 +2,7 @@
 and recorder: what it stores per frame, the stage times by name, and that the recorder is closed on an error; with
 `overlap`, the same rows, the next frame made while the tracker steps the last, and errors from either side."""
 
+import dataclasses
 import os
 import threading
 
@@ -148,3 +149,28 @@ def test_the_stage_times_by_status_count_every_frame_of_a_chunk(tmp_path):
     by = timing_by_status([sums])
     assert set(by) == {"tracking"}
     assert by["tracking"]["rendering"] == pytest.approx(30.0) and by["tracking"]["detection"] == pytest.approx(250.0)
+
+
+def test_the_recordings_line_for_a_lost_frame_says_why(tmp_path):
+    """The recording's events: a line at each change of status, a loss with the tracker's own reason (its
+    TrackEstimate's "lost: <why>"): a warm start on the upper stage (models/upper_stage_detector.safetensors,
+    default scenario and seed, 20 s) is lost at its first frame by its windowed NIS (100 beyond 58, 16 dof: the
+    detector's keypoints contradict even the exact truth there, NIS 97), and the line read "t = 0.0 s: lost"."""
+    from envisat_pose.analysis.recording import TrackRecorder, read_recording
+    from envisat_pose.geometry import load_camera
+
+    why = "lost: innovations inconsistent: windowed NIS 100 beyond 58 (16 dof)"
+
+    class Losing(FakeTracker):
+        def step(self, t_s, image, window_px=None):
+            est = super().step(t_s, image)
+            if t_s == 0.0:
+                return dataclasses.replace(est, status="lost", x_hat=np.full(12, np.nan), events=(why,))
+            return dataclasses.replace(est, status="acquiring", x_hat=np.full(12, np.nan))
+
+    path = tmp_path / "run.rrd"
+    recorder = TrackRecorder(f"save:{path}", load_camera(), with_truth=False)
+    run_frames(Losing(), frames(2, dark=()), RunRows(str(tmp_path / "run"), 2), recorder)
+    events = read_recording(str(path))[1]["/events"]
+    assert events["TextLog:text"] == [[f"t = 0.0 s: {why}"], ["t = 0.5 s: acquiring"]]
+    assert events["TextLog:level"] == [["WARN"], ["INFO"]]
