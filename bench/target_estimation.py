@@ -22,8 +22,9 @@ Three parts, all peers (ENVISAT, the upper stage, the CubeSat) in one run:
   calls (pipelines/campaigns/estimate.py `estimate`: measurement synthesis, the batched filter, the divergence
   check) on one MuJoCo truth per target (scenario paper-all-0.02), `--speed-runs` runs x `--speed-duration-s`,
   after one warm-up call (numba's kernels loaded, the target's visibility table built); process CPU time and wall
-  time, best of `--speed-repeats` repeats taken in turn over the targets; divided by runs x steps. Floor
-  (issue 55): another target's per-step time within 1.5x ENVISAT's.
+  time, best of `--speed-repeats` repeats taken in turn over the targets; divided by runs x steps; no run may
+  diverge, so a `--speed-duration-s` whose runs end before the divergence monitors are armed (60 steps) is
+  refused. Floor (issue 55): another target's per-step time within 1.5x ENVISAT's.
 
 Floors (issue 55): RMSE/PCRLB in [0.9, 1.1] per block after 300 s, the mean NEES in its band, 100 runs, for the
 upper stage and the CubeSat; ENVISAT's figures unchanged. One BLAS/numba thread in this process (the campaigns'
@@ -103,6 +104,24 @@ def campaign_row(scenario: str, target: str, a, runner, extra: dict | None = Non
             "floor_rmse_over_pcrlb_met": all(FLOOR[0] <= v <= FLOOR[1] for v in ratios.values())}
 
 
+def speed_unjudged(duration_s: float) -> str | None:
+    """Why --speed-duration-s cannot back the speed check's "no run diverged" (its runs end before the divergence
+    monitors are armed, envisat_pose.state.nees_window_judged: the check would hold whatever the filter did), or
+    None where the runs are judged."""
+    from envisat_pose.datagen.scenario import scenario_config
+    from envisat_pose.pipelines.campaigns.estimate import EstimateConfig
+    from envisat_pose.state import nees_window_judged
+
+    scen = scenario_config(SPEED_SCENARIO, duration_s=duration_s)
+    settle = EstimateConfig(scenario=SPEED_SCENARIO).filter.divergence_settle_steps
+    if nees_window_judged(scen.n_out, settle):
+        return None
+    return (f"--speed-duration-s: {duration_s:g} s gives {scen.n_out} steps of {scen.dt_s:g} s ({SPEED_SCENARIO}), "
+            f"which end before step {settle}, where the divergence monitors are armed "
+            f"(filter.divergence_settle_steps): the speed check's \"no run diverged\" would judge nothing; expected "
+            f"at least {settle * scen.dt_s:g} s")
+
+
 def estimate_speed(a) -> dict:
     """Per-run-step time of pipelines.campaigns.estimate.estimate per target, peers in turn (module docstring)."""
     from envisat_pose.datagen.scenario import scenario_config
@@ -167,6 +186,9 @@ def main(argv=None) -> int:
     p.add_argument("--speed-repeats", type=count(), default=10)
     p.add_argument("--out", type=out_file, default=os.path.join(HERE, "results", "target_estimation.json"))
     a = p.parse_args(argv)
+    unjudged = speed_unjudged(a.speed_duration_s)
+    if unjudged:
+        p.error(unjudged)  # before any work: its speed rows would assert a check that checked nothing
     runner = RunnerConfig("local", a.workers, None, thread_env(a.workers, BLAS_THREADS))
 
     speed = estimate_speed(a)
