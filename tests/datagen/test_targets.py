@@ -453,7 +453,8 @@ def test_every_export_format_carries_the_targets_keypoints_and_name(target_files
         out = tmp_path / fmt
         export_dataset(src, str(out), ExportConfig(fmt, val_fraction=0.0), progress=False)
         record = json.loads((out / "export.json").read_text())
-        assert record["target"] == "test_brick" and record["keypoint_names"] == names, fmt
+        assert record["target"]["name"] == "test_brick" and record["keypoint_names"] == names, fmt
+        assert record["target"]["sha256"] == load_target(plain).sha256, fmt
     coco = json.loads((tmp_path / "coco" / "annotations" / "keypoints_train.json").read_text())
     skeleton = [[i + 1, j + 1] for i, j in load_target(plain).skeleton]
     assert coco["categories"][0]["keypoints"] == names and coco["categories"][0]["skeleton"] == skeleton
