@@ -130,7 +130,8 @@ def run_calibrate_cli(args: argparse.Namespace) -> int:
     if model is not None:
         print("\n".join(error_model_lines(model, record)))
     else:
-        print("not every --data folder is a sequence (envisat generate --mode sequence): no error model")
+        print(res["removed_error_model"] or "not every --data folder is a sequence (envisat generate --mode sequence): "
+              "no error model")
     kept = " (kept the file's cov_scale)" if args.keep_scale else ""
     print(f"cov_scale {res['scale']:.4g} (mean e^T C^-1 e 2.00 on {res['corners']} corners){kept}; wrote {args.out}")
     return 0
@@ -149,6 +150,8 @@ def run_calibrate_target_cli(args: argparse.Namespace) -> int:
     print(sigma_table(record))
     if record["error_model"] is not None:  # every --data folder a sequence: the errors' frame-to-frame model
         print("\n".join(error_model_lines(record["error_model"], record["error_model_record"])))
+    if record["removed_error_model"]:  # random views after sequences: the earlier error model is gone
+        print(record["removed_error_model"])
     print(f"{record['calibrated']} of {len(record['count'])} keypoints calibrated ({record['corners']} correct "
           f"detections in {record['frames']} frames); wrote {args.out}")
     return 0

@@ -135,12 +135,16 @@ def check_weights_target(path: str, given: str, field: str = "weights") -> None:
     require_weights_target(path, trained_for(path, meta), given, field)
 
 
-def with_metadata(src: str, dst: str, extra: dict) -> None:
-    """Copy a weights file to dst (atomically) with metadata entries added or replaced (e.g. cov_scale)."""
+def with_metadata(src: str, dst: str, extra: dict, drop: tuple[str, ...] = ()) -> dict[str, str]:
+    """Copy a weights file to dst (atomically) with the keys in drop removed, then extra's entries added or replaced
+    (e.g. cov_scale). drop: the keys a fit owns (perception/weights_keys.py's *_KEYS), so that a refit leaves none
+    of the earlier fit's behind. Returns the entries removed (those of drop src had and extra does not write)."""
     tensors, meta = read_weights(src)
+    removed = {k: meta.pop(k) for k in drop if k in meta and k not in extra}
     for k, v in extra.items():
         meta[k] = v if isinstance(v, str) else json.dumps(v, sort_keys=True)
     write_safetensors(dst, tensors, meta)
+    return removed
 
 
 def load_model(path: str, device: str = "cpu") -> CornerNet:

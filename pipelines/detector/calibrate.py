@@ -181,7 +181,9 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
     be the weights file itself). Returns what was fitted: {"refine": bool, "corners": M, "before", "after":
     calibration_by_group without and with the fit, "scale" or "floor", "record", and, for sequences,
     "error_model" (the ErrorModel) and "error_model_record" (None when not every folder is a sequence),
-    "skipped": the damaged shards left out (cfg.skip_damaged)}."""
+    "skipped": the damaged shards left out (cfg.skip_damaged), "removed_error_model": the line saying an earlier
+    error model was removed (a new scale on data not all sequences), or None}. A new scale replaces the file's
+    whole calibration (weights_keys.COV_CALIBRATION_KEYS), --refine its floor's (REFINE_CALIBRATION_KEYS)."""
     import dataclasses
 
     import numpy as np
@@ -223,7 +225,8 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
                       sum(np.isfinite(f["err_px"][..., 0]).sum() for _, f in per_data), 1))}
         make_out_file_dir(out, "out")  # only now: a refused calibration leaves no folder behind
         with_metadata(cfg.weights, out, {wk.REFINE_FLOOR_KEY: floor,
-                                         wk.REFINE_CALIBRATION_KEY: json.dumps(record, sort_keys=True)})
+                                         wk.REFINE_CALIBRATION_KEY: json.dumps(record, sort_keys=True)},
+                      drop=wk.REFINE_CALIBRATION_KEYS)
         return {"refine": True, "corners": int(len(err)), "before": before, "after": after, "floor": floor,
                 "record": record, "skipped": skipped}
     scale = fit_cov_scale(err, cov)
@@ -244,9 +247,12 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
         meta.update({wk.ERROR_MODEL_KEY: model.to_json(),
                      wk.ERROR_MODEL_RECORD_KEY: json.dumps(model_record, sort_keys=True)})
     make_out_file_dir(out, "out")  # only now: a refused calibration leaves no folder behind
-    with_metadata(cfg.weights, out, meta)
+    # a new scale replaces the earlier calibration's keys, its error model too (kept: the scale, and the error
+    # model unless measured again, which the kept scale's error model belongs to)
+    removed = with_metadata(cfg.weights, out, meta, drop=() if cfg.keep_scale else wk.COV_CALIBRATION_KEYS)
     return {"refine": False, "corners": int(len(err)), "before": before, "after": after, "scale": scale,
-            "record": record, "error_model": model, "error_model_record": model_record, "skipped": skipped}
+            "record": record, "error_model": model, "error_model_record": model_record, "skipped": skipped,
+            "removed_error_model": removed_error_model_line(removed)}
 
 
 @locks_output("out", "calibrate", folder=False)
@@ -290,8 +296,24 @@ def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, l
     record["held_out"] = " ".join(dataset_ref(d) for d in held_paths) or "the odd frames of data"
     record["skipped_damaged_shards"] = skipped + held_skipped
     make_out_file_dir(out, "out")
-    with_metadata(weights, out, {wk.FACE_CUE_KEY: cue.to_json(), wk.FACE_CUE_RECORD_KEY: json.dumps(record, sort_keys=True)})
+    with_metadata(weights, out, {wk.FACE_CUE_KEY: cue.to_json(),
+                                 wk.FACE_CUE_RECORD_KEY: json.dumps(record, sort_keys=True)}, drop=wk.FACE_CUE_KEYS)
     return record
+
+
+def removed_error_model_line(removed: dict[str, str]) -> str | None:
+    """The line saying the earlier calibration's error model was removed (with_metadata's removed entries: a
+    recalibration on data not all sequences), naming what it was measured on; None when none was removed."""
+    if not set(removed) & set(wk.ERROR_MODEL_KEYS):
+        return None
+    try:
+        model = em.ErrorModel.from_json(removed.get(wk.ERROR_MODEL_KEY))
+        what = f"{model.source or 'data it did not record'} ({model.n_frames} frames)"
+    except (ValueError, TypeError):
+        what = "data it did not record (unreadable)"
+    return (f"error model from the earlier calibration removed: measured on sequences of {what} for the fit this "
+            "one replaces; not every --data folder is a sequence, so none is written (the tracker takes the errors "
+            "as white)")
 
 
 def error_model_lines(model, record: dict) -> list[str]:

@@ -49,11 +49,12 @@ from envisat_pose.perception.keypoint_cov import (
 from envisat_pose.perception.weights_keys import (
     ERROR_MODEL_KEY,
     ERROR_MODEL_RECORD_KEY,
+    KEYPOINT_CALIBRATION_KEYS,
     REJECT_KEY,
     SIGMA_KEY,
     SIGMA_RECORD_KEY,
 )
-from envisat_pose.pipelines.detector.calibrate import frame_interval_s, is_sequence
+from envisat_pose.pipelines.detector.calibrate import frame_interval_s, is_sequence, removed_error_model_line
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig
 from envisat_pose.pipelines.detector.evaluate_target import detect_labelled
 from envisat_pose.provenance import dataset_ref
@@ -126,8 +127,10 @@ def sequence_error_model(folders: list[str], skipped: list[str], arrays: dict, p
 def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, progress: bool = False) -> dict:
     """Fit the sigma per keypoint of the keypoint detector in cfg.weights on the held-out folders `data` of
     cfg.target and write out (a copy of the weights with keypoint_sigma_px and keypoint_cov_calibration in its
-    metadata; may be the weights file itself). Returns the record (module doc) with 'corners' (the correct
-    detections) and 'calibrated' (the keypoints given a sigma)."""
+    metadata; may be the weights file itself), replacing the earlier calibration's keys as a whole
+    (weights_keys.KEYPOINT_CALIBRATION_KEYS: an error model measured for other sigmas removed). Returns the record
+    (module doc) with 'corners' (the correct detections), 'calibrated' (the keypoints given a sigma) and
+    'removed_error_model' (the line saying an earlier error model was removed, or None)."""
     from envisat_pose.perception.keypoint_detect import KeypointDetectConfig
     from envisat_pose.perception.keypoint_loss import relabelings
     from envisat_pose.perception.weights import with_metadata
@@ -163,16 +166,18 @@ def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, 
     meta = {} if model is None else {ERROR_MODEL_KEY: model.to_json(),
                                      ERROR_MODEL_RECORD_KEY: json.dumps(json_safe(model_record), sort_keys=True)}
     make_out_file_dir(out, "out")
-    with_metadata(cfg.weights, out, {SIGMA_KEY: json.dumps(clean),
-                                     SIGMA_RECORD_KEY: json.dumps(json_safe(record), sort_keys=True),
-                                     REJECT_KEY: json.dumps(json_safe(curve)), **meta})
+    # the earlier calibration's keys replaced as a whole: its error model, measured for its sigmas, goes with them
+    removed = with_metadata(cfg.weights, out, {SIGMA_KEY: json.dumps(clean),
+                                               SIGMA_RECORD_KEY: json.dumps(json_safe(record), sort_keys=True),
+                                               REJECT_KEY: json.dumps(json_safe(curve)), **meta},
+                            drop=KEYPOINT_CALIBRATION_KEYS)
     calibrated = int(np.isfinite(sigma).sum())
     if calibrated < km.PNP_MIN_POINTS:
         warnings.warn(f"only {calibrated} of {len(sigma)} keypoints calibrated (each needs {MIN_CORRECT} correct "
                       f"detections): the tracker's cold start needs {km.PNP_MIN_POINTS} for PnP, so `track` and "
                       "`run` refuse these weights; calibrate on more held-out frames, or train longer", stacklevel=2)
     return {**record, "corners": int(count.sum()), "calibrated": calibrated, "error_model": model,
-            "error_model_record": model_record}
+            "error_model_record": model_record, "removed_error_model": removed_error_model_line(removed)}
 
 
 def sigma_table(record: dict) -> str:

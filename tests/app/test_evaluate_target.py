@@ -280,6 +280,38 @@ def test_calibrate_on_a_sequence_measures_the_correlation_put_in_and_the_tracker
     assert load_frame_detector(w3, path).error_model.n_frames == 0  # the white default
 
 
+def test_recalibrating_on_random_views_removes_the_earlier_sequence_error_model(box, tmp_path, monkeypatch, capsys):
+    """Weights calibrated on sequences (an error model beside their sigmas), calibrated again on random views: the
+    new sigmas come without the old error model (measured for the old sigmas, it would inflate the tracker's R for
+    errors it no longer describes), and the verb says what it removed; keys no calibration owns stay."""
+    from envisat_pose.perception.errormodel import ErrorModel
+    from envisat_pose.perception.keypoint_detect import load_frame_detector
+    from envisat_pose.perception.weights import read_metadata, with_metadata
+    from envisat_pose.perception.weights_keys import ERROR_MODEL_KEY, ERROR_MODEL_RECORD_KEY, SIGMA_KEY, TARGET_KEY
+
+    path, _, data, weights, labels = box
+    stale = str(tmp_path / "seq_calibrated.safetensors")
+    old = ErrorModel(rho_lag1=0.5, ar1_share=0.6, ar1_phi=0.8, inflation=5.8, n_frames=300,
+                     source="seq (manifest sha256 0123456789abcdef)")
+    with_metadata(weights, stale, {SIGMA_KEY: json.dumps([3.0] * len(NAMES)), ERROR_MODEL_KEY: old.to_json(),
+                                   ERROR_MODEL_RECORD_KEY: json.dumps({"n_frames": 300})})
+    assert load_frame_detector(stale, path).error_model.inflation == 5.8
+    use_oracle(monkeypatch, Oracle(labels, sigma=0.8))
+    w2 = str(tmp_path / "w2.safetensors")
+    assert main(["calibrate", "--target", path, "--weights", stale, "--data", data, "--out", w2, "--quiet"]) == 0
+    meta = read_metadata(w2)
+    assert ERROR_MODEL_KEY not in meta and ERROR_MODEL_RECORD_KEY not in meta
+    assert load_frame_detector(w2, path).error_model.n_frames == 0  # the white default
+    assert json.loads(meta[SIGMA_KEY]) != [3.0] * len(NAMES) and meta[TARGET_KEY] == read_metadata(stale)[TARGET_KEY]
+    said = capsys.readouterr().out
+    assert ("error model from the earlier calibration removed: measured on sequences of seq (manifest sha256 "
+            "0123456789abcdef) (300 frames)") in said
+    # calibrated again on the same random views: nothing left to remove, nothing said
+    w3 = str(tmp_path / "w3.safetensors")
+    assert main(["calibrate", "--target", path, "--weights", w2, "--data", data, "--out", w3, "--quiet"]) == 0
+    assert "removed" not in capsys.readouterr().out
+
+
 class Counting(Oracle):
     """The oracle, counting the frames it is asked about."""
 

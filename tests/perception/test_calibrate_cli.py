@@ -129,6 +129,47 @@ def test_sequence_error_model_written_and_loaded(tmp_path, monkeypatch, capsys):
     assert "rho_lag1" in capsys.readouterr().out
 
 
+def stale_weights(path) -> None:
+    """Untrained weights as calibrated earlier: a scale with an error model measured on sequences beside it, a
+    refinement floor and a face cue (the last two other fits')."""
+    torch.manual_seed(0)  # this test's untrained model (its tensors are copied, never run)
+    save_weights(str(path), CornerNet(ModelConfig(input_px=64, width=16, depth=2, stem_width=8)))
+    model = json.dumps({"cov_scale": 1.5, "inflation": 4.0, "n_frames": 120, "rho_lag1": 0.4,
+                        "source": "roi=coarse; seq (manifest sha256 feedfacefeedface)"})
+    with_metadata(str(path), str(path), {"cov_scale": 1.5, "cov_calibration": json.dumps({"scale": 1.5}),
+                                         "error_model": model, "error_model_record": json.dumps({"n": 120}),
+                                         "refine_cov_floor_px2": 0.08, "face_cue": "{}"})
+
+
+def test_a_new_scale_on_random_views_removes_the_earlier_error_model(tiny_dataset, tmp_path, monkeypatch, capsys):
+    """A new cov_scale fitted on random views replaces the earlier calibration whole: its error model (measured
+    on sequences at the old scale) is removed and the verb says so; the other fits' keys stay. --keep-scale keeps
+    the scale and the error model that belongs to it."""
+    import envisat_pose.perception.detect as pd
+
+    w = tmp_path / "w.safetensors"
+    stale_weights(w)
+    samples = list(camera_samples(shard_paths(tiny_dataset))) * 5
+    for keep, out in ((False, tmp_path / "new.safetensors"), (True, tmp_path / "kept.safetensors")):
+        det = NoisyLabelDetector(0)
+        det.labels = {i: s[2] for i, s in enumerate(samples)}
+        monkeypatch.setattr(pd, "load_detector", lambda *a, **k: det)
+        assert main(["calibrate", "--weights", str(w), "--data", *[tiny_dataset] * 5, "--out", str(out), "--quiet",
+                     "--threads", "1", *(["--keep-scale"] if keep else [])]) == 0
+        monkeypatch.undo()
+        meta, said = read_metadata(str(out)), capsys.readouterr().out
+        assert meta["refine_cov_floor_px2"] == "0.08" and meta["face_cue"] == "{}"
+        if keep:
+            assert meta["cov_scale"] == "1.5" and "error_model" in meta and "error_model_record" in meta
+            assert "removed" not in said
+            continue
+        assert abs(float(meta["cov_scale"]) - 9.0) < 0.3 * 9.0
+        assert "error_model" not in meta and "error_model_record" not in meta
+        assert pd.weights_error_model(str(out)).n_frames == 0  # the white default
+        assert ("error model from the earlier calibration removed: measured on sequences of roi=coarse; seq "
+                "(manifest sha256 feedfacefeedface) (120 frames)") in said
+
+
 class RefinedLabelDetector:
     """Test double for --refine: the label's usable corners; the even-numbered ones 'refined' with errors of
     sigma 0.3 px claiming sigma 0.1 px (a floor of 0.09 - 0.01 = 0.08 px^2 makes them honest), the others with

@@ -146,3 +146,18 @@ def test_the_same_weights_are_the_same_bytes(weights, tmp_path):
         assert set(f.keys()) == set(state) and all(torch.equal(f.get_tensor(k), state[k]) for k in state)
     header_len = int.from_bytes((tmp_path / "w0.safetensors").read_bytes()[:8], "little")
     assert header_len % 8 == 0
+
+
+def test_with_metadata_drops_the_keys_a_fit_owns_and_returns_them(weights, tmp_path):
+    """drop removes the keys a fit owns that it does not write again (returned with their old values); those it
+    writes are replaced, and the keys of no fit in drop stay."""
+    from envisat_pose.perception.weights import read_metadata, with_metadata
+
+    _, path = weights
+    old, new = str(tmp_path / "old.safetensors"), str(tmp_path / "new.safetensors")
+    with_metadata(str(path), old, {"cov_scale": 1.5, "error_model": "{}", "face_cue": "cue"})
+    removed = with_metadata(old, new, {"cov_scale": 2.0}, drop=("cov_scale", "error_model", "error_model_record"))
+    assert removed == {"error_model": "{}"}
+    meta = read_metadata(new)
+    assert meta["cov_scale"] == "2.0" and meta["face_cue"] == "cue" and "error_model" not in meta
+    assert with_metadata(new, new, {"x": 1}) == {} and read_metadata(new)["cov_scale"] == "2.0"
