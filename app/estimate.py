@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="run the UKF on a truth trajectory (R Monte Carlo runs) and write est.npz",
         description="Estimate the relative pose of the tumbling target with the batched UKF over R Monte Carlo runs "
         "(runs differ in the initial error drawn from P0 and in measurement noise) and write est.npz: t_s, x_true, "
-        "x_hat, P, n_meas, nis, nis_dof, diverged, config_json.",
+        "x_hat, P, n_meas, nis, nis_dof, diverged, judged (whether the divergence rule judged the run), config_json.",
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--truth", metavar="RUN.npz", help="truth trajectory written by `envisat simulate`")
@@ -93,7 +93,8 @@ def resolve_config(args: argparse.Namespace) -> EstimateConfig:
 def summary(arrays: dict, fcfg: FilterConfig) -> str:
     """Errors over the second half of the run: RMS position (cm) and attitude angle (deg), ANEES; the diverged
     runs, and how many of them the filter flagged alone (its NIS monitor or a failed update: nis_alarms_alone);
-    runs too short for the divergence rule counted apart (unjudged_runs), never as not diverged."""
+    runs the rule did not judge (est.npz's judged; arrays without it: unjudged_runs) counted apart, never as not
+    diverged."""
 
     t_s = arrays["t_s"]
     T = t_s.shape[0]
@@ -101,7 +102,8 @@ def summary(arrays: dict, fcfg: FilterConfig) -> str:
     e = error_summary(t_s, arrays["x_true"], arrays["x_hat"], after_s=float(t_s[T // 2]) if T else 0.0)
     nees_rt = nees(arrays["x_true"], arrays["x_hat"], arrays["P"], fcfg.sigma_chart)
     alone = int(nis_alarms_alone(arrays["diverged"], nees_rt, fcfg).sum())
-    unjudged = int(unjudged_runs(arrays["diverged"], T, fcfg).sum())
+    judged = arrays.get("judged")
+    unjudged = int(unjudged_runs(arrays["diverged"], T, fcfg).sum() if judged is None else (~judged).sum())
     return (f"after t = {e['after_s']:.0f} s: RMS position error {100 * e['position_m']['rms_after']:.3f} cm, RMS "
             f"attitude error {e['attitude_deg']['rms_after']:.4f} deg, mean NEES {nees_rt[:, late].mean():.2f} (12 "
             f"expected); diverged runs {int(arrays['diverged'].sum())}/{len(arrays['diverged'])}"

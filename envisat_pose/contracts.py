@@ -312,6 +312,10 @@ class Estimates(_Contract):
     status: optional (R, T) the tracker's status code per row (envisat_pose.status; a file stores its legend as
     JSON in `status_legend`): x_hat and P are NaN on rows whose status holds no estimate (acquiring, lost) and
     finite on the others; absent (None), every row is an estimate.
+    judged: optional (R,) bool, whether the divergence rule judged the run (`envisat estimate`: False for a run
+    unflagged that ended before the monitors were armed, its diverged False meaning "not judged", never "not
+    diverged"; a flagged run is judged). Absent (None: a file before the field, or the tracker's runs, whose
+    diverged is a loss seen over every frame), every run counts as judged (judged_runs).
     """
 
     t_s: np.ndarray
@@ -324,9 +328,10 @@ class Estimates(_Contract):
     diverged: np.ndarray
     config_json: str
     status: np.ndarray | None = None
+    judged: np.ndarray | None = None
 
     KIND: ClassVar[str] = "estimates"
-    OPTIONAL: ClassVar[dict[str, _Spec]] = {"status": ("i", ("R", "T"), None)}
+    OPTIONAL: ClassVar[dict[str, _Spec]] = {"status": ("i", ("R", "T"), None), "judged": ("b", ("R",), None)}
     SPEC: ClassVar[dict[str, _Spec]] = {
         "t_s": ("f", ("T",), "finite"),
         "x_true": ("f", ("R", "T", 12), "finite_or_absent"),
@@ -343,6 +348,13 @@ class Estimates(_Contract):
             if np.any((self.status < 0) | (self.status >= len(STATUSES))):
                 raise ContractError(f"{path}: 'status' holds codes outside 0..{len(STATUSES) - 1} "
                                     "(envisat_pose.status)")
+        if self.judged is not None and np.any(self.diverged & ~self.judged):
+            first = int(np.flatnonzero(self.diverged & ~self.judged)[0])
+            raise ContractError(f"{path}: run {first} is 'diverged' but not 'judged' (a flagged run was judged)")
+
+    def judged_runs(self) -> np.ndarray:
+        """(R,) bool: the runs the divergence rule judged (`judged`; all of them in a file without it)."""
+        return np.ones(len(self.diverged), bool) if self.judged is None else np.asarray(self.judged, bool)
 
     def extras(self) -> dict:
         if self.status is None:

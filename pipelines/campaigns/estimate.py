@@ -28,7 +28,14 @@ from envisat_pose.datagen.scenario import (
     scenario_eclipse,
     scenario_of_truth,
 )
-from envisat_pose.filtering.estimator import FilterConfig, chaser_states, diverged_against_truth, nees, run_filter
+from envisat_pose.filtering.estimator import (
+    FilterConfig,
+    chaser_states,
+    diverged_against_truth,
+    nees,
+    run_filter,
+    unjudged_runs,
+)
 from envisat_pose.filtering.filter_config import SIGMA_MIN
 from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, make_run_inputs, truth_measurements
 from envisat_pose.geometry import load_geometry
@@ -290,7 +297,8 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
     """Filter cfg.runs runs of a truth trajectory; returns the arrays of est.npz (without config_json).
 
     Arrays: t_s (T,), x_true (R, T, 12), x_hat (R, T, 12), P (R, T, 12, 12), n_meas (R, T), nis (R, T), nis_dof (R, T),
-    diverged (R,) (NIS window or NEES window against the truth).
+    diverged (R,) (NIS window or NEES window against the truth), judged (R,) (whether the rule judged the run:
+    False for one unflagged that ended before the monitors were armed, filtering.estimator.unjudged_runs).
     """
 
     mu_m3_s2, gravity_gradient = onboard_physics(truth)
@@ -328,6 +336,7 @@ def estimate(truth, cfg: EstimateConfig, progress: bool = False) -> dict:
         "nis": res.nis,
         "nis_dof": res.dof,
         "diverged": diverged,
+        "judged": ~unjudged_runs(diverged, T, fcfg),  # a short run's diverged False is "not judged"
     }
 
 

@@ -6,8 +6,13 @@ were not judged converged."""
 
 import json
 
+import numpy as np
+import pytest
+
 from envisat_pose.app.cli import main
 from envisat_pose.app.montecarlo import sweep_line
+from envisat_pose.contracts import ContractError, Estimates
+from envisat_pose.io import save_npz
 from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig
 from envisat_pose.pipelines.campaigns.report import campaign_rows, render_sweep
 from envisat_pose.pipelines.campaigns.sweep import SweepConfig, sweep_result
@@ -30,8 +35,32 @@ def test_a_campaign_ending_before_the_settle_steps_counts_its_runs_apart(tmp_pat
 
 
 def test_estimate_says_its_runs_were_not_judged(tmp_path, capsys):
-    assert main(["estimate", *SHORT, "--out", str(tmp_path / "est.npz")]) == 0
+    """The line says so, and est.npz too: its diverged False beside judged False (a reader of the file alone told
+    these runs from converged ones by nothing); a file without judged (written before it) still loads, every run
+    taken as judged; a flagged run stored as not judged is refused."""
+    est = tmp_path / "est.npz"
+    assert main(["estimate", *SHORT, "--out", str(est)]) == 0
     assert "diverged runs 0/2, 2 not judged (their 41 steps end before step 60" in capsys.readouterr().out
+    loaded = Estimates.load(str(est))
+    assert loaded.diverged.tolist() == [False, False] and loaded.judged.tolist() == [False, False]
+    assert loaded.judged_runs().tolist() == [False, False]
+    old = {k: v for k, v in loaded.arrays().items() if k != "judged"}
+    save_npz(str(tmp_path / "old.npz"), old | {"config_json": np.array(loaded.config_json)})
+    before = Estimates.load(str(tmp_path / "old.npz"))
+    assert before.judged is None and before.judged_runs().tolist() == [True, True]
+    save_npz(str(tmp_path / "bad.npz"), old | {"config_json": np.array(loaded.config_json),
+                                               "diverged": np.array([False, True]), "judged": np.array([True, False])})
+    with pytest.raises(ContractError, match="run 1 is 'diverged' but not 'judged'"):
+        Estimates.load(str(tmp_path / "bad.npz"))
+
+
+def test_estimate_after_its_settle_steps_stores_its_runs_judged(tmp_path):
+    cfg = tmp_path / "settle.toml"
+    cfg.write_text("[filter]\ndivergence_settle_steps = 10\n")
+    est = tmp_path / "est.npz"
+    assert main(["estimate", *SHORT, "--config", str(cfg), "--out", str(est)]) == 0
+    loaded = Estimates.load(str(est))
+    assert loaded.diverged.tolist() == [True, True] and loaded.judged.tolist() == [True, True]
 
 
 def test_a_short_campaign_after_its_settle_steps_is_judged(tmp_path, capsys):
