@@ -323,12 +323,12 @@ def filter_step(state: FilterState, meas: Measurement, setup: FilterSetup,
         Q_adapt = np.where(used[:, None, None], a * Q_adapt + (1 - a) * Ky[:, :, None] * Ky[:, None, :], Q_adapt)
     locked, confirmed, rejected = lockout_step(state.locked, state.confirmed, mask_k, accepted,
                                                POSE_CORNERS[setup.kind], state.k > 0)
-    # divergence monitor: windowed NIS against its chi-square bound
+    # divergence monitor: windowed NIS against its chi-square bound, armed at step max(settle, W - 1) as the NEES rule
     W, k = cfg.divergence_window, state.k
     win_nis, win_dof = state.win_nis.copy(), state.win_dof.copy()
     win_nis[k % W] = nis
     win_dof[k % W] = dof
-    if k + 1 >= max(W, cfg.divergence_settle_steps):
+    if k >= max(cfg.divergence_settle_steps, W - 1):  # k: this step's index (0-based), as the NEES rows
         d = win_dof.sum(0)
         bound = np.where(d > 0, _nis_bound(cfg.divergence_prob, np.maximum(d, 1)), np.inf)
         diverged = diverged | (win_nis.sum(0) > bound)
@@ -432,9 +432,9 @@ def diverged_against_truth(nis_diverged: np.ndarray, nees_rt: np.ndarray, cfg: F
     assumes independent steps) would raise false alarms; the NIS monitor (white innovations) uses one.
 
     A run too short for a whole window is judged on the window it holds, shortened to the run; one that ends
-    before step cfg.divergence_settle_steps is not judged by the NEES (its NIS monitor, armed from step
-    max(window, settle_steps) - 1, at most at its last step): False here unless flagged, and `unjudged_runs` counts
-    it apart, never as "not diverged".
+    before step cfg.divergence_settle_steps is not judged (nor by its NIS monitor, armed from step
+    max(settle_steps, window - 1) as the NEES rule; a failed update flags it at any step): False here unless
+    flagged, and `unjudged_runs` counts it apart, never as "not diverged".
 
     nis_diverged (R,) bool (FilterResult.diverged, FilterState.diverged); nees_rt (R, T) (`nees`). Returns (R,) bool.
     """

@@ -67,7 +67,8 @@ class FilterConfig(Config):
     outage_q_scale: Q multiplier while a run gets no measurement.
     divergence_window: steps in the NIS window; divergence_prob: false-alarm probability of one window;
     nees_divergence_factor: with a known truth, a window mean NEES above this x 12 also flags divergence.
-    divergence_settle_steps: the monitors are armed after this many steps (the initial transient, where P0's
+    divergence_settle_steps: the monitors are armed after this many steps, from step max(settle, window - 1)
+    (0-based; the NIS window's and the NEES window's alike) (the initial transient, where P0's
     10 deg attitude uncertainty makes the unscented transform optimistic, is not a divergence).
     The default q_sigma suits a torque-free truth; with the gravity-gradient torque raise the w_r term
     (~1e-5 rad/s^2 at most) or switch on adaptive_q.

@@ -260,3 +260,32 @@ def test_a_released_run_never_confirmed_is_updated_from_its_prior_plus_p0(truth_
         np.testing.assert_allclose(out.cov[r], ref["cov"][0], rtol=1e-6, atol=1e-15)
         assert out.n_meas[r] == ref["accepted"][0].sum()
     assert out.n_meas[0] == out.n_meas[1] == mask[0].sum() and out.n_meas[2] == out.n_meas[3] == 0
+
+
+def _nis_monitor_flags_at(k: int, cfg: FilterConfig) -> bool:
+    """Whether the NIS monitor flags a run at step k (0-based, the row of run_filter's outputs) whose window is
+    full of NIS far above its bound: the step itself measures nothing, so only the arming decides."""
+    x0 = np.array([[0.0, -50.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.01]])
+    chaser = np.array([7.0e6, 0.0, 0.0, 1.1e-3])
+    state = dataclasses.replace(init_state(x0, cfg.P0, 0.0, chaser, cfg), k=k,
+                                win_nis=np.full((cfg.divergence_window, 1), 1e9),
+                                win_dof=np.full((cfg.divergence_window, 1), 3, dtype=np.int64))
+    meas = Measurement(1.0, chaser, np.zeros((1, 8, 3)), np.zeros((1, 8), bool), np.eye(3))
+    return bool(filter_step(state, meas, make_setup(cfg, "markers3d")).diverged[0])
+
+
+def test_the_nis_and_nees_monitors_are_armed_at_the_same_step():
+    """Both divergence monitors are armed at step max(settle, window - 1) (0-based): the first step after the
+    divergence_settle_steps settle steps that closes a whole window. The NIS monitor was armed one step earlier
+    (k + 1 >= max(window, settle): a count of steps against an index) than the NEES rule and nees_window_judged.
+    With settle < window - 1 a short run's NEES is judged on its one window, shortened (no chi-square bound for
+    the NIS on a part window), so the steps are compared from settle >= window - 1 up."""
+    from envisat_pose.state import nees_window_diverged, nees_window_judged
+
+    for window, settle in ((30, 60), (5, 10), (5, 5), (5, 4)):
+        cfg = FilterConfig(divergence_window=window, divergence_settle_steps=settle)
+        nis_armed = next(k for k in range(100) if _nis_monitor_flags_at(k, cfg))
+        nees_armed = next(T for T in range(1, 100)
+                          if nees_window_diverged(np.full((1, T), 1e9), window, settle, 10.0)[0]) - 1
+        assert nis_armed == nees_armed == max(settle, window - 1), (window, settle, nis_armed, nees_armed)
+        assert nees_window_judged(nis_armed + 1, settle) and not nees_window_judged(settle, settle)
