@@ -7,6 +7,7 @@ import argparse
 import json
 
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, check_rrd_output, skipped_line
+from envisat_pose.datagen.dataset import DEPRECATED_CORNER_KEYS, verify_dataset
 from envisat_pose.pipelines.datasets.export import ExportConfig, export_dataset
 from envisat_pose.pipelines.datasets.inspect import OUTPUT_KEYS, inspect_dataset
 from envisat_pose.pools import usable_cores
@@ -20,12 +21,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     v = dsub.add_parser("verify", help="report missing, partial or corrupt shards (exit 1 if any)")
     v.add_argument("dir", metavar="DIR")
     v.set_defaults(func=run_verify_cli)
-    i = dsub.add_parser("inspect", help="print statistics and write a montage PNG with the labelled corners")
+    i = dsub.add_parser("inspect", help="print statistics and write a montage PNG with the labelled keypoints "
+                        "(ENVISAT's: its corners)")
     i.add_argument("dir", metavar="DIR")
     i.add_argument("--montage", metavar="FILE.png", help="montage path (default DIR/montage.png)")
     i.add_argument("--count", type=int, default=16, help="images in the montage (default 16)")
     i.add_argument("--rrd", metavar="FILE.rrd", help="also write the first --count samples as a Rerun recording: "
-                   "images with labelled corners, masks, depth (`envisat view FILE`)")
+                   "images with labelled keypoints, masks, depth (`envisat view FILE`)")
     i.add_argument("--target", metavar="FILE.xml", help="with --rrd: the dataset's target file, where the path its "
                    "manifest records is not found from here (its sha256 must match)")
     add_skip_damaged_argument(i)
@@ -53,8 +55,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_verify_cli(args: argparse.Namespace) -> int:
-    from envisat_pose.datagen.dataset import verify_dataset
-
     problems = verify_dataset(args.dir)
     for line in problems:
         print(f"PROBLEM {line}")
@@ -71,12 +71,30 @@ def run_inspect_cli(args: argparse.Namespace) -> int:
     with skip_hint():
         result = inspect_dataset(args.dir, args.montage, args.count, args.rrd, args.skip_damaged, args.target)
     print(json.dumps({k: v for k, v in result.items() if k not in OUTPUT_KEYS}, indent=1))
+    for line in stats_lines(result):
+        print(line)
     print(f"wrote {result['montage']} ({result['montage_images']} images)")
     if args.rrd:
         print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
     if result.get("skipped_damaged_shards"):
         print(skipped_line(result["skipped_damaged_shards"]))
     return 0
+
+
+def stats_lines(stats: dict) -> list[str]:
+    """The statistics in words: the keypoints per image, as the labels call them ("corners (of 8)": ENVISAT's A-H;
+    "keypoints (of K)"), and the deprecated keys the JSON holds (DEPRECATED_CORNER_KEYS)."""
+    hist = stats.get("visible_keypoints_histogram")
+    if not hist:
+        return []
+    visible = sum(i * c for i, c in enumerate(hist)) / sum(hist)
+    lines = [f"{stats['keypoints_noun']} (of {len(hist) - 1}) per image: {visible:.2f} visible, "
+             f"{stats['in_frame_keypoints_mean']:.2f} in frame, on average"]
+    old = [key for key in DEPRECATED_CORNER_KEYS if key in stats]
+    if old:
+        lines.append(f"deprecated: {', '.join(old)}, the same as {', '.join(DEPRECATED_CORNER_KEYS[k] for k in old)} "
+                     "(ENVISAT's old names, kept for this release only)")
+    return lines
 
 
 def run_export_cli(args: argparse.Namespace) -> int:

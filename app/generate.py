@@ -14,9 +14,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     g = sub.add_parser(
         "generate",
         help="render labelled, corrupted images of ENVISAT (or another --target) into WebDataset shards",
-        description="Render images of the tumbling target with MuJoCo (off-screen), label them (corners, "
-        "visibility by ray casts through the target, pose, mask, depth), corrupt them, and write tar shards plus "
-        "manifest.json. Running it again on the same --out finishes an interrupted dataset.",
+        description="Render images of the tumbling target with MuJoCo (off-screen), label them (keypoints: "
+        "ENVISAT's corners A-H or another target's kp_ sites; visibility by ray casts through the target, pose, "
+        "mask, depth), corrupt them, and write tar shards plus manifest.json. Running it again on the same --out "
+        "finishes an interrupted dataset.",
     )
     g.add_argument("--config", metavar="FILE.toml", help="generate config (keys of GenerateConfig; tables [random], [sequence], [corruption], ...)")
     g.add_argument("--mode", help="random (domain-randomized views) or sequence (frames of a simulated truth)")

@@ -10,6 +10,7 @@ import numpy as np
 
 from envisat_pose.config import InputError
 from envisat_pose.datagen.corrupt import apply_corruption
+from envisat_pose.datagen.labels import label_points_noun
 from envisat_pose.datagen.shards import SHARD_GLOB, decode_png, encode_png, shard_name
 from envisat_pose.geometry import CORNER_NAMES, EDGES
 from envisat_pose.io import atomic_path
@@ -112,16 +113,26 @@ def sample_png(members: dict[str, bytes], label: dict | None = None) -> bytes:
     return encode_png(sample_image(members, label))
 
 
+# ENVISAT's old names of the keypoint statistics, kept beside them for its datasets for one release (deprecated)
+DEPRECATED_CORNER_KEYS = {"visible_corners_histogram": "visible_keypoints_histogram",
+                          "in_frame_corners_mean": "in_frame_keypoints_mean"}
+
+
 def dataset_stats(source: str | list[str]) -> dict:
-    """Statistics over every label: counts, range, visible and in-frame corners (the histogram: K + 1 bins, 0 to
-    the target's K keypoints), eclipses, corruption levels. source: a dataset folder or its checked shard files."""
+    """Statistics over every label: counts, range, visible and in-frame keypoints (the histogram: K + 1 bins, 0 to
+    the target's K keypoints), eclipses, corruption levels; keypoints_noun: what the labels call their points
+    ("corners": ENVISAT's A-H, whose statistics also keep their deprecated corner-named keys, DEPRECATED_CORNER_KEYS;
+    "keypoints": a target whose labels name them, labels.label_names_keypoints). source: a dataset folder or its
+    checked shard files."""
     ranges, n_vis, n_frame, eclipse, earth, k = [], [], [], 0, 0, 0
     levels: dict[str, dict[str, int]] = {}
+    nouns = set()
     for _, lab, _ in iter_samples(source):
         ranges.append(float(np.linalg.norm(lab["t_cam_from_target_m"])))
         n_vis.append(int(np.sum(lab["visible"])))
         k = max(k, len(lab["visible"]))
         n_frame.append(int(np.sum(lab["in_frame"])))
+        nouns.add(label_points_noun(lab))
         scene = lab.get("scene", {})
         eclipse += bool(scene.get("eclipse"))
         earth += bool(scene.get("earth_backdrop"))
@@ -135,11 +146,15 @@ def dataset_stats(source: str | list[str]) -> dict:
     if n == 0:
         return {"samples": 0}
     r = np.array(ranges)
+    points = {"keypoints_noun": "keypoints" if "keypoints" in nouns else "corners",
+              "visible_keypoints_histogram": np.bincount(n_vis, minlength=k + 1).tolist(),
+              "in_frame_keypoints_mean": float(np.mean(n_frame))}
+    if points["keypoints_noun"] == "corners":
+        points |= {old: points[new] for old, new in DEPRECATED_CORNER_KEYS.items()}
     return {
         "samples": n,
         "range_m": {"min": float(r.min()), "mean": float(r.mean()), "max": float(r.max())},
-        "visible_corners_histogram": np.bincount(n_vis, minlength=k + 1).tolist(),
-        "in_frame_corners_mean": float(np.mean(n_frame)),
+        **points,
         "eclipse_fraction": eclipse / n,
         "earth_backdrop_fraction": earth / n,
         "corruption_levels": {k: dict(sorted((str(a), b) for a, b in v.items())) for k, v in sorted(levels.items())},

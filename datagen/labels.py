@@ -32,6 +32,17 @@ def encode_depth(depth_m: np.ndarray, depth_scale_m: float) -> np.ndarray:
     return code
 
 
+def label_names_keypoints(label: dict) -> bool:
+    """Whether a label names its keypoints (keypoint_names, keypoints_px): written for a Target whose
+    labels_name_keypoints; else the shard contract's corners_px with A-H implied (ENVISAT's, make_label)."""
+    return "keypoint_names" in label
+
+
+def label_points_noun(label: dict) -> str:
+    """What text calls a label's points: "keypoints" where it names them (label_names_keypoints), "corners"."""
+    return "keypoints" if label_names_keypoints(label) else "corners"
+
+
 def _round_list(a: np.ndarray, ndigits: int) -> list:
     """A JSON-ready nested list with values rounded (stable text, no float noise in the last digit)."""
     return np.round(np.asarray(a, dtype=float), ndigits).tolist()

@@ -340,7 +340,7 @@ def test_inspect_prints_stats_and_writes_a_montage(reference, tmp_path, capsys):
     assert envisat_main(["dataset", "inspect", out, "--montage", str(montage), "--count", "4"]) == 0
     text = capsys.readouterr().out
     stats = json.loads(text[: text.rindex("}") + 1])
-    assert stats["samples"] == 6 and sum(stats["visible_corners_histogram"]) == 6
+    assert stats["samples"] == 6 and sum(stats["visible_keypoints_histogram"]) == 6
     assert 20.0 <= stats["range_m"]["min"] <= stats["range_m"]["max"] <= 80.0  # range_min_m, range_max_m
     img = cv2.imread(str(montage))
     assert img.shape == (512, 512, 3)

@@ -158,15 +158,18 @@ def test_a_val_fraction_for_bop_is_one_line(small, tmp_path, capsys):
     assert os.listdir(tmp_path) == []
 
 
-def _label_shard(path, visible_lists):
-    """A shard of samples whose labels hold what dataset_stats reads, one per list of visible flags."""
+def _label_shard(path, visible_lists, named=True):
+    """A shard of samples whose labels hold what dataset_stats reads, one per list of visible flags; named: the
+    labels name their keypoints (another target's), else ENVISAT's corners_px."""
     import io
     import tarfile
 
     with tarfile.open(path, "w") as tar:
         for i, visible in enumerate(visible_lists):
+            points = {"keypoint_names": [f"k{j}" for j in range(len(visible))], "keypoints_px": [[1.0, 2.0]] *
+                      len(visible)} if named else {"corners_px": [[1.0, 2.0]] * len(visible)}
             label = {"t_cam_from_target_m": [0.0, 0.0, 5.0], "visible": visible, "in_frame": [True] * len(visible),
-                     "scene": {}, "corruption": {"model": "none"}}
+                     "scene": {}, "corruption": {"model": "none"}, **points}
             for suffix, data in (("json", json.dumps(label).encode()), ("png", b"not read")):
                 info = tarfile.TarInfo(f"{i:09d}.{suffix}")
                 info.size = len(data)
@@ -178,9 +181,50 @@ def test_the_visible_keypoints_histogram_has_a_bin_for_each_count_of_the_targets
     from envisat_pose.datagen.dataset import dataset_stats
 
     twelve = _label_shard(tmp_path / "cubesat.tar", [[False] * 12, [True] * 3 + [False] * 9])
-    assert dataset_stats([twelve])["visible_corners_histogram"] == [1, 0, 0, 1] + [0] * 9  # 0 to 12 visible
-    eight = _label_shard(tmp_path / "envisat.tar", [[True] * 8])
-    assert dataset_stats([eight])["visible_corners_histogram"] == [0] * 8 + [1]
+    assert dataset_stats([twelve])["visible_keypoints_histogram"] == [1, 0, 0, 1] + [0] * 9  # 0 to 12 visible
+    eight = _label_shard(tmp_path / "envisat.tar", [[True] * 8], named=False)
+    assert dataset_stats([eight])["visible_keypoints_histogram"] == [0] * 8 + [1]
+
+
+def test_the_statistics_name_keypoints_and_keep_the_corner_keys_for_envisats_labels_only(tmp_path):
+    """Another target's labels have keypoints, not corners: its statistics have no corner-named key and say
+    "keypoints (of K)"; ENVISAT's keep the old corner keys beside (the same values), said to be deprecated."""
+    from envisat_pose.app.dataset import stats_lines
+    from envisat_pose.datagen.dataset import dataset_stats
+
+    other = dataset_stats([_label_shard(tmp_path / "o.tar", [[True] * 12, [True] * 2 + [False] * 10])])
+    assert other["keypoints_noun"] == "keypoints" and other["in_frame_keypoints_mean"] == 12.0
+    assert not [key for key in other if "corner" in key], other
+    assert stats_lines(other) == ["keypoints (of 12) per image: 7.00 visible, 12.00 in frame, on average"]
+    envisat = dataset_stats([_label_shard(tmp_path / "e.tar", [[True] * 8, [True] * 4 + [False] * 4], named=False)])
+    assert envisat["keypoints_noun"] == "corners"
+    assert envisat["visible_corners_histogram"] == envisat["visible_keypoints_histogram"] == [0] * 4 + [1, 0, 0, 0, 1]
+    assert envisat["in_frame_corners_mean"] == envisat["in_frame_keypoints_mean"] == 8.0
+    first, deprecated = stats_lines(envisat)
+    assert first == "corners (of 8) per image: 6.00 visible, 8.00 in frame, on average"
+    assert deprecated.startswith("deprecated: visible_corners_histogram, in_frame_corners_mean, the same as "
+                                 "visible_keypoints_histogram, in_frame_keypoints_mean"), deprecated
+    assert stats_lines(dataset_stats([])) == []
+
+
+def test_inspect_prints_another_targets_keypoints_and_envisats_corners(small, tmp_path, capsys):
+    cfg = from_dict(GenerateConfig, {**SMALL, "num_images": 2, "target": "models/cubesat_3u.xml"})
+    run_generate(cfg, str(tmp_path / "cubesat"))
+    for folder, said, unsaid in ((str(tmp_path / "cubesat"), "keypoints (of ", "corner"),
+                                 (small["done"], "corners (of 8) per image", None)):
+        assert envisat_main(["dataset", "inspect", folder, "--montage", str(tmp_path / "m.png"), "--count", "1"]) == 0
+        out = capsys.readouterr().out
+        assert said in out and (unsaid is None or unsaid not in out), out
+    assert "deprecated: visible_corners_histogram" in out
+    help_text = envisat_main_help(["dataset", "inspect"], capsys) + envisat_main_help(["generate"], capsys)
+    assert "corner" not in help_text.replace("ENVISAT's corners", "").replace("its corners", ""), help_text
+
+
+def envisat_main_help(verb, capsys) -> str:
+    """The --help text of a verb (argparse exits 0 after printing it)."""
+    with pytest.raises(SystemExit):
+        envisat_main([*verb, "--help"])
+    return capsys.readouterr().out
 
 
 @pytest.mark.parametrize("count", ["0", "-3"])
