@@ -220,6 +220,34 @@ def test_gray_and_alpha_are_composited_over_black(tmp_path):
         assert out[0, 0] == 200 and out[0, W // 2] == round(200 * 64 / 255) and out[0, -1] == 0
 
 
+def test_a_16_bit_gray_alpha_png_is_its_8_bit_equivalent_within_rounding(tmp_path):
+    """A PNG of colour type 4 at 16 bits (gray and alpha, big-endian: OpenCV writes none) reads as its 8-bit twin
+    (every value x 257) does: composited over black at 16 bits, within half an 8-bit level plus the 16-bit rounding,
+    and the frames `envisat track` uses (scaled to 8 bits from the detected 16 bits) within one level; a fully
+    opaque or fully transparent pixel exactly."""
+    rng = np.random.default_rng(5)
+    gray8, alpha8 = rng.integers(0, 256, (2, H, W), dtype=np.uint8)
+    alpha8[:4], alpha8[4:8] = 255, 0
+    gray8[0, 0] = 255  # the 16-bit frames' full scale: their bit depth detected as 16
+    for bits, (g, a) in ((8, (gray8, alpha8)), (16, (gray8.astype(">u2") * 257, alpha8.astype(">u2") * 257))):
+        (tmp_path / f"f{bits}").mkdir()
+        rows = [r.tobytes() for r in np.dstack([g, a])]
+        (tmp_path / f"f{bits}" / "000.png").write_bytes(png_file(W, H, bits, 4, rows))
+    eight, sixteen = read_gray(str(tmp_path / "f8" / "000.png")), read_gray(str(tmp_path / "f16" / "000.png"))
+    assert eight.dtype == np.uint8 and sixteen.dtype == np.uint16 and sixteen.shape == (H, W)
+    assert np.abs(sixteen / 257 - gray8.astype(float) * alpha8 / 255).max() <= 0.5 / 257 + 1e-9
+    assert np.abs(sixteen / 257 - eight).max() <= 0.5 + 0.5 / 257 + 1e-9
+    np.testing.assert_array_equal(sixteen[:8], eight[:8].astype(np.uint16) * 257)  # opaque, then transparent: 0
+    frames = []
+    for bits in (8, 16):
+        source = open_source(str(tmp_path / f"f{bits}"), 1.0)
+        scan_source(source)
+        frames.append(next(source.frames())[1])
+    assert source.bit_depth == 16 and frames[1].dtype == np.uint8
+    assert np.abs(frames[1].astype(int) - frames[0]).max() <= 1
+    np.testing.assert_array_equal(frames[1][:8], frames[0][:8])
+
+
 def test_a_tiffs_premultiplied_colour_is_not_multiplied_twice(tmp_path):
     """An 8-bit TIFF's unassociated alpha (ExtraSamples 2) comes premultiplied from OpenCV's reader (libtiff's
     RGBA), associated alpha (1) is stored so; a 16-bit TIFF's unassociated alpha comes as stored."""
