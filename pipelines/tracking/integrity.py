@@ -160,10 +160,10 @@ def fit_problems(fit, frames: int, cfg, min_corners: int, share: float = DEFAULT
     out = []
     p = rejections_improbable(int(fit.rejected), measured, share, cfg.prob)
     if p is not None:
-        out.append(f"the fit rejected {fit.rejected} of {measured} corners (p = {p:.1g} at the expected "
+        out.append(f"the fit rejected {fit.rejected} of {measured} keypoints (p = {p:.1g} at the expected "
                    f"{share:.0%})")
     if kept < min_corners * frames:
-        out.append(f"the fit kept {kept / frames:.1f} corners a frame (at least {min_corners})")
+        out.append(f"the fit kept {kept / frames:.1f} keypoints a frame (at least {min_corners})")
     if fit.dof > 0 and fit.chi2 > chi2_bound(cfg.prob, int(fit.dof)):
         out.append(f"the fit's chi-square {fit.chi2:.0f} beyond its bound {chi2_bound(cfg.prob, int(fit.dof)):.0f} "
                    f"({fit.dof} dof)")
@@ -242,7 +242,7 @@ def window_problems(win: EvidenceWindow, cfg, kappa: float = 1.0) -> list[list[s
         share = float(win.expected[h].sum() / given) if given else DEFAULT_REJECT_SHARE
         tail = rejections_improbable(rejected, given, share, cfg.prob)
         if tail is not None:
-            p.append(f"the gate rejected {rejected} of the last {given} corners (p = {tail:.1g} at the expected "
+            p.append(f"the gate rejected {rejected} of the last {given} keypoints (p = {tail:.1g} at the expected "
                      f"{share:.0%})")
         out.append(p)
     return out

@@ -260,7 +260,7 @@ class TrackingSteps:
             # the bank's, not one hypothesis's: dropping the best alone would hand its twin the claim by
             # elimination, with no evidence for it (a 20 m acquisition trial claimed a 180-deg twin for 55 s so)
             for p in problems:
-                p.append(f"no corner used in {self.coasting_frames} frames with an image")
+                p.append(f"no keypoint used in {self.coasting_frames} frames with an image")
         failed = np.array([bool(p) for p in problems])
         prob = self.probabilities
         held, best = float(prob[failed].sum()), int(np.argmax(prob))

@@ -85,9 +85,9 @@ def fit(kept_per_frame, frames, rejected, chi2_value=None):
 def test_a_fit_that_kept_a_handful_of_corners_starts_nothing():
     assert ig.fit_problems(fit(6, 20, 12), 20, CFG, MIN_CORNERS) == []  # 12 of 132: what a correct fit rejects
     bad = ig.fit_problems(fit(6, 20, 100), 20, CFG, MIN_CORNERS)  # 100 of 220 measured corners rejected
-    assert any("rejected 100 of 220" in p for p in bad), bad
+    assert any("rejected 100 of 220 keypoints" in p for p in bad), bad
     few = ig.fit_problems(fit(2, 20, 0), 20, CFG, MIN_CORNERS)  # 2 corners a frame: not enough named corners
-    assert any("kept 2.0 corners a frame" in p for p in few), few
+    assert any("kept 2.0 keypoints a frame" in p for p in few), few
 
 
 def test_a_fit_beyond_its_chi_square_bound_starts_nothing():
@@ -130,7 +130,7 @@ def test_rejections_are_tested_against_the_binomial_tail_of_a_correct_track():
     for k in range(W):
         rej = 6 if k >= W - 8 else 0  # eight frames with all 6 corners rejected: the images disagree for good
         win = win.push([1.0], [2], [6], [rej])
-    assert any(f"rejected 48 of the last {6 * W}" in p for p in ig.window_problems(win, CFG)[0])
+    assert any(f"rejected 48 of the last {6 * W} keypoints" in p for p in ig.window_problems(win, CFG)[0])
     burst = ig.EvidenceWindow.empty(1, W)
     for k in range(W):
         rej = 4 if k >= W - 4 else 0  # a burst of four frames of mis-named corners: a correct track keeps going

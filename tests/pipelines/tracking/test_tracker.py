@@ -510,7 +510,7 @@ def test_a_target_that_leaves_the_frame_is_coasted_then_lost(truth_600):
     n = cfg.integrity.lost_after_frames
     assert status[95:100] == ["tracking"] * 5
     assert status[100:100 + n - 1] == ["coasting"] * (n - 1) and status[100 + n - 1] == "lost", status[100:112]
-    assert any(e.startswith("lost: no corner used") for e in ests[100 + n - 1].events), ests[100 + n - 1].events
+    assert any(e.startswith("lost: no keypoint used") for e in ests[100 + n - 1].events), ests[100 + n - 1].events
     assert set(status[100 + n:]) == {"acquiring"}
     assert not any(s == "tracking" and not e.measured.any() for s, e in zip(status, ests))
 
@@ -847,8 +847,8 @@ def test_a_bank_gone_blind_is_lost_whole_not_handed_to_a_twin(truth_600):
     ests = run_tracker(truth_600, Blind(truth_600, range(k0 + 1, k0 + 1 + 2 * n), seed=3), range(0, k0 + 1 + 2 * n),
                        cfg)
     events = [ev for e in ests for ev in e.events]
-    assert not any(ev.startswith("hypothesis dropped") and "no corner used" in ev for ev in events), events
-    assert ests[k0 + n].status == "lost" and "no corner used" in " ".join(ests[k0 + n].events), \
+    assert not any(ev.startswith("hypothesis dropped") and "no keypoint used" in ev for ev in events), events
+    assert ests[k0 + n].status == "lost" and "no keypoint used" in " ".join(ests[k0 + n].events), \
         [(e.status, e.events) for e in ests[k0:]]
     assert all(e.status in ("acquiring", "lost") for e in ests[k0:]), [e.status for e in ests[k0:]]
 
