@@ -41,14 +41,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                out_metavar="EST.npz", config="estimate config (sections measurement, filter; runs, seed)",
                seed="root seed (default 0)", flag_names=FLAGS)
     p.add_argument("--measurements", choices=["markers3d", "pixels", "pixels+range"],
-                   help="what is measured of each visible corner (default: the scenario's; markers3d for default)")
+                   help="what is measured of each visible keypoint (default: the scenario's; markers3d for default)")
     p.add_argument("--sigma-m", type=float,
-                   help="3D corner noise per axis, m (default: the scenario's; 0.02 for default)")
+                   help="3D keypoint noise per axis, m (default: the scenario's; 0.02 for default)")
     p.add_argument("--sigma-px", type=float, help="pixel noise per axis, px (default: the scenario's; 1 for default)")
     p.add_argument("--sigma-range-m", type=float, help="range noise for pixels+range, m (default 0.05)")
     p.add_argument("--max-markers", type=int, help="use at most N keypoints per step, the first visible in the "
                    "target's order (A..H for ENVISAT; default all)")
-    p.add_argument("--failure-prob", type=float, help="probability that a visible corner is lost at a step")
+    p.add_argument("--failure-prob", type=float, help="probability that a visible keypoint is lost at a step")
     p.add_argument("--outage", type=float, nargs=2, action="append", metavar=("START_S", "END_S"),
                    help="a window without measurements (repeatable)")
     p.add_argument("--rate-hz", type=float, help="filter/measurement rate, Hz (default: the scenario's; 1 for default)")

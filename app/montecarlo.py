@@ -42,9 +42,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "default, 3600 for eclipse)")
     p.add_argument("--rate-hz", type=float, help="filter/measurement rate, Hz (default: the scenario's; 1 for default)")
     p.add_argument("--measurements", choices=["markers3d", "pixels", "pixels+range"],
-                   help="what is measured of each visible corner (default: the scenario's; markers3d for default)")
+                   help="what is measured of each visible keypoint (default: the scenario's; markers3d for default)")
     p.add_argument("--sigma-m", type=float,
-                   help="3D corner noise per axis, m (default: the scenario's; 0.02 for default)")
+                   help="3D keypoint noise per axis, m (default: the scenario's; 0.02 for default)")
     p.add_argument("--sigma-px", type=float, help="pixel noise per axis, px (default: the scenario's; 1 for default)")
     p.add_argument("--max-markers", type=int, help="use at most N keypoints per step, the first visible in the "
                    "target's order (A..H for ENVISAT; default all)")

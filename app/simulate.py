@@ -16,7 +16,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "simulate",
         help="simulate the tumbling target and the chaser (MuJoCo truth) and write run.npz",
         description="Simulate the truth of a scenario with MuJoCo (RK4, relative-orbit gravity plugin) and write "
-        "the truth trajectory: t_s, x (12 states), chaser orbit, corners in C, visibility, config_json.",
+        "the truth trajectory: t_s, x (12 states), chaser orbit, the keypoints in C (corners_C_m), visibility, "
+        "config_json.",
     )
     add_common(p, out="output .npz (default run.npz)", out_default="run.npz", out_metavar="RUN.npz",
                config="scenario config (sections orbit, target, relative)",

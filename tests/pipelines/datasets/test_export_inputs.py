@@ -216,15 +216,6 @@ def test_inspect_prints_another_targets_keypoints_and_envisats_corners(small, tm
         out = capsys.readouterr().out
         assert said in out and (unsaid is None or unsaid not in out), out
     assert "deprecated: visible_corners_histogram" in out
-    help_text = envisat_main_help(["dataset", "inspect"], capsys) + envisat_main_help(["generate"], capsys)
-    assert "corner" not in help_text.replace("ENVISAT's corners", "").replace("its corners", ""), help_text
-
-
-def envisat_main_help(verb, capsys) -> str:
-    """The --help text of a verb (argparse exits 0 after printing it)."""
-    with pytest.raises(SystemExit):
-        envisat_main([*verb, "--help"])
-    return capsys.readouterr().out
 
 
 @pytest.mark.parametrize("count", ["0", "-3"])
