@@ -77,6 +77,15 @@ def check_min_target_px(min_target_px: float, f_px: float, field: str, radius_m:
           "inside the box: nothing is ever tracked)")
 
 
+def check_min_keypoints(cfg, num_keypoints: int, prefix: str = "tracker") -> None:
+    """ConfigError unless the keypoints a frame needs (cfg: a TrackerConfig; acquire.min_corners for a cold-start
+    pose, roi.min_corners in the region of interest) are at most the target's num_keypoints: more, and no frame
+    ever has enough (ENVISAT's 8 corners; another target's K)."""
+    for field, value in (("acquire.min_corners", cfg.acquire.min_corners), ("roi.min_corners", cfg.roi.min_corners)):
+        check(value <= num_keypoints, f"{prefix}.{field}", value,
+              f"at most the target's {num_keypoints} keypoints (more: no frame ever holds enough)")
+
+
 def state_problems(x: np.ndarray, P: np.ndarray, camera: PinholeCamera, radius_m: float, cfg) -> list[str]:
     """Why the state x (12,) with covariance P (12, 12) is not a physical track (empty when it is). cfg: the
     IntegrityConfig (min_target_px, max_rate_deg_s, max_speed_m_s, lost_pos_sigma_share, lost_att_sigma_deg)."""

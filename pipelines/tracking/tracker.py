@@ -83,6 +83,7 @@ from envisat_pose.pipelines.tracking.detection_arg import DetectionRefused, dete
 from envisat_pose.pipelines.tracking.integrity import (
     DEFAULT_REJECT_SHARE,
     EvidenceWindow,
+    check_min_keypoints,
     check_min_target_px,
     target_radius_m,
 )
@@ -142,6 +143,7 @@ class Tracker(AcquiringSteps, TrackingSteps):
         load_in_background(self.setup)  # the fused filter's code loaded while the first frames are detected
         self.keypoints_T_m = self.setup.keypoints_T_m
         self.K = self.setup.num_keypoints
+        check_min_keypoints(config, self.K)
         self.namings = box_namings() if target is None else target_namings(target, J_T)
         self.radius_m = target_radius_m(self.keypoints_T_m)
         check_min_target_px(config.integrity.min_target_px, camera.f_px, "integrity.min_target_px", self.radius_m)

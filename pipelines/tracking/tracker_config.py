@@ -54,7 +54,8 @@ class AcquireConfig(Config):
     def validate(self, prefix: str = "tracker.acquire") -> None:
         p = _dot(prefix)
         check(self.frames >= 3, f"{p}frames", self.frames, "at least 3 frames")
-        check(4 <= self.min_corners <= 8, f"{p}min_corners", self.min_corners, "4 to 8 corners")
+        check(self.min_corners >= 4, f"{p}min_corners", self.min_corners,
+              "at least 4 keypoints (PnP's least; at most the target's, which the Tracker checks)")
         check(B.MIN_FRAME_DT_S <= self.max_gap_s <= B.MAX_PREDICTION_S, f"{p}max_gap_s", self.max_gap_s,
               f"a gap in [{B.MIN_FRAME_DT_S:g}, {B.MAX_PREDICTION_S:g}] s (the least frame interval; the longest a "
               "track is predicted over, as the cold start's fit is across its gaps)")
@@ -214,7 +215,8 @@ class RoiConfig(Config):
         p = _dot(prefix)
         check(self.margin >= 1.0, f"{p}margin", self.margin, "a factor >= 1")
         check(16 <= self.min_side_px <= 4096, f"{p}min_side_px", self.min_side_px, "a side in [16, 4096] px")
-        check(1 <= self.min_corners <= 8, f"{p}min_corners", self.min_corners, "1 to 8 corners")
+        check(self.min_corners >= 1, f"{p}min_corners", self.min_corners,
+              "at least 1 keypoint (at most the target's, which the Tracker checks)")
         check(0 < self.converged_pos_sigma_m <= SIGMA_MAX, f"{p}converged_pos_sigma_m", self.converged_pos_sigma_m,
               f"a positive sigma in m, at most {SIGMA_MAX:g} (the widest the filter takes)")
         check(0 < self.converged_att_sigma_deg <= 180.0, f"{p}converged_att_sigma_deg", self.converged_att_sigma_deg,
