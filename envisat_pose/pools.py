@@ -407,8 +407,12 @@ def _run_dask(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
                 # memory_limit 0: no per-worker cap, as the local pool. Dask's "auto" (the machine's memory over
                 # the workers) pauses a worker at 80 % of its share and restarts it at 95 %, while a factory
                 # worker's peak (650-1175 MB) varies: 24 workers on 24 GB fit, yet a 1-GB share stalled them.
+                # No dashboard, and the scheduler's own HTTP server (its health routes: it starts one whatever
+                # dashboard_address says) on a free loopback port: on Dask's default 8787, any other cluster or
+                # notebook holding that port made every job print "Port 8787 is already in use" warnings.
                 cluster = LocalCluster(n_workers=min(cfg.workers, len(tasks)), threads_per_worker=1, processes=True,
-                                       host="127.0.0.1", dashboard_address=None, env=dict(cfg.env), memory_limit=0)
+                                       host="127.0.0.1", dashboard_address=None, env=dict(cfg.env), memory_limit=0,
+                                       scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
         except BaseException:  # a Ctrl-C held while it started: the cluster closed before the job's line
             if cluster is not None:
                 with _closing_quietly(True):

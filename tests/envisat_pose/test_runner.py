@@ -321,3 +321,34 @@ def test_a_task_that_raises_on_a_jobs_own_cluster_is_the_jobs_one_line(tmp_path)
     assert run.returncode == 1 and len(err) == 2, run.stderr[-3000:]
     assert err[0].endswith("distributed.worker - ERROR - an error of its own"), err
     assert err[1] == "job: error: division by zero", err
+
+
+def test_a_jobs_own_cluster_says_nothing_while_another_holds_dasks_default_port(tmp_path):
+    """Another Dask cluster or notebook on the machine holds port 8787 (Dask's default): a job's own LocalCluster
+    ran its scheduler's HTTP server there anyway (it starts one whatever dashboard_address says) and printed
+    "Port 8787 is already in use" warnings on every job. Its server now takes a free loopback port: the job's
+    stderr is empty and its results whole."""
+    import socket
+    import subprocess
+    import sys
+
+    holder = socket.socket()
+    try:
+        holder.bind(("127.0.0.1", 8787))
+        holder.listen(1)
+    except OSError:  # something on this machine holds it already: the same condition
+        holder.close()
+        holder = None
+    try:
+        script = tmp_path / "quiet.py"
+        script.write_text("from envisat_pose.pools import RunnerConfig, run_tasks\n\n\n"
+                          "def square(x):\n    return x * x\n\n\n"
+                          "if __name__ == '__main__':\n"
+                          "    print(sorted(r for _, r in run_tasks(square, [(2,), (3,)], RunnerConfig('dask', 1))))\n")
+        run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                             cwd=tmp_path)
+    finally:
+        if holder is not None:
+            holder.close()
+    assert run.returncode == 0 and run.stdout.split() == ["[4,", "9]"], run.stderr[-2000:]
+    assert run.stderr == "", run.stderr[-2000:]
