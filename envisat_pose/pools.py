@@ -352,10 +352,24 @@ def _run_pool(fn: Callable, tasks: Sequence[tuple], cfg: RunnerConfig) -> Iterat
 def _stop_workers(pool) -> None:
     """End a process pool's workers now (what they were writing is partial files, removed on a resume) and wait
     until the pool has marked its tasks failed: cancelling one before that broke Python 3.11's pool thread (an
-    InvalidStateError traceback where SIGTERM had reached the workers too)."""
-    for process in list((getattr(pool, "_processes", None) or {}).values()):
+    InvalidStateError traceback where SIGTERM had reached the workers too). A second Ctrl-C or SIGTERM meanwhile
+    (Ctrl-C twice; `timeout` signals envisat, then its group) kills the workers and the wait goes on: an
+    interrupted wait left the pool's thread marking tasks that the caller then cancelled (the same traceback, after
+    the verb's line); the interrupt is raised once the pool has stopped."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    for process in processes:
         process.terminate()
-    pool.shutdown(wait=True)
+    interrupt = None
+    while True:
+        try:
+            pool.shutdown(wait=True)
+            break
+        except KeyboardInterrupt as again:
+            interrupt = again
+            for process in processes:
+                process.kill()
+    if interrupt is not None:
+        raise interrupt
 
 
 @contextlib.contextmanager

@@ -352,3 +352,40 @@ def test_a_jobs_own_cluster_says_nothing_while_another_holds_dasks_default_port(
             holder.close()
     assert run.returncode == 0 and run.stdout.split() == ["[4,", "9]"], run.stderr[-2000:]
     assert run.stderr == "", run.stderr[-2000:]
+
+
+def test_a_second_interrupt_while_the_pool_stops_leaves_no_traceback_from_its_thread(monkeypatch):
+    """Ctrl-C twice, or `timeout` (which signals envisat and then its group: two signals): the second lands while
+    the pool's workers are stopped (the join of its thread). The stop still finishes before the queued tasks are
+    cancelled: cancelled while the pool's thread marked them failed, Python 3.11's thread died with an
+    InvalidStateError traceback, printed after the verb's one line."""
+    import threading
+    import time
+    from concurrent.futures import ProcessPoolExecutor
+
+    died, threads = [], []
+    monkeypatch.setattr(threading, "excepthook", lambda hook_args: died.append(hook_args.exc_type))
+    shutdown = ProcessPoolExecutor.shutdown
+
+    def interrupted_once(self, wait=True, **kwargs):
+        thread = self._executor_manager_thread
+        if wait and thread is not None and not threads:
+            threads.append(thread)
+
+            def join(*_):  # the second signal's KeyboardInterrupt, raised in the join
+                del thread.join
+                raise KeyboardInterrupt
+
+            thread.join = join
+        return shutdown(self, wait, **kwargs)
+
+    monkeypatch.setattr(ProcessPoolExecutor, "shutdown", interrupted_once)
+    tasks = run_tasks(time.sleep, [(0.1,)] + [(30.0,)] * 8, RunnerConfig("local", 2))
+    with pytest.raises(KeyboardInterrupt):
+        try:
+            for _ in tasks:
+                raise KeyboardInterrupt  # the first signal, at the first unit done
+        finally:
+            tasks.close()
+    threads[0].join(timeout=30.0)
+    assert not threads[0].is_alive() and died == []
