@@ -133,12 +133,20 @@ class ResumableJob:
         theirs = {**self.added_defaults, **flatten({k: manifest.get(k) for k in self.identity})}
         ours = flatten(self.identity)
         recorded = flatten({k: manifest.get(k) for k in self.header})
+        as_given = {}  # a field compared by its record: its text there and here, to name the file in a refusal
         for k, by in self.compared_by.items():  # a path's text stands for its file: compared by its record
             if recorded.get(by) is not None:
+                as_given[k] = (theirs.get(k), ours.get(k))
                 theirs[k], ours[k] = recorded[by], flatten(self.header).get(by)
-        diff = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
+        # a compared file first: another target scales fields of its own (a range, a margin) that sort before it
+        diff = sorted((k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k)),
+                      key=lambda k: (k not in as_given, k))
         if diff:
             def shown(k: str) -> str:
+                if k in as_given:
+                    (there, here), by = as_given[k], self.compared_by[k].replace("_", ".").rsplit(".", 1)[-1]
+                    return (f"{k.removeprefix('config.')} = {there!r} ({by} {str(theirs.get(k))[:12]}) there, "
+                            f"{here!r} ({by} {str(ours.get(k))[:12]}) here")
                 return f"{k.removeprefix('config.')} = {theirs.get(k)!r} there, {ours.get(k)!r} here"
 
             raise InputError(f"out_dir {self.out_dir!r} holds a {self.what} of another config or seed ("

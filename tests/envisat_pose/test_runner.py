@@ -262,12 +262,34 @@ def test_a_field_compared_by_its_record_takes_another_spelling_of_the_same_file(
     first.resume(first.open())
     again = job("/elsewhere/a/t.xml", "aa")
     assert again.open() is not None  # the same file under another path: resumed
-    with pytest.raises(InputError, match=r"another config or seed \(file = 'aa' there, 'bb' here\)"):
+    with pytest.raises(InputError, match=r"another config or seed \(file = 'a/t.xml' \(sha256 aa\) there, 'a/t.xml' "
+                                         r"\(sha256 bb\) here\)"):
         job("a/t.xml", "bb").open()
     plain = ResumableJob(str(tmp_path), "test job v1", "test set", {"config": {"seed": 0, "file": "x.xml"}}, "units",
                          2, unit_file, header={"file": {"sha256": "aa"}})
     with pytest.raises(InputError, match=r"file = 'a/t.xml' there, 'x.xml' here"):
         plain.open()  # without compared_by the text is compared
+
+
+def test_another_target_is_named_first_among_the_differences_it_brings(tmp_path):
+    """Another --target on a dataset's folder: the target's size scales config fields (generate's range and keep-out
+    margin), whose differences sort before 'target' and filled the three shown ('random.keepout_margin_m = 2.0
+    there, 0.07289 here, ...'), the target itself left out. The file compared by its record comes first, named by
+    its path as given with its sha256 (its text alone may be the same, its sha256 alone names no file)."""
+    from envisat_pose.config import InputError
+    from envisat_pose.resumable import ResumableJob
+
+    def job(path, sha, scale):
+        config = {"seed": 0, "a_range_m": scale, "b_margin_m": scale, "c_offset_m": scale, "target": path}
+        return ResumableJob(str(tmp_path), "test job v1", "test set", {"config": config}, "units", 2, unit_file,
+                            header={"target": {"sha256": sha}}, compared_by={"config.target": "target.sha256"})
+
+    first = job("models/big.xml", "aa11", 1.0)
+    first.resume(first.open())
+    with pytest.raises(InputError, match=r"another config or seed \(target = 'models/big.xml' \(sha256 aa11\) there, "
+                                         r"'models/small.xml' \(sha256 bb22\) here, a_range_m = 1.0 there, 0.1 here, "
+                                         r"b_margin_m = 1.0 there, 0.1 here, \.\.\.\)"):
+        job("models/small.xml", "bb22", 0.1).open()
 
 
 def test_a_script_whose_own_function_is_the_task_runs_a_local_pool(tmp_path):
