@@ -9,6 +9,10 @@ from envisat_pose.config import InputError
 from envisat_pose.datagen.factory import run_generate
 from envisat_pose.datagen.generate_config import layered_generate
 
+# the config fields the flags set, named as the flag in an error where the user typed it (app/flag_rules.py)
+FLAGS = {"mode": "--mode", "num_images": "--num-images", "shard_size": "--shard-size", "resolution_px": "--resolution",
+         "scenario": "--scenario", "sequence.scenario": "--scenario", "target": "--target"}
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     g = sub.add_parser(
@@ -34,7 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler address (default: a LocalCluster on 127.0.0.1)")
     g.add_argument("--out", required=True, metavar="DIR", help="dataset folder (created, parents too; resumed if it "
                    "holds a dataset; a folder of other files is refused)")
-    add_common(g, quiet=True)
+    add_common(g, quiet=True, flag_names=FLAGS)
     g.set_defaults(func=run_generate_cli, resumable=True)
 
 

@@ -117,3 +117,18 @@ def test_the_written_config_records_the_target_files_sha256_and_a_rerun_refuses_
             "changed since the config was written", str(target), recorded[:12])
     assert main(["generate", "--config", written, "--target", "models/upper_stage.xml", "--out", other,
                  "--quiet"]) == 0
+
+
+def test_a_bad_flag_value_is_named_as_the_flag_typed_and_a_config_files_as_its_key(tmp_path, capsys):
+    """generate named its config field for a flag the user typed (`num_images = -3`, `resolution_px = 8`), where
+    the other jobs name the flag; a config file's value stays named by its key (the flag was not typed)."""
+    out = str(tmp_path / "ds")
+    for flags, said in ((["--num-images", "-3"], "--num-images -3: expected at least 1 image"),
+                        (["--shard-size", "0"], "--shard-size 0: expected at least 1 image per shard"),
+                        (["--resolution", "8"], "--resolution 8: expected a resolution in [16, 4096] px"),
+                        (["--mode", "foo"], "--mode 'foo': expected one of"),
+                        (["--target", str(tmp_path / "nope.xml")], "--target '"),
+                        (["--mode", "sequence", "--scenario", "nope"], "--scenario 'nope'")):
+        refused(["generate", *flags, "--out", out], capsys, out, f"envisat generate: error: {said}")
+    (tmp_path / "g.toml").write_text("num_images = 0\n")
+    refused(["generate", "--config", str(tmp_path / "g.toml"), "--out", out], capsys, out, "error: num_images = 0: ")
