@@ -27,9 +27,18 @@ def _file_in_the_way(path: str) -> str | None:
     return here if os.path.isabs(path) else os.path.relpath(here)
 
 
+def _refuse_empty(path: str, field: str, kind: str) -> None:
+    """An empty path (`--out ""`, an unset variable in a script) names nothing: os.path.abspath reads it as the
+    working folder, which passed the checks: the job failed only at its first write (dataset export after exporting
+    every image)."""
+    if not path:
+        raise InputError(f"{field} '': expected a {kind} path (an empty one names none)")
+
+
 def check_out_dir(out_dir: str, parents: bool = True, field: str = "out_dir") -> None:
     """Check, creating nothing, that out_dir is a folder or can become one: nothing on its path is a file (out_dir
     itself, or a folder above it); without parents, its parent must exist too. InputError naming the field."""
+    _refuse_empty(out_dir, field, "folder")
     blocker = _file_in_the_way(out_dir)
     if blocker is not None:
         where = "exists and is not a folder" if os.path.abspath(blocker) == os.path.abspath(out_dir) else \
@@ -110,6 +119,7 @@ def _made_writable(folders: list[str]) -> str | None:
 def check_out_file(path: str, field: str = "out") -> None:
     """Check, creating nothing, that an output file can be written at path: it is not a folder and nothing above
     it is a file (its missing folders are made by make_out_file_dir when the job writes). InputError."""
+    _refuse_empty(path, field, "file")
     if os.path.isdir(path):
         raise InputError(f"{field} {path!r} is a folder; expected a file path")
     blocker = _file_in_the_way(os.path.dirname(path) or ".")

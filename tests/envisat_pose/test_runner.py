@@ -206,6 +206,21 @@ def test_the_output_folder_rule(tmp_path):
         make_out_dir("/proc/envisat-test-out")
 
 
+def test_an_empty_output_path_is_refused_before_any_work(tmp_path, monkeypatch):
+    """An empty path (`--out ""`, a script's unset variable) read as the working folder: the checks passed, and the
+    job failed only at its first write (dataset export after every image was exported)."""
+    from envisat_pose.config import InputError
+    from envisat_pose.out_dirs import check_makeable, check_out_dir, check_out_file, make_out_dir
+
+    monkeypatch.chdir(tmp_path)
+    for check in (check_out_dir, make_out_dir, check_makeable):
+        with pytest.raises(InputError, match=r"^out_dir '': expected a folder path"):
+            check("")
+    with pytest.raises(InputError, match=r"^--montage '': expected a file path"):
+        check_out_file("", "--montage")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_the_output_file_rule(tmp_path):
     from envisat_pose.config import InputError
     from envisat_pose.out_dirs import check_out_file, make_out_file_dir
