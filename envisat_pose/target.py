@@ -421,8 +421,9 @@ def load_target(given: str = DEFAULT_TARGET, field: str = "target", named: str |
     factory draws (RENDERED_GROUPS), a keypoint farther than KEYPOINT_MAX_SURFACE_DISTANCE_M from the drawn
     surface. Cached per file, size and modification time, its named files' too (target_file.named_files)."""
     path = resolve_target_path(given)
-    if not os.path.isfile(path):
-        _fail(field, given, "an MJCF file (no such file)")
+    if not os.path.isfile(path) or not path.endswith(".xml"):  # MuJoCo picks its reader by the name's ending
+        _fail(field, given, "an MJCF file (no such file)" if not os.path.isfile(path) else "an MJCF file whose name "
+              "ends in .xml (MuJoCo reads a model file by its ending, .xml alone as MJCF: copy or link it so)")
     files = [f for f in (path, *named_files(path)) if os.path.isfile(f)]
     stamps = tuple((os.stat(f).st_mtime_ns, os.stat(f).st_size) for f in files)
     return _load(path, stamps, _Naming(field, given, named))

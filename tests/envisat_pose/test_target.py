@@ -7,6 +7,7 @@ ENVISAT's box edges typed in the core (geometry.EDGES), a box's and a cylinder's
 """
 
 import math
+import os
 
 import mujoco
 import numpy as np
@@ -357,3 +358,22 @@ def test_a_plates_inertia_goes_into_the_scene_as_mujoco_reads_the_file(tmp_path,
     mujoco.mju_quat2Mat(R, scene.body_iquat[s])
     np.testing.assert_allclose(R.reshape(3, 3) @ np.diag(scene.body_inertia[s]) @ R.reshape(3, 3).T, J, rtol=0,
                                atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["sat.mjcf", "SAT.XML", "sat"])
+def test_a_target_file_not_named_xml_is_refused_for_its_name(tmp_path, capfd, name):
+    """MuJoCo reads a model file by its name's ending, and .xml alone as MJCF: a good MJCF file named sat.mjcf (or
+    SAT.XML, or with no ending) was refused as 'an MJCF file MuJoCo reads (it says: could not find decoder for
+    resource ...)', with MuJoCo's two WARNING lines before it where the name has no ending."""
+    import shutil
+
+    models = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "models")
+    path = tmp_path / name
+    shutil.copy(os.path.join(models, "cubesat_3u.xml"), path)
+    capfd.readouterr()
+    with pytest.raises(ConfigError, match=r"expected an MJCF file whose name ends in \.xml") as err:
+        load_target(str(path))
+    assert err.value.field == "target" and err.value.value == str(path)
+    assert capfd.readouterr() == ("", "")
+    shutil.copy(path, tmp_path / "sat.xml")
+    assert load_target(str(tmp_path / "sat.xml")).keypoint_names  # the same file named .xml is read
