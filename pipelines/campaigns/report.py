@@ -21,8 +21,9 @@ from envisat_pose.config import InputError, flatten, path_arg, paths_arg
 from envisat_pose.io import atomic_write_text
 from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
 from envisat_pose.out_lock import locks_output
-from envisat_pose.pipelines.campaigns.campaign import CONFIG_NAME, SWEEP_RATE_CONFIG
+from envisat_pose.pipelines.campaigns.campaign import CONFIG_NAME, MANIFEST_FORMAT, SWEEP_RATE_CONFIG
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE
+from envisat_pose.resumable import read_manifest
 from envisat_pose.state import BLOCKS, unjudged_why
 from envisat_pose.target import DEFAULT_TARGET
 
@@ -158,8 +159,7 @@ def load_campaign(out_dir: str) -> dict:
     """What the report shows of one folder: summary.json, timing.json (optional), the config text, the PNGs."""
     path = os.path.join(out_dir, "summary.json")
     if not os.path.isfile(path):
-        raise InputError(f"{out_dir!r} has no summary.json (nor a rate sweep's sweep.json): not a finished "
-                         "`envisat montecarlo` folder (rerun its command to finish it)")
+        raise InputError(unfinished_why(out_dir))
     try:
         with open(path, encoding="utf-8") as fh:
             summary = json.load(fh)
@@ -176,6 +176,23 @@ def load_campaign(out_dir: str) -> dict:
     c = {"dir": out_dir, "summary": summary, "timing": timing, "config": config, "figures": figures}
     _readable(path, campaign_rows, c)
     return c
+
+
+def unfinished_why(out_dir: str) -> str:
+    """The one line for a folder without summary.json or sweep.json: an interrupted campaign (its manifest says
+    how many blocks are done; rerun its command to finish it), an unfinished rate sweep (rate-<R>hz folders), or
+    no `envisat montecarlo` folder at all (rerunning a command would not make one)."""
+    manifest = read_manifest(out_dir, "dirs")  # an unreadable one: InputError naming it
+    if manifest is not None and manifest.get("format") == MANIFEST_FORMAT:
+        blocks = manifest.get("blocks")
+        done = f"{len(blocks)} of {manifest.get('n_blocks', '?')} blocks done, " if isinstance(blocks, list) else ""
+        return (f"{out_dir!r} is an interrupted `envisat montecarlo` campaign ({done}no summary.json yet): rerun "
+                "its command to finish it")
+    if any(n.startswith("rate-") and n.endswith("hz") for n in os.listdir(out_dir)):
+        return (f"{out_dir!r} is an unfinished rate sweep (rate-<R>hz folders, no sweep.json yet): rerun its "
+                "command to finish it")
+    return (f"{out_dir!r} is not an `envisat montecarlo` folder: no summary.json, sweep.json or a campaign's "
+            "manifest.json in it")
 
 
 def _read_text(path: str) -> str:

@@ -119,3 +119,27 @@ def test_a_field_shown_as_n_a_is_named_with_its_file_and_why(tmp_path, capsys):
     assert str(full) not in text.split("Shown as n/a:")[1].split("</ul>")[0]
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"envisat report: warning: {line}" for line in expected], err
+
+
+@pytest.mark.parametrize("case", ["interrupted", "foreign"])
+def test_an_interrupted_campaign_and_a_foreign_folder_each_get_their_own_line(tmp_path, capsys, case):
+    """A campaign stopped before its summary.json says it is one, how many blocks are done and to rerun its
+    command; a folder that is no campaign at all says so, without telling to rerun a command (both once read
+    'not a finished `envisat montecarlo` folder (rerun its command to finish it)')."""
+    from envisat_pose.pipelines.campaigns.campaign import MANIFEST_FORMAT
+
+    d = tmp_path / case
+    d.mkdir()
+    if case == "interrupted":
+        blocks = [{"index": i, "file": f"blocks/block-{i:04d}.npz"} for i in range(2)]
+        (d / "manifest.json").write_text(json.dumps({"format": MANIFEST_FORMAT, "n_blocks": 5, "blocks": blocks}))
+    else:
+        (d / "notes.txt").write_text("not a campaign")
+    assert main(["report", str(d), "--out", str(tmp_path / "r.html")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and repr(str(d)) in err[0], err
+    if case == "interrupted":
+        assert "interrupted" in err[0] and "2 of 5 blocks done" in err[0] and "rerun its command" in err[0], err
+    else:
+        assert "not an `envisat montecarlo` folder" in err[0] and "rerun" not in err[0], err
+    assert not (tmp_path / "r.html").exists()
