@@ -57,9 +57,10 @@ def write_report(dirs: list[str], out: str) -> dict:
     make_out_file_dirs({out: "out"})
     atomic_write_text(out, render_report(campaigns, sweeps))
     notes = [note for c in campaigns for note in campaign_gaps(c)] + [note for c in sweeps for note in sweep_gaps(c)]
-    for note in notes:  # the page's notes, said where the command runs too (the verb: one warning line each)
+    unlike = unlike_notes(campaigns)
+    for note in notes + unlike:  # the page's notes, said where the command runs too (the verb: one warning line each)
         warnings.warn(note, stacklevel=2)
-    return {"campaigns": len(campaigns), "sweeps": len(sweeps), "notes": notes}
+    return {"campaigns": len(campaigns), "sweeps": len(sweeps), "notes": notes, "unlike": unlike}
 
 
 def check_campaign_dirs(dirs: list[str]) -> None:
@@ -253,6 +254,28 @@ def summary_target(summary: dict, config_text: str) -> str:
     return str(name) if name else campaign_target(config_text)
 
 
+# what two campaigns side by side must share for their columns to compare the filter alone: (what, its value)
+LIKE_FOR_LIKE = (("target", lambda c: summary_target(c["summary"], c["config"])),
+                 ("duration", lambda c: f"{_fmt(c['summary'].get('duration_s'))} s"),
+                 ("settle time (statistics after)", lambda c: f"{_fmt(c['summary'].get('settle_s'))} s"))
+
+
+def unlike_notes(campaigns: list[dict]) -> list[str]:
+    """One line per quantity of LIKE_FOR_LIKE that differs between the campaigns, naming each column's value:
+    their RMSE then describes another body or span, so only each one's RMSE / PCRLB and NEES (against its own
+    bound and band) compare. [] for one campaign or campaigns that agree."""
+    if len(campaigns) < 2:
+        return []
+    names, notes = column_names([c["dir"] for c in campaigns]), []
+    for what, value_of in LIKE_FOR_LIKE:
+        values = [value_of(c) for c in campaigns]
+        if len(set(values)) > 1:
+            shown = ", ".join(f"{n}: {v}" for n, v in zip(names, values))
+            notes.append(f"not like for like: the campaigns differ in {what} ({shown}); their RMSE does not compare "
+                         "across columns, only each one's RMSE / PCRLB and NEES against its own bound and band")
+    return notes
+
+
 BLOCK_TABLES = ("rmse", "pcrlb_rms", "rmse_over_pcrlb", "inside_3sigma_share")  # summary.json's per-block tables
 SCALARS = ("nees_mean", "nis_mean_per_dof")
 
@@ -331,6 +354,7 @@ def campaign_rows(c: dict) -> list[tuple[str, str]]:
     markers = "all visible" if m.get("max_markers") is None else f"at most {m['max_markers']}"
     rows = [("scenario", str(s.get("scenario"))), ("target", summary_target(s, c["config"])),
             ("runs x steps", f"{s.get('runs')} x {s.get('steps')}"),
+            ("duration", _cell(s, "duration_s", f"{_fmt(s.get('duration_s'))} s")),
             ("measurements", f"{m.get('kind')}, {noise}, {m.get('rate_hz')} Hz, {markers} keypoints"),
             ("seed", str(s.get("seed"))), ("statistics after", f"{_fmt(s.get('settle_s'))} s")]
     for b in BLOCKS:
@@ -366,7 +390,7 @@ def campaign_rows(c: dict) -> list[tuple[str, str]]:
 STYLE = """body{font-family:sans-serif;margin:1em}table{border-collapse:collapse}td,th{border:1px solid #bbb;
 padding:2px 6px;text-align:right;vertical-align:top}th{background:#eee}td.l{text-align:left}
 .cols{display:flex;gap:1em;align-items:flex-start}.col{flex:1;min-width:0}img{width:100%;height:auto}
-pre{font-size:11px;background:#f6f6f6;padding:4px;overflow-x:auto}"""
+pre{font-size:11px;background:#f6f6f6;padding:4px;overflow-x:auto}ul.unlike{color:#a40;font-weight:bold}"""
 
 
 def render_report(campaigns: list[dict], sweeps: list[dict] = ()) -> str:
@@ -377,7 +401,9 @@ def render_report(campaigns: list[dict], sweeps: list[dict] = ()) -> str:
     if not campaigns:
         return _page(sweeps_html)
     names = column_names([c["dir"] for c in campaigns])
-    table = ["<table><tr><th></th>" + "".join(f"<th>{e(n)}</th>" for n in names) + "</tr>"]
+    unlike = unlike_notes(campaigns)
+    table = ["<ul class=\"unlike\">" + "".join(f"<li>{e(n)}</li>" for n in unlike) + "</ul>"] if unlike else []
+    table += ["<table><tr><th></th>" + "".join(f"<th>{e(n)}</th>" for n in names) + "</tr>"]
     all_rows = [campaign_rows(c) for c in campaigns]
     if len(campaigns) > 1:
         all_rows = [[("config differences", d)] + rows for d, rows in zip(config_differences(campaigns), all_rows)]

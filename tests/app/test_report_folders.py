@@ -121,6 +121,30 @@ def test_a_field_shown_as_n_a_is_named_with_its_file_and_why(tmp_path, capsys):
     assert err == [f"envisat report: warning: {line}" for line in expected], err
 
 
+def test_campaigns_of_another_target_or_duration_are_said_not_like_for_like(tmp_path, capsys):
+    """An upper stage's 200 s campaign beside ENVISAT's 150 s one: the page says, above the table, that they
+    differ in target and duration (each column's value named) and the verb warns it, the table has a duration
+    row; two campaigns that differ only in their case (sigma) get no such line. The page once showed them side
+    by side with the differences only in the raw config row."""
+    a, b, c = _campaign(tmp_path / "us"), _campaign(tmp_path / "env"), _campaign(tmp_path / "us-0.2")
+    for folder, target, duration, sigma in ((a, "upper_stage", 200.0, 0.02), (b, "envisat", 150.0, 0.02),
+                                             (c, "upper_stage", 200.0, 0.2)):
+        s = json.loads((folder / "summary.json").read_text())
+        s.update(target={"name": target}, duration_s=duration, settle_s=duration / 2)
+        s["measurement"]["sigma_m"] = sigma
+        (folder / "summary.json").write_text(json.dumps(s))
+    out = tmp_path / "r.html"
+    assert main(["report", str(a), str(b), "--out", str(out)]) == 0
+    text, cells = out.read_text(encoding="utf-8"), _cells(out)
+    assert cells[cells.index("duration") + 1:][:2] == ["200 s", "150 s"]
+    err = capsys.readouterr().err
+    for what, shown in (("target", "us: upper_stage, env: envisat"), ("duration", "us: 200 s, env: 150 s")):
+        line = f"not like for like: the campaigns differ in {what} ({shown})"
+        assert line in text.split("<table>")[0] and line in err, (what, err)
+    assert main(["report", str(a), str(c), "--out", str(out)]) == 0
+    assert "not like for like" not in out.read_text(encoding="utf-8") + capsys.readouterr().err
+
+
 @pytest.mark.parametrize("case", ["interrupted", "foreign"])
 def test_an_interrupted_campaign_and_a_foreign_folder_each_get_their_own_line(tmp_path, capsys, case):
     """A campaign stopped before its summary.json says it is one, how many blocks are done and to rerun its
