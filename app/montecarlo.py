@@ -110,6 +110,9 @@ def run_montecarlo(args: argparse.Namespace) -> int:
     print(summary_line(summary))
     if cfg.init_error_scale != 1.0:
         print(init_error_line(cfg.init_error_scale))
-    if args.rrd:
-        print(f"wrote {args.rrd} (Rerun recording; open it with `envisat view {args.rrd}`)")
+    if args.rrd:  # what write_recording logs (campaign_outputs.py)
+        target = (summary.get("target") or {}).get("name", "the target")
+        print(f"wrote {args.rrd} (Rerun recording of {target} over {summary['steps']} steps: the truth, run 0's "
+              f"estimate with its 3-sigma ellipsoid, {min(cfg.sample_runs, cfg.runs)} runs' errors with the "
+              f"campaign's +-3 sigma bands, the mean NEES with its band; open it with `envisat view {args.rrd}`)")
     return 0

@@ -84,10 +84,13 @@ def test_estimate_rrd(simulated, tmp_path, verify_rrd):
     np.testing.assert_allclose(np.sort(half**2, axis=1), 9 * np.linalg.eigvalsh(est.P[0, :, :3, :3]), rtol=1e-4)
 
 
-def test_montecarlo_rrd(tmp_path, verify_rrd):
+def test_montecarlo_rrd(tmp_path, verify_rrd, capsys):
     out, rrd = tmp_path / "mc", tmp_path / "mc.rrd"
     assert main(["montecarlo", "--scenario", "default", "--duration-s", "40", "--runs", "5", "--block-runs", "2",
                  "--seed", "3", "--out", str(out), "--rrd", str(rrd), "--quiet"]) == 0
+    said = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith(f"wrote {rrd}")]
+    assert len(said) == 1 and "of envisat over 41 steps: the truth, run 0's estimate" in said[0] \
+        and "5 runs' errors" in said[0] and "mean NEES" in said[0], said  # the line says what is in it
     with np.load(out / "campaign.npz") as z:
         sample_err, filt, t_s = z["sample_err"], z["filter_3sigma"], z["t_s"]
         nees_mean, nees_bounds = z["nees_mean"], z["nees_bounds"]
