@@ -16,7 +16,7 @@ from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig,
 from envisat_pose.pipelines.campaigns.lines import summary_line, sweep_line
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE, run_sweep, sweep_for
 from envisat_pose.pipelines.jobs import resolve_job
-from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
+from envisat_pose.pools import RunnerConfig
 
 FLAGS = {**{k: "--" + k.replace("_", "-") for k in "scenario runs target duration_s block_runs settle_s "
                                                    "init_error_scale workers".split()}, **MEASUREMENT_FLAGS,
@@ -78,12 +78,12 @@ def resolve_config(args: argparse.Namespace) -> MonteCarloConfig:
 
 
 def runner_config(args: argparse.Namespace):
-    """The core runner's settings, one BLAS thread share per worker."""
+    """The core runner's settings (run_campaign gives each worker its BLAS thread share)."""
 
     check(args.workers >= 1, "workers", args.workers, "at least 1 worker")
     check(args.scheduler is None or args.backend == "dask", "scheduler", args.scheduler,
           "an address only with --backend dask")
-    runner = RunnerConfig(args.backend, args.workers, args.scheduler, thread_env(args.workers, BLAS_THREADS))
+    runner = RunnerConfig(args.backend, args.workers, args.scheduler)
     runner.validate()
     return runner
 

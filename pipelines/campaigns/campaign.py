@@ -38,6 +38,7 @@ importable from here as before (`envisat_pose.pipelines.campaigns.campaign.run_c
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -58,7 +59,7 @@ from envisat_pose.pipelines.campaigns.campaign_config import (
 from envisat_pose.pipelines.campaigns.campaign_outputs import FIGURES, finish_campaign, write_recording
 from envisat_pose.pipelines.campaigns.estimate import filter_keypoints_T_m
 from envisat_pose.pipelines.campaigns.observability import warn_if_unfixed_start, warn_outages_outside
-from envisat_pose.pools import RunnerConfig
+from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
 from envisat_pose.provenance import source_line
 from envisat_pose.resumable import ResumableJob
 from envisat_pose.target import load_target
@@ -131,13 +132,21 @@ def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConfig | Non
     return summary
 
 
+def with_blas_threads(runner: RunnerConfig) -> RunnerConfig:
+    """runner with each worker's share of the usable cores for numpy's and scipy's linear algebra
+    (pools.thread_env over BLAS_THREADS) where its env sets none of them: a block's filter is BLAS-bound, and N
+    workers each taking every core oversubscribe them N times (the verb gave the share, run_campaign did not)."""
+    env = {**thread_env(runner.workers, BLAS_THREADS), **runner.env}
+    return runner if env == runner.env else dataclasses.replace(runner, env=env)
+
+
 def campaign_at_one_rate(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConfig | None = None,
                          progress: bool = False, in_sweep: bool = False) -> dict:
     """run_campaign's work, at cfg's one rate (a rate sweep's campaigns: pipelines.campaigns.sweep.run_sweep;
     in_sweep: one of them, its config written as SWEEP_RATE_CONFIG, which `--config` does not rerun alone)."""
     cfg = config_arg(cfg, MonteCarloConfig)
     out_dir = path_arg(out_dir, "out_dir")
-    runner = config_arg(RunnerConfig() if runner is None else runner, RunnerConfig, "runner")
+    runner = with_blas_threads(config_arg(RunnerConfig() if runner is None else runner, RunnerConfig, "runner"))
     t_start = time.perf_counter()
     check_filter_rate(cfg, truth_scenario(cfg))
     job = campaign_job(cfg, out_dir)

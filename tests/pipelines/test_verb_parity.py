@@ -84,3 +84,26 @@ def test_run_estimate_without_a_truth_or_a_scenario_says_to_give_one(tmp_path):
     with pytest.raises(InputError, match="^truth_path or scenario: give one"):
         run_estimate(EstimateConfig(runs=1), str(tmp_path / "e.npz"))
     assert not os.listdir(tmp_path)
+
+
+def test_run_campaign_gives_its_workers_a_share_of_the_cores_for_linear_algebra(tmp_path, monkeypatch):
+    """`envisat montecarlo --workers 4` gave each worker its BLAS thread share (OMP/OPENBLAS/MKL_NUM_THREADS);
+    run_campaign(cfg, out, RunnerConfig("local", 4)) did not, so 4 workers each took every core."""
+    import dataclasses
+
+    from envisat_pose import MonteCarloConfig, RunnerConfig, resumable, run_campaign
+    from envisat_pose.pools import BLAS_THREADS, thread_env
+
+    seen, real = [], resumable.run_tasks
+
+    def recorded(fn, tasks, cfg):
+        seen.append(cfg.env)
+        return real(fn, tasks, dataclasses.replace(cfg, backend="inline"))  # the same tasks, in this process
+
+    monkeypatch.setattr(resumable, "run_tasks", recorded)
+    cfg = MonteCarloConfig(runs=2, duration_s=20.0, settle_s=10.0)
+    run_campaign(cfg, tmp_path / "a", RunnerConfig("local", 4))
+    assert seen == [thread_env(4, BLAS_THREADS)]
+    run_campaign(cfg, tmp_path / "b", RunnerConfig("local", 4, env={"OMP_NUM_THREADS": "3"}))  # the caller's kept
+    assert seen[1]["OMP_NUM_THREADS"] == "3" and seen[1]["MKL_NUM_THREADS"] == thread_env(4, BLAS_THREADS)[
+        "MKL_NUM_THREADS"]
