@@ -366,6 +366,17 @@ def resolve_backbone(backbone: str | None, cfg, new_target_run: bool) -> str | N
     return shipped
 
 
+def check_train_config(cfg) -> None:
+    """InputError naming `cfg` unless it is a TrainConfig (ENVISAT's corner detector) or a KeypointTrainConfig
+    (another target's): anything else reached the data's check (None) or failed once training began (a dict)."""
+    from envisat_pose.perception.keypoint_train import KeypointTrainConfig
+    from envisat_pose.perception.train import TrainConfig
+
+    if not isinstance(cfg, (TrainConfig, KeypointTrainConfig)):
+        raise InputError(f"cfg: expected a TrainConfig or a KeypointTrainConfig, got {type(cfg).__name__} "
+                         f"({cfg!r:.60})")
+
+
 def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: bool = False,
                    init: str | None = None, device: str = "cpu", workers: int | None = None, bf16: bool = False,
                    threads: int | None = None, progress: bool = False, command: str = "",
@@ -395,6 +406,7 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     perception.train.TrainingInterrupted after a checkpoint when SIGINT or SIGTERM stopped it. Callable from a
     plain script: its workers never import the script. run_dir is locked while it trains (out_lock: a second job
     on it is refused), after the checks of the arguments."""
+    check_train_config(cfg)
     data_dirs, run_dir = paths_arg(data_dirs, "data_dirs") if data_dirs else [], path_arg(run_dir, "run_dir")
     if online is not None and data_dirs:
         raise InputError("data_dirs and online: train on shards or on frames rendered as training goes, not both")

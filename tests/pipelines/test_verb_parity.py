@@ -107,3 +107,16 @@ def test_run_campaign_gives_its_workers_a_share_of_the_cores_for_linear_algebra(
     run_campaign(cfg, tmp_path / "b", RunnerConfig("local", 4, env={"OMP_NUM_THREADS": "3"}))  # the caller's kept
     assert seen[1]["OMP_NUM_THREADS"] == "3" and seen[1]["MKL_NUM_THREADS"] == thread_env(4, BLAS_THREADS)[
         "MKL_NUM_THREADS"]
+
+
+@pytest.mark.parametrize("cfg", [None, {"steps": 3}, "config.toml"])
+def test_train_detector_names_a_config_that_is_no_training_config(cfg, tmp_path):
+    """None reached the data's check (its refusal named the data) and a dict failed once training began; both
+    now one line naming cfg, nothing written."""
+    from envisat_pose import train_detector
+
+    run = tmp_path / "run"
+    with pytest.raises(InputError, match=f"^cfg: expected a TrainConfig or a KeypointTrainConfig, got "
+                                         f"{type(cfg).__name__}"):
+        train_detector(cfg, str(tmp_path), str(run))
+    assert not run.exists()
