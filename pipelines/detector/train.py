@@ -366,15 +366,16 @@ def resolve_backbone(backbone: str | None, cfg, new_target_run: bool) -> str | N
     return shipped
 
 
-def check_train_config(cfg) -> None:
-    """InputError naming `cfg` unless it is a TrainConfig (ENVISAT's corner detector) or a KeypointTrainConfig
-    (another target's): anything else reached the data's check (None) or failed once training began (a dict)."""
+def train_config_arg(cfg):
+    """cfg when it is a TrainConfig (ENVISAT's corner detector) or a KeypointTrainConfig (another target's), else
+    InputError naming `cfg`: anything else reached the data's check (None) or failed once training began (a dict)."""
     from envisat_pose.perception.keypoint_train import KeypointTrainConfig
     from envisat_pose.perception.train import TrainConfig
 
     if not isinstance(cfg, (TrainConfig, KeypointTrainConfig)):
         raise InputError(f"cfg: expected a TrainConfig or a KeypointTrainConfig, got {type(cfg).__name__} "
                          f"({cfg!r:.60})")
+    return cfg
 
 
 def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: bool = False,
@@ -406,7 +407,7 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     perception.train.TrainingInterrupted after a checkpoint when SIGINT or SIGTERM stopped it. Callable from a
     plain script: its workers never import the script. run_dir is locked while it trains (out_lock: a second job
     on it is refused), after the checks of the arguments."""
-    check_train_config(cfg)
+    cfg = train_config_arg(cfg)
     data_dirs, run_dir = paths_arg(data_dirs, "data_dirs") if data_dirs else [], path_arg(run_dir, "run_dir")
     if online is not None and data_dirs:
         raise InputError("data_dirs and online: train on shards or on frames rendered as training goes, not both")
