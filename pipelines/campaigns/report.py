@@ -380,11 +380,18 @@ def campaign_rows(c: dict) -> list[tuple[str, str]]:
                  f" ({len(s['nis_alarm_alone_runs'])} flagged by the filter alone, their errors within the "
                  "NEES rule)"
                  if s.get("nis_alarm_alone_runs") else "") + unjudged_note(s)),
-             ("wall time", f"{_fmt(t.get('block_wall_s_sum'), digits=4)} s in blocks, "
-                           f"{_fmt(t.get('wall_s_this_invocation'), digits=4)} s last invocation "
-                           f"({t.get('workers', '?')} {t.get('backend', '?')} workers)" if t
-                           else "n/a (no timing.json)")]
+             ("wall time", wall_time_cell(t))]
     return rows
+
+
+def wall_time_cell(t: dict) -> str:
+    """The wall-time cell from timing.json's dict: the blocks' summed wall time, the last invocation's and its
+    workers ('1 local worker', '4 local workers'); n/a without timing.json."""
+    if not t:
+        return "n/a (no timing.json)"
+    n = t.get("workers", "?")
+    return (f"{_fmt(t.get('block_wall_s_sum'), digits=4)} s in blocks, {_fmt(t.get('wall_s_this_invocation'), digits=4)}"
+            f" s last invocation ({n} {t.get('backend', '?')} worker{'' if n == 1 else 's'})")
 
 
 STYLE = """body{font-family:sans-serif;margin:1em}table{border-collapse:collapse}td,th{border:1px solid #bbb;
