@@ -12,8 +12,8 @@ import time
 from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_rrd_output, init_error_line
 from envisat_pose.app.flag_rules import check_noise_flags, job_scenario
 from envisat_pose.config import InputError, check
-from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, run_campaign
-from envisat_pose.pipelines.campaigns.lines import summary_line, sweep_line
+from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, read_timing, run_campaign
+from envisat_pose.pipelines.campaigns.lines import resume_note, summary_line, sweep_line
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE, run_sweep, sweep_for
 from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.pools import RunnerConfig
@@ -106,7 +106,7 @@ def run_montecarlo(args: argparse.Namespace) -> int:
         return 0
     summary = run_campaign(cfg, args.out, runner, progress=not args.quiet, rrd=args.rrd)
     print(f"wrote {args.out}: {cfg.runs} runs x {summary['steps']} steps, campaign.npz, summary.json, "
-          f"{len(FIGURES)} figures ({time.perf_counter() - t0:.1f} s)")
+          f"{len(FIGURES)} figures ({time.perf_counter() - t0:.1f} s{resume_note(cfg.n_blocks, read_timing(args.out))})")
     print(summary_line(summary))
     if cfg.init_error_scale != 1.0:
         print(init_error_line(cfg.init_error_scale))

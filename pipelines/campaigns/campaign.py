@@ -67,7 +67,7 @@ from envisat_pose.written_target import with_target_sha256
 
 # the entry points, and the parts' names the verb (app/montecarlo.py) and users import from here
 __all__ = ["run_campaign", "campaign_job", "prepare_truth", "MANIFEST_FORMAT", "MonteCarloConfig", "with_eclipse",
-           "check_filter_rate", "truth_scenario", "FIGURES", "write_recording"]
+           "check_filter_rate", "truth_scenario", "FIGURES", "write_recording", "read_timing"]
 
 if TYPE_CHECKING:
     from envisat_pose.resumable import ResumableJob
@@ -181,6 +181,17 @@ def campaign_at_one_rate(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConf
               "run_steps": cfg.runs * summary["steps"]}
     atomic_write_text(os.path.join(out_dir, "timing.json"), json.dumps(timing, indent=1, sort_keys=True) + "\n")
     return summary
+
+
+def read_timing(out_dir: str) -> dict | None:
+    """DIR/timing.json's dict (wall times, blocks_run_now: how many blocks the last invocation ran, the rest
+    kept from an earlier one); None where it is missing or unreadable."""
+    try:
+        with open(os.path.join(out_dir, "timing.json"), encoding="utf-8") as fh:
+            timing = json.load(fh)
+    except (OSError, ValueError):
+        return None
+    return timing if isinstance(timing, dict) else None
 
 
 def _bar(cfg: MonteCarloConfig, done: dict, progress: bool):

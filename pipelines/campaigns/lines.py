@@ -94,3 +94,12 @@ def _sweep_why(r: dict, i: int) -> str:  # why rate i's runs were not judged (un
 
 def _fmt_ratio(v, digits: int = 3) -> str:  # n/a says why, as the report's cells do: null, nan, inf
     return f"{v:.{digits}f}" if v is not None and math.isfinite(v) else f"n/a ({why_not_a_number(v) or v})"
+
+
+def resume_note(n_blocks: int, timing: dict | None) -> str:
+    """'; resumed: K of N blocks kept, M run now' for a rerun that kept finished blocks (timing.json's
+    blocks_run_now below the campaign's N blocks), else '' (a fresh campaign, every block redone, no timing)."""
+    run_now = (timing or {}).get("blocks_run_now")
+    if not isinstance(run_now, int) or isinstance(run_now, bool) or not 0 <= run_now < n_blocks:
+        return ""
+    return f"; resumed: {n_blocks - run_now} of {n_blocks} blocks kept, {run_now} run now"
