@@ -19,10 +19,11 @@ from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, rea
 
 
 def verify_dataset(out_dir: str) -> list[str]:
-    """Problems of a dataset, one line each (empty: every shard present and matching its manifest entry by the
-    core's one shard check, shard_reader.shard_problem: size, sha256, samples; and no shard-*.tar there that the
-    manifest does not list). A manifest there that is unreadable or not a dataset's is its one problem: a damaged
-    dataset. InputError when out_dir is no folder or holds no manifest: not a dataset."""
+    """Returns a list of str: the problems of a dataset, one line each; an empty list means it verified (every
+    shard present and matching its manifest entry by the core's one shard check, shard_reader.shard_problem:
+    size, sha256, samples; and no shard-*.tar there that the manifest does not list). A manifest there that is
+    unreadable or not a dataset's is its one problem: a damaged dataset. InputError when out_dir is no
+    folder or holds no manifest: not a dataset."""
     out_dir = os.fspath(out_dir)
     try:
         manifest = load_dataset_manifest(out_dir)

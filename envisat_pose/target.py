@@ -412,8 +412,9 @@ def _load(path: str, stamps: tuple, naming: _Naming) -> Target:
 
 
 def load_target(given: str = DEFAULT_TARGET, field: str = "target", named: str | None = None) -> Target:
-    """The checked target of a config's `target` value (a path; DEFAULT_TARGET is the package's ENVISAT; named:
-    how its warnings name the file where it comes from elsewhere than `field`, a truth file's record).
+    """Returns a Target: the checked target of a config's `target` value, read once (its keypoints in T, m, its
+    mass and inertia, its surface, sha256: class Target). given: a path; DEFAULT_TARGET is the package's ENVISAT;
+    named: how its warnings name the file where it comes from elsewhere than `field`, a truth file's record).
     ConfigError naming `field`, the value and what was expected: no such file, a file MuJoCo cannot read or
     compile, no body 'target' (its child bodies are read fused, its joints latched: target_file.py), a bad
     inertia (zero mass, not positive definite, the triangle inequality; stated by an <inertial>, or else MuJoCo's

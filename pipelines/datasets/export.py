@@ -87,9 +87,11 @@ class ExportSummary:
 @locks_output("out_dir", "dataset export", beside=True)  # the folder appears whole, by a rename (_publish)
 def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 1, skip_damaged: bool = False,
                    progress: bool = False, on_shard=None) -> ExportSummary:
-    """Export the dataset folder `src` into the new folder `out_dir` in cfg's format (module docstring).
-    on_shard(count): called after each shard (a progress hook). InputError for a bad argument, a missing or
-    damaged dataset (naming the shard) or an `out_dir` that exists and holds anything."""
+    """Export the dataset folder `src` into the new folder `out_dir` in cfg's format (module docstring). Returns an
+    ExportSummary: out_dir (the folder written), fmt, images (how many per split, sequence or scene set) and
+    skipped (the damaged shards left out with skip_damaged). on_shard(count): called after each shard (a progress
+    hook). InputError for a bad argument, a missing or damaged dataset (naming the shard) or an `out_dir` that
+    exists and holds anything."""
     cfg, src, out_dir = config_arg(cfg, ExportConfig), path_arg(src, "src"), path_arg(out_dir, "out_dir")
     check(type(workers) is int and workers >= 1, "workers", workers, "at least 1 worker process (an integer)")
     check_out_dir(out_dir, field="out_dir")

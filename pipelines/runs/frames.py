@@ -249,8 +249,9 @@ class FrameSource:
 
 def open_source(source: str, rate_hz: float = 0.0, timestamps: str | None = None,
                 bit_depth: int | None = None, skip_damaged: bool = False) -> FrameSource:
-    """The frames of `source` (a generate folder, an image folder or a video file) with their times; InputError with
-    one line naming the input and what was expected, or the flag that does not apply to it. bit_depth: of the
+    """Returns a FrameSource: the frames of `source` (a generate folder, an image folder or a video file) with their
+    times (t_s, s), its kind and, for a generate folder, its truth (class FrameSource). InputError with one line
+    naming the input and what was expected, or the flag that does not apply to it. bit_depth: of the
     data in 16-bit image files (None: detected by scan_source). A generate folder's shards are checked against
     its manifest: a damaged one is refused, or with skip_damaged left out (the FrameSource's skipped names it)."""
     if bit_depth is not None and bit_depth not in BIT_DEPTHS:
