@@ -50,8 +50,8 @@ def add_common(p: argparse.ArgumentParser, *, out: str | None = None, out_defaul
 def add_bf16_argument(p: argparse.ArgumentParser) -> None:
     """--bf16: ENVISAT's corner detector runs its network in bfloat16 (DetectConfig.bf16)."""
     p.add_argument("--bf16", action="store_true", help="run ENVISAT's corner detector's network in bfloat16 (not "
-                   "another target's keypoint detector): faster on CPUs with AVX512-BF16 or AMX, slower elsewhere; accuracy beside float32 in "
-                   "bench/results/detector_bf16.json (default: float32)")
+                   "another target's keypoint detector): faster on CPUs with AVX512-BF16 or AMX, slower elsewhere; "
+                   "accuracy beside float32 in bench/results/detector_bf16.json (default: float32)")
 
 
 def add_recording_arguments(p: argparse.ArgumentParser) -> None:

@@ -105,8 +105,9 @@ def run_montecarlo(args: argparse.Namespace) -> int:
         print(sweep_line(result))
         return 0
     summary = run_campaign(cfg, args.out, runner, progress=not args.quiet, rrd=args.rrd)
+    resumed = resume_note(cfg.n_blocks, read_timing(args.out))
     print(f"wrote {args.out}: {cfg.runs} runs x {summary['steps']} steps, campaign.npz, summary.json, "
-          f"{len(FIGURES)} figures ({time.perf_counter() - t0:.1f} s{resume_note(cfg.n_blocks, read_timing(args.out))})")
+          f"{len(FIGURES)} figures ({time.perf_counter() - t0:.1f} s{resumed})")
     print(summary_line(summary))
     if cfg.init_error_scale != 1.0:
         print(init_error_line(cfg.init_error_scale))

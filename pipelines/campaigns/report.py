@@ -390,8 +390,9 @@ def wall_time_cell(t: dict) -> str:
     if not t:
         return "n/a (no timing.json)"
     n = t.get("workers", "?")
-    return (f"{_fmt(t.get('block_wall_s_sum'), digits=4)} s in blocks, {_fmt(t.get('wall_s_this_invocation'), digits=4)}"
-            f" s last invocation ({n} {t.get('backend', '?')} worker{'' if n == 1 else 's'})")
+    return (f"{_fmt(t.get('block_wall_s_sum'), digits=4)} s in blocks, "
+            f"{_fmt(t.get('wall_s_this_invocation'), digits=4)} s last invocation "
+            f"({n} {t.get('backend', '?')} worker{'' if n == 1 else 's'})")
 
 
 STYLE = """body{font-family:sans-serif;margin:1em}table{border-collapse:collapse}td,th{border:1px solid #bbb;

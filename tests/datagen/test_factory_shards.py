@@ -212,9 +212,9 @@ def test_verify_reports_a_partial_file_in_a_folder_named_with_glob_characters(tm
 
 
 @pytest.mark.parametrize("flags, message", [
-    (["--num-images", "0"], "num_images = 0"),
-    (["--resolution", "0"], "resolution_px = 0"),
-    (["--mode", "spiral"], "mode = 'spiral'"),
+    (["--num-images", "0"], "--num-images 0"),  # named as the flag typed
+    (["--resolution", "0"], "--resolution 0"),
+    (["--mode", "spiral"], "--mode 'spiral'"),
 ])
 def test_bad_config_clear_error_nothing_written(tmp_path, capsys, flags, message):
     out = tmp_path / "ds"

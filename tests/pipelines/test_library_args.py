@@ -30,7 +30,8 @@ def test_a_report_takes_one_folder_as_a_list_of_one_and_refuses_none(tmp_path):
 
     d = tmp_path / "campaign"
     d.mkdir()
-    with pytest.raises(InputError, match="campaign'? has no summary.json"):  # the folder, not its first letter
+    # the folder, not its first letter
+    with pytest.raises(InputError, match="campaign'? is not an `envisat montecarlo` folder"):
         write_report(d, tmp_path / "r.html")
     with pytest.raises(InputError, match="dirs = \\[\\]: expected one or more paths"):
         write_report([], str(tmp_path / "r.html"))
