@@ -11,7 +11,7 @@ import pytest
 from envisat_pose.app.cli import main
 from envisat_pose.filtering.estimator import FilterConfig
 
-KEYS = {"t_s", "x_true", "x_hat", "P", "n_meas", "nis", "nis_dof", "diverged", "config_json"}
+KEYS = {"t_s", "x_true", "x_hat", "P", "n_meas", "nis", "nis_dof", "diverged", "judged", "config_json"}
 
 
 def _load(path):

@@ -121,7 +121,8 @@ def test_a_campaign_stopped_while_its_figures_are_written_is_not_taken_as_finish
     monkeypatch.setattr(campaign_figures, "plot_nees_nis", interrupted)
     assert main(BASE + ["--out", str(d)]) == 130  # the verb's Ctrl-C
     assert not (d / "summary.json").exists() and (d / "campaign.npz").exists()
-    with pytest.raises(InputError, match="not a finished"):
+    with pytest.raises(InputError, match="is an interrupted `envisat montecarlo` campaign .*rerun its command to "
+                                         "finish it"):
         load_campaign(str(d))
     monkeypatch.undo()
     assert main(BASE + ["--out", str(d)]) == 0
