@@ -29,6 +29,13 @@ class MovedKeyError(ConfigError):
         return self.args[0]
 
 
+class DeprecatedKeyWarning(FutureWarning):
+    """A config key under its old name, taken for one release (config_fields.renamed_fields): 'acquire.min_corners
+    is deprecated: use acquire.min_keypoints'. A FutureWarning, Python's category for a deprecation its end users
+    must see: the key is written in their config files, and Python shows no DeprecationWarning outside __main__
+    (the verbs print it as a warning line)."""
+
+
 class InputError(ValueError):
     """A user error that is not about one config field (a missing or unreadable file, say)."""
 

@@ -4,7 +4,8 @@ Configs are frozen dataclasses (nested for sections) derived from `Config`, whic
 built: the constructor, `dataclasses.replace` and `from_dict` alike (a config's own `validate()` checks its ranges).
 `from_dict` builds one from plain data through its constructor and rejects unknown keys, wrong types and
 non-finite numbers (the constructor refuses NaN and inf too). What a config fills in itself is marked (Derived,
-DerivedInt, mark_filled) so that a config replaced with new inputs fills it in again.
+DerivedInt, mark_filled) so that a config replaced with new inputs fills it in again. A field renamed
+(`renamed_fields`) still takes its old name for one release, with a DeprecatedKeyWarning.
 """
 
 from __future__ import annotations
@@ -15,9 +16,10 @@ import math
 import os
 import types
 import typing
+import warnings
 from typing import Any
 
-from envisat_pose.config_errors import ConfigError, MovedKeyError, check
+from envisat_pose.config_errors import ConfigError, DeprecatedKeyWarning, MovedKeyError, check
 
 
 class Derived(float):
@@ -106,6 +108,54 @@ class Config:
 
     def validate(self, prefix: str = "") -> None:
         """ConfigError for a field out of its range (a config with nothing to check has nothing here)."""
+
+
+def renamed_fields(**renamed: str) -> typing.Callable[[type], type]:
+    """A class decorator over a config's @dataclass: each old field name (renamed: {old: new}) still taken for one
+    release, with a DeprecatedKeyWarning naming the new one: a file's or a dict's key (from_dict, 'acquire.min_corners
+    is deprecated: use acquire.min_keypoints'), a constructor's keyword and an attribute read. Both names given
+    are refused, naming both (dataclasses.replace passes every field: replace with the new name)."""
+
+    def decorate(cls: type) -> type:
+        init = cls.__init__
+
+        @functools.wraps(init)
+        def __init__(self, *args, **kwargs) -> None:
+            init(self, *args, **_renamed_given(cls, kwargs, f"{cls.__name__}."))
+
+        cls.__init__ = __init__
+        cls.renamed_keys = dict(renamed)  # from_dict's {old: new}
+        for old, new in renamed.items():
+            setattr(cls, old, property(functools.partial(_old_name_read, old=old, new=new),
+                                       doc=f"Deprecated: {new}, under its old name (one release)."))
+        return cls
+
+    return decorate
+
+
+def _old_name_read(obj: Any, old: str, new: str) -> Any:
+    warnings.warn(f"{type(obj).__name__}.{old} is deprecated: use {type(obj).__name__}.{new}", DeprecatedKeyWarning,
+                  stacklevel=2)
+    return getattr(obj, new)
+
+
+def _renamed_given(cls: type, data: dict, prefix: str = "", stacklevel: int = 3) -> dict:
+    """data (a table's keys or a constructor's keywords) with each old name of cls.renamed_keys ({old: new},
+    renamed_fields) under its new one, warned of (DeprecatedKeyWarning, '<prefix>old is deprecated: use
+    <prefix>new'); ConfigError naming both where both are given. data itself where it holds no old name."""
+    renamed = getattr(cls, "renamed_keys", {})
+    old_given = [old for old in renamed if old in data]
+    if not old_given:
+        return data
+    out = dict(data)
+    for old in old_given:
+        new = renamed[old]
+        if new in out:
+            raise ConfigError(f"{prefix}{old}", out[old], f"{prefix}{new} alone ({old} is its deprecated name), not "
+                              f"both: {prefix}{new} = {out[new]!r} is given too")
+        warnings.warn(f"{prefix}{old} is deprecated: use {prefix}{new}", DeprecatedKeyWarning, stacklevel=stacklevel)
+        out[new] = out.pop(old)
+    return out
 
 
 def _tables_over_bases(obj: Config) -> None:
@@ -307,6 +357,7 @@ def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
     Config (a test's own) is validated here with `validate(prefix)`, if it has one."""
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
+    data = _renamed_given(cls, data, f"{prefix}." if prefix else "")
     moved = getattr(cls, "moved_keys", {})  # {old key: "section.key"} of a config that was regrouped
     for key in data:
         where = f"{prefix}.{key}" if prefix else key

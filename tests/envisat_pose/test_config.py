@@ -204,3 +204,28 @@ def test_numpy_nan_in_a_configs_number_is_one_config_error_naming_it():
         with pytest.raises(ConfigError, match=rf"^{name} = .*nan.*: expected a number \(not NaN\)"):
             build()
     assert OrbitConfig(raan_deg=np.float64(10.0)).raan_deg == 10.0
+
+
+def test_a_renamed_field_takes_its_old_name_one_release_with_a_warning():
+    """config.renamed_fields: the old name of a field in a file's table (under its dotted prefix), a constructor's
+    keyword and an attribute read, each warned naming the new name and each the same field; a config replaced by
+    the new name as any other; both names refused naming both; the written config holds the new name alone."""
+    from envisat_pose.config import DeprecatedKeyWarning, renamed_fields, to_dict
+
+    @renamed_fields(old_hz="rate_hz")
+    @dataclass(frozen=True)
+    class Renamed(Config):
+        rate_hz: float = 1.0
+
+    with pytest.warns(DeprecatedKeyWarning, match=r"^sensor\.old_hz is deprecated: use sensor\.rate_hz$"):
+        assert from_dict(Renamed, {"old_hz": 2.0}, prefix="sensor") == Renamed(rate_hz=2.0)
+    with pytest.warns(DeprecatedKeyWarning, match=r"^Renamed\.old_hz is deprecated: use Renamed\.rate_hz$"):
+        built = Renamed(old_hz=3.0)
+    assert dataclasses.replace(built, rate_hz=4.0) == Renamed(rate_hz=4.0) and to_dict(built) == {"rate_hz": 3.0}
+    with pytest.warns(DeprecatedKeyWarning, match=r"^Renamed\.old_hz is deprecated"):
+        assert built.old_hz == 3.0
+    with pytest.raises(ConfigError, match=r"^sensor\.old_hz = 2\.0: expected sensor\.rate_hz alone \(old_hz is its "
+                                          r"deprecated name\), not both: sensor\.rate_hz = 5\.0 is given too$"):
+        from_dict(Renamed, {"old_hz": 2.0, "rate_hz": 5.0}, prefix="sensor")
+    with pytest.raises(ConfigError, match=r"^Renamed\.old_hz = 2\.0: expected Renamed\.rate_hz alone"):
+        Renamed(old_hz=2.0, rate_hz=5.0)
