@@ -97,7 +97,7 @@ class Detection:
         R_K = camera.R_K_from_C @ mrp_to_dcm(x[MRP]).T
         t_K = camera.R_K_from_C @ (x[:3] - camera.pos_C_m)
         fd = self.det.detect(image, camera.K, roi_px=roi, prior_R_cam_from_target=R_K, prior_t_cam_from_target_m=t_K)
-        if int(np.sum(fd.visible)) < self.roi_cfg.min_corners:
+        if int(np.sum(fd.visible)) < self.roi_cfg.min_keypoints:
             fd = self.det.detect(image, camera.K, roi_px=None, prior_R_cam_from_target=R_K,
                                  prior_t_cam_from_target_m=t_K)
         return np.where(fd.visible[:, None], fd.corners_px, np.nan)

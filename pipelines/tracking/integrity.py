@@ -8,7 +8,7 @@ The bounds are TrackerConfig.integrity's (IntegrityConfig: `window`, `prob`, ...
 - A cold-start fit starts a hypothesis only if it kept most of its window's corners (`fit_problems`: the fit's
   gate rejected no more than a correct fit would at the cold start's share, Tracker.cold_start_reject_share:
   the config's or DEFAULT_REJECT_SHARE, never the detector's measured one; and the kept ones are at least
-  `acquire.min_corners` per frame on average), its reduced chi-square is inside its chi-square bound and its state
+  `acquire.min_keypoints` per frame on average), its reduced chi-square is inside its chi-square bound and its state
   is physical (`state_problems`).
 - Each hypothesis carries a window of its last `window` frames (`EvidenceWindow`): the NIS and its
   degrees of freedom, the corners given to the filter and those rejected. Every frame, a hypothesis fails when its
@@ -78,10 +78,11 @@ def check_min_target_px(min_target_px: float, f_px: float, field: str, radius_m:
 
 
 def check_min_keypoints(cfg, num_keypoints: int, prefix: str = "tracker") -> None:
-    """ConfigError unless the keypoints a frame needs (cfg: a TrackerConfig; acquire.min_corners for a cold-start
-    pose, roi.min_corners in the region of interest) are at most the target's num_keypoints: more, and no frame
-    ever has enough (ENVISAT's 8 corners; another target's K)."""
-    for field, value in (("acquire.min_corners", cfg.acquire.min_corners), ("roi.min_corners", cfg.roi.min_corners)):
+    """ConfigError unless the keypoints a frame needs (cfg: a TrackerConfig; acquire.min_keypoints for a
+    cold-start pose, roi.min_keypoints in the region of interest) are at most the target's num_keypoints: more, and
+    no frame ever has enough (ENVISAT's 8 corners; another target's K)."""
+    for field, value in (("acquire.min_keypoints", cfg.acquire.min_keypoints),
+                         ("roi.min_keypoints", cfg.roi.min_keypoints)):
         check(value <= num_keypoints, f"{prefix}.{field}", value,
               f"at most the target's {num_keypoints} keypoints (more: no frame ever holds enough)")
 
@@ -157,10 +158,10 @@ def rejections_improbable(rejected: int, given: int, share: float, prob: float) 
     return p if p < prob else None
 
 
-def fit_problems(fit, frames: int, cfg, min_corners: int, share: float = DEFAULT_REJECT_SHARE) -> list[str]:
+def fit_problems(fit, frames: int, cfg, min_keypoints: int, share: float = DEFAULT_REJECT_SHARE) -> list[str]:
     """Why a cold-start BatchFit (pipelines/tracking/acquisition.py) over `frames` frames starts no hypothesis (empty when
     it may): not valid, more corners rejected than a correct fit would at `share` (rejections_improbable), fewer than
-    min_corners (AcquireConfig.min_corners) kept a frame on average, a chi-square beyond its bound at cfg.prob
+    min_keypoints (AcquireConfig.min_keypoints) kept a frame on average, a chi-square beyond its bound at cfg.prob
     (cfg: the IntegrityConfig)."""
     if not fit.valid:
         return ["the fit has no positive-definite covariance"]
@@ -171,8 +172,8 @@ def fit_problems(fit, frames: int, cfg, min_corners: int, share: float = DEFAULT
     if p is not None:
         out.append(f"the fit rejected {fit.rejected} of {measured} keypoints (p = {p:.1g} at the expected "
                    f"{share:.0%})")
-    if kept < min_corners * frames:
-        out.append(f"the fit kept {kept / frames:.1f} keypoints a frame (at least {min_corners})")
+    if kept < min_keypoints * frames:
+        out.append(f"the fit kept {kept / frames:.1f} keypoints a frame (at least {min_keypoints})")
     if fit.dof > 0 and fit.chi2 > chi2_bound(cfg.prob, int(fit.dof)):
         out.append(f"the fit's chi-square {fit.chi2:.0f} beyond its bound {chi2_bound(cfg.prob, int(fit.dof)):.0f} "
                    f"({fit.dof} dof)")

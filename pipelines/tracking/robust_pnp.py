@@ -20,7 +20,7 @@ at 24-42 s, none claimed wrong either way.
    of the best few (LOCAL_REFITS distinct sets) refitted by SQPnP until the set stops changing; the refit that
    passes the most keypoints (then the lowest MSAC cost) gives the set, whose pose is SQPnP + LM.
 3. The refit replaces the all-keypoint pose only when it passes more keypoints than that pose does and at least
-   min_corners; a refit of 4 keypoints (a box's 5 seen with one outlier) only when no other minimal set's pose
+   min_keypoints; a refit of 4 keypoints (a box's 5 seen with one outlier) only when no other minimal set's pose
    passes 4 keypoints of another set (4 keypoints check their pose by 2 residual components: one consistent set
    is evidence, two are a guess). Its outliers are returned, so the tracker drops them from the frame (NaN) and
    the window's batch fit never sees them. A frame of 4 keypoints (no spare to tell an outlier by), or none of
@@ -150,13 +150,13 @@ def _best_refit(obj, img, cov_inv, K, d2: np.ndarray, gate: float):
 
 
 def robust_pnp(z_px: np.ndarray, cov_px: np.ndarray, keypoints_T_m: np.ndarray, camera: PinholeCamera,
-               gate: float, min_corners: int = 4) -> RobustPose | None:
+               gate: float, min_keypoints: int = 4) -> RobustPose | None:
     """The pose of the named keypoints z_px (K, 2) (NaN where missing) with covariance cov_px (K, 2, 2) px^2 and
     the keypoints it keeps (module docstring): the all-keypoint pose where it passes the gate (chi-square per
     keypoint, 2 dof) at every keypoint, else the refit of the best minimal set's inliers. None with fewer than
-    min_corners (at least 4) measured keypoints or when PnP fails. keypoints_T_m (K, 3) in T."""
+    min_keypoints (at least 4) measured keypoints or when PnP fails. keypoints_T_m (K, 3) in T."""
     ok = np.isfinite(z_px).all(-1)
-    if ok.sum() < max(min_corners, MINIMAL):
+    if ok.sum() < max(min_keypoints, MINIMAL):
         return None
     obj, img, K = keypoints_T_m[ok].astype(float), z_px[ok].astype(float), camera.K
     pose = keypoint_pose(obj, img, K)
@@ -173,7 +173,7 @@ def robust_pnp(z_px: np.ndarray, cov_px: np.ndarray, keypoints_T_m: np.ndarray, 
     fit = _best_refit(obj, img, cov_inv, K, d2, gate)
     m = 0 if fit is None else int(fit[1].sum())
     sets = {row.tobytes() for row in d2 < gate if row.sum() >= MINIMAL}  # the minimal sets' consistent sets
-    if m <= max(n_all, min_corners - 1) or (m == MINIMAL and len(sets) > 1):
+    if m <= max(n_all, min_keypoints - 1) or (m == MINIMAL and len(sets) > 1):
         return x_all
     pose = keypoint_pose(obj[fit[1]], img[fit[1]], K)
     if pose is None:

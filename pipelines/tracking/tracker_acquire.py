@@ -39,7 +39,8 @@ class AcquiringSteps:
         if fd is not None:
             z, cov, p_alt = detection_measurement(fd, self.inflation, self.bias_scale)
             measured = np.isfinite(z).all(-1)
-            pose = robust_pnp(z, cov, self.keypoints_T_m, self.camera, self.cfg.fit.gate, self.cfg.acquire.min_corners)
+            pose = robust_pnp(z, cov, self.keypoints_T_m, self.camera, self.cfg.fit.gate,
+                              self.cfg.acquire.min_keypoints)
             if pose is not None:  # the keypoints the frame's pose refuses never reach the window's fit
                 rejected = measured & ~pose.inliers
                 z, cov = np.where(rejected[:, None], np.nan, z), np.where(rejected[:, None, None], np.nan, cov)
@@ -88,7 +89,7 @@ class AcquiringSteps:
         state = [state_problems(f.x, f.P, self.camera, self.radius_m, self.cfg.integrity) if f.valid else []
                  for f in fits]  # an invalid fit's problem is fit_problems' own
         share = self.cold_start_reject_share()
-        problems = [fit_problems(f, len(frames), self.cfg.integrity, self.cfg.acquire.min_corners, share) or s
+        problems = [fit_problems(f, len(frames), self.cfg.integrity, self.cfg.acquire.min_keypoints, share) or s
                     for f, s in zip(fits, state)]
         ok = np.array([not p for p in problems])
         if ok.any() and self.cfg.integrity.focal_check:  # the frames' own focal length against the camera's

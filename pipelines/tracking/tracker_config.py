@@ -3,7 +3,9 @@
 
 In a TOML file the sections are tables under [tracker]: `[tracker.acquire]`, `[tracker.bank]`, `[tracker.fit]`,
 `[tracker.array_cue]`, `[tracker.roi]`, `[tracker.integrity]`, `[tracker.noise]`, `[tracker.gate]`. A key of the
-old flat layout directly under [tracker] is refused with one line naming its new home (MOVED_KEYS)."""
+old flat layout directly under [tracker] is refused with one line naming its new home (MOVED_KEYS); a renamed key
+(`min_corners`, now `min_keypoints` for any target's keypoints) is taken for one release with a warning naming its
+new name (config.renamed_fields)."""
 
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from envisat_pose.config import Config, check
+from envisat_pose.config import Config, check, renamed_fields
 from envisat_pose.filtering.filter_config import SIGMA_MAX, SIGMA_MIN
 from envisat_pose.gates import GATE_PROB, chi2_gate
 from envisat_pose.pipelines.tracking import tracker_bounds as B
@@ -33,13 +35,15 @@ def _dot(prefix: str) -> str:
     return f"{prefix}." if prefix else ""
 
 
+@renamed_fields(min_corners="min_keypoints")
 @dataclass(frozen=True)
 class AcquireConfig(Config):
     """The cold start (pipelines/tracking/acquisition.py).
 
-    frames: lit frames with a PnP pose in the cold-start window; min_corners: named corners a frame needs for a
-    pose (and the corners a cold-start fit must keep per frame on average: integrity.fit_problems); max_gap_s: a
-    longer gap between buffered frames restarts the window.
+    frames: lit frames with a PnP pose in the cold-start window; min_keypoints: named keypoints a frame needs for
+    a pose (and the keypoints a cold-start fit must keep per frame on average: integrity.fit_problems; its old name
+    min_corners taken one release, deprecated); max_gap_s: a longer gap between buffered frames restarts the
+    window.
     start_cov_factor: the cold-start fit's covariance is multiplied by this when a bank starts. The window's
     frames are fewer than the errors' correlation allows a fit to average (twenty frames against a 13 s
     correlation time); without it the first ~30 s after a start were over-confident (NEES per block 10-30 of 3 on
@@ -47,14 +51,14 @@ class AcquireConfig(Config):
     """
 
     frames: int = 20
-    min_corners: int = 4
+    min_keypoints: int = 4
     max_gap_s: float = 30.0
     start_cov_factor: float = 4.0
 
     def validate(self, prefix: str = "tracker.acquire") -> None:
         p = _dot(prefix)
         check(self.frames >= 3, f"{p}frames", self.frames, "at least 3 frames")
-        check(self.min_corners >= 4, f"{p}min_corners", self.min_corners,
+        check(self.min_keypoints >= 4, f"{p}min_keypoints", self.min_keypoints,
               "at least 4 keypoints (PnP's least; at most the target's, which the Tracker checks)")
         check(B.MIN_FRAME_DT_S <= self.max_gap_s <= B.MAX_PREDICTION_S, f"{p}max_gap_s", self.max_gap_s,
               f"a gap in [{B.MIN_FRAME_DT_S:g}, {B.MAX_PREDICTION_S:g}] s (the least frame interval; the longest a "
@@ -183,28 +187,30 @@ class ArrayCueConfig(Config):
         check(self.lost_readings >= 1, f"{p}lost_readings", self.lost_readings, "at least 1 reading")
 
 
+@renamed_fields(min_corners="min_keypoints")
 @dataclass(frozen=True)
 class RoiConfig(Config):
     """The region of interest and the priors the detector is given (tracker.predicted_roi,
     Tracker._detect_predicted).
 
     enabled: look only in the predicted region of interest once converged; margin: its side over the predicted
-    corners' extent (plus 6 x the prior's pixel sigma); min_side_px; min_corners: fewer corners found there and
-    the coarse pass runs again. converged_pos_sigma_m / converged_att_sigma_deg: the prior counts as converged
-    (ROI, attitude prior) below these. prior_attitude: give the detector the predicted attitude; prior_pose: with
-    it, the predicted position too, so its naming starts from the predicted pose instead of searching every face
-    hypothesis (half of the detector's time in the loop; the search still runs when the predicted pose matches
-    fewer than 4 corners). prior_pose_twins: while the bank still holds a pose and its symmetric twins, the best
-    one's predicted pose seeds the naming too, without weighing the half-turn (the twins are one physical pose;
-    the detector's half-turn probability stays the image's own). Without it the detector searches every face on
-    its own in those frames and, on near end-on views, names four corners of one face wrongly for frames in a
-    row: enough rejections in a young bank's window to lose a correct start (docs/history.md).
+    corners' extent (plus 6 x the prior's pixel sigma); min_side_px; min_keypoints: fewer keypoints found there and
+    the coarse pass runs again (its old name min_corners taken one release, deprecated). converged_pos_sigma_m /
+    converged_att_sigma_deg: the prior counts as converged (ROI, attitude prior) below these. prior_attitude: give
+    the detector the predicted attitude; prior_pose: with it, the predicted position too, so its naming starts from
+    the predicted pose instead of searching every face hypothesis (half of the detector's time in the loop; the
+    search still runs when the predicted pose matches fewer than 4 corners). prior_pose_twins: while the bank still
+    holds a pose and its symmetric twins, the best one's predicted pose seeds the naming too, without weighing the
+    half-turn (the twins are one physical pose; the detector's half-turn probability stays the image's own).
+    Without it the detector searches every face on its own in those frames and, on near end-on views, names four
+    corners of one face wrongly for frames in a row: enough rejections in a young bank's window to lose a correct
+    start (docs/history.md).
     """
 
     enabled: bool = True
     margin: float = 1.4
     min_side_px: int = 64
-    min_corners: int = 4
+    min_keypoints: int = 4
     converged_pos_sigma_m: float = 0.2
     converged_att_sigma_deg: float = 2.0
     prior_attitude: bool = True
@@ -215,7 +221,7 @@ class RoiConfig(Config):
         p = _dot(prefix)
         check(self.margin >= 1.0, f"{p}margin", self.margin, "a factor >= 1")
         check(16 <= self.min_side_px <= 4096, f"{p}min_side_px", self.min_side_px, "a side in [16, 4096] px")
-        check(self.min_corners >= 1, f"{p}min_corners", self.min_corners,
+        check(self.min_keypoints >= 1, f"{p}min_keypoints", self.min_keypoints,
               "at least 1 keypoint (at most the target's, which the Tracker checks)")
         check(0 < self.converged_pos_sigma_m <= SIGMA_MAX, f"{p}converged_pos_sigma_m", self.converged_pos_sigma_m,
               f"a positive sigma in m, at most {SIGMA_MAX:g} (the widest the filter takes)")
@@ -378,7 +384,7 @@ class GateConfig(Config):
 SECTIONS = ("acquire", "fit", "bank", "array_cue", "roi", "integrity", "noise", "gate")
 # the flat layout's keys (before the sections) -> their section.key, for the one-line hint on an old file
 MOVED_KEYS = {
-    "acquire_frames": "acquire.frames", "acquire_min_corners": "acquire.min_corners",
+    "acquire_frames": "acquire.frames", "acquire_min_corners": "acquire.min_keypoints",
     "max_gap_s": "acquire.max_gap_s", "start_cov_factor": "acquire.start_cov_factor",
     "fit_iterations": "fit.iterations", "fit_huber": "fit.huber", "fit_gate_prob": "fit.gate_prob",
     "decided": "bank.decided", "evidence_prob": "bank.evidence_prob", "appearance_clip": "bank.appearance_clip",
@@ -386,7 +392,7 @@ MOVED_KEYS = {
     "array_cue": "array_cue.enabled", "array_cue_per_frame": "array_cue.per_frame",
     "array_cue_max_log": "array_cue.max_log", "array_lost_readings": "array_cue.lost_readings",
     "roi": "roi.enabled", "roi_margin": "roi.margin", "roi_min_side_px": "roi.min_side_px",
-    "roi_min_corners": "roi.min_corners", "converged_pos_sigma_m": "roi.converged_pos_sigma_m",
+    "roi_min_corners": "roi.min_keypoints", "converged_pos_sigma_m": "roi.converged_pos_sigma_m",
     "converged_att_sigma_deg": "roi.converged_att_sigma_deg", "prior_attitude": "roi.prior_attitude",
     "prior_pose": "roi.prior_pose", "prior_pose_twins": "roi.prior_pose_twins",
     "lost_after_frames": "integrity.lost_after_frames", "integrity_window": "integrity.window",

@@ -136,7 +136,7 @@ class TrackingSteps:
                 t_prior = t_K
         fd, t_det = self._detect(image, roi, R_prior, t_prior, decided)
         self.window_fell_short = False
-        if roi is not None and int(np.sum(fd.visible)) < rc.min_corners:
+        if roi is not None and int(np.sum(fd.visible)) < rc.min_keypoints:
             fd, t2 = self._detect(image, None, R_prior, t_prior, decided)
             t_det += t2
             roi = None

@@ -15,7 +15,7 @@ from envisat_pose.pipelines.tracking.tracker_config import AcquireConfig, Integr
 from envisat_pose.state import MRP, POS, RATE, VEL
 
 CFG = IntegrityConfig()
-MIN_CORNERS = AcquireConfig().min_corners
+MIN_KEYPOINTS = AcquireConfig().min_keypoints
 CAM = load_camera()
 RADIUS = ig.target_radius_m(load_geometry().corners_T_m)
 
@@ -83,18 +83,18 @@ def fit(kept_per_frame, frames, rejected, chi2_value=None):
 
 
 def test_a_fit_that_kept_a_handful_of_corners_starts_nothing():
-    assert ig.fit_problems(fit(6, 20, 12), 20, CFG, MIN_CORNERS) == []  # 12 of 132: what a correct fit rejects
-    bad = ig.fit_problems(fit(6, 20, 100), 20, CFG, MIN_CORNERS)  # 100 of 220 measured corners rejected
+    assert ig.fit_problems(fit(6, 20, 12), 20, CFG, MIN_KEYPOINTS) == []  # 12 of 132: what a correct fit rejects
+    bad = ig.fit_problems(fit(6, 20, 100), 20, CFG, MIN_KEYPOINTS)  # 100 of 220 measured corners rejected
     assert any("rejected 100 of 220 keypoints" in p for p in bad), bad
-    few = ig.fit_problems(fit(2, 20, 0), 20, CFG, MIN_CORNERS)  # 2 corners a frame: not enough named corners
+    few = ig.fit_problems(fit(2, 20, 0), 20, CFG, MIN_KEYPOINTS)  # 2 corners a frame: not enough named corners
     assert any("kept 2.0 keypoints a frame" in p for p in few), few
 
 
 def test_a_fit_beyond_its_chi_square_bound_starts_nothing():
     f = fit(6, 20, 0)
     bound = chi2.isf(CFG.prob, f.dof)
-    assert ig.fit_problems(fit(6, 20, 0, 0.99 * bound), 20, CFG, MIN_CORNERS) == []
-    assert any("chi-square" in p for p in ig.fit_problems(fit(6, 20, 0, 1.01 * bound), 20, CFG, MIN_CORNERS))
+    assert ig.fit_problems(fit(6, 20, 0, 0.99 * bound), 20, CFG, MIN_KEYPOINTS) == []
+    assert any("chi-square" in p for p in ig.fit_problems(fit(6, 20, 0, 1.01 * bound), 20, CFG, MIN_KEYPOINTS))
 
 
 def test_the_window_test_fires_at_its_false_alarm_rate_on_consistent_innovations():

@@ -1,4 +1,4 @@
-"""The keypoints a frame needs (tracker.acquire.min_corners for a cold-start pose, tracker.roi.min_corners in the
+"""The keypoints a frame needs (tracker.acquire.min_keypoints for a cold-start pose, tracker.roi.min_keypoints in the
 region of interest) were bounded by ENVISAT's 8 corners in the config: a CubeSat's tracker (12 keypoints) could not
 ask for 10, and the bound said "corners" for any target. The config now asks for at least PnP's 4 (1 in the
 region of interest) and the Tracker, which knows its target, refuses more than the target's keypoints in one line
@@ -22,22 +22,22 @@ def _chaser():
 
 
 def test_the_config_takes_more_than_eight_and_refuses_fewer_than_pnp_needs():
-    TrackerConfig(acquire={"min_corners": 10}, roi={"min_corners": 12}).validate()
-    with pytest.raises(ConfigError, match=r"acquire.min_corners = 3: expected at least 4 keypoints"):
-        TrackerConfig(acquire={"min_corners": 3}).validate()
-    with pytest.raises(ConfigError, match=r"roi.min_corners = 0: expected at least 1 keypoint"):
-        TrackerConfig(roi={"min_corners": 0}).validate()
+    TrackerConfig(acquire={"min_keypoints": 10}, roi={"min_keypoints": 12}).validate()
+    with pytest.raises(ConfigError, match=r"acquire.min_keypoints = 3: expected at least 4 keypoints"):
+        TrackerConfig(acquire={"min_keypoints": 3}).validate()
+    with pytest.raises(ConfigError, match=r"roi.min_keypoints = 0: expected at least 1 keypoint"):
+        TrackerConfig(roi={"min_keypoints": 0}).validate()
 
 
 @pytest.mark.parametrize("section", ["acquire", "roi"])
 def test_the_tracker_refuses_more_than_its_targets_keypoints(section):
     chaser = _chaser()
-    with pytest.raises(ConfigError, match=rf"tracker.{section}.min_corners = 9: expected at most the target's 8 "
+    with pytest.raises(ConfigError, match=rf"tracker.{section}.min_keypoints = 9: expected at most the target's 8 "
                                           r"keypoints \(more: no frame ever holds enough\)"):
-        Tracker(CAM, object(), chaser, TrackerConfig(**{section: {"min_corners": 9}}))
-    Tracker(CAM, object(), chaser, TrackerConfig(**{section: {"min_corners": 8}}))
+        Tracker(CAM, object(), chaser, TrackerConfig(**{section: {"min_keypoints": 9}}))
+    Tracker(CAM, object(), chaser, TrackerConfig(**{section: {"min_keypoints": 8}}))
     cubesat = load_target("models/cubesat_3u.xml")
     assert cubesat.num_keypoints == 12
-    Tracker(CAM, object(), chaser, TrackerConfig(**{section: {"min_corners": 10}}), target=cubesat)
-    with pytest.raises(ConfigError, match=rf"tracker.{section}.min_corners = 13: expected at most the target's 12"):
-        Tracker(CAM, object(), chaser, TrackerConfig(**{section: {"min_corners": 13}}), target=cubesat)
+    Tracker(CAM, object(), chaser, TrackerConfig(**{section: {"min_keypoints": 10}}), target=cubesat)
+    with pytest.raises(ConfigError, match=rf"tracker.{section}.min_keypoints = 13: expected at most the target's 12"):
+        Tracker(CAM, object(), chaser, TrackerConfig(**{section: {"min_keypoints": 13}}), target=cubesat)

@@ -91,7 +91,7 @@ def test_four_keypoints_keep_their_pose_having_no_spare_to_judge_by():
     _, z, cov = frame(kp, 0, outliers=(1,), missing=(4, 5, 6, 7))
     pose = robust_pnp(z, cov, kp, CAM, GATE)
     assert np.array_equal(pose.x, acq.pnp_state(z, kp, CAM)) and not pose.ransac
-    assert robust_pnp(z, cov, kp, CAM, GATE, min_corners=5) is None
+    assert robust_pnp(z, cov, kp, CAM, GATE, min_keypoints=5) is None
 
 
 def test_the_same_frame_gives_the_same_pose():

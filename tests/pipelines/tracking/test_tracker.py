@@ -916,9 +916,9 @@ def test_twins_failing_only_their_fit_statistics_start_beside_the_one_that_passe
 
     real_fit, real_state, calls = trk.fit_problems, trk.state_problems, []
 
-    def twins_fail(fit, frames, cfg, min_corners, share):
+    def twins_fail(fit, frames, cfg, min_keypoints, share):
         calls.append(len(calls))
-        return real_fit(fit, frames, cfg, min_corners, share) + (["a chi-square past its bound"] if len(calls) > 1
+        return real_fit(fit, frames, cfg, min_keypoints, share) + (["a chi-square past its bound"] if len(calls) > 1
                                                                  else [])
 
     monkeypatch.setattr(trk, "fit_problems", twins_fail)
