@@ -166,26 +166,26 @@ def log_truth_series(rec: rr.RecordingStream, t_s: np.ndarray, x: np.ndarray, co
                      visible: np.ndarray, corners_px: np.ndarray, in_frame: np.ndarray,
                      frames: np.ndarray | None = None, noun: str = "corners") -> None:
     """The truth over time, N samples of the target's K keypoints: world/target's pose from x (N, 12);
-    world/corners_true the keypoint sites corners_C_m (N, K, 3) in C, coloured by visible (N, K); the in-frame
-    corners_px (N, K, 2) (OpenCV px) as .../image/corners_true; metrics range_m, visible_corners,
-    in_frame_corners (their legends "visible <noun>", "in-frame <noun>": keypoints_noun)."""
+    world/keypoints_true the keypoint sites corners_C_m (N, K, 3) in C, coloured by visible (N, K); the in-frame
+    corners_px (N, K, 2) (OpenCV px) as .../image/keypoints_true; metrics range_m, visible_keypoints,
+    in_frame_keypoints (their legends "visible <noun>", "in-frame <noun>": keypoints_noun)."""
     N, K = corners_C_m.shape[:2]
     idx = _times(t_s, frames)
     rec.send_columns("world/target", idx, pose_columns(x))
     ids = np.tile(np.arange(K), N)
-    rec.send_columns("world/corners_true", idx, rr.Points3D.columns(
+    rec.send_columns("world/keypoints_true", idx, rr.Points3D.columns(
         positions=corners_C_m.reshape(-1, 3), colors=_point_colors(visible).reshape(-1, 3), keypoint_ids=ids,
         class_ids=np.full(K * N, KEYPOINT_CLASS)).partition([K] * N))
     m = in_frame
-    rec.send_columns("world/chaser/camera/image/corners_true", idx, rr.Points2D.columns(
+    rec.send_columns("world/chaser/camera/image/keypoints_true", idx, rr.Points2D.columns(
         positions=corners_px[m] + 0.5,  # OpenCV pixel centres -> Rerun's
         colors=_point_colors(visible)[m], keypoint_ids=np.broadcast_to(np.arange(K), m.shape)[m],
         class_ids=np.full(int(m.sum()), KEYPOINT_CLASS)).partition(m.sum(axis=1)))
     rec.send_columns("metrics/range_m", idx, rr.Scalars.columns(scalars=np.linalg.norm(x[:, POS], axis=1)))
-    for entity, what in (("visible_corners", "visible"), ("in_frame_corners", "in-frame")):
+    for entity, what in (("visible_keypoints", "visible"), ("in_frame_keypoints", "in-frame")):
         rec.log(f"metrics/{entity}", rr.SeriesLines(names=[f"{what} {noun}"]), static=True)
-    rec.send_columns("metrics/visible_corners", idx, rr.Scalars.columns(scalars=visible.sum(axis=1).astype(float)))
-    rec.send_columns("metrics/in_frame_corners", idx, rr.Scalars.columns(scalars=in_frame.sum(axis=1).astype(float)))
+    rec.send_columns("metrics/visible_keypoints", idx, rr.Scalars.columns(scalars=visible.sum(axis=1).astype(float)))
+    rec.send_columns("metrics/in_frame_keypoints", idx, rr.Scalars.columns(scalars=in_frame.sum(axis=1).astype(float)))
 
 
 def position_ellipsoids(x_hat: np.ndarray, P: np.ndarray, n_sigma: float = 3.0):
@@ -334,7 +334,7 @@ def truth_blueprint(target: Target | None = None) -> rrb.Blueprint:
              else "visible / in-frame corners")
     plots = rrb.Vertical(whole_run(rrb.TimeSeriesView, legend=True, origin="metrics/range_m", name="range (m)"),
                          whole_run(rrb.TimeSeriesView, legend=True, origin="metrics",
-                                   contents=["metrics/visible_corners", "metrics/in_frame_corners"], name=count))
+                                   contents=["metrics/visible_keypoints", "metrics/in_frame_keypoints"], name=count))
     return rrb.Blueprint(rrb.Horizontal(_scene_views(False, target), plots, column_shares=[3, 2]),
                          collapse_panels=True)
 
@@ -361,7 +361,7 @@ def samples_blueprint(target: Target | None = None) -> rrb.Blueprint:
         rrb.Spatial2DView(origin=cam, name=f"image and {keypoints_noun(target)}",
                           contents=["$origin/**", "- $origin/image/mask/**", "- $origin/image/depth/**"]),
         rrb.Vertical(rrb.Spatial2DView(origin=cam, name="mask", contents=["$origin/image/mask/**",
-                                                                           "$origin/image/corners_true/**"]),
+                                                                           "$origin/image/keypoints_true/**"]),
                      rrb.Spatial2DView(origin=cam, name="depth", contents=["$origin/image/depth/**"]),
                      rrb.Spatial3DView(origin="world", name="3D: camera frame C (m)")),
         column_shares=[3, 2]), collapse_panels=True)

@@ -143,8 +143,8 @@ class TrackRecorder:
         rec.log("metrics/tracker/status", rr.SeriesLines(colors=[(20, 20, 20)], widths=[1.5], names=["status"]),
                 static=True)
         rec.log("metrics/nis", rr.SeriesLines(colors=[(200, 60, 120)], widths=[1.0], names=["NIS / dof"]), static=True)
-        rec.log("world/chaser/camera/image/corners_detected", rr.Points2D.from_fields(radii=[3.0]), static=True)
-        rec.log("world/chaser/camera/image/corners_estimated", rr.Points2D.from_fields(colors=[EST_RGB], radii=[2.0]),
+        rec.log("world/chaser/camera/image/keypoints_detected", rr.Points2D.from_fields(radii=[3.0]), static=True)
+        rec.log("world/chaser/camera/image/keypoints_estimated", rr.Points2D.from_fields(colors=[EST_RGB], radii=[2.0]),
                 static=True)
         rec.log("world/chaser/camera/image/roi", rr.Boxes2D.from_fields(colors=[ROI_RGB]), static=True)
         rec.log("world/target_est/position_3sigma", rr.Ellipsoids3D.from_fields(
@@ -179,17 +179,17 @@ class TrackRecorder:
         rec.log("metrics/tracker/p_best", rr.Scalars(float(est["p_best"])))
         m = np.asarray(est["visible"], bool) & np.isfinite(est["corners_px"]).all(-1)
         rej = np.asarray(est["rejected"], bool)[m]
-        rec.log("world/chaser/camera/image/corners_detected", rr.Points2D(
+        rec.log("world/chaser/camera/image/keypoints_detected", rr.Points2D(
             np.asarray(est["corners_px"])[m] + 0.5, keypoint_ids=np.flatnonzero(m), class_ids=KEYPOINT_CLASS,
             colors=np.where(rej[:, None], np.array(HIDDEN_RGB, np.uint8), np.array(DETECTED_RGB, np.uint8))))
         x, P = np.asarray(est["x_hat"], float), np.asarray(est["P"], float)
         estimate = status in HAS_ESTIMATE  # tracking, or coasting (a prediction: shown, and scored, as one)
         if estimate:
             uv = project_state_px(x, cam, self.target)
-            rec.log("world/chaser/camera/image/corners_estimated", rr.Points2D(
+            rec.log("world/chaser/camera/image/keypoints_estimated", rr.Points2D(
                 uv + 0.5, keypoint_ids=np.arange(len(uv)), class_ids=KEYPOINT_CLASS))
         else:
-            rec.log("world/chaser/camera/image/corners_estimated", rr.Clear(recursive=False))
+            rec.log("world/chaser/camera/image/keypoints_estimated", rr.Clear(recursive=False))
         self._log_estimate_3d(x, P, estimate)
         roi = np.asarray(est["roi_px"], float)
         if np.isfinite(roi).all():
@@ -206,7 +206,7 @@ class TrackRecorder:
                                                    quaternion=_wxyz_to_xyzw(mrp_to_quat(x_true[MRP]))))
             if corners_true_px is not None:
                 f = np.asarray(in_frame, bool)  # named on hover, as the detections are
-                rec.log("world/chaser/camera/image/corners_true", rr.Points2D(
+                rec.log("world/chaser/camera/image/keypoints_true", rr.Points2D(
                     np.asarray(corners_true_px)[f] + 0.5, colors=[VISIBLE_RGB], radii=[1.5],
                     keypoint_ids=np.flatnonzero(f), class_ids=KEYPOINT_CLASS))
         if self.with_truth and x_true is not None and estimate:

@@ -240,7 +240,7 @@ def _log_sample(rec: rr.RecordingStream, s: Sample, target: Target, base) -> Non
         resolution=[w, h], image_plane_distance=IMAGE_PLANE_M))
     rec.log("world/chaser/camera/image", rr.EncodedImage(contents=s.image_png, media_type="image/png"))
     px, vis, m = label_keypoints(lab, target)
-    rec.log("world/chaser/camera/image/corners_true", rr.Points2D(
+    rec.log("world/chaser/camera/image/keypoints_true", rr.Points2D(
         positions=px[m] + 0.5, keypoint_ids=np.flatnonzero(m), class_ids=np.full(int(m.sum()), KEYPOINT_CLASS),
         colors=_point_colors(vis)[m], labels=[target.keypoint_names[k] for k in np.flatnonzero(m)]))
     if s.mask is not None:

@@ -108,8 +108,8 @@ def test_truth_recording_layout_and_values(tmp_path, short_truth):
     recording.write_truth_recording(str(path), tr)
     static, temporal = read_rrd(path)
     N = len(tr.t_s)
-    for entity in ("/world/target", "/world/corners_true", "/world/chaser/camera/image/corners_true",
-                   "/metrics/range_m", "/metrics/visible_corners", "/metrics/in_frame_corners"):
+    for entity in ("/world/target", "/world/keypoints_true", "/world/chaser/camera/image/keypoints_true",
+                   "/metrics/range_m", "/metrics/visible_keypoints", "/metrics/in_frame_keypoints"):
         assert temporal[entity]["frame"] == list(range(N)), entity
         np.testing.assert_allclose(seconds(temporal[entity]["sim_time"]), tr.t_s, atol=1e-9)
     timelines = {k for t in temporal.values() for k in t if ":" not in k}
@@ -138,7 +138,7 @@ def test_truth_recording_layout_and_values(tmp_path, short_truth):
         rebuilt = Rotation.from_quat(quat[k]).apply(CORNERS_T) + trans[k]
         np.testing.assert_allclose(rebuilt, tr.corners_C_m[k], atol=2e-4)
     # the corners at every frame are the truth's, in A-H order, coloured by visibility
-    pts = temporal["/world/corners_true"]
+    pts = temporal["/world/keypoints_true"]
     for k in (0, N // 3, N - 1):
         np.testing.assert_allclose(np.array(pts["Points3D:positions"][k]), tr.corners_C_m[k], rtol=1e-6, atol=1e-5)
         assert pts["Points3D:keypoint_ids"][k] == list(range(8))
@@ -146,13 +146,13 @@ def test_truth_recording_layout_and_values(tmp_path, short_truth):
         green = np.array(pts["Points3D:colors"][k]) == (r << 24 | g << 16 | b << 8 | 255)  # packed RGBA
         np.testing.assert_array_equal(green, tr.visible[k])
     # the image-plane corners: the in-frame ones, OpenCV px + 0.5
-    img = temporal["/world/chaser/camera/image/corners_true"]
+    img = temporal["/world/chaser/camera/image/keypoints_true"]
     for k in (0, N - 1):
         m = tr.in_frame[k]
         np.testing.assert_allclose(np.array(img["Points2D:positions"][k]).reshape(-1, 2), tr.corners_px[k][m] + 0.5,
                                    rtol=1e-6)
         assert img["Points2D:keypoint_ids"][k] == list(np.flatnonzero(m))
-    np.testing.assert_array_equal([v[0] for v in temporal["/metrics/visible_corners"]["Scalars:scalars"]],
+    np.testing.assert_array_equal([v[0] for v in temporal["/metrics/visible_keypoints"]["Scalars:scalars"]],
                                   tr.visible.sum(axis=1))
 
 
@@ -237,7 +237,7 @@ def test_samples_recording(tmp_path):
     assert image["frame"] == [0, 1]
     assert bytes(image["EncodedImage:blob"][0][0]) == png  # stored compressed, as the dataset's PNG
     assert image["EncodedImage:media_type"][0] == ["image/png"]
-    pts = temporal["/world/chaser/camera/image/corners_true"]
+    pts = temporal["/world/chaser/camera/image/keypoints_true"]
     np.testing.assert_allclose(np.array(pts["Points2D:positions"][0]), corners[in_frame] + 0.5, rtol=1e-6)
     assert pts["Points2D:labels"][0] == [n for n, f in zip(CORNER_NAMES, in_frame) if f]
     assert temporal["/world/chaser/camera/image/mask"]["frame"] == [0]
@@ -321,7 +321,7 @@ def test_a_truth_of_another_target_draws_that_target(tmp_path):
     label, names, edges = keypoint_context(static)
     assert label == "upper_stage keypoints" and names == list(target.keypoint_names) and len(names) == 12
     assert edges == sorted(target.skeleton) and all(0 <= i < j < 12 for i, j in edges)
-    pts = temporal["/world/corners_true"]
+    pts = temporal["/world/keypoints_true"]
     assert all(ids == list(range(12)) for ids in pts["Points3D:keypoint_ids"])
     np.testing.assert_allclose(np.array(pts["Points3D:positions"][-1]), tr.corners_C_m[-1], rtol=1e-6, atol=1e-5)
 
@@ -347,7 +347,7 @@ def test_samples_of_another_target_carry_its_keypoint_names_and_mask_values(tmp_
     recording.write_samples_recording(str(path), [recording.Sample("k0", png, label, np.zeros((48, 64), np.uint8))],
                                       target, values)
     static, temporal = read_rrd(path)
-    pts = temporal["/world/chaser/camera/image/corners_true"]
+    pts = temporal["/world/chaser/camera/image/keypoints_true"]
     np.testing.assert_allclose(np.array(pts["Points2D:positions"][0]), px[in_frame] + 0.5, rtol=1e-6)
     assert pts["Points2D:labels"][0] == [n for n, f in zip(target.keypoint_names, in_frame) if f]
     assert pts["Points2D:keypoint_ids"][0] == list(np.flatnonzero(in_frame))
@@ -390,7 +390,7 @@ def test_the_tracker_recording_projects_and_draws_its_target(tmp_path):
     X_C = x[:3] + Rotation.from_quat(q_xyzw).apply(target.keypoints_T_m)
     X_K = (X_C - cam.pos_C_m) @ cam.R_K_from_C.T
     uv = np.c_[cam.f_px * X_K[:, 0] / X_K[:, 2] + cam.cu_px, cam.f_px * X_K[:, 1] / X_K[:, 2] + cam.cv_px]
-    got = np.array(temporal["/world/chaser/camera/image/corners_estimated"]["Points2D:positions"][0])
+    got = np.array(temporal["/world/chaser/camera/image/keypoints_estimated"]["Points2D:positions"][0])
     np.testing.assert_allclose(got, uv + 0.5, rtol=1e-6, atol=1e-3)
     assert "/world/target/model" not in static  # no truth: no true surface (it stood at the chaser)
     assert len(temporal["/world/target_est/model"]["LineStrips3D:strips"][0]) == len(target.skeleton)

@@ -43,11 +43,11 @@ def test_a_truth_recording_of_another_target_counts_its_keypoints(tmp_path):
     recording.write_truth_recording(str(path), truth, cubesat)
     assert set(time_series_views(path)) == {"range (m)", f"visible / in-frame keypoints (of {cubesat.num_keypoints})"}
     static, _ = read_recording(str(path))
-    assert static["/metrics/visible_corners"]["SeriesLines:names"] == ["visible keypoints"]
-    assert static["/metrics/in_frame_corners"]["SeriesLines:names"] == ["in-frame keypoints"]
+    assert static["/metrics/visible_keypoints"]["SeriesLines:names"] == ["visible keypoints"]
+    assert static["/metrics/in_frame_keypoints"]["SeriesLines:names"] == ["in-frame keypoints"]
     # an estimate of that truth: its plots' legends say so too
     recording.write_estimates_recording(str(tmp_path / "est.rrd"), estimates(T=3), truth, target=cubesat)
-    assert read_recording(str(tmp_path / "est.rrd"))[0]["/metrics/visible_corners"]["SeriesLines:names"] == [
+    assert read_recording(str(tmp_path / "est.rrd"))[0]["/metrics/visible_keypoints"]["SeriesLines:names"] == [
         "visible keypoints"]
 
 

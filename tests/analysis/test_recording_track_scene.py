@@ -111,7 +111,7 @@ def test_a_frame_without_an_image_shows_none_and_the_truth_draws_its_own_target(
 
 
 def test_the_true_keypoints_in_the_image_are_named_as_the_detected_ones(tmp_path):
-    """A tracker's .../image/corners_true carry their keypoint ids in the target's annotation class (named on hover,
+    """A tracker's .../image/keypoints_true carry their keypoint ids in the target's annotation class (named on hover,
     as the detections and a simulate recording's true keypoints are), only those seen (in_frame), at +0.5 px."""
     target = load_target(UPPER_STAGE)
     K = target.num_keypoints
@@ -123,7 +123,7 @@ def test_the_true_keypoints_in_the_image_are_named_as_the_detected_ones(tmp_path
     rec.log_frame(0, estimate(target, ACQUIRING, x), None, x_true=x, corners_true_px=px, in_frame=seen)
     rec.close()
     rows = read_rows(tmp_path / "run.rrd")
-    entity = "/world/chaser/camera/image/corners_true"
+    entity = "/world/chaser/camera/image/keypoints_true"
     assert latest(rows, entity, "Points2D:keypoint_ids", 0) == np.flatnonzero(seen).tolist()
     assert latest(rows, entity, "Points2D:class_ids", 0) == [0]  # recording_layout.KEYPOINT_CLASS
     np.testing.assert_allclose(latest(rows, entity, "Points2D:positions", 0), px[seen] + 0.5)

@@ -43,15 +43,15 @@ def test_simulate_rrd(simulated, verify_rrd):
     check_model(static)
     N = len(tr.t_s)
     assert N == 21
-    for entity in ("/world/target", "/world/corners_true", "/world/chaser/camera/image/corners_true",
-                   "/metrics/visible_corners"):
+    for entity in ("/world/target", "/world/keypoints_true", "/world/chaser/camera/image/keypoints_true",
+                   "/metrics/visible_keypoints"):
         assert temporal[entity]["frame"] == list(range(N))
         np.testing.assert_allclose([d.total_seconds() for d in temporal[entity]["sim_time"]], tr.t_s)
     for k in (0, 7, N - 1):
-        np.testing.assert_allclose(temporal["/world/corners_true"]["Points3D:positions"][k], tr.corners_C_m[k],
+        np.testing.assert_allclose(temporal["/world/keypoints_true"]["Points3D:positions"][k], tr.corners_C_m[k],
                                    rtol=1e-6, atol=1e-5)
         np.testing.assert_allclose(temporal["/world/target"]["Transform3D:translation"][k][0], tr.x[k, :3], rtol=1e-6)
-    np.testing.assert_array_equal([v[0] for v in temporal["/metrics/in_frame_corners"]["Scalars:scalars"]],
+    np.testing.assert_array_equal([v[0] for v in temporal["/metrics/in_frame_keypoints"]["Scalars:scalars"]],
                                   tr.in_frame.sum(axis=1))
 
 
@@ -73,7 +73,7 @@ def test_estimate_rrd(simulated, tmp_path, verify_rrd):
     np.testing.assert_allclose([v[0] for v in temporal["/world/target_est"]["Transform3D:translation"]],
                                est.x_hat[0, :, :3], rtol=1e-6)
     # the truth's corners at the filter's steps (every truth sample here: 0.5 Hz on a 2 s truth)
-    np.testing.assert_allclose(temporal["/world/corners_true"]["Points3D:positions"][5], tr.corners_C_m[5], rtol=1e-6,
+    np.testing.assert_allclose(temporal["/world/keypoints_true"]["Points3D:positions"][5], tr.corners_C_m[5], rtol=1e-6,
                                atol=1e-5)
     # every run's error, and the filter's band
     err = np.array(temporal["/metrics/error/position_m/z"]["Scalars:scalars"])
@@ -155,7 +155,7 @@ def test_dataset_inspect_rrd(tmp_path, verify_rrd):
     for i, (key, label, members) in enumerate(samples):
         assert bytes(image["EncodedImage:blob"][i][0]) == sample_png(members, label)
         m = np.array(label["in_frame"])
-        np.testing.assert_allclose(temporal["/world/chaser/camera/image/corners_true"]["Points2D:positions"][i],
+        np.testing.assert_allclose(temporal["/world/chaser/camera/image/keypoints_true"]["Points2D:positions"][i],
                                    np.array(label["corners_px"])[m] + 0.5, rtol=1e-6)
         depth = temporal["/world/chaser/camera/image/depth"]["EncodedDepthImage:blob"][i][0]
         assert bytes(depth) == members["depth.png"]

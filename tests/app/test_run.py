@@ -64,8 +64,8 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, ver
     verify_rrd(out / "recording.rrd")  # footer written: `rerun rrd verify` passes
     static, temporal = read_recording(out / "recording.rrd")
     for entity in ("/world/target", "/world/target_est", "/world/target_est/position_3sigma",
-                   "/world/chaser/camera/image", "/world/chaser/camera/image/corners_true",
-                   "/world/chaser/camera/image/corners_detected", "/world/chaser/camera/image/corners_estimated",
+                   "/world/chaser/camera/image", "/world/chaser/camera/image/keypoints_true",
+                   "/world/chaser/camera/image/keypoints_detected", "/world/chaser/camera/image/keypoints_estimated",
                    "/metrics/error/position_m/x", "/metrics/error/attitude_deg/z", "/metrics/nees/value",
                    "/metrics/nis", "/metrics/tracker/status", "/metrics/tracker/p_best"):
         assert entity in temporal, entity
@@ -84,7 +84,7 @@ def test_a_short_closed_loop_writes_every_output(tmp_path, detector_weights, ver
     nis_rows = shown & (dof > 0)  # the tracker's NIS per dof beside the truth's NEES, on the frames with both
     logged = np.array([v[0] for v in temporal["/metrics/nis"]["Scalars:scalars"]])
     np.testing.assert_allclose(logged, nis[nis_rows] / dof[nis_rows], rtol=1e-6)
-    d = temporal["/world/chaser/camera/image/corners_detected"]
+    d = temporal["/world/chaser/camera/image/keypoints_detected"]
     n_det = [len(p) if p is not None else 0 for p in d["Points2D:positions"]]
     assert n_det == det.visible.sum(axis=1).tolist()
 

@@ -112,7 +112,7 @@ def test_the_run_recording_is_cut_in_chunks_of_many_frames_and_has_its_footer(tm
         if not chunk.is_static:
             rows[chunk.entity_path].append(chunk.num_rows)
     per_frame = ["/world/chaser/camera/image", "/world/target", "/world/target_est", "/metrics/tracker/status",
-                 "/metrics/error/position_m/x", "/world/chaser/camera/image/corners_detected"]
+                 "/metrics/error/position_m/x", "/world/chaser/camera/image/keypoints_detected"]
     for entity in per_frame:
         assert sum(rows[entity]) == N, (entity, rows[entity])
         assert len(rows[entity]) <= -(-N // FILE_CHUNK_ROWS), (entity, rows[entity])
