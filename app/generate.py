@@ -11,7 +11,8 @@ from envisat_pose.datagen.generate_config import layered_generate
 
 # the config fields the flags set, named as the flag in an error where the user typed it (app/flag_rules.py)
 FLAGS = {"mode": "--mode", "num_images": "--num-images", "shard_size": "--shard-size", "resolution_px": "--resolution",
-         "scenario": "--scenario", "sequence.scenario": "--scenario", "target": "--target"}
+         "scenario": "--scenario", "sequence.scenario": "--scenario", "target": "--target",
+         "workers": "--workers", "backend": "--backend", "scheduler": "--scheduler"}  # run_generate's arguments
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -56,10 +57,6 @@ def resolve_config(args: argparse.Namespace):
 
 
 def run_generate_cli(args: argparse.Namespace) -> int:
-    if args.workers < 1:
-        raise InputError(f"--workers {args.workers}: expected at least 1")
-    if args.scheduler and args.backend != "dask":
-        raise InputError("--scheduler needs --backend dask")
     cfg = resolve_config(args)
     written: list[dict] = []
     manifest = run_generate(cfg, args.out, workers=args.workers, backend=args.backend, scheduler=args.scheduler,

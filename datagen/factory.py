@@ -381,6 +381,7 @@ def run_generate(cfg: GenerateConfig, out_dir: str, workers: int = 1, backend: s
     cfg, out_dir = config_arg(cfg, GenerateConfig), path_arg(out_dir, "out_dir")
     check(backend in ("local", "dask"), "backend", backend, "'local' or 'dask'")
     check(type(workers) is int and workers >= 1, "workers", workers, "at least 1 worker process (an integer)")
+    check(scheduler is None or backend == "dask", "scheduler", scheduler, "an address only with backend 'dask'")
     finished = finished_unwritable(cfg, out_dir)
     if finished is not None:
         return finished

@@ -128,7 +128,11 @@ def test_a_bad_flag_value_is_named_as_the_flag_typed_and_a_config_files_as_its_k
                         (["--resolution", "8"], "--resolution 8: expected a resolution in [16, 4096] px"),
                         (["--mode", "foo"], "--mode 'foo': expected one of"),
                         (["--target", str(tmp_path / "nope.xml")], "--target '"),
-                        (["--mode", "sequence", "--scenario", "nope"], "--scenario 'nope'")):
+                        (["--mode", "sequence", "--scenario", "nope"], "--scenario 'nope'"),
+                        # as run_generate's own ConfigError says them (tests/pipelines/test_verb_parity.py)
+                        (["--workers", "0"], "--workers 0: expected at least 1 worker process (an integer)"),
+                        (["--scheduler", "127.0.0.1:1"], "--scheduler '127.0.0.1:1': expected an address only with "
+                                                         "backend 'dask'")):
         refused(["generate", *flags, "--out", out], capsys, out, f"envisat generate: error: {said}")
     (tmp_path / "g.toml").write_text("num_images = 0\n")
     refused(["generate", "--config", str(tmp_path / "g.toml"), "--out", out], capsys, out, "error: num_images = 0: ")

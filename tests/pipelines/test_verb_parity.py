@@ -120,3 +120,18 @@ def test_train_detector_names_a_config_that_is_no_training_config(cfg, tmp_path)
                                          f"{type(cfg).__name__}"):
         train_detector(cfg, str(tmp_path), str(run))
     assert not run.exists()
+
+
+@pytest.mark.parametrize("kwargs, field", [({"workers": 0}, "workers"), ({"workers": 2.0}, "workers"),
+                                           ({"scheduler": "127.0.0.1:1"}, "scheduler")])
+def test_run_generate_refuses_what_the_verb_refuses_as_the_same_config_error(kwargs, field, tmp_path):
+    """`envisat generate --workers 0` and `--scheduler` without `--backend dask` raised InputErrors of their own
+    ('--workers 0: expected at least 1', '--scheduler needs --backend dask') where run_generate raised ConfigErrors
+    worded otherwise; the verb now says the function's, naming the flag typed (tests/app/test_generate_cli.py)."""
+    from envisat_pose import GenerateConfig, run_generate
+
+    out = tmp_path / "ds"
+    with pytest.raises(ConfigError) as err:
+        run_generate(GenerateConfig(num_images=2, shard_size=1, resolution_px=64), str(out), **kwargs)
+    assert err.value.field == field and err.value.value == kwargs[field]
+    assert not out.exists()
