@@ -17,7 +17,7 @@ import sys
 import warnings
 
 from envisat_pose.app.common import EVERY_VERB, as_flags
-from envisat_pose.app.flag_rules import config_error_text
+from envisat_pose.app.flag_rules import config_error_text, warning_text
 from envisat_pose.app.interrupts import interrupt_code, sigterm_as_interrupt
 from envisat_pose.config import ConfigError, InputError
 from envisat_pose.datagen.gl_check import check_gl_platform
@@ -62,7 +62,7 @@ def run_verb(argv: list[str] | None) -> int:
     args.argv = list(sys.argv[1:] if argv is None else argv)  # the command as typed (a run's record)
 
     def one_line(message, category, filename, lineno, file=None, line=None):  # the library's names as flags
-        text = as_flags(str(message), {**EVERY_VERB, **getattr(args, "flag_names", {})})
+        text = warning_text(str(message), {**EVERY_VERB, **getattr(args, "flag_names", {})}, args.argv)
         print(f"envisat {args.verb}: warning: {text}", file=sys.stderr)
 
     try:

@@ -5,7 +5,9 @@ shards, a noise of another measurement), and the scenario a config file names.""
 from __future__ import annotations
 
 import argparse
+import re
 
+from envisat_pose.app.common import as_flags
 from envisat_pose.config import ConfigError, InputError, load_toml
 
 
@@ -14,9 +16,27 @@ def config_error_text(err: ConfigError, names: dict[str, str], argv: list[str]) 
     user typed that flag (so the value is the flag's: flags override files and scenarios), '--flag value:
     expected ...'."""
     flag = names.get(err.field) if type(err) is ConfigError else None
-    if flag and flag.startswith("--") and any(a == flag or a.startswith(flag + "=") for a in argv):
+    if typed(flag, argv):
         return f"{flag} {err.value!r}: expected {err.expected}"
     return str(err)
+
+
+def typed(flag: str | None, argv: list[str]) -> bool:
+    """Whether `flag` is a flag ('--name') the command line holds ('--name V' or '--name=V')."""
+    return bool(flag) and flag.startswith("--") and any(a == flag or a.startswith(flag + "=") for a in argv)
+
+
+_FIELD_IS = re.compile(r"^([\w.]+) = ")
+
+
+def warning_text(message: str, names: dict[str, str], argv: list[str]) -> str:
+    """A library warning's line: one about a field's value ('field = value: ...') named as config_error_text names
+    an error ('--flag value: ...' where the user typed the flag), any other with its names as flags (as_flags)."""
+    found = _FIELD_IS.match(message)
+    if found is None:
+        return as_flags(message, names)
+    flag = names.get(found.group(1))
+    return f"{flag} {message[found.end():]}" if typed(flag, argv) else message
 
 
 def not_applying(args: argparse.Namespace, dests: tuple[str, ...], why: str) -> None:

@@ -1,7 +1,8 @@
 """One runner for every parallel job (design.md, Scale): a task function over a list of argument tuples, run
 in this process, on a local process pool, or on a Dask cluster, with results yielded as they finish
 (`run_tasks(fn, tasks, RunnerConfig)`); `thread_env` the workers' thread shares; `usable_cores`,
-`usable_memory_bytes` and `default_processes` what a default pool may take of this machine.
+`usable_memory_bytes` and `default_processes` what a default pool may take of this machine, `warn_oversubscribed`
+the one warning where a count given takes more.
 
 A task is a module-level function (importable by name in a worker) whose arguments and result are plain data:
 numbers, strings, lists, dicts, numpy arrays. Each task draws its randomness from its own arguments (a seed),
@@ -174,6 +175,32 @@ def default_processes(limit: int, bytes_each: int) -> int:
     memory = usable_memory_bytes()
     by_memory = limit if memory is None else memory // max(1, bytes_each)
     return max(1, min(limit, usable_cores(), by_memory))
+
+
+def warn_oversubscribed(workers: int, field: str = "workers", bytes_each: int | None = None,
+                        units: int | None = None) -> None:
+    """One warning in one line (warnings.warn; the verbs print it naming the flag) where the processes a job asked
+    for start more than the usable cores, or at `bytes_each` a process (its measured peak, where known) need more
+    than the usable memory: `field = value`, the cores or memory, and that the job runs. The processes that start
+    are `workers`, or fewer where the job has fewer `units` of work. Only defaults are capped: a count given runs."""
+    n = workers if units is None else min(workers, units)
+    cores, memory, over = usable_cores(), usable_memory_bytes(), []
+    if n > cores:
+        over.append(f"more processes than the {cores} usable core{'s' * (cores > 1)} (they share them)")
+    if bytes_each and memory is not None and n * bytes_each > memory:
+        over.append(f"{n} processes at ~{bytes_each / 1e9:.1f} GB each need ~{n * bytes_each / 1e9:.1f} GB, more "
+                    f"than the {memory / 1e9:.1f} GB of memory available")
+    if over:
+        import warnings
+
+        warnings.warn(f"{field} = {workers}: {'; '.join(over)}; the job runs as asked", stacklevel=3)
+
+
+def warn_runner(cfg: RunnerConfig, units: int) -> None:
+    """warn_oversubscribed for the processes a runner starts on this machine for `units` tasks: none inline or on an
+    existing scheduler's workers (a cluster's own machines)."""
+    if cfg.backend != "inline" and cfg.scheduler is None:
+        warn_oversubscribed(cfg.workers, units=units)
 
 
 def cpu_share(workers: int) -> int:

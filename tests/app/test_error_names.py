@@ -55,3 +55,15 @@ def test_a_bad_init_error_scale_is_named_as_its_flag_by_estimate_as_by_montecarl
         assert main([*argv, "--scenario", "default", "--init-error-scale", "0", "--duration-s", "5"]) == 2
         err = capsys.readouterr().err
         assert ": error: --init-error-scale 0.0: expected a scale" in err, err
+
+
+def test_a_warning_about_a_value_names_the_flag_where_it_was_typed():
+    """A job's warning about a field's value ('workers = 8: ...', pools.warn_oversubscribed) reads as its errors do:
+    '--workers 8: ...' where the flag was typed, the field's own name where a config file set it."""
+    from envisat_pose.app.flag_rules import warning_text
+
+    names = {"workers": "--workers", "src": "--images"}
+    assert warning_text("workers = 8: too many", names, ["run", "--workers", "8"]) == "--workers 8: too many"
+    assert warning_text("workers = 8: too many", names, ["run", "--workers=8"]) == "--workers 8: too many"
+    assert warning_text("workers = 8: too many", names, ["run", "--config", "r.toml"]) == "workers = 8: too many"
+    assert warning_text("src 'a': no frames", names, []) == "--images 'a': no frames"  # others as as_flags

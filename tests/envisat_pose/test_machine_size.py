@@ -142,3 +142,34 @@ def test_a_job_under_a_broken_world_size_says_so_in_one_line(monkeypatch, tmp_pa
         with output_lock(str(tmp_path / "out"), "generate"):
             pass
     assert not (tmp_path / "out").exists()
+
+
+def test_a_worker_count_given_above_the_cores_or_the_memory_is_warned_of_once_in_one_line(machine):
+    """Only the defaults were capped: `--workers 8` on 2 usable cores (or 8 closed loops of 1.4 GB on 5 GB) ran
+    without a word. The one warning names the field, the value, the cores or the memory; the job still runs."""
+    import warnings
+    from types import SimpleNamespace
+
+    machine(64, affinity=2, memory_gb=5.0)
+    with pytest.warns(UserWarning) as said:
+        pools.warn_oversubscribed(8, "workers")
+    assert [str(w.message) for w in said] == ["workers = 8: more processes than the 2 usable cores (they share "
+                                              "them); the job runs as asked"]
+    with pytest.warns(UserWarning) as said:
+        pools.warn_oversubscribed(2, "online.workers", bytes_each=4_000_000_000)  # within the cores, not the memory
+    assert len(said) == 1 and str(said[0].message) == (
+        "online.workers = 2: 2 processes at ~4.0 GB each need ~8.0 GB, more than the 5.0 GB of memory available; the "
+        "job runs as asked")
+    with pytest.warns(UserWarning) as said:
+        pools.warn_oversubscribed(8, bytes_each=1_400_000_000)  # both: one line
+    assert len(said) == 1 and "2 usable cores" in str(said[0].message) and "~11.2 GB" in str(said[0].message)
+    assert "\n" not in str(said[0].message)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        pools.warn_oversubscribed(2, bytes_each=1_000_000_000)  # what the machine holds
+        pools.warn_oversubscribed(8, units=2)  # a pool starts no more processes than its tasks
+        pools.warn_runner(pools.RunnerConfig("inline", 8), 100)  # in this process
+        existing = SimpleNamespace(backend="dask", workers=8, scheduler="tcp://127.0.0.1:8786")  # not connected to
+        pools.warn_runner(existing, 100)  # a cluster's own machines
+    with pytest.warns(UserWarning, match="^workers = 8: more processes than the 2 usable cores"):
+        pools.warn_runner(pools.RunnerConfig("local", 8), 100)
