@@ -123,7 +123,8 @@ def resume_command(args: argparse.Namespace) -> str:
 
 # the library's argument and config field names -> this verb's flags (its errors name what the user typed)
 FLAGS = {"data_dirs": "--data", "data": "--data", "run_dir": "--out", **{k: "--" + k.replace("_", "-") for k in
-         "init resume backbone workers threads time_budget_s device steps batch_size seed online target".split()}}
+         "init resume backbone workers threads time_budget_s device steps batch_size seed online target".split()},
+         "online.workers": "--render-workers"}
 
 
 def run_train_cli(args: argparse.Namespace) -> int:

@@ -40,7 +40,7 @@ from envisat_pose.datagen.views import R_K_FROM_C, sample_random_view, sample_se
 from envisat_pose.io import atomic_write_text, sha256_file
 from envisat_pose.out_dirs import PARTIAL_PREFIX, check_out_dir
 from envisat_pose.out_lock import locks_output
-from envisat_pose.pools import RunnerConfig, cpu_share, thread_env
+from envisat_pose.pools import RunnerConfig, cpu_share, thread_env, warn_runner
 from envisat_pose.provenance import source_line
 from envisat_pose.resumable import ResumableJob
 from envisat_pose.shard_reader import shard_problem
@@ -440,6 +440,7 @@ def _generate(cfg: GenerateConfig, out_dir: str, workers: int, backend: str, sch
     # one rasterizer thread count per worker: the usable cores shared among the workers that start (one a shard)
     runner = RunnerConfig(backend, workers, scheduler, thread_env(workers, units=cfg.num_shards))
     runner.validate()
+    warn_runner(runner, cfg.num_shards)
     if scheduler is None:  # this machine's renderer (a cluster's workers have their own)
         check_gl_platform()
     check_out_dir(out_dir)

@@ -59,7 +59,7 @@ from envisat_pose.pipelines.campaigns.campaign_config import (
 from envisat_pose.pipelines.campaigns.campaign_outputs import FIGURES, finish_campaign, write_recording
 from envisat_pose.pipelines.campaigns.estimate import filter_keypoints_T_m
 from envisat_pose.pipelines.campaigns.observability import warn_if_unfixed_start, warn_outages_outside
-from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env
+from envisat_pose.pools import BLAS_THREADS, RunnerConfig, thread_env, warn_runner
 from envisat_pose.provenance import source_line
 from envisat_pose.resumable import ResumableJob
 from envisat_pose.target import load_target
@@ -125,6 +125,8 @@ def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConfig | Non
     if rrd is not None:
         check(rrd.endswith(".rrd"), "rrd", rrd, "a path ending in .rrd")
         check_out_file(rrd, "rrd")
+    if runner is not None:
+        warn_runner(config_arg(runner, RunnerConfig, "runner"), cfg.n_blocks)  # once, before the work
     summary = campaign_at_one_rate(cfg, out_dir, runner, progress)
     if rrd is not None:
         make_out_file_dir(rrd, "rrd")

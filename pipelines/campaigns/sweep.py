@@ -18,6 +18,7 @@ from envisat_pose.config import (
     Config,
     InputError,
     check,
+    config_arg,
     load_toml,
     path_arg,
     resolve_job_config,
@@ -36,7 +37,7 @@ from envisat_pose.pipelines.campaigns.campaign import (
     truth_scenario,
 )
 from envisat_pose.pipelines.campaigns.campaign_config import campaign_target_record, campaign_title
-from envisat_pose.pools import RunnerConfig
+from envisat_pose.pools import RunnerConfig, warn_runner
 from envisat_pose.provenance import source_line
 from envisat_pose.resumable import manifest_path, remove_partial_files
 from envisat_pose.state import BLOCKS
@@ -156,6 +157,8 @@ def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner: R
 
     out_dir = path_arg(out_dir, "out_dir")
     check_sweep_folder(out_dir, cfg, sweep)
+    if runner is not None:
+        warn_runner(config_arg(runner, RunnerConfig, "runner"), cfg.n_blocks)  # once for every rate's campaign
     make_out_dir(out_dir)
     remove_partial_files(out_dir)
     rates = sorted(sweep.rates_hz)

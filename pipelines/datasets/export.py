@@ -34,7 +34,7 @@ from envisat_pose.out_lock import is_lock_file, locks_output
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.datasets import export_layouts as lay
 from envisat_pose.pipelines.datasets.export_readme import readme_text
-from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
+from envisat_pose.pools import RunnerConfig, run_tasks, thread_env, warn_oversubscribed
 from envisat_pose.provenance import dataset_ref
 from envisat_pose.shard_reader import (
     checked_shards,
@@ -103,6 +103,7 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
         raise InputError(f"src {src!r}: {unfinished}: rerun its `envisat generate` command to finish it")
     with skip_hint():
         shards, skipped = checked_shards(src, skip_damaged, "src")
+    warn_oversubscribed(workers, units=len(shards))  # one process a shard at most
     gen = _generate_config(src, manifest, cfg.target)
     layout = _layout(cfg, gen, src, manifest)
     final_dir = os.path.abspath(out_dir)  # what the staging folder becomes: the path data.yaml and README name

@@ -27,7 +27,7 @@ from envisat_pose.pipelines.detector.look_mix import WeightedLook, as_looks, loo
 from envisat_pose.pipelines.detector.online import MAX_USES_PER_FRAME, online_batches, run_configs, run_identity
 from envisat_pose.pipelines.detector.render_pool import RENDERER_BYTES, looks_keypoints
 from envisat_pose.pipelines.detector.train_records import online_record, read_run_record, saved_online
-from envisat_pose.pools import MAX_WORKERS, default_processes, torchrun_int, usable_cores
+from envisat_pose.pools import MAX_WORKERS, default_processes, torchrun_int, usable_cores, warn_oversubscribed
 from envisat_pose.provenance import git_hash, manifest_sha256
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest
 from envisat_pose.target import (
@@ -246,6 +246,15 @@ def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | N
         raise InputError(f"threads = {threads}: expected 1 to {MAX_WORKERS} threads")
 
 
+def warn_processes(workers: int | None, online) -> None:
+    """pools.warn_oversubscribed for the processes a run was given: its renderers (RENDERER_BYTES each) online,
+    else its DataLoader workers."""
+    if online is not None:
+        warn_oversubscribed(online.workers, "online.workers", RENDERER_BYTES)
+    elif workers:
+        warn_oversubscribed(workers)
+
+
 def ddp_rank() -> int:
     """This process's rank under torchrun (its RANK where WORLD_SIZE > 1), else 0."""
     return torchrun_int("RANK", 0) if torchrun_int("WORLD_SIZE", 1) > 1 else 0
@@ -417,6 +426,8 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
     backbone = resolve_backbone(backbone, cfg, target is not None and init is None and not resume)
     check_inputs(data_dirs, run_dir, resume, init, workers, threads, online is not None,
                  DEFAULT_TARGET if target is None else cfg.target, backbone, device)
+    if ddp_rank() == 0:  # said once, not by every rank
+        warn_processes(workers, online)
     with output_lock(run_dir, "train", field="run_dir"):
         return _train_locked(cfg, data_dirs, run_dir, resume, init, device, workers, bf16, threads, progress,
                              command, skip_damaged, online, backbone, task, target)

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from envisat_pose.analysis.sink_check import check_recording_path, check_sink
-from envisat_pose.config import config_arg, path_arg, to_dict, to_toml
+from envisat_pose.config import config_arg, derived, path_arg, to_dict, to_toml
 from envisat_pose.contracts import TruthTrajectory
 from envisat_pose.datagen.gl_check import check_gl_platform
 from envisat_pose.datagen.scenario import scaled_start, scenario_config
@@ -52,7 +52,7 @@ from envisat_pose.pipelines.runs.frame_loop import run_frames
 from envisat_pose.pipelines.runs.loop_frames import FrameMaker, PlanAhead, closed_loop_frames
 from envisat_pose.pipelines.runs.outputs import mean_nis_per_dof, status_counts, status_summary
 from envisat_pose.pipelines.runs.rows import STAGES, RunRows, timing_by_status
-from envisat_pose.pipelines.runs.run_config import RunConfig, run_config_from_json, sun_and_shadow
+from envisat_pose.pipelines.runs.run_config import RUN_PROCESS_BYTES, RunConfig, run_config_from_json, sun_and_shadow
 from envisat_pose.pipelines.runs.run_files import lost_runs, plot_inputs, run_rows, score_run_files, write_run_files
 from envisat_pose.pipelines.runs.run_progress import FrameTally, runs_bar, tally_path
 from envisat_pose.pipelines.runs.scoring import recording_errors
@@ -61,7 +61,7 @@ from envisat_pose.pipelines.tracking.camera_file import camera_record
 from envisat_pose.pipelines.tracking.namings import target_namings
 from envisat_pose.pipelines.tracking.onboard import chaser_function, onboard_physics, orbit_config
 from envisat_pose.pipelines.tracking.tracker import Tracker
-from envisat_pose.pools import RunnerConfig, run_tasks, thread_env
+from envisat_pose.pools import RunnerConfig, run_tasks, thread_env, warn_oversubscribed
 from envisat_pose.provenance import source_line
 from envisat_pose.realtime import real_time_factor
 from envisat_pose.state import draw_initial_estimate
@@ -211,6 +211,8 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = False, sink: 
         check_sink(sink)  # before the folder is made
     else:
         check_recording_path(out_dir, "out_dir")  # the recording goes there
+    if not derived(cfg.workers):  # a count given (the default is sized to the machine: RunConfig)
+        warn_oversubscribed(cfg.workers, bytes_each=RUN_PROCESS_BYTES)  # RunConfig: no more than the runs
     names = [os.path.basename(p) for p in run_output_paths(out_dir).values()]
     with made_out_dir(out_dir), staged_folder(out_dir, names) as stage:
         return _run_closed_loop(cfg, stage, progress, sink)

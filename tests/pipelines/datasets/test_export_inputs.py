@@ -377,3 +377,24 @@ def test_the_readme_commands_run_on_a_folder_with_a_space_and_a_quote_and_no_val
     text = open(os.path.join(yolo, "README.md"), encoding="utf-8").read()
     words = shlex.split(_indented_block(text, "## Run it")[0])
     assert words[:3] == ["yolo", "pose", "train"] and words[3] == f"data={os.path.join(yolo, 'data.yaml')}"
+
+
+def test_more_workers_than_the_cores_are_warned_of_once_and_the_verb_names_the_flag(small, tmp_path, machine,
+                                                                                    monkeypatch, capsys):
+    """`--workers 8` on 2 usable cores started 3 processes (one a shard) without a word; the default is the cores."""
+    from envisat_pose.pipelines.datasets import export
+
+    machine(64, affinity=2)
+    monkeypatch.setattr(export, "_generate_config", lambda *a: (_ for _ in ()).throw(KeyboardInterrupt))
+    with pytest.warns(UserWarning, match=r"^workers = 8: more processes than the 2 usable cores") as record, \
+            pytest.raises(KeyboardInterrupt):
+        export.export_dataset(small["done"], str(tmp_path / "a"), export.ExportConfig(fmt="coco"), workers=8)
+    assert len(record) == 1
+    assert envisat_main(["dataset", "export", small["done"], "--format", "coco", "--out", str(tmp_path / "b"),
+                         "--workers", "8", "--quiet"]) == 130
+    assert capsys.readouterr().err.splitlines()[0] == ("envisat dataset: warning: --workers 8: more processes than the "
+                                                      "2 usable cores (they share them); the job runs as asked")
+    capsys.readouterr()
+    assert envisat_main(["dataset", "export", small["done"], "--format", "coco", "--out", str(tmp_path / "c"),
+                         "--quiet"]) == 130  # the default: the usable cores
+    assert "warning" not in capsys.readouterr().err
