@@ -126,21 +126,23 @@ class _Contract:
         return {}
 
     @classmethod
-    def load(cls, path: str):
-        """Read and check a file; ContractError (one line, naming the file) when it is not this contract."""
+    def load(cls, path: str, field: str | None = None):
+        """Read and check a file; ContractError (one line, naming the file) when it is not this contract, led by
+        `field` where given: the argument that named the file ("truth_path 'run.npz': no such file")."""
+        where = path if field is None else f"{field} {path!r}"
         try:
             with open_npz(path) as z:
                 data = {k: z[k] for k in z.files}
         except NotAnNpz:
-            raise ContractError(f"{path}: not a {cls.KIND} .npz file (not a zip archive)") from None
+            raise ContractError(f"{where}: not a {cls.KIND} .npz file (not a zip archive)") from None
         except FileNotFoundError:
-            raise ContractError(f"{path}: no such file") from None
+            raise ContractError(f"{where}: no such file") from None
         except IsADirectoryError:
-            raise ContractError(f"{path}: is a folder, expected a {cls.KIND} .npz file") from None
+            raise ContractError(f"{where}: is a folder, expected a {cls.KIND} .npz file") from None
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as err:
             # truncated zips, foreign formats, object arrays (refused: no pickles) all end here
-            raise ContractError(f"{path}: cannot be read as a {cls.KIND} .npz file ({type(err).__name__}: {err})") from None
-        return cls.validated(data, path)
+            raise ContractError(f"{where}: cannot be read as a {cls.KIND} .npz file ({type(err).__name__}: {err})") from None
+        return cls.validated(data, where)
 
     @property
     def config(self) -> dict:

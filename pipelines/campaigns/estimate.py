@@ -195,7 +195,7 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
         if duration_s is not None:
             raise InputError("duration_s applies to a `scenario` only; the truth file (`truth_path`) fixes the "
                              "duration")
-        truth = TruthTrajectory.load(truth_path)
+        truth = TruthTrajectory.load(truth_path, "truth_path")  # its errors name the argument (the verb's --truth)
         if target is not None:
             truth = with_target_file(truth, target, truth_path)
         onboard_physics(truth, truth_path)  # its config must name the physics the filter needs

@@ -135,3 +135,18 @@ def test_run_generate_refuses_what_the_verb_refuses_as_the_same_config_error(kwa
         run_generate(GenerateConfig(num_images=2, shard_size=1, resolution_px=64), str(out), **kwargs)
     assert err.value.field == field and err.value.value == kwargs[field]
     assert not out.exists()
+
+
+def test_run_estimate_names_the_truth_file_it_cannot_read_by_its_argument(tmp_path, capsys):
+    """run_estimate's error, and the verb's, said '/x/run.npz: no such file', naming neither truth_path nor --truth."""
+    from envisat_pose import EstimateConfig, run_estimate
+    from envisat_pose.app.cli import main
+
+    missing, folder = str(tmp_path / "run.npz"), str(tmp_path)
+    with pytest.raises(InputError, match=f"^truth_path {missing!r}: no such file$"):
+        run_estimate(EstimateConfig(runs=1), str(tmp_path / "e.npz"), truth_path=missing)
+    with pytest.raises(InputError, match=f"^truth_path {folder!r}: is a folder"):
+        run_estimate(EstimateConfig(runs=1), str(tmp_path / "e.npz"), truth_path=folder)
+    assert main(["estimate", "--truth", missing, "--out", str(tmp_path / "e.npz"), "--quiet"]) == 2
+    assert capsys.readouterr().err == f"envisat estimate: error: --truth {missing!r}: no such file\n"
+
