@@ -422,6 +422,9 @@ def train_detector(cfg, data_dirs: str | list[str], run_dir: str, *, resume: boo
         raise InputError("data_dirs and online: train on shards or on frames rendered as training goes, not both")
     if online is None and not data_dirs:  # as the verb: a resumed online run's own looks, a target's default renders
         online = default_online(cfg, run_dir, resume)
+    if online is not None and workers is not None:  # as the verb's --workers on an online run; it was dropped
+        raise InputError(f"workers = {workers}: the DataLoader processes reading data_dirs' shards; an online run's "
+                         "frames come from its renderer processes (online.workers)")
     task, target = run_task(cfg, online)
     backbone = resolve_backbone(backbone, cfg, target is not None and init is None and not resume)
     check_inputs(data_dirs, run_dir, resume, init, workers, threads, online is not None,

@@ -150,3 +150,15 @@ def test_run_estimate_names_the_truth_file_it_cannot_read_by_its_argument(tmp_pa
     assert main(["estimate", "--truth", missing, "--out", str(tmp_path / "e.npz"), "--quiet"]) == 2
     assert capsys.readouterr().err == f"envisat estimate: error: --truth {missing!r}: no such file\n"
 
+
+def test_train_detector_refuses_loader_workers_for_an_online_run(tmp_path):
+    """`envisat train --online --workers 4` is refused (its frames come from --render-workers); train_detector
+    took workers=4 with online= and dropped it without a word."""
+    from envisat_pose import GenerateConfig, TrainConfig, train_detector
+    from envisat_pose.pipelines.detector.train import OnlineConfig
+
+    with pytest.raises(InputError, match="^workers = 4: the DataLoader processes reading data_dirs' shards; an "
+                                         r"online run's frames come from its renderer processes \(online.workers\)"):
+        train_detector(TrainConfig(steps=1), [], str(tmp_path / "run"), workers=4,
+                       online=OnlineConfig(GenerateConfig(resolution_px=64)))
+    assert not (tmp_path / "run").exists()
