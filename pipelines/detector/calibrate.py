@@ -260,13 +260,17 @@ def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, l
                  progress: bool = False, skip_damaged: bool = False) -> dict:
     """The half-turn's appearance cue: its regions under each frame's labelled pose; `data` fits it and
     `held_out` tempers and scores it (without held_out: the even frames of each data folder fit, the odd ones
-    temper); written into out (a copy of weights with `face_cue` and `face_cue_record`). skip_damaged: go on
-    without the shards that do not match their manifest (named in the record). Returns the record."""
+    temper); written into out (a copy of weights with `face_cue` and `face_cue_record`; "" the shipped ones).
+    limit: only the first N frames of each folder. skip_damaged: go on without the shards that do not match their
+    manifest (named in the record). Returns the record. weights and limit are checked as the verb's --weights and
+    --limit, before any frame is read."""
     from tqdm import tqdm
 
     from envisat_pose.perception import facecue as fc
     from envisat_pose.perception.weights import with_metadata
 
+    check(limit is None or (type(limit) is int and limit >= 1), "limit", limit, "at least 1 frame (or unset: all)")
+    weights = job_weights(weights)  # a missing file failed once every frame was read; limit 0 or -1 read none
     check_out_file(out, "out")
     paths, skipped = data_shards(data, skip_damaged)
     held_paths, held_skipped = data_shards(held_out or [], skip_damaged, "held_out")

@@ -162,3 +162,17 @@ def test_train_detector_refuses_loader_workers_for_an_online_run(tmp_path):
         train_detector(TrainConfig(steps=1), [], str(tmp_path / "run"), workers=4,
                        online=OnlineConfig(GenerateConfig(resolution_px=64)))
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("kwargs, field", [({"limit": 0}, "limit"), ({"limit": -1}, "limit"),
+                                           ({"weights": "nope.safetensors"}, "weights")])
+def test_fit_face_cue_checks_its_weights_and_limit_as_the_verb_does(kwargs, field, tmp_path):
+    """`envisat calibrate --face-cue --limit 0` or a missing --weights is refused before any work; fit_face_cue
+    read every frame first (limit 0 or -1: none, then a fit of nothing; a missing weights file: failed writing)."""
+    from envisat_pose.pipelines.detector.calibrate import fit_face_cue
+
+    args = {"weights": "", "data": [str(tmp_path / "not-read")], "held_out": [], "out": str(tmp_path / "w.safetensors")}
+    with pytest.raises((ConfigError, InputError)) as err:
+        fit_face_cue(**{**args, **kwargs})
+    assert str(err.value).startswith(f"{field} ")
+    assert not (tmp_path / "w.safetensors").exists()
