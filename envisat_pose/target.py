@@ -7,6 +7,8 @@ and materials, and its keypoints as the body's sites `kp_<name>` in file order (
 file is the frame T of the labels, the truth and the filter. The file is read by MuJoCo itself (MjSpec), so its own
 <compiler> (angle unit, eulerseq, meshdir, texturedir), defaults and assets give the shape MuJoCo gives it alone;
 child bodies are fused into it as MuJoCo fuses static bodies, joints latched (envisat_pose/target_file.py).
+This module holds the Target and its entry points (load_target, cached per file); the file is read and checked in
+target_reader.py, and the fast visibility table is target_visibility.py's (both re-exported here).
 
 ENVISAT (models/envisat.xml) is the default target. Whether a target is ENVISAT is asked here only
 (`Target.is_default`, the `require_default*` checks of the verbs whose detector or filter know ENVISAT alone,
@@ -24,68 +26,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.config import ConfigError, InputError
 from envisat_pose.geometry import model_path, visible_corners
 from envisat_pose.shard_reader import load_dataset_manifest
-from envisat_pose.target_file import (
-    check_inertia,
-    drawn_alpha,
-    inertial_used,
-    keypoint_sites,
-    misprefixed_keypoints,
-    named_files,
-    read_spec,
-    target_sha256,
-)
-from envisat_pose.target_masses import com_hint
-from envisat_pose.target_mesh import BodyMesh, TriangleMesh, body_mesh, feature_edges
+from envisat_pose.target_file import named_files
+from envisat_pose.target_mesh import BodyMesh, TriangleMesh, feature_edges
 from envisat_pose.target_rays import ray_hits_m
-from envisat_pose.target_shape import (
-    Symmetry,
-    fibonacci_directions,
-    mirror_perm,
-    skeleton,
-    symmetries,
-    triangle_distances,
-)
+from envisat_pose.target_reader import RENDERED_GROUPS, TargetGeom, read_target_fields
+from envisat_pose.target_shape import Symmetry, mirror_perm, skeleton, symmetries
+from envisat_pose.target_visibility import VisibilityTable, build_visibility_table
+
+__all__ = [
+    "APPENDAGE_GROUP", "DEFAULT_TARGET", "RAY_ABS_TOL_M", "RENDERED_GROUPS", "Target", "TargetGeom", "VisibilityTable",
+    "default_target", "envisat_only", "is_default_file", "load_target", "other_target", "require_envisat",
+    "require_envisat_dataset", "require_weights_target", "resolve_target_path",
+]
 
 DEFAULT_TARGET = "models/envisat.xml"  # the default `target` of every config (the package's file)
-KEYPOINT_PREFIX = "kp_"
-SCENE_KEYPOINT_PREFIX = "corner_"  # the keypoint sites of a file with no kp_ sites (models/envisat.xml)
-MIN_KEYPOINTS = 4
-KEYPOINT_MAX_SURFACE_DISTANCE_M = 0.05  # a keypoint farther than this from the target's surface is refused
-RENDERED_GROUPS = (0, 1, 2)  # geom groups the factory always draws (MuJoCo's default visual groups)
 APPENDAGE_GROUP = 4  # geom group of the clutter the `appendages` switch draws (models/envisat.xml)
 RAY_ABS_TOL_M = 1e-4  # a surface this much nearer than a keypoint (plus 1e-6 of its range) does not hide it
-TABLE_DIRECTIONS = 2048  # view directions of the fast visibility table (about 4.5 deg apart)
-COM_TOLERANCE = 1e-6  # the centre of mass's distance from the body's origin allowed, a share of MuJoCo's extent
-TABLE_RANGES_REACHES = (3.0, 8.0, 30.0, 1000.0)  # ... each cast from these many reaches away (the last: parallel)
-TABLE_NEIGHBOURS = 2  # a keypoint is called hidden only where this many nearest directions hide it too
-TABLE_CELLS_POLAR = 256  # polar rows of the grid that finds a view's direction (azimuth columns: twice as many)
-
-
-@dataclass(frozen=True)
-class TargetGeom:
-    """One geom of body `target`: name (its own, or target_geom_<i>), MuJoCo type name, group, material name
-    ('' for none) and rgb (3,) of its material (or its own rgba); alpha: the alpha MuJoCo's renderer draws it with
-    (drawn_alpha). shown: MuJoCo draws it (alpha above 0; an invisible geom is left out of the images and the
-    visibility). opaque: alpha 1, the geoms that hide keypoints (Target.occluding)."""
-
-    name: str
-    type: str
-    group: int
-    material: str
-    rgb: tuple[float, float, float]
-    alpha: float = 1.0
-
-    @property
-    def shown(self) -> bool:
-        return self.alpha > 0.0
-
-    @property
-    def opaque(self) -> bool:
-        return self.alpha >= 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -227,71 +186,12 @@ class Target:
         return np.array([self.visible_from(p) for p in c], bool).reshape(len(c), self.num_keypoints)
 
 
-# ---------------------------------------------------------------- the fast form: a table over view directions
-
-
-@dataclass(frozen=True, eq=False)
-class VisibilityTable:
-    """Keypoint visibility by view direction and range, in the sense a filter's visibility check needs: a keypoint
-    the table calls hidden is hidden (the check drops a measured keypoint it calls hidden as a mislabel), one it
-    calls visible may be hidden near a silhouette. dirs_T: (N, 3) unit directions from the CoM toward the camera,
-    in T (a Fibonacci sphere); ranges_m: (B,) the ranges cast from; visible: (B, N, K) bool, exact ray casts from
-    each range along the direction or one of its TABLE_NEIGHBOURS nearest. Measured against the exact casts from
-    400 random positions per span (seed 3, range log-uniform in 2-8 and 8-150 reaches): visible keypoints called
-    hidden 0.1-0.4 % (CubeSat, upper stage; the single-range, single-direction table of before: 1-11 %, most at
-    long range), hidden ones called visible 9-11 % (tests/envisat_pose/test_target.py holds them under 1 % and
-    15 %)."""
-
-    dirs_T: np.ndarray
-    ranges_m: np.ndarray
-    visible: np.ndarray
-    cell_dir: np.ndarray
-
-    def lookup(self, c_T_m: np.ndarray) -> np.ndarray:
-        """Visibility from camera positions c_T_m (..., 3) in T: the row of the direction at the camera's cell
-        (cell_dir, polar_azimuth_cell) at the nearest range (in log). (..., K) bool; a position that is not finite
-        (a broken filter run's) sees every keypoint: nothing known hides one."""
-        c = np.asarray(c_T_m, float)
-        finite = np.isfinite(c).all(axis=-1)
-        c = np.where(finite[..., None], c, 1.0)
-        r = np.linalg.norm(c, axis=-1)
-        b = np.argmin(np.abs(np.log(np.maximum(r, 1e-12))[..., None] - np.log(self.ranges_m)), axis=-1)
-        i, j = polar_azimuth_cell(c, r, self.cell_dir.shape[0])
-        return self.visible[b, self.cell_dir[i, j]] | ~finite[..., None]
-
-
-def polar_azimuth_cell(c: np.ndarray, r: np.ndarray, rows: int) -> tuple[np.ndarray, np.ndarray]:
-    """(row, column) of the points c (..., 3) of norm r (...,) in a grid of `rows` bands of polar angle (from +z)
-    by 2 x rows sectors of azimuth, each 180 / rows deg: a view's direction found in O(1) (filtering/fast.py's
-    kernel computes the same)."""
-    polar = np.arccos(np.clip(c[..., 2] / np.maximum(r, 1e-12), -1.0, 1.0))
-    i = np.minimum((polar * (rows / np.pi)).astype(np.intp), rows - 1)
-    j = np.minimum(((np.arctan2(c[..., 1], c[..., 0]) + np.pi) * (rows / np.pi)).astype(np.intp), 2 * rows - 1)
-    return i, j
-
-
-def direction_cells(dirs: np.ndarray, rows: int = TABLE_CELLS_POLAR) -> np.ndarray:
-    """(rows, 2 rows) int16: for each cell of polar_azimuth_cell's grid, the direction of dirs (N, 3) nearest to
-    the cell's centre (cells 0.7 deg across, a sixth of the directions' spacing)."""
-    polar = (np.arange(rows) + 0.5) * np.pi / rows
-    azimuth = (np.arange(2 * rows) + 0.5) * np.pi / rows - np.pi
-    p, a = np.meshgrid(polar, azimuth, indexing="ij")
-    centres = np.stack([np.sin(p) * np.cos(a), np.sin(p) * np.sin(a), np.cos(p)], axis=-1).reshape(-1, 3)
-    nearest = [np.argmax(chunk @ dirs.T, axis=1) for chunk in np.array_split(centres, 64)]
-    return np.concatenate(nearest).astype(np.int16).reshape(rows, 2 * rows)
-
-
 @functools.lru_cache(maxsize=16)
 def _table(path: str, sha256: str, appendages: bool) -> VisibilityTable:
-    target = load_target(path)
-    dirs = fibonacci_directions(TABLE_DIRECTIONS)
-    ranges_m = np.array(TABLE_RANGES_REACHES) * target.reach_m
-    exact = np.array([[target.visible_from(d * r, appendages) for d in dirs] for r in ranges_m], bool)
-    nearest = np.argsort(-(dirs @ dirs.T), axis=1)[:, :TABLE_NEIGHBOURS + 1]  # each direction first
-    return VisibilityTable(dirs, ranges_m, np.ascontiguousarray(exact[:, nearest].any(axis=2)), direction_cells(dirs))
+    return build_visibility_table(load_target(path), appendages)
 
 
-# ---------------------------------------------------------------- reading the file
+# ---------------------------------------------------------------- loading: the file a value names, read once
 
 
 def resolve_target_path(given: str) -> str:
@@ -312,32 +212,6 @@ def resolve_target_path(given: str) -> str:
     return os.path.abspath(given)
 
 
-def _fail(field: str, given: str, expected: str):
-    raise ConfigError(field, given, expected)
-
-
-def _geoms(model, body: int) -> tuple[TargetGeom, ...]:
-    import mujoco
-
-    out = []
-    for i, g in enumerate(np.flatnonzero(model.geom_bodyid == body)):
-        mat = int(model.geom_matid[g])
-        rgb = model.mat_rgba[mat][:3] if mat >= 0 else model.geom_rgba[g][:3]
-        out.append(TargetGeom(model.geom(g).name or f"target_geom_{i}",
-                              mujoco.mjtGeom(int(model.geom_type[g])).name.removeprefix("mjGEOM_").lower(),
-                              int(model.geom_group[g]), model.material(mat).name if mat >= 0 else "",
-                              tuple(float(v) for v in rgb), drawn_alpha(model, g)))
-    return tuple(out)
-
-
-def _model_name(spec, path: str) -> str:
-    """The file's <mujoco model=...>, or its file name's stem where it has none."""
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        head = fh.read(4096)
-    stated = "model=" in head.split("<mujoco", 1)[-1].split(">", 1)[0] if "<mujoco" in head else False
-    return spec.modelname if stated and spec.modelname else os.path.splitext(os.path.basename(path))[0]
-
-
 class _Naming:
     """How a caller names the file (`field`, `given`: its errors' words; `named`: its warnings', by default
     "target 'FILE'"), left out of _load's cache key: the same file named two ways is one load, its warnings said
@@ -355,60 +229,7 @@ class _Naming:
 
 @functools.lru_cache(maxsize=16)
 def _load(path: str, stamps: tuple, naming: _Naming) -> Target:
-    field, given = naming.field, naming.given
-    sha256 = target_sha256(path)
-    spec, own_scene, fused, latched = read_spec(path, field, given)
-    try:
-        model = spec.compile()
-    except ValueError as err:
-        _fail(field, given, f"an MJCF file MuJoCo compiles (it says: {' '.join(str(err).split())})")
-    body = model.body("target").id
-    R = quat_to_rotmat(model.body_iquat[body])
-    inertia = R @ np.diag(model.body_inertia[body]) @ R.T
-    stated = inertial_used(spec, spec.body("target")) and not fused  # else MuJoCo's sums
-    whose = ("the masses of the body and its child bodies" if fused else
-             "its geoms' masses (the compiler's inertiafromgeom='true' sets its <inertial> aside)"
-             if spec.body("target").explicitinertial else
-             "its geoms' masses (it has no <inertial>: state one, or give its geoms their mass or density)")
-    if not stated or spec.compiler.balanceinertia:
-        problem = check_inertia(float(model.body_mass[body]), inertia)
-        if problem is not None:
-            _fail(field, given, f"body 'target' with {problem}, as MuJoCo computes them from {whose}")
-    com = model.body_ipos[body]  # at the origin to a millionth of the model's size (rounded positions, a feather)
-    if np.linalg.norm(com) > COM_TOLERANCE * max(float(model.stat.extent), 1e-3):
-        where = com_hint(path, fused, stated, whose, com)
-        _fail(field, given, f"the centre of mass at the body's origin ({where}): T's origin is the CoM")
-    names, sites, X = keypoint_sites(model, body, (KEYPOINT_PREFIX, SCENE_KEYPOINT_PREFIX))
-    if len(names) < MIN_KEYPOINTS:
-        _fail(field, given, f"at least {MIN_KEYPOINTS} keypoint sites named '{KEYPOINT_PREFIX}<name>' on body 'target' (found "
-                            f"{len(names)}{misprefixed_keypoints(model, body, KEYPOINT_PREFIX)})")
-    if len(set(names)) != len(names) or "" in names:
-        _fail(field, given, f"keypoint sites with distinct, non-empty names after the prefix (got {list(names)})")
-    geoms = _geoms(model, body)
-    surface = body_mesh(model, body)
-    if len(surface.mesh.faces) == 0:
-        _fail(field, given, "geoms with a surface on body 'target' (boxes, cylinders, spheres, meshes...)")
-    groups = ", ".join(str(g) for g in RENDERED_GROUPS)
-    drawn = surface.select(np.array([g.group in RENDERED_GROUPS and g.shown for g in geoms], bool))
-    if len(drawn.faces) == 0:  # nothing in the images, every keypoint labelled visible
-        _fail(field, given, f"geoms the factory draws on body 'target' (groups {groups}, MuJoCo's visible ones, "
-                            f"alpha above 0; its geoms are in groups {sorted({g.group for g in geoms})}, "
-                            f"{sum(not g.shown for g in geoms)} of alpha 0)")
-    dist = triangle_distances(X, drawn.vertices_T_m[drawn.faces]).min(axis=1)
-    k = int(np.argmax(dist))
-    if dist[k] > KEYPOINT_MAX_SURFACE_DISTANCE_M:
-        _fail(field, given, f"keypoints on the target: site {sites[k]!r} is {dist[k]:.3f} m from the nearest "
-                            f"surface of the geoms the factory draws (inside a solid or off it; groups {groups}; at "
-                            f"most {KEYPOINT_MAX_SURFACE_DISTANCE_M:g} m)")
-    reach = float(np.linalg.norm(surface.mesh.vertices_T_m, axis=1).max())
-    if latched:  # said once per file (the load is cached): the shape is the file's reference pose
-        warnings.warn(f"{naming.named}: {len(latched)} joint(s) latched at the file's reference pose, the target "
-                      f"one rigid body ({', '.join(latched)})", stacklevel=2)
-    return Target(
-        name=_model_name(spec, path),
-        path=path, sha256=sha256, keypoint_names=names, keypoint_sites=sites, keypoints_T_m=X,
-        mass_kg=float(model.body_mass[body]), inertia_T_kg_m2=inertia, reach_m=reach, geoms=geoms,
-        surface=surface, own_scene=own_scene, latched_joints=latched)
+    return Target(**read_target_fields(path, naming.field, naming.given, naming.named))
 
 
 def load_target(given: str = DEFAULT_TARGET, field: str = "target", named: str | None = None) -> Target:
@@ -423,8 +244,9 @@ def load_target(given: str = DEFAULT_TARGET, field: str = "target", named: str |
     surface. Cached per file, size and modification time, its named files' too (target_file.named_files)."""
     path = resolve_target_path(given)
     if not os.path.isfile(path) or not path.endswith(".xml"):  # MuJoCo picks its reader by the name's ending
-        _fail(field, given, "an MJCF file (no such file)" if not os.path.isfile(path) else "an MJCF file whose name "
-              "ends in .xml (MuJoCo reads a model file by its ending, .xml alone as MJCF: copy or link it so)")
+        raise ConfigError(field, given, "an MJCF file (no such file)" if not os.path.isfile(path) else
+                          "an MJCF file whose name ends in .xml (MuJoCo reads a model file by its ending, .xml alone "
+                          "as MJCF: copy or link it so)")
     files = [f for f in (path, *named_files(path)) if os.path.isfile(f)]
     stamps = tuple((os.stat(f).st_mtime_ns, os.stat(f).st_size) for f in files)
     return _load(path, stamps, _Naming(field, given, named))

@@ -1,0 +1,81 @@
+"""The fast form of a target's keypoint visibility: a table over view directions and ranges, looked up in O(1).
+
+Built from a Target's exact ray casts (`Target.visible_from`) by `build_visibility_table`; `Target.visibility_table`
+builds it once per target file and process (envisat_pose/target.py), and a filter's visibility check looks it up
+(filtering/measurements.py, and filtering/fast.py's kernel with the same grid and formulas).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from envisat_pose.target_shape import fibonacci_directions
+
+TABLE_DIRECTIONS = 2048  # view directions of the fast visibility table (about 4.5 deg apart)
+TABLE_RANGES_REACHES = (3.0, 8.0, 30.0, 1000.0)  # ... each cast from these many reaches away (the last: parallel)
+TABLE_NEIGHBOURS = 2  # a keypoint is called hidden only where this many nearest directions hide it too
+TABLE_CELLS_POLAR = 256  # polar rows of the grid that finds a view's direction (azimuth columns: twice as many)
+
+
+@dataclass(frozen=True, eq=False)
+class VisibilityTable:
+    """Keypoint visibility by view direction and range, in the sense a filter's visibility check needs: a keypoint
+    the table calls hidden is hidden (the check drops a measured keypoint it calls hidden as a mislabel), one it
+    calls visible may be hidden near a silhouette. dirs_T: (N, 3) unit directions from the CoM toward the camera,
+    in T (a Fibonacci sphere); ranges_m: (B,) the ranges cast from; visible: (B, N, K) bool, exact ray casts from
+    each range along the direction or one of its TABLE_NEIGHBOURS nearest. Measured against the exact casts from
+    400 random positions per span (seed 3, range log-uniform in 2-8 and 8-150 reaches): visible keypoints called
+    hidden 0.1-0.4 % (CubeSat, upper stage; the single-range, single-direction table of before: 1-11 %, most at
+    long range), hidden ones called visible 9-11 % (tests/envisat_pose/test_target.py holds them under 1 % and
+    15 %)."""
+
+    dirs_T: np.ndarray
+    ranges_m: np.ndarray
+    visible: np.ndarray
+    cell_dir: np.ndarray
+
+    def lookup(self, c_T_m: np.ndarray) -> np.ndarray:
+        """Visibility from camera positions c_T_m (..., 3) in T: the row of the direction at the camera's cell
+        (cell_dir, polar_azimuth_cell) at the nearest range (in log). (..., K) bool; a position that is not finite
+        (a broken filter run's) sees every keypoint: nothing known hides one."""
+        c = np.asarray(c_T_m, float)
+        finite = np.isfinite(c).all(axis=-1)
+        c = np.where(finite[..., None], c, 1.0)
+        r = np.linalg.norm(c, axis=-1)
+        b = np.argmin(np.abs(np.log(np.maximum(r, 1e-12))[..., None] - np.log(self.ranges_m)), axis=-1)
+        i, j = polar_azimuth_cell(c, r, self.cell_dir.shape[0])
+        return self.visible[b, self.cell_dir[i, j]] | ~finite[..., None]
+
+
+def polar_azimuth_cell(c: np.ndarray, r: np.ndarray, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) of the points c (..., 3) of norm r (...,) in a grid of `rows` bands of polar angle (from +z)
+    by 2 x rows sectors of azimuth, each 180 / rows deg: a view's direction found in O(1) (filtering/fast.py's
+    kernel computes the same)."""
+    polar = np.arccos(np.clip(c[..., 2] / np.maximum(r, 1e-12), -1.0, 1.0))
+    i = np.minimum((polar * (rows / np.pi)).astype(np.intp), rows - 1)
+    j = np.minimum(((np.arctan2(c[..., 1], c[..., 0]) + np.pi) * (rows / np.pi)).astype(np.intp), 2 * rows - 1)
+    return i, j
+
+
+def direction_cells(dirs: np.ndarray, rows: int = TABLE_CELLS_POLAR) -> np.ndarray:
+    """(rows, 2 rows) int16: for each cell of polar_azimuth_cell's grid, the direction of dirs (N, 3) nearest to
+    the cell's centre (cells 0.7 deg across, a sixth of the directions' spacing)."""
+    polar = (np.arange(rows) + 0.5) * np.pi / rows
+    azimuth = (np.arange(2 * rows) + 0.5) * np.pi / rows - np.pi
+    p, a = np.meshgrid(polar, azimuth, indexing="ij")
+    centres = np.stack([np.sin(p) * np.cos(a), np.sin(p) * np.sin(a), np.cos(p)], axis=-1).reshape(-1, 3)
+    nearest = [np.argmax(chunk @ dirs.T, axis=1) for chunk in np.array_split(centres, 64)]
+    return np.concatenate(nearest).astype(np.int16).reshape(rows, 2 * rows)
+
+
+def build_visibility_table(target, appendages: bool) -> VisibilityTable:
+    """The table of `target` (a Target: its reach_m and exact visible_from), the geoms of the `appendages` switch
+    drawn or not: exact visibility from TABLE_DIRECTIONS directions at TABLE_RANGES_REACHES x reach, each widened to
+    its TABLE_NEIGHBOURS nearest directions (~6 s on one core)."""
+    dirs = fibonacci_directions(TABLE_DIRECTIONS)
+    ranges_m = np.array(TABLE_RANGES_REACHES) * target.reach_m
+    exact = np.array([[target.visible_from(d * r, appendages) for d in dirs] for r in ranges_m], bool)
+    nearest = np.argsort(-(dirs @ dirs.T), axis=1)[:, :TABLE_NEIGHBOURS + 1]  # each direction first
+    return VisibilityTable(dirs, ranges_m, np.ascontiguousarray(exact[:, nearest].any(axis=2)), direction_cells(dirs))
