@@ -7,13 +7,14 @@ pipelines/campaigns/lines.py); what the campaign writes into DIR is described in
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_rrd_output, init_error_line
 from envisat_pose.app.flag_rules import check_noise_flags, job_scenario
 from envisat_pose.config import InputError, check
 from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, read_timing, run_campaign
-from envisat_pose.pipelines.campaigns.lines import resume_note, summary_line, sweep_line
+from envisat_pose.pipelines.campaigns.lines import resume_note, summary_line, sweep_line, sweep_resume_note
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE, run_sweep, sweep_for
 from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.pools import RunnerConfig
@@ -100,8 +101,10 @@ def run_montecarlo(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     if sweep is not None:
         result = run_sweep(cfg, sweep, args.out, runner, progress=not args.quiet)
+        resumed = sweep_resume_note(result["rates_hz"], cfg.n_blocks,  # each rate's campaign's timing.json
+                                    [read_timing(os.path.join(args.out, f)) for f in result["campaigns"]])
         print(f"wrote {args.out}: {len(sweep.rates_hz)} campaigns of {cfg.runs} runs, sweep.json, {SWEEP_FIGURE} "
-              f"({time.perf_counter() - t0:.1f} s)")
+              f"({time.perf_counter() - t0:.1f} s{resumed})")
         print(sweep_line(result))
         return 0
     summary = run_campaign(cfg, args.out, runner, progress=not args.quiet, rrd=args.rrd)

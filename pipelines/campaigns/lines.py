@@ -96,10 +96,31 @@ def _fmt_ratio(v, digits: int = 3) -> str:  # n/a says why, as the report's cell
     return f"{v:.{digits}f}" if v is not None and math.isfinite(v) else f"n/a ({why_not_a_number(v) or v})"
 
 
+def _run_now(n_blocks: int, timing: dict | None) -> int | None:
+    """timing.json's blocks_run_now where it is a count of the campaign's N blocks, else None (no timing, a
+    value of another shape)."""
+    run_now = (timing or {}).get("blocks_run_now")
+    if not isinstance(run_now, int) or isinstance(run_now, bool) or not 0 <= run_now <= n_blocks:
+        return None
+    return run_now
+
+
 def resume_note(n_blocks: int, timing: dict | None) -> str:
     """'; resumed: K of N blocks kept, M run now' for a rerun that kept finished blocks (timing.json's
     blocks_run_now below the campaign's N blocks), else '' (a fresh campaign, every block redone, no timing)."""
-    run_now = (timing or {}).get("blocks_run_now")
-    if not isinstance(run_now, int) or isinstance(run_now, bool) or not 0 <= run_now < n_blocks:
+    run_now = _run_now(n_blocks, timing)
+    if run_now is None or run_now == n_blocks:
         return ""
     return f"; resumed: {n_blocks - run_now} of {n_blocks} blocks kept, {run_now} run now"
+
+
+def sweep_resume_note(rates_hz: list, n_blocks: int, timings: list) -> str:
+    """A rate sweep's resume_note: '; resumed: K of N blocks kept (1 Hz 2 of 2, 0.5 Hz 1 of 2), M run now' over
+    its campaigns (each rate's timing.json, in the order of rates_hz; N blocks a campaign) where a rerun kept a
+    finished block at some rate, else '' (a fresh sweep, or a rate's timing unreadable: nothing sure to say)."""
+    run_now = [_run_now(n_blocks, t) for t in timings]
+    if not run_now or None in run_now or sum(run_now) == n_blocks * len(run_now):
+        return ""
+    per_rate = ", ".join(f"{rate:g} Hz {n_blocks - n} of {n_blocks}" for rate, n in zip(rates_hz, run_now))
+    return (f"; resumed: {n_blocks * len(run_now) - sum(run_now)} of {n_blocks * len(run_now)} blocks kept "
+            f"({per_rate}), {sum(run_now)} run now")
