@@ -1,6 +1,6 @@
 """The terminal lines of `envisat montecarlo` (app/montecarlo.py prints them): one campaign's summary line and a rate
-sweep's lines. A figure that is not finite reads n/a with why: the rate sweep's the value as stored (nan, inf, null:
-report.why_not_a_number, as the report's cells); one campaign's what made it so, read from the summary's other
+sweep's lines. A figure that is not finite reads n/a with why: the value as stored (nan, inf, null:
+report.why_not_a_number, as the report's cells) and what made it so, read from the campaign's (or the rate's) other
 figures (summary_why) — RMSE / PCRLB is sqrt(mean RMSE^2 / mean PCRLB^2) over the settled steps, so it is not finite
 exactly when the PCRLB over those steps is 0 (pcrlb.block_bounds clamps a block whose trace rounded below 0) or not
 finite, or the RMSE is not finite; the RMSE only when a run's error is (the filter rolls a non-finite state back, so
@@ -71,14 +71,17 @@ def summary_line(s: dict) -> str:
 
 
 def sweep_line(r: dict) -> str:
-    """One line per rate of a sweep's main numbers, and where it stops converging."""
+    """One line per rate of a sweep's main numbers, and where it stops converging; a figure that is not finite as
+    n/a with why, as one campaign's line says it (summary_why, over the rate's figures: rate_figures)."""
     lines, unjudged = [], r.get("n_unjudged") or [0] * len(r["rates_hz"])  # a sweep.json before it: none
     for i, rate in enumerate(r["rates_hz"]):
-        alone = r["n_nis_alarm_alone"][i]
-        lines.append(f"{rate:g} Hz: RMSE position {100 * r['rmse']['position'][i]:.3f} cm, attitude "
-                     f"{math.degrees(r['rmse']['attitude'][i]):.4f} deg; RMSE/PCRLB "
-                     + ", ".join(f"{b} {_fmt_ratio(v[i])}" for b, v in r["rmse_over_pcrlb"].items())
-                     + f"; mean NEES {_fmt_ratio(r['nees_mean'][i], 2)}; diverged {r['n_diverged'][i]}/{r['runs']}"
+        s, alone = rate_figures(r, i), r["n_nis_alarm_alone"][i]
+        lines.append(f"{rate:g} Hz: RMSE position " + _figure(s, "rmse", "position", lambda v: f"{100 * v:.3f} cm")
+                     + ", attitude " + _figure(s, "rmse", "attitude", lambda v: f"{math.degrees(v):.4f} deg")
+                     + "; RMSE/PCRLB " + ", ".join(f"{b} " + _figure(s, "rmse_over_pcrlb", b, lambda v: f"{v:.3f}")
+                                                   for b in r["rmse_over_pcrlb"])
+                     + "; mean NEES " + _figure(s, "nees_mean", None, lambda v: f"{v:.2f}")
+                     + f"; diverged {r['n_diverged'][i]}/{r['runs']}"
                      + (f" ({alone} flagged by the filter alone)" if alone else "")
                      + (f", {unjudged[i]} not judged ({_sweep_why(r, i)})" if unjudged[i] else "") + "; "
                      + ("converged" if r["converged"][i] else "NOT converged"))
@@ -88,12 +91,15 @@ def sweep_line(r: dict) -> str:
     return "\n".join(lines)
 
 
+def rate_figures(r: dict, i: int) -> dict:
+    """Rate i's figures of a sweep's dict (sweep.json's per-block lists) shaped as one campaign's summary:
+    rmse, pcrlb_rms and rmse_over_pcrlb per block, nees_mean."""
+    return {**{key: {b: v[i] for b, v in (r.get(key) or {}).items()}
+               for key in ("rmse", "pcrlb_rms", "rmse_over_pcrlb")}, "nees_mean": r["nees_mean"][i]}
+
+
 def _sweep_why(r: dict, i: int) -> str:  # why rate i's runs were not judged (unjudged_why)
     return unjudged_why(r["steps"][i], r["divergence_settle_steps"], r["divergence_window"])
-
-
-def _fmt_ratio(v, digits: int = 3) -> str:  # n/a says why, as the report's cells do: null, nan, inf
-    return f"{v:.{digits}f}" if v is not None and math.isfinite(v) else f"n/a ({why_not_a_number(v) or v})"
 
 
 def _run_now(n_blocks: int, timing: dict | None) -> int | None:

@@ -77,8 +77,25 @@ def test_the_terminal_lines_say_why_a_number_is_n_a():
     r = sweep_result(cfg, sweep, [1.0, 0.5], [_summary(0, 0), bad])
     lines = sweep_line(r).splitlines()
     assert "n/a" not in lines[0]
-    assert "velocity n/a (inf)" in lines[1] and "mean NEES n/a (nan)" in lines[1]
+    assert "velocity n/a (inf)" in lines[1] and "mean NEES n/a (nan: a run-step's NEES is not finite" in lines[1]
     read_back = json.loads(json.dumps(json_safe(r)))
     line = sweep_line(read_back).splitlines()[1]
-    assert "velocity n/a (null)" in line and "mean NEES n/a (null)" in line
+    assert "velocity n/a (null)" in line and "mean NEES n/a (null: a run-step's NEES is not finite" in line
     assert not re.search(r"n/a(?! \()", sweep_line(r) + sweep_line(read_back))  # never a bare n/a
+
+
+def test_a_rates_rmse_that_is_not_finite_reads_n_a_with_why_in_the_terminal_lines():
+    """A rate whose RMSE was not finite (a run's error overflowed) printed 'RMSE position nan cm', and read back
+    from sweep.json (null) the lines were a TypeError traceback; they now say n/a, the value and what it means, as
+    one campaign's line does, and the ratio beside it says it is the RMSE's doing."""
+    cfg = MonteCarloConfig(runs=100, duration_s=60.0)
+    bad = _summary(0, 0)
+    bad["rmse"]["position"], bad["rmse_over_pcrlb"]["position"] = float("nan"), float("nan")
+    r = sweep_result(cfg, SweepConfig(rates_hz=(1.0, 0.5)), [1.0, 0.5], [_summary(0, 0), bad])
+    for read in (r, json.loads(json.dumps(json_safe(r)))):
+        line = sweep_line(read).splitlines()[1]
+        stored = "nan" if read is r else "null"
+        assert f"RMSE position n/a ({stored}: a run's error is not finite), attitude 0.0573 deg" in line, line
+        assert f"RMSE/PCRLB position n/a ({stored}" in line, line
+        assert read is not r or "RMSE/PCRLB position n/a (nan: the RMSE is not finite (nan))" in line, line
+        assert "nan cm" not in line and line.endswith("NOT converged")
