@@ -40,6 +40,7 @@ Range = tuple[float, float]
 ENVISAT_RANDOM_M = {"range_min_m": 20.0, "range_max_m": 80.0, "keepout_margin_m": 2.0}
 DEPTH_SCALE_M = 0.002  # the depth PNG's default metres per unit (ENVISAT's: 131 m of range)
 SIZED_DIGITS = 4  # significant digits of a sized default (the number the manifest records)
+MAX_IMAGES = 100_000_000  # a dataset's most images (GenerateConfig.num_images)
 # a sequence whose first frame shows the target fewer pixels across than this (2 reach / range x f_px) is refused
 MIN_SEQUENCE_TARGET_SPAN_PX = 4.0
 # sequence.range_scale's bounds: a target a thousandth of ENVISAT's size to one ten times it
@@ -392,7 +393,8 @@ class GenerateConfig(Config):
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""
-        check(self.num_images >= 1, f"{p}num_images", self.num_images, "at least 1 image")
+        # 1e12 images hung before any output (the job lists its shards); 1e8 are ~100 TB of 1024 px PNGs
+        check(1 <= self.num_images <= MAX_IMAGES, f"{p}num_images", self.num_images, f"1 to {MAX_IMAGES} images")
         check(self.shard_size >= 1, f"{p}shard_size", self.shard_size, "at least 1 image per shard")
         check(16 <= self.resolution_px <= 4096, f"{p}resolution_px", self.resolution_px, "a resolution in [16, 4096] px")
         check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed below 2^63")

@@ -34,6 +34,12 @@ MAX_SIGMA_SPREAD = 100.0
 # The least RK4 sub-step of the filter's model, s (the truth's least physics step, datagen.scenario's: RK4 at 0.05 s
 # is already exact to 1e-8 m over an orbit); a step of 1e-300 s asked for an array past numpy's largest.
 MIN_RK4_STEP_S = 1e-4
+# The NEES window's steps, and a run's most partial updates: each is an array's length per block of runs, held through
+# the run (a window of 1e12 steps or split_max = 1e12 asked numpy for TiBs: a traceback after the truth was made). A
+# window of 1e5 steps spans 1000 s at 100 Hz (a window longer than a run is shortened to it); 1024 updates of ratio
+# (1 + split_gain) each take any ratio a double holds, (1 + gain)^1024 > 2^1024 overflows.
+MAX_DIVERGENCE_WINDOW = 100_000
+MAX_SPLIT = 1024
 
 
 def check_kernel(kernel: str) -> None:
@@ -128,14 +134,16 @@ class FilterConfig(Config):
         check(1.0 <= self.outage_q_scale <= MAX_OUTAGE_Q_SCALE, f"{p}outage_q_scale", self.outage_q_scale,
               f"a factor in [1, {MAX_OUTAGE_Q_SCALE:g}] (the widest ratio of the process noises the filter takes)")
         check(self.divergence_settle_steps >= 0, f"{p}divergence_settle_steps", self.divergence_settle_steps, "a non-negative number of steps")
-        check(self.divergence_window >= 1, f"{p}divergence_window", self.divergence_window, "at least 1 step")
+        check(1 <= self.divergence_window <= MAX_DIVERGENCE_WINDOW, f"{p}divergence_window", self.divergence_window,
+              f"1 to {MAX_DIVERGENCE_WINDOW} steps")
         check(0.0 < self.divergence_prob < 1.0, f"{p}divergence_prob", self.divergence_prob, "a probability in (0, 1)")
         check(self.nees_divergence_factor > 1.0, f"{p}nees_divergence_factor", self.nees_divergence_factor, "a factor > 1")
         check(self.max_rk4_step_s >= MIN_RK4_STEP_S, f"{p}max_rk4_step_s", self.max_rk4_step_s,
               f"a step of at least {MIN_RK4_STEP_S:g} s (RK4 is exact at 0.05 s; smaller steps only cost time)")
         check(self.kernel in KERNELS, f"{p}kernel", self.kernel, f"one of {', '.join(KERNELS)}")
         check(self.split_gain > 1.0, f"{p}split_gain", self.split_gain, "a factor > 1")
-        check(self.split_max >= 1, f"{p}split_max", self.split_max, "at least 1 update")
+        check(1 <= self.split_max <= MAX_SPLIT, f"{p}split_max", self.split_max, f"1 to {MAX_SPLIT} updates (1024 "
+              "take any ratio a double holds)")
         check(self.visibility_from in VISIBILITY_FROM, f"{p}visibility_from", self.visibility_from,
               " or ".join(VISIBILITY_FROM))
         check(self.sigma_chart in SIGMA_CHARTS, f"{p}sigma_chart", self.sigma_chart, " or ".join(SIGMA_CHARTS))

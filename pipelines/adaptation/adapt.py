@@ -154,6 +154,8 @@ class AdaptConfig(Config):
         check(self.params != "none" or {"steps": self.steps, "lr": self.lr} == unset, f"{p}{given[0]}",
               getattr(self, given[0]), "the defaults of steps and lr with params 'none' (they set the fine-tune, "
               "which is off: params 'norm_heads' or 'all')")
+        check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed below 2^63 (numpy's "
+              "generators take no negative one)")
         check(self.min_trusted >= 1, f"{p}min_trusted", self.min_trusted, "at least 1 frame")
         check(self.max_label_sigma_px > 0, f"{p}max_label_sigma_px", self.max_label_sigma_px, "pixels > 0")
         check(self.max_labels >= self.min_trusted, f"{p}max_labels", self.max_labels, "at least min_trusted")

@@ -38,6 +38,12 @@ SEQUENCE = GENERATE + ["--mode", "sequence"]
     (SEQUENCE, "[sequence]\nframe_dt_s = 1e-9\n", ("sequence.frame_dt_s = 1e-09: expected", "at least 0.0001 s")),
     (SEQUENCE, "[sequence]\nframe_dt_s = 1e300\n", ("sequence.frame_dt_s = 1e+300: expected", "at most 2.5e+06 s")),
     (GENERATE, "sun_dir = [1e300, 1e300, 1e300]\n", ("sun_dir = [1e+300, 1e+300, 1e+300]: expected", "finite length")),
+    # numpy asked for TiBs (a traceback after the truth was simulated), or a hang before any output
+    (ESTIMATE, "[filter]\ndivergence_window = 1000000000000\n",
+     ("filter.divergence_window = 1000000000000: expected", "1 to 100000 steps")),
+    (ESTIMATE, "[filter]\nsplit_max = 1000000000000\n", ("filter.split_max = 1000000000000: expected", "1 to 1024")),
+    (GENERATE[:1] + GENERATE[3:], "num_images = 1000000000000\n",
+     ("num_images = 1000000000000: expected", "1 to 100000000 images")),
 ])
 def test_a_value_no_run_can_mean_is_refused_naming_it(tmp_path, capsys, verb, text, words):
     cfg = tmp_path / "edge.toml"
@@ -59,6 +65,19 @@ def test_values_inside_the_bounds_stay_accepted():
     FilterConfig(alpha=1.0, kappa=-9.0, beta=2.0)
     FilterConfig(alpha=1e-3, kappa=3.0, outage_q_scale=1e6, max_rk4_step_s=1e-4)
     GenerateConfig(mode="sequence", num_images=2, sequence={"frame_dt_s": 1e-4}, sun_dir=(1e100, 0.0, 0.0))
+    FilterConfig(divergence_window=100_000, split_max=1024)
+    GenerateConfig(num_images=100_000_000)
+
+
+def test_a_negative_adapt_seed_is_refused_when_built():
+    """numpy's generators take no negative seed: adapt's fine-tune drew from SeedSequence(-1), a ValueError
+    traceback after the first track run."""
+    from envisat_pose.config import ConfigError
+    from envisat_pose.pipelines.adaptation.adapt import AdaptConfig
+
+    with pytest.raises(ConfigError, match=r"^seed = -1: expected a non-negative integer seed below 2\^63"):
+        AdaptConfig(seed=-1)
+    assert AdaptConfig(seed=2**63 - 1).seed == 2**63 - 1
 
 
 SWEEP_BESIDE_RATE = "[measurement]\nrate_hz = 2.0\n[sweep]\nrates_hz = [1.0, 0.5]\n"
