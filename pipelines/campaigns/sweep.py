@@ -33,6 +33,7 @@ from envisat_pose.pipelines.campaigns.campaign import (
     CONFIG_NAME,
     MonteCarloConfig,
     campaign_at_one_rate,
+    campaign_job,
     check_filter_rate,
     truth_scenario,
 )
@@ -119,8 +120,10 @@ SWEEP_ENTRIES = ("sweep.json", CONFIG_NAME, SWEEP_FIGURE)
 
 def check_sweep_folder(out_dir: str, cfg: MonteCarloConfig, sweep: SweepConfig) -> None:
     """InputError in one line unless out_dir is new, empty, or this sweep's: a campaign's folder (its manifest),
-    files a sweep does not write, a rate folder of a rate not swept, or a sweep.json of another scenario, runs,
-    seed, duration or rates (each rate's campaign refuses another config of its own)."""
+    files a sweep does not write, a rate folder of a rate not swept, a sweep.json of another scenario, runs,
+    seed, duration or rates, or a rate's folder its campaign refuses (another config's campaign, files of another
+    job, a stray block), all before any rate runs (once a later rate's folder was refused after the earlier rates'
+    campaigns ran)."""
     if not os.path.isdir(out_dir):
         return
     if os.path.exists(manifest_path(out_dir)):
@@ -131,20 +134,31 @@ def check_sweep_folder(out_dir: str, cfg: MonteCarloConfig, sweep: SweepConfig) 
     if foreign:
         raise InputError(f"out_dir {out_dir!r} holds {', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}: "
                          "not this rate sweep's (another sweep's rates, or another job's files); use another folder")
+    _check_written_sweep(out_dir, cfg, sweep)
+    for rate in sorted(sweep.rates_hz):  # each rate's folder as its campaign refuses it, before any rate runs
+        folder = os.path.join(out_dir, rate_folder(rate))
+        if os.path.isdir(folder):
+            campaign_job(at_rate(cfg, rate), folder).previous()
+
+
+def _check_written_sweep(out_dir: str, cfg: MonteCarloConfig, sweep: SweepConfig) -> None:
+    """InputError in one line when out_dir's sweep.json is of another scenario, runs, seed, duration or rates (an
+    unreadable one is rewritten at the end)."""
     path = os.path.join(out_dir, "sweep.json")
-    if os.path.isfile(path):
-        try:
-            with open(path, encoding="utf-8") as fh:
-                was = json.load(fh)
-        except (OSError, ValueError):
-            return  # rewritten at the end
-        now = {"scenario": cfg.scenario, "runs": cfg.runs, "seed": cfg.seed, "duration_s": cfg.duration_s,
-               "rates_hz": sorted(sweep.rates_hz)}
-        diff = [f"{k} = {was.get(k)!r} there, {v!r} here" for k, v in now.items()
-                if isinstance(was, dict) and was.get(k) != v]
-        if diff:
-            raise InputError(f"out_dir {out_dir!r} holds a rate sweep of another config ({'; '.join(diff[:3])}): "
-                             "rerun with the same settings or use another folder")
+    if not os.path.isfile(path):
+        return
+    try:
+        with open(path, encoding="utf-8") as fh:
+            was = json.load(fh)
+    except (OSError, ValueError):
+        return
+    now = {"scenario": cfg.scenario, "runs": cfg.runs, "seed": cfg.seed, "duration_s": cfg.duration_s,
+           "rates_hz": sorted(sweep.rates_hz)}
+    diff = [f"{k} = {was.get(k)!r} there, {v!r} here" for k, v in now.items()
+            if isinstance(was, dict) and was.get(k) != v]
+    if diff:
+        raise InputError(f"out_dir {out_dir!r} holds a rate sweep of another config ({'; '.join(diff[:3])}): "
+                         "rerun with the same settings or use another folder")
 
 
 @locks_output("out_dir", "montecarlo")

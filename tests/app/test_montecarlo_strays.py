@@ -73,3 +73,16 @@ def test_blocks_beside_no_manifest_are_another_campaigns_refused_not_removed(cam
     shutil.copy(campaigns[0] / "truth.npz", d / "truth.npz")
     shutil.copy(campaigns[1] / "blocks" / "block-0000.npz", d / "blocks" / "block-0000.npz")
     refused_line(d, capsys, os.path.join("blocks", "block-0000.npz"), "no manifest.json")
+
+
+def test_a_sweeps_later_rate_folder_of_other_files_is_refused_before_any_rate_runs(tmp_path, capsys):
+    """A rate's folder its campaign refuses (here files of another job, no manifest) was found only when that rate's
+    turn came, after the slower rates' campaigns had run; now one line before any of them."""
+    d = tmp_path / "sweep"
+    (d / "rate-1hz").mkdir(parents=True)
+    (d / "rate-1hz" / "notes.txt").write_text("a user's")
+    argv = BASE[:3] + ["--runs", "2", "--duration-s", "20", "--settle-s", "10", "--rates-hz", "1", "0.5", "--quiet"]
+    assert main(argv + ["--out", str(d)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and os.path.join("sweep", "rate-1hz") in err[0] and "notes.txt" in err[0], err
+    assert sorted(os.listdir(d)) == ["rate-1hz"]  # the 0.5 Hz campaign, run first, never started
