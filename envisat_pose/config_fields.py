@@ -353,8 +353,10 @@ def field_value(cls: type, name: str, value: Any) -> Any:
 
 def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
     """Build the dataclass `cls` from `data` over its defaults: the types checked here, then its constructor (a
-    Config validates itself; its ConfigError named under prefix, 'filter.p0_sigma'). A dataclass that is not a
-    Config (a test's own) is validated here with `validate(prefix)`, if it has one."""
+    Config validates itself; its ConfigError named under prefix, 'filter.p0_sigma'); a table the class lays over
+    a base of its own (`table_bases`) is left to the constructor, so a job's nested table (adapt's [track]) lies
+    over its scenario's as the job's own constructor and resolve_job lay it. A dataclass that is not a Config (a
+    test's own) is validated here with `validate(prefix)`, if it has one."""
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     data = _renamed_given(cls, data, f"{prefix}." if prefix else "")
@@ -366,9 +368,14 @@ def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
         if key not in names:
             raise ConfigError(where, data[key], "a known key: " + ", ".join(sorted(names)))
     kwargs = {}
+    bases = getattr(cls, "table_bases", {})
     for f in dataclasses.fields(cls):
         where = f"{prefix}.{f.name}" if prefix else f.name
-        if f.name in data:
+        if f.name in bases and isinstance(data.get(f.name), dict):
+            # a table the config lays over its base (a job's scenario's): handed to the constructor as given, which
+            # lays it there and builds it (_tables_over_bases), not built here over its class's defaults
+            kwargs[f.name] = data[f.name]
+        elif f.name in data:
             kwargs[f.name] = _convert(data[f.name], hints[f.name], where)
     try:
         obj = cls(**kwargs)

@@ -176,3 +176,25 @@ def test_fit_face_cue_checks_its_weights_and_limit_as_the_verb_does(kwargs, fiel
         fit_face_cue(**{**args, **kwargs})
     assert str(err.value).startswith(f"{field} ")
     assert not (tmp_path / "w.safetensors").exists()
+
+
+@pytest.mark.parametrize("scenario", ["default", "gravity-gradient"])
+def test_adapts_track_table_as_a_dict_lies_over_its_scenario_as_the_verbs_file_does(tmp_path, scenario):
+    """`envisat adapt --config FILE` lays the file's [filter] over the track job of its scenario (resolve_job);
+    AdaptConfig(track={...}) gave the same table to TrackConfig by from_dict, which built it over FilterConfig's
+    class defaults instead (adaptive_r off, gate_lockout_steps 10^6, ...), where TrackConfig(filter={...})
+    itself lays it over the scenario's. Now the three are one config."""
+    from envisat_pose.config import from_dict, to_dict
+    from envisat_pose.pipelines.adaptation.adapt import AdaptConfig
+    from envisat_pose.pipelines.jobs import resolve_job
+    from envisat_pose.pipelines.runs.track import TrackConfig
+
+    path = tmp_path / "track.toml"
+    path.write_text("[filter]\nq_sigma = [1e-7, 1e-7, 1e-8, 1e-9]\n\n[orbit]\ne = 0.002\n")
+    verb = to_dict(resolve_job("track", scenario, str(path)))  # what app/adapt.py builds from --config
+    table = {"scenario": scenario, "filter": {"q_sigma": [1e-7, 1e-7, 1e-8, 1e-9]}, "orbit": {"e": 0.002}}
+    assert to_dict(AdaptConfig(track=table).track) == verb
+    assert to_dict(TrackConfig(**table)) == verb
+    assert to_dict(from_dict(AdaptConfig, {"track": table}).track) == verb  # a file's [track] table, read
+    with pytest.raises(ConfigError, match=r"^track\.filter\.q_sigma"):  # a bad key still named where it sits
+        AdaptConfig(track={"filter": {"q_sigma": "fast"}})
