@@ -81,5 +81,7 @@ def adapt_cli(args: argparse.Namespace) -> int:
                 if report.get("earlier_weights_kept") else "")
         print(f"envisat adapt: kept the original weights: {report['reason']}{kept}", file=sys.stderr)
         return 1
+    if report.get("removed_calibration"):  # a fine-tuned network: what it no longer carries, and how to measure it
+        print(report["removed_calibration"])
     print(f"wrote {args.out}: detector.safetensors, detector.json, report.json, before/, after/")
     return 0

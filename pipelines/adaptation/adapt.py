@@ -43,8 +43,10 @@ This module runs the job (the rounds, the held-out verdict) and writes its files
 Outputs (staged inside out_dir and moved into place at the end, io.staged_folder; an error leaves out_dir as it
 was):
     detector.safetensors   the adapted weights, only when adopted (their cov_scale and apparent scale recalibrated;
-                           their metadata `adaptation`: the frames and base weights they were adapted on); a
-                           rejected run leaves an earlier adopted pair (with detector.json) in out_dir as it was
+                           a fine-tuned network's metadata without the base's calibration adapt does not measure
+                           again: recalibration_step; their metadata `adaptation`: the frames and base weights they
+                           were adapted on); a rejected run leaves an earlier adopted pair (with detector.json) in
+                           out_dir as it was
     detector.json          the model card: the source frames by content hash, the command, the figures
     report.json            the same figures and, when not adopted, the reason (earlier_weights_kept: an earlier
                            run's detector.safetensors stays in out_dir)
@@ -63,10 +65,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envisat_pose.config import Config, InputError, as_path_or_object, check, config_arg, path_arg, to_dict
-from envisat_pose.io import atomic_write_text, open_npz, stage_prefix, staged_folder
+from envisat_pose.io import atomic_write_text, stage_prefix, staged_folder
 from envisat_pose.out_dirs import check_out_dir, made_out_dir
 from envisat_pose.out_lock import locks_output
-from envisat_pose.perception.weights_keys import ADAPTATION_KEY, COV_CALIBRATION_KEY, COV_SCALE_KEY, ERROR_MODEL_KEY
+from envisat_pose.perception import weights_keys as wk
 from envisat_pose.pipelines.adaptation.fine_tune import ADAPT_PARAMS, fine_tune, save_adapted
 from envisat_pose.pipelines.adaptation.pseudo_labels import label_record
 from envisat_pose.pipelines.adaptation.recalibrate import recalibrate
@@ -75,6 +77,7 @@ from envisat_pose.pipelines.adaptation.run_records import (
     adaptation_record,
     content_sha256,
     name_run_weights,
+    removed_calibration,
 )
 from envisat_pose.pipelines.adaptation.scale_decision import decide_scale
 from envisat_pose.pipelines.adaptation.track_labels import (
@@ -87,11 +90,11 @@ from envisat_pose.pipelines.adaptation.track_labels import (
     smoother_model,
     track_run_labels,
 )
+from envisat_pose.pipelines.adaptation.verdict import track_figures, unchanged_track, worse_reason
 from envisat_pose.pipelines.common.job_defaults import job_record, weights_name
 from envisat_pose.pipelines.common.threads import compute_threads, default_torch_threads
 from envisat_pose.pipelines.runs.track import TrackConfig, prepare_frames, track_frames
 from envisat_pose.pipelines.tracking.camera_file import read_camera_response
-from envisat_pose.status import TRACKING
 from envisat_pose.target import require_envisat
 
 OUTPUTS = ("detector.safetensors", "detector.json", "report.json")
@@ -99,10 +102,6 @@ OUTPUTS = ("detector.safetensors", "detector.json", "report.json")
 # card are replaced only by adopted ones: a rejected rerun in the same folder loses no adopted result
 STALE_OUTPUTS = ("report.json",)
 RUN_DIRS = ("before", "after")
-# what "worse on the held-out part" means (worse_reason): margins below which a change is noise
-SHARE_MARGIN = 0.02          # tracked share may drop by at most 2 points
-STAY_MARGIN_FRAMES = 3       # the pose may start to stay tracked at most 3 frames later
-NIS_MARGIN = np.log(1.5)     # |ln(mean NIS / dof)| may grow by at most ln 1.5
 
 
 @dataclass(frozen=True)
@@ -177,70 +176,6 @@ class AdaptConfig(Config):
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Figures of a track run and the held-out verdict
-
-
-def track_figures(run_dir: str, held_from: int) -> dict:
-    """What a track run (est.npz) did on its held-out frames [held_from, T): tracked_share (of those frames),
-    mean_nis_per_dof (sum NIS / sum dof over them; None without a measurement), stays_tracked_from (the first
-    frame from which the status stays tracking to the end of the sequence; None when the last frame is not
-    tracking), and the same over the whole sequence (tracked_share_all, frames)."""
-    with open_npz(os.path.join(run_dir, "est.npz")) as est:
-        status, nis, dof = est["status"][0], est["nis"][0], est["nis_dof"][0]
-    T = len(status)
-    tracking = status == TRACKING
-    held = slice(held_from, T)
-    n_dof = float(np.sum(dof[held]))
-    not_tracking = np.flatnonzero(~tracking)
-    stays = None if not tracking[-1] else int(not_tracking[-1] + 1 if len(not_tracking) else 0)
-    return {"frames": T, "held_out_from": int(held_from), "tracked_share": float(np.mean(tracking[held])),
-            "mean_nis_per_dof": float(np.sum(nis[held]) / n_dof) if n_dof else None,
-            "stays_tracked_from": stays, "tracked_share_all": float(np.mean(tracking))}
-
-
-def worse_reason(before: dict, after: dict) -> str | None:
-    """One line saying how the adapted weights did worse on the held-out part than the original ones (beyond the
-    margins SHARE_MARGIN, STAY_MARGIN_FRAMES, NIS_MARGIN), or None."""
-    if after["tracked_share"] < before["tracked_share"] - SHARE_MARGIN:
-        return (f"the adapted weights tracked {after['tracked_share']:.0%} of the held-out frames, the original "
-                f"ones {before['tracked_share']:.0%}")
-    b, a = before["stays_tracked_from"], after["stays_tracked_from"]
-    if b is not None and (a is None or a > b + STAY_MARGIN_FRAMES):
-        return (f"with the adapted weights the pose stays tracked from frame {a}, with the original ones from "
-                f"frame {b}" if a is not None else
-                f"with the adapted weights the track does not hold to the end (the original ones: from frame {b})")
-    nb, na = before["mean_nis_per_dof"], after["mean_nis_per_dof"]
-    if nb is not None and (na is None or abs(np.log(na)) > abs(np.log(nb)) + NIS_MARGIN):
-        return (f"the held-out mean NIS per degree of freedom is {na:.2f} with the adapted weights, {nb:.2f} with "
-                "the original ones" if na is not None else
-                "the adapted weights gave the filter no measurement on the held-out frames")
-    return None
-
-
-def unchanged_track(before_dir: str, after_dir: str) -> str | None:
-    """One line saying that the adapted weights tracked every frame as the original ones did (the same statuses,
-    estimates and covariances within a millionth of their sigmas: floating-point rounding), or None. It happens
-    where nothing they change reaches the tracker: the network not fine-tuned (params 'none'), its apparent scale kept, and a recalibrated covariance
-    scale that the weights' sequence error model overrides (tracking/noise.sequence_cov_factor)."""
-    runs = []
-    for d in (before_dir, after_dir):
-        with open_npz(os.path.join(d, "est.npz")) as est:
-            runs.append((est["status"], est["x_hat"], est["P"]))
-    (s0, x0, p0), (s1, x1, p1) = runs
-    if s0.shape != s1.shape or not np.array_equal(s0, s1) or x0.shape != x1.shape:
-        return None
-    sigma = np.sqrt(np.abs(np.diagonal(p0, axis1=-2, axis2=-1)))
-    with np.errstate(invalid="ignore"):
-        same_x = np.all((np.abs(x1 - x0) <= 1e-6 * sigma) | (np.isnan(x0) & np.isnan(x1)))
-        same_p = np.all((np.abs(p1 - p0) <= 1e-6 * sigma[..., :, None] * sigma[..., None, :])
-                        | (np.isnan(p0) & np.isnan(p1)))
-    if same_x and same_p:
-        return ("the adapted weights track every frame as the original ones do (nothing they change reaches the "
-                "tracker here): nothing to adopt")
-    return None
-
-
-# ---------------------------------------------------------------------------------------------------------
 # The job: its rounds
 
 
@@ -298,10 +233,11 @@ def recalibration_step(run: AdaptRun, weights: str, candidate: str, model, image
                        lab: dict) -> dict:
     """Step 5: the candidate's covariance scale and apparent scale on the labels (recalibrate, decide_scale),
     written into its file (save_adapted) with the record of what it was adapted on (run_records.adaptation_record).
-    weights: the network that made the labels' track (the base weights in
-    the first round, the last round's after it), whose metadata the candidate keeps where this round measures
-    nothing new (a scale kept is that network's). Returns
-    {calibration, apparent_scale, apparent_scale_adopted}."""
+    weights: the network that made the labels' track (the base weights in the first round, the last round's
+    after it), whose metadata the unchanged network (params 'none') keeps where this round measures nothing new (a
+    scale kept is that network's); a fine-tuned one keeps none of the calibration measured on the network before it
+    (wk.COV_CALIBRATION_KEYS) but what this round measures again. Returns {calibration, apparent_scale,
+    apparent_scale_adopted, removed_calibration (run_records.removed_calibration: one line, or None)}."""
     cfg, edges = run.cfg, lab["edges"]
     sub = calibration_frames(len(images), cfg.max_calibration_frames)
     bar = _bar(run.progress, len(sub), "recalibrate", "frame")
@@ -310,17 +246,19 @@ def recalibration_step(run: AdaptRun, weights: str, candidate: str, model, image
     finally:
         _close(bar)
     sha = content_sha256(run.source)
-    extra = {ADAPTATION_KEY: adaptation_record(cfg, run.tcfg, run.source, sha, run.cut)}  # what it was adapted on
+    extra = {wk.ADAPTATION_KEY: adaptation_record(cfg, run.tcfg, run.source, sha, run.cut)}  # what it adapted on
     if cal["scale"] is not None:
-        extra |= {COV_SCALE_KEY: cal["scale"], COV_CALIBRATION_KEY: json.dumps(
+        extra |= {wk.COV_SCALE_KEY: cal["scale"], wk.COV_CALIBRATION_KEY: json.dumps(
             {"scale": cal["scale"], "corners": cal["corners"], "data": f"pseudo-labels of {sha}", "roi": "labels",
              "by": "envisat adapt"}, sort_keys=True)}
-    scale = decide_scale(cfg.params, run.tcfg, weights, edges, cal)
+    scale = decide_scale(cfg.params, run.tcfg, weights, edges, cal, source=f"envisat adapt: pseudo-labels of {sha}")
     if scale is not None and "error_model" in scale:
-        extra[ERROR_MODEL_KEY] = scale.pop("error_model")
-    save_adapted(model, weights, candidate, extra)
+        extra[wk.ERROR_MODEL_KEY] = scale.pop("error_model")
+    drop = () if cfg.params == "none" else wk.COV_CALIBRATION_KEYS
+    removed = removed_calibration(weights, extra, drop, os.path.join(os.path.dirname(run.stage), OUTPUTS[0]))
+    save_adapted(model, weights, candidate, extra, drop)
     return {"calibration": cal, "apparent_scale": scale,
-            "apparent_scale_adopted": scale is not None and "kept" not in scale}
+            "apparent_scale_adopted": scale is not None and "kept" not in scale, "removed_calibration": removed}
 
 
 def round_dir(run: AdaptRun, r: int) -> str:
@@ -414,8 +352,9 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
     file or None (the MJCF's chaser_cam: camera_file.default_camera), as track_frames; command: the command line, for the
     model card. Returns the report: {adopted, reason (None when adopted), earlier_weights_kept (not adopted and an
     earlier run's detector.safetensors in out_dir, left as it was with its detector.json), scale_note (one line when the edges'
-    scale was not adopted: disagreement; else None), before, after (track_figures), rounds
-    (per round: labels, fine-tune, calibration), source, timing_s}. InputError (one line) when the first part
+    scale was not adopted: disagreement; else None), removed_calibration (adopted fine-tuned weights: one line naming
+    the base's calibration they no longer carry and what measures it again; else None), before, after
+    (track_figures), rounds (per round: labels, fine-tune, calibration), source, timing_s}. InputError (one line) when the first part
     holds fewer than cfg.min_trusted labelled frames; nothing is written then (an --out this job made is removed
     again on any failure or interrupt)."""
 
@@ -434,15 +373,12 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
 def _finish(cfg, tcfg, source, stage, command, before, after, rounds, timing, t0, reason) -> dict:
     """Write report.json and the model card detector.json into the stage; the report."""
 
+    import shutil
+
     for f in os.listdir(stage):
         if f.startswith("round-"):
             p = os.path.join(stage, f)
-            if os.path.isdir(p):
-                import shutil
-
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                os.remove(p)
+            shutil.rmtree(p, ignore_errors=True) if os.path.isdir(p) else os.remove(p)
     timing["total"] = time.perf_counter() - t0
     adopted = reason is None
     earlier = os.path.join(os.path.dirname(stage), "detector.safetensors")  # an earlier run's, left where it is
@@ -459,6 +395,8 @@ def _finish(cfg, tcfg, source, stage, command, before, after, rounds, timing, t0
         "before": before,
         "after": after,
         "scale_note": (rounds[-1].get("apparent_scale") or {}).get("kept") if rounds else None,
+        # what of the base weights' calibration the written weights no longer carry (the first round's removal)
+        "removed_calibration": rounds[0].get("removed_calibration") if adopted else None,
         "rounds": rounds,
         "timing_s": timing,
     }

@@ -91,11 +91,12 @@ def fine_tune(weights: str, images: list[np.ndarray], labels: list[dict], cfg, s
                                 "loss_last": float(np.mean(losses.losses[-tenth:]))}
 
 
-def save_adapted(model, base: str, path: str, extra: dict) -> bool:
-    """Write the model's tensors with the base weights' metadata (error model, face cue, ...) and `extra` on top.
-    False (nothing written) when a tensor is not finite (a diverged fine-tune)."""
+def save_adapted(model, base: str, path: str, extra: dict, drop: tuple[str, ...] = ()) -> bool:
+    """Write the model's tensors with the base weights' metadata (error model, face cue, ...) less the keys in
+    drop (perception/weights_keys.py's *_KEYS: what the base's fits measured on the network before the fine-tune)
+    and `extra` on top. False (nothing written) when a tensor is not finite (a diverged fine-tune)."""
     if not all(torch.isfinite(v).all() for v in model.state_dict().values() if v.is_floating_point()):
         return False
-    meta = {k: v for k, v in read_metadata(base).items() if k not in (FORMAT_KEY, MODEL_CONFIG_KEY)}
+    meta = {k: v for k, v in read_metadata(base).items() if k not in (FORMAT_KEY, MODEL_CONFIG_KEY, *drop)}
     save_weights(path, model, {**meta, **extra})
     return True

@@ -13,6 +13,8 @@ import os
 import numpy as np
 
 from envisat_pose.io import atomic_write_text, open_npz, save_npz, sha256_file
+from envisat_pose.perception.errormodel import ErrorModel
+from envisat_pose.perception.weights_keys import COV_SCALE_KEY, ERROR_MODEL_KEY, ERROR_MODEL_KEYS
 from envisat_pose.pipelines.common.job_defaults import weights_name
 
 NOT_KEPT = "adapted weights, not kept (report.json says why)"
@@ -74,3 +76,35 @@ def content_sha256(source) -> str:
                 h.update(chunk)
         hashes.append(h.hexdigest())
     return hashlib.sha256("\n".join(sorted(hashes)).encode()).hexdigest()
+
+
+def removed_calibration(base: str, extra: dict, drop: tuple[str, ...], out_weights: str) -> str | None:
+    """The line saying what of the base weights' calibration (the file base) the adapted weights no longer carry
+    (the keys in drop, measured on the network before the fine-tune, that `extra` does not measure again; its
+    error model even where extra holds a new one, which keeps only adapt's scales) and what measures it again on
+    out_weights; None when nothing was removed."""
+    from envisat_pose.perception.weights import read_metadata
+
+    if not drop:
+        return None
+    meta = read_metadata(base)
+    removed = {k: meta[k] for k in drop if k in meta and (k not in extra or k in ERROR_MODEL_KEYS)}
+    parts = []
+    if ERROR_MODEL_KEY in removed:
+        try:
+            model = ErrorModel.from_json(removed[ERROR_MODEL_KEY])
+            what = f"{model.source or 'data it did not record'} ({model.n_frames} frames)"
+        except (ValueError, TypeError):
+            what = "data it did not record (unreadable)"
+        parts.append(f"error model from the earlier calibration removed: measured on sequences of {what} for the "
+                     "network before the fine-tune (its frame-to-frame correlation and radial bias; adapt measures "
+                     "the covariance and apparent scales only, so the tracker takes the errors as white)")
+    if COV_SCALE_KEY in removed:
+        parts.append("covariance scale from the earlier calibration removed: too few corners in the labelled "
+                     "frames to measure it again (the network's own covariances stand)")
+    if not parts:
+        return None
+    keep = "" if COV_SCALE_KEY in removed else " --keep-scale"
+    return "; ".join(parts) + (f"; to measure them again on the adapted weights: envisat calibrate --weights "
+                               f"{out_weights} --data SEQUENCE_DIR... --roi labels{keep} --out {out_weights} "
+                               "(labelled sequences: envisat generate --mode sequence)")

@@ -15,6 +15,7 @@ import dataclasses
 
 import numpy as np
 
+from envisat_pose.perception.errormodel import ErrorModel
 from envisat_pose.pipelines.runs.track import TrackConfig
 
 # How far a rendered outline's edge may sit from the true one, px: on MuJoCo Filament frames at the true pose the
@@ -93,12 +94,15 @@ def no_evidence(scale: dict, applied: float) -> str | None:
             f"within {MOVE_Z:g} sd of the one the track undid ({applied:.5f})")
 
 
-def decide_scale(params: str, tcfg: TrackConfig, weights: str, edges: dict, cal: dict) -> dict | None:
+def decide_scale(params: str, tcfg: TrackConfig, weights: str, edges: dict, cal: dict,
+                 source: str = "") -> dict | None:
     """The apparent scale the candidate's error model takes (adapted_scale, params: AdaptConfig.params) with that
-    error model as JSON under 'error_model' (that of `weights`, the network whose track made the labels: the base
-    weights in the first round, the last round's after it; its bias_scale and bias_scale_sd replaced); with 'kept' (one line: disagreement, no_evidence) instead where the evidence does not hold; or
-    None when no label's range was corrected by the edges (edges: track_labels.edge_corrected's record) or no
-    scale was measured. weights: the network that made the labels' track; cal: recalibrate's figures."""
+    error model as JSON under 'error_model' (candidate_error_model); with 'kept' (one line: disagreement,
+    no_evidence) instead where the evidence does not hold (a fine-tuned network's error model is still written
+    then, holding the scale kept); or None when no label's range was corrected by the edges (edges:
+    track_labels.edge_corrected's record) or no scale was measured. weights: the network that made the labels'
+    track (the base weights in the first round, the last round's after it); cal: recalibrate's figures; source:
+    what the labels are, for a new error model's record."""
     from envisat_pose.perception.detect import weights_error_model
 
     if not any(f != 1.0 for f in edges["range_factor"]):
@@ -110,7 +114,23 @@ def decide_scale(params: str, tcfg: TrackConfig, weights: str, edges: dict, cal:
         return None
     reason = disagreement(scale, cal) or no_evidence(scale, applied)
     if reason is not None:
-        return {**scale, "kept": reason}
-    em = dataclasses.replace(tracked, bias_scale=scale["value"],
-                             bias_scale_sd=max(tracked.bias_scale_sd, scale["sd"]))
-    return {**scale, "error_model": em.to_json()}
+        if params == "none":  # the weights' own error model stays as it is
+            return {**scale, "kept": reason}
+        kept = {"value": tracked.bias_scale, "sd": max(tracked.bias_scale_sd, scale["sd"])}
+        return {**scale, "kept": reason, "error_model": candidate_error_model(params, tracked, kept, cal, source)}
+    return {**scale, "error_model": candidate_error_model(params, tracked, scale, cal, source)}
+
+
+def candidate_error_model(params: str, tracked: ErrorModel, scale: dict, cal: dict, source: str) -> str:
+    """The candidate's error model (JSON) with the apparent scale `scale` ({value, sd}). The unchanged
+    network (params 'none'): the one its track used (tracked: measured on sequences for these very tensors), its
+    bias_scale and bias_scale_sd replaced (the sd at least the sequences' spread). A fine-tuned network: a new one
+    holding only what adapt measured on it, the covariance scale (recalibrate's, so that the tracker's R takes
+    the weights' own: noise.sequence_cov_factor 1) and the apparent scale with its sd on the frames it was
+    measured on; the rest at the defaults (white errors, no radial bias): the base's were measured on the network
+    before the fine-tune (the adapted weights' metadata drops them, run_records.removed_calibration_line)."""
+    if params == "none":
+        return dataclasses.replace(tracked, bias_scale=scale["value"],
+                                   bias_scale_sd=max(tracked.bias_scale_sd, scale["sd"])).to_json()
+    return ErrorModel(cov_scale=cal.get("scale") or 1.0, bias_scale=scale["value"], bias_scale_sd=scale["sd"],
+                      n_frames=int(cal.get("apparent_scale_frames") or 1), source=source).to_json()

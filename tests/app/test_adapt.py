@@ -3,8 +3,10 @@ wrecks the detector is caught on the held-out part and the
 original weights kept; adapt then track --weights RUN_DIR/detector.safetensors end to end. The frames are MuJoCo
 renders of the default scenario (envisat generate --mode sequence), small."""
 
+import dataclasses
 import json
 import os
+import types
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 
@@ -179,14 +181,18 @@ def test_a_damaging_fine_tune_keeps_the_original_weights(long_seq, tmp_path, cap
 
 
 @pytest.mark.slow
-def test_adapt_then_track_with_the_adapted_weights(long_seq, tmp_path, detector_weights):
-    """A gentle fine-tune (a few steps at a small rate) is adopted; its weights carry a recalibrated scale and
-    the base's other metadata, and `envisat track --weights` runs on them."""
+def test_adapt_then_track_with_the_adapted_weights(long_seq, tmp_path, detector_weights, capsys):
+    """A gentle fine-tune (a few steps at a small rate) is adopted; its weights carry a recalibrated scale, none of
+    the base's calibration measured on the network before the fine-tune (the error model's correlation and its
+    record: the verb's output says so and what measures it again), the base's other metadata, and `envisat track
+    --weights` runs on them."""
     from envisat_pose.perception.weights import read_metadata
 
     out = tmp_path / "run"
     assert main(["adapt", "--images", long_seq, "--out", str(out), "--quiet", "--weights", detector_weights,
                  "--fine-tune", "norm_heads", "--lr", "1e-6", "--steps", "4"]) == 0
+    said = capsys.readouterr().out
+    assert "error model from the earlier calibration removed" in said and "envisat calibrate --weights" in said
     card = json.loads((out / "detector.json").read_text())
     assert len(card["source"]["content_sha256"]) == 64 and card["command"][:2] == ["envisat", "adapt"]
     assert card["after"]["tracked_share"] >= card["before"]["tracked_share"] - 0.02
@@ -196,16 +202,14 @@ def test_adapt_then_track_with_the_adapted_weights(long_seq, tmp_path, detector_
         assert abs(edges["sequence"]["delta"]) < 0.003 and edges["sequence"]["delta_se"] > 0
     meta, base = read_metadata(str(out / "detector.safetensors")), read_metadata(detector_weights)
     assert float(meta["cov_scale"]) > 0 and "envisat adapt" in meta["cov_calibration"]
+    assert "error_model_record" not in meta and meta["refine_cov_floor_px2"] == base["refine_cov_floor_px2"]
     last = card["rounds"][-1]
-    if last["apparent_scale_adopted"]:  # labels the edges corrected: these frames' apparent scale, the rest as based
-        em, em0 = json.loads(meta["error_model"]), json.loads(base["error_model"])
-        assert last["apparent_scale"]["method"] == "corners"  # a fine-tuned network: its own corners' scale
-        assert em.pop("bias_scale") == last["apparent_scale"]["value"] == last["calibration"]["apparent_scale"]
-        assert em.pop("bias_scale_sd") == max(em0.pop("bias_scale_sd"), last["apparent_scale"]["sd"])
-        em0.pop("bias_scale")
-        assert em == em0
-    else:
-        assert meta.get("error_model") == base.get("error_model")
+    if "error_model" in meta:  # only what adapt measured: its scales, the errors white
+        em = json.loads(meta["error_model"])
+        assert em["inflation"] == 1.0 and em["ar1_share"] == 0.0 and em["cov_scale"] == float(meta["cov_scale"])
+        if last["apparent_scale_adopted"]:
+            assert last["apparent_scale"]["method"] == "corners"  # a fine-tuned network: its own corners' scale
+            assert em["bias_scale"] == last["apparent_scale"]["value"] == last["calibration"]["apparent_scale"]
     track = tmp_path / "track"
     assert main(["track", "--images", long_seq, "--out", str(track), "--quiet", "--weights",
                  str(out / "detector.safetensors")]) == 0
@@ -288,6 +292,70 @@ def test_a_scale_is_decided_when_any_labels_range_was_corrected(detector_weights
     assert decide_scale("none", tcfg, detector_weights, {**edges, "range_factor": [1.0] * 4}, cal) is None
 
 
+def _recalibrated(monkeypatch, tmp_path, weights, params):
+    """recalibration_step on `weights` with recalibrate faked (a covariance scale 1.7, the corners' apparent scale
+    0.997 on 30 frames, labels the edges corrected): (the candidate's metadata, the step's record)."""
+    import envisat_pose.pipelines.adaptation.adapt as adapt_module
+    from envisat_pose.perception.weights import load_model, read_metadata
+
+    cal = {"scale": 1.7, "corners": 200, "mean_nees_before": 2.0, "apparent_scale": 0.997,
+           "apparent_scale_se": 1e-4, "apparent_scale_frames": 30}
+    monkeypatch.setattr(adapt_module, "recalibrate", lambda *a, **k: dict(cal))
+    frame = tmp_path / "frame.png"
+    frame.write_bytes(b"frame")
+    source = types.SimpleNamespace(t_s=np.arange(40.0), path="frames", kind="images", size_px=(8, 8),
+                                   files=[str(frame)], bit_depth=8)
+    cfg = AdaptConfig(params=params)
+    run = adapt_module.AdaptRun(cfg, dataclasses.replace(cfg.track, weights=weights), source, None, None,
+                                str(tmp_path / "stage"), False, 30, (), {})
+    edges = {"range_factor": [1.0, 1.004], "sequence": {"delta": 0.004, "delta_se": 1e-5},
+             "outline_radius_px": 80.0, "look": {}}
+    lab = {"edges": edges, "labels": [{}, {}]}
+    candidate = str(tmp_path / "round-0.safetensors")
+    info = adapt_module.recalibration_step(run, weights, candidate, load_model(weights), [None, None], lab)
+    return read_metadata(candidate), info
+
+
+def test_fine_tuned_weights_carry_no_calibration_measured_on_the_network_before(monkeypatch, tmp_path,
+                                                                                detector_weights):
+    """A fine-tuned network (params 'norm_heads') from weights calibrated on sequences: its file keeps what adapt
+    measured again (cov_scale, cov_calibration, the apparent scale) and drops what described the network before
+    the fine-tune (the error model's frame-to-frame correlation, its sequence covariance scale and radial bias,
+    the record of that measurement); once they rode along, and the base's sequence cov_scale overrode the new one
+    in the tracker (noise.sequence_cov_factor). The step's line names what was removed and the command that
+    measures it again. The refinement's floor (the line fits') stays."""
+    from envisat_pose.perception.errormodel import ErrorModel
+    from envisat_pose.perception.weights import read_metadata
+    from envisat_pose.pipelines.tracking.noise import sequence_cov_factor
+
+    base = read_metadata(detector_weights)
+    assert json.loads(base["error_model"])["inflation"] > 1.0 and "error_model_record" in base  # what is at stake
+    meta, info = _recalibrated(monkeypatch, tmp_path, detector_weights, "norm_heads")
+    assert float(meta["cov_scale"]) == 1.7 and "envisat adapt" in meta["cov_calibration"]
+    assert "error_model_record" not in meta
+    em = json.loads(meta["error_model"])
+    assert em["bias_scale"] == 0.997 and em["inflation"] == 1.0 and em["ar1_share"] == 0.0
+    assert em["angle_share"] == 0.0 and em["bias_radial_px"] == 0.0 and "envisat adapt" in em["source"]
+    det = types.SimpleNamespace(cfg=types.SimpleNamespace(cov_scale=1.7))
+    assert sequence_cov_factor(ErrorModel.from_json(meta["error_model"]), det) == 1.0  # the new scale reaches R
+    assert meta["refine_cov_floor_px2"] == base["refine_cov_floor_px2"]
+    line = info["removed_calibration"]
+    assert line.startswith("error model from the earlier calibration removed: measured on sequences of roi=labels")
+    assert "envisat calibrate --weights" in line and "--keep-scale" in line and "detector.safetensors" in line
+
+
+def test_the_unchanged_network_keeps_its_sequence_error_model(monkeypatch, tmp_path, detector_weights):
+    """params 'none': the same tensors, so the error model measured on sequences for them stays (its apparent
+    scale replaced by the one measured here) with its record, and nothing is said removed."""
+    from envisat_pose.perception.weights import read_metadata
+
+    base = read_metadata(detector_weights)
+    meta, info = _recalibrated(monkeypatch, tmp_path, detector_weights, "none")
+    em, em0 = json.loads(meta["error_model"]), json.loads(base["error_model"])
+    assert em["inflation"] == em0["inflation"] and em["bias_scale"] != em0["bias_scale"]
+    assert meta["error_model_record"] == base["error_model_record"] and info["removed_calibration"] is None
+
+
 def test_the_smoother_takes_the_filter_model_the_tracker_builds(detector_weights):
     """smoother_model (no detector, no Tracker) gives the q_sigma and dynamics a Tracker builds for the same job,
     in a scenario with its own filter tuning and gravity gradient too."""
@@ -368,7 +436,7 @@ def test_a_later_round_keeps_the_last_rounds_metadata_where_it_measures_nothing_
 
     bases = []
 
-    def save_adapted(model, base, path, extra):  # a weights file where the candidate goes, and its base noted
+    def save_adapted(model, base, path, extra, drop=()):  # a weights file where the candidate goes, its base noted
         bases.append(base)
         shutil.copy(detector_weights, path)
         return True
