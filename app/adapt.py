@@ -45,6 +45,20 @@ FLAGS = {"source": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestam
          "params": "--fine-tune"}
 
 
+def refuse_other_targets_weights(weights: str | None) -> None:
+    """InputError (one line) for another target's keypoint detector: the track's own refusal pointed to a target
+    file, which adapt takes none of."""
+    import os
+
+    from envisat_pose.perception.weights import read_header, trained_for
+
+    theirs = trained_for(weights, read_header(weights)) if weights and os.path.isfile(weights) else None
+    if theirs is not None:
+        raise InputError(f"--weights {weights!r}: the keypoint detector of target {theirs.get('name')!r}; `envisat "
+                         "adapt` fine-tunes and recalibrates ENVISAT's corner detector only (another target's is "
+                         "trained and calibrated with `envisat train --target` and `envisat calibrate --target`)")
+
+
 def adapt_cli(args: argparse.Namespace) -> int:
     import os
     import sys
@@ -56,6 +70,7 @@ def adapt_cli(args: argparse.Namespace) -> int:
         raise InputError("--steps and --lr set the fine-tune, which is off by default: add --fine-tune norm_heads "
                          "(or all)")
     check_out_dir(args.out)
+    refuse_other_targets_weights(args.weights)
     source = open_source(args.images, args.rate_hz or 0.0, args.timestamps, args.bit_depth)
     track = resolve_job("track", args.scenario or source.scenario or "default", args.config,
                         rate_hz=args.rate_hz, weights=args.weights)

@@ -570,3 +570,17 @@ def test_the_response_term_is_the_largest_swing_over_the_open_responses(monkeypa
     assert labels_module.response_record({**resp, "alternatives": [LINEAR]}, None, [], None, edges, 5)["delta_sd"] \
         == float("inf")
     assert labels_module.response_record({**resp, "alternatives": []}, None, [], None, edges, 5)["delta_sd"] == 0.0
+
+
+def test_another_targets_weights_are_refused_naming_what_adapt_takes(tmp_path, capsys):
+    """--weights of another target's keypoint detector: one line saying adapt takes ENVISAT's corner detector only;
+    it said to give their target file, a flag adapt does not have."""
+    from envisat_pose.pipelines.common.job_defaults import default_weights_path
+
+    other = os.path.join(os.path.dirname(default_weights_path()), "upper_stage_detector.safetensors")
+    rc = main(["adapt", "--images", str(tmp_path / "frames"), "--rate-hz", "1", "--out", str(tmp_path / "run"),
+               "--weights", other])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    assert "--weights" in err and "'upper_stage'" in err and "ENVISAT's corner detector only" in err, err
+    assert "target file" not in err and not (tmp_path / "run").exists()
