@@ -49,6 +49,8 @@ def test_the_config_is_validated_when_built():
     with pytest.raises(Exception, match="steps = 5: expected the defaults of steps and lr with params 'none'"):
         AdaptConfig(steps=5, lr=0.01)  # the fine-tune's settings, the fine-tune off (the verb's flags refused)
     assert AdaptConfig(params="norm_heads", steps=5, lr=0.01).steps == 5
+    with pytest.raises(Exception, match="seed = -3: expected a non-negative integer seed"):  # once a traceback
+        AdaptConfig(seed=-3)  # from numpy's SeedSequence, after the whole first track
     with pytest.raises(Exception, match="device = 'tpu'"):  # once found only after the whole first track
         AdaptConfig(device="tpu")
     if not torch.cuda.is_available():
