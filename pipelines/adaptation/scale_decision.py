@@ -128,7 +128,7 @@ def candidate_error_model(params: str, tracked: ErrorModel, scale: dict, cal: di
     holding only what adapt measured on it, the covariance scale (recalibrate's, so that the tracker's R takes
     the weights' own: noise.sequence_cov_factor 1) and the apparent scale with its sd on the frames it was
     measured on; the rest at the defaults (white errors, no radial bias): the base's were measured on the network
-    before the fine-tune (the adapted weights' metadata drops them, run_records.removed_calibration_line)."""
+    before the fine-tune (the adapted weights' metadata drops them, run_records.removed_calibration)."""
     if params == "none":
         return dataclasses.replace(tracked, bias_scale=scale["value"],
                                    bias_scale_sd=max(tracked.bias_scale_sd, scale["sd"])).to_json()
