@@ -93,7 +93,8 @@ def removed_calibration(base: str, extra: dict, drop: tuple[str, ...], out_weigh
     if ERROR_MODEL_KEY in removed:
         try:
             model = ErrorModel.from_json(removed[ERROR_MODEL_KEY])
-            what = f"{model.source or 'data it did not record'} ({model.n_frames} frames)"
+            src = model.source or "data it did not record"  # a calibration's lists every dataset: its start
+            what = f"{src if len(src) <= 80 else src[:77] + '...'} ({model.n_frames} frames)"
         except (ValueError, TypeError):
             what = "data it did not record (unreadable)"
         parts.append(f"error model from the earlier calibration removed: measured on sequences of {what} for the "

@@ -344,6 +344,7 @@ def test_fine_tuned_weights_carry_no_calibration_measured_on_the_network_before(
     line = info["removed_calibration"]
     assert line.startswith("error model from the earlier calibration removed: measured on sequences of roi=labels")
     assert "envisat calibrate --weights" in line and "--keep-scale" in line and "detector.safetensors" in line
+    assert "(3600 frames)" in line and "close-25m-9006" not in line  # not the base's 24 sequences one by one
 
 
 def test_the_unchanged_network_keeps_its_sequence_error_model(monkeypatch, tmp_path, detector_weights):
