@@ -165,7 +165,6 @@ class AdaptConfig(Config):
         check(self.edge_min_frames >= 1, f"{p}edge_min_frames", self.edge_min_frames, "at least 1 frame")
         check(self.max_calibration_frames >= 1, f"{p}max_calibration_frames", self.max_calibration_frames,
               "at least 1 frame")
-        check(0 <= self.seed < 2**63, f"{p}seed", self.seed, "a non-negative integer seed (numpy's SeedSequence)")
         check(0 <= self.threads <= 256, f"{p}threads", self.threads, "0 to 256 threads (0: torch's default; 256, "
               "as track's and run's)")
         check(re.fullmatch(r"cpu|cuda(:\d+)?", self.device) is not None, f"{p}device", self.device, "cpu or cuda")
