@@ -21,7 +21,8 @@ import numpy as np
 
 from envisat_pose.geometry import model_path
 from envisat_pose.target import Target, default_target, load_target
-from envisat_pose.target_file import full_numbers, set_compiled_geom, set_compiled_site, target_spec
+from envisat_pose.target_file import target_spec
+from envisat_pose.target_fused import full_numbers, set_compiled_geom, set_compiled_site
 from envisat_pose.target_rays import compiled_alone
 
 ASSET_PREFIX = "target/"
@@ -69,7 +70,7 @@ def full_precision(text: str, target: Target) -> str:
     """The scene text with the target body's numbers as the file alone compiles them, to the last bit: MuJoCo's
     to_xml writes 6 significant digits (an inertia 1e-6 off turns a tumble 2e-5 rad away in 30 minutes; a site
     3 um off). The inertial becomes MuJoCo's principal moments and axes in T (added where the file states none),
-    each site its position and orientation, each geom its compiled numbers (target_file.set_compiled_geom: a
+    each site its position and orientation, each geom its compiled numbers (target_fused.set_compiled_geom: a
     primitive's pose and size, a fromto resolved; a mesh's pose less its own centring, which the scene applies
     again)."""
     root = ET.fromstring(text)

@@ -7,7 +7,7 @@ import os
 
 from envisat_pose.config import InputError
 from envisat_pose.target import DEFAULT_TARGET, resolve_target_path
-from envisat_pose.target_file import target_sha256
+from envisat_pose.target_assets import target_sha256
 
 
 def check_dataset_target_file(src: str, manifest: dict, target: str | None) -> None:

@@ -6,7 +6,7 @@ and materials, and its keypoints as the body's sites `kp_<name>` in file order (
 `corner_<name>` sites: models/envisat.xml's corners A-H). The body frame of the
 file is the frame T of the labels, the truth and the filter. The file is read by MuJoCo itself (MjSpec), so its own
 <compiler> (angle unit, eulerseq, meshdir, texturedir), defaults and assets give the shape MuJoCo gives it alone;
-child bodies are fused into it as MuJoCo fuses static bodies, joints latched (envisat_pose/target_file.py).
+child bodies are fused into it as MuJoCo fuses static bodies, joints latched (envisat_pose/target_fused.py).
 This module holds the Target and its entry points (load_target, cached per file); the file is read and checked in
 target_reader.py, and the fast visibility table is target_visibility.py's (both re-exported here).
 
@@ -29,7 +29,7 @@ import numpy as np
 from envisat_pose.config import ConfigError, InputError
 from envisat_pose.geometry import model_path, visible_corners
 from envisat_pose.shard_reader import load_dataset_manifest
-from envisat_pose.target_file import named_files
+from envisat_pose.target_assets import named_files
 from envisat_pose.target_mesh import BodyMesh, TriangleMesh, feature_edges
 from envisat_pose.target_rays import ray_hits_m
 from envisat_pose.target_reader import RENDERED_GROUPS, TargetGeom, read_target_fields
@@ -52,12 +52,12 @@ class Target:
     """A checked target file, read once.
 
     name: the file's model name (<mujoco model=...>) or its stem. path: absolute. sha256: of the file's bytes and
-    of the files it names (target_file.target_sha256).
+    of the files it names (target_assets.target_sha256).
     keypoint_names (K,), keypoint_sites (K,) their MJCF site names; keypoints_T_m (K, 3) in T, m. mass_kg;
     inertia_T_kg_m2 (3, 3) about the CoM in T. reach_m: the farthest point of its surface from the CoM. geoms:
     (G,) TargetGeom, file order. surface: the triangles of every geom in T (target_mesh.BodyMesh). own_scene: the
     file holds the factory's scene (target_file.SCENE_NAMES), so it is rendered as it is. latched_joints: the
-    file's joints in the target's tree, latched at their reference pose (target_file.py: the target is one rigid
+    file's joints in the target's tree, latched at their reference pose (target_fused.py: the target is one rigid
     body). Derived on first use: skeleton, symmetries.
     """
 
@@ -237,11 +237,11 @@ def load_target(given: str = DEFAULT_TARGET, field: str = "target", named: str |
     mass and inertia, its surface, sha256: class Target). given: a path; DEFAULT_TARGET is the package's ENVISAT;
     named: how its warnings name the file where it comes from elsewhere than `field`, a truth file's record).
     ConfigError naming `field`, the value and what was expected: no such file, a file MuJoCo cannot read or
-    compile, no body 'target' (its child bodies are read fused, its joints latched: target_file.py), a bad
+    compile, no body 'target' (its child bodies are read fused, its joints latched: target_fused.py), a bad
     inertia (zero mass, not positive definite, the triangle inequality; stated by an <inertial>, or else MuJoCo's
     from the geoms and child bodies), the CoM off the body's origin, fewer than 4 keypoint sites, no geom the
     factory draws (RENDERED_GROUPS), a keypoint farther than KEYPOINT_MAX_SURFACE_DISTANCE_M from the drawn
-    surface. Cached per file, size and modification time, its named files' too (target_file.named_files)."""
+    surface. Cached per file, size and modification time, its named files' too (target_assets.named_files)."""
     path = resolve_target_path(given)
     if not os.path.isfile(path) or not path.endswith(".xml"):  # MuJoCo picks its reader by the name's ending
         raise ConfigError(field, given, "an MJCF file (no such file)" if not os.path.isfile(path) else

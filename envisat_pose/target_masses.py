@@ -1,6 +1,6 @@
 """What to do about a target file whose centre of mass is off the body's origin: the refusal's words.
 
-A target written as a tree (envisat_pose/target_file.py) has its mass summed over the body `target` and its child
+A target written as a tree (envisat_pose/target_fused.py) has its mass summed over the body `target` and its child
 bodies. A child body without an <inertial> takes its mass from its geoms, and a geom without `mass` takes its volume
 times `density`, MuJoCo's 1000 kg/m^3 by default: a solar panel written as a child box weighs kilograms beside the
 craft's own <inertial>, and the centre of mass leaves the origin. The refusal names each body's share (com_hint)
@@ -11,14 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from envisat_pose.target_file import (
-    absolute_asset_files,
-    drop_lights,
-    inertial_used,
-    latch_joints,
-    subtree_bodies,
-    unpin,
-)
+from envisat_pose.target_assets import absolute_asset_files
+from envisat_pose.target_file import inertial_used
+from envisat_pose.target_fused import drop_lights, latch_joints, subtree_bodies, unpin
 
 
 def tree_masses(path: str) -> list[tuple[str, float, np.ndarray, bool]]:

@@ -17,6 +17,7 @@ import numpy as np
 
 from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.config import ConfigError
+from envisat_pose.target_assets import target_sha256
 from envisat_pose.target_file import (
     check_inertia,
     drawn_alpha,
@@ -24,7 +25,6 @@ from envisat_pose.target_file import (
     keypoint_sites,
     misprefixed_keypoints,
     read_spec,
-    target_sha256,
 )
 from envisat_pose.target_masses import com_hint
 from envisat_pose.target_mesh import body_mesh

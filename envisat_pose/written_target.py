@@ -11,7 +11,7 @@ from typing import Any, Callable
 
 from envisat_pose.config import InputError, load_toml
 from envisat_pose.target import resolve_target_path
-from envisat_pose.target_file import target_sha256
+from envisat_pose.target_assets import target_sha256
 
 # where each verb's config names its target file, and the key beside it that records the file's sha256 (a
 # campaign's `target` None names none: the scenario's own; train's: another target's keypoint run alone;
@@ -40,7 +40,7 @@ def _with(data: dict, dotted: str, value: Any = None, drop: bool = False) -> dic
 
 def with_target_sha256(data: dict, kind: str, sha256: str | None) -> dict:
     """data (a `kind` job's config, config.to_dict) as its written config holds it: the target file's sha256 as the
-    job read it (target_file.target_sha256: its bytes and those of the files it names) beside the file it names
+    job read it (target_assets.target_sha256: its bytes and those of the files it names) beside the file it names
     (TARGET_KEYS), which a rerun from that config checks (recorded_target_checked); data as it is where it names
     no file."""
     file_key, sha_key = TARGET_KEYS[kind]

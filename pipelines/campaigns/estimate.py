@@ -52,7 +52,7 @@ from envisat_pose.pipelines.common.job_defaults import fill_from_scenario, layer
 from envisat_pose.pipelines.tracking.onboard import onboard_physics
 from envisat_pose.provenance import source_line
 from envisat_pose.target import DEFAULT_TARGET, Target, is_default_file, load_target, resolve_target_path
-from envisat_pose.target_file import target_sha256
+from envisat_pose.target_assets import target_sha256
 
 MAX_OUTPUT_BYTES = 8 * 2**30  # P alone is R * T * 144 * 8 bytes
 

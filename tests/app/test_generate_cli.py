@@ -102,7 +102,7 @@ def test_the_written_config_records_the_target_files_sha256_and_a_rerun_refuses_
     import tomllib
 
     from envisat_pose.target import resolve_target_path
-    from envisat_pose.target_file import target_sha256
+    from envisat_pose.target_assets import target_sha256
 
     target = tmp_path / "stage.xml"
     shutil.copy(resolve_target_path("models/upper_stage.xml"), target)

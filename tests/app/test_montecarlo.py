@@ -381,7 +381,7 @@ def test_the_written_config_records_the_target_files_sha256_and_a_rerun_refuses_
     from envisat_pose.app.cli import build_parser
     from envisat_pose.app.montecarlo import resolve_config
     from envisat_pose.target import resolve_target_path
-    from envisat_pose.target_file import target_sha256
+    from envisat_pose.target_assets import target_sha256
 
     target = tmp_path / "cube.xml"  # the smallest shipped target: the quickest visibility table
     shutil.copy(resolve_target_path("models/cubesat_3u.xml"), target)

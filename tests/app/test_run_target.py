@@ -96,7 +96,7 @@ def test_the_written_config_records_the_target_files_sha256_and_a_rerun_refuses_
 
     from envisat_pose.app.cli import build_parser
     from envisat_pose.app.run import resolve_config
-    from envisat_pose.target_file import target_sha256
+    from envisat_pose.target_assets import target_sha256
 
     target, small = tmp_path / "stage.xml", tmp_path / "small.toml"
     shutil.copy(UPPER, target)  # the same file elsewhere: the weights' target

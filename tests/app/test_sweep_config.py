@@ -36,7 +36,7 @@ def sweep(tmp_path_factory):
 def test_the_written_config_reruns_the_same_sweep(sweep, tmp_path):
     from envisat_pose.pipelines.campaigns.report import load_campaign
     from envisat_pose.provenance import source_line
-    from envisat_pose.target_file import target_sha256
+    from envisat_pose.target_assets import target_sha256
 
     first, target = sweep
     text = (first / "montecarlo.config.toml").read_text()

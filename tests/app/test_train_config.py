@@ -78,7 +78,7 @@ def test_a_target_runs_config_records_the_files_sha256_and_a_rerun_refuses_the_f
 
     from envisat_pose.config import InputError
     from envisat_pose.target import resolve_target_path
-    from envisat_pose.target_file import target_sha256
+    from envisat_pose.target_assets import target_sha256
 
     target = tmp_path / "upper_stage.xml"
     shutil.copy(resolve_target_path("models/upper_stage.xml"), target)

@@ -20,7 +20,7 @@ from envisat_pose.datagen.render import SceneRenderer
 from envisat_pose.datagen.render_view import View
 from envisat_pose.datagen.target_scene import scene_xml
 from envisat_pose.target import load_target, require_weights_target, resolve_target_path
-from envisat_pose.target_file import target_sha256
+from envisat_pose.target_assets import target_sha256
 
 TREE = """<mujoco model="treesat">
   <compiler angle="degree"/>

@@ -12,7 +12,7 @@ import pytest
 from envisat_pose.config import ConfigError
 from envisat_pose.datagen.target_scene import scene_xml
 from envisat_pose.target import load_target
-from envisat_pose.target_file import named_files, target_sha256
+from envisat_pose.target_assets import named_files, target_sha256
 
 PYRAMID = np.array([[0.2, 0.2, 0.0], [-0.2, 0.2, 0.0], [-0.2, -0.2, 0.0], [0.2, -0.2, 0.0], [0.0, 0.0, 0.3]])
 PYRAMID_FACES = [(0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4), (0, 2, 1), (0, 3, 2)]

@@ -14,7 +14,7 @@ from envisat_pose.config import ConfigError, InputError
 from envisat_pose.datagen.target_scene import scene_xml
 from envisat_pose.geometry import model_path
 from envisat_pose.target import load_target
-from envisat_pose.target_file import named_files, target_sha256
+from envisat_pose.target_assets import named_files, target_sha256
 
 SITES = "".join(f'<site name="kp_{i}" pos="{x}"/>' for i, x in
                 enumerate(["0.3 0.3 0.3", "-0.3 0.3 0.3", "0.3 -0.3 -0.3", "-0.3 -0.3 0.3"]))
