@@ -272,17 +272,30 @@ def default_target() -> Target:
 # ---------------------------------------------------------------- the verbs that know the default target alone
 
 
-def envisat_only(verb: str) -> str:
-    other = ("; another target's keypoint detector: --target FILE.xml" if verb in ("train", "detect") else
-             "; another target's images and labels come from `envisat generate --target` (docs/usage.md)")
-    return f"ENVISAT ({DEFAULT_TARGET}): `envisat {verb}` and the detector know ENVISAT's corners A-H only" + other
+_OTHER_TARGET_WAY = {  # what a verb that met another target's file or dataset does with it instead
+    "train": "another target's keypoint detector trains on frames it renders, without --data: `envisat train "
+             "--target {file} --out RUN_DIR`",
+    "detect": "another target's dataset: give its file, `--target {file}`",
+    "evaluate": "another target's dataset: give its file, `--target {file}`",
+    "calibrate": "another target's dataset: give its file, `--target {file}`",
+    "adapt": "`envisat adapt` knows ENVISAT only: track another target with `envisat track --target {file} --weights "
+             "W`",
+}
+
+
+def envisat_only(verb: str, file: str = "FILE.xml") -> str:
+    """The reason a verb on ENVISAT's detector gives for refusing another target, and its way on (file: that
+    target's file where it is known)."""
+    way = _OTHER_TARGET_WAY.get(verb, "another target's images and labels come from `envisat generate --target`")
+    return (f"ENVISAT ({DEFAULT_TARGET}): `envisat {verb}` and the detector know ENVISAT's corners A-H only; "
+            + way.format(file=file))
 
 
 def require_envisat(given: str, field: str, verb: str) -> None:
     """ConfigError unless the `target` value `given` names ENVISAT: the detector and the verbs built on it (track,
     run, adapt, train, detect) know ENVISAT only."""
     if given != DEFAULT_TARGET and not load_target(given, field).is_default:
-        raise ConfigError(field, given, envisat_only(verb))
+        raise ConfigError(field, given, envisat_only(verb, given))
 
 
 def require_envisat_dataset(folder: str, field: str, verb: str) -> None:
@@ -296,7 +309,7 @@ def require_envisat_dataset(folder: str, field: str, verb: str) -> None:
     given = (manifest.get("config") or {}).get("target", DEFAULT_TARGET)
     if given != DEFAULT_TARGET and (record.get("name") != default_target().name or
                                     record.get("keypoint_names") != list(default_target().keypoint_names)):
-        raise ConfigError(field, folder, envisat_only(verb) + f"; this dataset's target is {given!r}")
+        raise ConfigError(field, folder, envisat_only(verb, given) + f"; this dataset's target is {given!r}")
 
 
 def require_weights_target(weights: str, trained_for: dict | None, given: str, field: str = "weights") -> None:

@@ -35,3 +35,31 @@ def test_target_weights_without_target_name_the_flag(weights, tmp_path, capsys, 
     assert len(err) == 1 and "not ENVISAT's" in err[0], err
     assert "(--target;" in err[0], err[0]
     assert not out.exists()
+
+
+def _other_target_dataset(folder) -> str:
+    """A dataset folder whose manifest records another target's file (no shards: the target is checked first)."""
+    import json
+
+    folder.mkdir()
+    (folder / "manifest.json").write_text(json.dumps({
+        "shards": [], "complete": True, "config": {"target": "my_sat.xml"},
+        "target": {"name": "my_sat", "keypoint_names": ["a", "b", "c", "d"]}}))
+    return str(folder)
+
+
+@pytest.mark.parametrize("argv, way", [
+    (["evaluate", "--json", "{out}/e.json"], "give its file, `--target my_sat.xml`"),
+    (["calibrate", "--out", "{out}/w.safetensors"], "give its file, `--target my_sat.xml`"),
+    (["detect", "--out", "{out}/det.npz"], "give its file, `--target my_sat.xml`"),
+    (["train", "--out", "{out}", "--steps", "1"], "without --data: `envisat train --target my_sat.xml --out"),
+])
+def test_another_targets_dataset_without_target_names_the_way_that_works(tmp_path, capsys, argv, way):
+    """evaluate and calibrate of a user's own target's dataset said its images 'come from `envisat generate
+    --target`' (they did); train said '--target FILE.xml', which with --data is refused: each names what works."""
+    data, out = _other_target_dataset(tmp_path / "data"), tmp_path / "out"
+    argv = [a.format(out=out) for a in argv]
+    assert main(argv[:1] + ["--data", data, *argv[1:], "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and way in err[0], err
+    assert "come from `envisat generate" not in err[0] and not out.exists()
