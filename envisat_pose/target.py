@@ -34,7 +34,7 @@ from envisat_pose.target_mesh import BodyMesh, TriangleMesh, feature_edges
 from envisat_pose.target_rays import ray_hits_m
 from envisat_pose.target_reader import RENDERED_GROUPS, TargetGeom, read_target_fields
 from envisat_pose.target_shape import Symmetry, mirror_perm, skeleton, symmetries
-from envisat_pose.target_visibility import VisibilityTable, build_visibility_table
+from envisat_pose.target_visibility import SEEN_CHECK_DIRECTIONS, VisibilityTable, build_visibility_table, never_seen
 
 __all__ = [
     "APPENDAGE_GROUP", "DEFAULT_TARGET", "RAY_ABS_TOL_M", "RENDERED_GROUPS", "Target", "TargetGeom", "VisibilityTable",
@@ -229,7 +229,14 @@ class _Naming:
 
 @functools.lru_cache(maxsize=16)
 def _load(path: str, stamps: tuple, naming: _Naming) -> Target:
-    return Target(**read_target_fields(path, naming.field, naming.given, naming.named))
+    target = Target(**read_target_fields(path, naming.field, naming.given, naming.named))
+    hidden = [] if target.is_default else never_seen(target)
+    if hidden:  # said once per file, as the latched joints (the load is cached)
+        warnings.warn(f"{naming.named}: keypoint site(s) {', '.join(map(repr, hidden))} hidden from each of "
+                      f"{SEEN_CHECK_DIRECTIONS} view directions (inside or behind an opaque geom): no view labels "
+                      "it visible, so the detector cannot learn it nor calibration measure it; put it on the "
+                      "drawn surface", stacklevel=3)  # load_target's caller
+    return target
 
 
 def load_target(given: str = DEFAULT_TARGET, field: str = "target", named: str | None = None) -> Target:

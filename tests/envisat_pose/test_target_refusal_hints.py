@@ -6,6 +6,8 @@ the origin. The refusal said 'move the geoms and sites by its negative', which, 
 stated <inertial> stays put). Keypoint sites misspelt (KP_A, kp-B) were refused with 'found 3' alone.
 """
 
+import warnings
+
 import pytest
 
 from envisat_pose.config import ConfigError
@@ -57,3 +59,36 @@ def test_too_few_keypoints_names_the_sites_whose_names_missed_the_prefix(tmp_pat
         load_target(_sat(tmp_path, "misspelt", mass=' mass="0"', a="KP_A", b="kp-B"))
     message = str(err.value)
     assert "(found 2; not keypoints: its site(s) 'KP_A', 'kp-B', whose names do not start with 'kp_'" in message
+
+
+BURIED = """<mujoco model="dish_sat">
+  <worldbody>
+    <body name="target">
+      <geom name="bus" type="box" size="0.5 0.5 0.5" mass="100"/>
+      <geom name="dish" type="cylinder" pos="0 0 1.5" size="0.7 0.02" mass="0"/>
+      <site name="kp_a" pos="0.5 0.5 0.5"/>
+      <site name="kp_b" pos="-0.5 0.5 0.5"/>
+      <site name="kp_c" pos="0.5 -0.5 -0.5"/>
+      <site name="kp_d" pos="-0.5 -0.5 -0.5"/>
+      <site name="kp_dish_centre" pos="0 0 1.5"/>
+      <site name="kp_dish_edge" pos="0.7 0 1.5"/>
+    </body>
+  </worldbody>
+</mujoco>"""
+
+
+def test_a_keypoint_no_view_sees_is_warned_of_by_name(tmp_path):
+    """A site at the centre of a 4 cm dish (within the 5 cm a keypoint may lie from the surface) is inside the
+    solid: no view labelled it visible, the detector never learnt it and calibrate never found it, without a
+    word. Its file loads with a warning naming it alone; a file whose keypoints are all seen loads without one."""
+    path = tmp_path / "dish_sat.xml"
+    path.write_text(BURIED)
+    with pytest.warns(UserWarning, match="hidden from each of") as caught:
+        load_target(str(path))
+    messages = [str(w.message) for w in caught if "hidden from each of" in str(w.message)]
+    assert len(messages) == 1 and "'kp_dish_centre'" in messages[0] and "kp_dish_edge" not in messages[0]
+    path.write_text(BURIED.replace('<site name="kp_dish_centre" pos="0 0 1.5"/>',
+                                   '<site name="kp_dish_centre" pos="0 0 1.52"/>'))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_target(str(path)).num_keypoints == 6
