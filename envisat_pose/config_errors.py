@@ -36,6 +36,12 @@ class DeprecatedKeyWarning(FutureWarning):
     (the verbs print it as a warning line)."""
 
 
+class TargetFileWarning(UserWarning):
+    """What loading a target file says once (joints latched, a keypoint no view sees): the job's own process says
+    it as it checks its config; the worker processes that load the file again leave it out (envisat_pose.pools,
+    the online trainer's renderers), so a job with N workers says it once, as its one warning line."""
+
+
 class InputError(ValueError):
     """A user error that is not about one config field (a missing or unreadable file, say)."""
 

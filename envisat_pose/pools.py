@@ -21,10 +21,12 @@ import signal
 import sys
 import threading
 import types
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Literal, Sequence
 
 from envisat_pose.config import Config, InputError, check
+from envisat_pose.config_errors import TargetFileWarning
 
 Backend = Literal["inline", "local", "dask"]
 
@@ -222,9 +224,11 @@ def thread_env(workers: int, variables: tuple[str, ...] = RASTERIZER_THREADS, un
 
 
 def _worker_init(env: dict[str, str]) -> None:
-    """Process-pool worker start: its environment, and death with the parent (no orphan writers)."""
+    """Process-pool worker start: its environment, the job's warnings of its target file left to the job (it
+    said them once; config_errors.TargetFileWarning), and death with the parent (no orphan writers)."""
     for key, value in env.items():
         os.environ.setdefault(key, value)
+    warnings.simplefilter("ignore", TargetFileWarning)
     try:
         import ctypes
         import signal
@@ -237,6 +241,7 @@ def _worker_init(env: dict[str, str]) -> None:
 def _dask_task(fn: Callable, env: dict[str, str], args: tuple) -> Any:
     for key, value in env.items():
         os.environ.setdefault(key, value)
+    warnings.simplefilter("ignore", TargetFileWarning)  # the job said them (_worker_init)
     return fn(*args)
 
 

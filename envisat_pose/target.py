@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from envisat_pose.config import ConfigError, InputError
+from envisat_pose.config_errors import TargetFileWarning
 from envisat_pose.geometry import model_path, visible_corners
 from envisat_pose.shard_reader import load_dataset_manifest
 from envisat_pose.target_assets import named_files
@@ -235,7 +236,7 @@ def _load(path: str, stamps: tuple, naming: _Naming) -> Target:
         warnings.warn(f"{naming.named}: keypoint site(s) {', '.join(map(repr, hidden))} hidden from each of "
                       f"{SEEN_CHECK_DIRECTIONS} view directions (inside or behind an opaque geom): no view labels "
                       "it visible, so the detector cannot learn it nor calibration measure it; put it on the "
-                      "drawn surface", stacklevel=3)  # load_target's caller
+                      "drawn surface", TargetFileWarning, stacklevel=3)  # load_target's caller
     return target
 
 

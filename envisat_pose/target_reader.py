@@ -17,6 +17,7 @@ import numpy as np
 
 from envisat_pose.attitude import quat_to_rotmat
 from envisat_pose.config import ConfigError
+from envisat_pose.config_errors import TargetFileWarning
 from envisat_pose.target_assets import target_sha256
 from envisat_pose.target_file import (
     check_inertia,
@@ -139,7 +140,7 @@ def read_target_fields(path: str, field: str, given: str, named: str) -> dict:
     reach = float(np.linalg.norm(surface.mesh.vertices_T_m, axis=1).max())
     if latched:  # said once per file (the load is cached): the shape is the file's reference pose
         warnings.warn(f"{named}: {len(latched)} joint(s) latched at the file's reference pose, the target "
-                      f"one rigid body ({', '.join(latched)})", stacklevel=3)  # load_target's caller
+                      f"one rigid body ({', '.join(latched)})", TargetFileWarning, stacklevel=3)  # load_target's caller
     return dict(
         name=_model_name(spec, path),
         path=path, sha256=sha256, keypoint_names=names, keypoint_sites=sites, keypoints_T_m=X,

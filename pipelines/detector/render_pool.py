@@ -27,11 +27,13 @@ import queue
 import signal
 import time
 import traceback
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
 from envisat_pose.config import check
+from envisat_pose.config_errors import TargetFileWarning
 from envisat_pose.datagen.factory import sample_arrays, sample_view
 from envisat_pose.pipelines.detector.look_mix import (
     WeightedLook,
@@ -150,6 +152,7 @@ def render_worker(looks_json: str, worker: int, workers: int, first_frame: int, 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     os.environ.update(env)
+    warnings.simplefilter("ignore", TargetFileWarning)  # the trainer said its target file's warnings once
     from multiprocessing import shared_memory
 
     try:

@@ -426,3 +426,17 @@ def test_a_second_interrupt_while_the_pool_stops_leaves_no_traceback_from_its_th
             tasks.close()
     threads[0].join(timeout=30.0)
     assert not threads[0].is_alive() and died == []
+
+
+def test_pool_workers_leave_the_target_files_warnings_to_the_job(capfd):
+    """A job with N workers printed its target file's warnings (latched joints) N more times, each as Python's
+    raw two-line UserWarning, beside its own one line: each worker loads the file again. The job says them; the
+    workers say nothing of them, and any other warning still reaches the user."""
+    import warnings
+
+    from envisat_pose.config_errors import TargetFileWarning
+
+    tasks = [("said once by the job", TargetFileWarning), ("a worker's own warning", UserWarning)]
+    assert len(list(run_tasks(warnings.warn, tasks, RunnerConfig("local", 2)))) == 2
+    err = capfd.readouterr().err
+    assert "said once by the job" not in err and "a worker's own warning" in err, err
