@@ -31,8 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--truth", metavar="RUN.npz", help="truth trajectory written by `envisat simulate`")
-    p.add_argument("--target", metavar="FILE.xml", help="with --truth: its target file where the path the truth "
-                   "records is not found from here (its sha256 must match)")
+    p.add_argument("--target", metavar="FILE.xml", help="with --scenario: the spacecraft's MJCF file that flies it "
+                   "(as montecarlo --target); with --truth: its target file where the path the truth records is not "
+                   "found from here (its sha256 must match)")
     src.add_argument("--scenario", metavar="NAME",
                      help="simulate this named scenario (`envisat scenarios` lists them) with the MuJoCo truth first; "
                      "its [measurement] and [filter] tables are the defaults under --config and the flags")

@@ -182,15 +182,14 @@ def with_outages(mcfg, windows: tuple[tuple[float, float], ...]):
 def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str | None = None,
                duration_s: float | None = None, progress: bool = False, target: str | None = None):
     """The truth trajectory: read from truth_path, or simulated by MuJoCo for the named scenario (exactly one of
-    them). Returns (truth, source) with source {"truth_file": path} or {"scenario": name}.
+    them). Returns (truth, source) with source {"truth_file": path} or {"scenario": name, "target": target}.
 
     A file that is not a truth trajectory (truncated, foreign, another contract) is one InputError line.
     With a scenario its duration applies unless duration_s is given; a truth file fixes the duration. target: a
     truth file's target file where the path it records is not found from here (relative to where simulate ran):
-    its sha256 must be the one the truth recorded; the truth's config then names it.
+    its sha256 must be the one the truth recorded; the truth's config then names it. With a scenario: the
+    spacecraft that flies it (its [target] file replaced), as `montecarlo --target`.
     """
-    if target is not None and not truth_path:
-        raise InputError("target applies to a truth file (`truth_path`): a scenario's names its own target")
     if truth_path:
         if duration_s is not None:
             raise InputError("duration_s applies to a `scenario` only; the truth file (`truth_path`) fixes the "
@@ -204,13 +203,15 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
     from envisat_pose.datagen.truth import simulate_truth
 
     overrides: dict = {"seed": cfg.seed}
+    if target is not None:  # the scenario flown by another spacecraft, as `montecarlo --target`
+        overrides["target"] = {"file": target}
     if duration_s is not None:
         overrides["duration_s"] = duration_s
     if cfg.measurement.rate_hz > 1.0:
         overrides["dt_s"] = 1.0 / cfg.measurement.rate_hz
     scenario_dict(scenario)  # unknown names fail here with the list of known ones
     scfg = scenario_config(scenario, **overrides)
-    return simulate_truth(scfg, progress=progress), {"scenario": scenario}
+    return simulate_truth(scfg, progress=progress), {"scenario": scenario, "target": target}
 
 
 def truth_origin(source: dict, truth) -> str:
@@ -222,8 +223,9 @@ def truth_origin(source: dict, truth) -> str:
         return (f"# truth: {path} (sha256 {sha256_file(path)}); `envisat estimate --truth {path} --config "
                 "THIS_FILE` remakes it\n")
     name, duration = source["scenario"], float(truth.config["duration_s"])
+    target = f" --target {source['target']}" if source.get("target") else ""
     return (f"# truth: scenario {name!r} simulated for {duration:g} s from this seed; `envisat estimate --scenario "
-            f"{name} --duration-s {duration:g} --config THIS_FILE` remakes it\n")
+            f"{name}{target} --duration-s {duration:g} --config THIS_FILE` remakes it\n")
 
 
 def with_target_file(truth, target: str, source: str):

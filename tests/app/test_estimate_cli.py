@@ -398,6 +398,23 @@ def test_truth_file_of_another_target_is_estimated_with_its_keypoints(upper_stag
     assert "mean NEES" in capsys.readouterr().out
 
 
+def test_a_scenario_flown_by_another_target_is_estimated_as_its_simulated_truth(upper_stage_truth, tmp_path):
+    """`estimate --scenario default --target FILE` was refused ('a scenario's names its own target') where
+    `montecarlo --scenario default --target FILE` runs: a user's own spacecraft needed a `simulate` first. It
+    filters the truth `simulate --target` writes (the same keypoints and states), and its written config's header
+    names the command with --target that remakes it."""
+    out = tmp_path / "est.npz"
+    assert main(["estimate", "--scenario", "default", "--target", "models/upper_stage.xml", "--duration-s", "60",
+                 "--runs", "1", "--rate-hz", "0.5", "--seed", "2", "--quiet", "--out", str(out)]) == 0
+    est = _load(out)
+    truth = _load(upper_stage_truth)
+    assert est["x_true"].shape == (1, 31, 12) and est["n_meas"].max() > 8
+    assert np.allclose(est["x_true"][0], truth["x"], rtol=0, atol=1e-9)
+    assert json.loads(str(est["config_json"]))["truth_config"]["target"]["file"] == "models/upper_stage.xml"
+    assert ("--scenario default --target models/upper_stage.xml --duration-s 60 --config THIS_FILE"
+            in (tmp_path / "est.config.toml").read_text())
+
+
 def _with_target_record(src, dst, **record):
     from envisat_pose.contracts import TruthTrajectory
 
