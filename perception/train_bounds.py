@@ -30,12 +30,7 @@ MAX_SEED = 2**63 - 1
 def check_train_config(cfg, p: str) -> None:
     """ConfigError naming the first of cfg's fields (a TrainConfig's) outside its range; p: the field prefix."""
     check(cfg.steps >= 1, f"{p}steps", cfg.steps, "at least 1 step")
-    stem = cfg.model.stem_width * (cfg.model.input_px // 2) ** 2
-    most = max(1, MAX_STEM_VALUES // max(1, stem))
-    check(1 <= cfg.batch_size <= most, f"{p}batch_size", cfg.batch_size, f"1 to {most} samples per batch (batch x "
-          f"stem_width x (input_px / 2)^2 at most 2^31 float32 values in the stem's first feature map)")
-    check(MIN_LR <= cfg.lr <= MAX_LR, f"{p}lr", cfg.lr, f"a learning rate in [{MIN_LR:.3g}, {MAX_LR:g}] (below: "
-          "0 in float32, no weight moves; AdamW moves each weight ~lr per step)")
+    check_batch_and_lr(cfg.batch_size, cfg.lr, cfg.model, p)
     check(cfg.warmup_steps >= 1, f"{p}warmup_steps", cfg.warmup_steps, "at least 1 step")
     check(0 <= cfg.seed <= MAX_SEED, f"{p}seed", cfg.seed, "a non-negative integer seed below 2^63")
     check(cfg.time_budget_s is None or cfg.time_budget_s > 0, f"{p}time_budget_s", cfg.time_budget_s,
@@ -52,3 +47,14 @@ def check_train_config(cfg, p: str) -> None:
     # its loss stayed at ln 2), and at 1e300 every weight was NaN by step 2
     check(0 <= cfg.line_jitter_px <= cfg.model.input_px, f"{p}line_jitter_px", cfg.line_jitter_px,
           f"pixels in [0, the model's input_px = {cfg.model.input_px}]")
+
+
+def check_batch_and_lr(batch_size: int, lr: float, model, p: str) -> None:
+    """ConfigError naming batch_size or lr (under prefix p) outside the bounds a run of `model` (a ModelConfig)
+    takes: a training run's (check_train_config) and adapt's fine-tune's, checked when its job is built."""
+    stem = model.stem_width * (model.input_px // 2) ** 2
+    most = max(1, MAX_STEM_VALUES // max(1, stem))
+    check(1 <= batch_size <= most, f"{p}batch_size", batch_size, f"1 to {most} samples per batch (batch x "
+          f"stem_width x (input_px / 2)^2 at most 2^31 float32 values in the stem's first feature map)")
+    check(MIN_LR <= lr <= MAX_LR, f"{p}lr", lr, f"a learning rate in [{MIN_LR:.3g}, {MAX_LR:g}] (below: "
+          "0 in float32, no weight moves; AdamW moves each weight ~lr per step)")

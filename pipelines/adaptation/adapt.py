@@ -69,7 +69,7 @@ from envisat_pose.io import atomic_write_text, stage_prefix, staged_folder
 from envisat_pose.out_dirs import check_out_dir, made_out_dir
 from envisat_pose.out_lock import locks_output
 from envisat_pose.perception import weights_keys as wk
-from envisat_pose.pipelines.adaptation.fine_tune import ADAPT_PARAMS, fine_tune, save_adapted
+from envisat_pose.pipelines.adaptation.fine_tune import ADAPT_PARAMS, check_fine_tune, fine_tune, save_adapted
 from envisat_pose.pipelines.adaptation.pseudo_labels import label_record
 from envisat_pose.pipelines.adaptation.recalibrate import recalibrate
 from envisat_pose.pipelines.adaptation.run_records import (
@@ -145,8 +145,6 @@ class AdaptConfig(Config):
         check(0.05 <= self.held_out <= 0.5, f"{p}held_out", self.held_out, "a share of the sequence in [0.05, 0.5]")
         check(1 <= self.rounds <= 10, f"{p}rounds", self.rounds, "1 to 10 rounds")
         check(self.steps >= 1, f"{p}steps", self.steps, "at least 1 fine-tune step")
-        check(self.lr > 0, f"{p}lr", self.lr, "a positive learning rate")
-        check(self.batch_size >= 1, f"{p}batch_size", self.batch_size, "at least 1 sample per batch")
         check(self.params in ADAPT_PARAMS, f"{p}params", self.params, "'norm_heads', 'all' or 'none'")
         unset = {f.name: f.default for f in dataclasses.fields(self) if f.name in ("steps", "lr")}
         given = [name for name in ("steps", "lr") if getattr(self, name) != unset[name]] or ["steps"]  # the one set
@@ -162,6 +160,9 @@ class AdaptConfig(Config):
               "'sequence', 'frame' or 'off'")
         # the fine-tune and the recalibration know ENVISAT's corner network alone
         require_envisat(self.track.target, f"{p}track.target", "adapt")
+        if self.params != "none":  # the fine-tune's batch and rate, as its TrainConfig takes them for these weights
+            check_fine_tune(self, p)
+        check(self.batch_size >= 1, f"{p}batch_size", self.batch_size, "at least 1 sample per batch")
         check(self.edge_min_frames >= 1, f"{p}edge_min_frames", self.edge_min_frames, "at least 1 frame")
         check(self.max_calibration_frames >= 1, f"{p}max_calibration_frames", self.max_calibration_frames,
               "at least 1 frame")

@@ -10,10 +10,13 @@ import numpy as np
 import torch
 from torch.utils.data import default_collate
 
+from envisat_pose.config import from_dict
 from envisat_pose.perception.data import DataConfig, decode_label, make_sample
+from envisat_pose.perception.model import ModelConfig
 from envisat_pose.perception.train import TrainConfig, Trainer
+from envisat_pose.perception.train_bounds import check_batch_and_lr
 from envisat_pose.perception.trainer_hooks import Hook
-from envisat_pose.perception.weights import load_model, read_metadata, save_weights
+from envisat_pose.perception.weights import load_model, read_header, read_metadata, save_weights
 from envisat_pose.perception.weights_keys import FORMAT_KEY, MODEL_CONFIG_KEY
 
 ADAPT_PARAMS = ("norm_heads", "all", "none")  # what the fine-tune trains (AdaptConfig.params)
@@ -31,6 +34,15 @@ def trainable(model, params: str) -> list:
     for name in ("jhead", "line_reduce", "line_mlp"):
         chosen |= {id(p) for p in getattr(model, name).parameters()}
     return [p for p in model.parameters() if id(p) in chosen]
+
+
+def check_fine_tune(cfg, p: str) -> None:
+    """ConfigError naming cfg's batch_size or lr (cfg: an AdaptConfig; p its prefix) outside what the fine-tune's
+    TrainConfig takes for the network in cfg.track.weights (its architecture read from the file's header), when
+    the job is built: the fine-tune builds that TrainConfig after the first round's track (minutes of work; a batch
+    of 1e12 was refused there)."""
+    model = from_dict(ModelConfig, json.loads(read_header(cfg.track.weights)[MODEL_CONFIG_KEY]))
+    check_batch_and_lr(cfg.batch_size, cfg.lr, model, p)
 
 
 class FineTuneLosses(Hook):

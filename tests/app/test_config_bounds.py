@@ -80,6 +80,21 @@ def test_a_negative_adapt_seed_is_refused_when_built():
     assert AdaptConfig(seed=2**63 - 1).seed == 2**63 - 1
 
 
+@pytest.mark.parametrize("given, words", [
+    ({"batch_size": 10**12}, r"^batch_size = 1000000000000: expected 1 to 3495 samples per batch"),
+    ({"lr": 2.0}, r"^lr = 2.0: expected a learning rate in \[1.18e-38, 1\]"),
+])
+def test_an_adapt_fine_tune_no_trainer_takes_is_refused_when_built(given, words):
+    """The fine-tune's TrainConfig refused these only after the first round's track (minutes of work): the job's
+    config refuses them at its build, at the bound of the weights' own network (the shipped one's stem: 3495)."""
+    from envisat_pose.config import ConfigError
+    from envisat_pose.pipelines.adaptation.adapt import AdaptConfig
+
+    with pytest.raises(ConfigError, match=words):
+        AdaptConfig(params="norm_heads", **given)
+    assert AdaptConfig(params="all", batch_size=3495, lr=1.0).batch_size == 3495
+
+
 SWEEP_BESIDE_RATE = "[measurement]\nrate_hz = 2.0\n[sweep]\nrates_hz = [1.0, 0.5]\n"
 
 
