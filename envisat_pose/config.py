@@ -11,13 +11,13 @@ names live in modules of one job each, and are all importable from here, as they
   mark_filled, filled_for, UNMARKED);
 - config_layers: TOML read (`load_toml`) and written (`to_toml`, `to_dict`, `to_json`), tables merged
   (`deep_update`, `set_dotted`, `flatten`), and `resolve_job_config`, the layers of one job's config;
-- config_args: a library function's arguments checked (`path_arg`, `paths_arg`, `config_arg`,
+- config_args: a library function's arguments checked (`path_arg`, `paths_arg`, `rrd_arg`, `config_arg`,
   `as_path_or_object`).
 """
 
 from __future__ import annotations
 
-from envisat_pose.config_args import as_path_or_object, config_arg, path_arg, paths_arg
+from envisat_pose.config_args import as_path_or_object, config_arg, path_arg, paths_arg, rrd_arg
 from envisat_pose.config_errors import ConfigError, DeprecatedKeyWarning, InputError, MovedKeyError, check
 from envisat_pose.config_fields import (
     UNMARKED,
@@ -45,6 +45,6 @@ from envisat_pose.config_layers import (
 __all__ = [
     "UNMARKED", "Config", "ConfigError", "DeprecatedKeyWarning", "Derived", "DerivedInt", "InputError", "MovedKeyError",
     "as_path_or_object", "check", "config_arg", "deep_update", "derived", "field_value", "filled_for", "flatten",
-    "from_dict", "load_toml", "mark_filled", "path_arg", "paths_arg", "renamed_fields", "resolve_job_config",
+    "from_dict", "load_toml", "mark_filled", "path_arg", "paths_arg", "renamed_fields", "resolve_job_config", "rrd_arg",
     "set_dotted", "to_dict", "to_json", "to_toml",
 ]

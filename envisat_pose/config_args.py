@@ -18,6 +18,15 @@ def path_arg(value: Any, field: str, optional: bool = False) -> str | None:
     raise InputError(f"{field} = {value!r}: expected a path (a str or a pathlib.Path)")
 
 
+def rrd_arg(value: Any, field: str = "rrd") -> str | None:
+    """A library function's optional Rerun recording path (path_arg's): None, or a path ending in .rrd; InputError
+    naming the argument otherwise (every job that writes a recording refuses alike)."""
+    path = path_arg(value, field, optional=True)
+    if path is not None and not path.endswith(".rrd"):
+        raise InputError(f"{field} {path!r}: expected a path ending in .rrd")
+    return path
+
+
 def as_path_or_object(value: Any) -> Any:
     """An os.PathLike (pathlib.Path) as its string; anything else (a str, an object a function also takes in its
     place: a FrameSource, a PinholeCamera, None) as it is."""

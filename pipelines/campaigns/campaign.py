@@ -44,7 +44,7 @@ import os
 import time
 from typing import TYPE_CHECKING
 
-from envisat_pose.config import check, config_arg, path_arg, to_dict, to_toml
+from envisat_pose.config import check, config_arg, path_arg, rrd_arg, to_dict, to_toml
 from envisat_pose.io import atomic_write_text, sha256_file
 from envisat_pose.named_scenarios import table
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
@@ -121,9 +121,8 @@ def run_campaign(cfg: MonteCarloConfig, out_dir: str, runner: RunnerConfig | Non
     check(not table(cfg.scenario, "sweep"), "scenario", cfg.scenario, "a scenario of one rate: this one is a rate "
           "sweep ([sweep] table), one campaign per rate: envisat_pose.pipelines.campaigns.sweep.run_sweep(cfg, "
           "sweep_for(cfg), out_dir, runner), as `envisat montecarlo` runs it")
-    rrd = path_arg(rrd, "rrd", optional=True)
+    rrd = rrd_arg(rrd)
     if rrd is not None:
-        check(rrd.endswith(".rrd"), "rrd", rrd, "a path ending in .rrd")
         check_out_file(rrd, "rrd")
     if runner is not None:
         warn_runner(config_arg(runner, RunnerConfig, "runner"), cfg.n_blocks)  # once, before the work

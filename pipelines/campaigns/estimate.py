@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envisat_pose.config import Config, ConfigError, InputError, check, config_arg, path_arg, to_dict, to_toml
+from envisat_pose.config import Config, ConfigError, InputError, check, config_arg, path_arg, rrd_arg, to_dict, to_toml
 from envisat_pose.contracts import Estimates, TruthTrajectory
 from envisat_pose.datagen.scenario import (
     eclipse_windows,
@@ -374,14 +374,12 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     "config_toml": its path, "plot": the PNG's path or None, "rrd": rrd}.
     """
     cfg = config_arg(cfg, EstimateConfig)
-    out, rrd = path_arg(out, "out"), path_arg(rrd, "rrd", optional=True)
+    out, rrd = path_arg(out, "out"), rrd_arg(rrd)
     truth_path = path_arg(truth_path, "truth_path", optional=True)
     if truth_path and scenario:  # the verb's --truth and --scenario exclude each other as well
         raise InputError("truth_path and scenario: give one of them (a truth file, or a named scenario to simulate)")
     if not out.endswith(".npz"):
         raise InputError(f"out {out!r}: expected a path ending in .npz")
-    if rrd is not None and not rrd.endswith(".rrd"):
-        raise InputError(f"rrd {rrd!r}: expected a path ending in .rrd")
     for path, field in [(p, "out") for p in estimate_output_paths(out)] + ([(rrd, "rrd")] if rrd else []):
         check_out_file(path, field)
     out, cfg_path = estimate_output_paths(out)

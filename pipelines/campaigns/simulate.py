@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import os
 
-from envisat_pose.config import InputError, config_arg, path_arg, to_dict, to_toml
+from envisat_pose.config import InputError, config_arg, path_arg, rrd_arg, to_dict, to_toml
 from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.named_scenarios import known, names
@@ -49,11 +49,9 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
                              "file that exists")
         cfg = dataclasses.replace(cfg, scenario=label)
     label = cfg.scenario
-    out, rrd = path_arg(out, "out"), path_arg(rrd, "rrd", optional=True)
+    out, rrd = path_arg(out, "out"), rrd_arg(rrd)
     if not out.endswith(".npz"):
         raise InputError(f"out {out!r}: expected a path ending in .npz")
-    if rrd is not None and not rrd.endswith(".rrd"):
-        raise InputError(f"rrd {rrd!r}: expected a path ending in .rrd")
     paths = {**{p: "out" for p in output_paths(out)}, **({rrd: "rrd"} if rrd else {})}
     for path, field in paths.items():
         check_out_file(path, field)

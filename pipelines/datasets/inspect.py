@@ -7,7 +7,7 @@ import contextlib
 import os
 import warnings
 
-from envisat_pose.config import InputError, path_arg
+from envisat_pose.config import InputError, path_arg, rrd_arg
 from envisat_pose.datagen.appearance import takes_class_appearance
 from envisat_pose.datagen.render_view import target_mask_values
 from envisat_pose.dataset_target import check_dataset_target_file
@@ -31,14 +31,12 @@ def inspect_dataset(src: str, montage: str | None = None, count: int = 16, rrd: 
     (the path or None)."""
     src = path_arg(src, "src")
     montage = os.path.join(src, MONTAGE_NAME) if montage is None else path_arg(montage, "montage")
-    rrd = path_arg(rrd, "rrd") if rrd is not None else None
+    rrd = rrd_arg(rrd)
     target = path_arg(target, "target") if target is not None else None
     if type(count) is not int or count < 1:
         raise InputError(f"count {count!r}: expected at least 1 image in the montage")
     check_out_file(montage, "montage")
     if rrd is not None:
-        if not rrd.endswith(".rrd"):
-            raise InputError(f"rrd {rrd!r}: expected a path ending in .rrd")
         check_out_file(rrd, "rrd")
     from envisat_pose.datagen.dataset import dataset_stats
     from envisat_pose.datagen.dataset import montage as write_montage

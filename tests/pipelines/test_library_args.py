@@ -49,6 +49,23 @@ def test_a_campaign_runs_on_one_process_by_default_and_refuses_a_runner_of_anoth
     assert summary["n_runs"] == 2 and (tmp_path / "a" / "summary.json").is_file()
 
 
+def test_a_recording_path_of_another_kind_is_refused_alike_by_estimate_and_campaign(tmp_path):
+    """The same InputError line for `rrd` from every job that writes a recording (run_campaign said it as a
+    ConfigError in other words), before any work."""
+    from envisat_pose.pipelines.campaigns.campaign import MonteCarloConfig, run_campaign
+    from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, run_estimate
+
+    words = r"^rrd '.*rec\.txt': expected a path ending in \.rrd$"
+    rec = tmp_path / "rec.txt"
+    with pytest.raises(InputError, match=words) as raised:
+        run_estimate(EstimateConfig(scenario="default"), tmp_path / "est.npz", rrd=rec)
+    assert type(raised.value) is InputError
+    with pytest.raises(InputError, match=words) as raised:
+        run_campaign(MonteCarloConfig(runs=2, duration_s=20.0), tmp_path / "mc", rrd=rec)
+    assert type(raised.value) is InputError
+    assert os.listdir(tmp_path) == []
+
+
 def test_detect_and_calibrate_configs_take_the_shipped_weights_by_default(tmp_path):
     from envisat_pose.pipelines.common.job_defaults import default_weights_path
     from envisat_pose.pipelines.detector.calibrate import CalibrateJobConfig
