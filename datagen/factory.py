@@ -440,7 +440,6 @@ def _generate(cfg: GenerateConfig, out_dir: str, workers: int, backend: str, sch
     # one rasterizer thread count per worker: the usable cores shared among the workers that start (one a shard)
     runner = RunnerConfig(backend, workers, scheduler, thread_env(workers, units=cfg.num_shards))
     runner.validate()
-    warn_runner(runner, cfg.num_shards)
     if scheduler is None:  # this machine's renderer (a cluster's workers have their own)
         check_gl_platform()
     check_out_dir(out_dir)
@@ -449,6 +448,7 @@ def _generate(cfg: GenerateConfig, out_dir: str, workers: int, backend: str, sch
         warn_if_dark(cfg)
     job = dataset_job(cfg, out_dir)
     done = job.resume(job.open())
+    warn_runner(runner, len(job.todo()))  # the processes that start for the shards left: none on a finished rerun
     atomic_write_text(os.path.join(out_dir, "generate.config.toml"),
                       "# envisat generate: the full validated config of this dataset\n" + source_line()
                       + to_toml(with_target_sha256(to_dict(cfg), "generate", job.header["target"]["sha256"])))

@@ -35,19 +35,38 @@ def test_generate_warns_of_more_workers_than_cores_and_the_verb_names_the_flag(m
     from envisat_pose.datagen import factory
 
     machine(64, affinity=2)
-    monkeypatch.setattr(factory, "check_gl_platform", stop)  # the first of the job's work after the runner's check
+    monkeypatch.setattr(factory, "spare_core", stop)  # the pool's start, the folder's shards scanned
     with pytest.warns(UserWarning) as record, pytest.raises(Stopped):
         run_generate(GenerateConfig(num_images=8, shard_size=1, resolution_px=64), str(tmp_path / "a"), workers=8)
     assert len(said(record)) == 1 and said(record)[0].startswith("workers = 8: more processes than the 2 usable")
     with warnings.catch_warnings(), pytest.raises(Stopped):
         warnings.simplefilter("error")  # 8 workers for 2 shards start 2 processes
         run_generate(GenerateConfig(num_images=2, shard_size=1, resolution_px=64), str(tmp_path / "b"), workers=8)
-    monkeypatch.setattr(factory, "check_gl_platform", lambda: (_ for _ in ()).throw(KeyboardInterrupt))
-    assert main(["generate", "--num-images", "8", "--shard-size", "1", "--workers", "8", "--out",
+    monkeypatch.setattr(factory, "spare_core", lambda *a: (_ for _ in ()).throw(KeyboardInterrupt))
+    assert main(["generate", "--num-images", "8", "--shard-size", "1", "--workers", "8", "--quiet", "--out",
                  str(tmp_path / "c")]) == 130
     lines = capsys.readouterr().err.splitlines()
     assert lines[0] == ("envisat generate: warning: --workers 8: more processes than the 2 usable cores (they share "
                         "them); the job runs as asked") and len(lines) == 2  # the warning, the interrupt
+
+
+def test_a_generate_rerun_warns_only_of_the_processes_its_shards_left_start(machine, tmp_path, capsys):
+    """A finished dataset rerun starts no process, one shard left starts one: neither says a word (the warning
+    counted every shard of the dataset, and came on a rerun that had nothing to do)."""
+    from envisat_pose import GenerateConfig, run_generate
+
+    cfg, out = GenerateConfig(num_images=3, shard_size=1, resolution_px=64), str(tmp_path / "a")
+    manifest = run_generate(cfg, out)
+    machine(64, affinity=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert run_generate(cfg, out, workers=8)["shards"] == manifest["shards"]  # nothing to do
+        os.remove(os.path.join(out, manifest["shards"][0]["name"]))
+        assert len(run_generate(cfg, out, workers=8)["shards"]) == 3  # one shard redone, in one process
+    capsys.readouterr()
+    assert main(["generate", "--num-images", "3", "--shard-size", "1", "--resolution", "64", "--workers", "8",
+                 "--out", out]) == 0
+    assert "warning" not in capsys.readouterr().err
 
 
 def test_a_campaign_and_a_rate_sweep_warn_once(machine, monkeypatch, tmp_path):
