@@ -180,12 +180,13 @@ def default_processes(limit: int, bytes_each: int) -> int:
 
 
 def warn_oversubscribed(workers: int, field: str = "workers", bytes_each: int | None = None,
-                        units: int | None = None) -> None:
+                        units: int | None = None, ranks: int = 1) -> None:
     """One warning in one line (warnings.warn; the verbs print it naming the flag) where the processes a job asked
     for start more than the usable cores, or at `bytes_each` a process (its measured peak, where known) need more
     than the usable memory: `field = value`, the cores or memory, and that the job runs. The processes that start
-    are `workers`, or fewer where the job has fewer `units` of work. Only defaults are capped: a count given runs."""
-    n = workers if units is None else min(workers, units)
+    are `workers`, or fewer where the job has fewer `units` of work, for each of the machine's `ranks` (torchrun's
+    local ranks each start their own). Only defaults are capped: a count given runs."""
+    n = (workers if units is None else min(workers, units)) * ranks
     cores, memory, over = usable_cores(), usable_memory_bytes(), []
     if n > cores:
         over.append(f"more processes than the {cores} usable core{'s' * (cores > 1)} (they share them)")
@@ -195,7 +196,8 @@ def warn_oversubscribed(workers: int, field: str = "workers", bytes_each: int | 
     if over:
         import warnings
 
-        warnings.warn(f"{field} = {workers}: {'; '.join(over)}; the job runs as asked", stacklevel=3)
+        each = f" for each of the machine's {ranks} ranks ({n} processes)" if ranks > 1 else ""
+        warnings.warn(f"{field} = {workers}{each}: {'; '.join(over)}; the job runs as asked", stacklevel=3)
 
 
 def warn_runner(cfg: RunnerConfig, units: int) -> None:

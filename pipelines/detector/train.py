@@ -248,11 +248,11 @@ def check_inputs(data_dirs: list[str], run_dir: str, resume: bool, init: str | N
 
 def warn_processes(workers: int | None, online) -> None:
     """pools.warn_oversubscribed for the processes a run was given: its renderers (RENDERER_BYTES each) online,
-    else its DataLoader workers."""
+    else its DataLoader workers, each of the machine's torchrun ranks (LOCAL_WORLD_SIZE) starting its own."""
     if online is not None:
-        warn_oversubscribed(online.workers, "online.workers", RENDERER_BYTES)
+        warn_oversubscribed(online.workers, "online.workers", RENDERER_BYTES, ranks=_ranks("LOCAL_WORLD_SIZE"))
     elif workers:
-        warn_oversubscribed(workers)
+        warn_oversubscribed(workers, ranks=_ranks("LOCAL_WORLD_SIZE"))
 
 
 def ddp_rank() -> int:

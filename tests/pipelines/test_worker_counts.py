@@ -123,3 +123,25 @@ def test_training_warns_of_its_loader_workers_and_of_its_renderers_memory(machin
         train_detector(TrainConfig(steps=1), [], str(tmp_path / "run"), online=online)
     assert said(record) == ["online.workers = 2: 2 processes at ~1.2 GB each need ~2.4 GB, more than the 2.0 GB of "
                             "memory available; the job runs as asked"]
+
+
+def test_training_under_torchrun_counts_every_local_ranks_loader_workers(machine, monkeypatch, tmp_path):
+    """Each of a node's torchrun ranks starts its own DataLoader workers: 2 workers on each of 2 local ranks are 4
+    processes on 2 usable cores (the warning counted one rank's 2 and said nothing)."""
+    from envisat_pose import GenerateConfig, TrainConfig, run_generate, train_detector
+    from envisat_pose.pipelines.detector import train
+
+    data = str(tmp_path / "data")
+    run_generate(GenerateConfig(num_images=1, shard_size=1, resolution_px=64), data)
+    monkeypatch.setattr(train, "output_lock", stop)
+    machine(64, affinity=2)
+    for name, value in (("WORLD_SIZE", "2"), ("LOCAL_WORLD_SIZE", "2"), ("RANK", "0"), ("LOCAL_RANK", "0")):
+        monkeypatch.setenv(name, value)
+    with pytest.warns(UserWarning) as record, pytest.raises(Stopped):
+        train_detector(TrainConfig(steps=1), [data], str(tmp_path / "run"), workers=2)
+    assert said(record) == ["workers = 2 for each of the machine's 2 ranks (4 processes): more processes than the 2 "
+                            "usable cores (they share them); the job runs as asked"]
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "1")  # two machines of one rank each: 2 workers on each machine's 2 cores
+    with warnings.catch_warnings(), pytest.raises(Stopped):
+        warnings.simplefilter("error")
+        train_detector(TrainConfig(steps=1), [data], str(tmp_path / "run"), workers=2)
