@@ -144,3 +144,46 @@ def make_out_file_dirs(outputs: dict[str, str]) -> None:
         check_out_file(path, name)
     for path, name in outputs.items():
         make_out_file_dir(path, name)
+
+
+def refuse_overlap(out_dir: str, source: str | None, field: str = "out_dir", source_field: str = "source") -> None:
+    """InputError in one line when the output folder out_dir is the input folder `source`, lies inside it or holds
+    it (real paths compared: links followed): the job would write among the user's input files, and a rerun,
+    replacing its own outputs, could remove them. A source that is not a folder (a video file) or None passes."""
+    if not source or not os.path.isdir(source):
+        return
+    out, src = os.path.realpath(out_dir), os.path.realpath(source)
+    common = os.path.commonpath([out, src])
+    if common not in (out, src):
+        return
+    how = "is" if out == src else "lies inside" if common == src else "holds"
+    raise InputError(f"{field} {out_dir!r} {how} `{source_field}` {source!r}: expected an output folder apart "
+                     "from the input (its files are not the job's to write among or replace); use another folder")
+
+
+def written_by(path: str, job: str) -> bool:
+    """Whether `path` is a config file a job `envisat JOB` wrote: its first line '# envisat JOB: ...'."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return fh.readline().startswith(f"# envisat {job}:")
+    except (OSError, UnicodeDecodeError):
+        return False
+
+
+def refuse_foreign_outputs(out_dir: str, names, config_name: str, job: str, field: str = "out_dir") -> None:
+    """InputError in one line, before any work, when out_dir holds an entry at one of the job's output file names
+    (which a run replaces, or removes when it does not write it again) that is not an earlier run's: out_dir holds
+    no config_name written by `envisat JOB` (written_by), so the entries are another's (a user's summary.json), or
+    the entry is a folder (where the job's file goes; a link is replaced, not what it names)."""
+    if not os.path.isdir(out_dir):
+        return
+    present = [n for n in names if os.path.lexists(os.path.join(out_dir, n))]
+    odd = [n for n in present if os.path.isdir(os.path.join(out_dir, n)) and not os.path.islink(os.path.join(
+        out_dir, n))]
+    if odd:
+        raise InputError(f"{field} {out_dir!r} holds a folder {odd[0]!r} where the job's file {odd[0]} goes; move it "
+                         "out or use another folder")
+    if present and not written_by(os.path.join(out_dir, config_name), job):
+        shown = ", ".join(present[:3]) + (", ..." if len(present) > 3 else "")
+        raise InputError(f"{field} {out_dir!r} holds {shown} but no {config_name} of an earlier `envisat {job}`: not "
+                         "its outputs to replace; move them out or use another folder")

@@ -66,7 +66,7 @@ import numpy as np
 
 from envisat_pose.config import Config, InputError, as_path_or_object, check, config_arg, path_arg, to_dict
 from envisat_pose.io import atomic_write_text, stage_prefix, staged_folder
-from envisat_pose.out_dirs import check_out_dir, made_out_dir
+from envisat_pose.out_dirs import check_out_dir, made_out_dir, refuse_overlap, written_by
 from envisat_pose.out_lock import locks_output
 from envisat_pose.perception import weights_keys as wk
 from envisat_pose.pipelines.adaptation.fine_tune import ADAPT_PARAMS, check_fine_tune, fine_tune, save_adapted
@@ -362,6 +362,8 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
     cfg, out_dir = config_arg(cfg, AdaptConfig), path_arg(out_dir, "out_dir")
     source, camera = as_path_or_object(source), as_path_or_object(camera)
     check_out_dir(out_dir, field="out_dir")
+    refuse_overlap(out_dir, source if isinstance(source, str) else getattr(source, "path", None))
+    check_adapt_folder(out_dir)
     camera_file = camera if isinstance(camera, str) else None
     given_response = read_camera_response(camera) if camera_file else (None, None)
     tcfg, source, camera, remap, _ = prepare_frames(cfg.track, source, camera)
@@ -369,6 +371,29 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
         report = _adapt(cfg, tcfg, source, camera, remap, stage, progress, command, given_response, camera_file)
         _replace_dirs(out_dir, stage)
     return report
+
+
+def check_adapt_folder(out_dir: str) -> None:
+    """InputError in one line, before any work, when out_dir holds an entry a finished run replaces (OUTPUTS; the
+    RUN_DIRS whole, with all they hold) that no earlier adapt run wrote: without adapt's report.json there, the
+    entries are another's (a user's own before/ folder, once removed); in an adapt run's folder, before/ and after/
+    are track runs (a folder with track.config.toml written by `envisat track`)."""
+    present = [n for n in (*OUTPUTS, *RUN_DIRS) if os.path.lexists(os.path.join(out_dir, n))]
+    if not present:
+        return
+    try:
+        with open(os.path.join(out_dir, "report.json"), encoding="utf-8") as fh:
+            report = json.load(fh)
+        ours = isinstance(report, dict) and {"adopted", "held_out_from_frame", "rounds"} <= set(report)
+    except (OSError, ValueError):
+        ours = False
+    if not ours:
+        raise InputError(f"out_dir {out_dir!r} holds {', '.join(present)} but no report.json of an earlier `envisat "
+                         "adapt`: not its outputs to replace; move them out or use another folder")
+    for d in (d for d in RUN_DIRS if d in present):
+        if not written_by(os.path.join(out_dir, d, "track.config.toml"), "track"):
+            raise InputError(f"out_dir {out_dir!r} holds {d}/ without the track.config.toml of an `envisat track`: "
+                             f"not an earlier adapt run's track to replace; move it out or use another folder")
 
 
 def _finish(cfg, tcfg, source, stage, command, before, after, rounds, timing, t0, reason) -> dict:

@@ -1,6 +1,7 @@
 """`envisat adapt` run again into the same --out: a rejected rerun leaves the earlier adopted detector.safetensors
 and its card as they were (a rejected result loses nothing), says so in report.json and on stderr; an adopted
-rerun replaces them. The job's own work (tracks, labels, fine-tune) is stood in for; its files are the real ones
+rerun replaces them. A folder adapt did not write (a user's own before/, report.json) and an --out on, in or
+around the frames are refused in one line, their files intact. The job's own work (tracks, labels, fine-tune) is stood in for; its files are the real ones
 (_finish)."""
 
 import json
@@ -19,9 +20,10 @@ from envisat_pose.app.cli import main
 def stand_in(monkeypatch, tmp_path):
     """The job stood in for: each run writes what _adapt writes, adopted or not as `verdict` says (the weights
     file's bytes name the run)."""
-    frame = tmp_path / "frame.png"
+    (tmp_path / "frames").mkdir()
+    frame = tmp_path / "frames" / "frame.png"
     frame.write_bytes(b"not read")
-    source = types.SimpleNamespace(path=str(tmp_path), kind="images", t_s=np.arange(4.0), size_px=(8, 8),
+    source = types.SimpleNamespace(path=str(tmp_path / "frames"), kind="images", t_s=np.arange(4.0), size_px=(8, 8),
                                    bit_depth=8, files=[str(frame)], scenario=None)
     verdict = {"reason": None, "run": 0}
 
@@ -71,3 +73,37 @@ def test_an_adopted_rerun_replaces_them_and_a_first_rejected_run_writes_none(sta
     assert "stays" not in capsys.readouterr().err
     assert not (fresh / "detector.safetensors").exists() and not (fresh / "detector.json").exists()
     assert json.loads((fresh / "report.json").read_text())["earlier_weights_kept"] is False
+
+
+@pytest.mark.parametrize("entry", ["before", "after", "report.json", "detector.json"])
+def test_a_users_folder_of_an_outputs_name_is_refused_and_kept(stand_in, tmp_path, capsys, entry):
+    out = tmp_path / "mine"
+    mine = out / entry / "notes.txt" if entry in ("before", "after") else out / entry
+    mine.parent.mkdir(parents=True)
+    mine.write_text("the user's own\n")
+    assert run(out) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"--out {str(out)!r} holds" in err and "no report.json" in err, err
+    assert mine.read_text() == "the user's own\n" and stand_in["run"] == 0, "refused before any work"
+
+
+def test_an_adapt_folder_whose_before_is_not_a_track_run_is_refused(stand_in, tmp_path, capsys):
+    out = tmp_path / "run"
+    stand_in["reason"] = "rejected"  # no before/ written by the stand-in: the user's goes in beside its report
+    assert run(out) == 1
+    (out / "before").mkdir()
+    (out / "before" / "notes.txt").write_text("kept\n")
+    capsys.readouterr()
+    assert run(out) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "holds before/ without the track.config.toml" in err, err
+    assert (out / "before" / "notes.txt").read_text() == "kept\n"
+
+
+@pytest.mark.parametrize("where, how", [("frames", "is"), ("frames/run", "lies inside"), (".", "holds")])
+def test_an_out_on_in_or_around_the_frames_is_refused(stand_in, tmp_path, capsys, monkeypatch, where, how):
+    monkeypatch.chdir(tmp_path)
+    assert run(where) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"--out {where!r} {how} --images {str(tmp_path / 'frames')!r}" in err, err
+    assert os.listdir(tmp_path / "frames") == ["frame.png"] and stand_in["run"] == 0
