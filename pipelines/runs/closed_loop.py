@@ -44,7 +44,7 @@ from envisat_pose.datagen.views import sample_seed
 from envisat_pose.filtering.estimator import filter_inertia_T_kg_m2
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import atomic_write_text, sha256_file, staged_folder
-from envisat_pose.out_dirs import made_out_dir
+from envisat_pose.out_dirs import made_out_dir, refuse_foreign_outputs
 from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.common.job_defaults import job_record, weights_name
 from envisat_pose.pipelines.common.threads import compute_threads
@@ -199,7 +199,9 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = False, sink: 
     'connect:ADDR' for a live viewer).
 
     Every output is written into a hidden folder inside out_dir and moved into place when the job completes
-    (io.staged_folder): an error or an interrupt leaves out_dir as it was (an earlier run's outputs intact).
+    (io.staged_folder): an error or an interrupt leaves out_dir as it was (an earlier run's outputs intact); a
+    folder holding files of the outputs' names but no run.config.toml written by `envisat run` (a user's own
+    summary.json) is refused first (out_dirs.refuse_foreign_outputs).
     Memory does not grow with the run's per-frame arrays: each run writes them to runs/run-NNNN/ (in the staged
     folder) chunk by chunk; est.npz and det.npz are streamed from those files (then removed) and the scores read
     them chunk by chunk (what stays whole: the truth, and a few scalars per frame: the errors the scores need
@@ -214,6 +216,7 @@ def run_closed_loop(cfg: RunConfig, out_dir: str, progress: bool = False, sink: 
     if not derived(cfg.workers):  # a count given (the default is sized to the machine: RunConfig)
         warn_oversubscribed(cfg.workers, bytes_each=RUN_PROCESS_BYTES)  # RunConfig: no more than the runs
     names = [os.path.basename(p) for p in run_output_paths(out_dir).values()]
+    refuse_foreign_outputs(out_dir, names, "run.config.toml", "run")  # a user's summary.json is not replaced
     with made_out_dir(out_dir), staged_folder(out_dir, names) as stage:
         return _run_closed_loop(cfg, stage, progress, sink)
 

@@ -18,7 +18,8 @@ then `envisat calibrate --target`), whose weights must be given (pipelines/track
 
 Outputs are written into a hidden folder inside out_dir and moved into place when complete (io.staged_folder):
 an error or an interrupt leaves out_dir as it was; a finished run removes an earlier run's outputs it did not
-write (errors.png of a scored run, say).
+write (errors.png of a scored run, say). An out_dir on, inside or around the frames' folder, or holding files of
+the outputs' names but no track.config.toml written by track (a user's own summary.json), is refused first.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from envisat_pose.datagen.scenario import OrbitConfig
 from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.geometry import PinholeCamera
 from envisat_pose.io import atomic_write_text, sha256_file, staged_folder
-from envisat_pose.out_dirs import check_out_dir, made_out_dir
+from envisat_pose.out_dirs import check_out_dir, made_out_dir, refuse_foreign_outputs, refuse_overlap
 from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.common.job_defaults import (
     fill_from_scenario,
@@ -202,6 +203,8 @@ def track_frames(cfg: TrackConfig, source: FrameSource | str, camera: PinholeCam
     cfg, out_dir = config_arg(cfg, TrackConfig), path_arg(out_dir, "out_dir")
     source, camera = as_path_or_object(source), as_path_or_object(camera)
     check_out_dir(out_dir, field="out_dir")
+    refuse_overlap(out_dir, source if isinstance(source, str) else getattr(source, "path", None))
+    refuse_foreign_outputs(out_dir, OUTPUTS.values(), OUTPUTS["config"], "track")  # a user's summary.json stays
     if sink is not None:
         check_sink(sink)  # a viewer that is not there refused before any frame is read
     else:

@@ -248,9 +248,10 @@ def test_an_interrupted_run_leaves_no_folder_it_made(tmp_path, detector_weights,
     assert os.listdir(tmp_path) == []
     (tmp_path / "old").mkdir()
     (tmp_path / "old" / "summary.json").write_text("{}")
+    (tmp_path / "old" / "run.config.toml").write_text("# envisat run: an earlier run's\n")  # so the run's own
     with pytest.raises(KeyboardInterrupt):
         loop.run_closed_loop(run_cfg(detector_weights), str(tmp_path / "old"))
-    assert os.listdir(tmp_path / "old") == ["summary.json"]
+    assert sorted(os.listdir(tmp_path / "old")) == ["run.config.toml", "summary.json"]
 
 
 def test_a_config_files_scenario_is_the_runs_unless_the_flag_says_another(tmp_path):

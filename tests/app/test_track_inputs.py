@@ -223,6 +223,7 @@ def test_an_interrupt_leaves_the_earlier_outputs_and_a_finished_run_removes_stal
     out = tmp_path / "run"
     out.mkdir()
     (out / "errors.png").write_bytes(b"an earlier run's plot")
+    (out / "track.config.toml").write_text("# envisat track: an earlier run's config\n")  # its folder: track's own
     (out / "notes.txt").write_text("the user's own file")
     assert main(["track", "--images", str(src), "--rate-hz", "1", "--out", str(out), "--config", fast_cfg,
                  "--weights", detector_weights, "--camera", side_camera, "--quiet"]) == 0
