@@ -116,12 +116,19 @@ def _made_writable(folders: list[str]) -> str | None:
     return None
 
 
-def check_out_file(path: str, field: str = "out") -> None:
-    """Check, creating nothing, that an output file can be written at path: it is not a folder and nothing above
-    it is a file (its missing folders are made by make_out_file_dir when the job writes). InputError."""
+def check_out_file(path: str, field: str = "out", inputs: str | Sequence[str] = (),
+                   inputs_field: str = "data") -> None:
+    """Check, creating nothing, that an output file can be written at path: it is not a folder, nothing above
+    it is a file (its missing folders are made by make_out_file_dir when the job writes) and it lies inside none
+    of the input folders `inputs` (a dataset read: its manifest once overwritten by `evaluate --json`). InputError."""
     _refuse_empty(path, field, "file")
     if os.path.isdir(path):
         raise InputError(f"{field} {path!r} is a folder; expected a file path")
+    for folder in [inputs] if isinstance(inputs, (str, os.PathLike)) else inputs:
+        if os.path.isdir(folder) and os.path.commonpath([os.path.realpath(path), os.path.realpath(folder)]) == \
+                os.path.realpath(folder):
+            raise InputError(f"{field} {path!r} lies inside `{inputs_field}` {os.fspath(folder)!r}: expected an "
+                             "output apart from the input folder (its files are not the job's to replace)")
     blocker = _file_in_the_way(os.path.dirname(path) or ".")
     if blocker is not None:
         raise InputError(f"{field} {path!r}: {blocker!r} is a file, not a folder; expected a file path in a folder "

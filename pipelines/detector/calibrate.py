@@ -194,7 +194,7 @@ def run_calibration(cfg: CalibrateJobConfig, data: list[str], out: str, progress
 
     cfg, out = config_arg(cfg, CalibrateJobConfig), path_arg(out, "out")
     data = paths_arg(data, "data")  # one folder (a str or a Path) or several
-    check_out_file(out, "out")
+    check_out_file(out, "out", data)
     paths, skipped = data_shards(data, cfg.skip_damaged)
     sequences = all(is_sequence(d) for d in data)
     # the network's own covariances (scale 1), whatever the file carried before; the refinement's the same
@@ -271,7 +271,8 @@ def fit_face_cue(weights: str, data: list[str], held_out: list[str], out: str, l
 
     check(limit is None or (type(limit) is int and limit >= 1), "limit", limit, "at least 1 frame (or unset: all)")
     weights = job_weights(weights)  # a missing file failed once every frame was read; limit 0 or -1 read none
-    check_out_file(out, "out")
+    check_out_file(out, "out", data)
+    check_out_file(out, "out", held_out or (), "held_out")
     paths, skipped = data_shards(data, skip_damaged)
     held_paths, held_skipped = data_shards(held_out or [], skip_damaged, "held_out")
     g = load_geometry()

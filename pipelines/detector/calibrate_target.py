@@ -136,8 +136,8 @@ def run_calibrate_target(cfg: TargetDetectJobConfig, data: list[str], out: str, 
     from envisat_pose.perception.weights import with_metadata
 
     cfg, out = config_arg(cfg, TargetDetectJobConfig), path_arg(out, "out")
-    check_out_file(out, "out")
     folders = list(dict.fromkeys(paths_arg(data, "data")))  # one folder (a str or a Path) or several
+    check_out_file(out, "out", folders)
     target, _, arrays, skipped = detect_labelled(cfg, folders, progress, desc="calibrate")
     names = target.keypoint_names
     perms = relabelings(target.symmetries, target.num_keypoints)

@@ -140,7 +140,7 @@ def run_detect(cfg: DetectJobConfig, data: str, out: str, progress: bool = False
     import numpy as np
 
     cfg, data, out = config_arg(cfg, DetectJobConfig), path_arg(data, "data"), path_arg(out, "out")
-    check_out_file(out, "out")
+    check_out_file(out, "out", data)
     arrays = detect_dataset(cfg, data, progress)
     Detections.validated(arrays, out)
     make_out_file_dir(out, "out")

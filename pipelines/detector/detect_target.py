@@ -123,7 +123,7 @@ def run_detect_target(cfg: TargetDetectJobConfig, data: str, out: str, progress:
     """The whole job: detect_target_dataset, then det.npz written atomically at out (its folder made then): a run
     refused or stopped before leaves nothing. data, out: a str or a pathlib.Path. Returns det.npz's arrays."""
     cfg, data, out = config_arg(cfg, TargetDetectJobConfig), path_arg(data, "data"), path_arg(out, "out")
-    check_out_file(out, "out")
+    check_out_file(out, "out", data)
     arrays = detect_target_dataset(cfg, data, progress)
     det = KeypointDetections.validated(arrays, out)
     make_out_file_dir(out, "out")

@@ -223,7 +223,7 @@ def run_evaluate(cfg: DetectJobConfig, data: str, json_path: str, *, roi_labels:
     json_path = path_arg(json_path, "json_path")
     if cfg.roi is not None and roi_labels:
         raise InputError(f"roi {cfg.roi!r} and roi_labels: one region of interest at most")
-    check_out_file(json_path, "json_path")
+    check_out_file(json_path, "json_path", data)
     require_envisat_dataset(data, "data", "evaluate")
     paths, skipped = checked_shards(data, cfg.skip_damaged, "data")
     roi = read_roi(cfg.roi) if cfg.roi else ("labels" if roi_labels else None)

@@ -168,7 +168,7 @@ def evaluate_target_detector(cfg: TargetDetectJobConfig, data: str, json_path: s
 
     cfg, data = config_arg(cfg, TargetDetectJobConfig), path_arg(data, "data")
     json_path = path_arg(json_path, "json_path")
-    check_out_file(json_path, "json_path")
+    check_out_file(json_path, "json_path", data)
     target, model, arrays, skipped = detect_labelled(cfg, [data], progress)
     perms = relabelings(target.symmetries, target.num_keypoints)
     sigma = weights_keypoint_sigma(cfg.weights, target.num_keypoints)

@@ -59,3 +59,18 @@ def test_an_earlier_runs_folder_is_the_jobs_to_replace(tmp_path):
         refuse_foreign_outputs(str(out), ["est.npz"], "track.config.toml", "track")
     refuse_overlap(str(out), str(tmp_path / "elsewhere"))  # no such folder, and apart: nothing to refuse
     refuse_overlap(str(tmp_path / "runs"), str(tmp_path / "run"))  # a shared prefix is no overlap
+
+
+@pytest.mark.parametrize("args", [["evaluate", "--data", "ds", "--json", os.path.join("ds", "manifest.json")],
+                                  ["detect", "--data", "ds", "--out", os.path.join("ds", "det.npz")],
+                                  ["calibrate", "--data", "ds", "--out", os.path.join("ds", "w.safetensors")]])
+def test_an_output_file_inside_the_data_folder_is_refused(tmp_path, monkeypatch, capsys, args):
+    """`evaluate --json ds/manifest.json` once replaced the dataset's manifest it had just read."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "manifest.json").write_text("the dataset's\n")
+    assert main(args + ["--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"{args[3]} {args[4]!r} lies inside --data 'ds'" in err, err
+    assert os.listdir(tmp_path / "ds") == ["manifest.json"]
+    assert (tmp_path / "ds" / "manifest.json").read_text() == "the dataset's\n"
