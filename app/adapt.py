@@ -47,16 +47,18 @@ FLAGS = {"source": "--images", "rate_hz": "--rate-hz", "timestamps": "--timestam
 
 def refuse_other_targets_weights(weights: str | None) -> None:
     """InputError (one line) for another target's keypoint detector: the track's own refusal pointed to a target
-    file, which adapt takes none of."""
+    file, which adapt takes none of. (In Python, AdaptConfig's TrackConfig refuses those weights when built, and
+    AdaptConfig any target but ENVISAT.)"""
     import os
 
     from envisat_pose.perception.weights import read_header, trained_for
 
     theirs = trained_for(weights, read_header(weights)) if weights and os.path.isfile(weights) else None
     if theirs is not None:
-        raise InputError(f"--weights {weights!r}: the keypoint detector of target {theirs.get('name')!r}; `envisat "
-                         "adapt` fine-tunes and recalibrates ENVISAT's corner detector only (another target's is "
-                         "trained and calibrated with `envisat train --target` and `envisat calibrate --target`)")
+        raise InputError(f"--weights {weights!r}: the keypoint detector of target {theirs.get('name')!r}, not "
+                         "ENVISAT's; `envisat adapt` fine-tunes and recalibrates ENVISAT's corner detector only "
+                         "(another target's is trained and calibrated with `envisat train --target` and `envisat "
+                         "calibrate --target`)")
 
 
 def adapt_cli(args: argparse.Namespace) -> int:
