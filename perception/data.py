@@ -33,6 +33,10 @@ from envisat_pose.shard_reader import (
 
 N_SEGMENTS = 32
 MAX_IMAGE_PX = 4096  # the largest image side the jobs take (generate's resolution_px)
+# shuffle_buffer: each reader (a DataLoader worker) holds that many decoded samples, each at least its float32
+# input image (4 x input_px^2 bytes; its heatmap targets add ~45 %); past 16 GiB of images per reader no machine
+# holds a run's readers (2^63 - 1: the whole epoch decoded before the first batch, a MemoryError hours in)
+MAX_BUFFER_BYTES = 2**34
 IMAGE_MEAN, IMAGE_STD = 0.5, 0.25
 
 
@@ -74,7 +78,10 @@ class DataConfig(Config):
         # (1e300: an overflow at the first sample); below 0 it is the same as 0
         check(0.0 <= self.sigma_cells <= cells, f"{p}sigma_cells", self.sigma_cells,
               f"a heatmap sigma in [0, {cells:g}] cells (the map's side; 0: one cell)")
-        check(self.shuffle_buffer >= 0, f"{p}shuffle_buffer", self.shuffle_buffer, "0 (no shuffle) or more samples")
+        most = max(1, MAX_BUFFER_BYTES // (4 * max(1, self.input_px) ** 2))
+        check(0 <= self.shuffle_buffer <= most, f"{p}shuffle_buffer", self.shuffle_buffer,
+              f"0 (no shuffle) to {most} samples (each reader holds them decoded: at most 16 GiB of float32 "
+              f"{self.input_px} px images)")
         check(0.0 <= self.whole_frame_prob <= 1.0, f"{p}whole_frame_prob", self.whole_frame_prob,
               "a probability in [0, 1]")
 

@@ -42,7 +42,9 @@ KEYPOINTS = ["--target", "models/upper_stage.xml"]
     ("[data]\ncrop_shift_jitter = 1e300\n", [], ("data.crop_shift_jitter = 1e+300: expected a share",)),
     ("[data]\nsigma_cells = 1e300\n", [], ("data.sigma_cells = 1e+300: expected a heatmap sigma in [0, 80] cells",)),
     ("[data]\nsigma_cells = -1.0\n", [], ("data.sigma_cells = -1.0: expected a heatmap sigma",)),
-    ("[data]\nshuffle_buffer = -1\n", [], ("data.shuffle_buffer = -1: expected 0 (no shuffle) or more",)),
+    ("[data]\nshuffle_buffer = -1\n", [], ("data.shuffle_buffer = -1: expected 0 (no shuffle) to 41943 samples",)),
+    (f"[data]\nshuffle_buffer = {BIG}\n", [], (f"data.shuffle_buffer = {BIG}: expected 0 (no shuffle) to 41943 "
+                                               "samples", "16 GiB of float32 320 px images")),
     ("[data]\nwhole_frame_prob = -1.0\n", [], ("data.whole_frame_prob = -1.0: expected a probability in [0, 1]",)),
     ("[loss]\nheatmap = 1e300\n", [], ("loss.heatmap = 1e+300: expected a weight in [0, 1e+06]",)),
     ("[loss]\nfocal_alpha = 1e300\n", [], ("loss.focal_alpha = 1e+300: expected an exponent in [0, 22]",)),
@@ -111,7 +113,7 @@ def test_generate_refuses_a_depth_unit_longer_than_the_target():
 def test_off_values_and_the_bounds_themselves_stay_accepted():
     """What means "off" by design (a loss weight 0, sigma_cells 0: one cell, shuffle_buffer 0, line_jitter_px 0,
     focal_beta at any size: the negatives near a peak left out), the bounds (lr 1, weight_decay 1 / lr, a depth of
-    10 levels at 4096 px, 256 threads), a run by steps "forever" (2^63 - 1 steps, checkpoints at its end), a seed
+    10 levels at 4096 px, 256 threads, a shuffle buffer of 16 GiB of images), a run by steps "forever" (2^63 - 1 steps, checkpoints at its end), a seed
     of 2^63 - 1, a depth unit of the target's reach."""
     from envisat_pose.datagen.generate_config import GenerateConfig
     from envisat_pose.perception.data import DataConfig
@@ -125,6 +127,8 @@ def test_off_values_and_the_bounds_themselves_stay_accepted():
                 line_jitter_px=0.0, loss=LossConfig(heatmap=0.0, nll=0.0, focal_beta=1e300, focal_alpha=22.0),
                 data=DataConfig(sigma_cells=0.0, shuffle_buffer=0, crop_margin=1.0, whole_frame_prob=1.0))
     TrainConfig(model=ModelConfig(input_px=4096, depth=10, width=1024), data=DataConfig(input_px=4096), batch_size=1)
+    DataConfig(shuffle_buffer=41943)
+    DataConfig(input_px=4096, shuffle_buffer=256)
     KeypointTrainConfig(target="models/upper_stage.xml", lr=1e-12)
     CalibrateJobConfig(max_lag=200_000)
     GenerateConfig(depth_scale_m=22.0, num_images=2, resolution_px=64)
