@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import os
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -437,9 +438,7 @@ def unwritable_line(out_dir: str, previous: dict | None, partials: list[str], pr
 def _generate(cfg: GenerateConfig, out_dir: str, workers: int, backend: str, scheduler: str | None,
               progress: bool, on_shard: Callable[[dict], None] | None) -> dict:
     """run_generate's work under the folder's lock."""
-    # one rasterizer thread count per worker: the usable cores shared among the workers that start (one a shard)
-    runner = RunnerConfig(backend, workers, scheduler, thread_env(workers, units=cfg.num_shards))
-    runner.validate()
+    runner = RunnerConfig(backend, workers, scheduler)  # checked before the folder is touched
     if scheduler is None:  # this machine's renderer (a cluster's workers have their own)
         check_gl_platform()
     check_out_dir(out_dir)
@@ -448,7 +447,10 @@ def _generate(cfg: GenerateConfig, out_dir: str, workers: int, backend: str, sch
         warn_if_dark(cfg)
     job = dataset_job(cfg, out_dir)
     done = job.resume(job.open())
-    warn_runner(runner, len(job.todo()))  # the processes that start for the shards left: none on a finished rerun
+    left = len(job.todo())  # the shards this run makes, one a process: a resume's, not the dataset's
+    # one rasterizer thread count per worker: the usable cores shared among the workers that start for them
+    runner = dataclasses.replace(runner, env=thread_env(workers, units=left))
+    warn_runner(runner, left)  # none on a finished rerun
     atomic_write_text(os.path.join(out_dir, "generate.config.toml"),
                       "# envisat generate: the full validated config of this dataset\n" + source_line()
                       + to_toml(with_target_sha256(to_dict(cfg), "generate", job.header["target"]["sha256"])))
@@ -467,7 +469,7 @@ def _generate(cfg: GenerateConfig, out_dir: str, workers: int, backend: str, sch
 
     try:
         cfg_text, where = config_json(cfg), os.path.abspath(out_dir)
-        beside = spare_core(min(workers, cfg.num_shards), backend, scheduler)
+        beside = spare_core(min(workers, left), backend, scheduler)
         return job.run(shard_task, lambda idx: (cfg_text, idx, where, beside), runner, on_unit)
     finally:
         if bar is not None:

@@ -87,8 +87,10 @@ def test_helpers_only_where_a_core_is_spare(monkeypatch, machine):
 
 def test_the_rasterizer_threads_are_the_cores_shared_by_the_workers_that_start(monkeypatch, tmp_path, machine):
     """8 workers asked for a dataset of 2 shards on 8 cores: 2 processes start, 4 llvmpipe threads each (not 1);
-    64 by os.cpu_count but 2 by affinity: 2, not 64."""
-    runners = []
+    64 by os.cpu_count but 2 by affinity: 2, not 64. A resume counts the shards it has left, not the dataset's: one
+    shard of 2 left for 2 workers on 2 cores starts one process, with both cores (it had 1, a core idle), and that
+    process has a core spare beside LP_NUM_THREADS = 1 (the helper threads on)."""
+    runners, besides, left = [], [], {}
 
     class Job:
         def __init__(self, out_dir):
@@ -101,8 +103,12 @@ def test_the_rasterizer_threads_are_the_cores_shared_by_the_workers_that_start(m
         def resume(self, opened):
             return {}
 
+        def todo(self):
+            return left.get(self.out_dir, [0, 1])  # a fresh run: every shard
+
         def run(self, task, args, runner, on_unit):
             runners.append(runner)
+            besides.append(args(self.todo()[0])[3])
             return {}
 
     monkeypatch.setattr(factory, "dataset_job", lambda cfg, out_dir: Job(out_dir))
@@ -112,7 +118,12 @@ def test_the_rasterizer_threads_are_the_cores_shared_by_the_workers_that_start(m
     factory.run_generate(cfg, str(tmp_path / "a"), workers=8)
     machine(64, affinity=2)
     factory.run_generate(cfg, str(tmp_path / "b"), workers=1)
-    assert [r.env for r in runners] == [{"LP_NUM_THREADS": "4"}, {"LP_NUM_THREADS": "2"}]
+    left[str(tmp_path / "c")] = [1]  # a resume with shard 1 left
+    factory.run_generate(cfg, str(tmp_path / "c"), workers=2)
+    assert [r.env for r in runners] == [{"LP_NUM_THREADS": "4"}, {"LP_NUM_THREADS": "2"}, {"LP_NUM_THREADS": "2"}]
+    monkeypatch.setenv("LP_NUM_THREADS", "1")
+    factory.run_generate(cfg, str(tmp_path / "c"), workers=2)
+    assert besides[-1] is True
 
 
 def test_gil_switch_interval_restored(tmp_path, monkeypatch):
