@@ -11,6 +11,7 @@ from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from envisat_pose.attitude import align_mrp, mrp_shadow
 from envisat_pose.io import atomic_path  # noqa: E402
+from envisat_pose.png_marks import JOB_KEY  # noqa: E402
 from envisat_pose.state import MRP, N_STATE, RATE, error_magnitudes  # noqa: E402
 
 STATE_LABELS = (
@@ -24,9 +25,10 @@ STATE_TITLES = ("relative position rho, in C", "relative velocity rho', in C",
 
 
 def plot_states(t_s: np.ndarray, x: np.ndarray, path: str, title: str = "", visible: np.ndarray | None = None,
-                points: str = "corners") -> None:
+                points: str = "corners", job: str | None = None) -> None:
     """A 4 x 3 grid of the 12 states over time (minutes), plus the number of visible keypoints if given: visible
-    (T, K), its axis 0..K, labelled `points` (ENVISAT's "corners"; another target's "keypoints")."""
+    (T, K), its axis 0..K, labelled `points` (ENVISAT's "corners"; another target's "keypoints"). job: the job
+    whose mark the PNG carries (png_marks), so its next run knows the file for its own."""
     rows = 5 if visible is not None else 4
     fig, axes = plt.subplots(rows, 3, figsize=(13, 2.3 * rows + 0.6), sharex=True, squeeze=False)
     t_min = t_s / 60.0
@@ -53,7 +55,7 @@ def plot_states(t_s: np.ndarray, x: np.ndarray, path: str, title: str = "", visi
     fig.suptitle(title or "ENVISAT relative state (truth)")
     fig.tight_layout()
     with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
+        fig.savefig(tmp, dpi=110, format="png", metadata={JOB_KEY: job} if job else None)
     plt.close(fig)
 
 
@@ -80,11 +82,12 @@ def _shade_no_estimate(axes, t_min: np.ndarray, none: np.ndarray) -> None:
 
 
 def plot_estimate(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.ndarray, path: str,
-                  title: str = "") -> None:
+                  title: str = "", job: str | None = None) -> None:
     """The seed paper's figures: per-state error of run 0, the filter's +-3 sigma (from P, mean over runs)
     and the +-3 sigma of the Monte Carlo sample errors, plus the attitude error angle of every run.
 
-    t_s (T,), x_true / x_hat (R, T, 12), P (R, T, 12, 12). Velocities in mm/s, angular rates in deg/s.
+    t_s (T,), x_true / x_hat (R, T, 12), P (R, T, 12, 12). Velocities in mm/s, angular rates in deg/s. job: the
+    job whose mark the PNG carries (png_marks), so its next run knows the file for its own.
     """
 
     err = estimate_errors(x_true, x_hat)
@@ -130,5 +133,5 @@ def plot_estimate(t_s: np.ndarray, x_true: np.ndarray, x_hat: np.ndarray, P: np.
     fig.suptitle(title or f"UKF estimation errors, {x_hat.shape[0]} runs")
     fig.tight_layout()
     with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
+        fig.savefig(tmp, dpi=100, format="png", metadata={JOB_KEY: job} if job else None)
     plt.close(fig)

@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import contextlib
 import os
+import warnings
 from typing import Sequence
 
 from envisat_pose.config import InputError
+from envisat_pose.png_marks import JOB_KEY, written_png
 
 PARTIAL_PREFIX = ".tmp-"  # io.atomic_path's temporary files: what a killed writer leaves behind
 
@@ -194,3 +196,23 @@ def refuse_foreign_outputs(out_dir: str, names, config_name: str, job: str, fiel
         shown = ", ".join(present[:3]) + (", ..." if len(present) > 3 else "")
         raise InputError(f"{field} {out_dir!r} holds {shown} but no {config_name} of an earlier `envisat {job}`: not "
                          "its outputs to replace; move them out or use another folder")
+
+
+def own_side_files(out: str, config: str, plot_png: str, job: str, plot: bool, field: str = "out") -> list[str]:
+    """Check, before any work, the files a one-file job writes beside its output `out`: its config (replaced) and
+    its plot (replaced with plot, else removed as a stale one). Either may be replaced only where an earlier
+    `envisat JOB` wrote it (the config's first line, written_by; the PNG's mark, png_marks.written_png): a user's
+    file of that name is refused in one InputError line naming it; a user's PNG where no plot is written is left
+    alone, said in a warning. Returns the names (in out's folder) the job may remove when it writes no plot."""
+    if os.path.lexists(config) and not written_by(config, job):
+        raise InputError(f"{field} {out!r}: its config goes to {config!r}, which holds a file no `envisat {job}` "
+                         f"wrote (its first line is not '# envisat {job}: ...'): not the job's to replace; move it "
+                         f"or use another {field}")
+    if not os.path.lexists(plot_png) or written_png(plot_png, job):
+        return [os.path.basename(plot_png)]
+    whose = f"a PNG no `envisat {job}` wrote (no {JOB_KEY!r} mark naming it)"
+    if plot:
+        raise InputError(f"{field} {out!r}: its plot goes to {plot_png!r}, {whose}: not the job's to replace; "
+                         f"move it or use another {field}")
+    warnings.warn(f"left {plot_png!r} alone: {whose}, so not an earlier plot of this output to remove", stacklevel=3)
+    return []

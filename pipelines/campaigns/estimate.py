@@ -41,7 +41,7 @@ from envisat_pose.filtering.montecarlo import MeasurementConfig, filter_stride, 
 from envisat_pose.geometry import load_geometry
 from envisat_pose.io import atomic_write_text, open_npz, sha256_file, staged_folder
 from envisat_pose.named_scenarios import check_name
-from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
+from envisat_pose.out_dirs import check_out_file, make_out_file_dirs, own_side_files
 from envisat_pose.out_lock import locks_output
 from envisat_pose.pipelines.campaigns.observability import (
     warn_if_never_updated,
@@ -383,6 +383,7 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     for path, field in [(p, "out") for p in estimate_output_paths(out)] + ([(rrd, "rrd")] if rrd else []):
         check_out_file(path, field)
     out, cfg_path = estimate_output_paths(out)
+    stale = own_side_files(out, cfg_path, out[:-4] + ".png", "estimate", plot)  # a user's est.png: not replaced
     if not truth_path and not scenario:
         scenario = cfg.scenario
         if scenario is None:
@@ -405,8 +406,8 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
     png = out[:-4] + ".png" if plot else None
     # written into a staging folder beside out and moved into place together: an interrupt leaves an earlier
     # run's est.npz, est.config.toml and est.png as they were, never a new est.npz beside an old est.png (a
-    # rerun without plot removes the earlier PNG: it shows other estimates)
-    with staged_folder(os.path.dirname(os.path.abspath(out)), [os.path.basename(out[:-4] + ".png")]) as stage:
+    # rerun without plot removes the earlier PNG: it shows other estimates; a user's PNG of that name stays)
+    with staged_folder(os.path.dirname(os.path.abspath(out)), stale) as stage:
         est.save(os.path.join(stage, os.path.basename(out)))
         atomic_write_text(os.path.join(stage, os.path.basename(cfg_path)),
                           "# envisat estimate: the full validated config of this job\n" + source_line()
@@ -418,7 +419,7 @@ def run_estimate(cfg: EstimateConfig, out: str, truth_path: str | None = None, s
             plot_estimate(arrays["t_s"], arrays["x_true"], arrays["x_hat"], arrays["P"],
                           os.path.join(stage, os.path.basename(png)),
                           title=f"{(truth_target(truth.config, 'the truth') or load_target(DEFAULT_TARGET)).name}: "
-                                f"UKF errors, {cfg.measurement.kind}, {cfg.runs} runs, seed {cfg.seed}")
+                                f"UKF errors, {cfg.measurement.kind}, {cfg.runs} runs, seed {cfg.seed}", job="estimate")
         if rrd:
             from envisat_pose.analysis.recording import write_estimates_recording
 

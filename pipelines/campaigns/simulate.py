@@ -10,7 +10,7 @@ from envisat_pose.config import InputError, config_arg, path_arg, rrd_arg, to_di
 from envisat_pose.datagen.scenario import ScenarioConfig
 from envisat_pose.io import atomic_write_text, staged_folder
 from envisat_pose.named_scenarios import known, names
-from envisat_pose.out_dirs import check_out_file, make_out_file_dirs
+from envisat_pose.out_dirs import check_out_file, make_out_file_dirs, own_side_files
 from envisat_pose.out_lock import locks_output
 from envisat_pose.provenance import source_line
 from envisat_pose.target import load_target
@@ -55,19 +55,20 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
     paths = {**{p: "out" for p in output_paths(out)}, **({rrd: "rrd"} if rrd else {})}
     for path, field in paths.items():
         check_out_file(path, field)
-    make_out_file_dirs(paths)
     out, cfg_path, png = output_paths(out)
+    stale = own_side_files(out, cfg_path, png, "simulate", plot)  # a user's run.config.toml or run.png: refused
+    make_out_file_dirs(paths)
     traj = simulate_truth(cfg, progress=progress)
     origin = (f"# made from scenario {label!r} (recorded in the truth: `envisat estimate --truth` takes its filter and "
               f"measurement tables); `envisat simulate --scenario {label} --config THIS_FILE` remakes it\n"
               if label else "")
     # all written into a staging folder beside out, then moved into place together: an interrupt (Ctrl-C during
     # the plot) leaves an earlier run's files as they were, not a new run.npz beside the old run.png
-    # a rerun without plot removes an earlier run's PNG (it shows another truth)
+    # a rerun without plot removes an earlier run's PNG (it shows another truth; a user's PNG stays: stale)
     # the config records the target file's sha256 as the truth does (target.sha256): a rerun from it refuses a
     # file that changed since (written_target.recorded_target_checked)
     written = with_target_sha256(to_dict(cfg), "simulate", traj.config["target"]["sha256"])
-    with staged_folder(os.path.dirname(os.path.abspath(out)), [os.path.basename(png)]) as stage:
+    with staged_folder(os.path.dirname(os.path.abspath(out)), stale) as stage:
         traj.save(os.path.join(stage, os.path.basename(out)))
         atomic_write_text(os.path.join(stage, os.path.basename(cfg_path)),
                           "# envisat simulate: the full validated config of this run\n" + source_line() + origin
@@ -78,7 +79,7 @@ def run_simulate(cfg, out: str, plot: bool = False, rrd: str | None = None, prog
             target = load_target(cfg.target.file)
             plot_states(traj.t_s, traj.x, os.path.join(stage, os.path.basename(png)), visible=traj.visible,
                         title=f"{target.name} truth, scenario {label!r}, seed {cfg.seed}",
-                        points="keypoints" if target.labels_name_keypoints else "corners")
+                        points="keypoints" if target.labels_name_keypoints else "corners", job="simulate")
         if rrd:
             from envisat_pose.analysis.recording import write_truth_recording
 
