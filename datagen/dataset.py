@@ -14,6 +14,7 @@ from envisat_pose.datagen.labels import label_points_noun
 from envisat_pose.datagen.shards import SHARD_GLOB, decode_png, encode_png, shard_name
 from envisat_pose.geometry import CORNER_NAMES, EDGES
 from envisat_pose.io import atomic_path
+from envisat_pose.png_marks import marked_png
 from envisat_pose.resumable import manifest_path
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, read_shard, shard_problems
 
@@ -187,9 +188,9 @@ def draw_labels(gray_u8: np.ndarray, label: dict) -> np.ndarray:
     return img
 
 
-def montage(source: str | list[str], path: str, count: int = 16, tile_px: int = 256) -> int:
+def montage(source: str | list[str], path: str, count: int = 16, tile_px: int = 256, job: str | None = None) -> int:
     """Write a grid of the first `count` images with their labels drawn; returns how many were drawn. source: a
-    dataset folder or its checked shard files."""
+    dataset folder or its checked shard files; job: the job a .png's mark names (png_marks), else none."""
     import cv2
 
     if count < 1:
@@ -207,13 +208,14 @@ def montage(source: str | list[str], path: str, count: int = 16, tile_px: int = 
     for k, tile in enumerate(tiles):
         r, c = divmod(k, cols)
         grid[r * tile_px : (r + 1) * tile_px, c * tile_px : (c + 1) * tile_px] = tile
-    write_image(path, grid)
+    write_image(path, grid, job)
     return len(tiles)
 
 
-def write_image(path: str, image: np.ndarray) -> None:
+def write_image(path: str, image: np.ndarray, job: str | None = None) -> None:
     """Encode an image by the path's extension (.png when none) and write it atomically (a temp file in the
-    same folder, then a rename: a killed run never leaves a partial file). InputError when that fails."""
+    same folder, then a rename: a killed run never leaves a partial file). InputError when that fails. job: a
+    PNG's mark (png_marks.marked_png: the job's next run knows the file for its own)."""
     import cv2
 
     ext = os.path.splitext(path)[1] or ".png"
@@ -223,9 +225,12 @@ def write_image(path: str, image: np.ndarray) -> None:
         ok = False
     if not ok:
         raise InputError(f"cannot encode the montage as {ext!r} for {path!r}: use .png or .jpg")
+    data = data.tobytes()
+    if job and ext.lower() == ".png":
+        data = marked_png(data, job)
     try:
         with atomic_path(path, suffix=ext) as tmp:
             with open(tmp, "wb") as fh:
-                fh.write(data.tobytes())
+                fh.write(data)
     except OSError as err:
         raise InputError(f"cannot write the montage to {path!r} ({err.strerror or err})") from None

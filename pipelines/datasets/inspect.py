@@ -13,10 +13,12 @@ from envisat_pose.datagen.render_view import target_mask_values
 from envisat_pose.dataset_target import check_dataset_target_file
 from envisat_pose.out_dirs import check_out_file, make_out_file_dir
 from envisat_pose.out_lock import output_lock
+from envisat_pose.png_marks import JOB_KEY, written_png
 from envisat_pose.shard_reader import checked_shards, load_dataset_manifest, unfinished_dataset
 from envisat_pose.target import DEFAULT_TARGET, load_target
 
 MONTAGE_NAME = "montage.png"  # the montage's default name, in the dataset's folder
+JOB = "dataset inspect"  # the job its montage's PNG mark names (png_marks): a rerun's to replace
 OUTPUT_KEYS = ("montage", "montage_images", "rrd")  # what inspect_dataset adds to the statistics
 
 
@@ -30,12 +32,16 @@ def inspect_dataset(src: str, montage: str | None = None, count: int = 16, rrd: 
     written. The returned dict also holds `montage` (its path), `montage_images` (how many it drew) and `rrd`
     (the path or None)."""
     src = path_arg(src, "src")
-    montage = os.path.join(src, MONTAGE_NAME) if montage is None else path_arg(montage, "montage")
+    default = montage is None  # a path the user named is theirs to have replaced; the default is checked below
+    montage = os.path.join(src, MONTAGE_NAME) if default else path_arg(montage, "montage")
     rrd = rrd_arg(rrd)
     target = path_arg(target, "target") if target is not None else None
     if type(count) is not int or count < 1:
         raise InputError(f"count {count!r}: expected at least 1 image in the montage")
     check_out_file(montage, "montage")
+    if default and os.path.lexists(montage) and not written_png(montage, JOB):
+        raise InputError(f"montage {montage!r} (the default) holds a file no `envisat {JOB}` wrote (no {JOB_KEY!r} "
+                         "mark naming it): not the job's to replace; give another `montage` path, or move it")
     if rrd is not None:
         check_out_file(rrd, "rrd")
     from envisat_pose.datagen.dataset import dataset_stats
@@ -58,7 +64,7 @@ def inspect_dataset(src: str, montage: str | None = None, count: int = 16, rrd: 
             if path is not None:
                 locks.enter_context(output_lock(path, "dataset inspect", field=field, folder=False))
         make_out_file_dir(montage, "montage")
-        drawn = write_montage(shards, montage, count=count)
+        drawn = write_montage(shards, montage, count=count, job=JOB)
         if rrd is not None:
             make_out_file_dir(rrd, "rrd")
             write_samples_rrd(shards, rrd, count, *recorded_target(manifest, target))

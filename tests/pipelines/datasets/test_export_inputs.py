@@ -273,6 +273,28 @@ def test_inspect_as_a_python_call_is_the_verb(small, tmp_path, capsys):
     assert not (tmp_path / "n.png").exists()
 
 
+def test_inspect_refuses_a_users_montage_png_at_its_default_path_and_replaces_its_own(small, tmp_path, capsys):
+    """`dataset inspect DIR` writes DIR/montage.png: it replaced a user's file of that name unasked. Its own montage
+    carries a PNG mark (png_marks) and is replaced on a rerun; another file there is refused in one line."""
+    from envisat_pose.png_marks import png_job
+
+    ds = str(tmp_path / "ds")
+    shutil.copytree(small["done"], ds)
+    assert envisat_main(["dataset", "inspect", ds, "--count", "1"]) == 0
+    assert png_job(os.path.join(ds, "montage.png")) == "dataset inspect"
+    assert envisat_main(["dataset", "inspect", ds, "--count", "2"]) == 0  # its own: replaced
+    mine = b"\x89PNG\r\n\x1a\n the user's own montage"
+    with open(os.path.join(ds, "montage.png"), "wb") as fh:
+        fh.write(mine)
+    capsys.readouterr()
+    assert envisat_main(["dataset", "inspect", ds, "--count", "1"]) == 2
+    line = one_error_line(capsys)
+    assert f"--montage {os.path.join(ds, 'montage.png')!r} (the default) holds a file no `envisat dataset " \
+           "inspect` wrote" in line and "give another --montage path" in line, line
+    with open(os.path.join(ds, "montage.png"), "rb") as fh:
+        assert fh.read() == mine
+
+
 def test_an_export_folder_gets_the_users_usual_mode(small, tmp_path):
     """The export is staged in a temporary folder (mkdtemp: 0700) renamed to --out: the folder gets the mode the
     umask gives a new folder, as every other output does, so others can read what the user shares."""
