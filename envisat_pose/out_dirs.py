@@ -201,14 +201,16 @@ def refuse_foreign_outputs(out_dir: str, names, config_name: str, job: str, fiel
 def own_side_files(out: str, config: str, plot_png: str, job: str, plot: bool, field: str = "out") -> list[str]:
     """Check, before any work, the files a one-file job writes beside its output `out`: its config (replaced) and
     its plot (replaced with plot, else removed as a stale one). Either may be replaced only where an earlier
-    `envisat JOB` wrote it (the config's first line, written_by; the PNG's mark, png_marks.written_png): a user's
-    file of that name is refused in one InputError line naming it; a user's PNG where no plot is written is left
-    alone, said in a warning. Returns the names (in out's folder) the job may remove when it writes no plot."""
+    `envisat JOB` wrote it (the config's first line, written_by; the PNG's mark, png_marks.written_png, or the
+    job's own config beside it, for a plot written before the mark): a user's file of that name is refused in one
+    InputError line naming it; a user's PNG where no plot is written is left alone, said in a warning. Returns the names (in out's folder) the job may remove when it writes no plot."""
     if os.path.lexists(config) and not written_by(config, job):
         raise InputError(f"{field} {out!r}: its config goes to {config!r}, which holds a file no `envisat {job}` "
                          f"wrote (its first line is not '# envisat {job}: ...'): not the job's to replace; move it "
                          f"or use another {field}")
-    if not os.path.lexists(plot_png) or written_png(plot_png, job):
+    # a PNG beside the job's own config is its earlier plot, marked or not (plots written before the mark carry none)
+    beside_own_config = os.path.lexists(config) and written_by(config, job)
+    if not os.path.lexists(plot_png) or written_png(plot_png, job) or beside_own_config:
         return [os.path.basename(plot_png)]
     whose = f"a PNG no `envisat {job}` wrote (no {JOB_KEY!r} mark naming it)"
     if plot:

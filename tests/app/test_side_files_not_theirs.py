@@ -54,6 +54,19 @@ def test_the_jobs_own_plot_and_config_are_replaced_and_its_stale_plot_removed(na
     assert "warning" not in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("name", ["simulate", "estimate"])
+def test_an_unmarked_plot_beside_the_jobs_own_config_is_its_earlier_plot(name, truth, tmp_path, capsys):
+    """A plot written before the mark existed carries none; beside the job's own config it is still the job's."""
+    out = ["--out", str(tmp_path / "x.npz"), "--quiet"]
+    assert main(verb(name, truth) + out) == 0  # the job's own x.config.toml
+    (tmp_path / "x.png").write_bytes(MINE)  # an unmarked plot of that output, as an earlier version wrote it
+    assert main(verb(name, truth) + out + ["--plot"]) == 0
+    assert png_job(str(tmp_path / "x.png")) == name
+    assert main(verb(name, truth) + out) == 0
+    assert sorted(os.listdir(tmp_path)) == ["x.config.toml", "x.npz"]
+    assert "warning" not in capsys.readouterr().err
+
+
 def test_a_mark_is_read_back_and_a_plain_png_has_none(tmp_path):
     import cv2
     import numpy as np
