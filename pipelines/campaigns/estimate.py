@@ -182,7 +182,8 @@ def with_outages(mcfg, windows: tuple[tuple[float, float], ...]):
 def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str | None = None,
                duration_s: float | None = None, progress: bool = False, target: str | None = None):
     """The truth trajectory: read from truth_path, or simulated by MuJoCo for the named scenario (exactly one of
-    them). Returns (truth, source) with source {"truth_file": path} or {"scenario": name, "target": target}.
+    them). Returns (truth, source) with source {"truth_file": path} or {"scenario": name} (and "target": its
+    file, where one was given).
 
     A file that is not a truth trajectory (truncated, foreign, another contract) is one InputError line.
     With a scenario its duration applies unless duration_s is given; a truth file fixes the duration. target: a
@@ -211,7 +212,8 @@ def load_truth(cfg: EstimateConfig, truth_path: str | None = None, scenario: str
         overrides["dt_s"] = 1.0 / cfg.measurement.rate_hz
     scenario_dict(scenario)  # unknown names fail here with the list of known ones
     scfg = scenario_config(scenario, **overrides)
-    return simulate_truth(scfg, progress=progress), {"scenario": scenario, "target": target}
+    source = {"scenario": scenario} if target is None else {"scenario": scenario, "target": target}
+    return simulate_truth(scfg, progress=progress), source
 
 
 def truth_origin(source: dict, truth) -> str:
