@@ -141,7 +141,8 @@ class _Contract:
             raise ContractError(f"{where}: is a folder, expected a {cls.KIND} .npz file") from None
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as err:
             # truncated zips, foreign formats, object arrays (refused: no pickles) all end here
-            raise ContractError(f"{where}: cannot be read as a {cls.KIND} .npz file ({type(err).__name__}: {err})") from None
+            raise ContractError(f"{where}: cannot be read as a {cls.KIND} .npz file ({type(err).__name__}: "
+                                f"{err})") from None
         return cls.validated(data, where)
 
     @property

@@ -203,7 +203,8 @@ def own_side_files(out: str, config: str, plot_png: str, job: str, plot: bool, f
     its plot (replaced with plot, else removed as a stale one). Either may be replaced only where an earlier
     `envisat JOB` wrote it (the config's first line, written_by; the PNG's mark, png_marks.written_png, or the
     job's own config beside it, for a plot written before the mark): a user's file of that name is refused in one
-    InputError line naming it; a user's PNG where no plot is written is left alone, said in a warning. Returns the names (in out's folder) the job may remove when it writes no plot."""
+    InputError line naming it; a user's PNG where no plot is written is left alone, said in a warning. Returns
+    the names (in out's folder) the job may remove when it writes no plot."""
     if os.path.lexists(config) and not written_by(config, job):
         raise InputError(f"{field} {out!r}: its config goes to {config!r}, which holds a file no `envisat {job}` "
                          f"wrote (its first line is not '# envisat {job}: ...'): not the job's to replace; move it "

@@ -352,12 +352,12 @@ def adapt(cfg: AdaptConfig, source, out_dir: str, *, camera=None, progress: bool
     open_source opens at cfg.track.rate_hz) and write out_dir (module doc). camera: a PinholeCamera, a camera TOML
     file or None (the MJCF's chaser_cam: camera_file.default_camera), as track_frames; command: the command line, for the
     model card. Returns the report: {adopted, reason (None when adopted), earlier_weights_kept (not adopted and an
-    earlier run's detector.safetensors in out_dir, left as it was with its detector.json), scale_note (one line when the edges'
-    scale was not adopted: disagreement; else None), removed_calibration (adopted fine-tuned weights: one line naming
-    the base's calibration they no longer carry and what measures it again; else None), before, after
-    (track_figures), rounds (per round: labels, fine-tune, calibration), source, timing_s}. InputError (one line) when the first part
-    holds fewer than cfg.min_trusted labelled frames; nothing is written then (an --out this job made is removed
-    again on any failure or interrupt)."""
+    earlier run's detector.safetensors in out_dir, left as it was with its detector.json), scale_note (one line
+    when the edges' scale was not adopted: disagreement; else None), removed_calibration (adopted fine-tuned
+    weights: one line naming the base's calibration they no longer carry and what measures it again; else None),
+    before, after (track_figures), rounds (per round: labels, fine-tune, calibration), source, timing_s}.
+    InputError (one line) when the first part holds fewer than cfg.min_trusted labelled frames; nothing is
+    written then (an --out this job made is removed again on any failure or interrupt)."""
 
     cfg, out_dir = config_arg(cfg, AdaptConfig), path_arg(out_dir, "out_dir")
     source, camera = as_path_or_object(source), as_path_or_object(camera)

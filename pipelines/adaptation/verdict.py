@@ -57,8 +57,9 @@ def worse_reason(before: dict, after: dict) -> str | None:
 def unchanged_track(before_dir: str, after_dir: str) -> str | None:
     """One line saying that the adapted weights tracked every frame as the original ones did (the same statuses,
     estimates and covariances within a millionth of their sigmas: floating-point rounding), or None. It happens
-    where nothing they change reaches the tracker: the network not fine-tuned (params 'none'), its apparent scale kept, and a recalibrated covariance
-    scale that the weights' sequence error model overrides (tracking/noise.sequence_cov_factor)."""
+    where nothing they change reaches the tracker: the network not fine-tuned (params 'none'), its apparent scale
+    kept, and a recalibrated covariance scale that the weights' sequence error model overrides
+    (tracking/noise.sequence_cov_factor)."""
     runs = []
     for d in (before_dir, after_dir):
         with open_npz(os.path.join(d, "est.npz")) as est:

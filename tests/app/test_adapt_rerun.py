@@ -1,8 +1,8 @@
 """`envisat adapt` run again into the same --out: a rejected rerun leaves the earlier adopted detector.safetensors
 and its card as they were (a rejected result loses nothing), says so in report.json and on stderr; an adopted
 rerun replaces them. A folder adapt did not write (a user's own before/, report.json) and an --out on, in or
-around the frames are refused in one line, their files intact. The job's own work (tracks, labels, fine-tune) is stood in for; its files are the real ones
-(_finish)."""
+around the frames are refused in one line, their files intact. The job's own work (tracks, labels, fine-tune) is
+stood in for; its files are the real ones (_finish)."""
 
 import json
 import os

@@ -113,8 +113,8 @@ def test_generate_refuses_a_depth_unit_longer_than_the_target():
 def test_off_values_and_the_bounds_themselves_stay_accepted():
     """What means "off" by design (a loss weight 0, sigma_cells 0: one cell, shuffle_buffer 0, line_jitter_px 0,
     focal_beta at any size: the negatives near a peak left out), the bounds (lr 1, weight_decay 1 / lr, a depth of
-    10 levels at 4096 px, 256 threads, a shuffle buffer of 16 GiB of images), a run by steps "forever" (2^63 - 1 steps, checkpoints at its end), a seed
-    of 2^63 - 1, a depth unit of the target's reach."""
+    10 levels at 4096 px, 256 threads, a shuffle buffer of 16 GiB of images), a run by steps "forever" (2^63 - 1
+    steps, checkpoints at its end), a seed of 2^63 - 1, a depth unit of the target's reach."""
     from envisat_pose.datagen.generate_config import GenerateConfig
     from envisat_pose.perception.data import DataConfig
     from envisat_pose.perception.keypoint_train import KeypointTrainConfig
