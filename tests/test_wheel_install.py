@@ -45,6 +45,9 @@ def test_wheel_installs_and_simulates_from_another_folder(tmp_path):
     where = run([str(py), "-c", "import envisat_pose.datagen.plugin as p, envisat_pose.geometry as g; "
                  "print(p.__file__); print(g.model_path())"], cwd=elsewhere, env=env).stdout.split()
     assert all(path.startswith(site) for path in where), where  # the installed copy, not the repository
+    models = os.path.dirname(where[1])  # the installed models folder (envisat.xml in it)
+    for name in ("envisat.xml", "detector.safetensors", "upper_stage.xml", "upper_stage_detector.safetensors"):
+        assert os.path.isfile(os.path.join(models, name)), name  # a shipped target's own detector ships with it
     run([str(venv / "bin" / "envisat"), "simulate", "--duration-s", "20", "--dt-s", "2", "--out", "run.npz",
          "--quiet"], cwd=elsewhere, env=env)
     with np.load(elsewhere / "run.npz", allow_pickle=False) as z:
