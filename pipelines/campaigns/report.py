@@ -254,10 +254,22 @@ def summary_target(summary: dict, config_text: str) -> str:
     return str(name) if name else campaign_target(config_text)
 
 
-# what two campaigns side by side must share for their columns to compare the filter alone: (what, its value)
-LIKE_FOR_LIKE = (("target", lambda c: summary_target(c["summary"], c["config"])),
-                 ("duration", lambda c: f"{_fmt(c['summary'].get('duration_s'))} s"),
-                 ("settle time (statistics after)", lambda c: f"{_fmt(c['summary'].get('settle_s'))} s"))
+def target_values(campaigns: list[dict]) -> list[str]:
+    """Each campaign's target as the like-for-like note compares it: its name (summary_target), with its sha256's
+    first 12 digits where campaigns of that name record other sha256s (a user's edited craft keeps its MJCF
+    model name: another inertia or keypoints under one name). A summary without a sha256 (written before the
+    field) is compared by its name alone."""
+    names = [summary_target(c["summary"], c["config"]) for c in campaigns]
+    records = [c["summary"].get("target") for c in campaigns]
+    shas = [r.get("sha256") if isinstance(r, dict) else None for r in records]
+    edited = {n for n in names if len({s for m, s in zip(names, shas) if m == n and s}) > 1}
+    return [f"{n} (sha256 {s[:12]}...)" if n in edited and s else n for n, s in zip(names, shas)]
+
+
+# what two campaigns side by side must share for their columns to compare the filter alone: (what, their values)
+LIKE_FOR_LIKE = (("target", target_values),
+                 ("duration", lambda cs: [f"{_fmt(c['summary'].get('duration_s'))} s" for c in cs]),
+                 ("settle time (statistics after)", lambda cs: [f"{_fmt(c['summary'].get('settle_s'))} s" for c in cs]))
 
 
 def unlike_notes(campaigns: list[dict]) -> list[str]:
@@ -267,8 +279,8 @@ def unlike_notes(campaigns: list[dict]) -> list[str]:
     if len(campaigns) < 2:
         return []
     names, notes = column_names([c["dir"] for c in campaigns]), []
-    for what, value_of in LIKE_FOR_LIKE:
-        values = [value_of(c) for c in campaigns]
+    for what, values_of in LIKE_FOR_LIKE:
+        values = values_of(campaigns)
         if len(set(values)) > 1:
             shown = ", ".join(f"{n}: {v}" for n, v in zip(names, values))
             notes.append(f"not like for like: the campaigns differ in {what} ({shown}); their RMSE does not compare "

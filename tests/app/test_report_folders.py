@@ -145,6 +145,28 @@ def test_campaigns_of_another_target_or_duration_are_said_not_like_for_like(tmp_
     assert "not like for like" not in out.read_text(encoding="utf-8") + capsys.readouterr().err
 
 
+def test_campaigns_of_one_target_name_but_other_files_are_said_not_like_for_like(tmp_path, capsys):
+    """A user's craft edited between two campaigns (another inertia, a keypoint moved) keeps its MJCF model name:
+    the summaries' sha256s differ, and the page and the verb say so naming each column's sha256; the same file
+    twice, or a summary written before the sha256 was recorded, says nothing. The note once compared the names
+    alone and put two bodies side by side as one."""
+    sha = {"v1": "88ec56358f71" + "0" * 52, "v2": "511a8da4d80a" + "1" * 52, "v1b": "88ec56358f71" + "0" * 52,
+           "old": None}
+    for name, digest in sha.items():
+        folder = _campaign(tmp_path / name)
+        s = json.loads((folder / "summary.json").read_text())
+        s["target"] = {"name": "client_sat", **({"sha256": digest} if digest else {})}
+        (folder / "summary.json").write_text(json.dumps(s))
+    out = tmp_path / "r.html"
+    assert main(["report", str(tmp_path / "v1"), str(tmp_path / "v2"), "--out", str(out)]) == 0
+    line = ("not like for like: the campaigns differ in target (v1: client_sat (sha256 88ec56358f71...), v2: "
+            "client_sat (sha256 511a8da4d80a...))")
+    assert line in out.read_text(encoding="utf-8").split("<table>")[0] and line in capsys.readouterr().err
+    for pair in (("v1", "v1b"), ("v1", "old")):
+        assert main(["report", *(str(tmp_path / p) for p in pair), "--out", str(out)]) == 0
+        assert "not like for like" not in out.read_text(encoding="utf-8") + capsys.readouterr().err, pair
+
+
 @pytest.mark.parametrize("case", ["interrupted", "foreign"])
 def test_an_interrupted_campaign_and_a_foreign_folder_each_get_their_own_line(tmp_path, capsys, case):
     """A campaign stopped before its summary.json says it is one, how many blocks are done and to rerun its
