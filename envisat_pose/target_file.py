@@ -27,6 +27,16 @@ def keypoint_sites(model, body: int, prefixes: tuple[str, ...]) -> tuple[tuple[s
     return (), (), np.zeros((0, 3))
 
 
+def passed_over_sites(model, body: int, prefixes: tuple[str, ...], chosen: tuple[str, ...]) -> list[str]:
+    """The sites of body id `body` named with a later prefix of `prefixes` than the one keypoint_sites chose for
+    the `chosen` site names (a file with kp_ sites takes those alone: its corner_ sites are no keypoints)."""
+    if not chosen:
+        return []
+    later = prefixes[prefixes.index(next(p for p in prefixes if chosen[0].startswith(p))) + 1:]
+    sites = [model.site(s).name for s in range(model.nsite) if model.site_bodyid[s] == body]
+    return [n for n in sites if n not in chosen and n.startswith(later)] if later else []
+
+
 def misprefixed_keypoints(model, body: int, prefix: str) -> str:
     """A hint for a refusal that found too few keypoints on body id `body` of a compiled model: the sites whose
     names hold the keypoint prefix further in (an <attach prefix=...> put before a model's kp_ sites, which then

@@ -25,6 +25,7 @@ from envisat_pose.target_file import (
     inertial_used,
     keypoint_sites,
     misprefixed_keypoints,
+    passed_over_sites,
     read_spec,
 )
 from envisat_pose.target_masses import com_hint
@@ -138,6 +139,12 @@ def read_target_fields(path: str, field: str, given: str, named: str) -> dict:
                             f"surface of the geoms the factory draws (inside a solid or off it; groups {groups}; at "
                             f"most {KEYPOINT_MAX_SURFACE_DISTANCE_M:g} m)")
     reach = float(np.linalg.norm(surface.mesh.vertices_T_m, axis=1).max())
+    passed = passed_over_sites(model, body, (KEYPOINT_PREFIX, SCENE_KEYPOINT_PREFIX), sites)
+    if passed:  # said once per file (the load is cached), as the latched joints
+        warnings.warn(f"{named}: site(s) {', '.join(map(repr, passed))} are not keypoints: a file with "
+                      f"'{KEYPOINT_PREFIX}<name>' sites takes those alone ('{SCENE_KEYPOINT_PREFIX}<name>' sites only "
+                      f"where it has none); name them '{KEYPOINT_PREFIX}<name>' to measure them", TargetFileWarning,
+                      stacklevel=3)  # load_target's caller
     if latched:  # said once per file (the load is cached): the shape is the file's reference pose
         warnings.warn(f"{named}: {len(latched)} joint(s) latched at the file's reference pose, the target "
                       f"one rigid body ({', '.join(latched)})", TargetFileWarning, stacklevel=3)  # load_target's caller

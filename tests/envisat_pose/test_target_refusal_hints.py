@@ -92,3 +92,24 @@ def test_a_keypoint_no_view_sees_is_warned_of_by_name(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert load_target(str(path)).num_keypoints == 6
+
+
+def test_a_corner_site_beside_kp_sites_is_warned_of_as_no_keypoint(tmp_path):
+    """A craft written from ENVISAT's file keeps one site named 'corner_<name>' among its kp_ sites: a file with
+    kp_ sites takes those alone, so the corner site was dropped from the keypoints without a word (12 measured
+    where the user wrote 13). It loads with a warning naming that site; its kp_ sites are the keypoints, and a
+    file of kp_ sites alone (or ENVISAT's corner_ sites alone) says nothing."""
+    path = _sat(tmp_path, "mixed", mass=' mass="0"', b="corner_B")
+    with open(path) as f:  # a third bus corner, so that four kp_ sites remain
+        text = f.read().replace('<site name="kp_A"', '<site name="kp_C" pos="-0.3 0.3 0.4"/><site name="kp_A"')
+    with open(path, "w") as f:
+        f.write(text)
+    with pytest.warns(UserWarning, match="are not keypoints") as caught:
+        target = load_target(path)
+    messages = [str(w.message) for w in caught if "are not keypoints" in str(w.message)]
+    assert len(messages) == 1 and "'corner_B'" in messages[0] and "'kp_<name>'" in messages[0]
+    assert target.keypoint_names == ("C", "A", "tip_top", "tip_bottom")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_target(_sat(tmp_path, "plain_kp", mass=' mass="0"')).num_keypoints == 4
+        assert load_target().num_keypoints == 8  # ENVISAT: corner_A..H, no kp_ site
