@@ -146,13 +146,13 @@ class Target:
         return self.surface.select(self.drawn(appendages))
 
     def visible_from(self, c_T_m: np.ndarray, appendages: bool = False) -> np.ndarray:
-        """Exact visibility of each keypoint from the point c_T_m (3,) in T: the ray from it to the keypoint
+        """Exact visibility of each keypoint from each point c_T_m (..., 3) in T: the ray from it to the keypoint
         meets no opaque drawn geom of the target before it (occluding; MuJoCo's own ray-geom intersections, less
         RAY_ABS_TOL_M plus 1e-6 of the range). The one rule of the labels, the truth and the filters' table.
-        (K,) bool."""
+        (..., K) bool."""
         c_T = np.asarray(c_T_m, float)
         hits = ray_hits_m(self.path, self.sha256, c_T, self.keypoints_T_m, self.occluding(appendages))
-        rng = np.linalg.norm(self.keypoints_T_m - c_T, axis=1)
+        rng = np.linalg.norm(self.keypoints_T_m - c_T[..., None, :], axis=-1)
         return hits >= rng - (RAY_ABS_TOL_M + 1e-6 * rng)
 
     def visible(self, R_K_from_T: np.ndarray, t_K_from_T_m: np.ndarray, appendages: bool = False) -> np.ndarray:
@@ -184,7 +184,7 @@ class Target:
         c = np.asarray(c_T_m, float).reshape(-1, 3)
         if self.is_default:
             return visible_corners(c)
-        return np.array([self.visible_from(p) for p in c], bool).reshape(len(c), self.num_keypoints)
+        return self.visible_from(c)
 
 
 @functools.lru_cache(maxsize=16)
