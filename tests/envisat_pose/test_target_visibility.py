@@ -3,7 +3,7 @@
 References independent of the code under test: a target written here with a geom of each kind MuJoCo casts rays
 at (box, cylinder, sphere, capsule, mesh), a veil of alpha 0.3 (hides nothing) and a boom in the appendage group,
 its body moved and turned in the file; the plain casts one ray and one geom at a time (mju_rayGeom / mj_rayMesh
-on the file compiled here, the occluders named here).
+on the file compiled here, the occluders named here); each cell's nearest direction by the argmax over all.
 """
 
 import mujoco
@@ -12,7 +12,8 @@ import pytest
 
 from envisat_pose import target_visibility
 from envisat_pose.target import RAY_ABS_TOL_M, load_target
-from envisat_pose.target_visibility import build_visibility_table
+from envisat_pose.target_shape import fibonacci_directions
+from envisat_pose.target_visibility import build_visibility_table, direction_cells
 
 MIXED = """<mujoco model="mixed">
  <asset><mesh name="wedge" vertex="0 0 0  0.4 0 0  0 0.4 0  0 0 0.4"/>
@@ -112,3 +113,17 @@ def test_the_table_is_cast_in_one_batch(mixed, monkeypatch):
     t = load_target(mixed)
     build_visibility_table(t, False)
     assert calls == [(len(target_visibility.TABLE_RANGES_REACHES), target_visibility.TABLE_DIRECTIONS, 3)]
+
+
+@pytest.mark.parametrize("dirs", [fibonacci_directions(2048), fibonacci_directions(37),
+                                  np.random.default_rng(2).standard_normal((500, 3))])
+def test_each_cell_finds_the_nearest_direction_of_all(dirs):
+    """Each cell's direction is the argmax of the dot product with the cell's centre over every direction (the
+    first of equals), for the table's Fibonacci sphere, a sparse one, and random directions."""
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    rows = 64
+    polar = (np.arange(rows) + 0.5) * np.pi / rows
+    azimuth = (np.arange(2 * rows) + 0.5) * np.pi / rows - np.pi
+    p, a = np.meshgrid(polar, azimuth, indexing="ij")
+    centres = np.stack([np.sin(p) * np.cos(a), np.sin(p) * np.sin(a), np.cos(p)], axis=-1).reshape(-1, 3)
+    np.testing.assert_array_equal(direction_cells(dirs, rows), np.argmax(centres @ dirs.T, axis=1).reshape(p.shape))
