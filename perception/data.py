@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from dataclasses import asdict, dataclass
 
 import cv2
@@ -87,6 +88,15 @@ class DataConfig(Config):
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def warn_shuffle_buffer(cfg: DataConfig, samples: int | None) -> None:
+    """A warning where shuffle_buffer is more than the `samples` the training data holds (None: unknown, no
+    warning): each reader then holds all of its samples and shuffles them whole, the same order a buffer of the
+    data's size gives (the buffer never fills); the config keeps the value given (a resumed run compares it)."""
+    if samples is not None and cfg.shuffle_buffer > samples:
+        warnings.warn(f"data.shuffle_buffer = {cfg.shuffle_buffer}: more than the {samples} samples of the training "
+                      f"data; each reader shuffles all of its samples, as a buffer of {samples} would", stacklevel=3)
 
 
 def shard_paths(data_dir: str, field: str = "--data") -> list[str]:

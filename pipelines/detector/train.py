@@ -442,6 +442,7 @@ def _train_locked(cfg, data_dirs: list[str], run_dir: str, resume: bool, init: s
     """train_detector's run, its arguments checked and run_dir locked."""
     import torch
 
+    from envisat_pose.perception.data import warn_shuffle_buffer
     from envisat_pose.perception.train import train
 
     if online is not None:
@@ -460,6 +461,8 @@ def _train_locked(cfg, data_dirs: list[str], run_dir: str, resume: bool, init: s
         data.append(dataset_provenance(d, left_out))
     if workers is None and not resume:  # as many as the shards and their batches keep busy
         workers = default_workers(len(paths), dataset_images(data), cfg.batch_size)
+    if online is None and ddp_rank() == 0:  # once a run, not once a rank
+        warn_shuffle_buffer(cfg.data, dataset_images(data))
     source = None
     if online is not None:
         data, source = online_source(online, cfg, rank_device, task, target)

@@ -254,3 +254,19 @@ def test_workers_ignore_ctrl_c_from_their_first_instruction():
         child.start()
         child.join(60)
         assert child.exitcode == 0, (sig, child.exitcode)  # 1: KeyboardInterrupt; -15: killed by SIGTERM
+
+
+def test_a_buffer_beyond_the_samples_gives_the_order_a_buffer_of_them_all_gives(many_shards):
+    """What the warning of a shuffle_buffer over the data's samples says (perception.data.warn_shuffle_buffer): a
+    reader shuffles all of its samples, in the order a buffer of exactly the data's size gives."""
+    from envisat_pose.perception.stream import ShardStream
+
+    paths = shard_paths(many_shards)
+    n = sum(SHARD_SIZES)
+
+    def order(buffer):
+        cfg = DataConfig(input_px=64, shuffle_buffer=buffer)
+        return [tuple(s["sample_id"]) for s in ShardStream(paths, cfg, seed=3, epoch=1)]
+
+    assert order(10 * n) == order(n) and len(order(n)) == n
+    assert order(10 * n) != order(1)  # the order is shuffled at all: a buffer of one is the shards' order

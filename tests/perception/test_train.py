@@ -175,3 +175,21 @@ def test_a_resumed_run_takes_the_threads_it_trained_with(tiny_dataset, tmp_path)
     train_detector(small_config(7), [tiny_dataset], part, workers=0, resume=True, threads=2)
     record = json.load(open(os.path.join(part, "config.json")))
     assert record["threads"] == 2 and [r["threads"] for r in record["resumes"]] == [1, 2]
+
+
+@pytest.mark.parametrize("buffer, warned", [(9, True), (8, False)])
+def test_a_shuffle_buffer_beyond_the_data_is_said_once_naming_both_numbers(tiny_dataset, tmp_path, capsys,
+                                                                            buffer, warned):
+    """data.shuffle_buffer 9 over the tiny dataset's 8 samples: one warning line naming both; 8 (all of them):
+    none. The run trains either way, its config keeping the value given."""
+    toml = tmp_path / "t.toml"
+    toml.write_text(f"checkpoint_every = 1000\n[model]\ninput_px = 128\nwidth = 16\ndepth = 2\n"
+                    f"[data]\ninput_px = 128\nshuffle_buffer = {buffer}\n")
+    run = tmp_path / "run"
+    assert main(["train", "--data", tiny_dataset, "--out", str(run), "--config", str(toml), "--steps", "1",
+                 "--batch-size", "4", "--threads", "1", "--workers", "0", "--quiet"]) == 0
+    lines = [line for line in capsys.readouterr().err.splitlines() if "shuffle_buffer" in line]
+    assert len(lines) == int(warned), lines
+    if warned:
+        assert "shuffle_buffer = 9" in lines[0] and "the 8 samples" in lines[0], lines
+    assert json.loads((run / "config.json").read_text())["train"]["data"]["shuffle_buffer"] == buffer
