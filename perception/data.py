@@ -91,10 +91,11 @@ class DataConfig(Config):
 
 
 def warn_shuffle_buffer(cfg: DataConfig, samples: int | None) -> None:
-    """A warning where shuffle_buffer is more than the `samples` the training data holds (None: unknown, no
-    warning): each reader then holds all of its samples and shuffles them whole, the same order a buffer of the
-    data's size gives (the buffer never fills); the config keeps the value given (a resumed run compares it)."""
-    if samples is not None and cfg.shuffle_buffer > samples:
+    """A warning where a shuffle_buffer given (not the default, which a small dataset leaves unfilled unasked) is
+    more than the `samples` the training data holds (None: unknown, no warning): each reader then holds all of its
+    samples and shuffles them whole, the same order a buffer of the data's size gives (the buffer never fills);
+    the config keeps the value given (a resumed run compares it)."""
+    if samples is not None and cfg.shuffle_buffer > samples and cfg.shuffle_buffer != DataConfig.shuffle_buffer:
         warnings.warn(f"data.shuffle_buffer = {cfg.shuffle_buffer}: more than the {samples} samples of the training "
                       f"data; each reader shuffles all of its samples, as a buffer of {samples} would", stacklevel=3)
 

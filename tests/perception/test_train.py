@@ -177,14 +177,15 @@ def test_a_resumed_run_takes_the_threads_it_trained_with(tiny_dataset, tmp_path)
     assert record["threads"] == 2 and [r["threads"] for r in record["resumes"]] == [1, 2]
 
 
-@pytest.mark.parametrize("buffer, warned", [(9, True), (8, False)])
+@pytest.mark.parametrize("buffer, warned", [(9, True), (8, False), (None, False)])
 def test_a_shuffle_buffer_beyond_the_data_is_said_once_naming_both_numbers(tiny_dataset, tmp_path, capsys,
                                                                             buffer, warned):
-    """data.shuffle_buffer 9 over the tiny dataset's 8 samples: one warning line naming both; 8 (all of them):
-    none. The run trains either way, its config keeping the value given."""
+    """data.shuffle_buffer 9 over the tiny dataset's 8 samples: one warning line naming both; 8 (all of them), or
+    the default 64 nobody gave: none. The run trains either way, its config keeping the value given."""
     toml = tmp_path / "t.toml"
+    given = "" if buffer is None else f"shuffle_buffer = {buffer}\n"
     toml.write_text(f"checkpoint_every = 1000\n[model]\ninput_px = 128\nwidth = 16\ndepth = 2\n"
-                    f"[data]\ninput_px = 128\nshuffle_buffer = {buffer}\n")
+                    f"[data]\ninput_px = 128\n{given}")
     run = tmp_path / "run"
     assert main(["train", "--data", tiny_dataset, "--out", str(run), "--config", str(toml), "--steps", "1",
                  "--batch-size", "4", "--threads", "1", "--workers", "0", "--quiet"]) == 0
@@ -192,4 +193,4 @@ def test_a_shuffle_buffer_beyond_the_data_is_said_once_naming_both_numbers(tiny_
     assert len(lines) == int(warned), lines
     if warned:
         assert "shuffle_buffer = 9" in lines[0] and "the 8 samples" in lines[0], lines
-    assert json.loads((run / "config.json").read_text())["train"]["data"]["shuffle_buffer"] == buffer
+    assert json.loads((run / "config.json").read_text())["train"]["data"]["shuffle_buffer"] == (buffer or 64)
