@@ -29,7 +29,7 @@ from envisat_pose.datagen.generate_config import config_from_json
 from envisat_pose.dataset_target import check_dataset_target_file
 from envisat_pose.geometry import load_camera
 from envisat_pose.io import stage_prefix, sweep_stale_stages, usual_mode
-from envisat_pose.out_dirs import check_out_dir
+from envisat_pose.out_dirs import check_out_dir, refuse_overlap
 from envisat_pose.out_lock import is_lock_file, locks_output
 from envisat_pose.pipelines.common.threads import compute_threads
 from envisat_pose.pipelines.datasets import export_layouts as lay
@@ -91,10 +91,11 @@ def export_dataset(src: str, out_dir: str, cfg: ExportConfig, *, workers: int = 
     ExportSummary: out_dir (the folder written), fmt, images (how many per split, sequence or scene set) and
     skipped (the damaged shards left out with skip_damaged). on_shard(count): called after each shard (a progress
     hook). InputError for a bad argument, a missing or damaged dataset (naming the shard) or an `out_dir` that
-    exists and holds anything."""
+    exists and holds anything or lies inside `src`."""
     cfg, src, out_dir = config_arg(cfg, ExportConfig), path_arg(src, "src"), path_arg(out_dir, "out_dir")
     check(type(workers) is int and workers >= 1, "workers", workers, "at least 1 worker process (an integer)")
     check_out_dir(out_dir, field="out_dir")
+    refuse_overlap(out_dir, src, "out_dir", "src")  # an export inside the dataset: files among its shards
     if os.path.isdir(out_dir) and _entries(out_dir):
         raise InputError(f"out_dir {out_dir!r} exists and is not empty: an export writes a new folder")
     manifest = load_dataset_manifest(src, "src")

@@ -420,3 +420,19 @@ def test_more_workers_than_the_cores_are_warned_of_once_and_the_verb_names_the_f
     assert envisat_main(["dataset", "export", small["done"], "--format", "coco", "--out", str(tmp_path / "c"),
                          "--quiet"]) == 130  # the default: the usable cores
     assert "warning" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("made", [False, True])
+def test_an_out_inside_the_dataset_is_refused_before_any_work(small, tmp_path, capsys, made):
+    """`--out SRC/sub` (made empty beforehand or not): one line naming --out, that it lies inside SRC, and the
+    dataset; nothing written into the dataset's folder (an export among its shards, which verify then sees)."""
+    src = tmp_path / "ds"
+    shutil.copytree(small["done"], src)
+    if made:
+        (src / "sub").mkdir()
+    before = sorted(os.listdir(src))
+    rc = envisat_main(["dataset", "export", str(src), "--format", "coco", "--out", str(src / "sub"), "--quiet"])
+    assert rc == 2
+    line = one_error_line(capsys)
+    assert "error: --out" in line and "lies inside SRC" in line and str(src) in line, line
+    assert sorted(os.listdir(src)) == before and (not made or os.listdir(src / "sub") == [])
