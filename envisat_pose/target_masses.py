@@ -53,14 +53,22 @@ def _vec(v: np.ndarray) -> str:
     return "[" + ", ".join(f"{x:.4g}" for x in np.where(np.abs(v) < 1e-9, 0.0, v)) + "]"
 
 
+def frame_pos(com: np.ndarray) -> str:
+    """The <frame> that moves what it wraps by -com (m; 9 significant digits, within the check's tolerance)."""
+    return "<frame pos='" + " ".join(f"{0.0 if abs(x) < 1e-12 else -x:.9g}" for x in com) + "'>"
+
+
 def com_hint(path: str, fused: bool, stated: bool, whose: str, com: np.ndarray) -> str:
     """The refusal's words after 'the centre of mass at the body's origin': where MuJoCo puts it, from what, and
-    what brings it to the origin. `stated`: a flat body's <inertial> is used; `whose`: what the masses came from."""
+    what brings it to the origin (each way to move the geometry: by hand, or wrapped in one <frame> inside body
+    'target', frame_pos). `stated`: a flat body's <inertial> is used; `whose`: what the masses came from."""
+    frame = frame_pos(com)
     if stated:
-        return f"<inertial pos='0 0 0'>, got {com.tolist()}"
+        return (f"<inertial pos='0 0 0'>, got {com.tolist()}: set it so, and move the geoms and sites by its "
+                f"negative, or wrap them in {frame} inside body 'target'")
     where = f"MuJoCo puts it at {np.round(com, 9).tolist()} m from {whose}"
     if not fused:
-        return f"{where}: move the geoms and sites by its negative"
+        return f"{where}: move the geoms and sites by its negative, or wrap them in {frame} inside body 'target'"
     bodies = tree_masses(path)
     shares = "; ".join(f"{n or 'unnamed'!r} {m:.4g} kg at {_vec(c)}" + ("" if own else " from its geoms")
                        for n, m, c, own in bodies if m > 0)
@@ -68,5 +76,7 @@ def com_hint(path: str, fused: bool, stated: bool, whose: str, com: np.ndarray) 
     if bodies and bodies[0][3]:  # the target's <inertial> states a mass of its own: the children add theirs
         return (f"{hint}: where the <inertial> of body 'target' holds the whole craft, give the child bodies' geoms "
                 "mass='0' (a geom without one weighs its volume times its density, 1000 kg/m^3 by default); else "
-                "move its geoms, sites, <inertial> and child bodies by its negative")
-    return f"{hint}: move body 'target''s own geoms and sites and its child bodies by its negative"
+                "move its geoms, sites, <inertial> and child bodies by its negative (all but the <inertial> wrapped "
+                f"in {frame} inside body 'target')")
+    return (f"{hint}: move body 'target''s own geoms and sites and its child bodies by its negative, or wrap them in "
+            f"{frame} inside body 'target'")

@@ -6,6 +6,7 @@ the origin. The refusal said 'move the geoms and sites by its negative', which, 
 stated <inertial> stays put). Keypoint sites misspelt (KP_A, kp-B) were refused with 'found 3' alone.
 """
 
+import re
 import warnings
 
 import pytest
@@ -52,6 +53,43 @@ def test_the_centre_of_mass_refusal_names_each_bodys_mass_and_both_remedies_load
     moved = load_target(_sat(tmp_path, "moved", shift_y_m=-COM_Y_M))
     assert moved.mass_kg == pytest.approx(62.0)
     assert moved.keypoints_T_m[0] == pytest.approx([0.3, 0.3 - COM_Y_M, 0.4])
+
+
+def _frame_said(message: str) -> str:
+    """The <frame pos='...'> a refusal tells to wrap the geometry in (one, with the offset to use)."""
+    found = re.findall(r"<frame pos='[^']*'>", message)
+    assert len(found) == 1, message
+    return found[0]
+
+
+def test_the_centre_of_mass_refusal_says_a_frame_moves_the_geometry_and_the_frame_it_says_loads(tmp_path):
+    """The refusal names one <frame pos> to wrap the geometry in, with the offset: done as said, the file loads
+    (the flat body's geoms off its origin; the craft with a stated <inertial> and a child body, the <inertial>
+    moved by hand as the words say)."""
+    flat = ('<mujoco><worldbody><body name="target">{}</body></worldbody></mujoco>')
+    inner = ('<geom type="box" size="0.5 0.4 0.3" pos="0.2 -0.1 0.05" density="100"/>'
+             + "".join(f'<site name="kp_{i}" pos="{x}"/>' for i, x in
+                       enumerate(["0.7 0.3 0.35", "-0.3 0.3 0.35", "0.7 -0.5 0.35", "0.7 0.3 -0.25"])))
+    path = tmp_path / "flat.xml"
+    path.write_text(flat.format(inner))
+    with pytest.raises(ConfigError) as err:
+        load_target(str(path))
+    frame = _frame_said(str(err.value))
+    assert frame == "<frame pos='-0.2 0.1 -0.05'>" and "or wrap them in " + frame in str(err.value)
+    path.write_text(flat.format(frame + inner + "</frame>"))
+    assert load_target(str(path)).keypoints_T_m[0] == pytest.approx([0.5, 0.4, 0.3])
+    with pytest.raises(ConfigError) as err:
+        load_target(_sat(tmp_path, "plain"))
+    frame = _frame_said(str(err.value))
+    text = open(_sat(tmp_path, "plain")).read()
+    body = text[text.index('<geom name="bus"'):text.rindex("</body>")]  # all but the <inertial>
+    assert '<inertial pos="0 0.0 0"' in text
+    wrapped = text.replace(body, frame + body + "</frame>\n    ").replace('<inertial pos="0 0.0 0"',
+                                                                       f'<inertial pos="0 {-COM_Y_M!r} 0"')
+    (tmp_path / "wrapped.xml").write_text(wrapped)
+    moved = load_target(str(tmp_path / "wrapped.xml"))
+    assert moved.mass_kg == pytest.approx(62.0)
+    assert moved.keypoints_T_m[0] == pytest.approx([0.3, 0.3 - COM_Y_M, 0.4], abs=1e-6)
 
 
 def test_too_few_keypoints_names_the_sites_whose_names_missed_the_prefix(tmp_path):
