@@ -39,8 +39,7 @@ def add_common(p: argparse.ArgumentParser, *, out: str | None = None, out_defaul
         p.add_argument("--config", metavar="FILE.toml", help=config)
     if weights:
         p.add_argument("--weights", metavar="W.safetensors",
-                       help="detector weights (default: the target's own: ENVISAT's shipped models/detector.safetensors; "
-                       "with --target FILE.xml, FILE_detector.safetensors beside it)")
+                       help="detector weights (default: the shipped models/detector.safetensors)")
     if seed is not None:
         p.add_argument("--seed", type=int, help=seed)
     if quiet:

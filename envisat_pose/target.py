@@ -272,20 +272,6 @@ def other_target(given: str | None) -> str | None:
     return None if given is None or is_default_file(given) else given
 
 
-TARGET_WEIGHTS_SUFFIX = "_detector.safetensors"  # a target's own detector beside its file: models/upper_stage_detector...
-
-
-def target_weights_path(given: str) -> str:
-    """Where the own keypoint detector of another target than ENVISAT is found when a job names no weights: the
-    file <stem>_detector.safetensors beside its MJCF file (the shipped upper stage's ships so; a user's is put there
-    by `envisat calibrate --target FILE.xml --out DIR/<stem>_detector.safetensors`). As the target was given (a
-    relative file stays relative: no path of this machine in a job's record), or in the package's models folder
-    where the value names a shipped file (resolve_target_path)."""
-    where = given if os.path.isfile(given) else resolve_target_path(given)
-    stem = os.path.splitext(os.path.basename(where))[0]
-    return os.path.join(os.path.dirname(where), stem + TARGET_WEIGHTS_SUFFIX)
-
-
 def default_target() -> Target:
     """ENVISAT, the default target (models/envisat.xml)."""
     return load_target(DEFAULT_TARGET)

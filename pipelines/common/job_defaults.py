@@ -29,7 +29,7 @@ from envisat_pose.config import (
     to_dict,
 )
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
-from envisat_pose.target import DEFAULT_TARGET, other_target, target_weights_path
+from envisat_pose.target import DEFAULT_TARGET, other_target
 from envisat_pose.written_target import recorded_target_checked
 
 JOBS = ("simulate", "estimate", "montecarlo", "run", "track")
@@ -165,15 +165,11 @@ def models_folder() -> str:
     return str(importlib.resources.files("envisat_pose.models"))
 
 
-def weights_file(given: str, target: str = DEFAULT_TARGET) -> str:
-    """The file a `weights` value names, as a target file is found (envisat_pose.target.resolve_target_path): "" is
-    the job's target's own detector (another target than ENVISAT: the file beside its MJCF file,
-    envisat_pose.target.target_weights_path), "" and SHIPPED_WEIGHTS otherwise the shipped weights
-    (default_weights_path; a different file of that relative name in the working folder gets a warning saying how
-    to name it); any other path is taken as it is (relative to the working folder), or, when no such file exists
-    and it starts with 'models/', the package's models folder's."""
-    if not given and other_target(target) is not None:
-        return weights_file(target_weights_path(target))
+def weights_file(given: str) -> str:
+    """The file a `weights` value names, as a target file is found (envisat_pose.target.resolve_target_path): "" and
+    SHIPPED_WEIGHTS are the shipped weights (default_weights_path; a different file of that relative name in the
+    working folder gets a warning saying how to name it); any other path is taken as it is (relative to the working
+    folder), or, when no such file exists and it starts with 'models/', the package's models folder's."""
     if not given or given == SHIPPED_WEIGHTS:
         path = default_weights_path()
         if given and os.path.isfile(given) and not filecmp.cmp(given, path, shallow=False):
@@ -214,11 +210,11 @@ def check_weights(path: str, target: str = DEFAULT_TARGET) -> None:
 
 
 def job_weights(weights: str, target: str = DEFAULT_TARGET) -> str:
-    """A job's weights file as its config holds it (weights_file): "" is the target's own detector (ENVISAT's: the
-    shipped corner network; another target's: the file beside its MJCF file, refused where there is none:
-    require_target_weights), and the file is checked (check_weights) before any work."""
+    """A job's weights file as its config holds it (weights_file): "" and SHIPPED_WEIGHTS are the shipped weights
+    (ENVISAT's corner network; a job of another target is refused: require_target_weights), and the file is
+    checked (check_weights) before any work."""
     require_target_weights(weights, target)
-    path = weights_file(weights, target)
+    path = weights_file(weights)
     check_weights(path, target)
     return path
 
@@ -231,15 +227,11 @@ def job_record(cfg: Any) -> dict:
     return data
 
 
-def require_target_weights(weights: str, target: str, field: str = "weights") -> None:
-    """InputError naming `field` when a job of another target than ENVISAT (target: its MJCF file) is given no
-    weights and its own detector is not beside its file (target_weights_path): the shipped weights are ENVISAT's
-    corner network, never that target's keypoint detector."""
-    if weights or other_target(target) is None:
-        return
-    own = target_weights_path(target)
-    if not os.path.isfile(weights_file(own)):
-        raise InputError(f"{field} '': target {target!r} needs its own keypoint detector, and none is beside its file "
-                         f"({weights_name(own)!r}; the shipped weights are ENVISAT's corner network): train it (`envisat train "
+def require_target_weights(weights: str, target: str) -> None:
+    """InputError naming `weights` when a job of another target than ENVISAT (target: its MJCF file) is given no
+    weights: the shipped ones are ENVISAT's corner network, never that target's keypoint detector."""
+    if not weights and other_target(target) is not None:
+        raise InputError(f"weights '': target {target!r} needs its own keypoint detector (the shipped weights are "
+                         f"ENVISAT's corner network): train it (`envisat train "
                          f"--target {target}`), calibrate it (`envisat calibrate --target {target}`) and give it "
-                         f"(--weights) or write it there")
+                         "(--weights)")

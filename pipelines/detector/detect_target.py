@@ -28,8 +28,7 @@ from envisat_pose.target import load_target
 @dataclass(frozen=True)
 class TargetDetectJobConfig(Config):
     """One `envisat detect --target` job (and evaluate's, calibrate's: the same inputs). target: the target's MJCF
-    file; weights: its keypoint detector (trained with `envisat train --target`; "": the one beside the target's
-    file, envisat_pose.target.target_weights_path); device: torch device ("cpu",
+    file; weights: its keypoint detector (trained with `envisat train --target`); device: torch device ("cpu",
     "cuda"); limit: only the first N frames (None: all; per folder where a job reads several); skip_damaged: go on
     without the shards that do not match the dataset's manifest (named in config_json and the records)."""
 
@@ -38,13 +37,6 @@ class TargetDetectJobConfig(Config):
     device: str = "cpu"
     limit: int | None = None
     skip_damaged: bool = False
-
-    def __post_init__(self) -> None:
-        from envisat_pose.pipelines.common.job_defaults import require_target_weights, weights_file  # the tracker's
-
-        super().__post_init__()
-        require_target_weights(self.weights, self.target)  # "": the target's own, beside its file
-        object.__setattr__(self, "weights", weights_file(self.weights, self.target))
 
     def validate(self, prefix: str = "") -> None:
         p = f"{prefix}." if prefix else ""

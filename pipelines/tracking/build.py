@@ -10,7 +10,6 @@ alone. They know nothing of the Tracker itself, so the tracker imports them and 
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import numpy as np
 
@@ -21,7 +20,7 @@ from envisat_pose.filtering.estimator import FilterConfig
 from envisat_pose.pipelines.tracking.camera_file import camera_from_intrinsics
 from envisat_pose.pipelines.tracking.onboard import chaser_function
 from envisat_pose.pipelines.tracking.tracker_config import TRACKER_FILTER
-from envisat_pose.target import other_target, target_weights_path
+from envisat_pose.target import other_target
 
 
 def tracker_filter(overrides: FilterConfig | dict | None = None, scenario: str | None = None) -> FilterConfig:
@@ -84,8 +83,7 @@ def tracker_detector(weights: str | None = None, device: str = "cpu", target: st
     """The tracker's detector of a weights file: ENVISAT's corner detector (perception.detect.Detector; weights
     None: the shipped ones; bf16: its network in bfloat16, DetectConfig.bf16) when target is None or ENVISAT's
     file, else the keypoint detector of that target's file (perception.keypoint_detect.KeypointFrameDetector: its
-    weights, None: the file beside the target's, envisat_pose.target.target_weights_path; trained for that target
-    and calibrated; bf16 refused)."""
+    weights required, trained for that target and calibrated; bf16 refused)."""
     if other_target(target) is None:
         from envisat_pose.perception.detect import load_detector
         from envisat_pose.perception.weights import shipped_weights_path
@@ -96,11 +94,10 @@ def tracker_detector(weights: str | None = None, device: str = "cpu", target: st
                          "float32")
     from envisat_pose.perception.keypoint_detect import load_frame_detector
 
-    if not weights and not os.path.isfile(target_weights_path(target)):
+    if not weights:
         raise InputError(f"target {target!r}: give its keypoint detector's weights (`envisat train --target`, then "
-                         f"`envisat calibrate --target`), or write them beside its file "
-                         f"({target_weights_path(target)!r}); the shipped weights are ENVISAT's")
-    return load_frame_detector(weights or target_weights_path(target), target, device)
+                         "`envisat calibrate --target`); the shipped weights are ENVISAT's")
+    return load_frame_detector(weights, target, device)
 
 
 def scenario_orbit(scenario: str = "default"):

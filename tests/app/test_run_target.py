@@ -23,7 +23,6 @@ from envisat_pose.target import load_target
 # the repository's models folder, by this file's place: the tests run from any working folder
 MODELS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "models")
 UPPER = os.path.join(MODELS, "upper_stage.xml")
-CUBESAT = os.path.join(MODELS, "cubesat_3u.xml")
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +58,7 @@ def test_the_closed_loop_of_another_target_writes_its_keypoints(weights, tmp_pat
 
 
 @pytest.mark.parametrize("argv, words", [
-    (["--target", CUBESAT], "none is beside its file ('models/cubesat_3u_detector.safetensors'"),  # no machine path
+    (["--target", UPPER], "needs its own keypoint detector"),
     (["--weights", "upper"], "not ENVISAT's"),
     (["--target", UPPER, "--weights", "cubesat"], "of target 'cubesat_3u'"),
     (["--target", UPPER, "--weights", "uncalibrated"], "no calibrated pixel covariance"),
@@ -70,38 +69,6 @@ def test_weights_that_cannot_serve_are_refused_in_one_line(weights, tmp_path, ca
     assert main(["run", *argv, "--duration-s", "5", "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0], err
-    assert not out.exists()
-
-
-def test_a_target_without_weights_runs_its_own_detector_beside_its_file(tmp_path):
-    """No --weights: the target's own detector, <stem>_detector.safetensors beside its MJCF file (the shipped upper
-    stage's ships so), recorded as the package's file (no path of this machine); the Python tracker and the
-    detect job's config take the same file."""
-    from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig
-    from envisat_pose.pipelines.tracking.tracker import tracker_from_scenario
-
-    out = tmp_path / "run"
-    assert main(["run", "--target", UPPER, "--duration-s", "3", "--out", str(out), "--quiet"]) == 0
-    det = json.loads(str(np.load(out / "det.npz")["config_json"]))
-    assert det["weights"] == "models/upper_stage_detector.safetensors"
-    shipped = os.path.join(MODELS, "upper_stage_detector.safetensors")
-    assert os.path.samefile(TargetDetectJobConfig(target=UPPER).weights, shipped)
-    tracker = tracker_from_scenario("default", None, target=UPPER, size_px=(256, 256))
-    assert tracker.K == 12
-
-
-def test_weights_beside_a_users_file_that_are_another_targets_are_refused(weights, tmp_path, capsys):
-    """A user's target file with another target's weights under its default name: refused in one line naming
-    them, nothing written (never run as if they were its own)."""
-    import shutil
-
-    mine = tmp_path / "mine.xml"
-    shutil.copy(CUBESAT, mine)
-    shutil.copy(weights["upper"], tmp_path / "mine_detector.safetensors")
-    out = tmp_path / "run"
-    assert main(["run", "--target", str(mine), "--duration-s", "3", "--out", str(out), "--quiet"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "mine_detector.safetensors" in err[0] and "upper_stage" in err[0], err
     assert not out.exists()
 
 
