@@ -51,7 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "every dataset is a sequence (envisat generate --mode sequence), also measures the errors' frame-to-frame "
         "autocorrelation, AR(1) coefficient, variance inflation and residual bias, stored as 'error_model'.",
     )
-    p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped weights)")
+    p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped "
+                   "weights; with --target FILE.xml, FILE_detector.safetensors beside it)")
     p.add_argument("--target", metavar="FILE.xml", help="another spacecraft's MJCF file: fit its keypoint detector's "
                    "sigma per keypoint on held-out frames of it (keypoint_sigma_px: detect --target's cov_px)")
     p.add_argument("--data", required=True, nargs="+", metavar="DIR",
@@ -77,7 +78,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_common(p)  # the shared --quiet
     add_skip_damaged_argument(p)
     p.set_defaults(func=run_calibrate_cli, flag_names={k: "--" + k.replace("_", "-") for k in
-                                                       "data held_out out target".split()})
+                                                       "data held_out out target weights".split()})
 
 
 def _print_groups(before: dict, after: dict) -> None:

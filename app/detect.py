@@ -11,7 +11,7 @@ import json
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, skipped_line
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.out_dirs import check_out_file
-from envisat_pose.pipelines.common.job_defaults import weights_file
+from envisat_pose.pipelines.common.job_defaults import target_weights, weights_file
 from envisat_pose.pipelines.common.threads import default_torch_threads
 from envisat_pose.pipelines.detector.detect import DetectJobConfig, run_detect
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig, run_detect_target
@@ -28,7 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "verification, naming by fitting the box. Writes det.npz: t_s, corners_px, cov_px, confidence, visible, "
         "config_json, plus key, alt_corners_px, alt_probability and ambiguous (the half-turn alternative).",
     )
-    p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped weights)")
+    p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped "
+                   "weights; with --target FILE.xml, FILE_detector.safetensors beside it)")
     p.add_argument("--target", metavar="FILE.xml", help="another spacecraft's MJCF file: its keypoints by the "
                    "weights `envisat train --target` wrote for it (det.npz: keypoints_px, score, visible_prob...)")
     p.add_argument("--data", required=True, metavar="DIR", help="dataset folder (shards)")
@@ -47,14 +48,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_common(p)  # the shared --quiet
     add_skip_damaged_argument(p)
     p.set_defaults(func=run_detect_cli, flag_names={"roi": "--roi", "out": "--out", "data": "--data",
-                                                    "target": "--target"})
+                                                    "target": "--target", "weights": "--weights"})
 
 
 def detector_inputs(args: argparse.Namespace) -> None:
     """The checks the verbs that run the detector share, before any work: --limit at least 1 (where the verb has
-    it), --weights (the shipped file by default) exists and fits the target (--target where the verb has it, else
-    ENVISAT: one line naming the weights, their target and the given one), --threads at least 1 (then torch uses
-    that many; else its default, no more than the usable cores)."""
+    it), --weights (by default the shipped file, or another --target's own beside its file) exists and fits the
+    target (--target where the verb has it, else ENVISAT: one line naming the weights, their target and the given
+    one), --threads at least 1 (then torch uses that many; else its default, no more than the usable cores)."""
     import os
 
     import torch
@@ -63,10 +64,11 @@ def detector_inputs(args: argparse.Namespace) -> None:
 
     if getattr(args, "limit", None) is not None and args.limit < 1:
         raise InputError(f"--limit {args.limit}: expected at least 1")
-    args.weights = weights_file(args.weights or "")
+    target = getattr(args, "target", None) or DEFAULT_TARGET
+    args.weights = weights_file(target_weights(args.weights or "", target))  # none: the target's own, beside it
     if not os.path.isfile(args.weights):
         raise InputError(f"--weights {args.weights!r}: no such file")
-    check_weights_target(args.weights, getattr(args, "target", None) or DEFAULT_TARGET, "--weights")
+    check_weights_target(args.weights, target, "--weights")
     if args.threads is not None and not 1 <= args.threads <= MAX_WORKERS:  # 2^31 or more: a ValueError from torch
         raise InputError(f"--threads {args.threads}: expected 1 to {MAX_WORKERS} threads (as train's, run's)")
     torch.set_num_threads(args.threads or default_torch_threads())

@@ -30,7 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "ambiguity, covariance calibration (mean e^T C^-1 e), pose error after solvePnP, by corruption group; "
         "the same for Harris and Shi-Tomasi with oracle association, and the detector without line verification.",
     )
-    p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped weights)")
+    p.add_argument("--weights", metavar="W.safetensors", help="detector weights (default: the shipped "
+                   "weights; with --target FILE.xml, FILE_detector.safetensors beside it)")
     p.add_argument("--target", metavar="FILE.xml", help="another spacecraft's MJCF file: score its keypoint "
                    "detector (--weights from `envisat train --target`) on a dataset of it: per-keypoint PCK, "
                    "visibility, keypoints named wrongly, pose after PnP, as named and under the best twin naming")
@@ -50,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_skip_damaged_argument(p)
     p.set_defaults(func=run_evaluate_cli, flag_names={"roi": "--roi", "roi_labels": "--roi-labels", "json_path": "--json",
                                                       "limit": "--limit", "out": "--out", "target": "--target",
-                                                      "data": "--data"})
+                                                      "data": "--data", "weights": "--weights"})
 
 
 def run_evaluate_cli(args: argparse.Namespace) -> int:

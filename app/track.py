@@ -39,8 +39,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_frame_inputs(p)
     p.add_argument("--target", metavar="FILE.xml", help="another spacecraft's MJCF file (default: ENVISAT, "
-                   "models/envisat.xml): its keypoint detector's --weights required (`envisat train --target`, "
-                   "then `envisat calibrate --target`)")
+                   "models/envisat.xml): its keypoint detector's --weights (`envisat train --target`, then `envisat "
+                   "calibrate --target`; default: FILE_detector.safetensors beside FILE.xml, as the upper stage's "
+                   "ships)")
     add_common(p, out="output folder (created, parents too; files are replaced)", out_metavar="RUN_DIR",
                config="track config (orbit, filter, tracker; top-level keys)", weights=True, flag_names=FLAGS)
     add_bf16_argument(p)

@@ -2,7 +2,8 @@
 
 Two kinds of detector weights: ENVISAT's corner network (format FORMAT, no target recorded: corners A-H) and another
 target's keypoint network (perception/keypoint_net.py: format KEYPOINT_FORMAT, kind 'keypoints', the target's
-name, sha256 and keypoint names). check_weights_target refuses weights of another target than the one a verb is
+name, sha256 and keypoint names), by default FILE_detector.safetensors beside the target file
+(default_target_weights). check_weights_target refuses weights of another target than the one a verb is
 given, in one line, before any work (envisat_pose/target.require_weights_target).
 
 A missing, truncated or foreign file, or one whose tensors do not fit the model, is one WeightsError line
@@ -23,7 +24,7 @@ from envisat_pose.io import atomic_path
 from envisat_pose.perception.keypoint_net import KEYPOINT_FORMAT
 from envisat_pose.perception.model import CornerNet, ModelConfig
 from envisat_pose.perception.weights_keys import FORMAT_KEY, MODEL_CONFIG_KEY, TARGET_KEY
-from envisat_pose.target import DEFAULT_TARGET, require_weights_target
+from envisat_pose.target import DEFAULT_TARGET, require_weights_target, resolve_target_path
 
 FORMAT = "envisat-pose corner detector v1"
 
@@ -41,6 +42,33 @@ def shipped_weights_path() -> str:
     if not os.path.isfile(path):
         raise WeightsError(f"{path}: the shipped detector weights are missing (give `weights`)")
     return path
+
+
+TARGET_WEIGHTS_SUFFIX = "_detector.safetensors"  # another target's default weights: FILE_detector... beside FILE.xml
+
+
+def default_target_weights(target: str) -> str:
+    """The default weights of another target than ENVISAT (target: its MJCF file as given): its own keypoint
+    detector, FILE_detector.safetensors beside the target file (the shipped upper stage's
+    models/upper_stage_detector.safetensors; a user's, saved beside their MJCF file); its path as the user typed the
+    target where that names the same file, else where it lies. Used only when its header names that target (its
+    sha256): else an InputError naming `weights`, in one line, and where it was looked for, as the user typed the
+    target (no path of this machine where they typed none). The header only, before any work."""
+    name = os.path.splitext(os.path.basename(target))[0] + TARGET_WEIGHTS_SUFFIX
+    typed = os.path.join(os.path.dirname(target), name)
+    beside = os.path.join(os.path.dirname(resolve_target_path(target)), name)
+    if not os.path.isfile(beside):
+        packaged = os.path.samefile(os.path.dirname(beside), os.path.dirname(shipped_weights_path()))
+        raise InputError(f"weights '': none given, and target {target!r} has no keypoint detector of its own at "
+                         f"{typed!r} (the shipped weights are ENVISAT's corner network): train it (`envisat train "
+                         f"--target {target}`), calibrate it (`envisat calibrate --target {target}`) and give it "
+                         f"(--weights){'' if packaged else f', or save it as {typed!r}'}")
+    try:
+        require_weights_target(typed, trained_for(beside, read_header(beside)), target,
+                               "the default beside the target file is")
+    except InputError as err:
+        raise InputError(f"weights '': none given, and {str(err).replace(beside, typed)} (--weights)") from None
+    return typed if os.path.isfile(typed) and os.path.samefile(typed, beside) else beside
 
 
 def write_safetensors(path: str, tensors: dict, metadata: dict[str, str]) -> None:

@@ -5,7 +5,8 @@ built) and below pipelines/jobs.py (which layers a file and flags over it).
 duration and camera rate, the chaser's orbit and the gravity-gradient switch; `fill_from_scenario`: a config's
 fields left None filled from it when the config is built; `layered_job`: the config built from the scenario's
 part, a TOML file and flags (what `resolve_job` runs); `default_weights_path`, `weights_file` and `check_weights`:
-the shipped detector weights where none are named, the file a name gives, and the file checked; `weights_name`
+the shipped detector weights where none are named (another target's: its own beside its file,
+`target_weights`), the file a name gives, and the file checked; `weights_name`
 and `job_record`: the weights and a job's config as outputs record them (no path of this machine). Errors name
 the config field ('weights', 'measurement.rate_hz').
 """
@@ -210,11 +211,10 @@ def check_weights(path: str, target: str = DEFAULT_TARGET) -> None:
 
 
 def job_weights(weights: str, target: str = DEFAULT_TARGET) -> str:
-    """A job's weights file as its config holds it (weights_file): "" and SHIPPED_WEIGHTS are the shipped weights
-    (ENVISAT's corner network; a job of another target is refused: require_target_weights), and the file is
-    checked (check_weights) before any work."""
-    require_target_weights(weights, target)
-    path = weights_file(weights)
+    """A job's weights file as its config holds it (weights_file): "" is the target's default (target_weights:
+    ENVISAT's shipped corner network, another target's own detector beside its file), and the file is checked
+    (check_weights) before any work."""
+    path = weights_file(target_weights(weights, target))
     check_weights(path, target)
     return path
 
@@ -227,11 +227,12 @@ def job_record(cfg: Any) -> dict:
     return data
 
 
-def require_target_weights(weights: str, target: str) -> None:
-    """InputError naming `weights` when a job of another target than ENVISAT (target: its MJCF file) is given no
-    weights: the shipped ones are ENVISAT's corner network, never that target's keypoint detector."""
-    if not weights and other_target(target) is not None:
-        raise InputError(f"weights '': target {target!r} needs its own keypoint detector (the shipped weights are "
-                         f"ENVISAT's corner network): train it (`envisat train "
-                         f"--target {target}`), calibrate it (`envisat calibrate --target {target}`) and give it "
-                         "(--weights)")
+def target_weights(weights: str, target: str) -> str:
+    """The `weights` value a job of `target` (its MJCF file as given) runs: the one given, else the target's
+    default: ENVISAT's shipped weights ("") for ENVISAT, another target's own detector beside its file
+    (perception.weights.default_target_weights; refused in one line where none fits it)."""
+    if weights or other_target(target) is None:
+        return weights
+    from envisat_pose.perception.weights import default_target_weights  # torch
+
+    return default_target_weights(target)

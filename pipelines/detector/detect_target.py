@@ -28,7 +28,8 @@ from envisat_pose.target import load_target
 @dataclass(frozen=True)
 class TargetDetectJobConfig(Config):
     """One `envisat detect --target` job (and evaluate's, calibrate's: the same inputs). target: the target's MJCF
-    file; weights: its keypoint detector (trained with `envisat train --target`); device: torch device ("cpu",
+    file; weights: its keypoint detector (trained with `envisat train --target`; "": FILE_detector.safetensors
+    beside the target file, when it was trained for it, e.g. the shipped upper stage's); device: torch device ("cpu",
     "cuda"); limit: only the first N frames (None: all; per folder where a job reads several); skip_damaged: go on
     without the shards that do not match the dataset's manifest (named in config_json and the records)."""
 
@@ -43,6 +44,13 @@ class TargetDetectJobConfig(Config):
         check(self.target != "", f"{p}target", self.target, "the target's MJCF file")
         check(self.device in ("cpu", "cuda"), f"{p}device", self.device, "'cpu' or 'cuda'")
         check(self.limit is None or self.limit >= 1, f"{p}limit", self.limit, "at least 1 frame (or unset: all)")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        from envisat_pose.pipelines.common.job_defaults import target_weights, weights_file  # scipy (filters)
+
+        # "": the target's own detector beside its file (job_defaults.default_target_weights), as the verbs take it
+        object.__setattr__(self, "weights", weights_file(target_weights(self.weights, self.target)))
 
 
 def require_dataset_of(folder: str, target, field: str = "data") -> None:

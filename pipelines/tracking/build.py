@@ -83,7 +83,8 @@ def tracker_detector(weights: str | None = None, device: str = "cpu", target: st
     """The tracker's detector of a weights file: ENVISAT's corner detector (perception.detect.Detector; weights
     None: the shipped ones; bf16: its network in bfloat16, DetectConfig.bf16) when target is None or ENVISAT's
     file, else the keypoint detector of that target's file (perception.keypoint_detect.KeypointFrameDetector: its
-    weights required, trained for that target and calibrated; bf16 refused)."""
+    weights, by default FILE_detector.safetensors beside the file, trained for that target and calibrated; bf16
+    refused)."""
     if other_target(target) is None:
         from envisat_pose.perception.detect import load_detector
         from envisat_pose.perception.weights import shipped_weights_path
@@ -94,9 +95,10 @@ def tracker_detector(weights: str | None = None, device: str = "cpu", target: st
                          "float32")
     from envisat_pose.perception.keypoint_detect import load_frame_detector
 
-    if not weights:
-        raise InputError(f"target {target!r}: give its keypoint detector's weights (`envisat train --target`, then "
-                         "`envisat calibrate --target`); the shipped weights are ENVISAT's")
+    if not weights:  # the target's own beside its file (the shipped upper stage's), else refused naming where
+        from envisat_pose.perception.weights import default_target_weights
+
+        weights = default_target_weights(target)
     return load_frame_detector(weights, target, device)
 
 

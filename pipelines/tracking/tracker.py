@@ -448,7 +448,8 @@ def tracker_from_scenario(scenario: str = "default", weights: str | None = None,
     MJCF's chaser_cam, at size_px = (width, height) when given; a camera TOML file of ideal frames, a str or a
     pathlib.Path; or a PinholeCamera), TrackerConfig `config` (None: defaults), the
     tracker's filter settings with `filter_config`'s fields over them (pipelines.build.tracker_filter); target:
-    another target's MJCF file or its Target (its keypoint detector's `weights` then required; None: ENVISAT)."""
+    another target's MJCF file or its Target (None: ENVISAT; its keypoint detector's `weights`, by default its own
+    beside its file: perception.weights.default_target_weights)."""
     from types import SimpleNamespace
 
     if target is not None:

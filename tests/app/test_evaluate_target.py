@@ -345,8 +345,8 @@ def test_refusals_write_nothing(box, tmp_path, capsys):
     for verb, flag in (("evaluate", "--json"), ("calibrate", "--out")):
         refused([verb, "--target", other, "--weights", weights, "--data", data, flag, f"{out}/x"], capsys, out,
                 weights, "target 'twin_box'", "not of target 'twin_copy'")
-        refused([verb, "--target", path, "--data", data, flag, f"{out}/x"], capsys, out, "ENVISAT's corner detector",
-                "target 'twin_box'")
+        refused([verb, "--target", path, "--data", data, flag, f"{out}/x"], capsys, out, "--weights ''",
+                "no keypoint detector of its own", "twin_detector.safetensors")  # none beside the target file
     refused(["evaluate", "--target", path, "--weights", weights, "--data", data, "--roi-labels", "--json",
              f"{out}/e.json"], capsys, out, "--roi-labels", "not with --target")
     refused(["calibrate", "--target", path, "--weights", weights, "--data", data, "--refine", "--out",

@@ -1,6 +1,6 @@
 """`envisat run --target FILE.xml` (issue 56): the closed loop of another target, MuJoCo rendering that target and
 the tracker following it with its keypoint detector; the weights refused in one line, nothing written, where they
-cannot serve (none given, ENVISAT's for another target, another target's, never calibrated). The network here is
+cannot serve (none given where none ships beside the target file, ENVISAT's for another target, another target's, never calibrated). The network here is
 untrained (the plumbing: the frames, the rows of K keypoints, the files); tracking accuracy is the tracker's tests'
 (tests/pipelines/tracking/test_tracker_target.py) and the benchmarks'."""
 
@@ -58,7 +58,7 @@ def test_the_closed_loop_of_another_target_writes_its_keypoints(weights, tmp_pat
 
 
 @pytest.mark.parametrize("argv, words", [
-    (["--target", UPPER], "needs its own keypoint detector"),
+    (["--target", os.path.join(MODELS, "cubesat_3u.xml")], "has no keypoint detector of its own at"),  # none ships
     (["--weights", "upper"], "not ENVISAT's"),
     (["--target", UPPER, "--weights", "cubesat"], "of target 'cubesat_3u'"),
     (["--target", UPPER, "--weights", "uncalibrated"], "no calibrated pixel covariance"),

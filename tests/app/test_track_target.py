@@ -7,6 +7,7 @@ ENVISAT's as the upper stage's) are one line each, with nothing written."""
 import json
 import os
 import re
+import shutil
 import sys
 
 import numpy as np
@@ -80,8 +81,11 @@ def test_the_upper_stage_without_its_calibrated_weights_is_refused(stage, tmp_pa
     from envisat_pose.pipelines.common.job_defaults import default_weights_path
 
     out = str(tmp_path / "out")
-    track = ["track", "--images", stage["seq"], "--target", UPPER_STAGE, "--out", out, "--quiet"]
-    refused(track, capsys, out, "--weights ''", "envisat train --target", "envisat calibrate --target")
+    alone = tmp_path / "upper_stage.xml"  # the shipped file elsewhere: no detector beside it
+    shutil.copy(UPPER_STAGE, alone)
+    track = ["track", "--images", stage["seq"], "--target", str(alone), "--out", out, "--quiet"]
+    refused(track, capsys, out, "--weights ''", "no keypoint detector of its own", "envisat train --target",
+            "envisat calibrate --target")
     shipped = default_weights_path()
     refused(track + ["--weights", shipped], capsys, out, "--weights", shipped, "ENVISAT's corner detector",
             "target 'upper_stage'")
