@@ -48,8 +48,9 @@ def box(tmp_path_factory):
 def test_weights_are_refused_for_another_target_by_every_verb(box, tmp_path, capsys):
     path, other, data, weights, envisat = box
     out = str(tmp_path / "out")
-    refused(["detect", "--target", "models/upper_stage.xml", "--data", data, "--out", f"{out}/det.npz"], capsys,
-            out, "detector.safetensors", "ENVISAT's corner detector", "target 'upper_stage'")
+    refused(["detect", "--target", "models/upper_stage.xml", "--weights", "models/detector.safetensors", "--data",
+             data, "--out", f"{out}/det.npz"], capsys, out, "detector.safetensors", "ENVISAT's corner detector",
+            "target 'upper_stage'")  # given: without --weights the upper stage's own are its default
     for argv in (["detect", "--data", data, "--out", f"{out}/det.npz"],
                  ["calibrate", "--data", data, "--out", f"{out}/w.safetensors"],
                  ["evaluate", "--data", data, "--json", f"{out}/e.json"],
