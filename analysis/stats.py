@@ -301,6 +301,15 @@ def settled(t_s: np.ndarray, settle_s: float) -> np.ndarray:
     return t_s >= t_s[0] + settle_s
 
 
+def nees_bands(n_runs: int, n_steps: int) -> dict:
+    """The two 95 % bands of a mean NEES over n_runs runs of n_steps steps each: `nees_bounds` as if every run-step
+    were independent, chi2(12 n) / n with n = n_runs n_steps, and `nees_run_bounds` as if each run gave one
+    sample, chi2(12 R) / R (campaign_summary says which holds; pipelines.campaigns.lines.nees_band words them)."""
+    n_rs = n_runs * n_steps
+    return {"nees_bounds": [float(b) for b in chi2_mean_bounds(N_STATE * n_rs, n_rs)],
+            "nees_run_bounds": [float(b) for b in chi2_mean_bounds(N_STATE * n_runs, n_runs)]}
+
+
 def campaign_summary(s: CampaignSums, t_s: np.ndarray, settle_s: float = 0.0) -> dict:
     """Scalars over the settled steps, per block (dicts keyed by BLOCKS): RMSE over run-steps, share of run-steps
     inside the filter's 3-sigma (block Mahalanobis), and the mean NEES with two 95 % bands: `nees_bounds` as if
@@ -310,15 +319,13 @@ def campaign_summary(s: CampaignSums, t_s: np.ndarray, settle_s: float = 0.0) ->
     k = settled(t_s, settle_s)
     n_rs = s.n_runs * int(k.sum())
     dof_nis = int(s.nis_dof[k].sum())
-    lo, hi = chi2_mean_bounds(N_STATE * n_rs, n_rs)
     nis_lo, nis_hi = chi2_mean_bounds(dof_nis, int(s.nis_runs[k].sum()))
     return {
         "n_runs": s.n_runs, "n_diverged": s.n_diverged, "settle_s": float(settle_s),
         "rmse": {b: float(np.sqrt(s.sq_norm[k, i].sum() / n_rs)) for i, b in enumerate(BLOCKS)},
         "units": dict(zip(BLOCKS, BLOCK_UNITS)),
         "inside_3sigma_share": {b: float(s.inside_block[k, i].sum() / n_rs) for i, b in enumerate(BLOCKS)},
-        "nees_mean": float(s.nees[k].sum() / n_rs), "nees_bounds": [float(lo), float(hi)],
-        "nees_run_bounds": [float(b) for b in chi2_mean_bounds(N_STATE * s.n_runs, s.n_runs)],
+        "nees_mean": float(s.nees[k].sum() / n_rs), **nees_bands(s.n_runs, int(k.sum())),
         "nis_mean": float(s.nis[k].sum() / max(int(s.nis_runs[k].sum()), 1)),
         "nis_mean_per_dof": float(s.nis[k].sum() / dof_nis) if dof_nis else float("nan"),
         "nis_bounds": [float(nis_lo), float(nis_hi)],

@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import argparse
 
+from envisat_pose.analysis.stats import nees_bands
 from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, init_error_line
 from envisat_pose.app.flag_rules import check_noise_flags
 from envisat_pose.filtering.estimator import FilterConfig, nees, nis_alarms_alone, unjudged_runs
 from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, recorded_scenario
 from envisat_pose.pipelines.campaigns.estimate import run_estimate as run_pipeline
+from envisat_pose.pipelines.campaigns.lines import mean_nees_words
 from envisat_pose.pipelines.jobs import resolve_job
 from envisat_pose.state import error_summary, unjudged_why
 
@@ -92,7 +94,8 @@ def resolve_config(args: argparse.Namespace) -> EstimateConfig:
 
 
 def summary(arrays: dict, fcfg: FilterConfig) -> str:
-    """Errors over the second half of the run: RMS position (cm) and attitude angle (deg), ANEES; the diverged
+    """Errors over the second half of the run: RMS position (cm) and attitude angle (deg), ANEES with its 95 % bands
+    (worded as montecarlo's: lines.mean_nees_words); the diverged
     runs, and how many of them the filter flagged alone (its NIS monitor or a failed update: nis_alarms_alone);
     runs the rule did not judge (est.npz's judged; arrays without it: unjudged_runs) counted apart, never as not
     diverged."""
@@ -100,14 +103,16 @@ def summary(arrays: dict, fcfg: FilterConfig) -> str:
     t_s = arrays["t_s"]
     T = t_s.shape[0]
     late = slice(T // 2, None)
+    R, n_late = len(arrays["diverged"]), T - T // 2
     e = error_summary(t_s, arrays["x_true"], arrays["x_hat"], after_s=float(t_s[T // 2]) if T else 0.0)
     nees_rt = nees(arrays["x_true"], arrays["x_hat"], arrays["P"], fcfg.sigma_chart)
     alone = int(nis_alarms_alone(arrays["diverged"], nees_rt, fcfg).sum())
     judged = arrays.get("judged")
     unjudged = int(unjudged_runs(arrays["diverged"], T, fcfg).sum() if judged is None else (~judged).sum())
+    nees_words = mean_nees_words({"nees_mean": float(nees_rt[:, late].mean()), **nees_bands(R, n_late)})
     return (f"after t = {e['after_s']:.0f} s: RMS position error {100 * e['position_m']['rms_after']:.3f} cm, RMS "
-            f"attitude error {e['attitude_deg']['rms_after']:.4f} deg, mean NEES {nees_rt[:, late].mean():.2f} (12 "
-            f"expected); diverged runs {int(arrays['diverged'].sum())}/{len(arrays['diverged'])}"
+            f"attitude error {e['attitude_deg']['rms_after']:.4f} deg, {nees_words}; diverged runs "
+            f"{int(arrays['diverged'].sum())}/{R}"
             + (f" ({alone} flagged by the filter alone (its NIS monitor or a failed update), their "
                "errors within the NEES rule)" if alone else "")
             + (f", {unjudged} not judged ({unjudged_why(T, fcfg.divergence_settle_steps, fcfg.divergence_window)})"

@@ -58,13 +58,19 @@ def nees_band(s: dict) -> str:
     return f"{run_lo:.2f}..{run_hi:.2f} with one sample a run; {lo:.2f}..{hi:.2f} if every step were independent"
 
 
+def mean_nees_words(s: dict) -> str:
+    """'mean NEES 12.03 (95 % band ...)' of a summary's nees_mean with its bands (nees_band; analysis.stats.nees_bands),
+    as `envisat montecarlo` and `envisat estimate` print it; not finite: n/a with why (summary_why)."""
+    return "mean NEES " + _figure(s, "nees_mean", None, lambda v: f"{v:.2f}") + f" (95 % band {nees_band(s)})"
+
+
 def summary_line(s: dict) -> str:
     """One line of the campaign's main numbers; a figure that is not finite as n/a with why (summary_why)."""
     ratios = ", ".join(f"{b} " + _figure(s, "rmse_over_pcrlb", b, lambda v: f"{v:.3f}") for b in s["rmse_over_pcrlb"])
     return (f"after t = {s['settle_s']:.0f} s: RMSE position "
             + _figure(s, "rmse", "position", lambda v: f"{100 * v:.3f} cm") + ", attitude "
             + _figure(s, "rmse", "attitude", lambda v: f"{math.degrees(v):.4f} deg") + f"; RMSE/PCRLB {ratios}"
-            + "; mean NEES " + _figure(s, "nees_mean", None, lambda v: f"{v:.2f}") + f" (95 % band {nees_band(s)}); "
+            + "; " + mean_nees_words(s) + "; "
             f"diverged {s['n_diverged']}/{s['n_runs']}" + (f" ({len(s['nis_alarm_alone_runs'])} flagged by the "
                                                            "filter alone)" if s.get("nis_alarm_alone_runs") else "")
             + unjudged_note(s))
