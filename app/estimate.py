@@ -11,6 +11,7 @@ from envisat_pose.analysis.stats import nees_bands
 from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, init_error_line
 from envisat_pose.app.flag_rules import check_noise_flags
 from envisat_pose.filtering.estimator import FilterConfig, nees, nis_alarms_alone, unjudged_runs
+from envisat_pose.pipelines.campaigns.campaign_config import runs_words
 from envisat_pose.pipelines.campaigns.estimate import EstimateConfig, recorded_scenario
 from envisat_pose.pipelines.campaigns.estimate import run_estimate as run_pipeline
 from envisat_pose.pipelines.campaigns.lines import mean_nees_words
@@ -125,7 +126,7 @@ def run_estimate_cli(args: argparse.Namespace) -> int:
     res = run_pipeline(cfg, args.out, truth_path=args.truth, scenario=args.scenario, duration_s=args.duration_s,
                        plot=args.plot, rrd=args.rrd, progress=not args.quiet, target=args.target)
     cfg, arrays = res["config"], res["arrays"]
-    print(f"wrote {res['est']} ({cfg.runs} runs x {len(arrays['t_s'])} steps), config {res['config_toml']}")
+    print(f"wrote {res['est']} ({runs_words(cfg.runs)} x {len(arrays['t_s'])} steps), config {res['config_toml']}")
     print(summary(arrays, cfg.filter))
     if cfg.init_error_scale != 1.0:
         print(init_error_line(cfg.init_error_scale))

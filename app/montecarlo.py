@@ -14,6 +14,7 @@ from envisat_pose.app.common import MEASUREMENT_FLAGS, add_common, check_rrd_out
 from envisat_pose.app.flag_rules import check_noise_flags, job_scenario
 from envisat_pose.config import InputError, check
 from envisat_pose.pipelines.campaigns.campaign import FIGURES, MonteCarloConfig, read_timing, run_campaign
+from envisat_pose.pipelines.campaigns.campaign_config import runs_words
 from envisat_pose.pipelines.campaigns.lines import resume_note, summary_line, sweep_line, sweep_resume_note
 from envisat_pose.pipelines.campaigns.sweep import SWEEP_FIGURE, run_sweep, sweep_for
 from envisat_pose.pipelines.jobs import resolve_job
@@ -103,13 +104,13 @@ def run_montecarlo(args: argparse.Namespace) -> int:
         result = run_sweep(cfg, sweep, args.out, runner, progress=not args.quiet)
         resumed = sweep_resume_note(result["rates_hz"], cfg.n_blocks,  # each rate's campaign's timing.json
                                     [read_timing(os.path.join(args.out, f)) for f in result["campaigns"]])
-        print(f"wrote {args.out}: {len(sweep.rates_hz)} campaigns of {cfg.runs} runs, sweep.json, {SWEEP_FIGURE} "
-              f"({time.perf_counter() - t0:.1f} s{resumed})")
+        print(f"wrote {args.out}: {len(sweep.rates_hz)} campaigns of {runs_words(cfg.runs)}, sweep.json, "
+              f"{SWEEP_FIGURE} ({time.perf_counter() - t0:.1f} s{resumed})")
         print(sweep_line(result))
         return 0
     summary = run_campaign(cfg, args.out, runner, progress=not args.quiet, rrd=args.rrd)
     resumed = resume_note(cfg.n_blocks, read_timing(args.out))
-    print(f"wrote {args.out}: {cfg.runs} runs x {summary['steps']} steps, campaign.npz, summary.json, "
+    print(f"wrote {args.out}: {runs_words(cfg.runs)} x {summary['steps']} steps, campaign.npz, summary.json, "
           f"{len(FIGURES)} figures ({time.perf_counter() - t0:.1f} s{resumed})")
     print(summary_line(summary))
     if cfg.init_error_scale != 1.0:
@@ -117,6 +118,6 @@ def run_montecarlo(args: argparse.Namespace) -> int:
     if args.rrd:  # what write_recording logs (campaign_outputs.py)
         target = (summary.get("target") or {}).get("name", "the target")
         print(f"wrote {args.rrd} (Rerun recording of {target} over {summary['steps']} steps: the truth, run 0's "
-              f"estimate with its 3-sigma ellipsoid, {min(cfg.sample_runs, cfg.runs)} runs' errors with the "
+              f"estimate with its 3-sigma ellipsoid, the errors of {runs_words(min(cfg.sample_runs, cfg.runs))} with the "
               f"campaign's +-3 sigma bands, the mean NEES with its band; open it with `envisat view {args.rrd}`)")
     return 0

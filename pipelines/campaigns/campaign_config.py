@@ -159,6 +159,11 @@ def campaign_target_record(cfg: MonteCarloConfig) -> dict:
     return {k: v for k, v in load_target(given).record(given).items() if k != "file"}
 
 
+def runs_words(n: int) -> str:
+    """'1 run', '2 runs': a count of Monte Carlo runs as the verbs' lines and the figures' titles say it."""
+    return f"{n} run" if n == 1 else f"{n} runs"
+
+
 def campaign_title(cfg: MonteCarloConfig, runs: str) -> str:
     """The head of a campaign's figure titles: the target's name (its MJCF model), the scenario, `runs` (e.g. '100
     runs'), the measurement and its noise."""

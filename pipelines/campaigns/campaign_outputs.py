@@ -25,7 +25,12 @@ from envisat_pose.pipelines.campaigns.campaign_block import (
     load_campaign_truth,
     settled_mask,
 )
-from envisat_pose.pipelines.campaigns.campaign_config import MonteCarloConfig, campaign_target_record, campaign_title
+from envisat_pose.pipelines.campaigns.campaign_config import (
+    MonteCarloConfig,
+    campaign_target_record,
+    campaign_title,
+    runs_words,
+)
 from envisat_pose.pipelines.campaigns.observability import warn_if_never_updated
 from envisat_pose.state import BLOCKS, N_STATE
 
@@ -125,7 +130,7 @@ def write_figures(cfg: MonteCarloConfig, out_dir: str, t_s, stats, bound, sample
         plot_rmse_vs_bound,
     )
 
-    title = f"{campaign_title(cfg, f'{cfg.runs} runs')}, {cfg.measurement.rate_hz:g} Hz, seed {cfg.seed}"
+    title = f"{campaign_title(cfg, runs_words(cfg.runs))}, {cfg.measurement.rate_hz:g} Hz, seed {cfg.seed}"
     err = sample_err if len(sample_err) else None
     norms = sample_norms if len(sample_norms) else None
     path = os.path.join

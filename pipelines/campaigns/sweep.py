@@ -37,7 +37,7 @@ from envisat_pose.pipelines.campaigns.campaign import (
     check_filter_rate,
     truth_scenario,
 )
-from envisat_pose.pipelines.campaigns.campaign_config import campaign_target_record, campaign_title
+from envisat_pose.pipelines.campaigns.campaign_config import campaign_target_record, campaign_title, runs_words
 from envisat_pose.pools import RunnerConfig, warn_runner
 from envisat_pose.provenance import source_line
 from envisat_pose.resumable import manifest_path, remove_partial_files
@@ -195,7 +195,7 @@ def run_sweep(cfg: MonteCarloConfig, sweep: SweepConfig, out_dir: str, runner: R
                     os.path.join(out_dir, SWEEP_FIGURE),
                     bound_block=np.array([[s["pcrlb_rms"][b] for b in BLOCKS] for s in summaries]),
                     diverged_share=np.array(result["diverged_share"]),
-                    title=f"{campaign_title(cfg, f'{cfg.runs} runs per rate')}, {cfg.duration_s:g} s, "
+                    title=f"{campaign_title(cfg, f'{runs_words(cfg.runs)} per rate')}, {cfg.duration_s:g} s, "
                           f"seed {cfg.seed}, statistics after {summaries[0]['settle_s']:g} s")
     return result
 
