@@ -115,8 +115,15 @@ def layered_montecarlo(scenario: str, config_path: str | None, overrides: dict |
     (pipelines.campaigns.sweep.sweep_for), not the campaign's."""
     import dataclasses
 
-    cfg = layered_job(MonteCarloConfig, "montecarlo", scenario, config_path, overrides, fields,
-                      base={"measurement": {}}, apart=("sweep",))
+    try:
+        cfg = layered_job(MonteCarloConfig, "montecarlo", scenario, config_path, overrides, fields,
+                          base={"measurement": {}}, apart=("sweep",))
+    except ConfigError as err:
+        if err.field != "target" or not isinstance(err.value, dict):
+            raise
+        # a simulate-style [target] table: the campaign's target is a file path; the table is a scenario file's
+        raise ConfigError("target", err.value, f"{err.expected}; a [target] table belongs in a scenario file, "
+                          "given as `--scenario FILE.toml` (or the MJCF file alone as `--target FILE.xml`)") from None
     if filled_for(cfg.measurement) == cfg.scenario:  # the scenario's table alone: filled in, outages and all
         return dataclasses.replace(cfg)
     return with_eclipse(cfg)
