@@ -90,7 +90,7 @@ def test_montecarlo_rrd(tmp_path, verify_rrd, capsys):
                  "--seed", "3", "--out", str(out), "--rrd", str(rrd), "--quiet"]) == 0
     said = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith(f"wrote {rrd}")]
     assert len(said) == 1 and "of envisat over 41 steps: the truth, run 0's estimate" in said[0] \
-        and "5 runs' errors" in said[0] and "mean NEES" in said[0], said  # the line says what is in it
+        and "the errors of 5 runs" in said[0] and "mean NEES" in said[0], said  # the line says what is in it
     with np.load(out / "campaign.npz") as z:
         sample_err, filt, t_s = z["sample_err"], z["filter_3sigma"], z["t_s"]
         nees_mean, nees_bounds = z["nees_mean"], z["nees_bounds"]
