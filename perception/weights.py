@@ -56,6 +56,8 @@ def default_target_weights(target: str) -> str:
     target (no path of this machine where they typed none). The header only, before any work."""
     name = os.path.splitext(os.path.basename(target))[0] + TARGET_WEIGHTS_SUFFIX
     typed = os.path.join(os.path.dirname(target), name)
+    if not os.path.isfile(resolve_target_path(target)):  # the file first: no default of a file that is not there
+        raise InputError(f"target {target!r}: expected an MJCF file (no such file)")
     beside = os.path.join(os.path.dirname(resolve_target_path(target)), name)
     if not os.path.isfile(beside):
         packaged = os.path.samefile(os.path.dirname(beside), os.path.dirname(shipped_weights_path()))

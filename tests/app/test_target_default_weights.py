@@ -118,3 +118,12 @@ def test_a_users_own_weights_beside_their_target_are_its_default(foreign_beside,
     assert TargetDetectJobConfig(target="twin.xml").weights == "twin_detector.safetensors"
     with pytest.raises(InputError, match="no keypoint detector of its own at 'data/twin_detector.safetensors'"):
         TargetDetectJobConfig(target="data/twin.xml")
+
+
+def test_a_target_file_that_is_not_there_is_named_before_its_default_weights(tmp_path, capsys):
+    """No --weights and a --target that names no file: one line naming --target (the default's search looked in
+    a folder that is not there and stopped with a traceback)."""
+    missing = str(tmp_path / "nowhere" / "sat.xml")
+    for verb, flag in (("detect", "--out"), ("evaluate", "--json")):
+        refused([verb, "--target", missing, "--data", str(tmp_path), flag, str(tmp_path / "out" / "x")], capsys,
+                str(tmp_path / "out"), "--target", "sat.xml", "no such file")
