@@ -25,13 +25,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_demo(args: argparse.Namespace) -> int:
+    from envisat_pose.pipelines.common.job_defaults import weights_name
     from envisat_pose.pipelines.runs.closed_loop import run_closed_loop, run_output_paths
     from envisat_pose.pipelines.runs.run_config import RunConfig
 
     cfg = RunConfig(scenario="default", duration_s=args.duration_s, weights=args.weights or "", runs=1, workers=1,
                     seed=0, bf16=args.bf16)
     print(f"envisat demo: the tracker, cold start, on scenario 'default', {cfg.duration_s:.0f} s simulated at {cfg.rate_hz:g} Hz, "
-          f"weights {cfg.weights}")
+          f"weights {weights_name(cfg.weights)}")
     summary = run_closed_loop(cfg, args.out, progress=not args.quiet)  # staged: an interrupt leaves --out as it was
     print_table(summary)
     if not summary["scores"]["runs_tracked"]:

@@ -171,7 +171,9 @@ def test_a_run_that_never_tracks_says_so(tmp_path, detector_weights, capsys):
     errors = json.loads((out / "summary.json").read_text())["scores"]["errors"]
     assert errors["position_m"]["rms_after"] is None and errors["attitude_deg"]["final"] is None
     assert main(["demo", "--duration-s", "3", "--out", str(tmp_path / "demo"), "--quiet"]) == 0  # demo says so too
-    assert "nothing tracked (4 acquiring)" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "nothing tracked (4 acquiring)" in printed
+    assert "weights models/detector.safetensors" in printed, printed  # as its outputs record them: no machine path
 
 
 def test_a_run_config_a_user_builds_is_the_verbs_job(tmp_path, detector_weights):
