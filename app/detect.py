@@ -11,7 +11,7 @@ import json
 from envisat_pose.app.common import add_common, add_skip_damaged_argument, skipped_line
 from envisat_pose.config import InputError, resolve_job_config
 from envisat_pose.out_dirs import check_out_file
-from envisat_pose.pipelines.common.job_defaults import target_weights, weights_file
+from envisat_pose.pipelines.common.job_defaults import target_weights, weights_file, weights_name
 from envisat_pose.pipelines.common.threads import default_torch_threads
 from envisat_pose.pipelines.detector.detect import DetectJobConfig, run_detect
 from envisat_pose.pipelines.detector.detect_target import TargetDetectJobConfig, run_detect_target
@@ -68,7 +68,7 @@ def detector_inputs(args: argparse.Namespace) -> None:
     args.weights = weights_file(target_weights(args.weights or "", target))  # none: the target's own, beside it
     if not os.path.isfile(args.weights):
         raise InputError(f"--weights {args.weights!r}: no such file")
-    check_weights_target(args.weights, target, "--weights")
+    check_weights_target(args.weights, target, "--weights", named=weights_name(args.weights))  # no machine path
     if args.threads is not None and not 1 <= args.threads <= MAX_WORKERS:  # 2^31 or more: a ValueError from torch
         raise InputError(f"--threads {args.threads}: expected 1 to {MAX_WORKERS} threads (as train's, run's)")
     torch.set_num_threads(args.threads or default_torch_threads())

@@ -158,11 +158,12 @@ def trained_for(path: str, meta: dict[str, str]) -> dict | None:
     return record
 
 
-def check_weights_target(path: str, given: str, field: str = "weights") -> None:
-    """InputError (one line naming the weights, their target and `given`) unless the weights at path were trained
-    for the target `given` (a `target` value; DEFAULT_TARGET: ENVISAT): the header only, before any work."""
+def check_weights_target(path: str, given: str, field: str = "weights", named: str | None = None) -> None:
+    """InputError (one line naming the weights, as `named` where given: the user's words for path; their target and
+    `given`) unless the weights at path were trained for the target `given` (a `target` value; DEFAULT_TARGET:
+    ENVISAT): the header only, before any work."""
     meta = read_header(path)
-    require_weights_target(path, trained_for(path, meta), given, field)
+    require_weights_target(named or path, trained_for(path, meta), given, field)
 
 
 def with_metadata(src: str, dst: str, extra: dict, drop: tuple[str, ...] = ()) -> dict[str, str]:

@@ -203,7 +203,7 @@ def check_weights(path: str, target: str = DEFAULT_TARGET) -> None:
         raise InputError(f"weights {path!r}: no such file")
     from envisat_pose.perception.weights import check_weights_target  # torch
 
-    check_weights_target(path, target)
+    check_weights_target(path, target, named=weights_name(path))  # a package file as models/FILE: no machine path
     if other_target(target) is not None:
         from envisat_pose.perception.keypoint_detect import require_calibrated
 

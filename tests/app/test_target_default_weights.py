@@ -127,3 +127,14 @@ def test_a_target_file_that_is_not_there_is_named_before_its_default_weights(tmp
     for verb, flag in (("detect", "--out"), ("evaluate", "--json")):
         refused([verb, "--target", missing, "--data", str(tmp_path), flag, str(tmp_path / "out" / "x")], capsys,
                 str(tmp_path / "out"), "--target", "sat.xml", "no such file")
+
+
+@pytest.mark.parametrize("argv", [["detect", "--data", "DATA", "--out", "OUT/det.npz"], ["run", "--out", "OUT"]])
+def test_envisats_shipped_weights_given_for_another_target_are_named_as_typed(upper_frames, tmp_path, capsys, argv):
+    """`--weights models/detector.safetensors` for the upper stage: refused in one line naming them as typed (it
+    named the package's file by this machine's path)."""
+    out = str(tmp_path / "out")
+    argv = [a.replace("DATA", upper_frames).replace("OUT", out) for a in argv]
+    err = refused(argv[:1] + ["--target", UPPER, "--weights", "models/detector.safetensors"] + argv[1:], capsys, out,
+                  "--weights 'models/detector.safetensors'", "ENVISAT's corner detector")
+    assert os.path.join(os.path.realpath(models_folder()), "detector.safetensors") not in err, err

@@ -87,8 +87,8 @@ def test_the_upper_stage_without_its_calibrated_weights_is_refused(stage, tmp_pa
     refused(track, capsys, out, "--weights ''", "no keypoint detector of its own", "envisat train --target",
             "envisat calibrate --target")
     shipped = default_weights_path()
-    refused(track + ["--weights", shipped], capsys, out, "--weights", shipped, "ENVISAT's corner detector",
-            "target 'upper_stage'")
+    refused(track + ["--weights", shipped], capsys, out, "--weights 'models/detector.safetensors'",  # as recorded
+            "ENVISAT's corner detector", "target 'upper_stage'")
     refused(track + ["--weights", stage["uncalibrated"]], capsys, out, "--weights", stage["uncalibrated"],
             "no calibrated pixel covariance", "envisat calibrate --target")
     refused(["track", "--images", stage["seq"], "--target", str(tmp_path / "none.xml"), "--out", out], capsys, out,
