@@ -117,7 +117,8 @@ def run_montecarlo(args: argparse.Namespace) -> int:
         print(init_error_line(cfg.init_error_scale))
     if args.rrd:  # what write_recording logs (campaign_outputs.py)
         target = (summary.get("target") or {}).get("name", "the target")
+        runs = runs_words(min(cfg.sample_runs, cfg.runs))
         print(f"wrote {args.rrd} (Rerun recording of {target} over {summary['steps']} steps: the truth, run 0's "
-              f"estimate with its 3-sigma ellipsoid, the errors of {runs_words(min(cfg.sample_runs, cfg.runs))} with the "
+              f"estimate with its 3-sigma ellipsoid, the errors of {runs} with the "
               f"campaign's +-3 sigma bands, the mean NEES with its band; open it with `envisat view {args.rrd}`)")
     return 0

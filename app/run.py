@@ -48,8 +48,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    "tracking, only the window the tracker reads, a full frame every `full_frame_every` frames, "
                    "where ENVISAT's array cue reads)")
     p.add_argument("--target", metavar="FILE.xml", help="another spacecraft's MJCF file: MuJoCo renders it and the "
-                   "tracker follows it with its keypoint detector (--weights, trained and calibrated with --target; default: "
-                   "FILE_detector.safetensors beside FILE.xml, as the upper stage's ships)")
+                   "tracker follows it with its keypoint detector (--weights, trained and calibrated with --target; "
+                   "default: FILE_detector.safetensors beside FILE.xml, as the upper stage's ships)")
     add_common(p, config="run config (sections image, filter, tracker; top-level keys)", weights=True,
                seed="root seed (default 0)")
     add_bf16_argument(p)

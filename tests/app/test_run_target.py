@@ -1,8 +1,8 @@
 """`envisat run --target FILE.xml` (issue 56): the closed loop of another target, MuJoCo rendering that target and
 the tracker following it with its keypoint detector; the weights refused in one line, nothing written, where they
-cannot serve (none given where none ships beside the target file, ENVISAT's for another target, another target's, never calibrated). The network here is
-untrained (the plumbing: the frames, the rows of K keypoints, the files); tracking accuracy is the tracker's tests'
-(tests/pipelines/tracking/test_tracker_target.py) and the benchmarks'."""
+cannot serve (none given where none ships beside the target file, ENVISAT's for another target, another target's,
+never calibrated). The network here is untrained (the plumbing: the frames, the rows of K keypoints, the files);
+tracking accuracy is the tracker's tests' (tests/pipelines/tracking/test_tracker_target.py) and the benchmarks'."""
 
 import json
 import os
