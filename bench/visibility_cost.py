@@ -84,9 +84,11 @@ def main(argv=None) -> int:
     p.add_argument("--resolution", type=count(), default=1024)
     p.add_argument("--seed", type=count(0), default=61)
     p.add_argument("--table-only", action="store_true", help="time the visibility table alone")
-    p.add_argument("--out", type=out_file, default=None)
+    p.add_argument("--out", type=out_file, default=results_path("visibility_cost"),
+                   help="results JSON (default visibility_cost.json; with --table-only, visibility_table.json)")
     a = p.parse_args(argv)
-    a.out = a.out or results_path("visibility_table" if a.table_only else "visibility_cost")
+    if a.table_only and a.out == results_path("visibility_cost"):  # the table alone: its own file by default
+        a.out = results_path("visibility_table")
     rows = {}
     given = Target.visible
     for target in TARGETS:
